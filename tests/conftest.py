@@ -1,0 +1,45 @@
+"""Shared fixtures: the real clips in ../shared/data/videos (the bundled copies as fallback)."""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_VIDEOS = ROOT.parent / "shared" / "data" / "videos"
+BUNDLED_VIDEOS = ROOT / "v2v_server" / "sample_videos"
+
+
+def video_dir() -> Path:
+    """Folder of real clips: ../shared/data/videos beside the checkout, else the bundled copies."""
+    return SHARED_VIDEOS if SHARED_VIDEOS.is_dir() else BUNDLED_VIDEOS
+
+
+@functools.lru_cache(maxsize=4)
+def read_luma_clip(name: str = "bikes.mp4", n: int = 60, size=(96, 128)) -> np.ndarray:
+    """First n luma frames of a real clip, resized to size=(H, W), uint8 (n, H, W)."""
+    import av
+    import cv2
+
+    out = []
+    with av.open(str(video_dir() / name)) as c:
+        for f in c.decode(video=0):
+            g = f.to_ndarray(format="gray")
+            out.append(cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA))
+            if len(out) == n:
+                break
+    arr = np.stack(out)
+    arr.setflags(write=False)
+    return arr
+
+
+@pytest.fixture(scope="session")
+def videos() -> Path:
+    return video_dir()
+
+
+@pytest.fixture(scope="session")
+def real_clip() -> np.ndarray:
+    return read_luma_clip()
