@@ -20,7 +20,7 @@ import numpy as np
 
 from .config import ServeConfig
 from .simulate import SensorParams, sample_params, simulate_voxels
-from .video import VideoError, iter_luma, open_video
+from .video import VideoError, inside, iter_luma, open_video
 
 _DIS_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -206,6 +206,8 @@ def video_samples(
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
     path = Path(root) / rel_path
+    if not inside(root, path):
+        raise VideoError("missing, or points outside the corpus root")
     skip = set(skip_windows)
     span = cfg.frames_per_sample
     _, _, info = _probe(path, cfg.decode_threads)
