@@ -1,9 +1,9 @@
 """``V2VStreamDataset``: a torch IterableDataset reading batches from ``v2v-serve``.
 
 Each iterator owns one DEALER connection served by a background I/O thread. The thread
-says ``hello`` (the outputs wanted and the initial credits), receives batches, answers
-heartbeats, and sends an ``ack`` with one new credit for each batch the training loop has
-taken. So the server never has more than ``credits`` batches in flight to this iterator, and
+says ``hello`` (the outputs wanted, the initial credits and the resume state), receives
+batches, sends heartbeats, and sends an ``ack`` with one new credit for each batch as it is
+handed to the training loop. So the server never has more than ``credits`` batches in flight to this iterator, and
 a slow trainer never grows anybody's memory.
 
 Sharing one stream: the server hands every batch to exactly one connection. Each DataLoader
@@ -76,6 +76,7 @@ class _Connection:
         self.endpoint = ds.endpoint
         self.items: "queue.Queue" = queue.Queue()
         self.info: Optional[dict] = None
+        self._reply: Optional[bytes] = None
         self._closing = threading.Event()
         self._ctx = zmq.Context.instance()
         self._ident = uuid.uuid4().bytes
@@ -84,10 +85,24 @@ class _Connection:
         self._ack_recv.bind(self._ack_addr)
         self._ack_send = self._ctx.socket(zmq.PAIR)
         self._ack_send.connect(self._ack_addr)
+        # a batch is either taken by the training loop (and acknowledged) or released back to
+        # the server after its lease expired, never both: the lock makes the choice exclusive
+        self.lock = threading.Lock()
+        self.taken: Set[int] = set()
+        self.revoked: Set[int] = set()
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
     # consumer side -------------------------------------------------------
+    def take(self, batch_id: int) -> bool:
+        """Claim a batch for the training loop and acknowledge it; False if it was released."""
+        with self.lock:
+            if batch_id in self.revoked:
+                return False
+            self.taken.add(batch_id)
+        self.ack(batch_id)
+        return True
+
     def ack(self, batch_id: int) -> None:
         if not self._closing.is_set():
             self._ack_send.send(pack({"type": "ack", "batch_ids": [batch_id], "credit": 1}))
@@ -143,6 +158,9 @@ class _Connection:
                         last_heard = now
                         give_up_at = None
                         verdict = self._on_message(frames)
+                        if self._reply is not None:
+                            sock.send(self._reply)
+                            self._reply = None
                         if verdict == "over":
                             return
                         if verdict == "lost":
@@ -202,6 +220,8 @@ class _Connection:
                 ids = h["sample_ids"]
                 if not isinstance(ids, list) or any(a.shape[:1] != (len(ids),) for a in arrays.values()):
                     raise ProtocolError(f"batch {h.get('batch_id')}: sample ids do not match the arrays")
+                with self.lock:  # a batch we released may come back to us: take it this time
+                    self.revoked.discard(int(h["batch_id"]))
                 item = batch_to_torch(arrays, self.ds.raw)
                 item["sample_ids"] = list(ids)
                 item["params"] = list(h["params"])
@@ -210,6 +230,13 @@ class _Connection:
                 self.items.put(item)
             elif kind == "welcome":
                 self.info = h.get("info", {})
+            elif kind == "revoke":
+                ids = h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else []
+                with self.lock:
+                    released = [b for b in ids if isinstance(b, int) and b not in self.taken]
+                    self.revoked.update(released)
+                if released:
+                    self._reply = pack({"type": "released", "batch_ids": released, "credit": len(released)})
             elif kind == "epoch_done":
                 self.items.put(_EpochDone(int(h["epoch"])))
             elif kind == "end":
@@ -217,6 +244,11 @@ class _Connection:
                 return "over"
             elif kind == "shutdown":
                 return "lost"
+            elif kind == "error" and h.get("code") == "unknown_client" and self.ds.reconnect:
+                # the server restarted behind our socket: introduce ourselves again, with our resume state
+                log.warning("the v2v server at %s restarted; resuming", self.endpoint)
+                self._reply = pack({"type": "hello", "outputs": list(self.ds.outputs), "credits": self.ds.credits,
+                                    "resume": self.ds._resume_state()})
             elif kind == "error":
                 self.items.put(StreamError(f"v2v server at {self.endpoint}: {h.get('message')}"))
                 return "over"
@@ -385,6 +417,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                             del self._delivered[e]
                     continue
                 self.info = conn.info
+                if not conn.take(item["batch_id"]):
+                    continue  # its lease expired while queued here; the server sends it elsewhere
                 epoch = item["epoch"]
                 with self._lock:
                     seen = self._delivered.setdefault(epoch, set())
@@ -392,13 +426,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                     if epoch <= self._completed_epoch:
                         keep = []
                     seen.update(item["sample_ids"][i] for i in keep)
-                if not keep:  # all re-sent duplicates: acknowledge, hand nothing on
-                    conn.ack(item["batch_id"])
+                if not keep:  # all re-sent duplicates: hand nothing on
                     continue
                 if len(keep) < len(item["sample_ids"]):
                     item = _select(item, keep)
                 yield item
-                conn.ack(item["batch_id"])
         finally:
             conn.close()
             if conn in self._conns:

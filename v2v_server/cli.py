@@ -40,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--flow-preset", choices=FLOW_PRESETS, help="OpenCV DIS preset (default medium)")
     p.add_argument("--flow-dtype", choices=("float16", "float32"), help="wire dtype of flow (default float16)")
     p.add_argument("--lease", type=float, dest="lease_s", help="seconds before an unacknowledged batch is re-sent")
+    p.add_argument("--client-timeout", type=float, dest="client_timeout_s",
+                   help="seconds of client silence before its batches go back to the queue (default 10)")
     p.add_argument("--curve-secret-key", help="CurveZMQ: server secret key file (v2v-keygen)")
     p.add_argument("--curve-allow", help="CurveZMQ: folder of allowed client public key files")
     p.add_argument("--insecure", action="store_true", default=None,
@@ -55,7 +57,7 @@ def config_from_args(args: argparse.Namespace):
     overrides = {k: getattr(args, k) for k in (
         "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
         "frames_per_bin", "crop_size", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s",
-        "curve_secret_key", "curve_allow", "insecure")}
+        "client_timeout_s", "curve_secret_key", "curve_allow", "insecure")}
     return load_config(args.config, overrides)
 
 

@@ -30,8 +30,8 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
             if out["frames"] >= need:
                 out["more"] = True  # enough for every window: stop decoding
                 break
-    except VideoError as e:
-        out["reason"] = str(e)
+    except Exception as e:  # report every failure as a verdict; one bad file never stops the check
+        out["reason"] = str(e) if isinstance(e, VideoError) else f"{type(e).__name__}: {e}"
         if out["frames"] == 0:
             return out
     out["windows"] = min(cfg.max_samples_per_video, out["frames"] // cfg.frames_per_sample)

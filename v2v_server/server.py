@@ -65,6 +65,7 @@ class Batch:
     meta: List[dict]
     arrays: Dict[str, np.ndarray]
     nbytes: int = 0
+    avoid: Optional[bytes] = None  # the client that gave it back: prefer another one
 
 
 @dataclass
@@ -426,8 +427,10 @@ class V2VServer:
             eligible = [c for c in self.clients.values() if c.credits > 0]
             if not eligible:
                 return
-            c = max(eligible, key=lambda x: x.credits)  # spread batches over the clients
-            b = self.ready.popleft()
+            b = self.ready[0]
+            # spread batches over the clients; a batch given back goes elsewhere when it can
+            c = max(eligible, key=lambda x: (x.ident != b.avoid, x.credits))
+            self.ready.popleft()
             arrays = {k: v for k, v in b.arrays.items() if k in c.outputs}
             specs, frames = encode_arrays(arrays)
             header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch, "sample_ids": b.sample_ids,
@@ -458,7 +461,12 @@ class V2VServer:
     def _expire(self, now: float) -> None:
         for bid, (ident, deadline) in list(self.inflight.items()):
             if now > deadline:
-                self._requeue(bid, f"lease of {self.cfg.lease_s:.0f} s expired")
+                # ask the client to give it back; it answers "released" unless its training loop
+                # already took the batch (then its ack is on the way). A silent client is dropped
+                # below, which re-queues everything it held.
+                self.inflight[bid] = (ident, float("inf"))
+                log.info("lease of batch %d expired at client %s; asking for it back", bid, ident.hex())
+                self._send_client(ident, {"type": "revoke", "batch_ids": [bid]})
         for ident, c in list(self.clients.items()):
             if now - c.last_seen > self.cfg.client_timeout_s:
                 log.warning("client %s silent for %.0f s; dropping it", ident.hex(), now - c.last_seen)
@@ -587,7 +595,9 @@ class V2VServer:
             self._on_hello(ident, h, now)
             return
         if c is None:
-            self._send_client(ident, {"type": "error", "message": "say hello first"})
+            # e.g. a client of a previous run of this server, reconnected by ZeroMQ on its own
+            self._send_client(ident, {"type": "error", "code": "unknown_client",
+                                      "message": "unknown client (this server may have restarted): say hello first"})
             return
         c.last_seen = now
         if kind == "ack":
@@ -599,6 +609,14 @@ class V2VServer:
                     if b is not None:
                         self.epochs[b.epoch].unacked.discard(bid)
                         self.stats.batches_acked += 1
+            c.credits += self._credit(h.get("credit", 0))
+        elif kind == "released":
+            ids = h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else []
+            for bid in ids:
+                if self.inflight.get(bid, (None,))[0] == ident:
+                    self._requeue(bid, "its lease expired and the client released it")
+                    if bid in self.batches:
+                        self.batches[bid].avoid = ident
             c.credits += self._credit(h.get("credit", 0))
         elif kind == "credit":
             c.credits += self._credit(h.get("credit", 0))

@@ -48,6 +48,11 @@ def open_video(path: Path, threads: int = 1):
     import av
 
     try:
+        if Path(path).stat().st_size == 0:
+            raise VideoError("empty file (0 bytes)")
+    except OSError as e:
+        raise VideoError(f"cannot read: {e.strerror or e}") from None
+    try:
         container = av.open(str(path), mode="r")
     except Exception as e:  # av raises many error types (InvalidDataError, OSError...)
         raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
@@ -55,6 +60,10 @@ def open_video(path: Path, threads: int = 1):
         container.close()
         raise VideoError("no video stream")
     stream = container.streams.video[0]
+    if stream.codec_context is None:
+        tag = getattr(stream, "codec_tag", "") or "?"
+        container.close()
+        raise VideoError(f"unsupported codec (tag {tag!r}): no decoder")
     stream.thread_type = "AUTO" if threads > 1 else "SLICE"
     stream.codec_context.thread_count = threads
     cc = stream.codec_context
