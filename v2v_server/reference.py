@@ -101,9 +101,6 @@ def _to_u8(frame: np.ndarray) -> np.ndarray:
     return frame if frame.dtype == np.uint8 else (frame >> 8).astype(np.uint8)
 
 
-_DIS = {}
-
-
 def dis_flow(a: np.ndarray, b: np.ndarray, preset: str = "medium") -> np.ndarray:
     """Dense optical flow from frame ``a`` to frame ``b`` with OpenCV DIS.
 
@@ -121,9 +118,9 @@ def dis_flow(a: np.ndarray, b: np.ndarray, preset: str = "medium") -> np.ndarray
 
     if preset not in DIS_PRESETS:
         raise ValueError(f"flow preset must be one of {sorted(DIS_PRESETS)}, got {preset!r}")
-    if preset not in _DIS:
-        _DIS[preset] = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
-    return _DIS[preset].calc(_to_u8(a), _to_u8(b), None)
+    # A fresh object per call (~70 us): a reused DIS instance returns different flow on
+    # its second call for the same input (OpenCV 5.0), which would break reproducibility.
+    return cv2.DISOpticalFlow_create(DIS_PRESETS[preset]).calc(_to_u8(a), _to_u8(b), None)
 
 
 def _warp(img: np.ndarray, flow: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -176,8 +173,8 @@ def interpolate_pair(
     if flow01 is None or flow10 is None:
         raise ValueError("motion interpolation needs flow01 and flow10")
     grid = _grid(*l0.shape)
-    a = l0.astype(np.float32)
-    b = l1.astype(np.float32)
+    a = np.ascontiguousarray(l0, dtype=np.float64)
+    b = np.ascontiguousarray(l1, dtype=np.float64)
     for j, t in enumerate(ts.tolist()):
         if t <= 0.0:
             out[j] = l0
