@@ -39,6 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--outputs", help=f"comma list of outputs clients may ask for, from {','.join(ALL_OUTPUTS)}")
     p.add_argument("--flow-preset", choices=FLOW_PRESETS, help="OpenCV DIS preset (default medium)")
     p.add_argument("--flow-dtype", choices=("float16", "float32"), help="wire dtype of flow (default float16)")
+    p.add_argument("--refine", help="off | uniform:K | adaptive:PX | adaptive-dl:L: insert sub-frames where motion "
+                                    "needs them (docs/fidelity.md); default off")
     p.add_argument("--lease", type=float, dest="lease_s", help="seconds before an unacknowledged batch is re-sent")
     p.add_argument("--client-timeout", type=float, dest="client_timeout_s",
                    help="seconds of client silence before its batches go back to the queue (default 10)")
@@ -56,7 +58,7 @@ def config_from_args(args: argparse.Namespace):
     """Merge defaults, ``--config`` and flags into a validated ``ServeConfig``."""
     overrides = {k: getattr(args, k) for k in (
         "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
-        "frames_per_bin", "crop_size", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s",
+        "frames_per_bin", "crop_size", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
         "client_timeout_s", "curve_secret_key", "curve_allow", "insecure")}
     return load_config(args.config, overrides)
 

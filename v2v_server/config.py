@@ -65,6 +65,11 @@ class ServeConfig:
     client_timeout_s: float = 10.0
     #: batches the server keeps assembled ahead of the clients' credits
     prefetch_batches: int = 2
+    #: refinement of frame pairs whose motion needs it: off | uniform:K | adaptive:λ_px | adaptive-dl:λ
+    #: (see v2v_server/refine.py and docs/fidelity.md); recorded in each sample's params
+    refine: str = "off"
+    #: optional sensor non-idealities, all off by default (see v2v_server/nonideal.py)
+    nonidealities: dict = field(default_factory=dict)
     #: CurveZMQ: the server's secret key file (from ``v2v-keygen``)
     curve_secret_key: Optional[str] = None
     #: CurveZMQ: folder of allowed client public key files (``*.key``)
@@ -130,6 +135,19 @@ class ServeConfig:
             self.ranges = ParamRanges.from_dict(self.ranges)
         if not isinstance(self.bind, str) or "://" not in self.bind:
             raise ValueError(f"bind must be a ZeroMQ endpoint like tcp://127.0.0.1:5555, got {self.bind!r}")
+        from .nonideal import NonIdealities
+        from .refine import parse_refine
+
+        spec = parse_refine(self.refine)
+        self.refine = str(spec)
+        try:
+            ni = NonIdealities.from_dict(self.nonidealities or None)
+        except ValueError as e:
+            raise ValueError(f"nonidealities: {e}") from None
+        self.nonidealities = ni.to_dict() if ni.enabled else {}
+        if ni.enabled and spec.mode != "off":
+            raise ValueError("refine must be off when nonidealities are switched on (the non-ideal path "
+                             "simulates plain frame pairs)")
         if self.crop_size > 4096:
             raise ValueError(f"crop_size must be <= 4096 pixels, got {self.crop_size}")
         if (self.curve_secret_key is None) != (self.curve_allow is None):
