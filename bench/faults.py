@@ -131,7 +131,7 @@ def scenario_worker_kill(tmp: Path, layout: Layout, kills: int = 3, copies: int 
                     return
                 os.kill(rng.choice(pids), signal.SIGKILL)
                 kill_times.append(time.monotonic())
-                time.sleep(0.8)
+                time.sleep(0.5)
 
         th = threading.Thread(target=killer, daemon=True)
         th.start()
@@ -386,7 +386,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     rows = []
     for name in a.only or list(SCENARIOS):
         with tempfile.TemporaryDirectory(prefix=f"v2v-{name}-") as d:
-            kw = {"kills": a.kills} if name == "worker_kill" else {}
+            kw = {"kills": a.kills, "copies": 6} if name == "worker_kill" else {}
             t = time.monotonic()
             r = SCENARIOS[name](Path(d), layout, **kw)
             r["notes"] += f"; {time.monotonic() - t:.0f} s"
