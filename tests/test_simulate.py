@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from v2v_server.simulate import SensorParams, ParamRanges, sample_params, simulate_voxels
-from tests.conftest import read_luma_clip
 
 
 def reference_v2v(frames, cp, cn, num_bins, potential0, noise=None, hot=None):

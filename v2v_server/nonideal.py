@@ -50,7 +50,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .simulate import SensorParams, _lut, simulate_voxels
+from .simulate import SensorParams, _lut, simulate_voxels, start_state
 
 __all__ = ["NonIdealities", "PixelState", "draw_pixel_state", "effective_noise", "simulate_voxels_nonideal"]
 
@@ -236,15 +236,7 @@ def simulate_voxels_nonideal(
     if hot is not None and hot.shape != (h, w):
         raise ValueError(f"hot_pixels has shape {hot.shape}, frames are {(h, w)}")
     dtype = np.dtype(compute_dtype)
-    rng = np.random.default_rng() if rng is None else rng
-    cp0, cn0 = params.pos_threshold, params.neg_threshold
-    if initial_potential is None:
-        potential = rng.uniform(-cn0, cp0, size=(h, w)).astype(dtype)
-    else:
-        initial_potential = np.asarray(initial_potential)
-        if initial_potential.shape != (h, w):
-            raise ValueError(f"initial_potential has shape {initial_potential.shape}, frames are {(h, w)}")
-        potential = initial_potential.astype(dtype, copy=True)
+    rng, potential = start_state(params, (h, w), initial_potential, rng, dtype)
     st = pixel_state if pixel_state is not None else draw_pixel_state(nonideal, params, (h, w), rng)
     if st.pos_threshold.shape != (h, w):
         raise ValueError(f"pixel_state has shape {st.pos_threshold.shape}, frames are {(h, w)}")

@@ -30,7 +30,7 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 
 from .reference import DIS_PRESETS, dis_flow, interpolate_pair
-from .simulate import SensorParams, _lut, simulate_voxels
+from .simulate import SensorParams, _lut, simulate_voxels, start_state
 
 __all__ = ["RefineSpec", "parse_refine", "plan_subframes", "refine_frames", "simulate_voxels_refined"]
 
@@ -245,19 +245,9 @@ def simulate_voxels_refined(
                     initial_potential=np.zeros((1, 1)), compute_dtype=compute_dtype)
     n, h, w = frames.shape
     hot = params.hot_pixels
-    if hot is not None and hot.shape != (h, w):
-        raise ValueError(f"hot_pixels has shape {hot.shape}, frames are {(h, w)}")
     dtype = np.dtype(compute_dtype)
-    if rng is None:
-        rng = np.random.default_rng()
+    rng, potential = start_state(params, (h, w), initial_potential, rng, dtype)
     cp, cn = params.pos_threshold, params.neg_threshold
-    if initial_potential is None:
-        potential = rng.uniform(-cn, cp, size=(h, w)).astype(dtype)
-    else:
-        initial_potential = np.asarray(initial_potential)
-        if initial_potential.shape != (h, w):
-            raise ValueError(f"initial_potential has shape {initial_potential.shape}, frames are {(h, w)}")
-        potential = initial_potential.astype(dtype, copy=True)
     logs, info = refine_frames(frames, spec, flow_fn, compute_dtype=dtype)
     ks = info["subframes"]
     voxels = np.empty((n - 1, h, w), np.int32)

@@ -200,6 +200,29 @@ def _lut(full_scale: int, dtype) -> np.ndarray:
     return _LUTS[key]
 
 
+def start_state(params: SensorParams, shape: Tuple[int, int], initial_potential=None,
+                rng: Optional[np.random.Generator] = None, dtype=np.float32):
+    """Check ``params.hot_pixels`` against ``shape`` and return ``(rng, potential)``: the
+    generator to use (a fresh one when ``None``) and dL_hat(t_0) as a ``dtype`` (H, W) copy,
+    drawn from U[-c-, c+] when ``initial_potential`` is None (log-intensity units).
+
+    Raises:
+        ValueError: a hot-pixel map or initial potential whose shape is not ``shape``.
+    """
+    h, w = shape
+    hot = params.hot_pixels
+    if hot is not None and hot.shape != (h, w):
+        raise ValueError(f"hot_pixels has shape {hot.shape}, frames are {(h, w)}")
+    if rng is None:
+        rng = np.random.default_rng()
+    if initial_potential is None:
+        return rng, rng.uniform(-params.neg_threshold, params.pos_threshold, size=(h, w)).astype(dtype)
+    initial_potential = np.asarray(initial_potential)
+    if initial_potential.shape != (h, w):
+        raise ValueError(f"initial_potential has shape {initial_potential.shape}, frames are {(h, w)}")
+    return rng, initial_potential.astype(dtype, copy=True)
+
+
 def simulate_voxels(
     frames: np.ndarray,
     params: SensorParams,
@@ -266,18 +289,8 @@ def simulate_voxels(
     if dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
         raise ValueError(f"compute_dtype must be float32 or float64, got {dtype}")
     hot = params.hot_pixels
-    if hot is not None and hot.shape != (h, w):
-        raise ValueError(f"hot_pixels has shape {hot.shape}, frames are {(h, w)}")
-    if rng is None:
-        rng = np.random.default_rng()
+    rng, potential = start_state(params, (h, w), initial_potential, rng, dtype)
     cp, cn = params.pos_threshold, params.neg_threshold
-    if initial_potential is None:
-        potential = rng.uniform(-cn, cp, size=(h, w)).astype(dtype)
-    else:
-        initial_potential = np.asarray(initial_potential)
-        if initial_potential.shape != (h, w):
-            raise ValueError(f"initial_potential has shape {initial_potential.shape}, frames are {(h, w)}")
-        potential = initial_potential.astype(dtype, copy=True)
     sigma = params.noise_std
     lut = _lut(full_scale, dtype)
     # Overflow guard: int32 counts must never wrap. Without noise |dL| is bounded by the

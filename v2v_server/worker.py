@@ -14,7 +14,6 @@ import signal
 import sys
 from pathlib import Path
 
-import numpy as np
 import zmq
 
 from .config import ServeConfig
