@@ -13,6 +13,7 @@ from bench import faults
 from bench.faults import Layout
 from v2v_client import StreamError, V2VStreamDataset
 from v2v_server.process import ServeProcess
+from v2v_server.protocol import pack
 
 LAYOUT = Layout(L=4, crop=64, windows=2, batch=2)
 
@@ -135,3 +136,50 @@ def _alive(pid: int) -> bool:
             return f.read().split()[2] != "Z"
     except OSError:
         return False
+
+
+BAD_REPLIES = {
+    "not msgpack": [b"\xc1garbage"],
+    "no version": [b"\x81\xa4type\xa5batch"],
+    "wrong version": [pack({"type": "batch", "v": 7})],
+    "truncated array": [pack({"type": "batch", "batch_id": 0, "epoch": 0, "sample_ids": ["a#0"], "params": [{}],
+                              "arrays": [{"name": "voxels", "dtype": "int8", "shape": [1, 2, 2]}]}), b"\x00"],
+    "ids do not match arrays": [pack({"type": "batch", "batch_id": 0, "epoch": 0, "sample_ids": ["a#0", "a#1"],
+                                      "params": [{}, {}],
+                                      "arrays": [{"name": "voxels", "dtype": "int8", "shape": [1, 1]}]}), b"\x00"],
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_REPLIES))
+def test_client_survives_a_misbehaving_server(name):
+    """A server that answers garbage gives the trainer a clear StreamError, never a crash or hang."""
+    import threading
+
+    import zmq
+
+    from v2v_server.process import free_port
+
+    ctx = zmq.Context()
+    srv = ctx.socket(zmq.ROUTER)
+    srv.setsockopt(zmq.LINGER, 0)
+    port = free_port()
+    srv.bind(f"tcp://127.0.0.1:{port}")
+    it = iter(V2VStreamDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), timeout_s=10))
+    result = {}
+
+    def consume():
+        try:
+            next(it)
+        except Exception as e:  # noqa: BLE001 - the test inspects it
+            result["error"] = e
+
+    th = threading.Thread(target=consume)
+    th.start()
+    assert srv.poll(5000)
+    ident, _hello = srv.recv_multipart()
+    srv.send_multipart([ident, *BAD_REPLIES[name]])
+    th.join(20)
+    assert not th.is_alive()
+    assert isinstance(result.get("error"), StreamError) and "bad message" in str(result["error"])
+    srv.close()
+    ctx.term()
