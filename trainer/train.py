@@ -137,7 +137,7 @@ class Trainer:
         loss = float(self.cfg["loss"]["flow_l1_weight"]) * l1
         with torch.no_grad():
             aee = torch.linalg.vector_norm(pred - gt, dim=1).mean()
-        return loss, {"flow_l1": float(l1), "aee": float(aee)}, pred.detach().view(n, L, *pred.shape[1:])
+        return loss, {"flow_l1": float(l1.detach()), "aee": float(aee)}, pred.detach().view(n, L, *pred.shape[1:])
 
     def _check_batch(self, b: dict):
         nb = self.cfg["model"]["num_bins"]
