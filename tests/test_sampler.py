@@ -1,0 +1,168 @@
+"""Samples: determinism, outputs computed only on request, pauses, crops, config and wire helpers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from v2v_server import sampler as sampler_mod
+from v2v_server.config import ServeConfig, load_config
+from v2v_server.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
+from v2v_server.sampler import pause_offsets, sample_rng, video_samples
+
+
+def small_cfg(**kw):
+    base = dict(sequence_length=4, num_bins=5, crop_size=64, max_samples_per_video=3, seed=3)
+    base.update(kw)
+    return ServeConfig(**base).validate()
+
+
+def collect(cfg, videos, name, epoch=0, outputs=("voxels", "frames", "flow"), skip=()):
+    return {sid: arr for sid, arr, _ in video_samples(cfg, videos, name, epoch, outputs, skip)}
+
+
+def test_content_depends_only_on_seed_epoch_and_sample_id(videos):
+    cfg = small_cfg()
+    a = collect(cfg, videos, "bikes.mp4")
+    assert list(a) == ["bikes.mp4#0", "bikes.mp4#1", "bikes.mp4#2"]
+    # the same sample made alone (its neighbours skipped, as a replacement worker does)
+    b = collect(cfg, videos, "bikes.mp4", skip={0, 2})
+    assert list(b) == ["bikes.mp4#1"]
+    for k in a["bikes.mp4#1"]:
+        np.testing.assert_array_equal(a["bikes.mp4#1"][k], b["bikes.mp4#1"][k])
+    c = collect(cfg, videos, "bikes.mp4", epoch=1)
+    assert not np.array_equal(a["bikes.mp4#0"]["voxels"], c["bikes.mp4#0"]["voxels"])
+    d = collect(small_cfg(seed=4), videos, "bikes.mp4")
+    assert not np.array_equal(a["bikes.mp4#0"]["voxels"], d["bikes.mp4#0"]["voxels"])
+
+
+def test_only_requested_outputs_are_computed(videos, monkeypatch):
+    calls = {"flow": 0, "sim": 0}
+
+    class NoFlow:
+        def __init__(self, *a, **k):
+            calls["flow"] += 1
+
+        def __call__(self, a, b):
+            calls["flow"] += 1
+            return np.zeros((2,) + a.shape, np.float32)
+
+    real_sim = sampler_mod.simulate_voxels
+
+    def counting_sim(*a, **k):
+        calls["sim"] += 1
+        return real_sim(*a, **k)
+
+    monkeypatch.setattr(sampler_mod, "FlowEstimator", NoFlow)
+    monkeypatch.setattr(sampler_mod, "simulate_voxels", counting_sim)
+    out = collect(small_cfg(), videos, "bikes.mp4", outputs=("voxels",))
+    assert all(set(v) == {"voxels"} for v in out.values())
+    assert calls == {"flow": 0, "sim": 3}
+    out = collect(small_cfg(), videos, "bikes.mp4", outputs=("frames",))
+    assert all(set(v) == {"frames"} for v in out.values())
+    assert calls == {"flow": 0, "sim": 3}
+
+
+def test_frames_are_voxel_boundaries_and_flow_aligns(videos):
+    cfg = small_cfg(pause_enabled=False, hflip_prob=0.0)
+    (sid, arr), = list(collect(cfg, videos, "webvid_like_596x336.mp4").items())[:1]
+    assert arr["frames"].shape == (5, 64, 64) and arr["frames"].dtype == np.uint8
+    assert arr["voxels"].shape == (4, 5, 64, 64)
+    assert arr["flow"].shape == (4, 2, 64, 64) and arr["flow"].dtype == np.float32
+    # warping frame l+1 back with the flow must explain frame l better than no motion does
+    import cv2
+
+    f0, f1 = arr["frames"][1].astype(np.float32), arr["frames"][2].astype(np.float32)
+    fl = arr["flow"][1]
+    yy, xx = np.mgrid[0:64, 0:64].astype(np.float32)
+    warped = cv2.remap(f1, xx + fl[0], yy + fl[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    inner = (slice(8, -8), slice(8, -8))
+    assert np.abs(warped - f0)[inner].mean() < np.abs(f1 - f0)[inner].mean()
+
+
+def test_pause_chain_statistics():
+    rng = np.random.default_rng(0)
+    offs = [pause_offsets(rng, 201, 0.0102, 0.9791) for _ in range(300)]
+    for o in offs:
+        assert o[0] == 0 and np.all(np.diff(o) >= 0) and np.all(np.diff(o) <= 1)
+    paused_steps = np.mean([200 - o[-1] for o in offs])
+    # stationary share of paused steps: p_run / (p_run + 1 - p_paused) ~ 0.33 of steps
+    assert 30 < paused_steps < 100
+    none = pause_offsets(rng, 201, 0.0, 0.0)
+    np.testing.assert_array_equal(none, np.arange(201))
+
+
+def test_sample_rng_is_stable_across_processes():
+    # blake2b of the id, not Python's salted hash(): the same numbers in every process
+    import os
+    import subprocess
+    import sys
+
+    code = "from v2v_server.sampler import sample_rng; print(sample_rng(5, 2, 'x/a.mp4#3').integers(0, 2**62))"
+    outs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60,
+                           env=dict(os.environ, PYTHONHASHSEED=str(h))).stdout.strip() for h in (1, 2)}
+    assert outs == {str(sample_rng(5, 2, "x/a.mp4#3").integers(0, 2**62))}
+    assert sample_rng(5, 2, "x/a.mp4#4").integers(0, 2**62) != int(outs.pop())
+
+
+def test_small_video_is_scaled_up_not_rejected(tmp_path):
+    import av
+
+    path = tmp_path / "tiny.mp4"
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("mpeg4", rate=25)
+        s.width, s.height, s.pix_fmt = 80, 48, "yuv420p"
+        for i in range(25):
+            img = np.zeros((48, 80, 3), np.uint8)
+            img[:, (i * 2) % 80:(i * 2) % 80 + 10] = 255
+            for p in s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    cfg = small_cfg(sequence_length=2, crop_size=64)  # span 11 frames; kept region is 80 x 25
+    out = list(video_samples(cfg, tmp_path, "tiny.mp4", 0, ("voxels", "frames")))
+    assert len(out) == 2
+    sid, arr, meta = out[0]
+    assert arr["frames"].shape == (3, 64, 64) and meta["scale"] >= 64 / 25
+
+
+def test_config_yaml_and_flags(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("num_bins: 3\nsequence_length: 7\nranges:\n  threshold: [0.1, 0.2]\noutputs: [voxels, flow]\n")
+    cfg = load_config(str(p), {"sequence_length": 9, "batch_size": None})
+    assert (cfg.num_bins, cfg.sequence_length, cfg.batch_size) == (3, 9, 12)
+    assert cfg.ranges.threshold == (0.1, 0.2) and cfg.outputs == ("voxels", "flow")
+    assert cfg.frames_per_sample == 9 * 3 + 1
+    for text, field in [("num_bins: 0\n", "num_bins"), ("crop_size: -5\n", "crop_size"),
+                        ("ranges:\n  threshold: [-1, 2]\n", "threshold"), ("outputs: [events]\n", "outputs"),
+                        ("hflip_prob: 2\n", "hflip_prob"), ("flow_preset: slow\n", "flow_preset"),
+                        ("bogus_key: 1\n", "bogus_key"), ("ranges:\n  thresh: [1, 2]\n", "thresh")]:
+        p.write_text(text)
+        with pytest.raises(ValueError, match=field) as e:
+            load_config(str(p))
+        assert str(p) in str(e.value)
+    p.write_text("a: [unclosed\n")
+    with pytest.raises(ValueError, match="not valid YAML"):
+        load_config(str(p))
+
+
+def test_wire_dtypes_and_roundtrip():
+    assert narrow_int_dtype(np.array([-128, 127])) == np.int8
+    assert narrow_int_dtype(np.array([-129, 5])) == np.int16
+    assert narrow_int_dtype(np.array([40000])) == np.int32
+    with pytest.raises(OverflowError):
+        narrow_int_dtype(np.array([2**40]))
+    arrays = {"voxels": np.arange(-6, 6, dtype=np.int8).reshape(3, 4), "flow": np.ones((2, 2), np.float16)}
+    specs, frames = encode_arrays(arrays)
+    back = decode_arrays(specs, [f.tobytes() for f in frames])
+    for k in arrays:
+        np.testing.assert_array_equal(back[k], arrays[k])
+    with pytest.raises(ProtocolError):
+        decode_arrays(specs, [frames[0].tobytes(), b"\x00"])  # size mismatch
+    with pytest.raises(ProtocolError):
+        decode_arrays([{"name": "x", "dtype": "object", "shape": [1]}], [b"\x00" * 8])
+    with pytest.raises(ProtocolError):
+        encode_arrays({"x": np.zeros(2, np.float64)})
+    assert unpack(pack({"type": "hello"}))["type"] == "hello"
+    for bad in (b"\xc1", pack({"type": "hello", "v": 99}), b"\x93\x01\x02\x03", b"x" * (2 << 20)):
+        with pytest.raises(ProtocolError):
+            unpack(bad)

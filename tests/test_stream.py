@@ -1,0 +1,180 @@
+"""End to end: a real v2v-serve on 127.0.0.1 with 2 workers on the real clips, read through
+V2VStreamDataset. Every test is bounded in time and stops what it starts."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+import zmq
+
+from v2v_client import StreamTimeout, V2VStreamDataset
+from v2v_server.process import ServeProcess, free_port
+from v2v_server.protocol import decode_arrays, pack, unpack
+from v2v_server.sampler import count_frames
+from v2v_server.video import find_videos
+
+
+
+L, B, CROP, MAXW = 8, 5, 96, 3
+SPAN = L * B + 1
+
+
+def expected_ids(videos):
+    ids = set()
+    for rel in find_videos(videos, (".mp4",)):
+        n = min(MAXW, count_frames(videos / rel) // SPAN)
+        ids.update(f"{rel.as_posix()}#{k}" for k in range(n))
+    return ids
+
+
+def serve_args(videos, *extra):
+    return ["--videos", str(videos), "--workers", "2", "--sequence-length", str(L), "--num-bins", str(B),
+            "--crop-size", str(CROP), "--max-samples-per-video", str(MAXW), "--seed", "7", *extra]
+
+
+def test_one_epoch_delivers_every_sample_once_with_correct_layout(videos):
+    want = expected_ids(videos)
+    assert len(want) >= 6  # bikes, bigbuckbunny and webvid_like each give windows at L = 8
+    with ServeProcess(serve_args(videos, "--epochs", "1", "--batch-size", "4")) as srv:
+        ds = V2VStreamDataset(srv.endpoint, timeout_s=60)
+        seen, batches = [], []
+        for b in ds:
+            batches.append(b)
+            seen.extend(b["sample_ids"])
+        assert srv.wait(30) == 0  # the server ends by itself after --epochs 1
+    assert sorted(seen) == sorted(want)  # every id of the epoch, exactly once
+    assert all(b["epoch"] == 0 for b in batches)
+    assert all(len(b["sample_ids"]) <= 4 for b in batches)
+    for b in batches:
+        n = len(b["sample_ids"])
+        v, f, fl = b["voxels"], b["frames"], b["flow"]
+        assert v.shape == (n, L, B, CROP, CROP) and v.dtype == torch.float32
+        assert f.shape == (n, L + 1, 1, CROP, CROP) and f.dtype == torch.float32
+        assert fl.shape == (n, L, 2, CROP, CROP) and fl.dtype == torch.float32
+        assert torch.equal(v, v.round())  # signed event counts
+        assert v.abs().sum() > 0 and (v > 0).any() and (v < 0).any()
+        assert 0.0 <= f.min() and f.max() <= 1.0 and f.std() > 0.01
+        assert torch.isfinite(fl).all() and fl.abs().max() < CROP
+        for p in b["params"]:
+            assert p["pos_threshold"] > 0 and p["neg_threshold"] > 0
+            ratio = max(p["pos_threshold"], p["neg_threshold"]) / min(p["pos_threshold"], p["neg_threshold"])
+            assert 0.05 <= min(p["pos_threshold"], p["neg_threshold"]) <= 2.0 and ratio <= 1.5 + 1e-9
+            assert 0 <= p["noise_std"] <= 0.1
+
+
+def test_voxels_only_client_gets_no_flow_and_frames(videos):
+    with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
+        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        it = iter(ds)
+        b = next(it)
+        it.close()
+        assert set(k for k in b if isinstance(b[k], torch.Tensor)) == {"voxels"}
+        assert "flow" not in b and "frames" not in b
+        time.sleep(0.3)
+        assert "first client asks for ['voxels']" in srv.log
+
+
+def test_absent_server_is_a_clear_error_not_a_hang():
+    ds = V2VStreamDataset(f"tcp://127.0.0.1:{free_port()}", timeout_s=1.5)
+    t = time.monotonic()
+    with pytest.raises(StreamTimeout, match="is v2v-serve running"):
+        next(iter(ds))
+    assert time.monotonic() - t < 10
+
+
+def test_server_killed_mid_stream_gives_error_after_timeout(videos):
+    srv = ServeProcess(serve_args(videos, "--batch-size", "2")).start()
+    try:
+        ds = V2VStreamDataset(srv.endpoint, timeout_s=2.0, credits=1)
+        it = iter(ds)
+        next(it)
+        srv.proc.kill()
+        t = time.monotonic()
+        with pytest.raises(StreamTimeout):
+            for _ in range(100):
+                next(it)
+        assert time.monotonic() - t < 15
+    finally:
+        srv.stop()
+
+
+def test_credits_bound_batches_in_flight(videos):
+    """A raw client granting 1 credit and never acknowledging gets exactly 1 batch."""
+    with ServeProcess(serve_args(videos, "--batch-size", "1")) as srv:
+        ctx = zmq.Context()
+        s = ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.LINGER, 0)
+        s.connect(srv.endpoint)
+        s.send(pack({"type": "hello", "outputs": ["voxels"], "credits": 1}))
+        got = []
+        deadline = time.monotonic() + 8
+        while time.monotonic() < deadline:
+            if s.poll(200):
+                fr = s.recv_multipart()
+                h = unpack(fr[0])
+                if h["type"] == "batch":
+                    got.append(h)
+                    arr = decode_arrays(h["arrays"], fr[1:])
+                    assert arr["voxels"].dtype in (np.int8, np.int16)  # narrowest wire dtype
+            s.send(pack({"type": "heartbeat"}))
+        assert len(got) == 1
+        s.send(pack({"type": "ack", "batch_ids": [got[0]["batch_id"]], "credit": 2}))
+        deadline = time.monotonic() + 30
+        while len(got) < 3 and time.monotonic() < deadline:
+            if s.poll(200):
+                h = unpack(s.recv_multipart()[0])
+                if h["type"] == "batch":
+                    got.append(h)
+        assert len(got) == 3
+        s.close()
+        ctx.term()
+
+
+def test_dataloader_with_pin_memory(videos):
+    with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
+        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60)
+        with pytest.warns(UserWarning) if not torch.cuda.is_available() else _nullcontext():
+            dl = torch.utils.data.DataLoader(ds, batch_size=None, pin_memory=True)
+            it = iter(dl)
+            b = next(it)
+        assert b["voxels"].shape[1:] == (L, B, CROP, CROP)
+        assert isinstance(b["sample_ids"], list)
+        del it
+
+
+def test_loadtest_cli_reports_json(videos):
+    with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
+        out = subprocess.run([sys.executable, "-m", "v2v_client.loadtest", "--connect", srv.endpoint,
+                              "--batches", "3", "--json", "--outputs", "voxels,frames"],
+                             capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    for k in ("batches", "samples", "unique_samples", "seconds", "batches_per_s", "samples_per_s",
+              "mbytes_per_s", "wait_fraction"):
+        assert k in r
+    assert r["batches"] == 3 and r["samples"] == 6 and r["batches_per_s"] > 0 and 0 <= r["wait_fraction"] <= 1
+
+
+def test_bad_config_fails_at_startup_naming_field(tmp_path, videos):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("num_bins: 0\n")
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--config", str(cfg), "--videos", str(videos)],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "num_bins" in out.stderr and str(cfg) in out.stderr
+    cfg.write_text("sequence_lenght: 10\n")
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--config", str(cfg)],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "sequence_lenght" in out.stderr
+
+
+class _nullcontext:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        return False

@@ -1,0 +1,98 @@
+"""``v2v-loadtest``: measure what a v2v server delivers through ``V2VStreamDataset``."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from typing import List, Optional
+
+from .dataset import V2VStreamDataset
+
+
+def run_loadtest(endpoint: str, batches: int, outputs=("voxels", "frames", "flow"), credits: int = 4,
+                 timeout_s: float = 60.0, step_s: float = 0.0, warmup: int = 1) -> dict:
+    """Read ``batches`` batches (after ``warmup`` unmeasured ones) and measure throughput.
+
+    ``step_s`` simulates a training step of that many seconds per batch, so the wait
+    fraction shows whether the stream keeps up with a trainer of that speed.
+
+    Returns a dict: ``batches``, ``samples``, ``unique_samples``, ``seconds`` (wall time of
+    the measured part), ``batches_per_s``, ``samples_per_s``, ``mbytes_per_s`` (MB = 1e6
+    bytes of tensors delivered), ``wait_fraction`` (share of the time spent waiting for
+    data), ``epochs_seen``, ``ended_early`` (the server ended the stream first).
+    """
+    ds = V2VStreamDataset(endpoint, outputs=outputs, credits=credits, timeout_s=timeout_s)
+    it = iter(ds)
+    n = samples = nbytes = 0
+    ids = set()
+    epochs = set()
+    waited = 0.0
+    ended = False
+    t0 = None
+    try:
+        for i in range(warmup + batches):
+            t_wait = time.perf_counter()
+            try:
+                b = next(it)
+            except StopIteration:
+                ended = True
+                break
+            now = time.perf_counter()
+            if i < warmup:
+                continue
+            if t0 is None:
+                t0 = t_wait
+            waited += now - t_wait
+            n += 1
+            samples += len(b["sample_ids"])
+            ids.update((b["epoch"], s) for s in b["sample_ids"])
+            epochs.add(b["epoch"])
+            nbytes += sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel"))
+            if step_s > 0:
+                time.sleep(step_s)
+    finally:
+        it.close()
+    secs = (time.perf_counter() - t0) if t0 is not None else 0.0
+    secs = max(secs, 1e-9)
+    return {
+        "endpoint": endpoint, "batches": n, "samples": samples, "unique_samples": len(ids),
+        "seconds": round(secs, 4), "batches_per_s": n / secs, "samples_per_s": samples / secs,
+        "mbytes_per_s": nbytes / 1e6 / secs, "wait_fraction": waited / secs if n else 1.0,
+        "epochs_seen": sorted(epochs), "ended_early": ended, "step_s": step_s,
+    }
+
+
+def format_report(r: dict) -> str:
+    return (f"{r['batches']} batches, {r['samples']} samples ({r['unique_samples']} unique) in {r['seconds']:.2f} s: "
+            f"{r['batches_per_s']:.2f} batches/s, {r['samples_per_s']:.2f} samples/s, "
+            f"{r['mbytes_per_s']:.1f} MB/s, waiting {100 * r['wait_fraction']:.0f}% of the time")
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    p = argparse.ArgumentParser(prog="v2v-loadtest", description="Read batches from v2v-serve and report throughput.")
+    p.add_argument("--connect", default="tcp://127.0.0.1:5555", help="server endpoint")
+    p.add_argument("--batches", type=int, default=20, help="batches to measure (default 20)")
+    p.add_argument("--warmup", type=int, default=1, help="batches read before measuring (default 1)")
+    p.add_argument("--outputs", default="voxels,frames,flow", help="comma list of outputs to ask for")
+    p.add_argument("--credits", type=int, default=4, help="batches in flight (default 4)")
+    p.add_argument("--timeout", type=float, default=60.0, help="seconds of server silence before failing")
+    p.add_argument("--step-ms", type=float, default=0.0, help="simulated training step per batch, ms")
+    p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
+    a = p.parse_args(argv)
+    if a.batches < 1:
+        p.error("--batches must be >= 1")
+    try:
+        r = run_loadtest(a.connect, a.batches, tuple(s for s in a.outputs.split(",") if s), a.credits,
+                         a.timeout, a.step_ms / 1000.0, a.warmup)
+    except (TimeoutError, RuntimeError, ValueError) as e:
+        print(f"v2v-loadtest: {e}", file=sys.stderr)
+        return 1
+    print(format_report(r))
+    if a.json:
+        print(json.dumps(r))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

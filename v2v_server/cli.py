@@ -1,0 +1,83 @@
+"""``v2v-serve``: serve V2V training batches over ZeroMQ."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+from .config import ALL_OUTPUTS, FLOW_PRESETS, load_config
+from .server import V2VServer, install_signal_handlers
+from .video import find_videos
+
+#: The bundled demo corpus (see sample_videos/SOURCES.md).
+SAMPLE_VIDEOS = Path(__file__).resolve().parent / "sample_videos"
+
+log = logging.getLogger("v2v.serve")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="v2v-serve",
+        description="Decode videos, simulate discrete voxel grids with V2V (Lou et al. 2025) and stream "
+                    "batches of voxels, frames and optical flow to trainers over ZeroMQ.",
+    )
+    p.add_argument("--videos", help="corpus folder (searched recursively); default: the bundled sample clips")
+    p.add_argument("--workers", type=int, help="worker processes (default 2)")
+    p.add_argument("--bind", help="ZeroMQ endpoint to bind (default tcp://127.0.0.1:5555; port 0 = any free port)")
+    p.add_argument("--config", help="YAML config file; command-line flags override it")
+    p.add_argument("--seed", type=int, help="base seed: sample content depends only on (seed, epoch, sample_id)")
+    p.add_argument("--epochs", type=int, help="end the stream after this many epochs (default: unbounded)")
+    p.add_argument("--batch-size", type=int, help="samples per batch (default 12)")
+    p.add_argument("--sequence-length", type=int, help="voxel grids per sample, L (default 40)")
+    p.add_argument("--num-bins", type=int, help="temporal bins per voxel grid, B (default 5)")
+    p.add_argument("--frames-per-bin", type=int, help="frame pairs summed into one bin (default 1)")
+    p.add_argument("--crop-size", type=int, help="square crop side in pixels (default 128)")
+    p.add_argument("--max-samples-per-video", type=int, help="windows per video per epoch (default 10)")
+    p.add_argument("--outputs", help=f"comma list of outputs clients may ask for, from {','.join(ALL_OUTPUTS)}")
+    p.add_argument("--flow-preset", choices=FLOW_PRESETS, help="OpenCV DIS preset (default medium)")
+    p.add_argument("--flow-dtype", choices=("float16", "float32"), help="wire dtype of flow (default float16)")
+    p.add_argument("--lease", type=float, dest="lease_s", help="seconds before an unacknowledged batch is re-sent")
+    p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+    return p
+
+
+def config_from_args(args: argparse.Namespace):
+    """Merge defaults, ``--config`` and flags into a validated ``ServeConfig``."""
+    overrides = {k: getattr(args, k) for k in (
+        "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
+        "frames_per_bin", "crop_size", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s")}
+    return load_config(args.config, overrides)
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
+                        format="%(asctime)s v2v-serve %(levelname)s %(message)s", stream=sys.stderr)
+    try:
+        cfg = config_from_args(args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"v2v-serve: configuration error: {e}", file=sys.stderr)
+        return 2
+    root = Path(cfg.videos) if cfg.videos else SAMPLE_VIDEOS
+    if not root.is_dir():
+        print(f"v2v-serve: --videos {root}: not a folder", file=sys.stderr)
+        return 2
+    videos = [p.as_posix() for p in find_videos(root, cfg.video_extensions)]
+    if not videos:
+        print(f"v2v-serve: --videos {root}: no video files ({', '.join(cfg.video_extensions)})", file=sys.stderr)
+        return 2
+    server = V2VServer(cfg, root, videos)
+    install_signal_handlers(server)
+    try:
+        return server.run()
+    except Exception as e:  # bind errors and the like: one clear line
+        if isinstance(e, OSError) or e.__class__.__module__.startswith("zmq"):
+            print(f"v2v-serve: cannot serve on {cfg.bind}: {e}", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

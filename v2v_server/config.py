@@ -1,0 +1,188 @@
+"""Server configuration: defaults follow the paper's WebVid recipe (Lou et al. 2025, Sec. 4).
+
+A ``ServeConfig`` is built from defaults, then a YAML file (``--config``), then command-line
+flags; every value is validated once, at startup, and a bad one raises ``ValueError`` naming
+the field.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Optional, Tuple
+
+import yaml
+
+from .simulate import ParamRanges
+
+#: Outputs a worker can compute for a sample.
+ALL_OUTPUTS = ("voxels", "frames", "flow")
+#: OpenCV DIS optical-flow presets by name.
+FLOW_PRESETS = ("ultrafast", "fast", "medium")
+FLOW_DTYPES = ("float16", "float32")
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".gif")
+
+
+@dataclass
+class ServeConfig:
+    """Everything ``v2v-serve`` needs to know.
+
+    Sample layout (paper's WebVid recipe): ``sequence_length`` L voxel grids of ``num_bins``
+    B bins, ``frames_per_bin`` frame pairs per bin, so a sample spans
+    ``L * B * frames_per_bin + 1`` frame indices (201 by default). Spatial: the top
+    ``keep_top_fraction`` of each frame is kept (WebVid watermark), a random
+    ``crop_size`` x ``crop_size`` crop (pixels) is taken, flipped horizontally with
+    probability ``hflip_prob``. Pauses: a per-frame Markov chain repeats the previous frame.
+    """
+
+    videos: Optional[str] = None
+    workers: int = 2
+    bind: str = "tcp://127.0.0.1:5555"
+    seed: int = 0
+    epochs: Optional[int] = None
+    batch_size: int = 12
+    sequence_length: int = 40
+    num_bins: int = 5
+    frames_per_bin: int = 1
+    crop_size: int = 128
+    keep_top_fraction: float = 0.54
+    hflip_prob: float = 0.5
+    max_samples_per_video: int = 10
+    pause_enabled: bool = True
+    p_pause_when_running: float = 0.0102
+    p_pause_when_paused: float = 0.9791
+    outputs: Tuple[str, ...] = ALL_OUTPUTS
+    flow_preset: str = "medium"
+    flow_dtype: str = "float16"
+    ranges: ParamRanges = field(default_factory=ParamRanges)
+    decode_threads: int = 1
+    video_extensions: Tuple[str, ...] = VIDEO_EXTENSIONS
+    #: seconds between heartbeats to clients
+    heartbeat_s: float = 1.0
+    #: seconds an unacknowledged batch may stay with a client before it is sent again
+    lease_s: float = 60.0
+    #: seconds of silence after which a client is considered gone
+    client_timeout_s: float = 10.0
+    #: batches the server keeps assembled ahead of the clients' credits
+    prefetch_batches: int = 2
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def frames_per_sample(self) -> int:
+        """Frame indices one sample spans: L * B * frames_per_bin + 1."""
+        return self.sequence_length * self.num_bins * self.frames_per_bin + 1
+
+    # ------------------------------------------------------------------ checks
+    def validate(self) -> "ServeConfig":
+        """Check every field; raise ``ValueError`` naming the first bad one. Returns self."""
+
+        def pos_int(name, minimum=1):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+                raise ValueError(f"{name} must be an integer >= {minimum}, got {v!r}")
+
+        def prob(name):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= v <= 1.0):
+                raise ValueError(f"{name} must be a probability in [0, 1], got {v!r}")
+            setattr(self, name, float(v))
+
+        def pos_float(name):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+            setattr(self, name, float(v))
+
+        for name in ("workers", "batch_size", "sequence_length", "num_bins", "frames_per_bin",
+                     "crop_size", "max_samples_per_video", "decode_threads", "prefetch_batches"):
+            pos_int(name)
+        if self.crop_size < 8:
+            raise ValueError(f"crop_size must be >= 8 pixels, got {self.crop_size}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        if self.epochs is not None:
+            pos_int("epochs")
+        for name in ("hflip_prob", "p_pause_when_running", "p_pause_when_paused"):
+            prob(name)
+        if not isinstance(self.keep_top_fraction, (int, float)) or not (0 < self.keep_top_fraction <= 1):
+            raise ValueError(f"keep_top_fraction must be in (0, 1], got {self.keep_top_fraction!r}")
+        for name in ("heartbeat_s", "lease_s", "client_timeout_s"):
+            pos_float(name)
+        if isinstance(self.outputs, str):
+            self.outputs = tuple(s.strip() for s in self.outputs.split(",") if s.strip())
+        outs = tuple(self.outputs)
+        bad = [o for o in outs if o not in ALL_OUTPUTS]
+        if bad or not outs:
+            raise ValueError(f"outputs must be a non-empty subset of {list(ALL_OUTPUTS)}, got {list(outs)}")
+        self.outputs = tuple(o for o in ALL_OUTPUTS if o in outs)
+        if str(self.flow_preset).lower() not in FLOW_PRESETS:
+            raise ValueError(f"flow_preset must be one of {list(FLOW_PRESETS)}, got {self.flow_preset!r}")
+        self.flow_preset = str(self.flow_preset).lower()
+        if self.flow_dtype not in FLOW_DTYPES:
+            raise ValueError(f"flow_dtype must be one of {list(FLOW_DTYPES)}, got {self.flow_dtype!r}")
+        if not isinstance(self.ranges, ParamRanges):
+            self.ranges = ParamRanges.from_dict(self.ranges)
+        if not isinstance(self.bind, str) or "://" not in self.bind:
+            raise ValueError(f"bind must be a ZeroMQ endpoint like tcp://127.0.0.1:5555, got {self.bind!r}")
+        self.video_extensions = tuple(e.lower() for e in self.video_extensions)
+        if self.videos is not None:
+            self.videos = str(self.videos)
+        return self
+
+    # ------------------------------------------------------------------ io
+    def to_dict(self) -> dict:
+        """Plain, msgpack/YAML-safe dict (ranges as lists)."""
+        d = asdict(self)
+        d["ranges"] = self.ranges.to_dict()
+        d["outputs"] = list(self.outputs)
+        d["video_extensions"] = list(self.video_extensions)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "config") -> "ServeConfig":
+        """Build and validate from a mapping; unknown keys raise ``ValueError`` naming them
+        and ``source`` (the YAML file)."""
+        if d is None:
+            d = {}
+        if not isinstance(d, dict):
+            raise ValueError(f"{source}: top level must be a mapping of keys to values")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown key(s) {unknown}; known keys: {sorted(known)}")
+        kw = dict(d)
+        for k in ("outputs", "video_extensions"):
+            if k in kw and isinstance(kw[k], list):
+                kw[k] = tuple(kw[k])
+        cfg = cls(**kw)
+        try:
+            return cfg.validate()
+        except ValueError as e:
+            raise ValueError(f"{source}: {e}") from None
+
+
+def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeConfig:
+    """Defaults, then the YAML file at ``path`` (if any), then ``overrides`` (non-None values).
+
+    Raises:
+        ValueError: naming the file and the field for unknown keys or bad values, or when the
+            file is not valid YAML.
+        FileNotFoundError: when ``path`` does not exist.
+    """
+    data: dict = {}
+    source = "command line"
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"config file not found: {p}")
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ValueError(f"{p}: not valid YAML: {e}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"{p}: top level must be a mapping of keys to values")
+        source = str(p)
+    for k, v in (overrides or {}).items():
+        if v is not None:
+            data[k] = v
+    return ServeConfig.from_dict(data, source=source)

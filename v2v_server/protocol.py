@@ -1,0 +1,125 @@
+"""Wire protocol shared by server, workers and clients.
+
+Every message is one ZeroMQ multipart message: frame 0 is a msgpack header (a map with at
+least ``v`` = protocol version and ``type``); array payloads follow as one raw frame each,
+described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No pickle
+anywhere: headers are size-checked before msgpack decoding, and array frames are checked
+against their declared dtype and shape before use.
+
+Message types:
+
+* client -> server: ``hello`` (outputs, credits), ``ack`` (batch ids, credit),
+  ``credit``, ``heartbeat``, ``bye``.
+* server -> client: ``welcome`` (stream info), ``batch``, ``heartbeat``, ``end``, ``error``.
+* worker -> server: ``ready``, ``sample``, ``done``; server -> worker: ``task``, ``stop``.
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Sequence, Tuple
+
+import msgpack
+import numpy as np
+
+PROTOCOL_VERSION = 1
+#: Largest accepted header, bytes (checked before msgpack decoding).
+MAX_HEADER_BYTES = 1 << 20
+#: dtypes allowed on the wire.
+WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")
+
+
+class ProtocolError(ValueError):
+    """A malformed, oversized or wrong-version message."""
+
+
+def pack(header: dict) -> bytes:
+    """msgpack-encode a header dict, adding the protocol version ``v``."""
+    h = dict(header)
+    h.setdefault("v", PROTOCOL_VERSION)
+    return msgpack.packb(h, use_bin_type=True)
+
+
+def unpack(frame, expect_version: int = PROTOCOL_VERSION) -> dict:
+    """Decode and check a header frame (bytes, memoryview or zmq.Frame).
+
+    Raises:
+        ProtocolError: oversized, not msgpack, not a map with ``type``, or wrong version.
+    """
+    buf = frame.buffer if hasattr(frame, "buffer") else frame
+    if len(buf) > MAX_HEADER_BYTES:
+        raise ProtocolError(f"header of {len(buf)} bytes exceeds {MAX_HEADER_BYTES}")
+    try:
+        h = msgpack.unpackb(
+            bytes(buf), raw=False, strict_map_key=True,
+            max_bin_len=MAX_HEADER_BYTES, max_str_len=MAX_HEADER_BYTES,
+            max_array_len=1 << 16, max_map_len=1 << 16,
+        )
+    except Exception as e:  # msgpack raises several types
+        raise ProtocolError(f"header is not valid msgpack: {e}") from None
+    if not isinstance(h, dict) or not isinstance(h.get("type"), str):
+        raise ProtocolError("header must be a map with a string 'type'")
+    if h.get("v") != expect_version:
+        raise ProtocolError(f"protocol version {h.get('v')!r}, expected {expect_version}")
+    return h
+
+
+def narrow_int_dtype(arr: np.ndarray) -> np.dtype:
+    """Narrowest of int8, int16, int32 that holds every value of the integer array ``arr``.
+
+    Counts are never wrapped or clipped: a value outside int32 raises ``OverflowError``.
+    """
+    if arr.size == 0:
+        return np.dtype(np.int8)
+    lo, hi = int(arr.min()), int(arr.max())
+    for dt in (np.int8, np.int16, np.int32):
+        info = np.iinfo(dt)
+        if info.min <= lo and hi <= info.max:
+            return np.dtype(dt)
+    raise OverflowError(f"event counts in [{lo}, {hi}] do not fit int32")
+
+
+def encode_arrays(arrays: Dict[str, np.ndarray]) -> Tuple[List[dict], List[np.ndarray]]:
+    """Array specs for the header and the C-contiguous arrays to send as raw frames.
+
+    Raises:
+        ProtocolError: for a dtype not in ``WIRE_DTYPES``.
+    """
+    specs, frames = [], []
+    for name, a in arrays.items():
+        a = np.ascontiguousarray(a)
+        if a.dtype.name not in WIRE_DTYPES:
+            raise ProtocolError(f"array {name!r} has dtype {a.dtype}, not allowed on the wire")
+        specs.append({"name": name, "dtype": a.dtype.name, "shape": list(a.shape)})
+        frames.append(a)
+    return specs, frames
+
+
+def decode_arrays(specs, frames: Sequence, max_bytes: int = 1 << 31) -> Dict[str, np.ndarray]:
+    """Read-only numpy views of raw frames (zero-copy), checked against ``specs``.
+
+    Args:
+        specs: the header's ``arrays`` list.
+        frames: the message frames after the header (bytes or zmq.Frame).
+        max_bytes: largest accepted array, bytes.
+
+    Raises:
+        ProtocolError: when counts, names, dtypes, shapes or sizes do not match.
+    """
+    if not isinstance(specs, list) or len(specs) != len(frames):
+        raise ProtocolError(f"header lists {len(specs) if isinstance(specs, list) else '?'} arrays, "
+                            f"message has {len(frames)} frames")
+    out = {}
+    for spec, fr in zip(specs, frames):
+        if not isinstance(spec, dict):
+            raise ProtocolError("array spec must be a map")
+        name, dtype, shape = spec.get("name"), spec.get("dtype"), spec.get("shape")
+        if not isinstance(name, str) or dtype not in WIRE_DTYPES:
+            raise ProtocolError(f"bad array spec {spec!r}")
+        if not isinstance(shape, list) or not all(isinstance(s, int) and s >= 0 for s in shape) or len(shape) > 8:
+            raise ProtocolError(f"bad shape in array spec {spec!r}")
+        buf = fr.buffer if hasattr(fr, "buffer") else memoryview(fr)
+        dt = np.dtype(dtype)
+        need = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+        if need > max_bytes or need != len(buf):
+            raise ProtocolError(f"array {name!r}: {len(buf)} bytes, spec {dtype}{shape} needs {need}")
+        out[name] = np.frombuffer(buf, dtype=dt).reshape(shape)
+    return out

@@ -1,0 +1,253 @@
+"""Training samples from one sequential decode of a video.
+
+A video is cut into non-overlapping windows of ``frames_per_sample`` (201) source frames:
+window k starts at source frame ``k * frames_per_sample``, and a video holds
+``min(max_samples_per_video, n_frames // frames_per_sample)`` windows. Everything random in a
+sample (pauses, crop, flip, sensor parameters, initial potential, noise) comes from a
+generator seeded by ``(seed, epoch, sample_id)``, so its content never depends on which
+worker made it or in which order.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Iterable, Iterator, Optional, Tuple
+
+import cv2
+import numpy as np
+
+from .config import ServeConfig
+from .simulate import SensorParams, sample_params, simulate_voxels
+from .video import VideoError, iter_luma, open_video
+
+_DIS_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+
+
+def make_sample_id(rel_path: str, window: int) -> str:
+    """Stable sample id: video path relative to the corpus root (POSIX) + ``#`` + window index."""
+    return f"{rel_path}#{window}"
+
+
+def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
+    """The generator for one sample, a pure function of (seed, epoch, sample_id)."""
+    digest = hashlib.blake2b(sample_id.encode("utf-8"), digest_size=8).digest()
+    key = int.from_bytes(digest, "little")
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), int(epoch), key])))
+
+
+def pause_offsets(rng: np.random.Generator, n_out: int, p_run: float, p_paused: float) -> np.ndarray:
+    """Source-frame offset of each of ``n_out`` output frames under the pause Markov chain.
+
+    At each step the chain is paused with probability ``p_paused`` if it was paused, else
+    ``p_run``; a paused step repeats the previous frame. Returns int64 (n_out,), starting at
+    0, non-decreasing, steps of 0 or 1.
+    """
+    u = rng.random(n_out - 1)
+    adv = np.empty(n_out - 1, dtype=np.int64)
+    paused = False
+    for i in range(n_out - 1):
+        paused = bool(u[i] < (p_paused if paused else p_run))
+        adv[i] = 0 if paused else 1
+    return np.concatenate([[0], np.cumsum(adv)])
+
+
+@dataclass
+class WindowPlan:
+    """The random choices of one sample, made before its frames are decoded.
+
+    ``offsets``: (frames_per_sample,) source offsets inside the window (pauses);
+    ``scale``: resize factor of the kept region (>= 1, only when it is smaller than the crop);
+    ``crop_y``, ``crop_x``: top-left corner of the crop in the scaled kept region, pixels;
+    ``flip``: horizontal flip; ``params``: sensor parameters.
+    """
+
+    sample_id: str
+    window: int
+    offsets: np.ndarray
+    scale: float
+    crop_y: int
+    crop_x: int
+    flip: bool
+    params: SensorParams
+    rng: np.random.Generator
+
+    @property
+    def consumed(self) -> int:
+        """Source frames this window reads (<= frames_per_sample because of pauses)."""
+        return int(self.offsets[-1]) + 1
+
+
+def kept_rows(cfg: ServeConfig, height: int) -> int:
+    """Rows kept from the top of a frame of ``height`` pixels (WebVid watermark removal)."""
+    return max(1, int(math.floor(height * cfg.keep_top_fraction)))
+
+
+def plan_window(cfg: ServeConfig, epoch: int, sample_id: str, window: int, kept_hw: Tuple[int, int]) -> WindowPlan:
+    """Draw the random choices of one window from its own generator (see ``sample_rng``)."""
+    rng = sample_rng(cfg.seed, epoch, sample_id)
+    n = cfg.frames_per_sample
+    if cfg.pause_enabled:
+        offsets = pause_offsets(rng, n, cfg.p_pause_when_running, cfg.p_pause_when_paused)
+    else:
+        offsets = np.arange(n, dtype=np.int64)
+    h, w = kept_hw
+    s = cfg.crop_size
+    scale = max(1.0, s / h, s / w)
+    sh, sw = max(s, int(math.ceil(h * scale))), max(s, int(math.ceil(w * scale)))
+    crop_y = int(rng.integers(0, sh - s + 1))
+    crop_x = int(rng.integers(0, sw - s + 1))
+    flip = bool(rng.random() < cfg.hflip_prob)
+    params = sample_params(rng, cfg.ranges, (s, s))
+    return WindowPlan(sample_id, window, offsets, scale, crop_y, crop_x, flip, params, rng)
+
+
+def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarray:
+    """Scale (if needed), crop and flip one kept-region luma frame -> uint8 (S, S), a copy."""
+    s = cfg.crop_size
+    if plan.scale > 1.0:
+        h, w = luma.shape
+        sh, sw = max(s, int(math.ceil(h * plan.scale))), max(s, int(math.ceil(w * plan.scale)))
+        luma = cv2.resize(luma, (sw, sh), interpolation=cv2.INTER_LINEAR)
+    c = luma[plan.crop_y:plan.crop_y + s, plan.crop_x:plan.crop_x + s]
+    if plan.flip:
+        c = c[:, ::-1]
+    return np.ascontiguousarray(c)
+
+
+class FlowEstimator:
+    """Forward optical flow with OpenCV's DIS (Kroeger et al., ECCV 2016).
+
+    ``__call__(a, b)`` takes uint8 (H, W) frames and returns float32 (2, H, W): channel 0 is
+    the x (u) and channel 1 the y (v) displacement in pixels from ``a`` to ``b``.
+    """
+
+    def __init__(self, preset: str = "medium"):
+        self.preset = preset
+        self._dis = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset])
+
+    def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        flow = self._dis.calc(a, b, None)
+        return np.ascontiguousarray(flow.transpose(2, 0, 1))
+
+
+def make_sample(
+    cfg: ServeConfig,
+    plan: WindowPlan,
+    window_frames: np.ndarray,
+    outputs: Iterable[str],
+    flow: Optional[FlowEstimator] = None,
+) -> Dict[str, np.ndarray]:
+    """Compute the requested outputs of one sample.
+
+    Args:
+        window_frames: uint8 (plan.consumed, S, S) cropped source frames of the window.
+        outputs: any of "voxels", "frames", "flow"; only these are computed.
+
+    Returns:
+        dict with ``voxels`` int32 (L, B, S, S) signed event counts, ``frames`` uint8
+        (L + 1, S, S) at voxel boundaries, ``flow`` float32 (L, 2, S, S) in pixels from frame
+        l to l + 1 — each present only if asked for.
+    """
+    outputs = set(outputs)
+    seq = window_frames[plan.offsets]  # pauses repeat frames
+    step = cfg.num_bins * cfg.frames_per_bin
+    out: Dict[str, np.ndarray] = {}
+    if "voxels" in outputs:
+        vox, _ = simulate_voxels(seq, plan.params, cfg.num_bins * cfg.frames_per_bin, rng=plan.rng)
+        if cfg.frames_per_bin > 1:
+            L, _, h, w = vox.shape
+            vox = vox.reshape(L, cfg.num_bins, cfg.frames_per_bin, h, w).sum(axis=2, dtype=np.int32)
+        out["voxels"] = vox
+    boundaries = seq[::step]
+    if "frames" in outputs:
+        out["frames"] = np.ascontiguousarray(boundaries)
+    if "flow" in outputs:
+        flow = flow or FlowEstimator(cfg.flow_preset)
+        out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
+    return out
+
+
+def sample_meta(plan: WindowPlan, video_fps: float, src_start: int) -> dict:
+    """msgpack-safe description of a sample's random choices and sensor parameters."""
+    d = plan.params.summary()
+    d.update(
+        sample_id=plan.sample_id,
+        crop_y=plan.crop_y, crop_x=plan.crop_x, scale=float(plan.scale), flip=plan.flip,
+        pauses=int(len(plan.offsets) - plan.consumed), src_start_frame=int(src_start),
+        src_frames=plan.consumed, video_fps=float(video_fps),
+    )
+    return d
+
+
+def video_samples(
+    cfg: ServeConfig,
+    root: Path,
+    rel_path: str,
+    epoch: int,
+    outputs: Iterable[str],
+    skip_windows: Iterable[int] = (),
+    flow: Optional[FlowEstimator] = None,
+    stats: Optional[dict] = None,
+) -> Iterator[Tuple[str, Dict[str, np.ndarray], dict]]:
+    """Decode ``root / rel_path`` once, sequentially, and yield its samples.
+
+    Yields ``(sample_id, arrays, meta)`` for each complete window not in ``skip_windows``,
+    in window order. Decoding stops after the last window that can be used. When given,
+    ``stats`` receives ``frames`` (frames decoded), ``windows`` (complete windows, skipped
+    ones included), ``width``, ``height`` and ``fps``.
+
+    Raises:
+        VideoError: the file cannot be opened or decoded (samples already yielded are good).
+    """
+    path = Path(root) / rel_path
+    skip = set(skip_windows)
+    span = cfg.frames_per_sample
+    _, _, info = _probe(path, cfg.decode_threads)
+    rows = kept_rows(cfg, info.height)
+    stats = {} if stats is None else stats
+    stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
+    plan: Optional[WindowPlan] = None
+    buf = None
+    for i, luma in enumerate(iter_luma(path, cfg.decode_threads, rows)):
+        k, off = divmod(i, span)
+        if k >= cfg.max_samples_per_video:
+            break
+        stats["frames"] = i + 1
+        if k in skip:
+            if off == span - 1:
+                stats["windows"] += 1
+            continue
+        if off == 0:
+            plan = plan_window(cfg, epoch, make_sample_id(rel_path, k), k, luma.shape)
+            buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), np.uint8)
+        if off < plan.consumed:
+            buf[off] = crop_frame(cfg, plan, luma)
+        if off == span - 1:
+            stats["windows"] += 1
+            arrays = make_sample(cfg, plan, buf, outputs, flow)
+            yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
+            plan, buf = None, None
+
+
+def _probe(path: Path, threads: int):
+    container, stream, info = open_video(path, threads)
+    container.close()
+    return container, stream, info
+
+
+def count_frames(path: Path) -> int:
+    """Frames in a video by decoding it (container frame counts are unreliable).
+
+    Raises:
+        VideoError: when it cannot be opened or decoded.
+    """
+    n = 0
+    for _ in iter_luma(path, 1, rows=1):
+        n += 1
+    return n

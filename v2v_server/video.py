@@ -1,0 +1,130 @@
+"""Video decoding with PyAV (FFmpeg), luma only where the decoder allows it."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, List, Optional, Sequence
+
+import numpy as np
+
+#: Pixel formats whose plane 0 is 8-bit luma: read directly, no colour conversion.
+_Y8_FORMATS = {"yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p", "nv12", "nv21", "gray",
+               "yuv410p", "yuv411p", "yuv440p", "yuvj440p", "yuva420p"}
+
+
+class VideoError(RuntimeError):
+    """A file that cannot be used as a video (the message says why)."""
+
+
+@dataclass
+class VideoInfo:
+    """Container facts: frame size in pixels, average frame rate in Hz, codec name."""
+
+    width: int
+    height: int
+    fps: float
+    codec: str
+    pix_fmt: str
+
+
+def _luma(frame) -> np.ndarray:
+    """(H, W) uint8 luma of a decoded ``av.VideoFrame``."""
+    fmt = frame.format.name
+    if fmt in _Y8_FORMATS:
+        plane = frame.planes[0]
+        h, w = frame.height, frame.width
+        a = np.frombuffer(plane, dtype=np.uint8).reshape(h, plane.line_size)
+        return a[:, :w]
+    # other layouts (RGB, 10-bit YUV, paletted...): let swscale produce 8-bit gray
+    return frame.to_ndarray(format="gray")
+
+
+def open_video(path: Path, threads: int = 1):
+    """Open ``path`` with PyAV and return ``(container, stream, info)``.
+
+    Raises:
+        VideoError: the file cannot be opened or holds no video stream.
+    """
+    import av
+
+    try:
+        container = av.open(str(path), mode="r")
+    except Exception as e:  # av raises many error types (InvalidDataError, OSError...)
+        raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
+    if not container.streams.video:
+        container.close()
+        raise VideoError("no video stream")
+    stream = container.streams.video[0]
+    stream.thread_type = "AUTO" if threads > 1 else "SLICE"
+    stream.codec_context.thread_count = threads
+    cc = stream.codec_context
+    rate = stream.average_rate or stream.guessed_rate
+    info = VideoInfo(
+        width=int(cc.width or 0), height=int(cc.height or 0), fps=float(rate) if rate else 0.0,
+        codec=str(cc.name), pix_fmt=str(cc.pix_fmt),
+    )
+    if info.width <= 0 or info.height <= 0:
+        container.close()
+        raise VideoError("video stream has no frame size")
+    return container, stream, info
+
+
+def iter_luma(path: Path, threads: int = 1, rows: Optional[int] = None) -> Iterator[np.ndarray]:
+    """Decode ``path`` sequentially and yield each frame's luma, uint8 (H', W).
+
+    Args:
+        path: video file.
+        threads: decoder threads.
+        rows: keep only the top ``rows`` rows of each frame (``None``: all). The yielded
+            array is a view into the decoder's buffer, valid until the next frame: copy what
+            you keep.
+
+    Raises:
+        VideoError: when the file cannot be opened or decoding fails part-way (the frames
+            yielded before the failure were good).
+    """
+    import av
+
+    container, stream, _ = open_video(path, threads)
+    try:
+        try:
+            for frame in container.decode(stream):
+                y = _luma(frame)
+                yield y if rows is None else y[:rows]
+        except av.error.FFmpegError as e:
+            raise VideoError(f"decoding failed: {type(e).__name__}: {e}") from None
+    finally:
+        container.close()
+
+
+def find_videos(root: Path, extensions: Sequence[str]) -> List[Path]:
+    """Video files under ``root`` (recursive, sorted, by extension, symlink loops ignored).
+
+    Returns paths relative to ``root``.
+    """
+    root = Path(root)
+    out = []
+    seen_dirs = set()
+    stack = [root]
+    while stack:
+        d = stack.pop()
+        try:
+            real = d.resolve()
+        except (OSError, RuntimeError):
+            continue
+        if real in seen_dirs:
+            continue
+        seen_dirs.add(real)
+        try:
+            entries = list(d.iterdir())
+        except OSError:
+            continue
+        for p in entries:
+            try:
+                if p.is_dir():
+                    stack.append(p)
+                elif p.suffix.lower() in extensions and p.is_file():
+                    out.append(p.relative_to(root))
+            except OSError:
+                continue
+    return sorted(out, key=lambda p: p.as_posix())
