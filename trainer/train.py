@@ -233,7 +233,8 @@ class Trainer:
     # ------------------------------------------------------------------ loop
     def fit(self, stream: Iterable, max_steps: int, image_every: int = 500, checkpoint_every: int = 1000,
             progress: bool = True) -> dict:
-        """Train until ``max_steps`` total steps or the stream ends.
+        """Train until ``max_steps`` total steps, the stream ends or Ctrl-C (which still saves
+        a checkpoint).
 
         Writes one CSV row per step and the sample/checkpoint files on their schedule and
         at the end. Returns a summary dict: steps, first/last loss, steps_per_s,
@@ -242,7 +243,7 @@ class Trainer:
         loader = make_loader(stream, self.device)
         csv_path = self.out / "train_log.csv"
         new = not csv_path.exists() or self.step == 0
-        fh = open(csv_path, "w" if new else "a", newline="")
+        fh = open(csv_path, "w" if new else "a", newline="", buffering=1)  # line-buffered: tail -f works
         writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS[self.task], extrasaction="ignore")
         if new:
             writer.writeheader()
@@ -281,6 +282,8 @@ class Trainer:
                 if checkpoint_every and self.step % checkpoint_every == 0:
                     fh.flush()
                     self.save_checkpoint(stream)
+        except KeyboardInterrupt:
+            log.warning("interrupted at step %d: saving a checkpoint", self.step)
         finally:
             fh.close()
             if bar is not None:
