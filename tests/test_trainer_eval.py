@@ -80,7 +80,7 @@ def test_events_to_voxels_signs_bins_and_errors():
     ps = np.array([1, 0, 1, 1, -1])  # 0 and -1 are negative
     vox, counts = events_to_voxels(xs, ys, ts, ps, np.array([0.0, 1.0, 2.0]), 2, 2, 3)
     assert vox[0, 0, 0, 0] == 1 and vox[0, 0, 0, 1] == -1 and vox[0, 1, 0, 1] == 1 and vox[0, 1, 1, 2] == 1
-    assert vox[1, 0, 1, 2] == -1 and counts[0, 0, 1] == 2 and counts[1].sum() == 1
+    assert vox[1, 1, 1, 2] == -1 and counts[0, 0, 1] == 2 and counts[1].sum() == 1
     assert vox[0].sum() == 2 and np.abs(vox).sum() == 5
     with pytest.raises(ValueError):
         events_to_voxels(xs, ys, ts[::-1], ps, np.array([0.0, 1.0]), 2, 2, 3)
