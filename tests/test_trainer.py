@@ -256,6 +256,12 @@ def test_checkpoint_round_trip_and_resume_continues_stream(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "train_log.csv")))
     assert [int(r["step"]) for r in rows] == list(range(1, 8))
     assert [int(r["batch_id"]) for r in rows] == list(range(7))
+    # a crash after the last checkpoint leaves extra rows: resuming from step 7 drops them
+    t3 = Trainer(cfg, str(tmp_path), torch.device("cpu"))
+    t3.load_checkpoint(str(tmp_path / "checkpoint_0000004.pt"))
+    t3.fit(FakeV2VStream(num_batches=10), 5, image_every=0, checkpoint_every=0, progress=False)
+    rows = list(csv.DictReader(open(tmp_path / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4, 5]
     with pytest.raises(ValueError):
         Trainer(tiny_cfg("evflow"), str(tmp_path / "x"), torch.device("cpu")).load_checkpoint(str(tmp_path / "checkpoint_last.pt"))
 

@@ -243,6 +243,13 @@ class Trainer:
         loader = make_loader(stream, self.device)
         csv_path = self.out / "train_log.csv"
         new = not csv_path.exists() or self.step == 0
+        if not new:  # resumed: drop rows logged after the checkpoint we resumed from
+            with open(csv_path, newline="") as f:
+                kept = [r for r in csv.DictReader(f) if r.get("step", "").isdigit() and int(r["step"]) <= self.step]
+            with open(csv_path, "w", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=CSV_COLUMNS[self.task], extrasaction="ignore")
+                w.writeheader()
+                w.writerows(kept)
         fh = open(csv_path, "w" if new else "a", newline="", buffering=1)  # line-buffered: tail -f works
         writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS[self.task], extrasaction="ignore")
         if new:
