@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 import logging
-from typing import Optional, Tuple
+from typing import Tuple
 
 import torch
 import torch.nn as nn

@@ -1,7 +1,7 @@
 """Images for logs: voxel grids, reconstructions and optical flow as uint8 pictures."""
 from __future__ import annotations
 
-from typing import List, Sequence
+from typing import Sequence
 
 import cv2
 import numpy as np
