@@ -166,3 +166,22 @@ def test_wire_dtypes_and_roundtrip():
     for bad in (b"\xc1", pack({"type": "hello", "v": 99}), b"\x93\x01\x02\x03", b"x" * (2 << 20)):
         with pytest.raises(ProtocolError):
             unpack(bad)
+
+
+def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
+    plain = {sid: (a, m) for sid, a, m in video_samples(small_cfg(max_samples_per_video=1), videos, "bikes.mp4", 0,
+                                                          ("voxels",))}
+    refined = {sid: (a, m) for sid, a, m in video_samples(small_cfg(max_samples_per_video=1, refine="uniform:4"),
+                                                            videos, "bikes.mp4", 0, ("voxels",))}
+    (a0, m0), (a1, m1) = plain["bikes.mp4#0"], refined["bikes.mp4#0"]
+    assert m0["refine"] == "off" and m1["refine"] == "uniform:4" and m1["subframes_mean"] == 4.0
+    assert not np.array_equal(a0["voxels"], a1["voxels"])  # sub-frames change where events fall
+    ni = small_cfg(max_samples_per_video=1, nonidealities={"threshold_sigma": 0.05})
+    (_, _, meta), = list(video_samples(ni, videos, "bikes.mp4", 0, ("voxels",)))
+    assert meta["nonidealities"]["threshold_sigma"] == 0.05
+    with pytest.raises(ValueError, match="refine"):
+        small_cfg(refine="sometimes")
+    with pytest.raises(ValueError, match="nonidealities"):
+        small_cfg(nonidealities={"hot_pixels_everywhere": 1})
+    with pytest.raises(ValueError, match="refine must be off"):
+        small_cfg(refine="uniform:2", nonidealities={"threshold_sigma": 0.05})

@@ -165,7 +165,7 @@ def test_sensor_params_frozen_and_hot_pixels_copied():
     [
         (np.zeros((10, 4, 4), np.uint8), 5, "L \\* num_bins \\+ 1"),
         (np.zeros((1, 4, 4), np.uint8), 5, "L \\* num_bins \\+ 1"),
-        (np.zeros((11, 4, 4), np.float32), 5, "uint8"),
+        (np.zeros((11, 4, 4), np.float32), 5, "uint8 or uint16"),
         (np.zeros((11, 4), np.uint8), 5, "\\(N, H, W\\)"),
         (np.zeros((11, 4, 4), np.uint8), 0, "num_bins"),
     ],

@@ -1,9 +1,9 @@
 """``V2VStreamDataset``: a torch IterableDataset reading batches from ``v2v-serve``.
 
 Each iterator owns one DEALER connection served by a background I/O thread. The thread
-says ``hello`` (the outputs wanted and the initial credits), receives batches, answers
-heartbeats, and sends an ``ack`` with one new credit for each batch the training loop has
-taken. So the server never has more than ``credits`` batches in flight to this iterator, and
+says ``hello`` (the outputs wanted, the initial credits and the resume state), receives
+batches, sends heartbeats, and sends an ``ack`` with one new credit for each batch as it is
+handed to the training loop. So the server never has more than ``credits`` batches in flight to this iterator, and
 a slow trainer never grows anybody's memory.
 
 Sharing one stream: the server hands every batch to exactly one connection. Each DataLoader
@@ -19,7 +19,7 @@ import queue
 import threading
 import time
 import uuid
-from typing import Dict, Iterator, Optional, Sequence
+from typing import Dict, Iterator, Optional, Sequence, Set, Tuple
 
 import numpy as np
 import torch
@@ -65,25 +65,44 @@ def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False) -> Dict[str
 
 
 class _Connection:
-    """One DEALER connection and its I/O thread (internal)."""
+    """One DEALER connection and its I/O thread (internal).
 
-    def __init__(self, endpoint: str, outputs: Sequence[str], credits: int, timeout_s: float,
-                 heartbeat_s: float, raw: bool):
-        self.endpoint, self.outputs, self.credits = endpoint, list(outputs), credits
-        self.timeout_s, self.heartbeat_s, self.raw = timeout_s, heartbeat_s, raw
+    The thread owns the socket. It hands the consumer decoded batches and control items
+    through ``items``; the consumer hands back acknowledgements through an inproc pair.
+    """
+
+    def __init__(self, ds: "V2VStreamDataset"):
+        self.ds = ds
+        self.endpoint = ds.endpoint
         self.items: "queue.Queue" = queue.Queue()
         self.info: Optional[dict] = None
+        self._reply: Optional[bytes] = None
         self._closing = threading.Event()
         self._ctx = zmq.Context.instance()
+        self._ident = uuid.uuid4().bytes
         self._ack_addr = f"inproc://v2v-ack-{uuid.uuid4().hex}"
         self._ack_recv = self._ctx.socket(zmq.PAIR)
         self._ack_recv.bind(self._ack_addr)
         self._ack_send = self._ctx.socket(zmq.PAIR)
         self._ack_send.connect(self._ack_addr)
+        # a batch is either taken by the training loop (and acknowledged) or released back to
+        # the server after its lease expired, never both: the lock makes the choice exclusive
+        self.lock = threading.Lock()
+        self.taken: Set[int] = set()
+        self.revoked: Set[int] = set()
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
     # consumer side -------------------------------------------------------
+    def take(self, batch_id: int) -> bool:
+        """Claim a batch for the training loop and acknowledge it; False if it was released."""
+        with self.lock:
+            if batch_id in self.revoked:
+                return False
+            self.taken.add(batch_id)
+        self.ack(batch_id)
+        return True
+
     def ack(self, batch_id: int) -> None:
         if not self._closing.is_set():
             self._ack_send.send(pack({"type": "ack", "batch_ids": [batch_id], "credit": 1}))
@@ -96,21 +115,31 @@ class _Connection:
         self._ack_send.close(0)
 
     # I/O thread ------------------------------------------------------------
-    def _run(self) -> None:
+    def _socket(self) -> zmq.Socket:
         sock = self._ctx.socket(zmq.DEALER)
-        sock.setsockopt(zmq.IDENTITY, uuid.uuid4().bytes)
+        sock.setsockopt(zmq.IDENTITY, self._ident)
         sock.setsockopt(zmq.LINGER, 200)
         sock.setsockopt(zmq.MAXMSGSIZE, MAX_SERVER_MSG)
         sock.setsockopt(zmq.RCVHWM, 0)
+        if self.ds.curve is not None:
+            pub, sec, server_pub = self.ds.curve
+            sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = pub, sec, server_pub
+        sock.connect(self.endpoint)
+        sock.send(pack({"type": "hello", "outputs": list(self.ds.outputs), "credits": self.ds.credits,
+                        "resume": self.ds._resume_state()}))
+        return sock
+
+    def _run(self) -> None:
+        sock = None
+        give_up_at = None
         try:
-            sock.connect(self.endpoint)
-            sock.send(pack({"type": "hello", "outputs": self.outputs, "credits": self.credits}))
+            sock = self._socket()
             last_heard = time.monotonic()
-            next_beat = last_heard + self.heartbeat_s
-            poller = zmq.Poller()
-            poller.register(sock, zmq.POLLIN)
-            poller.register(self._ack_recv, zmq.POLLIN)
+            next_beat = last_heard + self.ds.heartbeat_s
             while not self._closing.is_set():
+                poller = zmq.Poller()
+                poller.register(sock, zmq.POLLIN)
+                poller.register(self._ack_recv, zmq.POLLIN)
                 events = dict(poller.poll(100))
                 now = time.monotonic()
                 if self._ack_recv in events:
@@ -119,6 +148,7 @@ class _Connection:
                             sock.send(self._ack_recv.recv(zmq.NOBLOCK))
                         except zmq.Again:
                             break
+                lost = None
                 if sock in events:
                     while True:
                         try:
@@ -126,55 +156,144 @@ class _Connection:
                         except zmq.Again:
                             break
                         last_heard = now
-                        if self._on_message(frames):
+                        give_up_at = None
+                        verdict = self._on_message(frames)
+                        if self._reply is not None:
+                            sock.send(self._reply)
+                            self._reply = None
+                        if verdict == "over":
                             return
-                if now - last_heard > self.timeout_s:
-                    what = "no answer" if self.info is None else "no message"
-                    self.items.put(StreamTimeout(
-                        f"{what} from the v2v server at {self.endpoint} for {self.timeout_s:.0f} s "
-                        f"(is v2v-serve running and reachable?)"))
-                    return
+                        if verdict == "lost":
+                            lost = "the server shut down"
+                            break
+                if lost is None and now - last_heard > self.ds.timeout_s:
+                    lost = f"no message for {self.ds.timeout_s:.0f} s"
+                if lost is not None:
+                    if not self.ds.reconnect:
+                        what = "no answer" if self.info is None else "no message"
+                        if lost.startswith("no message"):
+                            self.items.put(StreamTimeout(
+                                f"{what} from the v2v server at {self.endpoint} for {self.ds.timeout_s:.0f} s "
+                                f"(is v2v-serve running and reachable?)"))
+                        else:
+                            self.items.put(StreamError(
+                                f"the v2v server at {self.endpoint} shut down mid-stream; restart it and resume "
+                                f"with state_dict(), or use reconnect=True"))
+                        return
+                    if give_up_at is None:
+                        give_up_at = now + self.ds.reconnect_timeout_s
+                        log.warning("lost the v2v server at %s (%s); reconnecting for up to %.0f s",
+                                    self.endpoint, lost, self.ds.reconnect_timeout_s)
+                    elif now > give_up_at:
+                        self.items.put(StreamTimeout(f"could not reconnect to the v2v server at {self.endpoint} "
+                                                     f"within {self.ds.reconnect_timeout_s:.0f} s"))
+                        return
+                    sock.close(0)
+                    sock = self._socket()
+                    last_heard = now
+                    continue
                 if now >= next_beat:
                     sock.send(pack({"type": "heartbeat"}))
-                    next_beat = now + self.heartbeat_s
+                    next_beat = now + self.ds.heartbeat_s
         except Exception as e:  # never die silently: hand the error to the consumer
             self.items.put(StreamError(f"stream from {self.endpoint} failed: {type(e).__name__}: {e}"))
         finally:
-            try:
-                sock.send(pack({"type": "bye"}), zmq.NOBLOCK)
-            except zmq.ZMQError:
-                pass
-            sock.close()
+            if sock is not None:
+                try:
+                    sock.send(pack({"type": "bye"}), zmq.NOBLOCK)
+                except zmq.ZMQError:
+                    pass
+                sock.close()
             self._ack_recv.close(0)
 
-    def _on_message(self, frames) -> bool:
-        """Handle one server message; True when the stream is over."""
+    def _on_message(self, frames) -> Optional[str]:
+        """Handle one server message; "over" when the stream has ended or failed, "lost"
+        when the server is shutting down."""
         try:
             h = unpack(frames[0])
             kind = h["type"]
             if kind == "batch":
                 arrays = decode_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
-                missing = [o for o in self.outputs if o not in arrays]
+                missing = [o for o in self.ds.outputs if o not in arrays]
                 if missing:
                     raise ProtocolError(f"batch {h.get('batch_id')} lacks requested outputs {missing}")
-                item = batch_to_torch(arrays, self.raw)
-                item["sample_ids"] = list(h["sample_ids"])
+                ids = h["sample_ids"]
+                if not isinstance(ids, list) or any(a.shape[:1] != (len(ids),) for a in arrays.values()):
+                    raise ProtocolError(f"batch {h.get('batch_id')}: sample ids do not match the arrays")
+                with self.lock:  # a batch we released may come back to us: take it this time
+                    self.revoked.discard(int(h["batch_id"]))
+                item = batch_to_torch(arrays, self.ds.raw)
+                item["sample_ids"] = list(ids)
                 item["params"] = list(h["params"])
                 item["epoch"] = int(h["epoch"])
                 item["batch_id"] = int(h["batch_id"])
                 self.items.put(item)
             elif kind == "welcome":
                 self.info = h.get("info", {})
+            elif kind == "revoke":
+                ids = h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else []
+                with self.lock:
+                    released = [b for b in ids if isinstance(b, int) and b not in self.taken]
+                    self.revoked.update(released)
+                if released:
+                    self._reply = pack({"type": "released", "batch_ids": released, "credit": len(released)})
+            elif kind == "epoch_done":
+                self.items.put(_EpochDone(int(h["epoch"])))
             elif kind == "end":
                 self.items.put(StopIteration(h.get("reason", "end of stream")))
-                return True
+                return "over"
+            elif kind == "shutdown":
+                return "lost"
+            elif kind == "error" and h.get("code") == "unknown_client" and self.ds.reconnect:
+                # the server restarted behind our socket: introduce ourselves again, with our resume state
+                log.warning("the v2v server at %s restarted; resuming", self.endpoint)
+                self._reply = pack({"type": "hello", "outputs": list(self.ds.outputs), "credits": self.ds.credits,
+                                    "resume": self.ds._resume_state()})
             elif kind == "error":
                 self.items.put(StreamError(f"v2v server at {self.endpoint}: {h.get('message')}"))
-                return True
+                return "over"
         except (ProtocolError, KeyError, TypeError, ValueError) as e:
             self.items.put(StreamError(f"bad message from the v2v server at {self.endpoint}: {e}"))
-            return True
-        return False
+            return "over"
+        return None
+
+
+class _EpochDone:
+    def __init__(self, epoch: int):
+        self.epoch = epoch
+
+
+def _select(item: dict, keep: list) -> dict:
+    """The samples at positions ``keep`` of a batch."""
+    idx = torch.as_tensor(keep, dtype=torch.long)
+    out = dict(item)
+    for k, v in item.items():
+        if isinstance(v, torch.Tensor):
+            out[k] = v.index_select(0, idx)
+    out["sample_ids"] = [item["sample_ids"][i] for i in keep]
+    out["params"] = [item["params"][i] for i in keep]
+    return out
+
+
+def load_curve_keys(client_secret_file: str, server_public_file: str) -> tuple:
+    """(client public, client secret, server public) Z85 keys from ``v2v-keygen`` files.
+
+    Raises:
+        ValueError: naming the file, when it is missing or holds no key of the right kind.
+    """
+    import zmq.auth
+
+    try:
+        pub, sec = zmq.auth.load_certificate(client_secret_file)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"client key {client_secret_file}: {e}") from None
+    if not sec:
+        raise ValueError(f"client key {client_secret_file}: holds no secret key (use the .key_secret file)")
+    try:
+        server_pub, _ = zmq.auth.load_certificate(server_public_file)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"server key {server_public_file}: {e}") from None
+    return pub, sec, server_pub
 
 
 class V2VStreamDataset(torch.utils.data.IterableDataset):
@@ -191,6 +310,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         heartbeat_s: seconds between heartbeats to the server.
         raw: keep wire dtypes (int8/int16 voxels, uint8 frames, float16 flow) for
             conversion on the GPU.
+        reconnect: on a silent or restarting server, reconnect (with the delivered-sample
+            state, so nothing is repeated) for up to ``reconnect_timeout_s`` seconds
+            instead of raising.
+        curve_keys: ``(client_secret_file, server_public_file)`` from ``v2v-keygen`` to talk
+            to a server that requires CurveZMQ.
 
     Yields dicts, one per batch of B samples:
         ``voxels`` float32 (B, L, num_bins, H, W), signed event counts per bin;
@@ -200,17 +324,24 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         ``sample_ids`` list of B str; ``params`` list of B dicts (sensor parameters and
         augmentation); ``epoch`` int; ``batch_id`` int. Only requested outputs are present.
 
+    Within an epoch each sample id is yielded once: a batch the server sends again (after a
+    lost acknowledgement, a reconnect or a restart) is filtered against the ids already
+    yielded. ``state_dict()`` / ``load_state_dict()`` (torchdata StatefulDataLoader
+    convention) carry those ids across a trainer restart.
+
     Use with ``DataLoader(ds, batch_size=None, pin_memory=True)``. Iteration ends when the
     server ends the stream (``--epochs``).
 
     Raises (from iteration):
         StreamTimeout: the server is absent or silent for ``timeout_s``.
-        StreamError: the server reported an error or broke the protocol.
-        ValueError: at construction, for bad ``outputs``, ``credits`` or ``timeout_s``.
+        StreamError: the server reported an error, broke the protocol or shut down.
+        ValueError: at construction, for bad ``outputs``, ``credits``, ``timeout_s`` or keys.
     """
 
     def __init__(self, endpoint: str, outputs: Sequence[str] = ALL_OUTPUTS, credits: int = 4,
-                 timeout_s: float = 30.0, heartbeat_s: float = 1.0, raw: bool = False):
+                 timeout_s: float = 30.0, heartbeat_s: float = 1.0, raw: bool = False,
+                 reconnect: bool = False, reconnect_timeout_s: float = 300.0,
+                 curve_keys: Optional[Tuple[str, str]] = None):
         super().__init__()
         if isinstance(outputs, str):
             outputs = (outputs,)
@@ -218,7 +349,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         bad = [o for o in outputs if o not in ALL_OUTPUTS]
         if bad or not outputs:
             raise ValueError(f"outputs must be a non-empty subset of {list(ALL_OUTPUTS)}, got {list(outputs)}")
-        if not isinstance(credits, int) or not 1 <= credits <= 1024:
+        if isinstance(credits, bool) or not isinstance(credits, int) or not 1 <= credits <= 1024:
             raise ValueError(f"credits must be an int in [1, 1024], got {credits!r}")
         if not timeout_s > 0:
             raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
@@ -228,16 +359,50 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self.timeout_s = float(timeout_s)
         self.heartbeat_s = float(heartbeat_s)
         self.raw = raw
+        self.reconnect = bool(reconnect)
+        self.reconnect_timeout_s = float(reconnect_timeout_s)
+        self.curve = load_curve_keys(*curve_keys) if curve_keys else None
         self.info: Optional[dict] = None
         self._conns: list = []
+        self._lock = threading.Lock()
+        self._delivered: Dict[int, Set[str]] = {}
+        self._completed_epoch = -1
 
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Where this consumer stands: epochs the server declared complete, and the sample ids
+        yielded so far in epochs still open. Plain, JSON/torch.save-safe data."""
+        with self._lock:
+            return {"version": 1, "completed_epoch": self._completed_epoch,
+                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore ``state_dict()`` output; the next iteration resumes the epoch without
+        repeating or skipping samples.
+
+        Raises:
+            ValueError: for a state of another format.
+        """
+        if not isinstance(state, dict) or state.get("version") != 1:
+            raise ValueError("state must come from V2VStreamDataset.state_dict() (version 1)")
+        with self._lock:
+            self._completed_epoch = int(state.get("completed_epoch", -1))
+            self._delivered = {int(e): set(ids) for e, ids in state.get("delivered", {}).items()}
+
+    def _resume_state(self) -> dict:
+        with self._lock:
+            return {"completed_epoch": self._completed_epoch,
+                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()}}
+
+    # ------------------------------------------------------------------ iteration
     def __iter__(self) -> Iterator[dict]:
-        conn = _Connection(self.endpoint, self.outputs, self.credits, self.timeout_s, self.heartbeat_s, self.raw)
+        conn = _Connection(self)
         self._conns.append(conn)
         try:
             while True:
                 try:
-                    item = conn.items.get(timeout=self.timeout_s + 5.0)
+                    item = conn.items.get(timeout=self.timeout_s + (self.reconnect_timeout_s if self.reconnect else 0)
+                                          + 5.0)
                 except queue.Empty:
                     raise StreamTimeout(f"no batch from the v2v server at {self.endpoint} "
                                         f"for {self.timeout_s:.0f} s") from None
@@ -245,9 +410,27 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                     return
                 if isinstance(item, BaseException):
                     raise item
+                if isinstance(item, _EpochDone):
+                    with self._lock:
+                        self._completed_epoch = max(self._completed_epoch, item.epoch)
+                        for e in [e for e in self._delivered if e <= item.epoch]:
+                            del self._delivered[e]
+                    continue
                 self.info = conn.info
+                if not conn.take(item["batch_id"]):
+                    continue  # its lease expired while queued here; the server sends it elsewhere
+                epoch = item["epoch"]
+                with self._lock:
+                    seen = self._delivered.setdefault(epoch, set())
+                    keep = [i for i, sid in enumerate(item["sample_ids"]) if sid not in seen]
+                    if epoch <= self._completed_epoch:
+                        keep = []
+                    seen.update(item["sample_ids"][i] for i in keep)
+                if not keep:  # all re-sent duplicates: hand nothing on
+                    continue
+                if len(keep) < len(item["sample_ids"]):
+                    item = _select(item, keep)
                 yield item
-                conn.ack(item["batch_id"])
         finally:
             conn.close()
             if conn in self._conns:

@@ -9,7 +9,8 @@ from typing import List, Optional
 
 from .config import ALL_OUTPUTS, FLOW_PRESETS, load_config
 from .server import V2VServer, install_signal_handlers
-from .video import find_videos
+from .corpus import check_corpus, format_check
+from .video import scan_corpus
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md).
 SAMPLE_VIDEOS = Path(__file__).resolve().parent / "sample_videos"
@@ -38,7 +39,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--outputs", help=f"comma list of outputs clients may ask for, from {','.join(ALL_OUTPUTS)}")
     p.add_argument("--flow-preset", choices=FLOW_PRESETS, help="OpenCV DIS preset (default medium)")
     p.add_argument("--flow-dtype", choices=("float16", "float32"), help="wire dtype of flow (default float16)")
+    p.add_argument("--refine", help="off | uniform:K | adaptive:PX | adaptive-dl:L: insert sub-frames where motion "
+                                    "needs them (docs/fidelity.md); default off")
     p.add_argument("--lease", type=float, dest="lease_s", help="seconds before an unacknowledged batch is re-sent")
+    p.add_argument("--client-timeout", type=float, dest="client_timeout_s",
+                   help="seconds of client silence before its batches go back to the queue (default 10)")
+    p.add_argument("--curve-secret-key", help="CurveZMQ: server secret key file (v2v-keygen)")
+    p.add_argument("--curve-allow", help="CurveZMQ: folder of allowed client public key files")
+    p.add_argument("--insecure", action="store_true", default=None,
+                   help="allow a non-loopback --bind without CurveZMQ (not recommended)")
+    p.add_argument("--check", action="store_true",
+                   help="decode every file of the corpus, print its verdict (usable windows or why not) and exit")
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
     return p
 
@@ -47,7 +58,8 @@ def config_from_args(args: argparse.Namespace):
     """Merge defaults, ``--config`` and flags into a validated ``ServeConfig``."""
     overrides = {k: getattr(args, k) for k in (
         "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
-        "frames_per_bin", "crop_size", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s")}
+        "frames_per_bin", "crop_size", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
+        "client_timeout_s", "curve_secret_key", "curve_allow", "insecure")}
     return load_config(args.config, overrides)
 
 
@@ -64,7 +76,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not root.is_dir():
         print(f"v2v-serve: --videos {root}: not a folder", file=sys.stderr)
         return 2
-    videos = [p.as_posix() for p in find_videos(root, cfg.video_extensions)]
+    found, rejected = scan_corpus(root, cfg.video_extensions)
+    videos = [p.as_posix() for p in found]
+    if args.check:
+        results = check_corpus(cfg, root, videos)
+        print(format_check(results, rejected))
+        return 0 if any(r["usable"] for r in results) else 2
+    for rel, reason in rejected:
+        log.info("ignored %s: %s", root / rel, reason)
     if not videos:
         print(f"v2v-serve: --videos {root}: no video files ({', '.join(cfg.video_extensions)})", file=sys.stderr)
         return 2

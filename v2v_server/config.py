@@ -65,6 +65,17 @@ class ServeConfig:
     client_timeout_s: float = 10.0
     #: batches the server keeps assembled ahead of the clients' credits
     prefetch_batches: int = 2
+    #: refinement of frame pairs whose motion needs it: off | uniform:K | adaptive:λ_px | adaptive-dl:λ
+    #: (see v2v_server/refine.py and docs/fidelity.md); recorded in each sample's params
+    refine: str = "off"
+    #: optional sensor non-idealities, all off by default (see v2v_server/nonideal.py)
+    nonidealities: dict = field(default_factory=dict)
+    #: CurveZMQ: the server's secret key file (from ``v2v-keygen``)
+    curve_secret_key: Optional[str] = None
+    #: CurveZMQ: folder of allowed client public key files (``*.key``)
+    curve_allow: Optional[str] = None
+    #: allow a non-loopback bind without CurveZMQ (logs a warning)
+    insecure: bool = False
 
     # ------------------------------------------------------------------ derived
     @property
@@ -124,6 +135,33 @@ class ServeConfig:
             self.ranges = ParamRanges.from_dict(self.ranges)
         if not isinstance(self.bind, str) or "://" not in self.bind:
             raise ValueError(f"bind must be a ZeroMQ endpoint like tcp://127.0.0.1:5555, got {self.bind!r}")
+        from .nonideal import NonIdealities
+        from .refine import parse_refine
+
+        spec = parse_refine(self.refine)
+        self.refine = str(spec)
+        try:
+            ni = NonIdealities.from_dict(self.nonidealities or None)
+        except ValueError as e:
+            raise ValueError(f"nonidealities: {e}") from None
+        self.nonidealities = ni.to_dict() if ni.enabled else {}
+        if ni.enabled and spec.mode != "off":
+            raise ValueError("refine must be off when nonidealities are switched on (the non-ideal path "
+                             "simulates plain frame pairs)")
+        if self.crop_size > 4096:
+            raise ValueError(f"crop_size must be <= 4096 pixels, got {self.crop_size}")
+        if (self.curve_secret_key is None) != (self.curve_allow is None):
+            raise ValueError("curve_secret_key and curve_allow must be given together")
+        if self.curve_secret_key is not None:
+            if not Path(self.curve_secret_key).is_file():
+                raise ValueError(f"curve_secret_key: no such file {self.curve_secret_key}")
+            if not Path(self.curve_allow).is_dir():
+                raise ValueError(f"curve_allow: no such folder {self.curve_allow}")
+        if not isinstance(self.insecure, bool):
+            raise ValueError(f"insecure must be true or false, got {self.insecure!r}")
+        if not is_loopback(self.bind) and self.curve_secret_key is None and not self.insecure:
+            raise ValueError(f"bind {self.bind} is not a loopback address: give curve_secret_key and curve_allow "
+                             f"(see v2v-keygen), or insecure: true to stream unauthenticated")
         self.video_extensions = tuple(e.lower() for e in self.video_extensions)
         if self.videos is not None:
             self.videos = str(self.videos)
@@ -159,6 +197,17 @@ class ServeConfig:
             return cfg.validate()
         except ValueError as e:
             raise ValueError(f"{source}: {e}") from None
+
+
+def is_loopback(endpoint: str) -> bool:
+    """True for ipc://, inproc:// and tcp:// endpoints on 127.0.0.0/8, localhost or ::1."""
+    scheme, _, rest = endpoint.partition("://")
+    if scheme in ("ipc", "inproc"):
+        return True
+    host = rest.rsplit(":", 1)[0].strip("[]")
+    if ";" in host:  # tcp://source;dest form: judge the address bound
+        host = host.split(";", 1)[0]
+    return host in ("localhost", "::1") or host.startswith("127.")
 
 
 def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeConfig:

@@ -38,20 +38,22 @@ def pack(header: dict) -> bytes:
     return msgpack.packb(h, use_bin_type=True)
 
 
-def unpack(frame, expect_version: int = PROTOCOL_VERSION) -> dict:
+def unpack(frame, expect_version: int = PROTOCOL_VERSION, max_bytes: int = MAX_HEADER_BYTES) -> dict:
     """Decode and check a header frame (bytes, memoryview or zmq.Frame).
+
+    The size is checked before any msgpack decoding; ``max_bytes`` bounds it.
 
     Raises:
         ProtocolError: oversized, not msgpack, not a map with ``type``, or wrong version.
     """
     buf = frame.buffer if hasattr(frame, "buffer") else frame
-    if len(buf) > MAX_HEADER_BYTES:
-        raise ProtocolError(f"header of {len(buf)} bytes exceeds {MAX_HEADER_BYTES}")
+    if len(buf) > max_bytes:
+        raise ProtocolError(f"header of {len(buf)} bytes exceeds {max_bytes}")
     try:
         h = msgpack.unpackb(
             bytes(buf), raw=False, strict_map_key=True,
-            max_bin_len=MAX_HEADER_BYTES, max_str_len=MAX_HEADER_BYTES,
-            max_array_len=1 << 16, max_map_len=1 << 16,
+            max_bin_len=max_bytes, max_str_len=max_bytes,
+            max_array_len=1 << 20, max_map_len=1 << 16,
         )
     except Exception as e:  # msgpack raises several types
         raise ProtocolError(f"header is not valid msgpack: {e}") from None

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterable, Iterator, Optional, Tuple
 
@@ -20,7 +20,7 @@ import numpy as np
 
 from .config import ServeConfig
 from .simulate import SensorParams, sample_params, simulate_voxels
-from .video import VideoError, iter_luma, open_video
+from .video import VideoError, inside, iter_luma, open_video
 
 _DIS_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -76,6 +76,7 @@ class WindowPlan:
     flip: bool
     params: SensorParams
     rng: np.random.Generator
+    info: dict = field(default_factory=dict)
 
     @property
     def consumed(self) -> int:
@@ -142,12 +143,14 @@ def make_sample(
     window_frames: np.ndarray,
     outputs: Iterable[str],
     flow: Optional[FlowEstimator] = None,
+    fps: float = 0.0,
 ) -> Dict[str, np.ndarray]:
     """Compute the requested outputs of one sample.
 
     Args:
         window_frames: uint8 (plan.consumed, S, S) cropped source frames of the window.
         outputs: any of "voxels", "frames", "flow"; only these are computed.
+        fps: source frame rate, Hz (for non-idealities given as rates).
 
     Returns:
         dict with ``voxels`` int32 (L, B, S, S) signed event counts, ``frames`` uint8
@@ -159,7 +162,7 @@ def make_sample(
     step = cfg.num_bins * cfg.frames_per_bin
     out: Dict[str, np.ndarray] = {}
     if "voxels" in outputs:
-        vox, _ = simulate_voxels(seq, plan.params, cfg.num_bins * cfg.frames_per_bin, rng=plan.rng)
+        vox = _simulate(cfg, plan, seq, fps)
         if cfg.frames_per_bin > 1:
             L, _, h, w = vox.shape
             vox = vox.reshape(L, cfg.num_bins, cfg.frames_per_bin, h, w).sum(axis=2, dtype=np.int32)
@@ -173,6 +176,27 @@ def make_sample(
     return out
 
 
+def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float) -> np.ndarray:
+    """Voxels of one window: plain V2V, V2V with refinement, or V2V with non-idealities,
+    as configured; what was used goes into ``plan.info`` (and so into the sample's params)."""
+    bins = cfg.num_bins * cfg.frames_per_bin
+    if cfg.nonidealities:
+        from .nonideal import NonIdealities, simulate_voxels_nonideal
+
+        ni = NonIdealities.from_dict(cfg.nonidealities)
+        vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, ni, fps=fps or 25.0, rng=plan.rng)
+        plan.info["nonidealities"] = info["nonidealities"]
+    elif cfg.refine != "off":
+        from .refine import simulate_voxels_refined
+
+        vox, _, info = simulate_voxels_refined(seq, plan.params, bins, cfg.refine, rng=plan.rng)
+        plan.info.update(refine=info["refine"], subframes_mean=float(info["subframes_mean"]))
+    else:
+        vox, _ = simulate_voxels(seq, plan.params, bins, rng=plan.rng)
+        plan.info["refine"] = "off"
+    return vox
+
+
 def sample_meta(plan: WindowPlan, video_fps: float, src_start: int) -> dict:
     """msgpack-safe description of a sample's random choices and sensor parameters."""
     d = plan.params.summary()
@@ -182,6 +206,7 @@ def sample_meta(plan: WindowPlan, video_fps: float, src_start: int) -> dict:
         pauses=int(len(plan.offsets) - plan.consumed), src_start_frame=int(src_start),
         src_frames=plan.consumed, video_fps=float(video_fps),
     )
+    d.update(plan.info)
     return d
 
 
@@ -206,6 +231,8 @@ def video_samples(
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
     path = Path(root) / rel_path
+    if not inside(root, path):
+        raise VideoError("missing, or points outside the corpus root")
     skip = set(skip_windows)
     span = cfg.frames_per_sample
     _, _, info = _probe(path, cfg.decode_threads)
@@ -230,7 +257,7 @@ def video_samples(
             buf[off] = crop_frame(cfg, plan, luma)
         if off == span - 1:
             stats["windows"] += 1
-            arrays = make_sample(cfg, plan, buf, outputs, flow)
+            arrays = make_sample(cfg, plan, buf, outputs, flow, info.fps)
             yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
             plan, buf = None, None
 

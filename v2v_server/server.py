@@ -33,15 +33,16 @@ from typing import Deque, Dict, List, Optional, Set
 import numpy as np
 import zmq
 
-from .config import ALL_OUTPUTS, ServeConfig
+from .config import ALL_OUTPUTS, ServeConfig, is_loopback
 from .protocol import (PROTOCOL_VERSION, ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack,
                        unpack)
 from .worker import worker_main
 
 log = logging.getLogger("v2v.server")
 
-#: Largest message accepted from a client, bytes (ZMQ_MAXMSGSIZE).
-MAX_CLIENT_MSG = 64 * 1024
+#: Largest message accepted from a client, bytes (ZMQ_MAXMSGSIZE); a resume hello lists the
+#: sample ids a trainer already has, about 30 bytes each.
+MAX_CLIENT_MSG = 16 * 1024 * 1024
 #: Times a task may kill its worker before its video is skipped.
 MAX_TASK_CRASHES = 3
 
@@ -64,6 +65,7 @@ class Batch:
     meta: List[dict]
     arrays: Dict[str, np.ndarray]
     nbytes: int = 0
+    avoid: Optional[bytes] = None  # the client that gave it back: prefer another one
 
 
 @dataclass
@@ -92,6 +94,7 @@ class EpochState:
     unacked: Set[int] = field(default_factory=set)  # batch ids made but not acknowledged
     samples: int = 0
     complete: bool = False  # every task done and the last batch made
+    announced: bool = False  # clients told that every batch of it was acknowledged
 
 
 @dataclass
@@ -136,6 +139,7 @@ class V2VServer:
         self.clients: Dict[bytes, ClientState] = {}
         self.workers: Dict[bytes, WorkerState] = {}
         self.outputs: Optional[tuple] = None  # fixed by the first client's hello
+        self.exclude: Dict[int, Dict[str, Set[int]]] = {}  # epoch -> video -> windows trainers already have
         self.ended = False
         self.bound_endpoint: Optional[str] = None
 
@@ -157,7 +161,13 @@ class V2VServer:
         self.backend.setsockopt(zmq.LINGER, 0)
         self.backend.setsockopt(zmq.RCVHWM, 4)
         self.backend_endpoint = f"ipc://{self._tmp}/workers"
+        self._auth = None
         try:
+            if self.cfg.curve_secret_key is not None:
+                self._setup_curve()
+            elif not is_loopback(self.cfg.bind):
+                log.warning("binding %s WITHOUT authentication or encryption (--insecure): anyone who can "
+                            "reach it can read the stream", self.cfg.bind)
             self.frontend.bind(self.cfg.bind)
             self.bound_endpoint = self.frontend.getsockopt_string(zmq.LAST_ENDPOINT)
             self.backend.bind(self.backend_endpoint)
@@ -170,6 +180,24 @@ class V2VServer:
             return self._loop()
         finally:
             self._shutdown()
+
+    def _setup_curve(self) -> None:
+        """CurveZMQ on the client socket: our key pair, and a ZAP authenticator that admits
+        only the public keys found in ``curve_allow``."""
+        import zmq.auth
+        from zmq.auth.thread import ThreadAuthenticator
+
+        public, secret = zmq.auth.load_certificate(self.cfg.curve_secret_key)
+        if not secret:
+            raise ValueError(f"curve_secret_key {self.cfg.curve_secret_key}: holds no secret key")
+        self._auth = ThreadAuthenticator(self._ctx, log=logging.getLogger("v2v.auth"))
+        self._auth.start()
+        self._auth.configure_curve(domain="*", location=str(self.cfg.curve_allow))
+        self.frontend.curve_secretkey = secret
+        self.frontend.curve_publickey = public
+        self.frontend.curve_server = True
+        allowed = len(list(Path(self.cfg.curve_allow).glob("*.key")))
+        log.info("CurveZMQ on: %d allowed client key(s) in %s", allowed, self.cfg.curve_allow)
 
     def _spawn_worker(self, slot: int, generation: int = 0) -> None:
         ident = f"w{slot}.{generation}".encode()
@@ -201,6 +229,8 @@ class V2VServer:
         for s in (getattr(self, "frontend", None), getattr(self, "backend", None)):
             if s is not None:
                 s.close()
+        if getattr(self, "_auth", None) is not None:
+            self._auth.stop()
         if getattr(self, "_ctx", None) is not None:
             self._ctx.term()
         shutil.rmtree(getattr(self, "_tmp", ""), ignore_errors=True)
@@ -211,6 +241,7 @@ class V2VServer:
     # ------------------------------------------------------------------ main loop
     def _loop(self) -> int:
         next_beat = 0.0
+        next_status = time.monotonic() + 30.0
         while not self._stop.is_set():
             poller = zmq.Poller()
             poller.register(self.frontend, zmq.POLLIN)
@@ -241,6 +272,10 @@ class V2VServer:
             if now >= next_beat:
                 self._heartbeat()
                 next_beat = now + self.cfg.heartbeat_s
+            if now >= next_status:
+                self._log_status()
+                next_status = now + 30.0
+            self._announce_epochs()
             if self._finished():
                 self._broadcast({"type": "end"})
                 log.info("all %d epoch(s) delivered; ending the stream", self.cfg.epochs)
@@ -252,7 +287,9 @@ class V2VServer:
                 log.error(msg)
                 self._broadcast({"type": "error", "message": msg})
                 return 2
-        self._broadcast({"type": "end", "reason": "server shutting down"})
+        # graceful stop: batches still unacknowledged stay with their trainers' resume state
+        # (a restarted server re-makes whatever they did not take); tell clients to wait or resume
+        self._broadcast({"type": "shutdown"})
         return 0
 
     # ------------------------------------------------------------------ workers
@@ -296,6 +333,9 @@ class V2VServer:
         elif kind == "sample":
             t = self.tasks.get(h.get("task"))
             if t is None or t.worker != ident or h["window"] in t.received:
+                return
+            if h["window"] in self._excluded(t.epoch, t.video):
+                t.received.add(h["window"])
                 return
             arrays = {k: np.array(v) for k, v in decode_arrays(h["arrays"], frames[2:]).items()}
             t.received.add(h["window"])
@@ -361,7 +401,7 @@ class V2VServer:
             t.worker = w.ident
             w.task, w.idle = t.task_id, False
             msg = {"type": "task", "task": t.task_id, "epoch": t.epoch, "video": t.video,
-                   "outputs": list(self.outputs), "skip": sorted(t.received)}
+                   "outputs": list(self.outputs), "skip": sorted(t.received | self._excluded(t.epoch, t.video))}
             self.backend.send_multipart([w.ident, pack(msg)])
 
     # ------------------------------------------------------------------ batches
@@ -387,8 +427,10 @@ class V2VServer:
             eligible = [c for c in self.clients.values() if c.credits > 0]
             if not eligible:
                 return
-            c = max(eligible, key=lambda x: x.credits)  # spread batches over the clients
-            b = self.ready.popleft()
+            b = self.ready[0]
+            # spread batches over the clients; a batch given back goes elsewhere when it can
+            c = max(eligible, key=lambda x: (x.ident != b.avoid, x.credits))
+            self.ready.popleft()
             arrays = {k: v for k, v in b.arrays.items() if k in c.outputs}
             specs, frames = encode_arrays(arrays)
             header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch, "sample_ids": b.sample_ids,
@@ -419,7 +461,12 @@ class V2VServer:
     def _expire(self, now: float) -> None:
         for bid, (ident, deadline) in list(self.inflight.items()):
             if now > deadline:
-                self._requeue(bid, f"lease of {self.cfg.lease_s:.0f} s expired")
+                # ask the client to give it back; it answers "released" unless its training loop
+                # already took the batch (then its ack is on the way). A silent client is dropped
+                # below, which re-queues everything it held.
+                self.inflight[bid] = (ident, float("inf"))
+                log.info("lease of batch %d expired at client %s; asking for it back", bid, ident.hex())
+                self._send_client(ident, {"type": "revoke", "batch_ids": [bid]})
         for ident, c in list(self.clients.items()):
             if now - c.last_seen > self.cfg.client_timeout_s:
                 log.warning("client %s silent for %.0f s; dropping it", ident.hex(), now - c.last_seen)
@@ -431,6 +478,73 @@ class V2VServer:
             return
         for bid in sorted(c.inflight):
             self._requeue(bid, f"client {ident.hex()} left")
+
+    def _announce_epochs(self) -> None:
+        for ep in self.epochs.values():
+            if ep.complete and not ep.unacked and not ep.announced:
+                ep.announced = True
+                self._broadcast({"type": "epoch_done", "epoch": ep.epoch})
+
+    def _log_status(self) -> None:
+        st = self.stats
+        log.info("status: %d client(s), %d batches sent (%d re-sent, %d acknowledged), %d samples made, "
+                 "%d ready, %d in flight, %d worker restart(s), %d skipped file(s), %d bad message(s)",
+                 len(self.clients), st.batches_sent, st.batches_resent, st.batches_acked, st.samples_made,
+                 len(self.ready), len(self.inflight), st.workers_restarted, len(st.skipped_files),
+                 st.bad_messages)
+
+    def _excluded(self, epoch: int, video: str) -> Set[int]:
+        return self.exclude.get(epoch, {}).get(video, set())
+
+    def _apply_resume(self, resume) -> None:
+        """Take a trainer's resume state: epochs it completed and sample ids it already has.
+        Those samples are never made or sent again (by any client)."""
+        if not isinstance(resume, dict):
+            return
+        completed = resume.get("completed_epoch", -1)
+        delivered = resume.get("delivered", {})
+        if not isinstance(completed, int) or not isinstance(delivered, dict):
+            return
+        if not self.epochs and completed + 1 > self.next_epoch:
+            self.next_epoch = completed + 1  # a fresh server picks up where the trainer stands
+            log.info("resuming at epoch %d", self.next_epoch)
+        known = set(self.videos)
+        added = 0
+        for e, ids in delivered.items():
+            try:
+                e = int(e)
+            except (TypeError, ValueError):
+                continue
+            if not isinstance(ids, list):
+                continue
+            for sid in ids:
+                if not isinstance(sid, str) or "#" not in sid:
+                    continue
+                video, _, k = sid.rpartition("#")
+                if video in known and k.isdigit():
+                    self.exclude.setdefault(e, {}).setdefault(video, set()).add(int(k))
+                    added += 1
+        if added:
+            log.info("resume state: %d sample(s) already delivered will not be made or sent again", added)
+            self._filter_ready()
+
+    def _filter_ready(self) -> None:
+        kept = collections.deque()
+        for b in self.ready:
+            keep = [i for i, sid in enumerate(b.sample_ids)
+                    if int(sid.rpartition("#")[2]) not in self._excluded(b.epoch, sid.rpartition("#")[0])]
+            if len(keep) == len(b.sample_ids):
+                kept.append(b)
+                continue
+            if not keep:
+                self.batches.pop(b.batch_id, None)
+                self.epochs[b.epoch].unacked.discard(b.batch_id)
+                continue
+            b.arrays = {k: np.ascontiguousarray(v[keep]) for k, v in b.arrays.items()}
+            b.sample_ids = [b.sample_ids[i] for i in keep]
+            b.meta = [b.meta[i] for i in keep]
+            kept.append(b)
+        self.ready = kept
 
     def _finished(self) -> bool:
         if self.cfg.epochs is None or self.next_epoch < self.cfg.epochs:
@@ -467,7 +581,7 @@ class V2VServer:
         try:
             if len(frames) != 2:
                 raise ProtocolError(f"expected 1 frame after the identity, got {len(frames) - 1}")
-            h = unpack(frames[1])
+            h = unpack(frames[1], max_bytes=MAX_CLIENT_MSG)
         except ProtocolError as e:
             self.stats.bad_messages += 1
             log.warning("dropping client %s: %s", ident.hex(), e)
@@ -481,7 +595,9 @@ class V2VServer:
             self._on_hello(ident, h, now)
             return
         if c is None:
-            self._send_client(ident, {"type": "error", "message": "say hello first"})
+            # e.g. a client of a previous run of this server, reconnected by ZeroMQ on its own
+            self._send_client(ident, {"type": "error", "code": "unknown_client",
+                                      "message": "unknown client (this server may have restarted): say hello first"})
             return
         c.last_seen = now
         if kind == "ack":
@@ -493,6 +609,14 @@ class V2VServer:
                     if b is not None:
                         self.epochs[b.epoch].unacked.discard(bid)
                         self.stats.batches_acked += 1
+            c.credits += self._credit(h.get("credit", 0))
+        elif kind == "released":
+            ids = h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else []
+            for bid in ids:
+                if self.inflight.get(bid, (None,))[0] == ident:
+                    self._requeue(bid, "its lease expired and the client released it")
+                    if bid in self.batches:
+                        self.batches[bid].avoid = ident
             c.credits += self._credit(h.get("credit", 0))
         elif kind == "credit":
             c.credits += self._credit(h.get("credit", 0))
@@ -525,6 +649,7 @@ class V2VServer:
         if self.outputs is None:
             self.outputs = tuple(o for o in ALL_OUTPUTS if o in outs)
             log.info("first client asks for %s: workers compute only these", list(self.outputs))
+        self._apply_resume(h.get("resume"))
         old = self.clients.pop(ident, None)
         if old is not None:  # reconnect with the same identity: its in-flight batches go back
             for bid in sorted(old.inflight):

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, List, Optional, Sequence
+from typing import Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -48,6 +48,11 @@ def open_video(path: Path, threads: int = 1):
     import av
 
     try:
+        if Path(path).stat().st_size == 0:
+            raise VideoError("empty file (0 bytes)")
+    except OSError as e:
+        raise VideoError(f"cannot read: {e.strerror or e}") from None
+    try:
         container = av.open(str(path), mode="r")
     except Exception as e:  # av raises many error types (InvalidDataError, OSError...)
         raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
@@ -55,6 +60,10 @@ def open_video(path: Path, threads: int = 1):
         container.close()
         raise VideoError("no video stream")
     stream = container.streams.video[0]
+    if stream.codec_context is None:
+        tag = getattr(stream, "codec_tag", "") or "?"
+        container.close()
+        raise VideoError(f"unsupported codec (tag {tag!r}): no decoder")
     stream.thread_type = "AUTO" if threads > 1 else "SLICE"
     stream.codec_context.thread_count = threads
     cc = stream.codec_context
@@ -97,34 +106,65 @@ def iter_luma(path: Path, threads: int = 1, rows: Optional[int] = None) -> Itera
         container.close()
 
 
-def find_videos(root: Path, extensions: Sequence[str]) -> List[Path]:
-    """Video files under ``root`` (recursive, sorted, by extension, symlink loops ignored).
+def inside(root: Path, path: Path) -> bool:
+    """True when ``path`` resolves (symlinks followed) to a file under ``root``."""
+    try:
+        return path.resolve(strict=True).is_relative_to(Path(root).resolve(strict=True))
+    except (OSError, RuntimeError):
+        return False
 
-    Returns paths relative to ``root``.
+
+def scan_corpus(root: Path, extensions: Sequence[str]) -> Tuple[List[Path], List[Tuple[Path, str]]]:
+    """Walk ``root`` recursively (sorted, symlink loops cut) for video files.
+
+    Returns ``(videos, rejected)``: video paths relative to ``root`` with an accepted
+    extension, and ``(relative path, reason)`` for every other entry met: other extensions,
+    symlink loops, dangling links, links that leave the corpus root, unreadable folders.
     """
     root = Path(root)
-    out = []
+    videos: List[Path] = []
+    rejected: List[Tuple[Path, str]] = []
     seen_dirs = set()
     stack = [root]
     while stack:
         d = stack.pop()
         try:
-            real = d.resolve()
-        except (OSError, RuntimeError):
+            real = d.resolve(strict=True)
+        except (OSError, RuntimeError) as e:
+            rejected.append((d.relative_to(root), f"folder cannot be resolved: {e}"))
             continue
         if real in seen_dirs:
             continue
         seen_dirs.add(real)
         try:
-            entries = list(d.iterdir())
-        except OSError:
+            entries = sorted(d.iterdir())
+        except OSError as e:
+            rejected.append((d.relative_to(root), f"folder cannot be read: {e.strerror or e}"))
             continue
         for p in entries:
+            rel = p.relative_to(root)
             try:
-                if p.is_dir():
-                    stack.append(p)
-                elif p.suffix.lower() in extensions and p.is_file():
-                    out.append(p.relative_to(root))
-            except OSError:
+                target = p.resolve(strict=True)
+            except RuntimeError:
+                rejected.append((rel, "symlink loop"))
                 continue
-    return sorted(out, key=lambda p: p.as_posix())
+            except OSError as e:
+                reason = "symlink loop" if e.errno == 40 else "dangling symlink" if p.is_symlink() else str(e)
+                rejected.append((rel, reason))
+                continue
+            if not inside(root, p):
+                rejected.append((rel, "points outside the corpus root"))
+                continue
+            if target.is_dir():
+                stack.append(p)
+            elif p.suffix.lower() in extensions and target.is_file():
+                videos.append(rel)
+            else:
+                rejected.append((rel, f"not a video file (extension {p.suffix or 'none'!r})"))
+    key = lambda p: p.as_posix()  # noqa: E731
+    return sorted(videos, key=key), sorted(rejected, key=lambda r: key(r[0]))
+
+
+def find_videos(root: Path, extensions: Sequence[str]) -> List[Path]:
+    """Video files under ``root`` (see ``scan_corpus``), relative to ``root``."""
+    return scan_corpus(root, extensions)[0]

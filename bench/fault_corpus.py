@@ -1,0 +1,84 @@
+"""A corpus of broken and awkward video files mixed among good ones (for fault tests and bench)."""
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+from typing import Dict
+
+import numpy as np
+
+
+def write_video(path: Path, n: int, w: int, h: int, codec: str = "mpeg4", pix_fmt: str = "yuv420p",
+                vfr: bool = False, gray: bool = False) -> Path:
+    """A synthetic clip of ``n`` frames: a bright bar sliding over a gradient."""
+    import av
+    from fractions import Fraction
+
+    with av.open(str(path), "w") as c:
+        s = c.add_stream(codec, rate=25)
+        s.width, s.height, s.pix_fmt = w, h, pix_fmt
+        if vfr:
+            s.codec_context.time_base = Fraction(1, 1000)
+        t = 0
+        rng = np.random.default_rng(n + w)
+        for i in range(n):
+            img = np.tile(np.linspace(30, 200, w, dtype=np.uint8), (h, 1))
+            x = (i * max(1, w // 50)) % w
+            img[:, x:x + max(2, w // 20)] = 250
+            if gray:
+                frame = av.VideoFrame.from_ndarray(img, format="gray")
+            else:
+                frame = av.VideoFrame.from_ndarray(np.repeat(img[..., None], 3, axis=2), format="rgb24")
+            if vfr:
+                frame.pts = t
+                frame.time_base = Fraction(1, 1000)
+                t += int(rng.choice([20, 40, 80]))  # 12.5 to 50 fps
+            for p in s.encode(frame):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    return path
+
+
+def make_fault_corpus(root: Path, good_dir: Path, window: int) -> Dict[str, str]:
+    """Fill ``root`` with the good clips of ``good_dir`` plus one file of each kind of trouble.
+
+    ``window`` is the frames one sample spans. Returns {relative path: expectation}, where the
+    expectation is "usable" or "skipped" (or "ignored" for entries that are no video at all).
+    """
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    exp: Dict[str, str] = {}
+    for p in sorted(Path(good_dir).glob("*.mp4")):
+        shutil.copy(p, root / p.name)
+        exp[p.name] = "usable"
+    bikes = (Path(good_dir) / "bikes.mp4").read_bytes()
+    (root / "zero_length.mp4").write_bytes(b"")
+    (root / "truncated.mp4").write_bytes(bikes[: len(bikes) // 3])
+    (root / "random_bytes.mp4").write_bytes(np.random.default_rng(0).bytes(200_000))
+    (root / "text_file.mp4").write_text("this is not a video\n" * 100)
+    (root / "unsupported_codec.mp4").write_bytes(bikes.replace(b"avc1", b"zzzz").replace(b"avcC", b"zzzC"))
+    exp.update({"zero_length.mp4": "skipped", "truncated.mp4": "skipped", "random_bytes.mp4": "skipped",
+                "text_file.mp4": "skipped", "unsupported_codec.mp4": "skipped"})
+    write_video(root / "one_frame.mp4", 1, 160, 120)
+    write_video(root / "shorter_than_window.mp4", window - 1, 160, 120)
+    write_video(root / "smaller_than_crop.mp4", window, 64, 48)
+    write_video(root / "large_4k.mp4", window, 3840, 2160)
+    write_video(root / "variable_rate.mkv", window, 320, 240, vfr=True)
+    write_video(root / "grayscale.mkv", window, 320, 240, codec="ffv1", pix_fmt="gray", gray=True)
+    write_video(root / "ten_bit.mkv", window, 320, 240, codec="ffv1", pix_fmt="yuv420p10le")
+    exp.update({"one_frame.mp4": "skipped", "shorter_than_window.mp4": "skipped", "smaller_than_crop.mp4": "usable",
+                "large_4k.mp4": "usable", "variable_rate.mkv": "usable", "grayscale.mkv": "usable",
+                "ten_bit.mkv": "usable"})
+    shutil.copy(Path(good_dir) / "bikes.mp4", root / "deleted_during_epoch.mp4")
+    exp["deleted_during_epoch.mp4"] = "skipped"  # the caller deletes it after the server scanned
+    os.symlink("symlink_loop.mp4", root / "symlink_loop.mp4")
+    (root / "sub").mkdir()
+    os.symlink("..", root / "sub" / "loop_dir")
+    os.symlink(str((Path(good_dir) / "bikes.mp4").resolve()), root / "outside_root.mp4")
+    (root / "notes.txt").write_text("metadata, not a video\n")
+    (root / "thumbnail.jpg").write_bytes(b"\xff\xd8\xff\xe0" + bytes(100))
+    exp.update({"symlink_loop.mp4": "ignored", "outside_root.mp4": "ignored", "notes.txt": "ignored",
+                "thumbnail.jpg": "ignored"})
+    return exp

@@ -1,0 +1,70 @@
+"""``v2v-serve --check``: decode every file of a corpus and say what it is worth, before training."""
+from __future__ import annotations
+
+import multiprocessing as mp
+from pathlib import Path
+from typing import List, Tuple
+
+from .config import ServeConfig
+from .video import VideoError, inside, iter_luma, open_video
+
+
+def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
+    """Verdict for one file: ``{"path", "usable", "windows", "frames", "size", "reason"}``.
+
+    ``windows`` is the number of samples per epoch it gives (``min(max_samples_per_video,
+    frames // frames_per_sample)``); ``reason`` says why it gives none.
+    """
+    path = Path(root) / rel
+    out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": ""}
+    if not inside(Path(root), path):
+        out["reason"] = "missing, or points outside the corpus root"
+        return out
+    try:
+        c, _, info = open_video(path)
+        c.close()
+        out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
+        need = cfg.frames_per_sample * cfg.max_samples_per_video
+        for _ in iter_luma(path, 1, rows=1):
+            out["frames"] += 1
+            if out["frames"] >= need:
+                out["more"] = True  # enough for every window: stop decoding
+                break
+    except Exception as e:  # report every failure as a verdict; one bad file never stops the check
+        out["reason"] = str(e) if isinstance(e, VideoError) else f"{type(e).__name__}: {e}"
+        if out["frames"] == 0:
+            return out
+    out["windows"] = min(cfg.max_samples_per_video, out["frames"] // cfg.frames_per_sample)
+    out["usable"] = out["windows"] > 0
+    if not out["usable"] and not out["reason"]:
+        out["reason"] = f"{out['frames']} frames, shorter than one window of {cfg.frames_per_sample} frames"
+    return out
+
+
+def _check(args):
+    return check_video(*args)
+
+
+def check_corpus(cfg: ServeConfig, root: Path, videos: List[str]) -> List[dict]:
+    """``check_video`` for every file, in ``cfg.workers`` processes."""
+    jobs = [(cfg, str(root), v) for v in videos]
+    if cfg.workers <= 1 or len(jobs) <= 1:
+        return [check_video(*j) for j in jobs]
+    with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
+        return pool.map(_check, jobs, chunksize=1)
+
+
+def format_check(results: List[dict], rejected: List[Tuple[Path, str]]) -> str:
+    """A table: one line per file with its verdict, then a summary line."""
+    lines = [f"{'file':<48} {'verdict':<12} detail"]
+    for r in results:
+        verdict = f"{r['windows']} window(s)" if r["usable"] else "unusable"
+        detail = f"{r['frames']}{'+' if r.get('more') else ''} frames, {r['size']}" if r["usable"] \
+            else r["reason"]
+        lines.append(f"{r['path']:<48} {verdict:<12} {detail}")
+    for rel, reason in rejected:
+        lines.append(f"{rel.as_posix():<48} {'ignored':<12} {reason}")
+    usable = [r for r in results if r["usable"]]
+    lines.append(f"{len(usable)} usable video(s) of {len(results)}, {sum(r['windows'] for r in usable)} sample(s) "
+                 f"per epoch; {len(rejected)} other entr{'y' if len(rejected) == 1 else 'ies'} ignored")
+    return "\n".join(lines)

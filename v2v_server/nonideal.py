@@ -1,0 +1,298 @@
+"""Optional sensor non-idealities on top of the V2V step, each off by default.
+
+Config section ``nonidealities:`` (YAML), parsed by :meth:`NonIdealities.from_dict`:
+
+============================  ==========  ==================================================
+key                           default     model and source
+============================  ==========  ==================================================
+``threshold_sigma``           0.0         per-pixel contrast-threshold mismatch: c+ and c- of
+                                          each pixel ~ N(c, sigma^2) (log-intensity units),
+                                          clipped below at 0.01 c. ESIM
+                                          ``contrast_threshold_sigma_{pos,neg}``; v2e
+                                          ``--sigma_thres``.
+``shot_noise_hz``             0.0         shot-noise events per pixel per second, random
+                                          polarity (Poisson, rate / fps per frame pair). v2e
+                                          ``--shot_noise_rate_hz``.
+``leak_hz``                   0.0         leak events: the reference level drifts so that a
+                                          static pixel emits ON events at this rate; dL gains
+                                          c+ * leak_hz / fps per frame pair. v2e
+                                          ``--leak_rate_hz``.
+``refractory_max_events``     0 (off)     refractory cap: at most this many events per pixel
+                                          per frame pair; the rest are lost and the reference
+                                          level still catches up (a DVS pixel resets to the
+                                          current log intensity after its refractory period).
+                                          v2e ``--refractory_period_s`` expressed per frame
+                                          pair.
+``dead_fraction``             0.0         fraction of dead pixels: they never fire.
+``stuck_fraction``            0.0         fraction of stuck pixels: they fire one fixed
+``stuck_rate_hz``             0.0         polarity at ``stuck_rate_hz`` (Poisson) whatever the
+                                          scene. Dead / stuck pixels as in Prophesee's
+                                          sensor-defect notions (issue text).
+``noise_mode``                per_frame   ``per_frame``: ``noise_std`` and ``hot_pixels`` act
+                                          per frame pair (the V2V reference), so noise per
+                                          second grows with the source fps;
+                                          ``per_second``: they are given at
+                                          ``noise_reference_fps`` and rescaled for the clip's
+                                          fps, sigma * sqrt(ref / fps) and H * ref / fps, so
+                                          background noise and hot-pixel rates per second do
+                                          not depend on the source fps.
+``noise_reference_fps``       30.0        fps at which ``noise_std`` / ``hot_pixels`` were set.
+============================  ==========  ==================================================
+
+Per-clip pixel defects (mismatched thresholds, dead / stuck maps) are drawn once with
+:func:`draw_pixel_state` and must be passed to every chunk of the same clip.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Optional, Tuple
+
+import numpy as np
+
+from .simulate import SensorParams, _lut, simulate_voxels
+
+__all__ = ["NonIdealities", "PixelState", "draw_pixel_state", "effective_noise", "simulate_voxels_nonideal"]
+
+NOISE_MODES = ("per_frame", "per_second")
+
+
+@dataclass(frozen=True)
+class NonIdealities:
+    """Switches for the sensor non-idealities (see the module table for models and sources).
+
+    Raises:
+        ValueError: naming ``nonidealities.<key>`` for a negative / non-finite value, a
+            fraction outside [0, 1], a non-integer cap, or an unknown ``noise_mode``.
+    """
+
+    threshold_sigma: float = 0.0
+    shot_noise_hz: float = 0.0
+    leak_hz: float = 0.0
+    refractory_max_events: int = 0
+    dead_fraction: float = 0.0
+    stuck_fraction: float = 0.0
+    stuck_rate_hz: float = 0.0
+    noise_mode: str = "per_frame"
+    noise_reference_fps: float = 30.0
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            name = f"nonidealities.{f.name}"
+            if f.name == "noise_mode":
+                if v not in NOISE_MODES:
+                    raise ValueError(f"{name} must be one of {NOISE_MODES}, got {v!r}")
+                continue
+            if f.name == "refractory_max_events":
+                if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                    raise ValueError(f"{name} must be an int >= 0 (0 = off), got {v!r}")
+                continue
+            try:
+                x = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}") from None
+            if isinstance(v, bool) or not math.isfinite(x) or x < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+            if f.name.endswith("_fraction") and x > 1:
+                raise ValueError(f"{name} must be in [0, 1], got {v!r}")
+            if f.name == "noise_reference_fps" and x == 0:
+                raise ValueError(f"{name} must be > 0, got {v!r}")
+            object.__setattr__(self, f.name, x)
+
+    @classmethod
+    def from_dict(cls, d: Optional[dict]) -> "NonIdealities":
+        """From the ``nonidealities:`` config mapping (None: all off); unknown keys raise
+        ``ValueError`` naming them."""
+        if d is None:
+            return cls()
+        if isinstance(d, NonIdealities):
+            return d
+        if not isinstance(d, dict):
+            raise ValueError(f"nonidealities must be a mapping, got {type(d).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown key(s) in nonidealities: {unknown}; known: {sorted(known)}")
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        """Plain dict (msgpack / YAML safe), for each sample's params."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @property
+    def enabled(self) -> bool:
+        """True when anything differs from the plain V2V model."""
+        return self != NonIdealities(noise_reference_fps=self.noise_reference_fps)
+
+
+@dataclass(frozen=True)
+class PixelState:
+    """Per-clip pixel defects. Arrays are (H, W).
+
+    Attributes:
+        pos_threshold, neg_threshold: float64 per-pixel c+, c- (log-intensity units).
+        dead: bool mask of dead pixels.
+        stuck: int8 polarity of stuck pixels (0 = not stuck, +1 / -1).
+    """
+
+    pos_threshold: np.ndarray
+    neg_threshold: np.ndarray
+    dead: np.ndarray
+    stuck: np.ndarray
+
+
+def draw_pixel_state(nonideal: NonIdealities, params: SensorParams, shape: Tuple[int, int],
+                     rng: np.random.Generator) -> PixelState:
+    """Draw a clip's per-pixel thresholds and dead / stuck maps (nothing is drawn for a
+    switch that is off, so ``rng`` is untouched when all are off).
+
+    Returns:
+        :class:`PixelState` of the given (H, W) shape.
+    """
+    h, w = shape
+    cp = np.full((h, w), params.pos_threshold)
+    cn = np.full((h, w), params.neg_threshold)
+    s = nonideal.threshold_sigma
+    if s > 0:
+        cp = np.maximum(rng.normal(params.pos_threshold, s, (h, w)), 0.01 * params.pos_threshold)
+        cn = np.maximum(rng.normal(params.neg_threshold, s, (h, w)), 0.01 * params.neg_threshold)
+    dead = np.zeros((h, w), bool)
+    if nonideal.dead_fraction > 0:
+        dead = rng.random((h, w)) < nonideal.dead_fraction
+    stuck = np.zeros((h, w), np.int8)
+    if nonideal.stuck_fraction > 0:
+        m = (rng.random((h, w)) < nonideal.stuck_fraction) & ~dead
+        stuck[m] = np.where(rng.random(int(m.sum())) < 0.5, 1, -1)
+    return PixelState(cp, cn, dead, stuck)
+
+
+def effective_noise(params: SensorParams, nonideal: NonIdealities, fps: float) -> Tuple[float, Optional[np.ndarray]]:
+    """Per-frame-pair noise sigma and hot-pixel map for a clip at ``fps`` (Hz).
+
+    ``per_frame``: unchanged. ``per_second``: sigma * sqrt(ref / fps) (a random walk's
+    variance per second sigma^2 * fps stays sigma_ref^2 * ref) and H * ref / fps (drift
+    per second stays H_ref * ref), ref = ``noise_reference_fps``.
+
+    Returns:
+        ``(sigma, hot)`` in log-intensity units per frame pair; hot is float64 (H, W) or None.
+    """
+    hot = None if params.hot_pixels is None else params.hot_pixels.astype(np.float64)
+    if nonideal.noise_mode == "per_frame":
+        return params.noise_std, hot
+    r = nonideal.noise_reference_fps / fps
+    return params.noise_std * math.sqrt(r), None if hot is None else hot * r
+
+
+def simulate_voxels_nonideal(
+    frames: np.ndarray,
+    params: SensorParams,
+    num_bins: int,
+    nonideal: NonIdealities,
+    *,
+    fps: float,
+    initial_potential: Optional[np.ndarray] = None,
+    rng: Optional[np.random.Generator] = None,
+    pixel_state: Optional[PixelState] = None,
+    compute_dtype=np.float32,
+) -> Tuple[np.ndarray, np.ndarray, dict]:
+    """V2V discrete voxel grids with the non-idealities switched on in ``nonideal``.
+
+    With every switch off this is ``simulate_voxels`` (bit-identical, same rng draws).
+    Otherwise the step is V2V's (Lou et al. 2025, Sec. 3) with per-pixel thresholds, the
+    leak drift added to dL, the refractory cap on |N| per pair, shot-noise and stuck-pixel
+    events added to the counts, and dead pixels zeroed (see the module table).
+
+    Args:
+        frames: uint8 / uint16 (N, H, W), N = L * num_bins + 1.
+        params, num_bins, initial_potential, rng, compute_dtype: as ``simulate_voxels``.
+        nonideal: the switches.
+        fps: frame rate of ``frames`` in Hz (> 0), converts the rates in Hz to per pair.
+        pixel_state: the clip's defects; drawn from ``rng`` (after the initial potential)
+            when None. Pass the same one to every chunk of a clip.
+
+    Returns:
+        ``(voxels int32 (L, B, H, W), potential float32 (H, W), info)`` with info =
+        {"nonidealities": nonideal.to_dict(), "events": int (events emitted, all sources),
+        "events_lost_refractory": int}.
+
+    Raises:
+        ValueError: as ``simulate_voxels``; for fps <= 0; for a ``pixel_state`` of the
+            wrong shape.
+    """
+    nonideal = NonIdealities.from_dict(nonideal)
+    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
+    if not nonideal.enabled:
+        vox, pot = simulate_voxels(frames, params, num_bins, initial_potential=initial_potential, rng=rng,
+                                   compute_dtype=compute_dtype)
+        return vox, pot, {"nonidealities": nonideal.to_dict(), "events": int(np.abs(vox, dtype=np.int64).sum()),
+                          "events_lost_refractory": 0}
+    sigma, hot = effective_noise(params, nonideal, fps)
+    # validation identical to simulate_voxels (shapes, dtype, N = L B + 1)
+    simulate_voxels(frames[:, :1, :1], SensorParams(params.pos_threshold, params.neg_threshold), num_bins,
+                    initial_potential=np.zeros((1, 1)), compute_dtype=compute_dtype)
+    n, h, w = frames.shape
+    if hot is not None and hot.shape != (h, w):
+        raise ValueError(f"hot_pixels has shape {hot.shape}, frames are {(h, w)}")
+    dtype = np.dtype(compute_dtype)
+    rng = np.random.default_rng() if rng is None else rng
+    cp0, cn0 = params.pos_threshold, params.neg_threshold
+    if initial_potential is None:
+        potential = rng.uniform(-cn0, cp0, size=(h, w)).astype(dtype)
+    else:
+        initial_potential = np.asarray(initial_potential)
+        if initial_potential.shape != (h, w):
+            raise ValueError(f"initial_potential has shape {initial_potential.shape}, frames are {(h, w)}")
+        potential = initial_potential.astype(dtype, copy=True)
+    st = pixel_state if pixel_state is not None else draw_pixel_state(nonideal, params, (h, w), rng)
+    if st.pos_threshold.shape != (h, w):
+        raise ValueError(f"pixel_state has shape {st.pos_threshold.shape}, frames are {(h, w)}")
+    cp, cn = st.pos_threshold, st.neg_threshold
+    lut = _lut(255 if frames.dtype == np.uint8 else 65535, dtype).astype(np.float64)
+    leak = cp * (nonideal.leak_hz / fps) if nonideal.leak_hz > 0 else None
+    cap = int(nonideal.refractory_max_events)
+    shot_rate = nonideal.shot_noise_hz / fps
+    stuck_rate = nonideal.stuck_rate_hz / fps
+    stuck_idx = np.nonzero(st.stuck)
+    voxels = np.empty((n - 1, h, w), np.int32)
+    events = lost = 0
+    prev = lut[frames[0]]
+    for i in range(n - 1):
+        cur = lut[frames[i + 1]]
+        dl = cur - prev
+        dl += potential
+        if sigma > 0:
+            dl += rng.standard_normal((h, w), dtype=dtype) * dtype.type(sigma)
+        if hot is not None:
+            dl += hot
+        if leak is not None:
+            dl += leak
+        npos = np.maximum(np.floor(dl / cp), 0)
+        nneg = np.maximum(np.floor(dl / -cn), 0)
+        dl -= npos * cp
+        dl += nneg * cn
+        np.copyto(potential, dl, casting="same_kind")
+        if cap > 0:
+            lost += int(np.maximum(npos - cap, 0).sum() + np.maximum(nneg - cap, 0).sum())
+            np.minimum(npos, cap, out=npos)
+            np.minimum(nneg, cap, out=nneg)
+        if shot_rate > 0:
+            npos += rng.poisson(shot_rate / 2, (h, w))
+            nneg += rng.poisson(shot_rate / 2, (h, w))
+        npos[st.dead] = 0
+        nneg[st.dead] = 0
+        if stuck_idx[0].size:
+            k = rng.poisson(stuck_rate, stuck_idx[0].size)
+            npos[stuck_idx] = np.where(st.stuck[stuck_idx] > 0, k, 0)
+            nneg[stuck_idx] = np.where(st.stuck[stuck_idx] < 0, k, 0)
+        if max(npos.max(), nneg.max()) > np.iinfo(np.int32).max:
+            raise OverflowError(f"frame pair {i}: more than 2**31-1 events in one pixel")
+        events += int(npos.sum() + nneg.sum())
+        np.subtract(npos, nneg, out=voxels[i], casting="unsafe")
+        prev = cur
+    return (
+        voxels.reshape((n - 1) // num_bins, num_bins, h, w),
+        potential.astype(np.float32),
+        {"nonidealities": nonideal.to_dict(), "events": events, "events_lost_refractory": lost},
+    )
