@@ -72,6 +72,8 @@ class Trainer:
         self.out = Path(out_dir)
         (self.out / "samples").mkdir(parents=True, exist_ok=True)
         torch.manual_seed(int(cfg.get("seed", 0)))
+        if device.type == "cuda":
+            torch.backends.cudnn.benchmark = True  # fixed crop size: let cuDNN pick its kernels
         self.model = build_model(self.task, dict(cfg["model"])).to(device)
         o = cfg["optim"]
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=float(o["lr"]), amsgrad=bool(o["amsgrad"]),
