@@ -1,0 +1,51 @@
+"""v2v-train against a real v2v-serve on 127.0.0.1 (bikes.mp4, tiny crops and models)."""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import torch
+
+from v2v_server.process import ServeProcess
+import trainer.train as tr
+
+torch.set_num_threads(2)
+
+
+def test_train_from_live_server_then_resume(tmp_path, videos, monkeypatch):
+    seen = []  # (epoch, sample_ids) of every batch trained on
+    orig = tr.Trainer.train_step
+
+    def recording_step(self, batch):
+        seen.append((batch["epoch"], list(batch["sample_ids"])))
+        return orig(self, batch)
+
+    monkeypatch.setattr(tr.Trainer, "train_step", recording_step)
+    vids = tmp_path / "vids"
+    vids.mkdir()
+    shutil.copyfile(videos / "bikes.mp4", vids / "bikes.mp4")  # the server refuses links leaving its root
+    out = tmp_path / "run"
+    serve = ["--videos", str(vids), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
+             "--crop-size", "32", "--batch-size", "2", "--seed", "3", "--max-samples-per-video", "6"]
+    with ServeProcess(serve) as srv:
+        common = ["--task", "e2vid", "--connect", srv.endpoint, "--out", str(out), "--device", "cpu",
+                  "--no-progress", "--set", "model.num_bins=3", "--set", "model.base_num_channels=4",
+                  "--set", "optim.lr=0.001", "--set", "log.image_every=3", "--set", "stream.timeout_s=30"]
+        assert tr.main(common + ["--max-steps", "2"]) == 0  # 4 of the 6 samples of epoch 0
+        ck = torch.load(out / "checkpoint_last.pt", weights_only=False)
+        assert ck["stream_state"] is not None  # the client's position travels with the model
+        assert tr.main(common + ["--max-steps", "8", "--resume", "auto"]) == 0
+    rows = list(csv.DictReader(open(out / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == list(range(1, 9))
+    # the resumed run finished epoch 0 without repeating or skipping a sample
+    epoch0 = [sid for e, ids in seen if e == 0 for sid in ids]
+    assert len(epoch0) == 6 and len(set(epoch0)) == 6
+    losses = np.array([float(r["loss"]) for r in rows])
+    assert np.all(np.isfinite(losses)) and all(float(r["tc"]) > 0 for r in rows)
+    ck = torch.load(out / "checkpoint_last.pt", weights_only=False)
+    assert ck["step"] == 8 and ck["task"] == "e2vid"
+    assert (out / "samples" / "step_0000003.png").exists()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 6 and 0 <= summary["data_wait_fraction"] <= 1

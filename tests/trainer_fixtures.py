@@ -1,0 +1,79 @@
+"""TEST FIXTURE (not a product stub): a small in-process stand-in for
+``v2v_client.V2VStreamDataset`` that yields batches in the client's documented format,
+so the trainer can be unit-tested without a running ``v2v-serve``.
+
+Each sample is a window sliding over a real video frame (bikes.mp4) by a constant
+(sx, sy) pixels per video frame, so the ground-truth optical flow between voxel
+boundaries is exact: (num_bins * sx, num_bins * sy) pixels. Voxels come from the real
+V2V core (``v2v_server.simulate.simulate_voxels``).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from v2v_server.simulate import SensorParams, simulate_voxels
+from tests.conftest import read_luma_clip
+
+
+class FakeV2VStream(torch.utils.data.IterableDataset):
+    """Batches like ``V2VStreamDataset(outputs=..., raw=...)``: ``voxels`` (B, L, nb, S, S),
+    ``frames`` (B, L+1, 1, S, S), ``flow`` (B, L, 2, S, S), ``sample_ids``, ``params``,
+    ``epoch``, ``batch_id``. ``num_batches`` per epoch, ``epochs`` epochs; deterministic in
+    (seed, batch index), with ``state_dict``/``load_state_dict`` of the position."""
+
+    def __init__(self, outputs=("voxels", "frames", "flow"), batch_size=2, sequence_length=4, num_bins=3,
+                 crop=32, num_batches=50, epochs=1, seed=0, raw=True, fixed=False):
+        super().__init__()
+        self.outputs, self.B, self.L, self.nb, self.S = tuple(outputs), batch_size, sequence_length, num_bins, crop
+        self.num_batches, self.epochs, self.seed, self.raw, self.fixed = num_batches, epochs, seed, raw, fixed
+        self.texture = read_luma_clip("bikes.mp4", n=1, size=(96, 128))[0]
+        self.pos = 0  # batches handed out so far (over all epochs)
+        self.yielded_ids = []
+
+    def state_dict(self):
+        return {"pos": self.pos}
+
+    def load_state_dict(self, sd):
+        self.pos = int(sd["pos"])
+
+    def _sample(self, rng):
+        n = self.L * self.nb + 1
+        th, tw = self.texture.shape
+        sx, sy = (int(v) for v in rng.integers(-1, 2, size=2))
+
+        def start(s, size):
+            lo, hi = max(0, -s * (n - 1)), size - self.S - max(0, s * (n - 1))
+            return int(rng.integers(lo, hi + 1))
+
+        x0, y0 = start(sx, tw), start(sy, th)
+        vid = np.stack([self.texture[y0 + sy * i: y0 + sy * i + self.S, x0 + sx * i: x0 + sx * i + self.S]
+                        for i in range(n)])
+        # the content moves by -s pixels per video frame when the window moves by +s
+        flow = np.zeros((self.L, 2, self.S, self.S), np.float32)
+        flow[:, 0] = -sx * self.nb
+        flow[:, 1] = -sy * self.nb
+        params = SensorParams(0.2, 0.2)
+        vox, _ = simulate_voxels(np.ascontiguousarray(vid), params, self.nb, rng=rng)
+        frames = vid[:: self.nb][:, None]
+        return vox, frames, flow, params.summary()
+
+    def __iter__(self):
+        while self.pos < self.num_batches * self.epochs:
+            i = self.pos
+            rng = np.random.default_rng([self.seed, 0 if self.fixed else i])
+            samples = [self._sample(rng) for _ in range(self.B)]
+            vox = np.stack([s[0] for s in samples])
+            frames = np.stack([s[1] for s in samples])
+            flow = np.stack([s[2] for s in samples])
+            b = {"sample_ids": [f"fake-{i}-{k}" for k in range(self.B)], "params": [s[3] for s in samples],
+                 "epoch": i // self.num_batches, "batch_id": i}
+            if "voxels" in self.outputs:
+                b["voxels"] = torch.from_numpy(vox.astype(np.int8)) if self.raw else torch.from_numpy(vox.astype(np.float32))
+            if "frames" in self.outputs:
+                b["frames"] = torch.from_numpy(frames) if self.raw else torch.from_numpy(frames.astype(np.float32) / 255)
+            if "flow" in self.outputs:
+                b["flow"] = torch.from_numpy(flow.astype(np.float16 if self.raw else np.float32))
+            self.pos += 1
+            self.yielded_ids.append(i)
+            yield b

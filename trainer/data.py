@@ -1,0 +1,85 @@
+"""Stream side of the trainer: which outputs each task asks ``v2v-serve`` for, the
+DataLoader around ``v2v_client.V2VStreamDataset``, and the host -> device transfer.
+
+Batches (the client's contract): ``voxels`` (B, L, num_bins, H, W) int8/int16 when
+``raw=True`` (float32 otherwise; signed event counts per bin), ``frames`` (B, L+1, 1, H, W)
+uint8 (float32 in [0, 1] otherwise), frame l at voxel boundary l, ``flow`` (B, L, 2, H, W)
+float16 (float32 otherwise), forward optical flow in pixels from frame l to l+1.
+Integers and halves cross the PCIe bus; conversion to float32 happens on the device.
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterable, Optional, Tuple
+
+import torch
+from torch.utils.data import DataLoader
+
+__all__ = ["task_outputs", "tc_start_index", "make_stream", "make_loader", "batch_to_device"]
+
+
+def task_outputs(task: str) -> Tuple[str, ...]:
+    """Outputs requested from the stream: E2VID needs voxels, frames and flow (flow only
+    for the temporal-consistency half); EvFlow needs voxels and flow."""
+    if task == "e2vid":
+        return ("voxels", "frames", "flow")
+    if task == "evflow":
+        return ("voxels", "flow")
+    raise ValueError(f"task must be 'e2vid' or 'evflow', got {task!r}")
+
+
+def tc_start_index(sequence_length: int, fraction: float) -> int:
+    """First voxel index l whose reconstruction enters the temporal consistency loss:
+    ``max(1, ceil(fraction * L))`` (20 for L = 40, fraction 0.5: frames 20..39)."""
+    return max(1, int(math.ceil(fraction * sequence_length)))
+
+
+def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True):
+    """Open a ``v2v_client.V2VStreamDataset`` on ``endpoint`` asking only for ``task``'s
+    outputs. Raises ``ImportError`` with a hint when the client is not installed."""
+    try:
+        from v2v_client import V2VStreamDataset
+    except ImportError as e:  # pragma: no cover - depends on the installed client
+        raise ImportError("v2v_client.V2VStreamDataset is not available; install the v2v "
+                          "client (pip install -e '.[client]')") from e
+    return V2VStreamDataset(endpoint=endpoint, outputs=task_outputs(task), credits=int(credits),
+                            timeout_s=float(timeout_s), raw=bool(raw))
+
+
+def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:
+    """DataLoader over an iterable of ready-made batches (``batch_size=None``), pinning host
+    memory when the device is CUDA; no worker processes (the stream client does its own
+    network I/O in the background)."""
+    return DataLoader(dataset, batch_size=None, num_workers=0, pin_memory=(device.type == "cuda"))
+
+
+def _frames_to_float(t: torch.Tensor) -> torch.Tensor:
+    if t.dtype == torch.uint8:
+        return t.float().div_(255.0)
+    return t.float()
+
+
+def batch_to_device(batch: dict, device: torch.device, task: str, tc_start: Optional[int] = None) -> dict:
+    """Move a stream batch to ``device`` with non-blocking copies and convert to float32 there.
+
+    For E2VID with ``tc_start`` given, only ``flow[:, tc_start:]`` is transferred (the
+    temporal consistency loss uses the last part of the sequence only).
+
+    Returns a dict with float32 ``voxels`` (B, L, num_bins, H, W), ``frames`` (B, L+1, 1,
+    H, W) in [0, 1] and ``flow`` (B, L', 2, H, W) pixels, as present in ``batch``.
+    Raises ``KeyError`` naming a missing output the task needs.
+    """
+    nb = device.type == "cuda"
+    out = {}
+    for key in task_outputs(task):
+        if key not in batch:
+            raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); task {task} needs {task_outputs(task)}")
+    out["voxels"] = batch["voxels"].to(device, non_blocking=nb).float()
+    if "frames" in batch and task == "e2vid":
+        out["frames"] = _frames_to_float(batch["frames"].to(device, non_blocking=nb))
+    if "flow" in batch:
+        flow = batch["flow"]
+        if task == "e2vid" and tc_start is not None:
+            flow = flow[:, tc_start:]
+        out["flow"] = flow.to(device, non_blocking=nb).float()
+    return out

@@ -1,0 +1,374 @@
+"""``v2v-eval``: evaluate E2VID / EvFlow checkpoints with the metrics the V2V paper reports.
+
+Inputs:
+
+* H5 sequences in the layout of the V2V reference repo and event_cnn_minimal:
+  ``events/xs, ys, ts, ps`` (pixels, seconds, polarity in {0, 1} or {-1, 1}, ``ts``
+  non-decreasing), ``images/imageNNNNNNNNN`` (H, W) uint8 with a ``timestamp`` attribute
+  (seconds), optional ``flow/flowNNNNNNNNN`` (2, H, W) float32 with a ``timestamp``
+  attribute, read as the forward flow in pixels from image N to image N+1; root attribute
+  ``sensor_resolution`` = (H, W) if present.
+* Videos (``--video``), whose voxels are simulated with the V2V core
+  (``v2v_server.simulate.simulate_voxels``), for held-out clips without an event file.
+
+Voxels follow the paper's discrete voxel definition: between consecutive frames at t_i and
+t_{i+1}, event k falls in bin ``floor(B * (t_k - t_i) / (t_{i+1} - t_i))`` and the bin
+value is N+ - N- (signed event count).
+
+Metrics (per frame, then averaged over all frames of all inputs):
+
+* reconstruction: MSE on [0, 1] images (prediction clipped to [0, 1]); SSIM with
+  ``skimage.metrics.structural_similarity(win_size=7, data_range=R)`` where R = 1 by
+  default and ``--ssim-data-range 2`` reproduces the convention behind the paper's tables;
+  LPIPS (AlexNet, v0.1) when weights are available. The constant-mean-image baseline (every
+  prediction = the mean intensity of the sequence's ground-truth frames) is reported alongside.
+* flow: AEE (mean end-point error, pixels) and the percentage of pixels with error > 3 px,
+  dense (all pixels) and sparse (pixels with at least one event in the voxel).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+import torch
+
+__all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
+           "evaluate_e2vid", "evaluate_evflow", "load_model", "main"]
+
+log = logging.getLogger("trainer.evaluate")
+
+
+def events_to_voxels(xs: np.ndarray, ys: np.ndarray, ts: np.ndarray, ps: np.ndarray, t_edges: np.ndarray,
+                     num_bins: int, height: int, width: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Discrete voxel grids between consecutive timestamps.
+
+    Args:
+        xs, ys: int pixel coordinates (column, row) of the events, shape (E,).
+        ts: event times in seconds, (E,), non-decreasing.
+        ps: polarities, (E,), in {0, 1} or {-1, 1} (0 and -1 are negative).
+        t_edges: (N,) increasing frame times, seconds; voxel i covers [t_i, t_{i+1}).
+        num_bins: B.
+        height, width: sensor size, pixels.
+
+    Returns:
+        ``(voxels, counts)``: voxels int32 (N-1, B, H, W), bin value N+ - N-; counts int32
+        (N-1, H, W), the number of events per pixel in each interval (for sparse metrics).
+
+    Raises:
+        ValueError: for unsorted times or edges, or coordinates outside the sensor.
+    """
+    t_edges = np.asarray(t_edges, np.float64)
+    if t_edges.ndim != 1 or t_edges.size < 2 or np.any(np.diff(t_edges) <= 0):
+        raise ValueError("t_edges must be an increasing 1-D array of >= 2 timestamps")
+    ts = np.asarray(ts, np.float64)
+    if ts.size and np.any(np.diff(ts) < 0):
+        raise ValueError("event timestamps must be non-decreasing")
+    xs = np.asarray(xs, np.int64)
+    ys = np.asarray(ys, np.int64)
+    if xs.size and (xs.min() < 0 or ys.min() < 0 or xs.max() >= width or ys.max() >= height):
+        raise ValueError(f"event coordinates outside the {height}x{width} sensor")
+    pol = np.where(np.asarray(ps) > 0, 1, -1).astype(np.int64)
+    n = t_edges.size - 1
+    voxels = np.zeros((n, num_bins, height, width), np.int32)
+    counts = np.zeros((n, height, width), np.int32)
+    idx = np.searchsorted(ts, t_edges, side="left")
+    hw = height * width
+    for i in range(n):
+        a, b = idx[i], idx[i + 1]
+        if a == b:
+            continue
+        t0, t1 = t_edges[i], t_edges[i + 1]
+        bins = np.clip(np.floor(num_bins * (ts[a:b] - t0) / (t1 - t0)).astype(np.int64), 0, num_bins - 1)
+        pix = ys[a:b] * width + xs[a:b]
+        lin = bins * hw + pix
+        voxels[i] = np.bincount(lin, weights=pol[a:b], minlength=num_bins * hw).reshape(num_bins, height, width).astype(np.int32)
+        counts[i] = np.bincount(pix, minlength=hw).reshape(height, width)
+    return voxels, counts
+
+
+class H5Sequence:
+    """An event sequence in the reference H5 layout (module docstring).
+
+    Attributes:
+        path: the file.
+        height, width: sensor size, pixels.
+        images: uint8 (N, H, W) frames; ``image_ts`` float64 (N,) seconds.
+        flows: float32 (M, 2, H, W) forward flows or ``None``; ``flow_ts`` (M,) seconds.
+
+    :meth:`voxels` builds the discrete voxel grids between consecutive images.
+    Raises ``KeyError`` naming a missing group/dataset, ``ValueError`` for fewer than two
+    images.
+    """
+
+    def __init__(self, path: str):
+        import h5py
+
+        self.path = str(path)
+        with h5py.File(self.path, "r") as f:
+            for k in ("events/xs", "events/ys", "events/ts", "events/ps", "images"):
+                if k not in f:
+                    raise KeyError(f"{self.path}: missing '{k}' (expected the event_cnn_minimal H5 layout)")
+            ev = f["events"]
+            self.xs, self.ys = ev["xs"][:], ev["ys"][:]
+            self.ts, self.ps = ev["ts"][:].astype(np.float64), ev["ps"][:]
+            names = sorted(f["images"].keys())
+            if len(names) < 2:
+                raise ValueError(f"{self.path}: need at least two images, found {len(names)}")
+            self.images = np.stack([f["images"][k][:] for k in names])
+            self.image_ts = np.array([float(f["images"][k].attrs["timestamp"]) for k in names])
+            if self.images.ndim == 4:  # colour: to luma
+                import cv2
+
+                self.images = np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in self.images])
+            if "sensor_resolution" in f.attrs:
+                self.height, self.width = (int(v) for v in f.attrs["sensor_resolution"][:2])
+            else:
+                self.height, self.width = self.images.shape[1:3]
+            self.flows, self.flow_ts = None, None
+            if "flow" in f and len(f["flow"]):
+                fn = sorted(f["flow"].keys())
+                self.flows = np.stack([f["flow"][k][:] for k in fn]).astype(np.float32)
+                self.flow_ts = np.array([float(f["flow"][k].attrs["timestamp"]) for k in fn])
+
+    def voxels(self, num_bins: int) -> Tuple[np.ndarray, np.ndarray]:
+        """``events_to_voxels`` between consecutive image timestamps: int32 (N-1, B, H, W)
+        and event counts int32 (N-1, H, W)."""
+        return events_to_voxels(self.xs, self.ys, self.ts, self.ps, self.image_ts, num_bins, self.height, self.width)
+
+
+def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, max_frames: int = 0,
+                   size: Optional[Tuple[int, int]] = None, seed: int = 0) -> Tuple[np.ndarray, np.ndarray]:
+    """Voxels and ground-truth frames of a video, simulated with the V2V core.
+
+    Every voxel spans ``num_bins`` frame pairs (one per bin, as in the stream); the ground
+    truth of voxel l is the frame at its end.
+
+    Args:
+        path: video file (decoded with PyAV, converted to luma).
+        num_bins: B.
+        contrast_threshold: c+ = c- (log-intensity units); no noise or hot pixels.
+        max_frames: use at most this many frames (0 = all).
+        size: (H, W) to resize to with INTER_AREA, or None.
+        seed: seed of the initial potential.
+
+    Returns:
+        ``(voxels int32 (L, B, H, W), frames uint8 (L+1, H, W))``.
+    """
+    import av
+    import cv2
+
+    from v2v_server.simulate import SensorParams, simulate_voxels
+
+    out = []
+    with av.open(str(path)) as c:
+        for fr in c.decode(video=0):
+            g = fr.to_ndarray(format="gray")
+            if size is not None:
+                g = cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+            out.append(g)
+            if max_frames and len(out) >= max_frames:
+                break
+    n = (len(out) - 1) // num_bins * num_bins + 1
+    if n < num_bins + 1:
+        raise ValueError(f"{path}: too few frames ({len(out)}) for one voxel of {num_bins} bins")
+    frames = np.stack(out[:n])
+    vox, _ = simulate_voxels(frames, SensorParams(contrast_threshold, contrast_threshold), num_bins,
+                             rng=np.random.default_rng(seed))
+    return vox, frames[::num_bins]
+
+
+def reconstruction_metrics(pred: np.ndarray, gt: np.ndarray, ssim_data_range: float = 1.0) -> Dict[str, float]:
+    """MSE and SSIM of one frame. ``pred``, ``gt``: float (H, W) in [0, 1] (pred is
+    clipped). SSIM: ``skimage.metrics.structural_similarity(win_size=7, data_range=R)``."""
+    from skimage.metrics import structural_similarity
+
+    pred = np.clip(np.asarray(pred, np.float64), 0.0, 1.0)
+    gt = np.asarray(gt, np.float64)
+    return {"mse": float(np.mean((pred - gt) ** 2)),
+            "ssim": float(structural_similarity(pred, gt, win_size=7, data_range=ssim_data_range))}
+
+
+def flow_metrics(pred: np.ndarray, gt: np.ndarray, event_mask: Optional[np.ndarray] = None,
+                 threshold_px: float = 3.0) -> Dict[str, float]:
+    """Flow errors of one frame pair.
+
+    Args:
+        pred, gt: float (2, H, W) flow in pixels.
+        event_mask: bool (H, W), pixels with at least one event (sparse metrics), or None.
+        threshold_px: outlier threshold on the end-point error, pixels.
+
+    Returns:
+        ``aee`` (mean end-point error, px) and ``outlier_pct`` (% of pixels with EPE >
+        threshold) over all pixels, and ``aee_sparse`` / ``outlier_pct_sparse`` over the
+        event pixels (NaN when the mask is empty or not given).
+    """
+    epe = np.sqrt(((np.asarray(pred, np.float64) - np.asarray(gt, np.float64)) ** 2).sum(0))
+    out = {"aee": float(epe.mean()), "outlier_pct": float(100.0 * (epe > threshold_px).mean()),
+           "aee_sparse": float("nan"), "outlier_pct_sparse": float("nan")}
+    if event_mask is not None and np.any(event_mask):
+        e = epe[np.asarray(event_mask, bool)]
+        out["aee_sparse"] = float(e.mean())
+        out["outlier_pct_sparse"] = float(100.0 * (e > threshold_px).mean())
+    return out
+
+
+def load_model(checkpoint: str, device: torch.device):
+    """Rebuild the network stored by ``v2v-train`` in ``checkpoint``; returns (task, model
+    in eval mode, config)."""
+    from .models import build_model
+
+    ck = torch.load(checkpoint, map_location=device, weights_only=False)
+    cfg = ck["config"]
+    model = build_model(ck["task"], dict(cfg["model"])).to(device)
+    model.load_state_dict(ck["model"])
+    model.eval()
+    return ck["task"], model, cfg
+
+
+@torch.no_grad()
+def evaluate_e2vid(model, voxels: np.ndarray, frames: np.ndarray, device: torch.device, ssim_data_range: float = 1.0,
+                   lpips_model=None, skip_first: int = 0) -> Dict[str, List[float]]:
+    """Run the recurrent model over one sequence (state reset at its start) and score
+    voxel l's reconstruction against frame l+1.
+
+    Args:
+        voxels: (L, B, H, W) signed counts; frames: uint8 (L+1, H, W).
+        skip_first: frames at the start left out of the scores (recurrent warm-up).
+
+    Returns:
+        Per-frame lists: ``mse``, ``ssim``, ``lpips`` (if a model is given) and the
+        constant-mean-image baseline's ``base_mse``, ``base_ssim``, ``base_lpips``.
+    """
+    gt_all = frames.astype(np.float32) / 255.0
+    mean_img = np.full(gt_all.shape[1:], gt_all[1:].mean(), np.float32)
+    res: Dict[str, List[float]] = {k: [] for k in ("mse", "ssim", "base_mse", "base_ssim")}
+    if lpips_model is not None:
+        res["lpips"], res["base_lpips"] = [], []
+    states = None
+    preds = []
+    for l in range(voxels.shape[0]):
+        v = torch.from_numpy(np.ascontiguousarray(voxels[l], dtype=np.float32))[None].to(device)
+        pred, states = model(v, states)
+        p = pred[0, 0].float().cpu().numpy()
+        preds.append(p)
+        if l < skip_first:
+            continue
+        gt = gt_all[l + 1]
+        m = reconstruction_metrics(p, gt, ssim_data_range)
+        b = reconstruction_metrics(mean_img, gt, ssim_data_range)
+        res["mse"].append(m["mse"]); res["ssim"].append(m["ssim"])
+        res["base_mse"].append(b["mse"]); res["base_ssim"].append(b["ssim"])
+        if lpips_model is not None:
+            g = torch.from_numpy(gt)[None, None].to(device)
+            res["lpips"].append(float(lpips_model(torch.from_numpy(np.clip(p, 0, 1))[None, None].to(device), g)[0]))
+            res["base_lpips"].append(float(lpips_model(torch.from_numpy(mean_img)[None, None].to(device), g)[0]))
+    res["_preds"] = preds  # not a metric; for saving images
+    return res
+
+
+@torch.no_grad()
+def evaluate_evflow(model, voxels: np.ndarray, flows: np.ndarray, counts: Optional[np.ndarray],
+                    device: torch.device) -> Dict[str, List[float]]:
+    """Score flow predictions of each voxel against ``flows`` (L, 2, H, W) pixels;
+    ``counts`` (L, H, W) event counts for the sparse metrics (None: the voxel's non-zero
+    pixels are used). Returns per-frame lists of :func:`flow_metrics`' keys."""
+    res: Dict[str, List[float]] = {}
+    for l in range(min(voxels.shape[0], flows.shape[0])):
+        v = torch.from_numpy(np.ascontiguousarray(voxels[l], dtype=np.float32))[None].to(device)
+        p = model(v)[0].float().cpu().numpy()
+        mask = counts[l] > 0 if counts is not None else np.any(voxels[l] != 0, axis=0)
+        for k, val in flow_metrics(p, flows[l], mask).items():
+            res.setdefault(k, []).append(val)
+    return res
+
+
+def _summarise(per_input: Dict[str, Dict[str, List[float]]]) -> dict:
+    keys = sorted({k for r in per_input.values() for k in r if not k.startswith("_")})
+    allv = {k: [v for r in per_input.values() for v in r.get(k, [])] for k in keys}
+    return {
+        "mean": {k: float(np.nanmean(v)) if len(v) else None for k, v in allv.items()},
+        "frames": max((len(v) for v in allv.values()), default=0),
+        "per_input": {name: {k: float(np.nanmean(v)) for k, v in r.items() if not k.startswith("_") and len(v)}
+                      for name, r in per_input.items()},
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="v2v-eval", description="Evaluate a v2v-train checkpoint (paper metrics).")
+    p.add_argument("--checkpoint", required=True, help="checkpoint_*.pt written by v2v-train")
+    p.add_argument("--h5", nargs="*", default=[], help="H5 files in the event_cnn_minimal layout")
+    p.add_argument("--video", nargs="*", default=[], help="videos: voxels simulated with the V2V core (E2VID only)")
+    p.add_argument("--contrast-threshold", type=float, default=0.2, help="--video: c+ = c- (log units)")
+    p.add_argument("--max-frames", type=int, default=0, help="--video: frames to use (0 = all)")
+    p.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), help="--video: resize frames to H W")
+    p.add_argument("--ssim-data-range", type=float, default=1.0,
+                   help="skimage data_range for SSIM; 2 reproduces the paper tables' convention")
+    p.add_argument("--lpips-weights", nargs="*", default=None, help="LPIPS AlexNet weight file(s)")
+    p.add_argument("--skip-first", type=int, default=0, help="E2VID: leave the first N frames out (warm-up)")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--out", help="write the metrics JSON (and sample PNGs) here")
+    p.add_argument("--save-images", type=int, default=0, help="E2VID: save every Nth reconstruction as PNG")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    from .train import resolve_device
+    from .lpips_net import load_lpips
+
+    device = resolve_device(args.device)
+    task, model, cfg = load_model(args.checkpoint, device)
+    nb = int(cfg["model"]["num_bins"])
+    if not args.h5 and not args.video:
+        p.error("give --h5 and/or --video inputs")
+    lp = None
+    if task == "e2vid":
+        lp = load_lpips("alex", args.lpips_weights)
+        if lp is None:
+            log.warning("LPIPS (Alex) weights not found: LPIPS is not reported")
+        else:
+            lp = lp.to(device)
+    out = Path(args.out) if args.out else None
+    if out:
+        out.mkdir(parents=True, exist_ok=True)
+    per_input = {}
+    inputs = [("h5", x) for x in args.h5] + [("video", x) for x in args.video]
+    for kind, path in inputs:
+        if kind == "h5":
+            seq = H5Sequence(path)
+            vox, counts = seq.voxels(nb)
+            frames, flows = seq.images, seq.flows
+        else:
+            if task != "e2vid":
+                p.error("--video inputs have no ground-truth flow; EvFlow needs --h5 files with a flow group")
+            vox, frames = video_sequence(path, nb, args.contrast_threshold, args.max_frames,
+                                         tuple(args.size) if args.size else None)
+            counts, flows = None, None
+        if task == "e2vid":
+            r = evaluate_e2vid(model, vox, frames, device, args.ssim_data_range, lp, args.skip_first)
+            if out and args.save_images:
+                from .viz import gray_to_u8, save_grid, voxel_to_u8
+
+                preds = r["_preds"]
+                for l in range(0, len(preds), args.save_images):
+                    save_grid(str(out / f"{Path(path).stem}_{l:05d}.png"),
+                              [[voxel_to_u8(vox[l]), gray_to_u8(preds[l]), gray_to_u8(frames[l + 1] / 255.0)]])
+        else:
+            if flows is None:
+                raise KeyError(f"{path}: no 'flow' group, cannot evaluate optical flow")
+            r = evaluate_evflow(model, vox, flows, counts, device)
+        per_input[path] = r
+        log.info("%s: %s", path, {k: round(float(np.nanmean(v)), 5) for k, v in r.items() if not k.startswith("_") and len(v)})
+    summary = {"checkpoint": args.checkpoint, "task": task, "ssim_data_range": args.ssim_data_range,
+               "skip_first": args.skip_first, **_summarise(per_input)}
+    text = json.dumps(summary, indent=2)
+    print(text)
+    if out:
+        (out / "metrics.json").write_text(text)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,236 @@
+"""E2VID (recurrent UNet with ConvLSTM encoders) and EVFlowNet (UNet) in PyTorch.
+
+Architectures as configured in the V2V paper's reference training configs (Lou et al.,
+NeurIPS 2025), which reuse event_cnn_minimal (Stoffregen et al., ECCV 2020):
+
+* ``E2VIDRecurrent``: head conv (k5) -> 3 encoders (strided conv k5 + ConvLSTM k3),
+  channels 32-64-128-256 -> 2 residual blocks -> 3 decoders (bilinear x2 upsample + conv
+  k5) with *sum* skips -> 1x1 prediction conv, 1 output channel, no final activation.
+* ``EVFlowNet``: head conv (k3) -> 4 strided-conv encoders, channels 32-64-128-256-512 ->
+  2 residual blocks -> 4 upsample-conv decoders with *concat* skips -> 1x1 prediction
+  conv with 2 output channels (optical flow in pixels, channel 0 = x/u, 1 = y/v).
+
+Inputs are voxel grids (N, num_bins, H, W) float; H and W need not be multiples of
+2**num_encoders: inputs are zero-padded on the bottom/right and the output cropped back.
+"""
+from __future__ import annotations
+
+from typing import List, Optional, Sequence, Tuple
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+__all__ = ["ConvLSTM", "E2VIDRecurrent", "EVFlowNet", "build_model"]
+
+State = Optional[Tuple[torch.Tensor, torch.Tensor]]
+
+
+class ConvLayer(nn.Module):
+    """Conv2d + optional ReLU (event_cnn_minimal ``ConvLayer`` with norm=None)."""
+
+    def __init__(self, cin: int, cout: int, kernel_size: int, stride: int = 1, relu: bool = True):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, kernel_size, stride, padding=kernel_size // 2, bias=True)
+        self.relu = relu
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.conv(x)
+        return F.relu(x) if self.relu else x
+
+
+class UpsampleConvLayer(nn.Module):
+    """Bilinear x2 upsampling followed by Conv2d + ReLU (``use_upsample_conv=True``)."""
+
+    def __init__(self, cin: int, cout: int, kernel_size: int):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, kernel_size, 1, padding=kernel_size // 2, bias=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+        return F.relu(self.conv(x))
+
+
+class ResidualBlock(nn.Module):
+    """conv3-ReLU-conv3 + identity, then ReLU (norm=None)."""
+
+    def __init__(self, ch: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(ch, ch, 3, 1, 1, bias=True)
+        self.conv2 = nn.Conv2d(ch, ch, 3, 1, 1, bias=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = F.relu(self.conv1(x))
+        out = self.conv2(out)
+        return F.relu(out + x)
+
+
+class ConvLSTM(nn.Module):
+    """Convolutional LSTM cell (Shi et al. 2015; event_cnn_minimal's ``ConvLSTM``).
+
+    Args:
+        input_size: channels of the input x.
+        hidden_size: channels of the hidden and cell states.
+        kernel_size: odd kernel of the gate convolution.
+
+    ``forward(x (N, input_size, H, W), state)`` with ``state`` ``None`` (zeros) or
+    ``(hidden, cell)`` each (N, hidden_size, H, W); returns ``(hidden, cell)``.
+    """
+
+    def __init__(self, input_size: int, hidden_size: int, kernel_size: int = 3):
+        super().__init__()
+        self.hidden_size = hidden_size
+        self.gates = nn.Conv2d(input_size + hidden_size, 4 * hidden_size, kernel_size, padding=kernel_size // 2)
+
+    def forward(self, x: torch.Tensor, state: State = None) -> Tuple[torch.Tensor, torch.Tensor]:
+        if state is None:
+            shape = (x.shape[0], self.hidden_size, x.shape[2], x.shape[3])
+            state = (x.new_zeros(shape), x.new_zeros(shape))
+        prev_hidden, prev_cell = state
+        gates = self.gates(torch.cat([x, prev_hidden], dim=1))
+        in_gate, remember_gate, out_gate, cell_gate = gates.chunk(4, dim=1)
+        cell = torch.sigmoid(remember_gate) * prev_cell + torch.sigmoid(in_gate) * torch.tanh(cell_gate)
+        hidden = torch.sigmoid(out_gate) * torch.tanh(cell)
+        return hidden, cell
+
+
+class RecurrentConvLayer(nn.Module):
+    """Strided ConvLayer followed by a ConvLSTM (kernel 3) on its output."""
+
+    def __init__(self, cin: int, cout: int, kernel_size: int):
+        super().__init__()
+        self.conv = ConvLayer(cin, cout, kernel_size, stride=2)
+        self.lstm = ConvLSTM(cout, cout, 3)
+
+    def forward(self, x: torch.Tensor, state: State) -> Tuple[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]:
+        state = self.lstm(self.conv(x), state)
+        return state[0], state
+
+
+def _pad_to_multiple(x: torch.Tensor, m: int) -> Tuple[torch.Tensor, int, int]:
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % m, (-w) % m
+    if ph or pw:
+        x = F.pad(x, (0, pw, 0, ph))
+    return x, h, w
+
+
+class _UNetBase(nn.Module):
+    def __init__(self, num_bins, base_num_channels, num_encoders, num_residual_blocks,
+                 num_output_channels, skip_type, kernel_size, channel_multiplier=2):
+        super().__init__()
+        if skip_type not in ("sum", "concat"):
+            raise ValueError(f"skip_type must be 'sum' or 'concat', got {skip_type!r}")
+        if num_encoders < 1 or base_num_channels < 1 or num_bins < 1:
+            raise ValueError("num_encoders, base_num_channels and num_bins must be >= 1")
+        self.num_bins = num_bins
+        self.num_encoders = num_encoders
+        self.skip_type = skip_type
+        self.enc_in = [base_num_channels * channel_multiplier**i for i in range(num_encoders)]
+        self.enc_out = [base_num_channels * channel_multiplier ** (i + 1) for i in range(num_encoders)]
+        self.max_ch = self.enc_out[-1]
+        self.head = ConvLayer(num_bins, base_num_channels, kernel_size)
+        self.resblocks = nn.ModuleList([ResidualBlock(self.max_ch) for _ in range(num_residual_blocks)])
+        mult = 2 if skip_type == "concat" else 1
+        self.decoders = nn.ModuleList(
+            [UpsampleConvLayer(mult * cin, cout, kernel_size)
+             for cin, cout in zip(reversed(self.enc_out), reversed(self.enc_in))]
+        )
+        self.pred = ConvLayer(mult * base_num_channels, num_output_channels, 1, relu=False)
+
+    def _skip(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return x + y if self.skip_type == "sum" else torch.cat([x, y], dim=1)
+
+    def _decode(self, x: torch.Tensor, blocks: Sequence[torch.Tensor], head: torch.Tensor) -> torch.Tensor:
+        for res in self.resblocks:
+            x = res(x)
+        for i, dec in enumerate(self.decoders):
+            x = dec(self._skip(x, blocks[self.num_encoders - i - 1]))
+        return self.pred(self._skip(x, head))
+
+
+class E2VIDRecurrent(_UNetBase):
+    """E2VID recurrent reconstruction network (Rebecq et al. 2019; event_cnn_minimal
+    ``E2VIDRecurrent`` / ``UNetRecurrent`` with ConvLSTM encoders).
+
+    Paper/reference config: num_bins=5, base_num_channels=32, num_encoders=3, skip 'sum',
+    num_residual_blocks=2, kernel_size=5, upsample-conv decoder, 1 output, no activation.
+
+    ``forward(voxel, states)``: ``voxel`` float (N, num_bins, H, W) (signed event counts per
+    bin), ``states`` ``None`` or the list returned by the previous call. Returns
+    ``(image (N, 1, H, W) float, states)``; the image is in [0, 1] intensity units after
+    training but is not clamped. Detach or reset ``states`` between sequences.
+    """
+
+    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 3,
+                 num_residual_blocks: int = 2, num_output_channels: int = 1, skip_type: str = "sum",
+                 kernel_size: int = 5):
+        super().__init__(num_bins, base_num_channels, num_encoders, num_residual_blocks,
+                         num_output_channels, skip_type, kernel_size)
+        self.encoders = nn.ModuleList(
+            [RecurrentConvLayer(cin, cout, kernel_size) for cin, cout in zip(self.enc_in, self.enc_out)]
+        )
+
+    def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
+        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
+            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        x, h, w = _pad_to_multiple(voxel, 2**self.num_encoders)
+        if states is None:
+            states = [None] * self.num_encoders
+        x = self.head(x)
+        head = x
+        blocks, new_states = [], []
+        for enc, st in zip(self.encoders, states):
+            x, st = enc(x, st)
+            blocks.append(x)
+            new_states.append(st)
+        img = self._decode(x, blocks, head)
+        return img[..., :h, :w], new_states
+
+
+class EVFlowNet(_UNetBase):
+    """EV-FlowNet (Zhu et al. 2018) as the UNet of event_cnn_minimal's ``EVFlowNet``.
+
+    Paper/reference config: num_bins=5, base_num_channels=32, num_encoders=4, skip
+    'concat', num_residual_blocks=2, kernel_size=3, upsample-conv decoder, 2 outputs.
+
+    ``forward(voxel)``: float (N, num_bins, H, W) -> flow float (N, 2, H, W) in pixels over
+    the voxel's time span (channel 0 = x/u, 1 = y/v).
+    """
+
+    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 4,
+                 num_residual_blocks: int = 2, num_output_channels: int = 2, skip_type: str = "concat",
+                 kernel_size: int = 3):
+        super().__init__(num_bins, base_num_channels, num_encoders, num_residual_blocks,
+                         num_output_channels, skip_type, kernel_size)
+        self.encoders = nn.ModuleList(
+            [ConvLayer(cin, cout, kernel_size, stride=2) for cin, cout in zip(self.enc_in, self.enc_out)]
+        )
+
+    def forward(self, voxel: torch.Tensor) -> torch.Tensor:
+        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
+            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        x, h, w = _pad_to_multiple(voxel, 2**self.num_encoders)
+        x = self.head(x)
+        head = x
+        blocks = []
+        for enc in self.encoders:
+            x = enc(x)
+            blocks.append(x)
+        return self._decode(x, blocks, head)[..., :h, :w]
+
+
+def build_model(task: str, model_cfg: dict) -> nn.Module:
+    """Build the network of ``task`` ('e2vid' or 'evflow') from the ``model:`` config
+    section (keyword arguments of the class). Raises ``ValueError`` for an unknown task
+    or unknown keys."""
+    cls = {"e2vid": E2VIDRecurrent, "evflow": EVFlowNet}.get(task)
+    if cls is None:
+        raise ValueError(f"task must be 'e2vid' or 'evflow', got {task!r}")
+    import inspect
+
+    known = set(inspect.signature(cls.__init__).parameters) - {"self"}
+    unknown = sorted(set(model_cfg) - known)
+    if unknown:
+        raise ValueError(f"unknown model key(s) for {task}: {unknown}; known: {sorted(known)}")
+    return cls(**model_cfg)

@@ -1,0 +1,52 @@
+"""Images for logs: voxel grids, reconstructions and optical flow as uint8 pictures."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+__all__ = ["voxel_to_u8", "gray_to_u8", "flow_to_bgr", "save_grid"]
+
+
+def voxel_to_u8(voxel: np.ndarray) -> np.ndarray:
+    """(num_bins, H, W) signed counts -> (H, W, 3) uint8: the sum over bins, grey 128 = 0,
+    scaled by the 99th percentile of |sum| (white = positive, black = negative)."""
+    s = np.asarray(voxel, dtype=np.float32).sum(0)
+    m = max(float(np.percentile(np.abs(s), 99)), 1e-6)
+    g = np.clip(128 + 127 * s / m, 0, 255).astype(np.uint8)
+    return cv2.cvtColor(g, cv2.COLOR_GRAY2BGR)
+
+
+def gray_to_u8(img: np.ndarray) -> np.ndarray:
+    """(H, W) or (1, H, W) intensities in [0, 1] (clipped) -> (H, W, 3) uint8."""
+    g = np.asarray(img, dtype=np.float32).reshape(np.shape(img)[-2:])
+    g = (np.clip(g, 0, 1) * 255 + 0.5).astype(np.uint8)
+    return cv2.cvtColor(g, cv2.COLOR_GRAY2BGR)
+
+
+def flow_to_bgr(flow: np.ndarray, max_mag: float = None) -> np.ndarray:
+    """(2, H, W) flow in pixels -> (H, W, 3) uint8 BGR (hue = direction, value = magnitude
+    relative to ``max_mag``, default the 99th percentile of the magnitude)."""
+    u, v = np.asarray(flow[0], np.float32), np.asarray(flow[1], np.float32)
+    mag, ang = cv2.cartToPolar(u, v)
+    if max_mag is None:
+        max_mag = max(float(np.percentile(mag, 99)), 1e-6)
+    hsv = np.zeros(u.shape + (3,), np.uint8)
+    hsv[..., 0] = (ang * 90 / np.pi).astype(np.uint8)
+    hsv[..., 1] = 255
+    hsv[..., 2] = np.clip(255 * mag / max_mag, 0, 255).astype(np.uint8)
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
+
+
+def save_grid(path: str, rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> None:
+    """Write rows of equal-size (H, W, 3) uint8 tiles as one PNG, ``pad`` white pixels apart."""
+    h, w = rows[0][0].shape[:2]
+    ncol = max(len(r) for r in rows)
+    canvas = np.full((len(rows) * (h + pad) + pad, ncol * (w + pad) + pad, 3), 255, np.uint8)
+    for i, r in enumerate(rows):
+        for j, tile in enumerate(r):
+            y, x = pad + i * (h + pad), pad + j * (w + pad)
+            canvas[y:y + h, x:x + w] = tile
+    if not cv2.imwrite(str(path), canvas):
+        raise OSError(f"could not write {path}")
