@@ -2,6 +2,7 @@
 V2VStreamDataset. Every test is bounded in time and stops what it starts."""
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -15,19 +16,20 @@ import zmq
 from v2v_client import StreamTimeout, V2VStreamDataset
 from v2v_server.process import ServeProcess, free_port
 from v2v_server.protocol import decode_arrays, pack, unpack
-from v2v_server.sampler import count_frames
+from v2v_server.config import ServeConfig
+from v2v_server.corpus import check_video
 from v2v_server.video import find_videos
 
 
 
 L, B, CROP, MAXW = 8, 5, 96, 3
-SPAN = L * B + 1
 
 
 def expected_ids(videos):
+    cfg = ServeConfig(sequence_length=L, num_bins=B, max_samples_per_video=MAXW).validate()
     ids = set()
     for rel in find_videos(videos, (".mp4",)):
-        n = min(MAXW, count_frames(videos / rel) // SPAN)
+        n = check_video(cfg, str(videos), rel.as_posix())["windows"]
         ids.update(f"{rel.as_posix()}#{k}" for k in range(n))
     return ids
 
@@ -138,7 +140,7 @@ def test_credits_bound_batches_in_flight(videos):
 def test_dataloader_with_pin_memory(videos):
     with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
         ds = V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60)
-        with pytest.warns(UserWarning) if not torch.cuda.is_available() else _nullcontext():
+        with pytest.warns(UserWarning) if not torch.cuda.is_available() else contextlib.nullcontext():
             dl = torch.utils.data.DataLoader(ds, batch_size=None, pin_memory=True)
             it = iter(dl)
             b = next(it)
@@ -170,11 +172,3 @@ def test_bad_config_fails_at_startup_naming_field(tmp_path, videos):
     out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--config", str(cfg)],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "sequence_lenght" in out.stderr
-
-
-class _nullcontext:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *a):
-        return False

@@ -125,9 +125,18 @@ class _Connection:
             pub, sec, server_pub = self.ds.curve
             sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = pub, sec, server_pub
         sock.connect(self.endpoint)
-        sock.send(pack({"type": "hello", "outputs": list(self.ds.outputs), "credits": self.ds.credits,
-                        "resume": self.ds._resume_state()}))
+        sock.send(self._hello())
         return sock
+
+    def _poller(self, sock: zmq.Socket) -> zmq.Poller:
+        poller = zmq.Poller()
+        poller.register(sock, zmq.POLLIN)
+        poller.register(self._ack_recv, zmq.POLLIN)
+        return poller
+
+    def _hello(self) -> bytes:
+        return pack({"type": "hello", "outputs": list(self.ds.outputs), "credits": self.ds.credits,
+                     "resume": self.ds._resume_state()})
 
     def _run(self) -> None:
         sock = None
@@ -136,10 +145,8 @@ class _Connection:
             sock = self._socket()
             last_heard = time.monotonic()
             next_beat = last_heard + self.ds.heartbeat_s
+            poller = self._poller(sock)
             while not self._closing.is_set():
-                poller = zmq.Poller()
-                poller.register(sock, zmq.POLLIN)
-                poller.register(self._ack_recv, zmq.POLLIN)
                 events = dict(poller.poll(100))
                 now = time.monotonic()
                 if self._ack_recv in events:
@@ -190,6 +197,7 @@ class _Connection:
                         return
                     sock.close(0)
                     sock = self._socket()
+                    poller = self._poller(sock)
                     last_heard = now
                     continue
                 if now >= next_beat:
@@ -247,8 +255,7 @@ class _Connection:
             elif kind == "error" and h.get("code") == "unknown_client" and self.ds.reconnect:
                 # the server restarted behind our socket: introduce ourselves again, with our resume state
                 log.warning("the v2v server at %s restarted; resuming", self.endpoint)
-                self._reply = pack({"type": "hello", "outputs": list(self.ds.outputs), "credits": self.ds.credits,
-                                    "resume": self.ds._resume_state()})
+                self._reply = self._hello()
             elif kind == "error":
                 self.items.put(StreamError(f"v2v server at {self.endpoint}: {h.get('message')}"))
                 return "over"

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import List, Tuple
 
 from .config import ServeConfig
-from .video import VideoError, inside, iter_luma, open_video
+from .video import VideoError, decode_luma, inside, open_video
 
 
 def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
@@ -21,11 +21,10 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
         out["reason"] = "missing, or points outside the corpus root"
         return out
     try:
-        c, _, info = open_video(path)
-        c.close()
+        container, stream, info = open_video(path)
         out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
         need = cfg.frames_per_sample * cfg.max_samples_per_video
-        for _ in iter_luma(path, 1, rows=1):
+        for _ in decode_luma(container, stream, rows=1):
             out["frames"] += 1
             if out["frames"] >= need:
                 out["more"] = True  # enough for every window: stop decoding

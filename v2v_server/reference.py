@@ -316,7 +316,11 @@ def simulate_events(
     return Events(x.astype(np.int32), y.astype(np.int32), t, p), pot
 
 
-def _normalised_times(events: Events, t_start: float, t_end: float):
+def _normalised_times(events: Events, t_start: float, t_end: float, num_bins: int = 1):
+    """Events inside [t_start, t_end] (mask) and their times normalised to [0, 1]; checks
+    the span and ``num_bins`` (ValueError)."""
+    if num_bins < 1:
+        raise ValueError(f"num_bins must be >= 1, got {num_bins}")
     if not t_end > t_start:
         raise ValueError(f"t_end must be > t_start, got [{t_start}, {t_end}]")
     keep = (events.t >= t_start) & (events.t <= t_end)
@@ -340,10 +344,8 @@ def voxel_discrete(events: Events, num_bins: int, shape: Tuple[int, int], t_star
     Raises:
         ValueError: for t_end <= t_start or num_bins < 1.
     """
-    if num_bins < 1:
-        raise ValueError(f"num_bins must be >= 1, got {num_bins}")
+    keep, u = _normalised_times(events, t_start, t_end, num_bins)
     h, w = shape
-    keep, u = _normalised_times(events, t_start, t_end)
     b = np.minimum(np.floor(u * num_bins).astype(np.int64), num_bins - 1)
     flat = (b * h + events.y[keep]) * w + events.x[keep]
     v = np.bincount(flat, weights=events.p[keep].astype(np.float64), minlength=num_bins * h * w)
@@ -362,10 +364,8 @@ def voxel_interpolated(events: Events, num_bins: int, shape: Tuple[int, int], t_
     Raises:
         ValueError: for t_end <= t_start or num_bins < 1.
     """
-    if num_bins < 1:
-        raise ValueError(f"num_bins must be >= 1, got {num_bins}")
+    keep, u = _normalised_times(events, t_start, t_end, num_bins)
     h, w = shape
-    keep, u = _normalised_times(events, t_start, t_end)
     pol = events.p[keep].astype(np.float64)
     pix = events.y[keep].astype(np.int64) * w + events.x[keep]
     tb = (num_bins - 1) * u

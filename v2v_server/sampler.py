@@ -20,7 +20,7 @@ import numpy as np
 
 from .config import ServeConfig
 from .simulate import SensorParams, sample_params, simulate_voxels
-from .video import VideoError, inside, iter_luma, open_video
+from .video import VideoError, decode_luma, inside, open_video
 
 _DIS_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -235,13 +235,13 @@ def video_samples(
         raise VideoError("missing, or points outside the corpus root")
     skip = set(skip_windows)
     span = cfg.frames_per_sample
-    _, _, info = _probe(path, cfg.decode_threads)
+    container, stream, info = open_video(path, cfg.decode_threads)  # opened once, decoded once
     rows = kept_rows(cfg, info.height)
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
     plan: Optional[WindowPlan] = None
     buf = None
-    for i, luma in enumerate(iter_luma(path, cfg.decode_threads, rows)):
+    for i, luma in enumerate(decode_luma(container, stream, rows)):
         k, off = divmod(i, span)
         if k >= cfg.max_samples_per_video:
             break
@@ -260,21 +260,3 @@ def video_samples(
             arrays = make_sample(cfg, plan, buf, outputs, flow, info.fps)
             yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
             plan, buf = None, None
-
-
-def _probe(path: Path, threads: int):
-    container, stream, info = open_video(path, threads)
-    container.close()
-    return container, stream, info
-
-
-def count_frames(path: Path) -> int:
-    """Frames in a video by decoding it (container frame counts are unreliable).
-
-    Raises:
-        VideoError: when it cannot be opened or decoded.
-    """
-    n = 0
-    for _ in iter_luma(path, 1, rows=1):
-        n += 1
-    return n

@@ -650,13 +650,7 @@ class V2VServer:
             self.outputs = tuple(o for o in ALL_OUTPUTS if o in outs)
             log.info("first client asks for %s: workers compute only these", list(self.outputs))
         self._apply_resume(h.get("resume"))
-        old = self.clients.pop(ident, None)
-        if old is not None:  # reconnect with the same identity: its in-flight batches go back
-            for bid in sorted(old.inflight):
-                self.inflight.pop(bid, None)
-                if bid in self.batches:
-                    self.ready.appendleft(self.batches[bid])
-                    self.stats.batches_resent += 1
+        self._drop_client(ident)  # a reconnect with the same identity: its in-flight batches go back
         self.clients[ident] = ClientState(ident, tuple(outs), self._credit(h.get("credits", 0)), now)
         self._send_client(ident, {"type": "welcome", "info": self.stream_info()})
 

@@ -84,24 +84,33 @@ def iter_luma(path: Path, threads: int = 1, rows: Optional[int] = None) -> Itera
     Args:
         path: video file.
         threads: decoder threads.
-        rows: keep only the top ``rows`` rows of each frame (``None``: all). The yielded
-            array is a view into the decoder's buffer, valid until the next frame: copy what
-            you keep.
+        rows: keep only the top ``rows`` rows of each frame (``None``: all).
 
     Raises:
-        VideoError: when the file cannot be opened or decoding fails part-way (the frames
-            yielded before the failure were good).
+        VideoError: as ``open_video`` and ``decode_luma``.
+    """
+    container, stream, _ = open_video(path, threads)
+    return decode_luma(container, stream, rows)
+
+
+def decode_luma(container, stream, rows: Optional[int] = None) -> Iterator[np.ndarray]:
+    """Yield the luma of each frame of an ``open_video`` result, uint8 (H', W); closes the
+    container when done (or when the generator is closed).
+
+    ``rows`` keeps only the top rows of each frame (``None``: all). The yielded array is a
+    view into the decoder's buffer, valid until the next frame: copy what you keep.
+
+    Raises:
+        VideoError: when decoding fails part-way (the frames yielded before were good).
     """
     import av
 
-    container, stream, _ = open_video(path, threads)
     try:
-        try:
-            for frame in container.decode(stream):
-                y = _luma(frame)
-                yield y if rows is None else y[:rows]
-        except av.error.FFmpegError as e:
-            raise VideoError(f"decoding failed: {type(e).__name__}: {e}") from None
+        for frame in container.decode(stream):
+            y = _luma(frame)
+            yield y if rows is None else y[:rows]
+    except av.error.FFmpegError as e:
+        raise VideoError(f"decoding failed: {type(e).__name__}: {e}") from None
     finally:
         container.close()
 
