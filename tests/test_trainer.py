@@ -214,6 +214,26 @@ def test_config_files_and_overrides():
         apply_overrides(e, ["optim.nope=1"])
 
 
+def test_config_values_are_typed_and_bad_ones_named(tmp_path):
+    e = load_config("trainer/configs/e2vid.yaml")
+    # YAML 1.1 reads "3e-4" as a string; the trainer stores the number it means
+    g = apply_overrides(e, ["optim.lr=3e-4", "optim.clip_grad_norm=1", "stream.timeout_s=5"])
+    assert g["optim"]["lr"] == 3e-4 and isinstance(g["optim"]["lr"], float)
+    assert g["optim"]["clip_grad_norm"] == 1.0 and g["stream"]["timeout_s"] == 5.0
+    for item, field in [("optim.lr=fast", "optim.lr"), ("log.checkpoint_every=2.5", "log.checkpoint_every"),
+                        ("optim.amsgrad=1", "optim.amsgrad"), ("max_steps=many", "max_steps"),
+                        ("loss.tc_alpha=[1]", "loss.tc_alpha")]:
+        with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+            apply_overrides(e, [item])
+    p = tmp_path / "bad.yaml"
+    p.write_text("task: e2vid\noptim:\n  lr: 1e-3\n  weight_decay: none\n")
+    with pytest.raises(ValueError, match="optim.weight_decay") as err:
+        load_config(str(p))
+    assert str(p) in str(err.value)
+    p.write_text("task: e2vid\noptim:\n  lr: 1e-3\n")
+    assert load_config(str(p))["optim"]["lr"] == 1e-3
+
+
 # ----------------------------------------------------------------------------- training
 @pytest.mark.parametrize("task", ["e2vid", "evflow"])
 def test_loss_finite_and_decreasing(tmp_path, task):

@@ -11,7 +11,7 @@ from typing import Any, Iterable, Optional
 
 import yaml
 
-__all__ = ["DEFAULTS", "default_config", "load_config", "apply_overrides", "merge"]
+__all__ = ["DEFAULTS", "default_config", "load_config", "apply_overrides", "merge", "check_types"]
 
 _COMMON = {
     "connect": "tcp://127.0.0.1:5555",
@@ -80,6 +80,58 @@ def _check_keys(cfg: dict, ref: dict, prefix: str = ""):
             _check_keys(v, ref[k], prefix + k + ".")
 
 
+#: keys whose default is None but which take a number when set
+_OPTIONAL_FLOATS = {"optim.clip_grad_norm"}
+
+
+def _as_float(v: Any, field: str) -> float:
+    # PyYAML follows YAML 1.1, where "3e-4" (no dot) is a string, not a float: accept it.
+    if isinstance(v, bool):
+        raise ValueError(f"config field {field!r} must be a number, got {v!r}")
+    if isinstance(v, (int, float)):
+        return float(v)
+    if isinstance(v, str):
+        try:
+            return float(v)
+        except ValueError:
+            pass
+    raise ValueError(f"config field {field!r} must be a number, got {v!r}")
+
+
+def check_types(cfg: dict, ref: Optional[dict] = None, prefix: str = "") -> dict:
+    """Check ``cfg`` against the types of the task defaults, in place, and return it.
+
+    Floats accept ints and numeric strings (``--set optim.lr=3e-4`` parses as the string
+    '3e-4' under YAML 1.1) and are stored as ``float``; ints must be integers; booleans
+    must be booleans. Keys whose default is None are not checked, except
+    ``optim.clip_grad_norm`` (None or a number). The ``model`` section is checked when the
+    model is built. Raises ``ValueError`` naming the dotted field.
+    """
+    if ref is None:
+        ref = DEFAULTS.get(cfg.get("task"), DEFAULTS["e2vid"])
+    for k, v in list(cfg.items()):
+        field = prefix + k
+        d = ref.get(k)
+        if k == "model" and not prefix:
+            continue
+        if isinstance(d, dict):
+            if not isinstance(v, dict):
+                raise ValueError(f"config field {field!r} must be a mapping, got {v!r}")
+            check_types(v, d, field + ".")
+        elif field in _OPTIONAL_FLOATS:
+            if v is not None:
+                cfg[k] = _as_float(v, field)
+        elif isinstance(d, bool):
+            if not isinstance(v, bool):
+                raise ValueError(f"config field {field!r} must be true or false, got {v!r}")
+        elif isinstance(d, float):
+            cfg[k] = _as_float(v, field)
+        elif isinstance(d, int):
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise ValueError(f"config field {field!r} must be an integer, got {v!r}")
+    return cfg
+
+
 def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
     """Load a YAML config over the task's defaults.
 
@@ -104,7 +156,10 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
         user.pop("loss", None)
     user["task"] = task
     _check_keys(user, base)
-    return merge(base, user)
+    try:
+        return check_types(merge(base, user))
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") if path else e
 
 
 def _parse_value(s: str) -> Any:
@@ -113,7 +168,8 @@ def _parse_value(s: str) -> Any:
 
 def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
     """Apply ``key.sub=value`` strings (values parsed as YAML) to a copy of ``cfg``.
-    Raises ``ValueError`` for a malformed item or an unknown key path."""
+    Raises ``ValueError`` for a malformed item, an unknown key path or a value of the wrong
+    type (see :func:`check_types`)."""
     cfg = copy.deepcopy(cfg)
     for item in overrides or ():
         if "=" not in item:
@@ -128,4 +184,4 @@ def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
         if parts[-1] not in node and parts[0] != "model":
             raise ValueError(f"unknown config key {key!r} in override {item!r}")
         node[parts[-1]] = _parse_value(val)
-    return cfg
+    return check_types(cfg)

@@ -35,6 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--num-bins", type=int, help="temporal bins per voxel grid, B (default 5)")
     p.add_argument("--frames-per-bin", type=int, help="frame pairs summed into one bin (default 1)")
     p.add_argument("--crop-size", type=int, help="square crop side in pixels (default 128)")
+    p.add_argument("--keep-top-fraction", type=float,
+                   help="fraction of each frame's height, from the top, that crops come from (default 0.54: "
+                        "WebVid's watermark; 1.0 for clips without one)")
     p.add_argument("--max-samples-per-video", type=int, help="windows per video per epoch (default 10)")
     p.add_argument("--outputs", help=f"comma list of outputs clients may ask for, from {','.join(ALL_OUTPUTS)}")
     p.add_argument("--flow-preset", choices=FLOW_PRESETS, help="OpenCV DIS preset (default medium)")
@@ -58,7 +61,7 @@ def config_from_args(args: argparse.Namespace):
     """Merge defaults, ``--config`` and flags into a validated ``ServeConfig``."""
     overrides = {k: getattr(args, k) for k in (
         "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
-        "frames_per_bin", "crop_size", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
+        "frames_per_bin", "crop_size", "keep_top_fraction", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
         "client_timeout_s", "curve_secret_key", "curve_allow", "insecure")}
     return load_config(args.config, overrides)
 
