@@ -24,19 +24,17 @@ import argparse
 import os
 from typing import List, Tuple
 
+import cv2
 import numpy as np
 
 #: skimage.data images that are photographs (the rest are binary, synthetic or tiny)
-SKIMAGE_PHOTOS = ("astronaut", "camera", "chelsea", "coffee", "coins", "rocket", "motorcycle_left",
-                  "grass", "gravel", "brick", "moon", "immunohistochemistry", "hubble_deep_field", "page")
+SKIMAGE_PHOTOS = ("astronaut", "camera", "chelsea", "coffee", "coins", "rocket", "grass", "gravel", "brick", "moon", "immunohistochemistry", "hubble_deep_field", "page")
 
 
 def source_images() -> List[Tuple[str, np.ndarray]]:
     """The still photographs clips are made from: ``[(name, uint8 (H, W) grey image)]``.
 
     Raises ``RuntimeError`` if none can be loaded (scikit-image missing)."""
-    import cv2
-
     out = []
     try:
         import skimage.data as skd
@@ -47,7 +45,7 @@ def source_images() -> List[Tuple[str, np.ndarray]]:
             img = np.asarray(getattr(skd, name)())
         except Exception:  # an image the installed version does not ship
             continue
-        out.append((name, _to_grey(img, cv2)))
+        out.append((name, _to_grey(img)))
     try:
         import matplotlib.cbook as cbook
 
@@ -61,7 +59,7 @@ def source_images() -> List[Tuple[str, np.ndarray]]:
     return out
 
 
-def _to_grey(img: np.ndarray, cv2) -> np.ndarray:
+def _to_grey(img: np.ndarray) -> np.ndarray:
     if img.ndim == 3:
         img = cv2.cvtColor(img[..., :3].astype(np.uint8), cv2.COLOR_RGB2GRAY)
     if img.dtype != np.uint8:
@@ -74,7 +72,8 @@ def camera_path(frames: int, rng: np.random.Generator, max_speed_px: float = 3.0
                 max_rot_deg: float = 8.0, max_zoom: float = 0.15) -> np.ndarray:
     """A smooth random camera path: ``float64 (frames, 4)`` of (dx px, dy px, rotation deg,
     log zoom) per frame. Each component is a sum of two sinusoids of random period (40-400
-    frames) and phase; translation drifts by at most about ``max_speed_px`` per frame."""
+    frames) and phase; each translation component moves at most pi/3 * ``max_speed_px``
+    (about 1.05 x) per frame."""
     t = np.arange(frames, dtype=np.float64)
     out = np.zeros((frames, 4))
     amp = [max_speed_px * frames / 6, max_speed_px * frames / 6, max_rot_deg, max_zoom]
@@ -92,8 +91,6 @@ def render_clip(image: np.ndarray, size: Tuple[int, int], frames: int, rng: np.r
 
     The photograph is scaled so the view covers at most 80 % of its shorter side, so the
     camera mostly looks at real content (the border is reflected where it does not)."""
-    import cv2
-
     h, w = size
     ih, iw = image.shape
     base = max(h / (0.8 * ih), w / (0.8 * iw))

@@ -27,7 +27,7 @@ mkdir -p "$OUT/videos_train" "$OUT/videos_heldout"
 cp "$CLIPS/bikes.mp4" "$CLIPS/webvid_like_596x336.mp4" "$OUT/videos_train/"
 cp "$CLIPS/bigbuckbunny.mp4" "$OUT/videos_heldout/"
 # one street source is too little variety for a reconstruction network (it learns one scene's
-# brightness for where no events fire): add E2VID-style camera motion over 15 still photographs.
+# brightness for where no events fire): add E2VID-style camera motion over 14 still photographs.
 python -m bench.motion_clips --out "$OUT/videos_train" --frames 250 --size 272 480 --seed 0 > /dev/null
 
 # --keep-top-fraction 1.0: these clips carry no watermark, so crops come from the whole frame.
