@@ -30,12 +30,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Deque, Dict, List, Optional, Set
 
-import numpy as np
 import zmq
 
 from .config import ALL_OUTPUTS, ServeConfig, is_loopback
-from .protocol import (PROTOCOL_VERSION, ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack,
-                       unpack)
+from .datapath import BatchPayload, make_batch, sample_from_worker
+from .protocol import PROTOCOL_VERSION, ProtocolError, pack, unpack
 from .worker import worker_main
 
 log = logging.getLogger("v2v.server")
@@ -61,11 +60,12 @@ class Task:
 class Batch:
     batch_id: int
     epoch: int
-    sample_ids: List[str]
-    meta: List[dict]
-    arrays: Dict[str, np.ndarray]
-    nbytes: int = 0
+    payload: BatchPayload  # the data path's business (datapath.py)
     avoid: Optional[bytes] = None  # the client that gave it back: prefer another one
+
+    @property
+    def sample_ids(self) -> List[str]:
+        return self.payload.sample_ids
 
 
 @dataclass
@@ -90,7 +90,7 @@ class WorkerState:
 class EpochState:
     epoch: int
     open_tasks: Set[int] = field(default_factory=set)
-    pending: List[tuple] = field(default_factory=list)  # (sample_id, arrays, meta) not yet batched
+    pending: list = field(default_factory=list)  # SamplePayloads not yet batched
     unacked: Set[int] = field(default_factory=set)  # batch ids made but not acknowledged
     samples: int = 0
     complete: bool = False  # every task done and the last batch made
@@ -337,10 +337,10 @@ class V2VServer:
             if h["window"] in self._excluded(t.epoch, t.video):
                 t.received.add(h["window"])
                 return
-            arrays = {k: np.array(v) for k, v in decode_arrays(h["arrays"], frames[2:]).items()}
+            sample = sample_from_worker(h, frames[2:])
             t.received.add(h["window"])
             ep = self.epochs[t.epoch]
-            ep.pending.append((h["sample_id"], arrays, h["meta"]))
+            ep.pending.append(sample)
             ep.samples += 1
             self.stats.samples_made += 1
             if len(ep.pending) >= self.cfg.batch_size:
@@ -408,14 +408,7 @@ class V2VServer:
     def _make_batch(self, ep: EpochState) -> None:
         items = ep.pending[: self.cfg.batch_size]
         del ep.pending[: self.cfg.batch_size]
-        arrays = {}
-        for name in items[0][1]:
-            stacked = np.stack([it[1][name] for it in items])
-            if name == "voxels":
-                stacked = stacked.astype(narrow_int_dtype(stacked), copy=False)
-            arrays[name] = stacked
-        b = Batch(next(self._batch_ids), ep.epoch, [it[0] for it in items], [it[2] for it in items], arrays,
-                  sum(a.nbytes for a in arrays.values()))
+        b = Batch(next(self._batch_ids), ep.epoch, make_batch(items))
         self.batches[b.batch_id] = b
         ep.unacked.add(b.batch_id)
         self.ready.append(b)
@@ -431,10 +424,9 @@ class V2VServer:
             # spread batches over the clients; a batch given back goes elsewhere when it can
             c = max(eligible, key=lambda x: (x.ident != b.avoid, x.credits))
             self.ready.popleft()
-            arrays = {k: v for k, v in b.arrays.items() if k in c.outputs}
-            specs, frames = encode_arrays(arrays)
+            specs, frames = b.payload.wire(c.outputs)
             header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch, "sample_ids": b.sample_ids,
-                      "params": b.meta, "arrays": specs}
+                      "params": b.payload.meta, "arrays": specs}
             try:
                 self.frontend.send_multipart([c.ident, pack(header)] + frames, copy=False)
             except zmq.ZMQError as e:  # peer vanished (ROUTER_MANDATORY)
@@ -540,9 +532,7 @@ class V2VServer:
                 self.batches.pop(b.batch_id, None)
                 self.epochs[b.epoch].unacked.discard(b.batch_id)
                 continue
-            b.arrays = {k: np.ascontiguousarray(v[keep]) for k, v in b.arrays.items()}
-            b.sample_ids = [b.sample_ids[i] for i in keep]
-            b.meta = [b.meta[i] for i in keep]
+            b.payload = b.payload.subset(keep)
             kept.append(b)
         self.ready = kept
 
