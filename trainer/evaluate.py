@@ -149,7 +149,8 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
     truth of voxel l is the frame at its end.
 
     Args:
-        path: video file (decoded with PyAV, converted to luma).
+        path: video file, read like the stream reads it (``v2v_server.video.iter_luma``:
+            full-range, display-oriented luma; uint16 for sources deeper than 8 bits).
         num_bins: B.
         contrast_threshold: c+ = c- (log-intensity units); no noise or hot pixels.
         max_frames: use at most this many frames (0 = all).
@@ -159,27 +160,26 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
     Returns:
         ``(voxels int32 (L, B, H, W), frames uint8 (L+1, H, W))``.
     """
-    import av
     import cv2
 
     from v2v_server.simulate import SensorParams, simulate_voxels
+    from v2v_server.video import iter_luma, to_uint8
 
     out = []
-    with av.open(str(path)) as c:
-        for fr in c.decode(video=0):
-            g = fr.to_ndarray(format="gray")
-            if size is not None:
-                g = cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA)
-            out.append(g)
-            if max_frames and len(out) >= max_frames:
-                break
+    frames_it = iter_luma(path)  # the stream's reader: full-range, display-oriented luma
+    for g in frames_it:
+        g = cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA) if size is not None else g.copy()
+        out.append(g)
+        if max_frames and len(out) >= max_frames:
+            break
+    frames_it.close()
     n = (len(out) - 1) // num_bins * num_bins + 1
     if n < num_bins + 1:
         raise ValueError(f"{path}: too few frames ({len(out)}) for one voxel of {num_bins} bins")
     frames = np.stack(out[:n])
     vox, _ = simulate_voxels(frames, SensorParams(contrast_threshold, contrast_threshold), num_bins,
                              rng=np.random.default_rng(seed))
-    return vox, frames[::num_bins]
+    return vox, to_uint8(frames[::num_bins])
 
 
 def reconstruction_metrics(pred: np.ndarray, gt: np.ndarray, ssim_data_range: float = 1.0) -> Dict[str, float]:
