@@ -18,6 +18,7 @@ from typing import Dict, Iterable, Iterator, Optional, Tuple
 import cv2
 import numpy as np
 
+from .augment import augment_plan, degrade_window
 from .config import ServeConfig
 from .simulate import SensorParams, sample_params, simulate_voxels
 from .video import VideoError, decode_codes, inside, open_video, to_uint8
@@ -105,7 +106,9 @@ def plan_window(cfg: ServeConfig, epoch: int, sample_id: str, window: int, kept_
     crop_x = int(rng.integers(0, sw - s + 1))
     flip = bool(rng.random() < cfg.hflip_prob)
     params = sample_params(rng, cfg.ranges, (s, s))
-    return WindowPlan(sample_id, window, offsets, scale, crop_y, crop_x, flip, params, rng)
+    plan = WindowPlan(sample_id, window, offsets, scale, crop_y, crop_x, flip, params, rng)
+    augment_plan(cfg, epoch, plan)  # ablations (off by default), from their own generators
+    return plan
 
 
 def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarray:
@@ -265,6 +268,6 @@ def video_samples(
             buf[off] = crop
         if off == span - 1:
             stats["windows"] += 1
-            arrays = make_sample(cfg, plan, buf, outputs, flow, info.fps)
+            arrays = make_sample(cfg, plan, degrade_window(plan, buf), outputs, flow, info.fps)
             yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
             plan, buf = None, None
