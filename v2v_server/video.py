@@ -118,7 +118,7 @@ def _converter(frame) -> Tuple[Callable[[object], np.ndarray], Callable[[np.ndar
             plane = fr.planes[0]
             return np.frombuffer(plane, dtype=np.uint8).reshape(fr.height, plane.line_size)[:, :fr.width]
         return y8, (_identity if table is None else (lambda a: cv2.LUT(_unit_stride(a), table)))
-    if 8 < bits <= 16 and name.endswith("le") and name.startswith(("yuv", "gray")) and "p0" not in name:
+    if 8 < bits <= 16 and name.endswith("le") and name.startswith(("yuv", "gray")):
         table = range_table(bits, full)  # LSB-aligned little-endian codes
 
         def y16(fr):
@@ -150,14 +150,6 @@ def _codes(frame, conv, rows: "Rows" = None) -> np.ndarray:
     if rows is not None:
         y = y[: (rows(y.shape[0]) if callable(rows) else rows)]
     return y
-
-
-def frame_luma(frame) -> np.ndarray:
-    """Full-range, display-oriented luma of one decoded ``av.VideoFrame``: uint8 (H, W) for
-    8-bit sources, uint16 (H, W) spanning 0..65535 for deeper ones (see the module
-    docstring). For single frames; :func:`decode_luma` reuses the conversion per stream."""
-    conv = _converter(frame)
-    return _unit_stride(conv[1](_codes(frame, conv)))
 
 
 def choose_video_stream(streams: Sequence):
