@@ -19,11 +19,14 @@ known motion (docs/flow.md):
 * ``raft``: torchvision's RAFT when its weights are on this machine (``V2V_RAFT_WEIGHTS``, or
   torchvision's cache); never downloaded. Without them it raises ``FlowUnavailable``.
 
-Reuse policy: a ``FlowEstimator`` creates its DIS objects once and reuses them for every call
-(a reused OpenCV DIS object gives bit-identical flow to a fresh one for the same input:
-``tests/test_flow.py`` checks it, since a sample's content must not depend on which samples a
-worker made before it). DIS objects are not thread-safe: one estimator per process or thread
-(``estimator(name)`` keeps one per process and option).
+Reuse policy: a ``FlowEstimator`` creates its DIS objects once per (settings, frame size,
+with or without an initial flow) and reuses them for every call. A reused OpenCV DIS object
+gives bit-identical flow to a fresh one for the same input, except that (OpenCV 5.0) an object
+once given an initial flow returns different flow on later calls without one; hence the third
+key. ``tests/test_flow.py`` checks reuse against fresh objects for every DIS option, since a
+sample's content must not depend on which samples a worker made before it. DIS objects are not
+thread-safe: one estimator per process or thread (``estimator(name)`` keeps one per process
+and option).
 
 Flow convention everywhere: pixels, ``(dx, dy)`` with ``a(x) ~ b(x + flow(x))``.
 """
@@ -208,7 +211,7 @@ def check_option(name) -> FlowOption:
 
 def _to_u8(frame: np.ndarray) -> np.ndarray:
     if frame.dtype == np.uint8:
-        return frame
+        return np.ascontiguousarray(frame)  # DIS asserts contiguous frames
     if frame.dtype == np.uint16:
         return (frame >> 8).astype(np.uint8)
     raise ValueError(f"flow: frames must be uint8 or uint16, got {frame.dtype}")
@@ -315,8 +318,10 @@ class FlowEstimator:
         self._dis: Dict[tuple, "cv2.DISOpticalFlow"] = {}
         self._raft = _Raft(self.option.raft) if self.option.method == "raft" else None
 
-    def _get(self, params: DISParams, shape) -> "cv2.DISOpticalFlow":
-        key = (params, tuple(shape))
+    def _get(self, params: DISParams, shape, with_init: bool = False) -> "cv2.DISOpticalFlow":
+        # objects given an initial flow are kept apart: in OpenCV 5.0 a DIS object that has
+        # been given one returns different flow on later calls without one
+        key = (params, tuple(shape), with_init)
         d = self._dis.get(key)
         if d is None:
             d = self._dis[key] = params.create(shape)
@@ -328,7 +333,7 @@ class FlowEstimator:
         if self._raft is not None:
             return self._raft(a, b)
         a, b = _to_u8(a), _to_u8(b)
-        d = self._get(self.option.dis, a.shape)
+        d = self._get(self.option.dis, a.shape, init is not None)
         return d.calc(a, b, None if init is None else np.array(init, np.float32, copy=True))
 
     def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -367,7 +372,7 @@ class FlowEstimator:
                 if o.downscale > 1:
                     f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR) * np.float32(o.downscale)
                 if o.refine is not None:
-                    r = self._get(o.refine, (h, w))
+                    r = self._get(o.refine, (h, w), True)
                     f = r.calc(_to_u8(frames[k0]), _to_u8(frames[k0 + step]), f)
                 out[l] = f.transpose(2, 0, 1)
             return out
