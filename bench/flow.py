@@ -158,6 +158,19 @@ def time_decode(repeats: int, frames: int = 201) -> float:
     return best * 1000
 
 
+def time_voxels(sample: np.ndarray, repeats: int) -> float:
+    """CPU ms of the voxels output (plain V2V, ``simulate_voxels``, 200 bins) of one sample."""
+    from v2v_server.simulate import sample_params, simulate_voxels
+
+    params = sample_params(np.random.default_rng(0), shape=sample.shape[1:])
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.process_time()
+        simulate_voxels(sample, params, sample.shape[0] - 1, rng=np.random.default_rng(0))
+        best = min(best, time.process_time() - t)
+    return best * 1000
+
+
 def run(options: List[str], displacements: List[float], step: int, voxels: int, repeats: int, quick: bool) -> Dict:
     cv2.setNumThreads(1)
     tex = textures(quick)
@@ -173,7 +186,9 @@ def run(options: List[str], displacements: List[float], step: int, voxels: int, 
     sample, _ = render(img0, motion_matrices(img0.shape, "translation", 20.0, step, 40, 0.5), step)
     decode_ms = time_decode(repeats)
     print(f"decoding one sample (201 frames of the bundled 596 x 336 clip): {decode_ms:.1f} ms", flush=True)
-    results = {"decode_ms_per_sample": decode_ms, "textures": [n for n, _ in tex], "displacements": displacements, "step": step,
+    voxels_ms = time_voxels(sample, repeats)
+    print(f"voxels of one sample (plain V2V, 201 frames of 128 x 128): {voxels_ms:.1f} ms", flush=True)
+    results = {"decode_ms_per_sample": decode_ms, "voxels_ms_per_sample": voxels_ms, "textures": [n for n, _ in tex], "displacements": displacements, "step": step,
                "voxels_per_clip": voxels, "default": DEFAULT_FLOW, "options": {}, "skipped": {}}
     for name in options:
         try:
@@ -213,7 +228,8 @@ def table(res: Dict) -> str:
     lines = [
         f"Median end-point error (px) over {len(res['textures'])} textures x {res['voxels_per_clip']} voxels, "
         f"by displacement per voxel ({res['step']} frames); CPU ms per sample (40 flows of 128 x 128, one core) "
-        f"and as a fraction of decoding one sample ({res['decode_ms_per_sample']:.0f} ms, same run).",
+        f"and as a fraction of decoding one sample ({res['decode_ms_per_sample']:.0f} ms, same run; the voxels "
+        f"output costs {res['voxels_ms_per_sample']:.0f} ms).",
         "",
         "| option | ms / sample | x decode | " + " | ".join(f"{k[:5]}. {int(ds[i])}" for k in KINDS for i in pick) + " | worst median |",
         "|---|---:|---:|" + "---:|" * (len(KINDS) * len(pick)) + "---:|",
@@ -230,29 +246,36 @@ def table(res: Dict) -> str:
 
 
 def plot(res: Dict, path: str) -> None:
+    """Three panels of median EPE vs displacement (one per motion) and EPE vs cost."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     ds = res["displacements"]
-    fig, ax = plt.subplots(1, 2, figsize=(13, 5))
-    for name, r in res["options"].items():
-        lw = 2.5 if name == res["default"] else 1.2
-        ax[0].plot(ds, r["median_all"], marker="o", lw=lw, label=name)
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9.5))
+    cmap = plt.get_cmap("tab20")
+    floor = 0.03
+    for i, (name, r) in enumerate(res["options"].items()):
+        style = dict(color=cmap(i % 20), lw=3.0 if name == res["default"] else 1.3,
+                     ls="-" if FLOW_OPTIONS[name].method == "chained" else "--", marker="o", ms=3)
+        for ax, kind in zip(axes.flat, KINDS):
+            ax.plot(ds, np.maximum(r["median"][kind], floor), label=name, **style)
         worst = max(max(v) for v in r["median"].values())
-        ax[1].scatter(r["ms_per_sample"], worst, s=60 if name == res["default"] else 25)
-        ax[1].annotate(name, (r["ms_per_sample"], worst), fontsize=7, xytext=(3, 3), textcoords="offset points")
-    ax[0].axhline(2.0, color="k", ls=":", lw=1)
-    ax[0].set(xlabel="displacement per voxel (px, median over the crop)", ylabel="median EPE (px), all motions",
-              yscale="symlog", title="EPE vs displacement")
-    ax[0].legend(fontsize=7)
-    ax[1].axhline(2.0, color="k", ls=":", lw=1)
-    ax[1].axvline(30.0, color="k", ls=":", lw=1)
-    ax[1].set(xlabel="ms per sample (40 flows of 128 x 128, one core)", xscale="log", yscale="symlog",
-              ylabel="worst median EPE over motions and 0..40 px (px)", title="EPE vs cost")
+        axes[1, 1].scatter(r["ms_per_sample"], worst, color=style["color"], s=90 if name == res["default"] else 30)
+        axes[1, 1].annotate(name, (r["ms_per_sample"], worst), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    for ax, kind in zip(axes.flat, KINDS):
+        ax.axhline(2.0, color="k", ls=":", lw=1)
+        ax.set(xlabel="displacement per voxel (px, median over the crop)", ylabel="median EPE (px)",
+               yscale="log", ylim=(floor, 60), title=f"{kind}: EPE vs displacement (dashed: direct, solid: chained)")
+    axes[0, 0].legend(fontsize=7, ncol=2)
+    ax = axes[1, 1]
+    ax.axhline(2.0, color="k", ls=":", lw=1)
+    ax.axvline(30.0, color="k", ls=":", lw=1)
+    ax.set(xlabel=f"CPU ms per sample (40 flows of 128 x 128, one core; decoding: {res['decode_ms_per_sample']:.0f} ms)",
+           xscale="log", yscale="log", ylabel="worst median EPE over motions, 0..40 px (px)", title="EPE vs cost")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
 
 
 def main(argv=None) -> int:
@@ -264,9 +287,14 @@ def main(argv=None) -> int:
     ap.add_argument("--voxels", type=int, default=3, help="voxel grids per rendered clip")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="4 photographs only (a smoke run)")
+    ap.add_argument("--from-json", help="redraw table and plot from an earlier flow_bench.json (no measuring)")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    res = run(a.options, a.displacements, a.step, a.voxels, a.repeats, a.quick)
+    if a.from_json:
+        with open(a.from_json) as f:
+            res = json.load(f)
+    else:
+        res = run(a.options, a.displacements, a.step, a.voxels, a.repeats, a.quick)
     os.makedirs(os.path.join(a.out, "img"), exist_ok=True)
     with open(os.path.join(a.out, "flow_bench.json"), "w") as f:
         json.dump(res, f, indent=1)

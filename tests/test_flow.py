@@ -125,6 +125,7 @@ def test_raft_refused_cleanly_without_local_weights(monkeypatch, tmp_path, caplo
     from bench.flow import run
 
     monkeypatch.setattr("bench.flow.time_decode", lambda repeats: 1.0)
+    monkeypatch.setattr("bench.flow.time_voxels", lambda sample, repeats: 1.0)
     monkeypatch.setattr("bench.flow.textures", lambda quick: [("t", texture(256, 256))])
     with caplog.at_level("WARNING"):
         res = run(["raft-small", "ultrafast"], [0.0, 10.0], STEP, 1, 1, True)
