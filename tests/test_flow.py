@@ -153,6 +153,11 @@ def test_reused_dis_objects_give_the_flow_of_fresh_ones():
     np.testing.assert_array_equal(dis_flow(pf[0], pf[1], "medium"), fresh)
     np.testing.assert_array_equal(FlowEstimator("medium")(pf[0], pf[1]), fresh.transpose(2, 0, 1))
     assert dis_flow(a, b, "fast").shape == (64, 64, 2)
+    # a chained option's pairwise call is a chain of one link, the same as voxel_flows at step 1
+    est = FlowEstimator(DEFAULT_FLOW)
+    one = est(pf[0], pf[1])
+    assert one.shape == (2, 128, 128) and abs(float(np.median(one[0])) + 3.0) < 0.5
+    np.testing.assert_array_equal(one, est.voxel_flows(pf, 1)[0])
 
 
 def test_compose_flows_samples_the_next_flow_where_the_point_went():

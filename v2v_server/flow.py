@@ -35,7 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional
 
@@ -271,7 +271,8 @@ def unavailable_reason(name) -> Optional[str]:
 
 
 class _Raft:
-    """torchvision RAFT on (H, W) uint8 frames (H, W multiples of 8), CPU or the given device."""
+    """torchvision RAFT on (H, W) uint8/uint16 frames (padded to multiples of 8), on the CPU,
+    grey replicated to 3 channels scaled to [-1, 1] (torchvision's RAFT input range)."""
 
     def __init__(self, size: str):
         why = unavailable_reason(f"raft-{size}")
@@ -305,7 +306,7 @@ class FlowEstimator:
 
     ``voxel_flows(frames, step)`` is what samples use; ``__call__(a, b)`` (the former
     ``sampler.FlowEstimator`` API) is the flow between two frames only (for a chained option,
-    a chain of one pair, i.e. its DIS settings applied directly).
+    a chain of one link: reduced frames, its DIS settings, scaled back, refined if it says so).
 
     Raises:
         ValueError: for an unknown option name (naming ``flow_preset``).
@@ -338,6 +339,8 @@ class FlowEstimator:
 
     def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """float32 (2, H, W) flow from ``a`` to ``b``: channel 0 is x (u), channel 1 y (v), pixels."""
+        if self.option.method == "chained":
+            return self.voxel_flows(np.stack([a, b]), 1)[0]
         return np.ascontiguousarray(self.pair(a, b).transpose(2, 0, 1))
 
     def voxel_flows(self, frames: np.ndarray, step: int) -> np.ndarray:
@@ -362,7 +365,7 @@ class FlowEstimator:
         n_vox = (frames.shape[0] - 1) // step
         h, w = frames.shape[1:]
         out = np.empty((n_vox, 2, h, w), np.float32)
-        if o.method == "chained" and step > 1:
+        if o.method == "chained":
             small = [self._reduce(_to_u8(f)) for f in frames]
             d = self._get(o.dis, small[0].shape)
             for l in range(n_vox):
