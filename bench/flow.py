@@ -293,6 +293,7 @@ def main(argv=None) -> int:
     if a.from_json:
         with open(a.from_json) as f:
             res = json.load(f)
+        res["default"] = DEFAULT_FLOW  # mark today's default
     else:
         res = run(a.options, a.displacements, a.step, a.voxels, a.repeats, a.quick)
     os.makedirs(os.path.join(a.out, "img"), exist_ok=True)

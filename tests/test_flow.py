@@ -82,6 +82,23 @@ def test_make_sample_chained_flow_uses_every_frame_and_pauses():
     assert (median_epe(fl[1], -20.0, 0.0, 24)) < 1.0  # frames 4 -> 9: 5 moves
 
 
+def test_every_option_handles_small_and_odd_sized_crops():
+    """Crops down to the config's minimum (8 px) and sizes that do not divide by the reduction."""
+    for name, o in FLOW_OPTIONS.items():
+        if o.method == "raft":
+            continue
+        est = FlowEstimator(name)
+        for h, w in ((8, 8), (12, 20), (32, 32), (64, 48)):
+            fl = est.voxel_flows(panning_frames(STEP + 1, 1)[:, :h, :w], STEP)
+            assert fl.shape == (1, 2, h, w) and np.isfinite(fl).all(), (name, h, w)
+    est = FlowEstimator(DEFAULT_FLOW)
+    assert [est.downscale_for((s, s)) for s in (128, 127, 64, 63, 32, 8)] == [4, 2, 2, 1, 1, 1]
+    # 130 x 150 is reduced 4x to 32 x 37: the flow is scaled back per axis
+    frames = panning_frames(2 * STEP + 1, 6, size=150)[:, :130, :150]
+    fl = est.voxel_flows(frames, STEP)
+    assert max(median_epe(fl[l], -30.0, 0.0, 30) for l in range(2)) < 2.0
+
+
 def test_option_table_and_config_validation():
     assert DEFAULT_FLOW in FLOW_OPTIONS
     for name, o in FLOW_OPTIONS.items():

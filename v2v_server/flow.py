@@ -52,6 +52,10 @@ log = logging.getLogger("v2v.flow")
 
 #: OpenCV DIS presets by name (``cv2.DISOPTICAL_FLOW_PRESET_*``).
 DIS_PRESETS = {"ultrafast": 0, "fast": 1, "medium": 2}
+#: Frames smaller than this (px, each side) are edge-padded for DIS (OpenCV needs >= 12).
+MIN_DIS_SIDE = 16
+#: Chained options reduce frames no further than this (px, shorter side).
+MIN_CHAIN_SIDE = 32
 
 
 class FlowUnavailable(RuntimeError):
@@ -121,7 +125,7 @@ class FlowOption:
         dis: DIS settings (direct: at the voxel spacing; chained: per one-frame pair).
         temporal: direct only: initialise DIS with the previous voxel's flow of the sample.
         downscale: chained only: frames are reduced this many times (area averaging) for
-            the one-frame flows (1, 2, 4).
+            the one-frame flows (1, 2, 4); less for small crops (``FlowEstimator.downscale_for``).
         refine: chained only: DIS settings of a final voxel-spacing pass initialised with the
             composed flow (None: none).
         hop: chained only: source frames per link of the chain (1: every consecutive pair;
@@ -175,6 +179,10 @@ FLOW_OPTIONS: Dict[str, FlowOption] = _opts(
                summary="DIS ultrafast on quarter-size frames over links of 2 frames (0-2-4-5), composed"),
     FlowOption("chained-quarter", "chained", DISParams("ultrafast", finest_scale=0), downscale=4,
                summary="DIS ultrafast on quarter-size frames per one-frame pair, composed over the voxel"),
+    FlowOption("chained-quarter-s5", "chained", DISParams("ultrafast", finest_scale=0, patch_stride=5), downscale=4,
+               summary="as chained-quarter with patch stride 5 (fewer patches)"),
+    FlowOption("chained-quarter-s6", "chained", DISParams("ultrafast", finest_scale=0, patch_stride=6), downscale=4,
+               summary="as chained-quarter with patch stride 6 (fewer patches)"),
     FlowOption("chained-quarter-p4", "chained", DISParams("ultrafast", finest_scale=0, patch_size=4, patch_stride=2),
                downscale=4, summary="as chained-quarter with 4 x 4 patches at stride 2"),
     FlowOption("chained-half", "chained", DISParams("ultrafast", finest_scale=0), downscale=2,
@@ -194,7 +202,7 @@ FLOW_OPTIONS: Dict[str, FlowOption] = _opts(
 )
 
 #: The option samples use unless ``flow_preset`` says otherwise (chosen in docs/flow.md).
-DEFAULT_FLOW = "chained-quarter"
+DEFAULT_FLOW = "chained-quarter-s6"
 
 
 def check_option(name) -> FlowOption:
@@ -328,14 +336,26 @@ class FlowEstimator:
             d = self._dis[key] = params.create(shape)
         return d
 
+    def _calc(self, params: DISParams, a: np.ndarray, b: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
+        """DIS flow (H, W, 2) with ``params``; frames under ``MIN_DIS_SIDE`` px (OpenCV refuses
+        frames under 12 px) are padded by edge replication and the flow cropped back."""
+        a, b = _to_u8(a), _to_u8(b)
+        h, w = a.shape
+        ph, pw = max(0, MIN_DIS_SIDE - h), max(0, MIN_DIS_SIDE - w)
+        if ph or pw:
+            a, b = (cv2.copyMakeBorder(x, 0, ph, 0, pw, cv2.BORDER_REPLICATE) for x in (a, b))
+            if init is not None:
+                init = cv2.copyMakeBorder(np.asarray(init, np.float32), 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+        d = self._get(params, a.shape, init is not None)
+        f = d.calc(a, b, None if init is None else np.array(init, np.float32, copy=True))
+        return np.ascontiguousarray(f[:h, :w]) if (ph or pw) else f
+
     def pair(self, a: np.ndarray, b: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
         """float32 (H, W, 2) flow from ``a`` to ``b`` (uint8/uint16 (H, W)) with this option's
         DIS settings (RAFT for a raft option), optionally initialised with ``init`` (H, W, 2)."""
         if self._raft is not None:
             return self._raft(a, b)
-        a, b = _to_u8(a), _to_u8(b)
-        d = self._get(self.option.dis, a.shape, init is not None)
-        return d.calc(a, b, None if init is None else np.array(init, np.float32, copy=True))
+        return self._calc(self.option.dis, a, b, init)
 
     def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """float32 (2, H, W) flow from ``a`` to ``b``: channel 0 is x (u), channel 1 y (v), pixels."""
@@ -366,17 +386,19 @@ class FlowEstimator:
         h, w = frames.shape[1:]
         out = np.empty((n_vox, 2, h, w), np.float32)
         if o.method == "chained":
-            small = [self._reduce(_to_u8(f)) for f in frames]
-            d = self._get(o.dis, small[0].shape)
+            s = self.downscale_for((h, w))
+            sh, sw = max(1, h // s), max(1, w // s)
+            small = [_to_u8(f) if s == 1 else cv2.resize(_to_u8(f), (sw, sh), interpolation=cv2.INTER_AREA)
+                     for f in frames]
+            scale = np.array([w / sw, h / sh], np.float32)
             for l in range(n_vox):
                 k0 = l * step
                 links = list(range(k0, k0 + step, o.hop)) + [k0 + step]
-                f = compose_flows([d.calc(small[i], small[j], None) for i, j in zip(links[:-1], links[1:])])
-                if o.downscale > 1:
-                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR) * np.float32(o.downscale)
+                f = compose_flows([self._calc(o.dis, small[i], small[j]) for i, j in zip(links[:-1], links[1:])])
+                if s > 1:
+                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR) * scale
                 if o.refine is not None:
-                    r = self._get(o.refine, (h, w), True)
-                    f = r.calc(_to_u8(frames[k0]), _to_u8(frames[k0 + step]), f)
+                    f = self._calc(o.refine, frames[k0], frames[k0 + step], f)
                 out[l] = f.transpose(2, 0, 1)
             return out
         prev = None
@@ -386,12 +408,14 @@ class FlowEstimator:
             prev = f
         return out
 
-    def _reduce(self, f: np.ndarray) -> np.ndarray:
+    def downscale_for(self, shape) -> int:
+        """The reduction a chained option applies to frames of ``shape`` (H, W): its
+        ``downscale``, halved until the reduced frames keep ``MIN_CHAIN_SIDE`` px on their
+        shorter side (so a 64 px crop is reduced 2x, a 32 px crop not at all)."""
         s = self.option.downscale
-        if s == 1:
-            return f
-        h, w = f.shape
-        return cv2.resize(f, (max(1, w // s), max(1, h // s)), interpolation=cv2.INTER_AREA)
+        while s > 1 and min(shape) // s < MIN_CHAIN_SIDE:
+            s //= 2
+        return s
 
 
 _CACHE: Dict[tuple, FlowEstimator] = {}
