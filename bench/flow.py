@@ -182,7 +182,7 @@ def run(options: List[str], displacements: List[float], step: int, voxels: int, 
             clips[(kind, d)] = [render(img, motion_matrices(img.shape, kind, d, step, voxels, directions[n]), step)
                                 for n, img in tex]
     # timing input: a 40-voxel sample of the first texture translating 20 px per voxel
-    name0, img0 = tex[0]
+    img0 = tex[0][1]
     sample, _ = render(img0, motion_matrices(img0.shape, "translation", 20.0, step, 40, 0.5), step)
     decode_ms = time_decode(repeats)
     print(f"decoding one sample (201 frames of the bundled 596 x 336 clip): {decode_ms:.1f} ms", flush=True)

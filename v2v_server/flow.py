@@ -44,7 +44,7 @@ import numpy as np
 
 __all__ = [
     "DEFAULT_FLOW", "DIS_PRESETS", "DISParams", "FLOW_OPTIONS", "FlowEstimator", "FlowOption",
-    "FlowUnavailable", "check_option", "compose_flows", "dis_flow", "estimator", "raft_weights",
+    "FlowUnavailable", "MIN_CHAIN_SIDE", "MIN_DIS_SIDE", "check_option", "compose_flows", "dis_flow", "estimator", "raft_weights",
     "unavailable_reason",
 ]
 
@@ -108,11 +108,6 @@ class DISParams:
         coarsest = max(0, int(math.log2(max(shape) / (4.0 * d.getPatchSize())) + 0.5))
         d.setFinestScale(int(min(fs, coarsest)))
         return d
-
-    def label(self) -> str:
-        extra = [f"{k}={getattr(self, k)}" for k in ("finest_scale", "patch_size", "patch_stride",
-                                                    "gd_iterations", "vr_iterations") if getattr(self, k) is not None]
-        return self.preset + (f"({', '.join(extra)})" if extra else "")
 
 
 @dataclass(frozen=True)
