@@ -61,7 +61,9 @@ def test_one_epoch_delivers_every_sample_once_with_correct_layout(videos):
         assert torch.equal(v, v.round())  # signed event counts
         assert v.abs().sum() > 0 and (v > 0).any() and (v < 0).any()
         assert 0.0 <= f.min() and f.max() <= 1.0 and f.std() > 0.01
-        assert torch.isfinite(fl).all() and fl.abs().max() < CROP
+        # flow is composed over the B one-frame links (flow.py): each link stays within the crop;
+        # a fast pan (bikes.mp4 has 30 px per frame) legitimately moves content beyond it per voxel
+        assert torch.isfinite(fl).all() and fl.abs().max() < B * CROP
         for p in b["params"]:
             assert p["pos_threshold"] > 0 and p["neg_threshold"] > 0
             ratio = max(p["pos_threshold"], p["neg_threshold"]) / min(p["pos_threshold"], p["neg_threshold"])

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from .config import ALL_OUTPUTS, FLOW_PRESETS, load_config
+from .flow import DEFAULT_FLOW
 from .server import V2VServer, install_signal_handlers
 from .corpus import check_corpus, format_check
 from .video import scan_corpus
@@ -40,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "WebVid's watermark; 1.0 for clips without one)")
     p.add_argument("--max-samples-per-video", type=int, help="windows per video per epoch (default 10)")
     p.add_argument("--outputs", help=f"comma list of outputs clients may ask for, from {','.join(ALL_OUTPUTS)}")
-    p.add_argument("--flow-preset", choices=FLOW_PRESETS, help="OpenCV DIS preset (default medium)")
+    p.add_argument("--flow-preset", choices=FLOW_PRESETS, help=f"optical flow option (default {DEFAULT_FLOW}; see docs/flow.md)")
     p.add_argument("--flow-dtype", choices=("float16", "float32"), help="wire dtype of flow (default float16)")
     p.add_argument("--refine", help="off | uniform:K | adaptive:PX | adaptive-dl:L: insert sub-frames where motion "
                                     "needs them (docs/fidelity.md); default off")

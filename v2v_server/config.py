@@ -13,12 +13,13 @@ from typing import Optional, Tuple
 
 import yaml
 
+from .flow import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
 from .simulate import ParamRanges
 
 #: Outputs a worker can compute for a sample.
 ALL_OUTPUTS = ("voxels", "frames", "flow")
-#: OpenCV DIS optical-flow presets by name.
-FLOW_PRESETS = ("ultrafast", "fast", "medium")
+#: Optical-flow options by name (the table lives in flow.py).
+FLOW_PRESETS = tuple(FLOW_OPTIONS)
 FLOW_DTYPES = ("float16", "float32")
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".gif")
 
@@ -52,7 +53,7 @@ class ServeConfig:
     p_pause_when_running: float = 0.0102
     p_pause_when_paused: float = 0.9791
     outputs: Tuple[str, ...] = ALL_OUTPUTS
-    flow_preset: str = "medium"
+    flow_preset: str = DEFAULT_FLOW
     flow_dtype: str = "float16"
     ranges: ParamRanges = field(default_factory=ParamRanges)
     decode_threads: int = 1
@@ -132,9 +133,10 @@ class ServeConfig:
         if bad or not outs:
             raise ValueError(f"outputs must be a non-empty subset of {list(ALL_OUTPUTS)}, got {list(outs)}")
         self.outputs = tuple(o for o in ALL_OUTPUTS if o in outs)
-        if str(self.flow_preset).lower() not in FLOW_PRESETS:
-            raise ValueError(f"flow_preset must be one of {list(FLOW_PRESETS)}, got {self.flow_preset!r}")
-        self.flow_preset = str(self.flow_preset).lower()
+        self.flow_preset = check_option(self.flow_preset).name  # ValueError naming flow_preset
+        why = unavailable_reason(self.flow_preset)
+        if why:
+            raise ValueError(f"flow_preset {self.flow_preset!r} cannot run here: {why}")
         if self.flow_dtype not in FLOW_DTYPES:
             raise ValueError(f"flow_dtype must be one of {list(FLOW_DTYPES)}, got {self.flow_dtype!r}")
         if not isinstance(self.ranges, ParamRanges):

@@ -36,6 +36,7 @@ from typing import Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from .flow import DIS_PRESETS, dis_flow  # noqa: F401  (the one DIS construction and reuse policy)
 from .simulate import SensorParams, log_intensity_lut
 
 __all__ = [
@@ -49,9 +50,6 @@ __all__ = [
     "voxel_interpolated",
     "events_to_voxels",
 ]
-
-#: OpenCV DIS optical-flow presets by name.
-DIS_PRESETS = {"ultrafast": 0, "fast": 1, "medium": 2}
 
 FlowFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -95,32 +93,6 @@ def log_frames(frames: np.ndarray) -> np.ndarray:
     """
     lut = log_intensity_lut(_full_scale(frames), np.float32).astype(np.float64)
     return lut[frames]
-
-
-def _to_u8(frame: np.ndarray) -> np.ndarray:
-    return frame if frame.dtype == np.uint8 else (frame >> 8).astype(np.uint8)
-
-
-def dis_flow(a: np.ndarray, b: np.ndarray, preset: str = "medium") -> np.ndarray:
-    """Dense optical flow from frame ``a`` to frame ``b`` with OpenCV DIS.
-
-    Args:
-        a, b: (H, W) uint8 or uint16 luma frames (uint16 is reduced to its top 8 bits).
-        preset: "ultrafast", "fast" or "medium" (``cv2.DISOPTICAL_FLOW_PRESET_*``).
-
-    Returns:
-        float32 (H, W, 2) flow in pixels, ``(dx, dy)``: ``a(x) ~ b(x + flow(x))``.
-
-    Raises:
-        ValueError: for an unknown preset.
-    """
-    import cv2
-
-    if preset not in DIS_PRESETS:
-        raise ValueError(f"flow preset must be one of {sorted(DIS_PRESETS)}, got {preset!r}")
-    # A fresh object per call (~70 us): a reused DIS instance returns different flow on
-    # its second call for the same input (OpenCV 5.0), which would break reproducibility.
-    return cv2.DISOpticalFlow_create(DIS_PRESETS[preset]).calc(_to_u8(a), _to_u8(b), None)
 
 
 def _warp(img: np.ndarray, flow: np.ndarray, grid: np.ndarray) -> np.ndarray:

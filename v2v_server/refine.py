@@ -29,7 +29,8 @@ from typing import Callable, Optional, Tuple
 
 import numpy as np
 
-from .reference import DIS_PRESETS, dis_flow, interpolate_pair
+from .flow import DIS_PRESETS, dis_flow
+from .reference import interpolate_pair
 from .simulate import SensorParams, _lut, simulate_voxels, start_state
 
 __all__ = ["RefineSpec", "parse_refine", "plan_subframes", "refine_frames", "simulate_voxels_refined"]

@@ -20,15 +20,9 @@ import numpy as np
 
 from .augment import augment_plan, degrade_window
 from .config import ServeConfig
+from .flow import FlowEstimator  # noqa: F401  (re-exported: sampler.FlowEstimator(preset)(a, b) stays valid)
 from .simulate import SensorParams, sample_params, simulate_voxels
 from .video import VideoError, decode_codes, inside, open_video, to_uint8
-
-_DIS_PRESETS = {
-    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
-    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
-}
-
 
 def make_sample_id(rel_path: str, window: int) -> str:
     """Stable sample id: video path relative to the corpus root (POSIX) + ``#`` + window index."""
@@ -125,22 +119,6 @@ def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarr
     return np.ascontiguousarray(c)
 
 
-class FlowEstimator:
-    """Forward optical flow with OpenCV's DIS (Kroeger et al., ECCV 2016).
-
-    ``__call__(a, b)`` takes uint8 (H, W) frames and returns float32 (2, H, W): channel 0 is
-    the x (u) and channel 1 the y (v) displacement in pixels from ``a`` to ``b``.
-    """
-
-    def __init__(self, preset: str = "medium"):
-        self.preset = preset
-        self._dis = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset])
-
-    def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        flow = self._dis.calc(a, b, None)
-        return np.ascontiguousarray(flow.transpose(2, 0, 1))
-
-
 def make_sample(
     cfg: ServeConfig,
     plan: WindowPlan,
@@ -161,7 +139,8 @@ def make_sample(
     Returns:
         dict with ``voxels`` int32 (L, B, S, S) signed event counts, ``frames`` uint8
         (L + 1, S, S) at voxel boundaries, ``flow`` float32 (L, 2, S, S) in pixels from frame
-        l to l + 1 — each present only if asked for.
+        l to l + 1 (``cfg.flow_preset``, see ``flow.py``; chained options use every source
+        frame between the boundaries) — each present only if asked for.
     """
     outputs = set(outputs)
     seq = window_frames[plan.offsets]  # pauses repeat frames
@@ -178,7 +157,10 @@ def make_sample(
         out["frames"] = np.ascontiguousarray(boundaries)
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
-        out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
+        if hasattr(flow, "voxel_flows"):
+            out["flow"] = flow.voxel_flows(seq, step)
+        else:  # any (a, b) -> (2, H, W) callable
+            out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
     return out
 
 

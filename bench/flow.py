@@ -1,0 +1,314 @@
+"""Optical flow options against ground truth: end-point error vs displacement, and cost.
+
+Clips with known motion are rendered over real textures: the still photographs
+``bench/motion_clips.py`` uses (skimage / matplotlib) and one frame from the middle of each
+bundled clip. Each clip is ``--voxels`` voxel grids of ``--step`` frames (5) moving at constant
+velocity with one similarity motion about the crop centre: translation, rotation or zoom, at
+0..40 px per voxel, where a displacement ``d`` means the *median* ground-truth displacement over
+the 128 x 128 crop is ``d`` pixels per voxel (translation: every pixel moves d; rotation and zoom:
+pixels at the median radius move d). Frames are rendered with ``cv2.warpAffine`` (bilinear,
+reflected border) from exact affine matrices, so the ground-truth flow is exact:
+``x_b = A_b A_a^-1 x``.
+
+End-point error (EPE) = ``|| flow - ground truth ||`` in pixels, over the pixels whose
+ground-truth destination lies inside the crop (the rest cannot be observed), pooled over the
+textures and all voxels of a clip (the first voxel included, which has no previous voxel to
+start from). Cost: ms per sample = one call of ``FlowEstimator.voxel_flows`` on a 201-frame
+128 x 128 sample (40 flows), OpenCV on one thread, process CPU time, the minimum of
+``--repeats`` runs (the machine is shared; the minimum is the least disturbed run), next to
+the CPU time of decoding one sample (201 frames) of the bundled 596 x 336 clip in the same run.
+
+    python -m bench.flow --out docs [--quick]
+
+Writes ``OUT/flow_bench.md`` (table), ``OUT/flow_bench.json`` and ``OUT/img/flow_epe.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from typing import Dict, List, Tuple
+
+import cv2
+import numpy as np
+
+from v2v_server.flow import DEFAULT_FLOW, FLOW_OPTIONS, FlowEstimator, FlowUnavailable
+
+KINDS = ("translation", "rotation", "zoom")
+SIZE = 128
+
+
+def textures(quick: bool = False) -> List[Tuple[str, np.ndarray]]:
+    """Grey uint8 textures: the motion-clip photographs and the middle frame of each bundled clip."""
+    from bench.motion_clips import source_images
+
+    out = list(source_images())
+    if quick:
+        out = out[:4]
+    here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "v2v_server", "sample_videos")
+    from v2v_server.video import decode_luma, open_video
+
+    for name in sorted(os.listdir(here)):
+        if not name.endswith(".mp4"):
+            continue
+        c, s, info = open_video(os.path.join(here, name), 1)
+        try:
+            for i, luma in enumerate(decode_luma(c, s, info.height)):
+                if i == 100:
+                    out.append((name, np.ascontiguousarray(luma)))
+                    break
+        finally:
+            c.close()
+    return out
+
+
+def _median_radius() -> float:
+    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    c = (SIZE - 1) / 2
+    return float(np.median(np.hypot(xs - c, ys - c)))
+
+
+def motion_matrices(image_shape, kind: str, d: float, step: int, voxels: int, direction: float) -> List[np.ndarray]:
+    """Affine 2x3 matrices (image -> view) of each frame for a motion of ``d`` px per voxel."""
+    ih, iw = image_shape
+    m = _median_radius()
+    per = 1.0 / step
+    v = np.zeros(2)
+    th = 0.0
+    lz = 0.0
+    if kind == "translation":
+        v = d * per * np.array([np.cos(direction), np.sin(direction)])
+    elif kind == "rotation":
+        th = 2 * np.arcsin(min(d / (2 * m), 1.0)) * per * np.sign(np.cos(direction) or 1)
+    elif kind == "zoom":
+        lz = np.log1p(d / m) * per * (1 if np.cos(direction) >= 0 else -1)
+        if lz < 0:  # zoom out by the same displacement at the median radius
+            lz = np.log1p(-min(d / m, 0.9)) * per
+    else:
+        raise ValueError(kind)
+    # the crop shows about half of the texture's shorter side, so zoom and pan stay on content
+    s0 = SIZE / (0.5 * min(ih, iw))
+    p0 = np.array([iw / 2, ih / 2])
+    cv = np.array([(SIZE - 1) / 2, (SIZE - 1) / 2])
+    out = []
+    for t in range(step * voxels + 1):
+        a, s = th * t, s0 * np.exp(lz * t)
+        r = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        mat = np.zeros((2, 3))
+        mat[:, :2] = r
+        mat[:, 2] = cv + v * t - r @ p0
+        out.append(mat)
+    return out
+
+
+def render(image: np.ndarray, mats: List[np.ndarray], step: int):
+    """Frames uint8 (N, S, S) and ground-truth flows float32 (L, S, S, 2) between boundaries."""
+    frames = np.stack([cv2.warpAffine(image, m, (SIZE, SIZE), flags=cv2.INTER_LINEAR,
+                                      borderMode=cv2.BORDER_REFLECT101) for m in mats])
+    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    pts = np.stack([xs, ys, np.ones_like(xs)], -1)
+    gts = []
+    for l in range((len(mats) - 1) // step):
+        a = np.vstack([mats[l * step], [0, 0, 1]])
+        b = np.vstack([mats[(l + 1) * step], [0, 0, 1]])
+        xb = pts @ (b @ np.linalg.inv(a))[:2].T
+        gts.append((xb - pts[..., :2]).astype(np.float32))
+    return frames, np.stack(gts)
+
+
+def epe(flow_l2hw: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """EPE in pixels of one flow (2, S, S) against ground truth (S, S, 2), observable pixels only."""
+    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(np.float32)
+    dx, dy = xs + gt[..., 0], ys + gt[..., 1]
+    ok = (dx >= 0) & (dx <= SIZE - 1) & (dy >= 0) & (dy <= SIZE - 1)
+    return np.hypot(flow_l2hw[0] - gt[..., 0], flow_l2hw[1] - gt[..., 1])[ok]
+
+
+def time_option(est: FlowEstimator, sample: np.ndarray, step: int, repeats: int) -> float:
+    """CPU ms for one sample's flows (min over ``repeats``; process CPU time, one thread)."""
+    est.voxel_flows(sample[: step + 1], step)  # warm up (object creation)
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.process_time()
+        est.voxel_flows(sample, step)
+        best = min(best, time.process_time() - t)
+    return best * 1000
+
+
+def time_decode(repeats: int, frames: int = 201) -> float:
+    """CPU ms to decode one sample's frames (201, luma) of the bundled 596 x 336 clip, one thread:
+    the cost the flow is compared with (min over ``repeats``)."""
+    from v2v_server.video import decode_luma, open_video
+
+    here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "v2v_server", "sample_videos")
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.process_time()
+        c, s, info = open_video(os.path.join(here, "webvid_like_596x336.mp4"), 1)
+        try:
+            for i, _luma in enumerate(decode_luma(c, s, info.height)):
+                if i + 1 == frames:
+                    break
+        finally:
+            c.close()
+        best = min(best, time.process_time() - t)
+    return best * 1000
+
+
+def time_voxels(sample: np.ndarray, repeats: int) -> float:
+    """CPU ms of the voxels output (plain V2V, ``simulate_voxels``, 200 bins) of one sample."""
+    from v2v_server.simulate import sample_params, simulate_voxels
+
+    params = sample_params(np.random.default_rng(0), shape=sample.shape[1:])
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.process_time()
+        simulate_voxels(sample, params, sample.shape[0] - 1, rng=np.random.default_rng(0))
+        best = min(best, time.process_time() - t)
+    return best * 1000
+
+
+def run(options: List[str], displacements: List[float], step: int, voxels: int, repeats: int, quick: bool) -> Dict:
+    cv2.setNumThreads(1)
+    tex = textures(quick)
+    rng = np.random.default_rng(0)
+    directions = {name: float(rng.uniform(0, 2 * np.pi)) for name, _ in tex}
+    clips = {}
+    for kind in KINDS:
+        for d in displacements:
+            clips[(kind, d)] = [render(img, motion_matrices(img.shape, kind, d, step, voxels, directions[n]), step)
+                                for n, img in tex]
+    # timing input: a 40-voxel sample of the first texture translating 20 px per voxel
+    img0 = tex[0][1]
+    sample, _ = render(img0, motion_matrices(img0.shape, "translation", 20.0, step, 40, 0.5), step)
+    decode_ms = time_decode(repeats)
+    print(f"decoding one sample (201 frames of the bundled 596 x 336 clip): {decode_ms:.1f} ms", flush=True)
+    voxels_ms = time_voxels(sample, repeats)
+    print(f"voxels of one sample (plain V2V, 201 frames of 128 x 128): {voxels_ms:.1f} ms", flush=True)
+    results = {"decode_ms_per_sample": decode_ms, "voxels_ms_per_sample": voxels_ms, "textures": [n for n, _ in tex], "displacements": displacements, "step": step,
+               "voxels_per_clip": voxels, "default": DEFAULT_FLOW, "options": {}, "skipped": {}}
+    for name in options:
+        try:
+            est = FlowEstimator(name)
+        except FlowUnavailable as e:
+            logging.warning("flow option %s skipped: %s", name, e)
+            results["skipped"][name] = str(e)
+            continue
+        row = {"summary": FLOW_OPTIONS[name].summary, "median": {}, "mean": {}, "p90": {}}
+        all_errs = []
+        for kind in KINDS:
+            med, mean, p90 = [], [], []
+            for d in displacements:
+                errs = []
+                for frames, gts in clips[(kind, d)]:
+                    fl = est.voxel_flows(frames, step)
+                    errs += [epe(fl[l], gts[l]) for l in range(len(gts))]
+                e = np.concatenate(errs)
+                all_errs.append(e)
+                med.append(float(np.median(e)))
+                mean.append(float(e.mean()))
+                p90.append(float(np.percentile(e, 90)))
+            row["median"][kind], row["mean"][kind], row["p90"][kind] = med, mean, p90
+        row["median_all"] = [float(np.median(np.concatenate([all_errs[k * len(displacements) + i]
+                                                              for k in range(len(KINDS))])))
+                             for i in range(len(displacements))]
+        row["ms_per_sample"] = time_option(est, sample, step, repeats)
+        results["options"][name] = row
+        print(f"{name:28s} {row['ms_per_sample']:7.1f} ms/sample  worst median EPE "
+              f"{max(max(v) for v in row['median'].values()):6.2f} px", flush=True)
+    return results
+
+
+def table(res: Dict) -> str:
+    ds = res["displacements"]
+    pick = [i for i, d in enumerate(ds) if d in (10, 20, 30, 40)]
+    lines = [
+        f"Median end-point error (px) over {len(res['textures'])} textures x {res['voxels_per_clip']} voxels, "
+        f"by displacement per voxel ({res['step']} frames); CPU ms per sample (40 flows of 128 x 128, one core) "
+        f"and as a fraction of decoding one sample ({res['decode_ms_per_sample']:.0f} ms, same run; the voxels "
+        f"output costs {res['voxels_ms_per_sample']:.0f} ms).",
+        "",
+        "| option | ms / sample | x decode | " + " | ".join(f"{k[:5]}. {int(ds[i])}" for k in KINDS for i in pick) + " | worst median |",
+        "|---|---:|---:|" + "---:|" * (len(KINDS) * len(pick)) + "---:|",
+    ]
+    for name, r in res["options"].items():
+        worst = max(max(v) for v in r["median"].values())
+        cells = [f"{r['median'][k][i]:.2f}" for k in KINDS for i in pick]
+        tag = f"**{name}** (default)" if name == res["default"] else name
+        ratio = r["ms_per_sample"] / res["decode_ms_per_sample"]
+        lines.append(f"| {tag} | {r['ms_per_sample']:.1f} | {ratio:.2f} | " + " | ".join(cells) + f" | {worst:.2f} |")
+    for name, why in res["skipped"].items():
+        lines.append(f"| {name} | skipped | | " + " | ".join("" for _ in range(len(KINDS) * len(pick))) + f" | {why} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(res: Dict, path: str) -> None:
+    """Three panels of median EPE vs displacement (one per motion) and EPE vs cost."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ds = res["displacements"]
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9.5))
+    cmap = plt.get_cmap("tab20")
+    floor = 0.03
+    for i, (name, r) in enumerate(res["options"].items()):
+        style = dict(color=cmap(i % 20), lw=3.0 if name == res["default"] else 1.3,
+                     ls="-" if FLOW_OPTIONS[name].method == "chained" else "--", marker="o", ms=3)
+        for ax, kind in zip(axes.flat, KINDS):
+            ax.plot(ds, np.maximum(r["median"][kind], floor), label=name, **style)
+        worst = max(max(v) for v in r["median"].values())
+        axes[1, 1].scatter(r["ms_per_sample"], worst, color=style["color"], s=90 if name == res["default"] else 30)
+        axes[1, 1].annotate(name, (r["ms_per_sample"], worst), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    for ax, kind in zip(axes.flat, KINDS):
+        ax.axhline(2.0, color="k", ls=":", lw=1)
+        ax.set(xlabel="displacement per voxel (px, median over the crop)", ylabel="median EPE (px)",
+               yscale="log", ylim=(floor, 60), title=f"{kind}: EPE vs displacement (dashed: direct, solid: chained)")
+    axes[0, 0].legend(fontsize=7, ncol=2)
+    ax = axes[1, 1]
+    ax.axhline(2.0, color="k", ls=":", lw=1)
+    ax.axvline(30.0, color="k", ls=":", lw=1)
+    ax.set(xlabel=f"CPU ms per sample (40 flows of 128 x 128, one core; decoding: {res['decode_ms_per_sample']:.0f} ms)",
+           xscale="log", yscale="log", ylabel="worst median EPE over motions, 0..40 px (px)", title="EPE vs cost")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True, help="folder for flow_bench.md, flow_bench.json, img/flow_epe.png")
+    ap.add_argument("--options", nargs="*", default=list(FLOW_OPTIONS), help="options to measure (default all)")
+    ap.add_argument("--displacements", type=float, nargs="*", default=[0, 5, 10, 15, 20, 25, 30, 35, 40])
+    ap.add_argument("--step", type=int, default=5, help="frames per voxel (B * frames_per_bin)")
+    ap.add_argument("--voxels", type=int, default=3, help="voxel grids per rendered clip")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--quick", action="store_true", help="4 photographs only (a smoke run)")
+    ap.add_argument("--from-json", help="redraw table and plot from an earlier flow_bench.json (no measuring)")
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    if a.from_json:
+        with open(a.from_json) as f:
+            res = json.load(f)
+        res["default"] = DEFAULT_FLOW  # mark today's default
+    else:
+        res = run(a.options, a.displacements, a.step, a.voxels, a.repeats, a.quick)
+    os.makedirs(os.path.join(a.out, "img"), exist_ok=True)
+    with open(os.path.join(a.out, "flow_bench.json"), "w") as f:
+        json.dump(res, f, indent=1)
+    md = table(res)
+    with open(os.path.join(a.out, "flow_bench.md"), "w") as f:
+        f.write("<!-- written by python -m bench.flow; do not edit -->\n" + md)
+    print(md)
+    try:
+        plot(res, os.path.join(a.out, "img", "flow_epe.png"))
+    except ImportError:
+        print("matplotlib not installed (pip install 'v2v[bench]'): no plot", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

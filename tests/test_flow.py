@@ -1,0 +1,201 @@
+"""Optical flow (v2v_server/flow.py): accuracy on large motion through the sampler, the option
+table, the DIS reuse policy, composition, and RAFT refused cleanly without local weights."""
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from v2v_server import flow as flow_mod
+from v2v_server.config import ServeConfig
+from v2v_server.flow import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowEstimator, FlowOption, FlowUnavailable,
+                             check_option, compose_flows, dis_flow, unavailable_reason)
+from v2v_server.sampler import make_sample, plan_window, video_samples
+
+STEP = 5
+
+
+def texture(h=256, w=640, seed=0):
+    """A photograph when scikit-image is there, else smoothed noise (both textured)."""
+    try:
+        import skimage.data as skd
+
+        img = cv2.cvtColor(skd.astronaut(), cv2.COLOR_RGB2GRAY)
+        return np.ascontiguousarray(cv2.resize(img, (w, w))[w // 2 - h // 2: w // 2 + h // 2])
+    except ImportError:  # pragma: no cover
+        rng = np.random.default_rng(seed)
+        return cv2.GaussianBlur((rng.random((h, w)) * 255).astype(np.uint8), (0, 0), 2)
+
+
+def panning_frames(n, px_per_frame, size=128, h=160):
+    """uint8 (n, h, size + margin): a camera panning right over a texture, ``px_per_frame``
+    whole pixels per frame, so the content's flow is (-px_per_frame, 0) per frame."""
+    img = texture(h, size + 64 + px_per_frame * n)
+    return np.stack([img[:, 32 + px_per_frame * t: 32 + px_per_frame * t + size + 32] for t in range(n)])
+
+
+def median_epe(flow_2hw, dx, dy, margin):
+    """Median end-point error (px) against a constant flow, inside ``margin`` px of the border
+    that the motion leaves (points that leave the crop cannot be matched)."""
+    e = np.hypot(flow_2hw[0] - dx, flow_2hw[1] - dy)
+    return float(np.median(e[:, margin:] if dx < 0 else e[:, : e.shape[1] - margin]))
+
+
+def test_translation_30px_per_voxel_through_the_sampler(tmp_path):
+    """The issue's case: a texture translating 6 px per frame (30 px per voxel of 5 frame
+    pairs), encoded as H.264, served by video_samples: median EPE < 2 px with the default, while
+    DIS at the voxel spacing (the former default, "medium") is off by far more."""
+    from bench.motion_clips import write_video
+
+    cfg = ServeConfig(sequence_length=4, num_bins=STEP, crop_size=128, keep_top_fraction=1.0, hflip_prob=0.0,
+                      pause_enabled=False, max_samples_per_video=1).validate()
+    assert cfg.flow_preset == DEFAULT_FLOW
+    frames = panning_frames(cfg.frames_per_sample, 6)
+    write_video(str(tmp_path / "pan.mp4"), frames)
+    (sid, arrays, meta), = list(video_samples(cfg, tmp_path, "pan.mp4", 0, ("frames", "flow")))
+    fl = arrays["flow"]
+    assert fl.shape == (4, 2, 128, 128) and fl.dtype == np.float32
+    errs = [median_epe(fl[l], -30.0, 0.0, 30) for l in range(4)]
+    assert max(errs) < 2.0, errs
+
+
+def test_default_holds_at_40px_per_voxel_where_dis_at_the_voxel_spacing_fails():
+    frames = panning_frames(4 * STEP + 1, 8)[:, :128, :128]
+    new = FlowEstimator(DEFAULT_FLOW).voxel_flows(frames, STEP)
+    old = FlowEstimator("medium").voxel_flows(frames, STEP)  # the former default
+    assert max(median_epe(new[l], -40.0, 0.0, 40) for l in range(4)) < 2.0
+    assert min(median_epe(old[l], -40.0, 0.0, 40) for l in range(4)) > 10.0
+
+
+def test_make_sample_chained_flow_uses_every_frame_and_pauses():
+    """make_sample hands the whole sequence (pauses repeated) to the estimator: with a pause
+    inside a voxel the chain sees a zero link and the voxel's flow is 4 moves, not 5."""
+    cfg = ServeConfig(sequence_length=2, num_bins=STEP, crop_size=128, keep_top_fraction=1.0, hflip_prob=0.0,
+                      pause_enabled=False).validate()
+    src = panning_frames(cfg.frames_per_sample, 4)[:, :128, :128]
+    plan = plan_window(cfg, 0, "x#0", 0, src.shape[1:])
+    plan.offsets = np.array([0, 1, 2, 2, 3, 4, 5, 6, 7, 8, 9], np.int64)  # frame 2 repeated
+    fl = make_sample(cfg, plan, src, ("flow",))["flow"]
+    assert (median_epe(fl[0], -16.0, 0.0, 20)) < 1.0  # frames 0 -> 4: 4 moves of 4 px
+    assert (median_epe(fl[1], -20.0, 0.0, 24)) < 1.0  # frames 4 -> 9: 5 moves
+
+
+def test_every_option_handles_small_and_odd_sized_crops():
+    """Crops down to the config's minimum (8 px) and sizes that do not divide by the reduction."""
+    for name, o in FLOW_OPTIONS.items():
+        if o.method == "raft":
+            continue
+        est = FlowEstimator(name)
+        for h, w in ((8, 8), (12, 20), (32, 32), (64, 48)):
+            fl = est.voxel_flows(panning_frames(STEP + 1, 1)[:, :h, :w], STEP)
+            assert fl.shape == (1, 2, h, w) and np.isfinite(fl).all(), (name, h, w)
+    est = FlowEstimator(DEFAULT_FLOW)
+    assert [est.downscale_for((s, s)) for s in (128, 127, 64, 63, 32, 8)] == [4, 2, 2, 1, 1, 1]
+    # 130 x 150 is reduced 4x to 32 x 37: the flow is scaled back per axis
+    frames = panning_frames(2 * STEP + 1, 6, size=150)[:, :130, :150]
+    fl = est.voxel_flows(frames, STEP)
+    assert max(median_epe(fl[l], -30.0, 0.0, 30) for l in range(2)) < 2.0
+
+
+def test_option_table_and_config_validation():
+    assert DEFAULT_FLOW in FLOW_OPTIONS
+    for name, o in FLOW_OPTIONS.items():
+        assert o.name == name and o.summary
+    for preset in ("ultrafast", "fast", "medium"):  # the former names keep their meaning
+        o = FLOW_OPTIONS[preset]
+        assert o.method == "direct" and o.dis == DISParams(preset) and not o.temporal
+    assert check_option("Chained-Quarter").name == "chained-quarter"
+    with pytest.raises(ValueError, match="flow_preset"):
+        check_option("slow")
+    with pytest.raises(ValueError, match="flow_preset"):
+        ServeConfig(flow_preset="slow").validate()
+    for name in FLOW_OPTIONS:
+        if unavailable_reason(name) is None:
+            assert ServeConfig(flow_preset=name.upper()).validate().flow_preset == name
+    with pytest.raises(ValueError, match="downscale"):
+        FlowOption("x", "chained", downscale=3)
+    with pytest.raises(ValueError, match="chained"):
+        FlowOption("x", "direct", refine=DISParams("fast"))
+    with pytest.raises(ValueError, match="temporal"):
+        FlowOption("x", "chained", temporal=True)
+    with pytest.raises(ValueError, match="hop"):
+        FlowOption("x", "chained", hop=0)
+    with pytest.raises(ValueError, match="preset"):
+        DISParams("slow")
+    with pytest.raises(ValueError, match="patch_size"):
+        DISParams("fast", patch_size=0)
+    with pytest.raises(ValueError, match="frames must be"):
+        FlowEstimator("ultrafast").voxel_flows(np.zeros((7, 16, 16), np.uint8), 5)
+
+
+def test_raft_refused_cleanly_without_local_weights(monkeypatch, tmp_path, caplog):
+    monkeypatch.setenv("V2V_RAFT_WEIGHTS", str(tmp_path / "missing.pth"))
+    for name in ("raft-small", "raft-large"):
+        why = unavailable_reason(name)
+        assert why and ("torchvision" in why or "never downloaded" in why)
+        with pytest.raises(FlowUnavailable):
+            FlowEstimator(name)
+        with pytest.raises(ValueError, match="flow_preset 'raft"):
+            ServeConfig(flow_preset=name).validate()
+    from bench.flow import run
+
+    monkeypatch.setattr("bench.flow.time_decode", lambda repeats: 1.0)
+    monkeypatch.setattr("bench.flow.time_voxels", lambda sample, repeats: 1.0)
+    monkeypatch.setattr("bench.flow.textures", lambda quick: [("t", texture(256, 256))])
+    with caplog.at_level("WARNING"):
+        res = run(["raft-small", "ultrafast"], [0.0, 10.0], STEP, 1, 1, True)
+    assert set(res["skipped"]) == {"raft-small"} and set(res["options"]) == {"ultrafast"}
+    assert any("raft-small skipped" in r.getMessage() for r in caplog.records)
+    assert res["options"]["ultrafast"]["median"]["translation"][0] < 0.1  # no motion: no flow
+
+
+def test_reused_dis_objects_give_the_flow_of_fresh_ones():
+    """A sample's flow must not depend on what its worker computed before (reuse policy)."""
+    rng = np.random.default_rng(1)
+    clips = [panning_frames(11, s)[:, :h, :h] for s, h in ((2, 128), (5, 96), (3, 128))]
+    for name in [n for n, o in FLOW_OPTIONS.items() if o.method != "raft"]:
+        warm = FlowEstimator(name)
+        for c in clips:
+            warm.voxel_flows(c, STEP)
+        for c in clips[::-1]:
+            np.testing.assert_array_equal(warm.voxel_flows(c, STEP), FlowEstimator(name).voxel_flows(c, STEP))
+    a, b = (rng.random((2, 64, 64)) * 255).astype(np.uint8)
+    fresh = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(
+        np.ascontiguousarray(panning_frames(2, 3)[0, :128, :128]),
+        np.ascontiguousarray(panning_frames(2, 3)[1, :128, :128]), None)
+    # the old sampler.FlowEstimator / reference.dis_flow results are unchanged at 128 px
+    pf = panning_frames(2, 3)[:, :128, :128]
+    np.testing.assert_array_equal(dis_flow(pf[0], pf[1], "medium"), fresh)
+    np.testing.assert_array_equal(FlowEstimator("medium")(pf[0], pf[1]), fresh.transpose(2, 0, 1))
+    assert dis_flow(a, b, "fast").shape == (64, 64, 2)
+    # a chained option's pairwise call is a chain of one link, the same as voxel_flows at step 1
+    est = FlowEstimator(DEFAULT_FLOW)
+    one = est(pf[0], pf[1])
+    assert one.shape == (2, 128, 128) and abs(float(np.median(one[0])) + 3.0) < 0.5
+    np.testing.assert_array_equal(one, est.voxel_flows(pf, 1)[0])
+
+
+def test_compose_flows_samples_the_next_flow_where_the_point_went():
+    h, w = 20, 30
+    f1 = np.zeros((h, w, 2), np.float32)
+    f1[..., 0] = 3.0
+    f2 = np.zeros((h, w, 2), np.float32)
+    f2[..., 0] = np.arange(w, dtype=np.float32)[None, :] * 0.1  # x-dependent
+    f2[..., 1] = 1.0
+    tot = compose_flows([f1, f2])
+    x = np.arange(w - 3, dtype=np.float32)
+    np.testing.assert_allclose(tot[5, : w - 3, 0], 3.0 + 0.1 * (x + 3.0), atol=1e-5)
+    np.testing.assert_allclose(tot[..., 1], 1.0)
+    np.testing.assert_array_equal(compose_flows([f1]), f1)
+
+
+def test_dis_params_clamp_finest_scale_to_the_pyramid():
+    """A finest level above OpenCV's coarsest for the frame size is clamped (it would make DIS
+    10-50x slower without gaining accuracy)."""
+    d = DISParams("ultrafast").create((32, 32))
+    assert d.getFinestScale() == 0
+    assert DISParams("ultrafast").create((128, 128)).getFinestScale() == 2
+    assert dataclasses.replace(FLOW_OPTIONS["medium"].dis, finest_scale=0).create((128, 128)).getFinestScale() == 0
+    assert flow_mod.estimator("medium") is flow_mod.estimator("MEDIUM")
