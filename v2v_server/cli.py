@@ -9,6 +9,7 @@ from typing import List, Optional
 
 from .config import ALL_OUTPUTS, FLOW_PRESETS, load_config
 from .server import V2VServer, install_signal_handlers
+from .metrics import JsonFormatter
 from .corpus import check_corpus, format_check, select_shard
 from .video import scan_corpus
 
@@ -16,6 +17,16 @@ from .video import scan_corpus
 SAMPLE_VIDEOS = Path(__file__).resolve().parent / "sample_videos"
 
 log = logging.getLogger("v2v.serve")
+
+
+def setup_logging(level: str, fmt: str, name: str) -> None:
+    """Log to stderr at ``level``, as text lines prefixed by ``name`` or as JSON objects."""
+    handler = logging.StreamHandler(sys.stderr)
+    if fmt == "json":
+        handler.setFormatter(JsonFormatter())
+    else:
+        handler.setFormatter(logging.Formatter(f"%(asctime)s {name} %(levelname)s %(message)s"))
+    logging.basicConfig(level=getattr(logging, str(level).upper(), logging.INFO), handlers=[handler], force=True)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--check", action="store_true",
                    help="decode every file of the corpus, print its verdict (usable windows or why not) and exit")
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+    p.add_argument("--log-format", choices=("text", "json"),
+                   help="text (default) or json: one JSON object per line, for log shippers")
     return p
 
 
@@ -69,14 +82,13 @@ def config_from_args(args: argparse.Namespace):
     overrides = {k: getattr(args, k) for k in (
         "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
         "frames_per_bin", "crop_size", "keep_top_fraction", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
-        "client_timeout_s", "curve_secret_key", "curve_allow", "insecure", "shard", "metrics_port", "metrics_host")}
+        "client_timeout_s", "curve_secret_key", "curve_allow", "insecure", "shard", "metrics_port", "metrics_host", "log_format")}
     return load_config(args.config, overrides)
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
-                        format="%(asctime)s v2v-serve %(levelname)s %(message)s", stream=sys.stderr)
+    setup_logging(args.log_level, args.log_format or "text", "v2v-serve")
     try:
         cfg = config_from_args(args)
     except (ValueError, FileNotFoundError) as e:

@@ -83,6 +83,8 @@ class ServeConfig:
     metrics_port: Optional[int] = None
     #: address the metrics endpoint binds (0.0.0.0 in a container so probes can reach it)
     metrics_host: str = "127.0.0.1"
+    #: log lines as plain text or one JSON object per line (for log shippers)
+    log_format: str = "text"
 
     # ------------------------------------------------------------------ derived
     @property
@@ -180,6 +182,8 @@ class ServeConfig:
                 self.metrics_port, int) or not 0 <= self.metrics_port <= 65535):
             raise ValueError(f"metrics_port must be a TCP port in [0, 65535] (0 = any free port), "
                              f"got {self.metrics_port!r}")
+        if self.log_format not in ("text", "json"):
+            raise ValueError(f"log_format must be text or json, got {self.log_format!r}")
         if not isinstance(self.metrics_host, str) or not self.metrics_host:
             raise ValueError(f"metrics_host must be an address such as 127.0.0.1, got {self.metrics_host!r}")
         self.video_extensions = tuple(e.lower() for e in self.video_extensions)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterable, Iterator, Optional, Tuple
@@ -144,6 +145,7 @@ def make_sample(
     outputs: Iterable[str],
     flow: Optional[FlowEstimator] = None,
     fps: float = 0.0,
+    busy: Optional[dict] = None,
 ) -> Dict[str, np.ndarray]:
     """Compute the requested outputs of one sample.
 
@@ -151,6 +153,8 @@ def make_sample(
         window_frames: uint8 (plan.consumed, S, S) cropped source frames of the window.
         outputs: any of "voxels", "frames", "flow"; only these are computed.
         fps: source frame rate, Hz (for non-idealities given as rates).
+        busy: when given, ``busy["simulate"]`` and ``busy["flow"]`` accumulate the seconds
+            spent simulating voxels and estimating flow (for the server's metrics).
 
     Returns:
         dict with ``voxels`` int32 (L, B, S, S) signed event counts, ``frames`` uint8
@@ -161,6 +165,7 @@ def make_sample(
     seq = window_frames[plan.offsets]  # pauses repeat frames
     step = cfg.num_bins * cfg.frames_per_bin
     out: Dict[str, np.ndarray] = {}
+    t0 = time.perf_counter()
     if "voxels" in outputs:
         vox = _simulate(cfg, plan, seq, fps)
         if cfg.frames_per_bin > 1:
@@ -170,9 +175,13 @@ def make_sample(
     boundaries = seq[::step]
     if "frames" in outputs:
         out["frames"] = np.ascontiguousarray(boundaries)
+    t1 = time.perf_counter()
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
         out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
+    if busy is not None:
+        busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)
+        busy["flow"] = busy.get("flow", 0.0) + (time.perf_counter() - t1)
     return out
 
 
@@ -225,7 +234,8 @@ def video_samples(
     Yields ``(sample_id, arrays, meta)`` for each complete window not in ``skip_windows``,
     in window order. Decoding stops after the last window that can be used. When given,
     ``stats`` receives ``frames`` (frames decoded), ``windows`` (complete windows, skipped
-    ones included), ``width``, ``height`` and ``fps``.
+    ones included), ``width``, ``height``, ``fps`` and ``busy`` (seconds simulating and
+    estimating flow, see ``make_sample``).
 
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
@@ -257,6 +267,6 @@ def video_samples(
             buf[off] = crop_frame(cfg, plan, luma)
         if off == span - 1:
             stats["windows"] += 1
-            arrays = make_sample(cfg, plan, buf, outputs, flow, info.fps)
+            arrays = make_sample(cfg, plan, buf, outputs, flow, info.fps, stats.setdefault("busy", {}))
             yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
             plan, buf = None, None
