@@ -180,8 +180,10 @@ def make_sample(
         flow = flow or FlowEstimator(cfg.flow_preset)
         out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
     if busy is not None:
-        busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)
-        busy["flow"] = busy.get("flow", 0.0) + (time.perf_counter() - t1)
+        if "voxels" in outputs:
+            busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)
+        if "flow" in outputs:
+            busy["flow"] = busy.get("flow", 0.0) + (time.perf_counter() - t1)
     return out
 
 
