@@ -339,6 +339,24 @@ def test_metrics_probes_and_counters_move(videos):
     assert m1[("v2v_epoch", ())] >= 0 and m1[("v2v_epoch_videos", ())] == 3
 
 
+def test_progress_line_shows_epoch_rate_clients_and_workers(capsys):
+    from v2v_server.metrics import ServerMetrics
+
+    m = ServerMetrics(progress=True)
+    state = dict(epoch=2, epoch_videos=3, epoch_videos_done=1, clients={"ab": (1, 2), "cd": (0, 4)}, workers=4,
+                 workers_busy=3)
+    m._progress._last -= 2.0  # two seconds ago
+    m.on_batch_sent(4, 3_000_000)
+    m.set_state(**state)
+    try:
+        assert m._progress.bar.n == 4
+        line = m._progress.line
+        assert line.startswith("epoch 2 (1/3 videos), 1.") and line.endswith("MB/s, 2 client(s), workers busy 3/4")
+    finally:
+        m.close()
+    assert ServerMetrics(progress=False)._progress is None
+
+
 def test_trainer_metrics_as_prometheus(videos):
     pytest.importorskip("prometheus_client")
     from prometheus_client import CollectorRegistry

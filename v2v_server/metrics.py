@@ -236,10 +236,11 @@ class _Progress:
         from tqdm import tqdm
 
         self.bar = tqdm(unit=" samples", dynamic_ncols=True, file=sys.stderr, leave=False,
-                        bar_format="{n_fmt}{unit} [{elapsed}, {rate_fmt}] {postfix}")
+                        bar_format="{n_fmt}{unit} [{elapsed}, {rate_fmt}]{postfix}")
         self.nbytes = 0
-        self._last = 0.0
-        self._t0 = time.monotonic()
+        self._last = time.monotonic()
+        self._last_bytes = 0
+        self.line = ""
 
     def add(self, nsamples: int, nbytes: int) -> None:
         self.bar.update(nsamples)
@@ -248,12 +249,12 @@ class _Progress:
     def show(self, now: float, st: dict) -> None:
         if now - self._last < 1.0:
             return
-        self._last = now
-        mbs = self.nbytes / 1e6 / max(now - self._t0, 1e-9)
-        self.bar.set_postfix_str(f"epoch {st.get('epoch', -1)} ({st.get('epoch_videos_done', 0)}/"
-                                 f"{st.get('epoch_videos', 0)} videos), {mbs:.1f} MB/s, "
-                                 f"{len(st.get('clients', {}))} client(s), workers busy "
-                                 f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}")
+        mbs = (self.nbytes - self._last_bytes) / 1e6 / (now - self._last)  # over the last second or so
+        self._last, self._last_bytes = now, self.nbytes
+        self.line = (f"epoch {st.get('epoch', -1)} ({st.get('epoch_videos_done', 0)}/{st.get('epoch_videos', 0)} "
+                     f"videos), {mbs:.1f} MB/s, {len(st.get('clients', {}))} client(s), workers busy "
+                     f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}")
+        self.bar.set_postfix_str(self.line)
 
     def close(self) -> None:
         self.bar.close()
