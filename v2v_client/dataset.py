@@ -390,7 +390,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._fanin: Optional[FanInStream] = None
         self._meter = TrainerMetrics()
         if not isinstance(endpoint, str) or "," in endpoint:
-            self._fanin = self._make_fanin(split_endpoints(endpoint))
+            endpoints = split_endpoints(endpoint)
+            if len(endpoints) == 1:
+                self.endpoint = endpoints[0]
+            else:
+                self._fanin = self._make_fanin(endpoints)
 
     # ------------------------------------------------------------------ fan-in and metrics [iss12]
     def _make_fanin(self, endpoints) -> FanInStream:

@@ -114,6 +114,12 @@ class ServerMetrics:
             if s in STAGES and isinstance(v, (int, float)) and 0 <= v < 1e6:
                 self.busy.labels(stage=s).inc(v)
 
+    def tick(self, state_fn, every_s: float = 0.25) -> None:
+        """Call ``set_state(**state_fn())`` unless that was done less than ``every_s`` seconds
+        ago (the server loop turns far more often than anyone scrapes)."""
+        if time.monotonic() - self._last_turn >= every_s or not self._state:
+            self.set_state(**state_fn())
+
     def set_state(self, **state) -> None:
         """The server's state after a loop turn: ``clients`` {client id: (credits, in-flight
         batches)}, ``queue_batches``, ``inflight_batches``, ``workers``, ``workers_busy``,

@@ -281,7 +281,7 @@ class V2VServer:
                 self._log_status()
                 next_status = now + 30.0
             self._announce_epochs()
-            self.metrics.set_state(**self._metrics_state())  # [iss12 metrics]
+            self.metrics.tick(self._metrics_state)  # [iss12 metrics] gauges + liveness, at most 4 times a second
             if self._finished():
                 self._broadcast({"type": "end"})
                 log.info("all %d epoch(s) delivered; ending the stream", self.cfg.epochs)
