@@ -163,6 +163,23 @@ def test_two_shards_one_trainer_every_id_once_with_the_content_of_one_unsharded_
     assert ds.state_dict()["completed_epoch"] == 0 and ds.state_dict()["delivered"] == {}
 
 
+def test_loadtest_reads_several_servers_and_reports_each_rate(videos):
+    base = ["--videos", str(videos), *layout()]
+    with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
+        out = subprocess.run([sys.executable, "-m", "v2v_client.loadtest", "--connect", a.endpoint, "--connect",
+                              b.endpoint, "--batches", "6", "--outputs", "voxels", "--json", "--timeout", "60"],
+                             capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    per = r["per_server"]
+    assert set(per) == {a.endpoint, b.endpoint}  # both shards served the trainer
+    assert sum(v["batches"] for v in per.values()) == r["batches"] == 6
+    assert abs(sum(v["samples_per_s"] for v in per.values()) - r["samples_per_s"]) < 1e-6 * max(1.0, r["samples_per_s"])
+    report = out.stdout.splitlines()[:-1]  # the text report, one line per server after the total
+    assert any(ln.strip().startswith(a.endpoint) for ln in report) and any(ln.strip().startswith(b.endpoint)
+                                                                           for ln in report)
+
+
 def test_a_shard_killed_and_restarted_mid_epoch_loses_and_doubles_nothing(tmp_path, videos):
     root = corpus(tmp_path, videos, copies=2)
     want = expected_ids(root)
