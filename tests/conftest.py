@@ -19,17 +19,18 @@ def video_dir() -> Path:
 
 @functools.lru_cache(maxsize=4)
 def read_luma_clip(name: str = "bikes.mp4", n: int = 60, size=(96, 128)) -> np.ndarray:
-    """First n luma frames of a real clip, resized to size=(H, W), uint8 (n, H, W)."""
-    import av
+    """First n full-range luma frames of a real clip, resized to size=(H, W), uint8 (n, H, W)."""
     import cv2
 
+    from v2v_server.video import iter_luma
+
     out = []
-    with av.open(str(video_dir() / name)) as c:
-        for f in c.decode(video=0):
-            g = f.to_ndarray(format="gray")
-            out.append(cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA))
-            if len(out) == n:
-                break
+    frames = iter_luma(video_dir() / name)  # the stream's reader (full-range luma)
+    for g in frames:
+        out.append(cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA))
+        if len(out) == n:
+            break
+    frames.close()
     arr = np.stack(out)
     arr.setflags(write=False)
     return arr

@@ -103,7 +103,8 @@ def test_reconstruction_metrics_and_data_range_switch():
 
 def test_flow_metrics_dense_and_sparse():
     gt = np.zeros((2, 4, 4))
-    pred = np.zeros((2, 4, 4))
+    gt[1] = 1.0  # (zero in both components would mark a pixel invalid)
+    pred = gt.copy()
     pred[0, :2] = 4.0  # half the pixels off by 4 px
     mask = np.zeros((4, 4), bool)
     mask[0] = True
@@ -142,9 +143,10 @@ def test_eval_cli_on_fixture_h5(tmp_path, capsys):
     ckf = _tiny_checkpoint(tmp_path, "evflow")
     assert main(["--checkpoint", ckf, "--h5", str(p), "--device", "cpu", "--out", str(tmp_path / "fl")]) == 0
     res = json.loads((tmp_path / "fl" / "metrics.json").read_text())
-    assert set(res["mean"]) == {"aee", "outlier_pct", "aee_sparse", "outlier_pct_sparse"}
+    assert set(res["mean"]) == {"aee", "outlier_pct", "aee_sparse", "outlier_pct_sparse", "valid_pct"}
     # an untrained net predicts ~0 flow: the error is ~ the true 2 px everywhere
-    assert res["mean"]["aee"] == pytest.approx(2.0, abs=0.5) and res["frames"] == 5
+    # 5 flows with timestamps: binned between them, 4 intervals are scored (flows 1..4)
+    assert res["mean"]["aee"] == pytest.approx(2.0, abs=0.5) and res["frames"] == 4
 
 
 def test_evaluate_e2vid_with_perfect_model():
@@ -157,3 +159,56 @@ def test_evaluate_e2vid_with_perfect_model():
     r = evaluate_e2vid(Oracle(), vox, frames, torch.device("cpu"))
     assert np.allclose(r["mse"], 0.0) and np.allclose(r["ssim"], 1.0)
     assert all(b > 0 for b in r["base_mse"])
+
+
+class _EdgeFlowFromEvents(torch.nn.Module):
+    """A flow 'model' exact for the moving-edge fixture: the edge crosses one column per
+    ``nev`` events in a row, so the columns crossed in a voxel are its x displacement."""
+
+    def __init__(self, nev):
+        super().__init__()
+        self.nev = nev
+
+    def forward(self, v):
+        per_row = v.abs().sum(dim=(1, 3), keepdim=True) / self.nev  # (N, 1, H, 1) columns crossed
+        u = per_row.amax(dim=2, keepdim=True).expand(v.shape[0], 1, v.shape[2], v.shape[3])
+        return torch.cat([u, torch.zeros_like(u)], dim=1)
+
+
+def test_flow_evaluation_masks_invalid_ground_truth_and_bins_between_flow_timestamps(tmp_path):
+    from tests.trainer_fixtures import write_mvsec_like_h5
+    from trainer.evaluate import evaluate_evflow
+
+    p = tmp_path / "mvsec_like.h5"
+    image_ts, flow_ts = write_mvsec_like_h5(p, nev=2)
+    seq = H5Sequence(str(p))
+    assert np.allclose(seq.flow_ts, flow_ts) and np.isnan(seq.flows).any()
+    vox, counts, gt = seq.flow_voxels(num_bins=2)
+    assert vox.shape[0] == len(flow_ts) - 1 and np.array_equal(gt, seq.flows[1:], equal_nan=True)
+    for k in range(len(flow_ts) - 1):  # each voxel holds exactly the events of [flow_ts[k], flow_ts[k+1])
+        inside = (seq.ts >= flow_ts[k]) & (seq.ts < flow_ts[k + 1])
+        assert int(counts[k].sum()) == int(inside.sum()) > 0
+    res = evaluate_evflow(_EdgeFlowFromEvents(nev=2), vox, gt, counts, torch.device("cpu"))
+    # 200 px/s over 0.02 s: 4 columns crossed, the ground truth's 4 px, on every valid pixel
+    assert res["aee"] == pytest.approx([0.0] * 3, abs=1e-9)
+    assert all(np.isfinite(res["aee_sparse"])) and res["valid_pct"] == pytest.approx([100 * 12 / 16 * 42 / 48] * 3)
+    # binned between image timestamps (0.01 s apart) the same model is 2 px off
+    ivox, icounts = seq.voxels(num_bins=2)
+    off = evaluate_evflow(_EdgeFlowFromEvents(nev=2), ivox[:3], gt, icounts[:3], torch.device("cpu"))
+    assert off["aee"] == pytest.approx([2.0] * 3)
+
+
+def test_flow_metrics_ignore_nan_and_zero_ground_truth():
+    gt = np.full((2, 4, 4), 3.0)
+    gt[:, 0] = np.nan          # no depth
+    gt[0, 1, :2] = np.nan      # one component NaN
+    gt[:, 2, :] = 0.0          # zero in both: invalid
+    gt[0, 3, 0], gt[1, 3, 0] = 0.0, 5.0  # zero in one only: valid
+    pred = np.full((2, 4, 4), 3.0)
+    m = flow_metrics(pred, gt, event_mask=np.ones((4, 4), bool))
+    valid = 2 + 4  # row 1 right half, row 3
+    assert m["valid_pct"] == pytest.approx(100 * valid / 16)
+    assert m["aee"] == pytest.approx(np.hypot(3, 2) / valid)  # only the (0, 5) pixel is off
+    assert m["aee_sparse"] == pytest.approx(m["aee"])
+    empty = flow_metrics(pred, np.full((2, 4, 4), np.nan))
+    assert np.isnan(empty["aee"]) and empty["valid_pct"] == 0.0

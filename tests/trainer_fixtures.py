@@ -77,3 +77,45 @@ class FakeV2VStream(torch.utils.data.IterableDataset):
             self.pos += 1
             self.yielded_ids.append(i)
             yield b
+
+
+def write_mvsec_like_h5(path, height=16, width=48, speed=200.0, image_dt=0.01, n_images=8,
+                        flow_t0=0.003, flow_dt=0.02, n_flows=4, nev=2):
+    """TEST FIXTURE: an H5 file in the layout the V2V reference's ``scripts/mvsec_to_h5.py``
+    writes, for a vertical edge moving right at ``speed`` px/s: each column x the edge crosses
+    fires ``nev`` events per row at t_x = (x + 0.5) / speed. Images every ``image_dt`` s;
+    ground-truth flows at their *own* timestamps ``flow_t0 + k * flow_dt`` (``flow_ts``), flow
+    k being the displacement over the interval that ends at its timestamp, ``speed *
+    flow_dt`` px in x; NaN in the top quarter of rows (no depth) and zero in the right eighth
+    of columns (MVSEC's invalid pixels). Returns ``(image_ts, flow_ts)``."""
+    import h5py
+
+    xs, ys, ts = [], [], []
+    for x in range(width):
+        t = (x + 0.5) / speed
+        for y in range(height):
+            xs += [x] * nev
+            ys += [y] * nev
+            ts += [t] * nev
+    order = np.argsort(ts, kind="stable")
+    xs, ys, ts = np.array(xs)[order], np.array(ys)[order], np.array(ts)[order]
+    image_ts = np.arange(n_images) * image_dt
+    flow_ts = flow_t0 + np.arange(n_flows) * flow_dt
+    with h5py.File(path, "w") as f:
+        f.attrs["sensor_resolution"] = (height, width)
+        f.create_dataset("events/xs", data=xs.astype(np.uint16))
+        f.create_dataset("events/ys", data=ys.astype(np.uint16))
+        f.create_dataset("events/ts", data=ts.astype(np.float64))
+        f.create_dataset("events/ps", data=np.ones(len(xs), np.uint8))
+        cols = np.arange(width)[None, :] + 0.5
+        for i, t in enumerate(image_ts):
+            d = f.create_dataset(f"images/image{i:09d}", data=np.where(cols < speed * t, 200, 50).astype(np.uint8).repeat(height, 0))
+            d.attrs["timestamp"] = t
+        for k, t in enumerate(flow_ts):
+            fl = np.zeros((2, height, width), np.float32)
+            fl[0] = speed * flow_dt
+            fl[:, : height // 4] = np.nan
+            fl[:, :, width - width // 8:] = 0.0
+            d = f.create_dataset(f"flow/flow{k:09d}", data=fl)
+            d.attrs["timestamp"] = t
+    return image_ts, flow_ts

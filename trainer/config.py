@@ -23,7 +23,7 @@ _COMMON = {
     # curve_keys: [client .key_secret file, server .key file] for a server that requires CurveZMQ
     "stream": {"credits": 4, "timeout_s": 60.0, "raw": True, "reconnect": False, "curve_keys": None},
     "optim": {"lr": 1.0e-4, "amsgrad": True, "weight_decay": 0.0, "clip_grad_norm": None},
-    "amp": "bf16",                 # bf16 autocast on CUDA; ignored on CPU
+    "amp": "fp32",                 # fp32 as the reference trains; bf16: autocast on CUDA (ignored on CPU)
     "log": {"image_every": 500, "checkpoint_every": 1000, "progress": True},
     "resume": None,                # path to a checkpoint, or "auto" = <out>/checkpoint_last.pt if present
 }
@@ -43,7 +43,8 @@ DEFAULTS = {
             "tc_weight": 1.0,               # temporal consistency ("V+L1+H")
             "tc_alpha": 50.0,
             "tc_start_fraction": 0.5,       # frames 20..39 of 40
-            "tc_warp": "next",              # next (exact for forward flow) | previous
+            "tc_form": "reference",         # reference (relative error, / L) | absolute (ours before)
+            "tc_warp": "next",              # absolute form only: next (exact for forward flow) | previous
         },
     },
     "evflow": {

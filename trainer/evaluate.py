@@ -5,9 +5,19 @@ Inputs:
 * H5 sequences in the layout of the V2V reference repo and event_cnn_minimal:
   ``events/xs, ys, ts, ps`` (pixels, seconds, polarity in {0, 1} or {-1, 1}, ``ts``
   non-decreasing), ``images/imageNNNNNNNNN`` (H, W) uint8 with a ``timestamp`` attribute
-  (seconds), optional ``flow/flowNNNNNNNNN`` (2, H, W) float32 with a ``timestamp``
-  attribute, read as the forward flow in pixels from image N to image N+1; root attribute
-  ``sensor_resolution`` = (H, W) if present.
+  (seconds), optional ``flow/flowNNNNNNNNN`` (2, H, W) float32 ground-truth flow in pixels
+  with a ``timestamp`` attribute (``flow_ts``); root attribute ``sensor_resolution`` = (H, W)
+  if present. MVSEC files converted by the reference's ``scripts/mvsec_to_h5.py`` have
+  this layout, with flows at the depth camera's timestamps (not the images') and NaN where
+  depth is missing.
+* Flow convention (the V2V reference's ``data/testh5.py`` ``TestH5Dataset`` and
+  ``model/train_flow_utils.py``): when every flow has a timestamp, the events are binned
+  between consecutive *flow* timestamps, and the voxel of ``[flow_ts[k], flow_ts[k+1])`` is
+  scored against ``flow[k+1]``, the flow stored at the interval's end (the first flow has
+  no interval and is not scored). Without flow timestamps, ``flow[N]`` is read as the
+  forward flow from image N to image N+1 and scored against the voxel between them.
+  Ground-truth pixels that are NaN in either component or zero in both (no depth) are not
+  scored; a flow with no valid pixel gives NaN metrics, which the means skip.
 * Videos (``--video``), whose voxels are simulated with the V2V core
   (``v2v_server.simulate.simulate_voxels``), for held-out clips without an event file.
 
@@ -23,7 +33,8 @@ Metrics (per frame, then averaged over all frames of all inputs):
   LPIPS (AlexNet, v0.1) when weights are available. The constant-mean-image baseline (every
   prediction = the mean intensity of the sequence's ground-truth frames) is reported alongside.
 * flow: AEE (mean end-point error, pixels) and the percentage of pixels with error > 3 px,
-  dense (all pixels) and sparse (pixels with at least one event in the voxel).
+  dense (all valid ground-truth pixels) and sparse (valid pixels with at least one event
+  in the voxel).
 """
 from __future__ import annotations
 
@@ -98,9 +109,12 @@ class H5Sequence:
         path: the file.
         height, width: sensor size, pixels.
         images: uint8 (N, H, W) frames; ``image_ts`` float64 (N,) seconds.
-        flows: float32 (M, 2, H, W) forward flows or ``None``; ``flow_ts`` (M,) seconds.
+        flows: float32 (M, 2, H, W) ground-truth flows (pixels, NaN where unknown) or
+            ``None``; ``flow_ts`` float64 (M,) seconds, or ``None`` when a flow has no
+            ``timestamp`` attribute.
 
-    :meth:`voxels` builds the discrete voxel grids between consecutive images.
+    :meth:`voxels` builds the discrete voxel grids between consecutive images,
+    :meth:`flow_voxels` the voxels and ground truth to score flow on (module docstring).
     Raises ``KeyError`` naming a missing group/dataset, ``ValueError`` for fewer than two
     images.
     """
@@ -133,12 +147,36 @@ class H5Sequence:
             if "flow" in f and len(f["flow"]):
                 fn = sorted(f["flow"].keys())
                 self.flows = np.stack([f["flow"][k][:] for k in fn]).astype(np.float32)
-                self.flow_ts = np.array([float(f["flow"][k].attrs["timestamp"]) for k in fn])
+                if all("timestamp" in f["flow"][k].attrs for k in fn):
+                    self.flow_ts = np.array([float(f["flow"][k].attrs["timestamp"]) for k in fn])
 
     def voxels(self, num_bins: int) -> Tuple[np.ndarray, np.ndarray]:
         """``events_to_voxels`` between consecutive image timestamps: int32 (N-1, B, H, W)
         and event counts int32 (N-1, H, W)."""
         return events_to_voxels(self.xs, self.ys, self.ts, self.ps, self.image_ts, num_bins, self.height, self.width)
+
+    def flow_voxels(self, num_bins: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Voxels, event counts and the ground truth to score optical flow on, following the
+        module docstring's convention: ``(voxels int32 (K, B, H, W), counts int32 (K, H, W),
+        flows float32 (K, 2, H, W))``; with flow timestamps K = M - 1 intervals between
+        consecutive ``flow_ts`` scored against ``flows[1:]``, else K = min(M, N - 1) image
+        intervals scored against ``flows[:K]``.
+
+        Raises:
+            KeyError: the file has no flow group.
+            ValueError: flow timestamps that do not increase.
+        """
+        if self.flows is None:
+            raise KeyError(f"{self.path}: no 'flow' group, cannot evaluate optical flow")
+        if self.flow_ts is not None:
+            if self.flow_ts.size < 2 or np.any(np.diff(self.flow_ts) <= 0):
+                raise ValueError(f"{self.path}: flow timestamps must increase (>= 2 flows)")
+            vox, counts = events_to_voxels(self.xs, self.ys, self.ts, self.ps, self.flow_ts, num_bins,
+                                           self.height, self.width)
+            return vox, counts, self.flows[1:]
+        vox, counts = self.voxels(num_bins)
+        k = min(len(self.flows), len(vox))
+        return vox[:k], counts[:k], self.flows[:k]
 
 
 def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, max_frames: int = 0,
@@ -149,7 +187,8 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
     truth of voxel l is the frame at its end.
 
     Args:
-        path: video file (decoded with PyAV, converted to luma).
+        path: video file, read like the stream reads it (``v2v_server.video.iter_luma``:
+            full-range, display-oriented luma; uint16 for sources deeper than 8 bits).
         num_bins: B.
         contrast_threshold: c+ = c- (log-intensity units); no noise or hot pixels.
         max_frames: use at most this many frames (0 = all).
@@ -159,27 +198,26 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
     Returns:
         ``(voxels int32 (L, B, H, W), frames uint8 (L+1, H, W))``.
     """
-    import av
     import cv2
 
     from v2v_server.simulate import SensorParams, simulate_voxels
+    from v2v_server.video import iter_luma, to_uint8
 
     out = []
-    with av.open(str(path)) as c:
-        for fr in c.decode(video=0):
-            g = fr.to_ndarray(format="gray")
-            if size is not None:
-                g = cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA)
-            out.append(g)
-            if max_frames and len(out) >= max_frames:
-                break
+    frames_it = iter_luma(path)  # the stream's reader: full-range, display-oriented luma
+    for g in frames_it:
+        g = cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA) if size is not None else g.copy()
+        out.append(g)
+        if max_frames and len(out) >= max_frames:
+            break
+    frames_it.close()
     n = (len(out) - 1) // num_bins * num_bins + 1
     if n < num_bins + 1:
         raise ValueError(f"{path}: too few frames ({len(out)}) for one voxel of {num_bins} bins")
     frames = np.stack(out[:n])
     vox, _ = simulate_voxels(frames, SensorParams(contrast_threshold, contrast_threshold), num_bins,
                              rng=np.random.default_rng(seed))
-    return vox, frames[::num_bins]
+    return vox, to_uint8(frames[::num_bins])
 
 
 def reconstruction_metrics(pred: np.ndarray, gt: np.ndarray, ssim_data_range: float = 1.0) -> Dict[str, float]:
@@ -197,6 +235,10 @@ def flow_metrics(pred: np.ndarray, gt: np.ndarray, event_mask: Optional[np.ndarr
                  threshold_px: float = 3.0) -> Dict[str, float]:
     """Flow errors of one frame pair.
 
+    Ground-truth pixels that are NaN in either component or zero in both (MVSEC: no depth)
+    are not scored, as in the V2V reference (``model/train_flow_utils.py``, mean over valid
+    pixels).
+
     Args:
         pred, gt: float (2, H, W) flow in pixels.
         event_mask: bool (H, W), pixels with at least one event (sparse metrics), or None.
@@ -204,16 +246,26 @@ def flow_metrics(pred: np.ndarray, gt: np.ndarray, event_mask: Optional[np.ndarr
 
     Returns:
         ``aee`` (mean end-point error, px) and ``outlier_pct`` (% of pixels with EPE >
-        threshold) over all pixels, and ``aee_sparse`` / ``outlier_pct_sparse`` over the
-        event pixels (NaN when the mask is empty or not given).
+        threshold) over the valid pixels (NaN when there is none), ``aee_sparse`` /
+        ``outlier_pct_sparse`` over the valid event pixels (NaN when none or no mask), and
+        ``valid_pct``, the % of pixels with valid ground truth.
     """
-    epe = np.sqrt(((np.asarray(pred, np.float64) - np.asarray(gt, np.float64)) ** 2).sum(0))
-    out = {"aee": float(epe.mean()), "outlier_pct": float(100.0 * (epe > threshold_px).mean()),
-           "aee_sparse": float("nan"), "outlier_pct_sparse": float("nan")}
-    if event_mask is not None and np.any(event_mask):
-        e = epe[np.asarray(event_mask, bool)]
-        out["aee_sparse"] = float(e.mean())
-        out["outlier_pct_sparse"] = float(100.0 * (e > threshold_px).mean())
+    gt = np.asarray(gt, np.float64)
+    valid = ~(np.isnan(gt).any(axis=0) | ((gt[0] == 0) & (gt[1] == 0)))
+    epe = np.sqrt(((np.asarray(pred, np.float64) - gt) ** 2).sum(0))
+    nan = float("nan")
+    out = {"aee": nan, "outlier_pct": nan, "aee_sparse": nan, "outlier_pct_sparse": nan,
+           "valid_pct": float(100.0 * valid.mean())}
+    if valid.any():
+        e = epe[valid]
+        out["aee"] = float(e.mean())
+        out["outlier_pct"] = float(100.0 * (e > threshold_px).mean())
+    if event_mask is not None:
+        sparse = valid & np.asarray(event_mask, bool)
+        if sparse.any():
+            e = epe[sparse]
+            out["aee_sparse"] = float(e.mean())
+            out["outlier_pct_sparse"] = float(100.0 * (e > threshold_px).mean())
     return out
 
 
@@ -338,8 +390,12 @@ def main(argv=None) -> int:
     for kind, path in inputs:
         if kind == "h5":
             seq = H5Sequence(path)
-            vox, counts = seq.voxels(nb)
-            frames, flows = seq.images, seq.flows
+            if task == "e2vid":
+                vox, counts = seq.voxels(nb)
+                frames, flows = seq.images, None
+            else:
+                vox, counts, flows = seq.flow_voxels(nb)  # between flow timestamps when present
+                frames = None
         else:
             if task != "e2vid":
                 p.error("--video inputs have no ground-truth flow; EvFlow needs --h5 files with a flow group")
@@ -356,8 +412,6 @@ def main(argv=None) -> int:
                     save_grid(str(out / f"{Path(path).stem}_{l:05d}.png"),
                               [[voxel_to_u8(vox[l]), gray_to_u8(preds[l]), gray_to_u8(frames[l + 1] / 255.0)]])
         else:
-            if flows is None:
-                raise KeyError(f"{path}: no 'flow' group, cannot evaluate optical flow")
             r = evaluate_evflow(model, vox, flows, counts, device)
         per_input[path] = r
         log.info("%s: %s", path, {k: round(float(np.nanmean(v)), 5) for k, v in r.items() if not k.startswith("_") and len(v)})

@@ -1,8 +1,10 @@
 """Training losses of the V2V paper (Lou et al., NeurIPS 2025; losses of event_cnn_minimal).
 
 * E2VID ("V+L1+H"): L1 + LPIPS (VGG) on every reconstruction, plus the temporal
-  consistency loss of Lai et al. (ECCV 2018) on the second half of each sequence, with
-  the visibility weight ``exp(-alpha * |I_t - warp(I_{t-1})|^2)``, alpha = 50. Without
+  consistency loss of Lai et al. (ECCV 2018) in the V2V reference's form (relative error
+  ``|P_t - W(P_{t-1})| / (|P_t| + |W(P_{t-1})| + 1e-5)`` weighted by the visibility
+  ``exp(-alpha * |I_t - W(I_{t-1})|^2)``, alpha = 50), counted from the middle of each
+  sequence and averaged over all of its steps (the first half contributes zero). Without
   LPIPS weights, ``1 - SSIM`` replaces the LPIPS term (logged once).
 * EvFlow: dense L1 between predicted and the stream's optical flow (pixels).
 """
@@ -17,7 +19,7 @@ import torch.nn.functional as F
 
 from .lpips_net import load_lpips
 
-__all__ = ["ssim", "warp", "temporal_consistency_loss", "flow_l1_loss", "ReconstructionLoss"]
+__all__ = ["ssim", "warp", "TC_FORMS", "temporal_consistency_loss", "flow_l1_loss", "ReconstructionLoss"]
 
 log = logging.getLogger(__name__)
 
@@ -81,29 +83,51 @@ def warp(img: torch.Tensor, flow: torch.Tensor) -> Tuple[torch.Tensor, torch.Ten
     return out, valid
 
 
+#: Forms of the temporal-consistency loss: the reference's (default) and our former one.
+TC_FORMS = ("reference", "absolute")
+
+
 def temporal_consistency_loss(frame0: torch.Tensor, frame1: torch.Tensor, pred0: torch.Tensor,
                               pred1: torch.Tensor, flow01: torch.Tensor, alpha: float = 50.0,
-                              mode: str = "next") -> torch.Tensor:
-    """Short-term temporal consistency loss (Lai et al. ECCV 2018, Eq. 2; E2VID training).
+                              mode: str = "next", form: str = "reference") -> torch.Tensor:
+    """Short-term temporal consistency loss of one step (Lai et al. ECCV 2018, Eq. 2; E2VID
+    training), averaged over pixels.
 
-    ``M = exp(-alpha * |I_1 - warp(I_0)|^2)``, loss = mean(M * |P_1 - warp(P_0)|) over
-    in-image pixels, where ``I`` are ground-truth frames and ``P`` reconstructions.
+    ``form='reference'`` (default) is the V2V reference code's loss (``utils/loss.py``
+    ``temporal_consistency_loss``, called by ``model/loss.py`` with the negated forward
+    flow): the previous frame and the previous reconstruction (clamped to [0, 255]) are
+    warped onto frame t's grid with ``-flow01``, ``W(X)(x) = X(x - F(x))`` (bilinear, zeros
+    outside), and
+
+        ``M = exp(-alpha * (I_1 - W(I_0))^2)``,
+        ``loss = mean(M * |P_1 - W(P_0)| / (|P_1| + |W(P_0)| + 1e-5))``
+
+    over all pixels (no in-image mask). ``mode`` is ignored.
+
+    ``form='absolute'`` is this project's former loss, kept as an option: the plain error
+    ``mean(M * |P_ref - W(P)|)`` over in-image pixels, with ``mode='next'`` (exact for a
+    forward flow: frame/prediction t warped back onto t-1's grid with ``+flow01``) or
+    ``mode='previous'`` (the reference's ``-flow01`` warp).
 
     Args:
         frame0, frame1: float (N, 1, H, W) ground-truth frames at t-1 and t, in [0, 1].
         pred0, pred1: float (N, 1, H, W) reconstructions at t-1 and t.
         flow01: float (N, 2, H, W), the stream's *forward* flow from frame t-1 to t in
-            pixels (defined on frame t-1's pixel grid).
-        alpha: visibility sharpness (50 in the paper).
-        mode: ``'next'`` (default, exact for forward flow): the loss is evaluated on frame
-            t-1's grid, warping frame/prediction t back with ``flow01``:
-            ``warp(X_1)(x) = X_1(x + F(x))`` vs ``X_0(x)``. ``'previous'``: warp frame t-1
-            onto frame t's grid with the first-order backward flow ``-F`` (the literal
-            reference formulation, approximate where flow varies).
+            pixels (defined on frame t-1's pixel grid; channel 0 = x, 1 = y).
+        alpha: visibility sharpness (50 in the paper and the reference).
+        mode: ``'next'`` | ``'previous'`` (``form='absolute'`` only).
+        form: ``'reference'`` | ``'absolute'``.
 
     Returns:
-        Scalar float tensor.
+        Scalar float tensor. Raises ``ValueError`` for an unknown ``form`` or ``mode``.
     """
+    if form == "reference":
+        w_frame, _ = warp(frame0, -flow01)
+        w_pred, _ = warp(torch.clamp(pred0, 0, 255), -flow01)
+        vis = torch.exp(-alpha * (frame1 - w_frame) ** 2)
+        return (vis * (pred1 - w_pred).abs() / (pred1.abs() + w_pred.abs() + 1e-5)).mean()
+    if form != "absolute":
+        raise ValueError(f"form must be one of {list(TC_FORMS)}, got {form!r}")
     if mode == "next":
         w_frame, valid = warp(frame1, flow01)
         w_pred, _ = warp(pred1, flow01)

@@ -6,9 +6,10 @@ NeurIPS 2025), which reuse event_cnn_minimal (Stoffregen et al., ECCV 2020):
 * ``E2VIDRecurrent``: head conv (k5) -> 3 encoders (strided conv k5 + ConvLSTM k3),
   channels 32-64-128-256 -> 2 residual blocks -> 3 decoders (bilinear x2 upsample + conv
   k5) with *sum* skips -> 1x1 prediction conv, 1 output channel, no final activation.
-* ``EVFlowNet``: head conv (k3) -> 4 strided-conv encoders, channels 32-64-128-256-512 ->
-  2 residual blocks -> 4 upsample-conv decoders with *concat* skips -> 1x1 prediction
-  conv with 2 output channels (optical flow in pixels, channel 0 = x/u, 1 = y/v).
+* ``EVFlowNet``: the reference's ``UNet`` with no head layer: 4 strided-conv encoders
+  (5 -> 64 -> 128 -> 256 -> 512, k3) -> 2 residual blocks -> 4 upsample-conv decoders with
+  *concat* skips (to 256, 128, 64, 32) -> 1x1 prediction conv 32 -> 2 (optical flow in
+  pixels, channel 0 = x/u, 1 = y/v), parameters named as the reference's.
 
 Inputs are voxel grids (N, num_bins, H, W) float; H and W need not be multiples of
 2**num_encoders: inputs are zero-padded on the bottom/right and the output cropped back.
@@ -21,21 +22,22 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["ConvLSTM", "E2VIDRecurrent", "EVFlowNet", "build_model"]
+__all__ = ["ConvLSTM", "E2VIDRecurrent", "UNet", "EVFlowNet", "build_model"]
 
 State = Optional[Tuple[torch.Tensor, torch.Tensor]]
 
 
 class ConvLayer(nn.Module):
-    """Conv2d + optional ReLU (event_cnn_minimal ``ConvLayer`` with norm=None)."""
+    """Conv2d + optional ReLU (event_cnn_minimal ``ConvLayer`` with norm=None; the convolution
+    is named ``conv2d`` as there, so parameter names match the reference's)."""
 
     def __init__(self, cin: int, cout: int, kernel_size: int, stride: int = 1, relu: bool = True):
         super().__init__()
-        self.conv = nn.Conv2d(cin, cout, kernel_size, stride, padding=kernel_size // 2, bias=True)
+        self.conv2d = nn.Conv2d(cin, cout, kernel_size, stride, padding=kernel_size // 2, bias=True)
         self.relu = relu
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = self.conv(x)
+        x = self.conv2d(x)
         return F.relu(x) if self.relu else x
 
 
@@ -44,11 +46,11 @@ class UpsampleConvLayer(nn.Module):
 
     def __init__(self, cin: int, cout: int, kernel_size: int):
         super().__init__()
-        self.conv = nn.Conv2d(cin, cout, kernel_size, 1, padding=kernel_size // 2, bias=True)
+        self.conv2d = nn.Conv2d(cin, cout, kernel_size, 1, padding=kernel_size // 2, bias=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
-        return F.relu(self.conv(x))
+        return F.relu(self.conv2d(x))
 
 
 class ResidualBlock(nn.Module):
@@ -188,36 +190,83 @@ class E2VIDRecurrent(_UNetBase):
         return img[..., :h, :w], new_states
 
 
-class EVFlowNet(_UNetBase):
-    """EV-FlowNet (Zhu et al. 2018) as the UNet of event_cnn_minimal's ``EVFlowNet``.
+class UNet(nn.Module):
+    """The reference's feed-forward UNet (event_cnn_minimal / V2V ``model/unet.py`` ``UNet``):
+    *no head layer*. The first encoder takes the voxel's ``num_bins`` channels directly
+    (strided conv ``num_bins -> 2 * base``), every encoder output is a skip, and the
+    prediction is a 1x1 conv from the last decoder's ``base`` channels (no head skip).
+
+    Parameter names and shapes (paper config, 5 bins, base 32, 4 encoders, concat, k3):
+    ``encoders.i.conv2d`` 5->64, 64->128, 128->256, 256->512 (stride 2); ``resblocks.j.conv1/
+    conv2`` 512->512; ``decoders.i.conv2d`` 1024->256, 512->128, 256->64, 128->32 (bilinear x2
+    then conv); ``pred.conv2d`` 32->2 (1x1, no activation); every conv has a bias.
+    ``forward(x (N, num_bins, H, W))`` with H, W multiples of 2**num_encoders ->
+    (N, num_output_channels, H, W).
+    """
+
+    def __init__(self, num_bins: int, base_num_channels: int, num_encoders: int, num_residual_blocks: int,
+                 num_output_channels: int, skip_type: str, kernel_size: int, channel_multiplier: int = 2):
+        super().__init__()
+        if skip_type not in ("sum", "concat"):
+            raise ValueError(f"skip_type must be 'sum' or 'concat', got {skip_type!r}")
+        if num_encoders < 1 or base_num_channels < 1 or num_bins < 1:
+            raise ValueError("num_encoders, base_num_channels and num_bins must be >= 1")
+        self.num_encoders = num_encoders
+        self.skip_type = skip_type
+        enc_in = [base_num_channels * channel_multiplier**i for i in range(num_encoders)]
+        enc_out = [base_num_channels * channel_multiplier ** (i + 1) for i in range(num_encoders)]
+        enc_in[0] = num_bins  # no head: the first encoder reads the voxel
+        self.encoders = nn.ModuleList(
+            [ConvLayer(cin, cout, kernel_size, stride=2) for cin, cout in zip(enc_in, enc_out)])
+        self.resblocks = nn.ModuleList([ResidualBlock(enc_out[-1]) for _ in range(num_residual_blocks)])
+        mult = 2 if skip_type == "concat" else 1
+        dec_out = [base_num_channels * channel_multiplier**i for i in range(num_encoders)]
+        self.decoders = nn.ModuleList(
+            [UpsampleConvLayer(mult * cin, cout, kernel_size) for cin, cout in zip(reversed(enc_out), reversed(dec_out))])
+        self.pred = ConvLayer(base_num_channels, num_output_channels, 1, relu=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        blocks = []
+        for enc in self.encoders:
+            x = enc(x)
+            blocks.append(x)
+        for res in self.resblocks:
+            x = res(x)
+        for i, dec in enumerate(self.decoders):
+            skip = blocks[self.num_encoders - i - 1]
+            x = dec(x + skip if self.skip_type == "sum" else torch.cat([x, skip], dim=1))
+        return self.pred(x)
+
+
+class EVFlowNet(nn.Module):
+    """EV-FlowNet (Zhu et al. 2018) as event_cnn_minimal's / the V2V reference's
+    ``EVFlowNet``: a :class:`UNet` (no head layer) held as ``self.unet``, so its
+    ``state_dict()`` keys are the reference's (``unet.encoders.0.conv2d.weight``, ...) and
+    reference checkpoints' ``state_dict`` load with ``load_state_dict`` as they are.
 
     Paper/reference config: num_bins=5, base_num_channels=32, num_encoders=4, skip
     'concat', num_residual_blocks=2, kernel_size=3, upsample-conv decoder, 2 outputs.
 
     ``forward(voxel)``: float (N, num_bins, H, W) -> flow float (N, 2, H, W) in pixels over
-    the voxel's time span (channel 0 = x/u, 1 = y/v).
+    the voxel's time span (channel 0 = x/u, 1 = y/v). H, W need not be multiples of
+    2**num_encoders (zero-padded bottom/right, output cropped back). Raises ``ValueError``
+    for a voxel of the wrong shape.
     """
 
     def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 4,
                  num_residual_blocks: int = 2, num_output_channels: int = 2, skip_type: str = "concat",
                  kernel_size: int = 3):
-        super().__init__(num_bins, base_num_channels, num_encoders, num_residual_blocks,
-                         num_output_channels, skip_type, kernel_size)
-        self.encoders = nn.ModuleList(
-            [ConvLayer(cin, cout, kernel_size, stride=2) for cin, cout in zip(self.enc_in, self.enc_out)]
-        )
+        super().__init__()
+        self.num_bins = num_bins
+        self.num_encoders = num_encoders
+        self.unet = UNet(num_bins, base_num_channels, num_encoders, num_residual_blocks, num_output_channels,
+                         skip_type, kernel_size)
 
     def forward(self, voxel: torch.Tensor) -> torch.Tensor:
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
             raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
         x, h, w = _pad_to_multiple(voxel, 2**self.num_encoders)
-        x = self.head(x)
-        head = x
-        blocks = []
-        for enc in self.encoders:
-            x = enc(x)
-            blocks.append(x)
-        return self._decode(x, blocks, head)[..., :h, :w]
+        return self.unet(x)[..., :h, :w]
 
 
 def build_model(task: str, model_cfg: dict) -> nn.Module:

@@ -29,7 +29,7 @@ import torch
 
 from .config import apply_overrides, load_config
 from .data import batch_to_device, make_loader, make_stream, tc_start_index, task_outputs
-from .losses import ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
+from .losses import TC_FORMS, ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
 from .models import build_model
 from .viz import flow_to_bgr, gray_to_u8, save_grid, voxel_to_u8
 
@@ -79,9 +79,15 @@ class Trainer:
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=float(o["lr"]), amsgrad=bool(o["amsgrad"]),
                                           weight_decay=float(o["weight_decay"]))
         self.clip = o.get("clip_grad_norm")
-        self.amp = device.type == "cuda" and str(cfg.get("amp", "bf16")).lower() == "bf16"
+        amp = str(cfg.get("amp", "fp32")).lower()
+        if amp not in ("fp32", "bf16"):
+            raise ValueError(f"amp must be 'fp32' or 'bf16', got {cfg.get('amp')!r}")
+        self.amp = device.type == "cuda" and amp == "bf16"
         self.step = 0
         lc = cfg["loss"]
+        self.tc_form = str(lc.get("tc_form", "reference"))
+        if self.task == "e2vid" and self.tc_form not in TC_FORMS:
+            raise ValueError(f"loss.tc_form must be one of {list(TC_FORMS)}, got {self.tc_form!r}")
         if self.task == "e2vid":
             self.rec_loss = ReconstructionLoss(lc["l1_weight"], lc["perceptual_weight"], lc["lpips_net"],
                                                lc["lpips_weights"], lc["use_lpips_package"]).to(device)
@@ -118,12 +124,15 @@ class Trainer:
                 # flow was sliced from l0 on: flow[:, l - l0] is frame l -> l + 1
                 sums["tc"] = sums["tc"] + temporal_consistency_loss(
                     frames[:, l], frames[:, l + 1], prev, pred, flow[:, l - l0],
-                    alpha=float(lc["tc_alpha"]), mode=lc["tc_warp"])
+                    alpha=float(lc["tc_alpha"]), mode=lc["tc_warp"], form=self.tc_form)
                 n_tc += 1
             prev = pred
             preds.append(pred.detach())
         loss = sums["rec"] / L
-        tc = sums["tc"] / n_tc if n_tc else torch.zeros((), device=vox.device)
+        # reference form: averaged over all L steps, those before l0 contributing zero (the V2V
+        # reference's calc_loss); absolute form: averaged over the steps that have the term
+        tc_div = L if self.tc_form == "reference" else n_tc
+        tc = sums["tc"] / tc_div if n_tc else torch.zeros((), device=vox.device)
         loss = loss + float(lc["tc_weight"]) * tc
         stats = {"l1": float(sums["l1"] / L), "perceptual": float(sums["perceptual"] / L), "tc": float(tc.detach())}
         return loss, stats, preds

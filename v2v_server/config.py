@@ -71,6 +71,12 @@ class ServeConfig:
     refine: str = "off"
     #: optional sensor non-idealities, all off by default (see v2v_server/nonideal.py)
     nonidealities: dict = field(default_factory=dict)
+    #: dynamic-range degradation {probability, scale: [lo, hi]} (paper appendix "Dataset
+    #: quality"; off when empty; see v2v_server/augment.py); recorded in each sample's params
+    degrade_dynamic_range: dict = field(default_factory=dict)
+    #: each video keeps one (c+, c-) drawn from (seed, video) for every epoch (the paper's
+    #: "-F" datasets); recorded in each sample's params
+    fixed_sensor_params: bool = False
     #: CurveZMQ: the server's secret key file (from ``v2v-keygen``)
     curve_secret_key: Optional[str] = None
     #: CurveZMQ: folder of allowed client public key files (``*.key``)
@@ -171,6 +177,11 @@ class ServeConfig:
                 raise ValueError(f"curve_secret_key: no such file {self.curve_secret_key}")
             if not Path(self.curve_allow).is_dir():
                 raise ValueError(f"curve_allow: no such folder {self.curve_allow}")
+        from .augment import parse_degrade
+
+        self.degrade_dynamic_range = parse_degrade(self.degrade_dynamic_range)
+        if not isinstance(self.fixed_sensor_params, bool):
+            raise ValueError(f"fixed_sensor_params must be true or false, got {self.fixed_sensor_params!r}")
         if not isinstance(self.insecure, bool):
             raise ValueError(f"insecure must be true or false, got {self.insecure!r}")
         if not is_loopback(self.bind) and self.curve_secret_key is None and not self.insecure:

@@ -19,9 +19,10 @@ from typing import Dict, Iterable, Iterator, Optional, Tuple
 import cv2
 import numpy as np
 
+from .augment import augment_plan, degrade_window
 from .config import ServeConfig
 from .simulate import SensorParams, sample_params, simulate_voxels
-from .video import VideoError, decode_luma, inside, open_video
+from .video import VideoError, decode_codes, inside, open_video, to_uint8
 
 _DIS_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -106,11 +107,14 @@ def plan_window(cfg: ServeConfig, epoch: int, sample_id: str, window: int, kept_
     crop_x = int(rng.integers(0, sw - s + 1))
     flip = bool(rng.random() < cfg.hflip_prob)
     params = sample_params(rng, cfg.ranges, (s, s))
-    return WindowPlan(sample_id, window, offsets, scale, crop_y, crop_x, flip, params, rng)
+    plan = WindowPlan(sample_id, window, offsets, scale, crop_y, crop_x, flip, params, rng)
+    augment_plan(cfg, epoch, plan)  # ablations (off by default), from their own generators
+    return plan
 
 
 def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarray:
-    """Scale (if needed), crop and flip one kept-region luma frame -> uint8 (S, S), a copy."""
+    """Scale (if needed), crop and flip one kept-region luma frame -> (S, S) of the same dtype
+    (uint8, or uint16 for deeper sources), a copy."""
     s = cfg.crop_size
     if plan.scale > 1.0:
         h, w = luma.shape
@@ -150,7 +154,9 @@ def make_sample(
     """Compute the requested outputs of one sample.
 
     Args:
-        window_frames: uint8 (plan.consumed, S, S) cropped source frames of the window.
+        window_frames: uint8 or uint16 (plan.consumed, S, S) full-range cropped source frames
+            of the window (uint16 sources feed the V2V core at full precision; frames and flow
+            use their 8-bit rounding).
         outputs: any of "voxels", "frames", "flow"; only these are computed.
         fps: source frame rate, Hz (for non-idealities given as rates).
         busy: when given, ``busy["simulate"]`` and ``busy["flow"]`` accumulate the seconds
@@ -172,7 +178,7 @@ def make_sample(
             L, _, h, w = vox.shape
             vox = vox.reshape(L, cfg.num_bins, cfg.frames_per_bin, h, w).sum(axis=2, dtype=np.int32)
         out["voxels"] = vox
-    boundaries = seq[::step]
+    boundaries = to_uint8(seq[::step])
     if "frames" in outputs:
         out["frames"] = np.ascontiguousarray(boundaries)
     t1 = time.perf_counter()
@@ -248,12 +254,12 @@ def video_samples(
     skip = set(skip_windows)
     span = cfg.frames_per_sample
     container, stream, info = open_video(path, cfg.decode_threads)  # opened once, decoded once
-    rows = kept_rows(cfg, info.height)
+    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
     plan: Optional[WindowPlan] = None
     buf = None
-    for i, luma in enumerate(decode_luma(container, stream, rows)):
+    for i, (codes, expand) in enumerate(decode_codes(container, stream, rows)):
         k, off = divmod(i, span)
         if k >= cfg.max_samples_per_video:
             break
@@ -263,12 +269,18 @@ def video_samples(
                 stats["windows"] += 1
             continue
         if off == 0:
-            plan = plan_window(cfg, epoch, make_sample_id(rel_path, k), k, luma.shape)
-            buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), np.uint8)
+            plan = plan_window(cfg, epoch, make_sample_id(rel_path, k), k, codes.shape)
+            buf = None
         if off < plan.consumed:
-            buf[off] = crop_frame(cfg, plan, luma)
+            # full range per pixel: on the crop (exact, far cheaper), before any resampling
+            crop = expand(crop_frame(cfg, plan, codes)) if plan.scale == 1.0 else \
+                crop_frame(cfg, plan, np.ascontiguousarray(expand(codes)))
+            if buf is None:
+                buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), crop.dtype)
+            buf[off] = crop
         if off == span - 1:
             stats["windows"] += 1
-            arrays = make_sample(cfg, plan, buf, outputs, flow, info.fps, stats.setdefault("busy", {}))
+            arrays = make_sample(cfg, plan, degrade_window(plan, buf), outputs, flow, info.fps,
+                                 stats.setdefault("busy", {}))
             yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
             plan, buf = None, None

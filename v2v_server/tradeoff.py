@@ -49,19 +49,19 @@ def _video_dir() -> Path:
 
 
 def read_crop(path: Path, n: int, crop: int) -> np.ndarray:
-    """First ``n`` luma frames of a clip, centre crop ``crop x crop`` at native
+    """First ``n`` full-range luma frames of a clip (``v2v_server.video.iter_luma``), centre crop ``crop x crop`` at native
     resolution: uint8 (n, crop, crop). Raises ValueError if the clip is shorter."""
-    import av
+    from .video import iter_luma
 
     out = []
-    with av.open(str(path)) as c:
-        for f in c.decode(video=0):
-            g = f.to_ndarray(format="gray")
-            h, w = g.shape
-            y0, x0 = (h - crop) // 2, (w - crop) // 2
-            out.append(np.ascontiguousarray(g[y0 : y0 + crop, x0 : x0 + crop]))
-            if len(out) == n:
-                break
+    frames = iter_luma(path)
+    for g in frames:
+        h, w = g.shape
+        y0, x0 = (h - crop) // 2, (w - crop) // 2
+        out.append(np.ascontiguousarray(g[y0 : y0 + crop, x0 : x0 + crop]))
+        if len(out) == n:
+            break
+    frames.close()
     if len(out) < n:
         raise ValueError(f"{path} has {len(out)} frames, need {n}")
     return np.stack(out)

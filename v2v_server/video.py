@@ -1,15 +1,30 @@
-"""Video decoding with PyAV (FFmpeg), luma only where the decoder allows it."""
+"""Video decoding with PyAV (FFmpeg): display-oriented, full-range luma, one function for
+every reader (serving, ``--check``, evaluation, benchmarks).
+
+The paper's reference loader reads frames with OpenCV and converts BGR to grey, so its frames
+span the full 0..255 range. Most videos store *limited-range* luma (Y in 16..235 for 8 bits,
+64..940 for 10 bits; ITU-R BT.601/709). :func:`decode_luma` reads plane 0 of YUV frames as is
+(no colour conversion, no chroma) and expands it to full range with one lookup table per
+stream, unless the stream is already full range (``yuvj*`` pixel formats or
+``color_range`` = JPEG/pc; grey formats unless they say MPEG/tv). Sources deeper than 8 bits
+come out as uint16 spanning 0..65535 (the V2V core's uint16 input); 8-bit sources as uint8.
+Frames carrying a display matrix (phone videos) are rotated as a player would show them.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 #: Pixel formats whose plane 0 is 8-bit luma: read directly, no colour conversion.
 _Y8_FORMATS = {"yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p", "nv12", "nv21", "gray",
-               "yuv410p", "yuv411p", "yuv440p", "yuvj440p", "yuva420p"}
+               "yuv410p", "yuv411p", "yuv440p", "yuvj440p", "yuva420p", "yuva422p", "yuva444p"}
+#: Rows kept from the top of each displayed frame: all (None), a count, or a function of the height.
+Rows = Union[None, int, Callable[[int], int]]
+#: FFmpeg ``AVColorRange`` values (``frame.color_range``).
+COLOR_RANGE_MPEG, COLOR_RANGE_JPEG = 1, 2
 
 
 class VideoError(RuntimeError):
@@ -18,25 +33,160 @@ class VideoError(RuntimeError):
 
 @dataclass
 class VideoInfo:
-    """Container facts: frame size in pixels, average frame rate in Hz, codec name."""
+    """Container facts of the chosen video stream: coded frame size in pixels (before the
+    display rotation), average frame rate in Hz, codec and pixel format names, stream index."""
 
     width: int
     height: int
     fps: float
     codec: str
     pix_fmt: str
+    stream_index: int = 0
 
 
-def _luma(frame) -> np.ndarray:
-    """(H, W) uint8 luma of a decoded ``av.VideoFrame``."""
-    fmt = frame.format.name
-    if fmt in _Y8_FORMATS:
-        plane = frame.planes[0]
-        h, w = frame.height, frame.width
-        a = np.frombuffer(plane, dtype=np.uint8).reshape(h, plane.line_size)
-        return a[:, :w]
-    # other layouts (RGB, 10-bit YUV, paletted...): let swscale produce 8-bit gray
-    return frame.to_ndarray(format="gray")
+def range_table(bits: int, full_range: bool) -> Optional[np.ndarray]:
+    """Lookup table from ``bits``-bit luma codes to full-range output.
+
+    Limited range maps ``16 << (bits - 8)`` to 0 and ``235 << (bits - 8)`` to the output's
+    full scale, rounding and clipping (codes below/above the nominal range, footroom and
+    headroom, clip to 0 / full scale). Full range only rescales. The output is uint8 (full
+    scale 255) for 8-bit sources and uint16 (full scale 65535) for deeper ones.
+
+    Returns:
+        uint8 or uint16 (2**bits,) table, or ``None`` for 8-bit full range (identity).
+
+    Raises:
+        ValueError: ``bits`` outside 8..16.
+    """
+    if not 8 <= bits <= 16:
+        raise ValueError(f"luma bit depth must be 8..16, got {bits}")
+    if bits == 8 and full_range:
+        return None
+    top, dtype = (255, np.uint8) if bits == 8 else (65535, np.uint16)
+    codes = np.arange(1 << bits, dtype=np.float64)
+    if full_range:
+        out = codes * (top / ((1 << bits) - 1))
+    else:
+        lo, hi = 16 << (bits - 8), 235 << (bits - 8)
+        out = (codes - lo) * (top / (hi - lo))
+    return np.clip(np.rint(out), 0, top).astype(dtype)
+
+
+def is_full_range(pix_fmt: str, color_range: int) -> bool:
+    """True when luma codes already span the full range: ``yuvj*`` formats, frames tagged
+    JPEG/pc range, and grey formats not tagged MPEG/tv range; everything else (untagged YUV
+    included, as FFmpeg assumes) is limited range."""
+    if pix_fmt.startswith("yuvj") or int(color_range) == COLOR_RANGE_JPEG:
+        return True
+    return pix_fmt.startswith("gray") and int(color_range) != COLOR_RANGE_MPEG
+
+
+def to_uint8(luma: np.ndarray) -> np.ndarray:
+    """Full-range uint16 luma (0..65535) -> uint8 (0..255), rounded; uint8 input is returned
+    as is. For outputs that travel as 8 bits (ground-truth frames) or need 8 bits (DIS flow)."""
+    if luma.dtype == np.uint8:
+        return luma
+    return ((luma.astype(np.uint32) + 128) // 257).astype(np.uint8)
+
+
+def _identity(a: np.ndarray) -> np.ndarray:
+    return a
+
+
+def _unit_stride(a: np.ndarray) -> np.ndarray:
+    """``a`` itself when its rows are unit-stride and go forward (what OpenCV reads without a
+    copy), else a C-contiguous copy (rotated views)."""
+    return a if a.strides[1] == a.itemsize and a.strides[0] > 0 else np.ascontiguousarray(a)
+
+
+def _converter(frame) -> Tuple[Callable[[object], np.ndarray], Callable[[np.ndarray], np.ndarray]]:
+    """``(codes, expand)`` for frames of this frame's layout: ``codes(frame)`` is a view of
+    plane 0 (coded orientation) and ``expand(codes)`` maps it to full range through
+    :func:`range_table` (planar YUV / grey layouts). Every other layout (RGB, paletted,
+    semi-planar high bit depth...) goes through swscale's grey conversion, which is already
+    full range, and ``expand`` is the identity."""
+    import cv2
+
+    fmt = frame.format
+    name = fmt.name
+    bits = int(fmt.components[0].bits) if fmt.components else 8
+    full = is_full_range(name, frame.color_range)
+    if name in _Y8_FORMATS:
+        table = range_table(8, full)
+
+        def y8(fr):
+            plane = fr.planes[0]
+            return np.frombuffer(plane, dtype=np.uint8).reshape(fr.height, plane.line_size)[:, :fr.width]
+        return y8, (_identity if table is None else (lambda a: cv2.LUT(_unit_stride(a), table)))
+    if 8 < bits <= 16 and name.endswith("le") and name.startswith(("yuv", "gray")):
+        table = range_table(bits, full)  # LSB-aligned little-endian codes
+
+        def y16(fr):
+            plane = fr.planes[0]
+            return np.frombuffer(plane, dtype="<u2").reshape(fr.height, plane.line_size // 2)[:, :fr.width]
+        return y16, (lambda a: np.take(table, a, mode="clip"))
+    if bits > 8:
+        return (lambda fr: fr.to_ndarray(format="gray16le")), _identity
+    return (lambda fr: fr.to_ndarray(format="gray")), _identity
+
+
+def display_rotation(frame) -> int:
+    """Counter-clockwise rotation in quarter turns (0..3) that the frame's display matrix asks
+    for (``VideoFrame.rotation``, rounded to a multiple of 90 degrees); 0 without one. Flips
+    in the matrix are not applied."""
+    try:
+        deg = frame.rotation
+    except Exception:  # no side data, or a PyAV without it
+        return 0
+    return int(round(float(deg or 0) / 90.0)) % 4
+
+
+def _codes(frame, conv, rows: "Rows" = None) -> np.ndarray:
+    """Plane-0 codes of ``frame`` (a view where possible), display-oriented, top ``rows`` kept."""
+    y = conv[0](frame)
+    k = display_rotation(frame)
+    if k:
+        y = np.rot90(y, k)
+    if rows is not None:
+        y = y[: (rows(y.shape[0]) if callable(rows) else rows)]
+    return y
+
+
+def choose_video_stream(streams: Sequence):
+    """The stream to decode among a container's video streams: attached pictures (cover art)
+    are never chosen; among the rest, the one with the most frames (the container's count,
+    else duration x frame rate), then the one marked default, then the first.
+
+    Returns the stream or ``None`` when there is none but attached pictures."""
+    import av
+
+    def disp(s) -> int:
+        try:
+            return int(s.disposition)
+        except Exception:
+            return 0
+
+    cand = [s for s in streams if not disp(s) & int(av.stream.Disposition.attached_pic)]
+    if not cand:
+        return None
+
+    def est_frames(s) -> float:
+        if s.frames:
+            return float(s.frames)
+        rate = s.average_rate or s.guessed_rate
+        if s.duration and s.time_base and rate:
+            return float(s.duration * s.time_base * rate)
+        dur = (s.metadata or {}).get("DURATION")  # Matroska keeps it as a tag
+        if dur and rate:
+            try:
+                h, m, sec = dur.split(":")
+                return (int(h) * 3600 + int(m) * 60 + float(sec)) * float(rate)
+            except ValueError:
+                pass
+        return 0.0
+
+    default = int(av.stream.Disposition.default)
+    return max(cand, key=lambda s: (s.codec_context is not None, est_frames(s), bool(disp(s) & default), -s.index))
 
 
 def open_video(path: Path, threads: int = 1):
@@ -56,10 +206,11 @@ def open_video(path: Path, threads: int = 1):
         container = av.open(str(path), mode="r")
     except Exception as e:  # av raises many error types (InvalidDataError, OSError...)
         raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
-    if not container.streams.video:
+    stream = choose_video_stream(list(container.streams.video))
+    if stream is None:
+        n = len(container.streams.video)
         container.close()
-        raise VideoError("no video stream")
-    stream = container.streams.video[0]
+        raise VideoError("no video stream" + (f" (only {n} attached picture(s))" if n else ""))
     if stream.codec_context is None:
         tag = getattr(stream, "codec_tag", "") or "?"
         container.close()
@@ -70,7 +221,7 @@ def open_video(path: Path, threads: int = 1):
     rate = stream.average_rate or stream.guessed_rate
     info = VideoInfo(
         width=int(cc.width or 0), height=int(cc.height or 0), fps=float(rate) if rate else 0.0,
-        codec=str(cc.name), pix_fmt=str(cc.pix_fmt),
+        codec=str(cc.name), pix_fmt=str(cc.pix_fmt), stream_index=int(stream.index),
     )
     if info.width <= 0 or info.height <= 0:
         container.close()
@@ -78,13 +229,9 @@ def open_video(path: Path, threads: int = 1):
     return container, stream, info
 
 
-def iter_luma(path: Path, threads: int = 1, rows: Optional[int] = None) -> Iterator[np.ndarray]:
-    """Decode ``path`` sequentially and yield each frame's luma, uint8 (H', W).
-
-    Args:
-        path: video file.
-        threads: decoder threads.
-        rows: keep only the top ``rows`` rows of each frame (``None``: all).
+def iter_luma(path: Path, threads: int = 1, rows: Rows = None) -> Iterator[np.ndarray]:
+    """Decode ``path`` sequentially and yield each frame's full-range, display-oriented luma
+    (see :func:`decode_luma`).
 
     Raises:
         VideoError: as ``open_video`` and ``decode_luma``.
@@ -93,26 +240,54 @@ def iter_luma(path: Path, threads: int = 1, rows: Optional[int] = None) -> Itera
     return decode_luma(container, stream, rows)
 
 
-def decode_luma(container, stream, rows: Optional[int] = None) -> Iterator[np.ndarray]:
-    """Yield the luma of each frame of an ``open_video`` result, uint8 (H', W); closes the
-    container when done (or when the generator is closed).
-
-    ``rows`` keeps only the top rows of each frame (``None``: all). The yielded array is a
-    view into the decoder's buffer, valid until the next frame: copy what you keep.
+def decode_codes(container, stream, rows: Rows = None) -> Iterator[Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]:
+    """Like :func:`decode_luma`, but yield ``(codes, expand)`` per frame: ``codes`` is the
+    display-oriented, row-cut plane-0 array as stored (a view, possibly strided) and
+    ``expand(x)`` maps ``codes`` or any crop or flip of it to full-range luma. Expansion is
+    per pixel, so expanding a crop equals cropping the expanded frame, at a fraction of the
+    cost; resampling must expand first. Closes the container when done.
 
     Raises:
         VideoError: when decoding fails part-way (the frames yielded before were good).
     """
     import av
 
+    convs: Dict[tuple, tuple] = {}
     try:
         for frame in container.decode(stream):
-            y = _luma(frame)
-            yield y if rows is None else y[:rows]
+            key = (frame.format.name, int(frame.color_range))
+            conv = convs.get(key)
+            if conv is None:
+                conv = convs[key] = _converter(frame)
+            yield _codes(frame, conv, rows), conv[1]
     except av.error.FFmpegError as e:
         raise VideoError(f"decoding failed: {type(e).__name__}: {e}") from None
     finally:
         container.close()
+
+
+def decode_luma(container, stream, rows: Rows = None) -> Iterator[np.ndarray]:
+    """Yield the luma of each frame of an ``open_video`` result; closes the container when
+    done (or when the generator is closed). With :func:`decode_codes` (its lazy form), this
+    is the one place frames are read.
+
+    Each frame is uint8 (H', W) spanning 0..255 for 8-bit sources, uint16 (H', W) spanning
+    0..65535 for 9- to 16-bit sources: limited-range luma is expanded to full range, as the
+    reference loader's BGR -> grey conversion does (module docstring), and a display matrix
+    rotates the frame as a player shows it (H, W are then the displayed height and width).
+    ``rows`` keeps only the top rows of each displayed frame: ``None`` all, an int, or a
+    function of the displayed height. The yielded array may be a view into the decoder's
+    buffer, valid until the next frame: copy what you keep.
+
+    Raises:
+        VideoError: when decoding fails part-way (the frames yielded before were good).
+    """
+    gen = decode_codes(container, stream, rows)
+    try:
+        for codes, expand in gen:
+            yield _unit_stride(expand(codes))
+    finally:
+        gen.close()
 
 
 def inside(root: Path, path: Path) -> bool:
