@@ -19,7 +19,9 @@ _COMMON = {
     "out": "runs/{task}",
     "max_steps": 200000,
     "seed": 0,
-    "stream": {"credits": 4, "timeout_s": 60.0, "raw": True},
+    # connect may list several servers (shards): "tcp://a:5555,tcp://b:5555" (fan-in)
+    # curve_keys: [client .key_secret file, server .key file] for a server that requires CurveZMQ
+    "stream": {"credits": 4, "timeout_s": 60.0, "raw": True, "reconnect": False, "curve_keys": None},
     "optim": {"lr": 1.0e-4, "amsgrad": True, "weight_decay": 0.0, "clip_grad_norm": None},
     "amp": "fp32",                 # fp32 as the reference trains; bf16: autocast on CUDA (ignored on CPU)
     "log": {"image_every": 500, "checkpoint_every": 1000, "progress": True},

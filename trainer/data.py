@@ -34,16 +34,20 @@ def tc_start_index(sequence_length: int, fraction: float) -> int:
     return max(1, int(math.ceil(fraction * sequence_length)))
 
 
-def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True):
-    """Open a ``v2v_client.V2VStreamDataset`` on ``endpoint`` asking only for ``task``'s
-    outputs. Raises ``ImportError`` with a hint when the client is not installed."""
+def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
+                reconnect: bool = False, curve_keys=None):
+    """Open a ``v2v_client.V2VStreamDataset`` on ``endpoint`` (one server, or several:
+    ``"tcp://a:5555,tcp://b:5555"``) asking only for ``task``'s outputs; ``reconnect`` and
+    ``curve_keys`` (client secret key file, server public key file) as in the dataset.
+    Raises ``ImportError`` with a hint when the client is not installed."""
     try:
         from v2v_client import V2VStreamDataset
     except ImportError as e:  # pragma: no cover - depends on the installed client
         raise ImportError("v2v_client.V2VStreamDataset is not available; install the v2v "
                           "client (pip install -e '.[client]')") from e
     return V2VStreamDataset(endpoint=endpoint, outputs=task_outputs(task), credits=int(credits),
-                            timeout_s=float(timeout_s), raw=bool(raw))
+                            timeout_s=float(timeout_s), raw=bool(raw), reconnect=bool(reconnect),
+                            curve_keys=tuple(curve_keys) if curve_keys else None)
 
 
 def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:

@@ -366,7 +366,8 @@ def main(argv=None) -> int:
     trainer = Trainer(cfg, str(out), device)
     log.info("model: %d parameters", sum(p.numel() for p in trainer.model.parameters()))
     s = cfg["stream"]
-    stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"])
+    extra = {k: s[k] for k in ("reconnect", "curve_keys") if s.get(k)}  # only when set: keeps make_stream's old calls
+    stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"], **extra)
     resume = cfg.get("resume")
     if resume == "auto":
         resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None

@@ -19,13 +19,16 @@ import queue
 import threading
 import time
 import uuid
-from typing import Dict, Iterator, Optional, Sequence, Set, Tuple
+from typing import Dict, Iterator, Optional, Sequence, Set, Tuple, Union
 
 import numpy as np
 import torch
 import zmq
 
 from v2v_server.protocol import ProtocolError, decode_arrays, pack, unpack
+
+from .fanin import FanInStream, resolve_endpoints, split_endpoints  # [iss12]
+from .metrics import TrainerMetrics  # [iss12]
 
 log = logging.getLogger("v2v.client")
 
@@ -113,6 +116,7 @@ class _Connection:
         self._closing.set()
         self._thread.join(5.0)
         self._ack_send.close(0)
+        self.items.put(StopIteration("closed"))  # [iss12] wake an iterator blocked on this connection
 
     # I/O thread ------------------------------------------------------------
     def _socket(self) -> zmq.Socket:
@@ -307,7 +311,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     """Batches of V2V training data streamed from a ``v2v-serve`` endpoint.
 
     Args:
-        endpoint: ZeroMQ endpoint of the server, e.g. ``tcp://127.0.0.1:5555``.
+        endpoint: ZeroMQ endpoint of the server, e.g. ``tcp://127.0.0.1:5555``; or several
+            servers (shards, ``v2v-serve --shard I/N``): a list, a comma-separated string, or
+            a ``tcp://NAME:PORT`` whose name resolves to several addresses (a Kubernetes
+            headless Service). Then one connection per server is read and the batches are
+            merged (``v2v_client.fanin``): ``credits`` is split between the servers, each
+            reconnects on its own, the stream ends when every server ended it and
+            ``state_dict()`` covers them all.
         outputs: which of ``"voxels"``, ``"frames"``, ``"flow"`` to receive; the server's
             workers compute only these.
         credits: batches the server may have in flight to this iterator (prefetch depth).
@@ -345,10 +355,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         ValueError: at construction, for bad ``outputs``, ``credits``, ``timeout_s`` or keys.
     """
 
-    def __init__(self, endpoint: str, outputs: Sequence[str] = ALL_OUTPUTS, credits: int = 4,
+    def __init__(self, endpoint: Union[str, Sequence[str]], outputs: Sequence[str] = ALL_OUTPUTS, credits: int = 4,
                  timeout_s: float = 30.0, heartbeat_s: float = 1.0, raw: bool = False,
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None):
+        # [iss12] every constructor argument but the endpoint, for one dataset per server (fan-in)
+        self._child_kwargs = {k: v for k, v in locals().items() if k not in ("self", "endpoint", "__class__")}
         super().__init__()
         if isinstance(outputs, str):
             outputs = (outputs,)
@@ -374,11 +386,45 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._lock = threading.Lock()
         self._delivered: Dict[int, Set[str]] = {}
         self._completed_epoch = -1
+        # [iss12] several servers (a list, "a,b", or a DNS name with several addresses): fan-in
+        self._fanin: Optional[FanInStream] = None
+        self._meter = TrainerMetrics()
+        if not isinstance(endpoint, str) or "," in endpoint:
+            endpoints = split_endpoints(endpoint)
+            if len(endpoints) == 1:
+                self.endpoint = endpoints[0]
+            else:
+                self._fanin = self._make_fanin(endpoints)
+
+    # ------------------------------------------------------------------ fan-in and metrics [iss12]
+    def _make_fanin(self, endpoints) -> FanInStream:
+        def child(ep: str, credits: int) -> "V2VStreamDataset":
+            return V2VStreamDataset(ep, **dict(self._child_kwargs, credits=credits))
+
+        fanin = FanInStream(endpoints, child, self.credits)
+        fanin.load_state_dict(self.state_dict())
+        return fanin
+
+    def metrics(self) -> dict:
+        """Trainer-side metrics: batches, samples and tensor bytes handed to the training loop
+        (also per server), and seconds it waited for them; see ``v2v_client.metrics``."""
+        return self._meter.snapshot()
+
+    def __iter__(self) -> Iterator[dict]:
+        if self._fanin is None and isinstance(self.endpoint, str):
+            endpoints = resolve_endpoints(self.endpoint)
+            if len(endpoints) > 1:  # e.g. a Kubernetes headless Service: one server per address
+                self._fanin = self._make_fanin(endpoints)
+        inner = iter(self._fanin) if self._fanin is not None else self._iter_stream()
+        return self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else "")
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
         """Where this consumer stands: epochs the server declared complete, and the sample ids
-        yielded so far in epochs still open. Plain, JSON/torch.save-safe data."""
+        yielded so far in epochs still open. Plain, JSON/torch.save-safe data. With several
+        servers: the epoch all of them completed and the ids yielded in later epochs."""
+        if self._fanin is not None:  # [iss12]
+            return self._fanin.state_dict()
         with self._lock:
             return {"version": 1, "completed_epoch": self._completed_epoch,
                     "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()}}
@@ -395,6 +441,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         with self._lock:
             self._completed_epoch = int(state.get("completed_epoch", -1))
             self._delivered = {int(e): set(ids) for e, ids in state.get("delivered", {}).items()}
+        if self._fanin is not None:  # [iss12]
+            self._fanin.load_state_dict(state)
 
     def _resume_state(self) -> dict:
         with self._lock:
@@ -402,7 +450,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                     "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()}}
 
     # ------------------------------------------------------------------ iteration
-    def __iter__(self) -> Iterator[dict]:
+    def _iter_stream(self) -> Iterator[dict]:  # [iss12] was __iter__; unchanged
         conn = _Connection(self)
         self._conns.append(conn)
         try:
@@ -445,6 +493,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
     def close(self) -> None:
         """Close every open connection of this dataset (also done when iterators are collected)."""
+        if self._fanin is not None:  # [iss12]
+            self._fanin.close()
         for conn in list(self._conns):
             conn.close()
         self._conns.clear()

@@ -10,17 +10,22 @@ from typing import List, Optional
 from .dataset import V2VStreamDataset
 
 
-def run_loadtest(endpoint: str, batches: int, outputs=("voxels", "frames", "flow"), credits: int = 4,
+def run_loadtest(endpoint, batches: int, outputs=("voxels", "frames", "flow"), credits: int = 4,
                  timeout_s: float = 60.0, step_s: float = 0.0, warmup: int = 1) -> dict:
     """Read ``batches`` batches (after ``warmup`` unmeasured ones) and measure throughput.
 
     ``step_s`` simulates a training step of that many seconds per batch, so the wait
     fraction shows whether the stream keeps up with a trainer of that speed.
 
+    ``endpoint`` may name several servers (a list or ``"a,b"``, see ``V2VStreamDataset``):
+    they are read together, as a trainer would.
+
     Returns a dict: ``batches``, ``samples``, ``unique_samples``, ``seconds`` (wall time of
     the measured part), ``batches_per_s``, ``samples_per_s``, ``mbytes_per_s`` (MB = 1e6
     bytes of tensors delivered), ``wait_fraction`` (share of the time spent waiting for
-    data), ``epochs_seen``, ``ended_early`` (the server ended the stream first).
+    data), ``epochs_seen``, ``ended_early`` (the server ended the stream first), and
+    ``per_server``: {endpoint: {``batches``, ``samples``, ``samples_per_s``, ``mbytes_per_s``}}
+    over the same measured wall time.
     """
     ds = V2VStreamDataset(endpoint, outputs=outputs, credits=credits, timeout_s=timeout_s)
     it = iter(ds)
@@ -30,6 +35,7 @@ def run_loadtest(endpoint: str, batches: int, outputs=("voxels", "frames", "flow
     waited = 0.0
     ended = False
     t0 = None
+    per: dict = {}
     try:
         for i in range(warmup + batches):
             t_wait = time.perf_counter()
@@ -48,7 +54,12 @@ def run_loadtest(endpoint: str, batches: int, outputs=("voxels", "frames", "flow
             samples += len(b["sample_ids"])
             ids.update((b["epoch"], s) for s in b["sample_ids"])
             epochs.add(b["epoch"])
-            nbytes += sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel"))
+            bb = sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel"))
+            nbytes += bb
+            src = per.setdefault(str(b.get("endpoint", endpoint)), {"batches": 0, "samples": 0, "bytes": 0})
+            src["batches"] += 1
+            src["samples"] += len(b["sample_ids"])
+            src["bytes"] += bb
             if step_s > 0:
                 time.sleep(step_s)
     finally:
@@ -60,18 +71,26 @@ def run_loadtest(endpoint: str, batches: int, outputs=("voxels", "frames", "flow
         "seconds": round(secs, 4), "batches_per_s": n / secs, "samples_per_s": samples / secs,
         "mbytes_per_s": nbytes / 1e6 / secs, "wait_fraction": waited / secs if n else 1.0,
         "epochs_seen": sorted(epochs), "ended_early": ended, "step_s": step_s,
+        "per_server": {ep: {"batches": v["batches"], "samples": v["samples"], "samples_per_s": v["samples"] / secs,
+                            "mbytes_per_s": v["bytes"] / 1e6 / secs} for ep, v in sorted(per.items())},
     }
 
 
 def format_report(r: dict) -> str:
-    return (f"{r['batches']} batches, {r['samples']} samples ({r['unique_samples']} unique) in {r['seconds']:.2f} s: "
-            f"{r['batches_per_s']:.2f} batches/s, {r['samples_per_s']:.2f} samples/s, "
-            f"{r['mbytes_per_s']:.1f} MB/s, waiting {100 * r['wait_fraction']:.0f}% of the time")
+    out = (f"{r['batches']} batches, {r['samples']} samples ({r['unique_samples']} unique) in {r['seconds']:.2f} s: "
+           f"{r['batches_per_s']:.2f} batches/s, {r['samples_per_s']:.2f} samples/s, "
+           f"{r['mbytes_per_s']:.1f} MB/s, waiting {100 * r['wait_fraction']:.0f}% of the time")
+    if len(r.get("per_server", {})) > 1:
+        out += "".join(f"\n  {ep}: {v['batches']} batches, {v['samples_per_s']:.2f} samples/s, "
+                       f"{v['mbytes_per_s']:.1f} MB/s" for ep, v in r["per_server"].items())
+    return out
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(prog="v2v-loadtest", description="Read batches from v2v-serve and report throughput.")
-    p.add_argument("--connect", default="tcp://127.0.0.1:5555", help="server endpoint")
+    p.add_argument("--connect", action="append",
+                   help="server endpoint (default tcp://127.0.0.1:5555); repeat it or give a comma list to read several servers (shards) "
+                        "together and report each one's rate")
     p.add_argument("--batches", type=int, default=20, help="batches to measure (default 20)")
     p.add_argument("--warmup", type=int, default=1, help="batches read before measuring (default 1)")
     p.add_argument("--outputs", default="voxels,frames,flow", help="comma list of outputs to ask for")
@@ -83,7 +102,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if a.batches < 1:
         p.error("--batches must be >= 1")
     try:
-        r = run_loadtest(a.connect, a.batches, tuple(s for s in a.outputs.split(",") if s), a.credits,
+        r = run_loadtest(",".join(a.connect or ["tcp://127.0.0.1:5555"]), a.batches, tuple(s for s in a.outputs.split(",") if s), a.credits,
                          a.timeout, a.step_ms / 1000.0, a.warmup)
     except (TimeoutError, RuntimeError, ValueError) as e:
         print(f"v2v-loadtest: {e}", file=sys.stderr)

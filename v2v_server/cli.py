@@ -10,13 +10,24 @@ from typing import List, Optional
 from .config import ALL_OUTPUTS, FLOW_PRESETS, load_config
 from .flow import DEFAULT_FLOW
 from .server import V2VServer, install_signal_handlers
-from .corpus import check_corpus, format_check
+from .metrics import JsonFormatter
+from .corpus import check_corpus, format_check, select_shard
 from .video import scan_corpus
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md).
 SAMPLE_VIDEOS = Path(__file__).resolve().parent / "sample_videos"
 
 log = logging.getLogger("v2v.serve")
+
+
+def setup_logging(level: str, fmt: str, name: str) -> None:
+    """Log to stderr at ``level``, as text lines prefixed by ``name`` or as JSON objects."""
+    handler = logging.StreamHandler(sys.stderr)
+    if fmt == "json":
+        handler.setFormatter(JsonFormatter())
+    else:
+        handler.setFormatter(logging.Formatter(f"%(asctime)s {name} %(levelname)s %(message)s"))
+    logging.basicConfig(level=getattr(logging, str(level).upper(), logging.INFO), handlers=[handler], force=True)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,9 +63,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--curve-allow", help="CurveZMQ: folder of allowed client public key files")
     p.add_argument("--insecure", action="store_true", default=None,
                    help="allow a non-loopback --bind without CurveZMQ (not recommended)")
+    p.add_argument("--shard", help="serve only shard I of N of the corpus, as I/N (0 <= I < N): a stable hash of each "
+                                   "file's relative path picks its shard, so N servers with 0/N .. N-1/N on the same "
+                                   "corpus serve every sample once per epoch")
+    p.add_argument("--metrics-port", type=int, help="serve Prometheus /metrics, /healthz and /readyz over HTTP on "
+                                                    "this port (0 = any free port; default off)")
+    p.add_argument("--metrics-host", help="address of the metrics endpoint (default 127.0.0.1; 0.0.0.0 in a "
+                                          "container so probes can reach it)")
     p.add_argument("--check", action="store_true",
                    help="decode every file of the corpus, print its verdict (usable windows or why not) and exit")
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+    p.add_argument("--log-format", choices=("text", "json"),
+                   help="text (default) or json: one JSON object per line, for log shippers")
     return p
 
 
@@ -63,14 +83,13 @@ def config_from_args(args: argparse.Namespace):
     overrides = {k: getattr(args, k) for k in (
         "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
         "frames_per_bin", "crop_size", "keep_top_fraction", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
-        "client_timeout_s", "curve_secret_key", "curve_allow", "insecure")}
+        "client_timeout_s", "curve_secret_key", "curve_allow", "insecure", "shard", "metrics_port", "metrics_host", "log_format")}
     return load_config(args.config, overrides)
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
-                        format="%(asctime)s v2v-serve %(levelname)s %(message)s", stream=sys.stderr)
+    setup_logging(args.log_level, args.log_format or "text", "v2v-serve")
     try:
         cfg = config_from_args(args)
     except (ValueError, FileNotFoundError) as e:
@@ -82,6 +101,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     found, rejected = scan_corpus(root, cfg.video_extensions)
     videos = [p.as_posix() for p in found]
+    index, count = cfg.shard_spec
+    if count > 1:
+        mine = select_shard(videos, index, count)
+        log.info("shard %d/%d: %d of %d video file(s)", index, count, len(mine), len(videos))
+        videos = mine
     if args.check:
         results = check_corpus(cfg, root, videos)
         print(format_check(results, rejected))
@@ -89,7 +113,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     for rel, reason in rejected:
         log.info("ignored %s: %s", root / rel, reason)
     if not videos:
-        print(f"v2v-serve: --videos {root}: no video files ({', '.join(cfg.video_extensions)})", file=sys.stderr)
+        print(f"v2v-serve: --videos {root}: no video files ({', '.join(cfg.video_extensions)})"
+              + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)
         return 2
     server = V2VServer(cfg, root, videos)
     install_signal_handlers(server)

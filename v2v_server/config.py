@@ -7,6 +7,7 @@ the field.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Optional, Tuple
@@ -83,8 +84,21 @@ class ServeConfig:
     curve_allow: Optional[str] = None
     #: allow a non-loopback bind without CurveZMQ (logs a warning)
     insecure: bool = False
+    #: serve only shard I of N of the corpus ("I/N", 0 <= I < N; see corpus.in_shard); None = all
+    shard: Optional[str] = None
+    #: port of the HTTP endpoint with /metrics (Prometheus), /healthz and /readyz; None = off
+    metrics_port: Optional[int] = None
+    #: address the metrics endpoint binds (0.0.0.0 in a container so probes can reach it)
+    metrics_host: str = "127.0.0.1"
+    #: log lines as plain text or one JSON object per line (for log shippers)
+    log_format: str = "text"
 
     # ------------------------------------------------------------------ derived
+    @property
+    def shard_spec(self) -> Tuple[int, int]:
+        """``(index, count)`` of ``shard``; ``(0, 1)`` when the whole corpus is served."""
+        return parse_shard(self.shard)
+
     @property
     def frames_per_sample(self) -> int:
         """Frame indices one sample spans: L * B * frames_per_bin + 1."""
@@ -175,6 +189,16 @@ class ServeConfig:
         if not is_loopback(self.bind) and self.curve_secret_key is None and not self.insecure:
             raise ValueError(f"bind {self.bind} is not a loopback address: give curve_secret_key and curve_allow "
                              f"(see v2v-keygen), or insecure: true to stream unauthenticated")
+        if self.shard is not None:
+            self.shard = "%d/%d" % parse_shard(self.shard)
+        if self.metrics_port is not None and (isinstance(self.metrics_port, bool) or not isinstance(
+                self.metrics_port, int) or not 0 <= self.metrics_port <= 65535):
+            raise ValueError(f"metrics_port must be a TCP port in [0, 65535] (0 = any free port), "
+                             f"got {self.metrics_port!r}")
+        if self.log_format not in ("text", "json"):
+            raise ValueError(f"log_format must be text or json, got {self.log_format!r}")
+        if not isinstance(self.metrics_host, str) or not self.metrics_host:
+            raise ValueError(f"metrics_host must be an address such as 127.0.0.1, got {self.metrics_host!r}")
         self.video_extensions = tuple(e.lower() for e in self.video_extensions)
         if self.videos is not None:
             self.videos = str(self.videos)
@@ -210,6 +234,20 @@ class ServeConfig:
             return cfg.validate()
         except ValueError as e:
             raise ValueError(f"{source}: {e}") from None
+
+
+def parse_shard(spec) -> Tuple[int, int]:
+    """``"I/N"`` -> ``(I, N)`` with ``0 <= I < N``; ``None`` -> ``(0, 1)``.
+
+    Raises:
+        ValueError: naming the field, for anything else (``"2/2"``, ``"a/b"``, ``"1"``).
+    """
+    if spec is None:
+        return 0, 1
+    m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", str(spec))
+    if not m or int(m.group(2)) < 1 or int(m.group(1)) >= int(m.group(2)):
+        raise ValueError(f"shard must be \"I/N\" with 0 <= I < N (e.g. 0/2 and 1/2 for two hosts), got {spec!r}")
+    return int(m.group(1)), int(m.group(2))
 
 
 def is_loopback(endpoint: str) -> bool:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterable, Iterator, Optional, Tuple
@@ -126,6 +127,7 @@ def make_sample(
     outputs: Iterable[str],
     flow: Optional[FlowEstimator] = None,
     fps: float = 0.0,
+    busy: Optional[dict] = None,
 ) -> Dict[str, np.ndarray]:
     """Compute the requested outputs of one sample.
 
@@ -135,6 +137,8 @@ def make_sample(
             use their 8-bit rounding).
         outputs: any of "voxels", "frames", "flow"; only these are computed.
         fps: source frame rate, Hz (for non-idealities given as rates).
+        busy: when given, ``busy["simulate"]`` and ``busy["flow"]`` accumulate the seconds
+            spent simulating voxels and estimating flow (for the server's metrics).
 
     Returns:
         dict with ``voxels`` int32 (L, B, S, S) signed event counts, ``frames`` uint8
@@ -146,6 +150,7 @@ def make_sample(
     seq = window_frames[plan.offsets]  # pauses repeat frames
     step = cfg.num_bins * cfg.frames_per_bin
     out: Dict[str, np.ndarray] = {}
+    t0 = time.perf_counter()
     if "voxels" in outputs:
         vox = _simulate(cfg, plan, seq, fps)
         if cfg.frames_per_bin > 1:
@@ -155,12 +160,18 @@ def make_sample(
     boundaries = to_uint8(seq[::step])
     if "frames" in outputs:
         out["frames"] = np.ascontiguousarray(boundaries)
+    t1 = time.perf_counter()
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
         if hasattr(flow, "voxel_flows"):
             out["flow"] = flow.voxel_flows(seq, step)
         else:  # any (a, b) -> (2, H, W) callable
             out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
+    if busy is not None:
+        if "voxels" in outputs:
+            busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)
+        if "flow" in outputs:
+            busy["flow"] = busy.get("flow", 0.0) + (time.perf_counter() - t1)
     return out
 
 
@@ -213,7 +224,8 @@ def video_samples(
     Yields ``(sample_id, arrays, meta)`` for each complete window not in ``skip_windows``,
     in window order. Decoding stops after the last window that can be used. When given,
     ``stats`` receives ``frames`` (frames decoded), ``windows`` (complete windows, skipped
-    ones included), ``width``, ``height`` and ``fps``.
+    ones included), ``width``, ``height``, ``fps`` and ``busy`` (seconds simulating and
+    estimating flow, see ``make_sample``).
 
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
@@ -250,6 +262,7 @@ def video_samples(
             buf[off] = crop
         if off == span - 1:
             stats["windows"] += 1
-            arrays = make_sample(cfg, plan, degrade_window(plan, buf), outputs, flow, info.fps)
+            arrays = make_sample(cfg, plan, degrade_window(plan, buf), outputs, flow, info.fps,
+                                 stats.setdefault("busy", {}))
             yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
             plan, buf = None, None

@@ -34,6 +34,7 @@ import zmq
 
 from .config import ALL_OUTPUTS, ServeConfig, is_loopback
 from .datapath import BatchPayload, make_batch, sample_from_worker
+from .metrics import ServerMetrics  # [iss12 metrics]
 from .protocol import PROTOCOL_VERSION, ProtocolError, pack, unpack
 from .worker import worker_main
 
@@ -142,6 +143,7 @@ class V2VServer:
         self.exclude: Dict[int, Dict[str, Set[int]]] = {}  # epoch -> video -> windows trainers already have
         self.ended = False
         self.bound_endpoint: Optional[str] = None
+        self.metrics = ServerMetrics()  # [iss12 metrics]
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -163,6 +165,8 @@ class V2VServer:
         self.backend_endpoint = f"ipc://{self._tmp}/workers"
         self._auth = None
         try:
+            if self.cfg.metrics_port is not None:  # [iss12 metrics]
+                self.metrics.serve(self.cfg.metrics_host, self.cfg.metrics_port)
             if self.cfg.curve_secret_key is not None:
                 self._setup_curve()
             elif not is_loopback(self.cfg.bind):
@@ -234,6 +238,7 @@ class V2VServer:
         if getattr(self, "_ctx", None) is not None:
             self._ctx.term()
         shutil.rmtree(getattr(self, "_tmp", ""), ignore_errors=True)
+        self.metrics.close()  # [iss12 metrics]
         log.info("stopped: %d batches sent (%d re-sent), %d samples made, %d worker restart(s), "
                  "%d skipped file(s)", self.stats.batches_sent, self.stats.batches_resent,
                  self.stats.samples_made, self.stats.workers_restarted, len(self.stats.skipped_files))
@@ -276,6 +281,7 @@ class V2VServer:
                 self._log_status()
                 next_status = now + 30.0
             self._announce_epochs()
+            self.metrics.tick(self._metrics_state)  # [iss12 metrics] gauges + liveness, at most 4 times a second
             if self._finished():
                 self._broadcast({"type": "end"})
                 log.info("all %d epoch(s) delivered; ending the stream", self.cfg.epochs)
@@ -300,6 +306,7 @@ class V2VServer:
             code = w.proc.exitcode
             del self.workers[ident]
             self.stats.workers_restarted += 1
+            self.metrics.on_worker_restarted()  # [iss12 metrics]
             gen = int(ident.decode().split(".")[1]) + 1
             if w.task is not None:
                 t = self.tasks[w.task]
@@ -325,6 +332,7 @@ class V2VServer:
         except ProtocolError as e:
             log.error("bad message from worker %s: %s", ident, e)
             return
+        self.metrics.on_worker_message(h)  # [iss12 metrics] stage seconds
         if w is None:
             return  # a replaced worker's last words
         kind = h["type"]
@@ -343,6 +351,7 @@ class V2VServer:
             ep.pending.append(sample)
             ep.samples += 1
             self.stats.samples_made += 1
+            self.metrics.on_sample_made()  # [iss12 metrics]
             if len(ep.pending) >= self.cfg.batch_size:
                 self._make_batch(ep)
         elif kind == "done":
@@ -357,6 +366,7 @@ class V2VServer:
     def _skip_file(self, video: str, reason: str) -> None:
         if video not in self.stats.skipped_files:
             self.stats.skipped_files[video] = reason
+            self.metrics.on_file_skipped()  # [iss12 metrics]
             log.warning("skipped %s: %s", self.root / video, reason)
 
     def _task_finished(self, t: Task) -> None:
@@ -438,6 +448,7 @@ class V2VServer:
             c.inflight.add(b.batch_id)
             self.inflight[b.batch_id] = (c.ident, now + self.cfg.lease_s)
             self.stats.batches_sent += 1
+            self.metrics.on_batch_sent(len(b.sample_ids), sum(f.nbytes for f in frames))  # [iss12 metrics]
 
     def _requeue(self, batch_id: int, why: str) -> None:
         ident, _ = self.inflight.pop(batch_id, (None, None))
@@ -448,6 +459,7 @@ class V2VServer:
         if b is not None:
             self.ready.appendleft(b)
             self.stats.batches_resent += 1
+            self.metrics.on_batch_resent()  # [iss12 metrics]
             log.info("batch %d goes back to the queue: %s", batch_id, why)
 
     def _expire(self, now: float) -> None:
@@ -457,6 +469,7 @@ class V2VServer:
                 # already took the batch (then its ack is on the way). A silent client is dropped
                 # below, which re-queues everything it held.
                 self.inflight[bid] = (ident, float("inf"))
+                self.metrics.on_lease_expired()  # [iss12 metrics]
                 log.info("lease of batch %d expired at client %s; asking for it back", bid, ident.hex())
                 self._send_client(ident, {"type": "revoke", "batch_ids": [bid]})
         for ident, c in list(self.clients.items()):
@@ -484,6 +497,17 @@ class V2VServer:
                  len(self.clients), st.batches_sent, st.batches_resent, st.batches_acked, st.samples_made,
                  len(self.ready), len(self.inflight), st.workers_restarted, len(st.skipped_files),
                  st.bad_messages)
+
+    def _metrics_state(self) -> dict:  # [iss12 metrics] the gauges, as plain numbers
+        newest = self.epochs.get(self.next_epoch - 1)
+        alive = [w for w in self.workers.values() if w.proc.is_alive()]
+        return {"clients": {c.ident.hex()[:12]: (c.credits, len(c.inflight)) for c in self.clients.values()},
+                "queue_batches": len(self.ready), "inflight_batches": len(self.inflight),
+                "workers": len(alive), "workers_busy": sum(1 for w in alive if w.task is not None),
+                "epoch": newest.epoch if newest else -1,
+                "epoch_videos": len(self.videos) if newest else 0,
+                "epoch_videos_done": (len(self.videos) - len(newest.open_tasks)) if newest else 0,
+                "ready": self.bound_endpoint is not None and any(w.idle or w.task is not None for w in alive)}
 
     def _excluded(self, epoch: int, video: str) -> Set[int]:
         return self.exclude.get(epoch, {}).get(video, set())
@@ -574,6 +598,7 @@ class V2VServer:
             h = unpack(frames[1], max_bytes=MAX_CLIENT_MSG)
         except ProtocolError as e:
             self.stats.bad_messages += 1
+            self.metrics.on_bad_message()  # [iss12 metrics]
             log.warning("dropping client %s: %s", ident.hex(), e)
             self._send_client(ident, {"type": "error", "message": f"protocol error: {e}"})
             self._drop_client(ident)
@@ -616,6 +641,7 @@ class V2VServer:
             self._drop_client(ident)
         else:
             self.stats.bad_messages += 1
+            self.metrics.on_bad_message()  # [iss12 metrics]
             log.warning("dropping client %s: unknown message type %r", ident.hex(), kind)
             self._send_client(ident, {"type": "error", "message": f"unknown message type {kind!r}"})
             self._drop_client(ident)

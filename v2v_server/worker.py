@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import sys
+import time
 from pathlib import Path
 
 import zmq
@@ -52,6 +53,46 @@ def wire_arrays(cfg: ServeConfig, arrays: dict) -> dict:
     return out
 
 
+class _StageClock:
+    """Seconds a worker spends per stage (decode, simulate, flow, serialize, send) since its
+    previous message. Simulate and flow come from the sampler's ``stats["busy"]``; decode is
+    the rest of the time spent making a sample (decoding, cropping, planning); send includes
+    waiting for the server to take the message (back-pressure)."""
+
+    def __init__(self, stats: dict):
+        self.stats = stats
+        self.t = time.perf_counter()
+        self.acc = {"decode": 0.0, "simulate": 0.0, "flow": 0.0, "serialize": 0.0, "send": 0.0}
+        self.busy_seen = {"simulate": 0.0, "flow": 0.0}
+
+    def _lap(self) -> float:
+        now = time.perf_counter()
+        dt, self.t = now - self.t, now
+        return dt
+
+    def made(self) -> None:
+        dt = self._lap()
+        busy = self.stats.get("busy", {})
+        inner = 0.0
+        for k in ("simulate", "flow"):
+            d = busy.get(k, 0.0) - self.busy_seen[k]
+            self.busy_seen[k] = busy.get(k, 0.0)
+            self.acc[k] += d
+            inner += d
+        self.acc["decode"] += max(0.0, dt - inner)
+
+    def serialized(self) -> None:
+        self.acc["serialize"] += self._lap()
+
+    def sent(self) -> None:
+        self.acc["send"] += self._lap()
+
+    def report(self) -> dict:
+        out = {k: round(v, 6) for k, v in self.acc.items()}
+        self.acc = dict.fromkeys(self.acc, 0.0)
+        return out
+
+
 def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict) -> None:
     """Make every sample of one task and send it, then send ``done``."""
     stats: dict = {}
@@ -59,14 +100,19 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
     error = None
     preset = cfg.flow_preset
     flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task["outputs"] else None
+    clock = _StageClock(stats)  # [iss12 metrics] seconds per stage, reported with each message
     try:
         for sid, arrays, meta in video_samples(
             cfg, root, task["video"], task["epoch"], task["outputs"], task.get("skip", ()), flow, stats
         ):
+            clock.made()
             specs, frames = encode_arrays(wire_arrays(cfg, arrays))
             header = {"type": "sample", "task": task["task"], "sample_id": sid,
                       "window": int(sid.rsplit("#", 1)[1]), "meta": meta, "arrays": specs}
+            clock.serialized()
+            header["stages"] = clock.report()
             _send(sock, [pack(header)] + frames, parent_pid)
+            clock.sent()
             sent += 1
     except VideoError as e:
         error = str(e)
@@ -75,8 +121,9 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
     if error is None and stats.get("windows", 0) == 0:
         error = (f"{stats.get('frames', 0)} frames, shorter than one window of "
                  f"{cfg.frames_per_sample} frames")
+    clock.made()  # decoding after the last window
     done = {"type": "done", "task": task["task"], "samples": sent, "frames": stats.get("frames", 0),
-            "windows": stats.get("windows", 0), "error": error}
+            "windows": stats.get("windows", 0), "error": error, "stages": clock.report()}
     _send(sock, [pack(done)], parent_pid)
 
 
@@ -84,11 +131,16 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
     """Entry point of a worker process (started with the ``spawn`` method)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when workers stop
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
-    logging.basicConfig(level=logging.INFO, format="v2v-worker %(process)d: %(message)s")
     import cv2
 
     cv2.setNumThreads(1)
     cfg = ServeConfig.from_dict(cfg_dict, source="worker config")
+    if cfg.log_format == "json":  # [iss12] one format for the whole server's stderr
+        from .cli import setup_logging
+
+        setup_logging("INFO", "json", "v2v-worker")
+    else:
+        logging.basicConfig(level=logging.INFO, format="v2v-worker %(process)d: %(message)s")
     ctx = zmq.Context()
     sock = ctx.socket(zmq.DEALER)
     sock.setsockopt(zmq.IDENTITY, identity)

@@ -1,0 +1,376 @@
+"""deploy/ cannot rot silently: every image, compose file and Kubernetes manifest is parsed, and
+every v2v-serve / v2v-train flag, port and path it uses is checked against the programs'
+own argument parsers, config loaders and the images' files. Where the Kubernetes schemas
+(kubernetes-validate) or kubectl are installed, the manifests are validated with them too."""
+from __future__ import annotations
+
+import json
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path, PurePosixPath
+
+import pytest
+import yaml
+
+from trainer.config import apply_overrides, load_config as load_trainer_config
+from trainer.train import build_arg_parser as train_parser
+from v2v_server.cli import build_parser as serve_parser, config_from_args
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOY = ROOT / "deploy"
+K8S = DEPLOY / "k8s"
+PARSERS = {"v2v-serve": serve_parser, "v2v-train": train_parser}
+#: flags whose value is a path inside the container
+PATH_FLAGS = {"--config", "--videos", "--curve-secret-key", "--curve-allow", "--out"}
+
+
+# ---------------------------------------------------------------------------------- parsing helpers
+def dockerfile(name: str) -> dict:
+    """{"from", "copies": [(src, dst)], "expose": [int], "user", "entrypoint", "cmd", "healthcheck", "workdir", "run"}"""
+    text = (DEPLOY / name).read_text()
+    text = re.sub(r"\\\n", " ", "\n".join(ln for ln in text.splitlines() if not ln.lstrip().startswith("#")))
+    out = {"copies": [], "expose": [], "run": []}
+    for line in text.splitlines():
+        if not line.strip():
+            continue
+        op, _, rest = line.strip().partition(" ")
+        op, rest = op.upper(), rest.strip()
+        if op == "FROM":
+            out["from"] = rest
+        elif op == "COPY":
+            *src, dst = rest.split()
+            out["copies"] += [(s, dst) for s in src]
+        elif op == "EXPOSE":
+            out["expose"] += [int(p) for p in rest.split()]
+        elif op in ("ENTRYPOINT", "CMD"):
+            out[op.lower()] = json.loads(rest)  # exec form only: no shell in between
+        elif op == "HEALTHCHECK":
+            out["healthcheck"] = json.loads(rest.split(" CMD ", 1)[1])
+        elif op in ("USER", "WORKDIR"):
+            out[op.lower()] = rest
+        elif op == "RUN":
+            out["run"].append(rest)
+    return out
+
+
+def image_file(image: dict, path: str) -> Path:
+    """The repository file an image holds at ``path`` (through its COPY lines), or fail."""
+    p = PurePosixPath(path)
+    wd = PurePosixPath(image.get("workdir", "/"))
+    for src, dst in image["copies"]:
+        d = PurePosixPath(dst) if dst.startswith("/") else wd / dst
+        d = d / src if dst.endswith("/") and dst != "./" and not src.endswith("/") else d
+        if dst in ("./", "."):
+            d = wd / src
+        try:
+            rel = p.relative_to(d)
+        except ValueError:
+            continue
+        f = ROOT / src / rel
+        if f.exists():
+            return f
+    raise AssertionError(f"{path}: not in the image (no COPY brings it)")
+
+
+def program(argv):
+    """("v2v-serve" | "v2v-train", args) for a container's argv; None for anything else."""
+    if argv and argv[0] == "torchrun":
+        i = argv.index("-m")
+        assert argv[i + 1] == "trainer.train", argv
+        return "v2v-train", argv[i + 2:]
+    if argv and argv[0] in PARSERS:
+        return argv[0], argv[1:]
+    return None
+
+
+def flag_values(args, flag):
+    return [args[i + 1] for i, a in enumerate(args[:-1]) if a == flag]
+
+
+def check_flags(prog, args, subst=None):
+    """Every flag exists in the program's parser and the whole line parses; returns the
+    parsed namespace (``$(VAR)`` replaced through ``subst``)."""
+    parser = PARSERS[prog]()
+    known = {s for a in parser._actions for s in a.option_strings}
+    for a in args:
+        if a.startswith("--"):
+            assert a.split("=", 1)[0] in known, f"{prog} has no flag {a} (see {prog} --help)"
+    subst = subst or {}
+    args = [re.sub(r"\$\((\w+)\)", lambda m: subst[m.group(1)], a) for a in args]
+    return parser.parse_args(args)
+
+
+def check_serve_config(ns, config_file=None):
+    """The v2v-serve line would start: config validated (curve key files are checked by
+    path elsewhere, the corpus is not there)."""
+    ns.config = str(config_file) if config_file else None
+    ns.curve_secret_key = ns.curve_allow = None
+    ns.insecure = True
+    return config_from_args(ns)
+
+
+def port_of(endpoint):
+    return int(endpoint.rsplit(":", 1)[1])
+
+
+def k8s_docs():
+    docs = {}
+    for f in sorted(K8S.glob("*.yaml")):
+        if f.name == "kustomization.yaml":
+            continue
+        for d in yaml.safe_load_all(f.read_text()):
+            if d:
+                docs[(d["kind"], d["metadata"]["name"])] = d
+    return docs
+
+
+def under(path, mounts):
+    """The mount (dict) that holds ``path``, the longest match."""
+    best = None
+    for m in mounts:
+        mp = m["mountPath"].rstrip("/")
+        if path == mp or path.startswith(mp + "/"):
+            if best is None or len(mp) > len(best["mountPath"]):
+                best = m
+    assert best is not None, f"{path}: no volume mounted there"
+    return best
+
+
+# ---------------------------------------------------------------------------------- images
+def test_server_image_is_slim_without_torch_nonroot_with_probe_on_its_metrics_port():
+    img = dockerfile("Dockerfile.server")
+    assert re.fullmatch(r"python:3\.1\d-slim", img["from"]), img["from"]
+    assert any('pip install ".[server]"' in r for r in img["run"])
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    base = re.search(r"^dependencies = \[(.*?)^\]", pyproject, re.S | re.M).group(1)
+    server_extra = re.search(r"^server = \[(.*?)\]", pyproject, re.M).group(1)
+    assert "torch" not in base and "torch" not in server_extra  # a decode host installs no torch
+    assert img["user"] not in ("root", "0") and img["entrypoint"] == ["v2v-serve"]
+    ns = check_flags("v2v-serve", img["cmd"])
+    cfg = check_serve_config(ns)
+    assert port_of(cfg.bind) in img["expose"] and cfg.metrics_port in img["expose"]
+    assert cfg.metrics_host == "0.0.0.0"  # reachable from outside the container
+    probe = " ".join(img["healthcheck"])
+    assert f"127.0.0.1:{cfg.metrics_port}/healthz" in probe
+    for src, _ in img["copies"]:
+        assert (ROOT / src).exists(), src
+
+
+def test_trainer_image_is_pytorch_cuda_runtime_with_client_and_trainer():
+    img = dockerfile("Dockerfile.trainer")
+    assert re.fullmatch(r"pytorch/pytorch:[\w.]+-cuda[\w.]+-cudnn\d+-runtime", img["from"]), img["from"]
+    assert any('pip install ".[client,trainer]"' in r for r in img["run"])
+    assert img["user"] not in ("root", "0") and img["entrypoint"] == ["v2v-train"]
+    ns = check_flags("v2v-train", img["cmd"])
+    load_trainer_config(str(image_file(img, ns.config)))
+    for src, _ in img["copies"]:
+        assert (ROOT / src).exists(), src
+
+
+# ---------------------------------------------------------------------------------- compose
+def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
+    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+    svcs = comp["services"]
+    images = {}
+    for name, s in svcs.items():
+        if "build" in s:
+            assert (DEPLOY / s["build"]["context"] / s["build"]["dockerfile"]).is_file()
+            images[name] = dockerfile(Path(s["build"]["dockerfile"]).name)
+    named_volumes = set(comp.get("volumes", {}))
+    shards, trainers = {}, {}
+    for name, s in svcs.items():
+        img = images[name]
+        argv = s.get("entrypoint", img["entrypoint"]) + s.get("command", img.get("cmd", []))
+        mounts = []
+        for v in s.get("volumes", []):
+            v = re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", v)  # ${VAR:-default}: the default
+            src, dst = v.split(":")[:2]
+            if src.startswith((".", "/")):
+                assert (DEPLOY / src).is_dir(), f"{name}: {src} is no folder"
+            else:
+                assert src in named_volumes, f"{name}: volume {src} not declared"
+            mounts.append({"mountPath": dst, "source": src})
+        p = program(argv)
+        if p is None:
+            # the key maker: run its shell line against a scratch folder, then check the files
+            assert argv[:2] == ["sh", "-c"] and "v2v-keygen" in argv[2]
+            keys_mount = under("/keys", mounts)["mountPath"]
+            line = argv[2].replace(keys_mount, str(tmp_path / "keys")).replace(
+                "v2v-keygen", f"{shlex.quote(sys.executable)} -m v2v_server.keygen")
+            subprocess.run(["sh", "-c", line], check=True, capture_output=True, timeout=60)
+            continue
+        prog, args = p
+        ns = check_flags(prog, args)
+        for flag in PATH_FLAGS:
+            for path in flag_values(args, flag):
+                if path.startswith("/opt/v2v/"):
+                    image_file(img, path)
+                else:
+                    under(path, mounts)
+        if prog == "v2v-serve":
+            cfg = check_serve_config(ns)
+            shards[name] = (cfg, args, s)
+            hc = " ".join(s["healthcheck"]["test"])
+            assert f"127.0.0.1:{cfg.metrics_port}/" in hc
+            assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
+            for flag in ("--curve-secret-key", "--curve-allow"):
+                assert flag_values(args, flag)[0].startswith("/keys/")
+        else:
+            cfg = load_trainer_config(str(image_file(img, ns.config)) if ns.config else None)
+            cfg = apply_overrides(cfg, ns.set)
+            trainers[name] = (ns, cfg, mounts)
+    # the shards split the corpus: 0/N .. N-1/N, each once
+    specs = sorted(c.shard for c, _, _ in shards.values())
+    assert specs == [f"{i}/{len(shards)}" for i in range(len(shards))] and len(shards) == 2
+    (ns, tcfg, mounts), = trainers.values()
+    want = {f"tcp://{name}:{port_of(c.bind)}" for name, (c, _, _) in shards.items()}
+    assert set(ns.connect.split(",")) == want  # the trainer reads every shard
+    # the keys the servers and the trainer name are the ones the key maker writes
+    keys = tmp_path / "keys"
+    for c, args, _ in shards.values():
+        assert (keys / Path(flag_values(args, "--curve-secret-key")[0]).relative_to("/keys")).is_file()
+        allow = keys / Path(flag_values(args, "--curve-allow")[0]).relative_to("/keys")
+        assert list(allow.glob("*.key"))
+    for kf in tcfg["stream"]["curve_keys"]:
+        under(kf, mounts)
+        assert (keys / Path(kf).relative_to("/keys")).is_file()
+    from v2v_client.dataset import load_curve_keys
+
+    load_curve_keys(*[str(keys / Path(k).relative_to("/keys")) for k in tcfg["stream"]["curve_keys"]])
+
+
+# ---------------------------------------------------------------------------------- kubernetes
+def test_kustomization_lists_every_manifest():
+    kz = yaml.safe_load((K8S / "kustomization.yaml").read_text())
+    files = sorted(f.name for f in K8S.glob("*.yaml") if f.name != "kustomization.yaml")
+    assert sorted(kz["resources"]) == files
+
+
+def _container(doc):
+    (c,) = doc["spec"]["template"]["spec"]["containers"]
+    return c
+
+
+def _mounts(doc, docs):
+    """The container's mounts with what each volume is: configmap data key, secret items, ..."""
+    spec = doc["spec"]["template"]["spec"]
+    vols = {v["name"]: v for v in spec["volumes"]}
+    out = []
+    for m in _container(doc)["volumeMounts"]:
+        v = dict(vols[m["name"]])
+        m = dict(m, volume=v)
+        if "configMap" in v:
+            data = docs[("ConfigMap", v["configMap"]["name"])]["data"]
+            assert m.get("subPath") in data, f"{m['mountPath']}: ConfigMap has no key {m.get('subPath')}"
+            m["content"] = data[m["subPath"]]
+        out.append(m)
+    return out
+
+
+def _check_path(path, mounts, secret_files):
+    m = under(path, mounts)
+    v = m["volume"]
+    if "secret" in v:
+        name = PurePosixPath(path).relative_to(m["mountPath"]).as_posix() if path != m["mountPath"] else None
+        items = [i["path"] for i in v["secret"]["items"]]
+        assert name is None or name in items, f"{path}: the Secret mount holds only {items}"
+        for i in v["secret"]["items"]:
+            secret_files.add(i["key"])
+    return m
+
+
+def test_k8s_statefulset_service_pdb_job_agree():
+    docs = k8s_docs()
+    sts = docs[("StatefulSet", "v2v-server")]
+    svc = docs[("Service", sts["spec"]["serviceName"])]
+    pdb = docs[("PodDisruptionBudget", "v2v-server")]
+    job = docs[("Job", "v2v-trainer")]
+    labels = sts["spec"]["template"]["metadata"]["labels"]
+    assert sts["spec"]["selector"]["matchLabels"].items() <= labels.items()
+    assert svc["spec"]["selector"].items() <= labels.items() and svc["spec"]["clusterIP"] == "None"
+    assert pdb["spec"]["selector"]["matchLabels"].items() <= labels.items()
+    c = _container(sts)
+    env = {e["name"]: e for e in c["env"]}
+    secret_files = set()
+
+    # the server line: flags exist, values parse, ordinal -> --shard, CPU request -> --workers
+    replicas = sts["spec"]["replicas"]
+    assert env["SHARDS"]["value"] == str(replicas)
+    assert env["SHARD_INDEX"]["valueFrom"]["fieldRef"]["fieldPath"] == "metadata.labels['apps.kubernetes.io/pod-index']"
+    ref = env["CPU_REQUEST"]["valueFrom"]["resourceFieldRef"]
+    assert ref["resource"] == "requests.cpu" and ref["containerName"] == c["name"]
+    args = c["args"]
+    assert flag_values(args, "--shard") == ["$(SHARD_INDEX)/$(SHARDS)"]
+    assert flag_values(args, "--workers") == ["$(CPU_REQUEST)"]
+    mounts = _mounts(sts, docs)
+    cpu = str(c["resources"]["requests"]["cpu"])
+    for i in range(replicas):
+        ns = check_flags("v2v-serve", args, {"SHARD_INDEX": str(i), "SHARDS": str(replicas), "CPU_REQUEST": cpu})
+        conf = _check_path(ns.config, mounts, secret_files)
+        cfg = check_serve_config(ns, _write(conf["content"]))
+        assert cfg.shard_spec == (i, replicas) and cfg.workers == int(cpu)
+    for flag in PATH_FLAGS:
+        for path in flag_values(args, flag):
+            _check_path(path, mounts, secret_files)
+    # ports: stream and metrics exposed, probes on the metrics port, the Service on both
+    ports = {p["name"]: p["containerPort"] for p in c["ports"]}
+    assert ports["stream"] == port_of(cfg.bind) and ports["metrics"] == cfg.metrics_port
+    assert cfg.metrics_host == "0.0.0.0"
+    assert c["readinessProbe"]["httpGet"] == {"path": "/readyz", "port": "metrics"}
+    assert c["livenessProbe"]["httpGet"] == {"path": "/healthz", "port": "metrics"}
+    for sp in svc["spec"]["ports"]:
+        assert sp["targetPort"] in ports and sp["port"] == ports[sp["targetPort"]]
+    annotations = sts["spec"]["template"]["metadata"]["annotations"]
+    assert annotations["prometheus.io/port"] == str(cfg.metrics_port)
+    # the trainer: torchrun -m trainer.train, reads every shard by its stable name
+    t = _container(job)
+    prog, targs = program(t["command"] + t["args"])
+    assert prog == "v2v-train" and t["command"][0] == "torchrun"
+    tns = check_flags("v2v-train", targs)
+    tmounts = _mounts(job, docs)
+    tconf = _check_path(tns.config, tmounts, secret_files)
+    tcfg = load_trainer_config(_write(tconf["content"]))
+    want = [f"tcp://{sts['metadata']['name']}-{i}.{svc['metadata']['name']}:{ports['stream']}" for i in range(replicas)]
+    assert tns.connect.split(",") == want
+    for path in flag_values(targs, "--out"):
+        _check_path(path, tmounts, secret_files)
+    for kf in tcfg["stream"]["curve_keys"]:
+        _check_path(kf, tmounts, secret_files)
+    assert tcfg["stream"]["reconnect"] is True
+    # one Secret holds the four key files v2v-keygen makes for "server" and "trainer"
+    assert secret_files == {"server.key", "server.key_secret", "trainer.key", "trainer.key_secret"}
+    # requests == limits everywhere (Guaranteed QoS: no CPU throttling surprises for decoding)
+    for doc in (sts, job):
+        r = _container(doc)["resources"]
+        assert r["requests"] == r["limits"], doc["metadata"]["name"]
+        sc = doc["spec"]["template"]["spec"]["securityContext"]
+        assert sc["runAsNonRoot"] is True and sc["fsGroup"] == sc["runAsUser"] == 10001
+    # the images the manifests run are the ones deploy/ builds
+    assert c["image"].split(":")[0] == "v2v-server" and t["image"].split(":")[0] == "v2v-trainer"
+
+
+def _write(content: str) -> str:
+    import tempfile
+
+    f = tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False)
+    f.write(content)
+    f.close()
+    return f.name
+
+
+def test_k8s_manifests_match_the_kubernetes_schemas():
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
+    for (kind, name), doc in k8s_docs().items():
+        for version in ("1.29", "1.32"):
+            kv.validate(doc, version, strict=True)  # raises ValidationError naming the field
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl not installed")
+def test_kustomize_renders():
+    out = subprocess.run(["kubectl", "kustomize", str(K8S)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    kinds = sorted(d["kind"] for d in yaml.safe_load_all(out.stdout) if d)
+    assert kinds == ["ConfigMap", "Job", "PodDisruptionBudget", "Service", "StatefulSet"]

@@ -1,0 +1,242 @@
+"""Fan-in: one trainer reading batches from several ``v2v-serve`` hosts (shards).
+
+Hosts split the corpus statically (``v2v-serve --shard I/N``), so each server keeps its own
+exactly-once guarantee; a trainer reads all of them through one iterator. This module is a
+composition: it opens one ordinary single-endpoint :class:`V2VStreamDataset` per server and
+merges their batches in arrival order. It uses only their public surface (``iter``,
+``state_dict``, ``load_state_dict``, ``close``, ``info``), so whatever one connection does
+(credits, leases, acknowledgements, reconnects, DDP ranks) it does here too, per server:
+
+* each server is read by its own connection with its own credits (``credits`` is split
+  evenly, at least 1 each) and reconnects on its own (``reconnect=True``);
+* the merged stream ends when every server has ended its stream; an epoch counts as
+  completed when every server has completed it (``state_dict()["completed_epoch"]`` is the
+  minimum over servers);
+* ``state_dict()`` covers all servers in the single-endpoint format (version 1): the
+  completed epoch and the ids handed to the training loop in every epoch still open on some
+  server. Sample ids name their video and shards hold disjoint videos, so each server takes
+  what concerns it and ignores the rest: the same state resumes one server, several, or a
+  different split of the same corpus.
+
+Each per-server iterator runs in a small pump thread. To know that a server has a batch the
+pump must take it from its iterator, which acknowledges it, so up to one batch per server can
+be acknowledged before the training loop takes it; ``state_dict()`` counts only the batches
+handed over, so a checkpoint never claims those.
+"""
+from __future__ import annotations
+
+import ipaddress
+import queue
+import socket
+import threading
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Set, Union
+
+Endpoints = Union[str, Sequence[str]]
+
+_DONE = object()
+
+
+def split_endpoints(spec: Endpoints) -> List[str]:
+    """Endpoints from a list or a comma-separated string, stripped, duplicates removed.
+
+    Raises:
+        ValueError: for an empty spec or an entry that is not a ZeroMQ endpoint
+            (``tcp://host:port``, ``ipc://path``, ...), naming the entry.
+    """
+    items = spec.split(",") if isinstance(spec, str) else list(spec)
+    out: List[str] = []
+    for e in items:
+        if not isinstance(e, str):
+            raise ValueError(f"endpoint must be a string like tcp://host:5555, got {e!r}")
+        e = e.strip()
+        if not e:
+            continue
+        if "://" not in e:
+            raise ValueError(f"endpoint {e!r} is not a ZeroMQ endpoint like tcp://host:5555")
+        if e not in out:
+            out.append(e)
+    if not out:
+        raise ValueError(f"no endpoint given in {spec!r}")
+    return out
+
+
+def _is_ip(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host)
+        return True
+    except ValueError:
+        return False
+
+
+def expand_dns(endpoint: str, getaddrinfo: Callable = socket.getaddrinfo) -> List[str]:
+    """A ``tcp://NAME:PORT`` endpoint whose name resolves to several addresses (e.g. a
+    Kubernetes headless Service in front of a StatefulSet) -> one endpoint per address.
+
+    IPv4 addresses are used when there are any, else IPv6 (so ``localhost`` resolving to
+    127.0.0.1 and ::1 stays one server). Anything else -- an IP literal, a name with a single
+    address, a name that does not resolve (yet), ``ipc://`` -- is returned unchanged, so ZeroMQ
+    resolves the name again on every reconnect.
+    """
+    scheme, _, rest = endpoint.partition("://")
+    if scheme != "tcp" or ":" not in rest:
+        return [endpoint]
+    host, _, port = rest.rpartition(":")
+    host = host.strip("[]")
+    if not port.isdigit() or _is_ip(host) or host == "*" or ";" in host:
+        return [endpoint]
+    try:
+        infos = getaddrinfo(host, int(port), 0, socket.SOCK_STREAM)
+    except (OSError, UnicodeError):
+        return [endpoint]
+    v4 = sorted({i[4][0] for i in infos if i[0] == socket.AF_INET}, key=ipaddress.ip_address)
+    v6 = sorted({i[4][0] for i in infos if i[0] == socket.AF_INET6}, key=ipaddress.ip_address)
+    addrs = v4 or v6
+    if len(addrs) <= 1:
+        return [endpoint]
+    return [f"tcp://{a}:{port}" if ":" not in a else f"tcp://[{a}]:{port}" for a in addrs]
+
+
+def resolve_endpoints(spec: Endpoints, getaddrinfo: Callable = socket.getaddrinfo) -> List[str]:
+    """``split_endpoints`` then ``expand_dns`` on each; order kept, duplicates removed."""
+    out: List[str] = []
+    for e in split_endpoints(spec):
+        for x in expand_dns(e, getaddrinfo):
+            if x not in out:
+                out.append(x)
+    return out
+
+
+class FanInStream:
+    """Merge the batches of several servers into one stream (see the module docstring).
+
+    Args:
+        endpoints: the servers, one ZeroMQ endpoint each (already resolved).
+        make_child: ``make_child(endpoint, credits) -> V2VStreamDataset`` for one server.
+        credits: total batches in flight over all servers; each gets
+            ``max(1, ceil(credits / len(endpoints)))``.
+
+    Iterating yields the children's batch dicts unchanged plus ``"endpoint"`` (str, the
+    server it came from). Errors of any server (``StreamTimeout``, ``StreamError``) are
+    raised from iteration; the other connections are closed.
+
+    Raises:
+        ValueError: for an empty endpoint list.
+    """
+
+    def __init__(self, endpoints: Sequence[str], make_child: Callable[[str, int], object], credits: int):
+        self.endpoints = list(endpoints)
+        if not self.endpoints:
+            raise ValueError("fan-in needs at least one endpoint")
+        self._make_child = make_child
+        self.credits_each = max(1, -(-int(credits) // len(self.endpoints)))
+        self._lock = threading.Lock()
+        self._completed = -1  # completed epoch as last loaded (before any child exists)
+        self._delivered: Dict[int, Set[str]] = {}  # ids handed to the training loop, per epoch
+        self._children: List = []
+        self.counts: Dict[str, Dict[str, int]] = {e: {"batches": 0, "samples": 0} for e in self.endpoints}
+        self.info: Optional[dict] = None
+
+    # ------------------------------------------------------------------ state
+    def completed_epoch(self) -> int:
+        """The last epoch every server has completed (-1 before any)."""
+        with self._lock:
+            children = list(self._children)
+            base = self._completed
+        if not children:
+            return base
+        return min(max(base, int(c.state_dict().get("completed_epoch", -1))) for c in children)
+
+    def state_dict(self) -> dict:
+        """Single-endpoint format (version 1) covering every server: the epoch all servers
+        completed and the sample ids handed to the training loop in later epochs."""
+        done = self.completed_epoch()
+        with self._lock:
+            for e in [e for e in self._delivered if e <= done]:
+                del self._delivered[e]
+            return {"version": 1, "completed_epoch": done,
+                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Take a state from ``state_dict()`` (of a fan-in or of one endpoint); used by the
+        next iteration for every server.
+
+        Raises:
+            ValueError: for a state of another format.
+        """
+        if not isinstance(state, dict) or state.get("version") != 1:
+            raise ValueError("state must come from V2VStreamDataset.state_dict() (version 1)")
+        with self._lock:
+            self._completed = int(state.get("completed_epoch", -1))
+            self._delivered = {int(e): set(ids) for e, ids in state.get("delivered", {}).items()}
+            self._children = []
+
+    # ------------------------------------------------------------------ iteration
+    def __iter__(self) -> Iterator[dict]:
+        state = self.state_dict()
+        children = [self._make_child(ep, self.credits_each) for ep in self.endpoints]
+        for c in children:
+            c.load_state_dict(state)
+        with self._lock:
+            self._completed = state["completed_epoch"]
+            self._children = children
+        items: "queue.Queue" = queue.Queue()
+        go = [threading.Event() for _ in children]
+        stop = threading.Event()
+        pumps = [threading.Thread(target=_pump, args=(i, c, items, go[i], stop), daemon=True,
+                                  name=f"v2v-fanin-{i}") for i, c in enumerate(children)]
+        for t in pumps:
+            t.start()
+        running = len(children)
+        try:
+            while running:
+                try:
+                    i, item = items.get(timeout=1.0)
+                except queue.Empty:
+                    if not any(t.is_alive() for t in pumps) and items.empty():
+                        return
+                    continue
+                if item is _DONE:
+                    running -= 1
+                    continue
+                if isinstance(item, BaseException):
+                    raise item
+                go[i].set()  # this server's pump may take its next batch
+                ep = self.endpoints[i]
+                item["endpoint"] = ep
+                with self._lock:
+                    self._delivered.setdefault(int(item["epoch"]), set()).update(item["sample_ids"])
+                    self.counts[ep]["batches"] += 1
+                    self.counts[ep]["samples"] += len(item["sample_ids"])
+                if self.info is None:
+                    self.info = children[i].info
+                yield item
+        finally:
+            stop.set()
+            for g in go:
+                g.set()
+            for c in children:
+                c.close()
+            for t in pumps:
+                t.join(5.0)
+
+    def close(self) -> None:
+        """Close every server's open connections."""
+        for c in list(self._children):
+            c.close()
+
+
+def _pump(i: int, child, items: "queue.Queue", go: threading.Event, stop: threading.Event) -> None:
+    """Move one server's batches into the shared queue, one at a time (waits for ``go``)."""
+    it = iter(child)
+    try:
+        for b in it:
+            items.put((i, b))
+            go.wait()
+            go.clear()
+            if stop.is_set():
+                return
+        items.put((i, _DONE))
+    except BaseException as e:  # handed to the consumer, who raises it
+        items.put((i, e))
+    finally:
+        it.close()

@@ -1,0 +1,278 @@
+"""What a running server is doing, for Prometheus, probes and a terminal.
+
+``ServerMetrics`` is the one object ``server.py`` tells about events (a batch sent, a lease
+expired, a worker restarted, ...) and, once per loop turn, about its state (clients, queue,
+workers, epoch). It turns them into Prometheus metrics (``v2v_`` prefix, counters end in
+``_total``, units in the name) on its own registry, serves them with ``/healthz`` and
+``/readyz`` over HTTP (``--metrics-port``), and draws a live progress line when stderr is a
+terminal. It never touches the server's own objects: everything arrives as plain numbers.
+
+Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
+
+* counters: ``v2v_samples_made_total``, ``v2v_samples_sent_total``, ``v2v_batches_sent_total``,
+  ``v2v_sent_bytes_total``, ``v2v_batches_resent_total``, ``v2v_leases_expired_total``,
+  ``v2v_workers_restarted_total``, ``v2v_files_skipped_total``, ``v2v_bad_messages_total``,
+  ``v2v_worker_busy_seconds_total{stage}`` for stage in decode, simulate, flow, serialize,
+  send (summed over workers; divided by wall time and workers it is each stage's busy
+  fraction: ``rate(v2v_worker_busy_seconds_total[1m]) / v2v_workers``);
+* gauges: ``v2v_clients``, ``v2v_client_credits{client}`` and
+  ``v2v_client_inflight_batches{client}`` (client = connection id; no per-sample labels),
+  ``v2v_queue_batches`` (assembled, waiting for a credit), ``v2v_inflight_batches``,
+  ``v2v_workers`` (alive), ``v2v_workers_busy``, ``v2v_epoch`` (newest epoch being made),
+  ``v2v_epoch_videos`` and ``v2v_epoch_videos_done`` (its progress), ``v2v_ready``.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Dict, Optional
+
+from prometheus_client import CollectorRegistry, Counter
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
+
+#: Work a worker reports time for, in pipeline order.
+STAGES = ("decode", "simulate", "flow", "serialize", "send")
+#: Seconds without a loop turn after which /healthz reports the server wedged.
+STALL_S = 60.0
+
+log = logging.getLogger("v2v.metrics")
+
+
+class ServerMetrics:
+    """Counters and gauges of one server, an HTTP endpoint for them, and a progress line.
+
+    Args:
+        progress: draw a live progress line on stderr (default: when stderr is a terminal).
+    """
+
+    def __init__(self, progress: Optional[bool] = None):
+        self.registry = CollectorRegistry(auto_describe=True)
+        r = self.registry
+
+        def counter(name, doc, labels=()):
+            return Counter(name, doc, labelnames=labels, registry=r)
+
+        self.samples_made = counter("v2v_samples_made", "Samples received from workers")
+        self.samples_sent = counter("v2v_samples_sent", "Samples sent to clients (re-sends included)")
+        self.batches_sent = counter("v2v_batches_sent", "Batches sent to clients (re-sends included)")
+        self.bytes_sent = counter("v2v_sent_bytes", "Array bytes sent to clients")
+        self.batches_resent = counter("v2v_batches_resent", "Batches put back in the queue to be sent again")
+        self.leases_expired = counter("v2v_leases_expired", "Batch leases that expired before an acknowledgement")
+        self.workers_restarted = counter("v2v_workers_restarted", "Worker processes that died and were replaced")
+        self.files_skipped = counter("v2v_files_skipped", "Video files skipped as unusable")
+        self.bad_messages = counter("v2v_bad_messages", "Client messages rejected as malformed")
+        self.busy = counter("v2v_worker_busy_seconds", "Seconds workers spent per pipeline stage", ("stage",))
+        for s in STAGES:
+            self.busy.labels(stage=s)
+        self._state: dict = {}
+        self._lock = threading.Lock()
+        self._last_turn = time.monotonic()
+        self._ready = False
+        r.register(_StateCollector(self))
+        self.http: Optional[ThreadingHTTPServer] = None
+        self.port: Optional[int] = None
+        self._progress = _Progress() if (sys.stderr.isatty() if progress is None else progress) else None
+
+    # ------------------------------------------------------------------ events (server.py calls these)
+    def on_sample_made(self) -> None:
+        self.samples_made.inc()
+
+    def on_batch_sent(self, nsamples: int, nbytes: int) -> None:
+        self.batches_sent.inc()
+        self.samples_sent.inc(nsamples)
+        self.bytes_sent.inc(nbytes)
+        if self._progress is not None:
+            self._progress.add(nsamples, nbytes)
+
+    def on_batch_resent(self) -> None:
+        self.batches_resent.inc()
+
+    def on_lease_expired(self) -> None:
+        self.leases_expired.inc()
+
+    def on_worker_restarted(self) -> None:
+        self.workers_restarted.inc()
+
+    def on_file_skipped(self) -> None:
+        self.files_skipped.inc()
+
+    def on_bad_message(self) -> None:
+        self.bad_messages.inc()
+
+    def on_worker_message(self, header: dict) -> None:
+        """Add the stage seconds a worker message carries (``header["stages"]``, a dict of
+        stage -> seconds since the worker's previous message); ignores anything malformed."""
+        stages = header.get("stages") if isinstance(header, dict) else None
+        if not isinstance(stages, dict):
+            return
+        for s, v in stages.items():
+            if s in STAGES and isinstance(v, (int, float)) and 0 <= v < 1e6:
+                self.busy.labels(stage=s).inc(v)
+
+    def tick(self, state_fn, every_s: float = 0.25) -> None:
+        """Call ``set_state(**state_fn())`` unless that was done less than ``every_s`` seconds
+        ago (the server loop turns far more often than anyone scrapes)."""
+        if time.monotonic() - self._last_turn >= every_s or not self._state:
+            self.set_state(**state_fn())
+
+    def set_state(self, **state) -> None:
+        """The server's state after a loop turn: ``clients`` {client id: (credits, in-flight
+        batches)}, ``queue_batches``, ``inflight_batches``, ``workers``, ``workers_busy``,
+        ``epoch``, ``epoch_videos``, ``epoch_videos_done``, and ``ready`` (socket bound,
+        corpus scanned, a worker up). Also the liveness tick for ``/healthz``."""
+        now = time.monotonic()
+        with self._lock:
+            self._state = state
+            self._last_turn = now
+            self._ready = bool(state.get("ready"))
+        if self._progress is not None:
+            self._progress.show(now, state)
+
+    # ------------------------------------------------------------------ probes
+    def healthy(self) -> bool:
+        """The server loop turned within ``STALL_S`` seconds."""
+        with self._lock:
+            return time.monotonic() - self._last_turn < STALL_S
+
+    def ready(self) -> bool:
+        with self._lock:
+            return self._ready
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            return dict(self._state)
+
+    def serve(self, host: str, port: int) -> int:
+        """Serve ``/metrics`` (Prometheus text), ``/healthz`` and ``/readyz`` (200 or 503)
+        from a daemon thread on ``host:port``; returns the port bound (``port`` 0 = any).
+
+        Raises:
+            OSError: when the address cannot be bound.
+        """
+        metrics = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self):  # noqa: N802 (http.server's naming)
+                path = self.path.split("?", 1)[0]
+                if path == "/metrics":
+                    body, ctype, code = generate_latest(metrics.registry), CONTENT_TYPE_LATEST, 200
+                elif path in ("/healthz", "/readyz"):
+                    ok = metrics.healthy() if path == "/healthz" else (metrics.ready() and metrics.healthy())
+                    body, ctype, code = (b"ok\n" if ok else b"not ready\n"), "text/plain", 200 if ok else 503
+                else:
+                    body, ctype, code = b"try /metrics, /healthz or /readyz\n", "text/plain", 404
+                self.send_response(code)
+                self.send_header("Content-Type", ctype)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def log_message(self, *args):  # scrapes every few seconds: keep them out of the log
+                pass
+
+        try:
+            self.http = ThreadingHTTPServer((host, port), Handler)
+        except OSError as e:
+            raise OSError(e.errno, f"metrics endpoint {host}:{port}: {e.strerror or e}") from None
+        self.http.daemon_threads = True
+        self.port = self.http.server_address[1]
+        threading.Thread(target=self.http.serve_forever, name="v2v-metrics", daemon=True).start()
+        log.info("metrics on http://%s:%d/metrics (also /healthz, /readyz)", host, self.port)
+        return self.port
+
+    def close(self) -> None:
+        if self.http is not None:
+            self.http.shutdown()
+            self.http.server_close()
+            self.http = None
+        if self._progress is not None:
+            self._progress.close()
+
+
+class _StateCollector:
+    """Gauges built at scrape time from the latest ``set_state`` (clients come and go, so
+    their series vanish with them)."""
+
+    def __init__(self, m: ServerMetrics):
+        self.m = m
+
+    def describe(self):
+        return []
+
+    def collect(self):
+        st = self.m.snapshot()
+        clients: Dict[str, tuple] = st.get("clients", {})
+        g = GaugeMetricFamily("v2v_clients", "Connected clients")
+        g.add_metric([], len(clients))
+        yield g
+        credits = GaugeMetricFamily("v2v_client_credits", "Credits a client has granted and not used", labels=["client"])
+        inflight = GaugeMetricFamily("v2v_client_inflight_batches", "Batches sent to a client and not acknowledged",
+                                     labels=["client"])
+        for cid, (c, n) in sorted(clients.items()):
+            credits.add_metric([cid], c)
+            inflight.add_metric([cid], n)
+        yield credits
+        yield inflight
+        for name, key, doc in (
+            ("v2v_queue_batches", "queue_batches", "Assembled batches waiting for a client credit"),
+            ("v2v_inflight_batches", "inflight_batches", "Batches sent and not acknowledged"),
+            ("v2v_workers", "workers", "Worker processes alive"),
+            ("v2v_workers_busy", "workers_busy", "Workers making samples of a video"),
+            ("v2v_epoch", "epoch", "Newest epoch being made (-1 before the first)"),
+            ("v2v_epoch_videos", "epoch_videos", "Videos of the newest epoch"),
+            ("v2v_epoch_videos_done", "epoch_videos_done", "Videos of the newest epoch fully made"),
+        ):
+            g = GaugeMetricFamily(name, doc)
+            g.add_metric([], float(st.get(key, 0)))
+            yield g
+        g = GaugeMetricFamily("v2v_ready", "1 when the socket is bound, the corpus scanned and a worker is up")
+        g.add_metric([], 1.0 if self.m.ready() else 0.0)
+        yield g
+
+
+class _Progress:
+    """One live line on a terminal (tqdm): epoch, samples/s, MB/s, clients, workers busy."""
+
+    def __init__(self):
+        from tqdm import tqdm
+
+        self.bar = tqdm(unit=" samples", dynamic_ncols=True, file=sys.stderr, leave=False,
+                        bar_format="{n_fmt}{unit} [{elapsed}, {rate_fmt}]{postfix}")
+        self.nbytes = 0
+        self._last = time.monotonic()
+        self._last_bytes = 0
+        self.line = ""
+
+    def add(self, nsamples: int, nbytes: int) -> None:
+        self.bar.update(nsamples)
+        self.nbytes += nbytes
+
+    def show(self, now: float, st: dict) -> None:
+        if now - self._last < 1.0:
+            return
+        mbs = (self.nbytes - self._last_bytes) / 1e6 / (now - self._last)  # over the last second or so
+        self._last, self._last_bytes = now, self.nbytes
+        self.line = (f"epoch {st.get('epoch', -1)} ({st.get('epoch_videos_done', 0)}/{st.get('epoch_videos', 0)} "
+                     f"videos), {mbs:.1f} MB/s, {len(st.get('clients', {}))} client(s), workers busy "
+                     f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}")
+        self.bar.set_postfix_str(self.line)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per log line (``--log-format json``): ``time`` (ISO 8601 UTC),
+    ``level``, ``logger``, ``message``, and ``exception`` when there is one."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        d = {"time": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",
+             "level": record.levelname, "logger": record.name, "message": record.getMessage()}
+        if record.exc_info:
+            d["exception"] = self.formatException(record.exc_info)
+        return json.dumps(d)
