@@ -175,3 +175,35 @@ def test_bad_files_are_skipped_with_the_servers_reasons(ray_session, videos, tmp
     lost = [json.loads(r["params"]) for r in rows if r["sample_id"].startswith("deleted_after_scan")]
     assert len(lost) == 3 and all(p["skipped"] == "missing, or points outside the corpus root" for p in lost)
     assert len(rows) == 6 and all(r["padding"] for r in rows if r["sample_id"].startswith("deleted"))
+
+
+@pytest.mark.timeout(500)
+def test_v2v_train_on_two_ray_ranks_then_resume_trains_every_sample_once(ray_session, videos, tmp_path):
+    import torch
+
+    import trainer.train as tr
+
+    (tmp_path / "serve.yaml").write_text("sequence_length: 4\nnum_bins: 3\ncrop_size: 32\nmax_samples_per_video: 3\n"
+                                         "seed: 5\n")
+    out = tmp_path / "run"
+    common = ["--engine", "ray", "--videos", str(videos), "--serve-config", str(tmp_path / "serve.yaml"),
+              "--task", "evflow", "--out", str(out), "--device", "cpu", "--no-progress", "--num-workers", "2",
+              "--cpus-per-worker", "0.5", "--batch-size", "2", "--set", "model.num_bins=3",
+              "--set", "model.base_num_channels=4", "--set", "log.checkpoint_every=1", "--set", "log.image_every=0"]
+    # 9 samples + 1 padding row = 5 rows per rank: batches of 2, 2, 1 on each rank
+    assert tr.main(common + ["--max-steps", "1"]) == 0
+    ck = torch.load(out / "checkpoint_last.pt", weights_only=False)
+    first = ck["stream_state"]["consumed"][0]
+    assert ck["step"] == 1 and ck["stream_state"]["engine"] == "ray" and 3 <= len(first) <= 4
+    assert tr.main(common + ["--max-steps", "50", "--resume", "auto"]) == 0
+    ck = torch.load(out / "checkpoint_last.pt", weights_only=False)
+    summary = json.loads((out / "summary.json").read_text())
+    assert ck["stream_state"]["epochs_done"] == [0] and ck["stream_state"]["consumed"] == {}
+    # the epoch is done only when the union of consumed ids holds all 9; the counts add up to 9: no repeats
+    assert summary["samples"] + len(first) == 9 and summary["ranks"] == 2
+    assert ck["step"] == 1 + summary["steps"]
+    import csv
+
+    rows = list(csv.DictReader(open(out / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == list(range(1, ck["step"] + 1))
+    assert all(np.isfinite(float(r["loss"])) for r in rows if int(r["samples"]))
