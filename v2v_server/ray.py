@@ -164,6 +164,11 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
     return [{"video": rel, "epoch": int(epoch), "entries": json.dumps(e)} for rel, e in entries.items()]
 
 
+def _window_of(sample_id: str) -> int:
+    """Window index k of an id ``path#k`` (or ``path#k.crop`` when a window gives several crops)."""
+    return int(sample_id.rsplit("#", 1)[1].split(".", 1)[0])
+
+
 def _zeros(cfg: ServeConfig, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
     L, B, S = cfg.sequence_length, cfg.num_bins, cfg.crop_size
     shapes = {"voxels": ((L, B, S, S), VOXEL_DTYPE), "frames": ((L + 1, 1, S, S), np.uint8),
@@ -222,7 +227,7 @@ class SampleMaker:
         wanted: Dict[str, List[bool]] = {}
         for sid, pad in entries:
             wanted.setdefault(sid, []).append(bool(pad))
-        keep = {int(sid.rsplit("#", 1)[1]) for sid in wanted}
+        keep = {_window_of(sid) for sid in wanted}
         skip = [k for k in range(self.cfg.max_samples_per_video) if k not in keep]
         stats: dict = {}
         error: Optional[str] = None
