@@ -320,6 +320,8 @@ def v2v_dataset(
         return ray.data.from_items([{"video": "", "epoch": 0, "entries": "[]"}]).limit(0)
     ds = ray.data.from_items(items, override_num_blocks=len(items))
     if concurrency is None:
+        if not ray.is_initialized():
+            ray.init()  # what Ray Data would do on first use; we need the CPU count now
         concurrency = max(1, min(len(items), int(ray.cluster_resources().get("CPU", 1))))
     pool = (ray.data.ActorPoolStrategy(min_size=concurrency[0], max_size=concurrency[1])
             if isinstance(concurrency, tuple) else ray.data.ActorPoolStrategy(size=int(concurrency)))
