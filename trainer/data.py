@@ -10,12 +10,12 @@ Integers and halves cross the PCIe bus; conversion to float32 happens on the dev
 from __future__ import annotations
 
 import math
-from typing import Iterable, Optional, Tuple
+from typing import Iterable, Optional, Sequence, Tuple
 
 import torch
 from torch.utils.data import DataLoader
 
-__all__ = ["task_outputs", "tc_start_index", "make_stream", "make_loader", "batch_to_device"]
+__all__ = ["task_outputs", "tc_start_index", "make_stream", "make_loader", "batch_to_device", "drop_padding"]
 
 
 def task_outputs(task: str) -> Tuple[str, ...]:
@@ -87,3 +87,31 @@ def batch_to_device(batch: dict, device: torch.device, task: str, tc_start: Opti
             flow = flow[:, tc_start:]
         out["flow"] = flow.to(device, non_blocking=nb).float()
     return out
+
+
+def drop_padding(batch: dict) -> Tuple[dict, int]:
+    """The batch without its padding samples, and how many real samples remain.
+
+    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks samples repeated only
+    to give every DDP rank the same batch count: they must not enter the loss. Tensors and
+    lists whose leading length is B are subset; other entries (``epoch``, ``batch_id``) are
+    kept as they are. Without ``padding`` (or with none set) the batch is returned unchanged.
+    """
+    pad = batch.get("padding")
+    n = len(batch["voxels"]) if "voxels" in batch else len(batch.get("sample_ids", ()))
+    if pad is None:
+        return batch, n
+    keep = ~torch.as_tensor(pad, dtype=torch.bool).flatten()
+    if bool(keep.all()):
+        return batch, len(keep)
+    idx = keep.nonzero().flatten()
+    rows = idx.tolist()
+    out = {}
+    for k, v in batch.items():
+        if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == len(keep):
+            out[k] = v[idx]
+        elif isinstance(v, Sequence) and not isinstance(v, str) and len(v) == len(keep):
+            out[k] = [v[i] for i in rows]
+        else:
+            out[k] = v
+    return out, len(rows)

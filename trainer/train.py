@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from .config import apply_overrides, load_config
-from .data import batch_to_device, make_loader, make_stream, tc_start_index, task_outputs
+from .data import batch_to_device, drop_padding, make_loader, make_stream, tc_start_index, task_outputs
 from .losses import TC_FORMS, ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
 from .models import build_model
 from .viz import flow_to_bgr, gray_to_u8, save_grid, voxel_to_u8
@@ -159,7 +159,11 @@ class Trainer:
 
     def train_step(self, batch: dict) -> dict:
         """One optimiser step on one stream batch (host tensors). Returns floats:
-        ``loss`` and the task's terms."""
+        ``loss`` and the task's terms. Samples flagged ``padding`` are left out of the loss;
+        a batch of padding only makes no step and returns ``{"loss": nan, "samples": 0}``."""
+        batch, n_real = drop_padding(batch)
+        if n_real == 0:
+            return {"loss": float("nan"), "samples": 0}
         self._check_batch(batch)
         self.model.train()
         L = batch["voxels"].shape[1]
@@ -346,6 +350,12 @@ def build_arg_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, e.g. --set model.base_num_channels=8 (repeatable)")
     p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    p.add_argument("--engine", choices=["stream", "ray"], default="stream",
+                   help="stream: read a v2v-serve endpoint (--connect); ray: make the samples in a Ray Data "
+                        "pipeline from --videos and train in a Ray Train TorchTrainer (needs the 'ray' extra)")
+    from .ray_train import add_ray_arguments
+
+    add_ray_arguments(p)
     return p
 
 
@@ -359,6 +369,10 @@ def main(argv=None) -> int:
             cfg[key] = v
     out = Path(str(cfg["out"]).format(task=cfg["task"]))
     _setup_logging(out)
+    if args.engine == "ray":
+        from .ray_train import run_ray
+
+        return run_ray(cfg, args, out)
     device = resolve_device(cfg["device"])
     log.info("task %s on %s, stream %s asking for %s", cfg["task"], device, cfg["connect"], task_outputs(cfg["task"]))
     with open(out / "config.json", "w") as f:

@@ -14,6 +14,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import zmq
 
@@ -93,6 +94,24 @@ class _StageClock:
         return out
 
 
+def file_verdict(cfg: ServeConfig, stats: dict, error: Optional[BaseException] = None) -> Optional[str]:
+    """Why a video gave no samples (or stopped giving them), as ``v2v-serve`` logs it in
+    ``skipped PATH: reason``; ``None`` when it is fine.
+
+    Args:
+        stats: the ``stats`` dict ``sampler.video_samples`` filled (``frames``, ``windows``).
+        error: the exception that ended ``video_samples``, if any: a ``VideoError`` gives its
+            message, anything else ``"TypeName: message"``.
+    """
+    if isinstance(error, VideoError):
+        return str(error)
+    if error is not None:
+        return f"{type(error).__name__}: {error}"
+    if stats.get("windows", 0) == 0:
+        return f"{stats.get('frames', 0)} frames, shorter than one window of {cfg.frames_per_sample} frames"
+    return None
+
+
 def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict) -> None:
     """Make every sample of one task and send it, then send ``done``."""
     stats: dict = {}
@@ -114,13 +133,10 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
             _send(sock, [pack(header)] + frames, parent_pid)
             clock.sent()
             sent += 1
-    except VideoError as e:
-        error = str(e)
     except Exception as e:  # any failure on one file is that file's verdict, not the worker's death
-        error = f"{type(e).__name__}: {e}"
-    if error is None and stats.get("windows", 0) == 0:
-        error = (f"{stats.get('frames', 0)} frames, shorter than one window of "
-                 f"{cfg.frames_per_sample} frames")
+        error = file_verdict(cfg, stats, e)
+    if error is None:
+        error = file_verdict(cfg, stats)
     clock.made()  # decoding after the last window
     done = {"type": "done", "task": task["task"], "samples": sent, "frames": stats.get("frames", 0),
             "windows": stats.get("windows", 0), "error": error, "stages": clock.report()}

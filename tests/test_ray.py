@@ -1,0 +1,214 @@
+"""V2V on Ray Data (``v2v_server.ray``) on a local Ray instance: same samples as the ZeroMQ path,
+exactly once across 2 ranks, resume, bad files. One Ray session for the module (2 CPUs, no
+dashboard); every test is bounded in time."""
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import threading
+from collections import Counter
+
+import numpy as np
+import pytest
+
+ray = pytest.importorskip("ray", reason="the 'ray' extra is not installed (pip install -e '.[ray]')")
+pytest.importorskip("ray.data", reason="the 'ray' extra is not installed (pip install -e '.[ray]')")
+
+from v2v_client import V2VStreamDataset  # noqa: E402
+from v2v_server.config import ServeConfig  # noqa: E402
+from v2v_server.process import ServeProcess  # noqa: E402
+from v2v_server.ray import epoch_descriptors, scan_corpus_windows, v2v_dataset  # noqa: E402
+
+L, B, CROP, MAXW, SEED = 4, 5, 64, 3, 11
+WINDOW = L * B + 1
+
+
+def layout(**kw) -> ServeConfig:
+    kw = {"max_samples_per_video": MAXW, **kw}
+    return ServeConfig(sequence_length=L, num_bins=B, crop_size=CROP, seed=SEED, **kw).validate()
+
+
+def serve_args(videos, *extra):
+    return ["--videos", str(videos), "--workers", "2", "--sequence-length", str(L), "--num-bins", str(B),
+            "--crop-size", str(CROP), "--max-samples-per-video", str(MAXW), "--seed", str(SEED), *extra]
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    ctx = ray.data.DataContext.get_current()
+    ctx.enable_progress_bars = False
+    yield
+    ray.shutdown()
+
+
+def rows_by_id(ds):
+    out = {}
+    for r in ds.take_all():
+        assert r["sample_id"] not in out or r["padding"], f"{r['sample_id']} twice"
+        if not r["padding"]:
+            out[r["sample_id"]] = r
+    return out
+
+
+@pytest.mark.timeout(240)
+def test_epoch_has_every_id_once_and_the_zeromq_path_content(ray_session, videos):
+    cfg = layout()
+    corpus = scan_corpus_windows(videos, cfg)
+    assert corpus.samples_per_epoch == 9 and not corpus.skipped  # 3 clips x 3 windows at L = 4
+    ds = v2v_dataset(corpus, cfg, epoch=1)
+    rows = ds.take_all()
+    ids = [r["sample_id"] for r in rows]
+    assert len(ids) == len(set(ids)) == 9 and not any(r["padding"] for r in rows)
+    with ServeProcess(serve_args(videos, "--epochs", "2", "--batch-size", "4")) as srv:
+        zmq_rows = {}
+        for b in V2VStreamDataset(srv.endpoint, timeout_s=60, raw=True):
+            if b["epoch"] != 1:
+                continue
+            for i, sid in enumerate(b["sample_ids"]):
+                zmq_rows[sid] = ({k: b[k][i].numpy() for k in ("voxels", "frames", "flow")}, b["params"][i])
+        assert srv.wait(30) == 0
+    assert set(zmq_rows) == set(ids)
+    for r in rows:
+        arrays, params = zmq_rows[r["sample_id"]]
+        assert r["voxels"].dtype == np.int16 and r["voxels"].shape == (L, B, CROP, CROP)
+        np.testing.assert_array_equal(r["voxels"], arrays["voxels"].astype(np.int16))
+        assert r["frames"].dtype == np.uint8 and r["frames"].shape == (L + 1, 1, CROP, CROP)
+        np.testing.assert_array_equal(r["frames"], arrays["frames"])
+        assert r["flow"].dtype == arrays["flow"].dtype == np.float16
+        np.testing.assert_array_equal(r["flow"], arrays["flow"])
+        assert json.loads(r["params"]) == params
+        assert np.abs(r["voxels"]).sum() > 0  # real events, not placeholder zeros
+
+
+@pytest.mark.timeout(240)
+def test_two_ranks_get_equal_batches_and_the_epoch_exactly_once(ray_session, videos):
+    cfg = layout(max_samples_per_video=2)  # 3 clips x 2 windows; minus one excluded: 5, odd
+    corpus = scan_corpus_windows(videos, cfg)
+    done = {"bikes.mp4#1"}
+    want = {f"{v}#{k}" for v, n in corpus.windows.items() for k in range(n)} - done
+    ds = v2v_dataset(corpus, cfg, epoch=0, outputs=("voxels",), exclude=done, ranks=2)
+    splits = ds.streaming_split(2, equal=True)
+    got = [[], []]
+    batches = [0, 0]
+    errors = []
+
+    def consume(i):
+        try:
+            for b in splits[i].iter_batches(batch_size=2, batch_format="numpy"):
+                batches[i] += 1
+                got[i].extend(zip(b["sample_id"], b["padding"]))
+                assert b["voxels"].shape[1:] == (L, B, CROP, CROP)
+        except Exception as e:  # surfaced below
+            errors.append(e)
+
+    threads = [threading.Thread(target=consume, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(200)
+    assert not errors and not any(t.is_alive() for t in threads)
+    assert len(got[0]) == len(got[1]) == 3 and batches[0] == batches[1] == 2
+    real = [sid for g in got for sid, pad in g if not pad]
+    assert Counter(real) == Counter(want)  # every id once; the padding row repeats one of them
+    assert sum(pad for g in got for _, pad in g) == 1
+
+
+def test_descriptors_leave_consumed_ids_and_finished_videos_out(videos):
+    cfg = layout()
+    corpus = scan_corpus_windows(videos, cfg)
+    done = {"bikes.mp4#0", "bikes.mp4#1", "bikes.mp4#2", "bigbuckbunny.mp4#1"}
+    descs = epoch_descriptors(corpus, 3, done, ranks=4)
+    assert "bikes.mp4" not in {d["video"] for d in descs}  # never opened
+    entries = [tuple(e) for d in descs for e in json.loads(d["entries"])]
+    assert len(entries) == 8 and all(d["epoch"] == 3 for d in descs)
+    assert sorted(sid for sid, pad in entries if not pad) == sorted(
+        {f"{v}#{k}" for v in corpus.windows for k in range(3)} - done)
+    assert [sid for sid, pad in entries if pad] == ["bigbuckbunny.mp4#0", "bigbuckbunny.mp4#2", "webvid_like_596x336.mp4#0"]
+    with pytest.raises(ValueError, match="ranks"):
+        epoch_descriptors(corpus, 0, ranks=0)
+
+
+@pytest.mark.timeout(240)
+def test_resume_with_exclude_list_gives_the_rest_of_the_epoch(ray_session, videos):
+    cfg = layout(max_samples_per_video=2)
+    first = rows_by_id(v2v_dataset(videos, cfg, epoch=2, outputs=("frames",)))
+    consumed = sorted(first)[:4]
+    rest = rows_by_id(v2v_dataset(videos, cfg, epoch=2, outputs=("frames",), exclude=consumed))
+    assert set(rest) == set(first) - set(consumed)
+    for sid, r in rest.items():  # the same samples as in the uninterrupted epoch
+        np.testing.assert_array_equal(r["frames"], first[sid]["frames"])
+        assert r["params"] == first[sid]["params"]
+
+
+@pytest.mark.timeout(240)
+def test_bad_files_are_skipped_with_the_servers_reasons(ray_session, videos, tmp_path, caplog):
+    from bench.fault_corpus import write_video
+
+    root = tmp_path / "corpus"
+    root.mkdir()
+    shutil.copy(videos / "bikes.mp4", root / "bikes.mp4")
+    shutil.copy(videos / "bikes.mp4", root / "deleted_after_scan.mp4")
+    (root / "zero_length.mp4").write_bytes(b"")
+    (root / "random_bytes.mp4").write_bytes(np.random.default_rng(0).bytes(50_000))
+    write_video(root / "shorter_than_window.mp4", WINDOW - 1, 160, 120)
+    cfg = layout()
+    with ServeProcess(serve_args(root, "--epochs", "1")) as srv:  # what v2v-serve says about them
+        for _ in V2VStreamDataset(srv.endpoint, timeout_s=60, outputs=("voxels",)):
+            pass
+        assert srv.wait(30) == 0
+    served = dict(re.findall(r"skipped (\S+): (.*)", srv.log))
+    with caplog.at_level(logging.WARNING, logger="v2v.ray"):
+        corpus = scan_corpus_windows(root, cfg)
+    mine = {str(root / k): v for k, v in corpus.skipped.items()}
+    assert set(mine) == {str(root / n) for n in ("zero_length.mp4", "random_bytes.mp4", "shorter_than_window.mp4")}
+    assert {k: served[k] for k in mine} == mine  # same verdicts, word for word
+    for path, reason in mine.items():
+        assert f"skipped {path}: {reason}" in caplog.text
+    # a file that goes bad after the scan: its rows become padding carrying the reason; the job goes on
+    (root / "deleted_after_scan.mp4").unlink()
+    rows = v2v_dataset(corpus, cfg, outputs=("voxels",), ranks=2).take_all()
+    good = sorted(r["sample_id"] for r in rows if not r["padding"])
+    assert good == [f"bikes.mp4#{k}" for k in range(3)]
+    lost = [json.loads(r["params"]) for r in rows if r["sample_id"].startswith("deleted_after_scan")]
+    assert len(lost) == 3 and all(p["skipped"] == "missing, or points outside the corpus root" for p in lost)
+    assert len(rows) == 6 and all(r["padding"] for r in rows if r["sample_id"].startswith("deleted"))
+
+
+@pytest.mark.timeout(400)
+def test_v2v_train_on_two_ray_ranks_resumes_without_the_consumed_ids(ray_session, videos, tmp_path):
+    import csv
+
+    import torch
+
+    import trainer.train as tr
+    from trainer.config import apply_overrides, load_config
+    from trainer.ray_train import _State
+
+    (tmp_path / "serve.yaml").write_text("sequence_length: 4\nnum_bins: 3\ncrop_size: 32\nmax_samples_per_video: 3\n"
+                                         "seed: 5\n")
+    out = tmp_path / "run"
+    sets = ["model.num_bins=3", "model.base_num_channels=4", "log.checkpoint_every=1", "log.image_every=0"]
+    # a checkpoint of an earlier run that had trained on 4 of the epoch's 9 samples
+    cfg = apply_overrides(load_config(None, "evflow"), sets)
+    first = ["bigbuckbunny.mp4#0", "bigbuckbunny.mp4#2", "bikes.mp4#1", "webvid_like_596x336.mp4#2"]
+    before = tr.Trainer(cfg, str(out), torch.device("cpu"))
+    before.save_checkpoint(_State({"engine": "ray", "consumed": {0: first}, "epochs_done": []}))
+    argv = ["--engine", "ray", "--videos", str(videos), "--serve-config", str(tmp_path / "serve.yaml"),
+            "--task", "evflow", "--out", str(out), "--device", "cpu", "--no-progress", "--num-workers", "2",
+            "--cpus-per-worker", "0.5", "--batch-size", "2", "--max-steps", "50", "--resume", "auto"]
+    assert tr.main(argv + [a for kv in sets for a in ("--set", kv)]) == 0
+    # 5 samples left + 1 padding row = 3 rows per rank: batches of 2 and 1 on each rank
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ranks"] == 2 and summary["steps"] == 2 and summary["samples"] == 5
+    step1 = torch.load(out / "checkpoint_0000001.pt", weights_only=False)["stream_state"]
+    assert set(first) < set(step1["consumed"][0]) and len(step1["consumed"][0]) in (6, 7)  # both ranks' ids
+    last = torch.load(out / "checkpoint_last.pt", weights_only=False)
+    # the epoch counts as done only when the union of consumed ids holds all 9 (5 + 4 trained: none twice)
+    assert last["step"] == 2 and last["stream_state"] == {"engine": "ray", "consumed": {}, "epochs_done": [0]}
+    rows = list(csv.DictReader(open(out / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == [1, 2]
+    assert all(np.isfinite(float(r["loss"])) for r in rows if int(r["samples"]))
+    assert tr.main(argv + [a for kv in sets for a in ("--set", kv)]) == 0  # nothing left: returns at once

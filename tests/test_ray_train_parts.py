@@ -1,0 +1,95 @@
+"""Parts of ``v2v-train --engine ray`` that need no Ray: padding left out of the loss, gradients
+weighted by real samples across ranks (2 gloo processes), the consumed-id state."""
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from trainer.data import drop_padding
+from trainer.ray_train import SampleWeightedAllReduce, _gather_state, load_ray_state
+
+
+def test_drop_padding_subsets_every_per_sample_entry():
+    b = {"voxels": torch.arange(4.0).view(4, 1), "sample_ids": ["a", "b", "c", "a"], "params": ["p"] * 4,
+         "padding": torch.tensor([False, False, False, True]), "epoch": 3}
+    out, n = drop_padding(b)
+    assert n == 3 and out["sample_ids"] == ["a", "b", "c"] and out["voxels"].flatten().tolist() == [0.0, 1.0, 2.0]
+    assert out["epoch"] == 3 and not out["padding"].any()
+    out, n = drop_padding({**b, "padding": torch.ones(4, dtype=torch.bool)})
+    assert n == 0 and len(out["voxels"]) == 0
+    plain = {"voxels": torch.zeros(2, 1)}
+    assert drop_padding(plain) == (plain, 2)
+    same, n = drop_padding({"voxels": b["voxels"], "padding": [False] * 4})
+    assert n == 4 and same["voxels"] is b["voxels"]
+
+
+def test_padding_only_batch_makes_no_step():
+    from trainer.config import apply_overrides, load_config
+    from trainer.train import Trainer
+
+    cfg = apply_overrides(load_config(None, "evflow"), ["model.num_bins=3", "model.base_num_channels=4"])
+    import tempfile
+
+    t = Trainer(cfg, tempfile.mkdtemp(prefix="v2v-test-"), torch.device("cpu"))
+    before = [p.detach().clone() for p in t.model.parameters()]
+    batch = {"voxels": torch.ones(2, 2, 3, 32, 32, dtype=torch.int16), "flow": torch.ones(2, 2, 2, 32, 32),
+             "padding": torch.tensor([True, True])}
+    assert t.train_step(batch)["samples"] == 0 and t.step == 0
+    assert all(torch.equal(a, b) for a, b in zip(before, t.model.parameters()))
+    batch["padding"] = torch.tensor([True, False])
+    assert torch.isfinite(torch.tensor(t.train_step(batch)["loss"])) and t.step == 1
+
+
+def _rank(rank, world, path, q):
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", init_method=f"file://{path}", rank=rank, world_size=world)
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 1)
+    opt = SampleWeightedAllReduce(torch.optim.SGD(model.parameters(), lr=1.0), model.parameters())
+    x = torch.tensor([[1.0, 2.0, 3.0], [0.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    opt.zero_grad()
+    if rank == 0:  # three real samples; rank 1 has only padding and no forward at all
+        model(x).pow(2).mean().backward()
+        opt.samples = 3
+    else:
+        opt.samples = 0
+    opt.step()
+    q.put((rank, [p.detach().tolist() for p in model.parameters()]))  # plain lists: no fd sharing
+    dist.destroy_process_group()
+
+
+@pytest.mark.timeout(120)
+def test_gradients_are_weighted_by_real_samples_across_ranks(tmp_path):
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    procs = [ctx.Process(target=_rank, args=(r, 2, str(tmp_path / "store"), q)) for r in range(2)]
+    for p in procs:
+        p.start()
+    got = dict(q.get(timeout=100) for _ in procs)
+    for p in procs:
+        p.join(30)
+    torch.manual_seed(0)
+    ref = torch.nn.Linear(3, 1)
+    sgd = torch.optim.SGD(ref.parameters(), lr=1.0)
+    x = torch.tensor([[1.0, 2.0, 3.0], [0.0, 1.0, 0.0], [2.0, 0.0, 1.0]])
+    ref(x).pow(2).mean().backward()
+    sgd.step()  # one process on the 3 real samples: what both ranks must hold (DDP's mean would halve it)
+    for r in (0, 1):
+        for a, b in zip(got[r], ref.parameters()):
+            torch.testing.assert_close(torch.tensor(a), b.detach())
+
+
+def test_consumed_state_merges_ranks_and_closes_finished_epochs(tmp_path):
+    prev = {"engine": "ray", "consumed": {0: ["a#0"]}, "epochs_done": []}
+    sd = _gather_state({0: {"a#1"}, 1: {"a#0"}}, prev, {0: 3, 1: 3}, world=1)
+    assert sd == {"engine": "ray", "consumed": {0: ["a#0", "a#1"], 1: ["a#0"]}, "epochs_done": []}
+    sd = _gather_state({0: {"a#2"}}, sd, {0: 3, 1: 3}, world=1)
+    assert sd["epochs_done"] == [0] and list(sd["consumed"]) == [1]
+    assert load_ray_state(None) == {"engine": "ray", "consumed": {}, "epochs_done": []}
+    torch.save({"stream_state": {"epoch": 0, "yielded": []}}, tmp_path / "zmq.pt")
+    with pytest.raises(ValueError, match="v2v-serve stream position"):
+        load_ray_state(str(tmp_path / "zmq.pt"))

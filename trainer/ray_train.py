@@ -1,0 +1,380 @@
+"""``v2v-train --engine ray``: the same training steps, fed by a Ray Data pipeline, in Ray Train.
+
+The driver lists the corpus (``v2v_server.ray.scan_corpus_windows``), builds the epochs' dataset
+(``v2v_server.ray.v2v_dataset``) padded to a multiple of the rank count, and runs a
+``TorchTrainer`` whose ranks each read ``get_dataset_shard("train").iter_torch_batches(...)``
+(Ray Train splits the stream with ``streaming_split(n, equal=True)``; the padding makes it drop
+nothing). Batches keep their wire dtypes (int16 voxels, uint8 frames, float16 flow) in pinned
+host memory and become float32 on the device (``trainer.data.batch_to_device``).
+
+Exactly once per epoch:
+
+* padding rows (``padding`` true) are left out of the loss (``trainer.data.drop_padding``);
+* gradients are averaged over the ranks weighted by each rank's real sample count
+  (:class:`SampleWeightedAllReduce`), so a rank whose batch is all padding still joins the
+  all-reduce (no DDP hang) and adds nothing;
+* the ids each rank trained on are gathered into every checkpoint (``stream_state``:
+  ``{"engine": "ray", "consumed": {epoch: [ids]}, "epochs_done": [...]}``); a restarted run
+  (``--resume``, or the driver's own retry after a failed run, ``--max-failures``) builds its
+  dataset without them. Samples trained after the last checkpoint are trained again after a
+  failure, as are the model's updates from them: the model never sees a sample twice.
+
+Checkpoints and logs are written by rank 0 to ``--out`` (shared storage on a multi-node
+cluster): ``train_log.csv``, ``checkpoint_NNNNNNN.pt``, ``checkpoint_last.pt``, ``summary.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import tempfile
+import time
+import warnings
+from collections import defaultdict
+from pathlib import Path
+from typing import Dict, Iterable, List, Optional
+
+import numpy as np
+import torch
+
+from .data import drop_padding, task_outputs
+from .train import CSV_COLUMNS, Trainer
+
+__all__ = ["add_ray_arguments", "run_ray", "RayTrainer", "SampleWeightedAllReduce", "load_ray_state"]
+
+log = logging.getLogger("trainer.ray")
+
+_TENSOR_COLUMNS = ("voxels", "frames", "flow")
+
+
+def add_ray_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``--engine ray`` options of ``v2v-train``."""
+    g = p.add_argument_group("Ray engine (--engine ray; needs pip install 'v2v[ray]')")
+    g.add_argument("--videos", help="corpus folder (on every node of the cluster, same path)")
+    g.add_argument("--serve-config", help="v2v-serve YAML config for the sample layout (default: v2v-serve's defaults)")
+    g.add_argument("--num-workers", type=int, default=1, help="Ray Train ranks (default 1)")
+    g.add_argument("--use-gpu", action="store_true", help="one GPU per rank")
+    g.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per rank (default 1)")
+    g.add_argument("--batch-size", type=int, default=12, help="samples per batch per rank (default 12)")
+    g.add_argument("--epochs", type=int, default=1, help="epochs to train (default 1); --max-steps also stops")
+    g.add_argument("--address", help="Ray cluster address (ray://HOST:10001 or auto); default: a local Ray")
+    g.add_argument("--data-workers", type=int, help="actors of the V2V map stage (default: the free CPUs)")
+    g.add_argument("--data-resource", help="custom resource each V2V actor needs 1 of (keeps it off GPU nodes)")
+    g.add_argument("--max-failures", type=int, default=0,
+                   help="times a failed run is restarted from its last checkpoint (default 0)")
+
+
+def v2v_collate(pin: bool):
+    """A ``ray.data.collate_fn.NumpyBatchCollateFn`` doing :class:`V2VCollate`'s work."""
+    from ray.data.collate_fn import NumpyBatchCollateFn
+
+    class _Collate(V2VCollate, NumpyBatchCollateFn):
+        pass
+
+    return _Collate(pin)
+
+
+class V2VCollate:
+    """Ray Data numpy batch -> the stream batch contract of ``trainer.data``: ``voxels``,
+    ``frames``, ``flow`` tensors in their wire dtypes (pinned when CUDA is present, so the
+    host -> device copy is asynchronous), ``padding`` bool (B,), ``sample_ids`` and
+    ``params`` lists of str, ``epochs`` list of int."""
+
+    def __init__(self, pin: bool):
+        self.pin = bool(pin)
+
+    def __call__(self, batch: Dict[str, np.ndarray]) -> dict:
+        out = {}
+        for k in _TENSOR_COLUMNS:
+            if k in batch:
+                with warnings.catch_warnings():  # Ray's zero-copy arrays are read-only; nothing writes them
+                    warnings.simplefilter("ignore", UserWarning)
+                    t = torch.from_numpy(np.ascontiguousarray(batch[k]))
+                out[k] = t.pin_memory() if self.pin else t
+        out["padding"] = torch.from_numpy(np.asarray(batch["padding"], dtype=bool))
+        out["sample_ids"] = [str(s) for s in batch["sample_id"]]
+        out["params"] = [str(s) for s in batch["params"]]
+        out["epochs"] = [int(e) for e in batch["epoch"]]
+        out["epoch"] = out["epochs"][0] if out["epochs"] else -1
+        return out
+
+
+class SampleWeightedAllReduce:
+    """An optimiser wrapper for several ranks: before each ``step()`` the ranks' gradients are
+    summed weighted by ``samples`` (this rank's real samples in the step) and divided by the
+    total, the gradient of the mean loss over all real samples of the step (DDP averages per
+    rank instead, which would over-weight a rank with padding). A rank with no real sample
+    still joins the all-reduce (gradient zero). When no rank has a sample, nothing steps.
+
+    Everything else (``zero_grad``, ``state_dict``, ``param_groups``) is the wrapped optimiser's.
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer, params: Iterable[torch.nn.Parameter]):
+        self.optimizer = optimizer
+        self.params = [p for p in params if p.requires_grad]
+        self.samples = 0
+
+    def __getattr__(self, name):
+        return getattr(self.optimizer, name)
+
+    def step(self):
+        import torch.distributed as dist
+
+        dev = self.params[0].device
+        grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params]
+        flat = torch.cat([g.detach().flatten().float() for g in grads] + [torch.ones(1, device=dev)])
+        flat.mul_(float(self.samples))
+        dist.all_reduce(flat)
+        total = float(flat[-1])
+        if total == 0:
+            return
+        flat = flat[:-1].div_(total)
+        o = 0
+        for p in self.params:
+            n = p.numel()
+            p.grad = flat[o:o + n].view_as(p).to(p.dtype)
+            o += n
+        self.optimizer.step()
+
+
+class RayTrainer(Trainer):
+    """:class:`trainer.train.Trainer` on one Ray Train rank: the same steps, plus the
+    padding-only step a rank must still take so all ranks stay in step."""
+
+    def train_step(self, batch: dict) -> dict:
+        _, n = drop_padding(batch)
+        if isinstance(self.optimizer, SampleWeightedAllReduce):
+            self.optimizer.samples = n
+            if n == 0:  # nothing to learn here, but the other ranks wait for our gradient
+                self.optimizer.zero_grad(set_to_none=True)
+                self.optimizer.step()
+                self.step += 1
+                return {"loss": float("nan"), "samples": 0}
+        stats = super().train_step(batch)
+        stats["samples"] = n
+        return stats
+
+
+class _State:
+    """What ``Trainer.checkpoint`` stores as ``stream_state``."""
+
+    def __init__(self, sd: dict):
+        self.sd = sd
+
+    def state_dict(self) -> dict:
+        return self.sd
+
+
+def load_ray_state(path: Optional[str]) -> dict:
+    """The ``stream_state`` of a ``--engine ray`` checkpoint (empty state without one).
+
+    Raises:
+        ValueError: the checkpoint comes from another engine (a ``v2v-serve`` stream position
+            cannot say which samples a Ray run consumed).
+    """
+    empty = {"engine": "ray", "consumed": {}, "epochs_done": []}
+    if not path:
+        return empty
+    sd = torch.load(path, map_location="cpu", weights_only=False).get("stream_state")
+    if sd is None:
+        return empty
+    if sd.get("engine") != "ray":
+        raise ValueError(f"checkpoint {path} holds a v2v-serve stream position, not a Ray run's consumed ids")
+    return {"engine": "ray", "consumed": {int(e): list(v) for e, v in sd["consumed"].items()},
+            "epochs_done": [int(e) for e in sd["epochs_done"]]}
+
+
+def _gather_state(consumed: Dict[int, set], prev: dict, epoch_sizes: Dict[int, int], world: int) -> dict:
+    """Consumed ids of every rank (collective: all ranks call it at the same step)."""
+    mine = {e: sorted(v) for e, v in consumed.items()}
+    parts = [mine]
+    if world > 1:
+        import torch.distributed as dist
+
+        parts = [None] * world
+        dist.all_gather_object(parts, mine)
+    merged: Dict[int, set] = defaultdict(set)
+    for e, ids in prev["consumed"].items():
+        merged[int(e)].update(ids)
+    for part in parts:
+        for e, ids in part.items():
+            merged[int(e)].update(ids)
+    done = set(prev["epochs_done"])
+    for e, ids in list(merged.items()):
+        if len(ids) >= epoch_sizes.get(e, epoch_sizes.get(str(e), 1 << 62)):
+            done.add(e)
+            del merged[e]
+    return {"engine": "ray", "consumed": {e: sorted(v) for e, v in sorted(merged.items())},
+            "epochs_done": sorted(done)}
+
+
+def _open_csv(out: Path, task: str, step: int):
+    path = out / "train_log.csv"
+    kept = []
+    if step and path.exists():  # resumed: drop rows logged after the checkpoint
+        with open(path, newline="") as f:
+            kept = [r for r in csv.DictReader(f) if r.get("step", "").isdigit() and int(r["step"]) <= step]
+    fh = open(path, "w", newline="", buffering=1)
+    w = csv.DictWriter(fh, fieldnames=CSV_COLUMNS[task] + ["samples"], extrasaction="ignore")
+    w.writeheader()
+    w.writerows(kept)
+    return fh, w
+
+
+def _train_loop(config: dict) -> None:
+    """The per-rank loop (runs inside a Ray Train worker)."""
+    import ray.train
+    import ray.train.torch
+
+    ctx = ray.train.get_context()
+    rank, world = ctx.get_world_rank(), ctx.get_world_size()
+    logging.basicConfig(level=logging.INFO, format=f"%(asctime)s rank{rank} %(name)s: %(message)s")
+    torch.set_num_threads(max(1, int(config["cpus_per_worker"])))
+    cfg = config["cfg"]
+    out = Path(config["out"])
+    device = ray.train.torch.get_device() if config["use_gpu"] else torch.device("cpu")
+    trainer = RayTrainer(cfg, str(out) if rank == 0 else tempfile.mkdtemp(prefix=f"v2v-rank{rank}-"), device)
+    if config["resume"]:
+        trainer.load_checkpoint(config["resume"])
+    if world > 1:
+        import torch.distributed as dist
+
+        for t in trainer.model.state_dict().values():  # identical replicas, whatever each rank loaded
+            dist.broadcast(t, 0)
+        trainer.optimizer = SampleWeightedAllReduce(trainer.optimizer, trainer.model.parameters())
+    prev = config["state"]
+    epoch_sizes = {int(e): int(n) for e, n in config["epoch_sizes"].items()}
+    consumed: Dict[int, set] = defaultdict(set)
+    max_steps, every = int(config["max_steps"]), int(cfg["log"]["checkpoint_every"])
+    fh, writer = _open_csv(out, trainer.task, trainer.step) if rank == 0 else (None, None)
+    pin = device.type == "cuda"
+    batches = ray.train.get_dataset_shard("train").iter_torch_batches(
+        batch_size=int(config["batch_size"]), collate_fn=v2v_collate(pin), prefetch_batches=2)
+
+    def save():
+        sd = _gather_state(consumed, prev, epoch_sizes, world)
+        if rank == 0:
+            trainer.save_checkpoint(_State(sd))
+        ray.train.report({"step": trainer.step, "epochs_done": sd["epochs_done"]})
+
+    t_start = t0 = time.perf_counter()
+    wait, start_step, n_samples, losses = 0.0, trainer.step, 0, []
+    try:
+        for batch in batches:
+            t1 = time.perf_counter()
+            stats = trainer.train_step(batch)
+            wait += t1 - t0
+            for sid, e, pad in zip(batch["sample_ids"], batch["epochs"], batch["padding"].tolist()):
+                if not pad:
+                    consumed[e].add(sid)
+            n_samples += stats.get("samples", 0)
+            if np.isfinite(stats["loss"]):
+                losses.append(stats["loss"])
+            if writer is not None:
+                stats.update(step=trainer.step, epoch=batch["epoch"], data_wait_s=round(t1 - t0, 5),
+                             step_s=round(time.perf_counter() - t0, 5))
+                writer.writerow(stats)
+            if every and trainer.step % every == 0:
+                save()
+            t0 = time.perf_counter()
+            if trainer.step >= max_steps:
+                break
+        save()
+    finally:
+        if fh is not None:
+            fh.close()
+    counts = [n_samples]
+    if world > 1:
+        import torch.distributed as dist
+
+        counts = [None] * world
+        dist.all_gather_object(counts, n_samples)
+    if rank == 0:
+        el = time.perf_counter() - t_start
+        summary = {"task": trainer.task, "engine": "ray", "ranks": world, "steps": trainer.step - start_step,
+                   "final_step": trainer.step, "samples": int(sum(counts)),
+                   "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
+                   "steps_per_s": (trainer.step - start_step) / el if el > 0 else None,
+                   "data_wait_fraction": wait / el if el > 0 else None}
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        log.info("done: %s", json.dumps(summary))
+
+
+def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
+    """Driver of ``v2v-train --engine ray``; returns the exit code (2: bad arguments, 1: the run
+    failed more than ``--max-failures`` times)."""
+    try:
+        import ray
+        from ray.train import FailureConfig, RunConfig, ScalingConfig
+        from ray.train.torch import TorchTrainer
+    except ImportError:
+        log.error("--engine ray needs Ray: pip install 'v2v[ray]'")
+        return 2
+    from v2v_server.config import load_config as load_serve_config
+    from v2v_server.ray import scan_corpus_windows, v2v_dataset
+
+    if not args.videos:
+        log.error("--engine ray needs --videos DIR")
+        return 2
+    try:
+        scfg = load_serve_config(args.serve_config, {"videos": args.videos})
+    except (ValueError, FileNotFoundError) as e:
+        log.error("--serve-config: %s", e)
+        return 2
+    if int(cfg["model"]["num_bins"]) != scfg.num_bins:
+        log.error("samples have %d bins, model.num_bins is %s: set one to the other", scfg.num_bins,
+                  cfg["model"]["num_bins"])
+        return 2
+    if args.num_workers < 1 or args.batch_size < 1 or args.epochs < 1:
+        log.error("--num-workers, --batch-size and --epochs must be >= 1")
+        return 2
+    if not ray.is_initialized():
+        ray.init(address=args.address)
+    data_workers = args.data_workers
+    if data_workers is None:  # the CPUs the ranks leave free
+        free = ray.cluster_resources().get("CPU", 1) - args.num_workers * args.cpus_per_worker
+        data_workers = max(1, int(free))
+    corpus = scan_corpus_windows(args.videos, scfg)
+    if not corpus.samples_per_epoch:
+        log.error("no usable video under %s", args.videos)
+        return 2
+    log.info("Ray engine: %d samples per epoch from %d videos (%d skipped), %d rank(s), batch %d per rank, "
+             "%d V2V actor(s)", corpus.samples_per_epoch, len(corpus.windows), len(corpus.skipped), args.num_workers,
+             args.batch_size, data_workers)
+    failures = 0
+    resume = cfg.get("resume")
+    while True:
+        if resume == "auto":
+            resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None
+        state = load_ray_state(resume)
+        todo = [e for e in range(args.epochs) if e not in set(state["epochs_done"])]
+        if not todo:
+            log.info("all %d epoch(s) already trained", args.epochs)
+            return 0
+        ds = v2v_dataset(corpus, scfg, epoch=todo, outputs=task_outputs(cfg["task"]),
+                         exclude={e: state["consumed"].get(e, ()) for e in todo}, ranks=args.num_workers,
+                         concurrency=data_workers, resource=args.data_resource)
+        loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,
+                    "max_steps": int(cfg["max_steps"]), "batch_size": args.batch_size,
+                    "epoch_sizes": {e: corpus.samples_per_epoch for e in todo}, "use_gpu": bool(args.use_gpu),
+                    "cpus_per_worker": args.cpus_per_worker}
+        tt = TorchTrainer(
+            _train_loop, train_loop_config=loop_cfg, datasets={"train": ds},
+            scaling_config=ScalingConfig(num_workers=args.num_workers, use_gpu=bool(args.use_gpu),
+                                         resources_per_worker={"CPU": args.cpus_per_worker}),
+            run_config=RunConfig(name=f"v2v-{cfg['task']}", storage_path=str((out / "ray").resolve()),
+                                 failure_config=FailureConfig(max_failures=0)),
+        )
+        try:
+            tt.fit()
+            return 0
+        except Exception as e:  # a rank or the run failed: restart from the last checkpoint, or give up
+            failures += 1
+            if failures > args.max_failures:
+                log.error("Ray Train run failed (%s: %s); %d restart(s) allowed", type(e).__name__, e,
+                          args.max_failures)
+                return 1
+            log.warning("Ray Train run failed (%s: %s); restarting from the last checkpoint (%d of %d)",
+                        type(e).__name__, e, failures, args.max_failures)
+            resume = "auto"

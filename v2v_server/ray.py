@@ -1,0 +1,333 @@
+"""V2V as a Ray Data pipeline: window descriptors in, one row per training sample out.
+
+For clusters that already run Ray: Ray places the decoding (a ``map_batches`` stage on an actor
+pool of CPU workers) on CPU nodes, streams rows with backpressure to Ray Train ranks on GPU
+nodes, and splits the stream between ranks (``streaming_split``). Sample content is made by the
+same functions ``v2v-serve``'s workers call (``sampler.video_samples``, ``worker.file_verdict``),
+so a sample is identical, bit for bit, to what ``v2v-serve`` sends for the same
+(seed, epoch, sample_id).
+
+Layout of the pipeline:
+
+1. :func:`scan_corpus_windows` lists the corpus (``video.scan_corpus``) and counts each file's
+   windows by demuxing its packets (no decoding, ~1/50 of a decode pass); a file that cannot be
+   opened or is too short is skipped here with the same ``skipped PATH: reason`` line as
+   ``v2v-serve``. The result (:class:`RayCorpus`) does not depend on the epoch: keep it.
+2. :func:`epoch_descriptors` lists the epoch's sample ids, drops the excluded ones (resume:
+   before any decoding), pads the list to a multiple of the rank count with flagged repeats
+   (``padding``) and groups the ids by video: one descriptor per video, because a video is
+   decoded once, sequentially, and all its windows are cut from that pass, as in ``v2v-serve``
+   (seeking to each window costs a keyframe seek plus decoding up to the window start; see
+   ``bench/ray_bench.py``).
+3. :func:`v2v_dataset` turns them into ``ray.data.from_items`` (one block per video) and a
+   ``map_batches`` stage with :class:`SampleMaker`, a class, so each actor builds its flow
+   estimator and compiled kernels once.
+
+Every descriptor entry gives exactly one row, always: a window the file could not give (a file
+that fails part-way) becomes a ``padding`` row of zeros whose ``params`` hold ``{"skipped":
+reason}``, so the row count stays a multiple of the rank count and ``streaming_split(n,
+equal=True)`` drops nothing.
+
+Rows: ``sample_id`` str; ``voxels`` int16 (L, B, S, S) signed event counts; ``frames`` uint8
+(L + 1, 1, S, S) at voxel boundaries; ``flow`` float16/float32 (``flow_dtype``) (L, 2, S, S),
+pixels from frame l to l + 1 (only the columns in ``outputs``); ``params`` str (JSON of the
+sample's parameters, as in the ZeroMQ batch header); ``epoch`` int64; ``padding`` bool.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from .config import ALL_OUTPUTS, ServeConfig
+from .sampler import FlowEstimator, make_sample_id, video_samples
+from .video import VideoError, inside, open_video, scan_corpus
+from .worker import file_verdict
+
+__all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
+           "v2v_dataset", "VOXEL_DTYPE"]
+
+log = logging.getLogger("v2v.ray")
+
+#: Dtype of the ``voxels`` column: one dtype for every row (Ray blocks need one per column).
+#: The ZeroMQ path narrows per batch to int8 when it can; the values are the same.
+VOXEL_DTYPE = np.int16
+
+
+@dataclass(frozen=True)
+class RayCorpus:
+    """A corpus and its windows per video (epoch-independent; reuse it across epochs).
+
+    Attributes:
+        root: corpus folder.
+        windows: usable video (POSIX path relative to ``root``) -> windows per epoch.
+        skipped: unusable video -> reason (the ``skipped PATH: reason`` of ``v2v-serve``).
+    """
+
+    root: str
+    windows: Dict[str, int]
+    skipped: Dict[str, str]
+
+    @property
+    def samples_per_epoch(self) -> int:
+        return sum(self.windows.values())
+
+
+def count_windows(cfg: ServeConfig, root: Path, rel: str) -> Tuple[int, Optional[str]]:
+    """Windows ``root / rel`` gives per epoch, from its video packets (demuxed, not decoded).
+
+    Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
+    ``v2v-serve`` logs for it (``open_video``'s ``VideoError`` message, or ``"N frames,
+    shorter than one window of 201 frames"``). A file whose packets demux but whose frames
+    do not decode is found out later, while decoding, with the decoder's reason.
+    """
+    path = Path(root) / rel
+    if not inside(Path(root), path):
+        return 0, "missing, or points outside the corpus root"
+    frames = 0
+    try:
+        container, stream, _ = open_video(path)
+        try:
+            need = cfg.frames_per_sample * cfg.max_samples_per_video
+            for packet in container.demux(stream):
+                if packet.size:
+                    frames += 1
+                    if frames >= need:
+                        break
+        finally:
+            container.close()
+    except VideoError as e:
+        return 0, str(e)
+    except Exception as e:  # demuxing errors: the same wording as a decoding failure
+        if frames == 0:
+            return 0, f"{type(e).__name__}: {e}"
+    windows = min(cfg.max_samples_per_video, frames // cfg.frames_per_sample)
+    return windows, (None if windows else file_verdict(cfg, {"frames": frames, "windows": 0}))
+
+
+def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] = None) -> RayCorpus:
+    """List the video files under ``videos`` (as ``v2v-serve --videos``) and count their windows.
+
+    Logs ``skipped PATH: reason`` (logger ``v2v.ray``, WARNING) for each unusable file and
+    ``ignored PATH: reason`` (INFO) for other entries, as ``v2v-serve`` does.
+
+    Raises:
+        NotADirectoryError: ``videos`` is not a folder.
+    """
+    cfg = config or ServeConfig().validate()
+    root = Path(videos)
+    if not root.is_dir():
+        raise NotADirectoryError(f"videos {root}: not a folder")
+    found, rejected = scan_corpus(root, cfg.video_extensions)
+    for rel, reason in rejected:
+        log.info("ignored %s: %s", root / rel, reason)
+    windows, skipped = {}, {}
+    for p in found:
+        rel = p.as_posix()
+        n, reason = count_windows(cfg, root, rel)
+        if reason:
+            skipped[rel] = reason
+            log.warning("skipped %s: %s", root / rel, reason)
+        else:
+            windows[rel] = n
+    return RayCorpus(str(root), windows, skipped)
+
+
+def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = (), ranks: int = 1) -> List[dict]:
+    """The epoch's work, one descriptor per video, padded to a multiple of ``ranks`` rows.
+
+    Each descriptor is ``{"video": rel, "epoch": epoch, "entries": JSON [[sample_id, padding],
+    ...]}`` in window order. Ids in ``exclude`` (already consumed: resume) are left out, and a
+    video with none left is not listed, so it is never opened. When the remaining count is not
+    a multiple of ``ranks``, the first ids of the epoch are listed again with ``padding`` true
+    (made from the same decode pass, no extra decoding) until it is.
+
+    Raises:
+        ValueError: ``ranks`` < 1.
+    """
+    if ranks < 1:
+        raise ValueError(f"ranks must be >= 1, got {ranks}")
+    exclude = set(exclude)
+    todo = [(rel, make_sample_id(rel, k)) for rel, n in corpus.windows.items() for k in range(n)]
+    todo = [(rel, sid) for rel, sid in todo if sid not in exclude]
+    pad = (-len(todo)) % ranks if todo else 0
+    entries: Dict[str, list] = {}
+    for rel, sid in todo:
+        entries.setdefault(rel, []).append([sid, False])
+    for i in range(pad):
+        rel, sid = todo[i % len(todo)]
+        entries[rel].append([sid, True])
+    return [{"video": rel, "epoch": int(epoch), "entries": json.dumps(e)} for rel, e in entries.items()]
+
+
+def _window_of(sample_id: str) -> int:
+    """Window index k of an id ``path#k`` (or ``path#k.crop`` when a window gives several crops)."""
+    return int(sample_id.rsplit("#", 1)[1].split(".", 1)[0])
+
+
+def _zeros(cfg: ServeConfig, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
+    L, B, S = cfg.sequence_length, cfg.num_bins, cfg.crop_size
+    shapes = {"voxels": ((L, B, S, S), VOXEL_DTYPE), "frames": ((L + 1, 1, S, S), np.uint8),
+              "flow": ((L, 2, S, S), np.dtype(cfg.flow_dtype))}
+    return {k: np.zeros(*shapes[k]) for k in outputs}
+
+
+def _row_arrays(cfg: ServeConfig, arrays: Dict[str, np.ndarray], sample_id: str) -> Dict[str, np.ndarray]:
+    """A sample's arrays in the column dtypes: voxels int16 (never wrapped), frames uint8
+    with a channel axis, flow ``cfg.flow_dtype`` (as the ZeroMQ wire)."""
+    out = {}
+    for name, a in arrays.items():
+        if name == "voxels":
+            info = np.iinfo(VOXEL_DTYPE)
+            if a.size and (int(a.min()) < info.min or int(a.max()) > info.max):
+                raise OverflowError(f"{sample_id}: event counts in [{a.min()}, {a.max()}] do not fit {VOXEL_DTYPE.__name__}")
+            a = a.astype(VOXEL_DTYPE)
+        elif name == "frames":
+            a = a[:, None]
+        elif name == "flow":
+            a = a.astype(cfg.flow_dtype)
+        out[name] = np.ascontiguousarray(a)
+    return out
+
+
+class SampleMaker:
+    """The ``map_batches`` stage: one Ray actor, one CPU; makes the samples of video descriptors.
+
+    Built once per actor: the config, OpenCV set to one thread, the optical-flow estimator (and
+    any compiled kernel the sampler loads on first use). Each call takes a batch of
+    descriptors (see :func:`epoch_descriptors`) and yields one single-row batch per entry,
+    as soon as the sample is made (rows stream; the actor never holds a whole video).
+
+    Args:
+        cfg_dict: ``ServeConfig.to_dict()``.
+        root: corpus folder as seen from the actor's node.
+        outputs: subset of ("voxels", "frames", "flow") to make.
+    """
+
+    def __init__(self, cfg_dict: dict, root: str, outputs: Sequence[str]):
+        import cv2
+
+        cv2.setNumThreads(1)
+        self.cfg = ServeConfig.from_dict(cfg_dict, source="ray stage config")
+        self.root = Path(root)
+        self.outputs = tuple(outputs)
+        self.flow = FlowEstimator(self.cfg.flow_preset) if "flow" in self.outputs else None
+        logging.basicConfig(level=logging.INFO, format="v2v-ray %(process)d: %(message)s")
+
+    def __call__(self, batch: Mapping[str, np.ndarray]) -> Iterator[Dict[str, np.ndarray]]:
+        for video, epoch, entries in zip(batch["video"], batch["epoch"], batch["entries"]):
+            yield from self.video_rows(str(video), int(epoch), json.loads(str(entries)))
+
+    def video_rows(self, video: str, epoch: int, entries: List[list]) -> Iterator[Dict[str, np.ndarray]]:
+        """Decode ``video`` once and yield a row for every ``[sample_id, padding]`` entry."""
+        wanted: Dict[str, List[bool]] = {}
+        for sid, pad in entries:
+            wanted.setdefault(sid, []).append(bool(pad))
+        keep = {_window_of(sid) for sid in wanted}
+        skip = [k for k in range(self.cfg.max_samples_per_video) if k not in keep]
+        stats: dict = {}
+        error: Optional[str] = None
+        try:
+            for sid, arrays, meta in video_samples(self.cfg, self.root, video, epoch, self.outputs, skip,
+                                                   self.flow, stats):
+                flags = wanted.pop(sid, None)
+                if flags is None:
+                    continue
+                arrays = _row_arrays(self.cfg, arrays, sid)
+                params = json.dumps(meta)
+                for pad in flags:
+                    yield self._row(sid, arrays, params, epoch, pad)
+                if not wanted:
+                    break
+        except Exception as e:  # one file's failure is that file's verdict, never the job's death
+            error = file_verdict(self.cfg, stats, e)
+        if wanted:  # windows the file did not give: a verdict, and padding rows in their place
+            error = error or file_verdict(self.cfg, stats) or (
+                f"{stats.get('frames', 0)} frames decoded, fewer than its packets promised")
+            log.warning("skipped %s: %s", self.root / video, error)
+            zeros = _zeros(self.cfg, self.outputs)
+            for sid, flags in wanted.items():
+                for _ in flags:
+                    yield self._row(sid, zeros, json.dumps({"sample_id": sid, "skipped": error}), epoch, True)
+
+    @staticmethod
+    def _row(sid: str, arrays: Dict[str, np.ndarray], params: str, epoch: int, pad: bool) -> Dict[str, np.ndarray]:
+        row = {"sample_id": np.array([sid], dtype=object), "params": np.array([params], dtype=object),
+               "epoch": np.array([epoch], dtype=np.int64), "padding": np.array([pad])}
+        row.update({k: a[None] for k, a in arrays.items()})
+        return row
+
+
+def v2v_dataset(
+    videos: Union[str, Path, RayCorpus],
+    config: Optional[ServeConfig] = None,
+    *,
+    epoch: Union[int, Sequence[int]] = 0,
+    seed: Optional[int] = None,
+    outputs: Sequence[str] = ALL_OUTPUTS,
+    exclude: Union[Iterable[str], Mapping[int, Iterable[str]]] = (),
+    ranks: int = 1,
+    concurrency: Union[int, Tuple[int, int], None] = None,
+    resource: Optional[str] = None,
+    maker: type = SampleMaker,
+):
+    """A ``ray.data.Dataset`` of V2V samples, one row per sample (columns: module docstring).
+
+    Args:
+        videos: corpus folder, or a :class:`RayCorpus` from :func:`scan_corpus_windows` (saves
+            the packet count on every call).
+        config: sample layout (``ServeConfig``; defaults: the paper's WebVid recipe).
+        epoch: an epoch, or several (their rows follow each other; each is padded on its own).
+        seed: overrides ``config.seed``; content depends only on (seed, epoch, sample_id).
+        outputs: columns to make, from ("voxels", "frames", "flow"); others are not computed.
+        exclude: sample ids already consumed (of ``epoch``; a mapping epoch -> ids for several
+            epochs): never decoded into rows.
+        ranks: pad each epoch to a multiple of this row count (``padding`` true on the repeats)
+            so ``streaming_split(ranks, equal=True)`` drops nothing.
+        concurrency: actors of the map stage (an int, or (min, max) to autoscale); default:
+            the CPUs of the cluster.
+        resource: a custom resource name each actor needs 1 of (e.g. "v2v_cpu"), so that the
+            stage runs only on nodes that declare it (keeps it off GPU nodes).
+        maker: the stage's class (a :class:`SampleMaker` subclass, for fault benches).
+
+    Raises:
+        ValueError: an unknown output. ImportError: ray is not installed (``pip install
+        'v2v[ray]'``).
+    """
+    try:
+        import ray.data
+    except ImportError as e:  # pragma: no cover - depends on the extra
+        raise ImportError("v2v_dataset needs Ray Data: pip install 'v2v[ray]'") from e
+    cfg = config or ServeConfig().validate()
+    if seed is not None:
+        cfg = ServeConfig.from_dict({**cfg.to_dict(), "seed": int(seed)}, source="ray config")
+    bad = [o for o in outputs if o not in ALL_OUTPUTS]
+    if bad or not outputs:
+        raise ValueError(f"outputs must be a non-empty subset of {ALL_OUTPUTS}, got {tuple(outputs)}")
+    corpus = videos if isinstance(videos, RayCorpus) else scan_corpus_windows(videos, cfg)
+    epochs = [int(epoch)] if isinstance(epoch, (int, np.integer)) else [int(e) for e in epoch]
+    if isinstance(exclude, Mapping):
+        excl = {int(e): set(v) for e, v in exclude.items()}
+    else:
+        excl = {epochs[0]: set(exclude)} if epochs else {}
+    items = [d for e in epochs for d in epoch_descriptors(corpus, e, excl.get(e, ()), ranks)]
+    if not items:
+        log.warning("no samples to make in %s for epoch(s) %s", corpus.root, epochs)
+        return ray.data.from_items([{"video": "", "epoch": 0, "entries": "[]"}]).limit(0)
+    ds = ray.data.from_items(items, override_num_blocks=len(items))
+    if concurrency is None:
+        if not ray.is_initialized():
+            ray.init()  # what Ray Data would do on first use; we need the CPU count now
+        concurrency = max(1, min(len(items), int(ray.cluster_resources().get("CPU", 1))))
+    pool = (ray.data.ActorPoolStrategy(min_size=concurrency[0], max_size=concurrency[1])
+            if isinstance(concurrency, tuple) else ray.data.ActorPoolStrategy(size=int(concurrency)))
+    remote = {"resources": {resource: 1}} if resource else {}
+    return ds.map_batches(
+        maker, batch_size=1, batch_format="numpy", num_cpus=1, compute=pool,
+        fn_constructor_kwargs={"cfg_dict": cfg.to_dict(), "root": corpus.root, "outputs": tuple(outputs)},
+        **remote,
+    )
