@@ -177,15 +177,18 @@ def make_sample(
 
 
 def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float) -> np.ndarray:
-    """Voxels of one window: plain V2V, V2V with refinement, or V2V with non-idealities,
-    as configured; what was used goes into ``plan.info`` (and so into the sample's params)."""
+    """Voxels of one window: plain V2V, V2V with refinement, V2V with non-idealities, or
+    both composed (one kernel call either way), as configured; what was used goes into
+    ``plan.info`` (and so into the sample's params)."""
     bins = cfg.num_bins * cfg.frames_per_bin
     if cfg.nonidealities:
         from .nonideal import NonIdealities, simulate_voxels_nonideal
 
         ni = NonIdealities.from_dict(cfg.nonidealities)
-        vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, ni, fps=fps or 25.0, rng=plan.rng)
+        vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, ni, fps=fps or 25.0, rng=plan.rng,
+                                                refine=cfg.refine)
         plan.info["nonidealities"] = info["nonidealities"]
+        plan.info["refine"] = info.get("refine", "off")
     elif cfg.refine != "off":
         from .refine import simulate_voxels_refined
 
