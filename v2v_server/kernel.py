@@ -260,40 +260,54 @@ def _kernel(src, lut, use_lut, pair_of_step, n_pairs, potential, cpa, cna, extra
     big = 2147483647.0
     overflow = -1
     fast = use_lut and not want_split and not want_events and cap == 0
+    # bounds for the fast path's overflow test: |dL| <= log range + |extra + noise| + |dL_hat|
+    cmin = np.inf
+    cmax = 0.0
+    for p in range(cpa.shape[0]):
+        cmin = min(cmin, cpa[p], cna[p])
+        cmax = max(cmax, cpa[p], cna[p])
+    potmax = 0.0
+    for p in range(npix):
+        potmax = max(potmax, abs(potential[p]))
+    lrange = 0.0
+    if use_lut:
+        lrange = lut.max() - lut.min()
+        for p in range(npix):
+            prev[p] = lut[np.int64(src[0, p])]
     s = 0
     for i in range(n_pairs):
         kk = k[i]
         # the pair's extra dL (hot pixels, drift, noise), spread evenly over its sub-intervals
+        emax = 0.0
         if has_noise:
             _fill_normals(_seed_pair(noise_seed, first_pair + i), e, zk, zw, zf)
             for p in range(npix):
                 e[p] = (extra[p] + e[p] * noise_std) / kk
+                emax = max(emax, abs(e[p]))
         else:
             for p in range(npix):
                 e[p] = extra[p] / kk
-        if fast and kk == 1:
-            # plain V2V: one fused pass, codes -> log intensity -> counts -> net, residual in place
+                emax = max(emax, abs(e[p]))
+        if fast and kk == 1 and (lrange + emax + 2.0 * max(potmax, cmax)) / cmin < big:
+            # plain V2V, no count can overflow: one vectorised pass, residual stored in place
+            for p in range(npix):
+                cur[p] = lut[np.int64(src[s + 1, p])]
+            row = net[i]
             if per_pixel:
                 for p in range(npix):
-                    dl = potential[p] + ((lut[np.int64(src[s + 1, p])] - lut[np.int64(src[s, p])]) + e[p])
-                    a, b, r = _crossings(dl, cpa[p], cna[p])
+                    a, b, r = _crossings(potential[p] + ((cur[p] - prev[p]) + e[p]), cpa[p], cna[p])
                     potential[p] = r
-                    psum[p] = a
-                    nsum[p] = b
+                    row[p] = np.int32(a - b)
             else:
                 for p in range(npix):
-                    dl = potential[p] + ((lut[np.int64(src[s + 1, p])] - lut[np.int64(src[s, p])]) + e[p])
-                    a, b, r = _crossings(dl, c1s, c2s)
+                    a, b, r = _crossings(potential[p] + ((cur[p] - prev[p]) + e[p]), c1s, c2s)
                     potential[p] = r
-                    psum[p] = a
-                    nsum[p] = b
-            for p in range(npix):
-                if psum[p] > big or nsum[p] > big:
-                    overflow = i
-                net[i, p] = np.int32(psum[p] - nsum[p])
+                    row[p] = np.int32(a - b)
+            for p in range(npix):  # one sub-interval never mixes polarities: |net| = N+ + N-
+                events += abs(np.int64(row[p]))
+            potmax = max(potmax, cmax)
+            prev, cur = cur, prev
             s += 1
-            if overflow >= 0:
-                break
             continue
         for p in range(npix):
             pot[p] = potential[p]
