@@ -1,6 +1,6 @@
 """Speed / accuracy trade of V2V against an event-level reference, on real clips.
 
-``python bench/tradeoff.py --out DIR`` (or ``v2v-tradeoff --out DIR``) prints a markdown
+``python -m bench.tradeoff --out DIR`` (from the repository root) prints a markdown
 table and writes ``DIR/tradeoff.md``, ``DIR/tradeoff.json`` and ``DIR/pareto.png``.
 
 Setup (same for every candidate): each clip is decoded to luma, centre-cropped to
@@ -33,11 +33,11 @@ from typing import List, Optional
 
 import numpy as np
 
-from .protocol import narrow_int_dtype
+from v2v_server.protocol import narrow_int_dtype
 
-from .reference import events_to_voxels, simulate_events
-from .refine import simulate_voxels_refined
-from .simulate import SensorParams, simulate_voxels
+from v2v_server.reference import events_to_voxels, simulate_events
+from v2v_server.refine import simulate_voxels_refined
+from v2v_server.simulate import SensorParams, simulate_voxels
 
 DEFAULT_CLIPS = ["bikes.mp4", "bigbuckbunny.mp4", "webvid_like_596x336.mp4"]
 
@@ -45,7 +45,7 @@ DEFAULT_CLIPS = ["bikes.mp4", "bigbuckbunny.mp4", "webvid_like_596x336.mp4"]
 def _video_dir() -> Path:
     here = Path(__file__).resolve().parent
     shared = here.parent.parent / "shared" / "data" / "videos"
-    return shared if shared.is_dir() else here / "sample_videos"
+    return shared if shared.is_dir() else here.parent / "v2v_server" / "sample_videos"
 
 
 def read_crop(path: Path, n: int, crop: int) -> np.ndarray:
@@ -111,7 +111,7 @@ def run_clip(frames: np.ndarray, args) -> dict:
     for k in (2, 4, 8):
         cands.append((f"uniform:{k} (ultrafast)", lambda k=k: refined(f"uniform:{k}")))
     for preset in ("fast", "medium"):
-        from .refine import RefineSpec
+        from v2v_server.refine import RefineSpec
 
         cands.append((f"uniform:4 ({preset})", lambda p=preset: refined(RefineSpec("uniform", k=4, flow_preset=p))))
     for lam in args.lambdas:
@@ -223,7 +223,7 @@ def _plot(rows: List[dict], ref_ms: float, path: Path) -> None:
 
 def main(argv: Optional[List[str]] = None) -> int:
     """CLI entry point; returns the exit status."""
-    ap = argparse.ArgumentParser(prog="v2v-tradeoff", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.tradeoff", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, required=True, help="output folder (table, json, Pareto PNG)")
     ap.add_argument("--videos", type=Path, default=None, help="folder of clips (default: shared/data/videos)")
     ap.add_argument("--clips", nargs="+", default=DEFAULT_CLIPS)
