@@ -267,7 +267,8 @@ def video_samples(
 
     Yields ``(sample_id, arrays, meta)`` for each sample of a complete window whose index
     (see :func:`parse_sample_id`) is not in ``skip_windows``, in window then crop order.
-    Decoding stops after the last window that can be used. When given, ``stats`` receives
+    Decoding stops after the last window that can be used (known from the container's
+    declared frame count when it has one). When given, ``stats`` receives
     ``frames`` (frames decoded), ``windows`` (complete windows, skipped ones included),
     ``width``, ``height`` and ``fps``.
 
@@ -285,9 +286,15 @@ def video_samples(
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
     plans: list = []  # (plan, buffer) of each crop of the current window still wanted
+    # frames worth decoding: whole windows only. When the container declares its frame count
+    # the trailing partial window is not decoded (decoding is the cost that matters).
+    last = cfg.max_samples_per_video * span
+    declared = int(getattr(stream, "frames", 0) or 0)
+    if declared >= span:
+        last = min(last, declared // span * span)
     for i, luma in enumerate(decode_luma(container, stream, rows)):
         k, off = divmod(i, span)
-        if k >= cfg.max_samples_per_video:
+        if i >= last:
             break
         stats["frames"] = i + 1
         if off == 0:
