@@ -189,5 +189,62 @@ def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
         small_cfg(refine="sometimes")
     with pytest.raises(ValueError, match="nonidealities"):
         small_cfg(nonidealities={"hot_pixels_everywhere": 1})
-    with pytest.raises(ValueError, match="refine must be off"):
-        small_cfg(refine="uniform:2", nonidealities={"threshold_sigma": 0.05})
+    # refinement and non-idealities compose (one kernel call), both recorded
+    both = small_cfg(max_samples_per_video=1, refine="uniform:2", nonidealities={"threshold_sigma": 0.05})
+    (_, a2, m2), = list(video_samples(both, videos, "bikes.mp4", 0, ("voxels",)))
+    assert m2["refine"] == "uniform:2" and m2["nonidealities"]["threshold_sigma"] == 0.05
+    assert a2["voxels"].shape == a0["voxels"].shape
+
+
+def test_crops_per_window_ids_content_and_resume(videos):
+    """K crops of one decoded window: ids path#window.crop, each crop its own plan (own crop
+    corner, flip, pauses, sensor parameters) drawn from its id, made alike alone or together."""
+    from v2v_server.sampler import make_sample_id, parse_sample_id
+
+    cfg = small_cfg(crops_per_window=3, max_samples_per_video=2)
+    got = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames")))
+    ids = [sid for sid, _, _ in got]
+    assert ids == [f"bikes.mp4#{w}.{c}" for w in range(2) for c in range(3)]
+    metas = {sid: m for sid, _, m in got}
+    arrays = {sid: a for sid, a, _ in got}
+    corners = {(metas[s]["crop_y"], metas[s]["crop_x"], metas[s]["pos_threshold"]) for s in ids}
+    assert len(corners) == 6  # every crop drew its own choices
+    assert all(metas[s]["src_start_frame"] == (0 if s.split("#")[1].startswith("0") else cfg.frames_per_sample)
+               for s in ids)
+    assert not np.array_equal(arrays["bikes.mp4#0.0"]["frames"], arrays["bikes.mp4#0.1"]["frames"])
+    # one crop made alone (a replacement worker skips the indices already received)
+    keep = parse_sample_id("bikes.mp4#1.2", 3)[1]
+    assert keep == 5
+    alone = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames"), set(range(6)) - {keep}))
+    assert [sid for sid, _, _ in alone] == ["bikes.mp4#1.2"]
+    for k, v in alone[0][1].items():
+        np.testing.assert_array_equal(v, arrays["bikes.mp4#1.2"][k])
+    # K = 1 keeps the ids (and content) of a run without crops
+    one = collect(small_cfg(crops_per_window=1), videos, "bikes.mp4", outputs=("frames",))
+    base = collect(small_cfg(), videos, "bikes.mp4", outputs=("frames",))
+    assert list(one) == list(base) == ["bikes.mp4#0", "bikes.mp4#1", "bikes.mp4#2"]
+    np.testing.assert_array_equal(one["bikes.mp4#2"]["frames"], base["bikes.mp4#2"]["frames"])
+
+
+@pytest.mark.parametrize("sid,k,expect", [("a/b.mp4#3", 1, ("a/b.mp4", 3)), ("a#b.mp4#3.2", 4, ("a#b.mp4", 14)),
+                                          ("x.mp4#0.0", 2, ("x.mp4", 0))])
+def test_sample_id_round_trip(sid, k, expect):
+    from v2v_server.sampler import make_sample_id, parse_sample_id
+
+    assert parse_sample_id(sid, k) == expect
+    video, idx = expect
+    assert make_sample_id(video, idx // k, idx % k, k) == sid
+
+
+@pytest.mark.parametrize("sid,k", [("a.mp4#3.1", 1), ("a.mp4#3", 2), ("a.mp4#3.2", 2), ("a.mp4", 1), ("#3", 1),
+                                   ("a.mp4#-1", 1), ("a.mp4#x", 1), (7, 1), ("a.mp4#٣", 1)])
+def test_sample_id_parse_rejects(sid, k):
+    from v2v_server.sampler import parse_sample_id
+
+    with pytest.raises(ValueError, match="sample id"):
+        parse_sample_id(sid, k)
+
+
+def test_crops_per_window_config_validation():
+    with pytest.raises(ValueError, match="crops_per_window"):
+        small_cfg(crops_per_window=0)

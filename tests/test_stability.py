@@ -21,6 +21,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from tests.conftest import read_luma_clip
+from v2v_server.kernel import noise_field
 from v2v_server.protocol import narrow_int_dtype
 from v2v_server.simulate import SensorParams, log_intensity_lut, simulate_voxels
 
@@ -79,12 +80,14 @@ def test_residual_in_range_and_conservation(c, ratio, kind, sigma, hot_value, fu
     pot0 = rng.uniform(-cn, cp, (H, W)).astype(dtype)
     tol = _tolerance(cp, cn, sigma, hot, full)
 
-    # step by step (continuation equals one call), checking the residual after every step
-    sim_rng = np.random.default_rng(seed + 1)
+    # step by step (continuation equals one call), checking the residual after every step;
+    # the noise of frame pair i depends only on (noise_seed, i)
+    noise_seed = seed + 1
     pot = pot0
     counts = []
     for i in range(n - 1):
-        v, pot = simulate_voxels(frames[i : i + 2], params, 1, initial_potential=pot, rng=sim_rng, compute_dtype=dtype)
+        v, pot = simulate_voxels(frames[i : i + 2], params, 1, initial_potential=pot, noise_seed=noise_seed,
+                                 first_pair=i, compute_dtype=dtype)
         assert v.dtype == np.int32 and pot.dtype == np.float32
         assert np.isfinite(pot).all()
         assert pot.min() >= -cn - tol and pot.max() <= cp + tol, (pot.min(), pot.max(), tol)
@@ -94,7 +97,7 @@ def test_residual_in_range_and_conservation(c, ratio, kind, sigma, hot_value, fu
     # the same clip in one call gives the same counts (no wrap, no state lost between
     # calls); exact for float32, whose state is what the call returns. A float64 state is
     # returned rounded to float32 (the contract), so there only ties may differ.
-    whole, pot_whole = simulate_voxels(frames, params, 1, initial_potential=pot0, rng=np.random.default_rng(seed + 1),
+    whole, pot_whole = simulate_voxels(frames, params, 1, initial_potential=pot0, noise_seed=noise_seed,
                                        compute_dtype=dtype)
     if dtype == np.float32:
         np.testing.assert_array_equal(whole[:, 0], counts)
@@ -102,12 +105,10 @@ def test_residual_in_range_and_conservation(c, ratio, kind, sigma, hot_value, fu
     else:
         assert np.abs(np.cumsum(whole[:, 0] - counts, axis=0)).max() <= 1
 
-    # replay the noise draws (same generator, same order) for the conservation law
-    replay = np.random.default_rng(seed + 1)
+    # replay the kernel's noise (same seed, same pairs) for the conservation law
     noise = np.zeros((H, W))
     if sigma > 0:
-        for _ in range(n - 1):
-            noise += (replay.standard_normal((H, W), dtype=dtype) * np.dtype(dtype).type(sigma)).astype(np.float64)
+        noise = (noise_field(noise_seed, n - 1, (H, W)) * sigma).sum(axis=0)
     lut = log_intensity_lut(full, dtype).astype(np.float64)
     npos = np.clip(counts, 0, None).sum(0)
     nneg = np.clip(-counts, 0, None).sum(0)
@@ -132,11 +133,9 @@ def test_1e5_frames_no_drift(full):
     cp, cn, sigma = 1e-3, 0.0137, 0.3
     hot = np.array([[0.0, 2.5, 0.0], [0.0, 0.0, -0.7]], np.float32)
     pot0 = np.zeros((2, 3))
-    vox, pot = simulate_voxels(frames, SensorParams(cp, cn, sigma, hot), 1, initial_potential=pot0,
-                               rng=np.random.default_rng(1))
+    vox, pot = simulate_voxels(frames, SensorParams(cp, cn, sigma, hot), 1, initial_potential=pot0, noise_seed=1)
     v = vox[:, 0].astype(np.int64)
-    replay = np.random.default_rng(1)
-    noise = np.stack([replay.standard_normal((2, 3), dtype=np.float32) * np.float32(sigma) for _ in range(n - 1)])
+    noise = noise_field(1, n - 1, (2, 3)) * sigma
     lut = log_intensity_lut(full, np.float32).astype(np.float64)
     dl = np.diff(lut[frames], axis=0) + noise.astype(np.float64) + hot.astype(np.float64)
     # the residual after every step, reconstructed from the conservation law

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from v2v_server.tradeoff import main
+from bench.tradeoff import main
 
 
 def test_tradeoff_cli_writes_table_json_and_plot(tmp_path, videos):

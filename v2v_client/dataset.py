@@ -19,6 +19,7 @@ import queue
 import threading
 import time
 import uuid
+import warnings
 from typing import Dict, Iterator, Optional, Sequence, Set, Tuple, Union
 
 import numpy as np
@@ -45,23 +46,32 @@ class StreamTimeout(StreamError, TimeoutError):
     """No message from the server within ``timeout_s``."""
 
 
+def _view(a: np.ndarray) -> torch.Tensor:
+    """A tensor sharing ``a``'s memory (the received message's buffer, read-only)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
+        return torch.from_numpy(a)
+
+
 def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False) -> Dict[str, torch.Tensor]:
     """Convert wire arrays of one batch to tensors.
 
     With ``raw=False``: ``voxels`` float32 (B, L, num_bins, H, W) event counts; ``frames``
-    float32 in [0, 1] (B, L + 1, 1, H, W); ``flow`` float32 (B, L, 2, H, W), pixels.
+    float32 in [0, 1] (B, L + 1, 1, H, W); ``flow`` float32 (B, L, 2, H, W), pixels (one
+    conversion pass per array on this host).
     With ``raw=True`` the wire dtypes are kept (voxels int8/int16/int32, frames uint8 with
-    the channel axis, flow float16), for conversion on the GPU.
+    the channel axis, flow float16) and nothing is copied: the tensors view the received
+    message and must be treated as read-only (``.to(device)`` and ``.float()`` copy);
+    convert on the GPU.
     """
     out = {}
     for name, a in arrays.items():
         if name == "frames":
             a = a[:, :, None]
         if raw:
-            out[name] = torch.from_numpy(np.array(a, copy=True))
+            out[name] = _view(a)
         elif name == "frames":
-            t = torch.from_numpy(a.astype(np.float32))
-            out[name] = t.mul_(1.0 / 255.0)
+            out[name] = torch.from_numpy(np.multiply(a, np.float32(1.0 / 255.0), dtype=np.float32))
         else:
             out[name] = torch.from_numpy(a.astype(np.float32))
     return out

@@ -51,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fraction of each frame's height, from the top, that crops come from (default 0.54: "
                         "WebVid's watermark; 1.0 for clips without one)")
     p.add_argument("--max-samples-per-video", type=int, help="windows per video per epoch (default 10)")
+    p.add_argument("--crops-per-window", type=int, help="random crops per decoded window, each its own sample "
+                   "(default 1; ids path#window.crop when > 1; crops of a window share content and motion)")
     p.add_argument("--outputs", help=f"comma list of outputs clients may ask for, from {','.join(ALL_OUTPUTS)}")
     p.add_argument("--flow-preset", choices=FLOW_PRESETS, help=f"optical flow option (default {DEFAULT_FLOW}; see docs/flow.md)")
     p.add_argument("--flow-dtype", choices=("float16", "float32"), help="wire dtype of flow (default float16)")
@@ -82,7 +84,7 @@ def config_from_args(args: argparse.Namespace):
     """Merge defaults, ``--config`` and flags into a validated ``ServeConfig``."""
     overrides = {k: getattr(args, k) for k in (
         "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
-        "frames_per_bin", "crop_size", "keep_top_fraction", "max_samples_per_video", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
+        "frames_per_bin", "crop_size", "keep_top_fraction", "max_samples_per_video", "crops_per_window", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
         "client_timeout_s", "curve_secret_key", "curve_allow", "insecure", "shard", "metrics_port", "metrics_host", "log_format")}
     return load_config(args.config, overrides)
 

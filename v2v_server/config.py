@@ -50,6 +50,9 @@ class ServeConfig:
     keep_top_fraction: float = 0.54
     hflip_prob: float = 0.5
     max_samples_per_video: int = 10
+    #: random crops per decoded window, each its own sample (own crop, flip, pauses, sensor
+    #: parameters); ids ``path#window.crop`` when > 1. Crops of one window share content and motion.
+    crops_per_window: int = 1
     pause_enabled: bool = True
     p_pause_when_running: float = 0.0102
     p_pause_when_paused: float = 0.9791
@@ -126,7 +129,8 @@ class ServeConfig:
             setattr(self, name, float(v))
 
         for name in ("workers", "batch_size", "sequence_length", "num_bins", "frames_per_bin",
-                     "crop_size", "max_samples_per_video", "decode_threads", "prefetch_batches"):
+                     "crop_size", "max_samples_per_video", "decode_threads", "prefetch_batches",
+                     "crops_per_window"):
             pos_int(name)
         if self.crop_size < 8:
             raise ValueError(f"crop_size must be >= 8 pixels, got {self.crop_size}")
@@ -167,9 +171,6 @@ class ServeConfig:
         except ValueError as e:
             raise ValueError(f"nonidealities: {e}") from None
         self.nonidealities = ni.to_dict() if ni.enabled else {}
-        if ni.enabled and spec.mode != "off":
-            raise ValueError("refine must be off when nonidealities are switched on (the non-ideal path "
-                             "simulates plain frame pairs)")
         if self.crop_size > 4096:
             raise ValueError(f"crop_size must be <= 4096 pixels, got {self.crop_size}")
         if (self.curve_secret_key is None) != (self.curve_allow is None):

@@ -50,7 +50,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .simulate import SensorParams, _lut, simulate_voxels, start_state
+from .kernel import run_kernel
+from .simulate import SensorParams, _lut64, check_frames, draw_noise_seed, simulate_voxels, start_state
 
 __all__ = ["NonIdealities", "PixelState", "draw_pixel_state", "effective_noise", "simulate_voxels_nonideal"]
 
@@ -195,13 +196,18 @@ def simulate_voxels_nonideal(
     rng: Optional[np.random.Generator] = None,
     pixel_state: Optional[PixelState] = None,
     compute_dtype=np.float32,
+    refine="off",
+    flow_fn=None,
 ) -> Tuple[np.ndarray, np.ndarray, dict]:
     """V2V discrete voxel grids with the non-idealities switched on in ``nonideal``.
 
-    With every switch off this is ``simulate_voxels`` (bit-identical, same rng draws).
-    Otherwise the step is V2V's (Lou et al. 2025, Sec. 3) with per-pixel thresholds, the
-    leak drift added to dL, the refractory cap on |N| per pair, shot-noise and stuck-pixel
-    events added to the counts, and dead pixels zeroed (see the module table).
+    With every switch off and ``refine="off"`` this is ``simulate_voxels`` (bit-identical,
+    same rng draws). Otherwise it is one call of the kernel (``kernel.run_kernel``, Lou et
+    al. 2025, Sec. 3) with per-pixel thresholds, the leak drift added to the pair's extra dL
+    and the refractory cap on |N| per pair, followed by the count post-processing: shot-noise
+    and stuck-pixel events added, dead pixels zeroed (see the module table). ``refine``
+    (``refine.parse_refine`` syntax) feeds the kernel the refined log-intensity path, so
+    refinement and non-idealities compose.
 
     Args:
         frames: uint8 / uint16 (N, H, W), N = L * num_bins + 1.
@@ -210,28 +216,30 @@ def simulate_voxels_nonideal(
         fps: frame rate of ``frames`` in Hz (> 0), converts the rates in Hz to per pair.
         pixel_state: the clip's defects; drawn from ``rng`` (after the initial potential)
             when None. Pass the same one to every chunk of a clip.
+        refine, flow_fn: as ``refine.simulate_voxels_refined``.
 
     Returns:
         ``(voxels int32 (L, B, H, W), potential float32 (H, W), info)`` with info =
         {"nonidealities": nonideal.to_dict(), "events": int (events emitted, all sources),
-        "events_lost_refractory": int}.
+        "events_lost_refractory": int} (plus "refine" and "subframes_mean" when refined).
 
     Raises:
         ValueError: as ``simulate_voxels``; for fps <= 0; for a ``pixel_state`` of the
             wrong shape.
     """
+    from .refine import parse_refine, refine_frames
+
     nonideal = NonIdealities.from_dict(nonideal)
+    spec = parse_refine(refine)
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
-    if not nonideal.enabled:
+    if not nonideal.enabled and spec.mode == "off":
         vox, pot = simulate_voxels(frames, params, num_bins, initial_potential=initial_potential, rng=rng,
                                    compute_dtype=compute_dtype)
         return vox, pot, {"nonidealities": nonideal.to_dict(), "events": int(np.abs(vox, dtype=np.int64).sum()),
                           "events_lost_refractory": 0}
     sigma, hot = effective_noise(params, nonideal, fps)
-    # validation identical to simulate_voxels (shapes, dtype, N = L B + 1)
-    simulate_voxels(frames[:, :1, :1], SensorParams(params.pos_threshold, params.neg_threshold), num_bins,
-                    initial_potential=np.zeros((1, 1)), compute_dtype=compute_dtype)
+    full_scale = check_frames(frames, num_bins)
     n, h, w = frames.shape
     if hot is not None and hot.shape != (h, w):
         raise ValueError(f"hot_pixels has shape {hot.shape}, frames are {(h, w)}")
@@ -240,51 +248,36 @@ def simulate_voxels_nonideal(
     st = pixel_state if pixel_state is not None else draw_pixel_state(nonideal, params, (h, w), rng)
     if st.pos_threshold.shape != (h, w):
         raise ValueError(f"pixel_state has shape {st.pos_threshold.shape}, frames are {(h, w)}")
-    cp, cn = st.pos_threshold, st.neg_threshold
-    lut = _lut(255 if frames.dtype == np.uint8 else 65535, dtype).astype(np.float64)
-    leak = cp * (nonideal.leak_hz / fps) if nonideal.leak_hz > 0 else None
-    cap = int(nonideal.refractory_max_events)
+    noise_seed = draw_noise_seed(rng)
+    extra = np.zeros((h, w)) if hot is None else hot.copy()
+    if nonideal.leak_hz > 0:
+        extra += st.pos_threshold * (nonideal.leak_hz / fps)
+    info = {}
+    if spec.mode == "off":
+        src, lut, pair_of_step = frames, _lut64(full_scale, dtype), None
+    else:
+        src, rinfo = refine_frames(frames, spec, flow_fn, compute_dtype=dtype)
+        lut, pair_of_step = None, rinfo["pair_of_step"]
+        info.update(refine=str(spec), subframes_mean=float(rinfo["subframes"].mean()))
+    res = run_kernel(src, potential, st.pos_threshold, st.neg_threshold, lut=lut, pair_of_step=pair_of_step,
+                     extra=extra, noise_std=sigma, noise_seed=noise_seed,
+                     refractory_cap=int(nonideal.refractory_max_events), split=True)
+    npos, nneg = res.pos, res.neg  # float64 (n - 1, H, W), after the refractory cap
     shot_rate = nonideal.shot_noise_hz / fps
-    stuck_rate = nonideal.stuck_rate_hz / fps
+    if shot_rate > 0:
+        npos += rng.poisson(shot_rate / 2, npos.shape)
+        nneg += rng.poisson(shot_rate / 2, nneg.shape)
+    npos[:, st.dead] = 0
+    nneg[:, st.dead] = 0
     stuck_idx = np.nonzero(st.stuck)
-    voxels = np.empty((n - 1, h, w), np.int32)
-    events = lost = 0
-    prev = lut[frames[0]]
-    for i in range(n - 1):
-        cur = lut[frames[i + 1]]
-        dl = cur - prev
-        dl += potential
-        if sigma > 0:
-            dl += rng.standard_normal((h, w), dtype=dtype) * dtype.type(sigma)
-        if hot is not None:
-            dl += hot
-        if leak is not None:
-            dl += leak
-        npos = np.maximum(np.floor(dl / cp), 0)
-        nneg = np.maximum(np.floor(dl / -cn), 0)
-        dl -= npos * cp
-        dl += nneg * cn
-        np.copyto(potential, dl, casting="same_kind")
-        if cap > 0:
-            lost += int(np.maximum(npos - cap, 0).sum() + np.maximum(nneg - cap, 0).sum())
-            np.minimum(npos, cap, out=npos)
-            np.minimum(nneg, cap, out=nneg)
-        if shot_rate > 0:
-            npos += rng.poisson(shot_rate / 2, (h, w))
-            nneg += rng.poisson(shot_rate / 2, (h, w))
-        npos[st.dead] = 0
-        nneg[st.dead] = 0
-        if stuck_idx[0].size:
-            k = rng.poisson(stuck_rate, stuck_idx[0].size)
-            npos[stuck_idx] = np.where(st.stuck[stuck_idx] > 0, k, 0)
-            nneg[stuck_idx] = np.where(st.stuck[stuck_idx] < 0, k, 0)
-        if max(npos.max(), nneg.max()) > np.iinfo(np.int32).max:
-            raise OverflowError(f"frame pair {i}: more than 2**31-1 events in one pixel")
-        events += int(npos.sum() + nneg.sum())
-        np.subtract(npos, nneg, out=voxels[i], casting="unsafe")
-        prev = cur
-    return (
-        voxels.reshape((n - 1) // num_bins, num_bins, h, w),
-        potential.astype(np.float32),
-        {"nonidealities": nonideal.to_dict(), "events": events, "events_lost_refractory": lost},
-    )
+    if stuck_idx[0].size:
+        k = rng.poisson(nonideal.stuck_rate_hz / fps, (n - 1, stuck_idx[0].size))
+        sign = st.stuck[stuck_idx]
+        npos[:, stuck_idx[0], stuck_idx[1]] = np.where(sign > 0, k, 0)
+        nneg[:, stuck_idx[0], stuck_idx[1]] = np.where(sign < 0, k, 0)
+    if max(npos.max(initial=0), nneg.max(initial=0)) > np.iinfo(np.int32).max:
+        raise OverflowError("more than 2**31-1 events in one pixel and frame pair")
+    voxels = (npos - nneg).astype(np.int32)
+    info.update(nonidealities=nonideal.to_dict(), events=int(npos.sum() + nneg.sum()),
+                events_lost_refractory=res.lost)
+    return voxels.reshape((n - 1) // num_bins, num_bins, h, w), potential.astype(np.float32), info

@@ -44,7 +44,7 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 import numpy as np
 
 from .config import ALL_OUTPUTS, ServeConfig
-from .sampler import FlowEstimator, make_sample_id, video_samples
+from .sampler import FlowEstimator, make_sample_id, parse_sample_id, video_samples
 from .video import VideoError, inside, open_video, scan_corpus
 from .worker import file_verdict
 
@@ -137,14 +137,16 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
     return RayCorpus(str(root), windows, skipped)
 
 
-def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = (), ranks: int = 1) -> List[dict]:
+def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = (), ranks: int = 1,
+                      crops_per_window: int = 1) -> List[dict]:
     """The epoch's work, one descriptor per video, padded to a multiple of ``ranks`` rows.
 
     Each descriptor is ``{"video": rel, "epoch": epoch, "entries": JSON [[sample_id, padding],
     ...]}`` in window order. Ids in ``exclude`` (already consumed: resume) are left out, and a
     video with none left is not listed, so it is never opened. When the remaining count is not
     a multiple of ``ranks``, the first ids of the epoch are listed again with ``padding`` true
-    (made from the same decode pass, no extra decoding) until it is.
+    (made from the same decode pass, no extra decoding) until it is. With ``crops_per_window``
+    K > 1 each window lists its K crop ids (``path#k.c``, see ``sampler.make_sample_id``).
 
     Raises:
         ValueError: ``ranks`` < 1.
@@ -152,7 +154,9 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
     if ranks < 1:
         raise ValueError(f"ranks must be >= 1, got {ranks}")
     exclude = set(exclude)
-    todo = [(rel, make_sample_id(rel, k)) for rel, n in corpus.windows.items() for k in range(n)]
+    kpw = crops_per_window
+    todo = [(rel, make_sample_id(rel, k, c, kpw)) for rel, n in corpus.windows.items() for k in range(n)
+            for c in range(kpw)]
     todo = [(rel, sid) for rel, sid in todo if sid not in exclude]
     pad = (-len(todo)) % ranks if todo else 0
     entries: Dict[str, list] = {}
@@ -162,11 +166,6 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
         rel, sid = todo[i % len(todo)]
         entries[rel].append([sid, True])
     return [{"video": rel, "epoch": int(epoch), "entries": json.dumps(e)} for rel, e in entries.items()]
-
-
-def _window_of(sample_id: str) -> int:
-    """Window index k of an id ``path#k`` (or ``path#k.crop`` when a window gives several crops)."""
-    return int(sample_id.rsplit("#", 1)[1].split(".", 1)[0])
 
 
 def _zeros(cfg: ServeConfig, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
@@ -227,8 +226,9 @@ class SampleMaker:
         wanted: Dict[str, List[bool]] = {}
         for sid, pad in entries:
             wanted.setdefault(sid, []).append(bool(pad))
-        keep = {_window_of(sid) for sid in wanted}
-        skip = [k for k in range(self.cfg.max_samples_per_video) if k not in keep]
+        kpw = self.cfg.crops_per_window
+        keep = {parse_sample_id(sid, kpw)[1] for sid in wanted}
+        skip = [i for i in range(self.cfg.max_samples_per_video * kpw) if i not in keep]
         stats: dict = {}
         error: Optional[str] = None
         try:
@@ -314,7 +314,7 @@ def v2v_dataset(
         excl = {int(e): set(v) for e, v in exclude.items()}
     else:
         excl = {epochs[0]: set(exclude)} if epochs else {}
-    items = [d for e in epochs for d in epoch_descriptors(corpus, e, excl.get(e, ()), ranks)]
+    items = [d for e in epochs for d in epoch_descriptors(corpus, e, excl.get(e, ()), ranks, cfg.crops_per_window)]
     if not items:
         log.warning("no samples to make in %s for epoch(s) %s", corpus.root, epochs)
         return ray.data.from_items([{"video": "", "epoch": 0, "entries": "[]"}]).limit(0)

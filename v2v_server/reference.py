@@ -15,8 +15,12 @@ shortcuts. From frames and a :class:`~v2v_server.simulate.SensorParams` it emits
   CVPRW 2021); the event time is the linear interpolation of the threshold crossing inside
   the sub-interval, and ``L_ref`` moves by one threshold per event;
 * the background noise ``N_i`` and hot-pixel map ``H`` of V2V are spread linearly over
-  frame pair ``i`` (drawn from ``rng`` in exactly the order ``simulate_voxels`` draws them,
-  so a shared seed gives the same noise).
+  frame pair ``i`` (the noise seed is drawn from ``rng`` in exactly the order
+  ``simulate_voxels`` draws it, so a shared seed gives the same noise).
+
+The crossings themselves are counted by the project's one kernel (``kernel.run_kernel``
+with ``events=True``), which also reports the fraction of the sub-interval at which each
+level was reached; this module builds the path and turns fractions into times.
 
 The state ``dL_hat = L - L_ref`` (residual potential) is the same quantity V2V carries, so
 with one sub-interval per frame pair (or any linear interpolation) the event counts per
@@ -37,7 +41,8 @@ from typing import Callable, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .flow import DIS_PRESETS, dis_flow  # noqa: F401  (the one DIS construction and reuse policy)
-from .simulate import SensorParams, log_intensity_lut
+from .kernel import full_scale_of, run_kernel
+from .simulate import SensorParams, draw_noise_seed, log_intensity_lut
 
 __all__ = [
     "Events",
@@ -74,14 +79,6 @@ class Events:
         return int(self.t.size)
 
 
-def _full_scale(frames: np.ndarray) -> int:
-    if frames.dtype == np.uint8:
-        return 255
-    if frames.dtype == np.uint16:
-        return 65535
-    raise ValueError(f"frames must have dtype uint8 or uint16, got {frames.dtype}")
-
-
 def log_frames(frames: np.ndarray) -> np.ndarray:
     """Log intensity of uint8 / uint16 frames (any shape), float64, log-intensity units.
 
@@ -91,7 +88,7 @@ def log_frames(frames: np.ndarray) -> np.ndarray:
     Raises:
         ValueError: for any other dtype.
     """
-    lut = log_intensity_lut(_full_scale(frames), np.float32).astype(np.float64)
+    lut = log_intensity_lut(full_scale_of(frames), np.float32).astype(np.float64)
     return lut[frames]
 
 
@@ -159,37 +156,6 @@ def interpolate_pair(
     return out
 
 
-def _crossings(pot, d, cp, cn, ta, tb, t_cap, xs_ys, out):
-    """Events of one monotonic sub-interval; updates ``pot`` in place (float64 (H, W))."""
-    up = pot + d
-    npos = np.floor(up / cp)
-    np.maximum(npos, 0, out=npos)
-    nneg = np.floor(-up / cn)
-    np.maximum(nneg, 0, out=nneg)
-    for n, c, sign in ((npos, cp, 1), (nneg, cn, -1)):
-        flat = n.ravel()
-        idx = np.flatnonzero(flat)
-        if idx.size == 0:
-            continue
-        cnt = flat[idx].astype(np.int64)
-        rep = np.repeat(idx, cnt)
-        starts = np.cumsum(cnt) - cnt
-        k = (np.arange(rep.size) - np.repeat(starts, cnt) + 1).astype(np.float64)
-        p0 = pot.ravel()[rep]
-        dd = d.ravel()[rep]
-        # crossing of level sign * k * c: fraction s = (sign k c - p0) / d, in (0, 1]
-        # (d = 0 only when rounding left the residual on a threshold: fire at ta)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (sign * k * c - p0) / dd
-        s = np.clip(np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
-        t = ta + s * (tb - ta)
-        np.minimum(t, t_cap, out=t)  # a crossing exactly at the frame time stays in this pair
-        out.append((xs_ys[1].ravel()[rep], xs_ys[0].ravel()[rep], t, np.full(rep.size, sign, np.int8)))
-    pot += d
-    pot -= npos * cp
-    pot += nneg * cn
-
-
 def simulate_events(
     frames: np.ndarray,
     params: SensorParams,
@@ -250,42 +216,40 @@ def simulate_events(
         if initial_potential.shape != (h, w):
             raise ValueError(f"initial_potential has shape {initial_potential.shape}, frames are {(h, w)}")
         pot = initial_potential.astype(np.float64, copy=True)
+    noise_seed = draw_noise_seed(rng)  # same order as simulate_voxels: same noise
     hot = params.hot_pixels
     if hot is not None and hot.shape != (h, w):
         raise ValueError(f"hot_pixels has shape {hot.shape}, frames are {(h, w)}")
-    hot = None if hot is None else hot.astype(np.float64)
-    sigma = np.float32(params.noise_std)
     if flow_fn is None:
         flow_fn = lambda a, b: dis_flow(a, b, flow_preset)  # noqa: E731
-    yx = np.mgrid[0:h, 0:w].astype(np.int32)
-    out = []
+    # the log-intensity path: the frames, with the sub-frames of each pair between them
+    path = [logs[:1]]
     for i in range(n - 1):
         k = int(ks[i])
-        extra = np.zeros((h, w))
-        if params.noise_std > 0:
-            extra += rng.standard_normal((h, w), dtype=np.float32) * sigma
-        if hot is not None:
-            extra += hot
+        ts = np.arange(1, k + 1) / k
         if k == 1 or interpolation == "linear":
-            path = interpolate_pair(logs[i], logs[i + 1], np.arange(1, k + 1) / k, "linear")
+            path.append(interpolate_pair(logs[i], logs[i + 1], ts, "linear"))
         else:
             f01 = flow_fn(frames[i], frames[i + 1])
             f10 = flow_fn(frames[i + 1], frames[i])
-            path = interpolate_pair(logs[i], logs[i + 1], np.arange(1, k + 1) / k, "motion", flow01=f01, flow10=f10)
-        t_end = (i + 1) / fps
-        t_cap = np.nextafter(t_end, -np.inf)
-        prev = logs[i]
-        for j in range(k):
-            d = path[j] - prev + extra / k
-            _crossings(pot, d, cp, cn, (i + j / k) / fps, (i + (j + 1) / k) / fps, t_cap, yx, out)
-            prev = path[j]
-    if out:
-        x, y, t, p = (np.concatenate(c) for c in zip(*out))
-    else:
-        x = y = np.zeros(0, np.int32)
-        t = np.zeros(0)
-        p = np.zeros(0, np.int8)
-    return Events(x.astype(np.int32), y.astype(np.int32), t, p), pot
+            path.append(interpolate_pair(logs[i], logs[i + 1], ts, "motion", flow01=f01, flow10=f10))
+    pair_of_step = np.repeat(np.arange(n - 1), ks)
+    res = run_kernel(np.concatenate(path), pot, cp, cn, pair_of_step=pair_of_step,
+                     extra=0.0 if hot is None else hot, noise_std=params.noise_std, noise_seed=noise_seed,
+                     events=True)
+    # event times: sub-interval j of pair i spans [(i + j / k) / fps, (i + (j + 1) / k) / fps]
+    step = res.event_step
+    first = np.concatenate([[0], np.cumsum(ks)[:-1]])
+    i = pair_of_step[step]
+    k = ks[i].astype(np.float64)
+    j = (step - first[i]).astype(np.float64)
+    ta = (i + j / k) / fps
+    tb = (i + (j + 1) / k) / fps
+    t = ta + res.event_fraction * (tb - ta)
+    # a crossing exactly at the frame time stays in this pair
+    np.minimum(t, np.nextafter((i + 1) / fps, -np.inf), out=t)
+    pix = res.event_pixel
+    return Events((pix % w).astype(np.int32), (pix // w).astype(np.int32), t, res.event_polarity.copy()), pot
 
 
 def _normalised_times(events: Events, t_start: float, t_end: float, num_bins: int = 1):

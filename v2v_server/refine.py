@@ -30,8 +30,9 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 
 from .flow import DIS_PRESETS, dis_flow
+from .kernel import run_kernel
 from .reference import interpolate_pair
-from .simulate import SensorParams, _lut, simulate_voxels, start_state
+from .simulate import SensorParams, _lut, check_frames, draw_noise_seed, simulate_voxels, start_state
 
 __all__ = ["RefineSpec", "parse_refine", "plan_subframes", "refine_frames", "simulate_voxels_refined"]
 
@@ -143,7 +144,7 @@ def plan_subframes(frames: np.ndarray, spec: RefineSpec, flow_fn: Optional[FlowF
         return np.full(n - 1, spec.k, np.int64), flows, fmax
     if spec.mode == "adaptive-dl":
         if logs is None:
-            logs = _lut(255 if frames.dtype == np.uint8 else 65535, np.float32)[frames]
+            logs = _lut(check_frames(frames, 1), np.float32)[frames]
         need = np.array([np.abs(logs[i + 1] - logs[i]).max() for i in range(n - 1)], dtype=np.float64)
     else:
         for i in range(n - 1):
@@ -176,7 +177,7 @@ def refine_frames(frames: np.ndarray, spec, flow_fn: Optional[FlowFn] = None, *,
     spec = parse_refine(spec)
     if not isinstance(frames, np.ndarray) or frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
         raise ValueError("frames must be a uint8 or uint16 (N, H, W) array")
-    full_scale = 255 if frames.dtype == np.uint8 else 65535
+    full_scale = check_frames(frames, 1)
     base = _lut(full_scale, compute_dtype).astype(np.float64)[frames]
     if flow_fn is None:
         flow_fn = lambda a, b: dis_flow(a, b, spec.flow_preset)  # noqa: E731
@@ -215,9 +216,10 @@ def simulate_voxels_refined(
     noise N_i and the hot-pixel map H are split evenly over its sub-intervals (the event
     reference spreads them linearly, so with K motion sub-frames this equals
     ``reference.simulate_events(..., subframes=K, interpolation="motion")``'s discrete
-    voxel exactly); the counts of a pair's sub-intervals are summed into its bin. ``rng``
-    is drawn in the same order as ``simulate_voxels`` (initial potential, then one noise
-    field per frame pair), so "off" and any refinement share noise under one seed.
+    voxel exactly); the counts of a pair's sub-intervals are summed into its bin. One call
+    of the kernel (``kernel.run_kernel``) with the refined path as its log-intensity input.
+    ``rng`` is drawn in the same order as ``simulate_voxels`` (initial potential, then the
+    noise seed), so "off" and any refinement share noise under one seed.
 
     Args:
         frames: uint8 / uint16 (N, H, W), N = L * num_bins + 1.
@@ -241,48 +243,19 @@ def simulate_voxels_refined(
                                    compute_dtype=compute_dtype)
         return vox, pot, {"refine": "off", "subframes_mean": 1.0, "subframes_max": 1,
                           "events": int(np.abs(vox, dtype=np.int64).sum())}
-    # validate exactly as simulate_voxels does (on a 1-pixel-wide view: cheap)
-    simulate_voxels(frames[:, :1, :1], SensorParams(params.pos_threshold, params.neg_threshold), num_bins,
-                    initial_potential=np.zeros((1, 1)), compute_dtype=compute_dtype)
+    check_frames(frames, num_bins)
     n, h, w = frames.shape
-    hot = params.hot_pixels
     dtype = np.dtype(compute_dtype)
     rng, potential = start_state(params, (h, w), initial_potential, rng, dtype)
-    cp, cn = params.pos_threshold, params.neg_threshold
+    noise_seed = draw_noise_seed(rng)
     logs, info = refine_frames(frames, spec, flow_fn, compute_dtype=dtype)
     ks = info["subframes"]
-    voxels = np.empty((n - 1, h, w), np.int32)
-    events = 0
-    step = 0
-    hot64 = None if hot is None else hot.astype(np.float64)
-    for i in range(n - 1):
-        k = int(ks[i])
-        extra = np.zeros((h, w))
-        if params.noise_std > 0:
-            extra += rng.standard_normal((h, w), dtype=dtype) * dtype.type(params.noise_std)
-        if hot64 is not None:
-            extra += hot64
-        extra /= k
-        pot = potential.astype(np.float64)
-        net = np.zeros((h, w), np.int64)
-        for _ in range(k):
-            dl = logs[step + 1] - logs[step]
-            dl += extra  # same operation order as reference._crossings: pot + (dL + extra)
-            dl += pot
-            npos = np.maximum(np.floor(dl / cp), 0)
-            nneg = np.maximum(np.floor(dl / -cn), 0)
-            if max(npos.max(), nneg.max()) > np.iinfo(np.int32).max:
-                raise OverflowError(f"frame pair {i}: more than 2**31-1 events in one pixel")
-            net += (npos - nneg).astype(np.int64)
-            events += int(npos.sum() + nneg.sum())
-            pot = dl - npos * cp + nneg * cn
-            step += 1
-        if np.abs(net).max() > np.iinfo(np.int32).max:
-            raise OverflowError(f"frame pair {i}: net count does not fit the int32 voxel grid")
-        voxels[i] = net
-        np.copyto(potential, pot, casting="same_kind")
+    res = run_kernel(logs, potential, params.pos_threshold, params.neg_threshold, pair_of_step=info["pair_of_step"],
+                     extra=0.0 if params.hot_pixels is None else params.hot_pixels, noise_std=params.noise_std,
+                     noise_seed=noise_seed)
     return (
-        voxels.reshape((n - 1) // num_bins, num_bins, h, w),
+        res.net.reshape((n - 1) // num_bins, num_bins, h, w),
         potential.astype(np.float32),
-        {"refine": str(spec), "subframes_mean": float(ks.mean()), "subframes_max": int(ks.max()), "events": events},
+        {"refine": str(spec), "subframes_mean": float(ks.mean()), "subframes_max": int(ks.max()),
+         "events": res.events},
     )

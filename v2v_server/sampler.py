@@ -5,7 +5,8 @@ window k starts at source frame ``k * frames_per_sample``, and a video holds
 ``min(max_samples_per_video, n_frames // frames_per_sample)`` windows. Everything random in a
 sample (pauses, crop, flip, sensor parameters, initial potential, noise) comes from a
 generator seeded by ``(seed, epoch, sample_id)``, so its content never depends on which
-worker made it or in which order.
+worker made it or in which order. With ``crops_per_window`` K > 1 a window gives K samples
+(ids ``path#window.crop``), K crops of the same decoded frames.
 """
 from __future__ import annotations
 
@@ -25,9 +26,40 @@ from .flow import FlowEstimator  # noqa: F401  (re-exported: sampler.FlowEstimat
 from .simulate import SensorParams, sample_params, simulate_voxels
 from .video import VideoError, decode_codes, inside, open_video, to_uint8
 
-def make_sample_id(rel_path: str, window: int) -> str:
-    """Stable sample id: video path relative to the corpus root (POSIX) + ``#`` + window index."""
-    return f"{rel_path}#{window}"
+def make_sample_id(rel_path: str, window: int, crop: int = 0, crops_per_window: int = 1) -> str:
+    """Stable sample id: the video's path relative to the corpus root (POSIX), ``#``, the
+    window index and, when ``crops_per_window`` > 1, ``.`` and the crop index:
+    ``clips/a.mp4#3`` (one crop per window: the ids of a run without crops) or
+    ``clips/a.mp4#3.1``. The inverse is :func:`parse_sample_id`."""
+    if crops_per_window == 1:
+        return f"{rel_path}#{window}"
+    return f"{rel_path}#{window}.{crop}"
+
+
+def parse_sample_id(sample_id: str, crops_per_window: int = 1) -> Tuple[str, int]:
+    """``(rel_path, index)`` of a sample id made by :func:`make_sample_id`: ``index =
+    window * crops_per_window + crop`` is the integer that numbers a video's samples (what
+    the server tracks as received, skipped or already delivered).
+
+    Raises:
+        ValueError: for an id that is not ``path#window`` (K = 1) or ``path#window.crop``
+            (K > 1, crop < K), naming the id.
+    """
+    if not isinstance(sample_id, str):
+        raise ValueError(f"sample id must be a string, got {sample_id!r}")
+    video, sep, tail = sample_id.rpartition("#")
+    window, dot, crop = tail.partition(".")
+    ok = bool(sep and video and window.isdigit() and window.isascii())
+    if crops_per_window == 1:
+        ok = ok and not dot
+        c = 0
+    else:
+        ok = ok and bool(dot) and crop.isdigit() and crop.isascii() and int(crop) < crops_per_window
+        c = int(crop) if ok else 0
+    if not ok:
+        form = "path#window" if crops_per_window == 1 else f"path#window.crop (crop < {crops_per_window})"
+        raise ValueError(f"sample id {sample_id!r} is not of the form {form}")
+    return video, int(window) * crops_per_window + c
 
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
@@ -106,9 +138,9 @@ def plan_window(cfg: ServeConfig, epoch: int, sample_id: str, window: int, kept_
     return plan
 
 
-def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarray:
+def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
     """Scale (if needed), crop and flip one kept-region luma frame -> (S, S) of the same dtype
-    (uint8, or uint16 for deeper sources), a copy."""
+    (uint8, or uint16 for deeper sources), a copy (written into ``out`` when given)."""
     s = cfg.crop_size
     if plan.scale > 1.0:
         h, w = luma.shape
@@ -117,7 +149,10 @@ def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarr
     c = luma[plan.crop_y:plan.crop_y + s, plan.crop_x:plan.crop_x + s]
     if plan.flip:
         c = c[:, ::-1]
-    return np.ascontiguousarray(c)
+    if out is None:
+        return np.ascontiguousarray(c)
+    np.copyto(out, c)
+    return out
 
 
 def make_sample(
@@ -176,15 +211,18 @@ def make_sample(
 
 
 def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float) -> np.ndarray:
-    """Voxels of one window: plain V2V, V2V with refinement, or V2V with non-idealities,
-    as configured; what was used goes into ``plan.info`` (and so into the sample's params)."""
+    """Voxels of one window: plain V2V, V2V with refinement, V2V with non-idealities, or
+    both composed (one kernel call either way), as configured; what was used goes into
+    ``plan.info`` (and so into the sample's params)."""
     bins = cfg.num_bins * cfg.frames_per_bin
     if cfg.nonidealities:
         from .nonideal import NonIdealities, simulate_voxels_nonideal
 
         ni = NonIdealities.from_dict(cfg.nonidealities)
-        vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, ni, fps=fps or 25.0, rng=plan.rng)
+        vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, ni, fps=fps or 25.0, rng=plan.rng,
+                                                refine=cfg.refine)
         plan.info["nonidealities"] = info["nonidealities"]
+        plan.info["refine"] = info.get("refine", "off")
     elif cfg.refine != "off":
         from .refine import simulate_voxels_refined
 
@@ -221,11 +259,17 @@ def video_samples(
 ) -> Iterator[Tuple[str, Dict[str, np.ndarray], dict]]:
     """Decode ``root / rel_path`` once, sequentially, and yield its samples.
 
-    Yields ``(sample_id, arrays, meta)`` for each complete window not in ``skip_windows``,
-    in window order. Decoding stops after the last window that can be used. When given,
-    ``stats`` receives ``frames`` (frames decoded), ``windows`` (complete windows, skipped
-    ones included), ``width``, ``height``, ``fps`` and ``busy`` (seconds simulating and
-    estimating flow, see ``make_sample``).
+    With ``cfg.crops_per_window`` = K, each window gives K samples: K crops, each with its own
+    plan (crop, flip, pauses, sensor parameters) from its own id, cut from the same decoded
+    frames as they pass (the window is never held at full size).
+
+    Yields ``(sample_id, arrays, meta)`` for each sample of a complete window whose index
+    (see :func:`parse_sample_id`) is not in ``skip_windows``, in window then crop order.
+    Decoding stops after the last window that can be used (known from the container's
+    declared frame count when it has one). When given, ``stats`` receives
+    ``frames`` (frames decoded), ``windows`` (complete windows, skipped ones included),
+    ``width``, ``height``, ``fps`` and ``busy`` (seconds simulating and estimating flow, see
+    ``make_sample``).
 
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
@@ -235,34 +279,48 @@ def video_samples(
         raise VideoError("missing, or points outside the corpus root")
     skip = set(skip_windows)
     span = cfg.frames_per_sample
+    kpw = cfg.crops_per_window
     container, stream, info = open_video(path, cfg.decode_threads)  # opened once, decoded once
     rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
-    plan: Optional[WindowPlan] = None
-    buf = None
+    plans: list = []  # [plan, buffer] of each crop of the current window still wanted
+    # frames worth decoding: whole windows only. When the container declares its frame count
+    # the trailing partial window is not decoded (decoding is the cost that matters).
+    last = cfg.max_samples_per_video * span
+    declared = int(getattr(stream, "frames", 0) or 0)
+    if declared >= span:
+        last = min(last, declared // span * span)
     for i, (codes, expand) in enumerate(decode_codes(container, stream, rows)):
         k, off = divmod(i, span)
-        if k >= cfg.max_samples_per_video:
+        if i >= last:
             break
         stats["frames"] = i + 1
-        if k in skip:
-            if off == span - 1:
-                stats["windows"] += 1
-            continue
         if off == 0:
-            plan = plan_window(cfg, epoch, make_sample_id(rel_path, k), k, codes.shape)
-            buf = None
-        if off < plan.consumed:
+            plans = []
+            for c in range(kpw):
+                if k * kpw + c in skip:
+                    continue
+                plans.append([plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, codes.shape), None])
+        full = None  # the whole kept region at full range, made once per frame when a crop is resampled
+        for entry in plans:
+            plan, buf = entry
+            if off >= plan.consumed:
+                continue
             # full range per pixel: on the crop (exact, far cheaper), before any resampling
-            crop = expand(crop_frame(cfg, plan, codes)) if plan.scale == 1.0 else \
-                crop_frame(cfg, plan, np.ascontiguousarray(expand(codes)))
+            if plan.scale == 1.0:
+                crop = expand(crop_frame(cfg, plan, codes))
+            else:
+                if full is None:
+                    full = np.ascontiguousarray(expand(codes))
+                crop = crop_frame(cfg, plan, full)
             if buf is None:
-                buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), crop.dtype)
+                buf = entry[1] = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), crop.dtype)
             buf[off] = crop
         if off == span - 1:
             stats["windows"] += 1
-            arrays = make_sample(cfg, plan, degrade_window(plan, buf), outputs, flow, info.fps,
-                                 stats.setdefault("busy", {}))
-            yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
-            plan, buf = None, None
+            for plan, buf in plans:
+                arrays = make_sample(cfg, plan, degrade_window(plan, buf), outputs, flow, info.fps,
+                                     stats.setdefault("busy", {}))
+                yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
+            plans = []

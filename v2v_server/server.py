@@ -36,6 +36,7 @@ from .config import ALL_OUTPUTS, ServeConfig, is_loopback
 from .datapath import BatchPayload, make_batch, sample_from_worker
 from .metrics import ServerMetrics  # [iss12 metrics]
 from .protocol import PROTOCOL_VERSION, ProtocolError, pack, unpack
+from .sampler import parse_sample_id
 from .worker import worker_main
 
 log = logging.getLogger("v2v.server")
@@ -52,7 +53,7 @@ class Task:
     task_id: int
     epoch: int
     video: str
-    received: Set[int] = field(default_factory=set)  # windows already received
+    received: Set[int] = field(default_factory=set)  # sample indices received (sampler.parse_sample_id)
     worker: Optional[bytes] = None
     crashes: int = 0
 
@@ -140,7 +141,7 @@ class V2VServer:
         self.clients: Dict[bytes, ClientState] = {}
         self.workers: Dict[bytes, WorkerState] = {}
         self.outputs: Optional[tuple] = None  # fixed by the first client's hello
-        self.exclude: Dict[int, Dict[str, Set[int]]] = {}  # epoch -> video -> windows trainers already have
+        self.exclude: Dict[int, Dict[str, Set[int]]] = {}  # epoch -> video -> sample indices trainers already have
         self.ended = False
         self.bound_endpoint: Optional[str] = None
         self.metrics = ServerMetrics()  # [iss12 metrics]
@@ -340,13 +341,13 @@ class V2VServer:
             w.idle = True
         elif kind == "sample":
             t = self.tasks.get(h.get("task"))
-            if t is None or t.worker != ident or h["window"] in t.received:
+            if t is None or t.worker != ident or h["index"] in t.received:
                 return
-            if h["window"] in self._excluded(t.epoch, t.video):
-                t.received.add(h["window"])
+            if h["index"] in self._excluded(t.epoch, t.video):
+                t.received.add(h["index"])
                 return
             sample = sample_from_worker(h, frames[2:])
-            t.received.add(h["window"])
+            t.received.add(h["index"])
             ep = self.epochs[t.epoch]
             ep.pending.append(sample)
             ep.samples += 1
@@ -534,11 +535,12 @@ class V2VServer:
             if not isinstance(ids, list):
                 continue
             for sid in ids:
-                if not isinstance(sid, str) or "#" not in sid:
+                try:
+                    video, k = parse_sample_id(sid, self.cfg.crops_per_window)
+                except ValueError:
                     continue
-                video, _, k = sid.rpartition("#")
-                if video in known and k.isdigit():
-                    self.exclude.setdefault(e, {}).setdefault(video, set()).add(int(k))
+                if video in known:
+                    self.exclude.setdefault(e, {}).setdefault(video, set()).add(k)
                     added += 1
         if added:
             log.info("resume state: %d sample(s) already delivered will not be made or sent again", added)
@@ -547,8 +549,8 @@ class V2VServer:
     def _filter_ready(self) -> None:
         kept = collections.deque()
         for b in self.ready:
-            keep = [i for i, sid in enumerate(b.sample_ids)
-                    if int(sid.rpartition("#")[2]) not in self._excluded(b.epoch, sid.rpartition("#")[0])]
+            keys = [parse_sample_id(sid, self.cfg.crops_per_window) for sid in b.sample_ids]
+            keep = [i for i, (video, k) in enumerate(keys) if k not in self._excluded(b.epoch, video)]
             if len(keep) == len(b.sample_ids):
                 kept.append(b)
                 continue

@@ -21,6 +21,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from .kernel import full_scale_of, run_kernel
+
 #: Offset inside the log, ``L = log(LOG_EPS + I)`` (paper Sec. 3, reference repo).
 LOG_EPS = 1e-3
 #: Display gamma undone before the log (``I = (F / full_scale) ** GAMMA``).
@@ -32,6 +34,8 @@ __all__ = [
     "SensorParams",
     "ParamRanges",
     "log_intensity_lut",
+    "check_frames",
+    "draw_noise_seed",
     "simulate_voxels",
     "sample_params",
 ]
@@ -200,6 +204,42 @@ def _lut(full_scale: int, dtype) -> np.ndarray:
     return _LUTS[key]
 
 
+def _lut64(full_scale: int, dtype) -> np.ndarray:
+    """The ``dtype`` table's values widened to float64 (what the kernel reads)."""
+    key = (full_scale, np.dtype(dtype).str, "64")
+    if key not in _LUTS:
+        _LUTS[key] = _lut(full_scale, dtype).astype(np.float64)
+    return _LUTS[key]
+
+
+def draw_noise_seed(rng: np.random.Generator) -> int:
+    """The background-noise seed of a clip, drawn from ``rng`` right after the initial
+    potential (so every simulator sharing a generator shares the noise): int in [0, 2**63)."""
+    return int(rng.integers(0, 2**63, dtype=np.int64))
+
+
+def check_frames(frames, num_bins: int) -> int:
+    """Check a clip for the V2V core and return its full scale (255 or 65535).
+
+    Raises:
+        ValueError: frames that are not a uint8/uint16 (N, H, W) array with
+            N = L * num_bins + 1 (L >= 1), or a bad ``num_bins``.
+    """
+    if isinstance(num_bins, bool) or not isinstance(num_bins, (int, np.integer)) or num_bins < 1:
+        raise ValueError(f"num_bins must be an int >= 1, got {num_bins!r}")
+    if not isinstance(frames, np.ndarray) or frames.ndim != 3:
+        raise ValueError(
+            f"frames must be an (N, H, W) array, got {type(frames).__name__}{getattr(frames, 'shape', '')}"
+        )
+    full_scale = full_scale_of(frames)
+    n = frames.shape[0]
+    if n < num_bins + 1 or (n - 1) % num_bins != 0:
+        raise ValueError(
+            f"frames must hold L * num_bins + 1 frames (num_bins={int(num_bins)}, L >= 1), got N={n}"
+        )
+    return full_scale
+
+
 def start_state(params: SensorParams, shape: Tuple[int, int], initial_potential=None,
                 rng: Optional[np.random.Generator] = None, dtype=np.float32):
     """Check ``params.hot_pixels`` against ``shape`` and return ``(rng, potential)``: the
@@ -230,11 +270,14 @@ def simulate_voxels(
     *,
     initial_potential: Optional[np.ndarray] = None,
     rng: Optional[np.random.Generator] = None,
+    noise_seed: Optional[int] = None,
+    first_pair: int = 0,
     compute_dtype=np.float32,
 ) -> Tuple[np.ndarray, np.ndarray]:
     """Discrete voxel grids (SBT) of a clip, computed from frames without an event stream.
 
-    Paper: Lou et al. 2025, Sec. 3 (V2V); one frame pair per bin (frames_per_bin = 1).
+    Paper: Lou et al. 2025, Sec. 3 (V2V); one frame pair per bin (frames_per_bin = 1). The
+    step itself is :func:`v2v_server.kernel.run_kernel` (the project's one kernel).
 
     Args:
         frames: uint8 (full scale 255) or uint16 (full scale 65535, for 10- to 16-bit
@@ -243,14 +286,19 @@ def simulate_voxels(
         num_bins: B, temporal bins per voxel grid (int >= 1).
         initial_potential: (H, W) float, dL_hat(t_0) in log-intensity units. ``None`` draws
             it from U[-c-, c+] with ``rng``.
-        rng: ``numpy.random.Generator`` for the initial potential and the noise; a fresh
-            unseeded one when ``None``.
+        rng: ``numpy.random.Generator`` for the initial potential and, when ``noise_seed``
+            is None, the noise seed (:func:`draw_noise_seed`, drawn after the potential); a
+            fresh unseeded one when ``None``.
+        noise_seed: seed of the kernel's background-noise stream (see ``kernel.py``): frame
+            pair j's noise depends only on (noise_seed, first_pair + j).
+        first_pair: index of this clip's first frame pair in the noise stream; continue a
+            clip with the returned potential, the same ``noise_seed`` and
+            ``first_pair + (N - 1)`` and the result equals one call.
         compute_dtype: ``np.float32`` (default) or ``np.float64``: precision of the
-            log-intensity table, the noise draws and the stored residual potential. Each
-            step itself is evaluated in float64 (float64 accumulation), so the conservation
-            law c+ sum N+ - c- sum N- + dL_hat_end - dL_hat_0 = L_end - L_0 + sum N_i +
-            steps * H holds to steps * 2**-24 * max(c+, c-) in float32 (see
-            tests/test_stability.py); on CPU this costs no time.
+            log-intensity table and of the residual potential stored between frame pairs.
+            Each step itself is evaluated in float64, so the conservation law c+ sum N+ -
+            c- sum N- + dL_hat_end - dL_hat_0 = L_end - L_0 + sum N_i + steps * H holds to
+            steps * 2**-24 * max(c+, c-) in float32 (see tests/test_stability.py).
 
     Returns:
         ``(voxels, potential)``: ``voxels`` int32 (L, num_bins, H, W), bin b of voxel l is
@@ -267,77 +315,18 @@ def simulate_voxels(
     """
     if not isinstance(params, SensorParams):
         raise ValueError(f"params must be a SensorParams, got {type(params).__name__}")
-    if isinstance(num_bins, bool) or not isinstance(num_bins, (int, np.integer)) or num_bins < 1:
-        raise ValueError(f"num_bins must be an int >= 1, got {num_bins!r}")
-    num_bins = int(num_bins)
-    if not isinstance(frames, np.ndarray) or frames.ndim != 3:
-        raise ValueError(
-            f"frames must be an (N, H, W) array, got {type(frames).__name__}{getattr(frames, 'shape', '')}"
-        )
-    if frames.dtype == np.uint8:
-        full_scale = 255
-    elif frames.dtype == np.uint16:
-        full_scale = 65535
-    else:
-        raise ValueError(f"frames must have dtype uint8 or uint16, got {frames.dtype}")
+    full_scale = check_frames(frames, num_bins)
     n, h, w = frames.shape
-    if n < num_bins + 1 or (n - 1) % num_bins != 0:
-        raise ValueError(
-            f"frames must hold L * num_bins + 1 frames (num_bins={num_bins}, L >= 1), got N={n}"
-        )
     dtype = np.dtype(compute_dtype)
     if dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
         raise ValueError(f"compute_dtype must be float32 or float64, got {dtype}")
-    hot = params.hot_pixels
     rng, potential = start_state(params, (h, w), initial_potential, rng, dtype)
-    cp, cn = params.pos_threshold, params.neg_threshold
-    sigma = params.noise_std
-    lut = _lut(full_scale, dtype)
-    # Overflow guard: int32 counts must never wrap. Without noise |dL| is bounded by the
-    # log range + |H| + the residual; only when that bound (plus 40 sigma) comes near the
-    # int32 range do we pay for a per-step check (thresholds ~1e-9 or hot pixels ~1e6).
-    bound = float(lut[-1] - lut[0]) + max(cp, cn) + (0.0 if hot is None else float(np.abs(hot).max()))
-    bound += float(np.abs(potential).max(initial=0.0)) + 40.0 * sigma
-    check_overflow = bound / min(cp, cn) > 2**30
-    hot = None if hot is None else hot.astype(np.float64)
-
-    n_pairs = n - 1
-    voxels = np.empty((n_pairs, h, w), dtype=np.int32)
-    # Every step is evaluated in float64 and only the residual is stored in compute_dtype:
-    # a float32 step drifts (|conservation error| ~4e-3 log units after 1e5 steps of
-    # random frames with c = 1e-3), the float64 step plus float32 storage of a residual
-    # bounded by max(c+, c-) keeps it below steps * 2**-24 * max(c+, c-).
-    lut64 = lut.astype(np.float64)  # the compute_dtype table's values, widened once
-    prev = lut64[frames[0]]
-    cur = np.empty((h, w), dtype=np.float64)
-    dl = np.empty((h, w), dtype=np.float64)
-    pos = np.empty((h, w), dtype=np.float64)
-    neg = np.empty((h, w), dtype=np.float64)
-    sigma_c = dtype.type(sigma)
-    for i in range(n_pairs):
-        np.take(lut64, frames[i + 1], out=cur)
-        # dL = dL_hat + (L_i - L_{i-1}) + N_i + H
-        np.subtract(cur, prev, out=dl)
-        dl += potential
-        if sigma > 0:
-            dl += rng.standard_normal((h, w), dtype=dtype) * sigma_c
-        if hot is not None:
-            dl += hot
-        np.floor(np.divide(dl, cp, out=pos), out=pos)
-        np.maximum(pos, 0, out=pos)
-        np.floor(np.divide(dl, -cn, out=neg), out=neg)
-        np.maximum(neg, 0, out=neg)
-        if check_overflow and max(pos.max(), neg.max()) > np.iinfo(np.int32).max:
-            raise OverflowError(
-                f"frame pair {i}: more than 2**31-1 events in one pixel (thresholds "
-                f"c+={cp}, c-={cn} too small for the int32 voxel grid)"
-            )
-        np.subtract(pos, neg, out=voxels[i], casting="unsafe")
-        dl -= pos * cp
-        dl += neg * cn
-        np.copyto(potential, dl, casting="same_kind")
-        prev, cur = cur, prev
-    return voxels.reshape(n_pairs // num_bins, num_bins, h, w), potential.astype(np.float32)
+    if noise_seed is None:
+        noise_seed = draw_noise_seed(rng)
+    res = run_kernel(frames, potential, params.pos_threshold, params.neg_threshold,
+                     lut=_lut64(full_scale, dtype), extra=0.0 if params.hot_pixels is None else params.hot_pixels,
+                     noise_std=params.noise_std, noise_seed=noise_seed, first_pair=first_pair)
+    return res.net.reshape((n - 1) // num_bins, num_bins, h, w), potential.astype(np.float32)
 
 
 def sample_params(

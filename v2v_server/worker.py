@@ -20,7 +20,7 @@ import zmq
 
 from .config import ServeConfig
 from .protocol import encode_arrays, narrow_int_dtype, pack, unpack
-from .sampler import FlowEstimator, video_samples
+from .sampler import FlowEstimator, parse_sample_id, video_samples
 from .video import VideoError
 
 log = logging.getLogger("v2v.worker")
@@ -127,7 +127,7 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
             clock.made()
             specs, frames = encode_arrays(wire_arrays(cfg, arrays))
             header = {"type": "sample", "task": task["task"], "sample_id": sid,
-                      "window": int(sid.rsplit("#", 1)[1]), "meta": meta, "arrays": specs}
+                      "index": parse_sample_id(sid, cfg.crops_per_window)[1], "meta": meta, "arrays": specs}
             clock.serialized()
             header["stages"] = clock.report()
             _send(sock, [pack(header)] + frames, parent_pid)

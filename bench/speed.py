@@ -1,0 +1,277 @@
+"""Speed goals side by side, in one run on one machine: ``python -m bench.speed``.
+
+Every rate is per core: samples per CPU-second of the process doing the work (so other
+load on a shared machine inflates wall time, not the ratios), on the WebVid-like clip
+(596x336 H.264, 25 fps), 128x128 crops, L = 40 x 5 bins (201 frames per sample).
+
+Rows:
+
+* bare decode: PyAV, Y plane only, one thread -> frames per CPU-second / 201 = the decode
+  bound in samples/s;
+* reference-style loader (the V2V authors' data loader, transcribed): per sample reopen and
+  seek with cv2.VideoCapture, read BGR, cvtColor to gray, crop, float64 V2V with noise and
+  hot pixels in numpy, no flow;
+* ours, one worker core (``sampler.video_samples`` + the wire narrowing, in this process):
+  voxels only, and every output at the default flow preset; ``crops_per_window`` 4;
+* the relay: ``v2v-serve --workers 2`` -> ``V2VStreamDataset(raw=True)``: the server main
+  process's CPU-seconds per GB sent, the client process's CPU-seconds per GB received,
+  stream samples/s with 1 and 2 workers, time to the first batch;
+* memory: server tree RSS under a trainer that stalls, against the README's bound.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+
+CLIP = "webvid_like_596x336.mp4"
+SPAN = 201
+
+
+def clip_path() -> Path:
+    here = Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos" / CLIP
+    return here
+
+
+def make_corpus(root: Path, copies: int) -> Path:
+    """A WebVid-like corpus: ``copies`` copies of the bundled 596x336 clip (2 windows each)."""
+    root.mkdir(parents=True, exist_ok=True)
+    for i in range(copies):
+        shutil.copyfile(clip_path(), root / f"clip{i:03d}.mp4")
+    return root
+
+
+# ---------------------------------------------------------------------------- baselines
+def bare_decode(path: Path, repeats: int) -> float:
+    """Frames per CPU-second: PyAV decode, Y plane viewed, one thread."""
+    from v2v_server.video import decode_luma, open_video
+
+    n = 0
+    t = time.process_time()
+    for _ in range(repeats):
+        c, s, _ = open_video(path, 1)
+        for y in decode_luma(c, s):
+            n += 1
+    return n / (time.process_time() - t)
+
+
+def _v2v_float64(frames: np.ndarray, cp: float, cn: float, sigma: float, hot: np.ndarray,
+                 rng: np.random.Generator, num_bins: int = 5) -> np.ndarray:
+    """The reference repo's style: float64 numpy, one pass per array operation."""
+    logi = np.log(1e-3 + (frames.astype(np.float64) / 255.0) ** 2.2)
+    pot = rng.uniform(-cn, cp, frames.shape[1:])
+    out = np.empty((len(frames) - 1,) + frames.shape[1:], np.int32)
+    for i in range(1, len(frames)):
+        dl = pot + (logi[i] - logi[i - 1]) + rng.normal(0, sigma, frames.shape[1:]) + hot
+        npos = np.maximum(np.floor(dl / cp), 0)
+        nneg = np.maximum(np.floor(-dl / cn), 0)
+        pot = dl - cp * npos + cn * nneg
+        out[i - 1] = npos - nneg
+    return out.reshape(-1, num_bins, *frames.shape[1:])
+
+
+def reference_loader(path: Path, samples: int, crop: int = 128) -> float:
+    """Samples per CPU-second of a reference-style loader (see module doc)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    rng = np.random.default_rng(0)
+    t = time.process_time()
+    for k in range(samples):
+        cap = cv2.VideoCapture(str(path))
+        total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        start = int(rng.integers(0, max(1, total - SPAN)))
+        cap.set(cv2.CAP_PROP_POS_FRAMES, start)
+        frames = []
+        for _ in range(SPAN):
+            ok, bgr = cap.read()
+            if not ok:
+                break
+            g = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+            frames.append(g[:crop, :crop])
+        cap.release()
+        f = np.stack(frames)
+        hot = np.zeros(f.shape[1:])
+        m = rng.random(f.shape[1:]) < 0.0005
+        hot[m] = rng.normal(0, 5, int(m.sum()))
+        _v2v_float64(f, 0.2, 0.25, 0.05, hot, rng)
+    return samples / (time.process_time() - t)
+
+
+# ---------------------------------------------------------------------------- ours, one core
+def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2) -> float:
+    """Samples per CPU-second of one worker's work (decode, crop, simulate, flow, narrowing)
+    in this process, one thread."""
+    import cv2
+
+    from v2v_server.config import ServeConfig
+    from v2v_server.sampler import FlowEstimator, video_samples
+    from v2v_server.worker import wire_arrays
+
+    cv2.setNumThreads(1)
+    cfg = ServeConfig(seed=1, crops_per_window=crops).validate()
+    names = sorted(p.name for p in corpus.iterdir())[:videos]
+    flow = FlowEstimator(cfg.flow_preset) if "flow" in outputs else None
+    n = 0
+    t = time.process_time()
+    for name in names:
+        for sid, arrays, meta in video_samples(cfg, corpus, name, 0, outputs, (), flow):
+            wire_arrays(cfg, arrays)
+            n += 1
+    return n / (time.process_time() - t)
+
+
+# ---------------------------------------------------------------------------- the stream
+def _cpu_s(pid: int) -> float:
+    """User + system CPU-seconds of one process (all its threads, not its children)."""
+    f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory of a process and all its descendants, MB (1e6 bytes)."""
+    total, stack = 0, [pid]
+    while stack:
+        p = stack.pop()
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) * 1024
+            stack += [int(k) for k in Path(f"/proc/{p}/task/{p}/children").read_text().split()]
+        except OSError:
+            continue
+    return total / 1e6
+
+
+def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], endpoint: Optional[str] = None) -> dict:
+    """Through ``v2v-serve`` and ``V2VStreamDataset(raw=True)``: samples/s, time to the first
+    batch, and CPU-seconds per GB of the server main process and of this (client) process."""
+    from v2v_server.process import ServeProcess
+    from v2v_client import V2VStreamDataset
+
+    args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", "8", "--seed", "1", *extra]
+    if endpoint:
+        args += ["--bind", endpoint]
+    with ServeProcess(args) as srv:
+        t0 = time.perf_counter()
+        ds = V2VStreamDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True)
+        it = iter(ds)
+        next(it)
+        first = time.perf_counter() - t0
+        next(it)
+        s0, c0, w0 = _cpu_s(srv.proc.pid), time.process_time(), time.perf_counter()
+        nbytes = samples = 0
+        for _ in range(batches):
+            b = next(it)
+            samples += len(b["sample_ids"])
+            nbytes += sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel"))
+        s1, c1, w1 = _cpu_s(srv.proc.pid), time.process_time(), time.perf_counter()
+        it.close()
+    gb = nbytes / 1e9
+    return {"first_batch_s": first, "samples_per_s": samples / (w1 - w0), "gb": gb,
+            "server_cpu_s_per_gb": (s1 - s0) / gb, "client_cpu_s_per_gb": (c1 - c0) / gb}
+
+
+def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 8, credits: int = 1,
+                   prefetch: int = 2) -> dict:
+    """Server tree RSS while a trainer holding ``credits`` takes nothing for ``stall_s``."""
+    from v2v_server.process import ServeProcess
+    from v2v_client import V2VStreamDataset
+
+    args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", str(batch), "--seed", "1"]
+    with ServeProcess(args) as srv:
+        it = iter(V2VStreamDataset(srv.endpoint, credits=credits, timeout_s=300, raw=True))
+        b = next(it)
+        sample_mb = sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel")) / 1e6 / len(
+            b["sample_ids"])
+        time.sleep(3.0)
+        start = tree_rss_mb(srv.proc.pid)
+        peak = start
+        t_end = time.time() + stall_s
+        while time.time() < t_end:
+            time.sleep(1.0)
+            peak = max(peak, tree_rss_mb(srv.proc.pid))
+        idle = srv_idle_rss = tree_rss_mb(srv.proc.pid)
+        it.close()
+    # README bound on what the data path holds: workers x (window buffers + 2 queued samples)
+    # + (prefetch + credits) x batch
+    window_mb = SPAN * 128 * 128 / 1e6
+    bound = workers * (window_mb + 2 * sample_mb) + (prefetch + credits) * batch * sample_mb
+    return {"start_mb": start, "peak_mb": peak, "end_mb": idle, "growth_mb": peak - start,
+            "data_bound_mb": bound, "sample_mb": sample_mb, "srv_idle": srv_idle_rss}
+
+
+# ---------------------------------------------------------------------------- main
+def main(argv: Optional[List[str]] = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--copies", type=int, default=6, help="copies of the WebVid-like clip in the corpus (2 windows each)")
+    p.add_argument("--batches", type=int, default=6, help="measured stream batches (of 8) per stream row")
+    p.add_argument("--stall", type=float, default=60.0, help="seconds the stalled trainer takes nothing")
+    p.add_argument("--out", help="also write the table (markdown) here")
+    a = p.parse_args(argv)
+    from v2v_server.config import ServeConfig
+
+    default_flow = ServeConfig().flow_preset
+    rows = []
+
+    def row(goal, name, value, unit, ratio="", target=""):
+        rows.append((goal, name, value, unit, ratio, target))
+        print(f"{goal} | {name}: {value:.3g} {unit} {ratio}", file=sys.stderr)
+
+    with tempfile.TemporaryDirectory(prefix="v2v-speed-") as d:
+        corpus = make_corpus(Path(d) / "webvid", a.copies)
+        # warm the kernel's compile cache and the decoder once, unmeasured
+        worker_core(corpus, ("voxels",), videos=1)
+        fps = bare_decode(clip_path(), 3)
+        bound = fps / SPAN
+        row("-", "bare decode (PyAV, Y plane, 1 thread)", bound, "samples/CPU-s", f"{fps:.0f} frames/CPU-s")
+        ref = reference_loader(clip_path(), 4)
+        row("-", "reference-style loader (cv2 seek, BGR, float64 V2V, no flow)", ref, "samples/CPU-s",
+            f"{ref / bound:.0%} of decode bound")
+        vox = worker_core(corpus, ("voxels",))
+        row("1", "ours, one worker core, voxels only", vox, "samples/CPU-s",
+            f"{vox / bound:.0%} of decode bound, {vox / ref:.1f}x reference", ">= 85 %")
+        allo = worker_core(corpus, ("voxels", "frames", "flow"))
+        row("1", f"ours, one worker core, every output (flow {default_flow})", allo, "samples/CPU-s",
+            f"{allo / bound:.0%} of decode bound, {allo / ref:.1f}x reference", ">= 70 %")
+        k4 = worker_core(corpus, ("voxels", "frames", "flow"), crops=4)
+        row("2", "crops_per_window 4, every output", k4, "samples/CPU-s", f"{k4 / allo:.1f}x crops 1", ">= 2.5x")
+        outs = ("voxels", "frames", "flow")
+        s1 = stream(corpus, 1, a.batches, outs, [])
+        s2 = stream(corpus, 2, a.batches, outs, ["--crops-per-window", "4"])
+        row("3", "relay: server main process CPU per GB (2 workers, crops 4)", s2["server_cpu_s_per_gb"],
+            "CPU-s/GB", f"{s2['gb']:.2f} GB sent", "<= 0.5")
+        ipc = f"ipc://{d}/v2v.sock"
+        s3 = stream(corpus, 2, a.batches, outs, ["--crops-per-window", "4"], endpoint=ipc)
+        row("3", "relay over ipc:// (same host)", s3["server_cpu_s_per_gb"], "CPU-s/GB",
+            f"{s3['samples_per_s']:.1f} samples/s", "<= 0.5")
+        row("4", "client CPU per GB received, raw=True", s2["client_cpu_s_per_gb"], "CPU-s/GB", "", "<= 0.3")
+        row("5", "stream, 1 worker, every output", s1["samples_per_s"], "samples/s",
+            f"first batch after {s1['first_batch_s']:.1f} s")
+        s2b = stream(corpus, 2, a.batches, outs, [])
+        row("5", "stream, 2 workers, every output", s2b["samples_per_s"], "samples/s",
+            f"{s2b['samples_per_s'] / s1['samples_per_s']:.2f}x 1 worker (2 cores, shared); first batch after "
+            f"{s2b['first_batch_s']:.1f} s", "~2x")
+        mem = stalled_memory(corpus, a.stall)
+        row("6", f"server tree RSS growth over a {a.stall:.0f} s stall", mem["growth_mb"], "MB",
+            f"from {mem['start_mb']:.0f} MB; data-path bound {mem['data_bound_mb']:.0f} MB", "<= bound")
+    lines = ["| goal | measurement | value | unit | ratio / note | target |", "|---|---|---:|---|---|---|"]
+    for goal, name, value, unit, ratio, target in rows:
+        lines.append(f"| {goal} | {name} | {value:.3g} | {unit} | {ratio} | {target} |")
+    table = "\n".join(lines)
+    print(table)
+    if a.out:
+        Path(a.out).write_text(table + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,122 @@
+"""The one simulation kernel: its noise stream, noisy V2V against a float64 transcription, and
+refinement composed with non-idealities in one call."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.conftest import read_luma_clip
+from v2v_server.kernel import ZIGGURAT_R, full_scale_of, noise_field, run_kernel
+from v2v_server.nonideal import NonIdealities, draw_pixel_state, simulate_voxels_nonideal
+from v2v_server.refine import simulate_voxels_refined
+from v2v_server.simulate import SensorParams, log_intensity_lut, simulate_voxels
+
+
+def test_noise_is_standard_normal():
+    z = noise_field(123, 40, (100, 100)).ravel()  # 400k draws
+    assert abs(z.mean()) < 4 / math.sqrt(z.size)
+    assert z.std() == pytest.approx(1.0, abs=0.005)
+    # quantiles of N(0, 1), the tail beyond the ziggurat's base layer included
+    for q, tail in ((1.0, 0.317311), (2.0, 0.0455003), (3.0, 0.0026998), (ZIGGURAT_R, 0.000258)):
+        expect = tail * z.size
+        assert abs((np.abs(z) > q).sum() - expect) < 5 * math.sqrt(expect) + 3, q
+    assert np.abs(z).max() > ZIGGURAT_R  # the tail is reached
+    # third and fourth moments (skew 0, kurtosis 3)
+    assert abs((z**3).mean()) < 0.02 and (z**4).mean() == pytest.approx(3.0, abs=0.05)
+
+
+def test_noise_depends_only_on_seed_and_pair():
+    whole = noise_field(7, 10, (8, 9))
+    np.testing.assert_array_equal(noise_field(7, 4, (8, 9), first_pair=6), whole[6:])
+    assert not np.array_equal(noise_field(8, 10, (8, 9)), whole)
+    # the streams of different pairs are uncorrelated (10k pixels: |r| ~ 0.01)
+    big = noise_field(7, 10, (100, 100)).reshape(10, -1)
+    assert np.abs(np.corrcoef(big)[np.triu_indices(10, 1)]).max() < 0.05
+
+
+def test_noisy_v2v_matches_float64_transcription(real_clip):
+    """With noise and hot pixels, the kernel equals the paper's equations transcribed in float64
+    with the same noise (replayed with noise_field), except at exact-threshold ties."""
+    frames = real_clip[:26]
+    h, w = frames.shape[1:]
+    cp, cn, sigma = 0.15, 0.22, 0.07
+    hot = np.zeros((h, w), np.float32)
+    hot[3, 4], hot[50, 60] = 0.9, -0.5
+    pot0 = np.random.default_rng(0).uniform(-cn, cp, (h, w))
+    vox, pot = simulate_voxels(frames, SensorParams(cp, cn, sigma, hot), 5, initial_potential=pot0,
+                               noise_seed=99, compute_dtype=np.float64)
+    logi = np.log(1e-3 + (frames.astype(np.float64) / 255.0) ** 2.2)
+    noise = noise_field(99, 25, (h, w)) * sigma
+    p = pot0.copy()
+    tie = np.full((h, w), np.inf)
+    ref = []
+    for i in range(25):
+        dl = p + (logi[i + 1] - logi[i]) + noise[i] + hot
+        npos = np.maximum(np.floor(dl / cp), 0)
+        nneg = np.maximum(np.floor(-dl / cn), 0)
+        for q in (dl / cp, -dl / cn):
+            tie = np.minimum(tie, np.abs(q - np.round(q)))
+        p = dl - cp * npos + cn * nneg
+        ref.append(npos - nneg)
+    ref = np.stack(ref).reshape(5, 5, h, w)
+    clean = tie > 1e-9
+    assert clean.mean() > 0.99 and np.abs(ref).sum() > 1000
+    np.testing.assert_array_equal(vox[:, :, clean], ref[:, :, clean])
+    np.testing.assert_allclose(pot[clean], p[clean], atol=1e-6)
+    assert vox[:, :, 3, 4].sum() > 25 * 0.9 / cp - 2  # the hot pixel fires every pair
+
+
+def test_refinement_and_nonidealities_compose():
+    clip = read_luma_clip("bikes.mp4", 11, (48, 64))
+    p = SensorParams(0.1, 0.15, 0.03)
+    # refined + all non-idealities off == refined alone (same noise seed, same path)
+    a, pa, ia = simulate_voxels_refined(clip, p, 5, "uniform:3", rng=np.random.default_rng(5), flow_fn=_zero_flow)
+    b, pb, ib = simulate_voxels_nonideal(clip, p, 5, NonIdealities(), fps=30.0, rng=np.random.default_rng(5),
+                                         refine="uniform:3", flow_fn=_zero_flow)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(pa, pb)
+    assert ia["events"] == ib["events"] and ib["refine"] == "uniform:3"
+    # refined + a refractory cap: the cap binds per frame pair, on the summed sub-interval counts
+    c, _, ic = simulate_voxels_nonideal(clip, p, 5, NonIdealities(refractory_max_events=1), fps=30.0,
+                                        rng=np.random.default_rng(5), refine="uniform:3", flow_fn=_zero_flow)
+    assert np.abs(c).max() <= 1 and ic["events_lost_refractory"] > 0
+    # refined + per-pixel thresholds: pixels with a larger c+ fire fewer ON events
+    ni = NonIdealities(threshold_sigma=0.03)
+    st = draw_pixel_state(ni, p, (48, 64), np.random.default_rng(1))
+    d, _, _ = simulate_voxels_nonideal(clip, p, 5, ni, fps=30.0, pixel_state=st, rng=np.random.default_rng(5),
+                                       refine="uniform:3", flow_fn=_zero_flow)
+    on = np.clip(d, 0, None).sum(axis=(0, 1)).astype(float)
+    assert np.corrcoef(on.ravel(), st.pos_threshold.ravel())[0, 1] < -0.05
+    assert (d != a).any()
+
+
+def _zero_flow(a, b):
+    return np.zeros(a.shape + (2,), np.float32)
+
+
+def test_kernel_events_add_up_to_counts():
+    frames = read_luma_clip("bikes.mp4", 6, (20, 30))
+    lut = log_intensity_lut(full_scale_of(frames)).astype(np.float64)
+    pot = np.zeros((20, 30))
+    res = run_kernel(frames, pot, 0.05, 0.08, lut=lut, noise_std=0.02, noise_seed=3, events=True, split=True)
+    assert res.events == len(res.event_step) > 100
+    per_pair = np.zeros((5, 600))
+    np.add.at(per_pair, (res.event_step, res.event_pixel), res.event_polarity)
+    np.testing.assert_array_equal(per_pair.reshape(5, 20, 30), res.net)
+    assert ((res.event_fraction >= 0) & (res.event_fraction <= 1)).all()
+    np.testing.assert_array_equal(res.pos - res.neg, res.net)
+
+
+def test_kernel_rejects_bad_inputs():
+    frames = np.zeros((3, 4, 4), np.uint8)
+    lut = np.zeros(256)
+    with pytest.raises(ValueError, match="threshold"):
+        run_kernel(frames, np.zeros((4, 4)), 0.0, 0.1, lut=lut)
+    with pytest.raises(ValueError, match="potential"):
+        run_kernel(frames, np.zeros((4, 5)), 0.1, 0.1, lut=lut)
+    with pytest.raises(ValueError, match="pos_threshold"):
+        run_kernel(frames, np.zeros((4, 4)), np.ones(3), 0.1, lut=lut)
+    with pytest.raises(ValueError, match="uint8 or uint16"):
+        full_scale_of(frames.astype(np.int16))
