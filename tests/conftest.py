@@ -44,3 +44,15 @@ def videos() -> Path:
 @pytest.fixture(scope="session")
 def real_clip() -> np.ndarray:
     return read_luma_clip()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _warm_kernel_cache():
+    """Compile (or load from numba's cache) the kernel's common signatures once, before any
+    test starts a server: on a cold cache every worker process would otherwise compile it
+    (~15 s) while a test waits for its first batch."""
+    from v2v_server.simulate import SensorParams, simulate_voxels
+
+    frames = np.zeros((6, 4, 4), np.uint8)
+    simulate_voxels(frames, SensorParams(0.1, 0.1, 0.01), 5, rng=np.random.default_rng(0))
+    simulate_voxels(frames, SensorParams(0.1, 0.1, 0.01), 5, rng=np.random.default_rng(0), compute_dtype=np.float64)
