@@ -225,7 +225,9 @@ def video_samples(
     Yields ``(sample_id, arrays, meta)`` for each complete window not in ``skip_windows``,
     in window order. Decoding stops after the last window that can be used. When given,
     ``stats`` receives ``frames`` (frames decoded), ``windows`` (complete windows, skipped
-    ones included), ``width``, ``height`` and ``fps``.
+    and failed ones included), ``width``, ``height``, ``fps`` and, when some window could not
+    be made, ``failed`` (window -> reason; e.g. the frame size changed inside it: that window
+    fails, the following ones are planned on the new size).
 
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
@@ -253,6 +255,16 @@ def video_samples(
         if off == 0:
             plan = plan_window(cfg, epoch, make_sample_id(rel_path, k), k, luma.shape)
             buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), np.uint8)
+            shape = luma.shape
+        if plan is not None and luma.shape != shape:
+            # a stream whose frame size changes: this window fails (this epoch), the next is planned anew
+            stats.setdefault("failed", {})[k] = (f"frame size changed from {shape[1]}x{shape[0]} to "
+                                                 f"{luma.shape[1]}x{luma.shape[0]} at frame {i}")
+            plan, buf = None, None
+        if plan is None:
+            if off == span - 1:
+                stats["windows"] += 1
+            continue
         if off < plan.consumed:
             buf[off] = crop_frame(cfg, plan, luma)
         if off == span - 1:

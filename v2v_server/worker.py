@@ -76,7 +76,8 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
         error = (f"{stats.get('frames', 0)} frames, shorter than one window of "
                  f"{cfg.frames_per_sample} frames")
     done = {"type": "done", "task": task["task"], "samples": sent, "frames": stats.get("frames", 0),
-            "windows": stats.get("windows", 0), "error": error}
+            "windows": stats.get("windows", 0), "error": error,
+            "failed": {str(k): str(v) for k, v in stats.get("failed", {}).items()}}
     _send(sock, [pack(done)], parent_pid)
 
 
