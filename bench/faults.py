@@ -387,7 +387,7 @@ def scenario_break_loop(tmp: Path, layout: Layout, breaks: int = 4) -> dict:
 SILENT_CLIENT = r"""
 import sys, time
 from v2v_client import V2VStreamDataset
-ds = V2VStreamDataset(sys.argv[1], timeout_s=60, credits=3)
+ds = V2VStreamDataset(sys.argv[1], timeout_s=20, credits=3)
 for b in ds:
     print("ids", " ".join(b["sample_ids"]), flush=True)
     time.sleep(0.2)
@@ -398,11 +398,17 @@ def scenario_silent_client(tmp: Path, layout: Layout, client_timeout_s: float = 
     """A trainer process suspended (SIGSTOP) longer than the server's client timeout, then
     resumed: it was dropped and its batches went to another trainer, so it must hand none
     of what it held to its training loop."""
-    corpus = good_corpus(tmp, 2)
+    corpus = good_corpus(tmp, 3)
     expected = expected_ids(corpus, layout)
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     ids: List[str] = []
     log_b: list = []
+
+    def slow_reader(ds, log):  # the other trainer takes its time, so the stream outlives the suspension
+        for b in ds:
+            log.append((time.monotonic(), list(b["sample_ids"])))
+            time.sleep(1.0)
+
     with _serve(corpus, layout, "--epochs", "1", "--client-timeout", str(client_timeout_s)) as srv:
         p = subprocess.Popen([sys.executable, "-c", SILENT_CLIENT, srv.endpoint], stdout=subprocess.PIPE, text=True,
                              env=env)
@@ -412,7 +418,7 @@ def scenario_silent_client(tmp: Path, layout: Layout, client_timeout_s: float = 
             time.sleep(0.3)  # its queue fills up to its credits
             p.send_signal(signal.SIGSTOP)
             other = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
-            tb = threading.Thread(target=read_all, args=(other, log_b), daemon=True)
+            tb = threading.Thread(target=slow_reader, args=(other, log_b), daemon=True)
             tb.start()
             time.sleep(client_timeout_s * 2 + 1)
             p.send_signal(signal.SIGCONT)

@@ -104,6 +104,8 @@ class Connection:
         self.taken: "collections.OrderedDict[int, None]" = collections.OrderedDict()  # recent, bounded
         self.last_io = time.monotonic()
         self.discarded = 0
+        self._hello_seq = 0
+        self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
@@ -187,7 +189,9 @@ class Connection:
         server takes the resume state as the truth and re-sends the rest."""
         with self.lock:
             self._discard_locked("saying hello again")
-        return pack(self.ds._hello_header())
+        self._hello_seq += 1
+        self._awaiting = self._hello_seq
+        return pack(dict(self.ds._hello_header(), hello_id=self._hello_seq))
 
     def _forward_acks(self, sock: zmq.Socket) -> None:
         while True:
@@ -281,6 +285,10 @@ class Connection:
         try:
             h = unpack(frames[0])
             kind = h["type"]
+            if self._awaiting is not None and (kind in ("batch", "revoke") or (
+                    kind == "error" and h.get("code") in ("dropped", "unknown_client"))):
+                # sent before the server read our latest hello: about a session that is over
+                return None
             if kind == "batch":
                 arrays = decode_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
                 missing = [o for o in self.ds.outputs if o not in arrays]
@@ -294,10 +302,16 @@ class Connection:
                 item["params"] = list(h["params"])
                 item["epoch"] = int(h["epoch"])
                 item["batch_id"] = int(h["batch_id"])
+                if h.get("padding") is True:  # DDP padding from the server: not leased, never acknowledged
+                    item["padding"] = torch.ones(len(ids), dtype=torch.bool)
+                    self.items.put(_Padding(item))
+                    return None
                 with self.lock:  # a batch we gave back may come back to us: this copy is the live one
                     self.current[item["batch_id"]] = item
                 self.items.put(item)
             elif kind == "welcome":
+                if h.get("hello_id") == self._awaiting:
+                    self._awaiting = None
                 self.info = h.get("info", {})
             elif kind == "revoke":
                 ids = h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else []
@@ -351,6 +365,11 @@ def _strip(item: dict) -> None:
 
 #: Backwards-compatible name.
 _Connection = Connection
+
+
+class _Padding:
+    def __init__(self, item: dict):
+        self.item = item
 
 
 class _EpochDone:
@@ -591,6 +610,15 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                     raise item
                 if isinstance(item, _EpochDone):
                     yield from self._epoch_done(item)
+                    continue
+                if isinstance(item, _Padding):
+                    with self._lock:
+                        e = item.item["epoch"]
+                        if e <= self._completed_epoch:
+                            continue
+                        self._batches[e] = self._batches.get(e, 0) + 1
+                    self._last = item.item
+                    yield item.item
                     continue
                 self.info = conn.info
                 epoch = item["epoch"]

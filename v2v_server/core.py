@@ -55,6 +55,7 @@ class DeliveryCore:
         self.outputs: Optional[tuple] = None  # what workers compute now: the union clients ask for
         self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
         self.announced: set = set()
+        self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch (DDP padding)
         self.samples_made = 0
 
     # ------------------------------------------------------------------ workers
@@ -156,7 +157,7 @@ class DeliveryCore:
         if self.outputs is None or any(o not in self.outputs for o in h.outputs):
             log.info("client %s asks for %s: workers now compute %s", ident.hex(), list(h.outputs),
                      list(self.ledger.outputs_wanted()))
-        return [(ident, {"type": "welcome", "info": info()})]
+        return [(ident, {"type": "welcome", "info": info(), "hello_id": h.hello_id})]
 
     def message(self, ident: bytes, msg, now: float) -> List[Msg]:
         """Any client message but hello (see ``wire``)."""
@@ -173,6 +174,7 @@ class DeliveryCore:
                 if c.group is not None and c.world_size > 1:
                     counts = self.taken.setdefault((c.group, b.epoch), {})
                     counts[c.rank] = counts.get(c.rank, 0) + 1
+                    self.pad_source[c.group] = b
         elif isinstance(msg, Released):
             back = self.ledger.released(ident, msg.batch_ids)
             if back:
@@ -227,11 +229,16 @@ class DeliveryCore:
             log.info("batch %d carries %s, which no connected client takes as is; its samples are made again",
                      b.batch_id, sorted(b.outputs))
             self.sched.discarded(b.epoch, b.keys)
-        msgs += self._announce()
-        return sends, msgs
+        pads, announced = self._announce()
+        return sends + pads, msgs + announced
 
-    def _announce(self) -> List[Msg]:
+    def _announce(self) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
+        """``epoch_done`` for each newly complete epoch, in order. A DDP rank that has yielded
+        fewer batches of it than the group's most is told how many to reach; one that was never
+        sent any batch first gets a padding batch (a copy of the group's last batch, batch id
+        -1, every sample flagged) so it has something to repeat."""
         msgs: List[Msg] = []
+        pads: List[Tuple[bytes, BatchRecord]] = []
         for e in sorted(self.sched.plans):
             if not self.sched.plans[e].complete:
                 self.announced.discard(e)
@@ -245,12 +252,16 @@ class DeliveryCore:
                 if c.group is not None and c.world_size > 1:
                     counts = self.taken.get((c.group, e), {})
                     msg["batches"] = max(counts.values()) if counts else 0
+                    src = self.pad_source.get(c.group)
+                    if c.sent == 0 and counts.get(c.rank, 0) < msg["batches"] and src is not None:
+                        pads.append((ident, BatchRecord(-1, e, src.keys, src.payload, outputs=src.outputs)))
+                        c.sent += 1
                 msgs.append((ident, msg))
             log.info("epoch %d complete", e)
         self.sched.prune(self.announced)
         for key in [k for k in self.taken if k[1] not in self.sched.plans and k[1] < self.sched.next_epoch]:
             del self.taken[key]
-        return msgs
+        return pads, msgs
 
     def finished(self) -> bool:
         """Every epoch of a bounded stream is complete and acknowledged."""

@@ -309,6 +309,8 @@ class V2VServer:
             specs, frames = b.payload.wire(c.outputs)
             header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
                       "sample_ids": b.payload.sample_ids, "params": b.payload.meta, "arrays": specs}
+            if b.batch_id < 0:
+                header["padding"] = True  # DDP: a repeat for a rank that has nothing to repeat; never acked
             try:
                 self.frontend.send_multipart([ident, pack(header)] + frames, copy=False)
             except zmq.ZMQError as e:  # peer vanished (ROUTER_MANDATORY)

@@ -89,6 +89,7 @@ class Hello:
     group: Optional[str] = None
     rank: int = 0
     world_size: int = 1
+    hello_id: int = 0  # echoed in the welcome, so the client can tell old-session messages apart
 
 
 @dataclass(frozen=True)
@@ -205,7 +206,7 @@ def parse_client(h: dict, max_credits: int) -> object:
         world = _int(h, "world_size", 1, 65536, 1)
         rank = _int(h, "rank", 0, world - 1, 0)
         return Hello(tuple(o for o in OUTPUTS if o in outs), credits, consumer, _resume(h.get("resume")),
-                     group, rank, world)
+                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0))
     if kind == "ack":
         return Ack(_ids(h, "batch_ids"))
     if kind == "released":
