@@ -461,7 +461,9 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
     Use with ``DataLoader(ds, batch_size=None, pin_memory=True)``. Iteration ends when the
     server ends the stream (``--epochs``). Leaving the loop early (``break``) sends the
-    acknowledgements of what was taken before saying goodbye.
+    acknowledgements of what was taken before saying goodbye. Iterate one dataset object with
+    one iterator at a time (the server knows it as one consumer; a new iterator replaces the
+    previous connection); DataLoader workers each get their own consumer id.
 
     Raises (from iteration):
         StreamTimeout: the server is absent or silent for ``timeout_s``.

@@ -259,6 +259,9 @@ class DeliveryCore:
                 msgs.append((ident, msg))
             log.info("epoch %d complete", e)
         self.sched.prune(self.announced)
+        live_groups = {c.group for c in self.ledger.clients.values()}
+        for g in [g for g in self.pad_source if g not in live_groups]:
+            del self.pad_source[g]
         for key in [k for k in self.taken if k[1] not in self.sched.plans and k[1] < self.sched.next_epoch]:
             del self.taken[key]
         return pads, msgs
