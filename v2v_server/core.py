@@ -122,7 +122,7 @@ class DeliveryCore:
                 del self.pending[k]
                 continue
             plan = self.sched.plans.get(k[0])
-            if plan is None or all(j.state == "done" for j in plan.jobs.values()):
+            if plan is None or plan.unfinished == 0:
                 while group:
                     self._make(k, group)
 

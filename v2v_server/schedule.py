@@ -84,17 +84,56 @@ class Job:
 
 @dataclass
 class EpochPlan:
+    """Every window of one epoch: jobs, who holds what (records), what is live in batches.
+    Per-video indexes keep each update proportional to one file, not the corpus."""
+
     epoch: int
     jobs: Dict[str, Job] = field(default_factory=dict)
     records: Dict[Consumer, Set[SampleKey]] = field(default_factory=dict)
     live: Set[SampleKey] = field(default_factory=set)
     complete: bool = False
+    held: Dict[str, Dict[int, int]] = field(default_factory=dict)  # video -> window -> records holding it
+    live_by_video: Dict[str, Set[int]] = field(default_factory=dict)
+    unfinished: int = 0  # jobs queued or running
 
     def delivered(self) -> Set[SampleKey]:
-        out: Set[SampleKey] = set()
-        for r in self.records.values():
-            out |= r
-        return out
+        """Every sample some consumer holds (O(samples): for tests and reports)."""
+        return {(v, k) for v, ws in self.held.items() for k, n in ws.items() if n > 0}
+
+    def is_delivered(self, key: SampleKey) -> bool:
+        return self.held.get(key[0], {}).get(key[1], 0) > 0
+
+    def have(self, video: str) -> Set[int]:
+        """Windows of ``video`` delivered or live."""
+        return {k for k, n in self.held.get(video, {}).items() if n > 0} | self.live_by_video.get(video, set())
+
+    def add_live(self, key: SampleKey) -> None:
+        self.live.add(key)
+        self.live_by_video.setdefault(key[0], set()).add(key[1])
+
+    def drop_live(self, key: SampleKey) -> None:
+        if key in self.live:
+            self.live.discard(key)
+            self.live_by_video[key[0]].discard(key[1])
+
+    def set_record(self, consumer: Consumer, keys: Iterable[SampleKey]) -> Set[str]:
+        """Replace a consumer's record; returns the videos whose holdings changed."""
+        old = self.records.get(consumer, set())
+        new = set(keys)
+        for v, k in old - new:
+            self.held[v][k] -= 1
+        for v, k in new - old:
+            self.held.setdefault(v, {})[k] = self.held.get(v, {}).get(k, 0) + 1
+        self.records[consumer] = new
+        return {v for v, _ in old ^ new}
+
+    def add_record(self, consumer: Consumer, keys: Iterable[SampleKey]) -> None:
+        rec = self.records.setdefault(consumer, set())
+        for key in keys:
+            if key not in rec:
+                rec.add(key)
+                ws = self.held.setdefault(key[0], {})
+                ws[key[1]] = ws.get(key[1], 0) + 1
 
 
 class EpochScheduler:
@@ -136,9 +175,12 @@ class EpochScheduler:
             return False
         e = self.next_epoch
         self.next_epoch += 1
-        plan = EpochPlan(e, records=self.pending_records.pop(e, {}))
+        plan = EpochPlan(e)
+        for consumer, keys in self.pending_records.pop(e, {}).items():
+            plan.set_record(consumer, keys)
         for v in self.videos:
             plan.jobs[v] = Job(e, v)
+            plan.unfinished += 1
             self.queue.append((e, v))
         self.plans[e] = plan
         self._check_complete(plan)
@@ -159,23 +201,31 @@ class EpochScheduler:
         p = self.plans.get(epoch)
         if p is None:
             return set()
-        have = p.delivered() | p.live
-        out = set()
-        for v, j in p.jobs.items():
-            if j.windows is None:
-                continue
-            out.update((v, k) for k in range(j.windows) if k not in j.failed and (v, k) not in have)
-        return out
+        return {(v, k) for v in p.jobs for k in self._owed_in(p, v)}
+
+    @staticmethod
+    def _owed_in(plan: EpochPlan, video: str) -> Set[int]:
+        job = plan.jobs[video]
+        if job.windows is None:
+            return set()
+        have = plan.have(video)
+        return {k for k in range(job.windows) if k not in job.failed and k not in have}
 
     def _skip(self, job: Job, plan: EpochPlan) -> FrozenSet[int]:
-        have = plan.delivered() | plan.live
-        skip = {k for (v, k) in have if v == job.video} | set(job.failed)
-        return frozenset(skip)
+        return frozenset(plan.have(job.video) | set(job.failed))
+
+    @staticmethod
+    def _set_state(plan: EpochPlan, job: Job, state: str) -> None:
+        if (job.state == "done") != (state == "done"):
+            plan.unfinished += 1 if job.state == "done" else -1
+        job.state = state
 
     def _check_complete(self, plan: EpochPlan) -> bool:
+        """Complete when no job is queued or running and nothing is live (a done job never
+        owes anything: ``_reconcile`` queues it again first)."""
         if plan.complete:
             return True
-        if any(j.state != "done" for j in plan.jobs.values()) or plan.live or self.owed(plan.epoch):
+        if plan.unfinished or plan.live:
             return False
         plan.complete = True
         return True
@@ -202,12 +252,13 @@ class EpochScheduler:
                 job = plan.jobs[v]
                 if job.state != "queued":
                     continue
-                if job.windows is not None and not any(k[0] == v for k in self.owed(e)):
-                    job.state = "done"  # nothing left to make of this file (e.g. a resume state covered it)
+                if job.windows is not None and not self._owed_in(plan, v):
+                    self._set_state(plan, job, "done")  # nothing left to make of it (e.g. a resume state covered it)
                     self._check_complete(plan)
                     continue
                 tid = next(self._task_ids)
-                job.state, job.task_id, job.worker, job.last_progress = "running", tid, worker, now
+                self._set_state(plan, job, "running")
+                job.task_id, job.worker, job.last_progress = tid, worker, now
                 self.running[tid] = job
                 return Task(tid, e, v, self._skip(job, plan))
             if not self._open_epoch():
@@ -229,9 +280,9 @@ class EpochScheduler:
         job.last_progress = now
         plan = self.plans[job.epoch]
         key = (job.video, window)
-        if key in plan.live or key in plan.delivered() or window in job.failed:
+        if key in plan.live or plan.is_delivered(key) or window in job.failed:
             return None
-        plan.live.add(key)
+        plan.add_live(key)
         return key
 
     def task_done(self, task_id, worker: Hashable, windows: int, failed: Optional[Dict[int, str]] = None,
@@ -258,15 +309,15 @@ class EpochScheduler:
             self._stop_at(job, plan, windows, error)
         else:
             job.windows = windows if job.windows is None else max(job.windows, windows)
-        job.state = "done"
-        self._reconcile(plan)
+        self._set_state(plan, job, "done")
+        self._reconcile(plan, {job.video})
         return job
 
     @staticmethod
     def _stop_at(job: Job, plan: EpochPlan, first: int, reason: str) -> None:
         """The pass over ``job``'s file stopped in the first window at or after ``first`` that is
         neither made nor failed: that window fails for this epoch and none beyond it exists."""
-        have = {k for (v, k) in plan.live | plan.delivered() if v == job.video}
+        have = plan.have(job.video)
         stop = max(first, 0)
         while stop in have or stop in job.failed:
             stop += 1
@@ -287,7 +338,7 @@ class EpochScheduler:
             job.worker, job.task_id = None, None
             job.crashes += 1
             plan = self.plans[job.epoch]
-            have = {k for (v, k) in plan.live | plan.delivered() if v == job.video}
+            have = plan.have(job.video)
             stop = 0
             while stop in have or stop in job.failed:
                 stop += 1
@@ -298,13 +349,13 @@ class EpochScheduler:
                 job.gave_up = True
                 self.file_failures[job.video] = job.error
                 self._stop_at(job, plan, stop, job.error)
-                job.state = "done"
-                self._reconcile(plan)
+                self._set_state(plan, job, "done")
+                self._reconcile(plan, {job.video})
                 return job
             if job.window_crashes[stop] >= self.max_task_crashes:
                 job.failed[stop] = reason
                 self.file_failures[job.video] = reason
-            job.state = "queued"
+            self._set_state(plan, job, "queued")
             self.queue.appendleft((job.epoch, job.video))
             return job
         return None
@@ -327,11 +378,11 @@ class EpochScheduler:
         plan = self.plans.get(epoch)
         if plan is None:
             return
-        rec = plan.records.setdefault(consumer, set())
+        keys = list(keys)
         for k in keys:
-            plan.live.discard(k)
-            rec.add(k)
-        self._reconcile(plan)
+            plan.drop_live(k)
+        plan.add_record(consumer, keys)
+        self._reconcile(plan, set())
 
     def discarded(self, epoch: int, keys: Iterable[SampleKey]) -> None:
         """Live samples thrown away undelivered (filtered out of a batch): owed again unless
@@ -339,13 +390,14 @@ class EpochScheduler:
         plan = self.plans.get(epoch)
         if plan is None:
             return
+        keys = list(keys)
         for k in keys:
-            plan.live.discard(k)
-        self._reconcile(plan)
+            plan.drop_live(k)
+        self._reconcile(plan, {v for v, _ in keys})
 
     def is_delivered(self, epoch: int, key: SampleKey) -> bool:
         plan = self.plans.get(epoch)
-        return plan is not None and any(key in r for r in plan.records.values())
+        return plan is not None and plan.is_delivered(key)
 
     def apply_resume(self, consumer: Consumer, completed_epoch: int,
                      delivered: Dict[int, Set[SampleKey]]) -> None:
@@ -359,20 +411,20 @@ class EpochScheduler:
         for e, plan in self.plans.items():
             if e <= completed_epoch:
                 continue
-            plan.records[consumer] = set(delivered.get(e, ()))
-            self._reconcile(plan)
+            changed = plan.set_record(consumer, delivered.get(e, ()))
+            self._reconcile(plan, changed)
         for e, ks in delivered.items():
             if e > completed_epoch and e >= self.next_epoch:
                 self.pending_records.setdefault(e, {})[consumer] = set(ks)
 
-    def _reconcile(self, plan: EpochPlan) -> None:
-        """Requeue done jobs that owe windows again; reopen the epoch if needed."""
-        owed_videos = {v for v, _ in self.owed(plan.epoch)}
-        for v in owed_videos:
-            job = plan.jobs[v]
-            if job.state == "done":
-                job.state = "queued"
+    def _reconcile(self, plan: EpochPlan, videos: Iterable[str]) -> None:
+        """Queue again the done jobs of ``videos`` that owe windows; reopen the epoch if so."""
+        for v in videos:
+            job = plan.jobs.get(v)
+            if job is not None and job.state == "done" and self._owed_in(plan, v):
+                self._set_state(plan, job, "queued")
                 self.queue.append((plan.epoch, v))
-        if owed_videos or plan.live:
+                plan.complete = False
+        if plan.live:
             plan.complete = False
         self._check_complete(plan)
