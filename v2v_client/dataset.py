@@ -176,6 +176,7 @@ class Connection:
             sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = pub, sec, server_pub
         sock.connect(self.endpoint)
         _send(sock, self._hello())
+        self._awaiting = None  # a new socket carries no message of an older session
         return sock
 
     def _poller(self, sock: zmq.Socket) -> zmq.Poller:
