@@ -82,3 +82,17 @@ def make_fault_corpus(root: Path, good_dir: Path, window: int) -> Dict[str, str]
     exp.update({"symlink_loop.mp4": "ignored", "outside_root.mp4": "ignored", "notes.txt": "ignored",
                 "thumbnail.jpg": "ignored"})
     return exp
+
+
+def write_size_change_video(path: Path, first: int, second: int, size1=(320, 240), size2=(256, 192)) -> Path:
+    """An MPEG-PS clip (``.mpg``) whose frame size changes after ``first`` frames: two
+    MPEG-2 streams of different sizes, one after the other (``second`` frames of ``size2``).
+    A decoder reads it as one stream of ``first + second - 1`` or so frames."""
+    import tempfile
+
+    path = Path(path)
+    with tempfile.TemporaryDirectory() as d:
+        a = write_video(Path(d) / "a.mpg", first, *size1, codec="mpeg2video")
+        b = write_video(Path(d) / "b.mpg", second, *size2, codec="mpeg2video")
+        path.write_bytes(a.read_bytes() + b.read_bytes())
+    return path

@@ -80,7 +80,7 @@ def test_sample_ids_cannot_name_files(tmp_path):
         s.setsockopt(zmq.LINGER, 0)
         s.connect(srv.endpoint)
         s.send(pack({"type": "hello", "outputs": ["frames"], "credits": 1,
-                     "resume": {"completed_epoch": -1, "delivered": {"0": ["../../../etc/passwd#0", "/etc/shadow#1"]}}}))
+                     "resume": {"completed_epoch": -1, "delivered": {"0": "../../../etc/passwd#0\n/etc/shadow#1"}}}))
         ids = []
         for _ in range(100):
             if s.poll(200):

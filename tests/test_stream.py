@@ -77,10 +77,11 @@ def test_voxels_only_client_gets_no_flow_and_frames(videos):
         it = iter(ds)
         b = next(it)
         it.close()
-        assert set(k for k in b if isinstance(b[k], torch.Tensor)) == {"voxels"}
+        assert set(k for k in b if isinstance(b[k], torch.Tensor)) == {"voxels", "padding"}
+        assert b["padding"].dtype == torch.bool and not b["padding"].any()
         assert "flow" not in b and "frames" not in b
         time.sleep(0.3)
-        assert "first client asks for ['voxels']" in srv.log
+        assert "asks for ['voxels']: workers now compute ['voxels']" in srv.log
 
 
 def test_absent_server_is_a_clear_error_not_a_hang():
@@ -127,14 +128,26 @@ def test_credits_bound_batches_in_flight(videos):
                     assert arr["voxels"].dtype in (np.int8, np.int16)  # narrowest wire dtype
             s.send(pack({"type": "heartbeat"}))
         assert len(got) == 1
+
+        def receive(want, seconds):
+            deadline = time.monotonic() + seconds
+            while len(got) < want and time.monotonic() < deadline:
+                if s.poll(200):
+                    h = unpack(s.recv_multipart()[0])
+                    if h["type"] == "batch":
+                        got.append(h)
+                s.send(pack({"type": "heartbeat"}))
+
+        # credits are accounted by batch id: acking an unknown id, or asking for more in an ack, frees nothing
+        s.send(pack({"type": "ack", "batch_ids": [10 ** 6], "credit": 5}))
+        receive(2, 3)
+        assert len(got) == 1
         s.send(pack({"type": "ack", "batch_ids": [got[0]["batch_id"]], "credit": 2}))
-        deadline = time.monotonic() + 30
-        while len(got) < 3 and time.monotonic() < deadline:
-            if s.poll(200):
-                h = unpack(s.recv_multipart()[0])
-                if h["type"] == "batch":
-                    got.append(h)
-        assert len(got) == 3
+        receive(3, 4)
+        assert len(got) == 2  # one ack, one slot
+        s.send(pack({"type": "credit", "credit": 2}))  # an explicit grant widens the window to 3
+        receive(4, 30)
+        assert len(got) == 4
         s.close()
         ctx.term()
 

@@ -61,6 +61,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lease", type=float, dest="lease_s", help="seconds before an unacknowledged batch is re-sent")
     p.add_argument("--client-timeout", type=float, dest="client_timeout_s",
                    help="seconds of client silence before its batches go back to the queue (default 10)")
+    p.add_argument("--task-timeout", type=float, dest="task_timeout_s",
+                   help="seconds a worker may send nothing on a task before it is reassigned (default 300)")
+    p.add_argument("--revoke-timeout", type=float, dest="revoke_s",
+                   help="seconds a client may leave a revoke unanswered before it is dropped "
+                        "(default: --client-timeout)")
+    p.add_argument("--max-credits", type=int, help="most batches one client may hold (default 64)")
+    p.add_argument("--prefetch-batches", type=int, help="batches assembled ahead of the clients (default 2)")
     p.add_argument("--curve-secret-key", help="CurveZMQ: server secret key file (v2v-keygen)")
     p.add_argument("--curve-allow", help="CurveZMQ: folder of allowed client public key files")
     p.add_argument("--insecure", action="store_true", default=None,
@@ -85,7 +92,8 @@ def config_from_args(args: argparse.Namespace):
     overrides = {k: getattr(args, k) for k in (
         "videos", "workers", "bind", "seed", "epochs", "batch_size", "sequence_length", "num_bins",
         "frames_per_bin", "crop_size", "keep_top_fraction", "max_samples_per_video", "crops_per_window", "outputs", "flow_preset", "flow_dtype", "lease_s", "refine",
-        "client_timeout_s", "curve_secret_key", "curve_allow", "insecure", "shard", "metrics_port", "metrics_host", "log_format")}
+        "client_timeout_s", "curve_secret_key", "curve_allow", "insecure", "shard", "metrics_port", "metrics_host", "log_format",
+        "task_timeout_s", "revoke_s", "max_credits", "prefetch_batches")}
     return load_config(args.config, overrides)
 
 

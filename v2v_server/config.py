@@ -22,6 +22,10 @@ ALL_OUTPUTS = ("voxels", "frames", "flow")
 #: Optical-flow options by name (the table lives in flow.py).
 FLOW_PRESETS = tuple(FLOW_OPTIONS)
 FLOW_DTYPES = ("float16", "float32")
+#: Upper limits (a typo like ``workers: 2000`` is an error, not a fork bomb or an OOM).
+MAX_WORKERS = 256
+MAX_PREFETCH = 256
+MAX_CREDITS = 1024
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".gif")
 
 
@@ -70,6 +74,12 @@ class ServeConfig:
     client_timeout_s: float = 10.0
     #: batches the server keeps assembled ahead of the clients' credits
     prefetch_batches: int = 2
+    #: seconds a revoked batch may stay unanswered before its client is dropped (None: client_timeout_s)
+    revoke_s: Optional[float] = None
+    #: most batches one client may hold (its ``credits`` at hello); a larger request is refused
+    max_credits: int = 64
+    #: seconds a worker may send nothing on a task before the task is reassigned and the worker replaced
+    task_timeout_s: float = 300.0
     #: refinement of frame pairs whose motion needs it: off | uniform:K | adaptive:λ_px | adaptive-dl:λ
     #: (see v2v_server/refine.py and docs/fidelity.md); recorded in each sample's params
     refine: str = "off"
@@ -142,8 +152,16 @@ class ServeConfig:
             prob(name)
         if not isinstance(self.keep_top_fraction, (int, float)) or not (0 < self.keep_top_fraction <= 1):
             raise ValueError(f"keep_top_fraction must be in (0, 1], got {self.keep_top_fraction!r}")
-        for name in ("heartbeat_s", "lease_s", "client_timeout_s"):
+        for name in ("heartbeat_s", "lease_s", "client_timeout_s", "task_timeout_s"):
             pos_float(name)
+        if self.revoke_s is not None:
+            pos_float("revoke_s")
+        pos_int("max_credits")
+        for name, hi, why in (("workers", MAX_WORKERS, "worker processes"),
+                              ("prefetch_batches", MAX_PREFETCH, "batches assembled ahead"),
+                              ("max_credits", MAX_CREDITS, "batches in flight per client")):
+            if getattr(self, name) > hi:
+                raise ValueError(f"{name} must be <= {hi} ({why}), got {getattr(self, name)}")
         if isinstance(self.outputs, str):
             self.outputs = tuple(s.strip() for s in self.outputs.split(",") if s.strip())
         outs = tuple(self.outputs)
@@ -262,6 +280,21 @@ def is_loopback(endpoint: str) -> bool:
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads YAML 1.2 floats such as ``1.0e9`` or ``1e-3`` as numbers
+    (YAML 1.1, PyYAML's default, reads them as strings)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                |[-+]?\.(?:inf|Inf|INF)
+                |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."))
+
+
 def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeConfig:
     """Defaults, then the YAML file at ``path`` (if any), then ``overrides`` (non-None values).
 
@@ -277,7 +310,7 @@ def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeC
         if not p.is_file():
             raise FileNotFoundError(f"config file not found: {p}")
         try:
-            data = yaml.safe_load(p.read_text()) or {}
+            data = yaml.load(p.read_text(), Loader=_Loader) or {}
         except yaml.YAMLError as e:
             raise ValueError(f"{p}: not valid YAML: {e}") from None
         if not isinstance(data, dict):

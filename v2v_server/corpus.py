@@ -42,10 +42,13 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
     """Verdict for one file: ``{"path", "usable", "windows", "frames", "size", "reason"}``.
 
     ``windows`` is the number of samples per epoch it gives (``min(max_samples_per_video,
-    frames // frames_per_sample)``); ``reason`` says why it gives none.
+    frames // frames_per_sample)`` less the windows that cannot be made, listed in
+    ``failed_windows``, e.g. where the frame size changes); ``reason`` says why it gives none
+    or why windows fail.
     """
     path = Path(root) / rel
     out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": ""}
+    bad: dict = {}  # window -> why it cannot be made
     if not inside(Path(root), path):
         out["reason"] = "missing, or points outside the corpus root"
         return out
@@ -53,7 +56,14 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
         container, stream, info = open_video(path)
         out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
         need = cfg.frames_per_sample * cfg.max_samples_per_video
-        for _ in decode_luma(container, stream, rows=1):
+        span, first = cfg.frames_per_sample, None
+        for y in decode_luma(container, stream):
+            k, off = divmod(out["frames"], span)
+            if off == 0:
+                first = y.shape
+            elif y.shape != first and k not in bad:
+                bad[k] = (f"window {k}: frame size changed from {first[1]}x{first[0]} to {y.shape[1]}x{y.shape[0]} "
+                          f"at frame {out['frames']}")
             out["frames"] += 1
             if out["frames"] >= need:
                 out["more"] = True  # enough for every window: stop decoding
@@ -62,7 +72,12 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
         out["reason"] = str(e) if isinstance(e, VideoError) else f"{type(e).__name__}: {e}"
         if out["frames"] == 0:
             return out
-    out["windows"] = min(cfg.max_samples_per_video, out["frames"] // cfg.frames_per_sample)
+    whole = min(cfg.max_samples_per_video, out["frames"] // cfg.frames_per_sample)
+    failed = sorted(k for k in bad if k < whole)
+    out["windows"] = whole - len(failed)
+    if failed:
+        out["failed_windows"] = failed
+        out["reason"] = "; ".join(bad[k] for k in failed)
     out["usable"] = out["windows"] > 0
     if not out["usable"] and not out["reason"]:
         out["reason"] = f"{out['frames']} frames, shorter than one window of {cfg.frames_per_sample} frames"
@@ -89,6 +104,8 @@ def format_check(results: List[dict], rejected: List[Tuple[Path, str]]) -> str:
         verdict = f"{r['windows']} window(s)" if r["usable"] else "unusable"
         detail = f"{r['frames']}{'+' if r.get('more') else ''} frames, {r['size']}" if r["usable"] \
             else r["reason"]
+        if r["usable"] and r.get("failed_windows"):
+            detail += f"; {r['reason']}"
         lines.append(f"{r['path']:<48} {verdict:<12} {detail}")
     for rel, reason in rejected:
         lines.append(f"{rel.as_posix():<48} {'ignored':<12} {reason}")

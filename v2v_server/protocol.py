@@ -6,12 +6,21 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types:
+Message types (protocol 2; client messages are decoded and schema-checked by ``wire.py``):
 
-* client -> server: ``hello`` (outputs, credits), ``ack`` (batch ids, credit),
-  ``credit``, ``heartbeat``, ``bye``.
-* server -> client: ``welcome`` (stream info), ``batch``, ``heartbeat``, ``end``, ``error``.
-* worker -> server: ``ready``, ``sample``, ``done``; server -> worker: ``task``, ``stop``.
+* client -> server: ``hello`` (outputs, credits = the window of batches it may hold,
+  consumer id, optional DDP ``rank``/``world_size``/``group``, ``resume``:
+  ``completed_epoch``, ``delivered`` {epoch: newline-joined sample ids}, ``batches``
+  {epoch: batches yielded}), ``ack`` (batch ids; frees exactly those slots), ``released``
+  (batch ids given back), ``credit`` (widen the window), ``heartbeat``, ``bye``.
+* server -> client: ``welcome`` (stream info), ``batch``, ``revoke`` (batch ids), ``heartbeat``,
+  ``epoch_done`` (epoch; ``batches`` per rank for a DDP group), ``end``, ``shutdown``,
+  ``error`` (``code`` ``dropped`` / ``unknown_client``: discard what you hold, say hello again).
+* worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
+  error); server -> worker: ``task``, ``stop``.
+
+Version 2 (issue 10): credits by batch id, resume ids as one string per epoch, consumer ids,
+DDP groups, ``dropped``, per-window failures.
 """
 from __future__ import annotations
 
@@ -20,7 +29,7 @@ from typing import Dict, List, Sequence, Tuple
 import msgpack
 import numpy as np
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: dtypes allowed on the wire.

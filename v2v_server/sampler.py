@@ -22,45 +22,10 @@ import numpy as np
 
 from .augment import augment_plan, degrade_window
 from .config import ServeConfig
+from .ids import make_sample_id, parse_sample_id  # noqa: F401  (the one id format, re-exported)
 from .flow import FlowEstimator  # noqa: F401  (re-exported: sampler.FlowEstimator(preset)(a, b) stays valid)
 from .simulate import SensorParams, sample_params, simulate_voxels
 from .video import VideoError, decode_codes, inside, open_video, to_uint8
-
-def make_sample_id(rel_path: str, window: int, crop: int = 0, crops_per_window: int = 1) -> str:
-    """Stable sample id: the video's path relative to the corpus root (POSIX), ``#``, the
-    window index and, when ``crops_per_window`` > 1, ``.`` and the crop index:
-    ``clips/a.mp4#3`` (one crop per window: the ids of a run without crops) or
-    ``clips/a.mp4#3.1``. The inverse is :func:`parse_sample_id`."""
-    if crops_per_window == 1:
-        return f"{rel_path}#{window}"
-    return f"{rel_path}#{window}.{crop}"
-
-
-def parse_sample_id(sample_id: str, crops_per_window: int = 1) -> Tuple[str, int]:
-    """``(rel_path, index)`` of a sample id made by :func:`make_sample_id`: ``index =
-    window * crops_per_window + crop`` is the integer that numbers a video's samples (what
-    the server tracks as received, skipped or already delivered).
-
-    Raises:
-        ValueError: for an id that is not ``path#window`` (K = 1) or ``path#window.crop``
-            (K > 1, crop < K), naming the id.
-    """
-    if not isinstance(sample_id, str):
-        raise ValueError(f"sample id must be a string, got {sample_id!r}")
-    video, sep, tail = sample_id.rpartition("#")
-    window, dot, crop = tail.partition(".")
-    ok = bool(sep and video and window.isdigit() and window.isascii())
-    if crops_per_window == 1:
-        ok = ok and not dot
-        c = 0
-    else:
-        ok = ok and bool(dot) and crop.isdigit() and crop.isascii() and int(crop) < crops_per_window
-        c = int(crop) if ok else 0
-    if not ok:
-        form = "path#window" if crops_per_window == 1 else f"path#window.crop (crop < {crops_per_window})"
-        raise ValueError(f"sample id {sample_id!r} is not of the form {form}")
-    return video, int(window) * crops_per_window + c
-
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
     """The generator for one sample, a pure function of (seed, epoch, sample_id)."""
@@ -267,9 +232,11 @@ def video_samples(
     (see :func:`parse_sample_id`) is not in ``skip_windows``, in window then crop order.
     Decoding stops after the last window that can be used (known from the container's
     declared frame count when it has one). When given, ``stats`` receives
-    ``frames`` (frames decoded), ``windows`` (complete windows, skipped ones included),
-    ``width``, ``height``, ``fps`` and ``busy`` (seconds simulating and estimating flow, see
-    ``make_sample``).
+    ``frames`` (frames decoded), ``windows`` (complete windows, skipped and failed ones
+    included), ``width``, ``height``, ``fps``, ``busy`` (seconds simulating and estimating
+    flow, see ``make_sample``) and, when some window could not be made, ``failed`` (window ->
+    reason; e.g. the frame size changed inside it: that window fails, the following ones are
+    planned on the new size).
 
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
@@ -298,10 +265,16 @@ def video_samples(
         stats["frames"] = i + 1
         if off == 0:
             plans = []
+            shape = codes.shape
             for c in range(kpw):
                 if k * kpw + c in skip:
                     continue
                 plans.append([plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, codes.shape), None])
+        if plans and codes.shape != shape:
+            # a stream whose frame size changes: this window fails (this epoch), the next is planned anew
+            stats.setdefault("failed", {})[k] = (f"frame size changed from {shape[1]}x{shape[0]} to "
+                                                 f"{codes.shape[1]}x{codes.shape[0]} at frame {i}")
+            plans = []
         full = None  # the whole kept region at full range, made once per frame when a crop is resampled
         for entry in plans:
             plan, buf = entry

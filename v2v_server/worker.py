@@ -138,8 +138,11 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
     if error is None:
         error = file_verdict(cfg, stats)
     clock.made()  # decoding after the last window
+    kpw = cfg.crops_per_window
     done = {"type": "done", "task": task["task"], "samples": sent, "frames": stats.get("frames", 0),
-            "windows": stats.get("windows", 0), "error": error, "stages": clock.report()}
+            "windows": stats.get("windows", 0) * kpw, "error": error, "stages": clock.report(),
+            # the scheduler counts samples (index = window * K + crop): a failed window fails its K crops
+            "failed": {str(k * kpw + c): str(v) for k, v in stats.get("failed", {}).items() for c in range(kpw)}}
     _send(sock, [pack(done)], parent_pid)
 
 

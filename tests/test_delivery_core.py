@@ -1,0 +1,576 @@
+"""Stateful property tests of the pure delivery core (scheduler + ledger + batching).
+
+A hypothesis ``RuleBasedStateMachine`` drives ``v2v_server.core.DeliveryCore`` with simulated
+workers and trainers: trainers join, take, ack, break out of their loop, go silent, come back,
+crash and resume from any older checkpoint; workers die, hang and send late copies; files fail
+part-way. After every step:
+
+* no sample id reaches a training loop twice in an epoch (over the histories the trainers'
+  models actually kept: a trainer resumed from a checkpoint forgets what came after it);
+* nothing is lost: when an epoch is announced complete every window of it was trained on
+  or failed with a reason (and at the end every epoch completes);
+* a client never holds more batches than it was granted, and the server's memory is bounded
+  by prefetch and credits.
+
+The simulated trainer follows the client protocol of ``v2v_client.dataset`` (acks flushed
+before bye, revokes answered unless taken, discard on ``dropped``/long silence, resume state
+sent in every hello).
+"""
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import pytest
+from hypothesis import HealthCheck, settings, strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+
+from v2v_server.core import DeliveryCore
+from v2v_server.ledger import BatchRecord, DeliveryLedger
+from v2v_server.schedule import EpochScheduler, parse_sample_id, sample_id
+from v2v_server.wire import Ack, Bye, Heartbeat, Hello, Released, Resume
+
+# corpus: windows per video; bad.mp4's window 1 changes frame size (fails every epoch), trunc.mp4
+# fails to decode inside window 2 (the pass stops there every epoch), empty.mp4 has no window
+WINDOWS = {"a.mp4": 3, "b.mp4": 2, "bad.mp4": 3, "trunc.mp4": 4, "empty.mp4": 0}
+SIZE_CHANGE = {("bad.mp4", 1)}
+DECODE_ERROR = {("trunc.mp4", 2)}
+EPOCHS = 2
+LEASE, TIMEOUT, REVOKE, TASK_TIMEOUT = 5.0, 10.0, 4.0, 20.0
+PREFETCH = 2
+MAX_CREDITS = 3
+#: how often the interesting things happened (read by bench/ or a curious reader; not asserted)
+SEEN = collections.Counter()
+
+
+def expected_windows() -> set:
+    out = set()
+    for v, n in WINDOWS.items():
+        for k in range(n):
+            if (v, k) in SIZE_CHANGE:
+                continue
+            if any(v == dv and k >= dk for dv, dk in DECODE_ERROR):
+                continue
+            out.add((v, k))
+    return out
+
+
+def failed_windows(plan) -> set:
+    """Windows the scheduler says failed in this epoch (with a reason); a file given up after
+    repeated crashes has nothing from its failed window on."""
+    out = set()
+    for v, j in (plan.jobs.items() if plan is not None else ()):
+        out |= {(v, k) for k in j.failed}
+        if j.gave_up:
+            first = min(j.failed)
+            out |= {(v, k) for k in range(first, WINDOWS[v])}
+    return out
+
+
+@dataclass
+class FakeSample:
+    sample_id: str
+
+
+@dataclass
+class FakePayload:
+    sample_ids: List[str]
+
+    def subset(self, keep):
+        return FakePayload([self.sample_ids[i] for i in keep])
+
+
+def make_batch(samples):
+    return FakePayload([s.sample_id for s in samples])
+
+
+@dataclass
+class SimWorker:
+    ident: bytes
+    task: Optional[dict] = None
+    pos: int = 0
+    failed: Dict[str, str] = field(default_factory=dict)
+    hung: bool = False
+
+
+@dataclass
+class SimTrainer:
+    """One trainer process (its dataset + training loop), as the client library behaves."""
+
+    name: str
+    gen: int = 0
+    credits: int = 2
+    connected: bool = False
+    paused_since: Optional[float] = None
+    inbox: list = field(default_factory=list)
+    queue: list = field(default_factory=list)  # batches received, not yet taken
+    taken: set = field(default_factory=set)
+    current: dict = field(default_factory=dict)  # batch id -> token of its live queued copy
+    completed: int = -1
+    delivered: Dict[int, set] = field(default_factory=dict)  # the dataset's state
+    history: list = field(default_factory=list)  # (epoch, sample id) trained on, in order
+    checkpoints: list = field(default_factory=list)  # (completed, delivered copy, len(history))
+
+    @property
+    def ident(self) -> bytes:
+        return f"{self.name}.{self.gen}".encode()
+
+    def hello(self) -> Hello:
+        d = {e: frozenset(parse_sample_id(s) for s in ids) for e, ids in self.delivered.items()}
+        return Hello(("voxels",), self.credits, consumer=self.name, resume=Resume(self.completed, d))
+
+
+class DeliveryMachine(RuleBasedStateMachine):
+    def __init__(self):
+        super().__init__()
+        self.now = 0.0
+        self.core = DeliveryCore(list(WINDOWS), batch_size=2, epochs=EPOCHS, lease_s=LEASE, client_timeout_s=TIMEOUT,
+                                 revoke_s=REVOKE, max_credits=MAX_CREDITS, task_timeout_s=TASK_TIMEOUT,
+                                 offered=("voxels", "frames", "flow"), make_batch=make_batch)
+        self.workers = [SimWorker(b"w0.0"), SimWorker(b"w1.0")]
+        self.late: List[SimWorker] = []  # replaced workers that may still send
+        self.trainers = [SimTrainer("t0"), SimTrainer("t1"), SimTrainer("t2", credits=1)]
+        self.announced_checked = set()
+        self.idle = {w.ident for w in self.workers}
+        self.join(0)
+
+    # ------------------------------------------------------------------ plumbing
+    def deliver(self, msgs):
+        by_ident = {t.ident: t for t in self.trainers}
+        for ident, m in msgs:
+            t = by_ident.get(ident)
+            if t is not None:
+                t.inbox.append(m)
+
+    def server_turn(self):
+        for w in self.workers:
+            if w.ident in self.idle:
+                msg = self.core.task_for(w.ident, self.now)
+                if msg is None:
+                    break
+                self.idle.discard(w.ident)
+                w.task, w.pos, w.failed = msg, 0, {}
+        sends, msgs = self.core.tick(self.now)
+        self.deliver([(i, {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
+                           "sample_ids": list(b.payload.sample_ids)}) for i, b in sends])
+        self.deliver(msgs)
+        self.check_announced()
+
+    def replace_worker(self, w: SimWorker, keep_late: bool):
+        slot, gen = w.ident.decode()[1:].split(".")
+        new = SimWorker(f"w{slot}.{int(gen) + 1}".encode())
+        self.workers[self.workers.index(w)] = new
+        self.idle.discard(w.ident)
+        self.idle.add(new.ident)
+        if keep_late and w.task is not None:
+            w.hung = False
+            self.late.append(w)
+
+    def work(self, w: SimWorker) -> None:
+        """One step of a worker: one sample, a failed window, or done."""
+        t = w.task
+        video, epoch = t["video"], t["epoch"]
+        n = WINDOWS[video]
+        while True:
+            k = w.pos
+            if k >= n:
+                self.core.done(w.ident, t["task"], n, w.failed, None)
+                w.task = None
+                self.idle.add(w.ident)
+                return
+            if (video, k) in DECODE_ERROR:  # decoding fails there, whether the window is wanted or not
+                self.core.done(w.ident, t["task"], k, w.failed, "decoding failed: truncated")
+                w.task = None
+                self.idle.add(w.ident)
+                return
+            if k in t["skip"]:
+                w.pos += 1
+                continue
+            if (video, k) in SIZE_CHANGE:
+                w.failed[str(k)] = "frame size changed"
+                w.pos += 1
+                continue
+            w.pos += 1
+            self.core.sample(w.ident, t["task"], k, self.now, lambda: FakeSample(sample_id((video, k))))
+            return
+
+    # ------------------------------------------------------------------ trainer behaviour
+    def io(self, t: SimTrainer) -> None:
+        """The trainer's I/O thread handles everything in its inbox."""
+        if self.paused(t):
+            return
+        while t.inbox:
+            m = t.inbox.pop(0)
+            kind = m["type"]
+            if not t.connected:
+                continue
+            if kind == "batch":
+                m = dict(m, token=object())
+                t.current[m["batch_id"]] = m["token"]
+                t.queue.append(m)
+            elif kind == "revoke":
+                SEEN["revoke"] += 1
+                rel = [b for b in m["batch_ids"] if b in t.current and b not in t.taken]
+                for b in rel:
+                    del t.current[b]  # released: its queued copy is dead (and holds no arrays)
+                if rel:
+                    self.deliver(self.core.message(t.ident, Released(tuple(rel)), self.now))
+            elif kind == "epoch_done":
+                t.completed = max(t.completed, m["epoch"])
+                for e in [e for e in t.delivered if e <= m["epoch"]]:
+                    del t.delivered[e]
+            elif kind == "error" and m.get("code") in ("dropped", "unknown_client"):
+                SEEN["dropped"] += 1
+                self.discard_and_rehello(t)
+
+    def discard_and_rehello(self, t: SimTrainer) -> None:
+        t.current.clear()
+        t.queue.clear()
+        self.deliver(self.core.hello(t.ident, t.hello(), self.now, dict))
+
+    def paused(self, t: SimTrainer) -> bool:
+        return t.paused_since is not None
+
+    # ------------------------------------------------------------------ rules
+    @rule(i=st.integers(0, 2))
+    def join(self, i):
+        t = self.trainers[i]
+        if t.connected or self.paused(t):
+            return
+        t.connected = True
+        t.gen += 1  # a new iterator: a new connection identity
+        t.inbox.clear()
+        self.deliver(self.core.hello(t.ident, t.hello(), self.now, dict))
+        self.server_turn()
+
+    @rule(i=st.integers(0, 2), n=st.integers(1, 4))
+    def train(self, i, n):
+        """The I/O thread catches up, then the training loop takes up to ``n`` batches."""
+        for _ in range(n):
+            self.io(self.trainers[i])
+            self.train_step(i)
+
+    def train_step(self, i):
+        """The training loop takes one batch (ack, filter, yield, checkpoint)."""
+        t = self.trainers[i]
+        if not t.connected or self.paused(t) or not t.queue:
+            return
+        m = t.queue.pop(0)
+        if t.current.get(m["batch_id"]) is not m["token"]:
+            return
+        del t.current[m["batch_id"]]
+        e = m["epoch"]
+        if e <= t.completed:  # an epoch it was told is complete: give it back, never ack what it drops
+            self.deliver(self.core.message(t.ident, Released((m["batch_id"],)), self.now))
+            return
+        t.taken.add(m["batch_id"])
+        self.deliver(self.core.message(t.ident, Ack((m["batch_id"],)), self.now))
+        if e > t.completed:
+            seen = t.delivered.setdefault(e, set())
+            for s in m["sample_ids"]:
+                if s not in seen:
+                    seen.add(s)
+                    t.history.append((e, s))
+        t.checkpoints.append((t.completed, {k: set(v) for k, v in t.delivered.items()}, len(t.history)))
+        SEEN["trained_batch"] += 1
+        self.server_turn()
+
+    @rule(i=st.integers(0, 2))
+    def io_step(self, i):
+        self.io(self.trainers[i])
+        self.server_turn()
+
+    @rule(i=st.integers(0, 2))
+    def break_loop(self, i):
+        """Leave the loop (max_steps, a rank stopping first): acks flushed, then bye; what was
+        queued and not taken is dropped locally (the server re-sends it)."""
+        t = self.trainers[i]
+        if not t.connected or self.paused(t):
+            return
+        self.io(t)
+        self.deliver(self.core.message(t.ident, Bye(), self.now))
+        t.connected = False
+        t.queue.clear()
+        t.current.clear()
+        self.server_turn()
+
+    @rule(i=st.integers(0, 2))
+    def pause(self, i):
+        t = self.trainers[i]
+        if t.connected and not self.paused(t):
+            t.paused_since = self.now
+
+    @rule(i=st.integers(0, 2))
+    def wake(self, i):
+        t = self.trainers[i]
+        if not self.paused(t):
+            return
+        silent = self.now - t.paused_since
+        t.paused_since = None
+        if silent > 0.8 * TIMEOUT:  # it knows the server may have dropped it: hold nothing
+            SEEN["long_silence"] += 1
+            t.inbox.clear()
+            self.discard_and_rehello(t)
+        self.io(t)
+        self.server_turn()
+
+    @precondition(lambda self: any(t.checkpoints for t in self.trainers))
+    @rule(data=st.data())
+    def crash_and_resume(self, data):
+        """A trainer dies and restarts from any older checkpoint (its model forgets the rest)."""
+        i = data.draw(st.sampled_from([i for i, t in enumerate(self.trainers) if t.checkpoints]), label="trainer")
+        t = self.trainers[i]
+        SEEN["crash"] += 1
+        SEEN["crash_with_checkpoints"] += len(t.checkpoints) > 1
+        if t.checkpoints:
+            j = data.draw(st.integers(0, len(t.checkpoints) - 1), label="checkpoint")
+            completed, delivered, n = t.checkpoints[j]
+            del t.checkpoints[j + 1:]
+            SEEN["rollback"] += len(t.history) > n
+            t.completed, t.delivered, t.history = completed, {k: set(v) for k, v in delivered.items()}, t.history[:n]
+        else:
+            t.completed, t.delivered, t.history = -1, {}, []
+        t.queue.clear()
+        t.inbox.clear()
+        t.taken.clear()
+        t.current.clear()
+        t.paused_since = None
+        t.connected = False  # the old connection just goes silent
+        self.join(i)
+
+    @rule(dt=st.sampled_from([0.5, 1.0, 3.0, 6.0]))
+    def advance(self, dt):
+        self.now += dt
+        for t in self.trainers:
+            if t.connected and not self.paused(t):
+                self.deliver(self.core.message(t.ident, Heartbeat(), self.now))
+        for w, job in self.core.timed_out(self.now):
+            sw = next((x for x in self.workers if x.ident == w), None)
+            if sw is not None:
+                self.replace_worker(sw, keep_late=True)
+        self.server_turn()
+
+    @rule(n=st.integers(1, 6))
+    def worker_steps(self, n):
+        for _ in range(n):
+            for w in self.workers:
+                if w.task is not None and not w.hung and len(self.core.ledger.ready) < PREFETCH:
+                    self.work(w)
+            self.server_turn()
+
+    @rule(i=st.integers(0, 1))
+    def kill_worker(self, i):
+        w = self.workers[i]
+        self.core.worker_lost(w.ident)
+        self.replace_worker(w, keep_late=False)
+        self.server_turn()
+
+    @rule(i=st.integers(0, 1))
+    def hang_worker(self, i):
+        if self.workers[i].task is not None:
+            self.workers[i].hung = True
+
+    @precondition(lambda self: bool(self.late))
+    @rule()
+    def late_copy(self):
+        """A replaced (hung) worker wakes up and sends what it was making: ignored."""
+        w = self.late.pop(0)
+        SEEN["late_copy"] += 1
+        before = sum(len(b.keys) for b in self.core.ledger.batches.values())
+        made = self.core.samples_made
+        if w.task is not None and w.pos < WINDOWS[w.task["video"]]:
+            k = w.pos
+            kept = self.core.sample(w.ident, w.task["task"], k, self.now, lambda: FakeSample(sample_id((w.task["video"], k))))
+            assert not kept and self.core.samples_made == made
+            self.core.done(w.ident, w.task["task"], WINDOWS[w.task["video"]], {}, None)
+        assert sum(len(b.keys) for b in self.core.ledger.batches.values()) == before
+
+    # ------------------------------------------------------------------ invariants
+    def trained(self):
+        return collections.Counter(x for t in self.trainers for x in t.history)
+
+    @invariant()
+    def no_sample_twice_per_epoch(self):
+        dup = [k for k, n in self.trained().items() if n > 1]
+        assert not dup, f"trained twice: {dup}"
+
+    @invariant()
+    def credits_never_exceed_grants(self):
+        for c in self.core.ledger.clients.values():
+            assert len(c.held) + len(c.revoked) <= c.credits <= MAX_CREDITS
+        for t in self.trainers:  # what a trainer holds locally is bounded by its credits
+            assert len(t.current) <= min(t.credits, MAX_CREDITS)
+            assert len([m for m in t.queue if t.current.get(m["batch_id"]) is m["token"]]) <= len(t.current)
+
+    @invariant()
+    def memory_bounded(self):
+        n = len(self.core.ledger.batches) + sum(len(g) for g in self.core.pending.values()) / 2
+        bound = PREFETCH + 2 * len(WINDOWS) + sum(min(t.credits, MAX_CREDITS) for t in self.trainers) * 2
+        assert n <= bound, (n, bound)
+
+    def check_announced(self):
+        """An epoch announced complete holds every expected window, trained once or failed."""
+        for e in sorted(self.core.announced - self.announced_checked):
+            self.announced_checked.add(e)
+            got = {parse_sample_id(s) for (ep, s) in self.trained() if ep == e}
+            plan = self.core.sched.plans.get(e)
+            failed = failed_windows(plan)
+            missing = expected_windows() - got - failed
+            assert not missing, f"epoch {e} announced complete but {sorted(missing)} were never trained on"
+            # only injected faults or repeated crashes may fail a window
+            for v, j in (plan.jobs.items() if plan else []):
+                for k, why in j.failed.items():
+                    past_error = any(v == dv and k >= dk for dv, dk in DECODE_ERROR)
+                    assert (v, k) in SIZE_CHANGE or past_error or "crash" in why or k >= WINDOWS[v], (v, k, why)
+
+    def teardown(self):
+        """Let everyone recover and run: every epoch completes, each expected window once."""
+        for t in self.trainers:
+            t.paused_since = None
+        for w in list(self.workers):
+            if w.hung:
+                self.core.worker_lost(w.ident)
+                self.replace_worker(w, keep_late=False)
+        for i, t in enumerate(self.trainers):
+            if not t.connected:
+                self.join(i)
+        for _ in range(3000):
+            if self.core.finished():
+                break
+            self.now += 0.5
+            for i, t in enumerate(self.trainers):
+                self.io(t)
+                self.deliver(self.core.message(t.ident, Heartbeat(), self.now))
+                while t.queue:
+                    self.train_step(i)
+            for i, w in enumerate(self.workers):
+                if w.task is not None and len(self.core.ledger.ready) < PREFETCH:
+                    self.work(w)
+            self.server_turn()
+        assert self.core.finished(), "the stream never finished"
+        counts = self.trained()
+        for e in range(EPOCHS):
+            plan = self.core.sched.plans.get(e)
+            failed = failed_windows(plan)
+            got = {parse_sample_id(s) for (ep, s) in counts if ep == e}
+            assert expected_windows() - failed <= got, (e, expected_windows() - failed - got)
+        assert all(n == 1 for n in counts.values())
+
+
+DeliveryMachine.TestCase.settings = settings(max_examples=250, stateful_step_count=80, deadline=None,
+                                             suppress_health_check=list(HealthCheck))
+TestDeliveryCore = DeliveryMachine.TestCase
+
+
+# ---------------------------------------------------------------------- direct tests of the parts
+def test_resume_state_is_authoritative_over_acks():
+    """Checkpoint at step 4, crash after step 5, restart from step 4: step 5's samples are owed again."""
+    s = EpochScheduler(["a.mp4"], epochs=1)
+    t = s.next_task("w", 0.0)
+    for k in range(3):
+        assert s.accept_sample(t.task_id, "w", k, 0.0) == ("a.mp4", k)
+    s.task_done(t.task_id, "w", 3)
+    s.delivered("c", 0, [("a.mp4", 0), ("a.mp4", 1), ("a.mp4", 2)])
+    assert s.plans[0].complete
+    s.apply_resume("c", -1, {0: {("a.mp4", 0)}})  # the checkpoint knew only window 0
+    assert s.owed(0) == {("a.mp4", 1), ("a.mp4", 2)} and not s.plans[0].complete
+    t2 = s.next_task("w", 1.0)
+    assert t2.epoch == 0 and t2.skip == frozenset({0})
+
+
+def test_a_failing_window_is_lost_for_that_epoch_only():
+    s = EpochScheduler(["a.mp4"], epochs=2)
+    t = s.next_task("w", 0.0)
+    s.accept_sample(t.task_id, "w", 0, 0.0)
+    s.task_done(t.task_id, "w", 1, error="decoding failed")  # the pass stopped inside window 1
+    s.delivered("c", 0, [("a.mp4", 0)])
+    assert s.plans[0].complete and s.plans[0].jobs["a.mp4"].failed == {1: "decoding failed"}
+    t = s.next_task("w", 1.0)
+    assert (t.epoch, t.video, t.skip) == (1, "a.mp4", frozenset())  # the next epoch tries the whole file again
+
+
+def test_hung_task_is_reassigned_and_its_late_copy_ignored():
+    s = EpochScheduler(["a.mp4"], epochs=1)
+    t = s.next_task("w1", 0.0)
+    assert s.accept_sample(t.task_id, "w1", 0, 1.0) is not None
+    assert s.expire(5.0, 10.0) == []
+    [(w, job)] = s.expire(12.0, 10.0)
+    assert w == "w1" and job.state == "queued"
+    t2 = s.next_task("w2", 12.0)
+    assert t2.task_id != t.task_id and t2.skip == frozenset({0})  # window 0 is live in a batch already
+    assert s.accept_sample(t.task_id, "w1", 1, 13.0) is None  # the late copy
+    assert s.task_done(t.task_id, "w1", 3) is None
+
+
+def test_ack_of_unknown_or_resent_batch_frees_no_credit():
+    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, revoke_s=50.0)
+    led.join(b"a", "A", ("voxels",), 1, 0.0)
+    led.join(b"b", "B", ("voxels",), 1, 0.0)
+    for i in range(4):
+        led.add_batch(BatchRecord(i, 0, [("v", i)], None, outputs=frozenset({"voxels"})))
+    sends, _ = led.sends(0.0)
+    assert sorted(i for i, _ in sends) == [b"a", b"b"]
+    held_a = next(b.batch_id for i, b in sends if i == b"a")
+    revokes, drops = led.expire(2.0)  # leases expired: asked back
+    assert revokes and not drops
+    assert led.ack(b"a", [held_a, held_a, 99, 3]) and led.clients[b"a"].free == 1  # only its own id counts
+    sends, _ = led.sends(2.0)
+    assert len(sends) == 1 and led.clients[b"a"].free == 0  # one slot, never more
+
+
+def test_unanswered_revoke_expires_and_drops_the_client():
+    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, revoke_s=3.0)
+    led.join(b"a", "A", ("voxels",), 2, 0.0)
+    led.add_batch(BatchRecord(0, 0, [("v", 0)], None, outputs=frozenset({"voxels"})))
+    led.sends(0.0)
+    led.touch(b"a", 1.5)
+    revokes, drops = led.expire(1.5)
+    assert revokes == {b"a": [0]}
+    led.touch(b"a", 5.0)  # it heartbeats but never answers the revoke
+    revokes, drops = led.expire(5.0)
+    assert [d[0] for d in drops] == [b"a"] and list(led.ready) == [0] and b"a" not in led.clients
+
+
+def test_twenty_clients_share_fairly():
+    led = DeliveryLedger(lease_s=100.0, client_timeout_s=100.0)
+    idents = [bytes([i]) for i in range(20)]
+    for i in idents:
+        led.join(i, i, ("voxels",), 4, 0.0)
+    got = collections.Counter()
+    for n in range(400):
+        led.add_batch(BatchRecord(n, 0, [("v", n)], None, outputs=frozenset({"voxels"})))
+        for ident, b in led.sends(0.0)[0]:
+            got[ident] += 1
+            led.ack(ident, [b.batch_id])
+    assert len(got) == 20 and max(got.values()) - min(got.values()) <= 1
+
+
+def test_ddp_group_waits_for_all_ranks():
+    led = DeliveryLedger(lease_s=100.0, client_timeout_s=10.0)
+    led.join(b"r0", ("g", 0), ("voxels",), 2, 0.0, group="g", rank=0, world_size=2)
+    led.add_batch(BatchRecord(0, 0, [("v", 0)], None, outputs=frozenset({"voxels"})))
+    assert led.sends(1.0)[0] == []  # rank 1 has not said hello yet: its resume state may hold samples
+    led.join(b"r1", ("g", 1), ("voxels",), 2, 2.0, group="g", rank=1, world_size=2)
+    assert len(led.sends(2.0)[0]) == 1
+
+
+def test_outputs_are_the_union_and_stale_batches_are_remade():
+    core = DeliveryCore(["a.mp4"], 1, 1, 100.0, 100.0, None, 4, 100.0, ("voxels", "frames", "flow"), make_batch)
+    core.hello(b"v", Hello(("voxels",), 2), 0.0, dict)
+    msg = core.task_for(b"w", 0.0)
+    assert msg["outputs"] == ["voxels"]
+    core.sample(b"w", msg["task"], 0, 0.0, lambda: FakeSample("a.mp4#0"))
+    core.forget(b"v")
+    core.hello(b"f", Hello(("voxels", "flow"), 2), 0.0, dict)
+    sends, _ = core.tick(0.0)
+    assert sends == [] and core.sched.owed(0) == set()  # not sent without flow; window 0 must be made again
+    core.done(b"w", msg["task"], 1, {}, None)
+    msg2 = core.task_for(b"w", 1.0)
+    assert msg2["outputs"] == ["voxels", "flow"] and msg2["skip"] == []
+
+
+@pytest.mark.parametrize("sid,ok", [("a.mp4#3", True), ("a#b.mp4#0", True), ("a.mp4#٣", False), ("a.mp4#", False),
+                                     ("#1", False), (7, False), ("a.mp4#-1", False)])
+def test_sample_id_parsing_rejects_non_ascii_digits(sid, ok):
+    assert (parse_sample_id(sid) is not None) == ok

@@ -1,0 +1,275 @@
+"""The delivery core: the epoch scheduler and the delivery ledger glued together, still pure.
+
+``DeliveryCore`` takes what workers and clients said (already decoded and schema-checked)
+and answers with what to send; it owns no socket, process or clock (``now`` is an argument,
+seconds). ``server.py`` moves the bytes; ``tests/test_delivery_core.py`` drives this class
+through thousands of interleavings with hypothesis.
+
+Batch payloads are opaque here: ``make_batch(samples)`` builds one from what ``sample()``
+was given (``datapath.make_batch`` in the server), and a payload is only asked for
+``sample_ids`` and ``subset(keep)``.
+"""
+from __future__ import annotations
+
+import collections
+import itertools
+import logging
+from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
+
+from .ledger import BatchRecord, DeliveryLedger
+from .schedule import EpochScheduler, Job, SampleKey, parse_sample_id
+from .wire import Ack, Bye, Credit, Heartbeat, Hello, Released
+
+log = logging.getLogger("v2v.server")
+
+ALL_OUTPUTS = ("voxels", "frames", "flow")
+Msg = Tuple[bytes, dict]
+
+
+class DeliveryCore:
+    """Scheduler + ledger + batching, for one server.
+
+    Args:
+        videos: corpus-relative paths.
+        batch_size: samples per batch (the last of an epoch may be smaller).
+        epochs: stop after this many epochs (None: unbounded).
+        lease_s, client_timeout_s, revoke_s, max_credits: see ``ledger.DeliveryLedger``.
+        task_timeout_s: seconds without a sample before a task is reassigned.
+        offered: outputs this server offers.
+        make_batch: ``samples -> payload`` (each sample has ``sample_id``).
+        max_task_crashes: see ``schedule.EpochScheduler``.
+        crops_per_window: samples per window (ids ``path#window.crop`` when > 1); the scheduler
+            counts samples by index ``window * crops_per_window + crop`` (``ids.py``).
+    """
+
+    def __init__(self, videos: Sequence[str], batch_size: int, epochs: Optional[int], lease_s: float,
+                 client_timeout_s: float, revoke_s: Optional[float], max_credits: int, task_timeout_s: float,
+                 offered: Sequence[str], make_batch: Callable, max_task_crashes: int = 3,
+                 crops_per_window: int = 1):
+        self.sched = EpochScheduler(videos, epochs, max_task_crashes)
+        self.ledger = DeliveryLedger(lease_s, client_timeout_s, revoke_s=revoke_s, max_credits=max_credits)
+        self.batch_size = batch_size
+        self.crops_per_window = crops_per_window
+        self.task_timeout_s = task_timeout_s
+        self.offered = tuple(offered)
+        self.make_batch = make_batch
+        self._batch_ids = itertools.count()
+        self.task_outputs: Dict[int, tuple] = {}
+        self.pending: Dict[Tuple[int, tuple], list] = collections.defaultdict(list)
+        self.outputs: Optional[tuple] = None  # what workers compute now: the union clients ask for
+        self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
+        self.announced: set = set()
+        self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch (DDP padding)
+        self.samples_made = 0
+
+    # ------------------------------------------------------------------ workers
+    def task_for(self, worker: Hashable, now: float) -> Optional[dict]:
+        """The ``task`` message for an idle worker, or None (nothing to do, or no client yet)."""
+        outs = self.ledger.outputs_wanted()
+        if outs:
+            self.outputs = tuple(o for o in ALL_OUTPUTS if o in outs)
+        if self.outputs is None:
+            return None
+        t = self.sched.next_task(worker, now)
+        if t is None:
+            return None
+        self.task_outputs[t.task_id] = self.outputs
+        return {"type": "task", "task": t.task_id, "epoch": t.epoch, "video": t.video,
+                "outputs": list(self.outputs), "skip": sorted(t.skip)}
+
+    def sample(self, worker: Hashable, task_id, window, now: float, build: Callable) -> bool:
+        """A worker sent window ``window`` of ``task_id``; ``build()`` makes the sample object
+        (called only when the sample is wanted; it may raise, which drops the sample and makes
+        it owed again). Returns True when the sample was kept."""
+        key = self.sched.accept_sample(task_id, worker, window, now)
+        if key is None:
+            return False
+        epoch = self.sched.running[task_id].epoch
+        try:
+            s = build()
+        except Exception:
+            self.sched.discarded(epoch, [key])
+            raise
+        self.samples_made += 1
+        group = self.pending[(epoch, self.task_outputs.get(task_id, ()))]
+        group.append(s)
+        if len(group) >= self.batch_size:
+            self._make((epoch, self.task_outputs.get(task_id, ())), group)
+        return True
+
+    def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str]) -> Optional[Job]:
+        """A worker finished a task. Returns the job (None for a late or stranger copy)."""
+        job = self.sched.task_done(task_id, worker, windows, failed, error)
+        if job is not None:
+            self.task_outputs.pop(task_id, None)
+        return job
+
+    def worker_lost(self, worker: Hashable) -> Optional[Job]:
+        return self.sched.worker_lost(worker)
+
+    def timed_out(self, now: float) -> List[Tuple[Hashable, Job]]:
+        """Tasks silent for ``task_timeout_s``: reassigned; the workers should be replaced."""
+        return self.sched.expire(now, self.task_timeout_s)
+
+    # ------------------------------------------------------------------ batches
+    def _make(self, key: Tuple[int, tuple], group: list) -> None:
+        items = group[: self.batch_size]
+        del group[: self.batch_size]
+        payload = self.make_batch(items)
+        keys = [parse_sample_id(s, self.crops_per_window) for s in payload.sample_ids]
+        self.ledger.add_batch(BatchRecord(next(self._batch_ids), key[0], keys, payload, outputs=frozenset(key[1])))
+
+    def _flush_pending(self) -> None:
+        """Batch an epoch's leftovers once none of its jobs runs or waits."""
+        for k, group in list(self.pending.items()):
+            if not group:
+                del self.pending[k]
+                continue
+            plan = self.sched.plans.get(k[0])
+            if plan is None or plan.unfinished == 0:
+                while group:
+                    self._make(k, group)
+
+    # ------------------------------------------------------------------ clients
+    def consumer_of(self, ident: bytes, h: Hello) -> Tuple[Hashable, Optional[str]]:
+        if h.world_size > 1:
+            group = h.group or "default"
+            return ("g:" + group, h.rank), group
+        return ("c:" + (h.consumer or ident.hex()), 0), None
+
+    def hello(self, ident: bytes, h: Hello, now: float, info: Callable[[], dict]) -> List[Msg]:
+        """A client says hello (first time or again): refused with an error, or welcomed."""
+        missing = [o for o in h.outputs if o not in self.offered]
+        if missing:
+            return [(ident, {"type": "error", "code": "outputs",
+                             "message": f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}"})]
+        consumer, group = self.consumer_of(ident, h)
+        r = h.resume
+        self.sched.apply_resume(consumer, r.completed_epoch, {e: set(ks) for e, ks in r.delivered.items()})
+        if group is not None:
+            for (g, e), counts in self.taken.items():
+                if g == group and e > r.completed_epoch:
+                    counts[h.rank] = r.batches.get(e, 0)
+            for e, n in r.batches.items():
+                if e > r.completed_epoch:
+                    self.taken.setdefault((group, e), {})[h.rank] = n
+        back = self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
+                                r.completed_epoch)
+        if back:
+            log.info("client %s said hello again; batch(es) %s go back to the queue", ident.hex(), back)
+        self._drop_delivered()
+        if self.outputs is None or any(o not in self.outputs for o in h.outputs):
+            log.info("client %s asks for %s: workers now compute %s", ident.hex(), list(h.outputs),
+                     list(self.ledger.outputs_wanted()))
+        return [(ident, {"type": "welcome", "info": info(), "hello_id": h.hello_id})]
+
+    def message(self, ident: bytes, msg, now: float) -> List[Msg]:
+        """Any client message but hello (see ``wire``)."""
+        if not self.ledger.touch(ident, now):
+            if isinstance(msg, Bye):
+                return []
+            return [(ident, {"type": "error", "code": "unknown_client",
+                             "message": "unknown client (this server may have restarted, or dropped it for "
+                                        "silence): say hello first"})]
+        c = self.ledger.clients[ident]
+        if isinstance(msg, Ack):
+            for b in self.ledger.ack(ident, msg.batch_ids):
+                self.sched.delivered(c.consumer, b.epoch, b.keys)
+                if c.group is not None and c.world_size > 1:
+                    counts = self.taken.setdefault((c.group, b.epoch), {})
+                    counts[c.rank] = counts.get(c.rank, 0) + 1
+                    self.pad_source[c.group] = b
+        elif isinstance(msg, Released):
+            back = self.ledger.released(ident, msg.batch_ids)
+            if back:
+                log.info("batch(es) %s go back to the queue: their lease expired and the client released them",
+                         back)
+        elif isinstance(msg, Credit):
+            self.ledger.grant(ident, msg.credit)
+        elif isinstance(msg, Bye):
+            back = self.ledger.leave(ident)
+            if back:
+                log.info("client %s left; batch(es) %s go back to the queue", ident.hex(), back)
+        elif isinstance(msg, Heartbeat):
+            pass
+        return []
+
+    def forget(self, ident: bytes) -> List[int]:
+        """A client broke the protocol or cannot be reached: drop it (its batches go back)."""
+        return self.ledger.leave(ident)
+
+    def _drop_delivered(self) -> None:
+        """Remove from queued batches and pending samples everything some trainer already has."""
+        for bid, gone in self.ledger.drop_samples(self.sched.is_delivered):
+            b = self.ledger.batches[bid]
+            gone_set = set(gone)
+            keep = [i for i, k in enumerate(b.keys) if k not in gone_set]
+            self.ledger.shrink(bid, keep, b.payload.subset(keep) if keep else None)
+            self.sched.discarded(b.epoch, gone)
+        for (epoch, _), group in self.pending.items():
+            keys = [parse_sample_id(s.sample_id, self.crops_per_window) for s in group]
+            drop = [self.sched.is_delivered(epoch, k) for k in keys]
+            if any(drop):
+                group[:] = [s for s, d in zip(group, drop) if not d]
+                self.sched.discarded(epoch, [k for k, d in zip(keys, drop) if d])
+
+    # ------------------------------------------------------------------ time
+    def tick(self, now: float) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
+        """Batch leftovers, expire leases and clients, allocate batches, announce complete
+        epochs. Returns ``(sends, messages)``: batches to send (the caller calls
+        ``forget`` for a client it cannot reach) and control messages."""
+        msgs: List[Msg] = []
+        self._flush_pending()
+        revokes, drops = self.ledger.expire(now)
+        for ident, ids in revokes.items():
+            log.info("lease of batch(es) %s expired at client %s; asking for them back", ids, ident.hex())
+            msgs.append((ident, {"type": "revoke", "batch_ids": ids}))
+        for ident, why in drops:
+            log.warning("client %s %s; dropping it (its batches go to others)", ident.hex(), why)
+            msgs.append((ident, {"type": "error", "code": "dropped",
+                                 "message": f"dropped by the server: {why}; discard what you hold"}))
+        sends, stale = self.ledger.sends(now)
+        for b in stale:
+            log.info("batch %d carries %s, which no connected client takes as is; its samples are made again",
+                     b.batch_id, sorted(b.outputs))
+            self.sched.discarded(b.epoch, b.keys)
+        pads, announced = self._announce()
+        return sends + pads, msgs + announced
+
+    def _announce(self) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
+        """``epoch_done`` for each newly complete epoch, in order. A DDP rank that has yielded
+        fewer batches of it than the group's most is told how many to reach; one that was never
+        sent any batch first gets a padding batch (a copy of the group's last batch, batch id
+        -1, every sample flagged) so it has something to repeat."""
+        msgs: List[Msg] = []
+        pads: List[Tuple[bytes, BatchRecord]] = []
+        for e in sorted(self.sched.plans):
+            if not self.sched.plans[e].complete:
+                self.announced.discard(e)
+                break  # in order: a client forgets an epoch's ids once told it is complete
+            if e in self.announced:
+                continue
+            self.announced.add(e)
+            for ident, c in self.ledger.clients.items():
+                c.completed = max(c.completed, e)
+                msg = {"type": "epoch_done", "epoch": e}
+                if c.group is not None and c.world_size > 1:
+                    counts = self.taken.get((c.group, e), {})
+                    msg["batches"] = max(counts.values()) if counts else 0
+                    src = self.pad_source.get(c.group)
+                    if c.sent == 0 and counts.get(c.rank, 0) < msg["batches"] and src is not None:
+                        pads.append((ident, BatchRecord(-1, e, src.keys, src.payload, outputs=src.outputs)))
+                        c.sent += 1
+                msgs.append((ident, msg))
+            log.info("epoch %d complete", e)
+        self.sched.prune(self.announced)
+        live_groups = {c.group for c in self.ledger.clients.values()}
+        for g in [g for g in self.pad_source if g not in live_groups]:
+            del self.pad_source[g]
+        for key in [k for k in self.taken if k[1] not in self.sched.plans and k[1] < self.sched.next_epoch]:
+            del self.taken[key]
+        return pads, msgs
+
+    def finished(self) -> bool:
+        """Every epoch of a bounded stream is complete and acknowledged."""
+        return self.sched.finished() and not self.ledger.batches

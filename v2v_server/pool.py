@@ -1,0 +1,102 @@
+"""The worker pool: spawn worker processes, notice deaths, replace dead or hung ones, stop them.
+
+The pool owns processes only; which task a worker runs is the scheduler's business
+(``schedule.py``), and messages travel on the server's backend socket.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import signal
+import time
+from dataclasses import dataclass
+from typing import Callable, Dict, List, Tuple
+
+from .worker import worker_main
+
+log = logging.getLogger("v2v.server")
+
+
+@dataclass
+class WorkerProc:
+    slot: int
+    generation: int
+    ident: bytes
+    proc: mp.Process
+    idle: bool = False  # said ready and holds no task
+
+
+class WorkerPool:
+    """``size`` spawned worker processes connected to ``endpoint``.
+
+    Args:
+        cfg_dict: ``ServeConfig.to_dict()`` for the workers.
+        root: corpus root.
+        endpoint: the server's worker endpoint (ipc).
+        size: number of workers.
+        target: process entry point (``worker_main``; tests may pass another).
+    """
+
+    def __init__(self, cfg_dict: dict, root: str, endpoint: str, size: int, target: Callable = worker_main):
+        self.cfg_dict, self.root, self.endpoint, self.size, self.target = cfg_dict, root, endpoint, size, target
+        self.workers: Dict[bytes, WorkerProc] = {}
+        self.restarts = 0
+
+    def start(self) -> None:
+        for slot in range(self.size):
+            self._spawn(slot, 0)
+
+    def _spawn(self, slot: int, generation: int) -> None:
+        ident = f"w{slot}.{generation}".encode()
+        proc = mp.get_context("spawn").Process(
+            target=self.target, args=(self.cfg_dict, self.root, self.endpoint, ident, os.getpid()),
+            name=f"v2v-worker-{slot}", daemon=True)
+        proc.start()
+        self.workers[ident] = WorkerProc(slot, generation, ident, proc)
+
+    def get(self, ident: bytes):
+        return self.workers.get(ident)
+
+    def idle(self) -> List[WorkerProc]:
+        return [w for w in self.workers.values() if w.idle]
+
+    def reap(self) -> List[Tuple[bytes, object]]:
+        """Replace every worker that died; returns ``(ident, exit code)`` of the dead."""
+        dead = []
+        for ident, w in list(self.workers.items()):
+            if w.proc.is_alive():
+                continue
+            dead.append((ident, w.proc.exitcode))
+            del self.workers[ident]
+            self.restarts += 1
+            self._spawn(w.slot, w.generation + 1)
+        return dead
+
+    def replace(self, ident: bytes) -> None:
+        """Kill a hung (or stopped) worker and start a fresh one in its slot."""
+        w = self.workers.pop(ident, None)
+        if w is None:
+            return
+        try:
+            os.kill(w.proc.pid, signal.SIGKILL)  # works on a SIGSTOPped process too
+        except (OSError, TypeError):
+            pass
+        w.proc.join(2.0)
+        self.restarts += 1
+        self._spawn(w.slot, w.generation + 1)
+
+    def stop(self, send_stop: Callable[[bytes], None], grace_s: float = 3.0) -> None:
+        """Ask every worker to stop, then terminate and kill what is left after ``grace_s``."""
+        for w in self.workers.values():
+            if w.proc.is_alive():
+                send_stop(w.ident)
+        deadline = time.monotonic() + grace_s
+        for w in self.workers.values():
+            w.proc.join(max(0.0, deadline - time.monotonic()))
+            if w.proc.is_alive():
+                w.proc.terminate()
+                w.proc.join(1.0)
+            if w.proc.is_alive():
+                w.proc.kill()
+                w.proc.join(1.0)

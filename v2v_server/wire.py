@@ -1,0 +1,277 @@
+"""Client -> server messages: bounded decoding and typed, schema-checked messages.
+
+Every client message is decoded by :func:`decode_client`, which never raises anything but
+:class:`WireError` (a ``ProtocolError``) and bounds what one message may cost:
+
+* its size (``max_bytes``) before any decoding;
+* every array to ``MAX_ARRAY_LEN`` elements and map to ``MAX_MAP_LEN`` pairs (msgpack
+  ``max_array_len`` / ``max_map_len``), every string to the message size;
+* the total number of containers (``MAX_CONTAINERS``, counted while decoding), which with the
+  per-container bound caps the objects one message can create, and the nesting (msgpack's
+  fixed parser stack, and the container count).
+
+So a peer gains nothing by nesting or widening: a few MB cost a few MB and milliseconds. The
+resume state's sample ids therefore travel as one newline-joined string per epoch.
+
+:class:`BadPeers` rate-limits the log lines about misbehaving peers and bans a peer that keeps
+sending garbage for a while (its messages are then dropped before decoding).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, FrozenSet, Optional, Tuple
+
+import msgpack
+
+from .protocol import PROTOCOL_VERSION, ProtocolError
+
+#: Largest element count of any array in a client message (acks name at most ``max_credits`` ids).
+MAX_ARRAY_LEN = 4096
+#: Largest number of pairs in any map of a client message (epochs in a resume state).
+MAX_MAP_LEN = 256
+#: Largest number of arrays + maps in one client message.
+MAX_CONTAINERS = 512
+#: Outputs a client may ask for.
+OUTPUTS = ("voxels", "frames", "flow")
+
+SampleKey = Tuple[str, int]
+
+
+class WireError(ProtocolError):
+    """A client message that is oversized, not msgpack, too wide or deep, or has a field of
+    the wrong type or range (the message names the field)."""
+
+
+def bounded_unpackb(buf, max_bytes: int) -> object:
+    """msgpack-decode ``buf`` with the bounds above.
+
+    Raises:
+        WireError: oversized, malformed, or over any bound.
+    """
+    if len(buf) > max_bytes:
+        raise WireError(f"message of {len(buf)} bytes exceeds {max_bytes}")
+    count = [0]
+
+    def hook(obj):
+        count[0] += 1
+        if count[0] > MAX_CONTAINERS:
+            raise WireError(f"more than {MAX_CONTAINERS} arrays/maps in one message")
+        return obj
+
+    try:
+        return msgpack.unpackb(bytes(buf), raw=False, strict_map_key=True, use_list=True,
+                               max_bin_len=max_bytes, max_str_len=max_bytes, max_ext_len=0,
+                               max_array_len=MAX_ARRAY_LEN, max_map_len=MAX_MAP_LEN,
+                               list_hook=hook, object_hook=hook)
+    except WireError:
+        raise
+    except Exception as e:  # msgpack raises several types (ValueError, ExtraData, StackError, ...)
+        raise WireError(f"not valid msgpack within bounds: {type(e).__name__}: {str(e)[:200]}") from None
+
+
+# ---------------------------------------------------------------------- typed messages
+@dataclass(frozen=True)
+class Resume:
+    """A trainer's position: ``completed_epoch``; per open epoch the sample keys it already
+    has (``delivered``) and the batches it yielded (``batches``, for DDP padding)."""
+
+    completed_epoch: int = -1
+    delivered: Dict[int, FrozenSet[SampleKey]] = field(default_factory=dict)
+    batches: Dict[int, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Hello:
+    outputs: Tuple[str, ...]
+    credits: int
+    consumer: str = ""
+    resume: Resume = Resume()
+    group: Optional[str] = None
+    rank: int = 0
+    world_size: int = 1
+    hello_id: int = 0  # echoed in the welcome, so the client can tell old-session messages apart
+
+
+@dataclass(frozen=True)
+class Ack:
+    batch_ids: Tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class Released:
+    batch_ids: Tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class Credit:
+    credit: int
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    pass
+
+
+@dataclass(frozen=True)
+class Bye:
+    pass
+
+
+def _int(h: dict, name: str, lo: int, hi: int, default=None) -> int:
+    v = h.get(name, default)
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise WireError(f"field {name!r} must be an integer in [{lo}, {hi}], got {_show(v)}")
+    return v
+
+
+def _show(v) -> str:
+    r = repr(v)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def _ids(h: dict, name: str) -> Tuple[int, ...]:
+    v = h.get(name)
+    if not isinstance(v, list) or not all(isinstance(b, int) and not isinstance(b, bool) and 0 <= b < 2 ** 63
+                                          for b in v):
+        raise WireError(f"field {name!r} must be a list of batch ids (integers >= 0), got {_show(v)}")
+    return tuple(v)
+
+
+def _parse_keys(text: str, crops_per_window: int = 1) -> FrozenSet[SampleKey]:
+    from .schedule import parse_sample_id
+
+    out = set()
+    for line in text.split("\n"):
+        k = parse_sample_id(line, crops_per_window)
+        if k is not None:
+            out.add(k)
+    return frozenset(out)
+
+
+def _resume(v, crops_per_window: int = 1) -> Resume:
+    if v is None:
+        return Resume()
+    if not isinstance(v, dict):
+        raise WireError(f"field 'resume' must be a map, got {_show(v)}")
+    completed = _int(v, "completed_epoch", -1, 2 ** 31, -1)
+    delivered, batches = {}, {}
+    d = v.get("delivered", {})
+    if not isinstance(d, dict):
+        raise WireError(f"field 'resume.delivered' must be a map, got {_show(d)}")
+    for e, ids in d.items():
+        if not (isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 9):
+            raise WireError(f"field 'resume.delivered' keys must be epoch numbers, got {_show(e)}")
+        if not isinstance(ids, str):
+            raise WireError(f"field 'resume.delivered[{e}]' must be a newline-joined string of sample ids")
+        delivered[int(e)] = _parse_keys(ids, crops_per_window)
+    bt = v.get("batches", {})
+    if not isinstance(bt, dict):
+        raise WireError(f"field 'resume.batches' must be a map, got {_show(bt)}")
+    for e, n in bt.items():
+        if not (isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 9) or isinstance(n, bool) \
+                or not isinstance(n, int) or not 0 <= n < 2 ** 31:
+            raise WireError("field 'resume.batches' must map epoch numbers to counts")
+        batches[int(e)] = n
+    return Resume(completed, delivered, batches)
+
+
+def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object:
+    """Check a decoded client header against the schema of its ``type`` (resume ids are read
+    with the server's ``crops_per_window``, see ``ids.py``).
+
+    Returns one of :class:`Hello`, :class:`Ack`, :class:`Released`, :class:`Credit`,
+    :class:`Heartbeat`, :class:`Bye`.
+
+    Raises:
+        WireError: unknown type, wrong version, or a field of the wrong type or range.
+    """
+    if not isinstance(h, dict) or not isinstance(h.get("type"), str):
+        raise WireError("message must be a map with a string 'type'")
+    if h.get("v") != PROTOCOL_VERSION or isinstance(h.get("v"), bool):
+        raise WireError(f"protocol version {_show(h.get('v'))}, expected {PROTOCOL_VERSION}")
+    kind = h["type"]
+    if kind == "hello":
+        outs = h.get("outputs")
+        if not isinstance(outs, list) or not outs or any(o not in OUTPUTS for o in outs):
+            raise WireError(f"field 'outputs' must be a non-empty list from {list(OUTPUTS)}, got {_show(outs)}")
+        credits = _int(h, "credits", 1, 1 << 20)
+        if credits > max_credits:
+            raise WireError(f"field 'credits' is {credits}; this server allows at most {max_credits} batches in "
+                            f"flight per client")
+        consumer = h.get("consumer", "")
+        if not isinstance(consumer, str) or len(consumer) > 128:
+            raise WireError(f"field 'consumer' must be a string of at most 128 characters, got {_show(consumer)}")
+        group = h.get("group")
+        if group is not None and (not isinstance(group, str) or len(group) > 128):
+            raise WireError(f"field 'group' must be a string of at most 128 characters, got {_show(group)}")
+        world = _int(h, "world_size", 1, 65536, 1)
+        rank = _int(h, "rank", 0, world - 1, 0)
+        return Hello(tuple(o for o in OUTPUTS if o in outs), credits, consumer, _resume(h.get("resume"), crops_per_window),
+                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0))
+    if kind == "ack":
+        return Ack(_ids(h, "batch_ids"))
+    if kind == "released":
+        return Released(_ids(h, "batch_ids"))
+    if kind == "credit":
+        return Credit(_int(h, "credit", 0, 1 << 20))
+    if kind == "heartbeat":
+        return Heartbeat()
+    if kind == "bye":
+        return Bye()
+    raise WireError(f"unknown message type {_show(kind)}")
+
+
+def decode_client(frame, max_bytes: int, max_credits: int, crops_per_window: int = 1) -> object:
+    """Bounded decoding + schema check of one client frame (bytes, memoryview or zmq.Frame).
+
+    Raises:
+        WireError: for anything but a well-formed message of a known type.
+    """
+    buf = frame.buffer if hasattr(frame, "buffer") else frame
+    return parse_client(bounded_unpackb(buf, max_bytes), max_credits, crops_per_window)
+
+
+# ---------------------------------------------------------------------- misbehaving peers
+class BadPeers:
+    """Rate-limited complaints about peers, and bans for repeat offenders (pure: ``now`` is given).
+
+    Args:
+        log_per_s: log lines allowed per second over all peers (a token bucket of ``burst``).
+        strikes: bad messages within ``window_s`` after which a peer is banned for ``ban_s``.
+        max_peers: peers remembered (oldest forgotten first), so the table stays bounded.
+    """
+
+    def __init__(self, log_per_s: float = 2.0, burst: int = 10, strikes: int = 3, window_s: float = 10.0,
+                 ban_s: float = 60.0, max_peers: int = 10000):
+        self.log_per_s, self.burst = log_per_s, burst
+        self.strikes, self.window_s, self.ban_s, self.max_peers = strikes, window_s, ban_s, max_peers
+        self.tokens = float(burst)
+        self.last = None
+        self.suppressed = 0
+        self.peers: Dict[bytes, list] = {}  # ident -> [first strike time, strikes, banned until]
+
+    def banned(self, ident: bytes, now: float) -> bool:
+        p = self.peers.get(ident)
+        return p is not None and now < p[2]
+
+    def strike(self, ident: bytes, now: float) -> Tuple[bool, bool]:
+        """Count one bad message. Returns ``(log_it, banned_now)``."""
+        p = self.peers.get(ident)
+        if p is None or now - p[0] > self.window_s:
+            p = [now, 0, 0.0]
+        self.peers.pop(ident, None)
+        self.peers[ident] = p
+        while len(self.peers) > self.max_peers:
+            self.peers.pop(next(iter(self.peers)))
+        p[1] += 1
+        banned_now = p[1] >= self.strikes and now >= p[2]
+        if banned_now:
+            p[2] = now + self.ban_s
+        if self.last is not None:
+            self.tokens = min(self.burst, self.tokens + (now - self.last) * self.log_per_s)
+        self.last = now
+        if self.tokens >= 1:
+            self.tokens -= 1
+            return True, banned_now
+        self.suppressed += 1
+        return False, banned_now
