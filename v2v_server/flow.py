@@ -233,11 +233,27 @@ def compose_flows(flows: List[np.ndarray]) -> np.ndarray:
     total = np.array(flows[0], dtype=np.float32, copy=True)
     if len(flows) == 1:
         return total
-    h, w = total.shape[:2]
-    grid = np.dstack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)))
+    grid = _pixel_grid(total.shape[:2])
+    where = np.empty_like(total)
     for f in flows[1:]:
-        total += cv2.remap(f, grid + total, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        np.add(grid, total, out=where)
+        total += cv2.remap(f, where, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return total
+
+
+_GRIDS: Dict[tuple, np.ndarray] = {}
+
+
+def _pixel_grid(shape) -> np.ndarray:
+    """float32 (H, W, 2) pixel coordinates (x, y), made once per frame size (read-only)."""
+    key = tuple(shape)
+    g = _GRIDS.get(key)
+    if g is None:
+        h, w = key
+        g = np.dstack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)))
+        g.setflags(write=False)
+        g = _GRIDS[key] = g
+    return g
 
 
 def raft_weights(size: str = "small") -> Optional[Path]:
@@ -386,12 +402,21 @@ class FlowEstimator:
             small = [_to_u8(f) if s == 1 else cv2.resize(_to_u8(f), (sw, sh), interpolation=cv2.INTER_AREA)
                      for f in frames]
             scale = np.array([w / sw, h / sh], np.float32)
+            if min(sh, sw) >= MIN_DIS_SIDE:  # no padding: the reused DIS object directly
+                dis = self._get(o.dis, (sh, sw))
+                link = lambda a, b: dis.calc(a, b, None)  # noqa: E731
+            else:
+                link = lambda a, b: self._calc(o.dis, a, b)  # noqa: E731
             for l in range(n_vox):
                 k0 = l * step
                 links = list(range(k0, k0 + step, o.hop)) + [k0 + step]
-                f = compose_flows([self._calc(o.dis, small[i], small[j]) for i, j in zip(links[:-1], links[1:])])
+                f = compose_flows([link(small[i], small[j]) for i, j in zip(links[:-1], links[1:])])
                 if s > 1:
-                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR) * scale
+                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR)
+                    if o.refine is None:  # scaled straight into the output, channels first
+                        np.multiply(f.transpose(2, 0, 1), scale[:, None, None], out=out[l])
+                        continue
+                    f = f * scale
                 if o.refine is not None:
                     f = self._calc(o.refine, frames[k0], frames[k0 + step], f)
                 out[l] = f.transpose(2, 0, 1)
