@@ -163,8 +163,8 @@ def make_sample(
     t1 = time.perf_counter()
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
-        if hasattr(flow, "voxel_flows"):
-            out["flow"] = flow.voxel_flows(seq, step)
+        if hasattr(flow, "voxel_flows"):  # pauses repeat frames: their links cost no DIS call
+            out["flow"] = flow.voxel_flows(seq, step, np.concatenate([[False], np.diff(plan.offsets) == 0]))
         else:  # any (a, b) -> (2, H, W) callable
             out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
     if busy is not None:
