@@ -45,3 +45,21 @@ def test_voxels_widen_to_the_batch_and_subset_before_stacking():
     assert sub.arrays["voxels"].dtype == np.int16
     with pytest.raises(ValueError, match="at least one"):
         make_batch([])
+
+
+def test_worker_float16_narrowing_is_numpys_cast_bit_for_bit():
+    from v2v_server.config import ServeConfig
+    from v2v_server.worker import to_float16, wire_arrays
+
+    rng = np.random.default_rng(0)
+    flow = (rng.standard_normal((3, 2, 16, 24)) * 40).astype(np.float32)
+    # zero, signed zero, half subnormals, ties at the half's precision, the largest half, overflow
+    flow.flat[:10] = [0.0, -0.0, 1e-6, -3e-7, 6.1e-5, 1.0 + 2.0**-11, 65504.0, 65520.0, 7e4, -np.inf]
+    with np.errstate(over="ignore"):
+        want = flow.astype(np.float16)
+    got = to_float16(flow)
+    assert got.dtype == np.float16 and got.shape == flow.shape
+    assert np.array_equal(got.view(np.uint16), want.view(np.uint16))
+    assert np.array_equal(to_float16(flow[:, 1, :, 3]).view(np.uint16), want[:, 1, :, 3].view(np.uint16))
+    out = wire_arrays(ServeConfig().validate(), {"flow": flow, "voxels": np.zeros((1, 5, 2, 2), np.int32)})
+    assert out["flow"].dtype == np.float16 and out["voxels"].dtype == np.int8

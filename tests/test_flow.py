@@ -199,3 +199,27 @@ def test_dis_params_clamp_finest_scale_to_the_pyramid():
     assert DISParams("ultrafast").create((128, 128)).getFinestScale() == 2
     assert dataclasses.replace(FLOW_OPTIONS["medium"].dis, finest_scale=0).create((128, 128)).getFinestScale() == 0
     assert flow_mod.estimator("medium") is flow_mod.estimator("MEDIUM")
+
+
+def test_pause_links_are_skipped_without_changing_the_flow():
+    """Chained options skip the DIS call between a frame and its pause repeat: DIS gives exactly
+    +0.0 for two identical frames (so skipping is bit for bit the same), and ``voxel_flows``
+    with the repeats marked equals it without them."""
+    rng = np.random.default_rng(3)
+    base = panning_frames(21, 3)[:, :128, :128]
+    offsets = np.minimum(np.cumsum(np.r_[0, rng.random(20) < 0.5]), 20)  # pauses repeat frames
+    seq = np.ascontiguousarray(base[offsets])
+    repeats = np.r_[False, np.diff(offsets) == 0]
+    assert repeats.sum() >= 5
+    flat = np.full((40, 40), 77, np.uint8)
+    noise = (rng.random((40, 40)) * 255).astype(np.uint8)
+    for name, o in FLOW_OPTIONS.items():
+        if o.method != "chained":
+            continue
+        est = FlowEstimator(name)
+        for f in (flat, noise, np.ascontiguousarray(base[4, :32, :32]), np.ascontiguousarray(base[7, ::4, ::4])):
+            z = est._calc(o.dis, f, f.copy())
+            assert not z.any() and not np.signbit(z).any(), name
+        np.testing.assert_array_equal(est.voxel_flows(seq, STEP, repeats), FlowEstimator(name).voxel_flows(seq, STEP))
+    with pytest.raises(ValueError, match="repeats"):
+        FlowEstimator(DEFAULT_FLOW).voxel_flows(seq, STEP, repeats[:-1])

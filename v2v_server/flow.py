@@ -233,11 +233,27 @@ def compose_flows(flows: List[np.ndarray]) -> np.ndarray:
     total = np.array(flows[0], dtype=np.float32, copy=True)
     if len(flows) == 1:
         return total
-    h, w = total.shape[:2]
-    grid = np.dstack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)))
+    grid = _pixel_grid(total.shape[:2])
+    where = np.empty_like(total)
     for f in flows[1:]:
-        total += cv2.remap(f, grid + total, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        np.add(grid, total, out=where)
+        total += cv2.remap(f, where, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return total
+
+
+_GRIDS: Dict[tuple, np.ndarray] = {}
+
+
+def _pixel_grid(shape) -> np.ndarray:
+    """float32 (H, W, 2) pixel coordinates (x, y), made once per frame size (read-only)."""
+    key = tuple(shape)
+    g = _GRIDS.get(key)
+    if g is None:
+        h, w = key
+        g = np.dstack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)))
+        g.setflags(write=False)
+        g = _GRIDS[key] = g
+    return g
 
 
 def raft_weights(size: str = "small") -> Optional[Path]:
@@ -358,24 +374,30 @@ class FlowEstimator:
             return self.voxel_flows(np.stack([a, b]), 1)[0]
         return np.ascontiguousarray(self.pair(a, b).transpose(2, 0, 1))
 
-    def voxel_flows(self, frames: np.ndarray, step: int) -> np.ndarray:
+    def voxel_flows(self, frames: np.ndarray, step: int, repeats: Optional[np.ndarray] = None) -> np.ndarray:
         """Flow between the frames ``step`` apart at the voxel boundaries of a sequence.
 
         Args:
             frames: uint8/uint16 (N, H, W) with ``(N - 1) % step == 0``: every source frame of
                 the sample (repeated frames of pauses included), boundaries at ``l * step``.
             step: frames per voxel grid (B * frames_per_bin), >= 1.
+            repeats: optional bool (N,), True where frame k is the same frame as frame k - 1
+                (a pause; equal content is what matters): chained options then skip the DIS
+                call between them, whose flow is exactly zero. The result is the same with or
+                without it.
 
         Returns:
             float32 (L, 2, H, W), L = (N - 1) // step: pixels from frame ``l * step`` to
             ``(l + 1) * step``, channel 0 x, channel 1 y.
 
         Raises:
-            ValueError: for a bad shape or step.
+            ValueError: for a bad shape or step, or ``repeats`` of the wrong shape.
         """
         if not isinstance(frames, np.ndarray) or frames.ndim != 3 or step < 1 or (frames.shape[0] - 1) % step:
             raise ValueError(f"flow: frames must be (L * step + 1, H, W), got {getattr(frames, 'shape', None)} "
                              f"for step {step}")
+        if repeats is not None and np.shape(repeats) != (frames.shape[0],):
+            raise ValueError(f"flow: repeats must be a bool array of shape ({frames.shape[0]},), got {np.shape(repeats)}")
         o = self.option
         n_vox = (frames.shape[0] - 1) // step
         h, w = frames.shape[1:]
@@ -383,15 +405,34 @@ class FlowEstimator:
         if o.method == "chained":
             s = self.downscale_for((h, w))
             sh, sw = max(1, h // s), max(1, w // s)
-            small = [_to_u8(f) if s == 1 else cv2.resize(_to_u8(f), (sw, sh), interpolation=cv2.INTER_AREA)
-                     for f in frames]
+            # a frame marked as a repeat of the previous one (a pause) shares its reduced
+            # frame, and a link between one reduced frame and itself is exactly zero: DIS
+            # returns +0.0 everywhere for two identical frames (tests/test_flow.py checks it
+            # for every chained option), so that call is skipped, bit for bit the same flow
+            small = []
+            for k, f in enumerate(frames):
+                if k and repeats is not None and repeats[k]:
+                    small.append(small[-1])
+                else:
+                    small.append(_to_u8(f) if s == 1 else cv2.resize(_to_u8(f), (sw, sh), interpolation=cv2.INTER_AREA))
             scale = np.array([w / sw, h / sh], np.float32)
+            zero = np.zeros((sh, sw, 2), np.float32)
+            zero.setflags(write=False)
+            if min(sh, sw) >= MIN_DIS_SIDE:  # no padding: the reused DIS object directly
+                dis = self._get(o.dis, (sh, sw))
+                link = lambda a, b: zero if a is b else dis.calc(a, b, None)  # noqa: E731
+            else:
+                link = lambda a, b: zero if a is b else self._calc(o.dis, a, b)  # noqa: E731
             for l in range(n_vox):
                 k0 = l * step
                 links = list(range(k0, k0 + step, o.hop)) + [k0 + step]
-                f = compose_flows([self._calc(o.dis, small[i], small[j]) for i, j in zip(links[:-1], links[1:])])
+                f = compose_flows([link(small[i], small[j]) for i, j in zip(links[:-1], links[1:])])
                 if s > 1:
-                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR) * scale
+                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR)
+                    if o.refine is None:  # scaled straight into the output, channels first
+                        np.multiply(f.transpose(2, 0, 1), scale[:, None, None], out=out[l])
+                        continue
+                    f = f * scale
                 if o.refine is not None:
                     f = self._calc(o.refine, frames[k0], frames[k0 + step], f)
                 out[l] = f.transpose(2, 0, 1)

@@ -279,10 +279,20 @@ def _kernel(src, lut, use_lut, pair_of_step, n_pairs, potential, cpa, cna, extra
         kk = k[i]
         # the pair's extra dL (hot pixels, drift, noise), spread evenly over its sub-intervals
         emax = 0.0
+        # (x / 1 is x: the common one-step pair skips the vector division)
         if has_noise:
             _fill_normals(_seed_pair(noise_seed, first_pair + i), e, zk, zw, zf)
+            if kk == 1:
+                for p in range(npix):
+                    e[p] = extra[p] + e[p] * noise_std
+                    emax = max(emax, abs(e[p]))
+            else:
+                for p in range(npix):
+                    e[p] = (extra[p] + e[p] * noise_std) / kk
+                    emax = max(emax, abs(e[p]))
+        elif kk == 1:
             for p in range(npix):
-                e[p] = (extra[p] + e[p] * noise_std) / kk
+                e[p] = extra[p]
                 emax = max(emax, abs(e[p]))
         else:
             for p in range(npix):

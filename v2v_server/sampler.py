@@ -163,8 +163,8 @@ def make_sample(
     t1 = time.perf_counter()
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
-        if hasattr(flow, "voxel_flows"):
-            out["flow"] = flow.voxel_flows(seq, step)
+        if hasattr(flow, "voxel_flows"):  # pauses repeat frames: their links cost no DIS call
+            out["flow"] = flow.voxel_flows(seq, step, np.concatenate([[False], np.diff(plan.offsets) == 0]))
         else:  # any (a, b) -> (2, H, W) callable
             out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
     if busy is not None:
@@ -251,7 +251,8 @@ def video_samples(
     rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
-    plans: list = []  # [plan, buffer] of each crop of the current window still wanted
+    plans: list = []  # [plan, buffer, rows already at full range] of each crop of the current window still wanted
+    window_expand = None  # the code -> full-range map of the window's first frame
     # frames worth decoding: whole windows only. When the container declares its frame count
     # the trailing partial window is not decoded (decoding is the cost that matters).
     last = cfg.max_samples_per_video * span
@@ -269,30 +270,49 @@ def video_samples(
             for c in range(kpw):
                 if k * kpw + c in skip:
                     continue
-                plans.append([plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, codes.shape), None])
+                plans.append([plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, codes.shape), None,
+                              set()])
         if plans and codes.shape != shape:
             # a stream whose frame size changes: this window fails (this epoch), the next is planned anew
             stats.setdefault("failed", {})[k] = (f"frame size changed from {shape[1]}x{shape[0]} to "
                                                  f"{codes.shape[1]}x{codes.shape[0]} at frame {i}")
             plans = []
+        if off == 0:
+            window_expand = expand
         full = None  # the whole kept region at full range, made once per frame when a crop is resampled
         for entry in plans:
-            plan, buf = entry
+            plan, buf, done = entry
             if off >= plan.consumed:
                 continue
-            # full range per pixel: on the crop (exact, far cheaper), before any resampling
+            # full range per pixel: on the crop (exact, far cheaper), before any resampling;
+            # an unscaled crop is stored as codes and expanded once, whole, when the window is
+            # complete (one call instead of one per frame); a frame whose layout differs from
+            # the window's first frame is expanded at once and marked done
             if plan.scale == 1.0:
-                crop = expand(crop_frame(cfg, plan, codes))
-            else:
-                if full is None:
-                    full = np.ascontiguousarray(expand(codes))
-                crop = crop_frame(cfg, plan, full)
+                if buf is None:
+                    buf = entry[1] = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), codes.dtype)
+                if expand is window_expand:
+                    crop_frame(cfg, plan, codes, out=buf[off])
+                else:
+                    buf[off] = expand(crop_frame(cfg, plan, codes))
+                    done.add(off)
+                continue
+            if full is None:
+                full = np.ascontiguousarray(expand(codes))
+            crop = crop_frame(cfg, plan, full)
             if buf is None:
                 buf = entry[1] = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), crop.dtype)
             buf[off] = crop
+            done.add(off)
         if off == span - 1:
             stats["windows"] += 1
-            for plan, buf in plans:
+            for plan, buf, done in plans:
+                if not done:
+                    buf = window_expand(buf.reshape(-1, buf.shape[-1])).reshape(buf.shape)
+                elif len(done) < len(buf):
+                    for j in range(len(buf)):
+                        if j not in done:
+                            buf[j] = window_expand(buf[j])
                 arrays = make_sample(cfg, plan, degrade_window(plan, buf), outputs, flow, info.fps,
                                      stats.setdefault("busy", {}))
                 yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
