@@ -32,6 +32,8 @@ from typing import List, Optional
 
 import numpy as np
 
+from bench.throughput import tree_rss_mb  # the benches' one reader of a process tree's RSS
+
 CLIP = "webvid_like_596x336.mp4"
 SPAN = 201
 
@@ -134,21 +136,6 @@ def _cpu_s(pid: int) -> float:
     """User + system CPU-seconds of one process (all its threads, not its children)."""
     f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def tree_rss_mb(pid: int) -> float:
-    """Resident memory of a process and all its descendants, MB (1e6 bytes)."""
-    total, stack = 0, [pid]
-    while stack:
-        p = stack.pop()
-        try:
-            for line in Path(f"/proc/{p}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total += int(line.split()[1]) * 1024
-            stack += [int(k) for k in Path(f"/proc/{p}/task/{p}/children").read_text().split()]
-        except OSError:
-            continue
-    return total / 1e6
 
 
 def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], endpoint: Optional[str] = None) -> dict:
