@@ -97,7 +97,7 @@ class ServeConfig:
     curve_allow: Optional[str] = None
     #: allow a non-loopback bind without CurveZMQ (logs a warning)
     insecure: bool = False
-    #: serve only shard I of N of the corpus ("I/N", 0 <= I < N; see corpus.in_shard); None = all
+    #: serve only shard I of N of the corpus ("I/N", 0 <= I < N; see corpus.shard_of); None = all
     shard: Optional[str] = None
     #: port of the HTTP endpoint with /metrics (Prometheus), /healthz and /readyz; None = off
     metrics_port: Optional[int] = None

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import List, Tuple
 
 from .config import ServeConfig
-from .video import VideoError, decode_luma, inside, open_video
+from .video import VideoError, decode_codes, inside, open_video
 
 
 def shard_of(rel_path: str, count: int) -> int:
@@ -57,7 +57,8 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
         out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
         need = cfg.frames_per_sample * cfg.max_samples_per_video
         span, first = cfg.frames_per_sample, None
-        for y in decode_luma(container, stream):
+        # only frame sizes matter here: the codes as stored, without the per-frame expansion
+        for y, _ in decode_codes(container, stream):
             k, off = divmod(out["frames"], span)
             if off == 0:
                 first = y.shape

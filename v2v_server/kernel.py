@@ -473,7 +473,7 @@ def run_kernel(
     if pair_of_step.shape != (m - 1,):
         raise ValueError(f"pair_of_step must have one entry per sub-interval ({m - 1}), got {pair_of_step.shape}")
     n_pairs = int(pair_of_step[-1]) + 1 if m > 1 else 0
-    if m > 1 and (pair_of_step[0] != 0 or not np.all((np.diff(pair_of_step) == 0) | (np.diff(pair_of_step) == 1))):
+    if m > 1 and (pair_of_step[0] != 0 or not np.all(np.isin(np.diff(pair_of_step), (0, 1)))):
         raise ValueError("pair_of_step must start at 0 and step by 0 or 1")
     flat = np.ascontiguousarray(src).reshape(m, npix)
     use_lut = lut is not None

@@ -157,15 +157,15 @@ def make_sample(
             L, _, h, w = vox.shape
             vox = vox.reshape(L, cfg.num_bins, cfg.frames_per_bin, h, w).sum(axis=2, dtype=np.int32)
         out["voxels"] = vox
-    boundaries = to_uint8(seq[::step])
     if "frames" in outputs:
-        out["frames"] = np.ascontiguousarray(boundaries)
+        out["frames"] = np.ascontiguousarray(to_uint8(seq[::step]))
     t1 = time.perf_counter()
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
         if hasattr(flow, "voxel_flows"):  # pauses repeat frames: their links cost no DIS call
             out["flow"] = flow.voxel_flows(seq, step, np.concatenate([[False], np.diff(plan.offsets) == 0]))
         else:  # any (a, b) -> (2, H, W) callable
+            boundaries = to_uint8(seq[::step])
             out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
     if busy is not None:
         if "voxels" in outputs:
