@@ -378,10 +378,6 @@ def _strip(item: dict) -> None:
         del item[k]
 
 
-#: Backwards-compatible name.
-_Connection = Connection
-
-
 class _Padding:
     def __init__(self, item: dict):
         self.item = item
