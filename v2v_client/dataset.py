@@ -30,7 +30,7 @@ import zmq
 
 from v2v_server.protocol import ProtocolError, decode_arrays, pack, unpack
 
-from .fanin import FanInStream, resolve_endpoints, split_endpoints  # [iss12]
+from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints  # [iss12]
 from .metrics import TrainerMetrics  # [iss12]
 
 log = logging.getLogger("v2v.client")
@@ -378,10 +378,6 @@ def _strip(item: dict) -> None:
         del item[k]
 
 
-#: Backwards-compatible name.
-_Connection = Connection
-
-
 class _Padding:
     def __init__(self, item: dict):
         self.item = item
@@ -593,11 +589,9 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             ValueError: for a state of another format.
         """
-        if not isinstance(state, dict) or state.get("version") != 1:
-            raise ValueError("state must come from V2VStreamDataset.state_dict() (version 1)")
+        completed, delivered = read_state(state)
         with self._lock:
-            self._completed_epoch = int(state.get("completed_epoch", -1))
-            self._delivered = {int(e): set(ids) for e, ids in state.get("delivered", {}).items()}
+            self._completed_epoch, self._delivered = completed, delivered
             self._batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
             if isinstance(state.get("consumer"), str) and state["consumer"]:
                 self._consumer = state["consumer"]

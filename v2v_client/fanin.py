@@ -29,7 +29,7 @@ import ipaddress
 import queue
 import socket
 import threading
-from typing import Callable, Dict, Iterator, List, Optional, Sequence, Set, Union
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Set, Tuple, Union
 
 Endpoints = Union[str, Sequence[str]]
 
@@ -106,6 +106,19 @@ def resolve_endpoints(spec: Endpoints, getaddrinfo: Callable = socket.getaddrinf
     return out
 
 
+def read_state(state) -> Tuple[int, Dict[int, Set[str]]]:
+    """``(completed_epoch, delivered per epoch)`` of a ``state_dict()`` (of a fan-in or of one
+    endpoint), shared by both ``load_state_dict`` methods.
+
+    Raises:
+        ValueError: for a state of another format.
+    """
+    if not isinstance(state, dict) or state.get("version") != 1:
+        raise ValueError("state must come from V2VStreamDataset.state_dict() (version 1)")
+    return (int(state.get("completed_epoch", -1)),
+            {int(e): set(ids) for e, ids in state.get("delivered", {}).items()})
+
+
 class FanInStream:
     """Merge the batches of several servers into one stream (see the module docstring).
 
@@ -163,11 +176,9 @@ class FanInStream:
         Raises:
             ValueError: for a state of another format.
         """
-        if not isinstance(state, dict) or state.get("version") != 1:
-            raise ValueError("state must come from V2VStreamDataset.state_dict() (version 1)")
+        completed, delivered = read_state(state)
         with self._lock:
-            self._completed = int(state.get("completed_epoch", -1))
-            self._delivered = {int(e): set(ids) for e, ids in state.get("delivered", {}).items()}
+            self._completed, self._delivered = completed, delivered
             self._children = []
 
     # ------------------------------------------------------------------ iteration

@@ -17,7 +17,7 @@ import logging
 from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from .ledger import BatchRecord, DeliveryLedger
-from .schedule import EpochScheduler, Job, SampleKey, parse_sample_id
+from .schedule import EpochScheduler, Job, parse_sample_id
 from .wire import Ack, Bye, Credit, Heartbeat, Hello, Released
 
 log = logging.getLogger("v2v.server")
@@ -91,10 +91,11 @@ class DeliveryCore:
             self.sched.discarded(epoch, [key])
             raise
         self.samples_made += 1
-        group = self.pending[(epoch, self.task_outputs.get(task_id, ()))]
+        gkey = (epoch, self.task_outputs.get(task_id, ()))
+        group = self.pending[gkey]
         group.append(s)
         if len(group) >= self.batch_size:
-            self._make((epoch, self.task_outputs.get(task_id, ())), group)
+            self._make(gkey, group)
         return True
 
     def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str]) -> Optional[Job]:

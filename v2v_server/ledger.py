@@ -203,6 +203,15 @@ class DeliveryLedger:
         """The socket could not reach ``ident``: drop it (its batches go back)."""
         return self.leave(ident)
 
+    def _take(self, c, bid: int) -> bool:
+        """Take ``bid`` off client ``c`` (held or revoked); False when ``c`` does not hold it."""
+        if bid not in c.held and bid not in c.revoked:
+            return False
+        c.held.pop(bid, None)
+        c.revoked.pop(bid, None)
+        self.where.pop(bid, None)
+        return True
+
     def ack(self, ident: bytes, batch_ids: Iterable[int]) -> List[BatchRecord]:
         """The client handed these batches to its training loop. Returns the batches this
         acknowledgement delivered (only those this client holds; anything else is ignored
@@ -212,10 +221,7 @@ class DeliveryLedger:
             return []
         done = []
         for bid in batch_ids:
-            if bid in c.held or bid in c.revoked:
-                c.held.pop(bid, None)
-                c.revoked.pop(bid, None)
-                self.where.pop(bid, None)
+            if self._take(c, bid):
                 b = self.batches.pop(bid, None)
                 if b is not None:
                     self.acked += 1
@@ -229,10 +235,7 @@ class DeliveryLedger:
             return []
         back = []
         for bid in batch_ids:
-            if bid in c.held or bid in c.revoked:
-                c.held.pop(bid, None)
-                c.revoked.pop(bid, None)
-                self.where.pop(bid, None)
+            if self._take(c, bid):
                 if bid in self.batches:
                     self.batches[bid].avoid = ident
                     self.ready.appendleft(bid)

@@ -375,26 +375,31 @@ class EpochScheduler:
         return out
 
     # ------------------------------------------------------------------ delivery
-    def delivered(self, consumer: Consumer, epoch: int, keys: Iterable[SampleKey]) -> None:
-        """``consumer`` acknowledged ``keys`` of ``epoch`` (they left the live set)."""
+    def _drop_live(self, epoch: int, keys: Iterable[SampleKey]):
+        """``keys`` of ``epoch`` left the live set: ``(plan, keys as a list)``, plan None for
+        an unknown epoch (nothing done)."""
         plan = self.plans.get(epoch)
         if plan is None:
-            return
+            return None, []
         keys = list(keys)
         for k in keys:
             plan.drop_live(k)
+        return plan, keys
+
+    def delivered(self, consumer: Consumer, epoch: int, keys: Iterable[SampleKey]) -> None:
+        """``consumer`` acknowledged ``keys`` of ``epoch`` (they left the live set)."""
+        plan, keys = self._drop_live(epoch, keys)
+        if plan is None:
+            return
         plan.add_record(consumer, keys)
         self._reconcile(plan, set())
 
     def discarded(self, epoch: int, keys: Iterable[SampleKey]) -> None:
         """Live samples thrown away undelivered (filtered out of a batch): owed again unless
         some consumer already holds them."""
-        plan = self.plans.get(epoch)
+        plan, keys = self._drop_live(epoch, keys)
         if plan is None:
             return
-        keys = list(keys)
-        for k in keys:
-            plan.drop_live(k)
         self._reconcile(plan, {v for v, _ in keys})
 
     def is_delivered(self, epoch: int, key: SampleKey) -> bool:

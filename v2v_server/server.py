@@ -182,6 +182,7 @@ class V2VServer:
         self.stats.batches_sent = self.ledger.sent
         self.stats.batches_resent = self.ledger.resent
         self.stats.batches_acked = self.ledger.acked
+        self.stats.samples_made = self.core.samples_made
         if self.pool is not None:
             self.stats.workers_restarted = self.pool.restarts
 
@@ -285,7 +286,6 @@ class V2VServer:
             except (ProtocolError, KeyError, TypeError, ValueError) as e:
                 log.error("bad sample from worker %s: %s", ident, e)
                 return
-            self.stats.samples_made += kept
             if kept:
                 self.metrics.on_sample_made()  # [iss12 metrics]
         elif kind == "done":
@@ -367,7 +367,7 @@ class V2VServer:
 
     def _corpus_empty(self) -> bool:
         """Every file failed and nothing was ever made: no epoch can hold a sample."""
-        return (self.stats.samples_made == 0 and all(v in self.sched.file_failures for v in self.videos) and
+        return (self.core.samples_made == 0 and all(v in self.sched.file_failures for v in self.videos) and
                 any(p.complete for p in self.sched.plans.values()))
 
     # ------------------------------------------------------------------ clients
