@@ -2,8 +2,6 @@
 weighted by real samples across ranks (2 gloo processes), the consumed-id state."""
 from __future__ import annotations
 
-import os
-
 import pytest
 import torch
 import torch.multiprocessing as mp
