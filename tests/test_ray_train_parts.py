@@ -2,8 +2,6 @@
 weighted by real samples across ranks (2 gloo processes), the consumed-id state."""
 from __future__ import annotations
 
-import os
-
 import pytest
 import torch
 import torch.multiprocessing as mp
@@ -26,14 +24,12 @@ def test_drop_padding_subsets_every_per_sample_entry():
     assert n == 4 and same["voxels"] is b["voxels"]
 
 
-def test_padding_only_batch_makes_no_step():
+def test_padding_only_batch_makes_no_step(tmp_path):
     from trainer.config import apply_overrides, load_config
     from trainer.train import Trainer
 
     cfg = apply_overrides(load_config(None, "evflow"), ["model.num_bins=3", "model.base_num_channels=4"])
-    import tempfile
-
-    t = Trainer(cfg, tempfile.mkdtemp(prefix="v2v-test-"), torch.device("cpu"))
+    t = Trainer(cfg, str(tmp_path), torch.device("cpu"))
     before = [p.detach().clone() for p in t.model.parameters()]
     batch = {"voxels": torch.ones(2, 2, 3, 32, 32, dtype=torch.int16), "flow": torch.ones(2, 2, 2, 32, 32),
              "padding": torch.tensor([True, True])}

@@ -12,36 +12,23 @@ from trainer.config import default_config, merge
 from trainer.evaluate import (H5Sequence, events_to_voxels, evaluate_e2vid, flow_metrics, main,
                               reconstruction_metrics, video_sequence)
 from trainer.train import Trainer
+from tests.trainer_fixtures import write_edge_events
 
 torch.set_num_threads(2)
 
 H, W, DT, V, X0, NEV = 24, 32, 0.01, 200.0, 8.0, 3  # edge speed V px/s -> 2 px per frame interval
 
 
-def write_moving_edge_h5(path, n_frames=6, with_flow=True, polarity_01=True):
+def write_moving_edge_h5(path, n_frames=6, with_flow=True):
     """TEST FIXTURE: an H5 file in the event_cnn_minimal layout for a vertical edge (dark
     right of it, bright left) moving right at V px/s. Each pixel column the edge crosses
     fires NEV positive events per row at the crossing time t_x = (x + 0.5 - X0) / V."""
     import h5py
 
     ts_img = np.arange(n_frames) * DT
-    xs, ys, ts = [], [], []
-    for x in range(W):
-        t = (x + 0.5 - X0) / V
-        if 0 <= t < ts_img[-1]:
-            for y in range(H):
-                xs += [x] * NEV
-                ys += [y] * NEV
-                ts += [t] * NEV
-    order = np.argsort(ts, kind="stable")
-    xs, ys, ts = np.array(xs)[order], np.array(ys)[order], np.array(ts)[order]
-    ps = np.ones_like(xs) if polarity_01 else np.ones_like(xs)
     with h5py.File(path, "w") as f:
         f.attrs["sensor_resolution"] = (H, W)
-        f.create_dataset("events/xs", data=xs.astype(np.uint16))
-        f.create_dataset("events/ys", data=ys.astype(np.uint16))
-        f.create_dataset("events/ts", data=ts.astype(np.float64))
-        f.create_dataset("events/ps", data=ps.astype(np.uint8))
+        write_edge_events(f, W, H, NEV, lambda x: (x + 0.5 - X0) / V, keep=lambda t: 0 <= t < ts_img[-1])
         cols = np.arange(W)[None, :] + 0.5
         for i, t in enumerate(ts_img):
             img = np.where(cols < X0 + V * t, 200, 50).astype(np.uint8).repeat(H, 0)

@@ -79,6 +79,26 @@ class FakeV2VStream(torch.utils.data.IterableDataset):
             yield b
 
 
+def write_edge_events(f, width, height, nev, crossing_time, keep=lambda t: True):
+    """Writes ``events/{xs,ys,ts,ps}`` into the open H5 file ``f`` for a vertical edge: each
+    column x with ``keep(crossing_time(x))`` fires ``nev`` positive events per row at
+    ``crossing_time(x)``, sorted by time (stable)."""
+    xs, ys, ts = [], [], []
+    for x in range(width):
+        t = crossing_time(x)
+        if keep(t):
+            for y in range(height):
+                xs += [x] * nev
+                ys += [y] * nev
+                ts += [t] * nev
+    order = np.argsort(ts, kind="stable")
+    xs, ys, ts = np.array(xs)[order], np.array(ys)[order], np.array(ts)[order]
+    f.create_dataset("events/xs", data=xs.astype(np.uint16))
+    f.create_dataset("events/ys", data=ys.astype(np.uint16))
+    f.create_dataset("events/ts", data=ts.astype(np.float64))
+    f.create_dataset("events/ps", data=np.ones(len(xs), np.uint8))
+
+
 def write_mvsec_like_h5(path, height=16, width=48, speed=200.0, image_dt=0.01, n_images=8,
                         flow_t0=0.003, flow_dt=0.02, n_flows=4, nev=2):
     """TEST FIXTURE: an H5 file in the layout the V2V reference's ``scripts/mvsec_to_h5.py``
@@ -90,23 +110,11 @@ def write_mvsec_like_h5(path, height=16, width=48, speed=200.0, image_dt=0.01, n
     of columns (MVSEC's invalid pixels). Returns ``(image_ts, flow_ts)``."""
     import h5py
 
-    xs, ys, ts = [], [], []
-    for x in range(width):
-        t = (x + 0.5) / speed
-        for y in range(height):
-            xs += [x] * nev
-            ys += [y] * nev
-            ts += [t] * nev
-    order = np.argsort(ts, kind="stable")
-    xs, ys, ts = np.array(xs)[order], np.array(ys)[order], np.array(ts)[order]
     image_ts = np.arange(n_images) * image_dt
     flow_ts = flow_t0 + np.arange(n_flows) * flow_dt
     with h5py.File(path, "w") as f:
         f.attrs["sensor_resolution"] = (height, width)
-        f.create_dataset("events/xs", data=xs.astype(np.uint16))
-        f.create_dataset("events/ys", data=ys.astype(np.uint16))
-        f.create_dataset("events/ts", data=ts.astype(np.float64))
-        f.create_dataset("events/ps", data=np.ones(len(xs), np.uint8))
+        write_edge_events(f, width, height, nev, lambda x: (x + 0.5) / speed)
         cols = np.arange(width)[None, :] + 0.5
         for i, t in enumerate(image_ts):
             d = f.create_dataset(f"images/image{i:09d}", data=np.where(cols < speed * t, 200, 50).astype(np.uint8).repeat(height, 0))

@@ -117,14 +117,19 @@ def _pad_to_multiple(x: torch.Tensor, m: int) -> Tuple[torch.Tensor, int, int]:
     return x, h, w
 
 
+def _check_unet_args(num_bins: int, base_num_channels: int, num_encoders: int, skip_type: str) -> None:
+    """The argument checks shared by both UNet variants."""
+    if skip_type not in ("sum", "concat"):
+        raise ValueError(f"skip_type must be 'sum' or 'concat', got {skip_type!r}")
+    if num_encoders < 1 or base_num_channels < 1 or num_bins < 1:
+        raise ValueError("num_encoders, base_num_channels and num_bins must be >= 1")
+
+
 class _UNetBase(nn.Module):
     def __init__(self, num_bins, base_num_channels, num_encoders, num_residual_blocks,
                  num_output_channels, skip_type, kernel_size, channel_multiplier=2):
         super().__init__()
-        if skip_type not in ("sum", "concat"):
-            raise ValueError(f"skip_type must be 'sum' or 'concat', got {skip_type!r}")
-        if num_encoders < 1 or base_num_channels < 1 or num_bins < 1:
-            raise ValueError("num_encoders, base_num_channels and num_bins must be >= 1")
+        _check_unet_args(num_bins, base_num_channels, num_encoders, skip_type)
         self.num_bins = num_bins
         self.num_encoders = num_encoders
         self.skip_type = skip_type
@@ -207,10 +212,7 @@ class UNet(nn.Module):
     def __init__(self, num_bins: int, base_num_channels: int, num_encoders: int, num_residual_blocks: int,
                  num_output_channels: int, skip_type: str, kernel_size: int, channel_multiplier: int = 2):
         super().__init__()
-        if skip_type not in ("sum", "concat"):
-            raise ValueError(f"skip_type must be 'sum' or 'concat', got {skip_type!r}")
-        if num_encoders < 1 or base_num_channels < 1 or num_bins < 1:
-            raise ValueError("num_encoders, base_num_channels and num_bins must be >= 1")
+        _check_unet_args(num_bins, base_num_channels, num_encoders, skip_type)
         self.num_encoders = num_encoders
         self.skip_type = skip_type
         enc_in = [base_num_channels * channel_multiplier**i for i in range(num_encoders)]
