@@ -26,7 +26,7 @@ import zmq
 from v2v_client import V2VStreamDataset
 from v2v_server.config import ServeConfig
 from v2v_server.corpus import check_corpus
-from v2v_server.process import ServeProcess
+from bench.serve import ServeProcess
 from v2v_server.protocol import pack
 from v2v_server.video import scan_corpus
 

@@ -32,7 +32,7 @@ from typing import List, Optional
 from bench.faults import good_corpus
 from v2v_client import V2VStreamDataset
 from v2v_server.config import ServeConfig
-from v2v_server.process import ServeProcess
+from bench.serve import ServeProcess
 from v2v_server.sampler import FlowEstimator, video_samples
 from v2v_server.video import find_videos
 

@@ -19,7 +19,7 @@ from typing import List, Optional
 
 from bench.faults import good_corpus
 from v2v_client.loadtest import run_loadtest
-from v2v_server.process import ServeProcess
+from bench.serve import ServeProcess
 
 ALL = ("voxels", "frames", "flow")
 

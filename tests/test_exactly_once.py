@@ -14,7 +14,7 @@ from bench import faults
 from bench.faults import Layout
 from v2v_client import StreamError, V2VStreamDataset
 from v2v_server.config import load_config
-from v2v_server.process import ServeProcess
+from bench.serve import ServeProcess
 from v2v_server.wire import MAX_CONTAINERS, WireError, decode_client
 
 LAYOUT = Layout(L=4, crop=64, windows=2, batch=2)

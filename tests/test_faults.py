@@ -12,7 +12,7 @@ import torch
 from bench import faults
 from bench.faults import Layout
 from v2v_client import StreamError, V2VStreamDataset
-from v2v_server.process import ServeProcess
+from bench.serve import ServeProcess
 from v2v_server.protocol import pack
 
 LAYOUT = Layout(L=4, crop=64, windows=2, batch=2)
@@ -157,7 +157,7 @@ def test_client_survives_a_misbehaving_server(name):
 
     import zmq
 
-    from v2v_server.process import free_port
+    from bench.serve import free_port
 
     ctx = zmq.Context()
     srv = ctx.socket(zmq.ROUTER)

@@ -18,7 +18,7 @@ pytest.importorskip("ray.data", reason="the 'ray' extra is not installed (pip in
 
 from v2v_client import V2VStreamDataset  # noqa: E402
 from v2v_server.config import ServeConfig  # noqa: E402
-from v2v_server.process import ServeProcess  # noqa: E402
+from bench.serve import ServeProcess  # noqa: E402
 from v2v_server.ray import epoch_descriptors, scan_corpus_windows, v2v_dataset  # noqa: E402
 
 L, B, CROP, MAXW, SEED = 4, 5, 64, 3, 11

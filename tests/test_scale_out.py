@@ -24,7 +24,7 @@ from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
 from v2v_server.config import ServeConfig, parse_shard
 from v2v_server.corpus import check_corpus, select_shard, shard_of
 from v2v_server.metrics import JsonFormatter
-from v2v_server.process import ServeProcess, free_port
+from bench.serve import ServeProcess, free_port
 from v2v_server.video import scan_corpus
 
 L, CROP, WINDOWS, BATCH = 4, 64, 2, 2

@@ -9,7 +9,7 @@ import pytest
 from bench.faults import Layout, good_corpus
 from v2v_client import StreamTimeout, V2VStreamDataset
 from v2v_server.config import ServeConfig, is_loopback, load_config
-from v2v_server.process import ServeProcess
+from bench.serve import ServeProcess
 
 LAYOUT = Layout(L=4, crop=64, windows=1, batch=1)
 

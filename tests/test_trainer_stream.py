@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import torch
 
-from v2v_server.process import ServeProcess
+from bench.serve import ServeProcess
 import trainer.train as tr
 
 torch.set_num_threads(2)

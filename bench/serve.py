@@ -1,4 +1,4 @@
-"""Run ``v2v-serve`` as a child process (for the demo, benchmarks and tests).
+"""Run ``v2v-serve`` as a child process (a harness for benchmarks and tests; ``v2v-demo`` hosts the server in-process instead).
 
 ``ServeProcess`` binds to a free loopback port, waits until the server says it is serving,
 and always stops it: SIGINT first, then SIGKILL after a grace period.

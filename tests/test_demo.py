@@ -1,0 +1,28 @@
+"""README's main job: ``v2v-demo`` serves the bundled clips in-process and writes a preview."""
+from __future__ import annotations
+
+import json
+import threading
+
+import pytest
+
+from v2v_client import demo
+
+
+@pytest.mark.timeout(240)
+def test_demo_serves_bundled_clips_and_stops(tmp_path, capsys):
+    before = {t.name for t in threading.enumerate()}
+    png = tmp_path / "preview.png"
+    assert demo.main(["--workers", "1", "--batch-size", "2", "--batches", "2", "--preview", str(png)]) == 0
+    assert png.stat().st_size > 1000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    # one epoch of the bundled clips is 3 samples (batches of 2, then 1)
+    assert report["batches"] == 2 and report["samples"] == report["unique_samples"] == 3
+    # the server thread (and with it its worker pool) is gone once main returns
+    assert "v2v-demo-server" not in {t.name for t in threading.enumerate()} - before
+
+
+def test_demo_refuses_an_empty_folder(tmp_path):
+    with pytest.raises(ValueError, match="no video files"):
+        with demo.local_server(str(tmp_path), workers=1, batch_size=2):
+            pass
