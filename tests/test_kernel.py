@@ -36,6 +36,14 @@ def test_noise_depends_only_on_seed_and_pair():
     assert np.abs(np.corrcoef(big)[np.triu_indices(10, 1)]).max() < 0.05
 
 
+def test_noise_words_are_drawn_in_order_for_odd_sizes():
+    # two normals per 64-bit draw, low word first: a frame of 7 pixels is the first 7 of 8,
+    # and the two words of one draw are not correlated
+    np.testing.assert_array_equal(noise_field(3, 2, (1, 7)), noise_field(3, 2, (1, 8))[..., :7])
+    z = noise_field(3, 1, (400, 400)).ravel()
+    assert abs(np.corrcoef(z[0::2], z[1::2])[0, 1]) < 0.01
+
+
 def test_noisy_v2v_matches_float64_transcription(real_clip):
     """With noise and hot pixels, the kernel equals the paper's equations transcribed in float64
     with the same noise (replayed with noise_field), except at exact-threshold ties."""
