@@ -54,7 +54,13 @@ def _rank(rank, world, path, q):
     else:
         opt.samples = 0
     opt.step()
-    q.put((rank, [p.detach().tolist() for p in model.parameters()]))  # plain lists: no fd sharing
+    after_one = [p.detach().tolist() for p in model.parameters()]
+    # a step in which no rank has a real sample changes nothing (and still returns on both)
+    opt.zero_grad()
+    opt.samples = 0
+    opt.step()
+    after_none = [p.detach().tolist() for p in model.parameters()]
+    q.put((rank, after_one, after_none))  # plain lists: no fd sharing
     dist.destroy_process_group()
 
 
@@ -65,7 +71,10 @@ def test_gradients_are_weighted_by_real_samples_across_ranks(tmp_path):
     procs = [ctx.Process(target=_rank, args=(r, 2, str(tmp_path / "store"), q)) for r in range(2)]
     for p in procs:
         p.start()
-    got = dict(q.get(timeout=100) for _ in procs)
+    got, idle = {}, {}
+    for _ in procs:
+        rank, after_one, after_none = q.get(timeout=100)
+        got[rank], idle[rank] = after_one, after_none
     for p in procs:
         p.join(30)
     torch.manual_seed(0)
@@ -77,6 +86,7 @@ def test_gradients_are_weighted_by_real_samples_across_ranks(tmp_path):
     for r in (0, 1):
         for a, b in zip(got[r], ref.parameters()):
             torch.testing.assert_close(torch.tensor(a), b.detach())
+        assert idle[r] == got[r]  # the all-padding step of every rank stepped nothing
 
 
 def test_consumed_state_merges_ranks_and_closes_finished_epochs(tmp_path):

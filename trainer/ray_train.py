@@ -143,7 +143,7 @@ class RayTrainer(Trainer):
     padding-only step a rank must still take so all ranks stay in step."""
 
     def train_step(self, batch: dict) -> dict:
-        _, n = drop_padding(batch)
+        batch, n = drop_padding(batch)  # Trainer.train_step finds no padding left: subset once
         if isinstance(self.optimizer, SampleWeightedAllReduce):
             self.optimizer.samples = n
             if n == 0:  # nothing to learn here, but the other ranks wait for our gradient
