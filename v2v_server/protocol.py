@@ -47,25 +47,48 @@ def pack(header: dict) -> bytes:
     return msgpack.packb(h, use_bin_type=True)
 
 
-def unpack(frame, expect_version: int = PROTOCOL_VERSION, max_bytes: int = MAX_HEADER_BYTES) -> dict:
-    """Decode and check a header frame (bytes, memoryview or zmq.Frame).
+def bounded_unpackb(buf, max_bytes: int, max_array_len: int = 1 << 20, max_map_len: int = 1 << 16,
+                    max_containers: int = 0, error: type = None) -> object:
+    """msgpack-decode ``buf`` (bytes or memoryview) within bounds, the one msgpack decoder for
+    messages from peers: its size is checked before decoding, strings/binaries are at most
+    ``max_bytes``, arrays/maps at most ``max_array_len`` / ``max_map_len`` elements, no ext
+    types, and (when ``max_containers`` > 0) at most that many arrays and maps in all.
 
-    The size is checked before any msgpack decoding; ``max_bytes`` bounds it.
+    Raises:
+        ProtocolError (or the subclass ``error``): oversized, malformed, or over any bound.
+    """
+    error = error or ProtocolError
+    if len(buf) > max_bytes:
+        raise error(f"message of {len(buf)} bytes exceeds {max_bytes}")
+    hooks = {}
+    if max_containers > 0:
+        count = [0]
+
+        def hook(obj):
+            count[0] += 1
+            if count[0] > max_containers:
+                raise error(f"more than {max_containers} arrays/maps in one message")
+            return obj
+
+        hooks = {"list_hook": hook, "object_hook": hook}
+    try:
+        return msgpack.unpackb(bytes(buf), raw=False, strict_map_key=True, use_list=True,
+                               max_bin_len=max_bytes, max_str_len=max_bytes, max_ext_len=0,
+                               max_array_len=max_array_len, max_map_len=max_map_len, **hooks)
+    except error:
+        raise
+    except Exception as e:  # msgpack raises several types (ValueError, ExtraData, StackError, ...)
+        raise error(f"not valid msgpack within bounds: {type(e).__name__}: {str(e)[:200]}") from None
+
+
+def unpack(frame, expect_version: int = PROTOCOL_VERSION, max_bytes: int = MAX_HEADER_BYTES) -> dict:
+    """Decode and check a header frame (bytes, memoryview or zmq.Frame) with
+    :func:`bounded_unpackb` (``max_bytes`` bounds its size).
 
     Raises:
         ProtocolError: oversized, not msgpack, not a map with ``type``, or wrong version.
     """
-    buf = frame.buffer if hasattr(frame, "buffer") else frame
-    if len(buf) > max_bytes:
-        raise ProtocolError(f"header of {len(buf)} bytes exceeds {max_bytes}")
-    try:
-        h = msgpack.unpackb(
-            bytes(buf), raw=False, strict_map_key=True,
-            max_bin_len=max_bytes, max_str_len=max_bytes,
-            max_array_len=1 << 20, max_map_len=1 << 16,
-        )
-    except Exception as e:  # msgpack raises several types
-        raise ProtocolError(f"header is not valid msgpack: {e}") from None
+    h = bounded_unpackb(frame.buffer if hasattr(frame, "buffer") else frame, max_bytes)
     if not isinstance(h, dict) or not isinstance(h.get("type"), str):
         raise ProtocolError("header must be a map with a string 'type'")
     if h.get("v") != expect_version:

@@ -21,9 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, FrozenSet, Optional, Tuple
 
-import msgpack
-
 from .protocol import PROTOCOL_VERSION, ProtocolError
+from .protocol import bounded_unpackb as _bounded_unpackb
 
 #: Largest element count of any array in a client message (acks name at most ``max_credits`` ids).
 MAX_ARRAY_LEN = 4096
@@ -43,30 +42,12 @@ class WireError(ProtocolError):
 
 
 def bounded_unpackb(buf, max_bytes: int) -> object:
-    """msgpack-decode ``buf`` with the bounds above.
+    """msgpack-decode ``buf`` with the bounds above (``protocol.bounded_unpackb``).
 
     Raises:
         WireError: oversized, malformed, or over any bound.
     """
-    if len(buf) > max_bytes:
-        raise WireError(f"message of {len(buf)} bytes exceeds {max_bytes}")
-    count = [0]
-
-    def hook(obj):
-        count[0] += 1
-        if count[0] > MAX_CONTAINERS:
-            raise WireError(f"more than {MAX_CONTAINERS} arrays/maps in one message")
-        return obj
-
-    try:
-        return msgpack.unpackb(bytes(buf), raw=False, strict_map_key=True, use_list=True,
-                               max_bin_len=max_bytes, max_str_len=max_bytes, max_ext_len=0,
-                               max_array_len=MAX_ARRAY_LEN, max_map_len=MAX_MAP_LEN,
-                               list_hook=hook, object_hook=hook)
-    except WireError:
-        raise
-    except Exception as e:  # msgpack raises several types (ValueError, ExtraData, StackError, ...)
-        raise WireError(f"not valid msgpack within bounds: {type(e).__name__}: {str(e)[:200]}") from None
+    return _bounded_unpackb(buf, max_bytes, MAX_ARRAY_LEN, MAX_MAP_LEN, MAX_CONTAINERS, WireError)
 
 
 # ---------------------------------------------------------------------- typed messages
