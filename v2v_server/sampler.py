@@ -15,7 +15,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Iterable, Iterator, Optional, Tuple
+from typing import Dict, Iterable, Iterator, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -212,6 +212,51 @@ def sample_meta(plan: WindowPlan, video_fps: float, src_start: int) -> dict:
     return d
 
 
+class _CropCut:
+    """One crop of the window being decoded: its plan and its frames so far, (consumed, S, S).
+
+    Full range is applied per pixel on the crop (exact, and far cheaper than on the frame),
+    before any resampling. An unscaled crop keeps the codes of every frame that shares the
+    window's first code -> full-range map and maps them once, whole, when the window is
+    complete (one call instead of one per frame); any other frame (another map, or a crop
+    that is resampled from the full-range frame) is stored at full range as it arrives.
+    """
+
+    def __init__(self, cfg: ServeConfig, plan: WindowPlan):
+        self.cfg, self.plan = cfg, plan
+        self.buf: Optional[np.ndarray] = None
+        self.coded: List[int] = []  # rows of buf still holding codes
+
+    def add(self, off: int, codes: np.ndarray, window_map: bool, expand, full: Optional[np.ndarray]) -> None:
+        """Frame ``off`` of the window: its codes (``window_map``: they share the window's
+        first map ``expand``), and ``full``, the frame at full range (needed only by a crop
+        that is resampled)."""
+        cfg, plan = self.cfg, self.plan
+        if plan.scale == 1.0:
+            if self.buf is None:
+                self.buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), codes.dtype)
+            if window_map:
+                crop_frame(cfg, plan, codes, out=self.buf[off])
+                self.coded.append(off)
+            else:
+                self.buf[off] = expand(crop_frame(cfg, plan, codes))
+            return
+        crop = crop_frame(cfg, plan, full)
+        if self.buf is None:
+            self.buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), crop.dtype)
+        self.buf[off] = crop
+
+    def frames(self, window_expand) -> np.ndarray:
+        """The crop's full-range frames once the window is complete (maps the rows still
+        holding codes with the window's map)."""
+        buf = self.buf
+        if len(self.coded) == len(buf):
+            return window_expand(buf.reshape(-1, buf.shape[-1])).reshape(buf.shape)
+        for j in self.coded:
+            buf[j] = window_expand(buf[j])
+        return buf
+
+
 def video_samples(
     cfg: ServeConfig,
     root: Path,
@@ -251,7 +296,7 @@ def video_samples(
     rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
-    plans: list = []  # [plan, buffer, rows already at full range] of each crop of the current window still wanted
+    cuts: List[_CropCut] = []  # the crops of the current window still wanted
     window_expand = None  # the code -> full-range map of the window's first frame
     # frames worth decoding: whole windows only. When the container declares its frame count
     # the trailing partial window is not decoded (decoding is the cost that matters).
@@ -265,55 +310,25 @@ def video_samples(
             break
         stats["frames"] = i + 1
         if off == 0:
-            plans = []
-            shape = codes.shape
-            for c in range(kpw):
-                if k * kpw + c in skip:
-                    continue
-                plans.append([plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, codes.shape), None,
-                              set()])
-        if plans and codes.shape != shape:
+            shape, window_expand = codes.shape, expand
+            cuts = [_CropCut(cfg, plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, shape))
+                    for c in range(kpw) if k * kpw + c not in skip]
+        if cuts and codes.shape != shape:
             # a stream whose frame size changes: this window fails (this epoch), the next is planned anew
             stats.setdefault("failed", {})[k] = (f"frame size changed from {shape[1]}x{shape[0]} to "
                                                  f"{codes.shape[1]}x{codes.shape[0]} at frame {i}")
-            plans = []
-        if off == 0:
-            window_expand = expand
+            cuts = []
         full = None  # the whole kept region at full range, made once per frame when a crop is resampled
-        for entry in plans:
-            plan, buf, done = entry
-            if off >= plan.consumed:
-                continue
-            # full range per pixel: on the crop (exact, far cheaper), before any resampling;
-            # an unscaled crop is stored as codes and expanded once, whole, when the window is
-            # complete (one call instead of one per frame); a frame whose layout differs from
-            # the window's first frame is expanded at once and marked done
-            if plan.scale == 1.0:
-                if buf is None:
-                    buf = entry[1] = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), codes.dtype)
-                if expand is window_expand:
-                    crop_frame(cfg, plan, codes, out=buf[off])
-                else:
-                    buf[off] = expand(crop_frame(cfg, plan, codes))
-                    done.add(off)
-                continue
-            if full is None:
-                full = np.ascontiguousarray(expand(codes))
-            crop = crop_frame(cfg, plan, full)
-            if buf is None:
-                buf = entry[1] = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), crop.dtype)
-            buf[off] = crop
-            done.add(off)
+        for cut in cuts:
+            if off < cut.plan.consumed:
+                if cut.plan.scale != 1.0 and full is None:
+                    full = np.ascontiguousarray(expand(codes))
+                cut.add(off, codes, expand is window_expand, expand, full)
         if off == span - 1:
             stats["windows"] += 1
-            for plan, buf, done in plans:
-                if not done:
-                    buf = window_expand(buf.reshape(-1, buf.shape[-1])).reshape(buf.shape)
-                elif len(done) < len(buf):
-                    for j in range(len(buf)):
-                        if j not in done:
-                            buf[j] = window_expand(buf[j])
-                arrays = make_sample(cfg, plan, degrade_window(plan, buf), outputs, flow, info.fps,
-                                     stats.setdefault("busy", {}))
+            for cut in cuts:
+                plan = cut.plan
+                arrays = make_sample(cfg, plan, degrade_window(plan, cut.frames(window_expand)), outputs, flow,
+                                     info.fps, stats.setdefault("busy", {}))
                 yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
-            plans = []
+            cuts = []
