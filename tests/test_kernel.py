@@ -128,3 +128,25 @@ def test_kernel_rejects_bad_inputs():
         run_kernel(frames, np.zeros((4, 4)), np.ones(3), 0.1, lut=lut)
     with pytest.raises(ValueError, match="uint8 or uint16"):
         full_scale_of(frames.astype(np.int16))
+
+
+@pytest.mark.parametrize("c, hot, dtype", [(0.2, 0.0, np.int8), (1e-3, 0.0, np.int16), (1e-3, 100.0, np.int32)])
+def test_narrow_output_has_the_same_counts_in_the_narrowest_dtype(c, hot, dtype):
+    # int8 from the kernel's int16 output and tracked range; int16 as written; int32 by a
+    # re-run from the same potential after the int16 attempt overflowed (counts > 32767)
+    rng = np.random.default_rng(4)
+    frames = rng.integers(0, 256, (9, 6, 7)).astype(np.uint8)
+    frames[1::2, :2] = 255
+    frames[0::2, :2] = 0
+    params = SensorParams(c, c * 1.3, 0.05, np.full((6, 7), hot))
+    pot0 = rng.uniform(-c, c, (6, 7))
+    wide, pot_w = simulate_voxels(frames, params, 2, initial_potential=pot0, noise_seed=9)
+    narrow, pot_n = simulate_voxels(frames, params, 2, initial_potential=pot0, noise_seed=9, narrow=True)
+    assert wide.dtype == np.int32 and narrow.dtype == dtype
+    np.testing.assert_array_equal(narrow, wide)
+    np.testing.assert_array_equal(pot_n, pot_w)
+    lo, hi = np.iinfo(dtype).min, np.iinfo(dtype).max
+    if dtype != np.int8:  # and it is the narrowest: a narrower type would not hold the counts
+        narrower = np.int8 if dtype == np.int16 else np.int16
+        assert wide.min() < np.iinfo(narrower).min or wide.max() > np.iinfo(narrower).max
+    assert lo <= wide.min() and wide.max() <= hi

@@ -246,9 +246,11 @@ def _crossings(dl, c1, c2):
 # the step loops vectorise (4 pixels per instruction with AVX2)
 @numba.njit(cache=True, error_model="numpy")
 def _kernel(src, lut, use_lut, pair_of_step, n_pairs, potential, cpa, cna, extra, noise_std, noise_seed,
-            first_pair, cap, net, pos_out, neg_out, want_split, want_events, zk, zw, zf):
+            first_pair, cap, net, big, pos_out, neg_out, want_split, want_events, zk, zw, zf):
     """Core loop; see :func:`run_kernel`. ``src``: (M, npix) codes (``use_lut``) or float64
-    levels; ``cpa``, ``cna``: float64 (npix,) or (1,) (a scalar); ``extra``: float64 (npix,)."""
+    levels; ``cpa``, ``cna``: float64 (npix,) or (1,) (a scalar); ``extra``: float64 (npix,);
+    ``net``: int16 or int32 (P, npix), ``big`` the largest count it may hold (a pair needing
+    more stops the loop and is reported as ``overflow``)."""
     m = src.shape[0]
     npix = src.shape[1]
     has_noise = noise_std > 0.0
@@ -277,7 +279,8 @@ def _kernel(src, lut, use_lut, pair_of_step, n_pairs, potential, cpa, cna, extra
     ev_frac = np.empty(cap_ev)
     ev_pol = np.empty(cap_ev, np.int8)
     n_ev = 0
-    big = 2147483647.0
+    lo = np.int64(0)  # range of the net counts written
+    hi = np.int64(0)
     overflow = -1
     fast = use_lut and not want_split and not want_events and cap == 0
     # bounds for the fast path's overflow test: |dL| <= log range + |extra + noise| + |dL_hat|
@@ -327,14 +330,17 @@ def _kernel(src, lut, use_lut, pair_of_step, n_pairs, potential, cpa, cna, extra
                 for p in range(npix):
                     a, b, r = _crossings(potential[p] + ((cur[p] - prev[p]) + e[p]), cpa[p], cna[p])
                     potential[p] = r
-                    row[p] = np.int32(a - b)
+                    row[p] = np.int64(a - b)
             else:
                 for p in range(npix):
                     a, b, r = _crossings(potential[p] + ((cur[p] - prev[p]) + e[p]), c1s, c2s)
                     potential[p] = r
-                    row[p] = np.int32(a - b)
+                    row[p] = np.int64(a - b)
             for p in range(npix):  # one sub-interval never mixes polarities: |net| = N+ + N-
-                events += abs(np.int64(row[p]))
+                v = np.int64(row[p])
+                events += abs(v)
+                lo = min(lo, v)
+                hi = max(hi, v)
             potmax = max(potmax, cmax)
             prev, cur = cur, prev
             s += 1
@@ -392,21 +398,25 @@ def _kernel(src, lut, use_lut, pair_of_step, n_pairs, potential, cpa, cna, extra
             if a - b > big or b - a > big:
                 overflow = i
             else:
-                net[i, p] = np.int32(a - b)
+                v = np.int64(a - b)
+                net[i, p] = v
+                lo = min(lo, v)
+                hi = max(hi, v)
             if want_split:
                 pos_out[i, p] = a
                 neg_out[i, p] = b
             potential[p] = pot[p]
         if overflow >= 0:
             break
-    return events, lost, overflow, ev_step[:n_ev], ev_pix[:n_ev], ev_frac[:n_ev], ev_pol[:n_ev]
+    return events, lost, overflow, lo, hi, ev_step[:n_ev], ev_pix[:n_ev], ev_frac[:n_ev], ev_pol[:n_ev]
 
 
 class KernelResult(NamedTuple):
     """What :func:`run_kernel` returns.
 
     Attributes:
-        net: int32 (P, H, W) net count N+ - N- per frame pair (after the refractory cap).
+        net: int32 (P, H, W) net count N+ - N- per frame pair (after the refractory cap); with
+            ``narrow=True`` int8 or int16 when every count fits.
         potential: (H, W) residual dL_hat after the last pair, dtype of the input potential.
         events: int, N+ + N- summed over every sub-interval (before the cap).
         lost: int, events the refractory cap removed.
@@ -452,6 +462,7 @@ def run_kernel(
     refractory_cap: int = 0,
     split: bool = False,
     events: bool = False,
+    narrow: bool = False,
 ) -> KernelResult:
     """Run the V2V step over a log-intensity path (see the module doc for the equations).
 
@@ -473,6 +484,10 @@ def run_kernel(
             (0 = no cap); the residual is not affected (the pixel still catches up).
         split: also return N+ and N- per pair (for count post-processing).
         events: also return every event (the event-level reference).
+        narrow: return ``net`` in the narrowest of int8, int16, int32 that holds every count
+            (the wire's voxel dtype), written int16 by the kernel and narrowed with the range
+            it tracked, instead of int32 plus two passes to find the range; a clip that needs
+            more than int16 is re-run in int32 from the same potential (same counts).
 
     Returns:
         :class:`KernelResult`.
@@ -515,14 +530,23 @@ def run_kernel(
     if not potential.flags.c_contiguous or not potential.flags.writeable:
         raise ValueError("potential must be a writeable C-contiguous array (it is updated in place)")
     pot_flat = potential.reshape(npix)
-    net = np.empty((n_pairs, h, w), np.int32)
     pos = np.empty((n_pairs, h, w)) if split else np.empty((0, 1, 1))
     neg = np.empty((n_pairs, h, w)) if split else np.empty((0, 1, 1))
-    ev, lost, overflow, es, ep, ef, epol = _kernel(
-        flat, lut_a, use_lut, pair_of_step, n_pairs, pot_flat, cpa, cna, ex, float(noise_std),
-        np.uint64(int(noise_seed) & (2**64 - 1)), int(first_pair), int(refractory_cap),
-        net.reshape(n_pairs, npix), pos.reshape(pos.shape[0], pos.shape[1] * pos.shape[2]), neg.reshape(neg.shape[0], neg.shape[1] * neg.shape[2]),
-        bool(split), bool(events), _ZK, _ZW, _ZF)
+    start = potential.copy() if narrow else None
+    for dtype in ((np.int16, np.int32) if narrow else (np.int32,)):
+        if dtype is np.int32 and start is not None:
+            potential[...] = start  # the int16 attempt overflowed: again, wide
+        net = np.empty((n_pairs, h, w), dtype)
+        ev, lost, overflow, lo, hi, es, ep, ef, epol = _kernel(
+            flat, lut_a, use_lut, pair_of_step, n_pairs, pot_flat, cpa, cna, ex, float(noise_std),
+            np.uint64(int(noise_seed) & (2**64 - 1)), int(first_pair), int(refractory_cap),
+            net.reshape(n_pairs, npix), float(np.iinfo(dtype).max),
+            pos.reshape(pos.shape[0], pos.shape[1] * pos.shape[2]), neg.reshape(neg.shape[0], neg.shape[1] * neg.shape[2]),
+            bool(split), bool(events), _ZK, _ZW, _ZF)
+        if overflow < 0:
+            break
+    if narrow and overflow < 0 and -128 <= lo and hi <= 127:
+        net = net.astype(np.int8)
     if overflow >= 0:
         raise OverflowError(
             f"frame pair {overflow}: more than 2**31-1 events in one pixel (thresholds too small "

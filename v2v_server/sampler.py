@@ -141,7 +141,8 @@ def make_sample(
             spent simulating voxels and estimating flow (for the server's metrics).
 
     Returns:
-        dict with ``voxels`` int32 (L, B, S, S) signed event counts, ``frames`` uint8
+        dict with ``voxels`` (L, B, S, S) signed event counts (int8/int16/int32, the narrowest
+        that holds them, for plain V2V with one frame per bin; else int32), ``frames`` uint8
         (L + 1, S, S) at voxel boundaries, ``flow`` float32 (L, 2, S, S) in pixels from frame
         l to l + 1 (``cfg.flow_preset``, see ``flow.py``; chained options use every source
         frame between the boundaries) — each present only if asked for.
@@ -194,7 +195,8 @@ def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float) -
         vox, _, info = simulate_voxels_refined(seq, plan.params, bins, cfg.refine, rng=plan.rng)
         plan.info.update(refine=info["refine"], subframes_mean=float(info["subframes_mean"]))
     else:
-        vox, _ = simulate_voxels(seq, plan.params, bins, rng=plan.rng)
+        # the wire's narrow dtype straight from the kernel, unless bins are summed below
+        vox, _ = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=cfg.frames_per_bin == 1)
         plan.info["refine"] = "off"
     return vox
 

@@ -273,6 +273,7 @@ def simulate_voxels(
     noise_seed: Optional[int] = None,
     first_pair: int = 0,
     compute_dtype=np.float32,
+    narrow: bool = False,
 ) -> Tuple[np.ndarray, np.ndarray]:
     """Discrete voxel grids (SBT) of a clip, computed from frames without an event stream.
 
@@ -299,9 +300,11 @@ def simulate_voxels(
             Each step itself is evaluated in float64, so the conservation law c+ sum N+ -
             c- sum N- + dL_hat_end - dL_hat_0 = L_end - L_0 + sum N_i + steps * H holds to
             steps * 2**-24 * max(c+, c-) in float32 (see tests/test_stability.py).
+        narrow: voxels in the narrowest of int8, int16, int32 that holds every count (the
+            wire's dtype; the kernel tracks the range, see ``run_kernel``), not int32.
 
     Returns:
-        ``(voxels, potential)``: ``voxels`` int32 (L, num_bins, H, W), bin b of voxel l is
+        ``(voxels, potential)``: ``voxels`` int32 (or narrower, ``narrow``) (L, num_bins, H, W), bin b of voxel l is
         N+ - N- of frame pair l * num_bins + b (signed event counts); ``potential`` float32
         (H, W), the residual dL_hat after the last frame (log-intensity units), to continue
         the clip with a later call.
@@ -325,7 +328,7 @@ def simulate_voxels(
         noise_seed = draw_noise_seed(rng)
     res = run_kernel(frames, potential, params.pos_threshold, params.neg_threshold,
                      lut=_lut64(full_scale, dtype), extra=0.0 if params.hot_pixels is None else params.hot_pixels,
-                     noise_std=params.noise_std, noise_seed=noise_seed, first_pair=first_pair)
+                     noise_std=params.noise_std, noise_seed=noise_seed, first_pair=first_pair, narrow=narrow)
     return res.net.reshape((n - 1) // num_bins, num_bins, h, w), potential.astype(np.float32)
 
 

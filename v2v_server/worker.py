@@ -48,7 +48,7 @@ def wire_arrays(cfg: ServeConfig, arrays: dict) -> dict:
     that holds every count), frames uint8, flow ``cfg.flow_dtype``."""
     out = {}
     for name, a in arrays.items():
-        if name == "voxels":
+        if name == "voxels" and a.dtype != np.int8:  # int8 is the narrowest already
             a = a.astype(narrow_int_dtype(a), copy=False)
         elif name == "flow":
             a = to_float16(a) if cfg.flow_dtype == "float16" else a.astype(cfg.flow_dtype, copy=False)
