@@ -248,3 +248,17 @@ def test_sample_id_parse_rejects(sid, k):
 def test_crops_per_window_config_validation():
     with pytest.raises(ValueError, match="crops_per_window"):
         small_cfg(crops_per_window=0)
+
+
+@pytest.mark.parametrize("flip", [False, True])
+@pytest.mark.parametrize("x", [0, 5, 468])
+def test_crop_cut_slices_as_crop_frame(flip, x):
+    from v2v_server.sampler import _CropCut, crop_frame, plan_window
+
+    cfg = ServeConfig(seed=2).validate()
+    codes = np.random.default_rng(x).integers(0, 256, (181, 596)).astype(np.uint8)
+    plan = plan_window(cfg, 0, "v.mp4#0", 0, codes.shape)
+    plan.crop_x, plan.flip = x, flip
+    cut = _CropCut(cfg, plan)
+    cut.add(0, codes, True, None, None)
+    np.testing.assert_array_equal(cut.buf[0], crop_frame(cfg, plan, codes))
