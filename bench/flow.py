@@ -19,8 +19,11 @@ start from). Cost: ms per sample = one call of ``FlowEstimator.voxel_flows`` on 
 the CPU time of decoding one sample (201 frames) of the bundled 596 x 336 clip in the same run.
 
     python -m bench.flow --out docs [--quick]
+    python -m bench.flow --out docs --name flow_bench_zoom --kinds zoom-in zoom-out --options ...
 
-Writes ``OUT/flow_bench.md`` (table), ``OUT/flow_bench.json`` and ``OUT/img/flow_epe.png``.
+Writes ``OUT/NAME.md`` (table), ``OUT/NAME.json`` and a plot (``OUT/img/flow_epe.png`` for the
+default name ``flow_bench``, else ``OUT/img/NAME.png``). For iterating: ``--quick`` (4
+photographs and the 3 clips), ``--kinds``, ``--displacements``, ``--options``, ``--repeats``.
 """
 from __future__ import annotations
 
@@ -38,6 +41,9 @@ import numpy as np
 from v2v_server.flow import DEFAULT_FLOW, FLOW_OPTIONS, FlowEstimator, FlowUnavailable
 
 KINDS = ("translation", "rotation", "zoom")
+#: further motions for a closer look (``--kinds``): zoom with its sign fixed (``zoom`` draws
+#: in or out per texture)
+EXTRA_KINDS = ("zoom-in", "zoom-out")
 SIZE = 128
 
 
@@ -83,8 +89,9 @@ def motion_matrices(image_shape, kind: str, d: float, step: int, voxels: int, di
         v = d * per * np.array([np.cos(direction), np.sin(direction)])
     elif kind == "rotation":
         th = 2 * np.arcsin(min(d / (2 * m), 1.0)) * per * np.sign(np.cos(direction) or 1)
-    elif kind == "zoom":
-        lz = np.log1p(d / m) * per * (1 if np.cos(direction) >= 0 else -1)
+    elif kind in ("zoom", "zoom-in", "zoom-out"):
+        sign = {"zoom-in": 1, "zoom-out": -1}.get(kind, 1 if np.cos(direction) >= 0 else -1)
+        lz = np.log1p(d / m) * per * sign
         if lz < 0:  # zoom out by the same displacement at the median radius
             lz = np.log1p(-min(d / m, 0.9)) * per
     else:
@@ -171,13 +178,18 @@ def time_voxels(sample: np.ndarray, repeats: int) -> float:
     return best * 1000
 
 
-def run(options: List[str], displacements: List[float], step: int, voxels: int, repeats: int, quick: bool) -> Dict:
+def run(options: List[str], displacements: List[float], step: int, voxels: int, repeats: int, quick: bool,
+        kinds=KINDS) -> Dict:
     cv2.setNumThreads(1)
+    kinds = tuple(kinds)
+    for k in kinds:
+        if k not in KINDS + EXTRA_KINDS:
+            raise ValueError(f"--kinds: unknown motion {k!r}, known: {KINDS + EXTRA_KINDS}")
     tex = textures(quick)
     rng = np.random.default_rng(0)
     directions = {name: float(rng.uniform(0, 2 * np.pi)) for name, _ in tex}
     clips = {}
-    for kind in KINDS:
+    for kind in kinds:
         for d in displacements:
             clips[(kind, d)] = [render(img, motion_matrices(img.shape, kind, d, step, voxels, directions[n]), step)
                                 for n, img in tex]
@@ -189,7 +201,7 @@ def run(options: List[str], displacements: List[float], step: int, voxels: int, 
     voxels_ms = time_voxels(sample, repeats)
     print(f"voxels of one sample (plain V2V, 201 frames of 128 x 128): {voxels_ms:.1f} ms", flush=True)
     results = {"decode_ms_per_sample": decode_ms, "voxels_ms_per_sample": voxels_ms, "textures": [n for n, _ in tex], "displacements": displacements, "step": step,
-               "voxels_per_clip": voxels, "default": DEFAULT_FLOW, "options": {}, "skipped": {}}
+               "voxels_per_clip": voxels, "default": DEFAULT_FLOW, "kinds": list(kinds), "options": {}, "skipped": {}}
     for name in options:
         try:
             est = FlowEstimator(name)
@@ -199,7 +211,7 @@ def run(options: List[str], displacements: List[float], step: int, voxels: int, 
             continue
         row = {"summary": FLOW_OPTIONS[name].summary, "median": {}, "mean": {}, "p90": {}}
         all_errs = []
-        for kind in KINDS:
+        for kind in kinds:
             med, mean, p90 = [], [], []
             for d in displacements:
                 errs = []
@@ -213,7 +225,7 @@ def run(options: List[str], displacements: List[float], step: int, voxels: int, 
                 p90.append(float(np.percentile(e, 90)))
             row["median"][kind], row["mean"][kind], row["p90"][kind] = med, mean, p90
         row["median_all"] = [float(np.median(np.concatenate([all_errs[k * len(displacements) + i]
-                                                              for k in range(len(KINDS))])))
+                                                              for k in range(len(kinds))])))
                              for i in range(len(displacements))]
         row["ms_per_sample"] = time_option(est, sample, step, repeats)
         results["options"][name] = row
@@ -224,24 +236,25 @@ def run(options: List[str], displacements: List[float], step: int, voxels: int, 
 
 def table(res: Dict) -> str:
     ds = res["displacements"]
-    pick = [i for i, d in enumerate(ds) if d in (10, 20, 30, 40)]
+    kinds = res.get("kinds", KINDS)
+    pick = [i for i, d in enumerate(ds) if d in (10, 20, 30, 40)] or list(range(len(ds)))
     lines = [
         f"Median end-point error (px) over {len(res['textures'])} textures x {res['voxels_per_clip']} voxels, "
         f"by displacement per voxel ({res['step']} frames); CPU ms per sample (40 flows of 128 x 128, one core) "
         f"and as a fraction of decoding one sample ({res['decode_ms_per_sample']:.0f} ms, same run; the voxels "
         f"output costs {res['voxels_ms_per_sample']:.0f} ms).",
         "",
-        "| option | ms / sample | x decode | " + " | ".join(f"{k[:5]}. {int(ds[i])}" for k in KINDS for i in pick) + " | worst median |",
-        "|---|---:|---:|" + "---:|" * (len(KINDS) * len(pick)) + "---:|",
+        "| option | ms / sample | x decode | " + " | ".join(f"{k[:5]}. {int(ds[i])}" for k in kinds for i in pick) + " | worst median |",
+        "|---|---:|---:|" + "---:|" * (len(kinds) * len(pick)) + "---:|",
     ]
     for name, r in res["options"].items():
         worst = max(max(v) for v in r["median"].values())
-        cells = [f"{r['median'][k][i]:.2f}" for k in KINDS for i in pick]
+        cells = [f"{r['median'][k][i]:.2f}" for k in kinds for i in pick]
         tag = f"**{name}** (default)" if name == res["default"] else name
         ratio = r["ms_per_sample"] / res["decode_ms_per_sample"]
         lines.append(f"| {tag} | {r['ms_per_sample']:.1f} | {ratio:.2f} | " + " | ".join(cells) + f" | {worst:.2f} |")
     for name, why in res["skipped"].items():
-        lines.append(f"| {name} | skipped | | " + " | ".join("" for _ in range(len(KINDS) * len(pick))) + f" | {why} |")
+        lines.append(f"| {name} | skipped | | " + " | ".join("" for _ in range(len(kinds) * len(pick))) + f" | {why} |")
     return "\n".join(lines) + "\n"
 
 
@@ -253,21 +266,24 @@ def plot(res: Dict, path: str) -> None:
     import matplotlib.pyplot as plt
 
     ds = res["displacements"]
+    kinds = res.get("kinds", KINDS)[:3]
     fig, axes = plt.subplots(2, 2, figsize=(13, 9.5))
     cmap = plt.get_cmap("tab20")
     floor = 0.03
     for i, (name, r) in enumerate(res["options"].items()):
+        method = FLOW_OPTIONS[name].method if name in FLOW_OPTIONS else "direct"
         style = dict(color=cmap(i % 20), lw=3.0 if name == res["default"] else 1.3,
-                     ls="-" if FLOW_OPTIONS[name].method == "chained" else "--", marker="o", ms=3)
-        for ax, kind in zip(axes.flat, KINDS):
+                     ls={"chained": "-", "tracked": "-."}.get(method, "--"), marker="o", ms=3)
+        for ax, kind in zip(axes.flat, kinds):
             ax.plot(ds, np.maximum(r["median"][kind], floor), label=name, **style)
         worst = max(max(v) for v in r["median"].values())
         axes[1, 1].scatter(r["ms_per_sample"], worst, color=style["color"], s=90 if name == res["default"] else 30)
         axes[1, 1].annotate(name, (r["ms_per_sample"], worst), fontsize=7, xytext=(3, 3), textcoords="offset points")
-    for ax, kind in zip(axes.flat, KINDS):
+    for ax, kind in zip(axes.flat, kinds):
         ax.axhline(2.0, color="k", ls=":", lw=1)
         ax.set(xlabel="displacement per voxel (px, median over the crop)", ylabel="median EPE (px)",
-               yscale="log", ylim=(floor, 60), title=f"{kind}: EPE vs displacement (dashed: direct, solid: chained)")
+               yscale="log", ylim=(floor, 60),
+               title=f"{kind}: EPE vs displacement (dashed: direct, solid: chained, dash-dot: tracked)")
     axes[0, 0].legend(fontsize=7, ncol=2)
     ax = axes[1, 1]
     ax.axhline(2.0, color="k", ls=":", lw=1)
@@ -286,7 +302,10 @@ def main(argv=None) -> int:
     ap.add_argument("--step", type=int, default=5, help="frames per voxel (B * frames_per_bin)")
     ap.add_argument("--voxels", type=int, default=3, help="voxel grids per rendered clip")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--quick", action="store_true", help="4 photographs only (a smoke run)")
+    ap.add_argument("--quick", action="store_true", help="4 photographs (and the 3 clips) only: a quicker run")
+    ap.add_argument("--kinds", nargs="*", default=list(KINDS),
+                    help=f"motions to render (default {' '.join(KINDS)}; also {' '.join(EXTRA_KINDS)})")
+    ap.add_argument("--name", default="flow_bench", help="stem of the files written (default flow_bench)")
     ap.add_argument("--from-json", help="redraw table and plot from an earlier flow_bench.json (no measuring)")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
@@ -295,16 +314,16 @@ def main(argv=None) -> int:
             res = json.load(f)
         res["default"] = DEFAULT_FLOW  # mark today's default
     else:
-        res = run(a.options, a.displacements, a.step, a.voxels, a.repeats, a.quick)
+        res = run(a.options, a.displacements, a.step, a.voxels, a.repeats, a.quick, a.kinds)
     os.makedirs(os.path.join(a.out, "img"), exist_ok=True)
-    with open(os.path.join(a.out, "flow_bench.json"), "w") as f:
+    with open(os.path.join(a.out, f"{a.name}.json"), "w") as f:
         json.dump(res, f, indent=1)
     md = table(res)
-    with open(os.path.join(a.out, "flow_bench.md"), "w") as f:
+    with open(os.path.join(a.out, f"{a.name}.md"), "w") as f:
         f.write("<!-- written by python -m bench.flow; do not edit -->\n" + md)
     print(md)
     try:
-        plot(res, os.path.join(a.out, "img", "flow_epe.png"))
+        plot(res, os.path.join(a.out, "img", "flow_epe.png" if a.name == "flow_bench" else f"{a.name}.png"))
     except ImportError:
         print("matplotlib not installed (pip install 'v2v[bench]'): no plot", file=sys.stderr)
     return 0
