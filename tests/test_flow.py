@@ -91,7 +91,7 @@ def test_every_option_handles_small_and_odd_sized_crops():
         for h, w in ((8, 8), (12, 20), (32, 32), (64, 48)):
             fl = est.voxel_flows(panning_frames(STEP + 1, 1)[:, :h, :w], STEP)
             assert fl.shape == (1, 2, h, w) and np.isfinite(fl).all(), (name, h, w)
-    est = FlowEstimator(DEFAULT_FLOW)
+    est = FlowEstimator("chained-quarter-s6")
     assert [est.downscale_for((s, s)) for s in (128, 127, 64, 63, 32, 8)] == [4, 2, 2, 1, 1, 1]
     # 130 x 150 is reduced 4x to 32 x 37: the flow is scaled back per axis
     frames = panning_frames(2 * STEP + 1, 6, size=150)[:, :130, :150]

@@ -246,16 +246,16 @@ FLOW_OPTIONS: Dict[str, FlowOption] = _opts(
                summary="chained-half, then DIS medium at the voxel spacing initialised with it"),
     FlowOption("tracked", "tracked", track=TrackParams(grid=8),
                summary="an 8 x 8 grid of points tracked frame by frame with pyramidal Lucas-Kanade, bilinear between them"),
-    FlowOption("tracked-g7", "tracked", track=TrackParams(grid=7),
-               summary="as tracked with a 7 x 7 grid"),
+    FlowOption("tracked-g6", "tracked", track=TrackParams(grid=6),
+               summary="as tracked with a 6 x 6 grid (cheaper, coarser)"),
     FlowOption("tracked-g12", "tracked", track=TrackParams(grid=12),
-               summary="as tracked with a 12 x 12 grid"),
+               summary="as tracked with a 12 x 12 grid (finer, dearer)"),
     FlowOption("raft-small", "raft", raft="small", summary="torchvision RAFT small at the voxel spacing (local weights only)"),
     FlowOption("raft-large", "raft", raft="large", summary="torchvision RAFT large at the voxel spacing (local weights only)"),
 )
 
 #: The option samples use unless ``flow_preset`` says otherwise (chosen in docs/flow.md).
-DEFAULT_FLOW = "chained-quarter-s6"
+DEFAULT_FLOW = "tracked"
 
 
 def check_option(name) -> FlowOption:
@@ -344,19 +344,18 @@ _FILL_TABLES: Dict[tuple, tuple] = {}
 
 
 def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge: float = 1e-2) -> np.ndarray:
-    """Grid flow (n, n, 2) with the points not ``ok`` (n, n) replaced by a local affine fit of
-    the valid points: for each lost point, weighted least squares of ``flow = a0 + a1 x + a2 y``
-    over the valid points with Gaussian weights of ``sigma`` grid steps around it, the slopes
-    damped by ``ridge * sum(weights) * (a1^2 + a2^2)`` (so a fit the valid points do not
-    determine, e.g. one valid point, falls back to a weighted mean), evaluated at the lost
-    point. An affine fit extends rotation and zoom, where the points LK drops are mostly those
-    that left the crop, whose flow keeps growing with the radius. All zero if no point is
-    valid."""
-    if ok.all():
+    """Grid flows (V, n, n, 2) with the points not ``ok`` (V, n, n) replaced by a local affine
+    fit of the valid points of the same grid: for each lost point, weighted least squares of
+    ``flow = a0 + a1 x + a2 y`` over the valid points with Gaussian weights of ``sigma`` grid
+    steps around it, the slopes damped by ``ridge * sum(weights) * (a1^2 + a2^2)`` (so a fit
+    the valid points do not determine, e.g. one valid point, falls back to a weighted mean),
+    evaluated at the lost point. An affine fit extends rotation and zoom, where the points LK
+    drops are mostly those that left the crop, whose flow keeps growing with the radius. A grid
+    without any valid point becomes zero."""
+    lost = ~ok.reshape(ok.shape[0], -1)
+    if not lost.any():
         return grid_flow
-    if not ok.any():
-        return np.zeros_like(grid_flow)
-    n = ok.shape[0]
+    n = ok.shape[-1]
     key = (n, sigma, ridge)
     if key not in _FILL_TABLES:
         yy, xx = np.divmod(np.arange(n * n, dtype=np.float64), n)
@@ -365,16 +364,24 @@ def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge:
         second = np.column_stack([basis, xx * xx, xx * yy, yy * yy])  # moments 1, x, y, xx, xy, yy
         _FILL_TABLES[key] = (wts, basis, second, np.diag([0.0, ridge, ridge]))
     wts, basis, second, damp = _FILL_TABLES[key]
-    flat = ok.ravel()
-    f = grid_flow.reshape(-1, 2)[flat].astype(np.float64)  # (m, 2)
-    b = basis[flat]
-    cols = np.concatenate([second[flat], (b[:, :, None] * f[:, None, :]).reshape(-1, 6)], 1)  # (m, 12)
-    mom = wts[~flat][:, flat] @ cols  # (k, 12): weighted moments around each lost point
+    vox = np.flatnonzero(lost.any(1))  # grids with something to fill
+    f = grid_flow.reshape(grid_flow.shape[0], -1, 2)[vox].astype(np.float64)  # (V', n * n, 2)
+    m = (~lost[vox]).astype(np.float64)[..., None]  # (V', n * n, 1)
+    cols = np.concatenate([np.broadcast_to(second, f.shape[:2] + (6,)),
+                           (basis[None, :, :, None] * f[:, :, None, :]).reshape(f.shape[:2] + (6,))], 2) * m
+    mom = wts @ cols  # (V', n * n, 12): weighted moments of the valid points around every point
+    where = lost[vox]
+    mom = mom[where]  # (k, 12): around the lost points only
     lhs = mom[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + mom[:, :1, None] * damp
+    empty = mom[:, 0] <= 0  # a grid without valid points: zero
+    lhs[empty] = np.eye(3)
     coef = np.linalg.solve(lhs, mom[:, 6:].reshape(-1, 3, 2))  # (k, 3, 2)
-    out = grid_flow.copy()
-    out[~ok] = (basis[~flat][:, :, None] * coef).sum(1).astype(np.float32)
-    return out
+    pos = np.broadcast_to(basis, where.shape + (3,))[where]  # (k, 3): 1, x, y of each lost point
+    out = grid_flow.reshape(grid_flow.shape[0], -1, 2).copy()
+    sub = out[vox]
+    sub[where] = (pos[:, :, None] * coef).sum(1).astype(np.float32)
+    out[vox] = sub
+    return out.reshape(grid_flow.shape)
 
 
 def raft_weights(size: str = "small") -> Optional[Path]:
@@ -484,14 +491,22 @@ class FlowEstimator:
 
     def pair(self, a: np.ndarray, b: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
         """float32 (H, W, 2) flow from ``a`` to ``b`` (uint8/uint16 (H, W)) with this option's
-        DIS settings (RAFT for a raft option), optionally initialised with ``init`` (H, W, 2)."""
+        DIS settings (RAFT for a raft option, the tracking of a tracked one), optionally
+        initialised with ``init`` (H, W, 2; DIS only).
+
+        Raises:
+            ValueError: ``init`` given to a tracked option."""
         if self._raft is not None:
             return self._raft(a, b)
+        if self.option.method == "tracked":
+            if init is not None:
+                raise ValueError(f"flow option {self.preset!r}: tracked flow takes no initial flow")
+            return np.ascontiguousarray(self.voxel_flows(np.stack([a, b]), 1)[0].transpose(1, 2, 0))
         return self._calc(self.option.dis, a, b, init)
 
     def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """float32 (2, H, W) flow from ``a`` to ``b``: channel 0 is x (u), channel 1 y (v), pixels."""
-        if self.option.method == "chained":
+        if self.option.method in ("chained", "tracked"):
             return self.voxel_flows(np.stack([a, b]), 1)[0]
         return np.ascontiguousarray(self.pair(a, b).transpose(2, 0, 1))
 
@@ -596,38 +611,34 @@ class FlowEstimator:
             u8.append(u8[-1] if k and repeats is not None and repeats[k] else _to_u8(f))
         same = [False] + [a is b or cv2.norm(a, b, cv2.NORM_INF) == 0 for a, b in zip(u8[:-1], u8[1:])]
         g0, wy, wx_t = _track_grid(t.grid, h, w)
+        grid_flows = np.empty((n_vox, len(g0), 2), np.float32)
+        valid = np.empty((n_vox, len(g0)), bool)
         for l in range(n_vox):
+            # every point is tracked over every pair (a dropped one too: cheaper than picking
+            # the others out); ``ok`` remembers which were never dropped
             p, ok, v = g0, np.ones(len(g0), bool), None  # v: the points' last one-frame motion
             for i in range(l * step, (l + 1) * step):
                 if same[i + 1]:  # a pause: nothing moves; the next pair starts from zero
                     v = None
                     continue
-                whole = ok.all()
-                live = None if whole else np.flatnonzero(ok)
-                q = p if whole else p[live]
-                if not len(q):
-                    break
                 if v is None:
-                    nxt, st = self._lk(u8[i], u8[i + 1], q, None, t.levels)
+                    nxt, st = self._lk(u8[i], u8[i + 1], p, None, t.levels)
                 else:
-                    nxt, st = self._lk(u8[i], u8[i + 1], q, q + (v if whole else v[live]), t.prior_levels)
+                    nxt, st = self._lk(u8[i], u8[i + 1], p, p + v, t.prior_levels)
                     if not st.all():
                         x, y = nxt[:, 0, 0], nxt[:, 0, 1]
-                        redo = ~st & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+                        redo = ~st & ok & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
                         if redo.any():
-                            again, st2 = self._lk(u8[i], u8[i + 1], q[redo], None, t.levels)
+                            again, st2 = self._lk(u8[i], u8[i + 1], p[redo], None, t.levels)
                             nxt[redo], st[redo] = again, st2
-                if whole:
-                    v, p, ok = nxt - q, nxt, st.copy()
-                else:
-                    v = np.zeros_like(p)
-                    v[live] = nxt - q
-                    p = p.copy()
-                    p[live] = nxt
-                    ok[live] = st
-            grid_flow = _fill_lost((p - g0).reshape(t.grid, t.grid, 2), ok.reshape(t.grid, t.grid))
-            # bilinear between grid points: (h, n) @ (n, n) @ (n, w) per channel
-            np.matmul(np.matmul(wy, np.ascontiguousarray(grid_flow.transpose(2, 0, 1))), wx_t, out=out[l])
+                v, p = nxt - p, nxt
+                ok &= st
+            grid_flows[l] = (p - g0)[:, 0]
+            valid[l] = ok
+        n = t.grid
+        grids = _fill_lost(grid_flows.reshape(n_vox, n, n, 2), valid.reshape(n_vox, n, n))
+        # bilinear between grid points: (h, n) @ (n, n) @ (n, w) per voxel and channel
+        np.matmul(np.matmul(wy, np.ascontiguousarray(grids.transpose(0, 3, 1, 2))), wx_t, out=out)
         return out
 
     def downscale_for(self, shape) -> int:
