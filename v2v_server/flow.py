@@ -453,7 +453,9 @@ class FlowEstimator:
 
     ``voxel_flows(frames, step)`` is what samples use; ``__call__(a, b)`` (the former
     ``sampler.FlowEstimator`` API) is the flow between two frames only (for a chained option,
-    a chain of one link: reduced frames, its DIS settings, scaled back, refined if it says so).
+    a chain of one link: reduced frames, its DIS settings, scaled back, refined if it says so;
+    for a tracked option, the grid tracked over that one pair). A tracked option keeps no
+    state between calls.
 
     Raises:
         ValueError: for an unknown option name (naming ``flow_preset``).
