@@ -343,27 +343,30 @@ def _track_grid(n: int, h: int, w: int):
 _FILL_TABLES: Dict[tuple, tuple] = {}
 
 
-def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge: float = 1e-2) -> np.ndarray:
+def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge: float = 1e-2,
+               support: float = 0.1) -> np.ndarray:
     """Grid flows (V, n, n, 2) with the points not ``ok`` (V, n, n) replaced by a local affine
     fit of the valid points of the same grid: for each lost point, weighted least squares of
     ``flow = a0 + a1 x + a2 y`` over the valid points with Gaussian weights of ``sigma`` grid
-    steps around it, the slopes damped by ``ridge * sum(weights) * (a1^2 + a2^2)`` (so a fit
-    the valid points do not determine, e.g. one valid point, falls back to a weighted mean),
-    evaluated at the lost point. An affine fit extends rotation and zoom, where the points LK
-    drops are mostly those that left the crop, whose flow keeps growing with the radius. A grid
-    without any valid point becomes zero."""
+    steps around it, the slopes damped by ``(ridge * sum(weights) + support) * (a1^2 + a2^2)``,
+    evaluated at the lost point, then kept within the valid points' range of the grid widened
+    by that range on each side. An affine fit extends rotation and zoom, where the points LK
+    drops are mostly those that left the crop, whose flow keeps growing with the radius. The
+    damping makes a fit the valid points do not determine (one valid point, or a few far away:
+    LK drops most points of a blurred fast pan) fall back towards their weighted mean instead
+    of extrapolating a slope across the crop. A grid without any valid point becomes zero."""
     lost = ~ok.reshape(ok.shape[0], -1)
     if not lost.any():
         return grid_flow
     n = ok.shape[-1]
-    key = (n, sigma, ridge)
+    key = (n, sigma, ridge, support)
     if key not in _FILL_TABLES:
         yy, xx = np.divmod(np.arange(n * n, dtype=np.float64), n)
         wts = np.exp(-((xx[:, None] - xx[None, :]) ** 2 + (yy[:, None] - yy[None, :]) ** 2) / (2 * sigma * sigma))
         basis = np.column_stack([np.ones_like(xx), xx, yy])  # (n * n, 3)
         second = np.column_stack([basis, xx * xx, xx * yy, yy * yy])  # moments 1, x, y, xx, xy, yy
-        _FILL_TABLES[key] = (wts, basis, second, np.diag([0.0, ridge, ridge]))
-    wts, basis, second, damp = _FILL_TABLES[key]
+        _FILL_TABLES[key] = (wts, basis, second, np.diag([0.0, ridge, ridge]), np.diag([0.0, support, support]))
+    wts, basis, second, damp, floor = _FILL_TABLES[key]
     vox = np.flatnonzero(lost.any(1))  # grids with something to fill
     f = grid_flow.reshape(grid_flow.shape[0], -1, 2)[vox].astype(np.float64)  # (V', n * n, 2)
     m = (~lost[vox]).astype(np.float64)[..., None]  # (V', n * n, 1)
@@ -372,14 +375,22 @@ def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge:
     mom = wts @ cols  # (V', n * n, 12): weighted moments of the valid points around every point
     where = lost[vox]
     mom = mom[where]  # (k, 12): around the lost points only
-    lhs = mom[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + mom[:, :1, None] * damp
+    lhs = mom[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + mom[:, :1, None] * damp + floor
     empty = mom[:, 0] <= 0  # a grid without valid points: zero
     lhs[empty] = np.eye(3)
     coef = np.linalg.solve(lhs, mom[:, 6:].reshape(-1, 3, 2))  # (k, 3, 2)
     pos = np.broadcast_to(basis, where.shape + (3,))[where]  # (k, 3): 1, x, y of each lost point
+    # the valid range of each grid (V', 2), widened by itself on each side (zero: no valid point)
+    vmax = np.where(where[..., None], -np.inf, f).max(1)
+    vmin = np.where(where[..., None], np.inf, f).min(1)
+    none = ~np.isfinite(vmax)
+    vmax[none] = vmin[none] = 0.0
+    lo, hi = 2 * vmin - vmax, 2 * vmax - vmin
+    grid_of = np.broadcast_to(np.arange(len(vox))[:, None], where.shape)[where]
+    fill = np.clip((pos[:, :, None] * coef).sum(1), lo[grid_of], hi[grid_of])
     out = grid_flow.reshape(grid_flow.shape[0], -1, 2).copy()
     sub = out[vox]
-    sub[where] = (pos[:, :, None] * coef).sum(1).astype(np.float32)
+    sub[where] = fill.astype(np.float32)
     out[vox] = sub
     return out.reshape(grid_flow.shape)
 
