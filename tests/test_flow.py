@@ -11,7 +11,7 @@ import pytest
 from v2v_server import flow as flow_mod
 from v2v_server.config import ServeConfig
 from v2v_server.flow import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowEstimator, FlowOption, FlowUnavailable,
-                             check_option, compose_flows, dis_flow, unavailable_reason)
+                             TrackParams, check_option, compose_flows, dis_flow, unavailable_reason)
 from v2v_server.sampler import make_sample, plan_window, video_samples
 
 STEP = 5
@@ -69,6 +69,61 @@ def test_default_holds_at_40px_per_voxel_where_dis_at_the_voxel_spacing_fails():
     assert min(median_epe(old[l], -40.0, 0.0, 40) for l in range(4)) > 10.0
 
 
+def _similarity_clip(kind, d):
+    """Frames (11, 128, 128) of the test texture under a rotation / zoom of ``d`` px per voxel
+    at the median radius (bench.flow's definition), and the exact ground-truth flows."""
+    from bench.flow import motion_matrices, render
+
+    img = texture(512, 512)
+    return render(img, motion_matrices(img.shape, kind, d, STEP, 2, 0.0), STEP)
+
+
+@pytest.mark.parametrize("kind,d", [("rotation", 40.0), ("zoom-in", 20.0), ("zoom-out", 30.0)])
+def test_default_holds_rotation_and_zoom_at_large_motion(kind, d):
+    """Rotation by 46 degrees per voxel (40 px at the median radius), zoom in by 1.39x and out
+    by 0.56x per voxel: the default's median EPE stays under 2 px, where the DIS chain at
+    quarter size (the default before) under-estimates every one-frame pair and is off by 3-13 px."""
+    from bench.flow import epe
+
+    frames, gts = _similarity_clip(kind, d)
+
+    def median(name):
+        fl = FlowEstimator(name).voxel_flows(frames, STEP)
+        return float(np.median(np.concatenate([epe(fl[l], gts[l]) for l in range(len(gts))])))
+
+    assert median(DEFAULT_FLOW) < 2.0
+    assert median("chained-quarter-s6") > 2.0
+
+
+def test_tracked_fills_dropped_points_with_a_local_affine_fit():
+    """Grid points LK drops take the affine fit of the valid ones (close to exact for an affine
+    field), one valid point gives its flow to all, a few valid points far away do not
+    extrapolate a slope across the grid (a blurred fast pan once gave 560 px in a 96 px crop),
+    a grid without valid points is zero."""
+    from v2v_server.flow import _fill_lost
+
+    n = 8
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    field = np.stack([0.3 * xx - 0.2 * yy + 1.0, 0.1 * xx + 0.5 * yy - 2.0], -1)
+    ok = np.ones((4, n, n), bool)
+    ok[0, :, :2] = False  # two columns left the crop
+    ok[1] = False
+    ok[1, 3, 4] = True  # one valid point
+    ok[2] = False
+    ok[3] = False
+    ok[3, :3, 6:] = True  # a few valid points in a corner, with a steep slope between them
+    grids = np.stack([field] * 4)
+    grids[3, ..., 0] = 9.0 * xx
+    grids[~ok] = 99.0
+    out = _fill_lost(grids, ok)
+    np.testing.assert_allclose(out[0], field, atol=0.05)
+    np.testing.assert_allclose(out[1], np.broadcast_to(field[3, 4], field.shape), atol=1e-4)
+    assert not out[2].any()
+    valid = grids[3, ..., 0][ok[3]]  # 54 .. 63: the fill stays within [45, 72]
+    assert 2 * valid.min() - valid.max() <= out[3, ..., 0].min() and out[3, ..., 0].max() <= 2 * valid.max() - valid.min()
+    np.testing.assert_array_equal(_fill_lost(grids[:1] * 0 + field, ok[:1] | True), field[None])
+
+
 def test_make_sample_chained_flow_uses_every_frame_and_pauses():
     """make_sample hands the whole sequence (pauses repeated) to the estimator: with a pause
     inside a voxel the chain sees a zero link and the voxel's flow is 4 moves, not 5."""
@@ -91,7 +146,7 @@ def test_every_option_handles_small_and_odd_sized_crops():
         for h, w in ((8, 8), (12, 20), (32, 32), (64, 48)):
             fl = est.voxel_flows(panning_frames(STEP + 1, 1)[:, :h, :w], STEP)
             assert fl.shape == (1, 2, h, w) and np.isfinite(fl).all(), (name, h, w)
-    est = FlowEstimator(DEFAULT_FLOW)
+    est = FlowEstimator("chained-quarter-s6")
     assert [est.downscale_for((s, s)) for s in (128, 127, 64, 63, 32, 8)] == [4, 2, 2, 1, 1, 1]
     # 130 x 150 is reduced 4x to 32 x 37: the flow is scaled back per axis
     frames = panning_frames(2 * STEP + 1, 6, size=150)[:, :130, :150]
@@ -126,6 +181,14 @@ def test_option_table_and_config_validation():
         DISParams("slow")
     with pytest.raises(ValueError, match="patch_size"):
         DISParams("fast", patch_size=0)
+    for bad in (dict(grid=1), dict(window=8), dict(levels=-1), dict(iterations=0), dict(eps=0.0), dict(grid=True)):
+        with pytest.raises(ValueError, match="tracking"):
+            TrackParams(**bad)
+    with pytest.raises(ValueError, match="TrackParams"):
+        FlowOption("x", "tracked", track=dict(grid=8))
+    with pytest.raises(ValueError, match="initial flow"):
+        FlowEstimator("tracked").pair(np.zeros((16, 16), np.uint8), np.zeros((16, 16), np.uint8),
+                                      np.zeros((16, 16, 2), np.float32))
     with pytest.raises(ValueError, match="frames must be"):
         FlowEstimator("ultrafast").voxel_flows(np.zeros((7, 16, 16), np.uint8), 5)
 
@@ -214,12 +277,14 @@ def test_pause_links_are_skipped_without_changing_the_flow():
     flat = np.full((40, 40), 77, np.uint8)
     noise = (rng.random((40, 40)) * 255).astype(np.uint8)
     for name, o in FLOW_OPTIONS.items():
-        if o.method != "chained":
+        if o.method not in ("chained", "tracked"):
             continue
         est = FlowEstimator(name)
-        for f in (flat, noise, np.ascontiguousarray(base[4, :32, :32]), np.ascontiguousarray(base[7, ::4, ::4])):
-            z = est._calc(o.dis, f, f.copy())
-            assert not z.any() and not np.signbit(z).any(), name
+        if o.method == "chained":
+            for f in (flat, noise, np.ascontiguousarray(base[4, :32, :32]), np.ascontiguousarray(base[7, ::4, ::4])):
+                z = est._calc(o.dis, f, f.copy())
+                assert not z.any() and not np.signbit(z).any(), name
+        # tracked: equal frames are found by content whether repeats marks them or not
         np.testing.assert_array_equal(est.voxel_flows(seq, STEP, repeats), FlowEstimator(name).voxel_flows(seq, STEP))
     with pytest.raises(ValueError, match="repeats"):
         FlowEstimator(DEFAULT_FLOW).voxel_flows(seq, STEP, repeats[:-1])

@@ -16,6 +16,14 @@ known motion (docs/flow.md):
   pair is 1/5 of the voxel's), on frames reduced ``downscale`` times, composed by sampling:
   ``F = f_1 + f_2(x + f_1) + ...`` (bilinear ``cv2.remap``), then scaled back to full size;
   optionally refined by one more DIS at the voxel spacing initialised with the composed flow.
+* ``tracked``: a grid of points tracked frame by frame through the voxel with pyramidal
+  Lucas-Kanade (Bouguet's KLT, OpenCV ``calcOpticalFlowPyrLK``), the first pair of a voxel
+  searched from zero over the pyramid, later pairs started from the point's previous
+  one-frame motion; the voxel's flow at a grid point is where it ended minus where it started,
+  made dense by bilinear interpolation between the grid points. Tracking composes exactly
+  (no resampling of intermediate flows) and a point's flow is measured at the point itself,
+  so rotation and zoom are not shrunk towards the patch centres as DIS's densification does
+  near the crop border.
 * ``raft``: torchvision's RAFT when its weights are on this machine (``V2V_RAFT_WEIGHTS``, or
   torchvision's cache); never downloaded. Without them it raises ``FlowUnavailable``.
 
@@ -44,7 +52,7 @@ import numpy as np
 
 __all__ = [
     "DEFAULT_FLOW", "DIS_PRESETS", "DISParams", "FLOW_OPTIONS", "FlowEstimator", "FlowOption",
-    "FlowUnavailable", "MIN_CHAIN_SIDE", "MIN_DIS_SIDE", "check_option", "compose_flows", "dis_flow", "estimator", "raft_weights",
+    "FlowUnavailable", "TrackParams", "MIN_CHAIN_SIDE", "MIN_DIS_SIDE", "check_option", "compose_flows", "dis_flow", "estimator", "raft_weights",
     "unavailable_reason",
 ]
 
@@ -111,12 +119,51 @@ class DISParams:
 
 
 @dataclass(frozen=True)
+class TrackParams:
+    """Settings of a ``tracked`` option: a ``grid`` x ``grid`` lattice of points over the crop
+    (corners and borders included) tracked with OpenCV pyramidal Lucas-Kanade
+    (``calcOpticalFlowPyrLK``; Bouguet 2001, "Pyramidal implementation of the Lucas Kanade
+    feature tracker").
+
+    Attributes:
+        grid: points per side (>= 2); the dense flow is bilinear between them, so it resolves
+            motion at about ``crop / (grid - 1)`` px.
+        window: LK window side, px (odd, >= 3).
+        levels: pyramid levels above full resolution for a pair searched from zero (the first
+            pair of each voxel, and the pair after a pause); each level doubles the motion
+            found, about ``window / 2 * 2**levels`` px per frame.
+        prior_levels: pyramid levels for a pair started from the point's previous one-frame
+            motion (constant-velocity prediction); points LK loses that way are searched again
+            from zero with ``levels``.
+        iterations, eps: LK stopping rule per level (at most ``iterations``; or a step under
+            ``eps`` px).
+    """
+
+    grid: int = 8
+    window: int = 9
+    levels: int = 2
+    prior_levels: int = 0
+    iterations: int = 5
+    eps: float = 0.03
+
+    def __post_init__(self):
+        for name, low in (("grid", 2), ("window", 3), ("levels", 0), ("prior_levels", 0), ("iterations", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ValueError(f"tracking {name} must be an integer >= {low}, got {v!r}")
+        if self.window % 2 == 0:
+            raise ValueError(f"tracking window must be odd, got {self.window}")
+        if not (isinstance(self.eps, (int, float)) and self.eps > 0):
+            raise ValueError(f"tracking eps must be a positive number (px), got {self.eps!r}")
+
+
+@dataclass(frozen=True)
 class FlowOption:
     """One way of computing a sample's flow (see the module doc).
 
     Attributes:
         name: the key in ``FLOW_OPTIONS`` (the config's ``flow_preset``).
-        method: "direct", "chained" or "raft".
+        method: "direct", "chained", "tracked" or "raft".
         dis: DIS settings (direct: at the voxel spacing; chained: per one-frame pair).
         temporal: direct only: initialise DIS with the previous voxel's flow of the sample.
         downscale: chained only: frames are reduced this many times (area averaging) for
@@ -126,6 +173,7 @@ class FlowOption:
         hop: chained only: source frames per link of the chain (1: every consecutive pair;
             2: frames 0, 2, 4, 5 of a 5-frame voxel).
         raft: raft only: "small" or "large".
+        track: tracked only: the tracking settings (``TrackParams``).
         summary: one line for docs and logs.
     """
 
@@ -137,11 +185,15 @@ class FlowOption:
     refine: Optional[DISParams] = None
     hop: int = 1
     raft: str = "small"
+    track: TrackParams = TrackParams()
     summary: str = ""
 
     def __post_init__(self):
-        if self.method not in ("direct", "chained", "raft"):
-            raise ValueError(f"flow option {self.name!r}: method must be direct, chained or raft, got {self.method!r}")
+        if self.method not in ("direct", "chained", "tracked", "raft"):
+            raise ValueError(f"flow option {self.name!r}: method must be direct, chained, tracked or raft, "
+                             f"got {self.method!r}")
+        if not isinstance(self.track, TrackParams):
+            raise ValueError(f"flow option {self.name!r}: track must be TrackParams, got {self.track!r}")
         if self.downscale not in (1, 2, 4):
             raise ValueError(f"flow option {self.name!r}: downscale must be 1, 2 or 4, got {self.downscale!r}")
         if self.method != "chained" and (self.downscale != 1 or self.refine is not None):
@@ -192,12 +244,18 @@ FLOW_OPTIONS: Dict[str, FlowOption] = _opts(
     FlowOption("chained-half+medium", "chained", DISParams("ultrafast", finest_scale=0), downscale=2,
                refine=DISParams("medium"),
                summary="chained-half, then DIS medium at the voxel spacing initialised with it"),
+    FlowOption("tracked", "tracked", track=TrackParams(grid=8),
+               summary="an 8 x 8 grid of points tracked frame by frame with pyramidal Lucas-Kanade, bilinear between them"),
+    FlowOption("tracked-g6", "tracked", track=TrackParams(grid=6),
+               summary="as tracked with a 6 x 6 grid (cheaper, coarser)"),
+    FlowOption("tracked-g12", "tracked", track=TrackParams(grid=12),
+               summary="as tracked with a 12 x 12 grid (finer, dearer)"),
     FlowOption("raft-small", "raft", raft="small", summary="torchvision RAFT small at the voxel spacing (local weights only)"),
     FlowOption("raft-large", "raft", raft="large", summary="torchvision RAFT large at the voxel spacing (local weights only)"),
 )
 
 #: The option samples use unless ``flow_preset`` says otherwise (chosen in docs/flow.md).
-DEFAULT_FLOW = "chained-quarter-s6"
+DEFAULT_FLOW = "tracked"
 
 
 def check_option(name) -> FlowOption:
@@ -254,6 +312,87 @@ def _pixel_grid(shape) -> np.ndarray:
         g.setflags(write=False)
         g = _GRIDS[key] = g
     return g
+
+
+_TRACK_GRIDS: Dict[tuple, tuple] = {}
+
+
+def _track_grid(n: int, h: int, w: int):
+    """The ``n`` x ``n`` tracking grid of an (h, w) crop, corners included (grid point k of a
+    row sits at x = k (w - 1) / (n - 1)): float32 points (n * n, 1, 2) (x, y), and the
+    bilinear interpolation matrices ``wy`` (h, n) and ``wx_t`` (n, w), so that
+    ``wy @ g @ wx_t`` is the (h, w) field of an (n, n) grid field ``g``. Made once, read-only."""
+    key = (n, h, w)
+    g = _TRACK_GRIDS.get(key)
+    if g is None:
+        xs = np.linspace(0, w - 1, n, dtype=np.float32)
+        ys = np.linspace(0, h - 1, n, dtype=np.float32)
+        pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 1, 2).astype(np.float32)
+
+        def weights(size):  # (size, n): hat functions of the n grid points
+            u = np.arange(size, dtype=np.float64) * ((n - 1) / max(size - 1, 1))
+            return np.maximum(0.0, 1.0 - np.abs(u[:, None] - np.arange(n)[None, :])).astype(np.float32)
+
+        wy, wx_t = weights(h), np.ascontiguousarray(weights(w).T)
+        for a in (pts, wy, wx_t):
+            a.setflags(write=False)
+        g = _TRACK_GRIDS[key] = (pts, wy, wx_t)
+    return g
+
+
+_FILL_TABLES: Dict[tuple, tuple] = {}
+
+
+def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge: float = 1e-2,
+               support: float = 0.1) -> np.ndarray:
+    """Grid flows (V, n, n, 2) with the points not ``ok`` (V, n, n) replaced by a local affine
+    fit of the valid points of the same grid: for each lost point, weighted least squares of
+    ``flow = a0 + a1 x + a2 y`` over the valid points with Gaussian weights of ``sigma`` grid
+    steps around it, the slopes damped by ``(ridge * sum(weights) + support) * (a1^2 + a2^2)``,
+    evaluated at the lost point, then kept within the valid points' range of the grid widened
+    by that range on each side. An affine fit extends rotation and zoom, where the points LK
+    drops are mostly those that left the crop, whose flow keeps growing with the radius. The
+    damping makes a fit the valid points do not determine (one valid point, or a few far away:
+    LK drops most points of a blurred fast pan) fall back towards their weighted mean instead
+    of extrapolating a slope across the crop. A grid without any valid point becomes zero."""
+    lost = ~ok.reshape(ok.shape[0], -1)
+    if not lost.any():
+        return grid_flow
+    n = ok.shape[-1]
+    key = (n, sigma, ridge, support)
+    if key not in _FILL_TABLES:
+        yy, xx = np.divmod(np.arange(n * n, dtype=np.float64), n)
+        wts = np.exp(-((xx[:, None] - xx[None, :]) ** 2 + (yy[:, None] - yy[None, :]) ** 2) / (2 * sigma * sigma))
+        basis = np.column_stack([np.ones_like(xx), xx, yy])  # (n * n, 3)
+        second = np.column_stack([basis, xx * xx, xx * yy, yy * yy])  # moments 1, x, y, xx, xy, yy
+        _FILL_TABLES[key] = (wts, basis, second, np.diag([0.0, ridge, ridge]), np.diag([0.0, support, support]))
+    wts, basis, second, damp, floor = _FILL_TABLES[key]
+    vox = np.flatnonzero(lost.any(1))  # grids with something to fill
+    f = grid_flow.reshape(grid_flow.shape[0], -1, 2)[vox].astype(np.float64)  # (V', n * n, 2)
+    m = (~lost[vox]).astype(np.float64)[..., None]  # (V', n * n, 1)
+    cols = np.concatenate([np.broadcast_to(second, f.shape[:2] + (6,)),
+                           (basis[None, :, :, None] * f[:, :, None, :]).reshape(f.shape[:2] + (6,))], 2) * m
+    mom = wts @ cols  # (V', n * n, 12): weighted moments of the valid points around every point
+    where = lost[vox]
+    mom = mom[where]  # (k, 12): around the lost points only
+    lhs = mom[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + mom[:, :1, None] * damp + floor
+    empty = mom[:, 0] <= 0  # a grid without valid points: zero
+    lhs[empty] = np.eye(3)
+    coef = np.linalg.solve(lhs, mom[:, 6:].reshape(-1, 3, 2))  # (k, 3, 2)
+    pos = np.broadcast_to(basis, where.shape + (3,))[where]  # (k, 3): 1, x, y of each lost point
+    # the valid range of each grid (V', 2), widened by itself on each side (zero: no valid point)
+    vmax = np.where(where[..., None], -np.inf, f).max(1)
+    vmin = np.where(where[..., None], np.inf, f).min(1)
+    none = ~np.isfinite(vmax)
+    vmax[none] = vmin[none] = 0.0
+    lo, hi = 2 * vmin - vmax, 2 * vmax - vmin
+    grid_of = np.broadcast_to(np.arange(len(vox))[:, None], where.shape)[where]
+    fill = np.clip((pos[:, :, None] * coef).sum(1), lo[grid_of], hi[grid_of])
+    out = grid_flow.reshape(grid_flow.shape[0], -1, 2).copy()
+    sub = out[vox]
+    sub[where] = fill.astype(np.float32)
+    out[vox] = sub
+    return out.reshape(grid_flow.shape)
 
 
 def raft_weights(size: str = "small") -> Optional[Path]:
@@ -325,7 +464,9 @@ class FlowEstimator:
 
     ``voxel_flows(frames, step)`` is what samples use; ``__call__(a, b)`` (the former
     ``sampler.FlowEstimator`` API) is the flow between two frames only (for a chained option,
-    a chain of one link: reduced frames, its DIS settings, scaled back, refined if it says so).
+    a chain of one link: reduced frames, its DIS settings, scaled back, refined if it says so;
+    for a tracked option, the grid tracked over that one pair). A tracked option keeps no
+    state between calls.
 
     Raises:
         ValueError: for an unknown option name (naming ``flow_preset``).
@@ -363,14 +504,22 @@ class FlowEstimator:
 
     def pair(self, a: np.ndarray, b: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
         """float32 (H, W, 2) flow from ``a`` to ``b`` (uint8/uint16 (H, W)) with this option's
-        DIS settings (RAFT for a raft option), optionally initialised with ``init`` (H, W, 2)."""
+        DIS settings (RAFT for a raft option, the tracking of a tracked one), optionally
+        initialised with ``init`` (H, W, 2; DIS only).
+
+        Raises:
+            ValueError: ``init`` given to a tracked option."""
         if self._raft is not None:
             return self._raft(a, b)
+        if self.option.method == "tracked":
+            if init is not None:
+                raise ValueError(f"flow option {self.preset!r}: tracked flow takes no initial flow")
+            return np.ascontiguousarray(self.voxel_flows(np.stack([a, b]), 1)[0].transpose(1, 2, 0))
         return self._calc(self.option.dis, a, b, init)
 
     def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """float32 (2, H, W) flow from ``a`` to ``b``: channel 0 is x (u), channel 1 y (v), pixels."""
-        if self.option.method == "chained":
+        if self.option.method in ("chained", "tracked"):
             return self.voxel_flows(np.stack([a, b]), 1)[0]
         return np.ascontiguousarray(self.pair(a, b).transpose(2, 0, 1))
 
@@ -437,11 +586,72 @@ class FlowEstimator:
                     f = self._calc(o.refine, frames[k0], frames[k0 + step], f)
                 out[l] = f.transpose(2, 0, 1)
             return out
+        if o.method == "tracked":
+            return self._tracked(frames, step, repeats, out)
         prev = None
         for l in range(n_vox):
             f = self.pair(frames[l * step], frames[(l + 1) * step], prev if o.temporal else None)
             out[l] = f.transpose(2, 0, 1)
             prev = f
+        return out
+
+    def _lk(self, a: np.ndarray, b: np.ndarray, pts: np.ndarray, guess: Optional[np.ndarray], levels: int):
+        """LK of float32 points (m, 1, 2) from frame ``a`` to ``b`` (uint8), from zero or from
+        ``guess`` (m, 1, 2; a fresh array, overwritten): (new points (m, 1, 2), bool status (m,))."""
+        t = self.option.track
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, t.iterations, float(t.eps))
+        win = (t.window, t.window)
+        if guess is None:
+            nxt, st, _err = cv2.calcOpticalFlowPyrLK(a, b, pts, None, winSize=win, maxLevel=levels, criteria=crit)
+        else:
+            nxt, st, _err = cv2.calcOpticalFlowPyrLK(a, b, pts, guess, winSize=win, maxLevel=levels, criteria=crit,
+                                                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        return nxt, st[:, 0].view(bool)
+
+    def _tracked(self, frames: np.ndarray, step: int, repeats: Optional[np.ndarray], out: np.ndarray) -> np.ndarray:
+        """``voxel_flows`` of a ``tracked`` option (see ``TrackParams``). Per voxel the grid
+        points are tracked over its one-frame pairs. A pair of equal frames (a pause, marked in
+        ``repeats`` or not) moves nothing and costs no LK call; the pair after it is searched
+        from zero. A point LK drops (status 0: it left the crop, or its window is flat or lost
+        its match) stops there and takes a local affine fit of the other points' flows at the
+        end of the voxel (``_fill_lost``); one dropped inside the crop while started from its
+        previous motion is first searched once more from zero."""
+        t = self.option.track
+        n_vox = out.shape[0]
+        h, w = frames.shape[1:]
+        u8 = []
+        for k, f in enumerate(frames):
+            u8.append(u8[-1] if k and repeats is not None and repeats[k] else _to_u8(f))
+        same = [False] + [a is b or cv2.norm(a, b, cv2.NORM_INF) == 0 for a, b in zip(u8[:-1], u8[1:])]
+        g0, wy, wx_t = _track_grid(t.grid, h, w)
+        grid_flows = np.empty((n_vox, len(g0), 2), np.float32)
+        valid = np.empty((n_vox, len(g0)), bool)
+        for l in range(n_vox):
+            # every point is tracked over every pair (a dropped one too: cheaper than picking
+            # the others out); ``ok`` remembers which were never dropped
+            p, ok, v = g0, np.ones(len(g0), bool), None  # v: the points' last one-frame motion
+            for i in range(l * step, (l + 1) * step):
+                if same[i + 1]:  # a pause: nothing moves; the next pair starts from zero
+                    v = None
+                    continue
+                if v is None:
+                    nxt, st = self._lk(u8[i], u8[i + 1], p, None, t.levels)
+                else:
+                    nxt, st = self._lk(u8[i], u8[i + 1], p, p + v, t.prior_levels)
+                    if not st.all():
+                        x, y = nxt[:, 0, 0], nxt[:, 0, 1]
+                        redo = ~st & ok & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+                        if redo.any():
+                            again, st2 = self._lk(u8[i], u8[i + 1], p[redo], None, t.levels)
+                            nxt[redo], st[redo] = again, st2
+                v, p = nxt - p, nxt
+                ok &= st
+            grid_flows[l] = (p - g0)[:, 0]
+            valid[l] = ok
+        n = t.grid
+        grids = _fill_lost(grid_flows.reshape(n_vox, n, n, 2), valid.reshape(n_vox, n, n))
+        # bilinear between grid points: (h, n) @ (n, n) @ (n, w) per voxel and channel
+        np.matmul(np.matmul(wy, np.ascontiguousarray(grids.transpose(0, 3, 1, 2))), wx_t, out=out)
         return out
 
     def downscale_for(self, shape) -> int:
