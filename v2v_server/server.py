@@ -32,7 +32,7 @@ import zmq
 
 from .config import ServeConfig, is_loopback
 from .core import DeliveryCore
-from .datapath import make_batch, sample_from_worker
+from .datapath import BatchAssembler, make_batch, sample_from_slot, sample_from_worker
 from .metrics import ServerMetrics  # [iss12 metrics]
 from .pool import WorkerPool
 from .protocol import PROTOCOL_VERSION, ProtocolError, pack, unpack
@@ -92,6 +92,7 @@ class V2VServer:
         self.ended = False
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
+        self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
         self.metrics = ServerMetrics()  # [iss12 metrics]
         self._resent_seen = 0  # [iss12 metrics] ledger.resent already counted
         self._worker_seen = False  # [iss12 metrics] some worker said ready
@@ -280,12 +281,22 @@ class V2VServer:
             w.idle = True
             self._worker_seen = True  # [iss12 metrics] /readyz: a worker is up
         elif kind == "sample":
+            slot = h.get("slot")
+            if slot is not None and w.ring is not None:  # arrays in the worker's shared memory
+                build = lambda: sample_from_slot(h, w.ring, self.assembler)  # noqa: E731
+            else:
+                build = lambda: sample_from_worker(h, frames[2:])  # noqa: E731
             try:
-                kept = self.core.sample(ident, h.get("task"), h.get("index"), now,
-                                        lambda: sample_from_worker(h, frames[2:]))
+                kept = self.core.sample(ident, h.get("task"), h.get("index"), now, build)
             except (ProtocolError, KeyError, TypeError, ValueError) as e:
                 log.error("bad sample from worker %s: %s", ident, e)
                 return
+            finally:
+                if slot is not None:  # copied out (or not wanted): the worker may write it again
+                    try:
+                        self.backend.send_multipart([ident, pack({"type": "slot", "slot": slot})], zmq.NOBLOCK)
+                    except zmq.ZMQError:
+                        pass
             if kept:
                 self.metrics.on_sample_made()  # [iss12 metrics]
         elif kind == "done":
