@@ -30,8 +30,6 @@ from typing import List, Optional
 import numpy as np
 
 B = 8
-import os
-SNDBUF = int(os.environ.get("SNDBUF", "0"))
 PATHS = ("old", "socket", "shm")
 
 
@@ -102,8 +100,6 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
     pull.bind(src)
     push = ctx.socket(zmq.PUSH)
     push.setsockopt(zmq.SNDHWM, 4)
-    if SNDBUF:
-        push.setsockopt(zmq.SNDBUF, SNDBUF)
     push.bind(dst)
     ring = rel = None
     if path == "shm":
@@ -144,8 +140,6 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
             sent += sum(a.nbytes for a in out)
             pending, out = [], None
     push.close(linger=-1)  # every batch handed to the kernel before the clock stops
-    if path == "shm":
-        print("reused", assembler.reused, file=sys.stderr)
     q.put(("relay", clock.read(), sent))
     pull.close(0)
     if rel is not None:
@@ -163,8 +157,6 @@ def _client(src: str, batches: int, q) -> None:
 
     ctx = zmq.Context()
     pull = ctx.socket(zmq.PULL)
-    if SNDBUF:
-        pull.setsockopt(zmq.RCVBUF, SNDBUF)
     pull.connect(src)
     got = 0
     clock = None

@@ -42,7 +42,8 @@ from .protocol import WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays, 
 
 log = logging.getLogger("v2v.datapath")
 
-#: Where slot rings live (a tmpfs on Linux); None where it does not exist (socket fallback).
+#: Where slot rings live (a tmpfs on Linux). The environment variable ``V2V_SHM_DIR`` overrides
+#: it for the server's workers; set it empty to send arrays over the socket instead.
 SHM_DIR = "/dev/shm"
 #: Slots per worker ring. The relay copies a slot out and gives it back as soon as the sample
 #: arrives, so a worker needs only enough to keep writing while one message is in flight.
@@ -229,10 +230,14 @@ def _unlink(path: str) -> None:
 
 
 def create_ring(sequence_length: int, num_bins: int, crop_size: int,
-                directory: Optional[str] = SHM_DIR) -> Optional[SlotRing]:
-    """A :class:`SlotRing` of ``RING_SLOTS`` slots sized for the config, or None (with one log
-    line) where shared memory is unavailable: the worker then sends its arrays as frames."""
-    if directory is None or not os.path.isdir(directory):
+                directory: Optional[str] = None) -> Optional[SlotRing]:
+    """A :class:`SlotRing` of ``RING_SLOTS`` slots sized for the config in ``directory``
+    (default: ``$V2V_SHM_DIR``, else ``SHM_DIR``), or None where shared memory is unavailable
+    or switched off (``V2V_SHM_DIR=""``; a failure logs one line): the worker then sends its
+    arrays as frames."""
+    if directory is None:
+        directory = os.environ.get("V2V_SHM_DIR", SHM_DIR)
+    if not directory or not os.path.isdir(directory):
         return None
     try:
         return SlotRing.create(RING_SLOTS, slot_bytes(sequence_length, num_bins, crop_size), directory)

@@ -129,8 +129,10 @@ class V2VServer:
             self.backend.bind(self.backend_endpoint)
             self.pool = WorkerPool(self.cfg.to_dict(), str(self.root), self.backend_endpoint, self.cfg.workers)
             self.pool.start()
-            log.info("serving %d video(s) from %s on %s with %d worker(s)",
-                     len(self.videos), self.root, self.bound_endpoint, self.cfg.workers)
+            rings = any(w.ring is not None for w in self.pool.workers.values())
+            log.info("serving %d video(s) from %s on %s with %d worker(s); samples travel %s",
+                     len(self.videos), self.root, self.bound_endpoint, self.cfg.workers,
+                     "through shared-memory slot rings" if rings else "as socket frames")
             if ready_event is not None:
                 ready_event.set()
             return self._loop()
@@ -278,6 +280,8 @@ class V2VServer:
         kind = h["type"]
         now = time.monotonic()
         if kind == "ready":
+            if w.ring is not None and h.get("ring") is False:
+                log.warning("worker %s could not map its slot ring; it sends arrays as socket frames", ident.decode())
             w.idle = True
             self._worker_seen = True  # [iss12 metrics] /readyz: a worker is up
         elif kind == "sample":
