@@ -184,3 +184,43 @@ def test_served_samples_are_bit_identical_with_and_without_shared_memory_over_ip
     if before or os.path.isdir("/dev/shm"):
         leaked = {f for f in set(os.listdir("/dev/shm")) - before if f.startswith("v2v-slots-")}
         assert not leaked
+
+
+def test_a_worker_with_every_slot_taken_blocks_until_the_server_gives_one_back(tmp_path):
+    import threading
+
+    import zmq
+
+    from v2v_server.protocol import pack
+    from v2v_server.worker import _Inbox
+
+    ring = SlotRing.create(2, slot_bytes(L, NB, S), str(tmp_path))
+    ctx = zmq.Context()
+    server, worker = ctx.socket(zmq.ROUTER), ctx.socket(zmq.DEALER)
+    worker.setsockopt(zmq.IDENTITY, b"w0")
+    server.bind("inproc://slots")
+    worker.connect("inproc://slots")
+    inbox = _Inbox(worker, ring)
+    assert [inbox.slot(os.getppid()), inbox.slot(os.getppid())] == [0, 1]
+    got = []
+    t = threading.Thread(target=lambda: got.append(inbox.slot(os.getppid())))
+    t.start()
+    worker.send(pack({"type": "ready"}))  # lets the ROUTER learn the worker's identity
+    assert server.recv_multipart()[0] == b"w0"
+    t.join(1.5)
+    assert t.is_alive() and got == []  # blocked, nothing dropped or overwritten
+    server.send_multipart([b"w0", pack({"type": "task", "task": 1})])  # kept for the main loop, in order
+    server.send_multipart([b"w0", pack({"type": "slot", "slot": 1})])
+    t.join(10)
+    assert got == [1] and [h["type"] for h in inbox.waiting] == ["task"]
+    server.send_multipart([b"w0", pack({"type": "slot", "slot": 7})])  # out of range: ignored
+    server.send_multipart([b"w0", pack({"type": "slot", "slot": 0})])
+    assert inbox.slot(os.getppid()) == 0 and ring.free == []
+    server.send_multipart([b"w0", pack({"type": "stop"})])
+    with pytest.raises(SystemExit):
+        inbox.slot(os.getppid())
+    worker.close(0)
+    server.close(0)
+    ctx.term()
+    ring.unlink()
+    ring.close()

@@ -189,13 +189,13 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
             specs, frames = encode_arrays(wire_arrays(cfg, arrays))
             header = {"type": "sample", "task": task["task"], "sample_id": sid,
                       "index": parse_sample_id(sid, cfg.crops_per_window)[1], "meta": meta, "arrays": specs}
-            if inbox is not None and inbox.ring is not None:
+            clock.serialized()
+            if inbox is not None and inbox.ring is not None:  # waiting for a slot counts as send (back-pressure)
                 slot = inbox.slot(parent_pid)
                 if inbox.ring.put(slot, dict(zip((s["name"] for s in specs), frames))) is None:
                     inbox.ring.free.insert(0, slot)  # too large for a slot: frames instead
                 else:
                     header["slot"], frames = slot, []
-            clock.serialized()
             header["stages"] = clock.report()
             _send(sock, [pack(header)] + frames, parent_pid)
             clock.sent()
