@@ -41,7 +41,9 @@ class WorkerPool:
         root: corpus root.
         endpoint: the server's worker endpoint (ipc).
         size: number of workers.
-        target: process entry point (``worker_main``; tests may pass another).
+        target: process entry point (``worker_main``; tests may pass another), called as
+            ``target(cfg_dict, root, endpoint, identity, parent_pid[, ring_spec])``; the sixth
+            argument, ``SlotRing.spec``, only when the worker has a ring.
         shm: give each worker a shared-memory slot ring (where ``/dev/shm`` allows; the
             worker falls back to sending frames otherwise).
     """
