@@ -108,6 +108,9 @@ def test_bad_slot_headers_are_protocol_errors(tmp_path):
     huge = [{"name": "voxels", "dtype": "int32", "shape": [1 << 20, 64]}]
     with pytest.raises(ProtocolError, match="overrun"):
         sample_from_slot({"sample_id": "v#0", "meta": {}, "slot": 0, "arrays": huge}, relay, asm)
+    overflow = [{"name": "voxels", "dtype": "int32", "shape": [1 << 62, 4]}]  # wraps in int64
+    with pytest.raises(ProtocolError, match="overrun"):
+        sample_from_slot({"sample_id": "v#0", "meta": {}, "slot": 0, "arrays": overflow}, relay, asm)
     with pytest.raises(ProtocolError):
         sample_from_slot({"sample_id": "v#0", "meta": {}, "slot": 0,
                           "arrays": [{"name": "x", "dtype": "object", "shape": [1]}]}, relay, asm)

@@ -29,6 +29,7 @@ to the lazy stacking copy from the samples' views.
 from __future__ import annotations
 
 import logging
+import math
 import mmap
 import os
 import sys
@@ -108,7 +109,7 @@ def slot_layout(specs) -> Tuple[List[int], int]:
             raise ProtocolError(f"bad shape in array spec {spec!r}")
         start = -(-end // SLOT_ALIGN) * SLOT_ALIGN
         offsets.append(start)
-        end = start + int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+        end = start + math.prod(shape) * np.dtype(dtype).itemsize  # Python ints: no overflow
     return offsets, end
 
 
@@ -215,7 +216,7 @@ class SlotRing:
         out = {}
         for spec, off in zip(specs, offsets):
             dt = np.dtype(spec["dtype"])
-            a = np.frombuffer(self._mm, dt, int(np.prod(spec["shape"], dtype=np.int64)), base + off)
+            a = np.frombuffer(self._mm, dt, math.prod(spec["shape"]), base + off)
             a = a.reshape(spec["shape"])
             a.flags.writeable = False
             out[spec["name"]] = a
