@@ -3,18 +3,26 @@
 In a full stream on a small machine the relay moves a few MB/s and its fixed costs
 (heartbeats, polling) dominate CPU per GB; this bench isolates the per-byte cost. Three
 processes on one host: a *worker* sends pre-made samples (voxels int8, frames uint8, flow
-float16 at L = 40, 128x128, as ``v2v-serve`` makes them) as fast as the socket takes them;
-the *relay* runs the server's data path (``recv_multipart(copy=False)`` ->
-``datapath.sample_from_worker`` -> ``make_batch`` -> ``BatchPayload.wire`` ->
-``send_multipart(copy=False)``); the *client* receives and decodes each batch to tensors
-the way ``V2VStreamDataset(raw=True)`` does. Each reports its CPU-seconds (all threads,
-ZeroMQ's I/O threads included) per GB. ``--old`` runs the data path before this work
-(``np.array`` copy per sample, ``np.stack`` per batch) for comparison.
+float16 at L = 40, 128x128, as ``v2v-serve`` makes them) as fast as the relay takes them;
+the *relay* runs one of the server's data paths and pushes 8-sample batches
+(``BatchPayload.wire`` -> ``send_multipart(copy=False)``) over ``ipc://`` to a *client* that
+decodes each batch to tensors the way ``V2VStreamDataset(raw=True)`` does. Each reports its
+CPU-seconds per GB sent (``getrusage``: all threads, ZeroMQ's I/O threads included; user and
+system split) and its minor page faults per GB. Paths, measured in the same run:
+
+* ``old``: the data path before issue 11 (``np.array`` copy per sample, ``np.stack`` per batch);
+* ``socket``: arrays as ZeroMQ frames, kept as views, stacked once when the batch is sent
+  (the fallback where ``/dev/shm`` is unavailable);
+* ``shm``: the worker writes into its shared-memory slot ring and sends the header only; the
+  relay copies the slot into the batch buffer's row and gives the slot back
+  (``datapath.sample_from_slot`` / ``BatchAssembler``), so the batch is assembled by the time
+  it is made and the sample bytes never cross the worker's socket.
 """
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import resource
 import sys
 import time
 from typing import List, Optional
@@ -22,6 +30,7 @@ from typing import List, Optional
 import numpy as np
 
 B = 8
+PATHS = ("old", "socket", "shm")
 
 
 def _sample_arrays():
@@ -31,24 +40,55 @@ def _sample_arrays():
             "flow": rng.normal(0, 2, (40, 2, 128, 128)).astype(np.float16)}
 
 
-def _worker(endpoint: str, n: int) -> None:
+class _Clock:
+    """CPU seconds (user, system) and minor page faults of this process since ``start()``."""
+
+    def start(self) -> None:
+        self.r0 = resource.getrusage(resource.RUSAGE_SELF)
+
+    def read(self) -> dict:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return {"user": r.ru_utime - self.r0.ru_utime, "sys": r.ru_stime - self.r0.ru_stime,
+                "faults": r.ru_minflt - self.r0.ru_minflt}
+
+
+def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict]) -> None:
     import zmq
 
+    from v2v_server.datapath import SlotRing
     from v2v_server.protocol import encode_arrays, pack
 
     ctx = zmq.Context()
     s = ctx.socket(zmq.PUSH)
     s.setsockopt(zmq.SNDHWM, 4)
     s.connect(endpoint)
-    specs, frames = encode_arrays(_sample_arrays())
+    arrays = _sample_arrays()
+    specs, frames = encode_arrays(arrays)
+    ring = rel = None
+    if ring_spec is not None:
+        ring = SlotRing.attach(ring_spec, unlink=False)
+        rel = ctx.socket(zmq.PULL)
+        rel.connect(release)
     for i in range(n):
-        s.send_multipart([pack({"type": "sample", "sample_id": f"v.mp4#{i}", "meta": {}, "arrays": specs})] + frames,
-                         copy=False)
+        h = {"type": "sample", "sample_id": f"v.mp4#{i}", "meta": {}, "arrays": specs}
+        if ring is None:
+            s.send_multipart([pack(h)] + frames, copy=False)
+            continue
+        while not ring.free:  # block until the relay gives a slot back
+            ring.free.append(int(rel.recv()))
+        slot = ring.free.pop(0)
+        ring.put(slot, arrays)
+        h["slot"] = slot
+        s.send(pack(h))
     s.close(linger=-1)
+    if rel is not None:
+        rel.close(0)
     ctx.term()
+    if ring is not None:
+        ring.close()
 
 
-def _relay(src: str, dst: str, n: int, old: bool, q) -> None:
+def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optional[dict], q) -> None:
     import zmq
 
     from v2v_server import datapath
@@ -61,20 +101,35 @@ def _relay(src: str, dst: str, n: int, old: bool, q) -> None:
     push = ctx.socket(zmq.PUSH)
     push.setsockopt(zmq.SNDHWM, 4)
     push.bind(dst)
+    ring = rel = None
+    if path == "shm":
+        ring = datapath.SlotRing.attach(ring_spec, unlink=False)
+        assembler = datapath.BatchAssembler(B)
+        rel = ctx.socket(zmq.PUSH)
+        rel.setsockopt(zmq.SNDTIMEO, 2000)
+        rel.bind(release)
     pending, sent = [], 0
-    t0 = None
+    clock = None
     for i in range(n):
         frames = pull.recv_multipart(copy=False)
-        if t0 is None:
-            t0 = time.process_time()
+        if clock is None:
+            clock = _Clock()
+            clock.start()
         h = unpack(frames[0])
-        if old:  # before: a copy per sample, np.stack per batch
+        if path == "old":  # before: a copy per sample, np.stack per batch
             arrays = {k: np.array(v) for k, v in datapath.decode_arrays(h["arrays"], frames[1:]).items()}
             pending.append(datapath.SamplePayload(h["sample_id"], h["meta"], arrays))
+        elif path == "shm":
+            pending.append(datapath.sample_from_slot(h, ring, assembler))
+            try:  # the slot back to the worker (which may have finished and gone)
+                rel.send(str(h["slot"]).encode())
+            except zmq.Again:
+                pass
         else:
             pending.append(datapath.sample_from_worker(h, frames[1:]))
+        del frames
         if len(pending) == B:
-            if old:
+            if path == "old":
                 arrays = {k: np.stack([s.arrays[k] for s in pending]) for k in pending[0].arrays}
                 arrays["voxels"] = arrays["voxels"].astype(narrow_int_dtype(arrays["voxels"]), copy=False)
                 specs, out = datapath.encode_arrays(arrays)
@@ -83,11 +138,15 @@ def _relay(src: str, dst: str, n: int, old: bool, q) -> None:
             push.send_multipart([pack({"type": "batch", "arrays": specs,
                                        "sample_ids": [s.sample_id for s in pending]})] + out, copy=False)
             sent += sum(a.nbytes for a in out)
-            pending = []
-    q.put(("relay", time.process_time() - t0, sent))
+            pending, out = [], None
+    push.close(linger=-1)  # every batch handed to the kernel before the clock stops
+    q.put(("relay", clock.read(), sent))
     pull.close(0)
-    push.close(linger=-1)
+    if rel is not None:
+        rel.close(0)
     ctx.term()
+    if ring is not None:
+        ring.close()
 
 
 def _client(src: str, batches: int, q) -> None:
@@ -100,37 +159,59 @@ def _client(src: str, batches: int, q) -> None:
     pull = ctx.socket(zmq.PULL)
     pull.connect(src)
     got = 0
-    t0 = None
+    clock = None
     for _ in range(batches):
         frames = pull.recv_multipart(copy=False)
-        if t0 is None:
-            t0 = time.process_time()
+        if clock is None:
+            clock = _Clock()
+            clock.start()
         h = unpack(frames[0])
         t = batch_to_torch(decode_arrays(h["arrays"], frames[1:]), raw=True)
         got += sum(v.numel() * v.element_size() for v in t.values())
-    q.put(("client", time.process_time() - t0, got))
+        del t, frames
+    q.put(("client", clock.read(), got))
     pull.close(0)
     ctx.term()
 
 
-def measure(batches: int, old: bool, tmp: str) -> dict:
-    """Run worker -> relay -> client over ipc:// for ``batches`` batches of 8."""
-    q = mp.get_context("spawn").Queue()
+def measure(batches: int, path: str, tmp: str) -> dict:
+    """Run worker -> relay -> client over ipc:// for ``batches`` batches of 8 on ``path``
+    (one of ``PATHS``); returns per process ``{"user", "sys", "faults", "gb"}``."""
+    from v2v_server.datapath import SlotRing, slot_bytes
+
     ctx = mp.get_context("spawn")
-    a, b = f"ipc://{tmp}/w.sock", f"ipc://{tmp}/c.sock"
+    q = ctx.Queue()
+    a, r, b = f"ipc://{tmp}/w.sock", f"ipc://{tmp}/r.sock", f"ipc://{tmp}/c.sock"
     n = batches * B
-    procs = [ctx.Process(target=_relay, args=(a, b, n, old, q)), ctx.Process(target=_client, args=(b, batches, q)),
-             ctx.Process(target=_worker, args=(a, n))]
-    for p in procs:
-        p.start()
-    out = {}
-    for _ in range(2):
-        name, cpu, nbytes = q.get(timeout=600)
-        out[name] = cpu / (nbytes / 1e9)
-        out[name + "_gb"] = nbytes / 1e9
-    for p in procs:
-        p.join(60)
+    ring = SlotRing.create(3, slot_bytes(40, 5, 128)) if path == "shm" else None
+    spec = ring.spec if ring else None
+    try:
+        procs = [ctx.Process(target=_relay, args=(a, r, b, n, path, spec, q)),
+                 ctx.Process(target=_client, args=(b, batches, q)), ctx.Process(target=_worker, args=(a, r, n, spec))]
+        for p in procs:
+            p.start()
+        out = {}
+        for _ in range(2):
+            name, cpu, nbytes = q.get(timeout=600)
+            out[name] = dict(cpu, gb=nbytes / 1e9)
+        for p in procs:
+            p.join(60)
+    finally:
+        if ring is not None:
+            ring.unlink()
+            ring.close()
     return out
+
+
+def memcpy_s_per_gb() -> float:
+    """CPU-seconds per GB of one ``np.copyto`` of 100 MB on this machine (for scale)."""
+    buf = np.ones(100_000_000, np.uint8)
+    dst = np.empty_like(buf)
+    np.copyto(dst, buf)
+    t = time.process_time()
+    for _ in range(5):
+        np.copyto(dst, buf)
+    return (time.process_time() - t) / 0.5
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -138,21 +219,29 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--batches", type=int, default=60)
+    p.add_argument("--paths", default=",".join(PATHS), help="comma-separated subset of " + ", ".join(PATHS))
+    p.add_argument("--rounds", type=int, default=1, help="measure every path this many times, interleaved")
     a = p.parse_args(argv)
+    paths = [x for x in a.paths.split(",") if x]
+    for x in paths:
+        if x not in PATHS:
+            p.error(f"unknown path {x!r}; choose from {', '.join(PATHS)}")
+    rows = []
     with tempfile.TemporaryDirectory(prefix="v2v-relay-") as d:
-        old = measure(a.batches, True, d)
-        new = measure(a.batches, False, d)
-    buf = np.ones(100_000_000, np.uint8)
-    dst = np.empty_like(buf)
-    t = time.process_time()
-    for _ in range(5):
-        np.copyto(dst, buf)
-    memcpy = (time.process_time() - t) / 0.5
-    print("| data path | relay CPU-s/GB | client CPU-s/GB (raw=True) | GB |\n|---|---:|---:|---:|")
-    print(f"| (one memcpy on this machine, for scale) | {memcpy:.2f} | - | - |")
-    print(f"| before (copy per sample + np.stack) | {old['relay']:.2f} | - | {old['relay_gb']:.2f} |")
-    print(f"| now (views + one stacking copy; raw views on the client) | {new['relay']:.2f} | {new['client']:.2f} | "
-          f"{new['relay_gb']:.2f} |")
+        for _ in range(a.rounds):
+            for x in paths:
+                rows.append((x, measure(a.batches, x, d)))
+    memcpy = memcpy_s_per_gb()
+    print("| data path | relay CPU-s/GB | relay user | relay system | relay faults/GB | "
+          "client CPU-s/GB (raw=True) | client user | client system | GB |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print(f"| one memcpy (np.copyto 100 MB), for scale | {memcpy:.2f} | | | | | | | |")
+    for x, m in rows:
+        r, c = m["relay"], m["client"]
+        gr, gc = r["gb"], c["gb"]
+        print(f"| {x} | {(r['user'] + r['sys']) / gr:.2f} | {r['user'] / gr:.2f} | {r['sys'] / gr:.2f} | "
+              f"{r['faults'] / gr:.0f} | {(c['user'] + c['sys']) / gc:.2f} | {c['user'] / gc:.2f} | "
+              f"{c['sys'] / gc:.2f} | {gr:.2f} |")
     return 0
 
 

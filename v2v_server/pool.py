@@ -1,7 +1,11 @@
 """The worker pool: spawn worker processes, notice deaths, replace dead or hung ones, stop them.
 
 The pool owns processes only; which task a worker runs is the scheduler's business
-(``schedule.py``), and messages travel on the server's backend socket.
+(``schedule.py``), and messages travel on the server's backend socket. With ``shm`` on, it
+also owns each worker's shared-memory slot ring (``datapath.SlotRing``): created before the
+spawn, unlinked by the worker once mapped (and by the pool when the worker dies or stops),
+unmapped here when the worker is gone. A restarted worker gets a fresh ring, so a crash never
+touches another worker's slots.
 """
 from __future__ import annotations
 
@@ -11,8 +15,9 @@ import os
 import signal
 import time
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
+from .datapath import SlotRing, create_ring
 from .worker import worker_main
 
 log = logging.getLogger("v2v.server")
@@ -25,6 +30,7 @@ class WorkerProc:
     ident: bytes
     proc: mp.Process
     idle: bool = False  # said ready and holds no task
+    ring: Optional[SlotRing] = None  # its shared-memory slots (None: arrays come as frames)
 
 
 class WorkerPool:
@@ -35,11 +41,17 @@ class WorkerPool:
         root: corpus root.
         endpoint: the server's worker endpoint (ipc).
         size: number of workers.
-        target: process entry point (``worker_main``; tests may pass another).
+        target: process entry point (``worker_main``; tests may pass another), called as
+            ``target(cfg_dict, root, endpoint, identity, parent_pid[, ring_spec])``; the sixth
+            argument, ``SlotRing.spec``, only when the worker has a ring.
+        shm: give each worker a shared-memory slot ring (where ``/dev/shm`` allows; the
+            worker falls back to sending frames otherwise).
     """
 
-    def __init__(self, cfg_dict: dict, root: str, endpoint: str, size: int, target: Callable = worker_main):
+    def __init__(self, cfg_dict: dict, root: str, endpoint: str, size: int, target: Callable = worker_main,
+                 shm: bool = True):
         self.cfg_dict, self.root, self.endpoint, self.size, self.target = cfg_dict, root, endpoint, size, target
+        self.shm = shm
         self.workers: Dict[bytes, WorkerProc] = {}
         self.restarts = 0
 
@@ -49,11 +61,17 @@ class WorkerPool:
 
     def _spawn(self, slot: int, generation: int) -> None:
         ident = f"w{slot}.{generation}".encode()
-        proc = mp.get_context("spawn").Process(
-            target=self.target, args=(self.cfg_dict, self.root, self.endpoint, ident, os.getpid()),
-            name=f"v2v-worker-{slot}", daemon=True)
-        proc.start()
-        self.workers[ident] = WorkerProc(slot, generation, ident, proc)
+        c = self.cfg_dict
+        ring = create_ring(c["sequence_length"], c["num_bins"], c["crop_size"]) if self.shm else None
+        args = (self.cfg_dict, self.root, self.endpoint, ident, os.getpid())
+        proc = mp.get_context("spawn").Process(target=self.target, args=args + ((ring.spec,) if ring else ()),
+                                               name=f"v2v-worker-{slot}", daemon=True)
+        try:
+            proc.start()
+        except BaseException:
+            _drop_ring(ring)
+            raise
+        self.workers[ident] = WorkerProc(slot, generation, ident, proc, ring=ring)
 
     def get(self, ident: bytes):
         return self.workers.get(ident)
@@ -69,6 +87,7 @@ class WorkerPool:
                 continue
             dead.append((ident, w.proc.exitcode))
             del self.workers[ident]
+            _drop_ring(w.ring)
             self.restarts += 1
             self._spawn(w.slot, w.generation + 1)
         return dead
@@ -83,6 +102,7 @@ class WorkerPool:
         except (OSError, TypeError):
             pass
         w.proc.join(2.0)
+        _drop_ring(w.ring)
         self.restarts += 1
         self._spawn(w.slot, w.generation + 1)
 
@@ -100,3 +120,11 @@ class WorkerPool:
             if w.proc.is_alive():
                 w.proc.kill()
                 w.proc.join(1.0)
+            _drop_ring(w.ring)
+
+
+def _drop_ring(ring: Optional[SlotRing]) -> None:
+    """Unlink (if the worker never did) and unmap a gone worker's ring."""
+    if ring is not None:
+        ring.unlink()
+        ring.close()

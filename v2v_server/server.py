@@ -32,7 +32,7 @@ import zmq
 
 from .config import ServeConfig, is_loopback
 from .core import DeliveryCore
-from .datapath import make_batch, sample_from_worker
+from .datapath import BatchAssembler, make_batch, sample_from_slot, sample_from_worker
 from .metrics import ServerMetrics  # [iss12 metrics]
 from .pool import WorkerPool
 from .protocol import PROTOCOL_VERSION, ProtocolError, pack, unpack
@@ -92,6 +92,7 @@ class V2VServer:
         self.ended = False
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
+        self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
         self.metrics = ServerMetrics()  # [iss12 metrics]
         self._resent_seen = 0  # [iss12 metrics] ledger.resent already counted
         self._worker_seen = False  # [iss12 metrics] some worker said ready
@@ -128,8 +129,10 @@ class V2VServer:
             self.backend.bind(self.backend_endpoint)
             self.pool = WorkerPool(self.cfg.to_dict(), str(self.root), self.backend_endpoint, self.cfg.workers)
             self.pool.start()
-            log.info("serving %d video(s) from %s on %s with %d worker(s)",
-                     len(self.videos), self.root, self.bound_endpoint, self.cfg.workers)
+            rings = any(w.ring is not None for w in self.pool.workers.values())
+            log.info("serving %d video(s) from %s on %s with %d worker(s); samples travel %s",
+                     len(self.videos), self.root, self.bound_endpoint, self.cfg.workers,
+                     "through shared-memory slot rings" if rings else "as socket frames")
             if ready_event is not None:
                 ready_event.set()
             return self._loop()
@@ -277,15 +280,27 @@ class V2VServer:
         kind = h["type"]
         now = time.monotonic()
         if kind == "ready":
+            if w.ring is not None and h.get("ring") is False:
+                log.warning("worker %s could not map its slot ring; it sends arrays as socket frames", ident.decode())
             w.idle = True
             self._worker_seen = True  # [iss12 metrics] /readyz: a worker is up
         elif kind == "sample":
+            slot = h.get("slot")
+            if slot is not None and w.ring is not None:  # arrays in the worker's shared memory
+                build = lambda: sample_from_slot(h, w.ring, self.assembler)  # noqa: E731
+            else:
+                build = lambda: sample_from_worker(h, frames[2:])  # noqa: E731
             try:
-                kept = self.core.sample(ident, h.get("task"), h.get("index"), now,
-                                        lambda: sample_from_worker(h, frames[2:]))
+                kept = self.core.sample(ident, h.get("task"), h.get("index"), now, build)
             except (ProtocolError, KeyError, TypeError, ValueError) as e:
                 log.error("bad sample from worker %s: %s", ident, e)
                 return
+            finally:
+                if slot is not None:  # copied out (or not wanted): the worker may write it again
+                    try:
+                        self.backend.send_multipart([ident, pack({"type": "slot", "slot": slot})], zmq.NOBLOCK)
+                    except zmq.ZMQError:
+                        pass
             if kept:
                 self.metrics.on_sample_made()  # [iss12 metrics]
         elif kind == "done":

@@ -5,6 +5,12 @@ each ``task`` (one video of one epoch) streams one ``sample`` message per window
 ``done`` message with the frame count or the reason the video could not be used. Sends block
 at a small high-water mark, so a worker never runs ahead of what the server is willing to
 hold. A worker whose parent has gone exits by itself.
+
+With a shared-memory slot ring (``datapath.SlotRing``, given by the pool at spawn) a sample's
+arrays go into a free slot and the ``sample`` header names the slot (no array frames); the
+server answers ``{"type": "slot", "slot": i}`` once it has copied the slot out. With every slot
+taken the worker blocks until one comes back. Without a ring (no ``/dev/shm``) or for a sample
+too large for a slot, the arrays travel as frames.
 """
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ import numpy as np
 import zmq
 
 from .config import ServeConfig
+from .datapath import SlotRing
 from .protocol import encode_arrays, narrow_int_dtype, pack, unpack
 from .sampler import FlowEstimator, parse_sample_id, video_samples
 from .video import VideoError
@@ -33,6 +40,45 @@ WORKER_HWM = 2
 
 def _parent_alive(parent_pid: int) -> bool:
     return os.getppid() == parent_pid
+
+
+class _Inbox:
+    """The worker's side of its socket's incoming messages: ``slot`` messages give slots back
+    to the ring at once; anything else waits for the main loop, in order."""
+
+    def __init__(self, sock: zmq.Socket, ring: Optional[SlotRing]):
+        self.sock, self.ring, self.waiting = sock, ring, []
+
+    def _take(self, frames) -> None:
+        h = unpack(frames[0])
+        if h["type"] == "slot":
+            i = h.get("slot")
+            if self.ring is not None and isinstance(i, int) and 0 <= i < self.ring.slots and i not in self.ring.free:
+                self.ring.free.append(i)
+        else:
+            self.waiting.append(h)
+
+    def next(self, parent_pid: int) -> Optional[dict]:
+        """The next non-slot message, or None after a second without one."""
+        while not self.waiting:
+            if not self.sock.poll(1000):
+                if not _parent_alive(parent_pid):
+                    raise SystemExit(0)
+                return None
+            self._take(self.sock.recv_multipart())
+        return self.waiting.pop(0)
+
+    def slot(self, parent_pid: int) -> int:
+        """A free slot of the ring, waiting (in bounded steps) for the server to give one back;
+        exits if the server process has gone or asks this worker to stop."""
+        while not self.ring.free:
+            if self.sock.poll(1000):
+                self._take(self.sock.recv_multipart())
+                if any(h["type"] == "stop" for h in self.waiting):
+                    raise SystemExit(0)
+            elif not _parent_alive(parent_pid):
+                raise SystemExit(0)
+        return self.ring.free.pop(0)
 
 
 def _send(sock: zmq.Socket, frames, parent_pid: int) -> None:
@@ -125,8 +171,10 @@ def file_verdict(cfg: ServeConfig, stats: dict, error: Optional[BaseException] =
     return None
 
 
-def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict) -> None:
-    """Make every sample of one task and send it, then send ``done``."""
+def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
+             inbox: Optional[_Inbox] = None) -> None:
+    """Make every sample of one task and send it (through ``inbox``'s slot ring when it has
+    one), then send ``done``."""
     stats: dict = {}
     sent = 0
     error = None
@@ -142,6 +190,12 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
             header = {"type": "sample", "task": task["task"], "sample_id": sid,
                       "index": parse_sample_id(sid, cfg.crops_per_window)[1], "meta": meta, "arrays": specs}
             clock.serialized()
+            if inbox is not None and inbox.ring is not None:  # waiting for a slot counts as send (back-pressure)
+                slot = inbox.slot(parent_pid)
+                if inbox.ring.put(slot, dict(zip((s["name"] for s in specs), frames))) is None:
+                    inbox.ring.free.insert(0, slot)  # too large for a slot: frames instead
+                else:
+                    header["slot"], frames = slot, []
             header["stages"] = clock.report()
             _send(sock, [pack(header)] + frames, parent_pid)
             clock.sent()
@@ -159,8 +213,14 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
     _send(sock, [pack(done)], parent_pid)
 
 
-def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, parent_pid: int) -> None:
-    """Entry point of a worker process (started with the ``spawn`` method)."""
+def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, parent_pid: int,
+                ring: Optional[dict] = None) -> None:
+    """Entry point of a worker process (started with the ``spawn`` method).
+
+    Args:
+        ring: ``SlotRing.spec`` of this worker's shared-memory slots (the file is unlinked as
+            soon as it is mapped), or None to send arrays as frames.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when workers stop
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     import cv2
@@ -179,20 +239,26 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
     sock.setsockopt(zmq.SNDHWM, WORKER_HWM)
     sock.setsockopt(zmq.LINGER, 0)
     sock.connect(endpoint)
+    slots = None
+    if ring is not None:
+        try:
+            slots = SlotRing.attach(ring)  # unlinks the file: nothing leaks if either side dies later
+        except (OSError, ValueError) as e:
+            log.warning("cannot map slot ring %s (%s): sending arrays over the socket", ring.get("path"), e)
+    inbox = _Inbox(sock, slots)
     flows: dict = {}
     try:
-        _send(sock, [pack({"type": "ready"})], parent_pid)
+        _send(sock, [pack({"type": "ready", "ring": slots is not None})], parent_pid)
         while True:
-            if not sock.poll(1000):
-                if not _parent_alive(parent_pid):
-                    return
+            h = inbox.next(parent_pid)
+            if h is None:
                 continue
-            frames = sock.recv_multipart()
-            h = unpack(frames[0])
             if h["type"] == "stop":
                 return
             if h["type"] == "task":
-                run_task(cfg, Path(root), h, sock, parent_pid, flows)
+                run_task(cfg, Path(root), h, sock, parent_pid, flows, inbox)
     finally:
         sock.close(0)
         ctx.term()
+        if slots is not None:
+            slots.close()
