@@ -167,7 +167,7 @@ def _read_epoch(endpoint):
 
 
 def test_served_samples_are_bit_identical_with_and_without_shared_memory_over_ipc():
-    from v2v_server.process import ServeProcess
+    from bench.serve import ServeProcess
 
     args = ["--videos", str(video_dir()), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
             "--crop-size", "48", "--max-samples-per-video", "2", "--seed", "5", "--epochs", "1", "--batch-size", "3"]
