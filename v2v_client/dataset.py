@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import queue
 import threading
 import time
@@ -31,6 +32,7 @@ import zmq
 from v2v_server.protocol import ProtocolError, decode_arrays, pack, unpack
 
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints  # [iss12]
+from .handoff import ShmReader, check_shm_dir
 from .metrics import TrainerMetrics  # [iss12]
 
 log = logging.getLogger("v2v.client")
@@ -119,6 +121,8 @@ class Connection:
         self.discarded = 0
         self._hello_seq = 0
         self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
+        self.shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
+        self._shm = ShmReader(keep=ds.credits + 4) if self.shm else None
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
@@ -206,7 +210,10 @@ class Connection:
             self._discard_locked("saying hello again")
         self._hello_seq += 1
         self._awaiting = self._hello_seq
-        return pack(dict(self.ds._hello_header(), hello_id=self._hello_seq))
+        h = dict(self.ds._hello_header(), hello_id=self._hello_seq)
+        if self.shm:
+            h["shm"] = True
+        return pack(h)
 
     def _forward_acks(self, sock: zmq.Socket) -> None:
         while True:
@@ -293,6 +300,8 @@ class Connection:
                     pass
                 sock.close()
             self._ack_recv.close(0)
+            if self._shm is not None:
+                self._shm.close()
 
     def _on_message(self, frames) -> Optional[str]:
         """Handle one server message; "over" when the stream has ended or failed, "lost"
@@ -305,7 +314,15 @@ class Connection:
                 # sent before the server read our latest hello: about a session that is over
                 return None
             if kind == "batch":
-                arrays = decode_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
+                shm = h.get("shm") is not None
+                if shm:  # same host: the arrays are in the server's batch file
+                    if self._shm is None or len(frames) != 1:
+                        raise ProtocolError("a shared-memory batch this client did not ask for")
+                    arrays = self._shm.read(h, copy=self.ds.raw)
+                    if arrays is None:
+                        return self._torn(h)
+                else:
+                    arrays = decode_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
                 missing = [o for o in self.ds.outputs if o not in arrays]
                 if missing:
                     raise ProtocolError(f"batch {h.get('batch_id')} lacks requested outputs {missing}")
@@ -313,6 +330,10 @@ class Connection:
                 if not isinstance(ids, list) or any(a.shape[:1] != (len(ids),) for a in arrays.values()):
                     raise ProtocolError(f"batch {h.get('batch_id')}: sample ids do not match the arrays")
                 item = batch_to_torch(arrays, self.ds.raw)
+                if shm and not self.ds.raw:
+                    del arrays  # converted from the mapping: check it still held this batch
+                    if not self._shm.valid(h):
+                        return self._torn(h)
                 item["sample_ids"] = list(ids)
                 item["params"] = list(h["params"])
                 item["epoch"] = int(h["epoch"])
@@ -328,6 +349,15 @@ class Connection:
                 if h.get("hello_id") == self._awaiting:
                     self._awaiting = None
                 self.info = h.get("info", {})
+                if self._shm is not None:
+                    d = self.info.get("shm_dir")
+                    if d is not None and not os.access(check_shm_dir(d), os.R_OK | os.X_OK):
+                        log.warning("v2v stream %s: cannot read the server's batch directory %s (another user?); "
+                                    "asking for batches over the socket", self.endpoint, d)
+                        self.shm, self._shm = False, None
+                        self._replies.append(self._hello())
+                    else:
+                        self._shm.set_dir(d)
             elif kind == "revoke":
                 ids = h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else []
                 released = []
@@ -359,6 +389,16 @@ class Connection:
         except (ProtocolError, KeyError, TypeError, ValueError) as e:
             self.items.put(StreamError(f"bad message from the v2v server at {self.endpoint}: {e}"))
             return "over"
+        return None
+
+    def _torn(self, h: dict) -> None:
+        """A shared-memory batch whose buffer the server refilled before we copied it: the
+        batch was acknowledged (or dropped) already, so it is not ours; give it back."""
+        bid = h.get("batch_id")
+        log.warning("v2v stream %s: batch %s was gone from the server's shared memory before it was read "
+                    "(this process stalled?); giving it back", self.endpoint, bid)
+        if isinstance(bid, int) and not isinstance(bid, bool) and bid >= 0:
+            self._replies.append(pack({"type": "released", "batch_ids": [bid]}))
         return None
 
 
@@ -458,6 +498,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             a rank that got fewer repeats its last batch with every sample flagged in
             ``padding`` (see below). Use ``num_workers=0`` with DDP.
         group: name of the DDP group (see ``rank``).
+        shm: same-host hand-off. ``"auto"`` (default): for an ``ipc://`` endpoint, ask the
+            server to leave each batch in its shared-memory batch file (``/dev/shm``) and send
+            only a reference; the arrays are then copied out of the file once (no socket copy
+            on either side; ``v2v_client.handoff``). The server agrees only when bound to
+            ``ipc://``; anything else still arrives as socket frames, and the batches are the
+            same either way. ``True`` asks for any endpoint, ``False`` never.
 
     Yields dicts, one per batch of B samples:
         ``voxels`` float32 (B, L, num_bins, H, W), signed event counts per bin;
@@ -493,7 +539,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  timeout_s: float = 30.0, heartbeat_s: float = 1.0, raw: bool = False,
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None, rank: Optional[int] = None,
-                 world_size: Optional[int] = None, group: str = "default"):
+                 world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto"):
         # [iss12] every constructor argument but the endpoint, for one dataset per server (fan-in)
         self._child_kwargs = {k: v for k, v in locals().items() if k not in ("self", "endpoint", "__class__")}
         super().__init__()
@@ -523,6 +569,9 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self.timeout_s = float(timeout_s)
         self.heartbeat_s = float(heartbeat_s)
         self.raw = raw
+        if shm not in (True, False, "auto"):
+            raise ValueError(f"shm must be True, False or 'auto', got {shm!r}")
+        self.shm = shm
         self.reconnect = bool(reconnect)
         self.reconnect_timeout_s = float(reconnect_timeout_s)
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None
@@ -597,6 +646,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 self._consumer = state["consumer"]
         if self._fanin is not None:  # [iss12]
             self._fanin.load_state_dict(state)
+
+    def wants_shm(self, endpoint: str) -> bool:
+        """Whether a connection to ``endpoint`` asks for batches through the server's shared
+        memory: ``shm=True`` always (the server agrees only when bound to ``ipc://``),
+        ``"auto"`` for ``ipc://`` endpoints (the server is on this host)."""
+        return self.shm is True or (self.shm == "auto" and endpoint.startswith("ipc://"))
 
     def _hello_header(self) -> dict:
         """The hello message: outputs, credits, who we are, and the resume state."""

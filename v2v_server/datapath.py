@@ -25,6 +25,16 @@ Two ways in, one copy each:
 Batches whose samples did not land in consecutive rows of one buffer (samples of two epochs
 interleaved at an epoch boundary, voxels narrowed differently, a resume ``subset``) fall back
 to the lazy stacking copy from the samples' views.
+
+**Hand-off to a trainer on the same host.** A server bound to ``ipc://`` keeps its batch
+buffers in files of a private directory (:class:`BatchDir`, ``/dev/shm/v2v-batches-<pid>-*``,
+removed at shutdown; a dead server's directory is removed by the next one). For a client that
+asked for it in its hello, a batch that *is* consecutive rows of one such buffer goes as a
+header only (:meth:`BatchPayload.shm_ref`: file name, generation, byte offsets); the client
+maps the file and copies the arrays out (``v2v_client.dataset``) before it acknowledges, so
+neither side pays the kernel's socket copies. Each file starts with a 64-byte header holding
+the buffer's generation (uint64, little-endian), bumped whenever an idle buffer is refilled:
+a client that finds another generation after its copy knows the batch was already gone.
 """
 from __future__ import annotations
 
@@ -32,6 +42,9 @@ import logging
 import math
 import mmap
 import os
+import re
+import shutil
+import struct
 import sys
 import tempfile
 from dataclasses import dataclass, field
@@ -247,13 +260,118 @@ def create_ring(sequence_length: int, num_bins: int, crop_size: int,
         return None
 
 
+#: Bytes at the start of a batch-buffer file before the first array: the generation (uint64 LE).
+BATCH_FILE_HEADER = 64
+#: Names of batch-buffer files inside a server's :class:`BatchDir` (never anything a client chose).
+BATCH_FILE_RE = re.compile(r"b[0-9]{1,18}")
+#: Names of the servers' private directories under ``SHM_DIR``: ``v2v-batches-<pid>-<random>``.
+BATCH_DIR_RE = re.compile(r"v2v-batches-([0-9]{1,10})-[A-Za-z0-9_]{1,32}")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+def remove_stale_batch_dirs(root: str) -> List[str]:
+    """Remove the batch directories under ``root`` left by servers that died without cleaning
+    up (SIGKILL, power loss): those whose pid no longer runs. Returns the paths removed."""
+    gone = []
+    try:
+        names = os.listdir(root)
+    except OSError:
+        return gone
+    for name in names:
+        m = BATCH_DIR_RE.fullmatch(name)
+        path = os.path.join(root, name)
+        if m is None or _pid_alive(int(m.group(1))) or not os.path.isdir(path) or os.path.islink(path):
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        gone.append(path)
+        log.info("removed %s, left by server process %s which no longer runs", path, m.group(1))
+    return gone
+
+
+class BatchDir:
+    """A server's private directory (mode 0700) of batch-buffer files in shared memory.
+
+    :meth:`create` removes dead servers' directories first; :meth:`remove` (called by the
+    server's shutdown, also after a crash of its loop) deletes it with every file. Files are
+    named ``b<N>`` with ``N`` counting up, so a name is never reused within one directory.
+    """
+
+    def __init__(self, path: str):
+        self.path = path
+        self._next = 0
+
+    @classmethod
+    def create(cls, root: Optional[str] = None) -> Optional["BatchDir"]:
+        """A fresh directory under ``root`` (default: ``$V2V_SHM_DIR``, else ``SHM_DIR``), or
+        None where shared memory is unavailable or switched off (``V2V_SHM_DIR=""``)."""
+        if root is None:
+            root = os.environ.get("V2V_SHM_DIR", SHM_DIR)
+        if not root or not os.path.isdir(root):
+            return None
+        remove_stale_batch_dirs(root)
+        try:
+            return cls(tempfile.mkdtemp(prefix=f"v2v-batches-{os.getpid()}-", dir=root))
+        except OSError as e:
+            log.warning("no shared-memory batch directory in %s (%s): batches go as socket frames", root, e)
+            return None
+
+    def new_file(self, nbytes: int) -> Tuple[str, mmap.mmap]:
+        """A new file of ``nbytes`` (pages reserved now, so a full tmpfs fails here with OSError
+        rather than with SIGBUS on a later write), mapped read-write."""
+        name = f"b{self._next}"
+        self._next += 1
+        path = os.path.join(self.path, name)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o600)
+        try:
+            try:
+                os.posix_fallocate(fd, 0, nbytes)
+            except OSError as e:
+                if e.errno not in (95, 22):  # EOPNOTSUPP / EINVAL: a file system without fallocate
+                    raise
+                os.ftruncate(fd, nbytes)
+            mm = mmap.mmap(fd, nbytes)
+        except BaseException:
+            _unlink(path)
+            raise
+        finally:
+            os.close(fd)
+        return name, mm
+
+    def unlink(self, name: str) -> None:
+        _unlink(os.path.join(self.path, name))
+
+    def remove(self) -> None:
+        """Delete the directory and its files (mappings stay valid while viewed)."""
+        shutil.rmtree(self.path, ignore_errors=True)
+
+
 class _BatchBuffer:
-    """One batch's arrays, ``(batch_size, ...)`` each, filled row by row as samples arrive."""
+    """One batch's arrays, ``(batch_size, ...)`` each, filled row by row as samples arrive;
+    in a :class:`BatchDir` file (``file``, byte ``offsets`` of the arrays, ``gen``) or in
+    private memory (``file`` None)."""
 
-    __slots__ = ("arrays", "next", "sealed")
+    __slots__ = ("arrays", "next", "sealed", "file", "offsets", "gen", "_mm")
 
-    def __init__(self, arrays: Dict[str, np.ndarray]):
+    def __init__(self, arrays: Dict[str, np.ndarray], file: Optional[str] = None,
+                 offsets: Optional[Dict[str, int]] = None, mm: Optional[mmap.mmap] = None):
         self.arrays, self.next, self.sealed = arrays, 0, False
+        self.file, self.offsets, self._mm, self.gen = file, offsets or {}, mm, 0
+        self.bump()
+
+    def bump(self) -> None:
+        """A new generation: the buffer is about to be refilled (nothing views it any more)."""
+        self.gen += 1
+        if self._mm is not None:
+            struct.pack_into("<Q", self._mm, 0, self.gen)
 
 
     def idle(self) -> bool:
@@ -281,13 +399,45 @@ class BatchAssembler:
         spare: idle buffers kept per layout for reuse.
     """
 
-    def __init__(self, batch_size: int, spare: int = 2):
+    def __init__(self, batch_size: int, spare: int = 2, files: Optional[BatchDir] = None):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        self.batch_size, self.spare = batch_size, spare
+        self.batch_size, self.spare, self.files = batch_size, spare, files
         self._open: Dict[tuple, _BatchBuffer] = {}
         self._used: Dict[tuple, List[_BatchBuffer]] = {}  # handed out, maybe still viewed
         self.reused = 0
+
+    def _new(self, arrays: Dict[str, np.ndarray]) -> _BatchBuffer:
+        """A buffer for ``batch_size`` rows like ``arrays``: in a file of ``files`` when given
+        (anonymous memory when the file cannot be made), else anonymous memory."""
+        shapes = {k: (self.batch_size,) + a.shape for k, a in arrays.items()}
+        if self.files is not None:
+            offsets, end = {}, BATCH_FILE_HEADER
+            for k, a in arrays.items():
+                offsets[k] = end
+                end = -(-(end + math.prod(shapes[k]) * a.dtype.itemsize) // SLOT_ALIGN) * SLOT_ALIGN
+            try:
+                name, mm = self.files.new_file(end)
+            except OSError as e:
+                log.warning("cannot make a batch buffer in %s (%s): this batch goes as socket frames",
+                            self.files.path, e)
+            else:
+                # np.ndarray over the mapping (base: the mmap), so every row view references
+                # these very arrays and the reference count in idle() sees it
+                views = {k: np.ndarray(shapes[k], a.dtype, buffer=mm, offset=offsets[k]) for k, a in arrays.items()}
+                return _BatchBuffer(views, name, offsets, mm)
+        return _BatchBuffer({k: np.empty(shapes[k], a.dtype) for k, a in arrays.items()})
+
+    def _forget(self, buf: _BatchBuffer) -> None:
+        if buf.file is not None and self.files is not None:
+            self.files.unlink(buf.file)
+
+    def close(self) -> None:
+        """Forget every buffer and remove the batch directory (the server's shutdown)."""
+        self._open.clear()
+        self._used.clear()
+        if self.files is not None:
+            self.files.remove()
 
     def _fresh(self, sig: tuple, arrays: Dict[str, np.ndarray]) -> _BatchBuffer:
         """An idle buffer of layout ``sig`` to refill, else a new one; forgets idle buffers
@@ -295,6 +445,9 @@ class BatchAssembler:
         for other in list(self._used):
             if other != sig:
                 busy = [b for b in self._used[other] if not b.idle()]
+                for b in self._used[other]:
+                    if b not in busy:
+                        self._forget(b)
                 if busy:
                     self._used[other] = busy
                 else:
@@ -305,9 +458,12 @@ class BatchAssembler:
         if idle:
             buf = idle.pop()
             buf.next, buf.sealed = 0, False
+            buf.bump()
             self.reused += 1
         else:
-            buf = _BatchBuffer({k: np.empty((self.batch_size,) + a.shape, a.dtype) for k, a in arrays.items()})
+            buf = self._new(arrays)
+        for b in idle[self.spare:]:
+            self._forget(b)
         self._used[sig] = busy + idle[: self.spare] + [buf]
         return buf
 
@@ -373,6 +529,8 @@ class BatchPayload:
     meta: List[dict]
     samples: Optional[List[SamplePayload]]
     _stacked: Optional[Dict[str, np.ndarray]] = field(default=None, repr=False)
+    #: (buffer, first row) when the arrays are consecutive rows of one batch buffer
+    _rows: Optional[Tuple["_BatchBuffer", int]] = field(default=None, repr=False)
 
     @property
     def arrays(self) -> Dict[str, np.ndarray]:
@@ -407,6 +565,24 @@ class BatchPayload:
         array), for the arrays in ``outputs``."""
         return encode_arrays({k: v for k, v in self.arrays.items() if k in outputs})
 
+    def shm_ref(self, outputs: Sequence[str]) -> Optional[Tuple[List[dict], dict]]:
+        """Where a same-host client finds this batch's arrays in ``outputs``: ``(specs, ref)``
+        with ``ref = {"file", "gen", "offsets"}`` (file name inside the server's
+        :class:`BatchDir`, the buffer's generation, byte offset of each array in the file, in
+        the order of ``specs``), or None when the arrays are not consecutive rows of a
+        file-backed buffer (send :meth:`wire` frames instead). The rows stay untouched while
+        this payload exists (a buffer is refilled only once nothing views it)."""
+        if self._rows is None or self._rows[0].file is None:
+            return None
+        buf, r0 = self._rows
+        specs, offsets = [], []
+        for k, v in self.arrays.items():
+            if k in outputs:
+                full = buf.arrays[k]
+                specs.append({"name": k, "dtype": v.dtype.name, "shape": list(v.shape)})
+                offsets.append(buf.offsets[k] + r0 * (full.nbytes // full.shape[0]))
+        return specs, {"file": buf.file, "gen": buf.gen, "offsets": offsets}
+
 
 def narrow_voxels(name: str, a: np.ndarray) -> np.ndarray:
     """``a`` narrowed to the smallest int type that holds it when ``name`` is "voxels"."""
@@ -430,9 +606,10 @@ def make_batch(samples: Sequence[SamplePayload]) -> BatchPayload:
     buf, r0 = samples[0].buffer, samples[0].row
     if buf is not None and all(s.buffer is buf and s.row == r0 + i for i, s in enumerate(samples)):
         buf.sealed = True  # later samples start a fresh buffer; these rows are the batch's
-        return BatchPayload(ids, meta, None, {k: v[r0:r0 + len(samples)] for k, v in buf.arrays.items()})
+        return BatchPayload(ids, meta, None, {k: v[r0:r0 + len(samples)] for k, v in buf.arrays.items()},
+                            (buf, r0))
     return BatchPayload(ids, meta, list(samples))
 
 
-__all__ = ["SamplePayload", "BatchPayload", "BatchAssembler", "SlotRing", "sample_from_worker", "sample_from_slot",
+__all__ = ["SamplePayload", "BatchPayload", "BatchAssembler", "BatchDir", "SlotRing", "remove_stale_batch_dirs", "sample_from_worker", "sample_from_slot",
            "make_batch", "narrow_voxels", "create_ring", "slot_bytes", "slot_layout"]

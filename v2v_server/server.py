@@ -32,7 +32,7 @@ import zmq
 
 from .config import ServeConfig, is_loopback
 from .core import DeliveryCore
-from .datapath import BatchAssembler, make_batch, sample_from_slot, sample_from_worker
+from .datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
 from .metrics import ServerMetrics  # [iss12 metrics]
 from .pool import WorkerPool
 from .protocol import PROTOCOL_VERSION, ProtocolError, pack, unpack
@@ -96,6 +96,7 @@ class V2VServer:
         self.metrics = ServerMetrics()  # [iss12 metrics]
         self._resent_seen = 0  # [iss12 metrics] ledger.resent already counted
         self._worker_seen = False  # [iss12 metrics] some worker said ready
+        self._shm_clients: set = set()  # idents whose hello asked for shared-memory batches
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -126,6 +127,8 @@ class V2VServer:
                             "reach it can read the stream", self.cfg.bind)
             self.frontend.bind(self.cfg.bind)
             self.bound_endpoint = self.frontend.getsockopt_string(zmq.LAST_ENDPOINT)
+            if self.bound_endpoint.startswith("ipc://"):  # trainers on this host: batch buffers in /dev/shm
+                self.assembler.files = BatchDir.create()
             self.backend.bind(self.backend_endpoint)
             self.pool = WorkerPool(self.cfg.to_dict(), str(self.root), self.backend_endpoint, self.cfg.workers)
             self.pool.start()
@@ -174,6 +177,7 @@ class V2VServer:
         if getattr(self, "_ctx", None) is not None:
             self._ctx.term()
         shutil.rmtree(getattr(self, "_tmp", ""), ignore_errors=True)
+        self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
         self._sync_stats()
         self.metrics.close()  # [iss12 metrics]
         log.info("stopped: %d batches sent (%d re-sent), %d samples made, %d worker restart(s), "
@@ -337,9 +341,19 @@ class V2VServer:
             c = self.ledger.clients.get(ident)
             if c is None:
                 continue
-            specs, frames = b.payload.wire(c.outputs)
+            ref = None
+            if ident in self._shm_clients and b.batch_id >= 0:  # same host: a reference into the batch file
+                ref = b.payload.shm_ref(c.outputs)
+            if ref is not None:
+                (specs, shm), frames = ref, []
+                nbytes = sum(b.payload.arrays[s["name"]].nbytes for s in specs)
+            else:
+                specs, frames = b.payload.wire(c.outputs)
+                nbytes = sum(f.nbytes for f in frames)
             header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
                       "sample_ids": b.payload.sample_ids, "params": b.payload.meta, "arrays": specs}
+            if ref is not None:
+                header["shm"] = shm
             if b.batch_id < 0:
                 header["padding"] = True  # DDP: a repeat for a rank that has nothing to repeat; never acked
             try:
@@ -348,7 +362,7 @@ class V2VServer:
                 log.warning("client %s unreachable (%s); dropping it", ident.hex(), e)
                 self.core.forget(ident)
                 continue
-            self.metrics.on_batch_sent(len(b.payload.sample_ids), sum(f.nbytes for f in frames))  # [iss12 metrics]
+            self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)  # [iss12 metrics]
         for ident, msg in msgs:
             if msg.get("type") == "revoke":  # [iss12 metrics]
                 for _ in msg.get("batch_ids", ()):
@@ -402,7 +416,8 @@ class V2VServer:
                 "batch_size": c.batch_size, "frames_per_bin": c.frames_per_bin, "seed": c.seed,
                 "epochs": c.epochs, "videos": len(self.videos), "outputs": list(self.core.outputs or c.outputs),
                 "offered_outputs": list(c.outputs), "flow_preset": c.flow_preset, "protocol": PROTOCOL_VERSION,
-                "lease_s": c.lease_s, "client_timeout_s": c.client_timeout_s, "max_credits": c.max_credits}
+                "lease_s": c.lease_s, "client_timeout_s": c.client_timeout_s, "max_credits": c.max_credits,
+                "shm_dir": self.assembler.files.path if self.assembler.files is not None else None}
 
     def _bad_peer(self, ident: bytes, why: str, now: float) -> None:
         self.stats.bad_messages += 1
@@ -429,6 +444,11 @@ class V2VServer:
             self._bad_peer(ident, str(e), now)
             return
         if isinstance(msg, Hello):
+            self._shm_clients &= set(self.ledger.clients)  # forget clients gone since
+            if msg.shm and self.assembler.files is not None:
+                self._shm_clients.add(ident)
+            else:
+                self._shm_clients.discard(ident)
             replies = self.core.hello(ident, msg, now, self.stream_info)
         else:
             replies = self.core.message(ident, msg, now)

@@ -71,6 +71,7 @@ class Hello:
     rank: int = 0
     world_size: int = 1
     hello_id: int = 0  # echoed in the welcome, so the client can tell old-session messages apart
+    shm: bool = False  # same host: send batches as references into the server's shared-memory files
 
 
 @dataclass(frozen=True)
@@ -187,8 +188,11 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
             raise WireError(f"field 'group' must be a string of at most 128 characters, got {_show(group)}")
         world = _int(h, "world_size", 1, 65536, 1)
         rank = _int(h, "rank", 0, world - 1, 0)
+        shm = h.get("shm", False)
+        if not isinstance(shm, bool):
+            raise WireError(f"field 'shm' must be true or false, got {_show(shm)}")
         return Hello(tuple(o for o in OUTPUTS if o in outs), credits, consumer, _resume(h.get("resume"), crops_per_window),
-                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0))
+                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm)
     if kind == "ack":
         return Ack(_ids(h, "batch_ids"))
     if kind == "released":
