@@ -17,6 +17,12 @@ system split) and its minor page faults per GB. Paths, measured in the same run:
   relay copies the slot into the batch buffer's row and gives the slot back
   (``datapath.sample_from_slot`` / ``BatchAssembler``), so the batch is assembled by the time
   it is made and the sample bytes never cross the worker's socket.
+* ``handoff``: ``shm``, with the batch buffers in files of a private ``/dev/shm`` directory
+  (``datapath.BatchDir``); each batch goes to the client as a header naming file, generation
+  and offsets (``BatchPayload.shm_ref``), no array frames; the client maps the file, copies
+  the arrays into a reused private buffer (``v2v_client.handoff.ShmReader``, what
+  ``V2VStreamDataset(raw=True, shm="auto")`` does over ``ipc://``) and acknowledges, and the
+  relay keeps at most 4 unacknowledged batches (the default credits), as the server does.
 """
 from __future__ import annotations
 
@@ -30,7 +36,9 @@ from typing import List, Optional
 import numpy as np
 
 B = 8
-PATHS = ("old", "socket", "shm")
+PATHS = ("old", "socket", "shm", "handoff")
+#: unacknowledged batches the relay keeps on the handoff path (V2VStreamDataset's default credits)
+CREDITS = 4
 
 
 def _sample_arrays():
@@ -88,7 +96,8 @@ def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict]) -> N
         ring.close()
 
 
-def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optional[dict], q) -> None:
+def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optional[dict], q,
+           acks: Optional[str] = None) -> None:
     import zmq
 
     from v2v_server import datapath
@@ -101,14 +110,19 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
     push = ctx.socket(zmq.PUSH)
     push.setsockopt(zmq.SNDHWM, 4)
     push.bind(dst)
-    ring = rel = None
-    if path == "shm":
+    ring = rel = ack = files = None
+    inflight = {}  # handoff: batch id -> payload until the client acknowledges it
+    if path == "handoff":
+        files = datapath.BatchDir.create()
+        ack = ctx.socket(zmq.PULL)
+        ack.bind(acks)
+    if path in ("shm", "handoff"):
         ring = datapath.SlotRing.attach(ring_spec, unlink=False)
-        assembler = datapath.BatchAssembler(B)
+        assembler = datapath.BatchAssembler(B, files=files)
         rel = ctx.socket(zmq.PUSH)
         rel.setsockopt(zmq.SNDTIMEO, 2000)
         rel.bind(release)
-    pending, sent = [], 0
+    pending, sent, sent_batches = [], 0, 0
     clock = None
     for i in range(n):
         frames = pull.recv_multipart(copy=False)
@@ -119,7 +133,7 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
         if path == "old":  # before: a copy per sample, np.stack per batch
             arrays = {k: np.array(v) for k, v in datapath.decode_arrays(h["arrays"], frames[1:]).items()}
             pending.append(datapath.SamplePayload(h["sample_id"], h["meta"], arrays))
-        elif path == "shm":
+        elif path in ("shm", "handoff"):
             pending.append(datapath.sample_from_slot(h, ring, assembler))
             try:  # the slot back to the worker (which may have finished and gone)
                 rel.send(str(h["slot"]).encode())
@@ -133,6 +147,18 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
                 arrays = {k: np.stack([s.arrays[k] for s in pending]) for k in pending[0].arrays}
                 arrays["voxels"] = arrays["voxels"].astype(narrow_int_dtype(arrays["voxels"]), copy=False)
                 specs, out = datapath.encode_arrays(arrays)
+            elif path == "handoff":
+                while len(inflight) >= CREDITS:  # the client's window is full: wait for an ack
+                    inflight.pop(int(ack.recv()), None)
+                batch = datapath.make_batch(pending)
+                specs, ref = batch.shm_ref(("voxels", "frames", "flow"))
+                inflight[sent_batches] = batch
+                push.send(pack({"type": "batch", "batch_id": sent_batches, "arrays": specs, "shm": ref,
+                                "dir": files.path, "sample_ids": [s.sample_id for s in pending]}))
+                sent += sum(batch.arrays[x["name"]].nbytes for x in specs)
+                sent_batches += 1
+                pending, batch = [], None
+                continue
             else:
                 specs, out = datapath.make_batch(pending).wire(("voxels", "frames", "flow"))
             push.send_multipart([pack({"type": "batch", "arrays": specs,
@@ -140,7 +166,12 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
             sent += sum(a.nbytes for a in out)
             pending, out = [], None
     push.close(linger=-1)  # every batch handed to the kernel before the clock stops
+    while inflight:  # handoff: the client has copied every batch out before the files go
+        inflight.pop(int(ack.recv()), None)
     q.put(("relay", clock.read(), sent))
+    if ack is not None:
+        ack.close(0)
+        assembler.close()
     pull.close(0)
     if rel is not None:
         rel.close(0)
@@ -149,15 +180,21 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
         ring.close()
 
 
-def _client(src: str, batches: int, q) -> None:
+def _client(src: str, batches: int, q, acks: Optional[str] = None) -> None:
     import zmq
 
     from v2v_client.dataset import batch_to_torch
+    from v2v_client.handoff import ShmReader
     from v2v_server.protocol import decode_arrays, unpack
 
     ctx = zmq.Context()
     pull = ctx.socket(zmq.PULL)
     pull.connect(src)
+    ack = reader = None
+    if acks is not None:
+        ack = ctx.socket(zmq.PUSH)
+        ack.connect(acks)
+        reader = ShmReader(keep=CREDITS + 4)
     got = 0
     clock = None
     for _ in range(batches):
@@ -166,11 +203,19 @@ def _client(src: str, batches: int, q) -> None:
             clock = _Clock()
             clock.start()
         h = unpack(frames[0])
-        t = batch_to_torch(decode_arrays(h["arrays"], frames[1:]), raw=True)
+        if "shm" in h:  # copy out of the relay's batch file, then acknowledge
+            reader.set_dir(h["dir"])
+            t = batch_to_torch(reader.read(h), raw=True)
+            ack.send(str(h["batch_id"]).encode())
+        else:
+            t = batch_to_torch(decode_arrays(h["arrays"], frames[1:]), raw=True)
         got += sum(v.numel() * v.element_size() for v in t.values())
         del t, frames
     q.put(("client", clock.read(), got))
     pull.close(0)
+    if ack is not None:
+        ack.close(linger=-1)
+        reader.close()
     ctx.term()
 
 
@@ -182,12 +227,13 @@ def measure(batches: int, path: str, tmp: str) -> dict:
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     a, r, b = f"ipc://{tmp}/w.sock", f"ipc://{tmp}/r.sock", f"ipc://{tmp}/c.sock"
+    k = f"ipc://{tmp}/k.sock" if path == "handoff" else None
     n = batches * B
-    ring = SlotRing.create(3, slot_bytes(40, 5, 128)) if path == "shm" else None
+    ring = SlotRing.create(3, slot_bytes(40, 5, 128)) if path in ("shm", "handoff") else None
     spec = ring.spec if ring else None
     try:
-        procs = [ctx.Process(target=_relay, args=(a, r, b, n, path, spec, q)),
-                 ctx.Process(target=_client, args=(b, batches, q)), ctx.Process(target=_worker, args=(a, r, n, spec))]
+        procs = [ctx.Process(target=_relay, args=(a, r, b, n, path, spec, q, k)),
+                 ctx.Process(target=_client, args=(b, batches, q, k)), ctx.Process(target=_worker, args=(a, r, n, spec))]
         for p in procs:
             p.start()
         out = {}

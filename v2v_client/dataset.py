@@ -122,7 +122,7 @@ class Connection:
         self._hello_seq = 0
         self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
         self.shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
-        self._shm = ShmReader(keep=ds.credits + 4) if self.shm else None
+        self._shm = ShmReader(keep=ds.credits + 2) if self.shm else None
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 

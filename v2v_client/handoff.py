@@ -88,21 +88,26 @@ class _Pool:
         self.bufs: List[np.ndarray] = []
 
     def get(self, nbytes: int) -> np.ndarray:
-        for i, b in enumerate(self.bufs):
-            # references: the list, ``b``, getrefcount's argument: nothing else views it
+        """A buffer of ``nbytes`` that nothing else references (a pooled one when possible)."""
+        # a pooled buffer is free when its references are the list's, the loop variable's and
+        # getrefcount's argument (no tensor or view: views of it reference it directly);
+        # plain for-loops, not enumerate, whose tuple would hold one more
+        for b in self.bufs:
             if b.nbytes == nbytes and sys.getrefcount(b) <= 3:
                 return b
-        b = np.empty(nbytes, np.uint8)
-        if len(self.bufs) >= self.keep:
-            # forget one nothing views (any size), else stop pooling this one
-            for i, old in enumerate(self.bufs):
-                if sys.getrefcount(old) <= 3:
-                    del self.bufs[i]
+        new = np.empty(nbytes, np.uint8)
+        if len(self.bufs) >= self.keep:  # forget one that nothing views, else do not pool the new one
+            gone = None
+            for b in self.bufs:
+                if sys.getrefcount(b) <= 3:
+                    gone = b
                     break
-            else:
-                return b
-        self.bufs.append(b)
-        return b
+            if gone is None:
+                return new
+            self.bufs = [b for b in self.bufs if b is not gone]
+            del gone
+        self.bufs.append(new)
+        return new
 
 
 class ShmReader:
@@ -136,7 +141,9 @@ class ShmReader:
             st = os.fstat(fd)
             if not stat.S_ISREG(st.st_mode) or st.st_size < BATCH_FILE_HEADER:
                 raise ProtocolError(f"field 'shm.file' {name!r} is not a batch file")
-            mm = mmap.mmap(fd, st.st_size, access=mmap.ACCESS_READ)
+            # read-only; MAP_POPULATE maps every page now instead of one fault per 4 KiB later
+            mm = mmap.mmap(fd, st.st_size, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0),
+                           prot=mmap.PROT_READ)
         finally:
             os.close(fd)
         self._maps[name] = mm

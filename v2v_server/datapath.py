@@ -338,7 +338,8 @@ class BatchDir:
                 if e.errno not in (95, 22):  # EOPNOTSUPP / EINVAL: a file system without fallocate
                     raise
                 os.ftruncate(fd, nbytes)
-            mm = mmap.mmap(fd, nbytes)
+            # MAP_POPULATE: the pages are mapped now, not by one fault per 4 KiB at the first fill
+            mm = mmap.mmap(fd, nbytes, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))
         except BaseException:
             _unlink(path)
             raise

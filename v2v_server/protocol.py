@@ -21,6 +21,14 @@ Message types (protocol 2; client messages are decoded and schema-checked by ``w
 
 Version 2 (issue 10): credits by batch id, resume ids as one string per epoch, consumer ids,
 DDP groups, ``dropped``, per-window failures.
+
+Same-host hand-off (issue 11; optional fields, so still version 2): a hello may say
+``"shm": true``; a server bound to ``ipc://`` then names its batch directory in the welcome
+(``info.shm_dir``, else null) and may send a batch with no array frames and
+``"shm": {"file": "b<N>", "gen": <generation>, "offsets": [<byte offset per array>]}`` next to
+the usual ``arrays`` specs: the arrays lie in that file of that directory (see
+``datapath.BatchDir``; ``v2v_client.handoff`` reads and checks them). Batches that are not
+one buffer's rows, and every batch to other clients, still carry frames.
 """
 from __future__ import annotations
 
