@@ -8,7 +8,6 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-import time
 
 import numpy as np
 import pytest
@@ -194,6 +193,12 @@ def test_served_batches_are_identical_with_the_hand_off_on_and_off_and_no_file_o
         assert len(reads) == n_on
         with ServeProcess(args + ep, env=env) as srv:  # raw=False converts from the mapping
             conv = _read_epoch(srv.endpoint, shm=True, raw=False)
+        assert len(reads) > n_on
+        n_conv = len(reads)
+        with ServeProcess(args, env=env) as srv:  # bound to tcp://: the server does not honour shm
+            tcp = _read_epoch(srv.endpoint, shm=True)
+            assert _batch_dirs(shm_root) == []
+        assert len(reads) == n_conv
         # SIGKILL leaves the directory; the next server removes it at start
         srv = ServeProcess(args + ep, env=env).start()
         assert len(_batch_dirs(shm_root)) == 1
@@ -205,11 +210,12 @@ def test_served_batches_are_identical_with_the_hand_off_on_and_off_and_no_file_o
     assert _batch_dirs(shm_root) == []
     # one batch of this corpus is consecutive rows of one buffer (a reference), the other mixes
     # int8 and int16 voxels (stacked: frames); both arrive identical to the frames-only run
-    assert n_on >= 1 and len(on) >= 4 and on.keys() == off.keys() == conv.keys()
+    assert n_on >= 1 and len(on) >= 4 and on.keys() == off.keys() == conv.keys() == tcp.keys()
     for sid in on:
         for k in OUT:
             a, b = on[sid][k], off[sid][k]
             assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), (sid, k)
+            assert a.tobytes() == tcp[sid][k].tobytes()
             assert conv[sid][k].dtype == np.float32
         assert np.array_equal(conv[sid]["voxels"], on[sid]["voxels"].astype(np.float32))
         assert np.array_equal(conv[sid]["frames"], on[sid]["frames"] * np.float32(1 / 255.0))
