@@ -136,6 +136,9 @@ class V2VServer:
             log.info("serving %d video(s) from %s on %s with %d worker(s); samples travel %s",
                      len(self.videos), self.root, self.bound_endpoint, self.cfg.workers,
                      "through shared-memory slot rings" if rings else "as socket frames")
+            if self.assembler.files is not None:
+                log.info("batch buffers in %s: trainers on this host that ask for it (V2VStreamDataset shm='auto') "
+                         "read batches from there instead of the socket", self.assembler.files.path)
             if ready_event is not None:
                 ready_event.set()
             return self._loop()
