@@ -259,6 +259,14 @@ def test_crop_cut_slices_as_crop_frame(flip, x):
     codes = np.random.default_rng(x).integers(0, 256, (181, 596)).astype(np.uint8)
     plan = plan_window(cfg, 0, "v.mp4#0", 0, codes.shape)
     plan.crop_x, plan.flip = x, flip
-    cut = _CropCut(cfg, plan)
-    cut.add(0, codes, True, None, None)
-    np.testing.assert_array_equal(cut.buf[0], crop_frame(cfg, plan, codes))
+    rng = np.random.default_rng(x + flip)
+    frames = [rng.integers(0, 256, (181, 596)).astype(np.uint8) for _ in range(plan.consumed)]
+    lut = rng.permutation(256).astype(np.uint8)  # a code -> full-range map (any table)
+    expand = lambda a: lut[a]  # noqa: E731
+    want = np.stack([expand(crop_frame(cfg, plan, f)) for f in frames])
+    # every row kept as codes (flipped and mapped once at the end), or one row under another map
+    for other in (None, 3):
+        cut = _CropCut(cfg, plan)
+        for k, f in enumerate(frames):
+            cut.add(k, f, k != other, expand, None)
+        np.testing.assert_array_equal(cut.frames(expand), want)
