@@ -368,6 +368,17 @@ def plot(res: Dict, path: str) -> None:
     fig.savefig(path, dpi=100)
 
 
+def _write(out: str, name: str, res: Dict, md: str, tool: str) -> None:
+    """``OUT/NAME.json`` (raw results) and ``OUT/NAME.md`` (the table, marked as written by
+    ``tool``); prints the table."""
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, f"{name}.json"), "w") as f:
+        json.dump(res, f, indent=1)
+    with open(os.path.join(out, f"{name}.md"), "w") as f:
+        f.write(f"<!-- written by {tool}; do not edit -->\n" + md)
+    print(md)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="folder for flow_bench.md, flow_bench.json, img/flow_epe.png")
@@ -387,13 +398,7 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     if a.real:
         res = real_clip_residuals([o for o in a.options if FLOW_OPTIONS[o].method != "raft"])
-        os.makedirs(a.out, exist_ok=True)
-        with open(os.path.join(a.out, f"{a.name}.json"), "w") as f:
-            json.dump(res, f, indent=1)
-        md = real_table(res)
-        with open(os.path.join(a.out, f"{a.name}.md"), "w") as f:
-            f.write("<!-- written by python -m bench.flow --real; do not edit -->\n" + md)
-        print(md)
+        _write(a.out, a.name, res, real_table(res), "python -m bench.flow --real")
         return 0
     if a.from_json:
         with open(a.from_json) as f:
@@ -402,12 +407,7 @@ def main(argv=None) -> int:
     else:
         res = run(a.options, a.displacements, a.step, a.voxels, a.repeats, a.quick, a.kinds)
     os.makedirs(os.path.join(a.out, "img"), exist_ok=True)
-    with open(os.path.join(a.out, f"{a.name}.json"), "w") as f:
-        json.dump(res, f, indent=1)
-    md = table(res)
-    with open(os.path.join(a.out, f"{a.name}.md"), "w") as f:
-        f.write("<!-- written by python -m bench.flow; do not edit -->\n" + md)
-    print(md)
+    _write(a.out, a.name, res, table(res), "python -m bench.flow")
     if a.name != "flow_bench":
         return 0
     try:

@@ -49,10 +49,21 @@ def _sample_arrays():
 
 
 class _Clock:
-    """CPU seconds (user, system) and minor page faults of this process since ``start()``."""
+    """CPU seconds (user, system) and minor page faults of this process since ``start()``
+    (or since the first ``recv`` when never started)."""
+
+    r0 = None
 
     def start(self) -> None:
         self.r0 = resource.getrusage(resource.RUSAGE_SELF)
+
+    def recv(self, sock) -> list:
+        """``sock.recv_multipart(copy=False)``, starting the clock on the first message (set-up
+        and waiting for the first message are not counted)."""
+        frames = sock.recv_multipart(copy=False)
+        if self.r0 is None:
+            self.start()
+        return frames
 
     def read(self) -> dict:
         r = resource.getrusage(resource.RUSAGE_SELF)
@@ -123,12 +134,9 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
         rel.setsockopt(zmq.SNDTIMEO, 2000)
         rel.bind(release)
     pending, sent, sent_batches = [], 0, 0
-    clock = None
+    clock = _Clock()
     for i in range(n):
-        frames = pull.recv_multipart(copy=False)
-        if clock is None:
-            clock = _Clock()
-            clock.start()
+        frames = clock.recv(pull)
         h = unpack(frames[0])
         if path == "old":  # before: a copy per sample, np.stack per batch
             arrays = {k: np.array(v) for k, v in datapath.decode_arrays(h["arrays"], frames[1:]).items()}
@@ -196,12 +204,9 @@ def _client(src: str, batches: int, q, acks: Optional[str] = None) -> None:
         ack.connect(acks)
         reader = ShmReader(keep=CREDITS + 4)
     got = 0
-    clock = None
+    clock = _Clock()
     for _ in range(batches):
-        frames = pull.recv_multipart(copy=False)
-        if clock is None:
-            clock = _Clock()
-            clock.start()
+        frames = clock.recv(pull)
         h = unpack(frames[0])
         if "shm" in h:  # copy out of the relay's batch file, then acknowledge
             reader.set_dir(h["dir"])

@@ -91,10 +91,12 @@ def _send(sock: zmq.Socket, frames, parent_pid: int) -> None:
 
 def wire_arrays(cfg: ServeConfig, arrays: dict) -> dict:
     """Narrow a sample's arrays to their wire dtypes: voxels int8/int16/int32 (the narrowest
-    that holds every count), frames uint8, flow ``cfg.flow_dtype``."""
+    that holds every count), frames uint8, flow ``cfg.flow_dtype``. Voxels that arrive int8 or
+    int16 come from ``simulate_voxels(narrow=True)``, which already picked the narrowest: only
+    int32 ones are scanned."""
     out = {}
     for name, a in arrays.items():
-        if name == "voxels" and a.dtype != np.int8:  # int8 is the narrowest already
+        if name == "voxels" and a.dtype == np.int32:
             a = a.astype(narrow_int_dtype(a), copy=False)
         elif name == "flow":
             a = to_float16(a) if cfg.flow_dtype == "float16" else a.astype(cfg.flow_dtype, copy=False)
