@@ -40,6 +40,7 @@ Flow convention everywhere: pixels, ``(dx, dy)`` with ``a(x) ~ b(x + flow(x))``.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -595,19 +596,6 @@ class FlowEstimator:
             prev = f
         return out
 
-    def _lk(self, a: np.ndarray, b: np.ndarray, pts: np.ndarray, guess: Optional[np.ndarray], levels: int):
-        """LK of float32 points (m, 1, 2) from frame ``a`` to ``b`` (uint8), from zero or from
-        ``guess`` (m, 1, 2; a fresh array, overwritten): (new points (m, 1, 2), bool status (m,))."""
-        t = self.option.track
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, t.iterations, float(t.eps))
-        win = (t.window, t.window)
-        if guess is None:
-            nxt, st, _err = cv2.calcOpticalFlowPyrLK(a, b, pts, None, winSize=win, maxLevel=levels, criteria=crit)
-        else:
-            nxt, st, _err = cv2.calcOpticalFlowPyrLK(a, b, pts, guess, winSize=win, maxLevel=levels, criteria=crit,
-                                                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        return nxt, st[:, 0].view(bool)
-
     def _tracked(self, frames: np.ndarray, step: int, repeats: Optional[np.ndarray], out: np.ndarray) -> np.ndarray:
         """``voxel_flows`` of a ``tracked`` option (see ``TrackParams``). Per voxel the grid
         points are tracked over its one-frame pairs. A pair of equal frames (a pause, marked in
@@ -624,26 +612,35 @@ class FlowEstimator:
             u8.append(u8[-1] if k and repeats is not None and repeats[k] else _to_u8(f))
         same = [False] + [a is b or cv2.norm(a, b, cv2.NORM_INF) == 0 for a, b in zip(u8[:-1], u8[1:])]
         g0, wy, wx_t = _track_grid(t.grid, h, w)
-        grid_flows = np.empty((n_vox, len(g0), 2), np.float32)
-        valid = np.empty((n_vox, len(g0)), bool)
+        m = len(g0)
+        # OpenCV pyramidal LK (one call per pair, on the whole grid): from zero with ``levels``,
+        # or from a guess (OPTFLOW_USE_INITIAL_FLOW) with ``prior_levels``
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, t.iterations, float(t.eps))
+        lk = functools.partial(cv2.calcOpticalFlowPyrLK, winSize=(t.window, t.window), criteria=crit)
+        guess_flag = cv2.OPTFLOW_USE_INITIAL_FLOW
+        grid_flows = np.empty((n_vox, m, 2), np.float32)
+        valid = np.empty((n_vox, m), bool)
         for l in range(n_vox):
             # every point is tracked over every pair (a dropped one too: cheaper than picking
             # the others out); ``ok`` remembers which were never dropped
-            p, ok, v = g0, np.ones(len(g0), bool), None  # v: the points' last one-frame motion
+            p, ok, v = g0, np.ones(m, bool), None  # v: the points' last one-frame motion
             for i in range(l * step, (l + 1) * step):
                 if same[i + 1]:  # a pause: nothing moves; the next pair starts from zero
                     v = None
                     continue
+                a, b = u8[i], u8[i + 1]
                 if v is None:
-                    nxt, st = self._lk(u8[i], u8[i + 1], p, None, t.levels)
+                    nxt, st, _ = lk(a, b, p, None, maxLevel=t.levels)
+                    st = st[:, 0].view(bool)
                 else:
-                    nxt, st = self._lk(u8[i], u8[i + 1], p, p + v, t.prior_levels)
+                    nxt, st, _ = lk(a, b, p, p + v, maxLevel=t.prior_levels, flags=guess_flag)
+                    st = st[:, 0].view(bool)
                     if not st.all():
                         x, y = nxt[:, 0, 0], nxt[:, 0, 1]
                         redo = ~st & ok & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
                         if redo.any():
-                            again, st2 = self._lk(u8[i], u8[i + 1], p[redo], None, t.levels)
-                            nxt[redo], st[redo] = again, st2
+                            again, st2, _ = lk(a, b, p[redo], None, maxLevel=t.levels)
+                            nxt[redo], st[redo] = again, st2[:, 0].view(bool)
                 v, p = nxt - p, nxt
                 ok &= st
             grid_flows[l] = (p - g0)[:, 0]
