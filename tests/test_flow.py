@@ -78,11 +78,13 @@ def _similarity_clip(kind, d):
     return render(img, motion_matrices(img.shape, kind, d, STEP, 2, 0.0), STEP)
 
 
-@pytest.mark.parametrize("kind,d", [("rotation", 40.0), ("zoom-in", 20.0), ("zoom-out", 30.0)])
+@pytest.mark.parametrize("kind,d", [("rotation", 40.0), ("zoom-in", 20.0), ("zoom-out", 30.0),
+                                    ("zoom-in", 40.0), ("zoom-out", 40.0)])
 def test_default_holds_rotation_and_zoom_at_large_motion(kind, d):
-    """Rotation by 46 degrees per voxel (40 px at the median radius), zoom in by 1.39x and out
-    by 0.56x per voxel: the default's median EPE stays under 2 px, where the DIS chain at
-    quarter size (the default before) under-estimates every one-frame pair and is off by 3-13 px."""
+    """Rotation by 46 degrees per voxel (40 px at the median radius), zoom in by 1.39x / 1.78x
+    and out by 0.41x / 0.22x per voxel: the default's median EPE stays under 2 px, where the DIS
+    chain at quarter size (the default before) under-estimates every one-frame pair and is off
+    by 3-30 px."""
     from bench.flow import epe
 
     frames, gts = _similarity_clip(kind, d)
@@ -93,6 +95,54 @@ def test_default_holds_rotation_and_zoom_at_large_motion(kind, d):
 
     assert median(DEFAULT_FLOW) < 2.0
     assert median("chained-quarter-s6") > 2.0
+
+
+def _zoom_off():
+    est = FlowEstimator(DEFAULT_FLOW)
+    est.option = dataclasses.replace(est.option, track=dataclasses.replace(est.option.track, zoom=None))
+    return est
+
+
+def test_zoom_compensation_is_what_holds_a_fast_zoom_out():
+    """Zooming out to 0.22x per voxel (1.35x smaller every frame): plain LK drifts as the
+    window's content shrinks (median EPE far over 2 px without ``zoom``); warping each next frame
+    by the similarity predicted from the previous pair keeps it under 0.5 px."""
+    from bench.flow import epe
+
+    frames, gts = _similarity_clip("zoom-out", 40.0)
+    on = FlowEstimator(DEFAULT_FLOW).voxel_flows(frames, STEP)
+    off = _zoom_off().voxel_flows(frames, STEP)
+    med = lambda fl: float(np.median(np.concatenate([epe(fl[l], gts[l]) for l in range(len(gts))])))  # noqa: E731
+    assert med(on) < 0.5
+    assert med(off) > 4.0
+
+
+def test_zoom_compensation_leaves_other_motion_alone():
+    """Translation, rotation and an object moving over a background that moves otherwise (the
+    points spread, but no similarity explains them): not one pair is compensated, the flow is
+    bit for bit that of plain tracking."""
+    from bench.flow_objects import render
+
+    clips = [panning_frames(2 * STEP + 1, 8)[:, :128, :128], _similarity_clip("rotation", 40.0)[0]]
+    obj = cv2.resize(texture(256, 256)[::-1], (48, 48), interpolation=cv2.INTER_AREA)
+    clips.append(render(texture(400, 400), obj, (4.0, 0.0), (-3.0, 8.0))[0])  # 20 / 40 px per voxel
+    on, off = FlowEstimator(DEFAULT_FLOW), _zoom_off()
+    for frames in clips:
+        np.testing.assert_array_equal(on.voxel_flows(frames, STEP), off.voxel_flows(frames, STEP))
+
+
+def test_similarity_fit_recovers_scale_rotation_and_shift_despite_outliers():
+    from v2v_server.flow import _log_scale, _similarity_fit
+
+    rng = np.random.default_rng(0)
+    p = rng.uniform(0, 127, (64, 2))
+    a = 0.8 * np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    q = p @ a.T + [5.0, -3.0]
+    q[:6] += rng.uniform(20, 40, (6, 2))  # points on the wrong match
+    m = _similarity_fit(p, q)
+    np.testing.assert_allclose(m, np.column_stack([a, [5.0, -3.0]]), atol=1e-9)
+    assert _log_scale(m) == pytest.approx(np.log(0.8))
+    assert _similarity_fit(np.ones((5, 2)), np.ones((5, 2))) is None  # no spread
 
 
 def test_tracked_fills_dropped_points_with_a_local_affine_fit():
@@ -181,7 +231,8 @@ def test_option_table_and_config_validation():
         DISParams("slow")
     with pytest.raises(ValueError, match="patch_size"):
         DISParams("fast", patch_size=0)
-    for bad in (dict(grid=1), dict(window=8), dict(levels=-1), dict(iterations=0), dict(eps=0.0), dict(grid=True)):
+    for bad in (dict(grid=1), dict(window=8), dict(levels=-1), dict(iterations=0), dict(eps=0.0), dict(grid=True),
+                dict(zoom=0.0), dict(zoom=True), dict(zoom="0.05"), dict(compensated_levels=-1)):
         with pytest.raises(ValueError, match="tracking"):
             TrackParams(**bad)
     with pytest.raises(ValueError, match="TrackParams"):

@@ -19,8 +19,9 @@ known motion (docs/flow.md):
 * ``tracked``: a grid of points tracked frame by frame through the voxel with pyramidal
   Lucas-Kanade (Bouguet's KLT, OpenCV ``calcOpticalFlowPyrLK``), the first pair of a voxel
   searched from zero over the pyramid, later pairs started from the point's previous
-  one-frame motion; the voxel's flow at a grid point is where it ended minus where it started,
-  made dense by bilinear interpolation between the grid points. Tracking composes exactly
+  one-frame motion, and pairs of a fast zoom tracked in the next frame resized by the
+  predicted scale (``TrackParams.zoom``); the voxel's flow at a grid point is where it ended
+  minus where it started, made dense by bilinear interpolation between the grid points. Tracking composes exactly
   (no resampling of intermediate flows) and a point's flow is measured at the point itself,
   so rotation and zoom are not shrunk towards the patch centres as DIS's densification does
   near the crop border.
@@ -49,6 +50,7 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 import cv2
+import numba
 import numpy as np
 
 __all__ = [
@@ -138,6 +140,21 @@ class TrackParams:
             from zero with ``levels``.
         iterations, eps: LK stopping rule per level (at most ``iterations``; or a step under
             ``eps`` px).
+        zoom: scale change per frame, as ``|log s|``, above which pairs are tracked
+            zoom-compensated (None: never). LK follows a translating window; when the view
+            shrinks or grows by more than a few per cent per frame, the window's content
+            changes scale and LK drifts or drops the point (a 5 % scale change per frame is
+            1.28x per 5-frame voxel). A compensated pair resizes the second frame by the
+            inverse of the scale predicted from the previous pair (a similarity fitted to its
+            points' motion, ``_zoom_fit``), starts LK from the positions the similarity
+            predicts, searched over ``compensated_levels`` levels, and maps the points back.
+            The scale is checked once per voxel, on the pair that moves the points off the
+            grid (entering: that pair is tracked again, compensated by its own fit, and kept
+            if the fit explains the points' motion as a whole, ``ZOOM_INLIERS``); while
+            compensated, on every pair, and the mode carries into the next voxel while the
+            scale change stays above ``zoom``.
+        compensated_levels: pyramid levels above full resolution for a compensated pair (the
+            motion left after the prediction is small).
     """
 
     grid: int = 8
@@ -146,9 +163,12 @@ class TrackParams:
     prior_levels: int = 0
     iterations: int = 5
     eps: float = 0.03
+    zoom: Optional[float] = 0.05
+    compensated_levels: int = 0
 
     def __post_init__(self):
-        for name, low in (("grid", 2), ("window", 3), ("levels", 0), ("prior_levels", 0), ("iterations", 1)):
+        for name, low in (("grid", 2), ("window", 3), ("levels", 0), ("prior_levels", 0), ("iterations", 1),
+                          ("compensated_levels", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ValueError(f"tracking {name} must be an integer >= {low}, got {v!r}")
@@ -156,6 +176,10 @@ class TrackParams:
             raise ValueError(f"tracking window must be odd, got {self.window}")
         if not (isinstance(self.eps, (int, float)) and self.eps > 0):
             raise ValueError(f"tracking eps must be a positive number (px), got {self.eps!r}")
+        if self.zoom is not None and (isinstance(self.zoom, bool) or not isinstance(self.zoom, (int, float))
+                                      or not self.zoom > 0):
+            raise ValueError(f"tracking zoom must be None or a positive number (|log scale| per frame), "
+                             f"got {self.zoom!r}")
 
 
 @dataclass(frozen=True)
@@ -300,6 +324,13 @@ def compose_flows(flows: List[np.ndarray]) -> np.ndarray:
     return total
 
 
+#: Zoom compensation (``TrackParams.zoom``) starts only when the fitted similarity explains at
+#: least this fraction of the points' motion (to 1 px, or 10 % of a point's motion).
+ZOOM_INLIERS = 0.75
+#: ... and only up to 2x per frame (``|log s| <= log 2``): a larger fitted scale is not a zoom
+#: but points lost in one place.
+ZOOM_MAX = math.log(2.0)
+
 _GRIDS: Dict[tuple, np.ndarray] = {}
 
 
@@ -394,6 +425,163 @@ def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge:
     sub[where] = fill.astype(np.float32)
     out[vox] = sub
     return out.reshape(grid_flow.shape)
+
+
+@numba.njit(cache=True)
+def _fit_once(p, q, use):
+    """Least-squares similarity of the points ``use`` selects: (ok, a, b, tx, ty)."""
+    n = 0
+    mpx = mpy = mqx = mqy = 0.0
+    for k in range(p.shape[0]):
+        if use[k]:
+            n += 1
+            mpx += p[k, 0]
+            mpy += p[k, 1]
+            mqx += q[k, 0]
+            mqy += q[k, 1]
+    if n < 2:
+        return False, 0.0, 0.0, 0.0, 0.0
+    mpx /= n
+    mpy /= n
+    mqx /= n
+    mqy /= n
+    den = sa = sb = 0.0
+    for k in range(p.shape[0]):
+        if use[k]:
+            px, py = p[k, 0] - mpx, p[k, 1] - mpy
+            qx, qy = q[k, 0] - mqx, q[k, 1] - mqy
+            den += px * px + py * py
+            sa += px * qx + py * qy
+            sb += px * qy - py * qx
+    if den <= 1e-9:
+        return False, 0.0, 0.0, 0.0, 0.0
+    a, b = sa / den, sb / den
+    return True, a, b, mqx - (a * mpx - b * mpy), mqy - (b * mpx + a * mpy)
+
+
+@numba.njit(cache=True)
+def _zoom_fit(p, q, good, zoom, whole, inliers, out):
+    """The similarity taking points ``p`` to ``q`` (float (m, 2), px) over the points ``good``,
+    written to ``out`` (float64 (2, 3)) when it changes scale by more than ``zoom`` and at most
+    ``ZOOM_MAX`` (|log s|; ``zoom`` negative: any) and, with ``whole``, brings at least the fraction ``inliers`` of the good
+    points within max(1 px, 10 % of their motion). Returns whether it did. A cheap look first:
+    the spread of the points about their mean grows by the scale of a similarity."""
+    m = p.shape[0]
+    n = 0
+    for k in range(m):
+        n += good[k]
+    if n < 4:
+        return False
+    if zoom >= 0.0:
+        mpx = mpy = mqx = mqy = 0.0
+        for k in range(m):
+            if good[k]:
+                mpx += p[k, 0]
+                mpy += p[k, 1]
+                mqx += q[k, 0]
+                mqy += q[k, 1]
+        mpx /= n
+        mpy /= n
+        mqx /= n
+        mqy /= n
+        sp = sq = 0.0
+        for k in range(m):
+            if good[k]:
+                sp += (p[k, 0] - mpx) ** 2 + (p[k, 1] - mpy) ** 2
+                sq += (q[k, 0] - mqx) ** 2 + (q[k, 1] - mqy) ** 2
+        if abs(0.5 * math.log(max(sq, 1e-12) / max(sp, 1e-9))) <= zoom:
+            return False
+    ok, a, b, tx, ty = _fit_once(p, q, good)
+    if not ok:
+        return False
+    # refit once without the points the first fit leaves far off (points LK kept on the wrong
+    # match, or on an object moving otherwise): residual over max(1 px, 3 x the median)
+    res = np.empty(n)
+    j = 0
+    for k in range(m):
+        if good[k]:
+            res[j] = math.hypot(a * p[k, 0] - b * p[k, 1] + tx - q[k, 0], b * p[k, 0] + a * p[k, 1] + ty - q[k, 1])
+            j += 1
+    cut = max(1.0, 3.0 * np.median(res))
+    keep = good.copy()
+    kept = 0
+    j = 0
+    for k in range(m):
+        if good[k]:
+            keep[k] = res[j] <= cut
+            kept += keep[k]
+            j += 1
+    if 3 <= kept < n:
+        ok2, a2, b2, tx2, ty2 = _fit_once(p, q, keep)
+        if ok2:
+            a, b, tx, ty = a2, b2, tx2, ty2
+    if zoom >= 0.0 and not zoom < abs(0.5 * math.log(max(a * a + b * b, 1e-12))) <= ZOOM_MAX:
+        return False
+    if whole:
+        fit = 0
+        for k in range(m):
+            if good[k]:
+                r = math.hypot(a * p[k, 0] - b * p[k, 1] + tx - q[k, 0], b * p[k, 0] + a * p[k, 1] + ty - q[k, 1])
+                fit += r <= max(1.0, 0.1 * math.hypot(q[k, 0] - p[k, 0], q[k, 1] - p[k, 1]))
+        if fit < inliers * n:
+            return False
+    out[0, 0], out[0, 1], out[0, 2] = a, -b, tx
+    out[1, 0], out[1, 1], out[1, 2] = b, a, ty
+    return True
+
+
+@numba.njit(cache=True)
+def _to_resized(p, sim, fx, fy, dw, dh, w, h, out):
+    """Zoom compensation, forward: the positions ``sim`` predicts for points ``p`` (float32
+    (m, 1, 2)) in frame b, expressed in b resized to (dh, dw) (``cv2.resize``'s pixel centres:
+    b's x = (x' + 0.5) * fx - 0.5), written to ``out`` relative to the top-left corner
+    (ox, oy) of the w x h window of the resized b that is centred on them (kept inside it when
+    it is larger). Returns (ox, oy)."""
+    m = p.shape[0]
+    sx = sy = 0.0
+    for k in range(m):
+        x, y = p[k, 0, 0], p[k, 0, 1]
+        u = (sim[0, 0] * x + sim[0, 1] * y + sim[0, 2] + 0.5) / fx - 0.5
+        v = (sim[1, 0] * x + sim[1, 1] * y + sim[1, 2] + 0.5) / fy - 0.5
+        out[k, 0, 0], out[k, 0, 1] = u, v
+        sx += u
+        sy += v
+    ox = min(max(int(round(sx / m - (w - 1) / 2.0)), 0), max(dw - w, 0))
+    oy = min(max(int(round(sy / m - (h - 1) / 2.0)), 0), max(dh - h, 0))
+    for k in range(m):
+        out[k, 0, 0] -= ox
+        out[k, 0, 1] -= oy
+    return ox, oy
+
+
+@numba.njit(cache=True)
+def _from_resized(r, ox, oy, fx, fy, w, h, st):
+    """Zoom compensation, back: points ``r`` (float32 (m, 1, 2)) found in the window at (ox, oy)
+    of the resized b, in place to b's pixels; a point that lands outside b (what the resized
+    window shows there is reflected, not seen) is marked lost in ``st``."""
+    for k in range(r.shape[0]):
+        x = (r[k, 0, 0] + ox + 0.5) * fx - 0.5
+        y = (r[k, 0, 1] + oy + 0.5) * fy - 0.5
+        r[k, 0, 0], r[k, 0, 1] = x, y
+        if not (0.0 <= x <= w - 1 and 0.0 <= y <= h - 1):
+            st[k] = False
+
+
+def _similarity_fit(p: np.ndarray, q: np.ndarray) -> Optional[np.ndarray]:
+    """Least-squares similarity (scale, rotation, translation) taking points ``p`` to ``q``
+    (float (k, 2) each, pixels, k >= 4): float64 (2, 3) ``[[a, -b, tx], [b, a, ty]]`` with
+    ``q ~ M[:, :2] @ p + M[:, 2]`` (the closed form of Umeyama 1991 without reflection), refit
+    once without the points whose residual exceeds ``max(1 px, 3 x the median)`` (points LK
+    kept on the wrong match, or on an object moving otherwise). None when the points have no
+    spread (all in one place) or are fewer than 4. The tracker calls ``_zoom_fit`` directly."""
+    p, q = np.ascontiguousarray(p, np.float64), np.ascontiguousarray(q, np.float64)
+    out = np.empty((2, 3))
+    return out if _zoom_fit(p, q, np.ones(len(p), np.bool_), -1.0, False, 0.0, out) else None
+
+
+def _log_scale(m: np.ndarray) -> float:
+    """log of the scale of a similarity (2, 3) from ``_similarity_fit``."""
+    return 0.5 * math.log(max(abs(float(np.linalg.det(m[:, :2]))), 1e-12))
 
 
 def raft_weights(size: str = "small") -> Optional[Path]:
@@ -603,7 +791,8 @@ class FlowEstimator:
         from zero. A point LK drops (status 0: it left the crop, or its window is flat or lost
         its match) stops there and takes a local affine fit of the other points' flows at the
         end of the voxel (``_fill_lost``); one dropped inside the crop while started from its
-        previous motion is first searched once more from zero."""
+        previous motion is first searched once more from zero. While the view zooms faster
+        than ``TrackParams.zoom`` per frame, pairs are tracked zoom-compensated (see there)."""
         t = self.option.track
         n_vox = out.shape[0]
         h, w = frames.shape[1:]
@@ -618,8 +807,34 @@ class FlowEstimator:
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, t.iterations, float(t.eps))
         lk = functools.partial(cv2.calcOpticalFlowPyrLK, winSize=(t.window, t.window), criteria=crit)
         guess_flag = cv2.OPTFLOW_USE_INITIAL_FLOW
+
+        def compensated(a, b, p, sim):
+            # LK from a to b resized by 1 / (the predicted scale), started from the predicted
+            # positions (see ``_to_resized``); a w x h window of the resized b over the
+            # predicted points is searched (reflected where it is smaller). A resize costs
+            # about a fifth of a warpAffine of the same frame.
+            s = math.hypot(sim[0, 0], sim[1, 0])
+            dw, dh = max(1, int(round(w / s))), max(1, int(round(h / s)))
+            guess = np.empty_like(p)
+            ox, oy = _to_resized(p, sim, w / dw, h / dh, dw, dh, w, h, guess)
+            bs = cv2.resize(b, (dw, dh), interpolation=cv2.INTER_LINEAR)[oy:oy + h, ox:ox + w]
+            if bs.shape != (h, w):
+                bs = cv2.copyMakeBorder(bs, 0, h - bs.shape[0], 0, w - bs.shape[1], cv2.BORDER_REFLECT101)
+            r, st, _ = lk(a, np.ascontiguousarray(bs), p, guess, maxLevel=t.compensated_levels, flags=guess_flag)
+            st = st[:, 0].view(bool)
+            _from_resized(r, ox, oy, w / dw, h / dh, w, h, st)  # in place: r to b's pixels, st
+            return r, st
+
+        def zoom_fit(p, nxt, good, whole):
+            # the pair's similarity if it zooms more than t.zoom (and, with ``whole``, explains
+            # the points' motion as a whole: mixed motion, objects or parallax, that merely
+            # spreads the points is left to plain tracking), else None
+            sim = np.empty((2, 3))
+            return sim if _zoom_fit(p[:, 0], nxt[:, 0], good, t.zoom, whole, ZOOM_INLIERS, sim) else None
+
         grid_flows = np.empty((n_vox, m, 2), np.float32)
         valid = np.empty((n_vox, m), bool)
+        sim = None  # the predicted one-frame similarity (2, 3) while zoom-compensated
         for l in range(n_vox):
             # every point is tracked over every pair (a dropped one too: cheaper than picking
             # the others out); ``ok`` remembers which were never dropped
@@ -629,7 +844,10 @@ class FlowEstimator:
                     v = None
                     continue
                 a, b = u8[i], u8[i + 1]
-                if v is None:
+                check = t.zoom is not None and (sim is not None or p is g0)
+                if sim is not None:
+                    nxt, st = compensated(a, b, p, sim)
+                elif v is None:
                     nxt, st, _ = lk(a, b, p, None, maxLevel=t.levels)
                     st = st[:, 0].view(bool)
                 else:
@@ -641,6 +859,18 @@ class FlowEstimator:
                         if redo.any():
                             again, st2, _ = lk(a, b, p[redo], None, maxLevel=t.levels)
                             nxt[redo], st[redo] = again, st2[:, 0].view(bool)
+                if check:  # once per voxel, or every pair while compensated
+                    if sim is None:
+                        # a zoom? this pair once more, compensated by its own fit (plain LK
+                        # drifts under strong zoom), kept if the view zooms as a whole
+                        fit = zoom_fit(p, nxt, st & ok, False)
+                        if fit is not None:
+                            nxt2, st2 = compensated(a, b, p, fit)
+                            sim = zoom_fit(p, nxt2, st2 & ok, True)
+                            if sim is not None:
+                                nxt, st = nxt2, st2
+                    else:
+                        sim = zoom_fit(p, nxt, st & ok, True)
                 v, p = nxt - p, nxt
                 ok &= st
             grid_flows[l] = (p - g0)[:, 0]
