@@ -429,7 +429,8 @@ def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge:
 
 @numba.njit(cache=True)
 def _fit_once(p, q, use):
-    """Least-squares similarity of the points ``use`` selects: (ok, a, b, tx, ty)."""
+    """Least-squares similarity of the points ``use`` selects: (ok, a, b, tx, ty, sp, sq), with
+    sp, sq the spreads (sums of squared distances to their means) of those points of p and q."""
     n = 0
     mpx = mpy = mqx = mqy = 0.0
     for k in range(p.shape[0]):
@@ -440,59 +441,48 @@ def _fit_once(p, q, use):
             mqx += q[k, 0]
             mqy += q[k, 1]
     if n < 2:
-        return False, 0.0, 0.0, 0.0, 0.0
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     mpx /= n
     mpy /= n
     mqx /= n
     mqy /= n
-    den = sa = sb = 0.0
+    den = sq = sa = sb = 0.0
     for k in range(p.shape[0]):
         if use[k]:
             px, py = p[k, 0] - mpx, p[k, 1] - mpy
             qx, qy = q[k, 0] - mqx, q[k, 1] - mqy
             den += px * px + py * py
+            sq += qx * qx + qy * qy
             sa += px * qx + py * qy
             sb += px * qy - py * qx
     if den <= 1e-9:
-        return False, 0.0, 0.0, 0.0, 0.0
+        return False, 0.0, 0.0, 0.0, 0.0, den, sq
     a, b = sa / den, sb / den
-    return True, a, b, mqx - (a * mpx - b * mpy), mqy - (b * mpx + a * mpy)
+    return True, a, b, mqx - (a * mpx - b * mpy), mqy - (b * mpx + a * mpy), den, sq
+
+
+@numba.njit(cache=True, inline="always")
+def _residual(a, b, tx, ty, p, q, k):
+    """Distance (px) between point k of q and where the similarity (a, b, tx, ty) takes p's."""
+    return math.hypot(a * p[k, 0] - b * p[k, 1] + tx - q[k, 0], b * p[k, 0] + a * p[k, 1] + ty - q[k, 1])
 
 
 @numba.njit(cache=True)
 def _zoom_fit(p, q, good, zoom, whole, inliers, out):
     """The similarity taking points ``p`` to ``q`` (float (m, 2), px) over the points ``good``,
     written to ``out`` (float64 (2, 3)) when it changes scale by more than ``zoom`` and at most
-    ``ZOOM_MAX`` (|log s|; ``zoom`` negative: any) and, with ``whole``, brings at least the fraction ``inliers`` of the good
-    points within max(1 px, 10 % of their motion). Returns whether it did. A cheap look first:
-    the spread of the points about their mean grows by the scale of a similarity."""
+    ``ZOOM_MAX`` (|log s|; ``zoom`` negative: any) and, with ``whole``, brings at least the
+    fraction ``inliers`` of the good points within max(1 px, 10 % of their motion). Returns
+    whether it did. The common case (no zoom) ends after one pass: the spread of the points
+    about their mean grows by the scale of a similarity."""
     m = p.shape[0]
     n = 0
     for k in range(m):
         n += good[k]
     if n < 4:
         return False
-    if zoom >= 0.0:
-        mpx = mpy = mqx = mqy = 0.0
-        for k in range(m):
-            if good[k]:
-                mpx += p[k, 0]
-                mpy += p[k, 1]
-                mqx += q[k, 0]
-                mqy += q[k, 1]
-        mpx /= n
-        mpy /= n
-        mqx /= n
-        mqy /= n
-        sp = sq = 0.0
-        for k in range(m):
-            if good[k]:
-                sp += (p[k, 0] - mpx) ** 2 + (p[k, 1] - mpy) ** 2
-                sq += (q[k, 0] - mqx) ** 2 + (q[k, 1] - mqy) ** 2
-        if abs(0.5 * math.log(max(sq, 1e-12) / max(sp, 1e-9))) <= zoom:
-            return False
-    ok, a, b, tx, ty = _fit_once(p, q, good)
-    if not ok:
+    ok, a, b, tx, ty, sp, sq = _fit_once(p, q, good)
+    if not ok or (zoom >= 0.0 and abs(0.5 * math.log(max(sq, 1e-12) / sp)) <= zoom):
         return False
     # refit once without the points the first fit leaves far off (points LK kept on the wrong
     # match, or on an object moving otherwise): residual over max(1 px, 3 x the median)
@@ -500,7 +490,7 @@ def _zoom_fit(p, q, good, zoom, whole, inliers, out):
     j = 0
     for k in range(m):
         if good[k]:
-            res[j] = math.hypot(a * p[k, 0] - b * p[k, 1] + tx - q[k, 0], b * p[k, 0] + a * p[k, 1] + ty - q[k, 1])
+            res[j] = _residual(a, b, tx, ty, p, q, k)
             j += 1
     cut = max(1.0, 3.0 * np.median(res))
     keep = good.copy()
@@ -512,7 +502,7 @@ def _zoom_fit(p, q, good, zoom, whole, inliers, out):
             kept += keep[k]
             j += 1
     if 3 <= kept < n:
-        ok2, a2, b2, tx2, ty2 = _fit_once(p, q, keep)
+        ok2, a2, b2, tx2, ty2, _, _ = _fit_once(p, q, keep)
         if ok2:
             a, b, tx, ty = a2, b2, tx2, ty2
     if zoom >= 0.0 and not zoom < abs(0.5 * math.log(max(a * a + b * b, 1e-12))) <= ZOOM_MAX:
@@ -521,8 +511,7 @@ def _zoom_fit(p, q, good, zoom, whole, inliers, out):
         fit = 0
         for k in range(m):
             if good[k]:
-                r = math.hypot(a * p[k, 0] - b * p[k, 1] + tx - q[k, 0], b * p[k, 0] + a * p[k, 1] + ty - q[k, 1])
-                fit += r <= max(1.0, 0.1 * math.hypot(q[k, 0] - p[k, 0], q[k, 1] - p[k, 1]))
+                fit += _residual(a, b, tx, ty, p, q, k) <= max(1.0, 0.1 * math.hypot(q[k, 0] - p[k, 0], q[k, 1] - p[k, 1]))
         if fit < inliers * n:
             return False
     out[0, 0], out[0, 1], out[0, 2] = a, -b, tx
@@ -577,11 +566,6 @@ def _similarity_fit(p: np.ndarray, q: np.ndarray) -> Optional[np.ndarray]:
     p, q = np.ascontiguousarray(p, np.float64), np.ascontiguousarray(q, np.float64)
     out = np.empty((2, 3))
     return out if _zoom_fit(p, q, np.ones(len(p), np.bool_), -1.0, False, 0.0, out) else None
-
-
-def _log_scale(m: np.ndarray) -> float:
-    """log of the scale of a similarity (2, 3) from ``_similarity_fit``."""
-    return 0.5 * math.log(max(abs(float(np.linalg.det(m[:, :2]))), 1e-12))
 
 
 def raft_weights(size: str = "small") -> Optional[Path]:

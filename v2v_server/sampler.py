@@ -103,9 +103,9 @@ def plan_window(cfg: ServeConfig, epoch: int, sample_id: str, window: int, kept_
     return plan
 
 
-def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
+def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarray:
     """Scale (if needed), crop and flip one kept-region luma frame -> (S, S) of the same dtype
-    (uint8, or uint16 for deeper sources), a copy (written into ``out`` when given)."""
+    (uint8, or uint16 for deeper sources), a copy."""
     s = cfg.crop_size
     if plan.scale > 1.0:
         h, w = luma.shape
@@ -114,10 +114,7 @@ def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray, out: Option
     c = luma[plan.crop_y:plan.crop_y + s, plan.crop_x:plan.crop_x + s]
     if plan.flip:
         c = c[:, ::-1]
-    if out is None:
-        return np.ascontiguousarray(c)
-    np.copyto(out, c)
-    return out
+    return np.ascontiguousarray(c)
 
 
 def make_sample(
