@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import pytest
 
 from tests.conftest import read_luma_clip
-from v2v_server.kernel import ZIGGURAT_R, full_scale_of, noise_field, run_kernel
+from v2v_server.kernel import (NOISE_LANES, NOISE_MAX, _jsf_words, _ln32, _sincos_turn, full_scale_of,
+                               noise_field, run_kernel)
 from v2v_server.nonideal import NonIdealities, draw_pixel_state, simulate_voxels_nonideal
 from v2v_server.refine import simulate_voxels_refined
 from v2v_server.simulate import SensorParams, log_intensity_lut, simulate_voxels
@@ -18,13 +20,20 @@ def test_noise_is_standard_normal():
     z = noise_field(123, 40, (100, 100)).ravel()  # 400k draws
     assert abs(z.mean()) < 4 / math.sqrt(z.size)
     assert z.std() == pytest.approx(1.0, abs=0.005)
-    # quantiles of N(0, 1), the tail beyond the ziggurat's base layer included
-    for q, tail in ((1.0, 0.317311), (2.0, 0.0455003), (3.0, 0.0026998), (ZIGGURAT_R, 0.000258)):
+    # tail masses of N(0, 1) out to 4 sigma
+    for q, tail in ((1.0, 0.317311), (2.0, 0.0455003), (3.0, 0.0026998), (3.6541528853610088, 0.000258),
+                    (4.0, 6.334e-5)):
         expect = tail * z.size
         assert abs((np.abs(z) > q).sum() - expect) < 5 * math.sqrt(expect) + 3, q
-    assert np.abs(z).max() > ZIGGURAT_R  # the tail is reached
+    assert 4.0 < np.abs(z).max() <= NOISE_MAX * (1 + 1e-6)
     # third and fourth moments (skew 0, kurtosis 3)
     assert abs((z**3).mean()) < 0.02 and (z**4).mean() == pytest.approx(3.0, abs=0.05)
+    # Kolmogorov-Smirnov distance to the normal CDF: 1.63 / sqrt(n) is its 1 % critical value
+    zs = np.sort(z)
+    cdf = 0.5 * (1.0 + np.array([math.erf(v / math.sqrt(2.0)) for v in zs]))
+    n = zs.size
+    d = max(np.max(np.arange(1, n + 1) / n - cdf), np.max(cdf - np.arange(n) / n))
+    assert d < 1.63 / math.sqrt(n)
 
 
 def test_noise_depends_only_on_seed_and_pair():
@@ -36,12 +45,67 @@ def test_noise_depends_only_on_seed_and_pair():
     assert np.abs(np.corrcoef(big)[np.triu_indices(10, 1)]).max() < 0.05
 
 
-def test_noise_words_are_drawn_in_order_for_odd_sizes():
-    # two normals per 64-bit draw, low word first: a frame of 7 pixels is the first 7 of 8,
-    # and the two words of one draw are not correlated
+def test_noise_halves_and_lanes_are_uncorrelated():
+    # pixel j and pixel ceil(n/2) + j are one Box-Muller pair (cos and sin): uncorrelated,
+    # also in their squares (r is shared: a correlation of |z| would show a bad transform);
+    # an odd frame is the next even one without its last pixel (same pairs)
     np.testing.assert_array_equal(noise_field(3, 2, (1, 7)), noise_field(3, 2, (1, 8))[..., :7])
     z = noise_field(3, 1, (400, 400)).ravel()
-    assert abs(np.corrcoef(z[0::2], z[1::2])[0, 1]) < 0.01
+    h = z.size // 2
+    assert abs(np.corrcoef(z[:h], z[h:])[0, 1]) < 0.01
+    assert abs(np.corrcoef(z[:h] ** 2, z[h:] ** 2)[0, 1]) < 0.01
+    # the lanes' words: neighbouring pixels come from different generators
+    assert abs(np.corrcoef(z[:-1], z[1:])[0, 1]) < 0.01
+    for lag in (NOISE_LANES, 2 * NOISE_LANES):
+        assert abs(np.corrcoef(z[:-lag], z[lag:])[0, 1]) < 0.01
+
+
+def test_noise_generator_is_jsf32_as_randomgen_has_it():
+    """The lanes are JSF32 (Jenkins' small fast generator, 32-bit, rotations 27/17), checked
+    word for word against randomgen's implementation from the same state."""
+    randomgen = pytest.importorskip("randomgen")
+    st = np.random.default_rng(0).integers(0, 2**32, (4, NOISE_LANES)).astype(np.uint32)
+    words = np.empty(50 * NOISE_LANES, np.uint32)
+    start = st.copy()
+    _jsf_words(st, words)
+    for lane in (0, 5, NOISE_LANES - 1):
+        g = randomgen.JSF(0, size=32)
+        state = g.state
+        state["state"].update(a=int(start[0, lane]), b=int(start[1, lane]), c=int(start[2, lane]),
+                              d=int(start[3, lane]), p=27, q=17, r=0)
+        g.state = state
+        np.testing.assert_array_equal(words[lane::NOISE_LANES], g.random_raw(50).astype(np.uint32))
+
+
+def test_noise_transform_log_and_sincos_polynomials_are_float32_exact():
+    """The transform's log and (sin, cos) of 2 pi u, numba polynomials without libm, against
+    numpy's float64 functions: within a few float32 ulps over their whole input range."""
+    u = np.concatenate([(np.arange(1, 2**24, 97, dtype=np.float64) + 0.5) * 2.0**-24,
+                        2.0 ** -np.arange(1, 26), [1 - 2.0**-24]]).astype(np.float32)
+    ln = _vec_ln32(u)
+    ref = np.log(u.astype(np.float64))
+    assert np.max(np.abs(ln - ref) / np.maximum(np.abs(ref), 1e-3)) < 1e-6
+    t = (np.arange(0, 2**24, 89, dtype=np.float64) * 2.0**-24).astype(np.float32)
+    s, c = _vec_sincos(t)
+    assert np.max(np.abs(s - np.sin(2 * np.pi * t.astype(np.float64)))) < 4e-7
+    assert np.max(np.abs(c - np.cos(2 * np.pi * t.astype(np.float64)))) < 4e-7
+
+
+@numba.njit(cache=True)
+def _vec_ln32(x):
+    out = np.empty(x.shape[0], np.float64)
+    for i in range(x.shape[0]):
+        out[i] = _ln32(x[i])
+    return out
+
+
+@numba.njit(cache=True)
+def _vec_sincos(x):
+    s = np.empty(x.shape[0], np.float64)
+    c = np.empty(x.shape[0], np.float64)
+    for i in range(x.shape[0]):
+        s[i], c[i] = _sincos_turn(x[i])
+    return s, c
 
 
 def test_noisy_v2v_matches_float64_transcription(real_clip):
