@@ -214,3 +214,29 @@ def test_narrow_output_has_the_same_counts_in_the_narrowest_dtype(c, hot, dtype)
         narrower = np.int8 if dtype == np.int16 else np.int16
         assert wide.min() < np.iinfo(narrower).min or wide.max() > np.iinfo(narrower).max
     assert lo <= wide.min() and wide.max() <= hi
+
+
+@pytest.mark.parametrize("c, amplitude, written", [(0.2, 255, [np.int8]), (0.045, 20, [np.int16])])
+def test_narrow_writes_int8_in_one_pass_when_the_bound_allows(monkeypatch, c, amplitude, written):
+    """Plain V2V whose thresholds bound every count under 128 (log range + extra dL + the
+    largest noise draw + twice the largest of potential and threshold, over the smaller
+    threshold) is written int8 by one kernel call; below that bound the kernel writes int16
+    and the result is narrowed afterwards. Both equal the int32 counts."""
+    import v2v_server.kernel as kernel_mod
+
+    calls = []
+    real = kernel_mod._kernel
+
+    def spy(*args):
+        calls.append(args[13].dtype)  # the net array the kernel writes
+        return real(*args)
+
+    rng = np.random.default_rng(5)
+    frames = (rng.integers(0, amplitude + 1, (9, 6, 7)) + (128 - amplitude // 2)).clip(0, 255).astype(np.uint8)
+    params = SensorParams(c, c * 1.2, 0.05, np.zeros((6, 7)))
+    pot0 = rng.uniform(-c, c, (6, 7))
+    wide, _ = simulate_voxels(frames, params, 2, initial_potential=pot0, noise_seed=3)
+    monkeypatch.setattr(kernel_mod, "_kernel", spy)
+    narrow, _ = simulate_voxels(frames, params, 2, initial_potential=pot0, noise_seed=3, narrow=True)
+    assert calls == written and narrow.dtype == np.int8
+    np.testing.assert_array_equal(narrow, wide)

@@ -514,9 +514,11 @@ def run_kernel(
         split: also return N+ and N- per pair (for count post-processing).
         events: also return every event (the event-level reference).
         narrow: return ``net`` in the narrowest of int8, int16, int32 that holds every count
-            (the wire's voxel dtype), written int16 by the kernel and narrowed with the range
-            it tracked, instead of int32 plus two passes to find the range; a clip that needs
-            more than int16 is re-run in int32 from the same potential (same counts).
+            (the wire's voxel dtype), written by the kernel in int8 when no count can exceed
+            127 (a bound from the log range, thresholds, extra dL, NOISE_MAX and the starting
+            potential; plain V2V with c+, c- above ~0.06 to 0.1), else in int16 and narrowed
+            with the range it tracked, instead of int32 plus two passes to find the range; a
+            clip that needs more is re-run wider from the same potential (same counts).
 
     Returns:
         :class:`KernelResult`.
@@ -562,9 +564,19 @@ def run_kernel(
     pos = np.empty((n_pairs, h, w)) if split else np.empty((0, 1, 1))
     neg = np.empty((n_pairs, h, w)) if split else np.empty((0, 1, 1))
     start = potential.copy() if narrow else None
-    for dtype in ((np.int16, np.int32) if narrow else (np.int32,)):
-        if dtype is np.int32 and start is not None:
-            potential[...] = start  # the int16 attempt overflowed: again, wide
+    widths = (np.int32,)
+    if narrow:
+        # int8 straight from the kernel when its fast path's own bound (see _kernel) already
+        # holds before the first pair: then no pair can overflow it and nothing is re-run
+        lrange = float(lut_a.max() - lut_a.min()) if use_lut else np.inf
+        grow = float(np.abs(ex).max()) + float(noise_std) * _NOISE_BOUND
+        bound = (lrange + grow + 2.0 * max(float(np.abs(pot_flat).max(initial=0.0)), float(max(cpa.max(), cna.max())))) \
+            / float(min(cpa.min(), cna.min()))
+        plain = use_lut and not split and not events and not refractory_cap and n_pairs == m - 1
+        widths = (np.int8, np.int16, np.int32) if plain and bound < 127 else (np.int16, np.int32)
+    for dtype in widths:
+        if dtype is not widths[0]:
+            potential[...] = start  # the narrower attempt overflowed: again, wider
         net = np.empty((n_pairs, h, w), dtype)
         ev, lost, overflow, lo, hi, es, ep, ef, epol = _kernel(
             flat, lut_a, use_lut, pair_of_step, n_pairs, pot_flat, cpa, cna, ex, float(noise_std),
@@ -574,7 +586,7 @@ def run_kernel(
             bool(split), bool(events))
         if overflow < 0:
             break
-    if narrow and overflow < 0 and -128 <= lo and hi <= 127:
+    if narrow and overflow < 0 and net.dtype != np.int8 and -128 <= lo and hi <= 127:
         net = net.astype(np.int8)
     if overflow >= 0:
         raise OverflowError(
