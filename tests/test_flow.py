@@ -339,3 +339,23 @@ def test_pause_links_are_skipped_without_changing_the_flow():
         np.testing.assert_array_equal(est.voxel_flows(seq, STEP, repeats), FlowEstimator(name).voxel_flows(seq, STEP))
     with pytest.raises(ValueError, match="repeats"):
         FlowEstimator(DEFAULT_FLOW).voxel_flows(seq, STEP, repeats[:-1])
+
+
+def test_points_to_search_again_are_the_dropped_ones_still_inside():
+    """``_dropped_inside`` (numba) marks what the former numpy expression did: status 0, never
+    dropped before, last position inside the crop (its edges included); NaN is outside."""
+    from v2v_server.flow import _dropped_inside
+
+    rng = np.random.default_rng(2)
+    m, w, h = 400, 128, 96
+    st = rng.integers(0, 2, (m, 1)).astype(np.uint8)
+    ok = rng.random(m) < 0.8
+    nxt = rng.uniform(-20, 150, (m, 1, 2)).astype(np.float32)
+    nxt[:4, 0] = [[0, 0], [w - 1, h - 1], [w - 1 + 1e-3, 5], [np.nan, 3]]
+    st[:4], ok[:4] = 0, True
+    out = np.empty(m, bool)
+    n = _dropped_inside(st, ok, nxt, w, h, out)
+    x, y = nxt[:, 0, 0], nxt[:, 0, 1]
+    expect = (st[:, 0] == 0) & ok & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    np.testing.assert_array_equal(out, expect)
+    assert n == expect.sum() and expect[:2].all() and not expect[2:4].any()

@@ -428,6 +428,20 @@ def _fill_lost(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge:
 
 
 @numba.njit(cache=True)
+def _dropped_inside(st, ok, nxt, w, h, out):
+    """Mark in ``out`` (bool (m,)) the points LK dropped (``st`` uint8 (m, 1) == 0) that were
+    ``ok`` until now and whose last position ``nxt`` (float32 (m, 1, 2)) is still inside the
+    (h, w) crop; returns how many (one pass instead of seven numpy operations per pair)."""
+    n = 0
+    for k in range(st.shape[0]):
+        x, y = nxt[k, 0, 0], nxt[k, 0, 1]
+        r = st[k, 0] == 0 and ok[k] and x >= 0 and x <= w - 1 and y >= 0 and y <= h - 1
+        out[k] = r
+        n += r
+    return n
+
+
+@numba.njit(cache=True)
 def _fit_once(p, q, use):
     """Least-squares similarity of the points ``use`` selects: (ok, a, b, tx, ty, sp, sq), with
     sp, sq the spreads (sums of squared distances to their means) of those points of p and q."""
@@ -818,6 +832,7 @@ class FlowEstimator:
 
         grid_flows = np.empty((n_vox, m, 2), np.float32)
         valid = np.empty((n_vox, m), bool)
+        redo = np.empty(m, bool)
         sim = None  # the predicted one-frame similarity (2, 3) while zoom-compensated
         for l in range(n_vox):
             # every point is tracked over every pair (a dropped one too: cheaper than picking
@@ -836,13 +851,10 @@ class FlowEstimator:
                     st = st[:, 0].view(bool)
                 else:
                     nxt, st, _ = lk(a, b, p, p + v, maxLevel=t.prior_levels, flags=guess_flag)
+                    if _dropped_inside(st, ok, nxt, w, h, redo):  # those are searched again from zero
+                        again, st2, _ = lk(a, b, p[redo], None, maxLevel=t.levels)
+                        nxt[redo], st[redo] = again, st2
                     st = st[:, 0].view(bool)
-                    if not st.all():
-                        x, y = nxt[:, 0, 0], nxt[:, 0, 1]
-                        redo = ~st & ok & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-                        if redo.any():
-                            again, st2, _ = lk(a, b, p[redo], None, maxLevel=t.levels)
-                            nxt[redo], st[redo] = again, st2[:, 0].view(bool)
                 if check:  # once per voxel, or every pair while compensated
                     if sim is None:
                         # a zoom? this pair once more, compensated by its own fit (plain LK
