@@ -49,7 +49,8 @@ def test_voxels_widen_to_the_batch_and_subset_before_stacking():
 
 def test_worker_float16_narrowing_is_numpys_cast_bit_for_bit():
     from v2v_server.config import ServeConfig
-    from v2v_server.worker import to_float16, wire_arrays
+    from v2v_server.flow import to_float16
+    from v2v_server.worker import wire_arrays
 
     rng = np.random.default_rng(0)
     flow = (rng.standard_normal((3, 2, 16, 24)) * 40).astype(np.float32)

@@ -55,9 +55,9 @@ def test_translation_30px_per_voxel_through_the_sampler(tmp_path):
     frames = panning_frames(cfg.frames_per_sample, 6)
     write_video(str(tmp_path / "pan.mp4"), frames)
     (sid, arrays, meta), = list(video_samples(cfg, tmp_path, "pan.mp4", 0, ("frames", "flow")))
-    fl = arrays["flow"]
-    assert fl.shape == (4, 2, 128, 128) and fl.dtype == np.float32
-    errs = [median_epe(fl[l], -30.0, 0.0, 30) for l in range(4)]
+    fl = arrays["flow"]  # in the wire's dtype
+    assert fl.shape == (4, 2, 128, 128) and fl.dtype == np.dtype(cfg.flow_dtype) == np.float16
+    errs = [median_epe(fl[l].astype(np.float32), -30.0, 0.0, 30) for l in range(4)]
     assert max(errs) < 2.0, errs
 
 
@@ -359,3 +359,92 @@ def test_points_to_search_again_are_the_dropped_ones_still_inside():
     expect = (st[:, 0] == 0) & ok & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
     np.testing.assert_array_equal(out, expect)
     assert n == expect.sum() and expect[:2].all() and not expect[2:4].any()
+
+
+_FILL_NUMPY: dict = {}
+
+
+def _fill_lost_numpy(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge: float = 1e-2,
+               support: float = 0.1) -> np.ndarray:
+    """The former vectorised numpy ``_fill_lost`` (batched weighted moments, LAPACK solve),
+    kept as the oracle of the numba one."""
+    lost = ~ok.reshape(ok.shape[0], -1)
+    if not lost.any():
+        return grid_flow
+    n = ok.shape[-1]
+    key = (n, sigma, ridge, support)
+    if key not in _FILL_NUMPY:
+        yy, xx = np.divmod(np.arange(n * n, dtype=np.float64), n)
+        wts = np.exp(-((xx[:, None] - xx[None, :]) ** 2 + (yy[:, None] - yy[None, :]) ** 2) / (2 * sigma * sigma))
+        basis = np.column_stack([np.ones_like(xx), xx, yy])  # (n * n, 3)
+        second = np.column_stack([basis, xx * xx, xx * yy, yy * yy])  # moments 1, x, y, xx, xy, yy
+        _FILL_NUMPY[key] = (wts, basis, second, np.diag([0.0, ridge, ridge]), np.diag([0.0, support, support]))
+    wts, basis, second, damp, floor = _FILL_NUMPY[key]
+    vox = np.flatnonzero(lost.any(1))  # grids with something to fill
+    f = grid_flow.reshape(grid_flow.shape[0], -1, 2)[vox].astype(np.float64)  # (V', n * n, 2)
+    m = (~lost[vox]).astype(np.float64)[..., None]  # (V', n * n, 1)
+    cols = np.concatenate([np.broadcast_to(second, f.shape[:2] + (6,)),
+                           (basis[None, :, :, None] * f[:, :, None, :]).reshape(f.shape[:2] + (6,))], 2) * m
+    mom = wts @ cols  # (V', n * n, 12): weighted moments of the valid points around every point
+    where = lost[vox]
+    mom = mom[where]  # (k, 12): around the lost points only
+    lhs = mom[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + mom[:, :1, None] * damp + floor
+    empty = mom[:, 0] <= 0  # a grid without valid points: zero
+    lhs[empty] = np.eye(3)
+    coef = np.linalg.solve(lhs, mom[:, 6:].reshape(-1, 3, 2))  # (k, 3, 2)
+    pos = np.broadcast_to(basis, where.shape + (3,))[where]  # (k, 3): 1, x, y of each lost point
+    # the valid range of each grid (V', 2), widened by itself on each side (zero: no valid point)
+    vmax = np.where(where[..., None], -np.inf, f).max(1)
+    vmin = np.where(where[..., None], np.inf, f).min(1)
+    none = ~np.isfinite(vmax)
+    vmax[none] = vmin[none] = 0.0
+    lo, hi = 2 * vmin - vmax, 2 * vmax - vmin
+    grid_of = np.broadcast_to(np.arange(len(vox))[:, None], where.shape)[where]
+    fill = np.clip((pos[:, :, None] * coef).sum(1), lo[grid_of], hi[grid_of])
+    out = grid_flow.reshape(grid_flow.shape[0], -1, 2).copy()
+    sub = out[vox]
+    sub[where] = fill.astype(np.float32)
+    out[vox] = sub
+    return out.reshape(grid_flow.shape)
+
+
+def test_fill_lost_equals_the_former_numpy_version():
+    """The numba ``_fill_lost`` (loops, 3 x 3 elimination with partial pivoting) gives what the
+    batched numpy version with LAPACK's solve gave, to float32 rounding: random grids with a
+    third of the points lost, grids with none, one and every point valid."""
+    from v2v_server.flow import _fill_lost
+
+    rng = np.random.default_rng(1)
+    for n in (6, 8, 12):
+        grids = (rng.standard_normal((30, n, n, 2)) * 8).astype(np.float32)
+        ok = rng.random((30, n, n)) > 0.35
+        ok[3], ok[4], ok[5] = False, True, False
+        ok[5, 2, 2] = True
+        want, got = _fill_lost_numpy(grids, ok), _fill_lost(grids, ok)
+        assert got.dtype == np.float32 and got.shape == grids.shape
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-5)
+        np.testing.assert_array_equal(got[ok], grids[ok])  # valid points are never touched
+
+
+@pytest.mark.parametrize("name", ["tracked", "chained-quarter-s6"])
+def test_voxel_flows_float16_is_the_float32_flow_cast(name):
+    """dtype="float16" is the float32 flow rounded to nearest even bit for bit (tracked options
+    and the others alike), and the tracked expansion from the grid equals the former dense
+    ``wy @ g @ wx_t`` product to float32 rounding."""
+    frames = panning_frames(2 * STEP + 1, 3)[:, :96, :112]
+    est = FlowEstimator(name)
+    f32 = est.voxel_flows(frames, STEP)
+    f16 = est.voxel_flows(frames, STEP, dtype="float16")
+    assert f32.dtype == np.float32 and f16.dtype == np.float16 and f16.shape == f32.shape
+    np.testing.assert_array_equal(f16.view(np.uint16), f32.astype(np.float16).view(np.uint16))
+    with pytest.raises(ValueError, match="dtype"):
+        est.voxel_flows(frames, STEP, dtype="int8")
+    if name == "tracked":
+        from v2v_server.flow import _expand_grids, _expand_tables, _track_grid
+
+        g = np.random.default_rng(3).standard_normal((3, 8, 8, 2)).astype(np.float32) * 10
+        _, wy, wx_t = _track_grid(8, 96, 112)
+        want = np.matmul(np.matmul(wy, np.ascontiguousarray(g.transpose(0, 3, 1, 2))), wx_t)
+        got = np.empty((3, 2, 96, 112), np.float32)
+        _expand_grids(g, *_expand_tables(8, 96, 112), got)
+        np.testing.assert_allclose(got, want, rtol=0, atol=2e-5)

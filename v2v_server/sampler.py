@@ -140,9 +140,10 @@ def make_sample(
     Returns:
         dict with ``voxels`` (L, B, S, S) signed event counts (int8/int16/int32, the narrowest
         that holds them, for plain V2V with one frame per bin; else int32), ``frames`` uint8
-        (L + 1, S, S) at voxel boundaries, ``flow`` float32 (L, 2, S, S) in pixels from frame
-        l to l + 1 (``cfg.flow_preset``, see ``flow.py``; chained options use every source
-        frame between the boundaries) — each present only if asked for.
+        (L + 1, S, S) at voxel boundaries, ``flow`` (L, 2, S, S) in pixels from frame l to
+        l + 1 (``cfg.flow_preset``, see ``flow.py``; chained options use every source frame
+        between the boundaries), in ``cfg.flow_dtype`` for an estimator with ``voxel_flows``,
+        float32 from a plain callable — each present only if asked for.
     """
     outputs = set(outputs)
     seq = window_frames[plan.offsets]  # pauses repeat frames
@@ -161,7 +162,8 @@ def make_sample(
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
         if hasattr(flow, "voxel_flows"):  # pauses repeat frames: their links cost no DIS call
-            out["flow"] = flow.voxel_flows(seq, step, np.concatenate([[False], np.diff(plan.offsets) == 0]))
+            out["flow"] = flow.voxel_flows(seq, step, np.concatenate([[False], np.diff(plan.offsets) == 0]),
+                                           dtype=cfg.flow_dtype)
         else:  # any (a, b) -> (2, H, W) callable
             boundaries = to_uint8(seq[::step])
             out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
@@ -231,11 +233,16 @@ class _CropCut:
         # slower than a plain one)
         y, x, sz = plan.crop_y, plan.crop_x, cfg.crop_size
         self.view = (slice(y, y + sz), slice(x, x + sz))
+        self.consumed = plan.consumed  # source frames it takes (read for every decoded frame)
 
     def add(self, off: int, codes: np.ndarray, window_map: bool, expand, full: Optional[np.ndarray]) -> None:
         """Frame ``off`` of the window: its codes (``window_map``: they share the window's
         first map ``expand``), and ``full``, the frame at full range (needed only by a crop
         that is resampled)."""
+        if window_map and self.buf is not None and self.plan.scale == 1.0:  # the common case first
+            np.copyto(self.buf[off], codes[self.view])
+            self.coded.append(off)
+            return
         cfg, plan = self.cfg, self.plan
         if plan.scale == 1.0:
             if self.buf is None:
@@ -327,7 +334,7 @@ def video_samples(
             cuts = []
         full = None  # the whole kept region at full range, made once per frame when a crop is resampled
         for cut in cuts:
-            if off < cut.plan.consumed:
+            if off < cut.consumed:
                 if cut.plan.scale != 1.0 and full is None:
                     full = np.ascontiguousarray(expand(codes))
                 cut.add(off, codes, expand is window_expand, expand, full)
