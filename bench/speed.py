@@ -21,7 +21,6 @@ Rows:
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import shutil
 import sys
@@ -216,9 +215,11 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     with tempfile.TemporaryDirectory(prefix="v2v-speed-") as d:
         corpus = make_corpus(Path(d) / "webvid", a.copies)
-        # warm the kernel's compile cache and the decoder once, unmeasured
-        worker_core(corpus, ("voxels",), videos=1)
         outs = ("voxels", "frames", "flow")
+        # warm the decoder and load every compiled function (kernel, flow) once, unmeasured: a
+        # first call that loads numba's cache is ~0.1-0.3 s slower and would bias its row
+        worker_core(corpus, ("voxels",), videos=1)
+        worker_core(corpus, outs, crops=4, videos=1)
         # goals 1-2 are ratios: each round measures every row once, in turn, so that a change of
         # the shared machine's speed hits all rows of a round alike; the ratios are the medians
         # of the per-round ratios, the rates the medians of the rounds
@@ -227,8 +228,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             rnd["fps"].append(bare_decode(clip_path(), 3))
             rnd["ref"].append(reference_loader(clip_path(), 4))
             rnd["vox"].append(worker_core(corpus, ("voxels",)))
-            rnd["allo"].append(worker_core(corpus, outs))
-            rnd["k4"].append(worker_core(corpus, outs, crops=4))
+            # crops 1 and crops 4 in alternating order (ABBA over rounds): whichever row runs
+            # first after the voxels-only one read ~4 % slower on this machine (6 rounds)
+            for k in ((1, 4) if len(rnd["k4"]) % 2 == 0 else (4, 1)):
+                rnd["allo" if k == 1 else "k4"].append(worker_core(corpus, outs, crops=k))
         med = lambda v: float(np.median(v))  # noqa: E731
         per = lambda num, den: med([x / y for x, y in zip(rnd[num], rnd[den])])  # noqa: E731
         fps = med(rnd["fps"])
