@@ -240,3 +240,14 @@ def test_narrow_writes_int8_in_one_pass_when_the_bound_allows(monkeypatch, c, am
     narrow, _ = simulate_voxels(frames, params, 2, initial_potential=pot0, noise_seed=3, narrow=True)
     assert calls == written and narrow.dtype == np.int8
     np.testing.assert_array_equal(narrow, wide)
+
+
+def test_noise_transform_compiles_without_fused_multiply_add():
+    """The noise's float32 polynomials are plain IEEE multiplies and adds (numba's default, no
+    fastmath), so their bits do not depend on whether the host has FMA: no fused instruction in
+    the compiled transform."""
+    from v2v_server.kernel import _box_muller
+
+    noise_field(1, 1, (4, 4))  # compiles (or loads) the transform
+    asm = "".join(_box_muller.inspect_asm(sig) for sig in _box_muller.signatures)
+    assert asm and "vfmadd" not in asm and "vfmsub" not in asm and "vfnmadd" not in asm
