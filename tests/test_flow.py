@@ -132,7 +132,7 @@ def test_zoom_compensation_leaves_other_motion_alone():
 
 
 def test_similarity_fit_recovers_scale_rotation_and_shift_despite_outliers():
-    from v2v_server.flow import _similarity_fit
+    from v2v_server.tracking import _similarity_fit
 
     rng = np.random.default_rng(0)
     p = rng.uniform(0, 127, (64, 2))
@@ -150,7 +150,7 @@ def test_tracked_fills_dropped_points_with_a_local_affine_fit():
     field), one valid point gives its flow to all, a few valid points far away do not
     extrapolate a slope across the grid (a blurred fast pan once gave 560 px in a 96 px crop),
     a grid without valid points is zero."""
-    from v2v_server.flow import _fill_lost
+    from v2v_server.tracking import _fill_lost
 
     n = 8
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
@@ -344,7 +344,7 @@ def test_pause_links_are_skipped_without_changing_the_flow():
 def test_points_to_search_again_are_the_dropped_ones_still_inside():
     """``_dropped_inside`` (numba) marks what the former numpy expression did: status 0, never
     dropped before, last position inside the crop (its edges included); NaN is outside."""
-    from v2v_server.flow import _dropped_inside
+    from v2v_server.tracking import _dropped_inside
 
     rng = np.random.default_rng(2)
     m, w, h = 400, 128, 96
@@ -412,7 +412,7 @@ def test_fill_lost_equals_the_former_numpy_version():
     """The numba ``_fill_lost`` (loops, 3 x 3 elimination with partial pivoting) gives what the
     batched numpy version with LAPACK's solve gave, to float32 rounding: random grids with a
     third of the points lost, grids with none, one and every point valid."""
-    from v2v_server.flow import _fill_lost
+    from v2v_server.tracking import _fill_lost
 
     rng = np.random.default_rng(1)
     for n in (6, 8, 12):
@@ -440,7 +440,7 @@ def test_voxel_flows_float16_is_the_float32_flow_cast(name):
     with pytest.raises(ValueError, match="dtype"):
         est.voxel_flows(frames, STEP, dtype="int8")
     if name == "tracked":
-        from v2v_server.flow import _expand_grids, _expand_tables, _track_grid
+        from v2v_server.tracking import _expand_grids, _expand_tables, _track_grid
 
         g = np.random.default_rng(3).standard_normal((3, 8, 8, 2)).astype(np.float32) * 10
         _, wy, wx_t = _track_grid(8, 96, 112)
