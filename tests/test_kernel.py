@@ -63,7 +63,7 @@ def test_noise_halves_and_lanes_are_uncorrelated():
 def test_noise_generator_is_jsf32_as_randomgen_has_it():
     """The lanes are JSF32 (Jenkins' small fast generator, 32-bit, rotations 27/17), checked
     word for word against randomgen's implementation from the same state."""
-    randomgen = pytest.importorskip("randomgen")
+    import randomgen  # a dev dependency (pyproject): the reference JSF32
     st = np.random.default_rng(0).integers(0, 2**32, (4, NOISE_LANES)).astype(np.uint32)
     words = np.empty(50 * NOISE_LANES, np.uint32)
     start = st.copy()

@@ -513,18 +513,16 @@ class FlowEstimator:
             raise ValueError(f"flow: repeats must be a bool array of shape ({frames.shape[0]},), got {np.shape(repeats)}")
         if np.dtype(dtype) not in (np.float32, np.float16):
             raise ValueError(f"flow: dtype must be float32 or float16, got {dtype!r}")
+        f = self._flows32(frames, step, repeats)
+        return f if np.dtype(dtype) == np.float32 else to_float16(f)
+
+    def _flows32(self, frames, step, repeats):
         o = self.option
         n_vox = (frames.shape[0] - 1) // step
         h, w = frames.shape[1:]
+        out = np.empty((n_vox, 2, h, w), np.float32)
         if o.method == "tracked":
-            return self._tracked(frames, step, repeats, np.empty((n_vox, 2, h, w), dtype))
-        f = self._voxel_flows32(frames, step, repeats, np.empty((n_vox, 2, h, w), np.float32))
-        return f if np.dtype(dtype) == np.float32 else to_float16(f)
-
-    def _voxel_flows32(self, frames, step, repeats, out):
-        o = self.option
-        n_vox = out.shape[0]
-        h, w = frames.shape[1:]
+            return self._tracked(frames, step, repeats, out)
         if o.method == "chained":
             s = self.downscale_for((h, w))
             sh, sw = max(1, h // s), max(1, w // s)
@@ -657,11 +655,9 @@ class FlowEstimator:
             valid[l] = ok
         n = t.grid
         grids = _fill_lost(grid_flows.reshape(n_vox, n, n, 2), valid.reshape(n_vox, n, n))
-        # bilinear between grid points, written in out's dtype (float16 without a float32 pass)
-        # bilinear between grid points (float32), then the wire's dtype
-        f32 = out if out.dtype == np.float32 else np.empty(out.shape, np.float32)
-        _expand_grids(grids, *_expand_tables(n, h, w), f32)
-        return out if f32 is out else to_float16(f32)
+        # bilinear between grid points
+        _expand_grids(grids, *_expand_tables(n, h, w), out)
+        return out
 
     def downscale_for(self, shape) -> int:
         """The reduction a chained option applies to frames of ``shape`` (H, W): its

@@ -262,6 +262,15 @@ def _emit(s, pot0, d, cpa, cna, per_pixel, pos, neg, ev_step, ev_pix, ev_frac, e
     return ev_step, ev_pix, ev_frac, ev_pol, n_ev
 
 
+@numba.njit(cache=True)
+def _count_bound(lrange, emax, potmax, cmax, cmin):
+    """Bound on any count of a one-step pair of plain V2V: |dL| <= log range ``lrange`` + the
+    pair's largest extra dL ``emax`` + |dL_hat|, |dL_hat| <= max(``potmax``, ``cmax``), over
+    the smaller threshold ``cmin`` (doubled dL_hat for margin). The kernel's fast path and
+    ``run_kernel``'s int8 choice both test it."""
+    return (lrange + emax + 2.0 * max(potmax, cmax)) / cmin
+
+
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _crossings(dl, c1, c2):
     """The V2V step for one pixel, the only place where threshold crossings are counted:
@@ -279,7 +288,7 @@ def _kernel(src, lut, use_lut, pair_of_step, n_pairs, potential, cpa, cna, extra
             first_pair, cap, net, big, pos_out, neg_out, want_split, want_events):
     """Core loop; see :func:`run_kernel`. ``src``: (M, npix) codes (``use_lut``) or float64
     levels; ``cpa``, ``cna``: float64 (npix,) or (1,) (a scalar); ``extra``: float64 (npix,);
-    ``net``: int16 or int32 (P, npix), ``big`` the largest count it may hold (a pair needing
+    ``net``: int8, int16 or int32 (P, npix), ``big`` the largest count it may hold (a pair needing
     more stops the loop and is reported as ``overflow``)."""
     m = src.shape[0]
     npix = src.shape[1]
@@ -351,7 +360,7 @@ def _kernel(src, lut, use_lut, pair_of_step, n_pairs, potential, cpa, cna, extra
         else:
             for p in range(npix):
                 e[p] = extra[p] / kk
-        if fast and kk == 1 and (lrange + emax + 2.0 * max(potmax, cmax)) / cmin < big:
+        if fast and kk == 1 and _count_bound(lrange, emax, potmax, cmax, cmin) < big:
             # plain V2V, no count can overflow: one vectorised pass, residual stored in place
             for p in range(npix):
                 cur[p] = lut[np.int64(src[s + 1, p])]
@@ -565,16 +574,14 @@ def run_kernel(
     pos = np.empty((n_pairs, h, w)) if split else np.empty((0, 1, 1))
     neg = np.empty((n_pairs, h, w)) if split else np.empty((0, 1, 1))
     start = potential.copy() if narrow else None
-    widths = (np.int32,)
-    if narrow:
-        # int8 straight from the kernel when its fast path's own bound (see _kernel) already
-        # holds before the first pair: then no pair can overflow it and nothing is re-run
-        lrange = float(lut_a.max() - lut_a.min()) if use_lut else np.inf
-        grow = float(np.abs(ex).max()) + float(noise_std) * _NOISE_BOUND
-        bound = (lrange + grow + 2.0 * max(float(np.abs(pot_flat).max(initial=0.0)), float(max(cpa.max(), cna.max())))) \
-            / float(min(cpa.min(), cna.min()))
-        plain = use_lut and not split and not events and not refractory_cap and n_pairs == m - 1
-        widths = (np.int8, np.int16, np.int32) if plain and bound < 127 else (np.int16, np.int32)
+    widths = (np.int16, np.int32) if narrow else (np.int32,)
+    if narrow and use_lut and not split and not events and not refractory_cap and n_pairs == m - 1:
+        # int8 straight from the kernel when its fast path's bound already holds before the
+        # first pair: then no pair can overflow it and nothing is re-run
+        if _count_bound(float(lut_a.max() - lut_a.min()), float(np.abs(ex).max()) + float(noise_std) * _NOISE_BOUND,
+                        float(np.abs(pot_flat).max(initial=0.0)), float(max(cpa.max(), cna.max())),
+                        float(min(cpa.min(), cna.min()))) < 127:
+            widths = (np.int8,) + widths
     for dtype in widths:
         if dtype is not widths[0]:
             potential[...] = start  # the narrower attempt overflowed: again, wider

@@ -239,10 +239,6 @@ class _CropCut:
         """Frame ``off`` of the window: its codes (``window_map``: they share the window's
         first map ``expand``), and ``full``, the frame at full range (needed only by a crop
         that is resampled)."""
-        if window_map and self.buf is not None and self.plan.scale == 1.0:  # the common case first
-            np.copyto(self.buf[off], codes[self.view])
-            self.coded.append(off)
-            return
         cfg, plan = self.cfg, self.plan
         if plan.scale == 1.0:
             if self.buf is None:

@@ -145,8 +145,7 @@ def _fill_lost_core(flow, lost, wts, n, ridge, support):
         # the valid range widened by itself on each side
         c0lo, c0hi = 2 * lo0 - hi0, 2 * hi0 - lo0
         c1lo, c1hi = 2 * lo1 - hi1, 2 * hi1 - lo1
-        fills = np.empty((m, 2))
-        for q in range(m):
+        for q in range(m):  # lost points read only valid ones: each is written in place
             if not lost[v, q]:
                 continue
             # weighted moments of the valid points around q: 1, x, y, xx, xy, yy and 1, x, y times the flow
@@ -198,12 +197,8 @@ def _fill_lost_core(flow, lost, wts, n, ridge, support):
                         t -= a[c, i] * r[i, j]
                     r[c, j] = t / a[c, c]
             x, y = float(q % n), float(q // n)
-            fills[q, 0] = min(max(r[0, 0] + r[1, 0] * x + r[2, 0] * y, c0lo), c0hi)
-            fills[q, 1] = min(max(r[0, 1] + r[1, 1] * x + r[2, 1] * y, c1lo), c1hi)
-        for q in range(m):
-            if lost[v, q]:
-                flow[v, q, 0] = fills[q, 0]
-                flow[v, q, 1] = fills[q, 1]
+            flow[v, q, 0] = min(max(r[0, 0] + r[1, 0] * x + r[2, 0] * y, c0lo), c0hi)
+            flow[v, q, 1] = min(max(r[0, 1] + r[1, 1] * x + r[2, 1] * y, c1lo), c1hi)
 
 
 @numba.njit(cache=True)
