@@ -35,106 +35,14 @@ import logging
 import os
 import sys
 import time
-from typing import Dict, List, Tuple
+from typing import Dict, List
 
 import cv2
 import numpy as np
 
-from v2v_server.flow import DEFAULT_FLOW, FLOW_OPTIONS, FlowEstimator, FlowUnavailable
-
-KINDS = ("translation", "rotation", "zoom")
-#: further motions for a closer look (``--kinds``): zoom with its sign fixed (``zoom`` draws
-#: in or out per texture)
-EXTRA_KINDS = ("zoom-in", "zoom-out")
-SIZE = 128
-
-
-def textures(quick: bool = False) -> List[Tuple[str, np.ndarray]]:
-    """Grey uint8 textures: the motion-clip photographs and the middle frame of each bundled clip."""
-    from bench.motion_clips import source_images
-
-    out = list(source_images())
-    if quick:
-        out = out[:4]
-    here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "v2v_server", "sample_videos")
-    from v2v_server.video import decode_luma, open_video
-
-    for name in sorted(os.listdir(here)):
-        if not name.endswith(".mp4"):
-            continue
-        c, s, info = open_video(os.path.join(here, name), 1)
-        try:
-            for i, luma in enumerate(decode_luma(c, s, info.height)):
-                if i == 100:
-                    out.append((name, np.ascontiguousarray(luma)))
-                    break
-        finally:
-            c.close()
-    return out
-
-
-def _median_radius() -> float:
-    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
-    c = (SIZE - 1) / 2
-    return float(np.median(np.hypot(xs - c, ys - c)))
-
-
-def motion_matrices(image_shape, kind: str, d: float, step: int, voxels: int, direction: float) -> List[np.ndarray]:
-    """Affine 2x3 matrices (image -> view) of each frame for a motion of ``d`` px per voxel."""
-    ih, iw = image_shape
-    m = _median_radius()
-    per = 1.0 / step
-    v = np.zeros(2)
-    th = 0.0
-    lz = 0.0
-    if kind == "translation":
-        v = d * per * np.array([np.cos(direction), np.sin(direction)])
-    elif kind == "rotation":
-        th = 2 * np.arcsin(min(d / (2 * m), 1.0)) * per * np.sign(np.cos(direction) or 1)
-    elif kind in ("zoom", "zoom-in", "zoom-out"):
-        sign = {"zoom-in": 1, "zoom-out": -1}.get(kind, 1 if np.cos(direction) >= 0 else -1)
-        lz = np.log1p(d / m) * per * sign
-        if lz < 0:  # zoom out by the same displacement at the median radius
-            lz = np.log1p(-min(d / m, 0.9)) * per
-    else:
-        raise ValueError(kind)
-    # the crop shows about half of the texture's shorter side, so zoom and pan stay on content
-    s0 = SIZE / (0.5 * min(ih, iw))
-    p0 = np.array([iw / 2, ih / 2])
-    cv = np.array([(SIZE - 1) / 2, (SIZE - 1) / 2])
-    out = []
-    for t in range(step * voxels + 1):
-        a, s = th * t, s0 * np.exp(lz * t)
-        r = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-        mat = np.zeros((2, 3))
-        mat[:, :2] = r
-        mat[:, 2] = cv + v * t - r @ p0
-        out.append(mat)
-    return out
-
-
-def render(image: np.ndarray, mats: List[np.ndarray], step: int):
-    """Frames uint8 (N, S, S) and ground-truth flows float32 (L, S, S, 2) between boundaries."""
-    frames = np.stack([cv2.warpAffine(image, m, (SIZE, SIZE), flags=cv2.INTER_LINEAR,
-                                      borderMode=cv2.BORDER_REFLECT101) for m in mats])
-    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
-    pts = np.stack([xs, ys, np.ones_like(xs)], -1)
-    gts = []
-    for l in range((len(mats) - 1) // step):
-        a = np.vstack([mats[l * step], [0, 0, 1]])
-        b = np.vstack([mats[(l + 1) * step], [0, 0, 1]])
-        xb = pts @ (b @ np.linalg.inv(a))[:2].T
-        gts.append((xb - pts[..., :2]).astype(np.float32))
-    return frames, np.stack(gts)
-
-
-def epe(flow_l2hw: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """EPE in pixels of one flow (2, S, S) against ground truth (S, S, 2), observable pixels only."""
-    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(np.float32)
-    dx, dy = xs + gt[..., 0], ys + gt[..., 1]
-    ok = (dx >= 0) & (dx <= SIZE - 1) & (dy >= 0) & (dy <= SIZE - 1)
-    return np.hypot(flow_l2hw[0] - gt[..., 0], flow_l2hw[1] - gt[..., 1])[ok]
-
+from harness.flow_scenes import EXTRA_KINDS, KINDS, SIZE, epe, motion_matrices, render, textures
+from v2v_server.flow import FlowEstimator
+from v2v_server.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, FlowUnavailable
 
 def time_option(est: FlowEstimator, sample: np.ndarray, step: int, repeats: int) -> float:
     """CPU ms for one sample's flows (min over ``repeats``; process CPU time, one thread)."""
@@ -345,7 +253,7 @@ def plot(res: Dict, path: str) -> None:
     for i, (name, r) in enumerate(res["options"].items()):
         method = FLOW_OPTIONS[name].method if name in FLOW_OPTIONS else "direct"
         style = dict(color="k" if name == res["default"] else cmap(i % 20), lw=3.0 if name == res["default"] else 1.3,
-                     ls={"chained": "-", "tracked": "-."}.get(method, "--"), marker="o", ms=3)
+                     ls={"tracked": "-."}.get(method, "--"), marker="o", ms=3)
         for ax, kind in zip(axes.flat, kinds):
             ax.plot(ds, np.maximum(r["median"][kind], floor), label=name, **style)
         worst = max(max(v) for v in r["median"].values())
@@ -362,7 +270,7 @@ def plot(res: Dict, path: str) -> None:
     ax.axvline(30.0, color="k", ls=":", lw=1)
     ax.set(xlabel=f"CPU ms per sample (40 flows of 128 x 128, one core; decoding: {res['decode_ms_per_sample']:.0f} ms)",
            xscale="log", yscale="log", ylabel="worst median EPE over motions, 0..40 px (px)", title="EPE vs cost")
-    fig.suptitle(f"dashed: DIS at the voxel spacing, solid: DIS chained, dash-dot: tracked; thick black: the default "
+    fig.suptitle(f"dashed: DIS at the voxel spacing, dash-dot: tracked; thick black: the default "
                  f"({res['default']}); dotted: the target (2 px, 30 ms)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

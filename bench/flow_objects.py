@@ -29,41 +29,14 @@ from typing import Dict, List
 import cv2
 import numpy as np
 
-from bench.flow import textures
-from v2v_server.flow import DEFAULT_FLOW, FlowEstimator
+from harness.flow_scenes import SIZE, render_object, square, textures
+from v2v_server.flow import FlowEstimator
+from v2v_server.flow_options import DEFAULT_FLOW
 
-SIZE = 128
+
 STEP = 5
 #: (object px per voxel, background px per voxel)
 MOTIONS = ((10, 5), (20, 10), (30, 0), (40, 20))
-
-
-def _square(img: np.ndarray, size: int) -> np.ndarray:
-    h, w = img.shape
-    s = min(h, w)
-    y, x = (h - s) // 2, (w - s) // 2
-    return cv2.resize(img[y:y + s, x:x + s], (size, size), interpolation=cv2.INTER_AREA)
-
-
-def render(bg: np.ndarray, obj: np.ndarray, v_bg, v_obj, frames: int = 2 * STEP + 1):
-    """Frames uint8 (T, SIZE, SIZE) and the object's coverage (T, SIZE, SIZE) bool: the
-    background translates by ``v_bg`` px per frame, the object by ``v_obj``; the object passes
-    the crop centre at the middle frame."""
-    big = _square(bg, 400)
-    n = obj.shape[0]
-    start = np.array([SIZE / 2 - n / 2, SIZE / 2 - n / 2]) - (frames - 1) / 2 * np.asarray(v_obj)
-    out, cover = [], []
-    ones = np.ones_like(obj, np.float32)
-    for t in range(frames):
-        m_bg = np.float32([[1, 0, -136 + t * v_bg[0]], [0, 1, -136 + t * v_bg[1]]])
-        f = cv2.warpAffine(big, m_bg, (SIZE, SIZE), flags=cv2.INTER_LINEAR).astype(np.float32)
-        p = start + t * np.asarray(v_obj)
-        m_obj = np.float32([[1, 0, p[0]], [0, 1, p[1]]])
-        o = cv2.warpAffine(obj, m_obj, (SIZE, SIZE), flags=cv2.INTER_LINEAR, borderValue=0).astype(np.float32)
-        a = cv2.warpAffine(ones, m_obj, (SIZE, SIZE), flags=cv2.INTER_LINEAR, borderValue=0)
-        out.append(np.clip(np.rint(f * (1 - a) + o * a), 0, 255).astype(np.uint8))
-        cover.append(a > 0.99)
-    return np.stack(out), np.stack(cover)
 
 
 def errors(flow: np.ndarray, cover: np.ndarray, v_bg, v_obj) -> Dict[str, List[float]]:
@@ -97,7 +70,7 @@ def run(options: List[str]) -> dict:
             v_bg = (d_bg / STEP * np.cos(ang), d_bg / STEP * np.sin(ang))
             v_obj = (d_obj / STEP * np.cos(ang + 2), d_obj / STEP * np.sin(ang + 2))
             for size in (32, 56):
-                frames, cover = render(bg, _square(ob, size), v_bg, v_obj)
+                frames, cover = render_object(bg, square(ob, size), v_bg, v_obj)
                 for o in options:
                     e = errors(FlowEstimator(o).voxel_flows(frames, STEP), cover, v_bg, v_obj)
                     for k in e:
@@ -123,7 +96,7 @@ def table(res: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="folder for flow_bench_objects.md and .json")
-    ap.add_argument("--options", nargs="*", default=[DEFAULT_FLOW, "tracked-g12", "chained-quarter-s6", "medium"])
+    ap.add_argument("--options", nargs="*", default=[DEFAULT_FLOW, "tracked-g12", "ultrafast"])
     a = ap.parse_args(argv)
     res = run(a.options)
     os.makedirs(a.out, exist_ok=True)

@@ -33,7 +33,8 @@ from bench.faults import good_corpus
 from v2v_client import V2VStreamDataset
 from v2v_server.config import ServeConfig
 from bench.serve import ServeProcess
-from v2v_server.sampler import FlowEstimator, video_samples
+from v2v_server.flow import FlowEstimator
+from v2v_server.sampler import video_samples
 from v2v_server.video import find_videos
 
 LAYOUT = dict(sequence_length=8, num_bins=5, crop_size=128, max_samples_per_video=10, seed=1)

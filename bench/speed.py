@@ -114,7 +114,8 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2) -> float
     import cv2
 
     from v2v_server.config import ServeConfig
-    from v2v_server.sampler import FlowEstimator, video_samples
+    from v2v_server.flow import FlowEstimator
+    from v2v_server.sampler import video_samples
     from v2v_server.worker import wire_arrays
 
     cv2.setNumThreads(1)

@@ -1,5 +1,5 @@
-"""Optical flow (v2v_server/flow.py): accuracy on large motion through the sampler, the option
-table, the DIS reuse policy, composition, and RAFT refused cleanly without local weights."""
+"""Optical flow (v2v_server/flow.py, flow_options.py): accuracy on large motion through the
+sampler, the option table, the DIS reuse policy, and RAFT refused cleanly without local weights."""
 from __future__ import annotations
 
 import dataclasses
@@ -10,8 +10,9 @@ import pytest
 
 from v2v_server import flow as flow_mod
 from v2v_server.config import ServeConfig
-from v2v_server.flow import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowEstimator, FlowOption, FlowUnavailable,
-                             TrackParams, check_option, compose_flows, dis_flow, unavailable_reason)
+from v2v_server.flow import FlowEstimator, dis_flow
+from v2v_server.flow_options import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowOption, FlowUnavailable, TrackParams,
+                                     check_option, unavailable_reason)
 from v2v_server.sampler import make_sample, plan_window, video_samples
 
 STEP = 5
@@ -44,10 +45,9 @@ def median_epe(flow_2hw, dx, dy, margin):
 
 
 def test_translation_30px_per_voxel_through_the_sampler(tmp_path):
-    """The issue's case: a texture translating 6 px per frame (30 px per voxel of 5 frame
-    pairs), encoded as H.264, served by video_samples: median EPE < 2 px with the default, while
-    DIS at the voxel spacing (the former default, "medium") is off by far more."""
-    from bench.motion_clips import write_video
+    """A texture translating 6 px per frame (30 px per voxel of 5 frame pairs), encoded as
+    H.264, served by video_samples: median EPE < 2 px with the default."""
+    from harness.motion_clips import write_video
 
     cfg = ServeConfig(sequence_length=4, num_bins=STEP, crop_size=128, keep_top_fraction=1.0, hflip_prob=0.0,
                       pause_enabled=False, max_samples_per_video=1).validate()
@@ -64,15 +64,15 @@ def test_translation_30px_per_voxel_through_the_sampler(tmp_path):
 def test_default_holds_at_40px_per_voxel_where_dis_at_the_voxel_spacing_fails():
     frames = panning_frames(4 * STEP + 1, 8)[:, :128, :128]
     new = FlowEstimator(DEFAULT_FLOW).voxel_flows(frames, STEP)
-    old = FlowEstimator("medium").voxel_flows(frames, STEP)  # the former default
+    dis = FlowEstimator("ultrafast").voxel_flows(frames, STEP)  # DIS between the boundary frames
     assert max(median_epe(new[l], -40.0, 0.0, 40) for l in range(4)) < 2.0
-    assert min(median_epe(old[l], -40.0, 0.0, 40) for l in range(4)) > 10.0
+    assert min(median_epe(dis[l], -40.0, 0.0, 40) for l in range(4)) > 10.0
 
 
 def _similarity_clip(kind, d):
     """Frames (11, 128, 128) of the test texture under a rotation / zoom of ``d`` px per voxel
-    at the median radius (bench.flow's definition), and the exact ground-truth flows."""
-    from bench.flow import motion_matrices, render
+    at the median radius, and the exact ground-truth flows."""
+    from harness.flow_scenes import motion_matrices, render
 
     img = texture(512, 512)
     return render(img, motion_matrices(img.shape, kind, d, STEP, 2, 0.0), STEP)
@@ -82,10 +82,9 @@ def _similarity_clip(kind, d):
                                     ("zoom-in", 40.0), ("zoom-out", 40.0)])
 def test_default_holds_rotation_and_zoom_at_large_motion(kind, d):
     """Rotation by 46 degrees per voxel (40 px at the median radius), zoom in by 1.39x / 1.78x
-    and out by 0.41x / 0.22x per voxel: the default's median EPE stays under 2 px, where the DIS
-    chain at quarter size (the default before) under-estimates every one-frame pair and is off
-    by 3-30 px."""
-    from bench.flow import epe
+    and out by 0.41x / 0.22x per voxel: the default's median EPE stays under 2 px, where DIS
+    between the boundary frames is off by far more."""
+    from harness.flow_scenes import epe
 
     frames, gts = _similarity_clip(kind, d)
 
@@ -94,7 +93,7 @@ def test_default_holds_rotation_and_zoom_at_large_motion(kind, d):
         return float(np.median(np.concatenate([epe(fl[l], gts[l]) for l in range(len(gts))])))
 
     assert median(DEFAULT_FLOW) < 2.0
-    assert median("chained-quarter-s6") > 2.0
+    assert median("ultrafast") > 5.0
 
 
 def _zoom_off():
@@ -107,7 +106,7 @@ def test_zoom_compensation_is_what_holds_a_fast_zoom_out():
     """Zooming out to 0.22x per voxel (1.35x smaller every frame): plain LK drifts as the
     window's content shrinks (median EPE far over 2 px without ``zoom``); tracking in each next
     frame resized by the scale predicted from the previous pair keeps it under 0.5 px."""
-    from bench.flow import epe
+    from harness.flow_scenes import epe
 
     frames, gts = _similarity_clip("zoom-out", 40.0)
     on = FlowEstimator(DEFAULT_FLOW).voxel_flows(frames, STEP)
@@ -121,11 +120,11 @@ def test_zoom_compensation_leaves_other_motion_alone():
     """Translation, rotation and an object moving over a background that moves otherwise (the
     points spread, but no similarity explains them): not one pair is compensated, the flow is
     bit for bit that of plain tracking."""
-    from bench.flow_objects import render
+    from harness.flow_scenes import render_object
 
     clips = [panning_frames(2 * STEP + 1, 8)[:, :128, :128], _similarity_clip("rotation", 40.0)[0]]
     obj = cv2.resize(texture(256, 256)[::-1], (48, 48), interpolation=cv2.INTER_AREA)
-    clips.append(render(texture(400, 400), obj, (4.0, 0.0), (-3.0, 8.0))[0])  # 20 / 40 px per voxel
+    clips.append(render_object(texture(400, 400), obj, (4.0, 0.0), (-3.0, 8.0))[0])  # 20 / 40 px per voxel
     on, off = FlowEstimator(DEFAULT_FLOW), _zoom_off()
     for frames in clips:
         np.testing.assert_array_equal(on.voxel_flows(frames, STEP), off.voxel_flows(frames, STEP))
@@ -174,9 +173,10 @@ def test_tracked_fills_dropped_points_with_a_local_affine_fit():
     np.testing.assert_array_equal(_fill_lost(grids[:1] * 0 + field, ok[:1] | True), field[None])
 
 
-def test_make_sample_chained_flow_uses_every_frame_and_pauses():
+def test_make_sample_flow_uses_every_frame_and_pauses():
     """make_sample hands the whole sequence (pauses repeated) to the estimator: with a pause
-    inside a voxel the chain sees a zero link and the voxel's flow is 4 moves, not 5."""
+    inside a voxel the tracking sees a pair that moves nothing and the voxel's flow is 4 moves,
+    not 5."""
     cfg = ServeConfig(sequence_length=2, num_bins=STEP, crop_size=128, keep_top_fraction=1.0, hflip_prob=0.0,
                       pause_enabled=False).validate()
     src = panning_frames(cfg.frames_per_sample, 4)[:, :128, :128]
@@ -188,7 +188,7 @@ def test_make_sample_chained_flow_uses_every_frame_and_pauses():
 
 
 def test_every_option_handles_small_and_odd_sized_crops():
-    """Crops down to the config's minimum (8 px) and sizes that do not divide by the reduction."""
+    """Crops down to the config's minimum (8 px), odd and non-square sizes."""
     for name, o in FLOW_OPTIONS.items():
         if o.method == "raft":
             continue
@@ -196,22 +196,15 @@ def test_every_option_handles_small_and_odd_sized_crops():
         for h, w in ((8, 8), (12, 20), (32, 32), (64, 48)):
             fl = est.voxel_flows(panning_frames(STEP + 1, 1)[:, :h, :w], STEP)
             assert fl.shape == (1, 2, h, w) and np.isfinite(fl).all(), (name, h, w)
-    est = FlowEstimator("chained-quarter-s6")
-    assert [est.downscale_for((s, s)) for s in (128, 127, 64, 63, 32, 8)] == [4, 2, 2, 1, 1, 1]
-    # 130 x 150 is reduced 4x to 32 x 37: the flow is scaled back per axis
-    frames = panning_frames(2 * STEP + 1, 6, size=150)[:, :130, :150]
-    fl = est.voxel_flows(frames, STEP)
-    assert max(median_epe(fl[l], -30.0, 0.0, 30) for l in range(2)) < 2.0
 
 
 def test_option_table_and_config_validation():
-    assert DEFAULT_FLOW in FLOW_OPTIONS
+    assert DEFAULT_FLOW in FLOW_OPTIONS and FlowEstimator().preset == DEFAULT_FLOW
+    assert set(FLOW_OPTIONS) == {"tracked", "tracked-g12", "ultrafast", "raft-small", "raft-large"}
     for name, o in FLOW_OPTIONS.items():
         assert o.name == name and o.summary
-    for preset in ("ultrafast", "fast", "medium"):  # the former names keep their meaning
-        o = FLOW_OPTIONS[preset]
-        assert o.method == "direct" and o.dis == DISParams(preset) and not o.temporal
-    assert check_option("Chained-Quarter").name == "chained-quarter"
+    assert FLOW_OPTIONS["ultrafast"].method == "direct" and FLOW_OPTIONS["ultrafast"].dis == DISParams("ultrafast")
+    assert check_option("Tracked-G12").name == "tracked-g12"
     with pytest.raises(ValueError, match="flow_preset"):
         check_option("slow")
     with pytest.raises(ValueError, match="flow_preset"):
@@ -219,14 +212,8 @@ def test_option_table_and_config_validation():
     for name in FLOW_OPTIONS:
         if unavailable_reason(name) is None:
             assert ServeConfig(flow_preset=name.upper()).validate().flow_preset == name
-    with pytest.raises(ValueError, match="downscale"):
-        FlowOption("x", "chained", downscale=3)
-    with pytest.raises(ValueError, match="chained"):
-        FlowOption("x", "direct", refine=DISParams("fast"))
-    with pytest.raises(ValueError, match="temporal"):
-        FlowOption("x", "chained", temporal=True)
-    with pytest.raises(ValueError, match="hop"):
-        FlowOption("x", "chained", hop=0)
+    with pytest.raises(ValueError, match="method"):
+        FlowOption("x", "chained")
     with pytest.raises(ValueError, match="preset"):
         DISParams("slow")
     with pytest.raises(ValueError, match="patch_size"):
@@ -237,14 +224,22 @@ def test_option_table_and_config_validation():
             TrackParams(**bad)
     with pytest.raises(ValueError, match="TrackParams"):
         FlowOption("x", "tracked", track=dict(grid=8))
-    with pytest.raises(ValueError, match="initial flow"):
-        FlowEstimator("tracked").pair(np.zeros((16, 16), np.uint8), np.zeros((16, 16), np.uint8),
-                                      np.zeros((16, 16, 2), np.float32))
     with pytest.raises(ValueError, match="frames must be"):
         FlowEstimator("ultrafast").voxel_flows(np.zeros((7, 16, 16), np.uint8), 5)
 
 
-def test_raft_refused_cleanly_without_local_weights(monkeypatch, tmp_path, caplog):
+def test_flow_options_import_neither_opencv_nor_numba():
+    """The configuration checks a preset name through flow_options without loading OpenCV or numba."""
+    import subprocess
+    import sys
+
+    code = ("import sys, v2v_server.flow_options as f; f.check_option('tracked'); "
+            "print(sorted(m for m in ('cv2', 'numba', 'torch') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_raft_refused_cleanly_without_local_weights(monkeypatch, tmp_path):
     monkeypatch.setenv("V2V_RAFT_WEIGHTS", str(tmp_path / "missing.pth"))
     for name in ("raft-small", "raft-large"):
         why = unavailable_reason(name)
@@ -253,16 +248,6 @@ def test_raft_refused_cleanly_without_local_weights(monkeypatch, tmp_path, caplo
             FlowEstimator(name)
         with pytest.raises(ValueError, match="flow_preset 'raft"):
             ServeConfig(flow_preset=name).validate()
-    from bench.flow import run
-
-    monkeypatch.setattr("bench.flow.time_decode", lambda repeats: 1.0)
-    monkeypatch.setattr("bench.flow.time_voxels", lambda sample, repeats: 1.0)
-    monkeypatch.setattr("bench.flow.textures", lambda quick: [("t", texture(256, 256))])
-    with caplog.at_level("WARNING"):
-        res = run(["raft-small", "ultrafast"], [0.0, 10.0], STEP, 1, 1, True)
-    assert set(res["skipped"]) == {"raft-small"} and set(res["options"]) == {"ultrafast"}
-    assert any("raft-small skipped" in r.getMessage() for r in caplog.records)
-    assert res["options"]["ultrafast"]["median"]["translation"][0] < 0.1  # no motion: no flow
 
 
 def test_reused_dis_objects_give_the_flow_of_fresh_ones():
@@ -279,71 +264,44 @@ def test_reused_dis_objects_give_the_flow_of_fresh_ones():
     fresh = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(
         np.ascontiguousarray(panning_frames(2, 3)[0, :128, :128]),
         np.ascontiguousarray(panning_frames(2, 3)[1, :128, :128]), None)
-    # the old sampler.FlowEstimator / reference.dis_flow results are unchanged at 128 px
-    pf = panning_frames(2, 3)[:, :128, :128]
+    # dis_flow and the "ultrafast" option are OpenCV's DIS, bit for bit
+    pf = np.ascontiguousarray(panning_frames(2, 3)[:, :128, :128])
     np.testing.assert_array_equal(dis_flow(pf[0], pf[1], "medium"), fresh)
-    np.testing.assert_array_equal(FlowEstimator("medium")(pf[0], pf[1]), fresh.transpose(2, 0, 1))
+    ultra = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST).calc(pf[0], pf[1], None)
+    np.testing.assert_array_equal(FlowEstimator("ultrafast").voxel_flows(pf, 1)[0], ultra.transpose(2, 0, 1))
     assert dis_flow(a, b, "fast").shape == (64, 64, 2)
-    # a chained option's pairwise call is a chain of one link, the same as voxel_flows at step 1
-    est = FlowEstimator(DEFAULT_FLOW)
-    one = est(pf[0], pf[1])
-    assert one.shape == (2, 128, 128) and abs(float(np.median(one[0])) + 3.0) < 0.5
-    np.testing.assert_array_equal(one, est.voxel_flows(pf, 1)[0])
-
-
-def test_compose_flows_samples_the_next_flow_where_the_point_went():
-    h, w = 20, 30
-    f1 = np.zeros((h, w, 2), np.float32)
-    f1[..., 0] = 3.0
-    f2 = np.zeros((h, w, 2), np.float32)
-    f2[..., 0] = np.arange(w, dtype=np.float32)[None, :] * 0.1  # x-dependent
-    f2[..., 1] = 1.0
-    tot = compose_flows([f1, f2])
-    x = np.arange(w - 3, dtype=np.float32)
-    np.testing.assert_allclose(tot[5, : w - 3, 0], 3.0 + 0.1 * (x + 3.0), atol=1e-5)
-    np.testing.assert_allclose(tot[..., 1], 1.0)
-    np.testing.assert_array_equal(compose_flows([f1]), f1)
+    with pytest.raises(ValueError, match="preset"):
+        dis_flow(a, b, "slow")
 
 
 def test_dis_params_clamp_finest_scale_to_the_pyramid():
     """A finest level above OpenCV's coarsest for the frame size is clamped (it would make DIS
     10-50x slower without gaining accuracy)."""
-    d = DISParams("ultrafast").create((32, 32))
-    assert d.getFinestScale() == 0
-    assert DISParams("ultrafast").create((128, 128)).getFinestScale() == 2
-    assert dataclasses.replace(FLOW_OPTIONS["medium"].dis, finest_scale=0).create((128, 128)).getFinestScale() == 0
-    assert flow_mod.estimator("medium") is flow_mod.estimator("MEDIUM")
+    assert flow_mod._create_dis(DISParams("ultrafast"), (32, 32)).getFinestScale() == 0
+    assert flow_mod._create_dis(DISParams("ultrafast"), (128, 128)).getFinestScale() == 2
+    assert flow_mod._create_dis(DISParams("medium", finest_scale=0), (128, 128)).getFinestScale() == 0
 
 
-def test_pause_links_are_skipped_without_changing_the_flow():
-    """Chained options skip the DIS call between a frame and its pause repeat: DIS gives exactly
-    +0.0 for two identical frames (so skipping is bit for bit the same), and ``voxel_flows``
-    with the repeats marked equals it without them."""
+def test_pause_pairs_are_skipped_without_changing_the_flow():
+    """Tracked options find equal frames (pause repeats) by content whether ``repeats`` marks
+    them or not: ``voxel_flows`` with the repeats marked equals it without them."""
     rng = np.random.default_rng(3)
     base = panning_frames(21, 3)[:, :128, :128]
     offsets = np.minimum(np.cumsum(np.r_[0, rng.random(20) < 0.5]), 20)  # pauses repeat frames
     seq = np.ascontiguousarray(base[offsets])
     repeats = np.r_[False, np.diff(offsets) == 0]
     assert repeats.sum() >= 5
-    flat = np.full((40, 40), 77, np.uint8)
-    noise = (rng.random((40, 40)) * 255).astype(np.uint8)
     for name, o in FLOW_OPTIONS.items():
-        if o.method not in ("chained", "tracked"):
-            continue
-        est = FlowEstimator(name)
-        if o.method == "chained":
-            for f in (flat, noise, np.ascontiguousarray(base[4, :32, :32]), np.ascontiguousarray(base[7, ::4, ::4])):
-                z = est._calc(o.dis, f, f.copy())
-                assert not z.any() and not np.signbit(z).any(), name
-        # tracked: equal frames are found by content whether repeats marks them or not
-        np.testing.assert_array_equal(est.voxel_flows(seq, STEP, repeats), FlowEstimator(name).voxel_flows(seq, STEP))
+        if o.method == "tracked":
+            est = FlowEstimator(name)
+            np.testing.assert_array_equal(est.voxel_flows(seq, STEP, repeats), FlowEstimator(name).voxel_flows(seq, STEP))
     with pytest.raises(ValueError, match="repeats"):
         FlowEstimator(DEFAULT_FLOW).voxel_flows(seq, STEP, repeats[:-1])
 
 
 def test_points_to_search_again_are_the_dropped_ones_still_inside():
-    """``_dropped_inside`` (numba) marks what the former numpy expression did: status 0, never
-    dropped before, last position inside the crop (its edges included); NaN is outside."""
+    """``_dropped_inside`` (numba) marks the points with status 0, never dropped before, last
+    position inside the crop (its edges included); NaN is outside."""
     from v2v_server.tracking import _dropped_inside
 
     rng = np.random.default_rng(2)
@@ -366,8 +324,8 @@ _FILL_NUMPY: dict = {}
 
 def _fill_lost_numpy(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, ridge: float = 1e-2,
                support: float = 0.1) -> np.ndarray:
-    """The former vectorised numpy ``_fill_lost`` (batched weighted moments, LAPACK solve),
-    kept as the oracle of the numba one."""
+    """A vectorised numpy transcription of ``_fill_lost`` (batched weighted moments, LAPACK
+    solve): the oracle of the numba one."""
     lost = ~ok.reshape(ok.shape[0], -1)
     if not lost.any():
         return grid_flow
@@ -408,7 +366,7 @@ def _fill_lost_numpy(grid_flow: np.ndarray, ok: np.ndarray, sigma: float = 2.0, 
     return out.reshape(grid_flow.shape)
 
 
-def test_fill_lost_equals_the_former_numpy_version():
+def test_fill_lost_equals_a_numpy_transcription():
     """The numba ``_fill_lost`` (loops, 3 x 3 elimination with partial pivoting) gives what the
     batched numpy version with LAPACK's solve gave, to float32 rounding: random grids with a
     third of the points lost, grids with none, one and every point valid."""
@@ -426,10 +384,10 @@ def test_fill_lost_equals_the_former_numpy_version():
         np.testing.assert_array_equal(got[ok], grids[ok])  # valid points are never touched
 
 
-@pytest.mark.parametrize("name", ["tracked", "chained-quarter-s6"])
+@pytest.mark.parametrize("name", ["tracked", "ultrafast"])
 def test_voxel_flows_float16_is_the_float32_flow_cast(name):
     """dtype="float16" is the float32 flow rounded to nearest even bit for bit (tracked options
-    and the others alike), and the tracked expansion from the grid equals the former dense
+    and the others alike), and the tracked expansion from the grid equals the dense
     ``wy @ g @ wx_t`` product to float32 rounding."""
     frames = panning_frames(2 * STEP + 1, 3)[:, :96, :112]
     est = FlowEstimator(name)

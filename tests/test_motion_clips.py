@@ -1,8 +1,8 @@
-"""bench/motion_clips.py: camera-motion clips over still photographs (demo training variety)."""
+"""harness/motion_clips.py: camera-motion clips over still photographs (demo training variety)."""
 import numpy as np
 import pytest
 
-from bench import motion_clips as mc
+from harness import motion_clips as mc
 from v2v_server.config import ServeConfig
 from v2v_server.corpus import check_video
 from v2v_server.video import decode_luma, open_video

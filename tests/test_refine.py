@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from tests.conftest import read_luma_clip
-from v2v_server.reference import dis_flow, events_to_voxels, simulate_events
+from v2v_server.flow import dis_flow
+from v2v_server.reference import events_to_voxels, simulate_events
 from v2v_server.refine import RefineSpec, parse_refine, refine_frames, simulate_voxels_refined
 from v2v_server.simulate import SensorParams, simulate_voxels
 

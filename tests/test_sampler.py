@@ -42,9 +42,9 @@ def test_only_requested_outputs_are_computed(videos, monkeypatch):
         def __init__(self, *a, **k):
             calls["flow"] += 1
 
-        def __call__(self, a, b):
+        def voxel_flows(self, frames, step, repeats=None, dtype="float32"):
             calls["flow"] += 1
-            return np.zeros((2,) + a.shape, np.float32)
+            return np.zeros(((len(frames) - 1) // step, 2) + frames.shape[1:], dtype)
 
     real_sim = sampler_mod.simulate_voxels
 
@@ -199,7 +199,7 @@ def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
 def test_crops_per_window_ids_content_and_resume(videos):
     """K crops of one decoded window: ids path#window.crop, each crop its own plan (own crop
     corner, flip, pauses, sensor parameters) drawn from its id, made alike alone or together."""
-    from v2v_server.sampler import make_sample_id, parse_sample_id
+    from v2v_server.ids import make_sample_id, parse_sample_id
 
     cfg = small_cfg(crops_per_window=3, max_samples_per_video=2)
     got = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames")))
@@ -229,7 +229,7 @@ def test_crops_per_window_ids_content_and_resume(videos):
 @pytest.mark.parametrize("sid,k,expect", [("a/b.mp4#3", 1, ("a/b.mp4", 3)), ("a#b.mp4#3.2", 4, ("a#b.mp4", 14)),
                                           ("x.mp4#0.0", 2, ("x.mp4", 0))])
 def test_sample_id_round_trip(sid, k, expect):
-    from v2v_server.sampler import make_sample_id, parse_sample_id
+    from v2v_server.ids import make_sample_id, parse_sample_id
 
     assert parse_sample_id(sid, k) == expect
     video, idx = expect
@@ -239,7 +239,7 @@ def test_sample_id_round_trip(sid, k, expect):
 @pytest.mark.parametrize("sid,k", [("a.mp4#3.1", 1), ("a.mp4#3", 2), ("a.mp4#3.2", 2), ("a.mp4", 1), ("#3", 1),
                                    ("a.mp4#-1", 1), ("a.mp4#x", 1), (7, 1), ("a.mp4#٣", 1)])
 def test_sample_id_parse_rejects(sid, k):
-    from v2v_server.sampler import parse_sample_id
+    from v2v_server.ids import parse_sample_id
 
     with pytest.raises(ValueError, match="sample id"):
         parse_sample_id(sid, k)

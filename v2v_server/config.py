@@ -14,12 +14,12 @@ from typing import Optional, Tuple
 
 import yaml
 
-from .flow import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
+from .flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
 from .simulate import ParamRanges
 
 #: Outputs a worker can compute for a sample.
 ALL_OUTPUTS = ("voxels", "frames", "flow")
-#: Optical-flow options by name (the table lives in flow.py).
+#: Optical-flow options by name (the table lives in flow_options.py).
 FLOW_PRESETS = tuple(FLOW_OPTIONS)
 FLOW_DTYPES = ("float16", "float32")
 #: Upper limits (a typo like ``workers: 2000`` is an error, not a fork bomb or an OOM).

@@ -1,41 +1,31 @@
-"""Optical flow for samples and for motion-compensated interpolation: the one place for it.
+"""Optical flow for samples, and the DIS flow of a frame pair for motion-compensated
+interpolation.
 
 A sample's flow is the forward optical flow between the frames at consecutive voxel
-boundaries, ``B * frames_per_bin`` source frames apart (5 by default). Plain DIS at that
-spacing (Kroeger et al., ECCV 2016, OpenCV ``DISOpticalFlow``) loses large motion: on a
-128 x 128 crop its pyramid has only two or three levels, so displacements beyond about
-12-25 px per voxel fall back towards zero. The V2V paper (Lou et al. 2025) uses RAFT (Teed &
-Deng, ECCV 2020). The options here (``FLOW_OPTIONS``, the one preset table) trade speed for
-accuracy on large motion; ``python -m bench.flow`` measures them against rendered clips with
-known motion (docs/flow.md):
+boundaries, ``B * frames_per_bin`` source frames apart (5 by default). The options
+(``flow_options.FLOW_OPTIONS``, the one table) trade speed for accuracy on large motion;
+``python -m bench.flow`` measures them against rendered clips with known motion (docs/flow.md):
 
-* ``direct``: DIS between the two boundary frames (the three OpenCV presets keep their names,
-  "ultrafast", "fast", "medium"); with ``temporal=True`` the previous voxel's flow of the
-  same sample initialises DIS (temporal propagation).
-* ``chained``: DIS between every pair of consecutive frames inside the voxel (motion per
-  pair is 1/5 of the voxel's), on frames reduced ``downscale`` times, composed by sampling:
-  ``F = f_1 + f_2(x + f_1) + ...`` (bilinear ``cv2.remap``), then scaled back to full size;
-  optionally refined by one more DIS at the voxel spacing initialised with the composed flow.
 * ``tracked``: a grid of points tracked frame by frame through the voxel with pyramidal
   Lucas-Kanade (Bouguet's KLT, OpenCV ``calcOpticalFlowPyrLK``), the first pair of a voxel
   searched from zero over the pyramid, later pairs started from the point's previous
   one-frame motion, and pairs of a fast zoom tracked in the next frame resized by the
   predicted scale (``TrackParams.zoom``); the voxel's flow at a grid point is where it ended
-  minus where it started, made dense by bilinear interpolation between the grid points. Tracking composes exactly
-  (no resampling of intermediate flows) and a point's flow is measured at the point itself,
-  so rotation and zoom are not shrunk towards the patch centres as DIS's densification does
-  near the crop border.
-* ``raft``: torchvision's RAFT when its weights are on this machine (``V2V_RAFT_WEIGHTS``, or
-  torchvision's cache); never downloaded. Without them it raises ``FlowUnavailable``.
+  minus where it started, made dense by bilinear interpolation between the grid points.
+  Tracking composes exactly (no resampling of intermediate flows) and a point's flow is
+  measured at the point itself, so rotation and zoom are not shrunk towards the patch centres
+  as DIS's densification does near the crop border.
+* ``direct``: DIS (Kroeger et al., ECCV 2016, OpenCV ``DISOpticalFlow``) between the two
+  boundary frames. On a 128 x 128 crop its pyramid has only two or three levels, so
+  displacements beyond about 12-25 px per voxel fall back towards zero.
+* ``raft``: torchvision's RAFT (Teed & Deng, ECCV 2020; the V2V paper's choice) when its
+  weights are on this machine (``V2V_RAFT_WEIGHTS``, or torchvision's cache); never
+  downloaded. Without them it raises ``FlowUnavailable``.
 
-Reuse policy: a ``FlowEstimator`` creates its DIS objects once per (settings, frame size,
-with or without an initial flow) and reuses them for every call. A reused OpenCV DIS object
-gives bit-identical flow to a fresh one for the same input, except that (OpenCV 5.0) an object
-once given an initial flow returns different flow on later calls without one; hence the third
-key. ``tests/test_flow.py`` checks reuse against fresh objects for every DIS option, since a
-sample's content must not depend on which samples a worker made before it. DIS objects are not
-thread-safe: one estimator per process or thread (``estimator(name)`` keeps one per process
-and option).
+Reuse policy: DIS objects are created once per process and (settings, frame size) and reused
+for every call. A reused OpenCV DIS object gives bit-identical flow to a fresh one for the same
+input (``tests/test_flow.py`` checks it), since a sample's content must not depend on which
+samples a worker made before it. DIS objects are not thread-safe: one process or thread each.
 
 Flow convention everywhere: pixels, ``(dx, dy)`` with ``a(x) ~ b(x + flow(x))``.
 """
@@ -45,256 +35,22 @@ import functools
 import logging
 import math
 import os
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, Optional
 
 import cv2
 import numpy as np
 
+from .flow_options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, FlowUnavailable, check_option,
+                           raft_weights, unavailable_reason)
 from .tracking import (ZOOM_INLIERS, _dropped_inside, _expand_grids, _expand_tables, _fill_lost, _from_resized,
                        _same_as_previous, _to_resized, _track_grid, _zoom_fit)
 
-__all__ = [
-    "DEFAULT_FLOW", "DIS_PRESETS", "DISParams", "FLOW_OPTIONS", "FlowEstimator", "FlowOption",
-    "FlowUnavailable", "TrackParams", "MIN_CHAIN_SIDE", "MIN_DIS_SIDE", "check_option", "compose_flows", "dis_flow", "estimator", "raft_weights",
-    "unavailable_reason",
-]
+__all__ = ["FlowEstimator", "MIN_DIS_SIDE", "dis_flow", "to_float16"]
 
 log = logging.getLogger("v2v.flow")
 
-#: OpenCV DIS presets by name (``cv2.DISOPTICAL_FLOW_PRESET_*``).
-DIS_PRESETS = {"ultrafast": 0, "fast": 1, "medium": 2}
 #: Frames smaller than this (px, each side) are edge-padded for DIS (OpenCV needs >= 12).
 MIN_DIS_SIDE = 16
-#: Chained options reduce frames no further than this (px, shorter side).
-MIN_CHAIN_SIDE = 32
-
-
-class FlowUnavailable(RuntimeError):
-    """The option needs something this machine lacks (RAFT weights or torchvision)."""
-
-
-@dataclass(frozen=True)
-class DISParams:
-    """One OpenCV DIS configuration: a preset and optional overrides of its settings.
-
-    Attributes:
-        preset: "ultrafast", "fast" or "medium".
-        finest_scale: finest pyramid level computed (0 = full resolution; a level coarser than
-            the coarsest one OpenCV builds for the frame size is clamped to it).
-        patch_size, patch_stride: pixels.
-        gd_iterations: gradient-descent iterations per patch.
-        vr_iterations: variational refinement iterations (0 = off).
-    """
-
-    preset: str = "medium"
-    finest_scale: Optional[int] = None
-    patch_size: Optional[int] = None
-    patch_stride: Optional[int] = None
-    gd_iterations: Optional[int] = None
-    vr_iterations: Optional[int] = None
-
-    def __post_init__(self):
-        if self.preset not in DIS_PRESETS:
-            raise ValueError(f"DIS preset must be one of {list(DIS_PRESETS)}, got {self.preset!r}")
-        for name in ("finest_scale", "patch_size", "patch_stride", "gd_iterations", "vr_iterations"):
-            v = getattr(self, name)
-            low = 1 if name in ("patch_size", "patch_stride", "gd_iterations") else 0
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
-                raise ValueError(f"DIS {name} must be an integer >= {low} or None, got {v!r}")
-
-    def create(self, shape) -> "cv2.DISOpticalFlow":
-        """A DIS object for frames of ``shape`` (H, W)."""
-        d = cv2.DISOpticalFlow_create(DIS_PRESETS[self.preset])
-        if self.patch_size is not None:
-            d.setPatchSize(self.patch_size)
-        if self.patch_stride is not None:
-            d.setPatchStride(self.patch_stride)
-        if self.gd_iterations is not None:
-            d.setGradientDescentIterations(self.gd_iterations)
-        if self.vr_iterations is not None:
-            d.setVariationalRefinementIterations(self.vr_iterations)
-        fs = d.getFinestScale() if self.finest_scale is None else self.finest_scale
-        # OpenCV's own coarsest level for this size; a finest level above it makes DIS slow
-        # (10-50x) without being more accurate, so clamp
-        coarsest = max(0, int(math.log2(max(shape) / (4.0 * d.getPatchSize())) + 0.5))
-        d.setFinestScale(int(min(fs, coarsest)))
-        return d
-
-
-@dataclass(frozen=True)
-class TrackParams:
-    """Settings of a ``tracked`` option: a ``grid`` x ``grid`` lattice of points over the crop
-    (corners and borders included) tracked with OpenCV pyramidal Lucas-Kanade
-    (``calcOpticalFlowPyrLK``; Bouguet 2001, "Pyramidal implementation of the Lucas Kanade
-    feature tracker").
-
-    Attributes:
-        grid: points per side (>= 2); the dense flow is bilinear between them, so it resolves
-            motion at about ``crop / (grid - 1)`` px.
-        window: LK window side, px (odd, >= 3).
-        levels: pyramid levels above full resolution for a pair searched from zero (the first
-            pair of each voxel, and the pair after a pause); each level doubles the motion
-            found, about ``window / 2 * 2**levels`` px per frame.
-        prior_levels: pyramid levels for a pair started from the point's previous one-frame
-            motion (constant-velocity prediction); points LK loses that way are searched again
-            from zero with ``levels``.
-        iterations, eps: LK stopping rule per level (at most ``iterations``; or a step under
-            ``eps`` px).
-        zoom: scale change per frame, as ``|log s|``, above which pairs are tracked
-            zoom-compensated (None: never). LK follows a translating window; when the view
-            shrinks or grows by more than a few per cent per frame, the window's content
-            changes scale and LK drifts or drops the point (a 5 % scale change per frame is
-            1.28x per 5-frame voxel). A compensated pair resizes the second frame by the
-            inverse of the scale predicted from the previous pair (a similarity fitted to its
-            points' motion, ``tracking._zoom_fit``), starts LK from the positions the similarity
-            predicts, searched over ``compensated_levels`` levels, and maps the points back.
-            The scale is checked once per voxel, on the pair that moves the points off the
-            grid (entering: that pair is tracked again, compensated by its own fit, and kept
-            if the fit explains the points' motion as a whole, ``tracking.ZOOM_INLIERS``); while
-            compensated, on every pair, and the mode carries into the next voxel while the
-            scale change stays above ``zoom``.
-        compensated_levels: pyramid levels above full resolution for a compensated pair (the
-            motion left after the prediction is small).
-    """
-
-    grid: int = 8
-    window: int = 9
-    levels: int = 2
-    prior_levels: int = 0
-    iterations: int = 5
-    eps: float = 0.03
-    zoom: Optional[float] = 0.05
-    compensated_levels: int = 0
-
-    def __post_init__(self):
-        for name, low in (("grid", 2), ("window", 3), ("levels", 0), ("prior_levels", 0), ("iterations", 1),
-                          ("compensated_levels", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ValueError(f"tracking {name} must be an integer >= {low}, got {v!r}")
-        if self.window % 2 == 0:
-            raise ValueError(f"tracking window must be odd, got {self.window}")
-        if not (isinstance(self.eps, (int, float)) and self.eps > 0):
-            raise ValueError(f"tracking eps must be a positive number (px), got {self.eps!r}")
-        if self.zoom is not None and (isinstance(self.zoom, bool) or not isinstance(self.zoom, (int, float))
-                                      or not self.zoom > 0):
-            raise ValueError(f"tracking zoom must be None or a positive number (|log scale| per frame), "
-                             f"got {self.zoom!r}")
-
-
-@dataclass(frozen=True)
-class FlowOption:
-    """One way of computing a sample's flow (see the module doc).
-
-    Attributes:
-        name: the key in ``FLOW_OPTIONS`` (the config's ``flow_preset``).
-        method: "direct", "chained", "tracked" or "raft".
-        dis: DIS settings (direct: at the voxel spacing; chained: per one-frame pair).
-        temporal: direct only: initialise DIS with the previous voxel's flow of the sample.
-        downscale: chained only: frames are reduced this many times (area averaging) for
-            the one-frame flows (1, 2, 4); less for small crops (``FlowEstimator.downscale_for``).
-        refine: chained only: DIS settings of a final voxel-spacing pass initialised with the
-            composed flow (None: none).
-        hop: chained only: source frames per link of the chain (1: every consecutive pair;
-            2: frames 0, 2, 4, 5 of a 5-frame voxel).
-        raft: raft only: "small" or "large".
-        track: tracked only: the tracking settings (``TrackParams``).
-        summary: one line for docs and logs.
-    """
-
-    name: str
-    method: str
-    dis: DISParams = DISParams()
-    temporal: bool = False
-    downscale: int = 1
-    refine: Optional[DISParams] = None
-    hop: int = 1
-    raft: str = "small"
-    track: TrackParams = TrackParams()
-    summary: str = ""
-
-    def __post_init__(self):
-        if self.method not in ("direct", "chained", "tracked", "raft"):
-            raise ValueError(f"flow option {self.name!r}: method must be direct, chained, tracked or raft, "
-                             f"got {self.method!r}")
-        if not isinstance(self.track, TrackParams):
-            raise ValueError(f"flow option {self.name!r}: track must be TrackParams, got {self.track!r}")
-        if self.downscale not in (1, 2, 4):
-            raise ValueError(f"flow option {self.name!r}: downscale must be 1, 2 or 4, got {self.downscale!r}")
-        if self.method != "chained" and (self.downscale != 1 or self.refine is not None):
-            raise ValueError(f"flow option {self.name!r}: downscale and refine apply to chained flow only")
-        if self.temporal and self.method != "direct":
-            raise ValueError(f"flow option {self.name!r}: temporal initialisation applies to direct flow only")
-        if isinstance(self.hop, bool) or not isinstance(self.hop, int) or self.hop < 1:
-            raise ValueError(f"flow option {self.name!r}: hop must be an integer >= 1, got {self.hop!r}")
-        if self.hop != 1 and self.method != "chained":
-            raise ValueError(f"flow option {self.name!r}: hop applies to chained flow only")
-        if self.raft not in ("small", "large"):
-            raise ValueError(f"flow option {self.name!r}: raft must be small or large, got {self.raft!r}")
-
-
-def _opts(*options: FlowOption) -> Dict[str, FlowOption]:
-    return {o.name: o for o in options}
-
-
-#: The one flow preset table: the config's ``flow_preset`` names a key. Measured in
-#: docs/flow.md (``python -m bench.flow``).
-FLOW_OPTIONS: Dict[str, FlowOption] = _opts(
-    FlowOption("ultrafast", "direct", DISParams("ultrafast"), summary="DIS ultrafast at the voxel spacing"),
-    FlowOption("fast", "direct", DISParams("fast"), summary="DIS fast at the voxel spacing"),
-    FlowOption("medium", "direct", DISParams("medium"), summary="DIS medium at the voxel spacing (the default before)"),
-    FlowOption("medium-fine", "direct", DISParams("medium", finest_scale=0),
-               summary="DIS medium down to full resolution at the voxel spacing"),
-    FlowOption("medium-temporal", "direct", DISParams("medium"), temporal=True,
-               summary="DIS medium at the voxel spacing, initialised with the previous voxel's flow"),
-    FlowOption("chained-quarter-hop2", "chained", DISParams("ultrafast", finest_scale=0), downscale=4, hop=2,
-               summary="DIS ultrafast on quarter-size frames over links of 2 frames (0-2-4-5), composed"),
-    FlowOption("chained-quarter", "chained", DISParams("ultrafast", finest_scale=0), downscale=4,
-               summary="DIS ultrafast on quarter-size frames per one-frame pair, composed over the voxel"),
-    FlowOption("chained-quarter-s5", "chained", DISParams("ultrafast", finest_scale=0, patch_stride=5), downscale=4,
-               summary="as chained-quarter with patch stride 5 (fewer patches)"),
-    FlowOption("chained-quarter-s6", "chained", DISParams("ultrafast", finest_scale=0, patch_stride=6), downscale=4,
-               summary="as chained-quarter with patch stride 6 (fewer patches)"),
-    FlowOption("chained-quarter-p4", "chained", DISParams("ultrafast", finest_scale=0, patch_size=4, patch_stride=2),
-               downscale=4, summary="as chained-quarter with 4 x 4 patches at stride 2"),
-    FlowOption("chained-half", "chained", DISParams("ultrafast", finest_scale=0), downscale=2,
-               summary="DIS ultrafast on half-size frames per one-frame pair, composed"),
-    FlowOption("chained-half-fast", "chained", DISParams("fast", finest_scale=0), downscale=2,
-               summary="DIS fast on half-size frames per one-frame pair, composed"),
-    FlowOption("chained-medium", "chained", DISParams("medium"),
-               summary="DIS medium per one-frame pair at full size, composed"),
-    FlowOption("chained-quarter+fast", "chained", DISParams("ultrafast", finest_scale=0), downscale=4,
-               refine=DISParams("fast"),
-               summary="chained-quarter, then DIS fast at the voxel spacing initialised with it"),
-    FlowOption("chained-half+medium", "chained", DISParams("ultrafast", finest_scale=0), downscale=2,
-               refine=DISParams("medium"),
-               summary="chained-half, then DIS medium at the voxel spacing initialised with it"),
-    FlowOption("tracked", "tracked", track=TrackParams(grid=8),
-               summary="an 8 x 8 grid of points tracked frame by frame with pyramidal Lucas-Kanade, bilinear between them"),
-    FlowOption("tracked-g6", "tracked", track=TrackParams(grid=6),
-               summary="as tracked with a 6 x 6 grid (cheaper, coarser)"),
-    FlowOption("tracked-g12", "tracked", track=TrackParams(grid=12),
-               summary="as tracked with a 12 x 12 grid (finer, dearer)"),
-    FlowOption("raft-small", "raft", raft="small", summary="torchvision RAFT small at the voxel spacing (local weights only)"),
-    FlowOption("raft-large", "raft", raft="large", summary="torchvision RAFT large at the voxel spacing (local weights only)"),
-)
-
-#: The option samples use unless ``flow_preset`` says otherwise (chosen in docs/flow.md).
-DEFAULT_FLOW = "tracked"
-
-
-def check_option(name) -> FlowOption:
-    """The option called ``name`` (case-insensitive).
-
-    Raises:
-        ValueError: naming ``flow_preset`` and the known options, for an unknown name.
-    """
-    key = str(name).lower()
-    if key not in FLOW_OPTIONS:
-        raise ValueError(f"flow_preset must be one of {list(FLOW_OPTIONS)}, got {name!r}")
-    return FLOW_OPTIONS[key]
 
 
 def _to_u8(frame: np.ndarray) -> np.ndarray:
@@ -305,40 +61,63 @@ def _to_u8(frame: np.ndarray) -> np.ndarray:
     raise ValueError(f"flow: frames must be uint8 or uint16, got {frame.dtype}")
 
 
-def compose_flows(flows: List[np.ndarray]) -> np.ndarray:
-    """Compose consecutive forward flows: ``F(x) = f_1(x) + f_2(x + f_1(x)) + ...``.
+def _create_dis(params: DISParams, shape) -> "cv2.DISOpticalFlow":
+    """A DIS object with ``params`` for frames of ``shape`` (H, W)."""
+    d = cv2.DISOpticalFlow_create(DIS_PRESETS[params.preset])
+    if params.patch_size is not None:
+        d.setPatchSize(params.patch_size)
+    if params.patch_stride is not None:
+        d.setPatchStride(params.patch_stride)
+    if params.gd_iterations is not None:
+        d.setGradientDescentIterations(params.gd_iterations)
+    if params.vr_iterations is not None:
+        d.setVariationalRefinementIterations(params.vr_iterations)
+    fs = d.getFinestScale() if params.finest_scale is None else params.finest_scale
+    # OpenCV's own coarsest level for this size; a finest level above it makes DIS slow
+    # (10-50x) without being more accurate, so clamp
+    coarsest = max(0, int(math.log2(max(shape) / (4.0 * d.getPatchSize())) + 0.5))
+    d.setFinestScale(int(min(fs, coarsest)))
+    return d
+
+
+_DIS: Dict[tuple, "cv2.DISOpticalFlow"] = {}
+
+
+def _dis(params: DISParams, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """float32 (H, W, 2) DIS flow from ``a`` to ``b`` with ``params``, the process's DIS object
+    for (params, size) reused; frames under ``MIN_DIS_SIDE`` px (OpenCV refuses frames under
+    12 px) are padded by edge replication and the flow cropped back."""
+    a, b = _to_u8(a), _to_u8(b)
+    h, w = a.shape
+    ph, pw = max(0, MIN_DIS_SIDE - h), max(0, MIN_DIS_SIDE - w)
+    if ph or pw:
+        a, b = (cv2.copyMakeBorder(x, 0, ph, 0, pw, cv2.BORDER_REPLICATE) for x in (a, b))
+    key = (os.getpid(), params, a.shape)
+    d = _DIS.get(key)
+    if d is None:
+        d = _DIS[key] = _create_dis(params, a.shape)
+    f = d.calc(a, b, None)
+    return np.ascontiguousarray(f[:h, :w]) if (ph or pw) else f
+
+
+def dis_flow(a: np.ndarray, b: np.ndarray, preset: str = "medium") -> np.ndarray:
+    """Dense optical flow of one frame pair with OpenCV DIS, for motion-compensated
+    interpolation (``refine.py``, ``reference.py``); a sample's flow comes from
+    ``FlowEstimator.voxel_flows``.
 
     Args:
-        flows: list of float32 (H, W, 2) flows in pixels, ``f_k`` from frame k-1 to frame k.
+        a, b: (H, W) uint8 or uint16 luma frames (uint16 is reduced to its top 8 bits).
+        preset: "ultrafast", "fast" or "medium" (``cv2.DISOPTICAL_FLOW_PRESET_*``).
 
     Returns:
-        float32 (H, W, 2), the flow from frame 0 to frame K. Points carried outside the frame
-        read the nearest border flow (``BORDER_REPLICATE``).
+        float32 (H, W, 2) flow in pixels, ``(dx, dy)``: ``a(x) ~ b(x + flow(x))``.
+
+    Raises:
+        ValueError: for an unknown preset.
     """
-    total = np.array(flows[0], dtype=np.float32, copy=True)
-    if len(flows) == 1:
-        return total
-    grid = _pixel_grid(total.shape[:2])
-    where = np.empty_like(total)
-    for f in flows[1:]:
-        np.add(grid, total, out=where)
-        total += cv2.remap(f, where, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return total
-
-
-_GRIDS: Dict[tuple, np.ndarray] = {}
-
-
-def _pixel_grid(shape) -> np.ndarray:
-    """float32 (H, W, 2) pixel coordinates (x, y), made once per frame size (read-only)."""
-    key = tuple(shape)
-    g = _GRIDS.get(key)
-    if g is None:
-        h, w = key
-        g = np.dstack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)))
-        g.setflags(write=False)
-        g = _GRIDS[key] = g
-    return g
+    if preset not in DIS_PRESETS:
+        raise ValueError(f"flow preset must be one of {sorted(DIS_PRESETS)}, got {preset!r}")
+    return _dis(DISParams(preset), a, b)
 
 
 def to_float16(a: np.ndarray) -> np.ndarray:
@@ -352,39 +131,6 @@ def to_float16(a: np.ndarray) -> np.ndarray:
         return a.astype(np.float16)
     flat = np.ascontiguousarray(a).reshape(-1, a.shape[-1])
     return cv2.multiply(flat, 1.0, dtype=cv2.CV_16F).reshape(a.shape)
-
-
-def raft_weights(size: str = "small") -> Optional[Path]:
-    """Path of local RAFT weights for torchvision's ``raft_<size>``, or None.
-
-    Looks at ``$V2V_RAFT_WEIGHTS`` (a ``.pth`` state dict), then torchvision's cache
-    (``$TORCH_HOME/hub/checkpoints/raft_<size>*.pth``). Never downloads.
-    """
-    env = os.environ.get("V2V_RAFT_WEIGHTS")
-    if env:
-        return Path(env) if Path(env).is_file() else None
-    home = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch"))
-    hits = sorted((home / "hub" / "checkpoints").glob(f"raft_{size}*.pth"))
-    return hits[0] if hits else None
-
-
-def unavailable_reason(name) -> Optional[str]:
-    """Why option ``name`` cannot run on this machine (RAFT without torchvision or local
-    weights), or None when it can. Loads nothing."""
-    o = check_option(name)
-    if o.method != "raft":
-        return None
-    try:
-        import importlib.util
-
-        if importlib.util.find_spec("torchvision") is None:
-            return "RAFT needs torchvision, which is not installed"
-    except (ImportError, ValueError):
-        return "RAFT needs torchvision, which cannot be imported"
-    if raft_weights(o.raft) is None:
-        return (f"no local RAFT {o.raft} weights (set V2V_RAFT_WEIGHTS or put raft_{o.raft}*.pth in "
-                f"torchvision's cache); they are never downloaded")
-    return None
 
 
 class _Raft:
@@ -419,68 +165,20 @@ class _Raft:
 
 
 class FlowEstimator:
-    """Flow of one option (``FLOW_OPTIONS``), with its DIS objects created once and reused.
+    """A sample's flows with one option of ``flow_options.FLOW_OPTIONS``.
 
-    ``voxel_flows(frames, step)`` is what samples use; ``__call__(a, b)`` (the former
-    ``sampler.FlowEstimator`` API) is the flow between two frames only (for a chained option,
-    a chain of one link: reduced frames, its DIS settings, scaled back, refined if it says so;
-    for a tracked option, the grid tracked over that one pair). A tracked option keeps no
-    state between calls.
+    A tracked option keeps no state between calls; DIS objects are the process's (see the
+    module doc).
 
     Raises:
         ValueError: for an unknown option name (naming ``flow_preset``).
         FlowUnavailable: for RAFT without torchvision or local weights.
     """
 
-    def __init__(self, option="medium"):
+    def __init__(self, option=DEFAULT_FLOW):
         self.option = option if isinstance(option, FlowOption) else check_option(option)
         self.preset = self.option.name
-        self._dis: Dict[tuple, "cv2.DISOpticalFlow"] = {}
         self._raft = _Raft(self.option.raft) if self.option.method == "raft" else None
-
-    def _get(self, params: DISParams, shape, with_init: bool = False) -> "cv2.DISOpticalFlow":
-        # objects given an initial flow are kept apart: in OpenCV 5.0 a DIS object that has
-        # been given one returns different flow on later calls without one
-        key = (params, tuple(shape), with_init)
-        d = self._dis.get(key)
-        if d is None:
-            d = self._dis[key] = params.create(shape)
-        return d
-
-    def _calc(self, params: DISParams, a: np.ndarray, b: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
-        """DIS flow (H, W, 2) with ``params``; frames under ``MIN_DIS_SIDE`` px (OpenCV refuses
-        frames under 12 px) are padded by edge replication and the flow cropped back."""
-        a, b = _to_u8(a), _to_u8(b)
-        h, w = a.shape
-        ph, pw = max(0, MIN_DIS_SIDE - h), max(0, MIN_DIS_SIDE - w)
-        if ph or pw:
-            a, b = (cv2.copyMakeBorder(x, 0, ph, 0, pw, cv2.BORDER_REPLICATE) for x in (a, b))
-            if init is not None:
-                init = cv2.copyMakeBorder(np.asarray(init, np.float32), 0, ph, 0, pw, cv2.BORDER_REPLICATE)
-        d = self._get(params, a.shape, init is not None)
-        f = d.calc(a, b, None if init is None else np.array(init, np.float32, copy=True))
-        return np.ascontiguousarray(f[:h, :w]) if (ph or pw) else f
-
-    def pair(self, a: np.ndarray, b: np.ndarray, init: Optional[np.ndarray] = None) -> np.ndarray:
-        """float32 (H, W, 2) flow from ``a`` to ``b`` (uint8/uint16 (H, W)) with this option's
-        DIS settings (RAFT for a raft option, the tracking of a tracked one), optionally
-        initialised with ``init`` (H, W, 2; DIS only).
-
-        Raises:
-            ValueError: ``init`` given to a tracked option."""
-        if self._raft is not None:
-            return self._raft(a, b)
-        if self.option.method == "tracked":
-            if init is not None:
-                raise ValueError(f"flow option {self.preset!r}: tracked flow takes no initial flow")
-            return np.ascontiguousarray(self.voxel_flows(np.stack([a, b]), 1)[0].transpose(1, 2, 0))
-        return self._calc(self.option.dis, a, b, init)
-
-    def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """float32 (2, H, W) flow from ``a`` to ``b``: channel 0 is x (u), channel 1 y (v), pixels."""
-        if self.option.method in ("chained", "tracked"):
-            return self.voxel_flows(np.stack([a, b]), 1)[0]
-        return np.ascontiguousarray(self.pair(a, b).transpose(2, 0, 1))
 
     def voxel_flows(self, frames: np.ndarray, step: int, repeats: Optional[np.ndarray] = None,
                     dtype="float32") -> np.ndarray:
@@ -491,10 +189,8 @@ class FlowEstimator:
                 the sample (repeated frames of pauses included), boundaries at ``l * step``.
             step: frames per voxel grid (B * frames_per_bin), >= 1.
             repeats: optional bool (N,), True where frame k is the same frame as frame k - 1
-                (a pause; equal content is what matters): chained options then skip the DIS
-                call between them, whose flow is exactly zero. The result is the same with or
-                without it.
-
+                (a pause): tracked options then skip that pair, whose flow is exactly zero.
+                The result is the same with or without it.
             dtype: "float32" or "float16" (the wire's ``flow_dtype``): the float32 flow is
                 converted at the end (``to_float16``: round to nearest even, as numpy's cast),
                 so the sample needs no conversion afterwards.
@@ -513,57 +209,15 @@ class FlowEstimator:
             raise ValueError(f"flow: repeats must be a bool array of shape ({frames.shape[0]},), got {np.shape(repeats)}")
         if np.dtype(dtype) not in (np.float32, np.float16):
             raise ValueError(f"flow: dtype must be float32 or float16, got {dtype!r}")
-        f = self._flows32(frames, step, repeats)
-        return f if np.dtype(dtype) == np.float32 else to_float16(f)
-
-    def _flows32(self, frames, step, repeats):
-        o = self.option
         n_vox = (frames.shape[0] - 1) // step
-        h, w = frames.shape[1:]
-        out = np.empty((n_vox, 2, h, w), np.float32)
-        if o.method == "tracked":
-            return self._tracked(frames, step, repeats, out)
-        if o.method == "chained":
-            s = self.downscale_for((h, w))
-            sh, sw = max(1, h // s), max(1, w // s)
-            # a frame marked as a repeat of the previous one (a pause) shares its reduced
-            # frame, and a link between one reduced frame and itself is exactly zero: DIS
-            # returns +0.0 everywhere for two identical frames (tests/test_flow.py checks it
-            # for every chained option), so that call is skipped, bit for bit the same flow
-            small = []
-            for k, f in enumerate(frames):
-                if k and repeats is not None and repeats[k]:
-                    small.append(small[-1])
-                else:
-                    small.append(_to_u8(f) if s == 1 else cv2.resize(_to_u8(f), (sw, sh), interpolation=cv2.INTER_AREA))
-            scale = np.array([w / sw, h / sh], np.float32)
-            zero = np.zeros((sh, sw, 2), np.float32)
-            zero.setflags(write=False)
-            if min(sh, sw) >= MIN_DIS_SIDE:  # no padding: the reused DIS object directly
-                dis = self._get(o.dis, (sh, sw))
-                link = lambda a, b: zero if a is b else dis.calc(a, b, None)  # noqa: E731
-            else:
-                link = lambda a, b: zero if a is b else self._calc(o.dis, a, b)  # noqa: E731
+        out = np.empty((n_vox, 2) + frames.shape[1:], np.float32)
+        if self.option.method == "tracked":
+            self._tracked(frames, step, repeats, out)
+        else:
+            pair = self._raft if self._raft is not None else functools.partial(_dis, self.option.dis)
             for l in range(n_vox):
-                k0 = l * step
-                links = list(range(k0, k0 + step, o.hop)) + [k0 + step]
-                f = compose_flows([link(small[i], small[j]) for i, j in zip(links[:-1], links[1:])])
-                if s > 1:
-                    f = cv2.resize(f, (w, h), interpolation=cv2.INTER_LINEAR)
-                    if o.refine is None:  # scaled straight into the output, channels first
-                        np.multiply(f.transpose(2, 0, 1), scale[:, None, None], out=out[l])
-                        continue
-                    f = f * scale
-                if o.refine is not None:
-                    f = self._calc(o.refine, frames[k0], frames[k0 + step], f)
-                out[l] = f.transpose(2, 0, 1)
-            return out
-        prev = None
-        for l in range(n_vox):
-            f = self.pair(frames[l * step], frames[(l + 1) * step], prev if o.temporal else None)
-            out[l] = f.transpose(2, 0, 1)
-            prev = f
-        return out
+                out[l] = pair(frames[l * step], frames[(l + 1) * step]).transpose(2, 0, 1)
+        return out if np.dtype(dtype) == np.float32 else to_float16(out)
 
     def _tracked(self, frames: np.ndarray, step: int, repeats: Optional[np.ndarray], out: np.ndarray) -> np.ndarray:
         """``voxel_flows`` of a ``tracked`` option (see ``TrackParams``). Per voxel the grid
@@ -658,43 +312,3 @@ class FlowEstimator:
         # bilinear between grid points
         _expand_grids(grids, *_expand_tables(n, h, w), out)
         return out
-
-    def downscale_for(self, shape) -> int:
-        """The reduction a chained option applies to frames of ``shape`` (H, W): its
-        ``downscale``, halved until the reduced frames keep ``MIN_CHAIN_SIDE`` px on their
-        shorter side (so a 64 px crop is reduced 2x, a 32 px crop not at all)."""
-        s = self.option.downscale
-        while s > 1 and min(shape) // s < MIN_CHAIN_SIDE:
-            s //= 2
-        return s
-
-
-_CACHE: Dict[tuple, FlowEstimator] = {}
-
-
-def estimator(name) -> FlowEstimator:
-    """The estimator of option ``name`` for this process (created once; DIS objects are
-    reused, see the module doc on why that is safe). Not for sharing between threads."""
-    key = (os.getpid(), str(name).lower())
-    est = _CACHE.get(key)
-    if est is None:
-        est = _CACHE[key] = FlowEstimator(name)
-    return est
-
-
-def dis_flow(a: np.ndarray, b: np.ndarray, preset: str = "medium") -> np.ndarray:
-    """Dense optical flow from frame ``a`` to frame ``b`` with OpenCV DIS (one pair).
-
-    Args:
-        a, b: (H, W) uint8 or uint16 luma frames (uint16 is reduced to its top 8 bits).
-        preset: "ultrafast", "fast" or "medium" (``cv2.DISOPTICAL_FLOW_PRESET_*``).
-
-    Returns:
-        float32 (H, W, 2) flow in pixels, ``(dx, dy)``: ``a(x) ~ b(x + flow(x))``.
-
-    Raises:
-        ValueError: for an unknown preset.
-    """
-    if preset not in DIS_PRESETS:
-        raise ValueError(f"flow preset must be one of {sorted(DIS_PRESETS)}, got {preset!r}")
-    return estimator(preset).pair(a, b)

@@ -44,7 +44,9 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 import numpy as np
 
 from .config import ALL_OUTPUTS, ServeConfig
-from .sampler import FlowEstimator, make_sample_id, parse_sample_id, video_samples
+from .flow import FlowEstimator
+from .ids import make_sample_id, parse_sample_id
+from .sampler import video_samples
 from .video import VideoError, inside, open_video, scan_corpus
 from .worker import file_verdict
 

@@ -40,15 +40,13 @@ from typing import Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .flow import DIS_PRESETS, dis_flow  # noqa: F401  (the one DIS construction and reuse policy)
+from .flow import dis_flow
 from .kernel import full_scale_of, run_kernel
 from .simulate import SensorParams, draw_noise_seed, log_intensity_lut
 
 __all__ = [
     "Events",
-    "DIS_PRESETS",
     "log_frames",
-    "dis_flow",
     "interpolate_pair",
     "simulate_events",
     "voxel_discrete",

@@ -29,7 +29,8 @@ from typing import Callable, Optional, Tuple
 
 import numpy as np
 
-from .flow import DIS_PRESETS, dis_flow
+from .flow import dis_flow
+from .flow_options import DIS_PRESETS
 from .kernel import run_kernel
 from .reference import interpolate_pair
 from .simulate import SensorParams, _lut, check_frames, draw_noise_seed, simulate_voxels, start_state

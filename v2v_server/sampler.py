@@ -22,8 +22,8 @@ import numpy as np
 
 from .augment import augment_plan, degrade_window
 from .config import ServeConfig
-from .ids import make_sample_id, parse_sample_id  # noqa: F401  (the one id format, re-exported)
-from .flow import FlowEstimator  # noqa: F401  (re-exported: sampler.FlowEstimator(preset)(a, b) stays valid)
+from .ids import make_sample_id
+from .flow import FlowEstimator
 from .simulate import SensorParams, sample_params, simulate_voxels
 from .video import VideoError, decode_codes, inside, open_video, to_uint8
 
@@ -141,9 +141,8 @@ def make_sample(
         dict with ``voxels`` (L, B, S, S) signed event counts (int8/int16/int32, the narrowest
         that holds them, for plain V2V with one frame per bin; else int32), ``frames`` uint8
         (L + 1, S, S) at voxel boundaries, ``flow`` (L, 2, S, S) in pixels from frame l to
-        l + 1 (``cfg.flow_preset``, see ``flow.py``; chained options use every source frame
-        between the boundaries), in ``cfg.flow_dtype`` for an estimator with ``voxel_flows``,
-        float32 from a plain callable — each present only if asked for.
+        l + 1 (``cfg.flow_preset``, see ``flow.py``; tracked options use every source frame
+        between the boundaries), in ``cfg.flow_dtype`` — each present only if asked for.
     """
     outputs = set(outputs)
     seq = window_frames[plan.offsets]  # pauses repeat frames
@@ -161,12 +160,9 @@ def make_sample(
     t1 = time.perf_counter()
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
-        if hasattr(flow, "voxel_flows"):  # pauses repeat frames: their links cost no DIS call
-            out["flow"] = flow.voxel_flows(seq, step, np.concatenate([[False], np.diff(plan.offsets) == 0]),
-                                           dtype=cfg.flow_dtype)
-        else:  # any (a, b) -> (2, H, W) callable
-            boundaries = to_uint8(seq[::step])
-            out["flow"] = np.stack([flow(boundaries[i], boundaries[i + 1]) for i in range(len(boundaries) - 1)])
+        # pauses repeat frames: the pairs between repeats cost no tracking
+        out["flow"] = flow.voxel_flows(seq, step, np.concatenate([[False], np.diff(plan.offsets) == 0]),
+                                       dtype=cfg.flow_dtype)
     if busy is not None:
         if "voxels" in outputs:
             busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)

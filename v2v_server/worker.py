@@ -29,7 +29,9 @@ from .config import ServeConfig
 from .datapath import SlotRing
 from .protocol import encode_arrays, narrow_int_dtype, pack, unpack
 from .flow import to_float16
-from .sampler import FlowEstimator, parse_sample_id, video_samples
+from .flow import FlowEstimator
+from .ids import parse_sample_id
+from .sampler import video_samples
 from .video import VideoError
 
 log = logging.getLogger("v2v.worker")

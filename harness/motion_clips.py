@@ -16,7 +16,7 @@ Sources: the natural photographs that scikit-image ships in its wheel (``skimage
 public-domain or CC0 images, see ``skimage/data/README.txt``) and matplotlib's
 ``grace_hopper.jpg`` sample. Nothing is downloaded.
 
-    python -m bench.motion_clips --out DIR [--frames 250] [--size 272 480] [--seed 0]
+    python -m harness.motion_clips --out DIR [--frames 250] [--size 272 480] [--seed 0]
 """
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ def source_images() -> List[Tuple[str, np.ndarray]]:
     try:
         import skimage.data as skd
     except ImportError as e:  # pragma: no cover - the trainer extra installs it
-        raise RuntimeError("bench.motion_clips needs scikit-image (pip install -e '.[trainer]')") from e
+        raise RuntimeError("harness.motion_clips needs scikit-image (pip install -e '.[trainer]')") from e
     for name in SKIMAGE_PHOTOS:
         try:
             img = np.asarray(getattr(skd, name)())

@@ -1,0 +1,1 @@
+"""Test and benchmark harnesses: servers, corpora and clips with known motion (not installed)."""
