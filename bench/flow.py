@@ -1,7 +1,7 @@
 """Optical flow options against ground truth: end-point error vs displacement, and cost.
 
 Clips with known motion are rendered over real textures: the still photographs
-``bench/motion_clips.py`` uses (skimage / matplotlib) and one frame from the middle of each
+``harness/motion_clips.py`` uses (skimage / matplotlib) and one frame from the middle of each
 bundled clip. Each clip is ``--voxels`` voxel grids of ``--step`` frames (5) moving at constant
 velocity with one similarity motion about the crop centre: translation, rotation or zoom, at
 0..40 px per voxel, where a displacement ``d`` means the *median* ground-truth displacement over

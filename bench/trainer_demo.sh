@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # CPU demo of the trainer: a small E2VID trained from a real v2v-serve on 127.0.0.1 on the
-# bundled clips plus camera-motion clips over bundled still photographs (bench/motion_clips.py),
+# bundled clips plus camera-motion clips over bundled still photographs (harness/motion_clips.py),
 # evaluated on a held-out clip against the constant-mean-image baseline.
 #
 #   bash bench/trainer_demo.sh [OUT_DIR] [STEPS_FAST] [STEPS_TOTAL]
@@ -28,7 +28,7 @@ cp "$CLIPS/bikes.mp4" "$CLIPS/webvid_like_596x336.mp4" "$OUT/videos_train/"
 cp "$CLIPS/bigbuckbunny.mp4" "$OUT/videos_heldout/"
 # one street source is too little variety for a reconstruction network (it learns one scene's
 # brightness for where no events fire): add E2VID-style camera motion over 14 still photographs.
-python -m bench.motion_clips --out "$OUT/videos_train" --frames 250 --size 272 480 --seed 0 > /dev/null
+python -m harness.motion_clips --out "$OUT/videos_train" --frames 250 --size 272 480 --seed 0 > /dev/null
 
 # --keep-top-fraction 1.0: these clips carry no watermark, so crops come from the whole frame.
 python -m v2v_server.cli --videos "$OUT/videos_train" --workers 1 --bind "tcp://127.0.0.1:$PORT" \
