@@ -21,7 +21,7 @@ from bench.faults import good_corpus
 from v2v_client.loadtest import run_loadtest
 from bench.serve import ServeProcess
 
-ALL = ("voxels", "frames", "flow")
+from v2v_server.protocol import OUTPUTS as ALL
 
 
 def measure(corpus: Path, shards: int, workers_each: int, batches: int, extra: List[str]) -> dict:

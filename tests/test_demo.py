@@ -7,6 +7,7 @@ import threading
 import pytest
 
 from v2v_client import demo
+from v2v_server.local import local_server
 
 
 @pytest.mark.timeout(240)
@@ -24,5 +25,5 @@ def test_demo_serves_bundled_clips_and_stops(tmp_path, capsys):
 
 def test_demo_refuses_an_empty_folder(tmp_path):
     with pytest.raises(ValueError, match="no video files"):
-        with demo.local_server(str(tmp_path), workers=1, batch_size=2):
+        with local_server(str(tmp_path), workers=1, batch_size=2):
             pass

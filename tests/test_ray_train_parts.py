@@ -26,7 +26,7 @@ def test_drop_padding_subsets_every_per_sample_entry():
 
 def test_padding_only_batch_makes_no_step(tmp_path):
     from trainer.config import apply_overrides, load_config
-    from trainer.train import Trainer
+    from trainer.core import Trainer
 
     cfg = apply_overrides(load_config(None, "evflow"), ["model.num_bins=3", "model.base_num_channels=4"])
     t = Trainer(cfg, str(tmp_path), torch.device("cpu"))

@@ -23,7 +23,7 @@ from v2v_client import V2VStreamDataset
 from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
 from v2v_server.config import ServeConfig, parse_shard
 from v2v_server.corpus import check_corpus, select_shard, shard_of
-from v2v_server.metrics import JsonFormatter
+from v2v_server.logs import JsonFormatter
 from bench.serve import ServeProcess, free_port
 from v2v_server.video import scan_corpus
 

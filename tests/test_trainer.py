@@ -13,10 +13,11 @@ import torch
 from tests.trainer_fixtures import FakeV2VStream
 from trainer import lpips_net
 from trainer.config import apply_overrides, default_config, load_config, merge
-from trainer.data import batch_to_device, tc_start_index, task_outputs
+from trainer.data import batch_to_device
 from trainer.losses import ReconstructionLoss, flow_l1_loss, ssim, temporal_consistency_loss, warp
 from trainer.models import E2VIDRecurrent, EVFlowNet, build_model
-from trainer.train import Trainer
+from trainer.core import Trainer
+from trainer.tasks import get_task, tc_start_index
 
 torch.set_num_threads(2)
 
@@ -29,7 +30,7 @@ def tiny_cfg(task, **extra):
 
 
 def outputs(task):
-    return task_outputs(task)
+    return get_task(task).outputs
 
 
 # ----------------------------------------------------------------------------- models
@@ -212,10 +213,10 @@ def test_training_step_averages_tc_over_all_steps_like_the_reference(tmp_path):
     batch = next(iter(FakeV2VStream(sequence_length=4, num_bins=3, crop=32)))
     L = batch["voxels"].shape[1]
     l0 = tc_start_index(L, 0.5)
-    b = batch_to_device(batch, torch.device("cpu"), "e2vid", tc_start=l0)
+    b = batch_to_device(batch, torch.device("cpu"), outputs("e2vid"), flow_from=l0)
     tr.model.eval()
     with torch.no_grad():
-        _, stats, preds = tr._forward_e2vid(b)
+        _, stats, preds = tr.forward(b)
     fr, fl = b["frames"], b["flow"]
     want = sum(float(reference_tc(fr[:, l], fr[:, l + 1], preds[l - 1], preds[l], fl[:, l - l0]))
                for l in range(l0, L)) / L
@@ -227,7 +228,7 @@ def test_training_step_averages_tc_over_all_steps_like_the_reference(tmp_path):
     tr_abs.model.load_state_dict(tr.model.state_dict())
     tr_abs.model.eval()
     with torch.no_grad():
-        _, stats_abs, _ = tr_abs._forward_e2vid(b)
+        _, stats_abs, _ = tr_abs.forward(b)
     want_abs = sum(float(temporal_consistency_loss(fr[:, l], fr[:, l + 1], preds[l - 1], preds[l], fl[:, l - l0],
                                                    form="absolute")) for l in range(l0, L)) / (L - l0)
     assert stats_abs["tc"] == pytest.approx(want_abs, rel=1e-5)
@@ -324,13 +325,13 @@ def test_batch_to_device_converts_raw_and_slices_flow():
     b = next(iter(ds))
     assert b["voxels"].dtype == torch.int8 and b["frames"].dtype == torch.uint8 and b["flow"].dtype == torch.float16
     l0 = tc_start_index(4, 0.5)
-    d = batch_to_device(b, torch.device("cpu"), "e2vid", tc_start=l0)
+    d = batch_to_device(b, torch.device("cpu"), outputs("e2vid"), flow_from=l0)
     assert d["voxels"].dtype == torch.float32 and torch.equal(d["voxels"], b["voxels"].float())
     assert d["frames"].max() <= 1.0 and torch.allclose(d["frames"] * 255, b["frames"].float())
     assert d["flow"].shape[1] == 4 - l0 and torch.equal(d["flow"], b["flow"][:, l0:].float())
     assert tc_start_index(40, 0.5) == 20
     with pytest.raises(KeyError):
-        batch_to_device({"voxels": b["voxels"]}, torch.device("cpu"), "evflow")
+        batch_to_device({"voxels": b["voxels"]}, torch.device("cpu"), outputs("evflow"))
 
 
 def test_config_files_and_overrides():
@@ -428,8 +429,8 @@ def test_cli_end_to_end_with_resume(tmp_path, monkeypatch):
 
     made = []
 
-    def fake_make_stream(endpoint, task, credits, timeout_s, raw):
-        ds = FakeV2VStream(outputs=task_outputs(task), num_batches=10, raw=raw)
+    def fake_make_stream(endpoint, task, credits, timeout_s, raw, **kw):
+        ds = FakeV2VStream(outputs=outputs(task), num_batches=10, raw=raw)
         made.append((endpoint, task, ds))
         return ds
 

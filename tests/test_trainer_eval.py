@@ -11,7 +11,7 @@ import torch
 from trainer.config import default_config, merge
 from trainer.evaluate import (H5Sequence, events_to_voxels, evaluate_e2vid, flow_metrics, main,
                               reconstruction_metrics, video_sequence)
-from trainer.train import Trainer
+from trainer.core import Trainer
 from tests.trainer_fixtures import write_edge_events
 
 torch.set_num_threads(2)

@@ -9,29 +9,14 @@ Integers and halves cross the PCIe bus; conversion to float32 happens on the dev
 """
 from __future__ import annotations
 
-import math
 from typing import Iterable, Optional, Sequence, Tuple
 
 import torch
 from torch.utils.data import DataLoader
 
-__all__ = ["task_outputs", "tc_start_index", "make_stream", "make_loader", "batch_to_device", "drop_padding"]
+from .tasks import get_task
 
-
-def task_outputs(task: str) -> Tuple[str, ...]:
-    """Outputs requested from the stream: E2VID needs voxels, frames and flow (flow only
-    for the temporal-consistency half); EvFlow needs voxels and flow."""
-    if task == "e2vid":
-        return ("voxels", "frames", "flow")
-    if task == "evflow":
-        return ("voxels", "flow")
-    raise ValueError(f"task must be 'e2vid' or 'evflow', got {task!r}")
-
-
-def tc_start_index(sequence_length: int, fraction: float) -> int:
-    """First voxel index l whose reconstruction enters the temporal consistency loss:
-    ``max(1, ceil(fraction * L))`` (20 for L = 40, fraction 0.5: frames 20..39)."""
-    return max(1, int(math.ceil(fraction * sequence_length)))
+__all__ = ["make_stream", "make_loader", "batch_to_device", "drop_padding"]
 
 
 def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
@@ -45,7 +30,7 @@ def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 6
     except ImportError as e:  # pragma: no cover - depends on the installed client
         raise ImportError("v2v_client.V2VStreamDataset is not available; install the v2v "
                           "client (pip install -e '.[client]')") from e
-    return V2VStreamDataset(endpoint=endpoint, outputs=task_outputs(task), credits=int(credits),
+    return V2VStreamDataset(endpoint=endpoint, outputs=get_task(task).outputs, credits=int(credits),
                             timeout_s=float(timeout_s), raw=bool(raw), reconnect=bool(reconnect),
                             curve_keys=tuple(curve_keys) if curve_keys else None)
 
@@ -63,28 +48,28 @@ def _frames_to_float(t: torch.Tensor) -> torch.Tensor:
     return t.float()
 
 
-def batch_to_device(batch: dict, device: torch.device, task: str, tc_start: Optional[int] = None) -> dict:
-    """Move a stream batch to ``device`` with non-blocking copies and convert to float32 there.
+def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], flow_from: Optional[int] = None) -> dict:
+    """Move the ``outputs`` of a stream batch to ``device`` with non-blocking copies and convert
+    them to float32 there.
 
-    For E2VID with ``tc_start`` given, only ``flow[:, tc_start:]`` is transferred (the
-    temporal consistency loss uses the last part of the sequence only).
+    With ``flow_from`` given, only ``flow[:, flow_from:]`` is transferred (E2VID's temporal
+    consistency loss uses the last part of the sequence only).
 
     Returns a dict with float32 ``voxels`` (B, L, num_bins, H, W), ``frames`` (B, L+1, 1,
-    H, W) in [0, 1] and ``flow`` (B, L', 2, H, W) pixels, as present in ``batch``.
-    Raises ``KeyError`` naming a missing output the task needs.
+    H, W) in [0, 1] and ``flow`` (B, L', 2, H, W) pixels, those of ``outputs``.
+
+    Raises:
+        KeyError: naming an output of ``outputs`` the batch lacks.
     """
     nb = device.type == "cuda"
-    out = {}
-    for key in task_outputs(task):
+    for key in outputs:
         if key not in batch:
-            raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); task {task} needs {task_outputs(task)}")
-    out["voxels"] = batch["voxels"].to(device, non_blocking=nb).float()
-    if "frames" in batch and task == "e2vid":
+            raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); the task needs {tuple(outputs)}")
+    out = {"voxels": batch["voxels"].to(device, non_blocking=nb).float()}
+    if "frames" in outputs:
         out["frames"] = _frames_to_float(batch["frames"].to(device, non_blocking=nb))
-    if "flow" in batch:
-        flow = batch["flow"]
-        if task == "e2vid" and tc_start is not None:
-            flow = flow[:, tc_start:]
+    if "flow" in outputs:
+        flow = batch["flow"] if flow_from is None else batch["flow"][:, flow_from:]
         out["flow"] = flow.to(device, non_blocking=nb).float()
     return out
 

@@ -367,7 +367,7 @@ def main(argv=None) -> int:
     p.add_argument("--save-images", type=int, default=0, help="E2VID: save every Nth reconstruction as PNG")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    from .train import resolve_device
+    from .core import resolve_device
     from .lpips_net import load_lpips
 
     device = resolve_device(args.device)

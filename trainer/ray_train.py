@@ -25,11 +25,8 @@ cluster): ``train_log.csv``, ``checkpoint_NNNNNNN.pt``, ``checkpoint_last.pt``, 
 from __future__ import annotations
 
 import argparse
-import csv
-import json
 import logging
 import tempfile
-import time
 import warnings
 from collections import defaultdict
 from pathlib import Path
@@ -38,14 +35,16 @@ from typing import Dict, Iterable, Optional
 import numpy as np
 import torch
 
-from .data import drop_padding, task_outputs
-from .train import CSV_COLUMNS, Trainer
+from v2v_server.protocol import OUTPUTS
+
+from .core import Trainer
+from .data import drop_padding
+from .loop import RunHooks, Schedule, train_loop
+from .tasks import get_task
 
 __all__ = ["add_ray_arguments", "run_ray", "RayTrainer", "SampleWeightedAllReduce", "load_ray_state"]
 
 log = logging.getLogger("trainer.ray")
-
-_TENSOR_COLUMNS = ("voxels", "frames", "flow")
 
 
 def add_ray_arguments(p: argparse.ArgumentParser) -> None:
@@ -86,7 +85,7 @@ class V2VCollate:
 
     def __call__(self, batch: Dict[str, np.ndarray]) -> dict:
         out = {}
-        for k in _TENSOR_COLUMNS:
+        for k in OUTPUTS:
             if k in batch:
                 with warnings.catch_warnings():  # Ray's zero-copy arrays are read-only; nothing writes them
                     warnings.simplefilter("ignore", UserWarning)
@@ -139,7 +138,7 @@ class SampleWeightedAllReduce:
 
 
 class RayTrainer(Trainer):
-    """:class:`trainer.train.Trainer` on one Ray Train rank: the same steps, plus the
+    """:class:`trainer.core.Trainer` on one Ray Train rank: the same steps, plus the
     padding-only step a rank must still take so all ranks stay in step."""
 
     def train_step(self, batch: dict) -> dict:
@@ -151,9 +150,7 @@ class RayTrainer(Trainer):
                 self.optimizer.step()
                 self.step += 1
                 return {"loss": float("nan"), "samples": 0}
-        stats = super().train_step(batch)
-        stats["samples"] = n
-        return stats
+        return super().train_step(batch)
 
 
 class _State:
@@ -209,21 +206,9 @@ def _gather_state(consumed: Dict[int, set], prev: dict, epoch_sizes: Dict[int, i
             "epochs_done": sorted(done)}
 
 
-def _open_csv(out: Path, task: str, step: int):
-    path = out / "train_log.csv"
-    kept = []
-    if step and path.exists():  # resumed: drop rows logged after the checkpoint
-        with open(path, newline="") as f:
-            kept = [r for r in csv.DictReader(f) if r.get("step", "").isdigit() and int(r["step"]) <= step]
-    fh = open(path, "w", newline="", buffering=1)
-    w = csv.DictWriter(fh, fieldnames=CSV_COLUMNS[task] + ["samples"], extrasaction="ignore")
-    w.writeheader()
-    w.writerows(kept)
-    return fh, w
-
-
 def _train_loop(config: dict) -> None:
-    """The per-rank loop (runs inside a Ray Train worker)."""
+    """The per-rank loop (runs inside a Ray Train worker): ``trainer.loop.train_loop`` over this
+    rank's shard, recording the ids it trains on for the checkpoints."""
     import ray.train
     import ray.train.torch
 
@@ -246,59 +231,36 @@ def _train_loop(config: dict) -> None:
     prev = config["state"]
     epoch_sizes = {int(e): int(n) for e, n in config["epoch_sizes"].items()}
     consumed: Dict[int, set] = defaultdict(set)
-    max_steps, every = int(config["max_steps"]), int(cfg["log"]["checkpoint_every"])
-    fh, writer = _open_csv(out, trainer.task, trainer.step) if rank == 0 else (None, None)
-    pin = device.type == "cuda"
+    samples = [0]
     batches = ray.train.get_dataset_shard("train").iter_torch_batches(
-        batch_size=int(config["batch_size"]), collate_fn=v2v_collate(pin), prefetch_batches=2)
+        batch_size=int(config["batch_size"]), collate_fn=v2v_collate(device.type == "cuda"), prefetch_batches=2)
 
-    def save():
+    def on_batch(batch: dict, stats: dict) -> None:
+        for sid, e, pad in zip(batch["sample_ids"], batch["epochs"], batch["padding"].tolist()):
+            if not pad:
+                consumed[e].add(sid)
+        samples[0] += stats.get("samples", 0)
+
+    def save() -> None:  # collective: every rank calls it at the same step
         sd = _gather_state(consumed, prev, epoch_sizes, world)
         if rank == 0:
             trainer.save_checkpoint(_State(sd))
         ray.train.report({"step": trainer.step, "epochs_done": sd["epochs_done"]})
 
-    t_start = t0 = time.perf_counter()
-    wait, start_step, n_samples, losses = 0.0, trainer.step, 0, []
-    try:
-        for batch in batches:
-            t1 = time.perf_counter()
-            stats = trainer.train_step(batch)
-            wait += t1 - t0
-            for sid, e, pad in zip(batch["sample_ids"], batch["epochs"], batch["padding"].tolist()):
-                if not pad:
-                    consumed[e].add(sid)
-            n_samples += stats.get("samples", 0)
-            if np.isfinite(stats["loss"]):
-                losses.append(stats["loss"])
-            if writer is not None:
-                stats.update(step=trainer.step, epoch=batch["epoch"], data_wait_s=round(t1 - t0, 5),
-                             step_s=round(time.perf_counter() - t0, 5))
-                writer.writerow(stats)
-            if every and trainer.step % every == 0:
-                save()
-            t0 = time.perf_counter()
-            if trainer.step >= max_steps:
-                break
-        save()
-    finally:
-        if fh is not None:
-            fh.close()
-    counts = [n_samples]
-    if world > 1:
-        import torch.distributed as dist
+    def summary_extra() -> dict:  # collective
+        counts = [samples[0]]
+        if world > 1:
+            import torch.distributed as dist
 
-        counts = [None] * world
-        dist.all_gather_object(counts, n_samples)
-    if rank == 0:
-        el = time.perf_counter() - t_start
-        summary = {"task": trainer.task, "engine": "ray", "ranks": world, "steps": trainer.step - start_step,
-                   "final_step": trainer.step, "samples": int(sum(counts)),
-                   "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
-                   "steps_per_s": (trainer.step - start_step) / el if el > 0 else None,
-                   "data_wait_fraction": wait / el if el > 0 else None}
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
-        log.info("done: %s", json.dumps(summary))
+            counts = [None] * world
+            dist.all_gather_object(counts, samples[0])
+        return {"engine": "ray", "ranks": world, "samples": int(sum(counts))}
+
+    lg = cfg["log"]
+    train_loop(trainer, batches, int(config["max_steps"]),
+               Schedule(int(lg["image_every"]), int(lg["checkpoint_every"]), progress=False), save,
+               RunHooks(on_batch=on_batch, files=rank == 0, csv_extra=("samples",), summary_extra=summary_extra,
+                        final_checkpoint="always"))
 
 
 def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
@@ -352,7 +314,7 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
         if not todo:
             log.info("all %d epoch(s) already trained", args.epochs)
             return 0
-        ds = v2v_dataset(corpus, scfg, epoch=todo, outputs=task_outputs(cfg["task"]),
+        ds = v2v_dataset(corpus, scfg, epoch=todo, outputs=get_task(cfg["task"]).outputs,
                          exclude={e: state["consumed"].get(e, ()) for e in todo}, ranks=args.num_workers,
                          concurrency=data_workers, resource=args.data_resource)
         loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,

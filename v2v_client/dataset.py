@@ -29,7 +29,7 @@ import numpy as np
 import torch
 import zmq
 
-from v2v_server.protocol import ProtocolError, decode_arrays, pack, unpack
+from v2v_server.protocol import OUTPUTS, ProtocolError, decode_arrays, pack, unpack
 
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints  # [iss12]
 from .handoff import ShmReader, check_shm_dir
@@ -37,7 +37,6 @@ from .metrics import TrainerMetrics  # [iss12]
 
 log = logging.getLogger("v2v.client")
 
-ALL_OUTPUTS = ("voxels", "frames", "flow")
 #: Largest message accepted from the server, bytes (ZMQ_MAXMSGSIZE).
 MAX_SERVER_MSG = 1 << 31
 
@@ -535,7 +534,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             ``rank``/``world_size`` or keys.
     """
 
-    def __init__(self, endpoint: Union[str, Sequence[str]], outputs: Sequence[str] = ALL_OUTPUTS, credits: int = 4,
+    def __init__(self, endpoint: Union[str, Sequence[str]], outputs: Sequence[str] = OUTPUTS, credits: int = 4,
                  timeout_s: float = 30.0, heartbeat_s: float = 1.0, raw: bool = False,
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None, rank: Optional[int] = None,
@@ -546,9 +545,9 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if isinstance(outputs, str):
             outputs = (outputs,)
         outputs = tuple(outputs)
-        bad = [o for o in outputs if o not in ALL_OUTPUTS]
+        bad = [o for o in outputs if o not in OUTPUTS]
         if bad or not outputs:
-            raise ValueError(f"outputs must be a non-empty subset of {list(ALL_OUTPUTS)}, got {list(outputs)}")
+            raise ValueError(f"outputs must be a non-empty subset of {list(OUTPUTS)}, got {list(outputs)}")
         if isinstance(credits, bool) or not isinstance(credits, int) or not 1 <= credits <= 1024:
             raise ValueError(f"credits must be an int in [1, 1024], got {credits!r}")
         if not timeout_s > 0:
@@ -564,7 +563,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if not isinstance(group, str) or not group or len(group) > 128:
             raise ValueError(f"group must be a non-empty string of at most 128 characters, got {group!r}")
         self.endpoint = endpoint
-        self.outputs = tuple(o for o in ALL_OUTPUTS if o in outputs)
+        self.outputs = tuple(o for o in OUTPUTS if o in outputs)
         self.credits = credits
         self.timeout_s = float(timeout_s)
         self.heartbeat_s = float(heartbeat_s)

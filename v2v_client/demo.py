@@ -1,6 +1,6 @@
 """``v2v-demo``: the main job end to end on the bundled clips.
 
-Runs the server (``v2v_server.server.V2VServer``, what ``v2v-serve`` runs) in a thread of this
+Runs the server (``v2v_server.local.local_server``: what ``v2v-serve`` runs) in a thread of this
 process on a free loopback port (its workers are processes, as under ``v2v-serve``), reads
 batches through ``V2VStreamDataset`` (the same code path as ``v2v-loadtest``), prints
 batches/s, writes a preview PNG of one sample, and stops the server.
@@ -8,55 +8,15 @@ batches/s, writes a preview PNG of one sample, and stops the server.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
-import threading
-from pathlib import Path
-from typing import Iterator, List, Optional
+from typing import List, Optional
 
-from v2v_server.cli import SAMPLE_VIDEOS
-from v2v_server.config import load_config
-from v2v_server.server import V2VServer
-from v2v_server.video import scan_corpus
+from v2v_server.local import local_server
 
 from .dataset import V2VStreamDataset
 from .loadtest import format_report, run_loadtest
 from .preview import write_preview
-
-
-@contextlib.contextmanager
-def local_server(videos: Optional[str], workers: int, batch_size: int, ready_timeout_s: float = 120.0) -> Iterator[str]:
-    """Serve ``videos`` (default: the bundled clips) from a thread of this process; yields the
-    bound endpoint (``tcp://127.0.0.1:<free port>``) and always stops the server and its workers.
-
-    Raises:
-        ValueError: a bad ``workers``/``batch_size`` (from the config check, naming the field), or
-            a folder with no video files.
-        RuntimeError: the server stopped or stayed silent before it served (its error chained).
-    """
-    root = Path(videos) if videos else SAMPLE_VIDEOS
-    cfg = load_config(None, {"workers": workers, "batch_size": batch_size, "bind": "tcp://127.0.0.1:*"})
-    found, _rejected = scan_corpus(root, cfg.video_extensions)
-    server = V2VServer(cfg, root, [f.as_posix() for f in found])
-    ready, failure = threading.Event(), []
-
-    def run() -> None:
-        try:
-            server.run(ready)
-        except BaseException as e:  # noqa: BLE001 - handed to the caller below
-            failure.append(e)
-            ready.set()
-
-    thread = threading.Thread(target=run, name="v2v-demo-server", daemon=True)
-    thread.start()
-    try:
-        if not ready.wait(ready_timeout_s) or failure:
-            raise RuntimeError(f"the server did not start within {ready_timeout_s} s") from (failure[0] if failure else None)
-        yield server.bound_endpoint
-    finally:
-        server.stop()
-        thread.join(30.0)
 
 
 def main(argv: Optional[List[str]] = None) -> int:

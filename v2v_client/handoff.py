@@ -28,8 +28,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from v2v_server.datapath import BATCH_DIR_RE, BATCH_FILE_HEADER, BATCH_FILE_RE
-from v2v_server.protocol import WIRE_DTYPES, ProtocolError
+from v2v_server.protocol import BATCH_DIR_RE, BATCH_FILE_HEADER, BATCH_FILE_RE, WIRE_DTYPES, ProtocolError
 
 #: Mapped batch files kept open per connection (the server keeps a few buffers per layout).
 MAX_MAPPINGS = 16

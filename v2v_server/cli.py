@@ -7,27 +7,16 @@ import sys
 from pathlib import Path
 from typing import List, Optional
 
-from .config import ALL_OUTPUTS, FLOW_PRESETS, load_config
-from .flow import DEFAULT_FLOW
+from .config import FLOW_PRESETS, load_config
+from .protocol import OUTPUTS
+from .flow_options import DEFAULT_FLOW
 from .server import V2VServer, install_signal_handlers
-from .metrics import JsonFormatter
-from .corpus import check_corpus, format_check, select_shard
+from .logs import setup_logging
+from .corpus import SAMPLE_VIDEOS, check_corpus, format_check, select_shard
 from .video import scan_corpus
 
-#: The bundled demo corpus (see sample_videos/SOURCES.md).
-SAMPLE_VIDEOS = Path(__file__).resolve().parent / "sample_videos"
 
 log = logging.getLogger("v2v.serve")
-
-
-def setup_logging(level: str, fmt: str, name: str) -> None:
-    """Log to stderr at ``level``, as text lines prefixed by ``name`` or as JSON objects."""
-    handler = logging.StreamHandler(sys.stderr)
-    if fmt == "json":
-        handler.setFormatter(JsonFormatter())
-    else:
-        handler.setFormatter(logging.Formatter(f"%(asctime)s {name} %(levelname)s %(message)s"))
-    logging.basicConfig(level=getattr(logging, str(level).upper(), logging.INFO), handlers=[handler], force=True)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-samples-per-video", type=int, help="windows per video per epoch (default 10)")
     p.add_argument("--crops-per-window", type=int, help="random crops per decoded window, each its own sample "
                    "(default 1; ids path#window.crop when > 1; crops of a window share content and motion)")
-    p.add_argument("--outputs", help=f"comma list of outputs clients may ask for, from {','.join(ALL_OUTPUTS)}")
+    p.add_argument("--outputs", help=f"comma list of outputs clients may ask for, from {','.join(OUTPUTS)}")
     p.add_argument("--flow-preset", choices=FLOW_PRESETS, help=f"optical flow option (default {DEFAULT_FLOW}; see docs/flow.md)")
     p.add_argument("--flow-dtype", choices=("float16", "float32"), help="wire dtype of flow (default float16)")
     p.add_argument("--refine", help="off | uniform:K | adaptive:PX | adaptive-dl:L: insert sub-frames where motion "

@@ -15,10 +15,9 @@ from typing import Optional, Tuple
 import yaml
 
 from .flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
+from .protocol import OUTPUTS
 from .simulate import ParamRanges
 
-#: Outputs a worker can compute for a sample.
-ALL_OUTPUTS = ("voxels", "frames", "flow")
 #: Optical-flow options by name (the table lives in flow_options.py).
 FLOW_PRESETS = tuple(FLOW_OPTIONS)
 FLOW_DTYPES = ("float16", "float32")
@@ -60,7 +59,7 @@ class ServeConfig:
     pause_enabled: bool = True
     p_pause_when_running: float = 0.0102
     p_pause_when_paused: float = 0.9791
-    outputs: Tuple[str, ...] = ALL_OUTPUTS
+    outputs: Tuple[str, ...] = OUTPUTS
     flow_preset: str = DEFAULT_FLOW
     flow_dtype: str = "float16"
     ranges: ParamRanges = field(default_factory=ParamRanges)
@@ -165,10 +164,10 @@ class ServeConfig:
         if isinstance(self.outputs, str):
             self.outputs = tuple(s.strip() for s in self.outputs.split(",") if s.strip())
         outs = tuple(self.outputs)
-        bad = [o for o in outs if o not in ALL_OUTPUTS]
+        bad = [o for o in outs if o not in OUTPUTS]
         if bad or not outs:
-            raise ValueError(f"outputs must be a non-empty subset of {list(ALL_OUTPUTS)}, got {list(outs)}")
-        self.outputs = tuple(o for o in ALL_OUTPUTS if o in outs)
+            raise ValueError(f"outputs must be a non-empty subset of {list(OUTPUTS)}, got {list(outs)}")
+        self.outputs = tuple(o for o in OUTPUTS if o in outs)
         self.flow_preset = check_option(self.flow_preset).name  # ValueError naming flow_preset
         why = unavailable_reason(self.flow_preset)
         if why:

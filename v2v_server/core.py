@@ -17,12 +17,12 @@ import logging
 from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from .ledger import BatchRecord, DeliveryLedger
+from .protocol import OUTPUTS
 from .schedule import EpochScheduler, Job, parse_sample_id
 from .wire import Ack, Bye, Credit, Heartbeat, Hello, Released
 
 log = logging.getLogger("v2v.server")
 
-ALL_OUTPUTS = ("voxels", "frames", "flow")
 Msg = Tuple[bytes, dict]
 
 
@@ -67,7 +67,7 @@ class DeliveryCore:
         """The ``task`` message for an idle worker, or None (nothing to do, or no client yet)."""
         outs = self.ledger.outputs_wanted()
         if outs:
-            self.outputs = tuple(o for o in ALL_OUTPUTS if o in outs)
+            self.outputs = tuple(o for o in OUTPUTS if o in outs)
         if self.outputs is None:
             return None
         t = self.sched.next_task(worker, now)

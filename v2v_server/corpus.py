@@ -10,6 +10,9 @@ from typing import List, Tuple
 from .config import ServeConfig
 from .video import VideoError, decode_codes, inside, open_video
 
+#: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
+SAMPLE_VIDEOS = Path(__file__).resolve().parent / "sample_videos"
+
 
 def shard_of(rel_path: str, count: int) -> int:
     """The shard (0 .. count - 1) that serves the video at ``rel_path`` (POSIX, relative to the

@@ -42,7 +42,6 @@ import logging
 import math
 import mmap
 import os
-import re
 import shutil
 import struct
 import sys
@@ -52,7 +51,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .protocol import WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype
+from .protocol import (BATCH_DIR_RE, BATCH_FILE_HEADER, WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays,
+                       narrow_int_dtype)
 
 log = logging.getLogger("v2v.datapath")
 
@@ -258,14 +258,6 @@ def create_ring(sequence_length: int, num_bins: int, crop_size: int,
     except OSError as e:
         log.warning("no shared-memory slot ring in %s (%s): workers send arrays over the socket", directory, e)
         return None
-
-
-#: Bytes at the start of a batch-buffer file before the first array: the generation (uint64 LE).
-BATCH_FILE_HEADER = 64
-#: Names of batch-buffer files inside a server's :class:`BatchDir` (never anything a client chose).
-BATCH_FILE_RE = re.compile(r"b[0-9]{1,18}")
-#: Names of the servers' private directories under ``SHM_DIR``: ``v2v-batches-<pid>-<random>``.
-BATCH_DIR_RE = re.compile(r"v2v-batches-([0-9]{1,10})-[A-Za-z0-9_]{1,32}")
 
 
 def _pid_alive(pid: int) -> bool:

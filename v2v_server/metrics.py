@@ -23,7 +23,6 @@ Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
 """
 from __future__ import annotations
 
-import json
 import logging
 import sys
 import threading
@@ -264,15 +263,3 @@ class _Progress:
 
     def close(self) -> None:
         self.bar.close()
-
-
-class JsonFormatter(logging.Formatter):
-    """One JSON object per log line (``--log-format json``): ``time`` (ISO 8601 UTC),
-    ``level``, ``logger``, ``message``, and ``exception`` when there is one."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        d = {"time": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",
-             "level": record.levelname, "logger": record.name, "message": record.getMessage()}
-        if record.exc_info:
-            d["exception"] = self.formatException(record.exc_info)
-        return json.dumps(d)

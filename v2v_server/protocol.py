@@ -19,10 +19,7 @@ Message types (protocol 2; client messages are decoded and schema-checked by ``w
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error); server -> worker: ``task``, ``stop``.
 
-Version 2 (issue 10): credits by batch id, resume ids as one string per epoch, consumer ids,
-DDP groups, ``dropped``, per-window failures.
-
-Same-host hand-off (issue 11; optional fields, so still version 2): a hello may say
+Same-host hand-off (optional fields): a hello may say
 ``"shm": true``; a server bound to ``ipc://`` then names its batch directory in the welcome
 (``info.shm_dir``, else null) and may send a batch with no array frames and
 ``"shm": {"file": "b<N>", "gen": <generation>, "offsets": [<byte offset per array>]}`` next to
@@ -32,6 +29,7 @@ one buffer's rows, and every batch to other clients, still carry frames.
 """
 from __future__ import annotations
 
+import re
 from typing import Dict, List, Sequence, Tuple
 
 import msgpack
@@ -42,6 +40,16 @@ PROTOCOL_VERSION = 2
 MAX_HEADER_BYTES = 1 << 20
 #: dtypes allowed on the wire.
 WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")
+#: Outputs a sample can carry, in wire order: voxels, ground-truth frames, optical flow.
+OUTPUTS = ("voxels", "frames", "flow")
+
+#: Same-host hand-off (``datapath.BatchDir`` writes, ``v2v_client.handoff`` reads):
+#: bytes at the start of a batch-buffer file before the first array (the generation, uint64 LE);
+BATCH_FILE_HEADER = 64
+#: names of batch-buffer files inside a server's batch directory (never anything a client chose);
+BATCH_FILE_RE = re.compile(r"b[0-9]{1,18}")
+#: names of the servers' private batch directories under /dev/shm: ``v2v-batches-<pid>-<random>``.
+BATCH_DIR_RE = re.compile(r"v2v-batches-([0-9]{1,10})-[A-Za-z0-9_]{1,32}")
 
 
 class ProtocolError(ValueError):

@@ -43,7 +43,8 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 
 import numpy as np
 
-from .config import ALL_OUTPUTS, ServeConfig
+from .config import ServeConfig
+from .protocol import OUTPUTS
 from .flow import FlowEstimator
 from .ids import make_sample_id, parse_sample_id
 from .sampler import video_samples
@@ -270,7 +271,7 @@ def v2v_dataset(
     *,
     epoch: Union[int, Sequence[int]] = 0,
     seed: Optional[int] = None,
-    outputs: Sequence[str] = ALL_OUTPUTS,
+    outputs: Sequence[str] = OUTPUTS,
     exclude: Union[Iterable[str], Mapping[int, Iterable[str]]] = (),
     ranks: int = 1,
     concurrency: Union[int, Tuple[int, int], None] = None,
@@ -307,9 +308,9 @@ def v2v_dataset(
     cfg = config or ServeConfig().validate()
     if seed is not None:
         cfg = ServeConfig.from_dict({**cfg.to_dict(), "seed": int(seed)}, source="ray config")
-    bad = [o for o in outputs if o not in ALL_OUTPUTS]
+    bad = [o for o in outputs if o not in OUTPUTS]
     if bad or not outputs:
-        raise ValueError(f"outputs must be a non-empty subset of {ALL_OUTPUTS}, got {tuple(outputs)}")
+        raise ValueError(f"outputs must be a non-empty subset of {OUTPUTS}, got {tuple(outputs)}")
     corpus = videos if isinstance(videos, RayCorpus) else scan_corpus_windows(videos, cfg)
     epochs = [int(epoch)] if isinstance(epoch, (int, np.integer)) else [int(e) for e in epoch]
     if isinstance(exclude, Mapping):

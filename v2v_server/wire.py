@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, FrozenSet, Optional, Tuple
 
-from .protocol import PROTOCOL_VERSION, ProtocolError
+from .protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError
 from .protocol import bounded_unpackb as _bounded_unpackb
 
 #: Largest element count of any array in a client message (acks name at most ``max_credits`` ids).
@@ -30,8 +30,6 @@ MAX_ARRAY_LEN = 4096
 MAX_MAP_LEN = 256
 #: Largest number of arrays + maps in one client message.
 MAX_CONTAINERS = 512
-#: Outputs a client may ask for.
-OUTPUTS = ("voxels", "frames", "flow")
 
 SampleKey = Tuple[str, int]
 

@@ -27,6 +27,7 @@ import zmq
 
 from .config import ServeConfig
 from .datapath import SlotRing
+from .logs import setup_logging
 from .protocol import encode_arrays, narrow_int_dtype, pack, unpack
 from .flow import to_float16
 from .flow import FlowEstimator
@@ -220,9 +221,7 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
 
     cv2.setNumThreads(1)
     cfg = ServeConfig.from_dict(cfg_dict, source="worker config")
-    if cfg.log_format == "json":  # [iss12] one format for the whole server's stderr
-        from .cli import setup_logging
-
+    if cfg.log_format == "json":  # one format for the whole server's stderr
         setup_logging("INFO", "json", "v2v-worker")
     else:
         logging.basicConfig(level=logging.INFO, format="v2v-worker %(process)d: %(message)s")

@@ -1,0 +1,84 @@
+"""The packages' import graph has no cycle, and the client reaches the server package only
+through its public wire modules (module-level and function-level imports both count)."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("v2v_server", "v2v_client", "trainer")
+#: what v2v_client may import from v2v_server: the protocol and wire formats it speaks, and the
+#: in-process server the demo runs
+CLIENT_MAY_IMPORT = {"v2v_server.protocol", "v2v_server.wire", "v2v_server.ids", "v2v_server.local"}
+
+
+def _module(path: Path) -> str:
+    return ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+
+
+def import_graph() -> dict:
+    """{module: set of project modules it imports}, over PACKAGES."""
+    mods = {_module(p): p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")}
+    graph = {}
+    for name, path in mods.items():
+        pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = pkg.split(".")[: len(pkg.split(".")) - node.level + 1]
+                    base = ".".join(parts + ([base] if base else []))
+                targets = [base] + [f"{base}.{a.name}" for a in node.names]
+            else:
+                continue
+            deps.update(t for t in targets if t in mods and t != name)
+        graph[name] = deps
+    return graph
+
+
+def find_cycle(graph: dict):
+    """One cycle as a list of modules, or None."""
+    state, stack = {}, []
+
+    def visit(n):
+        state[n] = 1
+        stack.append(n)
+        for m in sorted(graph[n]):
+            if state.get(m) == 1:
+                return stack[stack.index(m):] + [m]
+            if m not in state:
+                found = visit(m)
+                if found:
+                    return found
+        stack.pop()
+        state[n] = 2
+        return None
+
+    for n in sorted(graph):
+        if n not in state:
+            found = visit(n)
+            if found:
+                return found
+    return None
+
+
+def test_find_cycle_finds_one():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_no_import_cycle():
+    assert find_cycle(import_graph()) is None
+
+
+def test_client_uses_only_the_servers_public_wire_modules():
+    graph = import_graph()
+    used = {m for n, deps in graph.items() if n.startswith("v2v_client") for m in deps if m.startswith("v2v_server")}
+    assert used <= CLIENT_MAY_IMPORT | {"v2v_server"}, sorted(used - CLIENT_MAY_IMPORT)
+
+
+if __name__ == "__main__":
+    print(find_cycle(import_graph()) or "no cycle")

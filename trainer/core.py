@@ -1,0 +1,179 @@
+"""One training run's state: model, optimiser, the task's losses, one step, previews and
+checkpoints (the loop that drives it is ``trainer/loop.py``; both engines use it).
+
+Paper: Lou et al., "V2V", NeurIPS 2025 (training recipe of event_cnn_minimal): Adam (lr 1e-4,
+amsgrad, no weight decay, constant lr), batch 12, sequences of 40 voxel grids.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+from .data import batch_to_device, drop_padding
+from .models import build_model
+from .tasks import get_task
+from .viz import save_grid
+
+__all__ = ["Trainer", "resolve_device"]
+
+log = logging.getLogger("trainer")
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> cuda if available else cpu; 'cuda' without a GPU raises ``RuntimeError``."""
+    if name in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("--device cuda requested but torch.cuda.is_available() is False")
+    return dev
+
+
+class Trainer:
+    """One training run: model, optimiser, the task (``trainer.tasks``), previews and checkpoints.
+
+    Args:
+        cfg: full config (see ``trainer/config.py``); ``cfg['task']`` names a task of
+            ``trainer.tasks.TASKS``.
+        out_dir: folder for logs, samples and checkpoints (created).
+        device: torch device.
+
+    Raises:
+        ValueError: an unknown task, ``amp`` or a bad loss setting (naming it).
+
+    Use ``trainer.loop.train_loop`` (or :meth:`fit`) with an iterable of stream batches (the
+    contract of ``v2v_client.V2VStreamDataset``), or :meth:`train_step` on one batch.
+    """
+
+    def __init__(self, cfg: dict, out_dir: str, device: torch.device):
+        self.cfg = cfg
+        self.task = cfg["task"]
+        self.device = device
+        self.out = Path(out_dir)
+        (self.out / "samples").mkdir(parents=True, exist_ok=True)
+        torch.manual_seed(int(cfg.get("seed", 0)))
+        if device.type == "cuda":
+            torch.backends.cudnn.benchmark = True  # fixed crop size: let cuDNN pick its kernels
+        self.spec = get_task(self.task)(cfg, device)
+        self.model = build_model(self.task, dict(cfg["model"])).to(device)
+        o = cfg["optim"]
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=float(o["lr"]), amsgrad=bool(o["amsgrad"]),
+                                          weight_decay=float(o["weight_decay"]))
+        self.clip = o.get("clip_grad_norm")
+        amp = str(cfg.get("amp", "fp32")).lower()
+        if amp not in ("fp32", "bf16"):
+            raise ValueError(f"amp must be 'fp32' or 'bf16', got {cfg.get('amp')!r}")
+        self.amp = device.type == "cuda" and amp == "bf16"
+        self.step = 0
+        self.stream_state = None
+
+    def _autocast(self):
+        if self.amp:
+            return torch.autocast("cuda", dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def _check_batch(self, b: dict):
+        nb = self.cfg["model"]["num_bins"]
+        v = b["voxels"]
+        if v.ndim != 5 or v.shape[2] != nb:
+            raise ValueError(f"stream voxels have shape {tuple(v.shape)}, model expects (B, L, {nb}, H, W); "
+                             f"start v2v-serve with --num-bins {nb} or set model.num_bins")
+
+    def forward(self, b: dict):
+        """The task's loss, logged terms and predictions for a batch on the device."""
+        return self.spec.forward(self.model, b, self._autocast)
+
+    def train_step(self, batch: dict) -> dict:
+        """One optimiser step on one stream batch (host tensors). Returns floats:
+        ``loss`` and the task's terms. Samples flagged ``padding`` are left out of the loss;
+        a batch of padding only makes no step and returns ``{"loss": nan, "samples": 0}``.
+
+        Raises:
+            ValueError: voxels of another bin count than the model's.
+            FloatingPointError: a non-finite loss.
+        """
+        batch, n_real = drop_padding(batch)
+        if n_real == 0:
+            return {"loss": float("nan"), "samples": 0}
+        self._check_batch(batch)
+        self.model.train()
+        L = batch["voxels"].shape[1]
+        b = batch_to_device(batch, self.device, self.spec.outputs, flow_from=self.spec.flow_from(L))
+        self.optimizer.zero_grad(set_to_none=True)
+        loss, stats, preds = self.forward(b)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite loss {float(loss)} at step {self.step}")
+        loss.backward()
+        if self.clip:
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), float(self.clip))
+        self.optimizer.step()
+        self.step += 1
+        self._last = (b, preds)
+        stats["loss"] = float(loss.detach())
+        stats["samples"] = n_real
+        return stats
+
+    def save_samples(self, path: Optional[str] = None, max_rows: int = 4) -> str:
+        """PNG grid of the last step: per sample, voxel | prediction | ground truth at the
+        sequence's last voxel. Returns the path."""
+        b, preds = self._last
+        path = path or str(self.out / "samples" / f"step_{self.step:07d}.png")
+        vox = b["voxels"][:, -1].cpu().numpy()
+        save_grid(path, [self.spec.preview_row(b, preds, i, vox[i]) for i in range(min(max_rows, vox.shape[0]))])
+        return path
+
+    def checkpoint(self, stream=None) -> dict:
+        """Everything needed to resume: model, optimiser, step, config, stream state."""
+        sd = None
+        if stream is not None and hasattr(stream, "state_dict"):
+            sd = stream.state_dict()
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "step": self.step,
+                "task": self.task, "config": self.cfg, "stream_state": sd, "torch_rng": torch.get_rng_state()}
+
+    def save_checkpoint(self, stream=None) -> Path:
+        """Write ``checkpoint_NNNNNNN.pt`` and refresh ``checkpoint_last.pt``; returns the former."""
+        ck = self.checkpoint(stream)
+        path = self.out / f"checkpoint_{self.step:07d}.pt"
+        tmp = path.with_suffix(".tmp")
+        torch.save(ck, tmp)
+        os.replace(tmp, path)
+        shutil.copyfile(path, self.out / "checkpoint_last.tmp")
+        os.replace(self.out / "checkpoint_last.tmp", self.out / "checkpoint_last.pt")
+        return path
+
+    def load_checkpoint(self, path: str, stream=None) -> None:
+        """Restore model, optimiser and step from ``path``; hand the stored stream state to
+        ``stream.load_state_dict`` when both exist (else the stream starts afresh, logged).
+        Raises ``ValueError`` when the checkpoint is for another task."""
+        ck = torch.load(path, map_location=self.device, weights_only=False)
+        if ck.get("task") != self.task:
+            raise ValueError(f"checkpoint {path} is for task {ck.get('task')!r}, not {self.task!r}")
+        self.model.load_state_dict(ck["model"])
+        self.optimizer.load_state_dict(ck["optimizer"])
+        self.step = int(ck["step"])
+        self.stream_state = ck.get("stream_state")
+        if stream is not None:
+            if self.stream_state is not None and hasattr(stream, "load_state_dict"):
+                stream.load_state_dict(self.stream_state)
+                log.info("resumed stream position from checkpoint")
+            else:
+                log.warning("checkpoint has no stream state or the client cannot load one: "
+                            "the stream restarts its epoch")
+        log.info("resumed from %s at step %d", path, self.step)
+
+    def fit(self, stream, max_steps: int, image_every: int = 500, checkpoint_every: int = 1000,
+            progress: bool = True) -> dict:
+        """Train from a stream (``v2v_client.V2VStreamDataset`` or any iterable of its batches)
+        until ``max_steps`` total steps, the stream ends or Ctrl-C; checkpoints carry the
+        stream's ``state_dict()``. Returns the summary of ``trainer.loop.train_loop``."""
+        from .data import make_loader
+        from .loop import Schedule, train_loop
+
+        return train_loop(self, make_loader(stream, self.device), max_steps,
+                          Schedule(image_every, checkpoint_every, progress), lambda: self.save_checkpoint(stream))

@@ -1,0 +1,157 @@
+"""The training loop both engines run (``v2v-train`` on a stream, and on each Ray Train rank):
+steps until ``max_steps`` or the end of the batches, one CSV row per step, previews and
+checkpoints on their schedule, a summary at the end.
+
+Outputs in the run's folder (the process with ``files=True`` writes them: rank 0 under Ray):
+``train_log.csv`` (one row per step; on resume, rows after the resumed step are dropped),
+``samples/step_NNNNNNN.png``, ``summary.json``; checkpoints are whatever ``checkpoint`` saves.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, List, Optional
+
+import numpy as np
+import torch
+
+__all__ = ["Schedule", "RunHooks", "RunLog", "train_loop"]
+
+log = logging.getLogger("trainer")
+
+
+@dataclass
+class Schedule:
+    """When the loop writes: a preview every ``image_every`` steps and a checkpoint every
+    ``checkpoint_every`` steps (0: only at the end); a progress bar on stderr."""
+
+    image_every: int = 500
+    checkpoint_every: int = 1000
+    progress: bool = True
+
+
+@dataclass
+class RunHooks:
+    """What an engine adds to the loop.
+
+    Attributes:
+        on_batch: called with (batch, stats) after each step (the Ray engine records the ids).
+        files: this process writes the CSV log, previews and summary (rank 0).
+        csv_extra: columns logged besides the task's.
+        summary_extra: called after the final checkpoint on every process (it may be a
+            collective); returns keys added to the summary.
+        final_checkpoint: "if_new" (after the last step unless one was just written) or
+            "always" (a collective checkpoint every rank must take part in).
+    """
+
+    on_batch: Optional[Callable[[dict, dict], None]] = None
+    files: bool = True
+    csv_extra: tuple = ()
+    summary_extra: Callable[[], dict] = dict
+    final_checkpoint: str = "if_new"
+
+
+class RunLog:
+    """``train_log.csv`` of a run: opened at ``step`` (0: a new log; else the rows up to
+    ``step`` are kept and later ones dropped, as after a resume), line-buffered so that
+    ``tail -f`` works."""
+
+    def __init__(self, out: Path, columns: List[str], step: int):
+        path = Path(out) / "train_log.csv"
+        kept = []
+        if step and path.exists():
+            with open(path, newline="") as f:
+                kept = [r for r in csv.DictReader(f) if r.get("step", "").isdigit() and int(r["step"]) <= step]
+        self.fh = open(path, "w", newline="", buffering=1)
+        self.writer = csv.DictWriter(self.fh, fieldnames=columns, extrasaction="ignore")
+        self.writer.writeheader()
+        self.writer.writerows(kept)
+
+    def write(self, row: dict) -> None:
+        self.writer.writerow(row)
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+def _summary(trainer, losses: List[float], n: int, elapsed: float, wait: float, extra: dict) -> dict:
+    return {"task": trainer.task, "steps": n, "final_step": trainer.step,
+            "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
+            "mean_loss_first10": float(np.mean(losses[:10])) if losses else None,
+            "mean_loss_last10": float(np.mean(losses[-10:])) if losses else None,
+            "steps_per_s": n / elapsed if elapsed > 0 else None,
+            "data_wait_fraction": wait / elapsed if elapsed > 0 else None, **extra}
+
+
+def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, checkpoint: Callable[[], None],
+               hooks: Optional[RunHooks] = None) -> dict:
+    """Train ``trainer`` (``trainer.core.Trainer``) on ``batches`` until ``max_steps`` total
+    steps, the batches end, or Ctrl-C (which still checkpoints).
+
+    Returns (and, with ``hooks.files``, writes to ``summary.json``) the summary: task, steps,
+    final_step, first/last loss and the means of the first and last 10 (finite losses: a step
+    of padding only has none), steps_per_s, data_wait_fraction (time blocked on the batches /
+    wall time of the loop), plus ``hooks.summary_extra()``.
+    """
+    hooks = hooks or RunHooks()
+    run_log = RunLog(trainer.out, trainer.spec.csv_columns() + list(hooks.csv_extra), trainer.step) if hooks.files else None
+    bar = None
+    if schedule.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=max_steps, initial=trainer.step, unit="step", dynamic_ncols=True, file=sys.stderr)
+    losses, wait, t_start = [], 0.0, time.perf_counter()
+    start_step, every = trainer.step, schedule.checkpoint_every
+    it = iter(batches)
+    try:
+        while trainer.step < max_steps:
+            t0 = time.perf_counter()
+            try:
+                batch = next(it)
+            except StopIteration:
+                log.info("batches ended at step %d", trainer.step)
+                break
+            t1 = time.perf_counter()
+            stats = trainer.train_step(batch)
+            if trainer.device.type == "cuda":
+                torch.cuda.synchronize(trainer.device)
+            t2 = time.perf_counter()
+            wait += t1 - t0
+            if hooks.on_batch is not None:
+                hooks.on_batch(batch, stats)
+            if np.isfinite(stats["loss"]):
+                losses.append(stats["loss"])
+            stats.update(step=trainer.step, epoch=batch.get("epoch", ""), batch_id=batch.get("batch_id", ""),
+                         data_wait_s=round(t1 - t0, 5), step_s=round(t2 - t0, 5))
+            if run_log is not None:
+                run_log.write(stats)
+            if bar is not None:
+                bar.set_postfix(loss=f"{stats['loss']:.4f}", wait=f"{wait / max(t2 - t_start, 1e-9):.0%}", refresh=False)
+                bar.update(1)
+            if hooks.files and schedule.image_every and trainer.step % schedule.image_every == 0:
+                trainer.save_samples()
+            if every and trainer.step % every == 0:
+                checkpoint()
+    except KeyboardInterrupt:
+        log.warning("interrupted at step %d: saving a checkpoint", trainer.step)
+    finally:
+        if run_log is not None:
+            run_log.close()
+        if bar is not None:
+            bar.close()
+    elapsed = time.perf_counter() - t_start
+    n = trainer.step - start_step
+    if n and hooks.files and getattr(trainer, "_last", None) is not None:
+        trainer.save_samples()
+    if hooks.final_checkpoint == "always" or (n and (not every or trainer.step % every)):
+        checkpoint()
+    summary = _summary(trainer, losses, n, elapsed, wait, hooks.summary_extra())
+    if hooks.files:
+        (trainer.out / "summary.json").write_text(json.dumps(summary, indent=2))
+        log.info("done: %s", json.dumps(summary))
+    return summary

@@ -1,0 +1,170 @@
+"""What each training task is: the outputs it asks the stream for, its loss, its logged terms
+and its preview. ``TASKS`` is the registry the trainer, the Ray engine and the stream helpers
+look a task up in; adding a task is adding an entry.
+
+* ``e2vid``: video reconstruction (Rebecq et al., TPAMI 2019) with the V2V paper's recipe: a
+  recurrent network run through the sequence, L1 + LPIPS against the frame at each voxel's end,
+  and temporal consistency (warped previous reconstruction) on the last part of the sequence.
+* ``evflow``: optical flow (EV-FlowNet, Zhu et al., RSS 2018) regressed per voxel with an L1
+  loss; average end-point error logged.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from typing import Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+import torch
+
+from .losses import TC_FORMS, ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
+from .viz import flow_to_bgr, gray_to_u8, voxel_to_u8
+
+__all__ = ["TrainTask", "E2VIDTask", "EvFlowTask", "TASKS", "get_task", "tc_start_index"]
+
+log = logging.getLogger("trainer")
+
+Autocast = Callable[[], contextlib.AbstractContextManager]
+
+
+def tc_start_index(sequence_length: int, fraction: float) -> int:
+    """First voxel index l whose reconstruction enters the temporal consistency loss:
+    ``max(1, ceil(fraction * L))`` (20 for L = 40, fraction 0.5: frames 20..39)."""
+    return max(1, int(math.ceil(fraction * sequence_length)))
+
+
+class TrainTask:
+    """One task's part of a training step. Subclasses set ``name``, ``outputs`` (what the
+    stream must carry, in wire order) and ``terms`` (the loss terms logged besides ``loss``).
+
+    Args:
+        cfg: the trainer config (``trainer/config.py``); a task reads its ``loss`` section.
+        device: where the losses' own modules live.
+    """
+
+    name: str = ""
+    outputs: Tuple[str, ...] = ()
+    terms: Tuple[str, ...] = ()
+
+    def __init__(self, cfg: dict, device: torch.device):
+        self.cfg = cfg
+
+    @classmethod
+    def csv_columns(cls) -> List[str]:
+        """Columns of ``train_log.csv`` for this task."""
+        return ["step", "epoch", "batch_id", "loss", *cls.terms, "data_wait_s", "step_s"]
+
+    def flow_from(self, sequence_length: int) -> Optional[int]:
+        """First voxel whose flow the step uses (only that part is copied to the device), or
+        None for all of it."""
+        return None
+
+    def forward(self, model: torch.nn.Module, b: dict, autocast: Autocast):
+        """Loss (scalar tensor), logged terms (floats) and the predictions (detached) of one
+        batch ``b`` already on the device (``trainer.data.batch_to_device``)."""
+        raise NotImplementedError
+
+    def preview_row(self, b: dict, preds, i: int, voxel: np.ndarray) -> list:
+        """Images of sample ``i`` at the sequence's last voxel: voxel | prediction | ground truth."""
+        raise NotImplementedError
+
+
+class E2VIDTask(TrainTask):
+    name = "e2vid"
+    outputs = ("voxels", "frames", "flow")
+    terms = ("l1", "perceptual", "tc")
+
+    def __init__(self, cfg: dict, device: torch.device):
+        super().__init__(cfg, device)
+        lc = cfg["loss"]
+        self.tc_form = str(lc.get("tc_form", "reference"))
+        if self.tc_form not in TC_FORMS:
+            raise ValueError(f"loss.tc_form must be one of {list(TC_FORMS)}, got {self.tc_form!r}")
+        self.rec_loss = ReconstructionLoss(lc["l1_weight"], lc["perceptual_weight"], lc["lpips_net"],
+                                           lc["lpips_weights"], lc["use_lpips_package"]).to(device)
+        log.info("E2VID perceptual term: %s", self.rec_loss.perceptual)
+
+    def flow_from(self, sequence_length: int) -> Optional[int]:
+        return tc_start_index(sequence_length, float(self.cfg["loss"].get("tc_start_fraction", 0.5)))
+
+    def forward(self, model, b, autocast):
+        """The recurrent state is carried through the sequence (and dropped after it: every
+        stream batch holds new clips). Reconstruction loss averaged over the L steps;
+        temporal consistency in the V2V reference's form (averaged over all L steps, those
+        before the start contributing zero) or the absolute form (over the steps that have it)."""
+        vox, frames, flow = b["voxels"], b["frames"], b.get("flow")
+        L = vox.shape[1]
+        lc = self.cfg["loss"]
+        l0 = self.flow_from(L)
+        use_tc = float(lc["tc_weight"]) > 0 and flow is not None and l0 < L
+        states, prev = None, None
+        sums = {"l1": 0.0, "perceptual": 0.0, "rec": 0.0, "tc": 0.0}
+        n_tc = 0
+        preds = []
+        for l in range(L):
+            with autocast():
+                pred, states = model(vox[:, l], states)
+                r = self.rec_loss(pred.float(), frames[:, l + 1])
+            pred = pred.float()
+            sums["rec"] = sums["rec"] + r["total"]
+            sums["l1"] = sums["l1"] + r["l1"].detach()
+            if self.rec_loss.perceptual in r:
+                sums["perceptual"] = sums["perceptual"] + r[self.rec_loss.perceptual].detach()
+            if use_tc and l >= l0:
+                # flow was sliced from l0 on: flow[:, l - l0] is frame l -> l + 1
+                sums["tc"] = sums["tc"] + temporal_consistency_loss(
+                    frames[:, l], frames[:, l + 1], prev, pred, flow[:, l - l0],
+                    alpha=float(lc["tc_alpha"]), mode=lc["tc_warp"], form=self.tc_form)
+                n_tc += 1
+            prev = pred
+            preds.append(pred.detach())
+        loss = sums["rec"] / L
+        tc_div = L if self.tc_form == "reference" else n_tc
+        tc = sums["tc"] / tc_div if n_tc else torch.zeros((), device=vox.device)
+        loss = loss + float(lc["tc_weight"]) * tc
+        stats = {"l1": float(sums["l1"] / L), "perceptual": float(sums["perceptual"] / L), "tc": float(tc.detach())}
+        return loss, stats, preds
+
+    def preview_row(self, b, preds, i, voxel):
+        return [voxel_to_u8(voxel), gray_to_u8(preds[-1][i].cpu().numpy()), gray_to_u8(b["frames"][i, -1].cpu().numpy())]
+
+
+class EvFlowTask(TrainTask):
+    name = "evflow"
+    outputs = ("voxels", "flow")
+    terms = ("flow_l1", "aee")
+
+    def forward(self, model, b, autocast):
+        vox, flow = b["voxels"], b["flow"]
+        n, L = vox.shape[:2]
+        with autocast():
+            pred = model(vox.flatten(0, 1))
+        pred = pred.float()
+        gt = flow.flatten(0, 1)
+        l1 = flow_l1_loss(pred, gt)
+        loss = float(self.cfg["loss"]["flow_l1_weight"]) * l1
+        with torch.no_grad():
+            aee = torch.linalg.vector_norm(pred - gt, dim=1).mean()
+        return loss, {"flow_l1": float(l1.detach()), "aee": float(aee)}, pred.detach().view(n, L, *pred.shape[1:])
+
+    def preview_row(self, b, preds, i, voxel):
+        gt = b["flow"][i, -1].cpu().numpy()
+        pred = preds[i, -1].cpu().numpy()
+        m = max(float(np.percentile(np.hypot(gt[0], gt[1]), 99)), 1e-3)
+        return [voxel_to_u8(voxel), flow_to_bgr(pred, m), flow_to_bgr(gt, m)]
+
+
+#: The tasks by name (``cfg["task"]``, ``v2v-train --task``).
+TASKS: Dict[str, type] = {t.name: t for t in (E2VIDTask, EvFlowTask)}
+
+
+def get_task(name: str) -> type:
+    """The task class called ``name``.
+
+    Raises:
+        ValueError: naming the known tasks, for another name.
+    """
+    if name not in TASKS:
+        raise ValueError(f"task must be one of {list(TASKS)}, got {name!r}")
+    return TASKS[name]
