@@ -29,10 +29,10 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
-from bench.faults import good_corpus
+from harness.faults import good_corpus
 from v2v_client import V2VStreamDataset
 from v2v_server.config import ServeConfig
-from bench.serve import ServeProcess
+from harness.serve import ServeProcess
 from v2v_server.flow import FlowEstimator
 from v2v_server.sampler import video_samples
 from v2v_server.video import find_videos

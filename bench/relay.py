@@ -10,7 +10,7 @@ decodes each batch to tensors the way ``V2VStreamDataset(raw=True)`` does. Each 
 CPU-seconds per GB sent (``getrusage``: all threads, ZeroMQ's I/O threads included; user and
 system split) and its minor page faults per GB. Paths, measured in the same run:
 
-* ``old``: the data path before issue 11 (``np.array`` copy per sample, ``np.stack`` per batch);
+* ``old``: a copy per sample (``np.array``) and a ``np.stack`` per batch, the baseline;
 * ``socket``: arrays as ZeroMQ frames, kept as views, stacked once when the batch is sent
   (the fallback where ``/dev/shm`` is unavailable);
 * ``shm``: the worker writes into its shared-memory slot ring and sends the header only; the

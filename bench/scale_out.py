@@ -17,9 +17,9 @@ import tempfile
 from pathlib import Path
 from typing import List, Optional
 
-from bench.faults import good_corpus
+from harness.faults import good_corpus
 from v2v_client.loadtest import run_loadtest
-from bench.serve import ServeProcess
+from harness.serve import ServeProcess
 
 from v2v_server.protocol import OUTPUTS as ALL
 

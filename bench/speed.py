@@ -152,7 +152,7 @@ def _cpu_s(pid: int) -> float:
 def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], endpoint: Optional[str] = None) -> dict:
     """Through ``v2v-serve`` and ``V2VStreamDataset(raw=True)``: samples/s, time to the first
     batch, and CPU-seconds per GB of the server main process and of this (client) process."""
-    from bench.serve import ServeProcess
+    from harness.serve import ServeProcess
     from v2v_client import V2VStreamDataset
 
     args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", "8", "--seed", "1", *extra]
@@ -181,7 +181,7 @@ def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], 
 def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 8, credits: int = 1,
                    prefetch: int = 2) -> dict:
     """Server tree RSS while a trainer holding ``credits`` takes nothing for ``stall_s``."""
-    from bench.serve import ServeProcess
+    from harness.serve import ServeProcess
     from v2v_client import V2VStreamDataset
 
     args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", str(batch), "--seed", "1"]

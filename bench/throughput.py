@@ -16,10 +16,10 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
-from bench.faults import good_corpus
+from harness.faults import good_corpus
 from v2v_client import V2VStreamDataset
 from v2v_client.loadtest import run_loadtest
-from bench.serve import ServeProcess
+from harness.serve import ServeProcess
 
 
 def tree_rss_mb(pid: int) -> float:

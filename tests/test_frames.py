@@ -124,7 +124,7 @@ def test_served_end_to_end_full_range_rotated_and_cover(tmp_path):
     with a 90-degree display matrix) and cover.mkv (a one-frame MJPEG stream before the video)
     served by v2v-serve and read through V2VStreamDataset."""
     from v2v_client import V2VStreamDataset
-    from bench.serve import ServeProcess
+    from harness.serve import ServeProcess
 
     corpus = tmp_path / "corpus"
     corpus.mkdir()

@@ -1,4 +1,4 @@
-"""Same-host batch hand-off (issue 11 goals 3-4): batch buffers in files of a private /dev/shm
+"""Same-host batch hand-off: batch buffers in files of a private /dev/shm
 directory, batches sent to an ipc:// client as a reference, copied out by the client. Unit tests
 of the buffer files, generations and the client's checks of a server's header; a real v2v-serve
 on ipc:// read with the hand-off on and off (same arrays per sample id, no file left behind,
@@ -171,7 +171,7 @@ def _batch_dirs(root):
 
 def test_served_batches_are_identical_with_the_hand_off_on_and_off_and_no_file_outlives_the_server(
         shm_root, monkeypatch):
-    from bench.serve import ServeProcess
+    from harness.serve import ServeProcess
     from v2v_client import handoff
 
     reads = []

@@ -18,7 +18,7 @@ pytest.importorskip("ray.data", reason="the 'ray' extra is not installed (pip in
 
 from v2v_client import V2VStreamDataset  # noqa: E402
 from v2v_server.config import ServeConfig  # noqa: E402
-from bench.serve import ServeProcess  # noqa: E402
+from harness.serve import ServeProcess  # noqa: E402
 from v2v_server.ray import epoch_descriptors, scan_corpus_windows, v2v_dataset  # noqa: E402
 
 L, B, CROP, MAXW, SEED = 4, 5, 64, 3, 11
@@ -145,7 +145,7 @@ def test_resume_with_exclude_list_gives_the_rest_of_the_epoch(ray_session, video
 
 @pytest.mark.timeout(240)
 def test_bad_files_are_skipped_with_the_servers_reasons(ray_session, videos, tmp_path, caplog):
-    from bench.fault_corpus import write_video
+    from harness.corpus import write_video
 
     root = tmp_path / "corpus"
     root.mkdir()

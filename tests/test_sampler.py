@@ -199,7 +199,7 @@ def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
 def test_crops_per_window_ids_content_and_resume(videos):
     """K crops of one decoded window: ids path#window.crop, each crop its own plan (own crop
     corner, flip, pauses, sensor parameters) drawn from its id, made alike alone or together."""
-    from v2v_server.ids import make_sample_id, parse_sample_id
+    from v2v_server.ids import parse_sample_id
 
     cfg = small_cfg(crops_per_window=3, max_samples_per_video=2)
     got = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames")))

@@ -3,7 +3,6 @@ on the real clips; every test is bounded in time and stops what it starts."""
 from __future__ import annotations
 
 import collections
-import inspect
 import json
 import os
 import shutil
@@ -24,7 +23,7 @@ from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
 from v2v_server.config import ServeConfig, parse_shard
 from v2v_server.corpus import check_corpus, select_shard, shard_of
 from v2v_server.logs import JsonFormatter
-from bench.serve import ServeProcess, free_port
+from harness.serve import ServeProcess, free_port
 from v2v_server.video import scan_corpus
 
 L, CROP, WINDOWS, BATCH = 4, 64, 2, 2
@@ -249,10 +248,7 @@ def test_fanin_state_dict_resumes_every_shard_after_a_trainer_and_server_restart
     assert sorted(order) == want and len(order) == len(set(order))
 
 
-# ---------------------------------------------------------------------------------- DDP (issue 10)
-_HAS_RANKS = "rank" in inspect.signature(V2VStreamDataset.__init__).parameters
-needs_ranks = pytest.mark.skipif(not _HAS_RANKS, reason="V2VStreamDataset has no rank/world_size yet (issue 10, "
-                                                        "delivery redesign); un-skip after merging it")
+# ---------------------------------------------------------------------------------- DDP
 
 
 def _ranks(endpoint, world):
@@ -287,7 +283,6 @@ def _check_ranks(per_rank, want, single):
     assert sorted(real) == want  # every id exactly once across ranks
 
 
-@needs_ranks
 @pytest.mark.parametrize("shards", [1, 2])
 def test_servers_feed_two_ranks_each_id_once_equal_batch_counts(tmp_path, videos, shards):
     root = corpus(tmp_path, videos)

@@ -6,10 +6,10 @@ import sys
 
 import pytest
 
-from bench.faults import Layout, good_corpus
+from harness.faults import Layout, good_corpus
 from v2v_client import StreamTimeout, V2VStreamDataset
 from v2v_server.config import ServeConfig, is_loopback, load_config
-from bench.serve import ServeProcess
+from harness.serve import ServeProcess
 
 LAYOUT = Layout(L=4, crop=64, windows=1, batch=1)
 

@@ -1,4 +1,4 @@
-"""The shared-memory data path (issue 11 goal 3): worker slot rings in /dev/shm, samples copied
+"""The shared-memory data path: worker slot rings in /dev/shm, samples copied
 once into reused batch buffers, the socket path as fallback. Unit tests of the ring and the
 assembler, a pool whose worker dies before mapping its ring, and a real v2v-serve on ipc://
 whose samples are bit-identical to the socket path's."""
@@ -167,7 +167,7 @@ def _read_epoch(endpoint):
 
 
 def test_served_samples_are_bit_identical_with_and_without_shared_memory_over_ipc():
-    from bench.serve import ServeProcess
+    from harness.serve import ServeProcess
 
     args = ["--videos", str(video_dir()), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
             "--crop-size", "48", "--max-samples-per-video", "2", "--seed", "5", "--epochs", "1", "--batch-size", "3"]

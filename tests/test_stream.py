@@ -14,7 +14,7 @@ import torch
 import zmq
 
 from v2v_client import StreamTimeout, V2VStreamDataset
-from bench.serve import ServeProcess, free_port
+from harness.serve import ServeProcess, free_port
 from v2v_server.protocol import decode_arrays, pack, unpack
 from v2v_server.config import ServeConfig
 from v2v_server.corpus import check_video

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import torch
 
-from bench.serve import ServeProcess
+from harness.serve import ServeProcess
 import trainer.train as tr
 
 torch.set_num_threads(2)

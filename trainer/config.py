@@ -43,8 +43,6 @@ DEFAULTS = {
             "tc_weight": 1.0,               # temporal consistency ("V+L1+H")
             "tc_alpha": 50.0,
             "tc_start_fraction": 0.5,       # frames 20..39 of 40
-            "tc_form": "reference",         # reference (relative error, / L) | absolute (ours before)
-            "tc_warp": "next",              # absolute form only: next (exact for forward flow) | previous
         },
     },
     "evflow": {

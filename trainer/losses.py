@@ -19,7 +19,7 @@ import torch.nn.functional as F
 
 from .lpips_net import load_lpips
 
-__all__ = ["ssim", "warp", "TC_FORMS", "temporal_consistency_loss", "flow_l1_loss", "ReconstructionLoss"]
+__all__ = ["ssim", "warp", "temporal_consistency_loss", "flow_l1_loss", "ReconstructionLoss"]
 
 log = logging.getLogger(__name__)
 
@@ -83,31 +83,18 @@ def warp(img: torch.Tensor, flow: torch.Tensor) -> Tuple[torch.Tensor, torch.Ten
     return out, valid
 
 
-#: Forms of the temporal-consistency loss: the reference's (default) and our former one.
-TC_FORMS = ("reference", "absolute")
-
-
 def temporal_consistency_loss(frame0: torch.Tensor, frame1: torch.Tensor, pred0: torch.Tensor,
-                              pred1: torch.Tensor, flow01: torch.Tensor, alpha: float = 50.0,
-                              mode: str = "next", form: str = "reference") -> torch.Tensor:
+                              pred1: torch.Tensor, flow01: torch.Tensor, alpha: float = 50.0) -> torch.Tensor:
     """Short-term temporal consistency loss of one step (Lai et al. ECCV 2018, Eq. 2; E2VID
-    training), averaged over pixels.
-
-    ``form='reference'`` (default) is the V2V reference code's loss (``utils/loss.py``
-    ``temporal_consistency_loss``, called by ``model/loss.py`` with the negated forward
-    flow): the previous frame and the previous reconstruction (clamped to [0, 255]) are
-    warped onto frame t's grid with ``-flow01``, ``W(X)(x) = X(x - F(x))`` (bilinear, zeros
-    outside), and
+    training), averaged over pixels, in the V2V reference code's form (``utils/loss.py``
+    ``temporal_consistency_loss``, called by ``model/loss.py`` with the negated forward flow):
+    the previous frame and the previous reconstruction (clamped to [0, 255]) are warped onto
+    frame t's grid with ``-flow01``, ``W(X)(x) = X(x - F(x))`` (bilinear, zeros outside), and
 
         ``M = exp(-alpha * (I_1 - W(I_0))^2)``,
         ``loss = mean(M * |P_1 - W(P_0)| / (|P_1| + |W(P_0)| + 1e-5))``
 
-    over all pixels (no in-image mask). ``mode`` is ignored.
-
-    ``form='absolute'`` is this project's former loss, kept as an option: the plain error
-    ``mean(M * |P_ref - W(P)|)`` over in-image pixels, with ``mode='next'`` (exact for a
-    forward flow: frame/prediction t warped back onto t-1's grid with ``+flow01``) or
-    ``mode='previous'`` (the reference's ``-flow01`` warp).
+    over all pixels (no in-image mask).
 
     Args:
         frame0, frame1: float (N, 1, H, W) ground-truth frames at t-1 and t, in [0, 1].
@@ -115,31 +102,14 @@ def temporal_consistency_loss(frame0: torch.Tensor, frame1: torch.Tensor, pred0:
         flow01: float (N, 2, H, W), the stream's *forward* flow from frame t-1 to t in
             pixels (defined on frame t-1's pixel grid; channel 0 = x, 1 = y).
         alpha: visibility sharpness (50 in the paper and the reference).
-        mode: ``'next'`` | ``'previous'`` (``form='absolute'`` only).
-        form: ``'reference'`` | ``'absolute'``.
 
     Returns:
-        Scalar float tensor. Raises ``ValueError`` for an unknown ``form`` or ``mode``.
+        Scalar float tensor.
     """
-    if form == "reference":
-        w_frame, _ = warp(frame0, -flow01)
-        w_pred, _ = warp(torch.clamp(pred0, 0, 255), -flow01)
-        vis = torch.exp(-alpha * (frame1 - w_frame) ** 2)
-        return (vis * (pred1 - w_pred).abs() / (pred1.abs() + w_pred.abs() + 1e-5)).mean()
-    if form != "absolute":
-        raise ValueError(f"form must be one of {list(TC_FORMS)}, got {form!r}")
-    if mode == "next":
-        w_frame, valid = warp(frame1, flow01)
-        w_pred, _ = warp(pred1, flow01)
-        ref_frame, ref_pred = frame0, pred0
-    elif mode == "previous":
-        w_frame, valid = warp(frame0, -flow01)
-        w_pred, _ = warp(pred0, -flow01)
-        ref_frame, ref_pred = frame1, pred1
-    else:
-        raise ValueError(f"mode must be 'next' or 'previous', got {mode!r}")
-    vis = torch.exp(-alpha * (ref_frame - w_frame) ** 2) * valid
-    return (vis * (ref_pred - w_pred).abs()).mean()
+    w_frame, _ = warp(frame0, -flow01)
+    w_pred, _ = warp(torch.clamp(pred0, 0, 255), -flow01)
+    vis = torch.exp(-alpha * (frame1 - w_frame) ** 2)
+    return (vis * (pred1 - w_pred).abs() / (pred1.abs() + w_pred.abs() + 1e-5)).mean()
 
 
 def flow_l1_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from .losses import TC_FORMS, ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
+from .losses import ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
 from .viz import flow_to_bgr, gray_to_u8, voxel_to_u8
 
 __all__ = ["TrainTask", "E2VIDTask", "EvFlowTask", "TASKS", "get_task", "tc_start_index"]
@@ -78,9 +78,6 @@ class E2VIDTask(TrainTask):
     def __init__(self, cfg: dict, device: torch.device):
         super().__init__(cfg, device)
         lc = cfg["loss"]
-        self.tc_form = str(lc.get("tc_form", "reference"))
-        if self.tc_form not in TC_FORMS:
-            raise ValueError(f"loss.tc_form must be one of {list(TC_FORMS)}, got {self.tc_form!r}")
         self.rec_loss = ReconstructionLoss(lc["l1_weight"], lc["perceptual_weight"], lc["lpips_net"],
                                            lc["lpips_weights"], lc["use_lpips_package"]).to(device)
         log.info("E2VID perceptual term: %s", self.rec_loss.perceptual)
@@ -91,8 +88,8 @@ class E2VIDTask(TrainTask):
     def forward(self, model, b, autocast):
         """The recurrent state is carried through the sequence (and dropped after it: every
         stream batch holds new clips). Reconstruction loss averaged over the L steps;
-        temporal consistency in the V2V reference's form (averaged over all L steps, those
-        before the start contributing zero) or the absolute form (over the steps that have it)."""
+        temporal consistency averaged over all L steps, those before the start contributing
+        zero (the V2V reference's ``calc_loss``)."""
         vox, frames, flow = b["voxels"], b["frames"], b.get("flow")
         L = vox.shape[1]
         lc = self.cfg["loss"]
@@ -115,13 +112,12 @@ class E2VIDTask(TrainTask):
                 # flow was sliced from l0 on: flow[:, l - l0] is frame l -> l + 1
                 sums["tc"] = sums["tc"] + temporal_consistency_loss(
                     frames[:, l], frames[:, l + 1], prev, pred, flow[:, l - l0],
-                    alpha=float(lc["tc_alpha"]), mode=lc["tc_warp"], form=self.tc_form)
+                    alpha=float(lc["tc_alpha"]))
                 n_tc += 1
             prev = pred
             preds.append(pred.detach())
         loss = sums["rec"] / L
-        tc_div = L if self.tc_form == "reference" else n_tc
-        tc = sums["tc"] / tc_div if n_tc else torch.zeros((), device=vox.device)
+        tc = sums["tc"] / L if n_tc else torch.zeros((), device=vox.device)
         loss = loss + float(lc["tc_weight"]) * tc
         stats = {"l1": float(sums["l1"] / L), "perceptual": float(sums["perceptual"] / L), "tc": float(tc.detach())}
         return loss, stats, preds

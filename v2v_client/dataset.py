@@ -31,9 +31,9 @@ import zmq
 
 from v2v_server.protocol import OUTPUTS, ProtocolError, decode_arrays, pack, unpack
 
-from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints  # [iss12]
+from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
 from .handoff import ShmReader, check_shm_dir
-from .metrics import TrainerMetrics  # [iss12]
+from .metrics import TrainerMetrics
 
 log = logging.getLogger("v2v.client")
 
@@ -170,7 +170,7 @@ class Connection:
         self._closing.set()
         self._thread.join(5.0)
         self._ack_send.close(0)
-        self.items.put(StopIteration("closed"))  # [iss12] wake an iterator blocked on this connection
+        self.items.put(StopIteration("closed"))  # wake an iterator blocked on this connection
 
     # I/O thread ------------------------------------------------------------
     def _discard_locked(self, why: str) -> None:
@@ -539,7 +539,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None, rank: Optional[int] = None,
                  world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto"):
-        # [iss12] every constructor argument but the endpoint, for one dataset per server (fan-in)
+        # every constructor argument but the endpoint, for one dataset per server (fan-in)
         self._child_kwargs = {k: v for k, v in locals().items() if k not in ("self", "endpoint", "__class__")}
         super().__init__()
         if isinstance(outputs, str):
@@ -584,7 +584,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._completed_epoch = -1
         self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
         self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
-        # [iss12] several servers (a list, "a,b", or a DNS name with several addresses): fan-in
+        # several servers (a list, "a,b", or a DNS name with several addresses): fan-in
         self._fanin: Optional[FanInStream] = None
         self._meter = TrainerMetrics()
         if not isinstance(endpoint, str) or "," in endpoint:
@@ -594,7 +594,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             else:
                 self._fanin = self._make_fanin(endpoints)
 
-    # ------------------------------------------------------------------ fan-in and metrics [iss12]
+    # ------------------------------------------------------------------ fan-in and metrics
     def _make_fanin(self, endpoints) -> FanInStream:
         def child(ep: str, credits: int) -> "V2VStreamDataset":
             return V2VStreamDataset(ep, **dict(self._child_kwargs, credits=credits))
@@ -622,7 +622,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         yielded so far in epochs still open, batches yielded per open epoch, and the consumer
         id the server knows it by. Plain, JSON/torch.save-safe data. With several servers: the
         epoch all of them completed and the ids yielded in later epochs."""
-        if getattr(self, "_fanin", None) is not None:  # [iss12]
+        if getattr(self, "_fanin", None) is not None:
             return self._fanin.state_dict()
         with self._lock:
             return {"version": 1, "consumer": self._consumer, "completed_epoch": self._completed_epoch,
@@ -643,7 +643,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             self._batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
             if isinstance(state.get("consumer"), str) and state["consumer"]:
                 self._consumer = state["consumer"]
-        if self._fanin is not None:  # [iss12]
+        if self._fanin is not None:
             self._fanin.load_state_dict(state)
 
     def wants_shm(self, endpoint: str) -> bool:
@@ -665,9 +665,6 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self.world_size > 1:
             h.update(rank=self.rank, world_size=self.world_size, group=self.group)
         return h
-
-    def _resume_state(self) -> dict:
-        return self._hello_header()["resume"]
 
     # ------------------------------------------------------------------ iteration
     def _padding_batch(self, epoch: int) -> Optional[dict]:
@@ -702,7 +699,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 pads.append(p)
         return pads
 
-    def _iter_stream(self) -> Iterator[dict]:  # [iss12] one server's stream (iter() adds fan-in, metrics)
+    def _iter_stream(self) -> Iterator[dict]:  # one server's stream (iter() adds fan-in, metrics)
         conn = Connection(self)
         self._conns.append(conn)
         try:
@@ -766,7 +763,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
     def close(self) -> None:
         """Close every open connection of this dataset (also done when iterators are collected)."""
-        if self._fanin is not None:  # [iss12]
+        if self._fanin is not None:
             self._fanin.close()
         for conn in list(self._conns):
             conn.close()

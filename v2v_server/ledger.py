@@ -199,10 +199,6 @@ class DeliveryLedger:
             out.append((c.ident, b))
         return out, stale
 
-    def unsendable(self, ident: bytes) -> List[int]:
-        """The socket could not reach ``ident``: drop it (its batches go back)."""
-        return self.leave(ident)
-
     def _take(self, c, bid: int) -> bool:
         """Take ``bid`` off client ``c`` (held or revoked); False when ``c`` does not hold it."""
         if bid not in c.held and bid not in c.revoked:
@@ -299,9 +295,6 @@ class DeliveryLedger:
     # ------------------------------------------------------------------ views
     def in_flight(self) -> int:
         return sum(len(c.held) + len(c.revoked) for c in self.clients.values())
-
-    def unacked_epochs(self) -> Set[int]:
-        return {b.epoch for b in self.batches.values()}
 
     def outputs_wanted(self) -> Tuple[str, ...]:
         """The union of what connected clients ask for."""

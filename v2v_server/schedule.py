@@ -188,10 +188,6 @@ class EpochScheduler:
         self._check_complete(plan)
         return True
 
-    def open_epochs(self) -> List[int]:
-        """Epochs opened and not yet complete, oldest first."""
-        return sorted(e for e, p in self.plans.items() if not p.complete)
-
     def finished(self) -> bool:
         """True when the last of ``epochs`` epochs is complete (never for unbounded streams)."""
         return (self.max_epochs is not None and self.next_epoch >= self.max_epochs

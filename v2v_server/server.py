@@ -33,7 +33,7 @@ import zmq
 from .config import ServeConfig, is_loopback
 from .core import DeliveryCore
 from .datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
-from .metrics import ServerMetrics  # [iss12 metrics]
+from .metrics import ServerMetrics
 from .pool import WorkerPool
 from .protocol import PROTOCOL_VERSION, ProtocolError, pack, unpack
 from .wire import BadPeers, Hello, WireError, decode_client
@@ -93,9 +93,9 @@ class V2VServer:
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
         self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
-        self.metrics = ServerMetrics()  # [iss12 metrics]
-        self._resent_seen = 0  # [iss12 metrics] ledger.resent already counted
-        self._worker_seen = False  # [iss12 metrics] some worker said ready
+        self.metrics = ServerMetrics()
+        self._resent_seen = 0  # ledger.resent already counted
+        self._worker_seen = False  # some worker said ready
         self._shm_clients: set = set()  # idents whose hello asked for shared-memory batches
 
     # ------------------------------------------------------------------ lifecycle
@@ -118,7 +118,7 @@ class V2VServer:
         self.backend_endpoint = f"ipc://{self._tmp}/workers"
         self._auth = None
         try:
-            if self.cfg.metrics_port is not None:  # [iss12 metrics]
+            if self.cfg.metrics_port is not None:
                 self.metrics.serve(self.cfg.metrics_host, self.cfg.metrics_port)
             if self.cfg.curve_secret_key is not None:
                 self._setup_curve()
@@ -182,7 +182,7 @@ class V2VServer:
         shutil.rmtree(getattr(self, "_tmp", ""), ignore_errors=True)
         self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
         self._sync_stats()
-        self.metrics.close()  # [iss12 metrics]
+        self.metrics.close()
         log.info("stopped: %d batches sent (%d re-sent), %d samples made, %d worker restart(s), "
                  "%d task timeout(s), %d skipped file(s)", self.stats.batches_sent, self.stats.batches_resent,
                  self.stats.samples_made, self.stats.workers_restarted, self.stats.tasks_timed_out,
@@ -227,7 +227,7 @@ class V2VServer:
                 self._watch_workers(now)
                 self._dispatch(now)
                 self._send_batches(now)
-                self.metrics.tick(self._metrics_state)  # [iss12 metrics] gauges + liveness, at most 4 times a second
+                self.metrics.tick(self._metrics_state)  # gauges + liveness, at most 4 times a second
                 if now >= next_beat:
                     self._broadcast({"type": "heartbeat"})
                     next_beat = now + self.cfg.heartbeat_s
@@ -257,7 +257,7 @@ class V2VServer:
     # ------------------------------------------------------------------ workers
     def _watch_workers(self, now: float) -> None:
         for ident, code in self.pool.reap():
-            self.metrics.on_worker_restarted()  # [iss12 metrics]
+            self.metrics.on_worker_restarted()
             job = self.core.worker_lost(ident)
             if job is not None:
                 log.warning("worker %s died (exit code %s); restarting; re-queued %s epoch %d", ident.decode(),
@@ -271,7 +271,7 @@ class V2VServer:
             log.warning("worker %s sent nothing on %s epoch %d for %.0f s; task reassigned, worker restarted",
                         ident.decode(), job.video, job.epoch, self.cfg.task_timeout_s)
             self.pool.replace(ident)
-            self.metrics.on_worker_restarted()  # [iss12 metrics]
+            self.metrics.on_worker_restarted()
 
     def _on_worker(self, frames) -> None:
         ident = frames[0].bytes
@@ -283,14 +283,14 @@ class V2VServer:
             return
         if w is None:
             return  # a replaced worker's last words
-        self.metrics.on_worker_message(h)  # [iss12 metrics] stage seconds
+        self.metrics.on_worker_message(h)  # stage seconds
         kind = h["type"]
         now = time.monotonic()
         if kind == "ready":
             if w.ring is not None and h.get("ring") is False:
                 log.warning("worker %s could not map its slot ring; it sends arrays as socket frames", ident.decode())
             w.idle = True
-            self._worker_seen = True  # [iss12 metrics] /readyz: a worker is up
+            self._worker_seen = True  # /readyz: a worker is up
         elif kind == "sample":
             slot = h.get("slot")
             if slot is not None and w.ring is not None:  # arrays in the worker's shared memory
@@ -309,7 +309,7 @@ class V2VServer:
                     except zmq.ZMQError:
                         pass
             if kept:
-                self.metrics.on_sample_made()  # [iss12 metrics]
+                self.metrics.on_sample_made()
         elif kind == "done":
             failed = h.get("failed") if isinstance(h.get("failed"), dict) else {}
             job = self.core.done(ident, h.get("task"), h.get("windows", 0), failed, h.get("error"))
@@ -323,7 +323,7 @@ class V2VServer:
 
     def _log_failure(self, video: str, reason: str) -> None:
         if video not in self.stats.skipped_files:
-            self.metrics.on_file_skipped()  # [iss12 metrics]
+            self.metrics.on_file_skipped()
         self.stats.skipped_files.setdefault(video, reason)
         if (video, reason) not in self.logged_failures and len(self.logged_failures) < 100000:
             self.logged_failures.add((video, reason))
@@ -365,13 +365,13 @@ class V2VServer:
                 log.warning("client %s unreachable (%s); dropping it", ident.hex(), e)
                 self.core.forget(ident)
                 continue
-            self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)  # [iss12 metrics]
+            self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)
         for ident, msg in msgs:
-            if msg.get("type") == "revoke":  # [iss12 metrics]
+            if msg.get("type") == "revoke":
                 for _ in msg.get("batch_ids", ()):
                     self.metrics.on_lease_expired()
             self._send_client(ident, msg)
-        for _ in range(self.ledger.resent - self._resent_seen):  # [iss12 metrics]
+        for _ in range(self.ledger.resent - self._resent_seen):
             self.metrics.on_batch_resent()
         self._resent_seen = self.ledger.resent
 
@@ -385,7 +385,7 @@ class V2VServer:
                  len(self.ledger.ready), self.ledger.in_flight(), st.workers_restarted, st.tasks_timed_out,
                  len(st.skipped_files), st.bad_messages, self.bad.suppressed)
 
-    def _metrics_state(self) -> dict:  # [iss12 metrics] the gauges, as plain numbers
+    def _metrics_state(self) -> dict:  # the gauges, as plain numbers
         alive = [w for w in (self.pool.workers.values() if self.pool else ()) if w.proc.is_alive()]
         newest = max(self.sched.plans) if self.sched.plans else None
         plan = self.sched.plans.get(newest) if newest is not None else None
@@ -424,7 +424,7 @@ class V2VServer:
 
     def _bad_peer(self, ident: bytes, why: str, now: float) -> None:
         self.stats.bad_messages += 1
-        self.metrics.on_bad_message()  # [iss12 metrics]
+        self.metrics.on_bad_message()
         log_it, banned = self.bad.strike(ident, now)
         if log_it:
             log.warning("dropping client %s: %s", ident.hex(), why)

@@ -174,7 +174,7 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
     error = None
     preset = cfg.flow_preset
     flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task["outputs"] else None
-    clock = _StageClock(stats)  # [iss12 metrics] seconds per stage, reported with each message
+    clock = _StageClock(stats)  # seconds per stage, reported with each message
     try:
         for sid, arrays, meta in video_samples(
             cfg, root, task["video"], task["epoch"], task["outputs"], task.get("skip", ()), flow, stats
