@@ -3,8 +3,8 @@
 ``python -m bench.frame_range [--repeat 5]`` decodes each bundled clip and times, per frame:
 
 * ``codes + crop`` (baseline): plane 0 as stored, the WebVid top-rows cut, one 128 x 128 crop
-  copied out: what the sampler did before frames were expanded to full range;
-* ``+ expand(crop)``: the same plus the full-range table on the crop (what the sampler does);
+  copied out: the crop without full-range expansion;
+* ``+ expand(crop)``: the same plus the full-range table on the crop (what samples.py does);
 * ``decode_luma``: the whole kept region expanded (what ``--check``, ``v2v-eval --video`` and
   the benches read), plus the same crop.
 

@@ -5,7 +5,7 @@ Run: ``python -m bench.ray_bench [--workers 2] [--copies 2] [--epochs 1] [--faul
 
 Rows (samples/s; ratio against v2v-serve measured in the same run):
 
-* ``in-process``: ``sampler.video_samples`` over the corpus in one process, the work itself;
+* ``in-process``: ``samples.video_samples`` over the corpus in one process, the work itself;
   its time per sample is the compute both engines must spend;
 * ``v2v-serve``: ``--workers N`` read through ``V2VStreamDataset`` (server start excluded);
 * ``ray data``: ``v2v_dataset(...).iter_batches()`` with an actor pool of N (``ray.init``
@@ -34,7 +34,7 @@ from v2v_client import V2VStreamDataset
 from v2v_server.config import ServeConfig
 from harness.serve import ServeProcess
 from v2v_server.flow import FlowEstimator
-from v2v_server.sampler import video_samples
+from v2v_server.samples import video_samples
 from v2v_server.video import find_videos
 
 LAYOUT = dict(sequence_length=8, num_bins=5, crop_size=128, max_samples_per_video=10, seed=1)
@@ -70,7 +70,7 @@ def serve(cfg: ServeConfig, corpus: Path, workers: int, epochs: int) -> dict:
 
 
 def ray_data(cfg: ServeConfig, corpus: Path, workers: int, epochs: int) -> dict:
-    from v2v_server.ray import scan_corpus_windows, v2v_dataset
+    from v2v_server.ray_data import scan_corpus_windows, v2v_dataset
 
     t0 = time.perf_counter()
     rc = scan_corpus_windows(corpus, cfg)
@@ -122,7 +122,7 @@ def decode_choice(cfg: ServeConfig, corpus: Path) -> dict:
 
 def faults(cfg: ServeConfig, corpus: Path, workers: int) -> dict:
     """Kill (os._exit) the V2V actor once, after the 2nd row of the first video it starts."""
-    from v2v_server.ray import SampleMaker, scan_corpus_windows, v2v_dataset
+    from v2v_server.ray_data import SampleMaker, scan_corpus_windows, v2v_dataset
 
     marker = Path(tempfile.mkdtemp(prefix="v2v-raykill-")) / "killed"
 

@@ -11,7 +11,7 @@ Rows:
 * reference-style loader (the V2V authors' data loader, transcribed): per sample reopen and
   seek with cv2.VideoCapture, read BGR, cvtColor to gray, crop, float64 V2V with noise and
   hot pixels in numpy, no flow;
-* ours, one worker core (``sampler.video_samples`` + the wire narrowing, in this process):
+* ours, one worker core (``samples.video_samples`` + the wire narrowing, in this process):
   voxels only, and every output at the default flow preset; ``crops_per_window`` 4;
 * the relay: ``v2v-serve --workers 2`` -> ``V2VStreamDataset(raw=True)``: the server main
   process's CPU-seconds per GB sent, the client process's CPU-seconds per GB received,
@@ -115,7 +115,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2) -> float
 
     from v2v_server.config import ServeConfig
     from v2v_server.flow import FlowEstimator
-    from v2v_server.sampler import video_samples
+    from v2v_server.samples import video_samples
     from v2v_server.worker import wire_arrays
 
     cv2.setNumThreads(1)

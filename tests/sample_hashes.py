@@ -20,7 +20,7 @@ import msgpack
 import numpy as np
 
 from v2v_server.config import ServeConfig
-from v2v_server.sampler import video_samples
+from v2v_server.samples import video_samples
 from v2v_server.worker import wire_arrays
 
 ROOT = Path(__file__).resolve().parents[1]

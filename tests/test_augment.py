@@ -7,7 +7,7 @@ import pytest
 
 from v2v_server.augment import augment_plan, degrade_dynamic_range, parse_degrade, video_thresholds
 from v2v_server.config import ServeConfig
-from v2v_server.sampler import plan_window, video_samples
+from v2v_server.samples import plan_window, video_samples
 from v2v_server.simulate import ParamRanges
 
 OUTS = ("voxels", "frames", "flow")

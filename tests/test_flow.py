@@ -1,5 +1,5 @@
 """Optical flow (v2v_server/flow.py, flow_options.py): accuracy on large motion through the
-sampler, the option table, the DIS reuse policy, and RAFT refused cleanly without local weights."""
+sample path, the option table, the DIS reuse policy, and RAFT refused cleanly without local weights."""
 from __future__ import annotations
 
 import dataclasses
@@ -13,7 +13,7 @@ from v2v_server.config import ServeConfig
 from v2v_server.flow import FlowEstimator, dis_flow
 from v2v_server.flow_options import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowOption, FlowUnavailable, TrackParams,
                                      check_option, unavailable_reason)
-from v2v_server.sampler import make_sample, plan_window, video_samples
+from v2v_server.samples import make_sample, plan_window, video_samples
 
 STEP = 5
 
@@ -44,7 +44,7 @@ def median_epe(flow_2hw, dx, dy, margin):
     return float(np.median(e[:, margin:] if dx < 0 else e[:, : e.shape[1] - margin]))
 
 
-def test_translation_30px_per_voxel_through_the_sampler(tmp_path):
+def test_translation_30px_per_voxel_through_the_sample_path(tmp_path):
     """A texture translating 6 px per frame (30 px per voxel of 5 frame pairs), encoded as
     H.264, served by video_samples: median EPE < 2 px with the default."""
     from harness.motion_clips import write_video

@@ -1,4 +1,4 @@
-"""V2V on Ray Data (``v2v_server.ray``) on a local Ray instance: same samples as the ZeroMQ path,
+"""V2V on Ray Data (``v2v_server.ray_data``) on a local Ray instance: same samples as the ZeroMQ path,
 exactly once across 2 ranks, resume, bad files. One Ray session for the module (2 CPUs, no
 dashboard); every test is bounded in time."""
 from __future__ import annotations
@@ -19,7 +19,7 @@ pytest.importorskip("ray.data", reason="the 'ray' extra is not installed (pip in
 from v2v_client import V2VStreamDataset  # noqa: E402
 from v2v_server.config import ServeConfig  # noqa: E402
 from harness.serve import ServeProcess  # noqa: E402
-from v2v_server.ray import epoch_descriptors, scan_corpus_windows, v2v_dataset  # noqa: E402
+from v2v_server.ray_data import epoch_descriptors, scan_corpus_windows, v2v_dataset  # noqa: E402
 
 L, B, CROP, MAXW, SEED = 4, 5, 64, 3, 11
 WINDOW = L * B + 1

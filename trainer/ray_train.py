@@ -1,7 +1,7 @@
 """``v2v-train --engine ray``: the same training steps, fed by a Ray Data pipeline, in Ray Train.
 
-The driver lists the corpus (``v2v_server.ray.scan_corpus_windows``), builds the epochs' dataset
-(``v2v_server.ray.v2v_dataset``) padded to a multiple of the rank count, and runs a
+The driver lists the corpus (``v2v_server.ray_data.scan_corpus_windows``), builds the epochs' dataset
+(``v2v_server.ray_data.v2v_dataset``) padded to a multiple of the rank count, and runs a
 ``TorchTrainer`` whose ranks each read ``get_dataset_shard("train").iter_torch_batches(...)``
 (Ray Train splits the stream with ``streaming_split(n, equal=True)``; the padding makes it drop
 nothing). Batches keep their wire dtypes (int16 voxels, uint8 frames, float16 flow) in pinned
@@ -274,7 +274,7 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
         log.error("--engine ray needs Ray: pip install 'v2v[ray]'")
         return 2
     from v2v_server.config import load_config as load_serve_config
-    from v2v_server.ray import scan_corpus_windows, v2v_dataset
+    from v2v_server.ray_data import scan_corpus_windows, v2v_dataset
 
     if not args.videos:
         log.error("--engine ray needs --videos DIR")

@@ -69,7 +69,7 @@ def parse_degrade(d) -> dict:
 
 def aux_rng(seed: int, tag: int, *keys) -> np.random.Generator:
     """A generator for one augmentation, a pure function of (seed, tag, keys); ``keys`` are
-    ints or strings (hashed with BLAKE2b). Independent of ``sampler.sample_rng``'s stream."""
+    ints or strings (hashed with BLAKE2b). Independent of ``samples.sample_rng``'s stream."""
     words = [int(seed), int(tag)]
     for k in keys:
         if isinstance(k, str):
@@ -108,7 +108,7 @@ def video_thresholds(seed: int, video: str, ranges: ParamRanges) -> tuple:
 
 
 def augment_plan(cfg, epoch: int, plan) -> None:
-    """Apply the configured ablations to a freshly drawn ``sampler.WindowPlan`` in place:
+    """Apply the configured ablations to a freshly drawn ``samples.WindowPlan`` in place:
     fixed thresholds replace ``plan.params``' c+ / c-, and the degradation scale is drawn
     into ``plan.info["dynamic_range_scale"]``. Does nothing when both are off."""
     if cfg.fixed_sensor_params:

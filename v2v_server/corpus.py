@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 import multiprocessing as mp
 from pathlib import Path
-from typing import List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 from .config import ServeConfig
 from .video import VideoError, decode_codes, inside, open_video
@@ -41,22 +41,60 @@ def select_shard(videos: List[str], index: int, count: int) -> List[str]:
     return [v for v in videos if shard_of(v, count) == index]
 
 
-def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
-    """Verdict for one file: ``{"path", "usable", "windows", "frames", "size", "reason"}``.
+def corpus_file(root, rel: str) -> Path:
+    """``root / rel``, a file inside the corpus root.
 
-    ``windows`` is the number of samples per epoch it gives (``min(max_samples_per_video,
-    frames // frames_per_sample)`` less the windows that cannot be made, listed in
-    ``failed_windows``, e.g. where the frame size changes); ``reason`` says why it gives none
-    or why windows fail.
+    Raises:
+        VideoError: it is missing or a link leads outside the root (the one wording every
+            verdict uses).
     """
     path = Path(root) / rel
+    if not inside(Path(root), path):
+        raise VideoError("missing, or points outside the corpus root")
+    return path
+
+
+def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = None,
+            error: Optional[BaseException] = None) -> Tuple[int, List[int], Optional[str]]:
+    """What a file is worth, from what reading it found: the one rule ``--check``, the
+    workers and the Ray pipeline apply.
+
+    Args:
+        frames: frames read (decoded, or counted from packets) before the end or ``error``.
+        failed: windows that cannot be made -> why (e.g. the frame size changes inside one).
+        error: what stopped the reading, if anything: a ``VideoError`` gives its message,
+            anything else ``"TypeName: message"``.
+
+    Returns:
+        ``(windows, failed_windows, reason)``: samples per epoch (``min(max_samples_per_video,
+        frames // frames_per_sample)`` less the failed windows), the failed windows among them
+        (sorted), and why the file gives none or fewer (None when nothing is wrong): the failed
+        windows' reasons, else the error's, else too few frames.
+    """
+    failed = failed or {}
+    whole = min(cfg.max_samples_per_video, frames // cfg.frames_per_sample)
+    bad = sorted(k for k in failed if k < whole)
+    windows = whole - len(bad)
+    if bad:
+        reason = "; ".join(failed[k] for k in bad)
+    elif error is not None:
+        reason = str(error) if isinstance(error, VideoError) else f"{type(error).__name__}: {error}"
+    elif windows == 0:
+        reason = f"{frames} frames, shorter than one window of {cfg.frames_per_sample} frames"
+    else:
+        reason = None
+    return windows, bad, reason
+
+
+def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
+    """Verdict for one file, decoding it: ``{"path", "usable", "windows", "frames", "size",
+    "reason"}`` (``failed_windows`` when some window cannot be made, ``more`` when decoding
+    stopped with enough frames for every window); see :func:`verdict`."""
     out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": ""}
     bad: dict = {}  # window -> why it cannot be made
-    if not inside(Path(root), path):
-        out["reason"] = "missing, or points outside the corpus root"
-        return out
+    error = None
     try:
-        container, stream, info = open_video(path)
+        container, stream, info = open_video(corpus_file(root, rel))
         out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
         need = cfg.frames_per_sample * cfg.max_samples_per_video
         span, first = cfg.frames_per_sample, None
@@ -73,18 +111,11 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
                 out["more"] = True  # enough for every window: stop decoding
                 break
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
-        out["reason"] = str(e) if isinstance(e, VideoError) else f"{type(e).__name__}: {e}"
-        if out["frames"] == 0:
-            return out
-    whole = min(cfg.max_samples_per_video, out["frames"] // cfg.frames_per_sample)
-    failed = sorted(k for k in bad if k < whole)
-    out["windows"] = whole - len(failed)
+        error = e
+    windows, failed, reason = verdict(cfg, out["frames"], bad, error)  # windows before a failure still count
+    out.update(windows=windows, usable=windows > 0, reason=reason or "")
     if failed:
         out["failed_windows"] = failed
-        out["reason"] = "; ".join(bad[k] for k in failed)
-    out["usable"] = out["windows"] > 0
-    if not out["usable"] and not out["reason"]:
-        out["reason"] = f"{out['frames']} frames, shorter than one window of {cfg.frames_per_sample} frames"
     return out
 
 

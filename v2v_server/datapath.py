@@ -71,7 +71,7 @@ class SamplePayload:
     """One sample as received from a worker.
 
     Attributes:
-        sample_id: stable id (``sampler.make_sample_id``).
+        sample_id: stable id (``ids.make_sample_id``).
         meta: per-sample parameters (msgpack-able dict).
         arrays: name -> read-only array viewing the received frame, or the batch-buffer row
             the sample was copied into (voxels int8/int16/int32 ``(L, B, H, W)``, frames

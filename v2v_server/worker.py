@@ -26,14 +26,14 @@ import numpy as np
 import zmq
 
 from .config import ServeConfig
+from .corpus import verdict
 from .datapath import SlotRing
 from .logs import setup_logging
 from .protocol import encode_arrays, narrow_int_dtype, pack, unpack
 from .flow import to_float16
 from .flow import FlowEstimator
 from .ids import parse_sample_id
-from .sampler import video_samples
-from .video import VideoError
+from .samples import video_samples
 
 log = logging.getLogger("v2v.worker")
 
@@ -109,7 +109,7 @@ def wire_arrays(cfg: ServeConfig, arrays: dict) -> dict:
 
 class _StageClock:
     """Seconds a worker spends per stage (decode, simulate, flow, serialize, send) since its
-    previous message. Simulate and flow come from the sampler's ``stats["busy"]``; decode is
+    previous message. Simulate and flow come from ``samples.video_samples``'s ``stats["busy"]``; decode is
     the rest of the time spent making a sample (decoding, cropping, planning); send includes
     waiting for the server to take the message (back-pressure)."""
 
@@ -147,24 +147,6 @@ class _StageClock:
         return out
 
 
-def file_verdict(cfg: ServeConfig, stats: dict, error: Optional[BaseException] = None) -> Optional[str]:
-    """Why a video gave no samples (or stopped giving them), as ``v2v-serve`` logs it in
-    ``skipped PATH: reason``; ``None`` when it is fine.
-
-    Args:
-        stats: the ``stats`` dict ``sampler.video_samples`` filled (``frames``, ``windows``).
-        error: the exception that ended ``video_samples``, if any: a ``VideoError`` gives its
-            message, anything else ``"TypeName: message"``.
-    """
-    if isinstance(error, VideoError):
-        return str(error)
-    if error is not None:
-        return f"{type(error).__name__}: {error}"
-    if stats.get("windows", 0) == 0:
-        return f"{stats.get('frames', 0)} frames, shorter than one window of {cfg.frames_per_sample} frames"
-    return None
-
-
 def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
              inbox: Optional[_Inbox] = None) -> None:
     """Make every sample of one task and send it (through ``inbox``'s slot ring when it has
@@ -195,9 +177,9 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
             clock.sent()
             sent += 1
     except Exception as e:  # any failure on one file is that file's verdict, not the worker's death
-        error = file_verdict(cfg, stats, e)
-    if error is None:
-        error = file_verdict(cfg, stats)
+        error = e
+    # failed windows are reported one by one below, not in the file's verdict
+    error = verdict(cfg, stats.get("frames", 0), None, error)[2]
     clock.made()  # decoding after the last window
     kpw = cfg.crops_per_window
     done = {"type": "done", "task": task["task"], "samples": sent, "frames": stats.get("frames", 0),

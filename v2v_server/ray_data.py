@@ -3,7 +3,7 @@
 For clusters that already run Ray: Ray places the decoding (a ``map_batches`` stage on an actor
 pool of CPU workers) on CPU nodes, streams rows with backpressure to Ray Train ranks on GPU
 nodes, and splits the stream between ranks (``streaming_split``). Sample content is made by the
-same functions ``v2v-serve``'s workers call (``sampler.video_samples``, ``worker.file_verdict``),
+same functions ``v2v-serve``'s workers call (``samples.video_samples``, ``corpus.verdict``),
 so a sample is identical, bit for bit, to what ``v2v-serve`` sends for the same
 (seed, epoch, sample_id).
 
@@ -47,9 +47,9 @@ from .config import ServeConfig
 from .protocol import OUTPUTS
 from .flow import FlowEstimator
 from .ids import make_sample_id, parse_sample_id
-from .sampler import video_samples
-from .video import VideoError, inside, open_video, scan_corpus
-from .worker import file_verdict
+from .samples import video_samples
+from .corpus import corpus_file, verdict
+from .video import open_video, scan_corpus
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
            "v2v_dataset", "VOXEL_DTYPE"]
@@ -88,12 +88,9 @@ def count_windows(cfg: ServeConfig, root: Path, rel: str) -> Tuple[int, Optional
     shorter than one window of 201 frames"``). A file whose packets demux but whose frames
     do not decode is found out later, while decoding, with the decoder's reason.
     """
-    path = Path(root) / rel
-    if not inside(Path(root), path):
-        return 0, "missing, or points outside the corpus root"
-    frames = 0
+    frames, error = 0, None
     try:
-        container, stream, _ = open_video(path)
+        container, stream, _ = open_video(corpus_file(root, rel))
         try:
             need = cfg.frames_per_sample * cfg.max_samples_per_video
             for packet in container.demux(stream):
@@ -103,13 +100,10 @@ def count_windows(cfg: ServeConfig, root: Path, rel: str) -> Tuple[int, Optional
                         break
         finally:
             container.close()
-    except VideoError as e:
-        return 0, str(e)
-    except Exception as e:  # demuxing errors: the same wording as a decoding failure
-        if frames == 0:
-            return 0, f"{type(e).__name__}: {e}"
-    windows = min(cfg.max_samples_per_video, frames // cfg.frames_per_sample)
-    return windows, (None if windows else file_verdict(cfg, {"frames": frames, "windows": 0}))
+    except Exception as e:  # a demuxing error after some packets: those packets still count
+        error = e if frames == 0 else None
+    windows, _, reason = verdict(cfg, frames, None, error)
+    return windows, reason
 
 
 def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] = None) -> RayCorpus:
@@ -149,7 +143,7 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
     video with none left is not listed, so it is never opened. When the remaining count is not
     a multiple of ``ranks``, the first ids of the epoch are listed again with ``padding`` true
     (made from the same decode pass, no extra decoding) until it is. With ``crops_per_window``
-    K > 1 each window lists its K crop ids (``path#k.c``, see ``sampler.make_sample_id``).
+    K > 1 each window lists its K crop ids (``path#k.c``, see ``ids.make_sample_id``).
 
     Raises:
         ValueError: ``ranks`` < 1.
@@ -200,7 +194,7 @@ class SampleMaker:
     """The ``map_batches`` stage: one Ray actor, one CPU; makes the samples of video descriptors.
 
     Built once per actor: the config, OpenCV set to one thread, the optical-flow estimator (and
-    any compiled kernel the sampler loads on first use). Each call takes a batch of
+    any compiled kernel sample making loads on first use). Each call takes a batch of
     descriptors (see :func:`epoch_descriptors`) and yields one single-row batch per entry,
     as soon as the sample is made (rows stream; the actor never holds a whole video).
 
@@ -247,9 +241,9 @@ class SampleMaker:
                 if not wanted:
                     break
         except Exception as e:  # one file's failure is that file's verdict, never the job's death
-            error = file_verdict(self.cfg, stats, e)
+            error = verdict(self.cfg, stats.get("frames", 0), None, e)[2]
         if wanted:  # windows the file did not give: a verdict, and padding rows in their place
-            error = error or file_verdict(self.cfg, stats) or (
+            error = error or verdict(self.cfg, stats.get("frames", 0))[2] or (
                 f"{stats.get('frames', 0)} frames decoded, fewer than its packets promised")
             log.warning("skipped %s: %s", self.root / video, error)
             zeros = _zeros(self.cfg, self.outputs)

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from v2v_server import sampler as sampler_mod
+from v2v_server import samples as samples_mod
 from v2v_server.config import ServeConfig, load_config
 from v2v_server.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
-from v2v_server.sampler import pause_offsets, sample_rng, video_samples
+from v2v_server.samples import pause_offsets, sample_rng, video_samples
 
 
 def small_cfg(**kw):
@@ -46,14 +46,14 @@ def test_only_requested_outputs_are_computed(videos, monkeypatch):
             calls["flow"] += 1
             return np.zeros(((len(frames) - 1) // step, 2) + frames.shape[1:], dtype)
 
-    real_sim = sampler_mod.simulate_voxels
+    real_sim = samples_mod.simulate_voxels
 
     def counting_sim(*a, **k):
         calls["sim"] += 1
         return real_sim(*a, **k)
 
-    monkeypatch.setattr(sampler_mod, "FlowEstimator", NoFlow)
-    monkeypatch.setattr(sampler_mod, "simulate_voxels", counting_sim)
+    monkeypatch.setattr(samples_mod, "FlowEstimator", NoFlow)
+    monkeypatch.setattr(samples_mod, "simulate_voxels", counting_sim)
     out = collect(small_cfg(), videos, "bikes.mp4", outputs=("voxels",))
     assert all(set(v) == {"voxels"} for v in out.values())
     assert calls == {"flow": 0, "sim": 3}
@@ -97,7 +97,7 @@ def test_sample_rng_is_stable_across_processes():
     import subprocess
     import sys
 
-    code = "from v2v_server.sampler import sample_rng; print(sample_rng(5, 2, 'x/a.mp4#3').integers(0, 2**62))"
+    code = "from v2v_server.samples import sample_rng; print(sample_rng(5, 2, 'x/a.mp4#3').integers(0, 2**62))"
     outs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60,
                            env=dict(os.environ, PYTHONHASHSEED=str(h))).stdout.strip() for h in (1, 2)}
     assert outs == {str(sample_rng(5, 2, "x/a.mp4#3").integers(0, 2**62))}
@@ -253,7 +253,7 @@ def test_crops_per_window_config_validation():
 @pytest.mark.parametrize("flip", [False, True])
 @pytest.mark.parametrize("x", [0, 5, 468])
 def test_crop_cut_slices_as_crop_frame(flip, x):
-    from v2v_server.sampler import _CropCut, crop_frame, plan_window
+    from v2v_server.samples import _CropCut, crop_frame, plan_window
 
     cfg = ServeConfig(seed=2).validate()
     codes = np.random.default_rng(x).integers(0, 256, (181, 596)).astype(np.uint8)

@@ -22,10 +22,11 @@ import numpy as np
 
 from .augment import augment_plan, degrade_window
 from .config import ServeConfig
+from .corpus import corpus_file
 from .ids import make_sample_id
 from .flow import FlowEstimator
 from .simulate import SensorParams, sample_params, simulate_voxels
-from .video import VideoError, decode_codes, inside, open_video, to_uint8
+from .video import decode_codes, open_video, to_uint8
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
     """The generator for one sample, a pure function of (seed, epoch, sample_id)."""
@@ -292,9 +293,7 @@ def video_samples(
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
-    path = Path(root) / rel_path
-    if not inside(root, path):
-        raise VideoError("missing, or points outside the corpus root")
+    path = corpus_file(root, rel_path)
     skip = set(skip_windows)
     span = cfg.frames_per_sample
     kpw = cfg.crops_per_window
