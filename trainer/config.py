@@ -11,6 +11,8 @@ from typing import Any, Iterable, Optional
 
 import yaml
 
+from v2v_server.settings import YamlLoader, check_float, load_yaml
+
 __all__ = ["DEFAULTS", "default_config", "load_config", "apply_overrides", "merge", "check_types"]
 
 _COMMON = {
@@ -86,24 +88,14 @@ _OPTIONAL_FLOATS = {"optim.clip_grad_norm"}
 
 
 def _as_float(v: Any, field: str) -> float:
-    # PyYAML follows YAML 1.1, where "3e-4" (no dot) is a string, not a float: accept it.
-    if isinstance(v, bool):
-        raise ValueError(f"config field {field!r} must be a number, got {v!r}")
-    if isinstance(v, (int, float)):
-        return float(v)
-    if isinstance(v, str):
-        try:
-            return float(v)
-        except ValueError:
-            pass
-    raise ValueError(f"config field {field!r} must be a number, got {v!r}")
+    return check_float(f"config field {field!r}", v, positive=False)
 
 
 def check_types(cfg: dict, ref: Optional[dict] = None, prefix: str = "") -> dict:
     """Check ``cfg`` against the types of the task defaults, in place, and return it.
 
-    Floats accept ints and numeric strings (``--set optim.lr=3e-4`` parses as the string
-    '3e-4' under YAML 1.1) and are stored as ``float``; ints must be integers; booleans
+    Floats accept ints (files and ``--set`` values are read with ``v2v_server.settings``'s
+    YAML loader, so ``3e-4`` is a number) and are stored as ``float``; ints must be integers; booleans
     must be booleans. Keys whose default is None are not checked, except
     ``optim.clip_grad_norm`` (None or a number). The ``model`` section is checked when the
     model is built. Raises ``ValueError`` naming the dotted field.
@@ -140,13 +132,7 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
     Raises ``ValueError`` for unknown keys (model keys are checked when the model is built)
     and ``FileNotFoundError`` for a missing file.
     """
-    user = {}
-    if path:
-        with open(path) as f:
-            user = yaml.safe_load(f) or {}
-        if not isinstance(user, dict):
-            raise ValueError(f"{path}: top level must be a mapping")
-    user = dict(user)
+    user = dict(load_yaml(path)) if path else {}
     file_task = user.get("task")
     task = task or file_task or "e2vid"
     base = default_config(task)
@@ -164,7 +150,7 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
 
 
 def _parse_value(s: str) -> Any:
-    return yaml.safe_load(s)
+    return yaml.load(s, Loader=YamlLoader)
 
 
 def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:

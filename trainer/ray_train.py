@@ -35,7 +35,9 @@ from typing import Dict, Iterable, Optional
 import numpy as np
 import torch
 
+from v2v_server.config import ServingSettings
 from v2v_server.protocol import OUTPUTS
+from v2v_server.settings import add_flags, flag_values
 
 from .core import Trainer
 from .data import drop_padding
@@ -50,13 +52,13 @@ log = logging.getLogger("trainer.ray")
 def add_ray_arguments(p: argparse.ArgumentParser) -> None:
     """The ``--engine ray`` options of ``v2v-train``."""
     g = p.add_argument_group("Ray engine (--engine ray; needs pip install 'v2v[ray]')")
-    g.add_argument("--videos", help="corpus folder (on every node of the cluster, same path)")
-    g.add_argument("--serve-config", help="v2v-serve YAML config for the sample layout (default: v2v-serve's defaults)")
+    g.add_argument("--serve-config", help="v2v-serve YAML config: the sample recipe and corpus (default: v2v-serve's "
+                                          "defaults); the flags below override its keys")
+    # the corpus, batch size and epochs are v2v-serve's keys: the same flags, from its config model
+    add_flags(g, ServingSettings, only=("videos", "batch_size", "epochs"))
     g.add_argument("--num-workers", type=int, default=1, help="Ray Train ranks (default 1)")
     g.add_argument("--use-gpu", action="store_true", help="one GPU per rank")
     g.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per rank (default 1)")
-    g.add_argument("--batch-size", type=int, default=12, help="samples per batch per rank (default 12)")
-    g.add_argument("--epochs", type=int, default=1, help="epochs to train (default 1); --max-steps also stops")
     g.add_argument("--address", help="Ray cluster address (ray://HOST:10001 or auto); default: a local Ray")
     g.add_argument("--data-workers", type=int, help="actors of the V2V map stage (default: the free CPUs)")
     g.add_argument("--data-resource", help="custom resource each V2V actor needs 1 of (keeps it off GPU nodes)")
@@ -274,22 +276,22 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
         log.error("--engine ray needs Ray: pip install 'v2v[ray]'")
         return 2
     from v2v_server.config import load_config as load_serve_config
+    from v2v_server.corpus import SAMPLE_VIDEOS
     from v2v_server.ray_data import scan_corpus_windows, v2v_dataset
 
-    if not args.videos:
-        log.error("--engine ray needs --videos DIR")
-        return 2
     try:
-        scfg = load_serve_config(args.serve_config, {"videos": args.videos})
+        scfg = load_serve_config(args.serve_config, flag_values(args, ServingSettings))
     except (ValueError, FileNotFoundError) as e:
         log.error("--serve-config: %s", e)
         return 2
+    videos = scfg.videos or str(SAMPLE_VIDEOS)  # as v2v-serve: the bundled clips by default
+    batch_size, epochs = scfg.batch_size, scfg.epochs or 1  # per rank; a run trains whole epochs
     if int(cfg["model"]["num_bins"]) != scfg.num_bins:
         log.error("samples have %d bins, model.num_bins is %s: set one to the other", scfg.num_bins,
                   cfg["model"]["num_bins"])
         return 2
-    if args.num_workers < 1 or args.batch_size < 1 or args.epochs < 1:
-        log.error("--num-workers, --batch-size and --epochs must be >= 1")
+    if args.num_workers < 1:
+        log.error("--num-workers must be >= 1")
         return 2
     if not ray.is_initialized():
         ray.init(address=args.address)
@@ -297,28 +299,28 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
     if data_workers is None:  # the CPUs the ranks leave free
         free = ray.cluster_resources().get("CPU", 1) - args.num_workers * args.cpus_per_worker
         data_workers = max(1, int(free))
-    corpus = scan_corpus_windows(args.videos, scfg)
+    corpus = scan_corpus_windows(videos, scfg)
     if not corpus.samples_per_epoch:
-        log.error("no usable video under %s", args.videos)
+        log.error("no usable video under %s", videos)
         return 2
     log.info("Ray engine: %d samples per epoch from %d videos (%d skipped), %d rank(s), batch %d per rank, "
              "%d V2V actor(s)", corpus.samples_per_epoch, len(corpus.windows), len(corpus.skipped), args.num_workers,
-             args.batch_size, data_workers)
+             batch_size, data_workers)
     failures = 0
     resume = cfg.get("resume")
     while True:
         if resume == "auto":
             resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None
         state = load_ray_state(resume)
-        todo = [e for e in range(args.epochs) if e not in set(state["epochs_done"])]
+        todo = [e for e in range(epochs) if e not in set(state["epochs_done"])]
         if not todo:
-            log.info("all %d epoch(s) already trained", args.epochs)
+            log.info("all %d epoch(s) already trained", epochs)
             return 0
         ds = v2v_dataset(corpus, scfg, epoch=todo, outputs=get_task(cfg["task"]).outputs,
                          exclude={e: state["consumed"].get(e, ()) for e in todo}, ranks=args.num_workers,
                          concurrency=data_workers, resource=args.data_resource)
         loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,
-                    "max_steps": int(cfg["max_steps"]), "batch_size": args.batch_size,
+                    "max_steps": int(cfg["max_steps"]), "batch_size": batch_size,
                     "epoch_sizes": {e: corpus.samples_per_epoch for e in todo}, "use_gpu": bool(args.use_gpu),
                     "cpus_per_worker": args.cpus_per_worker}
         tt = TorchTrainer(

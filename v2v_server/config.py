@@ -6,16 +6,15 @@ the field.
 """
 from __future__ import annotations
 
-import math
 import re
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Optional, Tuple
 
-import yaml
-
 from .flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
 from .protocol import OUTPUTS
+from .settings import (check_bool, check_choice, check_float, check_int, check_prob, load_yaml,
+                       reference_markdown, setting)
 from .simulate import ParamRanges
 
 #: Optical-flow options by name (the table lives in flow_options.py).
@@ -29,138 +28,63 @@ VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".m
 
 
 @dataclass
-class ServeConfig:
-    """Everything ``v2v-serve`` needs to know.
+class SampleRecipe:
+    """The sample recipe: everything that decides a sample's content.
 
-    Sample layout (paper's WebVid recipe): ``sequence_length`` L voxel grids of ``num_bins``
-    B bins, ``frames_per_bin`` frame pairs per bin, so a sample spans
+    Defaults follow the paper's WebVid recipe: ``sequence_length`` L voxel grids of
+    ``num_bins`` B bins, ``frames_per_bin`` frame pairs per bin, so a sample spans
     ``L * B * frames_per_bin + 1`` frame indices (201 by default). Spatial: the top
-    ``keep_top_fraction`` of each frame is kept (WebVid watermark), a random
-    ``crop_size`` x ``crop_size`` crop (pixels) is taken, flipped horizontally with
-    probability ``hflip_prob``. Pauses: a per-frame Markov chain repeats the previous frame.
+    ``keep_top_fraction`` of each frame is kept (WebVid watermark), a random ``crop_size`` x
+    ``crop_size`` crop (pixels) is taken, flipped horizontally with probability ``hflip_prob``.
+    Pauses: a per-frame Markov chain repeats the previous frame.
     """
 
-    videos: Optional[str] = None
-    workers: int = 2
-    bind: str = "tcp://127.0.0.1:5555"
-    seed: int = 0
-    epochs: Optional[int] = None
-    batch_size: int = 12
-    sequence_length: int = 40
-    num_bins: int = 5
-    frames_per_bin: int = 1
-    crop_size: int = 128
-    keep_top_fraction: float = 0.54
-    hflip_prob: float = 0.5
-    max_samples_per_video: int = 10
-    #: random crops per decoded window, each its own sample (own crop, flip, pauses, sensor
-    #: parameters); ids ``path#window.crop`` when > 1. Crops of one window share content and motion.
-    crops_per_window: int = 1
-    pause_enabled: bool = True
-    p_pause_when_running: float = 0.0102
-    p_pause_when_paused: float = 0.9791
-    outputs: Tuple[str, ...] = OUTPUTS
-    flow_preset: str = DEFAULT_FLOW
-    flow_dtype: str = "float16"
-    ranges: ParamRanges = field(default_factory=ParamRanges)
-    decode_threads: int = 1
-    video_extensions: Tuple[str, ...] = VIDEO_EXTENSIONS
-    #: seconds between heartbeats to clients
-    heartbeat_s: float = 1.0
-    #: seconds an unacknowledged batch may stay with a client before it is sent again
-    lease_s: float = 60.0
-    #: seconds of silence after which a client is considered gone
-    client_timeout_s: float = 10.0
-    #: batches the server keeps assembled ahead of the clients' credits
-    prefetch_batches: int = 2
-    #: seconds a revoked batch may stay unanswered before its client is dropped (None: client_timeout_s)
-    revoke_s: Optional[float] = None
-    #: most batches one client may hold (its ``credits`` at hello); a larger request is refused
-    max_credits: int = 64
-    #: seconds a worker may send nothing on a task before the task is reassigned and the worker replaced
-    task_timeout_s: float = 300.0
-    #: refinement of frame pairs whose motion needs it: off | uniform:K | adaptive:λ_px | adaptive-dl:λ
-    #: (see v2v_server/refine.py and docs/fidelity.md); recorded in each sample's params
-    refine: str = "off"
-    #: optional sensor non-idealities, all off by default (see v2v_server/nonideal.py)
-    nonidealities: dict = field(default_factory=dict)
-    #: dynamic-range degradation {probability, scale: [lo, hi]} (paper appendix "Dataset
-    #: quality"; off when empty; see v2v_server/augment.py); recorded in each sample's params
-    degrade_dynamic_range: dict = field(default_factory=dict)
-    #: each video keeps one (c+, c-) drawn from (seed, video) for every epoch (the paper's
-    #: "-F" datasets); recorded in each sample's params
-    fixed_sensor_params: bool = False
-    #: CurveZMQ: the server's secret key file (from ``v2v-keygen``)
-    curve_secret_key: Optional[str] = None
-    #: CurveZMQ: folder of allowed client public key files (``*.key``)
-    curve_allow: Optional[str] = None
-    #: allow a non-loopback bind without CurveZMQ (logs a warning)
-    insecure: bool = False
-    #: serve only shard I of N of the corpus ("I/N", 0 <= I < N; see corpus.shard_of); None = all
-    shard: Optional[str] = None
-    #: port of the HTTP endpoint with /metrics (Prometheus), /healthz and /readyz; None = off
-    metrics_port: Optional[int] = None
-    #: address the metrics endpoint binds (0.0.0.0 in a container so probes can reach it)
-    metrics_host: str = "127.0.0.1"
-    #: log lines as plain text or one JSON object per line (for log shippers)
-    log_format: str = "text"
-
-    # ------------------------------------------------------------------ derived
-    @property
-    def shard_spec(self) -> Tuple[int, int]:
-        """``(index, count)`` of ``shard``; ``(0, 1)`` when the whole corpus is served."""
-        return parse_shard(self.shard)
+    seed: int = setting(0, help="base seed: sample content depends only on (seed, epoch, sample id)")
+    sequence_length: int = setting(40, help="voxel grids per sample, L")
+    num_bins: int = setting(5, help="temporal bins per voxel grid, B")
+    frames_per_bin: int = setting(1, help="frame pairs summed into one bin; a sample spans L x B x this + 1 frames")
+    crop_size: int = setting(128, help="square crop side, pixels")
+    keep_top_fraction: float = setting(0.54, help="fraction of each frame's height, from the top, that crops come "
+                                                  "from (WebVid's watermark; 1.0 for clips without one)")
+    hflip_prob: float = setting(0.5, help="probability of a horizontal flip")
+    max_samples_per_video: int = setting(10, help="non-overlapping windows per video per epoch")
+    crops_per_window: int = setting(1, help="random crops per decoded window, each its own sample (own crop, flip, "
+                                            "pauses, sensor parameters; ids path#window.crop when > 1)")
+    pause_enabled: bool = setting(True, help="pause augmentation (a Markov chain repeating the previous frame)")
+    p_pause_when_running: float = setting(0.0102, help="probability that a pause starts at a frame")
+    p_pause_when_paused: float = setting(0.9791, help="probability that a pause goes on at a frame")
+    outputs: Tuple[str, ...] = setting(OUTPUTS, help="what clients may ask for (comma list)", cli=str)
+    flow_preset: str = setting(DEFAULT_FLOW, help="optical flow option (docs/flow.md)", choices=tuple(FLOW_OPTIONS))
+    flow_dtype: str = setting("float16", help="wire dtype of flow", choices=FLOW_DTYPES)
+    ranges: ParamRanges = setting(help="sensor parameter ranges: threshold, ratio, noise_std, hot_pixel_fraction, "
+                                       "hot_pixel_std as [lo, hi] (WebVid ranges)", flag="", factory=ParamRanges)
+    refine: str = setting("off", help="off | uniform:K | adaptive:PX | adaptive-dl:L: sub-frames where motion needs "
+                                      "them (docs/fidelity.md)")
+    nonidealities: dict = setting(help="sensor non-idealities, all off by default (v2v_server/nonideal.py)", flag="",
+                                  factory=dict)
+    degrade_dynamic_range: dict = setting(help="{probability, scale: [lo, hi]}: dynamic-range degradation before V2V "
+                                               "(paper appendix 'Dataset quality'; true = 0.8, [1, 3])", flag="",
+                                          factory=dict)
+    fixed_sensor_params: bool = setting(False, help="each video keeps one (c+, c-) drawn from (seed, video) for every "
+                                                    "window and epoch (the paper's '-F' datasets)")
+    decode_threads: int = setting(1, help="FFmpeg decoding threads per worker")
 
     @property
     def frames_per_sample(self) -> int:
         """Frame indices one sample spans: L * B * frames_per_bin + 1."""
         return self.sequence_length * self.num_bins * self.frames_per_bin + 1
 
-    # ------------------------------------------------------------------ checks
-    def validate(self) -> "ServeConfig":
-        """Check every field; raise ``ValueError`` naming the first bad one. Returns self."""
-
-        def pos_int(name, minimum=1):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
-                raise ValueError(f"{name} must be an integer >= {minimum}, got {v!r}")
-
-        def prob(name):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= v <= 1.0):
-                raise ValueError(f"{name} must be a probability in [0, 1], got {v!r}")
-            setattr(self, name, float(v))
-
-        def pos_float(name):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
-            setattr(self, name, float(v))
-
-        for name in ("workers", "batch_size", "sequence_length", "num_bins", "frames_per_bin",
-                     "crop_size", "max_samples_per_video", "decode_threads", "prefetch_batches",
+    def validate_recipe(self) -> None:
+        """Check the recipe's fields; ``ValueError`` names the first bad one."""
+        for name in ("sequence_length", "num_bins", "frames_per_bin", "max_samples_per_video", "decode_threads",
                      "crops_per_window"):
-            pos_int(name)
-        if self.crop_size < 8:
-            raise ValueError(f"crop_size must be >= 8 pixels, got {self.crop_size}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
-        if self.epochs is not None:
-            pos_int("epochs")
+            check_int(name, getattr(self, name), 1)
+        check_int("crop_size", self.crop_size, 8, 4096, "pixels")
+        check_int("seed", self.seed, 0)
         for name in ("hflip_prob", "p_pause_when_running", "p_pause_when_paused"):
-            prob(name)
+            setattr(self, name, check_prob(name, getattr(self, name)))
         if not isinstance(self.keep_top_fraction, (int, float)) or not (0 < self.keep_top_fraction <= 1):
             raise ValueError(f"keep_top_fraction must be in (0, 1], got {self.keep_top_fraction!r}")
-        for name in ("heartbeat_s", "lease_s", "client_timeout_s", "task_timeout_s"):
-            pos_float(name)
-        if self.revoke_s is not None:
-            pos_float("revoke_s")
-        pos_int("max_credits")
-        for name, hi, why in (("workers", MAX_WORKERS, "worker processes"),
-                              ("prefetch_batches", MAX_PREFETCH, "batches assembled ahead"),
-                              ("max_credits", MAX_CREDITS, "batches in flight per client")):
-            if getattr(self, name) > hi:
-                raise ValueError(f"{name} must be <= {hi} ({why}), got {getattr(self, name)}")
         if isinstance(self.outputs, str):
             self.outputs = tuple(s.strip() for s in self.outputs.split(",") if s.strip())
         outs = tuple(self.outputs)
@@ -172,24 +96,73 @@ class ServeConfig:
         why = unavailable_reason(self.flow_preset)
         if why:
             raise ValueError(f"flow_preset {self.flow_preset!r} cannot run here: {why}")
-        if self.flow_dtype not in FLOW_DTYPES:
-            raise ValueError(f"flow_dtype must be one of {list(FLOW_DTYPES)}, got {self.flow_dtype!r}")
+        check_choice("flow_dtype", self.flow_dtype, FLOW_DTYPES)
         if not isinstance(self.ranges, ParamRanges):
             self.ranges = ParamRanges.from_dict(self.ranges)
-        if not isinstance(self.bind, str) or "://" not in self.bind:
-            raise ValueError(f"bind must be a ZeroMQ endpoint like tcp://127.0.0.1:5555, got {self.bind!r}")
+        from .augment import parse_degrade
         from .nonideal import NonIdealities
         from .refine import parse_refine
 
-        spec = parse_refine(self.refine)
-        self.refine = str(spec)
+        self.refine = str(parse_refine(self.refine))
         try:
             ni = NonIdealities.from_dict(self.nonidealities or None)
         except ValueError as e:
             raise ValueError(f"nonidealities: {e}") from None
         self.nonidealities = ni.to_dict() if ni.enabled else {}
-        if self.crop_size > 4096:
-            raise ValueError(f"crop_size must be <= 4096 pixels, got {self.crop_size}")
+        self.degrade_dynamic_range = parse_degrade(self.degrade_dynamic_range)
+        check_bool("pause_enabled", self.pause_enabled)
+        check_bool("fixed_sensor_params", self.fixed_sensor_params)
+
+
+@dataclass
+class ServingSettings:
+    """Serving: corpus, workers, transport, delivery, security and operations."""
+
+    videos: Optional[str] = setting(None, help="corpus folder (searched recursively); default: the bundled sample clips")
+    workers: int = setting(2, help="worker processes")
+    bind: str = setting("tcp://127.0.0.1:5555", help="ZeroMQ endpoint to bind (port 0 = any free port)")
+    epochs: Optional[int] = setting(None, help="end the stream after this many epochs (default: unbounded)")
+    batch_size: int = setting(12, help="samples per batch (the last batch of an epoch may be smaller)")
+    video_extensions: Tuple[str, ...] = setting(VIDEO_EXTENSIONS, help="file extensions served as videos", flag="")
+    heartbeat_s: float = setting(1.0, help="seconds between heartbeats to clients")
+    lease_s: float = setting(60.0, help="seconds before an unacknowledged batch is sent again", flag="--lease")
+    client_timeout_s: float = setting(10.0, help="seconds of client silence before its batches go back to the queue",
+                                      flag="--client-timeout")
+    prefetch_batches: int = setting(2, help="batches assembled ahead of the clients' credits")
+    revoke_s: Optional[float] = setting(None, help="seconds a client may leave a revoke unanswered before it is "
+                                                   "dropped (default: the client timeout)", flag="--revoke-timeout")
+    max_credits: int = setting(64, help="most batches one client may hold")
+    task_timeout_s: float = setting(300.0, help="seconds a worker may send nothing on a task before the task is "
+                                                "reassigned and the worker replaced", flag="--task-timeout")
+    curve_secret_key: Optional[str] = setting(None, help="CurveZMQ: the server's secret key file (v2v-keygen)")
+    curve_allow: Optional[str] = setting(None, help="CurveZMQ: folder of allowed client public key files (*.key)")
+    insecure: bool = setting(False, help="allow a non-loopback bind without CurveZMQ (not recommended)")
+    shard: Optional[str] = setting(None, help="serve only shard I of N of the corpus, as I/N (a stable hash of each "
+                                              "file's relative path picks its shard)")
+    metrics_port: Optional[int] = setting(None, help="port of the HTTP endpoint with /metrics, /healthz and /readyz "
+                                                     "(0 = any free port; default off)")
+    metrics_host: str = setting("127.0.0.1", help="address the metrics endpoint binds (0.0.0.0 in a container)")
+    log_format: str = setting("text", help="log lines as text or one JSON object per line", choices=("text", "json"))
+
+    @property
+    def shard_spec(self) -> Tuple[int, int]:
+        """``(index, count)`` of ``shard``; ``(0, 1)`` when the whole corpus is served."""
+        return parse_shard(self.shard)
+
+    def validate_serving(self) -> None:
+        """Check the serving fields; ``ValueError`` names the first bad one."""
+        check_int("workers", self.workers, 1, MAX_WORKERS, "worker processes")
+        check_int("batch_size", self.batch_size, 1)
+        check_int("prefetch_batches", self.prefetch_batches, 1, MAX_PREFETCH, "batches assembled ahead")
+        check_int("max_credits", self.max_credits, 1, MAX_CREDITS, "batches in flight per client")
+        if self.epochs is not None:
+            check_int("epochs", self.epochs, 1)
+        for name in ("heartbeat_s", "lease_s", "client_timeout_s", "task_timeout_s"):
+            setattr(self, name, check_float(name, getattr(self, name)))
+        if self.revoke_s is not None:
+            self.revoke_s = check_float("revoke_s", self.revoke_s)
+        if not isinstance(self.bind, str) or "://" not in self.bind:
+            raise ValueError(f"bind must be a ZeroMQ endpoint like tcp://127.0.0.1:5555, got {self.bind!r}")
         if (self.curve_secret_key is None) != (self.curve_allow is None):
             raise ValueError("curve_secret_key and curve_allow must be given together")
         if self.curve_secret_key is not None:
@@ -197,13 +170,7 @@ class ServeConfig:
                 raise ValueError(f"curve_secret_key: no such file {self.curve_secret_key}")
             if not Path(self.curve_allow).is_dir():
                 raise ValueError(f"curve_allow: no such folder {self.curve_allow}")
-        from .augment import parse_degrade
-
-        self.degrade_dynamic_range = parse_degrade(self.degrade_dynamic_range)
-        if not isinstance(self.fixed_sensor_params, bool):
-            raise ValueError(f"fixed_sensor_params must be true or false, got {self.fixed_sensor_params!r}")
-        if not isinstance(self.insecure, bool):
-            raise ValueError(f"insecure must be true or false, got {self.insecure!r}")
+        check_bool("insecure", self.insecure)
         if not is_loopback(self.bind) and self.curve_secret_key is None and not self.insecure:
             raise ValueError(f"bind {self.bind} is not a loopback address: give curve_secret_key and curve_allow "
                              f"(see v2v-keygen), or insecure: true to stream unauthenticated")
@@ -213,14 +180,30 @@ class ServeConfig:
                 self.metrics_port, int) or not 0 <= self.metrics_port <= 65535):
             raise ValueError(f"metrics_port must be a TCP port in [0, 65535] (0 = any free port), "
                              f"got {self.metrics_port!r}")
-        if self.log_format not in ("text", "json"):
-            raise ValueError(f"log_format must be text or json, got {self.log_format!r}")
+        check_choice("log_format", self.log_format, ("text", "json"))
         if not isinstance(self.metrics_host, str) or not self.metrics_host:
             raise ValueError(f"metrics_host must be an address such as 127.0.0.1, got {self.metrics_host!r}")
         self.video_extensions = tuple(e.lower() for e in self.video_extensions)
         if self.videos is not None:
             self.videos = str(self.videos)
+
+
+@dataclass
+class ServeConfig(ServingSettings, SampleRecipe):
+    """Everything ``v2v-serve`` needs to know: the sample recipe (:class:`SampleRecipe`) and
+    the serving settings (:class:`ServingSettings`). YAML files and flags name either's keys
+    flat (``seed: 3``, ``--workers 8``); docs/config.md lists them (``python -m
+    v2v_server.config --markdown``)."""
+
+    def validate(self) -> "ServeConfig":
+        """Check every field; raise ``ValueError`` naming the first bad one. Returns self."""
+        self.validate_serving()
+        self.validate_recipe()
         return self
+
+    def recipe(self) -> SampleRecipe:
+        """The sample recipe alone (what a resume state or a fan-in compares across servers)."""
+        return SampleRecipe(**{f.name: getattr(self, f.name) for f in fields(SampleRecipe)})
 
     # ------------------------------------------------------------------ io
     def to_dict(self) -> dict:
@@ -279,21 +262,6 @@ def is_loopback(endpoint: str) -> bool:
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads YAML 1.2 floats such as ``1.0e9`` or ``1e-3`` as numbers
-    (YAML 1.1, PyYAML's default, reads them as strings)."""
-
-
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
-                |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
-                |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
-                |[-+]?\.(?:inf|Inf|INF)
-                |\.(?:nan|NaN|NAN))$""", re.X),
-    list("-+0123456789."))
-
-
 def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeConfig:
     """Defaults, then the YAML file at ``path`` (if any), then ``overrides`` (non-None values).
 
@@ -302,20 +270,28 @@ def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeC
             file is not valid YAML.
         FileNotFoundError: when ``path`` does not exist.
     """
-    data: dict = {}
-    source = "command line"
-    if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise FileNotFoundError(f"config file not found: {p}")
-        try:
-            data = yaml.load(p.read_text(), Loader=_Loader) or {}
-        except yaml.YAMLError as e:
-            raise ValueError(f"{p}: not valid YAML: {e}") from None
-        if not isinstance(data, dict):
-            raise ValueError(f"{p}: top level must be a mapping of keys to values")
-        source = str(p)
+    data = load_yaml(path) if path is not None else {}
+    source = str(Path(path)) if path is not None else "command line"
     for k, v in (overrides or {}).items():
         if v is not None:
             data[k] = v
     return ServeConfig.from_dict(data, source=source)
+
+
+def main(argv=None) -> int:
+    """``python -m v2v_server.config --markdown``: print the configuration reference (docs/config.md)."""
+    import argparse
+
+    p = argparse.ArgumentParser(description=main.__doc__)
+    p.add_argument("--markdown", action="store_true", required=True)
+    p.parse_args(argv)
+    print("# v2v-serve configuration\n\nEvery key can be set in a YAML file (`v2v-serve --config FILE`) and, "
+          "where a flag is listed, on the command line (flags win over the file). Unknown keys and bad values stop "
+          "the server at startup with the key and the file named. Generated by "
+          "`python -m v2v_server.config --markdown > docs/config.md`.\n")
+    print(reference_markdown(ServeConfig, (SampleRecipe, ServingSettings)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

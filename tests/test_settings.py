@@ -1,0 +1,102 @@
+"""Declarative configuration (v2v_server/settings.py): flags derived from the models, YAML with
+YAML 1.2 floats, field-named errors, and the reference page kept current."""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import pytest
+
+from v2v_server.config import SampleRecipe, ServeConfig, ServingSettings, load_config
+from v2v_server.settings import (add_flags, check_choice, check_float, check_int, check_prob, flag_values, load_yaml,
+                                 reference_markdown, setting)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class Demo:
+    """Demo settings."""
+
+    rate: float = setting(0.5, help="a rate")
+    count: int = setting(3, help="a count", flag="--n")
+    name: Optional[str] = setting(None, help="a name", choices=("a", "b"))
+    on: bool = setting(True, help="a switch")
+    table: dict = setting(help="YAML only", flag="", factory=dict)
+
+
+def test_flags_come_from_the_model():
+    p = argparse.ArgumentParser()
+    add_flags(p, Demo)
+    args = p.parse_args(["--rate", "0.25", "--n", "7", "--no-on"])
+    assert flag_values(args, Demo) == {"rate": 0.25, "count": 7, "on": False}
+    assert flag_values(p.parse_args([]), Demo) == {}  # nothing given: nothing overrides the file
+    with pytest.raises(SystemExit):
+        p.parse_args(["--name", "c"])
+    with pytest.raises(SystemExit):
+        p.parse_args(["--table", "x"])
+    assert "(default 0.5)" in p.format_help()
+
+
+def test_every_serve_key_is_a_flag_or_yaml_only_and_the_reference_lists_it():
+    p = argparse.ArgumentParser()
+    add_flags(p, SampleRecipe)
+    add_flags(p, ServingSettings)
+    dests = {a.dest for a in p._actions}
+    yaml_only = {"ranges", "nonidealities", "degrade_dynamic_range", "video_extensions"}
+    from dataclasses import fields
+
+    names = {f.name for f in fields(ServeConfig)}
+    assert names - dests == yaml_only
+    md = reference_markdown(ServeConfig, (SampleRecipe, ServingSettings))
+    assert all(f"| `{n}` |" in md for n in names)
+
+
+def test_docs_config_md_is_the_generated_reference():
+    out = subprocess.run([sys.executable, "-m", "v2v_server.config", "--markdown"], capture_output=True, text=True,
+                         check=True, cwd=ROOT).stdout
+    assert (ROOT / "docs" / "config.md").read_text() == out, "re-run: python -m v2v_server.config --markdown > docs/config.md"
+
+
+def test_yaml_floats_and_errors_name_the_file(tmp_path):
+    f = tmp_path / "a.yaml"
+    f.write_text("lease_s: 1e2\nkeep_top_fraction: 5e-1\n")
+    assert load_yaml(f) == {"lease_s": 100.0, "keep_top_fraction": 0.5}
+    cfg = load_config(str(f))
+    assert cfg.lease_s == 100.0 and cfg.keep_top_fraction == 0.5
+    f.write_text("[1, 2]\n")
+    with pytest.raises(ValueError, match="a.yaml: top level must be a mapping"):
+        load_yaml(f)
+    f.write_text("crop_size: 4\n")
+    with pytest.raises(ValueError, match=r"a\.yaml: crop_size must be an integer >= 8"):
+        load_config(str(f))
+    f.write_text("crop_sise: 64\n")
+    with pytest.raises(ValueError, match=r"a\.yaml: unknown key\(s\) \['crop_sise'\]"):
+        load_config(str(f))
+    with pytest.raises(FileNotFoundError):
+        load_yaml(tmp_path / "missing.yaml")
+
+
+def test_validators_name_the_field():
+    assert check_int("n", 3, 1, 5) == 3
+    for bad in (0, True, 2.0, 9):
+        with pytest.raises(ValueError, match="^n must"):
+            check_int("n", bad, 1, 5)
+    assert check_float("x", 2) == 2.0
+    with pytest.raises(ValueError, match="x must be a finite number > 0"):
+        check_float("x", float("inf"))
+    with pytest.raises(ValueError, match="p must be a probability"):
+        check_prob("p", 1.5)
+    with pytest.raises(ValueError, match=r"c must be one of \['a'\]"):
+        check_choice("c", "b", ("a",))
+
+
+def test_the_recipe_is_separate_from_serving():
+    cfg = load_config(None, {"seed": 3, "workers": 1, "crop_size": 64})
+    r = cfg.recipe()
+    assert type(r) is SampleRecipe and r.seed == 3 and r.crop_size == 64 and not hasattr(r, "workers")
+    assert r.frames_per_sample == cfg.frames_per_sample == 201
