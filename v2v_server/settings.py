@@ -151,6 +151,7 @@ def reference_markdown(cls, groups: Iterable) -> str:
             flag = f"`{_flag(f)}`" if _flag(f) and _cli_type(f) else "(YAML only)"
             choices = f.metadata.get("choices")
             meaning = f.metadata["help"] + (f" ({' / '.join(map(str, choices))})" if choices else "")
+            meaning = meaning.replace("|", "\\|")  # a table cell
             out.append(f"| `{f.name}` | {flag} | `{_show(_default(f))}` | {meaning} |")
         out.append("")
     return "\n".join(out)
