@@ -41,6 +41,15 @@ log = logging.getLogger("v2v.client")
 MAX_SERVER_MSG = 1 << 31
 
 
+def padding_copy(batch: dict, epoch: int) -> dict:
+    """A DDP padding batch of ``epoch`` repeating ``batch``: its tensors cloned, every sample
+    flagged in ``padding`` (bool (B,), all True: the loss must ignore them), ``batch_id`` -1."""
+    out = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
+    out.update(padding=torch.ones(len(batch["sample_ids"]), dtype=torch.bool), epoch=epoch, batch_id=-1,
+               sample_ids=list(batch["sample_ids"]), params=list(batch["params"]))
+    return out
+
+
 class StreamError(RuntimeError):
     """The server sent an error, broke the protocol, or went silent (the message says which)."""
 
@@ -668,14 +677,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
     # ------------------------------------------------------------------ iteration
     def _padding_batch(self, epoch: int) -> Optional[dict]:
-        src = self._last
-        if src is None:
-            return None
-        out = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in src.items()}
-        out["padding"] = torch.ones(len(src["sample_ids"]), dtype=torch.bool)
-        out["epoch"], out["batch_id"] = epoch, -1
-        out["sample_ids"], out["params"] = list(src["sample_ids"]), list(src["params"])
-        return out
+        return None if self._last is None else padding_copy(self._last, epoch)
 
     def _epoch_done(self, done: "_EpochDone") -> List[dict]:
         """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
@@ -750,10 +752,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                         item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
                 for e in sorted(self._pad_debt):
                     for _ in range(self._pad_debt.pop(e)):
-                        p = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in item.items()}
-                        p.update(padding=torch.ones(len(item["sample_ids"]), dtype=torch.bool), epoch=e,
-                                 batch_id=-1, sample_ids=list(item["sample_ids"]), params=list(item["params"]))
-                        yield p
+                        yield padding_copy(item, e)
                 self._last = item
                 yield item
         finally:
