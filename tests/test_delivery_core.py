@@ -26,7 +26,7 @@ import pytest
 from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
-from v2v_server.core import DeliveryCore
+from v2v_server.core import DeliveryCore, DeliveryPolicy
 from v2v_server.ledger import BatchRecord, DeliveryLedger
 from v2v_server.schedule import EpochScheduler, parse_sample_id, sample_id
 from v2v_server.wire import Ack, Bye, Heartbeat, Hello, Released, Resume
@@ -125,9 +125,10 @@ class DeliveryMachine(RuleBasedStateMachine):
     def __init__(self):
         super().__init__()
         self.now = 0.0
-        self.core = DeliveryCore(list(WINDOWS), batch_size=2, epochs=EPOCHS, lease_s=LEASE, client_timeout_s=TIMEOUT,
-                                 revoke_s=REVOKE, max_credits=MAX_CREDITS, task_timeout_s=TASK_TIMEOUT,
-                                 offered=("voxels", "frames", "flow"), make_batch=make_batch)
+        self.core = DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=EPOCHS, lease_s=LEASE,
+                                                               client_timeout_s=TIMEOUT, revoke_s=REVOKE,
+                                                               max_credits=MAX_CREDITS, task_timeout_s=TASK_TIMEOUT),
+                                 make_batch)
         self.workers = [SimWorker(b"w0.0"), SimWorker(b"w1.0")]
         self.late: List[SimWorker] = []  # replaced workers that may still send
         self.trainers = [SimTrainer("t0"), SimTrainer("t1"), SimTrainer("t2", credits=1)]
@@ -556,7 +557,8 @@ def test_ddp_group_waits_for_all_ranks():
 
 
 def test_outputs_are_the_union_and_stale_batches_are_remade():
-    core = DeliveryCore(["a.mp4"], 1, 1, 100.0, 100.0, None, 4, 100.0, ("voxels", "frames", "flow"), make_batch)
+    core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=1, lease_s=100.0, client_timeout_s=100.0,
+                                                  max_credits=4, task_timeout_s=100.0), make_batch)
     core.hello(b"v", Hello(("voxels",), 2), 0.0, dict)
     msg = core.task_for(b"w", 0.0)
     assert msg["outputs"] == ["voxels"]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import collections
 import itertools
 import logging
+from dataclasses import dataclass
 from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from .ledger import BatchRecord, DeliveryLedger
@@ -26,32 +27,57 @@ log = logging.getLogger("v2v.server")
 Msg = Tuple[bytes, dict]
 
 
-class DeliveryCore:
-    """Scheduler + ledger + batching, for one server.
+@dataclass(frozen=True)
+class DeliveryPolicy:
+    """The delivery settings of one server.
 
-    Args:
-        videos: corpus-relative paths.
+    Attributes:
         batch_size: samples per batch (the last of an epoch may be smaller).
         epochs: stop after this many epochs (None: unbounded).
-        lease_s, client_timeout_s, revoke_s, max_credits: see ``ledger.DeliveryLedger``.
+        lease_s, client_timeout_s, revoke_s, max_credits: see ``ledger.DeliveryLedger`` (seconds;
+            batches).
         task_timeout_s: seconds without a sample before a task is reassigned.
         offered: outputs this server offers.
-        make_batch: ``samples -> payload`` (each sample has ``sample_id``).
         max_task_crashes: see ``schedule.EpochScheduler``.
         crops_per_window: samples per window (ids ``path#window.crop`` when > 1); the scheduler
             counts samples by index ``window * crops_per_window + crop`` (``ids.py``).
     """
 
-    def __init__(self, videos: Sequence[str], batch_size: int, epochs: Optional[int], lease_s: float,
-                 client_timeout_s: float, revoke_s: Optional[float], max_credits: int, task_timeout_s: float,
-                 offered: Sequence[str], make_batch: Callable, max_task_crashes: int = 3,
-                 crops_per_window: int = 1):
-        self.sched = EpochScheduler(videos, epochs, max_task_crashes)
-        self.ledger = DeliveryLedger(lease_s, client_timeout_s, revoke_s=revoke_s, max_credits=max_credits)
-        self.batch_size = batch_size
-        self.crops_per_window = crops_per_window
-        self.task_timeout_s = task_timeout_s
-        self.offered = tuple(offered)
+    batch_size: int = 12
+    epochs: Optional[int] = None
+    lease_s: float = 60.0
+    client_timeout_s: float = 10.0
+    revoke_s: Optional[float] = None
+    max_credits: int = 64
+    task_timeout_s: float = 300.0
+    offered: Tuple[str, ...] = OUTPUTS
+    max_task_crashes: int = 3
+    crops_per_window: int = 1
+
+    @classmethod
+    def from_config(cls, cfg, max_task_crashes: int = 3) -> "DeliveryPolicy":
+        """The policy of a validated ``config.ServeConfig``."""
+        return cls(cfg.batch_size, cfg.epochs, cfg.lease_s, cfg.client_timeout_s, cfg.revoke_s, cfg.max_credits,
+                   cfg.task_timeout_s, tuple(cfg.outputs), max_task_crashes, cfg.crops_per_window)
+
+
+class DeliveryCore:
+    """Scheduler + ledger + batching, for one server.
+
+    Args:
+        videos: corpus-relative paths.
+        policy: the delivery settings (:class:`DeliveryPolicy`).
+        make_batch: ``samples -> payload`` (each sample has ``sample_id``).
+    """
+
+    def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable):
+        p = self.policy = policy
+        self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes)
+        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, revoke_s=p.revoke_s, max_credits=p.max_credits)
+        self.batch_size = p.batch_size
+        self.crops_per_window = p.crops_per_window
+        self.task_timeout_s = p.task_timeout_s
+        self.offered = tuple(p.offered)
         self.make_batch = make_batch
         self._batch_ids = itertools.count()
         self.task_outputs: Dict[int, tuple] = {}

@@ -31,7 +31,7 @@ from typing import Dict, List, Optional
 import zmq
 
 from .config import ServeConfig, is_loopback
-from .core import DeliveryCore
+from .core import DeliveryCore, DeliveryPolicy
 from .datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
 from .metrics import ServerMetrics
 from .pool import WorkerPool
@@ -83,9 +83,7 @@ class V2VServer:
         self.videos = list(videos)
         self.stats = ServerStats()
         self._stop = threading.Event()
-        self.core = DeliveryCore(self.videos, cfg.batch_size, cfg.epochs, cfg.lease_s, cfg.client_timeout_s,
-                                 cfg.revoke_s, cfg.max_credits, cfg.task_timeout_s, cfg.outputs, make_batch,
-                                 MAX_TASK_CRASHES, cfg.crops_per_window)
+        self.core = DeliveryCore(self.videos, DeliveryPolicy.from_config(cfg, MAX_TASK_CRASHES), make_batch)
         self.sched, self.ledger = self.core.sched, self.core.ledger
         self.bad = BadPeers()
         self.logged_failures: set = set()
