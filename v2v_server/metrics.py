@@ -65,6 +65,7 @@ class ServerMetrics:
         self.workers_restarted = counter("v2v_workers_restarted", "Worker processes that died and were replaced")
         self.files_skipped = counter("v2v_files_skipped", "Video files skipped as unusable")
         self.bad_messages = counter("v2v_bad_messages", "Client messages rejected as malformed")
+        self.tasks_timed_out = counter("v2v_tasks_timed_out", "Tasks reassigned after their worker sent nothing")
         self.busy = counter("v2v_worker_busy_seconds", "Seconds workers spent per pipeline stage", ("stage",))
         for s in STAGES:
             self.busy.labels(stage=s)
@@ -102,6 +103,16 @@ class ServerMetrics:
 
     def on_bad_message(self) -> None:
         self.bad_messages.inc()
+
+    def on_task_timed_out(self) -> None:
+        self.tasks_timed_out.inc()
+
+    def totals(self) -> Dict[str, int]:
+        """The counters' current values by short name (``batches_sent``, ``samples_made``, ...):
+        what the server's closing log line reports, read from the one place they are kept."""
+        names = ("samples_made", "samples_sent", "batches_sent", "batches_resent", "leases_expired",
+                 "workers_restarted", "files_skipped", "bad_messages", "tasks_timed_out")
+        return {n: int(self.registry.get_sample_value(f"v2v_{n}_total") or 0) for n in names}
 
     def on_worker_message(self, header: dict) -> None:
         """Add the stage seconds a worker message carries (``header["stages"]``, a dict of

@@ -24,7 +24,6 @@ import signal
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
@@ -49,18 +48,6 @@ MAX_TASK_CRASHES = 3
 CLIENT_BURST = 100
 
 
-@dataclass
-class ServerStats:
-    batches_sent: int = 0
-    batches_acked: int = 0
-    batches_resent: int = 0
-    samples_made: int = 0
-    workers_restarted: int = 0
-    tasks_timed_out: int = 0
-    bad_messages: int = 0
-    skipped_files: Dict[str, str] = field(default_factory=dict)
-
-
 class V2VServer:
     """Serve V2V batches from the videos under ``root``.
 
@@ -81,7 +68,7 @@ class V2VServer:
         self.cfg = cfg
         self.root = Path(root)
         self.videos = list(videos)
-        self.stats = ServerStats()
+        self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
         self._stop = threading.Event()
         self.core = DeliveryCore(self.videos, DeliveryPolicy.from_config(cfg, MAX_TASK_CRASHES), make_batch)
         self.sched, self.ledger = self.core.sched, self.core.ledger
@@ -169,7 +156,6 @@ class V2VServer:
                 except zmq.ZMQError:
                     pass
             self.pool.stop(send_stop)
-            self.stats.workers_restarted = self.pool.restarts
         for s in (getattr(self, "frontend", None), getattr(self, "backend", None)):
             if s is not None:
                 s.close()
@@ -179,20 +165,12 @@ class V2VServer:
             self._ctx.term()
         shutil.rmtree(getattr(self, "_tmp", ""), ignore_errors=True)
         self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
-        self._sync_stats()
+        self._count_resent()
         self.metrics.close()
+        m = self.metrics.totals()
         log.info("stopped: %d batches sent (%d re-sent), %d samples made, %d worker restart(s), "
-                 "%d task timeout(s), %d skipped file(s)", self.stats.batches_sent, self.stats.batches_resent,
-                 self.stats.samples_made, self.stats.workers_restarted, self.stats.tasks_timed_out,
-                 len(self.stats.skipped_files))
-
-    def _sync_stats(self) -> None:
-        self.stats.batches_sent = self.ledger.sent
-        self.stats.batches_resent = self.ledger.resent
-        self.stats.batches_acked = self.ledger.acked
-        self.stats.samples_made = self.core.samples_made
-        if self.pool is not None:
-            self.stats.workers_restarted = self.pool.restarts
+                 "%d task timeout(s), %d skipped file(s)", m["batches_sent"], m["batches_resent"],
+                 m["samples_made"], m["workers_restarted"], m["tasks_timed_out"], m["files_skipped"])
 
     # ------------------------------------------------------------------ main loop
     def _loop(self) -> int:
@@ -239,7 +217,7 @@ class V2VServer:
                     return 0
                 if self._corpus_empty():
                     msg = (f"no usable video under {self.root}: "
-                           + "; ".join(f"{k}: {v}" for k, v in sorted(self.stats.skipped_files.items())))
+                           + "; ".join(f"{k}: {v}" for k, v in sorted(self.skipped_files.items())))
                     log.error(msg)
                     self._broadcast({"type": "error", "message": msg})
                     return 2
@@ -265,7 +243,7 @@ class V2VServer:
             else:
                 log.warning("worker %s died (exit code %s); restarting", ident.decode(), code)
         for ident, job in self.core.timed_out(now):
-            self.stats.tasks_timed_out += 1
+            self.metrics.on_task_timed_out()
             log.warning("worker %s sent nothing on %s epoch %d for %.0f s; task reassigned, worker restarted",
                         ident.decode(), job.video, job.epoch, self.cfg.task_timeout_s)
             self.pool.replace(ident)
@@ -320,9 +298,9 @@ class V2VServer:
                 self._log_failure(job.video, h["error"])
 
     def _log_failure(self, video: str, reason: str) -> None:
-        if video not in self.stats.skipped_files:
+        if video not in self.skipped_files:
             self.metrics.on_file_skipped()
-        self.stats.skipped_files.setdefault(video, reason)
+        self.skipped_files.setdefault(video, reason)
         if (video, reason) not in self.logged_failures and len(self.logged_failures) < 100000:
             self.logged_failures.add((video, reason))
             log.warning("skipped %s: %s", self.root / video, reason)
@@ -369,19 +347,24 @@ class V2VServer:
                 for _ in msg.get("batch_ids", ()):
                     self.metrics.on_lease_expired()
             self._send_client(ident, msg)
-        for _ in range(self.ledger.resent - self._resent_seen):
-            self.metrics.on_batch_resent()
-        self._resent_seen = self.ledger.resent
+        self._count_resent()
 
     def _log_status(self) -> None:
-        self._sync_stats()
-        st = self.stats
+        self._count_resent()
+        m = self.metrics.totals()
         log.info("status: %d client(s), %d batches sent (%d re-sent, %d acknowledged), %d samples made, "
                  "%d ready, %d in flight, %d worker restart(s), %d task timeout(s), %d file failure(s), "
                  "%d bad message(s) (%d log lines suppressed)",
-                 len(self.ledger.clients), st.batches_sent, st.batches_resent, st.batches_acked, st.samples_made,
-                 len(self.ledger.ready), self.ledger.in_flight(), st.workers_restarted, st.tasks_timed_out,
-                 len(st.skipped_files), st.bad_messages, self.bad.suppressed)
+                 len(self.ledger.clients), m["batches_sent"], m["batches_resent"], self.ledger.acked,
+                 m["samples_made"], len(self.ledger.ready), self.ledger.in_flight(), m["workers_restarted"],
+                 m["tasks_timed_out"], len(self.skipped_files), m["bad_messages"], self.bad.suppressed)
+
+    def _count_resent(self) -> None:
+        """Count the ledger's re-queued batches into the metrics (the ledger re-queues them
+        inside its pure decisions; this is where the loop learns of them)."""
+        for _ in range(self.ledger.resent - self._resent_seen):
+            self.metrics.on_batch_resent()
+        self._resent_seen = self.ledger.resent
 
     def _metrics_state(self) -> dict:  # the gauges, as plain numbers
         alive = [w for w in (self.pool.workers.values() if self.pool else ()) if w.proc.is_alive()]
@@ -421,7 +404,6 @@ class V2VServer:
                 "shm_dir": self.assembler.files.path if self.assembler.files is not None else None}
 
     def _bad_peer(self, ident: bytes, why: str, now: float) -> None:
-        self.stats.bad_messages += 1
         self.metrics.on_bad_message()
         log_it, banned = self.bad.strike(ident, now)
         if log_it:
