@@ -25,7 +25,10 @@ log = logging.getLogger("v2v.server")
 
 @dataclass
 class WorkerProc:
-    slot: int
+    """One worker process: its position in the pool (0 .. size - 1, kept across restarts),
+    its restart generation and ZeroMQ identity ``w<position>.<generation>``."""
+
+    position: int
     generation: int
     ident: bytes
     proc: mp.Process
@@ -56,22 +59,22 @@ class WorkerPool:
         self.restarts = 0
 
     def start(self) -> None:
-        for slot in range(self.size):
-            self._spawn(slot, 0)
+        for position in range(self.size):
+            self._spawn(position, 0)
 
-    def _spawn(self, slot: int, generation: int) -> None:
-        ident = f"w{slot}.{generation}".encode()
+    def _spawn(self, position: int, generation: int) -> None:
+        ident = f"w{position}.{generation}".encode()
         c = self.cfg_dict
         ring = create_ring(c["sequence_length"], c["num_bins"], c["crop_size"]) if self.shm else None
         args = (self.cfg_dict, self.root, self.endpoint, ident, os.getpid())
         proc = mp.get_context("spawn").Process(target=self.target, args=args + ((ring.spec,) if ring else ()),
-                                               name=f"v2v-worker-{slot}", daemon=True)
+                                               name=f"v2v-worker-{position}", daemon=True)
         try:
             proc.start()
         except BaseException:
             _drop_ring(ring)
             raise
-        self.workers[ident] = WorkerProc(slot, generation, ident, proc, ring=ring)
+        self.workers[ident] = WorkerProc(position, generation, ident, proc, ring=ring)
 
     def get(self, ident: bytes):
         return self.workers.get(ident)
@@ -89,7 +92,7 @@ class WorkerPool:
             del self.workers[ident]
             _drop_ring(w.ring)
             self.restarts += 1
-            self._spawn(w.slot, w.generation + 1)
+            self._spawn(w.position, w.generation + 1)
         return dead
 
     def replace(self, ident: bytes) -> None:
@@ -104,7 +107,7 @@ class WorkerPool:
         w.proc.join(2.0)
         _drop_ring(w.ring)
         self.restarts += 1
-        self._spawn(w.slot, w.generation + 1)
+        self._spawn(w.position, w.generation + 1)
 
     def stop(self, send_stop: Callable[[bytes], None], grace_s: float = 3.0) -> None:
         """Ask every worker to stop, then terminate and kill what is left after ``grace_s``."""
