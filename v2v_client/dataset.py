@@ -548,8 +548,6 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None, rank: Optional[int] = None,
                  world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto"):
-        # every constructor argument but the endpoint, for one dataset per server (fan-in)
-        self._child_kwargs = {k: v for k, v in locals().items() if k not in ("self", "endpoint", "__class__")}
         super().__init__()
         if isinstance(outputs, str):
             outputs = (outputs,)
@@ -582,6 +580,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self.shm = shm
         self.reconnect = bool(reconnect)
         self.reconnect_timeout_s = float(reconnect_timeout_s)
+        self._curve_keys = curve_keys  # the key files, for the per-server datasets of a fan-in
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None
         self.rank, self.world_size, self.group = rank, world_size, group
         self.info: Optional[dict] = None
@@ -605,8 +604,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
     # ------------------------------------------------------------------ fan-in and metrics
     def _make_fanin(self, endpoints) -> FanInStream:
-        def child(ep: str, credits: int) -> "V2VStreamDataset":
-            return V2VStreamDataset(ep, **dict(self._child_kwargs, credits=credits))
+        def child(ep: str, credits: int) -> "V2VStreamDataset":  # one server's dataset: these options, its share
+            return V2VStreamDataset(ep, outputs=self.outputs, credits=credits, timeout_s=self.timeout_s,
+                                    heartbeat_s=self.heartbeat_s, raw=self.raw, reconnect=self.reconnect,
+                                    reconnect_timeout_s=self.reconnect_timeout_s, curve_keys=self._curve_keys,
+                                    rank=self.rank, world_size=self.world_size, group=self.group, shm=self.shm)
 
         fanin = FanInStream(endpoints, child, self.credits)
         fanin.load_state_dict(self.state_dict())
