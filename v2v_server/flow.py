@@ -164,6 +164,35 @@ class _Raft:
         return flow.numpy().transpose(1, 2, 0).astype(np.float32)
 
 
+def _compensated_lk(lk, t, a: np.ndarray, b: np.ndarray, p: np.ndarray, sim: np.ndarray):
+    """LK (``lk``, the tracked loop's partial) from ``a`` to ``b`` resized by 1 / (the scale of
+    the predicted similarity ``sim``), started from the predicted positions of the points ``p``
+    (see ``tracking._to_resized``); a w x h window of the resized ``b`` over the predicted points
+    is searched (reflected where it is smaller). A resize costs about a fifth of a warpAffine of
+    the same frame. Returns the points in ``b``'s pixels and their status (bool)."""
+    h, w = a.shape
+    s = math.hypot(sim[0, 0], sim[1, 0])
+    dw, dh = max(1, int(round(w / s))), max(1, int(round(h / s)))
+    guess = np.empty_like(p)
+    ox, oy = _to_resized(p, sim, w / dw, h / dh, dw, dh, w, h, guess)
+    bs = cv2.resize(b, (dw, dh), interpolation=cv2.INTER_LINEAR)[oy:oy + h, ox:ox + w]
+    if bs.shape != (h, w):
+        bs = cv2.copyMakeBorder(bs, 0, h - bs.shape[0], 0, w - bs.shape[1], cv2.BORDER_REFLECT101)
+    r, st, _ = lk(a, np.ascontiguousarray(bs), p, guess, maxLevel=t.compensated_levels,
+                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    st = st[:, 0].view(bool)
+    _from_resized(r, ox, oy, w / dw, h / dh, w, h, st)  # in place: r to b's pixels, st
+    return r, st
+
+
+def _zoom_similarity(t, p: np.ndarray, nxt: np.ndarray, good: np.ndarray, whole: bool) -> Optional[np.ndarray]:
+    """The pair's similarity (2, 3) if it zooms more than ``t.zoom`` (and, with ``whole``,
+    explains the points' motion as a whole: mixed motion, objects or parallax, that merely
+    spreads the points is left to plain tracking), else None."""
+    sim = np.empty((2, 3))
+    return sim if _zoom_fit(p[:, 0], nxt[:, 0], good, t.zoom, whole, ZOOM_INLIERS, sim) else None
+
+
 class FlowEstimator:
     """A sample's flows with one option of ``flow_options.FLOW_OPTIONS``.
 
@@ -242,30 +271,6 @@ class FlowEstimator:
         lk = functools.partial(cv2.calcOpticalFlowPyrLK, winSize=(t.window, t.window), criteria=crit)
         guess_flag = cv2.OPTFLOW_USE_INITIAL_FLOW
 
-        def compensated(a, b, p, sim):
-            # LK from a to b resized by 1 / (the predicted scale), started from the predicted
-            # positions (see ``_to_resized``); a w x h window of the resized b over the
-            # predicted points is searched (reflected where it is smaller). A resize costs
-            # about a fifth of a warpAffine of the same frame.
-            s = math.hypot(sim[0, 0], sim[1, 0])
-            dw, dh = max(1, int(round(w / s))), max(1, int(round(h / s)))
-            guess = np.empty_like(p)
-            ox, oy = _to_resized(p, sim, w / dw, h / dh, dw, dh, w, h, guess)
-            bs = cv2.resize(b, (dw, dh), interpolation=cv2.INTER_LINEAR)[oy:oy + h, ox:ox + w]
-            if bs.shape != (h, w):
-                bs = cv2.copyMakeBorder(bs, 0, h - bs.shape[0], 0, w - bs.shape[1], cv2.BORDER_REFLECT101)
-            r, st, _ = lk(a, np.ascontiguousarray(bs), p, guess, maxLevel=t.compensated_levels, flags=guess_flag)
-            st = st[:, 0].view(bool)
-            _from_resized(r, ox, oy, w / dw, h / dh, w, h, st)  # in place: r to b's pixels, st
-            return r, st
-
-        def zoom_fit(p, nxt, good, whole):
-            # the pair's similarity if it zooms more than t.zoom (and, with ``whole``, explains
-            # the points' motion as a whole: mixed motion, objects or parallax, that merely
-            # spreads the points is left to plain tracking), else None
-            sim = np.empty((2, 3))
-            return sim if _zoom_fit(p[:, 0], nxt[:, 0], good, t.zoom, whole, ZOOM_INLIERS, sim) else None
-
         grid_flows = np.empty((n_vox, m, 2), np.float32)
         valid = np.empty((n_vox, m), bool)
         redo = np.empty(m, bool)
@@ -281,7 +286,7 @@ class FlowEstimator:
                 a, b = u8[i], u8[i + 1]
                 check = t.zoom is not None and (sim is not None or p is g0)
                 if sim is not None:
-                    nxt, st = compensated(a, b, p, sim)
+                    nxt, st = _compensated_lk(lk, t, a, b, p, sim)
                 elif v is None:
                     nxt, st, _ = lk(a, b, p, None, maxLevel=t.levels)
                     st = st[:, 0].view(bool)
@@ -295,14 +300,14 @@ class FlowEstimator:
                     if sim is None:
                         # a zoom? this pair once more, compensated by its own fit (plain LK
                         # drifts under strong zoom), kept if the view zooms as a whole
-                        fit = zoom_fit(p, nxt, st & ok, False)
+                        fit = _zoom_similarity(t, p, nxt, st & ok, False)
                         if fit is not None:
-                            nxt2, st2 = compensated(a, b, p, fit)
-                            sim = zoom_fit(p, nxt2, st2 & ok, True)
+                            nxt2, st2 = _compensated_lk(lk, t, a, b, p, fit)
+                            sim = _zoom_similarity(t, p, nxt2, st2 & ok, True)
                             if sim is not None:
                                 nxt, st = nxt2, st2
                     else:
-                        sim = zoom_fit(p, nxt, st & ok, True)
+                        sim = _zoom_similarity(t, p, nxt, st & ok, True)
                 v, p = nxt - p, nxt
                 ok &= st
             grid_flows[l] = (p - g0)[:, 0]
