@@ -322,61 +322,11 @@ class Connection:
                 # sent before the server read our latest hello: about a session that is over
                 return None
             if kind == "batch":
-                shm = h.get("shm") is not None
-                if shm:  # same host: the arrays are in the server's batch file
-                    if self._shm is None or len(frames) != 1:
-                        raise ProtocolError("a shared-memory batch this client did not ask for")
-                    arrays = self._shm.read(h, copy=self.ds.raw)
-                    if arrays is None:
-                        return self._torn(h)
-                else:
-                    arrays = decode_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
-                missing = [o for o in self.ds.outputs if o not in arrays]
-                if missing:
-                    raise ProtocolError(f"batch {h.get('batch_id')} lacks requested outputs {missing}")
-                ids = h["sample_ids"]
-                if not isinstance(ids, list) or any(a.shape[:1] != (len(ids),) for a in arrays.values()):
-                    raise ProtocolError(f"batch {h.get('batch_id')}: sample ids do not match the arrays")
-                item = batch_to_torch(arrays, self.ds.raw)
-                if shm and not self.ds.raw:
-                    del arrays  # converted from the mapping: check it still held this batch
-                    if not self._shm.valid(h):
-                        return self._torn(h)
-                item["sample_ids"] = list(ids)
-                item["params"] = list(h["params"])
-                item["epoch"] = int(h["epoch"])
-                item["batch_id"] = int(h["batch_id"])
-                if h.get("padding") is True:  # DDP padding from the server: not leased, never acknowledged
-                    item["padding"] = torch.ones(len(ids), dtype=torch.bool)
-                    self.items.put(_Padding(item))
-                    return None
-                with self.lock:  # a batch we gave back may come back to us: this copy is the live one
-                    self.current[item["batch_id"]] = item
-                self.items.put(item)
+                self._on_batch(h, frames)
             elif kind == "welcome":
-                if h.get("hello_id") == self._awaiting:
-                    self._awaiting = None
-                self.info = h.get("info", {})
-                if self._shm is not None:
-                    d = self.info.get("shm_dir")
-                    if d is not None and not os.access(check_shm_dir(d), os.R_OK | os.X_OK):
-                        log.warning("v2v stream %s: cannot read the server's batch directory %s (another user?); "
-                                    "asking for batches over the socket", self.endpoint, d)
-                        self.shm, self._shm = False, None
-                        self._replies.append(self._hello())
-                    else:
-                        self._shm.set_dir(d)
+                self._on_welcome(h)
             elif kind == "revoke":
-                ids = h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else []
-                released = []
-                with self.lock:
-                    for b in ids:
-                        item = self.current.pop(b, None) if isinstance(b, int) else None
-                        if item is not None:
-                            _strip(item)
-                            released.append(b)
-                if released:
-                    self._replies.append(pack({"type": "released", "batch_ids": released}))
+                self._on_revoke(h)
             elif kind == "epoch_done":
                 n = h.get("batches")
                 self.items.put(_EpochDone(int(h["epoch"]), n if isinstance(n, int) else None))
@@ -398,6 +348,76 @@ class Connection:
             self.items.put(StreamError(f"bad message from the v2v server at {self.endpoint}: {e}"))
             return "over"
         return None
+
+    def _on_batch(self, h: dict, frames) -> None:
+        """A batch: its arrays (from the frames, or from the server's batch file on the same
+        host) checked against the header, converted, and queued for the loop.
+
+        Raises:
+            ProtocolError: arrays missing, of the wrong length, or a hand-off not asked for.
+        """
+        shm = h.get("shm") is not None
+        if shm:  # same host: the arrays are in the server's batch file
+            if self._shm is None or len(frames) != 1:
+                raise ProtocolError("a shared-memory batch this client did not ask for")
+            arrays = self._shm.read(h, copy=self.ds.raw)
+            if arrays is None:
+                return self._torn(h)
+        else:
+            arrays = decode_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
+        missing = [o for o in self.ds.outputs if o not in arrays]
+        if missing:
+            raise ProtocolError(f"batch {h.get('batch_id')} lacks requested outputs {missing}")
+        ids = h["sample_ids"]
+        if not isinstance(ids, list) or any(a.shape[:1] != (len(ids),) for a in arrays.values()):
+            raise ProtocolError(f"batch {h.get('batch_id')}: sample ids do not match the arrays")
+        item = batch_to_torch(arrays, self.ds.raw)
+        if shm and not self.ds.raw:
+            del arrays  # converted from the mapping: check it still held this batch
+            if not self._shm.valid(h):
+                return self._torn(h)
+        item["sample_ids"] = list(ids)
+        item["params"] = list(h["params"])
+        item["epoch"] = int(h["epoch"])
+        item["batch_id"] = int(h["batch_id"])
+        if h.get("padding") is True:  # DDP padding from the server: not leased, never acknowledged
+            item["padding"] = torch.ones(len(ids), dtype=torch.bool)
+            self.items.put(_Padding(item))
+            return None
+        with self.lock:  # a batch we gave back may come back to us: this copy is the live one
+            self.current[item["batch_id"]] = item
+        self.items.put(item)
+        return None
+
+    def _on_welcome(self, h: dict) -> None:
+        """The server's answer to our hello: its stream info, and whether we can read its
+        batch directory (else we ask again without the same-host hand-off)."""
+        if h.get("hello_id") == self._awaiting:
+            self._awaiting = None
+        self.info = h.get("info", {})
+        if self._shm is not None:
+            d = self.info.get("shm_dir")
+            if d is not None and not os.access(check_shm_dir(d), os.R_OK | os.X_OK):
+                log.warning("v2v stream %s: cannot read the server's batch directory %s (another user?); "
+                            "asking for batches over the socket", self.endpoint, d)
+                self.shm, self._shm = False, None
+                self._replies.append(self._hello())
+            else:
+                self._shm.set_dir(d)
+
+    def _on_revoke(self, h: dict) -> None:
+        """Batches the server asks back: those still held (not yet handed to the loop) are
+        released, their arrays freed at once."""
+        ids = h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else []
+        released = []
+        with self.lock:
+            for b in ids:
+                item = self.current.pop(b, None) if isinstance(b, int) else None
+                if item is not None:
+                    _strip(item)
+                    released.append(b)
+        if released:
+            self._replies.append(pack({"type": "released", "batch_ids": released}))
 
     def _torn(self, h: dict) -> None:
         """A shared-memory batch whose buffer the server refilled before we copied it: the
