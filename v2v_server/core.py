@@ -103,11 +103,11 @@ class DeliveryCore:
         return {"type": "task", "task": t.task_id, "epoch": t.epoch, "video": t.video,
                 "outputs": list(self.outputs), "skip": sorted(t.skip)}
 
-    def sample(self, worker: Hashable, task_id, window, now: float, build: Callable) -> bool:
-        """A worker sent window ``window`` of ``task_id``; ``build()`` makes the sample object
+    def sample(self, worker: Hashable, task_id, index, now: float, build: Callable) -> bool:
+        """A worker sent sample ``index`` of ``task_id``'s video; ``build()`` makes the sample object
         (called only when the sample is wanted; it may raise, which drops the sample and makes
         it owed again). Returns True when the sample was kept."""
-        key = self.sched.accept_sample(task_id, worker, window, now)
+        key = self.sched.accept_sample(task_id, worker, index, now)
         if key is None:
             return False
         epoch = self.sched.running[task_id].epoch
@@ -124,9 +124,9 @@ class DeliveryCore:
             self._make(gkey, group)
         return True
 
-    def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str]) -> Optional[Job]:
+    def done(self, worker: Hashable, task_id, samples, failed: dict, error: Optional[str]) -> Optional[Job]:
         """A worker finished a task. Returns the job (None for a late or stranger copy)."""
-        job = self.sched.task_done(task_id, worker, windows, failed, error)
+        job = self.sched.task_done(task_id, worker, samples, failed, error)
         if job is not None:
             self.task_outputs.pop(task_id, None)
         return job

@@ -5,10 +5,10 @@ turns its answers into ZeroMQ messages; ``tests/test_delivery_core.py`` drives i
 
 Rules (README "Nothing lost, nothing let in"):
 
-* **Credits by batch id.** A client's ``credits`` (its window, fixed at hello, at most
+* **Credits by batch id.** A client's ``credits`` (how many batches it may hold, fixed at hello, at most
   ``max_credits``) bound the batches it holds. Sending a batch takes a slot; only an ``ack``
   or ``released`` naming a batch id this client holds frees it. Acks for anything else free
-  nothing, so re-sends can never inflate a client's window.
+  nothing, so re-sends can never inflate a client's credits.
 * **Leases.** A batch unacknowledged ``lease_s`` after it was sent is revoked (the client is
   asked to give it back). A revoke that is not answered within ``revoke_s`` expires: the
   client is dropped, everything it held goes back to the queue, and it is told so.
@@ -19,7 +19,7 @@ Rules (README "Nothing lost, nothing let in"):
   the group have said hello or ``group_wait_s`` passed since the first one, so every resume
   state is known before a batch of the group is chosen.
 * **Bounded.** Batches held = ready (at most ``max_ready`` asked of the worker side) +
-  in flight (at most the sum of the windows).
+  in flight (at most the sum of the credits).
 """
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ class BatchRecord:
     Attributes:
         batch_id: unique id.
         epoch: epoch of every sample in it.
-        keys: sample keys ``(video, window)`` in batch order.
+        keys: sample keys ``(video, index)`` in batch order.
         payload: opaque to the ledger (``datapath.BatchPayload`` in the server).
         avoid: a client that gave it back (prefer another one).
         outputs: names of the arrays it carries (a client gets it only if it asks for a subset).
@@ -80,7 +80,7 @@ class DeliveryLedger:
         client_timeout_s: seconds of silence before a client is dropped.
         revoke_s: seconds a revoke may stay unanswered before the client is dropped
             (default ``client_timeout_s``).
-        max_credits: largest window a client may ask for; more is clamped.
+        max_credits: most credits a client may ask for; more is clamped.
         group_wait_s: how long a DDP group waits for its missing ranks.
     """
 
@@ -144,7 +144,7 @@ class DeliveryLedger:
         return True
 
     def grant(self, ident: bytes, n: int) -> None:
-        """Widen a client's window by ``n`` (an explicit grant, clamped to ``max_credits``)."""
+        """Give a client ``n`` more credits (an explicit grant, clamped to ``max_credits``)."""
         c = self.clients.get(ident)
         if c is not None and n > 0:
             c.credits = min(self.max_credits, c.credits + n)

@@ -8,7 +8,7 @@ against their declared dtype and shape before use.
 
 Message types (protocol 2; client messages are decoded and schema-checked by ``wire.py``):
 
-* client -> server: ``hello`` (outputs, credits = the window of batches it may hold,
+* client -> server: ``hello`` (outputs, credits = how many batches it may hold,
   consumer id, optional DDP ``rank``/``world_size``/``group``, ``resume``:
   ``completed_epoch``, ``delivered`` {epoch: newline-joined sample ids}, ``batches``
   {epoch: batches yielded}), ``ack`` (batch ids; frees exactly those slots), ``released``

@@ -1,4 +1,4 @@
-"""The epoch scheduler: which windows are owed in which epoch, and which task makes them.
+"""The epoch scheduler: which samples are owed in which epoch, and which task makes them.
 
 Pure: no sockets, no processes, no clock of its own (``now`` is an argument, seconds).
 ``server.py`` feeds it what workers and clients say; the stateful tests in
@@ -6,7 +6,8 @@ Pure: no sockets, no processes, no clock of its own (``now`` is an argument, sec
 
 Terms:
 
-* a *sample key* is ``(video, window)``; its wire id is ``"video#window"``;
+* a *sample key* is ``(video, index)``, the index of the sample in its video (``window x
+  crops_per_window + crop``); its wire id is made by ``ids.make_sample_id``;
 * a *job* is one video of one epoch; a *task* is one attempt at a job by one worker (a
   reassigned job gets a new task id, so a late copy from the old attempt is recognised and
   ignored);
@@ -14,12 +15,12 @@ Terms:
   dataset ``("c:<consumer id>", worker)``; the consumer key survives reconnects and trainer
   restarts (it travels in the client's ``state_dict()``);
 * a sample of an epoch is *delivered* when some consumer's record holds it, *live* while it
-  sits in a batch (queued or in flight), *failed* when its window failed in this epoch (that
-  window only, this epoch only), else *owed*: it must be made (again).
+  sits in a batch (queued or in flight), *failed* when its index failed in this epoch (that
+  index only, this epoch only), else *owed*: it must be made (again).
 
 A consumer's resume state is authoritative: ``apply_resume`` replaces that consumer's record
 of every open epoch by the ids in the state, so samples it acknowledged after its checkpoint
-are owed again. An epoch is *complete* when every window of every video is delivered or failed
+are owed again. An epoch is *complete* when every sample of every video is delivered or failed
 and no job is queued or running.
 """
 from __future__ import annotations
@@ -38,7 +39,7 @@ Consumer = Hashable
 def parse_sample_id(sid, crops_per_window: int = 1) -> Optional[SampleKey]:
     """``"path/clip.mp4#3"`` -> ``("path/clip.mp4", 3)`` (with ``crops_per_window`` K > 1:
     ``"clip.mp4#3.1"`` -> ``("clip.mp4", 3 * K + 1)``, see ``ids.py``); None for anything
-    else (non-str, no ``#``, a window that is not ASCII digits, absurd lengths)."""
+    else (non-str, no ``#``, an index that is not ASCII digits, absurd lengths)."""
     try:
         return ids.parse_sample_id(sid, crops_per_window)
     except ValueError:
@@ -59,7 +60,7 @@ class Task:
         task_id: unique per attempt.
         epoch: epoch index.
         video: path relative to the corpus root.
-        skip: windows the worker must not make (delivered, live or failed ones).
+        skip: indices the worker must not make (delivered, live or failed ones).
     """
 
     task_id: int
@@ -77,16 +78,16 @@ class Job:
     worker: Optional[Hashable] = None
     last_progress: float = 0.0
     crashes: int = 0
-    windows: Optional[int] = None  # windows the file gave in this epoch (known once a pass ended)
-    failed: Dict[int, str] = field(default_factory=dict)  # window -> reason (this epoch only)
+    samples: Optional[int] = None  # samples the file gave in this epoch (known once a pass ended)
+    failed: Dict[int, str] = field(default_factory=dict)  # index -> reason (this epoch only)
     error: Optional[str] = None  # the pass over the file stopped early in this epoch
-    window_crashes: Dict[int, int] = field(default_factory=dict)  # window -> worker crashes blamed on it
+    index_crashes: Dict[int, int] = field(default_factory=dict)  # index -> worker crashes blamed on it
     gave_up: bool = False  # crashed too often: the rest of the file is skipped this epoch
 
 
 @dataclass
 class EpochPlan:
-    """Every window of one epoch: jobs, who holds what (records), what is live in batches.
+    """Every sample of one epoch: jobs, who holds what (records), what is live in batches.
     Per-video indexes keep each update proportional to one file, not the corpus."""
 
     epoch: int
@@ -94,7 +95,7 @@ class EpochPlan:
     records: Dict[Consumer, Set[SampleKey]] = field(default_factory=dict)
     live: Set[SampleKey] = field(default_factory=set)
     complete: bool = False
-    held: Dict[str, Dict[int, int]] = field(default_factory=dict)  # video -> window -> records holding it
+    held: Dict[str, Dict[int, int]] = field(default_factory=dict)  # video -> index -> records holding it
     live_by_video: Dict[str, Set[int]] = field(default_factory=dict)
     unfinished: int = 0  # jobs queued or running
 
@@ -139,12 +140,12 @@ class EpochPlan:
 
 
 class EpochScheduler:
-    """Plans epochs of ``videos`` and tracks every window of them.
+    """Plans epochs of ``videos`` and tracks every sample of them.
 
     Args:
         videos: corpus-relative paths (never re-read: the scheduler never opens files).
         epochs: stop after this many epochs (None: unbounded).
-        max_task_crashes: crashes blamed on one window before it fails for the epoch (twice
+        max_task_crashes: crashes blamed on one index before it fails for the epoch (twice
             as many in one file give the file up for the epoch; see ``worker_lost``).
         lookahead: epochs that may be open beyond the oldest incomplete one.
         keep_epochs: complete epochs kept so an older resume state can reopen them.
@@ -195,7 +196,7 @@ class EpochScheduler:
 
     def owed(self, epoch: int) -> Set[SampleKey]:
         """Samples of ``epoch`` that must still be made: not delivered, live or failed, in
-        videos whose window count is known (a job not yet run owes its whole file)."""
+        videos whose sample count is known (a job not yet run owes its whole file)."""
         p = self.plans.get(epoch)
         if p is None:
             return set()
@@ -204,10 +205,10 @@ class EpochScheduler:
     @staticmethod
     def _owed_in(plan: EpochPlan, video: str) -> Set[int]:
         job = plan.jobs[video]
-        if job.windows is None:
+        if job.samples is None:
             return set()
         have = plan.have(video)
-        return {k for k in range(job.windows) if k not in job.failed and k not in have}
+        return {k for k in range(job.samples) if k not in job.failed and k not in have}
 
     def _skip(self, job: Job, plan: EpochPlan) -> FrozenSet[int]:
         return frozenset(plan.have(job.video) | set(job.failed))
@@ -250,7 +251,7 @@ class EpochScheduler:
                 job = plan.jobs[v]
                 if job.state != "queued":
                     continue
-                if job.windows is not None and not self._owed_in(plan, v):
+                if job.samples is not None and not self._owed_in(plan, v):
                     self._set_state(plan, job, "done")  # nothing left to make of it (e.g. a resume state covered it)
                     self._check_complete(plan)
                     continue
@@ -268,26 +269,27 @@ class EpochScheduler:
             return None  # a reassigned task's late copy, or a stranger
         return job
 
-    def accept_sample(self, task_id, worker: Hashable, window, now: float) -> Optional[SampleKey]:
-        """A worker made ``window`` of its task. Returns the sample key to batch, or None when
+    def accept_sample(self, task_id, worker: Hashable, index, now: float) -> Optional[SampleKey]:
+        """A worker made ``index`` of its task. Returns the sample key to batch, or None when
         the sample must be dropped (late copy of a reassigned task, already delivered or live,
-        or not a window of that task)."""
+        or not an index of that task)."""
         job = self._current(task_id, worker)
-        if job is None or isinstance(window, bool) or not isinstance(window, int) or window < 0:
+        if job is None or isinstance(index, bool) or not isinstance(index, int) or index < 0:
             return None
         job.last_progress = now
         plan = self.plans[job.epoch]
-        key = (job.video, window)
-        if key in plan.live or plan.is_delivered(key) or window in job.failed:
+        key = (job.video, index)
+        if key in plan.live or plan.is_delivered(key) or index in job.failed:
             return None
         plan.add_live(key)
         return key
 
-    def task_done(self, task_id, worker: Hashable, windows: int, failed: Optional[Dict[int, str]] = None,
+    def task_done(self, task_id, worker: Hashable, samples: int, failed: Optional[Dict[int, str]] = None,
                   error: Optional[str] = None) -> Optional[Job]:
-        """A worker finished its task: ``windows`` complete windows the file gave, ``failed``
-        windows that could not be made (window -> reason), ``error`` when the pass stopped early
-        (the window it stopped in counts as failed; later windows do not exist this epoch).
+        """A worker finished its task: ``samples`` the file gave (complete windows x crops),
+        ``failed`` sample indices that could not be made (index -> reason), ``error`` when the
+        pass stopped early (the index it stopped in counts as failed; later ones do not exist
+        this epoch).
         Returns the job, or None for a late copy."""
         job = self._current(task_id, worker)
         if job is None:
@@ -295,7 +297,7 @@ class EpochScheduler:
         del self.running[task_id]
         plan = self.plans[job.epoch]
         job.worker, job.task_id = None, None
-        windows = windows if isinstance(windows, int) and windows >= 0 else 0
+        samples = samples if isinstance(samples, int) and samples >= 0 else 0
         for k, why in (failed or {}).items():
             if isinstance(k, str) and k.isascii() and k.isdigit() and len(k) <= 9:
                 k = int(k)
@@ -304,29 +306,29 @@ class EpochScheduler:
         if error:
             job.error = error
             self.file_failures[job.video] = error
-            self._stop_at(job, plan, windows, error)
+            self._stop_at(job, plan, samples, error)
         else:
-            job.windows = windows if job.windows is None else max(job.windows, windows)
+            job.samples = samples if job.samples is None else max(job.samples, samples)
         self._set_state(plan, job, "done")
         self._reconcile(plan, {job.video})
         return job
 
     @staticmethod
     def _stop_at(job: Job, plan: EpochPlan, first: int, reason: str) -> None:
-        """The pass over ``job``'s file stopped in the first window at or after ``first`` that is
-        neither made nor failed: that window fails for this epoch and none beyond it exists."""
+        """The pass over ``job``'s file stopped in the first index at or after ``first`` that is
+        neither made nor failed: that index fails for this epoch and none beyond it exists."""
         have = plan.have(job.video)
         stop = max(first, 0)
         while stop in have or stop in job.failed:
             stop += 1
         job.failed.setdefault(stop, reason)
-        job.windows = stop + 1
+        job.samples = stop + 1
 
     def worker_lost(self, worker: Hashable) -> Optional[Job]:
         """A worker died (or hung and was replaced) during a job. The crash is blamed on the
-        first window of the file not yet made: after ``max_task_crashes`` crashes in that
-        window it fails for this epoch and the job goes on after it; after twice as many
-        crashes in all the file is given up for the epoch (``job.gave_up``: windows from the
+        first index of the file not yet made: after ``max_task_crashes`` crashes in that
+        index it fails for this epoch and the job goes on after it; after twice as many
+        crashes in all the file is given up for the epoch (``job.gave_up``: indices from the
         failed one on do not exist this epoch). Otherwise the job goes back to the front of the
         queue. Returns the job, if any."""
         for tid, job in list(self.running.items()):
@@ -340,8 +342,8 @@ class EpochScheduler:
             stop = 0
             while stop in have or stop in job.failed:
                 stop += 1
-            job.window_crashes[stop] = job.window_crashes.get(stop, 0) + 1
-            reason = f"worker crashed {job.window_crashes[stop]} times while making window {stop}"
+            job.index_crashes[stop] = job.index_crashes.get(stop, 0) + 1
+            reason = f"worker crashed {job.index_crashes[stop]} times while making sample {stop}"
             if job.crashes >= 2 * self.max_task_crashes:
                 job.error = f"worker crashed {job.crashes} times while processing it"
                 job.gave_up = True
@@ -350,7 +352,7 @@ class EpochScheduler:
                 self._set_state(plan, job, "done")
                 self._reconcile(plan, {job.video})
                 return job
-            if job.window_crashes[stop] >= self.max_task_crashes:
+            if job.index_crashes[stop] >= self.max_task_crashes:
                 job.failed[stop] = reason
                 self.file_failures[job.video] = reason
             self._set_state(plan, job, "queued")
@@ -421,7 +423,7 @@ class EpochScheduler:
                 self.pending_records.setdefault(e, {})[consumer] = set(ks)
 
     def _reconcile(self, plan: EpochPlan, videos: Iterable[str]) -> None:
-        """Queue again the done jobs of ``videos`` that owe windows; reopen the epoch if so."""
+        """Queue again the done jobs of ``videos`` that owe indices; reopen the epoch if so."""
         for v in videos:
             job = plan.jobs.get(v)
             if job is not None and job.state == "done" and self._owed_in(plan, v):

@@ -6,8 +6,8 @@ Topology::
 
 The decisions live in small pure modules, tested directly (``tests/test_delivery_core.py``):
 
-* ``schedule.EpochScheduler``: which windows are owed in which epoch, which task makes them,
-  resume states (authoritative), per-epoch failures of single windows, task timeouts;
+* ``schedule.EpochScheduler``: which samples are owed in which epoch, which task makes them,
+  resume states (authoritative), per-epoch failures of single samples, task timeouts;
 * ``ledger.DeliveryLedger``: credits by batch id, leases, revokes that expire, re-sends, fair
   sharing, DDP groups;
 * ``core.DeliveryCore``: the two glued together with batching (still pure);
