@@ -100,3 +100,19 @@ def test_the_recipe_is_separate_from_serving():
     r = cfg.recipe()
     assert type(r) is SampleRecipe and r.seed == 3 and r.crop_size == 64 and not hasattr(r, "workers")
     assert r.frames_per_sample == cfg.frames_per_sample == 201
+
+
+def test_trainer_config_is_declared_once_and_its_reference_is_current():
+    from trainer.config import DEFAULTS, TASK_SECTIONS, apply_overrides, default_config
+    from trainer.tasks import TASKS
+
+    assert set(TASK_SECTIONS) == set(TASKS) == set(DEFAULTS)
+    cfg = default_config("e2vid")
+    assert cfg["optim"]["lr"] == 1e-4 and cfg["loss"]["tc_alpha"] == 50.0 and cfg["stream"]["credits"] == 4
+    assert apply_overrides(cfg, ["optim.lr=3e-4"])["optim"]["lr"] == 3e-4  # YAML 1.2 float from the flag
+    for bad, field in (("optim.lr=fast", "optim.lr"), ("log.progress=2", "log.progress"), ("amp=fp16", "amp")):
+        with pytest.raises(ValueError, match=field):
+            apply_overrides(cfg, [bad])
+    out = subprocess.run([sys.executable, "-m", "trainer.config", "--markdown"], capture_output=True, text=True,
+                         check=True, cwd=ROOT).stdout
+    assert (ROOT / "docs" / "trainer_config.md").read_text() == out

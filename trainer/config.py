@@ -7,54 +7,133 @@ Adam lr 1e-4 (amsgrad, no weight decay, constant), batch 12, sequences of 40 vox
 from __future__ import annotations
 
 import copy
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Iterable, Optional
 
 import yaml
 
-from v2v_server.settings import YamlLoader, check_float, load_yaml
+from v2v_server.settings import YamlLoader, check_bool, check_choice, check_float, check_int, load_yaml, setting
 
-__all__ = ["DEFAULTS", "default_config", "load_config", "apply_overrides", "merge", "check_types"]
+__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "RunSettings", "default_config", "load_config", "apply_overrides",
+           "merge", "check_types", "reference_markdown"]
 
-_COMMON = {
-    "connect": "tcp://127.0.0.1:5555",
-    "device": "auto",              # auto | cpu | cuda | cuda:N
-    "out": "runs/{task}",
-    "max_steps": 200000,
-    "seed": 0,
-    # connect may list several servers (shards): "tcp://a:5555,tcp://b:5555" (fan-in)
-    # curve_keys: [client .key_secret file, server .key file] for a server that requires CurveZMQ
-    "stream": {"credits": 4, "timeout_s": 60.0, "raw": True, "reconnect": False, "curve_keys": None},
-    "optim": {"lr": 1.0e-4, "amsgrad": True, "weight_decay": 0.0, "clip_grad_norm": None},
-    "amp": "fp32",                 # fp32 as the reference trains; bf16: autocast on CUDA (ignored on CPU)
-    "log": {"image_every": 500, "checkpoint_every": 1000, "progress": True},
-    "resume": None,                # path to a checkpoint, or "auto" = <out>/checkpoint_last.pt if present
-}
+@dataclass
+class RunSettings:
+    """The run: task, stream endpoint, device, output folder, steps."""
 
-DEFAULTS = {
-    "e2vid": {
-        **_COMMON,
-        "task": "e2vid",
-        "model": {"num_bins": 5, "base_num_channels": 32, "num_encoders": 3, "num_residual_blocks": 2,
-                  "num_output_channels": 1, "skip_type": "sum", "kernel_size": 5},
-        "loss": {
-            "l1_weight": 1.0,
-            "perceptual_weight": 1.0,       # LPIPS (VGG); 1 - SSIM when no LPIPS weights
-            "lpips_net": "vgg",
-            "lpips_weights": None,          # local file(s); see trainer/lpips_net.py
-            "use_lpips_package": True,
-            "tc_weight": 1.0,               # temporal consistency ("V+L1+H")
-            "tc_alpha": 50.0,
-            "tc_start_fraction": 0.5,       # frames 20..39 of 40
-        },
-    },
-    "evflow": {
-        **_COMMON,
-        "task": "evflow",
-        "model": {"num_bins": 5, "base_num_channels": 32, "num_encoders": 4, "num_residual_blocks": 2,
-                  "num_output_channels": 2, "skip_type": "concat", "kernel_size": 3},
-        "loss": {"flow_l1_weight": 1.0},
-    },
-}
+    task: str = setting("e2vid", help="what to train", choices=("e2vid", "evflow"))
+    connect: str = setting("tcp://127.0.0.1:5555", help="v2v-serve endpoint(s); several servers (shards) as "
+                                                        "'tcp://a:5555,tcp://b:5555' (fan-in)")
+    device: str = setting("auto", help="auto | cpu | cuda | cuda:N")
+    out: str = setting("runs/{task}", help="output folder")
+    max_steps: int = setting(200000, help="total optimiser steps")
+    seed: int = setting(0, help="torch seed of the model's initialisation")
+    amp: str = setting("fp32", help="fp32 as the reference trains; bf16: autocast on CUDA (ignored on CPU)",
+                       choices=("fp32", "bf16"))
+    resume: Optional[str] = setting(None, help="checkpoint path, or 'auto' = <out>/checkpoint_last.pt if present")
+
+
+@dataclass
+class StreamSettings:
+    """``stream``: how the trainer reads v2v-serve (``V2VStreamDataset``)."""
+
+    credits: int = setting(4, help="batches the client may hold")
+    timeout_s: float = setting(60.0, help="seconds without a message before StreamTimeout")
+    raw: bool = setting(True, help="wire dtypes to the device, converted there")
+    reconnect: bool = setting(False, help="wait for a restarted server instead of failing")
+    curve_keys: Optional[list] = setting(None, help="[client .key_secret file, server .key file] for a server "
+                                                    "that requires CurveZMQ")
+
+
+@dataclass
+class OptimSettings:
+    """``optim``: Adam as the reference trains (lr 1e-4, amsgrad, no weight decay, constant)."""
+
+    lr: float = setting(1.0e-4, help="learning rate")
+    amsgrad: bool = setting(True, help="AMSGrad variant of Adam")
+    weight_decay: float = setting(0.0, help="L2 weight decay")
+    clip_grad_norm: Optional[float] = setting(None, help="clip the gradient norm to this (None: off)")
+
+
+@dataclass
+class LogSettings:
+    """``log``: what the run writes and when."""
+
+    image_every: int = setting(500, help="steps between preview images (0: only at the end)")
+    checkpoint_every: int = setting(1000, help="steps between checkpoints (0: only at the end)")
+    progress: bool = setting(True, help="a progress bar on stderr")
+
+
+@dataclass
+class E2VIDModel:
+    """``model`` of e2vid: E2VID recurrent (Rebecq et al. 2019), the reference's sizes."""
+
+    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
+    base_num_channels: int = setting(32, help="channels of the first encoder")
+    num_encoders: int = setting(3, help="encoders (each halves the resolution)")
+    num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
+    num_output_channels: int = setting(1, help="output channels (grey)")
+    skip_type: str = setting("sum", help="skip connections", choices=("sum", "concat"))
+    kernel_size: int = setting(5, help="encoder kernel size")
+
+
+@dataclass
+class E2VIDLoss:
+    """``loss`` of e2vid ("V+L1+H"): L1 + LPIPS-VGG, temporal consistency on the last half."""
+
+    l1_weight: float = setting(1.0, help="weight of the L1 term")
+    perceptual_weight: float = setting(1.0, help="weight of LPIPS (VGG); 1 - SSIM when no LPIPS weights")
+    lpips_net: str = setting("vgg", help="LPIPS backbone", choices=("vgg", "alex"))
+    lpips_weights: Any = setting(None, help="local LPIPS weight file(s); see trainer/lpips_net.py")
+    use_lpips_package: bool = setting(True, help="allow 'import lpips' when no file is given")
+    tc_weight: float = setting(1.0, help="weight of the temporal-consistency term")
+    tc_alpha: float = setting(50.0, help="visibility sharpness of the temporal-consistency term")
+    tc_start_fraction: float = setting(0.5, help="the term covers voxels from this fraction of L on (20..39 of 40)")
+
+
+@dataclass
+class EvFlowModel:
+    """``model`` of evflow: EV-FlowNet (Zhu et al. 2018), the reference's sizes."""
+
+    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
+    base_num_channels: int = setting(32, help="channels of the first encoder")
+    num_encoders: int = setting(4, help="encoders (each halves the resolution)")
+    num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
+    num_output_channels: int = setting(2, help="output channels (flow x, y)")
+    skip_type: str = setting("concat", help="skip connections", choices=("sum", "concat"))
+    kernel_size: int = setting(3, help="encoder kernel size")
+
+
+@dataclass
+class EvFlowLoss:
+    """``loss`` of evflow: dense L1 against the stream's flow."""
+
+    flow_l1_weight: float = setting(1.0, help="weight of the flow L1 term")
+
+
+#: Sections common to every task, and each task's model and loss sections.
+SECTIONS = {"stream": StreamSettings, "optim": OptimSettings, "log": LogSettings}
+TASK_SECTIONS = {"e2vid": {"model": E2VIDModel, "loss": E2VIDLoss},
+                 "evflow": {"model": EvFlowModel, "loss": EvFlowLoss}}
+
+
+def _schema(task: str) -> dict:
+    """{key: dataclass field or {section key: field}} of ``task``'s configuration."""
+    out = {f.name: f for f in fields(RunSettings)}
+    for name, cls in {**SECTIONS, **TASK_SECTIONS[task]}.items():
+        out[name] = {f.name: f for f in fields(cls)}
+    return out
+
+
+def _defaults(task: str) -> dict:
+    d = asdict(RunSettings(task=task))
+    for name, cls in {**SECTIONS, **TASK_SECTIONS[task]}.items():
+        d[name] = asdict(cls())
+    return d
+
+
+#: The defaults of each task, as plain nested dicts (the form checkpoints store).
+DEFAULTS = {task: _defaults(task) for task in TASK_SECTIONS}
 
 
 def merge(base: dict, upd: dict) -> dict:
@@ -83,45 +162,53 @@ def _check_keys(cfg: dict, ref: dict, prefix: str = ""):
             _check_keys(v, ref[k], prefix + k + ".")
 
 
-#: keys whose default is None but which take a number when set
-_OPTIONAL_FLOATS = {"optim.clip_grad_norm"}
+def _check_value(field_, v, name: str):
+    """``v`` checked against the declared type of ``field_`` (floats accept ints); returns it."""
+    ann = str(field_.type)
+    optional = ann.startswith("Optional[")
+    if v is None and (optional or field_.default is None):
+        return v
+    base = ann[len("Optional["):-1] if optional else ann
+    label = f"config field {name!r}"
+    if base == "bool":
+        return check_bool(label, v)
+    if base == "int":
+        return check_int(label, v)
+    if base == "float":
+        return check_float(label, v, positive=False)
+    if base == "str":
+        if not isinstance(v, str):
+            raise ValueError(f"{label} must be a string, got {v!r}")
+        choices = field_.metadata.get("choices")
+        return check_choice(label, v, choices) if choices else v
+    return v
 
 
-def _as_float(v: Any, field: str) -> float:
-    return check_float(f"config field {field!r}", v, positive=False)
+def check_types(cfg: dict, schema: Optional[dict] = None, prefix: str = "") -> dict:
+    """Check ``cfg`` against the declared fields of its task (``RunSettings`` and the section
+    dataclasses), in place, and return it: ints must be integers, floats numbers (stored as
+    ``float``), booleans booleans, strings strings of the listed choices; a field declared
+    Optional (or defaulting to None) may be None. The ``model`` section is checked when the
+    model is built.
 
-
-def check_types(cfg: dict, ref: Optional[dict] = None, prefix: str = "") -> dict:
-    """Check ``cfg`` against the types of the task defaults, in place, and return it.
-
-    Floats accept ints (files and ``--set`` values are read with ``v2v_server.settings``'s
-    YAML loader, so ``3e-4`` is a number) and are stored as ``float``; ints must be integers; booleans
-    must be booleans. Keys whose default is None are not checked, except
-    ``optim.clip_grad_norm`` (None or a number). The ``model`` section is checked when the
-    model is built. Raises ``ValueError`` naming the dotted field.
+    Raises:
+        ValueError: naming the dotted field.
     """
-    if ref is None:
-        ref = DEFAULTS.get(cfg.get("task"), DEFAULTS["e2vid"])
+    if schema is None:
+        task = cfg.get("task", "e2vid")
+        check_choice("config field 'task'", task, tuple(TASK_SECTIONS))
+        schema = _schema(task)
     for k, v in list(cfg.items()):
-        field = prefix + k
-        d = ref.get(k)
+        name = prefix + k
+        ref = schema.get(k)
         if k == "model" and not prefix:
             continue
-        if isinstance(d, dict):
+        if isinstance(ref, dict):
             if not isinstance(v, dict):
-                raise ValueError(f"config field {field!r} must be a mapping, got {v!r}")
-            check_types(v, d, field + ".")
-        elif field in _OPTIONAL_FLOATS:
-            if v is not None:
-                cfg[k] = _as_float(v, field)
-        elif isinstance(d, bool):
-            if not isinstance(v, bool):
-                raise ValueError(f"config field {field!r} must be true or false, got {v!r}")
-        elif isinstance(d, float):
-            cfg[k] = _as_float(v, field)
-        elif isinstance(d, int):
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise ValueError(f"config field {field!r} must be an integer, got {v!r}")
+                raise ValueError(f"config field {name!r} must be a mapping, got {v!r}")
+            check_types(v, ref, name + ".")
+        elif ref is not None:
+            cfg[k] = _check_value(ref, v, name)
     return cfg
 
 
@@ -172,3 +259,27 @@ def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
             raise ValueError(f"unknown config key {key!r} in override {item!r}")
         node[parts[-1]] = _parse_value(val)
     return check_types(cfg)
+
+
+def reference_markdown() -> str:
+    """The trainer's configuration reference (docs/trainer_config.md)."""
+    from v2v_server.settings import reference_markdown as table
+
+    parts = ["# v2v-train configuration", "",
+             "Keys of a `v2v-train --config` YAML file; `--set section.key=value` overrides any of them. Generated by "
+             "`python -m trainer.config --markdown > docs/trainer_config.md`.", "",
+             table(RunSettings, (RunSettings,))]
+    for name, cls in SECTIONS.items():
+        parts.append(table(cls, (cls,), lambda f, n=name: f"`--set {n}.{f.name}=`"))
+    for task, secs in TASK_SECTIONS.items():
+        for name, cls in secs.items():
+            parts.append(table(cls, (cls,), lambda f, n=name: f"`--set {n}.{f.name}=`"))
+    return "\n".join(parts)
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] != ["--markdown"]:
+        raise SystemExit("usage: python -m trainer.config --markdown")
+    print(reference_markdown())

@@ -15,11 +15,13 @@ import logging
 import sys
 from pathlib import Path
 
-from .config import apply_overrides, load_config
+from v2v_server.settings import add_flags, flag_values
+
+from .config import RunSettings, apply_overrides, check_types, load_config
 from .core import Trainer, resolve_device
 from .data import make_stream
 from .ray_train import add_ray_arguments
-from .tasks import TASKS, get_task
+from .tasks import get_task
 
 __all__ = ["build_arg_parser", "main"]
 
@@ -38,15 +40,10 @@ def _setup_logging(out: Path):
 
 def build_arg_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="v2v-train", description="Train E2VID / EvFlow from a v2v-serve stream.")
-    p.add_argument("--config", help="YAML config (trainer/configs/e2vid.yaml, evflow.yaml)")
-    p.add_argument("--task", choices=list(TASKS))
-    p.add_argument("--connect", help="server endpoint, e.g. tcp://127.0.0.1:5555")
-    p.add_argument("--max-steps", type=int)
-    p.add_argument("--out", help="output folder (default runs/<task>)")
-    p.add_argument("--device", help="auto | cpu | cuda | cuda:N")
-    p.add_argument("--resume", help="checkpoint path, or 'auto' for <out>/checkpoint_last.pt if present")
+    p.add_argument("--config", help="YAML config (trainer/configs/e2vid.yaml, evflow.yaml; keys: docs/trainer_config.md)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, e.g. --set model.base_num_channels=8 (repeatable)")
+    add_flags(p, RunSettings, "run (the config's top-level keys)")
     p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
     p.add_argument("--engine", choices=["stream", "ray"], default="stream",
                    help="stream: read a v2v-serve endpoint (--connect); ray: make the samples in a Ray Data "
@@ -59,10 +56,8 @@ def main(argv=None) -> int:
     args = build_arg_parser().parse_args(argv)
     cfg = load_config(args.config, args.task)
     cfg = apply_overrides(cfg, args.set)
-    for key in ("connect", "max_steps", "out", "device", "resume"):
-        v = getattr(args, key)
-        if v is not None:
-            cfg[key] = v
+    cfg.update({k: v for k, v in flag_values(args, RunSettings).items() if k != "task"})
+    check_types(cfg)
     out = Path(str(cfg["out"]).format(task=cfg["task"]))
     _setup_logging(out)
     if args.engine == "ray":

@@ -138,9 +138,10 @@ def _show(v) -> str:
     return "{}" if v == {} else str(v)
 
 
-def reference_markdown(cls, groups: Iterable) -> str:
+def reference_markdown(cls, groups: Iterable, flag_of=None) -> str:
     """The reference table of ``cls``'s fields, one section per class of ``groups`` (the
-    dataclasses ``cls`` is made of, in order): key, flag, default, meaning."""
+    dataclasses ``cls`` is made of, in order): key, flag, default, meaning. ``flag_of(field)``,
+    when given, names how the command line sets a field instead of its flag."""
     out = []
     for g in groups:
         out += [f"## {g.__doc__.strip().splitlines()[0]}", "", "| key | flag | default | meaning |", "|---|---|---|---|"]
@@ -149,6 +150,8 @@ def reference_markdown(cls, groups: Iterable) -> str:
             if f.name not in own:
                 continue
             flag = f"`{_flag(f)}`" if _flag(f) and _cli_type(f) else "(YAML only)"
+            if flag_of is not None:
+                flag = flag_of(f)
             choices = f.metadata.get("choices")
             meaning = f.metadata["help"] + (f" ({' / '.join(map(str, choices))})" if choices else "")
             meaning = meaning.replace("|", "\\|")  # a table cell
