@@ -237,7 +237,7 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
     for kf in tcfg["stream"]["curve_keys"]:
         under(kf, mounts)
         assert (keys / Path(kf).relative_to("/keys")).is_file()
-    from v2v_client.dataset import load_curve_keys
+    from v2v_client.connection import load_curve_keys
 
     load_curve_keys(*[str(keys / Path(k).relative_to("/keys")) for k in tcfg["stream"]["curve_keys"]])
 

@@ -1,4 +1,5 @@
 """Client side of v2v: ``V2VStreamDataset`` reads batches streamed by ``v2v-serve``."""
-from .dataset import StreamError, StreamTimeout, V2VStreamDataset, batch_to_torch
+from .connection import StreamError, StreamTimeout, batch_to_torch
+from .dataset import V2VStreamDataset
 
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch"]
