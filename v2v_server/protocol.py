@@ -38,6 +38,9 @@ import numpy as np
 PROTOCOL_VERSION = 2
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
+#: Largest message a client may send the server, bytes (its ZMQ_MAXMSGSIZE); a resume hello lists
+#: the sample ids a trainer already has, about 30 bytes each.
+MAX_CLIENT_MSG = 16 * 1024 * 1024
 #: dtypes allowed on the wire.
 WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")
 #: Outputs a sample can carry, in wire order: voxels, ground-truth frames, optical flow.

@@ -19,9 +19,7 @@ A batch's arrays stay an opaque ``datapath.BatchPayload``.
 from __future__ import annotations
 
 import logging
-import shutil
 import signal
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -29,19 +27,17 @@ from typing import Dict, List, Optional
 
 import zmq
 
-from .config import ServeConfig, is_loopback
+from .config import ServeConfig
 from .core import DeliveryCore, DeliveryPolicy
 from .datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
 from .metrics import ServerMetrics
 from .pool import WorkerPool
-from .protocol import PROTOCOL_VERSION, ProtocolError, pack, unpack
+from .sockets import ServerSockets
+from .protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, ProtocolError, pack, unpack
 from .wire import BadPeers, Hello, WireError, decode_client
 
 log = logging.getLogger("v2v.server")
 
-#: Largest message accepted from a client, bytes (ZMQ_MAXMSGSIZE); a resume hello lists the
-#: sample ids a trainer already has, about 30 bytes each.
-MAX_CLIENT_MSG = 16 * 1024 * 1024
 #: Times a task may kill its worker before its file is given up for that epoch.
 MAX_TASK_CRASHES = 3
 #: Client messages handled per loop turn (then the workers get their turn).
@@ -90,32 +86,15 @@ class V2VServer:
 
     def run(self, ready_event: Optional[threading.Event] = None) -> int:
         """Run until the stream ends or ``stop()``; returns a process exit code."""
-        self._ctx = zmq.Context()
-        self._tmp = tempfile.mkdtemp(prefix="v2v-")
-        self.frontend = self._ctx.socket(zmq.ROUTER)
-        self.frontend.setsockopt(zmq.LINGER, 500)
-        self.frontend.setsockopt(zmq.MAXMSGSIZE, MAX_CLIENT_MSG)
-        self.frontend.setsockopt(zmq.ROUTER_MANDATORY, 1)
-        self.frontend.setsockopt(zmq.SNDHWM, 0)  # credits bound what is queued
-        self.backend = self._ctx.socket(zmq.ROUTER)
-        self.backend.setsockopt(zmq.LINGER, 0)
-        self.backend.setsockopt(zmq.RCVHWM, 4)
-        self.backend_endpoint = f"ipc://{self._tmp}/workers"
-        self._auth = None
+        self.sockets = ServerSockets()
+        self.frontend, self.backend = self.sockets.frontend, self.sockets.backend
         try:
             if self.cfg.metrics_port is not None:
                 self.metrics.serve(self.cfg.metrics_host, self.cfg.metrics_port)
-            if self.cfg.curve_secret_key is not None:
-                self._setup_curve()
-            elif not is_loopback(self.cfg.bind):
-                log.warning("binding %s WITHOUT authentication or encryption (--insecure): anyone who can "
-                            "reach it can read the stream", self.cfg.bind)
-            self.frontend.bind(self.cfg.bind)
-            self.bound_endpoint = self.frontend.getsockopt_string(zmq.LAST_ENDPOINT)
+            self.bound_endpoint = self.sockets.bind(self.cfg)
             if self.bound_endpoint.startswith("ipc://"):  # trainers on this host: batch buffers in /dev/shm
                 self.assembler.files = BatchDir.create()
-            self.backend.bind(self.backend_endpoint)
-            self.pool = WorkerPool(self.cfg.to_dict(), str(self.root), self.backend_endpoint, self.cfg.workers)
+            self.pool = WorkerPool(self.cfg.to_dict(), str(self.root), self.sockets.backend_endpoint, self.cfg.workers)
             self.pool.start()
             rings = any(w.ring is not None for w in self.pool.workers.values())
             log.info("serving %d video(s) from %s on %s with %d worker(s); samples travel %s",
@@ -130,24 +109,6 @@ class V2VServer:
         finally:
             self._shutdown()
 
-    def _setup_curve(self) -> None:
-        """CurveZMQ on the client socket: our key pair, and a ZAP authenticator that admits
-        only the public keys found in ``curve_allow``."""
-        import zmq.auth
-        from zmq.auth.thread import ThreadAuthenticator
-
-        public, secret = zmq.auth.load_certificate(self.cfg.curve_secret_key)
-        if not secret:
-            raise ValueError(f"curve_secret_key {self.cfg.curve_secret_key}: holds no secret key")
-        self._auth = ThreadAuthenticator(self._ctx, log=logging.getLogger("v2v.auth"))
-        self._auth.start()
-        self._auth.configure_curve(domain="*", location=str(self.cfg.curve_allow))
-        self.frontend.curve_secretkey = secret
-        self.frontend.curve_publickey = public
-        self.frontend.curve_server = True
-        allowed = len(list(Path(self.cfg.curve_allow).glob("*.key")))
-        log.info("CurveZMQ on: %d allowed client key(s) in %s", allowed, self.cfg.curve_allow)
-
     def _shutdown(self) -> None:
         if self.pool is not None:
             def send_stop(ident):
@@ -156,14 +117,8 @@ class V2VServer:
                 except zmq.ZMQError:
                     pass
             self.pool.stop(send_stop)
-        for s in (getattr(self, "frontend", None), getattr(self, "backend", None)):
-            if s is not None:
-                s.close()
-        if getattr(self, "_auth", None) is not None:
-            self._auth.stop()
-        if getattr(self, "_ctx", None) is not None:
-            self._ctx.term()
-        shutil.rmtree(getattr(self, "_tmp", ""), ignore_errors=True)
+        if getattr(self, "sockets", None) is not None:
+            self.sockets.close()
         self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
         self._count_resent()
         self.metrics.close()
