@@ -7,7 +7,7 @@ run, and each server's share): one unsharded server with 2 workers (baseline); t
 split over ``--shard 0/2`` and ``--shard 1/2`` with 1 worker each, read together; the same
 with 2 workers each. On a machine with 2 cores the second row has the same CPU as the first
 and cannot be faster: sharding buys hosts, not speed per core. The table also prints the
-per-worker rate that the sizing arithmetic in the README starts from.
+per-worker rate that the sizing arithmetic of docs/scaling.md starts from.
 """
 from __future__ import annotations
 
@@ -74,7 +74,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             "batches a row, all outputs, one trainer reading every server through `V2VStreamDataset`, on this "
             "project's 2-core CPU machine shared with other work). Two cores decode at the same speed whether one "
             "server or two own them, so no gain is expected here: the rows check that splitting the corpus costs "
-            "nothing, and the per-worker rate feeds the sizing arithmetic in the README.\n\n" + table + "\n")
+            "nothing, and the per-worker rate feeds the sizing arithmetic of docs/scaling.md.\n\n" + table + "\n")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Speed goals side by side, in one run on one machine: ``python -m bench.speed``.
+"""The speed table, every row measured in one run on one machine: ``python -m bench.speed``.
 
 Every rate is per core: samples per CPU-second of the process doing the work (so other
 load on a shared machine inflates wall time, not the ratios), on the WebVid-like clip
@@ -16,7 +16,7 @@ Rows:
 * the relay: ``v2v-serve --workers 2`` -> ``V2VStreamDataset(raw=True)``: the server main
   process's CPU-seconds per GB sent, the client process's CPU-seconds per GB received,
   stream samples/s with 1 and 2 workers, time to the first batch;
-* memory: server tree RSS under a trainer that stalls, against the README's bound.
+* memory: server tree RSS under a trainer that stalls, against the bound of docs/speed.md (Memory bound).
 """
 from __future__ import annotations
 
@@ -199,7 +199,7 @@ def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 
             peak = max(peak, tree_rss_mb(srv.proc.pid))
         idle = srv_idle_rss = tree_rss_mb(srv.proc.pid)
         it.close()
-    # README bound on what the data path holds: workers x (window buffers + 3 shared-memory
+    # the bound on what the data path holds (docs/speed.md): workers x (window buffers + 3 shared-memory
     # slots) + (prefetch + credits + 3 batch buffers: the open one and 2 spares) x batch
     window_mb = SPAN * 128 * 128 / 1e6
     bound = workers * (window_mb + 3 * sample_mb) + (prefetch + credits + 3) * batch * sample_mb
@@ -213,7 +213,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--copies", type=int, default=6, help="copies of the WebVid-like clip in the corpus (2 windows each)")
     p.add_argument("--batches", type=int, default=6, help="measured stream batches (of 8) per stream row")
     p.add_argument("--stall", type=float, default=60.0, help="seconds the stalled trainer takes nothing")
-    p.add_argument("--rounds", type=int, default=3, help="interleaved rounds of the goal 1-2 rows")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved rounds of the per-core rows")
     p.add_argument("--out", help="also write the table (markdown) here")
     a = p.parse_args(argv)
     from v2v_server.config import ServeConfig
@@ -221,9 +221,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     default_flow = ServeConfig().flow_preset
     rows = []
 
-    def row(goal, name, value, unit, ratio="", target=""):
-        rows.append((goal, name, value, unit, ratio, target))
-        print(f"{goal} | {name}: {value:.3g} {unit} {ratio}", file=sys.stderr)
+    def row(name, value, unit, ratio="", target=""):
+        rows.append((name, value, unit, ratio, target))
+        print(f"{name}: {value:.3g} {unit} {ratio}", file=sys.stderr)
 
     with tempfile.TemporaryDirectory(prefix="v2v-speed-") as d:
         corpus = make_corpus(Path(d) / "webvid", a.copies)
@@ -233,7 +233,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         worker_core(corpus, ("voxels",), videos=1)
         worker_core(corpus, outs, crops=4, videos=1)
         warm_kernel()
-        # goals 1-2 are ratios: each round measures every row once, in turn, so that a change of
+        # the per-core rows are ratios: each round measures every row once, in turn, so that a change of
         # the shared machine's speed hits all rows of a round alike; the ratios are the medians
         # of the per-round ratios, the rates the medians of the rounds
         rnd = {k: [] for k in ("fps", "ref", "vox", "allo", "k4")}
@@ -251,37 +251,37 @@ def main(argv: Optional[List[str]] = None) -> int:
         bound, ref, vox, allo, k4 = fps / SPAN, med(rnd["ref"]), med(rnd["vox"]), med(rnd["allo"]), med(rnd["k4"])
         dec = lambda k: per(k, "fps") * SPAN  # noqa: E731  (share of the decode bound, per round)
         note = f" (median of {a.rounds} interleaved rounds)"
-        row("-", "bare decode (PyAV, Y plane, 1 thread)", bound, "samples/CPU-s", f"{fps:.0f} frames/CPU-s")
-        row("-", "reference-style loader (cv2 seek, BGR, float64 V2V, no flow)", ref, "samples/CPU-s",
+        row("bare decode (PyAV, Y plane, 1 thread)", bound, "samples/CPU-s", f"{fps:.0f} frames/CPU-s")
+        row("reference-style loader (cv2 seek, BGR, float64 V2V, no flow)", ref, "samples/CPU-s",
             f"{dec('ref'):.0%} of decode bound")
-        row("1", "ours, one worker core, voxels only", vox, "samples/CPU-s",
+        row("ours, one worker core, voxels only", vox, "samples/CPU-s",
             f"{dec('vox'):.0%} of decode bound, {per('vox', 'ref'):.1f}x reference{note}", ">= 85 %")
-        row("1", f"ours, one worker core, every output (flow {default_flow})", allo, "samples/CPU-s",
+        row(f"ours, one worker core, every output (flow {default_flow})", allo, "samples/CPU-s",
             f"{dec('allo'):.0%} of decode bound, {per('allo', 'ref'):.1f}x reference", ">= 70 %")
         k4r = [x / y for x, y in zip(rnd["k4"], rnd["allo"])]
-        row("2", "crops_per_window 4, every output", k4, "samples/CPU-s",
+        row("crops_per_window 4, every output", k4, "samples/CPU-s",
             f"{med(k4r):.2f}x crops 1 (rounds: {', '.join(f'{r:.2f}' for r in k4r)})", ">= 2.5x")
         s1 = stream(corpus, 1, a.batches, outs, [])
         s2 = stream(corpus, 2, a.batches, outs, ["--crops-per-window", "4"])
-        row("3", "relay: server main process CPU per GB (2 workers, crops 4)", s2["server_cpu_s_per_gb"],
+        row("relay: server main process CPU per GB (2 workers, crops 4)", s2["server_cpu_s_per_gb"],
             "CPU-s/GB", f"{s2['gb']:.2f} GB sent", "<= 0.5")
         ipc = f"ipc://{d}/v2v.sock"
         s3 = stream(corpus, 2, a.batches, outs, ["--crops-per-window", "4"], endpoint=ipc)
-        row("3", "relay over ipc:// (same host)", s3["server_cpu_s_per_gb"], "CPU-s/GB",
+        row("relay over ipc:// (same host)", s3["server_cpu_s_per_gb"], "CPU-s/GB",
             f"{s3['samples_per_s']:.1f} samples/s", "<= 0.5")
-        row("4", "client CPU per GB received, raw=True", s2["client_cpu_s_per_gb"], "CPU-s/GB", "", "<= 0.3")
-        row("5", "stream, 1 worker, every output", s1["samples_per_s"], "samples/s",
+        row("client CPU per GB received, raw=True", s2["client_cpu_s_per_gb"], "CPU-s/GB", "", "<= 0.3")
+        row("stream, 1 worker, every output", s1["samples_per_s"], "samples/s",
             f"first batch after {s1['first_batch_s']:.1f} s")
         s2b = stream(corpus, 2, a.batches, outs, [])
-        row("5", "stream, 2 workers, every output", s2b["samples_per_s"], "samples/s",
+        row("stream, 2 workers, every output", s2b["samples_per_s"], "samples/s",
             f"{s2b['samples_per_s'] / s1['samples_per_s']:.2f}x 1 worker (2 cores, shared); first batch after "
             f"{s2b['first_batch_s']:.1f} s", "~2x")
         mem = stalled_memory(corpus, a.stall)
-        row("6", f"server tree RSS growth over a {a.stall:.0f} s stall", mem["growth_mb"], "MB",
+        row(f"server tree RSS growth over a {a.stall:.0f} s stall", mem["growth_mb"], "MB",
             f"from {mem['start_mb']:.0f} MB; data-path bound {mem['data_bound_mb']:.0f} MB", "<= bound")
-    lines = ["| goal | measurement | value | unit | ratio / note | target |", "|---|---|---:|---|---|---|"]
-    for goal, name, value, unit, ratio, target in rows:
-        lines.append(f"| {goal} | {name} | {value:.3g} | {unit} | {ratio} | {target} |")
+    lines = ["| measurement | value | unit | ratio / note | target |", "|---|---:|---|---|---|"]
+    for name, value, unit, ratio, target in rows:
+        lines.append(f"| {name} | {value:.3g} | {unit} | {ratio} | {target} |")
     table = "\n".join(lines)
     print(table)
     if a.out:
