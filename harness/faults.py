@@ -246,7 +246,7 @@ def scenario_stalled_client(tmp: Path, layout: Layout, lease_s: float = 2.0, sta
         tb = threading.Thread(target=read_all, args=(b, log_b), daemon=True)
         tb.start()
         time.sleep(0.5)
-        conn = a._conns[0]
+        conn = a._stream._conns[0]
         held = [s for item in list(conn.items.queue) if isinstance(item, dict) for s in item["sample_ids"]]
         time.sleep(stall_s)  # the training loop of A hangs; its I/O thread still heartbeats
         for bt in ita:
@@ -558,7 +558,7 @@ def scenario_slow_trainer(tmp: Path, layout: Layout, lease_s: float = 0.5, step_
         it = iter(ds)
         for b in it:
             log.append((time.monotonic(), list(b["sample_ids"])))
-            conn = ds._conns[0]
+            conn = ds._stream._conns[0]
             with conn.lock:
                 peak = max(peak, len(conn.current))
             time.sleep(step_s)

@@ -16,32 +16,21 @@ yields the same number of batches per epoch (see ``V2VStreamDataset``).
 from __future__ import annotations
 
 import logging
-import queue
-import threading
-import uuid
-from typing import Dict, Iterator, List, Optional, Sequence, Set, Tuple, Union
+from dataclasses import replace
+from typing import Iterator, Optional, Sequence, Tuple, Union
 
 import torch
 
 from v2v_server.protocol import OUTPUTS
 
-from .connection import (Connection, StreamError, StreamTimeout, _EpochDone, _Padding, _select, batch_to_torch,
-                         load_curve_keys)
+from .connection import StreamError, StreamTimeout, batch_to_torch, load_curve_keys
+from .endpoint import EndpointStream, StreamOptions, padding_copy
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
 from .metrics import TrainerMetrics
 
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "padding_copy"]
 
 log = logging.getLogger("v2v.client")
-
-
-def padding_copy(batch: dict, epoch: int) -> dict:
-    """A DDP padding batch of ``epoch`` repeating ``batch``: its tensors cloned, every sample
-    flagged in ``padding`` (bool (B,), all True: the loss must ignore them), ``batch_id`` -1."""
-    out = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
-    out.update(padding=torch.ones(len(batch["sample_ids"]), dtype=torch.bool), epoch=epoch, batch_id=-1,
-               sample_ids=list(batch["sample_ids"]), params=list(batch["params"]))
-    return out
 
 
 class V2VStreamDataset(torch.utils.data.IterableDataset):
@@ -146,26 +135,15 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self.endpoint = endpoint
         self.outputs = tuple(o for o in OUTPUTS if o in outputs)
         self.credits = credits
-        self.timeout_s = float(timeout_s)
-        self.heartbeat_s = float(heartbeat_s)
-        self.raw = raw
         if shm not in (True, False, "auto"):
             raise ValueError(f"shm must be True, False or 'auto', got {shm!r}")
-        self.shm = shm
-        self.reconnect = bool(reconnect)
-        self.reconnect_timeout_s = float(reconnect_timeout_s)
-        self._curve_keys = curve_keys  # the key files, for the per-server datasets of a fan-in
-        self.curve = load_curve_keys(*curve_keys) if curve_keys else None
         self.rank, self.world_size, self.group = rank, world_size, group
-        self.info: Optional[dict] = None
-        self._conns: list = []
-        self._lock = threading.Lock()
-        self._consumer = uuid.uuid4().hex  # who acknowledges: survives reconnects and restarts (state_dict)
-        self._delivered: Dict[int, Set[str]] = {}
-        self._batches: Dict[int, int] = {}  # batches yielded per open epoch (DDP padding)
-        self._completed_epoch = -1
-        self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
-        self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
+        self.options = StreamOptions(self.outputs, credits, float(timeout_s), float(heartbeat_s), raw, bool(reconnect),
+                                     float(reconnect_timeout_s), tuple(curve_keys) if curve_keys else None, rank,
+                                     world_size, group, shm)
+        if curve_keys:
+            load_curve_keys(*curve_keys)  # bad key files are an error here, not at the first iteration
+        self._stream: Optional[EndpointStream] = None
         # several servers (a list, "a,b", or a DNS name with several addresses): fan-in
         self._fanin: Optional[FanInStream] = None
         self._meter = TrainerMetrics()
@@ -175,18 +153,23 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 self.endpoint = endpoints[0]
             else:
                 self._fanin = self._make_fanin(endpoints)
+        if self._fanin is None:
+            self._stream = EndpointStream(self.endpoint, self.options)
 
     # ------------------------------------------------------------------ fan-in and metrics
     def _make_fanin(self, endpoints) -> FanInStream:
-        def child(ep: str, credits: int) -> "V2VStreamDataset":  # one server's dataset: these options, its share
-            return V2VStreamDataset(ep, outputs=self.outputs, credits=credits, timeout_s=self.timeout_s,
-                                    heartbeat_s=self.heartbeat_s, raw=self.raw, reconnect=self.reconnect,
-                                    reconnect_timeout_s=self.reconnect_timeout_s, curve_keys=self._curve_keys,
-                                    rank=self.rank, world_size=self.world_size, group=self.group, shm=self.shm)
+        def child(ep: str, credits: int) -> EndpointStream:  # one server's stream: these options, its share
+            return EndpointStream(ep, replace(self.options, credits=credits))
 
         fanin = FanInStream(endpoints, child, self.credits)
-        fanin.load_state_dict(self.state_dict())
+        if self._stream is not None:
+            fanin.load_state_dict(self._stream.state_dict())
         return fanin
+
+    @property
+    def info(self) -> Optional[dict]:
+        """The server's stream info from its welcome (the first server's with a fan-in), once connected."""
+        return (self._fanin or self._stream).info
 
     def metrics(self) -> dict:
         """Trainer-side metrics: batches, samples and tensor bytes handed to the training loop
@@ -194,11 +177,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         return self._meter.snapshot()
 
     def __iter__(self) -> Iterator[dict]:
-        if self._fanin is None and isinstance(self.endpoint, str):
+        if self._fanin is None:
             endpoints = resolve_endpoints(self.endpoint)
             if len(endpoints) > 1:  # e.g. a Kubernetes headless Service: one server per address
                 self._fanin = self._make_fanin(endpoints)
-        inner = iter(self._fanin) if self._fanin is not None else self._iter_stream()
+        inner = iter(self._fanin) if self._fanin is not None else iter(self._stream)
         return self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else "")
 
     # ------------------------------------------------------------------ state
@@ -207,12 +190,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         yielded so far in epochs still open, batches yielded per open epoch, and the consumer
         id the server knows it by. Plain, JSON/torch.save-safe data. With several servers: the
         epoch all of them completed and the ids yielded in later epochs."""
-        if getattr(self, "_fanin", None) is not None:
-            return self._fanin.state_dict()
-        with self._lock:
-            return {"version": 1, "consumer": self._consumer, "completed_epoch": self._completed_epoch,
-                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()},
-                    "batches": {str(e): n for e, n in self._batches.items()}}
+        return (self._fanin or self._stream).state_dict()
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()`` output; the next iteration resumes the epoch without
@@ -222,127 +200,18 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             ValueError: for a state of another format.
         """
-        completed, delivered = read_state(state)
-        with self._lock:
-            self._completed_epoch, self._delivered = completed, delivered
-            self._batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
-            if isinstance(state.get("consumer"), str) and state["consumer"]:
-                self._consumer = state["consumer"]
+        read_state(state)
+        if self._stream is not None:
+            self._stream.load_state_dict(state)
         if self._fanin is not None:
             self._fanin.load_state_dict(state)
-
-    def wants_shm(self, endpoint: str) -> bool:
-        """Whether a connection to ``endpoint`` asks for batches through the server's shared
-        memory: ``shm=True`` always (the server agrees only when bound to ``ipc://``),
-        ``"auto"`` for ``ipc://`` endpoints (the server is on this host)."""
-        return self.shm is True or (self.shm == "auto" and endpoint.startswith("ipc://"))
-
-    def _hello_header(self) -> dict:
-        """The hello message: outputs, credits, who we are, and the resume state."""
-        with self._lock:
-            resume = {"completed_epoch": self._completed_epoch,
-                      "delivered": {str(e): "\n".join(sorted(ids)) for e, ids in self._delivered.items()},
-                      "batches": {str(e): n for e, n in self._batches.items()}}
-        info = torch.utils.data.get_worker_info()
-        consumer = self._consumer if info is None else f"{self._consumer}/{info.id}"
-        h = {"type": "hello", "outputs": list(self.outputs), "credits": self.credits, "consumer": consumer,
-             "resume": resume}
-        if self.world_size > 1:
-            h.update(rank=self.rank, world_size=self.world_size, group=self.group)
-        return h
-
-    # ------------------------------------------------------------------ iteration
-    def _padding_batch(self, epoch: int) -> Optional[dict]:
-        return None if self._last is None else padding_copy(self._last, epoch)
-
-    def _epoch_done(self, done: "_EpochDone") -> List[dict]:
-        """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
-        pads: List[dict] = []
-        with self._lock:
-            if done.epoch <= self._completed_epoch:
-                return pads
-            owed = 0
-            if self.world_size > 1 and done.batches is not None:
-                owed = max(0, done.batches - self._batches.get(done.epoch, 0))
-            self._completed_epoch = done.epoch
-            for e in [e for e in self._delivered if e <= done.epoch]:
-                del self._delivered[e]
-            for e in [e for e in self._batches if e <= done.epoch]:
-                del self._batches[e]
-        for _ in range(owed):
-            p = self._padding_batch(done.epoch)
-            if p is None:
-                self._pad_debt[done.epoch] = self._pad_debt.get(done.epoch, 0) + 1
-            else:
-                pads.append(p)
-        return pads
-
-    def _iter_stream(self) -> Iterator[dict]:  # one server's stream (iter() adds fan-in, metrics)
-        conn = Connection(self)
-        self._conns.append(conn)
-        try:
-            while True:
-                try:
-                    item = conn.items.get(timeout=1.0)
-                except queue.Empty:
-                    if not conn._thread.is_alive() and conn.items.empty():
-                        raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
-                    continue  # the I/O thread decides when the server is gone (timeout_s without a message)
-                if isinstance(item, StopIteration):
-                    return
-                if isinstance(item, BaseException):
-                    raise item
-                if isinstance(item, _EpochDone):
-                    yield from self._epoch_done(item)
-                    continue
-                if isinstance(item, _Padding):
-                    with self._lock:
-                        e = item.item["epoch"]
-                        if e <= self._completed_epoch:
-                            continue
-                        self._batches[e] = self._batches.get(e, 0) + 1
-                    self._last = item.item
-                    yield item.item
-                    continue
-                self.info = conn.info
-                epoch = item["epoch"]
-                with self._lock:
-                    done_already = epoch <= self._completed_epoch
-                if done_already:
-                    conn.give_back(item)  # never acknowledge what we would drop
-                    continue
-                if not conn.take(item):
-                    continue  # given back meanwhile (lease expired, or this client was dropped)
-                with self._lock:
-                    seen = self._delivered.setdefault(epoch, set())
-                    keep = [i for i, sid in enumerate(item["sample_ids"]) if sid not in seen]
-                    seen.update(item["sample_ids"][i] for i in keep)
-                    self._batches[epoch] = self._batches.get(epoch, 0) + 1
-                item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
-                if len(keep) < len(item["sample_ids"]):
-                    if not keep and self.world_size == 1:
-                        continue  # all re-sent duplicates: hand nothing on
-                    if keep:
-                        item = _select(item, keep)
-                    else:  # DDP: keep the batch count equal; every sample is a repeat
-                        item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
-                for e in sorted(self._pad_debt):
-                    for _ in range(self._pad_debt.pop(e)):
-                        yield padding_copy(item, e)
-                self._last = item
-                yield item
-        finally:
-            conn.close()
-            if conn in self._conns:
-                self._conns.remove(conn)
 
     def close(self) -> None:
         """Close every open connection of this dataset (also done when iterators are collected)."""
         if self._fanin is not None:
             self._fanin.close()
-        for conn in list(self._conns):
-            conn.close()
-        self._conns.clear()
+        if self._stream is not None:
+            self._stream.close()
 
 
 def _dist_defaults() -> Tuple[int, int]:

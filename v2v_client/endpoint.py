@@ -1,0 +1,214 @@
+"""One server's stream: the consumer state (ids yielded per open epoch, batches per epoch, the
+last completed epoch, the consumer id), the hello that carries it, and the iteration over a
+:class:`~v2v_client.connection.Connection` that drops re-sent samples and adds DDP padding.
+``V2VStreamDataset`` reads one of these per server (several through ``fanin.FanInStream``).
+"""
+from __future__ import annotations
+
+import queue
+import threading
+import uuid
+from dataclasses import dataclass
+from typing import Dict, Iterator, List, Optional, Set, Tuple
+
+import torch
+
+from .connection import Connection, StreamError, _EpochDone, _Padding, _select, load_curve_keys
+from .fanin import read_state
+
+__all__ = ["StreamOptions", "EndpointStream", "padding_copy"]
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """What a stream asks a server for and how it talks to it (validated by
+    ``V2VStreamDataset``; see its arguments)."""
+
+    outputs: Tuple[str, ...]
+    credits: int
+    timeout_s: float
+    heartbeat_s: float
+    raw: bool
+    reconnect: bool
+    reconnect_timeout_s: float
+    curve_keys: Optional[Tuple[str, str]]
+    rank: int
+    world_size: int
+    group: str
+    shm: object
+
+
+def padding_copy(batch: dict, epoch: int) -> dict:
+    """A DDP padding batch of ``epoch`` repeating ``batch``: its tensors cloned, every sample
+    flagged in ``padding`` (bool (B,), all True: the loss must ignore them), ``batch_id`` -1."""
+    out = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
+    out.update(padding=torch.ones(len(batch["sample_ids"]), dtype=torch.bool), epoch=epoch, batch_id=-1,
+               sample_ids=list(batch["sample_ids"]), params=list(batch["params"]))
+    return out
+
+
+class EndpointStream:
+    """The stream of one server for one consumer.
+
+    Args:
+        endpoint: the server's ZeroMQ endpoint.
+        options: :class:`StreamOptions`.
+
+    Iterating opens a connection (one per iterator; a new one replaces the previous) and
+    yields the batch dicts ``V2VStreamDataset`` documents; ``state_dict()`` /
+    ``load_state_dict()`` carry the consumer state across restarts.
+    """
+
+    def __init__(self, endpoint: str, options: StreamOptions):
+        self.endpoint = endpoint
+        self.options = options
+        o = options
+        self.outputs, self.credits, self.timeout_s, self.heartbeat_s = o.outputs, o.credits, o.timeout_s, o.heartbeat_s
+        self.raw, self.reconnect, self.reconnect_timeout_s = o.raw, o.reconnect, o.reconnect_timeout_s
+        self.rank, self.world_size, self.group, self.shm = o.rank, o.world_size, o.group, o.shm
+        self.curve = load_curve_keys(*o.curve_keys) if o.curve_keys else None
+        self.info: Optional[dict] = None
+        self._conns: list = []
+        self._lock = threading.Lock()
+        self._consumer = uuid.uuid4().hex  # who acknowledges: survives reconnects and restarts (state_dict)
+        self._delivered: Dict[int, Set[str]] = {}
+        self._batches: Dict[int, int] = {}  # batches yielded per open epoch (DDP padding)
+        self._completed_epoch = -1
+        self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
+        self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Where this consumer stands: epochs the server declared complete, the sample ids
+        yielded so far in epochs still open, batches yielded per open epoch, and the consumer
+        id the server knows it by. Plain, JSON/torch.save-safe data."""
+        with self._lock:
+            return {"version": 1, "consumer": self._consumer, "completed_epoch": self._completed_epoch,
+                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()},
+                    "batches": {str(e): n for e, n in self._batches.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore ``state_dict()`` output; the next iteration resumes the epoch without
+        repeating or skipping samples (the server takes this state as the truth: samples
+        yielded after it was saved are sent again).
+
+        Raises:
+            ValueError: for a state of another format.
+        """
+        completed, delivered = read_state(state)
+        with self._lock:
+            self._completed_epoch, self._delivered = completed, delivered
+            self._batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
+            if isinstance(state.get("consumer"), str) and state["consumer"]:
+                self._consumer = state["consumer"]
+
+    def wants_shm(self, endpoint: str) -> bool:
+        """Whether a connection to ``endpoint`` asks for batches through the server's shared
+        memory: ``shm=True`` always (the server agrees only when bound to ``ipc://``),
+        ``"auto"`` for ``ipc://`` endpoints (the server is on this host)."""
+        return self.shm is True or (self.shm == "auto" and endpoint.startswith("ipc://"))
+
+    def _hello_header(self) -> dict:
+        """The hello message: outputs, credits, who we are, and the resume state."""
+        with self._lock:
+            resume = {"completed_epoch": self._completed_epoch,
+                      "delivered": {str(e): "\n".join(sorted(ids)) for e, ids in self._delivered.items()},
+                      "batches": {str(e): n for e, n in self._batches.items()}}
+        info = torch.utils.data.get_worker_info()
+        consumer = self._consumer if info is None else f"{self._consumer}/{info.id}"
+        h = {"type": "hello", "outputs": list(self.outputs), "credits": self.credits, "consumer": consumer,
+             "resume": resume}
+        if self.world_size > 1:
+            h.update(rank=self.rank, world_size=self.world_size, group=self.group)
+        return h
+
+    # ------------------------------------------------------------------ iteration
+    def _padding_batch(self, epoch: int) -> Optional[dict]:
+        return None if self._last is None else padding_copy(self._last, epoch)
+
+    def _epoch_done(self, done: "_EpochDone") -> List[dict]:
+        """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
+        pads: List[dict] = []
+        with self._lock:
+            if done.epoch <= self._completed_epoch:
+                return pads
+            owed = 0
+            if self.world_size > 1 and done.batches is not None:
+                owed = max(0, done.batches - self._batches.get(done.epoch, 0))
+            self._completed_epoch = done.epoch
+            for e in [e for e in self._delivered if e <= done.epoch]:
+                del self._delivered[e]
+            for e in [e for e in self._batches if e <= done.epoch]:
+                del self._batches[e]
+        for _ in range(owed):
+            p = self._padding_batch(done.epoch)
+            if p is None:
+                self._pad_debt[done.epoch] = self._pad_debt.get(done.epoch, 0) + 1
+            else:
+                pads.append(p)
+        return pads
+
+    def __iter__(self) -> Iterator[dict]:
+        conn = Connection(self)
+        self._conns.append(conn)
+        try:
+            while True:
+                try:
+                    item = conn.items.get(timeout=1.0)
+                except queue.Empty:
+                    if not conn._thread.is_alive() and conn.items.empty():
+                        raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
+                    continue  # the I/O thread decides when the server is gone (timeout_s without a message)
+                if isinstance(item, StopIteration):
+                    return
+                if isinstance(item, BaseException):
+                    raise item
+                if isinstance(item, _EpochDone):
+                    yield from self._epoch_done(item)
+                    continue
+                if isinstance(item, _Padding):
+                    with self._lock:
+                        e = item.item["epoch"]
+                        if e <= self._completed_epoch:
+                            continue
+                        self._batches[e] = self._batches.get(e, 0) + 1
+                    self._last = item.item
+                    yield item.item
+                    continue
+                self.info = conn.info
+                epoch = item["epoch"]
+                with self._lock:
+                    done_already = epoch <= self._completed_epoch
+                if done_already:
+                    conn.give_back(item)  # never acknowledge what we would drop
+                    continue
+                if not conn.take(item):
+                    continue  # given back meanwhile (lease expired, or this client was dropped)
+                with self._lock:
+                    seen = self._delivered.setdefault(epoch, set())
+                    keep = [i for i, sid in enumerate(item["sample_ids"]) if sid not in seen]
+                    seen.update(item["sample_ids"][i] for i in keep)
+                    self._batches[epoch] = self._batches.get(epoch, 0) + 1
+                item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
+                if len(keep) < len(item["sample_ids"]):
+                    if not keep and self.world_size == 1:
+                        continue  # all re-sent duplicates: hand nothing on
+                    if keep:
+                        item = _select(item, keep)
+                    else:  # DDP: keep the batch count equal; every sample is a repeat
+                        item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
+                for e in sorted(self._pad_debt):
+                    for _ in range(self._pad_debt.pop(e)):
+                        yield padding_copy(item, e)
+                self._last = item
+                yield item
+        finally:
+            conn.close()
+            if conn in self._conns:
+                self._conns.remove(conn)
+
+    def close(self) -> None:
+        """Close every open connection of this stream (also done when iterators are collected)."""
+        for conn in list(self._conns):
+            conn.close()
+        self._conns.clear()
