@@ -124,7 +124,7 @@ class FanInStream:
 
     Args:
         endpoints: the servers, one ZeroMQ endpoint each (already resolved).
-        make_child: ``make_child(endpoint, credits) -> V2VStreamDataset`` for one server.
+        make_child: ``make_child(endpoint, credits) -> endpoint.EndpointStream`` for one server.
         credits: total batches in flight over all servers; each gets
             ``max(1, ceil(credits / len(endpoints)))``.
 
