@@ -2,7 +2,7 @@
 
 Hosts split the corpus statically (``v2v-serve --shard I/N``), so each server keeps its own
 exactly-once guarantee; a trainer reads all of them through one iterator. This module is a
-composition: it opens one ordinary single-endpoint :class:`V2VStreamDataset` per server and
+composition: it opens one single-server stream (:class:`~v2v_client.endpoint.EndpointStream`) per server and
 merges their batches in arrival order. It uses only their public surface (``iter``,
 ``state_dict``, ``load_state_dict``, ``close``, ``info``), so whatever one connection does
 (credits, leases, acknowledgements, reconnects, DDP ranks) it does here too, per server:
