@@ -116,3 +116,15 @@ def test_trainer_config_is_declared_once_and_its_reference_is_current():
     out = subprocess.run([sys.executable, "-m", "trainer.config", "--markdown"], capture_output=True, text=True,
                          check=True, cwd=ROOT).stdout
     assert (ROOT / "docs" / "trainer_config.md").read_text() == out
+
+
+def test_workers_get_the_recipe_only():
+    from v2v_server.worker import worker_config
+
+    cfg = load_config(None, {"seed": 7, "workers": 3, "crops_per_window": 2, "lease_s": 5.0})
+    w = worker_config(cfg)
+    assert set(w) == {"recipe", "log_format"} and "workers" not in w["recipe"] and "lease_s" not in w["recipe"]
+    r = SampleRecipe.recipe_from_dict(w["recipe"])
+    assert r == cfg.recipe() and r.seed == 7 and r.crops_per_window == 2
+    with pytest.raises(ValueError, match="worker recipe: unknown key"):
+        SampleRecipe.recipe_from_dict({**w["recipe"], "workers": 3}, source="worker recipe")

@@ -140,10 +140,11 @@ def _die_before_mapping(*args):
 def test_a_worker_that_dies_before_mapping_its_ring_leaks_nothing(tmp_path, monkeypatch):
     from v2v_server.config import ServeConfig
     from v2v_server.pool import WorkerPool
+    from v2v_server.worker import worker_config
 
     monkeypatch.setenv("V2V_SHM_DIR", str(tmp_path))
     cfg = ServeConfig(sequence_length=L, num_bins=NB, crop_size=S).validate()
-    pool = WorkerPool(cfg.to_dict(), str(tmp_path), "ipc:///nonexistent", 1, target=_die_before_mapping)
+    pool = WorkerPool(worker_config(cfg), str(tmp_path), "ipc:///nonexistent", 1, target=_die_before_mapping)
     pool.start()
     first = next(iter(pool.workers.values()))
     first.proc.join(30)

@@ -74,6 +74,30 @@ class SampleRecipe:
         """Frame indices one sample spans: L * B * frames_per_bin + 1."""
         return self.sequence_length * self.num_bins * self.frames_per_bin + 1
 
+    def recipe_dict(self) -> dict:
+        """The recipe's keys as a plain, msgpack/YAML-safe dict (what a worker process gets)."""
+        d = {f.name: getattr(self, f.name) for f in fields(SampleRecipe)}
+        d.update(ranges=self.ranges.to_dict(), outputs=list(self.outputs))
+        return d
+
+    @classmethod
+    def recipe_from_dict(cls, d: dict, source: str = "recipe") -> "SampleRecipe":
+        """A validated ``SampleRecipe`` from ``recipe_dict()`` output.
+
+        Raises:
+            ValueError: naming ``source`` and the key, for an unknown key or a bad value.
+        """
+        known = {f.name for f in fields(SampleRecipe)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown key(s) {unknown}")
+        r = SampleRecipe(**{k: (tuple(v) if k == "outputs" and isinstance(v, list) else v) for k, v in d.items()})
+        try:
+            r.validate_recipe()
+        except ValueError as e:
+            raise ValueError(f"{source}: {e}") from None
+        return r
+
     def validate_recipe(self) -> None:
         """Check the recipe's fields; ``ValueError`` names the first bad one."""
         for name in ("sequence_length", "num_bins", "frames_per_bin", "max_samples_per_video", "decode_threads",
@@ -202,7 +226,8 @@ class ServeConfig(ServingSettings, SampleRecipe):
         return self
 
     def recipe(self) -> SampleRecipe:
-        """The sample recipe alone (what a resume state or a fan-in compares across servers)."""
+        """The sample recipe alone: what the workers get, and what a resume state or a fan-in
+        compares across servers."""
         return SampleRecipe(**{f.name: getattr(self, f.name) for f in fields(SampleRecipe)})
 
     # ------------------------------------------------------------------ io

@@ -40,7 +40,7 @@ class WorkerPool:
     """``size`` spawned worker processes connected to ``endpoint``.
 
     Args:
-        cfg_dict: ``ServeConfig.to_dict()`` for the workers.
+        cfg_dict: ``worker.worker_config(cfg)`` for the workers (the sample recipe, the log format).
         root: corpus root.
         endpoint: the server's worker endpoint (ipc).
         size: number of workers.
@@ -64,7 +64,7 @@ class WorkerPool:
 
     def _spawn(self, position: int, generation: int) -> None:
         ident = f"w{position}.{generation}".encode()
-        c = self.cfg_dict
+        c = self.cfg_dict["recipe"]
         ring = create_ring(c["sequence_length"], c["num_bins"], c["crop_size"]) if self.shm else None
         args = (self.cfg_dict, self.root, self.endpoint, ident, os.getpid())
         proc = mp.get_context("spawn").Process(target=self.target, args=args + ((ring.spec,) if ring else ()),

@@ -32,6 +32,7 @@ from .core import DeliveryCore, DeliveryPolicy
 from .datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
 from .metrics import ServerMetrics
 from .pool import WorkerPool
+from .worker import worker_config
 from .sockets import ServerSockets
 from .protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, ProtocolError, pack, unpack
 from .wire import BadPeers, Hello, WireError, decode_client
@@ -94,7 +95,8 @@ class V2VServer:
             self.bound_endpoint = self.sockets.bind(self.cfg)
             if self.bound_endpoint.startswith("ipc://"):  # trainers on this host: batch buffers in /dev/shm
                 self.assembler.files = BatchDir.create()
-            self.pool = WorkerPool(self.cfg.to_dict(), str(self.root), self.sockets.backend_endpoint, self.cfg.workers)
+            self.pool = WorkerPool(worker_config(self.cfg), str(self.root), self.sockets.backend_endpoint,
+                                   self.cfg.workers)
             self.pool.start()
             rings = any(w.ring is not None for w in self.pool.workers.values())
             log.info("serving %d video(s) from %s on %s with %d worker(s); samples travel %s",

@@ -25,7 +25,7 @@ from typing import Optional
 import numpy as np
 import zmq
 
-from .config import ServeConfig
+from .config import SampleRecipe, ServeConfig
 from .corpus import verdict
 from .datapath import SlotRing
 from .logs import setup_logging
@@ -92,7 +92,7 @@ def _send(sock: zmq.Socket, frames, parent_pid: int) -> None:
     sock.send_multipart(frames, copy=False)
 
 
-def wire_arrays(cfg: ServeConfig, arrays: dict) -> dict:
+def wire_arrays(cfg: SampleRecipe, arrays: dict) -> dict:
     """Narrow a sample's arrays to their wire dtypes: voxels int8/int16/int32 (the narrowest
     that holds every count), frames uint8, flow ``cfg.flow_dtype``. Voxels that arrive int8 or
     int16 come from ``simulate_voxels(narrow=True)``, which already picked the narrowest: only
@@ -147,7 +147,7 @@ class _StageClock:
         return out
 
 
-def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
+def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
              inbox: Optional[_Inbox] = None) -> None:
     """Make every sample of one task and send it (through ``inbox``'s slot ring when it has
     one), then send ``done``."""
@@ -189,11 +189,18 @@ def run_task(cfg: ServeConfig, root: Path, task: dict, sock: zmq.Socket, parent_
     _send(sock, [pack(done)], parent_pid)
 
 
+def worker_config(cfg: ServeConfig) -> dict:
+    """What a worker process is given: the sample recipe (``SampleRecipe.recipe_dict``) and
+    the server's log format; nothing of transport, security or delivery."""
+    return {"recipe": cfg.recipe().recipe_dict(), "log_format": cfg.log_format}
+
+
 def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, parent_pid: int,
                 ring: Optional[dict] = None) -> None:
     """Entry point of a worker process (started with the ``spawn`` method).
 
     Args:
+        cfg_dict: ``worker_config(cfg)``.
         ring: ``SlotRing.spec`` of this worker's shared-memory slots (the file is unlinked as
             soon as it is mapped), or None to send arrays as frames.
     """
@@ -202,8 +209,8 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
     import cv2
 
     cv2.setNumThreads(1)
-    cfg = ServeConfig.from_dict(cfg_dict, source="worker config")
-    if cfg.log_format == "json":  # one format for the whole server's stderr
+    cfg = SampleRecipe.recipe_from_dict(cfg_dict["recipe"], source="worker recipe")
+    if cfg_dict.get("log_format") == "json":  # one format for the whole server's stderr
         setup_logging("INFO", "json", "v2v-worker")
     else:
         logging.basicConfig(level=logging.INFO, format="v2v-worker %(process)d: %(message)s")
