@@ -209,7 +209,7 @@ def test_crops_per_window_ids_content_and_resume(videos):
     arrays = {sid: a for sid, a, _ in got}
     corners = {(metas[s]["crop_y"], metas[s]["crop_x"], metas[s]["pos_threshold"]) for s in ids}
     assert len(corners) == 6  # every crop drew its own choices
-    assert all(metas[s]["src_start_frame"] == (0 if s.split("#")[1].startswith("0") else cfg.frames_per_sample)
+    assert all(metas[s]["src_start_frame"] == (0 if s.split("#")[1].startswith("0") else cfg.window_stride)
                for s in ids)
     assert not np.array_equal(arrays["bikes.mp4#0.0"]["frames"], arrays["bikes.mp4#0.1"]["frames"])
     # one crop made alone (a replacement worker skips the indices already received)
@@ -270,3 +270,32 @@ def test_crop_cut_slices_as_crop_frame(flip, x):
         for k, f in enumerate(frames):
             cut.add(k, f, k != other, expand, None)
         np.testing.assert_array_equal(cut.frames(expand), want)
+
+
+def test_windows_step_200_frames_and_share_their_boundary_frame(tmp_path):
+    """Window k spans source frames [k * 200, (k + 1) * 200] (the authors' loader steps
+    ``frames_per_seq``): consecutive samples share their boundary frame, a 401-frame video
+    holds two windows, and every frame pair is in exactly one window."""
+    import av
+
+    cfg = small_cfg(sequence_length=2, num_bins=2, pause_enabled=False, hflip_prob=0.0, max_samples_per_video=10)
+    stride = cfg.window_stride
+    assert (cfg.frames_per_sample, stride) == (5, 4)
+    assert [cfg.windows_in(n) for n in (4, 5, 8, 9, 13)] == [0, 1, 1, 2, 3]
+    assert ServeConfig().validate().windows_in(401) == 2 and ServeConfig().validate().windows_in(400) == 1
+    path = tmp_path / "steps.mp4"
+    with av.open(str(path), "w") as c:  # frame i is uniformly grey level 10 + 15 i
+        s = c.add_stream("mpeg4", rate=25)
+        s.width, s.height, s.pix_fmt, s.options = 96, 96, "yuv420p", {"qscale": "1"}
+        for i in range(13):
+            img = np.full((96, 96, 3), 10 + 15 * i, np.uint8)
+            for p in s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    got = list(video_samples(cfg, tmp_path, "steps.mp4", 0, ("frames",)))
+    assert [sid for sid, _, _ in got] == ["steps.mp4#0", "steps.mp4#1", "steps.mp4#2"]
+    assert [m["src_start_frame"] for _, _, m in got] == [0, 4, 8]
+    levels = [np.round((a["frames"].reshape(a["frames"].shape[0], -1).mean(1) - 10) / 15).astype(int).tolist()
+              for _, a, _ in got]
+    assert levels == [[0, 2, 4], [4, 6, 8], [8, 10, 12]]

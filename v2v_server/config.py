@@ -47,7 +47,7 @@ class SampleRecipe:
     keep_top_fraction: float = setting(0.54, help="fraction of each frame's height, from the top, that crops come "
                                                   "from (WebVid's watermark; 1.0 for clips without one)")
     hflip_prob: float = setting(0.5, help="probability of a horizontal flip")
-    max_samples_per_video: int = setting(10, help="non-overlapping windows per video per epoch")
+    max_samples_per_video: int = setting(10, help="windows (samples with crops_per_window 1) per video per epoch")
     crops_per_window: int = setting(1, help="random crops per decoded window, each its own sample (own crop, flip, "
                                             "pauses, sensor parameters; ids path#window.crop when > 1)")
     pause_enabled: bool = setting(True, help="pause augmentation (a Markov chain repeating the previous frame)")
@@ -73,6 +73,24 @@ class SampleRecipe:
     def frames_per_sample(self) -> int:
         """Frame indices one sample spans: L * B * frames_per_bin + 1."""
         return self.sequence_length * self.num_bins * self.frames_per_bin + 1
+
+    @property
+    def window_stride(self) -> int:
+        """Source frames from one window's start to the next: ``frames_per_sample - 1`` (200), so
+        window k spans frames ``[k * stride, (k + 1) * stride]`` and shares its last frame with
+        window k + 1's first: every frame pair of a video is in exactly one window. The authors'
+        loader steps the same way (HYLZ-2019/V2V ``data/v2v_datasets.py``, ``step_size =
+        frames_per_seq``)."""
+        return self.frames_per_sample - 1
+
+    def windows_in(self, frames: int) -> int:
+        """Windows (of ``frames_per_sample`` frames, ``window_stride`` apart) a video of
+        ``frames`` frames holds, at most ``max_samples_per_video``."""
+        return max(0, min(self.max_samples_per_video, (frames - 1) // self.window_stride))
+
+    def frames_for(self, windows: int) -> int:
+        """Frames to decode for the first ``windows`` windows: ``windows * window_stride + 1``."""
+        return windows * self.window_stride + 1 if windows > 0 else 0
 
     def recipe_dict(self) -> dict:
         """The recipe's keys as a plain, msgpack/YAML-safe dict (what a worker process gets)."""

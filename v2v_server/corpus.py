@@ -66,13 +66,13 @@ def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = No
             anything else ``"TypeName: message"``.
 
     Returns:
-        ``(windows, failed_windows, reason)``: samples per epoch (``min(max_samples_per_video,
-        frames // frames_per_sample)`` less the failed windows), the failed windows among them
+        ``(windows, failed_windows, reason)``: samples per epoch (``cfg.windows_in(frames)``
+        less the failed windows), the failed windows among them
         (sorted), and why the file gives none or fewer (None when nothing is wrong): the failed
         windows' reasons, else the error's, else too few frames.
     """
     failed = failed or {}
-    whole = min(cfg.max_samples_per_video, frames // cfg.frames_per_sample)
+    whole = cfg.windows_in(frames)
     bad = sorted(k for k in failed if k < whole)
     windows = whole - len(bad)
     if bad:
@@ -96,16 +96,18 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
     try:
         container, stream, info = open_video(corpus_file(root, rel))
         out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
-        need = cfg.frames_per_sample * cfg.max_samples_per_video
-        span, first = cfg.frames_per_sample, None
+        need = cfg.frames_for(cfg.max_samples_per_video)
+        stride, first = cfg.window_stride, {}
         # only frame sizes matter here: the codes as stored, without the per-frame expansion
         for y, _ in decode_codes(container, stream):
-            k, off = divmod(out["frames"], span)
-            if off == 0:
-                first = y.shape
-            elif y.shape != first and k not in bad:
-                bad[k] = (f"window {k}: frame size changed from {first[1]}x{first[0]} to {y.shape[1]}x{y.shape[0]} "
-                          f"at frame {out['frames']}")
+            i = out["frames"]
+            k, off = divmod(i, stride)
+            for w in ((k - 1, k) if off == 0 and k > 0 else (k,)):  # a window's last frame is the next one's first
+                if w not in first:
+                    first[w] = y.shape
+                elif y.shape != first[w] and w not in bad:
+                    bad[w] = (f"window {w}: frame size changed from {first[w][1]}x{first[w][0]} to "
+                              f"{y.shape[1]}x{y.shape[0]} at frame {i}")
             out["frames"] += 1
             if out["frames"] >= need:
                 out["more"] = True  # enough for every window: stop decoding

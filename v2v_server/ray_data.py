@@ -92,7 +92,7 @@ def count_windows(cfg: ServeConfig, root: Path, rel: str) -> Tuple[int, Optional
     try:
         container, stream, _ = open_video(corpus_file(root, rel))
         try:
-            need = cfg.frames_per_sample * cfg.max_samples_per_video
+            need = cfg.frames_for(cfg.max_samples_per_video)
             for packet in container.demux(stream):
                 if packet.size:
                     frames += 1

@@ -1,8 +1,9 @@
 """Training samples from one sequential decode of a video.
 
-A video is cut into non-overlapping windows of ``frames_per_sample`` (201) source frames:
-window k starts at source frame ``k * frames_per_sample``, and a video holds
-``min(max_samples_per_video, n_frames // frames_per_sample)`` windows. Everything random in a
+A video is cut into windows of ``frames_per_sample`` (201) source frames, ``window_stride``
+(200) apart: window k spans source frames ``k * 200`` to ``(k + 1) * 200``, its last frame is
+window k + 1's first (as in the authors' loader), so every frame pair is in exactly one window,
+and a video holds ``min(max_samples_per_video, (n_frames - 1) // 200)`` windows. Everything random in a
 sample (pauses, crop, flip, sensor parameters, initial potential, noise) comes from a
 generator seeded by ``(seed, epoch, sample_id)``, so its content never depends on which
 worker made it or in which order. With ``crops_per_window`` K > 1 a window gives K samples
@@ -264,6 +265,35 @@ class _CropCut:
         return buf
 
 
+
+class _Window:
+    """The window being decoded: its crops (:class:`_CropCut`), its first frame's shape and
+    code -> full-range map. A frame of another size fails the window (``stats["failed"]``)."""
+
+    def __init__(self, k: int, shape: tuple, expand, cuts: List[_CropCut]):
+        self.k, self.shape, self.expand, self.cuts = k, shape, expand, cuts
+
+    def add(self, off: int, codes: np.ndarray, expand, full: list, stats: dict) -> None:
+        """Frame ``off`` of the window; ``full`` caches the frame at full range (made at most
+        once per frame, shared by the windows the frame belongs to)."""
+        if self.cuts and codes.shape != self.shape:
+            # a stream whose frame size changes: this window fails (this epoch), the next is planned anew
+            stats.setdefault("failed", {})[self.k] = (
+                f"frame size changed from {self.shape[1]}x{self.shape[0]} to {codes.shape[1]}x{codes.shape[0]} "
+                f"at frame {stats['frames'] - 1}")
+            self.cuts = []
+        for cut in self.cuts:
+            if off < cut.consumed:
+                if cut.plan.scale != 1.0 and not full:
+                    full.append(np.ascontiguousarray(expand(codes)))
+                cut.add(off, codes, expand is self.expand, expand, full[0] if full else None)
+
+    def finish(self) -> Iterator[Tuple["WindowPlan", np.ndarray]]:
+        """Each crop's plan and full-range frames, once the window is complete."""
+        for cut in self.cuts:
+            yield cut.plan, cut.frames(self.expand)
+
+
 def video_samples(
     cfg: ServeConfig,
     root: Path,
@@ -295,45 +325,37 @@ def video_samples(
     """
     path = corpus_file(root, rel_path)
     skip = set(skip_windows)
-    span = cfg.frames_per_sample
+    span, stride = cfg.frames_per_sample, cfg.window_stride
     kpw = cfg.crops_per_window
     container, stream, info = open_video(path, cfg.decode_threads)  # opened once, decoded once
     rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
-    cuts: List[_CropCut] = []  # the crops of the current window still wanted
-    window_expand = None  # the code -> full-range map of the window's first frame
     # frames worth decoding: whole windows only. When the container declares its frame count
     # the trailing partial window is not decoded (decoding is the cost that matters).
-    last = cfg.max_samples_per_video * span
+    n_windows = cfg.max_samples_per_video
     declared = int(getattr(stream, "frames", 0) or 0)
     if declared >= span:
-        last = min(last, declared // span * span)
+        n_windows = min(n_windows, cfg.windows_in(declared))
+    last = cfg.frames_for(n_windows)
+    win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
     for i, (codes, expand) in enumerate(decode_codes(container, stream, rows)):
-        k, off = divmod(i, span)
         if i >= last:
             break
         stats["frames"] = i + 1
-        if off == 0:
-            shape, window_expand = codes.shape, expand
-            cuts = [_CropCut(cfg, plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, shape))
-                    for c in range(kpw) if k * kpw + c not in skip]
-        if cuts and codes.shape != shape:
-            # a stream whose frame size changes: this window fails (this epoch), the next is planned anew
-            stats.setdefault("failed", {})[k] = (f"frame size changed from {shape[1]}x{shape[0]} to "
-                                                 f"{codes.shape[1]}x{codes.shape[0]} at frame {i}")
-            cuts = []
-        full = None  # the whole kept region at full range, made once per frame when a crop is resampled
-        for cut in cuts:
-            if off < cut.consumed:
-                if cut.plan.scale != 1.0 and full is None:
-                    full = np.ascontiguousarray(expand(codes))
-                cut.add(off, codes, expand is window_expand, expand, full)
-        if off == span - 1:
+        k, off = divmod(i, stride)
+        full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled
+        if off == 0 and win is not None:  # this frame ends window k - 1 ...
+            win.add(span - 1, codes, expand, full, stats)
             stats["windows"] += 1
-            for cut in cuts:
-                plan = cut.plan
-                arrays = make_sample(cfg, plan, degrade_window(plan, cut.frames(window_expand)), outputs, flow,
-                                     info.fps, stats.setdefault("busy", {}))
-                yield plan.sample_id, arrays, sample_meta(plan, info.fps, k * span)
-            cuts = []
+            for plan, frames in win.finish():
+                arrays = make_sample(cfg, plan, degrade_window(plan, frames), outputs, flow, info.fps,
+                                     stats.setdefault("busy", {}))
+                yield plan.sample_id, arrays, sample_meta(plan, info.fps, (k - 1) * stride)
+            win = None
+        if off == 0 and k < n_windows:  # ... and starts window k
+            win = _Window(k, codes.shape, expand,
+                          [_CropCut(cfg, plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, codes.shape))
+                           for c in range(kpw) if k * kpw + c not in skip])
+        if win is not None:
+            win.add(off, codes, expand, full, stats)
