@@ -754,6 +754,28 @@ def scenario_fair_sharing(tmp: Path, layout: Layout, clients: int = 20) -> dict:
                min_batches=share[0], max_batches=share[-1], server_exit=rc)
 
 
+
+def scenario_undecodable_name(tmp: Path, layout: Layout) -> dict:
+    """A clip whose file name is not valid UTF-8 (bytes ``caf\\xe9``, a Latin-1 name) beside good
+    ones: it is ignored with one log line naming it (escaped), the others are served, the
+    server ends the epoch and exits 0."""
+    import os
+
+    corpus = good_corpus(tmp, 1)
+    expected = expected_ids(corpus, layout)
+    bad = os.fsdecode(bytes(corpus) + b"/caf\xe9.mp4")
+    shutil.copy(next(corpus.glob("*.mp4")), bad)
+    log: list = []
+    with _serve(corpus, layout, "--epochs", "1") as srv:
+        read_all(V2VStreamDataset(srv.endpoint, timeout_s=60), log)
+        rc = srv.wait(30)
+        text = srv.log
+    logged = text.count("caf\\xe9.mp4: file name is not valid UTF-8")
+    return row("a file name that is not valid UTF-8", expected, _ids(log), None,
+               f"ignored and logged {logged}x; server exit {rc}; traceback {'Traceback' in text}",
+               logged=logged, server_exit=rc, traceback="Traceback" in text)
+
+
 SCENARIOS = {
     "worker_kill": scenario_worker_kill,
     "client_kill": scenario_client_kill,
@@ -772,6 +794,7 @@ SCENARIOS = {
     "ddp_ranks": scenario_ddp_ranks,
     "ddp_late_rank": scenario_ddp_late_rank,
     "fair_sharing": scenario_fair_sharing,
+    "undecodable_name": scenario_undecodable_name,
 }
 
 

@@ -73,6 +73,13 @@ def test_bad_messages_neither_crash_nor_flood_the_server(tmp_path):
     assert f["log_lines"] < 100 and not f["traceback"] and f["server_exit"] == 0, r
 
 
+def test_a_file_name_that_is_not_utf8_is_ignored_and_the_rest_served(tmp_path):
+    r = faults.scenario_undecodable_name(tmp_path, LAYOUT)
+    exactly_once(r)
+    f = r["facts"]
+    assert f["logged"] == 1 and f["server_exit"] == 0 and not f["traceback"], r
+
+
 def test_ddp_ranks_get_equal_batch_counts(tmp_path):
     r = faults.scenario_ddp_ranks(tmp_path, LAYOUT, world=4)
     exactly_once(r)

@@ -12,6 +12,7 @@ Frames carrying a display matrix (phone videos) are rotated as a player would sh
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
@@ -298,12 +299,29 @@ def inside(root: Path, path: Path) -> bool:
         return False
 
 
+def utf8_name(path: Path) -> bool:
+    """Whether ``path`` (as the file system gave it) is valid UTF-8: Python keeps other bytes
+    as lone surrogates, which cannot be encoded into a sample id."""
+    try:
+        str(path).encode("utf-8")
+        return True
+    except UnicodeEncodeError:
+        return False
+
+
+def printable(path: Path) -> str:
+    """``path`` for a log line or a report: bytes that are not UTF-8 escaped (``\\xff``)."""
+    return os.fsencode(str(path)).decode("utf-8", "backslashreplace")
+
+
 def scan_corpus(root: Path, extensions: Sequence[str]) -> Tuple[List[Path], List[Tuple[Path, str]]]:
     """Walk ``root`` recursively (sorted, symlink loops cut) for video files.
 
     Returns ``(videos, rejected)``: video paths relative to ``root`` with an accepted
     extension, and ``(relative path, reason)`` for every other entry met: other extensions,
-    symlink loops, dangling links, links that leave the corpus root, unreadable folders.
+    symlink loops, dangling links, links that leave the corpus root, unreadable folders, and
+    names that are not valid UTF-8 (a sample id is its path, and ids travel as UTF-8; such a
+    name is reported with its undecodable bytes escaped, ``\\xff``).
     """
     root = Path(root)
     videos: List[Path] = []
@@ -327,6 +345,9 @@ def scan_corpus(root: Path, extensions: Sequence[str]) -> Tuple[List[Path], List
             continue
         for p in entries:
             rel = p.relative_to(root)
+            if not utf8_name(rel):
+                rejected.append((Path(printable(rel)), "file name is not valid UTF-8 (sample ids are UTF-8): rename it"))
+                continue
             try:
                 target = p.resolve(strict=True)
             except RuntimeError:
