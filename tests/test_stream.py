@@ -187,3 +187,20 @@ def test_bad_config_fails_at_startup_naming_field(tmp_path, videos):
     out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--config", str(cfg)],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "sequence_lenght" in out.stderr
+
+
+def test_sigterm_ends_a_worker_at_once_without_unwinding_through_library_code():
+    """What a worker does on SIGTERM (the pool's stop): exit 0 at once. An exception raised
+    from the handler would be caught by whatever code the signal lands in (numba's compiler
+    catches and prints them) and print a traceback on a clean shutdown."""
+    code = ("import os, signal, time\n"
+            "from v2v_server.worker import exit_on_sigterm\n"
+            "exit_on_sigterm()\n"
+            "try:\n"
+            "    os.kill(os.getpid(), signal.SIGTERM)\n"
+            "    time.sleep(5)\n"
+            "except BaseException as e:\n"
+            "    print('caught', type(e).__name__)\n"
+            "print('went on')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert (r.returncode, r.stdout, r.stderr) == (0, "", "")

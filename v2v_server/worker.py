@@ -195,6 +195,22 @@ def worker_config(cfg: ServeConfig) -> dict:
     return {"recipe": cfg.recipe().recipe_dict(), "log_format": cfg.log_format}
 
 
+def exit_on_sigterm() -> None:
+    """A worker's signals: SIGINT ignored (the server decides when workers stop; Ctrl-C reaches
+    the whole process group), SIGTERM ends the process at once with status 0. ``os._exit``
+    rather than ``SystemExit``: an exception raised wherever the signal lands (inside numba's
+    compiler or a decoder callback) would be caught and printed there as a traceback on a
+    clean shutdown. A worker holds nothing to flush: its batch slots belong to the server."""
+    def _exit(*_):
+        try:
+            sys.stderr.flush()
+        finally:
+            os._exit(0)
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit)
+
+
 def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, parent_pid: int,
                 ring: Optional[dict] = None) -> None:
     """Entry point of a worker process (started with the ``spawn`` method).
@@ -204,8 +220,7 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
         ring: ``SlotRing.spec`` of this worker's shared-memory slots (the file is unlinked as
             soon as it is mapped), or None to send arrays as frames.
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when workers stop
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    exit_on_sigterm()
     import cv2
 
     cv2.setNumThreads(1)
