@@ -9,13 +9,14 @@ iterator, and a slow trainer never grows anybody's memory.
 
 Sharing one stream: the server hands every batch to exactly one connection. Each DataLoader
 worker process (``num_workers > 0``) and each DDP rank opens its own connection when it
-starts iterating, so they split the stream between them without duplicates. DDP ranks pass
-``rank``/``world_size`` (or let them default from ``torch.distributed``) so that each rank
-yields the same number of batches per epoch (see ``V2VStreamDataset``).
+starts iterating, so they split the stream between them without duplicates. DDP ranks find
+their ``rank``/``world_size`` when iteration starts (``dist_position``), or are given them, so
+that each rank yields the same number of batches per epoch (see ``V2VStreamDataset``).
 """
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import replace
 from typing import Iterator, Optional, Sequence, Tuple, Union
 
@@ -28,7 +29,7 @@ from .endpoint import EndpointStream, StreamOptions, padding_copy
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
 from .metrics import TrainerMetrics
 
-__all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "padding_copy"]
+__all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "padding_copy"]
 
 log = logging.getLogger("v2v.client")
 
@@ -61,8 +62,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             instead of raising.
         curve_keys: ``(client_secret_file, server_public_file)`` from ``v2v-keygen`` to talk
             to a server that requires CurveZMQ.
-        rank, world_size: DDP position; by default taken from ``torch.distributed`` when it
-            is initialised, else 0 and 1. With ``world_size > 1`` the ranks form one group
+        rank, world_size: DDP position; what is not given is resolved each time iteration
+            starts (:func:`dist_position`: ``torch.distributed`` when initialised, else the
+            ``RANK`` / ``WORLD_SIZE`` that torchrun and Lightning set, else 0 and 1), so a
+            dataset built before the process group exists still joins the group. With
+            ``world_size > 1`` the ranks form one group
             on the server (``group``, default ``"default"``; give each DDP job on one server
             its own): nothing is sent until every rank said hello (or the server's client
             timeout passed), and every rank yields the same number of batches per epoch —
@@ -122,10 +126,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             raise ValueError(f"credits must be an int in [1, 1024], got {credits!r}")
         if not timeout_s > 0:
             raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
-        if rank is None or world_size is None:
-            dr, dw = _dist_defaults()
-            rank = dr if rank is None else rank
-            world_size = dw if world_size is None else world_size
+        # a position not given is resolved when iteration starts (``_position``): a dataset built
+        # before the process group exists (a DataModule's __init__) still joins the DDP group
+        self._auto_position = (rank is None, world_size is None)
+        rank = 0 if rank is None else rank
+        world_size = (rank + 1 if rank else 1) if world_size is None else world_size
         if isinstance(world_size, bool) or not isinstance(world_size, int) or world_size < 1:
             raise ValueError(f"world_size must be an int >= 1, got {world_size!r}")
         if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank < world_size:
@@ -176,7 +181,26 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         (also per server), and seconds it waited for them; see ``v2v_client.metrics``."""
         return self._meter.snapshot()
 
+    def _position(self) -> None:
+        """Resolve ``rank`` / ``world_size`` not given to the constructor, now (see
+        :func:`dist_position`), and hand them to the per-server streams."""
+        auto_rank, auto_world = self._auto_position
+        if not (auto_rank or auto_world):
+            return
+        rank, world = dist_position()
+        rank = rank if auto_rank else self.rank
+        world = world if auto_world else self.world_size
+        if not 0 <= rank < world:
+            raise ValueError(f"rank {rank} is not in [0, world_size={world})")
+        if (rank, world) == (self.rank, self.world_size):
+            return
+        self.rank, self.world_size = rank, world
+        self.options = replace(self.options, rank=rank, world_size=world)  # a fan-in's children are made from it
+        if self._stream is not None:
+            self._stream.set_position(rank, world)
+
     def __iter__(self) -> Iterator[dict]:
+        self._position()
         if self._fanin is None:
             endpoints = resolve_endpoints(self.endpoint)
             if len(endpoints) > 1:  # e.g. a Kubernetes headless Service: one server per address
@@ -214,13 +238,32 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             self._stream.close()
 
 
-def _dist_defaults() -> Tuple[int, int]:
-    """(rank, world_size) from ``torch.distributed`` when initialised, else (0, 1)."""
-    try:
-        import torch.distributed as dist
+def dist_position() -> Tuple[int, int]:
+    """This process's DDP ``(rank, world_size)``: from ``torch.distributed`` when its process
+    group is initialised, else from the ``RANK`` / ``WORLD_SIZE`` environment variables that
+    torchrun, Lightning's launcher and most cluster launchers set, else ``(0, 1)``.
 
-        if dist.is_available() and dist.is_initialized():
-            return dist.get_rank(), dist.get_world_size()
-    except Exception:  # noqa: BLE001 - a half-initialised backend is the same as none here
-        pass
-    return 0, 1
+    Raises:
+        ValueError: the two disagree (a process group of world size 1 in a process whose
+            environment says 2: the ranks would not form one group and would yield unequal
+            batch counts), or the environment holds something that is not a rank.
+    """
+    env = None
+    if os.environ.get("WORLD_SIZE") is not None:
+        try:
+            env = int(os.environ.get("RANK", "0")), int(os.environ["WORLD_SIZE"])
+        except ValueError:
+            raise ValueError(f"RANK={os.environ.get('RANK')!r} / WORLD_SIZE={os.environ.get('WORLD_SIZE')!r} "
+                             f"in the environment are not integers") from None
+    dist = None
+    try:
+        import torch.distributed as td
+
+        if td.is_available() and td.is_initialized():
+            dist = td.get_rank(), td.get_world_size()
+    except (RuntimeError, ValueError):  # a backend half set up is the same as none here
+        dist = None
+    if dist is not None and env is not None and dist[1] != env[1]:
+        raise ValueError(f"torch.distributed says world size {dist[1]} but WORLD_SIZE={env[1]} in the "
+                         f"environment: pass rank= and world_size= to V2VStreamDataset explicitly")
+    return dist or env or (0, 1)

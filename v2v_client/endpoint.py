@@ -8,7 +8,7 @@ from __future__ import annotations
 import queue
 import threading
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Dict, Iterator, List, Optional, Set, Tuple
 
 import torch
@@ -76,6 +76,11 @@ class EndpointStream:
         self._completed_epoch = -1
         self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
         self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
+
+    def set_position(self, rank: int, world_size: int) -> None:
+        """The DDP position the next connection says hello with."""
+        self.options = replace(self.options, rank=rank, world_size=world_size)
+        self.rank, self.world_size = rank, world_size
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
