@@ -776,6 +776,44 @@ def scenario_undecodable_name(tmp: Path, layout: Layout) -> dict:
                logged=logged, server_exit=rc, traceback="Traceback" in text)
 
 
+
+def scenario_resume_after_end(tmp: Path, layout: Layout, ckpt_step: int = 2, grace_s: float = 20.0) -> dict:
+    """torchdata's StatefulDataLoader checkpoints at step ``ckpt_step``, reads the epoch to its
+    end (the server declares it complete and ends the stream) and the trainer is resumed from
+    that older checkpoint against the same ``--epochs 1`` server, still up in its grace period:
+    it gets exactly the samples after the checkpoint, then the server exits by itself once no
+    trainer is connected for ``--end-grace-s``."""
+    from torchdata.stateful_dataloader import StatefulDataLoader
+
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    first: list = []
+    resumed: list = []
+    with _serve(corpus, layout, "--epochs", "1", "--end-grace-s", str(grace_s)) as srv:
+        loader = StatefulDataLoader(V2VStreamDataset(srv.endpoint, timeout_s=60), batch_size=None)
+        ckpt = None
+        for step, b in enumerate(loader):
+            first.append(list(b["sample_ids"]))
+            if step + 1 == ckpt_step:
+                ckpt = loader.state_dict()
+        t_end = time.monotonic()
+        ended_alive = srv.proc.poll() is None  # still serving after the end of the stream
+        again = StatefulDataLoader(V2VStreamDataset(srv.endpoint, timeout_s=60), batch_size=None)
+        again.load_state_dict(ckpt)
+        for b in again:
+            resumed.append(list(b["sample_ids"]))
+        resume_s = time.monotonic() - t_end
+        rc = srv.wait(grace_s + 30)
+        gone_after = time.monotonic() - t_end
+    trained = [s for ids in first[:ckpt_step] for s in ids] + [s for ids in resumed for s in ids]
+    after_ckpt = sorted(s for ids in first[ckpt_step:] for s in ids)
+    return row(f"StatefulDataLoader resumed from step {ckpt_step} after the epoch ended", expected, trained, resume_s,
+               f"server alive after the end {ended_alive}; resumed run got {len(trained) - sum(map(len, first[:ckpt_step]))} "
+               f"samples (the {len(after_ckpt)} after the checkpoint); server exit {rc} after {gone_after:.0f} s",
+               ended_alive=ended_alive, resumed_equal=sorted(s for ids in resumed for s in ids) == after_ckpt,
+               server_exit=rc, exit_after_s=round(gone_after, 1))
+
+
 SCENARIOS = {
     "worker_kill": scenario_worker_kill,
     "client_kill": scenario_client_kill,
@@ -795,6 +833,7 @@ SCENARIOS = {
     "ddp_late_rank": scenario_ddp_late_rank,
     "fair_sharing": scenario_fair_sharing,
     "undecodable_name": scenario_undecodable_name,
+    "resume_after_end": scenario_resume_after_end,
 }
 
 

@@ -26,7 +26,9 @@ class ServeProcess:
     """``with ServeProcess(["--workers", "2"]) as srv: ... srv.endpoint ...``
 
     Args:
-        args: extra ``v2v-serve`` arguments (``--bind`` is added unless given).
+        args: extra ``v2v-serve`` arguments (``--bind`` is added unless given; with
+            ``--epochs``, ``--end-grace-s 0`` unless given, so that a test's server exits as
+            soon as its stream ended and no trainer is connected).
         ready_timeout_s: seconds to wait for the server to report it is serving.
         log_path: file to which the server's stderr goes (kept in ``self.log`` otherwise).
 
@@ -43,6 +45,8 @@ class ServeProcess:
             self.args += ["--bind", self.endpoint]
         else:
             self.endpoint = self.args[self.args.index("--bind") + 1]
+        if "--epochs" in self.args and "--end-grace-s" not in self.args:
+            self.args += ["--end-grace-s", "0"]
         self.ready_timeout_s = ready_timeout_s
         self.log_path = log_path
         self.env = env

@@ -55,3 +55,11 @@ def test_dist_position_reads_the_process_group_then_the_environment(monkeypatch)
         assert dist_position() == (0, 1)
     finally:
         dist.destroy_process_group()
+
+
+def test_stateful_dataloader_resumes_an_older_checkpoint_after_the_epoch_ended(tmp_path):
+    r = faults.scenario_resume_after_end(tmp_path, LAYOUT, ckpt_step=2, grace_s=3.0)
+    assert (r["lost"], r["duplicated"], r["unexpected"]) == (0, 0, 0), r
+    f = r["facts"]
+    assert f["ended_alive"] and f["resumed_equal"] and f["server_exit"] == 0, r
+    assert 3.0 <= f["exit_after_s"] < 30, r

@@ -164,6 +164,9 @@ class ServingSettings:
     workers: int = setting(2, help="worker processes")
     bind: str = setting("tcp://127.0.0.1:5555", help="ZeroMQ endpoint to bind (port 0 = any free port)")
     epochs: Optional[int] = setting(None, help="end the stream after this many epochs (default: unbounded)")
+    end_grace_s: float = setting(600.0, help="with epochs: seconds the server stays up after the last epoch with no "
+                                             "trainer connected, serving trainers that resume from an older "
+                                             "checkpoint (the epochs they have not finished reopen for them)")
     batch_size: int = setting(12, help="samples per batch (the last batch of an epoch may be smaller)")
     video_extensions: Tuple[str, ...] = setting(VIDEO_EXTENSIONS, help="file extensions served as videos", flag="")
     heartbeat_s: float = setting(1.0, help="seconds between heartbeats to clients")
@@ -201,6 +204,9 @@ class ServingSettings:
             check_int("epochs", self.epochs, 1)
         for name in ("heartbeat_s", "lease_s", "client_timeout_s", "task_timeout_s"):
             setattr(self, name, check_float(name, getattr(self, name)))
+        self.end_grace_s = check_float("end_grace_s", self.end_grace_s, positive=False)
+        if self.end_grace_s < 0:
+            raise ValueError(f"end_grace_s must be >= 0 seconds, got {self.end_grace_s!r}")
         if self.revoke_s is not None:
             self.revoke_s = check_float("revoke_s", self.revoke_s)
         if not isinstance(self.bind, str) or "://" not in self.bind:

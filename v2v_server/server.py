@@ -71,7 +71,9 @@ class V2VServer:
         self.sched, self.ledger = self.core.sched, self.core.ledger
         self.bad = BadPeers()
         self.logged_failures: set = set()
-        self.ended = False
+        self.ended = False  # every epoch delivered (at least once)
+        self._told_end: set = set()  # connections told the stream ended
+        self._ended_at: Optional[float] = None  # since when the stream ended with no trainer connected
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
         self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
@@ -130,6 +132,34 @@ class V2VServer:
                  m["samples_made"], m["workers_restarted"], m["tasks_timed_out"], m["files_skipped"])
 
     # ------------------------------------------------------------------ main loop
+    def _end_of_stream(self, now: float) -> bool:
+        """With ``--epochs``: once every epoch is delivered, tell each connected trainer the
+        stream ended (once per connection), and stay up ``end_grace_s`` with no trainer
+        connected so that one resuming from an older checkpoint still gets the samples it
+        lacks (its resume state reopens those epochs, ``schedule.apply_resume``). True when
+        the server may exit."""
+        if not self.core.finished():
+            self._ended_at = None
+            self._told_end.clear()
+            return False
+        if not self.ended:
+            log.info("all %d epoch(s) delivered; ending the stream (the server stays up %.0f s with no trainer "
+                     "connected, for trainers that resume)", self.cfg.epochs, self.cfg.end_grace_s)
+            self.ended = True
+        for ident in self.ledger.clients:
+            if ident not in self._told_end:
+                self._told_end.add(ident)
+                self._send_client(ident, {"type": "end"})
+        if self.ledger.clients:
+            self._ended_at = None
+            return False
+        if self._ended_at is None:
+            self._ended_at = now
+        if now - self._ended_at >= self.cfg.end_grace_s:
+            log.info("no trainer for %.0f s after the end of the stream; exiting", now - self._ended_at)
+            return True
+        return False
+
     def _loop(self) -> int:
         next_beat = 0.0
         next_status = time.monotonic() + 30.0
@@ -167,10 +197,7 @@ class V2VServer:
                 if now >= next_status:
                     self._log_status()
                     next_status = now + 30.0
-                if self.core.finished():
-                    self._broadcast({"type": "end"})
-                    log.info("all %d epoch(s) delivered; ending the stream", self.cfg.epochs)
-                    self.ended = True
+                if self._end_of_stream(now):
                     return 0
                 if self._corpus_empty():
                     msg = (f"no usable video under {self.root}: "
