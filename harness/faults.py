@@ -814,6 +814,36 @@ def scenario_resume_after_end(tmp: Path, layout: Layout, ckpt_step: int = 2, gra
                server_exit=rc, exit_after_s=round(gone_after, 1))
 
 
+
+def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: int = 3) -> dict:
+    """``StreamLoader(ds, num_workers=2)``: take ``take`` batches and ``break`` (max_steps),
+    then iterate again, until an iteration runs to the end of the ``--epochs 1`` stream.
+    Batches the workers prefetched but the loop never received are sent again, to the next
+    iteration; none that it received is."""
+    from v2v_client import StreamLoader
+
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    log: list = []
+    rounds = 0
+    with _serve(corpus, layout, "--epochs", "1", "--end-grace-s", "3") as srv:  # an iteration may start after the end
+        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2,
+                              persistent_workers=persistent)
+        finished = False
+        while not finished and rounds < 20:
+            rounds += 1
+            finished = True
+            for i, b in enumerate(loader):
+                log.append((time.monotonic(), list(b["sample_ids"])))
+                if i + 1 == take:
+                    finished = False
+                    break
+        rc = srv.wait(60)
+    kind = "persistent" if persistent else "non-persistent"
+    return row(f"StreamLoader, 2 {kind} workers, break after {take} batches and iterate again", expected,
+               _ids(log), None, f"{rounds} iterations; server exit {rc}", rounds=rounds, server_exit=rc)
+
+
 SCENARIOS = {
     "worker_kill": scenario_worker_kill,
     "client_kill": scenario_client_kill,
@@ -834,6 +864,8 @@ SCENARIOS = {
     "fair_sharing": scenario_fair_sharing,
     "undecodable_name": scenario_undecodable_name,
     "resume_after_end": scenario_resume_after_end,
+    "loader_workers": lambda tmp, layout: scenario_loader_workers(tmp, layout, True),
+    "loader_workers_fresh": lambda tmp, layout: scenario_loader_workers(tmp, layout, False),
 }
 
 

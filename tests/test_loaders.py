@@ -63,3 +63,15 @@ def test_stateful_dataloader_resumes_an_older_checkpoint_after_the_epoch_ended(t
     f = r["facts"]
     assert f["ended_alive"] and f["resumed_equal"] and f["server_exit"] == 0, r
     assert 3.0 <= f["exit_after_s"] < 30, r
+
+
+def test_stream_loader_workers_persistent_break_and_iterate_again(tmp_path):
+    r = faults.scenario_loader_workers(tmp_path, LAYOUT, persistent=True, take=3)
+    assert (r["lost"], r["duplicated"], r["unexpected"]) == (0, 0, 0), r
+    assert r["facts"]["rounds"] > 1 and r["facts"]["server_exit"] == 0, r
+
+
+def test_stream_loader_workers_not_persistent_break_and_iterate_again(tmp_path):
+    r = faults.scenario_loader_workers(tmp_path, LAYOUT, persistent=False, take=3)
+    assert (r["lost"], r["duplicated"], r["unexpected"]) == (0, 0, 0), r
+    assert r["facts"]["rounds"] > 1 and r["facts"]["server_exit"] == 0, r

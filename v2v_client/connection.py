@@ -112,6 +112,8 @@ class Connection:
         self.discarded = 0
         self._hello_seq = 0
         self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
+        self._lingering = False
+        self._receipts = getattr(ds, "receipts", None)  # DataLoader worker: what the training loop received
         self.shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
         self._shm = ShmReader(keep=ds.credits + 2) if self.shm else None
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
@@ -141,6 +143,26 @@ class Connection:
         self._queue_for_server({"type": "ack", "batch_ids": [bid]})
         return True
 
+    def hold(self, item: dict) -> bool:
+        """Claim a received batch for a DataLoader worker's queue: like :meth:`take`, but the
+        server is told the batch is held (no lease) rather than acknowledged; :meth:`ack`
+        follows when the training loop receives it, else closing the connection gives it back."""
+        bid = item["batch_id"]
+        with self.lock:
+            if self.current.get(bid) is not item:
+                return False
+            if self.silent_too_long(time.monotonic()):
+                self._discard_locked("this process was silent longer than the server's client timeout")
+                return False
+            del self.current[bid]
+        self._queue_for_server({"type": "hold", "batch_ids": [bid]})
+        return True
+
+    def ack(self, batch_ids) -> None:
+        """Acknowledge batches this connection holds (the training loop received them)."""
+        if batch_ids:
+            self._queue_for_server({"type": "ack", "batch_ids": list(batch_ids)})
+
     def give_back(self, item: dict) -> None:
         """Return a received batch to the server unused (e.g. an epoch this consumer already completed)."""
         bid = item["batch_id"]
@@ -154,6 +176,11 @@ class Connection:
     def _queue_for_server(self, msg: dict) -> None:
         if not self._closing.is_set():
             self._ack_send.send(pack(msg))
+
+    def linger(self) -> None:
+        """The iteration ended with batches still in a DataLoader's queues: keep taking their
+        receipts, and close once none is left (or at :meth:`close`)."""
+        self._lingering = True
 
     def close(self) -> None:
         """Stop the I/O thread: acknowledgements already queued are sent, then ``bye``."""
@@ -192,7 +219,22 @@ class Connection:
         poller = zmq.Poller()
         poller.register(sock, zmq.POLLIN)
         poller.register(self._ack_recv, zmq.POLLIN)
+        if self._receipts is not None:
+            poller.register(self._receipts.fileno(), zmq.POLLIN)
         return poller
+
+    def _take_receipts(self, sock: zmq.Socket) -> None:
+        """Batches the training loop received (written by ``StreamLoader`` in the main
+        process): acknowledged to the server, and recorded by the stream."""
+        while self._receipts is not None and self._receipts.poll(0):
+            try:
+                ids = unpack(self._receipts.recv_bytes())["batch_ids"]
+            except (EOFError, OSError):  # the main process is gone
+                self._receipts = None
+                return
+            mine = self.ds.received(ids)
+            if mine:
+                _send(sock, pack({"type": "ack", "batch_ids": mine}))
 
     def _hello(self) -> bytes:
         """A (re-)hello: whatever this connection still holds is discarded first, since the
@@ -232,6 +274,9 @@ class Connection:
                 self.last_io = now
                 if self._ack_recv in events:
                     self._forward_acks(sock)
+                self._take_receipts(sock)
+                if self._lingering and not self.ds.in_loader():
+                    return  # every batch handed to the DataLoader was received: bye
                 lost = None
                 if sock in events:
                     while True:
@@ -286,6 +331,7 @@ class Connection:
             if sock is not None:
                 try:
                     self._forward_acks(sock)  # acks of batches the training loop took go out before bye
+                    self._take_receipts(sock)
                     sock.send(pack({"type": "bye"}), zmq.NOBLOCK)
                 except zmq.ZMQError:
                     pass
@@ -313,6 +359,8 @@ class Connection:
             elif kind == "epoch_done":
                 n = h.get("batches")
                 self.items.put(_EpochDone(int(h["epoch"]), n if isinstance(n, int) else None))
+            elif kind == "drained":
+                self.items.put(_Drained())
             elif kind == "end":
                 self.items.put(StopIteration(h.get("reason", "end of stream")))
                 return "over"
@@ -432,6 +480,10 @@ def _strip(item: dict) -> None:
 class _Padding:
     def __init__(self, item: dict):
         self.item = item
+
+
+class _Drained:
+    """The server has nothing left to send this connection unless a batch held elsewhere comes back."""
 
 
 class _EpochDone:

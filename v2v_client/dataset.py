@@ -152,6 +152,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         # several servers (a list, "a,b", or a DNS name with several addresses): fan-in
         self._fanin: Optional[FanInStream] = None
         self._meter = TrainerMetrics()
+        self._link = None  # set by a StreamLoader: its workers' receipt pipes and records (loader.py)
         if not isinstance(endpoint, str) or "," in endpoint:
             endpoints = split_endpoints(endpoint)
             if len(endpoints) == 1:
@@ -199,12 +200,35 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._stream is not None:
             self._stream.set_position(rank, world)
 
+    @property
+    def consumer(self) -> str:
+        """The id the server knows this reader by (DataLoader workers add ``/<worker id>``)."""
+        return self._stream._consumer if self._stream is not None else ""
+
+    @consumer.setter
+    def consumer(self, value: str) -> None:
+        if self._stream is not None:
+            self._stream._consumer = value
+
     def __iter__(self) -> Iterator[dict]:
         self._position()
         if self._fanin is None:
             endpoints = resolve_endpoints(self.endpoint)
             if len(endpoints) > 1:  # e.g. a Kubernetes headless Service: one server per address
                 self._fanin = self._make_fanin(endpoints)
+        worker = torch.utils.data.get_worker_info()
+        if worker is not None:  # in a DataLoader worker process
+            if self._link is None:
+                raise RuntimeError(
+                    "V2VStreamDataset read by DataLoader worker processes: a plain DataLoader cannot tell its "
+                    "workers which batches reached the training loop, so batches it prefetched and dropped would "
+                    "be lost or repeated. Build the loader with v2v_client.StreamLoader(ds, num_workers=..., ...) "
+                    "(DataLoader's arguments), or use num_workers=0 (the dataset prefetches `credits` batches "
+                    "in its own thread)")
+            if self._fanin is not None:
+                raise RuntimeError("V2VStreamDataset over several servers is read with num_workers=0 (the fan-in "
+                                   "reads every server in its own thread)")
+            self._stream.attach_loader(worker.id, self._link.receipts[worker.id], self._link.records.get(worker.id))
         inner = iter(self._fanin) if self._fanin is not None else iter(self._stream)
         return self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else "")
 
@@ -213,7 +237,15 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         """Where this consumer stands: epochs the server declared complete, the sample ids
         yielded so far in epochs still open, batches yielded per open epoch, and the consumer
         id the server knows it by. Plain, JSON/torch.save-safe data. With several servers: the
-        epoch all of them completed and the ids yielded in later epochs."""
+        epoch all of them completed and the ids yielded in later epochs.
+
+        Raises:
+            RuntimeError: the dataset is read by a ``StreamLoader``'s workers (their records are
+                in the loader: checkpoint ``loader.state_dict()``).
+        """
+        if self._link is not None:
+            raise RuntimeError("this V2VStreamDataset is read by StreamLoader workers: checkpoint the loader "
+                               "(loader.state_dict()), which holds what each worker's training loop received")
         return (self._fanin or self._stream).state_dict()
 
     def load_state_dict(self, state: dict) -> None:

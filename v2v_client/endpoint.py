@@ -13,7 +13,7 @@ from typing import Dict, Iterator, List, Optional, Set, Tuple
 
 import torch
 
-from .connection import Connection, StreamError, _EpochDone, _Padding, _select, load_curve_keys
+from .connection import Connection, StreamError, _Drained, _EpochDone, _Padding, _select, load_curve_keys
 from .fanin import read_state
 
 __all__ = ["StreamOptions", "EndpointStream", "padding_copy"]
@@ -76,6 +76,12 @@ class EndpointStream:
         self._completed_epoch = -1
         self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
         self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
+        # In a DataLoader worker under ``StreamLoader``: the pipe on which the main process says
+        # which batches the training loop received, and the batches yielded to the DataLoader and
+        # not yet received (batch id -> (epoch, sample ids)); see ``v2v_client.loader``.
+        self.receipts = None
+        self.worker: Optional[int] = None
+        self._pipeline: Dict[int, Tuple[int, List[str]]] = {}
 
     def set_position(self, rank: int, world_size: int) -> None:
         """The DDP position the next connection says hello with."""
@@ -106,6 +112,36 @@ class EndpointStream:
             self._batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
             if isinstance(state.get("consumer"), str) and state["consumer"]:
                 self._consumer = state["consumer"]
+
+    def attach_loader(self, worker: int, receipts, state: Optional[dict]) -> None:
+        """Read by DataLoader worker ``worker`` of a ``StreamLoader``: batches are
+        acknowledged when the main process reports them received (``receipts``, the read end
+        of a ``multiprocessing.Pipe``), not when yielded. ``state``: this worker's record kept
+        by the main process, loaded the first time (a worker process made anew resumes from it;
+        a persistent one keeps its own, which equals it)."""
+        self.close()  # a new iteration in this worker: the previous one is over (its receipts are taken first)
+        if self.receipts is None and state is not None:
+            self.load_state_dict(state)
+        self.worker, self.receipts = worker, receipts
+
+    def received(self, batch_ids) -> List[int]:
+        """The training loop received these batches (a receipt from the main process): they
+        count as yielded; returns those this stream had handed to the DataLoader."""
+        mine = []
+        with self._lock:
+            for bid in batch_ids:
+                entry = self._pipeline.pop(bid, None)
+                if entry is not None:
+                    epoch, ids = entry
+                    if epoch > self._completed_epoch:
+                        self._delivered.setdefault(epoch, set()).update(ids)
+                        self._batches[epoch] = self._batches.get(epoch, 0) + 1
+                    mine.append(bid)
+        return mine
+
+    def in_loader(self) -> int:
+        """Batches yielded to the DataLoader whose receipt has not come."""
+        return len(self._pipeline)
 
     def wants_shm(self, endpoint: str) -> bool:
         """Whether a connection to ``endpoint`` asks for batches through the server's shared
@@ -156,6 +192,7 @@ class EndpointStream:
     def __iter__(self) -> Iterator[dict]:
         conn = Connection(self)
         self._conns.append(conn)
+        abandoned = False
         try:
             while True:
                 try:
@@ -170,6 +207,12 @@ class EndpointStream:
                     raise item
                 if isinstance(item, _EpochDone):
                     yield from self._epoch_done(item)
+                    continue
+                if isinstance(item, _Drained):
+                    with conn.lock:
+                        idle = not conn.current
+                    if self.receipts is not None and idle:
+                        return  # a DataLoader worker: end this iteration so the loader takes the others' batches
                     continue
                 if isinstance(item, _Padding):
                     with self._lock:
@@ -187,14 +230,26 @@ class EndpointStream:
                 if done_already:
                     conn.give_back(item)  # never acknowledge what we would drop
                     continue
-                if not conn.take(item):
+                loader = self.receipts is not None
+                if not (conn.hold(item) if loader else conn.take(item)):
                     continue  # given back meanwhile (lease expired, or this client was dropped)
                 with self._lock:
                     seen = self._delivered.setdefault(epoch, set())
-                    keep = [i for i, sid in enumerate(item["sample_ids"]) if sid not in seen]
-                    seen.update(item["sample_ids"][i] for i in keep)
-                    self._batches[epoch] = self._batches.get(epoch, 0) + 1
+                    queued = {s for e, ids in self._pipeline.values() if e == epoch for s in ids}
+                    keep = [i for i, sid in enumerate(item["sample_ids"]) if sid not in seen and sid not in queued]
+                    if loader:
+                        if keep:
+                            self._pipeline[item["batch_id"]] = (epoch, [item["sample_ids"][i] for i in keep])
+                    else:
+                        seen.update(item["sample_ids"][i] for i in keep)
+                        self._batches[epoch] = self._batches.get(epoch, 0) + 1
                 item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
+                if loader:
+                    if not keep:
+                        conn.ack([item["batch_id"]])  # nothing new in it: nothing for the loop to receive
+                        continue
+                    item["receipt"] = {"worker": self.worker, "batch_id": item["batch_id"], "epoch": epoch,
+                                       "completed_epoch": self._completed_epoch}
                 if len(keep) < len(item["sample_ids"]):
                     if not keep and self.world_size == 1:
                         continue  # all re-sent duplicates: hand nothing on
@@ -207,13 +262,24 @@ class EndpointStream:
                         yield padding_copy(item, e)
                 self._last = item
                 yield item
+        except GeneratorExit:
+            abandoned = True
+            raise
         finally:
-            conn.close()
-            if conn in self._conns:
-                self._conns.remove(conn)
+            if self.receipts is not None and not abandoned and self._pipeline:
+                conn.linger()  # ended (drained, end of stream) with batches in the loader's queues
+            else:
+                conn.close()  # receipts already written are taken first; the rest goes back with bye
+                with self._lock:
+                    self._pipeline.clear()
+                if conn in self._conns:
+                    self._conns.remove(conn)
 
     def close(self) -> None:
-        """Close every open connection of this stream (also done when iterators are collected)."""
+        """Close every open connection of this stream (also done when iterators are collected);
+        batches a DataLoader worker yielded and the loop never received go back to the server."""
         for conn in list(self._conns):
             conn.close()
         self._conns.clear()
+        with self._lock:
+            self._pipeline.clear()

@@ -20,7 +20,7 @@ from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 from .ledger import BatchRecord, DeliveryLedger
 from .protocol import OUTPUTS
 from .schedule import EpochScheduler, Job, parse_sample_id
-from .wire import Ack, Bye, Credit, Heartbeat, Hello, Released
+from .wire import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
 
 log = logging.getLogger("v2v.server")
 
@@ -211,6 +211,8 @@ class DeliveryCore:
             if back:
                 log.info("batch(es) %s go back to the queue: their lease expired and the client released them",
                          back)
+        elif isinstance(msg, Hold):
+            self.ledger.hold(ident, msg.batch_ids)
         elif isinstance(msg, Credit):
             self.ledger.grant(ident, msg.credit)
         elif isinstance(msg, Bye):
@@ -261,7 +263,24 @@ class DeliveryCore:
                      b.batch_id, sorted(b.outputs))
             self.sched.discarded(b.epoch, b.keys)
         pads, announced = self._announce()
-        return sends + pads, msgs + announced
+        return sends + pads, msgs + announced + self._drained()
+
+    def _drained(self) -> List[Msg]:
+        """``drained`` to each client holding nothing, once, when a bounded stream has nothing
+        left to make or send: the rest is held by other clients. A DataLoader worker waiting
+        for a batch ends its iteration on it, so the loader (in order) can take the batches
+        the other workers hold; a batch given back later goes to whoever still reads."""
+        s = self.sched
+        drained = (s.max_epochs is not None and s.next_epoch >= s.max_epochs and not s.queue and not s.running
+                   and not self.ledger.ready and not any(self.pending.values()))
+        msgs: List[Msg] = []
+        for ident, c in self.ledger.clients.items():
+            if not drained or c.held or c.revoked:
+                c.told_drained = False
+            elif not c.told_drained:
+                c.told_drained = True
+                msgs.append((ident, {"type": "drained"}))
+        return msgs
 
     def _announce(self) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
         """``epoch_done`` for each newly complete epoch, in order. A DDP rank that has yielded

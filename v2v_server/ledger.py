@@ -11,7 +11,10 @@ Rules (README "Nothing lost, nothing let in"):
   nothing, so re-sends can never inflate a client's credits.
 * **Leases.** A batch unacknowledged ``lease_s`` after it was sent is revoked (the client is
   asked to give it back). A revoke that is not answered within ``revoke_s`` expires: the
-  client is dropped, everything it held goes back to the queue, and it is told so.
+  client is dropped, everything it held goes back to the queue, and it is told so. A batch
+  the client says it ``hold``s (handed to a DataLoader's queue, acknowledged when the
+  training loop receives it) has no lease: it stays with the client until acknowledged,
+  released, or the client leaves or is dropped.
 * **Silence.** A client silent for ``client_timeout_s`` is dropped the same way.
 * **Fair sharing.** Ready batches go round-robin to the clients with a free slot (least
   recently served first); a batch given back prefers another client.
@@ -24,6 +27,7 @@ Rules (README "Nothing lost, nothing let in"):
 from __future__ import annotations
 
 import collections
+import math
 from dataclasses import dataclass, field
 from typing import Any, Deque, Dict, Hashable, Iterable, List, Optional, Set, Tuple
 
@@ -66,6 +70,7 @@ class ClientRecord:
     served: int = 0  # round-robin position (ledger's send counter when last served)
     sent: int = 0
     completed: int = -1  # its consumer was told epochs up to this one are complete: none of them is sent
+    told_drained: bool = False  # told nothing more is coming unless a batch held elsewhere comes back
 
     @property
     def free(self) -> int:
@@ -223,6 +228,17 @@ class DeliveryLedger:
                     self.acked += 1
                     done.append(b)
         return done
+
+    def hold(self, ident: bytes, batch_ids: Iterable[int]) -> None:
+        """The client handed these batches to its data loader: their leases end (a revoke
+        already sent is withdrawn; the client answers it no more)."""
+        c = self.clients.get(ident)
+        if c is None:
+            return
+        for bid in batch_ids:
+            if bid in c.held or bid in c.revoked:
+                c.revoked.pop(bid, None)
+                c.held[bid] = math.inf
 
     def released(self, ident: bytes, batch_ids: Iterable[int]) -> List[int]:
         """The client gave back revoked (or held) batches; they go back to the queue."""

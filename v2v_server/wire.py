@@ -83,6 +83,14 @@ class Released:
 
 
 @dataclass(frozen=True)
+class Hold:
+    """The client handed these batches to its data loader (DataLoader workers): no lease; an
+    ack follows when the training loop receives one, else the connection gives it back."""
+
+    batch_ids: Tuple[int, ...]
+
+
+@dataclass(frozen=True)
 class Credit:
     credit: int
 
@@ -159,8 +167,8 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
     """Check a decoded client header against the schema of its ``type`` (resume ids are read
     with the server's ``crops_per_window``, see ``ids.py``).
 
-    Returns one of :class:`Hello`, :class:`Ack`, :class:`Released`, :class:`Credit`,
-    :class:`Heartbeat`, :class:`Bye`.
+    Returns one of :class:`Hello`, :class:`Ack`, :class:`Released`, :class:`Hold`,
+    :class:`Credit`, :class:`Heartbeat`, :class:`Bye`.
 
     Raises:
         WireError: unknown type, wrong version, or a field of the wrong type or range.
@@ -195,6 +203,8 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
         return Ack(_ids(h, "batch_ids"))
     if kind == "released":
         return Released(_ids(h, "batch_ids"))
+    if kind == "hold":
+        return Hold(_ids(h, "batch_ids"))
     if kind == "credit":
         return Credit(_int(h, "credit", 0, 1 << 20))
     if kind == "heartbeat":

@@ -1,0 +1,158 @@
+"""``StreamLoader``: a torch DataLoader for a ``V2VStreamDataset`` read by worker processes.
+
+A DataLoader's workers run ahead of the training loop: each yields up to ``prefetch_factor``
+batches into the loader's queues, and an abandoned iteration (``break``, ``max_steps``, a new
+``for``) drops whatever is queued. A worker cannot tell which of its batches the loop received,
+so it must not acknowledge them when it yields them. ``StreamLoader`` is the part that runs in
+the main process: for each batch it hands to the loop it writes a *receipt* (the batch id) to
+the worker that made it, over a ``multiprocessing.Pipe`` made before the workers start, and
+keeps each worker's record (sample ids received per open epoch). The worker's connection
+acknowledges a batch to the server when its receipt arrives; a batch it yielded that the loop
+never received is given back to the server when the worker's iterator closes (persistent
+workers reset, or workers shut down) and is sent again. So acknowledgement is receipt by the
+training loop, whatever the loader does in between.
+
+Workers keep their consumer ids (``<consumer>/<worker id>``) across re-creation; a worker
+process made anew resumes from the record the main process kept for it, a persistent one from
+its own (the same). ``state_dict()`` / ``load_state_dict()`` checkpoint those records and the
+consumer id (torchdata's Stateful convention).
+
+A plain ``DataLoader`` (or torchdata's ``StatefulDataLoader``) with ``num_workers > 0`` cannot
+do this: the dataset raises a clear error in its workers. With ``num_workers=0`` any loader
+works (the dataset's own I/O thread prefetches ``credits`` batches; acknowledgement happens
+when the dataset hands the batch over in the main process).
+"""
+from __future__ import annotations
+
+import multiprocessing
+from typing import Dict, List, Optional
+
+import torch
+
+from v2v_server.protocol import pack
+
+__all__ = ["StreamLoader", "LoaderLink"]
+
+
+class LoaderLink:
+    """What a ``StreamLoader`` gives its dataset for the workers: per worker the read end of
+    its receipt pipe and the record the main process keeps (``EndpointStream.state_dict()``
+    format without the consumer id)."""
+
+    def __init__(self, num_workers: int, records: Dict[int, dict], context=None):
+        ctx = context or multiprocessing
+        pipes = [ctx.Pipe(duplex=False) for _ in range(num_workers)]
+        self.receipts = [r for r, _ in pipes]
+        self._send = [w for _, w in pipes]
+        self.records = records
+
+    def receipt(self, worker: int, batch_id: int) -> None:
+        """Tell ``worker`` the loop received ``batch_id`` (a worker that is gone is ignored: the
+        loader raises its own error for it)."""
+        try:
+            self._send[worker].send_bytes(pack({"type": "receipt", "batch_ids": [batch_id]}))
+        except (OSError, ValueError):
+            pass
+
+    def close(self) -> None:
+        for c in self._send + self.receipts:
+            c.close()
+
+
+class StreamLoader(torch.utils.data.DataLoader):
+    """``torch.utils.data.DataLoader`` over a ``V2VStreamDataset``, exact with worker processes.
+
+    Args:
+        dataset: a ``V2VStreamDataset`` reading one server.
+        **kwargs: ``DataLoader`` arguments (``num_workers``, ``persistent_workers``,
+            ``prefetch_factor``, ``pin_memory``, ``multiprocessing_context``...); ``batch_size``
+            is None (the server makes the batches).
+
+    Yields the dataset's batch dicts. Every batch handed to the loop is acknowledged to the
+    server then (see the module docstring); one that a worker yielded but the loop never
+    received (an iteration left with ``break``) is sent again, to the next iteration.
+
+    Raises:
+        ValueError: ``dataset`` is not a ``V2VStreamDataset``, or ``batch_size`` is not None.
+    """
+
+    def __init__(self, dataset, **kwargs):
+        from .dataset import V2VStreamDataset
+
+        if not isinstance(dataset, V2VStreamDataset):
+            raise ValueError(f"StreamLoader reads a V2VStreamDataset, got {type(dataset).__name__}")
+        if kwargs.get("batch_size") is not None:
+            raise ValueError("StreamLoader: batch_size must be None (the server makes the batches)")
+        kwargs["batch_size"] = None
+        super().__init__(dataset, **kwargs)
+        self._records: Dict[int, dict] = {}
+        self._link: Optional[LoaderLink] = None
+
+    # ------------------------------------------------------------------ iteration
+    def __iter__(self):
+        if self.num_workers == 0:
+            return super().__iter__()
+        if self._link is None or not self.persistent_workers or self._iterator is None:
+            # workers are made for this iteration: new pipes, and the records they resume from
+            if self._link is not None:
+                self._link.close()
+            self._link = LoaderLink(self.num_workers, {w: dict(r) for w, r in self._records.items()},
+                                    self.multiprocessing_context)
+            self.dataset._link = self._link
+        return self._receive(super().__iter__())
+
+    def _receive(self, it):
+        for batch in it:
+            r = batch.pop("receipt", None)
+            if r is not None:
+                self._record(r, batch)
+                self._link.receipt(r["worker"], r["batch_id"])
+            yield batch
+
+    def _record(self, r: dict, batch: dict) -> None:
+        rec = self._records.setdefault(r["worker"], {"version": 1, "completed_epoch": -1, "delivered": {},
+                                                     "batches": {}})
+        done = max(rec["completed_epoch"], int(r["completed_epoch"]))
+        if done > rec["completed_epoch"]:
+            rec["completed_epoch"] = done
+            for key in ("delivered", "batches"):
+                rec[key] = {e: v for e, v in rec[key].items() if int(e) > done}
+        e = str(r["epoch"])
+        if int(e) > done:
+            rec["delivered"].setdefault(e, []).extend(batch["sample_ids"])
+            rec["batches"][e] = rec["batches"].get(e, 0) + 1
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """The consumer id and, with workers, each worker's record (epochs completed, sample
+        ids the loop received per open epoch); with ``num_workers=0`` the dataset's
+        ``state_dict()``. Plain, JSON/torch.save-safe data."""
+        if self.num_workers == 0:
+            return {"version": 1, "dataset": self.dataset.state_dict()}
+        return {"version": 1, "consumer": self.dataset.consumer,
+                "workers": {str(w): {k: (dict(v) if isinstance(v, dict) else v) for k, v in r.items()}
+                            for w, r in self._records.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Resume from ``state_dict()``: the next iteration's workers (made anew) start from
+        their records, as the same consumers.
+
+        Raises:
+            ValueError: a state of another format, or saved with another number of workers.
+        """
+        if not isinstance(state, dict) or state.get("version") != 1:
+            raise ValueError("not a StreamLoader state (expected version 1)")
+        if "dataset" in state:
+            if self.num_workers:
+                raise ValueError("this state was saved with num_workers=0; this loader has workers")
+            self.dataset.load_state_dict(state["dataset"])
+            return
+        workers = {int(w): r for w, r in state.get("workers", {}).items()}
+        if self.num_workers == 0 or any(w >= self.num_workers for w in workers):
+            raise ValueError(f"this state was saved by a loader with workers {sorted(workers)}; this one has "
+                             f"num_workers={self.num_workers}")
+        self.dataset.consumer = state["consumer"]
+        self._records = workers
+        if self._iterator is not None:  # persistent workers hold their own records: start them anew
+            self._iterator._shutdown_workers()
+            self._iterator = None
