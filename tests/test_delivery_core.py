@@ -533,6 +533,21 @@ def test_unanswered_revoke_expires_and_drops_the_client():
     assert [d[0] for d in drops] == [b"a"] and list(led.ready) == [0] and b"a" not in led.clients
 
 
+def test_a_held_batch_has_no_lease_and_goes_back_when_its_client_leaves():
+    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, revoke_s=3.0)
+    led.join(b"a", "A", ("voxels",), 2, 0.0)
+    for i in range(2):
+        led.add_batch(BatchRecord(i, 0, [("v", i)], None, outputs=frozenset({"voxels"})))
+    led.sends(0.0)
+    led.hold(b"a", [0])  # handed to a DataLoader's queue before its lease ran out
+    led.touch(b"a", 1.5)
+    assert led.expire(1.5) == ({b"a": [1]}, [])  # only the batch not held is asked back
+    led.hold(b"a", [1])  # held after the revoke was sent: the revoke is withdrawn
+    led.touch(b"a", 500.0)
+    assert led.expire(500.0) == ({}, [])
+    assert sorted(led.leave(b"a")) == [0, 1] and sorted(led.ready) == [0, 1]
+
+
 def test_twenty_clients_share_fairly():
     led = DeliveryLedger(lease_s=100.0, client_timeout_s=100.0)
     idents = [bytes([i]) for i in range(20)]

@@ -75,3 +75,43 @@ def test_stream_loader_workers_not_persistent_break_and_iterate_again(tmp_path):
     r = faults.scenario_loader_workers(tmp_path, LAYOUT, persistent=False, take=3)
     assert (r["lost"], r["duplicated"], r["unexpected"]) == (0, 0, 0), r
     assert r["facts"]["rounds"] > 1 and r["facts"]["server_exit"] == 0, r
+
+
+def test_a_plain_dataloader_with_workers_is_a_clear_error(tmp_path):
+    import pytest
+    import torch
+
+    from v2v_client import V2VStreamDataset
+
+    corpus = faults.good_corpus(tmp_path, 1)
+    with ServeProcess(["--videos", str(corpus), "--workers", "1", *LAYOUT.args()]) as srv:
+        ds = V2VStreamDataset(srv.endpoint, timeout_s=30)
+        with pytest.raises(RuntimeError, match="StreamLoader"):
+            next(iter(torch.utils.data.DataLoader(ds, batch_size=None, num_workers=1)))
+
+
+def test_stream_loader_checkpoint_resumes_exactly_once(tmp_path):
+    """Checkpoint a 2-worker StreamLoader at step 2, read on to step 5, abandon it (a crash),
+    and resume a new loader from the step-2 checkpoint: every sample once in what was trained."""
+    from v2v_client import StreamLoader, V2VStreamDataset
+
+    corpus = faults.good_corpus(tmp_path, 2)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    trained = []
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--end-grace-s", "3",
+                       *LAYOUT.args()]) as srv:
+        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2)
+        for step, b in enumerate(loader):
+            if step < 2:
+                trained += b["sample_ids"]
+            if step == 1:
+                ckpt = json.loads(json.dumps(loader.state_dict()))  # as saved to disk
+            if step == 4:
+                break
+        del loader
+        again = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2)
+        again.load_state_dict(ckpt)
+        for b in again:
+            trained += b["sample_ids"]
+        assert srv.wait(60) == 0
+    assert sorted(trained) == expected
