@@ -844,6 +844,47 @@ def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: i
                _ids(log), None, f"{rounds} iterations; server exit {rc}", rounds=rounds, server_exit=rc)
 
 
+
+def scenario_independent_restart(tmp: Path, layout: Layout, journal: bool = True, late_s: float = 3.0) -> dict:
+    """Two trainers that are not one DDP group read one stream, each checkpoints after 2
+    batches, the server is killed (SIGKILL) and restarted (with ``--state-dir`` when
+    ``journal``); trainer A resumes at once and reads to the end, trainer B resumes ``late_s``
+    later. With the journal the restarted server knows B's samples: A is sent none of them."""
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    args = ["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--end-grace-s", "5", *layout.args()]
+    if journal:
+        args += ["--state-dir", str(tmp / "state")]
+    trained: list = []
+    srv = ServeProcess(args).start()
+    srv2 = None
+    try:
+        states = []
+        for _ in range(2):
+            ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
+            it = iter(ds)
+            _take(it, 2, trained)
+            states.append(ds.state_dict())
+            it.close()
+        srv.proc.send_signal(signal.SIGKILL)
+        srv.proc.wait(10)
+        srv2 = ServeProcess(args + ["--bind", srv.endpoint]).start()
+        a, b = (V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1) for _ in range(2))
+        a.load_state_dict(states[0])
+        read_all(a, trained)
+        time.sleep(late_s)
+        b.load_state_dict(states[1])
+        read_all(b, trained)
+        rc = srv2.wait(60)
+    finally:
+        srv.stop()
+        if srv2 is not None:
+            srv2.stop()
+    what = "with --state-dir" if journal else "without a journal"
+    return row(f"two independent trainers resume {late_s:.0f} s apart after a server restart, {what}", expected,
+               _ids(trained), None, f"server exit {rc}", server_exit=rc)
+
+
 SCENARIOS = {
     "worker_kill": scenario_worker_kill,
     "client_kill": scenario_client_kill,
@@ -866,6 +907,7 @@ SCENARIOS = {
     "resume_after_end": scenario_resume_after_end,
     "loader_workers": lambda tmp, layout: scenario_loader_workers(tmp, layout, True),
     "loader_workers_fresh": lambda tmp, layout: scenario_loader_workers(tmp, layout, False),
+    "independent_restart": scenario_independent_restart,
 }
 
 

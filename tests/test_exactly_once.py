@@ -80,6 +80,12 @@ def test_a_file_name_that_is_not_utf8_is_ignored_and_the_rest_served(tmp_path):
     assert f["logged"] == 1 and f["server_exit"] == 0 and not f["traceback"], r
 
 
+def test_independent_trainers_resume_apart_after_a_restart_with_a_journal(tmp_path):
+    r = faults.scenario_independent_restart(tmp_path, LAYOUT, journal=True, late_s=3.0)
+    exactly_once(r)
+    assert r["facts"]["server_exit"] == 0, r
+
+
 def test_ddp_ranks_get_equal_batch_counts(tmp_path):
     r = faults.scenario_ddp_ranks(tmp_path, LAYOUT, world=4)
     exactly_once(r)

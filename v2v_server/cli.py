@@ -12,6 +12,7 @@ from .settings import add_flags, flag_values
 from .server import V2VServer, install_signal_handlers
 from .logs import setup_logging
 from .corpus import SAMPLE_VIDEOS, check_corpus, format_check, select_shard
+from .journal import JournalError
 from .video import scan_corpus
 
 
@@ -73,7 +74,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: --videos {root}: no video files ({', '.join(cfg.video_extensions)})"
               + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)
         return 2
-    server = V2VServer(cfg, root, videos)
+    try:
+        server = V2VServer(cfg, root, videos)
+    except (JournalError, OSError) as e:  # the journal of --state-dir
+        print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
+        return 2
     install_signal_handlers(server)
     try:
         return server.run()

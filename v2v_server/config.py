@@ -167,6 +167,9 @@ class ServingSettings:
     end_grace_s: float = setting(600.0, help="with epochs: seconds the server stays up after the last epoch with no "
                                              "trainer connected, serving trainers that resume from an older "
                                              "checkpoint (the epochs they have not finished reopen for them)")
+    state_dir: Optional[str] = setting(None, help="folder of the delivery journal: what each trainer acknowledged, "
+                                                  "so a restarted server repeats nothing for any of them "
+                                                  "(v2v_server/journal.py)")
     batch_size: int = setting(12, help="samples per batch (the last batch of an epoch may be smaller)")
     video_extensions: Tuple[str, ...] = setting(VIDEO_EXTENSIONS, help="file extensions served as videos", flag="")
     heartbeat_s: float = setting(1.0, help="seconds between heartbeats to clients")
@@ -234,6 +237,9 @@ class ServingSettings:
         self.video_extensions = tuple(e.lower() for e in self.video_extensions)
         if self.videos is not None:
             self.videos = str(self.videos)
+        if self.state_dir is not None:
+            if not isinstance(self.state_dir, str) or not self.state_dir:
+                raise ValueError(f"state_dir must be a folder path, got {self.state_dir!r}")
 
 
 @dataclass

@@ -70,7 +70,7 @@ class DeliveryCore:
         make_batch: ``samples -> payload`` (each sample has ``sample_id``).
     """
 
-    def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable):
+    def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None):
         p = self.policy = policy
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes)
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, revoke_s=p.revoke_s, max_credits=p.max_credits)
@@ -87,6 +87,12 @@ class DeliveryCore:
         self.announced: set = set()
         self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch (DDP padding)
         self.samples_made = 0
+        # journal.Journal (``--state-dir``): told every acknowledgement, resume state and complete
+        # epoch; its records, read at start, are applied like resume states
+        self.journal = journal
+        if journal is not None:
+            for consumer, delivered in journal.records.items():
+                self.sched.apply_resume(consumer, journal.completed, delivered)
 
     # ------------------------------------------------------------------ workers
     def task_for(self, worker: Hashable, now: float) -> Optional[dict]:
@@ -173,6 +179,8 @@ class DeliveryCore:
         consumer, group = self.consumer_of(ident, h)
         r = h.resume
         self.sched.apply_resume(consumer, r.completed_epoch, {e: set(ks) for e, ks in r.delivered.items()})
+        if self.journal is not None:
+            self.journal.replaced(consumer, r.completed_epoch, r.delivered)
         if group is not None:
             for (g, e), counts in self.taken.items():
                 if g == group and e > r.completed_epoch:
@@ -202,6 +210,8 @@ class DeliveryCore:
         if isinstance(msg, Ack):
             for b in self.ledger.ack(ident, msg.batch_ids):
                 self.sched.delivered(c.consumer, b.epoch, b.keys)
+                if self.journal is not None:
+                    self.journal.delivered(c.consumer, b.epoch, b.keys)
                 if c.group is not None and c.world_size > 1:
                     counts = self.taken.setdefault((c.group, b.epoch), {})
                     counts[c.rank] = counts.get(c.rank, 0) + 1
@@ -308,6 +318,8 @@ class DeliveryCore:
                         c.sent += 1
                 msgs.append((ident, msg))
             log.info("epoch %d complete", e)
+            if self.journal is not None:
+                self.journal.epoch_complete(e)
         self.sched.prune(self.announced)
         live_groups = {c.group for c in self.ledger.clients.values()}
         for g in [g for g in self.pad_source if g not in live_groups]:

@@ -28,6 +28,7 @@ from typing import Dict, List, Optional
 import zmq
 
 from .config import ServeConfig
+from .journal import Journal, recipe_fingerprint
 from .core import DeliveryCore, DeliveryPolicy
 from .datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
 from .metrics import ServerMetrics
@@ -67,7 +68,13 @@ class V2VServer:
         self.videos = list(videos)
         self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
         self._stop = threading.Event()
-        self.core = DeliveryCore(self.videos, DeliveryPolicy.from_config(cfg, MAX_TASK_CRASHES), make_batch)
+        self.journal = (Journal(cfg.state_dir, recipe_fingerprint(cfg.recipe_dict()))
+                        if cfg.state_dir is not None else None)  # JournalError: another recipe's journal
+        if self.journal is not None and self.journal.records:
+            log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
+                     self.journal.path, len(self.journal.records), self.journal.completed)
+        self.core = DeliveryCore(self.videos, DeliveryPolicy.from_config(cfg, MAX_TASK_CRASHES), make_batch,
+                                 self.journal)
         self.sched, self.ledger = self.core.sched, self.core.ledger
         self.bad = BadPeers()
         self.logged_failures: set = set()
@@ -124,6 +131,8 @@ class V2VServer:
         if getattr(self, "sockets", None) is not None:
             self.sockets.close()
         self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
+        if self.journal is not None:
+            self.journal.close()
         self._count_resent()
         self.metrics.close()
         m = self.metrics.totals()
@@ -191,6 +200,8 @@ class V2VServer:
                 self._dispatch(now)
                 self._send_batches(now)
                 self.metrics.tick(self._metrics_state)  # gauges + liveness, at most 4 times a second
+                if self.journal is not None:
+                    self.journal.sync(now)
                 if now >= next_beat:
                     self._broadcast({"type": "heartbeat"})
                     next_beat = now + self.cfg.heartbeat_s

@@ -1,0 +1,71 @@
+"""Cost of the delivery journal (``v2v-serve --state-dir``) on the server's main loop.
+
+Run: ``python -m bench.journal [--batches 20000] [--batch-size 12]``. Drives the delivery core
+(``DeliveryCore``: scheduler + ledger, no sockets) through whole epochs of acknowledged batches,
+once without and once with a journal in a temporary folder (one append per acknowledged batch,
+``fsync`` at most once a second of loop time, a rewrite when an epoch completes), and prints
+microseconds of main-loop time per acknowledged batch and the ratio against the run without.
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+
+from v2v_server.core import DeliveryCore, DeliveryPolicy
+from v2v_server.journal import Journal
+from v2v_server.wire import Ack, Hello
+
+
+class _Payload:
+    def __init__(self, ids):
+        self.sample_ids = ids
+
+    def subset(self, keep):
+        return _Payload([self.sample_ids[i] for i in keep])
+
+
+def run(batches: int, batch_size: int, journal_dir=None) -> float:
+    """Seconds of core time per acknowledged batch over ``batches`` batches."""
+    videos = [f"v{i:03d}.mp4" for i in range(100)]  # 1000 samples per epoch: many epochs complete
+    policy = DeliveryPolicy(batch_size=batch_size, epochs=None, lease_s=1e9, client_timeout_s=1e9)
+    journal = Journal(journal_dir, "bench") if journal_dir else None
+    core = DeliveryCore(videos, policy, lambda samples: _Payload([s["sample_id"] for s in samples]), journal)
+    core.hello(b"t", Hello(("voxels",), 64, "trainer"), 0.0, dict)
+    worker, now, acked, busy = "w", 0.0, 0, 0.0
+    while acked < batches:
+        task = core.task_for(worker, now)
+        if task is None:
+            break
+        for k in range(10):
+            core.sample(worker, task["task"], k, now, lambda k=k: {"sample_id": f"{task['video']}#{k}"})
+        core.done(worker, task["task"], 10, {}, None)
+        t0 = time.perf_counter()
+        sends, _ = core.tick(now)
+        for ident, b in sends:
+            core.message(ident, Ack((b.batch_id,)), now)
+            acked += 1
+        if journal is not None:
+            journal.sync(now)
+        busy += time.perf_counter() - t0
+        now += 0.01
+    if journal is not None:
+        journal.close()
+    return busy / max(1, acked)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--batches", type=int, default=20000)
+    ap.add_argument("--batch-size", type=int, default=12)
+    args = ap.parse_args()
+    base = run(args.batches, args.batch_size)
+    with tempfile.TemporaryDirectory() as d:
+        with_journal = run(args.batches, args.batch_size, d)
+    print("| main loop | us per acknowledged batch | ratio |\n|---|---|---|")
+    print(f"| no journal | {base * 1e6:.1f} | 1.00 |")
+    print(f"| --state-dir (append per ack, fsync <= 1/s) | {with_journal * 1e6:.1f} | {with_journal / base:.2f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,43 @@
+"""The delivery journal (--state-dir): records survive a restart, a resume state replaces a
+record, complete epochs are dropped, a torn last record costs only itself, another recipe's
+journal is refused."""
+from __future__ import annotations
+
+import pytest
+
+from v2v_server.journal import FILE, Journal, JournalError
+
+
+def test_records_survive_a_restart_and_a_resume_state_replaces_them(tmp_path):
+    j = Journal(str(tmp_path), "r1")
+    a, b = ("c:a", 0), ("c:b", 0)
+    j.delivered(a, 0, [("x.mp4", 0), ("x.mp4", 1)])
+    j.delivered(b, 0, [("y.mp4", 0)])
+    j.delivered(a, 1, [("x.mp4", 0)])
+    j.replaced(b, -1, {0: {("y.mp4", 0), ("y.mp4", 1)}})
+    j.close()  # a killed server leaves the same file: every record is one write
+    k = Journal(str(tmp_path), "r1")
+    assert k.records == {a: {0: {("x.mp4", 0), ("x.mp4", 1)}, 1: {("x.mp4", 0)}},
+                         b: {0: {("y.mp4", 0), ("y.mp4", 1)}}}
+    k.epoch_complete(0)
+    k.close()
+    m = Journal(str(tmp_path), "r1")
+    assert m.completed == 0 and m.records == {a: {1: {("x.mp4", 0)}}}
+    m.close()
+
+
+def test_a_torn_last_record_costs_only_itself_and_another_recipe_is_refused(tmp_path):
+    j = Journal(str(tmp_path), "r1")
+    j.delivered(("c:a", 0), 0, [("x.mp4", 0)])
+    j.delivered(("c:a", 0), 0, [("x.mp4", 1)])
+    j.close()
+    p = tmp_path / FILE
+    p.write_bytes(p.read_bytes()[:-3])  # the server died inside the last write
+    k = Journal(str(tmp_path), "r1")
+    assert k.records == {("c:a", 0): {0: {("x.mp4", 0)}}}
+    k.close()
+    with pytest.raises(JournalError, match="another sample recipe"):
+        Journal(str(tmp_path), "r2")
+    (tmp_path / FILE).write_bytes(b"not a journal")
+    with pytest.raises(JournalError, match="not a v2v delivery journal"):
+        Journal(str(tmp_path), "r1")

@@ -1,0 +1,190 @@
+"""The delivery journal (``v2v-serve --state-dir DIR``): what each consumer acknowledged, kept
+on disk so that a restarted server repeats nothing for any consumer, including one that has not
+come back yet.
+
+Without it a restarted server knows only the resume states of the trainers that said hello
+again: a second, independent trainer that resumes later would find the first one sent samples
+it already has. With it the server starts from the journal's records (the same call a resume
+state makes, ``EpochScheduler.apply_resume``); a trainer's own resume state, when it says
+hello, still replaces its record (it is authoritative for its own samples: what it acknowledged
+after its checkpoint is owed again).
+
+File ``DIR/delivered.journal``: a header then msgpack records appended as they happen:
+``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (acknowledged),
+``{"s": [consumer, rank], "c": completed_epoch, "r": {epoch: keys}}`` (a resume state replaced
+a record), ``{"done": epoch}`` (an epoch complete; its records are dropped). When an epoch
+completes the file is rewritten from memory (a temporary file, fsync, rename).
+
+Durability: each record is one ``write`` to a file opened with ``O_APPEND`` (in the page cache
+at once: it survives the server process being killed); ``fsync`` at most every ``fsync_s``
+seconds (1 s) from the main loop and at close, so a host crash loses at most that last second,
+whose samples are then sent again (never lost).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Dict, Hashable, Iterable, Optional, Set, Tuple
+
+import msgpack
+
+log = logging.getLogger("v2v.server")
+
+SampleKey = Tuple[str, int]
+Records = Dict[Hashable, Dict[int, Set[SampleKey]]]
+
+__all__ = ["Journal", "JournalError", "recipe_fingerprint"]
+
+FILE = "delivered.journal"
+
+
+class JournalError(ValueError):
+    """The journal belongs to another sample recipe, or cannot be read (the message says which)."""
+
+
+def recipe_fingerprint(recipe: dict) -> str:
+    """A short hash of a sample recipe (``SampleRecipe.recipe_dict()``): sample ids name the
+    same samples only under the same recipe."""
+    return hashlib.sha256(json.dumps(recipe, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+class Journal:
+    """The journal in ``directory`` (created if missing).
+
+    Args:
+        directory: folder of the journal file.
+        fingerprint: :func:`recipe_fingerprint` of the served recipe; a journal written under
+            another one is refused.
+        fsync_s: most seconds between ``fsync`` calls.
+
+    Raises:
+        JournalError: the journal was written under another recipe, or is not a journal.
+        OSError: the folder cannot be created or written.
+    """
+
+    def __init__(self, directory: str, fingerprint: str, fsync_s: float = 1.0):
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.dir / FILE
+        self.fingerprint = fingerprint
+        self.fsync_s = fsync_s
+        self.completed = -1
+        self.records: Records = {}
+        self._dirty = False
+        self._last_sync = 0.0
+        self.writes = 0
+        if self.path.exists():
+            self._read()
+        self._rewrite()
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+
+    # ------------------------------------------------------------------ reading
+    def _read(self) -> None:
+        with open(self.path, "rb") as f:
+            unpacker = msgpack.Unpacker(f, raw=False, strict_map_key=False)
+            try:
+                header = next(unpacker)
+            except (StopIteration, ValueError, msgpack.UnpackException) as e:
+                raise JournalError(f"{self.path}: not a v2v delivery journal ({e or 'empty'})") from None
+            if not isinstance(header, dict) or header.get("journal") != 1:
+                raise JournalError(f"{self.path}: not a v2v delivery journal")
+            if header.get("recipe") != self.fingerprint:
+                raise JournalError(f"{self.path} was written by a server with another sample recipe (seed, "
+                                   f"sequence length, bins, crops...): its sample ids name other samples. Use "
+                                   f"another --state-dir, or delete it to start afresh")
+            n = 0
+            try:
+                for rec in unpacker:
+                    self._apply(rec)
+                    n += 1
+            except (ValueError, msgpack.UnpackException):  # a record torn by a crash: the ones before it stand
+                log.warning("%s: the record after the %d-th is torn (the server stopped while writing it); "
+                            "its samples are sent again", self.path, n)
+
+    def _apply(self, rec: dict) -> None:
+        if "done" in rec:
+            self._complete(int(rec["done"]))
+        elif "d" in rec:
+            e = int(rec["e"])
+            if e > self.completed:
+                self.records.setdefault(tuple(rec["d"]), {}).setdefault(e, set()).update(
+                    (str(v), int(i)) for v, i in rec["k"])
+        elif "s" in rec:
+            self._replace(tuple(rec["s"]), int(rec["c"]),
+                          {int(e): {(str(v), int(i)) for v, i in ks} for e, ks in rec["r"].items()})
+
+    def _complete(self, epoch: int) -> None:
+        self.completed = max(self.completed, epoch)
+        for d in self.records.values():
+            for e in [e for e in d if e <= self.completed]:
+                del d[e]
+
+    def _replace(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]]) -> None:
+        d = self.records.setdefault(consumer, {})
+        for e in [e for e in d if e > completed]:
+            del d[e]
+        for e, ks in delivered.items():
+            if e > completed and e > self.completed:
+                d[e] = set(ks)
+
+    # ------------------------------------------------------------------ writing
+    def _append(self, rec: dict) -> None:
+        os.write(self._fd, msgpack.packb(rec, use_bin_type=True))
+        self._dirty = True
+        self.writes += 1
+
+    def delivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
+        """``consumer`` acknowledged ``keys`` of ``epoch``."""
+        keys = [list(k) for k in keys]
+        if keys and epoch > self.completed:
+            rec = {"d": list(consumer), "e": epoch, "k": keys}
+            self._apply(rec)
+            self._append(rec)
+
+    def replaced(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]]) -> None:
+        """``consumer``'s resume state replaced its record in the epochs after ``completed``."""
+        rec = {"s": list(consumer), "c": completed, "r": {e: [list(k) for k in ks] for e, ks in delivered.items()}}
+        self._apply(rec)
+        self._append(rec)
+
+    def epoch_complete(self, epoch: int) -> None:
+        """``epoch`` is complete: its records are dropped and the file is rewritten without them."""
+        if epoch <= self.completed:
+            return
+        self._complete(epoch)
+        os.close(self._fd)
+        self._rewrite()
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+
+    def _rewrite(self) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        with open(tmp, "wb") as f:
+            f.write(msgpack.packb({"journal": 1, "recipe": self.fingerprint}))
+            if self.completed >= 0:
+                f.write(msgpack.packb({"done": self.completed}))
+            for consumer, d in self.records.items():
+                for e, ks in d.items():
+                    f.write(msgpack.packb({"d": list(consumer), "e": e, "k": [list(k) for k in sorted(ks)]}))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.path)
+        self._dirty = False
+
+    def sync(self, now: Optional[float] = None) -> None:
+        """``fsync`` what was appended, at most every ``fsync_s`` seconds (always when ``now``
+        is None)."""
+        force, now = now is None, time.monotonic() if now is None else now
+        if self._dirty and (force or now - self._last_sync >= self.fsync_s):
+            os.fsync(self._fd)
+            self._dirty = False
+            self._last_sync = now
+
+    def close(self) -> None:
+        """``fsync`` and close the file."""
+        self._dirty = True
+        self.sync()
+        os.close(self._fd)
