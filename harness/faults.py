@@ -885,6 +885,31 @@ def scenario_independent_restart(tmp: Path, layout: Layout, journal: bool = True
                _ids(trained), None, f"server exit {rc}", server_exit=rc)
 
 
+
+def scenario_lightning_ddp(tmp: Path, layout: Layout) -> dict:
+    """Lightning's own ``ddp`` launcher, 2 CPU ranks (gloo), the dataset built before
+    ``fit`` (``harness/lightning_ddp.py``): both ranks form one DDP group, yield the same number
+    of batches and train every sample once between them."""
+    import json
+    import subprocess
+    import sys
+
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    out = tmp / "ranks"
+    out.mkdir()
+    with _serve(corpus, layout, "--epochs", "1") as srv:
+        r = subprocess.run([sys.executable, "-m", "harness.lightning_ddp", srv.endpoint, str(out)],
+                           capture_output=True, text=True, timeout=600)
+        rc = srv.wait(30)
+    ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
+    seen = [s for r_ in ranks for s in r_["seen"]]
+    counts = [r_["batches"] for r_ in ranks]
+    return row("Lightning DDP, 2 gloo ranks, dataset built before fit", expected, seen, None,
+               f"batches per rank {counts}; trainer exit {r.returncode}; server exit {rc}",
+               batches_per_rank=counts, trainer_exit=r.returncode, server_exit=rc)
+
+
 SCENARIOS = {
     "worker_kill": scenario_worker_kill,
     "client_kill": scenario_client_kill,
@@ -908,6 +933,7 @@ SCENARIOS = {
     "loader_workers": lambda tmp, layout: scenario_loader_workers(tmp, layout, True),
     "loader_workers_fresh": lambda tmp, layout: scenario_loader_workers(tmp, layout, False),
     "independent_restart": scenario_independent_restart,
+    "lightning_ddp": scenario_lightning_ddp,
 }
 
 
