@@ -11,7 +11,7 @@ from .config import SampleRecipe, ServeConfig, ServingSettings, load_config
 from .settings import add_flags, flag_values
 from .server import V2VServer, install_signal_handlers
 from .logs import setup_logging
-from .corpus import SAMPLE_VIDEOS, check_corpus, format_check, select_shard
+from .corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
 from .journal import JournalError
 from .video import scan_corpus
 
@@ -59,6 +59,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     found, rejected = scan_corpus(root, cfg.video_extensions)
     videos = [p.as_posix() for p in found]
+    listing = corpus_fingerprint(videos)  # of the whole listing: shards compare it
     index, count = cfg.shard_spec
     if count > 1:
         mine = select_shard(videos, index, count)
@@ -75,7 +76,7 @@ def main(argv: Optional[List[str]] = None) -> int:
               + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)
         return 2
     try:
-        server = V2VServer(cfg, root, videos)
+        server = V2VServer(cfg, root, videos, corpus=listing)
     except (JournalError, OSError) as e:  # the journal of --state-dir
         print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
         return 2

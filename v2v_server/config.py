@@ -6,6 +6,8 @@ the field.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -91,6 +93,13 @@ class SampleRecipe:
     def frames_for(self, windows: int) -> int:
         """Frames to decode for the first ``windows`` windows: ``windows * window_stride + 1``."""
         return windows * self.window_stride + 1 if windows > 0 else 0
+
+    def fingerprint(self) -> str:
+        """A short hash of what decides a sample's content (the recipe less the outputs each
+        client asks for and the decoding threads): sample ids name the same samples only under
+        the same fingerprint."""
+        content = {k: v for k, v in self.recipe_dict().items() if k not in ("outputs", "decode_threads")}
+        return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def recipe_dict(self) -> dict:
         """The recipe's keys as a plain, msgpack/YAML-safe dict (what a worker process gets)."""

@@ -41,6 +41,16 @@ def select_shard(videos: List[str], index: int, count: int) -> List[str]:
     return [v for v in videos if shard_of(v, count) == index]
 
 
+def corpus_fingerprint(videos: List[str]) -> str:
+    """A short hash of a corpus listing (relative POSIX paths, any order): servers sharding one
+    corpus must have listed the same files, or a file only one of them sees may fall in the
+    other's shard and never be served."""
+    h = hashlib.sha256()
+    for v in sorted(videos):
+        h.update(v.encode("utf-8") + b"\n")
+    return h.hexdigest()[:16]
+
+
 def corpus_file(root, rel: str) -> Path:
     """``root / rel``, a file inside the corpus root.
 

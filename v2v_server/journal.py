@@ -22,8 +22,6 @@ whose samples are then sent again (never lost).
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import os
 import time
@@ -37,7 +35,7 @@ log = logging.getLogger("v2v.server")
 SampleKey = Tuple[str, int]
 Records = Dict[Hashable, Dict[int, Set[SampleKey]]]
 
-__all__ = ["Journal", "JournalError", "recipe_fingerprint"]
+__all__ = ["Journal", "JournalError"]
 
 FILE = "delivered.journal"
 
@@ -46,18 +44,12 @@ class JournalError(ValueError):
     """The journal belongs to another sample recipe, or cannot be read (the message says which)."""
 
 
-def recipe_fingerprint(recipe: dict) -> str:
-    """A short hash of a sample recipe (``SampleRecipe.recipe_dict()``): sample ids name the
-    same samples only under the same recipe."""
-    return hashlib.sha256(json.dumps(recipe, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
 class Journal:
     """The journal in ``directory`` (created if missing).
 
     Args:
         directory: folder of the journal file.
-        fingerprint: :func:`recipe_fingerprint` of the served recipe; a journal written under
+        fingerprint: ``SampleRecipe.fingerprint()`` of the served recipe; a journal written under
             another one is refused.
         fsync_s: most seconds between ``fsync`` calls.
 

@@ -28,7 +28,8 @@ from typing import Dict, List, Optional
 import zmq
 
 from .config import ServeConfig
-from .journal import Journal, recipe_fingerprint
+from .corpus import corpus_fingerprint
+from .journal import Journal
 from .core import DeliveryCore, DeliveryPolicy
 from .datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
 from .metrics import ServerMetrics
@@ -60,15 +61,17 @@ class V2VServer:
         ValueError: for an empty ``videos`` list.
     """
 
-    def __init__(self, cfg: ServeConfig, root: Path, videos: List[str]):
+    def __init__(self, cfg: ServeConfig, root: Path, videos: List[str], corpus: Optional[str] = None):
         if not videos:
             raise ValueError(f"no video files under {root}")
         self.cfg = cfg
         self.root = Path(root)
         self.videos = list(videos)
+        self.corpus = corpus or corpus_fingerprint(self.videos)  # of the listing before sharding
+        self.recipe = cfg.fingerprint()
         self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
         self._stop = threading.Event()
-        self.journal = (Journal(cfg.state_dir, recipe_fingerprint(cfg.recipe_dict()))
+        self.journal = (Journal(cfg.state_dir, self.recipe)
                         if cfg.state_dir is not None else None)  # JournalError: another recipe's journal
         if self.journal is not None and self.journal.records:
             log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
@@ -396,7 +399,11 @@ class V2VServer:
                 "epochs": c.epochs, "videos": len(self.videos), "outputs": list(self.core.outputs or c.outputs),
                 "offered_outputs": list(c.outputs), "flow_preset": c.flow_preset, "protocol": PROTOCOL_VERSION,
                 "lease_s": c.lease_s, "client_timeout_s": c.client_timeout_s, "max_credits": c.max_credits,
-                "shm_dir": self.assembler.files.path if self.assembler.files is not None else None}
+                "shm_dir": self.assembler.files.path if self.assembler.files is not None else None,
+                # identity: a fan-in checks its servers form one sharding of one corpus under one
+                # recipe, and a resume state is refused under another recipe
+                "shard": "%d/%d" % c.shard_spec, "corpus": self.corpus, "recipe": self.recipe,
+                "max_hello_bytes": MAX_CLIENT_MSG}
 
     def _bad_peer(self, ident: bytes, why: str, now: float) -> None:
         self.metrics.on_bad_message()
