@@ -391,3 +391,67 @@ def test_trainer_metrics_as_prometheus(videos):
             for f in text_string_to_metric_families(text) for s in f.samples}
     assert vals[("v2v_trainer_batches_received_total", (srv.endpoint,))] == 2
     assert vals[("v2v_trainer_wait_seconds_total", ())] > 0
+
+
+# ---------------------------------------------------------------------------------- identity and resume
+def test_two_shards_fan_in_resumed_from_an_older_checkpoint_is_exactly_once(tmp_path, videos):
+    """Checkpoint at step 2, read on to step 5 (acknowledged), then the trainer dies and resumes
+    from the step-2 checkpoint: the fan-in is the same consumer to both servers, so each sends
+    again what came after the checkpoint."""
+    root = corpus(tmp_path, videos, copies=2)
+    want = expected_ids(root)
+    base = ["--videos", str(root), "--epochs", "1", "--end-grace-s", "5", *layout()]
+    trained = []
+    with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
+        ds = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), credits=2, timeout_s=60)
+        it = iter(ds)
+        for step in range(5):
+            batch = next(it)
+            if step < 2:
+                trained += batch["sample_ids"]
+            if step == 1:
+                ckpt = json.loads(json.dumps(ds.state_dict()))
+        it.close()  # the crash (its acks are sent: the servers saw steps 3-5 delivered)
+        again = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), credits=2, timeout_s=60)
+        again.load_state_dict(ckpt)
+        for batch in again:
+            trained += batch["sample_ids"]
+        assert a.wait(30) == 0 and b.wait(30) == 0
+    assert sorted(trained) == want
+
+
+@pytest.mark.parametrize("shards,why", [(("0/2", "1/3"), "different numbers of shards"),
+                                        (("0/2", "0/2"), "served twice"),
+                                        (("0/3", "1/3"), "served by none")])
+def test_a_fan_in_refuses_servers_that_are_not_one_sharding(tmp_path, videos, shards, why):
+    from v2v_client import StreamError
+
+    base = ["--videos", str(videos), *layout()]
+    with ServeProcess(base + ["--shard", shards[0]]) as a, ServeProcess(base + ["--shard", shards[1]]) as b:
+        ds = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60)
+        with pytest.raises((ValueError, StreamError), match=why) as e:
+            next(iter(ds))
+        assert a.endpoint in str(e.value) and b.endpoint in str(e.value)
+
+
+def test_corpus_listings_that_differ_and_a_resume_under_another_recipe_are_refused(tmp_path, videos):
+    from v2v_client import StreamError
+
+    root = corpus(tmp_path, videos)
+    other = tmp_path / "other"
+    shutil.copytree(root, other)
+    next(other.glob("*.mp4")).unlink()  # one file fewer on this host
+    with ServeProcess(["--videos", str(root), "--shard", "0/2", *layout()]) as a, \
+            ServeProcess(["--videos", str(other), "--shard", "1/2", *layout()]) as b:
+        with pytest.raises(ValueError, match="different corpus listings"):
+            next(iter(V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60)))
+    with ServeProcess(["--videos", str(root), "--seed", "1", *layout()]) as s1:
+        ds = V2VStreamDataset(s1.endpoint, outputs=("voxels",), timeout_s=60)
+        next(iter(ds))
+        state = ds.state_dict()
+    for change in (["--seed", "2"], ["--crops-per-window", "2"]):
+        with ServeProcess(["--videos", str(root), "--seed", "1", *layout(), *change]) as s2:
+            ds2 = V2VStreamDataset(s2.endpoint, outputs=("voxels",), timeout_s=60)
+            ds2.load_state_dict(state)
+            with pytest.raises(StreamError, match="another sample recipe"):
+                next(iter(ds2))

@@ -354,6 +354,10 @@ class Connection:
                 self._on_batch(h, frames)
             elif kind == "welcome":
                 self._on_welcome(h)
+                refusal = self.ds.welcomed(self.info)
+                if refusal is not None:
+                    self.items.put(StreamError(f"v2v server at {self.endpoint}: {refusal}"))
+                    return "over"
             elif kind == "revoke":
                 self._on_revoke(h)
             elif kind == "epoch_done":

@@ -79,9 +79,26 @@ class EndpointStream:
         # In a DataLoader worker under ``StreamLoader``: the pipe on which the main process says
         # which batches the training loop received, and the batches yielded to the DataLoader and
         # not yet received (batch id -> (epoch, sample ids)); see ``v2v_client.loader``.
+        self._recipe: Optional[str] = None  # fingerprint of the recipe the state's sample ids were made under
         self.receipts = None
         self.worker: Optional[int] = None
         self._pipeline: Dict[int, Tuple[int, List[str]]] = {}
+
+    def welcomed(self, info: dict) -> Optional[str]:
+        """The server's welcome: its stream info. Returns why this stream refuses the server
+        (None when it does not): a resume state made under another sample recipe names other
+        samples with the same ids."""
+        self.info = info
+        recipe = info.get("recipe")
+        with self._lock:
+            if self._recipe is not None and isinstance(recipe, str) and recipe != self._recipe:
+                return (f"it serves another sample recipe ({recipe}) than the one this resume state was made "
+                        f"under ({self._recipe}): seed, sequence length, bins, crop or crops per window differ, "
+                        f"so its sample ids name other samples. Resume against a server with the same recipe, or "
+                        f"start without the state")
+            if isinstance(recipe, str):
+                self._recipe = recipe
+        return None
 
     def set_position(self, rank: int, world_size: int) -> None:
         """The DDP position the next connection says hello with."""
@@ -96,7 +113,7 @@ class EndpointStream:
         with self._lock:
             return {"version": 1, "consumer": self._consumer, "completed_epoch": self._completed_epoch,
                     "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()},
-                    "batches": {str(e): n for e, n in self._batches.items()}}
+                    "batches": {str(e): n for e, n in self._batches.items()}, "recipe": self._recipe}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()`` output; the next iteration resumes the epoch without
@@ -112,6 +129,8 @@ class EndpointStream:
             self._batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
             if isinstance(state.get("consumer"), str) and state["consumer"]:
                 self._consumer = state["consumer"]
+            if isinstance(state.get("recipe"), str):
+                self._recipe = state["recipe"]
 
     def attach_loader(self, worker: int, receipts, state: Optional[dict]) -> None:
         """Read by DataLoader worker ``worker`` of a ``StreamLoader``: batches are

@@ -21,7 +21,11 @@ merges their batches in arrival order. It uses only their public surface (``iter
 Each per-server iterator runs in a small pump thread. To know that a server has a batch the
 pump must take it from its iterator, which acknowledges it, so up to one batch per server can
 be acknowledged before the training loop takes it; ``state_dict()`` counts only the batches
-handed over, so a checkpoint never claims those.
+handed over, and every server knows the fan-in as one consumer (its id is in ``state_dict()``),
+so the next iteration's resume state gets those batches sent again.
+
+Before handing on any batch the fan-in checks that its servers are one sharding of one corpus
+under one recipe (:func:`check_servers`, from each server's welcome).
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ import ipaddress
 import queue
 import socket
 import threading
+import uuid
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Set, Tuple, Union
 
 Endpoints = Union[str, Sequence[str]]
@@ -106,6 +111,45 @@ def resolve_endpoints(spec: Endpoints, getaddrinfo: Callable = socket.getaddrinf
     return out
 
 
+def check_servers(infos: Dict[str, dict]) -> None:
+    """Check that the servers of a fan-in (endpoint -> welcome info) are one sharding of one
+    corpus under one sample recipe: the same shard count N, each shard 0..N-1 once, the same
+    corpus listing, the same recipe. Servers that do not say (older ones) are not checked.
+
+    Raises:
+        ValueError: naming the servers and what differs (shards missing or served twice
+            lose or repeat samples in silence).
+    """
+    says = {ep: i for ep, i in infos.items() if isinstance(i.get("shard"), str)}
+    if len(says) < 2:
+        return
+    shards = {ep: tuple(int(x) for x in i["shard"].split("/")) for ep, i in says.items()}
+    listed = ", ".join(f"{ep} serves shard {i}/{n}" for ep, (i, n) in shards.items())
+    counts = {n for _, n in shards.values()}
+    problems = []
+    if len(counts) > 1:
+        problems.append(f"they split the corpus into different numbers of shards ({sorted(counts)})")
+    else:
+        n = counts.pop()
+        seen: Dict[int, List[str]] = {}
+        for ep, (i, _) in shards.items():
+            seen.setdefault(i, []).append(ep)
+        twice = {i: eps for i, eps in seen.items() if len(eps) > 1}
+        missing = sorted(set(range(n)) - set(seen))
+        if twice:
+            problems.append("shard(s) served twice: " + "; ".join(f"{i}/{n} by {', '.join(e)}" for i, e in twice.items()))
+        if missing:
+            problems.append(f"shard(s) {', '.join(f'{i}/{n}' for i in missing)} served by none of them")
+    for key, what in (("corpus", "corpus listings (their --videos folders hold different files)"),
+                      ("recipe", "sample recipes (seed, sequence length, bins, crop...)")):
+        values = {i.get(key) for i in says.values()}
+        if len(values) > 1:
+            problems.append(f"different {what}: " + ", ".join(f"{ep}: {i.get(key)}" for ep, i in says.items()))
+    if problems:
+        raise ValueError(f"the servers of this fan-in are not one sharding of one corpus ({listed}): "
+                         + "; ".join(problems))
+
+
 def read_state(state) -> Tuple[int, Dict[int, Set[str]]]:
     """``(completed_epoch, delivered per epoch)`` of a ``state_dict()`` (of a fan-in or of one
     endpoint), shared by both ``load_state_dict`` methods.
@@ -148,6 +192,12 @@ class FanInStream:
         self._children: List = []
         self.counts: Dict[str, Dict[str, int]] = {e: {"batches": 0, "samples": 0} for e in self.endpoints}
         self.info: Optional[dict] = None
+        # one consumer to every server, kept in state_dict(): a resumed fan-in is the same consumer,
+        # so each server takes its resume state for the one it knows
+        self._consumer = uuid.uuid4().hex
+        self._recipe: Optional[str] = None
+        self._batches: Dict[str, Dict[int, int]] = {}  # shard "I/N" -> batches handed on per open epoch
+        self._shard_of: Dict[str, str] = {}  # endpoint -> the shard it served (for its DDP batch counts)
 
     # ------------------------------------------------------------------ state
     def completed_epoch(self) -> int:
@@ -166,8 +216,13 @@ class FanInStream:
         with self._lock:
             for e in [e for e in self._delivered if e <= done]:
                 del self._delivered[e]
-            return {"version": 1, "completed_epoch": done,
-                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()}}
+            for per in self._batches.values():
+                for e in [e for e in per if e <= done]:
+                    del per[e]
+            return {"version": 1, "consumer": self._consumer, "completed_epoch": done, "recipe": self._recipe,
+                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()},
+                    "shard_batches": {sh: {str(e): n for e, n in per.items()} for sh, per in self._batches.items()},
+                    "shard_of": dict(self._shard_of)}
 
     def load_state_dict(self, state: dict) -> None:
         """Take a state from ``state_dict()`` (of a fan-in or of one endpoint); used by the
@@ -180,13 +235,20 @@ class FanInStream:
         with self._lock:
             self._completed, self._delivered = completed, delivered
             self._children = []
+            if isinstance(state.get("consumer"), str) and state["consumer"]:
+                self._consumer = state["consumer"]
+            self._recipe = state.get("recipe") if isinstance(state.get("recipe"), str) else self._recipe
+            self._batches = {sh: {int(e): int(n) for e, n in per.items()}
+                             for sh, per in (state.get("shard_batches") or {}).items()}
+            self._shard_of = dict(state.get("shard_of") or {})
 
     # ------------------------------------------------------------------ iteration
     def __iter__(self) -> Iterator[dict]:
         state = self.state_dict()
         children = [self._make_child(ep, self.credits_each) for ep in self.endpoints]
-        for c in children:
-            c.load_state_dict(state)
+        for ep, c in zip(self.endpoints, children):  # the fan-in's consumer id and recipe; the batches of its shard
+            per = self._batches.get(self._shard_of.get(ep, ep), {})
+            c.load_state_dict(dict(state, batches={str(e): n for e, n in per.items()}))
         with self._lock:
             self._completed = state["completed_epoch"]
             self._children = children
@@ -198,8 +260,18 @@ class FanInStream:
         for t in pumps:
             t.start()
         running = len(children)
+        held: list = []  # batches that arrived before every server said which shard it serves
+        checked = False
         try:
-            while running:
+            while running or held:
+                if not checked and (all(c.info is not None for c in children) or not running):
+                    check_servers({ep: c.info for ep, c in zip(self.endpoints, children) if c.info is not None})
+                    checked = True
+                    for i, item in held:
+                        yield self._hand_on(i, item, children)
+                    held = []
+                if not running:
+                    break
                 try:
                     i, item = items.get(timeout=1.0)
                 except queue.Empty:
@@ -212,15 +284,10 @@ class FanInStream:
                 if isinstance(item, BaseException):
                     raise item
                 go[i].set()  # this server's pump may take its next batch
-                ep = self.endpoints[i]
-                item["endpoint"] = ep
-                with self._lock:
-                    self._delivered.setdefault(int(item["epoch"]), set()).update(item["sample_ids"])
-                    self.counts[ep]["batches"] += 1
-                    self.counts[ep]["samples"] += len(item["sample_ids"])
-                if self.info is None:
-                    self.info = children[i].info
-                yield item
+                if not checked:
+                    held.append((i, item))
+                    continue
+                yield self._hand_on(i, item, children)
         finally:
             stop.set()
             for g in go:
@@ -229,6 +296,26 @@ class FanInStream:
                 c.close()
             for t in pumps:
                 t.join(5.0)
+
+    def _hand_on(self, i: int, item: dict, children) -> dict:
+        """Record a batch of server ``i`` as handed to the training loop."""
+        ep = self.endpoints[i]
+        item["endpoint"] = ep
+        info = children[i].info or {}
+        with self._lock:
+            epoch = int(item["epoch"])
+            self._delivered.setdefault(epoch, set()).update(item["sample_ids"])
+            shard = str(info.get("shard", ep))
+            self._shard_of[ep] = shard
+            per = self._batches.setdefault(shard, {})
+            per[epoch] = per.get(epoch, 0) + 1
+            self.counts[ep]["batches"] += 1
+            self.counts[ep]["samples"] += len(item["sample_ids"])
+            if isinstance(info.get("recipe"), str):
+                self._recipe = info["recipe"]
+        if self.info is None:
+            self.info = info
+        return item
 
     def close(self) -> None:
         """Close every server's open connections."""
