@@ -204,3 +204,31 @@ def test_sigterm_ends_a_worker_at_once_without_unwinding_through_library_code():
             "print('went on')\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert (r.returncode, r.stdout, r.stderr) == (0, "", "")
+
+
+def test_ipv6_loopback_on_both_ends(videos):
+    import socket
+
+    try:
+        s = socket.socket(socket.AF_INET6)
+        s.bind(("::1", 0))
+        port = s.getsockname()[1]
+        s.close()
+    except OSError as e:
+        pytest.skip(f"this machine has no IPv6 loopback: {e}")
+    endpoint = f"tcp://[::1]:{port}"
+    with ServeProcess(["--videos", str(videos), "--bind", endpoint, "--epochs", "1", "--crop-size", "64",
+                       "--sequence-length", "4", "--max-samples-per-video", "1", "--batch-size", "2"]) as srv:
+        ids = [s for b in V2VStreamDataset(endpoint, outputs=("voxels",), timeout_s=60) for s in b["sample_ids"]]
+        assert srv.wait(30) == 0
+    assert len(ids) == len(set(ids)) > 0
+
+
+def test_a_workers_socket_path_too_long_is_blamed_on_tmpdir_not_the_endpoint(videos, tmp_path):
+    deep = tmp_path / ("d" * 60) / ("e" * 60)
+    deep.mkdir(parents=True)
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(videos), "--bind",
+                          f"tcp://127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60,
+                         env={**__import__("os").environ, "TMPDIR": str(deep)})
+    assert out.returncode == 2
+    assert "TMPDIR" in out.stderr and "Traceback" not in out.stderr, out.stderr

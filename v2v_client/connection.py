@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import zmq
 
-from v2v_server.protocol import ProtocolError, decode_arrays, pack, unpack
+from v2v_server.protocol import ProtocolError, decode_arrays, is_ipv6, pack, unpack
 
 from .handoff import ShmReader, check_shm_dir
 
@@ -207,6 +207,8 @@ class Connection:
         sock.setsockopt(zmq.LINGER, 1000)
         sock.setsockopt(zmq.MAXMSGSIZE, MAX_SERVER_MSG)
         sock.setsockopt(zmq.RCVHWM, 0)
+        if is_ipv6(self.endpoint):
+            sock.setsockopt(zmq.IPV6, 1)
         if self.ds.curve is not None:
             pub, sec, server_pub = self.ds.curve
             sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = pub, sec, server_pub

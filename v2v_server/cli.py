@@ -85,7 +85,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return server.run()
     except Exception as e:  # bind errors and the like: one clear line
         if isinstance(e, OSError) or e.__class__.__module__.startswith("zmq"):
-            print(f"v2v-serve: cannot serve on {cfg.bind}: {e}", file=sys.stderr)
+            print(f"v2v-serve: cannot serve: {e}", file=sys.stderr)
             return 2
         raise
 

@@ -59,6 +59,12 @@ class ProtocolError(ValueError):
     """A malformed, oversized or wrong-version message."""
 
 
+def is_ipv6(endpoint: str) -> bool:
+    """Whether a ZeroMQ endpoint names an IPv6 address (``tcp://[::1]:5555``): its socket
+    needs ``zmq.IPV6`` set, on both ends."""
+    return endpoint.startswith("tcp://[")
+
+
 def pack(header: dict) -> bytes:
     """msgpack-encode a header dict, adding the protocol version ``v``."""
     h = dict(header)

@@ -10,7 +10,7 @@ from pathlib import Path
 import zmq
 
 from .config import ServeConfig, is_loopback
-from .protocol import MAX_CLIENT_MSG
+from .protocol import MAX_CLIENT_MSG, is_ipv6
 
 log = logging.getLogger("v2v.server")
 
@@ -46,9 +46,18 @@ class ServerSockets:
         elif not is_loopback(cfg.bind):
             log.warning("binding %s WITHOUT authentication or encryption (--insecure): anyone who can "
                         "reach it can read the stream", cfg.bind)
-        self.frontend.bind(cfg.bind)
+        if is_ipv6(cfg.bind):
+            self.frontend.setsockopt(zmq.IPV6, 1)
+        try:
+            self.frontend.bind(cfg.bind)
+        except zmq.ZMQError as e:
+            raise OSError(f"cannot bind {cfg.bind}: {e}") from None
         bound = self.frontend.getsockopt_string(zmq.LAST_ENDPOINT)
-        self.backend.bind(self.backend_endpoint)
+        try:
+            self.backend.bind(self.backend_endpoint)
+        except zmq.ZMQError as e:
+            raise OSError(f"cannot bind the workers' socket {self.backend_endpoint} (a folder under TMPDIR; "
+                          f"ipc paths are limited to about 100 bytes: set a shorter TMPDIR): {e}") from None
         return bound
 
     def _setup_curve(self, cfg: ServeConfig) -> None:
