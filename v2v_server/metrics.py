@@ -27,7 +27,7 @@ import logging
 import sys
 import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler, HTTPServer
 from typing import Dict, Optional
 
 from prometheus_client import CollectorRegistry, Counter
@@ -38,6 +38,8 @@ from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
 STAGES = ("decode", "simulate", "flow", "serialize", "send")
 #: Seconds without a loop turn after which /healthz reports the server wedged.
 STALL_S = 60.0
+#: Most seconds a rendered /metrics page is served again (Prometheus scrapes every 15 s or so).
+EXPOSITION_S = 1.0
 
 log = logging.getLogger("v2v.metrics")
 
@@ -74,7 +76,10 @@ class ServerMetrics:
         self._last_turn = time.monotonic()
         self._ready = False
         r.register(_StateCollector(self))
-        self.http: Optional[ThreadingHTTPServer] = None
+        self.http: Optional[HTTPServer] = None
+        self._expo_lock = threading.Lock()
+        self._expo: Optional[bytes] = None
+        self._expo_at = 0.0
         self.port: Optional[int] = None
         self._progress = _Progress() if (sys.stderr.isatty() if progress is None else progress) else None
 
@@ -157,6 +162,17 @@ class ServerMetrics:
         with self._lock:
             return dict(self._state)
 
+    def exposition(self, now: Optional[float] = None) -> bytes:
+        """The Prometheus text of every metric, rendered at most once per ``EXPOSITION_S``
+        seconds and served from that cache in between: a scrape storm costs the server's
+        process (and so its main loop, under the GIL) one rendering per second, not one per
+        scrape."""
+        now = time.monotonic() if now is None else now
+        with self._expo_lock:
+            if self._expo is None or now - self._expo_at >= EXPOSITION_S:
+                self._expo, self._expo_at = generate_latest(self.registry), now
+            return self._expo
+
     def serve(self, host: str, port: int) -> int:
         """Serve ``/metrics`` (Prometheus text), ``/healthz`` and ``/readyz`` (200 or 503)
         from a daemon thread on ``host:port``; returns the port bound (``port`` 0 = any).
@@ -170,7 +186,7 @@ class ServerMetrics:
             def do_GET(self):  # noqa: N802 (http.server's naming)
                 path = self.path.split("?", 1)[0]
                 if path == "/metrics":
-                    body, ctype, code = generate_latest(metrics.registry), CONTENT_TYPE_LATEST, 200
+                    body, ctype, code = metrics.exposition(), CONTENT_TYPE_LATEST, 200
                 elif path in ("/healthz", "/readyz"):
                     ok = metrics.healthy() if path == "/healthz" else (metrics.ready() and metrics.healthy())
                     body, ctype, code = (b"ok\n" if ok else b"not ready\n"), "text/plain", 200 if ok else 503
@@ -185,11 +201,11 @@ class ServerMetrics:
             def log_message(self, *args):  # scrapes every few seconds: keep them out of the log
                 pass
 
-        try:
-            self.http = ThreadingHTTPServer((host, port), Handler)
+        try:  # one thread answers every request in turn (no thread per scrape); a slow peer times out
+            Handler.timeout = 5.0
+            self.http = HTTPServer((host, port), Handler)
         except OSError as e:
             raise OSError(e.errno, f"metrics endpoint {host}:{port}: {e.strerror or e}") from None
-        self.http.daemon_threads = True
         self.port = self.http.server_address[1]
         threading.Thread(target=self.http.serve_forever, name="v2v-metrics", daemon=True).start()
         log.info("metrics on http://%s:%d/metrics (also /healthz, /readyz)", host, self.port)
