@@ -27,7 +27,7 @@ from v2v_client import V2VStreamDataset
 from v2v_server.config import ServeConfig
 from v2v_server.corpus import check_corpus
 from harness.serve import ServeProcess
-from v2v_server.protocol import pack
+from v2v_server.protocol import PROTOCOL_VERSION, pack
 from v2v_server.video import scan_corpus
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -612,7 +612,7 @@ def bad_peer_messages() -> List[List[bytes]]:
     """Messages that used to crash or stall the server, and a flood of garbage."""
     import msgpack
 
-    bomb = msgpack.packb({"type": "hello", "v": 2, "outputs": ["voxels"], "credits": 1,
+    bomb = msgpack.packb({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["voxels"], "credits": 1,
                           "resume": {"delivered": {"0": [[[]] * 1000] * 1000}}})
     deep = b"\x91" * 100000 + b"\xc0"
     return ([[pack({"type": "ack", "batch_ids": ["a", None, 1.5]})],
@@ -866,6 +866,7 @@ def scenario_independent_restart(tmp: Path, layout: Layout, journal: bool = True
             _take(it, 2, trained)
             states.append(ds.state_dict())
             it.close()
+        time.sleep(0.5)  # the last acks reach the server (one still in flight when it dies is not journaled)
         srv.proc.send_signal(signal.SIGKILL)
         srv.proc.wait(10)
         srv2 = ServeProcess(args + ["--bind", srv.endpoint]).start()

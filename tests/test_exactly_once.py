@@ -15,6 +15,7 @@ from harness.faults import Layout
 from v2v_client import StreamError, V2VStreamDataset
 from v2v_server.config import load_config
 from harness.serve import ServeProcess
+from v2v_server.protocol import PROTOCOL_VERSION
 from v2v_server.wire import MAX_CONTAINERS, WireError, decode_client
 
 LAYOUT = Layout(L=4, crop=64, windows=2, batch=2)
@@ -143,17 +144,17 @@ def test_check_names_the_window_where_the_frame_size_changes(tmp_path):
 
 # ---------------------------------------------------------------------- bounded decoding (no server needed)
 @pytest.mark.parametrize("frame,why", [
-    (msgpack.packb({"type": "hello", "v": 2, "outputs": ["voxels"], "credits": 1,
+    (msgpack.packb({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["voxels"], "credits": 1,
                     "resume": {"delivered": {"0": [[]] * 4000}}}), "arrays/maps"),
     (b"\x91" * 200000 + b"\xc0", "msgpack"),
-    (msgpack.packb({"type": "ack", "v": 2, "batch_ids": list(range(5000))}), "msgpack"),
-    (msgpack.packb({"type": "ack", "v": 2, "batch_ids": ["1"]}), "batch_ids"),
-    (msgpack.packb({"type": "ack", "v": 2, "batch_ids": [True]}), "batch_ids"),
-    (msgpack.packb({"type": "hello", "v": 2, "outputs": ["voxels"], "credits": 1,
+    (msgpack.packb({"type": "ack", "v": PROTOCOL_VERSION, "batch_ids": list(range(5000))}), "msgpack"),
+    (msgpack.packb({"type": "ack", "v": PROTOCOL_VERSION, "batch_ids": ["1"]}), "batch_ids"),
+    (msgpack.packb({"type": "ack", "v": PROTOCOL_VERSION, "batch_ids": [True]}), "batch_ids"),
+    (msgpack.packb({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["voxels"], "credits": 1,
                     "resume": {"delivered": {"٣": "a#1"}}}), "epoch numbers"),
-    (msgpack.packb({"type": "hello", "v": 2, "outputs": ["voxels"], "credits": 1, "rank": 3, "world_size": 2}),
+    (msgpack.packb({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["voxels"], "credits": 1, "rank": 3, "world_size": 2}),
      "rank"),
-    (msgpack.packb({"type": "credit", "v": 2, "credit": 1.5}), "credit"),
+    (msgpack.packb({"type": "credit", "v": PROTOCOL_VERSION, "credit": 1.5}), "credit"),
 ])
 def test_wire_rejects_bombs_and_wrong_types_quickly(frame, why):
     t = time.perf_counter()
@@ -164,6 +165,6 @@ def test_wire_rejects_bombs_and_wrong_types_quickly(frame, why):
 
 
 def test_wire_ignores_sample_ids_with_non_ascii_digits():
-    h = decode_client(msgpack.packb({"type": "hello", "v": 2, "outputs": ["voxels"], "credits": 2,
+    h = decode_client(msgpack.packb({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["voxels"], "credits": 2,
                                      "resume": {"delivered": {"0": "a.mp4#1\na.mp4#٣\n../x#2"}}}), 1 << 20, 64)
     assert h.resume.delivered[0] == frozenset({("a.mp4", 1), ("../x", 2)})  # the server only knows its own files

@@ -232,3 +232,36 @@ def test_a_workers_socket_path_too_long_is_blamed_on_tmpdir_not_the_endpoint(vid
                          env={**__import__("os").environ, "TMPDIR": str(deep)})
     assert out.returncode == 2
     assert "TMPDIR" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_a_resume_state_of_700k_ids_is_sent_compactly_and_a_too_large_one_is_a_clear_error(videos):
+    from v2v_client import StreamError
+
+    args = ["--videos", str(videos), "--crop-size", "64", "--sequence-length", "4", "--max-samples-per-video", "1",
+            "--batch-size", "2"]
+    many = [f"elsewhere/v{i:05d}.mp4#{w}" for i in range(70_000) for w in range(10)]  # 700 k ids, 10 per video
+    huge = [f"elsewhere/a-long-folder-name/and-a-longer-file-name-{i:07d}.mp4#0" for i in range(700_000)]
+    with ServeProcess(args) as srv:
+        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
+        ds.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": many}})
+        t0 = time.monotonic()
+        assert next(iter(ds))["voxels"].shape[0] > 0  # the server read it (videos it does not serve are ignored)
+        assert time.monotonic() - t0 < 20
+        ds2 = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
+        ds2.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": huge}})
+        t0 = time.monotonic()
+        with pytest.raises(StreamError, match="resume state is too large"):
+            next(iter(ds2))
+        assert time.monotonic() - t0 < 10
+        # a peer that sends one anyway (within twice the limit) is told why, not dropped in silence
+        ctx = zmq.Context()
+        s = ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.LINGER, 0)
+        s.connect(srv.endpoint)
+        s.send(pack({"type": "hello", "outputs": ["voxels"], "credits": 1, "consumer": "big",
+                     "resume": {"delivered": {"0": "\n".join(huge[:350_000])}}}))  # 24 MB
+        assert s.poll(20_000)
+        reply = unpack(s.recv_multipart()[0])
+        assert reply["type"] == "error" and str(16 * 1024 * 1024) in reply["message"], reply
+        s.close()
+        ctx.term()

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import zmq
 
-from v2v_server.protocol import ProtocolError, decode_arrays, is_ipv6, pack, unpack
+from v2v_server.protocol import MAX_CLIENT_MSG, ProtocolError, decode_arrays, is_ipv6, pack, unpack
 
 from .handoff import ShmReader, check_shm_dir
 
@@ -248,7 +248,14 @@ class Connection:
         h = dict(self.ds._hello_header(), hello_id=self._hello_seq)
         if self.shm:
             h["shm"] = True
-        return pack(h)
+        data = pack(h)
+        limit = (self.info or {}).get("max_hello_bytes", MAX_CLIENT_MSG)
+        if len(data) > limit:
+            n = sum(len(v) for v in h.get("resume", {}).get("delivered", {}).values())
+            raise StreamError(f"the resume state is too large to send: {len(data)} bytes, the server at "
+                              f"{self.endpoint} takes at most {limit} ({n} characters of sample ids in open epochs). "
+                              f"Checkpoint after the epoch completes, or split the corpus into shards")
+        return data
 
     def _forward_acks(self, sock: zmq.Socket) -> None:
         while True:

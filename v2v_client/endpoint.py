@@ -14,6 +14,8 @@ from typing import Dict, Iterator, List, Optional, Set, Tuple
 import torch
 
 from .connection import Connection, StreamError, _Drained, _EpochDone, _Padding, _select, load_curve_keys
+from v2v_server.ids import compact_ids
+
 from .fanin import read_state
 
 __all__ = ["StreamOptions", "EndpointStream", "padding_copy"]
@@ -172,7 +174,7 @@ class EndpointStream:
         """The hello message: outputs, credits, who we are, and the resume state."""
         with self._lock:
             resume = {"completed_epoch": self._completed_epoch,
-                      "delivered": {str(e): "\n".join(sorted(ids)) for e, ids in self._delivered.items()},
+                      "delivered": {str(e): compact_ids(ids) for e, ids in self._delivered.items()},
                       "batches": {str(e): n for e, n in self._batches.items()}}
         info = torch.utils.data.get_worker_info()
         consumer = self._consumer if info is None else f"{self._consumer}/{info.id}"

@@ -6,16 +6,21 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types (protocol 2; client messages are decoded and schema-checked by ``wire.py``):
+Message types (protocol 3; client messages are decoded and schema-checked by ``wire.py``):
 
 * client -> server: ``hello`` (outputs, credits = how many batches it may hold,
   consumer id, optional DDP ``rank``/``world_size``/``group``, ``resume``:
-  ``completed_epoch``, ``delivered`` {epoch: newline-joined sample ids}, ``batches``
-  {epoch: batches yielded}), ``ack`` (batch ids; frees exactly those slots), ``released``
-  (batch ids given back), ``credit`` (widen the window), ``heartbeat``, ``bye``.
-* server -> client: ``welcome`` (stream info), ``batch``, ``revoke`` (batch ids), ``heartbeat``,
-  ``epoch_done`` (epoch; ``batches`` per rank for a DDP group), ``end``, ``shutdown``,
-  ``error`` (``code`` ``dropped`` / ``unknown_client``: discard what you hold, say hello again).
+  ``completed_epoch``, ``delivered`` {epoch: the sample ids, one video per line as
+  ``path#w1,w2,...`` (``ids.compact_ids``)}, ``batches`` {epoch: batches yielded}), ``ack``
+  (batch ids; frees exactly those slots), ``hold`` (batch ids handed to a DataLoader's queues:
+  no lease, acknowledged later), ``released`` (batch ids given back), ``credit`` (widen the
+  window), ``heartbeat``, ``bye``. A client message is at most ``MAX_CLIENT_MSG`` bytes (the
+  welcome repeats it as ``max_hello_bytes``); a larger one up to twice that gets an ``error``.
+* server -> client: ``welcome`` (stream info: also ``shard``, ``corpus`` and ``recipe``
+  fingerprints), ``batch``, ``revoke`` (batch ids), ``heartbeat``, ``epoch_done`` (epoch;
+  ``batches`` per rank for a DDP group), ``drained`` (a bounded stream has nothing left for this
+  client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
+  ``dropped`` / ``unknown_client``: discard what you hold, say hello again).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error); server -> worker: ``task``, ``stop``.
 
@@ -35,11 +40,12 @@ from typing import Dict, List, Sequence, Tuple
 import msgpack
 import numpy as np
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
-#: Largest message a client may send the server, bytes (its ZMQ_MAXMSGSIZE); a resume hello lists
-#: the sample ids a trainer already has, about 30 bytes each.
+#: Largest message a client may send the server, bytes; a resume hello lists the sample ids a
+#: trainer already has, grouped per video (a few bytes per id: millions fit). The server's
+#: socket takes up to twice this (ZMQ_MAXMSGSIZE), so a larger hello gets a clear error.
 MAX_CLIENT_MSG = 16 * 1024 * 1024
 #: dtypes allowed on the wire.
 WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")

@@ -24,7 +24,7 @@ class ServerSockets:
         self.tmp = tempfile.mkdtemp(prefix="v2v-")
         self.frontend = self.ctx.socket(zmq.ROUTER)
         self.frontend.setsockopt(zmq.LINGER, 500)
-        self.frontend.setsockopt(zmq.MAXMSGSIZE, MAX_CLIENT_MSG)
+        self.frontend.setsockopt(zmq.MAXMSGSIZE, 2 * MAX_CLIENT_MSG)  # past MAX_CLIENT_MSG: an error reply
         self.frontend.setsockopt(zmq.ROUTER_MANDATORY, 1)
         self.frontend.setsockopt(zmq.SNDHWM, 0)  # credits bound what is queued
         self.backend = self.ctx.socket(zmq.ROUTER)

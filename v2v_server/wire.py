@@ -126,11 +126,12 @@ def _ids(h: dict, name: str) -> Tuple[int, ...]:
 
 
 def _parse_keys(text: str, crops_per_window: int = 1) -> FrozenSet[SampleKey]:
+    from .ids import expand_ids
     from .schedule import parse_sample_id
 
     out = set()
-    for line in text.split("\n"):
-        k = parse_sample_id(line, crops_per_window)
+    for sid in expand_ids(text):
+        k = parse_sample_id(sid, crops_per_window)
         if k is not None:
             out.add(k)
     return frozenset(out)
@@ -150,7 +151,7 @@ def _resume(v, crops_per_window: int = 1) -> Resume:
         if not (isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 9):
             raise WireError(f"field 'resume.delivered' keys must be epoch numbers, got {_show(e)}")
         if not isinstance(ids, str):
-            raise WireError(f"field 'resume.delivered[{e}]' must be a newline-joined string of sample ids")
+            raise WireError(f"field 'resume.delivered[{e}]' must be a string of sample ids (ids.compact_ids)")
         delivered[int(e)] = _parse_keys(ids, crops_per_window)
     bt = v.get("batches", {})
     if not isinstance(bt, dict):
