@@ -911,6 +911,49 @@ def scenario_lightning_ddp(tmp: Path, layout: Layout) -> dict:
                batches_per_rank=counts, trainer_exit=r.returncode, server_exit=rc)
 
 
+
+def private_tmpfs(size: str, mount_at: Path) -> Optional[List[str]]:
+    """A command prefix that runs a program with a private tmpfs of ``size`` mounted at
+    ``mount_at`` (``unshare -m``: its own mount namespace), or None where this machine does
+    not permit it."""
+    import subprocess
+
+    mount_at.mkdir(parents=True, exist_ok=True)
+    wrap = ["unshare", "-m", "sh", "-c", f'mount -t tmpfs -o size={size} tmpfs "$0" && exec "$@"', str(mount_at)]
+    try:
+        ok = subprocess.run([*wrap, "true"], capture_output=True, timeout=30).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        ok = False
+    return wrap if ok else None
+
+
+def scenario_small_shm(tmp: Path, layout: Layout, size: str = "1m") -> dict:
+    """The server's shared memory (``V2V_SHM_DIR``) is a tmpfs of ``size`` (Docker's default
+    /dev/shm is 64 MiB): slot rings reserve their pages when made, so one that does not fit
+    is refused at start with a log line (workers send arrays over the socket) instead of a
+    worker dying of SIGBUS at a later write."""
+    shm = tmp / "shm"
+    wrap = private_tmpfs(size, shm)
+    if wrap is None:
+        return {"skipped": "unshare -m / mount -t tmpfs not permitted here"}
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    log: list = []
+    srv = ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args()],
+                       env={"V2V_SHM_DIR": str(shm)}, wrap=wrap).start()
+    try:
+        read_all(V2VStreamDataset(srv.endpoint, timeout_s=60), log)
+        rc = srv.wait(60)
+    finally:
+        srv.stop()
+    text = srv.log
+    fallback = text.count("no shared-memory slot ring")
+    restarts = text.count("died (exit code")
+    return row(f"/dev/shm of {size}: slot rings that do not fit", expected, _ids(log), None,
+               f"rings refused at start {fallback}x; worker deaths {restarts}; server exit {rc}",
+               rings_refused=fallback, worker_deaths=restarts, server_exit=rc)
+
+
 SCENARIOS = {
     "worker_kill": scenario_worker_kill,
     "client_kill": scenario_client_kill,
@@ -935,6 +978,8 @@ SCENARIOS = {
     "loader_workers_fresh": lambda tmp, layout: scenario_loader_workers(tmp, layout, False),
     "independent_restart": scenario_independent_restart,
     "lightning_ddp": scenario_lightning_ddp,
+    "small_shm_1m": lambda tmp, layout: scenario_small_shm(tmp, layout, "1m"),
+    "small_shm_64m": lambda tmp, layout: scenario_small_shm(tmp, layout, "64m"),
 }
 
 

@@ -38,8 +38,9 @@ class ServeProcess:
     """
 
     def __init__(self, args: Optional[List[str]] = None, ready_timeout_s: float = 60.0,
-                 log_path: Optional[str] = None, env: Optional[dict] = None):
+                 log_path: Optional[str] = None, env: Optional[dict] = None, wrap: Optional[List[str]] = None):
         self.args = list(args or [])
+        self.wrap = list(wrap or [])  # a command the server runs under (e.g. unshare -m ... exec "$@")
         if "--bind" not in self.args:
             self.endpoint = f"tcp://127.0.0.1:{free_port()}"
             self.args += ["--bind", self.endpoint]
@@ -60,7 +61,8 @@ class ServeProcess:
 
     def start(self) -> "ServeProcess":
         env = dict(os.environ, PYTHONUNBUFFERED="1", **(self.env or {}))
-        self.proc = subprocess.Popen([sys.executable, "-m", "v2v_server.cli", *self.args], stdout=subprocess.DEVNULL,
+        self.proc = subprocess.Popen([*self.wrap, sys.executable, "-m", "v2v_server.cli", *self.args],
+                                     stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True, env=env)
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from v2v_client.handoff import ShmReader, check_shm_dir
-from v2v_server.datapath import BatchAssembler, BatchDir, make_batch, remove_stale_batch_dirs
+from v2v_server.datapath import BatchAssembler, BatchDir, make_batch, remove_stale_shm
 from v2v_server.protocol import ProtocolError
 
 from .conftest import video_dir
@@ -50,7 +50,7 @@ def test_a_batch_read_through_the_file_equals_its_frames_and_is_a_private_copy(s
     asm = BatchAssembler(4, files=files)
     batch = _batch(asm, 0)
     h = _header(batch)
-    assert os.listdir(files.path) == [h["shm"]["file"]]
+    assert sorted(os.listdir(files.path)) == [".lock", h["shm"]["file"]]  # the lock file says a live server owns it
     reader = ShmReader()
     reader.set_dir(files.path)
     got = reader.read(h)
@@ -139,20 +139,44 @@ def test_the_client_refuses_a_header_pointing_outside_the_file_or_directory(shm_
     asm.close()
 
 
-def test_a_dead_servers_directory_is_removed_and_a_live_ones_kept(shm_root):
+def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root):
+    """A live server holds an flock on its batch directory's lock file and on its slot rings:
+    the next server's start removes what nobody holds (a server killed, whatever its pid or PID
+    namespace) and never a live server's, a symlink, or a directory still being made."""
     import subprocess
     import sys
+    import time
 
-    p = subprocess.Popen([sys.executable, "-c", "pass"])
-    p.wait()
-    dead = os.path.join(shm_root, f"v2v-batches-{p.pid}-abc")
-    live = os.path.join(shm_root, f"v2v-batches-{os.getpid()}-abc")
-    other = os.path.join(shm_root, "v2v-batches-notapid")
-    for d in (dead, live, other):
-        os.mkdir(d)
-        open(os.path.join(d, "b0"), "wb").close()
-    assert remove_stale_batch_dirs(shm_root) == [dead]
-    assert not os.path.exists(dead) and os.path.isdir(live) and os.path.isdir(other)
+    from v2v_server.datapath import SlotRing
+
+    live = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\n"
+        "from v2v_server.datapath import BatchDir, SlotRing\n"
+        f"d = BatchDir.create({shm_root!r}); r = SlotRing.create(2, 4096, {shm_root!r})\n"
+        "print(d.path, r.path, flush=True); time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
+    live_dir, live_ring = live.stdout.readline().split()
+    try:
+        dead = BatchDir.create(shm_root)  # a server that dies without cleaning up: its locks go with it
+        dead_ring = SlotRing.create(2, 4096, shm_root)
+        dead_dir, dead_ring_path = dead.path, dead_ring.path
+        os.close(dead._lock)
+        dead_ring.close()
+        young = os.path.join(shm_root, "v2v-batches-1-young")  # made, lock file not yet: a server starting
+        os.mkdir(young)
+        old = os.path.join(shm_root, "v2v-batches-1-old")  # no lock file for long
+        os.mkdir(old)
+        os.utime(old, (time.time() - 3600, time.time() - 3600))
+        link = os.path.join(shm_root, "v2v-batches-1-link")
+        os.symlink(dead_dir, link)
+        gone = remove_stale_shm(shm_root)
+        assert sorted(gone) == sorted([dead_dir, dead_ring_path, old])
+        for p in (live_dir, live_ring, young):
+            assert os.path.exists(p), p
+        assert os.path.islink(link)
+    finally:
+        live.kill()
+        live.wait()
+    assert sorted(remove_stale_shm(shm_root)) == sorted([live_dir, live_ring])  # now it is dead too
 
 
 def _read_epoch(endpoint, shm, raw=True):
@@ -219,3 +243,42 @@ def test_served_batches_are_identical_with_the_hand_off_on_and_off_and_no_file_o
             assert conv[sid][k].dtype == np.float32
         assert np.array_equal(conv[sid]["voxels"], on[sid]["voxels"].astype(np.float32))
         assert np.array_equal(conv[sid]["frames"], on[sid]["frames"] * np.float32(1 / 255.0))
+
+
+def test_a_symlinked_batch_directory_is_refused_and_batches_come_over_the_socket(shm_root, tmp_path):
+    """A welcome naming a batch directory that is a symbolic link (forged, or planted by another
+    user): the client reads nothing through it and says hello again without the hand-off."""
+    import threading
+
+    import zmq
+
+    from v2v_client import V2VStreamDataset
+    from v2v_client.handoff import shm_dir_problem
+    from v2v_server.protocol import pack, unpack
+
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    link = os.path.join(shm_root, "v2v-batches-1-forged")
+    os.symlink(target, link)
+    assert shm_dir_problem(link) == "is a symbolic link"
+    ctx = zmq.Context()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    ds = V2VStreamDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), timeout_s=5, shm=True)
+    t = threading.Thread(target=lambda: next(iter(ds), None), daemon=True)
+    t.start()
+    hellos = []
+    try:
+        while len(hellos) < 2 and router.poll(10_000):
+            ident, msg = router.recv_multipart()
+            h = unpack(msg)
+            if h["type"] == "hello":
+                hellos.append(h)
+                router.send_multipart([ident, pack({"type": "welcome", "hello_id": h["hello_id"],
+                                                    "info": {"shm_dir": link}})])
+    finally:
+        ds.close()
+        router.close()
+        ctx.term()
+    assert [h.get("shm", False) for h in hellos] == [True, False]

@@ -228,3 +228,17 @@ def test_a_worker_with_every_slot_taken_blocks_until_the_server_gives_one_back(t
     ctx.term()
     ring.unlink()
     ring.close()
+
+
+@pytest.mark.parametrize("size", ["1m", "64m"])
+def test_a_small_dev_shm_never_kills_a_worker(tmp_path, size):
+    from harness import faults
+    from harness.faults import Layout
+
+    r = faults.scenario_small_shm(tmp_path, Layout(L=4, crop=64, windows=2, batch=2), size)
+    if "skipped" in r:
+        pytest.skip(r["skipped"])
+    assert (r["lost"], r["duplicated"], r["unexpected"]) == (0, 0, 0), r
+    f = r["facts"]
+    assert f["worker_deaths"] == 0 and f["server_exit"] == 0, r
+    assert (f["rings_refused"] > 0) == (size == "1m"), r  # 2 rings of ~1.5 MB fit in 64 MiB, not in 1 MiB

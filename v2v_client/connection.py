@@ -25,7 +25,7 @@ import zmq
 
 from v2v_server.protocol import MAX_CLIENT_MSG, ProtocolError, decode_arrays, is_ipv6, pack, unpack
 
-from .handoff import ShmReader, check_shm_dir
+from .handoff import ShmReader, check_shm_dir, shm_dir_problem
 
 log = logging.getLogger("v2v.client")
 
@@ -113,6 +113,7 @@ class Connection:
         self._hello_seq = 0
         self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
         self._lingering = False
+        self._torn_ids: Dict[int, int] = {}  # shared-memory batches found gone, by batch id
         self._receipts = getattr(ds, "receipts", None)  # DataLoader worker: what the training loop received
         self.shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
         self._shm = ShmReader(keep=ds.credits + 2) if self.shm else None
@@ -441,13 +442,17 @@ class Connection:
         self.info = h.get("info", {})
         if self._shm is not None:
             d = self.info.get("shm_dir")
-            if d is not None and not os.access(check_shm_dir(d), os.R_OK | os.X_OK):
-                log.warning("v2v stream %s: cannot read the server's batch directory %s (another user?); "
-                            "asking for batches over the socket", self.endpoint, d)
-                self.shm, self._shm = False, None
-                self._replies.append(self._hello())
+            why = None if d is None else shm_dir_problem(check_shm_dir(d))
+            if why is not None:
+                self._socket_instead(f"the server's batch directory {d} {why}")
             else:
                 self._shm.set_dir(d)
+
+    def _socket_instead(self, why: str) -> None:
+        """Stop reading batches through the server's shared memory: say hello again without it."""
+        log.warning("v2v stream %s: %s; asking for batches over the socket", self.endpoint, why)
+        self.shm, self._shm = False, None
+        self._replies.append(self._hello())
 
     def _on_revoke(self, h: dict) -> None:
         """Batches the server asks back: those still held (not yet handed to the loop) are
@@ -465,8 +470,15 @@ class Connection:
 
     def _torn(self, h: dict) -> None:
         """A shared-memory batch whose buffer the server refilled before we copied it: the
-        batch was acknowledged (or dropped) already, so it is not ours; give it back."""
+        batch was acknowledged (or dropped) already, so it is not ours; give it back. The
+        same batch torn twice means its file is gone while the server still holds it (the
+        directory was removed under it): read over the socket from now on, so the batch comes
+        as frames instead of the same reference again."""
         bid = h.get("batch_id")
+        self._torn_ids[bid] = self._torn_ids.get(bid, 0) + 1
+        if self._torn_ids[bid] >= 2:
+            self._socket_instead(f"batch {bid} is gone from the server's shared memory again")
+            return None
         log.warning("v2v stream %s: batch %s was gone from the server's shared memory before it was read "
                     "(this process stalled?); giving it back", self.endpoint, bid)
         if isinstance(bid, int) and not isinstance(bid, bool) and bid >= 0:

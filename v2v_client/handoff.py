@@ -49,6 +49,25 @@ def check_shm_dir(path) -> str:
     return path
 
 
+def shm_dir_problem(path: str) -> Optional[str]:
+    """Why this process must not read batches from the directory ``path`` (None when it may):
+    it is a symbolic link, or its real path differs (a parent is a link), or it is not a
+    directory of this user or root, or it cannot be read."""
+    try:
+        st = os.lstat(path)
+    except OSError as e:
+        return f"cannot be looked at ({e.strerror or e})"
+    if stat.S_ISLNK(st.st_mode):
+        return "is a symbolic link"
+    if not stat.S_ISDIR(st.st_mode) or os.path.realpath(path) != path:
+        return "is not a plain directory at that path"
+    if st.st_uid not in (os.getuid(), 0):
+        return f"belongs to another user (uid {st.st_uid})"
+    if not os.access(path, os.R_OK | os.X_OK):
+        return "cannot be read by this user"
+    return None
+
+
 def shm_layout(specs, ref, file_size: int) -> List[tuple]:
     """``(name, dtype, shape, offset, nbytes)`` per array of a shared-memory batch header,
     every array inside the file after its header.

@@ -38,14 +38,17 @@ a client that finds another generation after its copy knows the batch was alread
 """
 from __future__ import annotations
 
+import fcntl
 import logging
 import math
 import mmap
 import os
 import shutil
+import stat
 import struct
 import sys
 import tempfile
+import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
@@ -155,6 +158,7 @@ class SlotRing:
     def __init__(self, path: str, slots: int, slot_size: int, mm: mmap.mmap):
         self.path, self.slots, self.slot_size, self._mm = path, slots, slot_size, mm
         self.free = list(range(slots))  # the worker's side: slots it may write
+        self._lock_fd: Optional[int] = None  # the creating server's flock on the file
 
     @property
     def spec(self) -> dict:
@@ -163,16 +167,24 @@ class SlotRing:
 
     @classmethod
     def create(cls, slots: int, slot_size: int, directory: Optional[str] = SHM_DIR) -> "SlotRing":
+        """A new ring file with every page reserved now (``posix_fallocate``): a /dev/shm too
+        small for it (Docker's default is 64 MiB) fails here with ``OSError`` instead of
+        killing the worker with SIGBUS at a later write. The server holds an ``flock`` on it
+        until :meth:`close`, so the next server's start can tell a left-over ring from a live
+        one (:func:`remove_stale_shm`)."""
+        remove_stale_shm(directory)
         fd, path = tempfile.mkstemp(prefix="v2v-slots-", dir=directory)
         try:
-            os.ftruncate(fd, slots * slot_size)
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _reserve(fd, slots * slot_size)
             mm = mmap.mmap(fd, slots * slot_size)
         except BaseException:
+            os.close(fd)
             os.unlink(path)
             raise
-        finally:
-            os.close(fd)
-        return cls(path, slots, slot_size, mm)
+        ring = cls(path, slots, slot_size, mm)
+        ring._lock_fd = fd
+        return ring
 
     @classmethod
     def attach(cls, spec: dict, unlink: bool = True) -> "SlotRing":
@@ -196,6 +208,9 @@ class SlotRing:
         _unlink(self.path)
 
     def close(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
         try:
             self._mm.close()
         except BufferError:  # a view still exists; the mapping goes with it
@@ -260,32 +275,69 @@ def create_ring(sequence_length: int, num_bins: int, crop_size: int,
         return None
 
 
-def _pid_alive(pid: int) -> bool:
+def _reserve(fd: int, nbytes: int) -> None:
+    """Size the file ``fd`` to ``nbytes`` with its pages reserved (``posix_fallocate``; a plain
+    ``ftruncate`` on file systems without it)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        os.posix_fallocate(fd, 0, nbytes)
+    except OSError as e:
+        if e.errno not in (95, 22):  # EOPNOTSUPP / EINVAL: a file system without fallocate
+            raise
+        os.ftruncate(fd, nbytes)
+
+
+#: Name of the lock file a live server holds (``flock``) in its batch directory.
+LOCK_FILE = ".lock"
+#: A batch directory without its lock file is a server's that is starting for this long at most.
+STARTING_S = 60.0
+
+
+def _unlocked(path: str) -> bool:
+    """True when nobody holds an ``flock`` on ``path`` (we could take it): what a server that
+    died leaves. Locks are held on the file, not by a pid, so this holds across PID namespaces
+    (containers sharing /dev/shm) and for a server that is PID 1."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
         return False
-    except PermissionError:  # someone else's process: alive
-        return True
-    return True
-
-
-def remove_stale_batch_dirs(root: str) -> List[str]:
-    """Remove the batch directories under ``root`` left by servers that died without cleaning
-    up (SIGKILL, power loss): those whose pid no longer runs. Returns the paths removed."""
-    gone = []
     try:
-        names = os.listdir(root)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except BlockingIOError:
+        return False
+    finally:
+        os.close(fd)
+
+
+def remove_stale_shm(root: Optional[str]) -> List[str]:
+    """Remove what servers that died without cleaning up (SIGKILL, power loss, killed while
+    starting) left under ``root``: batch directories whose lock file nobody holds, and slot-ring
+    files nobody holds. Never a live server's (it holds its locks), never a symlink or someone
+    else's file. Returns the paths removed."""
+    gone: List[str] = []
+    try:
+        names = os.listdir(root) if root else []
     except OSError:
         return gone
+    uid = os.getuid()
     for name in names:
-        m = BATCH_DIR_RE.fullmatch(name)
         path = os.path.join(root, name)
-        if m is None or _pid_alive(int(m.group(1))) or not os.path.isdir(path) or os.path.islink(path):
+        try:
+            st = os.lstat(path)
+        except OSError:
             continue
-        shutil.rmtree(path, ignore_errors=True)
+        if st.st_uid != uid or stat.S_ISLNK(st.st_mode):
+            continue
+        lock = os.path.join(path, LOCK_FILE)
+        if BATCH_DIR_RE.fullmatch(name) and stat.S_ISDIR(st.st_mode) and (
+                _unlocked(lock) if os.path.exists(lock) else time.time() - st.st_mtime > STARTING_S):
+            shutil.rmtree(path, ignore_errors=True)
+        elif name.startswith("v2v-slots-") and stat.S_ISREG(st.st_mode) and _unlocked(path):
+            _unlink(path)
+        else:
+            continue
         gone.append(path)
-        log.info("removed %s, left by server process %s which no longer runs", path, m.group(1))
+        log.info("removed %s, left by a v2v server that no longer runs", path)
     return gone
 
 
@@ -300,6 +352,9 @@ class BatchDir:
     def __init__(self, path: str):
         self.path = path
         self._next = 0
+        # held while the server lives: the next server's start tells a live directory by it
+        self._lock = os.open(os.path.join(path, LOCK_FILE), os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o600)
+        fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
 
     @classmethod
     def create(cls, root: Optional[str] = None) -> Optional["BatchDir"]:
@@ -309,7 +364,7 @@ class BatchDir:
             root = os.environ.get("V2V_SHM_DIR", SHM_DIR)
         if not root or not os.path.isdir(root):
             return None
-        remove_stale_batch_dirs(root)
+        remove_stale_shm(root)
         try:
             return cls(tempfile.mkdtemp(prefix=f"v2v-batches-{os.getpid()}-", dir=root))
         except OSError as e:
@@ -324,12 +379,7 @@ class BatchDir:
         path = os.path.join(self.path, name)
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o600)
         try:
-            try:
-                os.posix_fallocate(fd, 0, nbytes)
-            except OSError as e:
-                if e.errno not in (95, 22):  # EOPNOTSUPP / EINVAL: a file system without fallocate
-                    raise
-                os.ftruncate(fd, nbytes)
+            _reserve(fd, nbytes)
             # MAP_POPULATE: the pages are mapped now, not by one fault per 4 KiB at the first fill
             mm = mmap.mmap(fd, nbytes, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))
         except BaseException:
@@ -345,6 +395,9 @@ class BatchDir:
     def remove(self) -> None:
         """Delete the directory and its files (mappings stay valid while viewed)."""
         shutil.rmtree(self.path, ignore_errors=True)
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
 
 
 class _BatchBuffer:
@@ -604,5 +657,5 @@ def make_batch(samples: Sequence[SamplePayload]) -> BatchPayload:
     return BatchPayload(ids, meta, list(samples))
 
 
-__all__ = ["SamplePayload", "BatchPayload", "BatchAssembler", "BatchDir", "SlotRing", "remove_stale_batch_dirs", "sample_from_worker", "sample_from_slot",
+__all__ = ["SamplePayload", "BatchPayload", "BatchAssembler", "BatchDir", "SlotRing", "remove_stale_shm", "sample_from_worker", "sample_from_slot",
            "make_batch", "narrow_voxels", "create_ring", "slot_bytes", "slot_layout"]
