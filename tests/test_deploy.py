@@ -18,6 +18,7 @@ import yaml
 from trainer.config import apply_overrides, load_config as load_trainer_config
 from trainer.train import build_arg_parser as train_parser
 from v2v_server.cli import build_parser as serve_parser, config_from_args
+from v2v_server.datapath import shm_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -73,6 +74,17 @@ def image_file(image: dict, path: str) -> Path:
         if f.exists():
             return f
     raise AssertionError(f"{path}: not in the image (no COPY brings it)")
+
+
+def size_bytes(text) -> int:
+    """``512m`` (Docker) or ``1Gi`` / ``500M`` (Kubernetes) in bytes."""
+    m = re.fullmatch(r"(\d+)\s*([kmgKMG]i?)?[bB]?", str(text).strip())
+    assert m, text
+    unit = (m.group(2) or "").lower()
+    mult = {"": 1, "k": 1024, "m": 1024 ** 2, "g": 1024 ** 3, "ki": 1024, "mi": 1024 ** 2, "gi": 1024 ** 3}[unit]
+    if text[-1] in "KMG" and not str(text).endswith("i"):  # Kubernetes decimal units
+        mult = {"K": 10 ** 3, "M": 10 ** 6, "G": 10 ** 9}[text[-1]]
+    return int(m.group(1)) * mult
 
 
 def program(argv):
@@ -213,6 +225,9 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
         if prog == "v2v-serve":
             cfg = check_serve_config(ns)
             shards[name] = (cfg, args, s)
+            # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
+            assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
+                                                          cfg.crop_size), name
             hc = " ".join(s["healthcheck"]["test"])
             assert f"127.0.0.1:{cfg.metrics_port}/" in hc
             assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
@@ -312,6 +327,12 @@ def test_k8s_statefulset_service_pdb_job_agree():
         conf = _check_path(ns.config, mounts, secret_files)
         cfg = check_serve_config(ns, _write(conf["content"]))
         assert cfg.shard_spec == (i, replicas) and cfg.workers == int(cpu)
+    # /dev/shm: a memory-backed emptyDir large enough for the workers' slot rings
+    shm_mount, = [m for m in c["volumeMounts"] if m["mountPath"] == "/dev/shm"]
+    shm_vol, = [v for v in sts["spec"]["template"]["spec"]["volumes"] if v["name"] == shm_mount["name"]]
+    assert shm_vol["emptyDir"]["medium"] == "Memory"
+    assert size_bytes(shm_vol["emptyDir"]["sizeLimit"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
+                                                                      cfg.crop_size)
     for flag in PATH_FLAGS:
         for path in flag_values(args, flag):
             _check_path(path, mounts, secret_files)
