@@ -139,17 +139,36 @@ def test_the_client_refuses_a_header_pointing_outside_the_file_or_directory(shm_
     asm.close()
 
 
-def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root):
+def _pid_namespace() -> list:
+    """``unshare -p -f --mount-proc`` where this machine permits it (a process there is PID 1 and
+    its pid means nothing outside), else nothing."""
+    import shutil
+    import subprocess
+
+    wrap = ["unshare", "-p", "-f", "--mount-proc", "--kill-child"]
+    try:
+        ok = shutil.which("unshare") and subprocess.run([*wrap, "true"], capture_output=True, timeout=30).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        ok = False
+    return wrap if ok else []
+
+
+@pytest.mark.parametrize("namespace", ["same", "own PID namespace"])
+def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root, namespace):
     """A live server holds an flock on its batch directory's lock file and on its slot rings:
     the next server's start removes what nobody holds (a server killed, whatever its pid or PID
-    namespace) and never a live server's, a symlink, or a directory still being made."""
+    namespace) and never a live server's (also one that is PID 1 of another PID namespace), a
+    symlink, or a directory still being made."""
     import subprocess
     import sys
     import time
 
     from v2v_server.datapath import SlotRing
 
-    live = subprocess.Popen([sys.executable, "-c", (
+    wrap = _pid_namespace() if namespace != "same" else []
+    if namespace != "same" and not wrap:
+        pytest.skip("unshare -p is not permitted on this machine")
+    live = subprocess.Popen([*wrap, sys.executable, "-c", (
         "import sys, time\n"
         "from v2v_server.datapath import BatchDir, SlotRing\n"
         f"d = BatchDir.create({shm_root!r}); r = SlotRing.create(2, 4096, {shm_root!r})\n"
@@ -176,7 +195,10 @@ def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root):
     finally:
         live.kill()
         live.wait()
-    assert sorted(remove_stale_shm(shm_root)) == sorted([live_dir, live_ring])  # now it is dead too
+    deadline = time.monotonic() + 10  # (in its own namespace the server is unshare's child: it goes next)
+    while (gone := remove_stale_shm(shm_root)) == [] and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert sorted(gone) == sorted([live_dir, live_ring])  # now it is dead too
 
 
 def _read_epoch(endpoint, shm, raw=True):
