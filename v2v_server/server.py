@@ -293,15 +293,22 @@ class V2VServer:
             for k, why in sorted(failed.items()):
                 self._log_failure(job.video, f"window {k}: {why}")
             if h.get("error"):
-                self._log_failure(job.video, h["error"])
+                n = h.get("windows", 0) if isinstance(h.get("windows"), int) else 0
+                self._log_failure(job.video, h["error"], served=n)
 
-    def _log_failure(self, video: str, reason: str) -> None:
+    def _log_failure(self, video: str, reason: str, served: int = 0) -> None:
+        """Log once per (file, reason) why a file, or the rest of it after ``served``
+        windows, is skipped this epoch."""
         if video not in self.skipped_files:
             self.metrics.on_file_skipped()
         self.skipped_files.setdefault(video, reason)
         if (video, reason) not in self.logged_failures and len(self.logged_failures) < 100000:
             self.logged_failures.add((video, reason))
-            log.warning("skipped %s: %s", self.root / video, reason)
+            if served:
+                log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
+                            "epoch", self.root / video, reason, served, served - 1)
+            else:
+                log.warning("skipped %s: %s", self.root / video, reason)
 
     def _dispatch(self, now: float) -> None:
         for w in self.pool.idle():
