@@ -827,7 +827,8 @@ def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: i
     expected = expected_ids(corpus, layout)
     log: list = []
     rounds = 0
-    with _serve(corpus, layout, "--epochs", "1", "--end-grace-s", "3") as srv:  # an iteration may start after the end
+    # an iteration may start after the end of the stream: the server waits for it (its grace period)
+    with _serve(corpus, layout, "--epochs", "1", "--end-grace-s", "60") as srv:
         loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2,
                               persistent_workers=persistent)
         finished = False
@@ -839,10 +840,12 @@ def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: i
                 if i + 1 == take:
                     finished = False
                     break
-        rc = srv.wait(60)
+        ended = srv.log.count("all 1 epoch(s) delivered")
+        rc = srv.stop()  # SIGINT: a clean stop, exit 0
     kind = "persistent" if persistent else "non-persistent"
     return row(f"StreamLoader, 2 {kind} workers, break after {take} batches and iterate again", expected,
-               _ids(log), None, f"{rounds} iterations; server exit {rc}", rounds=rounds, server_exit=rc)
+               _ids(log), None, f"{rounds} iterations; stream ended {ended}x; server exit {rc}", rounds=rounds,
+               ended=ended, server_exit=rc)
 
 
 
