@@ -69,7 +69,7 @@ def main() -> None:
 
 def compare(models) -> None:
     sys.path.insert(0, ".")
-    from trainer.models import build_model
+    from trainer.zoo import build_model
 
     torch.manual_seed(1)
     vox = torch.randn(3, 2, 5, 48, 64)

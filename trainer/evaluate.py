@@ -272,7 +272,7 @@ def flow_metrics(pred: np.ndarray, gt: np.ndarray, event_mask: Optional[np.ndarr
 def load_model(checkpoint: str, device: torch.device):
     """Rebuild the network stored by ``v2v-train`` in ``checkpoint``; returns (task, model
     in eval mode, config)."""
-    from .models import build_model
+    from .zoo import build_model
 
     ck = torch.load(checkpoint, map_location=device, weights_only=False)
     cfg = ck["config"]
@@ -372,11 +372,14 @@ def main(argv=None) -> int:
 
     device = resolve_device(args.device)
     task, model, cfg = load_model(args.checkpoint, device)
+    from .tasks import get_task
+
+    recon = "frames" in get_task(task).outputs  # e2vid, hypere2vid, etnet: reconstruction metrics
     nb = int(cfg["model"]["num_bins"])
     if not args.h5 and not args.video:
         p.error("give --h5 and/or --video inputs")
     lp = None
-    if task == "e2vid":
+    if recon:
         lp = load_lpips("alex", args.lpips_weights)
         if lp is None:
             log.warning("LPIPS (Alex) weights not found: LPIPS is not reported")
@@ -390,19 +393,19 @@ def main(argv=None) -> int:
     for kind, path in inputs:
         if kind == "h5":
             seq = H5Sequence(path)
-            if task == "e2vid":
+            if recon:
                 vox, counts = seq.voxels(nb)
                 frames, flows = seq.images, None
             else:
                 vox, counts, flows = seq.flow_voxels(nb)  # between flow timestamps when present
                 frames = None
         else:
-            if task != "e2vid":
+            if not recon:
                 p.error("--video inputs have no ground-truth flow; EvFlow needs --h5 files with a flow group")
             vox, frames = video_sequence(path, nb, args.contrast_threshold, args.max_frames,
                                          tuple(args.size) if args.size else None)
             counts, flows = None, None
-        if task == "e2vid":
+        if recon:
             r = evaluate_e2vid(model, vox, frames, device, args.ssim_data_range, lp, args.skip_first)
             if out and args.save_images:
                 from .viz import gray_to_u8, save_grid, voxel_to_u8
