@@ -14,8 +14,25 @@ import yaml
 
 from v2v_server.settings import YamlLoader, check_bool, check_choice, check_float, check_int, load_yaml, setting
 
-__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "RunSettings", "default_config", "load_config", "apply_overrides",
-           "merge", "check_types", "reference_markdown"]
+__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "RunSettings", "default_config", "load_config",
+           "apply_overrides", "apply_loss_preset", "merge", "check_types", "reference_markdown"]
+
+#: The V2V paper's loss combinations for reconstruction, as ``loss`` section values. "V+L1+H"
+#: (Table 2; the authors' train_v2v_*_10k.yaml): LPIPS-VGG + L1 + temporal consistency from
+#: voxel L0 = 20 of 40. "Alex+TC" (Table 2; the authors' train_ablation_e2vid_esim.yaml):
+#: LPIPS-Alex + temporal consistency over the whole sequence (their default L0 = 1, i.e.
+#: fraction 0 here). The appendix's ablations: "Alex" (LPIPS-Alex only) and "Alex+TH"
+#: (LPIPS-Alex + temporal consistency on the last half).
+LOSS_PRESETS = {
+    "v+l1+h": {"l1_weight": 1.0, "perceptual_weight": 1.0, "lpips_net": "vgg", "tc_weight": 1.0,
+               "tc_start_fraction": 0.5},
+    "alex+tc": {"l1_weight": 0.0, "perceptual_weight": 1.0, "lpips_net": "alex", "tc_weight": 1.0,
+                "tc_start_fraction": 0.0},
+    "alex": {"l1_weight": 0.0, "perceptual_weight": 1.0, "lpips_net": "alex", "tc_weight": 0.0,
+             "tc_start_fraction": 0.0},
+    "alex+th": {"l1_weight": 0.0, "perceptual_weight": 1.0, "lpips_net": "alex", "tc_weight": 1.0,
+                "tc_start_fraction": 0.5},
+}
 
 @dataclass
 class RunSettings:
@@ -103,8 +120,12 @@ class E2VIDModel:
 
 @dataclass
 class E2VIDLoss:
-    """``loss`` of e2vid ("V+L1+H"): L1 + LPIPS-VGG, temporal consistency on the last half."""
+    """``loss`` of the reconstruction tasks (e2vid, hypere2vid, etnet); default "V+L1+H": L1 +
+    LPIPS-VGG, temporal consistency on the last half. ``preset`` sets the five term keys at
+    once; keys written beside it (file or later ``--set``) win."""
 
+    preset: Optional[str] = setting("v+l1+h", help="the paper's loss combination; null: the keys below as given",
+                                    choices=tuple(LOSS_PRESETS))
     l1_weight: float = setting(1.0, help="weight of the L1 term")
     perceptual_weight: float = setting(1.0, help="weight of LPIPS (VGG); 1 - SSIM when no LPIPS weights")
     lpips_net: str = setting("vgg", help="LPIPS backbone", choices=("vgg", "alex"))
@@ -292,6 +313,11 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
             user.pop(name, None)
     user["task"] = task
     _check_keys(user, base)
+    if isinstance(user.get("loss"), dict) and user["loss"].get("preset") is not None and "loss" in base:
+        try:
+            apply_loss_preset(base["loss"], user["loss"]["preset"])
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") if path else e
     try:
         return check_types(merge(base, user))
     except ValueError as e:
@@ -320,7 +346,19 @@ def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
         if parts[-1] not in node and parts[0] != "model":
             raise ValueError(f"unknown config key {key!r} in override {item!r}")
         node[parts[-1]] = _parse_value(val)
+        if parts == ["loss", "preset"] and node["preset"] is not None:
+            apply_loss_preset(node, node["preset"])
     return check_types(cfg)
+
+
+def apply_loss_preset(loss: dict, name: str) -> dict:
+    """Set ``loss["preset"]`` and the preset's term keys (``LOSS_PRESETS[name]``) in place and
+    return ``loss``. Raises ``ValueError`` naming the known presets for another name."""
+    if name not in LOSS_PRESETS:
+        raise ValueError(f"config field 'loss.preset' must be one of {list(LOSS_PRESETS)} or null, got {name!r}")
+    loss.update(LOSS_PRESETS[name])
+    loss["preset"] = name
+    return loss
 
 
 def reference_markdown() -> str:
