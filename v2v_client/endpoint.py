@@ -36,6 +36,7 @@ class StreamOptions:
     world_size: int
     group: str
     shm: object
+    compact_flow: bool = False
 
 
 def padding_copy(batch: dict, epoch: int) -> dict:
@@ -66,6 +67,7 @@ class EndpointStream:
         self.outputs, self.credits, self.timeout_s, self.heartbeat_s = o.outputs, o.credits, o.timeout_s, o.heartbeat_s
         self.raw, self.reconnect, self.reconnect_timeout_s = o.raw, o.reconnect, o.reconnect_timeout_s
         self.rank, self.world_size, self.group, self.shm = o.rank, o.world_size, o.group, o.shm
+        self.compact_flow = o.compact_flow
         self.curve = load_curve_keys(*o.curve_keys) if o.curve_keys else None
         self.info: Optional[dict] = None
         self._conns: list = []

@@ -52,7 +52,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .protocol import (BATCH_DIR_RE, BATCH_FILE_HEADER, WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays,
-                       narrow_int_dtype)
+                       narrow_int_dtype, output_of)
 
 log = logging.getLogger("v2v.datapath")
 
@@ -555,8 +555,8 @@ class BatchPayload:
 
     def wire(self, outputs: Sequence[str]) -> Tuple[List[dict], List]:
         """Array specs for the batch header and the frames to send (zero-copy, one per
-        array), for the arrays in ``outputs``."""
-        return encode_arrays({k: v for k, v in self.arrays.items() if k in outputs})
+        array), for the arrays that carry ``outputs`` (``protocol.output_of``)."""
+        return encode_arrays({k: v for k, v in self.arrays.items() if output_of(k) in outputs})
 
     def shm_ref(self, outputs: Sequence[str]) -> Optional[Tuple[List[dict], dict]]:
         """Where a same-host client finds this batch's arrays in ``outputs``: ``(specs, ref)``
@@ -570,7 +570,7 @@ class BatchPayload:
         buf, r0 = self._rows
         specs, offsets = [], []
         for k, v in self.arrays.items():
-            if k in outputs:
+            if output_of(k) in outputs:
                 full = buf.arrays[k]
                 specs.append({"name": k, "dtype": v.dtype.name, "shape": list(v.shape)})
                 offsets.append(buf.offsets[k] + r0 * (full.nbytes // full.shape[0]))

@@ -356,7 +356,8 @@ class V2VServer:
         return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
                 "batch_size": c.batch_size, "frames_per_bin": c.frames_per_bin, "seed": c.seed,
                 "epochs": c.epochs, "videos": len(self.videos), "outputs": list(self.core.outputs or c.outputs),
-                "offered_outputs": list(c.outputs), "flow_preset": c.flow_preset, "protocol": PROTOCOL_VERSION,
+                "offered_outputs": list(c.outputs), "flow_preset": c.flow_preset, "flow_dtype": c.flow_dtype,
+                "protocol": PROTOCOL_VERSION,
                 "lease_s": c.lease_s, "client_timeout_s": c.client_timeout_s, "max_credits": c.max_credits,
                 "shm_dir": self.assembler.files.path if self.assembler.files is not None else None}
 

@@ -94,9 +94,11 @@ def _send(sock: zmq.Socket, frames, parent_pid: int) -> None:
 
 def wire_arrays(cfg: SampleRecipe, arrays: dict) -> dict:
     """Narrow a sample's arrays to their wire dtypes: voxels int8/int16/int32 (the narrowest
-    that holds every count), frames uint8, flow ``cfg.flow_dtype``. Voxels that arrive int8 or
-    int16 come from ``simulate_voxels(narrow=True)``, which already picked the narrowest: only
-    int32 ones are scanned."""
+    that holds every count), frames uint8, dense flow ``cfg.flow_dtype`` (a tracked option's
+    ``flow_grid`` stays float32: it is small, and the client's expansion of it equals the
+    server's to the bit). Voxels that arrive int8 or int16 come from
+    ``simulate_voxels(narrow=True)``, which already picked the narrowest: only int32 ones are
+    scanned."""
     out = {}
     for name, a in arrays.items():
         if name == "voxels" and a.dtype == np.int32:
@@ -159,7 +161,8 @@ def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent
     clock = _StageClock(stats)  # seconds per stage, reported with each message
     try:
         for sid, arrays, meta in video_samples(
-            cfg, root, task["video"], task["epoch"], task["outputs"], task.get("skip", ()), flow, stats
+            cfg, root, task["video"], task["epoch"], task["outputs"], task.get("skip", ()), flow, stats,
+            flow_grid=True,  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
         ):
             clock.made()
             specs, frames = encode_arrays(wire_arrays(cfg, arrays))
