@@ -23,7 +23,8 @@ import numpy as np
 import torch
 import zmq
 
-from v2v_server.protocol import ProtocolError, decode_arrays, output_of, pack, unpack
+from v2v_server.codecs import decode_batch_arrays
+from v2v_server.protocol import ProtocolError, output_of, pack, unpack
 
 from .flowgrid import expand_flow_grid
 from .handoff import ShmReader, check_shm_dir
@@ -135,6 +136,7 @@ class Connection:
         self._hello_seq = 0
         self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
         self.shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
+        self.compression, self._compression_auto = ds.compression_for(self.endpoint)
         self._shm = ShmReader(keep=ds.credits + 2) if self.shm else None
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
@@ -226,6 +228,8 @@ class Connection:
         h = dict(self.ds._hello_header(), hello_id=self._hello_seq)
         if self.shm:
             h["shm"] = True
+        if self.compression != "none":
+            h["compression"] = self.compression
         return pack(h)
 
     def _forward_acks(self, sock: zmq.Socket) -> None:
@@ -340,6 +344,11 @@ class Connection:
                 return "over"
             elif kind == "shutdown":
                 return "lost"
+            elif kind == "error" and h.get("code") == "compression" and self._compression_auto:
+                # the server lacks the codec we picked by default: take the arrays as they are
+                log.warning("v2v server at %s: %s; receiving arrays uncompressed", self.endpoint, h.get("message"))
+                self.compression = "none"
+                self._replies.append(self._hello())
             elif kind == "error" and h.get("code") in ("dropped", "unknown_client"):
                 # dropped for silence or an unanswered revoke, or the server restarted behind our socket:
                 # whatever we hold goes elsewhere, so hand none of it on; introduce ourselves again
@@ -369,7 +378,7 @@ class Connection:
             if arrays is None:
                 return self._torn(h)
         else:
-            arrays = decode_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
+            arrays = decode_batch_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
         missing = [o for o in self.ds.outputs if o not in {output_of(k) for k in arrays}]
         if missing:
             raise ProtocolError(f"batch {h.get('batch_id')} lacks requested outputs {missing}")

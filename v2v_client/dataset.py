@@ -21,6 +21,7 @@ from typing import Iterator, Optional, Sequence, Tuple, Union
 
 import torch
 
+from v2v_server.codecs import available, check_compression
 from v2v_server.protocol import OUTPUTS
 
 from .connection import StreamError, StreamTimeout, batch_to_torch, load_curve_keys
@@ -83,6 +84,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             batch keeps ``flow_grid`` float32 (B, L, 2, n, n) instead of ``flow``, to expand
             on the GPU with ``v2v_client.expand_flow_grid(grid.to(device), (H, W))``; servers
             with another flow option still send (and this client yields) dense ``flow``.
+        compression: how arrays that travel over the socket are compressed, per connection:
+            ``"none"``, ``"lz4"`` or ``"zstd"`` (``v2v_server.codecs``; the server's workers
+            compress, this client's I/O thread decompresses, overlapped with training).
+            ``"auto"`` (default): none for ``ipc://`` and loopback ``tcp://``, ``"zstd"``
+            to other hosts (when ``zstandard`` is installed here and on the server; docs/wire.md
+            measures the trade). The batches are the same either way.
 
     Yields dicts, one per batch of B samples:
         ``voxels`` float32 (B, L, num_bins, H, W), signed event counts per bin;
@@ -120,7 +127,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None, rank: Optional[int] = None,
                  world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto",
-                 compact_flow: bool = False):
+                 compact_flow: bool = False, compression: str = "auto"):
         super().__init__()
         if isinstance(outputs, str):
             outputs = (outputs,)
@@ -149,10 +156,14 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             raise ValueError(f"shm must be True, False or 'auto', got {shm!r}")
         if not isinstance(compact_flow, bool):
             raise ValueError(f"compact_flow must be True or False, got {compact_flow!r}")
+        if compression != "auto":
+            check_compression(compression)
+            if not available(compression):
+                raise ValueError(f"compression {compression!r} needs its library here: pip install 'v2v[wire]'")
         self.rank, self.world_size, self.group = rank, world_size, group
         self.options = StreamOptions(self.outputs, credits, float(timeout_s), float(heartbeat_s), raw, bool(reconnect),
                                      float(reconnect_timeout_s), tuple(curve_keys) if curve_keys else None, rank,
-                                     world_size, group, shm, compact_flow)
+                                     world_size, group, shm, compact_flow, compression)
         if curve_keys:
             load_curve_keys(*curve_keys)  # bad key files are an error here, not at the first iteration
         self._stream: Optional[EndpointStream] = None
