@@ -19,6 +19,17 @@ Message types (protocol 2; client messages are decoded and schema-checked by ``w
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error); server -> worker: ``task``, ``stop``.
 
+Array forms: a tracked flow option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its
+values at the tracking grid's points (``ARRAY_OUTPUT``: it carries the output ``flow``; the
+dense field is bilinear between them with ``flow_grid_taps`` over the welcome's
+``crop_size``). Compression (optional): a hello may say ``"compression": "lz4" | "zstd"``
+(``codecs.COMPRESSIONS``; the server answers ``error`` code ``compression`` when it lacks the
+library); a batch array the workers compressed is then sent as one frame per sample, its spec
+carrying ``"codec"`` and ``"parts"`` (``[dtype, bytes]`` per sample; ``codecs.decode_batch_arrays``);
+other arrays of the same batch may still be plain. Workers get the codecs to make in each
+``task`` (``codecs``) and send the compressed frames after their array frames, listed in the
+sample header's ``packed``.
+
 Same-host hand-off (optional fields): a hello may say
 ``"shm": true``; a server bound to ``ipc://`` then names its batch directory in the welcome
 (``info.shm_dir``, else null) and may send a batch with no array frames and
