@@ -252,3 +252,49 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
     finally:
         t.join(30)
         router.close(0)
+
+
+def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_the_codec(monkeypatch):
+    """compression="auto": nothing on ipc:// and loopback, zstd to other hosts; a server that
+    answers it cannot compress gets a second hello without compression, and the stream goes on."""
+    from v2v_client import endpoint as ep
+
+    assert ep.is_local("ipc:///tmp/x.sock") and ep.is_local("tcp://127.0.0.1:5555") and ep.is_local("tcp://[::1]:5")
+    assert ep.is_local("tcp://localhost:5555") and not ep.is_local("tcp://10.0.0.7:5555")
+    ctx = zmq.Context.instance()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    monkeypatch.setattr(ep, "is_local", lambda endpoint: False)  # as if this server were on another host
+    hellos = []
+
+    def serve() -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            if not router.poll(200):
+                continue
+            ident, msg = router.recv_multipart()
+            h = unpack(msg)
+            if h["type"] != "hello":
+                continue
+            hellos.append(h.get("compression", "none"))
+            if h.get("compression", "none") != "none":
+                router.send_multipart([ident, pack({"type": "error", "code": "compression", "message": "no zstd"})])
+                continue
+            router.send_multipart([ident, pack({"type": "welcome", "hello_id": h.get("hello_id"), "info": {}})])
+            router.send_multipart([ident, pack({"type": "batch", "batch_id": 0, "epoch": 0, "sample_ids": ["a#0"],
+                                                "params": [{}], "arrays": [{"name": "voxels", "dtype": "int8",
+                                                                            "shape": [1, 2]}]}), b"\x01\x02"])
+            return
+
+    import threading
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        ds = V2VStreamDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), raw=True, timeout_s=10)
+        b = next(iter(ds))
+        assert b["voxels"].tolist() == [[1, 2]] and hellos == ["zstd", "none"]
+    finally:
+        t.join(30)
+        router.close(0)
