@@ -306,7 +306,7 @@ def video_samples(
     skip = set(skip_windows)
     span = cfg.frames_per_sample
     kpw = cfg.crops_per_window
-    container, stream, info = open_video(path, cfg.decode_threads)  # opened once, decoded once
+    container, stream, info = open_video(path, cfg.decode_threads, cfg.decode_fast)  # opened once, decoded once
     rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
