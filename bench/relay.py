@@ -23,6 +23,13 @@ system split) and its minor page faults per GB. Paths, measured in the same run:
   the arrays into a reused private buffer (``v2v_client.handoff.ShmReader``, what
   ``V2VStreamDataset(raw=True, shm="auto")`` does over ``ipc://``) and acknowledges, and the
   relay keeps at most 4 unacknowledged batches (the default credits), as the server does.
+
+``--transport tcp`` sends relay -> client over tcp://127.0.0.1 instead (no hand-off there);
+``--compression lz4,zstd`` has the worker send its arrays compressed too (``codecs``) and the
+relay forward those frames by reference (``BatchPayload.wire(outputs, codec)``), the client
+decompressing them; ``--real`` sends one real sample (compact flow) instead of random arrays,
+which do not compress like real voxels. The table adds the relay's CPU per GB of samples
+delivered (uncompressed), beside per GB sent.
 """
 from __future__ import annotations
 

@@ -22,6 +22,11 @@ Two ways in, one copy each:
   batch is stacked lazily, the first time it is sent, into one ``np.empty((B, ...))`` (the
   one copy), kept for re-sends, and handed to ZeroMQ zero-copy.
 
+**Compressed frames** (``codecs``): a worker asked for codecs in its task sends each array
+compressed as extra frames after the sample's array frames (``packed_frames``); the sample
+keeps them as received, and :meth:`BatchPayload.wire` with a codec sends them, one frame per
+sample, by reference: the relay never compresses, decompresses or copies them.
+
 Batches whose samples did not land in consecutive rows of one buffer (samples of two epochs
 interleaved at an epoch boundary, voxels narrowed differently, a resume ``subset``) fall back
 to the lazy stacking copy from the samples' views.
