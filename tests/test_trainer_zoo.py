@@ -145,3 +145,5 @@ def test_task_switch_drops_the_files_own_sections():
     cfg = load_config("trainer/configs/etnet.yaml", task="hypere2vid")
     assert cfg["optim"] == default_config("hypere2vid")["optim"]  # not etnet's AdamW
     assert cfg["model"] == default_config("hypere2vid")["model"] and "curriculum" in cfg
+    cfg = load_config("trainer/configs/e2vid.yaml", task="hypere2vid")
+    assert cfg["optim"]["lr"] == 1e-3  # e2vid.yaml's Adam 1e-4 is e2vid's, not HyperE2VID's

@@ -307,9 +307,10 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
     task = task or file_task or "e2vid"
     base = default_config(task)
     if file_task and file_task != task:
-        # --task overrides a file written for another task: that task's own sections (model,
-        # loss, and optim/curriculum where it has its own) do not apply; the new task's defaults do.
-        for name in TASK_SECTIONS.get(file_task, {"model": None, "loss": None}):
+        # --task overrides a file written for another task: the sections either task has its
+        # own defaults for (model, loss, and optim/curriculum where one has them) do not carry
+        # over; the new task's defaults apply.
+        for name in set(TASK_SECTIONS.get(file_task, {"model": 0, "loss": 0})) | set(TASK_SECTIONS[task]):
             user.pop(name, None)
     user["task"] = task
     _check_keys(user, base)
