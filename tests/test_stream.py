@@ -244,15 +244,11 @@ def test_a_resume_state_of_700k_ids_is_sent_compactly_and_a_too_large_one_is_a_c
     with ServeProcess(args) as srv:
         ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
         ds.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": many}})
-        t0 = time.monotonic()
         assert next(iter(ds))["voxels"].shape[0] > 0  # the server read it (videos it does not serve are ignored)
-        assert time.monotonic() - t0 < 20
         ds2 = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
         ds2.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": huge}})
-        t0 = time.monotonic()
-        with pytest.raises(StreamError, match="resume state is too large"):
+        with pytest.raises(StreamError, match="resume state is too large"):  # not a StreamTimeout: no hang
             next(iter(ds2))
-        assert time.monotonic() - t0 < 10
         # a peer that sends one anyway (within twice the limit) is told why, not dropped in silence
         ctx = zmq.Context()
         s = ctx.socket(zmq.DEALER)
