@@ -23,6 +23,13 @@ system split) and its minor page faults per GB. Paths, measured in the same run:
   the arrays into a reused private buffer (``v2v_client.handoff.ShmReader``, what
   ``V2VStreamDataset(raw=True, shm="auto")`` does over ``ipc://``) and acknowledges, and the
   relay keeps at most 4 unacknowledged batches (the default credits), as the server does.
+
+``--transport tcp`` sends relay -> client over tcp://127.0.0.1 instead (no hand-off there);
+``--compression lz4,zstd`` has the worker send its arrays compressed too (``codecs``) and the
+relay forward those frames by reference (``BatchPayload.wire(outputs, codec)``), the client
+decompressing them; ``--real`` sends one real sample (compact flow) instead of random arrays,
+which do not compress like real voxels. The table adds the relay's CPU per GB of samples
+delivered (uncompressed), beside per GB sent.
 """
 from __future__ import annotations
 
@@ -41,11 +48,29 @@ PATHS = ("old", "socket", "shm", "handoff")
 CREDITS = 4
 
 
-def _sample_arrays():
+def _sample_arrays(real: Optional[str] = None):
+    """The sample the worker sends: synthetic (random voxels, frames and dense float16 flow), or
+    the arrays saved in ``real`` (an .npz of a real sample's wire arrays, ``real_sample``)."""
+    if real:
+        with np.load(real) as z:
+            return {k: z[k] for k in z.files}
     rng = np.random.default_rng(0)
     return {"voxels": rng.integers(-3, 4, (40, 5, 128, 128)).astype(np.int8),
             "frames": rng.integers(0, 256, (41, 128, 128)).astype(np.uint8),
             "flow": rng.normal(0, 2, (40, 2, 128, 128)).astype(np.float16)}
+
+
+def real_sample(path: str) -> None:
+    """Save the first sample of the bundled 596 x 336 clip (default recipe) as a worker sends
+    it (voxels int8, frames uint8, the tracked flow as ``flow_grid``) to ``path`` (.npz)."""
+    from v2v_server.config import ServeConfig
+    from v2v_server.corpus import SAMPLE_VIDEOS
+    from v2v_server.samples import video_samples
+    from v2v_server.worker import wire_arrays
+
+    cfg = ServeConfig().validate()
+    _, arrays, _ = next(video_samples(cfg, SAMPLE_VIDEOS, "webvid_like_596x336.mp4", 0, cfg.outputs, flow_grid=True))
+    np.savez(path, **wire_arrays(cfg, arrays))
 
 
 class _Clock:
@@ -71,18 +96,21 @@ class _Clock:
                 "faults": r.ru_minflt - self.r0.ru_minflt}
 
 
-def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict]) -> None:
+def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict], real: Optional[str] = None,
+            codec: str = "none") -> None:
     import zmq
 
     from v2v_server.datapath import SlotRing
     from v2v_server.protocol import encode_arrays, pack
+    from v2v_server.worker import pack_arrays
 
     ctx = zmq.Context()
     s = ctx.socket(zmq.PUSH)
     s.setsockopt(zmq.SNDHWM, 4)
     s.connect(endpoint)
-    arrays = _sample_arrays()
+    arrays = _sample_arrays(real)
     specs, frames = encode_arrays(arrays)
+    packed_specs, packed = pack_arrays(arrays, [codec])  # once: the worker's CPU is not what is measured
     ring = rel = None
     if ring_spec is not None:
         ring = SlotRing.attach(ring_spec, unlink=False)
@@ -90,15 +118,17 @@ def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict]) -> N
         rel.connect(release)
     for i in range(n):
         h = {"type": "sample", "sample_id": f"v.mp4#{i}", "meta": {}, "arrays": specs}
+        if packed:
+            h["packed"] = packed_specs
         if ring is None:
-            s.send_multipart([pack(h)] + frames, copy=False)
+            s.send_multipart([pack(h)] + frames + packed, copy=False)
             continue
         while not ring.free:  # block until the relay gives a slot back
             ring.free.append(int(rel.recv()))
         slot = ring.free.pop(0)
         ring.put(slot, arrays)
         h["slot"] = slot
-        s.send(pack(h))
+        s.send_multipart([pack(h)] + packed, copy=False)
     s.close(linger=-1)
     if rel is not None:
         rel.close(0)
@@ -108,7 +138,7 @@ def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict]) -> N
 
 
 def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optional[dict], q,
-           acks: Optional[str] = None) -> None:
+           acks: Optional[str] = None, codec: str = "none") -> None:
     import zmq
 
     from v2v_server import datapath
@@ -133,7 +163,8 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
         rel = ctx.socket(zmq.PUSH)
         rel.setsockopt(zmq.SNDTIMEO, 2000)
         rel.bind(release)
-    pending, sent, sent_batches = [], 0, 0
+    pending, sent, sent_batches, data = [], 0, 0, 0
+    outputs = ("voxels", "frames", "flow")
     clock = _Clock()
     for i in range(n):
         frames = clock.recv(pull)
@@ -142,7 +173,7 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
             arrays = {k: np.array(v) for k, v in datapath.decode_arrays(h["arrays"], frames[1:]).items()}
             pending.append(datapath.SamplePayload(h["sample_id"], h["meta"], arrays))
         elif path in ("shm", "handoff"):
-            pending.append(datapath.sample_from_slot(h, ring, assembler))
+            pending.append(datapath.sample_from_slot(h, ring, assembler, frames[1:]))
             try:  # the slot back to the worker (which may have finished and gone)
                 rel.send(str(h["slot"]).encode())
             except zmq.Again:
@@ -151,6 +182,7 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
             pending.append(datapath.sample_from_worker(h, frames[1:]))
         del frames
         if len(pending) == B:
+            data += sum(x.nbytes for x in pending)
             if path == "old":
                 arrays = {k: np.stack([s.arrays[k] for s in pending]) for k in pending[0].arrays}
                 arrays["voxels"] = arrays["voxels"].astype(narrow_int_dtype(arrays["voxels"]), copy=False)
@@ -159,7 +191,7 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
                 while len(inflight) >= CREDITS:  # the client's window is full: wait for an ack
                     inflight.pop(int(ack.recv()), None)
                 batch = datapath.make_batch(pending)
-                specs, ref = batch.shm_ref(("voxels", "frames", "flow"))
+                specs, ref = batch.shm_ref(outputs)
                 inflight[sent_batches] = batch
                 push.send(pack({"type": "batch", "batch_id": sent_batches, "arrays": specs, "shm": ref,
                                 "dir": files.path, "sample_ids": [s.sample_id for s in pending]}))
@@ -168,15 +200,15 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
                 pending, batch = [], None
                 continue
             else:
-                specs, out = datapath.make_batch(pending).wire(("voxels", "frames", "flow"))
+                specs, out = datapath.make_batch(pending).wire(outputs, codec)
             push.send_multipart([pack({"type": "batch", "arrays": specs,
                                        "sample_ids": [s.sample_id for s in pending]})] + out, copy=False)
-            sent += sum(a.nbytes for a in out)
+            sent += sum(a.nbytes if isinstance(a, np.ndarray) else len(a.buffer) for a in out)
             pending, out = [], None
     push.close(linger=-1)  # every batch handed to the kernel before the clock stops
     while inflight:  # handoff: the client has copied every batch out before the files go
         inflight.pop(int(ack.recv()), None)
-    q.put(("relay", clock.read(), sent))
+    q.put(("relay", clock.read(), sent, data))
     if ack is not None:
         ack.close(0)
         assembler.close()
@@ -193,7 +225,8 @@ def _client(src: str, batches: int, q, acks: Optional[str] = None) -> None:
 
     from v2v_client.connection import batch_to_torch
     from v2v_client.handoff import ShmReader
-    from v2v_server.protocol import decode_arrays, unpack
+    from v2v_server.codecs import decode_batch_arrays
+    from v2v_server.protocol import unpack
 
     ctx = zmq.Context()
     pull = ctx.socket(zmq.PULL)
@@ -213,10 +246,10 @@ def _client(src: str, batches: int, q, acks: Optional[str] = None) -> None:
             t = batch_to_torch(reader.read(h), raw=True)
             ack.send(str(h["batch_id"]).encode())
         else:
-            t = batch_to_torch(decode_arrays(h["arrays"], frames[1:]), raw=True)
+            t = batch_to_torch(decode_batch_arrays(h["arrays"], frames[1:]), raw=True, compact_flow=True)
         got += sum(v.numel() * v.element_size() for v in t.values())
         del t, frames
-    q.put(("client", clock.read(), got))
+    q.put(("client", clock.read(), got, got))
     pull.close(0)
     if ack is not None:
         ack.close(linger=-1)
@@ -224,27 +257,34 @@ def _client(src: str, batches: int, q, acks: Optional[str] = None) -> None:
     ctx.term()
 
 
-def measure(batches: int, path: str, tmp: str) -> dict:
-    """Run worker -> relay -> client over ipc:// for ``batches`` batches of 8 on ``path``
-    (one of ``PATHS``); returns per process ``{"user", "sys", "faults", "gb"}``."""
+def measure(batches: int, path: str, tmp: str, transport: str = "ipc", codec: str = "none",
+            real: Optional[str] = None) -> dict:
+    """Run worker -> relay -> client for ``batches`` batches of 8 on ``path`` (one of
+    ``PATHS``), relay to client over ``transport`` ("ipc", or "tcp" on 127.0.0.1), arrays
+    compressed by the worker with ``codec``; returns per process ``{"user", "sys", "faults",
+    "gb", "data_gb"}`` (``gb``: bytes sent or received; ``data_gb``: the samples' uncompressed
+    bytes)."""
+    from harness.serve import free_port
     from v2v_server.datapath import SlotRing, slot_bytes
 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    a, r, b = f"ipc://{tmp}/w.sock", f"ipc://{tmp}/r.sock", f"ipc://{tmp}/c.sock"
+    a, r = f"ipc://{tmp}/w.sock", f"ipc://{tmp}/r.sock"
+    b = f"ipc://{tmp}/c.sock" if transport == "ipc" else f"tcp://127.0.0.1:{free_port()}"
     k = f"ipc://{tmp}/k.sock" if path == "handoff" else None
     n = batches * B
     ring = SlotRing.create(3, slot_bytes(40, 5, 128)) if path in ("shm", "handoff") else None
     spec = ring.spec if ring else None
     try:
-        procs = [ctx.Process(target=_relay, args=(a, r, b, n, path, spec, q, k)),
-                 ctx.Process(target=_client, args=(b, batches, q, k)), ctx.Process(target=_worker, args=(a, r, n, spec))]
+        procs = [ctx.Process(target=_relay, args=(a, r, b, n, path, spec, q, k, codec)),
+                 ctx.Process(target=_client, args=(b, batches, q, k)),
+                 ctx.Process(target=_worker, args=(a, r, n, spec, real, codec))]
         for p in procs:
             p.start()
         out = {}
         for _ in range(2):
-            name, cpu, nbytes = q.get(timeout=600)
-            out[name] = dict(cpu, gb=nbytes / 1e9)
+            name, cpu, nbytes, data = q.get(timeout=600)
+            out[name] = dict(cpu, gb=nbytes / 1e9, data_gb=data / 1e9)
         for p in procs:
             p.join(60)
     finally:
@@ -272,27 +312,42 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--batches", type=int, default=60)
     p.add_argument("--paths", default=",".join(PATHS), help="comma-separated subset of " + ", ".join(PATHS))
     p.add_argument("--rounds", type=int, default=1, help="measure every path this many times, interleaved")
+    p.add_argument("--transport", choices=("ipc", "tcp"), default="ipc", help="relay -> client socket")
+    p.add_argument("--compression", default="none", help="comma-separated codecs (v2v_server.codecs), each a run")
+    p.add_argument("--real", action="store_true", help="a real sample (compact flow) instead of synthetic arrays")
     a = p.parse_args(argv)
     paths = [x for x in a.paths.split(",") if x]
     for x in paths:
         if x not in PATHS:
             p.error(f"unknown path {x!r}; choose from {', '.join(PATHS)}")
+    codecs = [c for c in a.compression.split(",") if c]
+    if a.transport == "tcp" and "handoff" in paths:
+        paths.remove("handoff")  # a same-host hand-off needs ipc://
     rows = []
     with tempfile.TemporaryDirectory(prefix="v2v-relay-") as d:
+        real = None
+        if a.real:
+            real = f"{d}/sample.npz"
+            real_sample(real)
         for _ in range(a.rounds):
-            for x in paths:
-                rows.append((x, measure(a.batches, x, d)))
+            for c in codecs:
+                for x in paths:
+                    if c != "none" and x in ("old", "handoff"):
+                        continue  # compression is for the socket paths
+                    rows.append((x if c == "none" else f"{x}, {c}", measure(a.batches, x, d, a.transport, c, real)))
     memcpy = memcpy_s_per_gb()
-    print("| data path | relay CPU-s/GB | relay user | relay system | relay faults/GB | "
-          "client CPU-s/GB (raw=True) | client user | client system | GB |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
-    print(f"| one memcpy (np.copyto 100 MB), for scale | {memcpy:.2f} | | | | | | | |")
+    print(f"relay -> client over {a.transport}://, {'a real sample' if a.real else 'synthetic samples'}\n")
+    print("| data path | relay CPU-s/GB | relay user | relay system | relay faults/GB | relay CPU-s per GB of samples | "
+          "client CPU-s/GB (raw=True) | client user | client system | GB sent | GB of samples |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print(f"| one memcpy (np.copyto 100 MB), for scale | {memcpy:.2f} | | | | | | | | | |")
     for x, m in rows:
         r, c = m["relay"], m["client"]
         gr, gc = r["gb"], c["gb"]
-        print(f"| {x} | {(r['user'] + r['sys']) / gr:.2f} | {r['user'] / gr:.2f} | {r['sys'] / gr:.2f} | "
-              f"{r['faults'] / gr:.0f} | {(c['user'] + c['sys']) / gc:.2f} | {c['user'] / gc:.2f} | "
-              f"{c['sys'] / gc:.2f} | {gr:.2f} |")
+        cpu = r["user"] + r["sys"]
+        print(f"| {x} | {cpu / gr:.2f} | {r['user'] / gr:.2f} | {r['sys'] / gr:.2f} | "
+              f"{r['faults'] / gr:.0f} | {cpu / r['data_gb']:.2f} | {(c['user'] + c['sys']) / gc:.2f} | "
+              f"{c['user'] / gc:.2f} | {c['sys'] / gc:.2f} | {gr:.2f} | {r['data_gb']:.2f} |")
     return 0
 
 

@@ -1,8 +1,11 @@
 """Hashes of the bundled clips' samples: the table that proves a refactor changed no sample.
 
 Every sample of the bundled clips (``v2v_server/sample_videos``) is made for two seeds, one and
-four crops per window, with every output, and hashed as it goes on the wire (dtype, shape and
-bytes of each array, and the sample's params as canonical msgpack). ``tests/data/sample_hashes.json``
+four crops per window, with every output, as a worker makes it for the wire, and hashed as a
+client receives it (dtype, shape and bytes of each array, and the sample's params as canonical
+msgpack): a tracked flow option's ``flow_grid`` is hashed as the dense ``flow`` the client makes
+of it (``v2v_client.flowgrid``, in the server's ``flow_dtype``), so the table pins the flow a
+trainer sees, which is bit for bit the dense flow the server's own expansion gives. ``tests/data/sample_hashes.json``
 holds the committed table; ``tests/test_sample_hashes.py`` recomputes it and compares.
 
     python -m tests.sample_hashes            # print differences against the committed table
@@ -18,10 +21,12 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+import torch
 
 from v2v_server.config import ServeConfig
 from v2v_server.samples import video_samples
 from v2v_server.worker import wire_arrays
+from v2v_client.flowgrid import expand_flow_grid
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
@@ -54,6 +59,16 @@ def _canonical(meta: dict) -> dict:
     return meta
 
 
+def _as_received(cfg: ServeConfig, arrays: dict) -> dict:
+    """The wire arrays with ``flow_grid`` made dense as a client does (``raw`` dtypes)."""
+    out = dict(arrays)
+    g = out.pop("flow_grid", None)
+    if g is not None:
+        dtype = torch.float16 if cfg.flow_dtype == "float16" else torch.float32
+        out["flow"] = expand_flow_grid(torch.from_numpy(g), (cfg.crop_size, cfg.crop_size), dtype).numpy()
+    return out
+
+
 def compute() -> dict:
     """{recipe: {sample_id: {output or "params": hash}}} for every sample of the bundled clips."""
     table = {}
@@ -61,8 +76,8 @@ def compute() -> dict:
         cfg = ServeConfig(**overrides).validate()
         rows = {}
         for clip in sorted(p.name for p in CLIPS.glob("*.mp4")):
-            for sid, arrays, meta in video_samples(cfg, CLIPS, clip, 0, cfg.outputs):
-                rows[sid] = _digest(wire_arrays(cfg, arrays), _canonical(meta))
+            for sid, arrays, meta in video_samples(cfg, CLIPS, clip, 0, cfg.outputs, flow_grid=True):
+                rows[sid] = _digest(_as_received(cfg, wire_arrays(cfg, arrays)), _canonical(meta))
         table[name] = rows
     return table
 

@@ -7,9 +7,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("v2v_server", "v2v_client", "trainer")
-#: what v2v_client may import from v2v_server: the protocol and wire formats it speaks, and the
-#: in-process server the demo runs
-CLIENT_MAY_IMPORT = {"v2v_server.protocol", "v2v_server.wire", "v2v_server.ids", "v2v_server.local"}
+#: what v2v_client may import from v2v_server: the protocol, wire formats and codecs it speaks,
+#: and the in-process server the demo runs
+CLIENT_MAY_IMPORT = {"v2v_server.protocol", "v2v_server.wire", "v2v_server.codecs", "v2v_server.ids",
+                     "v2v_server.local"}
 
 
 def _module(path: Path) -> str:

@@ -15,7 +15,8 @@ from trainer import lpips_net
 from trainer.config import apply_overrides, default_config, load_config, merge
 from trainer.data import batch_to_device
 from trainer.losses import ReconstructionLoss, flow_l1_loss, ssim, temporal_consistency_loss, warp
-from trainer.models import E2VIDRecurrent, EVFlowNet, build_model
+from trainer.models import E2VIDRecurrent, EVFlowNet
+from trainer.zoo import build_model
 from trainer.core import Trainer
 from trainer.tasks import get_task, tc_start_index
 
@@ -314,7 +315,8 @@ def test_batch_to_device_converts_raw_and_slices_flow():
 
 def test_config_files_and_overrides():
     e = load_config("trainer/configs/e2vid.yaml")
-    assert e["optim"] == {"lr": 1e-4, "amsgrad": True, "weight_decay": 0.0, "clip_grad_norm": None}
+    assert e["optim"] == {"optimizer": "adam", "lr": 1e-4, "amsgrad": True, "weight_decay": 0.0, "lr_gamma": 1.0,
+                          "lr_gamma_every": 1000, "clip_grad_norm": None}
     assert e["model"]["skip_type"] == "sum" and e["model"]["num_encoders"] == 3 and e["loss"]["tc_alpha"] == 50
     f = load_config("trainer/configs/e2vid.yaml", task="evflow")  # --task switch uses evflow's model
     assert f["model"]["skip_type"] == "concat" and "tc_weight" not in f["loss"]

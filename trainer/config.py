@@ -14,14 +14,31 @@ import yaml
 
 from v2v_server.settings import YamlLoader, check_bool, check_choice, check_float, check_int, load_yaml, setting
 
-__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "RunSettings", "default_config", "load_config", "apply_overrides",
-           "merge", "check_types", "reference_markdown"]
+__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "RunSettings", "default_config", "load_config",
+           "apply_overrides", "apply_loss_preset", "merge", "check_types", "reference_markdown"]
+
+#: The V2V paper's loss combinations for reconstruction, as ``loss`` section values. "V+L1+H"
+#: (Table 2; the authors' train_v2v_*_10k.yaml): LPIPS-VGG + L1 + temporal consistency from
+#: voxel L0 = 20 of 40. "Alex+TC" (Table 2; the authors' train_ablation_e2vid_esim.yaml):
+#: LPIPS-Alex + temporal consistency over the whole sequence (their default L0 = 1, i.e.
+#: fraction 0 here). The appendix's ablations: "Alex" (LPIPS-Alex only) and "Alex+TH"
+#: (LPIPS-Alex + temporal consistency on the last half).
+LOSS_PRESETS = {
+    "v+l1+h": {"l1_weight": 1.0, "perceptual_weight": 1.0, "lpips_net": "vgg", "tc_weight": 1.0,
+               "tc_start_fraction": 0.5},
+    "alex+tc": {"l1_weight": 0.0, "perceptual_weight": 1.0, "lpips_net": "alex", "tc_weight": 1.0,
+                "tc_start_fraction": 0.0},
+    "alex": {"l1_weight": 0.0, "perceptual_weight": 1.0, "lpips_net": "alex", "tc_weight": 0.0,
+             "tc_start_fraction": 0.0},
+    "alex+th": {"l1_weight": 0.0, "perceptual_weight": 1.0, "lpips_net": "alex", "tc_weight": 1.0,
+                "tc_start_fraction": 0.5},
+}
 
 @dataclass
 class RunSettings:
     """The run: task, stream endpoint, device, output folder, steps."""
 
-    task: str = setting("e2vid", help="what to train", choices=("e2vid", "evflow"))
+    task: str = setting("e2vid", help="what to train", choices=("e2vid", "evflow", "hypere2vid", "etnet"))
     connect: str = setting("tcp://127.0.0.1:5555", help="v2v-serve endpoint(s); several servers (shards) as "
                                                         "'tcp://a:5555,tcp://b:5555' (fan-in)")
     device: str = setting("auto", help="auto | cpu | cuda | cuda:N")
@@ -47,12 +64,36 @@ class StreamSettings:
 
 @dataclass
 class OptimSettings:
-    """``optim``: Adam as the reference trains (lr 1e-4, amsgrad, no weight decay, constant)."""
+    """``optim``: Adam as the reference trains E2VID and EvFlow (lr 1e-4, amsgrad, no weight decay, constant)."""
 
+    optimizer: str = setting("adam", help="adam (L2 weight decay) or adamw (decoupled weight decay)",
+                             choices=("adam", "adamw"))
     lr: float = setting(1.0e-4, help="learning rate")
     amsgrad: bool = setting(True, help="AMSGrad variant of Adam")
-    weight_decay: float = setting(0.0, help="L2 weight decay")
+    weight_decay: float = setting(0.0, help="weight decay")
+    lr_gamma: float = setting(1.0, help="exponential decay: lr = lr * lr_gamma ** (step // lr_gamma_every)")
+    lr_gamma_every: int = setting(1000, help="optimiser steps per decay of lr_gamma (the reference decays per epoch)")
     clip_grad_norm: Optional[float] = setting(None, help="clip the gradient norm to this (None: off)")
+
+
+@dataclass
+class HyperE2VIDOptim(OptimSettings):
+    """``optim`` of hypere2vid: Adam lr 1e-3, amsgrad, constant (the paper's appendix, the
+    authors' train_v2v_hyper_10k.yaml)."""
+
+    lr: float = setting(1.0e-3, help="learning rate")
+
+
+@dataclass
+class ETNetOptim(OptimSettings):
+    """``optim`` of etnet: AdamW lr 2e-4, weight decay 0.01, amsgrad, lr x 0.94 per epoch
+    (the paper's appendix, the authors' train_v2v_etnet_10k.yaml)."""
+
+    optimizer: str = setting("adamw", help="adam (L2 weight decay) or adamw (decoupled weight decay)",
+                             choices=("adam", "adamw"))
+    lr: float = setting(2.0e-4, help="learning rate")
+    weight_decay: float = setting(0.01, help="weight decay")
+    lr_gamma: float = setting(0.94, help="exponential decay: lr = lr * lr_gamma ** (step // lr_gamma_every)")
 
 
 @dataclass
@@ -79,8 +120,12 @@ class E2VIDModel:
 
 @dataclass
 class E2VIDLoss:
-    """``loss`` of e2vid ("V+L1+H"): L1 + LPIPS-VGG, temporal consistency on the last half."""
+    """``loss`` of the reconstruction tasks (e2vid, hypere2vid, etnet); default "V+L1+H": L1 +
+    LPIPS-VGG, temporal consistency on the last half. ``preset`` sets the five term keys at
+    once; keys written beside it (file or later ``--set``) win."""
 
+    preset: Optional[str] = setting("v+l1+h", help="the paper's loss combination; null: the keys below as given",
+                                    choices=tuple(LOSS_PRESETS))
     l1_weight: float = setting(1.0, help="weight of the L1 term")
     perceptual_weight: float = setting(1.0, help="weight of LPIPS (VGG); 1 - SSIM when no LPIPS weights")
     lpips_net: str = setting("vgg", help="LPIPS backbone", choices=("vgg", "alex"))
@@ -89,6 +134,41 @@ class E2VIDLoss:
     tc_weight: float = setting(1.0, help="weight of the temporal-consistency term")
     tc_alpha: float = setting(50.0, help="visibility sharpness of the temporal-consistency term")
     tc_start_fraction: float = setting(0.5, help="the term covers voxels from this fraction of L on (20..39 of 40)")
+
+
+@dataclass
+class HyperE2VIDModel:
+    """``model`` of hypere2vid: HyperE2VID (Ercan et al. 2024), the authors' sizes."""
+
+    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
+    base_num_channels: int = setting(32, help="channels of the first encoder")
+    num_encoders: int = setting(3, help="encoders (3: the dynamic decoder's context is at 1/4 resolution)")
+    num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
+    kernel_size: int = setting(5, help="kernel size of the convolutions and of the dynamic per-pixel filters")
+
+
+@dataclass
+class HyperCurriculum:
+    """``curriculum`` of hypere2vid: the previous reconstruction fed to the dynamic decoder is
+    mixed with the ground-truth frame, ``(1 - beta) * rec + beta * frame``; beta falls from 1 in
+    ``stages`` equal steps over the first ``fraction`` of max_steps, then stays 0 (the authors'
+    ``hyper_epochs``: 16 of 80 epochs, beta = 1 - epoch / 16)."""
+
+    fraction: float = setting(0.2, help="share of max_steps under the curriculum (16 of 80 epochs); 0: off")
+    stages: int = setting(16, help="equal steps in which beta falls from 1 to 0 (one per reference epoch)")
+
+
+@dataclass
+class ETNetModel:
+    """``model`` of etnet: ETNet (Weng et al. 2021), the authors' sizes; smaller values for CPU demos."""
+
+    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
+    d_model: int = setting(256, help="token width (channels of the bottleneck)")
+    nhead: int = setting(8, help="attention heads")
+    encoder_layers: int = setting(3, help="transformer encoder layers per scale")
+    decoder_layers: int = setting(2, help="transformer decoder layers per scale")
+    dim_feedforward: int = setting(1024, help="hidden width of the feed-forward blocks")
+    dropout: float = setting(0.1, help="dropout in the transformer layers")
 
 
 @dataclass
@@ -114,7 +194,10 @@ class EvFlowLoss:
 #: Sections common to every task, and each task's model and loss sections.
 SECTIONS = {"stream": StreamSettings, "optim": OptimSettings, "log": LogSettings}
 TASK_SECTIONS = {"e2vid": {"model": E2VIDModel, "loss": E2VIDLoss},
-                 "evflow": {"model": EvFlowModel, "loss": EvFlowLoss}}
+                 "evflow": {"model": EvFlowModel, "loss": EvFlowLoss},
+                 "hypere2vid": {"model": HyperE2VIDModel, "loss": E2VIDLoss, "optim": HyperE2VIDOptim,
+                                "curriculum": HyperCurriculum},
+                 "etnet": {"model": ETNetModel, "loss": E2VIDLoss, "optim": ETNetOptim}}
 
 
 def _schema(task: str) -> dict:
@@ -148,7 +231,7 @@ def merge(base: dict, upd: dict) -> dict:
 
 
 def default_config(task: str) -> dict:
-    """A deep copy of the defaults of ``task`` ('e2vid' | 'evflow'); ``ValueError`` otherwise."""
+    """A deep copy of the defaults of ``task`` (a key of ``TASK_SECTIONS``); ``ValueError`` otherwise."""
     if task not in DEFAULTS:
         raise ValueError(f"task must be one of {sorted(DEFAULTS)}, got {task!r}")
     return copy.deepcopy(DEFAULTS[task])
@@ -224,12 +307,18 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
     task = task or file_task or "e2vid"
     base = default_config(task)
     if file_task and file_task != task:
-        # --task overrides a file written for the other task: its model and loss
-        # sections do not apply, the new task's defaults are used instead.
-        user.pop("model", None)
-        user.pop("loss", None)
+        # --task overrides a file written for another task: the sections either task has its
+        # own defaults for (model, loss, and optim/curriculum where one has them) do not carry
+        # over; the new task's defaults apply.
+        for name in set(TASK_SECTIONS.get(file_task, {"model": 0, "loss": 0})) | set(TASK_SECTIONS[task]):
+            user.pop(name, None)
     user["task"] = task
     _check_keys(user, base)
+    if isinstance(user.get("loss"), dict) and user["loss"].get("preset") is not None and "loss" in base:
+        try:
+            apply_loss_preset(base["loss"], user["loss"]["preset"])
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") if path else e
     try:
         return check_types(merge(base, user))
     except ValueError as e:
@@ -258,7 +347,19 @@ def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
         if parts[-1] not in node and parts[0] != "model":
             raise ValueError(f"unknown config key {key!r} in override {item!r}")
         node[parts[-1]] = _parse_value(val)
+        if parts == ["loss", "preset"] and node["preset"] is not None:
+            apply_loss_preset(node, node["preset"])
     return check_types(cfg)
+
+
+def apply_loss_preset(loss: dict, name: str) -> dict:
+    """Set ``loss["preset"]`` and the preset's term keys (``LOSS_PRESETS[name]``) in place and
+    return ``loss``. Raises ``ValueError`` naming the known presets for another name."""
+    if name not in LOSS_PRESETS:
+        raise ValueError(f"config field 'loss.preset' must be one of {list(LOSS_PRESETS)} or null, got {name!r}")
+    loss.update(LOSS_PRESETS[name])
+    loss["preset"] = name
+    return loss
 
 
 def reference_markdown() -> str:
@@ -271,9 +372,12 @@ def reference_markdown() -> str:
              table(RunSettings, (RunSettings,))]
     for name, cls in SECTIONS.items():
         parts.append(table(cls, (cls,), lambda f, n=name: f"`--set {n}.{f.name}=`"))
+    seen = set()
     for task, secs in TASK_SECTIONS.items():
         for name, cls in secs.items():
-            parts.append(table(cls, (cls,), lambda f, n=name: f"`--set {n}.{f.name}=`"))
+            if cls not in seen:  # the reconstruction tasks share one loss section
+                seen.add(cls)
+                parts.append(table(cls, (cls,), lambda f, n=name: f"`--set {n}.{f.name}=`"))
     return "\n".join(parts)
 
 

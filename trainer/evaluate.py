@@ -272,7 +272,7 @@ def flow_metrics(pred: np.ndarray, gt: np.ndarray, event_mask: Optional[np.ndarr
 def load_model(checkpoint: str, device: torch.device):
     """Rebuild the network stored by ``v2v-train`` in ``checkpoint``; returns (task, model
     in eval mode, config)."""
-    from .models import build_model
+    from .zoo import build_model
 
     ck = torch.load(checkpoint, map_location=device, weights_only=False)
     cfg = ck["config"]
@@ -352,7 +352,13 @@ def _summarise(per_input: Dict[str, Dict[str, List[float]]]) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="v2v-eval", description="Evaluate a v2v-train checkpoint (paper metrics).")
-    p.add_argument("--checkpoint", required=True, help="checkpoint_*.pt written by v2v-train")
+    p.add_argument("--checkpoint", help="checkpoint_*.pt written by v2v-train")
+    p.add_argument("--protocol", choices=["v2v-paper"], help="v2v-paper: the paper's sequences and cuts of IJRR, "
+                   "MVSEC, HQF, EVAID under --data-root, SSIM data_range 2, LPIPS-Alex; table per dataset + mean")
+    p.add_argument("--data-root", help="--protocol / --select-checkpoint: folder with ijrr/, mvsec/, hqf/, evaid/ "
+                   "holding <sequence>.h5 (missing files are named and skipped)")
+    p.add_argument("--select-checkpoint", metavar="DIR", help="pick the run's checkpoint with the lowest mean LPIPS "
+                   "over HQF and EVAID (the paper's rule); needs --data-root and --lpips-weights")
     p.add_argument("--h5", nargs="*", default=[], help="H5 files in the event_cnn_minimal layout")
     p.add_argument("--video", nargs="*", default=[], help="videos: voxels simulated with the V2V core (E2VID only)")
     p.add_argument("--contrast-threshold", type=float, default=0.2, help="--video: c+ = c- (log units)")
@@ -371,12 +377,19 @@ def main(argv=None) -> int:
     from .lpips_net import load_lpips
 
     device = resolve_device(args.device)
+    if args.select_checkpoint or args.protocol:
+        return _paper_main(p, args, device)
+    if not args.checkpoint:
+        p.error("give --checkpoint (or --select-checkpoint DIR)")
     task, model, cfg = load_model(args.checkpoint, device)
+    from .tasks import get_task
+
+    recon = "frames" in get_task(task).outputs  # e2vid, hypere2vid, etnet: reconstruction metrics
     nb = int(cfg["model"]["num_bins"])
     if not args.h5 and not args.video:
         p.error("give --h5 and/or --video inputs")
     lp = None
-    if task == "e2vid":
+    if recon:
         lp = load_lpips("alex", args.lpips_weights)
         if lp is None:
             log.warning("LPIPS (Alex) weights not found: LPIPS is not reported")
@@ -390,19 +403,19 @@ def main(argv=None) -> int:
     for kind, path in inputs:
         if kind == "h5":
             seq = H5Sequence(path)
-            if task == "e2vid":
+            if recon:
                 vox, counts = seq.voxels(nb)
                 frames, flows = seq.images, None
             else:
                 vox, counts, flows = seq.flow_voxels(nb)  # between flow timestamps when present
                 frames = None
         else:
-            if task != "e2vid":
+            if not recon:
                 p.error("--video inputs have no ground-truth flow; EvFlow needs --h5 files with a flow group")
             vox, frames = video_sequence(path, nb, args.contrast_threshold, args.max_frames,
                                          tuple(args.size) if args.size else None)
             counts, flows = None, None
-        if task == "e2vid":
+        if recon:
             r = evaluate_e2vid(model, vox, frames, device, args.ssim_data_range, lp, args.skip_first)
             if out and args.save_images:
                 from .viz import gray_to_u8, save_grid, voxel_to_u8
@@ -417,6 +430,73 @@ def main(argv=None) -> int:
         log.info("%s: %s", path, {k: round(float(np.nanmean(v)), 5) for k, v in r.items() if not k.startswith("_") and len(v)})
     summary = {"checkpoint": args.checkpoint, "task": task, "ssim_data_range": args.ssim_data_range,
                "skip_first": args.skip_first, **_summarise(per_input)}
+    text = json.dumps(summary, indent=2)
+    print(text)
+    if out:
+        (out / "metrics.json").write_text(text)
+    return 0
+
+
+def paper_scorer(model, num_bins: int, device: torch.device, lpips_model=None):
+    """``score_sequence`` for ``trainer.protocol.evaluate_paper``: loads an H5 file, applies the
+    protocol's cut, and scores ``model`` with the paper's conventions (SSIM data_range 2)."""
+    from .protocol import cut_sequence
+
+    def score(path, cut, inclusive_end):
+        seq = H5Sequence(str(path))
+        if cut is not None:
+            cut_sequence(seq, cut[0], cut[1], inclusive_end)
+        vox, _ = seq.voxels(num_bins)
+        return evaluate_e2vid(model, vox, seq.images, device, ssim_data_range=2.0, lpips_model=lpips_model)
+
+    return score
+
+
+def _paper_main(p: argparse.ArgumentParser, args, device) -> int:
+    """``--select-checkpoint`` and ``--protocol v2v-paper`` (trainer/protocol.py)."""
+    from .lpips_net import load_lpips
+    from .protocol import evaluate_paper, paper_markdown, select_checkpoint
+    from .tasks import get_task
+
+    if not args.data_root:
+        p.error("--protocol and --select-checkpoint need --data-root")
+    lp = load_lpips("alex", args.lpips_weights)
+    if lp is None:
+        log.warning("LPIPS (Alex) weights not found: LPIPS is not reported")
+    else:
+        lp = lp.to(device)
+
+    def evaluate_checkpoint(ck, datasets):
+        task, model, cfg = load_model(str(ck), device)
+        if "frames" not in get_task(task).outputs:
+            p.error(f"the v2v-paper protocol scores reconstruction; {ck} is a {task!r} checkpoint")
+        scorer = paper_scorer(model, int(cfg["model"]["num_bins"]), device, lp)
+        return {"task": task, **evaluate_paper(scorer, args.data_root, datasets)}
+
+    out = Path(args.out) if args.out else None
+    if out:
+        out.mkdir(parents=True, exist_ok=True)
+    summary = {}
+    ck = args.checkpoint
+    if args.select_checkpoint:
+        try:
+            sel = select_checkpoint(args.select_checkpoint, evaluate_checkpoint)
+        except ValueError as e:
+            p.error(str(e))
+        summary["selection"] = sel
+        ck = sel["selected"]
+        print(f"selected checkpoint: {ck}")
+    if args.protocol:
+        if not ck:
+            p.error("--protocol needs --checkpoint (or --select-checkpoint DIR)")
+        from .protocol import PAPER_DATASETS
+
+        r = evaluate_checkpoint(ck, PAPER_DATASETS)
+        summary.update({"checkpoint": ck, "protocol": "v2v-paper", **r})
+        table = paper_markdown(r, f"{r['task']} {Path(ck).name}")
+        print(table)
+        if out:
+            (out / "paper_table.md").write_text(table + "\n")
     text = json.dumps(summary, indent=2)
     print(text)
     if out:

@@ -11,6 +11,7 @@ NeurIPS 2025), which reuse event_cnn_minimal (Stoffregen et al., ECCV 2020):
   *concat* skips (to 256, 128, 64, 32) -> 1x1 prediction conv 32 -> 2 (optical flow in
   pixels, channel 0 = x/u, 1 = y/v), parameters named as the reference's.
 
+``trainer.zoo.build_model`` builds these and the other networks of the zoo from a config.
 Inputs are voxel grids (N, num_bins, H, W) float; H and W need not be multiples of
 2**num_encoders: inputs are zero-padded on the bottom/right and the output cropped back.
 """
@@ -22,7 +23,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["ConvLSTM", "E2VIDRecurrent", "UNet", "EVFlowNet", "build_model"]
+__all__ = ["ConvLSTM", "E2VIDRecurrent", "UNet", "EVFlowNet"]
 
 State = Optional[Tuple[torch.Tensor, torch.Tensor]]
 
@@ -269,19 +270,3 @@ class EVFlowNet(nn.Module):
             raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
         x, h, w = _pad_to_multiple(voxel, 2**self.num_encoders)
         return self.unet(x)[..., :h, :w]
-
-
-def build_model(task: str, model_cfg: dict) -> nn.Module:
-    """Build the network of ``task`` ('e2vid' or 'evflow') from the ``model:`` config
-    section (keyword arguments of the class). Raises ``ValueError`` for an unknown task
-    or unknown keys."""
-    cls = {"e2vid": E2VIDRecurrent, "evflow": EVFlowNet}.get(task)
-    if cls is None:
-        raise ValueError(f"task must be 'e2vid' or 'evflow', got {task!r}")
-    import inspect
-
-    known = set(inspect.signature(cls.__init__).parameters) - {"self"}
-    unknown = sorted(set(model_cfg) - known)
-    if unknown:
-        raise ValueError(f"unknown model key(s) for {task}: {unknown}; known: {sorted(known)}")
-    return cls(**model_cfg)

@@ -5,6 +5,9 @@ look a task up in; adding a task is adding an entry.
 * ``e2vid``: video reconstruction (Rebecq et al., TPAMI 2019) with the V2V paper's recipe: a
   recurrent network run through the sequence, L1 + LPIPS against the frame at each voxel's end,
   and temporal consistency (warped previous reconstruction) on the last part of the sequence.
+* ``hypere2vid`` (Ercan et al., TIP 2024) and ``etnet`` (Weng et al., ICCV 2021): the same
+  reconstruction recipe with their networks; HyperE2VID adds its ground-truth curriculum
+  (``curriculum`` config section).
 * ``evflow``: optical flow (EV-FlowNet, Zhu et al., RSS 2018) regressed per voxel with an L1
   loss; average end-point error logged.
 """
@@ -21,7 +24,8 @@ import torch
 from .losses import ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
 from .viz import flow_to_bgr, gray_to_u8, voxel_to_u8
 
-__all__ = ["TrainTask", "E2VIDTask", "EvFlowTask", "TASKS", "get_task", "tc_start_index"]
+__all__ = ["TrainTask", "E2VIDTask", "HyperE2VIDTask", "ETNetTask", "EvFlowTask", "TASKS", "get_task",
+           "tc_start_index", "curriculum_beta"]
 
 log = logging.getLogger("trainer")
 
@@ -32,6 +36,17 @@ def tc_start_index(sequence_length: int, fraction: float) -> int:
     """First voxel index l whose reconstruction enters the temporal consistency loss:
     ``max(1, ceil(fraction * L))`` (20 for L = 40, fraction 0.5: frames 20..39)."""
     return max(1, int(math.ceil(fraction * sequence_length)))
+
+
+def curriculum_beta(step: int, max_steps: int, fraction: float, stages: int) -> float:
+    """HyperE2VID's curriculum weight of the ground-truth frame at optimiser step ``step``:
+    ``1 - floor(stages * step / (fraction * max_steps)) / stages`` while step < fraction *
+    max_steps, else 0 (the authors' ``hyper_beta = 1 - epoch / hyper_epochs`` with
+    ``stages`` = hyper_epochs and an "epoch" of ``fraction * max_steps / stages`` steps)."""
+    span = fraction * max_steps
+    if span <= 0 or step >= span or stages < 1:
+        return 0.0
+    return 1.0 - math.floor(stages * step / span) / stages
 
 
 class TrainTask:
@@ -49,6 +64,7 @@ class TrainTask:
 
     def __init__(self, cfg: dict, device: torch.device):
         self.cfg = cfg
+        self.step = 0  # the optimiser step about to be taken; the trainer sets it before forward
 
     @classmethod
     def csv_columns(cls) -> List[str]:
@@ -101,7 +117,7 @@ class E2VIDTask(TrainTask):
         preds = []
         for l in range(L):
             with autocast():
-                pred, states = model(vox[:, l], states)
+                pred, states = self.step_model(model, vox[:, l], states, frames[:, l + 1])
                 r = self.rec_loss(pred.float(), frames[:, l + 1])
             pred = pred.float()
             sums["rec"] = sums["rec"] + r["total"]
@@ -122,8 +138,34 @@ class E2VIDTask(TrainTask):
         stats = {"l1": float(sums["l1"] / L), "perceptual": float(sums["perceptual"] / L), "tc": float(tc.detach())}
         return loss, stats, preds
 
+    def step_model(self, model, voxel, states, target):
+        """One recurrent step: ``(prediction (N, 1, H, W), states)``; ``target`` is the frame at
+        the voxel's end (used by HyperE2VID's curriculum)."""
+        return model(voxel, states)
+
     def preview_row(self, b, preds, i, voxel):
         return [voxel_to_u8(voxel), gray_to_u8(preds[-1][i].cpu().numpy()), gray_to_u8(b["frames"][i, -1].cpu().numpy())]
+
+
+class HyperE2VIDTask(E2VIDTask):
+    """HyperE2VID: the E2VID recipe; during the curriculum the dynamic decoder's context sees
+    ``(1 - beta) * previous reconstruction + beta * frame`` where frame is the target of the
+    step (the authors' ``forward_sequence`` passes ``frame[:, t]``, the frame at voxel t's end)."""
+
+    name = "hypere2vid"
+
+    def step_model(self, model, voxel, states, target):
+        c = self.cfg["curriculum"]
+        beta = curriculum_beta(self.step, int(self.cfg["max_steps"]), float(c["fraction"]), int(c["stages"]))
+        if beta > 0 and model.training:
+            return model(voxel, states, gt_image=target, beta=beta)
+        return model(voxel, states)
+
+
+class ETNetTask(E2VIDTask):
+    """ETNet: the E2VID recipe with the transformer network (sigmoid output in (0, 1))."""
+
+    name = "etnet"
 
 
 class EvFlowTask(TrainTask):
@@ -152,7 +194,7 @@ class EvFlowTask(TrainTask):
 
 
 #: The tasks by name (``cfg["task"]``, ``v2v-train --task``).
-TASKS: Dict[str, type] = {t.name: t for t in (E2VIDTask, EvFlowTask)}
+TASKS: Dict[str, type] = {t.name: t for t in (E2VIDTask, EvFlowTask, HyperE2VIDTask, ETNetTask)}
 
 
 def get_task(name: str) -> type:

@@ -39,8 +39,9 @@ def _setup_logging(out: Path):
 
 
 def build_arg_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="v2v-train", description="Train E2VID / EvFlow from a v2v-serve stream.")
-    p.add_argument("--config", help="YAML config (trainer/configs/e2vid.yaml, evflow.yaml; keys: docs/trainer_config.md)")
+    p = argparse.ArgumentParser(prog="v2v-train", description="Train E2VID / HyperE2VID / ETNet / EvFlow from a v2v-serve stream.")
+    p.add_argument("--config", help="YAML config (trainer/configs/e2vid.yaml, evflow.yaml, hypere2vid.yaml, etnet.yaml; "
+                                    "keys: docs/trainer_config.md)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, e.g. --set model.base_num_channels=8 (repeatable)")
     add_flags(p, RunSettings, "run (the config's top-level keys)")

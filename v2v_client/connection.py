@@ -11,20 +11,21 @@ from __future__ import annotations
 
 import collections
 import logging
-import os
 import queue
 import threading
 import time
 import uuid
 import warnings
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import torch
 import zmq
 
-from v2v_server.protocol import MAX_CLIENT_MSG, ProtocolError, decode_arrays, is_ipv6, pack, unpack
+from v2v_server.codecs import decode_batch_arrays
+from v2v_server.protocol import MAX_CLIENT_MSG, ProtocolError, is_ipv6, output_of, pack, unpack
 
+from .flowgrid import expand_flow_grid
 from .handoff import ShmReader, check_shm_dir, shm_dir_problem
 
 log = logging.getLogger("v2v.client")
@@ -48,7 +49,8 @@ def _view(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(a)
 
 
-def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False) -> Dict[str, torch.Tensor]:
+def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False, flow_size: Optional[Tuple[int, int]] = None,
+                   flow_dtype: str = "float16", compact_flow: bool = False) -> Dict[str, torch.Tensor]:
     """Convert wire arrays of one batch to tensors.
 
     With ``raw=False``: ``voxels`` float32 (B, L, num_bins, H, W) event counts; ``frames``
@@ -58,12 +60,32 @@ def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False) -> Dict[str
     the channel axis, flow float16) and nothing is copied: the tensors view the received
     message and must be treated as read-only (``.to(device)`` and ``.float()`` copy);
     convert on the GPU.
+
+    A tracked flow option's flow arrives as ``flow_grid`` float32 (B, L, 2, n, n), its values
+    at the tracking grid's points: with ``compact_flow`` it is kept so (a float32 tensor;
+    expand it on the GPU with ``flowgrid.expand_flow_grid``), else it becomes ``flow``
+    (B, L, 2, *flow_size*) with the server's own bilinear taps (``flowgrid``): float32, or
+    ``flow_dtype`` (the server's dense flow dtype) with ``raw``, equal to the dense flow the
+    server would have sent.
+
+    Raises:
+        ProtocolError: a ``flow_grid`` of the wrong shape, or with no ``flow_size`` to expand to.
     """
     out = {}
     for name, a in arrays.items():
         if name == "frames":
             a = a[:, :, None]
-        if raw:
+        if name == "flow_grid":
+            if a.ndim != 5 or a.shape[2] != 2 or a.shape[3] != a.shape[4] or a.shape[3] < 2 or a.dtype != np.float32:
+                raise ProtocolError(f"array 'flow_grid' must be float32 (B, L, 2, n, n), got {a.dtype}{list(a.shape)}")
+            if compact_flow:
+                out[name] = _view(a) if raw else torch.from_numpy(a.copy())
+                continue
+            if flow_size is None:
+                raise ProtocolError("a 'flow_grid' array, but the server's welcome named no crop_size to expand it to")
+            dtype = torch.float16 if raw and flow_dtype == "float16" else torch.float32
+            out["flow"] = expand_flow_grid(_view(a), flow_size, dtype)
+        elif raw:
             out[name] = _view(a)
         elif name == "frames":
             out[name] = torch.from_numpy(np.multiply(a, np.float32(1.0 / 255.0), dtype=np.float32))
@@ -116,6 +138,7 @@ class Connection:
         self._torn_ids: Dict[int, int] = {}  # shared-memory batches found gone, by batch id
         self._receipts = getattr(ds, "receipts", None)  # DataLoader worker: what the training loop received
         self.shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
+        self.compression, self._compression_auto = ds.compression_for(self.endpoint)
         self._shm = ShmReader(keep=ds.credits + 2) if self.shm else None
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
@@ -249,6 +272,8 @@ class Connection:
         h = dict(self.ds._hello_header(), hello_id=self._hello_seq)
         if self.shm:
             h["shm"] = True
+        if self.compression != "none":
+            h["compression"] = self.compression
         data = pack(h)
         limit = (self.info or {}).get("max_hello_bytes", MAX_CLIENT_MSG)
         if len(data) > limit:
@@ -380,6 +405,11 @@ class Connection:
                 return "over"
             elif kind == "shutdown":
                 return "lost"
+            elif kind == "error" and h.get("code") == "compression" and self._compression_auto:
+                # the server lacks the codec we picked by default: take the arrays as they are
+                log.warning("v2v server at %s: %s; receiving arrays uncompressed", self.endpoint, h.get("message"))
+                self.compression = "none"
+                self._replies.append(self._hello())
             elif kind == "error" and h.get("code") in ("dropped", "unknown_client"):
                 # dropped for silence or an unanswered revoke, or the server restarted behind our socket:
                 # whatever we hold goes elsewhere, so hand none of it on; introduce ourselves again
@@ -409,14 +439,17 @@ class Connection:
             if arrays is None:
                 return self._torn(h)
         else:
-            arrays = decode_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
-        missing = [o for o in self.ds.outputs if o not in arrays]
+            arrays = decode_batch_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
+        missing = [o for o in self.ds.outputs if o not in {output_of(k) for k in arrays}]
         if missing:
             raise ProtocolError(f"batch {h.get('batch_id')} lacks requested outputs {missing}")
         ids = h["sample_ids"]
         if not isinstance(ids, list) or any(a.shape[:1] != (len(ids),) for a in arrays.values()):
             raise ProtocolError(f"batch {h.get('batch_id')}: sample ids do not match the arrays")
-        item = batch_to_torch(arrays, self.ds.raw)
+        info = self.info or {}
+        crop = info.get("crop_size")
+        item = batch_to_torch(arrays, self.ds.raw, (crop, crop) if isinstance(crop, int) and crop > 0 else None,
+                              info.get("flow_dtype", "float16"), self.ds.compact_flow)
         if shm and not self.ds.raw:
             del arrays  # converted from the mapping: check it still held this batch
             if not self._shm.valid(h):

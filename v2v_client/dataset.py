@@ -22,6 +22,7 @@ from typing import Iterator, Optional, Sequence, Tuple, Union
 
 import torch
 
+from v2v_server.codecs import available, check_compression
 from v2v_server.protocol import OUTPUTS
 
 from .connection import StreamError, StreamTimeout, batch_to_torch, load_curve_keys
@@ -79,12 +80,27 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             on either side; ``v2v_client.handoff``). The server agrees only when bound to
             ``ipc://``; anything else still arrives as socket frames, and the batches are the
             same either way. ``True`` asks for any endpoint, ``False`` never.
+        compact_flow: a tracked flow option (the server's ``flow_preset``, default
+            ``tracked``) sends each sample's flow as its grid of tracked points, 2 x n x n
+            values per voxel grid (n = 8: 20 KB per sample against 2.6 MB dense), and this
+            client makes it dense (``flow`` below, with the server's own bilinear weights;
+            about one float16-to-float32 conversion pass of CPU). With ``compact_flow=True`` the
+            batch keeps ``flow_grid`` float32 (B, L, 2, n, n) instead of ``flow``, to expand
+            on the GPU with ``v2v_client.expand_flow_grid(grid.to(device), (H, W))``; servers
+            with another flow option still send (and this client yields) dense ``flow``.
+        compression: how arrays that travel over the socket are compressed, per connection:
+            ``"none"``, ``"lz4"`` or ``"zstd"`` (``v2v_server.codecs``; the server's workers
+            compress, this client's I/O thread decompresses, overlapped with training).
+            ``"auto"`` (default): none for ``ipc://`` and loopback ``tcp://``, ``"zstd"``
+            to other hosts (when ``zstandard`` is installed here and on the server; docs/wire.md
+            measures the trade). The batches are the same either way.
 
     Yields dicts, one per batch of B samples:
         ``voxels`` float32 (B, L, num_bins, H, W), signed event counts per bin;
         ``frames`` float32 in [0, 1] (B, L + 1, 1, H, W), the frame at each voxel boundary;
         ``flow`` float32 (B, L, 2, H, W), forward optical flow in pixels from frame l to
-        l + 1 (channel 0 = x, 1 = y);
+        l + 1 (channel 0 = x, 1 = y); with ``compact_flow`` and a tracked flow option
+        instead ``flow_grid`` float32 (B, L, 2, n, n), the flow at the grid points;
         ``padding`` bool (B,): True for a repeated sample the loss must ignore (only DDP
         padding batches have any; their ``sample_ids`` are the repeated ids);
         ``sample_ids`` list of B str; ``params`` list of B dicts (sensor parameters and
@@ -114,7 +130,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  timeout_s: float = 30.0, heartbeat_s: float = 1.0, raw: bool = False,
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None, rank: Optional[int] = None,
-                 world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto"):
+                 world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto",
+                 compact_flow: bool = False, compression: str = "auto"):
         super().__init__()
         if isinstance(outputs, str):
             outputs = (outputs,)
@@ -142,10 +159,16 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self.credits = credits
         if shm not in (True, False, "auto"):
             raise ValueError(f"shm must be True, False or 'auto', got {shm!r}")
+        if not isinstance(compact_flow, bool):
+            raise ValueError(f"compact_flow must be True or False, got {compact_flow!r}")
+        if compression != "auto":
+            check_compression(compression)
+            if not available(compression):
+                raise ValueError(f"compression {compression!r} needs its library here: pip install 'v2v[wire]'")
         self.rank, self.world_size, self.group = rank, world_size, group
         self.options = StreamOptions(self.outputs, credits, float(timeout_s), float(heartbeat_s), raw, bool(reconnect),
                                      float(reconnect_timeout_s), tuple(curve_keys) if curve_keys else None, rank,
-                                     world_size, group, shm)
+                                     world_size, group, shm, compact_flow, compression)
         if curve_keys:
             load_curve_keys(*curve_keys)  # bad key files are an error here, not at the first iteration
         self._stream: Optional[EndpointStream] = None

@@ -25,7 +25,7 @@ when the dataset hands the batch over in the main process).
 from __future__ import annotations
 
 import multiprocessing
-from typing import Dict, List, Optional
+from typing import Dict, Optional
 
 import torch
 

@@ -18,6 +18,7 @@ from .protocol import OUTPUTS
 from .settings import (check_bool, check_choice, check_float, check_int, check_prob, load_yaml,
                        reference_markdown, setting)
 from .simulate import ParamRanges
+from .video import DECODE_FAST
 
 #: Optical-flow options by name (the table lives in flow_options.py).
 FLOW_PRESETS = tuple(FLOW_OPTIONS)
@@ -70,6 +71,9 @@ class SampleRecipe:
     fixed_sensor_params: bool = setting(False, help="each video keeps one (c+, c-) drawn from (seed, video) for every "
                                                     "window and epoch (the paper's '-F' datasets)")
     decode_threads: int = setting(1, help="FFmpeg decoding threads per worker")
+    decode_fast: str = setting("off", help="skip H.264's deblocking filter on some frames: off | noref | bidir | all "
+                                           "(faster decoding, measured error: docs/decode_fast.md)",
+                               choices=tuple(DECODE_FAST))
 
     @property
     def frames_per_sample(self) -> int:
@@ -148,6 +152,7 @@ class SampleRecipe:
         if why:
             raise ValueError(f"flow_preset {self.flow_preset!r} cannot run here: {why}")
         check_choice("flow_dtype", self.flow_dtype, FLOW_DTYPES)
+        check_choice("decode_fast", self.decode_fast, tuple(DECODE_FAST))
         if not isinstance(self.ranges, ParamRanges):
             self.ranges = ParamRanges.from_dict(self.ranges)
         from .augment import parse_degrade

@@ -22,6 +22,11 @@ Two ways in, one copy each:
   batch is stacked lazily, the first time it is sent, into one ``np.empty((B, ...))`` (the
   one copy), kept for re-sends, and handed to ZeroMQ zero-copy.
 
+**Compressed frames** (``codecs``): a worker asked for codecs in its task sends each array
+compressed as extra frames after the sample's array frames (``packed_frames``); the sample
+keeps them as received, and :meth:`BatchPayload.wire` with a codec sends them, one frame per
+sample, by reference: the relay never compresses, decompresses or copies them.
+
 Batches whose samples did not land in consecutive rows of one buffer (samples of two epochs
 interleaved at an epoch boundary, voxels narrowed differently, a resume ``subset``) fall back
 to the lazy stacking copy from the samples' views.
@@ -54,8 +59,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .codecs import packed_specs
 from .protocol import (BATCH_DIR_RE, BATCH_FILE_HEADER, WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays,
-                       narrow_int_dtype)
+                       narrow_int_dtype, output_of)
 
 log = logging.getLogger("v2v.datapath")
 
@@ -88,6 +94,9 @@ class SamplePayload:
     #: the batch buffer and row the arrays were copied into (shared-memory path), else None / -1
     buffer: Optional["_BatchBuffer"] = field(default=None, repr=False)
     row: int = -1
+    #: codec -> array name -> (dtype the worker sent it in, its compressed frame) (``codecs``),
+    #: kept as received and forwarded by reference to the clients that asked for that codec
+    packed: Dict[str, Dict[str, tuple]] = field(default_factory=dict, repr=False)
 
     @property
     def nbytes(self) -> int:
@@ -96,12 +105,44 @@ class SamplePayload:
 
 def sample_from_worker(header: dict, frames: Sequence) -> SamplePayload:
     """Build a :class:`SamplePayload` from a worker's ``sample`` message (header + raw frames,
-    ``zmq.Frame`` or bytes), without copying the arrays.
+    ``zmq.Frame`` or bytes, then its compressed frames), without copying the arrays.
 
     Raises:
         ProtocolError: when the frames do not match the header's array specs.
     """
-    return SamplePayload(header["sample_id"], header["meta"], decode_arrays(header["arrays"], frames))
+    n = len(header["arrays"]) if isinstance(header["arrays"], list) else 0
+    s = SamplePayload(header["sample_id"], header["meta"], decode_arrays(header["arrays"], frames[:n]))
+    s.packed = packed_frames(header, frames[n:], s.arrays)
+    return s
+
+
+#: Largest compressed frame accepted from a worker, bytes (a sample's largest array, uncompressed,
+#: is at most ``slot_bytes``; a compressed one can exceed it only by the codec's small overhead).
+MAX_PACKED_BYTES = 1 << 31
+
+
+def packed_frames(header: dict, frames: Sequence, arrays: Dict[str, np.ndarray]) -> Dict[str, Dict[str, tuple]]:
+    """The compressed frames of a worker's ``sample`` message (its ``packed`` list: codec, array
+    name and size of each frame after the array frames), by codec and array name, each with
+    the dtype of the array it compresses; the frames themselves are kept as they are (never
+    decompressed here).
+
+    Raises:
+        ProtocolError: for a list that does not match the frames, or names no array of the sample.
+    """
+    specs = header.get("packed", [])
+    if not isinstance(specs, list) or len(specs) != len(frames):
+        raise ProtocolError(f"sample header lists {len(specs) if isinstance(specs, list) else '?'} compressed "
+                            f"frames, message has {len(frames)}")
+    out: Dict[str, Dict[str, object]] = {}
+    for spec, fr in zip(specs, frames):
+        if not isinstance(spec, dict) or spec.get("name") not in arrays or not isinstance(spec.get("codec"), str):
+            raise ProtocolError(f"bad compressed frame spec {spec!r:.200}")
+        size = len(fr.buffer) if hasattr(fr, "buffer") else len(fr)
+        if size != spec.get("nbytes") or size > MAX_PACKED_BYTES:
+            raise ProtocolError(f"compressed frame of {spec['name']!r}: {size} bytes, spec says {spec.get('nbytes')!r}")
+        out.setdefault(spec["codec"], {})[spec["name"]] = (arrays[spec["name"]].dtype, fr)
+    return out
 
 
 def slot_layout(specs) -> Tuple[List[int], int]:
@@ -543,19 +584,24 @@ class BatchAssembler:
         return SamplePayload(sample_id, meta, views, buf, row)
 
 
-def sample_from_slot(header: dict, ring: SlotRing, assembler: BatchAssembler) -> SamplePayload:
+def sample_from_slot(header: dict, ring: SlotRing, assembler: BatchAssembler, frames: Sequence = ()) -> SamplePayload:
     """Build a :class:`SamplePayload` from a worker's ``sample`` header naming a slot of
     ``ring``: the slot's arrays are copied into ``assembler``'s batch buffer (after this
-    returns the slot may be given back to the worker).
+    returns the slot may be given back to the worker); ``frames``, the message's frames after
+    the header, are its compressed frames (``packed_frames``).
 
     Raises:
-        ProtocolError: for a slot out of range or array specs that do not fit a slot.
+        ProtocolError: for a slot out of range, array specs that do not fit a slot, or
+            compressed frames that do not match the header.
     """
     views = ring.arrays(header["slot"], header["arrays"])
+    packed = packed_frames(header, frames, views)
     try:
-        return assembler.place(header["sample_id"], header["meta"], views)
+        s = assembler.place(header["sample_id"], header["meta"], views)
     finally:
         del views
+    s.packed = packed
+    return s
 
 
 def _stack(arrays: Sequence[np.ndarray], dtype) -> np.ndarray:
@@ -587,6 +633,8 @@ class BatchPayload:
     _stacked: Optional[Dict[str, np.ndarray]] = field(default=None, repr=False)
     #: (buffer, first row) when the arrays are consecutive rows of one batch buffer
     _rows: Optional[Tuple["_BatchBuffer", int]] = field(default=None, repr=False)
+    #: each sample's compressed frames (``SamplePayload.packed``), in batch order
+    packed: List[Dict[str, Dict[str, tuple]]] = field(default_factory=list, repr=False)
 
     @property
     def arrays(self) -> Dict[str, np.ndarray]:
@@ -611,15 +659,43 @@ class BatchPayload:
         """A payload holding only the samples at positions ``keep`` (in that order)."""
         keep = list(keep)
         ids, meta = [self.sample_ids[i] for i in keep], [self.meta[i] for i in keep]
+        packed = [self.packed[i] for i in keep] if self.packed else []
         if self._stacked is None:
-            return BatchPayload(ids, meta, [self.samples[i] for i in keep])
+            return BatchPayload(ids, meta, [self.samples[i] for i in keep], packed=packed)
         arrays = {k: v[keep] for k, v in self._stacked.items()}  # a copy; only on resume
-        return BatchPayload(ids, meta, None, {k: narrow_voxels(k, v) for k, v in arrays.items()})
+        return BatchPayload(ids, meta, None, {k: narrow_voxels(k, v) for k, v in arrays.items()}, packed=packed)
 
-    def wire(self, outputs: Sequence[str]) -> Tuple[List[dict], List]:
-        """Array specs for the batch header and the frames to send (zero-copy, one per
-        array), for the arrays in ``outputs``."""
-        return encode_arrays({k: v for k, v in self.arrays.items() if k in outputs})
+    def wire(self, outputs: Sequence[str], codec: str = "none") -> Tuple[List[dict], List]:
+        """Array specs for the batch header and the frames to send (zero-copy), for the arrays
+        that carry ``outputs`` (``protocol.output_of``): one frame per array, or with a
+        ``codec`` (``codecs.COMPRESSIONS``) whose compressed frames every sample has for an
+        array, those frames, one per sample, forwarded as the workers sent them (spec
+        ``codecs.packed_specs``)."""
+        names = [k for k in (self._stacked if self._stacked is not None else self.samples[0].arrays)
+                 if output_of(k) in outputs]
+        use = {}
+        if codec != "none" and self.packed:
+            for k in names:
+                parts = [p.get(codec, {}).get(k) for p in self.packed]
+                if all(q is not None for q in parts):
+                    use[k] = parts
+        plain = {k: v for k, v in self.arrays.items() if k in names and k not in use} if len(use) < len(names) else {}
+        pspecs, pframes = encode_arrays(plain)
+        plain_by = {s["name"]: (s, f) for s, f in zip(pspecs, pframes)}
+        specs, frames = [], []
+        for k in names:
+            if k in use:
+                parts = use[k]
+                first = self.samples[0].arrays[k] if self.samples is not None else self._stacked[k][0]
+                dtype = np.result_type(*[d for d, _ in parts]).name
+                specs.append(packed_specs(k, dtype, [len(parts)] + list(first.shape), codec,
+                                          [(d.name, _size(f)) for d, f in parts]))
+                frames.extend(f for _, f in parts)
+            else:
+                spec, f = plain_by[k]
+                specs.append(spec)
+                frames.append(f)
+        return specs, frames
 
     def shm_ref(self, outputs: Sequence[str]) -> Optional[Tuple[List[dict], dict]]:
         """Where a same-host client finds this batch's arrays in ``outputs``: ``(specs, ref)``
@@ -633,7 +709,7 @@ class BatchPayload:
         buf, r0 = self._rows
         specs, offsets = [], []
         for k, v in self.arrays.items():
-            if k in outputs:
+            if output_of(k) in outputs:
                 full = buf.arrays[k]
                 specs.append({"name": k, "dtype": v.dtype.name, "shape": list(v.shape)})
                 offsets.append(buf.offsets[k] + r0 * (full.nbytes // full.shape[0]))
@@ -660,11 +736,16 @@ def make_batch(samples: Sequence[SamplePayload]) -> BatchPayload:
             raise ValueError(f"sample {s.sample_id} has arrays {sorted(s.arrays)}, expected {sorted(names)}")
     ids, meta = [s.sample_id for s in samples], [s.meta for s in samples]
     buf, r0 = samples[0].buffer, samples[0].row
+    packed = [s.packed for s in samples] if any(s.packed for s in samples) else []
     if buf is not None and all(s.buffer is buf and s.row == r0 + i for i, s in enumerate(samples)):
         buf.sealed = True  # later samples start a fresh buffer; these rows are the batch's
         return BatchPayload(ids, meta, None, {k: v[r0:r0 + len(samples)] for k, v in buf.arrays.items()},
-                            (buf, r0))
-    return BatchPayload(ids, meta, list(samples))
+                            (buf, r0), packed)
+    return BatchPayload(ids, meta, list(samples), packed=packed)
+
+
+def _size(frame) -> int:
+    return len(frame.buffer) if hasattr(frame, "buffer") else len(frame)
 
 
 __all__ = ["SamplePayload", "BatchPayload", "BatchAssembler", "BatchDir", "SlotRing", "remove_stale_shm", "sample_from_worker", "sample_from_slot",

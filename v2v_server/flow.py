@@ -45,7 +45,7 @@ from .flow_options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, Flo
 from .tracking import (ZOOM_INLIERS, _dropped_inside, _expand_grids, _expand_tables, _fill_lost, _from_resized,
                        _same_as_previous, _to_resized, _track_grid, _zoom_fit)
 
-__all__ = ["FlowEstimator", "MIN_DIS_SIDE", "dis_flow", "to_float16"]
+__all__ = ["FlowEstimator", "MIN_DIS_SIDE", "dis_flow", "expand_grids", "to_float16"]
 
 log = logging.getLogger("v2v.flow")
 
@@ -226,30 +226,56 @@ class FlowEstimator:
 
         Returns:
             (L, 2, H, W) in ``dtype``, L = (N - 1) // step: pixels from frame ``l * step`` to
-            ``(l + 1) * step``, channel 0 x, channel 1 y.
+            ``(l + 1) * step``, channel 0 x, channel 1 y. For a tracked option this is
+            ``expand_grids(voxel_flow_grids(...))``.
 
         Raises:
             ValueError: for a bad shape or step, ``repeats`` of the wrong shape, or another dtype.
         """
-        if not isinstance(frames, np.ndarray) or frames.ndim != 3 or step < 1 or (frames.shape[0] - 1) % step:
-            raise ValueError(f"flow: frames must be (L * step + 1, H, W), got {getattr(frames, 'shape', None)} "
-                             f"for step {step}")
-        if repeats is not None and np.shape(repeats) != (frames.shape[0],):
-            raise ValueError(f"flow: repeats must be a bool array of shape ({frames.shape[0]},), got {np.shape(repeats)}")
+        self._check(frames, step, repeats)
         if np.dtype(dtype) not in (np.float32, np.float16):
             raise ValueError(f"flow: dtype must be float32 or float16, got {dtype!r}")
         n_vox = (frames.shape[0] - 1) // step
-        out = np.empty((n_vox, 2) + frames.shape[1:], np.float32)
         if self.option.method == "tracked":
-            self._tracked(frames, step, repeats, out)
+            out = expand_grids(self._tracked(frames, step, repeats).transpose(0, 3, 1, 2), frames.shape[1:])
         else:
+            out = np.empty((n_vox, 2) + frames.shape[1:], np.float32)
             pair = self._raft if self._raft is not None else functools.partial(_dis, self.option.dis)
             for l in range(n_vox):
                 out[l] = pair(frames[l * step], frames[(l + 1) * step]).transpose(2, 0, 1)
         return out if np.dtype(dtype) == np.float32 else to_float16(out)
 
-    def _tracked(self, frames: np.ndarray, step: int, repeats: Optional[np.ndarray], out: np.ndarray) -> np.ndarray:
-        """``voxel_flows`` of a ``tracked`` option (see ``TrackParams``). Per voxel the grid
+    def voxel_flow_grids(self, frames: np.ndarray, step: int, repeats: Optional[np.ndarray] = None) -> np.ndarray:
+        """A tracked option's flow before it is made dense: the flow at its grid points, what
+        the wire carries as ``flow_grid`` (``protocol.flow_grid_taps`` makes it dense, bit for
+        bit as ``voxel_flows``).
+
+        Args: as ``voxel_flows``.
+
+        Returns:
+            float32 (L, 2, n, n), ``n = TrackParams.grid``: pixels from frame ``l * step`` to
+            ``(l + 1) * step`` of the grid point in row i, column j, which sits at
+            ``(j (W - 1) / (n - 1), i (H - 1) / (n - 1))``; channel 0 x, channel 1 y.
+
+        Raises:
+            ValueError: for an option that is not tracked, a bad shape or step, or ``repeats``
+                of the wrong shape.
+        """
+        if self.option.method != "tracked":
+            raise ValueError(f"flow: option {self.preset!r} has no grid (only tracked options do)")
+        self._check(frames, step, repeats)
+        return np.ascontiguousarray(self._tracked(frames, step, repeats).transpose(0, 3, 1, 2))
+
+    @staticmethod
+    def _check(frames, step, repeats) -> None:
+        if not isinstance(frames, np.ndarray) or frames.ndim != 3 or step < 1 or (frames.shape[0] - 1) % step:
+            raise ValueError(f"flow: frames must be (L * step + 1, H, W), got {getattr(frames, 'shape', None)} "
+                             f"for step {step}")
+        if repeats is not None and np.shape(repeats) != (frames.shape[0],):
+            raise ValueError(f"flow: repeats must be a bool array of shape ({frames.shape[0]},), got {np.shape(repeats)}")
+
+    def _tracked(self, frames: np.ndarray, step: int, repeats: Optional[np.ndarray]) -> np.ndarray:
+        """The grid flows float32 (L, n, n, 2) of a ``tracked`` option (see ``TrackParams``). Per voxel the grid
         points are tracked over its one-frame pairs. A pair of equal frames (a pause, marked in
         ``repeats`` or not) moves nothing and costs no LK call; the pair after it is searched
         from zero. A point LK drops (status 0: it left the crop, or its window is flat or lost
@@ -258,7 +284,7 @@ class FlowEstimator:
         previous motion is first searched once more from zero. While the view zooms faster
         than ``TrackParams.zoom`` per frame, pairs are tracked zoom-compensated (see there)."""
         t = self.option.track
-        n_vox = out.shape[0]
+        n_vox = (frames.shape[0] - 1) // step
         h, w = frames.shape[1:]
         f8 = _to_u8(frames)  # (N, H, W) contiguous uint8; LK takes its frames as views
         u8 = list(f8)
@@ -313,7 +339,21 @@ class FlowEstimator:
             grid_flows[l] = (p - g0)[:, 0]
             valid[l] = ok
         n = t.grid
-        grids = _fill_lost(grid_flows.reshape(n_vox, n, n, 2), valid.reshape(n_vox, n, n))
-        # bilinear between grid points
-        _expand_grids(grids, *_expand_tables(n, h, w), out)
-        return out
+        return _fill_lost(grid_flows.reshape(n_vox, n, n, 2), valid.reshape(n_vox, n, n))
+
+
+def expand_grids(grids: np.ndarray, size) -> np.ndarray:
+    """Dense flow float32 (L, 2, H, W) of tracked grid flows ``grids`` float32 (L, 2, n, n)
+    (``FlowEstimator.voxel_flow_grids``, the wire's ``flow_grid``) over a ``size`` = (H, W)
+    crop: bilinear between the grid points with ``protocol.flow_grid_taps``.
+
+    Raises:
+        ValueError: for grids that are not (L, 2, n, n) with n >= 2.
+    """
+    g = np.asarray(grids, np.float32)
+    if g.ndim != 4 or g.shape[1] != 2 or g.shape[2] != g.shape[3] or g.shape[2] < 2:
+        raise ValueError(f"flow grids must be (L, 2, n, n) with n >= 2, got {g.shape}")
+    h, w = size
+    out = np.empty((g.shape[0], 2, h, w), np.float32)
+    _expand_grids(np.ascontiguousarray(g.transpose(0, 2, 3, 1)), *_expand_tables(g.shape[2], h, w), out)
+    return out

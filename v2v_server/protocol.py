@@ -24,6 +24,17 @@ Message types (protocol 3; client messages are decoded and schema-checked by ``w
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error); server -> worker: ``task``, ``stop``.
 
+Array forms: a tracked flow option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its
+values at the tracking grid's points (``ARRAY_OUTPUT``: it carries the output ``flow``; the
+dense field is bilinear between them with ``flow_grid_taps`` over the welcome's
+``crop_size``). Compression (optional): a hello may say ``"compression": "lz4" | "zstd"``
+(``codecs.COMPRESSIONS``; the server answers ``error`` code ``compression`` when it lacks the
+library); a batch array the workers compressed is then sent as one frame per sample, its spec
+carrying ``"codec"`` and ``"parts"`` (``[dtype, bytes]`` per sample; ``codecs.decode_batch_arrays``);
+other arrays of the same batch may still be plain. Workers get the codecs to make in each
+``task`` (``codecs``) and send the compressed frames after their array frames, listed in the
+sample header's ``packed``.
+
 Same-host hand-off (optional fields): a hello may say
 ``"shm": true``; a server bound to ``ipc://`` then names its batch directory in the welcome
 (``info.shm_dir``, else null) and may send a batch with no array frames and
@@ -51,6 +62,9 @@ MAX_CLIENT_MSG = 16 * 1024 * 1024
 WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")
 #: Outputs a sample can carry, in wire order: voxels, ground-truth frames, optical flow.
 OUTPUTS = ("voxels", "frames", "flow")
+#: Arrays on the wire that carry an output in another form than its own name: ``flow_grid`` is
+#: the compact ``flow`` of the tracked flow options (see ``flow_grid_taps``).
+ARRAY_OUTPUT = {"flow_grid": "flow"}
 
 #: Same-host hand-off (``datapath.BatchDir`` writes, ``v2v_client.handoff`` reads):
 #: bytes at the start of a batch-buffer file before the first array (the generation, uint64 LE);
@@ -140,6 +154,56 @@ def narrow_int_dtype(arr: np.ndarray) -> np.dtype:
         if info.min <= lo and hi <= info.max:
             return np.dtype(dt)
     raise OverflowError(f"event counts in [{lo}, {hi}] do not fit int32")
+
+
+def output_of(array_name: str) -> str:
+    """The output (``OUTPUTS``) a wire array carries: ``flow_grid`` carries ``flow``; any other
+    array carries the output of its own name."""
+    return ARRAY_OUTPUT.get(array_name, array_name)
+
+
+_TAPS: Dict[tuple, tuple] = {}
+
+
+def flow_grid_taps(n: int, size: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bilinear weights that make a tracked option's dense flow from its grid, along one
+    axis of ``size`` pixels: the one definition the server's expansion
+    (``tracking._expand_grids``) and the client's (``v2v_client.flowgrid``) both read.
+
+    The grid's ``n`` points along an axis sit at ``k (size - 1) / (n - 1)`` px (corners
+    included); pixel ``x`` lies at grid coordinate ``u = x (n - 1) / (size - 1)`` (float64) and
+    takes the hat functions ``max(0, 1 - |u - k|)`` (rounded to float32) of the two grid points
+    around it: ``first[x]`` (clamped to ``n - 2``) with weight ``w0[x]`` and ``first[x] + 1``
+    with ``w1[x]``. So the dense value at pixel (y, x) of a grid field ``g`` (n, n) is, in
+    float32 with one rounding per product and sum, ``a0[y] t[i0[y]] + a1[y] t[i0[y] + 1]``
+    at column x, where ``t[i] = b0[x] g[i, j0[x]] + b1[x] g[i, j0[x] + 1]`` (rows ``i0, a0,
+    a1`` = taps of the height, columns ``j0, b0, b1`` = taps of the width).
+
+    Args:
+        n: grid points per side (>= 2).
+        size: pixels along the axis (>= 1).
+
+    Returns:
+        ``first`` int64 (size,), ``w0`` and ``w1`` float32 (size,); read-only, cached.
+
+    Raises:
+        ValueError: for ``n < 2`` or ``size < 1``.
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2 or \
+            isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
+        raise ValueError(f"flow grid taps need n >= 2 grid points and size >= 1 px, got n={n!r}, size={size!r}")
+    key = (int(n), int(size))
+    t = _TAPS.get(key)
+    if t is None:
+        u = np.arange(size, dtype=np.float64) * ((n - 1) / max(size - 1, 1))
+        hats = np.maximum(0.0, 1.0 - np.abs(u[:, None] - np.arange(n)[None, :])).astype(np.float32)
+        first = np.minimum(np.argmax(hats > 0, axis=1), n - 2)
+        rows = np.arange(size)
+        t = (first.astype(np.int64), hats[rows, first].copy(), hats[rows, first + 1].copy())
+        for a in t:
+            a.setflags(write=False)
+        _TAPS[key] = t
+    return t
 
 
 def encode_arrays(arrays: Dict[str, np.ndarray]) -> Tuple[List[dict], List[np.ndarray]]:

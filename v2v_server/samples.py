@@ -127,6 +127,7 @@ def make_sample(
     flow: Optional[FlowEstimator] = None,
     fps: float = 0.0,
     busy: Optional[dict] = None,
+    flow_grid: bool = False,
 ) -> Dict[str, np.ndarray]:
     """Compute the requested outputs of one sample.
 
@@ -138,6 +139,10 @@ def make_sample(
         fps: source frame rate, Hz (for non-idealities given as rates).
         busy: when given, ``busy["simulate"]`` and ``busy["flow"]`` accumulate the seconds
             spent simulating voxels and estimating flow (for the server's metrics).
+        flow_grid: with a tracked flow option, give the flow as ``flow_grid`` float32
+            (L, 2, n, n), its values at the tracking grid's points
+            (``FlowEstimator.voxel_flow_grids``; what a worker sends), instead of the dense
+            ``flow``; other options give dense ``flow`` either way.
 
     Returns:
         dict with ``voxels`` (L, B, S, S) signed event counts (int8/int16/int32, the narrowest
@@ -163,8 +168,11 @@ def make_sample(
     if "flow" in outputs:
         flow = flow or FlowEstimator(cfg.flow_preset)
         # pauses repeat frames: the pairs between repeats cost no tracking
-        out["flow"] = flow.voxel_flows(seq, step, np.concatenate([[False], np.diff(plan.offsets) == 0]),
-                                       dtype=cfg.flow_dtype)
+        repeats = np.concatenate([[False], np.diff(plan.offsets) == 0])
+        if flow_grid and flow.option.method == "tracked":
+            out["flow_grid"] = flow.voxel_flow_grids(seq, step, repeats)
+        else:
+            out["flow"] = flow.voxel_flows(seq, step, repeats, dtype=cfg.flow_dtype)
     if busy is not None:
         if "voxels" in outputs:
             busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)
@@ -303,6 +311,7 @@ def video_samples(
     skip_windows: Iterable[int] = (),
     flow: Optional[FlowEstimator] = None,
     stats: Optional[dict] = None,
+    flow_grid: bool = False,
 ) -> Iterator[Tuple[str, Dict[str, np.ndarray], dict]]:
     """Decode ``root / rel_path`` once, sequentially, and yield its samples.
 
@@ -318,7 +327,7 @@ def video_samples(
     included), ``width``, ``height``, ``fps``, ``busy`` (seconds simulating and estimating
     flow, see ``make_sample``) and, when some window could not be made, ``failed`` (window ->
     reason; e.g. the frame size changed inside it: that window fails, the following ones are
-    planned on the new size).
+    planned on the new size). ``flow_grid``: see ``make_sample``.
 
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
@@ -327,7 +336,7 @@ def video_samples(
     skip = set(skip_windows)
     span, stride = cfg.frames_per_sample, cfg.window_stride
     kpw = cfg.crops_per_window
-    container, stream, info = open_video(path, cfg.decode_threads)  # opened once, decoded once
+    container, stream, info = open_video(path, cfg.decode_threads, cfg.decode_fast)  # opened once, decoded once
     rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
@@ -350,7 +359,7 @@ def video_samples(
             stats["windows"] += 1
             for plan, frames in win.finish():
                 arrays = make_sample(cfg, plan, degrade_window(plan, frames), outputs, flow, info.fps,
-                                     stats.setdefault("busy", {}))
+                                     stats.setdefault("busy", {}), flow_grid)
                 yield plan.sample_id, arrays, sample_meta(plan, info.fps, (k - 1) * stride)
             win = None
         if off == 0 and k < n_windows:  # ... and starts window k

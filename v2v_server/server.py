@@ -27,6 +27,7 @@ from typing import Dict, List, Optional
 
 import zmq
 
+from . import codecs
 from .config import ServeConfig
 from .corpus import corpus_fingerprint
 from .journal import Journal
@@ -91,6 +92,7 @@ class V2VServer:
         self._resent_seen = 0  # ledger.resent already counted
         self._worker_seen = False  # some worker said ready
         self._shm_clients: set = set()  # idents whose hello asked for shared-memory batches
+        self._codecs: Dict[bytes, str] = {}  # ident -> the compression its hello asked for
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -268,7 +270,7 @@ class V2VServer:
         elif kind == "sample":
             slot = h.get("slot")
             if slot is not None and w.ring is not None:  # arrays in the worker's shared memory
-                build = lambda: sample_from_slot(h, w.ring, self.assembler)  # noqa: E731
+                build = lambda: sample_from_slot(h, w.ring, self.assembler, frames[2:])  # noqa: E731
             else:
                 build = lambda: sample_from_worker(h, frames[2:])  # noqa: E731
             try:
@@ -315,6 +317,9 @@ class V2VServer:
             msg = self.core.task_for(w.ident, now)
             if msg is None:
                 return
+            # what workers compress with: each codec a connected client asked for (over sockets)
+            msg["codecs"] = sorted({c for i, c in self._codecs.items() if c != "none" and i in self.ledger.clients
+                                    and i not in self._shm_clients})
             w.idle = False
             self.backend.send_multipart([w.ident, pack(msg)])
 
@@ -331,9 +336,9 @@ class V2VServer:
             if ref is not None:
                 (specs, shm), frames = ref, []
                 nbytes = sum(b.payload.arrays[s["name"]].nbytes for s in specs)
-            else:
-                specs, frames = b.payload.wire(c.outputs)
-                nbytes = sum(f.nbytes for f in frames)
+            else:  # compressed arrays are the workers' frames, forwarded as they came
+                specs, frames = b.payload.wire(c.outputs, self._codecs.get(ident, "none"))
+                nbytes = sum(_nbytes(f) for f in frames)
             header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
                       "sample_ids": b.payload.sample_ids, "params": b.payload.meta, "arrays": specs}
             if ref is not None:
@@ -404,7 +409,8 @@ class V2VServer:
         return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
                 "batch_size": c.batch_size, "frames_per_bin": c.frames_per_bin, "seed": c.seed,
                 "epochs": c.epochs, "videos": len(self.videos), "outputs": list(self.core.outputs or c.outputs),
-                "offered_outputs": list(c.outputs), "flow_preset": c.flow_preset, "protocol": PROTOCOL_VERSION,
+                "offered_outputs": list(c.outputs), "flow_preset": c.flow_preset, "flow_dtype": c.flow_dtype,
+                "protocol": PROTOCOL_VERSION,
                 "lease_s": c.lease_s, "client_timeout_s": c.client_timeout_s, "max_credits": c.max_credits,
                 "shm_dir": self.assembler.files.path if self.assembler.files is not None else None,
                 # identity: a fan-in checks its servers form one sharding of one corpus under one
@@ -441,11 +447,25 @@ class V2VServer:
                 self._shm_clients.add(ident)
             else:
                 self._shm_clients.discard(ident)
+            for gone in set(self._codecs) - set(self.ledger.clients):
+                del self._codecs[gone]
+            if not codecs.available(msg.compression):
+                self._send_client(ident, {"type": "error", "code": "compression",
+                                          "message": f"this server cannot compress with {msg.compression!r}: "
+                                                     f"{msg.compression} needs the 'wire' extra on the server "
+                                                     f"(pip install 'v2v[wire]'); ask for compression 'none'"})
+                return
+            self._codecs[ident] = msg.compression
             replies = self.core.hello(ident, msg, now, self.stream_info)
         else:
             replies = self.core.message(ident, msg, now)
         for to, reply in replies:
             self._send_client(to, reply)
+
+
+def _nbytes(frame) -> int:
+    """Bytes of an outgoing frame (a numpy array, or a worker's compressed frame)."""
+    return frame.nbytes if hasattr(frame, "nbytes") else len(frame.buffer if hasattr(frame, "buffer") else frame)
 
 
 def install_signal_handlers(server: V2VServer) -> None:

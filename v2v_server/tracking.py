@@ -12,6 +12,8 @@ from typing import Dict, Optional
 import numba
 import numpy as np
 
+from .protocol import flow_grid_taps
+
 #: Zoom compensation (``TrackParams.zoom``) starts only when the fitted similarity explains at
 #: least this fraction of the points' motion (to 1 px, or 10 % of a point's motion).
 ZOOM_INLIERS = 0.75
@@ -25,8 +27,9 @@ _TRACK_GRIDS: Dict[tuple, tuple] = {}
 def _track_grid(n: int, h: int, w: int):
     """The ``n`` x ``n`` tracking grid of an (h, w) crop, corners included (grid point k of a
     row sits at x = k (w - 1) / (n - 1)): float32 points (n * n, 1, 2) (x, y), and the
-    bilinear interpolation matrices ``wy`` (h, n) and ``wx_t`` (n, w), so that
-    ``wy @ g @ wx_t`` is the (h, w) field of an (n, n) grid field ``g``. Made once, read-only."""
+    bilinear interpolation matrices ``wy`` (h, n) and ``wx_t`` (n, w) of
+    ``protocol.flow_grid_taps``, so that ``wy @ g @ wx_t`` is the (h, w) field of an (n, n)
+    grid field ``g``. Made once, read-only."""
     key = (n, h, w)
     g = _TRACK_GRIDS.get(key)
     if g is None:
@@ -34,9 +37,12 @@ def _track_grid(n: int, h: int, w: int):
         ys = np.linspace(0, h - 1, n, dtype=np.float32)
         pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 1, 2).astype(np.float32)
 
-        def weights(size):  # (size, n): hat functions of the n grid points
-            u = np.arange(size, dtype=np.float64) * ((n - 1) / max(size - 1, 1))
-            return np.maximum(0.0, 1.0 - np.abs(u[:, None] - np.arange(n)[None, :])).astype(np.float32)
+        def weights(size):  # (size, n): the two taps of each pixel as a matrix
+            first, w0, w1 = flow_grid_taps(n, size)
+            m = np.zeros((size, n), np.float32)
+            rows = np.arange(size)
+            m[rows, first], m[rows, first + 1] = w0, w1
+            return m
 
         wy, wx_t = weights(h), np.ascontiguousarray(weights(w).T)
         for a in (pts, wy, wx_t):
@@ -45,24 +51,10 @@ def _track_grid(n: int, h: int, w: int):
     return g
 
 
-_EXPAND_TABLES: Dict[tuple, tuple] = {}
-
-
 def _expand_tables(n: int, h: int, w: int):
-    """The two non-zero weights of each row of ``_track_grid``'s ``wy`` and column of its
-    ``wx_t`` (hat functions: at most two grid points touch a pixel): int64 (h,) first grid
-    row and float32 (h,) weights of it and the next row, the same for the columns (w,)."""
-    key = (n, h, w)
-    t = _EXPAND_TABLES.get(key)
-    if t is None:
-        _, wy, wx_t = _track_grid(n, h, w)
-
-        def pairs(m):  # (size, n) -> first index, its weight, the next one's weight
-            first = np.minimum(np.argmax(m > 0, axis=1), n - 2)
-            rows = np.arange(m.shape[0])
-            return first.astype(np.int64), m[rows, first].copy(), m[rows, first + 1].copy()
-        t = _EXPAND_TABLES[key] = pairs(wy) + pairs(np.ascontiguousarray(wx_t.T))
-    return t
+    """``protocol.flow_grid_taps`` of the rows (h) then the columns (w): int64 first grid
+    row and float32 weights of it and the next row, the same for the columns."""
+    return flow_grid_taps(n, h) + flow_grid_taps(n, w)
 
 
 @numba.njit(cache=True, error_model="numpy")

@@ -190,12 +190,28 @@ def choose_video_stream(streams: Sequence):
     return max(cand, key=lambda s: (s.codec_context is not None, est_frames(s), bool(disp(s) & default), -s.index))
 
 
-def open_video(path: Path, threads: int = 1):
-    """Open ``path`` with PyAV and return ``(container, stream, info)``.
+#: Decoder shortcuts by ``decode_fast`` name: FFmpeg codec options (``AVCodecContext``) that
+#: skip H.264's deblocking (loop) filter on some frames, a speed/accuracy trade measured in
+#: docs/decode_fast.md (``python -m bench.decode_fast``). The frame count and timing never
+#: change (no frame is skipped), only the pixels of the frames whose filter is skipped.
+DECODE_FAST = {
+    "off": {},
+    "noref": {"skip_loop_filter": "noref"},  # frames no other frame references: errors do not propagate
+    "bidir": {"skip_loop_filter": "bidir"},  # B-frames
+    "all": {"skip_loop_filter": "all"},  # every frame: errors propagate through prediction
+}
+
+
+def open_video(path: Path, threads: int = 1, fast: str = "off"):
+    """Open ``path`` with PyAV and return ``(container, stream, info)``; ``fast`` names a
+    ``DECODE_FAST`` setting (decoder options applied when the decoder opens).
 
     Raises:
         VideoError: the file cannot be opened or holds no video stream.
+        ValueError: for an unknown ``fast``.
     """
+    if fast not in DECODE_FAST:
+        raise ValueError(f"decode_fast must be one of {list(DECODE_FAST)}, got {fast!r}")
     import av
 
     try:
@@ -218,6 +234,8 @@ def open_video(path: Path, threads: int = 1):
         raise VideoError(f"unsupported codec (tag {tag!r}): no decoder")
     stream.thread_type = "AUTO" if threads > 1 else "SLICE"
     stream.codec_context.thread_count = threads
+    if DECODE_FAST[fast]:
+        stream.codec_context.options = dict(DECODE_FAST[fast])
     cc = stream.codec_context
     rate = stream.average_rate or stream.guessed_rate
     info = VideoInfo(

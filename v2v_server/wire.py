@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, FrozenSet, Optional, Tuple
 
+from .codecs import COMPRESSIONS
 from .protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError
 from .protocol import bounded_unpackb as _bounded_unpackb
 
@@ -70,6 +71,7 @@ class Hello:
     world_size: int = 1
     hello_id: int = 0  # echoed in the welcome, so the client can tell old-session messages apart
     shm: bool = False  # same host: send batches as references into the server's shared-memory files
+    compression: str = "none"  # codecs.COMPRESSIONS: how this client wants arrays sent over the socket
 
 
 @dataclass(frozen=True)
@@ -198,8 +200,11 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
         shm = h.get("shm", False)
         if not isinstance(shm, bool):
             raise WireError(f"field 'shm' must be true or false, got {_show(shm)}")
+        compression = h.get("compression", "none")
+        if compression not in COMPRESSIONS:
+            raise WireError(f"field 'compression' must be one of {list(COMPRESSIONS)}, got {_show(compression)}")
         return Hello(tuple(o for o in OUTPUTS if o in outs), credits, consumer, _resume(h.get("resume"), crops_per_window),
-                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm)
+                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm, compression)
     if kind == "ack":
         return Ack(_ids(h, "batch_ids"))
     if kind == "released":

@@ -25,6 +25,7 @@ from typing import Optional
 import numpy as np
 import zmq
 
+from . import codecs
 from .config import SampleRecipe, ServeConfig
 from .corpus import verdict
 from .datapath import SlotRing
@@ -94,9 +95,11 @@ def _send(sock: zmq.Socket, frames, parent_pid: int) -> None:
 
 def wire_arrays(cfg: SampleRecipe, arrays: dict) -> dict:
     """Narrow a sample's arrays to their wire dtypes: voxels int8/int16/int32 (the narrowest
-    that holds every count), frames uint8, flow ``cfg.flow_dtype``. Voxels that arrive int8 or
-    int16 come from ``simulate_voxels(narrow=True)``, which already picked the narrowest: only
-    int32 ones are scanned."""
+    that holds every count), frames uint8, dense flow ``cfg.flow_dtype`` (a tracked option's
+    ``flow_grid`` stays float32: it is small, and the client's expansion of it equals the
+    server's to the bit). Voxels that arrive int8 or int16 come from
+    ``simulate_voxels(narrow=True)``, which already picked the narrowest: only int32 ones are
+    scanned."""
     out = {}
     for name, a in arrays.items():
         if name == "voxels" and a.dtype == np.int32:
@@ -105,6 +108,21 @@ def wire_arrays(cfg: SampleRecipe, arrays: dict) -> dict:
             a = to_float16(a) if cfg.flow_dtype == "float16" else a.astype(cfg.flow_dtype, copy=False)
         out[name] = a
     return out
+
+
+def pack_arrays(arrays: dict, names) -> tuple:
+    """A sample's arrays compressed with each codec of ``names`` (``codecs.COMPRESSIONS``, those
+    connected clients asked for; "none" and codecs this machine lacks are skipped): the
+    header's ``packed`` list (``{"codec", "name", "nbytes"}`` per frame) and the frames, sent
+    after the sample's array frames. The server forwards them to the clients of that codec."""
+    specs, frames = [], []
+    for name in names:
+        if name == "none" or name not in codecs.COMPRESSIONS or not codecs.available(name):
+            continue
+        for k, b in codecs.pack(name, arrays).items():
+            specs.append({"codec": name, "name": k, "nbytes": len(b)})
+            frames.append(b)
+    return specs, frames
 
 
 class _StageClock:
@@ -159,12 +177,17 @@ def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent
     clock = _StageClock(stats)  # seconds per stage, reported with each message
     try:
         for sid, arrays, meta in video_samples(
-            cfg, root, task["video"], task["epoch"], task["outputs"], task.get("skip", ()), flow, stats
+            cfg, root, task["video"], task["epoch"], task["outputs"], task.get("skip", ()), flow, stats,
+            flow_grid=True,  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
         ):
             clock.made()
-            specs, frames = encode_arrays(wire_arrays(cfg, arrays))
+            arrays = wire_arrays(cfg, arrays)
+            specs, frames = encode_arrays(arrays)
             header = {"type": "sample", "task": task["task"], "sample_id": sid,
                       "index": parse_sample_id(sid, cfg.crops_per_window)[1], "meta": meta, "arrays": specs}
+            packed_specs, packed = pack_arrays(arrays, task.get("codecs", ()))
+            if packed:
+                header["packed"] = packed_specs
             clock.serialized()
             if inbox is not None and inbox.ring is not None:  # waiting for a slot counts as send (back-pressure)
                 slot = inbox.slot(parent_pid)
@@ -173,7 +196,7 @@ def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent
                 else:
                     header["slot"], frames = slot, []
             header["stages"] = clock.report()
-            _send(sock, [pack(header)] + frames, parent_pid)
+            _send(sock, [pack(header)] + frames + packed, parent_pid)
             clock.sent()
             sent += 1
     except Exception as e:  # any failure on one file is that file's verdict, not the worker's death

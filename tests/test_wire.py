@@ -1,0 +1,300 @@
+"""The wire between server and trainer: a tracked option's compact flow reaches the trainer as
+the dense flow the server would have sent; compressed batches decode to the arrays the workers
+made, for clients that compress and clients that do not on one server; a corrupt compressed
+frame ends only its own connection. A real v2v-serve on 127.0.0.1 over the real clips (and a
+hand-written server for the corrupt frame); every test is bounded in time and stops what it
+starts."""
+from __future__ import annotations
+
+import functools
+import time
+
+import numpy as np
+import pytest
+import torch
+import zmq
+
+from harness.serve import ServeProcess
+from v2v_client import StreamError, V2VStreamDataset, expand_flow_grid
+from v2v_server.codecs import decode_batch_arrays
+from v2v_server.config import ServeConfig
+from v2v_server.flow import FlowEstimator, to_float16
+from v2v_server.ids import parse_sample_id
+from v2v_server.protocol import OUTPUTS, pack, unpack
+from v2v_server.samples import make_sample, video_samples
+from v2v_server.worker import wire_arrays
+
+L, B, CROP, MAXW, SEED = 8, 5, 96, 2, 7
+
+
+def recipe(**kw) -> ServeConfig:
+    return ServeConfig(sequence_length=L, num_bins=B, crop_size=CROP, max_samples_per_video=MAXW, seed=SEED,
+                       **kw).validate()
+
+
+def serve_args(videos, *extra):
+    return ["--videos", str(videos), "--workers", "2", "--sequence-length", str(L), "--num-bins", str(B),
+            "--crop-size", str(CROP), "--max-samples-per-video", str(MAXW), "--seed", str(SEED),
+            "--batch-size", "2", *extra]
+
+
+@functools.lru_cache(maxsize=None)
+def dense_flows(videos, clip: str, epoch: int) -> dict:
+    """sample id -> the dense float32 flow the server's own expansion gives."""
+    cfg = recipe(flow_dtype="float32")
+    return {sid: a["flow"] for sid, a, _ in video_samples(cfg, videos, clip, epoch, ("flow",))}
+
+
+def want_flow(videos, batch: dict, i: int) -> np.ndarray:
+    sid = batch["sample_ids"][i]
+    return dense_flows(videos, parse_sample_id(sid)[0], batch["epoch"])[sid]
+
+
+def first_batches(ds, n: int) -> list:
+    it = iter(ds)
+    try:
+        return [next(it) for _ in range(n)]
+    finally:
+        it.close()
+
+
+@pytest.fixture(scope="module")
+def server(videos):
+    with ServeProcess(serve_args(videos)) as srv:
+        yield srv
+
+
+def test_tracked_flow_reaches_the_trainer_as_the_server_s_dense_flow(server, videos):
+    """The wire carries the grid; the trainer gets float32 (B, L, 2, H, W) flow equal to the
+    server's dense expansion (bit for bit after float16 rounding, the old wire's precision)."""
+    for b in first_batches(V2VStreamDataset(server.endpoint, outputs=("flow",), timeout_s=60), 2):
+        fl = b["flow"]
+        assert "flow_grid" not in b and fl.dtype == torch.float32 and fl.shape == (len(b["sample_ids"]), L, 2, CROP, CROP)
+        for i in range(len(b["sample_ids"])):
+            want = want_flow(videos, b, i)
+            got = fl[i].numpy()
+            assert np.abs(want).max() > 0.5  # real motion, not an all-zero field
+            np.testing.assert_array_equal(to_float16(got).view(np.uint16), to_float16(want).view(np.uint16))
+            np.testing.assert_allclose(got, want, rtol=2 ** -11, atol=1e-6)
+
+
+def test_raw_flow_is_the_old_float16_wire_flow(server, videos):
+    for b in first_batches(V2VStreamDataset(server.endpoint, outputs=("flow", "voxels"), raw=True, timeout_s=60), 1):
+        assert b["flow"].dtype == torch.float16 and b["voxels"].dtype in (torch.int8, torch.int16, torch.int32)
+        for i in range(len(b["sample_ids"])):
+            np.testing.assert_array_equal(b["flow"][i].numpy().view(np.uint16),
+                                          to_float16(want_flow(videos, b, i)).view(np.uint16))
+
+
+def test_compact_flow_yields_the_grid_for_expansion_on_the_device(server, videos):
+    b = first_batches(V2VStreamDataset(server.endpoint, outputs=("flow",), compact_flow=True, timeout_s=60), 1)[0]
+    g = b["flow_grid"]
+    assert "flow" not in b and g.dtype == torch.float32 and g.shape == (len(b["sample_ids"]), L, 2, 8, 8)
+    dense = expand_flow_grid(g, (CROP, CROP))
+    for i, sid in enumerate(b["sample_ids"]):
+        np.testing.assert_allclose(dense[i].numpy(), want_flow(videos, b, i), rtol=2 ** -11, atol=1e-6)
+
+
+def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_clip):
+    cfg = recipe(flow_preset="ultrafast")
+    est = FlowEstimator("ultrafast")
+    with pytest.raises(ValueError, match="only tracked options"):
+        est.voxel_flow_grids(real_clip[: 2 * B + 1], B)
+    from v2v_server.samples import plan_window
+
+    plan = plan_window(cfg, 0, "x.mp4#0", 0, (real_clip.shape[1], real_clip.shape[2]))
+    frames = np.zeros((plan.consumed, CROP, CROP), np.uint8)
+    out = make_sample(cfg, plan, frames, ("flow",), est, flow_grid=True)
+    assert set(out) == {"flow"} and out["flow"].shape == (L, 2, CROP, CROP)  # dense for non-tracked options
+    with pytest.raises(ValueError, match=r"\(\.\.\., 2, n, n\)"):
+        expand_flow_grid(torch.zeros(3, 8, 8), (CROP, CROP))
+
+
+# ---------------------------------------------------------------------- compression
+@functools.lru_cache(maxsize=None)
+def wire_samples(videos, clip: str, epoch: int) -> dict:
+    """sample id -> the arrays a worker puts on the wire (flow as its grid)."""
+    cfg = recipe()
+    return {sid: wire_arrays(cfg, a) for sid, a, _ in video_samples(cfg, videos, clip, epoch, cfg.outputs,
+                                                                       flow_grid=True)}
+
+
+def assert_batch_is_the_samples(videos, h: dict, arrays: dict) -> None:
+    for i, sid in enumerate(h["sample_ids"]):
+        want = wire_samples(videos, parse_sample_id(sid)[0], h["epoch"])[sid]
+        assert set(arrays) == set(want)
+        for name, a in want.items():
+            np.testing.assert_array_equal(arrays[name][i], a, err_msg=f"{sid} {name}")
+
+
+class RawClient:
+    """A DEALER speaking the protocol by hand, to see the batches as they travel."""
+
+    def __init__(self, endpoint: str, compression: str):
+        self.sock = zmq.Context.instance().socket(zmq.DEALER)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.connect(endpoint)
+        self.sock.send(pack({"type": "hello", "outputs": list(OUTPUTS), "credits": 2, "consumer": f"raw-{compression}",
+                             "compression": compression}))
+
+    def batch(self, timeout_s: float = 60.0):
+        """(header, frames) of the next batch, acknowledged."""
+        deadline = time.monotonic() + timeout_s
+        while self.sock.poll(max(1, int((deadline - time.monotonic()) * 1000))):
+            frames = self.sock.recv_multipart(copy=False)
+            h = unpack(frames[0])
+            assert h["type"] != "error", h
+            if h["type"] == "batch":
+                self.sock.send(pack({"type": "ack", "batch_ids": [h["batch_id"]]}))
+                return h, frames[1:]
+        raise TimeoutError("no batch")
+
+    def close(self):
+        self.sock.send(pack({"type": "bye"}))
+        self.sock.close(0)
+
+
+def compressed_batches(client: RawClient, codec: str, n: int, videos, limit: int = 12) -> int:
+    """Read batches until ``n`` came compressed with ``codec`` (samples made before the server
+    knew of this client come plain), checking every batch against the samples; returns the
+    compressed bytes of the voxels seen against their size."""
+    got, packed, raw = 0, 0, 0
+    for _ in range(limit):
+        h, frames = client.batch()
+        arrays = decode_batch_arrays(h["arrays"], frames)
+        assert_batch_is_the_samples(videos, h, arrays)
+        specs = {s["name"]: s for s in h["arrays"]}
+        if all(s.get("codec") == codec for s in specs.values()):
+            got += 1
+            packed += sum(p[1] for p in specs["voxels"]["parts"])
+            raw += arrays["voxels"].nbytes
+            if got == n:
+                return packed / raw
+    raise AssertionError(f"fewer than {n} of {limit} batches came compressed with {codec}")
+
+
+@pytest.mark.parametrize("codec", ["lz4", "zstd"])
+def test_compressed_batches_decode_to_the_same_arrays(server, videos, codec):
+    client = RawClient(server.endpoint, codec)
+    try:
+        assert compressed_batches(client, codec, 2, videos) < 0.5  # voxels compress (6-12x on real samples)
+    finally:
+        client.close()
+
+
+def test_mixed_clients_one_compressing_one_not_on_one_server(server, videos):
+    """A zstd connection and a plain one read the same server at once; each gets its form, and
+    both decode to the samples."""
+    client = RawClient(server.endpoint, "zstd")
+    ds = V2VStreamDataset(server.endpoint, raw=True, compact_flow=True, compression="none", timeout_s=60)
+    it = iter(ds)
+    try:
+        for _ in range(3):
+            b = next(it)
+            arrays = {k: b[k].numpy() for k in ("voxels", "flow_grid")}
+            arrays["frames"] = b["frames"][:, :, 0].numpy()
+            assert_batch_is_the_samples(videos, {"sample_ids": b["sample_ids"], "epoch": b["epoch"]}, arrays)
+            if _ == 0:
+                assert compressed_batches(client, "zstd", 1, videos) < 0.5
+    finally:
+        it.close()
+        client.close()
+
+
+def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
+    """A batch whose zstd frame does not decompress ends that stream with a StreamError naming
+    the array; the process and other connections go on."""
+    from v2v_server import codecs
+
+    ctx = zmq.Context.instance()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    good = (np.arange(2 * 30 * 40) % 7).astype(np.int8).reshape(2, 30, 40)
+    parts = list(codecs.pack("zstd", {"0": good[0], "1": good[1]}).values())  # as a worker compresses
+    bad = bytearray(parts[1])
+    bad[len(bad) // 2] ^= 0x55  # one altered byte
+
+    def serve(n_clients: int) -> None:
+        served = 0
+        deadline = time.monotonic() + 30
+        while served < n_clients and time.monotonic() < deadline:
+            if not router.poll(200):
+                continue
+            ident, msg = router.recv_multipart()
+            h = unpack(msg)
+            if h["type"] != "hello":
+                continue
+            router.send_multipart([ident, pack({"type": "welcome", "hello_id": h.get("hello_id"),
+                                                "info": {"crop_size": 4}})])
+            corrupt = h["consumer"].startswith("bad")
+            spec = {"name": "voxels", "dtype": "int8", "shape": [2, 30, 40], "codec": "zstd",
+                    "parts": [["int8", len(parts[0])], ["int8", len(bad if corrupt else parts[1])]]}
+            router.send_multipart([ident, pack({"type": "batch", "batch_id": served, "epoch": 0,
+                                                "sample_ids": ["a#0", "a#1"], "params": [{}, {}],
+                                                "arrays": [spec]}), parts[0], bytes(bad) if corrupt else parts[1]])
+            served += 1
+
+    import threading
+
+    t = threading.Thread(target=serve, args=(2,), daemon=True)
+    t.start()
+    try:
+        endpoint = f"tcp://127.0.0.1:{port}"
+        bad_ds = V2VStreamDataset(endpoint, outputs=("voxels",), compression="zstd", raw=True, timeout_s=10)
+        bad_ds._stream._consumer = "bad"
+        with pytest.raises(StreamError, match=r"array 'voxels' part 1: zstd frame does not decompress"):
+            next(iter(bad_ds))
+        ok_ds = V2VStreamDataset(endpoint, outputs=("voxels",), compression="zstd", raw=True, timeout_s=10)
+        ok_ds._stream._consumer = "good"
+        b = next(iter(ok_ds))
+        assert torch.equal(b["voxels"], torch.from_numpy(good))
+    finally:
+        t.join(30)
+        router.close(0)
+
+
+def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_the_codec(monkeypatch):
+    """compression="auto": nothing on ipc:// and loopback, zstd to other hosts; a server that
+    answers it cannot compress gets a second hello without compression, and the stream goes on."""
+    from v2v_client import endpoint as ep
+
+    assert ep.is_local("ipc:///tmp/x.sock") and ep.is_local("tcp://127.0.0.1:5555") and ep.is_local("tcp://[::1]:5")
+    assert ep.is_local("tcp://localhost:5555") and not ep.is_local("tcp://10.0.0.7:5555")
+    ctx = zmq.Context.instance()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    monkeypatch.setattr(ep, "is_local", lambda endpoint: False)  # as if this server were on another host
+    hellos = []
+
+    def serve() -> None:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            if not router.poll(200):
+                continue
+            ident, msg = router.recv_multipart()
+            h = unpack(msg)
+            if h["type"] != "hello":
+                continue
+            hellos.append(h.get("compression", "none"))
+            if h.get("compression", "none") != "none":
+                router.send_multipart([ident, pack({"type": "error", "code": "compression", "message": "no zstd"})])
+                continue
+            router.send_multipart([ident, pack({"type": "welcome", "hello_id": h.get("hello_id"), "info": {}})])
+            router.send_multipart([ident, pack({"type": "batch", "batch_id": 0, "epoch": 0, "sample_ids": ["a#0"],
+                                                "params": [{}], "arrays": [{"name": "voxels", "dtype": "int8",
+                                                                            "shape": [1, 2]}]}), b"\x01\x02"])
+            return
+
+    import threading
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        ds = V2VStreamDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), raw=True, timeout_s=10)
+        b = next(iter(ds))
+        assert b["voxels"].tolist() == [[1, 2]] and hellos == ["zstd", "none"]
+    finally:
+        t.join(30)
+        router.close(0)
