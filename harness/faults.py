@@ -953,7 +953,7 @@ def scenario_small_shm(tmp: Path, layout: Layout, size: str = "1m") -> dict:
     text = srv.log
     fallback = text.count("no shared-memory slot ring")
     restarts = text.count("died (exit code")
-    return row(f"/dev/shm of {size}: slot rings that do not fit", expected, _ids(log), None,
+    return row(f"/dev/shm of {size} (a private tmpfs, unshare -m)", expected, _ids(log), None,
                f"rings refused at start {fallback}x; worker deaths {restarts}; server exit {rc}",
                rings_refused=fallback, worker_deaths=restarts, server_exit=rc)
 
