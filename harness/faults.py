@@ -958,6 +958,92 @@ def scenario_small_shm(tmp: Path, layout: Layout, size: str = "1m") -> dict:
                rings_refused=fallback, worker_deaths=restarts, server_exit=rc)
 
 
+
+def _two_shards(corpus: Path, layout: Layout, *extra: str, shards=("0/2", "1/2")):
+    base = ["--videos", str(corpus), "--workers", "1", *layout.args(), *extra]
+    return ServeProcess(base + ["--shard", shards[0]]), ServeProcess(base + ["--shard", shards[1]])
+
+
+def scenario_fan_in_resume(tmp: Path, layout: Layout, ckpt_step: int = 2, crash_step: int = 5) -> dict:
+    """A trainer reads two shards through the fan-in, checkpoints at step ``ckpt_step``, reads on
+    to ``crash_step`` (acknowledged), dies and resumes from the checkpoint: the fan-in is one
+    consumer to both servers, so each sends again what came after the checkpoint."""
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    trained: list = []
+    a, b = _two_shards(corpus, layout, "--epochs", "1", "--end-grace-s", "10")
+    with a, b:
+        ds = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", timeout_s=60, credits=2)
+        it = iter(ds)
+        _take(it, ckpt_step, trained)
+        state = json.loads(json.dumps(ds.state_dict()))
+        _take(it, crash_step - ckpt_step, [])  # trained on, then lost with the process
+        it.close()
+        again = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", timeout_s=60, credits=2)
+        again.load_state_dict(state)
+        read_all(again, trained)
+        rc = (a.wait(60), b.wait(60))
+    return row(f"two shards, fan-in resumed from step {ckpt_step} after dying at step {crash_step}", expected,
+               _ids(trained), None, f"server exits {list(rc)}", server_exits=list(rc))
+
+
+def scenario_mismatched_shards(tmp: Path, layout: Layout) -> dict:
+    """Servers that are not one sharding (0/2 + 1/3, the same shard twice, a missing shard,
+    listings one file apart): the fan-in refuses each with one error naming the servers,
+    before handing on any batch."""
+    from v2v_client import StreamError
+
+    corpus = good_corpus(tmp, 1)
+    other = tmp / "other"
+    shutil.copytree(corpus, other)
+    next(other.glob("*.mp4")).unlink()
+    refused, handed = [], 0
+    for shards, root2 in ((("0/2", "1/3"), corpus), (("0/2", "0/2"), corpus), (("0/3", "1/3"), corpus),
+                          (("0/2", "1/2"), other)):
+        a = ServeProcess(["--videos", str(corpus), "--workers", "1", *layout.args(), "--shard", shards[0]])
+        b = ServeProcess(["--videos", str(root2), "--workers", "1", *layout.args(), "--shard", shards[1]])
+        with a, b:
+            try:
+                for _ in V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60):
+                    handed += 1
+                    break
+            except (ValueError, StreamError) as e:
+                refused.append(a.endpoint in str(e) and b.endpoint in str(e))
+    return row("fan-in over servers that are not one sharding (4 cases)", [], [], None,
+               f"refused {len(refused)} of 4 with both servers named: {all(refused)}; batches handed on {handed}",
+               refused=len(refused), named=all(refused), handed=handed)
+
+
+def scenario_big_resume_state(tmp: Path, layout: Layout) -> dict:
+    """A resume state of 700 k sample ids (70 k videos of 10 windows) is sent grouped per video and
+    read; one of 700 k ids of 700 k different videos is over the limit: a clear error on the
+    client, in place of a silent drop and a wait without end."""
+    from v2v_client import StreamError
+
+    corpus = good_corpus(tmp, 1)
+    many = [f"elsewhere/v{i:05d}.mp4#{w}" for i in range(70_000) for w in range(10)]
+    huge = [f"elsewhere/a-long-folder-name/and-a-longer-file-name-{i:07d}.mp4#0" for i in range(700_000)]
+    with _serve(corpus, layout) as srv:
+        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        ds.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": many}})
+        t0 = time.monotonic()
+        served = next(iter(ds))["voxels"].shape[0] > 0
+        t_many = time.monotonic() - t0
+        ds2 = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        ds2.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": huge}})
+        t0 = time.monotonic()
+        try:
+            next(iter(ds2))
+            error = None
+        except StreamError as e:
+            error = str(e)
+        t_huge = time.monotonic() - t0
+    clear = error is not None and "too large" in error
+    return row("resume states of 700 k ids", [], [], None,
+               f"70 k videos: served after {t_many:.1f} s; 700 k videos: clear error {clear} after {t_huge:.1f} s",
+               served=served, clear_error=clear)
+
+
 SCENARIOS = {
     "worker_kill": scenario_worker_kill,
     "client_kill": scenario_client_kill,
@@ -984,6 +1070,9 @@ SCENARIOS = {
     "lightning_ddp": scenario_lightning_ddp,
     "small_shm_1m": lambda tmp, layout: scenario_small_shm(tmp, layout, "1m"),
     "small_shm_64m": lambda tmp, layout: scenario_small_shm(tmp, layout, "64m"),
+    "fan_in_resume": scenario_fan_in_resume,
+    "mismatched_shards": scenario_mismatched_shards,
+    "big_resume_state": scenario_big_resume_state,
 }
 
 
