@@ -113,5 +113,5 @@ def test_stream_loader_checkpoint_resumes_exactly_once(tmp_path):
         again.load_state_dict(ckpt)
         for b in again:
             trained += b["sample_ids"]
-        assert srv.wait(60) == 0
+        assert srv.wait(60) == 0, srv.log[-3000:]
     assert sorted(trained) == expected

@@ -160,7 +160,7 @@ class V2VServer:
             log.info("all %d epoch(s) delivered; ending the stream (the server stays up %.0f s with no trainer "
                      "connected, for trainers that resume)", self.cfg.epochs, self.cfg.end_grace_s)
             self.ended = True
-        for ident in self.ledger.clients:
+        for ident in list(self.ledger.clients):  # a send to a peer gone drops it from the ledger
             if ident not in self._told_end:
                 self._told_end.add(ident)
                 self._send_client(ident, {"type": "end"})
