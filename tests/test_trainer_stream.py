@@ -14,8 +14,9 @@ import trainer.train as tr
 torch.set_num_threads(2)
 
 
-def test_train_from_live_server_then_resume(tmp_path, videos, monkeypatch):
-    seen = []  # (epoch, sample_ids) of every batch trained on
+def record_trained(monkeypatch) -> list:
+    """A list that receives ``(epoch, sample_ids)`` of every batch ``v2v-train`` trains on."""
+    seen = []
     orig = tr.Trainer.train_step
 
     def recording_step(self, batch):
@@ -23,6 +24,11 @@ def test_train_from_live_server_then_resume(tmp_path, videos, monkeypatch):
         return orig(self, batch)
 
     monkeypatch.setattr(tr.Trainer, "train_step", recording_step)
+    return seen
+
+
+def test_train_from_live_server_then_resume(tmp_path, videos, monkeypatch):
+    seen = record_trained(monkeypatch)  # (epoch, sample_ids) of every batch trained on
     vids = tmp_path / "vids"
     vids.mkdir()
     shutil.copyfile(videos / "bikes.mp4", vids / "bikes.mp4")  # the server refuses links leaving its root
@@ -54,14 +60,7 @@ def test_train_from_live_server_then_resume(tmp_path, videos, monkeypatch):
 def test_train_against_two_shards_then_resume(tmp_path, videos, monkeypatch):
     """v2v-train reading two shards (the compose/Kubernetes topology) stops, then resumes from
     its checkpoint: epoch 0 is trained exactly once over both runs."""
-    seen = []
-    orig = tr.Trainer.train_step
-
-    def recording_step(self, batch):
-        seen.append((batch["epoch"], list(batch["sample_ids"])))
-        return orig(self, batch)
-
-    monkeypatch.setattr(tr.Trainer, "train_step", recording_step)
+    seen = record_trained(monkeypatch)
     vids = tmp_path / "vids"
     vids.mkdir()
     for i in range(4):

@@ -20,7 +20,7 @@ from v2v_server.codecs import decode_batch_arrays
 from v2v_server.config import ServeConfig
 from v2v_server.flow import FlowEstimator, to_float16
 from v2v_server.ids import parse_sample_id
-from v2v_server.protocol import OUTPUTS, pack, unpack
+from v2v_server.protocol import OUTPUTS, is_loopback, pack, unpack
 from v2v_server.samples import make_sample, video_samples
 from v2v_server.worker import wire_arrays
 
@@ -259,13 +259,13 @@ def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_th
     answers it cannot compress gets a second hello without compression, and the stream goes on."""
     from v2v_client import endpoint as ep
 
-    assert ep.is_local("ipc:///tmp/x.sock") and ep.is_local("tcp://127.0.0.1:5555") and ep.is_local("tcp://[::1]:5")
-    assert ep.is_local("tcp://localhost:5555") and not ep.is_local("tcp://10.0.0.7:5555")
+    assert is_loopback("ipc:///tmp/x.sock") and is_loopback("tcp://127.0.0.1:5555") and is_loopback("tcp://[::1]:5")
+    assert is_loopback("tcp://localhost:5555") and not is_loopback("tcp://10.0.0.7:5555")
     ctx = zmq.Context.instance()
     router = ctx.socket(zmq.ROUTER)
     router.setsockopt(zmq.LINGER, 0)
     port = router.bind_to_random_port("tcp://127.0.0.1")
-    monkeypatch.setattr(ep, "is_local", lambda endpoint: False)  # as if this server were on another host
+    monkeypatch.setattr(ep, "is_loopback", lambda endpoint: False)  # as if this server were on another host
     hellos = []
 
     def serve() -> None:

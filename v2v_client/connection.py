@@ -9,7 +9,6 @@ connections and the resume state.
 """
 from __future__ import annotations
 
-import collections
 import logging
 import queue
 import threading
@@ -129,7 +128,6 @@ class Connection:
         self._ack_send.connect(self._ack_addr)
         self.lock = threading.Lock()
         self.current: Dict[int, dict] = {}  # batch id -> its live queued item (not taken, not given back)
-        self.taken: "collections.OrderedDict[int, None]" = collections.OrderedDict()  # recent, bounded
         self.last_io = time.monotonic()
         self.discarded = 0
         self._hello_seq = 0
@@ -150,9 +148,9 @@ class Connection:
         limit = (self.info or {}).get("client_timeout_s")
         return isinstance(limit, (int, float)) and now - self.last_io > self.SILENCE_FRACTION * limit
 
-    def take(self, item: dict) -> bool:
-        """Claim a received batch for the training loop and acknowledge it; False when it was
-        given back meanwhile (its lease expired, or this client was dropped)."""
+    def _claim(self, item: dict) -> bool:
+        """Take a received batch out of ``current`` for the consumer; False when it was given
+        back meanwhile (its lease expired, or this client was dropped or silent too long)."""
         bid = item["batch_id"]
         with self.lock:
             if self.current.get(bid) is not item:
@@ -161,25 +159,23 @@ class Connection:
                 self._discard_locked("this process was silent longer than the server's client timeout")
                 return False
             del self.current[bid]
-            self.taken[bid] = None
-            while len(self.taken) > 4096:
-                self.taken.popitem(last=False)
-        self._queue_for_server({"type": "ack", "batch_ids": [bid]})
+        return True
+
+    def take(self, item: dict) -> bool:
+        """Claim a received batch for the training loop and acknowledge it; False when it was
+        given back meanwhile (its lease expired, or this client was dropped)."""
+        if not self._claim(item):
+            return False
+        self._queue_for_server({"type": "ack", "batch_ids": [item["batch_id"]]})
         return True
 
     def hold(self, item: dict) -> bool:
         """Claim a received batch for a DataLoader worker's queue: like :meth:`take`, but the
         server is told the batch is held (no lease) rather than acknowledged; :meth:`ack`
         follows when the training loop receives it, else closing the connection gives it back."""
-        bid = item["batch_id"]
-        with self.lock:
-            if self.current.get(bid) is not item:
-                return False
-            if self.silent_too_long(time.monotonic()):
-                self._discard_locked("this process was silent longer than the server's client timeout")
-                return False
-            del self.current[bid]
-        self._queue_for_server({"type": "hold", "batch_ids": [bid]})
+        if not self._claim(item):
+            return False
+        self._queue_for_server({"type": "hold", "batch_ids": [item["batch_id"]]})
         return True
 
     def ack(self, batch_ids) -> None:

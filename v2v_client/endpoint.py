@@ -15,26 +15,16 @@ import torch
 
 from v2v_server.codecs import available
 from v2v_server.ids import compact_ids
+from v2v_server.protocol import is_loopback
 
 from .connection import Connection, StreamError, _Drained, _EpochDone, _Padding, _select, load_curve_keys
 from .fanin import read_state
 
-__all__ = ["StreamOptions", "EndpointStream", "padding_copy", "AUTO_REMOTE", "is_local"]
+__all__ = ["StreamOptions", "EndpointStream", "padding_copy", "AUTO_REMOTE"]
 
 #: Compression ``compression="auto"`` asks servers on other hosts for (docs/wire.md measures it:
 #: 6.3x fewer bytes per default sample, decompressed at about 1.2 GB/s per core).
 AUTO_REMOTE = "zstd"
-
-
-def is_local(endpoint: str) -> bool:
-    """True for an endpoint on this host: ``ipc://``, ``inproc://``, or ``tcp://`` to a loopback
-    address (127.0.0.0/8, ``localhost``, ``::1``)."""
-    if endpoint.startswith(("ipc://", "inproc://")):
-        return True
-    if not endpoint.startswith("tcp://"):
-        return False
-    host = endpoint[len("tcp://"):].rpartition(":")[0].strip("[]").lower()
-    return host == "localhost" or host == "::1" or host.startswith("127.")
 
 
 @dataclass(frozen=True)
@@ -196,7 +186,7 @@ class EndpointStream:
         is installed)."""
         if self.compression != "auto":
             return self.compression, False
-        return (AUTO_REMOTE if not is_local(endpoint) and available(AUTO_REMOTE) else "none"), True
+        return (AUTO_REMOTE if not is_loopback(endpoint) and available(AUTO_REMOTE) else "none"), True
 
     def _hello_header(self) -> dict:
         """The hello message: outputs, credits, who we are, and the resume state."""

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Optional, Tuple
 
 from .flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
-from .protocol import OUTPUTS
+from .protocol import OUTPUTS, is_loopback  # noqa: F401  (is_loopback: config's checks and sockets use it)
 from .settings import (check_bool, check_choice, check_float, check_int, check_prob, load_yaml,
                        reference_markdown, setting)
 from .simulate import ParamRanges
@@ -318,17 +318,6 @@ def parse_shard(spec) -> Tuple[int, int]:
     if not m or int(m.group(2)) < 1 or int(m.group(1)) >= int(m.group(2)):
         raise ValueError(f"shard must be \"I/N\" with 0 <= I < N (e.g. 0/2 and 1/2 for two hosts), got {spec!r}")
     return int(m.group(1)), int(m.group(2))
-
-
-def is_loopback(endpoint: str) -> bool:
-    """True for ipc://, inproc:// and tcp:// endpoints on 127.0.0.0/8, localhost or ::1."""
-    scheme, _, rest = endpoint.partition("://")
-    if scheme in ("ipc", "inproc"):
-        return True
-    host = rest.rsplit(":", 1)[0].strip("[]")
-    if ";" in host:  # tcp://source;dest form: judge the address bound
-        host = host.split(";", 1)[0]
-    return host in ("localhost", "::1") or host.startswith("127.")
 
 
 def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeConfig:

@@ -79,6 +79,18 @@ class ProtocolError(ValueError):
     """A malformed, oversized or wrong-version message."""
 
 
+def is_loopback(endpoint: str) -> bool:
+    """True for ipc://, inproc:// and tcp:// endpoints on 127.0.0.0/8, localhost or ::1: a peer
+    on this host (the server's security check; the client's choice of no compression)."""
+    scheme, _, rest = endpoint.partition("://")
+    if scheme in ("ipc", "inproc"):
+        return True
+    host = rest.rsplit(":", 1)[0].strip("[]")
+    if ";" in host:  # tcp://source;dest form: judge the address bound
+        host = host.split(";", 1)[0]
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
 def is_ipv6(endpoint: str) -> bool:
     """Whether a ZeroMQ endpoint names an IPv6 address (``tcp://[::1]:5555``): its socket
     needs ``zmq.IPV6`` set, on both ends."""
