@@ -1,4 +1,4 @@
-"""Fault scenarios (``harness/faults.py``) against a real v2v-serve on 127.0.0.1: is any
+"""Fault scenarios (``harness/faults.py``, ``harness/faults_deploy.py``) against a real v2v-serve on 127.0.0.1: is any
 sample lost or doubled?
 
 Run: ``python -m bench.faults [--only NAME ...] [--out docs/faults.md]``. Prints a table:
@@ -14,7 +14,10 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
-from harness.faults import SCENARIOS, Layout
+from harness import faults, faults_deploy
+from harness.faults import Layout
+
+SCENARIOS = {**faults.SCENARIOS, **faults_deploy.SCENARIOS}
 
 
 def format_table(rows: List[dict]) -> str:
@@ -40,6 +43,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             kw = {"kills": a.kills, "copies": 6} if name == "worker_kill" else {}
             t = time.monotonic()
             r = SCENARIOS[name](Path(d), layout, **kw)
+            if "skipped" in r:
+                print(f"{name}: skipped ({r['skipped']})", file=sys.stderr)
+                continue
             r["notes"] += f"; {time.monotonic() - t:.0f} s"
             rows.append(r)
             print(json.dumps(r), file=sys.stderr)

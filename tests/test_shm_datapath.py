@@ -232,10 +232,10 @@ def test_a_worker_with_every_slot_taken_blocks_until_the_server_gives_one_back(t
 
 @pytest.mark.parametrize("size", ["1m", "64m"])
 def test_a_small_dev_shm_never_kills_a_worker(tmp_path, size):
-    from harness import faults
+    from harness import faults_deploy
     from harness.faults import Layout
 
-    r = faults.scenario_small_shm(tmp_path, Layout(L=4, crop=64, windows=2, batch=2), size)
+    r = faults_deploy.scenario_small_shm(tmp_path, Layout(L=4, crop=64, windows=2, batch=2), size)
     if "skipped" in r:
         pytest.skip(r["skipped"])
     assert (r["lost"], r["duplicated"], r["unexpected"]) == (0, 0, 0), r
