@@ -95,17 +95,18 @@ def scenario_fan_in_resume(tmp: Path, layout: Layout, ckpt_step: int = 2, crash_
 
 def scenario_mismatched_shards(tmp: Path, layout: Layout) -> dict:
     """Servers that are not one sharding (0/2 + 1/3, the same shard twice, a missing shard,
-    listings one file apart): the fan-in refuses each with one error naming the servers,
-    before handing on any batch."""
+    listings one file apart, another seed): the fan-in refuses each with one error naming the
+    servers, before handing on any batch."""
     corpus = good_corpus(tmp, 1)
     other = tmp / "other"
     shutil.copytree(corpus, other)
     next(other.glob("*.mp4")).unlink()
+    cases = ((("0/2", "1/3"), corpus, []), (("0/2", "0/2"), corpus, []), (("0/3", "1/3"), corpus, []),
+             (("0/2", "1/2"), other, []), (("0/2", "1/2"), corpus, ["--seed", "12"]))
     refused, handed = [], 0
-    for shards, root2 in ((("0/2", "1/3"), corpus), (("0/2", "0/2"), corpus), (("0/3", "1/3"), corpus),
-                          (("0/2", "1/2"), other)):
+    for shards, root2, extra in cases:
         a = ServeProcess(["--videos", str(corpus), "--workers", "1", *layout.args(), "--shard", shards[0]])
-        b = ServeProcess(["--videos", str(root2), "--workers", "1", *layout.args(), "--shard", shards[1]])
+        b = ServeProcess(["--videos", str(root2), "--workers", "1", *layout.args(), *extra, "--shard", shards[1]])
         with a, b:
             try:
                 for _ in V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60):
@@ -113,9 +114,34 @@ def scenario_mismatched_shards(tmp: Path, layout: Layout) -> dict:
                     break
             except (ValueError, StreamError) as e:
                 refused.append(a.endpoint in str(e) and b.endpoint in str(e))
-    return row("fan-in over servers that are not one sharding (4 cases)", [], [], None,
-               f"refused {len(refused)} of 4 with both servers named: {all(refused)}; batches handed on {handed}",
-               refused=len(refused), named=all(refused), handed=handed)
+    n = len(cases)
+    return row(f"fan-in over servers that are not one sharding or one recipe ({n} cases)", [], [], None,
+               f"refused {len(refused)} of {n} with both servers named: {all(refused)}; batches handed on {handed}",
+               refused=len(refused), cases=n, named=all(refused), handed=handed)
+
+
+def scenario_resume_other_recipe(tmp: Path, layout: Layout) -> dict:
+    """A ``state_dict()`` saved against one recipe, loaded against a server of another seed,
+    sequence length or crops per window: a clear error naming both recipes, no batch handed on."""
+    corpus = good_corpus(tmp, 1)
+    with _serve(corpus, layout) as srv:
+        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        next(iter(ds))
+        state = json.loads(json.dumps(ds.state_dict()))
+    changes = (["--seed", "12"], ["--sequence-length", str(layout.L + 2)], ["--crops-per-window", "2"])
+    refused, handed = 0, 0
+    for change in changes:
+        with _serve(corpus, layout, *change) as srv:
+            again = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+            again.load_state_dict(state)
+            try:
+                next(iter(again))
+                handed += 1
+            except StreamError as e:
+                refused += "another sample recipe" in str(e)
+    return row("resume under another recipe (seed, sequence length, crops per window)", [], [], None,
+               f"refused {refused} of {len(changes)} with a clear error; batches handed on {handed}",
+               refused=refused, cases=len(changes), handed=handed)
 
 
 def scenario_big_resume_state(tmp: Path, layout: Layout) -> dict:
@@ -345,6 +371,7 @@ SCENARIOS = {
     "fan_in_resume": scenario_fan_in_resume,
     "train_killed_two_shards": scenario_train_killed_two_shards,
     "mismatched_shards": scenario_mismatched_shards,
+    "resume_other_recipe": scenario_resume_other_recipe,
     "big_resume_state": scenario_big_resume_state,
     "ipv6": scenario_ipv6,
     "scrape_storm": scenario_scrape_storm,

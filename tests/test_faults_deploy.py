@@ -46,3 +46,8 @@ def test_ipv6_loopback_epoch(tmp_path):
 def test_a_scrape_storm_leaves_the_epoch_whole_and_every_scrape_answered(tmp_path):
     f = exactly_once(faults_deploy.scenario_scrape_storm(tmp_path, LAYOUT, rate=200))
     assert f["scrapes"] >= 100 * f["seconds"] * 0.5 and f["scrape_errors"] == 0 and f["server_exit"] == 0, f
+
+
+def test_a_resume_under_another_seed_sequence_length_or_crops_per_window_is_refused(tmp_path):
+    r = faults_deploy.scenario_resume_other_recipe(tmp_path, LAYOUT)
+    assert (r["facts"]["refused"], r["facts"]["handed"]) == (r["facts"]["cases"], 0), r
