@@ -398,7 +398,8 @@ def test_voxel_flows_float16_is_the_float32_flow_cast(name):
     with pytest.raises(ValueError, match="dtype"):
         est.voxel_flows(frames, STEP, dtype="int8")
     if name == "tracked":
-        from v2v_server.tracking import _expand_grids, _expand_tables, _track_grid
+        from v2v_server.flowgrid import _expand_grids, _expand_tables
+        from v2v_server.tracking import _track_grid
 
         g = np.random.default_rng(3).standard_normal((3, 8, 8, 2)).astype(np.float32) * 10
         _, wy, wx_t = _track_grid(8, 96, 112)

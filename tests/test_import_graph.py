@@ -8,9 +8,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("v2v_server", "v2v_client", "trainer")
 #: what v2v_client may import from v2v_server: the protocol, wire formats and codecs it speaks,
-#: and the in-process server the demo runs
+#: the compact flow's expansion, and the in-process server the demo runs
 CLIENT_MAY_IMPORT = {"v2v_server.protocol", "v2v_server.wire", "v2v_server.codecs", "v2v_server.ids",
-                     "v2v_server.local"}
+                     "v2v_server.flowgrid", "v2v_server.local"}
 
 
 def _module(path: Path) -> str:

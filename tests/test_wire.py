@@ -95,6 +95,18 @@ def test_compact_flow_yields_the_grid_for_expansion_on_the_device(server, videos
         np.testing.assert_allclose(dense[i].numpy(), want_flow(videos, b, i), rtol=2 ** -11, atol=1e-6)
 
 
+def test_the_torch_expansion_for_other_devices_equals_the_cpu_one_bit_for_bit():
+    """On a CPU tensor the client expands with the server's loop; on a GPU with torch ops. Run
+    here on the CPU (no GPU on CI), the torch ops give the same float32 bits."""
+    from v2v_client.flowgrid import _expand_torch
+
+    g = torch.from_numpy(np.random.default_rng(0).normal(0, 3, (2, 5, 2, 8, 8)).astype(np.float32))
+    for size in ((CROP, CROP), (37, 90)):
+        a, b = expand_flow_grid(g, size), _expand_torch(g, *size)
+        assert a.shape == b.shape == (2, 5, 2) + size
+        assert torch.equal(a.view(torch.int32), b.view(torch.int32))
+
+
 def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_clip):
     cfg = recipe(flow_preset="ultrafast")
     est = FlowEstimator("ultrafast")

@@ -4,9 +4,11 @@ The tracked options (``flow_preset`` ``tracked``, ``tracked-g12``) compute a sam
 an n x n grid of tracked points per voxel grid and make it dense by bilinear interpolation
 between them, so the wire carries only the grid (``flow_grid`` float32 (B, L, 2, n, n): 20 KB
 per sample for n = 8 against 2.6 MB of dense float16 flow). :func:`expand_flow_grid` makes it
-dense again with the very taps the server's expansion uses (``protocol.flow_grid_taps``), in
-torch on the grid's device, with the same float32 operations (one rounding per product and
-per sum): on the CPU the result equals the server's dense flow bit for bit.
+dense again with the very taps the server's expansion uses (``protocol.flow_grid_taps``), with
+the same float32 operations (one rounding per product and per sum): on the CPU with the
+server's own loop (``v2v_server.flowgrid``: one thread, so it costs the trainer's torch thread
+pool nothing, ~2 ms per batch of 8 default samples), on other devices in torch; the result
+equals the server's dense flow bit for bit.
 """
 from __future__ import annotations
 
@@ -14,13 +16,12 @@ from typing import Dict, Tuple
 
 import torch
 
+from v2v_server.flowgrid import expand_grids
 from v2v_server.protocol import flow_grid_taps
 
 __all__ = ["expand_flow_grid"]
 
 _TAPS: Dict[tuple, tuple] = {}
-#: Bytes of dense flow made per step on the CPU (fits a core's L2 cache).
-CHUNK_BYTES = 1 << 18
 
 
 def _taps(n: int, size: int, device: torch.device) -> tuple:
@@ -55,23 +56,27 @@ def expand_flow_grid(grid: torch.Tensor, size: Tuple[int, int], dtype: torch.dty
         raise ValueError(f"flow grid must be a tensor (..., 2, n, n) with n >= 2, got "
                          f"{tuple(getattr(grid, 'shape', ())) or type(grid).__name__}")
     h, w = (int(s) for s in size)
+    if h < 1 or w < 1:
+        raise ValueError(f"flow size must be positive (H, W), got {tuple(size)}")
+    n = grid.shape[-1]
+    if grid.device.type == "cpu":
+        flat = grid.detach().float().reshape(-1, 2, n, n).numpy()
+        out = torch.from_numpy(expand_grids(flat, (h, w))).reshape(grid.shape[:-2] + (h, w))
+    else:
+        out = _expand_torch(grid, h, w)
+    return out if dtype == torch.float32 else out.to(dtype)
+
+
+def _expand_torch(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """:func:`expand_flow_grid` in torch ops on ``grid``'s device, float32 (..., 2, h, w)."""
     n = grid.shape[-1]
     i0, i1, a0, a1 = _taps(n, h, grid.device)
     j0, j1, b0, b1 = _taps(n, w, grid.device)
-    lead = grid.shape[:-2]
     g = grid.float().reshape(-1, n, n)
     # along the width: (M, n, W), then along the height: (M, H, W); each a product and a sum in
     # float32 (separate roundings), as the server's expansion
     t = g.index_select(2, j0).mul_(b0)
     t.add_(g.index_select(2, j1).mul_(b1))
-    out = torch.empty((g.shape[0], h, w), dtype=torch.float32, device=grid.device)
-    # on the CPU a few fields at a time, so the row products stay in cache (2.4x faster than
-    # whole-tensor passes); one pass on other devices
-    step = max(1, CHUNK_BYTES // (h * w * 4)) if grid.device.type == "cpu" else g.shape[0]
-    a0, a1 = a0[:, None], a1[:, None]
-    for c in range(0, g.shape[0], step):
-        tc, o = t[c:c + step], out[c:c + step]
-        torch.mul(tc.index_select(1, i0), a0, out=o)
-        o.add_(tc.index_select(1, i1).mul_(a1))
-    out = out.reshape(lead + (h, w))
-    return out if dtype == torch.float32 else out.to(dtype)
+    out = torch.mul(t.index_select(1, i0), a0[:, None])
+    out.add_(t.index_select(1, i1).mul_(a1[:, None]))
+    return out.reshape(grid.shape[:-2] + (h, w))

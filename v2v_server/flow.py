@@ -42,7 +42,8 @@ import numpy as np
 
 from .flow_options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, FlowUnavailable, check_option,
                            raft_weights, unavailable_reason)
-from .tracking import (ZOOM_INLIERS, _dropped_inside, _expand_grids, _expand_tables, _fill_lost, _from_resized,
+from .flowgrid import expand_grids
+from .tracking import (ZOOM_INLIERS, _dropped_inside, _fill_lost, _from_resized,
                        _same_as_previous, _to_resized, _track_grid, _zoom_fit)
 
 __all__ = ["FlowEstimator", "MIN_DIS_SIDE", "dis_flow", "expand_grids", "to_float16"]
@@ -340,20 +341,3 @@ class FlowEstimator:
             valid[l] = ok
         n = t.grid
         return _fill_lost(grid_flows.reshape(n_vox, n, n, 2), valid.reshape(n_vox, n, n))
-
-
-def expand_grids(grids: np.ndarray, size) -> np.ndarray:
-    """Dense flow float32 (L, 2, H, W) of tracked grid flows ``grids`` float32 (L, 2, n, n)
-    (``FlowEstimator.voxel_flow_grids``, the wire's ``flow_grid``) over a ``size`` = (H, W)
-    crop: bilinear between the grid points with ``protocol.flow_grid_taps``.
-
-    Raises:
-        ValueError: for grids that are not (L, 2, n, n) with n >= 2.
-    """
-    g = np.asarray(grids, np.float32)
-    if g.ndim != 4 or g.shape[1] != 2 or g.shape[2] != g.shape[3] or g.shape[2] < 2:
-        raise ValueError(f"flow grids must be (L, 2, n, n) with n >= 2, got {g.shape}")
-    h, w = size
-    out = np.empty((g.shape[0], 2, h, w), np.float32)
-    _expand_grids(np.ascontiguousarray(g.transpose(0, 2, 3, 1)), *_expand_tables(g.shape[2], h, w), out)
-    return out

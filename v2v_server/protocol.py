@@ -180,7 +180,7 @@ _TAPS: Dict[tuple, tuple] = {}
 def flow_grid_taps(n: int, size: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The bilinear weights that make a tracked option's dense flow from its grid, along one
     axis of ``size`` pixels: the one definition the server's expansion
-    (``tracking._expand_grids``) and the client's (``v2v_client.flowgrid``) both read.
+    (``flowgrid.expand_grids``) and the client's (``v2v_client.flowgrid``) both read.
 
     The grid's ``n`` points along an axis sit at ``k (size - 1) / (n - 1)`` px (corners
     included); pixel ``x`` lies at grid coordinate ``u = x (n - 1) / (size - 1)`` (float64) and

@@ -51,33 +51,6 @@ def _track_grid(n: int, h: int, w: int):
     return g
 
 
-def _expand_tables(n: int, h: int, w: int):
-    """``protocol.flow_grid_taps`` of the rows (h) then the columns (w): int64 first grid
-    row and float32 weights of it and the next row, the same for the columns."""
-    return flow_grid_taps(n, h) + flow_grid_taps(n, w)
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _expand_grids(grids, i0, a0, a1, j0, b0, b1, out):
-    """Dense flow ``out`` float32 (V, 2, h, w) from grid flows ``grids`` float32 (V, n, n, 2),
-    bilinear between the grid points: ``wy @ g @ wx_t`` of ``_track_grid`` with only its two
-    non-zero terms per row and column (``_expand_tables``), in float32."""
-    n = grids.shape[1]
-    w = j0.shape[0]
-    tmp = np.empty((n, w), np.float32)
-    for v in range(grids.shape[0]):
-        for c in range(2):
-            for i in range(n):
-                for x in range(w):
-                    tmp[i, x] = b0[x] * grids[v, i, j0[x], c] + b1[x] * grids[v, i, j0[x] + 1, c]
-            for y in range(i0.shape[0]):
-                r0, r1 = tmp[i0[y]], tmp[i0[y] + 1]
-                wa, wb = a0[y], a1[y]
-                row = out[v, c, y]
-                for x in range(w):
-                    row[x] = wa * r0[x] + wb * r1[x]
-
-
 _FILL_TABLES: Dict[tuple, tuple] = {}
 
 
