@@ -139,20 +139,6 @@ def test_the_client_refuses_a_header_pointing_outside_the_file_or_directory(shm_
     asm.close()
 
 
-def _pid_namespace() -> list:
-    """``unshare -p -f --mount-proc`` where this machine permits it (a process there is PID 1 and
-    its pid means nothing outside), else nothing."""
-    import shutil
-    import subprocess
-
-    wrap = ["unshare", "-p", "-f", "--mount-proc", "--kill-child"]
-    try:
-        ok = shutil.which("unshare") and subprocess.run([*wrap, "true"], capture_output=True, timeout=30).returncode == 0
-    except (OSError, subprocess.TimeoutExpired):
-        ok = False
-    return wrap if ok else []
-
-
 @pytest.mark.parametrize("namespace", ["same", "own PID namespace"])
 def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root, namespace):
     """A live server holds an flock on its batch directory's lock file and on its slot rings:
@@ -165,7 +151,9 @@ def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root, nam
 
     from v2v_server.datapath import SlotRing
 
-    wrap = _pid_namespace() if namespace != "same" else []
+    from harness.faults_deploy import pid_namespace
+
+    wrap = (pid_namespace() or []) if namespace != "same" else []
     if namespace != "same" and not wrap:
         pytest.skip("unshare -p is not permitted on this machine")
     live = subprocess.Popen([*wrap, sys.executable, "-c", (
