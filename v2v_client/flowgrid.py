@@ -7,7 +7,7 @@ per sample for n = 8 against 2.6 MB of dense float16 flow). :func:`expand_flow_g
 dense again with the very taps the server's expansion uses (``protocol.flow_grid_taps``), with
 the same float32 operations (one rounding per product and per sum): on the CPU with the
 server's own loop (``v2v_server.flowgrid``: one thread, so it costs the trainer's torch thread
-pool nothing, ~2 ms per batch of 8 default samples), on other devices in torch; the result
+pool nothing, under 1 ms per default sample: bench.wire), on other devices in torch; the result
 equals the server's dense flow bit for bit.
 """
 from __future__ import annotations

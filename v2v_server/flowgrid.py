@@ -5,8 +5,9 @@ The tracked flow options compute a sample's flow at an n x n grid of points per 
 bilinear interpolation with the taps of ``protocol.flow_grid_taps``. This numba loop is that
 expansion, in float32 with one rounding per product and per sum; the server makes dense flow
 with it, and the client expands a CPU batch's ``flow_grid`` with it too (one thread, no
-thread pool, ~14x faster than the same taps in torch ops on the CPU), so both give the same
-bits. On other devices the client uses torch (``v2v_client.flowgrid``) with the same taps.
+thread pool; ~12x faster than the same taps in torch ops on the CPU, ``bench.wire``), so both
+give the same bits. On other devices the client uses torch (``v2v_client.flowgrid``) with the
+same taps.
 """
 from __future__ import annotations
 
