@@ -16,7 +16,6 @@ from typing import Dict, Tuple
 
 import torch
 
-from v2v_server.flowgrid import expand_grids
 from v2v_server.protocol import flow_grid_taps
 
 __all__ = ["expand_flow_grid"]
@@ -60,6 +59,8 @@ def expand_flow_grid(grid: torch.Tensor, size: Tuple[int, int], dtype: torch.dty
         raise ValueError(f"flow size must be positive (H, W), got {tuple(size)}")
     n = grid.shape[-1]
     if grid.device.type == "cpu":
+        from v2v_server.flowgrid import expand_grids  # numba: loaded by the first batch with flow
+
         flat = grid.detach().float().reshape(-1, 2, n, n).numpy()
         out = torch.from_numpy(expand_grids(flat, (h, w))).reshape(grid.shape[:-2] + (h, w))
     else:
