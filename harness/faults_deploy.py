@@ -9,7 +9,6 @@ import contextlib
 import json
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -206,25 +205,26 @@ def _batch_dirs(root: Path) -> List[str]:
 def scenario_train_killed_two_shards(tmp: Path, layout: Layout, checkpoint_every: int = 2,
                                      kill_after: int = 5) -> dict:
     """``v2v-train`` reads two shards (the compose/Kubernetes topology), checkpoints every
-    ``checkpoint_every`` steps and is killed with SIGKILL once step ``kill_after`` is done;
+    ``checkpoint_every`` steps and is killed with SIGKILL once step ``kill_after`` is done (it
+    sends the signal itself, so the step is known: ``harness.train_recorder``);
     ``--resume auto`` then trains to the end of the epoch. What the model learnt is the steps up
     to the checkpoint it resumed from plus the resumed run: each sample exactly once."""
     corpus = good_corpus(tmp, 2)
     expected = expected_ids(corpus, layout)
     out, rec1, rec2 = tmp / "run", tmp / "killed.jsonl", tmp / "resumed.jsonl"
-    a, b = _two_shards(corpus, layout, "--epochs", "1", "--end-grace-s", "60")
+    # a shard that finished its epoch waits this long for the resumed trainer (v2v-train starts in ~10 s)
+    a, b = _two_shards(corpus, layout, "--epochs", "1", "--end-grace-s", "25")
     with a, b:
         common = ["--task", "e2vid", "--connect", f"{a.endpoint},{b.endpoint}", "--out", str(out), "--device", "cpu",
                   "--no-progress", "--set", "model.base_num_channels=4", "--set", "stream.timeout_s=60",
                   "--set", "log.image_every=1000", "--set", f"log.checkpoint_every={checkpoint_every}"]
         proc = subprocess.Popen([sys.executable, "-m", "harness.train_recorder", str(rec1), *common,
-                                 "--max-steps", "1000"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline and proc.poll() is None:
-            if rec1.exists() and any(json.loads(x)["step"] >= kill_after for x in rec1.read_text().splitlines()):
-                break
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGKILL)
+                                 "--max-steps", "1000"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                 env=dict(os.environ, V2V_SIGKILL_AFTER_STEP=str(kill_after)))
+        try:
+            proc.wait(300)
+        except subprocess.TimeoutExpired:
+            proc.kill()
         err = proc.communicate()[1]
         import torch
 

@@ -21,7 +21,7 @@ def exactly_once(r):
 
 def test_v2v_train_killed_with_sigkill_against_two_shards_resumes_exactly_once(tmp_path):
     f = exactly_once(faults_deploy.scenario_train_killed_two_shards(tmp_path, Layout(L=4, crop=64, windows=3, batch=2),
-                                                                    checkpoint_every=2, kill_after=4))
+                                                                    checkpoint_every=2, kill_after=5))
     assert f["kill_exit"] == -9 and f["resumed_exit"] == 0 and f["server_exits"] == [0, 0], f
     assert f["killed_after"] > f["checkpoint_step"] >= 2, f  # steps after the checkpoint were lost with the process
 
