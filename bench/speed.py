@@ -2,7 +2,7 @@
 
 Every rate is per core: samples per CPU-second of the process doing the work (so other
 load on a shared machine inflates wall time, not the ratios), on the WebVid-like clip
-(596x336 H.264, 25 fps), 128x128 crops, L = 40 x 5 bins (201 frames per sample).
+(596x336 H.264, 25 fps; ``--clip`` another), 128x128 crops, L = 40 x 5 bins (201 frames per sample).
 
 Rows:
 
@@ -40,12 +40,13 @@ SPAN = 201
 
 
 def clip_path() -> Path:
+    """The measured clip: ``CLIP`` (``--clip``), a bundled clip's name or a path."""
     here = Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos" / CLIP
-    return here
+    return here if here.exists() else Path(CLIP)
 
 
 def make_corpus(root: Path, copies: int) -> Path:
-    """A WebVid-like corpus: ``copies`` copies of the bundled 596x336 clip (2 windows each)."""
+    """A corpus of ``copies`` copies of the measured clip (the WebVid-like one: 2 windows each)."""
     root.mkdir(parents=True, exist_ok=True)
     for i in range(copies):
         shutil.copyfile(clip_path(), root / f"clip{i:03d}.mp4")
@@ -211,13 +212,17 @@ def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 
 
 # ---------------------------------------------------------------------------- main
 def main(argv: Optional[List[str]] = None) -> int:
+    global CLIP
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--copies", type=int, default=6, help="copies of the WebVid-like clip in the corpus (2 windows each)")
     p.add_argument("--batches", type=int, default=6, help="measured stream batches (of 8) per stream row")
     p.add_argument("--stall", type=float, default=60.0, help="seconds the stalled trainer takes nothing")
     p.add_argument("--rounds", type=int, default=3, help="interleaved rounds of the per-core rows")
     p.add_argument("--out", help="also write the table (markdown) here")
+    p.add_argument("--clip", default=CLIP, help="the clip every row measures: a bundled clip's name or a path "
+                                                "(at least 201 frames)")
     a = p.parse_args(argv)
+    CLIP = a.clip
     from v2v_server.config import ServeConfig
 
     default_flow = ServeConfig().flow_preset
