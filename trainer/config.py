@@ -14,7 +14,7 @@ import yaml
 
 from v2v_server.settings import YamlLoader, check_bool, check_choice, check_float, check_int, load_yaml, setting
 
-__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "RunSettings", "default_config", "load_config",
+__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config", "load_config",
            "apply_overrides", "apply_loss_preset", "merge", "check_types", "reference_markdown"]
 
 #: The V2V paper's loss combinations for reconstruction, as ``loss`` section values. "V+L1+H"
@@ -33,6 +33,13 @@ LOSS_PRESETS = {
     "alex+th": {"l1_weight": 0.0, "perceptual_weight": 1.0, "lpips_net": "alex", "tc_weight": 1.0,
                 "tc_start_fraction": 0.5},
 }
+#: ``loss.flow_source``: where the flow that a loss needs comes from. "stream": the server's
+#: ``flow``; "raft_small" / "raft_large": torchvision's RAFT on the batch's ground-truth frames
+#: on the training device (``trainer/raft_flow.py``; the authors' ``optical_flow_source``).
+FLOW_SOURCES = ("stream", "raft_small", "raft_large")
+_RAFT_WEIGHTS_HELP = ("local .pth state dict of torchvision's raft_small / raft_large for flow_source raft_*; null: "
+                      "$V2V_RAFT_WEIGHTS, else $TORCH_HOME/hub/checkpoints/raft_<size>*.pth (never downloaded)")
+
 
 @dataclass
 class RunSettings:
@@ -134,6 +141,10 @@ class E2VIDLoss:
     tc_weight: float = setting(1.0, help="weight of the temporal-consistency term")
     tc_alpha: float = setting(50.0, help="visibility sharpness of the temporal-consistency term")
     tc_start_fraction: float = setting(0.5, help="the term covers voxels from this fraction of L on (20..39 of 40)")
+    flow_source: str = setting("stream", help="flow of the temporal-consistency term: the stream's, or RAFT on the "
+                               "frames on the training device (the authors': raft_small)", choices=FLOW_SOURCES)
+    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft_*)")
+    raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
 
 
 @dataclass
@@ -186,9 +197,13 @@ class EvFlowModel:
 
 @dataclass
 class EvFlowLoss:
-    """``loss`` of evflow: dense L1 against the stream's flow."""
+    """``loss`` of evflow: dense L1 against the flow targets (the stream's, or RAFT's)."""
 
     flow_l1_weight: float = setting(1.0, help="weight of the flow L1 term")
+    flow_source: str = setting("stream", help="flow targets: the stream's, or RAFT on the frames on the training "
+                               "device (the authors': raft_large)", choices=FLOW_SOURCES)
+    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft_*)")
+    raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
 
 
 #: Sections common to every task, and each task's model and loss sections.

@@ -20,9 +20,10 @@ __all__ = ["make_stream", "make_loader", "batch_to_device", "drop_padding"]
 
 
 def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
-                reconnect: bool = False, curve_keys=None):
+                reconnect: bool = False, curve_keys=None, outputs: Optional[Sequence[str]] = None):
     """Open a ``v2v_client.V2VStreamDataset`` on ``endpoint`` (one server, or several:
-    ``"tcp://a:5555,tcp://b:5555"``) asking only for ``task``'s outputs; ``reconnect`` and
+    ``"tcp://a:5555,tcp://b:5555"``) asking only for ``outputs`` (default: ``task``'s; a run's
+    are ``tasks.stream_outputs(cfg)``); ``reconnect`` and
     ``curve_keys`` (client secret key file, server public key file) as in the dataset.
     Raises ``ImportError`` with a hint when the client is not installed."""
     try:
@@ -30,7 +31,7 @@ def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 6
     except ImportError as e:  # pragma: no cover - depends on the installed client
         raise ImportError("v2v_client.V2VStreamDataset is not available; install the v2v "
                           "client (pip install -e '.[client]')") from e
-    return V2VStreamDataset(endpoint=endpoint, outputs=get_task(task).outputs, credits=int(credits),
+    return V2VStreamDataset(endpoint=endpoint, outputs=tuple(outputs or get_task(task).outputs), credits=int(credits),
                             timeout_s=float(timeout_s), raw=bool(raw), reconnect=bool(reconnect),
                             curve_keys=tuple(curve_keys) if curve_keys else None)
 

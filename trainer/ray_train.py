@@ -42,7 +42,7 @@ from v2v_server.settings import add_flags, flag_values
 from .core import Trainer
 from .data import drop_padding
 from .loop import RunHooks, Schedule, train_loop
-from .tasks import get_task
+from .tasks import stream_outputs
 
 __all__ = ["add_ray_arguments", "run_ray", "RayTrainer", "SampleWeightedAllReduce", "load_ray_state"]
 
@@ -316,7 +316,7 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
         if not todo:
             log.info("all %d epoch(s) already trained", epochs)
             return 0
-        ds = v2v_dataset(corpus, scfg, epoch=todo, outputs=get_task(cfg["task"]).outputs,
+        ds = v2v_dataset(corpus, scfg, epoch=todo, outputs=stream_outputs(cfg),
                          exclude={e: state["consumed"].get(e, ()) for e in todo}, ranks=args.num_workers,
                          concurrency=data_workers, resource=args.data_resource)
         loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,

@@ -25,7 +25,7 @@ from .losses import ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
 from .viz import flow_to_bgr, gray_to_u8, voxel_to_u8
 
 __all__ = ["TrainTask", "E2VIDTask", "HyperE2VIDTask", "ETNetTask", "EvFlowTask", "TASKS", "get_task",
-           "tc_start_index", "curriculum_beta"]
+           "stream_outputs", "tc_start_index", "curriculum_beta"]
 
 log = logging.getLogger("trainer")
 
@@ -65,6 +65,16 @@ class TrainTask:
     def __init__(self, cfg: dict, device: torch.device):
         self.cfg = cfg
         self.step = 0  # the optimiser step about to be taken; the trainer sets it before forward
+        self.outputs = stream_outputs(cfg)
+        self.raft = None  # RaftFlow when loss.flow_source names RAFT (tasks that use flow)
+        lc = cfg.get("loss", {})
+        if lc.get("flow_source", "stream") != "stream":
+            from .raft_flow import RaftFlow
+
+            self.raft = RaftFlow(lc["flow_source"], device, int(lc.get("raft_num_flow_updates", 12)),
+                                 lc.get("raft_weights"))
+            log.info("%s: flow from %s on %s, %d iterations", self.name, lc["flow_source"], device,
+                     self.raft.num_flow_updates)
 
     @classmethod
     def csv_columns(cls) -> List[str]:
@@ -110,6 +120,8 @@ class E2VIDTask(TrainTask):
         L = vox.shape[1]
         lc = self.cfg["loss"]
         l0 = self.flow_from(L)
+        if self.raft is not None and float(lc["tc_weight"]) > 0 and l0 < L:
+            flow = self.raft(frames, l0)  # the layout of the stream's flow[:, l0:]
         use_tc = float(lc["tc_weight"]) > 0 and flow is not None and l0 < L
         states, prev = None, None
         sums = {"l1": 0.0, "perceptual": 0.0, "rec": 0.0, "tc": 0.0}
@@ -174,6 +186,8 @@ class EvFlowTask(TrainTask):
     terms = ("flow_l1", "aee")
 
     def forward(self, model, b, autocast):
+        if self.raft is not None:
+            b["flow"] = self.raft(b["frames"])  # targets: frame l -> l + 1 for each voxel l
         vox, flow = b["voxels"], b["flow"]
         n, L = vox.shape[:2]
         with autocast():
@@ -195,6 +209,19 @@ class EvFlowTask(TrainTask):
 
 #: The tasks by name (``cfg["task"]``, ``v2v-train --task``).
 TASKS: Dict[str, type] = {t.name: t for t in (E2VIDTask, EvFlowTask, HyperE2VIDTask, ETNetTask)}
+
+
+def stream_outputs(cfg: dict) -> Tuple[str, ...]:
+    """What the stream must carry for the run ``cfg``: the task's ``outputs``, with the flow
+    replaced by the frames it is computed from when ``loss.flow_source`` names RAFT.
+
+    Raises:
+        ValueError: for an unknown task.
+    """
+    outs = get_task(cfg["task"]).outputs
+    if cfg.get("loss", {}).get("flow_source", "stream") == "stream" or "flow" not in outs:
+        return outs
+    return tuple(o for o in outs if o != "flow") + (() if "frames" in outs else ("frames",))
 
 
 def get_task(name: str) -> type:

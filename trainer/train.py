@@ -21,7 +21,8 @@ from .config import RunSettings, apply_overrides, check_types, load_config
 from .core import Trainer, resolve_device
 from .data import make_stream
 from .ray_train import add_ray_arguments
-from .tasks import get_task
+from .raft_flow import FlowSourceUnavailable
+from .tasks import stream_outputs
 
 __all__ = ["build_arg_parser", "main"]
 
@@ -66,14 +67,19 @@ def main(argv=None) -> int:
 
         return run_ray(cfg, args, out)
     device = resolve_device(cfg["device"])
-    log.info("task %s on %s, stream %s asking for %s", cfg["task"], device, cfg["connect"], get_task(cfg["task"]).outputs)
+    log.info("task %s on %s, stream %s asking for %s", cfg["task"], device, cfg["connect"], stream_outputs(cfg))
     with open(out / "config.json", "w") as f:
         json.dump(cfg, f, indent=2)
-    trainer = Trainer(cfg, str(out), device)
+    try:
+        trainer = Trainer(cfg, str(out), device)
+    except FlowSourceUnavailable as e:  # RAFT asked for, torchvision or its weights missing
+        log.error("%s", e)
+        return 2
     log.info("model: %d parameters", sum(p.numel() for p in trainer.model.parameters()))
     s = cfg["stream"]
     stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"],
-                         reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None)
+                         reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None,
+                         outputs=stream_outputs(cfg))
     resume = cfg.get("resume")
     if resume == "auto":
         resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None

@@ -20,11 +20,11 @@ import importlib.util
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, List, Optional
 
 __all__ = [
     "DEFAULT_FLOW", "DIS_PRESETS", "DISParams", "FLOW_OPTIONS", "FlowOption", "FlowUnavailable", "TrackParams",
-    "check_option", "raft_weights", "unavailable_reason",
+    "check_option", "raft_weight_places", "raft_weights", "unavailable_reason",
 ]
 
 #: OpenCV DIS presets by name (``cv2.DISOPTICAL_FLOW_PRESET_*``).
@@ -201,12 +201,22 @@ def raft_weights(size: str = "small") -> Optional[Path]:
     Looks at ``$V2V_RAFT_WEIGHTS`` (a ``.pth`` state dict), then torchvision's cache
     (``$TORCH_HOME/hub/checkpoints/raft_<size>*.pth``). Never downloads.
     """
+    place = raft_weight_places(size)[0]
+    if "*" not in place.name:
+        return place if place.is_file() else None
+    hits = sorted(place.parent.glob(place.name))
+    return hits[0] if hits else None
+
+
+def raft_weight_places(size: str = "small") -> List[Path]:
+    """Where :func:`raft_weights` looks: ``[$V2V_RAFT_WEIGHTS]`` when set, else the pattern
+    ``[$TORCH_HOME/hub/checkpoints/raft_<size>*.pth]`` (``TORCH_HOME`` defaulting to
+    ``~/.cache/torch``)."""
     env = os.environ.get("V2V_RAFT_WEIGHTS")
     if env:
-        return Path(env) if Path(env).is_file() else None
+        return [Path(env)]
     home = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch"))
-    hits = sorted((home / "hub" / "checkpoints").glob(f"raft_{size}*.pth"))
-    return hits[0] if hits else None
+    return [home / "hub" / "checkpoints" / f"raft_{size}*.pth"]
 
 
 def unavailable_reason(name) -> Optional[str]:
