@@ -36,9 +36,9 @@ def outputs(task):
 
 # ----------------------------------------------------------------------------- models
 def test_e2vid_matches_reference_architecture():
-    m = E2VIDRecurrent()  # paper config: 5 bins, base 32, 3 encoders, sum skips, 2 resblocks
+    m = E2VIDRecurrent().unetrecurrent  # paper config: 5 bins, base 32, 3 encoders, sum skips, 2 resblocks
     assert [e.conv.conv2d.out_channels for e in m.encoders] == [64, 128, 256]
-    assert all(e.lstm.hidden_size == c for e, c in zip(m.encoders, [64, 128, 256]))
+    assert all(e.recurrent_block.hidden_size == c for e, c in zip(m.encoders, [64, 128, 256]))
     assert [e.conv.conv2d.kernel_size for e in m.encoders] == [(5, 5)] * 3
     assert len(m.resblocks) == 2
     # sum skips: decoder inputs are not doubled

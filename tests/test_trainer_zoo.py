@@ -1,4 +1,4 @@
-"""The V2V paper's model zoo in trainer/: HyperE2VID and ETNet against the authors'
+"""The V2V paper's model zoo in trainer/: E2VID, HyperE2VID and ETNet against the authors'
 architectures (tests/data/zoo_reference.json, derived by harness/zoo_reference.py), their
 optimisers and schedules, and a training step on a small stream batch on CPU."""
 from __future__ import annotations
@@ -30,7 +30,7 @@ def tiny_cfg(task, **extra):
     return merge(default_config(task), merge({"model": TINY[task], "max_steps": 20}, extra))
 
 
-@pytest.mark.parametrize("task", ["hypere2vid", "etnet"])
+@pytest.mark.parametrize("task", ["e2vid", "hypere2vid", "etnet"])
 def test_default_model_matches_the_authors_state_dict(task):
     m = build_model(task, default_config(task)["model"])
     ours = {k: list(v.shape) for k, v in m.state_dict().items()}

@@ -32,7 +32,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .models import ConvLayer, UpsampleConvLayer, _pad_to_multiple
-from .refblocks import RecurrentConvLayer
+from .models import RecurrentConvLayer
 
 __all__ = ["ETNet", "sinusoid_table"]
 

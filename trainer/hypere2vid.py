@@ -36,7 +36,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .models import ConvLayer, ResidualBlock, UpsampleConvLayer, _pad_to_multiple
-from .refblocks import RecurrentConvLayer
+from .models import RecurrentConvLayer
 
 __all__ = ["fourier_bessel_bases", "HyperE2VID"]
 

@@ -5,7 +5,9 @@ NeurIPS 2025), which reuse event_cnn_minimal (Stoffregen et al., ECCV 2020):
 
 * ``E2VIDRecurrent``: head conv (k5) -> 3 encoders (strided conv k5 + ConvLSTM k3),
   channels 32-64-128-256 -> 2 residual blocks -> 3 decoders (bilinear x2 upsample + conv
-  k5) with *sum* skips -> 1x1 prediction conv, 1 output channel, no final activation.
+  k5) with *sum* skips -> 1x1 prediction conv, 1 output channel, no final activation;
+  parameters named as the V2V authors' ``E2VIDRecurrent`` (``unetrecurrent.*``, a ConvLSTM's
+  gate convolution ``Gates`` inside ``recurrent_block``), so their E2VID checkpoints load.
 * ``EVFlowNet``: the reference's ``UNet`` with no head layer: 4 strided-conv encoders
   (5 -> 64 -> 128 -> 256 -> 512, k3) -> 2 residual blocks -> 4 upsample-conv decoders with
   *concat* skips (to 256, 128, 64, 32) -> 1x1 prediction conv 32 -> 2 (optical flow in
@@ -23,7 +25,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["ConvLSTM", "E2VIDRecurrent", "UNet", "EVFlowNet"]
+__all__ = ["ConvLSTM", "RecurrentConvLayer", "E2VIDRecurrent", "UNet", "EVFlowNet"]
 
 State = Optional[Tuple[torch.Tensor, torch.Tensor]]
 
@@ -69,7 +71,8 @@ class ResidualBlock(nn.Module):
 
 
 class ConvLSTM(nn.Module):
-    """Convolutional LSTM cell (Shi et al. 2015; event_cnn_minimal's ``ConvLSTM``).
+    """Convolutional LSTM cell (Shi et al. 2015; event_cnn_minimal's and the V2V authors'
+    ``ConvLSTM``, gate convolution named ``Gates`` as theirs).
 
     Args:
         input_size: channels of the input x.
@@ -77,20 +80,21 @@ class ConvLSTM(nn.Module):
         kernel_size: odd kernel of the gate convolution.
 
     ``forward(x (N, input_size, H, W), state)`` with ``state`` ``None`` (zeros) or
-    ``(hidden, cell)`` each (N, hidden_size, H, W); returns ``(hidden, cell)``.
+    ``(hidden, cell)`` each (N, hidden_size, H, W); returns ``(hidden, cell)``. Gate order in
+    the convolution's output channels: input, remember, output, cell.
     """
 
     def __init__(self, input_size: int, hidden_size: int, kernel_size: int = 3):
         super().__init__()
         self.hidden_size = hidden_size
-        self.gates = nn.Conv2d(input_size + hidden_size, 4 * hidden_size, kernel_size, padding=kernel_size // 2)
+        self.Gates = nn.Conv2d(input_size + hidden_size, 4 * hidden_size, kernel_size, padding=kernel_size // 2)
 
     def forward(self, x: torch.Tensor, state: State = None) -> Tuple[torch.Tensor, torch.Tensor]:
         if state is None:
             shape = (x.shape[0], self.hidden_size, x.shape[2], x.shape[3])
             state = (x.new_zeros(shape), x.new_zeros(shape))
         prev_hidden, prev_cell = state
-        gates = self.gates(torch.cat([x, prev_hidden], dim=1))
+        gates = self.Gates(torch.cat([x, prev_hidden], dim=1))
         in_gate, remember_gate, out_gate, cell_gate = gates.chunk(4, dim=1)
         cell = torch.sigmoid(remember_gate) * prev_cell + torch.sigmoid(in_gate) * torch.tanh(cell_gate)
         hidden = torch.sigmoid(out_gate) * torch.tanh(cell)
@@ -98,15 +102,17 @@ class ConvLSTM(nn.Module):
 
 
 class RecurrentConvLayer(nn.Module):
-    """Strided ConvLayer followed by a ConvLSTM (kernel 3) on its output."""
+    """Strided ``conv`` (ConvLayer + ReLU, stride 2, padding k//2) then a ``recurrent_block``
+    ConvLSTM (kernel 3) on its output, named as the authors' (E2VID, HyperE2VID and ETNet use
+    it). ``forward(x, state)`` -> ``(hidden, (hidden, cell))``."""
 
     def __init__(self, cin: int, cout: int, kernel_size: int):
         super().__init__()
         self.conv = ConvLayer(cin, cout, kernel_size, stride=2)
-        self.lstm = ConvLSTM(cout, cout, 3)
+        self.recurrent_block = ConvLSTM(cout, cout, 3)
 
     def forward(self, x: torch.Tensor, state: State) -> Tuple[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]:
-        state = self.lstm(self.conv(x), state)
+        state = self.recurrent_block(self.conv(x), state)
         return state[0], state
 
 
@@ -157,22 +163,11 @@ class _UNetBase(nn.Module):
         return self.pred(self._skip(x, head))
 
 
-class E2VIDRecurrent(_UNetBase):
-    """E2VID recurrent reconstruction network (Rebecq et al. 2019; event_cnn_minimal
-    ``E2VIDRecurrent`` / ``UNetRecurrent`` with ConvLSTM encoders).
+class _UNetRecurrent(_UNetBase):
+    """The body of :class:`E2VIDRecurrent` (the authors' ``UNetRecurrent``)."""
 
-    Paper/reference config: num_bins=5, base_num_channels=32, num_encoders=3, skip 'sum',
-    num_residual_blocks=2, kernel_size=5, upsample-conv decoder, 1 output, no activation.
-
-    ``forward(voxel, states)``: ``voxel`` float (N, num_bins, H, W) (signed event counts per
-    bin), ``states`` ``None`` or the list returned by the previous call. Returns
-    ``(image (N, 1, H, W) float, states)``; the image is in [0, 1] intensity units after
-    training but is not clamped. Detach or reset ``states`` between sequences.
-    """
-
-    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 3,
-                 num_residual_blocks: int = 2, num_output_channels: int = 1, skip_type: str = "sum",
-                 kernel_size: int = 5):
+    def __init__(self, num_bins, base_num_channels, num_encoders, num_residual_blocks, num_output_channels,
+                 skip_type, kernel_size):
         super().__init__(num_bins, base_num_channels, num_encoders, num_residual_blocks,
                          num_output_channels, skip_type, kernel_size)
         self.encoders = nn.ModuleList(
@@ -194,6 +189,37 @@ class E2VIDRecurrent(_UNetBase):
             new_states.append(st)
         img = self._decode(x, blocks, head)
         return img[..., :h, :w], new_states
+
+
+class E2VIDRecurrent(nn.Module):
+    """E2VID recurrent reconstruction network (Rebecq et al. 2019; event_cnn_minimal and the V2V
+    authors' ``E2VIDRecurrent`` / ``UNetRecurrent`` with ConvLSTM encoders).
+
+    Paper/reference config: num_bins=5, base_num_channels=32, num_encoders=3, skip 'sum',
+    num_residual_blocks=2, kernel_size=5, upsample-conv decoder, 1 output, no activation.
+    State-dict keys and shapes equal the authors' (``unetrecurrent.head.conv2d.weight``, ...,
+    ``unetrecurrent.encoders.i.recurrent_block.Gates.weight``; tests/test_trainer_zoo.py), so
+    their checkpoints' ``state_dict`` loads with ``load_state_dict``.
+
+    ``forward(voxel, states)``: ``voxel`` float (N, num_bins, H, W) (signed event counts per
+    bin), ``states`` ``None`` or the list returned by the previous call. Returns
+    ``(image (N, 1, H, W) float, states)``; the image is in [0, 1] intensity units after
+    training but is not clamped. Detach or reset ``states`` between sequences.
+
+    Raises:
+        ValueError: bad sizes or skip type at construction; a voxel of another shape in forward.
+    """
+
+    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 3,
+                 num_residual_blocks: int = 2, num_output_channels: int = 1, skip_type: str = "sum",
+                 kernel_size: int = 5):
+        super().__init__()
+        self.num_bins, self.num_encoders = num_bins, num_encoders
+        self.unetrecurrent = _UNetRecurrent(num_bins, base_num_channels, num_encoders, num_residual_blocks,
+                                            num_output_channels, skip_type, kernel_size)
+
+    def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
+        return self.unetrecurrent(voxel, states)
 
 
 class UNet(nn.Module):
