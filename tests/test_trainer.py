@@ -51,6 +51,19 @@ def test_e2vid_matches_reference_architecture():
     assert not torch.allclose(y, y2)
 
 
+def test_e2vid_state_dicts_with_this_trainers_own_earlier_key_names_still_load():
+    torch.manual_seed(0)
+    m = E2VIDRecurrent(num_bins=3, base_num_channels=4)
+    own = {k.removeprefix("unetrecurrent.").replace(".recurrent_block.Gates.", ".lstm.gates."): v
+           for k, v in m.state_dict().items()}
+    assert "encoders.0.lstm.gates.weight" in own and not any(k.startswith("unetrecurrent.") for k in own)
+    fresh = E2VIDRecurrent(num_bins=3, base_num_channels=4)
+    fresh.load_state_dict(own)  # strict: every key renamed onto a parameter
+    x = torch.randn(1, 3, 16, 16)
+    assert torch.equal(fresh(x)[0], m(x)[0])
+    assert [n for n, _ in fresh.named_parameters()] == [n for n, _ in m.named_parameters()]
+
+
 #: The V2V reference's EVFlowNet parameters (model/model.py EVFlowNet -> model/unet.py UNet,
 #: event_cnn_minimal; 5 bins, base 32, 4 encoders, concat skips, kernel 3, 2 residual
 #: blocks, no head layer), written out from the architecture: name -> weight shape (every

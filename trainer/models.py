@@ -191,6 +191,23 @@ class _UNetRecurrent(_UNetBase):
         return img[..., :h, :w], new_states
 
 
+#: Top-level parts of this trainer's E2VID state dicts saved without the authors' names (keys
+#: without ``unetrecurrent.``, the ConvLSTM's gate convolution ``lstm.gates``).
+_OWN_E2VID_PARTS = ("head.", "encoders.", "resblocks.", "decoders.", "pred.")
+
+
+def _rename_own_e2vid_keys(state_dict, prefix, *_):
+    """``load_state_dict`` pre-hook of :class:`E2VIDRecurrent`: keys of a state dict saved with
+    this trainer's own names (``encoders.i.lstm.gates.weight``, ...) are renamed in place to the
+    authors' (``unetrecurrent.encoders.i.recurrent_block.Gates.weight``, ...), so such
+    checkpoints keep loading; the parameters' order is the same, so optimiser states match."""
+    for k in list(state_dict):
+        rest = k[len(prefix):]
+        if k.startswith(prefix) and rest.startswith(_OWN_E2VID_PARTS):
+            state_dict[prefix + "unetrecurrent." + rest.replace(".lstm.gates.", ".recurrent_block.Gates.")] = \
+                state_dict.pop(k)
+
+
 class E2VIDRecurrent(nn.Module):
     """E2VID recurrent reconstruction network (Rebecq et al. 2019; event_cnn_minimal and the V2V
     authors' ``E2VIDRecurrent`` / ``UNetRecurrent`` with ConvLSTM encoders).
@@ -199,7 +216,8 @@ class E2VIDRecurrent(nn.Module):
     num_residual_blocks=2, kernel_size=5, upsample-conv decoder, 1 output, no activation.
     State-dict keys and shapes equal the authors' (``unetrecurrent.head.conv2d.weight``, ...,
     ``unetrecurrent.encoders.i.recurrent_block.Gates.weight``; tests/test_trainer_zoo.py), so
-    their checkpoints' ``state_dict`` loads with ``load_state_dict``.
+    their checkpoints' ``state_dict`` loads with ``load_state_dict``; so do state dicts saved
+    with this trainer's own earlier names (``encoders.i.lstm.gates``, renamed on load).
 
     ``forward(voxel, states)``: ``voxel`` float (N, num_bins, H, W) (signed event counts per
     bin), ``states`` ``None`` or the list returned by the previous call. Returns
@@ -217,6 +235,7 @@ class E2VIDRecurrent(nn.Module):
         self.num_bins, self.num_encoders = num_bins, num_encoders
         self.unetrecurrent = _UNetRecurrent(num_bins, base_num_channels, num_encoders, num_residual_blocks,
                                             num_output_channels, skip_type, kernel_size)
+        self._register_load_state_dict_pre_hook(_rename_own_e2vid_keys)
 
     def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
         return self.unetrecurrent(voxel, states)
