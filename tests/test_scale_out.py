@@ -335,11 +335,13 @@ def test_metrics_probes_and_counters_move(videos):
         ds = V2VStreamDataset(srv.endpoint, outputs=OUTPUTS, credits=2, timeout_s=60)
         it = iter(ds)
         got = [next(it) for _ in range(3)]
-        time.sleep(0.5)  # a loop turn publishes the state
-        m1 = _scrape(port)
+        want = sum(len(b["sample_ids"]) for b in got)
+        deadline = time.monotonic() + 10  # the page is rendered at most once a second (EXPOSITION_S)
+        while (m1 := _scrape(port))[("v2v_samples_sent_total", ())] < want and time.monotonic() < deadline:
+            time.sleep(0.2)
         it.close()
     sent = m1[("v2v_samples_sent_total", ())]
-    assert sent >= sum(len(b["sample_ids"]) for b in got)
+    assert sent >= want
     assert m1[("v2v_batches_sent_total", ())] >= 3 and m1[("v2v_samples_made_total", ())] >= sent
     assert m1[("v2v_sent_bytes_total", ())] >= sum(b["voxels"].numel() for b in got)  # int8 voxels at least
     for stage in ("decode", "simulate", "serialize", "send"):
