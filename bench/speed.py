@@ -39,17 +39,17 @@ CLIP = "webvid_like_596x336.mp4"
 SPAN = 201
 
 
-def clip_path() -> Path:
-    """The measured clip: ``CLIP`` (``--clip``), a bundled clip's name or a path."""
-    here = Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos" / CLIP
-    return here if here.exists() else Path(CLIP)
+def clip_path(name: str = CLIP) -> Path:
+    """The measured clip (``--clip``): a bundled clip's name or a path."""
+    here = Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos" / name
+    return here if here.exists() else Path(name)
 
 
-def make_corpus(root: Path, copies: int) -> Path:
+def make_corpus(root: Path, copies: int, clip: Optional[Path] = None) -> Path:
     """A corpus of ``copies`` copies of the measured clip (the WebVid-like one: 2 windows each)."""
     root.mkdir(parents=True, exist_ok=True)
     for i in range(copies):
-        shutil.copyfile(clip_path(), root / f"clip{i:03d}.mp4")
+        shutil.copyfile(clip or clip_path(), root / f"clip{i:03d}.mp4")
     return root
 
 
@@ -212,7 +212,6 @@ def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 
 
 # ---------------------------------------------------------------------------- main
 def main(argv: Optional[List[str]] = None) -> int:
-    global CLIP
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--copies", type=int, default=6, help="copies of the WebVid-like clip in the corpus (2 windows each)")
     p.add_argument("--batches", type=int, default=6, help="measured stream batches (of 8) per stream row")
@@ -222,7 +221,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--clip", default=CLIP, help="the clip every row measures: a bundled clip's name or a path "
                                                 "(at least 201 frames)")
     a = p.parse_args(argv)
-    CLIP = a.clip
+    clip = clip_path(a.clip)
     from v2v_server.config import ServeConfig
 
     default_flow = ServeConfig().flow_preset
@@ -233,7 +232,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"{name}: {value:.3g} {unit} {ratio}", file=sys.stderr)
 
     with tempfile.TemporaryDirectory(prefix="v2v-speed-") as d:
-        corpus = make_corpus(Path(d) / "webvid", a.copies)
+        corpus = make_corpus(Path(d) / "webvid", a.copies, clip)
         outs = ("voxels", "frames", "flow")
         # warm the decoder and load every compiled function (kernel, flow) once, unmeasured: a
         # first call that loads numba's cache is ~0.1-0.3 s slower and would bias its row
@@ -246,8 +245,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         # of the per-round ratios, the rates the medians of the rounds
         rnd = {k: [] for k in ("fps", "ref", "vox", "allo", "k4", "voxb", "allb")}
         for _ in range(a.rounds):
-            rnd["fps"].append(bare_decode(clip_path(), 3))
-            rnd["ref"].append(reference_loader(clip_path(), 4))
+            rnd["fps"].append(bare_decode(clip, 3))
+            rnd["ref"].append(reference_loader(clip, 4))
             rnd["vox"].append(worker_core(corpus, ("voxels",)))
             rnd["voxb"].append(worker_core(corpus, ("voxels",), decode_fast="bidir"))
             rnd["allb"].append(worker_core(corpus, outs, decode_fast="bidir"))

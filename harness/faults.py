@@ -125,7 +125,7 @@ def scenario_worker_kill(tmp: Path, layout: Layout, kills: int = 3, copies: int 
     expected = expected_ids(corpus, layout)
     log: list = []
     kill_times: List[float] = []
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args()]) as srv:
+    with _serve(corpus, layout, "--epochs", "1") as srv:
         ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
 
         def killer():
@@ -266,7 +266,7 @@ def scenario_bad_corpus(tmp: Path, layout: Layout) -> dict:
     exp = make_fault_corpus(corpus, GOOD_VIDEOS, layout.L * 5 + 1)
     expected = expected_ids(corpus, layout, exclude={"deleted_during_epoch.mp4"})
     log: list = []
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args()]) as srv:
+    with _serve(corpus, layout, "--epochs", "1") as srv:
         (corpus / "deleted_during_epoch.mp4").unlink()
         read_all(V2VStreamDataset(srv.endpoint, timeout_s=60), log)
         rc = srv.wait(60)
@@ -348,7 +348,7 @@ def scenario_fuzzing_peer(tmp: Path, layout: Layout, n: int = 400) -> dict:
     corpus = good_corpus(tmp, 2)
     expected = expected_ids(corpus, layout)
     log: list = []
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args()]) as srv:
+    with _serve(corpus, layout, "--epochs", "1") as srv:
         ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2)
         sent = []
         def fuzz():
@@ -368,8 +368,10 @@ def scenario_fuzzing_peer(tmp: Path, layout: Layout, n: int = 400) -> dict:
 
 
 # ------------------------------------------------------------------ delivery failure modes
-def _serve(corpus: Path, layout: Layout, *extra: str, workers: int = 2) -> ServeProcess:
-    return ServeProcess(["--videos", str(corpus), "--workers", str(workers), *layout.args(), *extra])
+def _serve(corpus: Path, layout: Layout, *extra: str, workers: int = 2, **kw) -> ServeProcess:
+    """A v2v-serve on ``corpus`` with ``layout``'s samples and ``extra`` arguments (``kw``:
+    ``ServeProcess``'s ``env``, ``wrap``)."""
+    return ServeProcess(["--videos", str(corpus), "--workers", str(workers), *layout.args(), *extra], **kw)
 
 
 def scenario_break_loop(tmp: Path, layout: Layout, breaks: int = 4) -> dict:

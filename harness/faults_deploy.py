@@ -48,8 +48,7 @@ def scenario_small_shm(tmp: Path, layout: Layout, size: str = "1m") -> dict:
     corpus = good_corpus(tmp, 2)
     expected = expected_ids(corpus, layout)
     log: list = []
-    srv = ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args()],
-                       env={"V2V_SHM_DIR": str(shm)}, wrap=wrap).start()
+    srv = _serve(corpus, layout, "--epochs", "1", env={"V2V_SHM_DIR": str(shm)}, wrap=wrap).start()
     try:
         read_all(V2VStreamDataset(srv.endpoint, timeout_s=60), log)
         rc = srv.wait(60)
@@ -104,8 +103,8 @@ def scenario_mismatched_shards(tmp: Path, layout: Layout) -> dict:
              (("0/2", "1/2"), other, []), (("0/2", "1/2"), corpus, ["--seed", "12"]))
     refused, handed = [], 0
     for shards, root2, extra in cases:
-        a = ServeProcess(["--videos", str(corpus), "--workers", "1", *layout.args(), "--shard", shards[0]])
-        b = ServeProcess(["--videos", str(root2), "--workers", "1", *layout.args(), *extra, "--shard", shards[1]])
+        a = _serve(corpus, layout, "--shard", shards[0], workers=1)
+        b = _serve(root2, layout, *extra, "--shard", shards[1], workers=1)
         with a, b:
             try:
                 for _ in V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60):
@@ -295,8 +294,8 @@ def scenario_symlinked_shm(tmp: Path, layout: Layout) -> dict:
     expected = expected_ids(corpus, layout)
     log: list = []
     with tempfile.TemporaryDirectory(prefix="v2v-ipc-") as d, counting_shm_reads() as reads:
-        with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args(),
-                           "--bind", f"ipc://{d}/s.sock"], env={"V2V_SHM_DIR": str(link)}) as srv:
+        with _serve(corpus, layout, "--epochs", "1", "--bind", f"ipc://{d}/s.sock",
+                    env={"V2V_SHM_DIR": str(link)}) as srv:
             read_all(V2VStreamDataset(srv.endpoint, timeout_s=60, shm=True), log)
             rc = srv.wait(60)
     return row("batch directory behind a symbolic link", expected, _ids(log), None,
@@ -315,8 +314,7 @@ def scenario_ipv6(tmp: Path, layout: Layout) -> dict:
     expected = expected_ids(corpus, layout)
     log: list = []
     endpoint = f"tcp://[::1]:{port}"
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args(),
-                       "--bind", endpoint]) as srv:
+    with _serve(corpus, layout, "--epochs", "1", "--bind", endpoint) as srv:
         read_all(V2VStreamDataset(endpoint, timeout_s=60), log)
         rc = srv.wait(60)
     return row("IPv6: server and trainer on tcp://[::1]", expected, _ids(log), None, f"server exit {rc}",
@@ -345,8 +343,7 @@ def scenario_scrape_storm(tmp: Path, layout: Layout, rate: float = 200.0) -> dic
     expected = expected_ids(corpus, layout)
     port = free_port()
     log: list = []
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args(),
-                       "--metrics-port", str(port)]) as srv:
+    with _serve(corpus, layout, "--epochs", "1", "--metrics-port", str(port)) as srv:
         scraper = subprocess.Popen([sys.executable, "-c", SCRAPER, f"http://127.0.0.1:{port}/metrics", str(rate)],
                                    stdout=subprocess.PIPE, text=True)
         t0 = time.monotonic()

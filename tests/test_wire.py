@@ -213,6 +213,18 @@ def test_mixed_clients_one_compressing_one_not_on_one_server(server, videos):
         client.close()
 
 
+def hellos_to(router, seconds: float):
+    """``(ident, hello)`` for each hello a fake server's ROUTER socket receives within
+    ``seconds`` (other messages are read and ignored)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if router.poll(200):
+            ident, msg = router.recv_multipart()
+            h = unpack(msg)
+            if h["type"] == "hello":
+                yield ident, h
+
+
 def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
     """A batch whose zstd frame does not decompress ends that stream with a StreamError naming
     the array; the process and other connections go on."""
@@ -229,14 +241,7 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
 
     def serve(n_clients: int) -> None:
         served = 0
-        deadline = time.monotonic() + 30
-        while served < n_clients and time.monotonic() < deadline:
-            if not router.poll(200):
-                continue
-            ident, msg = router.recv_multipart()
-            h = unpack(msg)
-            if h["type"] != "hello":
-                continue
+        for ident, h in hellos_to(router, 30):
             router.send_multipart([ident, pack({"type": "welcome", "hello_id": h.get("hello_id"),
                                                 "info": {"crop_size": 4}})])
             corrupt = h["consumer"].startswith("bad")
@@ -246,6 +251,8 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
                                                 "sample_ids": ["a#0", "a#1"], "params": [{}, {}],
                                                 "arrays": [spec]}), parts[0], bytes(bad) if corrupt else parts[1]])
             served += 1
+            if served == n_clients:
+                return
 
     import threading
 
@@ -281,14 +288,7 @@ def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_th
     hellos = []
 
     def serve() -> None:
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            if not router.poll(200):
-                continue
-            ident, msg = router.recv_multipart()
-            h = unpack(msg)
-            if h["type"] != "hello":
-                continue
+        for ident, h in hellos_to(router, 30):
             hellos.append(h.get("compression", "none"))
             if h.get("compression", "none") != "none":
                 router.send_multipart([ident, pack({"type": "error", "code": "compression", "message": "no zstd"})])
