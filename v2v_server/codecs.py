@@ -10,9 +10,9 @@ order; see ``protocol.py``); :func:`decode_batch_arrays` turns them back into (B
 Codecs (measured on real samples, one core, ``python -m bench.wire``; docs/wire.md):
 
 * ``zstd``: Zstandard level 1 (``zstandard``, the reference C library's binding), frames with
-  a content checksum (any corruption is an error): voxels 12x smaller, frames 1.9x;
-  decompression about 1.2 GB/s. The choice across hosts.
-* ``lz4``: LZ4 block format (``lz4``): voxels 6x, frames 1.6x, at about 1.5x zstd's
+  a content checksum (any corruption is an error): voxels 10x smaller, frames 1.9x;
+  decompression about 0.9 GB/s (voxels). The choice across hosts.
+* ``lz4``: LZ4 block format (``lz4``): voxels 5x, frames 1.6x, at 1.5-2.5x zstd's
   decompression speed: for a trainer host short of CPU on a fast link. The block format has
   no checksum: a malformed block is an error, altered literals are not detected.
 
@@ -29,7 +29,7 @@ from .protocol import WIRE_DTYPES, ProtocolError
 
 #: Compression settings a client may ask for; "none" sends arrays as they are.
 COMPRESSIONS = ("none", "lz4", "zstd")
-#: Zstandard level of ``zstd`` (1: 12x on voxels at 0.7 GB/s; level 3 gains 1 % for 25 % more time).
+#: Zstandard level of ``zstd`` (1: 10x on voxels, compressing at 0.65 GB/s; level 3 gains 1 % for 25 % more time).
 ZSTD_LEVEL = 1
 
 _CODECS: Dict[str, tuple] = {}
