@@ -851,6 +851,17 @@ def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: i
 
 
 
+def _acks_journaled(state_dir: Path) -> int:
+    """Acknowledged batches recorded so far in a server's ``--state-dir`` journal."""
+    import msgpack
+
+    try:
+        with open(state_dir / "delivered.journal", "rb") as f:
+            return sum(1 for r in msgpack.Unpacker(f, raw=False) if isinstance(r, dict) and "d" in r)
+    except (OSError, ValueError, msgpack.UnpackException):
+        return 0
+
+
 def scenario_independent_restart(tmp: Path, layout: Layout, journal: bool = True, late_s: float = 3.0) -> dict:
     """Two trainers that are not one DDP group read one stream, each checkpoints after 2
     batches, the server is killed (SIGKILL) and restarted (with ``--state-dir`` when
@@ -872,7 +883,11 @@ def scenario_independent_restart(tmp: Path, layout: Layout, journal: bool = True
             _take(it, 2, trained)
             states.append(ds.state_dict())
             it.close()
-        time.sleep(0.5)  # the last acks reach the server (one still in flight when it dies is not journaled)
+        # what the server journaled survives its death; an ack still in flight then does not, and its
+        # samples would go to A before B's resume state claims them: wait until all 4 acks are journaled
+        deadline = time.monotonic() + (15 if journal else 0.5)
+        while time.monotonic() < deadline and (not journal or _acks_journaled(tmp / "state") < 4):
+            time.sleep(0.1)
         srv.proc.send_signal(signal.SIGKILL)
         srv.proc.wait(10)
         srv2 = ServeProcess(args + ["--bind", srv.endpoint]).start()
