@@ -41,8 +41,8 @@ import cv2
 import numpy as np
 
 from harness.flow_scenes import EXTRA_KINDS, KINDS, SIZE, epe, motion_matrices, render, textures
-from v2v_server.flow import FlowEstimator
-from v2v_server.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, FlowUnavailable
+from v2v_server.samples.flow import FlowEstimator
+from v2v_server.samples.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, FlowUnavailable
 
 def time_option(est: FlowEstimator, sample: np.ndarray, step: int, repeats: int) -> float:
     """CPU ms for one sample's flows (min over ``repeats``; process CPU time, one thread)."""
@@ -58,7 +58,7 @@ def time_option(est: FlowEstimator, sample: np.ndarray, step: int, repeats: int)
 def time_decode(repeats: int, frames: int = 201) -> float:
     """CPU ms to decode one sample's frames (201, luma) of the bundled 596 x 336 clip, one thread:
     the cost the flow is compared with (min over ``repeats``)."""
-    from v2v_server.video import decode_luma, open_video
+    from v2v_server.videos.decode import decode_luma, open_video
 
     here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "v2v_server", "sample_videos")
     best = float("inf")
@@ -77,7 +77,7 @@ def time_decode(repeats: int, frames: int = 201) -> float:
 
 def time_voxels(sample: np.ndarray, repeats: int) -> float:
     """CPU ms of the voxels output (plain V2V, ``simulate_voxels``, 200 bins) of one sample."""
-    from v2v_server.simulate import sample_params, simulate_voxels
+    from v2v_server.simulation.simulate import sample_params, simulate_voxels
 
     params = sample_params(np.random.default_rng(0), shape=sample.shape[1:])
     best = float("inf")
@@ -161,7 +161,7 @@ def real_clip_residuals(options: List[str], crops: int = 12, seed: int = 0) -> D
     frames (4 voxels) per clip, next to the residual of zero flow. Lower means the flow explains
     more of the change between the boundary frames; it is not the flow error (motion blur,
     occlusion and lighting leave a floor, and a wrong flow can match by chance)."""
-    from v2v_server.video import decode_luma, open_video
+    from v2v_server.videos.decode import decode_luma, open_video
 
     cv2.setNumThreads(1)
     here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "v2v_server", "sample_videos")

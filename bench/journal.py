@@ -12,9 +12,9 @@ import argparse
 import tempfile
 import time
 
-from v2v_server.core import DeliveryCore, DeliveryPolicy
-from v2v_server.journal import Journal
-from v2v_server.wire import Ack, Hello
+from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+from v2v_server.delivery.journal import Journal
+from v2v_wire.messages import Ack, Hello
 
 
 class _Payload:

@@ -31,11 +31,11 @@ from typing import List, Optional
 
 from harness.faults import good_corpus
 from v2v_client import V2VStreamDataset
-from v2v_server.config import ServeConfig
+from v2v_server.ops.config import ServeConfig
 from harness.serve import ServeProcess
-from v2v_server.flow import FlowEstimator
-from v2v_server.samples import video_samples
-from v2v_server.video import find_videos
+from v2v_server.samples.flow import FlowEstimator
+from v2v_server.samples.make import video_samples
+from v2v_server.videos.decode import find_videos
 
 LAYOUT = dict(sequence_length=8, num_bins=5, crop_size=128, max_samples_per_video=10, seed=1)
 
@@ -86,7 +86,7 @@ def decode_choice(cfg: ServeConfig, corpus: Path) -> dict:
     """Decode seconds for all windows: one sequential pass per video vs one seek per window."""
     import av
 
-    from v2v_server.video import decode_luma, open_video
+    from v2v_server.videos.decode import decode_luma, open_video
 
     span, one_pass, seeks, windows = cfg.frames_per_sample, 0.0, 0.0, 0
     for rel in find_videos(corpus, cfg.video_extensions):

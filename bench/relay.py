@@ -63,10 +63,10 @@ def _sample_arrays(real: Optional[str] = None):
 def real_sample(path: str) -> None:
     """Save the first sample of the bundled 596 x 336 clip (default recipe) as a worker sends
     it (voxels int8, frames uint8, the tracked flow as ``flow_grid``) to ``path`` (.npz)."""
-    from v2v_server.config import ServeConfig
-    from v2v_server.corpus import SAMPLE_VIDEOS
-    from v2v_server.samples import video_samples
-    from v2v_server.worker import wire_arrays
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.videos.corpus import SAMPLE_VIDEOS
+    from v2v_server.samples.make import video_samples
+    from v2v_server.service.worker import wire_arrays
 
     cfg = ServeConfig().validate()
     _, arrays, _ = next(video_samples(cfg, SAMPLE_VIDEOS, "webvid_like_596x336.mp4", 0, cfg.outputs, flow_grid=True))
@@ -100,9 +100,9 @@ def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict], real
             codec: str = "none") -> None:
     import zmq
 
-    from v2v_server.datapath import SlotRing
-    from v2v_server.protocol import encode_arrays, pack
-    from v2v_server.worker import pack_arrays
+    from v2v_server.service.datapath import SlotRing
+    from v2v_wire.protocol import encode_arrays, pack
+    from v2v_server.service.worker import pack_arrays
 
     ctx = zmq.Context()
     s = ctx.socket(zmq.PUSH)
@@ -141,8 +141,8 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
            acks: Optional[str] = None, codec: str = "none") -> None:
     import zmq
 
-    from v2v_server import datapath
-    from v2v_server.protocol import narrow_int_dtype, pack, unpack
+    from v2v_server.service import datapath
+    from v2v_wire.protocol import narrow_int_dtype, pack, unpack
 
     ctx = zmq.Context()
     pull = ctx.socket(zmq.PULL)
@@ -225,8 +225,8 @@ def _client(src: str, batches: int, q, acks: Optional[str] = None) -> None:
 
     from v2v_client.connection import batch_to_torch
     from v2v_client.handoff import ShmReader
-    from v2v_server.codecs import decode_batch_arrays
-    from v2v_server.protocol import unpack
+    from v2v_wire.codecs import decode_batch_arrays
+    from v2v_wire.protocol import unpack
 
     ctx = zmq.Context()
     pull = ctx.socket(zmq.PULL)
@@ -265,7 +265,7 @@ def measure(batches: int, path: str, tmp: str, transport: str = "ipc", codec: st
     "gb", "data_gb"}`` (``gb``: bytes sent or received; ``data_gb``: the samples' uncompressed
     bytes)."""
     from harness.serve import free_port
-    from v2v_server.datapath import SlotRing, slot_bytes
+    from v2v_server.service.datapath import SlotRing, slot_bytes
 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
@@ -313,7 +313,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--paths", default=",".join(PATHS), help="comma-separated subset of " + ", ".join(PATHS))
     p.add_argument("--rounds", type=int, default=1, help="measure every path this many times, interleaved")
     p.add_argument("--transport", choices=("ipc", "tcp"), default="ipc", help="relay -> client socket")
-    p.add_argument("--compression", default="none", help="comma-separated codecs (v2v_server.codecs), each a run")
+    p.add_argument("--compression", default="none", help="comma-separated codecs (v2v_wire.codecs), each a run")
     p.add_argument("--real", action="store_true", help="a real sample (compact flow) instead of synthetic arrays")
     a = p.parse_args(argv)
     paths = [x for x in a.paths.split(",") if x]

@@ -56,7 +56,7 @@ def make_corpus(root: Path, copies: int, clip: Optional[Path] = None) -> Path:
 # ---------------------------------------------------------------------------- baselines
 def bare_decode(path: Path, repeats: int) -> float:
     """Frames per CPU-second: PyAV decode, Y plane viewed, one thread."""
-    from v2v_server.video import decode_luma, open_video
+    from v2v_server.videos.decode import decode_luma, open_video
 
     n = 0
     t = time.process_time()
@@ -116,10 +116,10 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     in this process, one thread, with the recipe's ``decode_fast`` setting."""
     import cv2
 
-    from v2v_server.config import ServeConfig
-    from v2v_server.flow import FlowEstimator
-    from v2v_server.samples import video_samples
-    from v2v_server.worker import wire_arrays
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.flow import FlowEstimator
+    from v2v_server.samples.make import video_samples
+    from v2v_server.service.worker import wire_arrays
 
     cv2.setNumThreads(1)
     cfg = ServeConfig(seed=1, crops_per_window=crops, decode_fast=decode_fast).validate()
@@ -138,7 +138,7 @@ def warm_kernel() -> None:
     """Compile (or load) the kernel's int8 and int16 count variants on a tiny clip: which one a
     sample takes depends on its thresholds, and a first use inside a measured round (a compile
     after the kernel's source changed) read 4x slower there."""
-    from v2v_server.simulate import SensorParams, simulate_voxels
+    from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 
     frames = np.random.default_rng(0).integers(0, 256, (6, 8, 8)).astype(np.uint8)
     for c in (0.2, 0.01):  # int8 straight from the kernel; int16 below the int8 bound
@@ -222,7 +222,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                 "(at least 201 frames)")
     a = p.parse_args(argv)
     clip = clip_path(a.clip)
-    from v2v_server.config import ServeConfig
+    from v2v_server.ops.config import ServeConfig
 
     default_flow = ServeConfig().flow_preset
     rows = []

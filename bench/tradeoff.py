@@ -33,11 +33,11 @@ from typing import List, Optional
 
 import numpy as np
 
-from v2v_server.protocol import narrow_int_dtype
+from v2v_wire.protocol import narrow_int_dtype
 
-from v2v_server.reference import events_to_voxels, simulate_events
-from v2v_server.refine import simulate_voxels_refined
-from v2v_server.simulate import SensorParams, simulate_voxels
+from v2v_server.simulation.reference import events_to_voxels, simulate_events
+from v2v_server.simulation.refine import simulate_voxels_refined
+from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 
 DEFAULT_CLIPS = ["bikes.mp4", "bigbuckbunny.mp4", "webvid_like_596x336.mp4"]
 
@@ -49,9 +49,9 @@ def _video_dir() -> Path:
 
 
 def read_crop(path: Path, n: int, crop: int) -> np.ndarray:
-    """First ``n`` full-range luma frames of a clip (``v2v_server.video.iter_luma``), centre crop
+    """First ``n`` full-range luma frames of a clip (``v2v_server.videos.decode.iter_luma``), centre crop
     ``crop x crop`` at native resolution: uint8 (n, crop, crop). Raises ValueError if the clip is shorter."""
-    from v2v_server.video import iter_luma
+    from v2v_server.videos.decode import iter_luma
 
     out = []
     frames = iter_luma(path)
@@ -111,7 +111,7 @@ def run_clip(frames: np.ndarray, args) -> dict:
     for k in (2, 4, 8):
         cands.append((f"uniform:{k} (ultrafast)", lambda k=k: refined(f"uniform:{k}")))
     for preset in ("fast", "medium"):
-        from v2v_server.refine import RefineSpec
+        from v2v_server.simulation.refine import RefineSpec
 
         cands.append((f"uniform:4 ({preset})", lambda p=preset: refined(RefineSpec("uniform", k=4, flow_preset=p))))
     for lam in args.lambdas:

@@ -47,7 +47,7 @@ cp "$CLIPS/bigbuckbunny.mp4" "$OUT/videos_heldout/"
     python -m harness.motion_clips --out "$OUT/videos_train" --frames 250 --size 272 480 --seed 0 > /dev/null
 
 # --keep-top-fraction 1.0: these clips carry no watermark, so crops come from the whole frame.
-python -m v2v_server.cli --videos "$OUT/videos_train" --workers 1 --bind "tcp://127.0.0.1:$PORT" \
+python -m v2v_server.ops.cli --videos "$OUT/videos_train" --workers 1 --bind "tcp://127.0.0.1:$PORT" \
     --sequence-length "$SEQ" --num-bins 5 --crop-size 64 --batch-size 4 --keep-top-fraction 1.0 \
     --seed 0 > "$OUT/serve.log" 2>&1 &
 SERVER=$!

@@ -5,7 +5,7 @@ Two parts, both on real samples (the bundled clips, the default recipe: L = 40, 
 
 1. **Bytes and codec speed** (in this process, one core): bytes per sample of each output as
    the wire carries it, for the baseline (dense float16 flow, uncompressed: the wire before the
-   compact flow) and for each compression setting (``v2v_server.codecs``: none, lz4, zstd) with
+   compact flow) and for each compression setting (``v2v_wire.codecs``: none, lz4, zstd) with
    the compact flow (``flow_grid``); each codec's compress and decompress speed (GB/s of
    uncompressed bytes, one core, best of several rounds) per output; and what the client's
    expansion of ``flow_grid`` (``v2v_client.flowgrid``) costs per sample against the float16 ->
@@ -41,10 +41,10 @@ CODECS = ("none", "lz4", "zstd")
 
 def real_samples(epochs: int = 2):
     """(compact wire arrays, baseline wire arrays) of every sample of the bundled clips."""
-    from v2v_server.config import ServeConfig
-    from v2v_server.flow import FlowEstimator
-    from v2v_server.samples import video_samples
-    from v2v_server.worker import wire_arrays
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.flow import FlowEstimator
+    from v2v_server.samples.make import video_samples
+    from v2v_server.service.worker import wire_arrays
 
     cfg = ServeConfig().validate()
     flow = FlowEstimator(cfg.flow_preset)
@@ -78,7 +78,7 @@ def _best(fn, min_s: float = 0.3, rounds: int = 3) -> float:
 
 def codec_table(compact, base) -> dict:
     """Bytes per sample per output and setting; codec speeds per output."""
-    from v2v_server import codecs
+    from v2v_wire import codecs
 
     names = list(compact[0])
     rows = {"baseline": {k: float(np.mean([s[k].nbytes for s in base])) for k in base[0]}}

@@ -24,11 +24,11 @@ from typing import List, Optional
 import zmq
 
 from v2v_client import V2VStreamDataset
-from v2v_server.config import ServeConfig
-from v2v_server.corpus import check_corpus
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.corpus import check_corpus
 from harness.serve import ServeProcess
-from v2v_server.protocol import PROTOCOL_VERSION, pack
-from v2v_server.video import scan_corpus
+from v2v_wire.protocol import PROTOCOL_VERSION, pack
+from v2v_server.videos.decode import scan_corpus
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data" / "videos"
@@ -521,7 +521,7 @@ def scenario_revoke_ignored(tmp: Path, layout: Layout, lease_s: float = 1.0, rev
         stop = threading.Event()
 
         def hog():
-            from v2v_server.protocol import unpack
+            from v2v_wire.protocol import unpack
             while not stop.is_set():
                 if s.poll(100):
                     h = unpack(s.recv_multipart()[0])

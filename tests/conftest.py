@@ -22,7 +22,7 @@ def read_luma_clip(name: str = "bikes.mp4", n: int = 60, size=(96, 128)) -> np.n
     """First n full-range luma frames of a real clip, resized to size=(H, W), uint8 (n, H, W)."""
     import cv2
 
-    from v2v_server.video import iter_luma
+    from v2v_server.videos.decode import iter_luma
 
     out = []
     frames = iter_luma(video_dir() / name)  # the stream's reader (full-range luma)
@@ -51,7 +51,7 @@ def _warm_kernel_cache():
     """Compile (or load from numba's cache) the kernel's common signatures once, before any
     test starts a server: on a cold cache every worker process would otherwise compile it
     (~15 s) while a test waits for its first batch."""
-    from v2v_server.simulate import SensorParams, simulate_voxels
+    from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 
     frames = np.zeros((6, 4, 4), np.uint8)
     simulate_voxels(frames, SensorParams(0.1, 0.1, 0.01), 5, rng=np.random.default_rng(0))

@@ -23,9 +23,9 @@ import msgpack
 import numpy as np
 import torch
 
-from v2v_server.config import ServeConfig
-from v2v_server.samples import video_samples
-from v2v_server.worker import wire_arrays
+from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.make import video_samples
+from v2v_server.service.worker import wire_arrays
 from v2v_client.flowgrid import expand_flow_grid
 
 ROOT = Path(__file__).resolve().parents[1]

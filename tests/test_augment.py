@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from v2v_server.augment import augment_plan, degrade_dynamic_range, parse_degrade, video_thresholds
-from v2v_server.config import ServeConfig
-from v2v_server.samples import plan_window, video_samples
-from v2v_server.simulate import ParamRanges
+from v2v_server.samples.augment import augment_plan, degrade_dynamic_range, parse_degrade, video_thresholds
+from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.make import plan_window, video_samples
+from v2v_server.simulation.simulate import ParamRanges
 
 OUTS = ("voxels", "frames", "flow")
 DIFFERENT_KEYS = {"pos_threshold", "neg_threshold", "fixed_sensor_params"}  # what fixed_sensor_params changes

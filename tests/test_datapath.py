@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from v2v_server.datapath import make_batch, sample_from_worker
-from v2v_server.protocol import decode_arrays, encode_arrays
+from v2v_server.service.datapath import make_batch, sample_from_worker
+from v2v_wire.protocol import decode_arrays, encode_arrays
 
 
 def _sample(i, vox_dtype=np.int8):
@@ -48,9 +48,9 @@ def test_voxels_widen_to_the_batch_and_subset_before_stacking():
 
 
 def test_worker_float16_narrowing_is_numpys_cast_bit_for_bit():
-    from v2v_server.config import ServeConfig
-    from v2v_server.flow import to_float16
-    from v2v_server.worker import wire_arrays
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.flow import to_float16
+    from v2v_server.service.worker import wire_arrays
 
     rng = np.random.default_rng(0)
     flow = (rng.standard_normal((3, 2, 16, 24)) * 40).astype(np.float32)

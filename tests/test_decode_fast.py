@@ -3,9 +3,9 @@ pixels only slightly; a bad name is a clear error naming the key."""
 import numpy as np
 import pytest
 
-from v2v_server.config import ServeConfig
-from v2v_server.corpus import SAMPLE_VIDEOS
-from v2v_server.video import DECODE_FAST, decode_luma, open_video
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.corpus import SAMPLE_VIDEOS
+from v2v_server.videos.decode import DECODE_FAST, decode_luma, open_video
 
 
 def luma(fast: str) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Stateful property tests of the pure delivery core (scheduler + ledger + batching).
 
-A hypothesis ``RuleBasedStateMachine`` drives ``v2v_server.core.DeliveryCore`` with simulated
+A hypothesis ``RuleBasedStateMachine`` drives ``v2v_server.delivery.core.DeliveryCore`` with simulated
 workers and trainers: trainers join, take, ack, break out of their loop, go silent, come back,
 crash and resume from any older checkpoint; workers die, hang and send late copies; files fail
 part-way. After every step:
@@ -26,10 +26,10 @@ import pytest
 from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
-from v2v_server.core import DeliveryCore, DeliveryPolicy
-from v2v_server.ledger import BatchRecord, DeliveryLedger
-from v2v_server.schedule import EpochScheduler, parse_sample_id, sample_id
-from v2v_server.wire import Ack, Bye, Heartbeat, Hello, Released, Resume
+from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
+from v2v_server.delivery.schedule import EpochScheduler, parse_sample_id, sample_id
+from v2v_wire.messages import Ack, Bye, Heartbeat, Hello, Released, Resume
 
 # corpus: windows per video; bad.mp4's window 1 changes frame size (fails every epoch), trunc.mp4
 # fails to decode inside window 2 (the pass stops there every epoch), empty.mp4 has no window

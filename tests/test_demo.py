@@ -7,7 +7,7 @@ import threading
 import pytest
 
 from v2v_client import demo
-from v2v_server.local import local_server
+from v2v_server.service.local import local_server
 
 
 @pytest.mark.timeout(240)

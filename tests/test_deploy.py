@@ -17,8 +17,8 @@ import yaml
 
 from trainer.config import apply_overrides, load_config as load_trainer_config
 from trainer.train import build_arg_parser as train_parser
-from v2v_server.cli import build_parser as serve_parser, config_from_args
-from v2v_server.datapath import shm_bytes
+from v2v_server.ops.cli import build_parser as serve_parser, config_from_args
+from v2v_server.service.datapath import shm_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -211,7 +211,7 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
             assert argv[:2] == ["sh", "-c"] and "v2v-keygen" in argv[2]
             keys_mount = under("/keys", mounts)["mountPath"]
             line = argv[2].replace(keys_mount, str(tmp_path / "keys")).replace(
-                "v2v-keygen", f"{shlex.quote(sys.executable)} -m v2v_server.keygen")
+                "v2v-keygen", f"{shlex.quote(sys.executable)} -m v2v_server.ops.keygen")
             subprocess.run(["sh", "-c", line], check=True, capture_output=True, timeout=60)
             continue
         prog, args = p

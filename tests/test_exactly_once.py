@@ -13,10 +13,10 @@ import pytest
 from harness import faults
 from harness.faults import Layout
 from v2v_client import StreamError, V2VStreamDataset
-from v2v_server.config import load_config
+from v2v_server.ops.config import load_config
 from harness.serve import ServeProcess
-from v2v_server.protocol import PROTOCOL_VERSION
-from v2v_server.wire import MAX_CONTAINERS, WireError, decode_client
+from v2v_wire.protocol import PROTOCOL_VERSION
+from v2v_wire.messages import MAX_CONTAINERS, WireError, decode_client
 
 LAYOUT = Layout(L=4, crop=64, windows=2, batch=2)
 
@@ -119,7 +119,7 @@ def test_outputs_follow_the_clients_and_limits_are_clear(tmp_path):
         it2.close()
         with pytest.raises(StreamError, match="at most 8 batches in flight"):
             next(iter(V2VStreamDataset(srv.endpoint, credits=9, timeout_s=30)))
-    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--workers", "2000", "--check"],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--workers", "2000", "--check"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "workers must be <= 256" in out.stderr
     cfg = tmp_path / "c.yaml"
@@ -136,7 +136,7 @@ def test_check_names_the_window_where_the_frame_size_changes(tmp_path):
 
     span = LAYOUT.L * 5 + 1
     write_size_change_video(tmp_path / "sc.mpg", span + span // 2, 2 * span)
-    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(tmp_path),
+    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(tmp_path),
                           *LAYOUT.args(), "--max-samples-per-video", "3"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "2 window(s)" in out.stdout and "window 1: frame size changed from 320x240 to 256x192" in out.stdout

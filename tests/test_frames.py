@@ -10,7 +10,7 @@ import av
 import numpy as np
 import pytest
 
-from v2v_server.video import (choose_video_stream, is_full_range, iter_luma, open_video, range_table,
+from v2v_server.videos.decode import (choose_video_stream, is_full_range, iter_luma, open_video, range_table,
                               to_uint8)
 
 S = 64  # clip side, pixels
@@ -153,8 +153,8 @@ def test_served_end_to_end_full_range_rotated_and_cover(tmp_path):
 
 def test_ten_bit_clip_feeds_the_core_at_full_precision(tmp_path, monkeypatch):
     """A 10-bit clip reaches the V2V core as uint16 0..65535; its frames output is 8-bit full range."""
-    from v2v_server import samples
-    from v2v_server.config import ServeConfig
+    from v2v_server.samples import make as samples
+    from v2v_server.ops.config import ServeConfig
 
     write_clip(tmp_path / "deep.mkv", pattern(), n=6, pix_fmt="yuv420p10le")
     seen = []

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from v2v_client.handoff import ShmReader, check_shm_dir
-from v2v_server.datapath import BatchAssembler, BatchDir, make_batch, remove_stale_shm
-from v2v_server.protocol import ProtocolError
+from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch, remove_stale_shm
+from v2v_wire.protocol import ProtocolError
 
 from .conftest import video_dir
 
@@ -149,7 +149,7 @@ def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root, nam
     import sys
     import time
 
-    from v2v_server.datapath import SlotRing
+    from v2v_server.service.datapath import SlotRing
 
     from harness.faults_deploy import pid_namespace
 
@@ -158,7 +158,7 @@ def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root, nam
         pytest.skip("unshare -p is not permitted on this machine")
     live = subprocess.Popen([*wrap, sys.executable, "-c", (
         "import sys, time\n"
-        "from v2v_server.datapath import BatchDir, SlotRing\n"
+        "from v2v_server.service.datapath import BatchDir, SlotRing\n"
         f"d = BatchDir.create({shm_root!r}); r = SlotRing.create(2, 4096, {shm_root!r})\n"
         "print(d.path, r.path, flush=True); time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
     live_dir, live_ring = live.stdout.readline().split()
@@ -264,7 +264,7 @@ def test_a_symlinked_batch_directory_is_refused_and_batches_come_over_the_socket
 
     from v2v_client import V2VStreamDataset
     from v2v_client.handoff import shm_dir_problem
-    from v2v_server.protocol import pack, unpack
+    from v2v_wire.protocol import pack, unpack
 
     target = tmp_path / "elsewhere"
     target.mkdir()

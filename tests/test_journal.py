@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from v2v_server.journal import FILE, Journal, JournalError
+from v2v_server.delivery.journal import FILE, Journal, JournalError
 
 
 def test_records_survive_a_restart_and_a_resume_state_replaces_them(tmp_path):

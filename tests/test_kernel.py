@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from tests.conftest import read_luma_clip
-from v2v_server.kernel import (NOISE_LANES, NOISE_MAX, _jsf_words, _ln32, _sincos_turn, full_scale_of,
+from v2v_server.simulation.kernel import (NOISE_LANES, NOISE_MAX, _jsf_words, _ln32, _sincos_turn, full_scale_of,
                                noise_field, run_kernel)
-from v2v_server.nonideal import NonIdealities, draw_pixel_state, simulate_voxels_nonideal
-from v2v_server.refine import simulate_voxels_refined
-from v2v_server.simulate import SensorParams, log_intensity_lut, simulate_voxels
+from v2v_server.simulation.nonideal import NonIdealities, draw_pixel_state, simulate_voxels_nonideal
+from v2v_server.simulation.refine import simulate_voxels_refined
+from v2v_server.simulation.simulate import SensorParams, log_intensity_lut, simulate_voxels
 
 
 def test_noise_is_standard_normal():
@@ -222,7 +222,7 @@ def test_narrow_writes_int8_in_one_pass_when_the_bound_allows(monkeypatch, c, am
     largest noise draw + twice the largest of potential and threshold, over the smaller
     threshold) is written int8 by one kernel call; below that bound the kernel writes int16
     and the result is narrowed afterwards. Both equal the int32 counts."""
-    import v2v_server.kernel as kernel_mod
+    import v2v_server.simulation.kernel as kernel_mod
 
     calls = []
     real = kernel_mod._kernel
@@ -247,7 +247,7 @@ def test_noise_transform_compiles_without_fused_multiply_add():
     fastmath), so their bits do not depend on whether the host has FMA: no fused instruction in
     the compiled transform (compiled afresh here: a function loaded from numba's cache keeps
     no assembly to inspect)."""
-    from v2v_server.kernel import _box_muller
+    from v2v_server.simulation.kernel import _box_muller
 
     fresh = numba.njit(error_model="numpy")(_box_muller.py_func)
     words = np.arange(64, dtype=np.uint32) * np.uint32(2654435761)

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from harness import motion_clips as mc
-from v2v_server.config import ServeConfig
-from v2v_server.corpus import check_video
-from v2v_server.video import decode_luma, open_video
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.corpus import check_video
+from v2v_server.videos.decode import decode_luma, open_video
 
 
 def test_camera_path_is_smooth_and_starts_at_rest():

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from tests.conftest import read_luma_clip
-from v2v_server.nonideal import NonIdealities, draw_pixel_state, effective_noise, simulate_voxels_nonideal
-from v2v_server.simulate import SensorParams, simulate_voxels
+from v2v_server.simulation.nonideal import NonIdealities, draw_pixel_state, effective_noise, simulate_voxels_nonideal
+from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 
 STATIC = np.full((101, 40, 50), 120, np.uint8)  # 100 frame pairs of a static scene
 
@@ -58,7 +58,7 @@ def test_threshold_mismatch_spreads_per_pixel_counts():
                                          initial_potential=np.zeros((30, 30)))
     assert plain.sum(axis=(0, 1)).std() == 0  # every pixel sees the same ramp
     # each pixel fires floor(total log change / its own c+) ON events
-    from v2v_server.reference import log_frames
+    from v2v_server.simulation.reference import log_frames
 
     total = log_frames(ramp[-1:])[0] - log_frames(ramp[:1])[0]
     np.testing.assert_array_equal(mis.sum(axis=(0, 1)), np.floor(total / st.pos_threshold))

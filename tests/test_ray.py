@@ -17,7 +17,7 @@ ray = pytest.importorskip("ray", reason="the 'ray' extra is not installed (pip i
 pytest.importorskip("ray.data", reason="the 'ray' extra is not installed (pip install -e '.[ray]')")
 
 from v2v_client import V2VStreamDataset  # noqa: E402
-from v2v_server.config import ServeConfig  # noqa: E402
+from v2v_server.ops.config import ServeConfig  # noqa: E402
 from harness.serve import ServeProcess  # noqa: E402
 from v2v_server.ray_data import epoch_descriptors, scan_corpus_windows, v2v_dataset  # noqa: E402
 

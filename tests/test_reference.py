@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from tests.conftest import read_luma_clip
-from v2v_server.reference import (
+from v2v_server.simulation.reference import (
     Events,
     events_to_voxels,
     interpolate_pair,
@@ -15,7 +15,7 @@ from v2v_server.reference import (
     voxel_discrete,
     voxel_interpolated,
 )
-from v2v_server.simulate import SensorParams, simulate_voxels
+from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 
 SHAPE = (64, 80)
 

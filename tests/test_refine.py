@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from tests.conftest import read_luma_clip
-from v2v_server.flow import dis_flow
-from v2v_server.reference import events_to_voxels, simulate_events
-from v2v_server.refine import RefineSpec, parse_refine, refine_frames, simulate_voxels_refined
-from v2v_server.simulate import SensorParams, simulate_voxels
+from v2v_server.samples.flow import dis_flow
+from v2v_server.simulation.reference import events_to_voxels, simulate_events
+from v2v_server.simulation.refine import RefineSpec, parse_refine, refine_frames, simulate_voxels_refined
+from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 
 SHAPE = (64, 80)
 
@@ -90,7 +90,7 @@ def test_adaptive_refines_only_moving_pairs():
 
 def test_adaptive_dl_counts_log_change(clip):
     _, info = refine_frames(clip, "adaptive-dl:0.5")
-    from v2v_server.reference import log_frames
+    from v2v_server.simulation.reference import log_frames
 
     dl = np.abs(np.diff(log_frames(clip), axis=0)).max(axis=(1, 2))
     np.testing.assert_array_equal(info["subframes"], np.clip(np.ceil(dl / 0.5), 1, 16))

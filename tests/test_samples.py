@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from v2v_server import samples as samples_mod
-from v2v_server.config import ServeConfig, load_config
-from v2v_server.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
-from v2v_server.samples import pause_offsets, sample_rng, video_samples
+from v2v_server.samples import make as samples_mod
+from v2v_server.ops.config import ServeConfig, load_config
+from v2v_wire.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
+from v2v_server.samples.make import pause_offsets, sample_rng, video_samples
 
 
 def small_cfg(**kw):
@@ -97,7 +97,7 @@ def test_sample_rng_is_stable_across_processes():
     import subprocess
     import sys
 
-    code = "from v2v_server.samples import sample_rng; print(sample_rng(5, 2, 'x/a.mp4#3').integers(0, 2**62))"
+    code = "from v2v_server.samples.make import sample_rng; print(sample_rng(5, 2, 'x/a.mp4#3').integers(0, 2**62))"
     outs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60,
                            env=dict(os.environ, PYTHONHASHSEED=str(h))).stdout.strip() for h in (1, 2)}
     assert outs == {str(sample_rng(5, 2, "x/a.mp4#3").integers(0, 2**62))}
@@ -143,7 +143,7 @@ def test_config_yaml_and_flags(tmp_path):
     p.write_text("keep_top_fraction: 0\n")
     with pytest.raises(ValueError, match="keep_top_fraction"):
         load_config(str(p))
-    from v2v_server.cli import build_parser, config_from_args
+    from v2v_server.ops.cli import build_parser, config_from_args
     args = build_parser().parse_args(["--keep-top-fraction", "1.0", "--crop-size", "64"])
     assert config_from_args(args).keep_top_fraction == 1.0
     p.write_text("a: [unclosed\n")
@@ -199,7 +199,7 @@ def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
 def test_crops_per_window_ids_content_and_resume(videos):
     """K crops of one decoded window: ids path#window.crop, each crop its own plan (own crop
     corner, flip, pauses, sensor parameters) drawn from its id, made alike alone or together."""
-    from v2v_server.ids import parse_sample_id
+    from v2v_wire.ids import parse_sample_id
 
     cfg = small_cfg(crops_per_window=3, max_samples_per_video=2)
     got = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames")))
@@ -229,7 +229,7 @@ def test_crops_per_window_ids_content_and_resume(videos):
 @pytest.mark.parametrize("sid,k,expect", [("a/b.mp4#3", 1, ("a/b.mp4", 3)), ("a#b.mp4#3.2", 4, ("a#b.mp4", 14)),
                                           ("x.mp4#0.0", 2, ("x.mp4", 0))])
 def test_sample_id_round_trip(sid, k, expect):
-    from v2v_server.ids import make_sample_id, parse_sample_id
+    from v2v_wire.ids import make_sample_id, parse_sample_id
 
     assert parse_sample_id(sid, k) == expect
     video, idx = expect
@@ -239,7 +239,7 @@ def test_sample_id_round_trip(sid, k, expect):
 @pytest.mark.parametrize("sid,k", [("a.mp4#3.1", 1), ("a.mp4#3", 2), ("a.mp4#3.2", 2), ("a.mp4", 1), ("#3", 1),
                                    ("a.mp4#-1", 1), ("a.mp4#x", 1), (7, 1), ("a.mp4#٣", 1)])
 def test_sample_id_parse_rejects(sid, k):
-    from v2v_server.ids import parse_sample_id
+    from v2v_wire.ids import parse_sample_id
 
     with pytest.raises(ValueError, match="sample id"):
         parse_sample_id(sid, k)
@@ -253,7 +253,7 @@ def test_crops_per_window_config_validation():
 @pytest.mark.parametrize("flip", [False, True])
 @pytest.mark.parametrize("x", [0, 5, 468])
 def test_crop_cut_slices_as_crop_frame(flip, x):
-    from v2v_server.samples import _CropCut, crop_frame, plan_window
+    from v2v_server.samples.make import _CropCut, crop_frame, plan_window
 
     cfg = ServeConfig(seed=2).validate()
     codes = np.random.default_rng(x).integers(0, 256, (181, 596)).astype(np.uint8)

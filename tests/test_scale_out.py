@@ -20,11 +20,11 @@ import torch
 
 from v2v_client import V2VStreamDataset
 from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
-from v2v_server.config import ServeConfig, parse_shard
-from v2v_server.corpus import check_corpus, select_shard, shard_of
-from v2v_server.logs import JsonFormatter
+from v2v_server.ops.config import ServeConfig, parse_shard
+from v2v_server.videos.corpus import check_corpus, select_shard, shard_of
+from v2v_server.ops.logs import JsonFormatter
 from harness.serve import ServeProcess, free_port
-from v2v_server.video import scan_corpus
+from v2v_server.videos.decode import scan_corpus
 
 L, CROP, WINDOWS, BATCH = 4, 64, 2, 2
 OUTPUTS = ("voxels", "frames")
@@ -80,7 +80,7 @@ def test_shards_partition_any_corpus_and_the_hash_is_stable_across_processes():
         assert sorted(sum(parts, [])) == sorted(names)  # every file in exactly one shard
         assert all(len(p) > 0 for p in parts)
     # the hash does not depend on Python's per-process salt (PYTHONHASHSEED) nor on the host
-    code = "from v2v_server.corpus import shard_of; print([shard_of(f'dir/c{i}.mp4', 4) for i in range(50)])"
+    code = "from v2v_server.videos.corpus import shard_of; print([shard_of(f'dir/c{i}.mp4', 4) for i in range(50)])"
     outs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                            env=dict(os.environ, PYTHONHASHSEED=str(seed))).stdout for seed in (1, 2)}
     assert len(outs) == 1 and json.loads(outs.pop()) == [shard_of(f"dir/c{i}.mp4", 4) for i in range(50)]
@@ -89,7 +89,7 @@ def test_shards_partition_any_corpus_and_the_hash_is_stable_across_processes():
 def test_check_lists_only_the_shards_files_and_logs_json(videos):
     found = [p.as_posix() for p in scan_corpus(videos, (".mp4",))[0]]
     for i in range(2):
-        r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(videos), "--shard",
+        r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(videos), "--shard",
                             f"{i}/2", "--log-format", "json", *layout()], capture_output=True, text=True, timeout=120)
         listed = [ln.split()[0] for ln in r.stdout.splitlines()[1:-1] if " ignored " not in ln]
         assert sorted(listed) == sorted(select_shard(found, i, 2)), r.stdout
@@ -354,7 +354,7 @@ def test_metrics_probes_and_counters_move(videos):
 
 
 def test_progress_line_shows_epoch_rate_clients_and_workers(capsys):
-    from v2v_server.metrics import ServerMetrics
+    from v2v_server.ops.metrics import ServerMetrics
 
     m = ServerMetrics(progress=True)
     state = dict(epoch=2, epoch_videos=3, epoch_videos_done=1, clients={"ab": (1, 2), "cd": (0, 4)}, workers=4,

@@ -8,14 +8,14 @@ import pytest
 
 from harness.faults import Layout, good_corpus
 from v2v_client import StreamTimeout, V2VStreamDataset
-from v2v_server.config import ServeConfig, is_loopback, load_config
+from v2v_server.ops.config import ServeConfig, is_loopback, load_config
 from harness.serve import ServeProcess
 
 LAYOUT = Layout(L=4, crop=64, windows=1, batch=1)
 
 
 def keygen(folder, name):
-    out = subprocess.run([sys.executable, "-m", "v2v_server.keygen", name, "--out", str(folder)],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.keygen", name, "--out", str(folder)],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     return folder / f"{name}.key", folder / f"{name}.key_secret"
@@ -51,7 +51,7 @@ def test_non_loopback_bind_needs_keys_or_insecure(tmp_path):
         ServeConfig(bind="tcp://0.0.0.0:5555").validate()
     assert ServeConfig(bind="tcp://0.0.0.0:5555", insecure=True).validate().insecure
     # the CLI refuses before binding anything
-    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--bind", "tcp://0.0.0.0:5999"],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--bind", "tcp://0.0.0.0:5999"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "curve_secret_key" in out.stderr and "--insecure" not in out.stdout
     with pytest.raises(ValueError, match="together"):
@@ -72,7 +72,7 @@ def test_sample_ids_cannot_name_files(tmp_path):
     corpus = good_corpus(tmp_path)
     import zmq
 
-    from v2v_server.protocol import pack, unpack
+    from v2v_wire.protocol import pack, unpack
 
     with ServeProcess(["--videos", str(corpus), "--workers", "1", *LAYOUT.args()]) as srv:
         ctx = zmq.Context()

@@ -1,4 +1,4 @@
-"""Declarative configuration (v2v_server/settings.py): flags derived from the models, YAML with
+"""Declarative configuration (v2v_server/ops/settings.py): flags derived from the models, YAML with
 YAML 1.2 floats, field-named errors, and the reference page kept current."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from typing import Optional
 
 import pytest
 
-from v2v_server.config import SampleRecipe, ServeConfig, ServingSettings, load_config
-from v2v_server.settings import (add_flags, check_choice, check_float, check_int, check_prob, flag_values, load_yaml,
+from v2v_server.ops.config import SampleRecipe, ServeConfig, ServingSettings, load_config
+from v2v_server.ops.settings import (add_flags, check_choice, check_float, check_int, check_prob, flag_values, load_yaml,
                                  reference_markdown, setting)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,9 +57,9 @@ def test_every_serve_key_is_a_flag_or_yaml_only_and_the_reference_lists_it():
 
 
 def test_docs_config_md_is_the_generated_reference():
-    out = subprocess.run([sys.executable, "-m", "v2v_server.config", "--markdown"], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.config", "--markdown"], capture_output=True, text=True,
                          check=True, cwd=ROOT).stdout
-    assert (ROOT / "docs" / "config.md").read_text() == out, "re-run: python -m v2v_server.config --markdown > docs/config.md"
+    assert (ROOT / "docs" / "config.md").read_text() == out, "re-run: python -m v2v_server.ops.config --markdown > docs/config.md"
 
 
 def test_yaml_floats_and_errors_name_the_file(tmp_path):
@@ -119,7 +119,7 @@ def test_trainer_config_is_declared_once_and_its_reference_is_current():
 
 
 def test_workers_get_the_recipe_only():
-    from v2v_server.worker import worker_config
+    from v2v_server.service.worker import worker_config
 
     cfg = load_config(None, {"seed": 7, "workers": 3, "crops_per_window": 2, "lease_s": 5.0})
     w = worker_config(cfg)

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from v2v_server.datapath import (BatchAssembler, SlotRing, create_ring, make_batch, sample_from_slot,
+from v2v_server.service.datapath import (BatchAssembler, SlotRing, create_ring, make_batch, sample_from_slot,
                                  sample_from_worker, slot_bytes)
-from v2v_server.protocol import ProtocolError, encode_arrays
+from v2v_wire.protocol import ProtocolError, encode_arrays
 
 from .conftest import video_dir
 
@@ -138,9 +138,9 @@ def _die_before_mapping(*args):
 
 
 def test_a_worker_that_dies_before_mapping_its_ring_leaks_nothing(tmp_path, monkeypatch):
-    from v2v_server.config import ServeConfig
-    from v2v_server.pool import WorkerPool
-    from v2v_server.worker import worker_config
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.service.pool import WorkerPool
+    from v2v_server.service.worker import worker_config
 
     monkeypatch.setenv("V2V_SHM_DIR", str(tmp_path))
     cfg = ServeConfig(sequence_length=L, num_bins=NB, crop_size=S).validate()
@@ -195,8 +195,8 @@ def test_a_worker_with_every_slot_taken_blocks_until_the_server_gives_one_back(t
 
     import zmq
 
-    from v2v_server.protocol import pack
-    from v2v_server.worker import _Inbox
+    from v2v_wire.protocol import pack
+    from v2v_server.service.worker import _Inbox
 
     ring = SlotRing.create(2, slot_bytes(L, NB, S), str(tmp_path))
     ctx = zmq.Context()

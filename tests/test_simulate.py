@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from v2v_server.simulate import SensorParams, ParamRanges, sample_params, simulate_voxels
+from v2v_server.simulation.simulate import SensorParams, ParamRanges, sample_params, simulate_voxels
 
 
 def reference_v2v(frames, cp, cn, num_bins, potential0, noise=None, hot=None):

@@ -21,9 +21,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from tests.conftest import read_luma_clip
-from v2v_server.kernel import noise_field
-from v2v_server.protocol import narrow_int_dtype
-from v2v_server.simulate import SensorParams, log_intensity_lut, simulate_voxels
+from v2v_server.simulation.kernel import noise_field
+from v2v_wire.protocol import narrow_int_dtype
+from v2v_server.simulation.simulate import SensorParams, log_intensity_lut, simulate_voxels
 
 H, W = 4, 5
 

@@ -15,10 +15,10 @@ import zmq
 
 from v2v_client import StreamTimeout, V2VStreamDataset
 from harness.serve import ServeProcess, free_port
-from v2v_server.protocol import decode_arrays, pack, unpack
-from v2v_server.config import ServeConfig
-from v2v_server.corpus import check_video
-from v2v_server.video import find_videos
+from v2v_wire.protocol import decode_arrays, pack, unpack
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.corpus import check_video
+from v2v_server.videos.decode import find_videos
 
 
 
@@ -180,11 +180,11 @@ def test_loadtest_cli_reports_json(videos):
 def test_bad_config_fails_at_startup_naming_field(tmp_path, videos):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("num_bins: 0\n")
-    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--config", str(cfg), "--videos", str(videos)],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--config", str(cfg), "--videos", str(videos)],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "num_bins" in out.stderr and str(cfg) in out.stderr
     cfg.write_text("sequence_lenght: 10\n")
-    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--config", str(cfg)],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--config", str(cfg)],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "sequence_lenght" in out.stderr
 
@@ -194,7 +194,7 @@ def test_sigterm_ends_a_worker_at_once_without_unwinding_through_library_code():
     from the handler would be caught by whatever code the signal lands in (numba's compiler
     catches and prints them) and print a traceback on a clean shutdown."""
     code = ("import os, signal, time\n"
-            "from v2v_server.worker import exit_on_sigterm\n"
+            "from v2v_server.service.worker import exit_on_sigterm\n"
             "exit_on_sigterm()\n"
             "try:\n"
             "    os.kill(os.getpid(), signal.SIGTERM)\n"
@@ -227,7 +227,7 @@ def test_ipv6_loopback_on_both_ends(videos):
 def test_a_workers_socket_path_too_long_is_blamed_on_tmpdir_not_the_endpoint(videos, tmp_path):
     deep = tmp_path / ("d" * 60) / ("e" * 60)
     deep.mkdir(parents=True)
-    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(videos), "--bind",
+    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(videos), "--bind",
                           f"tcp://127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60,
                          env={**__import__("os").environ, "TMPDIR": str(deep)})
     assert out.returncode == 2

@@ -16,13 +16,13 @@ import zmq
 
 from harness.serve import ServeProcess
 from v2v_client import StreamError, V2VStreamDataset, expand_flow_grid
-from v2v_server.codecs import decode_batch_arrays
-from v2v_server.config import ServeConfig
-from v2v_server.flow import FlowEstimator, to_float16
-from v2v_server.ids import parse_sample_id
-from v2v_server.protocol import OUTPUTS, is_loopback, pack, unpack
-from v2v_server.samples import make_sample, video_samples
-from v2v_server.worker import wire_arrays
+from v2v_wire.codecs import decode_batch_arrays
+from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.flow import FlowEstimator, to_float16
+from v2v_wire.ids import parse_sample_id
+from v2v_wire.protocol import OUTPUTS, is_loopback, pack, unpack
+from v2v_server.samples.make import make_sample, video_samples
+from v2v_server.service.worker import wire_arrays
 
 L, B, CROP, MAXW, SEED = 8, 5, 96, 2, 7
 
@@ -112,7 +112,7 @@ def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_cl
     est = FlowEstimator("ultrafast")
     with pytest.raises(ValueError, match="only tracked options"):
         est.voxel_flow_grids(real_clip[: 2 * B + 1], B)
-    from v2v_server.samples import plan_window
+    from v2v_server.samples.make import plan_window
 
     plan = plan_window(cfg, 0, "x.mp4#0", 0, (real_clip.shape[1], real_clip.shape[2]))
     frames = np.zeros((plan.consumed, CROP, CROP), np.uint8)
@@ -228,7 +228,7 @@ def hellos_to(router, seconds: float):
 def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
     """A batch whose zstd frame does not decompress ends that stream with a StreamError naming
     the array; the process and other connections go on."""
-    from v2v_server import codecs
+    from v2v_wire import codecs
 
     ctx = zmq.Context.instance()
     router = ctx.socket(zmq.ROUTER)

@@ -5,14 +5,14 @@ so the trainer can be unit-tested without a running ``v2v-serve``.
 Each sample is a window sliding over a real video frame (bikes.mp4) by a constant
 (sx, sy) pixels per video frame, so the ground-truth optical flow between voxel
 boundaries is exact: (num_bins * sx, num_bins * sy) pixels. Voxels come from the real
-V2V core (``v2v_server.simulate.simulate_voxels``).
+V2V core (``v2v_server.simulation.simulate.simulate_voxels``).
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from v2v_server.simulate import SensorParams, simulate_voxels
+from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 from tests.conftest import read_luma_clip
 
 

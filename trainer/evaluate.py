@@ -19,7 +19,7 @@ Inputs:
   Ground-truth pixels that are NaN in either component or zero in both (no depth) are not
   scored; a flow with no valid pixel gives NaN metrics, which the means skip.
 * Videos (``--video``), whose voxels are simulated with the V2V core
-  (``v2v_server.simulate.simulate_voxels``), for held-out clips without an event file.
+  (``v2v_server.simulation.simulate.simulate_voxels``), for held-out clips without an event file.
 
 Voxels follow the paper's discrete voxel definition: between consecutive frames at t_i and
 t_{i+1}, event k falls in bin ``floor(B * (t_k - t_i) / (t_{i+1} - t_i))`` and the bin
@@ -187,7 +187,7 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
     truth of voxel l is the frame at its end.
 
     Args:
-        path: video file, read like the stream reads it (``v2v_server.video.iter_luma``:
+        path: video file, read like the stream reads it (``v2v_server.videos.decode.iter_luma``:
             full-range, display-oriented luma; uint16 for sources deeper than 8 bits).
         num_bins: B.
         contrast_threshold: c+ = c- (log-intensity units); no noise or hot pixels.
@@ -200,8 +200,8 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
     """
     import cv2
 
-    from v2v_server.simulate import SensorParams, simulate_voxels
-    from v2v_server.video import iter_luma, to_uint8
+    from v2v_server.simulation.simulate import SensorParams, simulate_voxels
+    from v2v_server.videos.decode import iter_luma, to_uint8
 
     out = []
     frames_it = iter_luma(path)  # the stream's reader: full-range, display-oriented luma

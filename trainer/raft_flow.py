@@ -9,7 +9,7 @@ the default ``stream`` uses the flow the server sends.
 
 RAFT needs torchvision and local weights (nothing is downloaded): ``loss.raft_weights``, else
 ``$V2V_RAFT_WEIGHTS``, else torchvision's cache ``$TORCH_HOME/hub/checkpoints/raft_<size>*.pth``
-(``v2v_server.flow_options.raft_weights``: the server's RAFT flow option looks in the same
+(``v2v_server.samples.flow_options.raft_weights``: the server's RAFT flow option looks in the same
 places). :func:`load_raft` checks both before the first step and raises
 :class:`FlowSourceUnavailable` naming what is missing.
 
@@ -40,11 +40,11 @@ class FlowSourceUnavailable(RuntimeError):
 def raft_weight_candidates(size: str, weights: Optional[str] = None) -> List[Path]:
     """Where RAFT ``size`` ("small" or "large") weights are looked for: ``weights``
     (``loss.raft_weights``) alone when given, else the server's places
-    (``v2v_server.flow_options.raft_weight_places``: ``$V2V_RAFT_WEIGHTS``, else
+    (``v2v_server.samples.flow_options.raft_weight_places``: ``$V2V_RAFT_WEIGHTS``, else
     ``$TORCH_HOME/hub/checkpoints/raft_<size>*.pth``, a pattern), the first file found first."""
     if weights:
         return [Path(weights)]
-    from v2v_server.flow_options import raft_weight_places, raft_weights
+    from v2v_server.samples.flow_options import raft_weight_places, raft_weights
 
     found = raft_weights(size)
     return [found] if found is not None else raft_weight_places(size)

@@ -35,9 +35,9 @@ from typing import Dict, Iterable, Optional
 import numpy as np
 import torch
 
-from v2v_server.config import ServingSettings
-from v2v_server.protocol import OUTPUTS
-from v2v_server.settings import add_flags, flag_values
+from v2v_server.ops.config import ServingSettings
+from v2v_wire.protocol import OUTPUTS
+from v2v_server.ops.settings import add_flags, flag_values
 
 from .core import Trainer
 from .data import drop_padding
@@ -275,8 +275,8 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
     except ImportError:
         log.error("--engine ray needs Ray: pip install 'v2v[ray]'")
         return 2
-    from v2v_server.config import load_config as load_serve_config
-    from v2v_server.corpus import SAMPLE_VIDEOS
+    from v2v_server.ops.config import load_config as load_serve_config
+    from v2v_server.videos.corpus import SAMPLE_VIDEOS
     from v2v_server.ray_data import scan_corpus_windows, v2v_dataset
 
     try:

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 import zmq
 
-from v2v_server.codecs import decode_batch_arrays
-from v2v_server.protocol import MAX_CLIENT_MSG, ProtocolError, is_ipv6, output_of, pack, unpack
+from v2v_wire.codecs import decode_batch_arrays
+from v2v_wire.protocol import MAX_CLIENT_MSG, ProtocolError, is_ipv6, output_of, pack, unpack
 
 from .flowgrid import expand_flow_grid
 from .handoff import ShmReader, check_shm_dir, shm_dir_problem

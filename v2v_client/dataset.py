@@ -22,8 +22,8 @@ from typing import Iterator, Optional, Sequence, Tuple, Union
 
 import torch
 
-from v2v_server.codecs import available, check_compression
-from v2v_server.protocol import OUTPUTS
+from v2v_wire.codecs import available, check_compression
+from v2v_wire.protocol import OUTPUTS
 
 from .connection import StreamError, StreamTimeout, batch_to_torch, load_curve_keys
 from .endpoint import EndpointStream, StreamOptions, padding_copy
@@ -89,7 +89,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             on the GPU with ``v2v_client.expand_flow_grid(grid.to(device), (H, W))``; servers
             with another flow option still send (and this client yields) dense ``flow``.
         compression: how arrays that travel over the socket are compressed, per connection:
-            ``"none"``, ``"lz4"`` or ``"zstd"`` (``v2v_server.codecs``; the server's workers
+            ``"none"``, ``"lz4"`` or ``"zstd"`` (``v2v_wire.codecs``; the server's workers
             compress, this client's I/O thread decompresses, overlapped with training).
             ``"auto"`` (default): none for ``ipc://`` and loopback ``tcp://``, ``"zstd"``
             to other hosts (when ``zstandard`` is installed here and on the server; docs/wire.md

@@ -1,6 +1,6 @@
 """``v2v-demo``: the main job end to end on the bundled clips.
 
-Runs the server (``v2v_server.local.local_server``: what ``v2v-serve`` runs) in a thread of this
+Runs the server (``v2v_server.service.local.local_server``: what ``v2v-serve`` runs) in a thread of this
 process on a free loopback port (its workers are processes, as under ``v2v-serve``), reads
 batches through ``V2VStreamDataset`` (the same code path as ``v2v-loadtest``), prints
 batches/s, writes a preview PNG of one sample, and stops the server.
@@ -12,7 +12,7 @@ import json
 import sys
 from typing import List, Optional
 
-from v2v_server.local import local_server
+from v2v_server.service.local import local_server
 
 from .dataset import V2VStreamDataset
 from .loadtest import format_report, run_loadtest

@@ -13,9 +13,9 @@ from typing import Dict, Iterator, List, Optional, Set, Tuple
 
 import torch
 
-from v2v_server.codecs import available
-from v2v_server.ids import compact_ids
-from v2v_server.protocol import is_loopback
+from v2v_wire.codecs import available
+from v2v_wire.ids import compact_ids
+from v2v_wire.protocol import is_loopback
 
 from .connection import Connection, StreamError, _Drained, _EpochDone, _Padding, _select, load_curve_keys
 from .fanin import read_state

@@ -6,7 +6,7 @@ between them, so the wire carries only the grid (``flow_grid`` float32 (B, L, 2,
 per sample for n = 8 against 2.6 MB of dense float16 flow). :func:`expand_flow_grid` makes it
 dense again with the very taps the server's expansion uses (``protocol.flow_grid_taps``), with
 the same float32 operations (one rounding per product and per sum): on the CPU with the
-server's own loop (``v2v_server.flowgrid``: one thread, so it costs the trainer's torch thread
+server's own loop (``v2v_wire.flowgrid``: one thread, so it costs the trainer's torch thread
 pool nothing, under 1 ms per default sample: bench.wire), on other devices in torch; the result
 equals the server's dense flow bit for bit.
 """
@@ -16,7 +16,7 @@ from typing import Dict, Tuple
 
 import torch
 
-from v2v_server.protocol import flow_grid_taps
+from v2v_wire.protocol import flow_grid_taps
 
 __all__ = ["expand_flow_grid"]
 
@@ -59,7 +59,7 @@ def expand_flow_grid(grid: torch.Tensor, size: Tuple[int, int], dtype: torch.dty
         raise ValueError(f"flow size must be positive (H, W), got {tuple(size)}")
     n = grid.shape[-1]
     if grid.device.type == "cpu":
-        from v2v_server.flowgrid import expand_grids  # numba: loaded by the first batch with flow
+        from v2v_wire.flowgrid import expand_grids  # numba: loaded by the first batch with flow
 
         flat = grid.detach().float().reshape(-1, 2, n, n).numpy()
         out = torch.from_numpy(expand_grids(flat, (h, w))).reshape(grid.shape[:-2] + (h, w))

@@ -29,7 +29,7 @@ from typing import Dict, Optional
 
 import torch
 
-from v2v_server.protocol import pack
+from v2v_wire.protocol import pack
 
 __all__ = ["StreamLoader", "LoaderLink"]
 

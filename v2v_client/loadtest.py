@@ -7,7 +7,7 @@ import sys
 import time
 from typing import List, Optional
 
-from v2v_server.protocol import OUTPUTS
+from v2v_wire.protocol import OUTPUTS
 
 from .dataset import V2VStreamDataset
 

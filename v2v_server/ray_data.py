@@ -43,13 +43,13 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 
 import numpy as np
 
-from .config import ServeConfig
-from .protocol import OUTPUTS
-from .flow import FlowEstimator
-from .ids import make_sample_id, parse_sample_id
-from .samples import video_samples
-from .corpus import corpus_file, verdict
-from .video import open_video, scan_corpus
+from v2v_server.ops.config import ServeConfig
+from v2v_wire.protocol import OUTPUTS
+from v2v_server.samples.flow import FlowEstimator
+from v2v_wire.ids import make_sample_id, parse_sample_id
+from v2v_server.samples.make import video_samples
+from v2v_server.videos.corpus import corpus_file, verdict
+from v2v_server.videos.decode import open_video, scan_corpus
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
            "v2v_dataset", "VOXEL_DTYPE"]

@@ -17,10 +17,10 @@ import logging
 from dataclasses import dataclass
 from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
-from .ledger import BatchRecord, DeliveryLedger
-from .protocol import OUTPUTS
-from .schedule import EpochScheduler, Job, parse_sample_id
-from .wire import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
+from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
+from v2v_wire.protocol import OUTPUTS
+from v2v_server.delivery.schedule import EpochScheduler, Job, parse_sample_id
+from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
 
 log = logging.getLogger("v2v.server")
 

@@ -7,20 +7,20 @@ import sys
 from pathlib import Path
 from typing import List, Optional
 
-from .config import SampleRecipe, ServeConfig, ServingSettings, load_config
-from .settings import add_flags, flag_values
-from .server import V2VServer, install_signal_handlers
-from .logs import setup_logging
-from .corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
-from .journal import JournalError
-from .video import scan_corpus
+from v2v_server.ops.config import SampleRecipe, ServeConfig, ServingSettings, load_config
+from v2v_server.ops.settings import add_flags, flag_values
+from v2v_server.service.server import V2VServer, install_signal_handlers
+from v2v_server.ops.logs import setup_logging
+from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
+from v2v_server.delivery.journal import JournalError
+from v2v_server.videos.decode import scan_corpus
 
 
 log = logging.getLogger("v2v.serve")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """``v2v-serve``'s flags: one per configuration key (``v2v_server.config``), plus the
+    """``v2v-serve``'s flags: one per configuration key (``v2v_server.ops.config``), plus the
     command's own (``--config``, ``--check``, ``--log-level``)."""
     p = argparse.ArgumentParser(
         prog="v2v-serve",

@@ -25,7 +25,7 @@ from typing import Dict, List, Sequence
 
 import numpy as np
 
-from .protocol import WIRE_DTYPES, ProtocolError
+from v2v_wire.protocol import WIRE_DTYPES, ProtocolError
 
 #: Compression settings a client may ask for; "none" sends arrays as they are.
 COMPRESSIONS = ("none", "lz4", "zstd")
@@ -113,7 +113,7 @@ def decode_batch_arrays(specs, frames: Sequence, max_bytes: int = 1 << 31) -> Di
             not match, an unknown codec, or a part that does not decompress to its declared size
             (a corrupt or truncated frame).
     """
-    from .protocol import decode_arrays
+    from v2v_wire.protocol import decode_arrays
 
     if not isinstance(specs, list):
         raise ProtocolError("header 'arrays' must be a list")

@@ -21,7 +21,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .kernel import full_scale_of, run_kernel
+from v2v_server.simulation.kernel import full_scale_of, run_kernel
 
 #: Offset inside the log, ``L = log(LOG_EPS + I)`` (paper Sec. 3, reference repo).
 LOG_EPS = 1e-3
@@ -278,7 +278,7 @@ def simulate_voxels(
     """Discrete voxel grids (SBT) of a clip, computed from frames without an event stream.
 
     Paper: Lou et al. 2025, Sec. 3 (V2V); one frame pair per bin (frames_per_bin = 1). The
-    step itself is :func:`v2v_server.kernel.run_kernel` (the project's one kernel).
+    step itself is :func:`v2v_server.simulation.kernel.run_kernel` (the project's one kernel).
 
     Args:
         frames: uint8 (full scale 255) or uint16 (full scale 65535, for 10- to 16-bit

@@ -30,7 +30,7 @@ import itertools
 from dataclasses import dataclass, field
 from typing import Deque, Dict, FrozenSet, Hashable, Iterable, List, Optional, Set, Tuple
 
-from . import ids
+from v2v_wire import ids
 
 SampleKey = Tuple[str, int]
 Consumer = Hashable

@@ -26,7 +26,7 @@ from typing import Optional
 
 import numpy as np
 
-from .simulate import ParamRanges, sample_params
+from v2v_server.simulation.simulate import ParamRanges, sample_params
 
 __all__ = ["DEGRADE_DEFAULTS", "parse_degrade", "aux_rng", "degrade_dynamic_range", "video_thresholds",
            "augment_plan", "degrade_window"]

@@ -40,10 +40,10 @@ from typing import Dict, Optional
 import cv2
 import numpy as np
 
-from .flow_options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, FlowUnavailable, check_option,
+from v2v_server.samples.flow_options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, FlowUnavailable, check_option,
                            raft_weights, unavailable_reason)
-from .flowgrid import expand_grids
-from .tracking import (ZOOM_INLIERS, _dropped_inside, _fill_lost, _from_resized,
+from v2v_wire.flowgrid import expand_grids
+from v2v_server.samples.tracking import (ZOOM_INLIERS, _dropped_inside, _fill_lost, _from_resized,
                        _same_as_previous, _to_resized, _track_grid, _zoom_fit)
 
 __all__ = ["FlowEstimator", "MIN_DIS_SIDE", "dis_flow", "expand_grids", "to_float16"]

@@ -29,11 +29,11 @@ from typing import Callable, Optional, Tuple
 
 import numpy as np
 
-from .flow import dis_flow
-from .flow_options import DIS_PRESETS
-from .kernel import run_kernel
-from .reference import interpolate_pair
-from .simulate import SensorParams, _lut, check_frames, draw_noise_seed, simulate_voxels, start_state
+from v2v_server.samples.flow import dis_flow
+from v2v_server.samples.flow_options import DIS_PRESETS
+from v2v_server.simulation.kernel import run_kernel
+from v2v_server.simulation.reference import interpolate_pair
+from v2v_server.simulation.simulate import SensorParams, _lut, check_frames, draw_noise_seed, simulate_voxels, start_state
 
 __all__ = ["RefineSpec", "parse_refine", "plan_subframes", "refine_frames", "simulate_voxels_refined"]
 

@@ -7,11 +7,11 @@ import multiprocessing as mp
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-from .config import ServeConfig
-from .video import VideoError, decode_codes, inside, open_video
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.decode import VideoError, decode_codes, inside, open_video
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
-SAMPLE_VIDEOS = Path(__file__).resolve().parent / "sample_videos"
+SAMPLE_VIDEOS = Path(__file__).resolve().parents[1] / "sample_videos"
 
 
 def shard_of(rel_path: str, count: int) -> int:

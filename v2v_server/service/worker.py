@@ -25,16 +25,16 @@ from typing import Optional
 import numpy as np
 import zmq
 
-from . import codecs
-from .config import SampleRecipe, ServeConfig
-from .corpus import verdict
-from .datapath import SlotRing
-from .logs import setup_logging
-from .protocol import encode_arrays, narrow_int_dtype, pack, unpack
-from .flow import to_float16
-from .flow import FlowEstimator
-from .ids import parse_sample_id
-from .samples import video_samples
+from v2v_wire import codecs
+from v2v_server.ops.config import SampleRecipe, ServeConfig
+from v2v_server.videos.corpus import verdict
+from v2v_server.service.datapath import SlotRing
+from v2v_server.ops.logs import setup_logging
+from v2v_wire.protocol import encode_arrays, narrow_int_dtype, pack, unpack
+from v2v_server.samples.flow import to_float16
+from v2v_server.samples.flow import FlowEstimator
+from v2v_wire.ids import parse_sample_id
+from v2v_server.samples.make import video_samples
 
 log = logging.getLogger("v2v.worker")
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import zmq
 
-from .config import ServeConfig, is_loopback
-from .protocol import MAX_CLIENT_MSG, is_ipv6
+from v2v_server.ops.config import ServeConfig, is_loopback
+from v2v_wire.protocol import MAX_CLIENT_MSG, is_ipv6
 
 log = logging.getLogger("v2v.server")
 

@@ -17,8 +17,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Tuple
 
-from .datapath import SlotRing, create_ring
-from .worker import worker_main
+from v2v_server.service.datapath import SlotRing, create_ring
+from v2v_server.service.worker import worker_main
 
 log = logging.getLogger("v2v.server")
 

@@ -27,18 +27,18 @@ from typing import Dict, List, Optional
 
 import zmq
 
-from . import codecs
-from .config import ServeConfig
-from .corpus import corpus_fingerprint
-from .journal import Journal
-from .core import DeliveryCore, DeliveryPolicy
-from .datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
-from .metrics import ServerMetrics
-from .pool import WorkerPool
-from .worker import worker_config
-from .sockets import ServerSockets
-from .protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, ProtocolError, pack, unpack
-from .wire import BadPeers, Hello, WireError, decode_client
+from v2v_wire import codecs
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.corpus import corpus_fingerprint
+from v2v_server.delivery.journal import Journal
+from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
+from v2v_server.ops.metrics import ServerMetrics
+from v2v_server.service.pool import WorkerPool
+from v2v_server.service.worker import worker_config
+from v2v_server.service.sockets import ServerSockets
+from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, ProtocolError, pack, unpack
+from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
 
 log = logging.getLogger("v2v.server")
 

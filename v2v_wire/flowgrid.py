@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .protocol import flow_grid_taps
+from v2v_wire.protocol import flow_grid_taps
 
 __all__ = ["expand_grids"]
 

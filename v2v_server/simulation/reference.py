@@ -1,7 +1,7 @@
 """Event-level reference simulator and the two voxel representations built from events.
 
 This is the slow, accurate end of the speed/accuracy trade that V2V (``simulate.py``)
-shortcuts. From frames and a :class:`~v2v_server.simulate.SensorParams` it emits events
+shortcuts. From frames and a :class:`~v2v_server.simulation.simulate.SensorParams` it emits events
 ``(x, y, t, p)`` the way frame-based event simulators do:
 
 * the log intensity ``L = log(1e-3 + (F / full_scale) ** 2.2)`` (same table as V2V);
@@ -40,9 +40,9 @@ from typing import Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .flow import dis_flow
-from .kernel import full_scale_of, run_kernel
-from .simulate import SensorParams, draw_noise_seed, log_intensity_lut
+from v2v_server.samples.flow import dis_flow
+from v2v_server.simulation.kernel import full_scale_of, run_kernel
+from v2v_server.simulation.simulate import SensorParams, draw_noise_seed, log_intensity_lut
 
 __all__ = [
     "Events",

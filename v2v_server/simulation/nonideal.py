@@ -50,8 +50,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .kernel import run_kernel
-from .simulate import SensorParams, _lut64, check_frames, draw_noise_seed, simulate_voxels, start_state
+from v2v_server.simulation.kernel import run_kernel
+from v2v_server.simulation.simulate import SensorParams, _lut64, check_frames, draw_noise_seed, simulate_voxels, start_state
 
 __all__ = ["NonIdealities", "PixelState", "draw_pixel_state", "effective_noise", "simulate_voxels_nonideal"]
 
@@ -227,7 +227,7 @@ def simulate_voxels_nonideal(
         ValueError: as ``simulate_voxels``; for fps <= 0; for a ``pixel_state`` of the
             wrong shape.
     """
-    from .refine import parse_refine, refine_frames
+    from v2v_server.simulation.refine import parse_refine, refine_frames
 
     nonideal = NonIdealities.from_dict(nonideal)
     spec = parse_refine(refine)

@@ -12,7 +12,7 @@ from typing import Dict, Optional
 import numba
 import numpy as np
 
-from .protocol import flow_grid_taps
+from v2v_wire.protocol import flow_grid_taps
 
 #: Zoom compensation (``TrackParams.zoom``) starts only when the fitted similarity explains at
 #: least this fraction of the points' motion (to 1 px, or 10 % of a point's motion).

@@ -59,8 +59,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .codecs import packed_specs
-from .protocol import (BATCH_DIR_RE, BATCH_FILE_HEADER, WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays,
+from v2v_wire.codecs import packed_specs
+from v2v_wire.protocol import (BATCH_DIR_RE, BATCH_FILE_HEADER, WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays,
                        narrow_int_dtype, output_of)
 
 log = logging.getLogger("v2v.datapath")

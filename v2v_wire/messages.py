@@ -21,9 +21,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Dict, FrozenSet, Optional, Tuple
 
-from .codecs import COMPRESSIONS
-from .protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError
-from .protocol import bounded_unpackb as _bounded_unpackb
+from v2v_wire.codecs import COMPRESSIONS
+from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError
+from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
 #: Largest element count of any array in a client message (acks name at most ``max_credits`` ids).
 MAX_ARRAY_LEN = 4096
@@ -128,14 +128,14 @@ def _ids(h: dict, name: str) -> Tuple[int, ...]:
 
 
 def _parse_keys(text: str, crops_per_window: int = 1) -> FrozenSet[SampleKey]:
-    from .ids import expand_ids
-    from .schedule import parse_sample_id
+    from v2v_wire.ids import expand_ids, parse_sample_id
 
     out = set()
     for sid in expand_ids(text):
-        k = parse_sample_id(sid, crops_per_window)
-        if k is not None:
-            out.add(k)
+        try:
+            out.add(parse_sample_id(sid, crops_per_window))
+        except ValueError:
+            continue
     return frozenset(out)
 
 

@@ -21,13 +21,13 @@ from typing import Dict, Iterable, Iterator, List, Optional, Tuple
 import cv2
 import numpy as np
 
-from .augment import augment_plan, degrade_window
-from .config import ServeConfig
-from .corpus import corpus_file
-from .ids import make_sample_id
-from .flow import FlowEstimator
-from .simulate import SensorParams, sample_params, simulate_voxels
-from .video import decode_codes, open_video, to_uint8
+from v2v_server.samples.augment import augment_plan, degrade_window
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.corpus import corpus_file
+from v2v_wire.ids import make_sample_id
+from v2v_server.samples.flow import FlowEstimator
+from v2v_server.simulation.simulate import SensorParams, sample_params, simulate_voxels
+from v2v_server.videos.decode import decode_codes, open_video, to_uint8
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
     """The generator for one sample, a pure function of (seed, epoch, sample_id)."""
@@ -187,7 +187,7 @@ def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float) -
     ``plan.info`` (and so into the sample's params)."""
     bins = cfg.num_bins * cfg.frames_per_bin
     if cfg.nonidealities:
-        from .nonideal import NonIdealities, simulate_voxels_nonideal
+        from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
 
         ni = NonIdealities.from_dict(cfg.nonidealities)
         vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, ni, fps=fps or 25.0, rng=plan.rng,
@@ -195,7 +195,7 @@ def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float) -
         plan.info["nonidealities"] = info["nonidealities"]
         plan.info["refine"] = info.get("refine", "off")
     elif cfg.refine != "off":
-        from .refine import simulate_voxels_refined
+        from v2v_server.simulation.refine import simulate_voxels_refined
 
         vox, _, info = simulate_voxels_refined(seq, plan.params, bins, cfg.refine, rng=plan.rng)
         plan.info.update(refine=info["refine"], subframes_mean=float(info["subframes_mean"]))

@@ -8,10 +8,10 @@ import threading
 from pathlib import Path
 from typing import Iterator, Optional
 
-from .config import load_config
-from .corpus import SAMPLE_VIDEOS
-from .server import V2VServer
-from .video import scan_corpus
+from v2v_server.ops.config import load_config
+from v2v_server.videos.corpus import SAMPLE_VIDEOS
+from v2v_server.service.server import V2VServer
+from v2v_server.videos.decode import scan_corpus
 
 
 @contextlib.contextmanager
