@@ -12,7 +12,8 @@ from typing import Any, Iterable, Optional
 
 import yaml
 
-from v2v_server.ops.settings import YamlLoader, check_bool, check_choice, check_float, check_int, load_yaml, setting
+from v2v_server.ops.settings import (YamlLoader, check_bool, check_choice, check_float, check_int, check_keys, load_yaml,
+                                     setting)
 
 __all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config", "load_config",
            "apply_overrides", "apply_loss_preset", "merge", "check_types", "reference_markdown"]
@@ -113,10 +114,17 @@ class LogSettings:
 
 
 @dataclass
-class E2VIDModel:
-    """``model`` of e2vid: E2VID recurrent (Rebecq et al. 2019), the reference's sizes."""
+class VoxelInput:
+    """What every network reads: discrete voxel grids of ``num_bins`` bins (the server's
+    ``num_bins``, checked against each batch)."""
 
     num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
+
+
+@dataclass
+class E2VIDModel(VoxelInput):
+    """``model`` of e2vid: E2VID recurrent (Rebecq et al. 2019), the reference's sizes."""
+
     base_num_channels: int = setting(32, help="channels of the first encoder")
     num_encoders: int = setting(3, help="encoders (each halves the resolution)")
     num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
@@ -148,10 +156,9 @@ class E2VIDLoss:
 
 
 @dataclass
-class HyperE2VIDModel:
+class HyperE2VIDModel(VoxelInput):
     """``model`` of hypere2vid: HyperE2VID (Ercan et al. 2024), the authors' sizes."""
 
-    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
     base_num_channels: int = setting(32, help="channels of the first encoder")
     num_encoders: int = setting(3, help="encoders (3: the dynamic decoder's context is at 1/4 resolution)")
     num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
@@ -170,10 +177,9 @@ class HyperCurriculum:
 
 
 @dataclass
-class ETNetModel:
+class ETNetModel(VoxelInput):
     """``model`` of etnet: ETNet (Weng et al. 2021), the authors' sizes; smaller values for CPU demos."""
 
-    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
     d_model: int = setting(256, help="token width (channels of the bottleneck)")
     nhead: int = setting(8, help="attention heads")
     encoder_layers: int = setting(3, help="transformer encoder layers per scale")
@@ -183,10 +189,9 @@ class ETNetModel:
 
 
 @dataclass
-class EvFlowModel:
+class EvFlowModel(VoxelInput):
     """``model`` of evflow: EV-FlowNet (Zhu et al. 2018), the reference's sizes."""
 
-    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
     base_num_channels: int = setting(32, help="channels of the first encoder")
     num_encoders: int = setting(4, help="encoders (each halves the resolution)")
     num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
@@ -252,12 +257,13 @@ def default_config(task: str) -> dict:
     return copy.deepcopy(DEFAULTS[task])
 
 
-def _check_keys(cfg: dict, ref: dict, prefix: str = ""):
+def _check_keys(cfg: dict, ref: dict, source: str = "", section: str = ""):
+    """Every key of ``cfg`` (and of its sections, the model's included) is one of ``ref``'s;
+    ``ValueError`` from :func:`check_keys` naming ``source``, the section and the allowed keys."""
+    check_keys(cfg, ref, section, source)
     for k, v in cfg.items():
-        if k not in ref:
-            raise ValueError(f"unknown config key {prefix}{k!r}; known: {sorted(ref)}")
-        if isinstance(v, dict) and isinstance(ref[k], dict) and k != "model":
-            _check_keys(v, ref[k], prefix + k + ".")
+        if isinstance(v, dict) and isinstance(ref[k], dict):
+            _check_keys(v, ref[k], source, f"{section}.{k}" if section else k)
 
 
 def _check_value(field_, v, name: str):
@@ -286,8 +292,7 @@ def check_types(cfg: dict, schema: Optional[dict] = None, prefix: str = "") -> d
     """Check ``cfg`` against the declared fields of its task (``RunSettings`` and the section
     dataclasses), in place, and return it: ints must be integers, floats numbers (stored as
     ``float``), booleans booleans, strings strings of the listed choices; a field declared
-    Optional (or defaulting to None) may be None. The ``model`` section is checked when the
-    model is built.
+    Optional (or defaulting to None) may be None.
 
     Raises:
         ValueError: naming the dotted field.
@@ -299,8 +304,6 @@ def check_types(cfg: dict, schema: Optional[dict] = None, prefix: str = "") -> d
     for k, v in list(cfg.items()):
         name = prefix + k
         ref = schema.get(k)
-        if k == "model" and not prefix:
-            continue
         if isinstance(ref, dict):
             if not isinstance(v, dict):
                 raise ValueError(f"config field {name!r} must be a mapping, got {v!r}")
@@ -314,13 +317,16 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
     """Load a YAML config over the task's defaults.
 
     The task comes from ``task`` if given, else the file's ``task:`` key, else 'e2vid'.
-    Raises ``ValueError`` for unknown keys (model keys are checked when the model is built)
-    and ``FileNotFoundError`` for a missing file.
+    Raises ``ValueError`` naming the file, the key and the allowed keys for an unknown key, or
+    the file and the field for a bad value, and ``FileNotFoundError`` for a missing file.
     """
     user = dict(load_yaml(path)) if path else {}
     file_task = user.get("task")
     task = task or file_task or "e2vid"
-    base = default_config(task)
+    try:
+        base = default_config(task)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") if path and task == file_task else e
     if file_task and file_task != task:
         # --task overrides a file written for another task: the sections either task has its
         # own defaults for (model, loss, and optim/curriculum where one has them) do not carry
@@ -328,7 +334,7 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
         for name in set(TASK_SECTIONS.get(file_task, {"model": 0, "loss": 0})) | set(TASK_SECTIONS[task]):
             user.pop(name, None)
     user["task"] = task
-    _check_keys(user, base)
+    _check_keys(user, base, str(path) if path else "")
     if isinstance(user.get("loss"), dict) and user["loss"].get("preset") is not None and "loss" in base:
         try:
             apply_loss_preset(base["loss"], user["loss"]["preset"])
@@ -359,8 +365,7 @@ def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
             if not isinstance(node.get(p), dict):
                 raise ValueError(f"unknown config section {p!r} in override {item!r}")
             node = node[p]
-        if parts[-1] not in node and parts[0] != "model":
-            raise ValueError(f"unknown config key {key!r} in override {item!r}")
+        check_keys(parts[-1:], node, ".".join(parts[:-1]), f"--set {item}")
         node[parts[-1]] = _parse_value(val)
         if parts == ["loss", "preset"] and node["preset"] is not None:
             apply_loss_preset(node, node["preset"])

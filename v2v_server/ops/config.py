@@ -15,8 +15,8 @@ from typing import Optional, Tuple
 
 from v2v_server.samples.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
 from v2v_wire.protocol import OUTPUTS, is_loopback  # noqa: F401  (is_loopback: config's checks and sockets use it)
-from v2v_server.ops.settings import (check_bool, check_choice, check_float, check_int, check_prob, load_yaml,
-                       reference_markdown, setting)
+from v2v_server.ops.settings import (check_bool, check_choice, check_float, check_int, check_keys, check_prob,
+                                     load_yaml, reference_markdown, setting)
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
 
@@ -118,10 +118,7 @@ class SampleRecipe:
         Raises:
             ValueError: naming ``source`` and the key, for an unknown key or a bad value.
         """
-        known = {f.name for f in fields(SampleRecipe)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"{source}: unknown key(s) {unknown}")
+        check_keys(d, (f.name for f in fields(SampleRecipe)), source=source)
         r = SampleRecipe(**{k: (tuple(v) if k == "outputs" and isinstance(v, list) else v) for k, v in d.items()})
         try:
             r.validate_recipe()
@@ -291,10 +288,7 @@ class ServeConfig(ServingSettings, SampleRecipe):
             d = {}
         if not isinstance(d, dict):
             raise ValueError(f"{source}: top level must be a mapping of keys to values")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"{source}: unknown key(s) {unknown}; known keys: {sorted(known)}")
+        check_keys(d, (f.name for f in fields(cls)), source=source)
         kw = dict(d)
         for k in ("outputs", "video_extensions"):
             if k in kw and isinstance(kw[k], list):

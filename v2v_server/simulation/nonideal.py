@@ -50,6 +50,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from v2v_server.ops.settings import check_keys
 from v2v_server.simulation.kernel import run_kernel
 from v2v_server.simulation.simulate import SensorParams, _lut64, check_frames, draw_noise_seed, simulate_voxels, start_state
 
@@ -111,10 +112,7 @@ class NonIdealities:
             return d
         if not isinstance(d, dict):
             raise ValueError(f"nonidealities must be a mapping, got {type(d).__name__}")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown key(s) in nonidealities: {unknown}; known: {sorted(known)}")
+        check_keys(d, (f.name for f in fields(cls)), "nonidealities")
         return cls(**d)
 
     def to_dict(self) -> dict:
