@@ -6,7 +6,10 @@ Adam lr 1e-4 (amsgrad, no weight decay, constant), batch 12, sequences of 40 vox
 """
 from __future__ import annotations
 
+import contextlib
 import copy
+import functools
+import sys
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Iterable, Optional
 
@@ -16,7 +19,8 @@ from v2v_server.ops.settings import (YamlLoader, check_bool, check_choice, check
                                      setting)
 
 __all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config", "load_config",
-           "apply_overrides", "apply_loss_preset", "merge", "check_types", "reference_markdown"]
+           "apply_overrides", "apply_loss_preset", "merge", "check_types", "reference_markdown", "ConfigError",
+           "exit_on_config_error"]
 
 #: The V2V paper's loss combinations for reconstruction, as ``loss`` section values. "V+L1+H"
 #: (Table 2; the authors' train_v2v_*_10k.yaml): LPIPS-VGG + L1 + temporal consistency from
@@ -239,6 +243,44 @@ def _defaults(task: str) -> dict:
 DEFAULTS = {task: _defaults(task) for task in TASK_SECTIONS}
 
 
+class ConfigError(ValueError):
+    """A trainer configuration that cannot be used (a YAML file, a ``--set`` override, a flag, or
+    the configuration a checkpoint stores); the message names the file, the key and what is
+    allowed."""
+
+
+@contextlib.contextmanager
+def _config_errors(source: str = ""):
+    """``ValueError`` (and a missing file) inside become :class:`ConfigError`, prefixed with
+    ``source`` (a file's path) unless the message already names it."""
+    try:
+        yield
+    except (ValueError, FileNotFoundError) as e:
+        msg = str(e)
+        if not source or source in msg:
+            raise ConfigError(msg) from None
+        raise ConfigError(f"{source}: {msg}") from None
+
+
+def exit_on_config_error(prog: str):
+    """Decorator of a command's ``main(argv) -> int`` (``v2v-train``, ``v2v-eval``): a
+    :class:`ConfigError` raised inside prints ``<prog>: configuration error: <message>`` on
+    stderr, without a traceback, and the command returns 2, as ``v2v-serve`` does."""
+
+    def wrap(main):
+        @functools.wraps(main)
+        def run(*args, **kwargs):
+            try:
+                return main(*args, **kwargs)
+            except ConfigError as e:
+                print(f"{prog}: configuration error: {e}", file=sys.stderr)
+                return 2
+
+        return run
+
+    return wrap
+
+
 def merge(base: dict, upd: dict) -> dict:
     """Recursive dict merge; ``upd`` wins. Returns a new dict."""
     out = copy.deepcopy(base)
@@ -257,13 +299,13 @@ def default_config(task: str) -> dict:
     return copy.deepcopy(DEFAULTS[task])
 
 
-def _check_keys(cfg: dict, ref: dict, source: str = "", section: str = ""):
+def _check_keys(cfg: dict, ref: dict, section: str = ""):
     """Every key of ``cfg`` (and of its sections, the model's included) is one of ``ref``'s;
-    ``ValueError`` from :func:`check_keys` naming ``source``, the section and the allowed keys."""
-    check_keys(cfg, ref, section, source)
+    ``ValueError`` from :func:`check_keys` naming the section and the allowed keys."""
+    check_keys(cfg, ref, section)
     for k, v in cfg.items():
         if isinstance(v, dict) and isinstance(ref[k], dict):
-            _check_keys(v, ref[k], source, f"{section}.{k}" if section else k)
+            _check_keys(v, ref[k], f"{section}.{k}" if section else k)
 
 
 def _check_value(field_, v, name: str):
@@ -295,19 +337,24 @@ def check_types(cfg: dict, schema: Optional[dict] = None, prefix: str = "") -> d
     Optional (or defaulting to None) may be None.
 
     Raises:
-        ValueError: naming the dotted field.
+        ConfigError: (a ``ValueError``) naming the dotted field.
     """
-    if schema is None:
-        task = cfg.get("task", "e2vid")
-        check_choice("config field 'task'", task, tuple(TASK_SECTIONS))
-        schema = _schema(task)
+    with _config_errors():
+        if schema is None:
+            task = cfg.get("task", "e2vid")
+            check_choice("config field 'task'", task, tuple(TASK_SECTIONS))
+            schema = _schema(task)
+        return _check_section(cfg, schema, prefix)
+
+
+def _check_section(cfg: dict, schema: dict, prefix: str) -> dict:
     for k, v in list(cfg.items()):
         name = prefix + k
         ref = schema.get(k)
         if isinstance(ref, dict):
             if not isinstance(v, dict):
                 raise ValueError(f"config field {name!r} must be a mapping, got {v!r}")
-            check_types(v, ref, name + ".")
+            _check_section(v, ref, name + ".")
         elif ref is not None:
             cfg[k] = _check_value(ref, v, name)
     return cfg
@@ -317,16 +364,24 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
     """Load a YAML config over the task's defaults.
 
     The task comes from ``task`` if given, else the file's ``task:`` key, else 'e2vid'.
-    Raises ``ValueError`` naming the file, the key and the allowed keys for an unknown key, or
-    the file and the field for a bad value, and ``FileNotFoundError`` for a missing file.
+
+    Raises:
+        ConfigError: (a ``ValueError``) naming the file, the key and the allowed keys for an
+            unknown key; the file and the field for a bad value; a missing or unreadable file.
     """
-    user = dict(load_yaml(path)) if path else {}
-    file_task = user.get("task")
-    task = task or file_task or "e2vid"
-    try:
+    with _config_errors(str(path) if path else ""):
+        user = dict(load_yaml(path)) if path else {}
+        file_task = user.get("task")
+        task = task or file_task or "e2vid"
+    with _config_errors(str(path) if path and task == file_task else ""):
         base = default_config(task)
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") if path and task == file_task else e
+    with _config_errors(str(path) if path else ""):
+        return _over_defaults(user, base, file_task, task)
+
+
+def _over_defaults(user: dict, base: dict, file_task: Optional[str], task: str) -> dict:
+    """``user`` (a file's mapping, of ``file_task``) over ``base`` (the defaults of ``task``),
+    its keys and values checked."""
     if file_task and file_task != task:
         # --task overrides a file written for another task: the sections either task has its
         # own defaults for (model, loss, and optim/curriculum where one has them) do not carry
@@ -334,16 +389,10 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
         for name in set(TASK_SECTIONS.get(file_task, {"model": 0, "loss": 0})) | set(TASK_SECTIONS[task]):
             user.pop(name, None)
     user["task"] = task
-    _check_keys(user, base, str(path) if path else "")
+    _check_keys(user, base)
     if isinstance(user.get("loss"), dict) and user["loss"].get("preset") is not None and "loss" in base:
-        try:
-            apply_loss_preset(base["loss"], user["loss"]["preset"])
-        except ValueError as e:
-            raise ValueError(f"{path}: {e}") if path else e
-    try:
-        return check_types(merge(base, user))
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") if path else e
+        apply_loss_preset(base["loss"], user["loss"]["preset"])
+    return check_types(merge(base, user))
 
 
 def _parse_value(s: str) -> Any:
@@ -352,9 +401,18 @@ def _parse_value(s: str) -> Any:
 
 def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
     """Apply ``key.sub=value`` strings (values parsed as YAML) to a copy of ``cfg``.
-    Raises ``ValueError`` for a malformed item, an unknown key path or a value of the wrong
-    type (see :func:`check_types`)."""
+
+    Raises:
+        ConfigError: (a ``ValueError``) for a malformed item, an unknown key path (naming the
+            override and the allowed keys) or a value of the wrong type (see :func:`check_types`).
+    """
     cfg = copy.deepcopy(cfg)
+    with _config_errors():
+        _apply(cfg, overrides)
+    return check_types(cfg)
+
+
+def _apply(cfg: dict, overrides: Iterable[str]) -> None:
     for item in overrides or ():
         if "=" not in item:
             raise ValueError(f"override must be key.path=value, got {item!r}")
@@ -366,10 +424,12 @@ def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
                 raise ValueError(f"unknown config section {p!r} in override {item!r}")
             node = node[p]
         check_keys(parts[-1:], node, ".".join(parts[:-1]), f"--set {item}")
-        node[parts[-1]] = _parse_value(val)
+        try:
+            node[parts[-1]] = _parse_value(val)
+        except yaml.YAMLError as e:
+            raise ValueError(f"--set {item}: the value is not valid YAML ({getattr(e, 'problem', None) or e})") from None
         if parts == ["loss", "preset"] and node["preset"] is not None:
             apply_loss_preset(node, node["preset"])
-    return check_types(cfg)
 
 
 def apply_loss_preset(loss: dict, name: str) -> dict:

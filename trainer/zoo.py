@@ -8,7 +8,7 @@ import torch.nn as nn
 
 from v2v_server.ops.settings import check_keys
 
-from .config import TASK_SECTIONS
+from .config import TASK_SECTIONS, ConfigError
 from .etnet import ETNet
 from .hypere2vid import HyperE2VID
 from .models import E2VIDRecurrent, EVFlowNet
@@ -26,11 +26,15 @@ def build_model(task: str, model_cfg: dict) -> nn.Module:
     passed to the class as keyword arguments.
 
     Raises:
-        ValueError: for an unknown task, or naming the unknown keys and the allowed ones.
+        ConfigError: (a ``ValueError``) for an unknown task, naming the unknown keys and the
+            allowed ones, or for sizes the network refuses.
     """
     cls = MODELS.get(task)
     if cls is None:
-        raise ValueError(f"task must be one of {list(MODELS)}, got {task!r}")
+        raise ConfigError(f"task must be one of {list(MODELS)}, got {task!r}")
     section = TASK_SECTIONS[task]["model"]
-    check_keys(model_cfg, asdict(section()), f"model of {task}")
-    return cls(**{**asdict(section()), **model_cfg})
+    try:
+        check_keys(model_cfg, asdict(section()), f"model of {task}")
+        return cls(**{**asdict(section()), **model_cfg})
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
