@@ -15,12 +15,12 @@ from typing import Any, Iterable, Optional
 
 import yaml
 
-from v2v_server.ops.settings import (YamlLoader, check_bool, check_choice, check_float, check_int, check_keys, load_yaml,
-                                     setting)
+from v2v_server.ops.settings import (YamlLoader, check_bool, check_choice, check_float, check_int, check_keys,
+                                     load_yaml, setting)
 
-__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config", "load_config",
-           "apply_overrides", "apply_loss_preset", "merge", "check_types", "reference_markdown", "ConfigError",
-           "exit_on_config_error"]
+__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config",
+           "load_config", "apply_overrides", "apply_loss_preset", "SPELLINGS", "merge", "check_types",
+           "reference_markdown", "ConfigError", "exit_on_config_error"]
 
 #: The V2V paper's loss combinations for reconstruction, as ``loss`` section values. "V+L1+H"
 #: (Table 2; the authors' train_v2v_*_10k.yaml): LPIPS-VGG + L1 + temporal consistency from
@@ -39,10 +39,14 @@ LOSS_PRESETS = {
                 "tc_start_fraction": 0.5},
 }
 #: ``loss.flow_source``: where the flow that a loss needs comes from. "stream": the server's
-#: ``flow``; "raft_small" / "raft_large": torchvision's RAFT on the batch's ground-truth frames
-#: on the training device (``trainer/raft_flow.py``; the authors' ``optical_flow_source``).
-FLOW_SOURCES = ("stream", "raft_small", "raft_large")
-_RAFT_WEIGHTS_HELP = ("local .pth state dict of torchvision's raft_small / raft_large for flow_source raft_*; null: "
+#: ``flow``; "raft-small" / "raft-large" (the names of the server's RAFT ``flow_preset``):
+#: torchvision's RAFT on the batch's ground-truth frames on the training device
+#: (``trainer/raft_flow.py``; the authors' ``optical_flow_source``).
+FLOW_SOURCES = ("stream", "raft-small", "raft-large")
+#: Other spellings a configuration may use for a choice, read as the listed one:
+#: ``raft_small`` / ``raft_large`` (torchvision's function names, the authors' spelling).
+SPELLINGS = {"raft_small": "raft-small", "raft_large": "raft-large"}
+_RAFT_WEIGHTS_HELP = ("local .pth state dict of torchvision's raft_small / raft_large for flow_source raft-*; null: "
                       "$V2V_RAFT_WEIGHTS, else $TORCH_HOME/hub/checkpoints/raft_<size>*.pth (never downloaded)")
 
 
@@ -154,8 +158,8 @@ class E2VIDLoss:
     tc_alpha: float = setting(50.0, help="visibility sharpness of the temporal-consistency term")
     tc_start_fraction: float = setting(0.5, help="the term covers voxels from this fraction of L on (20..39 of 40)")
     flow_source: str = setting("stream", help="flow of the temporal-consistency term: the stream's, or RAFT on the "
-                               "frames on the training device (the authors': raft_small)", choices=FLOW_SOURCES)
-    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft_*)")
+                               "frames on the training device (the authors': raft-small)", choices=FLOW_SOURCES)
+    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft-*)")
     raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
 
 
@@ -210,8 +214,8 @@ class EvFlowLoss:
 
     flow_l1_weight: float = setting(1.0, help="weight of the flow L1 term")
     flow_source: str = setting("stream", help="flow targets: the stream's, or RAFT on the frames on the training "
-                               "device (the authors': raft_large)", choices=FLOW_SOURCES)
-    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft_*)")
+                               "device (the authors': raft-large)", choices=FLOW_SOURCES)
+    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft-*)")
     raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
 
 
@@ -326,6 +330,8 @@ def _check_value(field_, v, name: str):
         if not isinstance(v, str):
             raise ValueError(f"{label} must be a string, got {v!r}")
         choices = field_.metadata.get("choices")
+        if choices and v not in choices:
+            v = SPELLINGS.get(v, v)
         return check_choice(label, v, choices) if choices else v
     return v
 
@@ -427,7 +433,8 @@ def _apply(cfg: dict, overrides: Iterable[str]) -> None:
         try:
             node[parts[-1]] = _parse_value(val)
         except yaml.YAMLError as e:
-            raise ValueError(f"--set {item}: the value is not valid YAML ({getattr(e, 'problem', None) or e})") from None
+            why = getattr(e, "problem", None) or e
+            raise ValueError(f"--set {item}: the value is not valid YAML ({why})") from None
         if parts == ["loss", "preset"] and node["preset"] is not None:
             apply_loss_preset(node, node["preset"])
 

@@ -186,7 +186,8 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
         try:
             outs = check_outputs(outs if isinstance(outs, list) else None, "field 'outputs'")
         except ValueError:
-            raise WireError(f"field 'outputs' must be a non-empty list from {list(OUTPUTS)}, got {_show(outs)}") from None
+            raise WireError(f"field 'outputs' must be a non-empty list from {list(OUTPUTS)}, "
+                            f"got {_show(outs)}") from None
         credits = _int(h, "credits", 1, 1 << 20)
         if credits > max_credits:
             raise WireError(f"field 'credits' is {credits}; this server allows at most {max_credits} batches in "
