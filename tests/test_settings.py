@@ -128,3 +128,37 @@ def test_workers_get_the_recipe_only():
     assert r == cfg.recipe() and r.seed == 7 and r.crops_per_window == 2
     with pytest.raises(ValueError, match="worker recipe: unknown key"):
         SampleRecipe.recipe_from_dict({**w["recipe"], "workers": 3}, source="worker recipe")
+
+
+def test_unknown_keys_anywhere_name_the_file_the_section_and_the_allowed_keys(tmp_path):
+    f = tmp_path / "serve.yaml"
+    for text, section, allowed in (("nonidealities: {leak_hertz: 1}\n", " in nonidealities", "'leak_hz'"),
+                                   ("ranges: {treshold: [0.1, 0.2]}\n", " in ranges", "'threshold'"),
+                                   ("degrade_dynamic_range: {prob: 1}\n", " in degrade_dynamic_range", "'probability'"),
+                                   ("crop_sise: 64\n", "", "'crop_size'")):
+        f.write_text(text)
+        with pytest.raises(ValueError, match=rf"serve\.yaml: unknown key\(s\) \[.*\]{section}; allowed keys: \[.*"
+                                             rf"{allowed}") as e:
+            load_config(str(f))
+        assert "\n" not in str(e.value)
+
+
+def test_one_outputs_check_for_the_config_the_dataset_and_the_hello():
+    from v2v_client.dataset import V2VStreamDataset
+    from v2v_wire.messages import WireError, parse_client
+    from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, check_outputs
+
+    assert check_outputs("flow, voxels") == check_outputs(["flow", "voxels", "flow"]) == ("voxels", "flow")
+    assert load_config(None, {"outputs": "frames,voxels"}).outputs == ("voxels", "frames")
+    assert V2VStreamDataset("tcp://127.0.0.1:1", outputs=["flow", "frames"]).outputs == ("frames", "flow")
+    assert parse_client({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["flow"], "credits": 1}, 8).outputs == ("flow",)
+    allowed = str(list(OUTPUTS)).replace("[", r"\[").replace("]", r"\]")
+    for bad in ([], ["voxel"], ["voxels", 3], None):
+        with pytest.raises(ValueError, match=f"^outputs must be a non-empty list from {allowed}"):
+            check_outputs(bad)
+        with pytest.raises(ValueError, match=f"^command line: outputs must be a non-empty list from {allowed}"):
+            load_config(None, {"outputs": bad if bad is not None else []})
+        with pytest.raises(ValueError, match=f"^outputs must be a non-empty list from {allowed}"):
+            V2VStreamDataset("tcp://127.0.0.1:1", outputs=bad)
+        with pytest.raises(WireError, match=f"^field 'outputs' must be a non-empty list from {allowed}"):
+            parse_client({"type": "hello", "v": PROTOCOL_VERSION, "outputs": bad, "credits": 1}, 8)

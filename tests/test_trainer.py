@@ -15,7 +15,6 @@ from trainer import lpips_net
 from trainer.config import apply_overrides, default_config, load_config, merge
 from trainer.data import batch_to_device
 from trainer.losses import ReconstructionLoss, flow_l1_loss, ssim, temporal_consistency_loss, warp
-from trainer.models import E2VIDRecurrent, EVFlowNet
 from trainer.zoo import build_model
 from trainer.core import Trainer
 from trainer.tasks import get_task, tc_start_index
@@ -36,7 +35,7 @@ def outputs(task):
 
 # ----------------------------------------------------------------------------- models
 def test_e2vid_matches_reference_architecture():
-    m = E2VIDRecurrent().unetrecurrent  # paper config: 5 bins, base 32, 3 encoders, sum skips, 2 resblocks
+    m = build_model("e2vid", {}).unetrecurrent  # paper config: 5 bins, base 32, 3 encoders, sum skips, 2 resblocks
     assert [e.conv.conv2d.out_channels for e in m.encoders] == [64, 128, 256]
     assert all(e.recurrent_block.hidden_size == c for e, c in zip(m.encoders, [64, 128, 256]))
     assert [e.conv.conv2d.kernel_size for e in m.encoders] == [(5, 5)] * 3
@@ -53,11 +52,11 @@ def test_e2vid_matches_reference_architecture():
 
 def test_e2vid_state_dicts_with_this_trainers_own_earlier_key_names_still_load():
     torch.manual_seed(0)
-    m = E2VIDRecurrent(num_bins=3, base_num_channels=4)
+    m = build_model("e2vid", {"num_bins": 3, "base_num_channels": 4})
     own = {k.removeprefix("unetrecurrent.").replace(".recurrent_block.Gates.", ".lstm.gates."): v
            for k, v in m.state_dict().items()}
     assert "encoders.0.lstm.gates.weight" in own and not any(k.startswith("unetrecurrent.") for k in own)
-    fresh = E2VIDRecurrent(num_bins=3, base_num_channels=4)
+    fresh = build_model("e2vid", {"num_bins": 3, "base_num_channels": 4})
     fresh.load_state_dict(own)  # strict: every key renamed onto a parameter
     x = torch.randn(1, 3, 16, 16)
     assert torch.equal(fresh(x)[0], m(x)[0])
@@ -109,7 +108,7 @@ def reference_evflownet_forward(sd, x):
 
 
 def test_evflownet_is_the_reference_unet_and_loads_its_state_dict():
-    m = EVFlowNet()
+    m = build_model("evflow", {})
     want = {}
     for name, shape in REFERENCE_EVFLOWNET.items():
         want[name + ".weight"] = shape

@@ -1,4 +1,4 @@
-"""RAFT flow at train time (``loss.flow_source: raft_small | raft_large``, trainer/raft_flow.py).
+"""RAFT flow at train time (``loss.flow_source: raft-small | raft-large``, trainer/raft_flow.py).
 
 torchvision (and so RAFT itself) cannot be installed on these machines: the tests give our code
 a stand-in network with RAFT's call signature, and a stand-in ``torchvision.models.optical_flow``
@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from tests.trainer_fixtures import FakeV2VStream
-from trainer.config import default_config, merge
+from trainer.config import apply_overrides, default_config, merge
 from trainer.core import Trainer
 from trainer.raft_flow import FlowSourceUnavailable, RaftFlow, load_raft, raft_pair_flow
 from trainer.tasks import stream_outputs
@@ -97,7 +97,7 @@ def test_without_torchvision_v2v_train_refuses_before_any_step(tmp_path, monkeyp
                   "--no-progress", "--set", "loss.flow_source=raft_small"])
     assert rc == 2 and streams == []  # no stream opened, no step taken
     msg = (tmp_path / "train.log").read_text()
-    assert "loss.flow_source=raft_small needs torchvision" in msg and "loss.flow_source=stream" in msg
+    assert "loss.flow_source=raft-small: RAFT needs torchvision" in msg and "loss.flow_source=stream" in msg
 
 
 def test_missing_weights_are_named_with_every_place_looked_at(stand_in_torchvision, tmp_path, monkeypatch):
@@ -110,13 +110,21 @@ def test_missing_weights_are_named_with_every_place_looked_at(stand_in_torchvisi
     torch.save({"not": torch.zeros(1)}, bad)
     with pytest.raises(FlowSourceUnavailable, match="is not a raft_small state dict"):
         load_raft("raft_small", torch.device("cpu"), weights=str(bad))
-    with pytest.raises(ValueError, match="raft_small"):
+    with pytest.raises(ValueError, match="raft-small"):
         load_raft("stream", torch.device("cpu"))
+
+
+def test_the_trainer_names_raft_as_the_server_does_and_reads_torchvisions_spelling():
+    for given in ("raft-small", "raft_small"):
+        cfg = apply_overrides(default_config("e2vid"), [f"loss.flow_source={given}"])
+        assert cfg["loss"]["flow_source"] == "raft-small"
+    with pytest.raises(ValueError, match=r"\['stream', 'raft-small', 'raft-large'\], got 'raft'"):
+        apply_overrides(default_config("evflow"), ["loss.flow_source=raft"])
 
 
 def test_e2vid_temporal_consistency_uses_raft_small_on_the_frames(stand_in_torchvision, tmp_path):
     torch.save(StandInRaft().state_dict(), stand_in_torchvision / "raft_small-0123abcd.pth")
-    cfg = merge(default_config("e2vid"), {"model": TINY["e2vid"], "loss": {"flow_source": "raft_small"}})
+    cfg = merge(default_config("e2vid"), {"model": TINY["e2vid"], "loss": {"flow_source": "raft-small"}})
     assert stream_outputs(cfg) == ("voxels", "frames")  # the server's flow is not asked for
     t = Trainer(cfg, str(tmp_path / "run"), torch.device("cpu"))
     net = t.spec.raft.net

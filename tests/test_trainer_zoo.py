@@ -14,7 +14,7 @@ from tests.trainer_fixtures import FakeV2VStream
 from trainer.config import default_config, load_config, merge
 from trainer.core import Trainer, build_optimizer, set_lr
 from trainer.etnet import ETNet, sinusoid_table
-from trainer.hypere2vid import HyperE2VID, fourier_bessel_bases
+from trainer.hypere2vid import fourier_bessel_bases
 from trainer.zoo import build_model
 from trainer.tasks import curriculum_beta, get_task
 
@@ -89,7 +89,7 @@ def test_hypere2vid_curriculum_mixes_the_ground_truth_into_the_context():
     assert not torch.allclose(a, b)
     torch.testing.assert_close(b, c)
     with pytest.raises(ValueError, match="num_encoders == 3"):
-        HyperE2VID(num_encoders=4)
+        build_model("hypere2vid", {"num_encoders": 4})
 
 
 def test_curriculum_beta_falls_in_stages_like_hyper_epochs():

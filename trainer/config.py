@@ -6,16 +6,21 @@ Adam lr 1e-4 (amsgrad, no weight decay, constant), batch 12, sequences of 40 vox
 """
 from __future__ import annotations
 
+import contextlib
 import copy
+import functools
+import sys
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Iterable, Optional
 
 import yaml
 
-from v2v_server.ops.settings import YamlLoader, check_bool, check_choice, check_float, check_int, load_yaml, setting
+from v2v_server.ops.settings import (YamlLoader, check_bool, check_choice, check_float, check_int, check_keys,
+                                     load_yaml, setting)
 
-__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config", "load_config",
-           "apply_overrides", "apply_loss_preset", "merge", "check_types", "reference_markdown"]
+__all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config",
+           "load_config", "apply_overrides", "apply_loss_preset", "SPELLINGS", "merge", "check_types",
+           "reference_markdown", "ConfigError", "exit_on_config_error"]
 
 #: The V2V paper's loss combinations for reconstruction, as ``loss`` section values. "V+L1+H"
 #: (Table 2; the authors' train_v2v_*_10k.yaml): LPIPS-VGG + L1 + temporal consistency from
@@ -34,10 +39,14 @@ LOSS_PRESETS = {
                 "tc_start_fraction": 0.5},
 }
 #: ``loss.flow_source``: where the flow that a loss needs comes from. "stream": the server's
-#: ``flow``; "raft_small" / "raft_large": torchvision's RAFT on the batch's ground-truth frames
-#: on the training device (``trainer/raft_flow.py``; the authors' ``optical_flow_source``).
-FLOW_SOURCES = ("stream", "raft_small", "raft_large")
-_RAFT_WEIGHTS_HELP = ("local .pth state dict of torchvision's raft_small / raft_large for flow_source raft_*; null: "
+#: ``flow``; "raft-small" / "raft-large" (the names of the server's RAFT ``flow_preset``):
+#: torchvision's RAFT on the batch's ground-truth frames on the training device
+#: (``trainer/raft_flow.py``; the authors' ``optical_flow_source``).
+FLOW_SOURCES = ("stream", "raft-small", "raft-large")
+#: Other spellings a configuration may use for a choice, read as the listed one:
+#: ``raft_small`` / ``raft_large`` (torchvision's function names, the authors' spelling).
+SPELLINGS = {"raft_small": "raft-small", "raft_large": "raft-large"}
+_RAFT_WEIGHTS_HELP = ("local .pth state dict of torchvision's raft_small / raft_large for flow_source raft-*; null: "
                       "$V2V_RAFT_WEIGHTS, else $TORCH_HOME/hub/checkpoints/raft_<size>*.pth (never downloaded)")
 
 
@@ -113,10 +122,17 @@ class LogSettings:
 
 
 @dataclass
-class E2VIDModel:
-    """``model`` of e2vid: E2VID recurrent (Rebecq et al. 2019), the reference's sizes."""
+class VoxelInput:
+    """What every network reads: discrete voxel grids of ``num_bins`` bins (the server's
+    ``num_bins``, checked against each batch)."""
 
     num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
+
+
+@dataclass
+class E2VIDModel(VoxelInput):
+    """``model`` of e2vid: E2VID recurrent (Rebecq et al. 2019), the reference's sizes."""
+
     base_num_channels: int = setting(32, help="channels of the first encoder")
     num_encoders: int = setting(3, help="encoders (each halves the resolution)")
     num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
@@ -142,16 +158,15 @@ class E2VIDLoss:
     tc_alpha: float = setting(50.0, help="visibility sharpness of the temporal-consistency term")
     tc_start_fraction: float = setting(0.5, help="the term covers voxels from this fraction of L on (20..39 of 40)")
     flow_source: str = setting("stream", help="flow of the temporal-consistency term: the stream's, or RAFT on the "
-                               "frames on the training device (the authors': raft_small)", choices=FLOW_SOURCES)
-    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft_*)")
+                               "frames on the training device (the authors': raft-small)", choices=FLOW_SOURCES)
+    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft-*)")
     raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
 
 
 @dataclass
-class HyperE2VIDModel:
+class HyperE2VIDModel(VoxelInput):
     """``model`` of hypere2vid: HyperE2VID (Ercan et al. 2024), the authors' sizes."""
 
-    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
     base_num_channels: int = setting(32, help="channels of the first encoder")
     num_encoders: int = setting(3, help="encoders (3: the dynamic decoder's context is at 1/4 resolution)")
     num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
@@ -170,10 +185,9 @@ class HyperCurriculum:
 
 
 @dataclass
-class ETNetModel:
+class ETNetModel(VoxelInput):
     """``model`` of etnet: ETNet (Weng et al. 2021), the authors' sizes; smaller values for CPU demos."""
 
-    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
     d_model: int = setting(256, help="token width (channels of the bottleneck)")
     nhead: int = setting(8, help="attention heads")
     encoder_layers: int = setting(3, help="transformer encoder layers per scale")
@@ -183,10 +197,9 @@ class ETNetModel:
 
 
 @dataclass
-class EvFlowModel:
+class EvFlowModel(VoxelInput):
     """``model`` of evflow: EV-FlowNet (Zhu et al. 2018), the reference's sizes."""
 
-    num_bins: int = setting(5, help="bins per voxel grid, B (the server's num_bins)")
     base_num_channels: int = setting(32, help="channels of the first encoder")
     num_encoders: int = setting(4, help="encoders (each halves the resolution)")
     num_residual_blocks: int = setting(2, help="residual blocks at the bottleneck")
@@ -201,8 +214,8 @@ class EvFlowLoss:
 
     flow_l1_weight: float = setting(1.0, help="weight of the flow L1 term")
     flow_source: str = setting("stream", help="flow targets: the stream's, or RAFT on the frames on the training "
-                               "device (the authors': raft_large)", choices=FLOW_SOURCES)
-    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft_*)")
+                               "device (the authors': raft-large)", choices=FLOW_SOURCES)
+    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft-*)")
     raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
 
 
@@ -234,6 +247,44 @@ def _defaults(task: str) -> dict:
 DEFAULTS = {task: _defaults(task) for task in TASK_SECTIONS}
 
 
+class ConfigError(ValueError):
+    """A trainer configuration that cannot be used (a YAML file, a ``--set`` override, a flag, or
+    the configuration a checkpoint stores); the message names the file, the key and what is
+    allowed."""
+
+
+@contextlib.contextmanager
+def _config_errors(source: str = ""):
+    """``ValueError`` (and a missing file) inside become :class:`ConfigError`, prefixed with
+    ``source`` (a file's path) unless the message already names it."""
+    try:
+        yield
+    except (ValueError, FileNotFoundError) as e:
+        msg = str(e)
+        if not source or source in msg:
+            raise ConfigError(msg) from None
+        raise ConfigError(f"{source}: {msg}") from None
+
+
+def exit_on_config_error(prog: str):
+    """Decorator of a command's ``main(argv) -> int`` (``v2v-train``, ``v2v-eval``): a
+    :class:`ConfigError` raised inside prints ``<prog>: configuration error: <message>`` on
+    stderr, without a traceback, and the command returns 2, as ``v2v-serve`` does."""
+
+    def wrap(main):
+        @functools.wraps(main)
+        def run(*args, **kwargs):
+            try:
+                return main(*args, **kwargs)
+            except ConfigError as e:
+                print(f"{prog}: configuration error: {e}", file=sys.stderr)
+                return 2
+
+        return run
+
+    return wrap
+
+
 def merge(base: dict, upd: dict) -> dict:
     """Recursive dict merge; ``upd`` wins. Returns a new dict."""
     out = copy.deepcopy(base)
@@ -252,12 +303,13 @@ def default_config(task: str) -> dict:
     return copy.deepcopy(DEFAULTS[task])
 
 
-def _check_keys(cfg: dict, ref: dict, prefix: str = ""):
+def _check_keys(cfg: dict, ref: dict, section: str = ""):
+    """Every key of ``cfg`` (and of its sections, the model's included) is one of ``ref``'s;
+    ``ValueError`` from :func:`check_keys` naming the section and the allowed keys."""
+    check_keys(cfg, ref, section)
     for k, v in cfg.items():
-        if k not in ref:
-            raise ValueError(f"unknown config key {prefix}{k!r}; known: {sorted(ref)}")
-        if isinstance(v, dict) and isinstance(ref[k], dict) and k != "model":
-            _check_keys(v, ref[k], prefix + k + ".")
+        if isinstance(v, dict) and isinstance(ref[k], dict):
+            _check_keys(v, ref[k], f"{section}.{k}" if section else k)
 
 
 def _check_value(field_, v, name: str):
@@ -278,6 +330,8 @@ def _check_value(field_, v, name: str):
         if not isinstance(v, str):
             raise ValueError(f"{label} must be a string, got {v!r}")
         choices = field_.metadata.get("choices")
+        if choices and v not in choices:
+            v = SPELLINGS.get(v, v)
         return check_choice(label, v, choices) if choices else v
     return v
 
@@ -286,25 +340,27 @@ def check_types(cfg: dict, schema: Optional[dict] = None, prefix: str = "") -> d
     """Check ``cfg`` against the declared fields of its task (``RunSettings`` and the section
     dataclasses), in place, and return it: ints must be integers, floats numbers (stored as
     ``float``), booleans booleans, strings strings of the listed choices; a field declared
-    Optional (or defaulting to None) may be None. The ``model`` section is checked when the
-    model is built.
+    Optional (or defaulting to None) may be None.
 
     Raises:
-        ValueError: naming the dotted field.
+        ConfigError: (a ``ValueError``) naming the dotted field.
     """
-    if schema is None:
-        task = cfg.get("task", "e2vid")
-        check_choice("config field 'task'", task, tuple(TASK_SECTIONS))
-        schema = _schema(task)
+    with _config_errors():
+        if schema is None:
+            task = cfg.get("task", "e2vid")
+            check_choice("config field 'task'", task, tuple(TASK_SECTIONS))
+            schema = _schema(task)
+        return _check_section(cfg, schema, prefix)
+
+
+def _check_section(cfg: dict, schema: dict, prefix: str) -> dict:
     for k, v in list(cfg.items()):
         name = prefix + k
         ref = schema.get(k)
-        if k == "model" and not prefix:
-            continue
         if isinstance(ref, dict):
             if not isinstance(v, dict):
                 raise ValueError(f"config field {name!r} must be a mapping, got {v!r}")
-            check_types(v, ref, name + ".")
+            _check_section(v, ref, name + ".")
         elif ref is not None:
             cfg[k] = _check_value(ref, v, name)
     return cfg
@@ -314,13 +370,24 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
     """Load a YAML config over the task's defaults.
 
     The task comes from ``task`` if given, else the file's ``task:`` key, else 'e2vid'.
-    Raises ``ValueError`` for unknown keys (model keys are checked when the model is built)
-    and ``FileNotFoundError`` for a missing file.
+
+    Raises:
+        ConfigError: (a ``ValueError``) naming the file, the key and the allowed keys for an
+            unknown key; the file and the field for a bad value; a missing or unreadable file.
     """
-    user = dict(load_yaml(path)) if path else {}
-    file_task = user.get("task")
-    task = task or file_task or "e2vid"
-    base = default_config(task)
+    with _config_errors(str(path) if path else ""):
+        user = dict(load_yaml(path)) if path else {}
+        file_task = user.get("task")
+        task = task or file_task or "e2vid"
+    with _config_errors(str(path) if path and task == file_task else ""):
+        base = default_config(task)
+    with _config_errors(str(path) if path else ""):
+        return _over_defaults(user, base, file_task, task)
+
+
+def _over_defaults(user: dict, base: dict, file_task: Optional[str], task: str) -> dict:
+    """``user`` (a file's mapping, of ``file_task``) over ``base`` (the defaults of ``task``),
+    its keys and values checked."""
     if file_task and file_task != task:
         # --task overrides a file written for another task: the sections either task has its
         # own defaults for (model, loss, and optim/curriculum where one has them) do not carry
@@ -330,14 +397,8 @@ def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
     user["task"] = task
     _check_keys(user, base)
     if isinstance(user.get("loss"), dict) and user["loss"].get("preset") is not None and "loss" in base:
-        try:
-            apply_loss_preset(base["loss"], user["loss"]["preset"])
-        except ValueError as e:
-            raise ValueError(f"{path}: {e}") if path else e
-    try:
-        return check_types(merge(base, user))
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") if path else e
+        apply_loss_preset(base["loss"], user["loss"]["preset"])
+    return check_types(merge(base, user))
 
 
 def _parse_value(s: str) -> Any:
@@ -346,9 +407,18 @@ def _parse_value(s: str) -> Any:
 
 def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
     """Apply ``key.sub=value`` strings (values parsed as YAML) to a copy of ``cfg``.
-    Raises ``ValueError`` for a malformed item, an unknown key path or a value of the wrong
-    type (see :func:`check_types`)."""
+
+    Raises:
+        ConfigError: (a ``ValueError``) for a malformed item, an unknown key path (naming the
+            override and the allowed keys) or a value of the wrong type (see :func:`check_types`).
+    """
     cfg = copy.deepcopy(cfg)
+    with _config_errors():
+        _apply(cfg, overrides)
+    return check_types(cfg)
+
+
+def _apply(cfg: dict, overrides: Iterable[str]) -> None:
     for item in overrides or ():
         if "=" not in item:
             raise ValueError(f"override must be key.path=value, got {item!r}")
@@ -359,12 +429,14 @@ def apply_overrides(cfg: dict, overrides: Iterable[str]) -> dict:
             if not isinstance(node.get(p), dict):
                 raise ValueError(f"unknown config section {p!r} in override {item!r}")
             node = node[p]
-        if parts[-1] not in node and parts[0] != "model":
-            raise ValueError(f"unknown config key {key!r} in override {item!r}")
-        node[parts[-1]] = _parse_value(val)
+        check_keys(parts[-1:], node, ".".join(parts[:-1]), f"--set {item}")
+        try:
+            node[parts[-1]] = _parse_value(val)
+        except yaml.YAMLError as e:
+            why = getattr(e, "problem", None) or e
+            raise ValueError(f"--set {item}: the value is not valid YAML ({why})") from None
         if parts == ["loss", "preset"] and node["preset"] is not None:
             apply_loss_preset(node, node["preset"])
-    return check_types(cfg)
 
 
 def apply_loss_preset(loss: dict, name: str) -> dict:

@@ -137,8 +137,9 @@ class _TransformerDecoder(nn.Module):
 class ETNet(nn.Module):
     """ETNet reconstruction network (see the module doc); the authors' fixed sizes.
 
-    Args: num_bins (5), d_model (256 tokens' width), nhead (8), encoder_layers (3),
-    decoder_layers (2), dim_feedforward (1024), dropout (0.1). Reduced values are for CPU demos.
+    Args: num_bins, d_model (the tokens' width), nhead, encoder_layers, decoder_layers,
+    dim_feedforward, dropout; declared once, with the authors' sizes as defaults, by
+    ``trainer.config.ETNetModel`` (``build_model("etnet", {})``). Reduced values are for CPU demos.
 
     ``forward(voxel, states=None)``: ``voxel`` float (N, num_bins, H, W); ``states`` None at a
     sequence start or the list returned by the previous call. Returns ``(image (N, 1, H, W) float
@@ -146,8 +147,8 @@ class ETNet(nn.Module):
     than 20000 tokens.
     """
 
-    def __init__(self, num_bins: int = 5, d_model: int = 256, nhead: int = 8, encoder_layers: int = 3,
-                 decoder_layers: int = 2, dim_feedforward: int = 1024, dropout: float = 0.1):
+    def __init__(self, num_bins: int, d_model: int, nhead: int, encoder_layers: int, decoder_layers: int,
+                 dim_feedforward: int, dropout: float):
         super().__init__()
         self.num_bins = num_bins
         self.head = ConvLayer(num_bins, 32, 5)

@@ -48,6 +48,8 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
+from .config import ConfigError, exit_on_config_error
+
 __all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
            "evaluate_e2vid", "evaluate_evflow", "load_model", "main"]
 
@@ -271,12 +273,23 @@ def flow_metrics(pred: np.ndarray, gt: np.ndarray, event_mask: Optional[np.ndarr
 
 def load_model(checkpoint: str, device: torch.device):
     """Rebuild the network stored by ``v2v-train`` in ``checkpoint``; returns (task, model
-    in eval mode, config)."""
+    in eval mode, config).
+
+    Raises:
+        ConfigError: naming ``checkpoint``, when it is missing or its stored configuration
+            does not build a network (an unknown model key, with the allowed ones).
+    """
     from .zoo import build_model
 
+    if not Path(checkpoint).is_file():
+        raise ConfigError(f"checkpoint not found: {checkpoint}")
     ck = torch.load(checkpoint, map_location=device, weights_only=False)
     cfg = ck["config"]
-    model = build_model(ck["task"], dict(cfg["model"])).to(device)
+    try:
+        model = build_model(ck["task"], dict(cfg["model"]))
+    except ConfigError as e:
+        raise ConfigError(f"{checkpoint}: {e}") from None
+    model = model.to(device)
     model.load_state_dict(ck["model"])
     model.eval()
     return ck["task"], model, cfg
@@ -350,6 +363,7 @@ def _summarise(per_input: Dict[str, Dict[str, List[float]]]) -> dict:
     }
 
 
+@exit_on_config_error("v2v-eval")
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="v2v-eval", description="Evaluate a v2v-train checkpoint (paper metrics).")
     p.add_argument("--checkpoint", help="checkpoint_*.pt written by v2v-train")

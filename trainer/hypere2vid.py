@@ -190,8 +190,9 @@ class _UNetRecurrentDynamic(nn.Module):
 class HyperE2VID(nn.Module):
     """HyperE2VID reconstruction network (see the module doc).
 
-    Args (the authors' ``unet_kwargs`` defaults): num_bins 5, base_num_channels 32,
-    num_encoders 3, num_residual_blocks 2, kernel_size 5 (also the dynamic filters' size).
+    Args: num_bins, base_num_channels, num_encoders (3 only), num_residual_blocks, kernel_size
+    (also the dynamic filters' size); declared once, with the authors' ``unet_kwargs`` as
+    defaults, by ``trainer.config.HyperE2VIDModel`` (``build_model("hypere2vid", {})``).
     Skips are sums, decoders upsample-conv, norm none, one output channel.
 
     ``forward(voxel, states=None, gt_image=None, beta=0.0)``: ``voxel`` float (N, num_bins, H, W);
@@ -204,8 +205,8 @@ class HyperE2VID(nn.Module):
     Raises ``ValueError`` for a voxel of the wrong shape.
     """
 
-    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 3,
-                 num_residual_blocks: int = 2, kernel_size: int = 5):
+    def __init__(self, num_bins: int, base_num_channels: int, num_encoders: int, num_residual_blocks: int,
+                 kernel_size: int):
         super().__init__()
         # the context grid (1/4 of the input) must equal the first decoder's (1/2**(num_encoders-1))
         if num_encoders != 3:

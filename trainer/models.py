@@ -212,8 +212,9 @@ class E2VIDRecurrent(nn.Module):
     """E2VID recurrent reconstruction network (Rebecq et al. 2019; event_cnn_minimal and the V2V
     authors' ``E2VIDRecurrent`` / ``UNetRecurrent`` with ConvLSTM encoders).
 
-    Paper/reference config: num_bins=5, base_num_channels=32, num_encoders=3, skip 'sum',
-    num_residual_blocks=2, kernel_size=5, upsample-conv decoder, 1 output, no activation.
+    The parameters and the reference's sizes (5 bins, base 32, 3 encoders, 'sum' skips, 2
+    residual blocks, kernel 5, 1 output) are declared once, by ``trainer.config.E2VIDModel``
+    (``build_model("e2vid", {})`` builds them); upsample-conv decoder, no activation.
     State-dict keys and shapes equal the authors' (``unetrecurrent.head.conv2d.weight``, ...,
     ``unetrecurrent.encoders.i.recurrent_block.Gates.weight``; tests/test_trainer_zoo.py), so
     their checkpoints' ``state_dict`` loads with ``load_state_dict``; so do state dicts saved
@@ -228,9 +229,8 @@ class E2VIDRecurrent(nn.Module):
         ValueError: bad sizes or skip type at construction; a voxel of another shape in forward.
     """
 
-    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 3,
-                 num_residual_blocks: int = 2, num_output_channels: int = 1, skip_type: str = "sum",
-                 kernel_size: int = 5):
+    def __init__(self, num_bins: int, base_num_channels: int, num_encoders: int, num_residual_blocks: int,
+                 num_output_channels: int, skip_type: str, kernel_size: int):
         super().__init__()
         self.num_bins, self.num_encoders = num_bins, num_encoders
         self.unetrecurrent = _UNetRecurrent(num_bins, base_num_channels, num_encoders, num_residual_blocks,
@@ -292,8 +292,9 @@ class EVFlowNet(nn.Module):
     ``state_dict()`` keys are the reference's (``unet.encoders.0.conv2d.weight``, ...) and
     reference checkpoints' ``state_dict`` load with ``load_state_dict`` as they are.
 
-    Paper/reference config: num_bins=5, base_num_channels=32, num_encoders=4, skip
-    'concat', num_residual_blocks=2, kernel_size=3, upsample-conv decoder, 2 outputs.
+    The parameters and the reference's sizes (5 bins, base 32, 4 encoders, 'concat' skips, 2
+    residual blocks, kernel 3, 2 outputs) are declared once, by ``trainer.config.EvFlowModel``
+    (``build_model("evflow", {})`` builds them); upsample-conv decoder.
 
     ``forward(voxel)``: float (N, num_bins, H, W) -> flow float (N, 2, H, W) in pixels over
     the voxel's time span (channel 0 = x/u, 1 = y/v). H, W need not be multiples of
@@ -301,9 +302,8 @@ class EVFlowNet(nn.Module):
     for a voxel of the wrong shape.
     """
 
-    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 4,
-                 num_residual_blocks: int = 2, num_output_channels: int = 2, skip_type: str = "concat",
-                 kernel_size: int = 3):
+    def __init__(self, num_bins: int, base_num_channels: int, num_encoders: int, num_residual_blocks: int,
+                 num_output_channels: int, skip_type: str, kernel_size: int):
         super().__init__()
         self.num_bins = num_bins
         self.num_encoders = num_encoders

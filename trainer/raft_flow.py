@@ -4,13 +4,14 @@ The V2V authors' training code (HYLZ-2019/V2V ``model/train_utils.py`` ``load_ra
 ``inference_raft``; ``model/train_flow_utils.py``) computes the flow that temporal consistency
 (reconstruction tasks, ``raft_small``) and EV-FlowNet's targets (``raft_large``) need from the
 batch's ground-truth frames on the training device, 12 refinement iterations, instead of
-reading it from the dataset. ``loss.flow_source: raft_small | raft_large`` does the same here;
+reading it from the dataset. ``loss.flow_source: raft-small | raft-large`` (the server's
+``flow_preset`` names; ``raft_small`` / ``raft_large`` are read as them) does the same here;
 the default ``stream`` uses the flow the server sends.
 
 RAFT needs torchvision and local weights (nothing is downloaded): ``loss.raft_weights``, else
 ``$V2V_RAFT_WEIGHTS``, else torchvision's cache ``$TORCH_HOME/hub/checkpoints/raft_<size>*.pth``
-(``v2v_server.samples.flow_options.raft_weights``: the server's RAFT flow option looks in the same
-places). :func:`load_raft` checks both before the first step and raises
+(``v2v_server.samples.flow_options.load_raft``, the server's RAFT loader, looks in the same
+places and loads the network). :func:`load_raft` checks both before the first step and raises
 :class:`FlowSourceUnavailable` naming what is missing.
 
 The pre- and post-processing (:func:`raft_pair_flow`) takes the network as an argument, so it
@@ -18,70 +19,46 @@ is tested with a stand-in network where torchvision is not installed.
 """
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Callable, List, Optional
+from typing import Callable, Optional
 
 import torch
 
-from .config import FLOW_SOURCES
+from v2v_server.samples.flow_options import FlowUnavailable, load_raft as load_raft_network
 
-__all__ = ["FLOW_SOURCES", "FlowSourceUnavailable", "raft_weight_candidates", "load_raft", "raft_pair_flow",
-           "RaftFlow"]
+from .config import FLOW_SOURCES, SPELLINGS
+
+__all__ = ["FLOW_SOURCES", "FlowSourceUnavailable", "load_raft", "raft_pair_flow", "RaftFlow"]
 
 #: RAFT's input sides are padded to a multiple of this and to at least ``MIN_SIDE`` (the
 #: authors' ``inference_raft``: RAFT's feature pyramid needs both).
 PAD_MULTIPLE, MIN_SIDE = 8, 128
 
 
-class FlowSourceUnavailable(RuntimeError):
+class FlowSourceUnavailable(FlowUnavailable):
     """``loss.flow_source`` names RAFT but torchvision or the weight file is missing."""
 
 
-def raft_weight_candidates(size: str, weights: Optional[str] = None) -> List[Path]:
-    """Where RAFT ``size`` ("small" or "large") weights are looked for: ``weights``
-    (``loss.raft_weights``) alone when given, else the server's places
-    (``v2v_server.samples.flow_options.raft_weight_places``: ``$V2V_RAFT_WEIGHTS``, else
-    ``$TORCH_HOME/hub/checkpoints/raft_<size>*.pth``, a pattern), the first file found first."""
-    if weights:
-        return [Path(weights)]
-    from v2v_server.samples.flow_options import raft_weight_places, raft_weights
-
-    found = raft_weights(size)
-    return [found] if found is not None else raft_weight_places(size)
-
-
 def load_raft(source: str, device: torch.device, weights: Optional[str] = None) -> torch.nn.Module:
-    """torchvision's ``raft_small`` or ``raft_large`` (``source``) with local weights, in eval
-    mode on ``device``, its parameters frozen.
+    """torchvision's RAFT small or large (``source``: ``raft-small`` or ``raft-large``, or
+    ``raft_small`` / ``raft_large``) with local weights (``weights``: ``loss.raft_weights``, None:
+    the server's places), in eval mode on ``device``, its parameters frozen; loaded by the
+    server's loader (``v2v_server.samples.flow_options.load_raft``).
 
     Raises:
-        ValueError: ``source`` is not ``raft_small`` or ``raft_large``.
-        FlowSourceUnavailable: torchvision cannot be imported, or no weight file is found (the
-            message lists the places looked at), or the file does not load into the network.
+        ValueError: ``source`` names no RAFT.
+        FlowSourceUnavailable: naming ``loss.flow_source``, when torchvision cannot be imported,
+            no weight file is found (the message lists the places looked at), or the file does
+            not load into the network.
     """
+    source = SPELLINGS.get(source, source)
     if source not in FLOW_SOURCES[1:]:
-        raise ValueError(f"loss.flow_source must be one of {FLOW_SOURCES[1:]} to load RAFT, got {source!r}")
-    size = source.split("_", 1)[1]
+        raise ValueError(f"loss.flow_source must be one of {list(FLOW_SOURCES[1:])} to load RAFT, got {source!r}")
     try:
-        from torchvision.models import optical_flow
-    except ImportError as e:
-        raise FlowSourceUnavailable(
-            f"loss.flow_source={source} needs torchvision (the build matching torch {torch.__version__}), which "
-            f"cannot be imported ({e}); install it, or train with loss.flow_source=stream (the server's flow)") from e
-    paths = raft_weight_candidates(size, weights)
-    path = next((p for p in paths if p.is_file()), None)
-    if path is None:
-        raise FlowSourceUnavailable(
-            f"loss.flow_source={source}: no local RAFT {size} weights; looked at "
-            f"{', '.join(str(p) for p in paths)}. Save torchvision's raft_{size} state dict there (or set "
-            f"loss.raft_weights / V2V_RAFT_WEIGHTS); weights are never downloaded")
-    net = optical_flow.raft_small(weights=None) if size == "small" else optical_flow.raft_large(weights=None)
-    try:
-        net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-    except Exception as e:
-        raise FlowSourceUnavailable(f"loss.raft_weights: {path} is not a raft_{size} state dict: {e}") from e
-    net.requires_grad_(False)
-    return net.eval().to(device)
+        net = load_raft_network(source.split("-", 1)[1], weights)
+    except FlowUnavailable as e:
+        raise FlowSourceUnavailable(f"loss.flow_source={source}: {e}; or train with loss.flow_source=stream (the "
+                                    f"server's flow)") from e
+    return net.to(device)
 
 
 def raft_pair_flow(net: Callable, a: torch.Tensor, b: torch.Tensor, num_flow_updates: int = 12) -> torch.Tensor:
@@ -123,10 +100,10 @@ class RaftFlow:
     """Flow of consecutive frames of a batch, for a task's loss (``loss.flow_source``).
 
     Args:
-        source: ``raft_small`` or ``raft_large``.
+        source: ``raft-small`` or ``raft-large`` (or ``raft_small`` / ``raft_large``).
         device: the training device (RAFT runs there, under ``torch.no_grad``).
         num_flow_updates: RAFT's iterations (``loss.raft_num_flow_updates``).
-        weights: ``loss.raft_weights`` (None: the default places, :func:`raft_weight_candidates`).
+        weights: ``loss.raft_weights`` (None: the server's places, ``flow_options.raft_weight_places``).
         net: a ready network instead of loading one (tests).
 
     Raises:

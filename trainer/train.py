@@ -17,7 +17,7 @@ from pathlib import Path
 
 from v2v_server.ops.settings import add_flags, flag_values
 
-from .config import RunSettings, apply_overrides, check_types, load_config
+from .config import RunSettings, apply_overrides, check_types, exit_on_config_error, load_config
 from .core import Trainer, resolve_device
 from .data import make_stream
 from .ray_train import add_ray_arguments
@@ -54,6 +54,7 @@ def build_arg_parser() -> argparse.ArgumentParser:
     return p
 
 
+@exit_on_config_error("v2v-train")
 def main(argv=None) -> int:
     args = build_arg_parser().parse_args(argv)
     cfg = load_config(args.config, args.task)

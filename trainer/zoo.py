@@ -2,10 +2,13 @@
 HyperE2VID (``trainer.hypere2vid``) and ETNet (``trainer.etnet``), the V2V paper's zoo."""
 from __future__ import annotations
 
-import inspect
+from dataclasses import asdict
 
 import torch.nn as nn
 
+from v2v_server.ops.settings import check_keys
+
+from .config import TASK_SECTIONS, ConfigError
 from .etnet import ETNet
 from .hypere2vid import HyperE2VID
 from .models import E2VIDRecurrent, EVFlowNet
@@ -17,13 +20,21 @@ MODELS = {"e2vid": E2VIDRecurrent, "evflow": EVFlowNet, "hypere2vid": HyperE2VID
 
 
 def build_model(task: str, model_cfg: dict) -> nn.Module:
-    """Build the network of ``task`` (a key of ``MODELS``) from the ``model:`` config section
-    (keyword arguments of the class). Raises ``ValueError`` for an unknown task or unknown keys."""
+    """Build the network of ``task`` (a key of ``MODELS``) from the ``model:`` config section:
+    the task's model section (``trainer.config.TASK_SECTIONS[task]["model"]``, the one
+    declaration of the network's parameters and their defaults) updated with ``model_cfg``,
+    passed to the class as keyword arguments.
+
+    Raises:
+        ConfigError: (a ``ValueError``) for an unknown task, naming the unknown keys and the
+            allowed ones, or for sizes the network refuses.
+    """
     cls = MODELS.get(task)
     if cls is None:
-        raise ValueError(f"task must be one of {list(MODELS)}, got {task!r}")
-    known = set(inspect.signature(cls.__init__).parameters) - {"self"}
-    unknown = sorted(set(model_cfg) - known)
-    if unknown:
-        raise ValueError(f"unknown model key(s) for {task}: {unknown}; known: {sorted(known)}")
-    return cls(**model_cfg)
+        raise ConfigError(f"task must be one of {list(MODELS)}, got {task!r}")
+    section = TASK_SECTIONS[task]["model"]
+    try:
+        check_keys(model_cfg, asdict(section()), f"model of {task}")
+        return cls(**{**asdict(section()), **model_cfg})
+    except ValueError as e:
+        raise ConfigError(str(e)) from None

@@ -23,7 +23,7 @@ from typing import Iterator, Optional, Sequence, Tuple, Union
 import torch
 
 from v2v_wire.codecs import available, check_compression
-from v2v_wire.protocol import OUTPUTS
+from v2v_wire.protocol import OUTPUTS, check_outputs
 
 from .connection import StreamError, StreamTimeout, batch_to_torch, load_curve_keys
 from .endpoint import EndpointStream, StreamOptions, padding_copy
@@ -133,12 +133,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto",
                  compact_flow: bool = False, compression: str = "auto"):
         super().__init__()
-        if isinstance(outputs, str):
-            outputs = (outputs,)
-        outputs = tuple(outputs)
-        bad = [o for o in outputs if o not in OUTPUTS]
-        if bad or not outputs:
-            raise ValueError(f"outputs must be a non-empty subset of {list(OUTPUTS)}, got {list(outputs)}")
+        outputs = check_outputs(outputs)
         if isinstance(credits, bool) or not isinstance(credits, int) or not 1 <= credits <= 1024:
             raise ValueError(f"credits must be an int in [1, 1024], got {credits!r}")
         if not timeout_s > 0:
@@ -155,7 +150,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if not isinstance(group, str) or not group or len(group) > 128:
             raise ValueError(f"group must be a non-empty string of at most 128 characters, got {group!r}")
         self.endpoint = endpoint
-        self.outputs = tuple(o for o in OUTPUTS if o in outputs)
+        self.outputs = outputs
         self.credits = credits
         if shm not in (True, False, "auto"):
             raise ValueError(f"shm must be True, False or 'auto', got {shm!r}")

@@ -44,7 +44,7 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 import numpy as np
 
 from v2v_server.ops.config import ServeConfig
-from v2v_wire.protocol import OUTPUTS
+from v2v_wire.protocol import OUTPUTS, check_outputs
 from v2v_server.samples.flow import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id
 from v2v_server.samples.make import video_samples
@@ -302,9 +302,7 @@ def v2v_dataset(
     cfg = config or ServeConfig().validate()
     if seed is not None:
         cfg = ServeConfig.from_dict({**cfg.to_dict(), "seed": int(seed)}, source="ray config")
-    bad = [o for o in outputs if o not in OUTPUTS]
-    if bad or not outputs:
-        raise ValueError(f"outputs must be a non-empty subset of {OUTPUTS}, got {tuple(outputs)}")
+    outputs = check_outputs(outputs)
     corpus = videos if isinstance(videos, RayCorpus) else scan_corpus_windows(videos, cfg)
     epochs = [int(epoch)] if isinstance(epoch, (int, np.integer)) else [int(e) for e in epoch]
     if isinstance(exclude, Mapping):

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Dict, FrozenSet, Optional, Tuple
 
 from v2v_wire.codecs import COMPRESSIONS
-from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError
+from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError, check_outputs
 from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
 #: Largest element count of any array in a client message (acks name at most ``max_credits`` ids).
@@ -183,8 +183,11 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
     kind = h["type"]
     if kind == "hello":
         outs = h.get("outputs")
-        if not isinstance(outs, list) or not outs or any(o not in OUTPUTS for o in outs):
-            raise WireError(f"field 'outputs' must be a non-empty list from {list(OUTPUTS)}, got {_show(outs)}")
+        try:
+            outs = check_outputs(outs if isinstance(outs, list) else None, "field 'outputs'")
+        except ValueError:
+            raise WireError(f"field 'outputs' must be a non-empty list from {list(OUTPUTS)}, "
+                            f"got {_show(outs)}") from None
         credits = _int(h, "credits", 1, 1 << 20)
         if credits > max_credits:
             raise WireError(f"field 'credits' is {credits}; this server allows at most {max_credits} batches in "
@@ -203,7 +206,7 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
         compression = h.get("compression", "none")
         if compression not in COMPRESSIONS:
             raise WireError(f"field 'compression' must be one of {list(COMPRESSIONS)}, got {_show(compression)}")
-        return Hello(tuple(o for o in OUTPUTS if o in outs), credits, consumer, _resume(h.get("resume"), crops_per_window),
+        return Hello(outs, credits, consumer, _resume(h.get("resume"), crops_per_window),
                      group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm, compression)
     if kind == "ack":
         return Ack(_ids(h, "batch_ids"))

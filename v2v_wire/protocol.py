@@ -97,6 +97,34 @@ def is_ipv6(endpoint: str) -> bool:
     return endpoint.startswith("tcp://[")
 
 
+def check_outputs(outputs, field: str = "outputs") -> Tuple[str, ...]:
+    """The outputs a configuration, a dataset or a hello asks for, checked against ``OUTPUTS``
+    and put in its (wire) order.
+
+    Args:
+        outputs: output names (a sequence, or one string: a name or a comma list such as
+            ``"voxels,frames"``).
+        field: what the caller calls them, named in the error (``outputs``, ``field 'outputs'``).
+
+    Returns:
+        the names, each once, in the order of ``OUTPUTS``.
+
+    Raises:
+        ValueError: naming ``field``, the allowed outputs and what was given, when it is empty
+            or names something else.
+    """
+    if isinstance(outputs, str):
+        outputs = [s.strip() for s in outputs.split(",") if s.strip()]
+    try:
+        given = list(outputs)
+        ok = bool(given) and all(isinstance(o, str) and o in OUTPUTS for o in given)
+    except TypeError:  # not iterable
+        given, ok = outputs, False
+    if not ok:
+        raise ValueError(f"{field} must be a non-empty list from {list(OUTPUTS)}, got {given!r}")
+    return tuple(o for o in OUTPUTS if o in given)
+
+
 def pack(header: dict) -> bytes:
     """msgpack-encode a header dict, adding the protocol version ``v``."""
     h = dict(header)

@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import Optional, Tuple
 
 from v2v_server.samples.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
-from v2v_wire.protocol import OUTPUTS, is_loopback  # noqa: F401  (is_loopback: config's checks and sockets use it)
-from v2v_server.ops.settings import (check_bool, check_choice, check_float, check_int, check_prob, load_yaml,
-                       reference_markdown, setting)
+from v2v_wire.protocol import OUTPUTS, check_outputs, is_loopback  # noqa: F401  (is_loopback: config's checks and sockets use it)
+from v2v_server.ops.settings import (check_bool, check_choice, check_float, check_int, check_keys, check_prob,
+                                     load_yaml, reference_markdown, setting)
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
 
@@ -118,10 +118,7 @@ class SampleRecipe:
         Raises:
             ValueError: naming ``source`` and the key, for an unknown key or a bad value.
         """
-        known = {f.name for f in fields(SampleRecipe)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"{source}: unknown key(s) {unknown}")
+        check_keys(d, (f.name for f in fields(SampleRecipe)), source=source)
         r = SampleRecipe(**{k: (tuple(v) if k == "outputs" and isinstance(v, list) else v) for k, v in d.items()})
         try:
             r.validate_recipe()
@@ -140,13 +137,7 @@ class SampleRecipe:
             setattr(self, name, check_prob(name, getattr(self, name)))
         if not isinstance(self.keep_top_fraction, (int, float)) or not (0 < self.keep_top_fraction <= 1):
             raise ValueError(f"keep_top_fraction must be in (0, 1], got {self.keep_top_fraction!r}")
-        if isinstance(self.outputs, str):
-            self.outputs = tuple(s.strip() for s in self.outputs.split(",") if s.strip())
-        outs = tuple(self.outputs)
-        bad = [o for o in outs if o not in OUTPUTS]
-        if bad or not outs:
-            raise ValueError(f"outputs must be a non-empty subset of {list(OUTPUTS)}, got {list(outs)}")
-        self.outputs = tuple(o for o in OUTPUTS if o in outs)
+        self.outputs = check_outputs(self.outputs)
         self.flow_preset = check_option(self.flow_preset).name  # ValueError naming flow_preset
         why = unavailable_reason(self.flow_preset)
         if why:
@@ -160,10 +151,7 @@ class SampleRecipe:
         from v2v_server.simulation.refine import parse_refine
 
         self.refine = str(parse_refine(self.refine))
-        try:
-            ni = NonIdealities.from_dict(self.nonidealities or None)
-        except ValueError as e:
-            raise ValueError(f"nonidealities: {e}") from None
+        ni = NonIdealities.from_dict(self.nonidealities or None)  # ValueError naming nonidealities.<field>
         self.nonidealities = ni.to_dict() if ni.enabled else {}
         self.degrade_dynamic_range = parse_degrade(self.degrade_dynamic_range)
         check_bool("pause_enabled", self.pause_enabled)
@@ -291,10 +279,7 @@ class ServeConfig(ServingSettings, SampleRecipe):
             d = {}
         if not isinstance(d, dict):
             raise ValueError(f"{source}: top level must be a mapping of keys to values")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"{source}: unknown key(s) {unknown}; known keys: {sorted(known)}")
+        check_keys(d, (f.name for f in fields(cls)), source=source)
         kw = dict(d)
         for k in ("outputs", "video_extensions"):
             if k in kw and isinstance(kw[k], list):

@@ -9,7 +9,8 @@ A configuration class is a dataclass whose fields are made with :func:`setting`.
 * :func:`load_yaml` reads a YAML file whose floats may be written ``1e-4`` (YAML 1.2; PyYAML's
   YAML 1.1 would read a string), with errors naming the file;
 * :func:`reference_markdown` renders the reference table (docs/config.md);
-* ``check_*`` are the one set of validators, raising ``ValueError`` that names the field.
+* ``check_*`` are the one set of validators, raising ``ValueError`` that names the field;
+  :func:`check_keys` is the one unknown-key check of every configuration mapping.
 
 Dataclasses rather than pydantic: no dependency for a decode host, and the checks here are a
 handful of small functions; a worker process imports this module in well under a millisecond.
@@ -26,7 +27,7 @@ from typing import Any, Iterable, List, Optional, Sequence
 import yaml
 
 __all__ = ["setting", "add_flags", "flag_values", "load_yaml", "reference_markdown", "check_int", "check_float",
-           "check_prob", "check_choice", "check_bool", "YamlLoader"]
+           "check_prob", "check_choice", "check_bool", "check_keys", "YamlLoader"]
 
 
 def setting(default: Any = dataclasses.MISSING, *, help: str, flag: Optional[str] = None, group: str = "",
@@ -161,6 +162,28 @@ def reference_markdown(cls, groups: Iterable, flag_of=None) -> str:
 
 
 # ----------------------------------------------------------------------------- validators
+def check_keys(given, allowed: Iterable, section: str = "", source: str = "") -> None:
+    """Check that the mapping ``given`` uses only keys from ``allowed``.
+
+    Args:
+        given: the mapping read from a file, a flag or a message (or its keys).
+        allowed: the keys it may hold (e.g. a dataclass's field names).
+        section: where the mapping sits, e.g. ``"nonidealities"`` or ``"optim"`` (empty: the
+            top level).
+        source: what it was read from, e.g. the YAML file's path (empty: not named).
+
+    Raises:
+        ValueError: ``"<source>: unknown key(s) [...] in <section>; allowed keys: [...]"``,
+            naming every unknown key and every allowed one.
+    """
+    allowed = set(allowed)
+    unknown = sorted((k for k in given if k not in allowed), key=str)
+    if unknown:
+        where = f" in {section}" if section else ""
+        raise ValueError(f"{source + ': ' if source else ''}unknown key(s) {unknown}{where}; "
+                         f"allowed keys: {sorted(allowed, key=str)}")
+
+
 def check_int(name: str, v, lo: Optional[int] = None, hi: Optional[int] = None, why: str = "") -> int:
     """``v`` as an int in [lo, hi]; booleans are not ints here.
 

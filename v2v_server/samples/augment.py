@@ -26,6 +26,7 @@ from typing import Optional
 
 import numpy as np
 
+from v2v_server.ops.settings import check_keys
 from v2v_server.simulation.simulate import ParamRanges, sample_params
 
 __all__ = ["DEGRADE_DEFAULTS", "parse_degrade", "aux_rng", "degrade_dynamic_range", "video_thresholds",
@@ -52,9 +53,7 @@ def parse_degrade(d) -> dict:
         d = {}
     if not isinstance(d, dict):
         raise ValueError(f"degrade_dynamic_range must be a mapping {{probability, scale}} or true/false, got {d!r}")
-    unknown = sorted(set(d) - set(DEGRADE_DEFAULTS))
-    if unknown:
-        raise ValueError(f"degrade_dynamic_range: unknown key(s) {unknown}; known: {sorted(DEGRADE_DEFAULTS)}")
+    check_keys(d, DEGRADE_DEFAULTS, "degrade_dynamic_range")
     out = {**DEGRADE_DEFAULTS, **d}
     p = out["probability"]
     if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:

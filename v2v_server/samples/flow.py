@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 
 from v2v_server.samples.flow_options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, FlowUnavailable, check_option,
-                           raft_weights, unavailable_reason)
+                           load_raft, raft_weights, unavailable_reason)
 from v2v_wire.flowgrid import expand_grids
 from v2v_server.samples.tracking import (ZOOM_INLIERS, _dropped_inside, _fill_lost, _from_resized,
                        _same_as_previous, _to_resized, _track_grid, _zoom_fit)
@@ -143,13 +143,9 @@ class _Raft:
         if why:
             raise FlowUnavailable(why)
         import torch
-        from torchvision.models import optical_flow as of
 
-        path = raft_weights(size)
-        log.info("RAFT %s weights from %s", size, path)
-        net = of.raft_small(weights=None) if size == "small" else of.raft_large(weights=None)
-        net.load_state_dict(torch.load(path, map_location="cpu"))
-        self.torch, self.net = torch, net.eval()
+        self.torch, self.net = torch, load_raft(size)
+        log.info("RAFT %s weights from %s", size, raft_weights(size))
 
     def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         t = self.torch

@@ -24,7 +24,7 @@ from typing import Dict, List, Optional
 
 __all__ = [
     "DEFAULT_FLOW", "DIS_PRESETS", "DISParams", "FLOW_OPTIONS", "FlowOption", "FlowUnavailable", "TrackParams",
-    "check_option", "raft_weight_places", "raft_weights", "unavailable_reason",
+    "check_option", "load_raft", "raft_weight_places", "raft_weights", "unavailable_reason",
 ]
 
 #: OpenCV DIS presets by name (``cv2.DISOPTICAL_FLOW_PRESET_*``).
@@ -217,6 +217,49 @@ def raft_weight_places(size: str = "small") -> List[Path]:
         return [Path(env)]
     home = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch"))
     return [home / "hub" / "checkpoints" / f"raft_{size}*.pth"]
+
+
+def load_raft(size: str, weights: Optional[str] = None):
+    """torchvision's ``raft_small`` or ``raft_large`` network (Teed & Deng, ECCV 2020) with
+    local weights, in eval mode on the CPU, its parameters frozen: the one loader of the server's
+    ``raft-*`` flow options and the trainer's ``loss.flow_source: raft-*``.
+
+    Args:
+        size: "small" or "large".
+        weights: a ``.pth`` state dict; None: the first file of :func:`raft_weight_places`.
+
+    Returns:
+        the ``torch.nn.Module``; ``net(img1, img2, num_flow_updates=k)`` takes (N, 3, H, W)
+        float images in [-1, 1] with H, W multiples of 8 and returns a list of (N, 2, H, W)
+        flows in pixels, the last the finest.
+
+    Raises:
+        ValueError: ``size`` is neither "small" nor "large".
+        FlowUnavailable: torchvision cannot be imported; no weight file (the message lists the
+            places looked at; weights are never downloaded); the file is not a ``raft_<size>``
+            state dict.
+    """
+    if size not in ("small", "large"):
+        raise ValueError(f"RAFT size must be small or large, got {size!r}")
+    try:
+        import torch
+        from torchvision.models import optical_flow
+    except ImportError as e:
+        raise FlowUnavailable(f"RAFT needs torchvision (the build matching the installed torch), which cannot be "
+                              f"imported ({e})") from e
+    places = [Path(weights)] if weights else raft_weight_places(size)
+    path = (places[0] if places[0].is_file() else None) if weights else raft_weights(size)
+    if path is None:
+        raise FlowUnavailable(
+            f"no local RAFT {size} weights; looked at {', '.join(str(p) for p in places)}. Save torchvision's "
+            f"raft_{size} state dict there (or set V2V_RAFT_WEIGHTS); weights are never downloaded")
+    net = getattr(optical_flow, f"raft_{size}")(weights=None)
+    try:
+        net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    except Exception as e:
+        raise FlowUnavailable(f"{path} is not a raft_{size} state dict: {e}") from e
+    net.requires_grad_(False)
+    return net.eval()
 
 
 def unavailable_reason(name) -> Optional[str]:

@@ -486,6 +486,82 @@ def _per_pixel(name, v, npix, broadcast):
     return np.ascontiguousarray(np.broadcast_to(a, (npix,)) if broadcast else a)
 
 
+def _check_path(src: np.ndarray, potential: np.ndarray):
+    """(M, H, W) of ``src``, checked against ``potential`` (float32/float64 (H, W), writeable and
+    C-contiguous: the kernel updates it in place). Raises ``ValueError`` naming the array."""
+    if src.ndim != 3:
+        raise ValueError(f"src must be (M, H, W), got shape {src.shape}")
+    m, h, w = src.shape
+    if potential.shape != (h, w) or potential.dtype not in (np.float32, np.float64):
+        raise ValueError(f"potential must be a float32/float64 {(h, w)} array, got {potential.dtype}{potential.shape}")
+    if not potential.flags.c_contiguous or not potential.flags.writeable:
+        raise ValueError("potential must be a writeable C-contiguous array (it is updated in place)")
+    return m, h, w
+
+
+def _pairs_of_steps(pair_of_step: Optional[np.ndarray], m: int):
+    """``(pair_of_step, P)``: the frame pair of each of the M - 1 sub-intervals as contiguous
+    int64 (default: one sub-interval per pair) and the number of pairs P. Raises ``ValueError``
+    unless it starts at 0 and steps by 0 or 1."""
+    if pair_of_step is None:
+        pair_of_step = np.arange(m - 1, dtype=np.int64)
+    pair_of_step = np.ascontiguousarray(pair_of_step, dtype=np.int64)
+    if pair_of_step.shape != (m - 1,):
+        raise ValueError(f"pair_of_step must have one entry per sub-interval ({m - 1}), got {pair_of_step.shape}")
+    n_pairs = int(pair_of_step[-1]) + 1 if m > 1 else 0
+    if m > 1 and (pair_of_step[0] != 0 or not np.all(np.isin(np.diff(pair_of_step), (0, 1)))):
+        raise ValueError("pair_of_step must start at 0 and step by 0 or 1")
+    return pair_of_step, n_pairs
+
+
+def _levels(flat: np.ndarray, lut: Optional[np.ndarray]):
+    """``(levels, lut, use_lut)`` as the kernel reads them: uint8/uint16 codes with a float64
+    look-up table, or float64 log intensities with a placeholder table. Raises ``ValueError``
+    for codes of another dtype."""
+    if lut is not None:
+        if flat.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"src must be uint8/uint16 codes with a lut, got {flat.dtype}")
+        return flat, np.ascontiguousarray(lut, dtype=np.float64), True
+    return flat.astype(np.float64, copy=False), np.zeros(1), False
+
+
+def _thresholds(pos_threshold, neg_threshold, npix: int):
+    """c+ and c- as float64 arrays of one value or one per pixel (both the same size). Raises
+    ``ValueError`` unless every value is finite and > 0."""
+    cpa = _per_pixel("pos_threshold", pos_threshold, npix, False)
+    cna = _per_pixel("neg_threshold", neg_threshold, npix, False)
+    if cpa.size != cna.size:  # both scalars or both per pixel
+        cpa = np.ascontiguousarray(np.broadcast_to(cpa, (npix,)))
+        cna = np.ascontiguousarray(np.broadcast_to(cna, (npix,)))
+    if np.any(~(cpa > 0)) or np.any(~(cna > 0)) or not (np.all(np.isfinite(cpa)) and np.all(np.isfinite(cna))):
+        raise ValueError("contrast thresholds c+ and c- must be finite and > 0")
+    return cpa, cna
+
+
+def _int8_holds(lut_a, ex, noise_std, pot_flat, cpa, cna) -> bool:
+    """True when no count of the kernel's fast path can exceed 127 (the bound of
+    :func:`_count_bound` before the first pair): then int8 straight from the kernel never
+    overflows and nothing is re-run."""
+    return _count_bound(float(lut_a.max() - lut_a.min()), float(np.abs(ex).max()) + float(noise_std) * _NOISE_BOUND,
+                        float(np.abs(pot_flat).max(initial=0.0)), float(max(cpa.max(), cna.max())),
+                        float(min(cpa.min(), cna.min()))) < 127
+
+
+def _narrowed(net: np.ndarray, narrow: bool, overflow: int, lo: int, hi: int) -> np.ndarray:
+    """The kernel's counts ``net``, as int8 when ``narrow`` and every count (in [lo, hi]) fits.
+
+    Raises:
+        OverflowError: when the widest attempt overflowed at frame pair ``overflow`` (>= 0).
+    """
+    if overflow >= 0:
+        raise OverflowError(
+            f"frame pair {overflow}: more than 2**31-1 events in one pixel (thresholds too small "
+            f"for the int32 voxel grid)")
+    if narrow and net.dtype != np.int8 and -128 <= lo and hi <= 127:
+        return net.astype(np.int8)
+    return net
+
+
 def run_kernel(
     src: np.ndarray,
     potential: np.ndarray,
@@ -537,51 +613,18 @@ def run_kernel(
         ValueError: for mismatched shapes or a bad ``pair_of_step``.
         OverflowError: when a pixel would need more than 2**31 - 1 events in one frame pair.
     """
-    if src.ndim != 3:
-        raise ValueError(f"src must be (M, H, W), got shape {src.shape}")
-    m, h, w = src.shape
+    m, h, w = _check_path(src, potential)
     npix = h * w
-    if potential.shape != (h, w) or potential.dtype not in (np.float32, np.float64):
-        raise ValueError(f"potential must be a float32/float64 {(h, w)} array, got {potential.dtype}{potential.shape}")
-    if pair_of_step is None:
-        pair_of_step = np.arange(m - 1, dtype=np.int64)
-    pair_of_step = np.ascontiguousarray(pair_of_step, dtype=np.int64)
-    if pair_of_step.shape != (m - 1,):
-        raise ValueError(f"pair_of_step must have one entry per sub-interval ({m - 1}), got {pair_of_step.shape}")
-    n_pairs = int(pair_of_step[-1]) + 1 if m > 1 else 0
-    if m > 1 and (pair_of_step[0] != 0 or not np.all(np.isin(np.diff(pair_of_step), (0, 1)))):
-        raise ValueError("pair_of_step must start at 0 and step by 0 or 1")
-    flat = np.ascontiguousarray(src).reshape(m, npix)
-    use_lut = lut is not None
-    if use_lut:
-        if flat.dtype not in (np.uint8, np.uint16):
-            raise ValueError(f"src must be uint8/uint16 codes with a lut, got {flat.dtype}")
-        lut_a = np.ascontiguousarray(lut, dtype=np.float64)
-    else:
-        flat = flat.astype(np.float64, copy=False)
-        lut_a = np.zeros(1)
-    cpa = _per_pixel("pos_threshold", pos_threshold, npix, False)
-    cna = _per_pixel("neg_threshold", neg_threshold, npix, False)
-    if cpa.size != cna.size:  # both scalars or both per pixel
-        cpa = np.ascontiguousarray(np.broadcast_to(cpa, (npix,)))
-        cna = np.ascontiguousarray(np.broadcast_to(cna, (npix,)))
-    if np.any(~(cpa > 0)) or np.any(~(cna > 0)) or not (np.all(np.isfinite(cpa)) and np.all(np.isfinite(cna))):
-        raise ValueError("contrast thresholds c+ and c- must be finite and > 0")
+    pair_of_step, n_pairs = _pairs_of_steps(pair_of_step, m)
+    flat, lut_a, use_lut = _levels(np.ascontiguousarray(src).reshape(m, npix), lut)
+    cpa, cna = _thresholds(pos_threshold, neg_threshold, npix)
     ex = _per_pixel("extra", extra, npix, True)
-    if not potential.flags.c_contiguous or not potential.flags.writeable:
-        raise ValueError("potential must be a writeable C-contiguous array (it is updated in place)")
     pot_flat = potential.reshape(npix)
-    pos = np.empty((n_pairs, h, w)) if split else np.empty((0, 1, 1))
-    neg = np.empty((n_pairs, h, w)) if split else np.empty((0, 1, 1))
+    pos, neg = (np.empty((n_pairs, h, w) if split else (0, 1, 1)) for _ in range(2))
     start = potential.copy() if narrow else None
-    widths = (np.int16, np.int32) if narrow else (np.int32,)
-    if narrow and use_lut and not split and not events and not refractory_cap and n_pairs == m - 1:
-        # int8 straight from the kernel when its fast path's bound already holds before the
-        # first pair: then no pair can overflow it and nothing is re-run
-        if _count_bound(float(lut_a.max() - lut_a.min()), float(np.abs(ex).max()) + float(noise_std) * _NOISE_BOUND,
-                        float(np.abs(pot_flat).max(initial=0.0)), float(max(cpa.max(), cna.max())),
-                        float(min(cpa.min(), cna.min()))) < 127:
-            widths = (np.int8,) + widths
+    int8 = narrow and use_lut and not (split or events or refractory_cap) and n_pairs == m - 1 and \
+        _int8_holds(lut_a, ex, noise_std, pot_flat, cpa, cna)
+    widths = ((np.int8,) if int8 else ()) + ((np.int16, np.int32) if narrow else (np.int32,))
     for dtype in widths:
         if dtype is not widths[0]:
             potential[...] = start  # the narrower attempt overflowed: again, wider
@@ -594,12 +637,7 @@ def run_kernel(
             bool(split), bool(events))
         if overflow < 0:
             break
-    if narrow and overflow < 0 and net.dtype != np.int8 and -128 <= lo and hi <= 127:
-        net = net.astype(np.int8)
-    if overflow >= 0:
-        raise OverflowError(
-            f"frame pair {overflow}: more than 2**31-1 events in one pixel (thresholds too small "
-            f"for the int32 voxel grid)")
+    net = _narrowed(net, narrow, overflow, lo, hi)
     return KernelResult(net, potential, int(ev), int(lost), pos if split else None, neg if split else None,
                         es if events else None, ep if events else None, ef if events else None,
                         epol if events else None)

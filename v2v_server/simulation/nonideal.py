@@ -50,10 +50,12 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from v2v_server.ops.settings import check_keys
 from v2v_server.simulation.kernel import run_kernel
 from v2v_server.simulation.simulate import SensorParams, _lut64, check_frames, draw_noise_seed, simulate_voxels, start_state
 
-__all__ = ["NonIdealities", "PixelState", "draw_pixel_state", "effective_noise", "simulate_voxels_nonideal"]
+__all__ = ["NonIdealities", "PixelState", "add_pixel_events", "draw_pixel_state", "effective_noise",
+           "simulate_voxels_nonideal"]
 
 NOISE_MODES = ("per_frame", "per_second")
 
@@ -111,10 +113,7 @@ class NonIdealities:
             return d
         if not isinstance(d, dict):
             raise ValueError(f"nonidealities must be a mapping, got {type(d).__name__}")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown key(s) in nonidealities: {unknown}; known: {sorted(known)}")
+        check_keys(d, (f.name for f in fields(cls)), "nonidealities")
         return cls(**d)
 
     def to_dict(self) -> dict:
@@ -185,6 +184,49 @@ def effective_noise(params: SensorParams, nonideal: NonIdealities, fps: float) -
     return params.noise_std * math.sqrt(r), None if hot is None else hot * r
 
 
+def _log_intensity_path(frames: np.ndarray, full_scale: int, spec, flow_fn, dtype):
+    """What the kernel walks: ``(src, lut, pair_of_step, info)``, the frames' codes with the
+    log-intensity table when ``spec`` (a ``refine.RefineSpec``) is off, else the refined path
+    (``refine.refine_frames``) with its sub-interval to frame-pair map, and ``info`` naming the
+    refinement and its mean sub-frames per pair."""
+    from v2v_server.simulation.refine import refine_frames
+
+    if spec.mode == "off":
+        return frames, _lut64(full_scale, dtype), None, {}
+    src, rinfo = refine_frames(frames, spec, flow_fn, compute_dtype=dtype)
+    return src, None, rinfo["pair_of_step"], {"refine": str(spec), "subframes_mean": float(rinfo["subframes"].mean())}
+
+
+def add_pixel_events(npos: np.ndarray, nneg: np.ndarray, nonideal: NonIdealities, state: PixelState, fps: float,
+                     rng: np.random.Generator) -> None:
+    """The count post-processing of the module table, in place: shot-noise events (Poisson,
+    ``shot_noise_hz`` split evenly between the polarities), dead pixels zeroed, stuck pixels'
+    counts replaced by Poisson events (``stuck_rate_hz``) of their polarity. Draws from ``rng``
+    in that order, and only for switches that are on.
+
+    Args:
+        npos, nneg: float64 (P, H, W) N+ and N- per frame pair (``KernelResult.pos`` / ``neg``).
+        nonideal: the switches; state: the clip's defects; fps: frame rate in Hz.
+
+    Raises:
+        OverflowError: when a count exceeds 2**31 - 1 (the int32 voxel grid).
+    """
+    shot_rate = nonideal.shot_noise_hz / fps
+    if shot_rate > 0:
+        npos += rng.poisson(shot_rate / 2, npos.shape)
+        nneg += rng.poisson(shot_rate / 2, nneg.shape)
+    npos[:, state.dead] = 0
+    nneg[:, state.dead] = 0
+    stuck_idx = np.nonzero(state.stuck)
+    if stuck_idx[0].size:
+        k = rng.poisson(nonideal.stuck_rate_hz / fps, (npos.shape[0], stuck_idx[0].size))
+        sign = state.stuck[stuck_idx]
+        npos[:, stuck_idx[0], stuck_idx[1]] = np.where(sign > 0, k, 0)
+        nneg[:, stuck_idx[0], stuck_idx[1]] = np.where(sign < 0, k, 0)
+    if max(npos.max(initial=0), nneg.max(initial=0)) > np.iinfo(np.int32).max:
+        raise OverflowError("more than 2**31-1 events in one pixel and frame pair")
+
+
 def simulate_voxels_nonideal(
     frames: np.ndarray,
     params: SensorParams,
@@ -227,7 +269,7 @@ def simulate_voxels_nonideal(
         ValueError: as ``simulate_voxels``; for fps <= 0; for a ``pixel_state`` of the
             wrong shape.
     """
-    from v2v_server.simulation.refine import parse_refine, refine_frames
+    from v2v_server.simulation.refine import parse_refine
 
     nonideal = NonIdealities.from_dict(nonideal)
     spec = parse_refine(refine)
@@ -252,31 +294,12 @@ def simulate_voxels_nonideal(
     extra = np.zeros((h, w)) if hot is None else hot.copy()
     if nonideal.leak_hz > 0:
         extra += st.pos_threshold * (nonideal.leak_hz / fps)
-    info = {}
-    if spec.mode == "off":
-        src, lut, pair_of_step = frames, _lut64(full_scale, dtype), None
-    else:
-        src, rinfo = refine_frames(frames, spec, flow_fn, compute_dtype=dtype)
-        lut, pair_of_step = None, rinfo["pair_of_step"]
-        info.update(refine=str(spec), subframes_mean=float(rinfo["subframes"].mean()))
+    src, lut, pair_of_step, info = _log_intensity_path(frames, full_scale, spec, flow_fn, dtype)
     res = run_kernel(src, potential, st.pos_threshold, st.neg_threshold, lut=lut, pair_of_step=pair_of_step,
                      extra=extra, noise_std=sigma, noise_seed=noise_seed,
                      refractory_cap=int(nonideal.refractory_max_events), split=True)
     npos, nneg = res.pos, res.neg  # float64 (n - 1, H, W), after the refractory cap
-    shot_rate = nonideal.shot_noise_hz / fps
-    if shot_rate > 0:
-        npos += rng.poisson(shot_rate / 2, npos.shape)
-        nneg += rng.poisson(shot_rate / 2, nneg.shape)
-    npos[:, st.dead] = 0
-    nneg[:, st.dead] = 0
-    stuck_idx = np.nonzero(st.stuck)
-    if stuck_idx[0].size:
-        k = rng.poisson(nonideal.stuck_rate_hz / fps, (n - 1, stuck_idx[0].size))
-        sign = st.stuck[stuck_idx]
-        npos[:, stuck_idx[0], stuck_idx[1]] = np.where(sign > 0, k, 0)
-        nneg[:, stuck_idx[0], stuck_idx[1]] = np.where(sign < 0, k, 0)
-    if max(npos.max(initial=0), nneg.max(initial=0)) > np.iinfo(np.int32).max:
-        raise OverflowError("more than 2**31-1 events in one pixel and frame pair")
+    add_pixel_events(npos, nneg, nonideal, st, fps, rng)
     voxels = (npos - nneg).astype(np.int32)
     info.update(nonidealities=nonideal.to_dict(), events=int(npos.sum() + nneg.sum()),
                 events_lost_refractory=res.lost)

@@ -220,9 +220,21 @@ def simulate_events(
         raise ValueError(f"hot_pixels has shape {hot.shape}, frames are {(h, w)}")
     if flow_fn is None:
         flow_fn = lambda a, b: dis_flow(a, b, flow_preset)  # noqa: E731
-    # the log-intensity path: the frames, with the sub-frames of each pair between them
+    pair_of_step = np.repeat(np.arange(n - 1), ks)
+    res = run_kernel(_subframe_path(frames, logs, ks, interpolation, flow_fn), pot, cp, cn, pair_of_step=pair_of_step,
+                     extra=0.0 if hot is None else hot, noise_std=params.noise_std, noise_seed=noise_seed,
+                     events=True)
+    pix = res.event_pixel
+    t = _event_times(res.event_step, res.event_fraction, ks, pair_of_step, fps)
+    return Events((pix % w).astype(np.int32), (pix // w).astype(np.int32), t, res.event_polarity.copy()), pot
+
+
+def _subframe_path(frames: np.ndarray, logs: np.ndarray, ks: np.ndarray, interpolation: str, flow_fn) -> np.ndarray:
+    """The log-intensity path the events are simulated along: float64 (1 + sum(ks), H, W), the
+    frames' log intensities ``logs`` with ``ks[i] - 1`` intermediate frames between frames i
+    and i + 1 (:func:`interpolate_pair`; "motion" asks ``flow_fn`` for both flows of the pair)."""
     path = [logs[:1]]
-    for i in range(n - 1):
+    for i in range(len(ks)):
         k = int(ks[i])
         ts = np.arange(1, k + 1) / k
         if k == 1 or interpolation == "linear":
@@ -231,23 +243,24 @@ def simulate_events(
             f01 = flow_fn(frames[i], frames[i + 1])
             f10 = flow_fn(frames[i + 1], frames[i])
             path.append(interpolate_pair(logs[i], logs[i + 1], ts, "motion", flow01=f01, flow10=f10))
-    pair_of_step = np.repeat(np.arange(n - 1), ks)
-    res = run_kernel(np.concatenate(path), pot, cp, cn, pair_of_step=pair_of_step,
-                     extra=0.0 if hot is None else hot, noise_std=params.noise_std, noise_seed=noise_seed,
-                     events=True)
-    # event times: sub-interval j of pair i spans [(i + j / k) / fps, (i + (j + 1) / k) / fps]
-    step = res.event_step
+    return np.concatenate(path)
+
+
+def _event_times(step: np.ndarray, fraction: np.ndarray, ks: np.ndarray, pair_of_step: np.ndarray,
+                 fps: float) -> np.ndarray:
+    """float64 event times in seconds from each event's sub-interval ``step`` and its
+    ``fraction`` of it: sub-interval j of pair i (of ``ks[i]``) spans
+    [(i + j / k) / fps, (i + (j + 1) / k) / fps]; a crossing exactly at the frame time stays in
+    its pair (the time is kept below (i + 1) / fps)."""
     first = np.concatenate([[0], np.cumsum(ks)[:-1]])
     i = pair_of_step[step]
     k = ks[i].astype(np.float64)
     j = (step - first[i]).astype(np.float64)
     ta = (i + j / k) / fps
     tb = (i + (j + 1) / k) / fps
-    t = ta + res.event_fraction * (tb - ta)
-    # a crossing exactly at the frame time stays in this pair
+    t = ta + fraction * (tb - ta)
     np.minimum(t, np.nextafter((i + 1) / fps, -np.inf), out=t)
-    pix = res.event_pixel
-    return Events((pix % w).astype(np.int32), (pix // w).astype(np.int32), t, res.event_polarity.copy()), pot
+    return t
 
 
 def _normalised_times(events: Events, t_start: float, t_end: float, num_bins: int = 1):

@@ -21,6 +21,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from v2v_server.ops.settings import check_keys
 from v2v_server.simulation.kernel import full_scale_of, run_kernel
 
 #: Offset inside the log, ``L = log(LOG_EPS + I)`` (paper Sec. 3, reference repo).
@@ -173,10 +174,7 @@ class ParamRanges:
             return cls()
         if isinstance(d, ParamRanges):
             return d
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown key(s) in ranges: {unknown}; known: {sorted(known)}")
+        check_keys(d, (f.name for f in fields(cls)), "ranges")
         return cls(**{k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in d.items()})
 
     def to_dict(self) -> dict:
