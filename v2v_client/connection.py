@@ -22,6 +22,7 @@ import torch
 import zmq
 
 from v2v_wire.codecs import decode_batch_arrays
+from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import MAX_CLIENT_MSG, ProtocolError, is_ipv6, output_of, pack, unpack
 
 from .flowgrid import expand_flow_grid
@@ -49,16 +50,15 @@ def _view(a: np.ndarray) -> torch.Tensor:
 
 
 def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False, flow_size: Optional[Tuple[int, int]] = None,
-                   flow_dtype: str = "float16", compact_flow: bool = False) -> Dict[str, torch.Tensor]:
-    """Convert wire arrays of one batch to tensors.
+                   flow_dtype: str = ARRAYS["flow"].dtypes[0], compact_flow: bool = False) -> Dict[str, torch.Tensor]:
+    """Convert wire arrays of one batch to tensors, as their ``outputs.ArraySpec`` says.
 
     With ``raw=False``: ``voxels`` float32 (B, L, num_bins, H, W) event counts; ``frames``
     float32 in [0, 1] (B, L + 1, 1, H, W); ``flow`` float32 (B, L, 2, H, W), pixels (one
-    conversion pass per array on this host).
-    With ``raw=True`` the wire dtypes are kept (voxels int8/int16/int32, frames uint8 with
-    the channel axis, flow float16) and nothing is copied: the tensors view the received
-    message and must be treated as read-only (``.to(device)`` and ``.float()`` copy);
-    convert on the GPU.
+    conversion pass per array on this host). With ``raw=True`` the wire dtypes are kept (voxels int8/int16/int32,
+    frames uint8 with the channel axis, flow float16) and nothing is
+    copied: the tensors view the received message and must be treated as read-only
+    (``.to(device)`` and ``.float()`` copy); convert on the GPU.
 
     A tracked flow option's flow arrives as ``flow_grid`` float32 (B, L, 2, n, n), its values
     at the tracking grid's points: with ``compact_flow`` it is kept so (a float32 tensor;
@@ -68,29 +68,40 @@ def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False, flow_size: 
     server would have sent.
 
     Raises:
-        ProtocolError: a ``flow_grid`` of the wrong shape, or with no ``flow_size`` to expand to.
+        ProtocolError: an unknown array, a ``flow_grid`` of the wrong shape, or one with no
+            ``flow_size`` to expand it to.
     """
     out = {}
     for name, a in arrays.items():
-        if name == "frames":
-            a = a[:, :, None]
-        if name == "flow_grid":
-            if a.ndim != 5 or a.shape[2] != 2 or a.shape[3] != a.shape[4] or a.shape[3] < 2 or a.dtype != np.float32:
-                raise ProtocolError(f"array 'flow_grid' must be float32 (B, L, 2, n, n), got {a.dtype}{list(a.shape)}")
-            if compact_flow:
-                out[name] = _view(a) if raw else torch.from_numpy(a.copy())
-                continue
-            if flow_size is None:
-                raise ProtocolError("a 'flow_grid' array, but the server's welcome named no crop_size to expand it to")
-            dtype = torch.float16 if raw and flow_dtype == "float16" else torch.float32
-            out["flow"] = expand_flow_grid(_view(a), flow_size, dtype)
+        spec = ARRAYS.get(name)
+        if spec is None:
+            raise ProtocolError(f"unknown array {name!r} in a batch; known: {list(ARRAYS)}")
+        if spec.insert_channel:
+            a = np.expand_dims(a, spec.channel_axis + 1)  # + 1: the batch axis
+        if spec.expand:
+            out.update(_expand(name, a, raw, flow_size, flow_dtype, compact_flow))
         elif raw:
             out[name] = _view(a)
-        elif name == "frames":
-            out[name] = torch.from_numpy(np.multiply(a, np.float32(1.0 / 255.0), dtype=np.float32))
+        elif spec.float_divisor is not None:
+            out[name] = torch.from_numpy(np.multiply(a, np.float32(1.0 / spec.float_divisor), dtype=np.float32))
         else:
             out[name] = torch.from_numpy(a.astype(np.float32))
     return out
+
+
+def _expand(name: str, a: np.ndarray, raw: bool, flow_size, flow_dtype: str, compact: bool) -> Dict[str, torch.Tensor]:
+    """A compact array (``flow_grid`` float32 (B, L, 2, n, n)) as a tensor: kept compact, or
+    expanded to the dense output it carries (see :func:`batch_to_torch`)."""
+    spec = ARRAYS[name]
+    if a.ndim != 5 or a.shape[2] != 2 or a.shape[3] != a.shape[4] or a.shape[3] < 2 or a.dtype.name not in spec.dtypes:
+        raise ProtocolError(f"array {name!r} must be {spec.dtypes[0]} (B, L, 2, n, n), got {a.dtype}{list(a.shape)}")
+    if compact:
+        return {name: _view(a) if raw else torch.from_numpy(a.copy())}
+    if flow_size is None:
+        raise ProtocolError(f"a {name!r} array, but the server's welcome named no crop_size to expand it to")
+    dense = ARRAYS[spec.output].dtypes  # the dense output's wire dtypes: torch has the same names
+    dtype = getattr(torch, flow_dtype) if raw and flow_dtype in dense else torch.float32
+    return {spec.output: expand_flow_grid(_view(a), flow_size, dtype)}
 
 
 class Connection:
@@ -445,7 +456,7 @@ class Connection:
         info = self.info or {}
         crop = info.get("crop_size")
         item = batch_to_torch(arrays, self.ds.raw, (crop, crop) if isinstance(crop, int) and crop > 0 else None,
-                              info.get("flow_dtype", "float16"), self.ds.compact_flow)
+                              info.get("flow_dtype", ARRAYS["flow"].dtypes[0]), self.ds.compact_flow)
         if shm and not self.ds.raw:
             del arrays  # converted from the mapping: check it still held this batch
             if not self._shm.valid(h):
