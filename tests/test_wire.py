@@ -20,7 +20,7 @@ from v2v_wire.codecs import decode_batch_arrays
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.flow import FlowEstimator, to_float16
 from v2v_wire.ids import parse_sample_id
-from v2v_wire.protocol import OUTPUTS, is_loopback, pack, unpack
+from v2v_wire.protocol import DEFAULT_OUTPUTS, is_loopback, pack, unpack
 from v2v_server.samples.make import make_sample, video_samples
 from v2v_server.service.worker import wire_arrays
 
@@ -127,7 +127,7 @@ def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_cl
 def wire_samples(videos, clip: str, epoch: int) -> dict:
     """sample id -> the arrays a worker puts on the wire (flow as its grid)."""
     cfg = recipe()
-    return {sid: wire_arrays(cfg, a) for sid, a, _ in video_samples(cfg, videos, clip, epoch, cfg.outputs,
+    return {sid: wire_arrays(cfg, a) for sid, a, _ in video_samples(cfg, videos, clip, epoch, DEFAULT_OUTPUTS,
                                                                        flow_grid=True)}
 
 
@@ -146,7 +146,7 @@ class RawClient:
         self.sock = zmq.Context.instance().socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.connect(endpoint)
-        self.sock.send(pack({"type": "hello", "outputs": list(OUTPUTS), "credits": 2, "consumer": f"raw-{compression}",
+        self.sock.send(pack({"type": "hello", "outputs": list(DEFAULT_OUTPUTS), "credits": 2, "consumer": f"raw-{compression}",
                              "compression": compression}))
 
     def batch(self, timeout_s: float = 60.0):

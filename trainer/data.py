@@ -63,7 +63,8 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
     consistency loss uses the last part of the sequence only).
 
     Returns a dict with float32 ``voxels`` (B, L, num_bins, H, W), ``frames`` (B, L+1, 1,
-    H, W) in [0, 1], and ``flow`` (B, L', 2, H, W) pixels, those of ``outputs``.
+    H, W) in [0, 1], ``flow`` (B, L', 2, H, W) pixels and ``polarity_counts`` (B, L, 2,
+    num_bins, H, W), those of ``outputs``.
 
     Raises:
         KeyError: naming an output of ``outputs`` the batch lacks.

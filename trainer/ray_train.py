@@ -78,7 +78,7 @@ def v2v_collate(pin: bool):
 
 class V2VCollate:
     """Ray Data numpy batch -> the stream batch contract of ``trainer.data``: the output
-    columns (``voxels``, ``frames``, ``flow``) as tensors in their column dtypes (pinned when CUDA is present, so the
+    columns (``voxels``, ``frames``, ``flow``, ``polarity_counts``) as tensors in their column dtypes (pinned when CUDA is present, so the
     host -> device copy is asynchronous), ``padding`` bool (B,), ``sample_ids`` and
     ``params`` lists of str, ``epochs`` list of int."""
 

@@ -54,9 +54,10 @@ def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False, flow_size: 
     """Convert wire arrays of one batch to tensors, as their ``outputs.ArraySpec`` says.
 
     With ``raw=False``: ``voxels`` float32 (B, L, num_bins, H, W) event counts; ``frames``
-    float32 in [0, 1] (B, L + 1, 1, H, W); ``flow`` float32 (B, L, 2, H, W), pixels (one
-    conversion pass per array on this host). With ``raw=True`` the wire dtypes are kept (voxels int8/int16/int32,
-    frames uint8 with the channel axis, flow float16) and nothing is
+    float32 in [0, 1] (B, L + 1, 1, H, W); ``flow`` float32 (B, L, 2, H, W), pixels;
+    ``polarity_counts`` float32 (B, L, 2, num_bins, H, W) counts (one conversion pass per
+    array on this host). With ``raw=True`` the wire dtypes are kept (voxels int8/int16/int32,
+    frames uint8 with the channel axis, flow float16, polarity counts uint8) and nothing is
     copied: the tensors view the received message and must be treated as read-only
     (``.to(device)`` and ``.float()`` copy); convert on the GPU.
 

@@ -47,7 +47,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             reconnects on its own, the stream ends when every server ended it and
             ``state_dict()`` covers them all. ``rank``/``world_size`` apply to each server.
         outputs: which of ``OUTPUTS`` to receive (default ``DEFAULT_OUTPUTS``: ``"voxels"``,
-            ``"frames"``, ``"flow"``; an opt-in output only when named; dtypes and shapes in
+            ``"frames"``, ``"flow"``; ``"polarity_counts"`` only when named; dtypes and shapes in
             ``v2v_wire.outputs``); the server's workers compute the union of what its connected
             clients ask for.
         credits: batches the server may have in flight to this iterator (prefetch depth);

@@ -30,7 +30,8 @@ equal=True)`` drops nothing.
 
 Rows: ``sample_id`` str; ``voxels`` int16 (L, B, S, S) signed event counts; ``frames`` uint8
 (L + 1, 1, S, S) at voxel boundaries; ``flow`` float16/float32 (``flow_dtype``) (L, 2, S, S),
-pixels from frame l to l + 1 (only the columns in ``outputs``; dtypes and layouts from ``v2v_wire.outputs``); ``params`` str (JSON of the
+pixels from frame l to l + 1; ``polarity_counts`` uint8 (L, 2, B, S, S) N+ and N- per bin (opt-in)
+(only the columns in ``outputs``; dtypes and layouts from ``v2v_wire.outputs``); ``params`` str (JSON of the
 sample's parameters, as in the ZeroMQ batch header); ``epoch`` int64; ``padding`` bool.
 """
 from __future__ import annotations
@@ -174,7 +175,7 @@ def _zeros(cfg: ServeConfig, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
 def _row_arrays(cfg: ServeConfig, arrays: Dict[str, np.ndarray], sample_id: str) -> Dict[str, np.ndarray]:
     """A sample's arrays in their column dtypes and layouts (``outputs.row_array``: voxels
     int16, never wrapped; frames uint8 with a channel axis; flow ``cfg.flow_dtype``, as the
-    ZeroMQ wire)."""
+    ZeroMQ wire; polarity counts uint8)."""
     return {name: row_array(name, a, cfg.flow_dtype, sample_id) for name, a in arrays.items()}
 
 
@@ -268,8 +269,8 @@ def v2v_dataset(
         config: sample layout (``ServeConfig``; defaults: the paper's WebVid recipe).
         epoch: an epoch, or several (their rows follow each other; each is padded on its own).
         seed: overrides ``config.seed``; content depends only on (seed, epoch, sample_id).
-        outputs: columns to make, from ``OUTPUTS`` (default ``DEFAULT_OUTPUTS``: opt-in outputs
-            only when named); others are not computed.
+        outputs: columns to make, from ``OUTPUTS`` (default ``DEFAULT_OUTPUTS``; ``polarity_counts``
+            is opt-in); others are not computed.
         exclude: sample ids already consumed (of ``epoch``; a mapping epoch -> ids for several
             epochs): never decoded into rows.
         ranks: pad each epoch to a multiple of this row count (``padding`` true on the repeats)

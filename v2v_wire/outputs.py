@@ -16,13 +16,16 @@ array          wire dtype      shape (per sample, on the wire) on the client (``
 voxels         int8/16/32 [1]  (L, B, S, S)                   float32 signed event counts
 frames         uint8           (L + 1, S, S) [2]              float32 in [0, 1] (/ 255)
 flow           float16/32 [3]  (L, 2, S, S) (x, y) pixels     float32
-flow_grid      float32         (L, 2, n, n) carries ``flow``  expanded to dense ``flow`` [4]
+polarity_counts uint8 [4]      (L, 2, B, S, S)                float32 counts
+flow_grid      float32         (L, 2, n, n) carries ``flow``  expanded to dense ``flow`` [5]
 ============== =============== ============================== =================================
 
 [1] the narrowest that holds every count of the sample (batch), never wrapped or clipped;
 [2] the client and the Ray rows insert a channel axis: (L + 1, 1, S, S);
 [3] the recipe's ``flow_dtype``;
-[4] bilinear with ``protocol.flow_grid_taps`` (``v2v_client.flowgrid``).
+[4] N+ (channel 0, positive) and N- (channel 1, negative) of each bin (Lou et al. 2025,
+Sec. 3: the counts whose difference N+ - N- is the voxel), saturating at 255; opt-in;
+[5] bilinear with ``protocol.flow_grid_taps`` (``v2v_client.flowgrid``).
 """
 from __future__ import annotations
 
@@ -93,6 +96,8 @@ ARRAYS: Dict[str, ArraySpec] = {s.name: s for s in (
     ArraySpec("frames", "frames", ("uint8",), "fixed", ("L+1", "S", "S"), insert_channel=True,
               column_dtype="uint8", float_divisor=255.0),
     ArraySpec("flow", "flow", ("float16", "float32"), "recipe", ("L", "2", "S", "S"), column_dtype="recipe"),
+    ArraySpec("polarity_counts", "polarity_counts", ("uint8",), "fixed", ("L", "2", "B", "S", "S"),
+              column_dtype="uint8", default=False),
     ArraySpec("flow_grid", "flow", ("float32",), "fixed", ("L", "2", "n", "n"), expand=True),
 )}
 
@@ -171,12 +176,13 @@ def narrowest(array_name: str, a: np.ndarray) -> np.ndarray:
 
 
 def max_sample_bytes(sequence_length: int, num_bins: int, crop_size: int, align: int = 1) -> int:
-    """Bytes of the largest sample a recipe can make: every output at its widest wire dtype
-    (the compact ``flow_grid`` is never larger than the dense ``flow`` it replaces), each
-    array's start rounded up to ``align`` bytes."""
+    """Bytes of the largest sample of the default outputs a recipe can make: each at its widest
+    wire dtype (the compact ``flow_grid`` is never larger than the dense ``flow`` it replaces),
+    each array's start rounded up to ``align`` bytes. Opt-in outputs are left out (a sample
+    that carries one may not fit a slot sized so, and then travels as frames)."""
     total = 0
     for s in ARRAYS.values():
-        if s.output != s.name:
+        if s.output != s.name or not s.default:
             continue
         total += int(np.prod(s.shape(sequence_length, num_bins, crop_size))) * s.itemsize() + align
     return total

@@ -172,8 +172,9 @@ def slot_layout(specs) -> Tuple[List[int], int]:
 
 
 def slot_bytes(sequence_length: int, num_bins: int, crop_size: int) -> int:
-    """Bytes of one slot: the largest sample the config can make (``outputs.max_sample_bytes``:
-    every output at its widest wire dtype), rounded up to whole pages. The file is sparse on
+    """Bytes of one slot: the largest sample of the default outputs the config can make
+    (``outputs.max_sample_bytes``: each at its widest wire dtype; a sample with an opt-in output
+    too may travel as frames), rounded up to whole pages. The file is sparse on
     tmpfs: only the bytes a worker writes take memory."""
     need = max_sample_bytes(sequence_length, num_bins, crop_size, SLOT_ALIGN)
     return -(-need // mmap.PAGESIZE) * mmap.PAGESIZE

@@ -96,7 +96,7 @@ def _send(sock: zmq.Socket, frames, parent_pid: int) -> None:
 
 def wire_arrays(cfg: SampleRecipe, arrays: dict) -> dict:
     """A sample's arrays in their wire dtypes (``outputs.wire_dtype``: voxels the narrowest
-    int that holds every count, frames uint8, dense flow ``cfg.flow_dtype``,
+    int that holds every count, frames and polarity counts uint8, dense flow ``cfg.flow_dtype``,
     a tracked option's ``flow_grid`` float32). Counts that arrive narrowed by their producer
     (``simulate_voxels(narrow=True)``) are not scanned again; float16 is made by the vectorised
     ``flow.to_float16`` (bit-identical to numpy's cast)."""
