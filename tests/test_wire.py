@@ -107,6 +107,21 @@ def test_the_torch_expansion_for_other_devices_equals_the_cpu_one_bit_for_bit():
         assert torch.equal(a.view(torch.int32), b.view(torch.int32))
 
 
+def test_the_numpy_expansion_of_a_client_only_install_equals_the_numba_loop_bit_for_bit():
+    """Without numba (``pip install v2v[client]``) the wire's expansion runs as numpy operations:
+    the same float32 bits as the numba loop, for grids of any size and crops of any shape."""
+    from v2v_wire.flowgrid import HAVE_NUMBA, expand_grids
+
+    assert HAVE_NUMBA  # this environment has the server's packages
+    rng = np.random.default_rng(1)
+    for shape, size in (((40, 2, 8, 8), (CROP, CROP)), ((3, 2, 5, 5), (37, 90)), ((2, 2, 12, 12), (64, 200)),
+                        ((1, 2, 2, 2), (1, 5))):
+        g = rng.normal(0, 3, shape).astype(np.float32)
+        a, b = expand_grids(g, size, use_numba=True), expand_grids(g, size, use_numba=False)
+        assert a.shape == b.shape == shape[:2] + size
+        assert np.array_equal(a.view(np.int32), b.view(np.int32))
+
+
 def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_clip):
     cfg = recipe(flow_preset="ultrafast")
     est = FlowEstimator("ultrafast")
