@@ -105,283 +105,10 @@ def _expand(name: str, a: np.ndarray, raw: bool, flow_size, flow_dtype: str, com
     return {spec.output: expand_flow_grid(_view(a), flow_size, dtype)}
 
 
-class Connection:
-    """One DEALER connection to one endpoint and its I/O thread.
-
-    The thread owns the socket: it says hello (with the dataset's resume state), receives
-    batches, answers revokes, heartbeats, and forwards the acknowledgements the consumer
-    queues through an inproc pair (flushed before ``bye`` when the iterator closes). It hands
-    the consumer decoded batches and control items through ``items``. A fan-in wrapper may
-    create one per endpoint; the dataset ``ds`` supplies settings and the resume state.
-
-    A batch is either taken by the training loop (``take``: acknowledged) or given back to the
-    server (revoked after its lease, the epoch already complete here, or everything held when
-    the server dropped this client or this process was silent longer than the server's client
-    timeout), never both: ``lock`` makes the choice exclusive, and a batch given back loses its
-    arrays at once, so a stalled trainer's memory stays bounded by its credits.
-    """
-
-    #: Fraction of the server's client timeout after which a silent process assumes it was dropped.
-    SILENCE_FRACTION = 0.8
-
-    def __init__(self, ds, endpoint: Optional[str] = None):
-        self.ds = ds
-        self.endpoint = endpoint or ds.endpoint
-        self.items: "queue.Queue" = queue.Queue()
-        self.info: Optional[dict] = None
-        self._replies: list = []
-        self._closing = threading.Event()
-        self._ctx = zmq.Context.instance()
-        self._ident = uuid.uuid4().bytes
-        self._ack_addr = f"inproc://v2v-ack-{uuid.uuid4().hex}"
-        self._ack_recv = self._ctx.socket(zmq.PAIR)
-        self._ack_recv.bind(self._ack_addr)
-        self._ack_send = self._ctx.socket(zmq.PAIR)
-        self._ack_send.connect(self._ack_addr)
-        self.lock = threading.Lock()
-        self.current: Dict[int, dict] = {}  # batch id -> its live queued item (not taken, not given back)
-        self.last_io = time.monotonic()
-        self.discarded = 0
-        self._hello_seq = 0
-        self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
-        self._lingering = False
-        self._torn_ids: Dict[int, int] = {}  # shared-memory batches found gone, by batch id
-        self._receipts = getattr(ds, "receipts", None)  # DataLoader worker: what the training loop received
-        self.shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
-        self.compression, self._compression_auto = ds.compression_for(self.endpoint)
-        self._shm = ShmReader(keep=ds.credits + 2) if self.shm else None
-        self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
-        self._thread.start()
-
-    # consumer side -------------------------------------------------------
-    def silent_too_long(self, now: float) -> bool:
-        """True when the I/O thread has not run for most of the server's client timeout (the
-        process was suspended): the server has, or is about to have, dropped this client."""
-        limit = (self.info or {}).get("client_timeout_s")
-        return isinstance(limit, (int, float)) and now - self.last_io > self.SILENCE_FRACTION * limit
-
-    def _claim(self, item: dict) -> bool:
-        """Take a received batch out of ``current`` for the consumer; False when it was given
-        back meanwhile (its lease expired, or this client was dropped or silent too long)."""
-        bid = item["batch_id"]
-        with self.lock:
-            if self.current.get(bid) is not item:
-                return False
-            if self.silent_too_long(time.monotonic()):
-                self._discard_locked("this process was silent longer than the server's client timeout")
-                return False
-            del self.current[bid]
-        return True
-
-    def take(self, item: dict) -> bool:
-        """Claim a received batch for the training loop and acknowledge it; False when it was
-        given back meanwhile (its lease expired, or this client was dropped)."""
-        if not self._claim(item):
-            return False
-        self._queue_for_server({"type": "ack", "batch_ids": [item["batch_id"]]})
-        return True
-
-    def hold(self, item: dict) -> bool:
-        """Claim a received batch for a DataLoader worker's queue: like :meth:`take`, but the
-        server is told the batch is held (no lease) rather than acknowledged; :meth:`ack`
-        follows when the training loop receives it, else closing the connection gives it back."""
-        if not self._claim(item):
-            return False
-        self._queue_for_server({"type": "hold", "batch_ids": [item["batch_id"]]})
-        return True
-
-    def ack(self, batch_ids) -> None:
-        """Acknowledge batches this connection holds (the training loop received them)."""
-        if batch_ids:
-            self._queue_for_server({"type": "ack", "batch_ids": list(batch_ids)})
-
-    def give_back(self, item: dict) -> None:
-        """Return a received batch to the server unused (e.g. an epoch this consumer already completed)."""
-        bid = item["batch_id"]
-        with self.lock:
-            if self.current.get(bid) is not item:
-                return
-            del self.current[bid]
-            _strip(item)
-        self._queue_for_server({"type": "released", "batch_ids": [bid]})
-
-    def _queue_for_server(self, msg: dict) -> None:
-        if not self._closing.is_set():
-            self._ack_send.send(pack(msg))
-
-    def linger(self) -> None:
-        """The iteration ended with batches still in a DataLoader's queues: keep taking their
-        receipts, and close once none is left (or at :meth:`close`)."""
-        self._lingering = True
-
-    def close(self) -> None:
-        """Stop the I/O thread: acknowledgements already queued are sent, then ``bye``."""
-        if self._closing.is_set():
-            return
-        self._closing.set()
-        self._thread.join(5.0)
-        self._ack_send.close(0)
-        self.items.put(StopIteration("closed"))  # wake an iterator blocked on this connection
-
-    # I/O thread ------------------------------------------------------------
-    def _discard_locked(self, why: str) -> None:
-        if self.current:
-            log.warning("v2v stream %s: discarding %d batch(es) not yet used: %s", self.endpoint,
-                        len(self.current), why)
-        for item in self.current.values():
-            _strip(item)
-        self.discarded += len(self.current)
-        self.current.clear()
-
-    def _socket(self) -> zmq.Socket:
-        sock = self._ctx.socket(zmq.DEALER)
-        sock.setsockopt(zmq.IDENTITY, self._ident)
-        sock.setsockopt(zmq.LINGER, 1000)
-        sock.setsockopt(zmq.MAXMSGSIZE, MAX_SERVER_MSG)
-        sock.setsockopt(zmq.RCVHWM, 0)
-        if is_ipv6(self.endpoint):
-            sock.setsockopt(zmq.IPV6, 1)
-        if self.ds.curve is not None:
-            pub, sec, server_pub = self.ds.curve
-            sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = pub, sec, server_pub
-        sock.connect(self.endpoint)
-        _send(sock, self._hello())
-        self._awaiting = None  # a new socket carries no message of an older session
-        return sock
-
-    def _poller(self, sock: zmq.Socket) -> zmq.Poller:
-        poller = zmq.Poller()
-        poller.register(sock, zmq.POLLIN)
-        poller.register(self._ack_recv, zmq.POLLIN)
-        if self._receipts is not None:
-            poller.register(self._receipts.fileno(), zmq.POLLIN)
-        return poller
-
-    def _take_receipts(self, sock: zmq.Socket) -> None:
-        """Batches the training loop received (written by ``StreamLoader`` in the main
-        process): acknowledged to the server, and recorded by the stream."""
-        while self._receipts is not None and self._receipts.poll(0):
-            try:
-                ids = unpack(self._receipts.recv_bytes())["batch_ids"]
-            except (EOFError, OSError):  # the main process is gone
-                self._receipts = None
-                return
-            mine = self.ds.received(ids)
-            if mine:
-                _send(sock, pack({"type": "ack", "batch_ids": mine}))
-
-    def _hello(self) -> bytes:
-        """A (re-)hello: whatever this connection still holds is discarded first, since the
-        server takes the resume state as the truth and re-sends the rest."""
-        with self.lock:
-            self._discard_locked("saying hello again")
-        self._hello_seq += 1
-        self._awaiting = self._hello_seq
-        h = dict(self.ds._hello_header(), hello_id=self._hello_seq)
-        if self.shm:
-            h["shm"] = True
-        if self.compression != "none":
-            h["compression"] = self.compression
-        data = pack(h)
-        limit = (self.info or {}).get("max_hello_bytes", MAX_CLIENT_MSG)
-        if len(data) > limit:
-            n = sum(len(v) for v in h.get("resume", {}).get("delivered", {}).values())
-            raise StreamError(f"the resume state is too large to send: {len(data)} bytes, the server at "
-                              f"{self.endpoint} takes at most {limit} ({n} characters of sample ids in open epochs). "
-                              f"Checkpoint after the epoch completes, or split the corpus into shards")
-        return data
-
-    def _forward_acks(self, sock: zmq.Socket) -> None:
-        while True:
-            try:
-                _send(sock, self._ack_recv.recv(zmq.NOBLOCK))
-            except zmq.Again:
-                return
-
-    def _run(self) -> None:
-        sock = None
-        give_up_at = None
-        try:
-            sock = self._socket()
-            last_heard = time.monotonic()
-            next_beat = last_heard + self.ds.heartbeat_s
-            poller = self._poller(sock)
-            while not self._closing.is_set():
-                events = dict(poller.poll(100))
-                now = time.monotonic()
-                if self.silent_too_long(now):
-                    # suspended longer than the server waits for us: it has dropped us; start afresh
-                    log.warning("v2v stream %s: this process was silent for %.0f s; saying hello again",
-                                self.endpoint, now - self.last_io)
-                    _send(sock, self._hello())
-                self.last_io = now
-                if self._ack_recv in events:
-                    self._forward_acks(sock)
-                self._take_receipts(sock)
-                if self._lingering and not self.ds.in_loader():
-                    return  # every batch handed to the DataLoader was received: bye
-                lost = None
-                if sock in events:
-                    while True:
-                        try:
-                            frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
-                        except zmq.Again:
-                            break
-                        last_heard = now
-                        give_up_at = None
-                        verdict = self._on_message(frames)
-                        for r in self._replies:
-                            _send(sock, r)
-                        self._replies.clear()
-                        if verdict == "over":
-                            return
-                        if verdict == "lost":
-                            lost = "the server shut down"
-                            break
-                if lost is None and now - last_heard > self.ds.timeout_s:
-                    lost = f"no message for {self.ds.timeout_s:.0f} s"
-                if lost is not None:
-                    if not self.ds.reconnect:
-                        what = "no answer" if self.info is None else "no message"
-                        if lost.startswith("no message"):
-                            self.items.put(StreamTimeout(
-                                f"{what} from the v2v server at {self.endpoint} for {self.ds.timeout_s:.0f} s "
-                                f"(is v2v-serve running and reachable?)"))
-                        else:
-                            self.items.put(StreamError(
-                                f"the v2v server at {self.endpoint} shut down mid-stream; restart it and resume "
-                                f"with state_dict(), or use reconnect=True"))
-                        return
-                    if give_up_at is None:
-                        give_up_at = now + self.ds.reconnect_timeout_s
-                        log.warning("lost the v2v server at %s (%s); reconnecting for up to %.0f s",
-                                    self.endpoint, lost, self.ds.reconnect_timeout_s)
-                    elif now > give_up_at:
-                        self.items.put(StreamTimeout(f"could not reconnect to the v2v server at {self.endpoint} "
-                                                     f"within {self.ds.reconnect_timeout_s:.0f} s"))
-                        return
-                    sock.close(0)
-                    sock = self._socket()
-                    poller = self._poller(sock)
-                    last_heard = now
-                    continue
-                if now >= next_beat:
-                    _send(sock, pack({"type": "heartbeat"}))
-                    next_beat = now + self.ds.heartbeat_s
-        except Exception as e:  # never die silently: hand the error to the consumer
-            self.items.put(StreamError(f"stream from {self.endpoint} failed: {type(e).__name__}: {e}"))
-        finally:
-            if sock is not None:
-                try:
-                    self._forward_acks(sock)  # acks of batches the training loop took go out before bye
-                    self._take_receipts(sock)
-                    sock.send(pack({"type": "bye"}), zmq.NOBLOCK)
-                except zmq.ZMQError:
-                    pass
-                sock.close()
-            self._ack_recv.close(0)
-            if self._shm is not None:
-                self._shm.close()
+class _ServerMessages:
+    """The I/O thread's half of a :class:`Connection` that reads the server's messages: batches
+    (checked, converted, queued for the consumer), welcomes, revokes, the stream's end and
+    errors. Replies go to ``_replies``; the socket loop (:class:`_ServerIO`) sends them."""
 
     def _on_message(self, frames) -> Optional[str]:
         """Handle one server message; "over" when the stream has ended or failed, "lost"
@@ -526,6 +253,318 @@ class Connection:
             self._replies.append(pack({"type": "released", "batch_ids": [bid]}))
         return None
 
+
+class _ServerIO(_ServerMessages):
+    """The I/O thread's half of a :class:`Connection` that owns the socket: hello (with the
+    dataset's resume state), the poll loop, heartbeats, acknowledgements and receipts
+    forwarded, reconnection, and ``bye``."""
+
+    def _discard_locked(self, why: str) -> None:
+        if self.current:
+            log.warning("v2v stream %s: discarding %d batch(es) not yet used: %s", self.endpoint,
+                        len(self.current), why)
+        for item in self.current.values():
+            _strip(item)
+        self.discarded += len(self.current)
+        self.current.clear()
+
+    def _socket(self) -> zmq.Socket:
+        sock = self._ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.IDENTITY, self._ident)
+        sock.setsockopt(zmq.LINGER, 1000)
+        sock.setsockopt(zmq.MAXMSGSIZE, MAX_SERVER_MSG)
+        sock.setsockopt(zmq.RCVHWM, 0)
+        if is_ipv6(self.endpoint):
+            sock.setsockopt(zmq.IPV6, 1)
+        if self.ds.curve is not None:
+            pub, sec, server_pub = self.ds.curve
+            sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = pub, sec, server_pub
+        sock.connect(self.endpoint)
+        _send(sock, self._hello())
+        self._awaiting = None  # a new socket carries no message of an older session
+        return sock
+
+    def _poller(self, sock: zmq.Socket) -> zmq.Poller:
+        poller = zmq.Poller()
+        poller.register(sock, zmq.POLLIN)
+        poller.register(self._ack_recv, zmq.POLLIN)
+        if self._receipts is not None:
+            poller.register(self._receipts.fileno(), zmq.POLLIN)
+        return poller
+
+    def _take_receipts(self, sock: zmq.Socket) -> None:
+        """Batches the training loop received (written by ``StreamLoader`` in the main
+        process): acknowledged to the server, and recorded by the stream."""
+        while self._receipts is not None and self._receipts.poll(0):
+            try:
+                ids = unpack(self._receipts.recv_bytes())["batch_ids"]
+            except (EOFError, OSError):  # the main process is gone
+                self._receipts = None
+                return
+            mine = self.ds.received(ids)
+            if mine:
+                _send(sock, pack({"type": "ack", "batch_ids": mine}))
+
+    def _hello(self) -> bytes:
+        """A (re-)hello: whatever this connection still holds is discarded first, since the
+        server takes the resume state as the truth and re-sends the rest."""
+        with self.lock:
+            self._discard_locked("saying hello again")
+        self._hello_seq += 1
+        self._awaiting = self._hello_seq
+        h = dict(self.ds._hello_header(), hello_id=self._hello_seq)
+        if self.shm:
+            h["shm"] = True
+        if self.compression != "none":
+            h["compression"] = self.compression
+        data = pack(h)
+        limit = (self.info or {}).get("max_hello_bytes", MAX_CLIENT_MSG)
+        if len(data) > limit:
+            n = sum(len(v) for v in h.get("resume", {}).get("delivered", {}).values())
+            raise StreamError(f"the resume state is too large to send: {len(data)} bytes, the server at "
+                              f"{self.endpoint} takes at most {limit} ({n} characters of sample ids in open epochs). "
+                              f"Checkpoint after the epoch completes, or split the corpus into shards")
+        return data
+
+    def _forward_acks(self, sock: zmq.Socket) -> None:
+        while True:
+            try:
+                _send(sock, self._ack_recv.recv(zmq.NOBLOCK))
+            except zmq.Again:
+                return
+
+    def _run(self) -> None:
+        """The I/O thread: the loop over the socket; any failure goes to the consumer as a
+        :class:`StreamError`, and the socket always closes with ``bye``."""
+        self._sock = None
+        try:
+            self._sock = self._socket()
+            self._serve()
+        except Exception as e:  # never die silently: hand the error to the consumer
+            self.items.put(StreamError(f"stream from {self.endpoint} failed: {type(e).__name__}: {e}"))
+        finally:
+            self._finish(self._sock)
+
+    def _serve(self) -> None:
+        """Poll the socket, the acknowledgements and the receipts; receive messages, heartbeat,
+        and on a lost server reconnect (``ds.reconnect``) or end the stream with an error."""
+        sock = self._sock
+        give_up_at = None
+        last_heard = time.monotonic()
+        next_beat = last_heard + self.ds.heartbeat_s
+        poller = self._poller(sock)
+        while not self._closing.is_set():
+            events = dict(poller.poll(100))
+            now = time.monotonic()
+            if self.silent_too_long(now):
+                # suspended longer than the server waits for us: it has dropped us; start afresh
+                log.warning("v2v stream %s: this process was silent for %.0f s; saying hello again",
+                            self.endpoint, now - self.last_io)
+                _send(sock, self._hello())
+            self.last_io = now
+            if self._ack_recv in events:
+                self._forward_acks(sock)
+            self._take_receipts(sock)
+            if self._lingering and not self.ds.in_loader():
+                return  # every batch handed to the DataLoader was received: bye
+            lost = None
+            if sock in events:
+                verdict, heard = self._receive(sock)
+                if heard:
+                    last_heard, give_up_at = now, None
+                if verdict == "over":
+                    return
+                if verdict == "lost":
+                    lost = "the server shut down"
+            if lost is None and now - last_heard > self.ds.timeout_s:
+                lost = f"no message for {self.ds.timeout_s:.0f} s"
+            if lost is not None:
+                give_up_at = self._lost(lost, now, give_up_at)
+                if give_up_at is None:
+                    return
+                sock.close(0)
+                sock = self._sock = self._socket()
+                poller = self._poller(sock)
+                last_heard = now
+                continue
+            if now >= next_beat:
+                _send(sock, pack({"type": "heartbeat"}))
+                next_beat = now + self.ds.heartbeat_s
+
+    def _receive(self, sock: zmq.Socket) -> Tuple[Optional[str], bool]:
+        """Handle every message waiting on ``sock`` and send the replies they call for:
+        (``_on_message``'s "over" or "lost" verdict, else None; whether any message came)."""
+        heard = False
+        while True:
+            try:
+                frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return None, heard
+            heard = True
+            verdict = self._on_message(frames)
+            for r in self._replies:
+                _send(sock, r)
+            self._replies.clear()
+            if verdict in ("over", "lost"):
+                return verdict, heard
+
+    def _lost(self, why: str, now: float, give_up_at: Optional[float]) -> Optional[float]:
+        """The server went away (``why``): the time to stop reconnecting at (``ds.reconnect``),
+        or None when the stream ends here (the error is queued for the consumer)."""
+        if not self.ds.reconnect:
+            what = "no answer" if self.info is None else "no message"
+            if why.startswith("no message"):
+                self.items.put(StreamTimeout(
+                    f"{what} from the v2v server at {self.endpoint} for {self.ds.timeout_s:.0f} s "
+                    f"(is v2v-serve running and reachable?)"))
+            else:
+                self.items.put(StreamError(
+                    f"the v2v server at {self.endpoint} shut down mid-stream; restart it and resume "
+                    f"with state_dict(), or use reconnect=True"))
+            return None
+        if give_up_at is None:
+            log.warning("lost the v2v server at %s (%s); reconnecting for up to %.0f s",
+                        self.endpoint, why, self.ds.reconnect_timeout_s)
+            return now + self.ds.reconnect_timeout_s
+        if now > give_up_at:
+            self.items.put(StreamTimeout(f"could not reconnect to the v2v server at {self.endpoint} "
+                                         f"within {self.ds.reconnect_timeout_s:.0f} s"))
+            return None
+        return give_up_at
+
+    def _finish(self, sock: Optional[zmq.Socket]) -> None:
+        """Close the I/O thread's sockets: acknowledgements of batches the training loop took
+        and its receipts go out before ``bye``."""
+        if sock is not None:
+            try:
+                self._forward_acks(sock)
+                self._take_receipts(sock)
+                sock.send(pack({"type": "bye"}), zmq.NOBLOCK)
+            except zmq.ZMQError:
+                pass
+            sock.close()
+        self._ack_recv.close(0)
+        if self._shm is not None:
+            self._shm.close()
+
+
+class Connection(_ServerIO):
+    """One DEALER connection to one endpoint and its I/O thread.
+
+    The thread owns the socket: it says hello (with the dataset's resume state), receives
+    batches, answers revokes, heartbeats, and forwards the acknowledgements the consumer
+    queues through an inproc pair (flushed before ``bye`` when the iterator closes). It hands
+    the consumer decoded batches and control items through ``items``. A fan-in wrapper may
+    create one per endpoint; the dataset ``ds`` supplies settings and the resume state.
+
+    A batch is either taken by the training loop (``take``: acknowledged) or given back to the
+    server (revoked after its lease, the epoch already complete here, or everything held when
+    the server dropped this client or this process was silent longer than the server's client
+    timeout), never both: ``lock`` makes the choice exclusive, and a batch given back loses its
+    arrays at once, so a stalled trainer's memory stays bounded by its credits.
+    """
+
+    #: Fraction of the server's client timeout after which a silent process assumes it was dropped.
+    SILENCE_FRACTION = 0.8
+
+    def __init__(self, ds, endpoint: Optional[str] = None):
+        self.ds = ds
+        self.endpoint = endpoint or ds.endpoint
+        self.items: "queue.Queue" = queue.Queue()
+        self.info: Optional[dict] = None
+        self._replies: list = []
+        self._closing = threading.Event()
+        self._ctx = zmq.Context.instance()
+        self._ident = uuid.uuid4().bytes
+        self._ack_addr = f"inproc://v2v-ack-{uuid.uuid4().hex}"
+        self._ack_recv = self._ctx.socket(zmq.PAIR)
+        self._ack_recv.bind(self._ack_addr)
+        self._ack_send = self._ctx.socket(zmq.PAIR)
+        self._ack_send.connect(self._ack_addr)
+        self.lock = threading.Lock()
+        self.current: Dict[int, dict] = {}  # batch id -> its live queued item (not taken, not given back)
+        self.last_io = time.monotonic()
+        self.discarded = 0
+        self._hello_seq = 0
+        self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
+        self._lingering = False
+        self._torn_ids: Dict[int, int] = {}  # shared-memory batches found gone, by batch id
+        self._receipts = getattr(ds, "receipts", None)  # DataLoader worker: what the training loop received
+        self.shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
+        self.compression, self._compression_auto = ds.compression_for(self.endpoint)
+        self._shm = ShmReader(keep=ds.credits + 2) if self.shm else None
+        self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
+        self._thread.start()
+
+    # consumer side -------------------------------------------------------
+    def silent_too_long(self, now: float) -> bool:
+        """True when the I/O thread has not run for most of the server's client timeout (the
+        process was suspended): the server has, or is about to have, dropped this client."""
+        limit = (self.info or {}).get("client_timeout_s")
+        return isinstance(limit, (int, float)) and now - self.last_io > self.SILENCE_FRACTION * limit
+
+    def _claim(self, item: dict) -> bool:
+        """Take a received batch out of ``current`` for the consumer; False when it was given
+        back meanwhile (its lease expired, or this client was dropped or silent too long)."""
+        bid = item["batch_id"]
+        with self.lock:
+            if self.current.get(bid) is not item:
+                return False
+            if self.silent_too_long(time.monotonic()):
+                self._discard_locked("this process was silent longer than the server's client timeout")
+                return False
+            del self.current[bid]
+        return True
+
+    def take(self, item: dict) -> bool:
+        """Claim a received batch for the training loop and acknowledge it; False when it was
+        given back meanwhile (its lease expired, or this client was dropped)."""
+        if not self._claim(item):
+            return False
+        self._queue_for_server({"type": "ack", "batch_ids": [item["batch_id"]]})
+        return True
+
+    def hold(self, item: dict) -> bool:
+        """Claim a received batch for a DataLoader worker's queue: like :meth:`take`, but the
+        server is told the batch is held (no lease) rather than acknowledged; :meth:`ack`
+        follows when the training loop receives it, else closing the connection gives it back."""
+        if not self._claim(item):
+            return False
+        self._queue_for_server({"type": "hold", "batch_ids": [item["batch_id"]]})
+        return True
+
+    def ack(self, batch_ids) -> None:
+        """Acknowledge batches this connection holds (the training loop received them)."""
+        if batch_ids:
+            self._queue_for_server({"type": "ack", "batch_ids": list(batch_ids)})
+
+    def give_back(self, item: dict) -> None:
+        """Return a received batch to the server unused (e.g. an epoch this consumer already completed)."""
+        bid = item["batch_id"]
+        with self.lock:
+            if self.current.get(bid) is not item:
+                return
+            del self.current[bid]
+            _strip(item)
+        self._queue_for_server({"type": "released", "batch_ids": [bid]})
+
+    def _queue_for_server(self, msg: dict) -> None:
+        if not self._closing.is_set():
+            self._ack_send.send(pack(msg))
+
+    def linger(self) -> None:
+        """The iteration ended with batches still in a DataLoader's queues: keep taking their
+        receipts, and close once none is left (or at :meth:`close`)."""
+        self._lingering = True
+
+    def close(self) -> None:
+        """Stop the I/O thread: acknowledgements already queued are sent, then ``bye``."""
+        if self._closing.is_set():
+            return
+        self._closing.set()
+        self._thread.join(5.0)
+        self._ack_send.close(0)
+        self.items.put(StopIteration("closed"))  # wake an iterator blocked on this connection
 
 def _send(sock: zmq.Socket, data: bytes) -> bool:
     """Send without blocking the I/O thread; False when no connection to the server is up
