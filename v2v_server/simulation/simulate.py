@@ -361,9 +361,9 @@ def polarity_counts(n_pos: np.ndarray, n_neg: np.ndarray, sequence_length: int, 
                          f"sequence_length * num_bins = {sequence_length * num_bins}")
     out = np.empty((sequence_length, 2, num_bins, h, w), np.uint8)
     for c, n in enumerate((n_pos, n_neg)):
-        counts = n.reshape(sequence_length, num_bins, per_bin, h, w).sum(axis=2)
-        np.minimum(counts, 255, out=counts)
-        out[:, c] = counts
+        n = n.reshape(sequence_length, num_bins, per_bin, h, w)
+        counts = n[:, :, 0] if per_bin == 1 else n.sum(axis=2)
+        np.minimum(counts, 255, out=out[:, c], casting="unsafe")  # integral values <= 255: exact
     return out
 
 
