@@ -21,7 +21,7 @@ from harness.faults import good_corpus
 from v2v_client.loadtest import run_loadtest
 from harness.serve import ServeProcess
 
-from v2v_wire.protocol import OUTPUTS as ALL
+from v2v_wire.protocol import DEFAULT_OUTPUTS as ALL
 
 
 def measure(corpus: Path, shards: int, workers_each: int, batches: int, extra: List[str]) -> dict:

@@ -45,13 +45,14 @@ def real_samples(epochs: int = 2):
     from v2v_server.samples.flow import FlowEstimator
     from v2v_server.samples.make import video_samples
     from v2v_server.service.worker import wire_arrays
+    from v2v_wire.outputs import DEFAULT_OUTPUTS
 
     cfg = ServeConfig().validate()
     flow = FlowEstimator(cfg.flow_preset)
     compact, dense = [], []
     for epoch in range(epochs):
         for clip in sorted(p.name for p in CLIPS.glob("*.mp4")):
-            for _, a, _ in video_samples(cfg, CLIPS, clip, epoch, cfg.outputs, (), flow, flow_grid=True):
+            for _, a, _ in video_samples(cfg, CLIPS, clip, epoch, DEFAULT_OUTPUTS, (), flow, flow_grid=True):
                 compact.append(wire_arrays(cfg, a))
             for _, a, _ in video_samples(cfg, CLIPS, clip, epoch, ("flow",), (), flow):
                 dense.append(wire_arrays(cfg, a)["flow"])

@@ -1,7 +1,8 @@
 """Hashes of the bundled clips' samples: the table that proves a refactor changed no sample.
 
 Every sample of the bundled clips (``v2v_server/sample_videos``) is made for two seeds, one and
-four crops per window, with every output, as a worker makes it for the wire, and hashed as a
+four crops per window, with every default output (``DEFAULT_OUTPUTS``; the opt-in
+``polarity_counts`` is tested against its equations in ``tests/test_polarity_counts.py``), as a worker makes it for the wire, and hashed as a
 client receives it (dtype, shape and bytes of each array, and the sample's params as canonical
 msgpack): a tracked flow option's ``flow_grid`` is hashed as the dense ``flow`` the client makes
 of it (``v2v_client.flowgrid``, in the server's ``flow_dtype``), so the table pins the flow a
@@ -27,6 +28,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_samples
 from v2v_server.service.worker import wire_arrays
 from v2v_client.flowgrid import expand_flow_grid
+from v2v_wire.outputs import DEFAULT_OUTPUTS
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
@@ -76,7 +78,7 @@ def compute() -> dict:
         cfg = ServeConfig(**overrides).validate()
         rows = {}
         for clip in sorted(p.name for p in CLIPS.glob("*.mp4")):
-            for sid, arrays, meta in video_samples(cfg, CLIPS, clip, 0, cfg.outputs, flow_grid=True):
+            for sid, arrays, meta in video_samples(cfg, CLIPS, clip, 0, DEFAULT_OUTPUTS, flow_grid=True):
                 rows[sid] = _digest(_as_received(cfg, wire_arrays(cfg, arrays)), _canonical(meta))
         table[name] = rows
     return table

@@ -158,8 +158,9 @@ def test_server_image_is_slim_without_torch_nonroot_with_probe_on_its_metrics_po
     assert any('pip install ".[server]"' in r for r in img["run"])
     pyproject = (ROOT / "pyproject.toml").read_text()
     base = re.search(r"^dependencies = \[(.*?)^\]", pyproject, re.S | re.M).group(1)
-    server_extra = re.search(r"^server = \[(.*?)\]", pyproject, re.M).group(1)
+    server_extra = re.search(r"^server = \[(.*?)^\]", pyproject, re.S | re.M).group(1)
     assert "torch" not in base and "torch" not in server_extra  # a decode host installs no torch
+    assert all(p in server_extra and p not in base for p in ("numba", "av>=", "opencv"))  # nor does a client
     assert img["user"] not in ("root", "0") and img["entrypoint"] == ["v2v-serve"]
     ns = check_flags("v2v-serve", img["cmd"])
     cfg = check_serve_config(ns)

@@ -20,7 +20,7 @@ from v2v_wire.codecs import decode_batch_arrays
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.flow import FlowEstimator, to_float16
 from v2v_wire.ids import parse_sample_id
-from v2v_wire.protocol import OUTPUTS, is_loopback, pack, unpack
+from v2v_wire.protocol import DEFAULT_OUTPUTS, is_loopback, pack, unpack
 from v2v_server.samples.make import make_sample, video_samples
 from v2v_server.service.worker import wire_arrays
 
@@ -107,6 +107,21 @@ def test_the_torch_expansion_for_other_devices_equals_the_cpu_one_bit_for_bit():
         assert torch.equal(a.view(torch.int32), b.view(torch.int32))
 
 
+def test_the_numpy_expansion_of_a_client_only_install_equals_the_numba_loop_bit_for_bit():
+    """Without numba (``pip install v2v[client]``) the wire's expansion runs as numpy operations:
+    the same float32 bits as the numba loop, for grids of any size and crops of any shape."""
+    from v2v_wire.flowgrid import HAVE_NUMBA, expand_grids
+
+    assert HAVE_NUMBA  # this environment has the server's packages
+    rng = np.random.default_rng(1)
+    for shape, size in (((40, 2, 8, 8), (CROP, CROP)), ((3, 2, 5, 5), (37, 90)), ((2, 2, 12, 12), (64, 200)),
+                        ((1, 2, 2, 2), (1, 5))):
+        g = rng.normal(0, 3, shape).astype(np.float32)
+        a, b = expand_grids(g, size, use_numba=True), expand_grids(g, size, use_numba=False)
+        assert a.shape == b.shape == shape[:2] + size
+        assert np.array_equal(a.view(np.int32), b.view(np.int32))
+
+
 def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_clip):
     cfg = recipe(flow_preset="ultrafast")
     est = FlowEstimator("ultrafast")
@@ -127,7 +142,7 @@ def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_cl
 def wire_samples(videos, clip: str, epoch: int) -> dict:
     """sample id -> the arrays a worker puts on the wire (flow as its grid)."""
     cfg = recipe()
-    return {sid: wire_arrays(cfg, a) for sid, a, _ in video_samples(cfg, videos, clip, epoch, cfg.outputs,
+    return {sid: wire_arrays(cfg, a) for sid, a, _ in video_samples(cfg, videos, clip, epoch, DEFAULT_OUTPUTS,
                                                                        flow_grid=True)}
 
 
@@ -146,7 +161,7 @@ class RawClient:
         self.sock = zmq.Context.instance().socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.connect(endpoint)
-        self.sock.send(pack({"type": "hello", "outputs": list(OUTPUTS), "credits": 2, "consumer": f"raw-{compression}",
+        self.sock.send(pack({"type": "hello", "outputs": list(DEFAULT_OUTPUTS), "credits": 2, "consumer": f"raw-{compression}",
                              "compression": compression}))
 
     def batch(self, timeout_s: float = 60.0):

@@ -4,8 +4,8 @@ DataLoader around ``v2v_client.V2VStreamDataset``, and the host -> device transf
 Batches (the client's contract): ``voxels`` (B, L, num_bins, H, W) int8/int16 when
 ``raw=True`` (float32 otherwise; signed event counts per bin), ``frames`` (B, L+1, 1, H, W)
 uint8 (float32 in [0, 1] otherwise), frame l at voxel boundary l, ``flow`` (B, L, 2, H, W)
-float16 (float32 otherwise), forward optical flow in pixels from frame l to l+1.
-Integers and halves cross the PCIe bus; conversion to float32 happens on the device.
+float16 (float32 otherwise), forward optical flow in pixels from frame l to l+1 (the dtypes and
+float conversions of ``v2v_wire.outputs``). Integers and halves cross the PCIe bus; conversion to float32 happens on the device.
 """
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ from typing import Iterable, Optional, Sequence, Tuple
 
 import torch
 from torch.utils.data import DataLoader
+
+from v2v_wire.outputs import ARRAYS
 
 from .tasks import get_task
 
@@ -43,21 +45,26 @@ def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:
     return DataLoader(dataset, batch_size=None, num_workers=0, pin_memory=(device.type == "cuda"))
 
 
-def _frames_to_float(t: torch.Tensor) -> torch.Tensor:
-    if t.dtype == torch.uint8:
-        return t.float().div_(255.0)
+def _to_float(name: str, t: torch.Tensor) -> torch.Tensor:
+    """float32 of a stream tensor as its ``outputs.ArraySpec`` says: divided by its
+    ``float_divisor`` while still in its integer wire dtype (uint8 frames -> [0, 1]), else the
+    value itself (counts, pixels; tensors the client already converted)."""
+    spec = ARRAYS.get(name)
+    if spec is not None and spec.float_divisor is not None and not t.is_floating_point():
+        return t.float().div_(spec.float_divisor)
     return t.float()
 
 
 def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], flow_from: Optional[int] = None) -> dict:
-    """Move the ``outputs`` of a stream batch to ``device`` with non-blocking copies and convert
-    them to float32 there.
+    """Move the ``outputs`` of a stream batch (and its ``voxels``, the models' input) to
+    ``device`` with non-blocking copies and convert them to float32 there (``_to_float``).
 
     With ``flow_from`` given, only ``flow[:, flow_from:]`` is transferred (E2VID's temporal
     consistency loss uses the last part of the sequence only).
 
     Returns a dict with float32 ``voxels`` (B, L, num_bins, H, W), ``frames`` (B, L+1, 1,
-    H, W) in [0, 1] and ``flow`` (B, L', 2, H, W) pixels, those of ``outputs``.
+    H, W) in [0, 1], ``flow`` (B, L', 2, H, W) pixels and ``polarity_counts`` (B, L, 2,
+    num_bins, H, W), those of ``outputs``.
 
     Raises:
         KeyError: naming an output of ``outputs`` the batch lacks.
@@ -66,12 +73,10 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
     for key in outputs:
         if key not in batch:
             raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); the task needs {tuple(outputs)}")
-    out = {"voxels": batch["voxels"].to(device, non_blocking=nb).float()}
-    if "frames" in outputs:
-        out["frames"] = _frames_to_float(batch["frames"].to(device, non_blocking=nb))
-    if "flow" in outputs:
-        flow = batch["flow"] if flow_from is None else batch["flow"][:, flow_from:]
-        out["flow"] = flow.to(device, non_blocking=nb).float()
+    out = {}
+    for key in dict.fromkeys(("voxels", *outputs)):
+        t = batch[key][:, flow_from:] if key == "flow" and flow_from is not None else batch[key]
+        out[key] = _to_float(key, t.to(device, non_blocking=nb))
     return out
 
 

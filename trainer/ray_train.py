@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from v2v_server.ops.config import ServingSettings
-from v2v_wire.protocol import OUTPUTS
+from v2v_wire.outputs import column_outputs
 from v2v_server.ops.settings import add_flags, flag_values
 
 from .core import Trainer
@@ -77,8 +77,8 @@ def v2v_collate(pin: bool):
 
 
 class V2VCollate:
-    """Ray Data numpy batch -> the stream batch contract of ``trainer.data``: ``voxels``,
-    ``frames``, ``flow`` tensors in their wire dtypes (pinned when CUDA is present, so the
+    """Ray Data numpy batch -> the stream batch contract of ``trainer.data``: the output
+    columns (``voxels``, ``frames``, ``flow``, ``polarity_counts``) as tensors in their column dtypes (pinned when CUDA is present, so the
     host -> device copy is asynchronous), ``padding`` bool (B,), ``sample_ids`` and
     ``params`` lists of str, ``epochs`` list of int."""
 
@@ -87,12 +87,11 @@ class V2VCollate:
 
     def __call__(self, batch: Dict[str, np.ndarray]) -> dict:
         out = {}
-        for k in OUTPUTS:
-            if k in batch:
-                with warnings.catch_warnings():  # Ray's zero-copy arrays are read-only; nothing writes them
-                    warnings.simplefilter("ignore", UserWarning)
-                    t = torch.from_numpy(np.ascontiguousarray(batch[k]))
-                out[k] = t.pin_memory() if self.pin else t
+        for k in column_outputs(batch):  # the output columns (``v2v_wire.outputs``), in wire order
+            with warnings.catch_warnings():  # Ray's zero-copy arrays are read-only; nothing writes them
+                warnings.simplefilter("ignore", UserWarning)
+                t = torch.from_numpy(np.ascontiguousarray(batch[k]))
+            out[k] = t.pin_memory() if self.pin else t
         out["padding"] = torch.from_numpy(np.asarray(batch["padding"], dtype=bool))
         out["sample_ids"] = [str(s) for s in batch["sample_id"]]
         out["params"] = [str(s) for s in batch["params"]]

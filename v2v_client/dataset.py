@@ -23,7 +23,7 @@ from typing import Iterator, Optional, Sequence, Tuple, Union
 import torch
 
 from v2v_wire.codecs import available, check_compression
-from v2v_wire.protocol import OUTPUTS, check_outputs
+from v2v_wire.protocol import DEFAULT_OUTPUTS, OUTPUTS, check_outputs
 
 from .connection import StreamError, StreamTimeout, batch_to_torch, load_curve_keys
 from .endpoint import EndpointStream, StreamOptions, padding_copy
@@ -46,8 +46,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             merged (``v2v_client.fanin``): ``credits`` is split between the servers, each
             reconnects on its own, the stream ends when every server ended it and
             ``state_dict()`` covers them all. ``rank``/``world_size`` apply to each server.
-        outputs: which of ``"voxels"``, ``"frames"``, ``"flow"`` to receive; the server's
-            workers compute the union of what its connected clients ask for.
+        outputs: which of ``OUTPUTS`` to receive (default ``DEFAULT_OUTPUTS``: ``"voxels"``,
+            ``"frames"``, ``"flow"``; ``"polarity_counts"`` only when named; dtypes and shapes in
+            ``v2v_wire.outputs``); the server's workers compute the union of what its connected
+            clients ask for.
         credits: batches the server may have in flight to this iterator (prefetch depth);
             the server refuses more than its ``max_credits`` (default 64) with a clear error.
         timeout_s: seconds without any message from the server (batches or heartbeats)
@@ -126,7 +128,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             ``rank``/``world_size`` or keys.
     """
 
-    def __init__(self, endpoint: Union[str, Sequence[str]], outputs: Sequence[str] = OUTPUTS, credits: int = 4,
+    def __init__(self, endpoint: Union[str, Sequence[str]], outputs: Sequence[str] = DEFAULT_OUTPUTS, credits: int = 4,
                  timeout_s: float = 30.0, heartbeat_s: float = 1.0, raw: bool = False,
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None, rank: Optional[int] = None,

@@ -3,7 +3,9 @@
 Runs the server (``v2v_server.service.local.local_server``: what ``v2v-serve`` runs) in a thread of this
 process on a free loopback port (its workers are processes, as under ``v2v-serve``), reads
 batches through ``V2VStreamDataset`` (the same code path as ``v2v-loadtest``), prints
-batches/s, writes a preview PNG of one sample, and stops the server.
+batches/s, writes a preview PNG of one sample, and stops the server. It hosts a server, so
+it needs the server's packages (``pip install 'v2v[server,client]'``); a trainer host with
+``v2v[client]`` only reads a remote server's stream.
 """
 from __future__ import annotations
 
@@ -12,11 +14,8 @@ import json
 import sys
 from typing import List, Optional
 
-from v2v_server.service.local import local_server
-
 from .dataset import V2VStreamDataset
 from .loadtest import format_report, run_loadtest
-from .preview import write_preview
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -28,6 +27,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--preview", default="preview.png", help="where to write the preview PNG")
     p.add_argument("--timeout", type=float, default=120.0)
     a = p.parse_args(argv)
+    try:  # the server and the preview (OpenCV) come with the server's packages only
+        from v2v_server.service.local import local_server
+
+        from .preview import write_preview
+    except ImportError as e:
+        print(f"v2v-demo runs a server in this process and needs the server's packages: "
+              f"pip install 'v2v[server,client]' ({e})", file=sys.stderr)
+        return 2
     with local_server(a.videos, a.workers, a.batch_size) as endpoint:
         print(f"v2v server running on {endpoint} with {a.workers} workers")
         ds = V2VStreamDataset(endpoint, timeout_s=a.timeout)

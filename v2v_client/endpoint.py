@@ -57,7 +57,143 @@ def padding_copy(batch: dict, epoch: int) -> dict:
     return out
 
 
-class EndpointStream:
+class _StreamIteration:
+    """The iteration half of an :class:`EndpointStream`: a connection's queued items made into
+    the batches the consumer gets (each sample once per epoch, DDP padding where owed, a
+    DataLoader worker's batches held until the loop receives them). The state it reads and
+    updates (delivered ids, batches per epoch, the pipeline) is the stream's."""
+
+    def _padding_batch(self, epoch: int) -> Optional[dict]:
+        return None if self._last is None else padding_copy(self._last, epoch)
+
+    def _epoch_done(self, done: "_EpochDone") -> List[dict]:
+        """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
+        pads: List[dict] = []
+        with self._lock:
+            if done.epoch <= self._completed_epoch:
+                return pads
+            owed = 0
+            if self.world_size > 1 and done.batches is not None:
+                owed = max(0, done.batches - self._batches.get(done.epoch, 0))
+            self._completed_epoch = done.epoch
+            for e in [e for e in self._delivered if e <= done.epoch]:
+                del self._delivered[e]
+            for e in [e for e in self._batches if e <= done.epoch]:
+                del self._batches[e]
+        for _ in range(owed):
+            p = self._padding_batch(done.epoch)
+            if p is None:
+                self._pad_debt[done.epoch] = self._pad_debt.get(done.epoch, 0) + 1
+            else:
+                pads.append(p)
+        return pads
+
+    def __iter__(self) -> Iterator[dict]:
+        conn = Connection(self)
+        self._conns.append(conn)
+        abandoned = False
+        try:
+            while True:
+                item = self._next_item(conn)
+                if isinstance(item, StopIteration):
+                    return
+                if isinstance(item, BaseException):
+                    raise item
+                if isinstance(item, _EpochDone):
+                    yield from self._epoch_done(item)
+                elif isinstance(item, _Drained):
+                    with conn.lock:
+                        idle = not conn.current
+                    if self.receipts is not None and idle:
+                        return  # a DataLoader worker: end this iteration so the loader takes the others' batches
+                elif isinstance(item, _Padding):
+                    yield from self._server_padding(item)
+                else:
+                    yield from self._batch(conn, item)
+        except GeneratorExit:
+            abandoned = True
+            raise
+        finally:
+            if self.receipts is not None and not abandoned and self._pipeline:
+                conn.linger()  # ended (drained, end of stream) with batches in the loader's queues
+            else:
+                conn.close()  # receipts already written are taken first; the rest goes back with bye
+                with self._lock:
+                    self._pipeline.clear()
+                if conn in self._conns:
+                    self._conns.remove(conn)
+
+    def _next_item(self, conn: Connection):
+        """The next item the connection's I/O thread queued (a batch or a control item).
+
+        Raises:
+            StreamError: the I/O thread ended without saying why.
+        """
+        while True:
+            try:
+                return conn.items.get(timeout=1.0)
+            except queue.Empty:
+                if not conn._thread.is_alive() and conn.items.empty():
+                    raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
+                # the I/O thread decides when the server is gone (timeout_s without a message)
+
+    def _server_padding(self, item: "_Padding") -> Iterator[dict]:
+        """A DDP padding batch the server sent (not leased): yielded unless its epoch is complete here."""
+        with self._lock:
+            e = item.item["epoch"]
+            if e <= self._completed_epoch:
+                return
+            self._batches[e] = self._batches.get(e, 0) + 1
+        self._last = item.item
+        yield item.item
+
+    def _batch(self, conn: Connection, item: dict) -> Iterator[dict]:
+        """A received batch: given back when its epoch is complete here; else claimed (taken,
+        or held for a DataLoader worker), its samples already delivered or queued dropped
+        (a batch of repeats only becomes DDP padding, or nothing with one rank), preceded by
+        any padding owed, and yielded."""
+        self.info = conn.info
+        epoch = item["epoch"]
+        with self._lock:
+            done_already = epoch <= self._completed_epoch
+        if done_already:
+            conn.give_back(item)  # never acknowledge what we would drop
+            return
+        loader = self.receipts is not None
+        if not (conn.hold(item) if loader else conn.take(item)):
+            return  # given back meanwhile (lease expired, or this client was dropped)
+        with self._lock:
+            seen = self._delivered.setdefault(epoch, set())
+            queued = {s for e, ids in self._pipeline.values() if e == epoch for s in ids}
+            keep = [i for i, sid in enumerate(item["sample_ids"]) if sid not in seen and sid not in queued]
+            if loader:
+                if keep:
+                    self._pipeline[item["batch_id"]] = (epoch, [item["sample_ids"][i] for i in keep])
+            else:
+                seen.update(item["sample_ids"][i] for i in keep)
+                self._batches[epoch] = self._batches.get(epoch, 0) + 1
+        item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
+        if loader:
+            if not keep:
+                conn.ack([item["batch_id"]])  # nothing new in it: nothing for the loop to receive
+                return
+            item["receipt"] = {"worker": self.worker, "batch_id": item["batch_id"], "epoch": epoch,
+                               "completed_epoch": self._completed_epoch}
+        if len(keep) < len(item["sample_ids"]):
+            if not keep and self.world_size == 1:
+                return  # all re-sent duplicates: hand nothing on
+            if keep:
+                item = _select(item, keep)
+            else:  # DDP: keep the batch count equal; every sample is a repeat
+                item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
+        for e in sorted(self._pad_debt):
+            for _ in range(self._pad_debt.pop(e)):
+                yield padding_copy(item, e)
+        self._last = item
+        yield item
+
+
+class EndpointStream(_StreamIteration):
     """The stream of one server for one consumer.
 
     Args:
@@ -201,118 +337,6 @@ class EndpointStream:
         if self.world_size > 1:
             h.update(rank=self.rank, world_size=self.world_size, group=self.group)
         return h
-
-    # ------------------------------------------------------------------ iteration
-    def _padding_batch(self, epoch: int) -> Optional[dict]:
-        return None if self._last is None else padding_copy(self._last, epoch)
-
-    def _epoch_done(self, done: "_EpochDone") -> List[dict]:
-        """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
-        pads: List[dict] = []
-        with self._lock:
-            if done.epoch <= self._completed_epoch:
-                return pads
-            owed = 0
-            if self.world_size > 1 and done.batches is not None:
-                owed = max(0, done.batches - self._batches.get(done.epoch, 0))
-            self._completed_epoch = done.epoch
-            for e in [e for e in self._delivered if e <= done.epoch]:
-                del self._delivered[e]
-            for e in [e for e in self._batches if e <= done.epoch]:
-                del self._batches[e]
-        for _ in range(owed):
-            p = self._padding_batch(done.epoch)
-            if p is None:
-                self._pad_debt[done.epoch] = self._pad_debt.get(done.epoch, 0) + 1
-            else:
-                pads.append(p)
-        return pads
-
-    def __iter__(self) -> Iterator[dict]:
-        conn = Connection(self)
-        self._conns.append(conn)
-        abandoned = False
-        try:
-            while True:
-                try:
-                    item = conn.items.get(timeout=1.0)
-                except queue.Empty:
-                    if not conn._thread.is_alive() and conn.items.empty():
-                        raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
-                    continue  # the I/O thread decides when the server is gone (timeout_s without a message)
-                if isinstance(item, StopIteration):
-                    return
-                if isinstance(item, BaseException):
-                    raise item
-                if isinstance(item, _EpochDone):
-                    yield from self._epoch_done(item)
-                    continue
-                if isinstance(item, _Drained):
-                    with conn.lock:
-                        idle = not conn.current
-                    if self.receipts is not None and idle:
-                        return  # a DataLoader worker: end this iteration so the loader takes the others' batches
-                    continue
-                if isinstance(item, _Padding):
-                    with self._lock:
-                        e = item.item["epoch"]
-                        if e <= self._completed_epoch:
-                            continue
-                        self._batches[e] = self._batches.get(e, 0) + 1
-                    self._last = item.item
-                    yield item.item
-                    continue
-                self.info = conn.info
-                epoch = item["epoch"]
-                with self._lock:
-                    done_already = epoch <= self._completed_epoch
-                if done_already:
-                    conn.give_back(item)  # never acknowledge what we would drop
-                    continue
-                loader = self.receipts is not None
-                if not (conn.hold(item) if loader else conn.take(item)):
-                    continue  # given back meanwhile (lease expired, or this client was dropped)
-                with self._lock:
-                    seen = self._delivered.setdefault(epoch, set())
-                    queued = {s for e, ids in self._pipeline.values() if e == epoch for s in ids}
-                    keep = [i for i, sid in enumerate(item["sample_ids"]) if sid not in seen and sid not in queued]
-                    if loader:
-                        if keep:
-                            self._pipeline[item["batch_id"]] = (epoch, [item["sample_ids"][i] for i in keep])
-                    else:
-                        seen.update(item["sample_ids"][i] for i in keep)
-                        self._batches[epoch] = self._batches.get(epoch, 0) + 1
-                item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
-                if loader:
-                    if not keep:
-                        conn.ack([item["batch_id"]])  # nothing new in it: nothing for the loop to receive
-                        continue
-                    item["receipt"] = {"worker": self.worker, "batch_id": item["batch_id"], "epoch": epoch,
-                                       "completed_epoch": self._completed_epoch}
-                if len(keep) < len(item["sample_ids"]):
-                    if not keep and self.world_size == 1:
-                        continue  # all re-sent duplicates: hand nothing on
-                    if keep:
-                        item = _select(item, keep)
-                    else:  # DDP: keep the batch count equal; every sample is a repeat
-                        item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
-                for e in sorted(self._pad_debt):
-                    for _ in range(self._pad_debt.pop(e)):
-                        yield padding_copy(item, e)
-                self._last = item
-                yield item
-        except GeneratorExit:
-            abandoned = True
-            raise
-        finally:
-            if self.receipts is not None and not abandoned and self._pipeline:
-                conn.linger()  # ended (drained, end of stream) with batches in the loader's queues
-            else:
-                conn.close()  # receipts already written are taken first; the rest goes back with bye
-                with self._lock:
-                    self._pipeline.clear()
-                if conn in self._conns:
-                    self._conns.remove(conn)
 
     def close(self) -> None:
         """Close every open connection of this stream (also done when iterators are collected);

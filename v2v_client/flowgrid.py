@@ -7,8 +7,9 @@ per sample for n = 8 against 2.6 MB of dense float16 flow). :func:`expand_flow_g
 dense again with the very taps the server's expansion uses (``protocol.flow_grid_taps``), with
 the same float32 operations (one rounding per product and per sum): on the CPU with the
 server's own loop (``v2v_wire.flowgrid``: one thread, so it costs the trainer's torch thread
-pool nothing, under 1 ms per default sample: bench.wire), on other devices in torch; the result
-equals the server's dense flow bit for bit.
+pool nothing, under 1 ms per default sample with numba, ~7x that with the numpy path of a
+client-only install: bench.flowgrid), on other devices in torch; the result equals the server's
+dense flow bit for bit.
 """
 from __future__ import annotations
 
@@ -59,7 +60,7 @@ def expand_flow_grid(grid: torch.Tensor, size: Tuple[int, int], dtype: torch.dty
         raise ValueError(f"flow size must be positive (H, W), got {tuple(size)}")
     n = grid.shape[-1]
     if grid.device.type == "cpu":
-        from v2v_wire.flowgrid import expand_grids  # numba: loaded by the first batch with flow
+        from v2v_wire.flowgrid import expand_grids  # numba when installed (else numpy, the same bits)
 
         flat = grid.detach().float().reshape(-1, 2, n, n).numpy()
         out = torch.from_numpy(expand_grids(flat, (h, w))).reshape(grid.shape[:-2] + (h, w))

@@ -7,12 +7,12 @@ import sys
 import time
 from typing import List, Optional
 
-from v2v_wire.protocol import OUTPUTS
+from v2v_wire.protocol import DEFAULT_OUTPUTS
 
 from .dataset import V2VStreamDataset
 
 
-def run_loadtest(endpoint, batches: int, outputs=OUTPUTS, credits: int = 4,
+def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: int = 4,
                  timeout_s: float = 60.0, step_s: float = 0.0, warmup: int = 1) -> dict:
     """Read ``batches`` batches (after ``warmup`` unmeasured ones) and measure throughput.
 

@@ -30,7 +30,8 @@ equal=True)`` drops nothing.
 
 Rows: ``sample_id`` str; ``voxels`` int16 (L, B, S, S) signed event counts; ``frames`` uint8
 (L + 1, 1, S, S) at voxel boundaries; ``flow`` float16/float32 (``flow_dtype``) (L, 2, S, S),
-pixels from frame l to l + 1 (only the columns in ``outputs``); ``params`` str (JSON of the
+pixels from frame l to l + 1; ``polarity_counts`` uint8 (L, 2, B, S, S) N+ and N- per bin (opt-in)
+(only the columns in ``outputs``; dtypes and layouts from ``v2v_wire.outputs``); ``params`` str (JSON of the
 sample's parameters, as in the ZeroMQ batch header); ``epoch`` int64; ``padding`` bool.
 """
 from __future__ import annotations
@@ -44,7 +45,8 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 import numpy as np
 
 from v2v_server.ops.config import ServeConfig
-from v2v_wire.protocol import OUTPUTS, check_outputs
+from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS, row_array, zeros_row
+from v2v_wire.protocol import check_outputs
 from v2v_server.samples.flow import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id
 from v2v_server.samples.make import video_samples
@@ -56,9 +58,10 @@ __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descripto
 
 log = logging.getLogger("v2v.ray")
 
-#: Dtype of the ``voxels`` column: one dtype for every row (Ray blocks need one per column).
-#: The ZeroMQ path narrows per batch to int8 when it can; the values are the same.
-VOXEL_DTYPE = np.int16
+#: Dtype of the ``voxels`` column (``outputs.ARRAYS["voxels"].column_dtype``): one dtype for
+#: every row (Ray blocks need one per column). The ZeroMQ path narrows per batch to int8 when it
+#: can; the values are the same.
+VOXEL_DTYPE = np.dtype(ARRAYS["voxels"].column_dtype).type
 
 
 @dataclass(frozen=True)
@@ -166,28 +169,15 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
 
 
 def _zeros(cfg: ServeConfig, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
-    L, B, S = cfg.sequence_length, cfg.num_bins, cfg.crop_size
-    shapes = {"voxels": ((L, B, S, S), VOXEL_DTYPE), "frames": ((L + 1, 1, S, S), np.uint8),
-              "flow": ((L, 2, S, S), np.dtype(cfg.flow_dtype))}
-    return {k: np.zeros(*shapes[k]) for k in outputs}
+    """A padding row's arrays: zeros in each column's dtype and layout (``outputs.zeros_row``)."""
+    return {k: zeros_row(k, cfg.sequence_length, cfg.num_bins, cfg.crop_size, cfg.flow_dtype) for k in outputs}
 
 
 def _row_arrays(cfg: ServeConfig, arrays: Dict[str, np.ndarray], sample_id: str) -> Dict[str, np.ndarray]:
-    """A sample's arrays in the column dtypes: voxels int16 (never wrapped), frames uint8
-    with a channel axis, flow ``cfg.flow_dtype`` (as the ZeroMQ wire)."""
-    out = {}
-    for name, a in arrays.items():
-        if name == "voxels":
-            info = np.iinfo(VOXEL_DTYPE)
-            if a.size and (int(a.min()) < info.min or int(a.max()) > info.max):
-                raise OverflowError(f"{sample_id}: event counts in [{a.min()}, {a.max()}] do not fit {VOXEL_DTYPE.__name__}")
-            a = a.astype(VOXEL_DTYPE)
-        elif name == "frames":
-            a = a[:, None]
-        elif name == "flow":
-            a = a.astype(cfg.flow_dtype)
-        out[name] = np.ascontiguousarray(a)
-    return out
+    """A sample's arrays in their column dtypes and layouts (``outputs.row_array``: voxels
+    int16, never wrapped; frames uint8 with a channel axis; flow ``cfg.flow_dtype``, as the
+    ZeroMQ wire; polarity counts uint8)."""
+    return {name: row_array(name, a, cfg.flow_dtype, sample_id) for name, a in arrays.items()}
 
 
 class SampleMaker:
@@ -201,7 +191,7 @@ class SampleMaker:
     Args:
         cfg_dict: ``ServeConfig.to_dict()``.
         root: corpus folder as seen from the actor's node.
-        outputs: subset of ("voxels", "frames", "flow") to make.
+        outputs: subset of ``OUTPUTS`` to make.
     """
 
     def __init__(self, cfg_dict: dict, root: str, outputs: Sequence[str]):
@@ -265,7 +255,7 @@ def v2v_dataset(
     *,
     epoch: Union[int, Sequence[int]] = 0,
     seed: Optional[int] = None,
-    outputs: Sequence[str] = OUTPUTS,
+    outputs: Sequence[str] = DEFAULT_OUTPUTS,
     exclude: Union[Iterable[str], Mapping[int, Iterable[str]]] = (),
     ranks: int = 1,
     concurrency: Union[int, Tuple[int, int], None] = None,
@@ -280,7 +270,8 @@ def v2v_dataset(
         config: sample layout (``ServeConfig``; defaults: the paper's WebVid recipe).
         epoch: an epoch, or several (their rows follow each other; each is padded on its own).
         seed: overrides ``config.seed``; content depends only on (seed, epoch, sample_id).
-        outputs: columns to make, from ("voxels", "frames", "flow"); others are not computed.
+        outputs: columns to make, from ``OUTPUTS`` (default ``DEFAULT_OUTPUTS``; ``polarity_counts``
+            is opt-in); others are not computed.
         exclude: sample ids already consumed (of ``epoch``; a mapping epoch -> ids for several
             epochs): never decoded into rows.
         ranks: pad each epoch to a multiple of this row count (``padding`` true on the repeats)

@@ -24,7 +24,8 @@ Message types (protocol 3; client messages are decoded and schema-checked by ``w
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error); server -> worker: ``task``, ``stop``.
 
-Array forms: a tracked flow option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its
+Array forms: each array's dtype, shape and float conversion are in ``outputs.ARRAYS`` (one
+``ArraySpec`` per array; ``polarity_counts`` is served only to clients that ask). A tracked flow option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its
 values at the tracking grid's points (``ARRAY_OUTPUT``: it carries the output ``flow``; the
 dense field is bilinear between them with ``flow_grid_taps`` over the welcome's
 ``crop_size``). Compression (optional): a hello may say ``"compression": "lz4" | "zstd"``
@@ -51,6 +52,9 @@ from typing import Dict, List, Sequence, Tuple
 import msgpack
 import numpy as np
 
+# the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
+from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
+
 PROTOCOL_VERSION = 3
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
@@ -60,11 +64,6 @@ MAX_HEADER_BYTES = 1 << 20
 MAX_CLIENT_MSG = 16 * 1024 * 1024
 #: dtypes allowed on the wire.
 WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")
-#: Outputs a sample can carry, in wire order: voxels, ground-truth frames, optical flow.
-OUTPUTS = ("voxels", "frames", "flow")
-#: Arrays on the wire that carry an output in another form than its own name: ``flow_grid`` is
-#: the compact ``flow`` of the tracked flow options (see ``flow_grid_taps``).
-ARRAY_OUTPUT = {"flow_grid": "flow"}
 
 #: Same-host hand-off (``datapath.BatchDir`` writes, ``v2v_client.handoff`` reads):
 #: bytes at the start of a batch-buffer file before the first array (the generation, uint64 LE);
@@ -179,27 +178,6 @@ def unpack(frame, expect_version: int = PROTOCOL_VERSION, max_bytes: int = MAX_H
     if h.get("v") != expect_version:
         raise ProtocolError(f"protocol version {h.get('v')!r}, expected {expect_version}")
     return h
-
-
-def narrow_int_dtype(arr: np.ndarray) -> np.dtype:
-    """Narrowest of int8, int16, int32 that holds every value of the integer array ``arr``.
-
-    Counts are never wrapped or clipped: a value outside int32 raises ``OverflowError``.
-    """
-    if arr.size == 0:
-        return np.dtype(np.int8)
-    lo, hi = int(arr.min()), int(arr.max())
-    for dt in (np.int8, np.int16, np.int32):
-        info = np.iinfo(dt)
-        if info.min <= lo and hi <= info.max:
-            return np.dtype(dt)
-    raise OverflowError(f"event counts in [{lo}, {hi}] do not fit int32")
-
-
-def output_of(array_name: str) -> str:
-    """The output (``OUTPUTS``) a wire array carries: ``flow_grid`` carries ``flow``; any other
-    array carries the output of its own name."""
-    return ARRAY_OUTPUT.get(array_name, array_name)
 
 
 _TAPS: Dict[tuple, tuple] = {}

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Optional, Tuple
 
 from v2v_server.samples.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
+from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import OUTPUTS, check_outputs, is_loopback  # noqa: F401  (is_loopback: config's checks and sockets use it)
 from v2v_server.ops.settings import (check_bool, check_choice, check_float, check_int, check_keys, check_prob,
                                      load_yaml, reference_markdown, setting)
@@ -22,7 +23,8 @@ from v2v_server.videos.decode import DECODE_FAST
 
 #: Optical-flow options by name (the table lives in flow_options.py).
 FLOW_PRESETS = tuple(FLOW_OPTIONS)
-FLOW_DTYPES = ("float16", "float32")
+#: Wire dtypes of dense flow (``v2v_wire.outputs``).
+FLOW_DTYPES = ARRAYS["flow"].dtypes
 #: Upper limits (a typo like ``workers: 2000`` is an error, not a fork bomb or an OOM).
 MAX_WORKERS = 256
 MAX_PREFETCH = 256

@@ -26,7 +26,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import corpus_file
 from v2v_wire.ids import make_sample_id
 from v2v_server.samples.flow import FlowEstimator
-from v2v_server.simulation.simulate import SensorParams, sample_params, simulate_voxels
+from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.videos.decode import decode_codes, open_video, to_uint8
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
@@ -135,7 +135,8 @@ def make_sample(
         window_frames: uint8 or uint16 (plan.consumed, S, S) full-range cropped source frames
             of the window (uint16 sources feed the V2V core at full precision; frames and flow
             use their 8-bit rounding).
-        outputs: any of "voxels", "frames", "flow"; only these are computed.
+        outputs: any of ``OUTPUTS`` ("voxels", "frames", "flow", "polarity_counts"); only
+            these are computed.
         fps: source frame rate, Hz (for non-idealities given as rates).
         busy: when given, ``busy["simulate"]`` and ``busy["flow"]`` accumulate the seconds
             spent simulating voxels and estimating flow (for the server's metrics).
@@ -149,19 +150,25 @@ def make_sample(
         that holds them, for plain V2V with one frame per bin; else int32), ``frames`` uint8
         (L + 1, S, S) at voxel boundaries, ``flow`` (L, 2, S, S) in pixels from frame l to
         l + 1 (``cfg.flow_preset``, see ``flow.py``; tracked options use every source frame
-        between the boundaries), in ``cfg.flow_dtype`` — each present only if asked for.
+        between the boundaries), in ``cfg.flow_dtype``, ``polarity_counts`` uint8
+        (L, 2, B, S, S) N+ and N- per bin saturating at 255 (plain V2V only) — each present
+        only if asked for (dtypes and shapes: ``v2v_wire.outputs``).
     """
     outputs = set(outputs)
     seq = window_frames[plan.offsets]  # pauses repeat frames
     step = cfg.num_bins * cfg.frames_per_bin
     out: Dict[str, np.ndarray] = {}
     t0 = time.perf_counter()
-    if "voxels" in outputs:
-        vox = _simulate(cfg, plan, seq, fps)
-        if cfg.frames_per_bin > 1:
-            L, _, h, w = vox.shape
-            vox = vox.reshape(L, cfg.num_bins, cfg.frames_per_bin, h, w).sum(axis=2, dtype=np.int32)
-        out["voxels"] = vox
+    simulated = "voxels" in outputs or "polarity_counts" in outputs
+    if simulated:
+        vox, counts = _simulate(cfg, plan, seq, fps, "polarity_counts" in outputs)
+        if "voxels" in outputs:
+            if cfg.frames_per_bin > 1:
+                L, _, h, w = vox.shape
+                vox = vox.reshape(L, cfg.num_bins, cfg.frames_per_bin, h, w).sum(axis=2, dtype=np.int32)
+            out["voxels"] = vox
+        if counts is not None:
+            out["polarity_counts"] = counts
     if "frames" in outputs:
         out["frames"] = np.ascontiguousarray(to_uint8(seq[::step]))
     t1 = time.perf_counter()
@@ -174,18 +181,31 @@ def make_sample(
         else:
             out["flow"] = flow.voxel_flows(seq, step, repeats, dtype=cfg.flow_dtype)
     if busy is not None:
-        if "voxels" in outputs:
+        if simulated:
             busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)
         if "flow" in outputs:
             busy["flow"] = busy.get("flow", 0.0) + (time.perf_counter() - t1)
     return out
 
 
-def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float) -> np.ndarray:
+def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float,
+              polarity: bool = False) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     """Voxels of one window: plain V2V, V2V with refinement, V2V with non-idealities, or
     both composed (one kernel call either way), as configured; what was used goes into
-    ``plan.info`` (and so into the sample's params)."""
+    ``plan.info`` (and so into the sample's params). With ``polarity``, also the
+    ``polarity_counts`` of the same kernel call (plain V2V only), else None.
+
+    Raises:
+        ValueError: ``polarity`` with refinement or non-idealities configured."""
     bins = cfg.num_bins * cfg.frames_per_bin
+    if polarity and (cfg.nonidealities or cfg.refine != "off"):
+        raise ValueError("polarity_counts is made by plain V2V only: serve it with refine: off and no nonidealities")
+    if polarity:
+        # same kernel, same draws and the same voxels; N+ and N- kept (the kernel's slower split path)
+        vox, _, (n_pos, n_neg) = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=cfg.frames_per_bin == 1,
+                                                 split=True)
+        plan.info["refine"] = "off"
+        return vox, polarity_counts(n_pos, n_neg, cfg.sequence_length, cfg.num_bins)
     if cfg.nonidealities:
         from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
 
@@ -203,7 +223,7 @@ def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float) -
         # the wire's narrow dtype straight from the kernel, unless bins are summed below
         vox, _ = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=cfg.frames_per_bin == 1)
         plan.info["refine"] = "off"
-    return vox
+    return vox, None
 
 
 def sample_meta(plan: WindowPlan, video_fps: float, src_start: int) -> dict:

@@ -60,8 +60,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from v2v_wire.codecs import packed_specs
+from v2v_wire.outputs import max_sample_bytes, narrowest
 from v2v_wire.protocol import (BATCH_DIR_RE, BATCH_FILE_HEADER, WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays,
-                       narrow_int_dtype, output_of)
+                       output_of)
 
 log = logging.getLogger("v2v.datapath")
 
@@ -171,19 +172,17 @@ def slot_layout(specs) -> Tuple[List[int], int]:
 
 
 def slot_bytes(sequence_length: int, num_bins: int, crop_size: int) -> int:
-    """Bytes of one slot: the largest sample the config can make (voxels int32
-    ``(L, num_bins, S, S)``, frames up to 2 bytes ``(L + 1, S, S)``, flow float32
-    ``(L, 2, S, S)``), rounded up to whole pages. The file is sparse on tmpfs: only the
-    bytes a worker writes take memory."""
-    px = crop_size * crop_size
-    need = (sequence_length * num_bins * px * 4 + (sequence_length + 1) * px * 2
-            + sequence_length * 2 * px * 4 + 3 * SLOT_ALIGN)
+    """Bytes of one slot: the largest sample of the default outputs the config can make
+    (``outputs.max_sample_bytes``: each at its widest wire dtype; a sample with an opt-in output
+    too may travel as frames), rounded up to whole pages. The file is sparse on
+    tmpfs: only the bytes a worker writes take memory."""
+    need = max_sample_bytes(sequence_length, num_bins, crop_size, SLOT_ALIGN)
     return -(-need // mmap.PAGESIZE) * mmap.PAGESIZE
 
 
 def shm_bytes(workers: int, sequence_length: int, num_bins: int, crop_size: int) -> int:
     """Bytes of /dev/shm a server's slot rings reserve: ``workers x RING_SLOTS x slot_bytes``
-    (about 59 MB per worker for L = 40, 5 bins, 128 x 128 crops). A server bound to ``ipc://``
+    (about 57 MB per worker for L = 40, 5 bins, 128 x 128 crops). A server bound to ``ipc://``
     also keeps its batch buffers there (``(prefetch_batches + credits in flight + 2) x`` one
     batch). Size a container's /dev/shm (Docker ``shm_size``, a Kubernetes memory-backed
     ``emptyDir``) at least this; with less, rings are refused at start and workers send
@@ -717,8 +716,9 @@ class BatchPayload:
 
 
 def narrow_voxels(name: str, a: np.ndarray) -> np.ndarray:
-    """``a`` narrowed to the smallest int type that holds it when ``name`` is "voxels"."""
-    return a.astype(narrow_int_dtype(a), copy=False) if name == "voxels" else a
+    """``a`` narrowed to the smallest dtype that holds it when its spec narrows by counts
+    (``outputs.narrowest``: voxels); other arrays as they are."""
+    return narrowest(name, a)
 
 
 def make_batch(samples: Sequence[SamplePayload]) -> BatchPayload:

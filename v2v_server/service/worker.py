@@ -30,7 +30,8 @@ from v2v_server.ops.config import SampleRecipe, ServeConfig
 from v2v_server.videos.corpus import verdict
 from v2v_server.service.datapath import SlotRing
 from v2v_server.ops.logs import setup_logging
-from v2v_wire.protocol import encode_arrays, narrow_int_dtype, pack, unpack
+from v2v_wire.outputs import wire_dtype
+from v2v_wire.protocol import encode_arrays, pack, unpack
 from v2v_server.samples.flow import to_float16
 from v2v_server.samples.flow import FlowEstimator
 from v2v_wire.ids import parse_sample_id
@@ -94,19 +95,15 @@ def _send(sock: zmq.Socket, frames, parent_pid: int) -> None:
 
 
 def wire_arrays(cfg: SampleRecipe, arrays: dict) -> dict:
-    """Narrow a sample's arrays to their wire dtypes: voxels int8/int16/int32 (the narrowest
-    that holds every count), frames uint8, dense flow ``cfg.flow_dtype`` (a tracked option's
-    ``flow_grid`` stays float32: it is small, and the client's expansion of it equals the
-    server's to the bit). Voxels that arrive int8 or int16 come from
-    ``simulate_voxels(narrow=True)``, which already picked the narrowest: only int32 ones are
-    scanned."""
+    """A sample's arrays in their wire dtypes (``outputs.wire_dtype``: voxels the narrowest
+    int that holds every count, frames and polarity counts uint8, dense flow ``cfg.flow_dtype``,
+    a tracked option's ``flow_grid`` float32). Counts that arrive narrowed by their producer
+    (``simulate_voxels(narrow=True)``) are not scanned again; float16 is made by the vectorised
+    ``flow.to_float16`` (bit-identical to numpy's cast)."""
     out = {}
     for name, a in arrays.items():
-        if name == "voxels" and a.dtype == np.int32:
-            a = a.astype(narrow_int_dtype(a), copy=False)
-        elif name == "flow":
-            a = to_float16(a) if cfg.flow_dtype == "float16" else a.astype(cfg.flow_dtype, copy=False)
-        out[name] = a
+        dt = wire_dtype(name, a, cfg.flow_dtype)
+        out[name] = to_float16(a) if dt == np.float16 else a.astype(dt, copy=False)
     return out
 
 

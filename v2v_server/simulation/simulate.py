@@ -38,6 +38,7 @@ __all__ = [
     "check_frames",
     "draw_noise_seed",
     "simulate_voxels",
+    "polarity_counts",
     "sample_params",
 ]
 
@@ -272,7 +273,8 @@ def simulate_voxels(
     first_pair: int = 0,
     compute_dtype=np.float32,
     narrow: bool = False,
-) -> Tuple[np.ndarray, np.ndarray]:
+    split: bool = False,
+) -> Tuple[np.ndarray, ...]:
     """Discrete voxel grids (SBT) of a clip, computed from frames without an event stream.
 
     Paper: Lou et al. 2025, Sec. 3 (V2V); one frame pair per bin (frames_per_bin = 1). The
@@ -300,9 +302,11 @@ def simulate_voxels(
             steps * 2**-24 * max(c+, c-) in float32 (see tests/test_stability.py).
         narrow: voxels in the narrowest of int8, int16, int32 that holds every count (the
             wire's dtype; the kernel tracks the range, see ``run_kernel``), not int32.
+        split: also return N+ and N- of every frame pair (the kernel's ``split``; it then
+            skips its fast path, so only when asked): float64 (N - 1, H, W) each.
 
     Returns:
-        ``(voxels, potential)``: ``voxels`` int32 (or narrower, ``narrow``) (L, num_bins, H, W), bin b of voxel l is
+        ``(voxels, potential)``, or with ``split`` ``(voxels, potential, (n_pos, n_neg))``: ``voxels`` int32 (or narrower, ``narrow``) (L, num_bins, H, W), bin b of voxel l is
         N+ - N- of frame pair l * num_bins + b (signed event counts); ``potential`` float32
         (H, W), the residual dL_hat after the last frame (log-intensity units), to continue
         the clip with a later call.
@@ -326,8 +330,39 @@ def simulate_voxels(
         noise_seed = draw_noise_seed(rng)
     res = run_kernel(frames, potential, params.pos_threshold, params.neg_threshold,
                      lut=_lut64(full_scale, dtype), extra=0.0 if params.hot_pixels is None else params.hot_pixels,
-                     noise_std=params.noise_std, noise_seed=noise_seed, first_pair=first_pair, narrow=narrow)
-    return res.net.reshape((n - 1) // num_bins, num_bins, h, w), potential.astype(np.float32)
+                     noise_std=params.noise_std, noise_seed=noise_seed, first_pair=first_pair, narrow=narrow,
+                     split=split)
+    voxels = res.net.reshape((n - 1) // num_bins, num_bins, h, w)
+    if split:
+        return voxels, potential.astype(np.float32), (res.pos, res.neg)
+    return voxels, potential.astype(np.float32)
+
+
+def polarity_counts(n_pos: np.ndarray, n_neg: np.ndarray, sequence_length: int, num_bins: int) -> np.ndarray:
+    """The ``polarity_counts`` output: N+ and N- of each bin (Lou et al. 2025, Sec. 3; the
+    voxel is their difference), summed over the bin's frame pairs and saturated at 255.
+
+    Args:
+        n_pos, n_neg: N+ and N- per frame pair, (P, H, W) non-negative (``simulate_voxels(split=True)``),
+            P = sequence_length * num_bins * frames per bin.
+
+    Returns:
+        uint8 (sequence_length, 2, num_bins, H, W): channel 0 = positive (N+), 1 = negative (N-).
+
+    Raises:
+        ValueError: when P is not a multiple of sequence_length * num_bins, or the shapes differ.
+    """
+    p, h, w = n_pos.shape
+    per_bin, rest = divmod(p, sequence_length * num_bins)
+    if n_neg.shape != n_pos.shape or rest or per_bin < 1:
+        raise ValueError(f"N+ {n_pos.shape} and N- {n_neg.shape} must be (P, H, W) with P a multiple of "
+                         f"sequence_length * num_bins = {sequence_length * num_bins}")
+    out = np.empty((sequence_length, 2, num_bins, h, w), np.uint8)
+    for c, n in enumerate((n_pos, n_neg)):
+        n = n.reshape(sequence_length, num_bins, per_bin, h, w)
+        counts = n[:, :, 0] if per_bin == 1 else n.sum(axis=2)
+        np.minimum(counts, 255, out=out[:, c], casting="unsafe")  # integral values <= 255: exact
+    return out
 
 
 def sample_params(
