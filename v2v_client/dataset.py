@@ -136,32 +136,14 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  compact_flow: bool = False, compression: str = "auto"):
         super().__init__()
         outputs = check_outputs(outputs)
-        if isinstance(credits, bool) or not isinstance(credits, int) or not 1 <= credits <= 1024:
-            raise ValueError(f"credits must be an int in [1, 1024], got {credits!r}")
-        if not timeout_s > 0:
-            raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
+        _check_options(credits, timeout_s, group, shm, compact_flow, compression)
         # a position not given is resolved when iteration starts (``_position``): a dataset built
         # before the process group exists (a DataModule's __init__) still joins the DDP group
         self._auto_position = (rank is None, world_size is None)
-        rank = 0 if rank is None else rank
-        world_size = (rank + 1 if rank else 1) if world_size is None else world_size
-        if isinstance(world_size, bool) or not isinstance(world_size, int) or world_size < 1:
-            raise ValueError(f"world_size must be an int >= 1, got {world_size!r}")
-        if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank < world_size:
-            raise ValueError(f"rank must be an int in [0, world_size={world_size}), got {rank!r}")
-        if not isinstance(group, str) or not group or len(group) > 128:
-            raise ValueError(f"group must be a non-empty string of at most 128 characters, got {group!r}")
+        rank, world_size = _checked_position(rank, world_size)
         self.endpoint = endpoint
         self.outputs = outputs
         self.credits = credits
-        if shm not in (True, False, "auto"):
-            raise ValueError(f"shm must be True, False or 'auto', got {shm!r}")
-        if not isinstance(compact_flow, bool):
-            raise ValueError(f"compact_flow must be True or False, got {compact_flow!r}")
-        if compression != "auto":
-            check_compression(compression)
-            if not available(compression):
-                raise ValueError(f"compression {compression!r} needs its library here: pip install 'v2v[wire]'")
         self.rank, self.world_size, self.group = rank, world_size, group
         self.options = StreamOptions(self.outputs, credits, float(timeout_s), float(heartbeat_s), raw, bool(reconnect),
                                      float(reconnect_timeout_s), tuple(curve_keys) if curve_keys else None, rank,
@@ -288,6 +270,44 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             self._fanin.close()
         if self._stream is not None:
             self._stream.close()
+
+
+def _check_options(credits, timeout_s, group, shm, compact_flow, compression) -> None:
+    """The constructor's option checks.
+
+    Raises:
+        ValueError: naming the argument and the value given.
+    """
+    if isinstance(credits, bool) or not isinstance(credits, int) or not 1 <= credits <= 1024:
+        raise ValueError(f"credits must be an int in [1, 1024], got {credits!r}")
+    if not timeout_s > 0:
+        raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
+    if not isinstance(group, str) or not group or len(group) > 128:
+        raise ValueError(f"group must be a non-empty string of at most 128 characters, got {group!r}")
+    if shm not in (True, False, "auto"):
+        raise ValueError(f"shm must be True, False or 'auto', got {shm!r}")
+    if not isinstance(compact_flow, bool):
+        raise ValueError(f"compact_flow must be True or False, got {compact_flow!r}")
+    if compression != "auto":
+        check_compression(compression)
+        if not available(compression):
+            raise ValueError(f"compression {compression!r} needs its library here: pip install 'v2v[wire]'")
+
+
+def _checked_position(rank: Optional[int], world_size: Optional[int]) -> Tuple[int, int]:
+    """``(rank, world_size)`` with the stand-ins for what was not given (rank 0; a world just
+    large enough for the rank) until iteration resolves them.
+
+    Raises:
+        ValueError: for a world size < 1 or a rank outside ``[0, world_size)``.
+    """
+    rank = 0 if rank is None else rank
+    world_size = (rank + 1 if rank else 1) if world_size is None else world_size
+    if isinstance(world_size, bool) or not isinstance(world_size, int) or world_size < 1:
+        raise ValueError(f"world_size must be an int >= 1, got {world_size!r}")
+    if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank < world_size:
+        raise ValueError(f"rank must be an int in [0, world_size={world_size}), got {rank!r}")
+    return rank, world_size
 
 
 def dist_position() -> Tuple[int, int]:
