@@ -148,3 +148,19 @@ def test_ray_rows_carry_the_same_counts(videos):
         c = r["polarity_counts"]
         assert c.dtype == np.uint8 and c.shape == (L, 2, B, CROP, CROP)
         np.testing.assert_array_equal(c, want[r["sample_id"]]["polarity_counts"])
+
+
+def test_polarity_counts_not_offered_under_refinement_or_nonidealities():
+    """N+ and N- come from plain V2V only: with refinement or non-idealities the server does not
+    offer them (default outputs), an explicit request is a configuration error naming the field,
+    and the Ray engine refuses the column before any video is read."""
+    from v2v_server.ops.config import ServeConfig
+
+    cfg = ServeConfig.from_dict({"refine": "uniform:2"}, source="test").validate()
+    assert "polarity_counts" not in cfg.outputs and "voxels" in cfg.outputs
+    cfg = ServeConfig.from_dict({"nonidealities": {"dead_fraction": 0.01}}, source="test").validate()
+    assert "polarity_counts" not in cfg.outputs
+    with pytest.raises(ValueError, match="outputs: polarity_counts"):
+        ServeConfig.from_dict({"refine": "uniform:2", "outputs": ["voxels", "polarity_counts"]},
+                              source="test").validate()
+    assert "polarity_counts" in ServeConfig().validate().outputs

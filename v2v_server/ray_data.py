@@ -294,6 +294,9 @@ def v2v_dataset(
     if seed is not None:
         cfg = ServeConfig.from_dict({**cfg.to_dict(), "seed": int(seed)}, source="ray config")
     outputs = check_outputs(outputs)
+    missing = [o for o in outputs if o not in cfg.outputs]
+    if missing:  # e.g. polarity_counts under refinement or non-idealities (ServeConfig.validate)
+        raise ValueError(f"outputs {missing} are not made under this recipe; it makes {list(cfg.outputs)}")
     corpus = videos if isinstance(videos, RayCorpus) else scan_corpus_windows(videos, cfg)
     epochs = [int(epoch)] if isinstance(epoch, (int, np.integer)) else [int(e) for e in epoch]
     if isinstance(exclude, Mapping):

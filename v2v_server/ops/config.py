@@ -155,6 +155,13 @@ class SampleRecipe:
         self.refine = str(parse_refine(self.refine))
         ni = NonIdealities.from_dict(self.nonidealities or None)  # ValueError naming nonidealities.<field>
         self.nonidealities = ni.to_dict() if ni.enabled else {}
+        if "polarity_counts" in self.outputs and (self.nonidealities or self.refine != "off"):
+            # N+ and N- come from plain V2V's kernel call only: not offered under refinement or
+            # non-idealities (a client asking is told what is offered at its hello)
+            if self.outputs != OUTPUTS:
+                raise ValueError("outputs: polarity_counts is made by plain V2V only (refine: off, no "
+                                 f"nonidealities); got refine {self.refine!r}, nonidealities {self.nonidealities}")
+            self.outputs = tuple(o for o in self.outputs if o != "polarity_counts")
         self.degrade_dynamic_range = parse_degrade(self.degrade_dynamic_range)
         check_bool("pause_enabled", self.pause_enabled)
         check_bool("fixed_sensor_params", self.fixed_sensor_params)
