@@ -38,6 +38,7 @@ from v2v_server.service.pool import WorkerPool
 from v2v_server.service.worker import worker_config
 from v2v_server.service.sockets import ServerSockets
 from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, ProtocolError, pack, unpack
+from v2v_wire.ids import SampleKey
 from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
 
 log = logging.getLogger("v2v.server")
@@ -72,7 +73,7 @@ class V2VServer:
         self.recipe = cfg.fingerprint()
         self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
         self._stop = threading.Event()
-        self.journal = (Journal(cfg.state_dir, self.recipe)
+        self.journal = (Journal(cfg.state_dir, self.recipe, crops_per_window=cfg.crops_per_window)
                         if cfg.state_dir is not None else None)  # JournalError: another recipe's journal
         if self.journal is not None and self.journal.records:
             log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
@@ -274,7 +275,9 @@ class V2VServer:
             else:
                 build = lambda: sample_from_worker(h, frames[2:])  # noqa: E731
             try:
-                kept = self.core.sample(ident, h.get("task"), h.get("index"), now, build)
+                key = SampleKey.from_wire(h.get("key"), self.cfg.crops_per_window)
+                h["sample_id"] = key.sample_id(self.cfg.crops_per_window)  # the batch's user-facing id
+                kept = self.core.sample(ident, h.get("task"), key, now, build)
             except (ProtocolError, KeyError, TypeError, ValueError) as e:
                 log.error("bad sample from worker %s: %s", ident, e)
                 return
