@@ -178,6 +178,26 @@ class EpochPlan:
         job.failed.setdefault(stop, reason)
         job.samples = stop.index(self.crops_per_window) + 1
 
+    def crashed(self, job: Job, max_crashes: int) -> Optional[str]:
+        """A worker died during ``job``: the crash is blamed on the first sample of the file
+        not yet made. After ``max_crashes`` crashes in that sample it fails for this epoch;
+        after twice as many crashes in all the file is given up for the epoch (the job is done,
+        ``job.gave_up``, and samples from the failed one on do not exist this epoch). Returns
+        the reason of the failure recorded, or None."""
+        job.crashes += 1
+        stop = self.first_unmade(job)
+        n = job.sample_crashes[stop] = job.sample_crashes.get(stop, 0) + 1
+        if job.crashes >= 2 * max_crashes:
+            job.error = f"worker crashed {job.crashes} times while processing it"
+            job.gave_up = True
+            self.stop_at(job, stop.index(self.crops_per_window), job.error)
+            self.set_state(job, "done")
+            return job.error
+        if n >= max_crashes:
+            job.failed[stop] = f"worker crashed {n} times while making sample {stop.sample_id(self.crops_per_window)}"
+            return job.failed[stop]
+        return None
+
     def requeue(self, videos: Iterable[str]) -> List[str]:
         """Done jobs of ``videos`` that owe samples go back to queued (the epoch reopens);
         returns those videos, for the scheduler's queue."""
@@ -364,25 +384,15 @@ class EpochScheduler:
                 continue
             del self.running[tid]
             job.worker, job.task_id = None, None
-            job.crashes += 1
             plan = self.plans[job.epoch]
-            stop = plan.first_unmade(job)
-            job.sample_crashes[stop] = job.sample_crashes.get(stop, 0) + 1
-            reason = f"worker crashed {job.sample_crashes[stop]} times while making sample " \
-                     f"{stop.sample_id(self.crops_per_window)}"
-            if job.crashes >= 2 * self.max_task_crashes:
-                job.error = f"worker crashed {job.crashes} times while processing it"
-                job.gave_up = True
-                self.file_failures[job.video] = job.error
-                plan.stop_at(job, stop.index(self.crops_per_window), job.error)
-                plan.set_state(job, "done")
-                self._reconcile(plan, {job.video})
-                return job
-            if job.sample_crashes[stop] >= self.max_task_crashes:
-                job.failed[stop] = reason
+            reason = plan.crashed(job, self.max_task_crashes)
+            if reason is not None:
                 self.file_failures[job.video] = reason
-            plan.set_state(job, "queued")
-            self.queue.appendleft((job.epoch, job.video))
+            if job.gave_up:
+                self._reconcile(plan, {job.video})
+            else:
+                plan.set_state(job, "queued")
+                self.queue.appendleft((job.epoch, job.video))
             return job
         return None
 
