@@ -233,6 +233,11 @@ class V2VServer:
 
     # ------------------------------------------------------------------ workers
     def _watch_workers(self, now: float) -> None:
+        """Replace dead workers (their tasks go back to the queue) and hung ones. Not once the
+        server is stopping: a worker that exits then was signalled with the server's process
+        group (or told to stop), and a replacement would only be a process to stop."""
+        if self._stop.is_set():
+            return
         for ident, code in self.pool.reap():
             self.metrics.on_worker_restarted()
             job = self.core.worker_lost(ident)
