@@ -216,7 +216,7 @@ def test_crops_per_window_ids_content_and_resume(videos):
     assert not np.array_equal(arrays["bikes.mp4#0.0"]["frames"], arrays["bikes.mp4#0.1"]["frames"])
     # one crop made alone (a replacement worker skips the samples already received)
     keep = parse_sample_id("bikes.mp4#1.2", 3)
-    assert keep == SampleKey("bikes.mp4", 1, 2) and keep.index(3) == 5
+    assert keep == SampleKey("bikes.mp4", 1, 2) and keep.ordinal(3) == 5
     every = set(window_keys("bikes.mp4", 0, 3) + window_keys("bikes.mp4", 1, 3))
     alone = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames"), every - {keep}))
     assert [key for key, _, _ in alone] == [keep]
@@ -236,7 +236,7 @@ def test_sample_id_round_trip(sid, k, expect):
 
     key = parse_sample_id(sid, k)
     video, idx = expect
-    assert key == SampleKey.at(video, idx, k) and key.index(k) == idx
+    assert key == SampleKey.at(video, idx, k) and key.ordinal(k) == idx
     assert key.sample_id(k) == sid
     assert SampleKey.from_wire(key.wire(), k) == key
 

@@ -5,34 +5,34 @@ to the corpus root (POSIX), the window index and the crop index inside the windo
 with K = ``crops_per_window``). The scheduler, the ledger, the workers' messages and the
 journal carry keys. The string form, the *sample id*, is made and read only at the edges (logs,
 resume states, the ``sample_ids`` of a batch): the path, ``#``, the window index and, when K > 1,
-``.`` and the crop index: ``clips/a.mp4#3`` or ``clips/a.mp4#3.1``. The *index*
-``window * K + crop`` numbers a video's samples in the order they are made (how many samples a
-file gave, where a pass over it stopped, the journal's on-disk records).
+``.`` and the crop index: ``clips/a.mp4#3`` or ``clips/a.mp4#3.1``. The *ordinal*
+``window * K + crop`` (``SampleKey.ordinal``) numbers a video's samples in the order they are
+made: how many samples a file gave, where a pass over it stopped, the journal's records.
 Pure: no I/O, no numpy.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Dict, Iterable, Iterator, List
+from typing import Dict, Iterable, Iterator, List, NamedTuple
 
 
-@dataclass(frozen=True, order=True)
-class SampleKey:
+class SampleKey(NamedTuple):
     """The identity of one sample: ``video`` (corpus-relative POSIX path), ``window`` (index of
     the window in the video, >= 0), ``crop`` (index of the crop in the window, 0 .. K - 1).
-    Ordered as the samples of a video are made (window, then crop)."""
+    Immutable, hashable, ordered as the samples of a video are made (window, then crop). A
+    named tuple: hashing and comparing cost what a tuple's do (the scheduler keeps sets of
+    keys), and a plain tuple is still not a ``SampleKey`` (``isinstance``)."""
 
     video: str
     window: int
     crop: int = 0
 
-    def index(self, crops_per_window: int = 1) -> int:
+    def ordinal(self, crops_per_window: int = 1) -> int:
         """The sample's number in its video, ``window * crops_per_window + crop``."""
         return self.window * crops_per_window + self.crop
 
     @classmethod
     def at(cls, video: str, index: int, crops_per_window: int = 1) -> "SampleKey":
-        """The key of sample number ``index`` of ``video`` (the inverse of :meth:`index`)."""
+        """The key of sample number ``index`` of ``video`` (the inverse of :meth:`ordinal`)."""
         window, crop = divmod(index, crops_per_window)
         return cls(video, window, crop)
 

@@ -11,7 +11,7 @@ after its checkpoint is owed again).
 
 File ``DIR/delivered.journal``: a header then msgpack records appended as they happen:
 ``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (acknowledged; ``index`` is
-``ids.SampleKey.index``, the sample's number in its video under the journal's recipe),
+``ids.SampleKey.ordinal``, the sample's number in its video under the journal's recipe),
 ``{"s": [consumer, rank], "c": completed_epoch, "r": {epoch: keys}}`` (a resume state replaced
 a record), ``{"done": epoch}`` (an epoch complete; its records are dropped). When an epoch
 completes the file is rewritten from memory (a temporary file, fsync, rename).
@@ -118,7 +118,7 @@ class Journal:
 
     def _pairs(self, keys: Iterable[SampleKey]) -> List[list]:
         """A record's ``[[video, index], ...]`` of ``keys`` (the inverse of ``_keys``)."""
-        return [[k.video, k.index(self.crops_per_window)] for k in keys]
+        return [[k.video, k.ordinal(self.crops_per_window)] for k in keys]
 
     def _complete(self, epoch: int) -> None:
         self.completed = max(self.completed, epoch)

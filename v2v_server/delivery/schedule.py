@@ -7,7 +7,7 @@ Pure: no sockets, no processes, no clock of its own (``now`` is an argument, sec
 Terms:
 
 * a sample is named by its ``ids.SampleKey`` ``(video, window, crop)``; a video's samples are
-  numbered in the order they are made (``SampleKey.index``), which is how a file's sample count
+  numbered in the order they are made (``SampleKey.ordinal``), which is how a file's sample count
   and the place a pass over it stopped are told;
 * a *job* is one video of one epoch; a *task* is one attempt at a job by one worker (a
   reassigned job gets a new task id, so a late copy from the old attempt is recognised and
@@ -176,7 +176,7 @@ class EpochPlan:
         that is neither made nor failed: it fails for this epoch and none beyond it exists."""
         stop = self.first_unmade(job, first)
         job.failed.setdefault(stop, reason)
-        job.samples = stop.index(self.crops_per_window) + 1
+        job.samples = stop.ordinal(self.crops_per_window) + 1
 
     def crashed(self, job: Job, max_crashes: int) -> Optional[str]:
         """A worker died during ``job``: the crash is blamed on the first sample of the file
@@ -190,7 +190,7 @@ class EpochPlan:
         if job.crashes >= 2 * max_crashes:
             job.error = f"worker crashed {job.crashes} times while processing it"
             job.gave_up = True
-            self.stop_at(job, stop.index(self.crops_per_window), job.error)
+            self.stop_at(job, stop.ordinal(self.crops_per_window), job.error)
             self.set_state(job, "done")
             return job.error
         if n >= max_crashes:
