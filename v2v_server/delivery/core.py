@@ -120,8 +120,54 @@ class Batcher:
         return any(self.pending.values())
 
 
+class GroupPadding:
+    """What DDP padding needs, per group of ranks (``world_size > 1``): how many batches of
+    each epoch each rank yielded, and the group's last acknowledged batch (what a rank that was
+    sent nothing repeats). Pure."""
+
+    def __init__(self):
+        self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
+        self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch
+
+    def resumed(self, group: str, rank: int, completed_epoch: int, batches: Dict[int, int]) -> None:
+        """A rank's resume state: in each epoch after ``completed_epoch`` it yielded
+        ``batches[epoch]`` batches (0 where the state names none)."""
+        for (g, e), counts in self.taken.items():
+            if g == group and e > completed_epoch:
+                counts[rank] = batches.get(e, 0)
+        for e, n in batches.items():
+            if e > completed_epoch:
+                self.taken.setdefault((group, e), {})[rank] = n
+
+    def acked(self, group: str, rank: int, batch: BatchRecord) -> None:
+        """Rank ``rank`` of ``group`` acknowledged ``batch`` (its training loop received it)."""
+        counts = self.taken.setdefault((group, batch.epoch), {})
+        counts[rank] = counts.get(rank, 0) + 1
+        self.pad_source[group] = batch
+
+    def epoch_done(self, c, epoch: int) -> Tuple[int, Optional[BatchRecord]]:
+        """For the rank of client ``c`` (``ledger.ClientRecord``) once ``epoch`` is complete:
+        the batches every rank of its group reaches (the most any of them yielded), and a
+        padding batch (batch id -1, a copy of the group's last acknowledged batch) when ``c``
+        was never sent a batch and is behind, else None."""
+        counts = self.taken.get((c.group, epoch), {})
+        most = max(counts.values()) if counts else 0
+        src = self.pad_source.get(c.group)
+        if c.sent == 0 and counts.get(c.rank, 0) < most and src is not None:
+            return most, BatchRecord(-1, epoch, src.keys, src.payload, outputs=src.outputs)
+        return most, None
+
+    def prune(self, live_groups: set, forgotten: Callable[[int], bool]) -> None:
+        """Forget groups with no client left and epochs ``forgotten(epoch)`` says are gone."""
+        for g in [g for g in self.pad_source if g not in live_groups]:
+            del self.pad_source[g]
+        for key in [k for k in self.taken if forgotten(k[1])]:
+            del self.taken[key]
+
+
 class DeliveryCore:
-    """Scheduler + ledger + batching, for one server.
+    """Scheduler + ledger + batching (:class:`Batcher`) + DDP padding (:class:`GroupPadding`),
+    for one server.
 
     Args:
         videos: corpus-relative paths.
@@ -139,9 +185,8 @@ class DeliveryCore:
         self.offered = tuple(p.offered)
         self.task_outputs: Dict[int, tuple] = {}
         self.outputs: Optional[tuple] = None  # what workers compute now: the union clients ask for
-        self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
+        self.padding = GroupPadding()
         self.announced: set = set()
-        self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch (DDP padding)
         self.samples_made = 0
         # journal.Journal (``--state-dir``): told every acknowledgement, resume state and complete
         # epoch; its records, read at start, are applied like resume states
@@ -223,12 +268,7 @@ class DeliveryCore:
         if self.journal is not None:
             self.journal.replaced(consumer, r.completed_epoch, r.delivered)
         if group is not None:
-            for (g, e), counts in self.taken.items():
-                if g == group and e > r.completed_epoch:
-                    counts[h.rank] = r.batches.get(e, 0)
-            for e, n in r.batches.items():
-                if e > r.completed_epoch:
-                    self.taken.setdefault((group, e), {})[h.rank] = n
+            self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         back = self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
                                 r.completed_epoch)
         if back:
@@ -254,9 +294,7 @@ class DeliveryCore:
                 if self.journal is not None:
                     self.journal.delivered(c.consumer, b.epoch, b.keys)
                 if c.group is not None and c.world_size > 1:
-                    counts = self.taken.setdefault((c.group, b.epoch), {})
-                    counts[c.rank] = counts.get(c.rank, 0) + 1
-                    self.pad_source[c.group] = b
+                    self.padding.acked(c.group, c.rank, b)
         elif isinstance(msg, Released):
             back = self.ledger.released(ident, msg.batch_ids)
             if back:
@@ -347,22 +385,17 @@ class DeliveryCore:
                 c.completed = max(c.completed, e)
                 msg = {"type": "epoch_done", "epoch": e}
                 if c.group is not None and c.world_size > 1:
-                    counts = self.taken.get((c.group, e), {})
-                    msg["batches"] = max(counts.values()) if counts else 0
-                    src = self.pad_source.get(c.group)
-                    if c.sent == 0 and counts.get(c.rank, 0) < msg["batches"] and src is not None:
-                        pads.append((ident, BatchRecord(-1, e, src.keys, src.payload, outputs=src.outputs)))
+                    msg["batches"], pad = self.padding.epoch_done(c, e)
+                    if pad is not None:
+                        pads.append((ident, pad))
                         c.sent += 1
                 msgs.append((ident, msg))
             log.info("epoch %d complete", e)
             if self.journal is not None:
                 self.journal.epoch_complete(e)
         self.sched.prune(self.announced)
-        live_groups = {c.group for c in self.ledger.clients.values()}
-        for g in [g for g in self.pad_source if g not in live_groups]:
-            del self.pad_source[g]
-        for key in [k for k in self.taken if k[1] not in self.sched.plans and k[1] < self.sched.next_epoch]:
-            del self.taken[key]
+        self.padding.prune({c.group for c in self.ledger.clients.values()},
+                           lambda e: e not in self.sched.plans and e < self.sched.next_epoch)
         return pads, msgs
 
     def finished(self) -> bool:
