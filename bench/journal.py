@@ -15,6 +15,7 @@ import time
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
 from v2v_server.delivery.journal import Journal
 from v2v_wire.messages import Ack, Hello
+from v2v_wire.ids import SampleKey
 
 
 class _Payload:
@@ -38,7 +39,8 @@ def run(batches: int, batch_size: int, journal_dir=None) -> float:
         if task is None:
             break
         for k in range(10):
-            core.sample(worker, task["task"], k, now, lambda k=k: {"sample_id": f"{task['video']}#{k}"})
+            key = SampleKey(task["video"], k)
+            core.sample(worker, task["task"], key, now, lambda key=key: {"sample_id": key.sample_id()})
         core.done(worker, task["task"], 10, {}, None)
         t0 = time.perf_counter()
         sends, _ = core.tick(now)

@@ -78,8 +78,8 @@ def compute() -> dict:
         cfg = ServeConfig(**overrides).validate()
         rows = {}
         for clip in sorted(p.name for p in CLIPS.glob("*.mp4")):
-            for sid, arrays, meta in video_samples(cfg, CLIPS, clip, 0, DEFAULT_OUTPUTS, flow_grid=True):
-                rows[sid] = _digest(_as_received(cfg, wire_arrays(cfg, arrays)), _canonical(meta))
+            for key, arrays, meta in video_samples(cfg, CLIPS, clip, 0, DEFAULT_OUTPUTS, flow_grid=True):
+                rows[key.sample_id(cfg.crops_per_window)] = _digest(_as_received(cfg, wire_arrays(cfg, arrays)), _canonical(meta))
         table[name] = rows
     return table
 

@@ -20,7 +20,8 @@ def cfg(**kw):
 
 
 def samples(c, videos, name="bikes.mp4", epoch=0):
-    return {sid: (arrays, meta) for sid, arrays, meta in video_samples(c, videos, name, epoch, OUTS)}
+    return {key.sample_id(c.crops_per_window): (arrays, meta)
+            for key, arrays, meta in video_samples(c, videos, name, epoch, OUTS)}
 
 
 def test_degrade_formula_is_the_papers():

@@ -28,7 +28,8 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
 from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
-from v2v_server.delivery.schedule import EpochScheduler, parse_sample_id, sample_id
+from v2v_server.delivery.schedule import EpochScheduler
+from v2v_wire.ids import SampleKey, parse_sample_id, parse_sample_ids
 from v2v_wire.messages import Ack, Bye, Heartbeat, Hello, Released, Resume
 
 # corpus: windows per video; bad.mp4's window 1 changes frame size (fails every epoch), trunc.mp4
@@ -61,11 +62,17 @@ def failed_windows(plan) -> set:
     repeated crashes has nothing from its failed window on."""
     out = set()
     for v, j in (plan.jobs.items() if plan is not None else ()):
-        out |= {(v, k) for k in j.failed}
+        out |= {(v, k.window) for k in j.failed}
         if j.gave_up:
-            first = min(j.failed)
+            first = min(j.failed).window
             out |= {(v, k) for k in range(first, WINDOWS[v])}
     return out
+
+
+def windows_of(sid: str) -> tuple:
+    """``(video, window)`` of a sample id (one crop per window here)."""
+    key = parse_sample_id(sid)
+    return key.video, key.window
 
 
 @dataclass
@@ -185,7 +192,7 @@ class DeliveryMachine(RuleBasedStateMachine):
                 w.task = None
                 self.idle.add(w.ident)
                 return
-            if k in t["skip"]:
+            if [k, 0] in t["skip"]:
                 w.pos += 1
                 continue
             if (video, k) in SIZE_CHANGE:
@@ -193,7 +200,8 @@ class DeliveryMachine(RuleBasedStateMachine):
                 w.pos += 1
                 continue
             w.pos += 1
-            self.core.sample(w.ident, t["task"], k, self.now, lambda: FakeSample(sample_id((video, k))))
+            self.core.sample(w.ident, t["task"], SampleKey(video, k), self.now,
+                             lambda: FakeSample(SampleKey(video, k).sample_id()))
             return
 
     # ------------------------------------------------------------------ trainer behaviour
@@ -382,7 +390,8 @@ class DeliveryMachine(RuleBasedStateMachine):
         made = self.core.samples_made
         if w.task is not None and w.pos < WINDOWS[w.task["video"]]:
             k = w.pos
-            kept = self.core.sample(w.ident, w.task["task"], k, self.now, lambda: FakeSample(sample_id((w.task["video"], k))))
+            key = SampleKey(w.task["video"], k)
+            kept = self.core.sample(w.ident, w.task["task"], key, self.now, lambda: FakeSample(key.sample_id()))
             assert not kept and self.core.samples_made == made
             self.core.done(w.ident, w.task["task"], WINDOWS[w.task["video"]], {}, None)
         assert sum(len(b.keys) for b in self.core.ledger.batches.values()) == before
@@ -406,7 +415,7 @@ class DeliveryMachine(RuleBasedStateMachine):
 
     @invariant()
     def memory_bounded(self):
-        n = len(self.core.ledger.batches) + sum(len(g) for g in self.core.pending.values()) / 2
+        n = len(self.core.ledger.batches) + sum(len(g) for g in self.core.batcher.pending.values()) / 2
         bound = PREFETCH + 2 * len(WINDOWS) + sum(min(t.credits, MAX_CREDITS) for t in self.trainers) * 2
         assert n <= bound, (n, bound)
 
@@ -414,14 +423,15 @@ class DeliveryMachine(RuleBasedStateMachine):
         """An epoch announced complete holds every expected window, trained once or failed."""
         for e in sorted(self.core.announced - self.announced_checked):
             self.announced_checked.add(e)
-            got = {parse_sample_id(s) for (ep, s) in self.trained() if ep == e}
+            got = {windows_of(s) for (ep, s) in self.trained() if ep == e}
             plan = self.core.sched.plans.get(e)
             failed = failed_windows(plan)
             missing = expected_windows() - got - failed
             assert not missing, f"epoch {e} announced complete but {sorted(missing)} were never trained on"
             # only injected faults or repeated crashes may fail a window
             for v, j in (plan.jobs.items() if plan else []):
-                for k, why in j.failed.items():
+                for key, why in j.failed.items():
+                    k = key.window
                     past_error = any(v == dv and k >= dk for dv, dk in DECODE_ERROR)
                     assert (v, k) in SIZE_CHANGE or past_error or "crash" in why or k >= WINDOWS[v], (v, k, why)
 
@@ -454,7 +464,7 @@ class DeliveryMachine(RuleBasedStateMachine):
         for e in range(EPOCHS):
             plan = self.core.sched.plans.get(e)
             failed = failed_windows(plan)
-            got = {parse_sample_id(s) for (ep, s) in counts if ep == e}
+            got = {windows_of(s) for (ep, s) in counts if ep == e}
             assert expected_windows() - failed <= got, (e, expected_windows() - failed - got)
         assert all(n == 1 for n in counts.values())
 
@@ -470,23 +480,23 @@ def test_resume_state_is_authoritative_over_acks():
     s = EpochScheduler(["a.mp4"], epochs=1)
     t = s.next_task("w", 0.0)
     for k in range(3):
-        assert s.accept_sample(t.task_id, "w", k, 0.0) == ("a.mp4", k)
+        assert s.accept_sample(t.task_id, "w", SampleKey("a.mp4", k), 0.0) == SampleKey("a.mp4", k)
     s.task_done(t.task_id, "w", 3)
-    s.delivered("c", 0, [("a.mp4", 0), ("a.mp4", 1), ("a.mp4", 2)])
+    s.delivered("c", 0, [SampleKey("a.mp4", 0), SampleKey("a.mp4", 1), SampleKey("a.mp4", 2)])
     assert s.plans[0].complete
-    s.apply_resume("c", -1, {0: {("a.mp4", 0)}})  # the checkpoint knew only window 0
-    assert s.owed(0) == {("a.mp4", 1), ("a.mp4", 2)} and not s.plans[0].complete
+    s.apply_resume("c", -1, {0: {SampleKey("a.mp4", 0)}})  # the checkpoint knew only window 0
+    assert s.owed(0) == {SampleKey("a.mp4", 1), SampleKey("a.mp4", 2)} and not s.plans[0].complete
     t2 = s.next_task("w", 1.0)
-    assert t2.epoch == 0 and t2.skip == frozenset({0})
+    assert t2.epoch == 0 and t2.skip == frozenset({SampleKey("a.mp4", 0)})
 
 
 def test_a_failing_window_is_lost_for_that_epoch_only():
     s = EpochScheduler(["a.mp4"], epochs=2)
     t = s.next_task("w", 0.0)
-    s.accept_sample(t.task_id, "w", 0, 0.0)
+    s.accept_sample(t.task_id, "w", SampleKey("a.mp4", 0), 0.0)
     s.task_done(t.task_id, "w", 1, error="decoding failed")  # the pass stopped inside window 1
-    s.delivered("c", 0, [("a.mp4", 0)])
-    assert s.plans[0].complete and s.plans[0].jobs["a.mp4"].failed == {1: "decoding failed"}
+    s.delivered("c", 0, [SampleKey("a.mp4", 0)])
+    assert s.plans[0].complete and s.plans[0].jobs["a.mp4"].failed == {SampleKey("a.mp4", 1): "decoding failed"}
     t = s.next_task("w", 1.0)
     assert (t.epoch, t.video, t.skip) == (1, "a.mp4", frozenset())  # the next epoch tries the whole file again
 
@@ -494,13 +504,13 @@ def test_a_failing_window_is_lost_for_that_epoch_only():
 def test_hung_task_is_reassigned_and_its_late_copy_ignored():
     s = EpochScheduler(["a.mp4"], epochs=1)
     t = s.next_task("w1", 0.0)
-    assert s.accept_sample(t.task_id, "w1", 0, 1.0) is not None
+    assert s.accept_sample(t.task_id, "w1", SampleKey("a.mp4", 0), 1.0) is not None
     assert s.expire(5.0, 10.0) == []
     [(w, job)] = s.expire(12.0, 10.0)
     assert w == "w1" and job.state == "queued"
     t2 = s.next_task("w2", 12.0)
-    assert t2.task_id != t.task_id and t2.skip == frozenset({0})  # window 0 is live in a batch already
-    assert s.accept_sample(t.task_id, "w1", 1, 13.0) is None  # the late copy
+    assert t2.task_id != t.task_id and t2.skip == frozenset({SampleKey("a.mp4", 0)})  # live in a batch already
+    assert s.accept_sample(t.task_id, "w1", SampleKey("a.mp4", 1), 13.0) is None  # the late copy
     assert s.task_done(t.task_id, "w1", 3) is None
 
 
@@ -577,7 +587,7 @@ def test_outputs_are_the_union_and_stale_batches_are_remade():
     core.hello(b"v", Hello(("voxels",), 2), 0.0, dict)
     msg = core.task_for(b"w", 0.0)
     assert msg["outputs"] == ["voxels"]
-    core.sample(b"w", msg["task"], 0, 0.0, lambda: FakeSample("a.mp4#0"))
+    core.sample(b"w", msg["task"], SampleKey("a.mp4", 0), 0.0, lambda: FakeSample("a.mp4#0"))
     core.forget(b"v")
     core.hello(b"f", Hello(("voxels", "flow"), 2), 0.0, dict)
     sends, _ = core.tick(0.0)
@@ -590,4 +600,22 @@ def test_outputs_are_the_union_and_stale_batches_are_remade():
 @pytest.mark.parametrize("sid,ok", [("a.mp4#3", True), ("a#b.mp4#0", True), ("a.mp4#٣", False), ("a.mp4#", False),
                                      ("#1", False), (7, False), ("a.mp4#-1", False)])
 def test_sample_id_parsing_rejects_non_ascii_digits(sid, ok):
-    assert (parse_sample_id(sid) is not None) == ok
+    assert bool(parse_sample_ids([sid])) == ok
+
+
+def test_a_sample_counts_only_under_its_own_key_in_its_own_task():
+    """The scheduler keys samples by ``SampleKey``: a key naming another video than the task's,
+    or a crop beyond ``crops_per_window``, is dropped; with K = 2 a failed window fails both
+    its crops and the file's sample count is windows x K."""
+    s = EpochScheduler(["a.mp4", "b.mp4"], epochs=1, crops_per_window=2)
+    t = s.next_task("w", 0.0)
+    other = "b.mp4" if t.video == "a.mp4" else "a.mp4"
+    assert s.accept_sample(t.task_id, "w", SampleKey(other, 0, 0), 0.0) is None
+    assert s.accept_sample(t.task_id, "w", SampleKey(t.video, 0, 2), 0.0) is None
+    assert s.accept_sample(t.task_id, "w", (t.video, 0), 0.0) is None
+    assert s.accept_sample(t.task_id, "w", SampleKey(t.video, 0, 1), 0.0) == SampleKey(t.video, 0, 1)
+    s.task_done(t.task_id, "w", 3, {"1": "frame size changed"})
+    job = s.plans[0].jobs[t.video]
+    assert job.samples == 6
+    assert job.failed == {SampleKey(t.video, 1, 0): "frame size changed", SampleKey(t.video, 1, 1): "frame size changed"}
+    assert s.owed(0) == {SampleKey(t.video, w, c) for w, c in [(0, 0), (2, 0), (2, 1)]}

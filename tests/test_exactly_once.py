@@ -17,6 +17,7 @@ from v2v_server.ops.config import load_config
 from harness.serve import ServeProcess
 from v2v_wire.protocol import PROTOCOL_VERSION
 from v2v_wire.messages import MAX_CONTAINERS, WireError, decode_client
+from v2v_wire.ids import SampleKey
 
 LAYOUT = Layout(L=4, crop=64, windows=2, batch=2)
 
@@ -167,4 +168,4 @@ def test_wire_rejects_bombs_and_wrong_types_quickly(frame, why):
 def test_wire_ignores_sample_ids_with_non_ascii_digits():
     h = decode_client(msgpack.packb({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["voxels"], "credits": 2,
                                      "resume": {"delivered": {"0": "a.mp4#1\na.mp4#٣\n../x#2"}}}), 1 << 20, 64)
-    assert h.resume.delivered[0] == frozenset({("a.mp4", 1), ("../x", 2)})  # the server only knows its own files
+    assert h.resume.delivered[0] == frozenset({SampleKey("a.mp4", 1), SampleKey("../x", 2)})  # the server only knows its own files

@@ -5,39 +5,55 @@ from __future__ import annotations
 
 import pytest
 
+import msgpack
+
 from v2v_server.delivery.journal import FILE, Journal, JournalError
+from v2v_wire.ids import SampleKey as K
 
 
 def test_records_survive_a_restart_and_a_resume_state_replaces_them(tmp_path):
     j = Journal(str(tmp_path), "r1")
     a, b = ("c:a", 0), ("c:b", 0)
-    j.delivered(a, 0, [("x.mp4", 0), ("x.mp4", 1)])
-    j.delivered(b, 0, [("y.mp4", 0)])
-    j.delivered(a, 1, [("x.mp4", 0)])
-    j.replaced(b, -1, {0: {("y.mp4", 0), ("y.mp4", 1)}})
+    j.delivered(a, 0, [K("x.mp4", 0), K("x.mp4", 1)])
+    j.delivered(b, 0, [K("y.mp4", 0)])
+    j.delivered(a, 1, [K("x.mp4", 0)])
+    j.replaced(b, -1, {0: {K("y.mp4", 0), K("y.mp4", 1)}})
     j.close()  # a killed server leaves the same file: every record is one write
     k = Journal(str(tmp_path), "r1")
-    assert k.records == {a: {0: {("x.mp4", 0), ("x.mp4", 1)}, 1: {("x.mp4", 0)}},
-                         b: {0: {("y.mp4", 0), ("y.mp4", 1)}}}
+    assert k.records == {a: {0: {K("x.mp4", 0), K("x.mp4", 1)}, 1: {K("x.mp4", 0)}},
+                         b: {0: {K("y.mp4", 0), K("y.mp4", 1)}}}
     k.epoch_complete(0)
     k.close()
     m = Journal(str(tmp_path), "r1")
-    assert m.completed == 0 and m.records == {a: {1: {("x.mp4", 0)}}}
+    assert m.completed == 0 and m.records == {a: {1: {K("x.mp4", 0)}}}
     m.close()
 
 
 def test_a_torn_last_record_costs_only_itself_and_another_recipe_is_refused(tmp_path):
     j = Journal(str(tmp_path), "r1")
-    j.delivered(("c:a", 0), 0, [("x.mp4", 0)])
-    j.delivered(("c:a", 0), 0, [("x.mp4", 1)])
+    j.delivered(("c:a", 0), 0, [K("x.mp4", 0)])
+    j.delivered(("c:a", 0), 0, [K("x.mp4", 1)])
     j.close()
     p = tmp_path / FILE
     p.write_bytes(p.read_bytes()[:-3])  # the server died inside the last write
     k = Journal(str(tmp_path), "r1")
-    assert k.records == {("c:a", 0): {0: {("x.mp4", 0)}}}
+    assert k.records == {("c:a", 0): {0: {K("x.mp4", 0)}}}
     k.close()
     with pytest.raises(JournalError, match="another sample recipe"):
         Journal(str(tmp_path), "r2")
     (tmp_path / FILE).write_bytes(b"not a journal")
     with pytest.raises(JournalError, match="not a v2v delivery journal"):
         Journal(str(tmp_path), "r1")
+
+
+def test_records_name_samples_by_their_number_in_the_video_and_read_back_as_keys(tmp_path):
+    """On disk a record holds ``[video, index]`` (index = window x K + crop), the format state
+    directories already hold; read back under the recipe's K it gives the same keys."""
+    j = Journal(str(tmp_path), "r1", crops_per_window=3)
+    j.delivered(("c:a", 0), 0, [K("x.mp4", 2, 1), K("x.mp4", 0, 0)])
+    j.close()
+    records = list(msgpack.Unpacker(open(tmp_path / FILE, "rb"), raw=False))
+    assert records[-1] == {"d": ["c:a", 0], "e": 0, "k": [["x.mp4", 7], ["x.mp4", 0]]}
+    k = Journal(str(tmp_path), "r1", crops_per_window=3)
+    assert k.records == {("c:a", 0): {0: {K("x.mp4", 2, 1), K("x.mp4", 0, 0)}}}
+    k.close()

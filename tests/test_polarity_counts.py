@@ -10,6 +10,7 @@ import torch
 from harness.serve import ServeProcess
 from tests.conftest import read_luma_clip
 from v2v_client import V2VStreamDataset
+from v2v_wire.ids import parse_sample_id
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_samples
 from v2v_server.simulation.kernel import noise_field
@@ -143,8 +144,8 @@ def test_ray_rows_carry_the_same_counts(videos):
     for r in rows:
         if r["padding"]:
             continue
-        video = r["sample_id"].split("#")[0]
-        want = {sid: a for sid, a, _ in video_samples(cfg, corpus.root, video, 0, ("polarity_counts",))}
+        video = parse_sample_id(r["sample_id"]).video
+        want = {key.sample_id(): a for key, a, _ in video_samples(cfg, corpus.root, video, 0, ("polarity_counts",))}
         c = r["polarity_counts"]
         assert c.dtype == np.uint8 and c.shape == (L, 2, B, CROP, CROP)
         np.testing.assert_array_equal(c, want[r["sample_id"]]["polarity_counts"])

@@ -8,6 +8,7 @@ from v2v_server.samples import make as samples_mod
 from v2v_server.ops.config import ServeConfig, load_config
 from v2v_wire.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
 from v2v_server.samples.make import pause_offsets, sample_rng, video_samples
+from v2v_wire.ids import SampleKey
 
 
 def small_cfg(**kw):
@@ -17,7 +18,8 @@ def small_cfg(**kw):
 
 
 def collect(cfg, videos, name, epoch=0, outputs=("voxels", "frames", "flow"), skip=()):
-    return {sid: arr for sid, arr, _ in video_samples(cfg, videos, name, epoch, outputs, skip)}
+    return {key.sample_id(cfg.crops_per_window): arr
+            for key, arr, _ in video_samples(cfg, videos, name, epoch, outputs, skip)}
 
 
 def test_content_depends_only_on_seed_epoch_and_sample_id(videos):
@@ -25,7 +27,7 @@ def test_content_depends_only_on_seed_epoch_and_sample_id(videos):
     a = collect(cfg, videos, "bikes.mp4")
     assert list(a) == ["bikes.mp4#0", "bikes.mp4#1", "bikes.mp4#2"]
     # the same sample made alone (its neighbours skipped, as a replacement worker does)
-    b = collect(cfg, videos, "bikes.mp4", skip={0, 2})
+    b = collect(cfg, videos, "bikes.mp4", skip={SampleKey("bikes.mp4", 0), SampleKey("bikes.mp4", 2)})
     assert list(b) == ["bikes.mp4#1"]
     for k in a["bikes.mp4#1"]:
         np.testing.assert_array_equal(a["bikes.mp4#1"][k], b["bikes.mp4#1"][k])
@@ -175,9 +177,9 @@ def test_wire_dtypes_and_roundtrip():
 
 
 def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
-    plain = {sid: (a, m) for sid, a, m in video_samples(small_cfg(max_samples_per_video=1), videos, "bikes.mp4", 0,
+    plain = {key.sample_id(): (a, m) for key, a, m in video_samples(small_cfg(max_samples_per_video=1), videos, "bikes.mp4", 0,
                                                           ("voxels",))}
-    refined = {sid: (a, m) for sid, a, m in video_samples(small_cfg(max_samples_per_video=1, refine="uniform:4"),
+    refined = {key.sample_id(): (a, m) for key, a, m in video_samples(small_cfg(max_samples_per_video=1, refine="uniform:4"),
                                                             videos, "bikes.mp4", 0, ("voxels",))}
     (a0, m0), (a1, m1) = plain["bikes.mp4#0"], refined["bikes.mp4#0"]
     assert m0["refine"] == "off" and m1["refine"] == "uniform:4" and m1["subframes_mean"] == 4.0
@@ -199,10 +201,10 @@ def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
 def test_crops_per_window_ids_content_and_resume(videos):
     """K crops of one decoded window: ids path#window.crop, each crop its own plan (own crop
     corner, flip, pauses, sensor parameters) drawn from its id, made alike alone or together."""
-    from v2v_wire.ids import parse_sample_id
+    from v2v_wire.ids import SampleKey, parse_sample_id, window_keys
 
     cfg = small_cfg(crops_per_window=3, max_samples_per_video=2)
-    got = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames")))
+    got = [(key.sample_id(3), a, m) for key, a, m in video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames"))]
     ids = [sid for sid, _, _ in got]
     assert ids == [f"bikes.mp4#{w}.{c}" for w in range(2) for c in range(3)]
     metas = {sid: m for sid, _, m in got}
@@ -212,11 +214,12 @@ def test_crops_per_window_ids_content_and_resume(videos):
     assert all(metas[s]["src_start_frame"] == (0 if s.split("#")[1].startswith("0") else cfg.window_stride)
                for s in ids)
     assert not np.array_equal(arrays["bikes.mp4#0.0"]["frames"], arrays["bikes.mp4#0.1"]["frames"])
-    # one crop made alone (a replacement worker skips the indices already received)
-    keep = parse_sample_id("bikes.mp4#1.2", 3)[1]
-    assert keep == 5
-    alone = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames"), set(range(6)) - {keep}))
-    assert [sid for sid, _, _ in alone] == ["bikes.mp4#1.2"]
+    # one crop made alone (a replacement worker skips the samples already received)
+    keep = parse_sample_id("bikes.mp4#1.2", 3)
+    assert keep == SampleKey("bikes.mp4", 1, 2) and keep.ordinal(3) == 5
+    every = set(window_keys("bikes.mp4", 0, 3) + window_keys("bikes.mp4", 1, 3))
+    alone = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames"), every - {keep}))
+    assert [key for key, _, _ in alone] == [keep]
     for k, v in alone[0][1].items():
         np.testing.assert_array_equal(v, arrays["bikes.mp4#1.2"][k])
     # K = 1 keeps the ids (and content) of a run without crops
@@ -229,11 +232,22 @@ def test_crops_per_window_ids_content_and_resume(videos):
 @pytest.mark.parametrize("sid,k,expect", [("a/b.mp4#3", 1, ("a/b.mp4", 3)), ("a#b.mp4#3.2", 4, ("a#b.mp4", 14)),
                                           ("x.mp4#0.0", 2, ("x.mp4", 0))])
 def test_sample_id_round_trip(sid, k, expect):
-    from v2v_wire.ids import make_sample_id, parse_sample_id
+    from v2v_wire.ids import SampleKey, parse_sample_id
 
-    assert parse_sample_id(sid, k) == expect
+    key = parse_sample_id(sid, k)
     video, idx = expect
-    assert make_sample_id(video, idx // k, idx % k, k) == sid
+    assert key == SampleKey.at(video, idx, k) and key.ordinal(k) == idx
+    assert key.sample_id(k) == sid
+    assert SampleKey.from_wire(key.wire(), k) == key
+
+
+@pytest.mark.parametrize("value", [["a.mp4", 1], ["a.mp4", -1, 0], ["a.mp4", 1, 2], ["", 1, 0], [1, 1, 0],
+                                   ["a.mp4", True, 0], ["a.mp4", 1.0, 0], "a.mp4#1", None])
+def test_sample_key_from_a_message_rejects(value):
+    from v2v_wire.ids import SampleKey
+
+    with pytest.raises(ValueError, match="sample key"):
+        SampleKey.from_wire(value, 2)
 
 
 @pytest.mark.parametrize("sid,k", [("a.mp4#3.1", 1), ("a.mp4#3", 2), ("a.mp4#3.2", 2), ("a.mp4", 1), ("#3", 1),
@@ -266,7 +280,7 @@ def test_crop_cut_slices_as_crop_frame(flip, x):
     want = np.stack([expand(crop_frame(cfg, plan, f)) for f in frames])
     # every row kept as codes (flipped and mapped once at the end), or one row under another map
     for other in (None, 3):
-        cut = _CropCut(cfg, plan)
+        cut = _CropCut(cfg, SampleKey("v.mp4", 0), plan)
         for k, f in enumerate(frames):
             cut.add(k, f, k != other, expand, None)
         np.testing.assert_array_equal(cut.frames(expand), want)
@@ -294,7 +308,7 @@ def test_windows_step_200_frames_and_share_their_boundary_frame(tmp_path):
         for p in s.encode():
             c.mux(p)
     got = list(video_samples(cfg, tmp_path, "steps.mp4", 0, ("frames",)))
-    assert [sid for sid, _, _ in got] == ["steps.mp4#0", "steps.mp4#1", "steps.mp4#2"]
+    assert [key.sample_id() for key, _, _ in got] == ["steps.mp4#0", "steps.mp4#1", "steps.mp4#2"]
     assert [m["src_start_frame"] for _, _, m in got] == [0, 4, 8]
     levels = [np.round((a["frames"].reshape(a["frames"].shape[0], -1).mean(1) - 10) / 15).astype(int).tolist()
               for _, a, _ in got]

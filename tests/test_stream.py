@@ -261,3 +261,48 @@ def test_a_resume_state_of_700k_ids_is_sent_compactly_and_a_too_large_one_is_a_c
         assert reply["type"] == "error" and str(16 * 1024 * 1024) in reply["message"], reply
         s.close()
         ctx.term()
+
+
+def test_sigterm_to_the_process_group_stops_the_server_without_restarting_workers(videos):
+    """A supervisor that signals the whole process group (systemd's default KillMode, a
+    container stop with an init that forwards to the group, ``kill -TERM -PGID``): the workers
+    exit at once (status 0) while the server shuts down, and the server takes that for the
+    shutdown it is, not for crashes: no "died ... restarting" line, no restart counted, exit
+    status 0. Idle workers show it best: nothing delays their exit."""
+    import os
+    import signal
+    import threading
+    import urllib.error
+    import urllib.request
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "v2v_server.ops.cli",
+                             *serve_args(videos, "--bind", f"tcp://127.0.0.1:{free_port()}", "--metrics-port", str(port))],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    lines: list = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 120
+        while True:  # a worker said ready (the pool's workers start together)
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/readyz", timeout=2) as r:
+                    if r.status == 200:
+                        break
+            except (urllib.error.URLError, OSError):
+                pass
+            assert time.monotonic() < deadline and proc.poll() is None, "".join(lines)
+            time.sleep(0.2)
+        time.sleep(2.0)  # and the other worker too
+        os.killpg(proc.pid, signal.SIGTERM)
+        code = proc.wait(60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+    reader.join(10)
+    log = "".join(lines)
+    assert "signal 15: shutting down" in log, log
+    assert "restarting" not in log and "died" not in log and " 0 worker restart(s)" in log, log
+    assert code == 0, log

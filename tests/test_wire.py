@@ -42,12 +42,12 @@ def serve_args(videos, *extra):
 def dense_flows(videos, clip: str, epoch: int) -> dict:
     """sample id -> the dense float32 flow the server's own expansion gives."""
     cfg = recipe(flow_dtype="float32")
-    return {sid: a["flow"] for sid, a, _ in video_samples(cfg, videos, clip, epoch, ("flow",))}
+    return {key.sample_id(): a["flow"] for key, a, _ in video_samples(cfg, videos, clip, epoch, ("flow",))}
 
 
 def want_flow(videos, batch: dict, i: int) -> np.ndarray:
     sid = batch["sample_ids"][i]
-    return dense_flows(videos, parse_sample_id(sid)[0], batch["epoch"])[sid]
+    return dense_flows(videos, parse_sample_id(sid).video, batch["epoch"])[sid]
 
 
 def first_batches(ds, n: int) -> list:
@@ -142,13 +142,13 @@ def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_cl
 def wire_samples(videos, clip: str, epoch: int) -> dict:
     """sample id -> the arrays a worker puts on the wire (flow as its grid)."""
     cfg = recipe()
-    return {sid: wire_arrays(cfg, a) for sid, a, _ in video_samples(cfg, videos, clip, epoch, DEFAULT_OUTPUTS,
-                                                                       flow_grid=True)}
+    return {key.sample_id(): wire_arrays(cfg, a) for key, a, _ in video_samples(cfg, videos, clip, epoch,
+                                                                                    DEFAULT_OUTPUTS, flow_grid=True)}
 
 
 def assert_batch_is_the_samples(videos, h: dict, arrays: dict) -> None:
     for i, sid in enumerate(h["sample_ids"]):
-        want = wire_samples(videos, parse_sample_id(sid)[0], h["epoch"])[sid]
+        want = wire_samples(videos, parse_sample_id(sid).video, h["epoch"])[sid]
         assert set(arrays) == set(want)
         for name, a in want.items():
             np.testing.assert_array_equal(arrays[name][i], a, err_msg=f"{sid} {name}")

@@ -48,7 +48,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS, row_array, zeros_row
 from v2v_wire.protocol import check_outputs
 from v2v_server.samples.flow import FlowEstimator
-from v2v_wire.ids import make_sample_id, parse_sample_id
+from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.corpus import corpus_file, verdict
 from v2v_server.videos.decode import open_video, scan_corpus
@@ -214,13 +214,15 @@ class SampleMaker:
         for sid, pad in entries:
             wanted.setdefault(sid, []).append(bool(pad))
         kpw = self.cfg.crops_per_window
-        keep = {parse_sample_id(sid, kpw)[1] for sid in wanted}
-        skip = [i for i in range(self.cfg.max_samples_per_video * kpw) if i not in keep]
+        keep = {parse_sample_id(sid, kpw) for sid in wanted}
+        skip = [key for w in range(self.cfg.max_samples_per_video) for key in window_keys(video, w, kpw)
+                if key not in keep]
         stats: dict = {}
         error: Optional[str] = None
         try:
-            for sid, arrays, meta in video_samples(self.cfg, self.root, video, epoch, self.outputs, skip,
+            for key, arrays, meta in video_samples(self.cfg, self.root, video, epoch, self.outputs, skip,
                                                    self.flow, stats):
+                sid = key.sample_id(kpw)
                 flags = wanted.pop(sid, None)
                 if flags is None:
                     continue

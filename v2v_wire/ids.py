@@ -1,14 +1,75 @@
-"""Sample ids: the one place their format is written and read.
+"""Sample keys and sample ids: the one place a sample's identity is made, numbered and written.
 
-An id is the video's path relative to the corpus root (POSIX), ``#``, the window index and,
-when a window gives K > 1 crops (``crops_per_window``), ``.`` and the crop index:
-``clips/a.mp4#3`` or ``clips/a.mp4#3.1``. The integer *index* ``window * K + crop`` numbers a
-video's samples; the scheduler, the resume states and the workers' skip lists use it.
+A sample is named by its :class:`SampleKey` ``(video, window, crop)``: the video's path relative
+to the corpus root (POSIX), the window index and the crop index inside the window (0 .. K - 1
+with K = ``crops_per_window``). The scheduler, the ledger, the workers' messages and the
+journal carry keys. The string form, the *sample id*, is made and read only at the edges (logs,
+resume states, the ``sample_ids`` of a batch): the path, ``#``, the window index and, when K > 1,
+``.`` and the crop index: ``clips/a.mp4#3`` or ``clips/a.mp4#3.1``. The *ordinal*
+``window * K + crop`` (``SampleKey.ordinal``) numbers a video's samples in the order they are
+made: how many samples a file gave, where a pass over it stopped, the journal's records.
 Pure: no I/O, no numpy.
 """
 from __future__ import annotations
 
-from typing import Dict, Iterable, Iterator, List, Tuple
+from typing import Dict, Iterable, Iterator, List, NamedTuple
+
+
+class SampleKey(NamedTuple):
+    """The identity of one sample: ``video`` (corpus-relative POSIX path), ``window`` (index of
+    the window in the video, >= 0), ``crop`` (index of the crop in the window, 0 .. K - 1).
+    Immutable, hashable, ordered as the samples of a video are made (window, then crop). A
+    named tuple: hashing and comparing cost what a tuple's do (the scheduler keeps sets of
+    keys), and a plain tuple is still not a ``SampleKey`` (``isinstance``)."""
+
+    video: str
+    window: int
+    crop: int = 0
+
+    def ordinal(self, crops_per_window: int = 1) -> int:
+        """The sample's number in its video, ``window * crops_per_window + crop``."""
+        return self.window * crops_per_window + self.crop
+
+    @classmethod
+    def at(cls, video: str, index: int, crops_per_window: int = 1) -> "SampleKey":
+        """The key of sample number ``index`` of ``video`` (the inverse of :meth:`ordinal`)."""
+        window, crop = divmod(index, crops_per_window)
+        return cls(video, window, crop)
+
+    def sample_id(self, crops_per_window: int = 1) -> str:
+        """The string form (see :func:`make_sample_id`)."""
+        return make_sample_id(self.video, self.window, self.crop, crops_per_window)
+
+    def wire(self) -> List:
+        """``[video, window, crop]``: the key in a msgpack message (:meth:`from_wire` reads it)."""
+        return [self.video, self.window, self.crop]
+
+    @classmethod
+    def from_wire(cls, value, crops_per_window: int = 1) -> "SampleKey":
+        """The key of a message's ``[video, window, crop]``.
+
+        Raises:
+            ValueError: for anything else (a non-string or overlong video, a negative or
+                non-integer window, a crop outside 0 .. ``crops_per_window`` - 1), naming it.
+        """
+        ok = isinstance(value, (list, tuple)) and len(value) == 3
+        if ok:
+            video, window, crop = value
+            ok = (isinstance(video, str) and 0 < len(video) <= 4096 and _small_int(window)
+                  and _small_int(crop) and crop < crops_per_window)
+        if not ok:
+            raise ValueError(f"sample key must be [video, window, crop] with crop < {crops_per_window}, "
+                             f"got {value!r:.80}")
+        return cls(video, window, crop)
+
+
+def _small_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 10 ** 9
+
+
+def window_keys(video: str, window: int, crops_per_window: int = 1) -> List[SampleKey]:
+    """The ``crops_per_window`` keys of one window, in crop order."""
+    return [SampleKey(video, window, c) for c in range(crops_per_window)]
 
 
 def make_sample_id(rel_path: str, window: int, crop: int = 0, crops_per_window: int = 1) -> str:
@@ -21,10 +82,8 @@ def make_sample_id(rel_path: str, window: int, crop: int = 0, crops_per_window: 
     return f"{rel_path}#{window}.{crop}"
 
 
-def parse_sample_id(sample_id: str, crops_per_window: int = 1) -> Tuple[str, int]:
-    """``(rel_path, index)`` of a sample id made by :func:`make_sample_id`: ``index =
-    window * crops_per_window + crop`` is the integer that numbers a video's samples (what
-    the server tracks as received, skipped or already delivered).
+def parse_sample_id(sample_id: str, crops_per_window: int = 1) -> SampleKey:
+    """The :class:`SampleKey` of a sample id made by :func:`make_sample_id`.
 
     Raises:
         ValueError: for an id that is not ``path#window`` (K = 1) or ``path#window.crop``
@@ -44,7 +103,19 @@ def parse_sample_id(sample_id: str, crops_per_window: int = 1) -> Tuple[str, int
     if not ok:
         form = "path#window" if crops_per_window == 1 else f"path#window.crop (crop < {crops_per_window})"
         raise ValueError(f"sample id {sample_id!r} is not of the form {form}")
-    return video, int(window) * crops_per_window + c
+    return SampleKey(video, int(window), c)
+
+
+def parse_sample_ids(sample_ids: Iterable[str], crops_per_window: int = 1) -> List[SampleKey]:
+    """The keys of the well-formed ids among ``sample_ids`` (others are left out: a resume
+    state names samples of another corpus or recipe only by mistake, and that costs nothing)."""
+    out = []
+    for sid in sample_ids:
+        try:
+            out.append(parse_sample_id(sid, crops_per_window))
+        except ValueError:
+            continue
+    return out
 
 
 def compact_ids(sample_ids: Iterable[str]) -> str:

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Dict, FrozenSet, Optional, Tuple
 
 from v2v_wire.codecs import COMPRESSIONS
+from v2v_wire.ids import SampleKey, expand_ids, parse_sample_ids
 from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError, check_outputs
 from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
@@ -31,8 +32,6 @@ MAX_ARRAY_LEN = 4096
 MAX_MAP_LEN = 256
 #: Largest number of arrays + maps in one client message.
 MAX_CONTAINERS = 512
-
-SampleKey = Tuple[str, int]
 
 
 class WireError(ProtocolError):
@@ -128,15 +127,7 @@ def _ids(h: dict, name: str) -> Tuple[int, ...]:
 
 
 def _parse_keys(text: str, crops_per_window: int = 1) -> FrozenSet[SampleKey]:
-    from v2v_wire.ids import expand_ids, parse_sample_id
-
-    out = set()
-    for sid in expand_ids(text):
-        try:
-            out.add(parse_sample_id(sid, crops_per_window))
-        except ValueError:
-            continue
-    return frozenset(out)
+    return frozenset(parse_sample_ids(expand_ids(text), crops_per_window))
 
 
 def _resume(v, crops_per_window: int = 1) -> Resume:

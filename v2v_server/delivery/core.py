@@ -7,7 +7,7 @@ through thousands of interleavings with hypothesis.
 
 Batch payloads are opaque here: ``make_batch(samples)`` builds one from what ``sample()``
 was given (``datapath.make_batch`` in the server), and a payload is only asked for
-``sample_ids`` and ``subset(keep)``.
+``subset(keep)``; every sample travels with its ``ids.SampleKey``.
 """
 from __future__ import annotations
 
@@ -15,11 +15,12 @@ import collections
 import itertools
 import logging
 from dataclasses import dataclass
-from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
+from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import OUTPUTS
-from v2v_server.delivery.schedule import EpochScheduler, Job, parse_sample_id
+from v2v_server.delivery.schedule import EpochScheduler, Job
 from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
 
 log = logging.getLogger("v2v.server")
@@ -39,8 +40,7 @@ class DeliveryPolicy:
         task_timeout_s: seconds without a sample before a task is reassigned.
         offered: outputs this server offers.
         max_task_crashes: see ``schedule.EpochScheduler``.
-        crops_per_window: samples per window (ids ``path#window.crop`` when > 1); the scheduler
-            counts samples by index ``window * crops_per_window + crop`` (``ids.py``).
+        crops_per_window: samples per window (ids ``path#window.crop`` when > 1, ``ids.py``).
     """
 
     batch_size: int = 12
@@ -61,31 +61,132 @@ class DeliveryPolicy:
                    cfg.task_timeout_s, tuple(cfg.outputs), max_task_crashes, cfg.crops_per_window)
 
 
+class Batcher:
+    """Kept samples waiting for a batch, grouped by (epoch, outputs computed), and the batches
+    made of them (added to the ledger). Pure.
+
+    Args:
+        batch_size: samples per batch.
+        make_batch: ``samples -> payload``.
+        ledger: where each batch made goes (``DeliveryLedger.add_batch``).
+    """
+
+    def __init__(self, batch_size: int, make_batch: Callable, ledger: DeliveryLedger):
+        self.batch_size = batch_size
+        self.make_batch = make_batch
+        self.ledger = ledger
+        self._batch_ids = itertools.count()
+        # (epoch, outputs) -> [(key, sample)] in arrival order
+        self.pending: Dict[Tuple[int, tuple], List[Tuple[SampleKey, Any]]] = collections.defaultdict(list)
+
+    def add(self, epoch: int, outputs: tuple, key: SampleKey, sample) -> None:
+        """Queue one sample; a full group becomes a batch."""
+        group = self.pending[(epoch, outputs)]
+        group.append((key, sample))
+        if len(group) >= self.batch_size:
+            self._make((epoch, outputs), group)
+
+    def _make(self, gkey: Tuple[int, tuple], group: list) -> None:
+        items = group[: self.batch_size]
+        del group[: self.batch_size]
+        payload = self.make_batch([s for _, s in items])
+        self.ledger.add_batch(BatchRecord(next(self._batch_ids), gkey[0], [k for k, _ in items], payload,
+                                          outputs=frozenset(gkey[1])))
+
+    def flush(self, ended: Callable[[int], bool]) -> None:
+        """Batch the leftovers of every epoch for which ``ended(epoch)`` (none of its jobs runs
+        or waits)."""
+        for gkey, group in list(self.pending.items()):
+            if not group:
+                del self.pending[gkey]
+                continue
+            if ended(gkey[0]):
+                while group:
+                    self._make(gkey, group)
+
+    def drop(self, should_drop: Callable[[int, SampleKey], bool]) -> List[Tuple[int, List[SampleKey]]]:
+        """Remove the waiting samples for which ``should_drop(epoch, key)``; returns
+        ``(epoch, keys removed)`` per group that lost some."""
+        out = []
+        for (epoch, _), group in self.pending.items():
+            gone = [k for k, _ in group if should_drop(epoch, k)]
+            if gone:
+                group[:] = [(k, s) for k, s in group if not should_drop(epoch, k)]
+                out.append((epoch, gone))
+        return out
+
+    def waiting(self) -> bool:
+        """Some sample waits for a batch."""
+        return any(self.pending.values())
+
+
+class GroupPadding:
+    """What DDP padding needs, per group of ranks (``world_size > 1``): how many batches of
+    each epoch each rank yielded, and the group's last acknowledged batch (what a rank that was
+    sent nothing repeats). Pure."""
+
+    def __init__(self):
+        self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
+        self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch
+
+    def resumed(self, group: str, rank: int, completed_epoch: int, batches: Dict[int, int]) -> None:
+        """A rank's resume state: in each epoch after ``completed_epoch`` it yielded
+        ``batches[epoch]`` batches (0 where the state names none)."""
+        for (g, e), counts in self.taken.items():
+            if g == group and e > completed_epoch:
+                counts[rank] = batches.get(e, 0)
+        for e, n in batches.items():
+            if e > completed_epoch:
+                self.taken.setdefault((group, e), {})[rank] = n
+
+    def acked(self, group: str, rank: int, batch: BatchRecord) -> None:
+        """Rank ``rank`` of ``group`` acknowledged ``batch`` (its training loop received it)."""
+        counts = self.taken.setdefault((group, batch.epoch), {})
+        counts[rank] = counts.get(rank, 0) + 1
+        self.pad_source[group] = batch
+
+    def epoch_done(self, c, epoch: int) -> Tuple[int, Optional[BatchRecord]]:
+        """For the rank of client ``c`` (``ledger.ClientRecord``) once ``epoch`` is complete:
+        the batches every rank of its group reaches (the most any of them yielded), and a
+        padding batch (batch id -1, a copy of the group's last acknowledged batch) when ``c``
+        was never sent a batch and is behind, else None."""
+        counts = self.taken.get((c.group, epoch), {})
+        most = max(counts.values()) if counts else 0
+        src = self.pad_source.get(c.group)
+        if c.sent == 0 and counts.get(c.rank, 0) < most and src is not None:
+            return most, BatchRecord(-1, epoch, src.keys, src.payload, outputs=src.outputs)
+        return most, None
+
+    def prune(self, live_groups: set, forgotten: Callable[[int], bool]) -> None:
+        """Forget groups with no client left and epochs ``forgotten(epoch)`` says are gone."""
+        for g in [g for g in self.pad_source if g not in live_groups]:
+            del self.pad_source[g]
+        for key in [k for k in self.taken if forgotten(k[1])]:
+            del self.taken[key]
+
+
 class DeliveryCore:
-    """Scheduler + ledger + batching, for one server.
+    """Scheduler + ledger + batching (:class:`Batcher`) + DDP padding (:class:`GroupPadding`),
+    for one server.
 
     Args:
         videos: corpus-relative paths.
         policy: the delivery settings (:class:`DeliveryPolicy`).
-        make_batch: ``samples -> payload`` (each sample has ``sample_id``).
+        make_batch: ``samples -> payload`` (``sample()``'s built samples, in batch order).
     """
 
     def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None):
         p = self.policy = policy
-        self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes)
+        self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window)
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, revoke_s=p.revoke_s, max_credits=p.max_credits)
-        self.batch_size = p.batch_size
+        self.batcher = Batcher(p.batch_size, make_batch, self.ledger)
         self.crops_per_window = p.crops_per_window
         self.task_timeout_s = p.task_timeout_s
         self.offered = tuple(p.offered)
-        self.make_batch = make_batch
-        self._batch_ids = itertools.count()
         self.task_outputs: Dict[int, tuple] = {}
-        self.pending: Dict[Tuple[int, tuple], list] = collections.defaultdict(list)
         self.outputs: Optional[tuple] = None  # what workers compute now: the union clients ask for
-        self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
+        self.padding = GroupPadding()
         self.announced: set = set()
-        self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch (DDP padding)
         self.samples_made = 0
         # journal.Journal (``--state-dir``): told every acknowledgement, resume state and complete
         # epoch; its records, read at start, are applied like resume states
@@ -96,7 +197,8 @@ class DeliveryCore:
 
     # ------------------------------------------------------------------ workers
     def task_for(self, worker: Hashable, now: float) -> Optional[dict]:
-        """The ``task`` message for an idle worker, or None (nothing to do, or no client yet)."""
+        """The ``task`` message for an idle worker, or None (nothing to do, or no client yet).
+        Its ``skip`` lists the ``[window, crop]`` of each sample of the video not to make."""
         outs = self.ledger.outputs_wanted()
         if outs:
             self.outputs = tuple(o for o in OUTPUTS if o in outs)
@@ -107,13 +209,13 @@ class DeliveryCore:
             return None
         self.task_outputs[t.task_id] = self.outputs
         return {"type": "task", "task": t.task_id, "epoch": t.epoch, "video": t.video,
-                "outputs": list(self.outputs), "skip": sorted(t.skip)}
+                "outputs": list(self.outputs), "skip": [[k.window, k.crop] for k in sorted(t.skip)]}
 
-    def sample(self, worker: Hashable, task_id, index, now: float, build: Callable) -> bool:
-        """A worker sent sample ``index`` of ``task_id``'s video; ``build()`` makes the sample object
+    def sample(self, worker: Hashable, task_id, key: SampleKey, now: float, build: Callable) -> bool:
+        """A worker sent sample ``key`` of ``task_id``'s video; ``build()`` makes the sample object
         (called only when the sample is wanted; it may raise, which drops the sample and makes
         it owed again). Returns True when the sample was kept."""
-        key = self.sched.accept_sample(task_id, worker, index, now)
+        key = self.sched.accept_sample(task_id, worker, key, now)
         if key is None:
             return False
         epoch = self.sched.running[task_id].epoch
@@ -123,16 +225,14 @@ class DeliveryCore:
             self.sched.discarded(epoch, [key])
             raise
         self.samples_made += 1
-        gkey = (epoch, self.task_outputs.get(task_id, ()))
-        group = self.pending[gkey]
-        group.append(s)
-        if len(group) >= self.batch_size:
-            self._make(gkey, group)
+        self.batcher.add(epoch, self.task_outputs.get(task_id, ()), key, s)
         return True
 
-    def done(self, worker: Hashable, task_id, samples, failed: dict, error: Optional[str]) -> Optional[Job]:
-        """A worker finished a task. Returns the job (None for a late or stranger copy)."""
-        job = self.sched.task_done(task_id, worker, samples, failed, error)
+    def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str]) -> Optional[Job]:
+        """A worker finished a task: ``windows`` complete windows the file gave, ``failed``
+        windows (window -> reason), ``error`` when the pass stopped early (see
+        ``EpochScheduler.task_done``). Returns the job (None for a late or stranger copy)."""
+        job = self.sched.task_done(task_id, worker, windows, failed, error)
         if job is not None:
             self.task_outputs.pop(task_id, None)
         return job
@@ -144,24 +244,10 @@ class DeliveryCore:
         """Tasks silent for ``task_timeout_s``: reassigned; the workers should be replaced."""
         return self.sched.expire(now, self.task_timeout_s)
 
-    # ------------------------------------------------------------------ batches
-    def _make(self, key: Tuple[int, tuple], group: list) -> None:
-        items = group[: self.batch_size]
-        del group[: self.batch_size]
-        payload = self.make_batch(items)
-        keys = [parse_sample_id(s, self.crops_per_window) for s in payload.sample_ids]
-        self.ledger.add_batch(BatchRecord(next(self._batch_ids), key[0], keys, payload, outputs=frozenset(key[1])))
-
-    def _flush_pending(self) -> None:
-        """Batch an epoch's leftovers once none of its jobs runs or waits."""
-        for k, group in list(self.pending.items()):
-            if not group:
-                del self.pending[k]
-                continue
-            plan = self.sched.plans.get(k[0])
-            if plan is None or plan.unfinished == 0:
-                while group:
-                    self._make(k, group)
+    def _epoch_ended(self, epoch: int) -> bool:
+        """None of ``epoch``'s jobs runs or waits (or the epoch is forgotten)."""
+        plan = self.sched.plans.get(epoch)
+        return plan is None or plan.unfinished == 0
 
     # ------------------------------------------------------------------ clients
     def consumer_of(self, ident: bytes, h: Hello) -> Tuple[Hashable, Optional[str]]:
@@ -182,12 +268,7 @@ class DeliveryCore:
         if self.journal is not None:
             self.journal.replaced(consumer, r.completed_epoch, r.delivered)
         if group is not None:
-            for (g, e), counts in self.taken.items():
-                if g == group and e > r.completed_epoch:
-                    counts[h.rank] = r.batches.get(e, 0)
-            for e, n in r.batches.items():
-                if e > r.completed_epoch:
-                    self.taken.setdefault((group, e), {})[h.rank] = n
+            self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         back = self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
                                 r.completed_epoch)
         if back:
@@ -213,9 +294,7 @@ class DeliveryCore:
                 if self.journal is not None:
                     self.journal.delivered(c.consumer, b.epoch, b.keys)
                 if c.group is not None and c.world_size > 1:
-                    counts = self.taken.setdefault((c.group, b.epoch), {})
-                    counts[c.rank] = counts.get(c.rank, 0) + 1
-                    self.pad_source[c.group] = b
+                    self.padding.acked(c.group, c.rank, b)
         elif isinstance(msg, Released):
             back = self.ledger.released(ident, msg.batch_ids)
             if back:
@@ -245,12 +324,8 @@ class DeliveryCore:
             keep = [i for i, k in enumerate(b.keys) if k not in gone_set]
             self.ledger.shrink(bid, keep, b.payload.subset(keep) if keep else None)
             self.sched.discarded(b.epoch, gone)
-        for (epoch, _), group in self.pending.items():
-            keys = [parse_sample_id(s.sample_id, self.crops_per_window) for s in group]
-            drop = [self.sched.is_delivered(epoch, k) for k in keys]
-            if any(drop):
-                group[:] = [s for s, d in zip(group, drop) if not d]
-                self.sched.discarded(epoch, [k for k, d in zip(keys, drop) if d])
+        for epoch, gone in self.batcher.drop(self.sched.is_delivered):
+            self.sched.discarded(epoch, gone)
 
     # ------------------------------------------------------------------ time
     def tick(self, now: float) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
@@ -258,7 +333,7 @@ class DeliveryCore:
         epochs. Returns ``(sends, messages)``: batches to send (the caller calls
         ``forget`` for a client it cannot reach) and control messages."""
         msgs: List[Msg] = []
-        self._flush_pending()
+        self.batcher.flush(self._epoch_ended)
         revokes, drops = self.ledger.expire(now)
         for ident, ids in revokes.items():
             log.info("lease of batch(es) %s expired at client %s; asking for them back", ids, ident.hex())
@@ -282,7 +357,7 @@ class DeliveryCore:
         the other workers hold; a batch given back later goes to whoever still reads."""
         s = self.sched
         drained = (s.max_epochs is not None and s.next_epoch >= s.max_epochs and not s.queue and not s.running
-                   and not self.ledger.ready and not any(self.pending.values()))
+                   and not self.ledger.ready and not self.batcher.waiting())
         msgs: List[Msg] = []
         for ident, c in self.ledger.clients.items():
             if not drained or c.held or c.revoked:
@@ -310,22 +385,17 @@ class DeliveryCore:
                 c.completed = max(c.completed, e)
                 msg = {"type": "epoch_done", "epoch": e}
                 if c.group is not None and c.world_size > 1:
-                    counts = self.taken.get((c.group, e), {})
-                    msg["batches"] = max(counts.values()) if counts else 0
-                    src = self.pad_source.get(c.group)
-                    if c.sent == 0 and counts.get(c.rank, 0) < msg["batches"] and src is not None:
-                        pads.append((ident, BatchRecord(-1, e, src.keys, src.payload, outputs=src.outputs)))
+                    msg["batches"], pad = self.padding.epoch_done(c, e)
+                    if pad is not None:
+                        pads.append((ident, pad))
                         c.sent += 1
                 msgs.append((ident, msg))
             log.info("epoch %d complete", e)
             if self.journal is not None:
                 self.journal.epoch_complete(e)
         self.sched.prune(self.announced)
-        live_groups = {c.group for c in self.ledger.clients.values()}
-        for g in [g for g in self.pad_source if g not in live_groups]:
-            del self.pad_source[g]
-        for key in [k for k in self.taken if k[1] not in self.sched.plans and k[1] < self.sched.next_epoch]:
-            del self.taken[key]
+        self.padding.prune({c.group for c in self.ledger.clients.values()},
+                           lambda e: e not in self.sched.plans and e < self.sched.next_epoch)
         return pads, msgs
 
     def finished(self) -> bool:

@@ -10,7 +10,8 @@ hello, still replaces its record (it is authoritative for its own samples: what 
 after its checkpoint is owed again).
 
 File ``DIR/delivered.journal``: a header then msgpack records appended as they happen:
-``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (acknowledged),
+``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (acknowledged; ``index`` is
+``ids.SampleKey.ordinal``, the sample's number in its video under the journal's recipe),
 ``{"s": [consumer, rank], "c": completed_epoch, "r": {epoch: keys}}`` (a resume state replaced
 a record), ``{"done": epoch}`` (an epoch complete; its records are dropped). When an epoch
 completes the file is rewritten from memory (a temporary file, fsync, rename).
@@ -26,13 +27,14 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Dict, Hashable, Iterable, Optional, Set, Tuple
+from typing import Dict, Hashable, Iterable, List, Optional, Set
 
 import msgpack
 
+from v2v_wire.ids import SampleKey
+
 log = logging.getLogger("v2v.server")
 
-SampleKey = Tuple[str, int]
 Records = Dict[Hashable, Dict[int, Set[SampleKey]]]
 
 __all__ = ["Journal", "JournalError"]
@@ -52,18 +54,21 @@ class Journal:
         fingerprint: ``SampleRecipe.fingerprint()`` of the served recipe; a journal written under
             another one is refused.
         fsync_s: most seconds between ``fsync`` calls.
+        crops_per_window: samples per window under that recipe (how a record's sample
+            numbers map to sample keys, ``ids.SampleKey.at``).
 
     Raises:
         JournalError: the journal was written under another recipe, or is not a journal.
         OSError: the folder cannot be created or written.
     """
 
-    def __init__(self, directory: str, fingerprint: str, fsync_s: float = 1.0):
+    def __init__(self, directory: str, fingerprint: str, fsync_s: float = 1.0, crops_per_window: int = 1):
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.path = self.dir / FILE
         self.fingerprint = fingerprint
         self.fsync_s = fsync_s
+        self.crops_per_window = crops_per_window
         self.completed = -1
         self.records: Records = {}
         self._dirty = False
@@ -103,11 +108,17 @@ class Journal:
         elif "d" in rec:
             e = int(rec["e"])
             if e > self.completed:
-                self.records.setdefault(tuple(rec["d"]), {}).setdefault(e, set()).update(
-                    (str(v), int(i)) for v, i in rec["k"])
+                self.records.setdefault(tuple(rec["d"]), {}).setdefault(e, set()).update(self._keys(rec["k"]))
         elif "s" in rec:
-            self._replace(tuple(rec["s"]), int(rec["c"]),
-                          {int(e): {(str(v), int(i)) for v, i in ks} for e, ks in rec["r"].items()})
+            self._replace(tuple(rec["s"]), int(rec["c"]), {int(e): self._keys(ks) for e, ks in rec["r"].items()})
+
+    def _keys(self, pairs) -> Set[SampleKey]:
+        """The sample keys of a record's ``[[video, index], ...]``."""
+        return {SampleKey.at(str(v), int(i), self.crops_per_window) for v, i in pairs}
+
+    def _pairs(self, keys: Iterable[SampleKey]) -> List[list]:
+        """A record's ``[[video, index], ...]`` of ``keys`` (the inverse of ``_keys``)."""
+        return [[k.video, k.ordinal(self.crops_per_window)] for k in keys]
 
     def _complete(self, epoch: int) -> None:
         self.completed = max(self.completed, epoch)
@@ -131,15 +142,15 @@ class Journal:
 
     def delivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
         """``consumer`` acknowledged ``keys`` of ``epoch``."""
-        keys = [list(k) for k in keys]
-        if keys and epoch > self.completed:
-            rec = {"d": list(consumer), "e": epoch, "k": keys}
+        pairs = self._pairs(keys)
+        if pairs and epoch > self.completed:
+            rec = {"d": list(consumer), "e": epoch, "k": pairs}
             self._apply(rec)
             self._append(rec)
 
     def replaced(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]]) -> None:
         """``consumer``'s resume state replaced its record in the epochs after ``completed``."""
-        rec = {"s": list(consumer), "c": completed, "r": {e: [list(k) for k in ks] for e, ks in delivered.items()}}
+        rec = {"s": list(consumer), "c": completed, "r": {e: self._pairs(ks) for e, ks in delivered.items()}}
         self._apply(rec)
         self._append(rec)
 
@@ -160,7 +171,7 @@ class Journal:
                 f.write(msgpack.packb({"done": self.completed}))
             for consumer, d in self.records.items():
                 for e, ks in d.items():
-                    f.write(msgpack.packb({"d": list(consumer), "e": e, "k": [list(k) for k in sorted(ks)]}))
+                    f.write(msgpack.packb({"d": list(consumer), "e": e, "k": self._pairs(sorted(ks))}))
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, self.path)

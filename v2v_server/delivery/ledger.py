@@ -31,7 +31,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Deque, Dict, Hashable, Iterable, List, Optional, Set, Tuple
 
-SampleKey = Tuple[str, int]
+from v2v_wire.ids import SampleKey
 
 
 @dataclass
@@ -41,7 +41,7 @@ class BatchRecord:
     Attributes:
         batch_id: unique id.
         epoch: epoch of every sample in it.
-        keys: sample keys ``(video, index)`` in batch order.
+        keys: the ``ids.SampleKey`` of each sample, in batch order.
         payload: opaque to the ledger (``datapath.BatchPayload`` in the server).
         avoid: a client that gave it back (prefer another one).
         outputs: names of the arrays it carries (a client gets it only if it asks for a subset).

@@ -6,8 +6,9 @@ Pure: no sockets, no processes, no clock of its own (``now`` is an argument, sec
 
 Terms:
 
-* a *sample key* is ``(video, index)``, the index of the sample in its video (``window x
-  crops_per_window + crop``); its wire id is made by ``ids.make_sample_id``;
+* a sample is named by its ``ids.SampleKey`` ``(video, window, crop)``; a video's samples are
+  numbered in the order they are made (``SampleKey.ordinal``), which is how a file's sample count
+  and the place a pass over it stopped are told;
 * a *job* is one video of one epoch; a *task* is one attempt at a job by one worker (a
   reassigned job gets a new task id, so a late copy from the old attempt is recognised and
   ignored);
@@ -15,13 +16,17 @@ Terms:
   dataset ``("c:<consumer id>", worker)``; the consumer key survives reconnects and trainer
   restarts (it travels in the client's ``state_dict()``);
 * a sample of an epoch is *delivered* when some consumer's record holds it, *live* while it
-  sits in a batch (queued or in flight), *failed* when its index failed in this epoch (that
-  index only, this epoch only), else *owed*: it must be made (again).
+  sits in a batch (queued or in flight), *failed* when it failed in this epoch (that sample
+  only, this epoch only), else *owed*: it must be made (again).
 
 A consumer's resume state is authoritative: ``apply_resume`` replaces that consumer's record
-of every open epoch by the ids in the state, so samples it acknowledged after its checkpoint
+of every open epoch by the keys in the state, so samples it acknowledged after its checkpoint
 are owed again. An epoch is *complete* when every sample of every video is delivered or failed
 and no job is queued or running.
+
+``EpochPlan`` keeps the book of one epoch (jobs, records, live samples, completion);
+``EpochScheduler`` opens and forgets epochs, hands out tasks and applies what workers and
+consumers report to the right plan.
 """
 from __future__ import annotations
 
@@ -30,26 +35,9 @@ import itertools
 from dataclasses import dataclass, field
 from typing import Deque, Dict, FrozenSet, Hashable, Iterable, List, Optional, Set, Tuple
 
-from v2v_wire import ids
+from v2v_wire.ids import SampleKey, window_keys
 
-SampleKey = Tuple[str, int]
 Consumer = Hashable
-
-
-def parse_sample_id(sid, crops_per_window: int = 1) -> Optional[SampleKey]:
-    """``"path/clip.mp4#3"`` -> ``("path/clip.mp4", 3)`` (with ``crops_per_window`` K > 1:
-    ``"clip.mp4#3.1"`` -> ``("clip.mp4", 3 * K + 1)``, see ``ids.py``); None for anything
-    else (non-str, no ``#``, an index that is not ASCII digits, absurd lengths)."""
-    try:
-        return ids.parse_sample_id(sid, crops_per_window)
-    except ValueError:
-        return None
-
-
-def sample_id(key: SampleKey, crops_per_window: int = 1) -> str:
-    """``("clip.mp4", 3)`` -> ``"clip.mp4#3"`` (the inverse of :func:`parse_sample_id`)."""
-    k = crops_per_window
-    return ids.make_sample_id(key[0], key[1] // k, key[1] % k, k)
 
 
 @dataclass(frozen=True)
@@ -60,13 +48,13 @@ class Task:
         task_id: unique per attempt.
         epoch: epoch index.
         video: path relative to the corpus root.
-        skip: indices the worker must not make (delivered, live or failed ones).
+        skip: samples of ``video`` the worker must not make (delivered, live or failed ones).
     """
 
     task_id: int
     epoch: int
     video: str
-    skip: FrozenSet[int]
+    skip: FrozenSet[SampleKey]
 
 
 @dataclass
@@ -79,64 +67,151 @@ class Job:
     last_progress: float = 0.0
     crashes: int = 0
     samples: Optional[int] = None  # samples the file gave in this epoch (known once a pass ended)
-    failed: Dict[int, str] = field(default_factory=dict)  # index -> reason (this epoch only)
+    failed: Dict[SampleKey, str] = field(default_factory=dict)  # sample -> reason (this epoch only)
     error: Optional[str] = None  # the pass over the file stopped early in this epoch
-    index_crashes: Dict[int, int] = field(default_factory=dict)  # index -> worker crashes blamed on it
+    sample_crashes: Dict[SampleKey, int] = field(default_factory=dict)  # sample -> worker crashes blamed on it
     gave_up: bool = False  # crashed too often: the rest of the file is skipped this epoch
 
 
 @dataclass
 class EpochPlan:
     """Every sample of one epoch: jobs, who holds what (records), what is live in batches.
-    Per-video indexes keep each update proportional to one file, not the corpus."""
+    Per-video indexes keep each update proportional to one file, not the corpus.
+    ``crops_per_window``: samples per window (numbers a video's samples, ``SampleKey.at``)."""
 
     epoch: int
+    crops_per_window: int = 1
     jobs: Dict[str, Job] = field(default_factory=dict)
     records: Dict[Consumer, Set[SampleKey]] = field(default_factory=dict)
     live: Set[SampleKey] = field(default_factory=set)
     complete: bool = False
-    held: Dict[str, Dict[int, int]] = field(default_factory=dict)  # video -> index -> records holding it
-    live_by_video: Dict[str, Set[int]] = field(default_factory=dict)
+    held: Dict[str, Dict[SampleKey, int]] = field(default_factory=dict)  # video -> sample -> records holding it
+    live_by_video: Dict[str, Set[SampleKey]] = field(default_factory=dict)
     unfinished: int = 0  # jobs queued or running
 
+    # ------------------------------------------------------------------ holdings
     def delivered(self) -> Set[SampleKey]:
         """Every sample some consumer holds (O(samples): for tests and reports)."""
-        return {(v, k) for v, ws in self.held.items() for k, n in ws.items() if n > 0}
+        return {k for ks in self.held.values() for k, n in ks.items() if n > 0}
 
     def is_delivered(self, key: SampleKey) -> bool:
-        return self.held.get(key[0], {}).get(key[1], 0) > 0
+        return self.held.get(key.video, {}).get(key, 0) > 0
 
-    def have(self, video: str) -> Set[int]:
-        """Windows of ``video`` delivered or live."""
+    def have(self, video: str) -> Set[SampleKey]:
+        """Samples of ``video`` delivered or live."""
         return {k for k, n in self.held.get(video, {}).items() if n > 0} | self.live_by_video.get(video, set())
 
     def add_live(self, key: SampleKey) -> None:
         self.live.add(key)
-        self.live_by_video.setdefault(key[0], set()).add(key[1])
+        self.live_by_video.setdefault(key.video, set()).add(key)
 
     def drop_live(self, key: SampleKey) -> None:
         if key in self.live:
             self.live.discard(key)
-            self.live_by_video[key[0]].discard(key[1])
+            self.live_by_video[key.video].discard(key)
 
     def set_record(self, consumer: Consumer, keys: Iterable[SampleKey]) -> Set[str]:
         """Replace a consumer's record; returns the videos whose holdings changed."""
         old = self.records.get(consumer, set())
         new = set(keys)
-        for v, k in old - new:
-            self.held[v][k] -= 1
-        for v, k in new - old:
-            self.held.setdefault(v, {})[k] = self.held.get(v, {}).get(k, 0) + 1
+        for k in old - new:
+            self.held[k.video][k] -= 1
+        for k in new - old:
+            ks = self.held.setdefault(k.video, {})
+            ks[k] = ks.get(k, 0) + 1
         self.records[consumer] = new
-        return {v for v, _ in old ^ new}
+        return {k.video for k in old ^ new}
 
     def add_record(self, consumer: Consumer, keys: Iterable[SampleKey]) -> None:
         rec = self.records.setdefault(consumer, set())
         for key in keys:
             if key not in rec:
                 rec.add(key)
-                ws = self.held.setdefault(key[0], {})
-                ws[key[1]] = ws.get(key[1], 0) + 1
+                ks = self.held.setdefault(key.video, {})
+                ks[key] = ks.get(key, 0) + 1
+
+    # ------------------------------------------------------------------ jobs
+    def owed_in(self, video: str) -> Set[SampleKey]:
+        """Samples of ``video`` still to make: not delivered, live or failed, among the
+        samples the file gave (none while that count is unknown)."""
+        job = self.jobs[video]
+        if job.samples is None:
+            return set()
+        have = self.have(video)
+        k = self.crops_per_window
+        return {key for key in (SampleKey.at(video, i, k) for i in range(job.samples))
+                if key not in job.failed and key not in have}
+
+    def skip(self, job: Job) -> FrozenSet[SampleKey]:
+        """What a task of ``job`` must not make: samples delivered, live or failed."""
+        return frozenset(self.have(job.video) | set(job.failed))
+
+    def set_state(self, job: Job, state: str) -> None:
+        if (job.state == "done") != (state == "done"):
+            self.unfinished += 1 if job.state == "done" else -1
+        job.state = state
+
+    def check_complete(self) -> bool:
+        """Complete when no job is queued or running and nothing is live (a done job never
+        owes anything: ``requeue`` queues it again first)."""
+        if self.complete:
+            return True
+        if self.unfinished or self.live:
+            return False
+        self.complete = True
+        return True
+
+    def first_unmade(self, job: Job, first: int = 0) -> SampleKey:
+        """The first sample of ``job``'s file, numbered ``first`` or later, neither made nor failed."""
+        have = self.have(job.video)
+        i = max(first, 0)
+        while True:
+            key = SampleKey.at(job.video, i, self.crops_per_window)
+            if key not in have and key not in job.failed:
+                return key
+            i += 1
+
+    def stop_at(self, job: Job, first: int, reason: str) -> None:
+        """The pass over ``job``'s file stopped in the first sample numbered ``first`` or later
+        that is neither made nor failed: it fails for this epoch and none beyond it exists."""
+        stop = self.first_unmade(job, first)
+        job.failed.setdefault(stop, reason)
+        job.samples = stop.ordinal(self.crops_per_window) + 1
+
+    def crashed(self, job: Job, max_crashes: int) -> Optional[str]:
+        """A worker died during ``job``: the crash is blamed on the first sample of the file
+        not yet made. After ``max_crashes`` crashes in that sample it fails for this epoch;
+        after twice as many crashes in all the file is given up for the epoch (the job is done,
+        ``job.gave_up``, and samples from the failed one on do not exist this epoch). Returns
+        the reason of the failure recorded, or None."""
+        job.crashes += 1
+        stop = self.first_unmade(job)
+        n = job.sample_crashes[stop] = job.sample_crashes.get(stop, 0) + 1
+        if job.crashes >= 2 * max_crashes:
+            job.error = f"worker crashed {job.crashes} times while processing it"
+            job.gave_up = True
+            self.stop_at(job, stop.ordinal(self.crops_per_window), job.error)
+            self.set_state(job, "done")
+            return job.error
+        if n >= max_crashes:
+            job.failed[stop] = f"worker crashed {n} times while making sample {stop.sample_id(self.crops_per_window)}"
+            return job.failed[stop]
+        return None
+
+    def requeue(self, videos: Iterable[str]) -> List[str]:
+        """Done jobs of ``videos`` that owe samples go back to queued (the epoch reopens);
+        returns those videos, for the scheduler's queue."""
+        out = []
+        for v in videos:
+            job = self.jobs.get(v)
+            if job is not None and job.state == "done" and self.owed_in(v):
+                self.set_state(job, "queued")
+                out.append(v)
+                self.complete = False
+        if self.live:
+            self.complete = False
+        self.check_complete()
+        return out
 
 
 class EpochScheduler:
@@ -145,22 +220,24 @@ class EpochScheduler:
     Args:
         videos: corpus-relative paths (never re-read: the scheduler never opens files).
         epochs: stop after this many epochs (None: unbounded).
-        max_task_crashes: crashes blamed on one index before it fails for the epoch (twice
+        max_task_crashes: crashes blamed on one sample before it fails for the epoch (twice
             as many in one file give the file up for the epoch; see ``worker_lost``).
         lookahead: epochs that may be open beyond the oldest incomplete one.
         keep_epochs: complete epochs kept so an older resume state can reopen them.
+        crops_per_window: samples per window (K of ``ids.py``).
 
-    Nothing here raises on peer input: bad ids are ignored by the caller's parser.
+    Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
 
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = 3,
-                 lookahead: int = 1, keep_epochs: int = 2):
+                 lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1):
         self.videos = list(videos)
         self.known = set(self.videos)
         self.max_epochs = epochs
         self.max_task_crashes = max_task_crashes
         self.lookahead = lookahead
         self.keep_epochs = keep_epochs
+        self.crops_per_window = crops_per_window
         self.plans: Dict[int, EpochPlan] = {}
         self.next_epoch = 0
         self.queue: Deque[Tuple[int, str]] = collections.deque()
@@ -178,7 +255,7 @@ class EpochScheduler:
             return False
         e = self.next_epoch
         self.next_epoch += 1
-        plan = EpochPlan(e)
+        plan = EpochPlan(e, self.crops_per_window)
         for consumer, keys in self.pending_records.pop(e, {}).items():
             plan.set_record(consumer, keys)
         for v in self.videos:
@@ -186,7 +263,7 @@ class EpochScheduler:
             plan.unfinished += 1
             self.queue.append((e, v))
         self.plans[e] = plan
-        self._check_complete(plan)
+        plan.check_complete()
         return True
 
     def finished(self) -> bool:
@@ -200,34 +277,7 @@ class EpochScheduler:
         p = self.plans.get(epoch)
         if p is None:
             return set()
-        return {(v, k) for v in p.jobs for k in self._owed_in(p, v)}
-
-    @staticmethod
-    def _owed_in(plan: EpochPlan, video: str) -> Set[int]:
-        job = plan.jobs[video]
-        if job.samples is None:
-            return set()
-        have = plan.have(video)
-        return {k for k in range(job.samples) if k not in job.failed and k not in have}
-
-    def _skip(self, job: Job, plan: EpochPlan) -> FrozenSet[int]:
-        return frozenset(plan.have(job.video) | set(job.failed))
-
-    @staticmethod
-    def _set_state(plan: EpochPlan, job: Job, state: str) -> None:
-        if (job.state == "done") != (state == "done"):
-            plan.unfinished += 1 if job.state == "done" else -1
-        job.state = state
-
-    def _check_complete(self, plan: EpochPlan) -> bool:
-        """Complete when no job is queued or running and nothing is live (a done job never
-        owes anything: ``_reconcile`` queues it again first)."""
-        if plan.complete:
-            return True
-        if plan.unfinished or plan.live:
-            return False
-        plan.complete = True
-        return True
+        return {k for v in p.jobs for k in p.owed_in(v)}
 
     def prune(self, forgettable: Iterable[int]) -> None:
         """Forget complete epochs in ``forgettable`` (e.g. announced to clients) except the
@@ -237,6 +287,11 @@ class EpochScheduler:
         for e in done[:-self.keep_epochs] if self.keep_epochs > 0 else done:
             if e in forgettable:
                 del self.plans[e]
+
+    def _reconcile(self, plan: EpochPlan, videos: Iterable[str]) -> None:
+        """Queue again the done jobs of ``videos`` that owe samples."""
+        for v in plan.requeue(videos):
+            self.queue.append((plan.epoch, v))
 
     # ------------------------------------------------------------------ tasks
     def next_task(self, worker: Hashable, now: float) -> Optional[Task]:
@@ -251,15 +306,15 @@ class EpochScheduler:
                 job = plan.jobs[v]
                 if job.state != "queued":
                     continue
-                if job.samples is not None and not self._owed_in(plan, v):
-                    self._set_state(plan, job, "done")  # nothing left to make of it (e.g. a resume state covered it)
-                    self._check_complete(plan)
+                if job.samples is not None and not plan.owed_in(v):
+                    plan.set_state(job, "done")  # nothing left to make of it (e.g. a resume state covered it)
+                    plan.check_complete()
                     continue
                 tid = next(self._task_ids)
-                self._set_state(plan, job, "running")
+                plan.set_state(job, "running")
                 job.task_id, job.worker, job.last_progress = tid, worker, now
                 self.running[tid] = job
-                return Task(tid, e, v, self._skip(job, plan))
+                return Task(tid, e, v, plan.skip(job))
             if not self._open_epoch():
                 return None
 
@@ -269,27 +324,29 @@ class EpochScheduler:
             return None  # a reassigned task's late copy, or a stranger
         return job
 
-    def accept_sample(self, task_id, worker: Hashable, index, now: float) -> Optional[SampleKey]:
-        """A worker made ``index`` of its task. Returns the sample key to batch, or None when
-        the sample must be dropped (late copy of a reassigned task, already delivered or live,
-        or not an index of that task)."""
+    def accept_sample(self, task_id, worker: Hashable, key: SampleKey, now: float) -> Optional[SampleKey]:
+        """A worker made sample ``key`` of its task. Returns the key to batch, or None when the
+        sample must be dropped (late copy of a reassigned task, already delivered or live,
+        failed, or not a sample of that task's video)."""
         job = self._current(task_id, worker)
-        if job is None or isinstance(index, bool) or not isinstance(index, int) or index < 0:
+        if job is None or not isinstance(key, SampleKey) or key.video != job.video:
+            return None
+        if not 0 <= key.crop < self.crops_per_window or key.window < 0:
             return None
         job.last_progress = now
         plan = self.plans[job.epoch]
-        key = (job.video, index)
-        if key in plan.live or plan.is_delivered(key) or index in job.failed:
+        if key in plan.live or plan.is_delivered(key) or key in job.failed:
             return None
         plan.add_live(key)
         return key
 
-    def task_done(self, task_id, worker: Hashable, samples: int, failed: Optional[Dict[int, str]] = None,
+    def task_done(self, task_id, worker: Hashable, windows: int, failed: Optional[Dict[int, str]] = None,
                   error: Optional[str] = None) -> Optional[Job]:
-        """A worker finished its task: ``samples`` the file gave (complete windows x crops),
-        ``failed`` sample indices that could not be made (index -> reason), ``error`` when the
-        pass stopped early (the index it stopped in counts as failed; later ones do not exist
-        this epoch).
+        """A worker finished its task: ``windows`` complete windows the file gave (each gives
+        ``crops_per_window`` samples), ``failed`` windows that could not be made (window ->
+        reason; each fails its crops), ``error`` when the pass stopped early (the first sample
+        not made in the window it stopped in counts as failed; later ones do not exist this
+        epoch). Window numbers may come as decimal strings (msgpack map keys).
         Returns the job, or None for a late copy."""
         job = self._current(task_id, worker)
         if job is None:
@@ -297,38 +354,29 @@ class EpochScheduler:
         del self.running[task_id]
         plan = self.plans[job.epoch]
         job.worker, job.task_id = None, None
-        samples = samples if isinstance(samples, int) and samples >= 0 else 0
-        for k, why in (failed or {}).items():
-            if isinstance(k, str) and k.isascii() and k.isdigit() and len(k) <= 9:
-                k = int(k)
-            if isinstance(k, int) and not isinstance(k, bool) and k >= 0:
-                job.failed[k] = str(why)
+        k = self.crops_per_window
+        samples = windows * k if isinstance(windows, int) and not isinstance(windows, bool) and windows >= 0 else 0
+        for w, why in (failed or {}).items():
+            if isinstance(w, str) and w.isascii() and w.isdigit() and len(w) <= 9:
+                w = int(w)
+            if isinstance(w, int) and not isinstance(w, bool) and w >= 0:
+                for key in window_keys(job.video, w, k):
+                    job.failed[key] = str(why)
         if error:
             job.error = error
             self.file_failures[job.video] = error
-            self._stop_at(job, plan, samples, error)
+            plan.stop_at(job, samples, error)
         else:
             job.samples = samples if job.samples is None else max(job.samples, samples)
-        self._set_state(plan, job, "done")
+        plan.set_state(job, "done")
         self._reconcile(plan, {job.video})
         return job
 
-    @staticmethod
-    def _stop_at(job: Job, plan: EpochPlan, first: int, reason: str) -> None:
-        """The pass over ``job``'s file stopped in the first index at or after ``first`` that is
-        neither made nor failed: that index fails for this epoch and none beyond it exists."""
-        have = plan.have(job.video)
-        stop = max(first, 0)
-        while stop in have or stop in job.failed:
-            stop += 1
-        job.failed.setdefault(stop, reason)
-        job.samples = stop + 1
-
     def worker_lost(self, worker: Hashable) -> Optional[Job]:
         """A worker died (or hung and was replaced) during a job. The crash is blamed on the
-        first index of the file not yet made: after ``max_task_crashes`` crashes in that
-        index it fails for this epoch and the job goes on after it; after twice as many
-        crashes in all the file is given up for the epoch (``job.gave_up``: indices from the
+        first sample of the file not yet made: after ``max_task_crashes`` crashes in that
+        sample it fails for this epoch and the job goes on after it; after twice as many
+        crashes in all the file is given up for the epoch (``job.gave_up``: samples from the
         failed one on do not exist this epoch). Otherwise the job goes back to the front of the
         queue. Returns the job, if any."""
         for tid, job in list(self.running.items()):
@@ -336,27 +384,15 @@ class EpochScheduler:
                 continue
             del self.running[tid]
             job.worker, job.task_id = None, None
-            job.crashes += 1
             plan = self.plans[job.epoch]
-            have = plan.have(job.video)
-            stop = 0
-            while stop in have or stop in job.failed:
-                stop += 1
-            job.index_crashes[stop] = job.index_crashes.get(stop, 0) + 1
-            reason = f"worker crashed {job.index_crashes[stop]} times while making sample {stop}"
-            if job.crashes >= 2 * self.max_task_crashes:
-                job.error = f"worker crashed {job.crashes} times while processing it"
-                job.gave_up = True
-                self.file_failures[job.video] = job.error
-                self._stop_at(job, plan, stop, job.error)
-                self._set_state(plan, job, "done")
-                self._reconcile(plan, {job.video})
-                return job
-            if job.index_crashes[stop] >= self.max_task_crashes:
-                job.failed[stop] = reason
+            reason = plan.crashed(job, self.max_task_crashes)
+            if reason is not None:
                 self.file_failures[job.video] = reason
-            self._set_state(plan, job, "queued")
-            self.queue.appendleft((job.epoch, job.video))
+            if job.gave_up:
+                self._reconcile(plan, {job.video})
+            else:
+                plan.set_state(job, "queued")
+                self.queue.appendleft((job.epoch, job.video))
             return job
         return None
 
@@ -398,7 +434,7 @@ class EpochScheduler:
         plan, keys = self._drop_live(epoch, keys)
         if plan is None:
             return
-        self._reconcile(plan, {v for v, _ in keys})
+        self._reconcile(plan, {k.video for k in keys})
 
     def is_delivered(self, epoch: int, key: SampleKey) -> bool:
         plan = self.plans.get(epoch)
@@ -410,7 +446,7 @@ class EpochScheduler:
         ``completed_epoch`` its record becomes exactly ``delivered[epoch]``; samples it had
         acknowledged beyond that become owed again (a complete epoch reopens). A fresh
         scheduler starts at ``completed_epoch + 1``."""
-        delivered = {e: {k for k in ks if k[0] in self.known} for e, ks in delivered.items()}
+        delivered = {e: {k for k in ks if k.video in self.known} for e, ks in delivered.items()}
         if not self.plans and self.next_epoch <= completed_epoch:
             self.next_epoch = completed_epoch + 1
         for e, plan in self.plans.items():
@@ -421,15 +457,3 @@ class EpochScheduler:
         for e, ks in delivered.items():
             if e > completed_epoch and e >= self.next_epoch:
                 self.pending_records.setdefault(e, {})[consumer] = set(ks)
-
-    def _reconcile(self, plan: EpochPlan, videos: Iterable[str]) -> None:
-        """Queue again the done jobs of ``videos`` that owe indices; reopen the epoch if so."""
-        for v in videos:
-            job = plan.jobs.get(v)
-            if job is not None and job.state == "done" and self._owed_in(plan, v):
-                self._set_state(plan, job, "queued")
-                self.queue.append((plan.epoch, v))
-                plan.complete = False
-        if plan.live:
-            plan.complete = False
-        self._check_complete(plan)

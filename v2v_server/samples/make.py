@@ -24,7 +24,7 @@ import numpy as np
 from v2v_server.samples.augment import augment_plan, degrade_window
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import corpus_file
-from v2v_wire.ids import make_sample_id
+from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.samples.flow import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.videos.decode import decode_codes, open_video, to_uint8
@@ -249,8 +249,8 @@ class _CropCut:
     that is resampled from the full-range frame) is stored at full range as it arrives.
     """
 
-    def __init__(self, cfg: ServeConfig, plan: WindowPlan):
-        self.cfg, self.plan = cfg, plan
+    def __init__(self, cfg: ServeConfig, key: SampleKey, plan: WindowPlan):
+        self.cfg, self.key, self.plan = cfg, key, plan
         self.buf: Optional[np.ndarray] = None
         self.coded: List[int] = []  # rows of buf still holding codes
         # an unscaled crop is one slice of the frame: what crop_frame cuts, without its
@@ -316,10 +316,10 @@ class _Window:
                     full.append(np.ascontiguousarray(expand(codes)))
                 cut.add(off, codes, expand is self.expand, expand, full[0] if full else None)
 
-    def finish(self) -> Iterator[Tuple["WindowPlan", np.ndarray]]:
-        """Each crop's plan and full-range frames, once the window is complete."""
+    def finish(self) -> Iterator[Tuple[SampleKey, "WindowPlan", np.ndarray]]:
+        """Each crop's key, plan and full-range frames, once the window is complete."""
         for cut in self.cuts:
-            yield cut.plan, cut.frames(self.expand)
+            yield cut.key, cut.plan, cut.frames(self.expand)
 
 
 def video_samples(
@@ -328,19 +328,20 @@ def video_samples(
     rel_path: str,
     epoch: int,
     outputs: Iterable[str],
-    skip_windows: Iterable[int] = (),
+    skip: Iterable[SampleKey] = (),
     flow: Optional[FlowEstimator] = None,
     stats: Optional[dict] = None,
     flow_grid: bool = False,
-) -> Iterator[Tuple[str, Dict[str, np.ndarray], dict]]:
+) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
     """Decode ``root / rel_path`` once, sequentially, and yield its samples.
 
     With ``cfg.crops_per_window`` = K, each window gives K samples: K crops, each with its own
     plan (crop, flip, pauses, sensor parameters) from its own id, cut from the same decoded
     frames as they pass (the window is never held at full size).
 
-    Yields ``(sample_id, arrays, meta)`` for each sample of a complete window whose index
-    (see :func:`parse_sample_id`) is not in ``skip_windows``, in window then crop order.
+    Yields ``(key, arrays, meta)`` (``key`` an ``ids.SampleKey``) for each sample of a complete
+    window whose key is not in ``skip``, in window then crop order; a sample's random choices
+    come from its sample id (``SampleKey.sample_id``).
     Decoding stops after the last window that can be used (known from the container's
     declared frame count when it has one). When given, ``stats`` receives
     ``frames`` (frames decoded), ``windows`` (complete windows, skipped and failed ones
@@ -353,7 +354,7 @@ def video_samples(
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
     path = corpus_file(root, rel_path)
-    skip = set(skip_windows)
+    skip = set(skip)
     span, stride = cfg.frames_per_sample, cfg.window_stride
     kpw = cfg.crops_per_window
     container, stream, info = open_video(path, cfg.decode_threads, cfg.decode_fast)  # opened once, decoded once
@@ -377,14 +378,14 @@ def video_samples(
         if off == 0 and win is not None:  # this frame ends window k - 1 ...
             win.add(span - 1, codes, expand, full, stats)
             stats["windows"] += 1
-            for plan, frames in win.finish():
+            for key, plan, frames in win.finish():
                 arrays = make_sample(cfg, plan, degrade_window(plan, frames), outputs, flow, info.fps,
                                      stats.setdefault("busy", {}), flow_grid)
-                yield plan.sample_id, arrays, sample_meta(plan, info.fps, (k - 1) * stride)
+                yield key, arrays, sample_meta(plan, info.fps, (k - 1) * stride)
             win = None
         if off == 0 and k < n_windows:  # ... and starts window k
             win = _Window(k, codes.shape, expand,
-                          [_CropCut(cfg, plan_window(cfg, epoch, make_sample_id(rel_path, k, c, kpw), k, codes.shape))
-                           for c in range(kpw) if k * kpw + c not in skip])
+                          [_CropCut(cfg, key, plan_window(cfg, epoch, key.sample_id(kpw), k, codes.shape))
+                           for key in window_keys(rel_path, k, kpw) if key not in skip])
         if win is not None:
             win.add(off, codes, expand, full, stats)

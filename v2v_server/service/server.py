@@ -11,10 +11,13 @@ The decisions live in small pure modules, tested directly (``tests/test_delivery
 * ``ledger.DeliveryLedger``: credits by batch id, leases, revokes that expire, re-sends, fair
   sharing, DDP groups;
 * ``core.DeliveryCore``: the two glued together with batching (still pure);
-* ``wire``: bounded decoding and typed messages from clients; ``pool.WorkerPool``: processes.
+* ``v2v_wire.messages``: bounded decoding and typed messages from clients; ``pool.WorkerPool``:
+  processes.
 
-This module only moves bytes: it reads sockets, asks those modules, and sends what they say.
-A batch's arrays stay an opaque ``datapath.BatchPayload``.
+This module only moves bytes: its loop reads the sockets, hands worker messages to
+``worker_side.WorkerSide`` and client messages to ``client_side.ClientSide`` (which ask those
+modules and send what they say), and owns the server's life: start, end of stream, status,
+shutdown. A batch's arrays stay an opaque ``datapath.BatchPayload``.
 """
 from __future__ import annotations
 
@@ -23,22 +26,22 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import List, Optional
 
 import zmq
 
-from v2v_wire import codecs
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import corpus_fingerprint
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
-from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
+from v2v_server.service.client_side import ClientSide
+from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.pool import WorkerPool
 from v2v_server.service.worker import worker_config
 from v2v_server.service.sockets import ServerSockets
-from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, ProtocolError, pack, unpack
-from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
+from v2v_server.service.worker_side import WorkerSide
+from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION
 
 log = logging.getLogger("v2v.server")
 
@@ -70,9 +73,8 @@ class V2VServer:
         self.videos = list(videos)
         self.corpus = corpus or corpus_fingerprint(self.videos)  # of the listing before sharding
         self.recipe = cfg.fingerprint()
-        self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
         self._stop = threading.Event()
-        self.journal = (Journal(cfg.state_dir, self.recipe)
+        self.journal = (Journal(cfg.state_dir, self.recipe, crops_per_window=cfg.crops_per_window)
                         if cfg.state_dir is not None else None)  # JournalError: another recipe's journal
         if self.journal is not None and self.journal.records:
             log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
@@ -80,8 +82,6 @@ class V2VServer:
         self.core = DeliveryCore(self.videos, DeliveryPolicy.from_config(cfg, MAX_TASK_CRASHES), make_batch,
                                  self.journal)
         self.sched, self.ledger = self.core.sched, self.core.ledger
-        self.bad = BadPeers()
-        self.logged_failures: set = set()
         self.ended = False  # every epoch delivered (at least once)
         self._told_end: set = set()  # connections told the stream ended
         self._ended_at: Optional[float] = None  # since when the stream ended with no trainer connected
@@ -90,9 +90,8 @@ class V2VServer:
         self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
         self.metrics = ServerMetrics()
         self._resent_seen = 0  # ledger.resent already counted
-        self._worker_seen = False  # some worker said ready
-        self._shm_clients: set = set()  # idents whose hello asked for shared-memory batches
-        self._codecs: Dict[bytes, str] = {}  # ident -> the compression its hello asked for
+        self.workers = WorkerSide(cfg, self.root, self.core, self.metrics, self.assembler)
+        self.clients = ClientSide(cfg, self.core, self.metrics, self.assembler, self.stream_info)
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -111,6 +110,8 @@ class V2VServer:
                 self.assembler.files = BatchDir.create()
             self.pool = WorkerPool(worker_config(self.cfg), str(self.root), self.sockets.backend_endpoint,
                                    self.cfg.workers)
+            self.workers.attach(self.backend, self.pool)
+            self.clients.attach(self.frontend)
             self.pool.start()
             rings = any(w.ring is not None for w in self.pool.workers.values())
             log.info("serving %d video(s) from %s on %s with %d worker(s); samples travel %s",
@@ -127,12 +128,7 @@ class V2VServer:
 
     def _shutdown(self) -> None:
         if self.pool is not None:
-            def send_stop(ident):
-                try:
-                    self.backend.send_multipart([ident, pack({"type": "stop"})], zmq.NOBLOCK)
-                except zmq.ZMQError:
-                    pass
-            self.pool.stop(send_stop)
+            self.workers.stop()
         if getattr(self, "sockets", None) is not None:
             self.sockets.close()
         self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
@@ -163,7 +159,7 @@ class V2VServer:
         for ident in list(self.ledger.clients):  # a send to a peer gone drops it from the ledger
             if ident not in self._told_end:
                 self._told_end.add(ident)
-                self._send_client(ident, {"type": "end"})
+                self.clients.send(ident, {"type": "end"})
         if self.ledger.clients:
             self._ended_at = None
             return False
@@ -190,7 +186,7 @@ class V2VServer:
                             frames = self.frontend.recv_multipart(zmq.NOBLOCK, copy=False)
                         except zmq.Again:
                             break
-                        self._on_client(frames)
+                        self.clients.on_message(frames)
                 if self.backend in events:
                     for _ in range(16):
                         if len(self.ledger.ready) >= self.cfg.prefetch_batches:
@@ -199,16 +195,19 @@ class V2VServer:
                             frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
                         except zmq.Again:
                             break
-                        self._on_worker(frames)
+                        self.workers.on_message(frames)
                 now = time.monotonic()
-                self._watch_workers(now)
-                self._dispatch(now)
-                self._send_batches(now)
+                if self._stop.is_set():  # workers that exit now were signalled with the server, not crashed
+                    break
+                self.workers.watch(now)
+                self.workers.dispatch(now, self.clients.socket_codecs())
+                self.clients.send_batches(now)
+                self._count_resent()
                 self.metrics.tick(self._metrics_state)  # gauges + liveness, at most 4 times a second
                 if self.journal is not None:
                     self.journal.sync(now)
                 if now >= next_beat:
-                    self._broadcast({"type": "heartbeat"})
+                    self.clients.broadcast({"type": "heartbeat"})
                     next_beat = now + self.cfg.heartbeat_s
                 if now >= next_status:
                     self._log_status()
@@ -217,148 +216,20 @@ class V2VServer:
                     return 0
                 if self._corpus_empty():
                     msg = (f"no usable video under {self.root}: "
-                           + "; ".join(f"{k}: {v}" for k, v in sorted(self.skipped_files.items())))
+                           + "; ".join(f"{k}: {v}" for k, v in sorted(self.workers.skipped_files.items())))
                     log.error(msg)
-                    self._broadcast({"type": "error", "message": msg})
+                    self.clients.broadcast({"type": "error", "message": msg})
                     return 2
         except Exception as e:  # a bug of ours: say so to every client before going down
             log.exception("server loop failed: %s", e)
-            self._broadcast({"type": "shutdown"})
+            self.clients.broadcast({"type": "shutdown"})
             raise
         # graceful stop: batches still unacknowledged stay with their trainers' resume state
         # (a restarted server re-makes whatever they did not take); tell clients to wait or resume
-        self._broadcast({"type": "shutdown"})
+        self.clients.broadcast({"type": "shutdown"})
         return 0
 
-    # ------------------------------------------------------------------ workers
-    def _watch_workers(self, now: float) -> None:
-        for ident, code in self.pool.reap():
-            self.metrics.on_worker_restarted()
-            job = self.core.worker_lost(ident)
-            if job is not None:
-                log.warning("worker %s died (exit code %s); restarting; re-queued %s epoch %d", ident.decode(),
-                            code, job.video, job.epoch)
-                if job.error:
-                    self._log_failure(job.video, job.error)
-            else:
-                log.warning("worker %s died (exit code %s); restarting", ident.decode(), code)
-        for ident, job in self.core.timed_out(now):
-            self.metrics.on_task_timed_out()
-            log.warning("worker %s sent nothing on %s epoch %d for %.0f s; task reassigned, worker restarted",
-                        ident.decode(), job.video, job.epoch, self.cfg.task_timeout_s)
-            self.pool.replace(ident)
-            self.metrics.on_worker_restarted()
-
-    def _on_worker(self, frames) -> None:
-        ident = frames[0].bytes
-        w = self.pool.get(ident)
-        try:
-            h = unpack(frames[1])
-        except ProtocolError as e:
-            log.error("bad message from worker %s: %s", ident, e)
-            return
-        if w is None:
-            return  # a replaced worker's last words
-        self.metrics.on_worker_message(h)  # stage seconds
-        kind = h["type"]
-        now = time.monotonic()
-        if kind == "ready":
-            if w.ring is not None and h.get("ring") is False:
-                log.warning("worker %s could not map its slot ring; it sends arrays as socket frames", ident.decode())
-            w.idle = True
-            self._worker_seen = True  # /readyz: a worker is up
-        elif kind == "sample":
-            slot = h.get("slot")
-            if slot is not None and w.ring is not None:  # arrays in the worker's shared memory
-                build = lambda: sample_from_slot(h, w.ring, self.assembler, frames[2:])  # noqa: E731
-            else:
-                build = lambda: sample_from_worker(h, frames[2:])  # noqa: E731
-            try:
-                kept = self.core.sample(ident, h.get("task"), h.get("index"), now, build)
-            except (ProtocolError, KeyError, TypeError, ValueError) as e:
-                log.error("bad sample from worker %s: %s", ident, e)
-                return
-            finally:
-                if slot is not None:  # copied out (or not wanted): the worker may write it again
-                    try:
-                        self.backend.send_multipart([ident, pack({"type": "slot", "slot": slot})], zmq.NOBLOCK)
-                    except zmq.ZMQError:
-                        pass
-            if kept:
-                self.metrics.on_sample_made()
-        elif kind == "done":
-            failed = h.get("failed") if isinstance(h.get("failed"), dict) else {}
-            job = self.core.done(ident, h.get("task"), h.get("windows", 0), failed, h.get("error"))
-            if job is None:
-                return
-            w.idle = True
-            for k, why in sorted(failed.items()):
-                self._log_failure(job.video, f"window {k}: {why}")
-            if h.get("error"):
-                n = h.get("windows", 0) if isinstance(h.get("windows"), int) else 0
-                self._log_failure(job.video, h["error"], served=n)
-
-    def _log_failure(self, video: str, reason: str, served: int = 0) -> None:
-        """Log once per (file, reason) why a file, or the rest of it after ``served``
-        windows, is skipped this epoch."""
-        if video not in self.skipped_files:
-            self.metrics.on_file_skipped()
-        self.skipped_files.setdefault(video, reason)
-        if (video, reason) not in self.logged_failures and len(self.logged_failures) < 100000:
-            self.logged_failures.add((video, reason))
-            if served:
-                log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
-                            "epoch", self.root / video, reason, served, served - 1)
-            else:
-                log.warning("skipped %s: %s", self.root / video, reason)
-
-    def _dispatch(self, now: float) -> None:
-        for w in self.pool.idle():
-            msg = self.core.task_for(w.ident, now)
-            if msg is None:
-                return
-            # what workers compress with: each codec a connected client asked for (over sockets)
-            msg["codecs"] = sorted({c for i, c in self._codecs.items() if c != "none" and i in self.ledger.clients
-                                    and i not in self._shm_clients})
-            w.idle = False
-            self.backend.send_multipart([w.ident, pack(msg)])
-
-    # ------------------------------------------------------------------ batches
-    def _send_batches(self, now: float) -> None:
-        sends, msgs = self.core.tick(now)
-        for ident, b in sends:
-            c = self.ledger.clients.get(ident)
-            if c is None:
-                continue
-            ref = None
-            if ident in self._shm_clients and b.batch_id >= 0:  # same host: a reference into the batch file
-                ref = b.payload.shm_ref(c.outputs)
-            if ref is not None:
-                (specs, shm), frames = ref, []
-                nbytes = sum(b.payload.arrays[s["name"]].nbytes for s in specs)
-            else:  # compressed arrays are the workers' frames, forwarded as they came
-                specs, frames = b.payload.wire(c.outputs, self._codecs.get(ident, "none"))
-                nbytes = sum(_nbytes(f) for f in frames)
-            header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
-                      "sample_ids": b.payload.sample_ids, "params": b.payload.meta, "arrays": specs}
-            if ref is not None:
-                header["shm"] = shm
-            if b.batch_id < 0:
-                header["padding"] = True  # DDP: a repeat for a rank that has nothing to repeat; never acked
-            try:
-                self.frontend.send_multipart([ident, pack(header)] + frames, copy=False)
-            except zmq.ZMQError as e:  # peer vanished (ROUTER_MANDATORY)
-                log.warning("client %s unreachable (%s); dropping it", ident.hex(), e)
-                self.core.forget(ident)
-                continue
-            self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)
-        for ident, msg in msgs:
-            if msg.get("type") == "revoke":
-                for _ in msg.get("batch_ids", ()):
-                    self.metrics.on_lease_expired()
-            self._send_client(ident, msg)
-        self._count_resent()
-
+    # ------------------------------------------------------------------ status
     def _log_status(self) -> None:
         self._count_resent()
         m = self.metrics.totals()
@@ -367,7 +238,7 @@ class V2VServer:
                  "%d bad message(s) (%d log lines suppressed)",
                  len(self.ledger.clients), m["batches_sent"], m["batches_resent"], self.ledger.acked,
                  m["samples_made"], len(self.ledger.ready), self.ledger.in_flight(), m["workers_restarted"],
-                 m["tasks_timed_out"], len(self.skipped_files), m["bad_messages"], self.bad.suppressed)
+                 m["tasks_timed_out"], len(self.workers.skipped_files), m["bad_messages"], self.clients.bad.suppressed)
 
     def _count_resent(self) -> None:
         """Count the ledger's re-queued batches into the metrics (the ledger re-queues them
@@ -386,7 +257,7 @@ class V2VServer:
                 "epoch": newest if newest is not None else -1,
                 "epoch_videos": len(plan.jobs) if plan else 0,
                 "epoch_videos_done": sum(1 for j in plan.jobs.values() if j.state == "done") if plan else 0,
-                "ready": self.bound_endpoint is not None and bool(alive) and self._worker_seen}
+                "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
 
     def _corpus_empty(self) -> bool:
         """Every file failed and nothing was ever made: no epoch can hold a sample."""
@@ -394,16 +265,6 @@ class V2VServer:
                 any(p.complete for p in self.sched.plans.values()))
 
     # ------------------------------------------------------------------ clients
-    def _send_client(self, ident: bytes, msg: dict) -> None:
-        try:
-            self.frontend.send_multipart([ident, pack(msg)], zmq.NOBLOCK)
-        except zmq.ZMQError:
-            self.core.forget(ident)
-
-    def _broadcast(self, msg: dict) -> None:
-        for ident in list(self.ledger.clients):
-            self._send_client(ident, msg)
-
     def stream_info(self) -> dict:
         c = self.cfg
         return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
@@ -417,56 +278,6 @@ class V2VServer:
                 # recipe, and a resume state is refused under another recipe
                 "shard": "%d/%d" % c.shard_spec, "corpus": self.corpus, "recipe": self.recipe,
                 "max_hello_bytes": MAX_CLIENT_MSG}
-
-    def _bad_peer(self, ident: bytes, why: str, now: float) -> None:
-        self.metrics.on_bad_message()
-        log_it, banned = self.bad.strike(ident, now)
-        if log_it:
-            log.warning("dropping client %s: %s", ident.hex(), why)
-        if banned:
-            log.warning("client %s keeps sending bad messages: ignoring it for %.0f s", ident.hex(), self.bad.ban_s)
-        if not self.bad.banned(ident, now) or banned:
-            self._send_client(ident, {"type": "error", "message": f"protocol error: {why}"})
-        self.core.forget(ident)
-
-    def _on_client(self, frames) -> None:
-        ident = frames[0].bytes
-        now = time.monotonic()
-        if self.bad.banned(ident, now):
-            return
-        try:
-            if len(frames) != 2:
-                raise WireError(f"expected 1 frame after the identity, got {len(frames) - 1}")
-            msg = decode_client(frames[1], MAX_CLIENT_MSG, self.cfg.max_credits, self.cfg.crops_per_window)
-        except WireError as e:
-            self._bad_peer(ident, str(e), now)
-            return
-        if isinstance(msg, Hello):
-            self._shm_clients &= set(self.ledger.clients)  # forget clients gone since
-            if msg.shm and self.assembler.files is not None:
-                self._shm_clients.add(ident)
-            else:
-                self._shm_clients.discard(ident)
-            for gone in set(self._codecs) - set(self.ledger.clients):
-                del self._codecs[gone]
-            if not codecs.available(msg.compression):
-                self._send_client(ident, {"type": "error", "code": "compression",
-                                          "message": f"this server cannot compress with {msg.compression!r}: "
-                                                     f"{msg.compression} needs the 'wire' extra on the server "
-                                                     f"(pip install 'v2v[wire]'); ask for compression 'none'"})
-                return
-            self._codecs[ident] = msg.compression
-            replies = self.core.hello(ident, msg, now, self.stream_info)
-        else:
-            replies = self.core.message(ident, msg, now)
-        for to, reply in replies:
-            self._send_client(to, reply)
-
-
-def _nbytes(frame) -> int:
-    """Bytes of an outgoing frame (a numpy array, or a worker's compressed frame)."""
-    return frame.nbytes if hasattr(frame, "nbytes") else len(frame.buffer if hasattr(frame, "buffer") else frame)
-
 
 def install_signal_handlers(server: V2VServer) -> None:
     """SIGINT/SIGTERM stop the server cleanly (finish the loop, stop workers, close sockets)."""

@@ -1,8 +1,9 @@
 """Worker process: decodes videos and runs V2V for the tasks the server hands it.
 
 A worker connects a DEALER socket to the server's worker endpoint, says ``ready``, and for
-each ``task`` (one video of one epoch) streams one ``sample`` message per window, then a
-``done`` message with the frame count or the reason the video could not be used. Sends block
+each ``task`` (one video of one epoch) streams one ``sample`` message per sample (named by its
+``ids.SampleKey``, ``"key": [video, window, crop]``), then a ``done`` message with the complete
+windows the file gave, the windows that failed and the reason the pass stopped early, if any. Sends block
 at a small high-water mark, so a worker never runs ahead of what the server is willing to
 hold. A worker whose parent has gone exits by itself.
 
@@ -34,7 +35,7 @@ from v2v_wire.outputs import wire_dtype
 from v2v_wire.protocol import encode_arrays, pack, unpack
 from v2v_server.samples.flow import to_float16
 from v2v_server.samples.flow import FlowEstimator
-from v2v_wire.ids import parse_sample_id
+from v2v_wire.ids import SampleKey
 from v2v_server.samples.make import video_samples
 
 log = logging.getLogger("v2v.worker")
@@ -167,21 +168,20 @@ def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent
     """Make every sample of one task and send it (through ``inbox``'s slot ring when it has
     one), then send ``done``."""
     stats: dict = {}
-    sent = 0
     error = None
     preset = cfg.flow_preset
     flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task["outputs"] else None
     clock = _StageClock(stats)  # seconds per stage, reported with each message
+    skip = [SampleKey(task["video"], w, c) for w, c in task.get("skip", ())]
     try:
-        for sid, arrays, meta in video_samples(
-            cfg, root, task["video"], task["epoch"], task["outputs"], task.get("skip", ()), flow, stats,
+        for key, arrays, meta in video_samples(
+            cfg, root, task["video"], task["epoch"], task["outputs"], skip, flow, stats,
             flow_grid=True,  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
         ):
             clock.made()
             arrays = wire_arrays(cfg, arrays)
             specs, frames = encode_arrays(arrays)
-            header = {"type": "sample", "task": task["task"], "sample_id": sid,
-                      "index": parse_sample_id(sid, cfg.crops_per_window)[1], "meta": meta, "arrays": specs}
+            header = {"type": "sample", "task": task["task"], "key": key.wire(), "meta": meta, "arrays": specs}
             packed_specs, packed = pack_arrays(arrays, task.get("codecs", ()))
             if packed:
                 header["packed"] = packed_specs
@@ -195,17 +195,14 @@ def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent
             header["stages"] = clock.report()
             _send(sock, [pack(header)] + frames + packed, parent_pid)
             clock.sent()
-            sent += 1
     except Exception as e:  # any failure on one file is that file's verdict, not the worker's death
         error = e
     # failed windows are reported one by one below, not in the file's verdict
     error = verdict(cfg, stats.get("frames", 0), None, error)[2]
     clock.made()  # decoding after the last window
-    kpw = cfg.crops_per_window
-    done = {"type": "done", "task": task["task"], "samples": sent, "frames": stats.get("frames", 0),
-            "windows": stats.get("windows", 0) * kpw, "error": error, "stages": clock.report(),
-            # the scheduler counts samples (index = window * K + crop): a failed window fails its K crops
-            "failed": {str(k * kpw + c): str(v) for k, v in stats.get("failed", {}).items() for c in range(kpw)}}
+    done = {"type": "done", "task": task["task"], "frames": stats.get("frames", 0),
+            "windows": stats.get("windows", 0), "error": error, "stages": clock.report(),
+            "failed": {str(k): str(v) for k, v in stats.get("failed", {}).items()}}  # window -> reason
     _send(sock, [pack(done)], parent_pid)
 
 

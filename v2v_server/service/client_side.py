@@ -1,0 +1,153 @@
+"""The server loop's client side: messages from trainers in, batches and control messages out.
+
+``ClientSide`` decodes each client message with bounds (``v2v_wire.messages``), strikes and
+bans peers that send garbage, passes the rest to the delivery core, and sends what the core
+says: batches (as shared-memory references to clients on this host that asked for them, else
+as frames in the compression each client asked for), revokes, epoch ends and errors.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable, Dict, List, Optional
+
+import zmq
+
+from v2v_server.delivery.core import DeliveryCore
+from v2v_server.ops.config import ServeConfig
+from v2v_server.ops.metrics import ServerMetrics
+from v2v_server.service.datapath import BatchAssembler
+from v2v_wire import codecs
+from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
+from v2v_wire.protocol import MAX_CLIENT_MSG, pack
+
+log = logging.getLogger("v2v.server")
+
+
+class ClientSide:
+    """The clients as the server loop sees them.
+
+    Args:
+        cfg: the server's ``ServeConfig``.
+        core: the delivery core.
+        metrics: counters of batches, bytes, leases and bad messages.
+        assembler: the batch buffers (its ``files`` are what shared-memory clients read).
+        stream_info: ``() -> dict``, the ``info`` of a welcome.
+
+    ``attach(frontend)`` once the socket is bound.
+    """
+
+    def __init__(self, cfg: ServeConfig, core: DeliveryCore, metrics: ServerMetrics, assembler: BatchAssembler,
+                 stream_info: Callable[[], dict]):
+        self.cfg, self.core, self.metrics, self.assembler, self.stream_info = cfg, core, metrics, assembler, stream_info
+        self.frontend: Optional[zmq.Socket] = None
+        self.bad = BadPeers()
+        self.shm_clients: set = set()  # idents whose hello asked for shared-memory batches
+        self.compression: Dict[bytes, str] = {}  # ident -> the compression its hello asked for
+
+    def attach(self, frontend: zmq.Socket) -> None:
+        self.frontend = frontend
+
+    def socket_codecs(self) -> List[str]:
+        """The codecs connected clients asked for over sockets (what workers compress with)."""
+        return sorted({c for i, c in self.compression.items() if c != "none" and i in self.core.ledger.clients
+                       and i not in self.shm_clients})
+
+    def send_batches(self, now: float) -> None:
+        """Ask the core what to send now (batches, revokes, epoch ends) and send it; a
+        client that cannot be reached is forgotten (its batches go to others)."""
+        sends, msgs = self.core.tick(now)
+        for ident, b in sends:
+            c = self.core.ledger.clients.get(ident)
+            if c is None:
+                continue
+            ref = None
+            if ident in self.shm_clients and b.batch_id >= 0:  # same host: a reference into the batch file
+                ref = b.payload.shm_ref(c.outputs)
+            if ref is not None:
+                (specs, shm), frames = ref, []
+                nbytes = sum(b.payload.arrays[s["name"]].nbytes for s in specs)
+            else:  # compressed arrays are the workers' frames, forwarded as they came
+                specs, frames = b.payload.wire(c.outputs, self.compression.get(ident, "none"))
+                nbytes = sum(_nbytes(f) for f in frames)
+            header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
+                      "sample_ids": b.payload.sample_ids, "params": b.payload.meta, "arrays": specs}
+            if ref is not None:
+                header["shm"] = shm
+            if b.batch_id < 0:
+                header["padding"] = True  # DDP: a repeat for a rank that has nothing to repeat; never acked
+            try:
+                self.frontend.send_multipart([ident, pack(header)] + frames, copy=False)
+            except zmq.ZMQError as e:  # peer vanished (ROUTER_MANDATORY)
+                log.warning("client %s unreachable (%s); dropping it", ident.hex(), e)
+                self.core.forget(ident)
+                continue
+            self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)
+        for ident, msg in msgs:
+            if msg.get("type") == "revoke":
+                for _ in msg.get("batch_ids", ()):
+                    self.metrics.on_lease_expired()
+            self.send(ident, msg)
+
+    def send(self, ident: bytes, msg: dict) -> None:
+        """One control message to one client (forgotten if it cannot be reached)."""
+        try:
+            self.frontend.send_multipart([ident, pack(msg)], zmq.NOBLOCK)
+        except zmq.ZMQError:
+            self.core.forget(ident)
+
+    def broadcast(self, msg: dict) -> None:
+        """One control message to every connected client."""
+        for ident in list(self.core.ledger.clients):
+            self.send(ident, msg)
+
+    def _bad_peer(self, ident: bytes, why: str, now: float) -> None:
+        self.metrics.on_bad_message()
+        log_it, banned = self.bad.strike(ident, now)
+        if log_it:
+            log.warning("dropping client %s: %s", ident.hex(), why)
+        if banned:
+            log.warning("client %s keeps sending bad messages: ignoring it for %.0f s", ident.hex(), self.bad.ban_s)
+        if not self.bad.banned(ident, now) or banned:
+            self.send(ident, {"type": "error", "message": f"protocol error: {why}"})
+        self.core.forget(ident)
+
+    def on_message(self, frames) -> None:
+        """One message from a client (identity frame, message frame): decoded with bounds,
+        schema-checked, answered; a bad one strikes its peer (``messages.BadPeers``)."""
+        ident = frames[0].bytes
+        now = time.monotonic()
+        if self.bad.banned(ident, now):
+            return
+        try:
+            if len(frames) != 2:
+                raise WireError(f"expected 1 frame after the identity, got {len(frames) - 1}")
+            msg = decode_client(frames[1], MAX_CLIENT_MSG, self.cfg.max_credits, self.cfg.crops_per_window)
+        except WireError as e:
+            self._bad_peer(ident, str(e), now)
+            return
+        if isinstance(msg, Hello):
+            self.shm_clients &= set(self.core.ledger.clients)  # forget clients gone since
+            if msg.shm and self.assembler.files is not None:
+                self.shm_clients.add(ident)
+            else:
+                self.shm_clients.discard(ident)
+            for gone in set(self.compression) - set(self.core.ledger.clients):
+                del self.compression[gone]
+            if not codecs.available(msg.compression):
+                self.send(ident, {"type": "error", "code": "compression",
+                                  "message": f"this server cannot compress with {msg.compression!r}: "
+                                             f"{msg.compression} needs the 'wire' extra on the server "
+                                             f"(pip install 'v2v[wire]'); ask for compression 'none'"})
+                return
+            self.compression[ident] = msg.compression
+            replies = self.core.hello(ident, msg, now, self.stream_info)
+        else:
+            replies = self.core.message(ident, msg, now)
+        for to, reply in replies:
+            self.send(to, reply)
+
+
+def _nbytes(frame) -> int:
+    """Bytes of an outgoing frame (a numpy array, or a worker's compressed frame)."""
+    return frame.nbytes if hasattr(frame, "nbytes") else len(frame.buffer if hasattr(frame, "buffer") else frame)

@@ -1,0 +1,158 @@
+"""The server loop's worker side: tasks out, samples and reports in, dead and hung workers replaced.
+
+``WorkerSide`` reads the messages of the backend socket (``ready``, ``sample``, ``done``), asks
+the delivery core (``delivery.core.DeliveryCore``) what each means, gives slots back, hands idle
+workers their tasks, and logs once per (file, reason) why a file, or the rest of it, is skipped
+this epoch. It decides nothing itself: the core does; it owns no process: the pool does.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import zmq
+
+from v2v_server.delivery.core import DeliveryCore
+from v2v_server.ops.config import ServeConfig
+from v2v_server.ops.metrics import ServerMetrics
+from v2v_server.service.datapath import BatchAssembler, sample_from_slot, sample_from_worker
+from v2v_server.service.pool import WorkerPool
+from v2v_wire.ids import SampleKey
+from v2v_wire.protocol import ProtocolError, pack, unpack
+
+log = logging.getLogger("v2v.server")
+
+
+class WorkerSide:
+    """The workers as the server loop sees them.
+
+    Args:
+        cfg: the server's ``ServeConfig``.
+        root: corpus folder (for log lines).
+        core: the delivery core the reports go to.
+        metrics: counters of samples, restarts, timeouts and skipped files.
+        assembler: where samples that arrive in shared-memory slots are copied.
+
+    ``attach(backend, pool)`` once the socket is bound and the pool started.
+    """
+
+    def __init__(self, cfg: ServeConfig, root: Path, core: DeliveryCore, metrics: ServerMetrics,
+                 assembler: BatchAssembler):
+        self.cfg, self.root, self.core, self.metrics, self.assembler = cfg, Path(root), core, metrics, assembler
+        self.backend: Optional[zmq.Socket] = None
+        self.pool: Optional[WorkerPool] = None
+        self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
+        self.logged_failures: set = set()
+        self.seen = False  # some worker said ready (/readyz)
+
+    def attach(self, backend: zmq.Socket, pool: WorkerPool) -> None:
+        self.backend, self.pool = backend, pool
+
+    def stop(self) -> None:
+        """Ask every worker to stop (then the pool terminates what is left)."""
+        def send_stop(ident):
+            try:
+                self.backend.send_multipart([ident, pack({"type": "stop"})], zmq.NOBLOCK)
+            except zmq.ZMQError:
+                pass
+        self.pool.stop(send_stop)
+
+    def watch(self, now: float) -> None:
+        """Replace dead workers (their tasks go back to the queue) and hung ones (silent on a
+        task for ``task_timeout_s``)."""
+        for ident, code in self.pool.reap():
+            self.metrics.on_worker_restarted()
+            job = self.core.worker_lost(ident)
+            if job is not None:
+                log.warning("worker %s died (exit code %s); restarting; re-queued %s epoch %d", ident.decode(),
+                            code, job.video, job.epoch)
+                if job.error:
+                    self.log_failure(job.video, job.error)
+            else:
+                log.warning("worker %s died (exit code %s); restarting", ident.decode(), code)
+        for ident, job in self.core.timed_out(now):
+            self.metrics.on_task_timed_out()
+            log.warning("worker %s sent nothing on %s epoch %d for %.0f s; task reassigned, worker restarted",
+                        ident.decode(), job.video, job.epoch, self.cfg.task_timeout_s)
+            self.pool.replace(ident)
+            self.metrics.on_worker_restarted()
+
+    def on_message(self, frames) -> None:
+        """One message from a worker (identity frame, header, array frames): ``ready``,
+        ``sample`` (named by its ``"key"``, ``ids.SampleKey.wire``) or ``done``."""
+        ident = frames[0].bytes
+        w = self.pool.get(ident)
+        try:
+            h = unpack(frames[1])
+        except ProtocolError as e:
+            log.error("bad message from worker %s: %s", ident, e)
+            return
+        if w is None:
+            return  # a replaced worker's last words
+        self.metrics.on_worker_message(h)  # stage seconds
+        kind = h["type"]
+        now = time.monotonic()
+        if kind == "ready":
+            if w.ring is not None and h.get("ring") is False:
+                log.warning("worker %s could not map its slot ring; it sends arrays as socket frames", ident.decode())
+            w.idle = True
+            self.seen = True  # /readyz: a worker is up
+        elif kind == "sample":
+            slot = h.get("slot")
+            if slot is not None and w.ring is not None:  # arrays in the worker's shared memory
+                build = lambda: sample_from_slot(h, w.ring, self.assembler, frames[2:])  # noqa: E731
+            else:
+                build = lambda: sample_from_worker(h, frames[2:])  # noqa: E731
+            try:
+                key = SampleKey.from_wire(h.get("key"), self.cfg.crops_per_window)
+                h["sample_id"] = key.sample_id(self.cfg.crops_per_window)  # the batch's user-facing id
+                kept = self.core.sample(ident, h.get("task"), key, now, build)
+            except (ProtocolError, KeyError, TypeError, ValueError) as e:
+                log.error("bad sample from worker %s: %s", ident, e)
+                return
+            finally:
+                if slot is not None:  # copied out (or not wanted): the worker may write it again
+                    try:
+                        self.backend.send_multipart([ident, pack({"type": "slot", "slot": slot})], zmq.NOBLOCK)
+                    except zmq.ZMQError:
+                        pass
+            if kept:
+                self.metrics.on_sample_made()
+        elif kind == "done":
+            failed = h.get("failed") if isinstance(h.get("failed"), dict) else {}
+            job = self.core.done(ident, h.get("task"), h.get("windows", 0), failed, h.get("error"))
+            if job is None:
+                return
+            w.idle = True
+            for k, why in sorted(failed.items()):
+                self.log_failure(job.video, f"window {k}: {why}")
+            if h.get("error"):
+                n = h.get("windows", 0) if isinstance(h.get("windows"), int) else 0
+                self.log_failure(job.video, h["error"], served=n)
+
+    def log_failure(self, video: str, reason: str, served: int = 0) -> None:
+        """Log once per (file, reason) why a file, or the rest of it after ``served``
+        windows, is skipped this epoch."""
+        if video not in self.skipped_files:
+            self.metrics.on_file_skipped()
+        self.skipped_files.setdefault(video, reason)
+        if (video, reason) not in self.logged_failures and len(self.logged_failures) < 100000:
+            self.logged_failures.add((video, reason))
+            if served:
+                log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
+                            "epoch", self.root / video, reason, served, served - 1)
+            else:
+                log.warning("skipped %s: %s", self.root / video, reason)
+
+    def dispatch(self, now: float, codecs: List[str]) -> None:
+        """A task for each idle worker while there are tasks; ``codecs``: what the workers
+        compress each sample with (the codecs connected clients asked for over sockets)."""
+        for w in self.pool.idle():
+            msg = self.core.task_for(w.ident, now)
+            if msg is None:
+                return
+            msg["codecs"] = codecs
+            w.idle = False
+            self.backend.send_multipart([w.ident, pack(msg)])
