@@ -20,10 +20,12 @@ __all__ = ["make_stream", "make_loader", "batch_to_device", "drop_padding"]
 
 
 def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
-                reconnect: bool = False, curve_keys=None, outputs: Optional[Sequence[str]] = None):
+                reconnect: bool = False, curve_keys=None, outputs: Optional[Sequence[str]] = None,
+                compact_flow: bool = True):
     """Open a ``v2v_client.V2VStreamDataset`` on ``endpoint`` (one server, or several:
     ``"tcp://a:5555,tcp://b:5555"``) asking only for ``outputs`` (default: ``task``'s; a run's
-    are ``tasks.stream_outputs(cfg)``); ``reconnect`` and
+    are ``tasks.stream_outputs(cfg)``); ``reconnect``, ``compact_flow`` (a tracked flow
+    arrives as its grid, made dense on the training device by :func:`batch_to_device`) and
     ``curve_keys`` (client secret key file, server public key file) as in the dataset.
     Raises ``ImportError`` with a hint when the client is not installed."""
     try:
@@ -33,7 +35,7 @@ def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 6
                           "client (pip install -e '.[client]')") from e
     return V2VStreamDataset(endpoint=endpoint, outputs=tuple(outputs or get_task(task).outputs), credits=int(credits),
                             timeout_s=float(timeout_s), raw=bool(raw), reconnect=bool(reconnect),
-                            curve_keys=tuple(curve_keys) if curve_keys else None)
+                            curve_keys=tuple(curve_keys) if curve_keys else None, compact_flow=bool(compact_flow))
 
 
 def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:
@@ -54,7 +56,10 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
     them to float32 there.
 
     With ``flow_from`` given, only ``flow[:, flow_from:]`` is transferred (E2VID's temporal
-    consistency loss uses the last part of the sequence only).
+    consistency loss uses the last part of the sequence only). A batch with ``flow_grid``
+    (B, L, 2, n, n) in place of ``flow`` (``compact_flow``) has the grid transferred and made
+    dense on the device (``v2v_client.expand_flow_grid``, the crop size of the voxels).
+    Copies are non-blocking when the device is CUDA (from pinned memory: ``make_loader``).
 
     Returns a dict with float32 ``voxels`` (B, L, num_bins, H, W), ``frames`` (B, L+1, 1,
     H, W) in [0, 1] and ``flow`` (B, L', 2, H, W) pixels, those of ``outputs``.
@@ -64,14 +69,19 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
     """
     nb = device.type == "cuda"
     for key in outputs:
-        if key not in batch:
+        if key not in batch and not (key == "flow" and "flow_grid" in batch):
             raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); the task needs {tuple(outputs)}")
     out = {"voxels": batch["voxels"].to(device, non_blocking=nb).float()}
     if "frames" in outputs:
         out["frames"] = _frames_to_float(batch["frames"].to(device, non_blocking=nb))
     if "flow" in outputs:
-        flow = batch["flow"] if flow_from is None else batch["flow"][:, flow_from:]
+        key = "flow" if "flow" in batch else "flow_grid"
+        flow = batch[key] if flow_from is None else batch[key][:, flow_from:]
         out["flow"] = flow.to(device, non_blocking=nb).float()
+        if key == "flow_grid":
+            from v2v_client import expand_flow_grid
+
+            out["flow"] = expand_flow_grid(out["flow"], tuple(out["voxels"].shape[-2:]))
     return out
 
 
