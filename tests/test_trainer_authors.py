@@ -12,7 +12,6 @@ import pytest
 import torch
 
 from trainer.checkpoints import AUTHORS_FORMATS, detect_format, load_authors_checkpoint
-from trainer.evaluate import load_model, main as eval_main
 from trainer.zoo import build_model
 
 REF = json.loads((Path(__file__).parent / "data" / "zoo_reference.json").read_text())
