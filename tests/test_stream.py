@@ -261,3 +261,16 @@ def test_a_resume_state_of_700k_ids_is_sent_compactly_and_a_too_large_one_is_a_c
         assert reply["type"] == "error" and str(16 * 1024 * 1024) in reply["message"], reply
         s.close()
         ctx.term()
+
+
+def test_a_clip_too_short_for_one_window_is_skipped_without_a_warning(videos):
+    """bigbuckbunny.mp4 (132 frames) gives no window of 30 voxels x 5 bins (151 frames): an
+    INFO line says so, no WARNING (a short clip is no fault of the file)."""
+    args = ["--videos", str(videos), "--workers", "1", "--sequence-length", "30", "--crop-size", "32",
+            "--batch-size", "1", "--epochs", "1", "--max-samples-per-video", "1"]
+    with ServeProcess(args) as srv:
+        for _ in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=120):
+            pass
+        assert srv.wait(60) == 0
+    assert "INFO skipped " in srv.log and "bigbuckbunny.mp4: 132 frames, shorter than one window of 151" in srv.log
+    assert "WARNING" not in srv.log

@@ -29,7 +29,7 @@ import zmq
 
 from v2v_wire import codecs
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.corpus import corpus_fingerprint
+from v2v_server.videos.corpus import SHORT_CLIP, corpus_fingerprint
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
 from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
@@ -309,8 +309,9 @@ class V2VServer:
             if served:
                 log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
                             "epoch", self.root / video, reason, served, served - 1)
-            else:
-                log.warning("skipped %s: %s", self.root / video, reason)
+            else:  # a clip too short for one window is no fault: not a warning
+                log.log(logging.INFO if SHORT_CLIP in reason else logging.WARNING, "skipped %s: %s", self.root / video,
+                        reason)
 
     def _dispatch(self, now: float) -> None:
         for w in self.pool.idle():
