@@ -82,6 +82,35 @@ class RunLog:
         self.fh.close()
 
 
+class _PendingRows:
+    """The rows of the steps since the last logging step, their losses and terms still on the
+    device; :meth:`flush` reads them, checks the losses, writes the rows and moves the bar."""
+
+    def __init__(self, run_log: Optional[RunLog], bar):
+        self.pending: List[dict] = []
+        self.losses: List[float] = []  # every finite loss so far, for the summary
+        self.run_log, self.bar = run_log, bar
+
+    def flush(self, wait_fraction: float) -> None:
+        """Read the pending rows' values from the device (one wait), check and log them.
+
+        Raises:
+            FloatingPointError: a non-finite loss of a step that had samples.
+        """
+        rows = _read_rows(self.pending)
+        self.pending.clear()
+        for row in rows:
+            if np.isfinite(row["loss"]):
+                self.losses.append(row["loss"])
+            elif row.get("samples", 1):
+                raise FloatingPointError(f"non-finite loss {row['loss']} at step {row['step'] - 1}")
+            if self.run_log is not None:
+                self.run_log.write(row)
+        if self.bar is not None and rows:
+            self.bar.set_postfix(loss=f"{rows[-1]['loss']:.4f}", wait=f"{wait_fraction:.0%}", refresh=False)
+            self.bar.update(len(rows))
+
+
 def _read_rows(rows: List[dict]) -> List[dict]:
     """``rows`` with their tensor values read as floats, all in one copy from the device."""
     keys = [(i, k) for i, r in enumerate(rows) for k, v in r.items() if isinstance(v, torch.Tensor)]
@@ -130,26 +159,9 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
         from tqdm import tqdm
 
         bar = tqdm(total=max_steps, initial=trainer.step, unit="step", dynamic_ncols=True, file=sys.stderr)
-    losses, wait, t_start = [], 0.0, time.perf_counter()
+    wait, t_start = 0.0, time.perf_counter()
     start_step, every = trainer.step, schedule.checkpoint_every
-    pending: List[dict] = []  # this interval's rows, their losses and terms still on the device
-
-    def flush() -> None:
-        """Read the pending rows' values from the device (one wait), check the losses, log."""
-        rows = _read_rows(pending)
-        pending.clear()
-        for row in rows:
-            if np.isfinite(row["loss"]):
-                losses.append(row["loss"])
-            elif row.get("samples", 1):
-                raise FloatingPointError(f"non-finite loss {row['loss']} at step {row['step'] - 1}")
-            if run_log is not None:
-                run_log.write(row)
-        if bar is not None and rows:
-            bar.set_postfix(loss=f"{rows[-1]['loss']:.4f}", wait=f"{wait / max(time.perf_counter() - t_start, 1e-9):.0%}",
-                            refresh=False)
-            bar.update(len(rows))
-
+    rows = _PendingRows(run_log, bar)
     it = iter(batches)
     try:
         while trainer.step < max_steps:
@@ -167,9 +179,9 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
                 hooks.on_batch(batch, stats)
             stats.update(step=trainer.step, epoch=batch.get("epoch", ""), batch_id=batch.get("batch_id", ""),
                          data_wait_s=round(t1 - t0, 5), step_s=round(t2 - t0, 5))
-            pending.append(stats)
+            rows.pending.append(stats)
             if trainer.step % max(1, schedule.log_every) == 0:
-                flush()
+                rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
             if hooks.files and schedule.image_every and trainer.step % schedule.image_every == 0:
                 trainer.save_samples()
             if every and trainer.step % every == 0:
@@ -178,7 +190,7 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
         log.warning("interrupted at step %d: saving a checkpoint", trainer.step)
     finally:
         try:
-            flush()
+            rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
         finally:
             if run_log is not None:
                 run_log.close()
@@ -190,7 +202,7 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
         trainer.save_samples()
     if hooks.final_checkpoint == "always" or (n and (not every or trainer.step % every)):
         checkpoint()
-    summary = _summary(trainer, losses, n, elapsed, wait, hooks.summary_extra())
+    summary = _summary(trainer, rows.losses, n, elapsed, wait, hooks.summary_extra())
     if hooks.files:
         (trainer.out / "summary.json").write_text(json.dumps(summary, indent=2))
         log.info("done: %s", json.dumps(summary))
