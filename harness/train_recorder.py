@@ -23,8 +23,8 @@ def main(argv: List[str]) -> int:
     orig = core.Trainer.train_step
     kill_after = int(os.environ.get("V2V_SIGKILL_AFTER_STEP", "0"))
 
-    def recording_step(self, batch):
-        stats = orig(self, batch)
+    def recording_step(self, batch, sync=True):
+        stats = orig(self, batch, sync)
         pad = batch.get("padding")
         ids = [s for i, s in enumerate(batch["sample_ids"]) if pad is None or not bool(pad[i])]
         record.write(json.dumps({"step": self.step, "epoch": int(batch["epoch"]), "ids": ids}) + "\n")

@@ -306,3 +306,16 @@ def test_sigterm_to_the_process_group_stops_the_server_without_restarting_worker
     assert "signal 15: shutting down" in log, log
     assert "restarting" not in log and "died" not in log and " 0 worker restart(s)" in log, log
     assert code == 0, log
+
+
+def test_a_clip_too_short_for_one_window_is_skipped_without_a_warning(videos):
+    """bigbuckbunny.mp4 (132 frames) gives no window of 30 voxels x 5 bins (151 frames): an
+    INFO line says so, no WARNING (a short clip is no fault of the file)."""
+    args = ["--videos", str(videos), "--workers", "1", "--sequence-length", "30", "--crop-size", "32",
+            "--batch-size", "1", "--epochs", "1", "--max-samples-per-video", "1"]
+    with ServeProcess(args) as srv:
+        for _ in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=120):
+            pass
+        assert srv.wait(60) == 0
+    assert "INFO skipped " in srv.log and "bigbuckbunny.mp4: 132 frames, shorter than one window of 151" in srv.log
+    assert "WARNING" not in srv.log

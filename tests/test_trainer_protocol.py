@@ -13,7 +13,8 @@ import torch
 from tests.trainer_fixtures import write_mvsec_like_h5
 from trainer.config import default_config, merge
 from trainer.core import Trainer
-from trainer.evaluate import H5Sequence, main as eval_main
+from trainer.evaluate import LPIPS_NOT_REPORTED, H5Sequence, main as eval_main
+from trainer.lpips_net import STAND_IN
 from trainer.protocol import (HQF_SEQUENCES, PAPER_CUTS, cut_sequence, evaluate_paper, paper_files, paper_markdown,
                               select_checkpoint)
 
@@ -94,4 +95,37 @@ def test_cli_protocol_on_a_checkpoint(tmp_path, capsys):
     out = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert list(out["datasets"]) == ["hqf"] and out["per_sequence"]["hqf/desk"]["frames"] == 7
     assert str(tmp_path / "data" / "evaid" / "ball.h5") in out["missing"]
-    assert "| HQF | 1 |" in (tmp_path / "out" / "paper_table.md").read_text()
+    table = (tmp_path / "out" / "paper_table.md").read_text()
+    assert "| HQF | 1 |" in table
+    # trained and scored without LPIPS weights: both recorded in the JSON and the table
+    assert t.perceptual_term == STAND_IN and torch.load(ck, weights_only=False)["perceptual_term"] == STAND_IN
+    assert out["trained_perceptual_term"] == STAND_IN and out["lpips_metric"] == LPIPS_NOT_REPORTED
+    assert out["format"] == "v2v-train" and STAND_IN in table and LPIPS_NOT_REPORTED in table
+
+
+def test_cli_protocol_scores_the_authors_e2vid_plus_plus_checkpoint(tmp_path):
+    """``v2v-eval --checkpoint their.pth --model e2vid++`` (a state dict with the keys and shapes
+    of their FlowNet, tests/data/zoo_reference.json) scores the baseline row."""
+    ref = json.loads((Path(__file__).parent / "data" / "zoo_reference.json").read_text())
+    g = torch.Generator().manual_seed(0)
+    sd = {"_orig_mod." + k: torch.randn(shape, generator=g) * 0.01 for k, shape in ref["e2vid++"]["state_dict"].items()}
+    torch.save({"state_dict": sd}, tmp_path / "reconstruction_model_state_dict.pth")
+    (tmp_path / "data" / "hqf").mkdir(parents=True)
+    write_mvsec_like_h5(tmp_path / "data" / "hqf" / "desk.h5")
+    rc = eval_main(["--checkpoint", str(tmp_path / "reconstruction_model_state_dict.pth"), "--model", "e2vid++",
+                    "--protocol", "v2v-paper", "--data-root", str(tmp_path / "data"), "--out", str(tmp_path / "out"),
+                    "--device", "cpu"])
+    assert rc == 0
+    out = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert out["format"] == "authors:e2vid++" and out["trained_perceptual_term"] == "authors' release"
+    assert out["per_sequence"]["hqf/desk"]["frames"] == 7 and np.isfinite(out["mean"]["mse"])
+    assert (tmp_path / "out" / "paper_table.md").read_text().startswith("**e2vid++ reconstruction_model")
+    with pytest.raises(SystemExit):  # their checkpoint named as another network
+        eval_main(["--checkpoint", str(tmp_path / "reconstruction_model_state_dict.pth"), "--model", "etnet",
+                   "--protocol", "v2v-paper", "--data-root", str(tmp_path / "data"), "--device", "cpu"])
+
+
+def test_require_lpips_refuses_to_score_without_weights(tmp_path, caplog):
+    rc = eval_main(["--checkpoint", str(tmp_path / "x.pt"), "--protocol", "v2v-paper", "--data-root",
+                    str(tmp_path), "--require-lpips", "--device", "cpu"])
+    assert rc == 2 and "--require-lpips: no LPIPS (Alex) weights" in caplog.text

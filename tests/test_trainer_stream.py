@@ -19,9 +19,9 @@ def record_trained(monkeypatch) -> list:
     seen = []
     orig = tr.Trainer.train_step
 
-    def recording_step(self, batch):
+    def recording_step(self, batch, sync=True):
         seen.append((batch["epoch"], list(batch["sample_ids"])))
-        return orig(self, batch)
+        return orig(self, batch, sync)
 
     monkeypatch.setattr(tr.Trainer, "train_step", recording_step)
     return seen

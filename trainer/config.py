@@ -61,8 +61,11 @@ class RunSettings:
     out: str = setting("runs/{task}", help="output folder")
     max_steps: int = setting(200000, help="total optimiser steps")
     seed: int = setting(0, help="torch seed of the model's initialisation")
-    amp: str = setting("fp32", help="fp32 as the reference trains; bf16: autocast on CUDA (ignored on CPU)",
-                       choices=("fp32", "bf16"))
+    amp: str = setting("fp32", help="fp32 as the reference trains; bf16: the network's forward under bf16 autocast "
+                                    "(losses and metrics in float32)", choices=("fp32", "bf16"))
+    compile: bool = setting(False, help="run the network through torch.compile (the authors' use_compile)")
+    require_lpips: bool = setting(False, help="refuse to start (exit 2) when the LPIPS weights are missing instead "
+                                              "of training with the 1 - SSIM stand-in")
     resume: Optional[str] = setting(None, help="checkpoint path, or 'auto' = <out>/checkpoint_last.pt if present")
 
 
@@ -74,6 +77,8 @@ class StreamSettings:
     timeout_s: float = setting(60.0, help="seconds without a message before StreamTimeout")
     raw: bool = setting(True, help="wire dtypes to the device, converted there")
     reconnect: bool = setting(False, help="wait for a restarted server instead of failing")
+    compact_flow: bool = setting(True, help="a tracked flow arrives as its grid of points and is made dense on the "
+                                            "training device")
     curve_keys: Optional[list] = setting(None, help="[client .key_secret file, server .key file] for a server "
                                                     "that requires CurveZMQ")
 
@@ -119,6 +124,8 @@ class LogSettings:
     image_every: int = setting(500, help="steps between preview images (0: only at the end)")
     checkpoint_every: int = setting(1000, help="steps between checkpoints (0: only at the end)")
     progress: bool = setting(True, help="a progress bar on stderr")
+    every: int = setting(10, help="steps between reads of the losses from the device (CSV rows are written then, "
+                                  "one per step); no other step waits for the device")
 
 
 @dataclass

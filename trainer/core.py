@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import shutil
 from pathlib import Path
@@ -16,6 +17,7 @@ from typing import Optional
 import torch
 
 from .data import batch_to_device, drop_padding
+from .lpips_net import STAND_IN, LPIPSUnavailable
 from .zoo import build_model
 from .tasks import get_task
 from .viz import save_grid
@@ -69,6 +71,7 @@ class Trainer:
 
     Raises:
         ValueError: an unknown task, ``amp`` or a bad loss setting (naming it).
+        LPIPSUnavailable: ``require_lpips`` set and the perceptual term would be the stand-in.
 
     Use ``trainer.loop.train_loop`` (or :meth:`fit`) with an iterable of stream batches (the
     contract of ``v2v_client.V2VStreamDataset``), or :meth:`train_step` on one batch.
@@ -83,20 +86,33 @@ class Trainer:
         torch.manual_seed(int(cfg.get("seed", 0)))
         if device.type == "cuda":
             torch.backends.cudnn.benchmark = True  # fixed crop size: let cuDNN pick its kernels
-        self.spec = get_task(self.task)(cfg, device)
-        self.model = build_model(self.task, dict(cfg["model"])).to(device)
-        self.optimizer = build_optimizer(self.model, cfg["optim"])
-        self.clip = cfg["optim"].get("clip_grad_norm")
         amp = str(cfg.get("amp", "fp32")).lower()
         if amp not in ("fp32", "bf16"):
             raise ValueError(f"amp must be 'fp32' or 'bf16', got {cfg.get('amp')!r}")
-        self.amp = device.type == "cuda" and amp == "bf16"
+        self.spec = get_task(self.task)(cfg, device)
+        rec = getattr(self.spec, "rec_loss", None)
+        #: the perceptual term the losses use (``ReconstructionLoss.term``), recorded in the
+        #: summary and checkpoints; None for a task without one
+        self.perceptual_term = rec.term if rec is not None else None
+        if cfg.get("require_lpips") and self.perceptual_term == STAND_IN:
+            raise LPIPSUnavailable(f"require_lpips: no LPIPS ({cfg['loss'].get('lpips_net')}) weights found (give "
+                                   "loss.lpips_weights or install the lpips package); not training with the "
+                                   "1 - SSIM stand-in")
+        self.model = build_model(self.task, dict(cfg["model"])).to(device)
+        #: what forward calls: the model, or its ``torch.compile`` (config ``compile``; parameters
+        #: and state dict stay the model's, so checkpoints keep their keys)
+        self.net = torch.compile(self.model) if cfg.get("compile") else self.model
+        self.optimizer = build_optimizer(self.model, cfg["optim"])
+        self.clip = cfg["optim"].get("clip_grad_norm")
+        self.amp = amp == "bf16"
         self.step = 0
         self.stream_state = None
 
     def _autocast(self):
+        """bf16 autocast on the training device when ``amp: bf16`` (the tasks compute losses
+        and metrics on float32 copies of the predictions), else nothing."""
         if self.amp:
-            return torch.autocast("cuda", dtype=torch.bfloat16)
+            return torch.autocast(self.device.type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 
     def _check_batch(self, b: dict):
@@ -108,16 +124,21 @@ class Trainer:
 
     def forward(self, b: dict):
         """The task's loss, logged terms and predictions for a batch on the device."""
-        return self.spec.forward(self.model, b, self._autocast)
+        return self.spec.forward(self.net, b, self._autocast)
 
-    def train_step(self, batch: dict) -> dict:
-        """One optimiser step on one stream batch (host tensors). Returns floats:
-        ``loss`` and the task's terms. Samples flagged ``padding`` are left out of the loss;
-        a batch of padding only makes no step and returns ``{"loss": nan, "samples": 0}``.
+    def train_step(self, batch: dict, sync: bool = True) -> dict:
+        """One optimiser step on one stream batch (host tensors). Samples flagged ``padding``
+        are left out of the loss; a batch of padding only makes no step and returns
+        ``{"loss": nan, "samples": 0}``.
+
+        With ``sync`` (default) returns floats, ``loss`` and the task's terms, and checks the
+        loss. With ``sync=False`` nothing in the step waits for the device: ``loss`` and the
+        terms are detached 0-dim tensors on the device (``trainer.loop`` reads them at its
+        logging interval and checks them there); ``samples`` is an int either way.
 
         Raises:
             ValueError: voxels of another bin count than the model's.
-            FloatingPointError: a non-finite loss.
+            FloatingPointError: a non-finite loss (``sync`` only).
         """
         batch, n_real = drop_padding(batch)
         if n_real == 0:
@@ -130,15 +151,17 @@ class Trainer:
         set_lr(self.optimizer, self.cfg["optim"], self.step)
         self.spec.step = self.step
         loss, stats, preds = self.forward(b)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite loss {float(loss)} at step {self.step}")
         loss.backward()
         if self.clip:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), float(self.clip))
         self.optimizer.step()
         self.step += 1
         self._last = (b, preds)
-        stats["loss"] = float(loss.detach())
+        stats["loss"] = loss.detach()
+        if sync:
+            stats = {k: float(v) for k, v in stats.items()}
+            if not math.isfinite(stats["loss"]):
+                raise FloatingPointError(f"non-finite loss {stats['loss']} at step {self.step - 1}")
         stats["samples"] = n_real
         return stats
 
@@ -157,7 +180,8 @@ class Trainer:
         if stream is not None and hasattr(stream, "state_dict"):
             sd = stream.state_dict()
         return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "step": self.step,
-                "task": self.task, "config": self.cfg, "stream_state": sd, "torch_rng": torch.get_rng_state()}
+                "task": self.task, "config": self.cfg, "stream_state": sd, "torch_rng": torch.get_rng_state(),
+                "perceptual_term": self.perceptual_term}
 
     def save_checkpoint(self, stream=None) -> Path:
         """Write ``checkpoint_NNNNNNN.pt`` and refresh ``checkpoint_last.pt``; returns the former."""
@@ -191,7 +215,7 @@ class Trainer:
         log.info("resumed from %s at step %d", path, self.step)
 
     def fit(self, stream, max_steps: int, image_every: int = 500, checkpoint_every: int = 1000,
-            progress: bool = True) -> dict:
+            progress: bool = True, log_every: int = 10) -> dict:
         """Train from a stream (``v2v_client.V2VStreamDataset`` or any iterable of its batches)
         until ``max_steps`` total steps, the stream ends or Ctrl-C; checkpoints carry the
         stream's ``state_dict()``. Returns the summary of ``trainer.loop.train_loop``."""
@@ -199,4 +223,5 @@ class Trainer:
         from .loop import Schedule, train_loop
 
         return train_loop(self, make_loader(stream, self.device), max_steps,
-                          Schedule(image_every, checkpoint_every, progress), lambda: self.save_checkpoint(stream))
+                          Schedule(image_every, checkpoint_every, progress, log_every),
+                          lambda: self.save_checkpoint(stream))

@@ -22,10 +22,12 @@ __all__ = ["make_stream", "make_loader", "batch_to_device", "drop_padding"]
 
 
 def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
-                reconnect: bool = False, curve_keys=None, outputs: Optional[Sequence[str]] = None):
+                reconnect: bool = False, curve_keys=None, outputs: Optional[Sequence[str]] = None,
+                compact_flow: bool = True):
     """Open a ``v2v_client.V2VStreamDataset`` on ``endpoint`` (one server, or several:
     ``"tcp://a:5555,tcp://b:5555"``) asking only for ``outputs`` (default: ``task``'s; a run's
-    are ``tasks.stream_outputs(cfg)``); ``reconnect`` and
+    are ``tasks.stream_outputs(cfg)``); ``reconnect``, ``compact_flow`` (a tracked flow
+    arrives as its grid, made dense on the training device by :func:`batch_to_device`) and
     ``curve_keys`` (client secret key file, server public key file) as in the dataset.
     Raises ``ImportError`` with a hint when the client is not installed."""
     try:
@@ -35,7 +37,7 @@ def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 6
                           "client (pip install -e '.[client]')") from e
     return V2VStreamDataset(endpoint=endpoint, outputs=tuple(outputs or get_task(task).outputs), credits=int(credits),
                             timeout_s=float(timeout_s), raw=bool(raw), reconnect=bool(reconnect),
-                            curve_keys=tuple(curve_keys) if curve_keys else None)
+                            curve_keys=tuple(curve_keys) if curve_keys else None, compact_flow=bool(compact_flow))
 
 
 def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:
@@ -60,7 +62,10 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
     ``device`` with non-blocking copies and convert them to float32 there (``_to_float``).
 
     With ``flow_from`` given, only ``flow[:, flow_from:]`` is transferred (E2VID's temporal
-    consistency loss uses the last part of the sequence only).
+    consistency loss uses the last part of the sequence only). A batch with ``flow_grid``
+    (B, L, 2, n, n) in place of ``flow`` (``compact_flow``) has the grid transferred and made
+    dense on the device (``v2v_client.expand_flow_grid``, the crop size of the voxels).
+    Copies are non-blocking when the device is CUDA (from pinned memory: ``make_loader``).
 
     Returns a dict with float32 ``voxels`` (B, L, num_bins, H, W), ``frames`` (B, L+1, 1,
     H, W) in [0, 1], ``flow`` (B, L', 2, H, W) pixels and ``polarity_counts`` (B, L, 2,
@@ -71,10 +76,17 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
     """
     nb = device.type == "cuda"
     for key in outputs:
-        if key not in batch:
+        if key not in batch and not (key == "flow" and "flow_grid" in batch):
             raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); the task needs {tuple(outputs)}")
     out = {}
     for key in dict.fromkeys(("voxels", *outputs)):
+        if key == "flow" and "flow" not in batch:  # compact flow: the grid, made dense on the device
+            grid = batch["flow_grid"] if flow_from is None else batch["flow_grid"][:, flow_from:]
+            from v2v_client import expand_flow_grid
+
+            out["flow"] = expand_flow_grid(_to_float("flow_grid", grid.to(device, non_blocking=nb)),
+                                           tuple(out["voxels"].shape[-2:]))
+            continue
         t = batch[key][:, flow_from:] if key == "flow" and flow_from is not None else batch[key]
         out[key] = _to_float(key, t.to(device, non_blocking=nb))
     return out

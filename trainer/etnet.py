@@ -19,8 +19,9 @@ Architecture of the authors' ``model/eitr`` (HYLZ-2019/V2V ``EITR`` / ``mls_tpa`
   encoders, then ``pred`` (1x1 -> 1) with the head as skip, then a sigmoid.
 
 State-dict keys and shapes equal the authors' (tests/data/zoo_reference.json). Input
-(N, num_bins, H, W) float, H and W zero-padded to multiples of 8 and the output cropped back;
-at most 20000 tokens (H/8 * W/8) per image.
+(N, num_bins, H, W) float, H and W zero-padded at the bottom and right to multiples of 16 as the
+authors' driver pads them (``trainer.models.pad_input``; the attention sees the padded tokens,
+as theirs does) and the output cropped back; at most 20000 tokens (H/8 * W/8, padded) per image.
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .models import ConvLayer, UpsampleConvLayer, _pad_to_multiple
+from .models import ConvLayer, UpsampleConvLayer, pad_input
 from .models import RecurrentConvLayer
 
 __all__ = ["ETNet", "sinusoid_table"]
@@ -179,7 +180,7 @@ class ETNet(nn.Module):
     def forward(self, voxel: torch.Tensor, states: Optional[List] = None):
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
             raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
-        x, h, w = _pad_to_multiple(voxel, 8)
+        x, h, w = pad_input(voxel)
         states = states or [None] * 3
         f = self.head(x)
         head = f

@@ -1,5 +1,13 @@
 """``v2v-eval``: evaluate E2VID / EvFlow checkpoints with the metrics the V2V paper reports.
 
+Checkpoints: those ``v2v-train`` writes, or the V2V authors' released ones (``--model`` names
+the format, e.g. ``e2vid++`` for their original E2VID++; ``trainer/checkpoints.py``). Every
+network sees its input padded to multiples of 16 as the authors' driver pads it
+(``trainer.models.pad_input``). Results (JSON and the protocol's markdown table) record the
+weights' ``format``, the perceptual term the run trained with (``trained_perceptual_term``:
+``trainer.lpips_net.STAND_IN`` when 1 - SSIM stood in for LPIPS) and whether LPIPS was scored
+(``lpips_metric``); ``--require-lpips`` refuses to score without LPIPS weights (exit 2).
+
 Inputs:
 
 * H5 sequences in the layout of the V2V reference repo and event_cnn_minimal:
@@ -51,7 +59,8 @@ import torch
 from .config import ConfigError, exit_on_config_error
 
 __all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
-           "evaluate_e2vid", "evaluate_evflow", "load_model", "main"]
+           "evaluate_e2vid", "evaluate_evflow", "load_model", "build_arg_parser", "main",
+           "LPIPS_NOT_REPORTED"]
 
 log = logging.getLogger("trainer.evaluate")
 
@@ -271,19 +280,40 @@ def flow_metrics(pred: np.ndarray, gt: np.ndarray, event_mask: Optional[np.ndarr
     return out
 
 
-def load_model(checkpoint: str, device: torch.device):
-    """Rebuild the network stored by ``v2v-train`` in ``checkpoint``; returns (task, model
-    in eval mode, config).
+def load_model(checkpoint: str, device: torch.device, fmt: Optional[str] = None):
+    """Rebuild the network stored in ``checkpoint``: one written by ``v2v-train``, or one of the
+    V2V authors' released formats (``trainer.checkpoints``; ``fmt`` names it, e.g. ``"e2vid++"``,
+    None detects it from the keys).
+
+    Returns:
+        ``(task, model in eval mode, cfg, record)``: ``task`` the trainer task whose metrics
+        score the network, ``cfg`` the run's config (the paper's for an authors' checkpoint),
+        ``record`` what results record about the weights: ``format`` (``"v2v-train"`` or
+        ``"authors:<fmt>"``) and ``trained_perceptual_term`` (the run's
+        ``Trainer.perceptual_term``, ``trainer.lpips_net.STAND_IN`` for a run trained with the
+        1 - SSIM stand-in; ``"unrecorded"`` when the checkpoint predates the record, ``"authors'
+        release"`` for theirs).
 
     Raises:
         ConfigError: naming ``checkpoint``, when it is missing or its stored configuration
             does not build a network (an unknown model key, with the allowed ones).
+        ValueError: an authors' checkpoint that does not fit its format (naming it).
     """
+    from .checkpoints import AUTHORS_FORMATS, is_authors_checkpoint, load_authors_checkpoint
+    from .config import default_config
     from .zoo import build_model
 
     if not Path(checkpoint).is_file():
         raise ConfigError(f"checkpoint not found: {checkpoint}")
     ck = torch.load(checkpoint, map_location=device, weights_only=False)
+    if is_authors_checkpoint(ck):
+        name, model = load_authors_checkpoint(checkpoint, fmt, device)
+        task = AUTHORS_FORMATS[name][3]
+        return task, model, default_config(task), {"format": f"authors:{name}",
+                                                  "trained_perceptual_term": "authors' release"}
+    if fmt is not None:
+        raise ValueError(f"{checkpoint}: --model {fmt} names an authors' checkpoint format, but this is a "
+                         "v2v-train checkpoint (it names its own network)")
     cfg = ck["config"]
     try:
         model = build_model(ck["task"], dict(cfg["model"]))
@@ -292,7 +322,8 @@ def load_model(checkpoint: str, device: torch.device):
     model = model.to(device)
     model.load_state_dict(ck["model"])
     model.eval()
-    return ck["task"], model, cfg
+    return ck["task"], model, cfg, {"format": "v2v-train",
+                                    "trained_perceptual_term": ck.get("perceptual_term", "unrecorded")}
 
 
 @torch.no_grad()
@@ -363,10 +394,15 @@ def _summarise(per_input: Dict[str, Dict[str, List[float]]]) -> dict:
     }
 
 
-@exit_on_config_error("v2v-eval")
-def main(argv=None) -> int:
+def build_arg_parser() -> argparse.ArgumentParser:
+    """The ``v2v-eval`` command line."""
+    from .checkpoints import AUTHORS_FORMATS
+
     p = argparse.ArgumentParser(prog="v2v-eval", description="Evaluate a v2v-train checkpoint (paper metrics).")
-    p.add_argument("--checkpoint", help="checkpoint_*.pt written by v2v-train")
+    p.add_argument("--checkpoint", help="checkpoint_*.pt written by v2v-train, or an authors' released .pth")
+    p.add_argument("--model", choices=list(AUTHORS_FORMATS), help="the network of an authors' checkpoint "
+                   "(trainer/checkpoints.py; detected from its keys when left out); e2vid++ is their original "
+                   "E2VID++ (FlowNet)")
     p.add_argument("--protocol", choices=["v2v-paper"], help="v2v-paper: the paper's sequences and cuts of IJRR, "
                    "MVSEC, HQF, EVAID under --data-root, SSIM data_range 2, LPIPS-Alex; table per dataset + mean")
     p.add_argument("--data-root", help="--protocol / --select-checkpoint: folder with ijrr/, mvsec/, hqf/, evaid/ "
@@ -381,54 +417,107 @@ def main(argv=None) -> int:
     p.add_argument("--ssim-data-range", type=float, default=1.0,
                    help="skimage data_range for SSIM; 2 reproduces the paper tables' convention")
     p.add_argument("--lpips-weights", nargs="*", default=None, help="LPIPS AlexNet weight file(s)")
+    p.add_argument("--require-lpips", action="store_true", help="refuse to start (exit 2) when no LPIPS (Alex) "
+                   "weights are found, instead of scoring without LPIPS")
     p.add_argument("--skip-first", type=int, default=0, help="E2VID: leave the first N frames out (warm-up)")
     p.add_argument("--device", default="auto")
     p.add_argument("--out", help="write the metrics JSON (and sample PNGs) here")
     p.add_argument("--save-images", type=int, default=0, help="E2VID: save every Nth reconstruction as PNG")
+    return p
+
+
+#: What results record as the LPIPS metric when no LPIPS weights were found.
+LPIPS_NOT_REPORTED = "not reported: no LPIPS weights"
+
+
+def _lpips_metric(args, device):
+    """``(LPIPS-Alex module or None, what results record as the LPIPS metric)``.
+
+    Raises:
+        LPIPSUnavailable: ``--require-lpips`` and no weights.
+    """
+    from .lpips_net import LPIPSUnavailable, load_lpips
+
+    lp = load_lpips("alex", args.lpips_weights)
+    if lp is None:
+        if args.require_lpips:
+            raise LPIPSUnavailable("--require-lpips: no LPIPS (Alex) weights found (give --lpips-weights or install "
+                                   "the lpips package); not scoring without LPIPS")
+        log.warning("LPIPS (Alex) weights not found: LPIPS is not reported")
+        return None, LPIPS_NOT_REPORTED
+    return lp.to(device), "lpips-alex"
+
+
+def _provenance(record: dict, lpips_metric: str) -> str:
+    """The line a markdown result carries about how it was scored and what was trained with."""
+    return (f"LPIPS metric: {lpips_metric}; weights: {record['format']}, perceptual term in training: "
+            f"{record['trained_perceptual_term']}")
+
+
+@exit_on_config_error("v2v-eval")
+def main(argv=None) -> int:
+    p = build_arg_parser()
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from .core import resolve_device
-    from .lpips_net import load_lpips
+    from .lpips_net import LPIPSUnavailable
 
     device = resolve_device(args.device)
+    try:
+        lp, lpips_metric = _lpips_metric(args, device)
+    except LPIPSUnavailable as e:
+        log.error("%s", e)
+        return 2
     if args.select_checkpoint or args.protocol:
-        return _paper_main(p, args, device)
+        return _paper_main(p, args, device, lp, lpips_metric)
     if not args.checkpoint:
         p.error("give --checkpoint (or --select-checkpoint DIR)")
-    task, model, cfg = load_model(args.checkpoint, device)
+    if not args.h5 and not args.video:
+        p.error("give --h5 and/or --video inputs")
+    try:
+        task, model, cfg, record = load_model(args.checkpoint, device, args.model)
+    except ConfigError:
+        raise  # exit_on_config_error: the file and the key, exit 2
+    except ValueError as e:
+        p.error(str(e))
     from .tasks import get_task
 
     recon = "frames" in get_task(task).outputs  # e2vid, hypere2vid, etnet: reconstruction metrics
-    nb = int(cfg["model"]["num_bins"])
-    if not args.h5 and not args.video:
-        p.error("give --h5 and/or --video inputs")
-    lp = None
-    if recon:
-        lp = load_lpips("alex", args.lpips_weights)
-        if lp is None:
-            log.warning("LPIPS (Alex) weights not found: LPIPS is not reported")
-        else:
-            lp = lp.to(device)
+    if not recon and args.video:
+        p.error("--video inputs have no ground-truth flow; EvFlow needs --h5 files with a flow group")
     out = Path(args.out) if args.out else None
     if out:
         out.mkdir(parents=True, exist_ok=True)
+    per_input = _score_inputs(args, model, int(cfg["model"]["num_bins"]), recon, lp if recon else None, device, out)
+    summary = {"checkpoint": args.checkpoint, "task": task, **record,
+               "lpips_metric": lpips_metric if recon else None, "ssim_data_range": args.ssim_data_range,
+               "skip_first": args.skip_first, **_summarise(per_input)}
+    _write_summary(summary, out)
+    return 0
+
+
+def _input_sequence(kind: str, path: str, recon: bool, nb: int, args):
+    """``(voxels, counts or None, frames or None, flows or None)`` of one ``--h5`` / ``--video``
+    input: an H5 file's voxels between images (reconstruction) or between flow timestamps
+    (flow), a video's simulated voxels and frames."""
+    if kind == "h5":
+        seq = H5Sequence(path)
+        if recon:
+            vox, counts = seq.voxels(nb)
+            return vox, counts, seq.images, None
+        vox, counts, flows = seq.flow_voxels(nb)  # between flow timestamps when present
+        return vox, counts, None, flows
+    vox, frames = video_sequence(path, nb, args.contrast_threshold, args.max_frames,
+                                 tuple(args.size) if args.size else None)
+    return vox, None, frames, None
+
+
+def _score_inputs(args, model, nb: int, recon: bool, lp, device, out: Optional[Path]) -> Dict[str, dict]:
+    """Per-frame metrics of every ``--h5`` and ``--video`` input, by path; reconstructions
+    saved as PNG every ``--save-images`` frames under ``out``."""
     per_input = {}
-    inputs = [("h5", x) for x in args.h5] + [("video", x) for x in args.video]
-    for kind, path in inputs:
-        if kind == "h5":
-            seq = H5Sequence(path)
-            if recon:
-                vox, counts = seq.voxels(nb)
-                frames, flows = seq.images, None
-            else:
-                vox, counts, flows = seq.flow_voxels(nb)  # between flow timestamps when present
-                frames = None
-        else:
-            if not recon:
-                p.error("--video inputs have no ground-truth flow; EvFlow needs --h5 files with a flow group")
-            vox, frames = video_sequence(path, nb, args.contrast_threshold, args.max_frames,
-                                         tuple(args.size) if args.size else None)
-            counts, flows = None, None
+    for kind, path in [("h5", x) for x in args.h5] + [("video", x) for x in args.video]:
+        vox, counts, frames, flows = _input_sequence(kind, path, recon, nb, args)
         if recon:
             r = evaluate_e2vid(model, vox, frames, device, args.ssim_data_range, lp, args.skip_first)
             if out and args.save_images:
@@ -442,13 +531,15 @@ def main(argv=None) -> int:
             r = evaluate_evflow(model, vox, flows, counts, device)
         per_input[path] = r
         log.info("%s: %s", path, {k: round(float(np.nanmean(v)), 5) for k, v in r.items() if not k.startswith("_") and len(v)})
-    summary = {"checkpoint": args.checkpoint, "task": task, "ssim_data_range": args.ssim_data_range,
-               "skip_first": args.skip_first, **_summarise(per_input)}
+    return per_input
+
+
+def _write_summary(summary: dict, out: Optional[Path]) -> None:
+    """Print the summary as JSON and write it to ``out/metrics.json`` when ``out`` is given."""
     text = json.dumps(summary, indent=2)
     print(text)
     if out:
         (out / "metrics.json").write_text(text)
-    return 0
 
 
 def paper_scorer(model, num_bins: int, device: torch.device, lpips_model=None):
@@ -466,26 +557,24 @@ def paper_scorer(model, num_bins: int, device: torch.device, lpips_model=None):
     return score
 
 
-def _paper_main(p: argparse.ArgumentParser, args, device) -> int:
-    """``--select-checkpoint`` and ``--protocol v2v-paper`` (trainer/protocol.py)."""
-    from .lpips_net import load_lpips
+def _paper_main(p: argparse.ArgumentParser, args, device, lp, lpips_metric: str) -> int:
+    """``--select-checkpoint`` and ``--protocol v2v-paper`` (trainer/protocol.py); ``lp`` the
+    LPIPS-Alex module (None: not reported, ``lpips_metric`` says so in the results)."""
     from .protocol import evaluate_paper, paper_markdown, select_checkpoint
     from .tasks import get_task
 
     if not args.data_root:
         p.error("--protocol and --select-checkpoint need --data-root")
-    lp = load_lpips("alex", args.lpips_weights)
-    if lp is None:
-        log.warning("LPIPS (Alex) weights not found: LPIPS is not reported")
-    else:
-        lp = lp.to(device)
 
     def evaluate_checkpoint(ck, datasets):
-        task, model, cfg = load_model(str(ck), device)
+        try:
+            task, model, cfg, record = load_model(str(ck), device, args.model)
+        except ValueError as e:
+            p.error(str(e))
         if "frames" not in get_task(task).outputs:
             p.error(f"the v2v-paper protocol scores reconstruction; {ck} is a {task!r} checkpoint")
         scorer = paper_scorer(model, int(cfg["model"]["num_bins"]), device, lp)
-        return {"task": task, **evaluate_paper(scorer, args.data_root, datasets)}
+        return {"task": task, **record, "lpips_metric": lpips_metric, **evaluate_paper(scorer, args.data_root, datasets)}
 
     out = Path(args.out) if args.out else None
     if out:
@@ -507,14 +596,12 @@ def _paper_main(p: argparse.ArgumentParser, args, device) -> int:
 
         r = evaluate_checkpoint(ck, PAPER_DATASETS)
         summary.update({"checkpoint": ck, "protocol": "v2v-paper", **r})
-        table = paper_markdown(r, f"{r['task']} {Path(ck).name}")
+        name = r["format"].split(":", 1)[1] if r["format"].startswith("authors:") else r["task"]
+        table = paper_markdown(r, f"{name} {Path(ck).name}") + "\n\n" + _provenance(r, lpips_metric)
         print(table)
         if out:
             (out / "paper_table.md").write_text(table + "\n")
-    text = json.dumps(summary, indent=2)
-    print(text)
-    if out:
-        (out / "metrics.json").write_text(text)
+    _write_summary(summary, out)
     return 0
 
 

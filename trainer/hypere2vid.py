@@ -22,8 +22,9 @@ Architecture of the authors' ``model/hyper_model.py`` (HYLZ-2019/V2V, config
 
 State-dict keys and shapes equal the authors' (tests/data/zoo_reference.json), so their
 checkpoints' ``state_dict`` load as they are. Input voxel grids (N, num_bins, H, W) float;
-H and W are zero-padded to multiples of 2**num_encoders (the authors pad to 16) and the
-output is cropped back.
+H and W are zero-padded at the bottom and right to multiples of 16 as the authors' driver
+pads them (``trainer.models.pad_input``; the ground-truth frame of the curriculum too) and the
+output is cropped back; the previous reconstruction in the state keeps the padded size.
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .models import ConvLayer, ResidualBlock, UpsampleConvLayer, _pad_to_multiple
+from .models import ConvLayer, ResidualBlock, UpsampleConvLayer, pad_input
 from .models import RecurrentConvLayer
 
 __all__ = ["fourier_bessel_bases", "HyperE2VID"]
@@ -220,7 +221,7 @@ class HyperE2VID(nn.Module):
                 gt_image: Optional[torch.Tensor] = None, beta: float = 0.0):
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
             raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
-        x, h, w = _pad_to_multiple(voxel, 2**self.num_encoders)
+        x, h, w = pad_input(voxel)
         u = self.unetrecurrent
         if states is None:
             lstm = [None] * self.num_encoders
@@ -228,7 +229,7 @@ class HyperE2VID(nn.Module):
         else:
             lstm, prev = states
         if gt_image is not None and beta > 0:
-            gt, _, _ = _pad_to_multiple(gt_image, 2**self.num_encoders)
+            gt, _, _ = pad_input(gt_image)
             prev = prev * (1 - beta) + gt * beta
         f = u.head(x)
         head = f

@@ -28,11 +28,14 @@ log = logging.getLogger("trainer")
 @dataclass
 class Schedule:
     """When the loop writes: a preview every ``image_every`` steps and a checkpoint every
-    ``checkpoint_every`` steps (0: only at the end); a progress bar on stderr."""
+    ``checkpoint_every`` steps (0: only at the end); a progress bar on stderr; the losses are
+    read from the device every ``log_every`` steps (the rows of the steps between are written
+    then, so no other step waits for the device)."""
 
     image_every: int = 500
     checkpoint_every: int = 1000
     progress: bool = True
+    log_every: int = 10
 
 
 @dataclass
@@ -79,8 +82,50 @@ class RunLog:
         self.fh.close()
 
 
+class _PendingRows:
+    """The rows of the steps since the last logging step, their losses and terms still on the
+    device; :meth:`flush` reads them, checks the losses, writes the rows and moves the bar."""
+
+    def __init__(self, run_log: Optional[RunLog], bar):
+        self.pending: List[dict] = []
+        self.losses: List[float] = []  # every finite loss so far, for the summary
+        self.run_log, self.bar = run_log, bar
+
+    def flush(self, wait_fraction: float) -> None:
+        """Read the pending rows' values from the device (one wait), check and log them.
+
+        Raises:
+            FloatingPointError: a non-finite loss of a step that had samples.
+        """
+        rows = _read_rows(self.pending)
+        self.pending.clear()
+        for row in rows:
+            if np.isfinite(row["loss"]):
+                self.losses.append(row["loss"])
+            elif row.get("samples", 1):
+                raise FloatingPointError(f"non-finite loss {row['loss']} at step {row['step'] - 1}")
+            if self.run_log is not None:
+                self.run_log.write(row)
+        if self.bar is not None and rows:
+            self.bar.set_postfix(loss=f"{rows[-1]['loss']:.4f}", wait=f"{wait_fraction:.0%}", refresh=False)
+            self.bar.update(len(rows))
+
+
+def _read_rows(rows: List[dict]) -> List[dict]:
+    """``rows`` with their tensor values read as floats, all in one copy from the device."""
+    keys = [(i, k) for i, r in enumerate(rows) for k, v in r.items() if isinstance(v, torch.Tensor)]
+    if not keys:
+        return [dict(r) for r in rows]
+    values = torch.stack([rows[i][k].float().reshape(()) for i, k in keys]).tolist()
+    out = [dict(r) for r in rows]
+    for (i, k), v in zip(keys, values):
+        out[i][k] = v
+    return out
+
+
 def _summary(trainer, losses: List[float], n: int, elapsed: float, wait: float, extra: dict) -> dict:
-    return {"task": trainer.task, "steps": n, "final_step": trainer.step,
+    return {"task": trainer.task, "perceptual_term": getattr(trainer, "perceptual_term", None), "steps": n,
+            "final_step": trainer.step,
             "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
             "mean_loss_first10": float(np.mean(losses[:10])) if losses else None,
             "mean_loss_last10": float(np.mean(losses[-10:])) if losses else None,
@@ -93,10 +138,19 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
     """Train ``trainer`` (``trainer.core.Trainer``) on ``batches`` until ``max_steps`` total
     steps, the batches end, or Ctrl-C (which still checkpoints).
 
-    Returns (and, with ``hooks.files``, writes to ``summary.json``) the summary: task, steps,
+    Returns (and, with ``hooks.files``, writes to ``summary.json``) the summary: task,
+    perceptual_term (the trainer's: an LPIPS backbone, ``trainer.lpips_net.STAND_IN``, or None), steps,
     final_step, first/last loss and the means of the first and last 10 (finite losses: a step
     of padding only has none), steps_per_s, data_wait_fraction (time blocked on the batches /
     wall time of the loop), plus ``hooks.summary_extra()``.
+
+    Steps run with ``train_step(batch, sync=False)``: their losses stay on the device until
+    the next multiple of ``schedule.log_every`` (and the end), where they are read at once,
+    checked and written. ``step_s`` is the host's time for the step (on CUDA the device's
+    work finishes later, and the wait for it shows at the logging steps).
+
+    Raises:
+        FloatingPointError: a non-finite loss, found at the logging step after it.
     """
     hooks = hooks or RunHooks()
     run_log = RunLog(trainer.out, trainer.spec.csv_columns() + list(hooks.csv_extra), trainer.step) if hooks.files else None
@@ -105,8 +159,9 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
         from tqdm import tqdm
 
         bar = tqdm(total=max_steps, initial=trainer.step, unit="step", dynamic_ncols=True, file=sys.stderr)
-    losses, wait, t_start = [], 0.0, time.perf_counter()
+    wait, t_start = 0.0, time.perf_counter()
     start_step, every = trainer.step, schedule.checkpoint_every
+    rows = _PendingRows(run_log, bar)
     it = iter(batches)
     try:
         while trainer.step < max_steps:
@@ -117,22 +172,16 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
                 log.info("batches ended at step %d", trainer.step)
                 break
             t1 = time.perf_counter()
-            stats = trainer.train_step(batch)
-            if trainer.device.type == "cuda":
-                torch.cuda.synchronize(trainer.device)
+            stats = trainer.train_step(batch, sync=False)
             t2 = time.perf_counter()
             wait += t1 - t0
             if hooks.on_batch is not None:
                 hooks.on_batch(batch, stats)
-            if np.isfinite(stats["loss"]):
-                losses.append(stats["loss"])
             stats.update(step=trainer.step, epoch=batch.get("epoch", ""), batch_id=batch.get("batch_id", ""),
                          data_wait_s=round(t1 - t0, 5), step_s=round(t2 - t0, 5))
-            if run_log is not None:
-                run_log.write(stats)
-            if bar is not None:
-                bar.set_postfix(loss=f"{stats['loss']:.4f}", wait=f"{wait / max(t2 - t_start, 1e-9):.0%}", refresh=False)
-                bar.update(1)
+            rows.pending.append(stats)
+            if trainer.step % max(1, schedule.log_every) == 0:
+                rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
             if hooks.files and schedule.image_every and trainer.step % schedule.image_every == 0:
                 trainer.save_samples()
             if every and trainer.step % every == 0:
@@ -140,17 +189,20 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
     except KeyboardInterrupt:
         log.warning("interrupted at step %d: saving a checkpoint", trainer.step)
     finally:
-        if run_log is not None:
-            run_log.close()
-        if bar is not None:
-            bar.close()
+        try:
+            rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
+        finally:
+            if run_log is not None:
+                run_log.close()
+            if bar is not None:
+                bar.close()
     elapsed = time.perf_counter() - t_start
     n = trainer.step - start_step
     if n and hooks.files and getattr(trainer, "_last", None) is not None:
         trainer.save_samples()
     if hooks.final_checkpoint == "always" or (n and (not every or trainer.step % every)):
         checkpoint()
-    summary = _summary(trainer, losses, n, elapsed, wait, hooks.summary_extra())
+    summary = _summary(trainer, rows.losses, n, elapsed, wait, hooks.summary_extra())
     if hooks.files:
         (trainer.out / "summary.json").write_text(json.dumps(summary, indent=2))
         log.info("done: %s", json.dumps(summary))

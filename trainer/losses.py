@@ -17,7 +17,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .lpips_net import load_lpips
+from .lpips_net import STAND_IN, load_lpips
 
 __all__ = ["ssim", "warp", "temporal_consistency_loss", "flow_l1_loss", "ReconstructionLoss"]
 
@@ -132,6 +132,8 @@ class ReconstructionLoss(nn.Module):
 
     Attributes:
         perceptual: ``'lpips'`` or ``'ssim'``, the term actually used.
+        term: what results record as the perceptual term: ``'lpips-vgg'`` / ``'lpips-alex'``,
+            ``trainer.lpips_net.STAND_IN`` (1 - SSIM, no LPIPS weights), or None (weight 0).
 
     ``forward(pred, target)``: float (N, 1, H, W) each, target in [0, 1] -> dict of scalar
     tensors ``{'l1', 'lpips'|'ssim', 'total'}``.
@@ -146,6 +148,7 @@ class ReconstructionLoss(nn.Module):
         self.perceptual_weight = float(perceptual_weight)
         self.lpips = load_lpips(lpips_net, lpips_weights, use_package=use_lpips_package) if perceptual_weight else None
         self.perceptual = "lpips" if self.lpips is not None else "ssim"
+        self.term = None if not perceptual_weight else (f"lpips-{lpips_net}" if self.lpips is not None else STAND_IN)
         if self.lpips is None and perceptual_weight and not ReconstructionLoss._warned:
             log.warning("LPIPS weights not found (no lpips_weights path in the config and no usable "
                         "`lpips` package): using 1 - SSIM (win 7) in place of the LPIPS term.")

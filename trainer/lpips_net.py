@@ -29,9 +29,19 @@ from typing import List, Optional, Sequence, Union
 import torch
 import torch.nn as nn
 
-__all__ = ["LPIPSNet", "load_lpips", "convert_state_dict"]
+__all__ = ["LPIPSNet", "load_lpips", "convert_state_dict", "STAND_IN", "LPIPSUnavailable"]
 
 log = logging.getLogger(__name__)
+
+#: What a result records as its perceptual term when no LPIPS weights were found and 1 - SSIM
+#: (win 7, data_range 1) stood in for LPIPS: ``summary.json``, checkpoints' metadata,
+#: ``v2v-eval``'s JSON and tables. Such a result is not comparable with the paper's.
+STAND_IN = "1-ssim (stand-in: no LPIPS weights)"
+
+
+class LPIPSUnavailable(RuntimeError):
+    """``--require-lpips`` was given and no LPIPS weights were found (``v2v-train`` and
+    ``v2v-eval`` exit with status 2)."""
 
 # (torchvision features layout, indices after which a feature map is tapped, channels)
 _VGG16_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"]

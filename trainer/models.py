@@ -14,8 +14,11 @@ NeurIPS 2025), which reuse event_cnn_minimal (Stoffregen et al., ECCV 2020):
   pixels, channel 0 = x/u, 1 = y/v), parameters named as the reference's.
 
 ``trainer.zoo.build_model`` builds these and the other networks of the zoo from a config.
-Inputs are voxel grids (N, num_bins, H, W) float; H and W need not be multiples of
-2**num_encoders: inputs are zero-padded on the bottom/right and the output cropped back.
+Inputs are voxel grids (N, num_bins, H, W) float; H and W need not be multiples of 16:
+every network of the zoo zero-pads its input on the bottom and right to multiples of
+``PAD_MULTIPLE`` (16, as the V2V authors' training and test driver does before calling any
+network: ``model/train_utils.py`` and ``model/train_flow_utils.py``) and crops the output back,
+so a released checkpoint gives the authors' outputs on 180 x 240 or 260 x 346 inputs.
 """
 from __future__ import annotations
 
@@ -25,7 +28,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["ConvLSTM", "RecurrentConvLayer", "E2VIDRecurrent", "UNet", "EVFlowNet"]
+__all__ = ["PAD_MULTIPLE", "pad_input", "ConvLSTM", "RecurrentConvLayer", "E2VIDRecurrent", "E2VIDPlusPlus", "UNet",
+           "EVFlowNet"]
 
 State = Optional[Tuple[torch.Tensor, torch.Tensor]]
 
@@ -116,6 +120,20 @@ class RecurrentConvLayer(nn.Module):
         return state[0], state
 
 
+#: Input sides are zero-padded to multiples of this (bottom and right) before any network of the
+#: zoo runs: the V2V authors' driver's ``PAD = 16`` (``model/train_utils.py``
+#: ``forward_sequence``, ``model/train_flow_utils.py`` ``forward_sequence_evflow``).
+PAD_MULTIPLE = 16
+
+
+def pad_input(x: torch.Tensor) -> Tuple[torch.Tensor, int, int]:
+    """Zero-pad ``x`` (..., H, W) at the bottom and right to sides that are multiples of
+    :data:`PAD_MULTIPLE`, as the V2V authors' driver pads voxel grids (and HyperE2VID's
+    ground-truth frames) before the network. Returns ``(padded, H, W)``; the caller crops the
+    output back with ``[..., :H, :W]``."""
+    return _pad_to_multiple(x, PAD_MULTIPLE)
+
+
 def _pad_to_multiple(x: torch.Tensor, m: int) -> Tuple[torch.Tensor, int, int]:
     h, w = x.shape[-2:]
     ph, pw = (-h) % m, (-w) % m
@@ -177,7 +195,7 @@ class _UNetRecurrent(_UNetBase):
     def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
             raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
-        x, h, w = _pad_to_multiple(voxel, 2**self.num_encoders)
+        x, h, w = pad_input(voxel)
         if states is None:
             states = [None] * self.num_encoders
         x = self.head(x)
@@ -241,6 +259,28 @@ class E2VIDRecurrent(nn.Module):
         return self.unetrecurrent(voxel, states)
 
 
+class E2VIDPlusPlus(E2VIDRecurrent):
+    """E2VID++ (Stoffregen et al., ECCV 2020) as its released checkpoint is built: the authors'
+    ``model.model.FlowNet`` / ``UNetFlow`` (V2V ``config/test_e2vid++_original.yaml``), the
+    :class:`E2VIDRecurrent` network with a 3-channel prediction convolution whose channel 0 is
+    the image and channels 1-2 an optical flow the reconstruction does not use.
+
+    Parameters sit where :class:`E2VIDRecurrent`'s do (``unetrecurrent.*``, ``pred`` 32 -> 3);
+    ``trainer.checkpoints`` maps the checkpoint's ``unetflow.*`` keys onto them.
+
+    ``forward(voxel, states)`` as :class:`E2VIDRecurrent`'s; returns ``(image (N, 1, H, W),
+    states)``, the image not clamped (the authors' ``output_dict['image']``).
+    """
+
+    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 3,
+                 num_residual_blocks: int = 2, skip_type: str = "sum", kernel_size: int = 5):
+        super().__init__(num_bins, base_num_channels, num_encoders, num_residual_blocks, 3, skip_type, kernel_size)
+
+    def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
+        out, states = self.unetrecurrent(voxel, states)
+        return out[:, :1], states
+
+
 class UNet(nn.Module):
     """The reference's feed-forward UNet (event_cnn_minimal / V2V ``model/unet.py`` ``UNet``):
     *no head layer*. The first encoder takes the voxel's ``num_bins`` channels directly
@@ -298,7 +338,7 @@ class EVFlowNet(nn.Module):
 
     ``forward(voxel)``: float (N, num_bins, H, W) -> flow float (N, 2, H, W) in pixels over
     the voxel's time span (channel 0 = x/u, 1 = y/v). H, W need not be multiples of
-    2**num_encoders (zero-padded bottom/right, output cropped back). Raises ``ValueError``
+    16 (zero-padded bottom/right, output cropped back). Raises ``ValueError``
     for a voxel of the wrong shape.
     """
 
@@ -313,5 +353,5 @@ class EVFlowNet(nn.Module):
     def forward(self, voxel: torch.Tensor) -> torch.Tensor:
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
             raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
-        x, h, w = _pad_to_multiple(voxel, 2**self.num_encoders)
+        x, h, w = pad_input(voxel)
         return self.unet(x)[..., :h, :w]

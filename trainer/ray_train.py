@@ -142,7 +142,7 @@ class RayTrainer(Trainer):
     """:class:`trainer.core.Trainer` on one Ray Train rank: the same steps, plus the
     padding-only step a rank must still take so all ranks stay in step."""
 
-    def train_step(self, batch: dict) -> dict:
+    def train_step(self, batch: dict, sync: bool = True) -> dict:
         batch, n = drop_padding(batch)  # Trainer.train_step finds no padding left: subset once
         if isinstance(self.optimizer, SampleWeightedAllReduce):
             self.optimizer.samples = n
@@ -151,7 +151,7 @@ class RayTrainer(Trainer):
                 self.optimizer.step()
                 self.step += 1
                 return {"loss": float("nan"), "samples": 0}
-        return super().train_step(batch)
+        return super().train_step(batch, sync)
 
 
 class _State:
@@ -259,7 +259,8 @@ def _train_loop(config: dict) -> None:
 
     lg = cfg["log"]
     train_loop(trainer, batches, int(config["max_steps"]),
-               Schedule(int(lg["image_every"]), int(lg["checkpoint_every"]), progress=False), save,
+               Schedule(int(lg["image_every"]), int(lg["checkpoint_every"]), progress=False,
+                        log_every=int(lg.get("every", 10))), save,
                RunHooks(on_batch=on_batch, files=rank == 0, csv_extra=("samples",), summary_extra=summary_extra,
                         final_checkpoint="always"))
 

@@ -49,6 +49,12 @@ def curriculum_beta(step: int, max_steps: int, fraction: float, stages: int) -> 
     return 1.0 - math.floor(stages * step / span) / stages
 
 
+def _detached(v, like: torch.Tensor) -> torch.Tensor:
+    """``v`` (a tensor, or the float 0.0 of a term never added to) as a detached 0-dim tensor
+    on ``like``'s device."""
+    return v.detach() if isinstance(v, torch.Tensor) else torch.zeros((), device=like.device)
+
+
 class TrainTask:
     """One task's part of a training step. Subclasses set ``name``, ``outputs`` (what the
     stream must carry, in wire order) and ``terms`` (the loss terms logged besides ``loss``).
@@ -87,8 +93,11 @@ class TrainTask:
         return None
 
     def forward(self, model: torch.nn.Module, b: dict, autocast: Autocast):
-        """Loss (scalar tensor), logged terms (floats) and the predictions (detached) of one
-        batch ``b`` already on the device (``trainer.data.batch_to_device``)."""
+        """Loss (scalar float32 tensor), logged terms (detached 0-dim tensors on the device:
+        reading them waits for the device, which the trainer does only at its logging
+        interval) and the predictions (detached, float32) of one batch ``b`` already on the
+        device (``trainer.data.batch_to_device``). ``autocast()`` wraps the network's forward
+        only; losses and metrics are computed in float32."""
         raise NotImplementedError
 
     def preview_row(self, b: dict, preds, i: int, voxel: np.ndarray) -> list:
@@ -130,8 +139,8 @@ class E2VIDTask(TrainTask):
         for l in range(L):
             with autocast():
                 pred, states = self.step_model(model, vox[:, l], states, frames[:, l + 1])
-                r = self.rec_loss(pred.float(), frames[:, l + 1])
-            pred = pred.float()
+            pred = pred.float()  # losses in float32, outside autocast
+            r = self.rec_loss(pred, frames[:, l + 1])
             sums["rec"] = sums["rec"] + r["total"]
             sums["l1"] = sums["l1"] + r["l1"].detach()
             if self.rec_loss.perceptual in r:
@@ -147,7 +156,8 @@ class E2VIDTask(TrainTask):
         loss = sums["rec"] / L
         tc = sums["tc"] / L if n_tc else torch.zeros((), device=vox.device)
         loss = loss + float(lc["tc_weight"]) * tc
-        stats = {"l1": float(sums["l1"] / L), "perceptual": float(sums["perceptual"] / L), "tc": float(tc.detach())}
+        stats = {"l1": _detached(sums["l1"] / L, loss), "perceptual": _detached(sums["perceptual"] / L, loss),
+                 "tc": tc.detach()}
         return loss, stats, preds
 
     def step_model(self, model, voxel, states, target):
@@ -198,7 +208,7 @@ class EvFlowTask(TrainTask):
         loss = float(self.cfg["loss"]["flow_l1_weight"]) * l1
         with torch.no_grad():
             aee = torch.linalg.vector_norm(pred - gt, dim=1).mean()
-        return loss, {"flow_l1": float(l1.detach()), "aee": float(aee)}, pred.detach().view(n, L, *pred.shape[1:])
+        return loss, {"flow_l1": l1.detach(), "aee": aee}, pred.detach().view(n, L, *pred.shape[1:])
 
     def preview_row(self, b, preds, i, voxel):
         gt = b["flow"][i, -1].cpu().numpy()

@@ -20,6 +20,7 @@ from v2v_server.ops.settings import add_flags, flag_values
 from .config import RunSettings, apply_overrides, check_types, exit_on_config_error, load_config
 from .core import Trainer, resolve_device
 from .data import make_stream
+from .lpips_net import LPIPSUnavailable
 from .ray_train import add_ray_arguments
 from .raft_flow import FlowSourceUnavailable
 from .tasks import stream_outputs
@@ -73,14 +74,14 @@ def main(argv=None) -> int:
         json.dump(cfg, f, indent=2)
     try:
         trainer = Trainer(cfg, str(out), device)
-    except FlowSourceUnavailable as e:  # RAFT asked for, torchvision or its weights missing
+    except (FlowSourceUnavailable, LPIPSUnavailable) as e:  # RAFT or LPIPS asked for, weights missing
         log.error("%s", e)
         return 2
     log.info("model: %d parameters", sum(p.numel() for p in trainer.model.parameters()))
     s = cfg["stream"]
     stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"],
                          reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None,
-                         outputs=stream_outputs(cfg))
+                         outputs=stream_outputs(cfg), compact_flow=bool(s.get("compact_flow", True)))
     resume = cfg.get("resume")
     if resume == "auto":
         resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None
@@ -88,7 +89,7 @@ def main(argv=None) -> int:
         trainer.load_checkpoint(resume, stream)
     lg = cfg["log"]
     trainer.fit(stream, int(cfg["max_steps"]), int(lg["image_every"]), int(lg["checkpoint_every"]),
-                progress=bool(lg["progress"]) and not args.no_progress)
+                progress=bool(lg["progress"]) and not args.no_progress, log_every=int(lg.get("every", 10)))
     close = getattr(stream, "close", None)
     if callable(close):
         close()

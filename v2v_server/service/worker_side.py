@@ -19,6 +19,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.datapath import BatchAssembler, sample_from_slot, sample_from_worker
 from v2v_server.service.pool import WorkerPool
+from v2v_server.videos.corpus import SHORT_CLIP
 from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import ProtocolError, pack, unpack
 
@@ -143,8 +144,9 @@ class WorkerSide:
             if served:
                 log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
                             "epoch", self.root / video, reason, served, served - 1)
-            else:
-                log.warning("skipped %s: %s", self.root / video, reason)
+            else:  # a clip too short for one window is no fault of the file: not a warning
+                log.log(logging.INFO if SHORT_CLIP in reason else logging.WARNING, "skipped %s: %s",
+                        self.root / video, reason)
 
     def dispatch(self, now: float, codecs: List[str]) -> None:
         """A task for each idle worker while there are tasks; ``codecs``: what the workers

@@ -64,6 +64,11 @@ def corpus_file(root, rel: str) -> Path:
     return path
 
 
+#: Words of the reason :func:`verdict` gives a file that has too few frames for one window: a
+#: property of the clip, not a fault (the server logs such a skip at INFO, faults at WARNING).
+SHORT_CLIP = "shorter than one window of"
+
+
 def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = None,
             error: Optional[BaseException] = None) -> Tuple[int, List[int], Optional[str]]:
     """What a file is worth, from what reading it found: the one rule ``--check``, the
@@ -90,7 +95,7 @@ def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = No
     elif error is not None:
         reason = str(error) if isinstance(error, VideoError) else f"{type(error).__name__}: {error}"
     elif windows == 0:
-        reason = f"{frames} frames, shorter than one window of {cfg.frames_per_sample} frames"
+        reason = f"{frames} frames, {SHORT_CLIP} {cfg.frames_per_sample} frames"
     else:
         reason = None
     return windows, bad, reason
