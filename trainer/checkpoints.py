@@ -33,6 +33,8 @@ from __future__ import annotations
 
 from typing import Callable, Dict, Optional, Tuple
 
+from dataclasses import asdict
+
 import torch
 import torch.nn as nn
 
@@ -68,9 +70,13 @@ def _check_name(name: str) -> None:
 
 def build_authors_model(name: str) -> nn.Module:
     """The trainer's network for format ``name`` (a key of :data:`AUTHORS_FORMATS`) with the
-    paper's configuration (the class defaults). Raises ``ValueError`` for another name."""
+    paper's configuration (its task's model section, ``trainer.config.TASK_SECTIONS``).
+    Raises ``ValueError`` for another name."""
+    from .config import TASK_SECTIONS
+
     _check_name(name)
-    return AUTHORS_FORMATS[name][1]()
+    _, cls, _, task = AUTHORS_FORMATS[name]
+    return cls(**asdict(TASK_SECTIONS[task]["model"]()))
 
 
 def is_authors_checkpoint(ck) -> bool:

@@ -272,9 +272,9 @@ class E2VIDPlusPlus(E2VIDRecurrent):
     states)``, the image not clamped (the authors' ``output_dict['image']``).
     """
 
-    def __init__(self, num_bins: int = 5, base_num_channels: int = 32, num_encoders: int = 3,
-                 num_residual_blocks: int = 2, skip_type: str = "sum", kernel_size: int = 5):
-        super().__init__(num_bins, base_num_channels, num_encoders, num_residual_blocks, 3, skip_type, kernel_size)
+    def __init__(self, **e2vid_params):
+        # E2VID's parameters (its model section in trainer.config); the prediction has 3 channels
+        super().__init__(**{**e2vid_params, "num_output_channels": 3})
 
     def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
         out, states = self.unetrecurrent(voxel, states)
