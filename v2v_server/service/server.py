@@ -22,7 +22,6 @@ import logging
 import signal
 import threading
 import time
-from pathlib import Path
 from typing import Dict, List, Optional
 
 import zmq
@@ -30,6 +29,7 @@ import zmq
 from v2v_wire import codecs
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import corpus_fingerprint
+from v2v_server.videos.source import source_from_spec
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
 from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch, sample_from_slot, sample_from_worker
@@ -49,12 +49,13 @@ CLIENT_BURST = 100
 
 
 class V2VServer:
-    """Serve V2V batches from the videos under ``root``.
+    """Serve V2V batches from the videos of ``root``.
 
     Args:
         cfg: validated ``ServeConfig``.
-        root: corpus folder; the server only opens the files listed in ``videos`` under it.
-        videos: video paths relative to ``root`` (POSIX strings).
+        root: corpus folder or ``videos.source.VideoSource`` (an object-store prefix); the
+            server only opens the videos listed in ``videos``.
+        videos: sample-id paths of the videos, relative to ``root`` (POSIX strings).
 
     Call ``run()`` (blocks until ``--epochs`` are delivered or ``stop()`` is called).
 
@@ -62,11 +63,12 @@ class V2VServer:
         ValueError: for an empty ``videos`` list.
     """
 
-    def __init__(self, cfg: ServeConfig, root: Path, videos: List[str], corpus: Optional[str] = None):
+    def __init__(self, cfg: ServeConfig, root, videos: List[str], corpus: Optional[str] = None):
         if not videos:
             raise ValueError(f"no video files under {root}")
         self.cfg = cfg
-        self.root = Path(root)
+        self.source = source_from_spec(root)
+        self.root = self.source.root
         self.videos = list(videos)
         self.corpus = corpus or corpus_fingerprint(self.videos)  # of the listing before sharding
         self.recipe = cfg.fingerprint()
@@ -109,7 +111,7 @@ class V2VServer:
             self.bound_endpoint = self.sockets.bind(self.cfg)
             if self.bound_endpoint.startswith("ipc://"):  # trainers on this host: batch buffers in /dev/shm
                 self.assembler.files = BatchDir.create()
-            self.pool = WorkerPool(worker_config(self.cfg), str(self.root), self.sockets.backend_endpoint,
+            self.pool = WorkerPool(worker_config(self.cfg), self.source.spec(), self.sockets.backend_endpoint,
                                    self.cfg.workers)
             self.pool.start()
             rings = any(w.ring is not None for w in self.pool.workers.values())
@@ -308,9 +310,9 @@ class V2VServer:
             self.logged_failures.add((video, reason))
             if served:
                 log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
-                            "epoch", self.root / video, reason, served, served - 1)
+                            "epoch", self.source.where(video), reason, served, served - 1)
             else:
-                log.warning("skipped %s: %s", self.root / video, reason)
+                log.warning("skipped %s: %s", self.source.where(video), reason)
 
     def _dispatch(self, now: float) -> None:
         for w in self.pool.idle():

@@ -19,7 +19,6 @@ import os
 import signal
 import sys
 import time
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -28,6 +27,7 @@ import zmq
 from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
 from v2v_server.videos.corpus import verdict
+from v2v_server.videos.source import source_from_spec, take_store_stats
 from v2v_server.service.datapath import SlotRing
 from v2v_server.ops.logs import setup_logging
 from v2v_wire.protocol import encode_arrays, narrow_int_dtype, pack, unpack
@@ -165,7 +165,7 @@ class _StageClock:
         return out
 
 
-def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
+def run_task(cfg: SampleRecipe, root, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
              inbox: Optional[_Inbox] = None) -> None:
     """Make every sample of one task and send it (through ``inbox``'s slot ring when it has
     one), then send ``done``."""
@@ -207,6 +207,7 @@ def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent
     kpw = cfg.crops_per_window
     done = {"type": "done", "task": task["task"], "samples": sent, "frames": stats.get("frames", 0),
             "windows": stats.get("windows", 0) * kpw, "error": error, "stages": clock.report(),
+            "store": take_store_stats(root),  # object-store reads of this task (empty for a folder)
             # the scheduler counts samples (index = window * K + crop): a failed window fails its K crops
             "failed": {str(k * kpw + c): str(v) for k, v in stats.get("failed", {}).items() for c in range(kpw)}}
     _send(sock, [pack(done)], parent_pid)
@@ -234,12 +235,13 @@ def exit_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, _exit)
 
 
-def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, parent_pid: int,
+def worker_main(cfg_dict: dict, root, endpoint: str, identity: bytes, parent_pid: int,
                 ring: Optional[dict] = None) -> None:
     """Entry point of a worker process (started with the ``spawn`` method).
 
     Args:
         cfg_dict: ``worker_config(cfg)``.
+        root: the corpus: a folder path or ``VideoSource.spec()`` (``videos.source``).
         ring: ``SlotRing.spec`` of this worker's shared-memory slots (the file is unlinked as
             soon as it is mapped), or None to send arrays as frames.
     """
@@ -265,6 +267,7 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
         except (OSError, ValueError) as e:
             log.warning("cannot map slot ring %s (%s): sending arrays over the socket", ring.get("path"), e)
     inbox = _Inbox(sock, slots)
+    source = source_from_spec(root)  # the corpus folder, or the object store (one client per worker)
     flows: dict = {}
     try:
         _send(sock, [pack({"type": "ready", "ring": slots is not None})], parent_pid)
@@ -275,7 +278,7 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
             if h["type"] == "stop":
                 return
             if h["type"] == "task":
-                run_task(cfg, Path(root), h, sock, parent_pid, flows, inbox)
+                run_task(cfg, source, h, sock, parent_pid, flows, inbox)
     finally:
         sock.close(0)
         ctx.term()
