@@ -65,10 +65,13 @@ def read_video_list(path: str) -> List[str]:
         FileNotFoundError: no file at ``path``.
         ValueError: naming the file, when it lists nothing.
     """
-    import fsspec
+    if is_url(path):  # a list kept beside the corpus in the store
+        import fsspec
 
-    with fsspec.open(path, "rt", encoding="utf-8") as f:
-        lines = f.read().splitlines()
+        with fsspec.open(path, "rt", encoding="utf-8") as f:
+            lines = f.read().splitlines()
+    else:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
     out, seen = [], set()
     for line in lines:
         s = line.strip()
@@ -436,9 +439,9 @@ class StoreSource(VideoSource):
             f = self.fs.open(key, "rb", block_size=block, cache_type="blockcache", cache_options={"maxblocks": 4})
         except FileNotFoundError:
             self.stats.skipped += 1
-            raise VideoError(f"missing from the store ({self.where(rel)})") from None
+            raise VideoError("missing from the store") from None
         except Exception as e:  # timeouts, refused reads: the file's verdict, never the worker's death
-            raise VideoError(f"cannot open {self.where(rel)}: {type(e).__name__}: {e}") from None
+            raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
         finally:
             self.stats.read_s += time.perf_counter() - t0
         try:
@@ -446,8 +449,8 @@ class StoreSource(VideoSource):
             now = _etag(getattr(f, "details", None) or {})
             if expected is not None and expected[1] and now and now != expected[1]:
                 self.stats.skipped += 1
-                raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}): "
-                                 f"{self.where(rel)} is skipped until --refresh-manifest")
+                raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}); skipped until "
+                                 f"--refresh-manifest")
             self._time_fetches(f)
             yield f
         finally:
