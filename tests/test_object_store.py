@@ -234,3 +234,70 @@ def test_a_store_that_stops_answering_fails_the_read_within_the_timeout(store, c
 def test_store_errors_name_the_url():
     with pytest.raises(StoreError, match=r"nosuch://b/p/.*no filesystem"):
         StoreSource("nosuch://b/p").check()
+
+
+def _shards(tmp: Path) -> tuple:
+    """WebDataset-style shards of the bundled clips (``KEY.mp4`` + ``KEY.json`` per sample) in
+    ``tmp/tars``, and ``tmp/ref``: the same members as plain files under folders named like
+    the shards, so both give the same sample ids."""
+    import io
+    import json
+    import tarfile
+
+    tars, ref = tmp / "tars", tmp / "ref"
+    tars.mkdir()
+    layout = {"shard-0.tar": ["bikes.mp4", "webvid_like_596x336.mp4"], "shard-1.tar": ["bigbuckbunny.mp4"]}
+    for shard, clips in layout.items():
+        (ref / shard).mkdir(parents=True)
+        with tarfile.open(tars / shard, "w", format=tarfile.USTAR_FORMAT) as t:
+            for i, clip in enumerate(clips):
+                key = f"{i:06d}"
+                t.add(CLIPS / clip, arcname=f"{key}.mp4")
+                meta = json.dumps({"source": clip}).encode()
+                info = tarfile.TarInfo(f"{key}.json")
+                info.size = len(meta)
+                t.addfile(info, io.BytesIO(meta))
+                shutil.copy(CLIPS / clip, ref / shard / f"{key}.mp4")
+    return tars, ref
+
+
+def _rows(videos: str, cfg=None) -> dict:
+    """Every sample of epoch 0 of ``videos``, made by the Ray engine's stage (in this process)."""
+    import json
+
+    from v2v_server.ray_data import SampleMaker, epoch_descriptors, scan_corpus_windows
+
+    cfg = cfg or LAYOUT.cfg()
+    rc = scan_corpus_windows(videos, cfg)
+    maker = SampleMaker(cfg.to_dict(), videos, ("voxels", "frames"))
+    out = {}
+    for d in epoch_descriptors(rc, 0):
+        for r in maker.video_rows(d["video"], 0, json.loads(d["entries"])):
+            out[str(r["sample_id"][0])] = r["voxels"].tobytes() + r["frames"].tobytes()
+    return out
+
+
+def test_tar_shards_local_bucket_and_brace_pattern(store, tmp_path, monkeypatch):
+    tars, ref = _shards(tmp_path)
+    for k, v in _env(store, tmp_path).items():
+        monkeypatch.setenv(k, v)
+    store.upload(tars, "s3://corpus/shards/")
+    expected = _rows(str(ref))
+    assert sorted(expected) == ["shard-0.tar/000000.mp4#0", "shard-0.tar/000000.mp4#1", "shard-0.tar/000001.mp4#0",
+                                "shard-0.tar/000001.mp4#1", "shard-1.tar/000000.mp4#0", "shard-1.tar/000000.mp4#1"]
+    assert _rows(str(tars)) == expected  # a folder of .tar files
+    assert _rows(str(tars / "shard-{0..1}.tar")) == expected  # a local brace pattern
+    assert _rows("s3://corpus/shards/") == expected  # a prefix of .tar objects (members in the manifest)
+    assert _rows("s3://corpus/shards/shard-{0..1}.tar") == expected  # a brace pattern: nothing listed
+    # the manifest keeps each member's offset: a restart (or a worker) reads no tar header
+    objects = read_manifest(manifest_path("s3://corpus/shards/", None, str(tmp_path / "cache" / "v2v")),
+                            "s3://corpus/shards/")
+    assert objects is not None and len(objects["shard-0.tar/000001.mp4"]) == 3
+
+
+def test_tar_shards_served_over_zeromq(store, tmp_path):
+    tars, ref = _shards(tmp_path)
+    store.upload(tars, "s3://corpus/zmq-shards/")
+    folder, _ = _epoch(str(ref))
+    bucket, log = _epoch("s3://corpus/zmq-shards/", env=_env(store, tmp_path))
+    assert len(folder) == 6 and bucket == folder

@@ -25,6 +25,7 @@ once; the server stays up.
 from __future__ import annotations
 
 import contextlib
+import io
 import hashlib
 import json
 import logging
@@ -103,17 +104,18 @@ def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional
 
 
 def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]]) -> None:
-    """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag)) atomically: a
-    header line ``{"v2v_manifest": 1, "url", "objects", "listed_at"}``, then one
-    ``[key, size, etag]`` JSON line per object, sorted by key."""
+    """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a video
+    member of a tar shard ``shard.tar/member`` -> (size, the shard's ETag, offset of the
+    member's data in the shard)) atomically: a header line ``{"v2v_manifest": 1, "url",
+    "objects", "listed_at"}``, then one ``[key, size, etag(, offset)]`` JSON line per entry,
+    sorted by key."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
     with open(tmp, "w", encoding="utf-8") as f:
         f.write(json.dumps({"v2v_manifest": MANIFEST_VERSION, "url": url, "objects": len(objects),
                             "listed_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n")
         for key in sorted(objects):
-            size, etag = objects[key]
-            f.write(json.dumps([key, size, etag], ensure_ascii=False) + "\n")
+            f.write(json.dumps([key, *objects[key]], ensure_ascii=False) + "\n")
     os.replace(tmp, path)
 
 
@@ -128,8 +130,8 @@ def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
                 return None
             objects = {}
             for line in f:
-                key, size, etag = json.loads(line)
-                objects[key] = (int(size), str(etag))
+                key, size, etag, *offset = json.loads(line)
+                objects[key] = (int(size), str(etag), *(int(o) for o in offset[:1]))
     except (OSError, ValueError, TypeError):
         return None
     return objects if len(objects) == header.get("objects") else None
@@ -158,6 +160,84 @@ def corpus_file(root, rel: str) -> Path:
     return path
 
 
+def tar_members(f) -> Dict[str, Tuple[int, int]]:
+    """Member name -> (offset of its data, size) in bytes of every regular file of the tar
+    read from the binary file object ``f``, in one pass over the headers (the data between
+    them is skipped by seeking; an object-store file fetches the blocks that hold headers).
+
+    Raises:
+        tarfile.TarError: not a tar archive.
+    """
+    import tarfile
+
+    out = {}
+    with tarfile.open(fileobj=f, mode="r:") as tar:
+        for m in tar:
+            if m.isfile():
+                out[m.name] = (m.offset_data, m.size)
+    return out
+
+
+class TarMember(io.RawIOBase):
+    """A read-only, seekable window ``[offset, offset + size)`` of the binary file ``f``: one
+    member of a tar shard, read in place (FFmpeg decodes it like a file of its own)."""
+
+    def __init__(self, f, offset: int, size: int):
+        super().__init__()
+        self.f, self.offset, self.size, self.pos = f, offset, size, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, pos: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
+        self.pos = min(max(0, base + pos), self.size)
+        return self.pos
+
+    def readinto(self, b) -> int:
+        n = min(len(b), self.size - self.pos)
+        if n <= 0:
+            return 0
+        self.f.seek(self.offset + self.pos)
+        data = self.f.read(n)
+        b[:len(data)] = data
+        self.pos += len(data)
+        return len(data)
+
+
+def expand_braces(pattern: str) -> List[str]:
+    """The names a brace pattern stands for, in order: ``{000..003}`` is a zero-padded numeric
+    range (as the WebDataset tools write shard names), ``{a,b}`` a list; several braces
+    multiply. ``shards-{0..1}-{a,b}.tar`` -> ``shards-0-a.tar, shards-0-b.tar, shards-1-a.tar...``
+
+    Raises:
+        ValueError: a brace that is neither form.
+    """
+    import re
+
+    m = re.search(r"\{([^{}]*)\}", pattern)
+    if m is None:
+        return [pattern]
+    body = m.group(1)
+    r = re.fullmatch(r"(\d+)\.\.(\d+)", body)
+    if r:
+        lo, hi = int(r.group(1)), int(r.group(2))
+        width = len(r.group(1)) if r.group(1).startswith("0") else 0
+        items = [str(i).zfill(width) for i in range(lo, hi + 1)]
+    elif "," in body:
+        items = body.split(",")
+    else:
+        raise ValueError(f"{pattern}: brace {{{body}}} is neither a range {{000..009}} nor a list {{a,b}}")
+    head, tail = pattern[:m.start()], pattern[m.end():]
+    return [x for item in items for x in expand_braces(head + item + tail)]
+
+
 class VideoSource:
     """A corpus: lists videos as sample-id paths and opens them for decoding. See the module
     docstring; :func:`open_source` builds one."""
@@ -166,6 +246,14 @@ class VideoSource:
     root: str = ""
     #: The video list file that selects and orders the videos, if any.
     video_list: Optional[str] = None
+    #: Entries given with the corpus itself (a brace pattern's shard names), listed instead of the store.
+    names: Optional[List[str]] = None
+
+    def _names(self) -> Optional[List[str]]:
+        """The entries that replace a listing: the brace pattern's, else the video list's."""
+        if self.names:
+            return list(self.names)
+        return read_video_list(self.video_list) if self.video_list else None
 
     def list_videos(self, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """``(videos, rejected)``: sample-id paths of the videos (the list's order with a video
@@ -195,26 +283,69 @@ class VideoSource:
         return {}
 
     def _listed(self, names: Sequence[str], exists, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
-        """Keep the names of a video list that ``exists(name)`` and have a video extension."""
+        """Keep the names of a video list that ``exists(name)`` and have a video extension; a
+        ``.tar`` name stands for its video members (:meth:`_with_members`)."""
         videos, rejected = [], []
         for rel in names:
-            if not rel.lower().endswith(tuple(extensions)):
+            if rel.lower().endswith(".tar"):
+                videos.append(rel)
+            elif not rel.lower().endswith(tuple(extensions)):
                 rejected.append((rel, f"listed in {self.video_list} but not a video file (extensions "
                                       f"{', '.join(extensions)})"))
             elif not exists(rel):
                 rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
             else:
                 videos.append(rel)
-        return videos, rejected
+        return self._with_members(videos, rejected, extensions)
+
+    # ------------------------------------------------------------------ tar shards
+    def tar_index(self, tar: str) -> Dict[str, Tuple[int, int]]:
+        """Member name -> (offset of its data in bytes, size in bytes) of the tar shard at
+        ``tar`` (relative path), read once per process from the tar's headers."""
+        cache = self.__dict__.setdefault("_tar_cache", {})
+        if tar not in cache:
+            with self._open_raw(tar) as f:
+                cache[tar] = tar_members(f)
+        return cache[tar]
+
+    def _open_raw(self, rel: str):
+        raise NotImplementedError
+
+    def _with_members(self, names: List[str], rejected: List[Tuple[str, str]], extensions: Sequence[str]
+                      ) -> Tuple[List[str], List[Tuple[str, str]]]:
+        """``names`` with each ``.tar`` shard replaced by its video members, ``shard.tar/member.mp4``
+        (the WebDataset convention: a sample's files share a key, the video is the member with
+        a video extension; the other members, such as ``.json`` or ``.txt``, are not served)."""
+        out = []
+        for rel in names:
+            if not rel.lower().endswith(".tar"):
+                out.append(rel)
+                continue
+            try:
+                members = self.tar_index(rel)
+            except Exception as e:  # one unreadable shard never stops the listing
+                rejected.append((rel, f"tar shard cannot be read: {type(e).__name__}: {e}"))
+                continue
+            vids = [m for m in members if m.lower().endswith(tuple(extensions))]
+            out += [f"{rel}/{m}" for m in vids]
+            if not vids:
+                rejected.append((rel, "tar shard holds no video member"))
+        return out, rejected
+
+    @staticmethod
+    def split_member(rel: str) -> Optional[Tuple[str, str]]:
+        """``("shard.tar", "member.mp4")`` for a tar member's id path, else None."""
+        i = rel.lower().find(".tar/")
+        return (rel[:i + 4], rel[i + 5:]) if i >= 0 else None
 
 
 class LocalSource(VideoSource):
     """A corpus folder (searched recursively, symlinks that stay inside it followed)."""
 
-    def __init__(self, root: Union[str, Path], video_list: Optional[str] = None):
+    def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None):
         root = str(root)
         self.root = root[len("file://"):] if root.startswith("file://") else root
-        self.video_list = video_list
+        self.video_list, self.names = video_list, names
 
     def check(self) -> None:
         """Raises StoreError: the folder does not exist."""
@@ -222,15 +353,30 @@ class LocalSource(VideoSource):
             raise StoreError(f"--videos {self.root}: not a folder")
 
     def list_videos(self, extensions):
-        if self.video_list:
+        names = self._names()
+        if names is not None:
             root = Path(self.root)
-            return self._listed(read_video_list(self.video_list), lambda rel: inside(root, root / rel), extensions)
-        found, rejected = scan_corpus(Path(self.root), extensions)
-        return [p.as_posix() for p in found], [(p.as_posix(), why) for p, why in rejected]
+            return self._listed(names, lambda rel: inside(root, root / rel), extensions)
+        found, rejected = scan_corpus(Path(self.root), tuple(extensions) + (".tar",))
+        return self._with_members([p.as_posix() for p in found], [(p.as_posix(), why) for p, why in rejected],
+                                  extensions)
+
+    @contextlib.contextmanager
+    def _open_raw(self, rel: str):
+        with open(corpus_file(self.root, rel), "rb") as f:
+            yield f
 
     @contextlib.contextmanager
     def open(self, rel: str) -> Iterator[Path]:
-        yield corpus_file(self.root, rel)
+        member = self.split_member(rel)
+        if member is None or not Path(self.root, member[0]).is_file():
+            yield corpus_file(self.root, rel)
+            return
+        where = self.tar_index(member[0]).get(member[1])
+        if where is None:
+            raise VideoError(f"no member {member[1]!r} in the tar shard {member[0]}")
+        with self._open_raw(member[0]) as f:
+            yield TarMember(f, *where)
 
     def where(self, rel: str) -> str:
         return str(Path(self.root) / rel)
@@ -271,7 +417,8 @@ class StoreSource(VideoSource):
 
     def __init__(self, url: str, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False, read_timeout_s: float = 20.0,
-                 max_attempts: int = 3, read_block_mb: float = 8.0):
+                 max_attempts: int = 3, read_block_mb: float = 8.0, names: Optional[List[str]] = None):
+        self.names = names
         self.protocol = url.split("://", 1)[0].lower()
         self.root = url if url.endswith("/") else url + "/"
         self.prefix = self.root.split("://", 1)[1]
@@ -338,6 +485,10 @@ class StoreSource(VideoSource):
 
         fs.set_session = set_session
 
+    def _path(self, rel: str) -> str:
+        """The filesystem path of ``rel``: the key for object stores, the whole URL for http(s)."""
+        return (self.root if self.protocol in ("http", "https") else self.prefix) + rel
+
     def _fail(self, what: str, e: BaseException) -> StoreError:
         return StoreError(f"--videos {self.root}: {what}: {type(e).__name__}: {e}")
 
@@ -348,6 +499,8 @@ class StoreSource(VideoSource):
             StoreError: naming the URL: no such bucket, credentials refused or missing, store
                 unreachable, no library for the protocol.
         """
+        if self.protocol in ("http", "https"):
+            return  # no bucket to ask about: a missing shard is named when it is read
         bucket = self.prefix.split("/", 1)[0]
         try:
             self.fs.info(bucket)
@@ -376,7 +529,7 @@ class StoreSource(VideoSource):
             if got is not None:
                 log.info("%s: %d object(s) from the manifest %s (--refresh-manifest lists the store again)",
                          self.root, len(got), self.manifest)
-                self._objects = got
+                self._load(got)
                 return got
         t0 = time.monotonic()
         try:
@@ -392,7 +545,37 @@ class StoreSource(VideoSource):
             if info.get("type", "file") != "file" or not key.startswith(self.prefix):
                 continue
             objects[key[len(self.prefix):]] = (int(info.get("size") or 0), _etag(info))
+        for rel in [k for k in objects if k.lower().endswith(".tar")]:  # shards: their members, once
+            self._add_members(objects, rel)
         log.info("%s: listed %d object(s) in %.1f s", self.root, len(objects), time.monotonic() - t0)
+        self._save(objects)
+        self.refresh_manifest = False
+        self._load(objects)
+        return objects
+
+    def _add_members(self, objects: dict, tar: str) -> None:
+        """Add the members of the shard ``tar`` to ``objects`` as ``tar/member`` -> (size, the
+        shard's ETag, offset); an unreadable shard gets no member (it is reported when listed)."""
+        try:
+            with self._open_raw(tar) as f:
+                members = tar_members(f)
+        except Exception as e:  # noqa: BLE001 - one bad shard never stops the listing
+            log.warning("tar shard %s cannot be read: %s: %s", self.where(tar), type(e).__name__, e)
+            return
+        etag = objects.get(tar, (0, ""))[1]
+        for name, (offset, size) in members.items():
+            objects[f"{tar}/{name}"] = (size, etag, offset)
+
+    def _load(self, objects: Dict[str, tuple]) -> None:
+        """Keep ``objects`` (a listing or manifest) and the tar members it holds."""
+        self._objects = objects
+        cache = self.__dict__.setdefault("_tar_cache", {})
+        for rel, v in objects.items():
+            if len(v) == 3:
+                tar, member = self.split_member(rel)
+                cache.setdefault(tar, {})[member] = (v[2], v[0])
+
+    def _save(self, objects: dict) -> None:
         if self.manifest:
             try:
                 write_manifest(Path(self.manifest), self.root, objects)
@@ -400,39 +583,65 @@ class StoreSource(VideoSource):
             except OSError as e:
                 log.warning("cannot write the manifest %s: %s (the store is listed again at the next start)",
                             self.manifest, e)
-        self.refresh_manifest = False
-        self._objects = objects
-        return objects
 
     def list_videos(self, extensions):
-        if self.video_list:
-            names = read_video_list(self.video_list)
-            known = None  # with a list nothing is listed from the store: a manifest already there narrows it
-            if self.manifest and not self.refresh_manifest:
+        names = self._names()
+        if names is not None:  # nothing is listed from the store: a missing video is found when it is opened
+            known = None
+            if self.manifest and not self.refresh_manifest:  # the tar members read at an earlier start
                 known = read_manifest(Path(self.manifest), self.root)
-                self._objects = known
-            return self._listed(names, (lambda rel: True) if known is None else known.__contains__, extensions)
+            if known is not None:
+                self._load(known)
+            got = self._listed(names, lambda rel: True, extensions)
+            if known is None and self.manifest and any(self.split_member(v) for v in got[0]):
+                self._save_members()  # the shards' members, so that workers and restarts need not read headers
+            return got
         videos, rejected = [], []
         for rel in sorted(self.objects()):
             if not utf8_name(rel):
                 rejected.append((printable(rel), "key is not valid UTF-8 (sample ids are UTF-8): rename it"))
-            elif rel.endswith("/") or not rel:
-                continue
+            elif rel.endswith("/") or not rel or rel.lower().endswith(".tar"):
+                continue  # a shard stands for its members, listed after it
+            elif self.split_member(rel) is not None and not rel.lower().endswith(tuple(extensions)):
+                continue  # a shard's metadata member (.json, .txt): not a video, not worth a line
             elif rel.lower().endswith(tuple(extensions)):
                 videos.append(rel)
             else:
                 rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
         return videos, rejected
 
+    def _save_members(self) -> None:
+        """Write the tar members read from shard headers (no listing) as the manifest."""
+        objects = {f"{tar}/{m}": (size, "", offset) for tar, ms in self.__dict__.get("_tar_cache", {}).items()
+                   for m, (offset, size) in ms.items()}
+        self._save(objects)
+        self._objects = objects
+
     # ------------------------------------------------------------------ reading
-    def _expected(self, rel: str) -> Optional[Tuple[int, str]]:
+    def _expected(self, rel: str) -> Optional[tuple]:
         if self._objects is None and self.manifest:
-            self._objects = read_manifest(Path(self.manifest), self.root) or {}
+            self._load(read_manifest(Path(self.manifest), self.root) or {})
         return (self._objects or {}).get(rel)
 
     @contextlib.contextmanager
     def open(self, rel: str):
-        key = self.prefix + rel
+        member = self.split_member(rel)
+        if member is None:
+            with self._open_raw(rel) as f:
+                yield f
+            return
+        tar, name = member
+        with self._open_raw(tar, self._expected(rel)) as f:
+            where = self.tar_index(tar).get(name)
+            if where is None:
+                raise VideoError(f"no member {name!r} in the tar shard {tar}")
+            yield TarMember(f, *where)
+
+    @contextlib.contextmanager
+    def _open_raw(self, rel: str, expected: Optional[tuple] = None):
+        """The object at ``rel`` as a file, checked against the listing's ETag (``expected``:
+        its manifest entry, looked up when not given)."""
+        key = self._path(rel)
         block = max(1, int(self.read_block_mb * (1 << 20)))
         t0 = time.perf_counter()
         try:
@@ -445,7 +654,7 @@ class StoreSource(VideoSource):
         finally:
             self.stats.read_s += time.perf_counter() - t0
         try:
-            expected = self._expected(rel)
+            expected = self._expected(rel) if expected is None else expected
             now = _etag(getattr(f, "details", None) or {})
             if expected is not None and expected[1] and now and now != expected[1]:
                 self.stats.skipped += 1
@@ -485,16 +694,31 @@ class StoreSource(VideoSource):
                 "read_block_mb": self.read_block_mb}
 
 
+def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
+    """``(root, names)`` of a corpus given as a brace pattern of tar shards
+    (``s3://b/webvid-{000000..000009}.tar``: root ``s3://b/``, names ``webvid-000000.tar``...;
+    the root is the pattern up to the last ``/`` before the first brace), or ``(videos, None)``
+    for a folder or prefix; a single ``.tar`` is a pattern of one."""
+    brace = videos.find("{")
+    if brace < 0 and not videos.lower().endswith(".tar"):
+        return videos, None
+    cut = videos.rfind("/", 0, brace if brace >= 0 else len(videos)) + 1
+    return videos[:cut] or ".", expand_braces(videos[cut:])
+
+
 def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dict] = None,
                 video_list: Optional[str] = None, manifest: Optional[str] = None, refresh_manifest: bool = False,
-                read_timeout_s: float = 20.0, max_attempts: int = 3, read_block_mb: float = 8.0) -> VideoSource:
-    """The source of a corpus given as a folder or a URL."""
+                read_timeout_s: float = 20.0, max_attempts: int = 3, read_block_mb: float = 8.0,
+                names: Optional[List[str]] = None) -> VideoSource:
+    """The source of a corpus given as a folder, a URL, or a brace pattern / path of tar shards."""
     if isinstance(videos, VideoSource):
         return videos
+    if names is None:
+        videos, names = split_pattern(str(videos))
     if is_url(str(videos)):
         return StoreSource(str(videos), storage_options, video_list, manifest, refresh_manifest, read_timeout_s,
-                           max_attempts, read_block_mb)
-    return LocalSource(videos, video_list)
+                           max_attempts, read_block_mb, names)
+    return LocalSource(videos, video_list, names)
 
 
 def source_from_config(cfg, videos: Union[str, Path, None] = None) -> VideoSource:
@@ -502,8 +726,12 @@ def source_from_config(cfg, videos: Union[str, Path, None] = None) -> VideoSourc
     ``video_list``, ``storage_options``, store timeouts and manifest (:func:`manifest_path`)."""
     videos = cfg.videos if videos is None else videos
     manifest = None
-    if is_url(str(videos)) if videos is not None else False:
-        manifest = str(manifest_path(StoreSource(str(videos)).root, cfg.state_dir, cfg.cache_dir))
+    if videos is not None and is_url(str(videos)):
+        # one manifest per listing: of a prefix (all its objects), or of a pattern's or a list's tar members
+        key = str(videos) if split_pattern(str(videos))[1] else StoreSource(str(videos)).root
+        if cfg.video_list:
+            key += f" listed by {Path(cfg.video_list).resolve()}"
+        manifest = str(manifest_path(key, cfg.state_dir, cfg.cache_dir))
     return open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
                        refresh_manifest=cfg.refresh_manifest, read_timeout_s=cfg.store_read_timeout_s,
                        max_attempts=cfg.store_max_attempts, read_block_mb=cfg.read_block_mb)
