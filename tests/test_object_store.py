@@ -301,3 +301,25 @@ def test_tar_shards_served_over_zeromq(store, tmp_path):
     folder, _ = _epoch(str(ref))
     bucket, log = _epoch("s3://corpus/zmq-shards/", env=_env(store, tmp_path))
     assert len(folder) == 6 and bucket == folder
+
+
+def test_bounded_local_cache_reads_each_object_once_and_evicts_the_oldest(store, corpus, tmp_path):
+    src = _source(store, tmp_path, URL, cache_max_gb=2.1e6 / (1 << 30))  # room for two of the three clips
+    src.list_videos((".mp4",))
+    objects = tmp_path / "cache" / "objects"
+
+    def read(rel):
+        with src.open(rel) as f:
+            data = f.read()
+        assert data == (corpus / rel).read_bytes()
+        return src.take_stats()["bytes"]
+
+    assert read("bikes.mp4") == (corpus / "bikes.mp4").stat().st_size  # fetched once ...
+    assert read("bikes.mp4") == 0  # ... then read from the cache
+    time.sleep(0.05)
+    read("webvid_like_596x336.mp4")
+    time.sleep(0.05)
+    read("bigbuckbunny.mp4")  # over the bound: the least recently used (bikes) goes
+    assert len(list(objects.iterdir())) == 2
+    assert sum(p.stat().st_size for p in objects.iterdir()) <= 2.1e6
+    assert read("bikes.mp4") > 0  # fetched again

@@ -183,8 +183,11 @@ class ServingSettings:
     storage_options: dict = setting(help="options for the store's filesystem (s3fs, gcsfs, adlfs), e.g. "
                                          "{endpoint_url: ..., anon: true}; credentials otherwise come from the "
                                          "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
-    cache_dir: Optional[str] = setting(None, help="folder of the store manifest when there is no state_dir "
-                                                  "(default $XDG_CACHE_HOME/v2v)")
+    cache_dir: Optional[str] = setting(None, help="folder of the store manifest when there is no state_dir, and "
+                                                  "of the object cache (default $XDG_CACHE_HOME/v2v)")
+    cache_max_gb: float = setting(0.0, help="GiB of whole store objects kept on local disk for corpora read every "
+                                            "epoch (least recently used removed first); 0 = off, read from the "
+                                            "store each time")
     refresh_manifest: bool = setting(False, help="list the store again instead of reading the manifest written at "
                                                  "the first start")
     store_read_timeout_s: float = setting(20.0, help="seconds a store request may stay unanswered before it fails "
@@ -278,6 +281,9 @@ class ServingSettings:
         check_bool("refresh_manifest", self.refresh_manifest)
         self.store_read_timeout_s = check_float("store_read_timeout_s", self.store_read_timeout_s)
         self.read_block_mb = check_float("read_block_mb", self.read_block_mb)
+        self.cache_max_gb = check_float("cache_max_gb", self.cache_max_gb, positive=False)
+        if self.cache_max_gb < 0:
+            raise ValueError(f"cache_max_gb must be >= 0 GiB (0 = no cache), got {self.cache_max_gb!r}")
         check_int("store_max_attempts", self.store_max_attempts, 1, 20, "attempts")
         if self.state_dir is not None:
             if not isinstance(self.state_dir, str) or not self.state_dir:

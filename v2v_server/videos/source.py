@@ -99,8 +99,13 @@ def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional
     h = hashlib.sha256(url.encode("utf-8")).hexdigest()[:16]
     if state_dir:
         return Path(state_dir) / f"manifest-{h}.jsonl"
-    base = Path(cache_dir) if cache_dir else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
-    return base / "manifests" / f"{h}.jsonl"
+    return Path(cache_dir or default_cache_dir()) / "manifests" / f"{h}.jsonl"
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/v2v`` (``~/.cache/v2v``): manifests and the object cache when no
+    ``cache_dir`` is given."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
 
 
 def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]]) -> None:
@@ -413,12 +418,18 @@ class StoreSource(VideoSource):
         max_attempts: attempts per request (botocore ``standard`` retry mode for S3).
         read_block_mb: bytes fetched per request while decoding, MiB (one request for a clip
             smaller than this); at most four blocks per open video are kept.
+        cache_dir, cache_max_gb: a bounded local cache of whole objects for corpora read every
+            epoch (``cache_dir/objects``, least recently used removed beyond ``cache_max_gb``
+            GiB); 0 (the default) reads from the store every time.
     """
 
     def __init__(self, url: str, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False, read_timeout_s: float = 20.0,
-                 max_attempts: int = 3, read_block_mb: float = 8.0, names: Optional[List[str]] = None):
+                 max_attempts: int = 3, read_block_mb: float = 8.0, names: Optional[List[str]] = None,
+                 cache_dir: Optional[str] = None, cache_max_gb: float = 0.0):
         self.names = names
+        self.cache_dir = cache_dir or str(default_cache_dir())
+        self.cache_max_gb = float(cache_max_gb)
         self.protocol = url.split("://", 1)[0].lower()
         self.root = url if url.endswith("/") else url + "/"
         self.prefix = self.root.split("://", 1)[1]
@@ -661,9 +672,58 @@ class StoreSource(VideoSource):
                 raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}); skipped until "
                                  f"--refresh-manifest")
             self._time_fetches(f)
-            yield f
+            if self.cache_max_gb > 0:
+                with self._cached(rel, now, f) as local:
+                    yield local
+            else:
+                yield f
         finally:
             f.close()
+
+    @contextlib.contextmanager
+    def _cached(self, rel: str, etag: str, f):
+        """The object as a local file in the bounded cache (``cache_dir/objects``): copied whole
+        from ``f`` on first use, named by URL, key and ETag (a changed object is a new entry),
+        the least recently used entries removed while the cache holds more than
+        ``cache_max_gb``."""
+        d = Path(self.cache_dir) / "objects"
+        path = d / hashlib.sha256(f"{self.root}{rel} {etag}".encode("utf-8")).hexdigest()[:32]
+        if not path.is_file():
+            d.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            try:
+                with open(tmp, "wb") as out:
+                    while True:
+                        chunk = f.read(1 << 22)
+                        if not chunk:
+                            break
+                        out.write(chunk)
+                os.replace(tmp, path)
+            finally:
+                tmp.unlink(missing_ok=True)
+            self._evict(d, keep=path)
+        else:
+            os.utime(path)  # recently used
+        with open(path, "rb") as local:
+            yield local
+
+    def _evict(self, d: Path, keep: Path) -> None:
+        """Remove the least recently used entries of ``d`` until it holds at most ``cache_max_gb``."""
+        entries = []
+        for p in d.iterdir():
+            try:
+                st = p.stat()
+            except OSError:
+                continue  # removed by another worker meanwhile
+            if not p.name.endswith(".tmp"):
+                entries.append((st.st_mtime, st.st_size, p))
+        total, limit = sum(e[1] for e in entries), self.cache_max_gb * (1 << 30)
+        for _, size, p in sorted(entries, key=lambda e: e[0]):
+            if total <= limit:
+                break
+            if p != keep:
+                p.unlink(missing_ok=True)
+                total -= size
 
     def _time_fetches(self, f) -> None:
         """Count the bytes and seconds of every range request of ``f``'s block cache."""
@@ -691,7 +751,7 @@ class StoreSource(VideoSource):
     def spec(self) -> dict:
         return {"root": self.root, "storage_options": self.storage_options, "video_list": self.video_list,
                 "manifest": self.manifest, "read_timeout_s": self.read_timeout_s, "max_attempts": self.max_attempts,
-                "read_block_mb": self.read_block_mb}
+                "read_block_mb": self.read_block_mb, "cache_dir": self.cache_dir, "cache_max_gb": self.cache_max_gb}
 
 
 def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
@@ -709,7 +769,8 @@ def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
 def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dict] = None,
                 video_list: Optional[str] = None, manifest: Optional[str] = None, refresh_manifest: bool = False,
                 read_timeout_s: float = 20.0, max_attempts: int = 3, read_block_mb: float = 8.0,
-                names: Optional[List[str]] = None) -> VideoSource:
+                names: Optional[List[str]] = None, cache_dir: Optional[str] = None,
+                cache_max_gb: float = 0.0) -> VideoSource:
     """The source of a corpus given as a folder, a URL, or a brace pattern / path of tar shards."""
     if isinstance(videos, VideoSource):
         return videos
@@ -717,7 +778,7 @@ def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dic
         videos, names = split_pattern(str(videos))
     if is_url(str(videos)):
         return StoreSource(str(videos), storage_options, video_list, manifest, refresh_manifest, read_timeout_s,
-                           max_attempts, read_block_mb, names)
+                           max_attempts, read_block_mb, names, cache_dir, cache_max_gb)
     return LocalSource(videos, video_list, names)
 
 
@@ -734,7 +795,8 @@ def source_from_config(cfg, videos: Union[str, Path, None] = None) -> VideoSourc
         manifest = str(manifest_path(key, cfg.state_dir, cfg.cache_dir))
     return open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
                        refresh_manifest=cfg.refresh_manifest, read_timeout_s=cfg.store_read_timeout_s,
-                       max_attempts=cfg.store_max_attempts, read_block_mb=cfg.read_block_mb)
+                       max_attempts=cfg.store_max_attempts, read_block_mb=cfg.read_block_mb, cache_dir=cfg.cache_dir,
+                       cache_max_gb=cfg.cache_max_gb)
 
 
 def source_from_spec(spec: Union[str, Path, dict, VideoSource]) -> VideoSource:
