@@ -88,7 +88,7 @@ class SeaweedS3:
         data.mkdir()
         args = [weed, "server", "-dir", str(data), "-ip", "127.0.0.1", "-ip.bind", "127.0.0.1",
                 "-s3", "-s3.port", str(ports[0]), "-s3.port.grpc", str(ports[1]), "-s3.config", str(conf),
-                "-s3.port.iceberg", str(ports[2]),
+                "-s3.port.iceberg", str(ports[2]), "-s3.port.lance", str(ports[10]),
                 "-master.port", str(ports[3]), "-master.port.grpc", str(ports[4]),
                 "-volume.port", str(ports[5]), "-volume.port.grpc", str(ports[6]),
                 "-filer.port", str(ports[7]), "-filer.port.grpc", str(ports[8]),

@@ -451,6 +451,8 @@ class StoreSource(VideoSource):
     def _make_fs(self):
         import fsspec
 
+        logging.getLogger("fsspec.caching").setLevel(logging.WARNING)  # a line per block fetched otherwise
+
         try:
             cls = fsspec.get_filesystem_class(self.protocol)
         except (ImportError, ValueError) as e:
