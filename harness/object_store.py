@@ -49,6 +49,11 @@ class SeaweedS3:
     def endpoint(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
+    @property
+    def filer_url(self) -> str:
+        """The filer's plain HTTP endpoint: bucket objects at ``/buckets/BUCKET/KEY``, with range reads."""
+        return f"http://127.0.0.1:{self._ports[7]}"
+
     def env(self, key: Optional[str] = None, secret: Optional[str] = None) -> Dict[str, str]:
         """The standard AWS variables pointing at this store (``key``/``secret`` to try others)."""
         return {"AWS_ENDPOINT_URL": self.endpoint, "AWS_ACCESS_KEY_ID": key or self.key,

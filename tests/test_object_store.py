@@ -289,6 +289,7 @@ def test_tar_shards_local_bucket_and_brace_pattern(store, tmp_path, monkeypatch)
     assert _rows(str(tars / "shard-{0..1}.tar")) == expected  # a local brace pattern
     assert _rows("s3://corpus/shards/") == expected  # a prefix of .tar objects (members in the manifest)
     assert _rows("s3://corpus/shards/shard-{0..1}.tar") == expected  # a brace pattern: nothing listed
+    assert _rows(f"{store.filer_url}/buckets/corpus/shards/shard-{{0..1}}.tar") == expected  # over plain HTTP
     # the manifest keeps each member's offset: a restart (or a worker) reads no tar header
     objects = read_manifest(manifest_path("s3://corpus/shards/", None, str(tmp_path / "cache" / "v2v")),
                             "s3://corpus/shards/")
