@@ -324,3 +324,35 @@ def test_bounded_local_cache_reads_each_object_once_and_evicts_the_oldest(store,
     assert len(list(objects.iterdir())) == 2
     assert sum(p.stat().st_size for p in objects.iterdir()) <= 2.1e6
     assert read("bikes.mp4") > 0  # fetched again
+
+
+def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_counts_it(store, corpus, tmp_path):
+    from v2v_client.dataset import V2VStreamDataset
+
+    url = "s3://corpus/overwritten/"
+    store.upload(corpus, url, ["bikes.mp4", "webvid_like_596x336.mp4"])
+    state = tmp_path / "state"
+    env = _env(store, tmp_path)
+    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", url, "--state-dir", str(state),
+                        "--check", *LAYOUT.args()], env={**os.environ, **env}, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and manifest_path(url, str(state)).is_file(), r.stderr  # listed once, kept
+    store.fs().put_file(str(corpus / "bigbuckbunny.mp4"), "corpus/overwritten/bikes.mp4")
+    port = free_port()
+    got = []
+    with ServeProcess(["--videos", url, "--state-dir", str(state), "--workers", "2", *LAYOUT.args(),
+                       "--outputs", "voxels", "--metrics-port", str(port)], env=env) as srv:
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60))
+        try:
+            while len(got) < 4:  # two epochs of the one video left
+                got += list(next(it)["sample_ids"])
+        finally:
+            it.close()
+        time.sleep(1.5)  # the metrics page is rendered at most once a second
+        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+        log = srv.log
+    assert {s.rsplit("#", 1)[0] for s in got} == {"webvid_like_596x336.mp4"}
+    lines = [line for line in log.splitlines() if "overwritten/bikes.mp4" in line]
+    assert len(lines) == 1 and "changed since it was listed (ETag" in lines[0], log  # once, not once per epoch
+    skipped = [float(line.split()[1]) for line in text.splitlines() if line.startswith("v2v_store_objects_skipped_total")]
+    assert skipped and skipped[0] >= 1
