@@ -231,6 +231,23 @@ def test_a_store_that_stops_answering_fails_the_read_within_the_timeout(store, c
         assert len(f.read(16)) == 16
 
 
+def test_a_store_silent_for_less_than_the_attempts_is_retried_and_counted(store, corpus, tmp_path):
+    import threading
+
+    src = _source(store, tmp_path, URL, store_read_timeout_s=1.0, store_max_attempts=4)
+    src.list_videos((".mp4",))
+    src.take_stats()
+    store.pause()
+    threading.Timer(1.6, store.resume).start()  # silent for one and a half attempts
+    try:
+        with src.open("bikes.mp4") as f:
+            assert f.read() == (corpus / "bikes.mp4").read_bytes()
+    finally:
+        time.sleep(1.7)
+        store.resume()
+    assert src.take_stats()["retries"] >= 1  # botocore's retry, seen in ResponseMetadata.RetryAttempts
+
+
 def test_store_errors_name_the_url():
     with pytest.raises(StoreError, match=r"nosuch://b/p/.*no filesystem"):
         StoreSource("nosuch://b/p").check()
