@@ -373,3 +373,17 @@ def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_count
     assert len(lines) == 1 and "changed since it was listed (ETag" in lines[0], log  # once, not once per epoch
     skipped = [float(line.split()[1]) for line in text.splitlines() if line.startswith("v2v_store_objects_skipped_total")]
     assert skipped and skipped[0] >= 1
+
+
+def test_manifest_index_finds_every_entry_without_loading_the_manifest(tmp_path):
+    from v2v_server.videos.source import ManifestIndex, write_manifest
+
+    objects = {f"{i // 100:03d}/{i:07d}.mp4": (i, f"etag{i}") for i in range(2000)}
+    objects.update({'a"quote\\x.mp4': (1, "q"), ODD: (2, "h"), "ü.mp4": (3, "u"), "s.tar/000001.mp4": (5, "t", 1536)})
+    write_manifest(tmp_path / "m.jsonl", URL, objects)
+    index = ManifestIndex.open(tmp_path / "m.jsonl", URL)
+    assert all(index.get(k) == v for k, v in objects.items())
+    assert all(index.get(k) is None for k in ("", "000", "zzz.mp4", "s.tar", "000/0000000.mp3"))
+    assert read_manifest(tmp_path / "m.jsonl", URL) == objects
+    assert ManifestIndex.open(tmp_path / "m.jsonl", "s3://another/") is None  # another corpus's manifest
+    assert ManifestIndex.open(tmp_path / "none.jsonl", URL) is None

@@ -142,6 +142,57 @@ def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
     return objects if len(objects) == header.get("objects") else None
 
 
+class ManifestIndex:
+    """Look up single entries of a manifest (see :func:`write_manifest`) without loading it: a
+    binary search over the memory-mapped file, whose lines are sorted by key. What a worker
+    uses to check an object's ETag, so that a 10-million-object manifest costs it pages of the
+    file, not a dictionary of every key. None when the file is absent or of another URL."""
+
+    def __init__(self, mm, start: int):
+        self.mm, self.start = mm, start
+
+    @classmethod
+    def open(cls, path: Path, url: str) -> Optional["ManifestIndex"]:
+        import mmap
+
+        try:
+            with open(path, "rb") as f:
+                header = json.loads(f.readline() or b"null")
+                start = f.tell()
+                if (not isinstance(header, dict) or header.get("v2v_manifest") != MANIFEST_VERSION
+                        or header.get("url") != url or os.fstat(f.fileno()).st_size <= start):
+                    return None
+                return cls(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ), start)
+        except (OSError, ValueError):
+            return None
+
+    def _line_at(self, pos: int) -> Tuple[int, int]:
+        """(start, end) of the first whole line beginning at or after ``pos``."""
+        if pos > self.start:
+            nl = self.mm.find(b"\n", pos - 1)
+            pos = len(self.mm) if nl < 0 else nl + 1
+        end = self.mm.find(b"\n", pos)
+        return pos, (len(self.mm) if end < 0 else end)
+
+    def get(self, key: str) -> Optional[tuple]:
+        """The entry of ``key``: (size, ETag[, offset]), or None."""
+        lo, hi = self.start, len(self.mm)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            a, b = self._line_at(mid)
+            if a >= hi:  # no line starts in [mid, hi): look left
+                hi = mid
+                continue
+            k, size, etag, *offset = json.loads(self.mm[a:b])
+            if k == key:
+                return (int(size), str(etag), *(int(o) for o in offset[:1]))
+            if k < key:
+                lo = b + 1
+            else:
+                hi = a
+        return None
+
+
 def _etag(info: dict) -> str:
     """The version tag of an object in a listing or ``info()`` answer: S3's ETag, GCS's
     generation, Azure's etag (quotes stripped)."""
@@ -632,9 +683,16 @@ class StoreSource(VideoSource):
 
     # ------------------------------------------------------------------ reading
     def _expected(self, rel: str) -> Optional[tuple]:
-        if self._objects is None and self.manifest:
-            self._load(read_manifest(Path(self.manifest), self.root) or {})
-        return (self._objects or {}).get(rel)
+        """The listing's entry for ``rel``: from the listing this process holds (the server),
+        else looked up in the manifest file (a worker: one entry, not the whole manifest)."""
+        if self._objects is not None:
+            return self._objects.get(rel)
+        if self.manifest:
+            if "_index" not in self.__dict__:
+                self._index = ManifestIndex.open(Path(self.manifest), self.root)
+            if self._index is not None:
+                return self._index.get(rel)
+        return None
 
     @contextlib.contextmanager
     def open(self, rel: str):
@@ -644,8 +702,9 @@ class StoreSource(VideoSource):
                 yield f
             return
         tar, name = member
-        with self._open_raw(tar, self._expected(rel)) as f:
-            where = self.tar_index(tar).get(name)
+        entry = self._expected(rel)
+        with self._open_raw(tar, entry) as f:
+            where = (entry[2], entry[0]) if entry is not None and len(entry) == 3 else self.tar_index(tar).get(name)
             if where is None:
                 raise VideoError(f"no member {name!r} in the tar shard {tar}")
             yield TarMember(f, *where)
