@@ -387,3 +387,18 @@ def test_manifest_index_finds_every_entry_without_loading_the_manifest(tmp_path)
     assert read_manifest(tmp_path / "m.jsonl", URL) == objects
     assert ManifestIndex.open(tmp_path / "m.jsonl", "s3://another/") is None  # another corpus's manifest
     assert ManifestIndex.open(tmp_path / "none.jsonl", URL) is None
+
+
+def test_a_missing_list_file_or_a_pattern_with_a_list_is_a_clear_error_at_start(tmp_path):
+    def serve(*args):
+        return subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", *args], capture_output=True,
+                              text=True, timeout=120)
+
+    r = serve("--video-list", str(tmp_path / "absent.txt"))
+    assert r.returncode == 2 and f"video_list {tmp_path / 'absent.txt'}: no such file" in r.stderr
+    (tmp_path / "list.txt").write_text("a.tar\n")
+    r = serve("--videos", str(tmp_path / "s-{0..1}.tar"), "--video-list", str(tmp_path / "list.txt"))
+    assert r.returncode == 2 and "not both" in r.stderr
+    (tmp_path / "empty.txt").write_text("# nothing\n\n")
+    r = serve("--video-list", str(tmp_path / "empty.txt"))
+    assert r.returncode == 2 and "lists no video" in r.stderr

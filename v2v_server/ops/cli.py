@@ -52,8 +52,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (ValueError, FileNotFoundError) as e:
         print(f"v2v-serve: configuration error: {e}", file=sys.stderr)
         return 2
-    source = source_from_config(cfg, cfg.videos or str(SAMPLE_VIDEOS))
     try:
+        source = source_from_config(cfg, cfg.videos or str(SAMPLE_VIDEOS))
         source.check()
         videos, rejected = source.list_videos(cfg.video_extensions)
     except (StoreError, FileNotFoundError, ValueError) as e:  # the store, or the video list file

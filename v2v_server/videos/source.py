@@ -8,7 +8,10 @@ the Ray engine (``ray_data``). A source lists the corpus as **sample-id paths**:
 relative to the folder or key prefix, so the same files in a folder and under a bucket prefix
 give the same ids and, for the same seed, bit-identical samples. ``open(rel)`` yields what
 ``decode.open_video`` reads: a local path, or a file object on the stored object that fetches
-it in ``read_block_mb`` blocks (PyAV reads straight from it, no local copy).
+it in ``read_block_mb`` blocks (PyAV reads straight from it, no local copy; ``cache_max_gb``
+keeps whole objects on local disk instead). Tar shards (WebDataset convention) given as
+``.tar`` files or objects, a brace pattern or list entries stand for their video members, ids
+``shard.tar/member.mp4``, read in place by offset (:class:`TarMember`).
 
 An object store is listed once and the listing is kept as a **manifest** (one JSON line per
 object: key relative to the prefix, size in bytes, ETag), so a restart and every shard of the
@@ -72,7 +75,10 @@ def read_video_list(path: str) -> List[str]:
         with fsspec.open(path, "rt", encoding="utf-8") as f:
             lines = f.read().splitlines()
     else:
-        lines = Path(path).read_text(encoding="utf-8").splitlines()
+        try:
+            lines = Path(path).read_text(encoding="utf-8").splitlines()
+        except FileNotFoundError:
+            raise FileNotFoundError(f"video_list {path}: no such file") from None
     out, seen = [], set()
     for line in lines:
         s = line.strip()
@@ -306,8 +312,15 @@ class VideoSource:
     names: Optional[List[str]] = None
 
     def _names(self) -> Optional[List[str]]:
-        """The entries that replace a listing: the brace pattern's, else the video list's."""
+        """The entries that replace a listing: the brace pattern's, else the video list's.
+
+        Raises:
+            ValueError: both a brace pattern and a video list are given.
+        """
         if self.names:
+            if self.video_list:
+                raise ValueError(f"--videos {self.root}: a brace pattern of tar shards names the shards itself; "
+                                 f"give it or --video-list {self.video_list}, not both")
             return list(self.names)
         return read_video_list(self.video_list) if self.video_list else None
 
