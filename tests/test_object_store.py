@@ -286,7 +286,7 @@ def _rows(videos: str, cfg=None) -> dict:
 
     cfg = cfg or LAYOUT.cfg()
     rc = scan_corpus_windows(videos, cfg)
-    maker = SampleMaker(cfg.to_dict(), videos, ("voxels", "frames"))
+    maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels", "frames"))  # as v2v_dataset builds its actors
     out = {}
     for d in epoch_descriptors(rc, 0):
         for r in maker.video_rows(d["video"], 0, json.loads(d["entries"])):

@@ -67,7 +67,7 @@ class RayCorpus:
     """A corpus and its windows per video (epoch-independent; reuse it across epochs).
 
     Attributes:
-        root: corpus folder.
+        root: the corpus: a folder, a store prefix URL, or a brace pattern of tar shards (as given).
         windows: usable video (POSIX path relative to ``root``) -> windows per epoch.
         skipped: unusable video -> reason (the ``skipped PATH: reason`` of ``v2v-serve``).
     """
@@ -138,7 +138,8 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
             log.warning("skipped %s: %s", source.where(rel), reason)
         else:
             windows[rel] = n
-    return RayCorpus(source.root, windows, skipped)
+    # a brace pattern stays whole: the actors rebuild the source from it (its shards, its manifest)
+    return RayCorpus(str(videos) if source.names else source.root, windows, skipped)
 
 
 def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = (), ranks: int = 1,
