@@ -18,12 +18,9 @@ import socket
 import subprocess
 import tempfile
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 from typing import Dict, Iterable, Optional
 
-from harness.serve import free_port
 
 ACCESS_KEY = "v2v-test-key"
 SECRET_KEY = "v2v-test-secret"
