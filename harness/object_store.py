@@ -128,9 +128,21 @@ class SeaweedS3:
         except OSError:
             return ""
 
-    def pause(self) -> None:
-        """Freeze the server (SIGSTOP): connections open, nothing answers."""
+    def pause(self, timeout_s: float = 5.0) -> None:
+        """Freeze the server (SIGSTOP): connections open, nothing answers. Returns once every
+        thread of the process is stopped (a stop is delivered to each thread when it next runs)."""
         os.killpg(self.proc.pid, signal.SIGSTOP)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            states = []
+            for t in Path(f"/proc/{self.proc.pid}/task").iterdir():
+                try:
+                    states.append((t / "stat").read_text().rsplit(")", 1)[1].split()[0])
+                except (OSError, IndexError):
+                    continue
+            if states and all(st in ("T", "t") for st in states):
+                return
+            time.sleep(0.01)
 
     def resume(self) -> None:
         os.killpg(self.proc.pid, signal.SIGCONT)
