@@ -84,8 +84,8 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     from harness.object_store import SeaweedS3
 
-    tmp = Path(tempfile.mkdtemp(prefix="v2v-bench-store-"))
-    with SeaweedS3() as s3:
+    with tempfile.TemporaryDirectory(prefix="v2v-bench-store-") as t, SeaweedS3() as s3:
+        tmp = Path(t)
         os.environ.update(s3.env(), XDG_CACHE_HOME=str(tmp / "xdg"))
         s3.upload(CLIPS, "s3://bench/clips/", [p.name for p in sorted(CLIPS.glob("*.mp4"))])
         cfg = _cfg(tmp)
