@@ -155,7 +155,7 @@ def under(path, mounts):
 def test_server_image_is_slim_without_torch_nonroot_with_probe_on_its_metrics_port():
     img = dockerfile("Dockerfile.server")
     assert re.fullmatch(r"python:3\.1\d-slim", img["from"]), img["from"]
-    assert any('pip install ".[server]"' in r for r in img["run"])
+    assert any('pip install ".[server,s3]"' in r for r in img["run"])  # s3: a corpus in a bucket
     pyproject = (ROOT / "pyproject.toml").read_text()
     base = re.search(r"^dependencies = \[(.*?)^\]", pyproject, re.S | re.M).group(1)
     server_extra = re.search(r"^server = \[(.*?)^\]", pyproject, re.S | re.M).group(1)
@@ -396,3 +396,47 @@ def test_kustomize_renders():
     assert out.returncode == 0, out.stderr
     kinds = sorted(d["kind"] for d in yaml.safe_load_all(out.stdout) if d)
     assert kinds == ["ConfigMap", "Job", "PodDisruptionBudget", "Service", "StatefulSet"]
+
+
+def _store_env(env: dict) -> None:
+    """A bucket corpus's configuration: the endpoint as a variable, the keys from a Secret."""
+    assert env["AWS_ENDPOINT_URL"]["value"].startswith("http")
+    for k in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
+        ref = env[k]["valueFrom"]["secretKeyRef"]
+        assert ref["name"] == "v2v-s3" and ref["key"] == k
+
+
+def test_k8s_bucket_overlay_reads_the_corpus_from_a_bucket():
+    out = subprocess.run(["kubectl", "kustomize", str(DEPLOY / "k8s-bucket")], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    docs = {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(out.stdout) if d}
+    sts = docs[("StatefulSet", "v2v-server")]
+    c = _container(sts)
+    env = {e["name"]: e for e in c["env"]}
+    _store_env(env)
+    assert "SHARD_INDEX" in env and "CPU_REQUEST" in env  # the base's variables stay
+    assert flag_values(c["args"], "--videos") == ["s3://v2v-corpus/webvid/"]
+    ns = check_flags("v2v-serve", c["args"], {"SHARD_INDEX": "0", "SHARDS": "2", "CPU_REQUEST": "4"})
+    ns.config = None
+    assert check_serve_config(ns).videos == "s3://v2v-corpus/webvid/"
+    assert all(v["name"] != "videos" for v in sts["spec"]["template"]["spec"]["volumes"])  # no corpus volume
+
+
+def test_compose_bucket_override_and_raycluster_read_the_bucket():
+    comp = yaml.safe_load((DEPLOY / "docker-compose.bucket.yml").read_text())
+    base = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+    for name in ("shard0", "shard1"):
+        s = comp["services"][name]
+        assert name in base["services"]
+        assert s["environment"]["AWS_SHARED_CREDENTIALS_FILE"] == "/run/secrets/aws_credentials"
+        assert "AWS_ENDPOINT_URL" in s["environment"] and s["secrets"] == ["aws_credentials"]
+        ns = check_flags("v2v-serve", [a.replace("${V2V_BUCKET:-s3://v2v-corpus/webvid/}", "s3://v2v-corpus/webvid/")
+                                       for a in s["command"]])
+        ns.config = None
+        assert check_serve_config(ns).videos == "s3://v2v-corpus/webvid/"
+    assert "aws_credentials" in comp["secrets"]
+    ray = yaml.safe_load((DEPLOY / "ray" / "raycluster.yaml").read_text())
+    pods = [ray["spec"]["headGroupSpec"]] + ray["spec"]["workerGroupSpecs"]
+    for g in pods:
+        _store_env({e["name"]: e for e in g["template"]["spec"]["containers"][0]["env"]})

@@ -47,7 +47,7 @@ def test_every_serve_key_is_a_flag_or_yaml_only_and_the_reference_lists_it():
     add_flags(p, SampleRecipe)
     add_flags(p, ServingSettings)
     dests = {a.dest for a in p._actions}
-    yaml_only = {"ranges", "nonidealities", "degrade_dynamic_range", "video_extensions"}
+    yaml_only = {"ranges", "nonidealities", "degrade_dynamic_range", "video_extensions", "storage_options"}
     from dataclasses import fields
 
     names = {f.name for f in fields(ServeConfig)}

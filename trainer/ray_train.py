@@ -299,7 +299,11 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
     if data_workers is None:  # the CPUs the ranks leave free
         free = ray.cluster_resources().get("CPU", 1) - args.num_workers * args.cpus_per_worker
         data_workers = max(1, int(free))
-    corpus = scan_corpus_windows(videos, scfg)
+    try:
+        corpus = scan_corpus_windows(videos, scfg)
+    except (NotADirectoryError, FileNotFoundError, ValueError, RuntimeError) as e:  # RuntimeError: StoreError
+        log.error("%s", e)
+        return 2
     if not corpus.samples_per_epoch:
         log.error("no usable video under %s", videos)
         return 2

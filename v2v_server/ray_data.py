@@ -50,8 +50,9 @@ from v2v_wire.protocol import check_outputs
 from v2v_server.samples.flow import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
-from v2v_server.videos.corpus import corpus_file, verdict
-from v2v_server.videos.decode import open_video, scan_corpus
+from v2v_server.videos.corpus import verdict
+from v2v_server.videos.decode import open_video
+from v2v_server.videos.source import LocalSource, source_from_config, source_from_spec
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
            "v2v_dataset", "VOXEL_DTYPE"]
@@ -69,7 +70,7 @@ class RayCorpus:
     """A corpus and its windows per video (epoch-independent; reuse it across epochs).
 
     Attributes:
-        root: corpus folder.
+        root: the corpus: a folder, a store prefix URL, or a brace pattern of tar shards (as given).
         windows: usable video (POSIX path relative to ``root``) -> windows per epoch.
         skipped: unusable video -> reason (the ``skipped PATH: reason`` of ``v2v-serve``).
     """
@@ -83,8 +84,9 @@ class RayCorpus:
         return sum(self.windows.values())
 
 
-def count_windows(cfg: ServeConfig, root: Path, rel: str) -> Tuple[int, Optional[str]]:
-    """Windows ``root / rel`` gives per epoch, from its video packets (demuxed, not decoded).
+def count_windows(cfg: ServeConfig, root, rel: str) -> Tuple[int, Optional[str]]:
+    """Windows the video at ``rel`` of ``root`` (a corpus folder or a
+    ``videos.source.VideoSource``) gives per epoch, from its video packets (demuxed, not decoded).
 
     Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
     ``v2v-serve`` logs for it (``open_video``'s ``VideoError`` message, or ``"N frames,
@@ -93,16 +95,17 @@ def count_windows(cfg: ServeConfig, root: Path, rel: str) -> Tuple[int, Optional
     """
     frames, error = 0, None
     try:
-        container, stream, _ = open_video(corpus_file(root, rel))
-        try:
-            need = cfg.frames_for(cfg.max_samples_per_video)
-            for packet in container.demux(stream):
-                if packet.size:
-                    frames += 1
-                    if frames >= need:
-                        break
-        finally:
-            container.close()
+        with source_from_spec(root).open(rel) as path:
+            container, stream, _ = open_video(path)
+            try:
+                need = cfg.frames_for(cfg.max_samples_per_video)
+                for packet in container.demux(stream):
+                    if packet.size:
+                        frames += 1
+                        if frames >= need:
+                            break
+            finally:
+                container.close()
     except Exception as e:  # a demuxing error after some packets: those packets still count
         error = e if frames == 0 else None
     windows, _, reason = verdict(cfg, frames, None, error)
@@ -110,31 +113,36 @@ def count_windows(cfg: ServeConfig, root: Path, rel: str) -> Tuple[int, Optional
 
 
 def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] = None) -> RayCorpus:
-    """List the video files under ``videos`` (as ``v2v-serve --videos``) and count their windows.
+    """List the videos of ``videos`` (as ``v2v-serve --videos``: a folder or an object-store
+    URL, with ``config``'s ``video_list``, ``storage_options`` and manifest) and count their
+    windows.
 
     Logs ``skipped PATH: reason`` (logger ``v2v.ray``, WARNING) for each unusable file and
     ``ignored PATH: reason`` (INFO) for other entries, as ``v2v-serve`` does.
 
     Raises:
-        NotADirectoryError: ``videos`` is not a folder.
+        NotADirectoryError: ``videos`` is a local path but not a folder.
+        StoreError: the store cannot be reached or listed (naming the URL).
     """
     cfg = config or ServeConfig().validate()
-    root = Path(videos)
-    if not root.is_dir():
-        raise NotADirectoryError(f"videos {root}: not a folder")
-    found, rejected = scan_corpus(root, cfg.video_extensions)
+    source = source_from_config(cfg, str(videos))
+    if isinstance(source, LocalSource) and not Path(source.root).is_dir():
+        raise NotADirectoryError(f"videos {source.root}: not a folder")
+    if not isinstance(source, LocalSource):
+        source.check()
+    found, rejected = source.list_videos(cfg.video_extensions)
     for rel, reason in rejected:
-        log.info("ignored %s: %s", root / rel, reason)
+        log.info("ignored %s: %s", source.where(rel), reason)
     windows, skipped = {}, {}
-    for p in found:
-        rel = p.as_posix()
-        n, reason = count_windows(cfg, root, rel)
+    for rel in found:
+        n, reason = count_windows(cfg, source, rel)
         if reason:
             skipped[rel] = reason
-            log.warning("skipped %s: %s", root / rel, reason)
+            log.warning("skipped %s: %s", source.where(rel), reason)
         else:
             windows[rel] = n
-    return RayCorpus(str(root), windows, skipped)
+    # a brace pattern stays whole: the actors rebuild the source from it (its shards, its manifest)
+    return RayCorpus(str(videos) if source.names else source.root, windows, skipped)
 
 
 def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = (), ranks: int = 1,
@@ -190,7 +198,8 @@ class SampleMaker:
 
     Args:
         cfg_dict: ``ServeConfig.to_dict()``.
-        root: corpus folder as seen from the actor's node.
+        root: corpus folder as seen from the actor's node, or the object-store URL (read with
+            ``cfg_dict``'s ``storage_options`` and the node's store credentials).
         outputs: subset of ``OUTPUTS`` to make.
     """
 
@@ -199,7 +208,7 @@ class SampleMaker:
 
         cv2.setNumThreads(1)
         self.cfg = ServeConfig.from_dict(cfg_dict, source="ray stage config")
-        self.root = Path(root)
+        self.source = source_from_config(self.cfg, root)
         self.outputs = tuple(outputs)
         self.flow = FlowEstimator(self.cfg.flow_preset) if "flow" in self.outputs else None
         logging.basicConfig(level=logging.INFO, format="v2v-ray %(process)d: %(message)s")
@@ -220,7 +229,7 @@ class SampleMaker:
         stats: dict = {}
         error: Optional[str] = None
         try:
-            for key, arrays, meta in video_samples(self.cfg, self.root, video, epoch, self.outputs, skip,
+            for key, arrays, meta in video_samples(self.cfg, self.source, video, epoch, self.outputs, skip,
                                                    self.flow, stats):
                 sid = key.sample_id(kpw)
                 flags = wanted.pop(sid, None)
@@ -237,7 +246,7 @@ class SampleMaker:
         if wanted:  # windows the file did not give: a verdict, and padding rows in their place
             error = error or verdict(self.cfg, stats.get("frames", 0))[2] or (
                 f"{stats.get('frames', 0)} frames decoded, fewer than its packets promised")
-            log.warning("skipped %s: %s", self.root / video, error)
+            log.warning("skipped %s: %s", self.source.where(video), error)
             zeros = _zeros(self.cfg, self.outputs)
             for sid, flags in wanted.items():
                 for _ in flags:

@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from pathlib import Path
 from typing import List, Optional
 
 from v2v_server.ops.config import SampleRecipe, ServeConfig, ServingSettings, load_config
@@ -13,7 +12,7 @@ from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import setup_logging
 from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
 from v2v_server.delivery.journal import JournalError
-from v2v_server.videos.decode import scan_corpus
+from v2v_server.videos.source import StoreError, source_from_config
 
 
 log = logging.getLogger("v2v.serve")
@@ -53,12 +52,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (ValueError, FileNotFoundError) as e:
         print(f"v2v-serve: configuration error: {e}", file=sys.stderr)
         return 2
-    root = Path(cfg.videos) if cfg.videos else SAMPLE_VIDEOS
-    if not root.is_dir():
-        print(f"v2v-serve: --videos {root}: not a folder", file=sys.stderr)
+    try:
+        source = source_from_config(cfg, cfg.videos or str(SAMPLE_VIDEOS))
+        source.check()
+        videos, rejected = source.list_videos(cfg.video_extensions)
+    except (StoreError, FileNotFoundError, ValueError) as e:  # the store, or the video list file
+        print(f"v2v-serve: {e}", file=sys.stderr)
         return 2
-    found, rejected = scan_corpus(root, cfg.video_extensions)
-    videos = [p.as_posix() for p in found]
     listing = corpus_fingerprint(videos)  # of the whole listing: shards compare it
     index, count = cfg.shard_spec
     if count > 1:
@@ -66,17 +66,17 @@ def main(argv: Optional[List[str]] = None) -> int:
         log.info("shard %d/%d: %d of %d video file(s)", index, count, len(mine), len(videos))
         videos = mine
     if args.check:
-        results = check_corpus(cfg, root, videos)
+        results = check_corpus(cfg, source, videos)
         print(format_check(results, rejected))
         return 0 if any(r["usable"] for r in results) else 2
-    for rel, reason in rejected:
-        log.info("ignored %s: %s", root / rel, reason)
+    for rel, reason in rejected:  # a listed video that is missing is named here, once
+        (log.warning if source.video_list else log.info)("ignored %s: %s", source.where(rel), reason)
     if not videos:
-        print(f"v2v-serve: --videos {root}: no video files ({', '.join(cfg.video_extensions)})"
+        print(f"v2v-serve: --videos {source.root}: no video files ({', '.join(cfg.video_extensions)})"
               + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)
         return 2
     try:
-        server = V2VServer(cfg, root, videos, corpus=listing)
+        server = V2VServer(cfg, source, videos, corpus=listing)
     except (JournalError, OSError) as e:  # the journal of --state-dir
         print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
         return 2

@@ -171,7 +171,28 @@ class SampleRecipe:
 class ServingSettings:
     """Serving: corpus, workers, transport, delivery, security and operations."""
 
-    videos: Optional[str] = setting(None, help="corpus folder (searched recursively); default: the bundled sample clips")
+    videos: Optional[str] = setting(None, help="corpus: a folder (searched recursively) or an object-store URL "
+                                               "(s3://bucket/prefix/, gs://, az://; extras v2v[s3], v2v[gcs], "
+                                               "v2v[azure]; docs/object_store.md); default: the bundled sample clips")
+    video_list: Optional[str] = setting(None, help="list file selecting and ordering the videos (the V2V authors' "
+                                                   "format: first field a path relative to videos, rest ignored, "
+                                                   "# comments); nothing is listed from the store")
+    storage_options: dict = setting(help="options for the store's filesystem (s3fs, gcsfs, adlfs), e.g. "
+                                         "{endpoint_url: ..., anon: true}; credentials otherwise come from the "
+                                         "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
+    cache_dir: Optional[str] = setting(None, help="folder of the store manifest when there is no state_dir, and "
+                                                  "of the object cache (default $XDG_CACHE_HOME/v2v)")
+    cache_max_gb: float = setting(0.0, help="GiB of whole store objects kept on local disk for corpora read every "
+                                            "epoch (least recently used removed first); 0 = off, read from the "
+                                            "store each time")
+    refresh_manifest: bool = setting(False, help="list the store again instead of reading the manifest written at "
+                                                 "the first start")
+    store_read_timeout_s: float = setting(20.0, help="seconds a store request may stay unanswered before it fails "
+                                                     "(then retried)", flag="--store-read-timeout")
+    store_max_attempts: int = setting(3, help="attempts per store request (botocore standard retry mode: "
+                                              "exponential backoff on throttling, 5xx and connection errors)")
+    read_block_mb: float = setting(8.0, help="MiB fetched per store request while decoding (one request for a "
+                                             "smaller video)")
     workers: int = setting(2, help="worker processes")
     bind: str = setting("tcp://127.0.0.1:5555", help="ZeroMQ endpoint to bind (port 0 = any free port)")
     epochs: Optional[int] = setting(None, help="end the stream after this many epochs (default: unbounded)")
@@ -248,6 +269,19 @@ class ServingSettings:
         self.video_extensions = tuple(e.lower() for e in self.video_extensions)
         if self.videos is not None:
             self.videos = str(self.videos)
+        for name in ("video_list", "cache_dir"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, str) or not v):
+                raise ValueError(f"{name} must be a path, got {v!r}")
+        if not isinstance(self.storage_options, dict):
+            raise ValueError(f"storage_options must be a mapping of filesystem options, got {self.storage_options!r}")
+        check_bool("refresh_manifest", self.refresh_manifest)
+        self.store_read_timeout_s = check_float("store_read_timeout_s", self.store_read_timeout_s)
+        self.read_block_mb = check_float("read_block_mb", self.read_block_mb)
+        self.cache_max_gb = check_float("cache_max_gb", self.cache_max_gb, positive=False)
+        if self.cache_max_gb < 0:
+            raise ValueError(f"cache_max_gb must be >= 0 GiB (0 = no cache), got {self.cache_max_gb!r}")
+        check_int("store_max_attempts", self.store_max_attempts, 1, 20, "attempts")
         if self.state_dir is not None:
             if not isinstance(self.state_dir, str) or not self.state_dir:
                 raise ValueError(f"state_dir must be a folder path, got {self.state_dir!r}")

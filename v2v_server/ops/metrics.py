@@ -69,6 +69,12 @@ class ServerMetrics:
         self.bad_messages = counter("v2v_bad_messages", "Client messages rejected as malformed")
         self.tasks_timed_out = counter("v2v_tasks_timed_out", "Tasks reassigned after their worker sent nothing")
         self.busy = counter("v2v_worker_busy_seconds", "Seconds workers spent per pipeline stage", ("stage",))
+        self.store_bytes = counter("v2v_store_read_bytes", "Bytes workers fetched from the object store")
+        self.store_reads = counter("v2v_store_reads", "Range requests workers made to the object store")
+        self.store_seconds = counter("v2v_store_read_seconds", "Seconds workers waited for the object store "
+                                     "(opens and range requests; / v2v_store_reads_total = mean read latency)")
+        self.store_retries = counter("v2v_store_retries", "Store requests retried by the storage library")
+        self.store_skipped = counter("v2v_store_objects_skipped", "Objects missing or changed since they were listed")
         for s in STAGES:
             self.busy.labels(stage=s)
         self._state: dict = {}
@@ -121,10 +127,19 @@ class ServerMetrics:
 
     def on_worker_message(self, header: dict) -> None:
         """Add the stage seconds a worker message carries (``header["stages"]``, a dict of
-        stage -> seconds since the worker's previous message); ignores anything malformed."""
+        stage -> seconds since the worker's previous message) and its object-store reads
+        (``header["store"]``: ``bytes``, ``reads``, ``read_s``, ``retries``, ``skipped``, see
+        ``videos.source.VideoSource.take_stats``); ignores anything malformed."""
         stages = header.get("stages") if isinstance(header, dict) else None
         if not isinstance(stages, dict):
             return
+        store = header.get("store")
+        if isinstance(store, dict):
+            for key, c in (("bytes", self.store_bytes), ("reads", self.store_reads), ("read_s", self.store_seconds),
+                           ("retries", self.store_retries), ("skipped", self.store_skipped)):
+                v = store.get(key)
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < 1e15:
+                    c.inc(v)
         for s, v in stages.items():
             if s in STAGES and isinstance(v, (int, float)) and 0 <= v < 1e6:
                 self.busy.labels(stage=s).inc(v)

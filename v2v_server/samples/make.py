@@ -15,7 +15,6 @@ import hashlib
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Dict, Iterable, Iterator, List, Optional, Tuple
 
 import cv2
@@ -23,7 +22,7 @@ import numpy as np
 
 from v2v_server.samples.augment import augment_plan, degrade_window
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.corpus import corpus_file
+from v2v_server.videos.source import source_from_spec
 from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.samples.flow import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
@@ -324,7 +323,7 @@ class _Window:
 
 def video_samples(
     cfg: ServeConfig,
-    root: Path,
+    root,
     rel_path: str,
     epoch: int,
     outputs: Iterable[str],
@@ -333,7 +332,8 @@ def video_samples(
     stats: Optional[dict] = None,
     flow_grid: bool = False,
 ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-    """Decode ``root / rel_path`` once, sequentially, and yield its samples.
+    """Decode the video at ``rel_path`` of ``root`` (a corpus folder or a
+    ``videos.source.VideoSource``) once, sequentially, and yield its samples.
 
     With ``cfg.crops_per_window`` = K, each window gives K samples: K crops, each with its own
     plan (crop, flip, pauses, sensor parameters) from its own id, cut from the same decoded
@@ -353,7 +353,14 @@ def video_samples(
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
-    path = corpus_file(root, rel_path)
+    with source_from_spec(root).open(rel_path) as path:
+        yield from _samples(cfg, path, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
+
+
+def _samples(cfg: ServeConfig, path, rel_path: str, epoch: int, outputs: Iterable[str], skip: Iterable[SampleKey],
+             flow: Optional[FlowEstimator], stats: Optional[dict], flow_grid: bool
+             ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
+    """:func:`video_samples` of the opened video ``path`` (a local path or a file object)."""
     skip = set(skip)
     span, stride = cfg.frames_per_sample, cfg.window_stride
     kpw = cfg.crops_per_window

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import contextlib
 import threading
-from pathlib import Path
 from typing import Iterator, Optional
 
 from v2v_server.ops.config import load_config
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
 from v2v_server.service.server import V2VServer
-from v2v_server.videos.decode import scan_corpus
+from v2v_server.videos.source import open_source
 
 
 @contextlib.contextmanager
@@ -24,10 +23,10 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
             a folder with no video files.
         RuntimeError: the server stopped or stayed silent before it served (its error chained).
     """
-    root = Path(videos) if videos else SAMPLE_VIDEOS
     cfg = load_config(None, {"workers": workers, "batch_size": batch_size, "bind": "tcp://127.0.0.1:*"})
-    found, _rejected = scan_corpus(root, cfg.video_extensions)
-    server = V2VServer(cfg, root, [f.as_posix() for f in found])
+    source = open_source(videos or SAMPLE_VIDEOS)  # a folder or an object-store URL
+    found, _rejected = source.list_videos(cfg.video_extensions)
+    server = V2VServer(cfg, source, found)
     ready, failure = threading.Event(), []
 
     def run() -> None:

@@ -25,13 +25,13 @@ import logging
 import signal
 import threading
 import time
-from pathlib import Path
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 import zmq
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import corpus_fingerprint
+from v2v_server.videos.source import source_from_spec
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
 from v2v_server.service.client_side import ClientSide
@@ -52,12 +52,13 @@ CLIENT_BURST = 100
 
 
 class V2VServer:
-    """Serve V2V batches from the videos under ``root``.
+    """Serve V2V batches from the videos of ``root``.
 
     Args:
         cfg: validated ``ServeConfig``.
-        root: corpus folder; the server only opens the files listed in ``videos`` under it.
-        videos: video paths relative to ``root`` (POSIX strings).
+        root: corpus folder or ``videos.source.VideoSource`` (an object-store prefix); the
+            server only opens the videos listed in ``videos``.
+        videos: sample-id paths of the videos, relative to ``root`` (POSIX strings).
 
     Call ``run()`` (blocks until ``--epochs`` are delivered or ``stop()`` is called).
 
@@ -65,11 +66,12 @@ class V2VServer:
         ValueError: for an empty ``videos`` list.
     """
 
-    def __init__(self, cfg: ServeConfig, root: Path, videos: List[str], corpus: Optional[str] = None):
+    def __init__(self, cfg: ServeConfig, root, videos: List[str], corpus: Optional[str] = None):
         if not videos:
             raise ValueError(f"no video files under {root}")
         self.cfg = cfg
-        self.root = Path(root)
+        self.source = source_from_spec(root)
+        self.root = self.source.root
         self.videos = list(videos)
         self.corpus = corpus or corpus_fingerprint(self.videos)  # of the listing before sharding
         self.recipe = cfg.fingerprint()
@@ -90,7 +92,7 @@ class V2VServer:
         self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
         self.metrics = ServerMetrics()
         self._resent_seen = 0  # ledger.resent already counted
-        self.workers = WorkerSide(cfg, self.root, self.core, self.metrics, self.assembler)
+        self.workers = WorkerSide(cfg, self.source, self.core, self.metrics, self.assembler)
         self.clients = ClientSide(cfg, self.core, self.metrics, self.assembler, self.stream_info)
 
     # ------------------------------------------------------------------ lifecycle
@@ -108,7 +110,7 @@ class V2VServer:
             self.bound_endpoint = self.sockets.bind(self.cfg)
             if self.bound_endpoint.startswith("ipc://"):  # trainers on this host: batch buffers in /dev/shm
                 self.assembler.files = BatchDir.create()
-            self.pool = WorkerPool(worker_config(self.cfg), str(self.root), self.sockets.backend_endpoint,
+            self.pool = WorkerPool(worker_config(self.cfg), self.source.spec(), self.sockets.backend_endpoint,
                                    self.cfg.workers)
             self.workers.attach(self.backend, self.pool)
             self.clients.attach(self.frontend)

@@ -20,7 +20,6 @@ import os
 import signal
 import sys
 import time
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -29,6 +28,7 @@ import zmq
 from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
 from v2v_server.videos.corpus import verdict
+from v2v_server.videos.source import source_from_spec, take_store_stats
 from v2v_server.service.datapath import SlotRing
 from v2v_server.ops.logs import setup_logging
 from v2v_wire.outputs import wire_dtype
@@ -163,7 +163,7 @@ class _StageClock:
         return out
 
 
-def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
+def run_task(cfg: SampleRecipe, root, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
              inbox: Optional[_Inbox] = None) -> None:
     """Make every sample of one task and send it (through ``inbox``'s slot ring when it has
     one), then send ``done``."""
@@ -202,6 +202,7 @@ def run_task(cfg: SampleRecipe, root: Path, task: dict, sock: zmq.Socket, parent
     clock.made()  # decoding after the last window
     done = {"type": "done", "task": task["task"], "frames": stats.get("frames", 0),
             "windows": stats.get("windows", 0), "error": error, "stages": clock.report(),
+            "store": take_store_stats(root),  # object-store reads of this task (empty for a folder)
             "failed": {str(k): str(v) for k, v in stats.get("failed", {}).items()}}  # window -> reason
     _send(sock, [pack(done)], parent_pid)
 
@@ -228,12 +229,13 @@ def exit_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, _exit)
 
 
-def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, parent_pid: int,
+def worker_main(cfg_dict: dict, root, endpoint: str, identity: bytes, parent_pid: int,
                 ring: Optional[dict] = None) -> None:
     """Entry point of a worker process (started with the ``spawn`` method).
 
     Args:
         cfg_dict: ``worker_config(cfg)``.
+        root: the corpus: a folder path or ``VideoSource.spec()`` (``videos.source``).
         ring: ``SlotRing.spec`` of this worker's shared-memory slots (the file is unlinked as
             soon as it is mapped), or None to send arrays as frames.
     """
@@ -259,6 +261,7 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
         except (OSError, ValueError) as e:
             log.warning("cannot map slot ring %s (%s): sending arrays over the socket", ring.get("path"), e)
     inbox = _Inbox(sock, slots)
+    source = source_from_spec(root)  # the corpus folder, or the object store (one client per worker)
     flows: dict = {}
     try:
         _send(sock, [pack({"type": "ready", "ring": slots is not None})], parent_pid)
@@ -269,7 +272,7 @@ def worker_main(cfg_dict: dict, root: str, endpoint: str, identity: bytes, paren
             if h["type"] == "stop":
                 return
             if h["type"] == "task":
-                run_task(cfg, Path(root), h, sock, parent_pid, flows, inbox)
+                run_task(cfg, source, h, sock, parent_pid, flows, inbox)
     finally:
         sock.close(0)
         ctx.term()

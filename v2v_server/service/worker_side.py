@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
 from typing import Dict, List, Optional
 
 import zmq
@@ -20,6 +19,7 @@ from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.datapath import BatchAssembler, sample_from_slot, sample_from_worker
 from v2v_server.service.pool import WorkerPool
 from v2v_server.videos.corpus import SHORT_CLIP
+from v2v_server.videos.source import VideoSource
 from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import ProtocolError, pack, unpack
 
@@ -31,7 +31,7 @@ class WorkerSide:
 
     Args:
         cfg: the server's ``ServeConfig``.
-        root: corpus folder (for log lines).
+        source: the corpus's ``videos.source.VideoSource`` (where a video lives, for log lines).
         core: the delivery core the reports go to.
         metrics: counters of samples, restarts, timeouts and skipped files.
         assembler: where samples that arrive in shared-memory slots are copied.
@@ -39,9 +39,9 @@ class WorkerSide:
     ``attach(backend, pool)`` once the socket is bound and the pool started.
     """
 
-    def __init__(self, cfg: ServeConfig, root: Path, core: DeliveryCore, metrics: ServerMetrics,
+    def __init__(self, cfg: ServeConfig, source: VideoSource, core: DeliveryCore, metrics: ServerMetrics,
                  assembler: BatchAssembler):
-        self.cfg, self.root, self.core, self.metrics, self.assembler = cfg, Path(root), core, metrics, assembler
+        self.cfg, self.source, self.core, self.metrics, self.assembler = cfg, source, core, metrics, assembler
         self.backend: Optional[zmq.Socket] = None
         self.pool: Optional[WorkerPool] = None
         self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
@@ -143,10 +143,10 @@ class WorkerSide:
             self.logged_failures.add((video, reason))
             if served:
                 log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
-                            "epoch", self.root / video, reason, served, served - 1)
+                            "epoch", self.source.where(video), reason, served, served - 1)
             else:  # a clip too short for one window is no fault of the file: not a warning
                 log.log(logging.INFO if SHORT_CLIP in reason else logging.WARNING, "skipped %s: %s",
-                        self.root / video, reason)
+                        self.source.where(video), reason)
 
     def dispatch(self, now: float, codecs: List[str]) -> None:
         """A task for each idle worker while there are tasks; ``codecs``: what the workers

@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.decode import VideoError, decode_codes, inside, open_video
+from v2v_server.videos.decode import VideoError, decode_codes, open_video
+from v2v_server.videos.source import source_from_spec
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
 SAMPLE_VIDEOS = Path(__file__).resolve().parents[1] / "sample_videos"
@@ -51,19 +52,6 @@ def corpus_fingerprint(videos: List[str]) -> str:
     return h.hexdigest()[:16]
 
 
-def corpus_file(root, rel: str) -> Path:
-    """``root / rel``, a file inside the corpus root.
-
-    Raises:
-        VideoError: it is missing or a link leads outside the root (the one wording every
-            verdict uses).
-    """
-    path = Path(root) / rel
-    if not inside(Path(root), path):
-        raise VideoError("missing, or points outside the corpus root")
-    return path
-
-
 #: Words of the reason :func:`verdict` gives a file that has too few frames for one window: a
 #: property of the clip, not a fault (the server logs such a skip at INFO, faults at WARNING).
 SHORT_CLIP = "shorter than one window of"
@@ -101,32 +89,17 @@ def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = No
     return windows, bad, reason
 
 
-def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
-    """Verdict for one file, decoding it: ``{"path", "usable", "windows", "frames", "size",
-    "reason"}`` (``failed_windows`` when some window cannot be made, ``more`` when decoding
-    stopped with enough frames for every window); see :func:`verdict`."""
+def check_video(cfg: ServeConfig, root, rel: str) -> dict:
+    """Verdict for one file of ``root`` (a corpus folder, or a ``source.VideoSource`` or its
+    ``spec()``), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason"}``
+    (``failed_windows`` when some window cannot be made, ``more`` when decoding stopped with
+    enough frames for every window); see :func:`verdict`."""
     out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": ""}
     bad: dict = {}  # window -> why it cannot be made
     error = None
     try:
-        container, stream, info = open_video(corpus_file(root, rel))
-        out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
-        need = cfg.frames_for(cfg.max_samples_per_video)
-        stride, first = cfg.window_stride, {}
-        # only frame sizes matter here: the codes as stored, without the per-frame expansion
-        for y, _ in decode_codes(container, stream):
-            i = out["frames"]
-            k, off = divmod(i, stride)
-            for w in ((k - 1, k) if off == 0 and k > 0 else (k,)):  # a window's last frame is the next one's first
-                if w not in first:
-                    first[w] = y.shape
-                elif y.shape != first[w] and w not in bad:
-                    bad[w] = (f"window {w}: frame size changed from {first[w][1]}x{first[w][0]} to "
-                              f"{y.shape[1]}x{y.shape[0]} at frame {i}")
-            out["frames"] += 1
-            if out["frames"] >= need:
-                out["more"] = True  # enough for every window: stop decoding
-                break
+        with source_from_spec(root).open(rel) as path:
+            _check_frames(cfg, path, out, bad)
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
     windows, failed, reason = verdict(cfg, out["frames"], bad, error)  # windows before a failure still count
@@ -136,20 +109,44 @@ def check_video(cfg: ServeConfig, root: str, rel: str) -> dict:
     return out
 
 
+def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict) -> None:
+    """Decode ``path`` for :func:`check_video`: counts frames into ``out``, failed windows into ``bad``."""
+    container, stream, info = open_video(path)
+    out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
+    need = cfg.frames_for(cfg.max_samples_per_video)
+    stride, first = cfg.window_stride, {}
+    # only frame sizes matter here: the codes as stored, without the per-frame expansion
+    for y, _ in decode_codes(container, stream):
+        i = out["frames"]
+        k, off = divmod(i, stride)
+        for w in ((k - 1, k) if off == 0 and k > 0 else (k,)):  # a window's last frame is the next one's first
+            if w not in first:
+                first[w] = y.shape
+            elif y.shape != first[w] and w not in bad:
+                bad[w] = (f"window {w}: frame size changed from {first[w][1]}x{first[w][0]} to "
+                          f"{y.shape[1]}x{y.shape[0]} at frame {i}")
+        out["frames"] += 1
+        if out["frames"] >= need:
+            out["more"] = True  # enough for every window: stop decoding
+            break
+
+
 def _check(args):
     return check_video(*args)
 
 
-def check_corpus(cfg: ServeConfig, root: Path, videos: List[str]) -> List[dict]:
-    """``check_video`` for every file, in ``cfg.workers`` processes."""
-    jobs = [(cfg, str(root), v) for v in videos]
+def check_corpus(cfg: ServeConfig, root, videos: List[str]) -> List[dict]:
+    """``check_video`` for every file of ``root`` (a folder or a ``source.VideoSource``), in
+    ``cfg.workers`` processes."""
+    spec = root.spec() if hasattr(root, "spec") else str(root)
+    jobs = [(cfg, spec, v) for v in videos]
     if cfg.workers <= 1 or len(jobs) <= 1:
         return [check_video(*j) for j in jobs]
     with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
         return pool.map(_check, jobs, chunksize=1)
 
 
-def format_check(results: List[dict], rejected: List[Tuple[Path, str]]) -> str:
+def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
     """A table: one line per file with its verdict, then a summary line."""
     lines = [f"{'file':<48} {'verdict':<12} detail"]
     for r in results:
@@ -160,7 +157,7 @@ def format_check(results: List[dict], rejected: List[Tuple[Path, str]]) -> str:
             detail += f"; {r['reason']}"
         lines.append(f"{r['path']:<48} {verdict:<12} {detail}")
     for rel, reason in rejected:
-        lines.append(f"{rel.as_posix():<48} {'ignored':<12} {reason}")
+        lines.append(f"{Path(rel).as_posix():<48} {'ignored':<12} {reason}")
     usable = [r for r in results if r["usable"]]
     lines.append(f"{len(usable)} usable video(s) of {len(results)}, {sum(r['windows'] for r in usable)} sample(s) "
                  f"per epoch; {len(rejected)} other entr{'y' if len(rejected) == 1 else 'ies'} ignored")

@@ -202,9 +202,12 @@ DECODE_FAST = {
 }
 
 
-def open_video(path: Path, threads: int = 1, fast: str = "off"):
+def open_video(path, threads: int = 1, fast: str = "off"):
     """Open ``path`` with PyAV and return ``(container, stream, info)``; ``fast`` names a
-    ``DECODE_FAST`` setting (decoder options applied when the decoder opens).
+    ``DECODE_FAST`` setting (decoder options applied when the decoder opens). ``path`` is a
+    file path or a readable, seekable binary file object (an object-store file from
+    ``source.StoreSource.open``: FFmpeg reads and seeks through it); the caller closes a file
+    object after the container.
 
     Raises:
         VideoError: the file cannot be opened or holds no video stream.
@@ -214,13 +217,14 @@ def open_video(path: Path, threads: int = 1, fast: str = "off"):
         raise ValueError(f"decode_fast must be one of {list(DECODE_FAST)}, got {fast!r}")
     import av
 
+    is_file = hasattr(path, "read")
     try:
-        if Path(path).stat().st_size == 0:
+        if (getattr(path, "size", None) if is_file else Path(path).stat().st_size) == 0:
             raise VideoError("empty file (0 bytes)")
     except OSError as e:
         raise VideoError(f"cannot read: {e.strerror or e}") from None
     try:
-        container = av.open(str(path), mode="r")
+        container = av.open(path if is_file else str(path), mode="r")
     except Exception as e:  # av raises many error types (InvalidDataError, OSError...)
         raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
     stream = choose_video_stream(list(container.streams.video))

@@ -1,0 +1,888 @@
+"""Where the videos live: a corpus as a local folder or an object-store prefix (any URL fsspec
+understands: ``s3://`` through s3fs, ``gs://`` through gcsfs, ``az://`` through adlfs), optionally
+narrowed and ordered by a video list in the V2V authors' format.
+
+Every reader of the corpus goes through a :class:`VideoSource`: ``v2v-serve`` (listing, shards,
+the corpus fingerprint, ``--check``), its worker processes (``source.open(rel)`` per task), and
+the Ray engine (``ray_data``). A source lists the corpus as **sample-id paths**: POSIX paths
+relative to the folder or key prefix, so the same files in a folder and under a bucket prefix
+give the same ids and, for the same seed, bit-identical samples. ``open(rel)`` yields what
+``decode.open_video`` reads: a local path, or a file object on the stored object that fetches
+it in ``read_block_mb`` blocks (PyAV reads straight from it, no local copy; ``cache_max_gb``
+keeps whole objects on local disk instead). Tar shards (WebDataset convention) given as
+``.tar`` files or objects, a brace pattern or list entries stand for their video members, ids
+``shard.tar/member.mp4``, read in place by offset (:class:`TarMember`).
+
+An object store is listed once and the listing is kept as a **manifest** (one JSON line per
+object: key relative to the prefix, size in bytes, ETag), so a restart and every shard of the
+corpus read the same listing without walking the bucket again; see :func:`manifest_path` for
+where it is kept. A worker compares the ETag the store reports when it opens an object with
+the manifest's: an object overwritten since it was listed is skipped with the key named.
+
+Transient store errors are retried by the storage library (botocore's ``standard`` retry mode
+for S3: ``store_max_attempts`` attempts with exponential backoff, for throttling, 5xx and
+connection errors); a read that still fails, or a store that stops answering for
+``store_read_timeout_s``, fails that video's task, whose windows the server skips and logs
+once; the server stays up.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import hashlib
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
+
+from v2v_server.videos.decode import VideoError, inside, printable, scan_corpus, utf8_name
+
+log = logging.getLogger("v2v.source")
+
+#: Protocols read through fsspec, and the extra that installs each one's library.
+STORE_EXTRAS = {"s3": "v2v[s3]", "s3a": "v2v[s3]", "gs": "v2v[gcs]", "gcs": "v2v[gcs]", "az": "v2v[azure]",
+                "abfs": "v2v[azure]", "abfss": "v2v[azure]"}
+MANIFEST_VERSION = 1
+
+
+class StoreError(RuntimeError):
+    """The corpus cannot be reached at all (no such bucket, refused credentials, no library for
+    the URL's protocol); the message names the URL. ``v2v-serve`` exits 2 on it."""
+
+
+def is_url(videos: Union[str, Path, None]) -> bool:
+    """True for a corpus given as a URL (``s3://``, ``gs://``...), False for a local folder
+    (``file://`` URLs included: they are folders)."""
+    return isinstance(videos, str) and "://" in videos and not videos.startswith("file://")
+
+
+def read_video_list(path: str) -> List[str]:
+    """The videos a list file names, in its order, duplicates dropped: the V2V authors' format
+    (HYLZ-2019/V2V ``config/webvid10000_unfiltered.txt``): one video per line, its first
+    whitespace-separated field a path relative to the corpus root (later fields, such as
+    frame counts, are ignored); ``#`` starts a comment line; blank lines are skipped. Leading
+    ``./`` is dropped so ids match a folder's listing.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: naming the file, when it lists nothing.
+    """
+    if is_url(path):  # a list kept beside the corpus in the store
+        import fsspec
+
+        with fsspec.open(path, "rt", encoding="utf-8") as f:
+            lines = f.read().splitlines()
+    else:
+        try:
+            lines = Path(path).read_text(encoding="utf-8").splitlines()
+        except FileNotFoundError:
+            raise FileNotFoundError(f"video_list {path}: no such file") from None
+    out, seen = [], set()
+    for line in lines:
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        rel = s.split()[0]
+        while rel.startswith("./"):
+            rel = rel[2:]
+        rel = rel.lstrip("/")
+        if rel and rel not in seen:
+            seen.add(rel)
+            out.append(rel)
+    if not out:
+        raise ValueError(f"video_list {path}: lists no video")
+    return out
+
+
+def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional[str] = None) -> Path:
+    """Where the manifest of the corpus at ``url`` is kept: ``STATE_DIR/manifest-H.jsonl`` when
+    the server has a ``state_dir`` (it then travels with the delivery journal), else
+    ``CACHE_DIR/manifests/H.jsonl`` with ``cache_dir`` defaulting to ``$XDG_CACHE_HOME/v2v``
+    (``~/.cache/v2v``); H is a hash of the URL. Shards on one host share it; shards on other
+    hosts list the store once each and, the store unchanged, write the same manifest."""
+    h = hashlib.sha256(url.encode("utf-8")).hexdigest()[:16]
+    if state_dir:
+        return Path(state_dir) / f"manifest-{h}.jsonl"
+    return Path(cache_dir or default_cache_dir()) / "manifests" / f"{h}.jsonl"
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/v2v`` (``~/.cache/v2v``): manifests and the object cache when no
+    ``cache_dir`` is given."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
+
+
+def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]]) -> None:
+    """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a video
+    member of a tar shard ``shard.tar/member`` -> (size, the shard's ETag, offset of the
+    member's data in the shard)) atomically: a header line ``{"v2v_manifest": 1, "url",
+    "objects", "listed_at"}``, then one ``[key, size, etag(, offset)]`` JSON line per entry,
+    sorted by key."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(json.dumps({"v2v_manifest": MANIFEST_VERSION, "url": url, "objects": len(objects),
+                            "listed_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n")
+        for key in sorted(objects):
+            f.write(json.dumps([key, *objects[key]], ensure_ascii=False) + "\n")
+    os.replace(tmp, path)
+
+
+def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
+    """The objects of the manifest at ``path`` (see :func:`write_manifest`), or None when there
+    is none, it is of another URL or version, or it is cut short (a crash while written by
+    another process: it is then listed again)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            header = json.loads(f.readline() or "null")
+            if not isinstance(header, dict) or header.get("v2v_manifest") != MANIFEST_VERSION or header.get("url") != url:
+                return None
+            objects = {}
+            for line in f:
+                key, size, etag, *offset = json.loads(line)
+                objects[key] = (int(size), str(etag), *(int(o) for o in offset[:1]))
+    except (OSError, ValueError, TypeError):
+        return None
+    return objects if len(objects) == header.get("objects") else None
+
+
+class ManifestIndex:
+    """Look up single entries of a manifest (see :func:`write_manifest`) without loading it: a
+    binary search over the memory-mapped file, whose lines are sorted by key. What a worker
+    uses to check an object's ETag, so that a 10-million-object manifest costs it pages of the
+    file, not a dictionary of every key. None when the file is absent or of another URL."""
+
+    def __init__(self, mm, start: int):
+        self.mm, self.start = mm, start
+
+    @classmethod
+    def open(cls, path: Path, url: str) -> Optional["ManifestIndex"]:
+        import mmap
+
+        try:
+            with open(path, "rb") as f:
+                header = json.loads(f.readline() or b"null")
+                start = f.tell()
+                if (not isinstance(header, dict) or header.get("v2v_manifest") != MANIFEST_VERSION
+                        or header.get("url") != url or os.fstat(f.fileno()).st_size <= start):
+                    return None
+                return cls(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ), start)
+        except (OSError, ValueError):
+            return None
+
+    def _line_at(self, pos: int) -> Tuple[int, int]:
+        """(start, end) of the first whole line beginning at or after ``pos``."""
+        if pos > self.start:
+            nl = self.mm.find(b"\n", pos - 1)
+            pos = len(self.mm) if nl < 0 else nl + 1
+        end = self.mm.find(b"\n", pos)
+        return pos, (len(self.mm) if end < 0 else end)
+
+    def get(self, key: str) -> Optional[tuple]:
+        """The entry of ``key``: (size, ETag[, offset]), or None."""
+        lo, hi = self.start, len(self.mm)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            a, b = self._line_at(mid)
+            if a >= hi:  # no line starts in [mid, hi): look left
+                hi = mid
+                continue
+            k, size, etag, *offset = json.loads(self.mm[a:b])
+            if k == key:
+                return (int(size), str(etag), *(int(o) for o in offset[:1]))
+            if k < key:
+                lo = b + 1
+            else:
+                hi = a
+        return None
+
+
+def _etag(info: dict) -> str:
+    """The version tag of an object in a listing or ``info()`` answer: S3's ETag, GCS's
+    generation, Azure's etag (quotes stripped)."""
+    for k in ("ETag", "etag", "generation", "md5Hash"):
+        v = info.get(k)
+        if v:
+            return str(v).strip('"')
+    return ""
+
+
+def corpus_file(root, rel: str) -> Path:
+    """``root / rel``, a file inside the local corpus folder ``root``.
+
+    Raises:
+        VideoError: it is missing or a link leads outside the root (the one wording every
+            verdict uses).
+    """
+    path = Path(root) / rel
+    if not inside(Path(root), path):
+        raise VideoError("missing, or points outside the corpus root")
+    return path
+
+
+def tar_members(f) -> Dict[str, Tuple[int, int]]:
+    """Member name -> (offset of its data, size) in bytes of every regular file of the tar
+    read from the binary file object ``f``, in one pass over the headers (the data between
+    them is skipped by seeking; an object-store file fetches the blocks that hold headers).
+
+    Raises:
+        tarfile.TarError: not a tar archive.
+    """
+    import tarfile
+
+    out = {}
+    with tarfile.open(fileobj=f, mode="r:") as tar:
+        for m in tar:
+            if m.isfile():
+                out[m.name] = (m.offset_data, m.size)
+    return out
+
+
+class TarMember(io.RawIOBase):
+    """A read-only, seekable window ``[offset, offset + size)`` of the binary file ``f``: one
+    member of a tar shard, read in place (FFmpeg decodes it like a file of its own)."""
+
+    def __init__(self, f, offset: int, size: int):
+        super().__init__()
+        self.f, self.offset, self.size, self.pos = f, offset, size, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, pos: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
+        self.pos = min(max(0, base + pos), self.size)
+        return self.pos
+
+    def readinto(self, b) -> int:
+        n = min(len(b), self.size - self.pos)
+        if n <= 0:
+            return 0
+        self.f.seek(self.offset + self.pos)
+        data = self.f.read(n)
+        b[:len(data)] = data
+        self.pos += len(data)
+        return len(data)
+
+
+def expand_braces(pattern: str) -> List[str]:
+    """The names a brace pattern stands for, in order: ``{000..003}`` is a zero-padded numeric
+    range (as the WebDataset tools write shard names), ``{a,b}`` a list; several braces
+    multiply. ``shards-{0..1}-{a,b}.tar`` -> ``shards-0-a.tar, shards-0-b.tar, shards-1-a.tar...``
+
+    Raises:
+        ValueError: a brace that is neither form.
+    """
+    import re
+
+    m = re.search(r"\{([^{}]*)\}", pattern)
+    if m is None:
+        return [pattern]
+    body = m.group(1)
+    r = re.fullmatch(r"(\d+)\.\.(\d+)", body)
+    if r:
+        lo, hi = int(r.group(1)), int(r.group(2))
+        width = len(r.group(1)) if r.group(1).startswith("0") else 0
+        items = [str(i).zfill(width) for i in range(lo, hi + 1)]
+    elif "," in body:
+        items = body.split(",")
+    else:
+        raise ValueError(f"{pattern}: brace {{{body}}} is neither a range {{000..009}} nor a list {{a,b}}")
+    head, tail = pattern[:m.start()], pattern[m.end():]
+    return [x for item in items for x in expand_braces(head + item + tail)]
+
+
+class VideoSource:
+    """A corpus: lists videos as sample-id paths and opens them for decoding. See the module
+    docstring; :func:`open_source` builds one."""
+
+    #: The corpus as given (a folder path or a URL), for logs and errors.
+    root: str = ""
+    #: The video list file that selects and orders the videos, if any.
+    video_list: Optional[str] = None
+    #: Entries given with the corpus itself (a brace pattern's shard names), listed instead of the store.
+    names: Optional[List[str]] = None
+
+    def _names(self) -> Optional[List[str]]:
+        """The entries that replace a listing: the brace pattern's, else the video list's.
+
+        Raises:
+            ValueError: both a brace pattern and a video list are given.
+        """
+        if self.names:
+            if self.video_list:
+                raise ValueError(f"--videos {self.root}: a brace pattern of tar shards names the shards itself; "
+                                 f"give it or --video-list {self.video_list}, not both")
+            return list(self.names)
+        return read_video_list(self.video_list) if self.video_list else None
+
+    def list_videos(self, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
+        """``(videos, rejected)``: sample-id paths of the videos (the list's order with a video
+        list, else sorted), and ``(path, reason)`` for every entry not served."""
+        raise NotImplementedError
+
+    def open(self, rel: str):
+        """A context manager giving what ``open_video`` reads for the video at ``rel``.
+
+        Raises:
+            VideoError: it is missing, or changed since it was listed.
+        """
+        raise NotImplementedError
+
+    def where(self, rel: str) -> str:
+        """Where ``rel`` lives, for a log line."""
+        return f"{self.root.rstrip('/')}/{rel}"
+
+    def spec(self) -> dict:
+        """What a worker process needs to build the same source (:func:`source_from_spec`)."""
+        raise NotImplementedError
+
+    def take_stats(self) -> dict:
+        """Store reads since the last call: ``bytes`` fetched, ``reads`` (range requests),
+        ``read_s`` (seconds waiting for the store), ``retries`` (botocore's), ``skipped``
+        (objects missing or changed since listed); empty for a local folder."""
+        return {}
+
+    def _listed(self, names: Sequence[str], exists, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
+        """Keep the names of a video list that ``exists(name)`` and have a video extension; a
+        ``.tar`` name stands for its video members (:meth:`_with_members`)."""
+        videos, rejected = [], []
+        for rel in names:
+            if rel.lower().endswith(".tar"):
+                videos.append(rel)
+            elif not rel.lower().endswith(tuple(extensions)):
+                rejected.append((rel, f"listed in {self.video_list} but not a video file (extensions "
+                                      f"{', '.join(extensions)})"))
+            elif not exists(rel):
+                rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
+            else:
+                videos.append(rel)
+        return self._with_members(videos, rejected, extensions)
+
+    # ------------------------------------------------------------------ tar shards
+    def tar_index(self, tar: str) -> Dict[str, Tuple[int, int]]:
+        """Member name -> (offset of its data in bytes, size in bytes) of the tar shard at
+        ``tar`` (relative path), read once per process from the tar's headers."""
+        cache = self.__dict__.setdefault("_tar_cache", {})
+        if tar not in cache:
+            with self._open_raw(tar) as f:
+                cache[tar] = tar_members(f)
+        return cache[tar]
+
+    def _open_raw(self, rel: str):
+        raise NotImplementedError
+
+    def _with_members(self, names: List[str], rejected: List[Tuple[str, str]], extensions: Sequence[str]
+                      ) -> Tuple[List[str], List[Tuple[str, str]]]:
+        """``names`` with each ``.tar`` shard replaced by its video members, ``shard.tar/member.mp4``
+        (the WebDataset convention: a sample's files share a key, the video is the member with
+        a video extension; the other members, such as ``.json`` or ``.txt``, are not served)."""
+        out = []
+        for rel in names:
+            if not rel.lower().endswith(".tar"):
+                out.append(rel)
+                continue
+            try:
+                members = self.tar_index(rel)
+            except Exception as e:  # one unreadable shard never stops the listing
+                rejected.append((rel, f"tar shard cannot be read: {type(e).__name__}: {e}"))
+                continue
+            vids = [m for m in members if m.lower().endswith(tuple(extensions))]
+            out += [f"{rel}/{m}" for m in vids]
+            if not vids:
+                rejected.append((rel, "tar shard holds no video member"))
+        return out, rejected
+
+    @staticmethod
+    def split_member(rel: str) -> Optional[Tuple[str, str]]:
+        """``("shard.tar", "member.mp4")`` for a tar member's id path, else None."""
+        i = rel.lower().find(".tar/")
+        return (rel[:i + 4], rel[i + 5:]) if i >= 0 else None
+
+
+class LocalSource(VideoSource):
+    """A corpus folder (searched recursively, symlinks that stay inside it followed)."""
+
+    def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None):
+        root = str(root)
+        self.root = root[len("file://"):] if root.startswith("file://") else root
+        self.video_list, self.names = video_list, names
+
+    def check(self) -> None:
+        """Raises StoreError: the folder does not exist."""
+        if not Path(self.root).is_dir():
+            raise StoreError(f"--videos {self.root}: not a folder")
+
+    def list_videos(self, extensions):
+        names = self._names()
+        if names is not None:
+            root = Path(self.root)
+            return self._listed(names, lambda rel: inside(root, root / rel), extensions)
+        found, rejected = scan_corpus(Path(self.root), tuple(extensions) + (".tar",))
+        return self._with_members([p.as_posix() for p in found], [(p.as_posix(), why) for p, why in rejected],
+                                  extensions)
+
+    @contextlib.contextmanager
+    def _open_raw(self, rel: str):
+        with open(corpus_file(self.root, rel), "rb") as f:
+            yield f
+
+    @contextlib.contextmanager
+    def open(self, rel: str) -> Iterator[Path]:
+        member = self.split_member(rel)
+        if member is None or not Path(self.root, member[0]).is_file():
+            yield corpus_file(self.root, rel)
+            return
+        where = self.tar_index(member[0]).get(member[1])
+        if where is None:
+            raise VideoError(f"no member {member[1]!r} in the tar shard {member[0]}")
+        with self._open_raw(member[0]) as f:
+            yield TarMember(f, *where)
+
+    def where(self, rel: str) -> str:
+        return str(Path(self.root) / rel)
+
+    def spec(self) -> dict:
+        return {"root": self.root}
+
+
+class _Stats:
+    """Counters of one process's store reads (what ``take_stats`` hands to the server)."""
+
+    def __init__(self):
+        self.bytes = self.reads = self.retries = self.skipped = 0
+        self.read_s = 0.0
+
+    def take(self) -> dict:
+        out = {"bytes": self.bytes, "reads": self.reads, "read_s": round(self.read_s, 6), "retries": self.retries,
+               "skipped": self.skipped}
+        self.__init__()
+        return out
+
+
+class StoreSource(VideoSource):
+    """A corpus under an object-store prefix, read through fsspec.
+
+    Args:
+        url: ``s3://bucket/prefix/`` (a trailing ``/`` is implied) or another fsspec URL.
+        storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the
+            defaults below; credentials otherwise come from the store's standard configuration
+            (for S3: ``AWS_*`` variables incl. ``AWS_ENDPOINT_URL``, shared config files,
+            instance roles).
+        manifest: the manifest file (see :func:`manifest_path`); None keeps none.
+        read_timeout_s: seconds a store request may stay silent before it fails (then retried).
+        max_attempts: attempts per request (botocore ``standard`` retry mode for S3).
+        read_block_mb: bytes fetched per request while decoding, MiB (one request for a clip
+            smaller than this); at most four blocks per open video are kept.
+        cache_dir, cache_max_gb: a bounded local cache of whole objects for corpora read every
+            epoch (``cache_dir/objects``, least recently used removed beyond ``cache_max_gb``
+            GiB); 0 (the default) reads from the store every time.
+    """
+
+    def __init__(self, url: str, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
+                 manifest: Optional[str] = None, refresh_manifest: bool = False, read_timeout_s: float = 20.0,
+                 max_attempts: int = 3, read_block_mb: float = 8.0, names: Optional[List[str]] = None,
+                 cache_dir: Optional[str] = None, cache_max_gb: float = 0.0):
+        self.names = names
+        self.cache_dir = cache_dir or str(default_cache_dir())
+        self.cache_max_gb = float(cache_max_gb)
+        self.protocol = url.split("://", 1)[0].lower()
+        self.root = url if url.endswith("/") else url + "/"
+        self.prefix = self.root.split("://", 1)[1]
+        self.storage_options = dict(storage_options or {})
+        self.video_list, self.manifest = video_list, manifest
+        self.refresh_manifest = refresh_manifest
+        self.read_timeout_s, self.max_attempts, self.read_block_mb = read_timeout_s, max_attempts, read_block_mb
+        self._fs = None
+        self._objects: Optional[Dict[str, Tuple[int, str]]] = None  # the manifest, loaded on first need
+        self.stats = _Stats()
+
+    # ------------------------------------------------------------------ the filesystem
+    @property
+    def fs(self):
+        if self._fs is None:
+            self._fs = self._make_fs()
+        return self._fs
+
+    def _make_fs(self):
+        import fsspec
+
+        logging.getLogger("fsspec.caching").setLevel(logging.WARNING)  # a line per block fetched otherwise
+
+        try:
+            cls = fsspec.get_filesystem_class(self.protocol)
+        except (ImportError, ValueError) as e:
+            extra = STORE_EXTRAS.get(self.protocol)
+            raise StoreError(f"--videos {self.root}: no filesystem for {self.protocol}:// ({e})"
+                             + (f"; pip install '{extra}'" if extra else "")) from None
+        opts: dict = {"skip_instance_cache": True, "use_listings_cache": False}
+        if self.protocol in ("s3", "s3a"):
+            opts["config_kwargs"] = {"retries": {"mode": "standard", "max_attempts": self.max_attempts},
+                                     "read_timeout": self.read_timeout_s, "connect_timeout": self.read_timeout_s}
+        user = dict(self.storage_options)
+        if "config_kwargs" in user and "config_kwargs" in opts:
+            user["config_kwargs"] = {**opts["config_kwargs"], **user["config_kwargs"]}
+        opts.update(user)
+        fs = cls(**opts)
+        if self.protocol in ("s3", "s3a"):
+            fs.retries = 1  # s3fs's own retry loop off: botocore's retry mode above is the one policy
+            self._count_retries(fs)
+        return fs
+
+    def _count_retries(self, fs) -> None:
+        """Count botocore's retries (``ResponseMetadata.RetryAttempts`` of each answered call)."""
+        stats = self.stats
+
+        def after_call(parsed=None, **_):
+            try:
+                stats.retries += int(parsed["ResponseMetadata"].get("RetryAttempts", 0))
+            except (TypeError, KeyError, ValueError):
+                pass
+
+        def on_client(client) -> None:
+            client.meta.events.register("after-call.s3", after_call)
+
+        fs._v2v_on_client = on_client
+        orig = fs.set_session
+
+        async def set_session(*a, **kw):
+            client = await orig(*a, **kw)
+            if not getattr(client, "_v2v_counted", False):
+                on_client(client)
+                client._v2v_counted = True
+            return client
+
+        fs.set_session = set_session
+
+    def _path(self, rel: str) -> str:
+        """The filesystem path of ``rel``: the key for object stores, the whole URL for http(s)."""
+        return (self.root if self.protocol in ("http", "https") else self.prefix) + rel
+
+    def _fail(self, what: str, e: BaseException) -> StoreError:
+        return StoreError(f"--videos {self.root}: {what}: {type(e).__name__}: {e}")
+
+    def check(self) -> None:
+        """Reach the store once (the bucket's metadata, not a listing).
+
+        Raises:
+            StoreError: naming the URL: no such bucket, credentials refused or missing, store
+                unreachable, no library for the protocol.
+        """
+        if self.protocol in ("http", "https"):
+            return  # no bucket to ask about: a missing shard is named when it is read
+        bucket = self.prefix.split("/", 1)[0]
+        try:
+            self.fs.info(bucket)
+        except FileNotFoundError as e:
+            raise self._fail(f"no such bucket {bucket!r}", e) from None
+        except PermissionError as e:
+            raise self._fail("access refused (check the credentials)", e) from None
+        except StoreError:
+            raise
+        except Exception as e:  # NoCredentialsError, EndpointConnectionError, ...: each one a clear line
+            raise self._fail("cannot reach the store", e) from None
+
+    # ------------------------------------------------------------------ listing
+    def objects(self) -> Dict[str, Tuple[int, str]]:
+        """Key relative to the prefix -> (size, ETag) of every object under the prefix: the
+        manifest when there is one (and ``refresh_manifest`` is off), else a paginated listing
+        of the store, then written as the manifest.
+
+        Raises:
+            StoreError: the listing fails (naming the URL).
+        """
+        if self._objects is not None:
+            return self._objects
+        if self.manifest and not self.refresh_manifest:
+            got = read_manifest(Path(self.manifest), self.root)
+            if got is not None:
+                log.info("%s: %d object(s) from the manifest %s (--refresh-manifest lists the store again)",
+                         self.root, len(got), self.manifest)
+                self._load(got)
+                return got
+        t0 = time.monotonic()
+        try:
+            found = self.fs.find(self.prefix, detail=True)
+        except FileNotFoundError as e:
+            raise self._fail("no such bucket or prefix", e) from None
+        except PermissionError as e:
+            raise self._fail("access refused (check the credentials)", e) from None
+        except Exception as e:
+            raise self._fail("cannot list", e) from None
+        objects = {}
+        for key, info in found.items():
+            if info.get("type", "file") != "file" or not key.startswith(self.prefix):
+                continue
+            objects[key[len(self.prefix):]] = (int(info.get("size") or 0), _etag(info))
+        for rel in [k for k in objects if k.lower().endswith(".tar")]:  # shards: their members, once
+            self._add_members(objects, rel)
+        log.info("%s: listed %d object(s) in %.1f s", self.root, len(objects), time.monotonic() - t0)
+        self._save(objects)
+        self.refresh_manifest = False
+        self._load(objects)
+        return objects
+
+    def _add_members(self, objects: dict, tar: str) -> None:
+        """Add the members of the shard ``tar`` to ``objects`` as ``tar/member`` -> (size, the
+        shard's ETag, offset); an unreadable shard gets no member (it is reported when listed)."""
+        try:
+            with self._open_raw(tar) as f:
+                members = tar_members(f)
+        except Exception as e:  # noqa: BLE001 - one bad shard never stops the listing
+            log.warning("tar shard %s cannot be read: %s: %s", self.where(tar), type(e).__name__, e)
+            return
+        etag = objects.get(tar, (0, ""))[1]
+        for name, (offset, size) in members.items():
+            objects[f"{tar}/{name}"] = (size, etag, offset)
+
+    def _load(self, objects: Dict[str, tuple]) -> None:
+        """Keep ``objects`` (a listing or manifest) and the tar members it holds."""
+        self._objects = objects
+        cache = self.__dict__.setdefault("_tar_cache", {})
+        for rel, v in objects.items():
+            if len(v) == 3:
+                tar, member = self.split_member(rel)
+                cache.setdefault(tar, {})[member] = (v[2], v[0])
+
+    def _save(self, objects: dict) -> None:
+        if self.manifest:
+            try:
+                write_manifest(Path(self.manifest), self.root, objects)
+                log.info("manifest written to %s", self.manifest)
+            except OSError as e:
+                log.warning("cannot write the manifest %s: %s (the store is listed again at the next start)",
+                            self.manifest, e)
+
+    def list_videos(self, extensions):
+        names = self._names()
+        if names is not None:  # nothing is listed from the store: a missing video is found when it is opened
+            known = None
+            if self.manifest and not self.refresh_manifest:  # the tar members read at an earlier start
+                known = read_manifest(Path(self.manifest), self.root)
+            if known is not None:
+                self._load(known)
+            got = self._listed(names, lambda rel: True, extensions)
+            if known is None and self.manifest and any(self.split_member(v) for v in got[0]):
+                self._save_members()  # the shards' members, so that workers and restarts need not read headers
+            return got
+        videos, rejected = [], []
+        for rel in sorted(self.objects()):
+            if not utf8_name(rel):
+                rejected.append((printable(rel), "key is not valid UTF-8 (sample ids are UTF-8): rename it"))
+            elif rel.endswith("/") or not rel or rel.lower().endswith(".tar"):
+                continue  # a shard stands for its members, listed after it
+            elif self.split_member(rel) is not None and not rel.lower().endswith(tuple(extensions)):
+                continue  # a shard's metadata member (.json, .txt): not a video, not worth a line
+            elif rel.lower().endswith(tuple(extensions)):
+                videos.append(rel)
+            else:
+                rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
+        return videos, rejected
+
+    def _save_members(self) -> None:
+        """Write the tar members read from shard headers (no listing) as the manifest."""
+        objects = {f"{tar}/{m}": (size, "", offset) for tar, ms in self.__dict__.get("_tar_cache", {}).items()
+                   for m, (offset, size) in ms.items()}
+        self._save(objects)
+        self._objects = objects
+
+    # ------------------------------------------------------------------ reading
+    def _expected(self, rel: str) -> Optional[tuple]:
+        """The listing's entry for ``rel``: from the listing this process holds (the server),
+        else looked up in the manifest file (a worker: one entry, not the whole manifest)."""
+        if self._objects is not None:
+            return self._objects.get(rel)
+        if self.manifest:
+            if "_index" not in self.__dict__:
+                self._index = ManifestIndex.open(Path(self.manifest), self.root)
+            if self._index is not None:
+                return self._index.get(rel)
+        return None
+
+    @contextlib.contextmanager
+    def open(self, rel: str):
+        member = self.split_member(rel)
+        if member is None:
+            with self._open_raw(rel) as f:
+                yield f
+            return
+        tar, name = member
+        entry = self._expected(rel)
+        with self._open_raw(tar, entry) as f:
+            where = (entry[2], entry[0]) if entry is not None and len(entry) == 3 else self.tar_index(tar).get(name)
+            if where is None:
+                raise VideoError(f"no member {name!r} in the tar shard {tar}")
+            yield TarMember(f, *where)
+
+    @contextlib.contextmanager
+    def _open_raw(self, rel: str, expected: Optional[tuple] = None):
+        """The object at ``rel`` as a file, checked against the listing's ETag (``expected``:
+        its manifest entry, looked up when not given)."""
+        key = self._path(rel)
+        block = max(1, int(self.read_block_mb * (1 << 20)))
+        t0 = time.perf_counter()
+        try:
+            f = self.fs.open(key, "rb", block_size=block, cache_type="blockcache", cache_options={"maxblocks": 4})
+        except FileNotFoundError:
+            self.stats.skipped += 1
+            raise VideoError("missing from the store") from None
+        except Exception as e:  # timeouts, refused reads: the file's verdict, never the worker's death
+            raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
+        finally:
+            self.stats.read_s += time.perf_counter() - t0
+        try:
+            expected = self._expected(rel) if expected is None else expected
+            now = _etag(getattr(f, "details", None) or {})
+            if expected is not None and expected[1] and now and now != expected[1]:
+                self.stats.skipped += 1
+                raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}); skipped until "
+                                 f"--refresh-manifest")
+            self._time_fetches(f)
+            if self.cache_max_gb > 0:
+                with self._cached(rel, now, f) as local:
+                    yield local
+            else:
+                yield f
+        finally:
+            f.close()
+
+    @contextlib.contextmanager
+    def _cached(self, rel: str, etag: str, f):
+        """The object as a local file in the bounded cache (``cache_dir/objects``): copied whole
+        from ``f`` on first use, named by URL, key and ETag (a changed object is a new entry),
+        the least recently used entries removed while the cache holds more than
+        ``cache_max_gb``."""
+        d = Path(self.cache_dir) / "objects"
+        path = d / hashlib.sha256(f"{self.root}{rel} {etag}".encode("utf-8")).hexdigest()[:32]
+        if not path.is_file():
+            d.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            try:
+                with open(tmp, "wb") as out:
+                    while True:
+                        chunk = f.read(1 << 22)
+                        if not chunk:
+                            break
+                        out.write(chunk)
+                os.replace(tmp, path)
+            finally:
+                tmp.unlink(missing_ok=True)
+            self._evict(d, keep=path)
+        else:
+            os.utime(path)  # recently used
+        with open(path, "rb") as local:
+            yield local
+
+    def _evict(self, d: Path, keep: Path) -> None:
+        """Remove the least recently used entries of ``d`` until it holds at most ``cache_max_gb``."""
+        entries = []
+        for p in d.iterdir():
+            try:
+                st = p.stat()
+            except OSError:
+                continue  # removed by another worker meanwhile
+            if not p.name.endswith(".tmp"):
+                entries.append((st.st_mtime, st.st_size, p))
+        total, limit = sum(e[1] for e in entries), self.cache_max_gb * (1 << 30)
+        for _, size, p in sorted(entries, key=lambda e: e[0]):
+            if total <= limit:
+                break
+            if p != keep:
+                p.unlink(missing_ok=True)
+                total -= size
+
+    def _time_fetches(self, f) -> None:
+        """Count the bytes and seconds of every range request of ``f``'s block cache."""
+        cache = getattr(f, "cache", None)
+        fetch = getattr(cache, "fetcher", None)
+        if fetch is None:
+            return
+        stats = self.stats
+
+        def timed(start, end):
+            t = time.perf_counter()
+            try:
+                data = fetch(start, end)
+            finally:
+                stats.read_s += time.perf_counter() - t
+                stats.reads += 1
+            stats.bytes += len(data)
+            return data
+
+        cache.fetcher = timed
+
+    def take_stats(self) -> dict:
+        return self.stats.take()
+
+    def spec(self) -> dict:
+        return {"root": self.root, "storage_options": self.storage_options, "video_list": self.video_list,
+                "manifest": self.manifest, "read_timeout_s": self.read_timeout_s, "max_attempts": self.max_attempts,
+                "read_block_mb": self.read_block_mb, "cache_dir": self.cache_dir, "cache_max_gb": self.cache_max_gb}
+
+
+def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
+    """``(root, names)`` of a corpus given as a brace pattern of tar shards
+    (``s3://b/webvid-{000000..000009}.tar``: root ``s3://b/``, names ``webvid-000000.tar``...;
+    the root is the pattern up to the last ``/`` before the first brace), or ``(videos, None)``
+    for a folder or prefix; a single ``.tar`` is a pattern of one."""
+    brace = videos.find("{")
+    if brace < 0 and not videos.lower().endswith(".tar"):
+        return videos, None
+    cut = videos.rfind("/", 0, brace if brace >= 0 else len(videos)) + 1
+    return videos[:cut] or ".", expand_braces(videos[cut:])
+
+
+def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dict] = None,
+                video_list: Optional[str] = None, manifest: Optional[str] = None, refresh_manifest: bool = False,
+                read_timeout_s: float = 20.0, max_attempts: int = 3, read_block_mb: float = 8.0,
+                names: Optional[List[str]] = None, cache_dir: Optional[str] = None,
+                cache_max_gb: float = 0.0) -> VideoSource:
+    """The source of a corpus given as a folder, a URL, or a brace pattern / path of tar shards."""
+    if isinstance(videos, VideoSource):
+        return videos
+    if names is None:
+        videos, names = split_pattern(str(videos))
+    if is_url(str(videos)):
+        return StoreSource(str(videos), storage_options, video_list, manifest, refresh_manifest, read_timeout_s,
+                           max_attempts, read_block_mb, names, cache_dir, cache_max_gb)
+    return LocalSource(videos, video_list, names)
+
+
+def source_from_config(cfg, videos: Union[str, Path, None] = None) -> VideoSource:
+    """The source ``cfg`` (a ``ServeConfig``) describes: ``videos`` or ``cfg.videos``, its
+    ``video_list``, ``storage_options``, store timeouts and manifest (:func:`manifest_path`)."""
+    videos = cfg.videos if videos is None else videos
+    manifest = None
+    if videos is not None and is_url(str(videos)):
+        # one manifest per listing: of a prefix (all its objects), or of a pattern's or a list's tar members
+        key = str(videos) if split_pattern(str(videos))[1] else StoreSource(str(videos)).root
+        if cfg.video_list:
+            key += f" listed by {Path(cfg.video_list).resolve()}"
+        manifest = str(manifest_path(key, cfg.state_dir, cfg.cache_dir))
+    return open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
+                       refresh_manifest=cfg.refresh_manifest, read_timeout_s=cfg.store_read_timeout_s,
+                       max_attempts=cfg.store_max_attempts, read_block_mb=cfg.read_block_mb, cache_dir=cfg.cache_dir,
+                       cache_max_gb=cfg.cache_max_gb)
+
+
+def source_from_spec(spec: Union[str, Path, dict, VideoSource]) -> VideoSource:
+    """The source a worker builds from :meth:`VideoSource.spec` (a folder path is accepted as is)."""
+    if isinstance(spec, VideoSource):
+        return spec
+    if isinstance(spec, dict):
+        spec = dict(spec)
+        return open_source(spec.pop("root"), **spec)
+    return open_source(spec)
+
+
+def take_store_stats(source) -> dict:
+    """``source.take_stats()`` for a source, ``{}`` for anything else (a folder path)."""
+    return source.take_stats() if isinstance(source, VideoSource) else {}
