@@ -215,6 +215,9 @@ class ERAFTModel:
     subtype: str = setting("warm_start", help="warm_start: the previous pair's flow initialises the next; "
                            "standard: every pair starts from zero flow", choices=("warm_start", "standard"))
     iters: int = setting(12, help="refinement iterations per voxel pair")
+    corr_levels: int = setting(4, help="correlation pyramid levels (3 allows 64-pixel crops, small CPU runs; "
+                               "not the authors' checkpoint)")
+    corr_radius: int = setting(4, help="correlation lookup radius, cells")
 
 
 @dataclass

@@ -24,7 +24,9 @@ call; :meth:`ERAFT.reset_states` drops it at the start of each sequence.
 Inputs are zero-padded at the top and left to multiples of 32 and the output cropped back
 (the authors' ``ImagePadder(min_size=32)``). Their correlation lookup samples each pyramid
 level with ``grid_sample(align_corners=True)`` after dividing by ``side - 1``, so every level
-needs a side of at least 2: padded sides of at least 128 pixels (a 1-pixel level gives NaN).
+needs a side of at least 2: with the 4 levels, padded sides of at least 128 pixels (their
+code gives NaN flow on 64 x 64). ``corr_levels=3`` (RAFT's ``args.corr_levels``) allows 64
+pixels, for small CPU runs only: it changes the motion encoder's input width.
 
 State-dict keys and shapes are the authors' (``fnet.*``, ``cnet.*``, ``update_block.*``),
 so their ``v2v_eraft_10k`` checkpoint loads with ``load_state_dict``; 5,270,080 parameters
@@ -41,14 +43,18 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 __all__ = ["ERAFT", "BasicEncoder", "UpdateBlock", "correlation_pyramid", "lookup_correlation",
-           "forward_interpolate", "MIN_SIDE", "PAD_MULTIPLE"]
+           "forward_interpolate", "min_side", "PAD_MULTIPLE"]
 
 #: Inputs are padded (top/left) to a multiple of this (the authors' ``ImagePadder(min_size=32)``).
 PAD_MULTIPLE = 32
-#: Smallest padded side whose coarsest correlation level has two or more cells (1/8 then 3 poolings).
-MIN_SIDE = 128
 #: Correlation pyramid levels and lookup radius (E-RAFT / RAFT defaults).
 CORR_LEVELS, CORR_RADIUS = 4, 4
+
+
+def min_side(corr_levels: int = CORR_LEVELS) -> int:
+    """Smallest padded input side whose coarsest correlation level has two cells: features at
+    1/8, halved ``corr_levels - 1`` times (128 for 4 levels, 64 for 3)."""
+    return 16 * 2 ** (corr_levels - 1)
 
 
 def _norm(kind: str, channels: int) -> nn.Module:
@@ -273,24 +279,29 @@ class ERAFT(nn.Module):
             ``standard`` (every call starts from zero flow, the E-RAFT paper's non-sequential
             mode; the authors' V2V wrapper carries the flow in both).
         iters: refinement iterations per call (the authors' 12).
+        corr_levels, corr_radius: correlation pyramid levels and lookup radius (4 and 4, the
+            authors'; other values change the motion encoder's input width, so their
+            checkpoints no longer load).
 
     ``forward(voxel_prev, voxel)``: float (N, num_bins, H, W) each, the grids of two consecutive
     intervals -> float32 (N, 2, H, W), the flow over ``voxel``'s interval in pixels (channel 0
     = x, 1 = y), from the last iteration. Stateful: with warm start the 1/8-resolution flow is
     kept for the next call until :meth:`reset_states`. Raises ``ValueError`` for inputs of the
-    wrong shape, and for padded sides under ``MIN_SIDE``.
+    wrong shape, and for padded sides under :func:`min_side`.
     """
 
-    def __init__(self, num_bins: int = 5, subtype: str = "warm_start", iters: int = 12):
+    def __init__(self, num_bins: int = 5, subtype: str = "warm_start", iters: int = 12,
+                 corr_levels: int = CORR_LEVELS, corr_radius: int = CORR_RADIUS):
         super().__init__()
         subtype = str(subtype).lower()
         if subtype not in ("warm_start", "standard"):
             raise ValueError(f"subtype must be 'warm_start' or 'standard', got {subtype!r}")
         self.num_bins, self.subtype, self.iters = int(num_bins), subtype, int(iters)
+        self.corr_levels, self.corr_radius = int(corr_levels), int(corr_radius)
         self.hidden_dim = self.context_dim = 128
         self.fnet = BasicEncoder(256, "instance", self.num_bins)
         self.cnet = BasicEncoder(self.hidden_dim + self.context_dim, "batch", self.num_bins)
-        self.update_block = UpdateBlock(CORR_LEVELS * (2 * CORR_RADIUS + 1) ** 2, self.hidden_dim)
+        self.update_block = UpdateBlock(self.corr_levels * (2 * self.corr_radius + 1) ** 2, self.hidden_dim)
         self.flow_init: Optional[torch.Tensor] = None
 
     def reset_states(self) -> None:
@@ -325,14 +336,15 @@ class ERAFT(nn.Module):
         uses but does not update the warm-start flow."""
         H, W = voxel.shape[-2:]
         ph, pw = (-H) % PAD_MULTIPLE, (-W) % PAD_MULTIPLE
-        if H + ph < MIN_SIDE or W + pw < MIN_SIDE:
-            raise ValueError(f"E-RAFT needs padded sides >= {MIN_SIDE} (its coarsest correlation level must "
-                             f"have two cells); got {H}x{W}, padded {H + ph}x{W + pw}")
+        side = min_side(self.corr_levels)
+        if H + ph < side or W + pw < side:
+            raise ValueError(f"E-RAFT with {self.corr_levels} correlation levels needs padded sides >= {side} (its "
+                             f"coarsest level must have two cells); got {H}x{W}, padded {H + ph}x{W + pw}")
         a = F.pad(voxel_prev, (pw, 0, ph, 0)).contiguous()
         b = F.pad(voxel, (pw, 0, ph, 0)).contiguous()
         f1, f2 = self.fnet([a, b])
         with torch.autocast(device_type=a.device.type, enabled=False):
-            pyramid = correlation_pyramid(f1.float(), f2.float())
+            pyramid = correlation_pyramid(f1.float(), f2.float(), self.corr_levels)
         net, inp = torch.split(self.cnet(b), [self.hidden_dim, self.context_dim], dim=1)
         net, inp = torch.tanh(net), torch.relu(inp)
         n, _, h8, w8 = f1.shape
@@ -346,7 +358,7 @@ class ERAFT(nn.Module):
         flows = []
         for _ in range(self.iters if iters is None else int(iters)):
             coords1 = coords1.detach()
-            corr = lookup_correlation(pyramid, coords1)
+            corr = lookup_correlation(pyramid, coords1, self.corr_radius)
             net, mask, delta = self.update_block(net, inp, corr, coords1 - coords0)
             coords1 = coords1 + delta.float()
             flows.append(self._upsample(coords1 - coords0, mask.float())[..., ph:, pw:])
