@@ -181,3 +181,18 @@ def test_v2v_train_eraft_from_a_live_server(tmp_path, videos):
     ck = torch.load(out / "checkpoint_last.pt", weights_only=False)
     assert ck["task"] == "eraft" and ck["step"] == 2
     assert set(ck["model"]) == set(build_model("eraft", ck["config"]["model"]).state_dict())
+
+
+def test_v2v_eval_cli_scores_an_eraft_checkpoint(tmp_path):
+    from tests.test_trainer_eval import write_moving_edge_h5
+    from trainer.evaluate import main
+
+    p = tmp_path / "edge.h5"
+    write_moving_edge_h5(p)  # 24 x 32: padded to 32 x 32, so 2 correlation levels
+    cfg = merge(default_config("eraft"), {"model": {"num_bins": 2, "iters": 1, "corr_levels": 2}})
+    ck = str(Trainer(cfg, str(tmp_path / "run"), torch.device("cpu")).save_checkpoint())
+    assert main(["--checkpoint", ck, "--h5", str(p), "--device", "cpu", "--out", str(tmp_path / "fl")]) == 0
+    res = json.loads((tmp_path / "fl" / "metrics.json").read_text())
+    assert res["task"] == "eraft" and res["frames"] == 4  # 5 timestamped flows: 4 intervals scored
+    assert set(res["mean"]) == {"aee", "outlier_pct", "aee_sparse", "outlier_pct_sparse", "valid_pct"}
+    assert np.isfinite(res["mean"]["aee"])
