@@ -23,6 +23,7 @@ from trainer.eraft import ERAFT, forward_interpolate, min_side
 from trainer.evaluate import evaluate_eraft
 from trainer.tasks import get_task, stream_outputs
 from trainer.zoo import build_model
+from tests.test_trainer_raft import StandInRaft, stand_in_torchvision  # noqa: F401 (a fixture)
 
 torch.set_num_threads(2)
 
@@ -197,3 +198,17 @@ def test_v2v_eval_cli_scores_an_eraft_checkpoint(tmp_path):
     assert res["task"] == "eraft" and res["frames"] == 4  # 5 timestamped flows: 4 intervals scored
     assert set(res["mean"]) == {"aee", "outlier_pct", "aee_sparse", "outlier_pct_sparse", "valid_pct"}
     assert np.isfinite(res["mean"]["aee"])
+
+
+def test_eraft_targets_come_from_raft_large_on_frames_1_to_L(stand_in_torchvision, tmp_path):
+    """loss.flow_source raft_large (the authors'): RAFT sees the frame pairs of voxels 1..L-1."""
+    torch.save(StandInRaft().state_dict(), stand_in_torchvision / "raft_large-2dfb8e49.pth")
+    cfg = tiny_cfg(loss={"flow_source": "raft_large", "raft_num_flow_updates": 12})
+    t = Trainer(cfg, str(tmp_path / "run"), torch.device("cpu"))
+    batch = next(iter(FakeV2VStream(outputs=stream_outputs(cfg), sequence_length=4, crop=64)))
+    stats = t.train_step(batch)
+    (img1, img2, k), = t.spec.raft.net.calls
+    assert img1.shape[0] == 2 * 3 and k == 12  # 2 samples x pairs (1, 2), (2, 3), (3, 4) of frames
+    frames = batch["frames"].float() / 255
+    assert torch.allclose(img1[:, 0, :64, :64], frames[:, 1:4].flatten(0, 1)[:, 0] * 2 - 1, atol=1e-6)
+    assert stats["aee"] > 0 and np.isfinite(stats["loss"])
