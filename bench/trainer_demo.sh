@@ -1,13 +1,16 @@
 #!/usr/bin/env bash
-# CPU demo of the trainer: a small reconstruction network (E2VID, HyperE2VID or ETNet) trained
-# from a real v2v-serve on 127.0.0.1 on the bundled clips plus camera-motion clips over bundled
-# still photographs (harness/motion_clips.py), evaluated on a held-out clip against the
-# constant-mean-image baseline.
+# CPU demo of the trainer: a small reconstruction network (E2VID, HyperE2VID or ETNet) or E-RAFT
+# trained from a real v2v-serve on 127.0.0.1 on the bundled clips plus camera-motion clips over
+# bundled still photographs (harness/motion_clips.py), evaluated on a held-out clip against the
+# constant-mean-image baseline (E-RAFT: end-point error on held-out clips with known motion,
+# harness/eraft_demo.py, against zero flow).
 #
 #   bash bench/trainer_demo.sh [OUT_DIR] [STEPS_FAST] [STEPS_TOTAL] [TASK]
 #
 # TASK: e2vid (default; base 16 channels), hypere2vid (base 16 channels) or etnet (tokens of
-# 64, 4 heads, 1 encoder and 1 decoder layer per scale, feed-forward 128).
+# 64, 4 heads, 1 encoder and 1 decoder layer per scale, feed-forward 128) or eraft (2 iterations,
+# 3 correlation levels so that 64-pixel crops work, gradient norm clipped to 1 as RAFT trains;
+# eval_eraft.jsonl holds the held-out EPEs).
 # OUT_DIR (default runs/trainer_demo) receives videos_train/ and videos_heldout/ (copies:
 # the server ignores links that leave its root), serve.log, the run in TASK/, and
 # eval_<TASK>_<checkpoint>_<H>x<W>.json for every checkpoint at 360x640 and 144x256.
@@ -15,7 +18,8 @@
 # resumed from checkpoint_last.pt (the stream position comes back with it).
 # About 1 step/s on 2 CPU cores (E2VID). Results of one run: docs/trainer.md.
 # Environment: V2V_DEMO_PORT (5621), V2V_DEMO_SEQ (sequence length, 16), V2V_DEMO_CKPT_EVERY
-# (200), V2V_DEMO_SIZES (evaluation sizes, "360x640 144x256"): smaller values for a shorter run.
+# (200), V2V_DEMO_SIZES (evaluation sizes, "360x640 144x256"), V2V_DEMO_BATCH (4): smaller values
+# for a shorter run.
 set -euo pipefail
 OUT=${1:-runs/trainer_demo}
 STEPS_FAST=${2:-600}
@@ -25,12 +29,14 @@ case "$TASK" in
     e2vid|hypere2vid) SIZE_SETS=(--set model.base_num_channels=16) ;;
     etnet) SIZE_SETS=(--set model.d_model=64 --set model.nhead=4 --set model.encoder_layers=1
                       --set model.decoder_layers=1 --set model.dim_feedforward=128) ;;
-    *) echo "TASK must be e2vid, hypere2vid or etnet" >&2; exit 2 ;;
+    eraft) SIZE_SETS=(--set model.iters=2 --set model.corr_levels=3 --set optim.clip_grad_norm=1.0) ;;
+    *) echo "TASK must be e2vid, hypere2vid, etnet or eraft" >&2; exit 2 ;;
 esac
 PORT=${V2V_DEMO_PORT:-5621}
 SEQ=${V2V_DEMO_SEQ:-16}
 CKPT_EVERY=${V2V_DEMO_CKPT_EVERY:-200}
 SIZES=${V2V_DEMO_SIZES:-"360x640 144x256"}
+BATCH=${V2V_DEMO_BATCH:-4}
 HERE=$(cd "$(dirname "$0")/.." && pwd)
 mkdir -p "$OUT" && OUT=$(cd "$OUT" && pwd)
 cd "$HERE"
@@ -48,7 +54,7 @@ cp "$CLIPS/bigbuckbunny.mp4" "$OUT/videos_heldout/"
 
 # --keep-top-fraction 1.0: these clips carry no watermark, so crops come from the whole frame.
 python -m v2v_server.ops.cli --videos "$OUT/videos_train" --workers 1 --bind "tcp://127.0.0.1:$PORT" \
-    --sequence-length "$SEQ" --num-bins 5 --crop-size 64 --batch-size 4 --keep-top-fraction 1.0 \
+    --sequence-length "$SEQ" --num-bins 5 --crop-size 64 --batch-size "$BATCH" --keep-top-fraction 1.0 \
     --seed 0 > "$OUT/serve.log" 2>&1 &
 SERVER=$!
 trap 'kill -INT $SERVER 2>/dev/null || true; wait $SERVER 2>/dev/null || true' EXIT
@@ -58,6 +64,19 @@ TRAIN=(python -m trainer.train --config "trainer/configs/$TASK.yaml" --connect "
        --set log.checkpoint_every="$CKPT_EVERY" --no-progress)
 "${TRAIN[@]}" --max-steps "$STEPS_FAST" --set optim.lr=1e-3
 "${TRAIN[@]}" --max-steps "$STEPS_TOTAL" --set optim.lr=3e-4 --resume auto
+
+if [ "$TASK" = eraft ]; then
+    python -m harness.eraft_demo "$OUT/$TASK"/checkpoint_0*.pt | tee "$OUT/eval_eraft.jsonl"
+    python - "$OUT/eval_eraft.jsonl" <<'EOF'
+import json, sys
+print("| checkpoint | EPE (px) | zero-flow EPE (px) |")
+print("|---|---|---|")
+for line in open(sys.argv[1]):
+    r = json.loads(line)
+    print(f"| {r['checkpoint']} | {r['epe']:.3f} | {r['zero_flow_epe']:.3f} |")
+EOF
+    exit 0
+fi
 
 for ck in "$OUT/$TASK"/checkpoint_0*.pt; do
     name=$(basename "$ck" .pt)

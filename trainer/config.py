@@ -54,7 +54,7 @@ _RAFT_WEIGHTS_HELP = ("local .pth state dict of torchvision's raft_small / raft_
 class RunSettings:
     """The run: task, stream endpoint, device, output folder, steps."""
 
-    task: str = setting("e2vid", help="what to train", choices=("e2vid", "evflow", "hypere2vid", "etnet"))
+    task: str = setting("e2vid", help="what to train", choices=("e2vid", "evflow", "hypere2vid", "etnet", "eraft"))
     connect: str = setting("tcp://127.0.0.1:5555", help="v2v-serve endpoint(s); several servers (shards) as "
                                                         "'tcp://a:5555,tcp://b:5555' (fan-in)")
     device: str = setting("auto", help="auto | cpu | cuda | cuda:N")
@@ -226,13 +226,40 @@ class EvFlowLoss:
     raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
 
 
+@dataclass
+class ERAFTModel(VoxelInput):
+    """``model`` of eraft: E-RAFT (Gehrig et al. 2021) as the V2V authors train it
+    (config/train_v2v_eraft_10k.yaml: 5 first channels, their n_first_channels = num_bins; warm
+    start, 12 iterations). The parameters of ``trainer.eraft.ERAFT``, declared here only."""
+
+    subtype: str = setting("warm_start", help="warm_start: the previous pair's flow initialises the next; "
+                           "standard: every pair starts from zero flow", choices=("warm_start", "standard"))
+    iters: int = setting(12, help="refinement iterations per voxel pair")
+    corr_levels: int = setting(4, help="correlation pyramid levels (3 allows 64-pixel crops, small CPU runs; "
+                               "not the authors' checkpoint)")
+    corr_radius: int = setting(4, help="correlation lookup radius, cells")
+
+
+@dataclass
+class ERAFTLoss:
+    """``loss`` of eraft: L1 between the last iteration's flow and the targets (the stream's, or
+    RAFT's), over voxels 1..L-1 (each from the pair of grids l-1, l)."""
+
+    flow_l1_weight: float = setting(1.0, help="weight of the flow L1 term")
+    flow_source: str = setting("stream", help="flow targets: the stream's, or RAFT on the frames on the training "
+                               "device (the authors': raft_large)", choices=FLOW_SOURCES)
+    raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft_*)")
+    raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
+
+
 #: Sections common to every task, and each task's model and loss sections.
 SECTIONS = {"stream": StreamSettings, "optim": OptimSettings, "log": LogSettings}
 TASK_SECTIONS = {"e2vid": {"model": E2VIDModel, "loss": E2VIDLoss},
                  "evflow": {"model": EvFlowModel, "loss": EvFlowLoss},
                  "hypere2vid": {"model": HyperE2VIDModel, "loss": E2VIDLoss, "optim": HyperE2VIDOptim,
                                 "curriculum": HyperCurriculum},
-                 "etnet": {"model": ETNetModel, "loss": E2VIDLoss, "optim": ETNetOptim}}
+                 "etnet": {"model": ETNetModel, "loss": E2VIDLoss, "optim": ETNetOptim},
+                 "eraft": {"model": ERAFTModel, "loss": ERAFTLoss}}
 
 
 def _schema(task: str) -> dict:

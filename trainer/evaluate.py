@@ -59,7 +59,7 @@ import torch
 from .config import ConfigError, exit_on_config_error
 
 __all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
-           "evaluate_e2vid", "evaluate_evflow", "load_model", "build_arg_parser", "main",
+           "evaluate_e2vid", "evaluate_evflow", "evaluate_eraft", "load_model", "build_arg_parser", "main",
            "LPIPS_NOT_REPORTED"]
 
 log = logging.getLogger("trainer.evaluate")
@@ -383,6 +383,50 @@ def evaluate_evflow(model, voxels: np.ndarray, flows: np.ndarray, counts: Option
     return res
 
 
+@torch.no_grad()
+def evaluate_eraft(model, voxels: np.ndarray, flows: np.ndarray, counts: Optional[np.ndarray],
+                   device: torch.device, sequence_length: int = 80) -> Dict[str, List[float]]:
+    """Score E-RAFT's flow of each voxel against ``flows`` (K, 2, H, W) pixels, as the V2V
+    authors' MVSEC test does (``data/testh5.py`` ``TestH5FlowDataset`` with
+    ``output_additional_evs``, ``model/train_flow_utils.py`` ``forward_sequence_eraft``):
+
+    * the voxels are cut into chunks of ``sequence_length`` (80); the warm-start flow is reset
+      at each chunk's start;
+    * voxel k is paired with voxel k-1 (the voxel before the chunk for its first pair; a zero
+      grid before voxel 0, their empty event slice) and its flow scored against ``flows[k]``;
+    * the sparse metrics' event mask is that of the pair's first voxel: their
+      ``compute_metrics`` takes ``events[t]``, which for E-RAFT's L+1 grids is the grid before
+      the scored interval (dense metrics do not use it).
+
+    Args:
+        voxels: (K, B, H, W) signed counts; counts: (K, H, W) event counts or None (then the
+            voxels' non-zero pixels).
+        sequence_length: pairs per chunk (their test configs: 80).
+
+    Returns:
+        Per-frame lists of :func:`flow_metrics`' keys.
+    """
+    res: Dict[str, List[float]] = {}
+    k_all = min(voxels.shape[0], flows.shape[0])
+
+    def grid(k):
+        if k < 0:
+            return torch.zeros((1, *voxels.shape[1:]), dtype=torch.float32, device=device)
+        return torch.from_numpy(np.ascontiguousarray(voxels[k], dtype=np.float32))[None].to(device)
+
+    for k in range(k_all):
+        if k % int(sequence_length) == 0:
+            model.reset_states()
+        p = model(grid(k - 1), grid(k))[0].float().cpu().numpy()
+        if k == 0:
+            mask = np.zeros(voxels.shape[2:], bool)
+        else:
+            mask = counts[k - 1] > 0 if counts is not None else np.any(voxels[k - 1] != 0, axis=0)
+        for key, val in flow_metrics(p, flows[k], mask).items():
+            res.setdefault(key, []).append(val)
+    return res
+
+
 def _summarise(per_input: Dict[str, Dict[str, List[float]]]) -> dict:
     keys = sorted({k for r in per_input.values() for k in r if not k.startswith("_")})
     allv = {k: [v for r in per_input.values() for v in r.get(k, [])] for k in keys}
@@ -488,7 +532,8 @@ def main(argv=None) -> int:
     out = Path(args.out) if args.out else None
     if out:
         out.mkdir(parents=True, exist_ok=True)
-    per_input = _score_inputs(args, model, int(cfg["model"]["num_bins"]), recon, lp if recon else None, device, out)
+    per_input = _score_inputs(args, task, model, int(cfg["model"]["num_bins"]), recon, lp if recon else None,
+                              device, out)
     summary = {"checkpoint": args.checkpoint, "task": task, **record,
                "lpips_metric": lpips_metric if recon else None, "ssim_data_range": args.ssim_data_range,
                "skip_first": args.skip_first, **_summarise(per_input)}
@@ -512,7 +557,7 @@ def _input_sequence(kind: str, path: str, recon: bool, nb: int, args):
     return vox, None, frames, None
 
 
-def _score_inputs(args, model, nb: int, recon: bool, lp, device, out: Optional[Path]) -> Dict[str, dict]:
+def _score_inputs(args, task: str, model, nb: int, recon: bool, lp, device, out: Optional[Path]) -> Dict[str, dict]:
     """Per-frame metrics of every ``--h5`` and ``--video`` input, by path; reconstructions
     saved as PNG every ``--save-images`` frames under ``out``."""
     per_input = {}
@@ -528,7 +573,8 @@ def _score_inputs(args, model, nb: int, recon: bool, lp, device, out: Optional[P
                     save_grid(str(out / f"{Path(path).stem}_{l:05d}.png"),
                               [[voxel_to_u8(vox[l]), gray_to_u8(preds[l]), gray_to_u8(frames[l + 1] / 255.0)]])
         else:
-            r = evaluate_evflow(model, vox, flows, counts, device)
+            flow_eval = evaluate_eraft if task == "eraft" else evaluate_evflow
+            r = flow_eval(model, vox, flows, counts, device)
         per_input[path] = r
         log.info("%s: %s", path, {k: round(float(np.nanmean(v)), 5) for k, v in r.items() if not k.startswith("_") and len(v)})
     return per_input

@@ -10,6 +10,9 @@ look a task up in; adding a task is adding an entry.
   (``curriculum`` config section).
 * ``evflow``: optical flow (EV-FlowNet, Zhu et al., RSS 2018) regressed per voxel with an L1
   loss; average end-point error logged.
+* ``eraft``: optical flow (E-RAFT, Gehrig et al., 3DV 2021) from pairs of consecutive voxel
+  grids with warm start through the sequence, L1 loss on the last iteration's flow (the V2V
+  authors' ``forward_type: eraft``).
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ import torch
 from .losses import ReconstructionLoss, flow_l1_loss, temporal_consistency_loss
 from .viz import flow_to_bgr, gray_to_u8, voxel_to_u8
 
-__all__ = ["TrainTask", "E2VIDTask", "HyperE2VIDTask", "ETNetTask", "EvFlowTask", "TASKS", "get_task",
+__all__ = ["TrainTask", "E2VIDTask", "HyperE2VIDTask", "ETNetTask", "EvFlowTask", "ERAFTTask", "TASKS", "get_task",
            "stream_outputs", "tc_start_index", "curriculum_beta"]
 
 log = logging.getLogger("trainer")
@@ -217,8 +220,50 @@ class EvFlowTask(TrainTask):
         return [voxel_to_u8(voxel), flow_to_bgr(pred, m), flow_to_bgr(gt, m)]
 
 
+class ERAFTTask(EvFlowTask):
+    """E-RAFT as the V2V authors train it (``model/train_flow_utils.py``,
+    ``forward_sequence_eraft``): the sequence's warm-start flow is reset, then for l = 1..L-1
+    the network sees voxel grids l-1 and l and predicts the flow over voxel l's interval, frame
+    l -> l+1 (their sample carries L+1 grids for L flows; a stream sample of L grids gives L-1
+    pairs, the first grid serving only as the first pair's predecessor). Loss: L1 between the
+    last iteration's flow and the target, averaged over pixels, components, samples and the
+    L-1 pairs (their ``l1_loss`` per step, averaged over steps); ``aee`` logged the same way."""
+
+    name = "eraft"
+    outputs = ("voxels", "flow")
+    terms = ("flow_l1", "aee")
+
+    def flow_from(self, sequence_length: int) -> Optional[int]:
+        return 1
+
+    def forward(self, model, b, autocast):
+        vox = b["voxels"]
+        n, L = vox.shape[:2]
+        if L < 2:
+            raise ValueError(f"eraft needs sequences of at least 2 voxel grids (pairs l-1, l), got L = {L}")
+        if self.raft is not None:
+            b["flow"] = self.raft(b["frames"], 1)
+        flow = b["flow"]  # (n, L-1, 2, H, W): the targets of voxels 1..L-1 (the stream's arrive sliced, flow_from)
+        model.reset_states()
+        l1 = aee = 0.0
+        preds = []
+        for l in range(1, L):
+            with autocast():
+                pred = model(vox[:, l - 1], vox[:, l])
+            pred = pred.float()
+            gt = flow[:, l - 1]
+            l1 = l1 + flow_l1_loss(pred, gt)
+            with torch.no_grad():
+                aee = aee + torch.linalg.vector_norm(pred - gt, dim=1).mean()
+            preds.append(pred.detach())
+        l1, aee = l1 / (L - 1), aee / (L - 1)
+        loss = float(self.cfg["loss"]["flow_l1_weight"]) * l1
+        # stats stay on the device (read at the logging interval: no host sync per step)
+        return loss, {"flow_l1": l1.detach(), "aee": aee}, torch.stack(preds, dim=1)
+
+
 #: The tasks by name (``cfg["task"]``, ``v2v-train --task``).
-TASKS: Dict[str, type] = {t.name: t for t in (E2VIDTask, EvFlowTask, HyperE2VIDTask, ETNetTask)}
+TASKS: Dict[str, type] = {t.name: t for t in (E2VIDTask, EvFlowTask, HyperE2VIDTask, ETNetTask, ERAFTTask)}
 
 
 def stream_outputs(cfg: dict) -> Tuple[str, ...]:

@@ -1,5 +1,6 @@
 """The networks the trainer can build, by task name: E2VID and EV-FlowNet (``trainer.models``),
-HyperE2VID (``trainer.hypere2vid``) and ETNet (``trainer.etnet``), the V2V paper's zoo."""
+HyperE2VID (``trainer.hypere2vid``), ETNet (``trainer.etnet``) and E-RAFT (``trainer.eraft``),
+the V2V paper's zoo."""
 from __future__ import annotations
 
 from dataclasses import asdict
@@ -9,6 +10,7 @@ import torch.nn as nn
 from v2v_server.ops.settings import check_keys
 
 from .config import TASK_SECTIONS, ConfigError
+from .eraft import ERAFT
 from .etnet import ETNet
 from .hypere2vid import HyperE2VID
 from .models import E2VIDRecurrent, EVFlowNet
@@ -16,7 +18,7 @@ from .models import E2VIDRecurrent, EVFlowNet
 __all__ = ["MODELS", "build_model"]
 
 #: Network class of each task.
-MODELS = {"e2vid": E2VIDRecurrent, "evflow": EVFlowNet, "hypere2vid": HyperE2VID, "etnet": ETNet}
+MODELS = {"e2vid": E2VIDRecurrent, "evflow": EVFlowNet, "hypere2vid": HyperE2VID, "etnet": ETNet, "eraft": ERAFT}
 
 
 def build_model(task: str, model_cfg: dict) -> nn.Module:
