@@ -20,8 +20,8 @@ from harness.object_store import SeaweedS3
 from harness.serve import ServeProcess, free_port
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.decode import VideoError
-from v2v_server.videos.source import (StoreError, StoreSource, manifest_path, read_manifest, read_video_list,
-                                      source_from_config)
+from v2v_server.videos.manifest import manifest_path, read_manifest
+from v2v_server.videos.source import StoreError, StoreSource, read_video_list, source_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
@@ -376,7 +376,7 @@ def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_count
 
 
 def test_manifest_index_finds_every_entry_without_loading_the_manifest(tmp_path):
-    from v2v_server.videos.source import ManifestIndex, write_manifest
+    from v2v_server.videos.manifest import ManifestIndex, write_manifest
 
     objects = {f"{i // 100:03d}/{i:07d}.mp4": (i, f"etag{i}") for i in range(2000)}
     objects.update({'a"quote\\x.mp4': (1, "q"), ODD: (2, "h"), "ü.mp4": (3, "u"), "s.tar/000001.mp4": (5, "t", 1536)})

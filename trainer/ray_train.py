@@ -265,13 +265,32 @@ def _train_loop(config: dict) -> None:
                         final_checkpoint="always"))
 
 
+def _torch_trainer(cfg: dict, args: argparse.Namespace, out: Path, resume, state: dict, epoch_sizes: dict,
+                   batch_size: int, ds):
+    """The Ray Train ``TorchTrainer`` of one attempt: ``args.num_workers`` ranks running
+    ``_train_loop`` on the Ray dataset ``ds`` from ``resume`` / ``state``, with no restart of
+    its own (``run_ray`` restarts from the last checkpoint)."""
+    from ray.train import FailureConfig, RunConfig, ScalingConfig
+    from ray.train.torch import TorchTrainer
+
+    loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,
+                "max_steps": int(cfg["max_steps"]), "batch_size": batch_size, "epoch_sizes": epoch_sizes,
+                "use_gpu": bool(args.use_gpu), "cpus_per_worker": args.cpus_per_worker}
+    return TorchTrainer(
+        _train_loop, train_loop_config=loop_cfg, datasets={"train": ds},
+        scaling_config=ScalingConfig(num_workers=args.num_workers, use_gpu=bool(args.use_gpu),
+                                     resources_per_worker={"CPU": args.cpus_per_worker}),
+        run_config=RunConfig(name=f"v2v-{cfg['task']}", storage_path=str((out / "ray").resolve()),
+                             failure_config=FailureConfig(max_failures=0)),
+    )
+
+
 def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
     """Driver of ``v2v-train --engine ray``; returns the exit code (2: bad arguments, 1: the run
     failed more than ``--max-failures`` times)."""
     try:
         import ray
-        from ray.train import FailureConfig, RunConfig, ScalingConfig
-        from ray.train.torch import TorchTrainer
+        import ray.train.torch  # noqa: F401  (Ray Train, used by _torch_trainer)
     except ImportError:
         log.error("--engine ray needs Ray: pip install 'v2v[ray]'")
         return 2
@@ -323,19 +342,9 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
         ds = v2v_dataset(corpus, scfg, epoch=todo, outputs=stream_outputs(cfg),
                          exclude={e: state["consumed"].get(e, ()) for e in todo}, ranks=args.num_workers,
                          concurrency=data_workers, resource=args.data_resource)
-        loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,
-                    "max_steps": int(cfg["max_steps"]), "batch_size": batch_size,
-                    "epoch_sizes": {e: corpus.samples_per_epoch for e in todo}, "use_gpu": bool(args.use_gpu),
-                    "cpus_per_worker": args.cpus_per_worker}
-        tt = TorchTrainer(
-            _train_loop, train_loop_config=loop_cfg, datasets={"train": ds},
-            scaling_config=ScalingConfig(num_workers=args.num_workers, use_gpu=bool(args.use_gpu),
-                                         resources_per_worker={"CPU": args.cpus_per_worker}),
-            run_config=RunConfig(name=f"v2v-{cfg['task']}", storage_path=str((out / "ray").resolve()),
-                                 failure_config=FailureConfig(max_failures=0)),
-        )
         try:
-            tt.fit()
+            _torch_trainer(cfg, args, out, resume, state, {e: corpus.samples_per_epoch for e in todo}, batch_size,
+                           ds).fit()
             return 0
         except Exception as e:  # a rank or the run failed: restart from the last checkpoint, or give up
             failures += 1

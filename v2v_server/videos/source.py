@@ -11,12 +11,12 @@ give the same ids and, for the same seed, bit-identical samples. ``open(rel)`` y
 it in ``read_block_mb`` blocks (PyAV reads straight from it, no local copy; ``cache_max_gb``
 keeps whole objects on local disk instead). Tar shards (WebDataset convention) given as
 ``.tar`` files or objects, a brace pattern or list entries stand for their video members, ids
-``shard.tar/member.mp4``, read in place by offset (:class:`TarMember`).
+``shard.tar/member.mp4``, read in place by offset (``videos.shards``).
 
 An object store is listed once and the listing is kept as a **manifest** (one JSON line per
 object: key relative to the prefix, size in bytes, ETag), so a restart and every shard of the
 corpus read the same listing without walking the bucket again; see :func:`manifest_path` for
-where it is kept. A worker compares the ETag the store reports when it opens an object with
+where it is kept (``videos.manifest``). A worker compares the ETag the store reports when it opens an object with
 the manifest's: an object overwritten since it was listed is skipped with the key named.
 
 Transient store errors are retried by the storage library (botocore's ``standard`` retry mode
@@ -28,28 +28,19 @@ once; the server stays up.
 from __future__ import annotations
 
 import contextlib
-import io
-import hashlib
-import json
 import logging
-import os
 import time
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 from v2v_server.videos.decode import VideoError, inside, printable, scan_corpus, utf8_name
+from v2v_server.videos.manifest import (ManifestIndex, default_cache_dir, etag_of, manifest_path, read_manifest,
+                                        write_manifest)
+from v2v_server.videos.shards import TarMember, split_pattern, tar_members
+from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_filesystem, time_fetches
 
 log = logging.getLogger("v2v.source")
 
-#: Protocols read through fsspec, and the extra that installs each one's library.
-STORE_EXTRAS = {"s3": "v2v[s3]", "s3a": "v2v[s3]", "gs": "v2v[gcs]", "gcs": "v2v[gcs]", "az": "v2v[azure]",
-                "abfs": "v2v[azure]", "abfss": "v2v[azure]"}
-MANIFEST_VERSION = 1
-
-
-class StoreError(RuntimeError):
-    """The corpus cannot be reached at all (no such bucket, refused credentials, no library for
-    the URL's protocol); the message names the URL. ``v2v-serve`` exits 2 on it."""
 
 
 def is_url(videos: Union[str, Path, None]) -> bool:
@@ -96,119 +87,6 @@ def read_video_list(path: str) -> List[str]:
     return out
 
 
-def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional[str] = None) -> Path:
-    """Where the manifest of the corpus at ``url`` is kept: ``STATE_DIR/manifest-H.jsonl`` when
-    the server has a ``state_dir`` (it then travels with the delivery journal), else
-    ``CACHE_DIR/manifests/H.jsonl`` with ``cache_dir`` defaulting to ``$XDG_CACHE_HOME/v2v``
-    (``~/.cache/v2v``); H is a hash of the URL. Shards on one host share it; shards on other
-    hosts list the store once each and, the store unchanged, write the same manifest."""
-    h = hashlib.sha256(url.encode("utf-8")).hexdigest()[:16]
-    if state_dir:
-        return Path(state_dir) / f"manifest-{h}.jsonl"
-    return Path(cache_dir or default_cache_dir()) / "manifests" / f"{h}.jsonl"
-
-
-def default_cache_dir() -> Path:
-    """``$XDG_CACHE_HOME/v2v`` (``~/.cache/v2v``): manifests and the object cache when no
-    ``cache_dir`` is given."""
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
-
-
-def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]]) -> None:
-    """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a video
-    member of a tar shard ``shard.tar/member`` -> (size, the shard's ETag, offset of the
-    member's data in the shard)) atomically: a header line ``{"v2v_manifest": 1, "url",
-    "objects", "listed_at"}``, then one ``[key, size, etag(, offset)]`` JSON line per entry,
-    sorted by key."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(json.dumps({"v2v_manifest": MANIFEST_VERSION, "url": url, "objects": len(objects),
-                            "listed_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n")
-        for key in sorted(objects):
-            f.write(json.dumps([key, *objects[key]], ensure_ascii=False) + "\n")
-    os.replace(tmp, path)
-
-
-def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
-    """The objects of the manifest at ``path`` (see :func:`write_manifest`), or None when there
-    is none, it is of another URL or version, or it is cut short (a crash while written by
-    another process: it is then listed again)."""
-    try:
-        with open(path, encoding="utf-8") as f:
-            header = json.loads(f.readline() or "null")
-            if not isinstance(header, dict) or header.get("v2v_manifest") != MANIFEST_VERSION or header.get("url") != url:
-                return None
-            objects = {}
-            for line in f:
-                key, size, etag, *offset = json.loads(line)
-                objects[key] = (int(size), str(etag), *(int(o) for o in offset[:1]))
-    except (OSError, ValueError, TypeError):
-        return None
-    return objects if len(objects) == header.get("objects") else None
-
-
-class ManifestIndex:
-    """Look up single entries of a manifest (see :func:`write_manifest`) without loading it: a
-    binary search over the memory-mapped file, whose lines are sorted by key. What a worker
-    uses to check an object's ETag, so that a 10-million-object manifest costs it pages of the
-    file, not a dictionary of every key. None when the file is absent or of another URL."""
-
-    def __init__(self, mm, start: int):
-        self.mm, self.start = mm, start
-
-    @classmethod
-    def open(cls, path: Path, url: str) -> Optional["ManifestIndex"]:
-        import mmap
-
-        try:
-            with open(path, "rb") as f:
-                header = json.loads(f.readline() or b"null")
-                start = f.tell()
-                if (not isinstance(header, dict) or header.get("v2v_manifest") != MANIFEST_VERSION
-                        or header.get("url") != url or os.fstat(f.fileno()).st_size <= start):
-                    return None
-                return cls(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ), start)
-        except (OSError, ValueError):
-            return None
-
-    def _line_at(self, pos: int) -> Tuple[int, int]:
-        """(start, end) of the first whole line beginning at or after ``pos``."""
-        if pos > self.start:
-            nl = self.mm.find(b"\n", pos - 1)
-            pos = len(self.mm) if nl < 0 else nl + 1
-        end = self.mm.find(b"\n", pos)
-        return pos, (len(self.mm) if end < 0 else end)
-
-    def get(self, key: str) -> Optional[tuple]:
-        """The entry of ``key``: (size, ETag[, offset]), or None."""
-        lo, hi = self.start, len(self.mm)
-        while lo < hi:
-            mid = (lo + hi) // 2
-            a, b = self._line_at(mid)
-            if a >= hi:  # no line starts in [mid, hi): look left
-                hi = mid
-                continue
-            k, size, etag, *offset = json.loads(self.mm[a:b])
-            if k == key:
-                return (int(size), str(etag), *(int(o) for o in offset[:1]))
-            if k < key:
-                lo = b + 1
-            else:
-                hi = a
-        return None
-
-
-def _etag(info: dict) -> str:
-    """The version tag of an object in a listing or ``info()`` answer: S3's ETag, GCS's
-    generation, Azure's etag (quotes stripped)."""
-    for k in ("ETag", "etag", "generation", "md5Hash"):
-        v = info.get(k)
-        if v:
-            return str(v).strip('"')
-    return ""
-
-
 def corpus_file(root, rel: str) -> Path:
     """``root / rel``, a file inside the local corpus folder ``root``.
 
@@ -220,84 +98,6 @@ def corpus_file(root, rel: str) -> Path:
     if not inside(Path(root), path):
         raise VideoError("missing, or points outside the corpus root")
     return path
-
-
-def tar_members(f) -> Dict[str, Tuple[int, int]]:
-    """Member name -> (offset of its data, size) in bytes of every regular file of the tar
-    read from the binary file object ``f``, in one pass over the headers (the data between
-    them is skipped by seeking; an object-store file fetches the blocks that hold headers).
-
-    Raises:
-        tarfile.TarError: not a tar archive.
-    """
-    import tarfile
-
-    out = {}
-    with tarfile.open(fileobj=f, mode="r:") as tar:
-        for m in tar:
-            if m.isfile():
-                out[m.name] = (m.offset_data, m.size)
-    return out
-
-
-class TarMember(io.RawIOBase):
-    """A read-only, seekable window ``[offset, offset + size)`` of the binary file ``f``: one
-    member of a tar shard, read in place (FFmpeg decodes it like a file of its own)."""
-
-    def __init__(self, f, offset: int, size: int):
-        super().__init__()
-        self.f, self.offset, self.size, self.pos = f, offset, size, 0
-
-    def readable(self) -> bool:
-        return True
-
-    def seekable(self) -> bool:
-        return True
-
-    def tell(self) -> int:
-        return self.pos
-
-    def seek(self, pos: int, whence: int = io.SEEK_SET) -> int:
-        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
-        self.pos = min(max(0, base + pos), self.size)
-        return self.pos
-
-    def readinto(self, b) -> int:
-        n = min(len(b), self.size - self.pos)
-        if n <= 0:
-            return 0
-        self.f.seek(self.offset + self.pos)
-        data = self.f.read(n)
-        b[:len(data)] = data
-        self.pos += len(data)
-        return len(data)
-
-
-def expand_braces(pattern: str) -> List[str]:
-    """The names a brace pattern stands for, in order: ``{000..003}`` is a zero-padded numeric
-    range (as the WebDataset tools write shard names), ``{a,b}`` a list; several braces
-    multiply. ``shards-{0..1}-{a,b}.tar`` -> ``shards-0-a.tar, shards-0-b.tar, shards-1-a.tar...``
-
-    Raises:
-        ValueError: a brace that is neither form.
-    """
-    import re
-
-    m = re.search(r"\{([^{}]*)\}", pattern)
-    if m is None:
-        return [pattern]
-    body = m.group(1)
-    r = re.fullmatch(r"(\d+)\.\.(\d+)", body)
-    if r:
-        lo, hi = int(r.group(1)), int(r.group(2))
-        width = len(r.group(1)) if r.group(1).startswith("0") else 0
-        items = [str(i).zfill(width) for i in range(lo, hi + 1)]
-    elif "," in body:
-        items = body.split(",")
-    else:
-        raise ValueError(f"{pattern}: brace {{{body}}} is neither a range {{000..009}} nor a list {{a,b}}")
-    head, tail = pattern[:m.start()], pattern[m.end():]
-    return [x for item in items for x in expand_braces(head + item + tail)]
 
 
 class VideoSource:
@@ -454,20 +254,6 @@ class LocalSource(VideoSource):
         return {"root": self.root}
 
 
-class _Stats:
-    """Counters of one process's store reads (what ``take_stats`` hands to the server)."""
-
-    def __init__(self):
-        self.bytes = self.reads = self.retries = self.skipped = 0
-        self.read_s = 0.0
-
-    def take(self) -> dict:
-        out = {"bytes": self.bytes, "reads": self.reads, "read_s": round(self.read_s, 6), "retries": self.retries,
-               "skipped": self.skipped}
-        self.__init__()
-        return out
-
-
 class StoreSource(VideoSource):
     """A corpus under an object-store prefix, read through fsspec.
 
@@ -503,7 +289,8 @@ class StoreSource(VideoSource):
         self.read_timeout_s, self.max_attempts, self.read_block_mb = read_timeout_s, max_attempts, read_block_mb
         self._fs = None
         self._objects: Optional[Dict[str, Tuple[int, str]]] = None  # the manifest, loaded on first need
-        self.stats = _Stats()
+        self.stats = ReadStats()
+        self.cache = ObjectCache(Path(self.cache_dir) / "objects", self.cache_max_gb)
 
     # ------------------------------------------------------------------ the filesystem
     @property
@@ -513,54 +300,8 @@ class StoreSource(VideoSource):
         return self._fs
 
     def _make_fs(self):
-        import fsspec
-
-        logging.getLogger("fsspec.caching").setLevel(logging.WARNING)  # a line per block fetched otherwise
-
-        try:
-            cls = fsspec.get_filesystem_class(self.protocol)
-        except (ImportError, ValueError) as e:
-            extra = STORE_EXTRAS.get(self.protocol)
-            raise StoreError(f"--videos {self.root}: no filesystem for {self.protocol}:// ({e})"
-                             + (f"; pip install '{extra}'" if extra else "")) from None
-        opts: dict = {"skip_instance_cache": True, "use_listings_cache": False}
-        if self.protocol in ("s3", "s3a"):
-            opts["config_kwargs"] = {"retries": {"mode": "standard", "max_attempts": self.max_attempts},
-                                     "read_timeout": self.read_timeout_s, "connect_timeout": self.read_timeout_s}
-        user = dict(self.storage_options)
-        if "config_kwargs" in user and "config_kwargs" in opts:
-            user["config_kwargs"] = {**opts["config_kwargs"], **user["config_kwargs"]}
-        opts.update(user)
-        fs = cls(**opts)
-        if self.protocol in ("s3", "s3a"):
-            fs.retries = 1  # s3fs's own retry loop off: botocore's retry mode above is the one policy
-            self._count_retries(fs)
-        return fs
-
-    def _count_retries(self, fs) -> None:
-        """Count botocore's retries (``ResponseMetadata.RetryAttempts`` of each answered call)."""
-        stats = self.stats
-
-        def after_call(parsed=None, **_):
-            try:
-                stats.retries += int(parsed["ResponseMetadata"].get("RetryAttempts", 0))
-            except (TypeError, KeyError, ValueError):
-                pass
-
-        def on_client(client) -> None:
-            client.meta.events.register("after-call.s3", after_call)
-
-        fs._v2v_on_client = on_client
-        orig = fs.set_session
-
-        async def set_session(*a, **kw):
-            client = await orig(*a, **kw)
-            if not getattr(client, "_v2v_counted", False):
-                on_client(client)
-                client._v2v_counted = True
-            return client
-
-        fs.set_session = set_session
+        return make_filesystem(self.protocol, self.root, self.storage_options, self.read_timeout_s,
+                               self.max_attempts, self.stats)
 
     def _path(self, rel: str) -> str:
         """The filesystem path of ``rel``: the key for object stores, the whole URL for http(s)."""
@@ -621,7 +362,7 @@ class StoreSource(VideoSource):
         for key, info in found.items():
             if info.get("type", "file") != "file" or not key.startswith(self.prefix):
                 continue
-            objects[key[len(self.prefix):]] = (int(info.get("size") or 0), _etag(info))
+            objects[key[len(self.prefix):]] = (int(info.get("size") or 0), etag_of(info))
         for rel in [k for k in objects if k.lower().endswith(".tar")]:  # shards: their members, once
             self._add_members(objects, rel)
         log.info("%s: listed %d object(s) in %.1f s", self.root, len(objects), time.monotonic() - t0)
@@ -740,84 +481,19 @@ class StoreSource(VideoSource):
             self.stats.read_s += time.perf_counter() - t0
         try:
             expected = self._expected(rel) if expected is None else expected
-            now = _etag(getattr(f, "details", None) or {})
+            now = etag_of(getattr(f, "details", None) or {})
             if expected is not None and expected[1] and now and now != expected[1]:
                 self.stats.skipped += 1
                 raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}); skipped until "
                                  f"--refresh-manifest")
-            self._time_fetches(f)
+            time_fetches(f, self.stats)
             if self.cache_max_gb > 0:
-                with self._cached(rel, now, f) as local:
+                with self.cache.open(f"{self.root}{rel}", now, f) as local:
                     yield local
             else:
                 yield f
         finally:
             f.close()
-
-    @contextlib.contextmanager
-    def _cached(self, rel: str, etag: str, f):
-        """The object as a local file in the bounded cache (``cache_dir/objects``): copied whole
-        from ``f`` on first use, named by URL, key and ETag (a changed object is a new entry),
-        the least recently used entries removed while the cache holds more than
-        ``cache_max_gb``."""
-        d = Path(self.cache_dir) / "objects"
-        path = d / hashlib.sha256(f"{self.root}{rel} {etag}".encode("utf-8")).hexdigest()[:32]
-        if not path.is_file():
-            d.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-            try:
-                with open(tmp, "wb") as out:
-                    while True:
-                        chunk = f.read(1 << 22)
-                        if not chunk:
-                            break
-                        out.write(chunk)
-                os.replace(tmp, path)
-            finally:
-                tmp.unlink(missing_ok=True)
-            self._evict(d, keep=path)
-        else:
-            os.utime(path)  # recently used
-        with open(path, "rb") as local:
-            yield local
-
-    def _evict(self, d: Path, keep: Path) -> None:
-        """Remove the least recently used entries of ``d`` until it holds at most ``cache_max_gb``."""
-        entries = []
-        for p in d.iterdir():
-            try:
-                st = p.stat()
-            except OSError:
-                continue  # removed by another worker meanwhile
-            if not p.name.endswith(".tmp"):
-                entries.append((st.st_mtime, st.st_size, p))
-        total, limit = sum(e[1] for e in entries), self.cache_max_gb * (1 << 30)
-        for _, size, p in sorted(entries, key=lambda e: e[0]):
-            if total <= limit:
-                break
-            if p != keep:
-                p.unlink(missing_ok=True)
-                total -= size
-
-    def _time_fetches(self, f) -> None:
-        """Count the bytes and seconds of every range request of ``f``'s block cache."""
-        cache = getattr(f, "cache", None)
-        fetch = getattr(cache, "fetcher", None)
-        if fetch is None:
-            return
-        stats = self.stats
-
-        def timed(start, end):
-            t = time.perf_counter()
-            try:
-                data = fetch(start, end)
-            finally:
-                stats.read_s += time.perf_counter() - t
-                stats.reads += 1
-            stats.bytes += len(data)
-            return data
-
-        cache.fetcher = timed
 
     def take_stats(self) -> dict:
         return self.stats.take()
@@ -826,18 +502,6 @@ class StoreSource(VideoSource):
         return {"root": self.root, "storage_options": self.storage_options, "video_list": self.video_list,
                 "manifest": self.manifest, "read_timeout_s": self.read_timeout_s, "max_attempts": self.max_attempts,
                 "read_block_mb": self.read_block_mb, "cache_dir": self.cache_dir, "cache_max_gb": self.cache_max_gb}
-
-
-def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
-    """``(root, names)`` of a corpus given as a brace pattern of tar shards
-    (``s3://b/webvid-{000000..000009}.tar``: root ``s3://b/``, names ``webvid-000000.tar``...;
-    the root is the pattern up to the last ``/`` before the first brace), or ``(videos, None)``
-    for a folder or prefix; a single ``.tar`` is a pattern of one."""
-    brace = videos.find("{")
-    if brace < 0 and not videos.lower().endswith(".tar"):
-        return videos, None
-    cut = videos.rfind("/", 0, brace if brace >= 0 else len(videos)) + 1
-    return videos[:cut] or ".", expand_braces(videos[cut:])
 
 
 def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dict] = None,

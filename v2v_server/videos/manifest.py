@@ -1,0 +1,128 @@
+"""The manifest of an object-store corpus: its listing (key, size, ETag; tar members with their
+offset) kept as one sorted JSON line per object, so a restart and every shard read one listing
+without walking the bucket, and a worker looks up single entries without loading it
+(:class:`ManifestIndex`). See ``videos.source`` for who writes and reads it."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+from typing import Dict, Optional, Tuple
+
+MANIFEST_VERSION = 1
+
+
+def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional[str] = None) -> Path:
+    """Where the manifest of the corpus at ``url`` is kept: ``STATE_DIR/manifest-H.jsonl`` when
+    the server has a ``state_dir`` (it then travels with the delivery journal), else
+    ``CACHE_DIR/manifests/H.jsonl`` with ``cache_dir`` defaulting to ``$XDG_CACHE_HOME/v2v``
+    (``~/.cache/v2v``); H is a hash of the URL. Shards on one host share it; shards on other
+    hosts list the store once each and, the store unchanged, write the same manifest."""
+    h = hashlib.sha256(url.encode("utf-8")).hexdigest()[:16]
+    if state_dir:
+        return Path(state_dir) / f"manifest-{h}.jsonl"
+    return Path(cache_dir or default_cache_dir()) / "manifests" / f"{h}.jsonl"
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/v2v`` (``~/.cache/v2v``): manifests and the object cache when no
+    ``cache_dir`` is given."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
+
+
+def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]]) -> None:
+    """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a video
+    member of a tar shard ``shard.tar/member`` -> (size, the shard's ETag, offset of the
+    member's data in the shard)) atomically: a header line ``{"v2v_manifest": 1, "url",
+    "objects", "listed_at"}``, then one ``[key, size, etag(, offset)]`` JSON line per entry,
+    sorted by key."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(json.dumps({"v2v_manifest": MANIFEST_VERSION, "url": url, "objects": len(objects),
+                            "listed_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n")
+        for key in sorted(objects):
+            f.write(json.dumps([key, *objects[key]], ensure_ascii=False) + "\n")
+    os.replace(tmp, path)
+
+
+def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
+    """The objects of the manifest at ``path`` (see :func:`write_manifest`), or None when there
+    is none, it is of another URL or version, or it is cut short (a crash while written by
+    another process: it is then listed again)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            header = json.loads(f.readline() or "null")
+            if not isinstance(header, dict) or header.get("v2v_manifest") != MANIFEST_VERSION or header.get("url") != url:
+                return None
+            objects = {}
+            for line in f:
+                key, size, etag, *offset = json.loads(line)
+                objects[key] = (int(size), str(etag), *(int(o) for o in offset[:1]))
+    except (OSError, ValueError, TypeError):
+        return None
+    return objects if len(objects) == header.get("objects") else None
+
+
+class ManifestIndex:
+    """Look up single entries of a manifest (see :func:`write_manifest`) without loading it: a
+    binary search over the memory-mapped file, whose lines are sorted by key. What a worker
+    uses to check an object's ETag, so that a 10-million-object manifest costs it pages of the
+    file, not a dictionary of every key. None when the file is absent or of another URL."""
+
+    def __init__(self, mm, start: int):
+        self.mm, self.start = mm, start
+
+    @classmethod
+    def open(cls, path: Path, url: str) -> Optional["ManifestIndex"]:
+        import mmap
+
+        try:
+            with open(path, "rb") as f:
+                header = json.loads(f.readline() or b"null")
+                start = f.tell()
+                if (not isinstance(header, dict) or header.get("v2v_manifest") != MANIFEST_VERSION
+                        or header.get("url") != url or os.fstat(f.fileno()).st_size <= start):
+                    return None
+                return cls(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ), start)
+        except (OSError, ValueError):
+            return None
+
+    def _line_at(self, pos: int) -> Tuple[int, int]:
+        """(start, end) of the first whole line beginning at or after ``pos``."""
+        if pos > self.start:
+            nl = self.mm.find(b"\n", pos - 1)
+            pos = len(self.mm) if nl < 0 else nl + 1
+        end = self.mm.find(b"\n", pos)
+        return pos, (len(self.mm) if end < 0 else end)
+
+    def get(self, key: str) -> Optional[tuple]:
+        """The entry of ``key``: (size, ETag[, offset]), or None."""
+        lo, hi = self.start, len(self.mm)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            a, b = self._line_at(mid)
+            if a >= hi:  # no line starts in [mid, hi): look left
+                hi = mid
+                continue
+            k, size, etag, *offset = json.loads(self.mm[a:b])
+            if k == key:
+                return (int(size), str(etag), *(int(o) for o in offset[:1]))
+            if k < key:
+                lo = b + 1
+            else:
+                hi = a
+        return None
+
+
+
+def etag_of(info: dict) -> str:
+    """The version tag of an object in a listing or ``info()`` answer: S3's ETag, GCS's
+    generation, Azure's etag (quotes stripped)."""
+    for k in ("ETag", "etag", "generation", "md5Hash"):
+        v = info.get(k)
+        if v:
+            return str(v).strip('"')
+    return ""

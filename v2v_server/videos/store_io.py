@@ -1,0 +1,172 @@
+"""Reading objects from a store: the fsspec filesystem with one retry policy, the counters of a
+process's reads (bytes, range requests, seconds, retries, skipped objects) and the bounded local
+cache of whole objects. ``videos.source.StoreSource`` wires them."""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Optional
+
+#: Protocols read through fsspec, and the extra that installs each one's library.
+STORE_EXTRAS = {"s3": "v2v[s3]", "s3a": "v2v[s3]", "gs": "v2v[gcs]", "gcs": "v2v[gcs]", "az": "v2v[azure]",
+                "abfs": "v2v[azure]", "abfss": "v2v[azure]"}
+
+
+class StoreError(RuntimeError):
+    """The corpus cannot be reached at all (no such bucket, refused credentials, no library for
+    the URL's protocol); the message names the URL. ``v2v-serve`` exits 2 on it."""
+
+
+class ReadStats:
+    """Counters of one process's store reads (what ``VideoSource.take_stats`` hands to the
+    server): ``bytes`` fetched, range requests (``reads``), seconds waited (``read_s``),
+    ``retries`` by the storage library, objects ``skipped`` (missing or changed)."""
+
+    def __init__(self):
+        self.bytes = self.reads = self.retries = self.skipped = 0
+        self.read_s = 0.0
+
+    def take(self) -> dict:
+        """The counters since the last call, as a dict; then zero them."""
+        out = {"bytes": self.bytes, "reads": self.reads, "read_s": round(self.read_s, 6), "retries": self.retries,
+               "skipped": self.skipped}
+        self.__init__()
+        return out
+
+
+def make_filesystem(protocol: str, root: str, storage_options: dict, read_timeout_s: float, max_attempts: int,
+                    stats: ReadStats):
+    """The fsspec filesystem of ``protocol``: no instance or listing cache; for S3 botocore's
+    ``standard`` retry mode with ``max_attempts`` and ``read_timeout_s`` as the one retry
+    policy (s3fs's own loop off), its retries counted in ``stats``; ``storage_options`` over
+    these defaults.
+
+    Raises:
+        StoreError: naming ``root``, when no library serves ``protocol`` (with the extra to
+            install).
+    """
+    import fsspec
+
+    logging.getLogger("fsspec.caching").setLevel(logging.WARNING)  # a line per block fetched otherwise
+    try:
+        cls = fsspec.get_filesystem_class(protocol)
+    except (ImportError, ValueError) as e:
+        extra = STORE_EXTRAS.get(protocol)
+        raise StoreError(f"--videos {root}: no filesystem for {protocol}:// ({e})"
+                         + (f"; pip install '{extra}'" if extra else "")) from None
+    opts: dict = {"skip_instance_cache": True, "use_listings_cache": False}
+    if protocol in ("s3", "s3a"):
+        opts["config_kwargs"] = {"retries": {"mode": "standard", "max_attempts": max_attempts},
+                                 "read_timeout": read_timeout_s, "connect_timeout": read_timeout_s}
+    user = dict(storage_options)
+    if "config_kwargs" in user and "config_kwargs" in opts:
+        user["config_kwargs"] = {**opts["config_kwargs"], **user["config_kwargs"]}
+    opts.update(user)
+    fs = cls(**opts)
+    if protocol in ("s3", "s3a"):
+        fs.retries = 1  # s3fs's own retry loop off: botocore's retry mode above is the one policy
+        _count_retries(fs, stats)
+    return fs
+
+
+def _count_retries(fs, stats: ReadStats) -> None:
+    """Count botocore's retries (``ResponseMetadata.RetryAttempts`` of each answered call)."""
+
+    def after_call(parsed=None, **_):
+        try:
+            stats.retries += int(parsed["ResponseMetadata"].get("RetryAttempts", 0))
+        except (TypeError, KeyError, ValueError):
+            pass
+
+    def on_client(client) -> None:
+        client.meta.events.register("after-call.s3", after_call)
+
+    fs._v2v_on_client = on_client
+    orig = fs.set_session
+
+    async def set_session(*a, **kw):
+        client = await orig(*a, **kw)
+        if not getattr(client, "_v2v_counted", False):
+            on_client(client)
+            client._v2v_counted = True
+        return client
+
+    fs.set_session = set_session
+
+
+def time_fetches(f, stats: ReadStats) -> None:
+    """Count the bytes and seconds of every range request of the fsspec file ``f``'s block
+    cache in ``stats``."""
+    cache = getattr(f, "cache", None)
+    fetch = getattr(cache, "fetcher", None)
+    if fetch is None:
+        return
+
+    def timed(start, end):
+        t = time.perf_counter()
+        try:
+            data = fetch(start, end)
+        finally:
+            stats.read_s += time.perf_counter() - t
+            stats.reads += 1
+        stats.bytes += len(data)
+        return data
+
+    cache.fetcher = timed
+
+
+class ObjectCache:
+    """A bounded local cache of whole objects in ``folder``: an entry is named by URL, key and
+    ETag (a changed object is a new entry); the least recently used entries are removed while
+    the cache holds more than ``max_gb`` GiB. Safe to share between worker processes (entries
+    are written to a temporary name and renamed)."""
+
+    def __init__(self, folder: Path, max_gb: float):
+        self.folder, self.max_gb = Path(folder), float(max_gb)
+
+    @contextlib.contextmanager
+    def open(self, name: str, etag: str, f):
+        """The object ``name`` (URL and key) of version ``etag`` as a local binary file, copied
+        whole from the open object ``f`` on first use."""
+        d = self.folder
+        path = d / hashlib.sha256(f"{name} {etag}".encode("utf-8")).hexdigest()[:32]
+        if not path.is_file():
+            d.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            try:
+                with open(tmp, "wb") as out:
+                    while True:
+                        chunk = f.read(1 << 22)
+                        if not chunk:
+                            break
+                        out.write(chunk)
+                os.replace(tmp, path)
+            finally:
+                tmp.unlink(missing_ok=True)
+            self._evict(keep=path)
+        else:
+            os.utime(path)  # recently used
+        with open(path, "rb") as local:
+            yield local
+
+    def _evict(self, keep: Optional[Path]) -> None:
+        """Remove the least recently used entries until the cache holds at most ``max_gb``."""
+        entries = []
+        for p in self.folder.iterdir():
+            try:
+                st = p.stat()
+            except OSError:
+                continue  # removed by another worker meanwhile
+            if not p.name.endswith(".tmp"):
+                entries.append((st.st_mtime, st.st_size, p))
+        total, limit = sum(e[1] for e in entries), self.max_gb * (1 << 30)
+        for _, size, p in sorted(entries, key=lambda e: e[0]):
+            if total <= limit:
+                break
+            if p != keep:
+                p.unlink(missing_ok=True)
+                total -= size
