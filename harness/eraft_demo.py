@@ -53,7 +53,7 @@ def score(checkpoint: str, clips) -> dict:
     from trainer.evaluate import evaluate_eraft, load_model
 
     device = torch.device("cpu")
-    task, model, _ = load_model(checkpoint, device)
+    task, model, _, _ = load_model(checkpoint, device)
     if task != "eraft":
         raise ValueError(f"{checkpoint} is a {task!r} checkpoint, not eraft")
     res = {"checkpoint": os.path.basename(checkpoint), "clips": {}}

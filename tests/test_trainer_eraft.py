@@ -183,6 +183,11 @@ def test_v2v_train_eraft_from_a_live_server(tmp_path, videos):
     ck = torch.load(out / "checkpoint_last.pt", weights_only=False)
     assert ck["task"] == "eraft" and ck["step"] == 2
     assert set(ck["model"]) == set(build_model("eraft", ck["config"]["model"]).state_dict())
+    # the CPU demo's held-out check scores what v2v-train wrote
+    from harness.eraft_demo import heldout_clips, score
+
+    res = score(str(out / "checkpoint_last.pt"), heldout_clips(num_bins=3, voxels=3, displacements=[2.0]))
+    assert len(res["clips"]) == 3 and np.isfinite(res["epe"]) and res["zero_flow_epe"] > 0
 
 
 def test_v2v_eval_cli_scores_an_eraft_checkpoint(tmp_path):
