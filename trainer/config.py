@@ -247,7 +247,7 @@ class ERAFTLoss:
 
     flow_l1_weight: float = setting(1.0, help="weight of the flow L1 term")
     flow_source: str = setting("stream", help="flow targets: the stream's, or RAFT on the frames on the training "
-                               "device (the authors': raft_large)", choices=FLOW_SOURCES)
+                               "device (the authors': raft-large)", choices=FLOW_SOURCES)
     raft_num_flow_updates: int = setting(12, help="RAFT's refinement iterations (flow_source raft_*)")
     raft_weights: Optional[str] = setting(None, help=_RAFT_WEIGHTS_HELP)
 
