@@ -57,6 +57,14 @@ def _to_float(name: str, t: torch.Tensor) -> torch.Tensor:
     return t.float()
 
 
+def _array_for(batch: dict, output: str) -> Optional[str]:
+    """The batch array that carries ``output``: its own, else a compact form of it
+    (``outputs.ArraySpec.expand``: ``flow_grid`` for ``flow``); None when the batch has neither."""
+    if output in batch:
+        return output
+    return next((s.name for s in ARRAYS.values() if s.output == output and s.expand and s.name in batch), None)
+
+
 def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], flow_from: Optional[int] = None) -> dict:
     """Move the ``outputs`` of a stream batch (and its ``voxels``, the models' input) to
     ``device`` with non-blocking copies and convert them to float32 there (``_to_float``).
@@ -75,20 +83,19 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
         KeyError: naming an output of ``outputs`` the batch lacks.
     """
     nb = device.type == "cuda"
+    names = {key: _array_for(batch, key) for key in dict.fromkeys(("voxels", *outputs))}
     for key in outputs:
-        if key not in batch and not (key == "flow" and "flow_grid" in batch):
+        if names[key] is None:
             raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); the task needs {tuple(outputs)}")
     out = {}
-    for key in dict.fromkeys(("voxels", *outputs)):
-        if key == "flow" and "flow" not in batch:  # compact flow: the grid, made dense on the device
-            grid = batch["flow_grid"] if flow_from is None else batch["flow_grid"][:, flow_from:]
+    for key, name in names.items():
+        t = batch[name][:, flow_from:] if key == "flow" and flow_from is not None else batch[name]
+        t = _to_float(name, t.to(device, non_blocking=nb))
+        if ARRAYS[name].expand:  # a compact form (flow_grid): made dense on the device
             from v2v_client import expand_flow_grid
 
-            out["flow"] = expand_flow_grid(_to_float("flow_grid", grid.to(device, non_blocking=nb)),
-                                           tuple(out["voxels"].shape[-2:]))
-            continue
-        t = batch[key][:, flow_from:] if key == "flow" and flow_from is not None else batch[key]
-        out[key] = _to_float(key, t.to(device, non_blocking=nb))
+            t = expand_flow_grid(t, tuple(out["voxels"].shape[-2:]))
+        out[key] = t
     return out
 
 
