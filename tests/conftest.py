@@ -41,6 +41,18 @@ def videos() -> Path:
     return video_dir()
 
 
+@pytest.fixture
+def bikes_corpus(tmp_path, videos) -> Path:
+    """A corpus folder holding a copy of bikes.mp4 (a copy: the server refuses links leaving its
+    root)."""
+    import shutil
+
+    d = tmp_path / "vids"
+    d.mkdir()
+    shutil.copyfile(videos / "bikes.mp4", d / "bikes.mp4")
+    return d
+
+
 @pytest.fixture(scope="session")
 def real_clip() -> np.ndarray:
     return read_luma_clip()

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import csv
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -164,10 +163,8 @@ def test_v2v_eval_pairs_and_chunks_as_the_authors_test():
     np.testing.assert_allclose(r["aee"], aee, rtol=1e-5)
 
 
-def test_v2v_train_eraft_from_a_live_server(tmp_path, videos):
-    vids = tmp_path / "vids"
-    vids.mkdir()
-    shutil.copyfile(videos / "bikes.mp4", vids / "bikes.mp4")  # the server refuses links leaving its root
+def test_v2v_train_eraft_from_a_live_server(tmp_path, bikes_corpus):
+    vids = bikes_corpus
     out = tmp_path / "run"
     serve = ["--videos", str(vids), "--workers", "1", "--sequence-length", "3", "--num-bins", "3",
              "--crop-size", "64", "--batch-size", "2", "--seed", "3", "--max-samples-per-video", "4"]

@@ -27,11 +27,9 @@ def record_trained(monkeypatch) -> list:
     return seen
 
 
-def test_train_from_live_server_then_resume(tmp_path, videos, monkeypatch):
+def test_train_from_live_server_then_resume(tmp_path, bikes_corpus, monkeypatch):
     seen = record_trained(monkeypatch)  # (epoch, sample_ids) of every batch trained on
-    vids = tmp_path / "vids"
-    vids.mkdir()
-    shutil.copyfile(videos / "bikes.mp4", vids / "bikes.mp4")  # the server refuses links leaving its root
+    vids = bikes_corpus
     out = tmp_path / "run"
     serve = ["--videos", str(vids), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
              "--crop-size", "32", "--batch-size", "2", "--seed", "3", "--max-samples-per-video", "6"]
