@@ -26,7 +26,7 @@ import pytest
 from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
-from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+from v2v_server.delivery.core import Batcher, DeliveryCore, DeliveryPolicy
 from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
 from v2v_server.delivery.schedule import EpochScheduler
 from v2v_wire.ids import SampleKey, parse_sample_id, parse_sample_ids
@@ -619,3 +619,21 @@ def test_a_sample_counts_only_under_its_own_key_in_its_own_task():
     assert job.samples == 6
     assert job.failed == {SampleKey(t.video, 1, 0): "frame size changed", SampleKey(t.video, 1, 1): "frame size changed"}
     assert s.owed(0) == {SampleKey(t.video, w, c) for w, c in [(0, 0), (2, 0), (2, 1)]}
+
+
+def test_videos_are_handed_out_in_listing_order_every_epoch():
+    """No shuffling (README, Serve): one worker gets the videos in the listing's order, epoch
+    after epoch, and the batcher keeps the samples' arrival order."""
+    sched = EpochScheduler(["c.mp4", "a.mp4", "b.mp4"], epochs=2)
+    order = []
+    while (task := sched.next_task("w", 0.0)) is not None:
+        order.append((task.epoch, task.video))
+        sched.task_done(task.task_id, "w", windows=0)
+    assert order == [(e, v) for e in (0, 1) for v in ("c.mp4", "a.mp4", "b.mp4")]
+
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    batcher = Batcher(2, list, ledger)
+    keys = [SampleKey("c.mp4", w, 0) for w in range(3)] + [SampleKey("a.mp4", 0, 0)]
+    for k in keys:
+        batcher.add(0, ("voxels",), k, k)
+    assert [ledger.batches[i].keys for i in ledger.ready] == [keys[:2], keys[2:]]
