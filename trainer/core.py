@@ -17,7 +17,7 @@ from typing import Optional
 import torch
 
 from .data import batch_to_device, drop_padding
-from .lpips_net import STAND_IN, LPIPSUnavailable
+from .models.lpips import STAND_IN, LPIPSUnavailable
 from .zoo import build_model
 from .tasks import get_task
 from .viz import save_grid

@@ -139,7 +139,7 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
     steps, the batches end, or Ctrl-C (which still checkpoints).
 
     Returns (and, with ``hooks.files``, writes to ``summary.json``) the summary: task,
-    perceptual_term (the trainer's: an LPIPS backbone, ``trainer.lpips_net.STAND_IN``, or None), steps,
+    perceptual_term (the trainer's: an LPIPS backbone, ``trainer.models.lpips.STAND_IN``, or None), steps,
     final_step, first/last loss and the means of the first and last 10 (finite losses: a step
     of padding only has none), steps_per_s, data_wait_fraction (time blocked on the batches /
     wall time of the loop), plus ``hooks.summary_extra()``.

@@ -36,8 +36,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .models import ConvLayer, ResidualBlock, UpsampleConvLayer, pad_input
-from .models import RecurrentConvLayer
+from .layers import ConvLayer, RecurrentConvLayer, ResidualBlock, UpsampleConvLayer, pad_input
 
 __all__ = ["fourier_bessel_bases", "HyperE2VID"]
 
