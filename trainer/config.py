@@ -64,6 +64,9 @@ class RunSettings:
     amp: str = setting("fp32", help="fp32 as the reference trains; bf16: the network's forward under bf16 autocast "
                                     "(losses and metrics in float32)", choices=("fp32", "bf16"))
     compile: bool = setting(False, help="run the network through torch.compile (the authors' use_compile)")
+    speed: str = setting("eager", help="eager: the authors' step; fast: channels-last, fused optimiser, one "
+                                       "bf16 weight cast per step, CUDA graphs on CUDA (trainer/speed.py)",
+                         choices=("eager", "fast"))
     require_lpips: bool = setting(False, help="refuse to start (exit 2) when the LPIPS weights are missing instead "
                                               "of training with the 1 - SSIM stand-in")
     resume: Optional[str] = setting(None, help="checkpoint path, or 'auto' = <out>/checkpoint_last.pt if present")

@@ -133,7 +133,7 @@ class DynamicAtomGeneration(nn.Module):
 
     def forward(self, context: torch.Tensor) -> torch.Tensor:
         n, _, h, w = context.shape
-        coeff = self.bases_net(context).view(n, self.num_atoms, self.bases.shape[0], h, w)
+        coeff = self.bases_net(context).reshape(n, self.num_atoms, self.bases.shape[0], h, w)
         return torch.einsum("nakhw,kl->nalhw", coeff, self.bases)
 
 
