@@ -58,7 +58,8 @@ def optimiser_table(task: str = "e2vid") -> list:
     t, _ = toy_trainer(task, "eager")
     t.train_step(toy_batch(task, 0), sync=False)
     params = list(t.model.parameters())
-    for name, kw in (("per-parameter loop (eager)", {}), ("foreach", {"foreach": True}), ("fused (fast)", {"fused": True})):
+    impls = (("per-parameter loop (eager)", {}), ("foreach", {"foreach": True}), ("fused (fast)", {"fused": True}))
+    for name, kw in impls:
         opt = torch.optim.Adam(params, lr=1e-4, amsgrad=True, **kw)
         opt.step()  # the state exists before the profiled step
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:

@@ -87,7 +87,8 @@ def test_sigkill_after_a_checkpoint_loses_no_log_row(tmp_path, bikes_corpus):
     """The real ``v2v-train`` (a subprocess) checkpoints every 3 steps and logs every 10; it is
     SIGKILLed once checkpoint 6 is on the disk. The log then holds every row up to 6 (rows reach
     the disk with each checkpoint), and after ``--resume auto`` to step 9 it holds steps 1..9
-    once each."""
+    once each. The resumed run is ``--speed fast``: an eager checkpoint (model and optimiser
+    state) resumes into the fast path's layout and fused optimiser."""
     out = tmp_path / "run"
     serve = ["--videos", str(bikes_corpus), "--workers", "1", "--sequence-length", "2", "--num-bins", "3",
              "--crop-size", "32", "--batch-size", "1", "--seed", "3", "--max-samples-per-video", "6"]
@@ -108,8 +109,8 @@ def test_sigkill_after_a_checkpoint_loses_no_log_row(tmp_path, bikes_corpus):
         assert on_disk[:6] == [1, 2, 3, 4, 5, 6]
         resumed_at = torch.load(out / "checkpoint_last.pt", weights_only=False)["step"]
         end = resumed_at + 3
-        r = subprocess.run(cmd + ["--max-steps", str(end), "--resume", "auto"], capture_output=True, text=True,
-                           timeout=180)
+        r = subprocess.run(cmd + ["--max-steps", str(end), "--resume", "auto", "--speed", "fast"], capture_output=True,
+                           text=True, timeout=180)
         assert r.returncode == 0, r.stderr[-3000:]
     rows = list(csv.DictReader(open(out / "train_log.csv")))
     assert [int(r["step"]) for r in rows] == list(range(1, end + 1))
