@@ -4,7 +4,8 @@ checkpoints on their schedule, a summary at the end.
 
 Outputs in the run's folder (the process with ``files=True`` writes them: rank 0 under Ray):
 ``train_log.csv`` (one row per step, on the disk at every checkpoint; on resume, rows after
-the resumed step are dropped), ``samples/step_NNNNNNN.png``, ``summary.json``; checkpoints are whatever ``checkpoint`` saves.
+the resumed step are dropped), ``samples/step_NNNNNNN.png``, ``summary.json``; checkpoints are
+whatever ``checkpoint`` saves.
 """
 from __future__ import annotations
 
