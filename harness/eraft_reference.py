@@ -2,7 +2,7 @@
 ``model/eraft/``), built as their ``config/train_v2v_eraft_10k.yaml`` builds it
 (``subtype: warm_start``, ``n_first_channels: 5``).
 
-The listing is what ``tests/test_trainer_eraft.py`` checks ``trainer.eraft.ERAFT`` against:
+The listing is what ``tests/test_trainer_eraft.py`` checks ``trainer.models.eraft.ERAFT`` against:
 every state-dict key with its shape (in the authors' order), the trainable parameter count, and the count
 per top-level module.
 

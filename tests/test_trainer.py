@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from tests.trainer_fixtures import FakeV2VStream
-from trainer import lpips_net
+from trainer.models import lpips as lpips_net
 from trainer.config import apply_overrides, default_config, load_config, merge
 from trainer.data import batch_to_device
 from trainer.losses import ReconstructionLoss, flow_l1_loss, ssim, temporal_consistency_loss, warp

@@ -18,7 +18,7 @@ import trainer.train as tr
 from trainer.config import default_config, load_config, merge
 from trainer.core import Trainer, build_optimizer
 from trainer.data import batch_to_device
-from trainer.eraft import forward_interpolate, min_side
+from trainer.models.eraft import forward_interpolate, min_side
 from trainer.evaluate import evaluate_eraft
 from trainer.tasks import get_task, stream_outputs
 from trainer.zoo import build_model

@@ -14,7 +14,7 @@ from tests.trainer_fixtures import FakeV2VStream
 from trainer.config import default_config, merge
 from trainer.core import Trainer
 from trainer.data import batch_to_device
-from trainer.lpips_net import STAND_IN, LPIPSUnavailable
+from trainer.models.lpips import STAND_IN, LPIPSUnavailable
 from trainer.train import main as train_main
 from v2v_client import expand_flow_grid
 

@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from trainer.config import LOSS_PRESETS, apply_overrides, default_config, load_config
-from trainer.lpips_net import LPIPSNet
+from trainer.models.lpips import LPIPSNet
 from trainer.tasks import E2VIDTask
 
 #: The authors' loss settings of each preset (their config keys): lpips_weight, lpips_type,

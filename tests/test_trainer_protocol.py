@@ -14,7 +14,7 @@ from tests.trainer_fixtures import write_mvsec_like_h5
 from trainer.config import default_config, merge
 from trainer.core import Trainer
 from trainer.evaluate import LPIPS_NOT_REPORTED, H5Sequence, main as eval_main
-from trainer.lpips_net import STAND_IN
+from trainer.models.lpips import STAND_IN
 from trainer.protocol import (HQF_SEQUENCES, PAPER_CUTS, cut_sequence, evaluate_paper, paper_files, paper_markdown,
                               select_checkpoint)
 

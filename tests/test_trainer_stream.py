@@ -3,7 +3,12 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import torch
@@ -76,3 +81,37 @@ def test_train_against_two_shards_then_resume(tmp_path, videos, monkeypatch):
     epoch0 = [sid for e, ids in seen if e == 0 for sid in ids]
     assert sorted(epoch0) == sorted(set(epoch0)), seen
     assert sorted(epoch0) == sorted(f"bikes{i}.mp4#{w}" for i in range(4) for w in range(3)), seen
+
+
+def test_sigkill_after_a_checkpoint_loses_no_log_row(tmp_path, bikes_corpus):
+    """The real ``v2v-train`` (a subprocess) checkpoints every 3 steps and logs every 10; it is
+    SIGKILLed once checkpoint 6 is on the disk. The log then holds every row up to 6 (rows reach
+    the disk with each checkpoint), and after ``--resume auto`` to step 9 it holds steps 1..9
+    once each. The resumed run is ``--speed fast``: an eager checkpoint (model and optimiser
+    state) resumes into the fast path's layout and fused optimiser."""
+    out = tmp_path / "run"
+    serve = ["--videos", str(bikes_corpus), "--workers", "1", "--sequence-length", "2", "--num-bins", "3",
+             "--crop-size", "32", "--batch-size", "1", "--seed", "3", "--max-samples-per-video", "6"]
+    with ServeProcess(serve) as srv:
+        cmd = [sys.executable, "-m", "trainer.train", "--task", "e2vid", "--connect", srv.endpoint, "--out", str(out),
+               "--device", "cpu", "--no-progress", "--set", "model.num_bins=3", "--set", "model.base_num_channels=4",
+               "--set", "log.image_every=0", "--set", "log.checkpoint_every=3", "--set", "log.every=10",
+               "--set", "stream.timeout_s=30"]
+        proc = subprocess.Popen(cmd + ["--max-steps", "1000"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 120
+        while not (out / "checkpoint_0000006.pt").exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read().decode()[-3000:]
+            time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+        proc.stderr.close()
+        on_disk = [int(r["step"]) for r in csv.DictReader(open(out / "train_log.csv"))]
+        assert on_disk[:6] == [1, 2, 3, 4, 5, 6]
+        resumed_at = torch.load(out / "checkpoint_last.pt", weights_only=False)["step"]
+        end = resumed_at + 3
+        r = subprocess.run(cmd + ["--max-steps", str(end), "--resume", "auto", "--speed", "fast"], capture_output=True,
+                           text=True, timeout=180)
+        assert r.returncode == 0, r.stderr[-3000:]
+    rows = list(csv.DictReader(open(out / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == list(range(1, end + 1))
+    assert all(np.isfinite(float(r["loss"])) for r in rows)

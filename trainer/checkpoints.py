@@ -13,10 +13,10 @@ e2vid      ``model.model.E2VIDRecurrent``           ``trainer.models.E2VIDRecurr
            (``train_v2v_e2vid_10k.yaml``)           they are
 e2vid++    ``model.model.FlowNet``                  ``trainer.models.E2VIDPlusPlus``, keys
            (``test_e2vid++_original.yaml``)         ``unetflow.*`` -> ``unetrecurrent.*``
-hypere2vid ``model.hyper_model.HyperE2VID``         ``trainer.hypere2vid.HyperE2VID``, as they are
+hypere2vid ``model.hyper_model.HyperE2VID``         ``trainer.models.HyperE2VID``, as they are
            (``train_v2v_hyper_10k.yaml``,
            ``test_hypere2vid_original.yaml``)
-etnet      ``model.eitr.eitr.EITR``                 ``trainer.etnet.ETNet``, as they are
+etnet      ``model.eitr.eitr.EITR``                 ``trainer.models.ETNet``, as they are
            (``train_v2v_etnet_10k.yaml``,
            ``test_etnet_original.yaml``)
 evflow     ``model.model.EVFlowNet``                ``trainer.models.EVFlowNet``, as they are
@@ -38,9 +38,7 @@ from dataclasses import asdict
 import torch
 import torch.nn as nn
 
-from .etnet import ETNet
-from .hypere2vid import HyperE2VID
-from .models import E2VIDPlusPlus, E2VIDRecurrent, EVFlowNet
+from .models import E2VIDPlusPlus, E2VIDRecurrent, ETNet, EVFlowNet, HyperE2VID
 
 __all__ = ["AUTHORS_FORMATS", "build_authors_model", "authors_state_dict", "detect_format", "is_authors_checkpoint",
            "load_authors_checkpoint"]

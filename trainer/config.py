@@ -64,6 +64,9 @@ class RunSettings:
     amp: str = setting("fp32", help="fp32 as the reference trains; bf16: the network's forward under bf16 autocast "
                                     "(losses and metrics in float32)", choices=("fp32", "bf16"))
     compile: bool = setting(False, help="run the network through torch.compile (the authors' use_compile)")
+    speed: str = setting("eager", help="eager: the authors' step; fast: channels-last, fused optimiser, one "
+                                       "bf16 weight cast per step, CUDA graphs on CUDA (trainer/speed.py)",
+                         choices=("eager", "fast"))
     require_lpips: bool = setting(False, help="refuse to start (exit 2) when the LPIPS weights are missing instead "
                                               "of training with the 1 - SSIM stand-in")
     resume: Optional[str] = setting(None, help="checkpoint path, or 'auto' = <out>/checkpoint_last.pt if present")
@@ -159,7 +162,7 @@ class E2VIDLoss:
     l1_weight: float = setting(1.0, help="weight of the L1 term")
     perceptual_weight: float = setting(1.0, help="weight of LPIPS (VGG); 1 - SSIM when no LPIPS weights")
     lpips_net: str = setting("vgg", help="LPIPS backbone", choices=("vgg", "alex"))
-    lpips_weights: Any = setting(None, help="local LPIPS weight file(s); see trainer/lpips_net.py")
+    lpips_weights: Any = setting(None, help="local LPIPS weight file(s); see trainer/models/lpips.py")
     use_lpips_package: bool = setting(True, help="allow 'import lpips' when no file is given")
     tc_weight: float = setting(1.0, help="weight of the temporal-consistency term")
     tc_alpha: float = setting(50.0, help="visibility sharpness of the temporal-consistency term")
@@ -230,7 +233,7 @@ class EvFlowLoss:
 class ERAFTModel(VoxelInput):
     """``model`` of eraft: E-RAFT (Gehrig et al. 2021) as the V2V authors train it
     (config/train_v2v_eraft_10k.yaml: 5 first channels, their n_first_channels = num_bins; warm
-    start, 12 iterations). The parameters of ``trainer.eraft.ERAFT``, declared here only."""
+    start, 12 iterations). The parameters of ``trainer.models.eraft.ERAFT``, declared here only."""
 
     subtype: str = setting("warm_start", help="warm_start: the previous pair's flow initialises the next; "
                            "standard: every pair starts from zero flow", choices=("warm_start", "standard"))

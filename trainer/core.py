@@ -17,7 +17,8 @@ from typing import Optional
 import torch
 
 from .data import batch_to_device, drop_padding
-from .lpips_net import STAND_IN, LPIPSUnavailable
+from . import speed
+from .models.lpips import STAND_IN, LPIPSUnavailable
 from .zoo import build_model
 from .tasks import get_task
 from .viz import save_grid
@@ -37,15 +38,18 @@ def resolve_device(name: str) -> torch.device:
     return dev
 
 
-def build_optimizer(model: torch.nn.Module, o: dict) -> torch.optim.Optimizer:
+def build_optimizer(model: torch.nn.Module, o: dict, **impl) -> torch.optim.Optimizer:
     """The ``optim`` section's optimiser over ``model``'s parameters: ``torch.optim.Adam``
     (weight decay as L2) or ``torch.optim.AdamW`` (decoupled weight decay), with ``lr``,
     ``amsgrad`` and ``weight_decay``. Paper appendix: E2VID/EvFlow Adam 1e-4, HyperE2VID Adam
-    1e-3, ETNet AdamW 2e-4 wd 0.01, all amsgrad. Raises ``ValueError`` for another name."""
+    1e-3, ETNet AdamW 2e-4 wd 0.01, all amsgrad. ``impl``: the implementation's keywords
+    (``foreach``/``fused``, ``trainer.speed.optimizer_options``). Raises ``ValueError`` for
+    another name."""
     cls = {"adam": torch.optim.Adam, "adamw": torch.optim.AdamW}.get(str(o.get("optimizer", "adam")))
     if cls is None:
         raise ValueError(f"optim.optimizer must be 'adam' or 'adamw', got {o.get('optimizer')!r}")
-    return cls(model.parameters(), lr=float(o["lr"]), amsgrad=bool(o["amsgrad"]), weight_decay=float(o["weight_decay"]))
+    return cls(model.parameters(), lr=float(o["lr"]), amsgrad=bool(o["amsgrad"]), weight_decay=float(o["weight_decay"]),
+               **impl)
 
 
 def set_lr(optimizer: torch.optim.Optimizer, o: dict, step: int) -> float:
@@ -70,7 +74,7 @@ class Trainer:
         device: torch device.
 
     Raises:
-        ValueError: an unknown task, ``amp`` or a bad loss setting (naming it).
+        ValueError: an unknown task, ``amp``, ``speed`` or a bad loss setting (naming it).
         LPIPSUnavailable: ``require_lpips`` set and the perceptual term would be the stand-in.
 
     Use ``trainer.loop.train_loop`` (or :meth:`fit`) with an iterable of stream batches (the
@@ -98,11 +102,13 @@ class Trainer:
             raise LPIPSUnavailable(f"require_lpips: no LPIPS ({cfg['loss'].get('lpips_net')}) weights found (give "
                                    "loss.lpips_weights or install the lpips package); not training with the "
                                    "1 - SSIM stand-in")
-        self.model = build_model(self.task, dict(cfg["model"])).to(device)
-        #: what forward calls: the model, or its ``torch.compile`` (config ``compile``; parameters
-        #: and state dict stay the model's, so checkpoints keep their keys)
-        self.net = torch.compile(self.model) if cfg.get("compile") else self.model
-        self.optimizer = build_optimizer(self.model, cfg["optim"])
+        #: ``eager`` or ``fast`` (``trainer.speed``)
+        self.speed = speed.check_speed(cfg.get("speed", "eager"))
+        self.model = speed.prepare_model(build_model(self.task, dict(cfg["model"])).to(device), self.task, self.speed)
+        #: what forward calls: the model, or its ``torch.compile`` (``trainer.speed.compiled``;
+        #: parameters and state dict stay the model's, so checkpoints keep their keys)
+        self.net = speed.compiled(self.model, cfg, device)
+        self.optimizer = build_optimizer(self.model, cfg["optim"], **speed.optimizer_options(self.speed, device))
         self.clip = cfg["optim"].get("clip_grad_norm")
         self.amp = amp == "bf16"
         self.step = 0
@@ -124,7 +130,8 @@ class Trainer:
 
     def forward(self, b: dict):
         """The task's loss, logged terms and predictions for a batch on the device."""
-        return self.spec.forward(self.net, b, self._autocast)
+        with speed.forward_context(self.speed, self.amp, self.device):
+            return self.spec.forward(self.net, b, self._autocast)
 
     def train_step(self, batch: dict, sync: bool = True) -> dict:
         """One optimiser step on one stream batch (host tensors). Samples flagged ``padding``

@@ -5,7 +5,7 @@ the format, e.g. ``e2vid++`` for their original E2VID++; ``trainer/checkpoints.p
 network sees its input padded to multiples of 16 as the authors' driver pads it
 (``trainer.models.pad_input``). Results (JSON and the protocol's markdown table) record the
 weights' ``format``, the perceptual term the run trained with (``trained_perceptual_term``:
-``trainer.lpips_net.STAND_IN`` when 1 - SSIM stood in for LPIPS) and whether LPIPS was scored
+``trainer.models.lpips.STAND_IN`` when 1 - SSIM stood in for LPIPS) and whether LPIPS was scored
 (``lpips_metric``); ``--require-lpips`` refuses to score without LPIPS weights (exit 2).
 
 Inputs:
@@ -290,7 +290,7 @@ def load_model(checkpoint: str, device: torch.device, fmt: Optional[str] = None)
         score the network, ``cfg`` the run's config (the paper's for an authors' checkpoint),
         ``record`` what results record about the weights: ``format`` (``"v2v-train"`` or
         ``"authors:<fmt>"``) and ``trained_perceptual_term`` (the run's
-        ``Trainer.perceptual_term``, ``trainer.lpips_net.STAND_IN`` for a run trained with the
+        ``Trainer.perceptual_term``, ``trainer.models.lpips.STAND_IN`` for a run trained with the
         1 - SSIM stand-in; ``"unrecorded"`` when the checkpoint predates the record, ``"authors'
         release"`` for theirs).
 
@@ -480,7 +480,7 @@ def _lpips_metric(args, device):
     Raises:
         LPIPSUnavailable: ``--require-lpips`` and no weights.
     """
-    from .lpips_net import LPIPSUnavailable, load_lpips
+    from .models.lpips import LPIPSUnavailable, load_lpips
 
     lp = load_lpips("alex", args.lpips_weights)
     if lp is None:
@@ -504,7 +504,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from .core import resolve_device
-    from .lpips_net import LPIPSUnavailable
+    from .models.lpips import LPIPSUnavailable
 
     device = resolve_device(args.device)
     try:

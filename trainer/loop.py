@@ -3,14 +3,16 @@ steps until ``max_steps`` or the end of the batches, one CSV row per step, previ
 checkpoints on their schedule, a summary at the end.
 
 Outputs in the run's folder (the process with ``files=True`` writes them: rank 0 under Ray):
-``train_log.csv`` (one row per step; on resume, rows after the resumed step are dropped),
-``samples/step_NNNNNNN.png``, ``summary.json``; checkpoints are whatever ``checkpoint`` saves.
+``train_log.csv`` (one row per step, on the disk at every checkpoint; on resume, rows after
+the resumed step are dropped), ``samples/step_NNNNNNN.png``, ``summary.json``; checkpoints are
+whatever ``checkpoint`` saves.
 """
 from __future__ import annotations
 
 import csv
 import json
 import logging
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -62,7 +64,10 @@ class RunHooks:
 class RunLog:
     """``train_log.csv`` of a run: opened at ``step`` (0: a new log; else the rows up to
     ``step`` are kept and later ones dropped, as after a resume), line-buffered so that
-    ``tail -f`` works."""
+    ``tail -f`` works. The kept rows are written to a temporary file, synced and renamed over
+    the log before any new row is appended, so a crash while reopening loses none of them;
+    :meth:`sync` puts the rows written so far on the disk (the loop calls it with every
+    checkpoint, so a resume finds every row up to its checkpoint's step)."""
 
     def __init__(self, out: Path, columns: List[str], step: int):
         path = Path(out) / "train_log.csv"
@@ -70,15 +75,27 @@ class RunLog:
         if step and path.exists():
             with open(path, newline="") as f:
                 kept = [r for r in csv.DictReader(f) if r.get("step", "").isdigit() and int(r["step"]) <= step]
-        self.fh = open(path, "w", newline="", buffering=1)
+        tmp = path.with_suffix(".csv.tmp")
+        with open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(kept)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        self.fh = open(path, "a", newline="", buffering=1)
         self.writer = csv.DictWriter(self.fh, fieldnames=columns, extrasaction="ignore")
-        self.writer.writeheader()
-        self.writer.writerows(kept)
 
     def write(self, row: dict) -> None:
         self.writer.writerow(row)
 
+    def sync(self) -> None:
+        """Flush the rows written so far and wait until the disk holds them (``os.fsync``)."""
+        self.fh.flush()
+        os.fsync(self.fh.fileno())
+
     def close(self) -> None:
+        self.sync()
         self.fh.close()
 
 
@@ -139,14 +156,14 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
     steps, the batches end, or Ctrl-C (which still checkpoints).
 
     Returns (and, with ``hooks.files``, writes to ``summary.json``) the summary: task,
-    perceptual_term (the trainer's: an LPIPS backbone, ``trainer.lpips_net.STAND_IN``, or None), steps,
+    perceptual_term (the trainer's: an LPIPS backbone, ``trainer.models.lpips.STAND_IN``, or None), steps,
     final_step, first/last loss and the means of the first and last 10 (finite losses: a step
     of padding only has none), steps_per_s, data_wait_fraction (time blocked on the batches /
     wall time of the loop), plus ``hooks.summary_extra()``.
 
     Steps run with ``train_step(batch, sync=False)``: their losses stay on the device until
-    the next multiple of ``schedule.log_every`` (and the end), where they are read at once,
-    checked and written. ``step_s`` is the host's time for the step (on CUDA the device's
+    the next multiple of ``schedule.log_every``, a checkpoint or the end, where they are read at
+    once, checked and written; before each checkpoint the log is synced to the disk. ``step_s`` is the host's time for the step (on CUDA the device's
     work finishes later, and the wait for it shows at the logging steps).
 
     Raises:
@@ -185,6 +202,10 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
             if hooks.files and schedule.image_every and trainer.step % schedule.image_every == 0:
                 trainer.save_samples()
             if every and trainer.step % every == 0:
+                # the rows up to this step reach the disk before the checkpoint that a resume starts from
+                rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
+                if run_log is not None:
+                    run_log.sync()
                 checkpoint()
     except KeyboardInterrupt:
         log.warning("interrupted at step %d: saving a checkpoint", trainer.step)

@@ -17,7 +17,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .lpips_net import STAND_IN, load_lpips
+from .models.lpips import STAND_IN, load_lpips
 
 __all__ = ["ssim", "warp", "temporal_consistency_loss", "flow_l1_loss", "ReconstructionLoss"]
 
@@ -127,13 +127,13 @@ class ReconstructionLoss(nn.Module):
     Args:
         l1_weight, perceptual_weight: term weights.
         lpips_net: backbone, ``'vgg'`` in the paper.
-        lpips_weights: local weight file(s), see :func:`trainer.lpips_net.load_lpips`.
+        lpips_weights: local weight file(s), see :func:`trainer.models.lpips.load_lpips`.
         use_lpips_package: allow ``import lpips`` when no path is given.
 
     Attributes:
         perceptual: ``'lpips'`` or ``'ssim'``, the term actually used.
         term: what results record as the perceptual term: ``'lpips-vgg'`` / ``'lpips-alex'``,
-            ``trainer.lpips_net.STAND_IN`` (1 - SSIM, no LPIPS weights), or None (weight 0).
+            ``trainer.models.lpips.STAND_IN`` (1 - SSIM, no LPIPS weights), or None (weight 0).
 
     ``forward(pred, target)``: float (N, 1, H, W) each, target in [0, 1] -> dict of scalar
     tensors ``{'l1', 'lpips'|'ssim', 'total'}``.

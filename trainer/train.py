@@ -20,7 +20,7 @@ from v2v_server.ops.settings import add_flags, flag_values
 from .config import RunSettings, apply_overrides, check_types, exit_on_config_error, load_config
 from .core import Trainer, resolve_device
 from .data import make_stream
-from .lpips_net import LPIPSUnavailable
+from .models.lpips import LPIPSUnavailable
 from .ray_train import add_ray_arguments
 from .raft_flow import FlowSourceUnavailable
 from .tasks import stream_outputs

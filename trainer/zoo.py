@@ -1,6 +1,5 @@
-"""The networks the trainer can build, by task name: E2VID and EV-FlowNet (``trainer.models``),
-HyperE2VID (``trainer.hypere2vid``), ETNet (``trainer.etnet``) and E-RAFT (``trainer.eraft``),
-the V2V paper's zoo."""
+"""The networks the trainer can build, by task name: E2VID, EV-FlowNet, HyperE2VID, ETNet and
+E-RAFT (one module each under ``trainer/models/``), the V2V paper's zoo."""
 from __future__ import annotations
 
 from dataclasses import asdict
@@ -10,10 +9,7 @@ import torch.nn as nn
 from v2v_server.ops.settings import check_keys
 
 from .config import TASK_SECTIONS, ConfigError
-from .eraft import ERAFT
-from .etnet import ETNet
-from .hypere2vid import HyperE2VID
-from .models import E2VIDRecurrent, EVFlowNet
+from .models import ERAFT, E2VIDRecurrent, ETNet, EVFlowNet, HyperE2VID
 
 __all__ = ["MODELS", "build_model"]
 

@@ -32,8 +32,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .models import ConvLayer, UpsampleConvLayer, pad_input
-from .models import RecurrentConvLayer
+from .layers import ConvLayer, RecurrentConvLayer, UpsampleConvLayer, pad_input
 
 __all__ = ["ETNet", "sinusoid_table"]
 

@@ -312,7 +312,7 @@ class ERAFT(nn.Module):
         """(N, 2, h, w) flow at 1/8 -> (N, 2, 8h, 8w): each fine pixel a softmax-weighted convex
         combination of the 3x3 coarse neighbours of 8 x flow (RAFT's ``upsample_flow``)."""
         n, _, h, w = flow.shape
-        mask = torch.softmax(mask.view(n, 1, 9, 8, 8, h, w), dim=2)
+        mask = torch.softmax(mask.reshape(n, 1, 9, 8, 8, h, w), dim=2)
         up = F.unfold(8 * flow, [3, 3], padding=1).view(n, 2, 9, 1, 1, h, w)
         up = torch.sum(mask * up, dim=2).permute(0, 1, 4, 2, 5, 3)
         return up.reshape(n, 2, 8 * h, 8 * w)

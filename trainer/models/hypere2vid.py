@@ -36,8 +36,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .models import ConvLayer, ResidualBlock, UpsampleConvLayer, pad_input
-from .models import RecurrentConvLayer
+from .layers import ConvLayer, RecurrentConvLayer, ResidualBlock, UpsampleConvLayer, pad_input
 
 __all__ = ["fourier_bessel_bases", "HyperE2VID"]
 
@@ -134,7 +133,7 @@ class DynamicAtomGeneration(nn.Module):
 
     def forward(self, context: torch.Tensor) -> torch.Tensor:
         n, _, h, w = context.shape
-        coeff = self.bases_net(context).view(n, self.num_atoms, self.bases.shape[0], h, w)
+        coeff = self.bases_net(context).reshape(n, self.num_atoms, self.bases.shape[0], h, w)
         return torch.einsum("nakhw,kl->nalhw", coeff, self.bases)
 
 

@@ -1,0 +1,125 @@
+"""``speed: fast`` (trainer/speed.py) against the authors' eager step, on the CPU, at toy sizes
+(harness/toy_steps.py): one training step from the same weights and batch.
+
+Tolerances: fp32, all five networks: loss within rtol 1e-5, outputs within atol 1e-5, every
+gradient within rtol 1e-4 plus atol 1e-5 x the model's largest gradient (biases right before a
+BatchNorm have a true gradient of zero and carry only rounding noise, ~1e-10). bf16 (E2VID,
+EV-FlowNet, HyperE2VID; ETNet and E-RAFT take 10-60 s per bf16 step on this CPU): loss within rtol
+1e-4, outputs within atol 8e-3 (two bf16 steps at 1), gradients within rtol 2e-2 plus atol 2e-2 x
+the largest. The compiled path (``compile: true`` under ``speed: fast``, inductor on the CPU) is
+tested on EV-FlowNet only: compiling a network here takes about a minute; the rest of the fast
+path (channels-last, the fused optimiser, one bf16 weight cast per step) is tested on all five.
+CUDA graphs (``mode="reduce-overhead"``) cannot run without a GPU and are not tested.
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from harness.toy_steps import HOST_READS, TASKS, step_ops, toy_batch, toy_trainer
+from trainer.config import ConfigError, load_config
+from trainer.data import batch_to_device
+from trainer.speed import CHANNELS_LAST
+
+torch.set_num_threads(1)
+
+
+def one_step(task, speed, amp="fp32", **extra):
+    """Loss, outputs (float32) and gradients of the first step of the toy ``task``."""
+    t, _ = toy_trainer(task, speed, amp, **extra)
+    stats = t.train_step(toy_batch(task), sync=False)
+    preds = t._last[1]
+    preds = torch.stack(preds, 1) if isinstance(preds, list) else preds
+    grads = {n: p.grad.clone() for n, p in t.model.named_parameters() if p.grad is not None}
+    return float(stats["loss"]), preds, grads
+
+
+def assert_step_close(eager, fast, loss_rtol, out_atol, grad_rtol, grad_atol):
+    (la, pa, ga), (lb, pb, gb) = eager, fast
+    assert lb == pytest.approx(la, rel=loss_rtol)
+    assert torch.allclose(pb, pa, rtol=0, atol=out_atol), (pb - pa).abs().max()
+    assert ga.keys() == gb.keys() and ga
+    gmax = max(float(g.abs().max()) for g in ga.values())
+    for name in ga:
+        assert torch.allclose(gb[name], ga[name], rtol=grad_rtol, atol=grad_atol * gmax), name
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_fast_fp32_step_equals_eager(task):
+    assert_step_close(one_step(task, "eager"), one_step(task, "fast"), 1e-5, 1e-5, 1e-4, 1e-5)
+
+
+@pytest.mark.parametrize("task", ["e2vid", "evflow", "hypere2vid"])
+def test_fast_bf16_step_equals_eager_bf16(task):
+    assert_step_close(one_step(task, "eager", "bf16"), one_step(task, "fast", "bf16"), 1e-4, 8e-3, 2e-2, 2e-2)
+
+
+def test_fast_compiled_step_equals_eager():
+    assert_step_close(one_step("evflow", "eager"), one_step("evflow", "fast", compile=True), 1e-5, 1e-5, 1e-4, 1e-5)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_fast_layout_and_optimiser(task):
+    eager, _ = toy_trainer(task, "eager")
+    fast, _ = toy_trainer(task, "fast")
+    assert eager.optimizer.defaults["fused"] is None and fast.optimizer.defaults["fused"] is True
+    weights = [p for p in fast.model.parameters() if p.ndim == 4]
+    assert all(p.is_contiguous(memory_format=torch.channels_last) for p in weights) == (task in CHANNELS_LAST)
+    assert all(p.is_contiguous() for p in eager.model.parameters())
+    # the state dicts hold the same keys and values, so checkpoints load across speeds
+    sd_e, sd_f = eager.model.state_dict(), fast.model.state_dict()
+    assert list(sd_e) == list(sd_f) and all(torch.equal(sd_e[k], sd_f[k]) for k in sd_e)
+
+
+def test_fused_optimiser_updates_as_the_per_parameter_loop():
+    """Adam (amsgrad) and AdamW (weight decay) with the same gradients over two steps."""
+    torch.manual_seed(0)
+    ps = [torch.randn(8, 4, 3, 3), torch.randn(8)]
+    for cls in (torch.optim.Adam, torch.optim.AdamW):
+        results = []
+        for kw in ({}, {"fused": True}):
+            q = [p.clone().requires_grad_() for p in ps]
+            opt = cls(q, lr=1e-3, amsgrad=True, weight_decay=0.01, **kw)
+            for i in range(2):
+                for p in q:
+                    p.grad = torch.sin(p.detach() * (i + 1))
+                opt.step()
+            results.append(q)
+        for a, b in zip(*results):
+            assert torch.allclose(a, b, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_fast_forward_and_backward_read_nothing_from_the_device(task):
+    """No ``.item()`` / ``float(tensor)`` in the fast step's forward and backward (on CUDA each
+    would wait for the device); and the whole fast step dispatches fewer aten ops."""
+    t, _ = toy_trainer(task, "fast")
+    b = batch_to_device(toy_batch(task), torch.device("cpu"), t.spec.outputs, flow_from=t.spec.flow_from(3))
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        loss, _, _ = t.forward(b)
+        loss.backward()
+    assert not [e.name for e in prof.events() if e.name in HOST_READS]
+    eager, _ = toy_trainer(task, "eager")
+    for tr in (t, eager):
+        tr.train_step(toy_batch(task), sync=False)
+    assert sum(step_ops(t, toy_batch(task, 1)).values()) < sum(step_ops(eager, toy_batch(task, 1)).values())
+
+
+def test_bf16_weights_are_cast_once_per_step():
+    """E2VID bf16: the recurrent network is called once per voxel grid; under ``speed: fast``
+    each weight is cast to bf16 once per step, in eager once per call."""
+    counts = {}
+    for speed in ("eager", "fast"):
+        t, _ = toy_trainer("e2vid", speed, "bf16")
+        t.train_step(toy_batch("e2vid"), sync=False)
+        counts[speed] = step_ops(t, toy_batch("e2vid", 1))["aten::_to_copy"]
+    n_weights = len(list(t.model.parameters()))
+    assert counts["eager"] - counts["fast"] >= n_weights  # 3 calls: at least 2 casts of each saved
+
+
+def test_speed_setting_defaults_to_eager_and_checks_its_value(tmp_path):
+    assert load_config(None, "e2vid")["speed"] == "eager"
+    p = tmp_path / "c.yaml"
+    p.write_text("speed: turbo\n")
+    with pytest.raises(ConfigError):
+        load_config(str(p), "e2vid")

@@ -1,0 +1,101 @@
+"""How fast a training step runs: the config key ``speed``.
+
+* ``eager`` (default): the V2V authors' step as their ``train.py`` runs it with
+  ``use_compile: false``: fp32 (or bf16 autocast with ``amp: bf16``), NCHW tensors, the
+  optimiser's per-parameter loop, ``torch.compile(model)`` only with ``compile: true``.
+* ``fast``: the same losses and updates, dispatched with less work per step:
+
+  - channels-last parameters and activations for the convolution-dominated networks
+    (:data:`CHANNELS_LAST`: E2VID, EV-FlowNet, HyperE2VID). ETNet's step is dominated by its
+    transformer's token matmuls; E-RAFT's gradients under channels-last differed from eager by
+    up to 2 % (relative norm, its BatchNorm context encoder at toy size on the CPU), more than
+    the tolerance below, so both stay NCHW;
+  - the optimiser's ``fused`` kernel (one op per parameter group and step) on CUDA and the
+    CPU, ``foreach`` (multi-tensor ops) on other devices. On the CPU ``fused`` dispatches a
+    quarter of the per-parameter loop's aten ops, and ``foreach`` no fewer (its CPU kernels
+    loop over the tensors), so the CPU uses ``fused`` too (``bench/step_ops.py``);
+  - with ``amp: bf16``, the weights are cast to bf16 once per step, not once per recurrent
+    call: the task's per-call autocast regions sit inside one outer autocast-disabled region,
+    so autocast's weight-cast cache lives for the whole forward (losses stay fp32 as in eager);
+  - on CUDA, the network runs through ``torch.compile(mode="reduce-overhead", dynamic=False)``:
+    CUDA graphs of the recurrent step at the run's fixed crop size, whatever ``compile`` says.
+    Elsewhere ``compile: true`` gives plain ``torch.compile`` (inductor), and eager otherwise:
+    on the CPU compilation costs far more than it saves over a short run.
+
+  Neither speed's forward or backward reads a value from the device: the loop reads the
+  losses at its logging interval and at checkpoints (``trainer/loop.py``). The only host reads
+  of a step are Adam's step counters, which the per-parameter and ``foreach`` optimisers keep on
+  the host (no device wait); the fused optimiser keeps them on the parameters' device.
+
+``fast`` is off by default on every device: its numerics are shown equal to ``eager`` on the
+CPU only (``tests/test_trainer_fast.py``, one step: fp32 loss within rtol 1e-5, outputs within
+1e-5, gradients within rtol 1e-4 + 1e-5 x the largest gradient; bf16 loss within rtol 1e-4,
+outputs within 8e-3, gradients within rtol 2e-2 + 2e-2 x the largest); CUDA graphs and CUDA's
+fused kernels could not be run here.
+"""
+from __future__ import annotations
+
+import contextlib
+from typing import Dict
+
+import torch
+import torch.nn as nn
+
+__all__ = ["SPEEDS", "CHANNELS_LAST", "check_speed", "prepare_model", "compiled", "optimizer_options",
+           "forward_context"]
+
+#: The values of the config key ``speed``.
+SPEEDS = ("eager", "fast")
+#: Tasks whose networks are convolution-dominated: channels-last under ``speed: fast``.
+CHANNELS_LAST = ("e2vid", "evflow", "hypere2vid")
+
+
+def check_speed(speed) -> str:
+    """``speed`` as one of :data:`SPEEDS`.
+
+    Raises:
+        ValueError: for another value, naming the choices.
+    """
+    if speed not in SPEEDS:
+        raise ValueError(f"speed must be one of {list(SPEEDS)}, got {speed!r}")
+    return speed
+
+
+def prepare_model(model: nn.Module, task: str, speed: str) -> nn.Module:
+    """``model`` (already on its device), its 4-d parameters and buffers made channels-last in
+    place under ``speed: fast`` for a task of :data:`CHANNELS_LAST`; returned. State-dict keys
+    and values are unchanged (only the strides), so checkpoints load into either speed."""
+    if speed == "fast" and task in CHANNELS_LAST:
+        model.to(memory_format=torch.channels_last)
+    return model
+
+
+def compiled(model: nn.Module, cfg: dict, device: torch.device) -> nn.Module:
+    """What the trainer's forward calls: under ``speed: fast`` on CUDA,
+    ``torch.compile(model, mode="reduce-overhead", dynamic=False)`` (CUDA graphs on the fixed
+    crop); else ``torch.compile(model)`` when ``cfg['compile']`` (the authors' ``use_compile``);
+    else ``model``. A compiled module shares ``model``'s parameters and state dict."""
+    if cfg.get("speed", "eager") == "fast" and device.type == "cuda":
+        return torch.compile(model, mode="reduce-overhead", dynamic=False)
+    if cfg.get("compile"):
+        return torch.compile(model)
+    return model
+
+
+def optimizer_options(speed: str, device: torch.device) -> Dict[str, bool]:
+    """Keyword arguments for ``torch.optim.Adam``/``AdamW``: ``{}`` (eager: the per-parameter
+    loop), ``{"fused": True}`` under ``speed: fast`` on CUDA or the CPU, ``{"foreach": True}``
+    under ``speed: fast`` on another device."""
+    if speed != "fast":
+        return {}
+    return {"fused": True} if device.type in ("cuda", "cpu") else {"foreach": True}
+
+
+def forward_context(speed: str, amp: bool, device: torch.device):
+    """The context a step's forward runs in: under ``speed: fast`` with bf16 autocast, an outer
+    ``torch.autocast(enabled=False)`` region (autocast clears its weight-cast cache only when
+    the outermost region exits, so the task's per-call bf16 regions reuse one cast of each
+    weight per step; the code between them stays fp32); else nothing."""
+    if speed == "fast" and amp:
+        return torch.autocast(device.type, dtype=torch.bfloat16, enabled=False)
+    return contextlib.nullcontext()
