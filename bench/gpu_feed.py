@@ -26,9 +26,14 @@ each ``amp`` (float32, bf16) and each ``--speed`` value, with the trainer's own 
 
 ``--speed`` sets the trainer's top-level ``speed`` setting (eager | fast) per row; a trainer
 whose configuration has no ``speed`` key refuses the option (exit 2); without it every row
-runs the configuration's default. The producer section (``--producer 1,2,...``) serves the
-WebVid-like clip alone with N workers (``bench.speed.producer``: samples/s per worker, per
-worker CPU-second, and the share of the decode bound measured in the same run).
+runs the configuration's default. ``--models ""`` leaves the trainer rows out.
+
+The producer section (``--producer 1,2,...``; the paper's sample on any device, toy sizes with
+``--smoke``) serves copies of the WebVid-like clip alone with N workers, every output
+(``bench.speed.producer``): samples/s per worker, samples per worker CPU-second as a share of
+the decode bound measured in the same run, the workers' share of a core (below 1: a worker
+waited for a core or for the server), their CPU outside the main thread (decoder, OpenCV, BLAS
+or numba thread pools) and threads per worker; then ``TRADES`` at the largest count.
 """
 from __future__ import annotations
 
@@ -47,7 +52,7 @@ from typing import List, Optional
 
 import torch
 
-from bench.speed import bare_decode, clip_path, make_corpus, producer
+from bench.speed import bare_decode, clip_path, make_corpus, producer, warm_kernel, worker_core
 from harness.serve import ServeProcess
 from trainer.config import default_config, merge
 from trainer.core import Trainer, resolve_device
@@ -198,21 +203,34 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
     return row
 
 
-def producer_rows(counts: List[int], samples: int, sizes: dict, tmp: Path) -> dict:
-    """The producer alone at ``sizes`` on copies of the WebVid-like clip, for each worker count,
-    with the decode bound (``bench.speed.bare_decode``, samples per CPU-second) measured before
-    and after the rows; ``share_of_bound`` = samples per worker CPU-second / the bound."""
+#: The producer's trades beyond the decode bound (docs/speed.md: what each costs in diversity),
+#: measured at the largest worker count of ``--producer``: a label and its v2v-serve arguments.
+TRADES = (("crops_per_window 4", ["--crops-per-window", "4"]), ("decode_fast bidir", ["--decode-fast", "bidir"]),
+          ("crops_per_window 4 + bidir", ["--crops-per-window", "4", "--decode-fast", "bidir"]))
+
+
+def producer_rows(counts: List[int], samples: int, sizes: dict, tmp: Path, trades: bool = True) -> dict:
+    """The producer alone at ``sizes`` on copies of the WebVid-like clip: the default recipe
+    for each worker count, then (``trades``) each of ``TRADES`` at the largest count; the
+    decode bound (``bench.speed.bare_decode``, samples per CPU-second) is measured before and
+    after the rows and averaged; ``share_of_bound`` = samples per worker CPU-second / the bound."""
     corpus = make_corpus(tmp / "webvid", max(4, 2 * max(counts)))
     extra = ["--sequence-length", str(sizes["sequence_length"]), "--crop-size", str(sizes["crop"]),
              "--num-bins", str(sizes["num_bins"])]
     span = sizes["sequence_length"] * sizes["num_bins"] + 1  # frames per sample (one per bin, plus the first)
+    # compile (or load) every numba function the workers run and write numba's cache, so that no
+    # worker compiles inside a measured row (a first compile there read 2x slower per sample)
+    worker_core(corpus, ("voxels", "frames", "flow"), videos=1)
+    warm_kernel()
     bounds = [bare_decode(clip_path(), 2) / span]
-    rows = [producer(corpus, n, samples, extra) for n in counts]
+    rows = [dict(producer(corpus, n, samples, extra), recipe="default") for n in counts]
+    for label, args in (TRADES if trades else ()):
+        rows.append(dict(producer(corpus, max(counts), samples, extra + args), recipe=label))
     bounds.append(bare_decode(clip_path(), 2) / span)
     bound = sum(bounds) / 2
     for r in rows:
         r["share_of_bound"] = r["per_worker_cpu_s"] / bound
-    return {"decode_bound": bound, "decode_bound_runs": bounds, "rows": rows}
+    return {"decode_bound": bound, "decode_bound_runs": bounds, "sizes": sizes, "rows": rows}
 
 
 def _pct(x: Optional[float]) -> str:
@@ -238,13 +256,16 @@ def trainer_table(rows: List[dict]) -> str:
 def producer_table(p: dict) -> str:
     """The producer section as a markdown table."""
     runs = ", ".join(f"{b:.2f}" for b in p["decode_bound_runs"])
-    lines = [f"Decode bound (PyAV, Y plane, one thread, same run): {p['decode_bound']:.2f} samples/CPU-s "
-             f"(before / after the rows: {runs}).", "",
-             "| workers | samples/s | per worker (wall) | per worker CPU-s | share of decode bound | core share | "
+    z = p["sizes"]
+    lines = [f"Sample: {z['sequence_length']} voxel grids of {z['num_bins']} bins, {z['crop']} x {z['crop']} crop, "
+             "every output (voxels, frames, tracked flow), copies of the WebVid-like clip (596 x 336). Decode bound "
+             f"(PyAV, Y plane, one thread, same run): {p['decode_bound']:.2f} samples/CPU-s (before / after the "
+             f"rows: {runs}).", "",
+             "| recipe | workers | samples/s | per worker (wall) | per worker CPU-s | share of decode bound | core share | "
              "CPU outside main thread | threads per worker | relay CPU-ms per sample |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in p["rows"]:
-        lines.append(f"| {r['workers']} | {r['samples_per_s']:.2f} | {r['per_worker']:.2f} | "
+        lines.append(f"| {r['recipe']} | {r['workers']} | {r['samples_per_s']:.2f} | {r['per_worker']:.2f} | "
                      f"{r['per_worker_cpu_s']:.2f} | {r['share_of_bound']:.0%} | {r['core_share']:.0%} | "
                      f"{r['other_threads']:.1%} | {r['threads']} | {1000 * r['server_cpu_s']:.1f} |")
     return "\n".join(lines)
@@ -253,14 +274,16 @@ def producer_table(p: dict) -> str:
 def markdown(res: dict) -> str:
     """``docs/gpu_feed.md``: device, torch version, command, the tables."""
     s = res["sizes"]
-    head = [f"Command: `{res['command']}`", "",
-            f"Device: {res['device']}; torch {res['torch']}; {res['cpus']} CPUs. Sample: {s['sequence_length']} "
-            f"voxel grids of {s['num_bins']} bins, {s['crop']} x {s['crop']} crop; batch per model as listed.", ""]
-    if res["smoke"]:
+    head = [f"Command: `{res['command']}`", "", f"Device: {res['device']}; torch {res['torch']}; {res['cpus']} CPUs.", ""]
+    if res["rows"]:
+        head += [f"Trainer sample: {s['sequence_length']} voxel grids of {s['num_bins']} bins, {s['crop']} x "
+                 f"{s['crop']} crop; batch per model as listed.", ""]
+    if res["smoke"] and res["rows"]:
         head += ["**No GPU here: this is the CPU smoke run at toy sizes.** It checks that the measurement runs; "
                  "its rates say nothing about an accelerator and no GPU figure is estimated from it. On a CPU the "
-                 "launch column counts aten operators dispatched per step, not CUDA kernel launches.", ""]
-    parts = head + ["## Trainer", "", trainer_table(res["rows"])]
+                 "launch column counts aten operators dispatched per step, not CUDA kernel launches. The producer "
+                 "rows are this machine's own figures.", ""]
+    parts = head + (["## Trainer", "", trainer_table(res["rows"])] if res["rows"] else [])
     if res.get("producer"):
         parts += ["", "## Producer alone", "", producer_table(res["producer"])]
     return "\n".join(parts) + "\n"
@@ -285,6 +308,7 @@ def _args(argv):
     ap.add_argument("--workers", type=int, default=8, help="v2v-serve worker processes of the live runs")
     ap.add_argument("--producer", default="", help="worker counts of the producer-alone rows, e.g. 1,2,4,8,14 "
                                                    "(empty: none)")
+    ap.add_argument("--no-trades", action="store_true", help="producer rows of the default recipe only")
     ap.add_argument("--producer-samples", type=int, default=48, help="measured samples per producer row")
     ap.add_argument("--steps", type=int, default=20, help="timed steps per run")
     ap.add_argument("--warmup", type=int, default=3, help="untimed steps before each run")
@@ -303,7 +327,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     res = {"command": "python -m bench.gpu_feed " + " ".join(sys.argv[1:] if argv is None else argv),
            "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu (smoke: toy sizes)",
            "torch": torch.__version__, "cpus": os.cpu_count(), "smoke": smoke, "sizes": sizes, "rows": []}
-    models = a.models.split(",")
+    models = [m for m in a.models.split(",") if m]
     with tempfile.TemporaryDirectory(prefix="v2v-gpu-feed-") as tmp:
         for batch in sorted({SMOKE_BATCH if smoke else PAPER_BATCH[m] for m in models}):
             serve = ["--videos", a.videos, "--workers", str(a.workers), "--batch-size", str(batch),
@@ -316,8 +340,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                             res["rows"].append(measure(task, amp, speed, srv.endpoint, a, smoke, device, Path(tmp)))
                             print(json.dumps(res["rows"][-1]), flush=True)
         if a.producer:
-            res["producer"] = producer_rows([int(n) for n in a.producer.split(",")], a.producer_samples, sizes,
-                                            Path(tmp))
+            res["producer"] = producer_rows([int(n) for n in a.producer.split(",")], a.producer_samples,
+                                            SMOKE if a.smoke else PAPER, Path(tmp), trades=not a.no_trades)
     text = markdown(res)
     print(text)
     if a.out:

@@ -18,7 +18,7 @@ def test_paper_batches():
 
 def test_gpu_feed_smoke_run(tmp_path, videos):
     assert main(["--smoke", "--models", "evflow,eraft", "--amp", "fp32", "--workers", "1", "--steps", "1",
-                 "--warmup", "1", "--producer", "1", "--producer-samples", "4", "--videos", str(videos),
+                 "--warmup", "1", "--producer", "1", "--no-trades", "--producer-samples", "4", "--videos", str(videos),
                  "--device", "cpu", "--out", str(tmp_path)]) == 0
     out = json.loads((tmp_path / "gpu_feed.json").read_text())
     assert out["smoke"] and out["sizes"]["sequence_length"] == 2 and out["torch"]
@@ -34,6 +34,7 @@ def test_gpu_feed_smoke_run(tmp_path, videos):
     # E-RAFT runs the network once per consecutive pair, on a bigger graph than EV-FlowNet's
     assert out["rows"][1]["launches"]["count"] > out["rows"][0]["launches"]["count"]
     (p,) = out["producer"]["rows"]
+    assert p["recipe"] == "default" and out["producer"]["sizes"]["crop"] == 32  # toy sizes with --smoke
     assert p["workers"] == 1 and p["samples"] >= 4 and p["per_worker_cpu_s"] > 0 and p["threads"] >= 1
     assert 0 < p["share_of_bound"] and 0 <= p["other_threads"] <= 1
     text = (tmp_path / "gpu_feed.md").read_text()
