@@ -274,12 +274,14 @@ def producer_table(p: dict) -> str:
 def markdown(res: dict) -> str:
     """``docs/gpu_feed.md``: device, torch version, command, the tables."""
     s = res["sizes"]
-    head = [f"Command: `{res['command']}`", "", f"Device: {res['device']}; torch {res['torch']}; {res['cpus']} CPUs.", ""]
+    head = ["# Feeding a GPU: trainer steps per model and the producer (`bench/gpu_feed.py`)", "",
+            f"Command: `{res['command']}`", "", f"Device: {res['device']}; torch {res['torch']}; {res['cpus']} CPUs.", ""]
     if res["rows"]:
         head += [f"Trainer sample: {s['sequence_length']} voxel grids of {s['num_bins']} bins, {s['crop']} x "
                  f"{s['crop']} crop; batch per model as listed.", ""]
     if res["smoke"] and res["rows"]:
-        head += ["**No GPU here: this is the CPU smoke run at toy sizes.** It checks that the measurement runs; "
+        head += ["**No GPU here: the GPU table (the paper's sizes on a CUDA device) has not been produced.** "
+                 "What follows is the CPU smoke run at toy sizes; it checks that the measurement runs; "
                  "its rates say nothing about an accelerator and no GPU figure is estimated from it. On a CPU the "
                  "launch column counts aten operators dispatched per step, not CUDA kernel launches. The producer "
                  "rows are this machine's own figures.", ""]
