@@ -93,6 +93,9 @@ class BusySampler:
 
     def _reader(self):
         index = self.device.index if self.device.index is not None else torch.cuda.current_device()
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",")
+        if index < len(visible) and visible[index].strip().isdigit():  # NVML counts every GPU of the host
+            index = int(visible[index])
         try:
             import pynvml  # nvidia-ml-py
 

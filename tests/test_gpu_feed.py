@@ -53,3 +53,33 @@ def test_speed_option_follows_the_trainer_config(tmp_path, videos):
     assert main(args) == 0
     rows = json.loads((tmp_path / "gpu_feed.json").read_text())["rows"]
     assert [r["speed"] for r in rows] == ["eager", "fast"]
+
+
+def test_busy_sampler_polls_nvidia_smi_of_the_visible_gpu(monkeypatch):
+    """Without pynvml the GPU-busy column polls ``nvidia-smi`` for the physical GPU behind the
+    torch device (CUDA_VISIBLE_DEVICES renumbers them) and averages its percentages."""
+    import sys
+    import time
+    import types
+
+    import torch
+
+    import bench.gpu_feed as gf
+
+    calls = []
+
+    def fake_run(cmd, **kw):
+        calls.append(cmd)
+        return types.SimpleNamespace(stdout="70\n" if len(calls) % 2 else "90\n")
+
+    monkeypatch.setitem(sys.modules, "pynvml", None)  # import pynvml raises ImportError
+    monkeypatch.setattr(gf.shutil, "which", lambda name: "/usr/bin/nvidia-smi")
+    monkeypatch.setattr(gf.subprocess, "run", fake_run)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3,5")
+    with gf.BusySampler(torch.device("cuda", 1), period_s=0.001) as busy:
+        deadline = time.monotonic() + 30
+        while len(busy.samples) < 4 and time.monotonic() < deadline:
+            time.sleep(0.001)
+    n = len(busy.samples)
+    assert n >= 4 and "--id=5" in calls[0] and "--query-gpu=utilization.gpu" in calls[0]
+    assert busy.mean == sum(70 if i % 2 == 0 else 90 for i in range(n)) / n / 100
