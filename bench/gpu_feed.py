@@ -41,6 +41,7 @@ import argparse
 import json
 import math
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -329,7 +330,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     smoke = a.smoke or device.type != "cuda"
     sizes = SMOKE if smoke else PAPER
     speeds = _speeds(a.speed)
-    res = {"command": "python -m bench.gpu_feed " + " ".join(sys.argv[1:] if argv is None else argv),
+    res = {"command": "python -m bench.gpu_feed " + shlex.join(sys.argv[1:] if argv is None else argv),
            "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu (smoke: toy sizes)",
            "torch": torch.__version__, "cpus": os.cpu_count(), "smoke": smoke, "sizes": sizes, "rows": []}
     models = [m for m in a.models.split(",") if m]
