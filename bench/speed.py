@@ -181,6 +181,59 @@ def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], 
             "server_cpu_s_per_gb": (s1 - s0) / gb, "client_cpu_s_per_gb": (c1 - c0) / gb}
 
 
+def _threads_cpu_s(pid: int) -> tuple:
+    """(main thread, every other thread) CPU-seconds of process ``pid``."""
+    main = other = 0.0
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            f = Path(f"/proc/{pid}/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the thread ended meanwhile
+            continue
+        s = (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+        main, other = (main + s, other) if tid == str(pid) else (main, other + s)
+    return main, other
+
+
+def worker_pids(server_pid: int) -> List[int]:
+    """The worker processes of a ``v2v-serve`` (its children, less multiprocessing's resource tracker)."""
+    kids = Path(f"/proc/{server_pid}/task/{server_pid}/children").read_text().split()
+    return [int(k) for k in kids if "resource_tracker" not in Path(f"/proc/{k}/cmdline").read_text()]
+
+
+def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs=("voxels", "frames", "flow")) -> dict:
+    """The producer alone: ``v2v-serve --workers N`` read as fast as a raw client takes it.
+
+    Returns a dict: ``samples_per_s`` (wall), ``per_worker`` (wall samples/s / N),
+    ``per_worker_cpu_s`` (samples per CPU-second of the worker processes, all their threads),
+    ``core_share`` (workers' CPU-seconds / (N x wall seconds): below 1 when a worker waited for
+    a core, a slot or the server), ``other_threads`` (share of the workers' CPU-seconds spent
+    outside their main threads: decoder, OpenCV, BLAS or numba pools), ``threads`` (threads per
+    worker) and ``server_cpu_s`` per sample (the relay process). Measured after two batches.
+    """
+    from harness.serve import ServeProcess
+    from v2v_client import V2VStreamDataset
+
+    args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
+    with ServeProcess(args, ready_timeout_s=300) as srv:
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True))
+        for _ in range(2):  # workers started, kernels loaded
+            next(it)
+        pids = worker_pids(srv.proc.pid)
+        c0, s0, w0 = [_threads_cpu_s(p) for p in pids], _cpu_s(srv.proc.pid), time.perf_counter()
+        n = 0
+        while n < samples:
+            n += len(next(it)["sample_ids"])
+        c1, s1, w1 = [_threads_cpu_s(p) for p in pids], _cpu_s(srv.proc.pid), time.perf_counter()
+        threads = max(len(os.listdir(f"/proc/{p}/task")) for p in pids)
+        it.close()
+    main = sum(b[0] - a[0] for a, b in zip(c0, c1))
+    other = sum(b[1] - a[1] for a, b in zip(c0, c1))
+    wall = w1 - w0
+    return {"workers": workers, "samples": n, "samples_per_s": n / wall, "per_worker": n / wall / workers,
+            "per_worker_cpu_s": n / (main + other), "core_share": (main + other) / (workers * wall),
+            "other_threads": other / (main + other), "threads": threads, "server_cpu_s": (s1 - s0) / n}
+
+
 def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 8, credits: int = 1,
                    prefetch: int = 2) -> dict:
     """Server tree RSS while a trainer holding ``credits`` takes nothing for ``stall_s``."""
