@@ -13,6 +13,7 @@ from v2v_server.delivery.core import DeliveryPolicy
 from v2v_server.delivery.ledger import DeliveryLedger
 from v2v_server.delivery.schedule import EpochScheduler
 from v2v_server.ops.config import ServeConfig
+from v2v_server.ray_data import RayCorpus, epoch_descriptors
 from v2v_server.service.datapath import BatchAssembler, make_batch
 from v2v_wire.ids import SampleKey
 
@@ -152,3 +153,43 @@ def test_bad_shuffle_settings_name_the_field(kw, field):
     if field == "shuffle" or kw[field] < 1:
         with pytest.raises(ValueError, match=field):
             DeliveryPolicy(**kw)
+
+
+def test_the_ray_engine_lists_each_epoch_in_the_servers_order():
+    corpus = RayCorpus("corpus", {v: 2 for v in VIDEOS}, {})
+    served = handed_out(EpochScheduler(VIDEOS, epochs=2, shuffle_seed=5))
+    for epoch in (0, 1):
+        descs = epoch_descriptors(corpus, epoch, shuffle_seed=5)
+        assert [d["video"] for d in descs] == [v for e, v in served if e == epoch]
+    assert [d["video"] for d in epoch_descriptors(corpus, 1)] == VIDEOS  # shuffle none: the listing's order
+
+
+# ---------------------------------------------------------------------------------- live server
+def stream_order(corpus, *extra) -> dict:
+    """epoch -> sample ids in the order one trainer received them, from a one-worker server."""
+    from harness.serve import ServeProcess
+    from v2v_client import V2VStreamDataset
+
+    args = ["--videos", str(corpus), "--workers", "1", "--sequence-length", "4", "--crop-size", "32",
+            "--max-samples-per-video", "3", "--batch-size", "4", "--shuffle-buffer", "8", "--seed", "2",
+            "--flow-preset", "ultrafast", *extra]
+    order: dict = {}
+    with ServeProcess(args, ready_timeout_s=120) as srv:
+        for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60):
+            order.setdefault(int(b["epoch"]), []).extend(b["sample_ids"])
+        assert srv.wait(30) == 0
+    return order
+
+
+@pytest.mark.timeout(240)
+def test_a_served_epoch_has_its_own_order_and_a_restarted_server_repeats_it(tmp_path):
+    from harness.corpus import write_video
+
+    corpus = tmp_path / "clips"
+    corpus.mkdir()
+    for i in range(8):
+        write_video(corpus / f"clip{i}.mp4", 61, 64, 48)
+    first = stream_order(corpus, "--epochs", "2")
+    assert sorted(first[0]) == sorted(first[1]) and len(set(first[0])) == len(first[0]) == 24  # each once
+    assert first[0] != first[1]
+    assert stream_order(corpus, "--epochs", "1")[0] == first[0]  # a new server process, the same epoch 0
