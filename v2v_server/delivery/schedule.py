@@ -235,8 +235,7 @@ class EpochScheduler:
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = 3,
                  lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1,
                  shuffle_seed: Optional[int] = None):
-        self.videos = list(videos)
-        self.shuffle_seed = shuffle_seed
+        self.videos, self.shuffle_seed = list(videos), shuffle_seed
         self.known = set(self.videos)
         self.max_epochs = epochs
         self.max_task_crashes = max_task_crashes
@@ -272,10 +271,8 @@ class EpochScheduler:
         return True
 
     def epoch_order(self, epoch: int) -> List[str]:
-        """The order ``epoch`` hands the videos out in (module doc of ``batcher``)."""
-        if self.shuffle_seed is None:
-            return list(self.videos)
-        return video_order(self.videos, self.shuffle_seed, epoch)
+        """The order ``epoch`` hands the videos out in (``batcher.video_order``, or the listing's)."""
+        return list(self.videos) if self.shuffle_seed is None else video_order(self.videos, self.shuffle_seed, epoch)
 
     def finished(self) -> bool:
         """True when the last of ``epochs`` epochs is complete (never for unbounded streams)."""

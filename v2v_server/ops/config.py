@@ -215,7 +215,7 @@ class ServingSettings:
                            choices=SHUFFLES)
     shuffle_buffer: int = setting(SHUFFLE_BUFFER, help="samples the shuffle buffer holds (shuffle: epoch), rounded "
                                                        "up to whole batches: that many samples of server memory "
-                                                       "(about 6.6 MB each at the default recipe; docs/shuffle.md)")
+                                                       "(docs/shuffle.md has their size)")
     heartbeat_s: float = setting(1.0, help="seconds between heartbeats to clients")
     lease_s: float = setting(60.0, help="seconds before an unacknowledged batch is sent again", flag="--lease")
     client_timeout_s: float = setting(10.0, help="seconds of client silence before its batches go back to the queue",
