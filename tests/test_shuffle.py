@@ -165,8 +165,9 @@ def test_the_ray_engine_lists_each_epoch_in_the_servers_order():
 
 
 # ---------------------------------------------------------------------------------- live server
-def stream_order(corpus, *extra) -> dict:
-    """epoch -> sample ids in the order one trainer received them, from a one-worker server."""
+def stream_order(corpus, *extra, content: dict = None) -> dict:
+    """epoch -> sample ids in the order one trainer received them, from a one-worker server;
+    ``content`` gets (epoch, sample id) -> the bytes of its voxels."""
     from harness.serve import ServeProcess
     from v2v_client import V2VStreamDataset
 
@@ -177,6 +178,8 @@ def stream_order(corpus, *extra) -> dict:
     with ServeProcess(args, ready_timeout_s=120) as srv:
         for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60):
             order.setdefault(int(b["epoch"]), []).extend(b["sample_ids"])
+            for sid, v in zip(b["sample_ids"], b["voxels"]):
+                (content if content is not None else {})[(int(b["epoch"]), sid)] = v.numpy().tobytes()
         assert srv.wait(30) == 0
     return order
 
@@ -189,7 +192,11 @@ def test_a_served_epoch_has_its_own_order_and_a_restarted_server_repeats_it(tmp_
     corpus.mkdir()
     for i in range(8):
         write_video(corpus / f"clip{i}.mp4", 61, 64, 48)
-    first = stream_order(corpus, "--epochs", "2")
+    shuffled, plain = {}, {}
+    first = stream_order(corpus, "--epochs", "2", content=shuffled)
     assert sorted(first[0]) == sorted(first[1]) and len(set(first[0])) == len(first[0]) == 24  # each once
     assert first[0] != first[1]
     assert stream_order(corpus, "--epochs", "1")[0] == first[0]  # a new server process, the same epoch 0
+    listing = stream_order(corpus, "--epochs", "2", "--shuffle", "none", content=plain)
+    assert listing[0] == listing[1] != first[0]
+    assert plain == shuffled  # each sample's content depends on (seed, epoch, id), not on the order
