@@ -3,16 +3,17 @@
 Usage: ``python -m bench.shuffle [--clips 24] [--workers 1,4] [--rounds 3] [--out FILE.json]``
 
 Makes a corpus of ``--clips`` small synthetic clips (``harness.corpus.write_video``; 5 windows
-each at the tiny layout below), then for each worker count runs a real ``v2v-serve`` for two
-epochs under ``--shuffle none`` and ``--shuffle epoch`` (default ``--shuffle-buffer``), one
+each at the small layout below), then for each worker count runs a real ``v2v-serve`` for
+``EPOCHS`` epochs under ``--shuffle none`` and ``--shuffle epoch`` (default ``--shuffle-buffer``), one
 trainer (``V2VStreamDataset``) reading every batch, ``--rounds`` times (seeds 3, 4, ...; the
 settings interleaved). Prints, per setting:
 
 * distinct videos per batch, mean over epoch 0's batches (and over the rounds);
 * Kendall's tau between the epoch orders of epochs 0 and 1 (each sample's position in the
   order the trainer received them; 1 = the same order, 0 = unrelated), mean over the rounds;
-* seconds to the first batch, and samples/s over the two epochs (start of the iteration to
-  the last batch), medians over the rounds, with the ratio to ``none`` at the same worker count;
+* seconds to the first batch, samples/s over the whole run (start of the iteration to the last
+  batch) and over epochs 1 on (epoch 1's first batch to the last: the buffer in its steady
+  state), medians over the rounds, with their ratios to ``none`` at the same worker count;
 
 what the alternative design, a shuffle buffer that stacks batches of randomly picked samples,
 would cost per sample of the default recipe (:func:`copy_cost`), and distinct videos per batch
@@ -31,20 +32,22 @@ import time
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
-#: Tiny samples (L = 4 voxel grids of 5 bins, 32 px crops): 21 frames per window.
-LAYOUT = ["--sequence-length", "4", "--crop-size", "32", "--max-samples-per-video", "5", "--batch-size", "8",
+#: Small samples (L = 8 voxel grids of 5 bins, 64 px crops): 41 frames per window.
+LAYOUT = ["--sequence-length", "8", "--crop-size", "64", "--max-samples-per-video", "5", "--batch-size", "8",
           "--flow-preset", "ultrafast"]
-#: Frames per clip: 5 windows of 20 frames and the last one.
-CLIP_FRAMES = 101
+#: Frames per clip: 5 windows of 40 frames and the last one.
+CLIP_FRAMES = 201
+#: Epochs per run: orders are compared between epochs 0 and 1; throughput is taken over epochs 1 on.
+EPOCHS = 4
 
 
 def make_corpus(root: Path, clips: int) -> Path:
-    """``clips`` synthetic clips of ``CLIP_FRAMES`` frames, 64 x 48 px, in ``root``."""
+    """``clips`` synthetic clips of ``CLIP_FRAMES`` frames, 96-102 x 72 px, in ``root``."""
     from harness.corpus import write_video
 
     root.mkdir(parents=True, exist_ok=True)
     for i in range(clips):
-        write_video(root / f"clip{i:02d}.mp4", CLIP_FRAMES, 64 + 2 * (i % 4), 48)
+        write_video(root / f"clip{i:02d}.mp4", CLIP_FRAMES, 96 + 2 * (i % 4), 72)
     return root
 
 
@@ -66,36 +69,45 @@ def kendall_tau(a: Sequence[str], b: Sequence[str]) -> float:
     return s / (n * (n - 1) / 2)
 
 
-def read_epochs(endpoint: str) -> Tuple[Dict[int, List[List[str]]], float, float]:
-    """Every batch of the stream by epoch (sample ids in batch order), samples/s from the start
-    of the iteration to the last batch (the wait for the first batch included: a shuffle buffer
-    delays it), and seconds to the first batch."""
+def read_epochs(endpoint: str) -> Tuple[Dict[int, List[List[str]]], dict]:
+    """Every batch of the stream by epoch (sample ids in batch order), and its timing: seconds
+    to the first batch, samples/s over the whole run (from the start of the iteration), and
+    samples/s over epochs 1 on (from epoch 1's first batch to the last batch: the buffer is in
+    its steady state)."""
     from v2v_client import V2VStreamDataset
 
     batches: Dict[int, List[List[str]]] = {}
-    n, t0, first = 0, time.monotonic(), None
+    t0, first, first_e1, n_e1 = time.monotonic(), None, None, 0
     for b in V2VStreamDataset(endpoint, outputs=("voxels",), credits=4, timeout_s=120):
-        first = first if first is not None else time.monotonic() - t0
+        now = time.monotonic() - t0
+        first = first if first is not None else now
+        e = int(b["epoch"])
         ids = [s for s, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad]
-        batches.setdefault(int(b["epoch"]), []).append(ids)
-        n += len(ids)
-    return batches, n / max(time.monotonic() - t0, 1e-9), first or 0.0
+        batches.setdefault(e, []).append(ids)
+        if e >= 1:
+            if first_e1 is None:
+                first_e1 = now
+            else:
+                n_e1 += len(ids)
+    end = time.monotonic() - t0
+    n = sum(len(b) for bs in batches.values() for b in bs)
+    return batches, {"first_batch_s": first or 0.0, "samples_per_s": n / max(end, 1e-9),
+                     "steady_samples_per_s": n_e1 / max(end - (first_e1 or 0.0), 1e-9)}
 
 
 def run(corpus: Path, workers: int, shuffle: str, seed: int) -> dict:
-    """One two-epoch stream; the figures of the module docstring."""
+    """One stream of ``EPOCHS`` epochs; the figures of the module docstring."""
     from harness.serve import ServeProcess
 
-    with ServeProcess(["--videos", str(corpus), "--workers", str(workers), "--epochs", "2", "--shuffle", shuffle,
-                       *LAYOUT, "--seed", str(seed)], ready_timeout_s=120) as srv:
-        batches, rate, first_s = read_epochs(srv.endpoint)
+    with ServeProcess(["--videos", str(corpus), "--workers", str(workers), "--epochs", str(EPOCHS),
+                       "--shuffle", shuffle, *LAYOUT, "--seed", str(seed)], ready_timeout_s=120) as srv:
+        batches, timing = read_epochs(srv.endpoint)
         srv.wait(60)
     order = {e: [s for b in bs for s in b] for e, bs in batches.items()}
     distinct = statistics.mean(len({s.rsplit("#", 1)[0] for s in b}) for b in batches[0])
     return {"workers": workers, "shuffle": shuffle, "seed": seed, "batches_epoch0": len(batches[0]),
             "samples_epoch0": len(order[0]), "distinct_videos_per_batch": distinct,
-            "kendall_tau_epoch0_vs_1": kendall_tau(order[0], order[1]), "samples_per_s": rate,
-            "first_batch_s": first_s}
+            "kendall_tau_epoch0_vs_1": kendall_tau(order[0], order[1]), **timing}
 
 
 def copy_cost(batch: int = 12, rounds: int = 5) -> dict:
@@ -156,20 +168,26 @@ def main(argv=None) -> int:
                     rows.append(run(corpus, w, shuffle, 3 + r))
                     print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     cost, sizes = copy_cost(), buffer_sizes()
-    print(f"{a.clips} clips x 5 windows, batch 8, shuffle_buffer 64 (8 open batches), two epochs, one trainer; "
-          f"mean of {a.rounds} runs (seeds 3-{2 + a.rounds}), samples/s median\n")
+    print(f"{a.clips} clips x 5 windows, L = 8, 64 px crops, batch 8, shuffle_buffer 64 (8 open batches), "
+          f"{EPOCHS} epochs, one trainer reading voxels; distinct videos and tau: means of {a.rounds} runs "
+          f"(seeds 3-{2 + a.rounds}); times: medians\n")
     print("| workers | shuffle | distinct videos / batch (epoch 0) | Kendall tau epoch 0 vs 1 | first batch (s) "
-          "| samples/s | vs none |")
-    print("|---|---|---|---|---|---|---|")
+          "| samples/s, whole run | vs none | samples/s, epochs 1 on | vs none |")
+    print("|---|---|---|---|---|---|---|---|---|")
     table = {}
     for r in rows:
         table.setdefault((r["workers"], r["shuffle"]), []).append(r)
+
+    def med(key, rs):
+        return statistics.median(x[key] for x in rs)
+
     for (w, shuffle), rs in table.items():
-        rate = statistics.median(x["samples_per_s"] for x in rs)
-        base = statistics.median(x["samples_per_s"] for x in table[(w, "none")])
+        base = table[(w, "none")]
         print(f"| {w} | {shuffle} | {statistics.mean(x['distinct_videos_per_batch'] for x in rs):.2f} | "
-              f"{statistics.mean(x['kendall_tau_epoch0_vs_1'] for x in rs):+.3f} | "
-              f"{statistics.median(x['first_batch_s'] for x in rs):.2f} | {rate:.1f} | {rate / base:.2f} |")
+              f"{statistics.mean(x['kendall_tau_epoch0_vs_1'] for x in rs):+.3f} | {med('first_batch_s', rs):.2f} | "
+              f"{med('samples_per_s', rs):.1f} | {med('samples_per_s', rs) / med('samples_per_s', base):.2f} | "
+              f"{med('steady_samples_per_s', rs):.1f} | "
+              f"{med('steady_samples_per_s', rs) / med('steady_samples_per_s', base):.2f} |")
     print(f"\nA shuffle buffer picking made samples at random would stack every batch: "
           f"{cost['stack_ms_per_sample']:.2f} ms per {cost['sample_mb']:.1f} MB sample of the default recipe "
           f"on the server's loop thread (one more copy of every byte).")

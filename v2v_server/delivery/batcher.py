@@ -5,9 +5,9 @@
   restart, and a shard (any subset of the listing) gets the global order restricted to its
   videos, whatever the shard count.
 * :class:`Batcher` turns made samples into batches. With ``lanes`` open batches per
-  (epoch, outputs) group, each arriving sample joins one of them, chosen uniformly among their
-  free rows (a shuffle buffer of ``lanes x batch_size`` samples); an open batch that is full
-  becomes a batch and a fresh one opens in its place. A sample's open batch is chosen *before*
+  (epoch, outputs) group, each arriving sample joins a uniformly random one of them (a shuffle
+  buffer of at most ``lanes x batch_size`` samples); an open batch that is full becomes a batch
+  and an empty one opens in its place. A sample's open batch is chosen *before*
   its arrays are copied (:meth:`Batcher.lane`), so the server copies it straight into that
   batch's buffer row (``datapath.BatchAssembler.place``): a full batch is consecutive rows of
   one buffer and goes out zero-copy, as without shuffling. ``lanes = 1`` keeps arrival order.
@@ -84,19 +84,15 @@ class Batcher:
         return group
 
     def lane(self, epoch: int, outputs: tuple) -> int:
-        """The open batch the next sample of ``(epoch, outputs)`` joins: uniform over the free
-        rows of the group's open batches. Pass it to :meth:`add` (and to the data path, which
-        places the sample's arrays in that batch's buffer)."""
+        """The open batch the next sample of ``(epoch, outputs)`` joins: a uniformly random one
+        of the group's ``lanes`` open batches (each has a free row: a full one is replaced at
+        once). Pass it to :meth:`add` (and to the data path, which places the sample's arrays
+        in that batch's buffer)."""
         gkey = (epoch, tuple(outputs))
         group = self._group(gkey)
         if self.lanes == 1:
             return next(iter(group))
-        r = self._rngs[gkey].randrange(sum(self.batch_size - len(g) for g in group.values()))
-        for lane_id, g in group.items():
-            r -= self.batch_size - len(g)
-            if r < 0:
-                return lane_id
-        raise AssertionError("free rows counted wrong")  # pragma: no cover
+        return list(group)[self._rngs[gkey].randrange(self.lanes)]
 
     def add(self, epoch: int, outputs: tuple, key: SampleKey, sample, lane: Optional[int] = None) -> None:
         """Queue one sample in open batch ``lane`` (from :meth:`lane`; None, or one no longer
