@@ -46,6 +46,10 @@ class DeliveryPolicy:
         shuffle_buffer: samples the shuffle buffer holds under ``shuffle="epoch"`` (>= 1),
             rounded up to whole open batches (:attr:`lanes`).
         seed: draws the orders (``ServeConfig.seed``).
+
+    Raises:
+        ValueError: naming the field, for a ``shuffle`` not in ``batcher.SHUFFLES`` or a
+            ``shuffle_buffer`` that is not an int >= 1.
     """
 
     batch_size: int = 12
