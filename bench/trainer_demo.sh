@@ -11,7 +11,7 @@
 # 64, 4 heads, 1 encoder and 1 decoder layer per scale, feed-forward 128) or eraft (2 iterations,
 # 3 correlation levels so that 64-pixel crops work, gradient norm clipped to 1 as RAFT trains,
 # the authors' constant lr 1e-4 in both phases: at 1e-3 it stays at near-zero flow; the
-# motion clips only, 4 server workers; eval_eraft.jsonl holds the held-out EPEs).
+# motion clips only; eval_eraft.jsonl holds the held-out EPEs).
 # OUT_DIR (default runs/trainer_demo) receives videos_train/ and videos_heldout/ (copies:
 # the server ignores links that leave its root; eraft serves videos_motion/, the motion
 # clips), serve.log, the run in TASK/, and eval_<TASK>_<checkpoint>_<H>x<W>.json for every
@@ -33,7 +33,7 @@ case "$TASK" in
     etnet) SIZE_SETS=(--set model.d_model=64 --set model.nhead=4 --set model.encoder_layers=1
                       --set model.decoder_layers=1 --set model.dim_feedforward=128) ;;
     eraft) SIZE_SETS=(--set model.iters=2 --set model.corr_levels=3 --set optim.clip_grad_norm=1.0)
-           LR_FAST=1e-4 LR_SLOW=1e-4 WORKERS=4 ;;
+           LR_FAST=1e-4 LR_SLOW=1e-4 ;;
     *) echo "TASK must be e2vid, hypere2vid, etnet or eraft" >&2; exit 2 ;;
 esac
 PORT=${V2V_DEMO_PORT:-5621}
@@ -59,9 +59,9 @@ SERVED="$OUT/videos_train"
 if [ "$TASK" = eraft ]; then
     # E-RAFT trains on the motion clips only: their flow targets explain the change between
     # voxel boundaries, those of the street clips much less (warping by the stream's flow leaves
-    # 19 of 28 grey levels of mean difference on bikes.mp4: python -m bench.flow --real). Four
-    # workers make four clips at once, so a batch mixes clips (one worker's batch is four
-    # consecutive windows of one clip, one camera path). docs/trainer.md has the runs.
+    # 19 of 28 grey levels of mean difference on bikes.mp4: python -m bench.flow --real). The
+    # server's shuffle buffer (--shuffle epoch, the default) mixes clips in each batch with one
+    # worker. docs/trainer.md has the runs.
     SERVED="$OUT/videos_motion"
     mkdir -p "$SERVED" && cp "$OUT"/videos_train/motion_* "$SERVED/"
 fi

@@ -134,7 +134,8 @@ class DeliveryMachine(RuleBasedStateMachine):
         self.now = 0.0
         self.core = DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=EPOCHS, lease_s=LEASE,
                                                                client_timeout_s=TIMEOUT, revoke_s=REVOKE,
-                                                               max_credits=MAX_CREDITS, task_timeout_s=TASK_TIMEOUT),
+                                                               max_credits=MAX_CREDITS, task_timeout_s=TASK_TIMEOUT,
+                                                               shuffle="epoch", shuffle_buffer=6),
                                  make_batch)
         self.workers = [SimWorker(b"w0.0"), SimWorker(b"w1.0")]
         self.late: List[SimWorker] = []  # replaced workers that may still send
@@ -201,7 +202,7 @@ class DeliveryMachine(RuleBasedStateMachine):
                 continue
             w.pos += 1
             self.core.sample(w.ident, t["task"], SampleKey(video, k), self.now,
-                             lambda: FakeSample(SampleKey(video, k).sample_id()))
+                             lambda lane: FakeSample(SampleKey(video, k).sample_id()))
             return
 
     # ------------------------------------------------------------------ trainer behaviour
@@ -391,7 +392,7 @@ class DeliveryMachine(RuleBasedStateMachine):
         if w.task is not None and w.pos < WINDOWS[w.task["video"]]:
             k = w.pos
             key = SampleKey(w.task["video"], k)
-            kept = self.core.sample(w.ident, w.task["task"], key, self.now, lambda: FakeSample(key.sample_id()))
+            kept = self.core.sample(w.ident, w.task["task"], key, self.now, lambda lane: FakeSample(key.sample_id()))
             assert not kept and self.core.samples_made == made
             self.core.done(w.ident, w.task["task"], WINDOWS[w.task["video"]], {}, None)
         assert sum(len(b.keys) for b in self.core.ledger.batches.values()) == before
@@ -587,7 +588,7 @@ def test_outputs_are_the_union_and_stale_batches_are_remade():
     core.hello(b"v", Hello(("voxels",), 2), 0.0, dict)
     msg = core.task_for(b"w", 0.0)
     assert msg["outputs"] == ["voxels"]
-    core.sample(b"w", msg["task"], SampleKey("a.mp4", 0), 0.0, lambda: FakeSample("a.mp4#0"))
+    core.sample(b"w", msg["task"], SampleKey("a.mp4", 0), 0.0, lambda lane: FakeSample("a.mp4#0"))
     core.forget(b"v")
     core.hello(b"f", Hello(("voxels", "flow"), 2), 0.0, dict)
     sends, _ = core.tick(0.0)
@@ -619,21 +620,3 @@ def test_a_sample_counts_only_under_its_own_key_in_its_own_task():
     assert job.samples == 6
     assert job.failed == {SampleKey(t.video, 1, 0): "frame size changed", SampleKey(t.video, 1, 1): "frame size changed"}
     assert s.owed(0) == {SampleKey(t.video, w, c) for w, c in [(0, 0), (2, 0), (2, 1)]}
-
-
-def test_videos_are_handed_out_in_listing_order_every_epoch():
-    """No shuffling (README, Serve): one worker gets the videos in the listing's order, epoch
-    after epoch, and the batcher keeps the samples' arrival order."""
-    sched = EpochScheduler(["c.mp4", "a.mp4", "b.mp4"], epochs=2)
-    order = []
-    while (task := sched.next_task("w", 0.0)) is not None:
-        order.append((task.epoch, task.video))
-        sched.task_done(task.task_id, "w", windows=0)
-    assert order == [(e, v) for e in (0, 1) for v in ("c.mp4", "a.mp4", "b.mp4")]
-
-    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
-    batcher = Batcher(2, list, ledger)
-    keys = [SampleKey("c.mp4", w, 0) for w in range(3)] + [SampleKey("a.mp4", 0, 0)]
-    for k in keys:
-        batcher.add(0, ("voxels",), k, k)
-    assert [ledger.batches[i].keys for i in ledger.ready] == [keys[:2], keys[2:]]

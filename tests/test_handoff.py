@@ -212,7 +212,10 @@ def test_served_batches_are_identical_with_the_hand_off_on_and_off_and_no_file_o
     real_read = handoff.ShmReader.read
     monkeypatch.setattr(handoff.ShmReader, "read", lambda self, h, copy=True: reads.append(1) or real_read(self, h, copy))
     args = ["--videos", str(video_dir()), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
-            "--crop-size", "48", "--max-samples-per-video", "2", "--seed", "5", "--epochs", "1", "--batch-size", "3"]
+            "--crop-size", "48", "--max-samples-per-video", "2", "--seed", "5", "--epochs", "1", "--batch-size", "3",
+            # arrival order: a shuffle buffer larger than this 6-sample epoch holds every sample to
+            # the epoch's end, whose leftovers from several open batches are stacked (copied)
+            "--shuffle", "none"]
     env = {"V2V_SHM_DIR": shm_root}
     with tempfile.TemporaryDirectory(prefix="v2v-ipc-") as d:
         ep = ["--bind", f"ipc://{d}/serve.sock"]

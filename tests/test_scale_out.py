@@ -351,6 +351,8 @@ def test_metrics_probes_and_counters_move(videos):
     credits = [v for (n, lab), v in m1.items() if n == "v2v_client_credits"]
     assert len(credits) == 1 and 0 <= credits[0] <= 2
     assert m1[("v2v_epoch", ())] >= 0 and m1[("v2v_epoch_videos", ())] == 3
+    cap = m1[("v2v_shuffle_buffer_capacity_samples", ())]  # --shuffle-buffer 64, whole batches
+    assert cap >= 64 and 0 <= m1[("v2v_shuffle_buffer_samples", ())] <= cap
 
 
 def test_progress_line_shows_epoch_rate_clients_and_workers(capsys):
@@ -358,14 +360,15 @@ def test_progress_line_shows_epoch_rate_clients_and_workers(capsys):
 
     m = ServerMetrics(progress=True)
     state = dict(epoch=2, epoch_videos=3, epoch_videos_done=1, clients={"ab": (1, 2), "cd": (0, 4)}, workers=4,
-                 workers_busy=3)
+                 workers_busy=3, shuffle_samples=5, shuffle_capacity=48)
     m._progress._last -= 2.0  # two seconds ago
     m.on_batch_sent(4, 3_000_000)
     m.set_state(**state)
     try:
         assert m._progress.bar.n == 4
         line = m._progress.line
-        assert line.startswith("epoch 2 (1/3 videos), 1.") and line.endswith("MB/s, 2 client(s), workers busy 3/4")
+        assert line.startswith("epoch 2 (1/3 videos), 1.") and line.endswith(
+            "MB/s, 2 client(s), workers busy 3/4, shuffle buffer 5/48")
     finally:
         m.close()
     assert ServerMetrics(progress=False)._progress is None

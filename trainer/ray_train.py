@@ -234,7 +234,9 @@ def _train_loop(config: dict) -> None:
     consumed: Dict[int, set] = defaultdict(set)
     samples = [0]
     batches = ray.train.get_dataset_shard("train").iter_torch_batches(
-        batch_size=int(config["batch_size"]), collate_fn=v2v_collate(device.type == "cuda"), prefetch_batches=2)
+        batch_size=int(config["batch_size"]), collate_fn=v2v_collate(device.type == "cuda"), prefetch_batches=2,
+        # the server's shuffle buffer (--shuffle epoch): rows of several videos in every batch
+        local_shuffle_buffer_size=config["shuffle_buffer"], local_shuffle_seed=config["shuffle_seed"])
 
     def on_batch(batch: dict, stats: dict) -> None:
         for sid, e, pad in zip(batch["sample_ids"], batch["epochs"], batch["padding"].tolist()):
@@ -266,16 +268,18 @@ def _train_loop(config: dict) -> None:
 
 
 def _torch_trainer(cfg: dict, args: argparse.Namespace, out: Path, resume, state: dict, epoch_sizes: dict,
-                   batch_size: int, ds):
+                   batch_size: int, ds, scfg):
     """The Ray Train ``TorchTrainer`` of one attempt: ``args.num_workers`` ranks running
     ``_train_loop`` on the Ray dataset ``ds`` from ``resume`` / ``state``, with no restart of
-    its own (``run_ray`` restarts from the last checkpoint)."""
+    its own (``run_ray`` restarts from the last checkpoint). ``scfg`` (``ServeConfig``): its
+    ``shuffle`` and ``shuffle_buffer`` size each rank's local shuffle buffer, as ``v2v-serve``'s."""
     from ray.train import FailureConfig, RunConfig, ScalingConfig
     from ray.train.torch import TorchTrainer
 
     loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,
                 "max_steps": int(cfg["max_steps"]), "batch_size": batch_size, "epoch_sizes": epoch_sizes,
-                "use_gpu": bool(args.use_gpu), "cpus_per_worker": args.cpus_per_worker}
+                "use_gpu": bool(args.use_gpu), "cpus_per_worker": args.cpus_per_worker,
+                "shuffle_buffer": scfg.shuffle_buffer if scfg.shuffle == "epoch" else None, "shuffle_seed": scfg.seed}
     return TorchTrainer(
         _train_loop, train_loop_config=loop_cfg, datasets={"train": ds},
         scaling_config=ScalingConfig(num_workers=args.num_workers, use_gpu=bool(args.use_gpu),
@@ -344,7 +348,7 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
                          concurrency=data_workers, resource=args.data_resource)
         try:
             _torch_trainer(cfg, args, out, resume, state, {e: corpus.samples_per_epoch for e in todo}, batch_size,
-                           ds).fit()
+                           ds, scfg).fit()
             return 0
         except Exception as e:  # a rank or the run failed: restart from the last checkpoint, or give up
             failures += 1

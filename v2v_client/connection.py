@@ -549,8 +549,16 @@ class Connection(_ServerIO):
         self._queue_for_server({"type": "released", "batch_ids": [bid]})
 
     def _queue_for_server(self, msg: dict) -> None:
-        if not self._closing.is_set():
-            self._ack_send.send(pack(msg))
+        """Hand ``msg`` to the I/O thread, which sends it. Dropped once that thread has ended
+        (the server shut down or the connection closed: nobody would receive it), so taking a
+        batch still queued here never blocks on a pipe nobody reads."""
+        data = pack(msg)
+        while not self._closing.is_set() and self._thread.is_alive():
+            try:
+                self._ack_send.send(data, zmq.NOBLOCK)
+                return
+            except zmq.Again:  # the pipe is full, or the I/O thread is ending: look again
+                time.sleep(0.001)
 
     def linger(self) -> None:
         """The iteration ended with batches still in a DataLoader's queues: keep taking their

@@ -44,6 +44,7 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 
 import numpy as np
 
+from v2v_server.delivery.batcher import video_order
 from v2v_server.ops.config import ServeConfig
 from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS, row_array, zeros_row
 from v2v_wire.protocol import check_outputs
@@ -146,11 +147,13 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
 
 
 def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = (), ranks: int = 1,
-                      crops_per_window: int = 1) -> List[dict]:
+                      crops_per_window: int = 1, shuffle_seed: Optional[int] = None) -> List[dict]:
     """The epoch's work, one descriptor per video, padded to a multiple of ``ranks`` rows.
 
     Each descriptor is ``{"video": rel, "epoch": epoch, "entries": JSON [[sample_id, padding],
-    ...]}`` in window order. Ids in ``exclude`` (already consumed: resume) are left out, and a
+    ...]}`` in window order; the videos in the corpus's order, or with ``shuffle_seed`` in
+    ``delivery.batcher.video_order(videos, shuffle_seed, epoch)``, the order ``v2v-serve
+    --shuffle epoch`` hands them out in. Ids in ``exclude`` (already consumed: resume) are left out, and a
     video with none left is not listed, so it is never opened. When the remaining count is not
     a multiple of ``ranks``, the first ids of the epoch are listed again with ``padding`` true
     (made from the same decode pass, no extra decoding) until it is. With ``crops_per_window``
@@ -163,7 +166,8 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
         raise ValueError(f"ranks must be >= 1, got {ranks}")
     exclude = set(exclude)
     kpw = crops_per_window
-    todo = [(rel, make_sample_id(rel, k, c, kpw)) for rel, n in corpus.windows.items() for k in range(n)
+    videos = list(corpus.windows) if shuffle_seed is None else video_order(corpus.windows, shuffle_seed, epoch)
+    todo = [(rel, make_sample_id(rel, k, c, kpw)) for rel in videos for k in range(corpus.windows[rel])
             for c in range(kpw)]
     todo = [(rel, sid) for rel, sid in todo if sid not in exclude]
     pad = (-len(todo)) % ranks if todo else 0
@@ -281,6 +285,10 @@ def v2v_dataset(
         config: sample layout (``ServeConfig``; defaults: the paper's WebVid recipe).
         epoch: an epoch, or several (their rows follow each other; each is padded on its own).
         seed: overrides ``config.seed``; content depends only on (seed, epoch, sample_id).
+            Under ``config.shuffle`` "epoch" (the default) each epoch lists the videos in the
+            order ``v2v-serve`` hands them out in (drawn from (seed, epoch)); mix rows across
+            videos as its shuffle buffer does with ``iter_batches(local_shuffle_buffer_size=
+            config.shuffle_buffer)`` (``trainer.ray_train`` does).
         outputs: columns to make, from ``OUTPUTS`` (default ``DEFAULT_OUTPUTS``; ``polarity_counts``
             is opt-in); others are not computed.
         exclude: sample ids already consumed (of ``epoch``; a mapping epoch -> ids for several
@@ -314,7 +322,9 @@ def v2v_dataset(
         excl = {int(e): set(v) for e, v in exclude.items()}
     else:
         excl = {epochs[0]: set(exclude)} if epochs else {}
-    items = [d for e in epochs for d in epoch_descriptors(corpus, e, excl.get(e, ()), ranks, cfg.crops_per_window)]
+    shuffle_seed = cfg.seed if cfg.shuffle == "epoch" else None
+    items = [d for e in epochs
+             for d in epoch_descriptors(corpus, e, excl.get(e, ()), ranks, cfg.crops_per_window, shuffle_seed)]
     if not items:
         log.warning("no samples to make in %s for epoch(s) %s", corpus.root, epochs)
         return ray.data.from_items([{"video": "", "epoch": 0, "entries": "[]"}]).limit(0)

@@ -11,12 +11,11 @@ was given (``datapath.make_batch`` in the server), and a payload is only asked f
 """
 from __future__ import annotations
 
-import collections
-import itertools
 import logging
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, Hashable, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
+from v2v_server.delivery.batcher import SHUFFLES, Batcher
 from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
 from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import OUTPUTS
@@ -41,6 +40,16 @@ class DeliveryPolicy:
         offered: outputs this server offers.
         max_task_crashes: see ``schedule.EpochScheduler``.
         crops_per_window: samples per window (ids ``path#window.crop`` when > 1, ``ids.py``).
+        shuffle: ``"epoch"``: each epoch hands the videos out in ``batcher.video_order(videos,
+            seed, epoch)`` and spreads samples over the open batches of a shuffle buffer
+            (``batcher.Batcher``); ``"none"``: the listing's order, batches in arrival order.
+        shuffle_buffer: samples the shuffle buffer holds under ``shuffle="epoch"`` (>= 1),
+            rounded up to whole open batches (:attr:`lanes`).
+        seed: draws the orders (``ServeConfig.seed``).
+
+    Raises:
+        ValueError: naming the field, for a ``shuffle`` not in ``batcher.SHUFFLES`` or a
+            ``shuffle_buffer`` that is not an int >= 1.
     """
 
     batch_size: int = 12
@@ -53,71 +62,29 @@ class DeliveryPolicy:
     offered: Tuple[str, ...] = OUTPUTS
     max_task_crashes: int = 3
     crops_per_window: int = 1
+    shuffle: str = "none"
+    shuffle_buffer: int = 1
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.shuffle not in SHUFFLES:
+            raise ValueError(f"shuffle must be one of {list(SHUFFLES)}, got {self.shuffle!r}")
+        if isinstance(self.shuffle_buffer, bool) or not isinstance(self.shuffle_buffer, int) \
+                or self.shuffle_buffer < 1:
+            raise ValueError(f"shuffle_buffer must be an int >= 1 (samples), got {self.shuffle_buffer!r}")
+
+    @property
+    def lanes(self) -> int:
+        """Open batches per epoch: ``ceil(shuffle_buffer / batch_size)`` when shuffling, else 1
+        (arrival order)."""
+        return -(-self.shuffle_buffer // self.batch_size) if self.shuffle == "epoch" else 1
 
     @classmethod
     def from_config(cls, cfg, max_task_crashes: int = 3) -> "DeliveryPolicy":
         """The policy of a validated ``config.ServeConfig``."""
         return cls(cfg.batch_size, cfg.epochs, cfg.lease_s, cfg.client_timeout_s, cfg.revoke_s, cfg.max_credits,
-                   cfg.task_timeout_s, tuple(cfg.outputs), max_task_crashes, cfg.crops_per_window)
-
-
-class Batcher:
-    """Kept samples waiting for a batch, grouped by (epoch, outputs computed), and the batches
-    made of them (added to the ledger). Pure.
-
-    Args:
-        batch_size: samples per batch.
-        make_batch: ``samples -> payload``.
-        ledger: where each batch made goes (``DeliveryLedger.add_batch``).
-    """
-
-    def __init__(self, batch_size: int, make_batch: Callable, ledger: DeliveryLedger):
-        self.batch_size = batch_size
-        self.make_batch = make_batch
-        self.ledger = ledger
-        self._batch_ids = itertools.count()
-        # (epoch, outputs) -> [(key, sample)] in arrival order
-        self.pending: Dict[Tuple[int, tuple], List[Tuple[SampleKey, Any]]] = collections.defaultdict(list)
-
-    def add(self, epoch: int, outputs: tuple, key: SampleKey, sample) -> None:
-        """Queue one sample; a full group becomes a batch."""
-        group = self.pending[(epoch, outputs)]
-        group.append((key, sample))
-        if len(group) >= self.batch_size:
-            self._make((epoch, outputs), group)
-
-    def _make(self, gkey: Tuple[int, tuple], group: list) -> None:
-        items = group[: self.batch_size]
-        del group[: self.batch_size]
-        payload = self.make_batch([s for _, s in items])
-        self.ledger.add_batch(BatchRecord(next(self._batch_ids), gkey[0], [k for k, _ in items], payload,
-                                          outputs=frozenset(gkey[1])))
-
-    def flush(self, ended: Callable[[int], bool]) -> None:
-        """Batch the leftovers of every epoch for which ``ended(epoch)`` (none of its jobs runs
-        or waits)."""
-        for gkey, group in list(self.pending.items()):
-            if not group:
-                del self.pending[gkey]
-                continue
-            if ended(gkey[0]):
-                while group:
-                    self._make(gkey, group)
-
-    def drop(self, should_drop: Callable[[int, SampleKey], bool]) -> List[Tuple[int, List[SampleKey]]]:
-        """Remove the waiting samples for which ``should_drop(epoch, key)``; returns
-        ``(epoch, keys removed)`` per group that lost some."""
-        out = []
-        for (epoch, _), group in self.pending.items():
-            gone = [k for k, _ in group if should_drop(epoch, k)]
-            if gone:
-                group[:] = [(k, s) for k, s in group if not should_drop(epoch, k)]
-                out.append((epoch, gone))
-        return out
-
-    def waiting(self) -> bool:
-        """Some sample waits for a batch."""
-        return any(self.pending.values())
+                   cfg.task_timeout_s, tuple(cfg.outputs), max_task_crashes, cfg.crops_per_window, cfg.shuffle,
+                   cfg.shuffle_buffer, cfg.seed)
 
 
 class GroupPadding:
@@ -177,9 +144,10 @@ class DeliveryCore:
 
     def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None):
         p = self.policy = policy
-        self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window)
+        self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
+                                    shuffle_seed=p.seed if p.shuffle == "epoch" else None)
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, revoke_s=p.revoke_s, max_credits=p.max_credits)
-        self.batcher = Batcher(p.batch_size, make_batch, self.ledger)
+        self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
         self.crops_per_window = p.crops_per_window
         self.task_timeout_s = p.task_timeout_s
         self.offered = tuple(p.offered)
@@ -212,20 +180,23 @@ class DeliveryCore:
                 "outputs": list(self.outputs), "skip": [[k.window, k.crop] for k in sorted(t.skip)]}
 
     def sample(self, worker: Hashable, task_id, key: SampleKey, now: float, build: Callable) -> bool:
-        """A worker sent sample ``key`` of ``task_id``'s video; ``build()`` makes the sample object
-        (called only when the sample is wanted; it may raise, which drops the sample and makes
-        it owed again). Returns True when the sample was kept."""
+        """A worker sent sample ``key`` of ``task_id``'s video; ``build(lane)`` makes the sample
+        object (called only when the sample is wanted, with the open batch it joins,
+        ``Batcher.lane``, so the data path can copy it into that batch's buffer; it may raise,
+        which drops the sample and makes it owed again). Returns True when the sample was kept."""
         key = self.sched.accept_sample(task_id, worker, key, now)
         if key is None:
             return False
         epoch = self.sched.running[task_id].epoch
+        outputs = self.task_outputs.get(task_id, ())
+        lane = self.batcher.lane(epoch, outputs)
         try:
-            s = build()
+            s = build(lane)
         except Exception:
             self.sched.discarded(epoch, [key])
             raise
         self.samples_made += 1
-        self.batcher.add(epoch, self.task_outputs.get(task_id, ()), key, s)
+        self.batcher.add(epoch, outputs, key, s, lane)
         return True
 
     def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str]) -> Optional[Job]:

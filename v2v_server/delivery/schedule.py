@@ -35,6 +35,7 @@ import itertools
 from dataclasses import dataclass, field
 from typing import Deque, Dict, FrozenSet, Hashable, Iterable, List, Optional, Set, Tuple
 
+from v2v_server.delivery.batcher import video_order
 from v2v_wire.ids import SampleKey, window_keys
 
 Consumer = Hashable
@@ -225,13 +226,16 @@ class EpochScheduler:
         lookahead: epochs that may be open beyond the oldest incomplete one.
         keep_epochs: complete epochs kept so an older resume state can reopen them.
         crops_per_window: samples per window (K of ``ids.py``).
+        shuffle_seed: None: every epoch hands the videos out in the listing's order; an int:
+            epoch ``e`` hands them out in ``batcher.video_order(videos, shuffle_seed, e)``.
 
     Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
 
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = 3,
-                 lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1):
-        self.videos = list(videos)
+                 lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1,
+                 shuffle_seed: Optional[int] = None):
+        self.videos, self.shuffle_seed = list(videos), shuffle_seed
         self.known = set(self.videos)
         self.max_epochs = epochs
         self.max_task_crashes = max_task_crashes
@@ -258,13 +262,17 @@ class EpochScheduler:
         plan = EpochPlan(e, self.crops_per_window)
         for consumer, keys in self.pending_records.pop(e, {}).items():
             plan.set_record(consumer, keys)
-        for v in self.videos:
+        for v in self.epoch_order(e):
             plan.jobs[v] = Job(e, v)
             plan.unfinished += 1
             self.queue.append((e, v))
         self.plans[e] = plan
         plan.check_complete()
         return True
+
+    def epoch_order(self, epoch: int) -> List[str]:
+        """The order ``epoch`` hands the videos out in (``batcher.video_order``, or the listing's)."""
+        return list(self.videos) if self.shuffle_seed is None else video_order(self.videos, self.shuffle_seed, epoch)
 
     def finished(self) -> bool:
         """True when the last of ``epochs`` epochs is complete (never for unbounded streams)."""

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Optional, Tuple
 
+from v2v_server.delivery.batcher import SHUFFLES
 from v2v_server.samples.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import OUTPUTS, check_outputs, is_loopback  # noqa: F401  (is_loopback: config's checks and sockets use it)
@@ -29,6 +30,9 @@ FLOW_DTYPES = ARRAYS["flow"].dtypes
 MAX_WORKERS = 256
 MAX_PREFETCH = 256
 MAX_CREDITS = 1024
+MAX_SHUFFLE_BUFFER = 4096
+#: Samples the shuffle buffer holds by default (its mixing measured: docs/shuffle.md).
+SHUFFLE_BUFFER = 64
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".gif")
 
 
@@ -204,6 +208,14 @@ class ServingSettings:
                                                   "(v2v_server/delivery/journal.py)")
     batch_size: int = setting(12, help="samples per batch (the last batch of an epoch may be smaller)")
     video_extensions: Tuple[str, ...] = setting(VIDEO_EXTENSIONS, help="file extensions served as videos", flag="")
+    shuffle: str = setting("epoch", help="epoch: each epoch hands the videos out in an order drawn from (seed, "
+                                         "epoch) and each made sample joins a random open batch of the shuffle "
+                                         "buffer, so batches mix videos whatever the worker count; none: the "
+                                         "listing's order, batches in the order samples are made (docs/shuffle.md)",
+                           choices=SHUFFLES)
+    shuffle_buffer: int = setting(SHUFFLE_BUFFER, help="samples the shuffle buffer holds (shuffle: epoch), rounded "
+                                                       "up to whole batches: that many samples of server memory "
+                                                       "(docs/shuffle.md has their size)")
     heartbeat_s: float = setting(1.0, help="seconds between heartbeats to clients")
     lease_s: float = setting(60.0, help="seconds before an unacknowledged batch is sent again", flag="--lease")
     client_timeout_s: float = setting(10.0, help="seconds of client silence before its batches go back to the queue",
@@ -234,6 +246,8 @@ class ServingSettings:
         check_int("workers", self.workers, 1, MAX_WORKERS, "worker processes")
         check_int("batch_size", self.batch_size, 1)
         check_int("prefetch_batches", self.prefetch_batches, 1, MAX_PREFETCH, "batches assembled ahead")
+        check_choice("shuffle", self.shuffle, SHUFFLES)
+        check_int("shuffle_buffer", self.shuffle_buffer, 1, MAX_SHUFFLE_BUFFER, "samples")
         check_int("max_credits", self.max_credits, 1, MAX_CREDITS, "batches in flight per client")
         if self.epochs is not None:
             check_int("epochs", self.epochs, 1)

@@ -19,7 +19,11 @@ Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
   ``v2v_client_inflight_batches{client}`` (client = connection id; no per-sample labels),
   ``v2v_queue_batches`` (assembled, waiting for a credit), ``v2v_inflight_batches``,
   ``v2v_workers`` (alive), ``v2v_workers_busy``, ``v2v_epoch`` (newest epoch being made),
-  ``v2v_epoch_videos`` and ``v2v_epoch_videos_done`` (its progress), ``v2v_ready``.
+  ``v2v_epoch_videos`` and ``v2v_epoch_videos_done`` (its progress), ``v2v_shuffle_buffer_samples``
+  and ``v2v_shuffle_buffer_capacity_samples`` (made samples waiting in open batches, and how
+  many those batches hold: ``--shuffle-buffer`` rounded up to whole batches, per epoch being
+  batched),
+  ``v2v_ready``.
 """
 from __future__ import annotations
 
@@ -153,7 +157,8 @@ class ServerMetrics:
     def set_state(self, **state) -> None:
         """The server's state after a loop turn: ``clients`` {client id: (credits, in-flight
         batches)}, ``queue_batches``, ``inflight_batches``, ``workers``, ``workers_busy``,
-        ``epoch``, ``epoch_videos``, ``epoch_videos_done``, and ``ready`` (socket bound,
+        ``epoch``, ``epoch_videos``, ``epoch_videos_done``, ``shuffle_samples`` and
+        ``shuffle_capacity`` (the shuffle buffer's fill, samples), and ``ready`` (socket bound,
         corpus scanned, a worker up). Also the liveness tick for ``/healthz``."""
         now = time.monotonic()
         with self._lock:
@@ -267,6 +272,10 @@ class _StateCollector:
             ("v2v_epoch", "epoch", "Newest epoch being made (-1 before the first)"),
             ("v2v_epoch_videos", "epoch_videos", "Videos of the newest epoch"),
             ("v2v_epoch_videos_done", "epoch_videos_done", "Videos of the newest epoch fully made"),
+            ("v2v_shuffle_buffer_samples", "shuffle_samples", "Made samples waiting in open batches (shuffle buffer)"),
+            ("v2v_shuffle_buffer_capacity_samples", "shuffle_capacity",
+             "Samples the open batches hold when full (shuffle_buffer rounded up to whole batches, per epoch "
+             "being batched)"),
         ):
             g = GaugeMetricFamily(name, doc)
             g.add_metric([], float(st.get(key, 0)))
@@ -300,7 +309,8 @@ class _Progress:
         self._last, self._last_bytes = now, self.nbytes
         self.line = (f"epoch {st.get('epoch', -1)} ({st.get('epoch_videos_done', 0)}/{st.get('epoch_videos', 0)} "
                      f"videos), {mbs:.1f} MB/s, {len(st.get('clients', {}))} client(s), workers busy "
-                     f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}")
+                     f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}, shuffle buffer "
+                     f"{st.get('shuffle_samples', 0)}/{st.get('shuffle_capacity', 0)}")
         self.bar.set_postfix_str(self.line)
 
     def close(self) -> None:

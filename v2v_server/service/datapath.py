@@ -184,7 +184,8 @@ def shm_bytes(workers: int, sequence_length: int, num_bins: int, crop_size: int)
     """Bytes of /dev/shm a server's slot rings reserve: ``workers x RING_SLOTS x slot_bytes``
     (about 57 MB per worker for L = 40, 5 bins, 128 x 128 crops). A server bound to ``ipc://``
     also keeps its batch buffers there (``(prefetch_batches + credits in flight + 2) x`` one
-    batch). Size a container's /dev/shm (Docker ``shm_size``, a Kubernetes memory-backed
+    batch, plus one batch per open batch of the shuffle buffer: ``shuffle_buffer`` rounded up to
+    whole batches, docs/shuffle.md). Size a container's /dev/shm (Docker ``shm_size``, a Kubernetes memory-backed
     ``emptyDir``) at least this; with less, rings are refused at start and workers send
     arrays over the socket."""
     return workers * RING_SLOTS * slot_bytes(sequence_length, num_bins, crop_size)
@@ -499,7 +500,7 @@ class BatchAssembler:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.batch_size, self.spare, self.files = batch_size, spare, files
-        self._open: Dict[tuple, _BatchBuffer] = {}
+        self._open: Dict[tuple, _BatchBuffer] = {}  # (layout, lane) -> buffer being filled
         self._used: Dict[tuple, List[_BatchBuffer]] = {}  # handed out, maybe still viewed
         self.reused = 0
 
@@ -548,6 +549,9 @@ class BatchAssembler:
                     self._used[other] = busy
                 else:
                     del self._used[other]
+        # open buffers left idle (their open batch was flushed or dropped) are no lane's any more
+        for key in [k for k, b in self._open.items() if b is not None and b.idle()]:
+            del self._open[key]
         used = self._used.setdefault(sig, [])
         idle = [b for b in used if b.idle()]
         busy = [b for b in used if not b.idle()]
@@ -563,16 +567,20 @@ class BatchAssembler:
         self._used[sig] = busy + idle[: self.spare] + [buf]
         return buf
 
-    def place(self, sample_id: str, meta: dict, arrays: Dict[str, np.ndarray]) -> SamplePayload:
+    def place(self, sample_id: str, meta: dict, arrays: Dict[str, np.ndarray], lane: int = 0) -> SamplePayload:
         """Copy ``arrays`` (e.g. views of a slot) into the next free row of the open buffer of
-        their layout; returns the sample viewing that row (read-only)."""
+        their layout and ``lane`` (the open batch the sample joins, ``delivery.batcher.Batcher.lane``:
+        one buffer per open batch, so a full batch is consecutive rows of one buffer); returns
+        the sample viewing that row (read-only)."""
         sig = tuple((k, a.dtype.str, a.shape) for k, a in arrays.items())
-        buf = self._open.get(sig)
+        buf = self._open.get((sig, lane))
         if buf is None or buf.sealed or buf.next >= self.batch_size:
-            self._open[sig] = None  # the open buffer is not idle while we hold it here
-            buf = self._open[sig] = self._fresh(sig, arrays)
+            self._open[(sig, lane)] = None  # the open buffer is not idle while we hold it here
+            buf = self._open[(sig, lane)] = self._fresh(sig, arrays)
         row = buf.next
         buf.next += 1
+        if buf.next >= self.batch_size:
+            del self._open[(sig, lane)]  # full: the lane's next batch gets another buffer
         views = {}
         for k, a in arrays.items():
             dst = buf.arrays[k][row]
@@ -583,11 +591,13 @@ class BatchAssembler:
         return SamplePayload(sample_id, meta, views, buf, row)
 
 
-def sample_from_slot(header: dict, ring: SlotRing, assembler: BatchAssembler, frames: Sequence = ()) -> SamplePayload:
+def sample_from_slot(header: dict, ring: SlotRing, assembler: BatchAssembler, frames: Sequence = (),
+                     lane: int = 0) -> SamplePayload:
     """Build a :class:`SamplePayload` from a worker's ``sample`` header naming a slot of
-    ``ring``: the slot's arrays are copied into ``assembler``'s batch buffer (after this
-    returns the slot may be given back to the worker); ``frames``, the message's frames after
-    the header, are its compressed frames (``packed_frames``).
+    ``ring``: the slot's arrays are copied into ``assembler``'s batch buffer of ``lane`` (the
+    open batch the sample joins; after this returns the slot may be given back to the worker);
+    ``frames``, the message's frames after the header, are its compressed frames
+    (``packed_frames``).
 
     Raises:
         ProtocolError: for a slot out of range, array specs that do not fit a slot, or
@@ -596,7 +606,7 @@ def sample_from_slot(header: dict, ring: SlotRing, assembler: BatchAssembler, fr
     views = ring.arrays(header["slot"], header["arrays"])
     packed = packed_frames(header, frames, views)
     try:
-        s = assembler.place(header["sample_id"], header["meta"], views)
+        s = assembler.place(header["sample_id"], header["meta"], views, lane)
     finally:
         del views
     s.packed = packed

@@ -235,11 +235,13 @@ class V2VServer:
     def _log_status(self) -> None:
         self._count_resent()
         m = self.metrics.totals()
+        held, capacity = self.core.batcher.fill()
         log.info("status: %d client(s), %d batches sent (%d re-sent, %d acknowledged), %d samples made, "
-                 "%d ready, %d in flight, %d worker restart(s), %d task timeout(s), %d file failure(s), "
-                 "%d bad message(s) (%d log lines suppressed)",
+                 "%d ready, %d in flight, shuffle buffer %d/%d samples, %d worker restart(s), %d task timeout(s), "
+                 "%d file failure(s), %d bad message(s) (%d log lines suppressed)",
                  len(self.ledger.clients), m["batches_sent"], m["batches_resent"], self.ledger.acked,
-                 m["samples_made"], len(self.ledger.ready), self.ledger.in_flight(), m["workers_restarted"],
+                 m["samples_made"], len(self.ledger.ready), self.ledger.in_flight(), held, capacity,
+                 m["workers_restarted"],
                  m["tasks_timed_out"], len(self.workers.skipped_files), m["bad_messages"], self.clients.bad.suppressed)
 
     def _count_resent(self) -> None:
@@ -253,12 +255,14 @@ class V2VServer:
         alive = [w for w in (self.pool.workers.values() if self.pool else ()) if w.proc.is_alive()]
         newest = max(self.sched.plans) if self.sched.plans else None
         plan = self.sched.plans.get(newest) if newest is not None else None
+        held, capacity = self.core.batcher.fill()
         return {"clients": {c.ident.hex()[:12]: (c.credits, len(c.held)) for c in self.ledger.clients.values()},
                 "queue_batches": len(self.ledger.ready), "inflight_batches": self.ledger.in_flight(),
                 "workers": len(alive), "workers_busy": sum(1 for w in alive if not w.idle),
                 "epoch": newest if newest is not None else -1,
                 "epoch_videos": len(plan.jobs) if plan else 0,
                 "epoch_videos_done": sum(1 for j in plan.jobs.values() if j.state == "done") if plan else 0,
+                "shuffle_samples": held, "shuffle_capacity": capacity,
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
 
     def _corpus_empty(self) -> bool:

@@ -103,9 +103,9 @@ class WorkerSide:
         elif kind == "sample":
             slot = h.get("slot")
             if slot is not None and w.ring is not None:  # arrays in the worker's shared memory
-                build = lambda: sample_from_slot(h, w.ring, self.assembler, frames[2:])  # noqa: E731
+                build = lambda lane: sample_from_slot(h, w.ring, self.assembler, frames[2:], lane)  # noqa: E731
             else:
-                build = lambda: sample_from_worker(h, frames[2:])  # noqa: E731
+                build = lambda lane: sample_from_worker(h, frames[2:])  # noqa: E731
             try:
                 key = SampleKey.from_wire(h.get("key"), self.cfg.crops_per_window)
                 h["sample_id"] = key.sample_id(self.cfg.crops_per_window)  # the batch's user-facing id

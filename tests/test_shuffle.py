@@ -1,0 +1,202 @@
+"""Shuffled epochs without sockets: the epoch order of the videos (``batcher.video_order``, the
+scheduler), the shuffle buffer of open batches (``batcher.Batcher``), its zero-copy buffers
+(``datapath.BatchAssembler`` lanes), and the settings' errors."""
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+import pytest
+
+from v2v_server.delivery.batcher import Batcher, video_order
+from v2v_server.delivery.core import DeliveryPolicy
+from v2v_server.delivery.ledger import DeliveryLedger
+from v2v_server.delivery.schedule import EpochScheduler
+from v2v_server.ops.config import ServeConfig
+from v2v_server.ray_data import RayCorpus, epoch_descriptors
+from v2v_server.service.datapath import BatchAssembler, make_batch
+from v2v_wire.ids import SampleKey
+
+VIDEOS = [f"v{i:02d}.mp4" for i in range(24)]
+
+
+def handed_out(sched: EpochScheduler):
+    """(epoch, video) of every task one worker gets, each finished with no windows."""
+    order = []
+    while (task := sched.next_task("w", 0.0)) is not None:
+        order.append((task.epoch, task.video))
+        sched.task_done(task.task_id, "w", windows=0)
+    return order
+
+
+def test_epoch_orders_differ_between_epochs_and_repeat_on_a_restart():
+    first = handed_out(EpochScheduler(VIDEOS, epochs=3, shuffle_seed=5))
+    again = handed_out(EpochScheduler(VIDEOS, epochs=3, shuffle_seed=5))  # a restarted server
+    by_epoch = {e: [v for ee, v in first if ee == e] for e in range(3)}
+    assert first == again
+    assert all(sorted(vs) == VIDEOS for vs in by_epoch.values())  # each epoch: every video once
+    assert len({tuple(vs) for vs in by_epoch.values()}) == 3 and tuple(by_epoch[0]) != tuple(VIDEOS)
+    other_seed = handed_out(EpochScheduler(VIDEOS, epochs=1, shuffle_seed=6))
+    assert [v for _, v in other_seed] != by_epoch[0]
+
+
+def test_a_shard_gets_the_global_order_restricted_to_its_videos():
+    """A video's place depends on (seed, epoch, its path) only: whatever the shard count, each
+    shard hands its videos out in the order they have in the whole corpus's permutation."""
+    whole = video_order(VIDEOS, 3, 7)
+    for count in (2, 3, 5):
+        for index in range(count):
+            mine = VIDEOS[index::count]
+            assert video_order(mine, 3, 7) == [v for v in whole if v in set(mine)]
+    assert video_order(list(reversed(VIDEOS)), 3, 7) == whole  # the listing's order does not matter
+
+
+def test_shuffle_none_keeps_the_listing_order_and_arrival_order():
+    """``--shuffle none``: one worker gets the videos in the listing's order, epoch after epoch,
+    and the batcher keeps the samples' arrival order."""
+    policy = DeliveryPolicy(shuffle="none", shuffle_buffer=64)
+    assert policy.lanes == 1
+    sched = EpochScheduler(["c.mp4", "a.mp4", "b.mp4"], epochs=2)
+    assert handed_out(sched) == [(e, v) for e in (0, 1) for v in ("c.mp4", "a.mp4", "b.mp4")]
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    batcher = Batcher(2, list, ledger, lanes=policy.lanes)
+    keys = [SampleKey("c.mp4", w, 0) for w in range(3)] + [SampleKey("a.mp4", 0, 0)]
+    for k in keys:
+        batcher.add(0, ("voxels",), k, k, batcher.lane(0, ("voxels",)))
+    assert [ledger.batches[i].keys for i in ledger.ready] == [keys[:2], keys[2:]]
+
+
+def feed(batcher: Batcher, keys, epoch=0, outputs=("voxels",)):
+    for k in keys:
+        batcher.add(epoch, outputs, k, k, batcher.lane(epoch, outputs))
+
+
+def sequential_keys(videos=VIDEOS, windows=5):
+    """What one worker makes: each video's windows in order, video after video."""
+    return [SampleKey(v, w, 0) for v in videos for w in range(windows)]
+
+
+def test_the_shuffle_buffer_batches_every_sample_once_and_mixes_one_workers_videos():
+    keys = sequential_keys()
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    batcher = Batcher(8, list, ledger, lanes=4, seed=1)
+    feed(batcher, keys)
+    held, capacity = batcher.fill()
+    assert capacity == 32 and 0 < held <= capacity and batcher.waiting()
+    batcher.flush(lambda e: True)
+    assert batcher.fill() == (0, 32) and not batcher.waiting()
+    batches = [ledger.batches[i].keys for i in ledger.ready]
+    assert collections.Counter(k for b in batches for k in b) == collections.Counter(keys)
+    assert [len(b) for b in batches] == [8] * 15  # 120 samples: only the last batch may be smaller
+    mixed = np.mean([len({k.video for k in b}) for b in batches])
+    plain = Batcher(8, list, DeliveryLedger(lease_s=1.0, client_timeout_s=100.0), lanes=1)
+    feed(plain, keys)
+    plain.flush(lambda e: True)
+    unmixed = np.mean([len({k.video for k in plain.ledger.batches[i].keys}) for i in plain.ledger.ready])
+    assert unmixed == 2.4 and mixed >= 1.5 * unmixed, (mixed, unmixed)
+
+
+def test_the_shuffle_buffer_repeats_its_batches_for_the_same_arrivals_and_seed():
+    def batches(seed):
+        ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+        b = Batcher(8, list, ledger, lanes=4, seed=seed)
+        feed(b, sequential_keys())
+        b.flush(lambda e: True)
+        return [ledger.batches[i].keys for i in ledger.ready]
+
+    assert batches(1) == batches(1) and batches(1) != batches(2)
+
+
+def test_leftovers_wait_for_the_end_of_their_epoch_and_drops_leave_the_buffer():
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    batcher = Batcher(4, list, ledger, lanes=3, seed=0)
+    feed(batcher, sequential_keys(VIDEOS[:2], 2), epoch=0)
+    feed(batcher, sequential_keys(VIDEOS[2:4], 2), epoch=1)
+    gone = batcher.drop(lambda e, k: e == 1 and k.video == VIDEOS[2])
+    assert [(e, sorted(ks)) for e, ks in gone] == [(1, [SampleKey(VIDEOS[2], 0, 0), SampleKey(VIDEOS[2], 1, 0)])]
+    batcher.flush(lambda e: e == 0)
+    made = [ledger.batches[i] for i in ledger.ready]
+    assert {b.epoch for b in made} == {0}
+    assert sorted(k for b in made for k in b.keys) == sorted(sequential_keys(VIDEOS[:2], 2))
+    assert batcher.fill() == (2, 12)  # epoch 1's two samples left, in one group of 3 x 4 rows
+
+
+def test_a_full_open_batch_is_its_buffers_rows_and_goes_zero_copy():
+    """Each open batch fills rows of its own buffer (``BatchAssembler.place`` lane), so a batch
+    the shuffle buffer makes is consecutive rows of one buffer: ``make_batch`` copies nothing."""
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    batcher = Batcher(4, make_batch, ledger, lanes=3, seed=0)
+    asm = BatchAssembler(4)
+    for i, key in enumerate(sequential_keys(VIDEOS[:6], 2)):
+        lane = batcher.lane(0, ("voxels",))
+        arrays = {"voxels": np.full((2, 3, 8, 8), i, np.int8)}
+        batcher.add(0, ("voxels",), key, asm.place(key.sample_id(), {}, arrays, lane), lane)
+    full = [ledger.batches[i] for i in ledger.ready]
+    assert full and all(b.payload._rows is not None for b in full)  # views of one buffer's rows
+    for b in full:
+        assert [int(b.payload.arrays["voxels"][r, 0, 0, 0, 0]) for r in range(4)] == [
+            2 * VIDEOS.index(k.video) + k.window for k in b.keys]
+    assert len({k.video for b in full for k in b.keys[:4]}) > 2
+
+
+def test_shuffle_buffer_rounds_up_to_whole_open_batches():
+    assert DeliveryPolicy(batch_size=12, shuffle="epoch", shuffle_buffer=64).lanes == 6
+    assert DeliveryPolicy(batch_size=4, shuffle="epoch", shuffle_buffer=64).lanes == 16
+    assert DeliveryPolicy(batch_size=12, shuffle="epoch", shuffle_buffer=1).lanes == 1
+
+
+@pytest.mark.parametrize("kw,field", [({"shuffle": "random"}, "shuffle"), ({"shuffle_buffer": 0}, "shuffle_buffer"),
+                                      ({"shuffle_buffer": 10 ** 6}, "shuffle_buffer")])
+def test_bad_shuffle_settings_name_the_field(kw, field):
+    with pytest.raises(ValueError, match=field):
+        ServeConfig(**kw).validate()
+    if field == "shuffle" or kw[field] < 1:
+        with pytest.raises(ValueError, match=field):
+            DeliveryPolicy(**kw)
+
+
+def test_the_ray_engine_lists_each_epoch_in_the_servers_order():
+    corpus = RayCorpus("corpus", {v: 2 for v in VIDEOS}, {})
+    served = handed_out(EpochScheduler(VIDEOS, epochs=2, shuffle_seed=5))
+    for epoch in (0, 1):
+        descs = epoch_descriptors(corpus, epoch, shuffle_seed=5)
+        assert [d["video"] for d in descs] == [v for e, v in served if e == epoch]
+    assert [d["video"] for d in epoch_descriptors(corpus, 1)] == VIDEOS  # shuffle none: the listing's order
+
+
+# ---------------------------------------------------------------------------------- live server
+def stream_order(corpus, *extra, content: dict = None) -> dict:
+    """epoch -> sample ids in the order one trainer received them, from a one-worker server;
+    ``content`` gets (epoch, sample id) -> the bytes of its voxels."""
+    from harness.serve import ServeProcess
+    from v2v_client import V2VStreamDataset
+
+    args = ["--videos", str(corpus), "--workers", "1", "--sequence-length", "4", "--crop-size", "32",
+            "--max-samples-per-video", "3", "--batch-size", "4", "--shuffle-buffer", "8", "--seed", "2",
+            "--flow-preset", "ultrafast", *extra]
+    order: dict = {}
+    with ServeProcess(args, ready_timeout_s=120) as srv:
+        for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60):
+            order.setdefault(int(b["epoch"]), []).extend(b["sample_ids"])
+            for sid, v in zip(b["sample_ids"], b["voxels"]):
+                (content if content is not None else {})[(int(b["epoch"]), sid)] = v.numpy().tobytes()
+        assert srv.wait(30) == 0
+    return order
+
+
+@pytest.mark.timeout(240)
+def test_a_served_epoch_has_its_own_order_and_a_restarted_server_repeats_it(tmp_path):
+    from harness.corpus import write_video
+
+    corpus = tmp_path / "clips"
+    corpus.mkdir()
+    for i in range(8):
+        write_video(corpus / f"clip{i}.mp4", 61, 64, 48)
+    shuffled, plain = {}, {}
+    first = stream_order(corpus, "--epochs", "2", content=shuffled)
+    assert sorted(first[0]) == sorted(first[1]) and len(set(first[0])) == len(first[0]) == 24  # each once
+    assert first[0] != first[1]
+    assert stream_order(corpus, "--epochs", "1")[0] == first[0]  # a new server process, the same epoch 0
+    listing = stream_order(corpus, "--epochs", "2", "--shuffle", "none", content=plain)
+    assert listing[0] == listing[1] != first[0]
+    assert plain == shuffled  # each sample's content depends on (seed, epoch, id), not on the order

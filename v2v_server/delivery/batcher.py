@@ -1,0 +1,156 @@
+"""Shuffled epochs, pure: the order videos are handed out in, and how made samples become batches.
+
+* :func:`video_order` draws each epoch's order of the videos from ``(seed, epoch)``: every
+  video gets a sort key hashed from ``(seed, epoch, path)``, so the order is the same on every
+  restart, and a shard (any subset of the listing) gets the global order restricted to its
+  videos, whatever the shard count.
+* :class:`Batcher` turns made samples into batches. With ``lanes`` open batches per
+  (epoch, outputs) group, each arriving sample joins a uniformly random one of them (a shuffle
+  buffer of at most ``lanes x batch_size`` samples); an open batch that is full becomes a batch
+  and an empty one opens in its place. A sample's open batch is chosen *before*
+  its arrays are copied (:meth:`Batcher.lane`), so the server copies it straight into that
+  batch's buffer row (``datapath.BatchAssembler.place``): a full batch is consecutive rows of
+  one buffer and goes out zero-copy, as without shuffling. ``lanes = 1`` keeps arrival order.
+
+Nothing here owns a socket, a clock or a process; ``tests/test_shuffle.py`` drives it directly.
+"""
+from __future__ import annotations
+
+import hashlib
+import itertools
+import random
+from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple
+
+from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
+from v2v_wire.ids import SampleKey
+
+#: ``shuffle`` settings: ``epoch`` draws a new order each epoch and mixes batches; ``none`` keeps
+#: the listing's order and the samples' arrival order.
+SHUFFLES = ("epoch", "none")
+
+
+def video_order(videos: Iterable[str], seed: int, epoch: int) -> List[str]:
+    """``videos`` permuted for ``epoch``: sorted by a BLAKE2b hash of ``(seed, epoch, path)``.
+
+    The key of a video depends only on its own path, so the order of any subset (a shard) is
+    the global order restricted to it, and a restart draws the same order.
+
+    Args:
+        videos: corpus-relative paths (str); duplicates keep their relative order.
+        seed, epoch: non-negative ints (``ServeConfig.seed``, epoch index).
+    Returns:
+        A new list holding the same paths.
+    """
+    def key(v: str) -> bytes:
+        return hashlib.blake2b(f"{seed}/{epoch}/{v}".encode(), digest_size=8).digest()
+
+    return sorted(videos, key=key)
+
+
+class Batcher:
+    """Kept samples waiting for a batch, grouped by (epoch, outputs computed) and spread over
+    ``lanes`` open batches per group; the batches made of them go to the ledger. Pure.
+
+    Args:
+        batch_size: samples per batch (>= 1).
+        make_batch: ``samples -> payload`` (samples in batch order).
+        ledger: where each batch made goes (``DeliveryLedger.add_batch``).
+        lanes: open batches per group (1: arrival order). The buffer holds up to
+            ``lanes x batch_size`` samples per group, i.e. that many batches' memory.
+        seed: seeds each group's choice of lane (with the epoch), so one worker's stream gives
+            the same batches on every run.
+
+    Raises:
+        ValueError: ``batch_size`` or ``lanes`` < 1.
+    """
+
+    def __init__(self, batch_size: int, make_batch: Callable, ledger: DeliveryLedger, lanes: int = 1,
+                 seed: int = 0):
+        if batch_size < 1 or lanes < 1:
+            raise ValueError(f"batch_size and lanes must be >= 1, got {batch_size} and {lanes}")
+        self.batch_size, self.make_batch, self.ledger = batch_size, make_batch, ledger
+        self.lanes, self.seed = lanes, seed
+        self._batch_ids = itertools.count()
+        self._lane_ids = itertools.count()  # an open batch's id: unique for the Batcher's life
+        # (epoch, outputs) -> lane id -> [(key, sample)] in arrival order (dicts keep lane order)
+        self.pending: Dict[Tuple[int, tuple], Dict[int, List[Tuple[SampleKey, Any]]]] = {}
+        self._rngs: Dict[Tuple[int, tuple], random.Random] = {}
+
+    def _group(self, gkey: Tuple[int, tuple]) -> Dict[int, list]:
+        group = self.pending.get(gkey)
+        if group is None:
+            group = self.pending[gkey] = {next(self._lane_ids): [] for _ in range(self.lanes)}
+            self._rngs[gkey] = random.Random(f"{self.seed}/{gkey[0]}/{','.join(gkey[1])}")
+        return group
+
+    def lane(self, epoch: int, outputs: tuple) -> int:
+        """The open batch the next sample of ``(epoch, outputs)`` joins: a uniformly random one
+        of the group's ``lanes`` open batches (each has a free row: a full one is replaced at
+        once). Pass it to :meth:`add` (and to the data path, which places the sample's arrays
+        in that batch's buffer)."""
+        gkey = (epoch, tuple(outputs))
+        group = self._group(gkey)
+        if self.lanes == 1:
+            return next(iter(group))
+        return list(group)[self._rngs[gkey].randrange(self.lanes)]
+
+    def add(self, epoch: int, outputs: tuple, key: SampleKey, sample, lane: Optional[int] = None) -> None:
+        """Queue one sample in open batch ``lane`` (from :meth:`lane`; None, or one no longer
+        open: a fresh choice); a full open batch becomes a batch."""
+        gkey = (epoch, tuple(outputs))
+        group = self._group(gkey)
+        if lane not in group:
+            lane = self.lane(epoch, outputs)
+        items = group[lane]
+        items.append((key, sample))
+        if len(items) >= self.batch_size:
+            del group[lane]
+            group[next(self._lane_ids)] = []
+            self._make(gkey, items)
+
+    def _make(self, gkey: Tuple[int, tuple], items: list) -> None:
+        payload = self.make_batch([s for _, s in items])
+        self.ledger.add_batch(BatchRecord(next(self._batch_ids), gkey[0], [k for k, _ in items], payload,
+                                          outputs=frozenset(gkey[1])))
+
+    def flush(self, ended: Callable[[int], bool]) -> None:
+        """Batch the leftovers of every epoch for which ``ended(epoch)`` (none of its jobs runs
+        or waits): the open batches' samples, lane after lane, in batches of ``batch_size``
+        (only the last one smaller)."""
+        for gkey, group in list(self.pending.items()):
+            if not any(group.values()):
+                if ended(gkey[0]):
+                    del self.pending[gkey]
+                    del self._rngs[gkey]
+                continue
+            if ended(gkey[0]):
+                rest = [item for items in group.values() for item in items]
+                for i in range(0, len(rest), self.batch_size):
+                    self._make(gkey, rest[i:i + self.batch_size])
+                del self.pending[gkey]
+                del self._rngs[gkey]
+
+    def drop(self, should_drop: Callable[[int, SampleKey], bool]) -> List[Tuple[int, List[SampleKey]]]:
+        """Remove the waiting samples for which ``should_drop(epoch, key)``; returns
+        ``(epoch, keys removed)`` per group that lost some."""
+        out = []
+        for (epoch, _), group in self.pending.items():
+            gone = []
+            for items in group.values():
+                lost = [k for k, _ in items if should_drop(epoch, k)]
+                if lost:
+                    items[:] = [(k, s) for k, s in items if not should_drop(epoch, k)]
+                    gone.extend(lost)
+            if gone:
+                out.append((epoch, gone))
+        return out
+
+    def waiting(self) -> bool:
+        """Some sample waits for a batch."""
+        return any(items for group in self.pending.values() for items in group.values())
+
+    def fill(self) -> Tuple[int, int]:
+        """``(samples waiting, capacity)`` of the shuffle buffer: the open batches' samples,
+        and ``lanes x batch_size`` for each group that has any open batch (at least one group)."""
+        held = sum(len(items) for group in self.pending.values() for items in group.values())
+        return held, self.lanes * self.batch_size * max(1, len(self.pending))
