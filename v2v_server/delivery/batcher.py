@@ -118,17 +118,13 @@ class Batcher:
         or waits): the open batches' samples, lane after lane, in batches of ``batch_size``
         (only the last one smaller)."""
         for gkey, group in list(self.pending.items()):
-            if not any(group.values()):
-                if ended(gkey[0]):
-                    del self.pending[gkey]
-                    del self._rngs[gkey]
+            if not ended(gkey[0]):
                 continue
-            if ended(gkey[0]):
-                rest = [item for items in group.values() for item in items]
-                for i in range(0, len(rest), self.batch_size):
-                    self._make(gkey, rest[i:i + self.batch_size])
-                del self.pending[gkey]
-                del self._rngs[gkey]
+            rest = [item for items in group.values() for item in items]
+            for i in range(0, len(rest), self.batch_size):
+                self._make(gkey, rest[i:i + self.batch_size])
+            del self.pending[gkey]
+            del self._rngs[gkey]
 
     def drop(self, should_drop: Callable[[int, SampleKey], bool]) -> List[Tuple[int, List[SampleKey]]]:
         """Remove the waiting samples for which ``should_drop(epoch, key)``; returns
@@ -137,9 +133,14 @@ class Batcher:
         for (epoch, _), group in self.pending.items():
             gone = []
             for items in group.values():
-                lost = [k for k, _ in items if should_drop(epoch, k)]
+                kept, lost = [], []
+                for key, sample in items:
+                    if should_drop(epoch, key):
+                        lost.append(key)
+                    else:
+                        kept.append((key, sample))
                 if lost:
-                    items[:] = [(k, s) for k, s in items if not should_drop(epoch, k)]
+                    items[:] = kept
                     gone.extend(lost)
             if gone:
                 out.append((epoch, gone))
