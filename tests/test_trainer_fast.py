@@ -3,18 +3,19 @@
 
 Tolerances: fp32, all five networks: loss within rtol 1e-5, outputs within atol 1e-5, every
 gradient within rtol 1e-4 plus atol 1e-5 x the model's largest gradient (biases right before a
-BatchNorm have a true gradient of zero and carry only rounding noise, ~1e-10). bf16 (E2VID,
-EV-FlowNet, HyperE2VID; ETNet and E-RAFT take 10-60 s per bf16 step on this CPU): loss within rtol
-1e-4, outputs within atol 8e-3 (two bf16 steps at 1), gradients within rtol 2e-2 plus atol 2e-2 x
-the largest. The compiled path (``compile: true`` under ``speed: fast``, inductor on the CPU) is
-tested on EV-FlowNet only: compiling a network here takes about a minute; the rest of the fast
-path (channels-last, the fused optimiser, one bf16 weight cast per step) is tested on all five.
-CUDA graphs (``mode="reduce-overhead"``) cannot run without a GPU and are not tested.
+BatchNorm have a true gradient of zero and carry only rounding noise, ~1e-10). bf16, all five:
+loss within rtol 1e-4, outputs within atol 8e-3 (two bf16 steps at 1), gradients within rtol
+2e-2 plus atol 2e-2 x the largest. The compiled path (``compile: true`` under ``speed: fast``,
+inductor on the CPU, dropout drawn through aten as in eager), all five: the fp32 tolerances,
+E-RAFT's gradients within atol 5e-5 x the largest. Compiling takes from seconds (E2VID) to about
+four minutes (E-RAFT) here. CUDA graphs (``mode="reduce-overhead"``) cannot run without a GPU
+and are not tested.
 """
 from __future__ import annotations
 
 import pytest
 import torch
+import torch._inductor.config
 
 from harness.toy_steps import HOST_READS, TASKS, step_ops, toy_batch, toy_trainer
 from trainer.config import ConfigError, load_config
@@ -49,13 +50,23 @@ def test_fast_fp32_step_equals_eager(task):
     assert_step_close(one_step(task, "eager"), one_step(task, "fast"), 1e-5, 1e-5, 1e-4, 1e-5)
 
 
-@pytest.mark.parametrize("task", ["e2vid", "evflow", "hypere2vid"])
+@pytest.mark.parametrize("task", TASKS)
 def test_fast_bf16_step_equals_eager_bf16(task):
     assert_step_close(one_step(task, "eager", "bf16"), one_step(task, "fast", "bf16"), 1e-4, 8e-3, 2e-2, 2e-2)
 
 
-def test_fast_compiled_step_equals_eager():
-    assert_step_close(one_step("evflow", "eager"), one_step("evflow", "fast", compile=True), 1e-5, 1e-5, 1e-4, 1e-5)
+#: gradient atol (x the largest gradient) of a compiled step: fp32's, except E-RAFT, whose feature
+#: encoder's gradients move by up to 2.6e-5 x the largest under any change of summation order
+COMPILED_GRAD_ATOL = {"eraft": 5e-5}
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_fast_compiled_step_equals_eager(task):
+    # inductor draws dropout masks (ETNet's transformer) from its own generator unless it falls
+    # back to aten's: with the fallback both steps draw the same masks
+    with torch._inductor.config.patch(fallback_random=True):
+        compiled = one_step(task, "fast", compile=True)
+    assert_step_close(one_step(task, "eager"), compiled, 1e-5, 1e-5, 1e-4, COMPILED_GRAD_ATOL.get(task, 1e-5))
 
 
 @pytest.mark.parametrize("task", TASKS)
