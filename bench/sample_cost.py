@@ -1,9 +1,9 @@
 """Where one worker core's time goes per sample, and how far a bit-identical speed-up of the
 stages after decoding could take it: ``python -m bench.sample_cost``.
 
-Runs a worker's own path (``samples.video_samples`` and the wire narrowing, as
-``bench.speed.worker_core``) in this process on one thread, on copies of the WebVid-like clip
-(596 x 336 H.264; ``--clip`` another), every output (voxels, frames, tracked flow), the paper's
+Runs a worker's own path (``bench.speed.worker_core``: ``samples.video_samples`` and the wire
+narrowing, the flow as its grid as a served worker sends it) in this process on one thread, on
+copies of the WebVid-like clip (596 x 336 H.264; ``--clip`` another), every output (voxels, frames, tracked flow), the paper's
 sample (40 voxel grids of 5 bins, 128 x 128), at ``crops_per_window`` 1 and 4. Per sample it
 prints the CPU-milliseconds of the whole path, of simulation and of flow (``stats["busy"]``,
 which ``make_sample`` times with a wall clock: run it on an otherwise idle machine), and the
@@ -27,33 +27,15 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
-from bench.speed import SPAN, bare_decode, clip_path, make_corpus, warm_kernel
+from bench.speed import SPAN, bare_decode, clip_path, make_corpus, warm_kernel, worker_core
 
 
 def path_cost(corpus: Path, crops: int, videos: int) -> dict:
-    """CPU-ms per sample of the worker's path at ``crops`` crops per window: total, simulate, flow."""
-    import cv2
-
-    from v2v_server.ops.config import ServeConfig
-    from v2v_server.samples.flow import FlowEstimator
-    from v2v_server.samples.make import video_samples
-    from v2v_server.service.worker import wire_arrays
-
-    cv2.setNumThreads(1)
-    cfg = ServeConfig(seed=1, crops_per_window=crops).validate()
-    flow = FlowEstimator(cfg.flow_preset)
-    n, busy = 0, {"simulate": 0.0, "flow": 0.0}
-    t = time.process_time()
-    for name in sorted(p.name for p in corpus.iterdir())[:videos]:
-        stats: dict = {}
-        for _, arrays, _ in video_samples(cfg, corpus, name, 0, ("voxels", "frames", "flow"), (), flow, stats,
-                                          flow_grid=True):
-            wire_arrays(cfg, arrays)
-            n += 1
-        for k in busy:
-            busy[k] += stats.get("busy", {}).get(k, 0.0)
-    total = (time.process_time() - t) * 1e3 / n
-    sim, flo = busy["simulate"] * 1e3 / n, busy["flow"] * 1e3 / n
+    """CPU-ms per sample of the worker's path (``bench.speed.worker_core``, every output, the
+    flow as its grid) at ``crops`` crops per window: total, simulate, flow and the rest."""
+    busy: dict = {}
+    total = 1e3 / worker_core(corpus, ("voxels", "frames", "flow"), crops, videos, flow_grid=True, busy=busy)
+    sim, flo = (busy.get(k, 0.0) * 1e3 / busy["samples"] for k in ("simulate", "flow"))
     return {"total": total, "simulate": sim, "flow": flo, "rest": total - sim - flo}
 
 

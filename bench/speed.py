@@ -111,9 +111,13 @@ def reference_loader(path: Path, samples: int, crop: int = 128) -> float:
 
 
 # ---------------------------------------------------------------------------- ours, one core
-def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_fast: str = "off") -> float:
+def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_fast: str = "off",
+                flow_grid: bool = False, busy: Optional[dict] = None) -> float:
     """Samples per CPU-second of one worker's work (decode, crop, simulate, flow, narrowing)
-    in this process, one thread, with the recipe's ``decode_fast`` setting."""
+    in this process, one thread, with the recipe's ``decode_fast`` setting. ``flow_grid``:
+    the tracked flow as its grid, as a served worker sends it. ``busy``, when given, receives
+    ``samples`` and the seconds spent simulating and estimating flow (``make_sample``'s
+    ``busy``: ``simulate``, ``flow``)."""
     import cv2
 
     from v2v_server.ops.config import ServeConfig
@@ -125,12 +129,17 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     cfg = ServeConfig(seed=1, crops_per_window=crops, decode_fast=decode_fast).validate()
     names = sorted(p.name for p in corpus.iterdir())[:videos]
     flow = FlowEstimator(cfg.flow_preset) if "flow" in outputs else None
+    busy = {} if busy is None else busy
     n = 0
     t = time.process_time()
     for name in names:
-        for sid, arrays, meta in video_samples(cfg, corpus, name, 0, outputs, (), flow):
+        stats: dict = {}
+        for sid, arrays, meta in video_samples(cfg, corpus, name, 0, outputs, (), flow, stats, flow_grid):
             wire_arrays(cfg, arrays)
             n += 1
+        for k, v in stats.get("busy", {}).items():
+            busy[k] = busy.get(k, 0.0) + v
+    busy["samples"] = busy.get("samples", 0) + n
     return n / (time.process_time() - t)
 
 
