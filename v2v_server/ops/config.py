@@ -21,6 +21,7 @@ from v2v_server.ops.settings import (check_bool, check_choice, check_float, chec
                                      load_yaml, reference_markdown, setting)
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
+from v2v_server.videos.frame_cache import FORMATS as FRAME_CACHE_FORMATS
 
 #: Optical-flow options by name (the table lives in flow_options.py).
 FLOW_PRESETS = tuple(FLOW_OPTIONS)
@@ -185,10 +186,17 @@ class ServingSettings:
                                          "{endpoint_url: ..., anon: true}; credentials otherwise come from the "
                                          "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
     cache_dir: Optional[str] = setting(None, help="folder of the store manifest when there is no state_dir, and "
-                                                  "of the object cache (default $XDG_CACHE_HOME/v2v)")
+                                                  "of the object and frame caches (default $XDG_CACHE_HOME/v2v)")
     cache_max_gb: float = setting(0.0, help="GiB of whole store objects kept on local disk for corpora read every "
                                             "epoch (least recently used removed first); 0 = off, read from the "
                                             "store each time")
+    frame_cache_gb: float = setting(0.0, help="GiB of decoded frames kept on this host's disk under cache_dir/frames, "
+                                              "shared by every worker and server process of the host: each video is "
+                                              "decoded once, later epochs cut their samples from the cache "
+                                              "(docs/frame_cache.md); 0 = off")
+    frame_cache_format: str = setting("raw", help="raw: frames as decoded, memory-mapped (fastest); zstd: frame "
+                                                  "differences compressed (fewer bytes, more CPU per read)",
+                                      choices=FRAME_CACHE_FORMATS)
     refresh_manifest: bool = setting(False, help="list the store again instead of reading the manifest written at "
                                                  "the first start")
     store_read_timeout_s: float = setting(20.0, help="seconds a store request may stay unanswered before it fails "
@@ -295,6 +303,10 @@ class ServingSettings:
         self.cache_max_gb = check_float("cache_max_gb", self.cache_max_gb, positive=False)
         if self.cache_max_gb < 0:
             raise ValueError(f"cache_max_gb must be >= 0 GiB (0 = no cache), got {self.cache_max_gb!r}")
+        self.frame_cache_gb = check_float("frame_cache_gb", self.frame_cache_gb, positive=False)
+        if self.frame_cache_gb < 0:
+            raise ValueError(f"frame_cache_gb must be >= 0 GiB (0 = no frame cache), got {self.frame_cache_gb!r}")
+        check_choice("frame_cache_format", self.frame_cache_format, FRAME_CACHE_FORMATS)
         check_int("store_max_attempts", self.store_max_attempts, 1, 20, "attempts")
         if self.state_dir is not None:
             if not isinstance(self.state_dir, str) or not self.state_dir:

@@ -26,7 +26,9 @@ from v2v_server.videos.source import source_from_spec
 from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.samples.flow import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
-from v2v_server.videos.decode import decode_codes, open_video, to_uint8
+from v2v_server.videos.decode import to_uint8
+from v2v_server.videos.frame_cache import decode_settings
+from v2v_server.videos.frames import FramePass, open_frames
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
     """The generator for one sample, a pure function of (seed, epoch, sample_id)."""
@@ -353,30 +355,37 @@ def video_samples(
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
-    with source_from_spec(root).open(rel_path) as path:
-        yield from _samples(cfg, path, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
+    source = source_from_spec(root)
+    span = cfg.frames_per_sample
+    settings = decode_settings(cfg.decode_fast, cfg.keep_top_fraction, span, cfg.max_samples_per_video)
+    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
+    with open_frames(source, rel_path, rows, cfg.decode_threads, cfg.decode_fast, settings,
+                     lambda declared: cfg.frames_for(_windows(cfg, declared)), cfg.window_stride) as fp:
+        yield from _samples(cfg, fp, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
 
 
-def _samples(cfg: ServeConfig, path, rel_path: str, epoch: int, outputs: Iterable[str], skip: Iterable[SampleKey],
-             flow: Optional[FlowEstimator], stats: Optional[dict], flow_grid: bool
+def _windows(cfg: ServeConfig, declared: int) -> int:
+    """Windows worth decoding: whole windows only. When the container declares its frame count
+    (``declared``, 0 when it does not) the trailing partial window is not decoded (decoding is
+    the cost that matters)."""
+    n = cfg.max_samples_per_video
+    return min(n, cfg.windows_in(declared)) if declared >= cfg.frames_per_sample else n
+
+
+def _samples(cfg: ServeConfig, fp: FramePass, rel_path: str, epoch: int, outputs: Iterable[str],
+             skip: Iterable[SampleKey], flow: Optional[FlowEstimator], stats: Optional[dict], flow_grid: bool
              ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-    """:func:`video_samples` of the opened video ``path`` (a local path or a file object)."""
+    """:func:`video_samples` of the video's frames ``fp`` (decoded, or replayed from the frame cache)."""
     skip = set(skip)
     span, stride = cfg.frames_per_sample, cfg.window_stride
     kpw = cfg.crops_per_window
-    container, stream, info = open_video(path, cfg.decode_threads, cfg.decode_fast)  # opened once, decoded once
-    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
+    info = fp.info
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
-    # frames worth decoding: whole windows only. When the container declares its frame count
-    # the trailing partial window is not decoded (decoding is the cost that matters).
-    n_windows = cfg.max_samples_per_video
-    declared = int(getattr(stream, "frames", 0) or 0)
-    if declared >= span:
-        n_windows = min(n_windows, cfg.windows_in(declared))
+    n_windows = _windows(cfg, fp.declared)
     last = cfg.frames_for(n_windows)
     win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
-    for i, (codes, expand) in enumerate(decode_codes(container, stream, rows)):
+    for i, (codes, expand) in enumerate(fp.frames):
         if i >= last:
             break
         stats["frames"] = i + 1

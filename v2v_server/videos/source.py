@@ -29,10 +29,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
+from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.decode import VideoError, inside, printable, scan_corpus, utf8_name
 from v2v_server.videos.manifest import (ManifestIndex, default_cache_dir, etag_of, manifest_path, read_manifest,
                                         write_manifest)
@@ -110,6 +112,31 @@ class VideoSource:
     video_list: Optional[str] = None
     #: Entries given with the corpus itself (a brace pattern's shard names), listed instead of the store.
     names: Optional[List[str]] = None
+    #: The host's decoded-frame cache (``frame_cache.FrameCache``), None when off.
+    frame_cache: Optional[FrameCache] = None
+
+    def _setup_frame_cache(self, cache_dir: Optional[str], frame_cache_gb: float, frame_cache_format: str) -> None:
+        """``frame_cache`` under ``cache_dir/frames`` within ``frame_cache_gb`` GiB (0: off)."""
+        self.cache_dir = cache_dir or str(default_cache_dir())
+        self.frame_cache_gb, self.frame_cache_format = float(frame_cache_gb), frame_cache_format
+        if self.frame_cache_gb > 0:
+            self.frame_cache = FrameCache(Path(self.cache_dir) / "frames", int(self.frame_cache_gb * (1 << 30)),
+                                          frame_cache_format)
+
+    def _cache_spec(self) -> dict:
+        return {"cache_dir": self.cache_dir, "frame_cache_gb": self.frame_cache_gb,
+                "frame_cache_format": self.frame_cache_format}
+
+    def identity(self, rel: str) -> str:
+        """The identity of the video at ``rel`` as it is now, without reading its content:
+        what a frame-cache entry made from it records (size, modification time and inode of a
+        file; the ETag or generation of an object; for a tar member, its shard's identity with
+        the member's offset and size). A source replaced in place gets a new identity.
+
+        Raises:
+            VideoError: it is missing, or (a store) changed since it was listed.
+        """
+        raise NotImplementedError
 
     def _names(self) -> Optional[List[str]]:
         """The entries that replace a listing: the brace pattern's, else the video list's.
@@ -211,10 +238,12 @@ class VideoSource:
 class LocalSource(VideoSource):
     """A corpus folder (searched recursively, symlinks that stay inside it followed)."""
 
-    def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None):
+    def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None,
+                 cache_dir: Optional[str] = None, frame_cache_gb: float = 0.0, frame_cache_format: str = "raw"):
         root = str(root)
         self.root = root[len("file://"):] if root.startswith("file://") else root
         self.video_list, self.names = video_list, names
+        self._setup_frame_cache(cache_dir, frame_cache_gb, frame_cache_format)
 
     def check(self) -> None:
         """Raises StoreError: the folder does not exist."""
@@ -250,8 +279,25 @@ class LocalSource(VideoSource):
     def where(self, rel: str) -> str:
         return str(Path(self.root) / rel)
 
+    def identity(self, rel: str) -> str:
+        member = self.split_member(rel)
+        try:
+            if member is not None and Path(self.root, member[0]).is_file():
+                st = os.stat(corpus_file(self.root, member[0]))
+                where = self.tar_index(member[0]).get(member[1])
+                if where is None:
+                    raise VideoError(f"no member {member[1]!r} in the tar shard {member[0]}")
+                return f"tar {st.st_size} {st.st_mtime_ns} {st.st_ino} member {where[0]} {where[1]}"
+            st = os.stat(corpus_file(self.root, rel))
+        except OSError as e:
+            raise VideoError(f"cannot read: {e.strerror or e}") from None
+        return f"file {st.st_size} {st.st_mtime_ns} {st.st_ino}"
+
     def spec(self) -> dict:
-        return {"root": self.root}
+        return {"root": self.root, "video_list": self.video_list, "names": self.names, **self._cache_spec()}
+
+    def take_stats(self) -> dict:
+        return {"frame_cache": self.frame_cache.take_stats()} if self.frame_cache is not None else {}
 
 
 class StoreSource(VideoSource):
@@ -271,14 +317,17 @@ class StoreSource(VideoSource):
         cache_dir, cache_max_gb: a bounded local cache of whole objects for corpora read every
             epoch (``cache_dir/objects``, least recently used removed beyond ``cache_max_gb``
             GiB); 0 (the default) reads from the store every time.
+        frame_cache_gb, frame_cache_format: the host's decoded-frame cache
+            (``cache_dir/frames``, ``frame_cache.FrameCache``); 0 GiB (the default) is off.
     """
 
     def __init__(self, url: str, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False, read_timeout_s: float = 20.0,
                  max_attempts: int = 3, read_block_mb: float = 8.0, names: Optional[List[str]] = None,
-                 cache_dir: Optional[str] = None, cache_max_gb: float = 0.0):
+                 cache_dir: Optional[str] = None, cache_max_gb: float = 0.0, frame_cache_gb: float = 0.0,
+                 frame_cache_format: str = "raw"):
         self.names = names
-        self.cache_dir = cache_dir or str(default_cache_dir())
+        self._setup_frame_cache(cache_dir, frame_cache_gb, frame_cache_format)
         self.cache_max_gb = float(cache_max_gb)
         self.protocol = url.split("://", 1)[0].lower()
         self.root = url if url.endswith("/") else url + "/"
@@ -463,6 +512,38 @@ class StoreSource(VideoSource):
                 raise VideoError(f"no member {name!r} in the tar shard {tar}")
             yield TarMember(f, *where)
 
+    def identity(self, rel: str) -> str:
+        member = self.split_member(rel)
+        obj = member[0] if member is not None else rel
+        t0 = time.perf_counter()
+        try:
+            info = self.fs.info(self._path(obj))  # one HEAD request: no content read
+        except FileNotFoundError:
+            self.stats.skipped += 1
+            raise VideoError("missing from the store") from None
+        except Exception as e:  # timeouts, refused reads: the file's verdict
+            raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
+        finally:
+            self.stats.read_s += time.perf_counter() - t0
+            self.stats.reads += 1
+        now, size = etag_of(info), int(info.get("size") or 0)
+        self._check_unchanged(self._expected(obj if member is None else rel), now)
+        if member is None:
+            return f"object {size} {now}"
+        entry = self._expected(rel)
+        where = (entry[2], entry[0]) if entry is not None and len(entry) == 3 else self.tar_index(obj).get(member[1])
+        if where is None:
+            raise VideoError(f"no member {member[1]!r} in the tar shard {obj}")
+        return f"tar {size} {now} member {where[0]} {where[1]}"
+
+    def _check_unchanged(self, expected: Optional[tuple], now: str) -> None:
+        """Raises VideoError: the object's ETag ``now`` differs from the listing's (``expected``:
+        its manifest entry)."""
+        if expected is not None and expected[1] and now and now != expected[1]:
+            self.stats.skipped += 1
+            raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}); skipped until "
+                             f"--refresh-manifest")
+
     @contextlib.contextmanager
     def _open_raw(self, rel: str, expected: Optional[tuple] = None):
         """The object at ``rel`` as a file, checked against the listing's ETag (``expected``:
@@ -482,10 +563,7 @@ class StoreSource(VideoSource):
         try:
             expected = self._expected(rel) if expected is None else expected
             now = etag_of(getattr(f, "details", None) or {})
-            if expected is not None and expected[1] and now and now != expected[1]:
-                self.stats.skipped += 1
-                raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}); skipped until "
-                                 f"--refresh-manifest")
+            self._check_unchanged(expected, now)
             time_fetches(f, self.stats)
             if self.cache_max_gb > 0:
                 with self.cache.open(f"{self.root}{rel}", now, f) as local:
@@ -496,28 +574,33 @@ class StoreSource(VideoSource):
             f.close()
 
     def take_stats(self) -> dict:
-        return self.stats.take()
+        out = self.stats.take()
+        if self.frame_cache is not None:
+            out["frame_cache"] = self.frame_cache.take_stats()
+        return out
 
     def spec(self) -> dict:
         return {"root": self.root, "storage_options": self.storage_options, "video_list": self.video_list,
                 "manifest": self.manifest, "read_timeout_s": self.read_timeout_s, "max_attempts": self.max_attempts,
-                "read_block_mb": self.read_block_mb, "cache_dir": self.cache_dir, "cache_max_gb": self.cache_max_gb}
+                "read_block_mb": self.read_block_mb, "cache_max_gb": self.cache_max_gb, **self._cache_spec()}
 
 
 def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dict] = None,
                 video_list: Optional[str] = None, manifest: Optional[str] = None, refresh_manifest: bool = False,
                 read_timeout_s: float = 20.0, max_attempts: int = 3, read_block_mb: float = 8.0,
                 names: Optional[List[str]] = None, cache_dir: Optional[str] = None,
-                cache_max_gb: float = 0.0) -> VideoSource:
-    """The source of a corpus given as a folder, a URL, or a brace pattern / path of tar shards."""
+                cache_max_gb: float = 0.0, frame_cache_gb: float = 0.0, frame_cache_format: str = "raw") -> VideoSource:
+    """The source of a corpus given as a folder, a URL, or a brace pattern / path of tar shards;
+    ``frame_cache_gb`` > 0 gives it the host's frame cache under ``cache_dir/frames``."""
     if isinstance(videos, VideoSource):
         return videos
     if names is None:
         videos, names = split_pattern(str(videos))
     if is_url(str(videos)):
         return StoreSource(str(videos), storage_options, video_list, manifest, refresh_manifest, read_timeout_s,
-                           max_attempts, read_block_mb, names, cache_dir, cache_max_gb)
-    return LocalSource(videos, video_list, names)
+                           max_attempts, read_block_mb, names, cache_dir, cache_max_gb, frame_cache_gb,
+                           frame_cache_format)
+    return LocalSource(videos, video_list, names, cache_dir, frame_cache_gb, frame_cache_format)
 
 
 def source_from_config(cfg, videos: Union[str, Path, None] = None) -> VideoSource:
@@ -534,7 +617,8 @@ def source_from_config(cfg, videos: Union[str, Path, None] = None) -> VideoSourc
     return open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
                        refresh_manifest=cfg.refresh_manifest, read_timeout_s=cfg.store_read_timeout_s,
                        max_attempts=cfg.store_max_attempts, read_block_mb=cfg.read_block_mb, cache_dir=cfg.cache_dir,
-                       cache_max_gb=cfg.cache_max_gb)
+                       cache_max_gb=cfg.cache_max_gb, frame_cache_gb=cfg.frame_cache_gb,
+                       frame_cache_format=cfg.frame_cache_format)
 
 
 def source_from_spec(spec: Union[str, Path, dict, VideoSource]) -> VideoSource:

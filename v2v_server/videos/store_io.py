@@ -6,10 +6,10 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
-import os
 import time
 from pathlib import Path
-from typing import Optional
+
+from v2v_server.videos.disk_cache import DiskCache, remove_quietly
 
 #: Protocols read through fsspec, and the extra that installs each one's library.
 STORE_EXTRAS = {"s3": "v2v[s3]", "s3a": "v2v[s3]", "gs": "v2v[gcs]", "gcs": "v2v[gcs]", "az": "v2v[azure]",
@@ -122,21 +122,26 @@ def time_fetches(f, stats: ReadStats) -> None:
 class ObjectCache:
     """A bounded local cache of whole objects in ``folder``: an entry is named by URL, key and
     ETag (a changed object is a new entry); the least recently used entries are removed while
-    the cache holds more than ``max_gb`` GiB. Safe to share between worker processes (entries
-    are written to a temporary name and renamed)."""
+    the cache would hold more than ``max_gb`` GiB (``disk_cache.DiskCache``, policy ``lru``: its
+    atomic writes make it safe to share between the processes of a host)."""
 
     def __init__(self, folder: Path, max_gb: float):
         self.folder, self.max_gb = Path(folder), float(max_gb)
+        self.disk = DiskCache(self.folder, int(self.max_gb * (1 << 30)), "lru")
 
     @contextlib.contextmanager
     def open(self, name: str, etag: str, f):
         """The object ``name`` (URL and key) of version ``etag`` as a local binary file, copied
-        whole from the open object ``f`` on first use."""
-        d = self.folder
-        path = d / hashlib.sha256(f"{name} {etag}".encode("utf-8")).hexdigest()[:32]
+        whole from the open object ``f`` on first use; ``f`` itself (rewound) when the object
+        is larger than the whole budget or was evicted meanwhile.
+
+        Raises:
+            OSError: the local copy cannot be written (full disk: the partial copy is removed).
+        """
+        entry = hashlib.sha256(f"{name} {etag}".encode("utf-8")).hexdigest()[:32]
+        path = self.disk.path(entry)
         if not path.is_file():
-            d.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            tmp = self.disk.temporary(entry)
             try:
                 with open(tmp, "wb") as out:
                     while True:
@@ -144,29 +149,17 @@ class ObjectCache:
                         if not chunk:
                             break
                         out.write(chunk)
-                os.replace(tmp, path)
-            finally:
-                tmp.unlink(missing_ok=True)
-            self._evict(keep=path)
+            except BaseException:
+                remove_quietly(tmp)
+                raise
+            self.disk.commit(tmp, entry)
         else:
-            os.utime(path)  # recently used
-        with open(path, "rb") as local:
+            self.disk.touch(entry)
+        try:
+            local = open(path, "rb")
+        except FileNotFoundError:  # over the whole budget, or evicted by another process meanwhile
+            f.seek(0)
+            yield f
+            return
+        with local:
             yield local
-
-    def _evict(self, keep: Optional[Path]) -> None:
-        """Remove the least recently used entries until the cache holds at most ``max_gb``."""
-        entries = []
-        for p in self.folder.iterdir():
-            try:
-                st = p.stat()
-            except OSError:
-                continue  # removed by another worker meanwhile
-            if not p.name.endswith(".tmp"):
-                entries.append((st.st_mtime, st.st_size, p))
-        total, limit = sum(e[1] for e in entries), self.max_gb * (1 << 30)
-        for _, size, p in sorted(entries, key=lambda e: e[0]):
-            if total <= limit:
-                break
-            if p != keep:
-                p.unlink(missing_ok=True)
-                total -= size

@@ -1,0 +1,199 @@
+"""Entries on a host's local disk, shared by every process of the host: the one implementation
+of atomic writes, byte budgets and eviction behind both caches of the decode path, whole store
+objects (``store_io.ObjectCache``) and decoded frames (``frame_cache.FrameCache``).
+
+An entry is written under a temporary name (``NAME.PID.tmp``) and renamed into place when it is
+complete, so a reader never sees a torn entry and a process killed mid-write leaves only a
+temporary file, which the next commit of any process removes once its writer is gone. Commits
+take an exclusive ``flock`` on the folder's lock file, so the budget check and the rename are one
+step for all processes of the host: two writers of the same entry leave one entry, and the
+budget holds however many processes commit at once.
+
+Two policies for a corpus larger than the budget:
+
+* ``lru``: the least recently used entries are removed until the new one fits (the object
+  cache: what was read recently is read again soon);
+* ``keep``: admit until full, then keep what is there and refuse new entries. Every epoch
+  reads the whole corpus in a new order, so LRU would evict exactly the entries the next
+  epoch needs before it reaches them (a corpus 2x the budget would never hit); keeping a fixed
+  part makes that part hit every epoch.
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+from pathlib import Path
+from typing import Iterator, List, Optional, Tuple
+
+#: Eviction policies (module docstring).
+POLICIES = ("lru", "keep")
+#: Suffix of entries being written.
+TMP_SUFFIX = ".tmp"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class DiskCache:
+    """A folder of entries under a byte budget, safe to share between processes of one host.
+
+    Args:
+        folder: where the entries live (made on first write).
+        max_bytes: the budget, bytes, for complete entries and those being written together.
+        policy: ``lru`` or ``keep`` (module docstring).
+
+    Raises:
+        ValueError: an unknown ``policy`` or a negative budget.
+    """
+
+    def __init__(self, folder, max_bytes: int, policy: str = "lru"):
+        if policy not in POLICIES:
+            raise ValueError(f"cache policy must be one of {POLICIES}, got {policy!r}")
+        if max_bytes < 0:
+            raise ValueError(f"cache budget must be >= 0 bytes, got {max_bytes!r}")
+        self.folder, self.max_bytes, self.policy = Path(folder), int(max_bytes), policy
+
+    def path(self, name: str) -> Path:
+        """Where the complete entry ``name`` lives (it may not exist)."""
+        return self.folder / name
+
+    def temporary(self, name: str) -> Path:
+        """A temporary path for this process to write entry ``name`` into (folder made).
+
+        Raises:
+            OSError: the folder cannot be made (read-only or full disk).
+        """
+        self.folder.mkdir(parents=True, exist_ok=True)
+        return self.folder / f"{name}.{os.getpid()}{TMP_SUFFIX}"
+
+    @contextlib.contextmanager
+    def _locked(self) -> Iterator[None]:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        with open(self.folder / ".lock", "a+b") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+
+    def entries(self) -> List[Tuple[float, int, Path]]:
+        """``(mtime, bytes, path)`` of every complete entry (temporary files and the lock left out)."""
+        out = []
+        try:
+            it = list(os.scandir(self.folder))
+        except FileNotFoundError:
+            return out
+        for e in it:
+            if e.name.startswith(".") or e.name.endswith(TMP_SUFFIX):
+                continue
+            try:
+                st = e.stat()
+            except OSError:
+                continue  # removed meanwhile
+            out.append((st.st_mtime, st.st_size, Path(e.path)))
+        return out
+
+    def _writing(self, keep: Path) -> int:
+        """Bytes of temporary files whose writer is alive; those of dead writers are removed."""
+        total = 0
+        try:
+            it = list(os.scandir(self.folder))
+        except FileNotFoundError:
+            return 0
+        for e in it:
+            if not e.name.endswith(TMP_SUFFIX) or Path(e.path) == keep:
+                continue
+            try:
+                pid = int(e.name[:-len(TMP_SUFFIX)].rsplit(".", 1)[1])
+                size = e.stat().st_size
+            except (ValueError, IndexError, OSError):
+                continue
+            if _pid_alive(pid):
+                total += size
+            else:
+                with contextlib.suppress(OSError):
+                    os.unlink(e.path)
+        return total
+
+    def usage(self) -> Tuple[int, int]:
+        """``(bytes, entries)`` of the complete entries."""
+        ents = self.entries()
+        return sum(e[1] for e in ents), len(ents)
+
+    def fits(self, nbytes: int) -> bool:
+        """Whether an entry of ``nbytes`` more could be admitted now (a hint for a writer that
+        stops early; :meth:`commit` decides)."""
+        if self.policy == "lru":
+            return nbytes <= self.max_bytes
+        return self.usage()[0] + nbytes <= self.max_bytes
+
+    def commit(self, tmp: Path, name: str) -> str:
+        """Rename the finished temporary file ``tmp`` to entry ``name`` if the budget allows.
+
+        Returns:
+            ``"added"``; ``"exists"`` (another process committed it first: ``tmp`` removed);
+            ``"budget"`` (refused under ``keep``, or larger than the whole budget: ``tmp``
+            removed).
+
+        Raises:
+            OSError: the rename failed (``tmp`` removed).
+        """
+        dest = self.path(name)
+        try:
+            size = tmp.stat().st_size
+            with self._locked():
+                if dest.exists():
+                    tmp.unlink(missing_ok=True)
+                    return "exists"
+                ents = self.entries()
+                used = sum(e[1] for e in ents) + self._writing(tmp)
+                if size > self.max_bytes:
+                    tmp.unlink(missing_ok=True)
+                    return "budget"
+                if used + size > self.max_bytes:
+                    if self.policy == "keep":
+                        tmp.unlink(missing_ok=True)
+                        return "budget"
+                    for _, esize, p in sorted(ents, key=lambda e: e[0]):
+                        if used + size <= self.max_bytes:
+                            break
+                        with contextlib.suppress(OSError):
+                            p.unlink()
+                        used -= esize
+                os.replace(tmp, dest)
+                return "added"
+        except BaseException:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            raise
+
+    def touch(self, name: str) -> None:
+        """Mark entry ``name`` recently used (``lru``)."""
+        with contextlib.suppress(OSError):
+            os.utime(self.path(name))
+
+    def remove(self, name: str) -> None:
+        """Remove entry ``name`` (a corrupt or stale one); a missing entry is fine."""
+        with contextlib.suppress(OSError):
+            self.path(name).unlink()
+
+
+def is_disk_full(e: BaseException) -> bool:
+    """Whether ``e`` is the error of a full disk or an exceeded quota."""
+    return isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def remove_quietly(path: Optional[Path]) -> None:
+    """Remove ``path`` if it exists (a temporary file being abandoned)."""
+    if path is not None:
+        with contextlib.suppress(OSError):
+            path.unlink()

@@ -1,0 +1,371 @@
+"""Decode once, cut every epoch: a host's cache of decoded frames.
+
+The first time any process of a host decodes a video it stores what the sample cutter reads:
+every decoded frame's kept region (the top rows, display rotation applied) at full range
+(uint8, or uint16 for deeper sources), plus the stream's frame size, frame rate and declared
+frame count. Later epochs replay those frames instead of decoding; the cutter
+(``samples.make``) sees the same arrays either way, so samples are bit-identical cached or
+decoded (``tests/test_frame_cache.py``).
+
+An entry is one file (``disk_cache.DiskCache`` under ``cache_dir/frames``: atomic rename,
+byte budget, policy ``keep``), named by the corpus, the video's id path and the decode
+settings that change frames (:func:`decode_settings`); its trailer records the identity of
+the source it was decoded from (``VideoSource.identity``: size, modification time and inode of
+a file; ETag of an object; a tar member's offset and size within its shard's identity). A
+different identity is a miss (``changed``), the entry is removed and the video decoded again,
+never a stale hit. Layout::
+
+    frame 0 | frame 1 | ... | trailer (JSON) | trailer bytes (u64) | trailer CRC-32 (u32) | MAGIC
+
+Two formats (``FORMATS``, measured in docs/frame_cache.md, ``python -m bench.frame_cache``):
+
+* ``raw``: frames as they are, read through a memory map (pages shared by every process of the
+  host), each checked against its CRC-32 as it is read;
+* ``zstd``: each frame Zstandard-compressed (level 1, with its content checksum) as its
+  difference to the previous frame (modulo 2^8 or 2^16), the first frame of each window stride
+  and any frame whose size changes whole: about half the bytes, a little more CPU per read.
+
+A truncated, bit-flipped or unreadable entry raises :class:`CorruptEntry` at the first bad
+frame: the caller removes it and decodes the video from there (``samples.make``).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import mmap
+import os
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, Iterator, List, Optional, Tuple
+
+import numpy as np
+
+from v2v_server.videos.disk_cache import DiskCache, is_disk_full, remove_quietly
+
+log = logging.getLogger("v2v.frame_cache")
+
+#: Entry formats (module docstring).
+FORMATS = ("raw", "zstd")
+#: Version of the entry layout and of the frames it holds (the luma conversion of
+#: ``videos.decode``): a change makes every older entry a miss.
+VERSION = 1
+MAGIC = b"V2VFRM1\n"
+_FOOTER = struct.Struct("<QI")
+#: Miss causes counted (``FrameCache.take_stats``).
+MISS_CAUSES = ("absent", "changed", "corrupt")
+#: Why a decoded video was not stored.
+SKIP_CAUSES = ("budget", "disk_full", "write_error", "incomplete")
+
+
+class CorruptEntry(RuntimeError):
+    """An entry that cannot be read whole: truncated, bit-flipped, or gone (the message says which
+    frame and why)."""
+
+
+def decode_settings(decode_fast: str, keep_top_fraction: float, frames_per_sample: int, max_windows: int) -> dict:
+    """What, beside the source, decides the frames an entry holds: the decoder shortcut
+    (``decode_fast``), the rows kept, and how many frames a pass decodes (windows of
+    ``frames_per_sample``, at most ``max_windows``); part of the entry's name."""
+    return {"v": VERSION, "decode_fast": decode_fast, "keep_top_fraction": float(keep_top_fraction),
+            "frames_per_sample": int(frames_per_sample), "max_windows": int(max_windows)}
+
+
+@dataclass
+class CachedVideo:
+    """An entry opened for reading: the stream facts stored with it and its frames.
+
+    ``width``, ``height``: the coded frame size, pixels; ``fps``: Hz; ``declared``: the
+    container's frame count (0 when it gives none); ``frames``: frames stored."""
+
+    path: Path
+    meta: dict
+    buf: object  # mmap of the whole file
+    data_end: int
+
+    @property
+    def frames(self) -> int:
+        return len(self.meta["offsets"])
+
+    def read(self, start: int = 0) -> Iterator[np.ndarray]:
+        """Frames ``start``.. as (H', W) arrays of the stored dtype (read-only; a raw entry's
+        are views of the map, valid until :meth:`close`).
+
+        Raises:
+            CorruptEntry: a frame fails its checksum or lies outside the file.
+        """
+        m = self.meta
+        dtype = np.dtype(m["dtype"])
+        shapes = _expand_runs(m["shapes"], self.frames)
+        offsets, sizes, crcs = m["offsets"], m["sizes"], m["crc"]
+        zstd = m["format"] == "zstd"
+        dec = None
+        if zstd:
+            import zstandard
+
+            dec = zstandard.ZstdDecompressor()
+        prev = None
+        first = start
+        keys = set(m["keys"])
+        if zstd:  # differences: go back to the last frame stored whole
+            first = max([k for k in keys if k <= start] or [0])
+        for i in range(first, self.frames):
+            o, n = offsets[i], sizes[i]
+            if o + n > self.data_end:
+                raise CorruptEntry(f"frame {i} lies past the end of the data")
+            raw = memoryview(self.buf)[o:o + n]
+            h, w = shapes[i]
+            if zstd:
+                try:
+                    a = np.frombuffer(dec.decompress(raw, max_output_size=h * w * dtype.itemsize), dtype)
+                except Exception as e:  # zstandard.ZstdError: a flipped bit or a cut frame
+                    raise CorruptEntry(f"frame {i}: {e}") from None
+                if a.size != h * w:
+                    raise CorruptEntry(f"frame {i}: {a.size} values, expected {h * w}")
+                a = a.reshape(h, w)
+                if i not in keys:
+                    a = a + prev  # modular: the stored difference wraps as the dtype does
+                prev = a
+            else:
+                if zlib.crc32(raw) != crcs[i]:
+                    raise CorruptEntry(f"frame {i} fails its CRC-32")
+                a = np.frombuffer(raw, dtype).reshape(h, w)
+            if i >= start:
+                yield a
+
+    def close(self) -> None:
+        try:
+            self.buf.close()
+        except (BufferError, ValueError):
+            pass  # a view still held by the caller: the map goes with it
+
+
+def _expand_runs(runs: List[list], n: int) -> List[Tuple[int, int]]:
+    """Per-frame (h, w) from runs ``[[first frame, h, w], ...]``."""
+    out: List[Tuple[int, int]] = []
+    for j, (first, h, w) in enumerate(runs):
+        end = runs[j + 1][0] if j + 1 < len(runs) else n
+        out += [(int(h), int(w))] * (end - first)
+    return out
+
+
+class EntryWriter:
+    """Writes one video's frames into a temporary file as they are decoded; :meth:`finish`
+    commits the entry, :meth:`abort` drops it. A write error (full disk, the folder deleted)
+    stops the writing, never the decoding: the video is served decoded and the cause counted.
+    """
+
+    def __init__(self, cache: "FrameCache", name: str, identity: str, header: dict, stride: int):
+        self.cache, self.name, self.identity, self.header, self.stride = cache, name, identity, header, stride
+        self.tmp: Optional[Path] = None
+        self.f = None
+        self.failed: Optional[str] = None
+        self.offsets: List[int] = []
+        self.sizes: List[int] = []
+        self.crc: List[int] = []
+        self.keys: List[int] = []
+        self.runs: List[list] = []
+        self.dtype: Optional[str] = None
+        self.prev: Optional[np.ndarray] = None
+        self.pos = 0
+        self.zstd = None
+        if cache.format == "zstd":
+            import zstandard
+
+            self.zstd = zstandard.ZstdCompressor(level=1, write_checksum=True)
+        try:
+            self.tmp = cache.disk.temporary(name)
+            self.f = open(self.tmp, "wb")
+        except OSError as e:
+            self._fail(e)
+
+    def _fail(self, e: BaseException) -> None:
+        self.failed = "disk_full" if is_disk_full(e) else "write_error"
+        log.warning("frame cache: not storing %s (%s: %s)", self.header.get("video"), self.failed, e)
+        self.abort()
+
+    def add(self, frame: np.ndarray) -> None:
+        """Append the next frame (full range, (H', W) uint8 or uint16)."""
+        if self.f is None:
+            return
+        i = len(self.offsets)
+        a = np.ascontiguousarray(frame)
+        if self.dtype is None:
+            self.dtype = a.dtype.str
+        if not self.runs or self.runs[-1][1:] != [a.shape[0], a.shape[1]]:
+            self.runs.append([i, int(a.shape[0]), int(a.shape[1])])
+        if self.zstd is not None:
+            whole = self.prev is None or self.prev.shape != a.shape or i % self.stride == 0
+            if whole:
+                self.keys.append(i)
+            data = self.zstd.compress(a if whole else a - self.prev)
+            self.prev = a.copy()
+            crc = 0
+        else:
+            data = a.data
+            crc = zlib.crc32(data)
+        try:
+            self.f.write(data)
+        except OSError as e:
+            self._fail(e)
+            return
+        n = len(data) if isinstance(data, bytes) else a.nbytes
+        self.offsets.append(self.pos)
+        self.sizes.append(n)
+        self.crc.append(crc)
+        self.pos += n
+        if i % self.stride == 0 and i and not self.cache.disk.fits(self.pos):
+            self.failed = "budget"
+            self.abort()
+
+    def finish(self) -> None:
+        """The decode ended cleanly: write the trailer and commit the entry (counted)."""
+        if self.f is None:
+            self.cache.skipped[self.failed or "write_error"] += 1
+            return
+        meta = dict(self.header, identity=self.identity, format=self.cache.format, dtype=self.dtype or "|u1",
+                    shapes=self.runs, offsets=self.offsets, sizes=self.sizes, crc=self.crc, keys=self.keys)
+        try:
+            trailer = json.dumps(meta, separators=(",", ":")).encode("utf-8")
+            self.f.write(trailer)
+            self.f.write(_FOOTER.pack(len(trailer), zlib.crc32(trailer)) + MAGIC)
+            self.f.flush()
+            os.fsync(self.f.fileno())
+            self.f.close()
+            self.f = None
+            status = self.cache.disk.commit(self.tmp, self.name)
+        except OSError as e:
+            self._fail(e)
+            self.cache.skipped[self.failed] += 1
+            return
+        if status == "added":
+            self.cache.stored += 1
+            self.cache.bytes_written += self.pos + len(trailer)
+        elif status == "budget":
+            self.cache.skipped["budget"] += 1
+
+    def abort(self) -> None:
+        """Drop what was written (an incomplete decode, or a failed write)."""
+        if self.f is not None:
+            try:
+                self.f.close()
+            except OSError:
+                pass
+            self.f = None
+        remove_quietly(self.tmp)
+
+
+class FrameCache:
+    """The decoded-frame cache of one host: entries under ``folder`` within ``max_bytes``.
+
+    Counters since the last :meth:`take_stats`: ``hits``, ``misses`` by cause
+    (``MISS_CAUSES``), ``stored`` entries and ``bytes_written``, and decoded videos not stored
+    by cause (``SKIP_CAUSES``).
+
+    Raises:
+        ValueError: an unknown ``fmt``.
+    """
+
+    def __init__(self, folder, max_bytes: int, fmt: str = "raw"):
+        if fmt not in FORMATS:
+            raise ValueError(f"frame_cache_format must be one of {FORMATS}, got {fmt!r}")
+        self.format = fmt
+        self.disk = DiskCache(folder, max_bytes, "keep")
+        self._reset()
+
+    def _reset(self) -> None:
+        self.hits = 0
+        self.misses: Dict[str, int] = dict.fromkeys(MISS_CAUSES, 0)
+        self.skipped: Dict[str, int] = dict.fromkeys(SKIP_CAUSES, 0)
+        self.stored = self.bytes_written = 0
+
+    @staticmethod
+    def entry_name(corpus: str, video: str, settings: dict) -> str:
+        """The entry's file name: a hash of the corpus, the video's id path and the decode settings."""
+        import hashlib
+
+        key = json.dumps([corpus, video, settings], sort_keys=True)
+        return hashlib.sha256(key.encode("utf-8")).hexdigest()[:32] + ".v2vf"
+
+    def lookup(self, name: str, identity: str) -> Optional[CachedVideo]:
+        """The entry ``name`` opened for reading if it exists, is whole and was made from a
+        source of this ``identity``; else None, the miss counted by cause (a changed or corrupt
+        entry is removed)."""
+        path = self.disk.path(name)
+        try:
+            f = open(path, "rb")
+        except FileNotFoundError:
+            self.misses["absent"] += 1
+            return None
+        except OSError as e:
+            log.warning("frame cache: cannot open %s (%s): decoding", path, e)
+            self.misses["corrupt"] += 1
+            return None
+        with f:
+            try:
+                entry = _open_entry(path, f)
+            except CorruptEntry as e:
+                log.warning("frame cache: entry %s is corrupt (%s): removed, decoding", path.name, e)
+                self.misses["corrupt"] += 1
+                self.disk.remove(name)
+                return None
+        if entry.meta.get("identity") != identity:
+            entry.close()
+            self.misses["changed"] += 1
+            self.disk.remove(name)
+            return None
+        self.hits += 1
+        return entry
+
+    def corrupt(self, name: str, why: str) -> None:
+        """An entry found bad while reading: removed and counted (the hit it began as is taken back)."""
+        log.warning("frame cache: entry %s is corrupt (%s): removed, decoding", name, why)
+        self.hits -= 1
+        self.misses["corrupt"] += 1
+        self.disk.remove(name)
+
+    def writer(self, name: str, identity: str, header: dict, stride: int) -> EntryWriter:
+        """A writer for entry ``name`` (``header``: the stream facts stored with it; ``stride``:
+        frames between windows, where a ``zstd`` entry stores a frame whole)."""
+        return EntryWriter(self, name, identity, header, stride)
+
+    def take_stats(self) -> dict:
+        """The counters since the last call, as a dict; then zero them."""
+        out = {"hits": self.hits, "misses": dict(self.misses), "stored": self.stored,
+               "bytes_written": self.bytes_written, "not_stored": dict(self.skipped)}
+        self._reset()
+        return out
+
+
+def _open_entry(path: Path, f) -> CachedVideo:
+    """Map ``f`` and read its trailer.
+
+    Raises:
+        CorruptEntry: too short, no magic, a trailer that fails its CRC-32 or does not parse.
+    """
+    size = os.fstat(f.fileno()).st_size
+    tail = _FOOTER.size + len(MAGIC)
+    if size < tail:
+        raise CorruptEntry(f"{size} bytes, shorter than a footer")
+    try:
+        buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError) as e:
+        raise CorruptEntry(f"cannot map: {e}") from None
+    if buf[size - len(MAGIC):] != MAGIC:
+        buf.close()
+        raise CorruptEntry("no end marker (truncated, or not an entry)")
+    n, crc = _FOOTER.unpack(buf[size - tail:size - len(MAGIC)])
+    start = size - tail - n
+    if start < 0 or zlib.crc32(buf[start:size - tail]) != crc:
+        buf.close()
+        raise CorruptEntry("trailer fails its CRC-32")
+    try:
+        meta = json.loads(bytes(buf[start:size - tail]))
+    except ValueError as e:
+        buf.close()
+        raise CorruptEntry(f"trailer does not parse: {e}") from None
+    return CachedVideo(path, meta, buf, start)
+
+
+IDENTITY: Callable[[np.ndarray], np.ndarray] = lambda a: a  # noqa: E731  (cached frames are already full range)

@@ -1,0 +1,121 @@
+"""One pass over a video's frames for the sample cutter: replayed from the host's frame cache
+(``frame_cache``) when it holds the video, else decoded (``decode``) and, with a cache, stored
+as they pass.
+
+Either way the cutter gets ``(codes, expand)`` per frame, as ``decode.decode_codes`` yields them:
+decoded frames carry the stream's code -> full-range map, cached ones are already full range
+(``expand`` the identity). Expansion is per pixel, so the cutter's samples are the same.
+"""
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+from dataclasses import asdict, dataclass
+from typing import Callable, Iterator, Optional, Tuple
+
+import numpy as np
+
+from v2v_server.videos.decode import Rows, VideoInfo, decode_codes, open_video
+from v2v_server.videos.frame_cache import IDENTITY, CachedVideo, CorruptEntry, EntryWriter, FrameCache
+
+Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
+
+
+@dataclass
+class FramePass:
+    """A video opened for one pass: ``info`` (the stream's facts), ``declared`` (the container's
+    frame count, 0 when it gives none), ``frames`` (an iterator of ``(codes, expand)``, at most
+    ``limit_of(declared)`` of them), ``cached`` (replayed from the frame cache)."""
+
+    info: VideoInfo
+    declared: int
+    frames: Iterator[Frame]
+    cached: bool
+
+
+def corpus_key(source) -> str:
+    """The corpus as an entry name's part: the URL, or the folder's absolute path."""
+    root = str(source.root)
+    return root if "://" in root else os.path.abspath(root)
+
+
+@contextlib.contextmanager
+def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings: dict,
+                limit_of: Callable[[int], int], stride: int) -> Iterator[FramePass]:
+    """The frames of video ``rel`` of ``source`` (a ``videos.source.VideoSource``), from its
+    frame cache (``source.frame_cache``, None when off) or decoded with ``threads`` and
+    ``fast`` (``decode.open_video``), top ``rows`` kept. ``settings``: the decode settings
+    that name the entry (``frame_cache.decode_settings``); ``limit_of(declared)``: frames the
+    pass needs; ``stride``: frames between windows.
+
+    Raises:
+        VideoError: the video cannot be opened or decoded (as ``source.open``, ``open_video``).
+    """
+    cache: Optional[FrameCache] = getattr(source, "frame_cache", None)
+    name = identity = None
+    if cache is not None:
+        identity = source.identity(rel)
+        name = cache.entry_name(corpus_key(source), rel, settings)
+        entry = cache.lookup(name, identity)
+        if entry is not None:
+            declared = int(entry.meta["declared"])
+            limit = limit_of(declared)
+
+            def redecode(start: int) -> Iterator[Frame]:
+                with source.open(rel) as path:
+                    container, stream, _ = open_video(path, threads, fast)
+                    yield from itertools.islice(decode_codes(container, stream, rows), start, limit)
+
+            try:
+                yield FramePass(VideoInfo(**entry.meta["info"]), declared, _replay(cache, name, entry, limit, redecode),
+                                True)
+            finally:
+                entry.close()
+            return
+    with source.open(rel) as path:
+        container, stream, info = open_video(path, threads, fast)
+        declared = int(getattr(stream, "frames", 0) or 0)
+        writer = None
+        if cache is not None:
+            writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
+        yield FramePass(info, declared, _decoded(cache, decode_codes(container, stream, rows), limit_of(declared),
+                                                  writer), False)
+
+
+def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
+            redecode: Callable[[int], Iterator[Frame]]) -> Iterator[Frame]:
+    """The entry's frames; from the first bad one on (truncated, bit-flipped), the entry is
+    removed and the rest decoded."""
+    i = 0
+    try:
+        for a in entry.read(0):
+            if i >= limit:
+                return
+            yield a, IDENTITY
+            i += 1
+        return
+    except CorruptEntry as e:
+        cache.corrupt(name, f"{e}; frames {i}.. decoded")
+    yield from redecode(i)
+
+
+def _decoded(cache: Optional[FrameCache], frames: Iterator[Frame], limit: int,
+             writer: Optional[EntryWriter]) -> Iterator[Frame]:
+    """The first ``limit`` decoded frames, each stored by ``writer`` (at full range) as it passes;
+    the entry is committed only when the pass ends cleanly."""
+    done = False
+    try:
+        for codes, expand in itertools.islice(frames, limit):
+            if writer is not None:
+                writer.add(expand(codes))
+            yield codes, expand
+        done = True
+    finally:
+        if writer is not None:
+            if done:
+                writer.finish()
+            else:  # a decoding error, or the consumer stopped: nothing partial is kept
+                if writer.f is not None:
+                    cache.skipped["incomplete"] += 1
+                writer.abort()
