@@ -71,14 +71,15 @@ def _as_received(cfg: ServeConfig, arrays: dict) -> dict:
     return out
 
 
-def compute() -> dict:
-    """{recipe: {sample_id: {output or "params": hash}}} for every sample of the bundled clips."""
+def compute(corpus=CLIPS) -> dict:
+    """{recipe: {sample_id: {output or "params": hash}}} for every sample of the bundled clips
+    (``corpus``: their folder, or a ``VideoSource`` over it, such as one with a frame cache)."""
     table = {}
     for name, overrides in RECIPES:
         cfg = ServeConfig(**overrides).validate()
         rows = {}
         for clip in sorted(p.name for p in CLIPS.glob("*.mp4")):
-            for key, arrays, meta in video_samples(cfg, CLIPS, clip, 0, DEFAULT_OUTPUTS, flow_grid=True):
+            for key, arrays, meta in video_samples(cfg, corpus, clip, 0, DEFAULT_OUTPUTS, flow_grid=True):
                 rows[key.sample_id(cfg.crops_per_window)] = _digest(_as_received(cfg, wire_arrays(cfg, arrays)), _canonical(meta))
         table[name] = rows
     return table

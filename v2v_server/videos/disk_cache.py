@@ -2,7 +2,7 @@
 of atomic writes, byte budgets and eviction behind both caches of the decode path, whole store
 objects (``store_io.ObjectCache``) and decoded frames (``frame_cache.FrameCache``).
 
-An entry is written under a temporary name (``NAME.PID.tmp``) and renamed into place when it is
+An entry is written under a temporary name (``NAME.PID-N.tmp``) and renamed into place when it is
 complete, so a reader never sees a torn entry and a process killed mid-write leaves only a
 temporary file, which the next commit of any process removes once its writer is gone. Commits
 take an exclusive ``flock`` on the folder's lock file, so the budget check and the rename are one
@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import itertools
 import os
 from pathlib import Path
 from typing import Iterator, List, Optional, Tuple
@@ -31,6 +32,7 @@ from typing import Iterator, List, Optional, Tuple
 POLICIES = ("lru", "keep")
 #: Suffix of entries being written.
 TMP_SUFFIX = ".tmp"
+_SERIAL = itertools.count()
 
 
 def _pid_alive(pid: int) -> bool:
@@ -67,13 +69,14 @@ class DiskCache:
         return self.folder / name
 
     def temporary(self, name: str) -> Path:
-        """A temporary path for this process to write entry ``name`` into (folder made).
+        """A temporary path, unique to this process and call, to write entry ``name`` into
+        (``NAME.PID-N.tmp``; folder made).
 
         Raises:
             OSError: the folder cannot be made (read-only or full disk).
         """
         self.folder.mkdir(parents=True, exist_ok=True)
-        return self.folder / f"{name}.{os.getpid()}{TMP_SUFFIX}"
+        return self.folder / f"{name}.{os.getpid()}-{next(_SERIAL)}{TMP_SUFFIX}"
 
     @contextlib.contextmanager
     def _locked(self) -> Iterator[None]:
@@ -113,7 +116,7 @@ class DiskCache:
             if not e.name.endswith(TMP_SUFFIX) or Path(e.path) == keep:
                 continue
             try:
-                pid = int(e.name[:-len(TMP_SUFFIX)].rsplit(".", 1)[1])
+                pid = int(e.name[:-len(TMP_SUFFIX)].rsplit(".", 1)[1].split("-")[0])
                 size = e.stat().st_size
             except (ValueError, IndexError, OSError):
                 continue

@@ -1,0 +1,282 @@
+"""The decoded-frame cache (v2v_server/videos/frame_cache.py): samples cut from cached frames are
+the samples cut from decoded ones, cold or warm, in both formats and for awkward sources; every
+fault of an entry (a killed writer, a full budget or disk, a truncated or bit-flipped entry, a
+source replaced in place, the folder deleted while serving, two writers at once) ends in
+decoding, with no sample lost or altered and the cause counted."""
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+
+from harness.corpus import write_size_change_video, write_video
+from tests import sample_hashes
+from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.make import video_samples
+from v2v_server.videos.frame_cache import MAGIC
+from v2v_server.videos.source import open_source
+from v2v_wire.outputs import DEFAULT_OUTPUTS, OUTPUTS
+
+ROOT = Path(__file__).resolve().parents[1]
+CLIPS = ROOT / "v2v_server" / "sample_videos"
+#: a short recipe: windows of 9 frames, 32 px crops, so the synthetic clips give several samples
+SMALL = dict(sequence_length=4, num_bins=2, crop_size=32, max_samples_per_video=4)
+
+
+def _samples(cfg, root, video, epoch=0, outputs=DEFAULT_OUTPUTS) -> dict:
+    """{sample id: (sha of each array, params)} of one video of one epoch."""
+    out = {}
+    for key, arrays, meta in video_samples(cfg, root, video, epoch, outputs, flow_grid=True):
+        out[key.sample_id(cfg.crops_per_window)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
+    return out
+
+
+def _cached(root, cache_dir, gb=1.0, fmt="raw"):
+    return open_source(str(root), cache_dir=str(cache_dir), frame_cache_gb=gb, frame_cache_format=fmt)
+
+
+def _entries(cache_dir) -> list:
+    d = Path(cache_dir) / "frames"
+    return sorted(p for p in d.glob("*.v2vf")) if d.is_dir() else []
+
+
+def test_pinned_table_holds_cold_and_warm(tmp_path):
+    """The committed sample table (tests/data/sample_hashes.json) is what the cache serves, cold
+    (decoding and storing) and warm (cut from the entries), for every recipe of the table."""
+    want = json.loads(sample_hashes.TABLE.read_text())
+    src = _cached(CLIPS, tmp_path)
+    for state in ("cold", "warm"):
+        got = sample_hashes.compute(src)
+        assert got == want, state
+        stats = src.take_stats()["frame_cache"]
+        if state == "warm":
+            assert stats["misses"] == {"absent": 0, "changed": 0, "corrupt": 0} and stats["hits"] > 0
+        else:
+            assert stats["stored"] == 6 and stats["misses"]["absent"] == 6  # one entry per clip and frames_per_sample
+
+
+def _awkward_corpus(d: Path) -> Path:
+    d.mkdir()
+    write_video(d / "ten_bit.mkv", 30, 96, 80, codec="ffv1", pix_fmt="yuv420p10le")
+    write_video(d / "grey.mkv", 30, 96, 80, codec="ffv1", pix_fmt="gray", gray=True)
+    write_size_change_video(d / "size_change.mpg", 14, 20, size1=(96, 80), size2=(80, 64))
+    with av.open(str(d / "rotated.mp4"), "w") as c:  # a phone clip: a display matrix turns it a quarter
+        s = c.add_stream("libx264", rate=25)
+        s.width, s.height, s.pix_fmt = 96, 64, "yuv420p"
+        s.set_display_rotation(90)
+        for i in range(30):
+            img = np.tile(np.linspace(20, 220, 96, dtype=np.uint8), (64, 1))
+            img[:, (i * 3) % 90:(i * 3) % 90 + 6] = 250
+            for p in s.encode(av.VideoFrame.from_ndarray(np.repeat(img[..., None], 3, 2), format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    return d
+
+
+@pytest.mark.parametrize("fmt", ["raw", "zstd"])
+def test_awkward_sources_identical_cached_and_decoded(tmp_path, fmt):
+    """A 10-bit source (uint16 frames), a grey full-range one, a rotated phone clip and a stream
+    whose frame size changes mid-way: every output (polarity counts too), one and four crops,
+    cached (cold and warm) equal to decoded."""
+    corpus = _awkward_corpus(tmp_path / "corpus")
+    src = _cached(corpus, tmp_path / "cache", fmt=fmt)
+    for crops in (1, 4):
+        cfg = ServeConfig(**SMALL, crops_per_window=crops, keep_top_fraction=1.0).validate()
+        for video in sorted(p.name for p in corpus.iterdir()):
+            decoded = _samples(cfg, corpus, video, outputs=OUTPUTS)
+            assert decoded, video
+            assert _samples(cfg, src, video, outputs=OUTPUTS) == decoded, (video, "cold")
+            assert _samples(cfg, src, video, outputs=OUTPUTS) == decoded, (video, "warm")
+    stats = src.take_stats()["frame_cache"]
+    assert stats["hits"] == 12 and stats["stored"] == 4, stats  # one entry serves one and four crops
+
+
+def test_later_epochs_draw_anew_from_the_same_entry(tmp_path):
+    cfg = ServeConfig(**SMALL).validate()
+    src = _cached(CLIPS, tmp_path)
+    e0 = _samples(cfg, src, "bikes.mp4", epoch=0)
+    e1 = _samples(cfg, src, "bikes.mp4", epoch=1)
+    assert e1 == _samples(cfg, CLIPS, "bikes.mp4", epoch=1)
+    assert all(e0[k]["voxels"] != e1[k]["voxels"] for k in e0)
+    assert src.take_stats()["frame_cache"]["hits"] == 1
+
+
+def _flip_byte(path: Path, at: int) -> None:
+    with open(path, "r+b") as f:
+        f.seek(at)
+        b = f.read(1)
+        f.seek(at)
+        f.write(bytes([b[0] ^ 0x10]))
+
+
+@pytest.mark.parametrize("fault", ["truncated", "bit_flip_frame", "bit_flip_trailer", "not_an_entry"])
+@pytest.mark.parametrize("fmt", ["raw", "zstd"])
+def test_damaged_entry_is_decoded_again(tmp_path, fault, fmt):
+    cfg = ServeConfig(**SMALL).validate()
+    video = "bikes.mp4"
+    want = _samples(cfg, CLIPS, video)
+    src = _cached(CLIPS, tmp_path, fmt=fmt)
+    assert _samples(cfg, src, video) == want
+    (entry,) = _entries(tmp_path)
+    size = entry.stat().st_size
+    if fault == "truncated":
+        os.truncate(entry, size // 2)
+    elif fault == "bit_flip_frame":
+        _flip_byte(entry, 20_000)  # inside frame 0 or 1: found while reading, the rest decoded
+    elif fault == "bit_flip_trailer":
+        _flip_byte(entry, size - len(MAGIC) - 20 - 40)
+    else:
+        entry.write_bytes(b"not an entry at all" * 10)
+    src.take_stats()
+    assert _samples(cfg, src, video) == want
+    stats = src.take_stats()["frame_cache"]
+    assert stats["misses"]["corrupt"] == 1 and stats["hits"] == 0, stats
+    # a fault found on opening is decoded and stored in the same pass; one found mid-read is
+    # decoded from that frame on, and the next pass stores the video again
+    assert stats["stored"] == (0 if fault == "bit_flip_frame" else 1), stats
+    if fault == "bit_flip_frame":
+        assert _samples(cfg, src, video) == want
+        assert src.take_stats()["frame_cache"]["stored"] == 1
+    assert _samples(cfg, src, video) == want
+    assert src.take_stats()["frame_cache"]["hits"] == 1
+
+
+def test_source_replaced_in_place_is_a_miss(tmp_path):
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
+    cfg = ServeConfig(**SMALL).validate()
+    src = _cached(corpus, tmp_path / "cache")
+    _samples(cfg, src, "v.mp4")
+    shutil.copy(CLIPS / "webvid_like_596x336.mp4", corpus / "v.mp4")  # same name, other content
+    src.take_stats()
+    assert _samples(cfg, src, "v.mp4") == _samples(cfg, corpus, "v.mp4")
+    stats = src.take_stats()["frame_cache"]
+    assert stats["misses"]["changed"] == 1 and stats["hits"] == 0 and stats["stored"] == 1
+    assert len(_entries(tmp_path / "cache")) == 1  # the stale entry was replaced, not kept beside
+
+
+def test_cache_folder_deleted_while_serving(tmp_path):
+    """The folder removed mid-write (the entry cannot be committed) and between epochs."""
+    cfg = ServeConfig(**SMALL).validate()
+    want = _samples(cfg, CLIPS, "bikes.mp4")
+    src = _cached(CLIPS, tmp_path)
+    got = {}
+    for i, (key, arrays, meta) in enumerate(video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True)):
+        got[key.sample_id(1)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
+        if i == 0:
+            shutil.rmtree(tmp_path / "frames")
+    assert got == want
+    stats = src.take_stats()["frame_cache"]
+    assert stats["not_stored"]["write_error"] == 1 and stats["stored"] == 0, stats
+    assert _samples(cfg, src, "bikes.mp4") == want  # the folder is made again
+    assert src.take_stats()["frame_cache"]["stored"] == 1
+    shutil.rmtree(tmp_path / "frames")
+    assert _samples(cfg, src, "bikes.mp4") == want
+    assert src.take_stats()["frame_cache"]["misses"]["absent"] == 1
+
+
+def test_budget_holds_and_keeps_what_it_admitted(tmp_path):
+    """A budget below the corpus: entries are admitted until full and kept (policy ``keep``);
+    the next epoch hits those and decodes the rest; the folder never holds more than the budget."""
+    cfg = ServeConfig(**SMALL).validate()
+    clips = ["bikes.mp4", "webvid_like_596x336.mp4", "bigbuckbunny.mp4"]
+    probe = _cached(CLIPS, tmp_path / "probe")
+    sizes = {}
+    for c in clips:
+        _samples(cfg, probe, c)
+        sizes[c] = max(_entries(tmp_path / "probe"), key=lambda p: p.stat().st_mtime_ns).stat().st_size
+    budget = sizes["bikes.mp4"] + sizes["webvid_like_596x336.mp4"] + sizes["bigbuckbunny.mp4"] // 2
+    src = _cached(CLIPS, tmp_path / "cache", gb=budget / (1 << 30))
+    for epoch in (0, 1):
+        for c in clips:
+            assert _samples(cfg, src, c, epoch) == _samples(cfg, CLIPS, c, epoch)
+            assert sum(p.stat().st_size for p in _entries(tmp_path / "cache")) <= budget
+        stats = src.take_stats()["frame_cache"]
+        if epoch == 0:
+            assert stats["stored"] == 2 and stats["not_stored"]["budget"] == 1, stats
+        else:
+            assert stats["hits"] == 2 and stats["misses"]["absent"] == 1, stats
+
+
+def _make_samples(root: str, cache_dir: str, video: str, kill_after: int) -> None:
+    """In a fresh process: make ``video``'s samples through the cache, SIGKILL itself after
+    ``kill_after`` of them (-1: never)."""
+    import signal
+
+    cfg = ServeConfig(**SMALL).validate()
+    src = open_source(root, cache_dir=cache_dir, frame_cache_gb=1.0)
+    for i, _ in enumerate(video_samples(cfg, src, video, 0, DEFAULT_OUTPUTS)):
+        if i == kill_after:
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_writer_killed_mid_write_leaves_no_entry(tmp_path):
+    code = ("import sys; from tests.test_frame_cache import _make_samples; "
+            f"_make_samples({str(CLIPS)!r}, {str(tmp_path)!r}, 'bikes.mp4', 1)")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, timeout=120)
+    assert r.returncode == -9
+    assert not _entries(tmp_path) and list((tmp_path / "frames").glob("*.tmp"))  # the half-written file
+    cfg = ServeConfig(**SMALL).validate()
+    src = _cached(CLIPS, tmp_path)
+    assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, CLIPS, "bikes.mp4")
+    assert src.take_stats()["frame_cache"]["stored"] == 1
+    assert len(_entries(tmp_path)) == 1 and not list((tmp_path / "frames").glob("*.tmp"))  # the dead writer's file removed
+
+
+def test_two_writers_make_one_entry(tmp_path):
+    """Two processes decode the same video at once: one entry, which then serves both."""
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_make_samples, args=(str(CLIPS), str(tmp_path), "bikes.mp4", -1)) for _ in range(2)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+        assert p.exitcode == 0
+    assert len(_entries(tmp_path)) == 1 and not list((tmp_path / "frames").glob("*.tmp"))
+    # and two interleaved passes in one process
+    cfg = ServeConfig(**SMALL).validate()
+    src = _cached(CLIPS, tmp_path / "one")
+    a = video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS)
+    b = video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS)
+    for x, y in zip(a, b):
+        assert x[0] == y[0]
+    stats = src.take_stats()["frame_cache"]
+    assert stats["stored"] == 1 and len(_entries(tmp_path / "one")) == 1, stats
+
+
+def test_full_disk_is_decoded_and_counted(tmp_path):
+    """A real full disk: a 2 MiB tmpfs (needs mount rights; skipped without them)."""
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+    try:
+        cfg = ServeConfig(**SMALL).validate()
+        src = _cached(CLIPS, mnt, gb=1.0)
+        assert _samples(cfg, src, "webvid_like_596x336.mp4") == _samples(cfg, CLIPS, "webvid_like_596x336.mp4")
+        stats = src.take_stats()["frame_cache"]
+        assert stats["not_stored"]["disk_full"] == 1 and stats["stored"] == 0, stats
+        assert not list((mnt / "frames").iterdir()) or not _entries(mnt)
+        assert not list((mnt / "frames").glob("*.tmp"))
+    finally:
+        subprocess.run(["umount", str(mnt)], check=False)
+
+
+def test_settings_that_change_frames_name_other_entries(tmp_path):
+    src = _cached(CLIPS, tmp_path)
+    for kw in ({}, {"decode_fast": "all"}, {"keep_top_fraction": 0.8}):
+        cfg = ServeConfig(**SMALL, **kw).validate()
+        assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, CLIPS, "bikes.mp4")
+    assert src.take_stats()["frame_cache"]["hits"] == 0
+    assert len(_entries(tmp_path)) == 3
