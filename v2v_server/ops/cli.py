@@ -13,6 +13,7 @@ from v2v_server.ops.logs import setup_logging
 from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
 from v2v_server.delivery.journal import JournalError
 from v2v_server.videos.source import StoreError, source_from_config
+from v2v_server.ops.warm import cache_line, format_warm, warm_cache
 
 
 log = logging.getLogger("v2v.serve")
@@ -29,6 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="YAML config file; command-line flags override it (keys: docs/config.md)")
     p.add_argument("--check", action="store_true",
                    help="decode every file of the corpus, print its verdict (usable windows or why not) and exit")
+    p.add_argument("--warm-cache", action="store_true",
+                   help="fill this host's frame cache (frame_cache_gb > 0) with every video of the corpus or "
+                        "shard, print what was stored and exit (docs/frame_cache.md)")
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
     add_flags(p, SampleRecipe, "sample recipe")
     add_flags(p, ServingSettings, "serving")
@@ -68,7 +72,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.check:
         results = check_corpus(cfg, source, videos)
         print(format_check(results, rejected))
+        if source.frame_cache is not None:
+            print(cache_line(source))
         return 0 if any(r["usable"] for r in results) else 2
+    if args.warm_cache:
+        try:
+            results = warm_cache(cfg, source, videos)
+        except ValueError as e:
+            print(f"v2v-serve: {e}", file=sys.stderr)
+            return 2
+        print(format_warm(results, source))
+        return 0 if any(r["state"] in ("stored", "cached") for r in results) else 2
     for rel, reason in rejected:  # a listed video that is missing is named here, once
         (log.warning if source.video_list else log.info)("ignored %s: %s", source.where(rel), reason)
     if not videos:

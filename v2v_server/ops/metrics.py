@@ -23,7 +23,11 @@ Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
   and ``v2v_shuffle_buffer_capacity_samples`` (made samples waiting in open batches, and how
   many those batches hold: ``--shuffle-buffer`` rounded up to whole batches, per epoch being
   batched),
-  ``v2v_ready``.
+  ``v2v_ready``;
+* the frame cache (docs/frame_cache.md): counters ``v2v_frame_cache_hits_total``,
+  ``v2v_frame_cache_misses_total{cause}``, ``v2v_frame_cache_stored_total``,
+  ``v2v_frame_cache_written_bytes_total``, ``v2v_frame_cache_not_stored_total{cause}``; gauges
+  ``v2v_frame_cache_bytes``, ``v2v_frame_cache_entries``, ``v2v_frame_cache_budget_bytes``.
 """
 from __future__ import annotations
 
@@ -37,6 +41,8 @@ from typing import Dict, Optional
 from prometheus_client import CollectorRegistry, Counter
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
+
+from v2v_server.videos.frame_cache import MISS_CAUSES, SKIP_CAUSES
 
 #: Work a worker reports time for, in pipeline order.
 STAGES = ("decode", "simulate", "flow", "serialize", "send")
@@ -79,6 +85,18 @@ class ServerMetrics:
                                      "(opens and range requests; / v2v_store_reads_total = mean read latency)")
         self.store_retries = counter("v2v_store_retries", "Store requests retried by the storage library")
         self.store_skipped = counter("v2v_store_objects_skipped", "Objects missing or changed since they were listed")
+        self.fc_hits = counter("v2v_frame_cache_hits", "Videos cut from the frame cache instead of decoded")
+        self.fc_misses = counter("v2v_frame_cache_misses", "Videos decoded with the frame cache on, by cause: absent "
+                                 "(not stored yet), changed (the source's identity changed), corrupt (a damaged "
+                                 "entry, removed)", ("cause",))
+        self.fc_stored = counter("v2v_frame_cache_stored", "Entries added to the frame cache")
+        self.fc_written = counter("v2v_frame_cache_written_bytes", "Bytes of entries added to the frame cache")
+        self.fc_not_stored = counter("v2v_frame_cache_not_stored", "Decoded videos not stored, by cause: budget, "
+                                     "disk_full, write_error, incomplete", ("cause",))
+        for c in MISS_CAUSES:
+            self.fc_misses.labels(cause=c)
+        for c in SKIP_CAUSES:
+            self.fc_not_stored.labels(cause=c)
         for s in STAGES:
             self.busy.labels(stage=s)
         self._state: dict = {}
@@ -142,11 +160,32 @@ class ServerMetrics:
             for key, c in (("bytes", self.store_bytes), ("reads", self.store_reads), ("read_s", self.store_seconds),
                            ("retries", self.store_retries), ("skipped", self.store_skipped)):
                 v = store.get(key)
-                if isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < 1e15:
+                if _count(v):
                     c.inc(v)
+            fc = store.get("frame_cache")
+            if isinstance(fc, dict):
+                self._frame_cache(fc)
         for s, v in stages.items():
             if s in STAGES and isinstance(v, (int, float)) and 0 <= v < 1e6:
                 self.busy.labels(stage=s).inc(v)
+
+    def _frame_cache(self, fc: dict) -> None:
+        """Add a worker's frame-cache counters (``FrameCache.take_stats``)."""
+        for key, c in (("hits", self.fc_hits), ("stored", self.fc_stored), ("bytes_written", self.fc_written)):
+            if _count(fc.get(key)):
+                c.inc(fc[key])
+        for key, causes, c in (("misses", MISS_CAUSES, self.fc_misses), ("not_stored", SKIP_CAUSES, self.fc_not_stored)):
+            d = fc.get(key)
+            if isinstance(d, dict):
+                for cause in causes:
+                    if _count(d.get(cause)):
+                        c.labels(cause=cause).inc(d[cause])
+
+    def frame_cache_totals(self) -> Dict[str, int]:
+        """Frame-cache hits and misses so far (``hits``, ``misses``), for the status line."""
+        get = self.registry.get_sample_value
+        return {"hits": int(get("v2v_frame_cache_hits_total") or 0),
+                "misses": int(sum(get("v2v_frame_cache_misses_total", {"cause": c}) or 0 for c in MISS_CAUSES))}
 
     def tick(self, state_fn, every_s: float = 0.25) -> None:
         """Call ``set_state(**state_fn())`` unless that was done less than ``every_s`` seconds
@@ -240,6 +279,11 @@ class ServerMetrics:
             self._progress.close()
 
 
+def _count(v) -> bool:
+    """Whether ``v`` is a plausible counter increment from a worker (a number, not a bool, in range)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < 1e15
+
+
 class _StateCollector:
     """Gauges built at scrape time from the latest ``set_state`` (clients come and go, so
     their series vanish with them)."""
@@ -276,6 +320,9 @@ class _StateCollector:
             ("v2v_shuffle_buffer_capacity_samples", "shuffle_capacity",
              "Samples the open batches hold when full (shuffle_buffer rounded up to whole batches, per epoch "
              "being batched)"),
+            ("v2v_frame_cache_bytes", "frame_cache_bytes", "Bytes of complete entries in this host's frame cache"),
+            ("v2v_frame_cache_entries", "frame_cache_entries", "Entries (videos) in this host's frame cache"),
+            ("v2v_frame_cache_budget_bytes", "frame_cache_budget", "The frame cache's budget (frame_cache_gb), bytes"),
         ):
             g = GaugeMetricFamily(name, doc)
             g.add_metric([], float(st.get(key, 0)))
@@ -311,6 +358,9 @@ class _Progress:
                      f"videos), {mbs:.1f} MB/s, {len(st.get('clients', {}))} client(s), workers busy "
                      f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}, shuffle buffer "
                      f"{st.get('shuffle_samples', 0)}/{st.get('shuffle_capacity', 0)}")
+        if st.get("frame_cache_budget"):
+            self.line += (f", frame cache {st.get('frame_cache_hit_ratio', 0.0):.0%} hits, "
+                          f"{st.get('frame_cache_bytes', 0) / 1e9:.1f}/{st['frame_cache_budget'] / 1e9:.1f} GB")
         self.bar.set_postfix_str(self.line)
 
     def close(self) -> None:

@@ -355,13 +355,24 @@ def video_samples(
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
-    source = source_from_spec(root)
-    span = cfg.frames_per_sample
-    settings = decode_settings(cfg.decode_fast, cfg.keep_top_fraction, span, cfg.max_samples_per_video)
-    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
-    with open_frames(source, rel_path, rows, cfg.decode_threads, cfg.decode_fast, settings,
-                     lambda declared: cfg.frames_for(_windows(cfg, declared)), cfg.window_stride) as fp:
+    with video_frames(cfg, root, rel_path) as fp:
         yield from _samples(cfg, fp, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
+
+
+def video_frames(cfg: ServeConfig, root, rel_path: str):
+    """A context manager giving the ``frames.FramePass`` a sample pass reads from the video at
+    ``rel_path`` of ``root`` (a folder or a ``VideoSource``): replayed from the source's frame
+    cache when it holds the video, else decoded (and stored): the kept rows, the frames the
+    windows need (:func:`_windows`). ``v2v-serve --warm-cache`` reads the same pass.
+
+    Raises:
+        VideoError: the file cannot be opened.
+    """
+    settings = decode_settings(cfg.decode_fast, cfg.keep_top_fraction, cfg.frames_per_sample,
+                               cfg.max_samples_per_video)
+    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
+    return open_frames(source_from_spec(root), rel_path, rows, cfg.decode_threads, cfg.decode_fast, settings,
+                       lambda declared: cfg.frames_for(_windows(cfg, declared)), cfg.window_stride)
 
 
 def _windows(cfg: ServeConfig, declared: int) -> int:

@@ -49,6 +49,8 @@ log = logging.getLogger("v2v.server")
 MAX_TASK_CRASHES = 3
 #: Client messages handled per loop turn (then the workers get their turn).
 CLIENT_BURST = 100
+#: Seconds between scans of the frame cache's folder for its bytes and entries (gauges).
+FRAME_CACHE_SCAN_S = 10.0
 
 
 class V2VServer:
@@ -71,6 +73,7 @@ class V2VServer:
             raise ValueError(f"no video files under {root}")
         self.cfg = cfg
         self.source = source_from_spec(root)
+        self._fc_scanned = (float("-inf"), (0, 0))  # (when, (bytes, entries)) of the frame cache's last scan
         self.root = self.source.root
         self.videos = list(videos)
         self.corpus = corpus or corpus_fingerprint(self.videos)  # of the listing before sharding
@@ -243,6 +246,12 @@ class V2VServer:
                  m["samples_made"], len(self.ledger.ready), self.ledger.in_flight(), held, capacity,
                  m["workers_restarted"],
                  m["tasks_timed_out"], len(self.workers.skipped_files), m["bad_messages"], self.clients.bad.suppressed)
+        fc = self._frame_cache_state()
+        if fc:
+            t = self.metrics.frame_cache_totals()
+            log.info("frame cache: %d hit(s), %d miss(es) (%.0f%% hits), %d entries, %.2f of %.2f GB",
+                     t["hits"], t["misses"], 100 * fc["frame_cache_hit_ratio"], fc["frame_cache_entries"],
+                     fc["frame_cache_bytes"] / 1e9, fc["frame_cache_budget"] / 1e9)
 
     def _count_resent(self) -> None:
         """Count the ledger's re-queued batches into the metrics (the ledger re-queues them
@@ -262,8 +271,22 @@ class V2VServer:
                 "epoch": newest if newest is not None else -1,
                 "epoch_videos": len(plan.jobs) if plan else 0,
                 "epoch_videos_done": sum(1 for j in plan.jobs.values() if j.state == "done") if plan else 0,
-                "shuffle_samples": held, "shuffle_capacity": capacity,
+                "shuffle_samples": held, "shuffle_capacity": capacity, **self._frame_cache_state(),
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
+
+    def _frame_cache_state(self) -> dict:
+        """The host's frame cache as gauges: its folder scanned at most every ``FRAME_CACHE_SCAN_S``."""
+        fc = getattr(self.source, "frame_cache", None)
+        if fc is None:
+            return {}
+        now = time.monotonic()
+        if now - self._fc_scanned[0] >= FRAME_CACHE_SCAN_S:
+            self._fc_scanned = (now, fc.disk.usage())
+        nbytes, entries = self._fc_scanned[1]
+        t = self.metrics.frame_cache_totals()
+        looked = t["hits"] + t["misses"]
+        return {"frame_cache_bytes": nbytes, "frame_cache_entries": entries, "frame_cache_budget": fc.disk.max_bytes,
+                "frame_cache_hit_ratio": t["hits"] / looked if looked else 0.0}
 
     def _corpus_empty(self) -> bool:
         """Every file failed and nothing was ever made: no epoch can hold a sample."""

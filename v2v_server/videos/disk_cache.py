@@ -5,7 +5,7 @@ objects (``store_io.ObjectCache``) and decoded frames (``frame_cache.FrameCache`
 An entry is written under a temporary name (``NAME.PID-N.tmp``) and renamed into place when it is
 complete, so a reader never sees a torn entry and a process killed mid-write leaves only a
 temporary file, which the next commit of any process removes once its writer is gone. Commits
-take an exclusive ``flock`` on the folder's lock file, so the budget check and the rename are one
+take an exclusive ``flock`` on a lock file beside the folder (``.NAME.lock``), so the budget check and the rename are one
 step for all processes of the host: two writers of the same entry leave one entry, and the
 budget holds however many processes commit at once.
 
@@ -81,7 +81,7 @@ class DiskCache:
     @contextlib.contextmanager
     def _locked(self) -> Iterator[None]:
         self.folder.mkdir(parents=True, exist_ok=True)
-        with open(self.folder / ".lock", "a+b") as lock:
+        with open(self.folder.parent / f".{self.folder.name}.lock", "a+b") as lock:  # beside: the folder holds entries only
             fcntl.flock(lock, fcntl.LOCK_EX)
             try:
                 yield

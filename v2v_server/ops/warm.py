@@ -1,0 +1,85 @@
+"""``v2v-serve --warm-cache``: fill this host's frame cache (``videos.frame_cache``) with every
+video of the corpus (or of this host's shard) before training starts, so that clusters that
+prepare CPU hosts ahead of GPU time serve the first epoch from the cache too; and the cache's
+line of ``v2v-serve --check``.
+
+Each video is read through the same pass a worker makes (``samples.make.video_frames``): decoded
+and stored on a miss, read back (every frame's checksum verified) on a hit.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+from typing import List
+
+from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.make import video_frames
+from v2v_server.videos.source import source_from_spec
+
+
+def warm_video(cfg: ServeConfig, root, rel: str) -> dict:
+    """Read video ``rel`` of ``root`` (a ``VideoSource`` or its ``spec()``) through the frame
+    cache: ``{"path", "frames", "state", "bytes"}``, state ``cached`` (already there, read back
+    whole), ``stored``, or ``not stored: CAUSE`` (budget, disk_full, write_error, or the
+    decoding error)."""
+    source = source_from_spec(root)
+    out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
+    cached = False
+    try:
+        with video_frames(cfg, source, rel) as fp:
+            cached = fp.cached
+            for _ in fp.frames:
+                out["frames"] += 1
+    except Exception as e:  # one bad file never stops the warm-up
+        out["state"] = f"not stored: {type(e).__name__}: {e}"
+    st = source.take_stats().get("frame_cache", {})
+    out["bytes"] = int(st.get("bytes_written", 0))
+    if out["state"]:
+        return out
+    if cached and not st.get("misses", {}).get("corrupt"):
+        out["state"] = "cached"
+    elif st.get("stored"):
+        out["state"] = "stored"
+    else:
+        causes = [c for c, n in st.get("not_stored", {}).items() if n]
+        out["state"] = "not stored: " + (", ".join(causes) or "already stored by another process")
+    return out
+
+
+def _warm(args):
+    return warm_video(*args)
+
+
+def warm_cache(cfg: ServeConfig, source, videos: List[str]) -> List[dict]:
+    """:func:`warm_video` for every video, in ``cfg.workers`` processes.
+
+    Raises:
+        ValueError: the frame cache is off (``frame_cache_gb`` 0).
+    """
+    if getattr(source, "frame_cache", None) is None:
+        raise ValueError("--warm-cache needs a frame cache: give frame_cache_gb > 0 (and cache_dir)")
+    jobs = [(cfg, source.spec(), v) for v in videos]
+    if cfg.workers <= 1 or len(jobs) <= 1:
+        return [warm_video(*j) for j in jobs]
+    with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
+        return pool.map(_warm, jobs, chunksize=1)
+
+
+def cache_line(source) -> str:
+    """One line on the host's frame cache: entries, bytes against the budget, folder."""
+    fc = source.frame_cache
+    nbytes, entries = fc.disk.usage()
+    return (f"frame cache {fc.disk.folder}: {entries} entr{'y' if entries == 1 else 'ies'}, "
+            f"{nbytes / (1 << 30):.2f} of {fc.disk.max_bytes / (1 << 30):.2f} GiB ({fc.format})")
+
+
+def format_warm(results: List[dict], source) -> str:
+    """A table: one line per video with what the warm-up did, then totals and :func:`cache_line`."""
+    lines = [f"{'file':<48} {'frames':>7}  state"]
+    for r in results:
+        lines.append(f"{r['path']:<48} {r['frames']:>7}  {r['state']}")
+    n = {s: sum(1 for r in results if r["state"] == s) for s in ("stored", "cached")}
+    rest = len(results) - n["stored"] - n["cached"]
+    written = sum(r["bytes"] for r in results)
+    lines.append(f"{n['stored']} stored ({written / (1 << 30):.2f} GiB), {n['cached']} already cached, {rest} not stored")
+    lines.append(cache_line(source))
+    return "\n".join(lines)
