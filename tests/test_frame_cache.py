@@ -280,3 +280,112 @@ def test_settings_that_change_frames_name_other_entries(tmp_path):
         assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, CLIPS, "bikes.mp4")
     assert src.take_stats()["frame_cache"]["hits"] == 0
     assert len(_entries(tmp_path)) == 3
+
+
+def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
+    """{(epoch, sample id): bytes of voxels and frames} of ``epochs`` epochs served by v2v-serve
+    with two workers, and the last /metrics page."""
+    import time
+    import urllib.request
+
+    from harness.faults import Layout
+    from harness.serve import ServeProcess, free_port
+    from v2v_client.dataset import V2VStreamDataset
+
+    out, port = {}, free_port()
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", *Layout(L=4, crop=64, windows=2, batch=2).args(),
+                       "--outputs", "voxels,frames", "--epochs", str(epochs), "--end-grace-s", "60",
+                       "--metrics-port", str(port),
+                       *extra]) as srv:
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2))
+        try:
+            for b in it:
+                for i, sid in enumerate(b["sample_ids"]):
+                    key = (b["epoch"], sid)
+                    assert key not in out, f"{key} delivered twice"
+                    out[key] = b"".join(np.asarray(b[k][i]).tobytes() for k in ("voxels", "frames"))
+        finally:
+            it.close()
+        deadline = time.monotonic() + 20
+        while True:  # the page is rendered at most once a second, the cache's folder scanned every few
+            page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+            metrics = {line.split()[0]: float(line.split()[1]) for line in page.splitlines()
+                       if line.startswith("v2v_frame_cache") and "_created" not in line}
+            if metrics.get("v2v_frame_cache_entries", 1) > 0 or time.monotonic() > deadline:
+                return out, metrics
+            time.sleep(0.5)
+
+
+def test_served_epochs_identical_with_the_cache_and_epoch_one_hits(tmp_path):
+    """v2v-serve with two workers: both epochs byte for byte those of a server without the
+    cache; epoch 1 cut from the entries (hits in /metrics), the gauges set."""
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    for name in ("bikes.mp4", "webvid_like_596x336.mp4"):
+        shutil.copy(CLIPS / name, corpus / name)
+    plain, _ = _served(corpus)
+    cached, m = _served(corpus, "--frame-cache-gb", "1", "--cache-dir", str(tmp_path / "cache"))
+    assert len(plain) == 8 and cached == plain  # 2 windows of each clip, 2 epochs
+    # epochs overlap: a worker may open a video of epoch 1 while another still stores it for epoch 0
+    misses = m['v2v_frame_cache_misses_total{cause="absent"}']
+    assert m["v2v_frame_cache_hits_total"] >= 1 and m["v2v_frame_cache_hits_total"] + misses == 4, m
+    assert m["v2v_frame_cache_stored_total"] == 2, m
+    assert m["v2v_frame_cache_budget_bytes"] == 1 << 30 and m["v2v_frame_cache_entries"] == 2
+
+
+def test_ray_stage_hits_its_node_local_cache(tmp_path):
+    """The Ray engine's sample maker (one per actor) reads the node's cache under its cache_dir."""
+    import json as _json
+
+    from v2v_server.ray_data import SampleMaker, epoch_descriptors, scan_corpus_windows
+
+    cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path)).validate()
+    rc = scan_corpus_windows(str(CLIPS), cfg)
+    maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels", "frames"))
+    plain = SampleMaker(ServeConfig(**SMALL).validate().to_dict(), rc.root, ("voxels", "frames"))
+
+    def rows(m, epoch):
+        return {str(r["sample_id"][0]): r["voxels"].tobytes() + r["frames"].tobytes()
+                for d in epoch_descriptors(rc, epoch) for r in m.video_rows(d["video"], epoch, _json.loads(d["entries"]))}
+
+    for epoch in (0, 1):
+        assert rows(maker, epoch) == rows(plain, epoch)
+    stats = maker.source.take_stats()["frame_cache"]
+    assert stats["hits"] == stats["stored"] == len(epoch_descriptors(rc, 0)), stats
+
+
+def test_tar_member_entries_follow_their_shard(tmp_path):
+    """Tar shards: a member's entry records its shard's identity and its offset; rewriting the
+    shard is a miss."""
+    import tarfile
+
+    shard = tmp_path / "corpus" / "s.tar"
+    shard.parent.mkdir()
+    with tarfile.open(shard, "w") as t:
+        t.add(CLIPS / "bikes.mp4", arcname="a.mp4")
+    cfg = ServeConfig(**SMALL).validate()
+    src = _cached(shard.parent, tmp_path / "cache")
+    want = _samples(cfg, shard.parent, "s.tar/a.mp4")
+    assert _samples(cfg, src, "s.tar/a.mp4") == want and _samples(cfg, src, "s.tar/a.mp4") == want
+    assert src.take_stats()["frame_cache"]["hits"] == 1
+    with tarfile.open(shard, "w") as t:  # the same member name, other content
+        t.add(CLIPS / "webvid_like_596x336.mp4", arcname="a.mp4")
+    src = _cached(shard.parent, tmp_path / "cache")  # a new process: the shard's index is read again
+    assert _samples(cfg, src, "s.tar/a.mp4") == _samples(cfg, shard.parent, "s.tar/a.mp4")
+    assert src.take_stats()["frame_cache"]["misses"]["changed"] == 1
+
+
+def test_warm_cache_then_check(tmp_path):
+    """``v2v-serve --warm-cache`` stores every video, a second run finds them cached, and
+    ``--check`` reports the cache."""
+    args = [sys.executable, "-m", "v2v_server.ops.cli", "--workers", "2", "--cache-dir", str(tmp_path),
+            "--sequence-length", "8"]
+    r = subprocess.run(args + ["--warm-cache"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "needs a frame cache" in r.stderr
+    args += ["--frame-cache-gb", "1"]
+    r = subprocess.run(args + ["--warm-cache"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "3 stored" in r.stdout and "0 not stored" in r.stdout, r.stdout + r.stderr
+    r = subprocess.run(args + ["--warm-cache"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "3 already cached" in r.stdout, r.stdout + r.stderr
+    r = subprocess.run(args + ["--check"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "3 entries" in r.stdout, r.stdout

@@ -50,7 +50,7 @@ MAX_TASK_CRASHES = 3
 #: Client messages handled per loop turn (then the workers get their turn).
 CLIENT_BURST = 100
 #: Seconds between scans of the frame cache's folder for its bytes and entries (gauges).
-FRAME_CACHE_SCAN_S = 10.0
+FRAME_CACHE_SCAN_S = 5.0
 
 
 class V2VServer:
