@@ -112,12 +112,13 @@ def reference_loader(path: Path, samples: int, crop: int = 128) -> float:
 
 # ---------------------------------------------------------------------------- ours, one core
 def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_fast: str = "off",
-                flow_grid: bool = False, busy: Optional[dict] = None) -> float:
+                flow_grid: bool = False, busy: Optional[dict] = None, source=None, epoch: int = 0) -> float:
     """Samples per CPU-second of one worker's work (decode, crop, simulate, flow, narrowing)
     in this process, one thread, with the recipe's ``decode_fast`` setting. ``flow_grid``:
     the tracked flow as its grid, as a served worker sends it. ``busy``, when given, receives
     ``samples`` and the seconds spent simulating and estimating flow (``make_sample``'s
-    ``busy``: ``simulate``, ``flow``)."""
+    ``busy``: ``simulate``, ``flow``). ``source``: a ``VideoSource`` over ``corpus`` to read
+    through (one with a frame cache), else the folder itself; ``epoch``: the epoch drawn."""
     import cv2
 
     from v2v_server.ops.config import ServeConfig
@@ -134,7 +135,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     t = time.process_time()
     for name in names:
         stats: dict = {}
-        for sid, arrays, meta in video_samples(cfg, corpus, name, 0, outputs, (), flow, stats, flow_grid):
+        for sid, arrays, meta in video_samples(cfg, source or corpus, name, epoch, outputs, (), flow, stats, flow_grid):
             wire_arrays(cfg, arrays)
             n += 1
         for k, v in stats.get("busy", {}).items():
