@@ -181,11 +181,18 @@ class ServerMetrics:
                     if _count(d.get(cause)):
                         c.labels(cause=cause).inc(d[cause])
 
-    def frame_cache_totals(self) -> Dict[str, int]:
-        """Frame-cache hits and misses so far (``hits``, ``misses``), for the status line."""
+    def frame_cache_state(self, nbytes: int, entries: int, budget: int) -> dict:
+        """The frame cache's part of ``set_state``: its ``bytes``, ``entries`` and ``budget``
+        (from a scan of its folder), the hit ratio of the counters so far, and the status line."""
         get = self.registry.get_sample_value
-        return {"hits": int(get("v2v_frame_cache_hits_total") or 0),
-                "misses": int(sum(get("v2v_frame_cache_misses_total", {"cause": c}) or 0 for c in MISS_CAUSES))}
+        hits = int(get("v2v_frame_cache_hits_total") or 0)
+        misses = {c: int(get("v2v_frame_cache_misses_total", {"cause": c}) or 0) for c in MISS_CAUSES}
+        looked = hits + sum(misses.values())
+        ratio = hits / looked if looked else 0.0
+        line = (f"{hits} hit(s), misses {', '.join(f'{c} {n}' for c, n in misses.items())} ({ratio:.0%} hits), "
+                f"{entries} entries, {nbytes / (1 << 30):.2f} of {budget / (1 << 30):.2f} GiB")
+        return {"frame_cache_bytes": nbytes, "frame_cache_entries": entries, "frame_cache_budget": budget,
+                "frame_cache_hit_ratio": ratio, "frame_cache_line": line}
 
     def tick(self, state_fn, every_s: float = 0.25) -> None:
         """Call ``set_state(**state_fn())`` unless that was done less than ``every_s`` seconds
@@ -360,7 +367,7 @@ class _Progress:
                      f"{st.get('shuffle_samples', 0)}/{st.get('shuffle_capacity', 0)}")
         if st.get("frame_cache_budget"):
             self.line += (f", frame cache {st.get('frame_cache_hit_ratio', 0.0):.0%} hits, "
-                          f"{st.get('frame_cache_bytes', 0) / 1e9:.1f}/{st['frame_cache_budget'] / 1e9:.1f} GB")
+                          f"{st.get('frame_cache_bytes', 0) / (1 << 30):.1f}/{st['frame_cache_budget'] / (1 << 30):.1f} GiB")
         self.bar.set_postfix_str(self.line)
 
     def close(self) -> None:

@@ -248,10 +248,7 @@ class V2VServer:
                  m["tasks_timed_out"], len(self.workers.skipped_files), m["bad_messages"], self.clients.bad.suppressed)
         fc = self._frame_cache_state()
         if fc:
-            t = self.metrics.frame_cache_totals()
-            log.info("frame cache: %d hit(s), %d miss(es) (%.0f%% hits), %d entries, %.2f of %.2f GB",
-                     t["hits"], t["misses"], 100 * fc["frame_cache_hit_ratio"], fc["frame_cache_entries"],
-                     fc["frame_cache_bytes"] / 1e9, fc["frame_cache_budget"] / 1e9)
+            log.info("frame cache: %s", fc["frame_cache_line"])
 
     def _count_resent(self) -> None:
         """Count the ledger's re-queued batches into the metrics (the ledger re-queues them
@@ -282,11 +279,7 @@ class V2VServer:
         now = time.monotonic()
         if now - self._fc_scanned[0] >= FRAME_CACHE_SCAN_S:
             self._fc_scanned = (now, fc.disk.usage())
-        nbytes, entries = self._fc_scanned[1]
-        t = self.metrics.frame_cache_totals()
-        looked = t["hits"] + t["misses"]
-        return {"frame_cache_bytes": nbytes, "frame_cache_entries": entries, "frame_cache_budget": fc.disk.max_bytes,
-                "frame_cache_hit_ratio": t["hits"] / looked if looked else 0.0}
+        return self.metrics.frame_cache_state(*self._fc_scanned[1], fc.disk.max_bytes)
 
     def _corpus_empty(self) -> bool:
         """Every file failed and nothing was ever made: no epoch can hold a sample."""

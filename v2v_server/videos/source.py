@@ -207,6 +207,20 @@ class VideoSource:
     def _open_raw(self, rel: str):
         raise NotImplementedError
 
+    def _member_at(self, rel: str, entry: Optional[tuple]) -> Tuple[int, int]:
+        """(offset, size) of the tar member ``rel``: from its manifest ``entry`` (a store's), else
+        the shard's index.
+
+        Raises:
+            VideoError: the shard has no such member."""
+        if entry is not None and len(entry) == 3:
+            return entry[2], entry[0]
+        tar, name = self.split_member(rel)
+        where = self.tar_index(tar).get(name)
+        if where is None:
+            raise VideoError(f"no member {name!r} in the tar shard {tar}")
+        return where
+
     def _with_members(self, names: List[str], rejected: List[Tuple[str, str]], extensions: Sequence[str]
                       ) -> Tuple[List[str], List[Tuple[str, str]]]:
         """``names`` with each ``.tar`` shard replaced by its video members, ``shard.tar/member.mp4``
@@ -270,9 +284,7 @@ class LocalSource(VideoSource):
         if member is None or not Path(self.root, member[0]).is_file():
             yield corpus_file(self.root, rel)
             return
-        where = self.tar_index(member[0]).get(member[1])
-        if where is None:
-            raise VideoError(f"no member {member[1]!r} in the tar shard {member[0]}")
+        where = self._member_at(rel, None)
         with self._open_raw(member[0]) as f:
             yield TarMember(f, *where)
 
@@ -284,10 +296,8 @@ class LocalSource(VideoSource):
         try:
             if member is not None and Path(self.root, member[0]).is_file():
                 st = os.stat(corpus_file(self.root, member[0]))
-                where = self.tar_index(member[0]).get(member[1])
-                if where is None:
-                    raise VideoError(f"no member {member[1]!r} in the tar shard {member[0]}")
-                return f"tar {st.st_size} {st.st_mtime_ns} {st.st_ino} member {where[0]} {where[1]}"
+                offset, size = self._member_at(rel, None)
+                return f"tar {st.st_size} {st.st_mtime_ns} {st.st_ino} member {offset} {size}"
             st = os.stat(corpus_file(self.root, rel))
         except OSError as e:
             raise VideoError(f"cannot read: {e.strerror or e}") from None
@@ -300,7 +310,50 @@ class LocalSource(VideoSource):
         return {"frame_cache": self.frame_cache.take_stats()} if self.frame_cache is not None else {}
 
 
-class StoreSource(VideoSource):
+class _StoreManifest:
+    """The part of :class:`StoreSource` that keeps its listing: the manifest written and read
+    back, and the members of its tar shards within it."""
+
+    def _add_members(self, objects: dict, tar: str) -> None:
+        """Add the members of the shard ``tar`` to ``objects`` as ``tar/member`` -> (size, the
+        shard's ETag, offset); an unreadable shard gets no member (it is reported when listed)."""
+        try:
+            with self._open_raw(tar) as f:
+                members = tar_members(f)
+        except Exception as e:  # noqa: BLE001 - one bad shard never stops the listing
+            log.warning("tar shard %s cannot be read: %s: %s", self.where(tar), type(e).__name__, e)
+            return
+        etag = objects.get(tar, (0, ""))[1]
+        for name, (offset, size) in members.items():
+            objects[f"{tar}/{name}"] = (size, etag, offset)
+
+    def _load(self, objects: Dict[str, tuple]) -> None:
+        """Keep ``objects`` (a listing or manifest) and the tar members it holds."""
+        self._objects = objects
+        cache = self.__dict__.setdefault("_tar_cache", {})
+        for rel, v in objects.items():
+            if len(v) == 3:
+                tar, member = self.split_member(rel)
+                cache.setdefault(tar, {})[member] = (v[2], v[0])
+
+    def _save(self, objects: dict) -> None:
+        if self.manifest:
+            try:
+                write_manifest(Path(self.manifest), self.root, objects)
+                log.info("manifest written to %s", self.manifest)
+            except OSError as e:
+                log.warning("cannot write the manifest %s: %s (the store is listed again at the next start)",
+                            self.manifest, e)
+
+    def _save_members(self) -> None:
+        """Write the tar members read from shard headers (no listing) as the manifest."""
+        objects = {f"{tar}/{m}": (size, "", offset) for tar, ms in self.__dict__.get("_tar_cache", {}).items()
+                   for m, (offset, size) in ms.items()}
+        self._save(objects)
+        self._objects = objects
+
+
+class StoreSource(_StoreManifest, VideoSource):
     """A corpus under an object-store prefix, read through fsspec.
 
     Args:
@@ -420,37 +473,6 @@ class StoreSource(VideoSource):
         self._load(objects)
         return objects
 
-    def _add_members(self, objects: dict, tar: str) -> None:
-        """Add the members of the shard ``tar`` to ``objects`` as ``tar/member`` -> (size, the
-        shard's ETag, offset); an unreadable shard gets no member (it is reported when listed)."""
-        try:
-            with self._open_raw(tar) as f:
-                members = tar_members(f)
-        except Exception as e:  # noqa: BLE001 - one bad shard never stops the listing
-            log.warning("tar shard %s cannot be read: %s: %s", self.where(tar), type(e).__name__, e)
-            return
-        etag = objects.get(tar, (0, ""))[1]
-        for name, (offset, size) in members.items():
-            objects[f"{tar}/{name}"] = (size, etag, offset)
-
-    def _load(self, objects: Dict[str, tuple]) -> None:
-        """Keep ``objects`` (a listing or manifest) and the tar members it holds."""
-        self._objects = objects
-        cache = self.__dict__.setdefault("_tar_cache", {})
-        for rel, v in objects.items():
-            if len(v) == 3:
-                tar, member = self.split_member(rel)
-                cache.setdefault(tar, {})[member] = (v[2], v[0])
-
-    def _save(self, objects: dict) -> None:
-        if self.manifest:
-            try:
-                write_manifest(Path(self.manifest), self.root, objects)
-                log.info("manifest written to %s", self.manifest)
-            except OSError as e:
-                log.warning("cannot write the manifest %s: %s (the store is listed again at the next start)",
-                            self.manifest, e)
-
     def list_videos(self, extensions):
         names = self._names()
         if names is not None:  # nothing is listed from the store: a missing video is found when it is opened
@@ -477,13 +499,6 @@ class StoreSource(VideoSource):
                 rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
         return videos, rejected
 
-    def _save_members(self) -> None:
-        """Write the tar members read from shard headers (no listing) as the manifest."""
-        objects = {f"{tar}/{m}": (size, "", offset) for tar, ms in self.__dict__.get("_tar_cache", {}).items()
-                   for m, (offset, size) in ms.items()}
-        self._save(objects)
-        self._objects = objects
-
     # ------------------------------------------------------------------ reading
     def _expected(self, rel: str) -> Optional[tuple]:
         """The listing's entry for ``rel``: from the listing this process holds (the server),
@@ -504,37 +519,38 @@ class StoreSource(VideoSource):
             with self._open_raw(rel) as f:
                 yield f
             return
-        tar, name = member
         entry = self._expected(rel)
-        with self._open_raw(tar, entry) as f:
-            where = (entry[2], entry[0]) if entry is not None and len(entry) == 3 else self.tar_index(tar).get(name)
-            if where is None:
-                raise VideoError(f"no member {name!r} in the tar shard {tar}")
-            yield TarMember(f, *where)
+        with self._open_raw(member[0], entry) as f:
+            yield TarMember(f, *self._member_at(rel, entry))
+
 
     def identity(self, rel: str) -> str:
         member = self.split_member(rel)
         obj = member[0] if member is not None else rel
-        t0 = time.perf_counter()
-        try:
+        with self._request():
             info = self.fs.info(self._path(obj))  # one HEAD request: no content read
-        except FileNotFoundError:
-            self.stats.skipped += 1
-            raise VideoError("missing from the store") from None
-        except Exception as e:  # timeouts, refused reads: the file's verdict
-            raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
-        finally:
-            self.stats.read_s += time.perf_counter() - t0
-            self.stats.reads += 1
+        self.stats.reads += 1
         now, size = etag_of(info), int(info.get("size") or 0)
         self._check_unchanged(self._expected(obj if member is None else rel), now)
         if member is None:
             return f"object {size} {now}"
-        entry = self._expected(rel)
-        where = (entry[2], entry[0]) if entry is not None and len(entry) == 3 else self.tar_index(obj).get(member[1])
-        if where is None:
-            raise VideoError(f"no member {member[1]!r} in the tar shard {obj}")
-        return f"tar {size} {now} member {where[0]} {where[1]}"
+        offset, msize = self._member_at(rel, self._expected(rel))
+        return f"tar {size} {now} member {offset} {msize}"
+
+    @contextlib.contextmanager
+    def _request(self):
+        """A request to the store: its seconds counted; a missing object or any failure (timeouts,
+        refused reads) raised as the file's ``VideoError``, never the worker's death."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        except FileNotFoundError:
+            self.stats.skipped += 1
+            raise VideoError("missing from the store") from None
+        except Exception as e:
+            raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
+        finally:
+            self.stats.read_s += time.perf_counter() - t0
 
     def _check_unchanged(self, expected: Optional[tuple], now: str) -> None:
         """Raises VideoError: the object's ETag ``now`` differs from the listing's (``expected``:
@@ -548,22 +564,13 @@ class StoreSource(VideoSource):
     def _open_raw(self, rel: str, expected: Optional[tuple] = None):
         """The object at ``rel`` as a file, checked against the listing's ETag (``expected``:
         its manifest entry, looked up when not given)."""
-        key = self._path(rel)
         block = max(1, int(self.read_block_mb * (1 << 20)))
-        t0 = time.perf_counter()
+        with self._request():
+            f = self.fs.open(self._path(rel), "rb", block_size=block, cache_type="blockcache",
+                             cache_options={"maxblocks": 4})
         try:
-            f = self.fs.open(key, "rb", block_size=block, cache_type="blockcache", cache_options={"maxblocks": 4})
-        except FileNotFoundError:
-            self.stats.skipped += 1
-            raise VideoError("missing from the store") from None
-        except Exception as e:  # timeouts, refused reads: the file's verdict, never the worker's death
-            raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
-        finally:
-            self.stats.read_s += time.perf_counter() - t0
-        try:
-            expected = self._expected(rel) if expected is None else expected
             now = etag_of(getattr(f, "details", None) or {})
-            self._check_unchanged(expected, now)
+            self._check_unchanged(self._expected(rel) if expected is None else expected, now)
             time_fetches(f, self.stats)
             if self.cache_max_gb > 0:
                 with self.cache.open(f"{self.root}{rel}", now, f) as local:
