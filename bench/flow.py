@@ -41,8 +41,8 @@ import cv2
 import numpy as np
 
 from harness.flow_scenes import EXTRA_KINDS, KINDS, SIZE, epe, motion_matrices, render, textures
-from v2v_server.samples.flow import FlowEstimator
-from v2v_server.samples.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, FlowUnavailable
+from v2v_server.flow.estimate import FlowEstimator
+from v2v_server.flow.options import DEFAULT_FLOW, FLOW_OPTIONS, FlowUnavailable
 
 def time_option(est: FlowEstimator, sample: np.ndarray, step: int, repeats: int) -> float:
     """CPU ms for one sample's flows (min over ``repeats``; process CPU time, one thread)."""

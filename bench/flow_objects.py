@@ -30,8 +30,8 @@ import cv2
 import numpy as np
 
 from harness.flow_scenes import SIZE, render_object, square, textures
-from v2v_server.samples.flow import FlowEstimator
-from v2v_server.samples.flow_options import DEFAULT_FLOW
+from v2v_server.flow.estimate import FlowEstimator
+from v2v_server.flow.options import DEFAULT_FLOW
 
 
 STEP = 5

@@ -33,7 +33,7 @@ from harness.faults import good_corpus
 from v2v_client import V2VStreamDataset
 from v2v_server.ops.config import ServeConfig
 from harness.serve import ServeProcess
-from v2v_server.samples.flow import FlowEstimator
+from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.decode import find_videos
 

@@ -122,7 +122,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     import cv2
 
     from v2v_server.ops.config import ServeConfig
-    from v2v_server.samples.flow import FlowEstimator
+    from v2v_server.flow.estimate import FlowEstimator
     from v2v_server.samples.make import video_samples
     from v2v_server.service.worker import wire_arrays
 

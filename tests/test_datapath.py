@@ -49,7 +49,7 @@ def test_voxels_widen_to_the_batch_and_subset_before_stacking():
 
 def test_worker_float16_narrowing_is_numpys_cast_bit_for_bit():
     from v2v_server.ops.config import ServeConfig
-    from v2v_server.samples.flow import to_float16
+    from v2v_server.flow.estimate import to_float16
     from v2v_server.service.worker import wire_arrays
 
     rng = np.random.default_rng(0)

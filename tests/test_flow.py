@@ -1,4 +1,4 @@
-"""Optical flow (v2v_server/samples/flow.py, flow_options.py): accuracy on large motion through the
+"""Optical flow (v2v_server/flow/estimate.py, options.py): accuracy on large motion through the
 sample path, the option table, the DIS reuse policy, and RAFT refused cleanly without local weights."""
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from v2v_server.samples import flow as flow_mod
+from v2v_server.flow import estimate as flow_mod
 from v2v_server.ops.config import ServeConfig
-from v2v_server.samples.flow import FlowEstimator, dis_flow
-from v2v_server.samples.flow_options import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowOption, FlowUnavailable, TrackParams,
+from v2v_server.flow.estimate import FlowEstimator, dis_flow
+from v2v_server.flow.options import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowOption, FlowUnavailable, TrackParams,
                                      check_option, unavailable_reason)
 from v2v_server.samples.make import make_sample, plan_window, video_samples
 
@@ -131,7 +131,7 @@ def test_zoom_compensation_leaves_other_motion_alone():
 
 
 def test_similarity_fit_recovers_scale_rotation_and_shift_despite_outliers():
-    from v2v_server.samples.tracking import _similarity_fit
+    from v2v_server.flow.tracking import _similarity_fit
 
     rng = np.random.default_rng(0)
     p = rng.uniform(0, 127, (64, 2))
@@ -149,7 +149,7 @@ def test_tracked_fills_dropped_points_with_a_local_affine_fit():
     field), one valid point gives its flow to all, a few valid points far away do not
     extrapolate a slope across the grid (a blurred fast pan once gave 560 px in a 96 px crop),
     a grid without valid points is zero."""
-    from v2v_server.samples.tracking import _fill_lost
+    from v2v_server.flow.tracking import _fill_lost
 
     n = 8
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
@@ -229,11 +229,11 @@ def test_option_table_and_config_validation():
 
 
 def test_flow_options_import_neither_opencv_nor_numba():
-    """The configuration checks a preset name through flow_options without loading OpenCV or numba."""
+    """The configuration checks a preset name through flow.options without loading OpenCV or numba."""
     import subprocess
     import sys
 
-    code = ("import sys, v2v_server.samples.flow_options as f; f.check_option('tracked'); "
+    code = ("import sys, v2v_server.flow.options as f; f.check_option('tracked'); "
             "print(sorted(m for m in ('cv2', 'numba', 'torch') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
@@ -302,7 +302,7 @@ def test_pause_pairs_are_skipped_without_changing_the_flow():
 def test_points_to_search_again_are_the_dropped_ones_still_inside():
     """``_dropped_inside`` (numba) marks the points with status 0, never dropped before, last
     position inside the crop (its edges included); NaN is outside."""
-    from v2v_server.samples.tracking import _dropped_inside
+    from v2v_server.flow.tracking import _dropped_inside
 
     rng = np.random.default_rng(2)
     m, w, h = 400, 128, 96
@@ -370,7 +370,7 @@ def test_fill_lost_equals_a_numpy_transcription():
     """The numba ``_fill_lost`` (loops, 3 x 3 elimination with partial pivoting) gives what the
     batched numpy version with LAPACK's solve gave, to float32 rounding: random grids with a
     third of the points lost, grids with none, one and every point valid."""
-    from v2v_server.samples.tracking import _fill_lost
+    from v2v_server.flow.tracking import _fill_lost
 
     rng = np.random.default_rng(1)
     for n in (6, 8, 12):
@@ -399,7 +399,7 @@ def test_voxel_flows_float16_is_the_float32_flow_cast(name):
         est.voxel_flows(frames, STEP, dtype="int8")
     if name == "tracked":
         from v2v_wire.flowgrid import _expand_grids, _expand_tables
-        from v2v_server.samples.tracking import _track_grid
+        from v2v_server.flow.tracking import _track_grid
 
         g = np.random.default_rng(3).standard_normal((3, 8, 8, 2)).astype(np.float32) * 10
         _, wy, wx_t = _track_grid(8, 96, 112)

@@ -16,14 +16,28 @@ def _module(path: Path) -> str:
     return ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
 
 
-def import_graph() -> dict:
-    """{module: set of project modules it imports}, over PACKAGES."""
+def _type_only(tree: ast.AST) -> set:
+    """ids of the import nodes inside ``if TYPE_CHECKING:`` blocks (annotations only, no import at run time)."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and getattr(node.test, "id", getattr(node.test, "attr", "")) == "TYPE_CHECKING":
+            out |= {id(n) for b in node.body for n in ast.walk(b)}
+    return out
+
+
+def import_graph(runtime_only: bool = False) -> dict:
+    """{module: set of project modules it imports}, over PACKAGES (``runtime_only``: imports
+    under ``if TYPE_CHECKING:`` left out)."""
     mods = {_module(p): p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")}
     graph = {}
     for name, path in mods.items():
         pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
         deps = set()
-        for node in ast.walk(ast.parse(path.read_text())):
+        tree = ast.parse(path.read_text())
+        skip = _type_only(tree) if runtime_only else set()
+        for node in ast.walk(tree):
+            if id(node) in skip:
+                continue
             if isinstance(node, ast.Import):
                 targets = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom):
@@ -84,6 +98,29 @@ def test_wire_package_stands_alone():
     graph = import_graph()
     used = {m for n, deps in graph.items() if n.startswith("v2v_wire") for m in deps if not m.startswith("v2v_wire")}
     assert not used, sorted(used)
+
+
+#: The server's stage folders, lowest first: each imports only the stages before it (and
+#: ``v2v_server.checks``, below all of them); annotations naming a higher stage's types stay
+#: under ``if TYPE_CHECKING:``. ``ops`` (settings, metrics, logs) sits below the ``service`` that
+#: uses them; the command that wires everything, ``v2v-serve``, is above every stage.
+STAGES = ("flow", "videos", "simulation", "samples", "delivery", "ops", "service")
+COMMANDS = {"v2v_server.ops.cli"}
+
+
+def test_each_stage_imports_only_the_stages_below_it():
+    graph = import_graph(runtime_only=True)
+    bad = []
+    for n, deps in graph.items():
+        parts = n.split(".")
+        if parts[0] != "v2v_server" or len(parts) < 2 or parts[1] not in STAGES or n in COMMANDS:
+            continue
+        below = STAGES[:STAGES.index(parts[1]) + 1]
+        for m in deps:
+            mp = m.split(".")
+            if mp[0] == "v2v_server" and len(mp) > 1 and mp[1] in STAGES and mp[1] not in below:
+                bad.append(f"{n} imports {m}")
+    assert not bad, bad
 
 
 if __name__ == "__main__":

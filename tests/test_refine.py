@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import read_luma_clip
-from v2v_server.samples.flow import dis_flow
+from v2v_server.flow.estimate import dis_flow
 from v2v_server.simulation.reference import events_to_voxels, simulate_events
 from v2v_server.simulation.refine import RefineSpec, parse_refine, refine_frames, simulate_voxels_refined
 from v2v_server.simulation.simulate import SensorParams, simulate_voxels

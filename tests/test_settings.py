@@ -12,8 +12,8 @@ from typing import Optional
 import pytest
 
 from v2v_server.ops.config import SampleRecipe, ServeConfig, ServingSettings, load_config
-from v2v_server.ops.settings import (add_flags, check_choice, check_float, check_int, check_prob, flag_values, load_yaml,
-                                 reference_markdown, setting)
+from v2v_server.ops.settings import add_flags, flag_values, load_yaml, reference_markdown, setting
+from v2v_server.checks import check_choice, check_float, check_int, check_prob
 
 ROOT = Path(__file__).resolve().parents[1]
 

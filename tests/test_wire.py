@@ -18,7 +18,7 @@ from harness.serve import ServeProcess
 from v2v_client import StreamError, V2VStreamDataset, expand_flow_grid
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_server.ops.config import ServeConfig
-from v2v_server.samples.flow import FlowEstimator, to_float16
+from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import parse_sample_id
 from v2v_wire.protocol import DEFAULT_OUTPUTS, is_loopback, pack, unpack
 from v2v_server.samples.make import make_sample, video_samples

@@ -15,8 +15,8 @@ from typing import Any, Iterable, Optional
 
 import yaml
 
-from v2v_server.ops.settings import (YamlLoader, check_bool, check_choice, check_float, check_int, check_keys,
-                                     load_yaml, setting)
+from v2v_server.ops.settings import YamlLoader, load_yaml, setting
+from v2v_server.checks import check_bool, check_choice, check_float, check_int, check_keys
 
 __all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config",
            "load_config", "apply_overrides", "apply_loss_preset", "SPELLINGS", "merge", "check_types",

@@ -10,7 +10,7 @@ the default ``stream`` uses the flow the server sends.
 
 RAFT needs torchvision and local weights (nothing is downloaded): ``loss.raft_weights``, else
 ``$V2V_RAFT_WEIGHTS``, else torchvision's cache ``$TORCH_HOME/hub/checkpoints/raft_<size>*.pth``
-(``v2v_server.samples.flow_options.load_raft``, the server's RAFT loader, looks in the same
+(``v2v_server.flow.options.load_raft``, the server's RAFT loader, looks in the same
 places and loads the network). :func:`load_raft` checks both before the first step and raises
 :class:`FlowSourceUnavailable` naming what is missing.
 
@@ -23,7 +23,7 @@ from typing import Callable, Optional
 
 import torch
 
-from v2v_server.samples.flow_options import FlowUnavailable, load_raft as load_raft_network
+from v2v_server.flow.options import FlowUnavailable, load_raft as load_raft_network
 
 from .config import FLOW_SOURCES, SPELLINGS
 
@@ -42,7 +42,7 @@ def load_raft(source: str, device: torch.device, weights: Optional[str] = None) 
     """torchvision's RAFT small or large (``source``: ``raft-small`` or ``raft-large``, or
     ``raft_small`` / ``raft_large``) with local weights (``weights``: ``loss.raft_weights``, None:
     the server's places), in eval mode on ``device``, its parameters frozen; loaded by the
-    server's loader (``v2v_server.samples.flow_options.load_raft``).
+    server's loader (``v2v_server.flow.options.load_raft``).
 
     Raises:
         ValueError: ``source`` names no RAFT.
@@ -103,7 +103,7 @@ class RaftFlow:
         source: ``raft-small`` or ``raft-large`` (or ``raft_small`` / ``raft_large``).
         device: the training device (RAFT runs there, under ``torch.no_grad``).
         num_flow_updates: RAFT's iterations (``loss.raft_num_flow_updates``).
-        weights: ``loss.raft_weights`` (None: the server's places, ``flow_options.raft_weight_places``).
+        weights: ``loss.raft_weights`` (None: the server's places, ``flow.options.raft_weight_places``).
         net: a ready network instead of loading one (tests).
 
     Raises:

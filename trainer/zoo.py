@@ -6,7 +6,7 @@ from dataclasses import asdict
 
 import torch.nn as nn
 
-from v2v_server.ops.settings import check_keys
+from v2v_server.checks import check_keys
 
 from .config import TASK_SECTIONS, ConfigError
 from .models import ERAFT, E2VIDRecurrent, ETNet, EVFlowNet, HyperE2VID

@@ -48,7 +48,7 @@ from v2v_server.delivery.batcher import video_order
 from v2v_server.ops.config import ServeConfig
 from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS, row_array, zeros_row
 from v2v_wire.protocol import check_outputs
-from v2v_server.samples.flow import FlowEstimator
+from v2v_server.flow.estimate import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.corpus import verdict

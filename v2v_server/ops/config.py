@@ -14,16 +14,16 @@ from pathlib import Path
 from typing import Optional, Tuple
 
 from v2v_server.delivery.batcher import SHUFFLES
-from v2v_server.samples.flow_options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
+from v2v_server.flow.options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import OUTPUTS, check_outputs, is_loopback  # noqa: F401  (is_loopback: config's checks and sockets use it)
-from v2v_server.ops.settings import (check_bool, check_choice, check_float, check_int, check_keys, check_prob,
-                                     load_yaml, reference_markdown, setting)
+from v2v_server.ops.settings import load_yaml, reference_markdown, setting
+from v2v_server.checks import check_bool, check_choice, check_float, check_int, check_keys, check_prob
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
 from v2v_server.videos.frame_cache import FORMATS as FRAME_CACHE_FORMATS
 
-#: Optical-flow options by name (the table lives in flow_options.py).
+#: Optical-flow options by name (the table lives in v2v_server/flow/options.py).
 FLOW_PRESETS = tuple(FLOW_OPTIONS)
 #: Wire dtypes of dense flow (``v2v_wire.outputs``).
 FLOW_DTYPES = ARRAYS["flow"].dtypes

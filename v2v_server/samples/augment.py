@@ -26,7 +26,7 @@ from typing import Optional
 
 import numpy as np
 
-from v2v_server.ops.settings import check_keys
+from v2v_server.checks import check_keys
 from v2v_server.simulation.simulate import ParamRanges, sample_params
 
 __all__ = ["DEGRADE_DEFAULTS", "parse_degrade", "aux_rng", "degrade_dynamic_range", "video_thresholds",

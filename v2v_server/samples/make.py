@@ -15,20 +15,22 @@ import hashlib
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, Iterable, Iterator, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, Iterable, Iterator, List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from v2v_server.samples.augment import augment_plan, degrade_window
-from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.source import source_from_spec
 from v2v_wire.ids import SampleKey, window_keys
-from v2v_server.samples.flow import FlowEstimator
+from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.videos.decode import to_uint8
 from v2v_server.videos.frame_cache import decode_settings
 from v2v_server.videos.frames import FramePass, open_frames
+
+if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
+    from v2v_server.ops.config import ServeConfig
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
     """The generator for one sample, a pure function of (seed, epoch, sample_id)."""

@@ -50,7 +50,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from v2v_server.ops.settings import check_keys
+from v2v_server.checks import check_keys
 from v2v_server.simulation.kernel import run_kernel
 from v2v_server.simulation.simulate import SensorParams, _lut64, check_frames, draw_noise_seed, simulate_voxels, start_state
 

@@ -40,7 +40,7 @@ from typing import Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from v2v_server.samples.flow import dis_flow
+from v2v_server.flow.estimate import dis_flow
 from v2v_server.simulation.kernel import full_scale_of, run_kernel
 from v2v_server.simulation.simulate import SensorParams, draw_noise_seed, log_intensity_lut
 

@@ -29,8 +29,8 @@ from typing import Callable, Optional, Tuple
 
 import numpy as np
 
-from v2v_server.samples.flow import dis_flow
-from v2v_server.samples.flow_options import DIS_PRESETS
+from v2v_server.flow.estimate import dis_flow
+from v2v_server.flow.options import DIS_PRESETS
 from v2v_server.simulation.kernel import run_kernel
 from v2v_server.simulation.reference import interpolate_pair
 from v2v_server.simulation.simulate import SensorParams, _lut, check_frames, draw_noise_seed, simulate_voxels, start_state

@@ -21,7 +21,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from v2v_server.ops.settings import check_keys
+from v2v_server.checks import check_keys
 from v2v_server.simulation.kernel import full_scale_of, run_kernel
 
 #: Offset inside the log, ``L = log(LOG_EPS + I)`` (paper Sec. 3, reference repo).

@@ -5,11 +5,13 @@ from __future__ import annotations
 import hashlib
 import multiprocessing as mp
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
-from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.decode import VideoError, decode_codes, open_video
 from v2v_server.videos.source import source_from_spec
+
+if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
+    from v2v_server.ops.config import ServeConfig
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
 SAMPLE_VIDEOS = Path(__file__).resolve().parents[1] / "sample_videos"

@@ -3,7 +3,7 @@ interpolation.
 
 A sample's flow is the forward optical flow between the frames at consecutive voxel
 boundaries, ``B * frames_per_bin`` source frames apart (5 by default). The options
-(``flow_options.FLOW_OPTIONS``, the one table) trade speed for accuracy on large motion;
+(``options.FLOW_OPTIONS``, the one table) trade speed for accuracy on large motion;
 ``python -m bench.flow`` measures them against rendered clips with known motion (docs/flow.md):
 
 * ``tracked``: a grid of points tracked frame by frame through the voxel with pyramidal
@@ -40,10 +40,10 @@ from typing import Dict, Optional
 import cv2
 import numpy as np
 
-from v2v_server.samples.flow_options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, FlowUnavailable, check_option,
+from v2v_server.flow.options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, FlowUnavailable, check_option,
                            load_raft, raft_weights, unavailable_reason)
 from v2v_wire.flowgrid import expand_grids
-from v2v_server.samples.tracking import (ZOOM_INLIERS, _dropped_inside, _fill_lost, _from_resized,
+from v2v_server.flow.tracking import (ZOOM_INLIERS, _dropped_inside, _fill_lost, _from_resized,
                        _same_as_previous, _to_resized, _track_grid, _zoom_fit)
 
 __all__ = ["FlowEstimator", "MIN_DIS_SIDE", "dis_flow", "expand_grids", "to_float16"]
@@ -191,7 +191,7 @@ def _zoom_similarity(t, p: np.ndarray, nxt: np.ndarray, good: np.ndarray, whole:
 
 
 class FlowEstimator:
-    """A sample's flows with one option of ``flow_options.FLOW_OPTIONS``.
+    """A sample's flows with one option of ``options.FLOW_OPTIONS``.
 
     A tracked option keeps no state between calls; DIS objects are the process's (see the
     module doc).
