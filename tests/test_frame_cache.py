@@ -283,8 +283,8 @@ def test_settings_that_change_frames_name_other_entries(tmp_path):
 
 
 def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
-    """{(epoch, sample id): bytes of voxels and frames} of ``epochs`` epochs served by v2v-serve
-    with two workers, and the last /metrics page."""
+    """{(epoch, sample id): bytes of every output} of ``epochs`` epochs served by v2v-serve with
+    two workers, and the frame cache's metrics from the last /metrics page."""
     import time
     import urllib.request
 
@@ -294,16 +294,16 @@ def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
 
     out, port = {}, free_port()
     with ServeProcess(["--videos", str(corpus), "--workers", "2", *Layout(L=4, crop=64, windows=2, batch=2).args(),
-                       "--outputs", "voxels,frames", "--epochs", str(epochs), "--end-grace-s", "60",
+                       "--outputs", "voxels,frames,flow", "--epochs", str(epochs), "--end-grace-s", "60",
                        "--metrics-port", str(port),
                        *extra]) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2))
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames", "flow"), timeout_s=60, credits=2))
         try:
             for b in it:
                 for i, sid in enumerate(b["sample_ids"]):
                     key = (b["epoch"], sid)
                     assert key not in out, f"{key} delivered twice"
-                    out[key] = b"".join(np.asarray(b[k][i]).tobytes() for k in ("voxels", "frames"))
+                    out[key] = b"".join(np.asarray(b[k][i]).tobytes() for k in ("voxels", "frames", "flow"))
         finally:
             it.close()
         deadline = time.monotonic() + 20
@@ -388,4 +388,8 @@ def test_warm_cache_then_check(tmp_path):
     r = subprocess.run(args + ["--warm-cache"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "3 already cached" in r.stdout, r.stdout + r.stderr
     r = subprocess.run(args + ["--check"], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "3 entries" in r.stdout, r.stdout
+    assert r.returncode == 0 and "3 entries" in r.stdout and "3 of 3 videos cached (100%)" in r.stdout, r.stdout
+    entry = max(_entries(tmp_path), key=lambda p: p.stat().st_size)
+    os.truncate(entry, 100)
+    r = subprocess.run(args + ["--check"], capture_output=True, text=True, timeout=300)
+    assert "2 of 3 videos cached (67%), misses: corrupt 1" in r.stdout, r.stdout

@@ -73,7 +73,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         results = check_corpus(cfg, source, videos)
         print(format_check(results, rejected))
         if source.frame_cache is not None:
-            print(cache_line(source))
+            print(cache_line(source, cfg, videos))
         return 0 if any(r["usable"] for r in results) else 2
     if args.warm_cache:
         try:

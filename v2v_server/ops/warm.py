@@ -9,10 +9,11 @@ and stored on a miss, read back (every frame's checksum verified) on a hit.
 from __future__ import annotations
 
 import multiprocessing as mp
-from typing import List
+from typing import List, Optional, Sequence
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.samples.make import video_frames
+from v2v_server.samples.make import frame_settings, video_frames
+from v2v_server.videos.frames import corpus_key
 from v2v_server.videos.source import source_from_spec
 
 
@@ -64,12 +65,29 @@ def warm_cache(cfg: ServeConfig, source, videos: List[str]) -> List[dict]:
         return pool.map(_warm, jobs, chunksize=1)
 
 
-def cache_line(source) -> str:
-    """One line on the host's frame cache: entries, bytes against the budget, folder."""
+def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] = ()) -> str:
+    """One line on the host's frame cache: entries, bytes against the budget, folder; with
+    ``cfg`` and ``videos``, how many of those videos an epoch would cut from it (a stale or
+    damaged entry found here is removed, as a worker would)."""
     fc = source.frame_cache
     nbytes, entries = fc.disk.usage()
-    return (f"frame cache {fc.disk.folder}: {entries} entr{'y' if entries == 1 else 'ies'}, "
+    line = (f"frame cache {fc.disk.folder}: {entries} entr{'y' if entries == 1 else 'ies'}, "
             f"{nbytes / (1 << 30):.2f} of {fc.disk.max_bytes / (1 << 30):.2f} GiB ({fc.format})")
+    if cfg is None or not videos:
+        return line
+    hits = 0
+    for rel in videos:
+        try:
+            entry = fc.lookup(fc.entry_name(corpus_key(source), rel, frame_settings(cfg)), source.identity(rel))
+        except Exception:  # the file's verdict says why; it is not cached
+            continue
+        if entry is not None:
+            hits += 1
+            entry.close()
+    st = fc.take_stats()["misses"]
+    causes = ", ".join(f"{c} {n}" for c, n in st.items() if n)
+    return line + f"; {hits} of {len(videos)} videos cached ({hits / len(videos):.0%})" + (
+        f", misses: {causes}" if causes else "")
 
 
 def format_warm(results: List[dict], source) -> str:
