@@ -25,7 +25,7 @@ STORES = {"gs": (GcsEmulator, "gcsfs", "generation"), "az": (AzuriteBlob, "adlfs
 
 #: each test well under this; a store client stuck in a wait (gcsfs's bucket-layout probe against an
 #: emulator: 60 s per call) fails here instead of running on for minutes
-pytestmark = pytest.mark.timeout(60)
+pytestmark = pytest.mark.timeout(60, func_only=True)  # the test bodies; Azurite's npm install bounds itself
 
 
 def _cfg() -> ServeConfig:
