@@ -63,13 +63,14 @@ class _Emulator:
 
     @property
     def endpoint(self) -> str:
+        """``http://127.0.0.1:PORT``, the emulator's HTTP endpoint."""
         return f"http://127.0.0.1:{self.port}"
 
     def _args(self) -> List[str]:
         raise NotImplementedError
 
-    def fs(self):
-        """The fsspec filesystem on this emulator (a fresh client on each call)."""
+    def fs(self, **kw):
+        """The fsspec filesystem on this emulator (a fresh client on each call; ``kw`` to it)."""
         raise NotImplementedError
 
     def storage_options(self) -> dict:
@@ -175,6 +176,7 @@ class GcsEmulator(_Emulator):
 
     @staticmethod
     def version() -> str:
+        """The installed gcp-storage-emulator release."""
         return _dist_version("gcp-storage-emulator")
 
     def start(self) -> "GcsEmulator":
@@ -265,6 +267,10 @@ class AzuriteBlob(_Emulator):
     def __init__(self, version: str = AZURITE_VERSION, **kw):
         super().__init__(**kw)
         self.azurite_version = version
+
+    def version(self) -> str:
+        """The Azurite release this emulator runs."""
+        return self.azurite_version
 
     def start(self) -> "AzuriteBlob":
         self.main_js = ensure_azurite(self.azurite_version)
