@@ -274,6 +274,8 @@ class AzuriteBlob(_Emulator):
 
     def start(self) -> "AzuriteBlob":
         self.main_js = ensure_azurite(self.azurite_version)
+        if shutil.which("node") is None:
+            raise EmulatorUnavailable("Azurite needs Node.js on PATH; node not found")
         return super().start()
 
     def _args(self) -> List[str]:
