@@ -120,8 +120,11 @@ class ManifestIndex:
 
 def etag_of(info: dict) -> str:
     """The version tag of an object in a listing or ``info()`` answer: S3's ETag, GCS's
-    generation, Azure's etag (quotes stripped)."""
-    for k in ("ETag", "etag", "generation", "md5Hash"):
+    generation, Azure's etag (quotes stripped). GCS's generation goes first: gcsfs answers
+    with an ``etag`` too, which on Google changes with the object's metadata and on emulators
+    is the content's MD5 (the same bytes written again keep it); the generation is new with
+    every write and only then."""
+    for k in ("generation", "ETag", "etag", "md5Hash"):
         v = info.get(k)
         if v:
             return str(v).strip('"')

@@ -42,8 +42,9 @@ def make_filesystem(protocol: str, root: str, storage_options: dict, read_timeou
                     stats: ReadStats):
     """The fsspec filesystem of ``protocol``: no instance or listing cache; for S3 botocore's
     ``standard`` retry mode with ``max_attempts`` and ``read_timeout_s`` as the one retry
-    policy (s3fs's own loop off), its retries counted in ``stats``; ``storage_options`` over
-    these defaults.
+    policy (s3fs's own loop off), its retries counted in ``stats``; for GCS at an emulator's
+    endpoint gcsfs's plain class (:func:`_gcs_emulator`); ``storage_options`` over these
+    defaults.
 
     Raises:
         StoreError: naming ``root``, when no library serves ``protocol`` (with the extra to
@@ -54,6 +55,8 @@ def make_filesystem(protocol: str, root: str, storage_options: dict, read_timeou
     logging.getLogger("fsspec.caching").setLevel(logging.WARNING)  # a line per block fetched otherwise
     try:
         cls = fsspec.get_filesystem_class(protocol)
+        if protocol in ("gs", "gcs") and _gcs_emulator(storage_options):
+            from gcsfs.core import GCSFileSystem as cls  # see _gcs_emulator: no bucket-layout probe
     except (ImportError, ValueError) as e:
         extra = STORE_EXTRAS.get(protocol)
         raise StoreError(f"--videos {root}: no filesystem for {protocol}:// ({e})"
@@ -71,6 +74,29 @@ def make_filesystem(protocol: str, root: str, storage_options: dict, read_timeou
         fs.retries = 1  # s3fs's own retry loop off: botocore's retry mode above is the one policy
         _count_retries(fs, stats)
     return fs
+
+
+def _gcs_emulator(storage_options: dict) -> bool:
+    """True when gcsfs is pointed away from Google (``endpoint_url`` in ``storage_options`` or
+    ``STORAGE_EMULATOR_HOST`` naming a host outside ``googleapis.com``): an emulator such as
+    gcp-storage-emulator or fake-gcs-server.
+
+    Such an endpoint gets gcsfs's plain ``gcsfs.core.GCSFileSystem``. Since gcsfs 2026.3 the
+    class fsspec hands out for ``gs://`` is ``ExtendedGcsFileSystem``, which asks the gRPC
+    Storage Control API for each bucket's layout (zonal, hierarchical) before reads and opens;
+    an emulator serves the JSON API only, so each ask waits out gcsfs's 60 s retry deadline
+    before falling back, and an unanswered ask is not remembered. Zonal and hierarchical
+    buckets exist only on Google's own endpoints, which keep the extended class. (Setting
+    ``GCSFS_EXPERIMENTAL_ZB_HNS_SUPPORT=false`` before gcsfs is first imported does the same
+    for every endpoint.)"""
+    import os
+    from urllib.parse import urlparse
+
+    endpoint = storage_options.get("endpoint_url") or os.environ.get("STORAGE_EMULATOR_HOST", "")
+    if not endpoint or endpoint == "default":
+        return False
+    host = urlparse(endpoint if "://" in endpoint else f"http://{endpoint}").hostname or ""
+    return not (host == "googleapis.com" or host.endswith(".googleapis.com"))
 
 
 def _count_retries(fs, stats: ReadStats) -> None:

@@ -1,0 +1,176 @@
+"""gs:// and az:// corpora against real emulators (harness/cloud_emulators.py): gcp-storage-emulator
+read through gcsfs, Azurite's Blob service read through adlfs. For each store: the listing's keys,
+sizes and versions (GCS generation, Azure ETag), one epoch byte for byte the folder's (also through
+a worker's source rebuilt from ``spec()``), a video's identity following an overwrite in place, and
+the frame cache serving epoch 1 with no video byte fetched."""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import pytest
+
+from harness.cloud_emulators import AzuriteBlob, EmulatorUnavailable, GcsEmulator
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.decode import VideoError
+from v2v_server.videos.source import StoreSource, open_source, source_from_config, source_from_spec
+
+ROOT = Path(__file__).resolve().parents[1]
+CLIPS = ROOT / "v2v_server" / "sample_videos"
+NAMES = sorted(p.name for p in CLIPS.glob("*.mp4"))
+OUTPUTS = ("voxels", "frames")
+#: store -> (emulator, the library that reads it, the info() key holding the object's version)
+STORES = {"gs": (GcsEmulator, "gcsfs", "generation"), "az": (AzuriteBlob, "adlfs", "etag")}
+
+
+#: each test well under this; a store client stuck in a wait (gcsfs's bucket-layout probe against an
+#: emulator: 60 s per call) fails here instead of running on for minutes
+pytestmark = pytest.mark.timeout(60, func_only=True)  # the test bodies; Azurite's npm install bounds itself
+
+
+def _cfg() -> ServeConfig:
+    return ServeConfig(sequence_length=4, crop_size=64, max_samples_per_video=2).validate()
+
+
+@pytest.fixture(scope="module", params=sorted(STORES))
+def store(request):
+    """One emulator per store, shared by the module's tests of that store, stopped after them."""
+    cls, library, _ = STORES[request.param]
+    pytest.importorskip(library, reason=f"{library} not installed (the dev extra installs it)")
+    try:
+        emulator = cls().start()
+    except EmulatorUnavailable as e:
+        pytest.skip(str(e))
+    try:
+        yield emulator
+    finally:
+        emulator.stop()
+
+
+@pytest.fixture(scope="module")
+def url(store) -> str:
+    """The bundled clips uploaded under a prefix of one bucket (container)."""
+    u = f"{store.scheme}://corpus/clips/"
+    store.upload(CLIPS, u, names=NAMES)
+    return u
+
+
+def _samples(root, names, epoch: int, cfg=None) -> dict:
+    """sample id -> bytes of its arrays, for ``names`` of ``root`` (a folder or a source)."""
+    from v2v_server.samples.make import video_samples
+
+    return {k.sample_id(1): b"".join(a[o].tobytes() for o in OUTPUTS)
+            for v in names for k, a, _ in video_samples(cfg or _cfg(), root, v, epoch, OUTPUTS)}
+
+
+@functools.lru_cache(maxsize=None)
+def _folder_samples(names: tuple, epoch: int) -> dict:
+    return _samples(CLIPS, names, epoch)
+
+
+def _version(store, key: str) -> str:
+    """The object's version as the store's own client reports it (no v2v code involved)."""
+    return str(store.fs().info(key)[STORES[store.scheme][2]]).strip('"')
+
+
+def test_store_lists_the_clips_with_sizes_and_versions(store, url, tmp_path):
+    cfg = ServeConfig(videos=url, storage_options=store.storage_options(), state_dir=str(tmp_path)).validate()
+    src = source_from_config(cfg)
+    assert isinstance(src, StoreSource)
+    src.check()  # the bucket (container) is reached
+    videos, rejected = src.list_videos(cfg.video_extensions)
+    assert videos == NAMES and rejected == []
+    objects = src.objects()
+    for name in NAMES:
+        size, version = objects[name]
+        assert size == (CLIPS / name).stat().st_size
+        assert version and version == _version(store, f"corpus/clips/{name}")
+    assert len({v for _, v in objects.values()}) == len(NAMES)
+    # the manifest written under state_dir gives a second source the same listing without the store
+    again = source_from_config(cfg)
+    again._fs = False  # no filesystem: a request to the store would raise AttributeError
+    assert again.objects() == objects
+
+
+def test_the_environment_alone_points_at_the_store(store, url, monkeypatch):
+    """No storage options: gcsfs reads STORAGE_EMULATOR_HOST, adlfs AZURE_STORAGE_CONNECTION_STRING
+    (what worker processes inherit)."""
+    for k, v in store.env().items():
+        monkeypatch.setenv(k, v)
+    src = StoreSource(url)
+    src.check()
+    assert src.list_videos((".mp4",)) == (NAMES, [])
+    assert src.identity("bikes.mp4").split()[2] == _version(store, "corpus/clips/bikes.mp4")
+
+
+def test_gcs_endpoints_of_google_keep_the_layout_probe(monkeypatch):
+    """Only an endpoint away from Google gets gcsfs's plain class (store_io._gcs_emulator)."""
+    from v2v_server.videos.store_io import _gcs_emulator
+
+    monkeypatch.delenv("STORAGE_EMULATOR_HOST", raising=False)
+    assert not _gcs_emulator({})
+    assert not _gcs_emulator({"endpoint_url": "https://storage.googleapis.com"})
+    assert not _gcs_emulator({"endpoint_url": "https://storage-acme.p.googleapis.com"})
+    assert _gcs_emulator({"endpoint_url": "http://127.0.0.1:9023"})
+    assert _gcs_emulator({"endpoint_url": "https://googleapis.com.example"})
+    monkeypatch.setenv("STORAGE_EMULATOR_HOST", "localhost:9023")
+    assert _gcs_emulator({})
+
+
+def test_a_missing_bucket_is_named(store):
+    src = StoreSource(f"{store.scheme}://no-such-bucket/clips/", store.storage_options())
+    with pytest.raises(Exception, match="no-such-bucket"):
+        src.check()
+
+
+def test_store_epoch_is_the_folder_epoch_byte_for_byte(store, url):
+    src = StoreSource(url, store.storage_options())
+    videos, _ = src.list_videos(_cfg().video_extensions)
+    want = _folder_samples(tuple(NAMES), 0)
+    assert len(want) == 2 * len(NAMES)
+    assert _samples(src, videos, 0) == want
+    assert src.take_stats()["bytes"] >= sum((CLIPS / n).stat().st_size for n in NAMES)
+    # a worker rebuilds the source from its spec (storage options included) and reads the same
+    worker = source_from_spec(src.spec())
+    assert _samples(worker, videos, 0) == want
+
+
+def test_identity_follows_an_overwrite_in_place(store, url):
+    u = f"{store.scheme}://corpus/ident/"
+    store.upload(CLIPS, u, names=["bikes.mp4"])
+    listed = StoreSource(u, store.storage_options())
+    listed.list_videos((".mp4",))
+    first = listed.identity("bikes.mp4")
+    assert first == f"object {(CLIPS / 'bikes.mp4').stat().st_size} {_version(store, 'corpus/ident/bikes.mp4')}"
+    assert listed.identity("bikes.mp4") == first  # nothing written: the same identity
+    store.upload(CLIPS, u, names=["bikes.mp4"])  # the same bytes written again: a new version all the same
+    fresh = StoreSource(u, store.storage_options())
+    second = fresh.identity("bikes.mp4")
+    assert second != first and second.startswith(first.rsplit(" ", 1)[0] + " ")  # same size, new version
+    with pytest.raises(VideoError, match="changed since it was listed"):
+        listed.identity("bikes.mp4")
+
+
+def test_frame_cache_hit_saves_the_download(store, url, tmp_path):
+    """Epoch 1 is cut from the frame cache's entries with one metadata request per video and no
+    byte of video fetched; an object overwritten in place is a ``changed`` miss. Samples equal
+    the folder's."""
+    u = f"{store.scheme}://corpus/fc/"
+    names = ["bikes.mp4", "webvid_like_596x336.mp4"]
+    store.upload(CLIPS, u, names=names)
+    opts = store.storage_options()
+    src = open_source(u, storage_options=opts, cache_dir=str(tmp_path), frame_cache_gb=1.0)
+    assert _samples(src, names, 0) == _folder_samples(tuple(names), 0)
+    first = src.take_stats()
+    assert first["frame_cache"]["stored"] == 2 and first["bytes"] > 0, first
+    assert _samples(src, names, 1) == _folder_samples(tuple(names), 1)
+    second = src.take_stats()
+    assert second["frame_cache"]["hits"] == 2 and second["bytes"] == 0 and second["reads"] == 2, second
+    store.fs().put_file(str(CLIPS / "bigbuckbunny.mp4"), "corpus/fc/bikes.mp4")  # replaced in place
+    now = tmp_path / "now"
+    now.mkdir()
+    (now / "bikes.mp4").write_bytes((CLIPS / "bigbuckbunny.mp4").read_bytes())
+    fresh = open_source(u, storage_options=opts, cache_dir=str(tmp_path), frame_cache_gb=1.0)
+    assert _samples(fresh, ["bikes.mp4"], 2) == _samples(now, ["bikes.mp4"], 2)  # decoded anew, not the entry
+    stats = fresh.take_stats()["frame_cache"]
+    assert stats["misses"]["changed"] == 1 and stats["hits"] == 0, stats
