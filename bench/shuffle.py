@@ -139,20 +139,31 @@ def copy_cost(batch: int = 12, rounds: int = 5) -> dict:
 def buffer_sizes(sizes=(12, 32, 64, 128, 256), videos: int = 200, windows: int = 10, batch: int = 12) -> dict:
     """Distinct videos per batch against ``shuffle_buffer`` for one worker's arrivals (each video's
     ``windows`` samples in order, video after video) at the default recipe's shape (10 windows
-    per video, batches of 12), from the pure ``Batcher`` (no server): size -> mean."""
+    per video, batches of 12), from the pure ``Batcher`` (no server), told how many samples are
+    still to come as the server tells it once the files' counts are known: size -> ``(mean
+    distinct videos, samples left for the epoch-end flush, mean over ``seeds``)``, and the same
+    with the count unknown under ``"unknown"``."""
     from v2v_server.delivery.batcher import Batcher
     from v2v_server.delivery.ledger import DeliveryLedger
     from v2v_wire.ids import SampleKey
 
-    out = {}
-    for size in sizes:
+    keys = [SampleKey(f"v{v}", w, 0) for v in range(videos) for w in range(windows)]
+
+    def one(size, counted, seed):
         ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=1.0)
-        b = Batcher(batch, list, ledger, lanes=-(-size // batch), seed=0)
-        for v in range(videos):
-            for w in range(windows):
-                b.add(0, ("voxels",), SampleKey(f"v{v}", w, 0), None, b.lane(0, ("voxels",)))
+        b = Batcher(batch, list, ledger, lanes=-(-size // batch), seed=seed)
+        for i, k in enumerate(keys):
+            more = len(keys) - 1 - i if counted else None
+            b.add(0, ("voxels",), k, None, b.lane(0, ("voxels",), more))
+        left = b.fill()[0]
         b.flush(lambda e: True)
-        out[size] = statistics.mean(len({k.video for k in ledger.batches[i].keys}) for i in ledger.ready)
+        return statistics.mean(len({k.video for k in ledger.batches[i].keys}) for i in ledger.ready), left
+
+    out: dict = {"unknown": {}}
+    for size in sizes:
+        for counted, into in ((True, out), (False, out["unknown"])):
+            runs = [one(size, counted, seed) for seed in range(5)]
+            into[size] = (statistics.mean(r[0] for r in runs), statistics.mean(r[1] for r in runs))
     return out
 
 
@@ -250,12 +261,18 @@ def main(argv=None) -> int:
     print(f"\nA shuffle buffer picking made samples at random would stack every batch: "
           f"{cost['stack_ms_per_sample']:.2f} ms per {cost['sample_mb']:.1f} MB sample of the default recipe "
           f"on the server's loop thread (one more copy of every byte).")
-    print("\nOne worker, 10 windows per video, batches of 12 (the default recipe's shape; the pure Batcher):\n")
-    print("| shuffle_buffer | " + " | ".join(str(k) for k in sizes) + " |")
-    print("|---|" + "---|" * len(sizes))
-    print("| distinct videos / batch | " + " | ".join(f"{v:.2f}" for v in sizes.values()) + " |")
+    print("\nOne worker, 200 videos of 10 windows, batches of 12 (the default recipe's shape; the pure Batcher, "
+          "means of 5 seeds):\n")
+    cols = [k for k in sizes if k != "unknown"]
+    print("| shuffle_buffer | " + " | ".join(str(k) for k in cols) + " |")
+    print("|---|" + "---|" * len(cols))
+    print("| distinct videos / batch | " + " | ".join(f"{sizes[k][0]:.2f}" for k in cols) + " |")
+    print("| samples left for the epoch-end flush | " + " | ".join(f"{sizes[k][1]:.1f}" for k in cols) + " |")
+    print("| the same, count unknown: distinct videos | " + " | ".join(f"{sizes['unknown'][k][0]:.2f}" for k in cols) + " |")
+    print("| the same, count unknown: samples left | " + " | ".join(f"{sizes['unknown'][k][1]:.1f}" for k in cols) + " |")
     if a.out:
-        Path(a.out).write_text(json.dumps({"runs": rows, "copy_cost": cost, "buffer_sizes": sizes}, indent=1) + "\n")
+        Path(a.out).write_text(json.dumps({"runs": rows, "copy_cost": cost, "buffer_sizes": {str(k): v for k, v in sizes.items()}},
+                                          indent=1, default=str) + "\n")
     return 0
 
 
