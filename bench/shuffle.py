@@ -266,12 +266,15 @@ def main(argv=None) -> int:
     cols = [k for k in sizes if k != "unknown"]
     print("| shuffle_buffer | " + " | ".join(str(k) for k in cols) + " |")
     print("|---|" + "---|" * len(cols))
-    print("| distinct videos / batch | " + " | ".join(f"{sizes[k][0]:.2f}" for k in cols) + " |")
-    print("| samples left for the epoch-end flush | " + " | ".join(f"{sizes[k][1]:.1f}" for k in cols) + " |")
-    print("| the same, count unknown: distinct videos | " + " | ".join(f"{sizes['unknown'][k][0]:.2f}" for k in cols) + " |")
-    print("| the same, count unknown: samples left | " + " | ".join(f"{sizes['unknown'][k][1]:.1f}" for k in cols) + " |")
+    unknown = sizes["unknown"]
+    for label, table, i, fmt in (("distinct videos / batch", sizes, 0, ".2f"),
+                                 ("samples left for the epoch-end flush", sizes, 1, ".1f"),
+                                 ("the same, count unknown: distinct videos", unknown, 0, ".2f"),
+                                 ("the same, count unknown: samples left", unknown, 1, ".1f")):
+        print(f"| {label} | " + " | ".join(format(table[k][i], fmt) for k in cols) + " |")
     if a.out:
-        Path(a.out).write_text(json.dumps({"runs": rows, "copy_cost": cost, "buffer_sizes": {str(k): v for k, v in sizes.items()}},
+        Path(a.out).write_text(json.dumps({"runs": rows, "copy_cost": cost,
+                                           "buffer_sizes": {str(k): v for k, v in sizes.items()}},
                                           indent=1, default=str) + "\n")
     return 0
 
