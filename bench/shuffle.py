@@ -1,6 +1,7 @@
 """How well batches mix videos, how much the epoch order changes, and what shuffling costs.
 
-Usage: ``python -m bench.shuffle [--clips 24] [--workers 1,4] [--rounds 3] [--out FILE.json]``
+Usage: ``python -m bench.shuffle [--clips 24] [--workers 1,4] [--rounds 3] [--out FILE.json]``,
+or ``python -m bench.shuffle --small-epoch [--rounds 2] [--samples 36]`` for :func:`small_epoch`.
 
 Makes a corpus of ``--clips`` small synthetic clips (``harness.corpus.write_video``; 5 windows
 each at the small layout below), then for each worker count runs a real ``v2v-serve`` for
@@ -18,6 +19,9 @@ settings interleaved). Prints, per setting:
 what the alternative design, a shuffle buffer that stacks batches of randomly picked samples,
 would cost per sample of the default recipe (:func:`copy_cost`), and distinct videos per batch
 against ``shuffle_buffer`` for one worker at the default recipe's shape (:func:`buffer_sizes`).
+
+``--small-epoch`` measures instead what shuffling costs when an epoch is smaller than the shuffle
+buffer (:func:`small_epoch`).
 
 docs/shuffle.md quotes its output.
 """
@@ -135,21 +139,79 @@ def copy_cost(batch: int = 12, rounds: int = 5) -> dict:
 def buffer_sizes(sizes=(12, 32, 64, 128, 256), videos: int = 200, windows: int = 10, batch: int = 12) -> dict:
     """Distinct videos per batch against ``shuffle_buffer`` for one worker's arrivals (each video's
     ``windows`` samples in order, video after video) at the default recipe's shape (10 windows
-    per video, batches of 12), from the pure ``Batcher`` (no server): size -> mean."""
+    per video, batches of 12), from the pure ``Batcher`` (no server), told how many samples are
+    still to come as the server tells it once the files' counts are known: size -> ``(mean
+    distinct videos, samples left for the epoch-end flush, mean over ``seeds``)``, and the same
+    with the count unknown under ``"unknown"``."""
     from v2v_server.delivery.batcher import Batcher
     from v2v_server.delivery.ledger import DeliveryLedger
     from v2v_wire.ids import SampleKey
 
-    out = {}
-    for size in sizes:
+    keys = [SampleKey(f"v{v}", w, 0) for v in range(videos) for w in range(windows)]
+
+    def one(size, counted, seed):
         ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=1.0)
-        b = Batcher(batch, list, ledger, lanes=-(-size // batch), seed=0)
-        for v in range(videos):
-            for w in range(windows):
-                b.add(0, ("voxels",), SampleKey(f"v{v}", w, 0), None, b.lane(0, ("voxels",)))
+        b = Batcher(batch, list, ledger, lanes=-(-size // batch), seed=seed)
+        for i, k in enumerate(keys):
+            more = len(keys) - 1 - i if counted else None
+            b.add(0, ("voxels",), k, None, b.lane(0, ("voxels",), more))
+        left = b.fill()[0]
         b.flush(lambda e: True)
-        out[size] = statistics.mean(len({k.video for k in ledger.batches[i].keys}) for i in ledger.ready)
+        return statistics.mean(len({k.video for k in ledger.batches[i].keys}) for i in ledger.ready), left
+
+    out: dict = {"unknown": {}}
+    for size in sizes:
+        for counted, into in ((True, out), (False, out["unknown"])):
+            runs = [one(size, counted, seed) for seed in range(5)]
+            into[size] = (statistics.mean(r[0] for r in runs), statistics.mean(r[1] for r in runs))
     return out
+
+
+def small_epoch(rounds: int = 2, samples: int = 36, copies: int = 6) -> List[dict]:
+    """An epoch smaller than the shuffle buffer: ``copies`` copies of the WebVid-like clip
+    (``bench.speed``: 2 windows each, so 12 samples per epoch at 6 copies), one worker, batches
+    of 4 (the default buffer of 64 is 16 open batches), every output, read raw as fast as a
+    client takes it (``bench.speed.producer``, ``samples`` measured after two batches).
+    ``--shuffle none`` and ``--shuffle epoch`` interleaved for ``rounds`` rounds, each round
+    also measuring the decode bound (``bench.speed.bare_decode``). One row per run:
+    ``decode_share`` (samples per worker CPU-second / the round's decode bound) and
+    ``server_cpu_s_per_gb`` (the server main process)."""
+    from bench.speed import SPAN, bare_decode, clip_path, make_corpus as copies_of, producer, worker_core
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="v2v-shuffle-") as d:
+        corpus = copies_of(Path(d) / "webvid", copies)
+        worker_core(corpus, ("voxels", "frames", "flow"), videos=1)  # load the compiled kernels once, unmeasured
+        for r in range(rounds):
+            bound = bare_decode(clip_path(), 2) / SPAN
+            for shuffle in (("none", "epoch") if r % 2 == 0 else ("epoch", "none")):
+                p = producer(corpus, 1, samples, ["--shuffle", shuffle])
+                rows.append({"round": r, "shuffle": shuffle, "decode_bound": bound,
+                             "decode_share": p["per_worker_cpu_s"] / bound, **p})
+                print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    return rows
+
+
+def print_small_epoch(rows: List[dict], samples: int) -> None:
+    """The table of :func:`small_epoch`: per setting, the best round of each figure and its
+    ratio to ``none``'s best."""
+    best = {}
+    for shuffle in ("none", "epoch"):
+        rs = [r for r in rows if r["shuffle"] == shuffle]
+        best[shuffle] = {"decode_share": max(r["decode_share"] for r in rs),
+                         "server_cpu_s_per_gb": min(r["server_cpu_s_per_gb"] for r in rs),
+                         "samples_per_s": max(r["samples_per_s"] for r in rs),
+                         "core_share": max(r["core_share"] for r in rs)}
+    print(f"6 copies of the WebVid-like clip (12 samples per epoch), 1 worker, batches of 4, every output, "
+          f"{samples} samples measured; best of {len({r['round'] for r in rows})} interleaved rounds\n")
+    print("| shuffle | samples / worker CPU-s, share of the decode bound | vs none | server main CPU-s / GB "
+          "| vs none | samples/s | worker core share |")
+    print("|---|---|---|---|---|---|---|")
+    for shuffle, b in best.items():
+        base = best["none"]
+        print(f"| {shuffle} | {b['decode_share']:.2f} | {b['decode_share'] / base['decode_share']:.2f} | "
+              f"{b['server_cpu_s_per_gb']:.2f} | {b['server_cpu_s_per_gb'] / base['server_cpu_s_per_gb']:.2f} | "
+              f"{b['samples_per_s']:.2f} | {b['core_share']:.2f} |")
 
 
 def main(argv=None) -> int:
@@ -158,7 +220,15 @@ def main(argv=None) -> int:
     p.add_argument("--workers", default="1,4", help="comma list of worker counts")
     p.add_argument("--rounds", type=int, default=3, help="runs per setting (seeds 3, 4, ...), interleaved")
     p.add_argument("--out", help="also write the rows as JSON here")
+    p.add_argument("--small-epoch", action="store_true", help="measure an epoch smaller than the buffer instead")
+    p.add_argument("--samples", type=int, default=36, help="--small-epoch: samples measured per run")
     a = p.parse_args(argv)
+    if a.small_epoch:
+        rows = small_epoch(a.rounds, a.samples)
+        print_small_epoch(rows, a.samples)
+        if a.out:
+            Path(a.out).write_text(json.dumps(rows, indent=1) + "\n")
+        return 0
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         corpus = make_corpus(Path(tmp) / "clips", a.clips)
@@ -191,12 +261,21 @@ def main(argv=None) -> int:
     print(f"\nA shuffle buffer picking made samples at random would stack every batch: "
           f"{cost['stack_ms_per_sample']:.2f} ms per {cost['sample_mb']:.1f} MB sample of the default recipe "
           f"on the server's loop thread (one more copy of every byte).")
-    print("\nOne worker, 10 windows per video, batches of 12 (the default recipe's shape; the pure Batcher):\n")
-    print("| shuffle_buffer | " + " | ".join(str(k) for k in sizes) + " |")
-    print("|---|" + "---|" * len(sizes))
-    print("| distinct videos / batch | " + " | ".join(f"{v:.2f}" for v in sizes.values()) + " |")
+    print("\nOne worker, 200 videos of 10 windows, batches of 12 (the default recipe's shape; the pure Batcher, "
+          "means of 5 seeds):\n")
+    cols = [k for k in sizes if k != "unknown"]
+    print("| shuffle_buffer | " + " | ".join(str(k) for k in cols) + " |")
+    print("|---|" + "---|" * len(cols))
+    unknown = sizes["unknown"]
+    for label, table, i, fmt in (("distinct videos / batch", sizes, 0, ".2f"),
+                                 ("samples left for the epoch-end flush", sizes, 1, ".1f"),
+                                 ("the same, count unknown: distinct videos", unknown, 0, ".2f"),
+                                 ("the same, count unknown: samples left", unknown, 1, ".1f")):
+        print(f"| {label} | " + " | ".join(format(table[k][i], fmt) for k in cols) + " |")
     if a.out:
-        Path(a.out).write_text(json.dumps({"runs": rows, "copy_cost": cost, "buffer_sizes": sizes}, indent=1) + "\n")
+        Path(a.out).write_text(json.dumps({"runs": rows, "copy_cost": cost,
+                                           "buffer_sizes": {str(k): v for k, v in sizes.items()}},
+                                          indent=1, default=str) + "\n")
     return 0
 
 

@@ -218,7 +218,8 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
     ``core_share`` (workers' CPU-seconds / (N x wall seconds): below 1 when a worker waited for
     a core, a slot or the server), ``other_threads`` (share of the workers' CPU-seconds spent
     outside their main threads: decoder, OpenCV, BLAS or numba pools), ``threads`` (threads per
-    worker) and ``server_cpu_s`` per sample (the relay process). Measured after two batches.
+    worker), ``server_cpu_s`` per sample and ``server_cpu_s_per_gb`` (the relay process, per GB
+    of the batches' arrays received) and ``gb``. Measured after two batches.
     """
     from harness.serve import ServeProcess
     from v2v_client import V2VStreamDataset
@@ -230,9 +231,11 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
             next(it)
         pids = worker_pids(srv.proc.pid)
         c0, s0, w0 = [_threads_cpu_s(p) for p in pids], _cpu_s(srv.proc.pid), time.perf_counter()
-        n = 0
+        n = nbytes = 0
         while n < samples:
-            n += len(next(it)["sample_ids"])
+            b = next(it)
+            n += len(b["sample_ids"])
+            nbytes += sum(v.numel() * v.element_size() for v in b.values() if hasattr(v, "numel"))
         c1, s1, w1 = [_threads_cpu_s(p) for p in pids], _cpu_s(srv.proc.pid), time.perf_counter()
         threads = max(len(os.listdir(f"/proc/{p}/task")) for p in pids)
         it.close()
@@ -241,7 +244,8 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
     wall = w1 - w0
     return {"workers": workers, "samples": n, "samples_per_s": n / wall, "per_worker": n / wall / workers,
             "per_worker_cpu_s": n / (main + other), "core_share": (main + other) / (workers * wall),
-            "other_threads": other / (main + other), "threads": threads, "server_cpu_s": (s1 - s0) / n}
+            "other_threads": other / (main + other), "threads": threads, "server_cpu_s": (s1 - s0) / n,
+            "gb": nbytes / 1e9, "server_cpu_s_per_gb": (s1 - s0) / max(nbytes / 1e9, 1e-12)}
 
 
 def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 8, credits: int = 1,

@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 
 from v2v_server.delivery.batcher import Batcher, video_order
-from v2v_server.delivery.core import DeliveryPolicy
+from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
 from v2v_server.delivery.ledger import DeliveryLedger
 from v2v_server.delivery.schedule import EpochScheduler
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ray_data import RayCorpus, epoch_descriptors
 from v2v_server.service.datapath import BatchAssembler, make_batch
 from v2v_wire.ids import SampleKey
+from v2v_wire.messages import Hello
 
 VIDEOS = [f"v{i:02d}.mp4" for i in range(24)]
 
@@ -137,6 +138,95 @@ def test_a_full_open_batch_is_its_buffers_rows_and_goes_zero_copy():
         assert [int(b.payload.arrays["voxels"][r, 0, 0, 0, 0]) for r in range(4)] == [
             2 * VIDEOS.index(k.video) + k.window for k in b.keys]
     assert len({k.video for b in full for k in b.keys[:4]}) > 2
+
+
+def test_an_epoch_smaller_than_the_buffer_fills_whole_batches_as_it_comes_zero_copy():
+    """12 samples, 16 open batches of 4: told how many samples are still to come, the batcher
+    spreads them over 3 open batches only, so 3 full batches (each one buffer's rows) leave as
+    the samples arrive and nothing is left for the epoch-end flush to copy."""
+    keys = sequential_keys(VIDEOS[:6], 2)
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    batcher = Batcher(4, make_batch, ledger, lanes=16, seed=0)
+    asm = BatchAssembler(4)
+    for i, key in enumerate(keys):
+        lane = batcher.lane(0, ("voxels",), more=len(keys) - 1 - i)
+        arrays = {"voxels": np.full((2, 3, 8, 8), i, np.int8)}
+        batcher.add(0, ("voxels",), key, asm.place(key.sample_id(), {}, arrays, lane), lane)
+    made = [ledger.batches[i] for i in ledger.ready]
+    assert [len(b.keys) for b in made] == [4, 4, 4] and not batcher.waiting()
+    assert all(b.payload._rows is not None for b in made)  # zero-copy: views of one buffer's rows
+    assert sorted(k for b in made for k in b.keys) == sorted(keys)
+    assert max(len({k.video for k in b.keys}) for b in made) > 2  # mixed: not 2 videos' runs in a row
+    batcher.flush(lambda e: True)
+    assert len(ledger.ready) == 3  # nothing left over
+
+
+def test_a_count_not_a_multiple_of_the_batch_keeps_every_sample_once():
+    """13 samples in batches of 4 with the count known: every sample batched once, at least the
+    3 batches the count allows made full before the flush."""
+    keys = sequential_keys(VIDEOS[:13], 1)
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    batcher = Batcher(4, list, ledger, lanes=16, seed=3)
+    for i, key in enumerate(keys):
+        batcher.add(0, ("voxels",), key, key, batcher.lane(0, ("voxels",), more=len(keys) - 1 - i))
+    assert len(ledger.ready) >= 2
+    batcher.flush(lambda e: True)
+    assert collections.Counter(k for i in ledger.ready for k in ledger.batches[i].keys) == collections.Counter(keys)
+
+
+def test_a_large_epoch_mixes_as_without_a_count():
+    """While more samples are to come than the buffer holds, a known count changes no choice:
+    the same batches form as when the count is unknown."""
+    def batches(counted):
+        ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+        b = Batcher(8, list, ledger, lanes=4, seed=1)
+        keys = sequential_keys()
+        for i, k in enumerate(keys[:80]):
+            b.add(0, ("voxels",), k, k, b.lane(0, ("voxels",), more=len(keys) - 1 - i if counted else None))
+        return [ledger.batches[i].keys for i in ledger.ready]
+
+    assert batches(True) == batches(False) and len(batches(True)) >= 5
+
+
+def one_worker_stream(policy: DeliveryPolicy, videos, windows: int):
+    """One worker makes every window of every video, epoch after epoch, with a trainer joined
+    but not reading. Returns ``(on the fly, all)``: epoch -> sizes of the batches made while
+    the epoch's samples arrived (no tick yet), and epoch -> every key batched once a tick
+    flushed the leftovers."""
+    core = DeliveryCore(videos, policy, list)
+    core.hello(b"t", Hello(("voxels",), 64), 0.0, dict)
+    while (task := core.task_for(b"w", 0.0)) is not None:
+        for w in range(windows):
+            key = SampleKey(task["video"], w, 0)
+            assert core.sample(b"w", task["task"], key, 0.0, lambda lane, key=key: key)
+        core.done(b"w", task["task"], windows, {}, None)
+    on_the_fly = collections.defaultdict(list)
+    for b in core.ledger.batches.values():
+        on_the_fly[b.epoch].append(len(b.keys))
+    core.tick(0.0)
+    every = collections.defaultdict(list)
+    for b in core.ledger.batches.values():
+        every[b.epoch].extend(b.keys)
+    return dict(on_the_fly), dict(every)
+
+
+@pytest.mark.parametrize("bound,exact_from", [(None, 1), (2, 0)])
+def test_the_core_counts_a_small_epoch_and_sends_whole_batches_before_it_ends(bound, exact_from):
+    """6 videos of 2 windows, batches of 4, the default buffer (16 open batches): once the
+    scheduler knows each file's count (from an earlier epoch's pass, or ``max_samples_per_video``
+    bounding it from the start), an epoch's 12 samples make 3 full batches before the epoch's
+    jobs end, and the flush adds none; every epoch batches each sample exactly once."""
+    videos = VIDEOS[:6]
+    bounded = {} if bound is None else {"max_samples_per_video": bound}
+    policy = DeliveryPolicy(batch_size=4, epochs=2, shuffle="epoch", shuffle_buffer=64, seed=1,
+                            lease_s=100.0, client_timeout_s=100.0, **bounded)
+    on_the_fly, every = one_worker_stream(policy, videos, 2)
+    for epoch in (0, 1):
+        assert collections.Counter(every[epoch]) == collections.Counter(sequential_keys(videos, 2))
+    for epoch in range(exact_from, 2):
+        assert on_the_fly[epoch] == [4, 4, 4]
+    if exact_from == 1:
+        assert sum(on_the_fly.get(0, [])) < 12  # epoch 0's counts are unknown until its passes end
 
 
 def test_shuffle_buffer_rounds_up_to_whole_open_batches():

@@ -11,6 +11,9 @@
   its arrays are copied (:meth:`Batcher.lane`), so the server copies it straight into that
   batch's buffer row (``datapath.BatchAssembler.place``): a full batch is consecutive rows of
   one buffer and goes out zero-copy, as without shuffling. ``lanes = 1`` keeps arrival order.
+  When the caller knows how many samples a group can still bring, the choice is among no more
+  open batches than those samples fill, so an epoch smaller than the buffer still makes whole
+  batches as samples arrive.
 
 Nothing here owns a socket, a clock or a process; ``tests/test_shuffle.py`` drives it directly.
 """
@@ -83,16 +86,33 @@ class Batcher:
             self._rngs[gkey] = random.Random(f"{self.seed}/{gkey[0]}/{','.join(gkey[1])}")
         return group
 
-    def lane(self, epoch: int, outputs: tuple) -> int:
+    def lane(self, epoch: int, outputs: tuple, more: Optional[int] = None) -> int:
         """The open batch the next sample of ``(epoch, outputs)`` joins: a uniformly random one
         of the group's ``lanes`` open batches (each has a free row: a full one is replaced at
         once). Pass it to :meth:`add` (and to the data path, which places the sample's arrays
-        in that batch's buffer)."""
+        in that batch's buffer).
+
+        ``more``: at most how many samples the group can still bring after this one (None:
+        unknown). When this sample, the ones waiting and ``more`` fill fewer than ``lanes``
+        batches, the choice is among that many open batches only (every one holding a sample,
+        then empty ones in the group's order), so an epoch smaller than the buffer fills whole
+        batches as its samples come (zero-copy, sent before the epoch ends) instead of leaving
+        every open batch part-full for :meth:`flush` to copy. When ``more`` is exact and the
+        group's samples are a multiple of ``batch_size``, nothing is left for :meth:`flush`."""
         gkey = (epoch, tuple(outputs))
         group = self._group(gkey)
         if self.lanes == 1:
             return next(iter(group))
-        return list(group)[self._rngs[gkey].randrange(self.lanes)]
+        rng = self._rngs[gkey]
+        if more is not None:
+            held = sum(len(items) for items in group.values())
+            k = -(-(held + 1 + max(more, 0)) // self.batch_size)  # batches left to make in this group
+            if k < self.lanes:
+                started = [lane for lane, items in group.items() if items]
+                empty = [lane for lane, items in group.items() if not items]
+                pick = started + empty[:max(0, k - len(started))]
+                return pick[rng.randrange(len(pick))]  # k >= 1: never empty
+        return list(group)[rng.randrange(self.lanes)]
 
     def add(self, epoch: int, outputs: tuple, key: SampleKey, sample, lane: Optional[int] = None) -> None:
         """Queue one sample in open batch ``lane`` (from :meth:`lane`; None, or one no longer

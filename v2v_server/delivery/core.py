@@ -46,6 +46,8 @@ class DeliveryPolicy:
         shuffle_buffer: samples the shuffle buffer holds under ``shuffle="epoch"`` (>= 1),
             rounded up to whole open batches (:attr:`lanes`).
         seed: draws the orders (``ServeConfig.seed``).
+        max_samples_per_video: windows a file gives at most per epoch (None: no bound known);
+            bounds the samples an epoch can still bring before its files' first passes end.
 
     Raises:
         ValueError: naming the field, for a ``shuffle`` not in ``batcher.SHUFFLES`` or a
@@ -65,6 +67,7 @@ class DeliveryPolicy:
     shuffle: str = "none"
     shuffle_buffer: int = 1
     seed: int = 0
+    max_samples_per_video: Optional[int] = None
 
     def __post_init__(self):
         if self.shuffle not in SHUFFLES:
@@ -84,7 +87,7 @@ class DeliveryPolicy:
         """The policy of a validated ``config.ServeConfig``."""
         return cls(cfg.batch_size, cfg.epochs, cfg.lease_s, cfg.client_timeout_s, cfg.revoke_s, cfg.max_credits,
                    cfg.task_timeout_s, tuple(cfg.outputs), max_task_crashes, cfg.crops_per_window, cfg.shuffle,
-                   cfg.shuffle_buffer, cfg.seed)
+                   cfg.shuffle_buffer, cfg.seed, cfg.max_samples_per_video)
 
 
 class GroupPadding:
@@ -145,7 +148,8 @@ class DeliveryCore:
     def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None):
         p = self.policy = policy
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
-                                    shuffle_seed=p.seed if p.shuffle == "epoch" else None)
+                                    shuffle_seed=p.seed if p.shuffle == "epoch" else None,
+                                    max_windows=p.max_samples_per_video)
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, revoke_s=p.revoke_s, max_credits=p.max_credits)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
         self.crops_per_window = p.crops_per_window
@@ -189,7 +193,7 @@ class DeliveryCore:
             return False
         epoch = self.sched.running[task_id].epoch
         outputs = self.task_outputs.get(task_id, ())
-        lane = self.batcher.lane(epoch, outputs)
+        lane = self.batcher.lane(epoch, outputs, self._to_come(epoch))
         try:
             s = build(lane)
         except Exception:
@@ -214,6 +218,15 @@ class DeliveryCore:
     def timed_out(self, now: float) -> List[Tuple[Hashable, Job]]:
         """Tasks silent for ``task_timeout_s``: reassigned; the workers should be replaced."""
         return self.sched.expire(now, self.task_timeout_s)
+
+    def _to_come(self, epoch: int) -> Optional[int]:
+        """At most how many more samples ``epoch`` brings after the one just accepted (None:
+        unknown, or more than the shuffle buffer holds, where the count changes nothing)."""
+        if self.batcher.lanes == 1:
+            return None
+        cap = self.batcher.lanes * self.batcher.batch_size
+        n = self.sched.to_come(epoch, cap)
+        return None if n is None or n > cap else n
 
     def _epoch_ended(self, epoch: int) -> bool:
         """None of ``epoch``'s jobs runs or waits (or the epoch is forgotten)."""

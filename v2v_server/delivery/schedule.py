@@ -89,6 +89,7 @@ class EpochPlan:
     held: Dict[str, Dict[SampleKey, int]] = field(default_factory=dict)  # video -> sample -> records holding it
     live_by_video: Dict[str, Set[SampleKey]] = field(default_factory=dict)
     unfinished: int = 0  # jobs queued or running
+    open_jobs: Dict[str, None] = field(default_factory=dict)  # their videos, in the epoch's order
 
     # ------------------------------------------------------------------ holdings
     def delivered(self) -> Set[SampleKey]:
@@ -150,7 +151,28 @@ class EpochPlan:
     def set_state(self, job: Job, state: str) -> None:
         if (job.state == "done") != (state == "done"):
             self.unfinished += 1 if job.state == "done" else -1
+            if state == "done":
+                self.open_jobs.pop(job.video, None)
+            else:
+                self.open_jobs[job.video] = None
         job.state = state
+
+    def to_come(self, counts: Dict[str, int], per_video: Optional[int], limit: int) -> Optional[int]:
+        """How many samples the queued and running jobs can still bring: each file's count
+        (``job.samples`` once known this epoch, else ``counts[video]`` from an earlier pass (a
+        file gives the same windows every epoch), else the bound ``per_video``) less its
+        samples delivered, live or failed. Stops adding once past ``limit`` (returns a number
+        > ``limit``); None when some file's count is unknown before that."""
+        total = 0
+        for v in self.open_jobs:
+            job = self.jobs[v]
+            n = job.samples if job.samples is not None else counts.get(v, per_video)
+            if n is None:
+                return None
+            total += max(0, n - len(self.have(v)) - len(job.failed))
+            if total > limit:
+                break
+        return total
 
     def check_complete(self) -> bool:
         """Complete when no job is queued or running and nothing is live (a done job never
@@ -228,14 +250,18 @@ class EpochScheduler:
         crops_per_window: samples per window (K of ``ids.py``).
         shuffle_seed: None: every epoch hands the videos out in the listing's order; an int:
             epoch ``e`` hands them out in ``batcher.video_order(videos, shuffle_seed, e)``.
+        max_windows: windows a file gives at most per epoch (``max_samples_per_video``; None:
+            no bound known), for :meth:`to_come` before a file's first pass ends.
 
     Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
 
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = 3,
                  lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1,
-                 shuffle_seed: Optional[int] = None):
+                 shuffle_seed: Optional[int] = None, max_windows: Optional[int] = None):
         self.videos, self.shuffle_seed = list(videos), shuffle_seed
+        self.max_windows = max_windows
+        self.counts: Dict[str, int] = {}  # video -> samples its last complete pass gave (any epoch)
         self.known = set(self.videos)
         self.max_epochs = epochs
         self.max_task_crashes = max_task_crashes
@@ -265,6 +291,7 @@ class EpochScheduler:
         for v in self.epoch_order(e):
             plan.jobs[v] = Job(e, v)
             plan.unfinished += 1
+            plan.open_jobs[v] = None
             self.queue.append((e, v))
         self.plans[e] = plan
         plan.check_complete()
@@ -286,6 +313,17 @@ class EpochScheduler:
         if p is None:
             return set()
         return {k for v in p.jobs for k in p.owed_in(v)}
+
+    def to_come(self, epoch: int, limit: int) -> Optional[int]:
+        """How many samples ``epoch`` can still make (``EpochPlan.to_come``: each queued
+        or running file's count from this epoch's or an earlier pass, else ``max_windows x
+        crops_per_window``); a number > ``limit`` means at least that many, None means unknown.
+        0 for an epoch not open."""
+        p = self.plans.get(epoch)
+        if p is None:
+            return 0
+        per_video = None if self.max_windows is None else self.max_windows * self.crops_per_window
+        return p.to_come(self.counts, per_video, limit)
 
     def prune(self, forgettable: Iterable[int]) -> None:
         """Forget complete epochs in ``forgettable`` (e.g. announced to clients) except the
@@ -376,6 +414,7 @@ class EpochScheduler:
             plan.stop_at(job, samples, error)
         else:
             job.samples = samples if job.samples is None else max(job.samples, samples)
+            self.counts[job.video] = job.samples
         plan.set_state(job, "done")
         self._reconcile(plan, {job.video})
         return job
