@@ -57,137 +57,13 @@ import numpy as np
 import torch
 
 from .config import ConfigError, exit_on_config_error
+from .recordings import H5Sequence, events_to_voxels  # the H5 layout is read in trainer/recordings.py
 
 __all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
            "evaluate_e2vid", "evaluate_evflow", "evaluate_eraft", "load_model", "build_arg_parser", "main",
            "LPIPS_NOT_REPORTED"]
 
 log = logging.getLogger("trainer.evaluate")
-
-
-def events_to_voxels(xs: np.ndarray, ys: np.ndarray, ts: np.ndarray, ps: np.ndarray, t_edges: np.ndarray,
-                     num_bins: int, height: int, width: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Discrete voxel grids between consecutive timestamps.
-
-    Args:
-        xs, ys: int pixel coordinates (column, row) of the events, shape (E,).
-        ts: event times in seconds, (E,), non-decreasing.
-        ps: polarities, (E,), in {0, 1} or {-1, 1} (0 and -1 are negative).
-        t_edges: (N,) increasing frame times, seconds; voxel i covers [t_i, t_{i+1}).
-        num_bins: B.
-        height, width: sensor size, pixels.
-
-    Returns:
-        ``(voxels, counts)``: voxels int32 (N-1, B, H, W), bin value N+ - N-; counts int32
-        (N-1, H, W), the number of events per pixel in each interval (for sparse metrics).
-
-    Raises:
-        ValueError: for unsorted times or edges, or coordinates outside the sensor.
-    """
-    t_edges = np.asarray(t_edges, np.float64)
-    if t_edges.ndim != 1 or t_edges.size < 2 or np.any(np.diff(t_edges) <= 0):
-        raise ValueError("t_edges must be an increasing 1-D array of >= 2 timestamps")
-    ts = np.asarray(ts, np.float64)
-    if ts.size and np.any(np.diff(ts) < 0):
-        raise ValueError("event timestamps must be non-decreasing")
-    xs = np.asarray(xs, np.int64)
-    ys = np.asarray(ys, np.int64)
-    if xs.size and (xs.min() < 0 or ys.min() < 0 or xs.max() >= width or ys.max() >= height):
-        raise ValueError(f"event coordinates outside the {height}x{width} sensor")
-    pol = np.where(np.asarray(ps) > 0, 1, -1).astype(np.int64)
-    n = t_edges.size - 1
-    voxels = np.zeros((n, num_bins, height, width), np.int32)
-    counts = np.zeros((n, height, width), np.int32)
-    idx = np.searchsorted(ts, t_edges, side="left")
-    hw = height * width
-    for i in range(n):
-        a, b = idx[i], idx[i + 1]
-        if a == b:
-            continue
-        t0, t1 = t_edges[i], t_edges[i + 1]
-        bins = np.clip(np.floor(num_bins * (ts[a:b] - t0) / (t1 - t0)).astype(np.int64), 0, num_bins - 1)
-        pix = ys[a:b] * width + xs[a:b]
-        lin = bins * hw + pix
-        voxels[i] = np.bincount(lin, weights=pol[a:b], minlength=num_bins * hw).reshape(num_bins, height, width).astype(np.int32)
-        counts[i] = np.bincount(pix, minlength=hw).reshape(height, width)
-    return voxels, counts
-
-
-class H5Sequence:
-    """An event sequence in the reference H5 layout (module docstring).
-
-    Attributes:
-        path: the file.
-        height, width: sensor size, pixels.
-        images: uint8 (N, H, W) frames; ``image_ts`` float64 (N,) seconds.
-        flows: float32 (M, 2, H, W) ground-truth flows (pixels, NaN where unknown) or
-            ``None``; ``flow_ts`` float64 (M,) seconds, or ``None`` when a flow has no
-            ``timestamp`` attribute.
-
-    :meth:`voxels` builds the discrete voxel grids between consecutive images,
-    :meth:`flow_voxels` the voxels and ground truth to score flow on (module docstring).
-    Raises ``KeyError`` naming a missing group/dataset, ``ValueError`` for fewer than two
-    images.
-    """
-
-    def __init__(self, path: str):
-        import h5py
-
-        self.path = str(path)
-        with h5py.File(self.path, "r") as f:
-            for k in ("events/xs", "events/ys", "events/ts", "events/ps", "images"):
-                if k not in f:
-                    raise KeyError(f"{self.path}: missing '{k}' (expected the event_cnn_minimal H5 layout)")
-            ev = f["events"]
-            self.xs, self.ys = ev["xs"][:], ev["ys"][:]
-            self.ts, self.ps = ev["ts"][:].astype(np.float64), ev["ps"][:]
-            names = sorted(f["images"].keys())
-            if len(names) < 2:
-                raise ValueError(f"{self.path}: need at least two images, found {len(names)}")
-            self.images = np.stack([f["images"][k][:] for k in names])
-            self.image_ts = np.array([float(f["images"][k].attrs["timestamp"]) for k in names])
-            if self.images.ndim == 4:  # colour: to luma
-                import cv2
-
-                self.images = np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in self.images])
-            if "sensor_resolution" in f.attrs:
-                self.height, self.width = (int(v) for v in f.attrs["sensor_resolution"][:2])
-            else:
-                self.height, self.width = self.images.shape[1:3]
-            self.flows, self.flow_ts = None, None
-            if "flow" in f and len(f["flow"]):
-                fn = sorted(f["flow"].keys())
-                self.flows = np.stack([f["flow"][k][:] for k in fn]).astype(np.float32)
-                if all("timestamp" in f["flow"][k].attrs for k in fn):
-                    self.flow_ts = np.array([float(f["flow"][k].attrs["timestamp"]) for k in fn])
-
-    def voxels(self, num_bins: int) -> Tuple[np.ndarray, np.ndarray]:
-        """``events_to_voxels`` between consecutive image timestamps: int32 (N-1, B, H, W)
-        and event counts int32 (N-1, H, W)."""
-        return events_to_voxels(self.xs, self.ys, self.ts, self.ps, self.image_ts, num_bins, self.height, self.width)
-
-    def flow_voxels(self, num_bins: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Voxels, event counts and the ground truth to score optical flow on, following the
-        module docstring's convention: ``(voxels int32 (K, B, H, W), counts int32 (K, H, W),
-        flows float32 (K, 2, H, W))``; with flow timestamps K = M - 1 intervals between
-        consecutive ``flow_ts`` scored against ``flows[1:]``, else K = min(M, N - 1) image
-        intervals scored against ``flows[:K]``.
-
-        Raises:
-            KeyError: the file has no flow group.
-            ValueError: flow timestamps that do not increase.
-        """
-        if self.flows is None:
-            raise KeyError(f"{self.path}: no 'flow' group, cannot evaluate optical flow")
-        if self.flow_ts is not None:
-            if self.flow_ts.size < 2 or np.any(np.diff(self.flow_ts) <= 0):
-                raise ValueError(f"{self.path}: flow timestamps must increase (>= 2 flows)")
-            vox, counts = events_to_voxels(self.xs, self.ys, self.ts, self.ps, self.flow_ts, num_bins,
-                                           self.height, self.width)
-            return vox, counts, self.flows[1:]
-        vox, counts = self.voxels(num_bins)
-        k = min(len(self.flows), len(vox))
-        return vox[:k], counts[:k], self.flows[:k]
 
 
 def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, max_frames: int = 0,
