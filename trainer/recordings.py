@@ -95,6 +95,7 @@ class Recording:
             ``"inferred from the header's plugin name <name>"``.
         dropped_backward: events dropped for running backwards in the last full pass.
         truncated: whether the last pass met the end of the file inside a packet or word.
+        text_chunk_bytes: bytes of ``events.txt`` parsed per chunk (ECD layout; 4 MiB).
     """
 
     def __init__(self, path: Path, fmt: str, width: int, height: int, size_source: str, opts: dict):
@@ -103,6 +104,7 @@ class Recording:
         self._opts = opts
         self.dropped_backward = 0
         self.truncated = False
+        self.text_chunk_bytes = _TEXT_CHUNK
         self._frames: Optional[Frames] = None
         self._imu = None
 
@@ -202,7 +204,19 @@ class Recording:
         yield from getattr(self, f"_events_{self.format}")()
 
     def _from_faery(self, packets) -> Iterator[np.ndarray]:
-        for ev in packets:
+        it = iter(packets)
+        while True:
+            try:
+                ev = next(it)
+            except StopIteration:
+                return
+            except RuntimeError as e:  # faery's decoders report damage and out-of-range pixels so
+                msg = str(e)
+                if "overflow" in msg:
+                    raise RecordingError(self.path, f"an event lies outside the {self.width}x{self.height} sensor "
+                                         f"({msg}; size from {self.size_source}; give the sensor size explicitly "
+                                         "if it is wrong)") from None
+                raise RecordingError(self.path, f"{self.format.upper()} decoding failed: {msg}") from None
             out = np.empty(len(ev), EVENT_DTYPE)
             out["t"], out["x"], out["y"] = ev["t"], ev["x"], ev["y"]
             out["p"] = np.where(ev["on"], 1, -1)
@@ -302,7 +316,7 @@ class Recording:
         with open(self._opts["events_txt"], "rb") as fh:
             rest = b""
             while True:
-                block = fh.read(_TEXT_CHUNK)
+                block = fh.read(self.text_chunk_bytes)
                 if not block and not rest.strip():
                     break
                 data = rest + block
