@@ -279,3 +279,97 @@ def test_voxel_grids_fixed_windows_and_empty_intervals():
     assert len(grids) == len(late) - 1 and not grids[0][1].any() and not grids[-1][1].any()
     with pytest.raises(ValueError):
         list(voxel_grids([ev], edges[::-1], 3, rec.height, rec.width))
+
+
+# -- v2v-eval --recording --
+
+def _mp4_frames(path: Path) -> int:
+    import av
+
+    with av.open(str(path)) as c:
+        return sum(1 for _ in c.decode(video=0))
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoints(tmp_path_factory):
+    """Randomly initialised e2vid and evflow checkpoints (B = 5, 4 base channels), as v2v-train writes them."""
+    import torch
+
+    from trainer.config import default_config, merge
+    from trainer.core import Trainer
+
+    root = tmp_path_factory.mktemp("ck")
+    out = {}
+    for task in ("e2vid", "evflow"):
+        cfg = merge(default_config(task), {"model": {"num_bins": 5, "base_num_channels": 4}})
+        out[task] = str(Trainer(cfg, str(root / task), torch.device("cpu")).save_checkpoint())
+    return out
+
+
+def test_eval_scores_davis_between_frame_timestamps(tmp_path, tiny_checkpoints):
+    import json
+
+    from trainer.evaluate import main
+
+    p = shared(DAVIS)
+    assert main(["--checkpoint", tiny_checkpoints["e2vid"], "--recording", str(p), "--end", "0.3", "--device", "cpu",
+                 "--out", str(tmp_path / "ev"), "--write-video", str(tmp_path / "vid")]) == 0
+    res = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    fr = open_recording(p).frames()
+    t_first = FACTS[DAVIS][2]
+    kept = fr.images[(fr.t_us >= t_first) & (fr.t_us <= t_first + 300_000)]
+    info = res["recordings"][str(p)]
+    # the first APS frame precedes the first event: the cut starts at the second
+    assert info["binning"] == "between consecutive frame timestamps" and info["grids"] == len(kept) - 1 == 6
+    assert res["frames"] == info["frames_scored"] == 6
+    gt = kept[1:] / 255.0  # the constant-mean baseline pins which frames were scored
+    assert res["mean"]["base_mse"] == pytest.approx(np.mean((gt - gt.mean()) ** 2), rel=1e-5)
+    assert np.isfinite(res["mean"]["mse"]) and np.isfinite(res["mean"]["ssim"])
+    assert len(list((tmp_path / "vid").glob("davis346_road_*.png"))) == 6
+    assert _mp4_frames(tmp_path / "vid" / "davis346_road.mp4") == 6
+
+
+def test_eval_writes_video_of_a_recording_without_frames(tmp_path, tiny_checkpoints):
+    import json
+
+    from trainer.evaluate import main
+
+    p = shared(EVT3)
+    assert main(["--checkpoint", tiny_checkpoints["e2vid"], "--recording", str(p), "--end", "0.1",
+                 "--window-ms", "40", "--device", "cpu", "--out", str(tmp_path)]) == 0
+    info = json.loads((tmp_path / "metrics.json").read_text())["recordings"][str(p)]
+    assert info["binning"] == "fixed windows of 40 ms" and info["grids"] == 3 and info["frames_scored"] == 0
+    assert info["end_us"] - info["start_us"] == 120_000 and info["sensor_size"] == [1280, 720]
+    import cv2
+
+    png = cv2.imread(str(tmp_path / "prophesee_evk4_evt3_00002.png"), cv2.IMREAD_GRAYSCALE)
+    assert png.shape == (720, 1280) and _mp4_frames(tmp_path / "prophesee_evk4_evt3.mp4") == 3
+    # a flow network: its flow colour-coded
+    assert main(["--checkpoint", tiny_checkpoints["evflow"], "--recording", str(shared(EVT2)), "--window-ms", "25",
+                 "--device", "cpu", "--out", str(tmp_path / "flow")]) == 0
+    assert _mp4_frames(tmp_path / "flow" / "prophesee_gen3_evt2_flow.mp4") == 4  # 96 ms of events
+
+
+def test_eval_resizes_frames_to_the_sensor_and_names_bad_recordings(tmp_path, tiny_checkpoints, caplog):
+    import json
+
+    import cv2
+
+    from trainer.evaluate import main
+
+    rec = open_recording(shared(DAVIS))
+    fr = rec.frames()
+    ev = read_all(rec, int(fr.t_us[0]), int(fr.t_us[4]))  # from before frame 1 to frame 4
+    small = [(int(t), cv2.resize(im, (173, 130), interpolation=cv2.INTER_AREA))
+             for t, im in zip(fr.t_us[1:5], fr.images[1:5])]
+    _write_ecd(tmp_path / "ecd", ev, small)  # frames at half the sensor's size
+    ck = tiny_checkpoints["e2vid"]
+    assert main(["--checkpoint", ck, "--recording", str(tmp_path / "ecd"), "--sensor-size", "346", "260",
+                 "--device", "cpu", "--out", str(tmp_path / "ev")]) == 0
+    res = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert res["frames"] == 3 and res["recordings"][str(tmp_path / "ecd")]["sensor_size"] == [346, 260]
+    (tmp_path / "empty.aedat4").write_bytes(b"")
+    with caplog.at_level(logging.ERROR, logger="trainer.evaluate"):
+        assert main(["--checkpoint", ck, "--recording", str(tmp_path / "empty.aedat4"), "--device", "cpu",
+                     "--out", str(tmp_path / "x")]) == 2
+    assert "empty.aedat4: empty file" in caplog.text
