@@ -239,7 +239,10 @@ class Recording:
             log.warning("%s: the file ends inside a %d-byte %s word (truncated); keeping the events before the cut",
                         self.path, _EVT_WORD_BYTES[o["evt_version"]], o["evt_version"].upper())
 
-    _events_dat = _events_es = _events_csv = lambda self: self._from_faery(self._faery_stream())
+    def _events_dat(self):
+        return self._from_faery(self._faery_stream())
+
+    _events_es = _events_csv = _events_dat
 
     def _aedat_packets(self):
         """(track, packet) pairs of the AEDAT4 file; a file cut inside a packet ends the pass
@@ -327,7 +330,7 @@ class Recording:
                     rest = b""
                 if not data.strip():
                     continue
-                vals = np.array(data.split(), dtype=np.float64) if data.strip() else np.empty(0)
+                vals = np.array(data.split(), dtype=np.float64)
                 if vals.size % 4:
                     raise RecordingError(self._opts["events_txt"], "lines must hold 't x y p' (4 numbers each)")
                 vals = vals.reshape(-1, 4)
