@@ -331,7 +331,7 @@ def test_eval_scores_davis_between_frame_timestamps(tmp_path, tiny_checkpoints):
 
     p = shared(DAVIS)
     assert main(["--checkpoint", tiny_checkpoints["e2vid"], "--recording", str(p), "--end", "0.3", "--device", "cpu",
-                 "--out", str(tmp_path / "ev"), "--write-video", str(tmp_path / "vid")]) == 0
+                 "--out", str(tmp_path / "ev"), "--write-video", str(tmp_path / "vid"), "--save-images", "4"]) == 0
     res = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     fr = open_recording(p).frames()
     t_first = FACTS[DAVIS][2]
@@ -343,7 +343,9 @@ def test_eval_scores_davis_between_frame_timestamps(tmp_path, tiny_checkpoints):
     gt = kept[1:] / 255.0  # the constant-mean baseline pins which frames were scored
     assert res["mean"]["base_mse"] == pytest.approx(np.mean((gt - gt.mean()) ** 2), rel=1e-5)
     assert np.isfinite(res["mean"]["mse"]) and np.isfinite(res["mean"]["ssim"])
-    assert len(list((tmp_path / "vid").glob("davis346_road_*.png"))) == 6
+    assert sorted(q.name for q in (tmp_path / "ev").glob("*_cmp_*.png")) == ["davis346_road_cmp_00000.png",
+                                                                          "davis346_road_cmp_00004.png"]
+    assert len(list((tmp_path / "vid").glob("davis346_road_0*.png"))) == 6
     assert _mp4_frames(tmp_path / "vid" / "davis346_road.mp4") == 6
 
 

@@ -360,7 +360,8 @@ def build_arg_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-first", type=int, default=0, help="E2VID: leave the first N frames out (warm-up)")
     p.add_argument("--device", default="auto")
     p.add_argument("--out", help="write the metrics JSON (and sample PNGs) here")
-    p.add_argument("--save-images", type=int, default=0, help="E2VID: save every Nth reconstruction as PNG")
+    p.add_argument("--save-images", type=int, default=0, help="E2VID: save every Nth reconstruction as PNG (beside "
+                   "its voxel grid and frame)")
     return p
 
 
@@ -524,8 +525,8 @@ class _Mp4Writer:
 @torch.no_grad()
 def evaluate_recording(model, task: str, grids, device: torch.device, frames: Optional[np.ndarray] = None,
                        ssim_data_range: float = 1.0, lpips_model=None, skip_first: int = 0,
-                       video_dir: Optional[Path] = None, fps: float = 20.0, name: str = "recording"
-                       ) -> Dict[str, List[float]]:
+                       video_dir: Optional[Path] = None, fps: float = 20.0, name: str = "recording",
+                       save_every: int = 0, save_dir: Optional[Path] = None) -> Dict[str, List[float]]:
     """Run a network over voxel grids streamed from a real recording, one grid at a time.
 
     Args:
@@ -540,6 +541,8 @@ def evaluate_recording(model, task: str, grids, device: torch.device, frames: Op
         video_dir: where to write ``<name>_NNNNN.png`` reconstructions and ``<name>.mp4`` (or
             ``<name>_flow.mp4``, the flow colour-coded by ``trainer.viz.flow_to_bgr``), or None.
         fps: frame rate of the MP4.
+        save_every, save_dir: with frames, every ``save_every``-th grid as ``<name>_cmp_NNNNN.png``
+            in ``save_dir``: the voxel grid, the reconstruction and the frame side by side.
 
     Returns:
         Per-frame lists as :func:`evaluate_e2vid` (empty without frames or for flow), plus
@@ -581,6 +584,10 @@ def evaluate_recording(model, task: str, grids, device: torch.device, frames: Op
         if frames is None or k < skip_first or k + 1 >= len(frames):
             continue
         gt = gt_all[k + 1]
+        if save_every and save_dir is not None and k % save_every == 0:
+            from .viz import gray_to_u8, save_grid, voxel_to_u8
+
+            save_grid(str(save_dir / f"{name}_cmp_{k:05d}.png"), [[voxel_to_u8(vox), gray_to_u8(p), gray_to_u8(gt)]])
         m = reconstruction_metrics(p, gt, ssim_data_range)
         b = reconstruction_metrics(mean_img, gt, ssim_data_range)
         res["mse"].append(m["mse"]); res["ssim"].append(m["ssim"])
@@ -632,7 +639,7 @@ def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out
     r = evaluate_recording(model, task, voxel_grids(rec.chunks(int(edges[0]), int(edges[-1])), edges, nb,
                                                     rec.height, rec.width),
                            device, frames if recon else None, args.ssim_data_range, lp, args.skip_first,
-                           video_dir, fps, name)
+                           video_dir, fps, name, args.save_images, out)
     info = {"format": rec.format, "sensor_size": [rec.width, rec.height], "size_source": rec.size_source,
             "binning": binning, "grids": r.pop("_grids"), "num_bins": nb, "start_us": int(edges[0]),
             "end_us": int(edges[-1]), "frames_scored": len(r["mse"]), "dropped_backward": rec.dropped_backward,
