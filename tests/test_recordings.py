@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from trainer.recordings import (EVENT_DTYPE, RecordingError, open_recording, read_all, voxel_grids,
+from trainer.recordings import (EVENT_DTYPE, RecordingError, count_edges, open_recording, read_all, voxel_grids,
                                 window_edges)
 
 EVENTS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "events"
@@ -299,6 +299,18 @@ def test_voxel_grids_fixed_windows_and_empty_intervals():
         list(voxel_grids([ev], edges[::-1], 3, rec.height, rec.width))
 
 
+def test_grids_of_a_fixed_number_of_events():
+    rec = open_recording(shared(EVT2))
+    ev = read_all(rec)
+    edges = count_edges(rec.chunks(), 100_000)
+    small = count_edges((ev[i:i + 999] for i in range(0, len(ev), 999)), 100_000)
+    assert np.array_equal(edges, small) and len(edges) == 7 and edges[-1] == ev["t"][-1] + 1
+    assert np.array_equal(edges[:-1], ev["t"][::100_000])
+    counts = [int(c.sum()) for _, _, c in voxel_grids(rec.chunks(), edges, 5, rec.height, rec.width)]
+    assert sum(counts) == len(ev) and all(abs(c - 100_000) < 100 for c in counts[:-1])  # ties at the edges
+    assert counts[-1] == len(ev) - sum(counts[:-1])
+
+
 # -- v2v-eval --recording --
 
 def _mp4_frames(path: Path) -> int:
@@ -368,6 +380,10 @@ def test_eval_writes_video_of_a_recording_without_frames(tmp_path, tiny_checkpoi
     assert main(["--checkpoint", tiny_checkpoints["evflow"], "--recording", str(shared(EVT2)), "--window-ms", "25",
                  "--device", "cpu", "--out", str(tmp_path / "flow")]) == 0
     assert _mp4_frames(tmp_path / "flow" / "prophesee_gen3_evt2_flow.mp4") == 4  # 96 ms of events
+    assert main(["--checkpoint", tiny_checkpoints["evflow"], "--recording", str(shared(EVT2)), "--events-per-grid",
+                 "200000", "--device", "cpu", "--out", str(tmp_path / "count")]) == 0
+    info = json.loads((tmp_path / "count" / "metrics.json").read_text())["recordings"][str(shared(EVT2))]
+    assert info["binning"] == "200000 events per grid" and info["grids"] == 3  # 521252 events
 
 
 def test_eval_resizes_frames_to_the_sensor_and_names_bad_recordings(tmp_path, tiny_checkpoints, caplog):

@@ -31,9 +31,10 @@ Inputs:
   discrete voxel grids between consecutive frame timestamps when the recording has frames
   (the paper's convention for HQF/EVAID), each reconstruction scored against the frame at its
   interval's end (resized to the sensor size where they differ); else grids over fixed
-  ``--window-ms`` windows, with no scores. ``--start`` / ``--end`` cut in seconds from the
-  first event. ``--write-video DIR`` (always, for recordings without frames, under ``--out``)
-  writes the reconstructions as PNGs and an MP4, or a flow network's flow colour-coded as an MP4.
+  ``--window-ms`` windows or of ``--events-per-grid`` events, with no scores. ``--start`` /
+  ``--end`` cut in seconds from the first event. ``--write-video DIR`` (always, for recordings
+  without frames, under ``--out``) writes the reconstructions as PNGs and an MP4, or a flow
+  network's flow colour-coded as an MP4.
 * Videos (``--video``), whose voxels are simulated with the V2V core
   (``v2v_server.simulation.simulate.simulate_voxels``), for held-out clips without an event file.
 
@@ -347,6 +348,8 @@ def build_arg_parser() -> argparse.ArgumentParser:
     p.add_argument("--end", type=float, default=None, help="--recording: end of the cut, seconds from the first event")
     p.add_argument("--window-ms", type=float, default=50.0, help="--recording without frames: one voxel grid per "
                    "window of this many milliseconds")
+    p.add_argument("--events-per-grid", type=int, default=0, help="--recording without frames: one voxel grid "
+                   "per this many events instead of --window-ms windows")
     p.add_argument("--write-video", metavar="DIR", help="--recording: write reconstruction PNGs + MP4 (or a flow "
                    "network's colour-coded flow MP4) under DIR; recordings without frames write them under --out")
     p.add_argument("--contrast-threshold", type=float, default=0.2, help="--video: c+ = c- (log units)")
@@ -605,7 +608,7 @@ def evaluate_recording(model, task: str, grids, device: torch.device, frames: Op
 def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out: Optional[Path]):
     """Score (with frames) and/or write the video of one ``--recording``: ``(per-frame
     results, info)``; info records how the grids were binned. Raises ``RecordingError``."""
-    from .recordings import open_recording, voxel_grids, window_edges
+    from .recordings import count_edges, open_recording, voxel_grids, window_edges
 
     rec = open_recording(path, tuple(args.sensor_size) if args.sensor_size else None)
     t_first = rec.first_t_us()
@@ -624,7 +627,11 @@ def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out
                                    for f in frames])
             binning = "between consecutive frame timestamps"
             fps = 1e6 / float(np.median(np.diff(edges)))
-    if frames is None:
+    if frames is None and args.events_per_grid:
+        edges = count_edges(rec.chunks(start_us, end_us), args.events_per_grid)
+        binning = f"{args.events_per_grid} events per grid"
+        fps = 1e6 / max(1.0, float(np.median(np.diff(edges)))) if len(edges) > 1 else 20.0
+    elif frames is None:
         last = start_us
         for ev in rec.chunks(start_us, end_us):
             last = int(ev["t"][-1])

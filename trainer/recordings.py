@@ -39,7 +39,7 @@ from typing import Iterator, List, Optional, Tuple
 import numpy as np
 
 __all__ = ["EVENT_DTYPE", "RecordingError", "Frames", "Recording", "open_recording", "read_all",
-           "voxel_grids", "window_edges", "H5Sequence", "events_to_voxels", "FORMATS"]
+           "voxel_grids", "window_edges", "count_edges", "H5Sequence", "events_to_voxels", "FORMATS"]
 
 log = logging.getLogger("trainer.recordings")
 
@@ -514,6 +514,29 @@ def window_edges(t_first_us: int, t_last_us: int, window_us: int) -> np.ndarray:
         raise ValueError("window_us must be positive")
     k = (int(t_last_us) - int(t_first_us)) // int(window_us) + 1
     return int(t_first_us) + np.arange(k + 1, dtype=np.int64) * int(window_us)
+
+
+def count_edges(chunks, events_per_grid: int) -> np.ndarray:
+    """Edges of voxel grids holding ``events_per_grid`` events each: the timestamps of events
+    0, N, 2N, ... and one past the last event, int64 (K+1,) microseconds, strictly increasing
+    (events sharing a timestamp with an edge go to the later grid, so a grid can hold a few
+    more or fewer than N). Reads ``chunks`` (:meth:`Recording.chunks`) once.
+
+    Raises:
+        ValueError: ``events_per_grid`` < 1, or no events.
+    """
+    n = int(events_per_grid)
+    if n < 1:
+        raise ValueError("events_per_grid must be >= 1")
+    edges, seen, last = [], 0, None
+    for ev in chunks:
+        first_idx = (-seen) % n  # index in this chunk of the next multiple of n
+        edges.append(ev["t"][first_idx::n])
+        seen += ev.size
+        last = int(ev["t"][-1])
+    if last is None:
+        raise ValueError("no events")
+    return np.unique(np.concatenate(edges + [np.array([last + 1], np.int64)]))
 
 
 def voxel_grids(chunks, edges_us: np.ndarray, num_bins: int, height: int, width: int
