@@ -157,7 +157,8 @@ def run(path: Path) -> dict:
     rows.append({"setting": "baseline: zero", "ms_per_interval": 0.0,
                  **metrics(np.zeros_like(real), real, moving, n_real, 0)})
     shifted = np.concatenate([np.zeros_like(plain_vox[:1]), plain_vox[:-1]])  # grid k-1 against real k
-    rows.append({"setting": "baseline: V2V shifted by one frame interval", "ms_per_interval": rows[0]["ms_per_interval"],
+    rows.append({"setting": "baseline: V2V shifted by one frame interval",
+                 "ms_per_interval": rows[0]["ms_per_interval"],
                  **metrics(shifted, real, moving, n_real, None)})
     rows[-1]["n_ratio"] = rows[0]["n_ratio"]  # the same events, one interval late
     setup = {"recording": path.name, "sensor": f"{rec.width}x{rec.height}", "frames": int(frames.shape[0]),

@@ -100,7 +100,8 @@ def test_formats_written_by_faery_read_back(tmp_path, name, version):
     p = tmp_path / name
     faery.events_stream_from_array(arr, dimensions=(640, 480)).to_file(p, version=version)
     rec = open_recording(p, size=(640, 480) if name.endswith(".csv") else None)
-    assert (rec.width, rec.height) == (640, 480) and rec.size_source == ("argument" if name.endswith(".csv") else "header")
+    assert (rec.width, rec.height) == (640, 480)
+    assert rec.size_source == ("argument" if name.endswith(".csv") else "header")
     assert np.array_equal(read_all(rec), ev) and rec.frames() is None
 
 
