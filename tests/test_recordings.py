@@ -234,6 +234,18 @@ def test_backward_timestamps_are_dropped_and_counted(tmp_path, caplog):
     assert np.array_equal(got, np.delete(ev, np.arange(1000, 1010))) and np.all(np.diff(got["t"]) >= 0)
 
 
+def test_frames_whose_timestamps_do_not_increase_are_dropped(tmp_path, caplog):
+    rec = open_recording(shared(DAVIS))
+    fr = rec.frames()
+    t = [int(x) for x in fr.t_us[1:5]]
+    t[2] = t[1]  # a repeated frame timestamp
+    _write_ecd(tmp_path / "ecd", read_all(rec, int(fr.t_us[1]), int(fr.t_us[4]))[:100], list(zip(t, fr.images[1:5])))
+    with caplog.at_level(logging.WARNING, logger="trainer.recordings"):
+        got = open_recording(tmp_path / "ecd").frames()
+    assert list(got.t_us) == [t[0], t[1], t[3]] and np.array_equal(got.images[2], fr.images[4])
+    assert "dropping 1 frames" in caplog.text
+
+
 def test_prophesee_backward_time_word_is_clamped_by_faery(tmp_path):
     """A damaged EVT3 TIME_LOW word (set to 0) puts one event 17 us in the past: faery clamps
     it to the previous timestamp, so the stream stays ordered and keeps every event."""
