@@ -26,6 +26,15 @@ Inputs:
   forward flow from image N to image N+1 and scored against the voxel between them.
   Ground-truth pixels that are NaN in either component or zero in both (no depth) are not
   scored; a flow with no valid pixel gives NaN metrics, which the means skip.
+* Real recordings (``--recording``; trainer/recordings.py reads AEDAT4, Prophesee RAW/DAT,
+  Event Stream, CSV, this H5 layout and the IJRR/ECD text layout, docs/recordings.md): the
+  discrete voxel grids between consecutive frame timestamps when the recording has frames
+  (the paper's convention for HQF/EVAID), each reconstruction scored against the frame at its
+  interval's end (resized to the sensor size where they differ); else grids over fixed
+  ``--window-ms`` windows or of ``--events-per-grid`` events, with no scores. ``--start`` /
+  ``--end`` cut in seconds from the first event. ``--write-video DIR`` (always, for recordings
+  without frames, under ``--out``) writes the reconstructions as PNGs and an MP4, or a flow
+  network's flow colour-coded as an MP4.
 * Videos (``--video``), whose voxels are simulated with the V2V core
   (``v2v_server.simulation.simulate.simulate_voxels``), for held-out clips without an event file.
 
@@ -57,137 +66,13 @@ import numpy as np
 import torch
 
 from .config import ConfigError, exit_on_config_error
+from .recordings import H5Sequence, RecordingError, events_to_voxels  # readers live in trainer/recordings.py
 
 __all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
-           "evaluate_e2vid", "evaluate_evflow", "evaluate_eraft", "load_model", "build_arg_parser", "main",
-           "LPIPS_NOT_REPORTED"]
+           "evaluate_e2vid", "evaluate_evflow", "evaluate_eraft", "evaluate_recording", "load_model",
+           "build_arg_parser", "main", "LPIPS_NOT_REPORTED"]
 
 log = logging.getLogger("trainer.evaluate")
-
-
-def events_to_voxels(xs: np.ndarray, ys: np.ndarray, ts: np.ndarray, ps: np.ndarray, t_edges: np.ndarray,
-                     num_bins: int, height: int, width: int) -> Tuple[np.ndarray, np.ndarray]:
-    """Discrete voxel grids between consecutive timestamps.
-
-    Args:
-        xs, ys: int pixel coordinates (column, row) of the events, shape (E,).
-        ts: event times in seconds, (E,), non-decreasing.
-        ps: polarities, (E,), in {0, 1} or {-1, 1} (0 and -1 are negative).
-        t_edges: (N,) increasing frame times, seconds; voxel i covers [t_i, t_{i+1}).
-        num_bins: B.
-        height, width: sensor size, pixels.
-
-    Returns:
-        ``(voxels, counts)``: voxels int32 (N-1, B, H, W), bin value N+ - N-; counts int32
-        (N-1, H, W), the number of events per pixel in each interval (for sparse metrics).
-
-    Raises:
-        ValueError: for unsorted times or edges, or coordinates outside the sensor.
-    """
-    t_edges = np.asarray(t_edges, np.float64)
-    if t_edges.ndim != 1 or t_edges.size < 2 or np.any(np.diff(t_edges) <= 0):
-        raise ValueError("t_edges must be an increasing 1-D array of >= 2 timestamps")
-    ts = np.asarray(ts, np.float64)
-    if ts.size and np.any(np.diff(ts) < 0):
-        raise ValueError("event timestamps must be non-decreasing")
-    xs = np.asarray(xs, np.int64)
-    ys = np.asarray(ys, np.int64)
-    if xs.size and (xs.min() < 0 or ys.min() < 0 or xs.max() >= width or ys.max() >= height):
-        raise ValueError(f"event coordinates outside the {height}x{width} sensor")
-    pol = np.where(np.asarray(ps) > 0, 1, -1).astype(np.int64)
-    n = t_edges.size - 1
-    voxels = np.zeros((n, num_bins, height, width), np.int32)
-    counts = np.zeros((n, height, width), np.int32)
-    idx = np.searchsorted(ts, t_edges, side="left")
-    hw = height * width
-    for i in range(n):
-        a, b = idx[i], idx[i + 1]
-        if a == b:
-            continue
-        t0, t1 = t_edges[i], t_edges[i + 1]
-        bins = np.clip(np.floor(num_bins * (ts[a:b] - t0) / (t1 - t0)).astype(np.int64), 0, num_bins - 1)
-        pix = ys[a:b] * width + xs[a:b]
-        lin = bins * hw + pix
-        voxels[i] = np.bincount(lin, weights=pol[a:b], minlength=num_bins * hw).reshape(num_bins, height, width).astype(np.int32)
-        counts[i] = np.bincount(pix, minlength=hw).reshape(height, width)
-    return voxels, counts
-
-
-class H5Sequence:
-    """An event sequence in the reference H5 layout (module docstring).
-
-    Attributes:
-        path: the file.
-        height, width: sensor size, pixels.
-        images: uint8 (N, H, W) frames; ``image_ts`` float64 (N,) seconds.
-        flows: float32 (M, 2, H, W) ground-truth flows (pixels, NaN where unknown) or
-            ``None``; ``flow_ts`` float64 (M,) seconds, or ``None`` when a flow has no
-            ``timestamp`` attribute.
-
-    :meth:`voxels` builds the discrete voxel grids between consecutive images,
-    :meth:`flow_voxels` the voxels and ground truth to score flow on (module docstring).
-    Raises ``KeyError`` naming a missing group/dataset, ``ValueError`` for fewer than two
-    images.
-    """
-
-    def __init__(self, path: str):
-        import h5py
-
-        self.path = str(path)
-        with h5py.File(self.path, "r") as f:
-            for k in ("events/xs", "events/ys", "events/ts", "events/ps", "images"):
-                if k not in f:
-                    raise KeyError(f"{self.path}: missing '{k}' (expected the event_cnn_minimal H5 layout)")
-            ev = f["events"]
-            self.xs, self.ys = ev["xs"][:], ev["ys"][:]
-            self.ts, self.ps = ev["ts"][:].astype(np.float64), ev["ps"][:]
-            names = sorted(f["images"].keys())
-            if len(names) < 2:
-                raise ValueError(f"{self.path}: need at least two images, found {len(names)}")
-            self.images = np.stack([f["images"][k][:] for k in names])
-            self.image_ts = np.array([float(f["images"][k].attrs["timestamp"]) for k in names])
-            if self.images.ndim == 4:  # colour: to luma
-                import cv2
-
-                self.images = np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in self.images])
-            if "sensor_resolution" in f.attrs:
-                self.height, self.width = (int(v) for v in f.attrs["sensor_resolution"][:2])
-            else:
-                self.height, self.width = self.images.shape[1:3]
-            self.flows, self.flow_ts = None, None
-            if "flow" in f and len(f["flow"]):
-                fn = sorted(f["flow"].keys())
-                self.flows = np.stack([f["flow"][k][:] for k in fn]).astype(np.float32)
-                if all("timestamp" in f["flow"][k].attrs for k in fn):
-                    self.flow_ts = np.array([float(f["flow"][k].attrs["timestamp"]) for k in fn])
-
-    def voxels(self, num_bins: int) -> Tuple[np.ndarray, np.ndarray]:
-        """``events_to_voxels`` between consecutive image timestamps: int32 (N-1, B, H, W)
-        and event counts int32 (N-1, H, W)."""
-        return events_to_voxels(self.xs, self.ys, self.ts, self.ps, self.image_ts, num_bins, self.height, self.width)
-
-    def flow_voxels(self, num_bins: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Voxels, event counts and the ground truth to score optical flow on, following the
-        module docstring's convention: ``(voxels int32 (K, B, H, W), counts int32 (K, H, W),
-        flows float32 (K, 2, H, W))``; with flow timestamps K = M - 1 intervals between
-        consecutive ``flow_ts`` scored against ``flows[1:]``, else K = min(M, N - 1) image
-        intervals scored against ``flows[:K]``.
-
-        Raises:
-            KeyError: the file has no flow group.
-            ValueError: flow timestamps that do not increase.
-        """
-        if self.flows is None:
-            raise KeyError(f"{self.path}: no 'flow' group, cannot evaluate optical flow")
-        if self.flow_ts is not None:
-            if self.flow_ts.size < 2 or np.any(np.diff(self.flow_ts) <= 0):
-                raise ValueError(f"{self.path}: flow timestamps must increase (>= 2 flows)")
-            vox, counts = events_to_voxels(self.xs, self.ys, self.ts, self.ps, self.flow_ts, num_bins,
-                                           self.height, self.width)
-            return vox, counts, self.flows[1:]
-        vox, counts = self.voxels(num_bins)
-        k = min(len(self.flows), len(vox))
-        return vox[:k], counts[:k], self.flows[:k]
 
 
 def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, max_frames: int = 0,
@@ -455,6 +340,18 @@ def build_arg_parser() -> argparse.ArgumentParser:
                    "over HQF and EVAID (the paper's rule); needs --data-root and --lpips-weights")
     p.add_argument("--h5", nargs="*", default=[], help="H5 files in the event_cnn_minimal layout")
     p.add_argument("--video", nargs="*", default=[], help="videos: voxels simulated with the V2V core (E2VID only)")
+    p.add_argument("--recording", nargs="*", default=[], help="real recordings, format by extension: .aedat4, "
+                   ".raw (EVT 2/2.1/3), .dat, .es, .csv, .h5, or an IJRR/ECD folder (docs/recordings.md)")
+    p.add_argument("--sensor-size", type=int, nargs=2, metavar=("W", "H"), help="--recording: sensor size, for "
+                   "files whose header does not state it (CSV, some RAW) or to override it")
+    p.add_argument("--start", type=float, default=0.0, help="--recording: first second to use, from the first event")
+    p.add_argument("--end", type=float, default=None, help="--recording: end of the cut, seconds from the first event")
+    p.add_argument("--window-ms", type=float, default=50.0, help="--recording without frames: one voxel grid per "
+                   "window of this many milliseconds")
+    p.add_argument("--events-per-grid", type=int, default=0, help="--recording without frames: one voxel grid "
+                   "per this many events instead of --window-ms windows")
+    p.add_argument("--write-video", metavar="DIR", help="--recording: write reconstruction PNGs + MP4 (or a flow "
+                   "network's colour-coded flow MP4) under DIR; recordings without frames write them under --out")
     p.add_argument("--contrast-threshold", type=float, default=0.2, help="--video: c+ = c- (log units)")
     p.add_argument("--max-frames", type=int, default=0, help="--video: frames to use (0 = all)")
     p.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), help="--video: resize frames to H W")
@@ -466,7 +363,8 @@ def build_arg_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-first", type=int, default=0, help="E2VID: leave the first N frames out (warm-up)")
     p.add_argument("--device", default="auto")
     p.add_argument("--out", help="write the metrics JSON (and sample PNGs) here")
-    p.add_argument("--save-images", type=int, default=0, help="E2VID: save every Nth reconstruction as PNG")
+    p.add_argument("--save-images", type=int, default=0, help="E2VID: save every Nth reconstruction as PNG (beside "
+                   "its voxel grid and frame)")
     return p
 
 
@@ -516,8 +414,10 @@ def main(argv=None) -> int:
         return _paper_main(p, args, device, lp, lpips_metric)
     if not args.checkpoint:
         p.error("give --checkpoint (or --select-checkpoint DIR)")
-    if not args.h5 and not args.video:
-        p.error("give --h5 and/or --video inputs")
+    if not args.h5 and not args.video and not args.recording:
+        p.error("give --h5, --video and/or --recording inputs")
+    if args.recording and not (args.out or args.write_video):
+        p.error("--recording needs --out or --write-video (recordings without frames are written as video)")
     try:
         task, model, cfg, record = load_model(args.checkpoint, device, args.model)
     except ConfigError:
@@ -532,11 +432,23 @@ def main(argv=None) -> int:
     out = Path(args.out) if args.out else None
     if out:
         out.mkdir(parents=True, exist_ok=True)
-    per_input = _score_inputs(args, task, model, int(cfg["model"]["num_bins"]), recon, lp if recon else None,
-                              device, out)
+    nb = int(cfg["model"]["num_bins"])
+    per_input = _score_inputs(args, task, model, nb, recon, lp if recon else None, device, out)
+    recordings = {}
+    for path in args.recording:
+        try:
+            r, info = _recording_input(args, path, task, model, nb, lp if recon else None, device, out)
+        except RecordingError as e:
+            log.error("%s", e)
+            return 2
+        recordings[path] = info
+        if info["frames_scored"]:
+            per_input[path] = r
     summary = {"checkpoint": args.checkpoint, "task": task, **record,
                "lpips_metric": lpips_metric if recon else None, "ssim_data_range": args.ssim_data_range,
                "skip_first": args.skip_first, **_summarise(per_input)}
+    if recordings:
+        summary["recordings"] = recordings
     _write_summary(summary, out)
     return 0
 
@@ -578,6 +490,169 @@ def _score_inputs(args, task: str, model, nb: int, recon: bool, lp, device, out:
         per_input[path] = r
         log.info("%s: %s", path, {k: round(float(np.nanmean(v)), 5) for k, v in r.items() if not k.startswith("_") and len(v)})
     return per_input
+
+
+class _Mp4Writer:
+    """Encode (H, W) uint8 grey or (H, W, 3) uint8 BGR frames as an H.264 MP4 with PyAV, one at a
+    time (odd sizes are padded by one pixel: yuv420p needs even ones)."""
+
+    def __init__(self, path: Path, fps: float):
+        import av
+
+        self.path, self.fps = path, fps
+        self._av, self._c, self._s = av, None, None
+
+    def write(self, img: np.ndarray) -> None:
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        h, w = img.shape[:2]
+        img = np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+        if self._c is None:
+            from fractions import Fraction
+
+            self._c = self._av.open(str(self.path), "w")
+            self._s = self._c.add_stream("libx264", rate=Fraction(self.fps).limit_denominator(1000))
+            self._s.width, self._s.height, self._s.pix_fmt = img.shape[1], img.shape[0], "yuv420p"
+            self._s.options = {"crf": "18", "preset": "fast"}
+        vf = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="bgr24").reformat(format="yuv420p")
+        for pkt in self._s.encode(vf):
+            self._c.mux(pkt)
+
+    def close(self) -> None:
+        if self._c is not None:
+            for pkt in self._s.encode():
+                self._c.mux(pkt)
+            self._c.close()
+
+
+@torch.no_grad()
+def evaluate_recording(model, task: str, grids, device: torch.device, frames: Optional[np.ndarray] = None,
+                       ssim_data_range: float = 1.0, lpips_model=None, skip_first: int = 0,
+                       video_dir: Optional[Path] = None, fps: float = 20.0, name: str = "recording",
+                       save_every: int = 0, save_dir: Optional[Path] = None) -> Dict[str, List[float]]:
+    """Run a network over voxel grids streamed from a real recording, one grid at a time.
+
+    Args:
+        model: a reconstruction network (``model(voxel, states) -> (image, states)``), a flow
+            network (``model(voxel) -> flow``) or E-RAFT (``task == "eraft"``: pairs of
+            consecutive grids, the first paired with a zero grid).
+        task: the trainer task name of ``model``.
+        grids: iterable of ``(k, voxel int32 (B, H, W), counts)`` (``trainer.recordings.voxel_grids``).
+        frames: uint8 (K+1, H, W) ground truth, frame k+1 ending grid k (reconstruction only),
+            or None: nothing scored.
+        ssim_data_range, lpips_model, skip_first: as :func:`evaluate_e2vid`.
+        video_dir: where to write ``<name>_NNNNN.png`` reconstructions and ``<name>.mp4`` (or
+            ``<name>_flow.mp4``, the flow colour-coded by ``trainer.viz.flow_to_bgr``), or None.
+        fps: frame rate of the MP4.
+        save_every, save_dir: with frames, every ``save_every``-th grid as ``<name>_cmp_NNNNN.png``
+            in ``save_dir``: the voxel grid, the reconstruction and the frame side by side.
+
+    Returns:
+        Per-frame lists as :func:`evaluate_e2vid` (empty without frames or for flow), plus
+        ``_grids``, the number of grids run.
+    """
+    from .viz import flow_to_bgr
+
+    recon = task not in ("evflow", "eraft")
+    res: Dict[str, List[float]] = {k: [] for k in ("mse", "ssim", "base_mse", "base_ssim")}
+    if lpips_model is not None and frames is not None:
+        res["lpips"], res["base_lpips"] = [], []
+    if frames is not None:
+        gt_all = frames.astype(np.float32) / 255.0
+        mean_img = np.full(gt_all.shape[1:], gt_all[1:].mean(), np.float32)
+    writer = None
+    if video_dir is not None:
+        video_dir.mkdir(parents=True, exist_ok=True)
+        writer = _Mp4Writer(video_dir / (f"{name}.mp4" if recon else f"{name}_flow.mp4"), fps)
+    if task == "eraft":
+        model.reset_states()
+    states, prev, n = None, None, 0
+    for k, vox, _ in grids:
+        v = torch.from_numpy(vox.astype(np.float32))[None].to(device)
+        n += 1
+        if not recon:
+            flow = (model(prev if prev is not None else torch.zeros_like(v), v) if task == "eraft" else model(v))
+            prev = v
+            if writer is not None:
+                writer.write(flow_to_bgr(flow[0].float().cpu().numpy()))
+            continue
+        pred, states = model(v, states)
+        p = pred[0, 0].float().cpu().numpy()
+        if writer is not None:
+            img = (np.clip(p, 0, 1) * 255 + 0.5).astype(np.uint8)
+            import cv2
+
+            cv2.imwrite(str(video_dir / f"{name}_{k:05d}.png"), img)
+            writer.write(img)
+        if frames is None or k < skip_first or k + 1 >= len(frames):
+            continue
+        gt = gt_all[k + 1]
+        if save_every and save_dir is not None and k % save_every == 0:
+            from .viz import gray_to_u8, save_grid, voxel_to_u8
+
+            save_grid(str(save_dir / f"{name}_cmp_{k:05d}.png"), [[voxel_to_u8(vox), gray_to_u8(p), gray_to_u8(gt)]])
+        m = reconstruction_metrics(p, gt, ssim_data_range)
+        b = reconstruction_metrics(mean_img, gt, ssim_data_range)
+        res["mse"].append(m["mse"]); res["ssim"].append(m["ssim"])
+        res["base_mse"].append(b["mse"]); res["base_ssim"].append(b["ssim"])
+        if "lpips" in res:
+            g = torch.from_numpy(gt)[None, None].to(device)
+            res["lpips"].append(float(lpips_model(torch.from_numpy(np.clip(p, 0, 1))[None, None].to(device), g)[0]))
+            res["base_lpips"].append(float(lpips_model(torch.from_numpy(mean_img)[None, None].to(device), g)[0]))
+    if writer is not None:
+        writer.close()
+    res["_grids"] = n
+    return res
+
+
+def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out: Optional[Path]):
+    """Score (with frames) and/or write the video of one ``--recording``: ``(per-frame
+    results, info)``; info records how the grids were binned. Raises ``RecordingError``."""
+    from .recordings import count_edges, open_recording, voxel_grids, window_edges
+
+    rec = open_recording(path, tuple(args.sensor_size) if args.sensor_size else None)
+    t_first = rec.first_t_us()
+    start_us = t_first + int(round(args.start * 1e6))
+    end_us = None if args.end is None else t_first + int(round(args.end * 1e6))
+    fr = rec.frames()
+    frames = None
+    if fr is not None:
+        keep = (fr.t_us >= start_us) & ((fr.t_us <= end_us) if end_us is not None else True)
+        if keep.sum() >= 2:
+            edges, frames = fr.t_us[keep], fr.images[keep]
+            if frames.shape[1:] != (rec.height, rec.width):
+                import cv2
+
+                frames = np.stack([cv2.resize(f, (rec.width, rec.height), interpolation=cv2.INTER_AREA)
+                                   for f in frames])
+            binning = "between consecutive frame timestamps"
+            fps = 1e6 / float(np.median(np.diff(edges)))
+    if frames is None and args.events_per_grid:
+        edges = count_edges(rec.chunks(start_us, end_us), args.events_per_grid)
+        binning = f"{args.events_per_grid} events per grid"
+        fps = 1e6 / max(1.0, float(np.median(np.diff(edges)))) if len(edges) > 1 else 20.0
+    elif frames is None:
+        last = start_us
+        for ev in rec.chunks(start_us, end_us):
+            last = int(ev["t"][-1])
+        window_us = max(1, int(round(args.window_ms * 1e3)))
+        edges = window_edges(start_us, last, window_us)
+        binning = f"fixed windows of {args.window_ms:g} ms"
+        fps = 1e3 / args.window_ms
+    recon = task not in ("evflow", "eraft")
+    # nothing to score (no frames, or a flow network without ground truth): the video is the output
+    video_dir = Path(args.write_video) if args.write_video else (out if frames is None or not recon else None)
+    name = Path(path).stem or Path(path).name
+    r = evaluate_recording(model, task, voxel_grids(rec.chunks(int(edges[0]), int(edges[-1])), edges, nb,
+                                                    rec.height, rec.width),
+                           device, frames if recon else None, args.ssim_data_range, lp, args.skip_first,
+                           video_dir, fps, name, args.save_images, out)
+    info = {"format": rec.format, "sensor_size": [rec.width, rec.height], "size_source": rec.size_source,
+            "binning": binning, "grids": r.pop("_grids"), "num_bins": nb, "start_us": int(edges[0]),
+            "end_us": int(edges[-1]), "frames_scored": len(r["mse"]), "dropped_backward": rec.dropped_backward,
+            "truncated": rec.truncated, "video_dir": str(video_dir) if video_dir else None}
+    log.info("%s: %s", path, info)
+    return r, info
 
 
 def _write_summary(summary: dict, out: Optional[Path]) -> None:
