@@ -19,16 +19,14 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
-import time
 from importlib.metadata import version as _dist_version
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional
 
-from harness.object_store import _free_ports
+from harness.object_store import LocalServer, _free_ports
 
 #: The Azurite release the tests run: the newest whose package accepts Node.js 20 (3.36 and
 #: later declare Node >= 21 / 22).
@@ -42,8 +40,9 @@ class EmulatorUnavailable(RuntimeError):
     """What an emulator needs is not on this machine (``npm`` for Azurite); tests skip on it."""
 
 
-class _Emulator:
-    """One emulator process on 127.0.0.1: subclasses give ``_args()``, ``fs()`` and ``scheme``.
+class _Emulator(LocalServer):
+    """One emulator process on 127.0.0.1 (``harness.object_store.LocalServer``): subclasses give
+    ``_args()``, ``fs()`` and ``scheme``.
 
     Raises (from ``start``):
         RuntimeError: the process exited or did not answer within ``ready_timeout_s`` (the
@@ -51,20 +50,7 @@ class _Emulator:
     """
 
     scheme = ""
-    name = ""
     _ready_path = "/"
-
-    def __init__(self, ready_timeout_s: float = 60.0, grace_s: float = 3.0):
-        self.ready_timeout_s, self.grace_s = ready_timeout_s, grace_s
-        self.proc: Optional[subprocess.Popen] = None
-        self.dir: Optional[str] = None
-        self.port = 0
-        self._log = None
-
-    @property
-    def endpoint(self) -> str:
-        """``http://127.0.0.1:PORT``, the emulator's HTTP endpoint."""
-        return f"http://127.0.0.1:{self.port}"
 
     def _args(self) -> List[str]:
         raise NotImplementedError
@@ -99,20 +85,7 @@ class _Emulator:
     def start(self):
         self.dir = tempfile.mkdtemp(prefix=f"v2v-{self.name}-")
         self.port = _free_ports(1)[0]
-        self.log_path = Path(self.dir) / "emulator.log"
-        self._log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen(self._args(), stdout=self._log, stderr=subprocess.STDOUT, cwd=self.dir,
-                                     start_new_session=True)
-        deadline = time.monotonic() + self.ready_timeout_s
-        while True:
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                tail = self.log_tail()
-                self.stop()
-                raise RuntimeError(f"{self.name} did not answer on {self.endpoint} within "
-                                   f"{self.ready_timeout_s} s:\n{tail}")
-            if self._answers():
-                return self
-            time.sleep(0.2)
+        return self._launch(self._args(), "emulator.log")
 
     def _answers(self) -> bool:
         """True once the emulator answers HTTP on its port (any status: an unauthenticated
@@ -127,36 +100,6 @@ class _Emulator:
             return True
         except OSError:  # not up yet: connection refused or reset
             return False
-
-    def log_tail(self, n: int = 4000) -> str:
-        try:
-            return Path(self.log_path).read_bytes()[-n:].decode("utf-8", "replace")
-        except OSError:
-            return ""
-
-    def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            try:
-                os.killpg(self.proc.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
-            try:
-                self.proc.wait(self.grace_s)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait(10)
-        if self._log is not None:
-            self._log.close()
-            self._log = None
-        if self.dir is not None:
-            shutil.rmtree(self.dir, ignore_errors=True)
-            self.dir = None
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
 
 class GcsEmulator(_Emulator):

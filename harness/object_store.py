@@ -19,14 +19,95 @@ import subprocess
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, Iterable, Optional
+from typing import Dict, Iterable, List, Optional
 
 
 ACCESS_KEY = "v2v-test-key"
 SECRET_KEY = "v2v-test-secret"
 
 
-class SeaweedS3:
+class LocalServer:
+    """A server process on 127.0.0.1 that a test starts and stops: launched in its own process
+    group with its output in ``dir/LOG``, waited for until :meth:`_answers`, stopped (TERM, then
+    KILL after ``grace_s``) with its folder removed. Subclasses give ``start`` (which calls
+    :meth:`_launch`), ``_answers`` and ``name``.
+
+    Raises (from ``_launch``):
+        RuntimeError: the process exited or did not answer within ``ready_timeout_s`` (the
+            message holds its log tail).
+    """
+
+    name = "server"
+    poll_s = 0.2
+
+    def __init__(self, ready_timeout_s: float = 60.0, grace_s: float = 3.0):
+        self.ready_timeout_s, self.grace_s = ready_timeout_s, grace_s
+        self.proc: Optional[subprocess.Popen] = None
+        self.dir: Optional[str] = None
+        self.port = 0
+        self._log = None
+
+    @property
+    def endpoint(self) -> str:
+        """``http://127.0.0.1:PORT``, the server's HTTP endpoint."""
+        return f"http://127.0.0.1:{self.port}"
+
+    def _answers(self) -> bool:
+        raise NotImplementedError
+
+    def _launch(self, args: List[str], log_name: str):
+        self.log_path = Path(self.dir) / log_name
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, cwd=self.dir,
+                                     start_new_session=True)
+        deadline = time.monotonic() + self.ready_timeout_s
+        while True:
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                tail = self.log_tail()
+                self.stop()
+                raise RuntimeError(f"{self.name} did not answer on {self.endpoint} within "
+                                   f"{self.ready_timeout_s} s:\n{tail}")
+            if self._answers():
+                return self
+            time.sleep(self.poll_s)
+
+    def log_tail(self, n: int = 4000) -> str:
+        try:
+            return Path(self.log_path).read_bytes()[-n:].decode("utf-8", "replace")
+        except (OSError, AttributeError):
+            return ""
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGCONT)
+                os.killpg(self.proc.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+            try:
+                self.proc.wait(self.grace_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(10)
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        self._cleanup()
+        if self.dir is not None:
+            shutil.rmtree(self.dir, ignore_errors=True)
+            self.dir = None
+
+    def _cleanup(self) -> None:
+        """What the server leaves outside its folder, removed after it stopped (none here)."""
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+class SeaweedS3(LocalServer):
     """One SeaweedFS server (master, volume, filer and S3 gateway in one process) on 127.0.0.1.
 
     Raises:
@@ -34,17 +115,13 @@ class SeaweedS3:
             ``ready_timeout_s`` (the message holds the server's log tail).
     """
 
-    def __init__(self, ready_timeout_s: float = 60.0, grace_s: float = 3.0):
-        self.ready_timeout_s, self.grace_s = ready_timeout_s, grace_s
-        self.key, self.secret = ACCESS_KEY, SECRET_KEY
-        self.proc: Optional[subprocess.Popen] = None
-        self.dir: Optional[str] = None
-        self.port = 0
-        self._ports: list = []
+    name = "SeaweedFS S3"
+    poll_s = 0.3
 
-    @property
-    def endpoint(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
+    def __init__(self, ready_timeout_s: float = 60.0, grace_s: float = 3.0):
+        super().__init__(ready_timeout_s, grace_s)
+        self.key, self.secret = ACCESS_KEY, SECRET_KEY
+        self._ports: list = []
 
     @property
     def filer_url(self) -> str:
@@ -95,20 +172,7 @@ class SeaweedS3:
                 "-volume.port", str(ports[5]), "-volume.port.grpc", str(ports[6]),
                 "-filer.port", str(ports[7]), "-filer.port.grpc", str(ports[8]),
                 "-metricsPort", str(ports[9]), "-master.volumeSizeLimitMB", "64", "-volume.max", "8"]
-        self.log_path = Path(self.dir) / "weed.log"
-        self._log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, cwd=self.dir,
-                                     start_new_session=True)
-        deadline = time.monotonic() + self.ready_timeout_s
-        while True:
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                tail = self.log_tail()
-                self.stop()
-                raise RuntimeError(f"SeaweedFS S3 did not answer on {self.endpoint} within "
-                                   f"{self.ready_timeout_s} s:\n{tail}")
-            if self._answers():
-                return self
-            time.sleep(0.3)
+        return self._launch(args, "weed.log")
 
     def _answers(self) -> bool:
         """True once the gateway lists buckets and accepts a bucket: the filer and a volume behind it are up."""
@@ -121,12 +185,6 @@ class SeaweedS3:
             return fs.cat_file("v2v-ready-probe/probe") == b"ok"
         except Exception:  # not up yet: connection refused, 5xx while the filer starts
             return False
-
-    def log_tail(self, n: int = 4000) -> str:
-        try:
-            return Path(self.log_path).read_bytes()[-n:].decode("utf-8", "replace")
-        except OSError:
-            return ""
 
     def pause(self, timeout_s: float = 5.0) -> None:
         """Freeze the server (SIGSTOP): connections open, nothing answers. Returns once every
@@ -147,21 +205,7 @@ class SeaweedS3:
     def resume(self) -> None:
         os.killpg(self.proc.pid, signal.SIGCONT)
 
-    def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            try:
-                os.killpg(self.proc.pid, signal.SIGCONT)
-                os.killpg(self.proc.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
-            try:
-                self.proc.wait(self.grace_s)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait(10)
-        if getattr(self, "_log", None) is not None:
-            self._log.close()
-            self._log = None
+    def _cleanup(self) -> None:
         for port in self._ports:  # the unix sockets SeaweedFS puts in /tmp, named by port
             for sock in Path(tempfile.gettempdir()).glob(f"seaweedfs-*-{port}.sock"):
                 try:
@@ -169,15 +213,6 @@ class SeaweedS3:
                 except OSError:
                     pass
         self._ports = []
-        if self.dir is not None:
-            shutil.rmtree(self.dir, ignore_errors=True)
-            self.dir = None
-
-    def __enter__(self) -> "SeaweedS3":
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
 
 def _free_ports(n: int) -> list:
