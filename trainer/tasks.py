@@ -179,9 +179,27 @@ class HyperE2VIDTask(E2VIDTask):
 
     name = "hypere2vid"
 
+    def __init__(self, cfg: dict, device: torch.device):
+        super().__init__(cfg, device)
+        self._betas: Dict[Tuple[float, torch.device], torch.Tensor] = {}
+
+    def _beta_tensor(self, beta: float, device: torch.device) -> torch.Tensor:
+        """``beta`` as a 0-dim float32 tensor on ``device``, made once per curriculum stage (a
+        copy to the device per stage, none per step)."""
+        t = self._betas.get((beta, device))
+        if t is None:
+            t = self._betas[(beta, device)] = torch.tensor(beta, dtype=torch.float32, device=device)
+        return t
+
     def step_model(self, model, voxel, states, target):
+        """Under ``speed: fast`` the network gets the frame and beta (a device tensor) on every
+        training step, 0 after the curriculum too: the same inputs for the whole run, so a
+        compiled network keeps one graph through all the stages (bit-identical at beta 0 and 1,
+        ``trainer.models.hypere2vid.HyperE2VID``). ``eager``: the authors' float and branch."""
         c = self.cfg["curriculum"]
         beta = curriculum_beta(self.step, int(self.cfg["max_steps"]), float(c["fraction"]), int(c["stages"]))
+        if self.cfg.get("speed", "eager") == "fast" and model.training:
+            return model(voxel, states, gt_image=target, beta=self._beta_tensor(beta, voxel.device))
         if beta > 0 and model.training:
             return model(voxel, states, gt_image=target, beta=beta)
         return model(voxel, states)

@@ -1,0 +1,65 @@
+"""``speed: fast`` keeps one compiled graph per network and input shape for the whole run
+(trainer/speed.py): HyperE2VID's curriculum is a device tensor, batches of another shape run
+eagerly. The compiled network here is ``torch.compile(backend="eager", dynamic=False)``:
+dynamo's guards, and so its recompiles, are those of the CUDA-graph compile (``mode=
+"reduce-overhead"``, which needs a GPU), without inductor's code generation."""
+from __future__ import annotations
+
+import pytest
+import torch
+import torch._dynamo
+from torch._dynamo.utils import counters
+
+from harness.toy_steps import TOY_MODELS, toy_batch, toy_trainer
+from trainer.models.hypere2vid import HyperE2VID
+from trainer.tasks import curriculum_beta
+from trainer.zoo import build_model
+
+torch.set_num_threads(1)
+
+
+def _hyper_inputs():
+    torch.manual_seed(0)
+    model = build_model("hypere2vid", dict(TOY_MODELS["hypere2vid"])).train()
+    voxel, gt = torch.randn(2, 3, 24, 40), torch.rand(2, 1, 24, 40)  # padded to 32 x 48 inside
+    _, states = model(torch.randn(2, 3, 24, 40))
+    return model, voxel, gt, states
+
+
+@pytest.mark.parametrize("amp", [False, True])
+def test_tensor_beta_is_bit_identical_to_the_float_at_the_ends(amp):
+    model, voxel, gt, states = _hyper_inputs()
+    assert isinstance(model, HyperE2VID)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+        for beta, float_call in ((0.0, lambda: model(voxel, states)), (1.0, lambda: model(voxel, states, gt, 1.0))):
+            img, (lstm, prev) = model(voxel, states, gt, torch.tensor(beta))
+            ref_img, (ref_lstm, ref_prev) = float_call()
+            assert torch.equal(img, ref_img) and torch.equal(prev, ref_prev), beta
+            assert all(torch.equal(a, b) for s, r in zip(lstm, ref_lstm) for a, b in zip(s, r))
+        # between the ends the same blend (stages of 1/16 are exact in float32)
+        img, _ = model(voxel, states, gt, torch.tensor(0.8125))
+        assert torch.equal(img, model(voxel, states, gt, 0.8125)[0])
+        assert not torch.equal(img, model(voxel, states, gt, 1.0)[0])  # the value of beta matters
+
+
+def _compiled_trainer(task, **extra):
+    """A toy fast trainer whose network is compiled with the eager backend at fixed shapes."""
+    t, _ = toy_trainer(task, "fast", **extra)
+    t.net = torch.compile(t.model, backend="eager", dynamic=False)
+    return t
+
+
+def test_hypere2vid_curriculum_compiles_once_through_all_stages():
+    """16 stages of one step each (max_steps 80, fraction 0.2), then 2 steps at beta 0: every
+    graph is made in the first step; the recompile limit (8) would raise."""
+    torch._dynamo.reset()
+    counters.clear()
+    t = _compiled_trainer("hypere2vid", max_steps=80, curriculum={"fraction": 0.2, "stages": 16})
+    betas, graphs = [], []
+    with torch._dynamo.config.patch(fail_on_recompile_limit_hit=True):
+        for i in range(18):
+            betas.append(curriculum_beta(t.step, 80, 0.2, 16))
+            t.train_step(toy_batch("hypere2vid", seed=i), sync=False)
+            graphs.append(counters["stats"]["unique_graphs"])
+    assert len(set(betas)) == 17 and betas[0] == 1.0 and betas[-1] == 0.0  # 16 stages, then off
+    assert graphs[0] > 0 and graphs == [graphs[0]] * 18, graphs
