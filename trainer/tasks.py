@@ -193,12 +193,15 @@ class HyperE2VIDTask(E2VIDTask):
 
     def step_model(self, model, voxel, states, target):
         """Under ``speed: fast`` the network gets the frame and beta (a device tensor) on every
-        training step, 0 after the curriculum too: the same inputs for the whole run, so a
+        training step, 0 after the curriculum too, and the sequence's first state as zero
+        tensors (``HyperE2VID.initial_states``): the same inputs for the whole run, so a
         compiled network keeps one graph through all the stages (bit-identical at beta 0 and 1,
         ``trainer.models.hypere2vid.HyperE2VID``). ``eager``: the authors' float and branch."""
         c = self.cfg["curriculum"]
         beta = curriculum_beta(self.step, int(self.cfg["max_steps"]), float(c["fraction"]), int(c["stages"]))
         if self.cfg.get("speed", "eager") == "fast" and model.training:
+            if states is None:  # zeros as tensors: the first call's graph is every call's
+                states = model.initial_states(voxel, requires_grad=torch.is_grad_enabled())
             return model(voxel, states, gt_image=target, beta=self._beta_tensor(beta, voxel.device))
         if beta > 0 and model.training:
             return model(voxel, states, gt_image=target, beta=beta)

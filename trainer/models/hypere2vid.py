@@ -219,6 +219,40 @@ class HyperE2VID(nn.Module):
         self.unetrecurrent = _UNetRecurrentDynamic(num_bins, base_num_channels, num_encoders,
                                                    num_residual_blocks, kernel_size)
 
+    def initial_states(self, voxel: torch.Tensor, requires_grad: bool = False
+                       ) -> Tuple[List[Tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
+        """The state a sequence starts from, as tensors: what ``forward(voxel, None)`` makes
+        inside (zero LSTM hidden and cell states, (N, 2**(i+1) * base, H'/2**(i+1), W'/2**(i+1))
+        for encoder i, H' x W' the padded input; a zero previous reconstruction (N, 1, H', W')
+        float32), in the layout of the network's outputs (channels-last when its weights are),
+        so ``forward(voxel, initial_states(voxel))`` is bit-identical to
+        ``forward(voxel, None)`` and a compiled network sees one input structure for every call
+        of a sequence. The LSTM zeros take autocast's dtype when autocast is on for the voxel's
+        device (the convolutions' outputs they stand beside), else the voxel's dtype: call it
+        in the autocast region of the forward. With ``requires_grad`` the LSTM zeros are leaves
+        that require grad, as the states the network returns in training do (a compiled graph
+        guards on it); the parameters' gradients are the same either way. Raises ``ValueError`` for a voxel of the wrong
+        shape."""
+        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
+            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        x, _, _ = pad_input(voxel)
+        dev = x.device.type
+        dtype = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else x.dtype
+        # the layout the convolutions give their outputs: channels-last weights, channels-last
+        # outputs (``trainer.speed.prepare_model``)
+        fmt = (torch.channels_last if self.unetrecurrent.encoders[0].recurrent_block.Gates.weight.is_contiguous(
+            memory_format=torch.channels_last) else torch.contiguous_format)
+        n, _, h, w = x.shape
+
+        def zeros(c, s, dt):
+            return torch.empty((n, c, h // s, w // s), dtype=dt, device=x.device, memory_format=fmt).zero_()
+
+        lstm = []
+        for i, enc in enumerate(self.unetrecurrent.encoders):
+            c, s = enc.recurrent_block.hidden_size, 2 ** (i + 1)
+            lstm.append(tuple(zeros(c, s, dtype).requires_grad_(requires_grad) for _ in range(2)))
+        return lstm, zeros(1, 1, x.dtype)
+
     def forward(self, voxel: torch.Tensor, states: Optional[Tuple[List, torch.Tensor]] = None,
                 gt_image: Optional[torch.Tensor] = None, beta: Union[float, torch.Tensor] = 0.0):
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
