@@ -10,7 +10,8 @@ import torch
 import torch._dynamo
 from torch._dynamo.utils import counters
 
-from harness.toy_steps import TOY_MODELS, toy_batch, toy_trainer
+from harness.toy_steps import TASKS, TOY_MODELS, toy_batch, toy_trainer
+from trainer.data import batch_to_device, drop_padding
 from trainer.models.hypere2vid import HyperE2VID
 from trainer.tasks import curriculum_beta
 from trainer.zoo import build_model
@@ -81,3 +82,29 @@ def test_hypere2vid_curriculum_compiles_once_through_all_stages():
             graphs.append(counters["stats"]["unique_graphs"])
     assert len(set(betas)) == 17 and betas[0] == 1.0 and betas[-1] == 0.0  # 16 stages, then off
     assert graphs == [1] * 18, graphs
+
+
+def _drop_last(batch):
+    """``batch`` with its last sample marked padding (left out of the loss: a batch of 1)."""
+    return {**batch, "padding": torch.tensor([False] * (len(batch["voxels"]) - 1) + [True])}
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_batches_of_another_shape_run_eagerly_without_a_compile(task):
+    """Full batch, a batch with padding dropped (1 sample), a smaller batch, the full batch again:
+    every graph is made in the first step; the others run the model eagerly."""
+    torch._dynamo.reset()
+    counters.clear()
+    t = _compiled_trainer(task)
+    full = toy_batch(task)
+    small = {k: (v[:1] if isinstance(v, torch.Tensor) else v[:1] if isinstance(v, list) else v)
+             for k, v in toy_batch(task, seed=1).items()}
+    batches = (full, _drop_last(toy_batch(task, seed=2)), small, toy_batch(task, seed=3))
+    graphs = []
+    with torch._dynamo.config.patch(fail_on_recompile_limit_hit=True):
+        for b in batches:
+            t.train_step(b, sync=False)
+            graphs.append(counters["stats"]["unique_graphs"])
+    assert graphs[0] > 0 and graphs == [graphs[0]] * 4, graphs
+    nets = [t.network_for(batch_to_device(drop_padding(b)[0], t.device, t.spec.outputs)) for b in batches]
+    assert nets == [t.net, t.model, t.model, t.net] and t.compiled_shape == tuple(full["voxels"].shape)
