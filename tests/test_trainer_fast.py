@@ -134,3 +134,14 @@ def test_speed_setting_defaults_to_eager_and_checks_its_value(tmp_path):
     p.write_text("speed: turbo\n")
     with pytest.raises(ConfigError):
         load_config(str(p), "e2vid")
+
+
+def test_fast_asks_for_tf32_matmuls_on_cuda_only():
+    from trainer.speed import matmul_precision
+
+    assert matmul_precision("fast", torch.device("cuda")) == "high"
+    assert matmul_precision("eager", torch.device("cuda")) is None
+    assert matmul_precision("fast", torch.device("cpu")) is None
+    before = torch.get_float32_matmul_precision()
+    toy_trainer("etnet", "fast")  # a CPU trainer leaves the process's setting as it was
+    assert torch.get_float32_matmul_precision() == before == "highest"

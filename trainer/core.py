@@ -104,6 +104,9 @@ class Trainer:
                                    "1 - SSIM stand-in")
         #: ``eager`` or ``fast`` (``trainer.speed``)
         self.speed = speed.check_speed(cfg.get("speed", "eager"))
+        precision = speed.matmul_precision(self.speed, device)
+        if precision is not None:  # process-wide, as cudnn.benchmark above
+            torch.set_float32_matmul_precision(precision)
         self.model = speed.prepare_model(build_model(self.task, dict(cfg["model"])).to(device), self.task, self.speed)
         #: what forward calls: the model, or its ``torch.compile`` (``trainer.speed.compiled``;
         #: parameters and state dict stay the model's, so checkpoints keep their keys)

@@ -45,7 +45,7 @@ import torch
 import torch.nn as nn
 
 __all__ = ["SPEEDS", "CHANNELS_LAST", "check_speed", "prepare_model", "compiled", "optimizer_options",
-           "forward_context"]
+           "forward_context", "matmul_precision"]
 
 #: The values of the config key ``speed``.
 SPEEDS = ("eager", "fast")
@@ -102,3 +102,13 @@ def forward_context(speed: str, amp: bool, device: torch.device):
     if speed == "fast" and amp:
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=False)
     return contextlib.nullcontext()
+
+
+def matmul_precision(speed: str, device: torch.device):
+    """What ``torch.set_float32_matmul_precision`` is given for a run: ``"high"`` under
+    ``speed: fast`` on CUDA (float32 matmuls on TF32 tensor cores, inputs rounded to 10
+    mantissa bits: a relative error of about 1e-3 per product, the precision PyTorch's default
+    already gives float32 convolutions through cuDNN); None (PyTorch's default, ``"highest"``,
+    left as it is) under ``eager`` and on other devices, where ``"high"`` changes nothing the
+    CPU runs."""
+    return "high" if speed == "fast" and device.type == "cuda" else None
