@@ -5,6 +5,8 @@ dynamo's guards, and so its recompiles, are those of the CUDA-graph compile (``m
 "reduce-overhead"``, which needs a GPU), without inductor's code generation."""
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 import torch._dynamo
@@ -108,3 +110,4 @@ def test_batches_of_another_shape_run_eagerly_without_a_compile(task):
     assert graphs[0] > 0 and graphs == [graphs[0]] * 4, graphs
     nets = [t.network_for(batch_to_device(drop_padding(b)[0], t.device, t.spec.outputs)) for b in batches]
     assert nets == [t.net, t.model, t.model, t.net] and t.compiled_shape == tuple(full["voxels"].shape)
+    assert os.path.getsize(t.save_samples()) > 0  # from the copies of the compiled step's predictions

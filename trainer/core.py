@@ -186,6 +186,11 @@ class Trainer:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), float(self.clip))
         self.optimizer.step()
         self.step += 1
+        if self.net is not self.model:
+            # a compiled network's outputs may live in CUDA-graph memory that the next replay
+            # overwrites (a Ctrl-C mid-step included): previews and the final checkpoint read
+            # these later, so they keep copies
+            preds = [p.detach().clone() for p in preds] if isinstance(preds, list) else preds.detach().clone()
         self._last = (b, preds)
         stats["loss"] = loss.detach()
         if sync:
