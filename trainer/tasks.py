@@ -135,6 +135,8 @@ class E2VIDTask(TrainTask):
         if self.raft is not None and float(lc["tc_weight"]) > 0 and l0 < L:
             flow = self.raft(frames, l0)  # the layout of the stream's flow[:, l0:]
         use_tc = float(lc["tc_weight"]) > 0 and flow is not None and l0 < L
+        if self.cfg.get("speed", "eager") == "fast":
+            return self._forward_whole_sequence(model, vox, frames, flow, l0, use_tc, autocast)
         states, prev = None, None
         sums = {"l1": 0.0, "perceptual": 0.0, "rec": 0.0, "tc": 0.0}
         n_tc = 0
@@ -162,6 +164,34 @@ class E2VIDTask(TrainTask):
         stats = {"l1": _detached(sums["l1"] / L, loss), "perceptual": _detached(sums["perceptual"] / L, loss),
                  "tc": tc.detach()}
         return loss, stats, preds
+
+    def _forward_whole_sequence(self, model, vox, frames, flow, l0: int, use_tc: bool, autocast):
+        """``forward`` under ``speed: fast``: the network runs through the sequence as in eager,
+        then each loss term is one call on the L predictions stacked along the batch (one L1
+        and one LPIPS/SSIM call on (B * L, 1, H, W), one temporal-consistency call on the
+        B * (L - l0) pairs) instead of L calls: the terms are means over equal-sized steps, so
+        the mean over the stack is the mean of the per-step means (equal up to float32
+        summation order; ``tests/test_trainer_fast.py``)."""
+        lc = self.cfg["loss"]
+        L = vox.shape[1]
+        states, preds = None, []
+        for l in range(L):
+            with autocast():
+                pred, states = self.step_model(model, vox[:, l], states, frames[:, l + 1])
+            preds.append(pred.float())  # losses in float32, outside autocast
+        seq = torch.stack(preds, 1)  # (B, L, 1, H, W)
+        r = self.rec_loss(seq.flatten(0, 1), frames[:, 1:].flatten(0, 1))
+        zero = torch.zeros((), device=vox.device)
+        tc = zero
+        if use_tc:  # pairs (l - 1, l) for l = l0..L-1; flow was sliced from l0 on
+            tc = temporal_consistency_loss(frames[:, l0:L].flatten(0, 1), frames[:, l0 + 1:].flatten(0, 1),
+                                           seq[:, l0 - 1:L - 1].flatten(0, 1), seq[:, l0:].flatten(0, 1),
+                                           flow[:, :L - l0].flatten(0, 1), alpha=float(lc["tc_alpha"]))
+            tc = tc * ((L - l0) / L)  # averaged over all L steps, those before l0 zero (as eager)
+        loss = r["total"] + float(lc["tc_weight"]) * tc
+        perceptual = r.get(self.rec_loss.perceptual, zero)
+        stats = {"l1": r["l1"].detach(), "perceptual": perceptual.detach(), "tc": tc.detach()}
+        return loss, stats, [p.detach() for p in preds]
 
     def step_model(self, model, voxel, states, target):
         """One recurrent step: ``(prediction (N, 1, H, W), states)``; ``target`` is the frame at
