@@ -35,6 +35,10 @@
     the predictions kept for previews and the final checkpoint are copies (a replay overwrites
     a CUDA graph's outputs). E-RAFT's warm start (``flow_init`` None, then a tensor) still makes
     a second graph in the first step;
+  - the reconstruction tasks' losses (E2VID, HyperE2VID, ETNet) on the whole sequence at once,
+    on every device: one L1, one LPIPS/SSIM and one temporal-consistency call on the stacked
+    predictions instead of one per voxel grid (``E2VIDTask._forward_whole_sequence``; equal to
+    eager's within float32 summation order);
   - on CUDA, ``torch.set_float32_matmul_precision("high")`` (:func:`matmul_precision`): fp32
     matmuls (ETNet's transformer, the linear layers) on TF32 tensor cores, inputs rounded to
     10 mantissa bits (relative error about 1e-3 per product; PyTorch already runs fp32
