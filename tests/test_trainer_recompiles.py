@@ -62,6 +62,20 @@ def test_tensor_beta_and_zero_states_are_bit_identical_to_the_float_and_none(amp
         assert _strides(zeros[1]) == _strides(prev) and zeros[1].dtype == torch.float32
 
 
+def test_eraft_zero_warm_start_is_bit_identical_to_none():
+    torch.manual_seed(0)
+    model = build_model("eraft", dict(TOY_MODELS["eraft"])).train()
+    v = torch.randn(3, 2, 3, 40, 56)  # padded to 64 x 64 inside (multiples of 32)
+    flows = {}
+    for zeros in (False, True):
+        model.reset_states(v[0] if zeros else None)
+        with torch.no_grad():
+            flows[zeros] = [model(v[l - 1], v[l]) for l in (1, 2)]
+    assert all(torch.equal(a, b) for a, b in zip(flows[False], flows[True]))
+    model.reset_states(v[0])
+    assert model.flow_init.shape == (2, 2, 8, 8) and not model.flow_init.any()
+
+
 def _compiled_trainer(task, **extra):
     """A toy fast trainer whose network is compiled with the eager backend at fixed shapes."""
     t, _ = toy_trainer(task, "fast", **extra)
@@ -108,6 +122,8 @@ def test_batches_of_another_shape_run_eagerly_without_a_compile(task):
             t.train_step(b, sync=False)
             graphs.append(counters["stats"]["unique_graphs"])
     assert graphs[0] > 0 and graphs == [graphs[0]] * 4, graphs
+    if task in ("hypere2vid", "eraft"):  # first state / warm start as zero tensors: one graph
+        assert graphs[0] == 1
     nets = [t.network_for(batch_to_device(drop_padding(b)[0], t.device, t.spec.outputs)) for b in batches]
     assert nets == [t.net, t.model, t.model, t.net] and t.compiled_shape == tuple(full["voxels"].shape)
     assert os.path.getsize(t.save_samples()) > 0  # from the copies of the compiled step's predictions

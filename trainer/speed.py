@@ -33,8 +33,9 @@
     one's (an epoch's smaller last batch, one with padding dropped, Ray's partial batch) runs
     the model eagerly instead of compiling another graph (``Trainer.network_for``);
     the predictions kept for previews and the final checkpoint are copies (a replay overwrites
-    a CUDA graph's outputs). E-RAFT's warm start (``flow_init`` None, then a tensor) still makes
-    a second graph in the first step;
+    a CUDA graph's outputs). E-RAFT's warm start starts each sequence as zeros, not None
+    (``ERAFT.reset_states(voxel)``, bit-identical): one graph, not two. E2VID's and ETNet's
+    first recurrent state is still None: two graphs, both made in the first step;
   - the reconstruction tasks' losses (E2VID, HyperE2VID, ETNet) on the whole sequence at once,
     on every device: one L1, one LPIPS/SSIM and one temporal-consistency call on the stacked
     predictions instead of one per voxel grid (``E2VIDTask._forward_whole_sequence``; equal to

@@ -295,8 +295,9 @@ class ERAFTTask(EvFlowTask):
         if self.raft is not None:
             b["flow"] = self.raft(b["frames"], 1)
         flow = b["flow"]  # (n, L-1, 2, H, W): the targets of voxels 1..L-1 (the stream's arrive sliced, flow_from)
-        model.reset_states()
         if self.cfg.get("speed", "eager") == "fast":
+            # the warm start as zeros, not None: one compiled graph for every pair
+            model.reset_states(vox[:, 0])
             # one L1 and one end-point-error call on the stacked flows instead of L - 1 of each:
             # means over equal-sized pairs, so equal to the per-pair mean up to summation order
             preds = []
@@ -309,6 +310,7 @@ class ERAFTTask(EvFlowTask):
                 aee = torch.linalg.vector_norm(seq - flow, dim=2).mean()
             loss = float(self.cfg["loss"]["flow_l1_weight"]) * l1
             return loss, {"flow_l1": l1.detach(), "aee": aee}, seq.detach()
+        model.reset_states()
         l1 = aee = 0.0
         preds = []
         for l in range(1, L):
