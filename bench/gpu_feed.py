@@ -8,7 +8,20 @@ measurement (no figure of it says anything about a GPU).
 For each model at the paper's training batch (``PAPER_BATCH``: E2VID, HyperE2VID and EV-FlowNet
 12, ETNet 6, E-RAFT 10), crop and sequence length (40 voxel grids of 5 bins, 128 x 128), for
 each ``amp`` (float32, bf16) and each ``--speed`` value, with the trainer's own step
-(``trainer.core.Trainer.train_step(sync=False)``):
+(``trainer.core.Trainer.train_step(sync=False)``), each row in a fresh process (no compiled
+graph, CUDA graph or cached memory of an earlier row). Without ``--videos`` the corpus is
+``CORPUS_COPIES`` x the largest batch copies of the WebVid-like clip (2 windows each at the
+paper's recipe) in a temporary folder, so that every model trains at its own batch (the bundled
+clips give 3 samples per epoch at the paper's recipe). HyperE2VID's curriculum runs through its
+16 stages during the cached run (``max_steps`` 5 x the cached run's steps, ``fraction`` 0.2),
+so its recompiles, if any, show. Each row records:
+
+* ``batch``: the batch sizes the row's steps really trained at (``/``-separated when several);
+* ``graphs``, ``recompiles``: graphs dynamo compiled over the row, and how many of them after
+  the row's first step (``torch._dynamo.utils.counters["stats"]["unique_graphs"]``); 0 for an
+  eager network;
+* ``cudagraph_skips``: compiled graphs inductor ran without a CUDA graph
+  (``counters["inductor"]["cudagraph_skips"]``);
 
 * ``cached``: steps on batches taken once from the server and kept on the host (the device
   alone: host -> device copy, forward, backward, optimiser step); steps/s, samples/s, the
@@ -61,6 +74,9 @@ from trainer.data import make_loader, make_stream
 from trainer.tasks import stream_outputs
 
 MODELS = ("e2vid", "hypere2vid", "evflow", "etnet", "eraft")
+#: Default corpus without ``--videos``: copies of the WebVid-like clip per sample of the largest
+#: batch (2 windows each at the paper's recipe: two full batches per epoch)
+CORPUS_COPIES = 1
 #: The paper's training batch per model (the V2V authors' configs).
 PAPER_BATCH = {"e2vid": 12, "hypere2vid": 12, "evflow": 12, "etnet": 6, "eraft": 10}
 #: The paper's sample: crop side (pixels), voxel grids per sample, bins.
@@ -148,10 +164,15 @@ def launches_per_step(trainer: Trainer, batch: dict) -> dict:
     return {"count": sum(e.count for e in events if e.key.startswith("aten::")), "what": "aten ops dispatched (CPU)"}
 
 
-def _trainer(task: str, amp: str, speed: Optional[str], smoke: bool, device: torch.device, out: Path) -> Trainer:
+def _trainer(task: str, amp: str, speed: Optional[str], smoke: bool, device: torch.device, out: Path,
+             curriculum_steps: int = 0) -> Trainer:
+    """The row's trainer; ``curriculum_steps``: HyperE2VID's curriculum runs through all its
+    stages in that many steps (``max_steps`` 5 x that, ``fraction`` 0.2), else never ends."""
     model = dict(SMOKE_MODELS[task]) if smoke else {}
     model["num_bins"] = (SMOKE if smoke else PAPER)["num_bins"]
     upd = {"model": model, "amp": amp, "max_steps": 10**9}
+    if task == "hypere2vid" and curriculum_steps > 0:
+        upd.update(max_steps=5 * curriculum_steps, curriculum={"fraction": 0.2, "stages": 16})
     if speed is not None:
         upd["speed"] = speed
     return Trainer(merge(default_config(task), upd), str(out), device)
@@ -165,18 +186,21 @@ def _timed(trainer: Trainer, batches, steps: int, warmup: int, busy: bool = Fals
     _sync(dev)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
-    wait, samples = 0.0, 0
+    wait, samples, sizes = 0.0, 0, set()
     with BusySampler(dev if busy else torch.device("cpu")) as gpu:
         t0 = time.perf_counter()
         for _ in range(steps):
             a = time.perf_counter()
             b = next(batches)
             wait += time.perf_counter() - a
-            samples += trainer.train_step(b, sync=False)["samples"]
+            n = trainer.train_step(b, sync=False)["samples"]
+            samples += n
+            sizes.add(n)
         _sync(dev)
         el = time.perf_counter() - t0
     out = {"steps_per_s": steps / el, "samples_per_s": samples / el, "data_wait_fraction": wait / el,
-           "peak_mem_gib": torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None}
+           "peak_mem_gib": torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None,
+           "batch_sizes": sorted(sizes)}
     if busy:
         out["gpu_busy"] = gpu.mean
     return out
@@ -184,8 +208,11 @@ def _timed(trainer: Trainer, batches, steps: int, warmup: int, busy: bool = Fals
 
 def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: bool, device: torch.device,
             tmp: Path) -> dict:
-    """One row: ``cached`` (with GPU busy), ``launches`` and ``live`` runs of ``task`` (module docstring)."""
-    trainer = _trainer(task, amp, speed, smoke, device, tmp / f"{task}_{amp}_{speed}")
+    """One row: ``cached`` (with GPU busy), ``launches`` and ``live`` runs of ``task`` (module
+    docstring), in this process (:func:`measure_fresh` runs it in a new one)."""
+    from torch._dynamo.utils import counters
+
+    trainer = _trainer(task, amp, speed, smoke, device, tmp / f"{task}_{amp}_{speed}", a.warmup + a.steps)
     stream = make_stream(endpoint, task, credits=4, timeout_s=600, outputs=stream_outputs(trainer.cfg))
     loader = iter(make_loader(stream, device))
     cache = [next(loader) for _ in range(2)]
@@ -194,17 +221,67 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
         while True:
             yield from cache
 
-    cached = _timed(trainer, cycle(), a.steps, a.warmup, busy=True)
-    row = {"model": task, "batch": len(cache[0]["voxels"]), "amp": amp, "speed": trainer.cfg.get("speed", "-"),
+    graphs0 = counters["stats"]["unique_graphs"]
+    after_first = []
+
+    def first_then(it):  # the graphs made by the row's first step
+        yield next(it)
+        after_first.append(counters["stats"]["unique_graphs"])
+        yield from it
+
+    cached = _timed(trainer, first_then(cycle()), a.steps, a.warmup, busy=True)
+    row = {"model": task, "amp": amp, "speed": trainer.cfg.get("speed", "-"),
            "workers": a.workers, "cached": cached, "launches": launches_per_step(trainer, cache[0]),
            "live": _timed(trainer, loader, a.steps, a.warmup)}
     stream.close()
+    graphs = counters["stats"]["unique_graphs"]
+    row["batch"] = "/".join(str(n) for n in sorted(set(cached["batch_sizes"]) | set(row["live"]["batch_sizes"])))
+    row["graphs"] = graphs - graphs0
+    row["recompiles"] = graphs - after_first[0]
+    row["cudagraph_skips"] = counters["inductor"]["cudagraph_skips"]
+    if task == "hypere2vid":
+        c = trainer.cfg["curriculum"]
+        row["curriculum"] = f"beta 1 -> 0 in {c['stages']} stages over {a.warmup + a.steps} steps"
     live = row["live"]
     if live["data_wait_fraction"] > 0.05:
         row["workers_needed"] = math.ceil(cached["samples_per_s"] / (live["samples_per_s"] / a.workers))
     else:
         row["workers_needed"] = f"<= {a.workers}"
     return row
+
+
+def _row_process(q, *args) -> None:
+    try:
+        q.put(("ok", measure(*args)))
+    except BaseException as e:  # reported to the parent, which raises it
+        q.put(("error", f"{type(e).__name__}: {e}"))
+
+
+def measure_fresh(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: bool, device: torch.device,
+                  tmp: Path) -> dict:
+    """:func:`measure` in a fresh process (``spawn``): no compiled graph, CUDA graph, dynamo
+    counter or cached device memory of an earlier row. Raises ``RuntimeError`` when the row
+    fails or its process dies."""
+    import multiprocessing as mp
+    import queue
+
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    proc = ctx.Process(target=_row_process, args=(q, task, amp, speed, endpoint, a, smoke, device, tmp))
+    proc.start()
+    try:
+        while True:
+            try:
+                status, value = q.get(timeout=5)
+                break
+            except queue.Empty:
+                if not proc.is_alive():
+                    raise RuntimeError(f"row {task}/{amp}/{speed}: its process died (exit {proc.exitcode})")
+    finally:
+        proc.join(60)
+    if status != "ok":
+        raise RuntimeError(f"row {task}/{amp}/{speed}: {value}")
+    return value
 
 
 #: The producer's trades beyond the decode bound (docs/speed.md: what each costs in diversity),
@@ -245,13 +322,15 @@ def trainer_table(rows: List[dict]) -> str:
     """The per-model rows as a markdown table."""
     what = rows[0]["launches"]["what"] if rows else ""
     lines = ["| model | batch | amp | speed | cached steps/s | cached samples/s | GPU busy | peak GiB | "
-             f"{what} per step | live samples/s | data wait | workers | workers needed |",
-             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             f"{what} per step | graphs | recompiles | CUDA-graph skips | live samples/s | data wait | workers | "
+             "workers needed |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         c, lv = r["cached"], r["live"]
         mem = f"{c['peak_mem_gib']:.1f}" if c["peak_mem_gib"] is not None else "-"
         lines.append(f"| {r['model']} | {r['batch']} | {r['amp']} | {r['speed']} | {c['steps_per_s']:.2f} | "
                      f"{c['samples_per_s']:.1f} | {_pct(c.get('gpu_busy'))} | {mem} | {r['launches']['count']:,} | "
+                     f"{r['graphs']} | {r['recompiles']} | {r['cudagraph_skips']} | "
                      f"{lv['samples_per_s']:.1f} | {_pct(lv['data_wait_fraction'])} | {r['workers']} | "
                      f"{r['workers_needed']} |")
     return "\n".join(lines)
@@ -282,7 +361,12 @@ def markdown(res: dict) -> str:
             f"Command: `{res['command']}`", "", f"Device: {res['device']}; torch {res['torch']}; {res['cpus']} CPUs.", ""]
     if res["rows"]:
         head += [f"Trainer sample: {s['sequence_length']} voxel grids of {s['num_bins']} bins, {s['crop']} x "
-                 f"{s['crop']} crop; batch per model as listed.", ""]
+                 f"{s['crop']} crop; corpus: {res.get('videos', '-')}; batch: the sizes each row's steps trained "
+                 "at; each row in a fresh process. graphs: compiled by dynamo over the row; recompiles: graphs "
+                 "made after the row's first step; CUDA-graph skips: inductor's cudagraph_skips.", ""]
+        hyper = [r["curriculum"] for r in res["rows"] if r.get("curriculum")]
+        if hyper:
+            head += [f"HyperE2VID's curriculum: {hyper[0]} (the cached run).", ""]
     if res["smoke"] and res["rows"]:
         head += ["**No GPU here: the GPU table (the paper's sizes on a CUDA device) has not been produced.** "
                  "What follows is the CPU smoke run at toy sizes; it checks that the measurement runs; "
@@ -318,7 +402,8 @@ def _args(argv):
     ap.add_argument("--producer-samples", type=int, default=48, help="measured samples per producer row")
     ap.add_argument("--steps", type=int, default=20, help="timed steps per run")
     ap.add_argument("--warmup", type=int, default=3, help="untimed steps before each run")
-    ap.add_argument("--videos", default=str(Path(__file__).parents[1] / "v2v_server" / "sample_videos"))
+    ap.add_argument("--videos", help="corpus folder (default: copies of the WebVid-like clip in a temporary folder, "
+                                     "enough windows for the largest batch)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--out", help="write gpu_feed.json and gpu_feed.md to this folder")
     return ap.parse_args(argv)
@@ -335,15 +420,21 @@ def main(argv: Optional[List[str]] = None) -> int:
            "torch": torch.__version__, "cpus": os.cpu_count(), "smoke": smoke, "sizes": sizes, "rows": []}
     models = [m for m in a.models.split(",") if m]
     with tempfile.TemporaryDirectory(prefix="v2v-gpu-feed-") as tmp:
-        for batch in sorted({SMOKE_BATCH if smoke else PAPER_BATCH[m] for m in models}):
-            serve = ["--videos", a.videos, "--workers", str(a.workers), "--batch-size", str(batch),
+        batches = sorted({SMOKE_BATCH if smoke else PAPER_BATCH[m] for m in models})
+        videos = a.videos
+        if videos is None and models:
+            videos = str(make_corpus(Path(tmp) / "corpus", CORPUS_COPIES * max(batches)))
+        res["videos"] = a.videos or f"{CORPUS_COPIES * max(batches or [0])} copies of {clip_path().name}"
+        for batch in batches:
+            serve = ["--videos", videos, "--workers", str(a.workers), "--batch-size", str(batch),
                      "--sequence-length", str(sizes["sequence_length"]), "--crop-size", str(sizes["crop"]),
                      "--num-bins", str(sizes["num_bins"])]
             with ServeProcess(serve, ready_timeout_s=300) as srv:
                 for task in [m for m in models if (SMOKE_BATCH if smoke else PAPER_BATCH[m]) == batch]:
                     for amp in a.amp.split(","):
                         for speed in speeds:
-                            res["rows"].append(measure(task, amp, speed, srv.endpoint, a, smoke, device, Path(tmp)))
+                            res["rows"].append(measure_fresh(task, amp, speed, srv.endpoint, a, smoke, device,
+                                                             Path(tmp)))
                             print(json.dumps(res["rows"][-1]), flush=True)
         if a.producer:
             res["producer"] = producer_rows([int(n) for n in a.producer.split(",")], a.producer_samples,

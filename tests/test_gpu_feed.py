@@ -22,8 +22,11 @@ def test_gpu_feed_smoke_run(tmp_path, videos):
                  "--device", "cpu", "--out", str(tmp_path)]) == 0
     out = json.loads((tmp_path / "gpu_feed.json").read_text())
     assert out["smoke"] and out["sizes"]["sequence_length"] == 2 and out["torch"]
-    assert [(r["model"], r["amp"], r["batch"]) for r in out["rows"]] == [("evflow", "fp32", 2), ("eraft", "fp32", 2)]
+    assert [(r["model"], r["amp"], r["batch"]) for r in out["rows"]] == [("evflow", "fp32", "2"),
+                                                                          ("eraft", "fp32", "2")]
     for r in out["rows"]:
+        # each row in its own process: an eager network compiles nothing, and no CUDA graph is skipped
+        assert r["graphs"] == r["recompiles"] == r["cudagraph_skips"] == 0
         for run in ("cached", "live"):
             m = r[run]
             assert m["steps_per_s"] > 0 and math.isclose(m["samples_per_s"], 2 * m["steps_per_s"])
@@ -44,15 +47,17 @@ def test_gpu_feed_smoke_run(tmp_path, videos):
 
 
 def test_speed_option_follows_the_trainer_config(tmp_path, videos):
+    # no --videos: the bench's own corpus of copies of the WebVid-like clip
     args = ["--smoke", "--models", "evflow", "--amp", "fp32", "--workers", "1", "--steps", "1", "--warmup", "1",
-            "--videos", str(videos), "--device", "cpu", "--out", str(tmp_path), "--speed", "eager,fast"]
+            "--device", "cpu", "--out", str(tmp_path), "--speed", "eager,fast"]
     if "speed" not in default_config("evflow"):
         with pytest.raises(SystemExit, match="no 'speed' setting"):
             main(args)
         return
     assert main(args) == 0
-    rows = json.loads((tmp_path / "gpu_feed.json").read_text())["rows"]
-    assert [r["speed"] for r in rows] == ["eager", "fast"]
+    out = json.loads((tmp_path / "gpu_feed.json").read_text())
+    assert [(r["speed"], r["batch"]) for r in out["rows"]] == [("eager", "2"), ("fast", "2")]
+    assert out["videos"] == "2 copies of webvid_like_596x336.mp4"
 
 
 def test_busy_sampler_polls_nvidia_smi_of_the_visible_gpu(monkeypatch):

@@ -214,3 +214,50 @@ def test_v2v_train_on_two_ray_ranks_resumes_without_the_consumed_ids(ray_session
     assert [int(r["step"]) for r in rows] == [1, 2]
     assert all(np.isfinite(float(r["loss"])) for r in rows if int(r["samples"]))
     assert tr.main(argv + [a for kv in sets for a in ("--set", kv)]) == 0  # nothing left: returns at once
+
+
+@pytest.mark.timeout(400)
+def test_v2v_train_fast_on_two_ray_ranks_steps_as_one_process(ray_session, videos, tmp_path):
+    """``v2v-train --engine ray --set speed=fast`` on 2 ranks trains channels-last E2VID with the
+    fused Adam; its parameters after its 2 steps equal those of one process taking the same 2
+    steps on the union of the ranks' samples (atol 1e-6, 1 % of one step at lr 1e-4: the ranks'
+    weighted sum and the one batch's mean differ by rounding only; a gradient in the wrong
+    layout moves elements by up to 2 x lr)."""
+    import torch
+
+    import trainer.train as tr
+    from trainer.core import Trainer
+    from trainer.ray_train import V2VCollate
+    from trainer.tasks import stream_outputs
+    from v2v_server.ops.config import load_config as load_serve_config
+
+    serve_yaml = tmp_path / "serve.yaml"
+    serve_yaml.write_text("sequence_length: 3\nnum_bins: 3\ncrop_size: 32\nmax_samples_per_video: 2\nseed: 5\n")
+    out = tmp_path / "run"
+    sets = ["model.num_bins=3", "model.base_num_channels=4", "speed=fast", "log.checkpoint_every=1",
+            "log.image_every=0"]
+    argv = ["--engine", "ray", "--videos", str(videos), "--serve-config", str(serve_yaml), "--task", "e2vid",
+            "--out", str(out), "--device", "cpu", "--no-progress", "--num-workers", "2", "--cpus-per-worker", "0.5",
+            "--batch-size", "2", "--max-steps", "50"]
+    assert tr.main(argv + [a for kv in sets for a in ("--set", kv)]) == 0
+    # 6 samples, 3 rows per rank in 2 steps (how many in which step depends on Ray's blocks)
+    first = set(torch.load(out / "checkpoint_0000001.pt", weights_only=False)["stream_state"]["consumed"][0])
+    last = torch.load(out / "checkpoint_last.pt", weights_only=False)
+    assert last["step"] == 2 and last["config"]["speed"] == "fast" and 0 < len(first) < 6
+
+    scfg = load_serve_config(str(serve_yaml), {})
+    rows = v2v_dataset(scan_corpus_windows(videos, scfg), scfg, epoch=0,
+                       outputs=stream_outputs(last["config"])).take_all()
+    assert len(rows) == 6 and first < {r["sample_id"] for r in rows}
+
+    def batch(keep):
+        chosen = [r for r in rows if keep(r["sample_id"])]
+        return V2VCollate(False)({k: np.stack([r[k] for r in chosen]) for k in chosen[0]})
+
+    one = Trainer(last["config"], str(tmp_path / "one"), torch.device("cpu"))
+    assert one.model.unetrecurrent.head.conv2d.weight.is_contiguous(memory_format=torch.channels_last)
+    for b in (batch(lambda s: s in first), batch(lambda s: s not in first)):
+        one.train_step(b)
+    ray_sd = last["model"]
+    for k, v in one.model.state_dict().items():
+        torch.testing.assert_close(ray_sd[k], v, rtol=0, atol=1e-6, msg=lambda m, k=k: f"{k}: {m}")

@@ -89,6 +89,69 @@ def test_gradients_are_weighted_by_real_samples_across_ranks(tmp_path):
         assert idle[r] == got[r]  # the all-padding step of every rank stepped nothing
 
 
+def _conv_batch():
+    """A channels-last conv layer's 3 samples: input (3, 3, 6, 6) and the layer (seed 0)."""
+    torch.manual_seed(0)
+    conv = torch.nn.Conv2d(3, 8, 3).to(memory_format=torch.channels_last)
+    x = torch.randn(3, 3, 6, 6).contiguous(memory_format=torch.channels_last)
+    return conv, x
+
+
+def _rank_channels_last(rank, world, path, q):
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", init_method=f"file://{path}", rank=rank, world_size=world)
+    conv, x = _conv_batch()
+    adam = torch.optim.Adam(conv.parameters(), lr=1e-2, amsgrad=True, fused=True)  # speed: fast's optimiser
+    opt = SampleWeightedAllReduce(adam, conv.parameters())
+    mine = x[:2] if rank == 0 else x[2:]  # rank 0 has 2 real samples, rank 1 one
+    for _ in range(2):
+        opt.zero_grad(set_to_none=True)
+        conv(mine).pow(2).mean().backward()
+        opt.samples = len(mine)
+        opt.step()
+    after = [p.detach().clone() for p in conv.parameters()]
+    layouts = [conv.weight.grad.is_contiguous(memory_format=torch.channels_last)]
+    # a step without a real sample on any rank: the fused kernel skips it on the device
+    opt.zero_grad(set_to_none=True)
+    opt.samples = 0
+    opt.step()
+    steps = [float(s["step"]) for s in adam.state.values()]
+    idle = [torch.equal(a, p.detach()) for a, p in zip(after, conv.parameters())]
+    q.put((rank, [a.tolist() for a in after], layouts, steps, idle))
+    dist.destroy_process_group()
+
+
+@pytest.mark.timeout(120)
+def test_reduced_gradients_keep_channels_last_under_the_fused_optimiser(tmp_path):
+    """Two ranks, fused Adam, a channels-last conv weight: two steps land where the
+    per-parameter Adam loop of one process on all 3 samples lands (within 1e-6; a gradient in
+    the wrong layout moves elements by about 2 x lr = 2e-2), with channels-last gradients; a
+    step without samples changes nothing, step counts included."""
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    procs = [ctx.Process(target=_rank_channels_last, args=(r, 2, str(tmp_path / "store"), q)) for r in range(2)]
+    for p in procs:
+        p.start()
+    got = {}
+    for _ in procs:
+        rank, *rest = q.get(timeout=100)
+        got[rank] = rest
+    for p in procs:
+        p.join(30)
+    conv, x = _conv_batch()
+    ref = torch.optim.Adam(conv.parameters(), lr=1e-2, amsgrad=True)  # the per-parameter loop
+    for _ in range(2):
+        ref.zero_grad(set_to_none=True)
+        conv(x).pow(2).mean().backward()
+        ref.step()
+    for r in (0, 1):
+        after, layouts, steps, idle = got[r]
+        for a, b in zip(after, conv.parameters()):
+            torch.testing.assert_close(torch.tensor(a), b.detach(), rtol=0, atol=1e-6)
+        assert layouts == [True] and steps == [2.0, 2.0] and all(idle)
+
+
 def test_consumed_state_merges_ranks_and_closes_finished_epochs(tmp_path):
     prev = {"engine": "ray", "consumed": {0: ["a#0"]}, "epochs_done": []}
     sd = _gather_state({0: {"a#1"}, 1: {"a#0"}}, prev, {0: 3, 1: 3}, world=1)

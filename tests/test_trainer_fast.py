@@ -134,3 +134,57 @@ def test_speed_setting_defaults_to_eager_and_checks_its_value(tmp_path):
     p.write_text("speed: turbo\n")
     with pytest.raises(ConfigError):
         load_config(str(p), "e2vid")
+
+
+def test_fast_asks_for_tf32_matmuls_on_cuda_only():
+    from trainer.speed import matmul_precision
+
+    assert matmul_precision("fast", torch.device("cuda")) == "high"
+    assert matmul_precision("eager", torch.device("cuda")) is None
+    assert matmul_precision("fast", torch.device("cpu")) is None
+    before = torch.get_float32_matmul_precision()
+    toy_trainer("etnet", "fast")  # a CPU trainer leaves the process's setting as it was
+    assert torch.get_float32_matmul_precision() == before == "highest"
+
+
+@pytest.mark.parametrize("task, preset", [(t, p) for t in ("e2vid", "hypere2vid", "etnet")
+                                          for p in ("v+l1+h", "alex+tc", "alex", "alex+th")] + [("eraft", None)])
+def test_fast_loss_over_the_whole_sequence_equals_the_per_step_loss(task, preset):
+    """The fast task's loss (one call per term on the stacked sequence) against eager's (one per
+    voxel grid; E-RAFT: per pair) on the same network and batch: loss and logged terms within rtol 1e-6 (float32
+    summation order), gradients within rtol 1e-5 + 1e-6 x the largest. The perceptual term is
+    the 1 - SSIM stand-in (no LPIPS weights are bundled); LPIPS, like it, is a per-image mean."""
+    import tempfile
+
+    from harness.toy_steps import toy_config
+    from trainer.config import apply_loss_preset
+    from trainer.core import Trainer
+
+    out, ops = {}, {}
+    model = None
+    for speed in ("eager", "fast"):
+        cfg = toy_config(task, speed)
+        if preset:
+            apply_loss_preset(cfg["loss"], preset)
+        t = Trainer(cfg, tempfile.mkdtemp(), torch.device("cpu"))
+        model = model or t.model  # both tasks run the eager trainer's network
+        b = batch_to_device(toy_batch(task), t.device, t.spec.outputs, flow_from=t.spec.flow_from(3))
+        model.zero_grad(set_to_none=True)
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            loss, stats, preds = t.spec.forward(model, b, t._autocast)
+        ops[speed] = sum(e.name.startswith("aten::") for e in prof.events())
+        loss.backward()
+        preds = torch.stack(preds) if isinstance(preds, list) else preds
+        out[speed] = (loss.detach(), stats, preds, {n: p.grad.clone() for n, p in model.named_parameters()
+                                                                 if p.grad is not None})
+    # the same network ops; the loss's fewer calls dispatch fewer ops
+    assert ops["fast"] < ops["eager"], ops
+    (la, sa, pa, ga), (lb, sb, pb, gb) = out["eager"], out["fast"]
+    torch.testing.assert_close(lb, la, rtol=1e-6, atol=0)
+    assert sa.keys() == sb.keys() and (task == "eraft" or float(sa["tc"] > 0) == (preset != "alex"))
+    for k in sa:
+        torch.testing.assert_close(sb[k], sa[k], rtol=1e-6, atol=1e-9, msg=k)
+    assert torch.equal(pa, pb)
+    gmax = max(float(g.abs().max()) for g in ga.values())
+    for n in ga:
+        torch.testing.assert_close(gb[n], ga[n], rtol=1e-5, atol=1e-6 * gmax, msg=n)

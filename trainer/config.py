@@ -65,7 +65,8 @@ class RunSettings:
                                     "(losses and metrics in float32)", choices=("fp32", "bf16"))
     compile: bool = setting(False, help="run the network through torch.compile (the authors' use_compile)")
     speed: str = setting("eager", help="eager: the authors' step; fast: channels-last, fused optimiser, one "
-                                       "bf16 weight cast per step, CUDA graphs on CUDA (trainer/speed.py)",
+                                       "bf16 weight cast per step on the CPU, CUDA graphs and TF32 matmuls on "
+                                       "CUDA (trainer/speed.py)",
                          choices=("eager", "fast"))
     require_lpips: bool = setting(False, help="refuse to start (exit 2) when the LPIPS weights are missing instead "
                                               "of training with the 1 - SSIM stand-in")

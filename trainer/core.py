@@ -104,10 +104,16 @@ class Trainer:
                                    "1 - SSIM stand-in")
         #: ``eager`` or ``fast`` (``trainer.speed``)
         self.speed = speed.check_speed(cfg.get("speed", "eager"))
+        precision = speed.matmul_precision(self.speed, device)
+        if precision is not None:  # process-wide, as cudnn.benchmark above
+            torch.set_float32_matmul_precision(precision)
         self.model = speed.prepare_model(build_model(self.task, dict(cfg["model"])).to(device), self.task, self.speed)
         #: what forward calls: the model, or its ``torch.compile`` (``trainer.speed.compiled``;
         #: parameters and state dict stay the model's, so checkpoints keep their keys)
         self.net = speed.compiled(self.model, cfg, device)
+        #: voxel shape (B, L, num_bins, H, W) the compiled network runs at: the first batch's
+        #: (after padding is dropped); None until then
+        self.compiled_shape: Optional[tuple] = None
         self.optimizer = build_optimizer(self.model, cfg["optim"], **speed.optimizer_options(self.speed, device))
         self.clip = cfg["optim"].get("clip_grad_norm")
         self.amp = amp == "bf16"
@@ -128,10 +134,27 @@ class Trainer:
             raise ValueError(f"stream voxels have shape {tuple(v.shape)}, model expects (B, L, {nb}, H, W); "
                              f"start v2v-serve with --num-bins {nb} or set model.num_bins")
 
+    def network_for(self, b: dict) -> torch.nn.Module:
+        """The module a batch ``b`` (its ``voxels`` (B, L, num_bins, H, W)) runs through: the
+        compiled network (:attr:`net`) when its voxels have the shape of the first batch the
+        compiled network ran, else :attr:`model` eagerly. A compiled network is built for fixed
+        shapes (``dynamic=False``; CUDA graphs): a batch of another shape (an epoch's smaller
+        last batch, a batch after ``drop_padding``, Ray's partial batch) would be a new compile,
+        a new CUDA-graph recording and a step towards dynamo's recompile limit for a handful of
+        steps; eagerly it costs that step's launch overhead only. Without compilation it is
+        always :attr:`model`."""
+        if self.net is self.model:
+            return self.model
+        shape = tuple(b["voxels"].shape)
+        if self.compiled_shape is None:
+            self.compiled_shape = shape
+        return self.net if shape == self.compiled_shape else self.model
+
     def forward(self, b: dict):
-        """The task's loss, logged terms and predictions for a batch on the device."""
+        """The task's loss, logged terms and predictions for a batch on the device (through
+        :meth:`network_for`)."""
         with speed.forward_context(self.speed, self.amp, self.device):
-            return self.spec.forward(self.net, b, self._autocast)
+            return self.spec.forward(self.network_for(b), b, self._autocast)
 
     def train_step(self, batch: dict, sync: bool = True) -> dict:
         """One optimiser step on one stream batch (host tensors). Samples flagged ``padding``
@@ -163,6 +186,11 @@ class Trainer:
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), float(self.clip))
         self.optimizer.step()
         self.step += 1
+        if self.net is not self.model:
+            # a compiled network's outputs may live in CUDA-graph memory that the next replay
+            # overwrites (a Ctrl-C mid-step included): previews and the final checkpoint read
+            # these later, so they keep copies
+            preds = [p.detach().clone() for p in preds] if isinstance(preds, list) else preds.detach().clone()
         self._last = (b, preds)
         stats["loss"] = loss.detach()
         if sync:

@@ -102,12 +102,30 @@ class V2VCollate:
 
 class SampleWeightedAllReduce:
     """An optimiser wrapper for several ranks: before each ``step()`` the ranks' gradients are
-    summed weighted by ``samples`` (this rank's real samples in the step) and divided by the
-    total, the gradient of the mean loss over all real samples of the step (DDP averages per
+    summed weighted by ``samples`` (this rank's real samples in the step, an int) and divided by
+    the total, the gradient of the mean loss over all real samples of the step (DDP averages per
     rank instead, which would over-weight a rank with padding). A rank with no real sample
     still joins the all-reduce (gradient zero). When no rank has a sample, nothing steps.
 
+    Each reduced gradient is written back with its parameter's strides (a channels-last weight
+    gets a channels-last gradient): the fused optimisers of ``speed: fast`` update the gradient's
+    memory element by element with the parameter's, so a contiguous gradient of a channels-last
+    weight would update the wrong elements (on the CPU silently; CUDA raises).
+
+    The total sample count stays on the device: with a fused optimiser (``fused=True``, what
+    ``speed: fast`` selects on CUDA and the CPU) an empty step is skipped by the kernel itself
+    (its ``found_inf`` input, as ``torch.amp.GradScaler`` skips a step), so ``step()`` never waits
+    for the device. Other optimisers (the per-parameter loop of ``speed: eager``, ``foreach``)
+    read the total once per step to skip an empty step.
+
     Everything else (``zero_grad``, ``state_dict``, ``param_groups``) is the wrapped optimiser's.
+
+    Args:
+        optimizer: the optimiser over (a superset of) ``params``.
+        params: the parameters whose gradients are reduced (those with ``requires_grad``);
+            float parameters on one device, the same ones in the same order on every rank.
+
+    Call ``step()`` on every rank at the same point (``torch.distributed`` must be initialised).
     """
 
     def __init__(self, optimizer: torch.optim.Optimizer, params: Iterable[torch.nn.Parameter]):
@@ -118,23 +136,41 @@ class SampleWeightedAllReduce:
     def __getattr__(self, name):
         return getattr(self.optimizer, name)
 
+    def _fused(self) -> bool:
+        return any(g.get("fused") for g in self.optimizer.param_groups)
+
     def step(self):
         import torch.distributed as dist
 
         dev = self.params[0].device
         grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params]
+        # flatten() reads each gradient in logical (N, C, H, W) order whatever its strides: the
+        # same order on every rank, undone by view_as below
         flat = torch.cat([g.detach().flatten().float() for g in grads] + [torch.ones(1, device=dev)])
         flat.mul_(float(self.samples))
         dist.all_reduce(flat)
-        total = float(flat[-1])
-        if total == 0:
-            return
-        flat = flat[:-1].div_(total)
+        total = flat[-1]
+        # every gradient is zero when the total is (each rank multiplied by its own count, 0)
+        flat = flat[:-1].div_(total.clamp(min=1.0))
         o = 0
-        for p in self.params:
+        for p, g in zip(self.params, grads):
             n = p.numel()
-            p.grad = flat[o:o + n].view_as(p).to(p.dtype)
+            if p.grad is None or g.stride() != p.stride() or g.dtype != p.dtype:
+                g = torch.empty_like(p)  # preserve_format: p's strides (channels-last stays so)
+            g.copy_(flat[o:o + n].view_as(p))  # copy_ maps logical indices, whatever the strides
+            p.grad = g
             o += n
+        if self._fused():
+            # the fused kernel skips the update (parameters, moments, step counts) when
+            # found_inf is non-zero: no host read of the total
+            self.optimizer.found_inf = (total == 0).float()
+            try:
+                self.optimizer.step()
+            finally:
+                del self.optimizer.found_inf
+            return
+        if float(total) == 0:
+            return
         self.optimizer.step()
 
 

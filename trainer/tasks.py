@@ -135,6 +135,8 @@ class E2VIDTask(TrainTask):
         if self.raft is not None and float(lc["tc_weight"]) > 0 and l0 < L:
             flow = self.raft(frames, l0)  # the layout of the stream's flow[:, l0:]
         use_tc = float(lc["tc_weight"]) > 0 and flow is not None and l0 < L
+        if self.cfg.get("speed", "eager") == "fast":
+            return self._forward_whole_sequence(model, vox, frames, flow, l0, use_tc, autocast)
         states, prev = None, None
         sums = {"l1": 0.0, "perceptual": 0.0, "rec": 0.0, "tc": 0.0}
         n_tc = 0
@@ -163,6 +165,34 @@ class E2VIDTask(TrainTask):
                  "tc": tc.detach()}
         return loss, stats, preds
 
+    def _forward_whole_sequence(self, model, vox, frames, flow, l0: int, use_tc: bool, autocast):
+        """``forward`` under ``speed: fast``: the network runs through the sequence as in eager,
+        then each loss term is one call on the L predictions stacked along the batch (one L1
+        and one LPIPS/SSIM call on (B * L, 1, H, W), one temporal-consistency call on the
+        B * (L - l0) pairs) instead of L calls: the terms are means over equal-sized steps, so
+        the mean over the stack is the mean of the per-step means (equal up to float32
+        summation order; ``tests/test_trainer_fast.py``)."""
+        lc = self.cfg["loss"]
+        L = vox.shape[1]
+        states, preds = None, []
+        for l in range(L):
+            with autocast():
+                pred, states = self.step_model(model, vox[:, l], states, frames[:, l + 1])
+            preds.append(pred.float())  # losses in float32, outside autocast
+        seq = torch.stack(preds, 1)  # (B, L, 1, H, W)
+        r = self.rec_loss(seq.flatten(0, 1), frames[:, 1:].flatten(0, 1))
+        zero = torch.zeros((), device=vox.device)
+        tc = zero
+        if use_tc:  # pairs (l - 1, l) for l = l0..L-1; flow was sliced from l0 on
+            tc = temporal_consistency_loss(frames[:, l0:L].flatten(0, 1), frames[:, l0 + 1:].flatten(0, 1),
+                                           seq[:, l0 - 1:L - 1].flatten(0, 1), seq[:, l0:].flatten(0, 1),
+                                           flow[:, :L - l0].flatten(0, 1), alpha=float(lc["tc_alpha"]))
+            tc = tc * ((L - l0) / L)  # averaged over all L steps, those before l0 zero (as eager)
+        loss = r["total"] + float(lc["tc_weight"]) * tc
+        perceptual = r.get(self.rec_loss.perceptual, zero)
+        stats = {"l1": r["l1"].detach(), "perceptual": perceptual.detach(), "tc": tc.detach()}
+        return loss, stats, [p.detach() for p in preds]
+
     def step_model(self, model, voxel, states, target):
         """One recurrent step: ``(prediction (N, 1, H, W), states)``; ``target`` is the frame at
         the voxel's end (used by HyperE2VID's curriculum)."""
@@ -179,9 +209,30 @@ class HyperE2VIDTask(E2VIDTask):
 
     name = "hypere2vid"
 
+    def __init__(self, cfg: dict, device: torch.device):
+        super().__init__(cfg, device)
+        self._betas: Dict[Tuple[float, torch.device], torch.Tensor] = {}
+
+    def _beta_tensor(self, beta: float, device: torch.device) -> torch.Tensor:
+        """``beta`` as a 0-dim float32 tensor on ``device``, made once per curriculum stage (a
+        copy to the device per stage, none per step)."""
+        t = self._betas.get((beta, device))
+        if t is None:
+            t = self._betas[(beta, device)] = torch.tensor(beta, dtype=torch.float32, device=device)
+        return t
+
     def step_model(self, model, voxel, states, target):
+        """Under ``speed: fast`` the network gets the frame and beta (a device tensor) on every
+        training step, 0 after the curriculum too, and the sequence's first state as zero
+        tensors (``HyperE2VID.initial_states``): the same inputs for the whole run, so a
+        compiled network keeps one graph through all the stages (bit-identical at beta 0 and 1,
+        ``trainer.models.hypere2vid.HyperE2VID``). ``eager``: the authors' float and branch."""
         c = self.cfg["curriculum"]
         beta = curriculum_beta(self.step, int(self.cfg["max_steps"]), float(c["fraction"]), int(c["stages"]))
+        if self.cfg.get("speed", "eager") == "fast" and model.training:
+            if states is None:  # zeros as tensors: the first call's graph is every call's
+                states = model.initial_states(voxel, requires_grad=torch.is_grad_enabled())
+            return model(voxel, states, gt_image=target, beta=self._beta_tensor(beta, voxel.device))
         if beta > 0 and model.training:
             return model(voxel, states, gt_image=target, beta=beta)
         return model(voxel, states)
@@ -244,6 +295,21 @@ class ERAFTTask(EvFlowTask):
         if self.raft is not None:
             b["flow"] = self.raft(b["frames"], 1)
         flow = b["flow"]  # (n, L-1, 2, H, W): the targets of voxels 1..L-1 (the stream's arrive sliced, flow_from)
+        if self.cfg.get("speed", "eager") == "fast":
+            # the warm start as zeros, not None: one compiled graph for every pair
+            model.reset_states(vox[:, 0])
+            # one L1 and one end-point-error call on the stacked flows instead of L - 1 of each:
+            # means over equal-sized pairs, so equal to the per-pair mean up to summation order
+            preds = []
+            for l in range(1, L):
+                with autocast():
+                    preds.append(model(vox[:, l - 1], vox[:, l]).float())
+            seq = torch.stack(preds, dim=1)  # (n, L-1, 2, H, W)
+            l1 = flow_l1_loss(seq, flow)
+            with torch.no_grad():
+                aee = torch.linalg.vector_norm(seq - flow, dim=2).mean()
+            loss = float(self.cfg["loss"]["flow_l1_weight"]) * l1
+            return loss, {"flow_l1": l1.detach(), "aee": aee}, seq.detach()
         model.reset_states()
         l1 = aee = 0.0
         preds = []

@@ -303,9 +303,17 @@ class ERAFT(nn.Module):
         self.update_block = UpdateBlock(self.corr_levels * (2 * self.corr_radius + 1) ** 2, self.hidden_dim)
         self.flow_init: Optional[torch.Tensor] = None
 
-    def reset_states(self) -> None:
-        """Forget the warm-start flow (call at the start of every sequence)."""
+    def reset_states(self, voxel: Optional[torch.Tensor] = None) -> None:
+        """Forget the warm-start flow (call at the start of every sequence). With ``voxel``
+        (N, num_bins, H, W), a grid of the coming sequence, and warm start on, the flow becomes
+        zeros of its shape (N, 2, H'/8, W'/8) float32, H' x W' the padded sides, instead of
+        None: the first call's coordinates plus 0 are the coordinates (bit-identical), and a
+        compiled network sees a tensor on every call, so one graph serves the whole sequence."""
         self.flow_init = None
+        if voxel is not None and self.subtype == "warm_start":
+            H, W = voxel.shape[-2:]
+            hp, wp = H + (-H) % PAD_MULTIPLE, W + (-W) % PAD_MULTIPLE
+            self.flow_init = torch.zeros(voxel.shape[0], 2, hp // 8, wp // 8, device=voxel.device)
 
     @staticmethod
     def _upsample(flow: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

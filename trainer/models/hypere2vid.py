@@ -29,7 +29,7 @@ output is cropped back; the previous reconstruction in the state keeps the padde
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import List, Optional, Tuple
+from typing import List, Optional, Tuple, Union
 
 import numpy as np
 import torch
@@ -199,7 +199,10 @@ class HyperE2VID(nn.Module):
     ``states`` None (sequence start: zero LSTM states and a zero previous reconstruction) or the
     value returned by the previous call. ``gt_image`` (N, 1, H, W) and ``beta`` in [0, 1] are the
     training curriculum: the context sees ``(1 - beta) * previous reconstruction + beta * gt_image``
-    (the authors' ``HyperE2VID.forward``). Returns ``(image (N, 1, H, W) float, states)``; the
+    (the authors' ``HyperE2VID.forward``). ``beta`` is a float (no blend at 0), or a 0-dim float
+    tensor on the voxel's device (``speed: fast``: the same graph for every value; exactly the
+    reconstruction at 0 and exactly ``gt_image`` at 1, as the float; between, the blend's
+    ``1 - beta`` is rounded to the tensor's dtype). Returns ``(image (N, 1, H, W) float, states)``; the
     previous reconstruction kept in ``states`` is detached, as in the authors' code.
 
     Raises ``ValueError`` for a voxel of the wrong shape.
@@ -216,8 +219,42 @@ class HyperE2VID(nn.Module):
         self.unetrecurrent = _UNetRecurrentDynamic(num_bins, base_num_channels, num_encoders,
                                                    num_residual_blocks, kernel_size)
 
+    def initial_states(self, voxel: torch.Tensor, requires_grad: bool = False
+                       ) -> Tuple[List[Tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
+        """The state a sequence starts from, as tensors: what ``forward(voxel, None)`` makes
+        inside (zero LSTM hidden and cell states, (N, 2**(i+1) * base, H'/2**(i+1), W'/2**(i+1))
+        for encoder i, H' x W' the padded input; a zero previous reconstruction (N, 1, H', W')
+        float32), in the layout of the network's outputs (channels-last when its weights are),
+        so ``forward(voxel, initial_states(voxel))`` is bit-identical to
+        ``forward(voxel, None)`` and a compiled network sees one input structure for every call
+        of a sequence. The LSTM zeros take autocast's dtype when autocast is on for the voxel's
+        device (the convolutions' outputs they stand beside), else the voxel's dtype: call it
+        in the autocast region of the forward. With ``requires_grad`` the LSTM zeros are leaves
+        that require grad, as the states the network returns in training do (a compiled graph
+        guards on it); the parameters' gradients are the same either way. Raises ``ValueError`` for a voxel of the wrong
+        shape."""
+        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
+            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        x, _, _ = pad_input(voxel)
+        dev = x.device.type
+        dtype = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else x.dtype
+        # the layout the convolutions give their outputs: channels-last weights, channels-last
+        # outputs (``trainer.speed.prepare_model``)
+        fmt = (torch.channels_last if self.unetrecurrent.encoders[0].recurrent_block.Gates.weight.is_contiguous(
+            memory_format=torch.channels_last) else torch.contiguous_format)
+        n, _, h, w = x.shape
+
+        def zeros(c, s, dt):
+            return torch.empty((n, c, h // s, w // s), dtype=dt, device=x.device, memory_format=fmt).zero_()
+
+        lstm = []
+        for i, enc in enumerate(self.unetrecurrent.encoders):
+            c, s = enc.recurrent_block.hidden_size, 2 ** (i + 1)
+            lstm.append(tuple(zeros(c, s, dtype).requires_grad_(requires_grad) for _ in range(2)))
+        return lstm, zeros(1, 1, x.dtype)
+
     def forward(self, voxel: torch.Tensor, states: Optional[Tuple[List, torch.Tensor]] = None,
-                gt_image: Optional[torch.Tensor] = None, beta: float = 0.0):
+                gt_image: Optional[torch.Tensor] = None, beta: Union[float, torch.Tensor] = 0.0):
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
             raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
         x, h, w = pad_input(voxel)
@@ -227,7 +264,16 @@ class HyperE2VID(nn.Module):
             prev = x.new_zeros(x.shape[0], 1, x.shape[2], x.shape[3])
         else:
             lstm, prev = states
-        if gt_image is not None and beta > 0:
+        if gt_image is not None and isinstance(beta, torch.Tensor):
+            # beta a device tensor (``speed: fast``): one graph for every value of the curriculum
+            # (a Python float is a constant of a compiled graph, so each value would be a new
+            # graph). At the ends the result is bit-identical to the float path's: beta 0 keeps
+            # the reconstruction (the float path skips the blend), beta 1 gives the frame
+            # (the float path's prev * 0 + gt * 1)
+            gt, _, _ = pad_input(gt_image)
+            mixed = prev * (1 - beta) + gt * beta
+            prev = torch.where(beta == 0, prev, torch.where(beta == 1, gt, mixed))
+        elif gt_image is not None and beta > 0:
             gt, _, _ = pad_input(gt_image)
             prev = prev * (1 - beta) + gt * beta
         f = u.head(x)
