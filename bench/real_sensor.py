@@ -8,7 +8,7 @@ Setup: the DAVIS346 recording of ``../shared/data/events`` (AEDAT4: events, 25 H
 trainer/recordings.py reads both). The frames from the first one after the first event, a
 whole number of 5-frame-interval groups, are the simulator's input (uint8 luma, one frame pair
 per bin); the real events between the same frame timestamps are binned into the discrete voxel
-grid (``trainer.recordings.voxel_grids``): one grid of one bin per frame interval, and the
+grid (``trainer.event_grids.voxel_grids``): one grid of one bin per frame interval, and the
 paper's grouping of 5 bins per grid (5 frame intervals).
 
 The contrast thresholds c+ and c- are fitted on plain V2V so that its N+ and N- over the clip
@@ -41,7 +41,8 @@ from typing import List, Optional
 
 import numpy as np
 
-from trainer.recordings import open_recording, voxel_grids
+from trainer.event_grids import voxel_grids
+from trainer.recordings import open_recording
 from v2v_server.simulation.reference import events_to_voxels, simulate_events
 from v2v_server.simulation.refine import RefineSpec, simulate_voxels_refined
 from v2v_server.simulation.simulate import SensorParams, log_intensity_lut, simulate_voxels

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from trainer.recordings import (EVENT_DTYPE, RecordingError, count_edges, open_recording, read_all, voxel_grids,
-                                window_edges)
+from trainer.event_grids import count_edges, voxel_grids, window_edges
+from trainer.recordings import EVENT_DTYPE, RecordingError, open_recording, read_all
 
 EVENTS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "events"
 DAVIS, EVT2, EVT3 = "davis346_road.aedat4", "prophesee_gen3_evt2.raw", "prophesee_evk4_evt3.raw"

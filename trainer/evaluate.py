@@ -66,7 +66,8 @@ import numpy as np
 import torch
 
 from .config import ConfigError, exit_on_config_error
-from .recordings import H5Sequence, RecordingError, events_to_voxels  # readers live in trainer/recordings.py
+from .event_grids import events_to_voxels
+from .recordings import H5Sequence, RecordingError  # readers live in trainer/recordings.py
 
 __all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
            "evaluate_e2vid", "evaluate_evflow", "evaluate_eraft", "evaluate_recording", "load_model",
@@ -537,7 +538,7 @@ def evaluate_recording(model, task: str, grids, device: torch.device, frames: Op
             network (``model(voxel) -> flow``) or E-RAFT (``task == "eraft"``: pairs of
             consecutive grids, the first paired with a zero grid).
         task: the trainer task name of ``model``.
-        grids: iterable of ``(k, voxel int32 (B, H, W), counts)`` (``trainer.recordings.voxel_grids``).
+        grids: iterable of ``(k, voxel int32 (B, H, W), counts)`` (``trainer.event_grids.voxel_grids``).
         frames: uint8 (K+1, H, W) ground truth, frame k+1 ending grid k (reconstruction only),
             or None: nothing scored.
         ssim_data_range, lpips_model, skip_first: as :func:`evaluate_e2vid`.
@@ -608,7 +609,8 @@ def evaluate_recording(model, task: str, grids, device: torch.device, frames: Op
 def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out: Optional[Path]):
     """Score (with frames) and/or write the video of one ``--recording``: ``(per-frame
     results, info)``; info records how the grids were binned. Raises ``RecordingError``."""
-    from .recordings import count_edges, open_recording, voxel_grids, window_edges
+    from .event_grids import count_edges, voxel_grids, window_edges
+    from .recordings import open_recording
 
     rec = open_recording(path, tuple(args.sensor_size) if args.sensor_size else None)
     t_first = rec.first_t_us()
