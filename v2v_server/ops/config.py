@@ -307,6 +307,11 @@ class ServingSettings:
         if self.frame_cache_gb < 0:
             raise ValueError(f"frame_cache_gb must be >= 0 GiB (0 = no frame cache), got {self.frame_cache_gb!r}")
         check_choice("frame_cache_format", self.frame_cache_format, FRAME_CACHE_FORMATS)
+        if self.frame_cache_gb > 0 and self.frame_cache_format == "zstd":
+            try:
+                import zstandard  # noqa: F401  (the zstd entries' codec; a decode host's [server] lacks it)
+            except ImportError:
+                raise ValueError("frame_cache_format zstd needs the zstandard package: pip install 'v2v[wire]'") from None
         check_int("store_max_attempts", self.store_max_attempts, 1, 20, "attempts")
         if self.state_dir is not None:
             if not isinstance(self.state_dir, str) or not self.state_dir:
