@@ -267,8 +267,7 @@ def test_full_disk_is_decoded_and_counted(tmp_path):
         assert _samples(cfg, src, "webvid_like_596x336.mp4") == _samples(cfg, CLIPS, "webvid_like_596x336.mp4")
         stats = src.take_stats()["frame_cache"]
         assert stats["not_stored"]["disk_full"] == 1 and stats["stored"] == 0, stats
-        assert not list((mnt / "frames").iterdir()) or not _entries(mnt)
-        assert not list((mnt / "frames").glob("*.tmp"))
+        assert not list((mnt / "frames").iterdir())  # no entry, no temporary file left
     finally:
         subprocess.run(["umount", str(mnt)], check=False)
 

@@ -401,11 +401,8 @@ def _samples(cfg: ServeConfig, fp: FramePass, rel_path: str, epoch: int, outputs
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
     n_windows = _windows(cfg, fp.declared)
-    last = cfg.frames_for(n_windows)
     win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
-    for i, (codes, expand) in enumerate(fp.frames):
-        if i >= last:
-            break
+    for i, (codes, expand) in enumerate(fp.frames):  # the frames of n_windows windows at most (video_frames)
         stats["frames"] = i + 1
         k, off = divmod(i, stride)
         full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled

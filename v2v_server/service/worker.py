@@ -33,8 +33,7 @@ from v2v_server.service.datapath import SlotRing
 from v2v_server.ops.logs import setup_logging
 from v2v_wire.outputs import wire_dtype
 from v2v_wire.protocol import encode_arrays, pack, unpack
-from v2v_server.flow.estimate import to_float16
-from v2v_server.flow.estimate import FlowEstimator
+from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import SampleKey
 from v2v_server.samples.make import video_samples
 

@@ -90,7 +90,8 @@ def to_uint8(luma: np.ndarray) -> np.ndarray:
     return ((luma.astype(np.uint32) + 128) // 257).astype(np.uint8)
 
 
-def _identity(a: np.ndarray) -> np.ndarray:
+def full_range(a: np.ndarray) -> np.ndarray:
+    """The ``expand`` of codes already at full range (8-bit full-range streams, cached frames): ``a`` itself."""
     return a
 
 
@@ -118,7 +119,7 @@ def _converter(frame) -> Tuple[Callable[[object], np.ndarray], Callable[[np.ndar
         def y8(fr):
             plane = fr.planes[0]
             return np.frombuffer(plane, dtype=np.uint8).reshape(fr.height, plane.line_size)[:, :fr.width]
-        return y8, (_identity if table is None else (lambda a: cv2.LUT(_unit_stride(a), table)))
+        return y8, (full_range if table is None else (lambda a: cv2.LUT(_unit_stride(a), table)))
     if 8 < bits <= 16 and name.endswith("le") and name.startswith(("yuv", "gray")):
         table = range_table(bits, full)  # LSB-aligned little-endian codes
 
@@ -127,8 +128,8 @@ def _converter(frame) -> Tuple[Callable[[object], np.ndarray], Callable[[np.ndar
             return np.frombuffer(plane, dtype="<u2").reshape(fr.height, plane.line_size // 2)[:, :fr.width]
         return y16, (lambda a: np.take(table, a, mode="clip"))
     if bits > 8:
-        return (lambda fr: fr.to_ndarray(format="gray16le")), _identity
-    return (lambda fr: fr.to_ndarray(format="gray")), _identity
+        return (lambda fr: fr.to_ndarray(format="gray16le")), full_range
+    return (lambda fr: fr.to_ndarray(format="gray")), full_range
 
 
 def display_rotation(frame) -> int:

@@ -32,6 +32,7 @@ frame: the caller removes it and decodes the video from there (``samples.make``)
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import mmap
@@ -40,7 +41,7 @@ import struct
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Optional, Tuple
+from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
@@ -52,7 +53,7 @@ log = logging.getLogger("v2v.frame_cache")
 FORMATS = ("raw", "zstd")
 #: Version of the entry layout and of the frames it holds (the luma conversion of
 #: ``videos.decode``): a change makes every older entry a miss.
-VERSION = 2
+VERSION = 3
 MAGIC = b"V2VFRM1\n"
 _FOOTER = struct.Struct("<QI")
 #: Miss causes counted (``FrameCache.take_stats``).
@@ -117,7 +118,7 @@ class CachedVideo:
         m = self.meta
         dtype = np.dtype(m["dtype"])
         shapes = _expand_runs(m["shapes"], self.frames)
-        offsets, sizes, crcs = m["offsets"], m["sizes"], m["crc"]
+        offsets, sizes, sums = m["offsets"], m["sizes"], m["sums"]
         zstd = m["format"] == "zstd"
         dec = None
         if zstd:
@@ -148,7 +149,7 @@ class CachedVideo:
                 prev = a
             else:
                 a = np.frombuffer(raw, dtype)
-                if sum64(a) != crcs[i]:
+                if sum64(a) != sums[i]:
                     raise CorruptEntry(f"frame {i} fails its checksum")
                 a = a.reshape(h, w)
             if i >= start:
@@ -183,7 +184,7 @@ class EntryWriter:
         self.failed: Optional[str] = None
         self.offsets: List[int] = []
         self.sizes: List[int] = []
-        self.crc: List[int] = []
+        self.sums: List[int] = []  # raw frames' sum64 (zstd frames carry their own checksum)
         self.keys: List[int] = []
         self.runs: List[list] = []
         self.dtype: Optional[str] = None
@@ -221,10 +222,9 @@ class EntryWriter:
                 self.keys.append(i)
             data = self.zstd.compress(a if whole else a - self.prev)
             self.prev = a.copy()
-            crc = 0
         else:
             data = a.data
-            crc = sum64(a)
+            self.sums.append(sum64(a))
         n = len(data) if isinstance(data, bytes) else a.nbytes
         pad = -(self.pos + n) % ALIGN if self.zstd is None else 0  # raw frames start on cache lines
         try:
@@ -236,7 +236,6 @@ class EntryWriter:
             return
         self.offsets.append(self.pos)
         self.sizes.append(n)
-        self.crc.append(crc)
         self.pos += n + pad
         if i % self.stride == 0 and i and not self.cache.disk.fits(self.pos):
             self.failed = "budget"
@@ -248,7 +247,7 @@ class EntryWriter:
             self.cache.skipped[self.failed or "write_error"] += 1
             return
         meta = dict(self.header, identity=self.identity, format=self.cache.format, dtype=self.dtype or "|u1",
-                    shapes=self.runs, offsets=self.offsets, sizes=self.sizes, crc=self.crc, keys=self.keys)
+                    shapes=self.runs, offsets=self.offsets, sizes=self.sizes, sums=self.sums, keys=self.keys)
         try:
             trailer = json.dumps(meta, separators=(",", ":")).encode("utf-8")
             self.f.write(trailer)
@@ -268,8 +267,11 @@ class EntryWriter:
         elif status == "budget":
             self.cache.skipped["budget"] += 1
 
-    def abort(self) -> None:
-        """Drop what was written (an incomplete decode, or a failed write)."""
+    def abort(self, incomplete: bool = False) -> None:
+        """Drop what was written: a failed write, or (``incomplete``) a pass that did not end
+        cleanly (a decoding error, the consumer stopped), counted unless a write had failed."""
+        if incomplete and self.f is not None:
+            self.cache.skipped["incomplete"] += 1
         if self.f is not None:
             try:
                 self.f.close()
@@ -306,8 +308,6 @@ class FrameCache:
     @staticmethod
     def entry_name(corpus: str, video: str, settings: dict) -> str:
         """The entry's file name: a hash of the corpus, the video's id path and the decode settings."""
-        import hashlib
-
         key = json.dumps([corpus, video, settings], sort_keys=True)
         return hashlib.sha256(key.encode("utf-8")).hexdigest()[:32] + ".v2vf"
 
@@ -391,4 +391,3 @@ def _open_entry(path: Path, f) -> CachedVideo:
     return CachedVideo(path, meta, buf, start)
 
 
-IDENTITY: Callable[[np.ndarray], np.ndarray] = lambda a: a  # noqa: E731  (cached frames are already full range)

@@ -4,7 +4,7 @@ as they pass.
 
 Either way the cutter gets ``(codes, expand)`` per frame, as ``decode.decode_codes`` yields them:
 decoded frames carry the stream's code -> full-range map, cached ones are already full range
-(``expand`` the identity). Expansion is per pixel, so the cutter's samples are the same.
+(``expand`` is ``decode.full_range``, the identity). Expansion is per pixel, so the cutter's samples are the same.
 """
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from typing import Callable, Iterator, Optional, Tuple
 
 import numpy as np
 
-from v2v_server.videos.decode import Rows, VideoInfo, decode_codes, open_video
-from v2v_server.videos.frame_cache import IDENTITY, CachedVideo, CorruptEntry, EntryWriter, FrameCache
+from v2v_server.videos.decode import Rows, VideoInfo, decode_codes, full_range, open_video
+from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache
 
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 
@@ -79,8 +79,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         writer = None
         if cache is not None:
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
-        yield FramePass(info, declared, _decoded(cache, decode_codes(container, stream, rows), limit_of(declared),
-                                                  writer), False)
+        yield FramePass(info, declared, _decoded(decode_codes(container, stream, rows), limit_of(declared), writer), False)
 
 
 def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
@@ -92,7 +91,7 @@ def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
         for a in entry.read(0):
             if i >= limit:
                 return
-            yield a, IDENTITY
+            yield a, full_range
             i += 1
         return
     except CorruptEntry as e:
@@ -100,8 +99,7 @@ def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
     yield from redecode(i)
 
 
-def _decoded(cache: Optional[FrameCache], frames: Iterator[Frame], limit: int,
-             writer: Optional[EntryWriter]) -> Iterator[Frame]:
+def _decoded(frames: Iterator[Frame], limit: int, writer: Optional[EntryWriter]) -> Iterator[Frame]:
     """The first ``limit`` decoded frames, each stored by ``writer`` (at full range) as it passes;
     the entry is committed only when the pass ends cleanly."""
     done = False
@@ -112,10 +110,5 @@ def _decoded(cache: Optional[FrameCache], frames: Iterator[Frame], limit: int,
             yield codes, expand
         done = True
     finally:
-        if writer is not None:
-            if done:
-                writer.finish()
-            else:  # a decoding error, or the consumer stopped: nothing partial is kept
-                if writer.f is not None:
-                    cache.skipped["incomplete"] += 1
-                writer.abort()
+        if writer is not None:  # a decoding error, or the consumer stopped: nothing partial is kept
+            writer.finish() if done else writer.abort(incomplete=True)
