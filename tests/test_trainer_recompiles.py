@@ -62,6 +62,34 @@ def test_tensor_beta_and_zero_states_are_bit_identical_to_the_float_and_none(amp
         assert _strides(zeros[1]) == _strides(prev) and zeros[1].dtype == torch.float32
 
 
+@pytest.mark.parametrize("task", ["e2vid", "etnet"])
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("amp", [False, True])
+def test_zero_first_states_are_bit_identical_to_none(task, amp, channels_last):
+    """E2VID's and ETNet's ``initial_states``: the output and the next states are those of
+    ``states=None``, and the zeros have the dtype and strides of the states the network returns
+    (what a compiled graph guards on, so the first step's graph is every step's)."""
+    torch.manual_seed(0)
+    model = build_model(task, dict(TOY_MODELS[task])).eval()  # eval: ETNet's dropout off
+    if channels_last:  # as speed: fast prepares it
+        model.to(memory_format=torch.channels_last)
+    voxel = torch.randn(2, 3, 24, 40)  # padded to 32 x 48 inside
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+        zeros = model.initial_states(voxel)
+        img, states = model(voxel, zeros)
+        ref_img, ref_states = model(voxel)
+        assert torch.equal(img, ref_img)
+        assert all(torch.equal(a, b) for s, r in zip(states, ref_states) for a, b in zip(s, r))
+        assert [(z.dtype, z.shape, _strides(z)) for s in zeros for z in s] == \
+            [(r.dtype, r.shape, _strides(r)) for s in ref_states for r in s]
+        # the step after: the states carried on, as a sequence's later steps see them
+        assert torch.equal(model(voxel, states)[0], model(voxel, ref_states)[0])
+    assert not any(z.requires_grad for s in zeros for z in s)
+    assert all(z.requires_grad for s in model.initial_states(voxel, requires_grad=True) for z in s)
+    with pytest.raises(ValueError, match="voxel must be"):
+        model.initial_states(torch.zeros(2, 4, 24, 40))
+
+
 def test_eraft_zero_warm_start_is_bit_identical_to_none():
     torch.manual_seed(0)
     model = build_model("eraft", dict(TOY_MODELS["eraft"])).train()
@@ -108,7 +136,8 @@ def _drop_last(batch):
 @pytest.mark.parametrize("task", TASKS)
 def test_batches_of_another_shape_run_eagerly_without_a_compile(task):
     """Full batch, a batch with padding dropped (1 sample), a smaller batch, the full batch again:
-    every graph is made in the first step; the others run the model eagerly."""
+    the one graph is made in the first step (a sequence's first state and E-RAFT's warm start are
+    zero tensors, not None); the others run the model eagerly."""
     torch._dynamo.reset()
     counters.clear()
     t = _compiled_trainer(task)
@@ -122,8 +151,7 @@ def test_batches_of_another_shape_run_eagerly_without_a_compile(task):
             t.train_step(b, sync=False)
             graphs.append(counters["stats"]["unique_graphs"])
     assert graphs[0] > 0 and graphs == [graphs[0]] * 4, graphs
-    if task in ("hypere2vid", "eraft"):  # first state / warm start as zero tensors: one graph
-        assert graphs[0] == 1
+    assert graphs[0] == 1, graphs  # recurrent states and warm start as zero tensors: one graph per step
     nets = [t.network_for(batch_to_device(drop_padding(b)[0], t.device, t.spec.outputs)) for b in batches]
     assert nets == [t.net, t.model, t.model, t.net] and t.compiled_shape == tuple(full["voxels"].shape)
     assert os.path.getsize(t.save_samples()) > 0  # from the copies of the compiled step's predictions

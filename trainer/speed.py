@@ -28,14 +28,14 @@
     CUDA graphs of the recurrent step at the run's fixed shapes, whatever ``compile`` says.
     Elsewhere ``compile: true`` gives plain ``torch.compile`` (inductor), and eager otherwise:
     on the CPU compilation costs far more than it saves over a short run. One graph per network
-    for the whole run: HyperE2VID's curriculum weight is a device tensor and its first state
-    zero tensors (``trainer.tasks.HyperE2VIDTask``); a batch whose shape differs from the first
+    for the whole run: the recurrent networks start each sequence from zero tensors (their
+    ``initial_states``, bit-identical to None) and HyperE2VID's curriculum weight is a device
+    tensor (``trainer.tasks.HyperE2VIDTask``); a batch whose shape differs from the first
     one's (an epoch's smaller last batch, one with padding dropped, Ray's partial batch) runs
     the model eagerly instead of compiling another graph (``Trainer.network_for``);
     the predictions kept for previews and the final checkpoint are copies (a replay overwrites
     a CUDA graph's outputs). E-RAFT's warm start starts each sequence as zeros, not None
-    (``ERAFT.reset_states(voxel)``, bit-identical): one graph, not two. E2VID's and ETNet's
-    first recurrent state is still None: two graphs, both made in the first step;
+    (``ERAFT.reset_states(voxel)``, bit-identical): one graph, not two;
   - the reconstruction tasks' losses (E2VID, HyperE2VID, ETNet) on the whole sequence at once,
     on every device: one L1, one LPIPS/SSIM and one temporal-consistency call on the stacked
     predictions instead of one per voxel grid (``E2VIDTask._forward_whole_sequence``; equal to

@@ -167,7 +167,8 @@ class E2VIDTask(TrainTask):
 
     def _forward_whole_sequence(self, model, vox, frames, flow, l0: int, use_tc: bool, autocast):
         """``forward`` under ``speed: fast``: the network runs through the sequence as in eager,
-        then each loss term is one call on the L predictions stacked along the batch (one L1
+        from the first state as zero tensors (the network's ``initial_states``: bit-identical
+        to ``None``, and one compiled graph for every step of the sequence), then each loss term is one call on the L predictions stacked along the batch (one L1
         and one LPIPS/SSIM call on (B * L, 1, H, W), one temporal-consistency call on the
         B * (L - l0) pairs) instead of L calls: the terms are means over equal-sized steps, so
         the mean over the stack is the mean of the per-step means (equal up to float32
@@ -177,6 +178,8 @@ class E2VIDTask(TrainTask):
         states, preds = None, []
         for l in range(L):
             with autocast():
+                if states is None:  # zeros as tensors (bit-identical to None): one graph for every step
+                    states = model.initial_states(vox[:, l], requires_grad=torch.is_grad_enabled())
                 pred, states = self.step_model(model, vox[:, l], states, frames[:, l + 1])
             preds.append(pred.float())  # losses in float32, outside autocast
         seq = torch.stack(preds, 1)  # (B, L, 1, H, W)
@@ -223,15 +226,13 @@ class HyperE2VIDTask(E2VIDTask):
 
     def step_model(self, model, voxel, states, target):
         """Under ``speed: fast`` the network gets the frame and beta (a device tensor) on every
-        training step, 0 after the curriculum too, and the sequence's first state as zero
-        tensors (``HyperE2VID.initial_states``): the same inputs for the whole run, so a
-        compiled network keeps one graph through all the stages (bit-identical at beta 0 and 1,
+        training step, 0 after the curriculum too, and (``_forward_whole_sequence``) the
+        sequence's first state as zero tensors (``HyperE2VID.initial_states``): the same inputs
+        for the whole run, so a compiled network keeps one graph through all the stages (bit-identical at beta 0 and 1,
         ``trainer.models.hypere2vid.HyperE2VID``). ``eager``: the authors' float and branch."""
         c = self.cfg["curriculum"]
         beta = curriculum_beta(self.step, int(self.cfg["max_steps"]), float(c["fraction"]), int(c["stages"]))
         if self.cfg.get("speed", "eager") == "fast" and model.training:
-            if states is None:  # zeros as tensors: the first call's graph is every call's
-                states = model.initial_states(voxel, requires_grad=torch.is_grad_enabled())
             return model(voxel, states, gt_image=target, beta=self._beta_tensor(beta, voxel.device))
         if beta > 0 and model.training:
             return model(voxel, states, gt_image=target, beta=beta)

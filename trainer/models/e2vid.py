@@ -19,7 +19,8 @@ from typing import List, Optional, Sequence
 import torch
 import torch.nn as nn
 
-from .layers import ConvLayer, RecurrentConvLayer, ResidualBlock, State, UpsampleConvLayer, check_unet_args, pad_input
+from .layers import (ConvLayer, RecurrentConvLayer, ResidualBlock, State, UpsampleConvLayer, check_unet_args, pad_input,
+                     zero_lstm_states)
 
 __all__ = ["E2VIDRecurrent", "E2VIDPlusPlus"]
 
@@ -128,6 +129,18 @@ class E2VIDRecurrent(nn.Module):
         self.unetrecurrent = _UNetRecurrent(num_bins, base_num_channels, num_encoders, num_residual_blocks,
                                             num_output_channels, skip_type, kernel_size)
         self._register_load_state_dict_pre_hook(_rename_own_e2vid_keys)
+
+    def initial_states(self, voxel: torch.Tensor, requires_grad: bool = False) -> List[State]:
+        """The states a sequence starts from, as tensors: zero hidden and cell states
+        (N, 2**(i+1) * base, H'/2**(i+1), W'/2**(i+1)) for encoder i, H' x W' the padded input,
+        so ``forward(voxel, initial_states(voxel))`` is bit-identical to ``forward(voxel, None)``
+        and a compiled network (``speed: fast``) sees one input structure for every step of a
+        sequence. Layout, dtype (autocast's when on: call it inside the forward's autocast
+        region) and ``requires_grad`` as ``trainer.models.layers.zero_lstm_states`` says.
+        Raises ``ValueError`` for a voxel of the wrong shape."""
+        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
+            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        return zero_lstm_states(self.unetrecurrent.encoders, pad_input(voxel)[0], requires_grad)
 
     def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
         return self.unetrecurrent(voxel, states)

@@ -32,7 +32,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .layers import ConvLayer, RecurrentConvLayer, UpsampleConvLayer, pad_input
+from .layers import ConvLayer, RecurrentConvLayer, UpsampleConvLayer, pad_input, zero_lstm_states
 
 __all__ = ["ETNet", "sinusoid_table"]
 
@@ -175,6 +175,19 @@ class ETNet(nn.Module):
             raise ValueError(f"{t.shape[0]} tokens exceed ETNet's position table of "
                              f"{self.position_embedding.pos_table.shape[1]}")
         return t
+
+    def initial_states(self, voxel: torch.Tensor, requires_grad: bool = False) -> List:
+        """The states a sequence starts from, as tensors: zero hidden and cell states of the
+        three ``DownsampleConv`` ConvLSTMs ((N, 64 | 128 | d_model, H'/2 | H'/4 | H'/8, ...),
+        H' x W' the padded input), so ``forward(voxel, initial_states(voxel))`` is
+        bit-identical to ``forward(voxel, None)`` and a compiled network (``speed: fast``) sees
+        one input structure for every step of a sequence. Layout, dtype (autocast's when on:
+        call it inside the forward's autocast region) and ``requires_grad`` as
+        ``trainer.models.layers.zero_lstm_states`` says. Raises ``ValueError`` for a voxel of
+        the wrong shape."""
+        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
+            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        return zero_lstm_states(self.DownsampleConv, pad_input(voxel)[0], requires_grad)
 
     def forward(self, voxel: torch.Tensor, states: Optional[List] = None):
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:

@@ -36,7 +36,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .layers import ConvLayer, RecurrentConvLayer, ResidualBlock, UpsampleConvLayer, pad_input
+from .layers import (ConvLayer, RecurrentConvLayer, ResidualBlock, UpsampleConvLayer, output_memory_format,
+                     pad_input, zero_lstm_states)
 
 __all__ = ["fourier_bessel_bases", "HyperE2VID"]
 
@@ -231,27 +232,16 @@ class HyperE2VID(nn.Module):
         device (the convolutions' outputs they stand beside), else the voxel's dtype: call it
         in the autocast region of the forward. With ``requires_grad`` the LSTM zeros are leaves
         that require grad, as the states the network returns in training do (a compiled graph
-        guards on it); the parameters' gradients are the same either way. Raises ``ValueError`` for a voxel of the wrong
-        shape."""
+        guards on it); the parameters' gradients are the same either way
+        (``trainer.models.layers.zero_lstm_states``). Raises ``ValueError`` for a voxel of the
+        wrong shape."""
         if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
             raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
         x, _, _ = pad_input(voxel)
-        dev = x.device.type
-        dtype = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else x.dtype
-        # the layout the convolutions give their outputs: channels-last weights, channels-last
-        # outputs (``trainer.speed.prepare_model``)
-        fmt = (torch.channels_last if self.unetrecurrent.encoders[0].recurrent_block.Gates.weight.is_contiguous(
-            memory_format=torch.channels_last) else torch.contiguous_format)
-        n, _, h, w = x.shape
-
-        def zeros(c, s, dt):
-            return torch.empty((n, c, h // s, w // s), dtype=dt, device=x.device, memory_format=fmt).zero_()
-
-        lstm = []
-        for i, enc in enumerate(self.unetrecurrent.encoders):
-            c, s = enc.recurrent_block.hidden_size, 2 ** (i + 1)
-            lstm.append(tuple(zeros(c, s, dtype).requires_grad_(requires_grad) for _ in range(2)))
-        return lstm, zeros(1, 1, x.dtype)
+        lstm = zero_lstm_states(self.unetrecurrent.encoders, x, requires_grad)
+        fmt = output_memory_format(self.unetrecurrent.encoders[0].recurrent_block.Gates)
+        return lstm, torch.empty((x.shape[0], 1) + x.shape[2:], dtype=x.dtype, device=x.device,
+                                 memory_format=fmt).zero_()
 
     def forward(self, voxel: torch.Tensor, states: Optional[Tuple[List, torch.Tensor]] = None,
                 gt_image: Optional[torch.Tensor] = None, beta: Union[float, torch.Tensor] = 0.0):

@@ -9,14 +9,14 @@ output back, so a released checkpoint gives the authors' outputs on 180 x 240 or
 """
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
 __all__ = ["PAD_MULTIPLE", "pad_input", "ConvLayer", "UpsampleConvLayer", "ResidualBlock", "ConvLSTM",
-           "RecurrentConvLayer", "State", "check_unet_args"]
+           "RecurrentConvLayer", "State", "check_unet_args", "output_memory_format", "zero_lstm_states"]
 
 State = Optional[Tuple[torch.Tensor, torch.Tensor]]
 
@@ -105,6 +105,44 @@ class RecurrentConvLayer(nn.Module):
     def forward(self, x: torch.Tensor, state: State) -> Tuple[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]:
         state = self.recurrent_block(self.conv(x), state)
         return state[0], state
+
+
+def output_memory_format(conv: nn.Conv2d) -> torch.memory_format:
+    """The layout ``conv`` gives its outputs: channels-last when its weights are (as
+    ``trainer.speed.prepare_model`` makes them), else contiguous (NCHW)."""
+    return (torch.channels_last if conv.weight.is_contiguous(memory_format=torch.channels_last)
+            else torch.contiguous_format)
+
+
+def zero_lstm_states(layers: Sequence[RecurrentConvLayer], x: torch.Tensor, requires_grad: bool = False
+                     ) -> List[Tuple[torch.Tensor, torch.Tensor]]:
+    """The ConvLSTM states a recurrent network starts a sequence from, as tensors: what each
+    :class:`ConvLSTM` makes inside for ``state=None`` (zero hidden and cell states), so a
+    network called with them gives bit-identically what it gives for ``None`` and a compiled
+    network (``speed: fast``) sees one input structure for every step of a sequence.
+
+    ``layers``: the network's :class:`RecurrentConvLayer` chain, layer i halving the sides
+    ``i + 1`` times (stride 2 each); ``x`` the padded network input (N, C, H', W'), H' and W'
+    multiples of :data:`PAD_MULTIPLE`. Returns one ``(hidden, cell)`` per layer, each
+    (N, hidden_size_i, H'/2**(i+1), W'/2**(i+1)), in what a compiled graph guards on as the
+    states the network returns: the layout of the convolutions' outputs (channels-last when
+    the gate convolution's weights are, as ``trainer.speed.prepare_model`` makes them), the
+    dtype of autocast when it is on for ``x``'s device (call this inside the forward's
+    autocast region), else ``x``'s, and, with ``requires_grad``, leaves that require grad (as
+    the states returned in training do; the parameters' gradients are the same either way).
+    """
+    if not layers:
+        return []
+    dev = x.device.type
+    dtype = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else x.dtype
+    fmt = output_memory_format(layers[0].recurrent_block.Gates)
+    n, _, h, w = x.shape
+    states = []
+    for i, layer in enumerate(layers):
+        shape = (n, layer.recurrent_block.hidden_size, h // 2 ** (i + 1), w // 2 ** (i + 1))
+        states.append(tuple(torch.empty(shape, dtype=dtype, device=x.device, memory_format=fmt).zero_()
+                            .requires_grad_(requires_grad) for _ in range(2)))
+    return states
 
 
 #: Input sides are zero-padded to multiples of this (bottom and right) before any network of the
