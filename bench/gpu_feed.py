@@ -19,7 +19,7 @@ so its recompiles, if any, show. Each row records:
 * ``batch``: the batch sizes the row's steps really trained at (``/``-separated when several);
 * ``graphs``, ``recompiles``: graphs dynamo compiled over the row, and how many of them after
   the row's first step (``torch._dynamo.utils.counters["stats"]["unique_graphs"]``); 0 for an
-  eager network;
+  eager network (on a CPU, ``--compile`` compiles it with inductor, so they count);
 * ``cudagraph_skips``: compiled graphs inductor ran without a CUDA graph
   (``counters["inductor"]["cudagraph_skips"]``);
 
@@ -165,12 +165,13 @@ def launches_per_step(trainer: Trainer, batch: dict) -> dict:
 
 
 def _trainer(task: str, amp: str, speed: Optional[str], smoke: bool, device: torch.device, out: Path,
-             curriculum_steps: int = 0) -> Trainer:
+             curriculum_steps: int = 0, compile_network: bool = False) -> Trainer:
     """The row's trainer; ``curriculum_steps``: HyperE2VID's curriculum runs through all its
-    stages in that many steps (``max_steps`` 5 x that, ``fraction`` 0.2), else never ends."""
+    stages in that many steps (``max_steps`` 5 x that, ``fraction`` 0.2), else never ends;
+    ``compile_network``: the trainer's ``compile: true``."""
     model = dict(SMOKE_MODELS[task]) if smoke else {}
     model["num_bins"] = (SMOKE if smoke else PAPER)["num_bins"]
-    upd = {"model": model, "amp": amp, "max_steps": 10**9}
+    upd = {"model": model, "amp": amp, "max_steps": 10**9, "compile": compile_network}
     if task == "hypere2vid" and curriculum_steps > 0:
         upd.update(max_steps=5 * curriculum_steps, curriculum={"fraction": 0.2, "stages": 16})
     if speed is not None:
@@ -212,7 +213,8 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
     docstring), in this process (:func:`measure_fresh` runs it in a new one)."""
     from torch._dynamo.utils import counters
 
-    trainer = _trainer(task, amp, speed, smoke, device, tmp / f"{task}_{amp}_{speed}", a.warmup + a.steps)
+    trainer = _trainer(task, amp, speed, smoke, device, tmp / f"{task}_{amp}_{speed}", a.warmup + a.steps,
+                       compile_network=a.compile)
     stream = make_stream(endpoint, task, credits=4, timeout_s=600, outputs=stream_outputs(trainer.cfg))
     loader = iter(make_loader(stream, device))
     cache = [next(loader) for _ in range(2)]
@@ -363,7 +365,9 @@ def markdown(res: dict) -> str:
         head += [f"Trainer sample: {s['sequence_length']} voxel grids of {s['num_bins']} bins, {s['crop']} x "
                  f"{s['crop']} crop; corpus: {res.get('videos', '-')}; batch: the sizes each row's steps trained "
                  "at; each row in a fresh process. graphs: compiled by dynamo over the row; recompiles: graphs "
-                 "made after the row's first step; CUDA-graph skips: inductor's cudagraph_skips.", ""]
+                 "made after the row's first step; CUDA-graph skips: inductor's cudagraph_skips."
+                 + (" Every row's network compiled (`--compile`: the trainer's compile: true)." if res.get("compile")
+                    else ""), ""]
         hyper = [r["curriculum"] for r in res["rows"] if r.get("curriculum")]
         if hyper:
             head += [f"HyperE2VID's curriculum: {hyper[0]} (the cached run).", ""]
@@ -404,6 +408,10 @@ def _args(argv):
     ap.add_argument("--warmup", type=int, default=3, help="untimed steps before each run")
     ap.add_argument("--videos", help="corpus folder (default: copies of the WebVid-like clip in a temporary folder, "
                                      "enough windows for the largest batch)")
+    ap.add_argument("--compile", action="store_true",
+                    help="the trainer's compile: true on every row. On a CPU inductor then compiles the network, "
+                         "so the graphs and recompiles columns count real graphs (an eager network makes none); "
+                         "speed: fast on CUDA compiles whatever this says")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--out", help="write gpu_feed.json and gpu_feed.md to this folder")
     return ap.parse_args(argv)
@@ -417,7 +425,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     speeds = _speeds(a.speed)
     res = {"command": "python -m bench.gpu_feed " + shlex.join(sys.argv[1:] if argv is None else argv),
            "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu (smoke: toy sizes)",
-           "torch": torch.__version__, "cpus": os.cpu_count(), "smoke": smoke, "sizes": sizes, "rows": []}
+           "torch": torch.__version__, "cpus": os.cpu_count(), "smoke": smoke, "sizes": sizes, "compile": a.compile,
+           "rows": []}
     models = [m for m in a.models.split(",") if m]
     with tempfile.TemporaryDirectory(prefix="v2v-gpu-feed-") as tmp:
         batches = sorted({SMOKE_BATCH if smoke else PAPER_BATCH[m] for m in models})

@@ -219,7 +219,9 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
     a core, a slot or the server), ``other_threads`` (share of the workers' CPU-seconds spent
     outside their main threads: decoder, OpenCV, BLAS or numba pools), ``threads`` (threads per
     worker), ``server_cpu_s`` per sample and ``server_cpu_s_per_gb`` (the relay process, per GB
-    of the batches' arrays received) and ``gb``. Measured after two batches.
+    of the batches' arrays received) and ``gb``. Measured after two batches. Raises
+    ``RuntimeError`` when the workers used no CPU during the measured samples (all of them
+    queued before the window: ``samples`` too small for the server's and the client's queues).
     """
     from harness.serve import ServeProcess
     from v2v_client import V2VStreamDataset
@@ -241,6 +243,10 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
         it.close()
     main = sum(b[0] - a[0] for a, b in zip(c0, c1))
     other = sum(b[1] - a[1] for a, b in zip(c0, c1))
+    if main + other <= 0:
+        raise RuntimeError(f"producer: the workers used no CPU while the {n} measured samples arrived: they were "
+                           "all made before the window (queued in the server and the client's credits); measure "
+                           "more samples")
     wall = w1 - w0
     return {"workers": workers, "samples": n, "samples_per_s": n / wall, "per_worker": n / wall / workers,
             "per_worker_cpu_s": n / (main + other), "core_share": (main + other) / (workers * wall),

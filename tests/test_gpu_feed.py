@@ -18,7 +18,7 @@ def test_paper_batches():
 
 def test_gpu_feed_smoke_run(tmp_path, videos):
     assert main(["--smoke", "--models", "evflow,eraft", "--amp", "fp32", "--workers", "1", "--steps", "1",
-                 "--warmup", "1", "--producer", "1", "--no-trades", "--producer-samples", "4", "--videos", str(videos),
+                 "--warmup", "1", "--producer", "1", "--no-trades", "--producer-samples", "24", "--videos", str(videos),
                  "--device", "cpu", "--out", str(tmp_path)]) == 0
     out = json.loads((tmp_path / "gpu_feed.json").read_text())
     assert out["smoke"] and out["sizes"]["sequence_length"] == 2 and out["torch"]
@@ -38,7 +38,7 @@ def test_gpu_feed_smoke_run(tmp_path, videos):
     assert out["rows"][1]["launches"]["count"] > out["rows"][0]["launches"]["count"]
     (p,) = out["producer"]["rows"]
     assert p["recipe"] == "default" and out["producer"]["sizes"]["crop"] == 32  # toy sizes with --smoke
-    assert p["workers"] == 1 and p["samples"] >= 4 and p["per_worker_cpu_s"] > 0 and p["threads"] >= 1
+    assert p["workers"] == 1 and p["samples"] >= 24 and p["per_worker_cpu_s"] > 0 and p["threads"] >= 1
     assert 0 < p["share_of_bound"] and 0 <= p["other_threads"] <= 1
     text = (tmp_path / "gpu_feed.md").read_text()
     assert text.count("| evflow |") == 1 and text.count("| eraft |") == 1
@@ -88,3 +88,20 @@ def test_busy_sampler_polls_nvidia_smi_of_the_visible_gpu(monkeypatch):
     n = len(busy.samples)
     assert n >= 4 and "--id=5" in calls[0] and "--query-gpu=utilization.gpu" in calls[0]
     assert busy.mean == sum(70 if i % 2 == 0 else 90 for i in range(n)) / n / 100
+
+
+def test_compiled_rows_count_graphs_through_a_moving_curriculum(tmp_path, videos):
+    """``--compile`` on a CPU: inductor compiles the network, so the graphs column counts real
+    graphs. HyperE2VID under ``speed: fast`` runs its 16 curriculum stages over the row's 4
+    cached steps (then the live ones, whose last batch of an epoch may be smaller) on the one
+    graph of its first step."""
+    if "speed" not in default_config("hypere2vid"):
+        pytest.skip("this trainer has no 'speed' setting")
+    assert main(["--smoke", "--models", "hypere2vid", "--amp", "fp32", "--speed", "fast", "--compile",
+                 "--workers", "1", "--steps", "3", "--warmup", "1", "--videos", str(videos), "--device", "cpu",
+                 "--out", str(tmp_path)]) == 0
+    out = json.loads((tmp_path / "gpu_feed.json").read_text())
+    (r,) = out["rows"]
+    assert out["compile"] and r["curriculum"] == "beta 1 -> 0 in 16 stages over 4 steps"
+    assert r["graphs"] == 1 and r["recompiles"] == 0 and r["cudagraph_skips"] == 0
+    assert "`--compile`" in (tmp_path / "gpu_feed.md").read_text()
