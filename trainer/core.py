@@ -189,8 +189,8 @@ class Trainer:
         if self.net is not self.model:
             # a compiled network's outputs may live in CUDA-graph memory that the next replay
             # overwrites (a Ctrl-C mid-step included): previews and the final checkpoint read
-            # these later, so they keep copies
-            preds = [p.detach().clone() for p in preds] if isinstance(preds, list) else preds.detach().clone()
+            # these later, so they keep a copy (a list's in one stack, returned as its views)
+            preds = list(torch.stack(preds).unbind(0)) if isinstance(preds, list) else preds.detach().clone()
         self._last = (b, preds)
         stats["loss"] = loss.detach()
         if sync:

@@ -132,12 +132,10 @@ class SampleWeightedAllReduce:
         self.optimizer = optimizer
         self.params = [p for p in params if p.requires_grad]
         self.samples = 0
+        self.fused = any(g.get("fused") for g in optimizer.param_groups)
 
     def __getattr__(self, name):
         return getattr(self.optimizer, name)
-
-    def _fused(self) -> bool:
-        return any(g.get("fused") for g in self.optimizer.param_groups)
 
     def step(self):
         import torch.distributed as dist
@@ -155,12 +153,16 @@ class SampleWeightedAllReduce:
         o = 0
         for p, g in zip(self.params, grads):
             n = p.numel()
+            v = flat[o:o + n].view_as(p)
+            o += n
+            if v.stride() == p.stride() and v.dtype == p.dtype:
+                p.grad = v  # already in p's layout (NCHW, float32): a view, no copy
+                continue
             if p.grad is None or g.stride() != p.stride() or g.dtype != p.dtype:
                 g = torch.empty_like(p)  # preserve_format: p's strides (channels-last stays so)
-            g.copy_(flat[o:o + n].view_as(p))  # copy_ maps logical indices, whatever the strides
+            g.copy_(v)  # copy_ maps logical indices, whatever the strides
             p.grad = g
-            o += n
-        if self._fused():
+        if self.fused:
             # the fused kernel skips the update (parameters, moments, step counts) when
             # found_inf is non-zero: no host read of the total
             self.optimizer.found_inf = (total == 0).float()

@@ -73,6 +73,7 @@ class TrainTask:
 
     def __init__(self, cfg: dict, device: torch.device):
         self.cfg = cfg
+        self.fast = cfg.get("speed", "eager") == "fast"  # trainer/speed.py
         self.step = 0  # the optimiser step about to be taken; the trainer sets it before forward
         self.outputs = stream_outputs(cfg)
         self.raft = None  # RaftFlow when loss.flow_source names RAFT (tasks that use flow)
@@ -135,7 +136,7 @@ class E2VIDTask(TrainTask):
         if self.raft is not None and float(lc["tc_weight"]) > 0 and l0 < L:
             flow = self.raft(frames, l0)  # the layout of the stream's flow[:, l0:]
         use_tc = float(lc["tc_weight"]) > 0 and flow is not None and l0 < L
-        if self.cfg.get("speed", "eager") == "fast":
+        if self.fast:
             return self._forward_whole_sequence(model, vox, frames, flow, l0, use_tc, autocast)
         states, prev = None, None
         sums = {"l1": 0.0, "perceptual": 0.0, "rec": 0.0, "tc": 0.0}
@@ -175,11 +176,11 @@ class E2VIDTask(TrainTask):
         summation order; ``tests/test_trainer_fast.py``)."""
         lc = self.cfg["loss"]
         L = vox.shape[1]
-        states, preds = None, []
+        with autocast():  # the zero states take autocast's dtype, as the states the network returns
+            states = model.initial_states(vox[:, 0], requires_grad=torch.is_grad_enabled())
+        preds = []
         for l in range(L):
             with autocast():
-                if states is None:  # zeros as tensors (bit-identical to None): one graph for every step
-                    states = model.initial_states(vox[:, l], requires_grad=torch.is_grad_enabled())
                 pred, states = self.step_model(model, vox[:, l], states, frames[:, l + 1])
             preds.append(pred.float())  # losses in float32, outside autocast
         seq = torch.stack(preds, 1)  # (B, L, 1, H, W)
@@ -228,11 +229,12 @@ class HyperE2VIDTask(E2VIDTask):
         """Under ``speed: fast`` the network gets the frame and beta (a device tensor) on every
         training step, 0 after the curriculum too, and (``_forward_whole_sequence``) the
         sequence's first state as zero tensors (``HyperE2VID.initial_states``): the same inputs
-        for the whole run, so a compiled network keeps one graph through all the stages (bit-identical at beta 0 and 1,
-        ``trainer.models.hypere2vid.HyperE2VID``). ``eager``: the authors' float and branch."""
+        for the whole run, so a compiled network keeps one graph through all the stages
+        (bit-identical at beta 0 and 1, ``trainer.models.hypere2vid.HyperE2VID``). ``eager``:
+        the authors' float and branch."""
         c = self.cfg["curriculum"]
         beta = curriculum_beta(self.step, int(self.cfg["max_steps"]), float(c["fraction"]), int(c["stages"]))
-        if self.cfg.get("speed", "eager") == "fast" and model.training:
+        if self.fast and model.training:
             return model(voxel, states, gt_image=target, beta=self._beta_tensor(beta, voxel.device))
         if beta > 0 and model.training:
             return model(voxel, states, gt_image=target, beta=beta)
@@ -296,7 +298,7 @@ class ERAFTTask(EvFlowTask):
         if self.raft is not None:
             b["flow"] = self.raft(b["frames"], 1)
         flow = b["flow"]  # (n, L-1, 2, H, W): the targets of voxels 1..L-1 (the stream's arrive sliced, flow_from)
-        if self.cfg.get("speed", "eager") == "fast":
+        if self.fast:
             # the warm start as zeros, not None: one compiled graph for every pair
             model.reset_states(vox[:, 0])
             # one L1 and one end-point-error call on the stacked flows instead of L - 1 of each:
