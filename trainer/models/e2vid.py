@@ -19,8 +19,8 @@ from typing import List, Optional, Sequence
 import torch
 import torch.nn as nn
 
-from .layers import (ConvLayer, RecurrentConvLayer, ResidualBlock, State, UpsampleConvLayer, check_unet_args, pad_input,
-                     zero_lstm_states)
+from .layers import (ConvLayer, RecurrentConvLayer, ResidualBlock, State, UpsampleConvLayer, check_unet_args,
+                     check_voxel, pad_input, zero_lstm_states)
 
 __all__ = ["E2VIDRecurrent", "E2VIDPlusPlus"]
 
@@ -68,8 +68,7 @@ class _UNetRecurrent(_UNetBase):
         )
 
     def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
-        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
-            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        check_voxel(voxel, self.num_bins)
         x, h, w = pad_input(voxel)
         if states is None:
             states = [None] * self.num_encoders
@@ -138,8 +137,7 @@ class E2VIDRecurrent(nn.Module):
         sequence. Layout, dtype (autocast's when on: call it inside the forward's autocast
         region) and ``requires_grad`` as ``trainer.models.layers.zero_lstm_states`` says.
         Raises ``ValueError`` for a voxel of the wrong shape."""
-        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
-            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        check_voxel(voxel, self.num_bins)
         return zero_lstm_states(self.unetrecurrent.encoders, pad_input(voxel)[0], requires_grad)
 
     def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):

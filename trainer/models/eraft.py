@@ -51,6 +51,11 @@ PAD_MULTIPLE = 32
 CORR_LEVELS, CORR_RADIUS = 4, 4
 
 
+def _pads(H: int, W: int) -> Tuple[int, int]:
+    """Rows and columns of padding that bring H x W to multiples of :data:`PAD_MULTIPLE`."""
+    return (-H) % PAD_MULTIPLE, (-W) % PAD_MULTIPLE
+
+
 def min_side(corr_levels: int = CORR_LEVELS) -> int:
     """Smallest padded input side whose coarsest correlation level has two cells: features at
     1/8, halved ``corr_levels - 1`` times (128 for 4 levels, 64 for 3)."""
@@ -312,8 +317,8 @@ class ERAFT(nn.Module):
         self.flow_init = None
         if voxel is not None and self.subtype == "warm_start":
             H, W = voxel.shape[-2:]
-            hp, wp = H + (-H) % PAD_MULTIPLE, W + (-W) % PAD_MULTIPLE
-            self.flow_init = torch.zeros(voxel.shape[0], 2, hp // 8, wp // 8, device=voxel.device)
+            ph, pw = _pads(H, W)
+            self.flow_init = torch.zeros(voxel.shape[0], 2, (H + ph) // 8, (W + pw) // 8, device=voxel.device)
 
     @staticmethod
     def _upsample(flow: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -342,7 +347,7 @@ class ERAFT(nn.Module):
         W'/8) and the upsampled, cropped flow of every iteration (``iters`` x (N, 2, H, W));
         uses but does not update the warm-start flow."""
         H, W = voxel.shape[-2:]
-        ph, pw = (-H) % PAD_MULTIPLE, (-W) % PAD_MULTIPLE
+        ph, pw = _pads(H, W)
         side = min_side(self.corr_levels)
         if H + ph < side or W + pw < side:
             raise ValueError(f"E-RAFT with {self.corr_levels} correlation levels needs padded sides >= {side} (its "

@@ -32,7 +32,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .layers import ConvLayer, RecurrentConvLayer, UpsampleConvLayer, pad_input, zero_lstm_states
+from .layers import ConvLayer, RecurrentConvLayer, UpsampleConvLayer, check_voxel, pad_input, zero_lstm_states
 
 __all__ = ["ETNet", "sinusoid_table"]
 
@@ -185,13 +185,11 @@ class ETNet(nn.Module):
         call it inside the forward's autocast region) and ``requires_grad`` as
         ``trainer.models.layers.zero_lstm_states`` says. Raises ``ValueError`` for a voxel of
         the wrong shape."""
-        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
-            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        check_voxel(voxel, self.num_bins)
         return zero_lstm_states(self.DownsampleConv, pad_input(voxel)[0], requires_grad)
 
     def forward(self, voxel: torch.Tensor, states: Optional[List] = None):
-        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
-            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        check_voxel(voxel, self.num_bins)
         x, h, w = pad_input(voxel)
         states = states or [None] * 3
         f = self.head(x)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from .layers import ConvLayer, ResidualBlock, UpsampleConvLayer, check_unet_args, pad_input
+from .layers import ConvLayer, ResidualBlock, UpsampleConvLayer, check_unet_args, check_voxel, pad_input
 
 __all__ = ["UNet", "EVFlowNet"]
 
@@ -84,8 +84,7 @@ class EVFlowNet(nn.Module):
                          skip_type, kernel_size)
 
     def forward(self, voxel: torch.Tensor) -> torch.Tensor:
-        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
-            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        check_voxel(voxel, self.num_bins)
         x, h, w = pad_input(voxel)
         return self.unet(x)[..., :h, :w]
 

@@ -36,8 +36,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .layers import (ConvLayer, RecurrentConvLayer, ResidualBlock, UpsampleConvLayer, output_memory_format,
-                     pad_input, zero_lstm_states)
+from .layers import (ConvLayer, RecurrentConvLayer, ResidualBlock, UpsampleConvLayer, check_voxel,
+                     output_memory_format, pad_input, zero_lstm_states)
 
 __all__ = ["fourier_bessel_bases", "HyperE2VID"]
 
@@ -235,8 +235,7 @@ class HyperE2VID(nn.Module):
         guards on it); the parameters' gradients are the same either way
         (``trainer.models.layers.zero_lstm_states``). Raises ``ValueError`` for a voxel of the
         wrong shape."""
-        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
-            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        check_voxel(voxel, self.num_bins)
         x, _, _ = pad_input(voxel)
         lstm = zero_lstm_states(self.unetrecurrent.encoders, x, requires_grad)
         fmt = output_memory_format(self.unetrecurrent.encoders[0].recurrent_block.Gates)
@@ -245,8 +244,7 @@ class HyperE2VID(nn.Module):
 
     def forward(self, voxel: torch.Tensor, states: Optional[Tuple[List, torch.Tensor]] = None,
                 gt_image: Optional[torch.Tensor] = None, beta: Union[float, torch.Tensor] = 0.0):
-        if voxel.ndim != 4 or voxel.shape[1] != self.num_bins:
-            raise ValueError(f"voxel must be (N, {self.num_bins}, H, W), got {tuple(voxel.shape)}")
+        check_voxel(voxel, self.num_bins)
         x, h, w = pad_input(voxel)
         u = self.unetrecurrent
         if states is None:

@@ -16,7 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 __all__ = ["PAD_MULTIPLE", "pad_input", "ConvLayer", "UpsampleConvLayer", "ResidualBlock", "ConvLSTM",
-           "RecurrentConvLayer", "State", "check_unet_args", "output_memory_format", "zero_lstm_states"]
+           "RecurrentConvLayer", "State", "check_unet_args", "check_voxel", "output_memory_format", "zero_lstm_states"]
 
 State = Optional[Tuple[torch.Tensor, torch.Tensor]]
 
@@ -105,6 +105,13 @@ class RecurrentConvLayer(nn.Module):
     def forward(self, x: torch.Tensor, state: State) -> Tuple[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]:
         state = self.recurrent_block(self.conv(x), state)
         return state[0], state
+
+
+def check_voxel(voxel: torch.Tensor, num_bins: int) -> None:
+    """Raises ``ValueError`` unless ``voxel`` is a batch of voxel grids (N, num_bins, H, W), the
+    input every network of the zoo takes."""
+    if voxel.ndim != 4 or voxel.shape[1] != num_bins:
+        raise ValueError(f"voxel must be (N, {num_bins}, H, W), got {tuple(voxel.shape)}")
 
 
 def output_memory_format(conv: nn.Conv2d) -> torch.memory_format:
