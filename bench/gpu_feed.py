@@ -10,7 +10,7 @@ For each model at the paper's training batch (``PAPER_BATCH``: E2VID, HyperE2VID
 each ``amp`` (float32, bf16) and each ``--speed`` value, with the trainer's own step
 (``trainer.core.Trainer.train_step(sync=False)``), each row in a fresh process (no compiled
 graph, CUDA graph or cached memory of an earlier row). Without ``--videos`` the corpus is
-``CORPUS_COPIES`` x the largest batch copies of the WebVid-like clip (2 windows each at the
+one copy of the WebVid-like clip per sample of the largest batch (2 windows each at the
 paper's recipe) in a temporary folder, so that every model trains at its own batch (the bundled
 clips give 3 samples per epoch at the paper's recipe). HyperE2VID's curriculum runs through its
 16 stages during the cached run (``max_steps`` 5 x the cached run's steps, ``fraction`` 0.2),
@@ -74,9 +74,6 @@ from trainer.data import make_loader, make_stream
 from trainer.tasks import stream_outputs
 
 MODELS = ("e2vid", "hypere2vid", "evflow", "etnet", "eraft")
-#: Default corpus without ``--videos``: copies of the WebVid-like clip per sample of the largest
-#: batch (2 windows each at the paper's recipe: two full batches per epoch)
-CORPUS_COPIES = 1
 #: The paper's training batch per model (the V2V authors' configs).
 PAPER_BATCH = {"e2vid": 12, "hypere2vid": 12, "evflow": 12, "etnet": 6, "eraft": 10}
 #: The paper's sample: crop side (pixels), voxel grids per sample, bins.
@@ -232,7 +229,7 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
         yield from it
 
     cached = _timed(trainer, first_then(cycle()), a.steps, a.warmup, busy=True)
-    row = {"model": task, "amp": amp, "speed": trainer.cfg.get("speed", "-"),
+    row = {"model": task, "amp": amp, "speed": trainer.cfg.get("speed", "-"), "pid": os.getpid(),
            "workers": a.workers, "cached": cached, "launches": launches_per_step(trainer, cache[0]),
            "live": _timed(trainer, loader, a.steps, a.warmup)}
     stream.close()
@@ -252,38 +249,19 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
     return row
 
 
-def _row_process(q, *args) -> None:
-    try:
-        q.put(("ok", measure(*args)))
-    except BaseException as e:  # reported to the parent, which raises it
-        q.put(("error", f"{type(e).__name__}: {e}"))
-
-
 def measure_fresh(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: bool, device: torch.device,
                   tmp: Path) -> dict:
     """:func:`measure` in a fresh process (``spawn``): no compiled graph, CUDA graph, dynamo
     counter or cached device memory of an earlier row. Raises ``RuntimeError`` when the row
-    fails or its process dies."""
+    fails or its process dies, with the cause chained."""
     import multiprocessing as mp
-    import queue
+    from concurrent.futures import ProcessPoolExecutor
 
-    ctx = mp.get_context("spawn")
-    q = ctx.Queue()
-    proc = ctx.Process(target=_row_process, args=(q, task, amp, speed, endpoint, a, smoke, device, tmp))
-    proc.start()
-    try:
-        while True:
-            try:
-                status, value = q.get(timeout=5)
-                break
-            except queue.Empty:
-                if not proc.is_alive():
-                    raise RuntimeError(f"row {task}/{amp}/{speed}: its process died (exit {proc.exitcode})")
-    finally:
-        proc.join(60)
-    if status != "ok":
-        raise RuntimeError(f"row {task}/{amp}/{speed}: {value}")
-    return value
+    with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as ex:
+        try:
+            return ex.submit(measure, task, amp, speed, endpoint, a, smoke, device, tmp).result()
+        except Exception as e:  # BrokenProcessPool when the process died
+            raise RuntimeError(f"row {task}/{amp}/{speed}: {type(e).__name__}: {e}") from e
 
 
 #: The producer's trades beyond the decode bound (docs/speed.md: what each costs in diversity),
@@ -430,10 +408,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     models = [m for m in a.models.split(",") if m]
     with tempfile.TemporaryDirectory(prefix="v2v-gpu-feed-") as tmp:
         batches = sorted({SMOKE_BATCH if smoke else PAPER_BATCH[m] for m in models})
-        videos = a.videos
+        # without --videos: a copy of the WebVid-like clip per sample of the largest batch (2
+        # windows each at the paper's recipe: two full batches per epoch)
+        videos, copies = a.videos, max(batches, default=0)
         if videos is None and models:
-            videos = str(make_corpus(Path(tmp) / "corpus", CORPUS_COPIES * max(batches)))
-        res["videos"] = a.videos or f"{CORPUS_COPIES * max(batches or [0])} copies of {clip_path().name}"
+            videos = str(make_corpus(Path(tmp) / "corpus", copies))
+        res["videos"] = a.videos or f"{copies} copies of {clip_path().name}"
         for batch in batches:
             serve = ["--videos", videos, "--workers", str(a.workers), "--batch-size", str(batch),
                      "--sequence-length", str(sizes["sequence_length"]), "--crop-size", str(sizes["crop"]),

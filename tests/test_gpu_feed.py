@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import pytest
 
@@ -24,8 +25,10 @@ def test_gpu_feed_smoke_run(tmp_path, videos):
     assert out["smoke"] and out["sizes"]["sequence_length"] == 2 and out["torch"]
     assert [(r["model"], r["amp"], r["batch"]) for r in out["rows"]] == [("evflow", "fp32", "2"),
                                                                           ("eraft", "fp32", "2")]
+    # each row in a process of its own
+    assert len({r["pid"] for r in out["rows"]} | {os.getpid()}) == 3
     for r in out["rows"]:
-        # each row in its own process: an eager network compiles nothing, and no CUDA graph is skipped
+        # an eager network compiles nothing, and no CUDA graph is skipped
         assert r["graphs"] == r["recompiles"] == r["cudagraph_skips"] == 0
         for run in ("cached", "live"):
             m = r[run]
@@ -92,9 +95,9 @@ def test_busy_sampler_polls_nvidia_smi_of_the_visible_gpu(monkeypatch):
 
 def test_compiled_rows_count_graphs_through_a_moving_curriculum(tmp_path, videos):
     """``--compile`` on a CPU: inductor compiles the network, so the graphs column counts real
-    graphs. HyperE2VID under ``speed: fast`` runs its 16 curriculum stages over the row's 4
-    cached steps (then the live ones, whose last batch of an epoch may be smaller) on the one
-    graph of its first step."""
+    graphs. HyperE2VID under ``speed: fast`` with its 16-stage curriculum spread over the row's 4
+    cached steps (beta 1, 0.75, 0.5, 0.25, then 0 for the live steps, whose last batch of an
+    epoch may be smaller) runs on the one graph of its first step."""
     if "speed" not in default_config("hypere2vid"):
         pytest.skip("this trainer has no 'speed' setting")
     assert main(["--smoke", "--models", "hypere2vid", "--amp", "fp32", "--speed", "fast", "--compile",
