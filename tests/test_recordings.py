@@ -138,17 +138,20 @@ def test_ecd_text_layout_chunked_equals_whole(tmp_path):
     assert np.array_equal(read_all(open_recording(tmp_path / "ecd" / "events.txt")), ev)
 
 
-def test_h5_layout_read_in_chunks(tmp_path):
+def test_h5_layout_read_in_chunks(tmp_path, monkeypatch):
     from tests.test_trainer_eval import H, W, write_moving_edge_h5
 
     from trainer.recordings import H5Sequence
 
     p = tmp_path / "edge.h5"
     write_moving_edge_h5(p)
+    monkeypatch.setattr("trainer.recordings._H5_CHUNK", 7)  # several chunks from the small file
     rec, seq = open_recording(p), H5Sequence(str(p))
+    assert len(list(rec.chunks())) > 1
     ev = read_all(rec)
     assert (rec.width, rec.height) == (W, H) and len(ev) == len(seq.ts)
     assert np.array_equal(ev["t"], np.round(seq.ts * 1e6).astype(np.int64)) and np.array_equal(ev["x"], seq.xs)
+    assert np.array_equal(ev["y"], seq.ys) and np.array_equal(ev["p"], np.where(seq.ps > 0, 1, -1))
     assert np.array_equal(rec.frames().images, seq.images)
 
 

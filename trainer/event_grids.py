@@ -1,6 +1,7 @@
 """Real events into voxel grids: the edges of the grids (between frames, fixed windows, or a
 fixed number of events each) and the grids themselves, the paper's discrete voxel grid
-(signed counts per pixel and bin) and the event_cnn_minimal interpolated one. Events come as
+(signed counts per pixel and bin; the event_cnn_minimal interpolated grid is
+``v2v_server.simulation.reference.voxel_interpolated``). Events come as
 :data:`trainer.recordings.EVENT_DTYPE` chunks (:meth:`trainer.recordings.Recording.chunks`)."""
 from __future__ import annotations
 
@@ -82,21 +83,24 @@ def voxel_grids(chunks, edges_us: np.ndarray, num_bins: int, height: int, width:
         if k >= n:
             break
         t = ev["t"]
-        pos = np.searchsorted(t, edges, "left")  # events of interval j: pos[j]:pos[j+1]
+        k0 = k
         j_last = min(n - 1, int(np.searchsorted(edges, t[-1], "right")) - 1)
-        for j in range(k, j_last + 1):
+        # only the edges this chunk reaches: events of interval j are pos[j - k0]:pos[j - k0 + 1]
+        pos = np.searchsorted(t, edges[k0:j_last + 2], "left")
+        for j in range(k0, j_last + 1):
             while k < j:
                 yield emit()
                 vox[:], cnt[:] = 0, 0
                 k += 1
-            a, b = pos[j], pos[j + 1]
+            a, b = pos[j - k0], pos[j - k0 + 1]
             if a == b:
                 continue
             t0, dt = edges[j], edges[j + 1] - edges[j]
             bins = np.minimum((nb * (t[a:b] - t0)) // dt, nb - 1)
             pix = ev["y"][a:b].astype(np.int64) * width + ev["x"][a:b]
-            vox += np.bincount(bins * hw + pix, weights=ev["p"][a:b], minlength=nb * hw).astype(np.int64)
-            cnt += np.bincount(pix, minlength=hw)
+            # in place: the cost follows the chunk's events, not the sensor's pixels
+            np.add.at(vox, bins * hw + pix, ev["p"][a:b])
+            np.add.at(cnt, pix, 1)
     while k < n:
         yield emit()
         vox[:], cnt[:] = 0, 0

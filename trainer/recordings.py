@@ -55,8 +55,7 @@ FORMATS = {".aedat4": "aedat4", ".raw": "evt", ".dat": "dat", ".es": "es", ".csv
 
 # Sensor sizes (width, height) of Prophesee RAW headers that carry no ``geometry`` line, by the
 # plugin / generation their header names (Prophesee's sensor datasheets).
-_PROPHESEE_SIZES = (("gen3", (640, 480)), ("gen31", (640, 480)), ("imx636", (1280, 720)),
-                    ("gen41", (1280, 720)), ("gen4", (1280, 720)))
+_PROPHESEE_SIZES = (("gen3", (640, 480)), ("imx636", (1280, 720)), ("gen4", (1280, 720)))
 _EVT_WORD_BYTES = {"evt2": 4, "evt2.1": 8, "evt3": 2}
 _H5_CHUNK = 1 << 20  # events per chunk read from an H5 file
 _TEXT_CHUNK = 1 << 22  # bytes per chunk parsed from events.txt
@@ -109,6 +108,7 @@ class Recording:
         self.text_chunk_bytes = _TEXT_CHUNK
         self._frames: Optional[Frames] = None
         self._imu = None
+        self._read = set()  # "frames", "imu": read once, None included
 
     def __repr__(self) -> str:
         return f"Recording({str(self.path)!r}, {self.format}, {self.width}x{self.height})"
@@ -171,16 +171,17 @@ class Recording:
     def frames(self) -> Optional[Frames]:
         """The recording's intensity frames (:class:`Frames`, read once and kept), or None when
         it has none. Frames whose timestamp does not increase are dropped with a warning."""
-        if self._frames is None and self.format in ("aedat4", "ecd", "h5"):
-            self._frames = getattr(self, f"_frames_{self.format}")()
-            if self._frames is not None:
-                f = self._frames
-                ok = np.concatenate(([True], np.diff(f.t_us) > 0))
-                while not ok.all():  # drop until strictly increasing
+        if "frames" not in self._read and self.format in ("aedat4", "ecd", "h5"):
+            self._read.add("frames")
+            f = getattr(self, f"_frames_{self.format}")()
+            if f is not None:
+                # keep each frame later than every frame before it (the events' running-max rule)
+                earlier = np.maximum.accumulate(np.concatenate(([np.iinfo(np.int64).min], f.t_us[:-1])))
+                ok = f.t_us > earlier
+                if not ok.all():
                     log.warning("%s: dropping %d frames whose timestamps do not increase", self.path, int((~ok).sum()))
                     f = Frames(f.t_us[ok], f.images[ok], None if f.exposure_us is None else f.exposure_us[ok])
-                    ok = np.concatenate(([True], np.diff(f.t_us) > 0))
-                self._frames = f if len(f.t_us) else None
+            self._frames = f
         return self._frames
 
     def imu(self) -> Optional[np.ndarray]:
@@ -188,7 +189,8 @@ class Recording:
         deg C, ``accelerometer_*`` g, ``gyroscope_*`` deg/s, ``magnetometer_*``), or None."""
         if self.format != "aedat4":
             return None
-        if self._imu is None:
+        if "imu" not in self._read:
+            self._read.add("imu")
             parts = [p for tr, p in self._aedat_packets() if tr.data_type == "imus"]
             self._imu = np.concatenate(parts) if parts else None
         return self._imu
