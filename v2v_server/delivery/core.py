@@ -231,7 +231,7 @@ class DeliveryCore:
     def _epoch_ended(self, epoch: int) -> bool:
         """None of ``epoch``'s jobs runs or waits (or the epoch is forgotten)."""
         plan = self.sched.plans.get(epoch)
-        return plan is None or plan.unfinished == 0
+        return plan is None or not plan.open_jobs
 
     # ------------------------------------------------------------------ clients
     def consumer_of(self, ident: bytes, h: Hello) -> Tuple[Hashable, Optional[str]]:
