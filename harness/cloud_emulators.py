@@ -22,7 +22,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from importlib.metadata import version as _dist_version
 from pathlib import Path
 from typing import Dict, List
 
@@ -100,11 +99,6 @@ class GcsEmulator(_Emulator):
     name = "gcs-emulator"
     _ready_path = "/storage/v1/b?project=v2v-test"
     project = "v2v-test"
-
-    @staticmethod
-    def version() -> str:
-        """The installed gcp-storage-emulator release."""
-        return _dist_version("gcp-storage-emulator")
 
     def start(self) -> "GcsEmulator":
         try:
@@ -194,10 +188,6 @@ class AzuriteBlob(_Emulator):
     def __init__(self, version: str = AZURITE_VERSION, **kw):
         super().__init__(**kw)
         self.azurite_version = version
-
-    def version(self) -> str:
-        """The Azurite release this emulator runs."""
-        return self.azurite_version
 
     def start(self) -> "AzuriteBlob":
         self.main_js = ensure_azurite(self.azurite_version)
