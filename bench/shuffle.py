@@ -140,9 +140,9 @@ def buffer_sizes(sizes=(12, 32, 64, 128, 256), videos: int = 200, windows: int =
     """Distinct videos per batch against ``shuffle_buffer`` for one worker's arrivals (each video's
     ``windows`` samples in order, video after video) at the default recipe's shape (10 windows
     per video, batches of 12), from the pure ``Batcher`` (no server), told how many samples are
-    still to come as the server tells it once the files' counts are known: size -> ``(mean
-    distinct videos, samples left for the epoch-end flush, mean over ``seeds``)``, and the same
-    with the count unknown under ``"unknown"``."""
+    still to come as the server tells it once the files' counts are known (``"counted"``) and
+    with the count unknown (``"unknown"``): ``{"counted": {size: (distinct videos per batch,
+    samples left for the epoch-end flush)}, "unknown": {...}}``, both means over 5 seeds."""
     from v2v_server.delivery.batcher import Batcher
     from v2v_server.delivery.ledger import DeliveryLedger
     from v2v_wire.ids import SampleKey
@@ -159,9 +159,9 @@ def buffer_sizes(sizes=(12, 32, 64, 128, 256), videos: int = 200, windows: int =
         b.flush(lambda e: True)
         return statistics.mean(len({k.video for k in ledger.batches[i].keys}) for i in ledger.ready), left
 
-    out: dict = {"unknown": {}}
+    out: dict = {"counted": {}, "unknown": {}}
     for size in sizes:
-        for counted, into in ((True, out), (False, out["unknown"])):
+        for counted, into in ((True, out["counted"]), (False, out["unknown"])):
             runs = [one(size, counted, seed) for seed in range(5)]
             into[size] = (statistics.mean(r[0] for r in runs), statistics.mean(r[1] for r in runs))
     return out
@@ -263,19 +263,17 @@ def main(argv=None) -> int:
           f"on the server's loop thread (one more copy of every byte).")
     print("\nOne worker, 200 videos of 10 windows, batches of 12 (the default recipe's shape; the pure Batcher, "
           "means of 5 seeds):\n")
-    cols = [k for k in sizes if k != "unknown"]
+    cols = list(sizes["counted"])
     print("| shuffle_buffer | " + " | ".join(str(k) for k in cols) + " |")
     print("|---|" + "---|" * len(cols))
-    unknown = sizes["unknown"]
-    for label, table, i, fmt in (("distinct videos / batch", sizes, 0, ".2f"),
-                                 ("samples left for the epoch-end flush", sizes, 1, ".1f"),
+    counted, unknown = sizes["counted"], sizes["unknown"]
+    for label, table, i, fmt in (("distinct videos / batch", counted, 0, ".2f"),
+                                 ("samples left for the epoch-end flush", counted, 1, ".1f"),
                                  ("the same, count unknown: distinct videos", unknown, 0, ".2f"),
                                  ("the same, count unknown: samples left", unknown, 1, ".1f")):
         print(f"| {label} | " + " | ".join(format(table[k][i], fmt) for k in cols) + " |")
     if a.out:
-        Path(a.out).write_text(json.dumps({"runs": rows, "copy_cost": cost,
-                                           "buffer_sizes": {str(k): v for k, v in sizes.items()}},
-                                          indent=1, default=str) + "\n")
+        Path(a.out).write_text(json.dumps({"runs": rows, "copy_cost": cost, "buffer_sizes": sizes}, indent=1) + "\n")
     return 0
 
 

@@ -22,9 +22,8 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from importlib.metadata import version as _dist_version
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional
+from typing import Dict, List
 
 from harness.object_store import LocalServer, _free_ports
 
@@ -41,15 +40,14 @@ class EmulatorUnavailable(RuntimeError):
 
 
 class _Emulator(LocalServer):
-    """One emulator process on 127.0.0.1 (``harness.object_store.LocalServer``): subclasses give
-    ``_args()``, ``fs()`` and ``scheme``.
+    """One emulator process on 127.0.0.1 (``harness.object_store.LocalServer``, whose ``upload``
+    fills it): subclasses give ``_args()``, ``fs()`` and ``scheme``.
 
     Raises (from ``start``):
         RuntimeError: the process exited or did not answer within ``ready_timeout_s`` (the
             message holds its log tail).
     """
 
-    scheme = ""
     _ready_path = "/"
 
     def _args(self) -> List[str]:
@@ -66,21 +64,6 @@ class _Emulator(LocalServer):
     def env(self) -> Dict[str, str]:
         """Environment variables that point a client of this store at the emulator."""
         raise NotImplementedError
-
-    def upload(self, local_root: Path, url: str, names: Optional[Iterable[str]] = None) -> None:
-        """Copy the files under ``local_root`` (or only ``names``, relative POSIX paths) to
-        ``url`` (``SCHEME://bucket/prefix/``), keeping their relative paths as keys; the
-        bucket (container) is made when missing. A key already there is overwritten."""
-        fs = self.fs()
-        bucket = url[len(self.scheme) + 3:].split("/", 1)[0]
-        if not fs.exists(bucket):
-            fs.mkdir(bucket)
-        local_root = Path(local_root)
-        rels = list(names) if names is not None else sorted(
-            p.relative_to(local_root).as_posix() for p in local_root.rglob("*") if p.is_file())
-        base = url[len(self.scheme) + 3:].rstrip("/")
-        for rel in rels:
-            fs.put_file(str(local_root / rel), f"{base}/{rel}")
 
     def start(self):
         self.dir = tempfile.mkdtemp(prefix=f"v2v-{self.name}-")
@@ -116,11 +99,6 @@ class GcsEmulator(_Emulator):
     name = "gcs-emulator"
     _ready_path = "/storage/v1/b?project=v2v-test"
     project = "v2v-test"
-
-    @staticmethod
-    def version() -> str:
-        """The installed gcp-storage-emulator release."""
-        return _dist_version("gcp-storage-emulator")
 
     def start(self) -> "GcsEmulator":
         try:
@@ -210,10 +188,6 @@ class AzuriteBlob(_Emulator):
     def __init__(self, version: str = AZURITE_VERSION, **kw):
         super().__init__(**kw)
         self.azurite_version = version
-
-    def version(self) -> str:
-        """The Azurite release this emulator runs."""
-        return self.azurite_version
 
     def start(self) -> "AzuriteBlob":
         self.main_js = ensure_azurite(self.azurite_version)

@@ -30,7 +30,8 @@ class LocalServer:
     """A server process on 127.0.0.1 that a test starts and stops: launched in its own process
     group with its output in ``dir/LOG``, waited for until :meth:`_answers`, stopped (TERM, then
     KILL after ``grace_s``) with its folder removed. Subclasses give ``start`` (which calls
-    :meth:`_launch`), ``_answers`` and ``name``.
+    :meth:`_launch`), ``_answers`` and ``name``; an object store also gives ``scheme`` and
+    ``fs()`` (its fsspec filesystem), for :meth:`upload`.
 
     Raises (from ``_launch``):
         RuntimeError: the process exited or did not answer within ``ready_timeout_s`` (the
@@ -38,6 +39,7 @@ class LocalServer:
     """
 
     name = "server"
+    scheme = ""  # an object store's URL scheme: SCHEME://bucket/key
     poll_s = 0.2
 
     def __init__(self, ready_timeout_s: float = 60.0, grace_s: float = 3.0):
@@ -70,6 +72,21 @@ class LocalServer:
             if self._answers():
                 return self
             time.sleep(self.poll_s)
+
+    def upload(self, local_root: Path, url: str, names: Optional[Iterable[str]] = None) -> None:
+        """Copy the files under ``local_root`` (or only ``names``, relative POSIX paths) to
+        ``url`` (``SCHEME://bucket/prefix/``), keeping their relative paths as keys; the
+        bucket (container) is made when missing. A key already there is overwritten."""
+        fs = self.fs()
+        base = url[len(self.scheme) + 3:].rstrip("/")
+        bucket = base.split("/", 1)[0]
+        if not fs.exists(bucket):
+            fs.mkdir(bucket)
+        local_root = Path(local_root)
+        rels = list(names) if names is not None else sorted(
+            p.relative_to(local_root).as_posix() for p in local_root.rglob("*") if p.is_file())
+        for rel in rels:
+            fs.put_file(str(local_root / rel), f"{base}/{rel}")
 
     def log_tail(self, n: int = 4000) -> str:
         try:
@@ -116,6 +133,7 @@ class SeaweedS3(LocalServer):
     """
 
     name = "SeaweedFS S3"
+    scheme = "s3"
     poll_s = 0.3
 
     def __init__(self, ready_timeout_s: float = 60.0, grace_s: float = 3.0):
@@ -139,19 +157,6 @@ class SeaweedS3(LocalServer):
 
         return s3fs.S3FileSystem(key=self.key, secret=self.secret, endpoint_url=self.endpoint,
                                  skip_instance_cache=True, **kw)
-
-    def upload(self, local_root: Path, url: str, names: Optional[Iterable[str]] = None) -> None:
-        """Copy the files under ``local_root`` (or only ``names``, relative POSIX paths) to
-        ``url`` (``s3://bucket/prefix/``), keeping their relative paths as keys."""
-        fs = self.fs()
-        bucket = url[len("s3://"):].split("/", 1)[0]
-        if not fs.exists(bucket):
-            fs.mkdir(bucket)
-        local_root = Path(local_root)
-        rels = list(names) if names is not None else sorted(
-            p.relative_to(local_root).as_posix() for p in local_root.rglob("*") if p.is_file())
-        for rel in rels:
-            fs.put_file(str(local_root / rel), url.rstrip("/") + "/" + rel)
 
     def start(self) -> "SeaweedS3":
         weed = shutil.which("weed")

@@ -13,12 +13,12 @@ import pytest
 from harness.cloud_emulators import AzuriteBlob, EmulatorUnavailable, GcsEmulator
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.decode import VideoError
-from v2v_server.videos.source import StoreSource, open_source, source_from_config, source_from_spec
+from tests.store_checks import check_frame_cache_hit, samples
+from v2v_server.videos.source import StoreSource, source_from_config, source_from_spec
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
 NAMES = sorted(p.name for p in CLIPS.glob("*.mp4"))
-OUTPUTS = ("voxels", "frames")
 #: store -> (emulator, the library that reads it, the info() key holding the object's version)
 STORES = {"gs": (GcsEmulator, "gcsfs", "generation"), "az": (AzuriteBlob, "adlfs", "etag")}
 
@@ -57,10 +57,7 @@ def url(store) -> str:
 
 def _samples(root, names, epoch: int, cfg=None) -> dict:
     """sample id -> bytes of its arrays, for ``names`` of ``root`` (a folder or a source)."""
-    from v2v_server.samples.make import video_samples
-
-    return {k.sample_id(1): b"".join(a[o].tobytes() for o in OUTPUTS)
-            for v in names for k, a, _ in video_samples(cfg or _cfg(), root, v, epoch, OUTPUTS)}
+    return samples(cfg or _cfg(), root, names, epoch)
 
 
 @functools.lru_cache(maxsize=None)
@@ -151,26 +148,8 @@ def test_identity_follows_an_overwrite_in_place(store, url):
         listed.identity("bikes.mp4")
 
 
-def test_frame_cache_hit_saves_the_download(store, url, tmp_path):
+def test_frame_cache_hit_saves_the_download(store, tmp_path):
     """Epoch 1 is cut from the frame cache's entries with one metadata request per video and no
-    byte of video fetched; an object overwritten in place is a ``changed`` miss. Samples equal
-    the folder's."""
-    u = f"{store.scheme}://corpus/fc/"
-    names = ["bikes.mp4", "webvid_like_596x336.mp4"]
-    store.upload(CLIPS, u, names=names)
-    opts = store.storage_options()
-    src = open_source(u, storage_options=opts, cache_dir=str(tmp_path), frame_cache_gb=1.0)
-    assert _samples(src, names, 0) == _folder_samples(tuple(names), 0)
-    first = src.take_stats()
-    assert first["frame_cache"]["stored"] == 2 and first["bytes"] > 0, first
-    assert _samples(src, names, 1) == _folder_samples(tuple(names), 1)
-    second = src.take_stats()
-    assert second["frame_cache"]["hits"] == 2 and second["bytes"] == 0 and second["reads"] == 2, second
-    store.fs().put_file(str(CLIPS / "bigbuckbunny.mp4"), "corpus/fc/bikes.mp4")  # replaced in place
-    now = tmp_path / "now"
-    now.mkdir()
-    (now / "bikes.mp4").write_bytes((CLIPS / "bigbuckbunny.mp4").read_bytes())
-    fresh = open_source(u, storage_options=opts, cache_dir=str(tmp_path), frame_cache_gb=1.0)
-    assert _samples(fresh, ["bikes.mp4"], 2) == _samples(now, ["bikes.mp4"], 2)  # decoded anew, not the entry
-    stats = fresh.take_stats()["frame_cache"]
-    assert stats["misses"]["changed"] == 1 and stats["hits"] == 0, stats
+    byte of video fetched; an object overwritten in place is a ``changed`` miss, decoded anew.
+    Samples equal the folder's (``store_checks.check_frame_cache_hit``, the same check as S3's)."""
+    check_frame_cache_hit(store, _cfg(), tmp_path, store.storage_options(), _folder_samples)

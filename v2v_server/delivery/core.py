@@ -220,18 +220,18 @@ class DeliveryCore:
         return self.sched.expire(now, self.task_timeout_s)
 
     def _to_come(self, epoch: int) -> Optional[int]:
-        """At most how many more samples ``epoch`` brings after the one just accepted (None:
-        unknown, or more than the shuffle buffer holds, where the count changes nothing)."""
+        """At most how many more samples ``epoch`` brings after the one just accepted, counted
+        only until past the shuffle buffer (``lanes x batch_size``): a number over it means at
+        least that many, and ``Batcher.lane`` then picks among every open batch, as when the
+        count is unknown. None: unknown, or one lane, where no count changes the choice."""
         if self.batcher.lanes == 1:
             return None
-        cap = self.batcher.lanes * self.batcher.batch_size
-        n = self.sched.to_come(epoch, cap)
-        return None if n is None or n > cap else n
+        return self.sched.to_come(epoch, self.batcher.lanes * self.batcher.batch_size)
 
     def _epoch_ended(self, epoch: int) -> bool:
         """None of ``epoch``'s jobs runs or waits (or the epoch is forgotten)."""
         plan = self.sched.plans.get(epoch)
-        return plan is None or plan.unfinished == 0
+        return plan is None or not plan.open_jobs
 
     # ------------------------------------------------------------------ clients
     def consumer_of(self, ident: bytes, h: Hello) -> Tuple[Hashable, Optional[str]]:

@@ -88,8 +88,7 @@ class EpochPlan:
     complete: bool = False
     held: Dict[str, Dict[SampleKey, int]] = field(default_factory=dict)  # video -> sample -> records holding it
     live_by_video: Dict[str, Set[SampleKey]] = field(default_factory=dict)
-    unfinished: int = 0  # jobs queued or running
-    open_jobs: Dict[str, None] = field(default_factory=dict)  # their videos, in the epoch's order
+    open_jobs: Dict[str, None] = field(default_factory=dict)  # videos of jobs queued or running, in epoch order
 
     # ------------------------------------------------------------------ holdings
     def delivered(self) -> Set[SampleKey]:
@@ -150,7 +149,6 @@ class EpochPlan:
 
     def set_state(self, job: Job, state: str) -> None:
         if (job.state == "done") != (state == "done"):
-            self.unfinished += 1 if job.state == "done" else -1
             if state == "done":
                 self.open_jobs.pop(job.video, None)
             else:
@@ -179,7 +177,7 @@ class EpochPlan:
         owes anything: ``requeue`` queues it again first)."""
         if self.complete:
             return True
-        if self.unfinished or self.live:
+        if self.open_jobs or self.live:
             return False
         self.complete = True
         return True
@@ -290,7 +288,6 @@ class EpochScheduler:
             plan.set_record(consumer, keys)
         for v in self.epoch_order(e):
             plan.jobs[v] = Job(e, v)
-            plan.unfinished += 1
             plan.open_jobs[v] = None
             self.queue.append((e, v))
         self.plans[e] = plan

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional
 
+from v2v_server.checks import check_int
+
 __all__ = [
     "DEFAULT_FLOW", "DIS_PRESETS", "DISParams", "FLOW_OPTIONS", "FlowOption", "FlowUnavailable", "TrackParams",
     "check_option", "load_raft", "raft_weight_places", "raft_weights", "unavailable_reason",
@@ -120,9 +122,7 @@ class TrackParams:
     def __post_init__(self):
         for name, low in (("grid", 2), ("window", 3), ("levels", 0), ("prior_levels", 0), ("iterations", 1),
                           ("compensated_levels", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ValueError(f"tracking {name} must be an integer >= {low}, got {v!r}")
+            check_int(f"tracking {name}", getattr(self, name), low)
         if self.window % 2 == 0:
             raise ValueError(f"tracking window must be odd, got {self.window}")
         if not (isinstance(self.eps, (int, float)) and self.eps > 0):

@@ -1,0 +1,51 @@
+"""Checks shared by the object-store tests: the same assertions against SeaweedFS S3
+(``tests/test_object_store.py``) and the GCS and Azure emulators (``tests/test_object_stores_gs_az.py``)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Optional
+
+from v2v_server.videos.source import open_source
+
+ROOT = Path(__file__).resolve().parents[1]
+CLIPS = ROOT / "v2v_server" / "sample_videos"
+OUTPUTS = ("voxels", "frames")
+
+
+def samples(cfg, root, names, epoch: int) -> dict:
+    """sample id -> bytes of its :data:`OUTPUTS`, for ``names`` of ``root`` (a folder or a source)."""
+    from v2v_server.samples.make import video_samples
+
+    return {k.sample_id(1): b"".join(a[o].tobytes() for o in OUTPUTS)
+            for v in names for k, a, _ in video_samples(cfg, root, v, epoch, OUTPUTS)}
+
+
+def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[dict] = None,
+                          folder_samples: Optional[Callable[[tuple, int], dict]] = None) -> None:
+    """Two bundled clips uploaded under ``SCHEME://corpus/fc/`` of ``store`` (a
+    ``harness.object_store.LocalServer``) and read with the frame cache: epoch 1 is cut from the
+    cache's entries with one metadata request per video and no byte of video fetched; an object
+    overwritten in place is a ``changed`` miss, decoded anew. Samples equal the folder's
+    (``folder_samples(names, epoch)``, else made from the bundled clips).
+
+    ``storage_options``: what the store's reader takes (None: it reads the environment)."""
+    folder_samples = folder_samples or (lambda names, epoch: samples(cfg, CLIPS, names, epoch))
+    url = f"{store.scheme}://corpus/fc/"
+    names = ["bikes.mp4", "webvid_like_596x336.mp4"]
+    store.upload(CLIPS, url, names=names)
+    cache = str(tmp_path / "cache")
+    src = open_source(url, storage_options=storage_options, cache_dir=cache, frame_cache_gb=1.0)
+    assert samples(cfg, src, names, 0) == folder_samples(tuple(names), 0)
+    first = src.take_stats()
+    assert first["frame_cache"]["stored"] == 2 and first["bytes"] > 0, first
+    assert samples(cfg, src, names, 1) == folder_samples(tuple(names), 1)
+    second = src.take_stats()
+    assert second["frame_cache"]["hits"] == 2 and second["bytes"] == 0 and second["reads"] == 2, second
+    store.fs().put_file(str(CLIPS / "bigbuckbunny.mp4"), "corpus/fc/bikes.mp4")  # replaced in place
+    now = tmp_path / "now"
+    now.mkdir()
+    (now / "bikes.mp4").write_bytes((CLIPS / "bigbuckbunny.mp4").read_bytes())
+    fresh = open_source(url, storage_options=storage_options, cache_dir=cache, frame_cache_gb=1.0)  # new listing
+    assert samples(cfg, fresh, ["bikes.mp4"], 2) == samples(cfg, now, ["bikes.mp4"], 2)  # decoded anew
+    stats = fresh.take_stats()["frame_cache"]
+    assert stats["misses"]["changed"] == 1 and stats["hits"] == 0, stats
