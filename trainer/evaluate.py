@@ -212,6 +212,21 @@ def load_model(checkpoint: str, device: torch.device, fmt: Optional[str] = None)
                                     "trained_perceptual_term": ck.get("perceptual_term", "unrecorded")}
 
 
+def _score(res: Dict[str, List[float]], p: np.ndarray, gt: np.ndarray, mean_img: np.ndarray,
+           ssim_data_range: float, lpips_model, device) -> None:
+    """Append one reconstruction's scores to ``res``: MSE and SSIM of ``p`` and of the
+    constant-mean-image baseline ``mean_img`` against ``gt`` (float32 (H, W) in [0, 1]), and
+    their LPIPS when ``lpips_model`` is given."""
+    m = reconstruction_metrics(p, gt, ssim_data_range)
+    b = reconstruction_metrics(mean_img, gt, ssim_data_range)
+    res["mse"].append(m["mse"]); res["ssim"].append(m["ssim"])
+    res["base_mse"].append(b["mse"]); res["base_ssim"].append(b["ssim"])
+    if lpips_model is not None:
+        g = torch.from_numpy(gt)[None, None].to(device)
+        res["lpips"].append(float(lpips_model(torch.from_numpy(np.clip(p, 0, 1))[None, None].to(device), g)[0]))
+        res["base_lpips"].append(float(lpips_model(torch.from_numpy(mean_img)[None, None].to(device), g)[0]))
+
+
 @torch.no_grad()
 def evaluate_e2vid(model, voxels: np.ndarray, frames: np.ndarray, device: torch.device, ssim_data_range: float = 1.0,
                    lpips_model=None, skip_first: int = 0) -> Dict[str, List[float]]:
@@ -240,15 +255,7 @@ def evaluate_e2vid(model, voxels: np.ndarray, frames: np.ndarray, device: torch.
         preds.append(p)
         if l < skip_first:
             continue
-        gt = gt_all[l + 1]
-        m = reconstruction_metrics(p, gt, ssim_data_range)
-        b = reconstruction_metrics(mean_img, gt, ssim_data_range)
-        res["mse"].append(m["mse"]); res["ssim"].append(m["ssim"])
-        res["base_mse"].append(b["mse"]); res["base_ssim"].append(b["ssim"])
-        if lpips_model is not None:
-            g = torch.from_numpy(gt)[None, None].to(device)
-            res["lpips"].append(float(lpips_model(torch.from_numpy(np.clip(p, 0, 1))[None, None].to(device), g)[0]))
-            res["base_lpips"].append(float(lpips_model(torch.from_numpy(mean_img)[None, None].to(device), g)[0]))
+        _score(res, p, gt_all[l + 1], mean_img, ssim_data_range, lpips_model, device)
     res["_preds"] = preds  # not a metric; for saving images
     return res
 
@@ -592,14 +599,7 @@ def evaluate_recording(model, task: str, grids, device: torch.device, frames: Op
             from .viz import gray_to_u8, save_grid, voxel_to_u8
 
             save_grid(str(save_dir / f"{name}_cmp_{k:05d}.png"), [[voxel_to_u8(vox), gray_to_u8(p), gray_to_u8(gt)]])
-        m = reconstruction_metrics(p, gt, ssim_data_range)
-        b = reconstruction_metrics(mean_img, gt, ssim_data_range)
-        res["mse"].append(m["mse"]); res["ssim"].append(m["ssim"])
-        res["base_mse"].append(b["mse"]); res["base_ssim"].append(b["ssim"])
-        if "lpips" in res:
-            g = torch.from_numpy(gt)[None, None].to(device)
-            res["lpips"].append(float(lpips_model(torch.from_numpy(np.clip(p, 0, 1))[None, None].to(device), g)[0]))
-            res["base_lpips"].append(float(lpips_model(torch.from_numpy(mean_img)[None, None].to(device), g)[0]))
+        _score(res, p, gt, mean_img, ssim_data_range, lpips_model if "lpips" in res else None, device)
     if writer is not None:
         writer.close()
     res["_grids"] = n
@@ -632,7 +632,7 @@ def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out
     if frames is None and args.events_per_grid:
         edges = count_edges(rec.chunks(start_us, end_us), args.events_per_grid)
         binning = f"{args.events_per_grid} events per grid"
-        fps = 1e6 / max(1.0, float(np.median(np.diff(edges)))) if len(edges) > 1 else 20.0
+        fps = 1e6 / float(np.median(np.diff(edges)))  # >= 2 strictly increasing integer edges
     elif frames is None:
         last = start_us
         for ev in rec.chunks(start_us, end_us):

@@ -310,14 +310,8 @@ class Recording:
         with h5py.File(self.path, "r") as f:
             if "images" not in f or not len(f["images"]):
                 return None
-            names = sorted(f["images"].keys())
-            ims = np.stack([f["images"][k][:] for k in names])
-            ts = np.array([round(float(f["images"][k].attrs["timestamp"]) * 1e6) for k in names], np.int64)
-        if ims.ndim == 4:
-            import cv2
-
-            ims = np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in ims])
-        return Frames(ts, ims)
+            ims, ts = _h5_images(f)
+        return Frames(np.array([round(t * 1e6) for t in ts], np.int64), ims)
 
     def _events_ecd(self):
         with open(self._opts["events_txt"], "rb") as fh:
@@ -511,6 +505,18 @@ def read_all(rec: Recording, start_us: Optional[int] = None, end_us: Optional[in
     return np.concatenate(parts) if parts else np.empty(0, EVENT_DTYPE)
 
 
+def _h5_images(f) -> Tuple[np.ndarray, np.ndarray]:
+    """The ``images`` group of an open event_cnn_minimal H5 file in name order: uint8 luma
+    (N, H, W) (colour images converted) and their ``timestamp`` attributes, float64 (N,) seconds."""
+    names = sorted(f["images"].keys())
+    ims = np.stack([f["images"][k][:] for k in names])
+    if ims.ndim == 4:  # colour: to luma
+        import cv2
+
+        ims = np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in ims])
+    return ims, np.array([float(f["images"][k].attrs["timestamp"]) for k in names])
+
+
 class H5Sequence:
     """An event sequence in the event_cnn_minimal / V2V reference H5 layout, read whole.
 
@@ -546,15 +552,9 @@ class H5Sequence:
             ev = f["events"]
             self.xs, self.ys = ev["xs"][:], ev["ys"][:]
             self.ts, self.ps = ev["ts"][:].astype(np.float64), ev["ps"][:]
-            names = sorted(f["images"].keys())
-            if len(names) < 2:
-                raise ValueError(f"{self.path}: need at least two images, found {len(names)}")
-            self.images = np.stack([f["images"][k][:] for k in names])
-            self.image_ts = np.array([float(f["images"][k].attrs["timestamp"]) for k in names])
-            if self.images.ndim == 4:  # colour: to luma
-                import cv2
-
-                self.images = np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in self.images])
+            if len(f["images"]) < 2:
+                raise ValueError(f"{self.path}: need at least two images, found {len(f['images'])}")
+            self.images, self.image_ts = _h5_images(f)
             if "sensor_resolution" in f.attrs:
                 self.height, self.width = (int(v) for v in f.attrs["sensor_resolution"][:2])
             else:
