@@ -5,6 +5,7 @@ source replaced in place, the folder deleted while serving, two writers at once)
 decoding, with no sample lost or altered and the cause counted."""
 from __future__ import annotations
 
+import itertools
 import json
 import multiprocessing as mp
 import os
@@ -243,15 +244,26 @@ def test_two_writers_make_one_entry(tmp_path):
         p.join(120)
         assert p.exitcode == 0
     assert len(_entries(tmp_path)) == 1 and not list((tmp_path / "frames").glob("*.tmp"))
-    # and two interleaved passes in one process
+    # and two interleaved passes in one process, both driven to their end so that both writers
+    # commit: the second finds the entry there, drops its own and is counted neither stored nor
+    # not stored (an abandoned pass would count as incomplete)
     cfg = ServeConfig(**SMALL).validate()
     src = _cached(CLIPS, tmp_path / "one")
-    a = video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS)
-    b = video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS)
-    for x, y in zip(a, b):
-        assert x[0] == y[0]
+    passes = [video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True) for _ in range(2)]
+    got: tuple = ({}, {})
+    for pair in itertools.zip_longest(*passes):
+        for seen, sample in zip(got, pair):
+            assert sample is not None, "the two passes gave different numbers of samples"
+            key, arrays, meta = sample
+            seen[key.sample_id(1)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
+    assert got[0] == got[1] == _samples(cfg, CLIPS, "bikes.mp4")
     stats = src.take_stats()["frame_cache"]
-    assert stats["stored"] == 1 and len(_entries(tmp_path / "one")) == 1, stats
+    assert stats["stored"] == 1 and stats["misses"]["absent"] == 2, stats
+    assert stats["not_stored"] == dict.fromkeys(stats["not_stored"], 0), stats
+    assert len(_entries(tmp_path / "one")) == 1 and not list((tmp_path / "one" / "frames").glob("*.tmp"))
+    assert _samples(cfg, src, "bikes.mp4") == got[0]  # the one entry serves the same samples
+    stats = src.take_stats()["frame_cache"]
+    assert stats["hits"] == 1 and stats["stored"] == 0, stats
 
 
 def test_full_disk_is_decoded_and_counted(tmp_path):
