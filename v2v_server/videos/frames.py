@@ -88,7 +88,7 @@ def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
     removed and the rest decoded."""
     i = 0
     try:
-        for a in entry.read(0):
+        for a in entry.read():
             if i >= limit:
                 return
             yield a, full_range
