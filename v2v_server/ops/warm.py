@@ -13,7 +13,7 @@ from typing import List, Optional, Sequence
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import frame_settings, video_frames
-from v2v_server.videos.frames import corpus_key
+from v2v_server.videos.frames import lookup_entry
 from v2v_server.videos.source import source_from_spec
 
 
@@ -76,9 +76,10 @@ def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] 
     if cfg is None or not videos:
         return line
     hits = 0
+    settings = frame_settings(cfg)
     for rel in videos:
         try:
-            entry = fc.lookup(fc.entry_name(corpus_key(source), rel, frame_settings(cfg)), source.identity(rel))
+            entry = lookup_entry(fc, source, rel, settings)[2]
         except Exception:  # the file's verdict says why; it is not cached
             continue
         if entry is not None:

@@ -40,6 +40,20 @@ def corpus_key(source) -> str:
     return root if "://" in root else os.path.abspath(root)
 
 
+def lookup_entry(cache: FrameCache, source, rel: str, settings: dict) -> Tuple[str, str, Optional[CachedVideo]]:
+    """Video ``rel`` of ``source`` in its frame cache ``cache``: the entry's name (by the corpus,
+    ``rel`` and the decode ``settings``), the source's identity, and the entry opened for reading
+    when it holds the video, else None (``FrameCache.lookup``: the miss counted, a stale or
+    damaged entry removed).
+
+    Raises:
+        VideoError: the source's identity cannot be read (``source.identity``).
+    """
+    identity = source.identity(rel)
+    name = cache.entry_name(corpus_key(source), rel, settings)
+    return name, identity, cache.lookup(name, identity)
+
+
 @contextlib.contextmanager
 def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings: dict,
                 limit_of: Callable[[int], int], stride: int) -> Iterator[FramePass]:
@@ -55,9 +69,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
     cache: Optional[FrameCache] = getattr(source, "frame_cache", None)
     name = identity = None
     if cache is not None:
-        identity = source.identity(rel)
-        name = cache.entry_name(corpus_key(source), rel, settings)
-        entry = cache.lookup(name, identity)
+        name, identity, entry = lookup_entry(cache, source, rel, settings)
         if entry is not None:
             declared = int(entry.meta["declared"])
             limit = limit_of(declared)
