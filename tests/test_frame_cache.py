@@ -404,3 +404,24 @@ def test_warm_cache_then_check(tmp_path):
     os.truncate(entry, 100)
     r = subprocess.run(args + ["--check"], capture_output=True, text=True, timeout=300)
     assert "2 of 3 videos cached (67%), misses: corrupt 1" in r.stdout, r.stdout
+
+
+def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, monkeypatch):
+    """With one worker the warm-up reads every video through the source it is given (never
+    rebuilt from its spec), each video's state from that video's counters alone."""
+    from v2v_server.ops import warm
+
+    cfg = ServeConfig(**SMALL, workers=1).validate()
+    src = _cached(CLIPS, tmp_path)
+    videos = ["bikes.mp4", "webvid_like_596x336.mp4"]
+
+    def same(root):
+        assert root is src, "the source was built again"
+        return root
+
+    monkeypatch.setattr(warm, "source_from_spec", same)
+    first = warm.warm_cache(cfg, src, videos)
+    assert [r["state"] for r in first] == ["stored", "stored"] and all(r["frames"] > 0 for r in first), first
+    again = warm.warm_cache(cfg, src, videos)
+    assert [r["state"] for r in again] == ["cached", "cached"], again
+    assert [r["frames"] for r in again] == [r["frames"] for r in first]
