@@ -365,6 +365,47 @@ def test_ray_stage_hits_its_node_local_cache(tmp_path):
     assert stats["hits"] == stats["stored"] == len(epoch_descriptors(rc, 0)), stats
 
 
+def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
+    """Rows of a video's first window only: the pass that stores the video reads it to its end
+    (the entry committed, nothing dropped as incomplete); the pass replaying that entry stops
+    after the window, as a pass without a cache stops decoding. Rows as without the cache."""
+    import json as _json
+
+    from v2v_server.ray_data import SampleMaker, epoch_descriptors, scan_corpus_windows
+    from v2v_server.videos import frame_cache
+    from v2v_wire.ids import parse_sample_id
+
+    cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path)).validate()
+    rc = scan_corpus_windows(str(CLIPS), cfg)
+    (d,) = [d for d in epoch_descriptors(rc, 0) if d["video"] == "bikes.mp4"]
+    entries = _json.loads(d["entries"])
+    first = [e for e in entries if parse_sample_id(e[0]).window == 0]
+    assert 0 < len(first) < len(entries)
+    replay: dict = {}
+    read = frame_cache.CachedVideo.read
+
+    def counted(self):
+        replay.update(stored=self.frames, read=0)
+        for a in read(self):
+            replay["read"] += 1
+            yield a
+
+    monkeypatch.setattr(frame_cache.CachedVideo, "read", counted)
+    maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels",))
+    plain = SampleMaker(ServeConfig(**SMALL).validate().to_dict(), rc.root, ("voxels",))
+
+    def rows(m):
+        return {str(r["sample_id"][0]): r["voxels"].tobytes() for r in m.video_rows("bikes.mp4", 0, first)}
+
+    want = rows(plain)
+    assert rows(maker) == want and not replay
+    stats = maker.source.take_stats()["frame_cache"]
+    assert stats["stored"] == 1 and stats["not_stored"]["incomplete"] == 0, stats
+    assert rows(maker) == want
+    assert maker.source.take_stats()["frame_cache"]["hits"] == 1
+    assert replay["read"] == cfg.window_stride + 1 < replay["stored"], replay  # window 0 ends at the next one's first frame
+
+
 def test_tar_member_entries_follow_their_shard(tmp_path):
     """Tar shards: a member's entry records its shard's identity and its offset; rewriting the
     shard is a miss."""

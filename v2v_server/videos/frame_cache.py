@@ -201,6 +201,12 @@ class EntryWriter:
         log.warning("frame cache: not storing %s (%s: %s)", self.header.get("video"), self.failed, e)
         self.abort()
 
+    @property
+    def writing(self) -> bool:
+        """Whether the entry is still being written: neither committed nor dropped (a failed
+        write, a budget refused, an abort)."""
+        return self.f is not None
+
     def add(self, frame: np.ndarray) -> None:
         """Append the next frame (full range, (H', W) uint8 or uint16)."""
         if self.f is None:

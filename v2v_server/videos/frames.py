@@ -26,12 +26,20 @@ Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 class FramePass:
     """A video opened for one pass: ``info`` (the stream's facts), ``declared`` (the container's
     frame count, 0 when it gives none), ``frames`` (an iterator of ``(codes, expand)``, at most
-    ``limit_of(declared)`` of them), ``cached`` (replayed from the frame cache)."""
+    ``limit_of(declared)`` of them), ``cached`` (replayed from the frame cache), ``writer``
+    (storing the decoded frames into the frame cache; None when replayed or the cache is off)."""
 
     info: VideoInfo
     declared: int
     frames: Iterator[Frame]
     cached: bool
+    writer: Optional[EntryWriter] = None
+
+    @property
+    def storing(self) -> bool:
+        """Whether the pass is still storing the video: then it must read ``frames`` to their end
+        for the entry to be committed (stopping early drops it)."""
+        return self.writer is not None and self.writer.writing
 
 
 def corpus_key(source) -> str:
@@ -91,7 +99,8 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         writer = None
         if cache is not None:
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
-        yield FramePass(info, declared, _decoded(decode_codes(container, stream, rows), limit_of(declared), writer), False)
+        yield FramePass(info, declared, _decoded(decode_codes(container, stream, rows), limit_of(declared), writer), False,
+                        writer)
 
 
 def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
