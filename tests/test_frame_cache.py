@@ -466,3 +466,25 @@ def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, mo
     again = warm.warm_cache(cfg, src, videos)
     assert [r["state"] for r in again] == ["cached", "cached"], again
     assert [r["frames"] for r in again] == [r["frames"] for r in first]
+
+
+def test_frame_cache_gauges_and_status_line_from_worker_counters():
+    """The server's frame-cache gauges, hit ratio and status line, from the counters workers
+    report (malformed ones ignored)."""
+    from prometheus_client.exposition import generate_latest
+
+    from v2v_server.ops.metrics import ServerMetrics
+
+    m = ServerMetrics(progress=False)
+    assert m.frame_cache_state(0, 0, 1 << 30)["frame_cache_hit_ratio"] == 0.0
+    for fc in ({"hits": 3, "misses": {"absent": 1, "corrupt": 1}, "stored": 1},
+               {"hits": 2, "misses": {"changed": 1, "absent": -4}},
+               {"hits": True, "misses": "none"}):
+        m.on_worker_message({"stages": {}, "store": {"frame_cache": fc}})
+    state = m.frame_cache_state(3 << 29, 2, 1 << 30)
+    assert state == {"frame_cache_bytes": 3 << 29, "frame_cache_entries": 2, "frame_cache_budget": 1 << 30,
+                     "frame_cache_hit_ratio": 5 / 8}
+    assert m.frame_cache_line(3 << 29, 2, 1 << 30) == (
+        "5 hit(s), misses absent 1, changed 1, corrupt 1 (62% hits), 2 entries, 1.50 of 1.00 GiB")
+    page = generate_latest(m.registry).decode()
+    assert "v2v_frame_cache_hits_total 5.0" in page and 'v2v_frame_cache_misses_total{cause="corrupt"} 1.0' in page
