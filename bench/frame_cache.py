@@ -36,8 +36,9 @@ def _source(corpus: Path, cache: Path, fmt: str, gb: float = 64.0):
     return open_source(str(corpus), cache_dir=str(cache), frame_cache_gb=gb, frame_cache_format=fmt)
 
 
-def _entry_bytes(cache: Path) -> List[int]:
-    return [p.stat().st_size for p in (cache / "frames").glob("*.v2vf")]
+def _entry_bytes(src) -> List[int]:
+    """Bytes of each entry in the frame cache of ``src``."""
+    return [size for _, size, _ in src.frame_cache.disk.entries()]
 
 
 def measure(clip: Path, videos: int, rounds: int) -> dict:
@@ -61,7 +62,7 @@ def measure(clip: Path, videos: int, rounds: int) -> dict:
                     worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, source=src, epoch=0))
                 runs.setdefault(f"{fmt} epoch 1", []).append(
                     worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, source=src, epoch=1))
-                sizes[fmt] = _entry_bytes(cache)
+                sizes[fmt] = _entry_bytes(src)
                 shutil.rmtree(cache)
         half = sum(sizes["raw"]) / 2
         src = _source(corpus, tmp / "cache-half", "raw", half / (1 << 30))

@@ -5,6 +5,7 @@ source replaced in place, the folder deleted while serving, two writers at once)
 decoding, with no sample lost or altered and the cause counted."""
 from __future__ import annotations
 
+import itertools
 import json
 import multiprocessing as mp
 import os
@@ -243,15 +244,26 @@ def test_two_writers_make_one_entry(tmp_path):
         p.join(120)
         assert p.exitcode == 0
     assert len(_entries(tmp_path)) == 1 and not list((tmp_path / "frames").glob("*.tmp"))
-    # and two interleaved passes in one process
+    # and two interleaved passes in one process, both driven to their end so that both writers
+    # commit: the second finds the entry there, drops its own and is counted neither stored nor
+    # not stored (an abandoned pass would count as incomplete)
     cfg = ServeConfig(**SMALL).validate()
     src = _cached(CLIPS, tmp_path / "one")
-    a = video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS)
-    b = video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS)
-    for x, y in zip(a, b):
-        assert x[0] == y[0]
+    passes = [video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True) for _ in range(2)]
+    got: tuple = ({}, {})
+    for pair in itertools.zip_longest(*passes):
+        for seen, sample in zip(got, pair):
+            assert sample is not None, "the two passes gave different numbers of samples"
+            key, arrays, meta = sample
+            seen[key.sample_id(1)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
+    assert got[0] == got[1] == _samples(cfg, CLIPS, "bikes.mp4")
     stats = src.take_stats()["frame_cache"]
-    assert stats["stored"] == 1 and len(_entries(tmp_path / "one")) == 1, stats
+    assert stats["stored"] == 1 and stats["misses"]["absent"] == 2, stats
+    assert stats["not_stored"] == dict.fromkeys(stats["not_stored"], 0), stats
+    assert len(_entries(tmp_path / "one")) == 1 and not list((tmp_path / "one" / "frames").glob("*.tmp"))
+    assert _samples(cfg, src, "bikes.mp4") == got[0]  # the one entry serves the same samples
+    stats = src.take_stats()["frame_cache"]
+    assert stats["hits"] == 1 and stats["stored"] == 0, stats
 
 
 def test_full_disk_is_decoded_and_counted(tmp_path):
@@ -353,6 +365,47 @@ def test_ray_stage_hits_its_node_local_cache(tmp_path):
     assert stats["hits"] == stats["stored"] == len(epoch_descriptors(rc, 0)), stats
 
 
+def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
+    """Rows of a video's first window only: the pass that stores the video reads it to its end
+    (the entry committed, nothing dropped as incomplete); the pass replaying that entry stops
+    after the window, as a pass without a cache stops decoding. Rows as without the cache."""
+    import json as _json
+
+    from v2v_server.ray_data import SampleMaker, epoch_descriptors, scan_corpus_windows
+    from v2v_server.videos import frame_cache
+    from v2v_wire.ids import parse_sample_id
+
+    cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path)).validate()
+    rc = scan_corpus_windows(str(CLIPS), cfg)
+    (d,) = [d for d in epoch_descriptors(rc, 0) if d["video"] == "bikes.mp4"]
+    entries = _json.loads(d["entries"])
+    first = [e for e in entries if parse_sample_id(e[0]).window == 0]
+    assert 0 < len(first) < len(entries)
+    replay: dict = {}
+    read = frame_cache.CachedVideo.read
+
+    def counted(self):
+        replay.update(stored=self.frames, read=0)
+        for a in read(self):
+            replay["read"] += 1
+            yield a
+
+    monkeypatch.setattr(frame_cache.CachedVideo, "read", counted)
+    maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels",))
+    plain = SampleMaker(ServeConfig(**SMALL).validate().to_dict(), rc.root, ("voxels",))
+
+    def rows(m):
+        return {str(r["sample_id"][0]): r["voxels"].tobytes() for r in m.video_rows("bikes.mp4", 0, first)}
+
+    want = rows(plain)
+    assert rows(maker) == want and not replay
+    stats = maker.source.take_stats()["frame_cache"]
+    assert stats["stored"] == 1 and stats["not_stored"]["incomplete"] == 0, stats
+    assert rows(maker) == want
+    assert maker.source.take_stats()["frame_cache"]["hits"] == 1
+    assert replay["read"] == cfg.window_stride + 1 < replay["stored"], replay  # window 0 ends at the next one's first frame
+
+
 def test_tar_member_entries_follow_their_shard(tmp_path):
     """Tar shards: a member's entry records its shard's identity and its offset; rewriting the
     shard is a miss."""
@@ -392,3 +445,46 @@ def test_warm_cache_then_check(tmp_path):
     os.truncate(entry, 100)
     r = subprocess.run(args + ["--check"], capture_output=True, text=True, timeout=300)
     assert "2 of 3 videos cached (67%), misses: corrupt 1" in r.stdout, r.stdout
+
+
+def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, monkeypatch):
+    """With one worker the warm-up reads every video through the source it is given (never
+    rebuilt from its spec), each video's state from that video's counters alone."""
+    from v2v_server.ops import warm
+
+    cfg = ServeConfig(**SMALL, workers=1).validate()
+    src = _cached(CLIPS, tmp_path)
+    videos = ["bikes.mp4", "webvid_like_596x336.mp4"]
+
+    def same(root):
+        assert root is src, "the source was built again"
+        return root
+
+    monkeypatch.setattr(warm, "source_from_spec", same)
+    first = warm.warm_cache(cfg, src, videos)
+    assert [r["state"] for r in first] == ["stored", "stored"] and all(r["frames"] > 0 for r in first), first
+    again = warm.warm_cache(cfg, src, videos)
+    assert [r["state"] for r in again] == ["cached", "cached"], again
+    assert [r["frames"] for r in again] == [r["frames"] for r in first]
+
+
+def test_frame_cache_gauges_and_status_line_from_worker_counters():
+    """The server's frame-cache gauges, hit ratio and status line, from the counters workers
+    report (malformed ones ignored)."""
+    from prometheus_client.exposition import generate_latest
+
+    from v2v_server.ops.metrics import ServerMetrics
+
+    m = ServerMetrics(progress=False)
+    assert m.frame_cache_state(0, 0, 1 << 30)["frame_cache_hit_ratio"] == 0.0
+    for fc in ({"hits": 3, "misses": {"absent": 1, "corrupt": 1}, "stored": 1},
+               {"hits": 2, "misses": {"changed": 1, "absent": -4}},
+               {"hits": True, "misses": "none"}):
+        m.on_worker_message({"stages": {}, "store": {"frame_cache": fc}})
+    state = m.frame_cache_state(3 << 29, 2, 1 << 30)
+    assert state == {"frame_cache_bytes": 3 << 29, "frame_cache_entries": 2, "frame_cache_budget": 1 << 30,
+                     "frame_cache_hit_ratio": 5 / 8}
+    assert m.frame_cache_line(3 << 29, 2, 1 << 30) == (
+        "5 hit(s), misses absent 1, changed 1, corrupt 1 (62% hits), 2 entries, 1.50 of 1.00 GiB")
+    page = generate_latest(m.registry).decode()
+    assert "v2v_frame_cache_hits_total 5.0" in page and 'v2v_frame_cache_misses_total{cause="corrupt"} 1.0' in page

@@ -243,8 +243,8 @@ class SampleMaker:
                 params = json.dumps(meta)
                 for pad in flags:
                     yield self._row(sid, arrays, params, epoch, pad)
-                if not wanted and self.source.frame_cache is None:
-                    break  # the rest of the video is not decoded; with a frame cache the pass ends whole to store it
+                if not wanted and not stats.get("storing"):
+                    break  # the rest of the video is not read; a pass storing it into the frame cache ends whole
         except Exception as e:  # one file's failure is that file's verdict, never the job's death
             error = verdict(self.cfg, stats.get("frames", 0), None, e)[2]
         if wanted:  # windows the file did not give: a verdict, and padding rows in their place

@@ -36,7 +36,7 @@ import sys
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, HTTPServer
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 from prometheus_client import CollectorRegistry, Counter
 from prometheus_client.core import GaugeMetricFamily
@@ -93,6 +93,10 @@ class ServerMetrics:
         self.fc_written = counter("v2v_frame_cache_written_bytes", "Bytes of entries added to the frame cache")
         self.fc_not_stored = counter("v2v_frame_cache_not_stored", "Decoded videos not stored, by cause: budget, "
                                      "disk_full, write_error, incomplete", ("cause",))
+        # the hit and miss totals again as plain numbers: the gauges and status line read them on
+        # every loop turn, where reading the counters back would walk the whole registry
+        self._fc_hits = 0
+        self._fc_misses: Dict[str, float] = dict.fromkeys(MISS_CAUSES, 0)
         for c in MISS_CAUSES:
             self.fc_misses.labels(cause=c)
         for c in SKIP_CAUSES:
@@ -174,25 +178,36 @@ class ServerMetrics:
         for key, c in (("hits", self.fc_hits), ("stored", self.fc_stored), ("bytes_written", self.fc_written)):
             if _count(fc.get(key)):
                 c.inc(fc[key])
+                if key == "hits":
+                    self._fc_hits += fc[key]
         for key, causes, c in (("misses", MISS_CAUSES, self.fc_misses), ("not_stored", SKIP_CAUSES, self.fc_not_stored)):
             d = fc.get(key)
             if isinstance(d, dict):
                 for cause in causes:
                     if _count(d.get(cause)):
                         c.labels(cause=cause).inc(d[cause])
+                        if key == "misses":
+                            self._fc_misses[cause] += d[cause]
+
+    def _fc_looked(self) -> Tuple[int, Dict[str, int], float]:
+        """Hits so far, misses by cause, and the hit ratio (0 before any lookup)."""
+        hits = int(self._fc_hits)
+        misses = {c: int(n) for c, n in self._fc_misses.items()}
+        looked = hits + sum(misses.values())
+        return hits, misses, hits / looked if looked else 0.0
 
     def frame_cache_state(self, nbytes: int, entries: int, budget: int) -> dict:
         """The frame cache's part of ``set_state``: its ``bytes``, ``entries`` and ``budget``
-        (from a scan of its folder), the hit ratio of the counters so far, and the status line."""
-        get = self.registry.get_sample_value
-        hits = int(get("v2v_frame_cache_hits_total") or 0)
-        misses = {c: int(get("v2v_frame_cache_misses_total", {"cause": c}) or 0) for c in MISS_CAUSES}
-        looked = hits + sum(misses.values())
-        ratio = hits / looked if looked else 0.0
-        line = (f"{hits} hit(s), misses {', '.join(f'{c} {n}' for c, n in misses.items())} ({ratio:.0%} hits), "
-                f"{entries} entries, {nbytes / (1 << 30):.2f} of {budget / (1 << 30):.2f} GiB")
+        (from a scan of its folder) and the hit ratio of the counters so far."""
         return {"frame_cache_bytes": nbytes, "frame_cache_entries": entries, "frame_cache_budget": budget,
-                "frame_cache_hit_ratio": ratio, "frame_cache_line": line}
+                "frame_cache_hit_ratio": self._fc_looked()[2]}
+
+    def frame_cache_line(self, nbytes: int, entries: int, budget: int) -> str:
+        """The frame cache's status line: hits and misses so far, the hit ratio, and the folder's
+        ``entries`` and ``nbytes`` against the ``budget``."""
+        hits, misses, ratio = self._fc_looked()
+        return (f"{hits} hit(s), misses {', '.join(f'{c} {n}' for c, n in misses.items())} ({ratio:.0%} hits), "
+                f"{entries} entries, {nbytes / (1 << 30):.2f} of {budget / (1 << 30):.2f} GiB")
 
     def tick(self, state_fn, every_s: float = 0.25) -> None:
         """Call ``set_state(**state_fn())`` unless that was done less than ``every_s`` seconds

@@ -9,12 +9,12 @@ and stored on a miss, read back (every frame's checksum verified) on a hit.
 from __future__ import annotations
 
 import multiprocessing as mp
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import frame_settings, video_frames
-from v2v_server.videos.frames import corpus_key
-from v2v_server.videos.source import source_from_spec
+from v2v_server.videos.frames import lookup_entry
+from v2v_server.videos.source import VideoSource, source_from_spec
 
 
 def warm_video(cfg: ServeConfig, root, rel: str) -> dict:
@@ -23,6 +23,7 @@ def warm_video(cfg: ServeConfig, root, rel: str) -> dict:
     whole), ``stored``, or ``not stored: CAUSE`` (budget, disk_full, write_error, or the
     decoding error)."""
     source = source_from_spec(root)
+    source.take_stats()  # the counters read below are this video's alone
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
     cached = False
     try:
@@ -46,23 +47,34 @@ def warm_video(cfg: ServeConfig, root, rel: str) -> dict:
     return out
 
 
-def _warm(args):
-    return warm_video(*args)
+#: A warm-up pool process's recipe and source, built once by :func:`_init_worker` (building a
+#: source opens its filesystem client and reads its manifest and tar indexes: not once per video).
+_worker: Optional[Tuple[ServeConfig, VideoSource]] = None
+
+
+def _init_worker(cfg: ServeConfig, spec: dict) -> None:
+    global _worker
+    _worker = (cfg, source_from_spec(spec))
+
+
+def _warm(rel: str) -> dict:
+    cfg, source = _worker
+    return warm_video(cfg, source, rel)
 
 
 def warm_cache(cfg: ServeConfig, source, videos: List[str]) -> List[dict]:
-    """:func:`warm_video` for every video, in ``cfg.workers`` processes.
+    """:func:`warm_video` for every video, in ``cfg.workers`` processes (``source`` itself
+    in this one, or rebuilt once in each of them from its ``spec()``).
 
     Raises:
         ValueError: the frame cache is off (``frame_cache_gb`` 0).
     """
     if getattr(source, "frame_cache", None) is None:
         raise ValueError("--warm-cache needs a frame cache: give frame_cache_gb > 0 (and cache_dir)")
-    jobs = [(cfg, source.spec(), v) for v in videos]
-    if cfg.workers <= 1 or len(jobs) <= 1:
-        return [warm_video(*j) for j in jobs]
-    with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
-        return pool.map(_warm, jobs, chunksize=1)
+    if cfg.workers <= 1 or len(videos) <= 1:
+        return [warm_video(cfg, source, v) for v in videos]
+    with mp.get_context("spawn").Pool(min(cfg.workers, len(videos)), _init_worker, (cfg, source.spec())) as pool:
+        return pool.map(_warm, videos, chunksize=1)
 
 
 def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] = ()) -> str:
@@ -76,9 +88,10 @@ def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] 
     if cfg is None or not videos:
         return line
     hits = 0
+    settings = frame_settings(cfg)
     for rel in videos:
         try:
-            entry = fc.lookup(fc.entry_name(corpus_key(source), rel, frame_settings(cfg)), source.identity(rel))
+            entry = lookup_entry(fc, source, rel, settings)[2]
         except Exception:  # the file's verdict says why; it is not cached
             continue
         if entry is not None:

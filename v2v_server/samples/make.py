@@ -350,7 +350,9 @@ def video_samples(
     declared frame count when it has one). When given, ``stats`` receives
     ``frames`` (frames decoded), ``windows`` (complete windows, skipped and failed ones
     included), ``width``, ``height``, ``fps``, ``busy`` (seconds simulating and estimating
-    flow, see ``make_sample``) and, when some window could not be made, ``failed`` (window ->
+    flow, see ``make_sample``), ``storing`` (as each sample is yielded: whether the pass is still
+    storing the video in the frame cache, ``frames.FramePass.storing``; a consumer that stops
+    early then drops the entry) and, when some window could not be made, ``failed`` (window ->
     reason; e.g. the frame size changed inside it: that window fails, the following ones are
     planned on the new size). ``flow_grid``: see ``make_sample``.
 
@@ -412,6 +414,7 @@ def _samples(cfg: ServeConfig, fp: FramePass, rel_path: str, epoch: int, outputs
             for key, plan, frames in win.finish():
                 arrays = make_sample(cfg, plan, degrade_window(plan, frames), outputs, flow, info.fps,
                                      stats.setdefault("busy", {}), flow_grid)
+                stats["storing"] = fp.storing
                 yield key, arrays, sample_meta(plan, info.fps, (k - 1) * stride)
             win = None
         if off == 0 and k < n_windows:  # ... and starts window k

@@ -25,7 +25,7 @@ import logging
 import signal
 import threading
 import time
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import zmq
 
@@ -246,9 +246,9 @@ class V2VServer:
                  m["samples_made"], len(self.ledger.ready), self.ledger.in_flight(), held, capacity,
                  m["workers_restarted"],
                  m["tasks_timed_out"], len(self.workers.skipped_files), m["bad_messages"], self.clients.bad.suppressed)
-        fc = self._frame_cache_state()
-        if fc:
-            log.info("frame cache: %s", fc["frame_cache_line"])
+        usage = self._frame_cache_usage()
+        if usage is not None:
+            log.info("frame cache: %s", self.metrics.frame_cache_line(*usage))
 
     def _count_resent(self) -> None:
         """Count the ledger's re-queued batches into the metrics (the ledger re-queues them
@@ -271,15 +271,21 @@ class V2VServer:
                 "shuffle_samples": held, "shuffle_capacity": capacity, **self._frame_cache_state(),
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
 
-    def _frame_cache_state(self) -> dict:
-        """The host's frame cache as gauges: its folder scanned at most every ``FRAME_CACHE_SCAN_S``."""
+    def _frame_cache_usage(self) -> Optional[Tuple[int, int, int]]:
+        """The host's frame cache as ``(bytes, entries, budget)``, its folder scanned at most every
+        ``FRAME_CACHE_SCAN_S``; None when there is none."""
         fc = getattr(self.source, "frame_cache", None)
         if fc is None:
-            return {}
+            return None
         now = time.monotonic()
         if now - self._fc_scanned[0] >= FRAME_CACHE_SCAN_S:
             self._fc_scanned = (now, fc.disk.usage())
-        return self.metrics.frame_cache_state(*self._fc_scanned[1], fc.disk.max_bytes)
+        return (*self._fc_scanned[1], fc.disk.max_bytes)
+
+    def _frame_cache_state(self) -> dict:
+        """The host's frame cache as gauges (none when there is no cache)."""
+        usage = self._frame_cache_usage()
+        return {} if usage is None else self.metrics.frame_cache_state(*usage)
 
     def _corpus_empty(self) -> bool:
         """Every file failed and nothing was ever made: no epoch can hold a sample."""

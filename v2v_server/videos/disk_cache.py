@@ -4,7 +4,7 @@ objects (``store_io.ObjectCache``) and decoded frames (``frame_cache.FrameCache`
 
 An entry is written under a temporary name (``NAME.PID-N.tmp``) and renamed into place when it is
 complete, so a reader never sees a torn entry and a process killed mid-write leaves only a
-temporary file, which the next commit of any process removes once its writer is gone. Commits
+temporary file, which a later commit of any process removes once its writer is gone. Commits
 take an exclusive ``flock`` on a lock file beside the folder (``.NAME.lock``), so the budget check and the rename are one
 step for all processes of the host: two writers of the same entry leave one entry, and the
 budget holds however many processes commit at once.
@@ -43,6 +43,21 @@ def _pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def _live_bytes(e: os.DirEntry) -> int:
+    """Bytes of the temporary file ``e`` (``NAME.PID-N.tmp``) while its writer is alive; a dead
+    writer's file is removed (0)."""
+    try:
+        pid = int(e.name[:-len(TMP_SUFFIX)].rsplit(".", 1)[1].split("-")[0])
+        size = e.stat().st_size
+    except (ValueError, IndexError, OSError):
+        return 0
+    if _pid_alive(pid):
+        return size
+    with contextlib.suppress(OSError):
+        os.unlink(e.path)
+    return 0
 
 
 class DiskCache:
@@ -90,42 +105,31 @@ class DiskCache:
 
     def entries(self) -> List[Tuple[float, int, Path]]:
         """``(mtime, bytes, path)`` of every complete entry (temporary files and the lock left out)."""
-        out = []
+        return self._scan()[0]
+
+    def _scan(self, writers: bool = False, keep: Optional[Path] = None) -> Tuple[List[Tuple[float, int, Path]], int]:
+        """One pass over the folder: every complete entry (:meth:`entries`) and, with ``writers``,
+        the bytes of the temporary files other than ``keep`` whose writer is alive; those of dead
+        writers are removed."""
+        out: List[Tuple[float, int, Path]] = []
+        writing = 0
         try:
             it = list(os.scandir(self.folder))
         except FileNotFoundError:
-            return out
+            return out, 0
         for e in it:
-            if e.name.startswith(".") or e.name.endswith(TMP_SUFFIX):
+            if e.name.endswith(TMP_SUFFIX):
+                if writers and Path(e.path) != keep:
+                    writing += _live_bytes(e)
+                continue
+            if e.name.startswith("."):
                 continue
             try:
                 st = e.stat()
             except OSError:
                 continue  # removed meanwhile
             out.append((st.st_mtime, st.st_size, Path(e.path)))
-        return out
-
-    def _writing(self, keep: Path) -> int:
-        """Bytes of temporary files whose writer is alive; those of dead writers are removed."""
-        total = 0
-        try:
-            it = list(os.scandir(self.folder))
-        except FileNotFoundError:
-            return 0
-        for e in it:
-            if not e.name.endswith(TMP_SUFFIX) or Path(e.path) == keep:
-                continue
-            try:
-                pid = int(e.name[:-len(TMP_SUFFIX)].rsplit(".", 1)[1].split("-")[0])
-                size = e.stat().st_size
-            except (ValueError, IndexError, OSError):
-                continue
-            if _pid_alive(pid):
-                total += size
-            else:
-                with contextlib.suppress(OSError):
-                    os.unlink(e.path)
-        return total
+        return out, writing
 
     def usage(self) -> Tuple[int, int]:
         """``(bytes, entries)`` of the complete entries."""
@@ -157,11 +161,11 @@ class DiskCache:
                 if dest.exists():
                     tmp.unlink(missing_ok=True)
                     return "exists"
-                ents = self.entries()
-                used = sum(e[1] for e in ents) + self._writing(tmp)
                 if size > self.max_bytes:
                     tmp.unlink(missing_ok=True)
                     return "budget"
+                ents, writing = self._scan(writers=True, keep=tmp)
+                used = sum(e[1] for e in ents) + writing
                 if used + size > self.max_bytes:
                     if self.policy == "keep":
                         tmp.unlink(missing_ok=True)

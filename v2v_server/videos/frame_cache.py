@@ -94,12 +94,11 @@ def decode_settings(decode_fast: str, keep_top_fraction: float, frames_per_sampl
 
 @dataclass
 class CachedVideo:
-    """An entry opened for reading: the stream facts stored with it and its frames.
+    """An entry opened for reading. ``meta``: its trailer, the stream facts stored with it
+    (``info``: the stream's ``decode.VideoInfo`` as a dict; ``declared``: the container's frame
+    count, 0 when it gives none) and where each frame lies; ``frames``: frames stored, which
+    :meth:`read` gives."""
 
-    ``width``, ``height``: the coded frame size, pixels; ``fps``: Hz; ``declared``: the
-    container's frame count (0 when it gives none); ``frames``: frames stored."""
-
-    path: Path
     meta: dict
     buf: object  # mmap of the whole file
     data_end: int
@@ -108,9 +107,9 @@ class CachedVideo:
     def frames(self) -> int:
         return len(self.meta["offsets"])
 
-    def read(self, start: int = 0) -> Iterator[np.ndarray]:
-        """Frames ``start``.. as (H', W) arrays of the stored dtype (read-only; a raw entry's
-        are views of the map, valid until :meth:`close`).
+    def read(self) -> Iterator[np.ndarray]:
+        """Every stored frame, in order, as (H', W) arrays of the stored dtype (read-only; a raw
+        entry's are views of the map, valid until :meth:`close`).
 
         Raises:
             CorruptEntry: a frame fails its checksum or lies outside the file.
@@ -126,11 +125,8 @@ class CachedVideo:
 
             dec = zstandard.ZstdDecompressor()
         prev = None
-        first = start
-        keys = set(m["keys"])
-        if zstd:  # differences: go back to the last frame stored whole
-            first = max([k for k in keys if k <= start] or [0])
-        for i in range(first, self.frames):
+        keys = set(m["keys"])  # zstd: the frames stored whole; the others are differences to the previous
+        for i in range(self.frames):
             o, n = offsets[i], sizes[i]
             if o + n > self.data_end:
                 raise CorruptEntry(f"frame {i} lies past the end of the data")
@@ -152,8 +148,7 @@ class CachedVideo:
                 if sum64(a) != sums[i]:
                     raise CorruptEntry(f"frame {i} fails its checksum")
                 a = a.reshape(h, w)
-            if i >= start:
-                yield a
+            yield a
 
     def close(self) -> None:
         try:
@@ -205,6 +200,12 @@ class EntryWriter:
         self.failed = "disk_full" if is_disk_full(e) else "write_error"
         log.warning("frame cache: not storing %s (%s: %s)", self.header.get("video"), self.failed, e)
         self.abort()
+
+    @property
+    def writing(self) -> bool:
+        """Whether the entry is still being written: neither committed nor dropped (a failed
+        write, a budget refused, an abort)."""
+        return self.f is not None
 
     def add(self, frame: np.ndarray) -> None:
         """Append the next frame (full range, (H', W) uint8 or uint16)."""
@@ -327,7 +328,7 @@ class FrameCache:
             return None
         with f:
             try:
-                entry = _open_entry(path, f)
+                entry = _open_entry(f)
             except CorruptEntry as e:
                 log.warning("frame cache: entry %s is corrupt (%s): removed, decoding", path.name, e)
                 self.misses["corrupt"] += 1
@@ -361,7 +362,7 @@ class FrameCache:
         return out
 
 
-def _open_entry(path: Path, f) -> CachedVideo:
+def _open_entry(f) -> CachedVideo:
     """Map ``f`` and read its trailer.
 
     Raises:
@@ -388,6 +389,6 @@ def _open_entry(path: Path, f) -> CachedVideo:
     except ValueError as e:
         buf.close()
         raise CorruptEntry(f"trailer does not parse: {e}") from None
-    return CachedVideo(path, meta, buf, start)
+    return CachedVideo(meta, buf, start)
 
 

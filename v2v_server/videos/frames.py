@@ -26,18 +26,40 @@ Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 class FramePass:
     """A video opened for one pass: ``info`` (the stream's facts), ``declared`` (the container's
     frame count, 0 when it gives none), ``frames`` (an iterator of ``(codes, expand)``, at most
-    ``limit_of(declared)`` of them), ``cached`` (replayed from the frame cache)."""
+    ``limit_of(declared)`` of them), ``cached`` (replayed from the frame cache), ``writer``
+    (storing the decoded frames into the frame cache; None when replayed or the cache is off)."""
 
     info: VideoInfo
     declared: int
     frames: Iterator[Frame]
     cached: bool
+    writer: Optional[EntryWriter] = None
+
+    @property
+    def storing(self) -> bool:
+        """Whether the pass is still storing the video: then it must read ``frames`` to their end
+        for the entry to be committed (stopping early drops it)."""
+        return self.writer is not None and self.writer.writing
 
 
 def corpus_key(source) -> str:
     """The corpus as an entry name's part: the URL, or the folder's absolute path."""
     root = str(source.root)
     return root if "://" in root else os.path.abspath(root)
+
+
+def lookup_entry(cache: FrameCache, source, rel: str, settings: dict) -> Tuple[str, str, Optional[CachedVideo]]:
+    """Video ``rel`` of ``source`` in its frame cache ``cache``: the entry's name (by the corpus,
+    ``rel`` and the decode ``settings``), the source's identity, and the entry opened for reading
+    when it holds the video, else None (``FrameCache.lookup``: the miss counted, a stale or
+    damaged entry removed).
+
+    Raises:
+        VideoError: the source's identity cannot be read (``source.identity``).
+    """
+    identity = source.identity(rel)
+    name = cache.entry_name(corpus_key(source), rel, settings)
+    return name, identity, cache.lookup(name, identity)
 
 
 @contextlib.contextmanager
@@ -55,9 +77,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
     cache: Optional[FrameCache] = getattr(source, "frame_cache", None)
     name = identity = None
     if cache is not None:
-        identity = source.identity(rel)
-        name = cache.entry_name(corpus_key(source), rel, settings)
-        entry = cache.lookup(name, identity)
+        name, identity, entry = lookup_entry(cache, source, rel, settings)
         if entry is not None:
             declared = int(entry.meta["declared"])
             limit = limit_of(declared)
@@ -79,7 +99,8 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         writer = None
         if cache is not None:
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
-        yield FramePass(info, declared, _decoded(decode_codes(container, stream, rows), limit_of(declared), writer), False)
+        yield FramePass(info, declared, _decoded(decode_codes(container, stream, rows), limit_of(declared), writer), False,
+                        writer)
 
 
 def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
@@ -88,7 +109,7 @@ def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
     removed and the rest decoded."""
     i = 0
     try:
-        for a in entry.read(0):
+        for a in entry.read():
             if i >= limit:
                 return
             yield a, full_range

@@ -28,8 +28,10 @@ once; the server stays up.
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
+import stat
 import time
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
@@ -294,14 +296,27 @@ class LocalSource(VideoSource):
     def identity(self, rel: str) -> str:
         member = self.split_member(rel)
         try:
-            if member is not None and Path(self.root, member[0]).is_file():
-                st = os.stat(corpus_file(self.root, member[0]))
+            shard = self._shard_stat(member[0]) if member is not None else None
+            if shard is not None:
+                corpus_file(self.root, member[0])  # a link out of the root is refused
                 offset, size = self._member_at(rel, None)
-                return f"tar {st.st_size} {st.st_mtime_ns} {st.st_ino} member {offset} {size}"
+                return f"tar {shard.st_size} {shard.st_mtime_ns} {shard.st_ino} member {offset} {size}"
             st = os.stat(corpus_file(self.root, rel))
         except OSError as e:
             raise VideoError(f"cannot read: {e.strerror or e}") from None
         return f"file {st.st_size} {st.st_mtime_ns} {st.st_ino}"
+
+    def _shard_stat(self, tar: str) -> Optional[os.stat_result]:
+        """The status of ``tar`` (links followed) when it is a file, a tar shard; None when it is
+        missing or no file (a folder named like a shard), the errors ``Path.is_file`` takes for
+        no; others raise."""
+        try:
+            st = os.stat(Path(self.root, tar))
+        except OSError as e:
+            if e.errno in (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP):
+                return None
+            raise
+        return st if stat.S_ISREG(st.st_mode) else None
 
     def spec(self) -> dict:
         return {"root": self.root, "video_list": self.video_list, "names": self.names, **self._cache_spec()}
@@ -531,10 +546,11 @@ class StoreSource(_StoreManifest, VideoSource):
             info = self.fs.info(self._path(obj))  # one HEAD request: no content read
         self.stats.reads += 1
         now, size = etag_of(info), int(info.get("size") or 0)
-        self._check_unchanged(self._expected(obj if member is None else rel), now)
+        entry = self._expected(rel)  # the listing's entry: the object's, or the member's (its shard's ETag, its offset)
+        self._check_unchanged(entry, now)
         if member is None:
             return f"object {size} {now}"
-        offset, msize = self._member_at(rel, self._expected(rel))
+        offset, msize = self._member_at(rel, entry)
         return f"tar {size} {now} member {offset} {msize}"
 
     @contextlib.contextmanager

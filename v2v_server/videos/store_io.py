@@ -152,8 +152,7 @@ class ObjectCache:
     atomic writes make it safe to share between the processes of a host)."""
 
     def __init__(self, folder: Path, max_gb: float):
-        self.folder, self.max_gb = Path(folder), float(max_gb)
-        self.disk = DiskCache(self.folder, int(self.max_gb * (1 << 30)), "lru")
+        self.disk = DiskCache(folder, int(float(max_gb) * (1 << 30)), "lru")
 
     @contextlib.contextmanager
     def open(self, name: str, etag: str, f):
