@@ -51,7 +51,7 @@ from v2v_wire.protocol import check_outputs
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
-from v2v_server.videos.corpus import verdict
+from v2v_server.videos.corpus import check_video, pass_verdict, verdict
 from v2v_server.videos.decode import open_video
 from v2v_server.videos.source import LocalSource, source_from_config, source_from_spec
 
@@ -87,13 +87,18 @@ class RayCorpus:
 
 def count_windows(cfg: ServeConfig, root, rel: str) -> Tuple[int, Optional[str]]:
     """Windows the video at ``rel`` of ``root`` (a corpus folder or a
-    ``videos.source.VideoSource``) gives per epoch, from its video packets (demuxed, not decoded).
+    ``videos.source.VideoSource``) gives per epoch, from its video packets (demuxed, not
+    decoded); with ``shot_cuts: avoid``, from one decode pass that finds its cuts
+    (``corpus.check_video``: the windows depend on them).
 
     Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
     ``v2v-serve`` logs for it (``open_video``'s ``VideoError`` message, or ``"N frames,
     shorter than one window of 201 frames"``). A file whose packets demux but whose frames
     do not decode is found out later, while decoding, with the decoder's reason.
     """
+    if cfg.shot_cuts == "avoid":  # where windows lie depends on the cuts: the file is decoded and scored
+        r = check_video(cfg, root, rel)
+        return r["windows"], (None if r["usable"] else r["reason"])
     frames, error = 0, None
     try:
         with source_from_spec(root).open(rel) as path:
@@ -246,9 +251,9 @@ class SampleMaker:
                 if not wanted and not stats.get("storing"):
                     break  # the rest of the video is not read; a pass storing it into the frame cache ends whole
         except Exception as e:  # one file's failure is that file's verdict, never the job's death
-            error = verdict(self.cfg, stats.get("frames", 0), None, e)[2]
+            error = pass_verdict(self.cfg, stats, e)
         if wanted:  # windows the file did not give: a verdict, and padding rows in their place
-            error = error or verdict(self.cfg, stats.get("frames", 0))[2] or (
+            error = error or pass_verdict(self.cfg, stats) or (
                 f"{stats.get('frames', 0)} frames decoded, fewer than its packets promised")
             log.warning("skipped %s: %s", self.source.where(video), error)
             zeros = _zeros(self.cfg, self.outputs)

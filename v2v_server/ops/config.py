@@ -21,6 +21,7 @@ from v2v_server.ops.settings import load_yaml, reference_markdown, setting
 from v2v_server.checks import check_bool, check_choice, check_float, check_int, check_keys, check_prob
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
+from v2v_server.videos.shots import SHOT_CUTS
 from v2v_server.videos.frame_cache import FORMATS as FRAME_CACHE_FORMATS
 
 #: Optical-flow options by name (the table lives in v2v_server/flow/options.py).
@@ -58,6 +59,10 @@ class SampleRecipe:
                                                   "from (WebVid's watermark; 1.0 for clips without one)")
     hflip_prob: float = setting(0.5, help="probability of a horizontal flip")
     max_samples_per_video: int = setting(10, help="windows (samples with crops_per_window 1) per video per epoch")
+    shot_cuts: str = setting("avoid", help="avoid: windows lie inside one shot (they start at each shot's first "
+                                           "frame + k x stride; shot cuts found while decoding, docs/corpora.md); "
+                                           "off: windows at k x stride whatever they hold (the authors' loader)",
+                             choices=SHOT_CUTS)
     crops_per_window: int = setting(1, help="random crops per decoded window, each its own sample (own crop, flip, "
                                             "pauses, sensor parameters; ids path#window.crop when > 1)")
     pause_enabled: bool = setting(True, help="pause augmentation (a Markov chain repeating the previous frame)")
@@ -151,6 +156,7 @@ class SampleRecipe:
             raise ValueError(f"flow_preset {self.flow_preset!r} cannot run here: {why}")
         check_choice("flow_dtype", self.flow_dtype, FLOW_DTYPES)
         check_choice("decode_fast", self.decode_fast, tuple(DECODE_FAST))
+        check_choice("shot_cuts", self.shot_cuts, SHOT_CUTS)
         if not isinstance(self.ranges, ParamRanges):
             self.ranges = ParamRanges.from_dict(self.ranges)
         from v2v_server.samples.augment import parse_degrade

@@ -85,6 +85,10 @@ class ServerMetrics:
                                      "(opens and range requests; / v2v_store_reads_total = mean read latency)")
         self.store_retries = counter("v2v_store_retries", "Store requests retried by the storage library")
         self.store_skipped = counter("v2v_store_objects_skipped", "Objects missing or changed since they were listed")
+        self.shot_cuts = counter("v2v_shot_cuts", "Shot cuts met by sample passes (found while decoding, or stored "
+                                 "with a frame-cache entry); every pass over a video counts its cuts")
+        self.windows_cut = counter("v2v_windows_cut", "Windows a shot cut removed (shot_cuts: avoid): a window in "
+                                   "progress that a cut fell inside")
         self.fc_hits = counter("v2v_frame_cache_hits", "Videos cut from the frame cache instead of decoded")
         self.fc_misses = counter("v2v_frame_cache_misses", "Videos decoded with the frame cache on, by cause: absent "
                                  "(not stored yet), changed (the source's identity changed), corrupt (a damaged "
@@ -155,10 +159,15 @@ class ServerMetrics:
         """Add the stage seconds a worker message carries (``header["stages"]``, a dict of
         stage -> seconds since the worker's previous message) and its object-store reads
         (``header["store"]``: ``bytes``, ``reads``, ``read_s``, ``retries``, ``skipped``, see
-        ``videos.source.VideoSource.take_stats``); ignores anything malformed."""
+        ``videos.source.VideoSource.take_stats``), and a ``done`` message's shot ``cuts`` and the
+        windows they removed (``dropped``); ignores anything malformed."""
         stages = header.get("stages") if isinstance(header, dict) else None
         if not isinstance(stages, dict):
             return
+        if header.get("type") == "done":
+            for key, c in (("cuts", self.shot_cuts), ("dropped", self.windows_cut)):
+                if _count(header.get(key)):
+                    c.inc(header[key])
         store = header.get("store")
         if isinstance(store, dict):
             for key, c in (("bytes", self.store_bytes), ("reads", self.store_reads), ("read_s", self.store_seconds),

@@ -27,7 +27,8 @@ from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.videos.decode import to_uint8
 from v2v_server.videos.frame_cache import decode_settings
-from v2v_server.videos.frames import FramePass, open_frames
+from v2v_server.videos.frames import FramePass, kept_rows as frame_rows, open_frames
+from v2v_server.videos.shots import DETECTOR_VERSION, WindowLayout
 
 if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
     from v2v_server.ops.config import ServeConfig
@@ -83,8 +84,8 @@ class WindowPlan:
 
 
 def kept_rows(cfg: ServeConfig, height: int) -> int:
-    """Rows kept from the top of a frame of ``height`` pixels (WebVid watermark removal)."""
-    return max(1, int(math.floor(height * cfg.keep_top_fraction)))
+    """Rows kept from the top of a frame of ``height`` pixels (WebVid watermark removal, ``frames.kept_rows``)."""
+    return frame_rows(cfg.keep_top_fraction, height)
 
 
 def plan_window(cfg: ServeConfig, epoch: int, sample_id: str, window: int, kept_hw: Tuple[int, int]) -> WindowPlan:
@@ -374,14 +375,32 @@ def video_frames(cfg: ServeConfig, root, rel_path: str):
     """
     rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
     return open_frames(source_from_spec(root), rel_path, rows, cfg.decode_threads, cfg.decode_fast,
-                       frame_settings(cfg), lambda declared: cfg.frames_for(_windows(cfg, declared)),
-                       cfg.window_stride)
+                       frame_settings(cfg), lambda declared: _frame_limit(cfg, declared), cfg.window_stride,
+                       detect=cfg.shot_cuts == "avoid")
+
+
+def _frame_limit(cfg: ServeConfig, declared: int) -> int:
+    """Frames a pass may read: those of the windows the declared frame count allows; with
+    ``shot_cuts: avoid`` every declared frame (where windows lie depends on the cuts; the pass
+    ends once the last window is complete, ``WindowLayout.done``)."""
+    if cfg.shot_cuts == "avoid":
+        return declared if declared >= cfg.frames_per_sample else (1 << 62)
+    return cfg.frames_for(_windows(cfg, declared))
+
+
+def window_layout(cfg: ServeConfig, declared: int = 0) -> WindowLayout:
+    """The windows of a video whose container declares ``declared`` frames (0: unknown), as the
+    recipe places them (``shot_cuts``)."""
+    return WindowLayout(cfg.frames_per_sample, _windows(cfg, declared), cfg.shot_cuts == "avoid")
 
 
 def frame_settings(cfg: ServeConfig) -> dict:
     """The recipe's settings that change the frames a pass reads (``frame_cache.decode_settings``):
     what, with the corpus and the video, names a frame-cache entry."""
-    return decode_settings(cfg.decode_fast, cfg.keep_top_fraction, cfg.frames_per_sample, cfg.max_samples_per_video)
+    settings = decode_settings(cfg.decode_fast, cfg.keep_top_fraction, cfg.frames_per_sample, cfg.max_samples_per_video)
+    if cfg.shot_cuts == "avoid":  # the entry holds the frames up to the last window, and the cuts this detector found
+        settings["shots"] = DETECTOR_VERSION
+    return settings
 
 
 def _windows(cfg: ServeConfig, declared: int) -> int:
@@ -397,29 +416,37 @@ def _samples(cfg: ServeConfig, fp: FramePass, rel_path: str, epoch: int, outputs
              ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
     """:func:`video_samples` of the video's frames ``fp`` (decoded, or replayed from the frame cache)."""
     skip = set(skip)
-    span, stride = cfg.frames_per_sample, cfg.window_stride
+    span = cfg.frames_per_sample
     kpw = cfg.crops_per_window
     info = fp.info
     stats = {} if stats is None else stats
-    stats.update(frames=0, windows=0, width=info.width, height=info.height, fps=info.fps)
-    n_windows = _windows(cfg, fp.declared)
+    stats.update(frames=0, windows=0, cuts=0, dropped=0, width=info.width, height=info.height, fps=info.fps)
+    layout = window_layout(cfg, fp.declared)
     win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
-    for i, (codes, expand) in enumerate(fp.frames):  # the frames of n_windows windows at most (video_frames)
+    start = 0  # its first frame
+    for i, (codes, expand) in enumerate(fp.frames):  # the frames of the layout's windows at most (video_frames)
         stats["frames"] = i + 1
-        k, off = divmod(i, stride)
+        ev = layout.step(i, fp.cut_at(i))
+        stats.update(cuts=layout.cuts, dropped=layout.dropped)
         full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled
-        if off == 0 and win is not None:  # this frame ends window k - 1 ...
+        if ev.drops is not None:  # a cut inside the window in progress: it would show two scenes
+            win = None
+        if ev.ends is not None:  # this frame ends the window in progress ...
             win.add(span - 1, codes, expand, full, stats)
             stats["windows"] += 1
             for key, plan, frames in win.finish():
                 arrays = make_sample(cfg, plan, degrade_window(plan, frames), outputs, flow, info.fps,
                                      stats.setdefault("busy", {}), flow_grid)
                 stats["storing"] = fp.storing
-                yield key, arrays, sample_meta(plan, info.fps, (k - 1) * stride)
+                yield key, arrays, sample_meta(plan, info.fps, start)
             win = None
-        if off == 0 and k < n_windows:  # ... and starts window k
+            if layout.done:  # every window is made: the rest of the video serves nothing
+                fp.end()
+                return
+        if ev.starts is not None:  # ... and starts the next one
+            k, start = ev.starts, i
             win = _Window(k, codes.shape, expand,
                           [_CropCut(cfg, key, plan_window(cfg, epoch, key.sample_id(kpw), k, codes.shape))
                            for key in window_keys(rel_path, k, kpw) if key not in skip])
         if win is not None:
-            win.add(off, codes, expand, full, stats)
+            win.add(i - start, codes, expand, full, stats)

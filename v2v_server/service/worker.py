@@ -27,7 +27,7 @@ import zmq
 
 from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
-from v2v_server.videos.corpus import verdict
+from v2v_server.videos.corpus import pass_verdict
 from v2v_server.videos.source import source_from_spec, take_store_stats
 from v2v_server.service.datapath import SlotRing
 from v2v_server.ops.logs import setup_logging
@@ -197,10 +197,11 @@ def run_task(cfg: SampleRecipe, root, task: dict, sock: zmq.Socket, parent_pid: 
     except Exception as e:  # any failure on one file is that file's verdict, not the worker's death
         error = e
     # failed windows are reported one by one below, not in the file's verdict
-    error = verdict(cfg, stats.get("frames", 0), None, error)[2]
+    error = pass_verdict(cfg, stats, error)
     clock.made()  # decoding after the last window
     done = {"type": "done", "task": task["task"], "frames": stats.get("frames", 0),
             "windows": stats.get("windows", 0), "error": error, "stages": clock.report(),
+            "cuts": stats.get("cuts", 0), "dropped": stats.get("dropped", 0),  # shot cuts found, windows they removed
             "store": take_store_stats(root),  # object-store reads of this task (empty for a folder)
             "failed": {str(k): str(v) for k, v in stats.get("failed", {}).items()}}  # window -> reason
     _send(sock, [pack(done)], parent_pid)

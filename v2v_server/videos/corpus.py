@@ -8,6 +8,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
 from v2v_server.videos.decode import VideoError, decode_codes, open_video
+from v2v_server.videos.frames import kept_rows
+from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, thumbnail
 from v2v_server.videos.source import source_from_spec
 
 if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
@@ -60,7 +62,8 @@ SHORT_CLIP = "shorter than one window of"
 
 
 def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = None,
-            error: Optional[BaseException] = None) -> Tuple[int, List[int], Optional[str]]:
+            error: Optional[BaseException] = None, windows: Optional[int] = None,
+            cuts: int = 0) -> Tuple[int, List[int], Optional[str]]:
     """What a file is worth, from what reading it found: the one rule ``--check``, the
     workers and the Ray pipeline apply.
 
@@ -69,6 +72,9 @@ def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = No
         failed: windows that cannot be made -> why (e.g. the frame size changes inside one).
         error: what stopped the reading, if anything: a ``VideoError`` gives its message,
             anything else ``"TypeName: message"``.
+        windows: complete windows the reading found (``shots.WindowLayout``); None: as many as
+            ``frames`` holds (``cfg.windows_in``, the layout without cuts).
+        cuts: shot cuts the reading found (named when they leave no window).
 
     Returns:
         ``(windows, failed_windows, reason)``: samples per epoch (``cfg.windows_in(frames)``
@@ -77,13 +83,15 @@ def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = No
         windows' reasons, else the error's, else too few frames.
     """
     failed = failed or {}
-    whole = cfg.windows_in(frames)
+    whole = cfg.windows_in(frames) if windows is None else windows
     bad = sorted(k for k in failed if k < whole)
     windows = whole - len(bad)
     if bad:
         reason = "; ".join(failed[k] for k in bad)
     elif error is not None:
         reason = str(error) if isinstance(error, VideoError) else f"{type(error).__name__}: {error}"
+    elif windows == 0 and cuts and cfg.shot_cuts == "avoid":
+        reason = f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} {cfg.frames_per_sample} frames"
     elif windows == 0:
         reason = f"{frames} frames, {SHORT_CLIP} {cfg.frames_per_sample} frames"
     else:
@@ -91,12 +99,21 @@ def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = No
     return windows, bad, reason
 
 
+def pass_verdict(cfg: ServeConfig, stats: dict, error: Optional[BaseException] = None) -> Optional[str]:
+    """Why a sample pass over a file (``samples.make.video_samples``'s ``stats``) gave fewer
+    windows than it should, or None: :func:`verdict` of what the pass found."""
+    windows = stats.get("windows", 0) if cfg.shot_cuts == "avoid" else None
+    return verdict(cfg, stats.get("frames", 0), None, error, windows, stats.get("cuts", 0))[2]
+
+
 def check_video(cfg: ServeConfig, root, rel: str) -> dict:
     """Verdict for one file of ``root`` (a corpus folder, or a ``source.VideoSource`` or its
-    ``spec()``), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason"}``
-    (``failed_windows`` when some window cannot be made, ``more`` when decoding stopped with
-    enough frames for every window); see :func:`verdict`."""
-    out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": ""}
+    ``spec()``), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason",
+    "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
+    says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
+    made, ``more`` when decoding stopped with every window complete); see :func:`verdict`."""
+    out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": "", "cuts": [],
+           "dropped": 0}
     bad: dict = {}  # window -> why it cannot be made
     error = None
     try:
@@ -104,7 +121,9 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
             _check_frames(cfg, path, out, bad)
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
-    windows, failed, reason = verdict(cfg, out["frames"], bad, error)  # windows before a failure still count
+    # windows before a failure still count
+    windows, failed, reason = verdict(cfg, out["frames"], bad, error, out.get("complete", 0), len(out["cuts"]))
+    out.pop("complete", None)
     out.update(windows=windows, usable=windows > 0, reason=reason or "")
     if failed:
         out["failed_windows"] = failed
@@ -112,24 +131,32 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
 
 
 def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict) -> None:
-    """Decode ``path`` for :func:`check_video`: counts frames into ``out``, failed windows into ``bad``."""
+    """Decode ``path`` for :func:`check_video`: frames, cuts and complete windows into ``out``,
+    failed windows into ``bad``; the windows as the sample pass places them (the same rows
+    scored by the same detector, ``shots.WindowLayout``)."""
     container, stream, info = open_video(path)
     out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
-    need = cfg.frames_for(cfg.max_samples_per_video)
-    stride, first = cfg.window_stride, {}
-    # only frame sizes matter here: the codes as stored, without the per-frame expansion
-    for y, _ in decode_codes(container, stream):
-        i = out["frames"]
-        k, off = divmod(i, stride)
-        for w in ((k - 1, k) if off == 0 and k > 0 else (k,)):  # a window's last frame is the next one's first
-            if w not in first:
-                first[w] = y.shape
-            elif y.shape != first[w] and w not in bad:
-                bad[w] = (f"window {w}: frame size changed from {first[w][1]}x{first[w][0]} to "
+    layout = WindowLayout(cfg.frames_per_sample, cfg.max_samples_per_video, cfg.shot_cuts == "avoid")
+    detector, tables = ShotDetector(), {}
+    shape = None  # first frame size of the window in progress
+    for i, (y, expand) in enumerate(decode_codes(container, stream, lambda h: kept_rows(cfg.keep_top_fraction, h))):
+        table = tables.get(expand)
+        if table is None:
+            table = tables[expand] = code_table(expand, y.dtype)
+        ev = layout.step(i, detector.update(thumbnail(y, table)))
+        out.update(frames=i + 1, cuts=detector.cuts, dropped=layout.dropped, complete=layout.windows)
+        if ev.drops is not None:
+            bad.pop(ev.drops, None)  # the index goes to the next window
+        inside = [k for k in (ev.ends, None if ev.starts is not None or layout.current is None else layout.windows)
+                  if k is not None]
+        for k in inside:  # frames of a window must keep its first frame's size
+            if y.shape != shape and k not in bad:
+                bad[k] = (f"window {k}: frame size changed from {shape[1]}x{shape[0]} to "
                           f"{y.shape[1]}x{y.shape[0]} at frame {i}")
-        out["frames"] += 1
-        if out["frames"] >= need:
-            out["more"] = True  # enough for every window: stop decoding
+        if ev.starts is not None:
+            shape = y.shape
+        if layout.done:
+            out["more"] = True  # every window is complete: stop decoding
             break
 
 

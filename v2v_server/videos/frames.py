@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Callable, Iterator, Optional, Tuple
 
 import numpy as np
 
 from v2v_server.videos.decode import Rows, VideoInfo, decode_codes, full_range, open_video
 from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache
+from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector, code_table, thumbnail
 
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 
@@ -27,19 +29,38 @@ class FramePass:
     """A video opened for one pass: ``info`` (the stream's facts), ``declared`` (the container's
     frame count, 0 when it gives none), ``frames`` (an iterator of ``(codes, expand)``, at most
     ``limit_of(declared)`` of them), ``cached`` (replayed from the frame cache), ``writer``
-    (storing the decoded frames into the frame cache; None when replayed or the cache is off)."""
+    (storing the decoded frames into the frame cache; None when replayed or the cache is off),
+    ``cuts`` (with shot detection: the frames that start a shot, known for frame i once frame i
+    has been given; a replayed pass has the cuts stored with its entry; None without detection)."""
 
     info: VideoInfo
     declared: int
     frames: Iterator[Frame]
     cached: bool
     writer: Optional[EntryWriter] = None
+    cuts: Optional[set] = None
+    state: dict = field(default_factory=dict)
+
+    def cut_at(self, i: int) -> bool:
+        """Whether frame ``i`` (already given) starts a new shot (False without detection)."""
+        return bool(self.cuts) and i in self.cuts
+
+    def end(self) -> None:
+        """The consumer has what it needs: the frames given so far are the whole pass, so a
+        pass storing the video commits its entry when it is closed (else it is dropped)."""
+        self.state["ended"] = True
 
     @property
     def storing(self) -> bool:
         """Whether the pass is still storing the video: then it must read ``frames`` to their end
         for the entry to be committed (stopping early drops it)."""
         return self.writer is not None and self.writer.writing
+
+
+def kept_rows(keep_top_fraction: float, height: int) -> int:
+    """Rows kept from the top of a displayed frame of ``height`` pixels: ``floor(height x
+    keep_top_fraction)``, at least 1 (the WebVid recipe keeps the top 54 %, above the watermark)."""
+    return max(1, int(math.floor(height * keep_top_fraction)))
 
 
 def corpus_key(source) -> str:
@@ -64,12 +85,13 @@ def lookup_entry(cache: FrameCache, source, rel: str, settings: dict) -> Tuple[s
 
 @contextlib.contextmanager
 def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings: dict,
-                limit_of: Callable[[int], int], stride: int) -> Iterator[FramePass]:
+                limit_of: Callable[[int], int], stride: int, detect: bool = False) -> Iterator[FramePass]:
     """The frames of video ``rel`` of ``source`` (a ``videos.source.VideoSource``), from its
     frame cache (``source.frame_cache``, None when off) or decoded with ``threads`` and
     ``fast`` (``decode.open_video``), top ``rows`` kept. ``settings``: the decode settings
     that name the entry (``frame_cache.decode_settings``); ``limit_of(declared)``: frames the
-    pass needs; ``stride``: frames between windows.
+    pass needs; ``stride``: frames between windows; ``detect``: find the shot cuts
+    (``shots.ShotDetector`` on the kept rows; stored with the entry, so a replay finds none again).
 
     Raises:
         VideoError: the video cannot be opened or decoded (as ``source.open``, ``open_video``).
@@ -87,9 +109,12 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
                     container, stream, _ = open_video(path, threads, fast)
                     yield from itertools.islice(decode_codes(container, stream, rows), start, limit)
 
+            cuts = None
+            if detect:  # an entry written with detection holds its cuts (the settings name the detector)
+                cuts = set(int(c) for c in entry.meta.get("shots", {}).get("cuts", ()))
             try:
                 yield FramePass(VideoInfo(**entry.meta["info"]), declared, _replay(cache, name, entry, limit, redecode),
-                                True)
+                                True, cuts=cuts)
             finally:
                 entry.close()
             return
@@ -99,8 +124,9 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         writer = None
         if cache is not None:
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
-        yield FramePass(info, declared, _decoded(decode_codes(container, stream, rows), limit_of(declared), writer), False,
-                        writer)
+        fp = FramePass(info, declared, iter(()), False, writer, set() if detect else None)
+        fp.frames = _decoded(decode_codes(container, stream, rows), limit_of(declared), writer, fp)
+        yield fp
 
 
 def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
@@ -120,16 +146,31 @@ def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
     yield from redecode(i)
 
 
-def _decoded(frames: Iterator[Frame], limit: int, writer: Optional[EntryWriter]) -> Iterator[Frame]:
-    """The first ``limit`` decoded frames, each stored by ``writer`` (at full range) as it passes;
-    the entry is committed only when the pass ends cleanly."""
+def _decoded(frames: Iterator[Frame], limit: int, writer: Optional[EntryWriter], fp: FramePass) -> Iterator[Frame]:
+    """The first ``limit`` decoded frames, each stored by ``writer`` (at full range) as it passes
+    and, with detection (``fp.cuts`` not None), scored for a cut before it is given; the entry
+    is committed (with the cuts found) only when the pass ends cleanly: its frames run out, or
+    the consumer said ``fp.end()``."""
     done = False
+    detector = ShotDetector() if fp.cuts is not None else None
+    tables: dict = {}
     try:
-        for codes, expand in itertools.islice(frames, limit):
+        for i, (codes, expand) in enumerate(itertools.islice(frames, limit)):
+            if detector is not None:
+                table = tables.get(expand)
+                if table is None:
+                    table = tables[expand] = code_table(expand, codes.dtype)
+                if detector.update(thumbnail(codes, table)):
+                    fp.cuts.add(i)
             if writer is not None:
                 writer.add(expand(codes))
             yield codes, expand
         done = True
     finally:
         if writer is not None:  # a decoding error, or the consumer stopped: nothing partial is kept
-            writer.finish() if done else writer.abort(incomplete=True)
+            if done or fp.state.get("ended"):
+                if detector is not None:
+                    writer.header["shots"] = {"detector": DETECTOR_VERSION, "cuts": detector.cuts}
+                writer.finish()
+            else:
+                writer.abort(incomplete=True)

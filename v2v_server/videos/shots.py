@@ -1,0 +1,197 @@
+"""Shots: where a video cuts from one scene to another, and the windows that fit inside one shot.
+
+An event camera never sees a cut, and no optical flow exists across one, so a sample must not
+span one (docs/corpora.md). The decode pass that cuts samples finds the cuts from the luma it
+already has (:class:`ShotDetector`, a few tens of microseconds a frame), and
+:class:`WindowLayout` places the windows: at each shot's first frame + k x ``stride`` while a
+whole window fits before the shot ends (``shot_cuts: avoid``), or at k x ``stride`` whatever
+they hold (``shot_cuts: off``, the authors' loader, HYLZ-2019/V2V ``data/v2v_datasets.py``).
+
+The detector is causal (it decides on frame i when frame i arrives), so the cutter needs no
+look-ahead buffer; a false cut only loses a window, a missed one makes a bad sample, so it leans
+to cutting. Measured on labelled cuts (hard cuts, fades through black, dissolves, fast camera motion):
+``python -m bench.shots`` (docs/shots.md).
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable, Iterable, List, Optional
+
+import cv2
+import numba
+import numpy as np
+
+#: ``shot_cuts`` values: ``avoid`` places windows inside shots; ``off`` ignores cuts.
+SHOT_CUTS = ("avoid", "off")
+#: Side of the thumbnail a frame is scored on (block means of the kept region).
+THUMB = 16
+#: What names the detector in a frame-cache entry: a cached entry's cuts are reused only by
+#: the same detector.
+DETECTOR_VERSION = "mad16-1"
+
+
+def code_table(expand: Callable[[np.ndarray], np.ndarray], dtype) -> np.ndarray:
+    """``expand`` (a stream's code -> full-range map, ``decode.decode_codes``) as a table on
+    the 8-bit scale: float32 (256,) for uint8 codes, (65536,) for uint16 codes."""
+    n = 256 if np.dtype(dtype) == np.uint8 else 65536
+    ramp = np.arange(n, dtype=dtype).reshape(1, -1)
+    out = np.asarray(expand(ramp), dtype=np.float32).ravel()
+    return out * np.float32(1.0 / 257.0) if n == 65536 else out
+
+
+@numba.njit(cache=True, nogil=True)
+def _thumbnail(codes, table, out):  # pragma: no cover - compiled
+    h, w = codes.shape
+    n = out.shape[0]
+    cols = 4 * n  # one sample row per block (a row read costs a run of cache lines), 4 samples in it
+    out[:, :] = 0.0
+    for i in range(n):
+        y = (2 * i + 1) * h // (2 * n)
+        for j in range(cols):
+            x = (2 * j + 1) * w // (2 * cols)
+            out[i, j // 4] += table[codes[y, x]]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] *= 0.25
+
+
+def thumbnail(codes: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """A frame's ``THUMB`` x ``THUMB`` block values on the 8-bit scale: float32 (16, 16), 0..255.
+
+    ``codes``: a frame as ``decode.decode_codes`` yields it, (H, W) uint8 or uint16 codes, any
+    strides; ``table``: its :func:`code_table`. Each block is the mean of 4 samples along the
+    block's middle row: the cost does not grow with the frame size (16 rows are read, about
+    20 us a frame with the detector's update, docs/shots.md), and averaging makes the score
+    less sensitive to texture moving inside a block.
+    """
+    out = np.empty((THUMB, THUMB), np.float32)
+    _thumbnail(codes, table, out)
+    return out
+
+
+class ShotDetector:
+    """Finds hard cuts and fades through black, one frame at a time.
+
+    Feed every frame's :func:`thumbnail` to :meth:`update`, in order; it returns True when the
+    frame starts a new shot (a cut between it and the previous frame). Rules, on the mean
+    absolute difference ``d`` of consecutive thumbnails (8-bit scale):
+
+    * hard cut: ``d >= threshold`` and ``d >= ratio`` x the mean of the shot's last ``history``
+      differences (fast camera motion raises that mean; a cut stands out of it);
+    * fade through black: the first frame that is not dark (thumbnail mean above ``dark``)
+      after one or more dark frames.
+
+    Dissolves are not a rule: at block-mean scale a cross-fade changes every block steadily one
+    way, as a slow pan over an edge does, and a rule that cut one cut the other
+    (docs/shots.md measures what a dissolve leaves). ``cuts`` lists the frames found
+    (indices from 0). Pure: no I/O, no clock.
+    """
+
+    def __init__(self, threshold: float = 24.0, ratio: float = 2.0, history: int = 8, dark: float = 10.0):
+        self.threshold, self.ratio, self.dark = float(threshold), float(ratio), float(dark)
+        self.diffs: deque = deque(maxlen=int(history))
+        self.prev: Optional[np.ndarray] = None
+        self.was_dark = False
+        self.frames = 0
+        self.cuts: List[int] = []
+
+    def update(self, thumb: np.ndarray) -> bool:
+        """Score the next frame's thumbnail; True when it starts a new shot (appended to ``cuts``)."""
+        i = self.frames
+        self.frames += 1
+        dark = float(thumb.mean()) <= self.dark
+        cut = False
+        if self.prev is not None:
+            d = float(cv2.norm(thumb, self.prev, cv2.NORM_L1)) / thumb.size
+            past = sum(self.diffs) / len(self.diffs) if self.diffs else 0.0
+            cut = (d >= self.threshold and d >= self.ratio * past) or (self.was_dark and not dark)
+            self.diffs.append(d)
+        self.prev, self.was_dark = thumb, dark
+        if cut:
+            self.cuts.append(i)
+            self.diffs.clear()
+        return cut
+
+
+@dataclass
+class LayoutEvent:
+    """What one frame does to the windows: ``ends`` (the window that this frame completes, or
+    None), ``drops`` (the window in progress that a cut at this frame abandons, or None),
+    ``starts`` (the window index this frame starts, or None)."""
+
+    ends: Optional[int] = None
+    drops: Optional[int] = None
+    starts: Optional[int] = None
+
+
+class WindowLayout:
+    """Where windows lie in a video, frame by frame (pure; every reader of a video uses it).
+
+    Windows are ``span`` frames long and follow each other ``stride`` = ``span`` - 1 frames
+    apart (a window's last frame is the next one's first). With ``avoid_cuts`` they start at
+    each shot's first frame + k x ``stride``; a window a cut falls inside is dropped, and the
+    next shot starts its own windows at the cut. Without, at k x ``stride``. Windows are
+    numbered 0, 1, 2... in the order they complete, so a video's window indices are always
+    0 .. n - 1 and a window's index is a pure function of the frames and cuts before it. At most
+    ``max_windows`` windows; :attr:`done` once they are complete.
+    """
+
+    def __init__(self, span: int, max_windows: int, avoid_cuts: bool = True):
+        self.span, self.stride, self.max_windows = int(span), int(span) - 1, int(max_windows)
+        self.avoid_cuts = bool(avoid_cuts)
+        self.shot_start = 0
+        self.current: Optional[int] = None  # first frame of the window in progress
+        self.windows = 0  # complete windows
+        self.dropped = 0  # windows a cut fell inside
+        self.cuts = 0
+
+    @property
+    def done(self) -> bool:
+        """Every window the layout may give is complete: later frames serve nothing."""
+        return self.windows >= self.max_windows
+
+    def step(self, i: int, cut: bool = False) -> LayoutEvent:
+        """Frame ``i`` (in order from 0); ``cut``: it starts a new shot. Returns what it does."""
+        ev = LayoutEvent()
+        if cut:
+            self.cuts += 1
+            if self.avoid_cuts:
+                self.shot_start = i
+                if self.current is not None and i > self.current:
+                    ev.drops = self.windows
+                    self.dropped += 1
+                    self.current = None
+        if self.current is not None and i == self.current + self.stride:
+            ev.ends = self.windows
+            self.windows += 1
+            self.current = None
+        if self.current is None and not self.done and (i - self.shot_start) % self.stride == 0:
+            self.current = i
+            ev.starts = self.windows
+        return ev
+
+    def offset(self, i: int) -> Optional[int]:
+        """Frame ``i``'s offset in the window in progress (None outside one)."""
+        return None if self.current is None else i - self.current
+
+
+def shot_windows(cuts: Iterable[int], frames: int, span: int, max_windows: int, avoid_cuts: bool = True) -> List[int]:
+    """The first frame of each window of a video of ``frames`` frames with ``cuts`` (frames that
+    start a shot), as :class:`WindowLayout` places them."""
+    cut_set = set(int(c) for c in cuts)
+    layout = WindowLayout(span, max_windows, avoid_cuts)
+    starts: List[int] = []
+    for i in range(frames):
+        ev = layout.step(i, i in cut_set)
+        if ev.ends is not None:
+            starts.append(i - layout.stride)
+        if layout.done:
+            break
+    return starts
+
+
+def shot_lengths(cuts: Iterable[int], frames: int) -> List[int]:
+    """Frames of each shot of a video of ``frames`` frames with ``cuts``."""
+    edges = [0] + sorted(c for c in set(int(c) for c in cuts) if 0 < c < frames) + [frames]
+    return [b - a for a, b in zip(edges, edges[1:]) if b > a]
