@@ -51,6 +51,7 @@ from v2v_wire.protocol import check_outputs
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
+from v2v_server.videos.segments import split_segment
 from v2v_server.videos.corpus import check_video, pass_verdict, verdict
 from v2v_server.videos.decode import open_video
 from v2v_server.videos.source import LocalSource, source_from_config, source_from_spec
@@ -96,7 +97,7 @@ def count_windows(cfg: ServeConfig, root, rel: str) -> Tuple[int, Optional[str]]
     shorter than one window of 201 frames"``). A file whose packets demux but whose frames
     do not decode is found out later, while decoding, with the decoder's reason.
     """
-    if cfg.shot_cuts == "avoid":  # where windows lie depends on the cuts: the file is decoded and scored
+    if cfg.shot_cuts == "avoid" or split_segment(rel)[1]:  # windows depend on the cuts, or on the range's frames
         r = check_video(cfg, root, rel)
         return r["windows"], (None if r["usable"] else r["reason"])
     frames, error = 0, None

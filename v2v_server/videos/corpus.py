@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
 from v2v_server.videos.decode import VideoError, decode_codes, open_video
 from v2v_server.videos.frames import kept_rows
+from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, thumbnail
 from v2v_server.videos.source import source_from_spec
 
@@ -118,7 +119,7 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
     error = None
     try:
         with source_from_spec(root).open(rel) as path:
-            _check_frames(cfg, path, out, bad)
+            _check_frames(cfg, path, out, bad, split_segment(rel)[1])
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
     # windows before a failure still count
@@ -130,7 +131,7 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
     return out
 
 
-def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict) -> None:
+def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, times=None) -> None:
     """Decode ``path`` for :func:`check_video`: frames, cuts and complete windows into ``out``,
     failed windows into ``bad``; the windows as the sample pass places them (the same rows
     scored by the same detector, ``shots.WindowLayout``)."""
@@ -139,7 +140,8 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict) -> None:
     layout = WindowLayout(cfg.frames_per_sample, cfg.max_samples_per_video, cfg.shot_cuts == "avoid")
     detector, tables = ShotDetector(), {}
     shape = None  # first frame size of the window in progress
-    for i, (y, expand) in enumerate(decode_codes(container, stream, lambda h: kept_rows(cfg.keep_top_fraction, h))):
+    rows = lambda h: kept_rows(cfg.keep_top_fraction, h)  # noqa: E731  (the rows the sample pass scores)
+    for i, (y, expand) in enumerate(decode_codes(container, stream, rows, segment=times)):
         table = tables.get(expand)
         if table is None:
             table = tables[expand] = code_table(expand, y.dtype)
@@ -180,8 +182,13 @@ def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
     lines = [f"{'file':<48} {'verdict':<12} detail"]
     for r in results:
         verdict = f"{r['windows']} window(s)" if r["usable"] else "unusable"
-        detail = f"{r['frames']}{'+' if r.get('more') else ''} frames, {r['size']}" if r["usable"] \
-            else r["reason"]
+        cuts = r.get("cuts") or []
+        shots = (f"; {len(cuts)} cut(s) at frame(s) {', '.join(map(str, cuts[:12]))}{' ...' if len(cuts) > 12 else ''}"
+                 if cuts else "; one shot")
+        if r.get("dropped"):
+            shots += f", {r['dropped']} window(s) removed by cuts"
+        detail = (f"{r['frames']}{'+' if r.get('more') else ''} frames, {r['size']}" if r["usable"]
+                  else r["reason"]) + (shots if r["frames"] else "")
         if r["usable"] and r.get("failed_windows"):
             detail += f"; {r['reason']}"
         lines.append(f"{r['path']:<48} {verdict:<12} {detail}")
@@ -189,5 +196,7 @@ def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
         lines.append(f"{Path(rel).as_posix():<48} {'ignored':<12} {reason}")
     usable = [r for r in results if r["usable"]]
     lines.append(f"{len(usable)} usable video(s) of {len(results)}, {sum(r['windows'] for r in usable)} sample(s) "
-                 f"per epoch; {len(rejected)} other entr{'y' if len(rejected) == 1 else 'ies'} ignored")
+                 f"per epoch; {sum(len(r.get('cuts') or ()) for r in results)} shot cut(s) found, "
+                 f"{sum(r.get('dropped', 0) for r in results)} window(s) removed by cuts; "
+                 f"{len(rejected)} other entr{'y' if len(rejected) == 1 else 'ies'} ignored")
     return "\n".join(lines)

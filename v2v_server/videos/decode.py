@@ -264,30 +264,67 @@ def iter_luma(path: Path, threads: int = 1, rows: Rows = None) -> Iterator[np.nd
     return decode_luma(container, stream, rows)
 
 
-def decode_codes(container, stream, rows: Rows = None) -> Iterator[Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]:
+def decode_codes(container, stream, rows: Rows = None,
+                 segment: Optional[Tuple[float, float]] = None) -> Iterator[Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]:
     """Like :func:`decode_luma`, but yield ``(codes, expand)`` per frame: ``codes`` is the
     display-oriented, row-cut plane-0 array as stored (a view, possibly strided) and
     ``expand(x)`` maps ``codes`` or any crop or flip of it to full-range luma. Expansion is
     per pixel, so expanding a crop equals cropping the expanded frame, at a fraction of the
-    cost; resampling must expand first. Closes the container when done.
+    cost; resampling must expand first. ``segment``: a time range ``(start, end)`` in seconds from
+    the stream's start (``videos.segments``): the container seeks to the key frame before
+    ``start`` and only frames whose presentation time lies in ``[start, end)`` are yielded.
+    Closes the container when done.
 
     Raises:
-        VideoError: when decoding fails part-way (the frames yielded before were good).
+        VideoError: when decoding fails part-way (the frames yielded before were good), or a
+            segment holds no frame (it starts after the video ends, or the frames carry no
+            timestamps).
     """
     import av
 
     convs: Dict[tuple, tuple] = {}
+    kept = 0
     try:
-        for frame in container.decode(stream):
+        frames = container.decode(stream)
+        if segment is not None:
+            frames = _in_range(container, stream, frames, *segment)
+        for frame in frames:
             key = (frame.format.name, int(frame.color_range))
             conv = convs.get(key)
             if conv is None:
                 conv = convs[key] = _converter(frame)
+            kept += 1
             yield _codes(frame, conv, rows), conv[1]
+        if segment is not None and kept == 0:
+            length = float(stream.duration * stream.time_base) if stream.duration and stream.time_base else \
+                (container.duration or 0) / 1e6
+            raise VideoError(f"no frame in the time range {segment[0]:g}-{segment[1]:g} s (the video lasts {length:.3g} s)")
     except av.error.FFmpegError as e:
         raise VideoError(f"decoding failed: {type(e).__name__}: {e}") from None
     finally:
         container.close()
+
+
+def _in_range(container, stream, frames, start: float, end: float):
+    """The frames of ``frames`` whose time from the stream's start lies in ``[start, end)``,
+    after seeking ``container`` to the key frame at or before ``start``.
+
+    Raises:
+        VideoError: a frame has no timestamp (a range cannot be cut from it)."""
+    tb = stream.time_base
+    first = stream.start_time or 0
+    if start > 0 and tb:
+        container.seek(first + int(start / tb), stream=stream, backward=True, any_frame=False)
+        frames = container.decode(stream)
+    for frame in frames:
+        pts = frame.pts
+        if pts is None or not tb:
+            raise VideoError("frames carry no timestamps: a time range cannot be cut from this video")
+        t = float((pts - first) * tb)
+        if t >= end:
+            return
+        if t >= start - 1e-6:
+            yield frame
 
 
 def decode_luma(container, stream, rows: Rows = None) -> Iterator[np.ndarray]:

@@ -19,6 +19,7 @@ import numpy as np
 
 from v2v_server.videos.decode import Rows, VideoInfo, decode_codes, full_range, open_video
 from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache
+from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector, code_table, thumbnail
 
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
@@ -98,6 +99,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
     """
     cache: Optional[FrameCache] = getattr(source, "frame_cache", None)
     name = identity = None
+    times = split_segment(rel)[1]  # a segment: its time range of the video
     if cache is not None:
         name, identity, entry = lookup_entry(cache, source, rel, settings)
         if entry is not None:
@@ -107,7 +109,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
             def redecode(start: int) -> Iterator[Frame]:
                 with source.open(rel) as path:
                     container, stream, _ = open_video(path, threads, fast)
-                    yield from itertools.islice(decode_codes(container, stream, rows), start, limit)
+                    yield from itertools.islice(decode_codes(container, stream, rows, segment=times), start, limit)
 
             cuts = None
             if detect:  # an entry written with detection holds its cuts (the settings name the detector)
@@ -120,12 +122,12 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
             return
     with source.open(rel) as path:
         container, stream, info = open_video(path, threads, fast)
-        declared = int(getattr(stream, "frames", 0) or 0)
+        declared = 0 if times else int(getattr(stream, "frames", 0) or 0)  # a segment: unknown
         writer = None
         if cache is not None:
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
         fp = FramePass(info, declared, iter(()), False, writer, set() if detect else None)
-        fp.frames = _decoded(decode_codes(container, stream, rows), limit_of(declared), writer, fp)
+        fp.frames = _decoded(decode_codes(container, stream, rows, segment=times), limit_of(declared), writer, fp)
         yield fp
 
 

@@ -56,6 +56,18 @@ def _thumbnail(codes, table, out):  # pragma: no cover - compiled
             out[i, j] *= 0.25
 
 
+@numba.njit(cache=True, nogil=True)
+def _compare(thumb, prev):  # pragma: no cover - compiled
+    """(mean |thumb - prev|, mean of thumb)."""
+    d = 0.0
+    m = 0.0
+    for i in range(thumb.shape[0]):
+        for j in range(thumb.shape[1]):
+            d += abs(thumb[i, j] - prev[i, j])
+            m += thumb[i, j]
+    return d / thumb.size, m / thumb.size
+
+
 def thumbnail(codes: np.ndarray, table: np.ndarray) -> np.ndarray:
     """A frame's ``THUMB`` x ``THUMB`` block values on the 8-bit scale: float32 (16, 16), 0..255.
 
@@ -100,10 +112,10 @@ class ShotDetector:
         """Score the next frame's thumbnail; True when it starts a new shot (appended to ``cuts``)."""
         i = self.frames
         self.frames += 1
-        dark = float(thumb.mean()) <= self.dark
+        d, mean = _compare(thumb, thumb if self.prev is None else self.prev)
+        dark = mean <= self.dark
         cut = False
         if self.prev is not None:
-            d = float(cv2.norm(thumb, self.prev, cv2.NORM_L1)) / thumb.size
             past = sum(self.diffs) / len(self.diffs) if self.diffs else 0.0
             cut = (d >= self.threshold and d >= self.ratio * past) or (self.was_dark and not dark)
             self.diffs.append(d)

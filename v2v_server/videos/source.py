@@ -40,6 +40,7 @@ from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.decode import VideoError, inside, printable, scan_corpus, utf8_name
 from v2v_server.videos.manifest import (ManifestIndex, default_cache_dir, etag_of, manifest_path, read_manifest,
                                         write_manifest)
+from v2v_server.videos.segments import base_path, is_time, parse_time, range_problem, segment_name, split_segment
 from v2v_server.videos.shards import TarMember, split_pattern, tar_members
 from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_filesystem, time_fetches
 
@@ -58,7 +59,9 @@ def read_video_list(path: str) -> List[str]:
     (HYLZ-2019/V2V ``config/webvid10000_unfiltered.txt``): one video per line, its first
     whitespace-separated field a path relative to the corpus root (later fields, such as
     frame counts, are ignored); ``#`` starts a comment line; blank lines are skipped. Leading
-    ``./`` is dropped so ids match a folder's listing.
+    ``./`` is dropped so ids match a folder's listing. A line ``path start end`` whose second
+    and third fields are times (seconds, or ``H:MM:SS.sss``: Panda-70M's clip timestamps)
+    names the segment ``path#t=start,end`` (``videos.segments``); a video may have several.
 
     Raises:
         FileNotFoundError: no file at ``path``.
@@ -79,10 +82,13 @@ def read_video_list(path: str) -> List[str]:
         s = line.strip()
         if not s or s.startswith("#"):
             continue
-        rel = s.split()[0]
+        fields = s.split()
+        rel = fields[0]
         while rel.startswith("./"):
             rel = rel[2:]
         rel = rel.lstrip("/")
+        if rel and len(fields) >= 3 and is_time(fields[1]) and is_time(fields[2]):
+            rel = segment_name(rel, parse_time(fields[1]), parse_time(fields[2]))
         if rel and rel not in seen:
             seen.add(rel)
             out.append(rel)
@@ -159,7 +165,8 @@ class VideoSource:
         raise NotImplementedError
 
     def open(self, rel: str):
-        """A context manager giving what ``open_video`` reads for the video at ``rel``.
+        """A context manager giving what ``open_video`` reads for the video at ``rel`` (for a
+        segment, ``videos.segments``, its whole video).
 
         Raises:
             VideoError: it is missing, or changed since it was listed.
@@ -185,12 +192,16 @@ class VideoSource:
         ``.tar`` name stands for its video members (:meth:`_with_members`)."""
         videos, rejected = [], []
         for rel in names:
-            if rel.lower().endswith(".tar"):
+            base, times = split_segment(rel)
+            problem = range_problem(*times) if times else None
+            if problem:
+                rejected.append((rel, f"listed in {self.video_list}: {problem}"))
+            elif rel.lower().endswith(".tar"):
                 videos.append(rel)
-            elif not rel.lower().endswith(tuple(extensions)):
+            elif not base.lower().endswith(tuple(extensions)):
                 rejected.append((rel, f"listed in {self.video_list} but not a video file (extensions "
                                       f"{', '.join(extensions)})"))
-            elif not exists(rel):
+            elif not exists(base):
                 rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
             else:
                 videos.append(rel)
@@ -282,6 +293,7 @@ class LocalSource(VideoSource):
 
     @contextlib.contextmanager
     def open(self, rel: str) -> Iterator[Path]:
+        rel = base_path(rel)  # a segment reads its video (the pass keeps its time range)
         member = self.split_member(rel)
         if member is None or not Path(self.root, member[0]).is_file():
             yield corpus_file(self.root, rel)
@@ -294,6 +306,7 @@ class LocalSource(VideoSource):
         return str(Path(self.root) / rel)
 
     def identity(self, rel: str) -> str:
+        rel = base_path(rel)
         member = self.split_member(rel)
         try:
             shard = self._shard_stat(member[0]) if member is not None else None
@@ -529,6 +542,7 @@ class StoreSource(_StoreManifest, VideoSource):
 
     @contextlib.contextmanager
     def open(self, rel: str):
+        rel = base_path(rel)  # a segment reads its object (the pass keeps its time range)
         member = self.split_member(rel)
         if member is None:
             with self._open_raw(rel) as f:
@@ -540,6 +554,7 @@ class StoreSource(_StoreManifest, VideoSource):
 
 
     def identity(self, rel: str) -> str:
+        rel = base_path(rel)
         member = self.split_member(rel)
         obj = member[0] if member is not None else rel
         with self._request():

@@ -1,0 +1,185 @@
+"""Shots: cuts found in real footage, windows that never span one, the authors' layout under
+``shot_cuts: off``, cuts kept with a frame-cache entry, and segments of long videos."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from v2v_server.ops.config import ServeConfig
+from v2v_server.ops.metrics import ServerMetrics
+from v2v_server.samples.make import video_frames, video_samples
+from v2v_server.videos import frames as frames_mod
+from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_video, format_check
+from v2v_server.videos.decode import iter_luma
+from v2v_server.videos.segments import parse_time, range_problem, segment_name, split_segment
+from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, shot_windows, thumbnail
+from v2v_server.videos.source import LocalSource, read_video_list
+from v2v_wire.ids import parse_sample_id
+
+#: The cut frames of the bundled montages, read by eye frame by frame (docs/shots.md lists them);
+#: webvid_like_596x336.mp4 is bikes.mp4 forward, then backward (its frame j >= 250 shows bikes
+#: frame 498 - j), so each cut c of bikes.mp4 appears again at 499 - c.
+LABELLED = {
+    "bikes.mp4": [30, 76, 137, 187, 242],
+    "webvid_like_596x336.mp4": [30, 76, 137, 187, 242, 257, 312, 362, 423],
+    "bbb_camera_596x336.mp4": [],
+    "bigbuckbunny.mp4": [],
+}
+
+
+def _cuts(frames) -> list:
+    det = ShotDetector()
+    ident = lambda a: a  # noqa: E731  (decoded luma is already full range)
+    table = code_table(ident, frames[0].dtype)
+    for f in frames:
+        det.update(thumbnail(f, table))
+    return det.cuts
+
+
+@pytest.mark.parametrize("clip", sorted(LABELLED))
+def test_detector_finds_the_labelled_cuts(clip):
+    r = check_video(ServeConfig(shot_cuts="off").validate(), SAMPLE_VIDEOS, clip)
+    assert r["cuts"] == LABELLED[clip]
+
+
+def _joined():
+    """Real clips joined at known frames: a hard cut, a fade through black, a hard cut into fast motion."""
+    a = np.stack(list(iter_luma(SAMPLE_VIDEOS / "bbb_camera_596x336.mp4", rows=181)))[:, :, :596]
+    b = np.stack([f[:181, :596] for f in iter_luma(SAMPLE_VIDEOS / "webvid_like_596x336.mp4")])
+    fade_out = [(a[119] * (1 - k / 8)).astype(np.uint8) for k in range(1, 9)]
+    fade_in = [(b[100] * (k / 8)).astype(np.uint8) for k in range(1, 9)]
+    parts = [a[:60], b[140:186], a[60:120], np.stack(fade_out), np.stack(fade_in), b[100:136], b[80:100]]
+    frames = np.concatenate(parts)
+    starts = np.cumsum([0] + [len(p) for p in parts])
+    # cuts: into b, back into a, the first lit frame after the fade, into the earlier part of b
+    return frames, [int(starts[1]), int(starts[2]), int(starts[4]), int(starts[6])]
+
+
+def test_joined_clips_cut_where_they_were_joined():
+    frames, truth = _joined()
+    found = _cuts(frames)
+    # the fade's cut is placed at the first frame that is not dark: within its fade-in
+    fade = truth[2]
+    assert [c for c in found if not fade <= c < fade + 8] == [truth[0], truth[1], truth[3]]
+    assert sum(fade <= c < fade + 8 for c in found) == 1
+
+
+def test_layout_places_windows_inside_shots():
+    assert shot_windows([], 450, 201, 10) == [0, 200]
+    assert shot_windows([5], 420, 201, 10) == [5, 205]
+    assert shot_windows([5], 420, 201, 10, avoid_cuts=False) == [0, 200]  # the authors' layout
+    assert shot_windows([201], 420, 201, 10) == [0, 201]  # a shot of exactly one window
+    assert shot_windows([200], 420, 201, 10) == [200]  # 200 frames hold no window
+    assert shot_windows([], 10_000, 201, 3) == [0, 200, 400]  # at most max_windows
+    lay = WindowLayout(5, 10)
+    events = [lay.step(i, i == 6) for i in range(12)]
+    assert events[6].drops == 1 and events[6].starts == 1  # window 1 started at 4, cut at 6: dropped, restarted
+    assert lay.dropped == 1 and lay.windows == 2  # windows [0, 4] and [6, 10]
+
+
+def test_served_windows_never_span_a_cut():
+    cfg = ServeConfig(sequence_length=8, max_samples_per_video=20).validate()  # 41-frame windows
+    clip = "webvid_like_596x336.mp4"
+    cuts = LABELLED[clip]
+    stats: dict = {}
+    metas = [m for _, _, m in video_samples(cfg, SAMPLE_VIDEOS, clip, 0, ("frames",), stats=stats)]
+    assert metas, "shots longer than 41 frames give windows"
+    for m in metas:
+        first, last = m["src_start_frame"], m["src_start_frame"] + cfg.frames_per_sample - 1
+        assert not [c for c in cuts if first < c <= last], m["sample_id"]
+    assert stats["cuts"] == len(cuts) and stats["dropped"] > 0
+    ids = [m["sample_id"] for m in metas]
+    assert [parse_sample_id(i).window for i in ids] == list(range(len(ids)))  # 0 .. n - 1
+    # the same windows with shot_cuts off span cuts, as the authors' loader's do
+    off = ServeConfig(sequence_length=8, max_samples_per_video=20, shot_cuts="off").validate()
+    spans = [m["src_start_frame"] for _, _, m in video_samples(off, SAMPLE_VIDEOS, clip, 0, ("frames",))]
+    assert spans == [40 * k for k in range(len(spans))]
+    assert any(s < c <= s + 40 for s in spans for c in cuts)
+
+
+def test_montages_give_no_window_and_check_says_why():
+    cfg = ServeConfig().validate()
+    r = check_video(cfg, SAMPLE_VIDEOS, "bikes.mp4")
+    assert not r["usable"] and r["dropped"] == 5
+    assert "5 shot cut(s): every shot is shorter than one window of 201 frames" in r["reason"]
+    table = format_check([r, check_video(cfg, SAMPLE_VIDEOS, "bbb_camera_596x336.mp4")], [])
+    assert "5 cut(s) at frame(s) 30, 76, 137, 187, 242" in table and "one shot" in table
+    assert "5 shot cut(s) found, 5 window(s) removed by cuts" in table
+
+
+def test_cached_epoch_reuses_the_stored_cuts(tmp_path, monkeypatch):
+    cfg = ServeConfig(sequence_length=8, max_samples_per_video=20).validate()
+    src = LocalSource(SAMPLE_VIDEOS, cache_dir=str(tmp_path), frame_cache_gb=1.0)
+    clip = "webvid_like_596x336.mp4"
+    first = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",))]
+    assert src.frame_cache.take_stats()["stored"] == 1
+
+    class NoDetection:
+        def __init__(self, *a, **k):
+            raise AssertionError("a cached pass ran the shot detector")
+
+    monkeypatch.setattr(frames_mod, "ShotDetector", NoDetection)
+    with video_frames(cfg, src, clip) as fp:
+        assert fp.cached and sorted(fp.cuts) == LABELLED[clip][:len(fp.cuts)] and fp.cuts
+    again = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",))]
+    assert again == first
+    assert src.frame_cache.take_stats()["hits"] == 2
+
+
+def test_metrics_count_cuts_and_the_windows_they_removed():
+    m = ServerMetrics(progress=False)
+    m.on_worker_message({"type": "done", "stages": {}, "cuts": 9, "dropped": 4})
+    m.on_worker_message({"type": "done", "stages": {}, "cuts": "x", "dropped": -1})  # malformed: ignored
+    assert m.registry.get_sample_value("v2v_shot_cuts_total") == 9
+    assert m.registry.get_sample_value("v2v_windows_cut_total") == 4
+
+
+# ---------------------------------------------------------------------------------------- segments
+def test_time_ranges_parse_and_name_segments():
+    assert parse_time("12.5") == 12.5 and parse_time("0:01:02.5") == 62.5 and parse_time("01:02") == 62
+    assert segment_name("a/b.mp4", 1.0, 9.5) == "a/b.mp4#t=1,9.5"
+    assert split_segment("a/b.mp4#t=1,9.5") == ("a/b.mp4", (1.0, 9.5))
+    assert split_segment("a/b.mp4") == ("a/b.mp4", None)
+    assert parse_sample_id("a/b.mp4#t=1,9.5#3").video == "a/b.mp4#t=1,9.5"
+    assert range_problem(5, 3) and range_problem(4, 4) and range_problem(-1, 2) and range_problem(1, 2) is None
+    with pytest.raises(ValueError):
+        parse_time("soon")
+
+
+@pytest.fixture
+def segment_corpus(tmp_path):
+    for clip in ("bbb_camera_596x336.mp4", "bikes.mp4"):
+        (tmp_path / clip).write_bytes((SAMPLE_VIDEOS / clip).read_bytes())
+    lst = tmp_path / "list.txt"
+    lst.write_text("bbb_camera_596x336.mp4 1.0 9.5\nbbb_camera_596x336.mp4 0:00:00 0:00:04\n"
+                   "bikes.mp4 5 3\nbikes.mp4 4 4\nbikes.mp4 30 40\nbikes.mp4\n")
+    return tmp_path, lst
+
+
+def test_list_file_ranges_become_segments_and_bad_ones_are_named(segment_corpus):
+    root, lst = segment_corpus
+    assert read_video_list(str(lst))[:2] == ["bbb_camera_596x336.mp4#t=1,9.5", "bbb_camera_596x336.mp4#t=0,4"]
+    videos, rejected = LocalSource(root, video_list=str(lst)).list_videos((".mp4",))
+    assert videos == ["bbb_camera_596x336.mp4#t=1,9.5", "bbb_camera_596x336.mp4#t=0,4", "bikes.mp4#t=30,40",
+                      "bikes.mp4"]
+    assert dict(rejected) == {"bikes.mp4#t=5,3": f"listed in {lst}: time range 5-3 s is reversed",
+                              "bikes.mp4#t=4,4": f"listed in {lst}: time range 4-4 s is empty"}
+    cfg = ServeConfig(sequence_length=8).validate()
+    beyond = check_video(cfg, LocalSource(root, video_list=str(lst)), "bikes.mp4#t=30,40")
+    assert not beyond["usable"] and beyond["reason"] == "no frame in the time range 30-40 s (the video lasts 10 s)"
+
+
+def test_a_segment_gives_the_frames_of_its_range_only(segment_corpus):
+    root, lst = segment_corpus
+    src = LocalSource(root, video_list=str(lst))
+    whole = [f.copy() for f in iter_luma(root / "bbb_camera_596x336.mp4")]
+    cfg = ServeConfig(keep_top_fraction=1.0, shot_cuts="off").validate()
+    with video_frames(cfg, src, "bbb_camera_596x336.mp4#t=1,9.5") as fp:
+        got = [expand(codes).copy() for codes, expand in fp.frames]
+    assert len(got) == 213  # frames at 1.00 .. 9.48 s of a 25 fps video
+    assert all(np.array_equal(g, whole[25 + i]) for i, g in enumerate(got))
+    # ids are unique per segment, and samples lie inside the range (frame 0 = the range's start)
+    short = ServeConfig(sequence_length=8).validate()
+    ids = {m["sample_id"]: m["src_start_frame"] for _, _, m in
+           video_samples(short, src, "bbb_camera_596x336.mp4#t=0,4", 0, ("frames",))}
+    assert list(ids) == [f"bbb_camera_596x336.mp4#t=0,4#{k}" for k in range(2)]  # 100 frames: 2 windows of 41

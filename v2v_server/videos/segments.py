@@ -1,0 +1,89 @@
+"""Segments: a clip given as a time range of a longer video.
+
+Corpora such as Panda-70M, InternVid or Kinetics give their clips as ``video, [start, end]``
+rather than as files. A video list line ``path start end`` (seconds, or ``H:MM:SS.sss``) names
+the segment ``path#t=start,end`` (the temporal fragment of the W3C Media Fragments URI 1.0
+syntax), which the corpus lists as an entry of its own: it is sharded, cached and numbered like
+a file, and its sample ids are ``path#t=start,end#window``. A pass over it seeks to the key frame
+before ``start`` and keeps the frames whose presentation time lies in ``[start, end)``
+(``decode.decode_codes``), so a segment an hour into a video costs what a short file costs.
+Pure: no I/O.
+"""
+from __future__ import annotations
+
+import math
+import re
+from typing import Optional, Tuple
+
+#: What separates a video's path from its time range in an entry name.
+FRAGMENT = "#t="
+_CLOCK = re.compile(r"^(?:(\d+):)?(\d{1,2}):(\d{1,2}(?:\.\d+)?)$")
+
+
+def parse_time(text: str) -> float:
+    """Seconds from ``text``: a decimal number (``12.5``) or a clock time (``0:01:02.5``,
+    ``01:02.5``).
+
+    Raises:
+        ValueError: anything else, or a value that is not finite.
+    """
+    m = _CLOCK.match(text)
+    if m:
+        h, mnt, sec = m.groups()
+        return int(h or 0) * 3600 + int(mnt) * 60 + float(sec)
+    t = float(text)
+    if not math.isfinite(t):
+        raise ValueError(f"time {text!r} is not finite")
+    return t
+
+
+def is_time(text: str) -> bool:
+    """Whether ``text`` reads as a time (:func:`parse_time`)."""
+    try:
+        parse_time(text)
+        return True
+    except ValueError:
+        return False
+
+
+def _seconds(t: float) -> str:
+    """``t`` in seconds to the millisecond, without trailing zeros: ``12.5``, ``20``."""
+    s = f"{t:.3f}".rstrip("0").rstrip(".")
+    return "0" if s in ("", "-0") else s
+
+
+def segment_name(path: str, start: float, end: float) -> str:
+    """The entry name of the segment ``[start, end)`` seconds of ``path``: ``path#t=start,end``."""
+    return f"{path}{FRAGMENT}{_seconds(start)},{_seconds(end)}"
+
+
+def split_segment(rel: str) -> Tuple[str, Optional[Tuple[float, float]]]:
+    """``(path, (start, end))`` of a segment's entry name, ``(rel, None)`` for a whole video.
+
+    Raises:
+        ValueError: ``rel`` carries a ``#t=`` fragment that is not two times.
+    """
+    path, sep, times = rel.rpartition(FRAGMENT)
+    if not sep:
+        return rel, None
+    start, comma, end = times.partition(",")
+    if not comma:
+        raise ValueError(f"{rel}: a time range is #t=start,end")
+    return path, (parse_time(start), parse_time(end))
+
+
+def base_path(rel: str) -> str:
+    """The video file an entry reads: ``rel`` without its time range."""
+    path, sep, _ = rel.rpartition(FRAGMENT)
+    return path if sep else rel
+
+
+def range_problem(start: float, end: float) -> Optional[str]:
+    """Why ``[start, end)`` seconds names no frame, or None: empty, reversed or negative."""
+    if start < 0:
+        return f"time range {_seconds(start)}-{_seconds(end)} s starts before the video"
+    if end < start:
+        return f"time range {_seconds(start)}-{_seconds(end)} s is reversed"
+    if end == start:
+        return f"time range {_seconds(start)}-{_seconds(end)} s is empty"
+    return None
