@@ -372,16 +372,17 @@ def video_frames(cfg: ServeConfig, root, rel_path: str):
     Raises:
         VideoError: the file cannot be opened.
     """
-    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
+    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated and scaled, frame)
     return open_frames(source_from_spec(root), rel_path, rows, cfg.decode_threads, cfg.decode_fast,
                        frame_settings(cfg), lambda declared: cfg.frames_for(_windows(cfg, declared)),
-                       cfg.window_stride)
+                       cfg.window_stride, cfg.frame_height)
 
 
 def frame_settings(cfg: ServeConfig) -> dict:
     """The recipe's settings that change the frames a pass reads (``frame_cache.decode_settings``):
     what, with the corpus and the video, names a frame-cache entry."""
-    return decode_settings(cfg.decode_fast, cfg.keep_top_fraction, cfg.frames_per_sample, cfg.max_samples_per_video)
+    return decode_settings(cfg.decode_fast, cfg.keep_top_fraction, cfg.frames_per_sample, cfg.max_samples_per_video,
+                           cfg.frame_height)
 
 
 def _windows(cfg: ServeConfig, declared: int) -> int:

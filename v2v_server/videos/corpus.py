@@ -7,7 +7,7 @@ import multiprocessing as mp
 from pathlib import Path
 from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
-from v2v_server.videos.decode import VideoError, decode_codes, open_video
+from v2v_server.videos.decode import VideoError, decode_codes, open_video, scaled_size
 from v2v_server.videos.source import source_from_spec
 
 if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
@@ -119,14 +119,15 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict) -> None:
     stride, first = cfg.window_stride, {}
     # only frame sizes matter here: the codes as stored, without the per-frame expansion
     for y, _ in decode_codes(container, stream):
+        shape = scaled_size(*y.shape, cfg.frame_height)  # the size the workers cut windows from
         i = out["frames"]
         k, off = divmod(i, stride)
         for w in ((k - 1, k) if off == 0 and k > 0 else (k,)):  # a window's last frame is the next one's first
             if w not in first:
-                first[w] = y.shape
-            elif y.shape != first[w] and w not in bad:
+                first[w] = shape
+            elif shape != first[w] and w not in bad:
                 bad[w] = (f"window {w}: frame size changed from {first[w][1]}x{first[w][0]} to "
-                          f"{y.shape[1]}x{y.shape[0]} at frame {i}")
+                          f"{shape[1]}x{shape[0]} at frame {i}")
         out["frames"] += 1
         if out["frames"] >= need:
             out["more"] = True  # enough for every window: stop decoding

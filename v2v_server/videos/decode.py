@@ -253,23 +253,51 @@ def open_video(path, threads: int = 1, fast: str = "off"):
     return container, stream, info
 
 
-def iter_luma(path: Path, threads: int = 1, rows: Rows = None) -> Iterator[np.ndarray]:
+def iter_luma(path: Path, threads: int = 1, rows: Rows = None, height: int = 0) -> Iterator[np.ndarray]:
     """Decode ``path`` sequentially and yield each frame's full-range, display-oriented luma
-    (see :func:`decode_luma`).
+    (see :func:`decode_luma`), scaled to ``height`` rows when it is not 0.
 
     Raises:
         VideoError: as ``open_video`` and ``decode_luma``.
     """
     container, stream, _ = open_video(path, threads)
-    return decode_luma(container, stream, rows)
+    return decode_luma(container, stream, rows, height)
 
 
-def decode_codes(container, stream, rows: Rows = None) -> Iterator[Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]:
+def scaled_size(height: int, width: int, frame_height: int) -> Tuple[int, int]:
+    """``(rows, columns)`` of a displayed ``height`` x ``width`` frame scaled to ``frame_height``
+    rows, its aspect ratio kept (columns rounded, at least 1); ``(height, width)`` when
+    ``frame_height`` is 0 (no scaling)."""
+    if not frame_height:
+        return height, width
+    return frame_height, max(1, int(round(width * frame_height / height)))
+
+
+def scale_frame(luma: np.ndarray, frame_height: int) -> np.ndarray:
+    """Full-range luma (uint8 or uint16 (H, W)) scaled to ``frame_height`` rows (width per
+    :func:`scaled_size`) with OpenCV's ``INTER_AREA`` (pixel-area averaging when shrinking,
+    bilinear when enlarging); ``luma`` itself when its height already is ``frame_height``.
+    Scaling averages intensities, so it must act on full-range luma, never on codes."""
+    import cv2
+
+    h, w = scaled_size(luma.shape[0], luma.shape[1], frame_height)
+    if (h, w) == luma.shape:
+        return luma
+    return cv2.resize(_unit_stride(luma), (w, h), interpolation=cv2.INTER_AREA)
+
+
+def decode_codes(container, stream, rows: Rows = None, height: int = 0
+                 ) -> Iterator[Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]:
     """Like :func:`decode_luma`, but yield ``(codes, expand)`` per frame: ``codes`` is the
     display-oriented, row-cut plane-0 array as stored (a view, possibly strided) and
     ``expand(x)`` maps ``codes`` or any crop or flip of it to full-range luma. Expansion is
     per pixel, so expanding a crop equals cropping the expanded frame, at a fraction of the
     cost; resampling must expand first. Closes the container when done.
+
+    With ``height`` > 0 every displayed frame is first expanded to full range and scaled to
+    ``height`` rows (:func:`scale_frame`), and ``rows`` then cut from the scaled frame (a
+    function ``rows`` gets the scaled height); ``codes`` is then that full-range frame and
+    ``expand`` is :func:`full_range`.
 
     Raises:
         VideoError: when decoding fails part-way (the frames yielded before were good).
@@ -283,14 +311,20 @@ def decode_codes(container, stream, rows: Rows = None) -> Iterator[Tuple[np.ndar
             conv = convs.get(key)
             if conv is None:
                 conv = convs[key] = _converter(frame)
-            yield _codes(frame, conv, rows), conv[1]
+            if not height:
+                yield _codes(frame, conv, rows), conv[1]
+                continue
+            y = scale_frame(conv[1](_codes(frame, conv)), height)
+            if rows is not None:
+                y = y[: (rows(y.shape[0]) if callable(rows) else rows)]
+            yield y, full_range
     except av.error.FFmpegError as e:
         raise VideoError(f"decoding failed: {type(e).__name__}: {e}") from None
     finally:
         container.close()
 
 
-def decode_luma(container, stream, rows: Rows = None) -> Iterator[np.ndarray]:
+def decode_luma(container, stream, rows: Rows = None, height: int = 0) -> Iterator[np.ndarray]:
     """Yield the luma of each frame of an ``open_video`` result; closes the container when
     done (or when the generator is closed). With :func:`decode_codes` (its lazy form), this
     is the one place frames are read.
@@ -300,13 +334,14 @@ def decode_luma(container, stream, rows: Rows = None) -> Iterator[np.ndarray]:
     reference loader's BGR -> grey conversion does (module docstring), and a display matrix
     rotates the frame as a player shows it (H, W are then the displayed height and width).
     ``rows`` keeps only the top rows of each displayed frame: ``None`` all, an int, or a
-    function of the displayed height. The yielded array may be a view into the decoder's
-    buffer, valid until the next frame: copy what you keep.
+    function of the displayed height. ``height`` > 0 scales each displayed frame to that many
+    rows before ``rows`` are cut (see :func:`decode_codes`). The yielded array may be a view
+    into the decoder's buffer, valid until the next frame: copy what you keep.
 
     Raises:
         VideoError: when decoding fails part-way (the frames yielded before were good).
     """
-    gen = decode_codes(container, stream, rows)
+    gen = decode_codes(container, stream, rows, height)
     try:
         for codes, expand in gen:
             yield _unit_stride(expand(codes))

@@ -64,10 +64,11 @@ def lookup_entry(cache: FrameCache, source, rel: str, settings: dict) -> Tuple[s
 
 @contextlib.contextmanager
 def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings: dict,
-                limit_of: Callable[[int], int], stride: int) -> Iterator[FramePass]:
+                limit_of: Callable[[int], int], stride: int, height: int = 0) -> Iterator[FramePass]:
     """The frames of video ``rel`` of ``source`` (a ``videos.source.VideoSource``), from its
     frame cache (``source.frame_cache``, None when off) or decoded with ``threads`` and
-    ``fast`` (``decode.open_video``), top ``rows`` kept. ``settings``: the decode settings
+    ``fast`` (``decode.open_video``), scaled to ``height`` rows when not 0 and top ``rows`` of
+    that kept (``decode.decode_codes``). ``settings``: the decode settings
     that name the entry (``frame_cache.decode_settings``); ``limit_of(declared)``: frames the
     pass needs; ``stride``: frames between windows.
 
@@ -85,7 +86,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
             def redecode(start: int) -> Iterator[Frame]:
                 with source.open(rel) as path:
                     container, stream, _ = open_video(path, threads, fast)
-                    yield from itertools.islice(decode_codes(container, stream, rows), start, limit)
+                    yield from itertools.islice(decode_codes(container, stream, rows, height), start, limit)
 
             try:
                 yield FramePass(VideoInfo(**entry.meta["info"]), declared, _replay(cache, name, entry, limit, redecode),
@@ -99,7 +100,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         writer = None
         if cache is not None:
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
-        yield FramePass(info, declared, _decoded(decode_codes(container, stream, rows), limit_of(declared), writer), False,
+        yield FramePass(info, declared, _decoded(decode_codes(container, stream, rows, height), limit_of(declared), writer), False,
                         writer)
 
 
