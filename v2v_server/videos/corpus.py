@@ -7,7 +7,7 @@ import multiprocessing as mp
 from pathlib import Path
 from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
-from v2v_server.videos.decode import VideoError, decode_codes, open_video, scaled_size
+from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video, scaled_size
 from v2v_server.videos.source import source_from_spec
 
 if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
@@ -59,6 +59,11 @@ def corpus_fingerprint(videos: List[str]) -> str:
 SHORT_CLIP = "shorter than one window of"
 
 
+#: Spread of a file's frame intervals (longest less shortest), as a share of the median one, above
+#: which ``--check`` reports a variable frame rate (timestamp rounding stays far below it).
+VFR_SPREAD = 0.1
+
+
 def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = None,
             error: Optional[BaseException] = None) -> Tuple[int, List[int], Optional[str]]:
     """What a file is worth, from what reading it found: the one rule ``--check``, the
@@ -95,7 +100,8 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
     """Verdict for one file of ``root`` (a corpus folder, or a ``source.VideoSource`` or its
     ``spec()``), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason"}``
     (``failed_windows`` when some window cannot be made, ``more`` when decoding stopped with
-    enough frames for every window); see :func:`verdict`."""
+    enough frames for every window, ``variable_rate`` when the frames read are unevenly spaced in
+    time); see :func:`verdict`."""
     out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": ""}
     bad: dict = {}  # window -> why it cannot be made
     error = None
@@ -116,9 +122,9 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict) -> None:
     container, stream, info = open_video(path)
     out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
     need = cfg.frames_for(cfg.max_samples_per_video)
-    stride, first = cfg.window_stride, {}
+    stride, first, times = cfg.window_stride, {}, []
     # only frame sizes matter here: the codes as stored, without the per-frame expansion
-    for y, _ in decode_codes(container, stream):
+    for y, _ in decode_codes(container, stream, times=times):
         shape = scaled_size(*y.shape, cfg.frame_height)  # the size the workers cut windows from
         i = out["frames"]
         k, off = divmod(i, stride)
@@ -132,6 +138,10 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict) -> None:
         if out["frames"] >= need:
             out["more"] = True  # enough for every window: stop decoding
             break
+    gaps = frame_intervals(times)
+    if gaps and gaps[2] - gaps[0] > VFR_SPREAD * gaps[1]:
+        out["variable_rate"] = (f"variable frame rate: frame intervals {gaps[0] * 1e3:.3g}-{gaps[2] * 1e3:.3g} ms, "
+                                f"taken as if evenly spaced at the average {info.fps:.3g} fps")
 
 
 def _check(args):
@@ -158,6 +168,8 @@ def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
             else r["reason"]
         if r["usable"] and r.get("failed_windows"):
             detail += f"; {r['reason']}"
+        if r["usable"] and r.get("variable_rate"):
+            detail += f"; {r['variable_rate']}"
         lines.append(f"{r['path']:<48} {verdict:<12} {detail}")
     for rel, reason in rejected:
         lines.append(f"{Path(rel).as_posix():<48} {'ignored':<12} {reason}")

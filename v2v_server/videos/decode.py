@@ -132,6 +132,16 @@ def _converter(frame) -> Tuple[Callable[[object], np.ndarray], Callable[[np.ndar
     return (lambda fr: fr.to_ndarray(format="gray")), full_range
 
 
+def frame_intervals(times: Sequence[Optional[float]]) -> Optional[Tuple[float, float, float]]:
+    """``(shortest, median, longest)`` interval in seconds between consecutive presentation
+    times ``times`` (frames without one left out); None with fewer than two intervals."""
+    t = np.array([x for x in times if x is not None], dtype=np.float64)
+    if len(t) < 3:
+        return None
+    d = np.diff(t)
+    return float(d.min()), float(np.median(d)), float(d.max())
+
+
 def display_rotation(frame) -> int:
     """Counter-clockwise rotation in quarter turns (0..3) that the frame's display matrix asks
     for (``VideoFrame.rotation``, rounded to a multiple of 90 degrees); 0 without one. Flips
@@ -286,7 +296,7 @@ def scale_frame(luma: np.ndarray, frame_height: int) -> np.ndarray:
     return cv2.resize(_unit_stride(luma), (w, h), interpolation=cv2.INTER_AREA)
 
 
-def decode_codes(container, stream, rows: Rows = None, height: int = 0
+def decode_codes(container, stream, rows: Rows = None, height: int = 0, times: Optional[List] = None
                  ) -> Iterator[Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]:
     """Like :func:`decode_luma`, but yield ``(codes, expand)`` per frame: ``codes`` is the
     display-oriented, row-cut plane-0 array as stored (a view, possibly strided) and
@@ -297,7 +307,9 @@ def decode_codes(container, stream, rows: Rows = None, height: int = 0
     With ``height`` > 0 every displayed frame is first expanded to full range and scaled to
     ``height`` rows (:func:`scale_frame`), and ``rows`` then cut from the scaled frame (a
     function ``rows`` gets the scaled height); ``codes`` is then that full-range frame and
-    ``expand`` is :func:`full_range`.
+    ``expand`` is :func:`full_range`. ``times``, when given, receives each yielded frame's
+    presentation time in seconds (None when the frame has none): frames come in presentation
+    order, and their times are facts only (windows count frames, whatever their spacing).
 
     Raises:
         VideoError: when decoding fails part-way (the frames yielded before were good).
@@ -311,6 +323,8 @@ def decode_codes(container, stream, rows: Rows = None, height: int = 0
             conv = convs.get(key)
             if conv is None:
                 conv = convs[key] = _converter(frame)
+            if times is not None:
+                times.append(frame.time)
             if not height:
                 yield _codes(frame, conv, rows), conv[1]
                 continue
