@@ -232,6 +232,13 @@ def markdown(r: dict, command: str) -> str:
             lines.append(f"| {t['size']} | {t['threads']} | {t['fps_cpu']:,.0f} | {t['fps_cpu'] / o['fps_cpu']:.2f}x | "
                          f"{t['fps_wall']:,.0f} | {t['fps_wall'] / o['fps_wall']:.2f}x |")
         lines.append("")
+        for size, o in one.items():
+            best = max((t for t in r["threads"] if t["size"] == size), key=lambda t: t["fps_wall"])
+            lines.append(f"At {size} the most frames per wall-second came with decode_threads {best['threads']} "
+                         f"({best['fps_wall'] / o['fps_wall']:.2f}x one thread, at {best['fps_cpu'] / o['fps_cpu']:.2f}x its "
+                         "frames per CPU-second).")
+        lines += ["", "More decode threads pay only where a worker's cores would otherwise idle; with one worker "
+                  "per core (`workers` = cores), keep `decode_threads: 1` and add workers.", ""]
     return "\n".join(lines)
 
 
