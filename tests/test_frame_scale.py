@@ -143,3 +143,31 @@ def test_v2v_serve_bad_frame_height_is_a_configuration_error():
 def _samples(cfg, root, video) -> dict:
     return {key.sample_id(cfg.crops_per_window): sample_hashes._digest(arrays, sample_hashes._canonical(meta))
             for key, arrays, meta in video_samples(cfg, root, video, 0, OUTPUTS, flow_grid=True)}
+
+
+def test_served_samples_under_frame_height_are_the_recipes(corpus):
+    """``v2v-serve --frame-height`` (two worker processes, the recipe sent to each): every sample
+    that of ``video_samples`` under the same recipe, and not the unscaled one."""
+    from harness.serve import ServeProcess
+    from v2v_client.dataset import V2VStreamDataset
+
+    flags = ["--sequence-length", "4", "--num-bins", "2", "--crop-size", "32", "--max-samples-per-video", "3",
+             "--frame-height", "100", "--seed", "5"]
+    cfg = ServeConfig(**SMALL, frame_height=100, seed=5).validate()
+    want = {key.sample_id(1): arrays for key, arrays, _ in video_samples(cfg, corpus, "bikes.mp4", 0, ("voxels", "frames"))}
+    got = {}
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", *flags, "--batch-size", "2",
+                       "--outputs", "voxels,frames", "--epochs", "1"]) as srv:
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2, raw=True))
+        try:
+            for b in it:
+                for i, sid in enumerate(b["sample_ids"]):
+                    got[sid] = {k: np.asarray(b[k][i]) for k in ("voxels", "frames")}
+        finally:
+            it.close()
+    assert set(want) <= set(got) and len(want) == 3
+    for sid, arrays in want.items():
+        for k in arrays:
+            np.testing.assert_array_equal(got[sid][k].reshape(arrays[k].shape), arrays[k], err_msg=f"{sid} {k}")
+    plain = next(video_samples(ServeConfig(**SMALL, seed=5).validate(), corpus, "bikes.mp4", 0, ("frames",)))
+    assert not np.array_equal(plain[1]["frames"], want[plain[0].sample_id(1)]["frames"])
