@@ -436,15 +436,15 @@ def test_warm_cache_then_check(tmp_path):
     assert r.returncode == 2 and "needs a frame cache" in r.stderr
     args += ["--frame-cache-gb", "1"]
     r = subprocess.run(args + ["--warm-cache"], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "3 stored" in r.stdout and "0 not stored" in r.stdout, r.stdout + r.stderr
+    assert r.returncode == 0 and "4 stored" in r.stdout and "0 not stored" in r.stdout, r.stdout + r.stderr
     r = subprocess.run(args + ["--warm-cache"], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "3 already cached" in r.stdout, r.stdout + r.stderr
+    assert r.returncode == 0 and "4 already cached" in r.stdout, r.stdout + r.stderr
     r = subprocess.run(args + ["--check"], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "3 entries" in r.stdout and "3 of 3 videos cached (100%)" in r.stdout, r.stdout
+    assert r.returncode == 0 and "4 entries" in r.stdout and "4 of 4 videos cached (100%)" in r.stdout, r.stdout
     entry = max(_entries(tmp_path), key=lambda p: p.stat().st_size)
     os.truncate(entry, 100)
     r = subprocess.run(args + ["--check"], capture_output=True, text=True, timeout=300)
-    assert "2 of 3 videos cached (67%), misses: corrupt 1" in r.stdout, r.stdout
+    assert "3 of 4 videos cached (75%), misses: corrupt 1" in r.stdout, r.stdout
 
 
 def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, monkeypatch):

@@ -12,7 +12,9 @@ from v2v_wire.ids import SampleKey
 
 
 def small_cfg(**kw):
-    base = dict(sequence_length=4, num_bins=5, crop_size=64, max_samples_per_video=3, seed=3)
+    """A short recipe with the authors' window layout (windows at k x stride: these tests cut the
+    montage bikes.mp4 and synthetic step clips; windows inside shots are tests/test_shots.py's)."""
+    base = dict(sequence_length=4, num_bins=5, crop_size=64, max_samples_per_video=3, seed=3, shot_cuts="off")
     base.update(kw)
     return ServeConfig(**base).validate()
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -33,6 +34,8 @@ MAX_WORKERS = 256
 MAX_PREFETCH = 256
 MAX_CREDITS = 1024
 MAX_SHUFFLE_BUFFER = 4096
+#: Largest frame_height (8K UHD).
+MAX_FRAME_HEIGHT = 4320
 #: Samples the shuffle buffer holds by default (its mixing measured: docs/shuffle.md).
 SHUFFLE_BUFFER = 64
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".gif")
@@ -57,6 +60,9 @@ class SampleRecipe:
     crop_size: int = setting(128, help="square crop side, pixels")
     keep_top_fraction: float = setting(0.54, help="fraction of each frame's height, from the top, that crops come "
                                                   "from (WebVid's watermark; 1.0 for clips without one)")
+    frame_height: int = setting(0, help="scale every decoded frame to this height in pixels (width keeps the aspect "
+                                        "ratio; OpenCV INTER_AREA on full-range luma) before the kept region, the "
+                                        "frame cache and the crops; 0 = frames as decoded (docs/frame_scale.md)")
     hflip_prob: float = setting(0.5, help="probability of a horizontal flip")
     max_samples_per_video: int = setting(10, help="windows (samples with crops_per_window 1) per video per epoch")
     shot_cuts: str = setting("avoid", help="avoid: windows lie inside one shot (they start at each shot's first "
@@ -115,6 +121,8 @@ class SampleRecipe:
         client asks for and the decoding threads): sample ids name the same samples only under
         the same fingerprint."""
         content = {k: v for k, v in self.recipe_dict().items() if k not in ("outputs", "decode_threads")}
+        if not content["frame_height"]:  # no scaling: the fingerprint of the same recipe without the key
+            del content["frame_height"]
         return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def recipe_dict(self) -> dict:
@@ -149,6 +157,12 @@ class SampleRecipe:
             setattr(self, name, check_prob(name, getattr(self, name)))
         if not isinstance(self.keep_top_fraction, (int, float)) or not (0 < self.keep_top_fraction <= 1):
             raise ValueError(f"keep_top_fraction must be in (0, 1], got {self.keep_top_fraction!r}")
+        check_int("frame_height", self.frame_height, 0, MAX_FRAME_HEIGHT, "pixels; 0 = no scaling")
+        if self.frame_height and math.floor(self.frame_height * self.keep_top_fraction) < self.crop_size:
+            raise ValueError(f"frame_height {self.frame_height} keeps {math.floor(self.frame_height * self.keep_top_fraction)}"
+                             f" rows (keep_top_fraction {self.keep_top_fraction}), fewer than crop_size "
+                             f"{self.crop_size}: every crop would be enlarged again; use frame_height >= "
+                             f"{math.ceil(self.crop_size / self.keep_top_fraction)} or 0 (no scaling)")
         self.outputs = check_outputs(self.outputs)
         self.flow_preset = check_option(self.flow_preset).name  # ValueError naming flow_preset
         why = unavailable_reason(self.flow_preset)

@@ -12,7 +12,7 @@ import multiprocessing as mp
 from typing import List, Optional, Sequence, Tuple
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.samples.make import frame_settings, video_frames
+from v2v_server.samples.make import frame_settings, video_frames, window_layout
 from v2v_server.videos.frames import lookup_entry
 from v2v_server.videos.source import VideoSource, source_from_spec
 
@@ -29,8 +29,13 @@ def warm_video(cfg: ServeConfig, root, rel: str) -> dict:
     try:
         with video_frames(cfg, source, rel) as fp:
             cached = fp.cached
-            for _ in fp.frames:
+            layout = window_layout(cfg, fp.declared)  # the frames the sample pass reads, no more
+            for i, _ in enumerate(fp.frames):
                 out["frames"] += 1
+                layout.step(i, fp.cut_at(i))
+                if layout.done:
+                    fp.end()
+                    break
     except Exception as e:  # one bad file never stops the warm-up
         out["state"] = f"not stored: {type(e).__name__}: {e}"
     st = source.take_stats().get("frame_cache", {})

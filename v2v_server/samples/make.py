@@ -373,10 +373,10 @@ def video_frames(cfg: ServeConfig, root, rel_path: str):
     Raises:
         VideoError: the file cannot be opened.
     """
-    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated, frame)
+    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated and scaled, frame)
     return open_frames(source_from_spec(root), rel_path, rows, cfg.decode_threads, cfg.decode_fast,
                        frame_settings(cfg), lambda declared: _frame_limit(cfg, declared), cfg.window_stride,
-                       detect=cfg.shot_cuts == "avoid")
+                       cfg.frame_height, detect=cfg.shot_cuts == "avoid")
 
 
 def _frame_limit(cfg: ServeConfig, declared: int) -> int:
@@ -397,7 +397,8 @@ def window_layout(cfg: ServeConfig, declared: int = 0) -> WindowLayout:
 def frame_settings(cfg: ServeConfig) -> dict:
     """The recipe's settings that change the frames a pass reads (``frame_cache.decode_settings``):
     what, with the corpus and the video, names a frame-cache entry."""
-    settings = decode_settings(cfg.decode_fast, cfg.keep_top_fraction, cfg.frames_per_sample, cfg.max_samples_per_video)
+    settings = decode_settings(cfg.decode_fast, cfg.keep_top_fraction, cfg.frames_per_sample, cfg.max_samples_per_video,
+                               cfg.frame_height)
     if cfg.shot_cuts == "avoid":  # the entry holds the frames up to the last window, and the cuts this detector found
         settings["shots"] = DETECTOR_VERSION
     return settings

@@ -7,7 +7,7 @@ import multiprocessing as mp
 from pathlib import Path
 from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
-from v2v_server.videos.decode import VideoError, decode_codes, open_video
+from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.frames import kept_rows
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, thumbnail
@@ -62,6 +62,11 @@ def corpus_fingerprint(videos: List[str]) -> str:
 SHORT_CLIP = "shorter than one window of"
 
 
+#: Spread of a file's frame intervals (longest less shortest), as a share of the median one, above
+#: which ``--check`` reports a variable frame rate (timestamp rounding stays far below it).
+VFR_SPREAD = 0.1
+
+
 def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = None,
             error: Optional[BaseException] = None, windows: Optional[int] = None,
             cuts: int = 0) -> Tuple[int, List[int], Optional[str]]:
@@ -112,7 +117,8 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
     ``spec()``), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason",
     "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
     says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
-    made, ``more`` when decoding stopped with every window complete); see :func:`verdict`."""
+    made, ``more`` when decoding stopped with every window complete, ``variable_rate`` when the
+    frames read are unevenly spaced in time); see :func:`verdict`."""
     out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": "", "cuts": [],
            "dropped": 0}
     bad: dict = {}  # window -> why it cannot be made
@@ -131,7 +137,7 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
     return out
 
 
-def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, times=None) -> None:
+def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, segment=None) -> None:
     """Decode ``path`` for :func:`check_video`: frames, cuts and complete windows into ``out``,
     failed windows into ``bad``; the windows as the sample pass places them (the same rows
     scored by the same detector, ``shots.WindowLayout``)."""
@@ -141,7 +147,9 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, times=None) -> N
     detector, tables = ShotDetector(), {}
     shape = None  # first frame size of the window in progress
     rows = lambda h: kept_rows(cfg.keep_top_fraction, h)  # noqa: E731  (the rows the sample pass scores)
-    for i, (y, expand) in enumerate(decode_codes(container, stream, rows, segment=times)):
+    times: list = []  # presentation times, for a variable frame rate
+    # the frames the workers cut (scaled, kept rows), scored by the same detector
+    for i, (y, expand) in enumerate(decode_codes(container, stream, rows, cfg.frame_height, times, segment)):
         table = tables.get(expand)
         if table is None:
             table = tables[expand] = code_table(expand, y.dtype)
@@ -160,6 +168,10 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, times=None) -> N
         if layout.done:
             out["more"] = True  # every window is complete: stop decoding
             break
+    gaps = frame_intervals(times)
+    if gaps and gaps[2] - gaps[0] > VFR_SPREAD * gaps[1]:
+        out["variable_rate"] = (f"variable frame rate: frame intervals {gaps[0] * 1e3:.3g}-{gaps[2] * 1e3:.3g} ms, "
+                                f"taken as if evenly spaced at the average {info.fps:.3g} fps")
 
 
 def _check(args):
@@ -191,6 +203,8 @@ def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
                   else r["reason"]) + (shots if r["frames"] else "")
         if r["usable"] and r.get("failed_windows"):
             detail += f"; {r['reason']}"
+        if r["usable"] and r.get("variable_rate"):
+            detail += f"; {r['variable_rate']}"
         lines.append(f"{r['path']:<48} {verdict:<12} {detail}")
     for rel, reason in rejected:
         lines.append(f"{Path(rel).as_posix():<48} {'ignored':<12} {reason}")

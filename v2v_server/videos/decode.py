@@ -132,6 +132,16 @@ def _converter(frame) -> Tuple[Callable[[object], np.ndarray], Callable[[np.ndar
     return (lambda fr: fr.to_ndarray(format="gray")), full_range
 
 
+def frame_intervals(times: Sequence[Optional[float]]) -> Optional[Tuple[float, float, float]]:
+    """``(shortest, median, longest)`` interval in seconds between consecutive presentation
+    times ``times`` (frames without one left out); None with fewer than two intervals."""
+    t = np.array([x for x in times if x is not None], dtype=np.float64)
+    if len(t) < 3:
+        return None
+    d = np.diff(t)
+    return float(d.min()), float(np.median(d)), float(d.max())
+
+
 def display_rotation(frame) -> int:
     """Counter-clockwise rotation in quarter turns (0..3) that the frame's display matrix asks
     for (``VideoFrame.rotation``, rounded to a multiple of 90 degrees); 0 without one. Flips
@@ -253,18 +263,40 @@ def open_video(path, threads: int = 1, fast: str = "off"):
     return container, stream, info
 
 
-def iter_luma(path: Path, threads: int = 1, rows: Rows = None) -> Iterator[np.ndarray]:
+def iter_luma(path: Path, threads: int = 1, rows: Rows = None, height: int = 0) -> Iterator[np.ndarray]:
     """Decode ``path`` sequentially and yield each frame's full-range, display-oriented luma
-    (see :func:`decode_luma`).
+    (see :func:`decode_luma`), scaled to ``height`` rows when it is not 0.
 
     Raises:
         VideoError: as ``open_video`` and ``decode_luma``.
     """
     container, stream, _ = open_video(path, threads)
-    return decode_luma(container, stream, rows)
+    return decode_luma(container, stream, rows, height)
 
 
-def decode_codes(container, stream, rows: Rows = None,
+def scaled_size(height: int, width: int, frame_height: int) -> Tuple[int, int]:
+    """``(rows, columns)`` of a displayed ``height`` x ``width`` frame scaled to ``frame_height``
+    rows, its aspect ratio kept (columns rounded, at least 1); ``(height, width)`` when
+    ``frame_height`` is 0 (no scaling)."""
+    if not frame_height:
+        return height, width
+    return frame_height, max(1, int(round(width * frame_height / height)))
+
+
+def scale_frame(luma: np.ndarray, frame_height: int) -> np.ndarray:
+    """Full-range luma (uint8 or uint16 (H, W)) scaled to ``frame_height`` rows (width per
+    :func:`scaled_size`) with OpenCV's ``INTER_AREA`` (pixel-area averaging when shrinking,
+    bilinear when enlarging); ``luma`` itself when its height already is ``frame_height``.
+    Scaling averages intensities, so it must act on full-range luma, never on codes."""
+    import cv2
+
+    h, w = scaled_size(luma.shape[0], luma.shape[1], frame_height)
+    if (h, w) == luma.shape:
+        return luma
+    return cv2.resize(_unit_stride(luma), (w, h), interpolation=cv2.INTER_AREA)
+
+
+def decode_codes(container, stream, rows: Rows = None, height: int = 0, times: Optional[List] = None,
                  segment: Optional[Tuple[float, float]] = None) -> Iterator[Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]:
     """Like :func:`decode_luma`, but yield ``(codes, expand)`` per frame: ``codes`` is the
     display-oriented, row-cut plane-0 array as stored (a view, possibly strided) and
@@ -274,6 +306,13 @@ def decode_codes(container, stream, rows: Rows = None,
     the stream's start (``videos.segments``): the container seeks to the key frame before
     ``start`` and only frames whose presentation time lies in ``[start, end)`` are yielded.
     Closes the container when done.
+
+    With ``height`` > 0 every displayed frame is first expanded to full range and scaled to
+    ``height`` rows (:func:`scale_frame`), and ``rows`` then cut from the scaled frame (a
+    function ``rows`` gets the scaled height); ``codes`` is then that full-range frame and
+    ``expand`` is :func:`full_range`. ``times``, when given, receives each yielded frame's
+    presentation time in seconds (None when the frame has none): frames come in presentation
+    order, and their times are facts only (windows count frames, whatever their spacing).
 
     Raises:
         VideoError: when decoding fails part-way (the frames yielded before were good), or a
@@ -294,7 +333,15 @@ def decode_codes(container, stream, rows: Rows = None,
             if conv is None:
                 conv = convs[key] = _converter(frame)
             kept += 1
-            yield _codes(frame, conv, rows), conv[1]
+            if times is not None:
+                times.append(frame.time)
+            if not height:
+                yield _codes(frame, conv, rows), conv[1]
+                continue
+            y = scale_frame(conv[1](_codes(frame, conv)), height)
+            if rows is not None:
+                y = y[: (rows(y.shape[0]) if callable(rows) else rows)]
+            yield y, full_range
         if segment is not None and kept == 0:
             length = float(stream.duration * stream.time_base) if stream.duration and stream.time_base else \
                 (container.duration or 0) / 1e6
@@ -327,7 +374,7 @@ def _in_range(container, stream, frames, start: float, end: float):
             yield frame
 
 
-def decode_luma(container, stream, rows: Rows = None) -> Iterator[np.ndarray]:
+def decode_luma(container, stream, rows: Rows = None, height: int = 0) -> Iterator[np.ndarray]:
     """Yield the luma of each frame of an ``open_video`` result; closes the container when
     done (or when the generator is closed). With :func:`decode_codes` (its lazy form), this
     is the one place frames are read.
@@ -337,13 +384,14 @@ def decode_luma(container, stream, rows: Rows = None) -> Iterator[np.ndarray]:
     reference loader's BGR -> grey conversion does (module docstring), and a display matrix
     rotates the frame as a player shows it (H, W are then the displayed height and width).
     ``rows`` keeps only the top rows of each displayed frame: ``None`` all, an int, or a
-    function of the displayed height. The yielded array may be a view into the decoder's
-    buffer, valid until the next frame: copy what you keep.
+    function of the displayed height. ``height`` > 0 scales each displayed frame to that many
+    rows before ``rows`` are cut (see :func:`decode_codes`). The yielded array may be a view
+    into the decoder's buffer, valid until the next frame: copy what you keep.
 
     Raises:
         VideoError: when decoding fails part-way (the frames yielded before were good).
     """
-    gen = decode_codes(container, stream, rows)
+    gen = decode_codes(container, stream, rows, height)
     try:
         for codes, expand in gen:
             yield _unit_stride(expand(codes))

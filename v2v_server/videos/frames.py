@@ -47,9 +47,13 @@ class FramePass:
         return bool(self.cuts) and i in self.cuts
 
     def end(self) -> None:
-        """The consumer has what it needs: the frames given so far are the whole pass, so a
-        pass storing the video commits its entry when it is closed (else it is dropped)."""
+        """The consumer has what it needs: the frames given so far are the whole pass. The
+        frames are closed, and a pass storing the video commits its entry (a pass closed
+        without ``end`` drops it). Call it between frames, not while ``frames`` is running."""
         self.state["ended"] = True
+        close = getattr(self.frames, "close", None)
+        if close is not None:
+            close()
 
     @property
     def storing(self) -> bool:
@@ -86,10 +90,12 @@ def lookup_entry(cache: FrameCache, source, rel: str, settings: dict) -> Tuple[s
 
 @contextlib.contextmanager
 def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings: dict,
-                limit_of: Callable[[int], int], stride: int, detect: bool = False) -> Iterator[FramePass]:
+                limit_of: Callable[[int], int], stride: int, height: int = 0, detect: bool = False
+                ) -> Iterator[FramePass]:
     """The frames of video ``rel`` of ``source`` (a ``videos.source.VideoSource``), from its
     frame cache (``source.frame_cache``, None when off) or decoded with ``threads`` and
-    ``fast`` (``decode.open_video``), top ``rows`` kept. ``settings``: the decode settings
+    ``fast`` (``decode.open_video``), scaled to ``height`` rows when not 0 and top ``rows`` of
+    that kept (``decode.decode_codes``). ``settings``: the decode settings
     that name the entry (``frame_cache.decode_settings``); ``limit_of(declared)``: frames the
     pass needs; ``stride``: frames between windows; ``detect``: find the shot cuts
     (``shots.ShotDetector`` on the kept rows; stored with the entry, so a replay finds none again).
@@ -109,7 +115,8 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
             def redecode(start: int) -> Iterator[Frame]:
                 with source.open(rel) as path:
                     container, stream, _ = open_video(path, threads, fast)
-                    yield from itertools.islice(decode_codes(container, stream, rows, segment=times), start, limit)
+                    yield from itertools.islice(decode_codes(container, stream, rows, height, segment=times), start,
+                                                limit)
 
             cuts = None
             if detect:  # an entry written with detection holds its cuts (the settings name the detector)
@@ -127,7 +134,8 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         if cache is not None:
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
         fp = FramePass(info, declared, iter(()), False, writer, set() if detect else None)
-        fp.frames = _decoded(decode_codes(container, stream, rows, segment=times), limit_of(declared), writer, fp)
+        fp.frames = _decoded(decode_codes(container, stream, rows, height, segment=times), limit_of(declared), writer,
+                             fp)
         yield fp
 
 

@@ -1,0 +1,173 @@
+"""Frame scale (the recipe's ``frame_height``): every decoded frame scaled with INTER_AREA on
+full-range luma before the kept region and the frame cache, for every reader; entries keyed by
+it; a bad value a configuration error naming the key."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from harness.corpus import write_size_change_video, write_video
+from tests import sample_hashes
+from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.make import kept_rows, video_frames, video_samples
+from v2v_server.videos.corpus import check_video
+from v2v_server.videos.decode import decode_luma, iter_luma, open_video
+from v2v_server.videos.source import open_source
+from v2v_wire.outputs import OUTPUTS
+
+ROOT = Path(__file__).resolve().parents[1]
+CLIPS = ROOT / "v2v_server" / "sample_videos"
+#: windows of 9 frames, 32 px crops (frame_height >= 60 keeps 32 rows at the default 0.54)
+SMALL = dict(sequence_length=4, num_bins=2, crop_size=32, max_samples_per_video=3)
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory) -> Path:
+    """bikes.mp4 (8-bit limited range, 596 x 336 display) and a 10-bit source (uint16 frames)."""
+    d = tmp_path_factory.mktemp("scale")
+    shutil.copy(CLIPS / "bikes.mp4", d / "bikes.mp4")
+    write_video(d / "ten_bit.mkv", 30, 120, 90, codec="ffv1", pix_fmt="yuv420p10le")
+    return d
+
+
+def _expected(path: Path, height: int, keep: float, n: int) -> list:
+    """The first ``n`` frames as the recipe defines them: the decoded full-range frame,
+    cv2.resize(INTER_AREA) to ``height`` rows (width rounded to the aspect ratio), then the top
+    ``floor(height * keep)`` rows."""
+    out = []
+    for g in iter_luma(path):
+        h, w = g.shape
+        s = cv2.resize(g, (int(round(w * height / h)), height), interpolation=cv2.INTER_AREA)
+        out.append(s[: int(np.floor(height * keep))].copy())
+        if len(out) == n:
+            break
+    return out
+
+
+@pytest.mark.parametrize("video,height", [("bikes.mp4", 120), ("bikes.mp4", 500), ("ten_bit.mkv", 64)])
+def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video, height):
+    """The pass the workers, ``--warm-cache`` and the Ray engine read (``video_frames``) gives
+    INTER_AREA of the full-range frame (down and up), then the kept rows; uint16 stays uint16."""
+    cfg = ServeConfig(**SMALL, frame_height=height).validate()
+    want = _expected(corpus / video, height, cfg.keep_top_fraction, 12)
+    with video_frames(cfg, corpus, video) as fp:
+        got = [expand(codes).copy() for codes, expand in (next(fp.frames) for _ in range(12))]
+    assert got[0].shape == (kept_rows(cfg, height), want[0].shape[1])
+    assert got[0].dtype == want[0].dtype == (np.uint16 if video == "ten_bit.mkv" else np.uint8)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
+    c, s, _ = open_video(corpus / video)  # the readers outside the sample pass (evaluation, benches)
+    first = next(decode_luma(c, s, lambda h: kept_rows(cfg, h), height)).copy()
+    c.close()
+    np.testing.assert_array_equal(first, want[0])
+
+
+def test_frame_height_zero_is_the_decoded_frame(corpus):
+    cfg = ServeConfig(**SMALL).validate()
+    assert cfg.frame_height == 0
+    plain = [g[: kept_rows(cfg, g.shape[0])].copy() for _, g in zip(range(5), iter_luma(corpus / "bikes.mp4"))]
+    with video_frames(cfg, corpus, "bikes.mp4") as fp:
+        got = [expand(codes).copy() for codes, expand in (next(fp.frames) for _ in range(5))]
+    for a, b in zip(got, plain):
+        np.testing.assert_array_equal(a, b)
+    assert ServeConfig(**SMALL, frame_height=0).fingerprint() == cfg.fingerprint() != \
+        ServeConfig(**SMALL, frame_height=120).fingerprint()
+
+
+@pytest.mark.parametrize("fmt", ["raw", "zstd"])
+def test_cached_samples_equal_decoded_with_scaling(corpus, tmp_path, fmt):
+    """Every output, cold and warm, equal to the decoded samples under a frame_height."""
+    src = open_source(str(corpus), cache_dir=str(tmp_path), frame_cache_gb=1.0, frame_cache_format=fmt)
+    for video, height in (("bikes.mp4", 100), ("ten_bit.mkv", 72)):
+        cfg = ServeConfig(**SMALL, frame_height=height).validate()
+        decoded = _samples(cfg, corpus, video)
+        assert decoded and decoded != _samples(ServeConfig(**SMALL).validate(), corpus, video)
+        assert _samples(cfg, src, video) == decoded, (video, "cold")
+        assert _samples(cfg, src, video) == decoded, (video, "warm")
+    stats = src.take_stats()["frame_cache"]
+    assert stats["stored"] == 2 and stats["hits"] == 2, stats
+
+
+def test_entry_of_one_frame_height_is_not_hit_at_another(corpus, tmp_path):
+    src = open_source(str(corpus), cache_dir=str(tmp_path), frame_cache_gb=1.0)
+    for height in (100, 120, 0, 100):
+        cfg = ServeConfig(**SMALL, frame_height=height).validate()
+        assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, corpus, "bikes.mp4"), height
+    stats = src.take_stats()["frame_cache"]
+    assert stats["stored"] == 3 and stats["hits"] == 1 and stats["misses"]["absent"] == 3, stats
+    assert len(list((tmp_path / "frames").glob("*.v2vf"))) == 3
+
+
+def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
+    """A stream whose frame size changes: under a frame_height both sizes scale to one height,
+    so only a change of aspect ratio fails a window, in ``--check`` as in the workers."""
+    d = tmp_path / "c"
+    d.mkdir()
+    write_size_change_video(d / "same_aspect.mpg", 14, 20, size1=(96, 80), size2=(144, 120))
+    write_size_change_video(d / "other_aspect.mpg", 14, 20, size1=(96, 80), size2=(80, 80))
+    cfg = ServeConfig(sequence_length=4, num_bins=2, crop_size=16, max_samples_per_video=3, keep_top_fraction=1.0,
+                      frame_height=40).validate()
+    for name, fails in (("same_aspect.mpg", False), ("other_aspect.mpg", True)):
+        v = check_video(cfg, d, name)
+        stats: dict = {}
+        served = list(video_samples(cfg, d, name, 0, ("voxels",), stats=stats))
+        assert bool(v.get("failed_windows")) == fails == bool(stats.get("failed")), (name, v, stats)
+        assert v["windows"] == len(served), (name, v)
+
+
+@pytest.mark.parametrize("value,words", [(-1, "frame_height must be an integer >= 0"),
+                                         ("336", "frame_height must be an integer"),
+                                         (5000, "frame_height must be <= 4320"),
+                                         (100, "frame_height 100 keeps 54 rows")])
+def test_bad_frame_height_names_the_key(value, words):
+    with pytest.raises(ValueError, match=words):
+        ServeConfig(frame_height=value).validate()
+
+
+def test_v2v_serve_bad_frame_height_is_a_configuration_error():
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--frame-height", "200", "--check"],
+                       capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    line = next(x for x in r.stderr.splitlines() if x.startswith("v2v-serve: configuration error: "))
+    assert "frame_height 200 keeps 108 rows" in line and "crop_size 128" in line and ">= 238" in line, line
+
+
+def _samples(cfg, root, video) -> dict:
+    return {key.sample_id(cfg.crops_per_window): sample_hashes._digest(arrays, sample_hashes._canonical(meta))
+            for key, arrays, meta in video_samples(cfg, root, video, 0, OUTPUTS, flow_grid=True)}
+
+
+def test_served_samples_under_frame_height_are_the_recipes(corpus):
+    """``v2v-serve --frame-height`` (two worker processes, the recipe sent to each): every sample
+    that of ``video_samples`` under the same recipe, and not the unscaled one."""
+    from harness.serve import ServeProcess
+    from v2v_client.dataset import V2VStreamDataset
+
+    flags = ["--sequence-length", "4", "--num-bins", "2", "--crop-size", "32", "--max-samples-per-video", "3",
+             "--frame-height", "100", "--seed", "5"]
+    cfg = ServeConfig(**SMALL, frame_height=100, seed=5).validate()
+    want = {key.sample_id(1): arrays for key, arrays, _ in video_samples(cfg, corpus, "bikes.mp4", 0, ("voxels", "frames"))}
+    got = {}
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", *flags, "--batch-size", "2",
+                       "--outputs", "voxels,frames", "--epochs", "1"]) as srv:
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2, raw=True))
+        try:
+            for b in it:
+                for i, sid in enumerate(b["sample_ids"]):
+                    got[sid] = {k: np.asarray(b[k][i]) for k in ("voxels", "frames")}
+        finally:
+            it.close()
+    assert set(want) <= set(got) and len(want) == 3
+    for sid, arrays in want.items():
+        for k in arrays:
+            np.testing.assert_array_equal(got[sid][k].reshape(arrays[k].shape), arrays[k], err_msg=f"{sid} {k}")
+    plain = next(video_samples(ServeConfig(**SMALL, seed=5).validate(), corpus, "bikes.mp4", 0, ("frames",)))
+    assert not np.array_equal(plain[1]["frames"], want[plain[0].sample_id(1)]["frames"])
