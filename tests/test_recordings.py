@@ -254,10 +254,10 @@ def test_a_size_argument_or_h5_resolution_out_of_bounds_names_the_field(tmp_path
 
     import h5py
 
-    with pytest.raises(RecordingError, match=r"prophesee_gen3_evt2\.raw: the size argument states the sensor size "
-                                             r"99999x480: each side"):
+    with pytest.raises(RecordingError, match=r"prophesee_gen3_evt2\.raw: the size argument: sensor size 99999x480: "
+                                             r"each side"):
         open_recording(shared(EVT2), size=(99999, 480))
-    with pytest.raises(RecordingError, match="the size argument states the sensor size 640.5x480"):
+    with pytest.raises(RecordingError, match="the size argument: sensor size 640.5x480: not whole numbers"):
         open_recording(shared(EVT2), size=(640.5, 480))
     for resolution, why in (((70000, 10), "10x70000: each side"), ((-4, 10), "10x-4: each side"),
                             ((50000, 50000), "50000x50000 = 2500000000 pixels")):
@@ -265,9 +265,31 @@ def test_a_size_argument_or_h5_resolution_out_of_bounds_names_the_field(tmp_path
         write_moving_edge_h5(p)
         with h5py.File(p, "r+") as f:
             f.attrs["sensor_resolution"] = resolution
-        with pytest.raises(RecordingError, match=r"edge\.h5: the attribute 'sensor_resolution' states the sensor "
-                                                 r"size " + re.escape(why)):
+        with pytest.raises(RecordingError, match=r"edge\.h5: the attribute 'sensor_resolution': sensor size "
+                                                 + re.escape(why)):
             open_recording(p)
+
+
+@pytest.mark.parametrize("width, height, why", [("99999", "480", "99999x480: each side must be 1 to 65536"),
+                                                 ("-5", "480", "-5x480: each side"), ("abc", "480", "not whole numbers"),
+                                                 ("65535", "65535", "over the 67108864 this reader takes")])
+def test_a_dat_header_size_out_of_bounds_names_the_fields(tmp_path, width, height, why):
+    """faery takes its fallback size for a DAT Width or Height it cannot parse: the header's
+    fields are checked here, so the file is refused instead of read at a size it never stated."""
+    import faery
+
+    ev = read_all(open_recording(shared(EVT2)))[:5000]
+    arr = np.zeros(len(ev), faery.EVENTS_DTYPE)
+    arr["t"], arr["x"], arr["y"], arr["on"] = ev["t"] - ev["t"][0], ev["x"], ev["y"], ev["p"] > 0
+    good = tmp_path / "good.dat"
+    faery.events_stream_from_array(arr, dimensions=(640, 480)).to_file(good)
+    assert good.read_bytes().count(b"% Width 640\n% Height 480\n") == 1
+    bad = tmp_path / "camera.dat"
+    bad.write_bytes(good.read_bytes().replace(b"% Width 640\n% Height 480\n",
+                                              f"% Width {width}\n% Height {height}\n".encode()))
+    with pytest.raises(RecordingError, match=r"camera\.dat: the DAT header fields 'Width' and 'Height': sensor size ") as e:
+        open_recording(bad)
+    assert why in str(e.value)
 
 
 def test_an_aedat4_frame_outside_the_sensor_names_the_frame():

@@ -257,12 +257,12 @@ def checked_size(path, width, height, field: str) -> Tuple[int, int]:
     except (TypeError, ValueError, OverflowError):
         whole = False
     if not whole:
-        raise RecordingError(path, f"{field} states the sensor size {width!r}x{height!r}: not whole numbers")
+        raise RecordingError(path, f"{field}: sensor size {width!r}x{height!r}: not whole numbers")
     if not (1 <= w <= MAX_SENSOR_SIDE and 1 <= h <= MAX_SENSOR_SIDE):
-        raise RecordingError(path, f"{field} states the sensor size {w}x{h}: each side must be 1 to "
+        raise RecordingError(path, f"{field}: sensor size {w}x{h}: each side must be 1 to "
                              f"{MAX_SENSOR_SIDE} pixels (x and y are uint16)")
     if w * h > MAX_SENSOR_PIXELS:
-        raise RecordingError(path, f"{field} states the sensor size {w}x{h} = {w * h} pixels, over the "
+        raise RecordingError(path, f"{field}: sensor size {w}x{h} = {w * h} pixels, over the "
                              f"{MAX_SENSOR_PIXELS} this reader takes (MAX_SENSOR_PIXELS)")
     return w, h
 
@@ -369,6 +369,20 @@ def _sniff_faery_header(p: Path, evt_version: Optional[str]) -> dict:
     except Exception as e:  # faery raises a bare Exception or RuntimeError for bad headers
         raise RecordingError(p, f"{FORMATS.get(p.suffix.lower(), '?').upper()} header unreadable: {e}") from None
     return {"dimensions": (w, h)}
+
+
+def _sniff_dat(p: Path, evt_version: Optional[str]) -> dict:
+    """A DAT file's header: faery reads it, but takes its fallback for a ``Width`` or ``Height``
+    it cannot parse (99999, -5), so the two text fields are read and checked here too."""
+    opts = _sniff_faery_header(p, evt_version)
+    keys, _ = _evt_header(p)
+    if "width" in keys or "height" in keys:
+        field = "the DAT header fields 'Width' and 'Height'"
+        stated = [keys.get(k, "") for k in ("width", "height")]
+        if not all(re.fullmatch(r"[+-]?\d+", v) for v in stated):
+            raise RecordingError(p, f"{field}: sensor size {stated[0]!r}x{stated[1]!r}: not whole numbers")
+        opts["dimensions"] = checked_size(p, int(stated[0]), int(stated[1]), field)
+    return opts
 
 
 def _header_size(p: Path, opts: dict) -> Tuple[int, int, str]:
@@ -571,7 +585,7 @@ def _read_ecd_frames(root: Path) -> Optional[Frames]:
 READERS = {
     "aedat4": FormatReader(_sniff_aedat4, _aedat4_size, _aedat4_events, _aedat4_frames),
     "evt": FormatReader(_sniff_evt, _evt_size, _evt_events),
-    "dat": FormatReader(_sniff_faery_header, _header_size, _faery_events),
+    "dat": FormatReader(_sniff_dat, _header_size, _faery_events),
     "es": FormatReader(_sniff_faery_header, _header_size, _faery_events),
     "csv": FormatReader(lambda p, v: {}, _csv_size, _faery_events),
     "h5": FormatReader(_sniff_h5, _h5_size, _h5_events, _h5_frames),
