@@ -6,6 +6,11 @@ each batch as it is handed to the training loop (the ack frees exactly that batc
 the server never has more than ``credits`` batches in flight to this connection, and a slow
 trainer never grows anybody's memory. ``V2VStreamDataset`` (``dataset.py``) owns the
 connections and the resume state.
+
+This module is the shell: the socket, the poll loop, heartbeats, reconnection and the pipe
+from the consumer. What the messages mean (hello, welcome, batches, revokes, the batches held)
+is the connection's :class:`~v2v_client.session.ServerSession`; neither imports torch (the
+stream passes ``tensors.batch_to_torch`` as the conversion).
 """
 from __future__ import annotations
 

@@ -133,6 +133,7 @@ class ConsumerRecord:
         return owed
 
     def is_complete(self, epoch: int) -> bool:
+        """Whether the server declared ``epoch`` complete (its batches are given back unused)."""
         with self.lock:
             return epoch <= self.completed_epoch
 
