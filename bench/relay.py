@@ -224,7 +224,7 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
 def _client(src: str, batches: int, q, acks: Optional[str] = None) -> None:
     import zmq
 
-    from v2v_client.connection import batch_to_torch
+    from v2v_client.tensors import batch_to_torch
     from v2v_client.handoff import ShmReader
     from v2v_wire.codecs import decode_batch_arrays
     from v2v_wire.protocol import unpack

@@ -1,10 +1,12 @@
 """The shape of the code: the largest classes and functions, and lines per subpackage.
 
-Usage: ``python -m harness.code_shape [--top N] [--limit-class 250] [--limit-function 80] [PATH ...]``
+Usage: ``python -m harness.code_shape [--top N] [--limit-class N] [--limit-function N] [PATH ...]``
 (default paths: ``v2v_wire v2v_server v2v_client trainer``). Prints, for each subpackage (a
 folder with Python files), its modules and lines; then the ``N`` largest classes and functions
 with their file and line; then every class and function over the limits. Exits 1 when some
-class or function is over its limit, else 0.
+class or function is over its limit, else 0. The limits default to the bounds
+docs/architecture.md states (:func:`stated_limits`: the doc is their one owner;
+``tests/test_code_shape.py`` runs this with them).
 
 A class's or function's size is its source lines, from its first decorator to its last line
 (``ast`` end_lineno), docstrings and comments included. Numba kernels (functions decorated with
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import re
 import sys
 from collections import defaultdict
 from dataclasses import dataclass
@@ -23,6 +26,9 @@ from pathlib import Path
 from typing import Dict, Iterable, List, Tuple
 
 DEFAULT_PATHS = ("v2v_wire", "v2v_server", "v2v_client", "trainer")
+#: Where the bounds are stated, relative to the repository root, and the sentence that states them.
+BOUNDS_DOC = "docs/architecture.md"
+BOUNDS_SENTENCE = re.compile(r"no\s+class\s+over\s+(\d+)\s+lines,\s+no\s+function\s+over\s+(\d+)")
 NUMBA_DECORATORS = {"njit", "jit"}
 
 
@@ -93,15 +99,33 @@ def subpackage_lines(files: List[Path], root: Path) -> Dict[str, Tuple[int, int]
     return {k: (v[0], v[1]) for k, v in sorted(out.items())}
 
 
+def stated_limits(root: Path) -> Tuple[int, int]:
+    """(lines a class may have, lines a function may have) as ``BOUNDS_DOC`` under ``root``
+    states them ("no class over N lines, no function over M ...").
+
+    Raises:
+        ValueError: the doc states no bounds (naming the doc and the sentence looked for).
+    """
+    doc = root / BOUNDS_DOC
+    m = BOUNDS_SENTENCE.search(doc.read_text(encoding="utf-8"))
+    if m is None:
+        raise ValueError(f"{doc}: states no bounds (looked for {BOUNDS_SENTENCE.pattern!r})")
+    return int(m.group(1)), int(m.group(2))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("paths", nargs="*", default=list(DEFAULT_PATHS), help="folders or files, relative to --root")
     ap.add_argument("--root", default=".", help="repository root (default: the current folder)")
     ap.add_argument("--top", type=int, default=8, help="largest classes and functions to list (default 8)")
-    ap.add_argument("--limit-class", type=int, default=250, help="lines a class may have (default 250)")
-    ap.add_argument("--limit-function", type=int, default=80, help="lines a function may have (default 80)")
+    ap.add_argument("--limit-class", type=int, help=f"lines a class may have (default: {BOUNDS_DOC}'s bound)")
+    ap.add_argument("--limit-function", type=int, help=f"lines a function may have (default: {BOUNDS_DOC}'s bound)")
     args = ap.parse_args(argv)
     root = Path(args.root).resolve()
+    if args.limit_class is None or args.limit_function is None:
+        stated = stated_limits(Path(__file__).resolve().parents[1])
+        args.limit_class = stated[0] if args.limit_class is None else args.limit_class
+        args.limit_function = stated[1] if args.limit_function is None else args.limit_function
     files = python_files(args.paths, root)
     print(f"{'subpackage':<32} {'modules':>7} {'lines':>7}")
     for d, (n, lines) in subpackage_lines(files, root).items():

@@ -562,11 +562,9 @@ def scenario_slow_trainer(tmp: Path, layout: Layout, lease_s: float = 0.5, step_
         for b in it:
             log.append((time.monotonic(), list(b["sample_ids"])))
             conn = ds._stream._conns[0]
-            with conn.lock:
-                peak = max(peak, len(conn.current))
+            peak = max(peak, conn.held())
             time.sleep(step_s)
-            with conn.lock:
-                peak = max(peak, len(conn.current))
+            peak = max(peak, conn.held())
         rc = srv.wait(30)
         resent = srv.log.count("go back to the queue")
     return row(f"trainer steps {step_s} s slower than lease {lease_s} s", expected, _ids(log), None,

@@ -1,11 +1,14 @@
 """``pip install v2v[client]`` on a trainer host: torch, pyzmq, msgpack, numpy, PyYAML and nothing
-of the server's (no numba, PyAV or OpenCV), and that install reads a real server's stream.
+of the server's (no numba, PyAV or OpenCV), and that install reads a real server's stream; and
+``pip install v2v`` alone (no torch): ``import v2v_client`` works and its network side
+(``v2v_client.session.ServerSession`` on a DEALER socket) reads a batch as numpy arrays.
 
 A fresh virtual environment (no system site packages) in a temporary folder gets torch (the
 local 2.13.0 CPU wheel pip finds) and then the project with its ``client`` extra, built from a
 copy of the sources; a ``v2v-serve`` of the main environment serves the bundled clips and the
 venv's python reads batches through ``V2VStreamDataset`` (a tracked option's ``flow_grid`` is
-expanded by the numpy path there). Skipped only when no venv with pip can be made here.
+expanded by the numpy path there). The base install gets a venv of its own. Skipped only when
+no venv with pip can be made here.
 """
 from __future__ import annotations
 
@@ -24,6 +27,57 @@ from harness.serve import ServeProcess
 ROOT = Path(__file__).resolve().parents[1]
 L, B, CROP = 4, 5, 64
 SOURCES = ("pyproject.toml", "README.md", "v2v_wire", "v2v_server", "v2v_client", "trainer")
+
+#: Reads one batch through the network side alone: a ServerSession on a DEALER socket.
+NETWORK_READER = textwrap.dedent("""
+    import json, sys, time
+    import zmq
+    import v2v_client
+    from v2v_client.session import ServerSession
+    from v2v_wire.protocol import pack
+
+    def hello():
+        return {"type": "hello", "outputs": ["voxels", "frames"], "credits": 2, "consumer": "base-install",
+                "resume": {"completed_epoch": -1, "delivered": {}, "batches": {}}}
+
+    session = ServerSession(sys.argv[1], ["voxels", "frames"], hello)
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 1000)
+    sock.connect(sys.argv[1])
+    sock.send(session.hello(new_socket=True))
+    batch, deadline = None, time.monotonic() + 180
+    while batch is None and time.monotonic() < deadline:
+        if sock.poll(1000):
+            session.on_message(sock.recv_multipart(copy=False))
+            for r in session.replies():
+                sock.send(r)
+            while batch is None and not session.items.empty():
+                item = session.items.get()
+                if isinstance(item, BaseException):
+                    raise item
+                if isinstance(item, dict):
+                    batch = item
+    assert batch is not None, "no batch within 180 s"
+    taken = session.held.claim(batch, lambda: False)
+    sock.send(pack({"type": "ack", "batch_ids": [batch["batch_id"]]}))
+    sock.send(pack({"type": "bye"}))
+    sock.close()
+    try:
+        v2v_client.V2VStreamDataset
+        needs_torch = None
+    except ImportError as e:
+        needs_torch = str(e)
+    print(json.dumps({
+        "taken": taken,
+        "types": sorted({type(v).__module__ + "." + type(v).__name__ for k, v in batch.items() if hasattr(v, "shape")}),
+        "shapes": {k: list(v.shape) for k, v in batch.items() if hasattr(v, "shape")},
+        "dtypes": {k: str(v.dtype) for k, v in batch.items() if hasattr(v, "shape")},
+        "events": int(abs(batch["voxels"].astype("int64")).sum()),
+        "sample_ids": len(batch["sample_ids"]),
+        "torch_loaded": "torch" in sys.modules,
+        "needs_torch": needs_torch,
+    }))
+""")
 
 READER = textwrap.dedent("""
     import importlib.util, json, sys
@@ -52,10 +106,10 @@ def _run(cmd, timeout_s: float, **kw) -> subprocess.CompletedProcess:
     return r
 
 
-@pytest.fixture(scope="module")
-def client_venv(tmp_path_factory) -> Path:
-    """The venv's python, with ``v2v[client]`` installed from a copy of this checkout."""
-    tmp = tmp_path_factory.mktemp("client-install")
+def _venv_with(tmp: Path, torch: bool, extras: str) -> Path:
+    """A fresh venv in ``tmp`` (no system site packages) with this checkout installed from a
+    copy of its sources (``extras``: e.g. ``"[client]"``), torch 2.13.0 first when ``torch``;
+    returns its python."""
     venv = tmp / "venv"
     made = subprocess.run([sys.executable, "-m", "venv", str(venv)], capture_output=True, text=True, timeout=300)
     py = venv / "bin" / "python"
@@ -69,9 +123,22 @@ def client_venv(tmp_path_factory) -> Path:
         else:
             src.mkdir(exist_ok=True)
             shutil.copy2(p, src / name)
-    _run([py, "-m", "pip", "install", "-q", "torch==2.13.0"], 900)
-    _run([py, "-m", "pip", "install", "-q", f"{src}[client]"], 900)
+    if torch:
+        _run([py, "-m", "pip", "install", "-q", "torch==2.13.0"], 900)
+    _run([py, "-m", "pip", "install", "-q", f"{src}{extras}"], 900)
     return py
+
+
+@pytest.fixture(scope="module")
+def client_venv(tmp_path_factory) -> Path:
+    """The venv's python, with ``v2v[client]`` installed from a copy of this checkout."""
+    return _venv_with(tmp_path_factory.mktemp("client-install"), True, "[client]")
+
+
+@pytest.fixture(scope="module")
+def base_venv(tmp_path_factory) -> Path:
+    """The venv's python, with ``v2v`` (no extra, so no torch) installed from a copy of this checkout."""
+    return _venv_with(tmp_path_factory.mktemp("base-install"), False, "")
 
 
 @pytest.mark.timeout(1800)
@@ -95,3 +162,23 @@ def test_client_extra_installs_no_server_packages_and_reads_a_stream(client_venv
     assert got["shapes"]["flow"] == [n, L, 2, CROP, CROP] and got["dtypes"]["flow"] == "torch.float32"
     assert got["shapes"]["polarity_counts"] == [n, L, 2, B, CROP, CROP]
     assert got["events"] > 0
+
+
+@pytest.mark.timeout(1800)
+def test_base_install_imports_v2v_client_without_torch_and_reads_a_batch(base_venv, videos):
+    listed = _run([base_venv, "-m", "pip", "list", "--format", "json"], 120).stdout
+    names = {p["name"].lower() for p in json.loads(listed)}
+    assert {"pyzmq", "msgpack", "numpy", "pyyaml", "v2v"} <= names
+    assert not names & {"torch", "numba", "av", "opencv-contrib-python-headless"}, sorted(names)
+    args = ["--videos", str(videos), "--workers", "1", "--sequence-length", str(L), "--num-bins", str(B),
+            "--crop-size", str(CROP), "--max-samples-per-video", "1", "--batch-size", "2", "--seed", "3"]
+    with ServeProcess(args) as srv:
+        out = _run([base_venv, "-c", NETWORK_READER, srv.endpoint], 600, cwd=base_venv.parent.parent).stdout
+    got = json.loads(out.strip().splitlines()[-1])
+    assert got["torch_loaded"] is False and got["taken"] is True
+    assert got["types"] == ["numpy.ndarray"]
+    n = got["sample_ids"]
+    assert got["shapes"]["voxels"] == [n, L, B, CROP, CROP] and got["dtypes"]["voxels"] in ("int8", "int16", "int32")
+    assert got["shapes"]["frames"] == [n, L + 1, CROP, CROP] and got["dtypes"]["frames"] == "uint8"
+    assert got["events"] > 0
+    assert "pip install 'v2v[client]'" in got["needs_torch"]

@@ -3,6 +3,7 @@ file, where it is absent): pinned facts, chunked = whole, bad recordings, voxel 
 from __future__ import annotations
 
 import logging
+import re
 from fractions import Fraction
 from pathlib import Path
 
@@ -222,6 +223,80 @@ def test_events_outside_the_sensor_are_an_error(tmp_path):
         read_all(open_recording(tmp_path / "ecd", size=(100, 100)))
     with pytest.raises(RecordingError, match="no images to take the sensor size from"):
         open_recording(tmp_path / "ecd")
+
+
+@pytest.mark.parametrize("geometry, why", [
+    (b"99999x99999", "each side must be 1 to 65536 pixels"),  # over uint16 x, y
+    (b"70000x720", "each side must be 1 to 65536 pixels"),
+    (b"65536x65536", "over the 67108864 this reader takes"),  # fits uint16, but 16 GiB per uint8 frame
+    (b"0x0", "each side must be 1 to 65536 pixels"),
+    (b"-1280x720", "each side must be 1 to 65536 pixels"),
+    (b"1280x-720", "each side must be 1 to 65536 pixels"),
+    (b"1280 by 720", "not WIDTHxHEIGHT"),
+])
+def test_a_raw_header_size_out_of_bounds_names_the_file_and_the_field(tmp_path, geometry, why):
+    """A header's sensor size is checked before anything is sized by it (x, y are uint16, and
+    MAX_SENSOR_PIXELS bounds a frame): a RecordingError naming the file and the header field,
+    not an OverflowError from the decoder or an allocation of the stated size."""
+    src = shared(EVT3).read_bytes()
+    assert src.count(b"% geometry 1280x720\n") == 1
+    bad = tmp_path / "camera.raw"
+    bad.write_bytes(src.replace(b"% geometry 1280x720\n", b"% geometry " + geometry + b"\n"))
+    with pytest.raises(RecordingError, match=r"camera\.raw: the RAW header field 'geometry'") as e:
+        read_all(open_recording(bad))
+    assert why in str(e.value) and e.value.path == str(bad)
+    if geometry == b"99999x99999":  # a size given explicitly is used instead: the file reads
+        assert len(read_all(open_recording(bad, size=(1280, 720)))) == FACTS[EVT3][0]
+
+
+def test_a_size_argument_or_h5_resolution_out_of_bounds_names_the_field(tmp_path):
+    from tests.test_trainer_eval import write_moving_edge_h5
+
+    import h5py
+
+    with pytest.raises(RecordingError, match=r"prophesee_gen3_evt2\.raw: the size argument: sensor size 99999x480: "
+                                             r"each side"):
+        open_recording(shared(EVT2), size=(99999, 480))
+    with pytest.raises(RecordingError, match="the size argument: sensor size 640.5x480: not whole numbers"):
+        open_recording(shared(EVT2), size=(640.5, 480))
+    for resolution, why in (((70000, 10), "10x70000: each side"), ((-4, 10), "10x-4: each side"),
+                            ((50000, 50000), "50000x50000 = 2500000000 pixels")):
+        p = tmp_path / "edge.h5"
+        write_moving_edge_h5(p)
+        with h5py.File(p, "r+") as f:
+            f.attrs["sensor_resolution"] = resolution
+        with pytest.raises(RecordingError, match=r"edge\.h5: the attribute 'sensor_resolution': sensor size "
+                                                 + re.escape(why)):
+            open_recording(p)
+
+
+@pytest.mark.parametrize("width, height, why", [("99999", "480", "99999x480: each side must be 1 to 65536"),
+                                                 ("-5", "480", "-5x480: each side"), ("abc", "480", "not whole numbers"),
+                                                 ("65535", "65535", "over the 67108864 this reader takes")])
+def test_a_dat_header_size_out_of_bounds_names_the_fields(tmp_path, width, height, why):
+    """faery takes its fallback size for a DAT Width or Height it cannot parse: the header's
+    fields are checked here, so the file is refused instead of read at a size it never stated."""
+    import faery
+
+    ev = read_all(open_recording(shared(EVT2)))[:5000]
+    arr = np.zeros(len(ev), faery.EVENTS_DTYPE)
+    arr["t"], arr["x"], arr["y"], arr["on"] = ev["t"] - ev["t"][0], ev["x"], ev["y"], ev["p"] > 0
+    good = tmp_path / "good.dat"
+    faery.events_stream_from_array(arr, dimensions=(640, 480)).to_file(good)
+    assert good.read_bytes().count(b"% Width 640\n% Height 480\n") == 1
+    bad = tmp_path / "camera.dat"
+    bad.write_bytes(good.read_bytes().replace(b"% Width 640\n% Height 480\n",
+                                              f"% Width {width}\n% Height {height}\n".encode()))
+    with pytest.raises(RecordingError, match=r"camera\.dat: the DAT header fields 'Width' and 'Height': sensor size ") as e:
+        open_recording(bad)
+    assert why in str(e.value)
+
+
+def test_an_aedat4_frame_outside_the_sensor_names_the_frame():
+    rec = open_recording(shared(DAVIS), size=(100, 100))
+    with pytest.raises(RecordingError, match=r"davis346_road\.aedat4: frame 0: its region 346x260 at offset \(0, 0\) "
+                                             r"lies outside the 100x100 sensor"):
+        rec.frames()
 
 
 def test_backward_timestamps_are_dropped_and_counted(tmp_path, caplog):

@@ -1,5 +1,8 @@
 """``v2v-eval``: evaluate E2VID / EvFlow checkpoints with the metrics the V2V paper reports.
 
+The command line; the inputs (H5 sequences, videos, recordings, checkpoints) are read by
+``trainer/eval_inputs.py`` and scored by ``trainer/eval_metrics.py``.
+
 Checkpoints: those ``v2v-train`` writes, or the V2V authors' released ones (``--model`` names
 the format, e.g. ``e2vid++`` for their original E2VID++; ``trainer/checkpoints.py``). Every
 network sees its input padded to multiples of 16 as the authors' driver pads it
@@ -60,275 +63,24 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, Optional
 
 import numpy as np
 import torch
 
 from .config import ConfigError, exit_on_config_error
+from .eval_inputs import input_sequence, load_model, recording_input, video_sequence
+from .eval_metrics import (evaluate_e2vid, evaluate_eraft, evaluate_evflow, evaluate_recording, flow_metrics,
+                           reconstruction_metrics, summarise)
 from .event_grids import events_to_voxels
-from .recordings import H5Sequence, RecordingError  # readers live in trainer/recordings.py
+from .recordings import H5Sequence, RecordingError
 
+# the names scripts import from here; each is defined in the module named above
 __all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
            "evaluate_e2vid", "evaluate_evflow", "evaluate_eraft", "evaluate_recording", "load_model",
            "build_arg_parser", "main", "LPIPS_NOT_REPORTED"]
 
 log = logging.getLogger("trainer.evaluate")
-
-
-def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, max_frames: int = 0,
-                   size: Optional[Tuple[int, int]] = None, seed: int = 0) -> Tuple[np.ndarray, np.ndarray]:
-    """Voxels and ground-truth frames of a video, simulated with the V2V core.
-
-    Every voxel spans ``num_bins`` frame pairs (one per bin, as in the stream); the ground
-    truth of voxel l is the frame at its end.
-
-    Args:
-        path: video file, read like the stream reads it (``v2v_server.videos.decode.iter_luma``:
-            full-range, display-oriented luma; uint16 for sources deeper than 8 bits).
-        num_bins: B.
-        contrast_threshold: c+ = c- (log-intensity units); no noise or hot pixels.
-        max_frames: use at most this many frames (0 = all).
-        size: (H, W) to resize to with INTER_AREA, or None.
-        seed: seed of the initial potential.
-
-    Returns:
-        ``(voxels int32 (L, B, H, W), frames uint8 (L+1, H, W))``.
-    """
-    import cv2
-
-    from v2v_server.simulation.simulate import SensorParams, simulate_voxels
-    from v2v_server.videos.decode import iter_luma, to_uint8
-
-    out = []
-    frames_it = iter_luma(path)  # the stream's reader: full-range, display-oriented luma
-    for g in frames_it:
-        g = cv2.resize(g, (size[1], size[0]), interpolation=cv2.INTER_AREA) if size is not None else g.copy()
-        out.append(g)
-        if max_frames and len(out) >= max_frames:
-            break
-    frames_it.close()
-    n = (len(out) - 1) // num_bins * num_bins + 1
-    if n < num_bins + 1:
-        raise ValueError(f"{path}: too few frames ({len(out)}) for one voxel of {num_bins} bins")
-    frames = np.stack(out[:n])
-    vox, _ = simulate_voxels(frames, SensorParams(contrast_threshold, contrast_threshold), num_bins,
-                             rng=np.random.default_rng(seed))
-    return vox, to_uint8(frames[::num_bins])
-
-
-def reconstruction_metrics(pred: np.ndarray, gt: np.ndarray, ssim_data_range: float = 1.0) -> Dict[str, float]:
-    """MSE and SSIM of one frame. ``pred``, ``gt``: float (H, W) in [0, 1] (pred is
-    clipped). SSIM: ``skimage.metrics.structural_similarity(win_size=7, data_range=R)``."""
-    from skimage.metrics import structural_similarity
-
-    pred = np.clip(np.asarray(pred, np.float64), 0.0, 1.0)
-    gt = np.asarray(gt, np.float64)
-    return {"mse": float(np.mean((pred - gt) ** 2)),
-            "ssim": float(structural_similarity(pred, gt, win_size=7, data_range=ssim_data_range))}
-
-
-def flow_metrics(pred: np.ndarray, gt: np.ndarray, event_mask: Optional[np.ndarray] = None,
-                 threshold_px: float = 3.0) -> Dict[str, float]:
-    """Flow errors of one frame pair.
-
-    Ground-truth pixels that are NaN in either component or zero in both (MVSEC: no depth)
-    are not scored, as in the V2V reference (``model/train_flow_utils.py``, mean over valid
-    pixels).
-
-    Args:
-        pred, gt: float (2, H, W) flow in pixels.
-        event_mask: bool (H, W), pixels with at least one event (sparse metrics), or None.
-        threshold_px: outlier threshold on the end-point error, pixels.
-
-    Returns:
-        ``aee`` (mean end-point error, px) and ``outlier_pct`` (% of pixels with EPE >
-        threshold) over the valid pixels (NaN when there is none), ``aee_sparse`` /
-        ``outlier_pct_sparse`` over the valid event pixels (NaN when none or no mask), and
-        ``valid_pct``, the % of pixels with valid ground truth.
-    """
-    gt = np.asarray(gt, np.float64)
-    valid = ~(np.isnan(gt).any(axis=0) | ((gt[0] == 0) & (gt[1] == 0)))
-    epe = np.sqrt(((np.asarray(pred, np.float64) - gt) ** 2).sum(0))
-    nan = float("nan")
-    out = {"aee": nan, "outlier_pct": nan, "aee_sparse": nan, "outlier_pct_sparse": nan,
-           "valid_pct": float(100.0 * valid.mean())}
-    if valid.any():
-        e = epe[valid]
-        out["aee"] = float(e.mean())
-        out["outlier_pct"] = float(100.0 * (e > threshold_px).mean())
-    if event_mask is not None:
-        sparse = valid & np.asarray(event_mask, bool)
-        if sparse.any():
-            e = epe[sparse]
-            out["aee_sparse"] = float(e.mean())
-            out["outlier_pct_sparse"] = float(100.0 * (e > threshold_px).mean())
-    return out
-
-
-def load_model(checkpoint: str, device: torch.device, fmt: Optional[str] = None):
-    """Rebuild the network stored in ``checkpoint``: one written by ``v2v-train``, or one of the
-    V2V authors' released formats (``trainer.checkpoints``; ``fmt`` names it, e.g. ``"e2vid++"``,
-    None detects it from the keys).
-
-    Returns:
-        ``(task, model in eval mode, cfg, record)``: ``task`` the trainer task whose metrics
-        score the network, ``cfg`` the run's config (the paper's for an authors' checkpoint),
-        ``record`` what results record about the weights: ``format`` (``"v2v-train"`` or
-        ``"authors:<fmt>"``) and ``trained_perceptual_term`` (the run's
-        ``Trainer.perceptual_term``, ``trainer.models.lpips.STAND_IN`` for a run trained with the
-        1 - SSIM stand-in; ``"unrecorded"`` when the checkpoint predates the record, ``"authors'
-        release"`` for theirs).
-
-    Raises:
-        ConfigError: naming ``checkpoint``, when it is missing or its stored configuration
-            does not build a network (an unknown model key, with the allowed ones).
-        ValueError: an authors' checkpoint that does not fit its format (naming it).
-    """
-    from .checkpoints import AUTHORS_FORMATS, is_authors_checkpoint, load_authors_checkpoint
-    from .config import default_config
-    from .zoo import build_model
-
-    if not Path(checkpoint).is_file():
-        raise ConfigError(f"checkpoint not found: {checkpoint}")
-    ck = torch.load(checkpoint, map_location=device, weights_only=False)
-    if is_authors_checkpoint(ck):
-        name, model = load_authors_checkpoint(checkpoint, fmt, device)
-        task = AUTHORS_FORMATS[name][3]
-        return task, model, default_config(task), {"format": f"authors:{name}",
-                                                  "trained_perceptual_term": "authors' release"}
-    if fmt is not None:
-        raise ValueError(f"{checkpoint}: --model {fmt} names an authors' checkpoint format, but this is a "
-                         "v2v-train checkpoint (it names its own network)")
-    cfg = ck["config"]
-    try:
-        model = build_model(ck["task"], dict(cfg["model"]))
-    except ConfigError as e:
-        raise ConfigError(f"{checkpoint}: {e}") from None
-    model = model.to(device)
-    model.load_state_dict(ck["model"])
-    model.eval()
-    return ck["task"], model, cfg, {"format": "v2v-train",
-                                    "trained_perceptual_term": ck.get("perceptual_term", "unrecorded")}
-
-
-def _score(res: Dict[str, List[float]], p: np.ndarray, gt: np.ndarray, mean_img: np.ndarray,
-           ssim_data_range: float, lpips_model, device) -> None:
-    """Append one reconstruction's scores to ``res``: MSE and SSIM of ``p`` and of the
-    constant-mean-image baseline ``mean_img`` against ``gt`` (float32 (H, W) in [0, 1]), and
-    their LPIPS when ``lpips_model`` is given."""
-    m = reconstruction_metrics(p, gt, ssim_data_range)
-    b = reconstruction_metrics(mean_img, gt, ssim_data_range)
-    res["mse"].append(m["mse"]); res["ssim"].append(m["ssim"])
-    res["base_mse"].append(b["mse"]); res["base_ssim"].append(b["ssim"])
-    if lpips_model is not None:
-        g = torch.from_numpy(gt)[None, None].to(device)
-        res["lpips"].append(float(lpips_model(torch.from_numpy(np.clip(p, 0, 1))[None, None].to(device), g)[0]))
-        res["base_lpips"].append(float(lpips_model(torch.from_numpy(mean_img)[None, None].to(device), g)[0]))
-
-
-@torch.no_grad()
-def evaluate_e2vid(model, voxels: np.ndarray, frames: np.ndarray, device: torch.device, ssim_data_range: float = 1.0,
-                   lpips_model=None, skip_first: int = 0) -> Dict[str, List[float]]:
-    """Run the recurrent model over one sequence (state reset at its start) and score
-    voxel l's reconstruction against frame l+1.
-
-    Args:
-        voxels: (L, B, H, W) signed counts; frames: uint8 (L+1, H, W).
-        skip_first: frames at the start left out of the scores (recurrent warm-up).
-
-    Returns:
-        Per-frame lists: ``mse``, ``ssim``, ``lpips`` (if a model is given) and the
-        constant-mean-image baseline's ``base_mse``, ``base_ssim``, ``base_lpips``.
-    """
-    gt_all = frames.astype(np.float32) / 255.0
-    mean_img = np.full(gt_all.shape[1:], gt_all[1:].mean(), np.float32)
-    res: Dict[str, List[float]] = {k: [] for k in ("mse", "ssim", "base_mse", "base_ssim")}
-    if lpips_model is not None:
-        res["lpips"], res["base_lpips"] = [], []
-    states = None
-    preds = []
-    for l in range(voxels.shape[0]):
-        v = torch.from_numpy(np.ascontiguousarray(voxels[l], dtype=np.float32))[None].to(device)
-        pred, states = model(v, states)
-        p = pred[0, 0].float().cpu().numpy()
-        preds.append(p)
-        if l < skip_first:
-            continue
-        _score(res, p, gt_all[l + 1], mean_img, ssim_data_range, lpips_model, device)
-    res["_preds"] = preds  # not a metric; for saving images
-    return res
-
-
-@torch.no_grad()
-def evaluate_evflow(model, voxels: np.ndarray, flows: np.ndarray, counts: Optional[np.ndarray],
-                    device: torch.device) -> Dict[str, List[float]]:
-    """Score flow predictions of each voxel against ``flows`` (L, 2, H, W) pixels;
-    ``counts`` (L, H, W) event counts for the sparse metrics (None: the voxel's non-zero
-    pixels are used). Returns per-frame lists of :func:`flow_metrics`' keys."""
-    res: Dict[str, List[float]] = {}
-    for l in range(min(voxels.shape[0], flows.shape[0])):
-        v = torch.from_numpy(np.ascontiguousarray(voxels[l], dtype=np.float32))[None].to(device)
-        p = model(v)[0].float().cpu().numpy()
-        mask = counts[l] > 0 if counts is not None else np.any(voxels[l] != 0, axis=0)
-        for k, val in flow_metrics(p, flows[l], mask).items():
-            res.setdefault(k, []).append(val)
-    return res
-
-
-@torch.no_grad()
-def evaluate_eraft(model, voxels: np.ndarray, flows: np.ndarray, counts: Optional[np.ndarray],
-                   device: torch.device, sequence_length: int = 80) -> Dict[str, List[float]]:
-    """Score E-RAFT's flow of each voxel against ``flows`` (K, 2, H, W) pixels, as the V2V
-    authors' MVSEC test does (``data/testh5.py`` ``TestH5FlowDataset`` with
-    ``output_additional_evs``, ``model/train_flow_utils.py`` ``forward_sequence_eraft``):
-
-    * the voxels are cut into chunks of ``sequence_length`` (80); the warm-start flow is reset
-      at each chunk's start;
-    * voxel k is paired with voxel k-1 (the voxel before the chunk for its first pair; a zero
-      grid before voxel 0, their empty event slice) and its flow scored against ``flows[k]``;
-    * the sparse metrics' event mask is that of the pair's first voxel: their
-      ``compute_metrics`` takes ``events[t]``, which for E-RAFT's L+1 grids is the grid before
-      the scored interval (dense metrics do not use it).
-
-    Args:
-        voxels: (K, B, H, W) signed counts; counts: (K, H, W) event counts or None (then the
-            voxels' non-zero pixels).
-        sequence_length: pairs per chunk (their test configs: 80).
-
-    Returns:
-        Per-frame lists of :func:`flow_metrics`' keys.
-    """
-    res: Dict[str, List[float]] = {}
-    k_all = min(voxels.shape[0], flows.shape[0])
-
-    def grid(k):
-        if k < 0:
-            return torch.zeros((1, *voxels.shape[1:]), dtype=torch.float32, device=device)
-        return torch.from_numpy(np.ascontiguousarray(voxels[k], dtype=np.float32))[None].to(device)
-
-    for k in range(k_all):
-        if k % int(sequence_length) == 0:
-            model.reset_states()
-        p = model(grid(k - 1), grid(k))[0].float().cpu().numpy()
-        if k == 0:
-            mask = np.zeros(voxels.shape[2:], bool)
-        else:
-            mask = counts[k - 1] > 0 if counts is not None else np.any(voxels[k - 1] != 0, axis=0)
-        for key, val in flow_metrics(p, flows[k], mask).items():
-            res.setdefault(key, []).append(val)
-    return res
-
-
-def _summarise(per_input: Dict[str, Dict[str, List[float]]]) -> dict:
-    keys = sorted({k for r in per_input.values() for k in r if not k.startswith("_")})
-    allv = {k: [v for r in per_input.values() for v in r.get(k, [])] for k in keys}
-    return {
-        "mean": {k: float(np.nanmean(v)) if len(v) else None for k, v in allv.items()},
-        "frames": max((len(v) for v in allv.values()), default=0),
-        "per_input": {name: {k: float(np.nanmean(v)) for k, v in r.items() if not k.startswith("_") and len(v)}
-                      for name, r in per_input.items()},
-    }
 
 
 def build_arg_parser() -> argparse.ArgumentParser:
@@ -454,27 +206,11 @@ def main(argv=None) -> int:
             per_input[path] = r
     summary = {"checkpoint": args.checkpoint, "task": task, **record,
                "lpips_metric": lpips_metric if recon else None, "ssim_data_range": args.ssim_data_range,
-               "skip_first": args.skip_first, **_summarise(per_input)}
+               "skip_first": args.skip_first, **summarise(per_input)}
     if recordings:
         summary["recordings"] = recordings
     _write_summary(summary, out)
     return 0
-
-
-def _input_sequence(kind: str, path: str, recon: bool, nb: int, args):
-    """``(voxels, counts or None, frames or None, flows or None)`` of one ``--h5`` / ``--video``
-    input: an H5 file's voxels between images (reconstruction) or between flow timestamps
-    (flow), a video's simulated voxels and frames."""
-    if kind == "h5":
-        seq = H5Sequence(path)
-        if recon:
-            vox, counts = seq.voxels(nb)
-            return vox, counts, seq.images, None
-        vox, counts, flows = seq.flow_voxels(nb)  # between flow timestamps when present
-        return vox, counts, None, flows
-    vox, frames = video_sequence(path, nb, args.contrast_threshold, args.max_frames,
-                                 tuple(args.size) if args.size else None)
-    return vox, None, frames, None
 
 
 def _score_inputs(args, task: str, model, nb: int, recon: bool, lp, device, out: Optional[Path]) -> Dict[str, dict]:
@@ -482,7 +218,8 @@ def _score_inputs(args, task: str, model, nb: int, recon: bool, lp, device, out:
     saved as PNG every ``--save-images`` frames under ``out``."""
     per_input = {}
     for kind, path in [("h5", x) for x in args.h5] + [("video", x) for x in args.video]:
-        vox, counts, frames, flows = _input_sequence(kind, path, recon, nb, args)
+        vox, counts, frames, flows = input_sequence(kind, path, recon, nb, args.contrast_threshold, args.max_frames,
+                                                    tuple(args.size) if args.size else None)
         if recon:
             r = evaluate_e2vid(model, vox, frames, device, args.ssim_data_range, lp, args.skip_first)
             if out and args.save_images:
@@ -500,147 +237,14 @@ def _score_inputs(args, task: str, model, nb: int, recon: bool, lp, device, out:
     return per_input
 
 
-class _Mp4Writer:
-    """Encode (H, W) uint8 grey or (H, W, 3) uint8 BGR frames as an H.264 MP4 with PyAV, one at a
-    time (odd sizes are padded by one pixel: yuv420p needs even ones)."""
-
-    def __init__(self, path: Path, fps: float):
-        import av
-
-        self.path, self.fps = path, fps
-        self._av, self._c, self._s = av, None, None
-
-    def write(self, img: np.ndarray) -> None:
-        if img.ndim == 2:
-            img = np.repeat(img[..., None], 3, axis=2)
-        h, w = img.shape[:2]
-        img = np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
-        if self._c is None:
-            from fractions import Fraction
-
-            self._c = self._av.open(str(self.path), "w")
-            self._s = self._c.add_stream("libx264", rate=Fraction(self.fps).limit_denominator(1000))
-            self._s.width, self._s.height, self._s.pix_fmt = img.shape[1], img.shape[0], "yuv420p"
-            self._s.options = {"crf": "18", "preset": "fast"}
-        vf = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="bgr24").reformat(format="yuv420p")
-        for pkt in self._s.encode(vf):
-            self._c.mux(pkt)
-
-    def close(self) -> None:
-        if self._c is not None:
-            for pkt in self._s.encode():
-                self._c.mux(pkt)
-            self._c.close()
-
-
-@torch.no_grad()
-def evaluate_recording(model, task: str, grids, device: torch.device, frames: Optional[np.ndarray] = None,
-                       ssim_data_range: float = 1.0, lpips_model=None, skip_first: int = 0,
-                       video_dir: Optional[Path] = None, fps: float = 20.0, name: str = "recording",
-                       save_every: int = 0, save_dir: Optional[Path] = None) -> Dict[str, List[float]]:
-    """Run a network over voxel grids streamed from a real recording, one grid at a time.
-
-    Args:
-        model: a reconstruction network (``model(voxel, states) -> (image, states)``), a flow
-            network (``model(voxel) -> flow``) or E-RAFT (``task == "eraft"``: pairs of
-            consecutive grids, the first paired with a zero grid).
-        task: the trainer task name of ``model``.
-        grids: iterable of ``(k, voxel int32 (B, H, W), counts)`` (``trainer.event_grids.voxel_grids``).
-        frames: uint8 (K+1, H, W) ground truth, frame k+1 ending grid k (reconstruction only),
-            or None: nothing scored.
-        ssim_data_range, lpips_model, skip_first: as :func:`evaluate_e2vid`.
-        video_dir: where to write ``<name>_NNNNN.png`` reconstructions and ``<name>.mp4`` (or
-            ``<name>_flow.mp4``, the flow colour-coded by ``trainer.viz.flow_to_bgr``), or None.
-        fps: frame rate of the MP4.
-        save_every, save_dir: with frames, every ``save_every``-th grid as ``<name>_cmp_NNNNN.png``
-            in ``save_dir``: the voxel grid, the reconstruction and the frame side by side.
-
-    Returns:
-        Per-frame lists as :func:`evaluate_e2vid` (empty without frames or for flow), plus
-        ``_grids``, the number of grids run.
-    """
-    from .viz import flow_to_bgr
-
-    recon = task not in ("evflow", "eraft")
-    res: Dict[str, List[float]] = {k: [] for k in ("mse", "ssim", "base_mse", "base_ssim")}
-    if lpips_model is not None and frames is not None:
-        res["lpips"], res["base_lpips"] = [], []
-    if frames is not None:
-        gt_all = frames.astype(np.float32) / 255.0
-        mean_img = np.full(gt_all.shape[1:], gt_all[1:].mean(), np.float32)
-    writer = None
-    if video_dir is not None:
-        video_dir.mkdir(parents=True, exist_ok=True)
-        writer = _Mp4Writer(video_dir / (f"{name}.mp4" if recon else f"{name}_flow.mp4"), fps)
-    if task == "eraft":
-        model.reset_states()
-    states, prev, n = None, None, 0
-    for k, vox, _ in grids:
-        v = torch.from_numpy(vox.astype(np.float32))[None].to(device)
-        n += 1
-        if not recon:
-            flow = (model(prev if prev is not None else torch.zeros_like(v), v) if task == "eraft" else model(v))
-            prev = v
-            if writer is not None:
-                writer.write(flow_to_bgr(flow[0].float().cpu().numpy()))
-            continue
-        pred, states = model(v, states)
-        p = pred[0, 0].float().cpu().numpy()
-        if writer is not None:
-            img = (np.clip(p, 0, 1) * 255 + 0.5).astype(np.uint8)
-            import cv2
-
-            cv2.imwrite(str(video_dir / f"{name}_{k:05d}.png"), img)
-            writer.write(img)
-        if frames is None or k < skip_first or k + 1 >= len(frames):
-            continue
-        gt = gt_all[k + 1]
-        if save_every and save_dir is not None and k % save_every == 0:
-            from .viz import gray_to_u8, save_grid, voxel_to_u8
-
-            save_grid(str(save_dir / f"{name}_cmp_{k:05d}.png"), [[voxel_to_u8(vox), gray_to_u8(p), gray_to_u8(gt)]])
-        _score(res, p, gt, mean_img, ssim_data_range, lpips_model if "lpips" in res else None, device)
-    if writer is not None:
-        writer.close()
-    res["_grids"] = n
-    return res
-
-
 def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out: Optional[Path]):
     """Score (with frames) and/or write the video of one ``--recording``: ``(per-frame
     results, info)``; info records how the grids were binned. Raises ``RecordingError``."""
-    from .event_grids import count_edges, voxel_grids, window_edges
-    from .recordings import open_recording
+    from .event_grids import voxel_grids
 
-    rec = open_recording(path, tuple(args.sensor_size) if args.sensor_size else None)
-    t_first = rec.first_t_us()
-    start_us = t_first + int(round(args.start * 1e6))
-    end_us = None if args.end is None else t_first + int(round(args.end * 1e6))
-    fr = rec.frames()
-    frames = None
-    if fr is not None:
-        keep = (fr.t_us >= start_us) & ((fr.t_us <= end_us) if end_us is not None else True)
-        if keep.sum() >= 2:
-            edges, frames = fr.t_us[keep], fr.images[keep]
-            if frames.shape[1:] != (rec.height, rec.width):
-                import cv2
-
-                frames = np.stack([cv2.resize(f, (rec.width, rec.height), interpolation=cv2.INTER_AREA)
-                                   for f in frames])
-            binning = "between consecutive frame timestamps"
-            fps = 1e6 / float(np.median(np.diff(edges)))
-    if frames is None and args.events_per_grid:
-        edges = count_edges(rec.chunks(start_us, end_us), args.events_per_grid)
-        binning = f"{args.events_per_grid} events per grid"
-        fps = 1e6 / float(np.median(np.diff(edges)))  # >= 2 strictly increasing integer edges
-    elif frames is None:
-        last = start_us
-        for ev in rec.chunks(start_us, end_us):
-            last = int(ev["t"][-1])
-        window_us = max(1, int(round(args.window_ms * 1e3)))
-        edges = window_edges(start_us, last, window_us)
-        binning = f"fixed windows of {args.window_ms:g} ms"
-        fps = 1e3 / args.window_ms
+    ri = recording_input(path, tuple(args.sensor_size) if args.sensor_size else None, args.start, args.end,
+                         args.window_ms, args.events_per_grid)
+    rec, edges, frames = ri.recording, ri.edges, ri.frames
     recon = task not in ("evflow", "eraft")
     # nothing to score (no frames, or a flow network without ground truth): the video is the output
     video_dir = Path(args.write_video) if args.write_video else (out if frames is None or not recon else None)
@@ -648,9 +252,9 @@ def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out
     r = evaluate_recording(model, task, voxel_grids(rec.chunks(int(edges[0]), int(edges[-1])), edges, nb,
                                                     rec.height, rec.width),
                            device, frames if recon else None, args.ssim_data_range, lp, args.skip_first,
-                           video_dir, fps, name, args.save_images, out)
+                           video_dir, ri.fps, name, args.save_images, out)
     info = {"format": rec.format, "sensor_size": [rec.width, rec.height], "size_source": rec.size_source,
-            "binning": binning, "grids": r.pop("_grids"), "num_bins": nb, "start_us": int(edges[0]),
+            "binning": ri.binning, "grids": r.pop("_grids"), "num_bins": nb, "start_us": int(edges[0]),
             "end_us": int(edges[-1]), "frames_scored": len(r["mse"]), "dropped_backward": rec.dropped_backward,
             "truncated": rec.truncated, "video_dir": str(video_dir) if video_dir else None}
     log.info("%s: %s", path, info)

@@ -26,7 +26,13 @@ Every reader yields chunks of :data:`EVENT_DTYPE` through the same checks
 * a file that ends early (AEDAT4 cut inside a packet, RAW cut inside a word) keeps the events
   before the cut and logs a warning (``Recording.truncated``);
 * an empty file, an unknown extension, a file whose bytes are not the format its name says, or
-  a recording without any event raises :class:`RecordingError` naming the file.
+  a recording without any event raises :class:`RecordingError` naming the file;
+* a sensor size out of bounds (:func:`checked_size`: x, y are uint16, at most
+  :data:`MAX_SENSOR_PIXELS` pixels), from the file or the caller, raises :class:`RecordingError`
+  naming the file and the field when the recording is opened, before anything is sized by it.
+
+Each format is a :class:`FormatReader` in :data:`READERS` (sniff the bytes, the sensor size the
+file states, the events, the frames), as tonic's ``io.py`` keeps one ``read_*`` per format.
 """
 from __future__ import annotations
 
@@ -34,14 +40,14 @@ import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Optional, Tuple
+from typing import Callable, Iterator, Optional, Tuple
 
 import numpy as np
 
 from .event_grids import events_to_voxels
 
 __all__ = ["EVENT_DTYPE", "RecordingError", "Frames", "Recording", "open_recording", "read_all", "H5Sequence",
-           "FORMATS"]
+           "FORMATS", "READERS", "FormatReader", "checked_size", "MAX_SENSOR_SIDE", "MAX_SENSOR_PIXELS"]
 
 log = logging.getLogger("trainer.recordings")
 
@@ -52,6 +58,13 @@ EVENT_DTYPE = np.dtype([("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "i1")])
 #: Extension -> format name; an ECD/IJRR recording is a folder with ``events.txt``.
 FORMATS = {".aedat4": "aedat4", ".raw": "evt", ".dat": "dat", ".es": "es", ".csv": "csv",
            ".h5": "h5", ".hdf5": "h5", ".txt": "ecd"}
+
+#: Largest sensor side, pixels: ``x`` and ``y`` are uint16, so 0 <= x, y <= 65535.
+MAX_SENSOR_SIDE = int(np.iinfo(EVENT_DTYPE["x"]).max) + 1
+
+#: Most pixels a sensor size may have (8192 x 8192): a full frame (uint8) or one bin of a voxel
+#: grid (int32) is sized by it, and no event camera comes within 50x of it (docs/recordings.md).
+MAX_SENSOR_PIXELS = 1 << 26
 
 # Sensor sizes (width, height) of Prophesee RAW headers that carry no ``geometry`` line, by the
 # plugin / generation their header names (Prophesee's sensor datasheets).
@@ -171,9 +184,10 @@ class Recording:
     def frames(self) -> Optional[Frames]:
         """The recording's intensity frames (:class:`Frames`, read once and kept), or None when
         it has none. Frames whose timestamp does not increase are dropped with a warning."""
-        if "frames" not in self._read and self.format in ("aedat4", "ecd", "h5"):
+        read = READERS[self.format].frames
+        if "frames" not in self._read and read is not None:
             self._read.add("frames")
-            f = getattr(self, f"_frames_{self.format}")()
+            f = read(self)
             if f is not None:
                 # keep each frame later than every frame before it (the events' running-max rule)
                 earlier = np.maximum.accumulate(np.concatenate(([np.iinfo(np.int64).min], f.t_us[:-1])))
@@ -191,7 +205,7 @@ class Recording:
             return None
         if "imu" not in self._read:
             self._read.add("imu")
-            parts = [p for tr, p in self._aedat_packets() if tr.data_type == "imus"]
+            parts = [p for tr, p in _aedat_packets(self) if tr.data_type == "imus"]
             self._imu = np.concatenate(parts) if parts else None
         return self._imu
 
@@ -202,162 +216,91 @@ class Recording:
         it.close()
         return int(ev["t"][0])
 
-    # -- per-format event sources: raw chunks, checked by chunks() --
-
     def _raw_chunks(self) -> Iterator[np.ndarray]:
-        yield from getattr(self, f"_events_{self.format}")()
+        yield from READERS[self.format].events(self)
 
-    def _from_faery(self, packets) -> Iterator[np.ndarray]:
-        it = iter(packets)
-        while True:
-            try:
-                ev = next(it)
-            except StopIteration:
-                return
-            except RuntimeError as e:  # faery's decoders report damage and out-of-range pixels so
-                msg = str(e)
-                if "overflow" in msg:
-                    raise RecordingError(self.path, f"an event lies outside the {self.width}x{self.height} sensor "
-                                         f"({msg}; size from {self.size_source}; give the sensor size explicitly "
-                                         "if it is wrong)") from None
-                raise RecordingError(self.path, f"{self.format.upper()} decoding failed: {msg}") from None
-            out = np.empty(len(ev), EVENT_DTYPE)
-            out["t"], out["x"], out["y"] = ev["t"], ev["x"], ev["y"]
-            out["p"] = np.where(ev["on"], 1, -1)
-            yield out
 
-    def _faery_stream(self):
-        import faery
+# -- the per-format readers: sniff (the bytes are the format), sensor size, events, frames --
 
-        o = self._opts
-        kw = {"dimensions_fallback": (self.width, self.height)}
-        if self.format == "evt":
-            kw["version_fallback"] = o["evt_version"]
-        return faery.events_stream_from_file(self.path, **kw)
+@dataclass(frozen=True)
+class FormatReader:
+    """How one format of :data:`FORMATS` is read (the entries of :data:`READERS`).
 
-    def _events_evt(self):
-        yield from self._from_faery(self._faery_stream())
-        o = self._opts
-        if (self.path.stat().st_size - o["header_bytes"]) % _EVT_WORD_BYTES[o["evt_version"]]:
-            self.truncated = True
-            log.warning("%s: the file ends inside a %d-byte %s word (truncated); keeping the events before the cut",
-                        self.path, _EVT_WORD_BYTES[o["evt_version"]], o["evt_version"].upper())
+    Attributes:
+        sniff: ``sniff(path, evt_version) -> options``: checks that the bytes are the format
+            and reads what its header states (kept as ``Recording._opts``); raises
+            :class:`RecordingError` naming the file.
+        sensor_size: ``sensor_size(path, options) -> (width, height, source)``: the size the
+            file states, checked by :func:`checked_size`; raises :class:`RecordingError`
+            naming the file and the field when it states none or one out of bounds.
+        events: ``events(recording)``: raw :data:`EVENT_DTYPE` chunks, checked by
+            :meth:`Recording.chunks`.
+        frames: ``frames(recording) -> Frames or None``, or None for a format without frames.
+    """
+    sniff: Callable[[Path, Optional[str]], dict]
+    sensor_size: Callable[[Path, dict], Tuple[int, int, str]]
+    events: Callable[["Recording"], Iterator[np.ndarray]]
+    frames: Optional[Callable[["Recording"], Optional[Frames]]] = None
 
-    def _events_dat(self):
-        return self._from_faery(self._faery_stream())
 
-    _events_es = _events_csv = _events_dat
+def checked_size(path, width, height, field: str) -> Tuple[int, int]:
+    """A sensor size a file (or the caller) states, checked before anything is sized by it:
+    whole numbers, >= 1, each side at most :data:`MAX_SENSOR_SIDE` (the events' uint16 ``x``,
+    ``y``) and at most :data:`MAX_SENSOR_PIXELS` pixels (a full frame, a voxel grid).
 
-    def _aedat_packets(self):
-        """(track, packet) pairs of the AEDAT4 file; a file cut inside a packet ends the pass
-        with a warning (``truncated``)."""
-        import faery
+    Raises:
+        RecordingError: naming ``path`` and ``field`` (where the size was read) and the value.
+    """
+    try:
+        w, h = int(width), int(height)
+        whole = w == width and h == height
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole:
+        raise RecordingError(path, f"{field}: sensor size {width!r}x{height!r}: not whole numbers")
+    if not (1 <= w <= MAX_SENSOR_SIDE and 1 <= h <= MAX_SENSOR_SIDE):
+        raise RecordingError(path, f"{field}: sensor size {w}x{h}: each side must be 1 to "
+                             f"{MAX_SENSOR_SIDE} pixels (x and y are uint16)")
+    if w * h > MAX_SENSOR_PIXELS:
+        raise RecordingError(path, f"{field}: sensor size {w}x{h} = {w * h} pixels, over the "
+                             f"{MAX_SENSOR_PIXELS} this reader takes (MAX_SENSOR_PIXELS)")
+    return w, h
 
+
+def _to_events(t, x, y, on) -> np.ndarray:
+    out = np.empty(len(t), EVENT_DTYPE)
+    out["t"], out["x"], out["y"] = t, x, y
+    out["p"] = np.where(on, 1, -1)
+    return out
+
+
+def _from_faery(rec: "Recording", packets) -> Iterator[np.ndarray]:
+    it = iter(packets)
+    while True:
         try:
-            with faery.aedat.Decoder(path=self.path) as dec:
-                yield from dec
-        except RuntimeError as e:
-            self.truncated = True
-            log.warning("%s: AEDAT4 decoding stopped (%s): the file is truncated or damaged; keeping what came "
-                        "before", self.path, e)
+            ev = next(it)
+        except StopIteration:
+            return
+        except RuntimeError as e:  # faery's decoders report damage and out-of-range pixels so
+            msg = str(e)
+            if "overflow" in msg:
+                raise RecordingError(rec.path, f"an event lies outside the {rec.width}x{rec.height} sensor "
+                                     f"({msg}; size from {rec.size_source}; give the sensor size explicitly "
+                                     "if it is wrong)") from None
+            raise RecordingError(rec.path, f"{rec.format.upper()} decoding failed: {msg}") from None
+        yield _to_events(ev["t"], ev["x"], ev["y"], ev["on"])
 
-    def _events_aedat4(self):
-        tid = self._opts["track_id"]
-        for tr, p in self._aedat_packets():
-            if tr.id == tid and len(p):
-                out = np.empty(len(p), EVENT_DTYPE)
-                out["t"], out["x"], out["y"] = p["t"], p["x"], p["y"]
-                out["p"] = np.where(p["on"], 1, -1)
-                yield out
 
-    def _frames_aedat4(self) -> Optional[Frames]:
-        ts, ims, exp = [], [], []
-        for tr, fr in self._aedat_packets():
-            if tr.data_type != "frame":
-                continue
-            img = fr.pixels
-            if img.ndim == 3:  # colour DAVIS: to luma
-                import cv2
+def _faery_events(rec: "Recording") -> Iterator[np.ndarray]:
+    import faery
 
-                img = cv2.cvtColor(img[..., :3], cv2.COLOR_RGB2GRAY)
-            full = np.zeros((self.height, self.width), np.uint8)  # frames may be a region of interest
-            full[fr.offset_y:fr.offset_y + img.shape[0], fr.offset_x:fr.offset_x + img.shape[1]] = img
-            ims.append(full)
-            e0, e1 = int(fr.exposure_start_t), int(fr.exposure_end_t)
-            exp.append((e0, e1))
-            ts.append((e0 + e1) // 2)
-        if not ts:
-            return None
-        return Frames(np.array(ts, np.int64), np.stack(ims), np.array(exp, np.int64))
+    kw = {"dimensions_fallback": (rec.width, rec.height)}
+    if rec.format == "evt":
+        kw["version_fallback"] = rec._opts["evt_version"]
+    return _from_faery(rec, faery.events_stream_from_file(rec.path, **kw))
 
-    def _events_h5(self):
-        import h5py
 
-        with h5py.File(self.path, "r") as f:
-            ev = f["events"]
-            n = ev["ts"].shape[0]
-            for a in range(0, n, _H5_CHUNK):
-                b = min(n, a + _H5_CHUNK)
-                out = np.empty(b - a, EVENT_DTYPE)
-                out["t"] = np.round(ev["ts"][a:b].astype(np.float64) * 1e6)
-                out["x"], out["y"] = ev["xs"][a:b], ev["ys"][a:b]
-                out["p"] = np.where(ev["ps"][a:b] > 0, 1, -1)
-                yield out
-
-    def _frames_h5(self) -> Optional[Frames]:
-        import h5py
-
-        with h5py.File(self.path, "r") as f:
-            if "images" not in f or not len(f["images"]):
-                return None
-            ims, ts = _h5_images(f)
-        return Frames(np.array([round(t * 1e6) for t in ts], np.int64), ims)
-
-    def _events_ecd(self):
-        with open(self._opts["events_txt"], "rb") as fh:
-            rest = b""
-            while True:
-                block = fh.read(self.text_chunk_bytes)
-                if not block and not rest.strip():
-                    break
-                data = rest + block
-                if block:
-                    cut = data.rfind(b"\n") + 1
-                    data, rest = data[:cut], data[cut:]
-                else:
-                    rest = b""
-                if not data.strip():
-                    continue
-                vals = np.array(data.split(), dtype=np.float64)
-                if vals.size % 4:
-                    raise RecordingError(self._opts["events_txt"], "lines must hold 't x y p' (4 numbers each)")
-                vals = vals.reshape(-1, 4)
-                out = np.empty(len(vals), EVENT_DTYPE)
-                out["t"] = np.round(vals[:, 0] * 1e6)
-                if (vals[:, 1:3] < 0).any():
-                    raise RecordingError(self._opts["events_txt"], "negative pixel coordinates")
-                out["x"], out["y"] = vals[:, 1], vals[:, 2]
-                out["p"] = np.where(vals[:, 3] > 0, 1, -1)
-                yield out
-
-    def _frames_ecd(self) -> Optional[Frames]:
-        import cv2
-
-        txt = self.path / "images.txt"
-        if not txt.is_file():
-            return None
-        ts, ims = [], []
-        for line in txt.read_text().split("\n"):
-            if not line.strip() or line.startswith("#"):
-                continue
-            t, name = line.split()[:2]
-            img = cv2.imread(str(self.path / name), cv2.IMREAD_GRAYSCALE)
-            if img is None:
-                raise RecordingError(self.path / name, "image listed in images.txt cannot be read")
-            ts.append(round(float(t) * 1e6))
-            ims.append(img)
-        return Frames(np.array(ts, np.int64), np.stack(ims)) if ts else None
-
+# Prophesee RAW (EVT 2.0 / 2.1 / 3.0)
 
 def _evt_header(path: Path) -> Tuple[dict, int]:
     """Key/value lines of a Prophesee RAW header (``% key value``) and its length in bytes."""
@@ -375,6 +318,279 @@ def _evt_header(path: Path) -> Tuple[dict, int]:
         k, _, v = line.partition(" ")
         keys[k.lower()] = v.strip()
     return keys, pos
+
+
+def _sniff_evt(p: Path, evt_version: Optional[str]) -> dict:
+    keys, nhead = _evt_header(p)
+    if nhead == 0:
+        raise RecordingError(p, "not a Prophesee RAW file: no '%' header lines")
+    ver = evt_version or keys.get("evt") or keys.get("format")
+    ver = {"2.0": "evt2", "2.1": "evt2.1", "3.0": "evt3", "evt2": "evt2", "evt21": "evt2.1",
+           "evt3": "evt3"}.get((ver or "").lower().split(";")[0], ver)
+    if ver not in _EVT_WORD_BYTES:
+        raise RecordingError(p, f"RAW header states no known EVT version ({ver!r}): give evt_version")
+    return {"evt_version": ver, "header_bytes": nhead, "keys": keys}
+
+
+def _evt_size(p: Path, opts: dict) -> Tuple[int, int, str]:
+    keys = opts["keys"]
+    if "geometry" in keys:
+        m = re.fullmatch(r"([+-]?\d+)\s*x\s*([+-]?\d+)", keys["geometry"])
+        if m is None:
+            raise RecordingError(p, f"the RAW header field 'geometry' is {keys['geometry']!r}, not WIDTHxHEIGHT")
+        w, h = checked_size(p, int(m.group(1)), int(m.group(2)), "the RAW header field 'geometry'")
+        return w, h, "header"
+    named = (keys.get("plugin_name", "") + " " + keys.get("sensor_generation", "")).lower()
+    hit = next(((k, s) for k, s in _PROPHESEE_SIZES if k in named), None)
+    if hit is None:
+        raise RecordingError(p, "the RAW header carries no geometry and names no known sensor: give the "
+                             "sensor size (width, height)")
+    (w, h), src = hit[1], f"inferred from the header's plugin name {keys.get('plugin_name', '?')}"
+    log.warning("%s: the RAW header carries no geometry; assuming %dx%d (%s)", p, w, h, src)
+    return w, h, src
+
+
+def _evt_events(rec: "Recording") -> Iterator[np.ndarray]:
+    yield from _faery_events(rec)
+    o = rec._opts
+    if (rec.path.stat().st_size - o["header_bytes"]) % _EVT_WORD_BYTES[o["evt_version"]]:
+        rec.truncated = True
+        log.warning("%s: the file ends inside a %d-byte %s word (truncated); keeping the events before the cut",
+                    rec.path, _EVT_WORD_BYTES[o["evt_version"]], o["evt_version"].upper())
+
+
+# Prophesee DAT, Event Stream: faery reads the header; CSV states no size
+
+def _sniff_faery_header(p: Path, evt_version: Optional[str]) -> dict:
+    import faery
+
+    try:
+        w, h = faery.events_stream_from_file(p, dimensions_fallback=(1280, 720)).dimensions()
+    except Exception as e:  # faery raises a bare Exception or RuntimeError for bad headers
+        raise RecordingError(p, f"{FORMATS.get(p.suffix.lower(), '?').upper()} header unreadable: {e}") from None
+    return {"dimensions": (w, h)}
+
+
+def _sniff_dat(p: Path, evt_version: Optional[str]) -> dict:
+    """A DAT file's header: faery reads it, but takes its fallback for a ``Width`` or ``Height``
+    it cannot parse (99999, -5), so the two text fields are read and checked here too."""
+    opts = _sniff_faery_header(p, evt_version)
+    keys, _ = _evt_header(p)
+    if "width" in keys or "height" in keys:
+        field = "the DAT header fields 'Width' and 'Height'"
+        stated = [keys.get(k, "") for k in ("width", "height")]
+        if not all(re.fullmatch(r"[+-]?\d+", v) for v in stated):
+            raise RecordingError(p, f"{field}: sensor size {stated[0]!r}x{stated[1]!r}: not whole numbers")
+        opts["dimensions"] = checked_size(p, int(stated[0]), int(stated[1]), field)
+    return opts
+
+
+def _header_size(p: Path, opts: dict) -> Tuple[int, int, str]:
+    w, h = checked_size(p, *opts["dimensions"], "the header's sensor size")
+    return w, h, "header"
+
+
+def _csv_size(p: Path, opts: dict) -> Tuple[int, int, str]:
+    raise RecordingError(p, "CSV files do not state the sensor size: give it (width, height)")
+
+
+# AEDAT4 (iniVation)
+
+def _sniff_aedat4(p: Path, evt_version: Optional[str]) -> dict:
+    with open(p, "rb") as fh:
+        magic = fh.read(16)
+    if not magic.startswith(b"#!AER-DAT4.0"):
+        raise RecordingError(p, f"not an AEDAT4 file: it starts with {magic[:12]!r}, not '#!AER-DAT4.0'")
+    import faery
+
+    try:
+        with faery.aedat.Decoder(path=p) as dec:
+            tracks = [t for t in dec.tracks() if t.data_type == "events"]
+    except RuntimeError as e:
+        raise RecordingError(p, f"AEDAT4 header unreadable: {e}") from None
+    if not tracks:
+        raise RecordingError(p, "the AEDAT4 file has no event track")
+    return {"track_id": tracks[0].id, "dimensions": tuple(tracks[0].dimensions)}
+
+
+def _aedat4_size(p: Path, opts: dict) -> Tuple[int, int, str]:
+    w, h = checked_size(p, *opts["dimensions"], "the event track's dimensions")
+    return w, h, "header"
+
+
+def _aedat_packets(rec: "Recording"):
+    """(track, packet) pairs of the AEDAT4 file; a file cut inside a packet ends the pass
+    with a warning (``truncated``)."""
+    import faery
+
+    try:
+        with faery.aedat.Decoder(path=rec.path) as dec:
+            yield from dec
+    except RuntimeError as e:
+        rec.truncated = True
+        log.warning("%s: AEDAT4 decoding stopped (%s): the file is truncated or damaged; keeping what came "
+                    "before", rec.path, e)
+
+
+def _aedat4_events(rec: "Recording") -> Iterator[np.ndarray]:
+    tid = rec._opts["track_id"]
+    for tr, p in _aedat_packets(rec):
+        if tr.id == tid and len(p):
+            yield _to_events(p["t"], p["x"], p["y"], p["on"])
+
+
+def _aedat4_frames(rec: "Recording") -> Optional[Frames]:
+    ts, ims, exp = [], [], []
+    for tr, fr in _aedat_packets(rec):
+        if tr.data_type != "frame":
+            continue
+        img = fr.pixels
+        if img.ndim == 3:  # colour DAVIS: to luma
+            import cv2
+
+            img = cv2.cvtColor(img[..., :3], cv2.COLOR_RGB2GRAY)
+        x0, y0 = int(fr.offset_x), int(fr.offset_y)
+        if x0 < 0 or y0 < 0 or x0 + img.shape[1] > rec.width or y0 + img.shape[0] > rec.height:
+            raise RecordingError(rec.path, f"frame {len(ts)}: its region {img.shape[1]}x{img.shape[0]} at offset "
+                                 f"({x0}, {y0}) lies outside the {rec.width}x{rec.height} sensor")
+        full = np.zeros((rec.height, rec.width), np.uint8)  # frames may be a region of interest
+        full[y0:y0 + img.shape[0], x0:x0 + img.shape[1]] = img
+        ims.append(full)
+        e0, e1 = int(fr.exposure_start_t), int(fr.exposure_end_t)
+        exp.append((e0, e1))
+        ts.append((e0 + e1) // 2)
+    if not ts:
+        return None
+    return Frames(np.array(ts, np.int64), np.stack(ims), np.array(exp, np.int64))
+
+
+# H5 (event_cnn_minimal layout)
+
+def _sniff_h5(p: Path, evt_version: Optional[str]) -> dict:
+    with open(p, "rb") as fh:
+        magic = fh.read(16)
+    if not magic.startswith(b"\x89HDF\r\n\x1a\n"):
+        raise RecordingError(p, "not an HDF5 file")
+    import h5py
+
+    with h5py.File(p, "r") as f:
+        for k in ("events/xs", "events/ys", "events/ts", "events/ps"):
+            if k not in f:
+                raise RecordingError(p, f"missing '{k}' (the event_cnn_minimal H5 layout is read; Prophesee "
+                                     "HDF5 is not)")
+    return {}
+
+
+def _h5_size(p: Path, opts: dict) -> Tuple[int, int, str]:
+    import h5py
+
+    with h5py.File(p, "r") as f:
+        if "sensor_resolution" in f.attrs:
+            res = f.attrs["sensor_resolution"]
+            if np.ndim(res) != 1 or len(res) < 2:
+                raise RecordingError(p, f"the attribute 'sensor_resolution' is {res!r}, not (height, width)")
+            w, h = checked_size(p, res[1], res[0], "the attribute 'sensor_resolution'")
+            return w, h, "header"
+        if "images" in f and len(f["images"]):
+            first = sorted(f["images"].keys())[0]
+            shape = f["images"][first].shape
+            w, h = checked_size(p, shape[1], shape[0], f"the image 'images/{first}'")
+            return w, h, "frames"
+    raise RecordingError(p, "no sensor_resolution and no images: give the sensor size (width, height)")
+
+
+def _h5_events(rec: "Recording") -> Iterator[np.ndarray]:
+    import h5py
+
+    with h5py.File(rec.path, "r") as f:
+        ev = f["events"]
+        n = ev["ts"].shape[0]
+        for a in range(0, n, _H5_CHUNK):
+            b = min(n, a + _H5_CHUNK)
+            yield _to_events(np.round(ev["ts"][a:b].astype(np.float64) * 1e6), ev["xs"][a:b], ev["ys"][a:b],
+                             ev["ps"][a:b] > 0)
+
+
+def _h5_frames(rec: "Recording") -> Optional[Frames]:
+    import h5py
+
+    with h5py.File(rec.path, "r") as f:
+        if "images" not in f or not len(f["images"]):
+            return None
+        ims, ts = _h5_images(f)
+    return Frames(np.array([round(t * 1e6) for t in ts], np.int64), ims)
+
+
+# IJRR / Event Camera Dataset text layout (a folder)
+
+def _sniff_ecd(root: Path, evt_version: Optional[str]) -> dict:
+    ev = root / "events.txt"
+    if ev.stat().st_size == 0:
+        raise RecordingError(ev, "empty file")
+    return {"events_txt": ev, "frames": _read_ecd_frames(root)}
+
+
+def _ecd_size(root: Path, opts: dict) -> Tuple[int, int, str]:
+    fr = opts["frames"]
+    if fr is None:
+        raise RecordingError(root, "no images to take the sensor size from: give the size (width, height)")
+    w, h = checked_size(root, fr.images.shape[2], fr.images.shape[1], "the images of images.txt")
+    return w, h, "frames"
+
+
+def _ecd_events(rec: "Recording") -> Iterator[np.ndarray]:
+    with open(rec._opts["events_txt"], "rb") as fh:
+        rest = b""
+        while True:
+            block = fh.read(rec.text_chunk_bytes)
+            if not block and not rest.strip():
+                break
+            data = rest + block
+            if block:
+                cut = data.rfind(b"\n") + 1
+                data, rest = data[:cut], data[cut:]
+            else:
+                rest = b""
+            if not data.strip():
+                continue
+            vals = np.array(data.split(), dtype=np.float64)
+            if vals.size % 4:
+                raise RecordingError(rec._opts["events_txt"], "lines must hold 't x y p' (4 numbers each)")
+            vals = vals.reshape(-1, 4)
+            if (vals[:, 1:3] < 0).any():
+                raise RecordingError(rec._opts["events_txt"], "negative pixel coordinates")
+            yield _to_events(np.round(vals[:, 0] * 1e6), vals[:, 1], vals[:, 2], vals[:, 3] > 0)
+
+
+def _read_ecd_frames(root: Path) -> Optional[Frames]:
+    import cv2
+
+    txt = root / "images.txt"
+    if not txt.is_file():
+        return None
+    ts, ims = [], []
+    for line in txt.read_text().split("\n"):
+        if not line.strip() or line.startswith("#"):
+            continue
+        t, name = line.split()[:2]
+        img = cv2.imread(str(root / name), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise RecordingError(root / name, "image listed in images.txt cannot be read")
+        ts.append(round(float(t) * 1e6))
+        ims.append(img)
+    return Frames(np.array(ts, np.int64), np.stack(ims)) if ts else None
+
+
+#: Format name -> its reader (tonic's ``io.py`` keeps one ``read_*`` per format the same way).
+READERS = {
+    "aedat4": FormatReader(_sniff_aedat4, _aedat4_size, _aedat4_events, _aedat4_frames),
+    "evt": FormatReader(_sniff_evt, _evt_size, _evt_events),
+    "dat": FormatReader(_sniff_dat, _header_size, _faery_events),
+    "es": FormatReader(_sniff_faery_header, _header_size, _faery_events),
+    "csv": FormatReader(lambda p, v: {}, _csv_size, _faery_events),
+    "h5": FormatReader(_sniff_h5, _h5_size, _h5_events, _h5_frames),
+    "ecd": FormatReader(_sniff_ecd, _ecd_size, _ecd_events, lambda rec: rec._opts["frames"]),
+}
 
 
 def open_recording(path, size: Optional[Tuple[int, int]] = None, evt_version: Optional[str] = None) -> Recording:
@@ -395,106 +611,31 @@ def open_recording(path, size: Optional[Tuple[int, int]] = None, evt_version: Op
     Raises:
         RecordingError: missing or empty file, unknown extension, bytes that do not start as
             the format does (no AEDAT4 magic, no RAW header, not an H5 file or not the
-            event_cnn_minimal layout), a size that cannot be known.
+            event_cnn_minimal layout), a size that cannot be known, or a size (stated by the
+            file or ``size``) out of bounds (:func:`checked_size`: the message names the field).
     """
     p = Path(path)
     if p.is_dir() or p.name == "events.txt":
         root = p if p.is_dir() else p.parent
-        ev = root / "events.txt"
-        if not ev.is_file():
+        if not (root / "events.txt").is_file():
             raise RecordingError(p, "a folder recording needs events.txt (the IJRR/ECD text layout)")
-        if ev.stat().st_size == 0:
-            raise RecordingError(ev, "empty file")
-        rec = Recording(root, "ecd", 0, 0, "", {"events_txt": ev})
-        fr = rec.frames()
-        if size is not None:
-            rec.width, rec.height, rec.size_source = size[0], size[1], "argument"
-        elif fr is not None:
-            rec.width, rec.height, rec.size_source = fr.images.shape[2], fr.images.shape[1], "frames"
-        else:
-            raise RecordingError(p, "no images to take the sensor size from: give the size (width, height)")
-        return rec
-    if not p.is_file():
-        raise RecordingError(p, "no such file")
-    if p.stat().st_size == 0:
-        raise RecordingError(p, "empty file (0 bytes)")
-    fmt = FORMATS.get(p.suffix.lower())
-    if fmt is None or fmt == "ecd":
-        raise RecordingError(p, f"unknown recording extension {p.suffix!r} (known: {', '.join(sorted(FORMATS))}, "
-                             "or an ECD folder)")
-    with open(p, "rb") as fh:
-        magic = fh.read(16)
-    opts: dict = {}
-    if fmt == "aedat4":
-        if not magic.startswith(b"#!AER-DAT4.0"):
-            raise RecordingError(p, f"not an AEDAT4 file: it starts with {magic[:12]!r}, not '#!AER-DAT4.0'")
-        import faery
-
-        try:
-            with faery.aedat.Decoder(path=p) as dec:
-                tracks = [t for t in dec.tracks() if t.data_type == "events"]
-        except RuntimeError as e:
-            raise RecordingError(p, f"AEDAT4 header unreadable: {e}") from None
-        if not tracks:
-            raise RecordingError(p, "the AEDAT4 file has no event track")
-        opts["track_id"] = tracks[0].id
-        w, h = tracks[0].dimensions
-        src = "header"
-    elif fmt == "evt":
-        keys, nhead = _evt_header(p)
-        if nhead == 0:
-            raise RecordingError(p, "not a Prophesee RAW file: no '%' header lines")
-        ver = evt_version or keys.get("evt") or keys.get("format")
-        ver = {"2.0": "evt2", "2.1": "evt2.1", "3.0": "evt3", "evt2": "evt2", "evt21": "evt2.1",
-               "evt3": "evt3"}.get((ver or "").lower().split(";")[0], ver)
-        if ver not in _EVT_WORD_BYTES:
-            raise RecordingError(p, f"RAW header states no known EVT version ({ver!r}): give evt_version")
-        opts.update(evt_version=ver, header_bytes=nhead)
-        m = re.match(r"(\d+)x(\d+)", keys.get("geometry", ""))
-        if m:
-            w, h, src = int(m.group(1)), int(m.group(2)), "header"
-        elif size is None:
-            named = (keys.get("plugin_name", "") + " " + keys.get("sensor_generation", "")).lower()
-            hit = next(((k, s) for k, s in _PROPHESEE_SIZES if k in named), None)
-            if hit is None:
-                raise RecordingError(p, "the RAW header carries no geometry and names no known sensor: give the "
-                                     "sensor size (width, height)")
-            (w, h), src = hit[1], f"inferred from the header's plugin name {keys.get('plugin_name', '?')}"
-            log.warning("%s: the RAW header carries no geometry; assuming %dx%d (%s)", p, w, h, src)
-        else:
-            w, h = size
-    elif fmt == "h5":
-        if not magic.startswith(b"\x89HDF\r\n\x1a\n"):
-            raise RecordingError(p, "not an HDF5 file")
-        import h5py
-
-        with h5py.File(p, "r") as f:
-            for k in ("events/xs", "events/ys", "events/ts", "events/ps"):
-                if k not in f:
-                    raise RecordingError(p, f"missing '{k}' (the event_cnn_minimal H5 layout is read; Prophesee "
-                                         "HDF5 is not)")
-            if "sensor_resolution" in f.attrs:
-                h, w = (int(v) for v in f.attrs["sensor_resolution"][:2])
-                src = "header"
-            elif "images" in f and len(f["images"]):
-                h, w = f["images"][sorted(f["images"].keys())[0]].shape[:2]
-                src = "frames"
-            elif size is None:
-                raise RecordingError(p, "no sensor_resolution and no images: give the sensor size (width, height)")
-    elif fmt == "csv":
-        if size is None:
-            raise RecordingError(p, "CSV files do not state the sensor size: give it (width, height)")
-        w, h = size
-    else:  # dat, es: faery reads the size from the header
-        import faery
-
-        try:
-            w, h = faery.events_stream_from_file(p, dimensions_fallback=size or (1280, 720)).dimensions()
-        except Exception as e:  # faery raises a bare Exception or RuntimeError for bad headers
-            raise RecordingError(p, f"{fmt.upper()} header unreadable: {e}") from None
-        src = "header"
+        p, fmt = root, "ecd"
+    else:
+        if not p.is_file():
+            raise RecordingError(p, "no such file")
+        if p.stat().st_size == 0:
+            raise RecordingError(p, "empty file (0 bytes)")
+        fmt = FORMATS.get(p.suffix.lower())
+        if fmt is None or fmt == "ecd":
+            raise RecordingError(p, f"unknown recording extension {p.suffix!r} (known: {', '.join(sorted(FORMATS))}, "
+                                 "or an ECD folder)")
+    reader = READERS[fmt]
+    opts = reader.sniff(p, evt_version)
     if size is not None:
-        w, h, src = size[0], size[1], "argument"
+        w, h = checked_size(p, size[0], size[1], "the size argument")
+        src = "argument"
+    else:
+        w, h, src = reader.sensor_size(p, opts)
     return Recording(p, fmt, w, h, src, opts)
 
 

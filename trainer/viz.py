@@ -1,12 +1,14 @@
-"""Images for logs: voxel grids, reconstructions and optical flow as uint8 pictures."""
+"""Images for logs: voxel grids, reconstructions and optical flow as uint8 pictures, and an
+MP4 writer for a sequence of them."""
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Sequence
 
 import cv2
 import numpy as np
 
-__all__ = ["voxel_to_u8", "gray_to_u8", "flow_to_bgr", "save_grid"]
+__all__ = ["voxel_to_u8", "gray_to_u8", "flow_to_bgr", "save_grid", "Mp4Writer"]
 
 
 def voxel_to_u8(voxel: np.ndarray) -> np.ndarray:
@@ -50,3 +52,36 @@ def save_grid(path: str, rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> 
             canvas[y:y + h, x:x + w] = tile
     if not cv2.imwrite(str(path), canvas):
         raise OSError(f"could not write {path}")
+
+
+class Mp4Writer:
+    """Encode (H, W) uint8 grey or (H, W, 3) uint8 BGR frames as an H.264 MP4 with PyAV, one at a
+    time (odd sizes are padded by one pixel: yuv420p needs even ones)."""
+
+    def __init__(self, path: Path, fps: float):
+        import av
+
+        self.path, self.fps = path, fps
+        self._av, self._c, self._s = av, None, None
+
+    def write(self, img: np.ndarray) -> None:
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        h, w = img.shape[:2]
+        img = np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+        if self._c is None:
+            from fractions import Fraction
+
+            self._c = self._av.open(str(self.path), "w")
+            self._s = self._c.add_stream("libx264", rate=Fraction(self.fps).limit_denominator(1000))
+            self._s.width, self._s.height, self._s.pix_fmt = img.shape[1], img.shape[0], "yuv420p"
+            self._s.options = {"crf": "18", "preset": "fast"}
+        vf = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="bgr24").reformat(format="yuv420p")
+        for pkt in self._s.encode(vf):
+            self._c.mux(pkt)
+
+    def close(self) -> None:
+        if self._c is not None:
+            for pkt in self._s.encode():
+                self._c.mux(pkt)
+            self._c.close()

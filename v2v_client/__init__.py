@@ -1,8 +1,39 @@
-"""Client side of v2v: ``V2VStreamDataset`` reads batches streamed by ``v2v-serve``."""
-from .connection import StreamError, StreamTimeout, batch_to_torch
-from .dataset import V2VStreamDataset, dist_position
-from .flowgrid import expand_flow_grid
-from .loader import StreamLoader
+"""Client side of v2v: ``V2VStreamDataset`` reads batches streamed by ``v2v-serve``.
+
+``import v2v_client`` and its network side (``connection``, ``session``: a server's batches as
+numpy arrays) need only the base install (``pip install v2v``: numpy, pyzmq, msgpack, PyYAML);
+the names that make tensors (``V2VStreamDataset``, ``StreamLoader``, ``batch_to_torch``,
+``expand_flow_grid``, ``dist_position``) import torch when first used (``pip install
+'v2v[client]'``).
+"""
+from importlib import import_module
+
+from .session import StreamError, StreamTimeout
 
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "expand_flow_grid",
            "StreamLoader"]
+
+#: The public names that need torch, by the module that defines them.
+_TORCH_NAMES = {"V2VStreamDataset": "dataset", "dist_position": "dataset", "batch_to_torch": "tensors",
+                "expand_flow_grid": "flowgrid", "StreamLoader": "loader"}
+
+
+def __getattr__(name: str):
+    """Import a torch-backed public name on first use.
+
+    Raises:
+        ImportError: torch is not installed (the message says which install brings it).
+        AttributeError: no such name.
+    """
+    module = _TORCH_NAMES.get(name)
+    if module is None:
+        raise AttributeError(f"module 'v2v_client' has no attribute {name!r}")
+    try:
+        value = getattr(import_module(f".{module}", __name__), name)
+    except ModuleNotFoundError as e:
+        if e.name != "torch":
+            raise
+        raise ImportError(f"v2v_client.{name} needs torch, which is not installed: pip install 'v2v[client]' "
+                          "(or torch first, see README)", name="torch") from e
+    globals()[name] = value
+    return value

@@ -25,10 +25,11 @@ import torch
 from v2v_wire.codecs import available, check_compression
 from v2v_wire.protocol import DEFAULT_OUTPUTS, OUTPUTS, check_outputs
 
-from .connection import StreamError, StreamTimeout, batch_to_torch, load_curve_keys
+from .connection import StreamError, StreamTimeout, load_curve_keys
 from .endpoint import EndpointStream, StreamOptions, padding_copy
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
 from .metrics import TrainerMetrics
+from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "padding_copy"]
 

@@ -1,7 +1,8 @@
-"""One server's stream: the consumer state (ids yielded per open epoch, batches per epoch, the
-last completed epoch, the consumer id), the hello that carries it, and the iteration over a
-:class:`~v2v_client.connection.Connection` that drops re-sent samples and adds DDP padding.
-``V2VStreamDataset`` reads one of these per server (several through ``fanin.FanInStream``).
+"""One server's stream: the consumer's record (ids yielded per open epoch, batches per epoch,
+the last completed epoch: :class:`ConsumerRecord`), the hello that carries it, and the iteration
+over a :class:`~v2v_client.connection.Connection` that drops re-sent samples and adds DDP
+padding (:class:`EndpointStream`). ``V2VStreamDataset`` reads one of these per server (several
+through ``fanin.FanInStream``).
 """
 from __future__ import annotations
 
@@ -17,10 +18,12 @@ from v2v_wire.codecs import available
 from v2v_wire.ids import compact_ids
 from v2v_wire.protocol import is_loopback
 
-from .connection import Connection, StreamError, _Drained, _EpochDone, _Padding, _select, load_curve_keys
+from .connection import Connection, load_curve_keys
+from .session import Drained, EpochDone, ServerPadding, StreamError
+from .tensors import batch_to_torch, select_samples
 from .fanin import read_state
 
-__all__ = ["StreamOptions", "EndpointStream", "padding_copy", "AUTO_REMOTE"]
+__all__ = ["StreamOptions", "EndpointStream", "ConsumerRecord", "padding_copy", "AUTO_REMOTE"]
 
 #: Compression ``compression="auto"`` asks servers on other hosts for (docs/wire.md measures it:
 #: 6.3x fewer bytes per default sample, decompressed at about 1.2 GB/s per core).
@@ -57,143 +60,129 @@ def padding_copy(batch: dict, epoch: int) -> dict:
     return out
 
 
-class _StreamIteration:
-    """The iteration half of an :class:`EndpointStream`: a connection's queued items made into
-    the batches the consumer gets (each sample once per epoch, DDP padding where owed, a
-    DataLoader worker's batches held until the loop receives them). The state it reads and
-    updates (delivered ids, batches per epoch, the pipeline) is the stream's."""
+class ConsumerRecord:
+    """What one consumer has had from one server, per open epoch: the sample ids yielded, the
+    batches yielded (DDP padding included), the last epoch the server declared complete, the
+    recipe fingerprint the ids were made under, and, in a DataLoader worker, the batches
+    yielded to the DataLoader whose receipt has not come (``pipeline``: batch id -> (epoch,
+    sample ids)). Pure and thread-safe: the I/O thread records receipts while the consumer
+    iterates."""
 
-    def _padding_batch(self, epoch: int) -> Optional[dict]:
-        return None if self._last is None else padding_copy(self._last, epoch)
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.completed_epoch = -1
+        self.delivered: Dict[int, Set[str]] = {}
+        self.batches: Dict[int, int] = {}  # batches yielded per open epoch (DDP padding)
+        self.recipe: Optional[str] = None  # fingerprint of the recipe the sample ids were made under
+        self.pipeline: Dict[int, Tuple[int, List[str]]] = {}
 
-    def _epoch_done(self, done: "_EpochDone") -> List[dict]:
-        """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
-        pads: List[dict] = []
-        with self._lock:
-            if done.epoch <= self._completed_epoch:
-                return pads
-            owed = 0
-            if self.world_size > 1 and done.batches is not None:
-                owed = max(0, done.batches - self._batches.get(done.epoch, 0))
-            self._completed_epoch = done.epoch
-            for e in [e for e in self._delivered if e <= done.epoch]:
-                del self._delivered[e]
-            for e in [e for e in self._batches if e <= done.epoch]:
-                del self._batches[e]
-        for _ in range(owed):
-            p = self._padding_batch(done.epoch)
-            if p is None:
-                self._pad_debt[done.epoch] = self._pad_debt.get(done.epoch, 0) + 1
-            else:
-                pads.append(p)
-        return pads
+    def state(self) -> dict:
+        """The record's part of a stream's ``state_dict`` (plain data)."""
+        with self.lock:
+            return {"completed_epoch": self.completed_epoch,
+                    "delivered": {str(e): sorted(ids) for e, ids in self.delivered.items()},
+                    "batches": {str(e): n for e, n in self.batches.items()}, "recipe": self.recipe}
 
-    def __iter__(self) -> Iterator[dict]:
-        conn = Connection(self)
-        self._conns.append(conn)
-        abandoned = False
-        try:
-            while True:
-                item = self._next_item(conn)
-                if isinstance(item, StopIteration):
-                    return
-                if isinstance(item, BaseException):
-                    raise item
-                if isinstance(item, _EpochDone):
-                    yield from self._epoch_done(item)
-                elif isinstance(item, _Drained):
-                    with conn.lock:
-                        idle = not conn.current
-                    if self.receipts is not None and idle:
-                        return  # a DataLoader worker: end this iteration so the loader takes the others' batches
-                elif isinstance(item, _Padding):
-                    yield from self._server_padding(item)
-                else:
-                    yield from self._batch(conn, item)
-        except GeneratorExit:
-            abandoned = True
-            raise
-        finally:
-            if self.receipts is not None and not abandoned and self._pipeline:
-                conn.linger()  # ended (drained, end of stream) with batches in the loader's queues
-            else:
-                conn.close()  # receipts already written are taken first; the rest goes back with bye
-                with self._lock:
-                    self._pipeline.clear()
-                if conn in self._conns:
-                    self._conns.remove(conn)
-
-    def _next_item(self, conn: Connection):
-        """The next item the connection's I/O thread queued (a batch or a control item).
+    def load(self, state: dict) -> None:
+        """Restore :meth:`state` output (a stream's ``state_dict``).
 
         Raises:
-            StreamError: the I/O thread ended without saying why.
+            ValueError: for a state of another format.
         """
-        while True:
-            try:
-                return conn.items.get(timeout=1.0)
-            except queue.Empty:
-                if not conn._thread.is_alive() and conn.items.empty():
-                    raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
-                # the I/O thread decides when the server is gone (timeout_s without a message)
+        completed, delivered = read_state(state)
+        with self.lock:
+            self.completed_epoch, self.delivered = completed, delivered
+            self.batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
+            if isinstance(state.get("recipe"), str):
+                self.recipe = state["recipe"]
 
-    def _server_padding(self, item: "_Padding") -> Iterator[dict]:
-        """A DDP padding batch the server sent (not leased): yielded unless its epoch is complete here."""
-        with self._lock:
-            e = item.item["epoch"]
-            if e <= self._completed_epoch:
-                return
-            self._batches[e] = self._batches.get(e, 0) + 1
-        self._last = item.item
-        yield item.item
+    def resume(self) -> dict:
+        """The hello's resume state: the completed epoch, ids yielded (compacted) and batches
+        per open epoch."""
+        with self.lock:
+            return {"completed_epoch": self.completed_epoch,
+                    "delivered": {str(e): compact_ids(ids) for e, ids in self.delivered.items()},
+                    "batches": {str(e): n for e, n in self.batches.items()}}
 
-    def _batch(self, conn: Connection, item: dict) -> Iterator[dict]:
-        """A received batch: given back when its epoch is complete here; else claimed (taken,
-        or held for a DataLoader worker), its samples already delivered or queued dropped
-        (a batch of repeats only becomes DDP padding, or nothing with one rank), preceded by
-        any padding owed, and yielded."""
-        self.info = conn.info
-        epoch = item["epoch"]
-        with self._lock:
-            done_already = epoch <= self._completed_epoch
-        if done_already:
-            conn.give_back(item)  # never acknowledge what we would drop
-            return
-        loader = self.receipts is not None
-        if not (conn.hold(item) if loader else conn.take(item)):
-            return  # given back meanwhile (lease expired, or this client was dropped)
-        with self._lock:
-            seen = self._delivered.setdefault(epoch, set())
-            queued = {s for e, ids in self._pipeline.values() if e == epoch for s in ids}
-            keep = [i for i, sid in enumerate(item["sample_ids"]) if sid not in seen and sid not in queued]
+    def check_recipe(self, recipe) -> Optional[str]:
+        """A server's recipe fingerprint: why the record refuses it (its ids were made under
+        another recipe), or None (the fingerprint is kept)."""
+        with self.lock:
+            if self.recipe is not None and isinstance(recipe, str) and recipe != self.recipe:
+                return (f"it serves another sample recipe ({recipe}) than the one this resume state was made "
+                        f"under ({self.recipe}): seed, sequence length, bins, crop or crops per window differ, "
+                        f"so its sample ids name other samples. Resume against a server with the same recipe, or "
+                        f"start without the state")
+            if isinstance(recipe, str):
+                self.recipe = recipe
+        return None
+
+    def complete(self, epoch: int, batches_due: Optional[int]) -> Optional[int]:
+        """The server declared ``epoch`` complete: its ids are forgotten. Returns the padding
+        batches still owed (``batches_due``, with DDP: batches every rank must yield, minus
+        those yielded; 0 without), or None when the epoch was complete already."""
+        with self.lock:
+            if epoch <= self.completed_epoch:
+                return None
+            owed = 0 if batches_due is None else max(0, batches_due - self.batches.get(epoch, 0))
+            self.completed_epoch = epoch
+            for e in [e for e in self.delivered if e <= epoch]:
+                del self.delivered[e]
+            for e in [e for e in self.batches if e <= epoch]:
+                del self.batches[e]
+        return owed
+
+    def is_complete(self, epoch: int) -> bool:
+        """Whether the server declared ``epoch`` complete (its batches are given back unused)."""
+        with self.lock:
+            return epoch <= self.completed_epoch
+
+    def count_padding(self, epoch: int) -> bool:
+        """A padding batch of ``epoch`` is yielded (counted); False when the epoch is complete."""
+        with self.lock:
+            if epoch <= self.completed_epoch:
+                return False
+            self.batches[epoch] = self.batches.get(epoch, 0) + 1
+        return True
+
+    def new_samples(self, epoch: int, batch_id: int, sample_ids: List[str], loader: bool) -> List[int]:
+        """Positions of a claimed batch's samples neither yielded nor in the pipeline already.
+        They are recorded as yielded (the batch counted), or with ``loader`` put in the
+        pipeline until the training loop's receipt (:meth:`received`)."""
+        with self.lock:
+            seen = self.delivered.setdefault(epoch, set())
+            queued = {s for e, ids in self.pipeline.values() if e == epoch for s in ids}
+            keep = [i for i, sid in enumerate(sample_ids) if sid not in seen and sid not in queued]
             if loader:
                 if keep:
-                    self._pipeline[item["batch_id"]] = (epoch, [item["sample_ids"][i] for i in keep])
+                    self.pipeline[batch_id] = (epoch, [sample_ids[i] for i in keep])
             else:
-                seen.update(item["sample_ids"][i] for i in keep)
-                self._batches[epoch] = self._batches.get(epoch, 0) + 1
-        item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
-        if loader:
-            if not keep:
-                conn.ack([item["batch_id"]])  # nothing new in it: nothing for the loop to receive
-                return
-            item["receipt"] = {"worker": self.worker, "batch_id": item["batch_id"], "epoch": epoch,
-                               "completed_epoch": self._completed_epoch}
-        if len(keep) < len(item["sample_ids"]):
-            if not keep and self.world_size == 1:
-                return  # all re-sent duplicates: hand nothing on
-            if keep:
-                item = _select(item, keep)
-            else:  # DDP: keep the batch count equal; every sample is a repeat
-                item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
-        for e in sorted(self._pad_debt):
-            for _ in range(self._pad_debt.pop(e)):
-                yield padding_copy(item, e)
-        self._last = item
-        yield item
+                seen.update(sample_ids[i] for i in keep)
+                self.batches[epoch] = self.batches.get(epoch, 0) + 1
+        return keep
+
+    def received(self, batch_ids) -> List[int]:
+        """The training loop received these batches: they count as yielded; returns those
+        that were in the pipeline."""
+        mine = []
+        with self.lock:
+            for bid in batch_ids:
+                entry = self.pipeline.pop(bid, None)
+                if entry is not None:
+                    epoch, ids = entry
+                    if epoch > self.completed_epoch:
+                        self.delivered.setdefault(epoch, set()).update(ids)
+                        self.batches[epoch] = self.batches.get(epoch, 0) + 1
+                    mine.append(bid)
+        return mine
+
+    def clear_pipeline(self) -> None:
+        """Forget the batches in the DataLoader's queues (they go back to the server)."""
+        with self.lock:
+            self.pipeline.clear()
 
 
-class EndpointStream(_StreamIteration):
+class EndpointStream:
     """The stream of one server for one consumer.
 
     Args:
@@ -201,8 +190,10 @@ class EndpointStream(_StreamIteration):
         options: :class:`StreamOptions`.
 
     Iterating opens a connection (one per iterator; a new one replaces the previous) and
-    yields the batch dicts ``V2VStreamDataset`` documents; ``state_dict()`` /
-    ``load_state_dict()`` carry the consumer state across restarts.
+    yields the batch dicts ``V2VStreamDataset`` documents: each sample once per epoch, DDP
+    padding where owed, a DataLoader worker's batches held until the loop receives them.
+    ``state_dict()`` / ``load_state_dict()`` carry the consumer's :class:`ConsumerRecord`
+    (``record``) across restarts.
     """
 
     def __init__(self, endpoint: str, options: StreamOptions):
@@ -215,37 +206,22 @@ class EndpointStream(_StreamIteration):
         self.compact_flow, self.compression = o.compact_flow, o.compression
         self.curve = load_curve_keys(*o.curve_keys) if o.curve_keys else None
         self.info: Optional[dict] = None
+        self.record = ConsumerRecord()
         self._conns: list = []
-        self._lock = threading.Lock()
         self._consumer = uuid.uuid4().hex  # who acknowledges: survives reconnects and restarts (state_dict)
-        self._delivered: Dict[int, Set[str]] = {}
-        self._batches: Dict[int, int] = {}  # batches yielded per open epoch (DDP padding)
-        self._completed_epoch = -1
         self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
         self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
         # In a DataLoader worker under ``StreamLoader``: the pipe on which the main process says
-        # which batches the training loop received, and the batches yielded to the DataLoader and
-        # not yet received (batch id -> (epoch, sample ids)); see ``v2v_client.loader``.
-        self._recipe: Optional[str] = None  # fingerprint of the recipe the state's sample ids were made under
+        # which batches the training loop received (see ``v2v_client.loader``).
         self.receipts = None
         self.worker: Optional[int] = None
-        self._pipeline: Dict[int, Tuple[int, List[str]]] = {}
 
     def welcomed(self, info: dict) -> Optional[str]:
         """The server's welcome: its stream info. Returns why this stream refuses the server
         (None when it does not): a resume state made under another sample recipe names other
         samples with the same ids."""
         self.info = info
-        recipe = info.get("recipe")
-        with self._lock:
-            if self._recipe is not None and isinstance(recipe, str) and recipe != self._recipe:
-                return (f"it serves another sample recipe ({recipe}) than the one this resume state was made "
-                        f"under ({self._recipe}): seed, sequence length, bins, crop or crops per window differ, "
-                        f"so its sample ids name other samples. Resume against a server with the same recipe, or "
-                        f"start without the state")
-            if isinstance(recipe, str):
-                self._recipe = recipe
-        return None
+        return self.record.check_recipe(info.get("recipe"))
 
     def set_position(self, rank: int, world_size: int) -> None:
         """The DDP position the next connection says hello with."""
@@ -257,10 +233,9 @@ class EndpointStream(_StreamIteration):
         """Where this consumer stands: epochs the server declared complete, the sample ids
         yielded so far in epochs still open, batches yielded per open epoch, and the consumer
         id the server knows it by. Plain, JSON/torch.save-safe data."""
-        with self._lock:
-            return {"version": 1, "consumer": self._consumer, "completed_epoch": self._completed_epoch,
-                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()},
-                    "batches": {str(e): n for e, n in self._batches.items()}, "recipe": self._recipe}
+        r = self.record.state()
+        return {"version": 1, "consumer": self._consumer, "completed_epoch": r["completed_epoch"],
+                "delivered": r["delivered"], "batches": r["batches"], "recipe": r["recipe"]}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()`` output; the next iteration resumes the epoch without
@@ -270,14 +245,9 @@ class EndpointStream(_StreamIteration):
         Raises:
             ValueError: for a state of another format.
         """
-        completed, delivered = read_state(state)
-        with self._lock:
-            self._completed_epoch, self._delivered = completed, delivered
-            self._batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
-            if isinstance(state.get("consumer"), str) and state["consumer"]:
-                self._consumer = state["consumer"]
-            if isinstance(state.get("recipe"), str):
-                self._recipe = state["recipe"]
+        self.record.load(state)
+        if isinstance(state.get("consumer"), str) and state["consumer"]:
+            self._consumer = state["consumer"]
 
     def attach_loader(self, worker: int, receipts, state: Optional[dict]) -> None:
         """Read by DataLoader worker ``worker`` of a ``StreamLoader``: batches are
@@ -293,21 +263,11 @@ class EndpointStream(_StreamIteration):
     def received(self, batch_ids) -> List[int]:
         """The training loop received these batches (a receipt from the main process): they
         count as yielded; returns those this stream had handed to the DataLoader."""
-        mine = []
-        with self._lock:
-            for bid in batch_ids:
-                entry = self._pipeline.pop(bid, None)
-                if entry is not None:
-                    epoch, ids = entry
-                    if epoch > self._completed_epoch:
-                        self._delivered.setdefault(epoch, set()).update(ids)
-                        self._batches[epoch] = self._batches.get(epoch, 0) + 1
-                    mine.append(bid)
-        return mine
+        return self.record.received(batch_ids)
 
     def in_loader(self) -> int:
         """Batches yielded to the DataLoader whose receipt has not come."""
-        return len(self._pipeline)
+        return len(self.record.pipeline)
 
     def wants_shm(self, endpoint: str) -> bool:
         """Whether a connection to ``endpoint`` asks for batches through the server's shared
@@ -326,10 +286,7 @@ class EndpointStream(_StreamIteration):
 
     def _hello_header(self) -> dict:
         """The hello message: outputs, credits, who we are, and the resume state."""
-        with self._lock:
-            resume = {"completed_epoch": self._completed_epoch,
-                      "delivered": {str(e): compact_ids(ids) for e, ids in self._delivered.items()},
-                      "batches": {str(e): n for e, n in self._batches.items()}}
+        resume = self.record.resume()
         info = torch.utils.data.get_worker_info()
         consumer = self._consumer if info is None else f"{self._consumer}/{info.id}"
         h = {"type": "hello", "outputs": list(self.outputs), "credits": self.credits, "consumer": consumer,
@@ -344,5 +301,109 @@ class EndpointStream(_StreamIteration):
         for conn in list(self._conns):
             conn.close()
         self._conns.clear()
-        with self._lock:
-            self._pipeline.clear()
+        self.record.clear_pipeline()
+
+    # ------------------------------------------------------------------ iteration
+    def _to_tensors(self, arrays: dict, flow_size, flow_dtype: str) -> dict:
+        """A batch's wire arrays as this stream's tensors (the connection's ``convert``)."""
+        return batch_to_torch(arrays, self.raw, flow_size, flow_dtype, self.compact_flow)
+
+    def __iter__(self) -> Iterator[dict]:
+        conn = Connection(self, convert=self._to_tensors)
+        self._conns.append(conn)
+        abandoned = False
+        try:
+            while True:
+                item = self._next_item(conn)
+                if isinstance(item, StopIteration):
+                    return
+                if isinstance(item, BaseException):
+                    raise item
+                if isinstance(item, EpochDone):
+                    yield from self._epoch_done(item)
+                elif isinstance(item, Drained):
+                    if self.receipts is not None and conn.held() == 0:
+                        return  # a DataLoader worker: end this iteration so the loader takes the others' batches
+                elif isinstance(item, ServerPadding):
+                    yield from self._server_padding(item)
+                else:
+                    yield from self._batch(conn, item)
+        except GeneratorExit:
+            abandoned = True
+            raise
+        finally:
+            if self.receipts is not None and not abandoned and self.record.pipeline:
+                conn.linger()  # ended (drained, end of stream) with batches in the loader's queues
+            else:
+                conn.close()  # receipts already written are taken first; the rest goes back with bye
+                self.record.clear_pipeline()
+                if conn in self._conns:
+                    self._conns.remove(conn)
+
+    def _next_item(self, conn: Connection):
+        """The next item the connection's I/O thread queued (a batch or a control item).
+
+        Raises:
+            StreamError: the I/O thread ended without saying why.
+        """
+        while True:
+            try:
+                return conn.items.get(timeout=1.0)
+            except queue.Empty:
+                if not conn._thread.is_alive() and conn.items.empty():
+                    raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
+                # the I/O thread decides when the server is gone (timeout_s without a message)
+
+    def _epoch_done(self, done: EpochDone) -> List[dict]:
+        """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
+        owed = self.record.complete(done.epoch, done.batches if self.world_size > 1 else None)
+        pads: List[dict] = []
+        for _ in range(owed or 0):
+            if self._last is None:
+                self._pad_debt[done.epoch] = self._pad_debt.get(done.epoch, 0) + 1
+            else:
+                pads.append(padding_copy(self._last, done.epoch))
+        return pads
+
+    def _server_padding(self, padding: ServerPadding) -> Iterator[dict]:
+        """A DDP padding batch the server sent (not leased): yielded unless its epoch is complete here."""
+        item = padding.item
+        item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
+        if not self.record.count_padding(item["epoch"]):
+            return
+        self._last = item
+        yield item
+
+    def _batch(self, conn: Connection, item: dict) -> Iterator[dict]:
+        """A received batch: given back when its epoch is complete here; else claimed (taken,
+        or held for a DataLoader worker), its samples already delivered or queued dropped
+        (a batch of repeats only becomes DDP padding, or nothing with one rank), preceded by
+        any padding owed, and yielded."""
+        self.info = conn.info
+        epoch = item["epoch"]
+        if self.record.is_complete(epoch):
+            conn.give_back(item)  # never acknowledge what we would drop
+            return
+        loader = self.receipts is not None
+        if not (conn.hold(item) if loader else conn.take(item)):
+            return  # given back meanwhile (lease expired, or this client was dropped)
+        keep = self.record.new_samples(epoch, item["batch_id"], item["sample_ids"], loader)
+        item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
+        if loader:
+            if not keep:
+                conn.ack([item["batch_id"]])  # nothing new in it: nothing for the loop to receive
+                return
+            item["receipt"] = {"worker": self.worker, "batch_id": item["batch_id"], "epoch": epoch,
+                               "completed_epoch": self.record.completed_epoch}
+        if len(keep) < len(item["sample_ids"]):
+            if not keep and self.world_size == 1:
+                return  # all re-sent duplicates: hand nothing on
+            if keep:
+                item = select_samples(item, keep)
+            else:  # DDP: keep the batch count equal; every sample is a repeat
+                item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
+        for e in sorted(self._pad_debt):
+            for _ in range(self._pad_debt.pop(e)):
+                yield padding_copy(item, e)
+        self._last = item
+        yield item

@@ -14,7 +14,7 @@ says and cropped back.
 """
 from __future__ import annotations
 
-from typing import List, Optional, Sequence
+from typing import List, Optional
 
 import torch
 import torch.nn as nn
@@ -25,9 +25,14 @@ from .layers import (ConvLayer, RecurrentConvLayer, ResidualBlock, State, Upsamp
 __all__ = ["E2VIDRecurrent", "E2VIDPlusPlus"]
 
 
-class _UNetBase(nn.Module):
-    def __init__(self, num_bins, base_num_channels, num_encoders, num_residual_blocks,
-                 num_output_channels, skip_type, kernel_size, channel_multiplier=2):
+class _UNetRecurrent(nn.Module):
+    """The body of :class:`E2VIDRecurrent` (the authors' ``UNetRecurrent`` on their
+    ``BaseUNet``): head conv, recurrent encoders, residual blocks, upsample-conv decoders with
+    skips, prediction conv. Submodules are registered in the authors' order (head, residual
+    blocks, decoders, prediction, encoders), so parameter order and optimiser states match."""
+
+    def __init__(self, num_bins, base_num_channels, num_encoders, num_residual_blocks, num_output_channels,
+                 skip_type, kernel_size, channel_multiplier=2):
         super().__init__()
         check_unet_args(num_bins, base_num_channels, num_encoders, skip_type)
         self.num_bins = num_bins
@@ -44,28 +49,12 @@ class _UNetBase(nn.Module):
              for cin, cout in zip(reversed(self.enc_out), reversed(self.enc_in))]
         )
         self.pred = ConvLayer(mult * base_num_channels, num_output_channels, 1, relu=False)
-
-    def _skip(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        return x + y if self.skip_type == "sum" else torch.cat([x, y], dim=1)
-
-    def _decode(self, x: torch.Tensor, blocks: Sequence[torch.Tensor], head: torch.Tensor) -> torch.Tensor:
-        for res in self.resblocks:
-            x = res(x)
-        for i, dec in enumerate(self.decoders):
-            x = dec(self._skip(x, blocks[self.num_encoders - i - 1]))
-        return self.pred(self._skip(x, head))
-
-
-class _UNetRecurrent(_UNetBase):
-    """The body of :class:`E2VIDRecurrent` (the authors' ``UNetRecurrent``)."""
-
-    def __init__(self, num_bins, base_num_channels, num_encoders, num_residual_blocks, num_output_channels,
-                 skip_type, kernel_size):
-        super().__init__(num_bins, base_num_channels, num_encoders, num_residual_blocks,
-                         num_output_channels, skip_type, kernel_size)
         self.encoders = nn.ModuleList(
             [RecurrentConvLayer(cin, cout, kernel_size) for cin, cout in zip(self.enc_in, self.enc_out)]
         )
+
+    def _skip(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return x + y if self.skip_type == "sum" else torch.cat([x, y], dim=1)
 
     def forward(self, voxel: torch.Tensor, states: Optional[List[State]] = None):
         check_voxel(voxel, self.num_bins)
@@ -79,7 +68,11 @@ class _UNetRecurrent(_UNetBase):
             x, st = enc(x, st)
             blocks.append(x)
             new_states.append(st)
-        img = self._decode(x, blocks, head)
+        for res in self.resblocks:
+            x = res(x)
+        for i, dec in enumerate(self.decoders):
+            x = dec(self._skip(x, blocks[self.num_encoders - i - 1]))
+        img = self.pred(self._skip(x, head))
         return img[..., :h, :w], new_states
 
 

@@ -1,0 +1,98 @@
+"""The client's protocol handling without a socket or torch: ``v2v_client.session.ServerSession``
+fed the server's messages as ``v2v_wire`` encodes them (header in, items and replies out).
+A real server and the I/O thread around it are covered by test_stream.py and test_wire.py."""
+from __future__ import annotations
+
+import numpy as np
+
+from v2v_client.session import Drained, EpochDone, ServerPadding, ServerSession, StreamError
+from v2v_wire.protocol import encode_arrays, pack, unpack
+
+RESUME = {"completed_epoch": -1, "delivered": {}, "batches": {}}
+
+
+def _hello() -> dict:
+    return {"type": "hello", "outputs": ["voxels", "frames"], "credits": 2, "consumer": "c", "resume": RESUME}
+
+
+def _batch(batch_id: int, n: int = 2, epoch: int = 0, **extra) -> list:
+    arrays = {"voxels": np.full((n, 4, 5, 8, 8), batch_id, np.int8), "frames": np.zeros((n, 5, 8, 8), np.uint8)}
+    specs, frames = encode_arrays(arrays)
+    h = {"type": "batch", "batch_id": batch_id, "epoch": epoch, "arrays": specs,
+         "sample_ids": [f"v.mp4#{batch_id}.{i}" for i in range(n)], "params": [{}] * n, **extra}
+    return [pack(h)] + [memoryview(f).cast("B") for f in frames]
+
+
+def _items(s: ServerSession) -> list:
+    out = []
+    while not s.items.empty():
+        out.append(s.items.get())
+    return out
+
+
+def _welcomed(s: ServerSession) -> None:
+    hello = unpack(s.hello(new_socket=True))
+    assert hello["type"] == "hello" and hello["hello_id"] == 1 and "shm" not in hello
+    assert s.on_message([pack({"type": "welcome", "hello_id": 1, "info": {"crop_size": 8}})]) is None
+
+
+def test_batches_come_out_as_numpy_items_held_until_claimed_or_revoked():
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], _hello)
+    _welcomed(s)
+    assert s.on_message(_batch(7)) is None and s.on_message(_batch(8)) is None
+    a, b = _items(s)
+    assert a["batch_id"] == 7 and a["voxels"].dtype == np.int8 and a["voxels"].shape == (2, 4, 5, 8, 8)
+    assert int(a["voxels"][0, 0, 0, 0, 0]) == 7 and a["sample_ids"] == ["v.mp4#7.0", "v.mp4#7.1"]
+    assert len(s.held) == 2 and s.replies() == []
+    assert s.held.claim(a, lambda: False)  # taken by the consumer: a revoke cannot reach it
+    assert s.on_message([pack({"type": "revoke", "batch_ids": [7, 8]})]) is None
+    assert [unpack(r) for r in s.replies()] == [{"v": 3, "type": "released", "batch_ids": [8]}]
+    assert "voxels" not in b and b["sample_ids"]  # given back: arrays freed, ids kept
+    assert not s.held.claim(b, lambda: False) and len(s.held) == 0
+
+
+def test_control_messages_become_items_and_the_end_or_an_error_ends_the_session():
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels"], _hello)
+    _welcomed(s)
+    assert s.on_message([pack({"type": "epoch_done", "epoch": 0, "batches": 3})]) is None
+    assert s.on_message([pack({"type": "drained"})]) is None
+    assert s.on_message(_batch(1, padding=True)) is None
+    done, drained, pad = _items(s)
+    assert isinstance(done, EpochDone) and (done.epoch, done.batches) == (0, 3) and isinstance(drained, Drained)
+    assert isinstance(pad, ServerPadding) and pad.item["batch_id"] == 1 and len(s.held) == 0  # never leased
+    assert s.on_message([pack({"type": "shutdown"})]) == "lost"
+    assert s.on_message([pack({"type": "end", "reason": "all epochs served"})]) == "over"
+    assert isinstance(_items(s)[0], StopIteration)
+    assert s.on_message([pack({"type": "error", "message": "boom"})]) == "over"
+    (err,) = _items(s)
+    assert isinstance(err, StreamError) and "boom" in str(err)
+
+
+def test_a_batch_lacking_an_output_or_a_dropped_session_is_handled():
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "flow"], _hello)
+    _welcomed(s)
+    assert s.on_message(_batch(3)) == "over"
+    (err,) = _items(s)
+    assert isinstance(err, StreamError) and "lacks requested outputs ['flow']" in str(err)
+
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels"], _hello)
+    _welcomed(s)
+    s.on_message(_batch(4))
+    (item,) = _items(s)
+    assert s.on_message([pack({"type": "error", "code": "dropped", "message": "silent"})]) is None
+    (again,) = [unpack(r) for r in s.replies()]
+    assert again["type"] == "hello" and again["hello_id"] == 2  # introduced again with the resume state
+    assert s.held.discarded == 1 and "voxels" not in item  # what it held goes elsewhere
+    # until the welcome to that hello, batches and revokes of the old session are ignored
+    assert s.on_message(_batch(5)) is None and _items(s) == []
+    s.on_message([pack({"type": "welcome", "hello_id": 2, "info": {}})])
+    s.on_message(_batch(6))
+    assert [i["batch_id"] for i in _items(s)] == [6]
+
+
+def test_a_refused_welcome_ends_the_session_naming_why():
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels"], _hello, welcomed=lambda info: "another recipe")
+    s.hello(new_socket=True)
+    assert s.on_message([pack({"type": "welcome", "hello_id": 1, "info": {}})]) == "over"
+    (err,) = _items(s)
+    assert isinstance(err, StreamError) and str(err) == "v2v server at tcp://127.0.0.1:1: another recipe"

@@ -1,0 +1,368 @@
+"""The client's side of the protocol with one server, without a socket or torch: a server
+message in, items for the consumer and replies for the server out.
+
+:class:`ServerSession` holds what one connection knows of its session with a server: the
+hello it last said (and whether the welcome came), the server's stream info, the batches
+received and not yet taken or given back, and whether batches come through the server's
+shared memory and how they are compressed. The I/O thread of
+:class:`~v2v_client.connection.Connection` owns one: it sends ``hello()``, feeds each message
+to ``on_message()``, and sends the ``replies()``. The consumer claims the queued batches
+from its :class:`HeldBatches` (``held``). It imports numpy, ``v2v_wire`` and ``handoff`` only (no torch, no socket),
+so a host with ``pip install .`` (no torch) reads a stream through it as numpy arrays.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+from v2v_wire.codecs import decode_batch_arrays
+from v2v_wire.outputs import ARRAYS
+from v2v_wire.protocol import MAX_CLIENT_MSG, ProtocolError, output_of, pack, unpack
+
+from .handoff import ShmReader, check_shm_dir, shm_dir_problem
+
+__all__ = ["ServerSession", "HeldBatches", "StreamError", "StreamTimeout", "EpochDone", "Drained", "ServerPadding",
+           "MAX_SERVER_MSG", "strip_arrays"]
+
+log = logging.getLogger("v2v.client")
+
+#: Largest message accepted from the server, bytes (ZMQ_MAXMSGSIZE).
+MAX_SERVER_MSG = 1 << 31
+
+#: The entries of a batch item that are not arrays (kept when a batch is given back).
+BOOKKEEPING = ("sample_ids", "params", "epoch", "batch_id", "receipt")
+
+#: ``convert(arrays, flow_size, flow_dtype)``: a batch's wire arrays (name -> numpy array) as
+#: the consumer's arrays (``tensors.batch_to_torch`` with the stream's options, for the dataset).
+Convert = Callable[[Dict, Optional[Tuple[int, int]], str], Dict]
+
+
+class StreamError(RuntimeError):
+    """The server sent an error, broke the protocol, or went silent (the message says which)."""
+
+
+class StreamTimeout(StreamError, TimeoutError):
+    """No message from the server within ``timeout_s``."""
+
+
+class ServerPadding:
+    """A DDP padding batch the server sent (``item``: not leased, never acknowledged)."""
+
+    def __init__(self, item: dict):
+        self.item = item
+
+
+class Drained:
+    """The server has nothing left to send this connection unless a batch held elsewhere comes back."""
+
+
+class EpochDone:
+    """The server declared ``epoch`` complete; ``batches``: with DDP, the batches every rank of
+    the group must yield in it (None without DDP)."""
+
+    def __init__(self, epoch: int, batches: Optional[int] = None):
+        self.epoch = epoch
+        self.batches = batches
+
+
+def strip_arrays(item: dict) -> None:
+    """Free the arrays of a batch that will not be used (keeps its ids for bookkeeping)."""
+    for k in [k for k in item if k not in BOOKKEEPING]:
+        del item[k]
+
+
+def _as_received(arrays: Dict, flow_size, flow_dtype) -> Dict:
+    return dict(arrays)
+
+
+class HeldBatches:
+    """The batches a session received and the consumer has neither taken nor given back
+    (batch id -> its queued item). A batch is either claimed by the consumer or given back
+    (revoked, dropped, released), never both: ``lock`` makes the choice exclusive, and a
+    batch given back loses its arrays at once."""
+
+    def __init__(self, endpoint: str):
+        self.endpoint = endpoint
+        self.lock = threading.Lock()
+        self.current: Dict[int, dict] = {}
+        self.discarded = 0  # batches given up in a re-hello or a silence
+
+    def add(self, item: dict) -> None:
+        """A received batch (a batch given back may come again: this copy is the live one)."""
+        with self.lock:
+            self.current[item["batch_id"]] = item
+
+    def claim(self, item: dict, silent_too_long: Callable[[], bool]) -> bool:
+        """Take a received batch out for the consumer; False when it was given back meanwhile
+        (its lease expired, or this client was dropped), or when ``silent_too_long()`` says
+        the server has dropped us (every held batch is discarded then)."""
+        bid = item["batch_id"]
+        with self.lock:
+            if self.current.get(bid) is not item:
+                return False
+            if silent_too_long():
+                self._discard_locked("this process was silent longer than the server's client timeout")
+                return False
+            del self.current[bid]
+        return True
+
+    def give_back(self, item: dict) -> bool:
+        """Release a received batch unused (its arrays freed); False when it was no longer held."""
+        with self.lock:
+            if self.current.get(item["batch_id"]) is not item:
+                return False
+            del self.current[item["batch_id"]]
+            strip_arrays(item)
+        return True
+
+    def revoke(self, batch_ids) -> List[int]:
+        """Release the batches the server asks back; returns those that were still held."""
+        released = []
+        with self.lock:
+            for b in batch_ids:
+                item = self.current.pop(b, None) if isinstance(b, int) else None
+                if item is not None:
+                    strip_arrays(item)
+                    released.append(b)
+        return released
+
+    def discard(self, why: str) -> None:
+        """Give up every batch held (the server re-sends them elsewhere), logging ``why``."""
+        with self.lock:
+            self._discard_locked(why)
+
+    def __len__(self) -> int:
+        with self.lock:
+            return len(self.current)
+
+    def _discard_locked(self, why: str) -> None:
+        if self.current:
+            log.warning("v2v stream %s: discarding %d batch(es) not yet used: %s", self.endpoint,
+                        len(self.current), why)
+        for item in self.current.values():
+            strip_arrays(item)
+        self.discarded += len(self.current)
+        self.current.clear()
+
+
+class ServerSession:
+    """One connection's session with one server: protocol state, no socket, no torch.
+
+    Args:
+        endpoint: the server's endpoint (named in errors and logs).
+        outputs: the outputs the hello asks for; a batch lacking one is a protocol error.
+        hello_header: makes the hello message (dict: outputs, credits, consumer, resume state);
+            called for every (re-)hello.
+        welcomed: given the server's stream info; returns why the consumer refuses this
+            server (the stream then ends with a :class:`StreamError`), or None.
+        convert: a batch's wire arrays to the consumer's (``Convert``); None keeps the numpy
+            arrays (views of the received message).
+        raw: whether ``convert`` keeps the received memory (then a shared-memory batch is
+            copied out of the server's buffer before ``convert``).
+        shm: ask for batches through the server's shared memory (same host).
+        keep: private buffers a shared-memory reader keeps (the credits plus a few).
+        compression: the compression asked for ("none", "lz4", "zstd"); ``compression_auto``:
+            chosen by default, so a server lacking the codec is asked again without it.
+
+    Items queued on ``items`` for the consumer: batch dicts (arrays as ``convert`` makes them,
+    ``sample_ids``, ``params``, ``epoch``, ``batch_id``), :class:`ServerPadding`,
+    :class:`EpochDone`, :class:`Drained`, ``StopIteration`` (the end) and :class:`StreamError`.
+    """
+
+    def __init__(self, endpoint: str, outputs: Sequence[str], hello_header: Callable[[], dict], *,
+                 welcomed: Callable[[dict], Optional[str]] = lambda info: None, convert: Optional[Convert] = None,
+                 raw: bool = False, shm: bool = False, keep: int = 4, compression: str = "none",
+                 compression_auto: bool = False):
+        self.endpoint = endpoint
+        self.outputs = tuple(outputs)
+        self._hello_header, self._welcomed = hello_header, welcomed
+        self._convert = convert or _as_received
+        self._copy_shm = raw or convert is None  # the items keep the memory they are given
+        self.items: "queue.Queue" = queue.Queue()
+        self.info: Optional[dict] = None
+        self.held = HeldBatches(endpoint)
+        self._replies: List[bytes] = []
+        self._hello_seq = 0
+        self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
+        self._torn_ids: Dict[int, int] = {}  # shared-memory batches found gone, by batch id
+        self.shm = shm
+        self._shm = ShmReader(keep=keep) if shm else None
+        self.compression, self._compression_auto = compression, compression_auto
+
+    # -- the I/O thread's side --
+
+    def hello(self, new_socket: bool = False) -> bytes:
+        """A (re-)hello: whatever this session still holds is discarded first, since the server
+        takes the resume state as the truth and re-sends the rest. On a ``new_socket`` no
+        message of an older session can arrive, so no welcome is awaited.
+
+        Raises:
+            StreamError: the hello (its resume state) is larger than the server takes.
+        """
+        self.held.discard("saying hello again")
+        self._hello_seq += 1
+        self._awaiting = self._hello_seq
+        h = dict(self._hello_header(), hello_id=self._hello_seq)
+        if self.shm:
+            h["shm"] = True
+        if self.compression != "none":
+            h["compression"] = self.compression
+        data = pack(h)
+        limit = (self.info or {}).get("max_hello_bytes", MAX_CLIENT_MSG)
+        if len(data) > limit:
+            n = sum(len(v) for v in h.get("resume", {}).get("delivered", {}).values())
+            raise StreamError(f"the resume state is too large to send: {len(data)} bytes, the server at "
+                              f"{self.endpoint} takes at most {limit} ({n} characters of sample ids in open epochs). "
+                              f"Checkpoint after the epoch completes, or split the corpus into shards")
+        if new_socket:
+            self._awaiting = None
+        return data
+
+    def replies(self) -> List[bytes]:
+        """The messages the last ``on_message`` calls owe the server, in order (then forgotten)."""
+        out, self._replies = self._replies, []
+        return out
+
+    def on_message(self, frames) -> Optional[str]:
+        """Handle one server message (its frames: header, then array frames); "over" when the
+        stream has ended or failed (the reason is queued on ``items``), "lost" when the server
+        is shutting down, else None."""
+        try:
+            h = unpack(frames[0])
+            kind = h["type"]
+            if self._awaiting is not None and (kind in ("batch", "revoke") or (
+                    kind == "error" and h.get("code") in ("dropped", "unknown_client"))):
+                # sent before the server read our latest hello: about a session that is over
+                return None
+            if kind == "batch":
+                self._on_batch(h, frames)
+            elif kind == "welcome":
+                self._on_welcome(h)
+                refusal = self._welcomed(self.info)
+                if refusal is not None:
+                    self.items.put(StreamError(f"v2v server at {self.endpoint}: {refusal}"))
+                    return "over"
+            elif kind == "revoke":
+                self._on_revoke(h)
+            elif kind == "epoch_done":
+                n = h.get("batches")
+                self.items.put(EpochDone(int(h["epoch"]), n if isinstance(n, int) else None))
+            elif kind == "drained":
+                self.items.put(Drained())
+            elif kind == "end":
+                self.items.put(StopIteration(h.get("reason", "end of stream")))
+                return "over"
+            elif kind == "shutdown":
+                return "lost"
+            elif kind == "error" and h.get("code") == "compression" and self._compression_auto:
+                # the server lacks the codec we picked by default: take the arrays as they are
+                log.warning("v2v server at %s: %s; receiving arrays uncompressed", self.endpoint, h.get("message"))
+                self.compression = "none"
+                self._replies.append(self.hello())
+            elif kind == "error" and h.get("code") in ("dropped", "unknown_client"):
+                # dropped for silence or an unanswered revoke, or the server restarted behind our socket:
+                # whatever we hold goes elsewhere, so hand none of it on; introduce ourselves again
+                log.warning("v2v server at %s: %s; saying hello again with the resume state", self.endpoint,
+                            h.get("message"))
+                self._replies.append(self.hello())
+            elif kind == "error":
+                self.items.put(StreamError(f"v2v server at {self.endpoint}: {h.get('message')}"))
+                return "over"
+        except (ProtocolError, KeyError, TypeError, ValueError) as e:
+            self.items.put(StreamError(f"bad message from the v2v server at {self.endpoint}: {e}"))
+            return "over"
+        return None
+
+    def close(self) -> None:
+        """Unmap the server's batch files (a shared-memory session)."""
+        if self._shm is not None:
+            self._shm.close()
+
+    # -- messages --
+
+    def _on_batch(self, h: dict, frames) -> None:
+        """A batch: its arrays (from the frames, or from the server's batch file on the same
+        host) checked against the header, converted, and queued for the consumer.
+
+        Raises:
+            ProtocolError: arrays missing, of the wrong length, or a hand-off not asked for.
+        """
+        shm = h.get("shm") is not None
+        if shm:  # same host: the arrays are in the server's batch file
+            if self._shm is None or len(frames) != 1:
+                raise ProtocolError("a shared-memory batch this client did not ask for")
+            arrays = self._shm.read(h, copy=self._copy_shm)
+            if arrays is None:
+                return self._torn(h)
+        else:
+            arrays = decode_batch_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
+        missing = [o for o in self.outputs if o not in {output_of(k) for k in arrays}]
+        if missing:
+            raise ProtocolError(f"batch {h.get('batch_id')} lacks requested outputs {missing}")
+        ids = h["sample_ids"]
+        if not isinstance(ids, list) or any(a.shape[:1] != (len(ids),) for a in arrays.values()):
+            raise ProtocolError(f"batch {h.get('batch_id')}: sample ids do not match the arrays")
+        info = self.info or {}
+        crop = info.get("crop_size")
+        item = self._convert(arrays, (crop, crop) if isinstance(crop, int) and crop > 0 else None,
+                             info.get("flow_dtype", ARRAYS["flow"].dtypes[0]))
+        if shm and not self._copy_shm:
+            del arrays  # converted from the mapping: check it still held this batch
+            if not self._shm.valid(h):
+                return self._torn(h)
+        item["sample_ids"] = list(ids)
+        item["params"] = list(h["params"])
+        item["epoch"] = int(h["epoch"])
+        item["batch_id"] = int(h["batch_id"])
+        if h.get("padding") is True:  # DDP padding from the server: not leased, never acknowledged
+            self.items.put(ServerPadding(item))
+            return None
+        self.held.add(item)
+        self.items.put(item)
+        return None
+
+    def _on_welcome(self, h: dict) -> None:
+        """The server's answer to our hello: its stream info, and whether we can read its
+        batch directory (else we ask again without the same-host hand-off)."""
+        if h.get("hello_id") == self._awaiting:
+            self._awaiting = None
+        self.info = h.get("info", {})
+        if self._shm is not None:
+            d = self.info.get("shm_dir")
+            why = None if d is None else shm_dir_problem(check_shm_dir(d))
+            if why is not None:
+                self._socket_instead(f"the server's batch directory {d} {why}")
+            else:
+                self._shm.set_dir(d)
+
+    def _socket_instead(self, why: str) -> None:
+        """Stop reading batches through the server's shared memory: say hello again without it."""
+        log.warning("v2v stream %s: %s; asking for batches over the socket", self.endpoint, why)
+        self.shm, self._shm = False, None
+        self._replies.append(self.hello())
+
+    def _on_revoke(self, h: dict) -> None:
+        """Batches the server asks back: those still held (not yet handed to the consumer) are
+        released, their arrays freed at once."""
+        released = self.held.revoke(h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else [])
+        if released:
+            self._replies.append(pack({"type": "released", "batch_ids": released}))
+
+    def _torn(self, h: dict) -> None:
+        """A shared-memory batch whose buffer the server refilled before we copied it: the
+        batch was acknowledged (or dropped) already, so it is not ours; give it back. The
+        same batch torn twice means its file is gone while the server still holds it (the
+        directory was removed under it): read over the socket from now on, so the batch comes
+        as frames instead of the same reference again."""
+        bid = h.get("batch_id")
+        self._torn_ids[bid] = self._torn_ids.get(bid, 0) + 1
+        if self._torn_ids[bid] >= 2:
+            self._socket_instead(f"batch {bid} is gone from the server's shared memory again")
+            return None
+        log.warning("v2v stream %s: batch %s was gone from the server's shared memory before it was read "
+                    "(this process stalled?); giving it back", self.endpoint, bid)
+        if isinstance(bid, int) and not isinstance(bid, bool) and bid >= 0:
+            self._replies.append(pack({"type": "released", "batch_ids": [bid]}))
+        return None
