@@ -415,7 +415,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             videos = str(make_corpus(Path(tmp) / "corpus", copies))
         res["videos"] = a.videos or f"{copies} copies of {clip_path().name}"
         for batch in batches:
-            serve = ["--videos", videos, "--workers", str(a.workers), "--batch-size", str(batch),
+            serve = ["--videos", videos, "--shot-cuts", "off", "--workers", str(a.workers), "--batch-size", str(batch),
                      "--sequence-length", str(sizes["sequence_length"]), "--crop-size", str(sizes["crop"]),
                      "--num-bins", str(sizes["num_bins"])]
             with ServeProcess(serve, ready_timeout_s=300) as srv:

@@ -58,7 +58,7 @@ def in_process(cfg: ServeConfig, corpus: Path) -> dict:
 
 
 def serve(cfg: ServeConfig, corpus: Path, workers: int, epochs: int) -> dict:
-    args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", "4", "--epochs", str(epochs),
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4", "--epochs", str(epochs),
             *layout_args(cfg)]
     with ServeProcess(args) as srv:
         t0, n = time.perf_counter(), 0
@@ -167,7 +167,7 @@ def rank_fault(corpus: Path, timeout_s: float = 500.0) -> dict:
     import torch
 
     tmp = Path(tempfile.mkdtemp(prefix="v2v-rankfault-"))
-    (tmp / "serve.yaml").write_text("sequence_length: 4\nnum_bins: 3\ncrop_size: 32\nmax_samples_per_video: 4\n")
+    (tmp / "serve.yaml").write_text("sequence_length: 4\nnum_bins: 3\ncrop_size: 32\nmax_samples_per_video: 4\nshot_cuts: \"off\"\n")
     out = tmp / "run"
     cmd = [sys.executable, "-m", "trainer.train", "--engine", "ray", "--videos", str(corpus), "--serve-config",
            str(tmp / "serve.yaml"), "--task", "evflow", "--out", str(out), "--device", "cpu", "--no-progress",
@@ -218,7 +218,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = p.parse_args(argv)
     import ray
 
-    cfg = ServeConfig(**LAYOUT).validate()
+    cfg = ServeConfig(shot_cuts="off", **LAYOUT).validate()
     corpus = good_corpus(Path(tempfile.mkdtemp(prefix="v2v-raybench-")), a.copies)
     base = in_process(cfg, corpus)
     per = base["wall_s"] / base["samples"]

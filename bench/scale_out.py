@@ -27,7 +27,7 @@ from v2v_wire.protocol import DEFAULT_OUTPUTS as ALL
 def measure(corpus: Path, shards: int, workers_each: int, batches: int, extra: List[str]) -> dict:
     """Start ``shards`` servers (``--shard i/shards`` each, ``workers_each`` workers) and read
     ``batches`` batches from all of them through one fan-in dataset."""
-    base = ["--videos", str(corpus), "--workers", str(workers_each), "--batch-size", "4", "--seed", "1", *extra]
+    base = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers_each), "--batch-size", "4", "--seed", "1", *extra]
     procs = []
     try:
         for i in range(shards):

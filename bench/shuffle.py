@@ -103,7 +103,7 @@ def run(corpus: Path, workers: int, shuffle: str, seed: int) -> dict:
     """One stream of ``EPOCHS`` epochs; the figures of the module docstring."""
     from harness.serve import ServeProcess
 
-    with ServeProcess(["--videos", str(corpus), "--workers", str(workers), "--epochs", str(EPOCHS),
+    with ServeProcess(["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--epochs", str(EPOCHS),
                        "--shuffle", shuffle, *LAYOUT, "--seed", str(seed)], ready_timeout_s=120) as srv:
         batches, timing = read_epochs(srv.endpoint)
         srv.wait(60)

@@ -127,7 +127,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     from v2v_server.service.worker import wire_arrays
 
     cv2.setNumThreads(1)
-    cfg = ServeConfig(seed=1, crops_per_window=crops, decode_fast=decode_fast).validate()
+    cfg = ServeConfig(shot_cuts="off", seed=1, crops_per_window=crops, decode_fast=decode_fast).validate()
     names = sorted(p.name for p in corpus.iterdir())[:videos]
     flow = FlowEstimator(cfg.flow_preset) if "flow" in outputs else None
     busy = {} if busy is None else busy
@@ -168,7 +168,7 @@ def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], 
     from harness.serve import ServeProcess
     from v2v_client import V2VStreamDataset
 
-    args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", "8", "--seed", "1", *extra]
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "8", "--seed", "1", *extra]
     if endpoint:
         args += ["--bind", endpoint]
     with ServeProcess(args) as srv:
@@ -226,7 +226,7 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
     from harness.serve import ServeProcess
     from v2v_client import V2VStreamDataset
 
-    args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
     with ServeProcess(args, ready_timeout_s=300) as srv:
         it = iter(V2VStreamDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True))
         for _ in range(2):  # workers started, kernels loaded
@@ -260,7 +260,7 @@ def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 
     from harness.serve import ServeProcess
     from v2v_client import V2VStreamDataset
 
-    args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", str(batch), "--seed", "1"]
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", str(batch), "--seed", "1"]
     with ServeProcess(args) as srv:
         it = iter(V2VStreamDataset(srv.endpoint, credits=credits, timeout_s=300, raw=True))
         b = next(it)
@@ -297,7 +297,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     clip = clip_path(a.clip)
     from v2v_server.ops.config import ServeConfig
 
-    default_flow = ServeConfig().flow_preset
+    default_flow = ServeConfig(shot_cuts="off").flow_preset
     rows = []
 
     def row(name, value, unit, ratio="", target=""):

@@ -38,14 +38,14 @@ def tree_rss_mb(pid: int) -> float:
 
 
 def measure(corpus: Path, workers: int, outputs, batches: int, extra: List[str]) -> dict:
-    args = ["--videos", str(corpus), "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
     with ServeProcess(args) as srv:
         r = run_loadtest(srv.endpoint, batches, outputs=outputs, timeout_s=120, warmup=1)
     return r
 
 
 def memory(corpus: Path, stall_s: float, fast_batches: int) -> dict:
-    args = ["--videos", str(corpus), "--workers", "2", "--batch-size", "4"]
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", "2", "--batch-size", "4"]
     out = {}
     with ServeProcess(args) as srv:
         it = iter(V2VStreamDataset(srv.endpoint, credits=1, timeout_s=120))

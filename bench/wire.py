@@ -47,7 +47,7 @@ def real_samples(epochs: int = 2):
     from v2v_server.service.worker import wire_arrays
     from v2v_wire.outputs import DEFAULT_OUTPUTS
 
-    cfg = ServeConfig().validate()
+    cfg = ServeConfig(shot_cuts="off").validate()
     flow = FlowEstimator(cfg.flow_preset)
     compact, dense = [], []
     for epoch in range(epochs):
@@ -137,7 +137,7 @@ def end_to_end(codec: str, workers: int, seconds: float, warmup_s: float) -> dic
     from v2v_client import V2VStreamDataset
 
     port = free_port()
-    with ServeProcess(["--videos", str(CLIPS), "--workers", str(workers), "--metrics-port", str(port),
+    with ServeProcess(["--videos", str(CLIPS), "--shot-cuts", "off", "--workers", str(workers), "--metrics-port", str(port),
                        "--batch-size", "8"]) as srv:
         ds = V2VStreamDataset(srv.endpoint, compression=codec, timeout_s=120)
         it = iter(ds)

@@ -165,6 +165,17 @@ def test_video_list_in_the_authors_format(store, corpus, tmp_path):
     assert log.count("gone/1066687471.mp4") == 1 and "missing from the store" in log
 
 
+def test_segments_from_a_bucket_are_the_folders_segments(store, corpus, tmp_path):
+    """List-file time ranges read from a bucket give the samples the same ranges give from the folder."""
+    lst = tmp_path / "segments.txt"
+    lst.write_text("webvid_like_596x336.mp4 2 5.5\nwebvid_like_596x336.mp4 0:00:10 0:00:14\nbikes.mp4 6 4\n")
+    got, log = _epoch(URL, "--video-list", str(lst), env=_env(store, tmp_path))
+    want, _ = _epoch(str(corpus), "--video-list", str(lst))
+    assert got == want and got
+    assert {k.rsplit("#", 1)[0] for k in got} == {"webvid_like_596x336.mp4#t=2,5.5", "webvid_like_596x336.mp4#t=10,14"}
+    assert "time range 6-4 s is reversed" in log
+
+
 def test_wrong_credentials_and_missing_bucket_stop_the_server_naming_the_url(store, corpus, tmp_path):
     def serve(videos, **kw):
         return subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", videos, "--check"],

@@ -183,3 +183,13 @@ def test_a_segment_gives_the_frames_of_its_range_only(segment_corpus):
     ids = {m["sample_id"]: m["src_start_frame"] for _, _, m in
            video_samples(short, src, "bbb_camera_596x336.mp4#t=0,4", 0, ("frames",))}
     assert list(ids) == [f"bbb_camera_596x336.mp4#t=0,4#{k}" for k in range(2)]  # 100 frames: 2 windows of 41
+
+
+def test_yaml_off_is_a_word_not_false(tmp_path):
+    """YAML 1.1 reads ``off`` as False; settings whose choices say ``off`` get the word."""
+    from v2v_server.ops.config import load_config
+
+    path = tmp_path / "serve.yaml"
+    path.write_text("shot_cuts: off\ndecode_fast: off\npause_enabled: false\n")
+    cfg = load_config(str(path))
+    assert (cfg.shot_cuts, cfg.decode_fast, cfg.pause_enabled) == ("off", "off", False)

@@ -96,8 +96,18 @@ def flag_values(args: argparse.Namespace, cls) -> dict:
 
 
 class YamlLoader(yaml.SafeLoader):
-    """SafeLoader that also reads YAML 1.2 floats such as ``1.0e9`` or ``1e-3`` as numbers
-    (YAML 1.1, PyYAML's default, reads them as strings)."""
+    """SafeLoader that reads YAML 1.2 scalars: floats such as ``1.0e9`` or ``1e-3`` as numbers
+    (YAML 1.1, PyYAML's default, reads them as strings), and only ``true`` / ``false`` as
+    booleans (YAML 1.1 also reads ``on``, ``off``, ``yes``, ``no``: ``shot_cuts: off`` or
+    ``decode_fast: off`` would arrive as ``False``)."""
+
+
+# YAML 1.2's booleans: the YAML 1.1 resolver (yes/no/on/off) is replaced
+YamlLoader.yaml_implicit_resolvers = {
+    k: [(tag, rx) for tag, rx in v if tag != "tag:yaml.org,2002:bool"]
+    for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+YamlLoader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+                                 list("tTfF"))
 
 
 YamlLoader.add_implicit_resolver(

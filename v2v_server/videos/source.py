@@ -59,9 +59,10 @@ def read_video_list(path: str) -> List[str]:
     (HYLZ-2019/V2V ``config/webvid10000_unfiltered.txt``): one video per line, its first
     whitespace-separated field a path relative to the corpus root (later fields, such as
     frame counts, are ignored); ``#`` starts a comment line; blank lines are skipped. Leading
-    ``./`` is dropped so ids match a folder's listing. A line ``path start end`` whose second
-    and third fields are times (seconds, or ``H:MM:SS.sss``: Panda-70M's clip timestamps)
-    names the segment ``path#t=start,end`` (``videos.segments``); a video may have several.
+    ``./`` is dropped so ids match a folder's listing. A line of exactly three fields ``path start
+    end`` whose second and third are times (seconds, or ``H:MM:SS.sss``: Panda-70M's clip
+    timestamps) names the segment ``path#t=start,end`` (``videos.segments``); a video may have
+    several. The authors' lines carry one or three numbers after the path and stay whole videos.
 
     Raises:
         FileNotFoundError: no file at ``path``.
@@ -87,7 +88,7 @@ def read_video_list(path: str) -> List[str]:
         while rel.startswith("./"):
             rel = rel[2:]
         rel = rel.lstrip("/")
-        if rel and len(fields) >= 3 and is_time(fields[1]) and is_time(fields[2]):
+        if rel and len(fields) == 3 and is_time(fields[1]) and is_time(fields[2]):
             rel = segment_name(rel, parse_time(fields[1]), parse_time(fields[2]))
         if rel and rel not in seen:
             seen.add(rel)
