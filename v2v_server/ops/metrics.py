@@ -88,7 +88,8 @@ class ServerMetrics:
         self.fc_hits = counter("v2v_frame_cache_hits", "Videos cut from the frame cache instead of decoded")
         self.fc_misses = counter("v2v_frame_cache_misses", "Videos decoded with the frame cache on, by cause: absent "
                                  "(not stored yet), changed (the source's identity changed), corrupt (a damaged "
-                                 "entry, removed)", ("cause",))
+                                 "entry, removed), unverified (the source changed too recently, or has no version "
+                                 "tag, for its identity to vouch for its bytes: not stored)", ("cause",))
         self.fc_stored = counter("v2v_frame_cache_stored", "Entries added to the frame cache")
         self.fc_written = counter("v2v_frame_cache_written_bytes", "Bytes of entries added to the frame cache")
         self.fc_not_stored = counter("v2v_frame_cache_not_stored", "Decoded videos not stored, by cause: budget, "

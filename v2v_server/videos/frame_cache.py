@@ -10,10 +10,12 @@ decoded (``tests/test_frame_cache.py``).
 An entry is one file (``disk_cache.DiskCache`` under ``cache_dir/frames``: atomic rename,
 byte budget, policy ``keep``), named by the corpus, the video's id path and the decode
 settings that change frames (:func:`decode_settings`); its trailer records the identity of
-the source it was decoded from (``VideoSource.identity``: size, modification time and inode of
-a file; ETag of an object; a tar member's offset and size within its shard's identity). A
-different identity is a miss (``changed``), the entry is removed and the video decoded again,
-never a stale hit. Layout::
+the source it was decoded from (``VideoSource.identity``: size, modification time, change time
+and inode of a file; ETag of an object; a tar member's offset and size within its shard's
+identity). A different identity is a miss (``changed``), the entry is removed and the video
+decoded again, never a stale hit. A source whose identity cannot vouch for its bytes (a file
+changed within its file system's timestamp resolution of now, git's racy rule; an object with
+no version tag) is a miss (``unverified``): decoded and not stored. Layout::
 
     frame 0 | frame 1 | ... | trailer (JSON) | trailer bytes (u64) | trailer CRC-32 (u32) | MAGIC
 
@@ -57,7 +59,7 @@ VERSION = 3
 MAGIC = b"V2VFRM1\n"
 _FOOTER = struct.Struct("<QI")
 #: Miss causes counted (``FrameCache.take_stats``).
-MISS_CAUSES = ("absent", "changed", "corrupt")
+MISS_CAUSES = ("absent", "changed", "corrupt", "unverified")
 #: Why a decoded video was not stored.
 SKIP_CAUSES = ("budget", "disk_full", "write_error", "incomplete")
 
@@ -312,10 +314,14 @@ class FrameCache:
         key = json.dumps([corpus, video, settings], sort_keys=True)
         return hashlib.sha256(key.encode("utf-8")).hexdigest()[:32] + ".v2vf"
 
-    def lookup(self, name: str, identity: str) -> Optional[CachedVideo]:
+    def lookup(self, name: str, identity: Optional[str]) -> Optional[CachedVideo]:
         """The entry ``name`` opened for reading if it exists, is whole and was made from a
         source of this ``identity``; else None, the miss counted by cause (a changed or corrupt
-        entry is removed)."""
+        entry is removed). A None ``identity`` (the source cannot vouch for its bytes now) is
+        an ``unverified`` miss: no entry is stored from a racy identity, so none can match."""
+        if identity is None:
+            self.misses["unverified"] += 1
+            return None
         path = self.disk.path(name)
         try:
             f = open(path, "rb")
