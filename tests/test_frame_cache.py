@@ -363,9 +363,12 @@ def test_settings_that_change_frames_name_other_entries(tmp_path):
     assert len(_entries(tmp_path)) == 3
 
 
-def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
+def _served(corpus: Path, *extra: str, epochs: int = 2, after_first_batch=None, done=None, log=None) -> dict:
     """{(epoch, sample id): bytes of every output} of ``epochs`` epochs served by v2v-serve with
-    two workers, and the frame cache's metrics from the last /metrics page."""
+    two workers, and the frame-cache and filesystem-error metrics of the last /metrics page,
+    read once ``done(metrics)`` holds (default: the cache's gauges counted an entry).
+    ``after_first_batch()`` runs once the first batch arrived; ``log`` (a list) gets the
+    server's log lines."""
     import time
     import urllib.request
 
@@ -373,6 +376,7 @@ def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
     from harness.serve import ServeProcess, free_port
     from v2v_client.dataset import V2VStreamDataset
 
+    done = done or (lambda m: m.get("v2v_frame_cache_entries", 1) > 0)
     out, port = {}, free_port()
     with ServeProcess(["--videos", str(corpus), "--workers", "2", *Layout(L=4, crop=64, windows=2, batch=2).args(),
                        "--outputs", "voxels,frames,flow", "--epochs", str(epochs), "--end-grace-s", "60",
@@ -385,16 +389,22 @@ def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
                     key = (b["epoch"], sid)
                     assert key not in out, f"{key} delivered twice"
                     out[key] = b"".join(np.asarray(b[k][i]).tobytes() for k in ("voxels", "frames", "flow"))
+                if after_first_batch is not None:
+                    after_first_batch()
+                    after_first_batch = None
         finally:
             it.close()
         deadline = time.monotonic() + 20
         while True:  # the page is rendered at most once a second, the cache's folder scanned every few
             page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
             metrics = {line.split()[0]: float(line.split()[1]) for line in page.splitlines()
-                       if line.startswith("v2v_frame_cache") and "_created" not in line}
-            if metrics.get("v2v_frame_cache_entries", 1) > 0 or time.monotonic() > deadline:
-                return out, metrics
+                       if line.startswith(("v2v_frame_cache", "v2v_fs_errors")) and "_created" not in line}
+            if done(metrics) or time.monotonic() > deadline:
+                break
             time.sleep(0.5)
+        if log is not None:
+            log += srv.lines
+        return out, metrics
 
 
 def test_served_epochs_identical_with_the_cache_and_epoch_one_hits(tmp_path):
@@ -412,6 +422,33 @@ def test_served_epochs_identical_with_the_cache_and_epoch_one_hits(tmp_path):
     assert m["v2v_frame_cache_hits_total"] >= 1 and m["v2v_frame_cache_hits_total"] + misses == 4, m
     assert m["v2v_frame_cache_stored_total"] == 2, m
     assert m["v2v_frame_cache_budget_bytes"] == 1 << 30 and m["v2v_frame_cache_entries"] == 2
+
+
+def test_cache_folder_replaced_by_a_file_while_serving(tmp_path):
+    """The cache folder turned into a file mid-run (what a vanished mount, a failing disk's EIO
+    or an NFS ESTALE look like to a scan): the server's gauge scan counts it and logs it once,
+    workers serve by decoding, and every sample of both epochs arrives once, byte for byte
+    what a server without the cache sends."""
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    for name in ("bikes.mp4", "webvid_like_596x336.mp4"):
+        shutil.copy(CLIPS / name, corpus / name)
+    plain, _ = _served(corpus)
+    frames = tmp_path / "cache" / "frames"
+
+    def replace():
+        shutil.rmtree(frames, ignore_errors=True)
+        frames.write_bytes(b"not a folder")
+
+    log: list = []
+    key = 'v2v_fs_errors_total{where="frame_cache"}'
+    cached, m = _served(corpus, "--frame-cache-gb", "1", "--cache-dir", str(tmp_path / "cache"),
+                        after_first_batch=replace, done=lambda m: m.get(key, 0) >= 2, log=log)
+    assert len(plain) == 8 and cached == plain
+    assert m[key] >= 2, m  # every scan counted (one every FRAME_CACHE_SCAN_S) ...
+    told = [line for line in log if "v2v_fs_errors_total" in line]
+    assert len(told) == 1 and str(frames) in told[0] and "ENOTDIR" in told[0], told  # ... logged once
+    assert not any("server loop failed" in line or "Traceback" in line for line in log), "".join(log)
 
 
 def test_ray_stage_hits_its_node_local_cache(tmp_path):

@@ -47,6 +47,7 @@ from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
+from v2v_server.ops.logs import cause_of, warn_once
 from v2v_server.videos.disk_cache import DiskCache, is_disk_full, remove_quietly
 
 log = logging.getLogger("v2v.frame_cache")
@@ -200,7 +201,8 @@ class EntryWriter:
 
     def _fail(self, e: BaseException) -> None:
         self.failed = "disk_full" if is_disk_full(e) else "write_error"
-        log.warning("frame cache: not storing %s (%s: %s)", self.header.get("video"), self.failed, e)
+        warn_once(log, ("not storing", self.failed, cause_of(e)), "frame cache: not storing %s (%s: %s); "
+                  "further videos not stored for this cause are counted only", self.header.get("video"), self.failed, e)
         self.abort()
 
     @property
@@ -240,9 +242,15 @@ class EntryWriter:
         self.offsets.append(self.pos)
         self.sizes.append(n)
         self.pos += n + pad
-        if i % self.stride == 0 and i and not self.cache.disk.fits(self.pos):
-            self.failed = "budget"
-            self.abort()
+        if i % self.stride == 0 and i:
+            try:
+                fits = self.cache.disk.fits(self.pos)
+            except OSError as e:  # the folder cannot be scanned (replaced, unmounted, EIO)
+                self._fail(e)
+                return
+            if not fits:
+                self.failed = "budget"
+                self.abort()
 
     def finish(self) -> None:
         """The decode ended cleanly: write the trailer and commit the entry (counted)."""
@@ -328,8 +336,9 @@ class FrameCache:
         except FileNotFoundError:
             self.misses["absent"] += 1
             return None
-        except OSError as e:
-            log.warning("frame cache: cannot open %s (%s): decoding", path, e)
+        except OSError as e:  # the folder replaced, unmounted or failing: every video meets it
+            warn_once(log, ("open", cause_of(e)), "frame cache: cannot open %s (%s): decoding; further videos "
+                      "that meet this are counted only", path, e)
             self.misses["corrupt"] += 1
             return None
         with f:
