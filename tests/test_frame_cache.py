@@ -256,6 +256,21 @@ def test_cache_folder_deleted_while_serving(tmp_path):
     assert src.take_stats()["frame_cache"]["misses"]["absent"] == 1
 
 
+@pytest.mark.parametrize("flags", [("--frame-cache-gb", "1"), ("--frame-cache-gb", "1", "--warm-cache")])
+def test_unusable_cache_dir_at_start_is_one_clear_line(tmp_path, flags):
+    """``--cache-dir`` naming a file: v2v-serve exits 2 at once with one line naming the path,
+    before any worker starts (serving would otherwise decode every epoch it was asked to cache)."""
+    bad = tmp_path / "not_a_folder"
+    bad.write_text("a file")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(CLIPS), "--epochs", "1",
+                        "--bind", "tcp://127.0.0.1:0", "--cache-dir", str(bad), *flags],
+                       capture_output=True, text=True, timeout=60, env=env)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"v2v-serve: --cache-dir {bad}: cannot keep a cache in {bad / 'frames'}"), lines
+
+
 def test_budget_holds_and_keeps_what_it_admitted(tmp_path):
     """A budget below the corpus: entries are admitted until full and kept (policy ``keep``);
     the next epoch hits those and decodes the rest; the folder never holds more than the budget."""

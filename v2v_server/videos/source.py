@@ -32,6 +32,7 @@ import errno
 import logging
 import os
 import stat
+import tempfile
 import time
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
@@ -45,6 +46,10 @@ from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_
 
 log = logging.getLogger("v2v.source")
 
+
+
+class CacheDirError(ValueError):
+    """A cache that is on cannot be kept in ``cache_dir`` (the message names the folder)."""
 
 
 def is_url(videos: Union[str, Path, None]) -> bool:
@@ -152,6 +157,28 @@ class VideoSource:
         if self.frame_cache_gb > 0:
             self.frame_cache = FrameCache(Path(self.cache_dir) / "frames", int(self.frame_cache_gb * (1 << 30)),
                                           frame_cache_format)
+
+    def check_cache_dir(self) -> None:
+        """At start: the folders of the caches that are on (``cache_dir/frames`` with
+        ``frame_cache_gb`` > 0, ``cache_dir/objects`` with ``cache_max_gb`` > 0) can be made
+        and written. A cache asked for and unusable is a setting to fix, not a run to make at a
+        fraction of the speed: ``v2v-serve`` exits with this one line. (While serving, the same
+        faults are served by decoding: docs/faults.md.)
+
+        Raises:
+            CacheDirError: naming ``cache_dir`` and the folder, with the system's reason.
+        """
+        folders = [self.frame_cache.disk.folder] if self.frame_cache is not None else []
+        if getattr(self, "cache_max_gb", 0) > 0:
+            folders.append(self.cache.disk.folder)
+        for folder in folders:
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                with tempfile.TemporaryFile(dir=folder):
+                    pass
+            except OSError as e:
+                raise CacheDirError(f"--cache-dir {self.cache_dir}: cannot keep a cache in {folder}: "
+                                    f"{e.strerror or e}") from None
 
     def _cache_spec(self) -> dict:
         return {"cache_dir": self.cache_dir, "frame_cache_gb": self.frame_cache_gb,
