@@ -158,6 +158,50 @@ def test_damaged_entry_is_decoded_again(tmp_path, fault, fmt):
     assert src.take_stats()["frame_cache"]["hits"] == 1
 
 
+def _rewrite_trailer(entry: Path, change) -> None:
+    """Rewrite the trailer of ``entry`` as ``change(meta)`` leaves it, with a valid CRC-32 (a
+    trailer written wrong, not damaged)."""
+    import struct
+    import zlib
+
+    data = entry.read_bytes()
+    foot = struct.Struct("<QI")
+    n, _ = foot.unpack(data[-len(MAGIC) - foot.size:-len(MAGIC)])
+    end = len(data) - len(MAGIC) - foot.size
+    meta = json.loads(data[end - n:end])
+    change(meta)
+    t = json.dumps(meta).encode()
+    entry.write_bytes(data[:end - n] + t + foot.pack(len(t), zlib.crc32(t)) + MAGIC)
+
+
+@pytest.mark.parametrize("field", ["shape", "huge_shape", "offset", "dtype"])
+def test_trailer_that_passes_its_crc_but_sizes_frames_wrong_is_corrupt(tmp_path, field):
+    """A trailer with a valid CRC whose frame sizes do not hold (another shape than its bytes,
+    a 100000 x 100000 frame, a frame past the data, an unknown dtype) is a corrupt entry found
+    before any frame is read or allocated: decoded, removed, stored again."""
+    cfg = ServeConfig(**SMALL).validate()
+    want = _samples(cfg, CLIPS, "bikes.mp4")
+    src = _cached(CLIPS, tmp_path)
+    assert _samples(cfg, src, "bikes.mp4") == want
+    (entry,) = _entries(tmp_path)
+
+    def change(m):
+        if field == "shape":
+            m["shapes"][0][1] += 1
+        elif field == "huge_shape":
+            m["shapes"] = [[0, 100_000, 100_000]]
+        elif field == "offset":
+            m["offsets"][-1] = 1 << 40
+        else:
+            m["dtype"] = "<f8"
+
+    _rewrite_trailer(entry, change)
+    src.take_stats()
+    assert _samples(cfg, src, "bikes.mp4") == want
+    stats = src.take_stats()["frame_cache"]
+    assert stats["misses"]["corrupt"] == 1 and stats["stored"] == 1, stats
+
+
 def test_source_replaced_in_place_is_a_miss(tmp_path):
     corpus = tmp_path / "corpus"
     corpus.mkdir()

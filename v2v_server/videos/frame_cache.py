@@ -401,9 +401,56 @@ def _open_entry(f) -> CachedVideo:
         raise CorruptEntry("trailer fails its CRC-32")
     try:
         meta = json.loads(bytes(buf[start:size - tail]))
-    except ValueError as e:
+        _check_trailer(meta, start)
+    except (ValueError, TypeError, KeyError, IndexError) as e:
         buf.close()
-        raise CorruptEntry(f"trailer does not parse: {e}") from None
+        raise CorruptEntry(f"trailer does not hold: {e}") from None
     return CachedVideo(meta, buf, start)
+
+
+#: Largest frame side an entry may claim, pixels (8K video is 7680 wide): what a trailer says
+#: sizes a frame's buffer, so it is checked before anything is read or allocated.
+MAX_SIDE = 16384
+_DTYPES = ("|u1", "<u2")
+
+
+def _check_trailer(m: dict, data_end: int) -> None:
+    """Whether trailer ``m`` describes frames that lie within the first ``data_end`` bytes and
+    sizes that a frame of the stored dtype can have: each frame's (h, w) within ``MAX_SIDE``,
+    a raw frame's bytes exactly h x w x itemsize; checked before any frame is read, so a
+    trailer that passes its CRC but was written wrong (or by another tool) sizes no memory.
+
+    Raises:
+        ValueError: naming the field that does not hold.
+    """
+    def ints(name: str, n: Optional[int] = None) -> list:
+        v = m[name]
+        if not isinstance(v, list) or not all(type(x) is int and x >= 0 for x in v) or (n is not None and len(v) != n):
+            raise ValueError(f"{name} must be {n if n is not None else 'a list of'} non-negative integers")
+        return v
+
+    if not isinstance(m, dict) or m.get("format") not in FORMATS or m.get("dtype") not in _DTYPES:
+        raise ValueError("format or dtype unknown")
+    if not isinstance(m.get("identity"), str) or not isinstance(m.get("info"), dict) or type(m.get("declared")) is not int:
+        raise ValueError("identity, info or declared missing")
+    offsets = ints("offsets")
+    n = len(offsets)
+    sizes, keys = ints("sizes", n), ints("keys")
+    runs = m["shapes"]
+    if not isinstance(runs, list) or (n and not runs) or any(
+            not isinstance(r, list) or len(r) != 3 or not all(type(x) is int for x in r) for r in runs):
+        raise ValueError("shapes must be runs [first frame, h, w]")
+    if runs and runs[0][0] != 0 or any(b[0] <= a[0] for a, b in zip(runs, runs[1:])) or any(
+            r[0] >= n or not (0 < r[1] <= MAX_SIDE and 0 < r[2] <= MAX_SIDE) for r in runs):
+        raise ValueError(f"shapes: runs out of order, past frame {n}, or a side outside 1..{MAX_SIDE}")
+    itemsize = np.dtype(m["dtype"]).itemsize
+    raw = m["format"] == "raw"
+    if raw:
+        ints("sums", n)
+    for (h, w), o, k in zip(_expand_runs(runs, n), offsets, sizes):
+        if o + k > data_end or (raw and k != h * w * itemsize):
+            raise ValueError(f"a frame of {k} bytes at {o} does not fit its {h} x {w} shape or the data")
+    if any(i >= n for i in keys):
+        raise ValueError("keys name frames past the end")
 
 
