@@ -87,6 +87,7 @@ def _awkward_corpus(d: Path) -> Path:
                 c.mux(p)
         for p in s.encode():
             c.mux(p)
+    _settle()  # written just now: stored only once older than the racy window
     return d
 
 
