@@ -54,9 +54,42 @@ def main(argv: Optional[List[str]] = None) -> int:
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text("# Fault scenarios\n\nCommand: `python -m bench.faults --out docs/faults.md`\n\n"
-                               + table + "\n")
+                               + table + "\n\n" + FS_FAULTS)
     bad = [r for r in rows if r["lost"] or r["duplicated"] or r["unexpected"]]
     return 1 if bad else 0
+
+
+#: What the server does when its own filesystem work fails (docs/faults.md, after the table).
+FS_FAULTS = """## The server's own filesystem work
+
+Every filesystem operation the server process does on its own schedule turns an `OSError` of
+any kind into `v2v_fs_errors_total{where}` (every time) and one log line per `where` and cause
+(the errno's name) for the server's life; serving goes on. What it serves meanwhile:
+
+| where | what fails | serving goes on |
+|---|---|---|
+| `frame_cache` | the scan of `cache_dir/frames` for the gauges (every 5 s) | by decoding (the workers meet the same folder, and decode); the gauges keep their last values |
+| `journal` | appends, fsync and the rewrite at an epoch's end of `--state-dir` | without the journal: records stay current in memory and the file is written again whole every 5 s once it can be; a restart meanwhile reads the journal as it was, so samples acknowledged since are sent again, none lost |
+| `shm` | making or removing a batch file in the server's `/dev/shm` directory | batches go as socket frames |
+| `progress` | the terminal's progress line (EIO after a hang-up) | without the progress line |
+
+The shared-memory sweep of dead servers' files (at start and when a worker is restarted) and the
+removal of a dead worker's slot ring log a failure once per cause and leave the file; the store
+manifest is written at start, and a failed write is a warning (the store is listed again at the
+next start). Workers log a cache volume's fault once per cause and count it
+(`v2v_frame_cache_misses_total{cause="corrupt"}`, `..._not_stored_total{cause="write_error"}`); the
+object cache reads a video from the store when its folder fails.
+
+At start the choice differs per setting: a `--cache-dir` whose cache folder cannot be made or
+written, with a cache on, is a one-line error naming it (exit 2): a cache asked for and unusable
+is a setting to fix, not a run at a fifth of the speed. A `--state-dir` that cannot hold the
+journal is the same (exit 2): the journal is the promise that a restart repeats nothing, which
+serving without it would break silently. Tests: `tests/test_frame_cache.py`
+(`test_cache_folder_replaced_by_a_file_while_serving`,
+`test_unusable_cache_dir_at_start_is_one_clear_line`), `tests/test_journal.py`
+(`test_a_folder_that_fails_while_serving_is_counted_and_written_again_whole`,
+`test_unusable_state_dir_at_start_is_one_clear_line`).
+"""
 
 
 if __name__ == "__main__":

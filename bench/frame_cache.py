@@ -30,6 +30,16 @@ OUTPUTS = ("voxels", "frames", "flow")
 WEBVID_WINDOWS = {"WebVid100": 227, "WebVid1k": 2272, "WebVid10k": 22725}
 
 
+def settle() -> None:
+    """Wait out the racy window of the files just copied (``source.RACY_NS``): a file changed
+    within it is decoded and not stored, which would make epoch 0 store fewer entries."""
+    import time
+
+    from v2v_server.videos.source import RACY_NS
+
+    time.sleep(RACY_NS / 1e9 + 0.02)
+
+
 def _source(corpus: Path, cache: Path, fmt: str, gb: float = 64.0):
     from v2v_server.videos.source import open_source
 
@@ -46,6 +56,7 @@ def measure(clip: Path, videos: int, rounds: int) -> dict:
     samples/CPU-s), ``bytes`` (format -> bytes per video)."""
     tmp = Path(tempfile.mkdtemp(prefix="v2v-fcache-"))
     corpus = make_corpus(tmp / "c", videos, clip)
+    settle()
     warm_kernel()
     worker_core(corpus, OUTPUTS, 1, 1, flow_grid=True)  # numba's cached kernels loaded, OpenCV warmed
     runs: dict = {}
@@ -94,6 +105,7 @@ def serve(clip: Path, videos: int, samples: int) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="v2v-fcache-serve-"))
     try:
         corpus = make_corpus(tmp / "c", videos, clip)
+        settle()
         cache = ["--frame-cache-gb", "64", "--cache-dir", str(tmp / "cache")]
         subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(corpus), "--workers", "2",
                         "--warm-cache", *cache], check=True, capture_output=True, timeout=1800)

@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import av
@@ -23,7 +24,7 @@ from tests import sample_hashes
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.frame_cache import MAGIC
-from v2v_server.videos.source import open_source
+from v2v_server.videos.source import RACY_NS, open_source
 from v2v_wire.outputs import DEFAULT_OUTPUTS, OUTPUTS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,6 +45,12 @@ def _cached(root, cache_dir, gb=1.0, fmt="raw"):
     return open_source(str(root), cache_dir=str(cache_dir), frame_cache_gb=gb, frame_cache_format=fmt)
 
 
+def _settle() -> None:
+    """Wait out the racy window (``source.RACY_NS``) of files this test just wrote: a file
+    changed within it is decoded and not stored (git's racy rule)."""
+    time.sleep(RACY_NS / 1e9 + 0.02)
+
+
 def _entries(cache_dir) -> list:
     d = Path(cache_dir) / "frames"
     return sorted(p for p in d.glob("*.v2vf")) if d.is_dir() else []
@@ -59,7 +66,7 @@ def test_pinned_table_holds_cold_and_warm(tmp_path):
         assert got == want, state
         stats = src.take_stats()["frame_cache"]
         if state == "warm":
-            assert stats["misses"] == {"absent": 0, "changed": 0, "corrupt": 0} and stats["hits"] > 0
+            assert not any(stats["misses"].values()) and stats["hits"] > 0
         else:
             assert stats["stored"] == 6 and stats["misses"]["absent"] == 6  # one entry per clip and frames_per_sample
 
@@ -80,6 +87,7 @@ def _awkward_corpus(d: Path) -> Path:
                 c.mux(p)
         for p in s.encode():
             c.mux(p)
+    _settle()  # written just now: stored only once older than the racy window
     return d
 
 
@@ -151,19 +159,126 @@ def test_damaged_entry_is_decoded_again(tmp_path, fault, fmt):
     assert src.take_stats()["frame_cache"]["hits"] == 1
 
 
+def _rewrite_trailer(entry: Path, change) -> None:
+    """Rewrite the trailer of ``entry`` as ``change(meta)`` leaves it, with a valid CRC-32 (a
+    trailer written wrong, not damaged)."""
+    import struct
+    import zlib
+
+    data = entry.read_bytes()
+    foot = struct.Struct("<QI")
+    n, _ = foot.unpack(data[-len(MAGIC) - foot.size:-len(MAGIC)])
+    end = len(data) - len(MAGIC) - foot.size
+    meta = json.loads(data[end - n:end])
+    change(meta)
+    t = json.dumps(meta).encode()
+    entry.write_bytes(data[:end - n] + t + foot.pack(len(t), zlib.crc32(t)) + MAGIC)
+
+
+@pytest.mark.parametrize("field", ["shape", "huge_shape", "offset", "dtype"])
+def test_trailer_that_passes_its_crc_but_sizes_frames_wrong_is_corrupt(tmp_path, field):
+    """A trailer with a valid CRC whose frame sizes do not hold (another shape than its bytes,
+    a 100000 x 100000 frame, a frame past the data, an unknown dtype) is a corrupt entry found
+    before any frame is read or allocated: decoded, removed, stored again."""
+    cfg = ServeConfig(**SMALL).validate()
+    want = _samples(cfg, CLIPS, "bikes.mp4")
+    src = _cached(CLIPS, tmp_path)
+    assert _samples(cfg, src, "bikes.mp4") == want
+    (entry,) = _entries(tmp_path)
+
+    def change(m):
+        if field == "shape":
+            m["shapes"][0][1] += 1
+        elif field == "huge_shape":
+            m["shapes"] = [[0, 100_000, 100_000]]
+        elif field == "offset":
+            m["offsets"][-1] = 1 << 40
+        else:
+            m["dtype"] = "<f8"
+
+    _rewrite_trailer(entry, change)
+    src.take_stats()
+    assert _samples(cfg, src, "bikes.mp4") == want
+    stats = src.take_stats()["frame_cache"]
+    assert stats["misses"]["corrupt"] == 1 and stats["stored"] == 1, stats
+
+
 def test_source_replaced_in_place_is_a_miss(tmp_path):
     corpus = tmp_path / "corpus"
     corpus.mkdir()
     shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
+    _settle()
     cfg = ServeConfig(**SMALL).validate()
     src = _cached(corpus, tmp_path / "cache")
     _samples(cfg, src, "v.mp4")
     shutil.copy(CLIPS / "webvid_like_596x336.mp4", corpus / "v.mp4")  # same name, other content
+    _settle()
     src.take_stats()
     assert _samples(cfg, src, "v.mp4") == _samples(cfg, corpus, "v.mp4")
     stats = src.take_stats()["frame_cache"]
     assert stats["misses"]["changed"] == 1 and stats["hits"] == 0 and stats["stored"] == 1
     assert len(_entries(tmp_path / "cache")) == 1  # the stale entry was replaced, not kept beside
+
+
+def test_rewrite_in_place_keeping_size_mtime_and_inode_is_a_miss(tmp_path):
+    """An uncompressed AVI whose frames 10.. are inverted in place after it was cached, its
+    size, inode and modification time (to the nanosecond) kept, as ``rsync --inplace -t`` or a
+    tool that restores mtimes leaves it: the change time differs, so the entry is a miss
+    (``changed``) and the samples are those of the new bytes, never the cached frames."""
+    import re
+    import struct
+
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    w, h = 96, 64
+    v = write_video(corpus / "v.avi", 40, w, h, codec="rawvideo", pix_fmt="gray", gray=True)
+    _settle()
+    cfg = ServeConfig(**SMALL).validate()
+    src = _cached(corpus, tmp_path / "cache")
+    before = _samples(cfg, src, "v.avi")
+    assert src.take_stats()["frame_cache"]["stored"] == 1
+    st, data = os.stat(v), v.read_bytes()
+    frames = [m.end() for m in re.finditer(re.escape(b"00dc" + struct.pack("<I", w * h)), data)]
+    assert len(frames) == 40
+    with open(v, "r+b") as f:
+        for at in frames[10:]:
+            f.seek(at)
+            f.write((255 - np.frombuffer(data, np.uint8, w * h, at)).astype(np.uint8).tobytes())
+    os.utime(v, ns=(st.st_atime_ns, st.st_mtime_ns))
+    now = os.stat(v)
+    assert (now.st_size, now.st_mtime_ns, now.st_ino) == (st.st_size, st.st_mtime_ns, st.st_ino)
+    _settle()
+    got = _samples(cfg, src, "v.avi")
+    assert got == _samples(cfg, corpus, "v.avi") and got != before
+    stats = src.take_stats()["frame_cache"]
+    assert stats["misses"]["changed"] == 1 and stats["hits"] == 0 and stats["stored"] == 1, stats
+
+
+def test_a_file_changed_within_the_timestamp_resolution_is_not_stored(tmp_path):
+    """git's racy rule: a file whose change time is within ``RACY_NS`` of its stat is decoded
+    and not stored (a write in the same clock tick could leave its identity unchanged); once
+    older, it is stored and hit."""
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
+    cfg = ServeConfig(**SMALL).validate()
+    src = _cached(corpus, tmp_path / "cache")
+    from v2v_server.videos.source import racy
+
+    st = os.stat(corpus / "v.mp4")
+    assert racy(st, st.st_ctime_ns) and not racy(st, st.st_ctime_ns + RACY_NS + 1)
+    os.utime(corpus / "v.mp4")  # changed now
+    got = _samples(cfg, src, "v.mp4")  # looked up at once: within RACY_NS of the change
+    stats = src.take_stats()["frame_cache"]
+    want = _samples(cfg, corpus, "v.mp4")
+    assert got == want
+    if stats["misses"]["unverified"] != 1:
+        pytest.skip(f"the lookup came later than RACY_NS after the change (a loaded machine): {stats}")
+    assert stats["stored"] == 0 and not _entries(tmp_path / "cache"), stats
+    _settle()
+    assert _samples(cfg, src, "v.mp4") == want and _samples(cfg, src, "v.mp4") == want
+    stats = src.take_stats()["frame_cache"]
+    assert stats["stored"] == 1 and stats["hits"] == 1, stats
 
 
 def test_cache_folder_deleted_while_serving(tmp_path):
@@ -184,6 +299,21 @@ def test_cache_folder_deleted_while_serving(tmp_path):
     shutil.rmtree(tmp_path / "frames")
     assert _samples(cfg, src, "bikes.mp4") == want
     assert src.take_stats()["frame_cache"]["misses"]["absent"] == 1
+
+
+@pytest.mark.parametrize("flags", [("--frame-cache-gb", "1"), ("--frame-cache-gb", "1", "--warm-cache")])
+def test_unusable_cache_dir_at_start_is_one_clear_line(tmp_path, flags):
+    """``--cache-dir`` naming a file: v2v-serve exits 2 at once with one line naming the path,
+    before any worker starts (serving would otherwise decode every epoch it was asked to cache)."""
+    bad = tmp_path / "not_a_folder"
+    bad.write_text("a file")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(CLIPS), "--epochs", "1",
+                        "--bind", "tcp://127.0.0.1:0", "--cache-dir", str(bad), *flags],
+                       capture_output=True, text=True, timeout=60, env=env)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"v2v-serve: --cache-dir {bad}: cannot keep a cache in {bad / 'frames'}"), lines
 
 
 def test_budget_holds_and_keeps_what_it_admitted(tmp_path):
@@ -293,9 +423,12 @@ def test_settings_that_change_frames_name_other_entries(tmp_path):
     assert len(_entries(tmp_path)) == 3
 
 
-def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
+def _served(corpus: Path, *extra: str, epochs: int = 2, after_first_batch=None, done=None, log=None) -> dict:
     """{(epoch, sample id): bytes of every output} of ``epochs`` epochs served by v2v-serve with
-    two workers, and the frame cache's metrics from the last /metrics page."""
+    two workers, and the frame-cache and filesystem-error metrics of the last /metrics page,
+    read once ``done(metrics)`` holds (default: the cache's gauges counted an entry).
+    ``after_first_batch()`` runs once the first batch arrived; ``log`` (a list) gets the
+    server's log lines."""
     import time
     import urllib.request
 
@@ -303,6 +436,7 @@ def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
     from harness.serve import ServeProcess, free_port
     from v2v_client.dataset import V2VStreamDataset
 
+    done = done or (lambda m: m.get("v2v_frame_cache_entries", 1) > 0)
     out, port = {}, free_port()
     with ServeProcess(["--videos", str(corpus), "--workers", "2", *Layout(L=4, crop=64, windows=2, batch=2).args(),
                        "--outputs", "voxels,frames,flow", "--epochs", str(epochs), "--end-grace-s", "60",
@@ -315,16 +449,22 @@ def _served(corpus: Path, *extra: str, epochs: int = 2) -> dict:
                     key = (b["epoch"], sid)
                     assert key not in out, f"{key} delivered twice"
                     out[key] = b"".join(np.asarray(b[k][i]).tobytes() for k in ("voxels", "frames", "flow"))
+                if after_first_batch is not None:
+                    after_first_batch()
+                    after_first_batch = None
         finally:
             it.close()
         deadline = time.monotonic() + 20
         while True:  # the page is rendered at most once a second, the cache's folder scanned every few
             page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
             metrics = {line.split()[0]: float(line.split()[1]) for line in page.splitlines()
-                       if line.startswith("v2v_frame_cache") and "_created" not in line}
-            if metrics.get("v2v_frame_cache_entries", 1) > 0 or time.monotonic() > deadline:
-                return out, metrics
+                       if line.startswith(("v2v_frame_cache", "v2v_fs_errors")) and "_created" not in line}
+            if done(metrics) or time.monotonic() > deadline:
+                break
             time.sleep(0.5)
+        if log is not None:
+            log += srv.lines
+        return out, metrics
 
 
 def test_served_epochs_identical_with_the_cache_and_epoch_one_hits(tmp_path):
@@ -342,6 +482,33 @@ def test_served_epochs_identical_with_the_cache_and_epoch_one_hits(tmp_path):
     assert m["v2v_frame_cache_hits_total"] >= 1 and m["v2v_frame_cache_hits_total"] + misses == 4, m
     assert m["v2v_frame_cache_stored_total"] == 2, m
     assert m["v2v_frame_cache_budget_bytes"] == 1 << 30 and m["v2v_frame_cache_entries"] == 2
+
+
+def test_cache_folder_replaced_by_a_file_while_serving(tmp_path):
+    """The cache folder turned into a file mid-run (what a vanished mount, a failing disk's EIO
+    or an NFS ESTALE look like to a scan): the server's gauge scan counts it and logs it once,
+    workers serve by decoding, and every sample of both epochs arrives once, byte for byte
+    what a server without the cache sends."""
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    for name in ("bikes.mp4", "webvid_like_596x336.mp4"):
+        shutil.copy(CLIPS / name, corpus / name)
+    plain, _ = _served(corpus)
+    frames = tmp_path / "cache" / "frames"
+
+    def replace():
+        shutil.rmtree(frames, ignore_errors=True)
+        frames.write_bytes(b"not a folder")
+
+    log: list = []
+    key = 'v2v_fs_errors_total{where="frame_cache"}'
+    cached, m = _served(corpus, "--frame-cache-gb", "1", "--cache-dir", str(tmp_path / "cache"),
+                        after_first_batch=replace, done=lambda m: m.get(key, 0) >= 2, log=log)
+    assert len(plain) == 8 and cached == plain
+    assert m[key] >= 2, m  # every scan counted (one every FRAME_CACHE_SCAN_S) ...
+    told = [line for line in log if "v2v_fs_errors_total" in line]
+    assert len(told) == 1 and str(frames) in told[0] and "ENOTDIR" in told[0], told  # ... logged once
+    assert not any("server loop failed" in line or "Traceback" in line for line in log), "".join(log)
 
 
 def test_ray_stage_hits_its_node_local_cache(tmp_path):
@@ -415,6 +582,7 @@ def test_tar_member_entries_follow_their_shard(tmp_path):
     shard.parent.mkdir()
     with tarfile.open(shard, "w") as t:
         t.add(CLIPS / "bikes.mp4", arcname="a.mp4")
+    _settle()
     cfg = ServeConfig(**SMALL).validate()
     src = _cached(shard.parent, tmp_path / "cache")
     want = _samples(cfg, shard.parent, "s.tar/a.mp4")
@@ -422,7 +590,8 @@ def test_tar_member_entries_follow_their_shard(tmp_path):
     assert src.take_stats()["frame_cache"]["hits"] == 1
     with tarfile.open(shard, "w") as t:  # the same member name, other content
         t.add(CLIPS / "webvid_like_596x336.mp4", arcname="a.mp4")
-    src = _cached(shard.parent, tmp_path / "cache")  # a new process: the shard's index is read again
+    _settle()
+    # the same source object: its index of the shard follows the shard's identity
     assert _samples(cfg, src, "s.tar/a.mp4") == _samples(cfg, shard.parent, "s.tar/a.mp4")
     assert src.take_stats()["frame_cache"]["misses"]["changed"] == 1
 
@@ -485,6 +654,6 @@ def test_frame_cache_gauges_and_status_line_from_worker_counters():
     assert state == {"frame_cache_bytes": 3 << 29, "frame_cache_entries": 2, "frame_cache_budget": 1 << 30,
                      "frame_cache_hit_ratio": 5 / 8}
     assert m.frame_cache_line(3 << 29, 2, 1 << 30) == (
-        "5 hit(s), misses absent 1, changed 1, corrupt 1 (62% hits), 2 entries, 1.50 of 1.00 GiB")
+        "5 hit(s), misses absent 1, changed 1, corrupt 1, unverified 0 (62% hits), 2 entries, 1.50 of 1.00 GiB")
     page = generate_latest(m.registry).decode()
     assert "v2v_frame_cache_hits_total 5.0" in page and 'v2v_frame_cache_misses_total{cause="corrupt"} 1.0' in page

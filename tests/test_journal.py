@@ -57,3 +57,52 @@ def test_records_name_samples_by_their_number_in_the_video_and_read_back_as_keys
     k = Journal(str(tmp_path), "r1", crops_per_window=3)
     assert k.records == {("c:a", 0): {0: {K("x.mp4", 2, 1), K("x.mp4", 0, 0)}}}
     k.close()
+
+
+def test_a_folder_that_fails_while_serving_is_counted_and_written_again_whole(tmp_path):
+    """The state folder replaced by a file while serving: the failed write is told (the server
+    counts and logs it) and never raised; records stay current in memory and, once the folder
+    can be made again, the file is written again whole, so a restart reads every record."""
+    import shutil
+
+    d = tmp_path / "state"
+    told = []
+    j = Journal(str(d), "r1", on_error=lambda path, e: told.append((path, type(e).__name__)))
+    a = ("c:a", 0)
+    j.delivered(a, 0, [K("x.mp4", 0)])
+    shutil.rmtree(d)
+    d.write_text("a file where the folder was")
+    j.delivered(a, 1, [K("x.mp4", 0)])  # appended to the open, unlinked file: lost with it
+    j.epoch_complete(0)  # the whole write fails
+    assert told == [(d / FILE, "NotADirectoryError")] and j.failed
+    j.delivered(a, 1, [K("x.mp4", 1)])
+    j.sync(0.0)  # before RETRY_S: nothing tried
+    assert len(told) == 1
+    j.sync(1e12)  # still a file: tried, told again
+    assert len(told) == 2 and j.failed
+    d.unlink()
+    j.sync(2e12)
+    assert not j.failed
+    j.delivered(a, 1, [K("x.mp4", 2)])
+    j.close()
+    k = Journal(str(d), "r1")
+    assert k.completed == 0 and k.records == {a: {1: {K("x.mp4", 0), K("x.mp4", 1), K("x.mp4", 2)}}}
+    k.close()
+
+
+def test_unusable_state_dir_at_start_is_one_clear_line(tmp_path):
+    """``--state-dir`` naming a file: v2v-serve exits 2 with one line naming it. The journal is
+    the promise that a restart repeats nothing; serving without it would break that silently."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    bad = tmp_path / "state"
+    bad.write_text("a file")
+    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(root / "v2v_server" / "sample_videos"),
+                        "--epochs", "1", "--bind", "tcp://127.0.0.1:0", "--state-dir", str(bad)],
+                       capture_output=True, text=True, timeout=60, env=dict(os.environ, PYTHONPATH=str(root)))
+    lines = [line for line in r.stderr.strip().splitlines() if "v2v-serve:" in line and " INFO " not in line]
+    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"v2v-serve: --state-dir {bad}:"), r.stderr

@@ -424,3 +424,24 @@ def test_frame_cache_hit_saves_the_download(store, tmp_path, monkeypatch):
     for k, v in _env(store, tmp_path).items():
         monkeypatch.setenv(k, v)
     check_frame_cache_hit(store, LAYOUT.cfg(), tmp_path)
+
+
+def test_object_cache_on_a_folder_that_fails_reads_from_the_store(tmp_path):
+    """The object cache's folder replaced by a file (a vanished mount, EIO): the object is read
+    from the open store file instead, whole and from its start, never a failed video; an
+    object with no version tag (an HTTP server without ETag) is not cached."""
+    import io
+
+    from v2v_server.videos.store_io import ObjectCache
+
+    body = os.urandom(3 << 20)
+    (tmp_path / "objects").write_bytes(b"a file where the folder was")
+    with ObjectCache(tmp_path / "objects", 1.0).open("s3://b/k.mp4", "etag1", io.BytesIO(body)) as got:
+        assert got.read() == body
+    good = ObjectCache(tmp_path / "cache" / "objects", 1.0)
+    with good.open("http://h/k.mp4", "", io.BytesIO(body)) as got:
+        assert got.read() == body
+    assert good.disk.entries() == []
+    with good.open("s3://b/k.mp4", "etag1", io.BytesIO(body)) as got:
+        assert got.read() == body
+    assert len(good.disk.entries()) == 1

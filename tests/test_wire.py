@@ -325,3 +325,12 @@ def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_th
     finally:
         t.join(30)
         router.close(0)
+
+
+def test_an_array_spec_whose_shape_overflows_is_a_protocol_error():
+    """A header whose shape multiplies past 64 bits sizes nothing: its product is not wrapped
+    to a size that matches the frame (then a reshape error, not a protocol error)."""
+    from v2v_wire.protocol import ProtocolError, decode_arrays
+
+    with pytest.raises(ProtocolError, match="needs"):
+        decode_arrays([{"name": "voxels", "dtype": "uint8", "shape": [1 << 32, 1 << 32]}], [b""])

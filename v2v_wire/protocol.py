@@ -46,6 +46,7 @@ one buffer's rows, and every batch to other clients, still carry frames.
 """
 from __future__ import annotations
 
+import math
 import re
 from typing import Dict, List, Sequence, Tuple
 
@@ -265,7 +266,7 @@ def decode_arrays(specs, frames: Sequence, max_bytes: int = 1 << 31) -> Dict[str
             raise ProtocolError(f"bad shape in array spec {spec!r}")
         buf = fr.buffer if hasattr(fr, "buffer") else memoryview(fr)
         dt = np.dtype(dtype)
-        need = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+        need = math.prod(shape) * dt.itemsize  # Python ints: a shape that overflows int64 is refused, not wrapped
         if need > max_bytes or need != len(buf):
             raise ProtocolError(f"array {name!r}: {len(buf)} bytes, spec {dtype}{shape} needs {need}")
         out[name] = np.frombuffer(buf, dtype=dt).reshape(shape)

@@ -20,6 +20,12 @@ Durability: each record is one ``write`` to a file opened with ``O_APPEND`` (in 
 at once: it survives the server process being killed); ``fsync`` at most every ``fsync_s``
 seconds (1 s) from the main loop and at close, so a host crash loses at most that last second,
 whose samples are then sent again (never lost).
+
+A write that fails while serving (a full or failing disk, the folder removed or replaced) never
+stops the server: the records stay current in memory, the error goes to ``on_error`` (the
+server counts it and logs it once), and every ``RETRY_S`` seconds :meth:`sync` tries to write
+the file again whole from memory. Until then a restart reads the journal as it was when the
+writes stopped: samples acknowledged since are sent again, none is lost.
 """
 from __future__ import annotations
 
@@ -27,7 +33,7 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Dict, Hashable, Iterable, List, Optional, Set
+from typing import Callable, Dict, Hashable, Iterable, List, Optional, Set
 
 import msgpack
 
@@ -40,6 +46,8 @@ Records = Dict[Hashable, Dict[int, Set[SampleKey]]]
 __all__ = ["Journal", "JournalError"]
 
 FILE = "delivered.journal"
+#: Seconds between attempts to write a journal whose writes failed again whole.
+RETRY_S = 5.0
 
 
 class JournalError(ValueError):
@@ -56,13 +64,19 @@ class Journal:
         fsync_s: most seconds between ``fsync`` calls.
         crops_per_window: samples per window under that recipe (how a record's sample
             numbers map to sample keys, ``ids.SampleKey.at``).
+        on_error: told ``(path, OSError)`` of each write that fails while serving (module
+            docstring); default: a warning in the log.
 
     Raises:
         JournalError: the journal was written under another recipe, or is not a journal.
-        OSError: the folder cannot be created or written.
+        OSError: the folder cannot be created or written (at start).
     """
 
-    def __init__(self, directory: str, fingerprint: str, fsync_s: float = 1.0, crops_per_window: int = 1):
+    def __init__(self, directory: str, fingerprint: str, fsync_s: float = 1.0, crops_per_window: int = 1,
+                 on_error: Optional[Callable[[Path, OSError], None]] = None):
+        self.on_error = on_error or (lambda path, e: log.warning("%s: %s", path, e))
+        self.failed = False  # a write failed: appends stop until the file is written again whole
+        self._retry_at = 0.0
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.path = self.dir / FILE
@@ -136,9 +150,41 @@ class Journal:
 
     # ------------------------------------------------------------------ writing
     def _append(self, rec: dict) -> None:
-        os.write(self._fd, msgpack.packb(rec, use_bin_type=True))
+        if self.failed:
+            return  # in memory already (_apply); the next whole write keeps it
+        try:
+            os.write(self._fd, msgpack.packb(rec, use_bin_type=True))
+        except OSError as e:
+            self._fail(e)
+            return
         self._dirty = True
         self.writes += 1
+
+    def _fail(self, e: OSError) -> None:
+        """A write failed: stop appending (a torn record would end the file's readable part)
+        until :meth:`sync` writes it again whole."""
+        self.failed = True
+        self._retry_at = time.monotonic() + RETRY_S
+        if self._fd is not None:
+            try:
+                os.close(self._fd)
+            except OSError:
+                pass
+            self._fd = None
+        self.on_error(self.path, e)
+
+    def _recover(self) -> None:
+        """Write the file again whole from memory and append from there."""
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            self._rewrite()
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+        except OSError as e:
+            self._retry_at = time.monotonic() + RETRY_S
+            self.on_error(self.path, e)
+            return
+        self.failed = False
+        log.info("%s: written again; the delivery journal is kept again", self.path)
 
     def delivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
         """``consumer`` acknowledged ``keys`` of ``epoch``."""
@@ -159,9 +205,15 @@ class Journal:
         if epoch <= self.completed:
             return
         self._complete(epoch)
-        os.close(self._fd)
-        self._rewrite()
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+        if self.failed:
+            return  # the next whole write (sync) leaves the epoch's records out
+        try:
+            os.close(self._fd)
+            self._fd = None
+            self._rewrite()
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+        except OSError as e:
+            self._fail(e)
 
     def _rewrite(self) -> None:
         tmp = self.path.with_suffix(".tmp")
@@ -179,10 +231,18 @@ class Journal:
 
     def sync(self, now: Optional[float] = None) -> None:
         """``fsync`` what was appended, at most every ``fsync_s`` seconds (always when ``now``
-        is None)."""
+        is None); after a failed write, every ``RETRY_S`` seconds, write the file again whole."""
         force, now = now is None, time.monotonic() if now is None else now
+        if self.failed:
+            if force or now >= self._retry_at:
+                self._recover()
+            return
         if self._dirty and (force or now - self._last_sync >= self.fsync_s):
-            os.fsync(self._fd)
+            try:
+                os.fsync(self._fd)
+            except OSError as e:
+                self._fail(e)
+                return
             self._dirty = False
             self._last_sync = now
 
@@ -190,4 +250,6 @@ class Journal:
         """``fsync`` and close the file."""
         self._dirty = True
         self.sync()
-        os.close(self._fd)
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None

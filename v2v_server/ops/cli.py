@@ -59,8 +59,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         source = source_from_config(cfg, cfg.videos or str(SAMPLE_VIDEOS))
         source.check()
+        source.check_cache_dir()
         videos, rejected = source.list_videos(cfg.video_extensions)
-    except (StoreError, FileNotFoundError, ValueError) as e:  # the store, or the video list file
+    except (StoreError, FileNotFoundError, ValueError) as e:  # the store, the cache folder or the video list file
         print(f"v2v-serve: {e}", file=sys.stderr)
         return 2
     listing = corpus_fingerprint(videos)  # of the whole listing: shards compare it

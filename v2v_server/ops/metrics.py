@@ -27,10 +27,13 @@ Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
 * the frame cache (docs/frame_cache.md): counters ``v2v_frame_cache_hits_total``,
   ``v2v_frame_cache_misses_total{cause}``, ``v2v_frame_cache_stored_total``,
   ``v2v_frame_cache_written_bytes_total``, ``v2v_frame_cache_not_stored_total{cause}``; gauges
-  ``v2v_frame_cache_bytes``, ``v2v_frame_cache_entries``, ``v2v_frame_cache_budget_bytes``.
+  ``v2v_frame_cache_bytes``, ``v2v_frame_cache_entries``, ``v2v_frame_cache_budget_bytes``;
+* ``v2v_fs_errors_total{where}``: filesystem errors of the work the server does on its own
+  schedule (``FS_WHERE``), each logged once per cause; serving goes on (docs/faults.md).
 """
 from __future__ import annotations
 
+import errno
 import logging
 import sys
 import threading
@@ -52,6 +55,17 @@ STALL_S = 60.0
 EXPOSITION_S = 1.0
 
 log = logging.getLogger("v2v.metrics")
+
+#: The server's own filesystem work that may fail without stopping it, and what serving does
+#: meanwhile (``ServerMetrics.on_fs_error``; docs/faults.md).
+FS_WHERE = {
+    "frame_cache": "the frame-cache gauges keep their last values; workers serve by decoding while the folder "
+                   "is unusable",
+    "journal": "serving goes on without the delivery journal until it can be written again (a restart "
+               "meanwhile may send acknowledged samples again, never lose one)",
+    "shm": "batches go as socket frames",
+    "progress": "the progress line is off",
+}
 
 
 class ServerMetrics:
@@ -92,11 +106,17 @@ class ServerMetrics:
         self.fc_hits = counter("v2v_frame_cache_hits", "Videos cut from the frame cache instead of decoded")
         self.fc_misses = counter("v2v_frame_cache_misses", "Videos decoded with the frame cache on, by cause: absent "
                                  "(not stored yet), changed (the source's identity changed), corrupt (a damaged "
-                                 "entry, removed)", ("cause",))
+                                 "entry, removed), unverified (the source changed too recently, or has no version "
+                                 "tag, for its identity to vouch for its bytes: not stored)", ("cause",))
         self.fc_stored = counter("v2v_frame_cache_stored", "Entries added to the frame cache")
         self.fc_written = counter("v2v_frame_cache_written_bytes", "Bytes of entries added to the frame cache")
         self.fc_not_stored = counter("v2v_frame_cache_not_stored", "Decoded videos not stored, by cause: budget, "
                                      "disk_full, write_error, incomplete", ("cause",))
+        self.fs_errors = counter("v2v_fs_errors", "Filesystem errors of the server's own periodic work, by where: "
+                                 + "; ".join(f"{k} ({v})" for k, v in FS_WHERE.items()), ("where",))
+        for w in FS_WHERE:
+            self.fs_errors.labels(where=w)
+        self._fs_seen: set = set()  # (where, cause) already logged
         # the hit and miss totals again as plain numbers: the gauges and status line read them on
         # every loop turn, where reading the counters back would walk the whole registry
         self._fc_hits = 0
@@ -128,7 +148,15 @@ class ServerMetrics:
         self.samples_sent.inc(nsamples)
         self.bytes_sent.inc(nbytes)
         if self._progress is not None:
-            self._progress.add(nsamples, nbytes)
+            self._draw(lambda p: p.add(nsamples, nbytes))
+
+    def _draw(self, fn) -> None:
+        """``fn(progress line)``; a terminal gone (EIO after a hang-up) turns the line off."""
+        try:
+            fn(self._progress)
+        except OSError as e:
+            self._progress = None
+            self.on_fs_error("progress", "stderr", e)
 
     def on_batch_resent(self) -> None:
         self.batches_resent.inc()
@@ -147,6 +175,21 @@ class ServerMetrics:
 
     def on_task_timed_out(self) -> None:
         self.tasks_timed_out.inc()
+
+    def on_fs_error(self, where: str, path, e: OSError) -> None:
+        """The server's own filesystem work at ``where`` (a key of ``FS_WHERE``) failed on
+        ``path``: counted every time, logged once per ``where`` and cause (the errno's name)
+        for the life of the server, however often a periodic task meets it."""
+        self.fs_errors.labels(where=where).inc()
+        cause = errno.errorcode.get(getattr(e, "errno", None) or 0, type(e).__name__)
+        if (where, cause) not in self._fs_seen:
+            self._fs_seen.add((where, cause))
+            log.error("%s: %s (%s): %s; counted in v2v_fs_errors_total{where=\"%s\"}, logged once",
+                      path, getattr(e, "strerror", None) or e, cause, FS_WHERE[where], where)
+
+    def fs_errors_total(self, where: str) -> int:
+        """``v2v_fs_errors_total{where}`` so far."""
+        return int(self.registry.get_sample_value("v2v_fs_errors_total", {"where": where}) or 0)
 
     def totals(self) -> Dict[str, int]:
         """The counters' current values by short name (``batches_sent``, ``samples_made``, ...):
@@ -236,7 +279,7 @@ class ServerMetrics:
             self._last_turn = now
             self._ready = bool(state.get("ready"))
         if self._progress is not None:
-            self._progress.show(now, state)
+            self._draw(lambda p: p.show(now, state))
 
     # ------------------------------------------------------------------ probes
     def healthy(self) -> bool:
@@ -307,7 +350,7 @@ class ServerMetrics:
             self.http.server_close()
             self.http = None
         if self._progress is not None:
-            self._progress.close()
+            self._draw(lambda p: p.close())
 
 
 def _count(v) -> bool:

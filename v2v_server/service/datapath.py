@@ -59,6 +59,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from v2v_server.ops.logs import cause_of, warn_once
 from v2v_wire.codecs import packed_specs
 from v2v_wire.outputs import max_sample_bytes, narrowest
 from v2v_wire.protocol import (BATCH_DIR_RE, BATCH_FILE_HEADER, WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays,
@@ -380,12 +381,17 @@ def remove_stale_shm(root: Optional[str]) -> List[str]:
         if st.st_uid != uid or stat.S_ISLNK(st.st_mode):
             continue
         lock = os.path.join(path, LOCK_FILE)
-        if BATCH_DIR_RE.fullmatch(name) and stat.S_ISDIR(st.st_mode) and (
-                _unlocked(lock) if os.path.exists(lock) else time.time() - st.st_mtime > STARTING_S):
-            shutil.rmtree(path, ignore_errors=True)
-        elif name.startswith("v2v-slots-") and stat.S_ISREG(st.st_mode) and _unlocked(path):
-            _unlink(path)
-        else:
+        try:
+            if BATCH_DIR_RE.fullmatch(name) and stat.S_ISDIR(st.st_mode) and (
+                    _unlocked(lock) if os.path.exists(lock) else time.time() - st.st_mtime > STARTING_S):
+                shutil.rmtree(path, ignore_errors=True)
+            elif name.startswith("v2v-slots-") and stat.S_ISREG(st.st_mode) and _unlocked(path):
+                _unlink(path)
+            else:
+                continue
+        except OSError as e:  # a read-only or failing tmpfs: left there, the server goes on
+            warn_once(log, ("sweep", cause_of(e)), "cannot remove %s (%s), left by a v2v server that no longer runs",
+                      path, e)
             continue
         gone.append(path)
         log.info("removed %s, left by a v2v server that no longer runs", path)
@@ -500,6 +506,9 @@ class BatchAssembler:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.batch_size, self.spare, self.files = batch_size, spare, files
+        #: told ``(path, OSError)`` when a batch file cannot be made or removed (the server
+        #: counts it and logs it once); default: a warning in the log
+        self.on_error = lambda path, e: log.warning("batch buffer %s: %s: batches go as socket frames", path, e)
         self._open: Dict[tuple, _BatchBuffer] = {}  # (layout, lane) -> buffer being filled
         self._used: Dict[tuple, List[_BatchBuffer]] = {}  # handed out, maybe still viewed
         self.reused = 0
@@ -516,8 +525,7 @@ class BatchAssembler:
             try:
                 name, mm = self.files.new_file(end)
             except OSError as e:
-                log.warning("cannot make a batch buffer in %s (%s): this batch goes as socket frames",
-                            self.files.path, e)
+                self.on_error(self.files.path, e)
             else:
                 # np.ndarray over the mapping (base: the mmap), so every row view references
                 # these very arrays and the reference count in idle() sees it
@@ -527,7 +535,10 @@ class BatchAssembler:
 
     def _forget(self, buf: _BatchBuffer) -> None:
         if buf.file is not None and self.files is not None:
-            self.files.unlink(buf.file)
+            try:
+                self.files.unlink(buf.file)
+            except OSError as e:  # the directory gone or unwritable: its files go with it at shutdown
+                self.on_error(os.path.join(self.files.path, buf.file), e)
 
     def close(self) -> None:
         """Forget every buffer and remove the batch directory (the server's shutdown)."""

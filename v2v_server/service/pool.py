@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Tuple
 
+from v2v_server.ops.logs import cause_of, warn_once
 from v2v_server.service.datapath import SlotRing, create_ring
 from v2v_server.service.worker import worker_main
 
@@ -129,5 +130,8 @@ class WorkerPool:
 def _drop_ring(ring: Optional[SlotRing]) -> None:
     """Unlink (if the worker never did) and unmap a gone worker's ring."""
     if ring is not None:
-        ring.unlink()
+        try:
+            ring.unlink()
+        except OSError as e:  # a failing tmpfs: the file stays until the next server's sweep
+            warn_once(log, ("ring unlink", cause_of(e)), "cannot remove the slot ring %s: %s", ring.path, e)
         ring.close()

@@ -79,7 +79,9 @@ class V2VServer:
         self.corpus = corpus or corpus_fingerprint(self.videos)  # of the listing before sharding
         self.recipe = cfg.fingerprint()
         self._stop = threading.Event()
-        self.journal = (Journal(cfg.state_dir, self.recipe, crops_per_window=cfg.crops_per_window)
+        self.metrics = ServerMetrics()
+        self.journal = (Journal(cfg.state_dir, self.recipe, crops_per_window=cfg.crops_per_window,
+                                on_error=lambda path, e: self.metrics.on_fs_error("journal", path, e))
                         if cfg.state_dir is not None else None)  # JournalError: another recipe's journal
         if self.journal is not None and self.journal.records:
             log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
@@ -93,7 +95,7 @@ class V2VServer:
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
         self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
-        self.metrics = ServerMetrics()
+        self.assembler.on_error = lambda path, e: self.metrics.on_fs_error("shm", path, e)
         self._resent_seen = 0  # ledger.resent already counted
         self.workers = WorkerSide(cfg, self.source, self.core, self.metrics, self.assembler)
         self.clients = ClientSide(cfg, self.core, self.metrics, self.assembler, self.stream_info)
@@ -273,13 +275,20 @@ class V2VServer:
 
     def _frame_cache_usage(self) -> Optional[Tuple[int, int, int]]:
         """The host's frame cache as ``(bytes, entries, budget)``, its folder scanned at most every
-        ``FRAME_CACHE_SCAN_S``; None when there is none."""
+        ``FRAME_CACHE_SCAN_S``; None when there is none. A folder that cannot be scanned (a
+        file in its place, a vanished mount, EIO) keeps the last values, counted and logged
+        once (``ServerMetrics.on_fs_error``)."""
         fc = getattr(self.source, "frame_cache", None)
         if fc is None:
             return None
         now = time.monotonic()
         if now - self._fc_scanned[0] >= FRAME_CACHE_SCAN_S:
-            self._fc_scanned = (now, fc.disk.usage())
+            usage = self._fc_scanned[1]
+            try:
+                usage = fc.disk.usage()
+            except OSError as e:
+                self.metrics.on_fs_error("frame_cache", fc.disk.folder, e)
+            self._fc_scanned = (now, usage)
         return (*self._fc_scanned[1], fc.disk.max_bytes)
 
     def _frame_cache_state(self) -> dict:

@@ -10,10 +10,12 @@ decoded (``tests/test_frame_cache.py``).
 An entry is one file (``disk_cache.DiskCache`` under ``cache_dir/frames``: atomic rename,
 byte budget, policy ``keep``), named by the corpus, the video's id path and the decode
 settings that change frames (:func:`decode_settings`); its trailer records the identity of
-the source it was decoded from (``VideoSource.identity``: size, modification time and inode of
-a file; ETag of an object; a tar member's offset and size within its shard's identity). A
-different identity is a miss (``changed``), the entry is removed and the video decoded again,
-never a stale hit. Layout::
+the source it was decoded from (``VideoSource.identity``: size, modification time, change time
+and inode of a file; ETag of an object; a tar member's offset and size within its shard's
+identity). A different identity is a miss (``changed``), the entry is removed and the video
+decoded again, never a stale hit. A source whose identity cannot vouch for its bytes (a file
+changed within its file system's timestamp resolution of now, git's racy rule; an object with
+no version tag) is a miss (``unverified``): decoded and not stored. Layout::
 
     frame 0 | frame 1 | ... | trailer (JSON) | trailer bytes (u64) | trailer CRC-32 (u32) | MAGIC
 
@@ -45,6 +47,7 @@ from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
+from v2v_server.ops.logs import cause_of, warn_once
 from v2v_server.videos.disk_cache import DiskCache, is_disk_full, remove_quietly
 
 log = logging.getLogger("v2v.frame_cache")
@@ -57,7 +60,7 @@ VERSION = 3
 MAGIC = b"V2VFRM1\n"
 _FOOTER = struct.Struct("<QI")
 #: Miss causes counted (``FrameCache.take_stats``).
-MISS_CAUSES = ("absent", "changed", "corrupt")
+MISS_CAUSES = ("absent", "changed", "corrupt", "unverified")
 #: Why a decoded video was not stored.
 SKIP_CAUSES = ("budget", "disk_full", "write_error", "incomplete")
 
@@ -203,7 +206,8 @@ class EntryWriter:
 
     def _fail(self, e: BaseException) -> None:
         self.failed = "disk_full" if is_disk_full(e) else "write_error"
-        log.warning("frame cache: not storing %s (%s: %s)", self.header.get("video"), self.failed, e)
+        warn_once(log, ("not storing", self.failed, cause_of(e)), "frame cache: not storing %s (%s: %s); "
+                  "further videos not stored for this cause are counted only", self.header.get("video"), self.failed, e)
         self.abort()
 
     @property
@@ -243,9 +247,15 @@ class EntryWriter:
         self.offsets.append(self.pos)
         self.sizes.append(n)
         self.pos += n + pad
-        if i % self.stride == 0 and i and not self.cache.disk.fits(self.pos):
-            self.failed = "budget"
-            self.abort()
+        if i % self.stride == 0 and i:
+            try:
+                fits = self.cache.disk.fits(self.pos)
+            except OSError as e:  # the folder cannot be scanned (replaced, unmounted, EIO)
+                self._fail(e)
+                return
+            if not fits:
+                self.failed = "budget"
+                self.abort()
 
     def finish(self) -> None:
         """The decode ended cleanly: write the trailer and commit the entry (counted)."""
@@ -317,18 +327,23 @@ class FrameCache:
         key = json.dumps([corpus, video, settings], sort_keys=True)
         return hashlib.sha256(key.encode("utf-8")).hexdigest()[:32] + ".v2vf"
 
-    def lookup(self, name: str, identity: str) -> Optional[CachedVideo]:
+    def lookup(self, name: str, identity: Optional[str]) -> Optional[CachedVideo]:
         """The entry ``name`` opened for reading if it exists, is whole and was made from a
         source of this ``identity``; else None, the miss counted by cause (a changed or corrupt
-        entry is removed)."""
+        entry is removed). A None ``identity`` (the source cannot vouch for its bytes now) is
+        an ``unverified`` miss: no entry is stored from a racy identity, so none can match."""
+        if identity is None:
+            self.misses["unverified"] += 1
+            return None
         path = self.disk.path(name)
         try:
             f = open(path, "rb")
         except FileNotFoundError:
             self.misses["absent"] += 1
             return None
-        except OSError as e:
-            log.warning("frame cache: cannot open %s (%s): decoding", path, e)
+        except OSError as e:  # the folder replaced, unmounted or failing: every video meets it
+            warn_once(log, ("open", cause_of(e)), "frame cache: cannot open %s (%s): decoding; further videos "
+                      "that meet this are counted only", path, e)
             self.misses["corrupt"] += 1
             return None
         with f:
@@ -391,9 +406,56 @@ def _open_entry(f) -> CachedVideo:
         raise CorruptEntry("trailer fails its CRC-32")
     try:
         meta = json.loads(bytes(buf[start:size - tail]))
-    except ValueError as e:
+        _check_trailer(meta, start)
+    except (ValueError, TypeError, KeyError, IndexError) as e:
         buf.close()
-        raise CorruptEntry(f"trailer does not parse: {e}") from None
+        raise CorruptEntry(f"trailer does not hold: {e}") from None
     return CachedVideo(meta, buf, start)
+
+
+#: Largest frame side an entry may claim, pixels (8K video is 7680 wide): what a trailer says
+#: sizes a frame's buffer, so it is checked before anything is read or allocated.
+MAX_SIDE = 16384
+_DTYPES = ("|u1", "<u2")
+
+
+def _check_trailer(m: dict, data_end: int) -> None:
+    """Whether trailer ``m`` describes frames that lie within the first ``data_end`` bytes and
+    sizes that a frame of the stored dtype can have: each frame's (h, w) within ``MAX_SIDE``,
+    a raw frame's bytes exactly h x w x itemsize; checked before any frame is read, so a
+    trailer that passes its CRC but was written wrong (or by another tool) sizes no memory.
+
+    Raises:
+        ValueError: naming the field that does not hold.
+    """
+    def ints(name: str, n: Optional[int] = None) -> list:
+        v = m[name]
+        if not isinstance(v, list) or not all(type(x) is int and x >= 0 for x in v) or (n is not None and len(v) != n):
+            raise ValueError(f"{name} must be {n if n is not None else 'a list of'} non-negative integers")
+        return v
+
+    if not isinstance(m, dict) or m.get("format") not in FORMATS or m.get("dtype") not in _DTYPES:
+        raise ValueError("format or dtype unknown")
+    if not isinstance(m.get("identity"), str) or not isinstance(m.get("info"), dict) or type(m.get("declared")) is not int:
+        raise ValueError("identity, info or declared missing")
+    offsets = ints("offsets")
+    n = len(offsets)
+    sizes, keys = ints("sizes", n), ints("keys")
+    runs = m["shapes"]
+    if not isinstance(runs, list) or (n and not runs) or any(
+            not isinstance(r, list) or len(r) != 3 or not all(type(x) is int for x in r) for r in runs):
+        raise ValueError("shapes must be runs [first frame, h, w]")
+    if runs and runs[0][0] != 0 or any(b[0] <= a[0] for a, b in zip(runs, runs[1:])) or any(
+            r[0] >= n or not (0 < r[1] <= MAX_SIDE and 0 < r[2] <= MAX_SIDE) for r in runs):
+        raise ValueError(f"shapes: runs out of order, past frame {n}, or a side outside 1..{MAX_SIDE}")
+    itemsize = np.dtype(m["dtype"]).itemsize
+    raw = m["format"] == "raw"
+    if raw:
+        ints("sums", n)
+    for (h, w), o, k in zip(_expand_runs(runs, n), offsets, sizes):
+        if o + k > data_end or (raw and k != h * w * itemsize):
+            raise ValueError(f"a frame of {k} bytes at {o} does not fit its {h} x {w} shape or the data")
+    if any(i >= n for i in keys):
+        raise ValueError("keys name frames past the end")
 
 

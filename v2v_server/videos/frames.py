@@ -74,9 +74,11 @@ def corpus_key(source) -> str:
     return root if "://" in root else os.path.abspath(root)
 
 
-def lookup_entry(cache: FrameCache, source, rel: str, settings: dict) -> Tuple[str, str, Optional[CachedVideo]]:
+def lookup_entry(cache: FrameCache, source, rel: str, settings: dict
+                 ) -> Tuple[str, Optional[str], Optional[CachedVideo]]:
     """Video ``rel`` of ``source`` in its frame cache ``cache``: the entry's name (by the corpus,
-    ``rel`` and the decode ``settings``), the source's identity, and the entry opened for reading
+    ``rel`` and the decode ``settings``), the source's identity (None: it cannot vouch for the
+    video's bytes now, ``VideoSource.identity``), and the entry opened for reading
     when it holds the video, else None (``FrameCache.lookup``: the miss counted, a stale or
     damaged entry removed).
 
@@ -131,7 +133,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         container, stream, info = open_video(path, threads, fast)
         declared = 0 if times else int(getattr(stream, "frames", 0) or 0)  # a segment: unknown
         writer = None
-        if cache is not None:
+        if cache is not None and identity is not None:  # a racy identity is never stored
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
         fp = FramePass(info, declared, iter(()), False, writer, set() if detect else None)
         fp.frames = _decoded(decode_codes(container, stream, rows, height, segment=times), limit_of(declared), writer,

@@ -32,6 +32,7 @@ import errno
 import logging
 import os
 import stat
+import tempfile
 import time
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
@@ -46,6 +47,10 @@ from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_
 
 log = logging.getLogger("v2v.source")
 
+
+
+class CacheDirError(ValueError):
+    """A cache that is on cannot be kept in ``cache_dir`` (the message names the folder)."""
 
 
 def is_url(videos: Union[str, Path, None]) -> bool:
@@ -111,6 +116,34 @@ def corpus_file(root, rel: str) -> Path:
     return path
 
 
+#: Nanoseconds within which a change to a file may leave its change time (ctime) where it was:
+#: the kernel stamps files from a clock that advances once per tick (1 to 10 ms), and some
+#: file systems keep coarser times (exFAT 10 ms). A margin over both.
+RACY_NS = 50_000_000
+#: The same for a file system that keeps whole seconds (ext3, HFS+; FAT's 2 s): a change time
+#: that is a whole second is taken to come from one.
+RACY_COARSE_NS = 3_000_000_000
+
+
+def file_identity(st: os.stat_result) -> str:
+    """What stands for a file's content (``st``: its status, links followed): size in bytes,
+    modification time (ns), change time (ns) and inode. Size, mtime and inode are what a user
+    can keep by accident while rewriting the bytes (``rsync --inplace -t``, ``cp -p`` onto an
+    existing file, a tool that restores mtimes); the change time is set by the kernel on every
+    write and by no user tool, as git's index records it."""
+    return f"{st.st_size} {st.st_mtime_ns} {st.st_ctime_ns} {st.st_ino}"
+
+
+def racy(st: os.stat_result, now_ns: Optional[int] = None) -> bool:
+    """git's racy rule: whether the file of status ``st`` changed within its file system's
+    timestamp resolution of ``now_ns`` (default: the clock now), so that a write after this
+    stat could leave its identity (:func:`file_identity`) unchanged. Only a file whose change
+    time is older than ``RACY_NS`` (``RACY_COARSE_NS`` for whole-second times) is trusted."""
+    now_ns = time.time_ns() if now_ns is None else now_ns
+    bound = RACY_COARSE_NS if st.st_ctime_ns % 1_000_000_000 == 0 else RACY_NS
+    return st.st_ctime_ns >= now_ns - bound
+
+
 class VideoSource:
     """A corpus: lists videos as sample-id paths and opens them for decoding. See the module
     docstring; :func:`open_source` builds one."""
@@ -132,15 +165,42 @@ class VideoSource:
             self.frame_cache = FrameCache(Path(self.cache_dir) / "frames", int(self.frame_cache_gb * (1 << 30)),
                                           frame_cache_format)
 
+    def check_cache_dir(self) -> None:
+        """At start: the folders of the caches that are on (``cache_dir/frames`` with
+        ``frame_cache_gb`` > 0, ``cache_dir/objects`` with ``cache_max_gb`` > 0) can be made
+        and written. A cache asked for and unusable is a setting to fix, not a run to make at a
+        fraction of the speed: ``v2v-serve`` exits with this one line. (While serving, the same
+        faults are served by decoding: docs/faults.md.)
+
+        Raises:
+            CacheDirError: naming ``cache_dir`` and the folder, with the system's reason.
+        """
+        folders = [self.frame_cache.disk.folder] if self.frame_cache is not None else []
+        if getattr(self, "cache_max_gb", 0) > 0:
+            folders.append(self.cache.disk.folder)
+        for folder in folders:
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                with tempfile.TemporaryFile(dir=folder):
+                    pass
+            except OSError as e:
+                raise CacheDirError(f"--cache-dir {self.cache_dir}: cannot keep a cache in {folder}: "
+                                    f"{e.strerror or e}") from None
+
     def _cache_spec(self) -> dict:
         return {"cache_dir": self.cache_dir, "frame_cache_gb": self.frame_cache_gb,
                 "frame_cache_format": self.frame_cache_format}
 
-    def identity(self, rel: str) -> str:
+    def identity(self, rel: str) -> Optional[str]:
         """The identity of the video at ``rel`` as it is now, without reading its content:
-        what a frame-cache entry made from it records (size, modification time and inode of a
-        file; the ETag or generation of an object; for a tar member, its shard's identity with
-        the member's offset and size). A source replaced in place gets a new identity.
+        what a frame-cache entry made from it records (size, modification time, change time
+        and inode of a file, :func:`file_identity`; the ETag or generation of an object; for a
+        tar member, its shard's identity with the member's offset and size). A source
+        rewritten in place gets a new identity, whatever it keeps of size, mtime and inode.
+
+        None when the identity cannot vouch for the content: a file changed within the file
+        system's timestamp resolution of now (:func:`racy`), an object whose store gives no
+        version tag. Such a video is decoded and not stored.
 
         Raises:
             VideoError: it is missing, or (a store) changed since it was listed.
@@ -211,12 +271,22 @@ class VideoSource:
     # ------------------------------------------------------------------ tar shards
     def tar_index(self, tar: str) -> Dict[str, Tuple[int, int]]:
         """Member name -> (offset of its data in bytes, size in bytes) of the tar shard at
-        ``tar`` (relative path), read once per process from the tar's headers."""
+        ``tar`` (relative path), read from the tar's headers once per process and version of
+        the shard (:meth:`_shard_version`): a shard rewritten in place is read again."""
         cache = self.__dict__.setdefault("_tar_cache", {})
-        if tar not in cache:
+        versions = self.__dict__.setdefault("_tar_versions", {})
+        version = self._shard_version(tar)
+        if tar not in cache or version is None or versions.get(tar, "") != version:
             with self._open_raw(tar) as f:
                 cache[tar] = tar_members(f)
+            versions[tar] = version
         return cache[tar]
+
+    def _shard_version(self, tar: str) -> Optional[str]:
+        """What stands for the content of shard ``tar`` when its index is reused; None: read
+        the index again. A store's shard is held to its listed ETag when it is opened
+        (``StoreSource._check_unchanged``), so its index stands."""
+        return ""
 
     def _open_raw(self, rel: str):
         raise NotImplementedError
@@ -306,7 +376,7 @@ class LocalSource(VideoSource):
     def where(self, rel: str) -> str:
         return str(Path(self.root) / rel)
 
-    def identity(self, rel: str) -> str:
+    def identity(self, rel: str) -> Optional[str]:
         rel = base_path(rel)
         member = self.split_member(rel)
         try:
@@ -314,11 +384,20 @@ class LocalSource(VideoSource):
             if shard is not None:
                 corpus_file(self.root, member[0])  # a link out of the root is refused
                 offset, size = self._member_at(rel, None)
-                return f"tar {shard.st_size} {shard.st_mtime_ns} {shard.st_ino} member {offset} {size}"
+                return None if racy(shard) else f"tar {file_identity(shard)} member {offset} {size}"
             st = os.stat(corpus_file(self.root, rel))
         except OSError as e:
             raise VideoError(f"cannot read: {e.strerror or e}") from None
-        return f"file {st.st_size} {st.st_mtime_ns} {st.st_ino}"
+        return None if racy(st) else f"file {file_identity(st)}"
+
+    def _shard_version(self, tar: str) -> Optional[str]:
+        """The shard file's identity (:func:`file_identity`); None while it is racy or cannot
+        be read."""
+        try:
+            st = os.stat(Path(self.root, tar))
+        except OSError:
+            return None
+        return None if racy(st) else file_identity(st)
 
     def _shard_stat(self, tar: str) -> Optional[os.stat_result]:
         """The status of ``tar`` (links followed) when it is a file, a tar shard; None when it is
@@ -554,7 +633,7 @@ class StoreSource(_StoreManifest, VideoSource):
             yield TarMember(f, *self._member_at(rel, entry))
 
 
-    def identity(self, rel: str) -> str:
+    def identity(self, rel: str) -> Optional[str]:
         rel = base_path(rel)
         member = self.split_member(rel)
         obj = member[0] if member is not None else rel
@@ -564,6 +643,8 @@ class StoreSource(_StoreManifest, VideoSource):
         now, size = etag_of(info), int(info.get("size") or 0)
         entry = self._expected(rel)  # the listing's entry: the object's, or the member's (its shard's ETag, its offset)
         self._check_unchanged(entry, now)
+        if not now:  # no version tag (an HTTP server without ETag): the size alone cannot vouch for the bytes
+            return None
         if member is None:
             return f"object {size} {now}"
         offset, msize = self._member_at(rel, entry)

@@ -9,6 +9,9 @@ import logging
 import time
 from pathlib import Path
 
+log = logging.getLogger("v2v.source")
+
+from v2v_server.ops.logs import cause_of, warn_once
 from v2v_server.videos.disk_cache import DiskCache, remove_quietly
 
 #: Protocols read through fsspec, and the extra that installs each one's library.
@@ -145,6 +148,10 @@ def time_fetches(f, stats: ReadStats) -> None:
     cache.fetcher = timed
 
 
+class _LocalFault(Exception):
+    """The object cache's own folder failed (its ``__cause__``), not the store."""
+
+
 class ObjectCache:
     """A bounded local cache of whole objects in ``folder``: an entry is named by URL, key and
     ETag (a changed object is a new entry); the least recently used entries are removed while
@@ -158,33 +165,61 @@ class ObjectCache:
     def open(self, name: str, etag: str, f):
         """The object ``name`` (URL and key) of version ``etag`` as a local binary file, copied
         whole from the open object ``f`` on first use; ``f`` itself (rewound) when the object
-        is larger than the whole budget or was evicted meanwhile.
-
-        Raises:
-            OSError: the local copy cannot be written (full disk: the partial copy is removed).
+        is larger than the whole budget, was evicted meanwhile, has no version tag (``etag``
+        empty: nothing tells a later version from this one), or the cache's folder cannot be
+        written (a full disk, the folder replaced or unmounted: logged once per cause, the
+        partial copy removed); a store read that fails raises as it does without the cache.
         """
+        if not etag:
+            yield f
+            return
         entry = hashlib.sha256(f"{name} {etag}".encode("utf-8")).hexdigest()[:32]
         path = self.disk.path(entry)
-        if not path.is_file():
-            tmp = self.disk.temporary(entry)
-            try:
-                with open(tmp, "wb") as out:
-                    while True:
-                        chunk = f.read(1 << 22)
-                        if not chunk:
-                            break
-                        out.write(chunk)
-            except BaseException:
-                remove_quietly(tmp)
-                raise
-            self.disk.commit(tmp, entry)
-        else:
-            self.disk.touch(entry)
         try:
+            if not path.is_file():
+                self._copy(f, entry)
+            else:
+                self.disk.touch(entry)
             local = open(path, "rb")
+        except _LocalFault as e:
+            warn_once(log, ("object cache", cause_of(e.__cause__)), "object cache %s: %s; reading from the store",
+                      self.disk.folder, e.__cause__)
+            local = None
         except FileNotFoundError:  # over the whole budget, or evicted by another process meanwhile
+            local = None
+        if local is None:
             f.seek(0)
             yield f
             return
         with local:
             yield local
+
+    def _copy(self, f, entry: str) -> None:
+        """Copy the open object ``f`` whole into entry ``entry``.
+
+        Raises:
+            _LocalFault: the local folder or file failed (the partial copy removed).
+            Exception: the store read failed, as raised by ``f.read``.
+        """
+        try:
+            tmp = self.disk.temporary(entry)
+            out = open(tmp, "wb")
+        except OSError as e:
+            raise _LocalFault() from e
+        try:
+            with out:
+                while True:
+                    chunk = f.read(1 << 22)
+                    try:
+                        out.write(chunk) if chunk else out.flush()
+                    except OSError as e:
+                        raise _LocalFault() from e
+                    if not chunk:
+                        break
+        except BaseException:
+            remove_quietly(tmp)
+            raise
+        try:
+            self.disk.commit(tmp, entry)
+        except OSError as e:
+            raise _LocalFault() from e
