@@ -146,7 +146,12 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, segment=None) ->
     layout = WindowLayout(cfg.frames_per_sample, cfg.max_samples_per_video, cfg.shot_cuts == "avoid")
     detector, tables = ShotDetector(), {}
     shape = None  # first frame size of the window in progress
-    rows = lambda h: kept_rows(cfg.keep_top_fraction, h)  # noqa: E731  (the rows the sample pass scores)
+    shown = {}  # the displayed (scaled) height of the frame at hand: a frame's size in a message is the whole frame's
+
+    def rows(h: int) -> int:  # the rows the sample pass scores and cuts
+        shown["h"] = h
+        return kept_rows(cfg.keep_top_fraction, h)
+
     times: list = []  # presentation times, for a variable frame rate
     # the frames the workers cut (scaled, kept rows), scored by the same detector
     for i, (y, expand) in enumerate(decode_codes(container, stream, rows, cfg.frame_height, times, segment)):
@@ -159,12 +164,13 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, segment=None) ->
             bad.pop(ev.drops, None)  # the index goes to the next window
         inside = [k for k in (ev.ends, None if ev.starts is not None or layout.current is None else layout.windows)
                   if k is not None]
+        size = (shown.get("h", y.shape[0]), y.shape[1])
         for k in inside:  # frames of a window must keep its first frame's size
-            if y.shape != shape and k not in bad:
+            if size != shape and k not in bad:
                 bad[k] = (f"window {k}: frame size changed from {shape[1]}x{shape[0]} to "
-                          f"{y.shape[1]}x{y.shape[0]} at frame {i}")
+                          f"{size[1]}x{size[0]} at frame {i}")
         if ev.starts is not None:
-            shape = y.shape
+            shape = size
         if layout.done:
             out["more"] = True  # every window is complete: stop decoding
             break

@@ -134,11 +134,13 @@ def _converter(frame) -> Tuple[Callable[[object], np.ndarray], Callable[[np.ndar
 
 def frame_intervals(times: Sequence[Optional[float]]) -> Optional[Tuple[float, float, float]]:
     """``(shortest, median, longest)`` interval in seconds between consecutive presentation
-    times ``times`` (frames without one left out); None with fewer than two intervals."""
+    times ``times`` (frames without one left out; a time that goes back, as where a stream's
+    timestamps restart, bounds no interval); None with fewer than two intervals."""
     t = np.array([x for x in times if x is not None], dtype=np.float64)
-    if len(t) < 3:
-        return None
     d = np.diff(t)
+    d = d[d > 0]
+    if len(d) < 2:
+        return None
     return float(d.min()), float(np.median(d)), float(d.max())
 
 
