@@ -1,7 +1,7 @@
 """Shot-cut detection on a labelled set: precision and recall of cut frames, CPU per frame against
 decoding, windows kept per clip, and served samples holding a cut.
 
-The labelled set: the bundled montages with the cut frames listed in ``tests/test_shots.py``
+The labelled set: the bundled montages with the cut frames listed in ``harness/shot_labels.py``
 (``LABELLED``, read by eye), and real clips joined here at known frames: hard cuts, a fade
 through black, a 12-frame dissolve, and a cut into fast camera motion. Where PySceneDetect is
 installed (``pip install scenedetect``; not a dependency: it pulls a second OpenCV build that
@@ -21,7 +21,7 @@ from typing import Dict, List, Tuple
 import cv2
 import numpy as np
 
-from tests.test_shots import LABELLED
+from harness.shot_labels import LABELLED
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
@@ -146,7 +146,7 @@ def markdown(r: dict) -> str:
             t[i] += row[k]
     lines = ["# Shot cuts: detection measured", "",
              "`python -m bench.shots --out docs` on this project's 2-core machine (CPU seconds per frame, best of 3).",
-             "The cut frames of the bundled montages are listed in `tests/test_shots.py` (`LABELLED`), read frame",
+             "The cut frames of the bundled montages are listed in `harness/shot_labels.py` (`LABELLED`), read frame",
              "by frame; the joined set is real frames of the bundled clips joined at known frames.", "",
              "| set | detector | frames | cuts (true) | found | TP | FP | FN | dissolve found | windows kept (off) |",
              "|---|---|---:|---|---|---:|---:|---:|---|---:|"]
