@@ -103,28 +103,12 @@ class ServerMetrics:
                                  "with a frame-cache entry); every pass over a video counts its cuts")
         self.windows_cut = counter("v2v_windows_cut", "Windows a shot cut removed (shot_cuts: avoid): a window in "
                                    "progress that a cut fell inside")
-        self.fc_hits = counter("v2v_frame_cache_hits", "Videos cut from the frame cache instead of decoded")
-        self.fc_misses = counter("v2v_frame_cache_misses", "Videos decoded with the frame cache on, by cause: absent "
-                                 "(not stored yet), changed (the source's identity changed), corrupt (a damaged "
-                                 "entry, removed), unverified (the source changed too recently, or has no version "
-                                 "tag, for its identity to vouch for its bytes: not stored)", ("cause",))
-        self.fc_stored = counter("v2v_frame_cache_stored", "Entries added to the frame cache")
-        self.fc_written = counter("v2v_frame_cache_written_bytes", "Bytes of entries added to the frame cache")
-        self.fc_not_stored = counter("v2v_frame_cache_not_stored", "Decoded videos not stored, by cause: budget, "
-                                     "disk_full, write_error, incomplete", ("cause",))
+        self.frame_cache = FrameCacheCounters(counter)
         self.fs_errors = counter("v2v_fs_errors", "Filesystem errors of the server's own periodic work, by where: "
                                  + "; ".join(f"{k} ({v})" for k, v in FS_WHERE.items()), ("where",))
         for w in FS_WHERE:
             self.fs_errors.labels(where=w)
         self._fs_seen: set = set()  # (where, cause) already logged
-        # the hit and miss totals again as plain numbers: the gauges and status line read them on
-        # every loop turn, where reading the counters back would walk the whole registry
-        self._fc_hits = 0
-        self._fc_misses: Dict[str, float] = dict.fromkeys(MISS_CAUSES, 0)
-        for c in MISS_CAUSES:
-            self.fc_misses.labels(cause=c)
-        for c in SKIP_CAUSES:
-            self.fc_not_stored.labels(cause=c)
         for s in STAGES:
             self.busy.labels(stage=s)
         self._state: dict = {}
@@ -220,46 +204,18 @@ class ServerMetrics:
                     c.inc(v)
             fc = store.get("frame_cache")
             if isinstance(fc, dict):
-                self._frame_cache(fc)
+                self.frame_cache.add(fc)
         for s, v in stages.items():
             if s in STAGES and isinstance(v, (int, float)) and 0 <= v < 1e6:
                 self.busy.labels(stage=s).inc(v)
 
-    def _frame_cache(self, fc: dict) -> None:
-        """Add a worker's frame-cache counters (``FrameCache.take_stats``)."""
-        for key, c in (("hits", self.fc_hits), ("stored", self.fc_stored), ("bytes_written", self.fc_written)):
-            if _count(fc.get(key)):
-                c.inc(fc[key])
-                if key == "hits":
-                    self._fc_hits += fc[key]
-        for key, causes, c in (("misses", MISS_CAUSES, self.fc_misses), ("not_stored", SKIP_CAUSES, self.fc_not_stored)):
-            d = fc.get(key)
-            if isinstance(d, dict):
-                for cause in causes:
-                    if _count(d.get(cause)):
-                        c.labels(cause=cause).inc(d[cause])
-                        if key == "misses":
-                            self._fc_misses[cause] += d[cause]
-
-    def _fc_looked(self) -> Tuple[int, Dict[str, int], float]:
-        """Hits so far, misses by cause, and the hit ratio (0 before any lookup)."""
-        hits = int(self._fc_hits)
-        misses = {c: int(n) for c, n in self._fc_misses.items()}
-        looked = hits + sum(misses.values())
-        return hits, misses, hits / looked if looked else 0.0
-
     def frame_cache_state(self, nbytes: int, entries: int, budget: int) -> dict:
-        """The frame cache's part of ``set_state``: its ``bytes``, ``entries`` and ``budget``
-        (from a scan of its folder) and the hit ratio of the counters so far."""
-        return {"frame_cache_bytes": nbytes, "frame_cache_entries": entries, "frame_cache_budget": budget,
-                "frame_cache_hit_ratio": self._fc_looked()[2]}
+        """The frame cache's part of ``set_state`` (``FrameCacheCounters.state``)."""
+        return self.frame_cache.state(nbytes, entries, budget)
 
     def frame_cache_line(self, nbytes: int, entries: int, budget: int) -> str:
-        """The frame cache's status line: hits and misses so far, the hit ratio, and the folder's
-        ``entries`` and ``nbytes`` against the ``budget``."""
-        hits, misses, ratio = self._fc_looked()
-        return (f"{hits} hit(s), misses {', '.join(f'{c} {n}' for c, n in misses.items())} ({ratio:.0%} hits), "
-                f"{entries} entries, {nbytes / (1 << 30):.2f} of {budget / (1 << 30):.2f} GiB")
+        """The frame cache's status line (``FrameCacheCounters.line``)."""
+        return self.frame_cache.line(nbytes, entries, budget)
 
     def tick(self, state_fn, every_s: float = 0.25) -> None:
         """Call ``set_state(**state_fn())`` unless that was done less than ``every_s`` seconds
@@ -352,6 +308,66 @@ class ServerMetrics:
         if self._progress is not None:
             self._draw(lambda p: p.close())
 
+
+class FrameCacheCounters:
+    """The frame cache's counters on a server's registry (``counter``: ``ServerMetrics``'s
+    counter factory), fed by the workers' reports, and the hit and miss totals the gauges and
+    the status line read."""
+
+    def __init__(self, counter):
+        self.fc_hits = counter("v2v_frame_cache_hits", "Videos cut from the frame cache instead of decoded")
+        self.fc_misses = counter("v2v_frame_cache_misses", "Videos decoded with the frame cache on, by cause: absent "
+                                 "(not stored yet), changed (the source's identity changed), corrupt (a damaged "
+                                 "entry, removed), unverified (the source changed too recently, or has no version "
+                                 "tag, for its identity to vouch for its bytes: not stored)", ("cause",))
+        self.fc_stored = counter("v2v_frame_cache_stored", "Entries added to the frame cache")
+        self.fc_written = counter("v2v_frame_cache_written_bytes", "Bytes of entries added to the frame cache")
+        self.fc_not_stored = counter("v2v_frame_cache_not_stored", "Decoded videos not stored, by cause: budget, "
+                                     "disk_full, write_error, incomplete", ("cause",))
+        # the hit and miss totals again as plain numbers: the gauges and status line read them on
+        # every loop turn, where reading the counters back would walk the whole registry
+        self._fc_hits = 0
+        self._fc_misses: Dict[str, float] = dict.fromkeys(MISS_CAUSES, 0)
+        for c in MISS_CAUSES:
+            self.fc_misses.labels(cause=c)
+        for c in SKIP_CAUSES:
+            self.fc_not_stored.labels(cause=c)
+
+    def add(self, fc: dict) -> None:
+        """Add a worker's frame-cache counters (``FrameCache.take_stats``)."""
+        for key, c in (("hits", self.fc_hits), ("stored", self.fc_stored), ("bytes_written", self.fc_written)):
+            if _count(fc.get(key)):
+                c.inc(fc[key])
+                if key == "hits":
+                    self._fc_hits += fc[key]
+        for key, causes, c in (("misses", MISS_CAUSES, self.fc_misses), ("not_stored", SKIP_CAUSES, self.fc_not_stored)):
+            d = fc.get(key)
+            if isinstance(d, dict):
+                for cause in causes:
+                    if _count(d.get(cause)):
+                        c.labels(cause=cause).inc(d[cause])
+                        if key == "misses":
+                            self._fc_misses[cause] += d[cause]
+
+    def looked(self) -> Tuple[int, Dict[str, int], float]:
+        """Hits so far, misses by cause, and the hit ratio (0 before any lookup)."""
+        hits = int(self._fc_hits)
+        misses = {c: int(n) for c, n in self._fc_misses.items()}
+        looked = hits + sum(misses.values())
+        return hits, misses, hits / looked if looked else 0.0
+
+    def state(self, nbytes: int, entries: int, budget: int) -> dict:
+        """The frame cache's part of ``set_state``: its ``bytes``, ``entries`` and ``budget``
+        (from a scan of its folder) and the hit ratio of the counters so far."""
+        return {"frame_cache_bytes": nbytes, "frame_cache_entries": entries, "frame_cache_budget": budget,
+                "frame_cache_hit_ratio": self.looked()[2]}
+
+    def line(self, nbytes: int, entries: int, budget: int) -> str:
+        """The frame cache's status line: hits and misses so far, the hit ratio, and the folder's
+        ``entries`` and ``nbytes`` against the ``budget``."""
+        hits, misses, ratio = self.looked()
+        return (f"{hits} hit(s), misses {', '.join(f'{c} {n}' for c, n in misses.items())} ({ratio:.0%} hits), "
+                f"{entries} entries, {nbytes / (1 << 30):.2f} of {budget / (1 << 30):.2f} GiB")
 
 def _count(v) -> bool:
     """Whether ``v`` is a plausible counter increment from a worker (a number, not a bool, in range)."""
