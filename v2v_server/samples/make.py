@@ -1,12 +1,13 @@
 """Training samples from one sequential decode of a video.
 
-A video is cut into windows of ``frames_per_sample`` (201) source frames, ``window_stride``
-(200) apart: window k spans source frames ``k * 200`` to ``(k + 1) * 200``, its last frame is
-window k + 1's first (as in the authors' loader), so every frame pair is in exactly one window,
-and a video holds ``min(max_samples_per_video, (n_frames - 1) // 200)`` windows. Everything random in a
-sample (pauses, crop, flip, sensor parameters, initial potential, noise) comes from a
-generator seeded by ``(seed, epoch, sample_id)``, so its content never depends on which
-worker made it or in which order. With ``crops_per_window`` K > 1 a window gives K samples
+A video is cut into windows of ``frames_per_sample`` (201) source frames that follow each other
+``window_stride`` (200) apart (a window's last frame is the next one's first, as in the authors'
+loader), placed by ``videos.shots.WindowLayout``: with ``shot_cuts: avoid`` inside the video's
+shots (each shot's first frame + k x 200, the cuts found by the same pass), with ``off`` at
+k x 200 from frame 0; at most ``max_samples_per_video`` windows, numbered 0.. in frame order.
+Everything random in a sample (pauses, crop, flip, sensor parameters, initial potential, noise)
+comes from a generator seeded by ``(seed, epoch, sample_id)``, so its content never depends on
+which worker made it or in which order. With ``crops_per_window`` K > 1 a window gives K samples
 (ids ``path#window.crop``), K crops of the same decoded frames.
 """
 from __future__ import annotations
