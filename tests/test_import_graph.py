@@ -101,14 +101,14 @@ def test_wire_package_stands_alone():
 
 
 #: The server's stage folders, lowest first: each imports only the stages before it (and
-#: ``v2v_server.checks``, below all of them); annotations naming a higher stage's types stay
+#: ``v2v_server.checks`` and ``v2v_server.faults``, below all of them); annotations naming a higher stage's types stay
 #: under ``if TYPE_CHECKING:``. ``ops`` (settings, metrics, logs) sits below the ``service`` that
 #: uses them; the command that wires everything, ``v2v-serve``, is above every stage.
 STAGES = ("flow", "videos", "simulation", "samples", "delivery", "ops", "service")
 COMMANDS = {"v2v_server.ops.cli"}
 #: what a stage may import from v2v_server besides the stages below it (the package itself runs
 #: on any import of a module in it)
-BELOW_ALL = {"v2v_server", "v2v_server.checks"}
+BELOW_ALL = {"v2v_server", "v2v_server.checks", "v2v_server.faults"}
 
 
 def test_each_stage_imports_only_the_stages_below_it():

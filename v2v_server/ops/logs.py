@@ -30,25 +30,3 @@ def setup_logging(level: str, fmt: str, name: str) -> None:
     else:
         handler.setFormatter(logging.Formatter(f"%(asctime)s {name} %(levelname)s %(message)s"))
     logging.basicConfig(level=getattr(logging, str(level).upper(), logging.INFO), handlers=[handler], force=True)
-
-
-_warned: set = set()
-
-
-def warn_once(logger: logging.Logger, key: tuple, msg: str, *args) -> bool:
-    """Log ``msg % args`` as a warning the first time this process meets ``key`` (a cause: what
-    failed and the errno's name), nothing after: a fault met on every video or every tick is
-    one line, its count kept by a counter. Returns whether it logged."""
-    if key in _warned:
-        return False
-    _warned.add(key)
-    logger.warning(msg, *args)
-    return True
-
-
-def cause_of(e: BaseException) -> str:
-    """The errno's name of an ``OSError`` (``ENOTDIR``), else the exception's class name."""
-    import errno
-
-    n = getattr(e, "errno", None)
-    return errno.errorcode.get(n, type(e).__name__) if n else type(e).__name__

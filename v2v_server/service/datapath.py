@@ -59,7 +59,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from v2v_server.ops.logs import cause_of, warn_once
+from v2v_server.faults import cause_of, warn_once
 from v2v_wire.codecs import packed_specs
 from v2v_wire.outputs import max_sample_bytes, narrowest
 from v2v_wire.protocol import (BATCH_DIR_RE, BATCH_FILE_HEADER, WIRE_DTYPES, ProtocolError, decode_arrays, encode_arrays,

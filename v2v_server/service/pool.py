@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Tuple
 
-from v2v_server.ops.logs import cause_of, warn_once
+from v2v_server.faults import cause_of, warn_once
 from v2v_server.service.datapath import SlotRing, create_ring
 from v2v_server.service.worker import worker_main
 

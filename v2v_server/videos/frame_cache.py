@@ -47,7 +47,7 @@ from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
-from v2v_server.ops.logs import cause_of, warn_once
+from v2v_server.faults import cause_of, warn_once
 from v2v_server.videos.disk_cache import DiskCache, is_disk_full, remove_quietly
 
 log = logging.getLogger("v2v.frame_cache")

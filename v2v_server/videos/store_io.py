@@ -11,7 +11,7 @@ from pathlib import Path
 
 log = logging.getLogger("v2v.source")
 
-from v2v_server.ops.logs import cause_of, warn_once
+from v2v_server.faults import cause_of, warn_once
 from v2v_server.videos.disk_cache import DiskCache, remove_quietly
 
 #: Protocols read through fsspec, and the extra that installs each one's library.
