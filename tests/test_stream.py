@@ -312,7 +312,7 @@ def test_a_clip_too_short_for_one_window_is_skipped_without_a_warning(videos):
     """bigbuckbunny.mp4 (132 frames) gives no window of 30 voxels x 5 bins (151 frames): an
     INFO line says so, no WARNING (a short clip is no fault of the file)."""
     args = ["--videos", str(videos), "--workers", "1", "--sequence-length", "30", "--crop-size", "32",
-            "--batch-size", "1", "--epochs", "1", "--max-samples-per-video", "1"]
+            "--batch-size", "1", "--epochs", "1", "--max-samples-per-video", "1", "--shot-cuts", "off"]
     with ServeProcess(args) as srv:
         for _ in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=120):
             pass

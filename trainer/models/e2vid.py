@@ -14,7 +14,7 @@ says and cropped back.
 """
 from __future__ import annotations
 
-from typing import List, Optional
+from typing import List, Optional, Sequence
 
 import torch
 import torch.nn as nn
@@ -68,12 +68,15 @@ class _UNetRecurrent(nn.Module):
             x, st = enc(x, st)
             blocks.append(x)
             new_states.append(st)
+        return self._decode(x, blocks, head)[..., :h, :w], new_states
+
+    def _decode(self, x: torch.Tensor, blocks: Sequence[torch.Tensor], head: torch.Tensor) -> torch.Tensor:
+        """Residual blocks, decoders with their skip connections, and the prediction layer."""
         for res in self.resblocks:
             x = res(x)
         for i, dec in enumerate(self.decoders):
             x = dec(self._skip(x, blocks[self.num_encoders - i - 1]))
-        img = self.pred(self._skip(x, head))
-        return img[..., :h, :w], new_states
+        return self.pred(self._skip(x, head))
 
 
 #: Top-level parts of this trainer's E2VID state dicts saved without the authors' names (keys
