@@ -41,7 +41,8 @@ def store():
 
 @pytest.fixture(scope="module")
 def corpus(store, tmp_path_factory):
-    """The bundled clips plus one under a key with '#', in a folder and under ``URL``."""
+    """The bundled clips plus one under a key with '#', in a folder and under ``URL``: 10 samples of
+    LAYOUT (2 per clip; the montages' shots are longer than its 21-frame windows)."""
     d = tmp_path_factory.mktemp("folder")
     for p in sorted(CLIPS.glob("*.mp4")):
         shutil.copy(p, d / p.name)
@@ -80,7 +81,7 @@ def test_bucket_epoch_is_the_folder_epoch_byte_for_byte(store, corpus, tmp_path)
     state = tmp_path / "state"
     port = free_port()
     bucket, log = _epoch(URL, "--state-dir", str(state), "--metrics-port", str(port), env=_env(store, tmp_path))
-    assert len(folder) == 8 and f"{ODD}#1" in folder
+    assert len(folder) == 10 and f"{ODD}#1" in folder
     assert sorted(bucket) == sorted(folder)
     assert all(bucket[k] == folder[k] for k in folder)
     # the listing was kept under --state-dir, with each object's size and ETag
@@ -104,7 +105,7 @@ def test_store_reads_are_counted_in_the_metrics(store, corpus, tmp_path):
             if vals.get("v2v_store_reads_total", 0) >= 4 or time.monotonic() > deadline:
                 break
             time.sleep(0.5)
-    assert n == 8
+    assert n == 10
     size = sum(p.stat().st_size for p in corpus.rglob("*.mp4"))
     assert vals["v2v_store_reads_total"] >= 4  # at least one range request per video
     assert 0 < vals["v2v_store_read_bytes_total"] <= 2 * size
@@ -141,7 +142,7 @@ def test_ray_path_reads_the_bucket_as_the_folder(store, corpus, tmp_path, monkey
         return out
 
     folder, bucket = rows(rc_folder), rows(rc_bucket)
-    assert len(folder) == 8 and bucket == folder
+    assert len(folder) == 10 and bucket == folder
 
 
 def test_video_list_in_the_authors_format(store, corpus, tmp_path):
