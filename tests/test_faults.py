@@ -25,7 +25,9 @@ def assert_exactly_once(r):
 
 
 def test_worker_sigkill_mid_epoch(tmp_path):
-    r = faults.scenario_worker_kill(tmp_path, LAYOUT, kills=2, copies=2)
+    # enough videos that the workers are still busy when the first kill lands (a corpus the
+    # shuffle buffer holds whole can be made before the first batch is read: no restart)
+    r = faults.scenario_worker_kill(tmp_path, LAYOUT, kills=2, copies=4)
     assert_exactly_once(r)
     assert r["facts"]["restarts"] > 0
 
