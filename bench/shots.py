@@ -25,8 +25,8 @@ from harness.shot_labels import LABELLED
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.decode import decode_codes, iter_luma, open_video
-from v2v_server.videos.shots import ShotDetector, code_table, shot_windows, thumbnail
+from v2v_server.videos.decode import decode_codes, full_range, iter_luma, open_video
+from v2v_server.videos.shots import ShotDetector, shot_windows
 
 ROWS = lambda h: int(h * 0.54)  # noqa: E731  (the recipe's kept rows)
 
@@ -61,9 +61,9 @@ def _score(found: List[int], truth: List[int], fade: Tuple[int, int] = (-1, -1))
 
 
 def _ours(frames: np.ndarray) -> List[int]:
-    det, table = ShotDetector(), code_table(lambda x: x, frames.dtype)
+    det = ShotDetector()
     for f in frames:
-        det.update(thumbnail(f, table))
+        det.score(f, full_range)
     return det.cuts
 
 
@@ -91,15 +91,12 @@ def _costs(clip: Path, repeats: int) -> dict:
     n = 0
     for _ in range(repeats):
         container, stream, _ = open_video(clip)
-        det, tables, dt = ShotDetector(), {}, 0.0
+        det, dt = ShotDetector(), 0.0
         t0 = time.process_time()
         n = 0
         for codes, expand in decode_codes(container, stream, ROWS):
             t1 = time.process_time()
-            table = tables.get(expand)
-            if table is None:
-                table = tables[expand] = code_table(expand, codes.dtype)
-            det.update(thumbnail(codes, table))
+            det.score(codes, expand)
             dt += time.process_time() - t1
             n += 1
         total = time.process_time() - t0

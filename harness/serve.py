@@ -115,3 +115,21 @@ class ServeProcess:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def served_samples(args: List[str], outputs=("voxels", "frames"), env=None) -> List[tuple]:
+    """Read every batch a ``v2v-serve args`` child serves (give it ``--epochs``) with raw wire
+    dtypes: ``[(sample_id, {output: array})]`` in arrival order, repeats kept."""
+    import numpy as np
+
+    from v2v_client.dataset import V2VStreamDataset
+
+    out = []
+    with ServeProcess(args, env=env) as srv:
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=tuple(outputs), timeout_s=60, credits=2, raw=True))
+        try:
+            for b in it:
+                out += [(sid, {k: np.asarray(b[k][i]) for k in outputs}) for i, sid in enumerate(b["sample_ids"])]
+        finally:
+            it.close()
+    return out

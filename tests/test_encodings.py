@@ -135,8 +135,7 @@ def test_served_samples_are_the_recipes_for_every_encoding(corpus):
     """One ``v2v-serve`` (two workers) over the whole folder, the unknown codec included: every
     sample of every decodable file delivered once, its voxels and frames those ``video_samples``
     makes from the file in this process; the unknown codec skipped, the service going on."""
-    from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VStreamDataset
+    from harness.serve import served_samples
 
     cfg = ServeConfig(**RECIPE).validate()
     want = {}
@@ -146,16 +145,10 @@ def test_served_samples_are_the_recipes_for_every_encoding(corpus):
                 want[key.sample_id(1)] = arrays
     assert len(want) == 2 * sum((corpus / n).exists() for n in ENCODINGS)
     got = {}
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", *FLAGS, "--batch-size", "2",
-                       "--outputs", "voxels,frames", "--epochs", "1"]) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2, raw=True))
-        try:
-            for b in it:
-                for i, sid in enumerate(b["sample_ids"]):
-                    assert sid not in got, f"{sid} delivered twice"
-                    got[sid] = {k: np.asarray(b[k][i]) for k in ("voxels", "frames")}
-        finally:
-            it.close()
+    for sid, arrays in served_samples(["--videos", str(corpus), "--workers", "2", *FLAGS, "--batch-size", "2",
+                                       "--outputs", "voxels,frames", "--epochs", "1"]):
+        assert sid not in got, f"{sid} delivered twice"
+        got[sid] = arrays
     assert sorted(got) == sorted(want)
     for sid, arrays in want.items():
         for k in ("voxels", "frames"):

@@ -148,23 +148,14 @@ def _samples(cfg, root, video) -> dict:
 def test_served_samples_under_frame_height_are_the_recipes(corpus):
     """``v2v-serve --frame-height`` (two worker processes, the recipe sent to each): every sample
     that of ``video_samples`` under the same recipe, and not the unscaled one."""
-    from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VStreamDataset
+    from harness.serve import served_samples
 
     flags = ["--sequence-length", "4", "--num-bins", "2", "--crop-size", "32", "--max-samples-per-video", "3",
              "--frame-height", "100", "--seed", "5"]
     cfg = ServeConfig(**SMALL, frame_height=100, seed=5).validate()
     want = {key.sample_id(1): arrays for key, arrays, _ in video_samples(cfg, corpus, "bikes.mp4", 0, ("voxels", "frames"))}
-    got = {}
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", *flags, "--batch-size", "2",
-                       "--outputs", "voxels,frames", "--epochs", "1"]) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2, raw=True))
-        try:
-            for b in it:
-                for i, sid in enumerate(b["sample_ids"]):
-                    got[sid] = {k: np.asarray(b[k][i]) for k in ("voxels", "frames")}
-        finally:
-            it.close()
+    got = dict(served_samples(["--videos", str(corpus), "--workers", "2", *flags, "--batch-size", "2",
+                               "--outputs", "voxels,frames", "--epochs", "1"]))
     assert set(want) <= set(got) and len(want) == 3
     for sid, arrays in want.items():
         for k in arrays:

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.frames import kept_rows
 from v2v_server.videos.segments import split_segment
-from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, thumbnail
+from v2v_server.videos.shots import ShotDetector, WindowLayout
 from v2v_server.videos.source import source_from_spec
 
 if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
@@ -144,7 +144,8 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, segment=None) ->
     container, stream, info = open_video(path)
     out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
     layout = WindowLayout(cfg.frames_per_sample, cfg.max_samples_per_video, cfg.shot_cuts == "avoid")
-    detector, tables = ShotDetector(), {}
+    detector = ShotDetector()
+    out["cuts"] = detector.cuts  # grows as cuts are found
     shape = None  # first frame size of the window in progress
     shown = {}  # the displayed (scaled) height of the frame at hand: a frame's size in a message is the whole frame's
 
@@ -155,20 +156,17 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, segment=None) ->
     times: list = []  # presentation times, for a variable frame rate
     # the frames the workers cut (scaled, kept rows), scored by the same detector
     for i, (y, expand) in enumerate(decode_codes(container, stream, rows, cfg.frame_height, times, segment)):
-        table = tables.get(expand)
-        if table is None:
-            table = tables[expand] = code_table(expand, y.dtype)
-        ev = layout.step(i, detector.update(thumbnail(y, table)))
-        out.update(frames=i + 1, cuts=detector.cuts, dropped=layout.dropped, complete=layout.windows)
+        ev = layout.step(i, detector.score(y, expand))
+        out.update(frames=i + 1, dropped=layout.dropped, complete=layout.windows)
         if ev.drops is not None:
             bad.pop(ev.drops, None)  # the index goes to the next window
-        inside = [k for k in (ev.ends, None if ev.starts is not None or layout.current is None else layout.windows)
-                  if k is not None]
+        # the window this frame belongs to, other than one it starts: the one it ends, or the one in progress
+        k = ev.ends if ev.ends is not None else layout.windows if ev.starts is None and layout.current is not None \
+            else None
         size = (shown.get("h", y.shape[0]), y.shape[1])
-        for k in inside:  # frames of a window must keep its first frame's size
-            if size != shape and k not in bad:
-                bad[k] = (f"window {k}: frame size changed from {shape[1]}x{shape[0]} to "
-                          f"{size[1]}x{size[0]} at frame {i}")
+        if k is not None and size != shape and k not in bad:  # a window's frames keep its first frame's size
+            bad[k] = (f"window {k}: frame size changed from {shape[1]}x{shape[0]} to "
+                      f"{size[1]}x{size[0]} at frame {i}")
         if ev.starts is not None:
             shape = size
         if layout.done:

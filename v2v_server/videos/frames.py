@@ -12,7 +12,7 @@ import contextlib
 import itertools
 import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Callable, Iterator, Optional, Tuple
 
 import numpy as np
@@ -20,7 +20,7 @@ import numpy as np
 from v2v_server.videos.decode import Rows, VideoInfo, decode_codes, full_range, open_video
 from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache
 from v2v_server.videos.segments import split_segment
-from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector, code_table, thumbnail
+from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector
 
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 
@@ -40,7 +40,7 @@ class FramePass:
     cached: bool
     writer: Optional[EntryWriter] = None
     cuts: Optional[set] = None
-    state: dict = field(default_factory=dict)
+    ended: bool = False
 
     def cut_at(self, i: int) -> bool:
         """Whether frame ``i`` (already given) starts a new shot (False without detection)."""
@@ -50,7 +50,7 @@ class FramePass:
         """The consumer has what it needs: the frames given so far are the whole pass. The
         frames are closed, and a pass storing the video commits its entry (a pass closed
         without ``end`` drops it). Call it between frames, not while ``frames`` is running."""
-        self.state["ended"] = True
+        self.ended = True
         close = getattr(self.frames, "close", None)
         if close is not None:
             close()
@@ -107,7 +107,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
     """
     cache: Optional[FrameCache] = getattr(source, "frame_cache", None)
     name = identity = None
-    times = split_segment(rel)[1]  # a segment: its time range of the video
+    segment = split_segment(rel)[1]  # a segment: its time range of the video
     if cache is not None:
         name, identity, entry = lookup_entry(cache, source, rel, settings)
         if entry is not None:
@@ -117,7 +117,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
             def redecode(start: int) -> Iterator[Frame]:
                 with source.open(rel) as path:
                     container, stream, _ = open_video(path, threads, fast)
-                    yield from itertools.islice(decode_codes(container, stream, rows, height, segment=times), start,
+                    yield from itertools.islice(decode_codes(container, stream, rows, height, segment=segment), start,
                                                 limit)
 
             cuts = None
@@ -131,12 +131,12 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
             return
     with source.open(rel) as path:
         container, stream, info = open_video(path, threads, fast)
-        declared = 0 if times else int(getattr(stream, "frames", 0) or 0)  # a segment: unknown
+        declared = 0 if segment else int(getattr(stream, "frames", 0) or 0)  # a segment: unknown
         writer = None
         if cache is not None and identity is not None:  # a racy identity is never stored
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
         fp = FramePass(info, declared, iter(()), False, writer, set() if detect else None)
-        fp.frames = _decoded(decode_codes(container, stream, rows, height, segment=times), limit_of(declared), writer,
+        fp.frames = _decoded(decode_codes(container, stream, rows, height, segment=segment), limit_of(declared), writer,
                              fp)
         yield fp
 
@@ -165,22 +165,17 @@ def _decoded(frames: Iterator[Frame], limit: int, writer: Optional[EntryWriter],
     the consumer said ``fp.end()``."""
     done = False
     detector = ShotDetector() if fp.cuts is not None else None
-    tables: dict = {}
     try:
         for i, (codes, expand) in enumerate(itertools.islice(frames, limit)):
-            if detector is not None:
-                table = tables.get(expand)
-                if table is None:
-                    table = tables[expand] = code_table(expand, codes.dtype)
-                if detector.update(thumbnail(codes, table)):
-                    fp.cuts.add(i)
+            if detector is not None and detector.score(codes, expand):
+                fp.cuts.add(i)
             if writer is not None:
                 writer.add(expand(codes))
             yield codes, expand
         done = True
     finally:
         if writer is not None:  # a decoding error, or the consumer stopped: nothing partial is kept
-            if done or fp.state.get("ended"):
+            if done or fp.ended:
                 if detector is not None:
                     writer.header["shots"] = {"detector": DETECTOR_VERSION, "cuts": detector.cuts}
                 writer.finish()

@@ -18,7 +18,6 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Iterable, List, Optional
 
-import cv2
 import numba
 import numpy as np
 
@@ -107,6 +106,15 @@ class ShotDetector:
         self.was_dark = False
         self.frames = 0
         self.cuts: List[int] = []
+        self.tables: dict = {}  # a stream's code map -> its code_table
+
+    def score(self, codes: np.ndarray, expand: Callable[[np.ndarray], np.ndarray]) -> bool:
+        """:meth:`update` with the next frame as ``decode.decode_codes`` yields it: ``codes`` and
+        its code -> full-range map ``expand`` (whose :func:`code_table` is made once per map)."""
+        table = self.tables.get(expand)
+        if table is None:
+            table = self.tables[expand] = code_table(expand, codes.dtype)
+        return self.update(thumbnail(codes, table))
 
     def update(self, thumb: np.ndarray) -> bool:
         """Score the next frame's thumbnail; True when it starts a new shot (appended to ``cuts``)."""
@@ -183,10 +191,6 @@ class WindowLayout:
             ev.starts = self.windows
         return ev
 
-    def offset(self, i: int) -> Optional[int]:
-        """Frame ``i``'s offset in the window in progress (None outside one)."""
-        return None if self.current is None else i - self.current
-
 
 def shot_windows(cuts: Iterable[int], frames: int, span: int, max_windows: int, avoid_cuts: bool = True) -> List[int]:
     """The first frame of each window of a video of ``frames`` frames with ``cuts`` (frames that
@@ -201,9 +205,3 @@ def shot_windows(cuts: Iterable[int], frames: int, span: int, max_windows: int, 
         if layout.done:
             break
     return starts
-
-
-def shot_lengths(cuts: Iterable[int], frames: int) -> List[int]:
-    """Frames of each shot of a video of ``frames`` frames with ``cuts``."""
-    edges = [0] + sorted(c for c in set(int(c) for c in cuts) if 0 < c < frames) + [frames]
-    return [b - a for a, b in zip(edges, edges[1:]) if b > a]
