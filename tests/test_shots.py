@@ -186,3 +186,41 @@ def test_yaml_off_is_a_word_not_false(tmp_path):
     path.write_text("shot_cuts: off\ndecode_fast: off\npause_enabled: false\n")
     cfg = load_config(str(path))
     assert (cfg.shot_cuts, cfg.decode_fast, cfg.pause_enabled) == ("off", "off", False)
+
+
+def test_segments_of_a_tar_member_and_through_the_ray_engine(tmp_path):
+    """A time range of a tar shard's member is served as the same range of the file, and the Ray
+    engine's scan and rows give a segment's samples as the server's sample pass does."""
+    import json
+    import tarfile
+
+    from v2v_server.ray_data import SampleMaker, epoch_descriptors, scan_corpus_windows
+
+    clip = "bbb_camera_596x336.mp4"
+    with tarfile.open(tmp_path / "s.tar", "w") as t:
+        t.add(SAMPLE_VIDEOS / clip, arcname=clip)
+    (tmp_path / clip).write_bytes((SAMPLE_VIDEOS / clip).read_bytes())
+    lst = tmp_path / "list.txt"
+    lst.write_text(f"s.tar/{clip} 2 6\n{clip} 2 6\ns.tar/gone.mp4 1 2\n")
+    cfg = ServeConfig(sequence_length=8, video_list=str(lst)).validate()
+    src = LocalSource(tmp_path, video_list=str(lst))
+    videos, rejected = src.list_videos((".mp4",))
+    assert videos == [f"s.tar/{clip}#t=2,6", f"{clip}#t=2,6"] and [r for r, _ in rejected] == ["s.tar/gone.mp4#t=1,2"]
+
+    def frames(video):
+        with video_frames(cfg, src, video) as fp:
+            return [expand(codes).tobytes() for codes, expand in fp.frames]
+
+    assert frames(videos[0]) == frames(videos[1]) and len(frames(videos[1])) == 100  # 2.00 .. 5.96 s
+
+    def arrays(video):
+        return [(k.window, a["frames"].tobytes()) for k, a, _ in video_samples(cfg, src, video, 0, ("frames",))]
+
+    member, plain = arrays(videos[0]), arrays(videos[1])
+    assert len(member) == len(plain) == 2  # 100 frames: two windows of 41
+    rc = scan_corpus_windows(str(tmp_path), cfg)
+    assert rc.windows == {v: 2 for v in videos}
+    maker = SampleMaker(cfg.to_dict(), rc.root, ("frames",))
+    rows = {str(r["sample_id"][0]): r["frames"].tobytes() for d in epoch_descriptors(rc, 0)
+            for r in maker.video_rows(d["video"], 0, json.loads(d["entries"]))}
+    assert rows == {f"{clip}#t=2,6#{w}": f for w, f in plain} | {f"s.tar/{clip}#t=2,6#{w}": f for w, f in member}

@@ -250,7 +250,8 @@ class VideoSource:
 
     def _listed(self, names: Sequence[str], exists, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """Keep the names of a video list that ``exists(name)`` and have a video extension; a
-        ``.tar`` name stands for its video members (:meth:`_with_members`)."""
+        ``.tar`` name stands for its video members (:meth:`_with_members`), and a name inside a
+        shard (``shard.tar/member.mp4``, with or without a time range) for that member."""
         videos, rejected = [], []
         for rel in names:
             base, times = split_segment(rel)
@@ -262,11 +263,20 @@ class VideoSource:
             elif not base.lower().endswith(tuple(extensions)):
                 rejected.append((rel, f"listed in {self.video_list} but not a video file (extensions "
                                       f"{', '.join(extensions)})"))
-            elif not exists(base):
+            elif not (self._has_member(base, exists) if self.split_member(base) else exists(base)):
                 rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
             else:
                 videos.append(rel)
         return self._with_members(videos, rejected, extensions)
+
+    def _has_member(self, rel: str, exists) -> bool:
+        """Whether the tar member ``rel`` (``shard.tar/member.mp4``, a list entry such as a
+        segment's video) is in its shard, which ``exists``."""
+        tar, name = self.split_member(rel)
+        try:
+            return exists(tar) and name in self.tar_index(tar)
+        except Exception:  # an unreadable shard: the member is missing
+            return False
 
     # ------------------------------------------------------------------ tar shards
     def tar_index(self, tar: str) -> Dict[str, Tuple[int, int]]:
