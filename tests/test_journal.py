@@ -106,3 +106,31 @@ def test_unusable_state_dir_at_start_is_one_clear_line(tmp_path):
                        capture_output=True, text=True, timeout=60, env=dict(os.environ, PYTHONPATH=str(root)))
     lines = [line for line in r.stderr.strip().splitlines() if "v2v-serve:" in line and " INFO " not in line]
     assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"v2v-serve: --state-dir {bad}:"), r.stderr
+
+
+def test_a_terminal_gone_turns_the_progress_line_off_and_is_counted_once(monkeypatch, caplog):
+    """The progress line's stderr a pipe nobody reads any more (a hung-up terminal): the write
+    fails (BrokenPipeError), the line goes off, serving's counters go on, one count and one log
+    line with where it happened."""
+    import logging
+    import os
+    import sys
+
+    from v2v_server.ops.metrics import ServerMetrics
+
+    r, w = os.pipe()
+    os.close(r)
+    stream = os.fdopen(w, "w", buffering=1)
+    monkeypatch.setattr(sys, "stderr", stream)
+    m = ServerMetrics(progress=True)
+    with caplog.at_level(logging.ERROR, logger="v2v.metrics"):
+        for _ in range(50):  # tqdm writes at its own pace: enough batches for it to write
+            m.on_batch_sent(4, 1000)
+    monkeypatch.undo()
+    assert m.fs_errors_total("progress") == 1
+    assert m.totals()["batches_sent"] == 50
+    assert sum("progress" in rec.getMessage() for rec in caplog.records) == 1
+    try:
+        stream.close()
+    except OSError:
+        pass

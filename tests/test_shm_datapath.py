@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from v2v_server.service.datapath import (BatchAssembler, SlotRing, create_ring, make_batch, sample_from_slot,
+from v2v_server.service.datapath import (BatchAssembler, BatchDir, SlotRing, create_ring, make_batch, sample_from_slot,
                                  sample_from_worker, slot_bytes)
 from v2v_wire.protocol import ProtocolError, encode_arrays
 
@@ -244,3 +244,23 @@ def test_a_small_dev_shm_never_kills_a_worker(tmp_path, size):
     f = r["facts"]
     assert f["worker_deaths"] == 0 and f["server_exit"] == 0, r
     assert (f["rings_refused"] > 0) == (size == "1m"), r  # 2 rings of ~1.5 MB fit in 64 MiB, not in 1 MiB
+
+
+def test_a_batch_directory_gone_while_serving_leaves_batches_in_anonymous_memory(tmp_path):
+    """The server's batch directory replaced by a file (a vanished mount): a new batch buffer
+    cannot be made there, so it is anonymous memory (batches go as socket frames), the same
+    rows; the failure is reported with the path, once per buffer, never raised."""
+    import shutil
+
+    files = BatchDir.create(str(tmp_path))
+    asm = BatchAssembler(2, spare=0, files=files)
+    errors = []
+    asm.on_error = lambda path, e: errors.append((path, type(e).__name__))
+    first = make_batch([asm.place(f"v.mp4#{i}", {}, _arrays(i)) for i in range(2)])
+    assert first.arrays["voxels"].base is not None and os.listdir(files.path)  # rows in a file of the directory
+    shutil.rmtree(files.path)
+    Path(files.path).write_text("not a folder")
+    later = make_batch([asm.place(f"v.mp4#{i}", {}, _arrays(i)) for i in range(2, 4)])
+    assert [p for p, _ in errors] == [files.path]
+    for i in range(2):
+        assert np.array_equal(later.arrays["voxels"][i], _arrays(i + 2)["voxels"])

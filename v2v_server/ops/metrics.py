@@ -121,7 +121,12 @@ class ServerMetrics:
         self._expo: Optional[bytes] = None
         self._expo_at = 0.0
         self.port: Optional[int] = None
-        self._progress = _Progress() if (sys.stderr.isatty() if progress is None else progress) else None
+        self._progress: Optional[_Progress] = None
+        if sys.stderr.isatty() if progress is None else progress:
+            try:  # tqdm draws the line when it is made: a terminal already gone leaves it off
+                self._progress = _Progress()
+            except OSError as e:
+                self.on_fs_error("progress", "stderr", e)
 
     # ------------------------------------------------------------------ events (server.py calls these)
     def on_sample_made(self) -> None:
