@@ -103,7 +103,7 @@ def samples(root: Path, name: str, fast: str, noise=None) -> dict:
     if noise is not None or fast == "ref":
         kw.setdefault("ranges", {"noise_std": [0.0, 0.0], "hot_pixel_fraction": [0.0, 0.0]})
     cfg = ServeConfig(shot_cuts="off", sequence_length=8, crop_size=128, keep_top_fraction=1.0, max_samples_per_video=2,
-                      decode_fast="off" if fast == "ref" else fast, **kw).validate()
+                      decode_fast="off" if fast == "ref" else fast, **kw)
     return {sid: a for sid, a, _ in video_samples(cfg, root, name, 0, DEFAULT_OUTPUTS)}
 
 

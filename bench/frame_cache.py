@@ -94,7 +94,7 @@ def frames_per_video(clip: Path) -> int:
     from v2v_server.ops.config import ServeConfig
     from v2v_server.samples.make import video_frames
 
-    with video_frames(ServeConfig(shot_cuts="off").validate(), clip.parent, clip.name) as fp:
+    with video_frames(SampleRecipe(shot_cuts="off"), clip.parent, clip.name) as fp:
         return sum(1 for _ in fp.frames)
 
 

@@ -112,8 +112,8 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     from v2v_server.samples.make import video_frames
     from v2v_server.videos.source import open_source
 
-    cfg = ServeConfig(sequence_length=2, num_bins=2, crop_size=8, max_samples_per_video=1000,
-                      frame_height=height).validate()
+    cfg = SampleRecipe(sequence_length=2, num_bins=2, crop_size=8, max_samples_per_video=1000,
+                      frame_height=height)
     src = open_source(str(path.parent), cache_dir=str(cache), frame_cache_gb=64.0)
     with video_frames(cfg, src, path.name) as fp:
         n = sum(1 for _ in fp.frames)

@@ -34,7 +34,7 @@ def _cfg(tmp: Path, **kw):
     132, 250 and 450 frames give 1, 2 and 4 windows), 128-pixel crops."""
     from v2v_server.ops.config import ServeConfig
 
-    return ServeConfig(shot_cuts="off", sequence_length=20, flow_preset="ultrafast", cache_dir=str(tmp / "cache"), **kw).validate()
+    return ServeConfig(shot_cuts="off", sequence_length=20, flow_preset="ultrafast", cache_dir=str(tmp / "cache"), **kw)
 
 
 class Epochs:

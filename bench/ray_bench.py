@@ -88,7 +88,7 @@ def decode_choice(cfg: ServeConfig, corpus: Path) -> dict:
 
     from v2v_server.videos.decode import decode_luma, open_video
 
-    span, one_pass, seeks, windows = cfg.frames_per_sample, 0.0, 0.0, 0
+    span, one_pass, seeks, windows = cfg.recipe.frames_per_sample, 0.0, 0.0, 0
     for rel in find_videos(corpus, cfg.video_extensions):
         path = corpus / rel
         t0 = time.perf_counter()
@@ -218,7 +218,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = p.parse_args(argv)
     import ray
 
-    cfg = ServeConfig(shot_cuts="off", **LAYOUT).validate()
+    cfg = ServeConfig(shot_cuts="off", **LAYOUT)
     corpus = good_corpus(Path(tempfile.mkdtemp(prefix="v2v-raybench-")), a.copies)
     base = in_process(cfg, corpus)
     per = base["wall_s"] / base["samples"]

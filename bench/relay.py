@@ -69,7 +69,7 @@ def real_sample(path: str) -> None:
     from v2v_server.service.worker import wire_arrays
     from v2v_wire.outputs import DEFAULT_OUTPUTS
 
-    cfg = ServeConfig(shot_cuts="off").validate()
+    cfg = SampleRecipe(shot_cuts="off")
     _, arrays, _ = next(video_samples(cfg, SAMPLE_VIDEOS, "webvid_like_596x336.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True))
     np.savez(path, **wire_arrays(cfg, arrays))
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from harness.shot_labels import LABELLED
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
 from v2v_server.videos.decode import decode_codes, full_range, iter_luma, open_video
@@ -124,7 +125,7 @@ def run(repeats: int = 3) -> dict:
                          "tp": tp, "fp": fp, "fn": fn, "dissolve_found": bool(in_mix) if mix else None,
                          "windows_kept": len(shot_windows(found, len(frames), 201, 10)),
                          "windows_off": len(shot_windows([], len(frames), 201, 10))})
-    cfg = ServeConfig(sequence_length=8, max_samples_per_video=50).validate()
+    cfg = SampleRecipe(sequence_length=8, max_samples_per_video=50)
     spanning = served = 0
     for clip, truth in LABELLED.items():
         for _, _, m in video_samples(cfg, SAMPLE_VIDEOS, clip, 0, ("frames",)):

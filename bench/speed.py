@@ -127,7 +127,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     from v2v_server.service.worker import wire_arrays
 
     cv2.setNumThreads(1)
-    cfg = ServeConfig(shot_cuts="off", seed=1, crops_per_window=crops, decode_fast=decode_fast).validate()
+    cfg = SampleRecipe(shot_cuts="off", seed=1, crops_per_window=crops, decode_fast=decode_fast)
     names = sorted(p.name for p in corpus.iterdir())[:videos]
     flow = FlowEstimator(cfg.flow_preset) if "flow" in outputs else None
     busy = {} if busy is None else busy
@@ -297,7 +297,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     clip = clip_path(a.clip)
     from v2v_server.ops.config import ServeConfig
 
-    default_flow = ServeConfig(shot_cuts="off").flow_preset
+    default_flow = SampleRecipe(shot_cuts="off").flow_preset
     rows = []
 
     def row(name, value, unit, ratio="", target=""):

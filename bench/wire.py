@@ -47,7 +47,7 @@ def real_samples(epochs: int = 2):
     from v2v_server.service.worker import wire_arrays
     from v2v_wire.outputs import DEFAULT_OUTPUTS
 
-    cfg = ServeConfig(shot_cuts="off").validate()
+    cfg = SampleRecipe(shot_cuts="off")
     flow = FlowEstimator(cfg.flow_preset)
     compact, dense = [], []
     for epoch in range(epochs):

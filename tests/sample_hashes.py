@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
 from v2v_server.service.worker import wire_arrays
 from v2v_client.flowgrid import expand_flow_grid
@@ -65,7 +66,7 @@ def _canonical(meta: dict) -> dict:
     return meta
 
 
-def _as_received(cfg: ServeConfig, arrays: dict) -> dict:
+def _as_received(cfg: SampleRecipe, arrays: dict) -> dict:
     """The wire arrays with ``flow_grid`` made dense as a client does (``raw`` dtypes)."""
     out = dict(arrays)
     g = out.pop("flow_grid", None)
@@ -80,7 +81,7 @@ def compute(corpus=CLIPS) -> dict:
     (``corpus``: their folder, or a ``VideoSource`` over it, such as one with a frame cache)."""
     table = {}
     for name, overrides in RECIPES:
-        cfg = ServeConfig(**overrides).validate()
+        cfg = SampleRecipe(**overrides)
         rows = {}
         for clip in PINNED_CLIPS:
             for key, arrays, meta in video_samples(cfg, corpus, clip, 0, DEFAULT_OUTPUTS, flow_grid=True):

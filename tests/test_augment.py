@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from v2v_server.samples.augment import augment_plan, degrade_dynamic_range, parse_degrade, video_thresholds
-from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import plan_window, video_samples
 from v2v_server.simulation.simulate import ParamRanges
 
@@ -16,7 +16,7 @@ DIFFERENT_KEYS = {"pos_threshold", "neg_threshold", "fixed_sensor_params"}  # wh
 
 def cfg(**kw):
     base = dict(sequence_length=2, num_bins=2, crop_size=32, max_samples_per_video=2, seed=11)
-    return ServeConfig(**{**base, **kw}).validate()
+    return SampleRecipe(**{**base, **kw})
 
 
 def samples(c, videos, name="bikes.mp4", epoch=0):
@@ -39,15 +39,15 @@ def test_degrade_formula_is_the_papers():
 
 
 def test_degrade_config():
-    assert parse_degrade(None) == {} and parse_degrade({}) == {} and ServeConfig().validate().degrade_dynamic_range == {}
+    assert parse_degrade(None) == {} and parse_degrade({}) == {} and SampleRecipe().degrade_dynamic_range == {}
     assert parse_degrade(True) == {"probability": 0.8, "scale": [1.0, 3.0]}
     assert parse_degrade({"scale": [1, 2]}) == {"probability": 0.8, "scale": [1.0, 2.0]}
     for bad, field in (({"probability": 1.5}, "probability"), ({"scale": [3, 1]}, "scale"),
                        ({"scale": 2}, "scale"), ({"prob": 0.5}, "unknown")):
         with pytest.raises(ValueError, match=field):
-            ServeConfig(degrade_dynamic_range=bad).validate()
+            SampleRecipe(degrade_dynamic_range=bad)
     with pytest.raises(ValueError, match="fixed_sensor_params"):
-        ServeConfig(fixed_sensor_params="yes").validate()
+        SampleRecipe(fixed_sensor_params="yes")
 
 
 def test_degrade_probability_and_scale_per_sample():

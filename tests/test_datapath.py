@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from v2v_server.service.datapath import make_batch, sample_from_worker
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.protocol import decode_arrays, encode_arrays
 
 
@@ -62,5 +63,5 @@ def test_worker_float16_narrowing_is_numpys_cast_bit_for_bit():
     assert got.dtype == np.float16 and got.shape == flow.shape
     assert np.array_equal(got.view(np.uint16), want.view(np.uint16))
     assert np.array_equal(to_float16(flow[:, 1, :, 3]).view(np.uint16), want[:, 1, :, 3].view(np.uint16))
-    out = wire_arrays(ServeConfig().validate(), {"flow": flow, "voxels": np.zeros((1, 5, 2, 2), np.int32)})
+    out = wire_arrays(SampleRecipe(), {"flow": flow, "voxels": np.zeros((1, 5, 2, 2), np.int32)})
     assert out["flow"].dtype == np.float16 and out["voxels"].dtype == np.int8

@@ -327,7 +327,7 @@ def test_k8s_statefulset_service_pdb_job_agree():
         ns = check_flags("v2v-serve", args, {"SHARD_INDEX": str(i), "SHARDS": str(replicas), "CPU_REQUEST": cpu})
         conf = _check_path(ns.config, mounts, secret_files)
         cfg = check_serve_config(ns, _write(conf["content"]))
-        assert cfg.shard_spec == (i, replicas) and cfg.workers == int(cpu)
+        assert cfg.serving.shard_spec == (i, replicas) and cfg.workers == int(cpu)
     # /dev/shm: a memory-backed emptyDir large enough for the workers' slot rings
     shm_mount, = [m for m in c["volumeMounts"] if m["mountPath"] == "/dev/shm"]
     shm_vol, = [v for v in sts["spec"]["template"]["spec"]["volumes"] if v["name"] == shm_mount["name"]]

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_frames, video_samples
 from v2v_server.videos.decode import open_video, to_uint8
 
@@ -137,7 +138,7 @@ def test_served_samples_are_the_recipes_for_every_encoding(corpus):
     makes from the file in this process; the unknown codec skipped, the service going on."""
     from harness.serve import served_samples
 
-    cfg = ServeConfig(**RECIPE).validate()
+    cfg = SampleRecipe(**RECIPE)
     want = {}
     for name in sorted(ENCODINGS):
         if (corpus / name).exists():
@@ -160,7 +161,7 @@ def test_ten_bit_frames_reach_the_core_as_uint16(corpus, ten, eight):
     """A 10-bit file's frames are uint16 at full range (0..65535), the same picture as the 8-bit
     encoding of the same frames (rounded to 8 bits, within what two lossy encodings differ by)."""
     _need(corpus, ten), _need(corpus, eight)
-    cfg = ServeConfig(**RECIPE).validate()
+    cfg = SampleRecipe(**RECIPE)
     frames = {}
     for name in (ten, eight):
         with video_frames(cfg, corpus, name) as fp:
@@ -183,7 +184,7 @@ def test_variable_frame_rate_frames_are_taken_in_order(corpus):
     steps = np.round(np.diff(times) * 1000).astype(int)
     assert sorted(set(steps.tolist())) == list(VFR_STEPS) and len(times) == N
     assert info.fps == pytest.approx(float(s.average_rate)) and info.fps == pytest.approx((N - 1) / times[-1], rel=0.1)
-    cfg = ServeConfig(**RECIPE).validate()
+    cfg = SampleRecipe(**RECIPE)
     with video_frames(cfg, corpus, "vfr.mp4") as fp:
         read = [expand(codes).copy() for codes, expand in fp.frames]
     c, s, _ = open_video(path)

@@ -10,6 +10,7 @@ import pytest
 
 from v2v_server.flow import estimate as flow_mod
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.flow.estimate import FlowEstimator, dis_flow
 from v2v_server.flow.options import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowOption, FlowUnavailable, TrackParams,
                                      check_option, unavailable_reason)
@@ -49,8 +50,8 @@ def test_translation_30px_per_voxel_through_the_sample_path(tmp_path):
     H.264, served by video_samples: median EPE < 2 px with the default."""
     from harness.motion_clips import write_video
 
-    cfg = ServeConfig(sequence_length=4, num_bins=STEP, crop_size=128, keep_top_fraction=1.0, hflip_prob=0.0,
-                      pause_enabled=False, max_samples_per_video=1).validate()
+    cfg = SampleRecipe(sequence_length=4, num_bins=STEP, crop_size=128, keep_top_fraction=1.0, hflip_prob=0.0,
+                      pause_enabled=False, max_samples_per_video=1)
     assert cfg.flow_preset == DEFAULT_FLOW
     frames = panning_frames(cfg.frames_per_sample, 6)
     write_video(str(tmp_path / "pan.mp4"), frames)
@@ -177,8 +178,8 @@ def test_make_sample_flow_uses_every_frame_and_pauses():
     """make_sample hands the whole sequence (pauses repeated) to the estimator: with a pause
     inside a voxel the tracking sees a pair that moves nothing and the voxel's flow is 4 moves,
     not 5."""
-    cfg = ServeConfig(sequence_length=2, num_bins=STEP, crop_size=128, keep_top_fraction=1.0, hflip_prob=0.0,
-                      pause_enabled=False).validate()
+    cfg = SampleRecipe(sequence_length=2, num_bins=STEP, crop_size=128, keep_top_fraction=1.0, hflip_prob=0.0,
+                      pause_enabled=False)
     src = panning_frames(cfg.frames_per_sample, 4)[:, :128, :128]
     plan = plan_window(cfg, 0, "x#0", 0, src.shape[1:])
     plan.offsets = np.array([0, 1, 2, 2, 3, 4, 5, 6, 7, 8, 9], np.int64)  # frame 2 repeated
@@ -208,10 +209,10 @@ def test_option_table_and_config_validation():
     with pytest.raises(ValueError, match="flow_preset"):
         check_option("slow")
     with pytest.raises(ValueError, match="flow_preset"):
-        ServeConfig(flow_preset="slow").validate()
+        SampleRecipe(flow_preset="slow")
     for name in FLOW_OPTIONS:
         if unavailable_reason(name) is None:
-            assert ServeConfig(flow_preset=name.upper()).validate().flow_preset == name
+            assert SampleRecipe(flow_preset=name.upper()).flow_preset == name
     with pytest.raises(ValueError, match="method"):
         FlowOption("x", "chained")
     with pytest.raises(ValueError, match="preset"):
@@ -247,7 +248,7 @@ def test_raft_refused_cleanly_without_local_weights(monkeypatch, tmp_path):
         with pytest.raises(FlowUnavailable):
             FlowEstimator(name)
         with pytest.raises(ValueError, match="flow_preset 'raft"):
-            ServeConfig(flow_preset=name).validate()
+            SampleRecipe(flow_preset=name)
 
 
 def test_reused_dis_objects_give_the_flow_of_fresh_ones():

@@ -22,6 +22,7 @@ import pytest
 from harness.corpus import write_size_change_video, write_video
 from tests import sample_hashes
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.frame_cache import MAGIC
 from v2v_server.videos.source import RACY_NS, open_source
@@ -99,7 +100,7 @@ def test_awkward_sources_identical_cached_and_decoded(tmp_path, fmt):
     corpus = _awkward_corpus(tmp_path / "corpus")
     src = _cached(corpus, tmp_path / "cache", fmt=fmt)
     for crops in (1, 4):
-        cfg = ServeConfig(**SMALL, crops_per_window=crops, keep_top_fraction=1.0).validate()
+        cfg = SampleRecipe(**SMALL, crops_per_window=crops, keep_top_fraction=1.0)
         for video in sorted(p.name for p in corpus.iterdir()):
             decoded = _samples(cfg, corpus, video, outputs=OUTPUTS)
             assert decoded, video
@@ -110,7 +111,7 @@ def test_awkward_sources_identical_cached_and_decoded(tmp_path, fmt):
 
 
 def test_later_epochs_draw_anew_from_the_same_entry(tmp_path):
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     src = _cached(CLIPS, tmp_path)
     e0 = _samples(cfg, src, "bikes.mp4", epoch=0)
     e1 = _samples(cfg, src, "bikes.mp4", epoch=1)
@@ -130,7 +131,7 @@ def _flip_byte(path: Path, at: int) -> None:
 @pytest.mark.parametrize("fault", ["truncated", "bit_flip_frame", "bit_flip_trailer", "not_an_entry"])
 @pytest.mark.parametrize("fmt", ["raw", "zstd"])
 def test_damaged_entry_is_decoded_again(tmp_path, fault, fmt):
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     video = "bikes.mp4"
     want = _samples(cfg, CLIPS, video)
     src = _cached(CLIPS, tmp_path, fmt=fmt)
@@ -180,7 +181,7 @@ def test_trailer_that_passes_its_crc_but_sizes_frames_wrong_is_corrupt(tmp_path,
     """A trailer with a valid CRC whose frame sizes do not hold (another shape than its bytes,
     a 100000 x 100000 frame, a frame past the data, an unknown dtype) is a corrupt entry found
     before any frame is read or allocated: decoded, removed, stored again."""
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     want = _samples(cfg, CLIPS, "bikes.mp4")
     src = _cached(CLIPS, tmp_path)
     assert _samples(cfg, src, "bikes.mp4") == want
@@ -208,7 +209,7 @@ def test_source_replaced_in_place_is_a_miss(tmp_path):
     corpus.mkdir()
     shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
     _settle()
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     src = _cached(corpus, tmp_path / "cache")
     _samples(cfg, src, "v.mp4")
     shutil.copy(CLIPS / "webvid_like_596x336.mp4", corpus / "v.mp4")  # same name, other content
@@ -233,7 +234,7 @@ def test_rewrite_in_place_keeping_size_mtime_and_inode_is_a_miss(tmp_path):
     w, h = 96, 64
     v = write_video(corpus / "v.avi", 40, w, h, codec="rawvideo", pix_fmt="gray", gray=True)
     _settle()
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     src = _cached(corpus, tmp_path / "cache")
     before = _samples(cfg, src, "v.avi")
     assert src.take_stats()["frame_cache"]["stored"] == 1
@@ -261,7 +262,7 @@ def test_a_file_changed_within_the_timestamp_resolution_is_not_stored(tmp_path):
     corpus = tmp_path / "corpus"
     corpus.mkdir()
     shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     src = _cached(corpus, tmp_path / "cache")
     from v2v_server.videos.source import racy
 
@@ -283,7 +284,7 @@ def test_a_file_changed_within_the_timestamp_resolution_is_not_stored(tmp_path):
 
 def test_cache_folder_deleted_while_serving(tmp_path):
     """The folder removed mid-write (the entry cannot be committed) and between epochs."""
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     want = _samples(cfg, CLIPS, "bikes.mp4")
     src = _cached(CLIPS, tmp_path)
     got = {}
@@ -319,7 +320,7 @@ def test_unusable_cache_dir_at_start_is_one_clear_line(tmp_path, flags):
 def test_budget_holds_and_keeps_what_it_admitted(tmp_path):
     """A budget below the corpus: entries are admitted until full and kept (policy ``keep``);
     the next epoch hits those and decodes the rest; the folder never holds more than the budget."""
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     clips = ["bikes.mp4", "webvid_like_596x336.mp4", "bigbuckbunny.mp4"]
     probe = _cached(CLIPS, tmp_path / "probe")
     sizes = {}
@@ -344,7 +345,7 @@ def _make_samples(root: str, cache_dir: str, video: str, kill_after: int) -> Non
     ``kill_after`` of them (-1: never)."""
     import signal
 
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     src = open_source(root, cache_dir=cache_dir, frame_cache_gb=1.0)
     for i, _ in enumerate(video_samples(cfg, src, video, 0, DEFAULT_OUTPUTS)):
         if i == kill_after:
@@ -357,7 +358,7 @@ def test_writer_killed_mid_write_leaves_no_entry(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, timeout=120)
     assert r.returncode == -9
     assert not _entries(tmp_path) and list((tmp_path / "frames").glob("*.tmp"))  # the half-written file
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     src = _cached(CLIPS, tmp_path)
     assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, CLIPS, "bikes.mp4")
     assert src.take_stats()["frame_cache"]["stored"] == 1
@@ -377,7 +378,7 @@ def test_two_writers_make_one_entry(tmp_path):
     # and two interleaved passes in one process, both driven to their end so that both writers
     # commit: the second finds the entry there, drops its own and is counted neither stored nor
     # not stored (an abandoned pass would count as incomplete)
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     src = _cached(CLIPS, tmp_path / "one")
     passes = [video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True) for _ in range(2)]
     got: tuple = ({}, {})
@@ -404,7 +405,7 @@ def test_full_disk_is_decoded_and_counted(tmp_path):
     if r.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
     try:
-        cfg = ServeConfig(**SMALL).validate()
+        cfg = SampleRecipe(**SMALL)
         src = _cached(CLIPS, mnt, gb=1.0)
         assert _samples(cfg, src, "webvid_like_596x336.mp4") == _samples(cfg, CLIPS, "webvid_like_596x336.mp4")
         stats = src.take_stats()["frame_cache"]
@@ -417,7 +418,7 @@ def test_full_disk_is_decoded_and_counted(tmp_path):
 def test_settings_that_change_frames_name_other_entries(tmp_path):
     src = _cached(CLIPS, tmp_path)
     for kw in ({}, {"decode_fast": "all"}, {"keep_top_fraction": 0.8}):
-        cfg = ServeConfig(**SMALL, **kw).validate()
+        cfg = SampleRecipe(**SMALL, **kw)
         assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, CLIPS, "bikes.mp4")
     assert src.take_stats()["frame_cache"]["hits"] == 0
     assert len(_entries(tmp_path)) == 3
@@ -517,10 +518,10 @@ def test_ray_stage_hits_its_node_local_cache(tmp_path):
 
     from v2v_server.ray_data import SampleMaker, epoch_descriptors, scan_corpus_windows
 
-    cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path)).validate()
+    cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path))
     rc = scan_corpus_windows(str(CLIPS), cfg)
     maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels", "frames"))
-    plain = SampleMaker(ServeConfig(**SMALL).validate().to_dict(), rc.root, ("voxels", "frames"))
+    plain = SampleMaker(ServeConfig(**SMALL).to_dict(), rc.root, ("voxels", "frames"))
 
     def rows(m, epoch):
         return {str(r["sample_id"][0]): r["voxels"].tobytes() + r["frames"].tobytes()
@@ -542,7 +543,7 @@ def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
     from v2v_server.videos import frame_cache
     from v2v_wire.ids import parse_sample_id
 
-    cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path)).validate()
+    cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path))
     rc = scan_corpus_windows(str(CLIPS), cfg)
     (d,) = [d for d in epoch_descriptors(rc, 0) if d["video"] == "bikes.mp4"]
     entries = _json.loads(d["entries"])
@@ -559,7 +560,7 @@ def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
 
     monkeypatch.setattr(frame_cache.CachedVideo, "read", counted)
     maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels",))
-    plain = SampleMaker(ServeConfig(**SMALL).validate().to_dict(), rc.root, ("voxels",))
+    plain = SampleMaker(ServeConfig(**SMALL).to_dict(), rc.root, ("voxels",))
 
     def rows(m):
         return {str(r["sample_id"][0]): r["voxels"].tobytes() for r in m.video_rows("bikes.mp4", 0, first)}
@@ -570,7 +571,7 @@ def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
     assert stats["stored"] == 1 and stats["not_stored"]["incomplete"] == 0, stats
     assert rows(maker) == want
     assert maker.source.take_stats()["frame_cache"]["hits"] == 1
-    assert replay["read"] == cfg.window_stride + 1 < replay["stored"], replay  # window 0 ends at the next one's first frame
+    assert replay["read"] == cfg.recipe.windows.window_stride + 1 < replay["stored"], replay  # window 0 ends at the next one's first frame
 
 
 def test_tar_member_entries_follow_their_shard(tmp_path):
@@ -583,7 +584,7 @@ def test_tar_member_entries_follow_their_shard(tmp_path):
     with tarfile.open(shard, "w") as t:
         t.add(CLIPS / "bikes.mp4", arcname="a.mp4")
     _settle()
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     src = _cached(shard.parent, tmp_path / "cache")
     want = _samples(cfg, shard.parent, "s.tar/a.mp4")
     assert _samples(cfg, src, "s.tar/a.mp4") == want and _samples(cfg, src, "s.tar/a.mp4") == want
@@ -621,7 +622,7 @@ def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, mo
     rebuilt from its spec), each video's state from that video's counters alone."""
     from v2v_server.ops import warm
 
-    cfg = ServeConfig(**SMALL, workers=1).validate()
+    cfg = ServeConfig(**SMALL, workers=1)
     src = _cached(CLIPS, tmp_path)
     videos = ["bikes.mp4", "webvid_like_596x336.mp4"]
 

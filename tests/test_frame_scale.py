@@ -16,7 +16,8 @@ import pytest
 from harness.corpus import write_size_change_video, write_video
 from tests import sample_hashes
 from v2v_server.ops.config import ServeConfig
-from v2v_server.samples.make import kept_rows, video_frames, video_samples
+from v2v_server.samples.recipe import SampleRecipe
+from v2v_server.samples.make import video_frames, video_samples
 from v2v_server.videos.corpus import check_video
 from v2v_server.videos.decode import decode_luma, iter_luma, open_video
 from v2v_server.videos.source import open_source
@@ -55,30 +56,30 @@ def _expected(path: Path, height: int, keep: float, n: int) -> list:
 def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video, height):
     """The pass the workers, ``--warm-cache`` and the Ray engine read (``video_frames``) gives
     INTER_AREA of the full-range frame (down and up), then the kept rows; uint16 stays uint16."""
-    cfg = ServeConfig(**SMALL, frame_height=height).validate()
+    cfg = SampleRecipe(**SMALL, frame_height=height)
     want = _expected(corpus / video, height, cfg.keep_top_fraction, 12)
     with video_frames(cfg, corpus, video) as fp:
         got = [expand(codes).copy() for codes, expand in (next(fp.frames) for _ in range(12))]
-    assert got[0].shape == (kept_rows(cfg, height), want[0].shape[1])
+    assert got[0].shape == (cfg.windows.kept_rows(height), want[0].shape[1])
     assert got[0].dtype == want[0].dtype == (np.uint16 if video == "ten_bit.mkv" else np.uint8)
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
     c, s, _ = open_video(corpus / video)  # the readers outside the sample pass (evaluation, benches)
-    first = next(decode_luma(c, s, lambda h: kept_rows(cfg, h), height)).copy()
+    first = next(decode_luma(c, s, cfg.windows.kept_rows, height)).copy()
     c.close()
     np.testing.assert_array_equal(first, want[0])
 
 
 def test_frame_height_zero_is_the_decoded_frame(corpus):
-    cfg = ServeConfig(**SMALL).validate()
+    cfg = SampleRecipe(**SMALL)
     assert cfg.frame_height == 0
-    plain = [g[: kept_rows(cfg, g.shape[0])].copy() for _, g in zip(range(5), iter_luma(corpus / "bikes.mp4"))]
+    plain = [g[: cfg.windows.kept_rows(g.shape[0])].copy() for _, g in zip(range(5), iter_luma(corpus / "bikes.mp4"))]
     with video_frames(cfg, corpus, "bikes.mp4") as fp:
         got = [expand(codes).copy() for codes, expand in (next(fp.frames) for _ in range(5))]
     for a, b in zip(got, plain):
         np.testing.assert_array_equal(a, b)
-    assert ServeConfig(**SMALL, frame_height=0).fingerprint() == cfg.fingerprint() != \
-        ServeConfig(**SMALL, frame_height=120).fingerprint()
+    assert SampleRecipe(**SMALL, frame_height=0).fingerprint() == cfg.fingerprint() != \
+        SampleRecipe(**SMALL, frame_height=120).fingerprint()
 
 
 @pytest.mark.parametrize("fmt", ["raw", "zstd"])
@@ -86,9 +87,9 @@ def test_cached_samples_equal_decoded_with_scaling(corpus, tmp_path, fmt):
     """Every output, cold and warm, equal to the decoded samples under a frame_height."""
     src = open_source(str(corpus), cache_dir=str(tmp_path), frame_cache_gb=1.0, frame_cache_format=fmt)
     for video, height in (("bikes.mp4", 100), ("ten_bit.mkv", 72)):
-        cfg = ServeConfig(**SMALL, frame_height=height).validate()
+        cfg = SampleRecipe(**SMALL, frame_height=height)
         decoded = _samples(cfg, corpus, video)
-        assert decoded and decoded != _samples(ServeConfig(**SMALL).validate(), corpus, video)
+        assert decoded and decoded != _samples(SampleRecipe(**SMALL), corpus, video)
         assert _samples(cfg, src, video) == decoded, (video, "cold")
         assert _samples(cfg, src, video) == decoded, (video, "warm")
     stats = src.take_stats()["frame_cache"]
@@ -98,7 +99,7 @@ def test_cached_samples_equal_decoded_with_scaling(corpus, tmp_path, fmt):
 def test_entry_of_one_frame_height_is_not_hit_at_another(corpus, tmp_path):
     src = open_source(str(corpus), cache_dir=str(tmp_path), frame_cache_gb=1.0)
     for height in (100, 120, 0, 100):
-        cfg = ServeConfig(**SMALL, frame_height=height).validate()
+        cfg = SampleRecipe(**SMALL, frame_height=height)
         assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, corpus, "bikes.mp4"), height
     stats = src.take_stats()["frame_cache"]
     assert stats["stored"] == 3 and stats["hits"] == 1 and stats["misses"]["absent"] == 3, stats
@@ -112,10 +113,10 @@ def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
     d.mkdir()
     write_size_change_video(d / "same_aspect.mpg", 14, 20, size1=(96, 80), size2=(144, 120))
     write_size_change_video(d / "other_aspect.mpg", 14, 20, size1=(96, 80), size2=(80, 80))
-    cfg = ServeConfig(sequence_length=4, num_bins=2, crop_size=16, max_samples_per_video=3, keep_top_fraction=1.0,
-                      frame_height=40).validate()
+    cfg = SampleRecipe(sequence_length=4, num_bins=2, crop_size=16, max_samples_per_video=3, keep_top_fraction=1.0,
+                      frame_height=40)
     for name, fails in (("same_aspect.mpg", False), ("other_aspect.mpg", True)):
-        v = check_video(cfg, d, name)
+        v = check_video(cfg.windows, d, name)
         stats: dict = {}
         served = list(video_samples(cfg, d, name, 0, ("voxels",), stats=stats))
         assert bool(v.get("failed_windows")) == fails == bool(stats.get("failed")), (name, v, stats)
@@ -128,7 +129,7 @@ def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
                                          (100, "frame_height 100 keeps 54 rows")])
 def test_bad_frame_height_names_the_key(value, words):
     with pytest.raises(ValueError, match=words):
-        ServeConfig(frame_height=value).validate()
+        SampleRecipe(frame_height=value)
 
 
 def test_v2v_serve_bad_frame_height_is_a_configuration_error():
@@ -152,7 +153,7 @@ def test_served_samples_under_frame_height_are_the_recipes(corpus):
 
     flags = ["--sequence-length", "4", "--num-bins", "2", "--crop-size", "32", "--max-samples-per-video", "3",
              "--frame-height", "100", "--seed", "5"]
-    cfg = ServeConfig(**SMALL, frame_height=100, seed=5).validate()
+    cfg = SampleRecipe(**SMALL, frame_height=100, seed=5)
     want = {key.sample_id(1): arrays for key, arrays, _ in video_samples(cfg, corpus, "bikes.mp4", 0, ("voxels", "frames"))}
     got = dict(served_samples(["--videos", str(corpus), "--workers", "2", *flags, "--batch-size", "2",
                                "--outputs", "voxels,frames", "--epochs", "1"]))
@@ -160,5 +161,5 @@ def test_served_samples_under_frame_height_are_the_recipes(corpus):
     for sid, arrays in want.items():
         for k in arrays:
             np.testing.assert_array_equal(got[sid][k].reshape(arrays[k].shape), arrays[k], err_msg=f"{sid} {k}")
-    plain = next(video_samples(ServeConfig(**SMALL, seed=5).validate(), corpus, "bikes.mp4", 0, ("frames",)))
+    plain = next(video_samples(SampleRecipe(**SMALL, seed=5), corpus, "bikes.mp4", 0, ("frames",)))
     assert not np.array_equal(plain[1]["frames"], want[plain[0].sample_id(1)]["frames"])

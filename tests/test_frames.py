@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import av
 import numpy as np
 import pytest
+from v2v_server.samples.recipe import SampleRecipe
 
 from v2v_server.videos.decode import (choose_video_stream, is_full_range, iter_luma, open_video, range_table,
                               to_uint8)
@@ -160,7 +161,7 @@ def test_ten_bit_clip_feeds_the_core_at_full_precision(tmp_path, monkeypatch):
     seen = []
     real = samples.simulate_voxels
     monkeypatch.setattr(samples, "simulate_voxels", lambda frames, *a, **k: (seen.append(frames.copy()), real(frames, *a, **k))[1])
-    cfg = ServeConfig(sequence_length=2, num_bins=2, crop_size=32, keep_top_fraction=1.0, pause_enabled=False).validate()
+    cfg = SampleRecipe(sequence_length=2, num_bins=2, crop_size=32, keep_top_fraction=1.0, pause_enabled=False)
     out = list(samples.video_samples(cfg, tmp_path, "deep.mkv", 0, ("voxels", "frames")))
     assert len(out) == 1 and seen[0].dtype == np.uint16
     levels_ok(seen[0], top=65535)

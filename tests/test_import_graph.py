@@ -101,18 +101,21 @@ def test_wire_package_stands_alone():
 
 
 #: The server's stage folders, lowest first: each imports only the stages before it (and
-#: ``v2v_server.checks`` and ``v2v_server.faults``, below all of them); annotations naming a higher stage's types stay
-#: under ``if TYPE_CHECKING:``. ``ops`` (settings, metrics, logs) sits below the ``service`` that
-#: uses them; the command that wires everything, ``v2v-serve``, is above every stage.
+#: ``v2v_server.checks``, ``v2v_server.faults`` and ``v2v_server.settings``, below all of them),
+#: at run time and for annotations alike (an ``if TYPE_CHECKING:`` import counts). ``ops``
+#: (settings, metrics, logs) sits below the ``service`` that uses them; the command that wires
+#: everything, ``v2v-serve``, is above every stage.
 STAGES = ("flow", "videos", "simulation", "samples", "delivery", "ops", "service")
 COMMANDS = {"v2v_server.ops.cli"}
 #: what a stage may import from v2v_server besides the stages below it (the package itself runs
 #: on any import of a module in it)
-BELOW_ALL = {"v2v_server", "v2v_server.checks", "v2v_server.faults"}
+BELOW_ALL = {"v2v_server", "v2v_server.checks", "v2v_server.faults", "v2v_server.settings"}
+#: names a parameter carrying the whole server configuration goes by
+CONFIG_NAMES = {"cfg", "config", "cfg_dict", "serve_config"}
 
 
 def test_each_stage_imports_only_the_stages_below_it():
-    graph = import_graph(runtime_only=True)
+    graph = import_graph()  # TYPE_CHECKING imports included: no stage names a higher stage's type
     bad = []
     for n, deps in graph.items():
         parts = n.split(".")
@@ -126,5 +129,28 @@ def test_each_stage_imports_only_the_stages_below_it():
     assert not bad, bad
 
 
+def functions_taking_the_configuration() -> list:
+    """``module:function`` of every function or method of the stages below ``ops`` with a
+    parameter named as the whole configuration (``CONFIG_NAMES``) or annotated ``ServeConfig``:
+    those stages take their own settings (``python -m tests.test_import_graph`` prints them)."""
+    out = []
+    for stage in STAGES[:STAGES.index("ops")]:
+        for path in sorted((ROOT / "v2v_server" / stage).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    continue
+                args = node.args.posonlyargs + node.args.args + node.args.kwonlyargs
+                if any(a.arg in CONFIG_NAMES or "ServeConfig" in ast.unparse(a.annotation or ast.Constant(""))
+                       for a in args):
+                    out.append(f"{_module(path)}:{node.name}")
+    return out
+
+
+def test_no_stage_below_ops_takes_the_configuration():
+    assert functions_taking_the_configuration() == []
+
+
 if __name__ == "__main__":
     print(find_cycle(import_graph()) or "no cycle")
+    taking = functions_taking_the_configuration()
+    print(f"{len(taking)} function(s) below ops taking the configuration" + "".join(f"\n  {f}" for f in taking))

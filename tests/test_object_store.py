@@ -194,7 +194,7 @@ def test_wrong_credentials_and_missing_bucket_stop_the_server_naming_the_url(sto
 def _source(store, tmp_path, url, **kw) -> StoreSource:
     cfg = ServeConfig(videos=url, storage_options={"endpoint_url": store.endpoint, "key": store.key,
                                                    "secret": store.secret}, cache_dir=str(tmp_path / "cache"),
-                      **kw).validate()
+                      **kw)
     return source_from_config(cfg)
 
 

@@ -29,7 +29,7 @@ pytestmark = pytest.mark.timeout(60, func_only=True)  # the test bodies; Azurite
 
 
 def _cfg() -> ServeConfig:
-    return ServeConfig(sequence_length=4, crop_size=64, max_samples_per_video=2).validate()
+    return ServeConfig(sequence_length=4, crop_size=64, max_samples_per_video=2)
 
 
 @pytest.fixture(scope="module", params=sorted(STORES))
@@ -71,7 +71,7 @@ def _version(store, key: str) -> str:
 
 
 def test_store_lists_the_clips_with_sizes_and_versions(store, url, tmp_path):
-    cfg = ServeConfig(videos=url, storage_options=store.storage_options(), state_dir=str(tmp_path)).validate()
+    cfg = ServeConfig(videos=url, storage_options=store.storage_options(), state_dir=str(tmp_path))
     src = source_from_config(cfg)
     assert isinstance(src, StoreSource)
     src.check()  # the bucket (container) is reached

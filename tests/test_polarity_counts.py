@@ -12,6 +12,7 @@ from tests.conftest import read_luma_clip
 from v2v_client import V2VStreamDataset
 from v2v_wire.ids import parse_sample_id
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
 from v2v_server.simulation.kernel import noise_field
 from v2v_server.simulation.simulate import (SensorParams, log_intensity_lut, polarity_counts, simulate_voxels)
@@ -75,9 +76,9 @@ def test_counts_saturate_at_255_and_bins_sum_their_frame_pairs():
         polarity_counts(np.ones((3, 1, 1)), np.ones((3, 1, 1)), 1, 2)
 
 
-def recipe(**kw) -> ServeConfig:
-    return ServeConfig(sequence_length=L, num_bins=B, crop_size=CROP, max_samples_per_video=MAXW, seed=SEED,
-                       **kw).validate()
+def recipe(**kw) -> SampleRecipe:
+    return SampleRecipe(sequence_length=L, num_bins=B, crop_size=CROP, max_samples_per_video=MAXW, seed=SEED,
+                       **kw)
 
 
 def test_opt_in_samples_keep_the_default_outputs_bit_identical(videos):
@@ -133,11 +134,12 @@ def test_ray_rows_carry_the_same_counts(videos):
     from v2v_server.ray_data import scan_corpus_windows, v2v_dataset
 
     cfg = recipe()
+    scfg = ServeConfig.from_dict(cfg.recipe_dict())  # the Ray engine takes the whole configuration
     ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
     try:
         ray.data.DataContext.get_current().enable_progress_bars = False
-        corpus = scan_corpus_windows(videos, cfg)
-        rows = v2v_dataset(corpus, cfg, epoch=0, outputs=("polarity_counts",), concurrency=1).take_all()
+        corpus = scan_corpus_windows(videos, scfg)
+        rows = v2v_dataset(corpus, scfg, epoch=0, outputs=("polarity_counts",), concurrency=1).take_all()
     finally:
         ray.shutdown()
     assert rows and all(set(r) >= {"polarity_counts"} and "voxels" not in r for r in rows)
@@ -157,11 +159,11 @@ def test_polarity_counts_not_offered_under_refinement_or_nonidealities():
     and the Ray engine refuses the column before any video is read."""
     from v2v_server.ops.config import ServeConfig
 
-    cfg = ServeConfig.from_dict({"refine": "uniform:2"}, source="test").validate()
+    cfg = ServeConfig.from_dict({"refine": "uniform:2"}, source="test")
     assert "polarity_counts" not in cfg.outputs and "voxels" in cfg.outputs
-    cfg = ServeConfig.from_dict({"nonidealities": {"dead_fraction": 0.01}}, source="test").validate()
+    cfg = ServeConfig.from_dict({"nonidealities": {"dead_fraction": 0.01}}, source="test")
     assert "polarity_counts" not in cfg.outputs
     with pytest.raises(ValueError, match="outputs: polarity_counts"):
         ServeConfig.from_dict({"refine": "uniform:2", "outputs": ["voxels", "polarity_counts"]},
-                              source="test").validate()
-    assert "polarity_counts" in ServeConfig().validate().outputs
+                              source="test")
+    assert "polarity_counts" in SampleRecipe().outputs

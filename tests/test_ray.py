@@ -27,7 +27,7 @@ WINDOW = L * B + 1
 
 def layout(**kw) -> ServeConfig:
     kw = {"max_samples_per_video": MAXW, **kw}
-    return ServeConfig(sequence_length=L, num_bins=B, crop_size=CROP, seed=SEED, **kw).validate()
+    return ServeConfig(sequence_length=L, num_bins=B, crop_size=CROP, seed=SEED, **kw)
 
 
 def serve_args(videos, *extra):

@@ -6,6 +6,7 @@ import pytest
 
 from v2v_server.samples import make as samples_mod
 from v2v_server.ops.config import ServeConfig, load_config
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
 from v2v_server.samples.make import pause_offsets, sample_rng, video_samples
 from v2v_wire.ids import SampleKey
@@ -16,7 +17,7 @@ def small_cfg(**kw):
     montage bikes.mp4 and synthetic step clips; windows inside shots are tests/test_shots.py's)."""
     base = dict(sequence_length=4, num_bins=5, crop_size=64, max_samples_per_video=3, seed=3, shot_cuts="off")
     base.update(kw)
-    return ServeConfig(**base).validate()
+    return SampleRecipe(**base)
 
 
 def collect(cfg, videos, name, epoch=0, outputs=("voxels", "frames", "flow"), skip=()):
@@ -135,7 +136,7 @@ def test_config_yaml_and_flags(tmp_path):
     cfg = load_config(str(p), {"sequence_length": 9, "batch_size": None})
     assert (cfg.num_bins, cfg.sequence_length, cfg.batch_size) == (3, 9, 12)
     assert cfg.ranges.threshold == (0.1, 0.2) and cfg.outputs == ("voxels", "flow")
-    assert cfg.frames_per_sample == 9 * 3 + 1
+    assert cfg.recipe.frames_per_sample == 9 * 3 + 1
     for text, field in [("num_bins: 0\n", "num_bins"), ("crop_size: -5\n", "crop_size"),
                         ("ranges:\n  threshold: [-1, 2]\n", "threshold"), ("outputs: [events]\n", "outputs"),
                         ("hflip_prob: 2\n", "hflip_prob"), ("flow_preset: slow\n", "flow_preset"),
@@ -213,7 +214,7 @@ def test_crops_per_window_ids_content_and_resume(videos):
     arrays = {sid: a for sid, a, _ in got}
     corners = {(metas[s]["crop_y"], metas[s]["crop_x"], metas[s]["pos_threshold"]) for s in ids}
     assert len(corners) == 6  # every crop drew its own choices
-    assert all(metas[s]["src_start_frame"] == (0 if s.split("#")[1].startswith("0") else cfg.window_stride)
+    assert all(metas[s]["src_start_frame"] == (0 if s.split("#")[1].startswith("0") else cfg.windows.window_stride)
                for s in ids)
     assert not np.array_equal(arrays["bikes.mp4#0.0"]["frames"], arrays["bikes.mp4#0.1"]["frames"])
     # one crop made alone (a replacement worker skips the samples already received)
@@ -271,7 +272,7 @@ def test_crops_per_window_config_validation():
 def test_crop_cut_slices_as_crop_frame(flip, x):
     from v2v_server.samples.make import _CropCut, crop_frame, plan_window
 
-    cfg = ServeConfig(seed=2).validate()
+    cfg = SampleRecipe(seed=2)
     codes = np.random.default_rng(x).integers(0, 256, (181, 596)).astype(np.uint8)
     plan = plan_window(cfg, 0, "v.mp4#0", 0, codes.shape)
     plan.crop_x, plan.flip = x, flip
@@ -295,10 +296,10 @@ def test_windows_step_200_frames_and_share_their_boundary_frame(tmp_path):
     import av
 
     cfg = small_cfg(sequence_length=2, num_bins=2, pause_enabled=False, hflip_prob=0.0, max_samples_per_video=10)
-    stride = cfg.window_stride
+    stride = cfg.windows.window_stride
     assert (cfg.frames_per_sample, stride) == (5, 4)
-    assert [cfg.windows_in(n) for n in (4, 5, 8, 9, 13)] == [0, 1, 1, 2, 3]
-    assert ServeConfig().validate().windows_in(401) == 2 and ServeConfig().validate().windows_in(400) == 1
+    assert [cfg.windows.windows_in(n) for n in (4, 5, 8, 9, 13)] == [0, 1, 1, 2, 3]
+    assert SampleRecipe().windows.windows_in(401) == 2 and SampleRecipe().windows.windows_in(400) == 1
     path = tmp_path / "steps.mp4"
     with av.open(str(path), "w") as c:  # frame i is uniformly grey level 10 + 15 i
         s = c.add_stream("mpeg4", rate=25)

@@ -45,9 +45,9 @@ def corpus(tmp_path, videos, copies=1):
 
 
 def expected_ids(root):
-    cfg = ServeConfig(sequence_length=L, crop_size=CROP, max_samples_per_video=WINDOWS, workers=1).validate()
+    cfg = ServeConfig(sequence_length=L, crop_size=CROP, max_samples_per_video=WINDOWS, workers=1)
     vids = [p.as_posix() for p in scan_corpus(root, cfg.video_extensions)[0]]
-    return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg, root, vids) for k in range(r["windows"]))
+    return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg.recipe.windows, root, vids) for k in range(r["windows"]))
 
 
 def read_all(ds, limit_s=120.0):
@@ -69,8 +69,8 @@ def test_shard_spec_is_checked_and_names_the_field():
         with pytest.raises(ValueError, match="shard"):
             parse_shard(bad)
     with pytest.raises(ValueError, match="shard"):
-        ServeConfig(shard="3/2").validate()
-    assert ServeConfig(shard="1/ 4").validate().shard == "1/4"
+        ServeConfig(shard="3/2")
+    assert ServeConfig(shard="1/ 4").shard == "1/4"
 
 
 def test_shards_partition_any_corpus_and_the_hash_is_stable_across_processes():

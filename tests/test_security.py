@@ -48,8 +48,8 @@ def test_non_loopback_bind_needs_keys_or_insecure(tmp_path):
     assert is_loopback("tcp://127.0.0.1:5555") and is_loopback("tcp://localhost:1") and is_loopback("ipc:///tmp/x")
     assert not is_loopback("tcp://0.0.0.0:5555") and not is_loopback("tcp://*:5555")
     with pytest.raises(ValueError, match="not a loopback address"):
-        ServeConfig(bind="tcp://0.0.0.0:5555").validate()
-    assert ServeConfig(bind="tcp://0.0.0.0:5555", insecure=True).validate().insecure
+        ServeConfig(bind="tcp://0.0.0.0:5555")
+    assert ServeConfig(bind="tcp://0.0.0.0:5555", insecure=True).insecure
     # the CLI refuses before binding anything
     out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--bind", "tcp://0.0.0.0:5999"],
                          capture_output=True, text=True, timeout=60)

@@ -1,4 +1,4 @@
-"""Declarative configuration (v2v_server/ops/settings.py): flags derived from the models, YAML with
+"""Declarative configuration (v2v_server/settings.py): flags derived from the models, YAML with
 YAML 1.2 floats, field-named errors, and the reference page kept current."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from typing import Optional
 
 import pytest
 
-from v2v_server.ops.config import SampleRecipe, ServeConfig, ServingSettings, load_config
-from v2v_server.ops.settings import add_flags, flag_values, load_yaml, reference_markdown, setting
+from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config
+from v2v_server.settings import add_flags, documented, flag_values, load_yaml, reference_markdown, setting
 from v2v_server.checks import check_choice, check_float, check_int, check_prob
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,15 +44,13 @@ def test_flags_come_from_the_model():
 
 def test_every_serve_key_is_a_flag_or_yaml_only_and_the_reference_lists_it():
     p = argparse.ArgumentParser()
-    add_flags(p, SampleRecipe)
-    add_flags(p, ServingSettings)
+    for part in (SampleRecipe, DeliveryPolicy, ServingSettings):
+        add_flags(p, part)
     dests = {a.dest for a in p._actions}
     yaml_only = {"ranges", "nonidealities", "degrade_dynamic_range", "video_extensions", "storage_options"}
-    from dataclasses import fields
-
-    names = {f.name for f in fields(ServeConfig)}
+    names = {f.name for f in documented(ServeConfig)}
     assert names - dests == yaml_only
-    md = reference_markdown(ServeConfig, (SampleRecipe, ServingSettings))
+    md = reference_markdown(ServeConfig, (SampleRecipe, DeliveryPolicy, ServingSettings))
     assert all(f"| `{n}` |" in md for n in names)
 
 
@@ -97,9 +95,9 @@ def test_validators_name_the_field():
 
 def test_the_recipe_is_separate_from_serving():
     cfg = load_config(None, {"seed": 3, "workers": 1, "crop_size": 64})
-    r = cfg.recipe()
+    r = cfg.recipe
     assert type(r) is SampleRecipe and r.seed == 3 and r.crop_size == 64 and not hasattr(r, "workers")
-    assert r.frames_per_sample == cfg.frames_per_sample == 201
+    assert r.frames_per_sample == cfg.recipe.frames_per_sample == 201
 
 
 def test_trainer_config_is_declared_once_and_its_reference_is_current():
@@ -125,7 +123,7 @@ def test_workers_get_the_recipe_only():
     w = worker_config(cfg)
     assert set(w) == {"recipe", "log_format"} and "workers" not in w["recipe"] and "lease_s" not in w["recipe"]
     r = SampleRecipe.recipe_from_dict(w["recipe"])
-    assert r == cfg.recipe() and r.seed == 7 and r.crops_per_window == 2
+    assert r == cfg.recipe and r.seed == 7 and r.crops_per_window == 2
     with pytest.raises(ValueError, match="worker recipe: unknown key"):
         SampleRecipe.recipe_from_dict({**w["recipe"], "workers": 3}, source="worker recipe")
 

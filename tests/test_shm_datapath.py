@@ -16,6 +16,7 @@ from v2v_server.service.datapath import (BatchAssembler, BatchDir, SlotRing, cre
 from v2v_wire.protocol import ProtocolError, encode_arrays
 
 from .conftest import video_dir
+from v2v_server.samples.recipe import SampleRecipe
 
 L, NB, S = 3, 2, 8
 
@@ -143,7 +144,7 @@ def test_a_worker_that_dies_before_mapping_its_ring_leaks_nothing(tmp_path, monk
     from v2v_server.service.worker import worker_config
 
     monkeypatch.setenv("V2V_SHM_DIR", str(tmp_path))
-    cfg = ServeConfig(sequence_length=L, num_bins=NB, crop_size=S).validate()
+    cfg = SampleRecipe(sequence_length=L, num_bins=NB, crop_size=S)
     pool = WorkerPool(worker_config(cfg), str(tmp_path), "ipc:///nonexistent", 1, target=_die_before_mapping)
     pool.start()
     first = next(iter(pool.workers.values()))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.samples.make import video_frames, video_samples
 from v2v_server.videos import frames as frames_mod
@@ -31,7 +32,7 @@ def _cuts(frames) -> list:
 
 @pytest.mark.parametrize("clip", sorted(LABELLED))
 def test_detector_finds_the_labelled_cuts(clip):
-    r = check_video(ServeConfig(shot_cuts="off").validate(), SAMPLE_VIDEOS, clip)
+    r = check_video(SampleRecipe(shot_cuts="off").windows, SAMPLE_VIDEOS, clip)
     assert r["cuts"] == LABELLED[clip]
 
 
@@ -71,7 +72,7 @@ def test_layout_places_windows_inside_shots():
 
 
 def test_served_windows_never_span_a_cut():
-    cfg = ServeConfig(sequence_length=8, max_samples_per_video=20).validate()  # 41-frame windows
+    cfg = SampleRecipe(sequence_length=8, max_samples_per_video=20)  # 41-frame windows
     clip = "webvid_like_596x336.mp4"
     cuts = LABELLED[clip]
     stats: dict = {}
@@ -84,24 +85,24 @@ def test_served_windows_never_span_a_cut():
     ids = [m["sample_id"] for m in metas]
     assert [parse_sample_id(i).window for i in ids] == list(range(len(ids)))  # 0 .. n - 1
     # the same windows with shot_cuts off span cuts, as the authors' loader's do
-    off = ServeConfig(sequence_length=8, max_samples_per_video=20, shot_cuts="off").validate()
+    off = SampleRecipe(sequence_length=8, max_samples_per_video=20, shot_cuts="off")
     spans = [m["src_start_frame"] for _, _, m in video_samples(off, SAMPLE_VIDEOS, clip, 0, ("frames",))]
     assert spans == [40 * k for k in range(len(spans))]
     assert any(s < c <= s + 40 for s in spans for c in cuts)
 
 
 def test_montages_give_no_window_and_check_says_why():
-    cfg = ServeConfig().validate()
-    r = check_video(cfg, SAMPLE_VIDEOS, "bikes.mp4")
+    cfg = SampleRecipe()
+    r = check_video(cfg.windows, SAMPLE_VIDEOS, "bikes.mp4")
     assert not r["usable"] and r["dropped"] == 5
     assert "5 shot cut(s): every shot is shorter than one window of 201 frames" in r["reason"]
-    table = format_check([r, check_video(cfg, SAMPLE_VIDEOS, "bbb_camera_596x336.mp4")], [])
+    table = format_check([r, check_video(cfg.windows, SAMPLE_VIDEOS, "bbb_camera_596x336.mp4")], [])
     assert "5 cut(s) at frame(s) 30, 76, 137, 187, 242" in table and "one shot" in table
     assert "5 shot cut(s) found, 5 window(s) removed by cuts" in table
 
 
 def test_cached_epoch_reuses_the_stored_cuts(tmp_path, monkeypatch):
-    cfg = ServeConfig(sequence_length=8, max_samples_per_video=20).validate()
+    cfg = SampleRecipe(sequence_length=8, max_samples_per_video=20)
     src = LocalSource(SAMPLE_VIDEOS, cache_dir=str(tmp_path), frame_cache_gb=1.0)
     clip = "webvid_like_596x336.mp4"
     first = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",))]
@@ -157,8 +158,8 @@ def test_list_file_ranges_become_segments_and_bad_ones_are_named(segment_corpus)
                       "bikes.mp4"]
     assert dict(rejected) == {"bikes.mp4#t=5,3": f"listed in {lst}: time range 5-3 s is reversed",
                               "bikes.mp4#t=4,4": f"listed in {lst}: time range 4-4 s is empty"}
-    cfg = ServeConfig(sequence_length=8).validate()
-    beyond = check_video(cfg, LocalSource(root, video_list=str(lst)), "bikes.mp4#t=30,40")
+    cfg = SampleRecipe(sequence_length=8)
+    beyond = check_video(cfg.windows, LocalSource(root, video_list=str(lst)), "bikes.mp4#t=30,40")
     assert not beyond["usable"] and beyond["reason"] == "no frame in the time range 30-40 s (the video lasts 10 s)"
 
 
@@ -166,13 +167,13 @@ def test_a_segment_gives_the_frames_of_its_range_only(segment_corpus):
     root, lst = segment_corpus
     src = LocalSource(root, video_list=str(lst))
     whole = [f.copy() for f in iter_luma(root / "bbb_camera_596x336.mp4")]
-    cfg = ServeConfig(keep_top_fraction=1.0, shot_cuts="off").validate()
+    cfg = SampleRecipe(keep_top_fraction=1.0, shot_cuts="off")
     with video_frames(cfg, src, "bbb_camera_596x336.mp4#t=1,9.5") as fp:
         got = [expand(codes).copy() for codes, expand in fp.frames]
     assert len(got) == 213  # frames at 1.00 .. 9.48 s of a 25 fps video
     assert all(np.array_equal(g, whole[25 + i]) for i, g in enumerate(got))
     # ids are unique per segment, and samples lie inside the range (frame 0 = the range's start)
-    short = ServeConfig(sequence_length=8).validate()
+    short = SampleRecipe(sequence_length=8)
     ids = {m["sample_id"]: m["src_start_frame"] for _, _, m in
            video_samples(short, src, "bbb_camera_596x336.mp4#t=0,4", 0, ("frames",))}
     assert list(ids) == [f"bbb_camera_596x336.mp4#t=0,4#{k}" for k in range(2)]  # 100 frames: 2 windows of 41
@@ -202,19 +203,19 @@ def test_segments_of_a_tar_member_and_through_the_ray_engine(tmp_path):
     (tmp_path / clip).write_bytes((SAMPLE_VIDEOS / clip).read_bytes())
     lst = tmp_path / "list.txt"
     lst.write_text(f"s.tar/{clip} 2 6\n{clip} 2 6\ns.tar/gone.mp4 1 2\n")
-    cfg = ServeConfig(sequence_length=8, video_list=str(lst)).validate()
+    cfg = ServeConfig(sequence_length=8, video_list=str(lst))
     src = LocalSource(tmp_path, video_list=str(lst))
     videos, rejected = src.list_videos((".mp4",))
     assert videos == [f"s.tar/{clip}#t=2,6", f"{clip}#t=2,6"] and [r for r, _ in rejected] == ["s.tar/gone.mp4#t=1,2"]
 
     def frames(video):
-        with video_frames(cfg, src, video) as fp:
+        with video_frames(cfg.recipe, src, video) as fp:
             return [expand(codes).tobytes() for codes, expand in fp.frames]
 
     assert frames(videos[0]) == frames(videos[1]) and len(frames(videos[1])) == 100  # 2.00 .. 5.96 s
 
     def arrays(video):
-        return [(k.window, a["frames"].tobytes()) for k, a, _ in video_samples(cfg, src, video, 0, ("frames",))]
+        return [(k.window, a["frames"].tobytes()) for k, a, _ in video_samples(cfg.recipe, src, video, 0, ("frames",))]
 
     member, plain = arrays(videos[0]), arrays(videos[1])
     assert len(member) == len(plain) == 2  # 100 frames: two windows of 41

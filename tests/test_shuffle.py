@@ -240,7 +240,7 @@ def test_shuffle_buffer_rounds_up_to_whole_open_batches():
                                       ({"shuffle_buffer": 10 ** 6}, "shuffle_buffer")])
 def test_bad_shuffle_settings_name_the_field(kw, field):
     with pytest.raises(ValueError, match=field):
-        ServeConfig(**kw).validate()
+        ServeConfig(**kw)
     if field == "shuffle" or kw[field] < 1:
         with pytest.raises(ValueError, match=field):
             DeliveryPolicy(**kw)

@@ -17,6 +17,7 @@ from v2v_client import StreamTimeout, V2VStreamDataset
 from harness.serve import ServeProcess, free_port
 from v2v_wire.protocol import decode_arrays, pack, unpack
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.videos.corpus import check_video
 from v2v_server.videos.decode import find_videos
 
@@ -26,10 +27,10 @@ L, B, CROP, MAXW = 8, 5, 96, 3
 
 
 def expected_ids(videos):
-    cfg = ServeConfig(sequence_length=L, num_bins=B, max_samples_per_video=MAXW).validate()
+    cfg = SampleRecipe(sequence_length=L, num_bins=B, max_samples_per_video=MAXW)
     ids = set()
     for rel in find_videos(videos, (".mp4",)):
-        n = check_video(cfg, str(videos), rel.as_posix())["windows"]
+        n = check_video(cfg.windows, str(videos), rel.as_posix())["windows"]
         ids.update(f"{rel.as_posix()}#{k}" for k in range(n))
     return ids
 

@@ -18,6 +18,7 @@ from harness.serve import ServeProcess
 from v2v_client import StreamError, V2VStreamDataset, expand_flow_grid
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_server.ops.config import ServeConfig
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import parse_sample_id
 from v2v_wire.protocol import DEFAULT_OUTPUTS, is_loopback, pack, unpack
@@ -27,9 +28,9 @@ from v2v_server.service.worker import wire_arrays
 L, B, CROP, MAXW, SEED = 8, 5, 96, 2, 7
 
 
-def recipe(**kw) -> ServeConfig:
-    return ServeConfig(sequence_length=L, num_bins=B, crop_size=CROP, max_samples_per_video=MAXW, seed=SEED,
-                       **kw).validate()
+def recipe(**kw) -> SampleRecipe:
+    return SampleRecipe(sequence_length=L, num_bins=B, crop_size=CROP, max_samples_per_video=MAXW, seed=SEED,
+                       **kw)
 
 
 def serve_args(videos, *extra):

@@ -35,9 +35,9 @@ from typing import Dict, Iterable, Optional
 import numpy as np
 import torch
 
-from v2v_server.ops.config import ServingSettings
+from v2v_server.ops.config import ServeConfig
 from v2v_wire.outputs import column_outputs
-from v2v_server.ops.settings import add_flags, flag_values
+from v2v_server.settings import add_flags, flag_values
 
 from .core import Trainer
 from .data import drop_padding
@@ -55,7 +55,7 @@ def add_ray_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--serve-config", help="v2v-serve YAML config: the sample recipe and corpus (default: v2v-serve's "
                                           "defaults); the flags below override its keys")
     # the corpus, batch size and epochs are v2v-serve's keys: the same flags, from its config model
-    add_flags(g, ServingSettings, only=("videos", "batch_size", "epochs"))
+    add_flags(g, ServeConfig, only=("videos", "batch_size", "epochs"))
     g.add_argument("--num-workers", type=int, default=1, help="Ray Train ranks (default 1)")
     g.add_argument("--use-gpu", action="store_true", help="one GPU per rank")
     g.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per rank (default 1)")
@@ -341,7 +341,7 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
     from v2v_server.ray_data import scan_corpus_windows, v2v_dataset
 
     try:
-        scfg = load_serve_config(args.serve_config, flag_values(args, ServingSettings))
+        scfg = load_serve_config(args.serve_config, flag_values(args, ServeConfig))
     except (ValueError, FileNotFoundError) as e:
         log.error("--serve-config: %s", e)
         return 2

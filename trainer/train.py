@@ -15,7 +15,7 @@ import logging
 import sys
 from pathlib import Path
 
-from v2v_server.ops.settings import add_flags, flag_values
+from v2v_server.settings import add_flags, flag_values
 
 from .config import RunSettings, apply_overrides, check_types, exit_on_config_error, load_config
 from .core import Trainer, resolve_device

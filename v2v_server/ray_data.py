@@ -97,15 +97,16 @@ def count_windows(cfg: ServeConfig, root, rel: str) -> Tuple[int, Optional[str]]
     shorter than one window of 201 frames"``). A file whose packets demux but whose frames
     do not decode is found out later, while decoding, with the decoder's reason.
     """
-    if cfg.shot_cuts == "avoid" or split_segment(rel)[1]:  # windows depend on the cuts, or on the range's frames
-        r = check_video(cfg, root, rel)
+    w = cfg.recipe.windows
+    if w.avoid_cuts or split_segment(rel)[1]:  # windows depend on the cuts, or on the range's frames
+        r = check_video(w, root, rel)
         return r["windows"], (None if r["usable"] else r["reason"])
     frames, error = 0, None
     try:
         with source_from_spec(root).open(rel) as path:
             container, stream, _ = open_video(path)
             try:
-                need = cfg.frames_for(cfg.max_samples_per_video)
+                need = w.frames_for(w.max_windows)
                 for packet in container.demux(stream):
                     if packet.size:
                         frames += 1
@@ -115,7 +116,7 @@ def count_windows(cfg: ServeConfig, root, rel: str) -> Tuple[int, Optional[str]]
                 container.close()
     except Exception as e:  # a demuxing error after some packets: those packets still count
         error = e if frames == 0 else None
-    windows, _, reason = verdict(cfg, frames, None, error)
+    windows, _, reason = verdict(w, frames, None, error)
     return windows, reason
 
 
@@ -131,7 +132,7 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
         NotADirectoryError: ``videos`` is a local path but not a folder.
         StoreError: the store cannot be reached or listed (naming the URL).
     """
-    cfg = config or ServeConfig().validate()
+    cfg = config or ServeConfig()
     source = source_from_config(cfg, str(videos))
     if isinstance(source, LocalSource) and not Path(source.root).is_dir():
         raise NotADirectoryError(f"videos {source.root}: not a folder")
@@ -239,7 +240,7 @@ class SampleMaker:
         stats: dict = {}
         error: Optional[str] = None
         try:
-            for key, arrays, meta in video_samples(self.cfg, self.source, video, epoch, self.outputs, skip,
+            for key, arrays, meta in video_samples(self.cfg.recipe, self.source, video, epoch, self.outputs, skip,
                                                    self.flow, stats):
                 sid = key.sample_id(kpw)
                 flags = wanted.pop(sid, None)
@@ -252,9 +253,9 @@ class SampleMaker:
                 if not wanted and not stats.get("storing"):
                     break  # the rest of the video is not read; a pass storing it into the frame cache ends whole
         except Exception as e:  # one file's failure is that file's verdict, never the job's death
-            error = pass_verdict(self.cfg, stats, e)
+            error = pass_verdict(self.cfg.recipe.windows, stats, e)
         if wanted:  # windows the file did not give: a verdict, and padding rows in their place
-            error = error or pass_verdict(self.cfg, stats) or (
+            error = error or pass_verdict(self.cfg.recipe.windows, stats) or (
                 f"{stats.get('frames', 0)} frames decoded, fewer than its packets promised")
             log.warning("skipped %s: %s", self.source.where(video), error)
             zeros = _zeros(self.cfg, self.outputs)
@@ -315,7 +316,7 @@ def v2v_dataset(
         import ray.data
     except ImportError as e:  # pragma: no cover - depends on the extra
         raise ImportError("v2v_dataset needs Ray Data: pip install 'v2v[ray]'") from e
-    cfg = config or ServeConfig().validate()
+    cfg = config or ServeConfig()
     if seed is not None:
         cfg = ServeConfig.from_dict({**cfg.to_dict(), "seed": int(seed)}, source="ray config")
     outputs = check_outputs(outputs)

@@ -17,9 +17,11 @@ from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from v2v_server.delivery.batcher import SHUFFLES, Batcher
 from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
+from v2v_server.checks import check_choice, check_float, check_int
+from v2v_server.settings import setting
 from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import OUTPUTS
-from v2v_server.delivery.schedule import EpochScheduler, Job
+from v2v_server.delivery.schedule import MAX_TASK_CRASHES, EpochScheduler, Job
 from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
 
 log = logging.getLogger("v2v.server")
@@ -27,67 +29,80 @@ log = logging.getLogger("v2v.server")
 Msg = Tuple[bytes, dict]
 
 
+#: Upper limits (a typo like ``max_credits: 100000`` is an error, not an OOM).
+MAX_CREDITS = 1024
+MAX_SHUFFLE_BUFFER = 4096
+
+
 @dataclass(frozen=True)
 class DeliveryPolicy:
-    """The delivery settings of one server.
+    """Delivery: batches, shuffling, leases, credits and epochs.
+
+    The one owner of these settings' defaults, help and checks (``docs/config.md``'s delivery
+    keys are generated from the fields made with ``setting``); ``ops.config.ServeConfig``
+    composes it, and fills the fields below that come from the sample recipe.
 
     Attributes:
-        batch_size: samples per batch (the last of an epoch may be smaller).
-        epochs: stop after this many epochs (None: unbounded).
-        lease_s, client_timeout_s, revoke_s, max_credits: see ``ledger.DeliveryLedger`` (seconds;
-            batches).
-        task_timeout_s: seconds without a sample before a task is reassigned.
-        offered: outputs this server offers.
-        max_task_crashes: see ``schedule.EpochScheduler``.
+        batch_size .. shuffle_buffer: the delivery keys (their help below; seconds; batches;
+            samples). ``lease_s``, ``client_timeout_s``, ``revoke_s``, ``max_credits``: see
+            ``ledger.DeliveryLedger``; ``shuffle``: ``"epoch"`` hands each epoch's videos out in
+            ``batcher.video_order(videos, seed, epoch)`` and spreads samples over the open
+            batches of a shuffle buffer (``batcher.Batcher``), ``"none"`` keeps the listing's
+            order and the arrival order; ``shuffle_buffer`` is rounded up to whole open batches
+            (:attr:`lanes`).
+        offered: outputs this server offers (the recipe's ``outputs``).
+        max_task_crashes: see ``schedule.EpochScheduler`` (``schedule.MAX_TASK_CRASHES``).
         crops_per_window: samples per window (ids ``path#window.crop`` when > 1, ``ids.py``).
-        shuffle: ``"epoch"``: each epoch hands the videos out in ``batcher.video_order(videos,
-            seed, epoch)`` and spreads samples over the open batches of a shuffle buffer
-            (``batcher.Batcher``); ``"none"``: the listing's order, batches in arrival order.
-        shuffle_buffer: samples the shuffle buffer holds under ``shuffle="epoch"`` (>= 1),
-            rounded up to whole open batches (:attr:`lanes`).
-        seed: draws the orders (``ServeConfig.seed``).
+        seed: draws the orders (the recipe's ``seed``).
         max_samples_per_video: windows a file gives at most per epoch (None: no bound known);
             bounds the samples an epoch can still bring before its files' first passes end.
 
     Raises:
-        ValueError: naming the field, for a ``shuffle`` not in ``batcher.SHUFFLES`` or a
-            ``shuffle_buffer`` that is not an int >= 1.
+        ValueError: naming the field, for a value out of its range (``shuffle`` not in
+            ``batcher.SHUFFLES``, ``shuffle_buffer`` not in 1..4096, ...).
     """
 
-    batch_size: int = 12
-    epochs: Optional[int] = None
-    lease_s: float = 60.0
-    client_timeout_s: float = 10.0
-    revoke_s: Optional[float] = None
-    max_credits: int = 64
-    task_timeout_s: float = 300.0
+    batch_size: int = setting(12, help="samples per batch (the last batch of an epoch may be smaller)")
+    epochs: Optional[int] = setting(None, help="end the stream after this many epochs (default: unbounded)")
+    lease_s: float = setting(60.0, help="seconds before an unacknowledged batch is sent again", flag="--lease")
+    client_timeout_s: float = setting(10.0, help="seconds of client silence before its batches go back to the queue",
+                                      flag="--client-timeout")
+    revoke_s: Optional[float] = setting(None, help="seconds a client may leave a revoke unanswered before it is "
+                                                   "dropped (default: the client timeout)", flag="--revoke-timeout")
+    max_credits: int = setting(64, help="most batches one client may hold")
+    task_timeout_s: float = setting(300.0, help="seconds a worker may send nothing on a task before the task is "
+                                                "reassigned and the worker replaced", flag="--task-timeout")
+    shuffle: str = setting("epoch", help="epoch: each epoch hands the videos out in an order drawn from (seed, "
+                                         "epoch) and each made sample joins a random open batch of the shuffle "
+                                         "buffer, so batches mix videos whatever the worker count; none: the "
+                                         "listing's order, batches in the order samples are made (docs/shuffle.md)",
+                           choices=SHUFFLES)
+    shuffle_buffer: int = setting(64, help="samples the shuffle buffer holds (shuffle: epoch), rounded "
+                                           "up to whole batches: that many samples of server memory "
+                                           "(docs/shuffle.md has their size)")
     offered: Tuple[str, ...] = OUTPUTS
-    max_task_crashes: int = 3
+    max_task_crashes: int = MAX_TASK_CRASHES
     crops_per_window: int = 1
-    shuffle: str = "none"
-    shuffle_buffer: int = 1
     seed: int = 0
     max_samples_per_video: Optional[int] = None
 
     def __post_init__(self):
-        if self.shuffle not in SHUFFLES:
-            raise ValueError(f"shuffle must be one of {list(SHUFFLES)}, got {self.shuffle!r}")
-        if isinstance(self.shuffle_buffer, bool) or not isinstance(self.shuffle_buffer, int) \
-                or self.shuffle_buffer < 1:
-            raise ValueError(f"shuffle_buffer must be an int >= 1 (samples), got {self.shuffle_buffer!r}")
+        check_int("batch_size", self.batch_size, 1)
+        if self.epochs is not None:
+            check_int("epochs", self.epochs, 1)
+        for name in ("lease_s", "client_timeout_s", "task_timeout_s"):
+            object.__setattr__(self, name, check_float(name, getattr(self, name)))
+        if self.revoke_s is not None:
+            object.__setattr__(self, "revoke_s", check_float("revoke_s", self.revoke_s))
+        check_int("max_credits", self.max_credits, 1, MAX_CREDITS, "batches in flight per client")
+        check_choice("shuffle", self.shuffle, SHUFFLES)
+        check_int("shuffle_buffer", self.shuffle_buffer, 1, MAX_SHUFFLE_BUFFER, "samples")
 
     @property
     def lanes(self) -> int:
         """Open batches per epoch: ``ceil(shuffle_buffer / batch_size)`` when shuffling, else 1
         (arrival order)."""
         return -(-self.shuffle_buffer // self.batch_size) if self.shuffle == "epoch" else 1
-
-    @classmethod
-    def from_config(cls, cfg, max_task_crashes: int = 3) -> "DeliveryPolicy":
-        """The policy of a validated ``config.ServeConfig``."""
-        return cls(cfg.batch_size, cfg.epochs, cfg.lease_s, cfg.client_timeout_s, cfg.revoke_s, cfg.max_credits,
-                   cfg.task_timeout_s, tuple(cfg.outputs), max_task_crashes, cfg.crops_per_window, cfg.shuffle,
-                   cfg.shuffle_buffer, cfg.seed, cfg.max_samples_per_video)
 
 
 class GroupPadding:

@@ -38,6 +38,9 @@ from typing import Deque, Dict, FrozenSet, Hashable, Iterable, List, Optional, S
 from v2v_server.delivery.batcher import video_order
 from v2v_wire.ids import SampleKey, window_keys
 
+#: Crashes blamed on one sample before it fails for the epoch (the server's policy, ``core.DeliveryPolicy``).
+MAX_TASK_CRASHES = 3
+
 Consumer = Hashable
 
 
@@ -254,7 +257,7 @@ class EpochScheduler:
     Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
 
-    def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = 3,
+    def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = MAX_TASK_CRASHES,
                  lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1,
                  shuffle_seed: Optional[int] = None, max_windows: Optional[int] = None):
         self.videos, self.shuffle_seed = list(videos), shuffle_seed

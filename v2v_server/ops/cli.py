@@ -6,8 +6,8 @@ import logging
 import sys
 from typing import List, Optional
 
-from v2v_server.ops.config import SampleRecipe, ServeConfig, ServingSettings, load_config
-from v2v_server.ops.settings import add_flags, flag_values
+from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config
+from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import setup_logging
 from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
@@ -34,8 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fill this host's frame cache (frame_cache_gb > 0) with every video of the corpus or "
                         "shard, print what was stored and exit (docs/frame_cache.md)")
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
-    add_flags(p, SampleRecipe, "sample recipe")
-    add_flags(p, ServingSettings, "serving")
+    for title, part in (("sample recipe", SampleRecipe), ("delivery", DeliveryPolicy), ("serving", ServingSettings)):
+        add_flags(p, part, title)
     return p
 
 
@@ -65,13 +65,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: {e}", file=sys.stderr)
         return 2
     listing = corpus_fingerprint(videos)  # of the whole listing: shards compare it
-    index, count = cfg.shard_spec
+    index, count = cfg.serving.shard_spec
     if count > 1:
         mine = select_shard(videos, index, count)
         log.info("shard %d/%d: %d of %d video file(s)", index, count, len(mine), len(videos))
         videos = mine
     if args.check:
-        results = check_corpus(cfg, source, videos)
+        results = check_corpus(cfg.recipe.windows, source, videos, cfg.workers)
         print(format_check(results, rejected))
         if source.frame_cache is not None:
             print(cache_line(source, cfg, videos))

@@ -12,7 +12,7 @@ import multiprocessing as mp
 from typing import List, Optional, Sequence, Tuple
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.samples.make import frame_settings, video_frames, window_layout
+from v2v_server.samples.make import video_frames
 from v2v_server.videos.frames import lookup_entry
 from v2v_server.videos.source import VideoSource, source_from_spec
 
@@ -27,9 +27,9 @@ def warm_video(cfg: ServeConfig, root, rel: str) -> dict:
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
     cached = False
     try:
-        with video_frames(cfg, source, rel) as fp:
+        with video_frames(cfg.recipe, source, rel) as fp:
             cached = fp.cached
-            layout = window_layout(cfg, fp.declared)  # the frames the sample pass reads, no more
+            layout = cfg.recipe.windows.layout(fp.declared)  # the frames the sample pass reads, no more
             for i, _ in enumerate(fp.frames):
                 out["frames"] += 1
                 layout.step(i, fp.cut_at(i))
@@ -93,7 +93,7 @@ def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] 
     if cfg is None or not videos:
         return line
     hits = 0
-    settings = frame_settings(cfg)
+    settings = cfg.recipe.windows.frame_settings()
     for rel in videos:
         try:
             entry = lookup_entry(fc, source, rel, settings)[2]

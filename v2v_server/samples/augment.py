@@ -106,18 +106,19 @@ def video_thresholds(seed: int, video: str, ranges: ParamRanges) -> tuple:
     return p.pos_threshold, p.neg_threshold
 
 
-def augment_plan(cfg, epoch: int, plan) -> None:
-    """Apply the configured ablations to a freshly drawn ``samples.WindowPlan`` in place:
+def augment_plan(recipe, epoch: int, plan) -> None:
+    """Apply the ablations ``recipe`` (a ``recipe.SampleRecipe``) asks for to a freshly drawn
+    ``make.WindowPlan`` in place:
     fixed thresholds replace ``plan.params``' c+ / c-, and the degradation scale is drawn
     into ``plan.info["dynamic_range_scale"]``. Does nothing when both are off."""
-    if cfg.fixed_sensor_params:
+    if recipe.fixed_sensor_params:
         video = plan.sample_id.rsplit("#", 1)[0]
-        cp, cn = video_thresholds(cfg.seed, video, cfg.ranges)
+        cp, cn = video_thresholds(recipe.seed, video, recipe.ranges)
         plan.params = replace(plan.params, pos_threshold=cp, neg_threshold=cn)
         plan.info["fixed_sensor_params"] = True
-    deg = cfg.degrade_dynamic_range
+    deg = recipe.degrade_dynamic_range
     if deg:
-        rng = aux_rng(cfg.seed, _TAG_DEGRADE, epoch, plan.sample_id)
+        rng = aux_rng(recipe.seed, _TAG_DEGRADE, epoch, plan.sample_id)
         apply = rng.random() < deg["probability"]
         s = float(rng.uniform(*deg["scale"]))
         plan.info["dynamic_range_scale"] = s if apply else 1.0

@@ -16,23 +16,20 @@ import hashlib
 import math
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Dict, Iterable, Iterator, List, Optional, Tuple
+from typing import Dict, Iterable, Iterator, List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from v2v_server.samples.augment import augment_plan, degrade_window
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.videos.source import source_from_spec
 from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.videos.decode import to_uint8
-from v2v_server.videos.frame_cache import decode_settings
-from v2v_server.videos.frames import FramePass, kept_rows as frame_rows, open_frames
-from v2v_server.videos.shots import DETECTOR_VERSION, WindowLayout
+from v2v_server.videos.frames import FramePass, open_frames
 
-if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
-    from v2v_server.ops.config import ServeConfig
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
     """The generator for one sample, a pure function of (seed, epoch, sample_id)."""
@@ -84,36 +81,31 @@ class WindowPlan:
         return int(self.offsets[-1]) + 1
 
 
-def kept_rows(cfg: ServeConfig, height: int) -> int:
-    """Rows kept from the top of a frame of ``height`` pixels (WebVid watermark removal, ``frames.kept_rows``)."""
-    return frame_rows(cfg.keep_top_fraction, height)
-
-
-def plan_window(cfg: ServeConfig, epoch: int, sample_id: str, window: int, kept_hw: Tuple[int, int]) -> WindowPlan:
+def plan_window(recipe: SampleRecipe, epoch: int, sample_id: str, window: int, kept_hw: Tuple[int, int]) -> WindowPlan:
     """Draw the random choices of one window from its own generator (see ``sample_rng``)."""
-    rng = sample_rng(cfg.seed, epoch, sample_id)
-    n = cfg.frames_per_sample
-    if cfg.pause_enabled:
-        offsets = pause_offsets(rng, n, cfg.p_pause_when_running, cfg.p_pause_when_paused)
+    rng = sample_rng(recipe.seed, epoch, sample_id)
+    n = recipe.frames_per_sample
+    if recipe.pause_enabled:
+        offsets = pause_offsets(rng, n, recipe.p_pause_when_running, recipe.p_pause_when_paused)
     else:
         offsets = np.arange(n, dtype=np.int64)
     h, w = kept_hw
-    s = cfg.crop_size
+    s = recipe.crop_size
     scale = max(1.0, s / h, s / w)
     sh, sw = max(s, int(math.ceil(h * scale))), max(s, int(math.ceil(w * scale)))
     crop_y = int(rng.integers(0, sh - s + 1))
     crop_x = int(rng.integers(0, sw - s + 1))
-    flip = bool(rng.random() < cfg.hflip_prob)
-    params = sample_params(rng, cfg.ranges, (s, s))
+    flip = bool(rng.random() < recipe.hflip_prob)
+    params = sample_params(rng, recipe.ranges, (s, s))
     plan = WindowPlan(sample_id, window, offsets, scale, crop_y, crop_x, flip, params, rng)
-    augment_plan(cfg, epoch, plan)  # ablations (off by default), from their own generators
+    augment_plan(recipe, epoch, plan)  # ablations (off by default), from their own generators
     return plan
 
 
-def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarray:
+def crop_frame(recipe: SampleRecipe, plan: WindowPlan, luma: np.ndarray) -> np.ndarray:
     """Scale (if needed), crop and flip one kept-region luma frame -> (S, S) of the same dtype
     (uint8, or uint16 for deeper sources), a copy."""
-    s = cfg.crop_size
+    s = recipe.crop_size
     if plan.scale > 1.0:
         h, w = luma.shape
         sh, sw = max(s, int(math.ceil(h * plan.scale))), max(s, int(math.ceil(w * plan.scale)))
@@ -125,7 +117,7 @@ def crop_frame(cfg: ServeConfig, plan: WindowPlan, luma: np.ndarray) -> np.ndarr
 
 
 def make_sample(
-    cfg: ServeConfig,
+    recipe: SampleRecipe,
     plan: WindowPlan,
     window_frames: np.ndarray,
     outputs: Iterable[str],
@@ -154,23 +146,23 @@ def make_sample(
         dict with ``voxels`` (L, B, S, S) signed event counts (int8/int16/int32, the narrowest
         that holds them, for plain V2V with one frame per bin; else int32), ``frames`` uint8
         (L + 1, S, S) at voxel boundaries, ``flow`` (L, 2, S, S) in pixels from frame l to
-        l + 1 (``cfg.flow_preset``, see ``flow.py``; tracked options use every source frame
-        between the boundaries), in ``cfg.flow_dtype``, ``polarity_counts`` uint8
+        l + 1 (``recipe.flow_preset``, see ``flow.py``; tracked options use every source frame
+        between the boundaries), in ``recipe.flow_dtype``, ``polarity_counts`` uint8
         (L, 2, B, S, S) N+ and N- per bin saturating at 255 (plain V2V only) — each present
         only if asked for (dtypes and shapes: ``v2v_wire.outputs``).
     """
     outputs = set(outputs)
     seq = window_frames[plan.offsets]  # pauses repeat frames
-    step = cfg.num_bins * cfg.frames_per_bin
+    step = recipe.num_bins * recipe.frames_per_bin
     out: Dict[str, np.ndarray] = {}
     t0 = time.perf_counter()
     simulated = "voxels" in outputs or "polarity_counts" in outputs
     if simulated:
-        vox, counts = _simulate(cfg, plan, seq, fps, "polarity_counts" in outputs)
+        vox, counts = _simulate(recipe, plan, seq, fps, "polarity_counts" in outputs)
         if "voxels" in outputs:
-            if cfg.frames_per_bin > 1:
+            if recipe.frames_per_bin > 1:
                 L, _, h, w = vox.shape
-                vox = vox.reshape(L, cfg.num_bins, cfg.frames_per_bin, h, w).sum(axis=2, dtype=np.int32)
+                vox = vox.reshape(L, recipe.num_bins, recipe.frames_per_bin, h, w).sum(axis=2, dtype=np.int32)
             out["voxels"] = vox
         if counts is not None:
             out["polarity_counts"] = counts
@@ -178,13 +170,13 @@ def make_sample(
         out["frames"] = np.ascontiguousarray(to_uint8(seq[::step]))
     t1 = time.perf_counter()
     if "flow" in outputs:
-        flow = flow or FlowEstimator(cfg.flow_preset)
+        flow = flow or FlowEstimator(recipe.flow_preset)
         # pauses repeat frames: the pairs between repeats cost no tracking
         repeats = np.concatenate([[False], np.diff(plan.offsets) == 0])
         if flow_grid and flow.option.method == "tracked":
             out["flow_grid"] = flow.voxel_flow_grids(seq, step, repeats)
         else:
-            out["flow"] = flow.voxel_flows(seq, step, repeats, dtype=cfg.flow_dtype)
+            out["flow"] = flow.voxel_flows(seq, step, repeats, dtype=recipe.flow_dtype)
     if busy is not None:
         if simulated:
             busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)
@@ -193,7 +185,7 @@ def make_sample(
     return out
 
 
-def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float,
+def _simulate(recipe: SampleRecipe, plan: WindowPlan, seq: np.ndarray, fps: float,
               polarity: bool = False) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     """Voxels of one window: plain V2V, V2V with refinement, V2V with non-idealities, or
     both composed (one kernel call either way), as configured; what was used goes into
@@ -202,31 +194,31 @@ def _simulate(cfg: ServeConfig, plan: WindowPlan, seq: np.ndarray, fps: float,
 
     Raises:
         ValueError: ``polarity`` with refinement or non-idealities configured."""
-    bins = cfg.num_bins * cfg.frames_per_bin
-    if polarity and (cfg.nonidealities or cfg.refine != "off"):
+    bins = recipe.num_bins * recipe.frames_per_bin
+    if polarity and (recipe.nonidealities or recipe.refine != "off"):
         raise ValueError("polarity_counts is made by plain V2V only: serve it with refine: off and no nonidealities")
     if polarity:
         # same kernel, same draws and the same voxels; N+ and N- kept (the kernel's slower split path)
-        vox, _, (n_pos, n_neg) = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=cfg.frames_per_bin == 1,
+        vox, _, (n_pos, n_neg) = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=recipe.frames_per_bin == 1,
                                                  split=True)
         plan.info["refine"] = "off"
-        return vox, polarity_counts(n_pos, n_neg, cfg.sequence_length, cfg.num_bins)
-    if cfg.nonidealities:
+        return vox, polarity_counts(n_pos, n_neg, recipe.sequence_length, recipe.num_bins)
+    if recipe.nonidealities:
         from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
 
-        ni = NonIdealities.from_dict(cfg.nonidealities)
+        ni = NonIdealities.from_dict(recipe.nonidealities)
         vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, ni, fps=fps or 25.0, rng=plan.rng,
-                                                refine=cfg.refine)
+                                                refine=recipe.refine)
         plan.info["nonidealities"] = info["nonidealities"]
         plan.info["refine"] = info.get("refine", "off")
-    elif cfg.refine != "off":
+    elif recipe.refine != "off":
         from v2v_server.simulation.refine import simulate_voxels_refined
 
-        vox, _, info = simulate_voxels_refined(seq, plan.params, bins, cfg.refine, rng=plan.rng)
+        vox, _, info = simulate_voxels_refined(seq, plan.params, bins, recipe.refine, rng=plan.rng)
         plan.info.update(refine=info["refine"], subframes_mean=float(info["subframes_mean"]))
     else:
         # the wire's narrow dtype straight from the kernel, unless bins are summed below
-        vox, _ = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=cfg.frames_per_bin == 1)
+        vox, _ = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=recipe.frames_per_bin == 1)
         plan.info["refine"] = "off"
     return vox, None
 
@@ -254,15 +246,15 @@ class _CropCut:
     that is resampled from the full-range frame) is stored at full range as it arrives.
     """
 
-    def __init__(self, cfg: ServeConfig, key: SampleKey, plan: WindowPlan):
-        self.cfg, self.key, self.plan = cfg, key, plan
+    def __init__(self, recipe: SampleRecipe, key: SampleKey, plan: WindowPlan):
+        self.recipe, self.key, self.plan = recipe, key, plan
         self.buf: Optional[np.ndarray] = None
         self.coded: List[int] = []  # rows of buf still holding codes
         # an unscaled crop is one slice of the frame: what crop_frame cuts, without its
         # per-call overhead on each of the window's frames; rows kept as codes are flipped
         # once, all together, when the window is complete (a reversed copy per frame is 3x
         # slower than a plain one)
-        y, x, sz = plan.crop_y, plan.crop_x, cfg.crop_size
+        y, x, sz = plan.crop_y, plan.crop_x, recipe.crop_size
         self.view = (slice(y, y + sz), slice(x, x + sz))
         self.consumed = plan.consumed  # source frames it takes (read for every decoded frame)
 
@@ -270,19 +262,19 @@ class _CropCut:
         """Frame ``off`` of the window: its codes (``window_map``: they share the window's
         first map ``expand``), and ``full``, the frame at full range (needed only by a crop
         that is resampled)."""
-        cfg, plan = self.cfg, self.plan
+        recipe, plan = self.recipe, self.plan
         if plan.scale == 1.0:
             if self.buf is None:
-                self.buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), codes.dtype)
+                self.buf = np.empty((plan.consumed, recipe.crop_size, recipe.crop_size), codes.dtype)
             if window_map:
                 np.copyto(self.buf[off], codes[self.view])
                 self.coded.append(off)
             else:
-                self.buf[off] = expand(crop_frame(cfg, plan, codes))
+                self.buf[off] = expand(crop_frame(recipe, plan, codes))
             return
-        crop = crop_frame(cfg, plan, full)
+        crop = crop_frame(recipe, plan, full)
         if self.buf is None:
-            self.buf = np.empty((plan.consumed, cfg.crop_size, cfg.crop_size), crop.dtype)
+            self.buf = np.empty((plan.consumed, recipe.crop_size, recipe.crop_size), crop.dtype)
         self.buf[off] = crop
 
     def frames(self, window_expand) -> np.ndarray:
@@ -328,7 +320,7 @@ class _Window:
 
 
 def video_samples(
-    cfg: ServeConfig,
+    recipe: SampleRecipe,
     root,
     rel_path: str,
     epoch: int,
@@ -341,7 +333,7 @@ def video_samples(
     """Decode the video at ``rel_path`` of ``root`` (a corpus folder or a
     ``videos.source.VideoSource``) once, sequentially, and yield its samples.
 
-    With ``cfg.crops_per_window`` = K, each window gives K samples: K crops, each with its own
+    With ``recipe.crops_per_window`` = K, each window gives K samples: K crops, each with its own
     plan (crop, flip, pauses, sensor parameters) from its own id, cut from the same decoded
     frames as they pass (the window is never held at full size).
 
@@ -361,69 +353,35 @@ def video_samples(
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
-    with video_frames(cfg, root, rel_path) as fp:
-        yield from _samples(cfg, fp, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
+    with video_frames(recipe, root, rel_path) as fp:
+        yield from _samples(recipe, fp, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
 
 
-def video_frames(cfg: ServeConfig, root, rel_path: str):
+def video_frames(recipe: SampleRecipe, root, rel_path: str):
     """A context manager giving the ``frames.FramePass`` a sample pass reads from the video at
     ``rel_path`` of ``root`` (a folder or a ``VideoSource``): replayed from the source's frame
     cache when it holds the video, else decoded (and stored): the kept rows, the frames the
-    windows need (:func:`_windows`). ``v2v-serve --warm-cache`` reads the same pass.
+    windows need (``WindowSettings.frame_limit``). ``v2v-serve --warm-cache`` reads the same pass.
 
     Raises:
         VideoError: the file cannot be opened.
     """
-    rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated and scaled, frame)
-    return open_frames(source_from_spec(root), rel_path, rows, cfg.decode_threads, cfg.decode_fast,
-                       frame_settings(cfg), lambda declared: _frame_limit(cfg, declared), cfg.window_stride,
-                       cfg.frame_height, detect=cfg.shot_cuts == "avoid")
+    w = recipe.windows
+    return open_frames(source_from_spec(root), rel_path, w.kept_rows, w.decode_threads, w.decode_fast,
+                       w.frame_settings(), w.frame_limit, w.window_stride, w.frame_height, detect=w.avoid_cuts)
 
 
-def _frame_limit(cfg: ServeConfig, declared: int) -> int:
-    """Frames a pass may read: those of the windows the declared frame count allows; with
-    ``shot_cuts: avoid`` every declared frame (where windows lie depends on the cuts; the pass
-    ends once the last window is complete, ``WindowLayout.done``)."""
-    if cfg.shot_cuts == "avoid":
-        return declared if declared >= cfg.frames_per_sample else (1 << 62)
-    return cfg.frames_for(_windows(cfg, declared))
-
-
-def window_layout(cfg: ServeConfig, declared: int = 0) -> WindowLayout:
-    """The windows of a video whose container declares ``declared`` frames (0: unknown), as the
-    recipe places them (``shot_cuts``)."""
-    return WindowLayout(cfg.frames_per_sample, _windows(cfg, declared), cfg.shot_cuts == "avoid")
-
-
-def frame_settings(cfg: ServeConfig) -> dict:
-    """The recipe's settings that change the frames a pass reads (``frame_cache.decode_settings``):
-    what, with the corpus and the video, names a frame-cache entry."""
-    settings = decode_settings(cfg.decode_fast, cfg.keep_top_fraction, cfg.frames_per_sample, cfg.max_samples_per_video,
-                               cfg.frame_height)
-    if cfg.shot_cuts == "avoid":  # the entry holds the frames up to the last window, and the cuts this detector found
-        settings["shots"] = DETECTOR_VERSION
-    return settings
-
-
-def _windows(cfg: ServeConfig, declared: int) -> int:
-    """Windows worth decoding: whole windows only. When the container declares its frame count
-    (``declared``, 0 when it does not) the trailing partial window is not decoded (decoding is
-    the cost that matters)."""
-    n = cfg.max_samples_per_video
-    return min(n, cfg.windows_in(declared)) if declared >= cfg.frames_per_sample else n
-
-
-def _samples(cfg: ServeConfig, fp: FramePass, rel_path: str, epoch: int, outputs: Iterable[str],
+def _samples(recipe: SampleRecipe, fp: FramePass, rel_path: str, epoch: int, outputs: Iterable[str],
              skip: Iterable[SampleKey], flow: Optional[FlowEstimator], stats: Optional[dict], flow_grid: bool
              ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
     """:func:`video_samples` of the video's frames ``fp`` (decoded, or replayed from the frame cache)."""
     skip = set(skip)
-    span = cfg.frames_per_sample
-    kpw = cfg.crops_per_window
+    span = recipe.frames_per_sample
+    kpw = recipe.crops_per_window
     info = fp.info
     stats = {} if stats is None else stats
     stats.update(frames=0, windows=0, cuts=0, dropped=0, width=info.width, height=info.height, fps=info.fps)
-    layout = window_layout(cfg, fp.declared)
+    layout = recipe.windows.layout(fp.declared)
     win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
     start = 0  # its first frame
     for i, (codes, expand) in enumerate(fp.frames):  # the frames of the layout's windows at most (video_frames)
@@ -437,7 +395,7 @@ def _samples(cfg: ServeConfig, fp: FramePass, rel_path: str, epoch: int, outputs
             win.add(span - 1, codes, expand, full, stats)
             stats["windows"] += 1
             for key, plan, frames in win.finish():
-                arrays = make_sample(cfg, plan, degrade_window(plan, frames), outputs, flow, info.fps,
+                arrays = make_sample(recipe, plan, degrade_window(plan, frames), outputs, flow, info.fps,
                                      stats.setdefault("busy", {}), flow_grid)
                 stats["storing"] = fp.storing
                 yield key, arrays, sample_meta(plan, info.fps, start)
@@ -448,7 +406,7 @@ def _samples(cfg: ServeConfig, fp: FramePass, rel_path: str, epoch: int, outputs
         if ev.starts is not None:  # ... and starts the next one
             k, start = ev.starts, i
             win = _Window(k, codes.shape, expand,
-                          [_CropCut(cfg, key, plan_window(cfg, epoch, key.sample_id(kpw), k, codes.shape))
+                          [_CropCut(recipe, key, plan_window(recipe, epoch, key.sample_id(kpw), k, codes.shape))
                            for key in window_keys(rel_path, k, kpw) if key not in skip])
         if win is not None:
             win.add(i - start, codes, expand, full, stats)

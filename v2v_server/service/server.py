@@ -33,7 +33,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import corpus_fingerprint
 from v2v_server.videos.source import source_from_spec
 from v2v_server.delivery.journal import Journal
-from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+from v2v_server.delivery.core import DeliveryCore
 from v2v_server.service.client_side import ClientSide
 from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch
 from v2v_server.ops.metrics import ServerMetrics
@@ -46,7 +46,6 @@ from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION
 log = logging.getLogger("v2v.server")
 
 #: Times a task may kill its worker before its file is given up for that epoch.
-MAX_TASK_CRASHES = 3
 #: Client messages handled per loop turn (then the workers get their turn).
 CLIENT_BURST = 100
 #: Seconds between scans of the frame cache's folder for its bytes and entries (gauges).
@@ -77,7 +76,7 @@ class V2VServer:
         self.root = self.source.root
         self.videos = list(videos)
         self.corpus = corpus or corpus_fingerprint(self.videos)  # of the listing before sharding
-        self.recipe = cfg.fingerprint()
+        self.recipe = cfg.recipe.fingerprint()
         self._stop = threading.Event()
         self.metrics = ServerMetrics()
         self.journal = (Journal(cfg.state_dir, self.recipe, crops_per_window=cfg.crops_per_window,
@@ -86,7 +85,7 @@ class V2VServer:
         if self.journal is not None and self.journal.records:
             log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
                      self.journal.path, len(self.journal.records), self.journal.completed)
-        self.core = DeliveryCore(self.videos, DeliveryPolicy.from_config(cfg, MAX_TASK_CRASHES), make_batch,
+        self.core = DeliveryCore(self.videos, cfg.delivery, make_batch,
                                  self.journal)
         self.sched, self.ledger = self.core.sched, self.core.ledger
         self.ended = False  # every epoch delivered (at least once)
@@ -313,7 +312,7 @@ class V2VServer:
                 "shm_dir": self.assembler.files.path if self.assembler.files is not None else None,
                 # identity: a fan-in checks its servers form one sharding of one corpus under one
                 # recipe, and a resume state is refused under another recipe
-                "shard": "%d/%d" % c.shard_spec, "corpus": self.corpus, "recipe": self.recipe,
+                "shard": "%d/%d" % c.serving.shard_spec, "corpus": self.corpus, "recipe": self.recipe,
                 "max_hello_bytes": MAX_CLIENT_MSG}
 
 def install_signal_handlers(server: V2VServer) -> None:

@@ -197,7 +197,7 @@ def run_task(cfg: SampleRecipe, root, task: dict, sock: zmq.Socket, parent_pid: 
     except Exception as e:  # any failure on one file is that file's verdict, not the worker's death
         error = e
     # failed windows are reported one by one below, not in the file's verdict
-    error = pass_verdict(cfg, stats, error)
+    error = pass_verdict(cfg.windows, stats, error)
     clock.made()  # decoding after the last window
     done = {"type": "done", "task": task["task"], "frames": stats.get("frames", 0),
             "windows": stats.get("windows", 0), "error": error, "stages": clock.report(),
@@ -210,7 +210,7 @@ def run_task(cfg: SampleRecipe, root, task: dict, sock: zmq.Socket, parent_pid: 
 def worker_config(cfg: ServeConfig) -> dict:
     """What a worker process is given: the sample recipe (``SampleRecipe.recipe_dict``) and
     the server's log format; nothing of transport, security or delivery."""
-    return {"recipe": cfg.recipe().recipe_dict(), "log_format": cfg.log_format}
+    return {"recipe": cfg.recipe.recipe_dict(), "log_format": cfg.log_format}
 
 
 def exit_on_sigterm() -> None:

@@ -5,16 +5,13 @@ from __future__ import annotations
 import hashlib
 import multiprocessing as mp
 from pathlib import Path
-from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
-from v2v_server.videos.frames import kept_rows
 from v2v_server.videos.segments import split_segment
-from v2v_server.videos.shots import ShotDetector, WindowLayout
+from v2v_server.videos.shots import ShotDetector
 from v2v_server.videos.source import source_from_spec
-
-if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
-    from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.windows import WindowSettings
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
 SAMPLE_VIDEOS = Path(__file__).resolve().parents[1] / "sample_videos"
@@ -67,7 +64,7 @@ SHORT_CLIP = "shorter than one window of"
 VFR_SPREAD = 0.1
 
 
-def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = None,
+def verdict(w: WindowSettings, frames: int, failed: Optional[Dict[int, str]] = None,
             error: Optional[BaseException] = None, windows: Optional[int] = None,
             cuts: int = 0) -> Tuple[int, List[int], Optional[str]]:
     """What a file is worth, from what reading it found: the one rule ``--check``, the
@@ -79,40 +76,40 @@ def verdict(cfg: ServeConfig, frames: int, failed: Optional[Dict[int, str]] = No
         error: what stopped the reading, if anything: a ``VideoError`` gives its message,
             anything else ``"TypeName: message"``.
         windows: complete windows the reading found (``shots.WindowLayout``); None: as many as
-            ``frames`` holds (``cfg.windows_in``, the layout without cuts).
+            ``frames`` holds (``w.windows_in``, the layout without cuts).
         cuts: shot cuts the reading found (named when they leave no window).
 
     Returns:
-        ``(windows, failed_windows, reason)``: samples per epoch (``cfg.windows_in(frames)``
+        ``(windows, failed_windows, reason)``: samples per epoch (``w.windows_in(frames)``
         less the failed windows), the failed windows among them
         (sorted), and why the file gives none or fewer (None when nothing is wrong): the failed
         windows' reasons, else the error's, else too few frames.
     """
     failed = failed or {}
-    whole = cfg.windows_in(frames) if windows is None else windows
+    whole = w.windows_in(frames) if windows is None else windows
     bad = sorted(k for k in failed if k < whole)
     windows = whole - len(bad)
     if bad:
         reason = "; ".join(failed[k] for k in bad)
     elif error is not None:
         reason = str(error) if isinstance(error, VideoError) else f"{type(error).__name__}: {error}"
-    elif windows == 0 and cuts and cfg.shot_cuts == "avoid":
-        reason = f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} {cfg.frames_per_sample} frames"
+    elif windows == 0 and cuts and w.avoid_cuts:
+        reason = f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} {w.frames_per_sample} frames"
     elif windows == 0:
-        reason = f"{frames} frames, {SHORT_CLIP} {cfg.frames_per_sample} frames"
+        reason = f"{frames} frames, {SHORT_CLIP} {w.frames_per_sample} frames"
     else:
         reason = None
     return windows, bad, reason
 
 
-def pass_verdict(cfg: ServeConfig, stats: dict, error: Optional[BaseException] = None) -> Optional[str]:
+def pass_verdict(w: WindowSettings, stats: dict, error: Optional[BaseException] = None) -> Optional[str]:
     """Why a sample pass over a file (``samples.make.video_samples``'s ``stats``) gave fewer
     windows than it should, or None: :func:`verdict` of what the pass found."""
-    windows = stats.get("windows", 0) if cfg.shot_cuts == "avoid" else None
-    return verdict(cfg, stats.get("frames", 0), None, error, windows, stats.get("cuts", 0))[2]
+    windows = stats.get("windows", 0) if w.avoid_cuts else None
+    return verdict(w, stats.get("frames", 0), None, error, windows, stats.get("cuts", 0))[2]
 
 
-def check_video(cfg: ServeConfig, root, rel: str) -> dict:
+def check_video(windows: WindowSettings, root, rel: str) -> dict:
     """Verdict for one file of ``root`` (a corpus folder, or a ``source.VideoSource`` or its
     ``spec()``), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason",
     "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
@@ -125,25 +122,25 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
     error = None
     try:
         with source_from_spec(root).open(rel) as path:
-            _check_frames(cfg, path, out, bad, split_segment(rel)[1])
+            _check_frames(windows, path, out, bad, split_segment(rel)[1])
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
     # windows before a failure still count
-    windows, failed, reason = verdict(cfg, out["frames"], bad, error, out.get("complete", 0), len(out["cuts"]))
+    count, failed, reason = verdict(windows, out["frames"], bad, error, out.get("complete", 0), len(out["cuts"]))
     out.pop("complete", None)
-    out.update(windows=windows, usable=windows > 0, reason=reason or "")
+    out.update(windows=count, usable=count > 0, reason=reason or "")
     if failed:
         out["failed_windows"] = failed
     return out
 
 
-def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, segment=None) -> None:
+def _check_frames(windows: WindowSettings, path, out: dict, bad: dict, segment=None) -> None:
     """Decode ``path`` for :func:`check_video`: frames, cuts and complete windows into ``out``,
     failed windows into ``bad``; the windows as the sample pass places them (the same rows
     scored by the same detector, ``shots.WindowLayout``)."""
     container, stream, info = open_video(path)
     out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
-    layout = WindowLayout(cfg.frames_per_sample, cfg.max_samples_per_video, cfg.shot_cuts == "avoid")
+    layout = windows.layout()
     detector = ShotDetector()
     out["cuts"] = detector.cuts  # grows as cuts are found
     shape = None  # first frame size of the window in progress
@@ -151,11 +148,11 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, segment=None) ->
 
     def rows(h: int) -> int:  # the rows the sample pass scores and cuts
         shown["h"] = h
-        return kept_rows(cfg.keep_top_fraction, h)
+        return windows.kept_rows(h)
 
     times: list = []  # presentation times, for a variable frame rate
     # the frames the workers cut (scaled, kept rows), scored by the same detector
-    for i, (y, expand) in enumerate(decode_codes(container, stream, rows, cfg.frame_height, times, segment)):
+    for i, (y, expand) in enumerate(decode_codes(container, stream, rows, windows.frame_height, times, segment)):
         ev = layout.step(i, detector.score(y, expand))
         out.update(frames=i + 1, dropped=layout.dropped, complete=layout.windows)
         if ev.drops is not None:
@@ -182,14 +179,14 @@ def _check(args):
     return check_video(*args)
 
 
-def check_corpus(cfg: ServeConfig, root, videos: List[str]) -> List[dict]:
+def check_corpus(windows: WindowSettings, root, videos: List[str], processes: int = 1) -> List[dict]:
     """``check_video`` for every file of ``root`` (a folder or a ``source.VideoSource``), in
-    ``cfg.workers`` processes."""
+    ``processes`` processes."""
     spec = root.spec() if hasattr(root, "spec") else str(root)
-    jobs = [(cfg, spec, v) for v in videos]
-    if cfg.workers <= 1 or len(jobs) <= 1:
+    jobs = [(windows, spec, v) for v in videos]
+    if processes <= 1 or len(jobs) <= 1:
         return [check_video(*j) for j in jobs]
-    with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
+    with mp.get_context("spawn").Pool(min(processes, len(jobs))) as pool:
         return pool.map(_check, jobs, chunksize=1)
 
 

@@ -25,7 +25,7 @@ from typing import Any, Iterable, List, Optional, Sequence
 
 import yaml
 
-__all__ = ["setting", "add_flags", "flag_values", "load_yaml", "reference_markdown", "YamlLoader"]
+__all__ = ["setting", "documented", "add_flags", "flag_values", "load_yaml", "reference_markdown", "YamlLoader"]
 
 
 def setting(default: Any = dataclasses.MISSING, *, help: str, flag: Optional[str] = None, group: str = "",
@@ -47,7 +47,12 @@ def setting(default: Any = dataclasses.MISSING, *, help: str, flag: Optional[str
     return dataclasses.field(default=default, metadata=meta)
 
 
-def _documented(cls) -> List[dataclasses.Field]:
+def documented(cls) -> List[dataclasses.Field]:
+    """The fields of ``cls`` made with :func:`setting`, in order; for a composition of settings
+    classes (a class with ``PARTS``, ``(attribute, class)`` pairs), those of every part."""
+    parts = getattr(cls, "PARTS", None)
+    if parts is not None:
+        return [f for _, part in parts for f in documented(part)]
     return [f for f in dataclasses.fields(cls) if "help" in f.metadata]
 
 
@@ -75,7 +80,7 @@ def add_flags(parser: argparse.ArgumentParser, cls, title: Optional[str] = None,
     """One flag per documented scalar field of ``cls`` (or of those named in ``only``):
     ``dest`` = the field name, default None so that :func:`flag_values` knows what was given."""
     target = parser.add_argument_group(title) if title else parser
-    for f in _documented(cls):
+    for f in documented(cls):
         if only is not None and f.name not in only:
             continue
         t, flag = _cli_type(f), _flag(f)
@@ -91,7 +96,7 @@ def add_flags(parser: argparse.ArgumentParser, cls, title: Optional[str] = None,
 
 def flag_values(args: argparse.Namespace, cls) -> dict:
     """The fields of ``cls`` given on the command line: ``{name: value}``."""
-    return {f.name: getattr(args, f.name) for f in _documented(cls)
+    return {f.name: getattr(args, f.name) for f in documented(cls)
             if getattr(args, f.name, None) is not None}
 
 
@@ -154,8 +159,8 @@ def reference_markdown(cls, groups: Iterable, flag_of=None) -> str:
     out = []
     for g in groups:
         out += [f"## {g.__doc__.strip().splitlines()[0]}", "", "| key | flag | default | meaning |", "|---|---|---|---|"]
-        own = {f.name for f in _documented(g)}
-        for f in _documented(cls):
+        own = {f.name for f in documented(g)}
+        for f in documented(cls):
             if f.name not in own:
                 continue
             flag = f"`{_flag(f)}`" if _flag(f) and _cli_type(f) else "(YAML only)"

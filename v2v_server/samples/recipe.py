@@ -1,0 +1,164 @@
+"""The sample recipe: everything that decides a sample's content, the samples stage's settings.
+
+Defaults follow the paper's WebVid recipe (Lou et al. 2025, Sec. 4). The recipe owns the default,
+help text and checks of each of its keys (``docs/config.md`` is generated from them); the stages
+below get the parts they read: the videos stage a ``videos.windows.WindowSettings``
+(:attr:`SampleRecipe.windows`), the simulation the sensor ranges (``simulation.simulate.ParamRanges``),
+the flow the option's name. ``v2v_server.ops.config.ServeConfig`` composes it with the serving
+settings; a worker process is given the recipe alone (:meth:`SampleRecipe.recipe_dict`).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, fields
+from typing import Tuple
+
+from v2v_server.checks import check_bool, check_choice, check_int, check_keys, check_prob
+from v2v_server.flow.options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
+from v2v_server.settings import setting
+from v2v_server.simulation.simulate import ParamRanges
+from v2v_server.videos.decode import DECODE_FAST
+from v2v_server.videos.shots import SHOT_CUTS
+from v2v_server.videos.windows import WindowSettings
+from v2v_wire.outputs import ARRAYS
+from v2v_wire.protocol import OUTPUTS, check_outputs
+
+#: Wire dtypes of dense flow (``v2v_wire.outputs``).
+FLOW_DTYPES = ARRAYS["flow"].dtypes
+
+
+@dataclass(frozen=True)
+class SampleRecipe:
+    """The sample recipe: everything that decides a sample's content.
+
+    Defaults follow the paper's WebVid recipe: ``sequence_length`` L voxel grids of
+    ``num_bins`` B bins, ``frames_per_bin`` frame pairs per bin, so a sample spans
+    ``L * B * frames_per_bin + 1`` frame indices (201 by default). Spatial: the top
+    ``keep_top_fraction`` of each frame is kept (WebVid watermark), a random ``crop_size`` x
+    ``crop_size`` crop (pixels) is taken, flipped horizontally with probability ``hflip_prob``.
+    Pauses: a per-frame Markov chain repeats the previous frame.
+    """
+
+    seed: int = setting(0, help="base seed: sample content depends only on (seed, epoch, sample id)")
+    sequence_length: int = setting(40, help="voxel grids per sample, L")
+    num_bins: int = setting(5, help="temporal bins per voxel grid, B")
+    frames_per_bin: int = setting(1, help="frame pairs summed into one bin; a sample spans L x B x this + 1 frames")
+    crop_size: int = setting(128, help="square crop side, pixels")
+    keep_top_fraction: float = setting(0.54, help="fraction of each frame's height, from the top, that crops come "
+                                                  "from (WebVid's watermark; 1.0 for clips without one)")
+    frame_height: int = setting(0, help="scale every decoded frame to this height in pixels (width keeps the aspect "
+                                        "ratio; OpenCV INTER_AREA on full-range luma) before the kept region, the "
+                                        "frame cache and the crops; 0 = frames as decoded (docs/frame_scale.md)")
+    hflip_prob: float = setting(0.5, help="probability of a horizontal flip")
+    max_samples_per_video: int = setting(10, help="windows (samples with crops_per_window 1) per video per epoch")
+    shot_cuts: str = setting("avoid", help="avoid: windows lie inside one shot (they start at each shot's first "
+                                           "frame + k x stride; shot cuts found while decoding, docs/corpora.md); "
+                                           "off: windows at k x stride whatever they hold (the authors' loader)",
+                             choices=SHOT_CUTS)
+    crops_per_window: int = setting(1, help="random crops per decoded window, each its own sample (own crop, flip, "
+                                            "pauses, sensor parameters; ids path#window.crop when > 1)")
+    pause_enabled: bool = setting(True, help="pause augmentation (a Markov chain repeating the previous frame)")
+    p_pause_when_running: float = setting(0.0102, help="probability that a pause starts at a frame")
+    p_pause_when_paused: float = setting(0.9791, help="probability that a pause goes on at a frame")
+    outputs: Tuple[str, ...] = setting(OUTPUTS, help="what clients may ask for (comma list)", cli=str)
+    flow_preset: str = setting(DEFAULT_FLOW, help="optical flow option (docs/flow.md)", choices=tuple(FLOW_OPTIONS))
+    flow_dtype: str = setting("float16", help="wire dtype of flow", choices=FLOW_DTYPES)
+    ranges: ParamRanges = setting(help="sensor parameter ranges: threshold, ratio, noise_std, hot_pixel_fraction, "
+                                       "hot_pixel_std as [lo, hi] (WebVid ranges)", flag="", factory=ParamRanges)
+    refine: str = setting("off", help="off | uniform:K | adaptive:PX | adaptive-dl:L: sub-frames where motion needs "
+                                      "them (docs/fidelity.md)")
+    nonidealities: dict = setting(help="sensor non-idealities, all off by default (v2v_server/simulation/nonideal.py)", flag="",
+                                  factory=dict)
+    degrade_dynamic_range: dict = setting(help="{probability, scale: [lo, hi]}: dynamic-range degradation before V2V "
+                                               "(paper appendix 'Dataset quality'; true = 0.8, [1, 3])", flag="",
+                                          factory=dict)
+    fixed_sensor_params: bool = setting(False, help="each video keeps one (c+, c-) drawn from (seed, video) for every "
+                                                    "window and epoch (the paper's '-F' datasets)")
+    decode_threads: int = setting(1, help="FFmpeg decoding threads per worker")
+    decode_fast: str = setting("off", help="skip H.264's deblocking filter on some frames: off | noref | bidir | all "
+                                           "(faster decoding, measured error: docs/decode_fast.md)",
+                               choices=tuple(DECODE_FAST))
+
+    @property
+    def frames_per_sample(self) -> int:
+        """Frame indices one sample spans: L * B * frames_per_bin + 1."""
+        return self.sequence_length * self.num_bins * self.frames_per_bin + 1
+
+    @property
+    def windows(self) -> WindowSettings:
+        """The videos stage's settings of this recipe (where windows lie, which frames a pass
+        reads): ``videos.windows.WindowSettings``."""
+        return WindowSettings(self.frames_per_sample, self.max_samples_per_video, self.shot_cuts,
+                              self.keep_top_fraction, self.crop_size, self.frame_height, self.decode_threads,
+                              self.decode_fast)
+
+    def fingerprint(self) -> str:
+        """A short hash of what decides a sample's content (the recipe less the outputs each
+        client asks for and the decoding threads): sample ids name the same samples only under
+        the same fingerprint."""
+        content = {k: v for k, v in self.recipe_dict().items() if k not in ("outputs", "decode_threads")}
+        if not content["frame_height"]:  # no scaling: the fingerprint of the same recipe without the key
+            del content["frame_height"]
+        return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+    def recipe_dict(self) -> dict:
+        """The recipe's keys as a plain, msgpack/YAML-safe dict (what a worker process gets)."""
+        d = {f.name: getattr(self, f.name) for f in fields(SampleRecipe)}
+        d.update(ranges=self.ranges.to_dict(), outputs=list(self.outputs))
+        return d
+
+    @classmethod
+    def recipe_from_dict(cls, d: dict, source: str = "recipe") -> "SampleRecipe":
+        """A validated ``SampleRecipe`` from ``recipe_dict()`` output.
+
+        Raises:
+            ValueError: naming ``source`` and the key, for an unknown key or a bad value.
+        """
+        check_keys(d, (f.name for f in fields(SampleRecipe)), source=source)
+        try:
+            return SampleRecipe(**{k: (tuple(v) if k == "outputs" and isinstance(v, list) else v) for k, v in d.items()})
+        except ValueError as e:
+            raise ValueError(f"{source}: {e}") from None
+
+    def __post_init__(self):
+        """Check the recipe's fields (``ValueError`` names the first bad one) and normalise them;
+        builds :attr:`windows`, which checks the fields the videos stage reads."""
+        _set = object.__setattr__  # a frozen recipe normalises its own fields once, here
+        for name in ("sequence_length", "num_bins", "frames_per_bin", "crops_per_window"):
+            check_int(name, getattr(self, name), 1)
+        check_int("seed", self.seed, 0)
+        for name in ("hflip_prob", "p_pause_when_running", "p_pause_when_paused"):
+            _set(self, name, check_prob(name, getattr(self, name)))
+        self.windows  # checks the fields the videos stage reads (crop_size, keep_top_fraction, frame_height, ...)
+        if self.frame_height and math.floor(self.frame_height * self.keep_top_fraction) < self.crop_size:
+            raise ValueError(f"frame_height {self.frame_height} keeps {math.floor(self.frame_height * self.keep_top_fraction)}"
+                             f" rows (keep_top_fraction {self.keep_top_fraction}), fewer than crop_size "
+                             f"{self.crop_size}: every crop would be enlarged again; use frame_height >= "
+                             f"{math.ceil(self.crop_size / self.keep_top_fraction)} or 0 (no scaling)")
+        _set(self, "outputs", check_outputs(self.outputs))
+        _set(self, "flow_preset", check_option(self.flow_preset).name)  # ValueError naming flow_preset
+        why = unavailable_reason(self.flow_preset)
+        if why:
+            raise ValueError(f"flow_preset {self.flow_preset!r} cannot run here: {why}")
+        check_choice("flow_dtype", self.flow_dtype, FLOW_DTYPES)
+        if not isinstance(self.ranges, ParamRanges):
+            _set(self, "ranges", ParamRanges.from_dict(self.ranges))
+        from v2v_server.samples.augment import parse_degrade
+        from v2v_server.simulation.nonideal import NonIdealities
+        from v2v_server.simulation.refine import parse_refine
+
+        _set(self, "refine", str(parse_refine(self.refine)))
+        ni = NonIdealities.from_dict(self.nonidealities or None)  # ValueError naming nonidealities.<field>
+        _set(self, "nonidealities", ni.to_dict() if ni.enabled else {})
+        if "polarity_counts" in self.outputs and (self.nonidealities or self.refine != "off"):
+            # N+ and N- come from plain V2V's kernel call only: not offered under refinement or
+            # non-idealities (a client asking is told what is offered at its hello)
+            if self.outputs != OUTPUTS:
+                raise ValueError("outputs: polarity_counts is made by plain V2V only (refine: off, no "
+                                 f"nonidealities); got refine {self.refine!r}, nonidealities {self.nonidealities}")
+            _set(self, "outputs", tuple(o for o in self.outputs if o != "polarity_counts"))
+        _set(self, "degrade_dynamic_range", parse_degrade(self.degrade_dynamic_range))
+        check_bool("pause_enabled", self.pause_enabled)
+        check_bool("fixed_sensor_params", self.fixed_sensor_params)
