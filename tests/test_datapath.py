@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from v2v_server.service.datapath import make_batch, sample_from_worker
+from v2v_server.service.assembly import make_batch, sample_from_worker
 from v2v_wire.protocol import decode_arrays, encode_arrays
 
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from v2v_server.service.datapath import (BatchAssembler, BatchDir, SlotRing, create_ring, make_batch, sample_from_slot,
-                                 sample_from_worker, slot_bytes)
+from v2v_server.service.assembly import BatchAssembler, make_batch, sample_from_slot, sample_from_worker
+from v2v_server.service.shm import BatchDir, SlotRing, create_ring, slot_bytes
 from v2v_wire.protocol import ProtocolError, encode_arrays
 
 from .conftest import video_dir

@@ -1,6 +1,6 @@
 """Shuffled epochs without sockets: the epoch order of the videos (``batcher.video_order``, the
 scheduler), the shuffle buffer of open batches (``batcher.Batcher``), its zero-copy buffers
-(``datapath.BatchAssembler`` lanes), and the settings' errors."""
+(``assembly.BatchAssembler`` lanes), and the settings' errors."""
 from __future__ import annotations
 
 import collections
@@ -14,7 +14,7 @@ from v2v_server.delivery.ledger import DeliveryLedger
 from v2v_server.delivery.schedule import EpochScheduler
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ray_data import RayCorpus, epoch_descriptors
-from v2v_server.service.datapath import BatchAssembler, make_batch
+from v2v_server.service.assembly import BatchAssembler, make_batch
 from v2v_wire.ids import SampleKey
 from v2v_wire.messages import Hello
 

@@ -6,7 +6,7 @@ seconds). ``server.py`` moves the bytes; ``tests/test_delivery_core.py`` drives 
 through thousands of interleavings with hypothesis.
 
 Batch payloads are opaque here: ``make_batch(samples)`` builds one from what ``sample()``
-was given (``datapath.make_batch`` in the server), and a payload is only asked for
+was given (``assembly.make_batch`` in the server), and a payload is only asked for
 ``subset(keep)``; every sample travels with its ``ids.SampleKey``.
 """
 from __future__ import annotations

@@ -7,7 +7,7 @@ windows the file gave, the windows that failed and the reason the pass stopped e
 at a small high-water mark, so a worker never runs ahead of what the server is willing to
 hold. A worker whose parent has gone exits by itself.
 
-With a shared-memory slot ring (``datapath.SlotRing``, given by the pool at spawn) a sample's
+With a shared-memory slot ring (``shm.SlotRing``, given by the pool at spawn) a sample's
 arrays go into a free slot and the ``sample`` header names the slot (no array frames); the
 server answers ``{"type": "slot", "slot": i}`` once it has copied the slot out. With every slot
 taken the worker blocks until one comes back. Without a ring (no ``/dev/shm``) or for a sample
@@ -29,7 +29,7 @@ from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
 from v2v_server.videos.corpus import pass_verdict
 from v2v_server.videos.source import source_from_spec, take_store_stats
-from v2v_server.service.datapath import SlotRing
+from v2v_server.service.shm import SlotRing
 from v2v_server.ops.logs import setup_logging
 from v2v_wire.outputs import wire_dtype
 from v2v_wire.protocol import encode_arrays, pack, unpack

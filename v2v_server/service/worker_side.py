@@ -16,7 +16,7 @@ import zmq
 from v2v_server.delivery.core import DeliveryCore
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
-from v2v_server.service.datapath import BatchAssembler, sample_from_slot, sample_from_worker
+from v2v_server.service.assembly import BatchAssembler, sample_from_slot, sample_from_worker
 from v2v_server.service.pool import WorkerPool
 from v2v_server.videos.corpus import SHORT_CLIP
 from v2v_server.videos.source import VideoSource
