@@ -34,6 +34,7 @@ delivered (uncompressed), beside per GB sent.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import multiprocessing as mp
 import resource
 import sys
@@ -102,7 +103,9 @@ def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict], real
     import zmq
 
     from v2v_server.service.shm import SlotRing
+    from v2v_wire.ids import SampleKey
     from v2v_wire.protocol import encode_arrays, pack
+    from v2v_wire.worker_messages import Sample
     from v2v_server.service.worker import pack_arrays
 
     ctx = zmq.Context()
@@ -118,18 +121,15 @@ def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict], real
         rel = ctx.socket(zmq.PULL)
         rel.connect(release)
     for i in range(n):
-        h = {"type": "sample", "sample_id": f"v.mp4#{i}", "meta": {}, "arrays": specs}
-        if packed:
-            h["packed"] = packed_specs
+        h = Sample(0, SampleKey("v.mp4", i), {}, tuple(specs), tuple(packed_specs))
         if ring is None:
-            s.send_multipart([pack(h)] + frames + packed, copy=False)
+            s.send_multipart([pack(h.to_wire())] + frames + packed, copy=False)
             continue
         while not ring.free:  # block until the relay gives a slot back
             ring.free.append(int(rel.recv()))
         slot = ring.free.pop(0)
         ring.put(slot, arrays)
-        h["slot"] = slot
-        s.send_multipart([pack(h)] + packed, copy=False)
+        s.send_multipart([pack(dataclasses.replace(h, slot=slot).to_wire())] + packed, copy=False)
     s.close(linger=-1)
     if rel is not None:
         rel.close(0)
@@ -146,6 +146,7 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
                                              sample_from_worker)
     from v2v_server.service.shm import BatchDir, SlotRing
     from v2v_wire.protocol import decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack
+    from v2v_wire.worker_messages import Sample
 
     ctx = zmq.Context()
     pull = ctx.socket(zmq.PULL)
@@ -171,14 +172,14 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
     clock = _Clock()
     for i in range(n):
         frames = clock.recv(pull)
-        h = unpack(frames[0])
+        h = Sample.from_wire(unpack(frames[0]))
         if path == "old":  # before: a copy per sample, np.stack per batch
-            arrays = {k: np.array(v) for k, v in decode_arrays(h["arrays"], frames[1:]).items()}
-            pending.append(SamplePayload(h["sample_id"], h["meta"], arrays))
+            arrays = {k: np.array(v) for k, v in decode_arrays(list(h.arrays), frames[1:]).items()}
+            pending.append(SamplePayload(h.key.sample_id(), h.meta, arrays))
         elif path in ("shm", "handoff"):
             pending.append(sample_from_slot(h, ring, assembler, frames[1:]))
             try:  # the slot back to the worker (which may have finished and gone)
-                rel.send(str(h["slot"]).encode())
+                rel.send(str(h.slot).encode())
             except zmq.Again:
                 pass
         else:

@@ -198,9 +198,9 @@ def one_worker_stream(policy: DeliveryPolicy, videos, windows: int):
     core.hello(b"t", Hello(("voxels",), 64), 0.0, dict)
     while (task := core.task_for(b"w", 0.0)) is not None:
         for w in range(windows):
-            key = SampleKey(task["video"], w, 0)
-            assert core.sample(b"w", task["task"], key, 0.0, lambda lane, key=key: key)
-        core.done(b"w", task["task"], windows, {}, None)
+            key = SampleKey(task.video, w, 0)
+            assert core.sample(b"w", task.task, key, 0.0, lambda lane, key=key: key)
+        core.done(b"w", task.task, windows, {}, None)
     on_the_fly = collections.defaultdict(list)
     for b in core.ledger.batches.values():
         on_the_fly[b.epoch].append(len(b.keys))

@@ -22,7 +22,8 @@ Message types (protocol 3; client messages are decoded and schema-checked by ``w
   client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
   ``dropped`` / ``unknown_client``: discard what you hold, say hello again).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
-  error); server -> worker: ``task``, ``stop``.
+  error, the exception that stopped the pass as ``failure``); server -> worker: ``task``,
+  ``slot``, ``stop`` (typed and checked in ``worker_messages``).
 
 Array forms: each array's dtype, shape and float conversion are in ``outputs.ARRAYS`` (one
 ``ArraySpec`` per array; ``polarity_counts`` is served only to clients that ask). A tracked flow option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its

@@ -42,7 +42,6 @@ the buffer's generation (uint64, little-endian), bumped whenever an idle buffer 
 a client that finds another generation after its copy knows the batch was already gone.
 """
 from __future__ import annotations
-from __future__ import annotations
 
 import logging
 import math
@@ -59,6 +58,7 @@ from v2v_server.service.shm import SLOT_ALIGN, BatchDir, SlotRing
 from v2v_wire.batches import encode_batch, frame_size, stack_arrays
 from v2v_wire.outputs import narrowest
 from v2v_wire.protocol import BATCH_FILE_HEADER, ProtocolError, decode_arrays, output_of
+from v2v_wire.worker_messages import Sample
 
 log = logging.getLogger("v2v.datapath")
 
@@ -91,16 +91,17 @@ class SamplePayload:
         return sum(a.nbytes for a in self.arrays.values())
 
 
-def sample_from_worker(header: dict, frames: Sequence) -> SamplePayload:
-    """Build a :class:`SamplePayload` from a worker's ``sample`` message (header + raw frames,
-    ``zmq.Frame`` or bytes, then its compressed frames), without copying the arrays.
+def sample_from_worker(msg: Sample, frames: Sequence, crops_per_window: int = 1) -> SamplePayload:
+    """Build a :class:`SamplePayload` from a worker's ``sample`` message (its header ``msg``, then
+    raw frames, ``zmq.Frame`` or bytes, then its compressed frames), without copying the arrays.
+    ``crops_per_window``: the server's, for the sample's id (``ids.SampleKey.sample_id``).
 
     Raises:
         ProtocolError: when the frames do not match the header's array specs.
     """
-    n = len(header["arrays"]) if isinstance(header["arrays"], list) else 0
-    s = SamplePayload(header["sample_id"], header["meta"], decode_arrays(header["arrays"], frames[:n]))
-    s.packed = packed_frames(header, frames[n:], s.arrays)
+    n = len(msg.arrays)
+    s = SamplePayload(msg.key.sample_id(crops_per_window), msg.meta, decode_arrays(list(msg.arrays), frames[:n]))
+    s.packed = packed_frames(msg.packed, frames[n:], s.arrays)
     return s
 
 
@@ -109,19 +110,18 @@ def sample_from_worker(header: dict, frames: Sequence) -> SamplePayload:
 MAX_PACKED_BYTES = 1 << 31
 
 
-def packed_frames(header: dict, frames: Sequence, arrays: Dict[str, np.ndarray]) -> Dict[str, Dict[str, tuple]]:
-    """The compressed frames of a worker's ``sample`` message (its ``packed`` list: codec, array
-    name and size of each frame after the array frames), by codec and array name, each with
+def packed_frames(specs: Sequence[dict], frames: Sequence,
+                  arrays: Dict[str, np.ndarray]) -> Dict[str, Dict[str, tuple]]:
+    """The compressed frames of a worker's ``sample`` message (``specs``, its ``packed`` list:
+    codec, array name and size of each frame after the array frames), by codec and array name, each with
     the dtype of the array it compresses; the frames themselves are kept as they are (never
     decompressed here).
 
     Raises:
         ProtocolError: for a list that does not match the frames, or names no array of the sample.
     """
-    specs = header.get("packed", [])
-    if not isinstance(specs, list) or len(specs) != len(frames):
-        raise ProtocolError(f"sample header lists {len(specs) if isinstance(specs, list) else '?'} compressed "
-                            f"frames, message has {len(frames)}")
+    if len(specs) != len(frames):
+        raise ProtocolError(f"sample header lists {len(specs)} compressed frames, message has {len(frames)}")
     out: Dict[str, Dict[str, object]] = {}
     for spec, fr in zip(specs, frames):
         if not isinstance(spec, dict) or spec.get("name") not in arrays or not isinstance(spec.get("codec"), str):
@@ -131,7 +131,6 @@ def packed_frames(header: dict, frames: Sequence, arrays: Dict[str, np.ndarray])
             raise ProtocolError(f"compressed frame of {spec['name']!r}: {size} bytes, spec says {spec.get('nbytes')!r}")
         out.setdefault(spec["codec"], {})[spec["name"]] = (arrays[spec["name"]].dtype, fr)
     return out
-
 
 
 class _BatchBuffer:
@@ -279,22 +278,22 @@ class BatchAssembler:
         return SamplePayload(sample_id, meta, views, buf, row)
 
 
-def sample_from_slot(header: dict, ring: SlotRing, assembler: BatchAssembler, frames: Sequence = (),
-                     lane: int = 0) -> SamplePayload:
-    """Build a :class:`SamplePayload` from a worker's ``sample`` header naming a slot of
+def sample_from_slot(msg: Sample, ring: SlotRing, assembler: BatchAssembler, frames: Sequence = (),
+                     lane: int = 0, crops_per_window: int = 1) -> SamplePayload:
+    """Build a :class:`SamplePayload` from a worker's ``sample`` header ``msg`` naming a slot of
     ``ring``: the slot's arrays are copied into ``assembler``'s batch buffer of ``lane`` (the
     open batch the sample joins; after this returns the slot may be given back to the worker);
     ``frames``, the message's frames after the header, are its compressed frames
-    (``packed_frames``).
+    (``packed_frames``); ``crops_per_window``: the server's, for the sample's id.
 
     Raises:
         ProtocolError: for a slot out of range, array specs that do not fit a slot, or
             compressed frames that do not match the header.
     """
-    views = ring.arrays(header["slot"], header["arrays"])
-    packed = packed_frames(header, frames, views)
+    views = ring.arrays(msg.slot, list(msg.arrays))
+    packed = packed_frames(msg.packed, frames, views)
     try:
-        s = assembler.place(header["sample_id"], header["meta"], views, lane)
+        s = assembler.place(msg.key.sample_id(crops_per_window), msg.meta, views, lane)
     finally:
         del views
     s.packed = packed
