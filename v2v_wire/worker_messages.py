@@ -47,17 +47,19 @@ def _int(h: dict, kind: str, name: str, default=None) -> int:
     return v
 
 
-def _str(h: dict, kind: str, name: str) -> str:
+def _str(h: dict, kind: str, name: str, field_name: Optional[str] = None) -> str:
+    """The string ``h[name]`` (``field_name``: how the error names it, default ``name``)."""
     v = h.get(name)
     if not isinstance(v, str):
-        raise _bad(kind, name, "a string", v)
+        raise _bad(kind, field_name or name, "a string", v)
     return v
 
 
-def _strs(h: dict, kind: str, name: str) -> Tuple[str, ...]:
+def _list(h: dict, kind: str, name: str, item: type) -> tuple:
+    """The list ``h[name]`` (default empty) of ``item`` s, as a tuple."""
     v = h.get(name, [])
-    if not isinstance(v, (list, tuple)) or not all(isinstance(s, str) for s in v):
-        raise _bad(kind, name, "a list of strings", v)
+    if not isinstance(v, (list, tuple)) or not all(isinstance(s, item) for s in v):
+        raise _bad(kind, name, "a list of " + ("strings" if item is str else "maps"), v)
     return tuple(v)
 
 
@@ -70,13 +72,6 @@ def _map(h: dict, kind: str, name: str, values: Optional[tuple] = None) -> dict:
         want = "a map of strings to " + ("anything" if values is None else "/".join(t.__name__ for t in values))
         raise _bad(kind, name, want, v)
     return v
-
-
-def _maps(h: dict, kind: str, name: str) -> Tuple[dict, ...]:
-    v = h.get(name, [])
-    if not isinstance(v, (list, tuple)) or not all(isinstance(s, dict) for s in v):
-        raise _bad(kind, name, "a list of maps", v)
-    return tuple(v)
 
 
 @dataclass(frozen=True)
@@ -113,14 +108,7 @@ class Failure:
         """Raises: WorkerMessageError naming the field."""
         if not isinstance(v, dict):
             raise _bad("done", "failure", "a map", v)
-        return cls(*(_failure_field(v, k) for k in ("exc_type", "message", "traceback", "where")))
-
-
-def _failure_field(v: dict, name: str) -> str:
-    x = v.get(name)
-    if not isinstance(x, str):
-        raise _bad("done", f"failure.{name}", "a string", x)
-    return x
+        return cls(*(_str(v, "done", k, f"failure.{k}") for k in ("exc_type", "message", "traceback", "where")))
 
 
 @dataclass(frozen=True)
@@ -157,7 +145,7 @@ class Task:
                                                             for i in s) for s in skip):
             raise _bad("task", "skip", "a list of [window, crop] pairs", skip)
         return cls(_int(h, "task", "task"), _int(h, "task", "epoch"), _str(h, "task", "video"),
-                   _strs(h, "task", "outputs"), tuple((w, c) for w, c in skip), _strs(h, "task", "codecs"))
+                   _list(h, "task", "outputs", str), tuple((w, c) for w, c in skip), _list(h, "task", "codecs", str))
 
 
 @dataclass(frozen=True)
@@ -223,13 +211,13 @@ class Sample:
         meta = h.get("meta")
         if not isinstance(meta, dict):
             raise _bad("sample", "meta", "a map", meta)  # its contents are the clients' (msgpack-able)
-        packed = _maps(h, "sample", "packed")
+        packed = _list(h, "sample", "packed", dict)
         for p in packed:
             if not (isinstance(p.get("codec"), str) and isinstance(p.get("name"), str)
                     and isinstance(p.get("nbytes"), int) and not isinstance(p.get("nbytes"), bool)):
                 raise _bad("sample", "packed", "a list of {codec, name, nbytes}", p)
         slot = None if h.get("slot") is None else _int(h, "sample", "slot")
-        return cls(_int(h, "sample", "task"), key, meta, _maps(h, "sample", "arrays"), packed, slot,
+        return cls(_int(h, "sample", "task"), key, meta, _list(h, "sample", "arrays", dict), packed, slot,
                    _map(h, "sample", "stages", (int, float)))
 
 
