@@ -39,9 +39,9 @@ def run(batches: int, batch_size: int, journal_dir=None) -> float:
         if task is None:
             break
         for k in range(10):
-            key = SampleKey(task["video"], k)
-            core.sample(worker, task["task"], key, now, lambda lane, key=key: {"sample_id": key.sample_id()})
-        core.done(worker, task["task"], 10, {}, None)
+            key = SampleKey(task.video, k)
+            core.sample(worker, task.task, key, now, lambda lane, key=key: {"sample_id": key.sample_id()})
+        core.done(worker, task.task, 10, {}, None)
         t0 = time.perf_counter()
         sends, _ = core.tick(now)
         for ident, b in sends:

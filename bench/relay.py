@@ -15,10 +15,10 @@ system split) and its minor page faults per GB. Paths, measured in the same run:
   (the fallback where ``/dev/shm`` is unavailable);
 * ``shm``: the worker writes into its shared-memory slot ring and sends the header only; the
   relay copies the slot into the batch buffer's row and gives the slot back
-  (``datapath.sample_from_slot`` / ``BatchAssembler``), so the batch is assembled by the time
+  (``assembly.sample_from_slot`` / ``BatchAssembler``), so the batch is assembled by the time
   it is made and the sample bytes never cross the worker's socket.
 * ``handoff``: ``shm``, with the batch buffers in files of a private ``/dev/shm`` directory
-  (``datapath.BatchDir``); each batch goes to the client as a header naming file, generation
+  (``shm.BatchDir``); each batch goes to the client as a header naming file, generation
   and offsets (``BatchPayload.shm_ref``), no array frames; the client maps the file, copies
   the arrays into a reused private buffer (``v2v_client.handoff.ShmReader``, what
   ``V2VStreamDataset(raw=True, shm="auto")`` does over ``ipc://``) and acknowledges, and the
@@ -34,6 +34,7 @@ delivered (uncompressed), beside per GB sent.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import multiprocessing as mp
 import resource
 import sys
@@ -101,8 +102,10 @@ def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict], real
             codec: str = "none") -> None:
     import zmq
 
-    from v2v_server.service.datapath import SlotRing
+    from v2v_server.service.shm import SlotRing
+    from v2v_wire.ids import SampleKey
     from v2v_wire.protocol import encode_arrays, pack
+    from v2v_wire.worker_messages import Sample
     from v2v_server.service.worker import pack_arrays
 
     ctx = zmq.Context()
@@ -118,18 +121,15 @@ def _worker(endpoint: str, release: str, n: int, ring_spec: Optional[dict], real
         rel = ctx.socket(zmq.PULL)
         rel.connect(release)
     for i in range(n):
-        h = {"type": "sample", "sample_id": f"v.mp4#{i}", "meta": {}, "arrays": specs}
-        if packed:
-            h["packed"] = packed_specs
+        h = Sample(0, SampleKey("v.mp4", i), {}, tuple(specs), tuple(packed_specs))
         if ring is None:
-            s.send_multipart([pack(h)] + frames + packed, copy=False)
+            s.send_multipart([pack(h.to_wire())] + frames + packed, copy=False)
             continue
         while not ring.free:  # block until the relay gives a slot back
             ring.free.append(int(rel.recv()))
         slot = ring.free.pop(0)
         ring.put(slot, arrays)
-        h["slot"] = slot
-        s.send_multipart([pack(h)] + packed, copy=False)
+        s.send_multipart([pack(dataclasses.replace(h, slot=slot).to_wire())] + packed, copy=False)
     s.close(linger=-1)
     if rel is not None:
         rel.close(0)
@@ -142,8 +142,11 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
            acks: Optional[str] = None, codec: str = "none") -> None:
     import zmq
 
-    from v2v_server.service import datapath
-    from v2v_wire.protocol import narrow_int_dtype, pack, unpack
+    from v2v_server.service.assembly import (BatchAssembler, SamplePayload, make_batch, sample_from_slot,
+                                             sample_from_worker)
+    from v2v_server.service.shm import BatchDir, SlotRing
+    from v2v_wire.protocol import decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack
+    from v2v_wire.worker_messages import Sample
 
     ctx = zmq.Context()
     pull = ctx.socket(zmq.PULL)
@@ -155,12 +158,12 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
     ring = rel = ack = files = None
     inflight = {}  # handoff: batch id -> payload until the client acknowledges it
     if path == "handoff":
-        files = datapath.BatchDir.create()
+        files = BatchDir.create()
         ack = ctx.socket(zmq.PULL)
         ack.bind(acks)
     if path in ("shm", "handoff"):
-        ring = datapath.SlotRing.attach(ring_spec, unlink=False)
-        assembler = datapath.BatchAssembler(B, files=files)
+        ring = SlotRing.attach(ring_spec, unlink=False)
+        assembler = BatchAssembler(B, files=files)
         rel = ctx.socket(zmq.PUSH)
         rel.setsockopt(zmq.SNDTIMEO, 2000)
         rel.bind(release)
@@ -169,29 +172,29 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
     clock = _Clock()
     for i in range(n):
         frames = clock.recv(pull)
-        h = unpack(frames[0])
+        h = Sample.from_wire(unpack(frames[0]))
         if path == "old":  # before: a copy per sample, np.stack per batch
-            arrays = {k: np.array(v) for k, v in datapath.decode_arrays(h["arrays"], frames[1:]).items()}
-            pending.append(datapath.SamplePayload(h["sample_id"], h["meta"], arrays))
+            arrays = {k: np.array(v) for k, v in decode_arrays(list(h.arrays), frames[1:]).items()}
+            pending.append(SamplePayload(h.key.sample_id(), h.meta, arrays))
         elif path in ("shm", "handoff"):
-            pending.append(datapath.sample_from_slot(h, ring, assembler, frames[1:]))
+            pending.append(sample_from_slot(h, ring, assembler, frames[1:]))
             try:  # the slot back to the worker (which may have finished and gone)
-                rel.send(str(h["slot"]).encode())
+                rel.send(str(h.slot).encode())
             except zmq.Again:
                 pass
         else:
-            pending.append(datapath.sample_from_worker(h, frames[1:]))
+            pending.append(sample_from_worker(h, frames[1:]))
         del frames
         if len(pending) == B:
             data += sum(x.nbytes for x in pending)
             if path == "old":
                 arrays = {k: np.stack([s.arrays[k] for s in pending]) for k in pending[0].arrays}
                 arrays["voxels"] = arrays["voxels"].astype(narrow_int_dtype(arrays["voxels"]), copy=False)
-                specs, out = datapath.encode_arrays(arrays)
+                specs, out = encode_arrays(arrays)
             elif path == "handoff":
                 while len(inflight) >= CREDITS:  # the client's window is full: wait for an ack
                     inflight.pop(int(ack.recv()), None)
-                batch = datapath.make_batch(pending)
+                batch = make_batch(pending)
                 specs, ref = batch.shm_ref(outputs)
                 inflight[sent_batches] = batch
                 push.send(pack({"type": "batch", "batch_id": sent_batches, "arrays": specs, "shm": ref,
@@ -201,7 +204,7 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
                 pending, batch = [], None
                 continue
             else:
-                specs, out = datapath.make_batch(pending).wire(outputs, codec)
+                specs, out = make_batch(pending).wire(outputs, codec)
             push.send_multipart([pack({"type": "batch", "arrays": specs,
                                        "sample_ids": [s.sample_id for s in pending]})] + out, copy=False)
             sent += sum(a.nbytes if isinstance(a, np.ndarray) else len(a.buffer) for a in out)
@@ -266,7 +269,7 @@ def measure(batches: int, path: str, tmp: str, transport: str = "ipc", codec: st
     "gb", "data_gb"}`` (``gb``: bytes sent or received; ``data_gb``: the samples' uncompressed
     bytes)."""
     from harness.serve import free_port
-    from v2v_server.service.datapath import SlotRing, slot_bytes
+    from v2v_server.service.shm import SlotRing, slot_bytes
 
     ctx = mp.get_context("spawn")
     q = ctx.Queue()

@@ -121,7 +121,7 @@ def copy_cost(batch: int = 12, rounds: int = 5) -> dict:
     128 px: voxels int8, frames uint8, flow float16): ms per sample, median of ``rounds``."""
     import numpy as np
 
-    from v2v_server.service.datapath import BatchAssembler, make_batch
+    from v2v_server.service.assembly import BatchAssembler, make_batch
 
     arrays = {"voxels": np.ones((40, 5, 128, 128), np.int8), "frames": np.ones((41, 128, 128), np.uint8),
               "flow": np.ones((40, 2, 128, 128), np.float16)}

@@ -4,9 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from v2v_server.service.datapath import make_batch, sample_from_worker
 from v2v_server.samples.recipe import SampleRecipe
+from v2v_server.service.assembly import make_batch, sample_from_worker
 from v2v_wire.protocol import decode_arrays, encode_arrays
+from v2v_wire.worker_messages import Sample
 
 
 def _sample(i, vox_dtype=np.int8):
@@ -14,7 +15,8 @@ def _sample(i, vox_dtype=np.int8):
               "flow": np.full((2, 2, 4, 4), i / 2, np.float16)}
     specs, frames = encode_arrays(arrays)
     wire = [bytes(f) for f in frames]  # what a worker's message carries
-    return sample_from_worker({"sample_id": f"v.mp4#{i}", "meta": {"i": i}, "arrays": specs}, wire), wire
+    header = {"type": "sample", "task": 0, "key": ["v.mp4", i, 0], "meta": {"i": i}, "arrays": specs}
+    return sample_from_worker(Sample.from_wire(header), wire), wire
 
 
 def test_samples_view_the_received_frames_and_batches_stack_once():

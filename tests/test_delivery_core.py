@@ -179,21 +179,21 @@ class DeliveryMachine(RuleBasedStateMachine):
     def work(self, w: SimWorker) -> None:
         """One step of a worker: one sample, a failed window, or done."""
         t = w.task
-        video, epoch = t["video"], t["epoch"]
+        video, epoch = t.video, t.epoch
         n = WINDOWS[video]
         while True:
             k = w.pos
             if k >= n:
-                self.core.done(w.ident, t["task"], n, w.failed, None)
+                self.core.done(w.ident, t.task, n, w.failed, None)
                 w.task = None
                 self.idle.add(w.ident)
                 return
             if (video, k) in DECODE_ERROR:  # decoding fails there, whether the window is wanted or not
-                self.core.done(w.ident, t["task"], k, w.failed, "decoding failed: truncated")
+                self.core.done(w.ident, t.task, k, w.failed, "decoding failed: truncated")
                 w.task = None
                 self.idle.add(w.ident)
                 return
-            if [k, 0] in t["skip"]:
+            if (k, 0) in t.skip:
                 w.pos += 1
                 continue
             if (video, k) in SIZE_CHANGE:
@@ -201,7 +201,7 @@ class DeliveryMachine(RuleBasedStateMachine):
                 w.pos += 1
                 continue
             w.pos += 1
-            self.core.sample(w.ident, t["task"], SampleKey(video, k), self.now,
+            self.core.sample(w.ident, t.task, SampleKey(video, k), self.now,
                              lambda lane: FakeSample(SampleKey(video, k).sample_id()))
             return
 
@@ -389,12 +389,12 @@ class DeliveryMachine(RuleBasedStateMachine):
         SEEN["late_copy"] += 1
         before = sum(len(b.keys) for b in self.core.ledger.batches.values())
         made = self.core.samples_made
-        if w.task is not None and w.pos < WINDOWS[w.task["video"]]:
+        if w.task is not None and w.pos < WINDOWS[w.task.video]:
             k = w.pos
-            key = SampleKey(w.task["video"], k)
-            kept = self.core.sample(w.ident, w.task["task"], key, self.now, lambda lane: FakeSample(key.sample_id()))
+            key = SampleKey(w.task.video, k)
+            kept = self.core.sample(w.ident, w.task.task, key, self.now, lambda lane: FakeSample(key.sample_id()))
             assert not kept and self.core.samples_made == made
-            self.core.done(w.ident, w.task["task"], WINDOWS[w.task["video"]], {}, None)
+            self.core.done(w.ident, w.task.task, WINDOWS[w.task.video], {}, None)
         assert sum(len(b.keys) for b in self.core.ledger.batches.values()) == before
 
     # ------------------------------------------------------------------ invariants
@@ -587,15 +587,15 @@ def test_outputs_are_the_union_and_stale_batches_are_remade():
                                                   max_credits=4, task_timeout_s=100.0), make_batch)
     core.hello(b"v", Hello(("voxels",), 2), 0.0, dict)
     msg = core.task_for(b"w", 0.0)
-    assert msg["outputs"] == ["voxels"]
-    core.sample(b"w", msg["task"], SampleKey("a.mp4", 0), 0.0, lambda lane: FakeSample("a.mp4#0"))
+    assert msg.outputs == ("voxels",)
+    core.sample(b"w", msg.task, SampleKey("a.mp4", 0), 0.0, lambda lane: FakeSample("a.mp4#0"))
     core.forget(b"v")
     core.hello(b"f", Hello(("voxels", "flow"), 2), 0.0, dict)
     sends, _ = core.tick(0.0)
     assert sends == [] and core.sched.owed(0) == set()  # not sent without flow; window 0 must be made again
-    core.done(b"w", msg["task"], 1, {}, None)
+    core.done(b"w", msg.task, 1, {}, None)
     msg2 = core.task_for(b"w", 1.0)
-    assert msg2["outputs"] == ["voxels", "flow"] and msg2["skip"] == []
+    assert msg2.outputs == ("voxels", "flow") and msg2.skip == ()
 
 
 @pytest.mark.parametrize("sid,ok", [("a.mp4#3", True), ("a#b.mp4#0", True), ("a.mp4#٣", False), ("a.mp4#", False),

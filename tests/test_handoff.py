@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from v2v_client.handoff import ShmReader, check_shm_dir
-from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch, remove_stale_shm
+from v2v_server.service.assembly import BatchAssembler, make_batch
+from v2v_server.service.shm import BatchDir, remove_stale_shm
 from v2v_wire.protocol import ProtocolError
 
 from .conftest import video_dir
@@ -149,7 +150,7 @@ def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root, nam
     import sys
     import time
 
-    from v2v_server.service.datapath import SlotRing
+    from v2v_server.service.shm import SlotRing
 
     from harness.faults_deploy import pid_namespace
 
@@ -158,7 +159,7 @@ def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root, nam
         pytest.skip("unshare -p is not permitted on this machine")
     live = subprocess.Popen([*wrap, sys.executable, "-c", (
         "import sys, time\n"
-        "from v2v_server.service.datapath import BatchDir, SlotRing\n"
+        "from v2v_server.service.shm import BatchDir, SlotRing\n"
         f"d = BatchDir.create({shm_root!r}); r = SlotRing.create(2, 4096, {shm_root!r})\n"
         "print(d.path, r.path, flush=True); time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
     live_dir, live_ring = live.stdout.readline().split()

@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from v2v_server.service.datapath import (BatchAssembler, BatchDir, SlotRing, create_ring, make_batch, sample_from_slot,
-                                 sample_from_worker, slot_bytes)
+from v2v_server.service.assembly import BatchAssembler, make_batch, sample_from_slot, sample_from_worker
+from v2v_server.service.shm import BatchDir, SlotRing, create_ring, slot_bytes
 from v2v_wire.protocol import ProtocolError, encode_arrays
+from v2v_wire.worker_messages import Sample, Task
 
 from .conftest import video_dir
 from v2v_server.samples.recipe import SampleRecipe
@@ -32,10 +33,18 @@ def _ring(tmp_path, slots=3):
     return SlotRing.create(slots, slot_bytes(L, NB, S), str(tmp_path))
 
 
+def _sample(i, specs, slot=None, video="v.mp4"):
+    """A worker's ``sample`` header as the server reads it (checked at the edge)."""
+    h = {"type": "sample", "task": 1, "key": [video, i, 0], "meta": {"i": i}, "arrays": specs}
+    if slot is not None:
+        h["slot"] = slot
+    return Sample.from_wire(h)
+
+
 def _via_slot(ring, worker, asm, i, arrays):
     slot = worker.free.pop(0)
     specs = worker.put(slot, arrays)
-    s = sample_from_slot({"sample_id": f"v.mp4#{i}", "meta": {"i": i}, "slot": slot, "arrays": specs}, ring, asm)
+    s = sample_from_slot(_sample(i, specs, slot), ring, asm)
     worker.free.append(slot)  # the relay copied it out: the worker may write it again
     return s
 
@@ -57,8 +66,7 @@ def test_slot_path_sends_the_same_bytes_as_the_socket_path_and_stacks_nothing(tm
     socket_samples = []
     for i in range(4):
         specs, frames = encode_arrays(_arrays(i))
-        socket_samples.append(sample_from_worker({"sample_id": f"v.mp4#{i}", "meta": {"i": i}, "arrays": specs},
-                                                 [f.tobytes() for f in frames]))
+        socket_samples.append(sample_from_worker(_sample(i, specs), [f.tobytes() for f in frames]))
     assert _wire_bytes(batch) == _wire_bytes(make_batch(socket_samples))
     assert not samples[0].arrays["voxels"].flags.writeable
     worker.close()
@@ -105,16 +113,15 @@ def test_bad_slot_headers_are_protocol_errors(tmp_path):
     specs = [{"name": "voxels", "dtype": "int8", "shape": [L, NB, S, S]}]
     for slot in (2, -1, "0", True):
         with pytest.raises(ProtocolError, match="slot"):
-            sample_from_slot({"sample_id": "v#0", "meta": {}, "slot": slot, "arrays": specs}, relay, asm)
+            sample_from_slot(_sample(0, specs, slot, "v"), relay, asm)
     huge = [{"name": "voxels", "dtype": "int32", "shape": [1 << 20, 64]}]
     with pytest.raises(ProtocolError, match="overrun"):
-        sample_from_slot({"sample_id": "v#0", "meta": {}, "slot": 0, "arrays": huge}, relay, asm)
+        sample_from_slot(_sample(0, huge, 0, "v"), relay, asm)
     overflow = [{"name": "voxels", "dtype": "int32", "shape": [1 << 62, 4]}]  # wraps in int64
     with pytest.raises(ProtocolError, match="overrun"):
-        sample_from_slot({"sample_id": "v#0", "meta": {}, "slot": 0, "arrays": overflow}, relay, asm)
+        sample_from_slot(_sample(0, overflow, 0, "v"), relay, asm)
     with pytest.raises(ProtocolError):
-        sample_from_slot({"sample_id": "v#0", "meta": {}, "slot": 0,
-                          "arrays": [{"name": "x", "dtype": "object", "shape": [1]}]}, relay, asm)
+        sample_from_slot(_sample(0, [{"name": "x", "dtype": "object", "shape": [1]}], 0, "v"), relay, asm)
     too_big = {"voxels": np.zeros((L * 10, NB, S, S), np.int32)}
     assert relay.put(0, too_big) is None  # the worker sends such a sample as frames
     relay.unlink()
@@ -216,10 +223,10 @@ def test_a_worker_with_every_slot_taken_blocks_until_the_server_gives_one_back(t
     assert server.recv_multipart()[0] == b"w0"
     t.join(1.5)
     assert t.is_alive() and got == []  # blocked, nothing dropped or overwritten
-    server.send_multipart([b"w0", pack({"type": "task", "task": 1})])  # kept for the main loop, in order
+    server.send_multipart([b"w0", pack(Task(1, 0, "a.mp4", ("voxels",)).to_wire())])  # kept for the main loop, in order
     server.send_multipart([b"w0", pack({"type": "slot", "slot": 1})])
     t.join(10)
-    assert got == [1] and [h["type"] for h in inbox.waiting] == ["task"]
+    assert got == [1] and inbox.waiting == [Task(1, 0, "a.mp4", ("voxels",))]
     server.send_multipart([b"w0", pack({"type": "slot", "slot": 7})])  # out of range: ignored
     server.send_multipart([b"w0", pack({"type": "slot", "slot": 0})])
     assert inbox.slot(os.getppid()) == 0 and ring.free == []

@@ -1,6 +1,6 @@
 """Shuffled epochs without sockets: the epoch order of the videos (``batcher.video_order``, the
 scheduler), the shuffle buffer of open batches (``batcher.Batcher``), its zero-copy buffers
-(``datapath.BatchAssembler`` lanes), and the settings' errors."""
+(``assembly.BatchAssembler`` lanes), and the settings' errors."""
 from __future__ import annotations
 
 import collections
@@ -14,7 +14,7 @@ from v2v_server.delivery.ledger import DeliveryLedger
 from v2v_server.delivery.schedule import EpochScheduler
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ray_data import RayCorpus, epoch_descriptors
-from v2v_server.service.datapath import BatchAssembler, make_batch
+from v2v_server.service.assembly import BatchAssembler, make_batch
 from v2v_wire.ids import SampleKey
 from v2v_wire.messages import Hello
 
@@ -198,9 +198,9 @@ def one_worker_stream(policy: DeliveryPolicy, videos, windows: int):
     core.hello(b"t", Hello(("voxels",), 64), 0.0, dict)
     while (task := core.task_for(b"w", 0.0)) is not None:
         for w in range(windows):
-            key = SampleKey(task["video"], w, 0)
-            assert core.sample(b"w", task["task"], key, 0.0, lambda lane, key=key: key)
-        core.done(b"w", task["task"], windows, {}, None)
+            key = SampleKey(task.video, w, 0)
+            assert core.sample(b"w", task.task, key, 0.0, lambda lane, key=key: key)
+        core.done(b"w", task.task, windows, {}, None)
     on_the_fly = collections.defaultdict(list)
     for b in core.ledger.batches.values():
         on_the_fly[b.epoch].append(len(b.keys))

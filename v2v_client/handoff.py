@@ -3,7 +3,7 @@
 A client connected over ``ipc://`` that asked for it (hello ``"shm": true``) receives batches
 that sit in one of the server's batch buffers as a header only: ``"shm": {"file", "gen",
 "offsets"}`` next to the usual ``"arrays"`` specs, and no array frames (see
-``v2v_server.service.datapath``). :class:`ShmReader` maps the file (read-only; mappings cached per
+``v2v_server.service.shm``). :class:`ShmReader` maps the file (read-only; mappings cached per
 file), checks every offset and size against the file, and copies the arrays out into memory
 of its own (one memcpy; no socket copy on either side) before the batch is acknowledged,
 after which the server may refill the buffer. A buffer refilled before the copy ended (the

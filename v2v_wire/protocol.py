@@ -22,7 +22,8 @@ Message types (protocol 3; client messages are decoded and schema-checked by ``w
   client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
   ``dropped`` / ``unknown_client``: discard what you hold, say hello again).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
-  error); server -> worker: ``task``, ``stop``.
+  error, the exception that stopped the pass as ``failure``); server -> worker: ``task``,
+  ``slot``, ``stop`` (typed and checked in ``worker_messages``).
 
 Array forms: each array's dtype, shape and float conversion are in ``outputs.ARRAYS`` (one
 ``ArraySpec`` per array; ``polarity_counts`` is served only to clients that ask). A tracked flow option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its
@@ -41,7 +42,7 @@ Same-host hand-off (optional fields): a hello may say
 (``info.shm_dir``, else null) and may send a batch with no array frames and
 ``"shm": {"file": "b<N>", "gen": <generation>, "offsets": [<byte offset per array>]}`` next to
 the usual ``arrays`` specs: the arrays lie in that file of that directory (see
-``datapath.BatchDir``; ``v2v_client.handoff`` reads and checks them). Batches that are not
+``v2v_server.service.shm.BatchDir``; ``v2v_client.handoff`` reads and checks them). Batches that are not
 one buffer's rows, and every batch to other clients, still carry frames.
 """
 from __future__ import annotations
@@ -66,7 +67,7 @@ MAX_CLIENT_MSG = 16 * 1024 * 1024
 #: dtypes allowed on the wire.
 WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")
 
-#: Same-host hand-off (``datapath.BatchDir`` writes, ``v2v_client.handoff`` reads):
+#: Same-host hand-off (``v2v_server.service.shm.BatchDir`` writes, ``v2v_client.handoff`` reads):
 #: bytes at the start of a batch-buffer file before the first array (the generation, uint64 LE);
 BATCH_FILE_HEADER = 64
 #: names of batch-buffer files inside a server's batch directory (never anything a client chose);

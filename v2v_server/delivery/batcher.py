@@ -9,7 +9,7 @@
   buffer of at most ``lanes x batch_size`` samples); an open batch that is full becomes a batch
   and an empty one opens in its place. A sample's open batch is chosen *before*
   its arrays are copied (:meth:`Batcher.lane`), so the server copies it straight into that
-  batch's buffer row (``datapath.BatchAssembler.place``): a full batch is consecutive rows of
+  batch's buffer row (``assembly.BatchAssembler.place``): a full batch is consecutive rows of
   one buffer and goes out zero-copy, as without shuffling. ``lanes = 1`` keeps arrival order.
   When the caller knows how many samples a group can still bring, the choice is among no more
   open batches than those samples fill, so an epoch smaller than the buffer still makes whole

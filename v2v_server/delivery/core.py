@@ -6,7 +6,7 @@ seconds). ``server.py`` moves the bytes; ``tests/test_delivery_core.py`` drives 
 through thousands of interleavings with hypothesis.
 
 Batch payloads are opaque here: ``make_batch(samples)`` builds one from what ``sample()``
-was given (``datapath.make_batch`` in the server), and a payload is only asked for
+was given (``assembly.make_batch`` in the server), and a payload is only asked for
 ``subset(keep)``; every sample travels with its ``ids.SampleKey``.
 """
 from __future__ import annotations
@@ -23,6 +23,7 @@ from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import OUTPUTS
 from v2v_server.delivery.schedule import MAX_TASK_CRASHES, EpochScheduler, Job
 from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
+from v2v_wire.worker_messages import Task
 
 log = logging.getLogger("v2v.server")
 
@@ -183,9 +184,10 @@ class DeliveryCore:
                 self.sched.apply_resume(consumer, journal.completed, delivered)
 
     # ------------------------------------------------------------------ workers
-    def task_for(self, worker: Hashable, now: float) -> Optional[dict]:
+    def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
         """The ``task`` message for an idle worker, or None (nothing to do, or no client yet).
-        Its ``skip`` lists the ``[window, crop]`` of each sample of the video not to make."""
+        Its ``skip`` lists the ``(window, crop)`` of each sample of the video not to make;
+        ``codecs``: what the worker compresses each sample with (those clients asked for)."""
         outs = self.ledger.outputs_wanted()
         if outs:
             self.outputs = tuple(o for o in OUTPUTS if o in outs)
@@ -195,8 +197,8 @@ class DeliveryCore:
         if t is None:
             return None
         self.task_outputs[t.task_id] = self.outputs
-        return {"type": "task", "task": t.task_id, "epoch": t.epoch, "video": t.video,
-                "outputs": list(self.outputs), "skip": [[k.window, k.crop] for k in sorted(t.skip)]}
+        return Task(t.task_id, t.epoch, t.video, self.outputs, tuple((k.window, k.crop) for k in sorted(t.skip)),
+                    tuple(codecs))
 
     def sample(self, worker: Hashable, task_id, key: SampleKey, now: float, build: Callable) -> bool:
         """A worker sent sample ``key`` of ``task_id``'s video; ``build(lane)`` makes the sample

@@ -42,7 +42,7 @@ class BatchRecord:
         batch_id: unique id.
         epoch: epoch of every sample in it.
         keys: the ``ids.SampleKey`` of each sample, in batch order.
-        payload: opaque to the ledger (``datapath.BatchPayload`` in the server).
+        payload: opaque to the ledger (``assembly.BatchPayload`` in the server).
         avoid: a client that gave it back (prefer another one).
         outputs: names of the arrays it carries (a client gets it only if it asks for a subset).
     """

@@ -16,7 +16,7 @@ import zmq
 from v2v_server.delivery.core import DeliveryCore
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
-from v2v_server.service.datapath import BatchAssembler
+from v2v_server.service.assembly import BatchAssembler
 from v2v_wire import codecs
 from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
 from v2v_wire.protocol import MAX_CLIENT_MSG, pack

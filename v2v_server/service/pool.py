@@ -2,7 +2,7 @@
 
 The pool owns processes only; which task a worker runs is the scheduler's business
 (``schedule.py``), and messages travel on the server's backend socket. With ``shm`` on, it
-also owns each worker's shared-memory slot ring (``datapath.SlotRing``): created before the
+also owns each worker's shared-memory slot ring (``shm.SlotRing``): created before the
 spawn, unlinked by the worker once mapped (and by the pool when the worker dies or stops),
 unmapped here when the worker is gone. A restarted worker gets a fresh ring, so a crash never
 touches another worker's slots.
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Tuple
 
 from v2v_server.faults import cause_of, warn_once
-from v2v_server.service.datapath import SlotRing, create_ring
+from v2v_server.service.shm import SlotRing, create_ring
 from v2v_server.service.worker import worker_main
 
 log = logging.getLogger("v2v.server")

@@ -17,7 +17,7 @@ The decisions live in small pure modules, tested directly (``tests/test_delivery
 This module only moves bytes: its loop reads the sockets, hands worker messages to
 ``worker_side.WorkerSide`` and client messages to ``client_side.ClientSide`` (which ask those
 modules and send what they say), and owns the server's life: start, end of stream, status,
-shutdown. A batch's arrays stay an opaque ``datapath.BatchPayload``.
+shutdown. A batch's arrays stay an opaque ``assembly.BatchPayload``.
 """
 from __future__ import annotations
 
@@ -35,7 +35,8 @@ from v2v_server.videos.source import source_from_spec
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.core import DeliveryCore
 from v2v_server.service.client_side import ClientSide
-from v2v_server.service.datapath import BatchAssembler, BatchDir, make_batch
+from v2v_server.service.assembly import BatchAssembler, make_batch
+from v2v_server.service.shm import BatchDir
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.pool import WorkerPool
 from v2v_server.service.worker import worker_config

@@ -7,9 +7,10 @@ windows the file gave, the windows that failed and the reason the pass stopped e
 at a small high-water mark, so a worker never runs ahead of what the server is willing to
 hold. A worker whose parent has gone exits by itself.
 
-With a shared-memory slot ring (``datapath.SlotRing``, given by the pool at spawn) a sample's
+With a shared-memory slot ring (``shm.SlotRing``, given by the pool at spawn) a sample's
 arrays go into a free slot and the ``sample`` header names the slot (no array frames); the
-server answers ``{"type": "slot", "slot": i}`` once it has copied the slot out. With every slot
+server answers with a ``Slot`` message once it has copied the slot out (the messages:
+``v2v_wire.worker_messages``). With every slot
 taken the worker blocks until one comes back. Without a ring (no ``/dev/shm``) or for a sample
 too large for a slot, the arrays travel as frames.
 """
@@ -20,7 +21,7 @@ import os
 import signal
 import sys
 import time
-from typing import Optional
+from typing import Optional, Union
 
 import numpy as np
 import zmq
@@ -29,10 +30,11 @@ from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
 from v2v_server.videos.corpus import pass_verdict
 from v2v_server.videos.source import source_from_spec, take_store_stats
-from v2v_server.service.datapath import SlotRing
+from v2v_server.service.shm import SlotRing
 from v2v_server.ops.logs import setup_logging
 from v2v_wire.outputs import wire_dtype
-from v2v_wire.protocol import encode_arrays, pack, unpack
+from v2v_wire.protocol import ProtocolError, encode_arrays, pack, unpack
+from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, Task, server_message
 from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import SampleKey
 from v2v_server.samples.make import video_samples
@@ -48,22 +50,27 @@ def _parent_alive(parent_pid: int) -> bool:
 
 
 class _Inbox:
-    """The worker's side of its socket's incoming messages: ``slot`` messages give slots back
-    to the ring at once; anything else waits for the main loop, in order."""
+    """The worker's side of its socket's incoming messages (``worker_messages.server_message``):
+    ``Slot`` messages give slots back to the ring at once; ``Task`` and ``Stop`` wait for the
+    main loop, in order; a malformed message is logged and dropped."""
 
     def __init__(self, sock: zmq.Socket, ring: Optional[SlotRing]):
         self.sock, self.ring, self.waiting = sock, ring, []
 
     def _take(self, frames) -> None:
-        h = unpack(frames[0])
-        if h["type"] == "slot":
-            i = h.get("slot")
-            if self.ring is not None and isinstance(i, int) and 0 <= i < self.ring.slots and i not in self.ring.free:
+        try:
+            msg = server_message(unpack(frames[0]))
+        except ProtocolError as e:
+            log.error("bad message from the server: %s", e)
+            return
+        if isinstance(msg, Slot):
+            i = msg.slot
+            if self.ring is not None and i < self.ring.slots and i not in self.ring.free:
                 self.ring.free.append(i)
         else:
-            self.waiting.append(h)
+            self.waiting.append(msg)
 
-    def next(self, parent_pid: int) -> Optional[dict]:
+    def next(self, parent_pid: int) -> Optional[Union[Task, Stop]]:
         """The next non-slot message, or None after a second without one."""
         while not self.waiting:
             if not self.sock.poll(1000):
@@ -79,7 +86,7 @@ class _Inbox:
         while not self.ring.free:
             if self.sock.poll(1000):
                 self._take(self.sock.recv_multipart())
-                if any(h["type"] == "stop" for h in self.waiting):
+                if any(isinstance(m, Stop) for m in self.waiting):
                     raise SystemExit(0)
             elif not _parent_alive(parent_pid):
                 raise SystemExit(0)
@@ -162,49 +169,53 @@ class _StageClock:
         return out
 
 
-def run_task(cfg: SampleRecipe, root, task: dict, sock: zmq.Socket, parent_pid: int, flows: dict,
-             inbox: Optional[_Inbox] = None) -> None:
+def run_task(cfg: SampleRecipe, root, task: Task, sock: zmq.Socket, parent_pid: int, flows: dict,
+             inbox: Optional[_Inbox] = None, worker: str = "?") -> None:
     """Make every sample of one task and send it (through ``inbox``'s slot ring when it has
-    one), then send ``done``."""
+    one), then send ``done``; an exception that stops the pass goes in it as a
+    ``worker_messages.Failure`` saying it was raised in ``worker`` (its identity) on what."""
     stats: dict = {}
-    error = None
+    error = failure = last = None
     preset = cfg.flow_preset
-    flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task["outputs"] else None
+    flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task.outputs else None
     clock = _StageClock(stats)  # seconds per stage, reported with each message
-    skip = [SampleKey(task["video"], w, c) for w, c in task.get("skip", ())]
+    skip = [SampleKey(task.video, w, c) for w, c in task.skip]
     try:
         for key, arrays, meta in video_samples(
-            cfg, root, task["video"], task["epoch"], task["outputs"], skip, flow, stats,
+            cfg, root, task.video, task.epoch, task.outputs, skip, flow, stats,
             flow_grid=True,  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
         ):
             clock.made()
             arrays = wire_arrays(cfg, arrays)
             specs, frames = encode_arrays(arrays)
-            header = {"type": "sample", "task": task["task"], "key": key.wire(), "meta": meta, "arrays": specs}
-            packed_specs, packed = pack_arrays(arrays, task.get("codecs", ()))
-            if packed:
-                header["packed"] = packed_specs
+            packed_specs, packed = pack_arrays(arrays, task.codecs)
             clock.serialized()
+            slot = None
             if inbox is not None and inbox.ring is not None:  # waiting for a slot counts as send (back-pressure)
                 slot = inbox.slot(parent_pid)
                 if inbox.ring.put(slot, dict(zip((s["name"] for s in specs), frames))) is None:
                     inbox.ring.free.insert(0, slot)  # too large for a slot: frames instead
+                    slot = None
                 else:
-                    header["slot"], frames = slot, []
-            header["stages"] = clock.report()
-            _send(sock, [pack(header)] + frames + packed, parent_pid)
+                    frames = []
+            header = Sample(task.task, key, meta, tuple(specs), tuple(packed_specs), slot, clock.report())
+            _send(sock, [pack(header.to_wire())] + frames + packed, parent_pid)
             clock.sent()
+            last = key
     except Exception as e:  # any failure on one file is that file's verdict, not the worker's death
         error = e
+        after = "before its first sample" if last is None else f"after sample {last.sample_id(cfg.crops_per_window)}"
+        failure = Failure.of(e, f"in worker {worker}, pid {os.getpid()}, while making {task.video} in epoch "
+                                f"{task.epoch}, {after}")
     # failed windows are reported one by one below, not in the file's verdict
     error = pass_verdict(cfg.windows, stats, error)
     clock.made()  # decoding after the last window
-    done = {"type": "done", "task": task["task"], "frames": stats.get("frames", 0),
-            "windows": stats.get("windows", 0), "error": error, "stages": clock.report(),
-            "cuts": stats.get("cuts", 0), "dropped": stats.get("dropped", 0),  # shot cuts found, windows they removed
-            "store": take_store_stats(root),  # object-store reads of this task (empty for a folder)
-            "failed": {str(k): str(v) for k, v in stats.get("failed", {}).items()}}  # window -> reason
-    _send(sock, [pack(done)], parent_pid)
+    done = Done(task.task, stats.get("windows", 0),
+                {str(k): str(v) for k, v in stats.get("failed", {}).items()},  # window -> reason
+                error, failure, stats.get("frames", 0),
+                stats.get("cuts", 0), stats.get("dropped", 0),  # shot cuts found, windows they removed
+                clock.report(), take_store_stats(root))  # object-store reads of this task (empty for a folder)
+    _send(sock, [pack(done.to_wire())], parent_pid)
 
 
 def worker_config(cfg: ServeConfig) -> dict:
@@ -264,15 +275,13 @@ def worker_main(cfg_dict: dict, root, endpoint: str, identity: bytes, parent_pid
     source = source_from_spec(root)  # the corpus folder, or the object store (one client per worker)
     flows: dict = {}
     try:
-        _send(sock, [pack({"type": "ready", "ring": slots is not None})], parent_pid)
+        _send(sock, [pack(Ready(slots is not None).to_wire())], parent_pid)
         while True:
-            h = inbox.next(parent_pid)
-            if h is None:
-                continue
-            if h["type"] == "stop":
+            msg = inbox.next(parent_pid)
+            if isinstance(msg, Stop):
                 return
-            if h["type"] == "task":
-                run_task(cfg, source, h, sock, parent_pid, flows, inbox)
+            if isinstance(msg, Task):
+                run_task(cfg, source, msg, sock, parent_pid, flows, inbox, identity.decode())
     finally:
         sock.close(0)
         ctx.term()

@@ -1,6 +1,7 @@
 """The server loop's worker side: tasks out, samples and reports in, dead and hung workers replaced.
 
-``WorkerSide`` reads the messages of the backend socket (``ready``, ``sample``, ``done``), asks
+``WorkerSide`` reads the messages of the backend socket (``ready``, ``sample``, ``done``: typed and
+checked at the edge, ``v2v_wire.worker_messages``), asks
 the delivery core (``delivery.core.DeliveryCore``) what each means, gives slots back, hands idle
 workers their tasks, and logs once per (file, reason) why a file, or the rest of it, is skipped
 this epoch. It decides nothing itself: the core does; it owns no process: the pool does.
@@ -16,12 +17,12 @@ import zmq
 from v2v_server.delivery.core import DeliveryCore
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
-from v2v_server.service.datapath import BatchAssembler, sample_from_slot, sample_from_worker
+from v2v_server.service.assembly import BatchAssembler, sample_from_slot, sample_from_worker
 from v2v_server.service.pool import WorkerPool
 from v2v_server.videos.corpus import SHORT_CLIP
 from v2v_server.videos.source import VideoSource
-from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import ProtocolError, pack, unpack
+from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, worker_message
 
 log = logging.getLogger("v2v.server")
 
@@ -55,7 +56,7 @@ class WorkerSide:
         """Ask every worker to stop (then the pool terminates what is left)."""
         def send_stop(ident):
             try:
-                self.backend.send_multipart([ident, pack({"type": "stop"})], zmq.NOBLOCK)
+                self.backend.send_multipart([ident, pack(Stop().to_wire())], zmq.NOBLOCK)
             except zmq.ZMQError:
                 pass
         self.pool.stop(send_stop)
@@ -81,8 +82,8 @@ class WorkerSide:
             self.metrics.on_worker_restarted()
 
     def on_message(self, frames) -> None:
-        """One message from a worker (identity frame, header, array frames): ``ready``,
-        ``sample`` (named by its ``"key"``, ``ids.SampleKey.wire``) or ``done``."""
+        """One message from a worker (identity frame, header, array frames), checked at the edge
+        (``worker_messages.worker_message``): ``Ready``, ``Sample`` or ``Done``."""
         ident = frames[0].bytes
         w = self.pool.get(ident)
         try:
@@ -93,54 +94,70 @@ class WorkerSide:
         if w is None:
             return  # a replaced worker's last words
         self.metrics.on_worker_message(h)  # stage seconds
-        kind = h["type"]
+        try:
+            msg = worker_message(h, self.cfg.crops_per_window)
+        except ProtocolError as e:
+            log.error("bad message from worker %s: %s", ident, e)
+            slot = h.get("slot")
+            if h.get("type") == "sample" and isinstance(slot, int) and not isinstance(slot, bool):
+                self.give_slot(ident, slot)  # a malformed header never costs the worker a slot
+            return
         now = time.monotonic()
-        if kind == "ready":
-            if w.ring is not None and h.get("ring") is False:
+        if isinstance(msg, Ready):
+            if w.ring is not None and not msg.ring:
                 log.warning("worker %s could not map its slot ring; it sends arrays as socket frames", ident.decode())
             w.idle = True
             self.seen = True  # /readyz: a worker is up
-        elif kind == "sample":
-            slot = h.get("slot")
-            if slot is not None and w.ring is not None:  # arrays in the worker's shared memory
-                build = lambda lane: sample_from_slot(h, w.ring, self.assembler, frames[2:], lane)  # noqa: E731
+        elif isinstance(msg, Sample):
+            cpw = self.cfg.crops_per_window
+            if msg.slot is not None and w.ring is not None:  # arrays in the worker's shared memory
+                build = lambda lane: sample_from_slot(msg, w.ring, self.assembler, frames[2:], lane, cpw)  # noqa: E731
             else:
-                build = lambda lane: sample_from_worker(h, frames[2:])  # noqa: E731
+                build = lambda lane: sample_from_worker(msg, frames[2:], cpw)  # noqa: E731
             try:
-                key = SampleKey.from_wire(h.get("key"), self.cfg.crops_per_window)
-                h["sample_id"] = key.sample_id(self.cfg.crops_per_window)  # the batch's user-facing id
-                kept = self.core.sample(ident, h.get("task"), key, now, build)
+                kept = self.core.sample(ident, msg.task, msg.key, now, build)
             except (ProtocolError, KeyError, TypeError, ValueError) as e:
                 log.error("bad sample from worker %s: %s", ident, e)
                 return
             finally:
-                if slot is not None:  # copied out (or not wanted): the worker may write it again
-                    try:
-                        self.backend.send_multipart([ident, pack({"type": "slot", "slot": slot})], zmq.NOBLOCK)
-                    except zmq.ZMQError:
-                        pass
+                if msg.slot is not None:  # copied out (or not wanted): the worker may write it again
+                    self.give_slot(ident, msg.slot)
             if kept:
                 self.metrics.on_sample_made()
-        elif kind == "done":
-            failed = h.get("failed") if isinstance(h.get("failed"), dict) else {}
-            job = self.core.done(ident, h.get("task"), h.get("windows", 0), failed, h.get("error"))
-            if job is None:
-                return
-            w.idle = True
-            for k, why in sorted(failed.items()):
-                self.log_failure(job.video, f"window {k}: {why}")
-            if h.get("error"):
-                n = h.get("windows", 0) if isinstance(h.get("windows"), int) else 0
-                self.log_failure(job.video, h["error"], served=n)
+        else:
+            self.on_done(w, msg)
 
-    def log_failure(self, video: str, reason: str, served: int = 0) -> None:
+    def give_slot(self, ident: bytes, slot: int) -> None:
+        """Tell worker ``ident`` that ``slot`` of its ring may be written again."""
+        try:
+            self.backend.send_multipart([ident, pack(Slot(slot).to_wire())], zmq.NOBLOCK)
+        except zmq.ZMQError:
+            pass
+
+    def on_done(self, w, msg: Done) -> None:
+        """A worker's task ended: the core is told; failed windows and a pass stopped early are
+        logged (an exception with its type and where it was raised)."""
+        job = self.core.done(w.ident, msg.task, msg.windows, msg.failed, msg.error)
+        if job is None:
+            return
+        w.idle = True
+        for k, why in sorted(msg.failed.items()):
+            self.log_failure(job.video, f"window {k}: {why}")
+        if msg.error:
+            self.log_failure(job.video, msg.error, served=msg.windows, failure=msg.failure)
+
+    def log_failure(self, video: str, reason: str, served: int = 0, failure: Optional[Failure] = None) -> None:
         """Log once per (file, reason) why a file, or the rest of it after ``served``
-        windows, is skipped this epoch."""
+        windows, is skipped this epoch; with the worker's ``failure`` (the exception that
+        stopped the pass), its type and where it was raised, and its traceback at debug level."""
         if video not in self.skipped_files:
             self.metrics.on_file_skipped()
         self.skipped_files.setdefault(video, reason)
         if (video, reason) not in self.logged_failures and len(self.logged_failures) < 100000:
             self.logged_failures.add((video, reason))
+            if failure is not None:
+                reason = f"{reason} ({failure.exc_type} raised {failure.where})"
+                log.debug("%s: the worker's traceback:\n%s", self.source.where(video), failure.traceback)
             if served:
                 log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
                             "epoch", self.source.where(video), reason, served, served - 1)
@@ -152,9 +169,8 @@ class WorkerSide:
         """A task for each idle worker while there are tasks; ``codecs``: what the workers
         compress each sample with (the codecs connected clients asked for over sockets)."""
         for w in self.pool.idle():
-            msg = self.core.task_for(w.ident, now)
-            if msg is None:
+            task = self.core.task_for(w.ident, now, codecs)
+            if task is None:
                 return
-            msg["codecs"] = codecs
             w.idle = False
-            self.backend.send_multipart([w.ident, pack(msg)])
+            self.backend.send_multipart([w.ident, pack(task.to_wire())])

@@ -1,0 +1,359 @@
+"""Shared memory of the server's data path: the workers' slot rings, the batch directory and the
+sweep of what dead servers left.
+
+* **Slot rings** (:class:`SlotRing`): each worker writes a sample's arrays into a free slot of
+  its own ring (a file in ``/dev/shm`` that the pool creates and the worker unlinks as soon as
+  it has mapped it) and sends only the header with the slot number; the relay copies the slot
+  out (``assembly.sample_from_slot``) and gives it back at once, so a ring of a few slots
+  suffices however long samples wait for their batch.
+* **The batch directory** (:class:`BatchDir`, ``/dev/shm/v2v-batches-<pid>-*``): a server
+  bound to ``ipc://`` keeps its batch buffers in files there, so a same-host client can map a
+  batch instead of receiving it (``assembly.BatchPayload.shm_ref``, ``v2v_client.handoff``).
+  Each file starts with a 64-byte header holding the buffer's generation (uint64,
+  little-endian), bumped whenever an idle buffer is refilled.
+* **The sweep** (:func:`remove_stale_shm`): a live server holds an ``flock`` on its ring files
+  and its directory's lock file; what nobody holds was left by a server that died, and the
+  next server's start removes it.
+"""
+from __future__ import annotations
+
+import fcntl
+import logging
+import math
+import mmap
+import os
+import shutil
+import stat
+import tempfile
+import time
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from v2v_server.faults import cause_of, warn_once
+from v2v_wire.outputs import max_sample_bytes
+from v2v_wire.protocol import BATCH_DIR_RE, WIRE_DTYPES, ProtocolError
+
+log = logging.getLogger("v2v.datapath")
+
+#: Where slot rings live (a tmpfs on Linux). The environment variable ``V2V_SHM_DIR`` overrides
+#: it for the server's workers; set it empty to send arrays over the socket instead.
+SHM_DIR = "/dev/shm"
+#: Slots per worker ring. The relay copies a slot out and gives it back as soon as the sample
+#: arrives, so a worker needs only enough to keep writing while one message is in flight.
+RING_SLOTS = 3
+#: Byte alignment of each array inside a slot.
+SLOT_ALIGN = 64
+
+def slot_layout(specs) -> Tuple[List[int], int]:
+    """Byte offsets of the arrays described by ``specs`` (the header's ``arrays`` list) inside
+    one slot, each aligned to ``SLOT_ALIGN``, and the bytes they span. Worker and relay both
+    derive the layout from the specs, so the header carries no offsets.
+
+    Raises:
+        ProtocolError: for a malformed spec (name, dtype not in ``WIRE_DTYPES``, shape).
+    """
+    if not isinstance(specs, list):
+        raise ProtocolError("array specs must be a list")
+    offsets, end = [], 0
+    for spec in specs:
+        if not isinstance(spec, dict):
+            raise ProtocolError("array spec must be a map")
+        dtype, shape = spec.get("dtype"), spec.get("shape")
+        if not isinstance(spec.get("name"), str) or dtype not in WIRE_DTYPES:
+            raise ProtocolError(f"bad array spec {spec!r}")
+        if not isinstance(shape, list) or not all(isinstance(d, int) and d >= 0 for d in shape) or len(shape) > 8:
+            raise ProtocolError(f"bad shape in array spec {spec!r}")
+        start = -(-end // SLOT_ALIGN) * SLOT_ALIGN
+        offsets.append(start)
+        end = start + math.prod(shape) * np.dtype(dtype).itemsize  # Python ints: no overflow
+    return offsets, end
+
+
+def slot_bytes(sequence_length: int, num_bins: int, crop_size: int) -> int:
+    """Bytes of one slot: the largest sample of the default outputs the config can make
+    (``outputs.max_sample_bytes``: each at its widest wire dtype; a sample with an opt-in output
+    too may travel as frames), rounded up to whole pages. The file is sparse on
+    tmpfs: only the bytes a worker writes take memory."""
+    need = max_sample_bytes(sequence_length, num_bins, crop_size, SLOT_ALIGN)
+    return -(-need // mmap.PAGESIZE) * mmap.PAGESIZE
+
+
+def shm_bytes(workers: int, sequence_length: int, num_bins: int, crop_size: int) -> int:
+    """Bytes of /dev/shm a server's slot rings reserve: ``workers x RING_SLOTS x slot_bytes``
+    (about 57 MB per worker for L = 40, 5 bins, 128 x 128 crops). A server bound to ``ipc://``
+    also keeps its batch buffers there (``(prefetch_batches + credits in flight + 2) x`` one
+    batch, plus one batch per open batch of the shuffle buffer: ``shuffle_buffer`` rounded up to
+    whole batches, docs/shuffle.md). Size a container's /dev/shm (Docker ``shm_size``, a Kubernetes memory-backed
+    ``emptyDir``) at least this; with less, rings are refused at start and workers send
+    arrays over the socket."""
+    return workers * RING_SLOTS * slot_bytes(sequence_length, num_bins, crop_size)
+
+
+class SlotRing:
+    """A worker's ring of ``slots`` fixed-size slots in one shared-memory file.
+
+    The pool :meth:`create` s it before spawning the worker and passes :attr:`spec`; the worker
+    :meth:`attach` es and unlinks the file at once, so nothing is left in ``/dev/shm`` when
+    either side dies later (the pool unlinks it too when the worker dies first). Slot
+    ownership travels in messages: the worker writes only slots it holds, names the slot in
+    its ``sample`` header, and the relay gives it back with a ``slot`` message after copying
+    it out. A ring belongs to one worker process; a restarted worker gets a new file.
+
+    Raises (``create``/``attach``):
+        OSError: when the file cannot be created, opened or mapped; ``ValueError`` when its
+        size does not match ``slots * slot_size``.
+    """
+
+    def __init__(self, path: str, slots: int, slot_size: int, mm: mmap.mmap):
+        self.path, self.slots, self.slot_size, self._mm = path, slots, slot_size, mm
+        self.free = list(range(slots))  # the worker's side: slots it may write
+        self._lock_fd: Optional[int] = None  # the creating server's flock on the file
+
+    @property
+    def spec(self) -> dict:
+        """What a worker needs to :meth:`attach` (msgpack/pickle-able)."""
+        return {"path": self.path, "slots": self.slots, "slot_size": self.slot_size}
+
+    @classmethod
+    def create(cls, slots: int, slot_size: int, directory: Optional[str] = SHM_DIR) -> "SlotRing":
+        """A new ring file with every page reserved now (``posix_fallocate``): a /dev/shm too
+        small for it (Docker's default is 64 MiB) fails here with ``OSError`` instead of
+        killing the worker with SIGBUS at a later write. The server holds an ``flock`` on it
+        until :meth:`close`, so the next server's start can tell a left-over ring from a live
+        one (:func:`remove_stale_shm`)."""
+        remove_stale_shm(directory)
+        fd, path = tempfile.mkstemp(prefix="v2v-slots-", dir=directory)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _reserve(fd, slots * slot_size)
+            mm = mmap.mmap(fd, slots * slot_size)
+        except BaseException:
+            os.close(fd)
+            os.unlink(path)
+            raise
+        ring = cls(path, slots, slot_size, mm)
+        ring._lock_fd = fd
+        return ring
+
+    @classmethod
+    def attach(cls, spec: dict, unlink: bool = True) -> "SlotRing":
+        path, slots, slot_size = spec["path"], int(spec["slots"]), int(spec["slot_size"])
+        try:
+            fd = os.open(path, os.O_RDWR)
+            try:
+                size = os.fstat(fd).st_size
+                if size != slots * slot_size:
+                    raise ValueError(f"slot ring {path}: {size} bytes, expected {slots} x {slot_size}")
+                mm = mmap.mmap(fd, size)
+            finally:
+                os.close(fd)
+        finally:
+            if unlink:
+                _unlink(path)
+        return cls(path, slots, slot_size, mm)
+
+    def unlink(self) -> None:
+        """Remove the file (mappings stay valid); a no-op once it is gone."""
+        _unlink(self.path)
+
+    def close(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+        try:
+            self._mm.close()
+        except BufferError:  # a view still exists; the mapping goes with it
+            pass
+
+    def put(self, slot: int, arrays: Dict[str, np.ndarray]) -> Optional[List[dict]]:
+        """Worker side: write ``arrays`` (C-contiguous wire dtypes) into ``slot``; returns their
+        specs, or None when they do not fit a slot (send them as frames instead)."""
+        specs = [{"name": k, "dtype": a.dtype.name, "shape": list(a.shape)} for k, a in arrays.items()]
+        offsets, end = slot_layout(specs)
+        if end > self.slot_size:
+            return None
+        base = slot * self.slot_size
+        for (name, a), off in zip(arrays.items(), offsets):
+            dst = np.frombuffer(self._mm, a.dtype, a.size, base + off).reshape(a.shape)
+            np.copyto(dst, a, casting="no")
+        return specs
+
+    def arrays(self, slot, specs) -> Dict[str, np.ndarray]:
+        """Relay side: read-only views of the arrays a worker wrote into ``slot``.
+
+        Raises:
+            ProtocolError: for a slot number out of range or specs that overrun a slot.
+        """
+        if not isinstance(slot, int) or isinstance(slot, bool) or not 0 <= slot < self.slots:
+            raise ProtocolError(f"slot {slot!r} outside the ring of {self.slots}")
+        offsets, end = slot_layout(specs)
+        if end > self.slot_size:
+            raise ProtocolError(f"arrays of {end} bytes overrun a slot of {self.slot_size}")
+        base = slot * self.slot_size
+        out = {}
+        for spec, off in zip(specs, offsets):
+            dt = np.dtype(spec["dtype"])
+            a = np.frombuffer(self._mm, dt, math.prod(spec["shape"]), base + off)
+            a = a.reshape(spec["shape"])
+            a.flags.writeable = False
+            out[spec["name"]] = a
+        return out
+
+
+def _unlink(path: str) -> None:
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+
+
+def create_ring(sequence_length: int, num_bins: int, crop_size: int,
+                directory: Optional[str] = None) -> Optional[SlotRing]:
+    """A :class:`SlotRing` of ``RING_SLOTS`` slots sized for the config in ``directory``
+    (default: ``$V2V_SHM_DIR``, else ``SHM_DIR``), or None where shared memory is unavailable
+    or switched off (``V2V_SHM_DIR=""``; a failure logs one line): the worker then sends its
+    arrays as frames."""
+    if directory is None:
+        directory = os.environ.get("V2V_SHM_DIR", SHM_DIR)
+    if not directory or not os.path.isdir(directory):
+        return None
+    try:
+        return SlotRing.create(RING_SLOTS, slot_bytes(sequence_length, num_bins, crop_size), directory)
+    except OSError as e:
+        log.warning("no shared-memory slot ring in %s (%s): workers send arrays over the socket", directory, e)
+        return None
+
+
+def _reserve(fd: int, nbytes: int) -> None:
+    """Size the file ``fd`` to ``nbytes`` with its pages reserved (``posix_fallocate``; a plain
+    ``ftruncate`` on file systems without it)."""
+    try:
+        os.posix_fallocate(fd, 0, nbytes)
+    except OSError as e:
+        if e.errno not in (95, 22):  # EOPNOTSUPP / EINVAL: a file system without fallocate
+            raise
+        os.ftruncate(fd, nbytes)
+
+
+#: Name of the lock file a live server holds (``flock``) in its batch directory.
+LOCK_FILE = ".lock"
+#: A batch directory without its lock file is a server's that is starting for this long at most.
+STARTING_S = 60.0
+
+
+def _unlocked(path: str) -> bool:
+    """True when nobody holds an ``flock`` on ``path`` (we could take it): what a server that
+    died leaves. Locks are held on the file, not by a pid, so this holds across PID namespaces
+    (containers sharing /dev/shm) and for a server that is PID 1."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except BlockingIOError:
+        return False
+    finally:
+        os.close(fd)
+
+
+def remove_stale_shm(root: Optional[str]) -> List[str]:
+    """Remove what servers that died without cleaning up (SIGKILL, power loss, killed while
+    starting) left under ``root``: batch directories whose lock file nobody holds, and slot-ring
+    files nobody holds. Never a live server's (it holds its locks), never a symlink or someone
+    else's file. Returns the paths removed."""
+    gone: List[str] = []
+    try:
+        names = os.listdir(root) if root else []
+    except OSError:
+        return gone
+    uid = os.getuid()
+    for name in names:
+        path = os.path.join(root, name)
+        try:
+            st = os.lstat(path)
+        except OSError:
+            continue
+        if st.st_uid != uid or stat.S_ISLNK(st.st_mode):
+            continue
+        lock = os.path.join(path, LOCK_FILE)
+        try:
+            if BATCH_DIR_RE.fullmatch(name) and stat.S_ISDIR(st.st_mode) and (
+                    _unlocked(lock) if os.path.exists(lock) else time.time() - st.st_mtime > STARTING_S):
+                shutil.rmtree(path, ignore_errors=True)
+            elif name.startswith("v2v-slots-") and stat.S_ISREG(st.st_mode) and _unlocked(path):
+                _unlink(path)
+            else:
+                continue
+        except OSError as e:  # a read-only or failing tmpfs: left there, the server goes on
+            warn_once(log, ("sweep", cause_of(e)), "cannot remove %s (%s), left by a v2v server that no longer runs",
+                      path, e)
+            continue
+        gone.append(path)
+        log.info("removed %s, left by a v2v server that no longer runs", path)
+    return gone
+
+
+class BatchDir:
+    """A server's private directory (mode 0700) of batch-buffer files in shared memory.
+
+    :meth:`create` removes dead servers' directories first; :meth:`remove` (called by the
+    server's shutdown, also after a crash of its loop) deletes it with every file. Files are
+    named ``b<N>`` with ``N`` counting up, so a name is never reused within one directory.
+    """
+
+    def __init__(self, path: str):
+        self.path = path
+        self._next = 0
+        # held while the server lives: the next server's start tells a live directory by it
+        self._lock = os.open(os.path.join(path, LOCK_FILE), os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o600)
+        fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+    @classmethod
+    def create(cls, root: Optional[str] = None) -> Optional["BatchDir"]:
+        """A fresh directory under ``root`` (default: ``$V2V_SHM_DIR``, else ``SHM_DIR``), or
+        None where shared memory is unavailable or switched off (``V2V_SHM_DIR=""``)."""
+        if root is None:
+            root = os.environ.get("V2V_SHM_DIR", SHM_DIR)
+        if not root or not os.path.isdir(root):
+            return None
+        remove_stale_shm(root)
+        try:
+            return cls(tempfile.mkdtemp(prefix=f"v2v-batches-{os.getpid()}-", dir=root))
+        except OSError as e:
+            log.warning("no shared-memory batch directory in %s (%s): batches go as socket frames", root, e)
+            return None
+
+    def new_file(self, nbytes: int) -> Tuple[str, mmap.mmap]:
+        """A new file of ``nbytes`` (pages reserved now, so a full tmpfs fails here with OSError
+        rather than with SIGBUS on a later write), mapped read-write."""
+        name = f"b{self._next}"
+        self._next += 1
+        path = os.path.join(self.path, name)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o600)
+        try:
+            _reserve(fd, nbytes)
+            # MAP_POPULATE: the pages are mapped now, not by one fault per 4 KiB at the first fill
+            mm = mmap.mmap(fd, nbytes, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))
+        except BaseException:
+            _unlink(path)
+            raise
+        finally:
+            os.close(fd)
+        return name, mm
+
+    def unlink(self, name: str) -> None:
+        _unlink(os.path.join(self.path, name))
+
+    def remove(self) -> None:
+        """Delete the directory and its files (mappings stay valid while viewed)."""
+        shutil.rmtree(self.path, ignore_errors=True)
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
+
+
+__all__ = ["BatchDir", "SlotRing", "create_ring", "remove_stale_shm", "shm_bytes", "slot_bytes", "slot_layout",
+           "RING_SLOTS", "SHM_DIR", "SLOT_ALIGN"]
