@@ -17,7 +17,6 @@ from v2v_wire.protocol import ProtocolError, encode_arrays
 from v2v_wire.worker_messages import Sample, Task
 
 from .conftest import video_dir
-from v2v_server.samples.recipe import SampleRecipe
 
 L, NB, S = 3, 2, 8
 
@@ -151,7 +150,7 @@ def test_a_worker_that_dies_before_mapping_its_ring_leaks_nothing(tmp_path, monk
     from v2v_server.service.worker import worker_config
 
     monkeypatch.setenv("V2V_SHM_DIR", str(tmp_path))
-    cfg = SampleRecipe(sequence_length=L, num_bins=NB, crop_size=S)
+    cfg = ServeConfig(sequence_length=L, num_bins=NB, crop_size=S)
     pool = WorkerPool(worker_config(cfg), str(tmp_path), "ipc:///nonexistent", 1, target=_die_before_mapping)
     pool.start()
     first = next(iter(pool.workers.values()))
