@@ -5,6 +5,7 @@ import pytest
 from harness import motion_clips as mc
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import check_video
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.decode import decode_luma, open_video
 
 
@@ -33,7 +34,7 @@ def test_clips_are_videos_the_server_accepts(tmp_path):
     assert len(paths) >= 10            # the photographs scikit-image ships (+ matplotlib's)
     names = {p.rsplit("/", 1)[-1] for p in paths}
     assert "motion_camera.mp4" in names and "motion_astronaut.mp4" in names
-    verdict = check_video(ServeConfig(sequence_length=2, num_bins=5, crop_size=64), str(tmp_path),
+    verdict = check_video(ServeConfig(sequence_length=2, num_bins=5, crop_size=64), LocalSource(str(tmp_path)),
                           "motion_astronaut.mp4")
     assert verdict["usable"] and verdict["frames"] == 12, verdict
     c, s, _ = open_video(tmp_path / "motion_astronaut.mp4")

@@ -18,6 +18,7 @@ from harness.serve import ServeProcess, free_port
 from v2v_wire.protocol import decode_arrays, pack, unpack
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import check_video
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.decode import find_videos
 
 
@@ -29,7 +30,7 @@ def expected_ids(videos):
     cfg = ServeConfig(sequence_length=L, num_bins=B, max_samples_per_video=MAXW).validate()
     ids = set()
     for rel in find_videos(videos, (".mp4",)):
-        n = check_video(cfg, str(videos), rel.as_posix())["windows"]
+        n = check_video(cfg, LocalSource(str(videos)), rel.as_posix())["windows"]
         ids.update(f"{rel.as_posix()}#{k}" for k in range(n))
     return ids
 

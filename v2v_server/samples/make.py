@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from v2v_server.samples.augment import augment_plan, degrade_window
-from v2v_server.videos.source import source_from_spec
+from v2v_server.videos.source import VideoSource
 from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
@@ -329,7 +329,7 @@ class _Window:
 
 def video_samples(
     cfg: ServeConfig,
-    root,
+    source: VideoSource,
     rel_path: str,
     epoch: int,
     outputs: Iterable[str],
@@ -338,7 +338,7 @@ def video_samples(
     stats: Optional[dict] = None,
     flow_grid: bool = False,
 ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-    """Decode the video at ``rel_path`` of ``root`` (a corpus folder or a
+    """Decode the video at ``rel_path`` of ``source`` (the corpus, a
     ``videos.source.VideoSource``) once, sequentially, and yield its samples.
 
     With ``cfg.crops_per_window`` = K, each window gives K samples: K crops, each with its own
@@ -361,13 +361,13 @@ def video_samples(
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
-    with video_frames(cfg, root, rel_path) as fp:
+    with video_frames(cfg, source, rel_path) as fp:
         yield from _samples(cfg, fp, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
 
 
-def video_frames(cfg: ServeConfig, root, rel_path: str):
+def video_frames(cfg: ServeConfig, source: VideoSource, rel_path: str):
     """A context manager giving the ``frames.FramePass`` a sample pass reads from the video at
-    ``rel_path`` of ``root`` (a folder or a ``VideoSource``): replayed from the source's frame
+    ``rel_path`` of ``source`` (a ``VideoSource``): replayed from the source's frame
     cache when it holds the video, else decoded (and stored): the kept rows, the frames the
     windows need (:func:`_windows`). ``v2v-serve --warm-cache`` reads the same pass.
 
@@ -375,7 +375,7 @@ def video_frames(cfg: ServeConfig, root, rel_path: str):
         VideoError: the file cannot be opened.
     """
     rows = lambda h: kept_rows(cfg, h)  # noqa: E731  (of the displayed, possibly rotated and scaled, frame)
-    return open_frames(source_from_spec(root), rel_path, rows, cfg.decode_threads, cfg.decode_fast,
+    return open_frames(source, rel_path, rows, cfg.decode_threads, cfg.decode_fast,
                        frame_settings(cfg), lambda declared: _frame_limit(cfg, declared), cfg.window_stride,
                        cfg.frame_height, detect=cfg.shot_cuts == "avoid")
 

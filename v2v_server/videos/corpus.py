@@ -3,7 +3,6 @@ file of a corpus and say what it is worth, before training)."""
 from __future__ import annotations
 
 import hashlib
-import multiprocessing as mp
 from pathlib import Path
 from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
@@ -11,7 +10,8 @@ from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, 
 from v2v_server.videos.frames import kept_rows
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector, WindowLayout
-from v2v_server.videos.source import source_from_spec
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.source_spec import map_videos
 
 if TYPE_CHECKING:  # the recipe's type only: the configuration sits above this stage
     from v2v_server.ops.config import ServeConfig
@@ -112,9 +112,8 @@ def pass_verdict(cfg: ServeConfig, stats: dict, error: Optional[BaseException] =
     return verdict(cfg, stats.get("frames", 0), None, error, windows, stats.get("cuts", 0))[2]
 
 
-def check_video(cfg: ServeConfig, root, rel: str) -> dict:
-    """Verdict for one file of ``root`` (a corpus folder, or a ``source.VideoSource`` or its
-    ``spec()``), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason",
+def check_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
+    """Verdict for one file of ``source`` (the corpus), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason",
     "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
     says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
     made, ``more`` when decoding stopped with every window complete, ``variable_rate`` when the
@@ -124,7 +123,7 @@ def check_video(cfg: ServeConfig, root, rel: str) -> dict:
     bad: dict = {}  # window -> why it cannot be made
     error = None
     try:
-        with source_from_spec(root).open(rel) as path:
+        with source.open(rel) as path:
             _check_frames(cfg, path, out, bad, split_segment(rel)[1])
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
@@ -178,19 +177,10 @@ def _check_frames(cfg: ServeConfig, path, out: dict, bad: dict, segment=None) ->
                                 f"taken as if evenly spaced at the average {info.fps:.3g} fps")
 
 
-def _check(args):
-    return check_video(*args)
-
-
-def check_corpus(cfg: ServeConfig, root, videos: List[str]) -> List[dict]:
-    """``check_video`` for every file of ``root`` (a folder or a ``source.VideoSource``), in
-    ``cfg.workers`` processes."""
-    spec = root.spec() if hasattr(root, "spec") else str(root)
-    jobs = [(cfg, spec, v) for v in videos]
-    if cfg.workers <= 1 or len(jobs) <= 1:
-        return [check_video(*j) for j in jobs]
-    with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
-        return pool.map(_check, jobs, chunksize=1)
+def check_corpus(cfg: ServeConfig, source: VideoSource, videos: List[str]) -> List[dict]:
+    """``check_video`` for every file of ``source``, in ``cfg.workers`` processes (``source``
+    itself in this one, or built once in each of them from its ``spec()``)."""
+    return map_videos(check_video, cfg, source, videos, cfg.workers)
 
 
 def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
