@@ -24,6 +24,7 @@ from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
 from v2v_server.videos.shots import SHOT_CUTS
 from v2v_server.videos.frame_cache import FORMATS as FRAME_CACHE_FORMATS
+from v2v_server.videos.store import StoreSettings
 
 #: Optical-flow options by name (the table lives in v2v_server/flow/options.py).
 FLOW_PRESETS = tuple(FLOW_OPTIONS)
@@ -207,7 +208,7 @@ class ServingSettings:
                                          "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
     cache_dir: Optional[str] = setting(None, help="folder of the store manifest when there is no state_dir, and "
                                                   "of the object and frame caches (default $XDG_CACHE_HOME/v2v)")
-    cache_max_gb: float = setting(0.0, help="GiB of whole store objects kept on local disk for corpora read every "
+    cache_max_gb: float = setting(StoreSettings.cache_max_gb, help="GiB of whole store objects kept on local disk for corpora read every "
                                             "epoch (least recently used removed first); 0 = off, read from the "
                                             "store each time")
     frame_cache_gb: float = setting(0.0, help="GiB of decoded frames kept on this host's disk under cache_dir/frames, "
@@ -219,11 +220,11 @@ class ServingSettings:
                                       choices=FRAME_CACHE_FORMATS)
     refresh_manifest: bool = setting(False, help="list the store again instead of reading the manifest written at "
                                                  "the first start")
-    store_read_timeout_s: float = setting(20.0, help="seconds a store request may stay unanswered before it fails "
+    store_read_timeout_s: float = setting(StoreSettings.read_timeout_s, help="seconds a store request may stay unanswered before it fails "
                                                      "(then retried)", flag="--store-read-timeout")
-    store_max_attempts: int = setting(3, help="attempts per store request (botocore standard retry mode: "
+    store_max_attempts: int = setting(StoreSettings.max_attempts, help="attempts per store request (botocore standard retry mode: "
                                               "exponential backoff on throttling, 5xx and connection errors)")
-    read_block_mb: float = setting(8.0, help="MiB fetched per store request while decoding (one request for a "
+    read_block_mb: float = setting(StoreSettings.read_block_mb, help="MiB fetched per store request while decoding (one request for a "
                                              "smaller video)")
     workers: int = setting(2, help="worker processes")
     bind: str = setting("tcp://127.0.0.1:5555", help="ZeroMQ endpoint to bind (port 0 = any free port)")
