@@ -97,6 +97,7 @@ def has_b_frames(path: Path) -> bool:
 def samples(root: Path, name: str, fast: str, noise=None) -> dict:
     from v2v_server.ops.config import ServeConfig
     from v2v_server.samples.make import video_samples
+    from v2v_server.videos.local import LocalSource
     from v2v_wire.outputs import DEFAULT_OUTPUTS
 
     kw = {} if noise is None else {"ranges": {"noise_std": [noise, noise], "hot_pixel_fraction": [0.0, 0.0]}}
@@ -104,7 +105,7 @@ def samples(root: Path, name: str, fast: str, noise=None) -> dict:
         kw.setdefault("ranges", {"noise_std": [0.0, 0.0], "hot_pixel_fraction": [0.0, 0.0]})
     cfg = ServeConfig(shot_cuts="off", sequence_length=8, crop_size=128, keep_top_fraction=1.0, max_samples_per_video=2,
                       decode_fast="off" if fast == "ref" else fast, **kw)
-    return {sid: a for sid, a, _ in video_samples(cfg, root, name, 0, DEFAULT_OUTPUTS)}
+    return {sid: a for sid, a, _ in video_samples(cfg, LocalSource(root), name, 0, DEFAULT_OUTPUTS)}
 
 
 def errors(ref: dict, got: dict) -> dict:

@@ -110,7 +110,7 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     default kept 54 %; ``frame_height`` = ``height``), read from the cache's own listing."""
     from v2v_server.ops.config import ServeConfig
     from v2v_server.samples.make import video_frames
-    from v2v_server.videos.source import open_source
+    from v2v_server.videos.source_spec import open_source
 
     cfg = SampleRecipe(sequence_length=2, num_bins=2, crop_size=8, max_samples_per_video=1000,
                       frame_height=height)

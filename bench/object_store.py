@@ -61,12 +61,12 @@ class Epochs:
 
 def startup(cfg_kw: dict, tmp: Path, videos: str, manifest: bool) -> tuple:
     """(seconds, peak MiB of Python allocations, videos) to list ``videos``."""
-    from v2v_server.videos.source import source_from_config
+    from v2v_server.ops.config import source_from_config
 
     cfg = _cfg(tmp, **cfg_kw)
     src = source_from_config(cfg, videos)
     if not manifest and getattr(src, "manifest", None):
-        Path(src.manifest).unlink(missing_ok=True)
+        Path(src.listing.path).unlink(missing_ok=True)
     tracemalloc.start()
     t0 = time.perf_counter()
     src.check()

@@ -35,6 +35,7 @@ from v2v_server.ops.config import ServeConfig
 from harness.serve import ServeProcess
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.samples.make import video_samples
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.decode import find_videos
 
 LAYOUT = dict(sequence_length=8, num_bins=5, crop_size=128, max_samples_per_video=10, seed=1)
@@ -52,7 +53,7 @@ def in_process(cfg: ServeConfig, corpus: Path) -> dict:
     flow = FlowEstimator(cfg.flow_preset)
     t0, n = time.perf_counter(), 0
     for rel in find_videos(corpus, cfg.video_extensions):
-        for _ in video_samples(cfg, corpus, rel.as_posix(), 0, ("voxels", "frames", "flow"), (), flow):
+        for _ in video_samples(cfg, LocalSource(corpus), rel.as_posix(), 0, ("voxels", "frames", "flow"), (), flow):
             n += 1
     return {"samples": n, "wall_s": time.perf_counter() - t0}
 

@@ -67,11 +67,12 @@ def real_sample(path: str) -> None:
     from v2v_server.ops.config import ServeConfig
     from v2v_server.videos.corpus import SAMPLE_VIDEOS
     from v2v_server.samples.make import video_samples
+    from v2v_server.videos.local import LocalSource
     from v2v_server.service.worker import wire_arrays
     from v2v_wire.outputs import DEFAULT_OUTPUTS
 
     cfg = SampleRecipe(shot_cuts="off")
-    _, arrays, _ = next(video_samples(cfg, SAMPLE_VIDEOS, "webvid_like_596x336.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True))
+    _, arrays, _ = next(video_samples(cfg, LocalSource(SAMPLE_VIDEOS), "webvid_like_596x336.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True))
     np.savez(path, **wire_arrays(cfg, arrays))
 
 

@@ -25,6 +25,7 @@ from harness.shot_labels import LABELLED
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
 from v2v_server.videos.decode import decode_codes, full_range, iter_luma, open_video
 from v2v_server.videos.shots import ShotDetector, shot_windows
@@ -128,7 +129,7 @@ def run(repeats: int = 3) -> dict:
     cfg = SampleRecipe(sequence_length=8, max_samples_per_video=50)
     spanning = served = 0
     for clip, truth in LABELLED.items():
-        for _, _, m in video_samples(cfg, SAMPLE_VIDEOS, clip, 0, ("frames",)):
+        for _, _, m in video_samples(cfg, LocalSource(SAMPLE_VIDEOS), clip, 0, ("frames",)):
             served += 1
             s = m["src_start_frame"]
             spanning += any(s < c <= s + cfg.frames_per_sample - 1 for c in truth)

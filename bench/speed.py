@@ -124,6 +124,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     from v2v_server.ops.config import ServeConfig
     from v2v_server.flow.estimate import FlowEstimator
     from v2v_server.samples.make import video_samples
+    from v2v_server.videos.local import LocalSource
     from v2v_server.service.worker import wire_arrays
 
     cv2.setNumThreads(1)
@@ -135,7 +136,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     t = time.process_time()
     for name in names:
         stats: dict = {}
-        for sid, arrays, meta in video_samples(cfg, source or corpus, name, epoch, outputs, (), flow, stats, flow_grid):
+        for sid, arrays, meta in video_samples(cfg, source or LocalSource(corpus), name, epoch, outputs, (), flow, stats, flow_grid):
             wire_arrays(cfg, arrays)
             n += 1
         for k, v in stats.get("busy", {}).items():

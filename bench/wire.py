@@ -44,6 +44,7 @@ def real_samples(epochs: int = 2):
     from v2v_server.ops.config import ServeConfig
     from v2v_server.flow.estimate import FlowEstimator
     from v2v_server.samples.make import video_samples
+    from v2v_server.videos.local import LocalSource
     from v2v_server.service.worker import wire_arrays
     from v2v_wire.outputs import DEFAULT_OUTPUTS
 
@@ -52,9 +53,9 @@ def real_samples(epochs: int = 2):
     compact, dense = [], []
     for epoch in range(epochs):
         for clip in sorted(p.name for p in CLIPS.glob("*.mp4")):
-            for _, a, _ in video_samples(cfg, CLIPS, clip, epoch, DEFAULT_OUTPUTS, (), flow, flow_grid=True):
+            for _, a, _ in video_samples(cfg, LocalSource(CLIPS), clip, epoch, DEFAULT_OUTPUTS, (), flow, flow_grid=True):
                 compact.append(wire_arrays(cfg, a))
-            for _, a, _ in video_samples(cfg, CLIPS, clip, epoch, ("flow",), (), flow):
+            for _, a, _ in video_samples(cfg, LocalSource(CLIPS), clip, epoch, ("flow",), (), flow):
                 dense.append(wire_arrays(cfg, a)["flow"])
     base = [dict(c, flow=d) for c, d in zip(compact, dense)]
     for b in base:

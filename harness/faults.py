@@ -26,6 +26,7 @@ import zmq
 from v2v_client import V2VStreamDataset
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import check_corpus
+from v2v_server.videos.local import LocalSource
 from harness.serve import ServeProcess
 from v2v_wire.protocol import PROTOCOL_VERSION, pack
 from v2v_server.videos.decode import scan_corpus
@@ -55,7 +56,7 @@ def expected_ids(corpus: Path, layout: Layout, exclude=()) -> List[str]:
     vids = [p.as_posix() for p in scan_corpus(corpus, layout.cfg().video_extensions)[0]]
     vids = [v for v in vids if v not in exclude]
     out = []
-    for r in check_corpus(layout.cfg().recipe.windows, corpus, vids):
+    for r in check_corpus(layout.cfg().recipe.windows, LocalSource(corpus), vids):
         failed = set(r.get("failed_windows", ()))  # windows --check says cannot be made (e.g. frame size changes)
         out += [f"{r['path']}#{k}" for k in range(r["windows"] + len(failed)) if k not in failed]
     return sorted(out)

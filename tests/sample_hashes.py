@@ -27,6 +27,7 @@ import torch
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
+from v2v_server.videos.local import LocalSource
 from v2v_server.service.worker import wire_arrays
 from v2v_client.flowgrid import expand_flow_grid
 from v2v_wire.outputs import DEFAULT_OUTPUTS
@@ -76,15 +77,17 @@ def _as_received(cfg: SampleRecipe, arrays: dict) -> dict:
     return out
 
 
-def compute(corpus=CLIPS) -> dict:
+def compute(source=None) -> dict:
     """{recipe: {sample_id: {output or "params": hash}}} for every sample of the bundled clips
-    (``corpus``: their folder, or a ``VideoSource`` over it, such as one with a frame cache)."""
+    (``source``: a ``VideoSource`` over their folder, such as one with a frame cache; default
+    the folder itself)."""
+    source = LocalSource(CLIPS) if source is None else source
     table = {}
     for name, overrides in RECIPES:
         cfg = SampleRecipe(**overrides)
         rows = {}
         for clip in PINNED_CLIPS:
-            for key, arrays, meta in video_samples(cfg, corpus, clip, 0, DEFAULT_OUTPUTS, flow_grid=True):
+            for key, arrays, meta in video_samples(cfg, source, clip, 0, DEFAULT_OUTPUTS, flow_grid=True):
                 rows[key.sample_id(cfg.crops_per_window)] = _digest(_as_received(cfg, wire_arrays(cfg, arrays)), _canonical(meta))
         table[name] = rows
     return table

@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Optional
 
-from v2v_server.videos.source import open_source
+from v2v_server.videos.local import LocalSource
+from v2v_server.videos.source_spec import open_source
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
@@ -29,7 +30,7 @@ def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[
     (``folder_samples(names, epoch)``, else made from the bundled clips).
 
     ``storage_options``: what the store's reader takes (None: it reads the environment)."""
-    folder_samples = folder_samples or (lambda names, epoch: samples(cfg, CLIPS, names, epoch))
+    folder_samples = folder_samples or (lambda names, epoch: samples(cfg, LocalSource(CLIPS), names, epoch))
     url = f"{store.scheme}://corpus/fc/"
     names = ["bikes.mp4", "webvid_like_596x336.mp4"]
     store.upload(CLIPS, url, names=names)

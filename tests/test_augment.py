@@ -8,6 +8,7 @@ import pytest
 from v2v_server.samples.augment import augment_plan, degrade_dynamic_range, parse_degrade, video_thresholds
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import plan_window, video_samples
+from v2v_server.videos.local import LocalSource
 from v2v_server.simulation.simulate import ParamRanges
 
 OUTS = ("voxels", "frames", "flow")
@@ -21,7 +22,7 @@ def cfg(**kw):
 
 def samples(c, videos, name="bikes.mp4", epoch=0):
     return {key.sample_id(c.crops_per_window): (arrays, meta)
-            for key, arrays, meta in video_samples(c, videos, name, epoch, OUTS)}
+            for key, arrays, meta in video_samples(c, LocalSource(videos), name, epoch, OUTS)}
 
 
 def test_degrade_formula_is_the_papers():

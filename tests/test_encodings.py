@@ -18,6 +18,7 @@ import pytest
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_frames, video_samples
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.decode import open_video, to_uint8
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -142,7 +143,7 @@ def test_served_samples_are_the_recipes_for_every_encoding(corpus):
     want = {}
     for name in sorted(ENCODINGS):
         if (corpus / name).exists():
-            for key, arrays, _ in video_samples(cfg, corpus, name, 0, ("voxels", "frames")):
+            for key, arrays, _ in video_samples(cfg, LocalSource(corpus), name, 0, ("voxels", "frames")):
                 want[key.sample_id(1)] = arrays
     assert len(want) == 2 * sum((corpus / n).exists() for n in ENCODINGS)
     got = {}
@@ -164,7 +165,7 @@ def test_ten_bit_frames_reach_the_core_as_uint16(corpus, ten, eight):
     cfg = SampleRecipe(**RECIPE)
     frames = {}
     for name in (ten, eight):
-        with video_frames(cfg, corpus, name) as fp:
+        with video_frames(cfg, LocalSource(corpus), name) as fp:
             frames[name] = [expand(codes).copy() for codes, expand in fp.frames]
     assert frames[ten][0].dtype == np.uint16 and frames[eight][0].dtype == np.uint8
     assert len(frames[ten]) == len(frames[eight]) >= 2 * 20 + 1  # both windows (with shot_cuts avoid, every frame)
@@ -185,7 +186,7 @@ def test_variable_frame_rate_frames_are_taken_in_order(corpus):
     assert sorted(set(steps.tolist())) == list(VFR_STEPS) and len(times) == N
     assert info.fps == pytest.approx(float(s.average_rate)) and info.fps == pytest.approx((N - 1) / times[-1], rel=0.1)
     cfg = SampleRecipe(**RECIPE)
-    with video_frames(cfg, corpus, "vfr.mp4") as fp:
+    with video_frames(cfg, LocalSource(corpus), "vfr.mp4") as fp:
         read = [expand(codes).copy() for codes, expand in fp.frames]
     c, s, _ = open_video(path)
     order = [f.to_ndarray(format="gray")[: len(read[0])] for f in c.decode(s)][: len(read)]
@@ -193,5 +194,5 @@ def test_variable_frame_rate_frames_are_taken_in_order(corpus):
     assert len(read) >= 2 * 20 + 1  # both windows (with shot_cuts avoid, every frame)
     # frame i of the pass is the i-th presented frame (swscale's grey is also full range: near equal)
     assert all(np.abs(a.astype(int) - b).mean() < 2 for a, b in zip(read, order))
-    metas = [m for _, _, m in video_samples(cfg, corpus, "vfr.mp4", 0, ("voxels",))]
+    metas = [m for _, _, m in video_samples(cfg, LocalSource(corpus), "vfr.mp4", 0, ("voxels",))]
     assert [m["src_start_frame"] for m in metas] == [0, 20] and all(m["video_fps"] == info.fps for m in metas)

@@ -15,6 +15,7 @@ from v2v_server.flow.estimate import FlowEstimator, dis_flow
 from v2v_server.flow.options import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowOption, FlowUnavailable, TrackParams,
                                      check_option, unavailable_reason)
 from v2v_server.samples.make import make_sample, plan_window, video_samples
+from v2v_server.videos.local import LocalSource
 
 STEP = 5
 
@@ -55,7 +56,7 @@ def test_translation_30px_per_voxel_through_the_sample_path(tmp_path):
     assert cfg.flow_preset == DEFAULT_FLOW
     frames = panning_frames(cfg.frames_per_sample, 6)
     write_video(str(tmp_path / "pan.mp4"), frames)
-    (sid, arrays, meta), = list(video_samples(cfg, tmp_path, "pan.mp4", 0, ("frames", "flow")))
+    (sid, arrays, meta), = list(video_samples(cfg, LocalSource(tmp_path), "pan.mp4", 0, ("frames", "flow")))
     fl = arrays["flow"]  # in the wire's dtype
     assert fl.shape == (4, 2, 128, 128) and fl.dtype == np.dtype(cfg.flow_dtype) == np.float16
     errs = [median_epe(fl[l].astype(np.float32), -30.0, 0.0, 30) for l in range(4)]

@@ -25,7 +25,9 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.frame_cache import MAGIC
-from v2v_server.videos.source import RACY_NS, open_source
+from v2v_server.videos.local import RACY_NS, LocalSource
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.source_spec import open_source
 from v2v_wire.outputs import DEFAULT_OUTPUTS, OUTPUTS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,9 +37,11 @@ SMALL = dict(sequence_length=4, num_bins=2, crop_size=32, max_samples_per_video=
 
 
 def _samples(cfg, root, video, epoch=0, outputs=DEFAULT_OUTPUTS) -> dict:
-    """{sample id: (sha of each array, params)} of one video of one epoch."""
+    """{sample id: (sha of each array, params)} of one video of one epoch of ``root`` (a folder
+    or a ``VideoSource``)."""
     out = {}
-    for key, arrays, meta in video_samples(cfg, root, video, epoch, outputs, flow_grid=True):
+    source = root if isinstance(root, VideoSource) else LocalSource(root)
+    for key, arrays, meta in video_samples(cfg, source, video, epoch, outputs, flow_grid=True):
         out[key.sample_id(cfg.crops_per_window)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
     return out
 
@@ -264,7 +268,7 @@ def test_a_file_changed_within_the_timestamp_resolution_is_not_stored(tmp_path):
     shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
     cfg = SampleRecipe(**SMALL)
     src = _cached(corpus, tmp_path / "cache")
-    from v2v_server.videos.source import racy
+    from v2v_server.videos.local import racy
 
     st = os.stat(corpus / "v.mp4")
     assert racy(st, st.st_ctime_ns) and not racy(st, st.st_ctime_ns + RACY_NS + 1)
@@ -621,16 +625,16 @@ def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, mo
     """With one worker the warm-up reads every video through the source it is given (never
     rebuilt from its spec), each video's state from that video's counters alone."""
     from v2v_server.ops import warm
+    from v2v_server.videos import source_spec
 
     cfg = ServeConfig(**SMALL, workers=1)
     src = _cached(CLIPS, tmp_path)
     videos = ["bikes.mp4", "webvid_like_596x336.mp4"]
 
-    def same(root):
-        assert root is src, "the source was built again"
-        return root
+    def built(spec):
+        raise AssertionError("the source was built again")
 
-    monkeypatch.setattr(warm, "source_from_spec", same)
+    monkeypatch.setattr(source_spec, "source_from_spec", built)
     first = warm.warm_cache(cfg, src, videos)
     assert [r["state"] for r in first] == ["stored", "stored"] and all(r["frames"] > 0 for r in first), first
     again = warm.warm_cache(cfg, src, videos)

@@ -20,7 +20,9 @@ from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_frames, video_samples
 from v2v_server.videos.corpus import check_video
 from v2v_server.videos.decode import decode_luma, iter_luma, open_video
-from v2v_server.videos.source import open_source
+from v2v_server.videos.local import LocalSource
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.source_spec import open_source
 from v2v_wire.outputs import OUTPUTS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,7 +60,7 @@ def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video
     INTER_AREA of the full-range frame (down and up), then the kept rows; uint16 stays uint16."""
     cfg = SampleRecipe(**SMALL, frame_height=height)
     want = _expected(corpus / video, height, cfg.keep_top_fraction, 12)
-    with video_frames(cfg, corpus, video) as fp:
+    with video_frames(cfg, LocalSource(corpus), video) as fp:
         got = [expand(codes).copy() for codes, expand in (next(fp.frames) for _ in range(12))]
     assert got[0].shape == (cfg.windows.kept_rows(height), want[0].shape[1])
     assert got[0].dtype == want[0].dtype == (np.uint16 if video == "ten_bit.mkv" else np.uint8)
@@ -74,7 +76,7 @@ def test_frame_height_zero_is_the_decoded_frame(corpus):
     cfg = SampleRecipe(**SMALL)
     assert cfg.frame_height == 0
     plain = [g[: cfg.windows.kept_rows(g.shape[0])].copy() for _, g in zip(range(5), iter_luma(corpus / "bikes.mp4"))]
-    with video_frames(cfg, corpus, "bikes.mp4") as fp:
+    with video_frames(cfg, LocalSource(corpus), "bikes.mp4") as fp:
         got = [expand(codes).copy() for codes, expand in (next(fp.frames) for _ in range(5))]
     for a, b in zip(got, plain):
         np.testing.assert_array_equal(a, b)
@@ -116,9 +118,9 @@ def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
     cfg = SampleRecipe(sequence_length=4, num_bins=2, crop_size=16, max_samples_per_video=3, keep_top_fraction=1.0,
                       frame_height=40)
     for name, fails in (("same_aspect.mpg", False), ("other_aspect.mpg", True)):
-        v = check_video(cfg.windows, d, name)
+        v = check_video(cfg.windows, LocalSource(d), name)
         stats: dict = {}
-        served = list(video_samples(cfg, d, name, 0, ("voxels",), stats=stats))
+        served = list(video_samples(cfg, LocalSource(d), name, 0, ("voxels",), stats=stats))
         assert bool(v.get("failed_windows")) == fails == bool(stats.get("failed")), (name, v, stats)
         assert v["windows"] == len(served), (name, v)
 
@@ -142,8 +144,10 @@ def test_v2v_serve_bad_frame_height_is_a_configuration_error():
 
 
 def _samples(cfg, root, video) -> dict:
+    """{sample id: digest} of one video of ``root`` (a folder or a ``VideoSource``)."""
+    source = root if isinstance(root, VideoSource) else LocalSource(root)
     return {key.sample_id(cfg.crops_per_window): sample_hashes._digest(arrays, sample_hashes._canonical(meta))
-            for key, arrays, meta in video_samples(cfg, root, video, 0, OUTPUTS, flow_grid=True)}
+            for key, arrays, meta in video_samples(cfg, source, video, 0, OUTPUTS, flow_grid=True)}
 
 
 def test_served_samples_under_frame_height_are_the_recipes(corpus):
@@ -154,12 +158,12 @@ def test_served_samples_under_frame_height_are_the_recipes(corpus):
     flags = ["--sequence-length", "4", "--num-bins", "2", "--crop-size", "32", "--max-samples-per-video", "3",
              "--frame-height", "100", "--seed", "5"]
     cfg = SampleRecipe(**SMALL, frame_height=100, seed=5)
-    want = {key.sample_id(1): arrays for key, arrays, _ in video_samples(cfg, corpus, "bikes.mp4", 0, ("voxels", "frames"))}
+    want = {key.sample_id(1): arrays for key, arrays, _ in video_samples(cfg, LocalSource(corpus), "bikes.mp4", 0, ("voxels", "frames"))}
     got = dict(served_samples(["--videos", str(corpus), "--workers", "2", *flags, "--batch-size", "2",
                                "--outputs", "voxels,frames", "--epochs", "1"]))
     assert set(want) <= set(got) and len(want) == 3
     for sid, arrays in want.items():
         for k in arrays:
             np.testing.assert_array_equal(got[sid][k].reshape(arrays[k].shape), arrays[k], err_msg=f"{sid} {k}")
-    plain = next(video_samples(SampleRecipe(**SMALL, seed=5), corpus, "bikes.mp4", 0, ("frames",)))
+    plain = next(video_samples(SampleRecipe(**SMALL, seed=5), LocalSource(corpus), "bikes.mp4", 0, ("frames",)))
     assert not np.array_equal(plain[1]["frames"], want[plain[0].sample_id(1)]["frames"])

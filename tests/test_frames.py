@@ -155,6 +155,7 @@ def test_served_end_to_end_full_range_rotated_and_cover(tmp_path):
 def test_ten_bit_clip_feeds_the_core_at_full_precision(tmp_path, monkeypatch):
     """A 10-bit clip reaches the V2V core as uint16 0..65535; its frames output is 8-bit full range."""
     from v2v_server.samples import make as samples
+    from v2v_server.videos.local import LocalSource
     from v2v_server.ops.config import ServeConfig
 
     write_clip(tmp_path / "deep.mkv", pattern(), n=6, pix_fmt="yuv420p10le")
@@ -162,7 +163,7 @@ def test_ten_bit_clip_feeds_the_core_at_full_precision(tmp_path, monkeypatch):
     real = samples.simulate_voxels
     monkeypatch.setattr(samples, "simulate_voxels", lambda frames, *a, **k: (seen.append(frames.copy()), real(frames, *a, **k))[1])
     cfg = SampleRecipe(sequence_length=2, num_bins=2, crop_size=32, keep_top_fraction=1.0, pause_enabled=False)
-    out = list(samples.video_samples(cfg, tmp_path, "deep.mkv", 0, ("voxels", "frames")))
+    out = list(samples.video_samples(cfg, LocalSource(tmp_path), "deep.mkv", 0, ("voxels", "frames")))
     assert len(out) == 1 and seen[0].dtype == np.uint16
     levels_ok(seen[0], top=65535)
     assert out[0][1]["frames"].dtype == np.uint8

@@ -6,6 +6,7 @@ from harness import motion_clips as mc
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.videos.corpus import check_video
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.decode import decode_luma, open_video
 
 

@@ -22,7 +22,10 @@ from tests.store_checks import check_frame_cache_hit
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.manifest import manifest_path, read_manifest
-from v2v_server.videos.source import StoreError, StoreSource, read_video_list, source_from_config
+from v2v_server.ops.config import source_from_config
+from v2v_server.videos.store import StoreSource
+from v2v_server.videos.store_io import StoreError
+from v2v_server.videos.video_list import read_video_list
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"

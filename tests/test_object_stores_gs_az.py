@@ -14,7 +14,9 @@ from harness.cloud_emulators import AzuriteBlob, EmulatorUnavailable, GcsEmulato
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.decode import VideoError
 from tests.store_checks import check_frame_cache_hit, samples
-from v2v_server.videos.source import StoreSource, source_from_config, source_from_spec
+from v2v_server.ops.config import source_from_config
+from v2v_server.videos.source_spec import source_from_spec
+from v2v_server.videos.store import StoreSource
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"

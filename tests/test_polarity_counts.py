@@ -14,6 +14,7 @@ from v2v_wire.ids import parse_sample_id
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
+from v2v_server.videos.local import LocalSource
 from v2v_server.simulation.kernel import noise_field
 from v2v_server.simulation.simulate import (SensorParams, log_intensity_lut, polarity_counts, simulate_voxels)
 from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS
@@ -84,8 +85,8 @@ def recipe(**kw) -> SampleRecipe:
 def test_opt_in_samples_keep_the_default_outputs_bit_identical(videos):
     cfg = recipe()
     assert "polarity_counts" in OUTPUTS and "polarity_counts" not in DEFAULT_OUTPUTS
-    base = {sid: a for sid, a, _ in video_samples(cfg, videos, "bikes.mp4", 0, DEFAULT_OUTPUTS)}
-    both = {sid: a for sid, a, _ in video_samples(cfg, videos, "bikes.mp4", 0, DEFAULT_OUTPUTS + ("polarity_counts",))}
+    base = {sid: a for sid, a, _ in video_samples(cfg, LocalSource(videos), "bikes.mp4", 0, DEFAULT_OUTPUTS)}
+    both = {sid: a for sid, a, _ in video_samples(cfg, LocalSource(videos), "bikes.mp4", 0, DEFAULT_OUTPUTS + ("polarity_counts",))}
     assert base and set(base) == set(both)
     for sid, arrays in base.items():
         assert "polarity_counts" not in arrays
@@ -97,7 +98,7 @@ def test_opt_in_samples_keep_the_default_outputs_bit_identical(videos):
         diff = c[:, 0].astype(np.int32) - c[:, 1]
         assert ok.mean() > 0.99 and np.array_equal(arrays["voxels"][ok], diff[ok])
     with pytest.raises(ValueError, match="plain V2V only"):
-        next(video_samples(recipe(refine="uniform:2"), videos, "bikes.mp4", 0, ("polarity_counts",)))
+        next(video_samples(recipe(refine="uniform:2"), LocalSource(videos), "bikes.mp4", 0, ("polarity_counts",)))
 
 
 def serve_args(videos, *extra):
@@ -147,7 +148,7 @@ def test_ray_rows_carry_the_same_counts(videos):
         if r["padding"]:
             continue
         video = parse_sample_id(r["sample_id"]).video
-        want = {key.sample_id(): a for key, a, _ in video_samples(cfg, corpus.root, video, 0, ("polarity_counts",))}
+        want = {key.sample_id(): a for key, a, _ in video_samples(cfg, LocalSource(corpus.root), video, 0, ("polarity_counts",))}
         c = r["polarity_counts"]
         assert c.dtype == np.uint8 and c.shape == (L, 2, B, CROP, CROP)
         np.testing.assert_array_equal(c, want[r["sample_id"]]["polarity_counts"])

@@ -9,6 +9,7 @@ from v2v_server.ops.config import ServeConfig, load_config
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
 from v2v_server.samples.make import pause_offsets, sample_rng, video_samples
+from v2v_server.videos.local import LocalSource
 from v2v_wire.ids import SampleKey
 
 
@@ -22,7 +23,7 @@ def small_cfg(**kw):
 
 def collect(cfg, videos, name, epoch=0, outputs=("voxels", "frames", "flow"), skip=()):
     return {key.sample_id(cfg.crops_per_window): arr
-            for key, arr, _ in video_samples(cfg, videos, name, epoch, outputs, skip)}
+            for key, arr, _ in video_samples(cfg, LocalSource(videos), name, epoch, outputs, skip)}
 
 
 def test_content_depends_only_on_seed_epoch_and_sample_id(videos):
@@ -124,7 +125,7 @@ def test_small_video_is_scaled_up_not_rejected(tmp_path):
         for p in s.encode():
             c.mux(p)
     cfg = small_cfg(sequence_length=2, crop_size=64)  # span 11 frames; kept region is 80 x 25
-    out = list(video_samples(cfg, tmp_path, "tiny.mp4", 0, ("voxels", "frames")))
+    out = list(video_samples(cfg, LocalSource(tmp_path), "tiny.mp4", 0, ("voxels", "frames")))
     assert len(out) == 2
     sid, arr, meta = out[0]
     assert arr["frames"].shape == (3, 64, 64) and meta["scale"] >= 64 / 25
@@ -180,15 +181,15 @@ def test_wire_dtypes_and_roundtrip():
 
 
 def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
-    plain = {key.sample_id(): (a, m) for key, a, m in video_samples(small_cfg(max_samples_per_video=1), videos, "bikes.mp4", 0,
+    plain = {key.sample_id(): (a, m) for key, a, m in video_samples(small_cfg(max_samples_per_video=1), LocalSource(videos), "bikes.mp4", 0,
                                                           ("voxels",))}
     refined = {key.sample_id(): (a, m) for key, a, m in video_samples(small_cfg(max_samples_per_video=1, refine="uniform:4"),
-                                                            videos, "bikes.mp4", 0, ("voxels",))}
+                                                            LocalSource(videos), "bikes.mp4", 0, ("voxels",))}
     (a0, m0), (a1, m1) = plain["bikes.mp4#0"], refined["bikes.mp4#0"]
     assert m0["refine"] == "off" and m1["refine"] == "uniform:4" and m1["subframes_mean"] == 4.0
     assert not np.array_equal(a0["voxels"], a1["voxels"])  # sub-frames change where events fall
     ni = small_cfg(max_samples_per_video=1, nonidealities={"threshold_sigma": 0.05})
-    (_, _, meta), = list(video_samples(ni, videos, "bikes.mp4", 0, ("voxels",)))
+    (_, _, meta), = list(video_samples(ni, LocalSource(videos), "bikes.mp4", 0, ("voxels",)))
     assert meta["nonidealities"]["threshold_sigma"] == 0.05
     with pytest.raises(ValueError, match="refine"):
         small_cfg(refine="sometimes")
@@ -196,7 +197,7 @@ def test_refine_and_nonidealities_are_server_options_recorded_in_params(videos):
         small_cfg(nonidealities={"hot_pixels_everywhere": 1})
     # refinement and non-idealities compose (one kernel call), both recorded
     both = small_cfg(max_samples_per_video=1, refine="uniform:2", nonidealities={"threshold_sigma": 0.05})
-    (_, a2, m2), = list(video_samples(both, videos, "bikes.mp4", 0, ("voxels",)))
+    (_, a2, m2), = list(video_samples(both, LocalSource(videos), "bikes.mp4", 0, ("voxels",)))
     assert m2["refine"] == "uniform:2" and m2["nonidealities"]["threshold_sigma"] == 0.05
     assert a2["voxels"].shape == a0["voxels"].shape
 
@@ -207,7 +208,7 @@ def test_crops_per_window_ids_content_and_resume(videos):
     from v2v_wire.ids import SampleKey, parse_sample_id, window_keys
 
     cfg = small_cfg(crops_per_window=3, max_samples_per_video=2)
-    got = [(key.sample_id(3), a, m) for key, a, m in video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames"))]
+    got = [(key.sample_id(3), a, m) for key, a, m in video_samples(cfg, LocalSource(videos), "bikes.mp4", 0, ("voxels", "frames"))]
     ids = [sid for sid, _, _ in got]
     assert ids == [f"bikes.mp4#{w}.{c}" for w in range(2) for c in range(3)]
     metas = {sid: m for sid, _, m in got}
@@ -221,7 +222,7 @@ def test_crops_per_window_ids_content_and_resume(videos):
     keep = parse_sample_id("bikes.mp4#1.2", 3)
     assert keep == SampleKey("bikes.mp4", 1, 2) and keep.ordinal(3) == 5
     every = set(window_keys("bikes.mp4", 0, 3) + window_keys("bikes.mp4", 1, 3))
-    alone = list(video_samples(cfg, videos, "bikes.mp4", 0, ("voxels", "frames"), every - {keep}))
+    alone = list(video_samples(cfg, LocalSource(videos), "bikes.mp4", 0, ("voxels", "frames"), every - {keep}))
     assert [key for key, _, _ in alone] == [keep]
     for k, v in alone[0][1].items():
         np.testing.assert_array_equal(v, arrays["bikes.mp4#1.2"][k])
@@ -310,7 +311,7 @@ def test_windows_step_200_frames_and_share_their_boundary_frame(tmp_path):
                 c.mux(p)
         for p in s.encode():
             c.mux(p)
-    got = list(video_samples(cfg, tmp_path, "steps.mp4", 0, ("frames",)))
+    got = list(video_samples(cfg, LocalSource(tmp_path), "steps.mp4", 0, ("frames",)))
     assert [key.sample_id() for key, _, _ in got] == ["steps.mp4#0", "steps.mp4#1", "steps.mp4#2"]
     assert [m["src_start_frame"] for _, _, m in got] == [0, 4, 8]
     levels = [np.round((a["frames"].reshape(a["frames"].shape[0], -1).mean(1) - 10) / 15).astype(int).tolist()

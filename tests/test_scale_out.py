@@ -22,6 +22,7 @@ from v2v_client import V2VStreamDataset
 from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
 from v2v_server.ops.config import ServeConfig, parse_shard
 from v2v_server.videos.corpus import check_corpus, select_shard, shard_of
+from v2v_server.videos.local import LocalSource
 from v2v_server.ops.logs import JsonFormatter
 from harness.serve import ServeProcess, free_port
 from v2v_server.videos.decode import scan_corpus
@@ -47,7 +48,7 @@ def corpus(tmp_path, videos, copies=1):
 def expected_ids(root):
     cfg = ServeConfig(sequence_length=L, crop_size=CROP, max_samples_per_video=WINDOWS, workers=1)
     vids = [p.as_posix() for p in scan_corpus(root, cfg.video_extensions)[0]]
-    return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg.recipe.windows, root, vids) for k in range(r["windows"]))
+    return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg.recipe.windows, LocalSource(root), vids) for k in range(r["windows"]))
 
 
 def read_all(ds, limit_s=120.0):

@@ -14,7 +14,9 @@ from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_video, format_check
 from v2v_server.videos.decode import iter_luma
 from v2v_server.videos.segments import parse_time, range_problem, segment_name, split_segment
 from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, shot_windows, thumbnail
-from v2v_server.videos.source import LocalSource, read_video_list
+from v2v_server.videos.local import LocalSource
+from v2v_server.videos.source_spec import open_source
+from v2v_server.videos.video_list import read_video_list
 from v2v_wire.ids import parse_sample_id
 
 from harness.shot_labels import LABELLED
@@ -32,7 +34,7 @@ def _cuts(frames) -> list:
 
 @pytest.mark.parametrize("clip", sorted(LABELLED))
 def test_detector_finds_the_labelled_cuts(clip):
-    r = check_video(SampleRecipe(shot_cuts="off").windows, SAMPLE_VIDEOS, clip)
+    r = check_video(SampleRecipe(shot_cuts="off").windows, LocalSource(SAMPLE_VIDEOS), clip)
     assert r["cuts"] == LABELLED[clip]
 
 
@@ -76,7 +78,7 @@ def test_served_windows_never_span_a_cut():
     clip = "webvid_like_596x336.mp4"
     cuts = LABELLED[clip]
     stats: dict = {}
-    metas = [m for _, _, m in video_samples(cfg, SAMPLE_VIDEOS, clip, 0, ("frames",), stats=stats)]
+    metas = [m for _, _, m in video_samples(cfg, LocalSource(SAMPLE_VIDEOS), clip, 0, ("frames",), stats=stats)]
     assert metas, "shots longer than 41 frames give windows"
     for m in metas:
         first, last = m["src_start_frame"], m["src_start_frame"] + cfg.frames_per_sample - 1
@@ -86,24 +88,24 @@ def test_served_windows_never_span_a_cut():
     assert [parse_sample_id(i).window for i in ids] == list(range(len(ids)))  # 0 .. n - 1
     # the same windows with shot_cuts off span cuts, as the authors' loader's do
     off = SampleRecipe(sequence_length=8, max_samples_per_video=20, shot_cuts="off")
-    spans = [m["src_start_frame"] for _, _, m in video_samples(off, SAMPLE_VIDEOS, clip, 0, ("frames",))]
+    spans = [m["src_start_frame"] for _, _, m in video_samples(off, LocalSource(SAMPLE_VIDEOS), clip, 0, ("frames",))]
     assert spans == [40 * k for k in range(len(spans))]
     assert any(s < c <= s + 40 for s in spans for c in cuts)
 
 
 def test_montages_give_no_window_and_check_says_why():
     cfg = SampleRecipe()
-    r = check_video(cfg.windows, SAMPLE_VIDEOS, "bikes.mp4")
+    r = check_video(cfg.windows, LocalSource(SAMPLE_VIDEOS), "bikes.mp4")
     assert not r["usable"] and r["dropped"] == 5
     assert "5 shot cut(s): every shot is shorter than one window of 201 frames" in r["reason"]
-    table = format_check([r, check_video(cfg.windows, SAMPLE_VIDEOS, "bbb_camera_596x336.mp4")], [])
+    table = format_check([r, check_video(cfg.windows, LocalSource(SAMPLE_VIDEOS), "bbb_camera_596x336.mp4")], [])
     assert "5 cut(s) at frame(s) 30, 76, 137, 187, 242" in table and "one shot" in table
     assert "5 shot cut(s) found, 5 window(s) removed by cuts" in table
 
 
 def test_cached_epoch_reuses_the_stored_cuts(tmp_path, monkeypatch):
     cfg = SampleRecipe(sequence_length=8, max_samples_per_video=20)
-    src = LocalSource(SAMPLE_VIDEOS, cache_dir=str(tmp_path), frame_cache_gb=1.0)
+    src = open_source(SAMPLE_VIDEOS, cache_dir=str(tmp_path), frame_cache_gb=1.0)
     clip = "webvid_like_596x336.mp4"
     first = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",))]
     assert src.frame_cache.take_stats()["stored"] == 1

@@ -19,6 +19,7 @@ from v2v_wire.protocol import decode_arrays, pack, unpack
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.videos.corpus import check_video
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.decode import find_videos
 
 
@@ -30,7 +31,7 @@ def expected_ids(videos):
     cfg = SampleRecipe(sequence_length=L, num_bins=B, max_samples_per_video=MAXW)
     ids = set()
     for rel in find_videos(videos, (".mp4",)):
-        n = check_video(cfg.windows, str(videos), rel.as_posix())["windows"]
+        n = check_video(cfg.windows, LocalSource(str(videos)), rel.as_posix())["windows"]
         ids.update(f"{rel.as_posix()}#{k}" for k in range(n))
     return ids
 

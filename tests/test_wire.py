@@ -23,6 +23,7 @@ from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import parse_sample_id
 from v2v_wire.protocol import DEFAULT_OUTPUTS, is_loopback, pack, unpack
 from v2v_server.samples.make import make_sample, video_samples
+from v2v_server.videos.local import LocalSource
 from v2v_server.service.worker import wire_arrays
 
 L, B, CROP, MAXW, SEED = 8, 5, 96, 2, 7
@@ -43,7 +44,7 @@ def serve_args(videos, *extra):
 def dense_flows(videos, clip: str, epoch: int) -> dict:
     """sample id -> the dense float32 flow the server's own expansion gives."""
     cfg = recipe(flow_dtype="float32")
-    return {key.sample_id(): a["flow"] for key, a, _ in video_samples(cfg, videos, clip, epoch, ("flow",))}
+    return {key.sample_id(): a["flow"] for key, a, _ in video_samples(cfg, LocalSource(videos), clip, epoch, ("flow",))}
 
 
 def want_flow(videos, batch: dict, i: int) -> np.ndarray:
@@ -143,7 +144,7 @@ def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_cl
 def wire_samples(videos, clip: str, epoch: int) -> dict:
     """sample id -> the arrays a worker puts on the wire (flow as its grid)."""
     cfg = recipe()
-    return {key.sample_id(): wire_arrays(cfg, a) for key, a, _ in video_samples(cfg, videos, clip, epoch,
+    return {key.sample_id(): wire_arrays(cfg, a) for key, a, _ in video_samples(cfg, LocalSource(videos), clip, epoch,
                                                                                     DEFAULT_OUTPUTS, flow_grid=True)}
 
 

@@ -54,7 +54,9 @@ from v2v_server.samples.make import video_samples
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.corpus import check_video, pass_verdict, verdict
 from v2v_server.videos.decode import open_video
-from v2v_server.videos.source import LocalSource, source_from_config, source_from_spec
+from v2v_server.videos.local import LocalSource
+from v2v_server.videos.source import VideoSource
+from v2v_server.ops.config import source_from_config
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
            "v2v_dataset", "VOXEL_DTYPE"]
@@ -86,9 +88,8 @@ class RayCorpus:
         return sum(self.windows.values())
 
 
-def count_windows(cfg: ServeConfig, root, rel: str) -> Tuple[int, Optional[str]]:
-    """Windows the video at ``rel`` of ``root`` (a corpus folder or a
-    ``videos.source.VideoSource``) gives per epoch, from its video packets (demuxed, not
+def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int, Optional[str]]:
+    """Windows the video at ``rel`` of ``source`` (the corpus) gives per epoch, from its video packets (demuxed, not
     decoded); with ``shot_cuts: avoid``, from one decode pass that finds its cuts
     (``corpus.check_video``: the windows depend on them).
 
@@ -99,11 +100,11 @@ def count_windows(cfg: ServeConfig, root, rel: str) -> Tuple[int, Optional[str]]
     """
     w = cfg.recipe.windows
     if w.avoid_cuts or split_segment(rel)[1]:  # windows depend on the cuts, or on the range's frames
-        r = check_video(w, root, rel)
+        r = check_video(w, source, rel)
         return r["windows"], (None if r["usable"] else r["reason"])
     frames, error = 0, None
     try:
-        with source_from_spec(root).open(rel) as path:
+        with source.open(rel) as path:
             container, stream, _ = open_video(path)
             try:
                 need = w.frames_for(w.max_windows)

@@ -12,7 +12,8 @@ from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import setup_logging
 from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
 from v2v_server.delivery.journal import JournalError
-from v2v_server.videos.source import StoreError, source_from_config
+from v2v_server.ops.config import source_from_config
+from v2v_server.videos.store_io import StoreError
 from v2v_server.ops.warm import cache_line, format_warm, warm_cache
 
 

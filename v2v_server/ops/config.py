@@ -11,16 +11,23 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Optional, Tuple, Union
 
 from v2v_server.checks import check_bool, check_choice, check_float, check_int, check_keys
 from v2v_server.delivery.core import DeliveryPolicy
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.settings import documented, load_yaml, reference_markdown, setting
 from v2v_server.videos.frame_cache import FORMATS as FRAME_CACHE_FORMATS
+from v2v_server.videos.manifest import manifest_path
+from v2v_server.videos.shards import split_pattern
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.source_spec import open_source
+from v2v_server.videos.store import StoreSettings, store_root
+from v2v_server.videos.video_list import is_url
 from v2v_wire.protocol import is_loopback  # noqa: F401  (config's checks and sockets use it)
 
-__all__ = ["SampleRecipe", "DeliveryPolicy", "ServingSettings", "ServeConfig", "load_config", "parse_shard"]
+__all__ = ["SampleRecipe", "DeliveryPolicy", "ServingSettings", "ServeConfig", "load_config", "parse_shard",
+           "source_from_config"]
 
 #: Upper limits (a typo like ``workers: 2000`` is an error, not a fork bomb or an OOM).
 MAX_WORKERS = 256
@@ -43,7 +50,7 @@ class ServingSettings:
                                          "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
     cache_dir: Optional[str] = setting(None, help="folder of the store manifest when there is no state_dir, and "
                                                   "of the object and frame caches (default $XDG_CACHE_HOME/v2v)")
-    cache_max_gb: float = setting(0.0, help="GiB of whole store objects kept on local disk for corpora read every "
+    cache_max_gb: float = setting(StoreSettings.cache_max_gb, help="GiB of whole store objects kept on local disk for corpora read every "
                                             "epoch (least recently used removed first); 0 = off, read from the "
                                             "store each time")
     frame_cache_gb: float = setting(0.0, help="GiB of decoded frames kept on this host's disk under cache_dir/frames, "
@@ -55,11 +62,11 @@ class ServingSettings:
                                       choices=FRAME_CACHE_FORMATS)
     refresh_manifest: bool = setting(False, help="list the store again instead of reading the manifest written at "
                                                  "the first start")
-    store_read_timeout_s: float = setting(20.0, help="seconds a store request may stay unanswered before it fails "
+    store_read_timeout_s: float = setting(StoreSettings.read_timeout_s, help="seconds a store request may stay unanswered before it fails "
                                                      "(then retried)", flag="--store-read-timeout")
-    store_max_attempts: int = setting(3, help="attempts per store request (botocore standard retry mode: "
+    store_max_attempts: int = setting(StoreSettings.max_attempts, help="attempts per store request (botocore standard retry mode: "
                                               "exponential backoff on throttling, 5xx and connection errors)")
-    read_block_mb: float = setting(8.0, help="MiB fetched per store request while decoding (one request for a "
+    read_block_mb: float = setting(StoreSettings.read_block_mb, help="MiB fetched per store request while decoding (one request for a "
                                              "smaller video)")
     workers: int = setting(2, help="worker processes")
     bind: str = setting("tcp://127.0.0.1:5555", help="ZeroMQ endpoint to bind (port 0 = any free port)")
@@ -261,6 +268,24 @@ def parse_shard(spec) -> Tuple[int, int]:
     if not m or int(m.group(2)) < 1 or int(m.group(1)) >= int(m.group(2)):
         raise ValueError(f"shard must be \"I/N\" with 0 <= I < N (e.g. 0/2 and 1/2 for two hosts), got {spec!r}")
     return int(m.group(1)), int(m.group(2))
+
+
+def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) -> VideoSource:
+    """The source ``cfg`` (a ``ServeConfig``) describes: ``videos`` or ``cfg.videos``, its
+    ``video_list``, ``storage_options``, store settings and manifest (``manifest.manifest_path``)."""
+    videos = cfg.videos if videos is None else videos
+    manifest = None
+    if videos is not None and is_url(str(videos)):
+        # one manifest per listing: of a prefix (all its objects), or of a pattern's or a list's tar members
+        key = str(videos) if split_pattern(str(videos))[1] else store_root(str(videos))
+        if cfg.video_list:
+            key += f" listed by {Path(cfg.video_list).resolve()}"
+        manifest = str(manifest_path(key, cfg.state_dir, cfg.cache_dir))
+    settings = StoreSettings(read_timeout_s=cfg.store_read_timeout_s, max_attempts=cfg.store_max_attempts,
+                             read_block_mb=cfg.read_block_mb, cache_max_gb=cfg.cache_max_gb)
+    return open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
+                       refresh_manifest=cfg.refresh_manifest, settings=settings, cache_dir=cfg.cache_dir,
+                       frame_cache_gb=cfg.frame_cache_gb, frame_cache_format=cfg.frame_cache_format)
 
 
 def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeConfig:

@@ -8,21 +8,19 @@ and stored on a miss, read back (every frame's checksum verified) on a hit.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_frames
 from v2v_server.videos.frames import lookup_entry
-from v2v_server.videos.source import VideoSource, source_from_spec
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.source_spec import map_videos
 
 
-def warm_video(cfg: ServeConfig, root, rel: str) -> dict:
-    """Read video ``rel`` of ``root`` (a ``VideoSource`` or its ``spec()``) through the frame
-    cache: ``{"path", "frames", "state", "bytes"}``, state ``cached`` (already there, read back
+def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
+    """Read video ``rel`` of ``source`` through its frame cache: ``{"path", "frames", "state", "bytes"}``, state ``cached`` (already there, read back
     whole), ``stored``, or ``not stored: CAUSE`` (budget, disk_full, write_error, or the
     decoding error)."""
-    source = source_from_spec(root)
     source.take_stats()  # the counters read below are this video's alone
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
     cached = False
@@ -52,34 +50,16 @@ def warm_video(cfg: ServeConfig, root, rel: str) -> dict:
     return out
 
 
-#: A warm-up pool process's recipe and source, built once by :func:`_init_worker` (building a
-#: source opens its filesystem client and reads its manifest and tar indexes: not once per video).
-_worker: Optional[Tuple[ServeConfig, VideoSource]] = None
-
-
-def _init_worker(cfg: ServeConfig, spec: dict) -> None:
-    global _worker
-    _worker = (cfg, source_from_spec(spec))
-
-
-def _warm(rel: str) -> dict:
-    cfg, source = _worker
-    return warm_video(cfg, source, rel)
-
-
-def warm_cache(cfg: ServeConfig, source, videos: List[str]) -> List[dict]:
+def warm_cache(cfg: ServeConfig, source: VideoSource, videos: List[str]) -> List[dict]:
     """:func:`warm_video` for every video, in ``cfg.workers`` processes (``source`` itself
-    in this one, or rebuilt once in each of them from its ``spec()``).
+    in this one, or built once in each of them from its ``spec()``).
 
     Raises:
         ValueError: the frame cache is off (``frame_cache_gb`` 0).
     """
-    if getattr(source, "frame_cache", None) is None:
+    if source.frame_cache is None:
         raise ValueError("--warm-cache needs a frame cache: give frame_cache_gb > 0 (and cache_dir)")
-    if cfg.workers <= 1 or len(videos) <= 1:
-        return [warm_video(cfg, source, v) for v in videos]
-    with mp.get_context("spawn").Pool(min(cfg.workers, len(videos)), _init_worker, (cfg, source.spec())) as pool:
-        return pool.map(_warm, videos, chunksize=1)
+    return map_videos(warm_video, cfg, source, videos, cfg.workers)
 
 
 def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] = ()) -> str:

@@ -23,7 +23,7 @@ import numpy as np
 
 from v2v_server.samples.augment import augment_plan, degrade_window
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.videos.source import source_from_spec
+from v2v_server.videos.source import VideoSource
 from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
@@ -321,7 +321,7 @@ class _Window:
 
 def video_samples(
     recipe: SampleRecipe,
-    root,
+    source: VideoSource,
     rel_path: str,
     epoch: int,
     outputs: Iterable[str],
@@ -330,7 +330,7 @@ def video_samples(
     stats: Optional[dict] = None,
     flow_grid: bool = False,
 ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-    """Decode the video at ``rel_path`` of ``root`` (a corpus folder or a
+    """Decode the video at ``rel_path`` of ``source`` (the corpus, a
     ``videos.source.VideoSource``) once, sequentially, and yield its samples.
 
     With ``recipe.crops_per_window`` = K, each window gives K samples: K crops, each with its own
@@ -353,13 +353,13 @@ def video_samples(
     Raises:
         VideoError: the file cannot be opened or decoded (samples already yielded are good).
     """
-    with video_frames(recipe, root, rel_path) as fp:
+    with video_frames(recipe, source, rel_path) as fp:
         yield from _samples(recipe, fp, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
 
 
-def video_frames(recipe: SampleRecipe, root, rel_path: str):
+def video_frames(recipe: SampleRecipe, source: VideoSource, rel_path: str):
     """A context manager giving the ``frames.FramePass`` a sample pass reads from the video at
-    ``rel_path`` of ``root`` (a folder or a ``VideoSource``): replayed from the source's frame
+    ``rel_path`` of ``source`` (a ``VideoSource``): replayed from the source's frame
     cache when it holds the video, else decoded (and stored): the kept rows, the frames the
     windows need (``WindowSettings.frame_limit``). ``v2v-serve --warm-cache`` reads the same pass.
 
@@ -367,7 +367,7 @@ def video_frames(recipe: SampleRecipe, root, rel_path: str):
         VideoError: the file cannot be opened.
     """
     w = recipe.windows
-    return open_frames(source_from_spec(root), rel_path, w.kept_rows, w.decode_threads, w.decode_fast,
+    return open_frames(source, rel_path, w.kept_rows, w.decode_threads, w.decode_fast,
                        w.frame_settings(), w.frame_limit, w.window_stride, w.frame_height, detect=w.avoid_cuts)
 
 

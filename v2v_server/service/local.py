@@ -10,7 +10,7 @@ from typing import Iterator, Optional
 from v2v_server.ops.config import load_config
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
 from v2v_server.service.server import V2VServer
-from v2v_server.videos.source import open_source
+from v2v_server.videos.source_spec import open_source
 
 
 @contextlib.contextmanager

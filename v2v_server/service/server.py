@@ -31,7 +31,7 @@ import zmq
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import corpus_fingerprint
-from v2v_server.videos.source import source_from_spec
+from v2v_server.videos.source import VideoSource
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.core import DeliveryCore
 from v2v_server.service.client_side import ClientSide
@@ -58,8 +58,9 @@ class V2VServer:
 
     Args:
         cfg: validated ``ServeConfig``.
-        root: corpus folder or ``videos.source.VideoSource`` (an object-store prefix); the
-            server only opens the videos listed in ``videos``.
+        source: the corpus (``videos.source.VideoSource``, a folder or an object-store
+            prefix, built at the server's start); the server only opens the videos listed in
+            ``videos``, and its workers build the same source from ``source.spec()``.
         videos: sample-id paths of the videos, relative to ``root`` (POSIX strings).
 
     Call ``run()`` (blocks until ``--epochs`` are delivered or ``stop()`` is called).
@@ -68,11 +69,11 @@ class V2VServer:
         ValueError: for an empty ``videos`` list.
     """
 
-    def __init__(self, cfg: ServeConfig, root, videos: List[str], corpus: Optional[str] = None):
+    def __init__(self, cfg: ServeConfig, source: VideoSource, videos: List[str], corpus: Optional[str] = None):
         if not videos:
-            raise ValueError(f"no video files under {root}")
+            raise ValueError(f"no video files under {source.root}")
         self.cfg = cfg
-        self.source = source_from_spec(root)
+        self.source = source
         self._fc_scanned = (float("-inf"), (0, 0))  # (when, (bytes, entries)) of the frame cache's last scan
         self.root = self.source.root
         self.videos = list(videos)
@@ -278,7 +279,7 @@ class V2VServer:
         ``FRAME_CACHE_SCAN_S``; None when there is none. A folder that cannot be scanned (a
         file in its place, a vanished mount, EIO) keeps the last values, counted and logged
         once (``ServerMetrics.on_fs_error``)."""
-        fc = getattr(self.source, "frame_cache", None)
+        fc = self.source.frame_cache
         if fc is None:
             return None
         now = time.monotonic()

@@ -29,7 +29,8 @@ import zmq
 from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
 from v2v_server.videos.corpus import pass_verdict
-from v2v_server.videos.source import source_from_spec, take_store_stats
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.source_spec import source_from_spec
 from v2v_server.service.shm import SlotRing
 from v2v_server.ops.logs import setup_logging
 from v2v_wire.outputs import wire_dtype
@@ -169,9 +170,9 @@ class _StageClock:
         return out
 
 
-def run_task(cfg: SampleRecipe, root, task: Task, sock: zmq.Socket, parent_pid: int, flows: dict,
+def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socket, parent_pid: int, flows: dict,
              inbox: Optional[_Inbox] = None, worker: str = "?") -> None:
-    """Make every sample of one task and send it (through ``inbox``'s slot ring when it has
+    """Make every sample of one task of ``source`` and send it (through ``inbox``'s slot ring when it has
     one), then send ``done``; an exception that stops the pass goes in it as a
     ``worker_messages.Failure`` saying it was raised in ``worker`` (its identity) on what."""
     stats: dict = {}
@@ -182,7 +183,7 @@ def run_task(cfg: SampleRecipe, root, task: Task, sock: zmq.Socket, parent_pid: 
     skip = [SampleKey(task.video, w, c) for w, c in task.skip]
     try:
         for key, arrays, meta in video_samples(
-            cfg, root, task.video, task.epoch, task.outputs, skip, flow, stats,
+            cfg, source, task.video, task.epoch, task.outputs, skip, flow, stats,
             flow_grid=True,  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
         ):
             clock.made()
@@ -214,7 +215,7 @@ def run_task(cfg: SampleRecipe, root, task: Task, sock: zmq.Socket, parent_pid: 
                 {str(k): str(v) for k, v in stats.get("failed", {}).items()},  # window -> reason
                 error, failure, stats.get("frames", 0),
                 stats.get("cuts", 0), stats.get("dropped", 0),  # shot cuts found, windows they removed
-                clock.report(), take_store_stats(root))  # object-store reads of this task (empty for a folder)
+                clock.report(), source.take_stats())  # object-store reads of this task (empty for a folder)
     _send(sock, [pack(done.to_wire())], parent_pid)
 
 
@@ -246,7 +247,7 @@ def worker_main(cfg_dict: dict, root, endpoint: str, identity: bytes, parent_pid
 
     Args:
         cfg_dict: ``worker_config(cfg)``.
-        root: the corpus: a folder path or ``VideoSource.spec()`` (``videos.source``).
+        root: the corpus's ``VideoSource.spec()`` (``videos.source``), built here once.
         ring: ``SlotRing.spec`` of this worker's shared-memory slots (the file is unlinked as
             soon as it is mapped), or None to send arrays as frames.
     """

@@ -3,14 +3,14 @@ file of a corpus and say what it is worth, before training)."""
 from __future__ import annotations
 
 import hashlib
-import multiprocessing as mp
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector
-from v2v_server.videos.source import source_from_spec
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.source_spec import map_videos
 from v2v_server.videos.windows import WindowSettings
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
@@ -109,9 +109,8 @@ def pass_verdict(w: WindowSettings, stats: dict, error: Optional[BaseException] 
     return verdict(w, stats.get("frames", 0), None, error, windows, stats.get("cuts", 0))[2]
 
 
-def check_video(windows: WindowSettings, root, rel: str) -> dict:
-    """Verdict for one file of ``root`` (a corpus folder, or a ``source.VideoSource`` or its
-    ``spec()``), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason",
+def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
+    """Verdict for one file of ``source`` (the corpus), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason",
     "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
     says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
     made, ``more`` when decoding stopped with every window complete, ``variable_rate`` when the
@@ -121,7 +120,7 @@ def check_video(windows: WindowSettings, root, rel: str) -> dict:
     bad: dict = {}  # window -> why it cannot be made
     error = None
     try:
-        with source_from_spec(root).open(rel) as path:
+        with source.open(rel) as path:
             _check_frames(windows, path, out, bad, split_segment(rel)[1])
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
@@ -175,19 +174,10 @@ def _check_frames(windows: WindowSettings, path, out: dict, bad: dict, segment=N
                                 f"taken as if evenly spaced at the average {info.fps:.3g} fps")
 
 
-def _check(args):
-    return check_video(*args)
-
-
-def check_corpus(windows: WindowSettings, root, videos: List[str], processes: int = 1) -> List[dict]:
-    """``check_video`` for every file of ``root`` (a folder or a ``source.VideoSource``), in
-    ``processes`` processes."""
-    spec = root.spec() if hasattr(root, "spec") else str(root)
-    jobs = [(windows, spec, v) for v in videos]
-    if processes <= 1 or len(jobs) <= 1:
-        return [check_video(*j) for j in jobs]
-    with mp.get_context("spawn").Pool(min(processes, len(jobs))) as pool:
-        return pool.map(_check, jobs, chunksize=1)
+def check_corpus(windows: WindowSettings, source: VideoSource, videos: List[str], processes: int = 1) -> List[dict]:
+    """``check_video`` for every file of ``source``, in ``processes`` processes (``source``
+    itself in this one, or built once in each of them from its ``spec()``)."""
+    return map_videos(check_video, windows, source, videos, processes)
 
 
 def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:

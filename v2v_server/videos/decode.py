@@ -219,7 +219,7 @@ def open_video(path, threads: int = 1, fast: str = "off"):
     """Open ``path`` with PyAV and return ``(container, stream, info)``; ``fast`` names a
     ``DECODE_FAST`` setting (decoder options applied when the decoder opens). ``path`` is a
     file path or a readable, seekable binary file object (an object-store file from
-    ``source.StoreSource.open``: FFmpeg reads and seeks through it); the caller closes a file
+    ``store.StoreSource.open``: FFmpeg reads and seeks through it); the caller closes a file
     object after the container.
 
     Raises:

@@ -105,7 +105,7 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
     Raises:
         VideoError: the video cannot be opened or decoded (as ``source.open``, ``open_video``).
     """
-    cache: Optional[FrameCache] = getattr(source, "frame_cache", None)
+    cache: Optional[FrameCache] = source.frame_cache
     name = identity = None
     segment = split_segment(rel)[1]  # a segment: its time range of the video
     if cache is not None:

@@ -1,15 +1,21 @@
 """The manifest of an object-store corpus: its listing (key, size, ETag; tar members with their
 offset) kept as one sorted JSON line per object, so a restart and every shard read one listing
 without walking the bucket, and a worker looks up single entries without loading it
-(:class:`ManifestIndex`). See ``videos.source`` for who writes and reads it."""
+(:class:`ManifestIndex`). A ``videos.store.StoreSource`` holds its listing as a
+:class:`StoreListing`, which writes and reads it."""
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import time
 from pathlib import Path
 from typing import Dict, Optional, Tuple
+
+from v2v_server.videos.shards import ShardIndex
+
+log = logging.getLogger("v2v.source")
 
 MANIFEST_VERSION = 1
 
@@ -116,6 +122,68 @@ class ManifestIndex:
                 hi = a
         return None
 
+
+class StoreListing:
+    """The listing a store source holds: key relative to the prefix -> (size in bytes, ETag[,
+    offset in bytes of a tar member's data]) of every object under ``url`` and of the members
+    of its tar shards (whose indexes go to ``shards``), kept as the manifest file at ``path``
+    (None: none is kept) unless ``refresh`` asks for a new listing. The server loads a whole
+    listing once; a worker, which holds none, looks single entries up in the manifest file
+    (:class:`ManifestIndex`)."""
+
+    def __init__(self, url: str, path: Optional[str], refresh: bool, shards: ShardIndex):
+        self.url, self.path, self.refresh, self.shards = url, path, refresh, shards
+        #: The listing this process holds, None until one is read or made.
+        self.objects: Optional[Dict[str, tuple]] = None
+        self._index: Optional[ManifestIndex] = None
+        self._index_tried = False
+
+    def read(self) -> Optional[Dict[str, tuple]]:
+        """The manifest's listing; None when there is none to read (no manifest kept, a new
+        listing asked for, the file absent, damaged or of another URL)."""
+        if self.path and not self.refresh:
+            return read_manifest(Path(self.path), self.url)
+        return None
+
+    def keep(self, objects: Dict[str, tuple]) -> None:
+        """Hold ``objects`` (a listing or manifest) and give the tar members it has to ``shards``."""
+        self.objects = objects
+        for rel, v in objects.items():
+            if len(v) == 3:
+                self.shards.add(rel, v[2], v[0])
+
+    def listed(self, objects: Dict[str, tuple]) -> None:
+        """Hold ``objects``, a listing just made of the store, and write it as the manifest."""
+        self.save(objects)
+        self.refresh = False
+        self.keep(objects)
+
+    def save(self, objects: Dict[str, tuple]) -> None:
+        """Write ``objects`` as the manifest (a failure is logged: the store is listed again
+        at the next start)."""
+        if self.path:
+            try:
+                write_manifest(Path(self.path), self.url, objects)
+                log.info("manifest written to %s", self.path)
+            except OSError as e:
+                log.warning("cannot write the manifest %s: %s (the store is listed again at the next start)",
+                            self.path, e)
+
+    def save_members(self) -> None:
+        """Write the tar members read from shard headers (no listing) as the manifest."""
+        objects = {f"{tar}/{m}": (size, "", offset) for tar, ms in self.shards.members.items()
+                   for m, (offset, size) in ms.items()}
+        self.save(objects)
+        self.objects = objects
+
+    def entry(self, rel: str) -> Optional[tuple]:
+        """The listing's entry for ``rel``: from the listing this process holds (the server),
+        else looked up in the manifest file (a worker: one entry, not the whole manifest)."""
+        if self.objects is not None:
+            return self.objects.get(rel)
+        if self.path and not self._index_tried:
+            self._index, self._index_tried = ManifestIndex.open(Path(self.path), self.url), True
+        return self._index.get(rel) if self._index is not None else None
 
 
 def etag_of(info: dict) -> str:

@@ -95,3 +95,38 @@ def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
     cut = videos.rfind("/", 0, brace if brace >= 0 else len(videos)) + 1
     return videos[:cut] or ".", expand_braces(videos[cut:])
 
+
+
+def split_member(rel: str) -> Optional[Tuple[str, str]]:
+    """``("shard.tar", "member.mp4")`` for a tar member's id path, else None."""
+    i = rel.lower().find(".tar/")
+    return (rel[:i + 4], rel[i + 5:]) if i >= 0 else None
+
+
+class ShardIndex:
+    """The member indexes of one source's tar shards: shard -> member name -> (offset of its
+    data, size) in bytes, each read from the shard's headers (:func:`tar_members`) once per
+    process and version of the shard, or given by a listing that holds them (a store's
+    manifest)."""
+
+    def __init__(self):
+        self.members: Dict[str, Dict[str, Tuple[int, int]]] = {}
+        self._versions: Dict[str, Optional[str]] = {}
+
+    def of(self, tar: str, version: Optional[str], open_raw) -> Dict[str, Tuple[int, int]]:
+        """The index of the shard ``tar``, read (``open_raw(tar)``: a context manager giving the
+        shard as a binary file) when it is not held or when ``version``, what stands for the
+        shard's content, differs from the one it was read at; None: always read it.
+
+        Raises:
+            tarfile.TarError, OSError, VideoError: the shard cannot be read (as ``open_raw``)."""
+        if tar not in self.members or version is None or self._versions.get(tar, "") != version:
+            with open_raw(tar) as f:
+                self.members[tar] = tar_members(f)
+            self._versions[tar] = version
+        return self.members[tar]
+
+    def add(self, rel: str, offset: int, size: int) -> None:
+        """Hold the member ``rel`` (``shard.tar/member.mp4``) found by a listing."""
+        tar, name = split_member(rel)
+        self.members.setdefault(tar, {})[name] = (offset, size)

@@ -1,6 +1,6 @@
 """Reading objects from a store: the fsspec filesystem with one retry policy, the counters of a
 process's reads (bytes, range requests, seconds, retries, skipped objects) and the bounded local
-cache of whole objects. ``videos.source.StoreSource`` wires them."""
+cache of whole objects. ``videos.store.StoreSource`` wires them."""
 from __future__ import annotations
 
 import contextlib

@@ -1,0 +1,141 @@
+"""A corpus in a local folder (``LocalSource``), and what stands for a local file's content in
+the frame cache: its identity (size, mtime, ctime, inode) and git's racy rule."""
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import stat
+import time
+from pathlib import Path
+from typing import Iterator, List, Optional, Union
+
+from v2v_server.videos.decode import VideoError, inside, scan_corpus
+from v2v_server.videos.frame_cache import FrameCache
+from v2v_server.videos.segments import base_path
+from v2v_server.videos.shards import TarMember, split_member
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.store_io import StoreError
+
+
+def corpus_file(root, rel: str) -> Path:
+    """``root / rel``, a file inside the local corpus folder ``root``.
+
+    Raises:
+        VideoError: it is missing or a link leads outside the root (the one wording every
+            verdict uses).
+    """
+    path = Path(root) / rel
+    if not inside(Path(root), path):
+        raise VideoError("missing, or points outside the corpus root")
+    return path
+
+
+#: Nanoseconds within which a change to a file may leave its change time (ctime) where it was:
+#: the kernel stamps files from a clock that advances once per tick (1 to 10 ms), and some
+#: file systems keep coarser times (exFAT 10 ms). A margin over both.
+RACY_NS = 50_000_000
+#: The same for a file system that keeps whole seconds (ext3, HFS+; FAT's 2 s): a change time
+#: that is a whole second is taken to come from one.
+RACY_COARSE_NS = 3_000_000_000
+
+
+def file_identity(st: os.stat_result) -> str:
+    """What stands for a file's content (``st``: its status, links followed): size in bytes,
+    modification time (ns), change time (ns) and inode. Size, mtime and inode are what a user
+    can keep by accident while rewriting the bytes (``rsync --inplace -t``, ``cp -p`` onto an
+    existing file, a tool that restores mtimes); the change time is set by the kernel on every
+    write and by no user tool, as git's index records it."""
+    return f"{st.st_size} {st.st_mtime_ns} {st.st_ctime_ns} {st.st_ino}"
+
+
+def racy(st: os.stat_result, now_ns: Optional[int] = None) -> bool:
+    """git's racy rule: whether the file of status ``st`` changed within its file system's
+    timestamp resolution of ``now_ns`` (default: the clock now), so that a write after this
+    stat could leave its identity (:func:`file_identity`) unchanged. Only a file whose change
+    time is older than ``RACY_NS`` (``RACY_COARSE_NS`` for whole-second times) is trusted."""
+    now_ns = time.time_ns() if now_ns is None else now_ns
+    bound = RACY_COARSE_NS if st.st_ctime_ns % 1_000_000_000 == 0 else RACY_NS
+    return st.st_ctime_ns >= now_ns - bound
+
+
+class LocalSource(VideoSource):
+    """A corpus folder (searched recursively, symlinks that stay inside it followed); ``root``
+    a path or a ``file://`` URL, the other arguments as :class:`~v2v_server.videos.source.VideoSource`'s."""
+
+    def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None,
+                 frame_cache: Optional[FrameCache] = None, cache_dir: Optional[str] = None):
+        root = str(root)
+        super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names,
+                         frame_cache, cache_dir)
+
+    def check(self) -> None:
+        """Raises StoreError: the folder does not exist."""
+        if not Path(self.root).is_dir():
+            raise StoreError(f"--videos {self.root}: not a folder")
+
+    def list_videos(self, extensions):
+        names = self._names()
+        if names is not None:
+            root = Path(self.root)
+            return self._listed(names, lambda rel: inside(root, root / rel), extensions)
+        found, rejected = scan_corpus(Path(self.root), tuple(extensions) + (".tar",))
+        return self._with_members([p.as_posix() for p in found], [(p.as_posix(), why) for p, why in rejected],
+                                  extensions)
+
+    @contextlib.contextmanager
+    def _open_raw(self, rel: str):
+        with open(corpus_file(self.root, rel), "rb") as f:
+            yield f
+
+    @contextlib.contextmanager
+    def open(self, rel: str) -> Iterator[Path]:
+        rel = base_path(rel)  # a segment reads its video (the pass keeps its time range)
+        member = split_member(rel)
+        if member is None or not Path(self.root, member[0]).is_file():
+            yield corpus_file(self.root, rel)
+            return
+        where = self._member_at(rel, None)
+        with self._open_raw(member[0]) as f:
+            yield TarMember(f, *where)
+
+    def where(self, rel: str) -> str:
+        return str(Path(self.root) / rel)
+
+    def identity(self, rel: str) -> Optional[str]:
+        rel = base_path(rel)
+        member = split_member(rel)
+        try:
+            shard = self._shard_stat(member[0]) if member is not None else None
+            if shard is not None:
+                corpus_file(self.root, member[0])  # a link out of the root is refused
+                offset, size = self._member_at(rel, None)
+                return None if racy(shard) else f"tar {file_identity(shard)} member {offset} {size}"
+            st = os.stat(corpus_file(self.root, rel))
+        except OSError as e:
+            raise VideoError(f"cannot read: {e.strerror or e}") from None
+        return None if racy(st) else f"file {file_identity(st)}"
+
+    def _shard_version(self, tar: str) -> Optional[str]:
+        """The shard file's identity (:func:`file_identity`); None while it is racy or cannot
+        be read."""
+        try:
+            st = os.stat(Path(self.root, tar))
+        except OSError:
+            return None
+        return None if racy(st) else file_identity(st)
+
+    def _shard_stat(self, tar: str) -> Optional[os.stat_result]:
+        """The status of ``tar`` (links followed) when it is a file, a tar shard; None when it is
+        missing or no file (a folder named like a shard), the errors ``Path.is_file`` takes for
+        no; others raise."""
+        try:
+            st = os.stat(Path(self.root, tar))
+        except OSError as e:
+            if e.errno in (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP):
+                return None
+            raise
+        return st if stat.S_ISREG(st.st_mode) else None
+
+    def spec(self) -> dict:
+        return {"root": self.root, "video_list": self.video_list, "names": self.names, **self._cache_spec()}

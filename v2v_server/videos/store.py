@@ -1,0 +1,274 @@
+"""A corpus under an object-store prefix (``StoreSource``), read through fsspec, and the
+store's settings (``StoreSettings``: the one owner of their defaults)."""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import time
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+from v2v_server.videos.decode import VideoError, printable, utf8_name
+from v2v_server.videos.frame_cache import FrameCache
+from v2v_server.videos.manifest import StoreListing, etag_of
+from v2v_server.videos.segments import base_path
+from v2v_server.videos.shards import TarMember, split_member, tar_members
+from v2v_server.videos.source import VideoSource
+from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_filesystem, time_fetches
+
+log = logging.getLogger("v2v.source")
+
+
+@dataclasses.dataclass(frozen=True)
+class StoreSettings:
+    """How a :class:`StoreSource` reads its store (``ServeConfig``'s ``store_read_timeout_s``,
+    ``store_max_attempts``, ``read_block_mb`` and ``cache_max_gb`` take their defaults from
+    here).
+
+    Attributes:
+        read_timeout_s: seconds a store request may stay silent before it fails (then retried).
+        max_attempts: attempts per request (botocore ``standard`` retry mode for S3).
+        read_block_mb: MiB fetched per request while decoding (one request for a clip smaller
+            than this); at most four blocks per open video are kept.
+        cache_max_gb: GiB of a bounded local cache of whole objects for corpora read every
+            epoch (``cache_dir/objects``, least recently used removed first); 0 reads from the
+            store every time.
+    """
+
+    read_timeout_s: float = 20.0
+    max_attempts: int = 3
+    read_block_mb: float = 8.0
+    cache_max_gb: float = 0.0
+
+
+def store_root(url: str) -> str:
+    """The corpus URL ``url`` as a :class:`StoreSource` holds it: with one trailing ``/``."""
+    return url if url.endswith("/") else url + "/"
+
+
+class StoreSource(VideoSource):
+    """A corpus under an object-store prefix, read through fsspec.
+
+    Args:
+        url: ``s3://bucket/prefix/`` (a trailing ``/`` is implied) or another fsspec URL.
+        storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the
+            defaults below; credentials otherwise come from the store's standard configuration
+            (for S3: ``AWS_*`` variables incl. ``AWS_ENDPOINT_URL``, shared config files,
+            instance roles).
+        video_list, names, frame_cache, cache_dir: as :class:`~v2v_server.videos.source.VideoSource`'s.
+        manifest: the manifest file (see ``manifest.manifest_path``); None keeps none.
+        refresh_manifest: list the store again instead of reading the manifest.
+        settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).
+    """
+
+    def __init__(self, url: str, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
+                 manifest: Optional[str] = None, refresh_manifest: bool = False,
+                 settings: StoreSettings = StoreSettings(), names: Optional[List[str]] = None,
+                 frame_cache: Optional[FrameCache] = None, cache_dir: Optional[str] = None):
+        super().__init__(store_root(url), video_list, names, frame_cache, cache_dir)
+        self.protocol = url.split("://", 1)[0].lower()
+        self.prefix = self.root.split("://", 1)[1]
+        self.storage_options = dict(storage_options or {})
+        self.settings = settings
+        #: The listing: the objects under the prefix and the manifest that keeps them.
+        self.listing = StoreListing(self.root, manifest, refresh_manifest, self.shards)
+        self._fs = None
+        self.stats = ReadStats()
+        self.cache = ObjectCache(Path(self.cache_dir) / "objects", settings.cache_max_gb)
+
+    # ------------------------------------------------------------------ the filesystem
+    @property
+    def fs(self):
+        if self._fs is None:
+            self._fs = self._make_fs()
+        return self._fs
+
+    def _make_fs(self):
+        return make_filesystem(self.protocol, self.root, self.storage_options, self.settings.read_timeout_s,
+                               self.settings.max_attempts, self.stats)
+
+    def _path(self, rel: str) -> str:
+        """The filesystem path of ``rel``: the key for object stores, the whole URL for http(s)."""
+        return (self.root if self.protocol in ("http", "https") else self.prefix) + rel
+
+    def _fail(self, what: str, e: BaseException) -> StoreError:
+        return StoreError(f"--videos {self.root}: {what}: {type(e).__name__}: {e}")
+
+    def check(self) -> None:
+        """Reach the store once (the bucket's metadata, not a listing).
+
+        Raises:
+            StoreError: naming the URL: no such bucket, credentials refused or missing, store
+                unreachable, no library for the protocol.
+        """
+        if self.protocol in ("http", "https"):
+            return  # no bucket to ask about: a missing shard is named when it is read
+        bucket = self.prefix.split("/", 1)[0]
+        try:
+            self.fs.info(bucket)
+        except FileNotFoundError as e:
+            raise self._fail(f"no such bucket {bucket!r}", e) from None
+        except PermissionError as e:
+            raise self._fail("access refused (check the credentials)", e) from None
+        except StoreError:
+            raise
+        except Exception as e:  # NoCredentialsError, EndpointConnectionError, ...: each one a clear line
+            raise self._fail("cannot reach the store", e) from None
+
+    # ------------------------------------------------------------------ listing
+    def objects(self) -> Dict[str, Tuple[int, str]]:
+        """Key relative to the prefix -> (size, ETag) of every object under the prefix: the
+        manifest when there is one (and ``refresh_manifest`` is off), else a paginated listing
+        of the store, then written as the manifest.
+
+        Raises:
+            StoreError: the listing fails (naming the URL).
+        """
+        if self.listing.objects is not None:
+            return self.listing.objects
+        got = self.listing.read()
+        if got is not None:
+            log.info("%s: %d object(s) from the manifest %s (--refresh-manifest lists the store again)",
+                     self.root, len(got), self.listing.path)
+            self.listing.keep(got)
+            return got
+        t0 = time.monotonic()
+        try:
+            found = self.fs.find(self.prefix, detail=True)
+        except FileNotFoundError as e:
+            raise self._fail("no such bucket or prefix", e) from None
+        except PermissionError as e:
+            raise self._fail("access refused (check the credentials)", e) from None
+        except Exception as e:
+            raise self._fail("cannot list", e) from None
+        objects = {}
+        for key, info in found.items():
+            if info.get("type", "file") != "file" or not key.startswith(self.prefix):
+                continue
+            objects[key[len(self.prefix):]] = (int(info.get("size") or 0), etag_of(info))
+        for rel in [k for k in objects if k.lower().endswith(".tar")]:  # shards: their members, once
+            self._add_members(objects, rel)
+        log.info("%s: listed %d object(s) in %.1f s", self.root, len(objects), time.monotonic() - t0)
+        self.listing.listed(objects)
+        return objects
+
+    def _add_members(self, objects: dict, tar: str) -> None:
+        """Add the members of the shard ``tar`` to ``objects`` as ``tar/member`` -> (size, the
+        shard's ETag, offset); an unreadable shard gets no member (it is reported when listed)."""
+        try:
+            with self._open_raw(tar) as f:
+                members = tar_members(f)
+        except Exception as e:  # noqa: BLE001 - one bad shard never stops the listing
+            log.warning("tar shard %s cannot be read: %s: %s", self.where(tar), type(e).__name__, e)
+            return
+        etag = objects.get(tar, (0, ""))[1]
+        for name, (offset, size) in members.items():
+            objects[f"{tar}/{name}"] = (size, etag, offset)
+
+    def list_videos(self, extensions):
+        names = self._names()
+        if names is not None:  # nothing is listed from the store: a missing video is found when it is opened
+            known = self.listing.read()  # the tar members read at an earlier start
+            if known is not None:
+                self.listing.keep(known)
+            got = self._listed(names, lambda rel: True, extensions)
+            if known is None and self.listing.path and any(split_member(v) for v in got[0]):
+                self.listing.save_members()  # the shards' members, so that workers and restarts need not read headers
+            return got
+        videos, rejected = [], []
+        for rel in sorted(self.objects()):
+            if not utf8_name(rel):
+                rejected.append((printable(rel), "key is not valid UTF-8 (sample ids are UTF-8): rename it"))
+            elif rel.endswith("/") or not rel or rel.lower().endswith(".tar"):
+                continue  # a shard stands for its members, listed after it
+            elif split_member(rel) is not None and not rel.lower().endswith(tuple(extensions)):
+                continue  # a shard's metadata member (.json, .txt): not a video, not worth a line
+            elif rel.lower().endswith(tuple(extensions)):
+                videos.append(rel)
+            else:
+                rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
+        return videos, rejected
+
+    # ------------------------------------------------------------------ reading
+    @contextlib.contextmanager
+    def open(self, rel: str):
+        rel = base_path(rel)  # a segment reads its object (the pass keeps its time range)
+        member = split_member(rel)
+        if member is None:
+            with self._open_raw(rel) as f:
+                yield f
+            return
+        entry = self.listing.entry(rel)
+        with self._open_raw(member[0], entry) as f:
+            yield TarMember(f, *self._member_at(rel, entry))
+
+    def identity(self, rel: str) -> Optional[str]:
+        rel = base_path(rel)
+        member = split_member(rel)
+        obj = member[0] if member is not None else rel
+        with self._request():
+            info = self.fs.info(self._path(obj))  # one HEAD request: no content read
+        self.stats.reads += 1
+        now, size = etag_of(info), int(info.get("size") or 0)
+        entry = self.listing.entry(rel)  # the listing's entry: the object's, or the member's (its shard's ETag, its offset)
+        self._check_unchanged(entry, now)
+        if not now:  # no version tag (an HTTP server without ETag): the size alone cannot vouch for the bytes
+            return None
+        if member is None:
+            return f"object {size} {now}"
+        offset, msize = self._member_at(rel, entry)
+        return f"tar {size} {now} member {offset} {msize}"
+
+    @contextlib.contextmanager
+    def _request(self):
+        """A request to the store: its seconds counted; a missing object or any failure (timeouts,
+        refused reads) raised as the file's ``VideoError``, never the worker's death."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        except FileNotFoundError:
+            self.stats.skipped += 1
+            raise VideoError("missing from the store") from None
+        except Exception as e:
+            raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
+        finally:
+            self.stats.read_s += time.perf_counter() - t0
+
+    def _check_unchanged(self, expected: Optional[tuple], now: str) -> None:
+        """Raises VideoError: the object's ETag ``now`` differs from the listing's (``expected``:
+        its manifest entry)."""
+        if expected is not None and expected[1] and now and now != expected[1]:
+            self.stats.skipped += 1
+            raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}); skipped until "
+                             f"--refresh-manifest")
+
+    @contextlib.contextmanager
+    def _open_raw(self, rel: str, expected: Optional[tuple] = None):
+        """The object at ``rel`` as a file, checked against the listing's ETag (``expected``:
+        its manifest entry, looked up when not given)."""
+        block = max(1, int(self.settings.read_block_mb * (1 << 20)))
+        with self._request():
+            f = self.fs.open(self._path(rel), "rb", block_size=block, cache_type="blockcache",
+                             cache_options={"maxblocks": 4})
+        try:
+            now = etag_of(getattr(f, "details", None) or {})
+            self._check_unchanged(self.listing.entry(rel) if expected is None else expected, now)
+            time_fetches(f, self.stats)
+            if self.settings.cache_max_gb > 0:
+                with self.cache.open(f"{self.root}{rel}", now, f) as local:
+                    yield local
+            else:
+                yield f
+        finally:
+            f.close()
+
+    def _cache_folders(self) -> List[Path]:
+        return super()._cache_folders() + ([self.cache.disk.folder] if self.settings.cache_max_gb > 0 else [])
+
+    def take_stats(self) -> dict:
+        return {**self.stats.take(), **super().take_stats()}
+
+    def spec(self) -> dict:
+        return {"root": self.root, "storage_options": self.storage_options, "video_list": self.video_list,
+                "manifest": self.listing.path, "settings": self.settings, **self._cache_spec()}
