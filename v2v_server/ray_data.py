@@ -45,7 +45,7 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 import numpy as np
 
 from v2v_server.delivery.batcher import video_order
-from v2v_server.ops.config import ServeConfig
+from v2v_server.ops.config import ServeConfig, source_from_config
 from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS, row_array, zeros_row
 from v2v_wire.protocol import check_outputs
 from v2v_server.flow.estimate import FlowEstimator
@@ -56,7 +56,6 @@ from v2v_server.videos.corpus import check_video, pass_verdict, verdict
 from v2v_server.videos.decode import open_video
 from v2v_server.videos.local import LocalSource
 from v2v_server.videos.source import VideoSource
-from v2v_server.ops.config import source_from_config
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
            "v2v_dataset", "VOXEL_DTYPE"]

@@ -6,13 +6,12 @@ import logging
 import sys
 from typing import List, Optional
 
-from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config
+from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config, source_from_config
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import setup_logging
 from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
 from v2v_server.delivery.journal import JournalError
-from v2v_server.ops.config import source_from_config
 from v2v_server.videos.store_io import StoreError
 from v2v_server.ops.warm import cache_line, format_warm, warm_cache
 
