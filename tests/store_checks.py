@@ -18,7 +18,7 @@ def samples(cfg, root, names, epoch: int) -> dict:
     from v2v_server.samples.make import video_samples
 
     return {k.sample_id(1): b"".join(a[o].tobytes() for o in OUTPUTS)
-            for v in names for k, a, _ in video_samples(cfg, root, v, epoch, OUTPUTS)}
+            for v in names for k, a, _ in video_samples(cfg.recipe, root, v, epoch, OUTPUTS)}
 
 
 def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[dict] = None,
@@ -47,6 +47,6 @@ def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[
     now.mkdir()
     (now / "bikes.mp4").write_bytes((CLIPS / "bigbuckbunny.mp4").read_bytes())
     fresh = open_source(url, storage_options=storage_options, cache_dir=cache, frame_cache_gb=1.0)  # new listing
-    assert samples(cfg, fresh, ["bikes.mp4"], 2) == samples(cfg, now, ["bikes.mp4"], 2)  # decoded anew
+    assert samples(cfg, fresh, ["bikes.mp4"], 2) == samples(cfg, LocalSource(now), ["bikes.mp4"], 2)  # decoded anew
     stats = fresh.take_stats()["frame_cache"]
     assert stats["misses"]["changed"] == 1 and stats["hits"] == 0, stats

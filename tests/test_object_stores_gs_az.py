@@ -15,6 +15,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.decode import VideoError
 from tests.store_checks import check_frame_cache_hit, samples
 from v2v_server.ops.config import source_from_config
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.source_spec import source_from_spec
 from v2v_server.videos.store import StoreSource
 
@@ -64,7 +65,7 @@ def _samples(root, names, epoch: int, cfg=None) -> dict:
 
 @functools.lru_cache(maxsize=None)
 def _folder_samples(names: tuple, epoch: int) -> dict:
-    return _samples(CLIPS, names, epoch)
+    return _samples(LocalSource(CLIPS), names, epoch)
 
 
 def _version(store, key: str) -> str:
