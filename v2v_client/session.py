@@ -19,7 +19,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.outputs import ARRAYS
-from v2v_wire.protocol import MAX_CLIENT_MSG, ProtocolError, output_of, pack, unpack
+from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, ProtocolError, output_of, pack, unpack
 
 from .handoff import ShmReader, check_shm_dir, shm_dir_problem
 
@@ -29,7 +29,7 @@ __all__ = ["ServerSession", "HeldBatches", "StreamError", "StreamTimeout", "Epoc
 log = logging.getLogger("v2v.client")
 
 #: Largest message accepted from the server, bytes (ZMQ_MAXMSGSIZE).
-MAX_SERVER_MSG = 1 << 31
+MAX_SERVER_MSG = MAX_BATCH_BYTES
 
 #: The entries of a batch item that are not arrays (kept when a batch is given back).
 BOOKKEEPING = ("sample_ids", "params", "epoch", "batch_id", "receipt")

@@ -25,7 +25,7 @@ from typing import Dict, List, Sequence
 
 import numpy as np
 
-from v2v_wire.protocol import WIRE_DTYPES, ProtocolError
+from v2v_wire.protocol import MAX_BATCH_BYTES, WIRE_DTYPES, ProtocolError
 
 #: Compression settings a client may ask for; "none" sends arrays as they are.
 COMPRESSIONS = ("none", "lz4", "zstd")
@@ -102,7 +102,7 @@ def _buffer(frame) -> memoryview:
     return frame.buffer if hasattr(frame, "buffer") else memoryview(frame)
 
 
-def decode_batch_arrays(specs, frames: Sequence, max_bytes: int = 1 << 31) -> Dict[str, np.ndarray]:
+def decode_batch_arrays(specs, frames: Sequence, max_bytes: int = MAX_BATCH_BYTES) -> Dict[str, np.ndarray]:
     """The arrays of a batch message: plain specs take one frame each (``protocol.decode_arrays``:
     read-only zero-copy views); a spec with ``"codec"`` takes one compressed frame per sample
     (``"parts"``: ``[dtype, bytes]`` each), decompressed into a fresh (B, ...) array of the

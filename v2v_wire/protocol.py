@@ -64,6 +64,9 @@ MAX_HEADER_BYTES = 1 << 20
 #: trainer already has, grouped per video (a few bytes per id: millions fit). The server's
 #: socket takes up to twice this (ZMQ_MAXMSGSIZE), so a larger hello gets a clear error.
 MAX_CLIENT_MSG = 16 * 1024 * 1024
+#: Largest message or array frame the server sends, bytes: a batch message as the client's socket
+#: accepts it (ZMQ_MAXMSGSIZE), a batch's decoded arrays, and a worker's compressed frame.
+MAX_BATCH_BYTES = 1 << 31
 #: dtypes allowed on the wire.
 WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")
 
@@ -242,7 +245,7 @@ def encode_arrays(arrays: Dict[str, np.ndarray]) -> Tuple[List[dict], List[np.nd
     return specs, frames
 
 
-def decode_arrays(specs, frames: Sequence, max_bytes: int = 1 << 31) -> Dict[str, np.ndarray]:
+def decode_arrays(specs, frames: Sequence, max_bytes: int = MAX_BATCH_BYTES) -> Dict[str, np.ndarray]:
     """Read-only numpy views of raw frames (zero-copy), checked against ``specs``.
 
     Args:

@@ -17,7 +17,7 @@ from v2v_server.checks import check_bool, check_choice, check_float, check_int, 
 from v2v_server.delivery.core import DeliveryPolicy
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.settings import documented, load_yaml, reference_markdown, setting
-from v2v_server.videos.frame_cache import FORMATS as FRAME_CACHE_FORMATS
+from v2v_server.videos.frame_cache import DEFAULT_FORMAT as DEFAULT_FRAME_CACHE_FORMAT, FORMATS as FRAME_CACHE_FORMATS
 from v2v_server.videos.manifest import manifest_path
 from v2v_server.videos.shards import split_pattern
 from v2v_server.videos.source import VideoSource
@@ -57,7 +57,7 @@ class ServingSettings:
                                               "shared by every worker and server process of the host: each video is "
                                               "decoded once, later epochs cut their samples from the cache "
                                               "(docs/frame_cache.md); 0 = off")
-    frame_cache_format: str = setting("raw", help="raw: frames as decoded, memory-mapped (fastest); zstd: frame "
+    frame_cache_format: str = setting(DEFAULT_FRAME_CACHE_FORMAT, help="raw: frames as decoded, memory-mapped (fastest); zstd: frame "
                                                   "differences compressed (fewer bytes, more CPU per read)",
                                       choices=FRAME_CACHE_FORMATS)
     refresh_manifest: bool = setting(False, help="list the store again instead of reading the manifest written at "

@@ -57,7 +57,7 @@ import numpy as np
 from v2v_server.service.shm import SLOT_ALIGN, BatchDir, SlotRing
 from v2v_wire.batches import encode_batch, frame_size, stack_arrays
 from v2v_wire.outputs import narrowest
-from v2v_wire.protocol import BATCH_FILE_HEADER, ProtocolError, decode_arrays, output_of
+from v2v_wire.protocol import BATCH_FILE_HEADER, MAX_BATCH_BYTES, ProtocolError, decode_arrays, output_of
 from v2v_wire.worker_messages import Sample
 
 log = logging.getLogger("v2v.datapath")
@@ -107,7 +107,7 @@ def sample_from_worker(msg: Sample, frames: Sequence, crops_per_window: int = 1)
 
 #: Largest compressed frame accepted from a worker, bytes (a sample's largest array, uncompressed,
 #: is at most ``slot_bytes``; a compressed one can exceed it only by the codec's small overhead).
-MAX_PACKED_BYTES = 1 << 31
+MAX_PACKED_BYTES = MAX_BATCH_BYTES
 
 
 def packed_frames(specs: Sequence[dict], frames: Sequence,

@@ -54,6 +54,8 @@ log = logging.getLogger("v2v.frame_cache")
 
 #: Entry formats (module docstring).
 FORMATS = ("raw", "zstd")
+#: The format of entries unless one is asked for (raw: memory-mapped, the fastest, docs/frame_cache.md).
+DEFAULT_FORMAT = "raw"
 #: Version of the entry layout and of the frames it holds (the luma conversion of
 #: ``videos.decode``): a change makes every older entry a miss.
 VERSION = 3
@@ -308,7 +310,7 @@ class FrameCache:
         ValueError: an unknown ``fmt``.
     """
 
-    def __init__(self, folder, max_bytes: int, fmt: str = "raw"):
+    def __init__(self, folder, max_bytes: int, fmt: str = DEFAULT_FORMAT):
         if fmt not in FORMATS:
             raise ValueError(f"frame_cache_format must be one of {FORMATS}, got {fmt!r}")
         self.format = fmt

@@ -14,7 +14,7 @@ import multiprocessing as mp
 from pathlib import Path
 from typing import Any, Callable, List, Optional, Sequence, Tuple, TypeVar, Union
 
-from v2v_server.videos.frame_cache import FrameCache
+from v2v_server.videos.frame_cache import DEFAULT_FORMAT, FrameCache
 from v2v_server.videos.local import LocalSource
 from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.shards import split_pattern
@@ -28,7 +28,7 @@ T = TypeVar("T")
 def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dict] = None,
                 video_list: Optional[str] = None, manifest: Optional[str] = None, refresh_manifest: bool = False,
                 settings: StoreSettings = StoreSettings(), names: Optional[List[str]] = None,
-                cache_dir: Optional[str] = None, frame_cache_gb: float = 0.0, frame_cache_format: str = "raw",
+                cache_dir: Optional[str] = None, frame_cache_gb: float = 0.0, frame_cache_format: str = DEFAULT_FORMAT,
                 frame_cache: Optional[FrameCache] = None) -> VideoSource:
     """The source of a corpus given as a folder, a URL, or a brace pattern / path of tar shards.
     Its frame cache is ``frame_cache`` when given, else with ``frame_cache_gb`` > 0 the host's
