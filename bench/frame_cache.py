@@ -91,7 +91,7 @@ def measure(clip: Path, videos: int, rounds: int) -> dict:
 
 def frames_per_video(clip: Path) -> int:
     """Frames one pass of the clip decodes at the paper's recipe (what an entry holds)."""
-    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.recipe import SampleRecipe
     from v2v_server.samples.make import video_frames
     from v2v_server.videos.local import LocalSource
 

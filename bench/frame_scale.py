@@ -108,7 +108,7 @@ def _scale_ms(path: Path, height: int, min_cpu_s: float) -> float:
 def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     """Bytes per frame of the ``raw`` frame-cache entry a worker's pass writes for ``path`` (the
     default kept 54 %; ``frame_height`` = ``height``), read from the cache's own listing."""
-    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.recipe import SampleRecipe
     from v2v_server.samples.make import video_frames
     from v2v_server.videos.source_spec import open_source
 

@@ -22,7 +22,6 @@ import cv2
 import numpy as np
 
 from harness.shot_labels import LABELLED
-from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.local import LocalSource

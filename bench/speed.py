@@ -121,7 +121,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     through (one with a frame cache), else the folder itself; ``epoch``: the epoch drawn."""
     import cv2
 
-    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.recipe import SampleRecipe
     from v2v_server.flow.estimate import FlowEstimator
     from v2v_server.samples.make import video_samples
     from v2v_server.videos.local import LocalSource
@@ -296,7 +296,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                 "(at least 201 frames)")
     a = p.parse_args(argv)
     clip = clip_path(a.clip)
-    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.recipe import SampleRecipe
 
     default_flow = SampleRecipe(shot_cuts="off").flow_preset
     rows = []

@@ -41,7 +41,7 @@ CODECS = ("none", "lz4", "zstd")
 
 def real_samples(epochs: int = 2):
     """(compact wire arrays, baseline wire arrays) of every sample of the bundled clips."""
-    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.recipe import SampleRecipe
     from v2v_server.flow.estimate import FlowEstimator
     from v2v_server.samples.make import video_samples
     from v2v_server.videos.local import LocalSource
