@@ -122,13 +122,15 @@ def test_a_workers_exception_reaches_the_server_with_its_type_and_where(tmp_path
     shutil.copy(video_dir() / "bikes.mp4", corpus / "bikes.mp4")
     (corpus / "not_a_video.mp4").write_text("this is not a video\n" * 100)
     args = ["--videos", str(corpus), "--workers", "1", "--sequence-length", "4", "--num-bins", "2", "--crop-size", "32",
-            "--max-samples-per-video", "1", "--epochs", "1", "--batch-size", "1"]
+            "--max-samples-per-video", "1", "--epochs", "1", "--batch-size", "1", "--log-level", "DEBUG"]
     with ServeProcess(args) as srv:
         ids = [s for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=90) for s in b["sample_ids"]]
         assert srv.wait(60) == 0
         lines = [ln for ln in srv.log.splitlines() if "not_a_video.mp4:" in ln and "skipped" in ln]
+        raised = [ln for ln in srv.log.splitlines() if "Error raised in worker w0." in ln]
     assert ids == ["bikes.mp4#0"]
     assert len(lines) == 1, srv.log[-3000:]
-    # the exception's type and where it was raised, from the worker's Failure
-    assert "Error raised in worker w0." in lines[0], lines[0]
-    assert "while making not_a_video.mp4 in epoch 0, before its first sample" in lines[0], lines[0]
+    # the exception's type and where it was raised, from the worker's Failure, with its traceback below
+    assert len(raised) == 1 and "while making not_a_video.mp4 in epoch 0, before its first sample" in raised[0], \
+        srv.log[-3000:]
+    assert "Traceback (most recent call last)" in srv.log.split(raised[0], 1)[1]

@@ -148,16 +148,16 @@ class WorkerSide:
 
     def log_failure(self, video: str, reason: str, served: int = 0, failure: Optional[Failure] = None) -> None:
         """Log once per (file, reason) why a file, or the rest of it after ``served``
-        windows, is skipped this epoch; with the worker's ``failure`` (the exception that
-        stopped the pass), its type and where it was raised, and its traceback at debug level."""
+        windows, is skipped this epoch: the file's verdict, the reason the Ray engine gives too;
+        with the worker's ``failure`` (the exception that stopped the pass), its type, where it
+        was raised and its traceback on a debug line (``--log-level DEBUG``)."""
         if video not in self.skipped_files:
             self.metrics.on_file_skipped()
         self.skipped_files.setdefault(video, reason)
         if (video, reason) not in self.logged_failures and len(self.logged_failures) < 100000:
             self.logged_failures.add((video, reason))
             if failure is not None:
-                reason = f"{reason} ({failure.exc_type} raised {failure.where})"
-                log.debug("%s: the worker's traceback:\n%s", self.source.where(video), failure.traceback)
+                log.debug("%s raised %s:\n%s", failure.exc_type, failure.where, failure.traceback)
             if served:
                 log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
                             "epoch", self.source.where(video), reason, served, served - 1)
