@@ -181,13 +181,10 @@ class ServeConfig:
     __slots__ = tuple(name for name, _ in PARTS)
 
     def __init__(self, **keys):
-        owner = _owners()
-        unknown = sorted(set(keys) - set(owner))
-        if unknown:
-            raise ValueError(f"unknown key(s) {', '.join(unknown)}")
+        check_keys(keys, _OWNERS)
         given = {name: {} for name, _ in self.PARTS}
         for k, v in keys.items():
-            given[owner[k]][k] = v
+            given[_OWNERS[k]][k] = v
         recipe = SampleRecipe(**given["recipe"])
         delivery = DeliveryPolicy(**given["delivery"], offered=tuple(recipe.outputs),
                                   crops_per_window=recipe.crops_per_window, seed=recipe.seed,
@@ -196,7 +193,7 @@ class ServeConfig:
             object.__setattr__(self, name, part)
 
     def __getattr__(self, name: str):
-        part = _owners().get(name)
+        part = _OWNERS.get(name)
         if part is None:
             raise AttributeError(f"ServeConfig has no key {name!r}")
         return getattr(object.__getattribute__(self, part), name)
@@ -211,7 +208,7 @@ class ServeConfig:
         return f"ServeConfig({', '.join(f'{n}={getattr(self, n)!r}' for n in self.__slots__)})"
 
     def __reduce__(self):
-        return _rebuild, (self.to_dict(),)
+        return ServeConfig.from_dict, (self.to_dict(),)
 
     # ------------------------------------------------------------------ io
     def to_dict(self) -> dict:
@@ -233,7 +230,6 @@ class ServeConfig:
             d = {}
         if not isinstance(d, dict):
             raise ValueError(f"{source}: top level must be a mapping of keys to values")
-        check_keys(d, _owners(), source=source)
         kw = dict(d)
         for k in ("outputs", "video_extensions"):
             if k in kw and isinstance(kw[k], list):
@@ -244,15 +240,7 @@ class ServeConfig:
             raise ValueError(f"{source}: {e}") from None
 
 
-def _owners() -> dict:
-    """Flat key -> the ``ServeConfig`` part that owns it."""
-    return _OWNERS
-
-
-def _rebuild(d: dict) -> ServeConfig:
-    return ServeConfig.from_dict(d)
-
-
+#: Flat key -> the ``ServeConfig`` part that owns it.
 _OWNERS = {f.name: name for name, cls in ServeConfig.PARTS for f in documented(cls)}
 
 

@@ -13,6 +13,7 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass, fields
+from functools import cached_property
 from typing import Tuple
 
 from v2v_server.checks import check_bool, check_choice, check_int, check_keys, check_prob
@@ -86,10 +87,10 @@ class SampleRecipe:
         """Frame indices one sample spans: L * B * frames_per_bin + 1."""
         return self.sequence_length * self.num_bins * self.frames_per_bin + 1
 
-    @property
+    @cached_property
     def windows(self) -> WindowSettings:
         """The videos stage's settings of this recipe (where windows lie, which frames a pass
-        reads): ``videos.windows.WindowSettings``."""
+        reads): ``videos.windows.WindowSettings``, built (and checked) once, by ``__post_init__``."""
         return WindowSettings(self.frames_per_sample, self.max_samples_per_video, self.shot_cuts,
                               self.keep_top_fraction, self.crop_size, self.frame_height, self.decode_threads,
                               self.decode_fast)
@@ -131,7 +132,7 @@ class SampleRecipe:
         check_int("seed", self.seed, 0)
         for name in ("hflip_prob", "p_pause_when_running", "p_pause_when_paused"):
             _set(self, name, check_prob(name, getattr(self, name)))
-        self.windows  # checks the fields the videos stage reads (crop_size, keep_top_fraction, frame_height, ...)
+        self.windows  # built once here, which checks the fields the videos stage reads (crop_size, frame_height, ...)
         if self.frame_height and math.floor(self.frame_height * self.keep_top_fraction) < self.crop_size:
             raise ValueError(f"frame_height {self.frame_height} keeps {math.floor(self.frame_height * self.keep_top_fraction)}"
                              f" rows (keep_top_fraction {self.keep_top_fraction}), fewer than crop_size "
