@@ -115,3 +115,75 @@ def test_stream_loader_checkpoint_resumes_exactly_once(tmp_path):
             trained += b["sample_ids"]
         assert srv.wait(60) == 0, srv.log[-3000:]
     assert sorted(trained) == expected
+
+
+#: what a StreamLoader may wait past its dataset's ``timeout_s`` before it raises (the StreamLoader
+#: docstring's margin, about 2 s, plus room for a loaded 2-core machine)
+MARGIN_S = 15.0
+
+
+def test_stream_loader_raises_within_its_timeout_when_the_server_goes_silent(tmp_path):
+    """A server frozen mid-stream (SIGSTOP: no batches, no heartbeats): persistent workers'
+    StreamLoader raises StreamTimeout naming the server within timeout_s plus the margin."""
+    import os
+    import signal
+    import time
+
+    import pytest
+
+    from v2v_client import StreamLoader, V2VStreamDataset
+
+    timeout_s = 3.0
+    corpus = faults.good_corpus(tmp_path, 2)
+    with faults._serve(corpus, LAYOUT, "--epochs", "1") as srv:
+        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=timeout_s, credits=1), num_workers=2,
+                              persistent_workers=True, prefetch_factor=1)
+        it = iter(loader)
+        next(it)
+        os.kill(srv.proc.pid, signal.SIGSTOP)
+        try:
+            t0 = time.monotonic()
+            with pytest.raises(Exception, match=f"no message from the v2v server at {srv.endpoint}") as e:
+                for _ in it:  # batches already queued come first
+                    pass
+            waited = time.monotonic() - t0
+        finally:
+            os.kill(srv.proc.pid, signal.SIGCONT)
+        del it, loader
+    assert type(e.value).__name__ == "StreamTimeout", e.value
+    assert waited < timeout_s + MARGIN_S, waited
+
+
+def test_stream_loader_persistent_worker_killed_mid_iteration(tmp_path):
+    """A persistent DataLoader worker SIGKILLed mid-iteration: the loop gets torch's error naming
+    the worker's pid at once (not a hang), and a new iteration (workers made anew from the
+    records the main process kept) reads the rest of the epoch: every sample exactly once."""
+    import os
+    import signal
+    import time
+
+    import pytest
+
+    from v2v_client import StreamLoader, V2VStreamDataset
+
+    corpus = faults.good_corpus(tmp_path, 2)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    trained = []
+    with faults._serve(corpus, LAYOUT, "--epochs", "1", "--end-grace-s", "60") as srv:
+        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2,
+                              persistent_workers=True)
+        it = iter(loader)
+        for _ in range(2):
+            trained += next(it)["sample_ids"]
+        pid = loader._iterator._workers[0].pid
+        os.kill(pid, signal.SIGKILL)
+        t0 = time.monotonic()
+        with pytest.raises(RuntimeError, match=rf"DataLoader worker \(pid\(s\) {pid}\) exited unexpectedly"):
+            for b in it:
+                trained += b["sample_ids"]
+        assert time.monotonic() - t0 < MARGIN_S
+        del it
+        for b in loader:  # new workers; the killed one's batches come back after the client timeout
+            trained += b["sample_ids"]
+        assert srv.log.count("all 1 epoch(s) delivered") == 1, srv.log[-3000:]
+    assert sorted(trained) == expected

@@ -25,7 +25,7 @@ import zmq
 
 from v2v_wire.protocol import is_ipv6, pack, unpack
 
-from .session import MAX_SERVER_MSG, Convert, ServerSession, StreamError, StreamTimeout
+from .session import MAX_SERVER_MSG, Convert, LoopAbandoned, ServerSession, StreamError, StreamTimeout
 
 __all__ = ["Connection", "ConsumerPipe", "StreamError", "StreamTimeout", "MAX_SERVER_MSG", "load_curve_keys"]
 
@@ -71,6 +71,7 @@ class Connection:
         self.last_io = time.monotonic()
         self._lingering = False
         self._receipts = getattr(ds, "receipts", None)  # DataLoader worker: what the training loop received
+        self._iteration, self._abandoned = getattr(ds, "iteration", 0), False  # LoaderLink.end_iteration
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
@@ -172,15 +173,20 @@ class Connection:
         return poller
 
     def _take_receipts(self, sock: zmq.Socket) -> None:
-        """Batches the training loop received (written by ``StreamLoader`` in the main
-        process): acknowledged to the server, and recorded by the stream."""
+        """What ``StreamLoader`` wrote: batches the loop received (acknowledged, and recorded by
+        the stream), or the end of this connection's iteration (:class:`LoopAbandoned`)."""
         while self._receipts is not None and self._receipts.poll(0):
             try:
-                ids = unpack(self._receipts.recv_bytes())["batch_ids"]
+                msg = unpack(self._receipts.recv_bytes())
             except (EOFError, OSError):  # the main process is gone
                 self._receipts = None
                 return
-            mine = self.ds.received(ids)
+            if msg.get("type") == "abandon":
+                if msg.get("iteration") == self._iteration and not self._abandoned:
+                    self._abandoned = True
+                    self.session.items.put(LoopAbandoned())
+                continue
+            mine = self.ds.received(msg["batch_ids"])
             if mine:
                 _send(sock, pack({"type": "ack", "batch_ids": mine}))
 
@@ -216,8 +222,8 @@ class Connection:
             if self._pipe.receiver in events:
                 self._pipe.forward(sock)
             self._take_receipts(sock)
-            if self._lingering and not self.ds.in_loader():
-                return  # every batch handed to the DataLoader was received: bye
+            if self._lingering and (self._abandoned or not self.ds.in_loader()):
+                return  # every batch handed to the DataLoader was received, or none will be: bye
             lost = None
             if sock in events:
                 verdict, heard = self._receive(sock)

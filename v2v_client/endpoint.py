@@ -19,7 +19,7 @@ from v2v_wire.ids import compact_ids
 from v2v_wire.protocol import is_loopback
 
 from .connection import Connection, load_curve_keys
-from .session import Drained, EpochDone, ServerPadding, StreamError
+from .session import Drained, EpochDone, LoopAbandoned, ServerPadding, StreamError
 from .tensors import batch_to_torch, select_samples
 from .fanin import read_state
 
@@ -215,6 +215,7 @@ class EndpointStream:
         # which batches the training loop received (see ``v2v_client.loader``).
         self.receipts = None
         self.worker: Optional[int] = None
+        self.iteration = 0  # the loader's iterations over this worker's pipe so far, less one
 
     def welcomed(self, info: dict) -> Optional[str]:
         """The server's welcome: its stream info. Returns why this stream refuses the server
@@ -258,6 +259,9 @@ class EndpointStream:
         self.close()  # a new iteration in this worker: the previous one is over (its receipts are taken first)
         if self.receipts is None and state is not None:
             self.load_state_dict(state)
+        # a persistent worker reads the same pipe in each iteration: the loader's
+        # ``LoaderLink.end_iteration`` names the iteration it ends by this count
+        self.iteration = self.iteration + 1 if receipts is self.receipts else 0
         self.worker, self.receipts = worker, receipts
 
     def received(self, batch_ids) -> List[int]:
@@ -316,6 +320,9 @@ class EndpointStream:
             while True:
                 item = self._next_item(conn)
                 if isinstance(item, StopIteration):
+                    return
+                if isinstance(item, LoopAbandoned):
+                    abandoned = True  # no receipt will come: what is held goes back with bye
                     return
                 if isinstance(item, BaseException):
                     raise item

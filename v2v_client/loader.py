@@ -45,12 +45,28 @@ class LoaderLink:
         self.receipts = [r for r, _ in pipes]
         self._send = [w for _, w in pipes]
         self.records = records
+        #: iterations of the loader over these workers so far, less one (persistent workers
+        #: serve several; each worker counts its own in ``EndpointStream.attach_loader``)
+        self.iteration = 0
 
     def receipt(self, worker: int, batch_id: int) -> None:
         """Tell ``worker`` the loop received ``batch_id`` (a worker that is gone is ignored: the
         loader raises its own error for it)."""
+        self._tell(worker, {"type": "receipt", "batch_ids": [batch_id]})
+
+    def end_iteration(self) -> None:
+        """Tell every worker the loop left iteration ``iteration`` and the loader is about to
+        drop what they queued: their batches without a receipt go back to the server, and
+        their iterations end at once. Without this a persistent worker's prefetch tasks of the
+        left iteration wait for batches while all its credits are held by batches whose
+        receipts will never come, and the loader's reset waits for them forever."""
+        for w in range(len(self._send)):
+            self._tell(w, {"type": "abandon", "iteration": self.iteration})
+        self.iteration += 1
+
+    def _tell(self, worker: int, msg: dict) -> None:
         try:
-            self._send[worker].send_bytes(pack({"type": "receipt", "batch_ids": [batch_id]}))
+            self._send[worker].send_bytes(pack(msg))
         except (OSError, ValueError):
             pass
 
@@ -71,6 +87,14 @@ class StreamLoader(torch.utils.data.DataLoader):
     Yields the dataset's batch dicts. Every batch handed to the loop is acknowledged to the
     server then (see the module docstring); one that a worker yielded but the loop never
     received (an iteration left with ``break``) is sent again, to the next iteration.
+
+    How long it waits: a loop that leaves an iteration (``break``) and iterates again never
+    waits on what the left iteration's workers had queued (``LoaderLink.end_iteration``). A
+    server silent for the dataset's ``timeout_s`` raises ``StreamTimeout`` naming the server
+    within ``timeout_s`` plus about 2 s (the I/O thread's 0.1 s poll, the worker's 1 s wait on
+    it, the loader's queue). A worker process that dies raises torch's ``RuntimeError`` naming
+    its pid; persistent workers are then shut down, and the next iteration makes them anew from
+    the records this process kept (``tests/test_loaders.py`` checks each bound).
 
     Raises:
         ValueError: ``dataset`` is not a ``V2VStreamDataset``, or ``batch_size`` is not None.
@@ -99,15 +123,26 @@ class StreamLoader(torch.utils.data.DataLoader):
             self._link = LoaderLink(self.num_workers, {w: dict(r) for w, r in self._records.items()},
                                     self.multiprocessing_context)
             self.dataset._link = self._link
+        else:  # persistent workers go on: the previous iteration is over for them first
+            self._link.end_iteration()
         return self._receive(super().__iter__())
 
     def _receive(self, it):
-        for batch in it:
-            r = batch.pop("receipt", None)
-            if r is not None:
-                self._record(r, batch)
-                self._link.receipt(r["worker"], r["batch_id"])
-            yield batch
+        try:
+            for batch in it:
+                r = batch.pop("receipt", None)
+                if r is not None:
+                    self._record(r, batch)
+                    self._link.receipt(r["worker"], r["batch_id"])
+                yield batch
+        except Exception:
+            # a worker died or raised: torch keeps persistent workers as they are, so the next
+            # iteration would wait on the dead one again; made anew, they resume from the
+            # records this process kept
+            if self._iterator is not None and self.persistent_workers:
+                self._iterator._shutdown_workers()
+                self._iterator = None
+            raise
 
     def _record(self, r: dict, batch: dict) -> None:
         rec = self._records.setdefault(r["worker"], {"version": 1, "completed_epoch": -1, "delivered": {},

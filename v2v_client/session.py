@@ -23,7 +23,7 @@ from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, ProtocolError, ou
 
 from .handoff import ShmReader, check_shm_dir, shm_dir_problem
 
-__all__ = ["ServerSession", "HeldBatches", "StreamError", "StreamTimeout", "EpochDone", "Drained", "ServerPadding",
+__all__ = ["ServerSession", "HeldBatches", "StreamError", "StreamTimeout", "EpochDone", "Drained", "LoopAbandoned", "ServerPadding",
            "MAX_SERVER_MSG", "strip_arrays"]
 
 log = logging.getLogger("v2v.client")
@@ -56,6 +56,12 @@ class ServerPadding:
 
 class Drained:
     """The server has nothing left to send this connection unless a batch held elsewhere comes back."""
+
+
+class LoopAbandoned:
+    """A DataLoader worker's iteration is over: the training loop left it (``break``, a new
+    ``for``) and the loader discarded what this worker had queued, so no receipt will come for
+    the batches still held; the iteration ends and they go back to the server."""
 
 
 class EpochDone:
