@@ -4,7 +4,7 @@ events the same camera recorded between the same frame timestamps.
 ``python -m bench.real_sensor [--recording PATH] [--out DIR]`` (from the repository root)
 prints a markdown table and writes ``DIR/real_sensor.md`` and ``DIR/real_sensor.json``.
 
-Setup: the DAVIS346 recording of ``../shared/data/events`` (AEDAT4: events, 25 Hz APS frames,
+Setup: the DAVIS346 recording of ``tests/data/events`` (AEDAT4: events, 25 Hz APS frames,
 trainer/recordings.py reads both). The frames from the first one after the first event, a
 whole number of 5-frame-interval groups, are the simulator's input (uint8 luma, one frame pair
 per bin); the real events between the same frame timestamps are binned into the discrete voxel
@@ -42,13 +42,14 @@ from typing import List, Optional
 
 import numpy as np
 
+from harness.data import DAVIS346
 from trainer.event_grids import voxel_grids
 from trainer.recordings import open_recording
 from v2v_server.simulation.reference import events_to_voxels, simulate_events
 from v2v_server.simulation.refine import RefineSpec, simulate_voxels_refined
 from v2v_server.simulation.simulate import SensorParams, log_intensity_lut, simulate_voxels
 
-DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "events" / "davis346_road.aedat4"
+DEFAULT = DAVIS346
 GROUP = 5  # the paper's bins per voxel grid
 
 

@@ -33,6 +33,7 @@ from typing import List, Optional
 
 import numpy as np
 
+from harness.data import SAMPLE_VIDEOS
 from v2v_wire.protocol import narrow_int_dtype
 
 from v2v_server.simulation.reference import events_to_voxels, simulate_events
@@ -42,10 +43,6 @@ from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 DEFAULT_CLIPS = ["bikes.mp4", "bigbuckbunny.mp4", "webvid_like_596x336.mp4"]
 
 
-def _video_dir() -> Path:
-    here = Path(__file__).resolve().parent
-    shared = here.parent.parent / "shared" / "data" / "videos"
-    return shared if shared.is_dir() else here.parent / "v2v_server" / "sample_videos"
 
 
 def read_crop(path: Path, n: int, crop: int) -> np.ndarray:
@@ -225,7 +222,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     """CLI entry point; returns the exit status."""
     ap = argparse.ArgumentParser(prog="python -m bench.tradeoff", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, required=True, help="output folder (table, json, Pareto PNG)")
-    ap.add_argument("--videos", type=Path, default=None, help="folder of clips (default: shared/data/videos)")
+    ap.add_argument("--videos", type=Path, default=None, help="folder of clips (default: the bundled ones)")
     ap.add_argument("--clips", nargs="+", default=DEFAULT_CLIPS)
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--voxels", type=int, default=2)
@@ -241,7 +238,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = ap.parse_args(argv)
     if args.pairs_per_bin % 4:
         ap.error("--pairs-per-bin must be a multiple of 4 (the 1/4 subsampled candidate)")
-    vdir = args.videos or _video_dir()
+    vdir = args.videos or SAMPLE_VIDEOS
     args.out.mkdir(parents=True, exist_ok=True)
     n = args.voxels * args.bins * args.pairs_per_bin + 1
     results = {}

@@ -27,13 +27,13 @@ from v2v_client import V2VStreamDataset
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import check_corpus
 from v2v_server.videos.local import LocalSource
+from harness.data import SAMPLE_VIDEOS
 from harness.serve import ServeProcess
 from v2v_wire.protocol import PROTOCOL_VERSION, pack
 from v2v_server.videos.decode import scan_corpus
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "data" / "videos"
-GOOD_VIDEOS = SHARED if SHARED.is_dir() else ROOT / "v2v_server" / "sample_videos"
+GOOD_VIDEOS = SAMPLE_VIDEOS
 
 
 class Layout:

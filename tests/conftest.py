@@ -1,20 +1,46 @@
-"""Shared fixtures: the real clips in ../shared/data/videos (the bundled copies as fallback)."""
+"""Shared fixtures: the real clips bundled with the project (``harness.data.SAMPLE_VIDEOS``)."""
 from __future__ import annotations
 
 import functools
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED_VIDEOS = ROOT.parent / "shared" / "data" / "videos"
-BUNDLED_VIDEOS = ROOT / "v2v_server" / "sample_videos"
+from harness.data import ROOT, SAMPLE_VIDEOS
+
+#: The material folder CI keeps beside the clone: the suite must not read it (a user's clone has
+#: nothing there). ``tests/test_data_paths.py`` checks the source for any path leading out of the
+#: repository; this guard refuses, while the suite runs, the reads that would use this one.
+BESIDE = ROOT.parent / "shared"
+
+
+def outside_repo(path) -> bool:
+    """Whether ``path`` (str, bytes or path-like; relative to the working directory) lies in
+    :data:`BESIDE`, the folder beside the repository the suite must not read."""
+    try:
+        p = os.path.abspath(os.fsdecode(path))
+    except (TypeError, ValueError):
+        return False  # a file descriptor or something else that names no path
+    return p == str(BESIDE) or p.startswith(str(BESIDE) + os.sep)
+
+
+def _refuse_reads_beside(event: str, args: tuple) -> None:
+    """Audit hook (``sys.addaudithook``): an open, listing or glob of a path beside the
+    repository raises ``PermissionError`` naming it, so the test that made it fails."""
+    if event in ("open", "os.listdir", "os.scandir", "glob.glob") and args and outside_repo(args[0]):
+        raise PermissionError(f"test material outside the repository: {os.fsdecode(args[0])} (the suite reads "
+                              f"only what the repository holds: harness/data.py names it)")
+
+
+sys.addaudithook(_refuse_reads_beside)
 
 
 def video_dir() -> Path:
-    """Folder of real clips: ../shared/data/videos beside the checkout, else the bundled copies."""
-    return SHARED_VIDEOS if SHARED_VIDEOS.is_dir() else BUNDLED_VIDEOS
+    """Folder of the real clips the tests read: the bundled ones, inside the repository."""
+    return SAMPLE_VIDEOS
 
 
 @functools.lru_cache(maxsize=4)

@@ -1,5 +1,5 @@
 """bench.real_sensor: its metrics on known cases and its threshold fit on the DAVIS346 recording
-(skipped, naming the file, when ../shared/data/events is absent)."""
+shipped in tests/data/events."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,9 +12,7 @@ from v2v_server.simulation.simulate import SensorParams, simulate_voxels
 
 @pytest.fixture(scope="module")
 def recording():
-    """``real_and_frames`` of the DAVIS346 recording (skipped, naming the file, when absent)."""
-    if not DEFAULT.is_file():
-        pytest.skip(f"missing shared recording {DEFAULT}")
+    """``real_and_frames`` of the DAVIS346 recording."""
     return real_and_frames(DEFAULT)
 
 

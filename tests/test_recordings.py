@@ -1,5 +1,5 @@
-"""trainer/recordings.py on the real recordings in ../shared/data/events (skipped, naming the
-file, where it is absent): pinned facts, chunked = whole, bad recordings, voxel binning."""
+"""trainer/recordings.py on the real recordings shipped in tests/data/events: pinned facts,
+chunked = whole, bad recordings, voxel binning."""
 from __future__ import annotations
 
 import logging
@@ -10,19 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness import data
 from trainer.event_grids import count_edges, voxel_grids, window_edges
 from trainer.recordings import EVENT_DTYPE, RecordingError, open_recording, read_all
 
-EVENTS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "events"
-DAVIS, EVT2, EVT3 = "davis346_road.aedat4", "prophesee_gen3_evt2.raw", "prophesee_evk4_evt3.raw"
+DAVIS, EVT2, EVT3 = (p.name for p in (data.DAVIS346, data.EVT2, data.EVT3))
 
 
 def shared(name: str) -> Path:
-    """A shared recording, or a skip naming the missing file."""
-    p = EVENTS / name
-    if not p.is_file():
-        pytest.skip(f"missing shared recording {p}")
-    return p
+    """A recording of ``tests/data/events`` (shipped with the repository)."""
+    return data.RECORDINGS / name
 
 
 # read once with this reader, then pinned: (events, ON events, first t us, last t us, W, H, frames)

@@ -140,7 +140,7 @@ def test_endpoint_lists_and_dns_names_with_several_addresses():
 def test_two_shards_one_trainer_every_id_once_with_the_content_of_one_unsharded_server(tmp_path, videos):
     root = corpus(tmp_path, videos)
     want = expected_ids(root)
-    assert len({s.split("#")[0] for s in want}) == 3
+    assert {s.split("#")[0] for s in want} == {p.name for p in root.glob("*.mp4")}  # every clip gives windows
     base = ["--videos", str(root), "--epochs", "1", *layout()]
     with ServeProcess(base) as one:
         single, _ = read_all(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=60))
@@ -351,7 +351,7 @@ def test_metrics_probes_and_counters_move(videos):
     assert m1[("v2v_clients", ())] == 1
     credits = [v for (n, lab), v in m1.items() if n == "v2v_client_credits"]
     assert len(credits) == 1 and 0 <= credits[0] <= 2
-    assert m1[("v2v_epoch", ())] >= 0 and m1[("v2v_epoch_videos", ())] == 3
+    assert m1[("v2v_epoch", ())] >= 0 and m1[("v2v_epoch_videos", ())] == len(list(videos.glob("*.mp4")))
     cap = m1[("v2v_shuffle_buffer_capacity_samples", ())]  # --shuffle-buffer 64, whole batches
     assert cap >= 64 and 0 <= m1[("v2v_shuffle_buffer_samples", ())] <= cap
 
