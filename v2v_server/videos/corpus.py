@@ -6,6 +6,7 @@ import hashlib
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
+from v2v_server.videos.corpus_index import layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector
@@ -110,11 +111,24 @@ def pass_verdict(w: WindowSettings, stats: dict, error: Optional[BaseException] 
 
 
 def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
-    """Verdict for one file of ``source`` (the corpus), decoding it: ``{"path", "usable", "windows", "frames", "size", "reason",
+    """Verdict for one file of ``source`` (the corpus): ``{"path", "usable", "windows", "frames", "size", "reason",
     "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
     says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
     made, ``more`` when decoding stopped with every window complete, ``variable_rate`` when the
-    frames read are unevenly spaced in time); see :func:`verdict`."""
+    frames read are unevenly spaced in time); see :func:`verdict`.
+
+    Answered from the host's corpus index (``source.corpus_index()``) while the file's identity
+    holds, else by decoding it; a verdict that decoding reached without an error (a read
+    failure may be passing) is recorded there for the next pass."""
+    index, where, key, identity = source.corpus_index(), source.where(rel), layout_key(windows), None
+    if index is not None:
+        try:
+            identity = source.identity(rel)
+        except VideoError:
+            identity = None  # missing or unreadable: decoding says why
+        known = index.lookup(where, identity, key)
+        if known is not None:
+            return {**known, "path": rel}
     out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": "", "cuts": [],
            "dropped": 0}
     bad: dict = {}  # window -> why it cannot be made
@@ -127,9 +141,11 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
     # windows before a failure still count
     count, failed, reason = verdict(windows, out["frames"], bad, error, out.get("complete", 0), len(out["cuts"]))
     out.pop("complete", None)
-    out.update(windows=count, usable=count > 0, reason=reason or "")
+    out.update(windows=count, usable=count > 0, reason=reason or "", cuts=list(out["cuts"]))
     if failed:
         out["failed_windows"] = failed
+    if index is not None and error is None:
+        index.record(where, identity, key, out)
     return out
 
 

@@ -31,16 +31,23 @@ the server skips and logs once; the server stays up.
 """
 from __future__ import annotations
 
+import logging
+import sqlite3
 import tempfile
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
+from v2v_server.faults import warn_once
+from v2v_server.videos.corpus_index import CorpusIndex, index_path
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.segments import range_problem, split_segment
 from v2v_server.videos.shards import ShardIndex, split_member
 from v2v_server.videos.video_list import read_video_list
+
+
+log = logging.getLogger("v2v")
 
 
 class CacheDirError(ValueError):
@@ -68,6 +75,23 @@ class VideoSource:
         self.cache_dir = cache_dir or str(default_cache_dir())
         #: The member indexes of the corpus's tar shards.
         self.shards = ShardIndex()
+        self._index: Optional[CorpusIndex] = None  # opened at the first use in this process
+        self._index_failed = False
+
+    def corpus_index(self) -> Optional[CorpusIndex]:
+        """The host's corpus index (``corpus_index.CorpusIndex`` at ``cache_dir/corpus_index.sqlite``):
+        what passes learned about the corpus's videos, answered without decoding while a video's
+        identity holds. Opened at the first call in this process; None when it cannot be (a
+        warning names the file and why, once: the videos are then read as if never seen)."""
+        if self._index is None and not self._index_failed:
+            path = index_path(self.cache_dir)
+            try:
+                self._index = CorpusIndex(path)
+            except (OSError, sqlite3.Error) as e:
+                self._index_failed = True
+                warn_once(log, ("corpus index", str(path)), "corpus index %s cannot be used (%s); videos are read "
+                          "without it", path, e)
+        return self._index
 
     def _cache_folders(self) -> List[Path]:
         """The folders of the caches that are on."""

@@ -1,0 +1,127 @@
+"""The corpus index (``v2v_server.videos.corpus_index``): ``--check`` and the Ray engine's scan
+answer a video from it while its identity holds, decode it again when it changes, and the file
+is plain SQLite a user can query."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import sqlite3
+import time
+
+import pytest
+
+from v2v_server.ops.config import ServeConfig
+from v2v_server.videos.corpus import check_corpus, check_video
+from v2v_server.videos.corpus_index import INDEX_FILE, CorpusIndex, layout_key
+from v2v_server.videos.local import RACY_NS, LocalSource
+
+
+class CountingSource(LocalSource):
+    """A folder source that counts the videos it opens (each open is a decode pass)."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.opened: list = []
+
+    def open(self, rel):
+        self.opened.append(rel)
+        return super().open(rel)
+
+
+def settle() -> None:
+    """Wait out the racy window: a file written just now has no identity the index trusts."""
+    time.sleep(2 * RACY_NS / 1e9)
+
+
+@pytest.fixture
+def corpus(tmp_path, videos):
+    d = tmp_path / "corpus"
+    d.mkdir()
+    for name in ("bbb_camera_596x336.mp4", "bikes.mp4", "bigbuckbunny.mp4"):
+        shutil.copyfile(videos / name, d / name)
+    settle()
+    return d
+
+
+WINDOWS = ServeConfig(sequence_length=8).recipe.windows  # 41-frame windows: every clip gives some
+
+
+def test_a_second_check_answers_from_the_index_without_opening_a_video(corpus, tmp_path):
+    cache = tmp_path / "cache"
+    names = sorted(p.name for p in corpus.iterdir())
+    first_src = CountingSource(corpus, cache_dir=str(cache))
+    first = check_corpus(WINDOWS, first_src, names)
+    assert sorted(first_src.opened) == names and all(r["usable"] for r in first)
+    again_src = CountingSource(corpus, cache_dir=str(cache))  # another process, the same host
+    again = check_corpus(WINDOWS, again_src, names)
+    assert again_src.opened == [] and again == first
+    # the file is plain SQLite: one row per video under this layout, with the verdict's facts
+    with sqlite3.connect(cache / INDEX_FILE) as db:
+        rows = db.execute("SELECT location, windows, frames, width, height, codec, cuts FROM entries "
+                          "WHERE layout = ? ORDER BY location", (layout_key(WINDOWS),)).fetchall()
+    assert [os.path.basename(r[0]) for r in rows] == names
+    for r, c in zip(rows, sorted(first, key=lambda c: c["path"])):
+        assert (r[1], r[2]) == (c["windows"], c["frames"]) and c["size"].startswith(f"{r[3]}x{r[4]} {r[5]}")
+        assert json.loads(r[6]) == list(c["cuts"])
+
+
+def test_a_rewritten_video_or_another_layout_is_read_again(corpus, tmp_path, videos):
+    cache = tmp_path / "cache"
+    src = CountingSource(corpus, cache_dir=str(cache))
+    before = check_video(WINDOWS, src, "bikes.mp4")
+    shutil.copyfile(videos / "bbb_camera_596x336.mp4", corpus / "bikes.mp4")  # same name, other content
+    settle()
+    after = check_video(WINDOWS, src, "bikes.mp4")
+    assert src.opened == ["bikes.mp4", "bikes.mp4"]
+    assert (after["frames"], after["cuts"]) != (before["frames"], before["cuts"])
+    assert after == check_video(WINDOWS, src, "bikes.mp4") and len(src.opened) == 2  # the new entry holds
+    other = ServeConfig(sequence_length=4).recipe.windows
+    assert layout_key(other) != layout_key(WINDOWS)
+    check_video(other, src, "bikes.mp4")
+    assert len(src.opened) == 3 and len(CorpusIndex(cache / INDEX_FILE)) == 2
+
+
+def test_an_identity_that_cannot_vouch_is_neither_recorded_nor_answered(tmp_path):
+    """A video without an identity (changed within the timestamp resolution of now, an object
+    without a version tag: ``VideoSource.identity`` None) is decoded every time, as the frame
+    cache does; an entry answers only the identity it was made from."""
+    index = CorpusIndex(tmp_path / INDEX_FILE)
+    verdict = {"path": "a.mp4", "usable": True, "windows": 2, "frames": 401, "size": "64x48 h264 yuv420p 25 fps",
+               "reason": "", "cuts": [], "dropped": 0}
+    assert not index.record("/c/a.mp4", None, "L", verdict) and len(index) == 0
+    assert index.record("/c/a.mp4", "file 1 2 3 4", "L", verdict) and len(index) == 1
+    assert index.lookup("/c/a.mp4", None, "L") is None
+    assert index.lookup("/c/a.mp4", "file 1 2 3 5", "L") is None  # changed since
+    assert index.lookup("/c/a.mp4", "file 1 2 3 4", "M") is None  # another layout
+    assert index.lookup("/c/a.mp4", "file 1 2 3 4", "L") == verdict
+
+
+def test_an_unreadable_index_is_one_warning_and_the_check_goes_on(corpus, tmp_path, caplog):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / INDEX_FILE).write_bytes(b"this is not an SQLite file" * 100)
+    src = CountingSource(corpus, cache_dir=str(cache))
+    with caplog.at_level(logging.WARNING, logger="v2v"):
+        results = check_corpus(WINDOWS, src, ["bikes.mp4", "bbb_camera_596x336.mp4"])
+    assert all(r["usable"] for r in results) and len(src.opened) == 2
+    lines = [r.getMessage() for r in caplog.records if "corpus index" in r.getMessage()]
+    assert len(lines) == 1 and str(cache / INDEX_FILE) in lines[0], lines
+
+
+def test_the_ray_scan_counts_windows_from_the_index(corpus, tmp_path):
+    """``ray_data.scan_corpus_windows`` under ``shot_cuts: avoid`` (it decodes to find the cuts)
+    records each video, and a second scan with the same ``cache_dir`` takes the counts from the
+    index: an entry edited in the file is what the second scan reports."""
+    from v2v_server.ray_data import scan_corpus_windows
+
+    cfg = ServeConfig(sequence_length=8, cache_dir=str(tmp_path / "cache"))
+    first = scan_corpus_windows(corpus, cfg)
+    assert first.windows == {r["path"]: r["windows"] for r in check_corpus(cfg.recipe.windows, LocalSource(corpus),
+                                                                           sorted(first.windows))}
+    with sqlite3.connect(tmp_path / "cache" / INDEX_FILE) as db:
+        loc = str(corpus / "bikes.mp4")
+        result = json.loads(db.execute("SELECT result FROM entries WHERE location = ?", (loc,)).fetchone()[0])
+        db.execute("UPDATE entries SET result = ? WHERE location = ?", (json.dumps({**result, "windows": 7}), loc))
+    assert scan_corpus_windows(corpus, cfg).windows == {**first.windows, "bikes.mp4": 7}
