@@ -184,28 +184,42 @@ def test_trainer_image_is_pytorch_cuda_runtime_with_client_and_trainer():
 
 
 # ---------------------------------------------------------------------------------- compose
-def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
-    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+def defaults(value):
+    """A compose value with every ``${VAR:-default}`` replaced by its default (what runs when
+    the variable is unset)."""
+    if isinstance(value, list):
+        return [defaults(v) for v in value]
+    return re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", value)
+
+
+def image_owns(image: dict, path: str) -> bool:
+    """Whether the image's RUN lines make ``path`` and give it to the image's user (a named
+    volume mounted there starts with that owner and is writable)."""
+    runs = " ".join(image["run"])
+    return bool(re.search(rf"mkdir -p [^&]*{re.escape(path)}(\s|$)", runs)) and bool(
+        re.search(rf"chown {image['user']}:{image['user']} [^&]*{re.escape(path)}(\s|$)", runs))
+
+
+def compose_services(comp: dict, tmp_path: Path) -> dict:
+    """{name: (prog, args, namespace, config or None, mounts, service)} for every service, its
+    flags checked against the program's parser, its paths against its mounts and image."""
     svcs = comp["services"]
-    images = {}
-    for name, s in svcs.items():
-        if "build" in s:
-            assert (DEPLOY / s["build"]["context"] / s["build"]["dockerfile"]).is_file()
-            images[name] = dockerfile(Path(s["build"]["dockerfile"]).name)
+    built = {s["image"]: s["build"] for s in svcs.values() if "build" in s}
     named_volumes = set(comp.get("volumes", {}))
-    shards, trainers = {}, {}
+    out = {}
     for name, s in svcs.items():
-        img = images[name]
-        argv = s.get("entrypoint", img["entrypoint"]) + s.get("command", img.get("cmd", []))
+        build = s.get("build") or built[s["image"]]  # an image another service builds
+        assert (DEPLOY / build["context"] / build["dockerfile"]).is_file()
+        img = dockerfile(Path(build["dockerfile"]).name)
+        argv = s.get("entrypoint", img["entrypoint"]) + defaults(s.get("command", img.get("cmd", [])))
         mounts = []
         for v in s.get("volumes", []):
-            v = re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", v)  # ${VAR:-default}: the default
-            src, dst = v.split(":")[:2]
+            src, dst = defaults(v).split(":")[:2]
             if src.startswith((".", "/")):
                 assert (DEPLOY / src).is_dir(), f"{name}: {src} is no folder"
             else:
                 assert src in named_volumes, f"{name}: volume {src} not declared"
-            mounts.append({"mountPath": dst, "source": src})
+            mounts.append({"mountPath": dst, "source": src, "readOnly": v.endswith(":ro")})
         p = program(argv)
         if p is None:
             # the key maker: run its shell line against a scratch folder, then check the files
@@ -214,6 +228,7 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
             line = argv[2].replace(keys_mount, str(tmp_path / "keys")).replace(
                 "v2v-keygen", f"{shlex.quote(sys.executable)} -m v2v_server.ops.keygen")
             subprocess.run(["sh", "-c", line], check=True, capture_output=True, timeout=60)
+            out[name] = (None, argv, None, None, mounts, s)
             continue
         prog, args = p
         ns = check_flags(prog, args)
@@ -223,30 +238,49 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
                     image_file(img, path)
                 else:
                     under(path, mounts)
-        if prog == "v2v-serve":
-            cfg = check_serve_config(ns)
-            shards[name] = (cfg, args, s)
-            # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
-            assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
-                                                          cfg.crop_size), name
-            hc = " ".join(s["healthcheck"]["test"])
-            assert f"127.0.0.1:{cfg.metrics_port}/" in hc
-            assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
-            for flag in ("--curve-secret-key", "--curve-allow"):
-                assert flag_values(args, flag)[0].startswith("/keys/")
-        else:
-            cfg = load_trainer_config(str(image_file(img, ns.config)) if ns.config else None)
-            cfg = apply_overrides(cfg, ns.set)
-            trainers[name] = (ns, cfg, mounts)
+        cfg = check_serve_config(ns) if prog == "v2v-serve" else None
+        if cfg is not None and cfg.frame_cache_gb > 0:
+            # the frame cache on a writable named volume of its own, made and owned in the image
+            m = under(cfg.cache_dir, mounts)
+            assert m["source"] in named_volumes and not m["readOnly"], f"{name}: {cfg.cache_dir} on {m}"
+            assert image_owns(img, m["mountPath"]), f"{name}: the image does not make {m['mountPath']} for its user"
+        out[name] = (prog, args, ns, cfg, mounts, s)
+    return out
+
+
+def same_corpus_and_cache(a, b) -> None:
+    """Two v2v-serve configs that read the same corpus share, into the same frame cache, under
+    the same recipe (so the entries one stores are the ones the other looks up)."""
+    for key in ("videos", "cache_dir", "frame_cache_gb", "frame_cache_format"):
+        assert getattr(a, key) == getattr(b, key), key
+    assert a.serving.shard_spec == b.serving.shard_spec
+    assert a.recipe.fingerprint() == b.recipe.fingerprint()
+
+
+def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
+    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+    svcs = compose_services(comp, tmp_path)
+    shards = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" not in v[1]}
+    trainers = {n: v for n, v in svcs.items() if v[0] == "v2v-train"}
+    for name, (_, args, ns, cfg, _, s) in shards.items():
+        # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
+        assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
+                                                      cfg.crop_size), name
+        hc = " ".join(s["healthcheck"]["test"])
+        assert f"127.0.0.1:{cfg.metrics_port}/" in hc
+        assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
+        for flag in ("--curve-secret-key", "--curve-allow"):
+            assert flag_values(args, flag)[0].startswith("/keys/")
     # the shards split the corpus: 0/N .. N-1/N, each once
-    specs = sorted(c.shard for c, _, _ in shards.values())
+    specs = sorted(v[3].shard for v in shards.values())
     assert specs == [f"{i}/{len(shards)}" for i in range(len(shards))] and len(shards) == 2
-    (ns, tcfg, mounts), = trainers.values()
-    want = {f"tcp://{name}:{port_of(c.bind)}" for name, (c, _, _) in shards.items()}
+    (_, _, ns, _, mounts, _), = trainers.values()
+    tcfg = apply_overrides(load_trainer_config(str(image_file(dockerfile("Dockerfile.trainer"), ns.config))), ns.set)
+    want = {f"tcp://{name}:{port_of(v[3].bind)}" for name, v in shards.items()}
     assert set(ns.connect.split(",")) == want  # the trainer reads every shard
     # the keys the servers and the trainer name are the ones the key maker writes
     keys = tmp_path / "keys"
-    for c, args, _ in shards.values():
+    for _, args, *_ in shards.values():
         assert (keys / Path(flag_values(args, "--curve-secret-key")[0]).relative_to("/keys")).is_file()
         allow = keys / Path(flag_values(args, "--curve-allow")[0]).relative_to("/keys")
         assert list(allow.glob("*.key"))
@@ -256,6 +290,34 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
     from v2v_client.connection import load_curve_keys
 
     load_curve_keys(*[str(keys / Path(k).relative_to("/keys")) for k in tcfg["stream"]["curve_keys"]])
+
+
+def test_compose_shards_keep_a_frame_cache_each_and_the_warm_profile_fills_it(tmp_path):
+    """Every shard caches frames (--frame-cache-gb, --cache-dir) on a volume no other shard
+    mounts (writers are told apart by process id, and each container has its own); the
+    ``warm`` profile's service per shard runs --warm-cache over that shard's corpus into that
+    volume, and the shard waits for it only when the profile is on."""
+    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+    svcs = compose_services(comp, tmp_path)
+    shards = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" not in v[1]}
+    warm = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" in v[1]}
+    cache_volumes = {}
+    for name, (_, _, _, cfg, mounts, s) in shards.items():
+        assert cfg.frame_cache_gb > 0 and cfg.cache_dir, name
+        vol = under(cfg.cache_dir, mounts)["source"]
+        assert vol not in cache_volumes.values(), f"{name} shares its cache volume {vol}"
+        cache_volumes[name] = vol
+        (dep, cond), = [(d, c) for d, c in s["depends_on"].items() if d in warm]
+        assert cond == {"condition": "service_completed_successfully", "required": False}, name
+        _, wargs, wns, wcfg, wmounts, ws = warm[dep]
+        assert ws["profiles"] == ["warm"] and ws["restart"] == "no" and ws["healthcheck"] == {"disable": True}
+        assert "depends_on" not in ws and "ports" not in ws  # a one-shot pass: it waits on nothing, serves nothing
+        same_corpus_and_cache(wcfg, cfg)
+        assert under(wcfg.cache_dir, wmounts)["source"] == vol
+        assert under(wcfg.videos, wmounts)["source"] == under(cfg.videos, mounts)["source"]
+        assert wcfg.workers == cfg.workers
+    assert len(warm) == len(shards) == 2
+    assert all(not any(m["mountPath"] == "/keys" for m in v[4]) for v in warm.values())  # no bind: no keys
 
 
 # ---------------------------------------------------------------------------------- kubernetes
@@ -426,15 +488,24 @@ def test_k8s_bucket_overlay_reads_the_corpus_from_a_bucket():
 def test_compose_bucket_override_and_raycluster_read_the_bucket():
     comp = yaml.safe_load((DEPLOY / "docker-compose.bucket.yml").read_text())
     base = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
-    for name in ("shard0", "shard1"):
+    for name in ("shard0", "shard1", "warm0", "warm1"):  # the warm profile's services read the bucket too
         s = comp["services"][name]
         assert name in base["services"]
         assert s["environment"]["AWS_SHARED_CREDENTIALS_FILE"] == "/run/secrets/aws_credentials"
         assert "AWS_ENDPOINT_URL" in s["environment"] and s["secrets"] == ["aws_credentials"]
-        ns = check_flags("v2v-serve", [a.replace("${V2V_BUCKET:-s3://v2v-corpus/webvid/}", "s3://v2v-corpus/webvid/")
-                                       for a in s["command"]])
+        args = defaults(s["command"])
+        assert ("--warm-cache" in args) == name.startswith("warm")
+        ns = check_flags("v2v-serve", args)
         ns.config = None
-        assert check_serve_config(ns).videos == "s3://v2v-corpus/webvid/"
+        cfg = check_serve_config(ns)
+        assert cfg.videos == "s3://v2v-corpus/webvid/"
+        # the rest of the line is the base file's: the same shard, workers and frame cache
+        bns = check_flags("v2v-serve", defaults(base["services"][name]["command"]))
+        bns.config = None
+        bcfg = check_serve_config(bns)
+        bcfg = type(bcfg).from_dict({**bcfg.to_dict(), "videos": cfg.videos}, source="base")
+        same_corpus_and_cache(cfg, bcfg)
+        assert cfg.to_dict() == bcfg.to_dict()
     assert "aws_credentials" in comp["secrets"]
     ray = yaml.safe_load((DEPLOY / "ray" / "raycluster.yaml").read_text())
     pods = [ray["spec"]["headGroupSpec"]] + ray["spec"]["workerGroupSpecs"]
