@@ -336,6 +336,9 @@ def _mounts(doc, docs):
     """The container's mounts with what each volume is: configmap data key, secret items, ..."""
     spec = doc["spec"]["template"]["spec"]
     vols = {v["name"]: v for v in spec["volumes"]}
+    for claim in doc["spec"].get("volumeClaimTemplates", []):  # a StatefulSet's volume per pod
+        assert claim["metadata"]["name"] not in vols
+        vols[claim["metadata"]["name"]] = {"name": claim["metadata"]["name"], "claimTemplate": claim["spec"]}
     out = []
     for m in _container(doc)["volumeMounts"]:
         v = dict(vols[m["name"]])
@@ -399,6 +402,12 @@ def test_k8s_statefulset_service_pdb_job_agree():
     for flag in PATH_FLAGS:
         for path in flag_values(args, flag):
             _check_path(path, mounts, secret_files)
+    # the frame cache: on a volume of the pod's own (a claim per pod, never shared), its budget
+    # below the volume's size
+    assert cfg.frame_cache_gb > 0 and cfg.cache_dir
+    claim = _check_path(cfg.cache_dir, mounts, secret_files)["volume"]["claimTemplate"]
+    assert claim["accessModes"] == ["ReadWriteOnce"]
+    assert cfg.frame_cache_gb * (1 << 30) < size_bytes(claim["resources"]["requests"]["storage"])
     # ports: stream and metrics exposed, probes on the metrics port, the Service on both
     ports = {p["name"]: p["containerPort"] for p in c["ports"]}
     assert ports["stream"] == port_of(cfg.bind) and ports["metrics"] == cfg.metrics_port
@@ -483,6 +492,52 @@ def test_k8s_bucket_overlay_reads_the_corpus_from_a_bucket():
     ns.config = None
     assert check_serve_config(ns).videos == "s3://v2v-corpus/webvid/"
     assert all(v["name"] != "videos" for v in sts["spec"]["template"]["spec"]["volumes"])  # no corpus volume
+    # every other mount of the base stays (a mount's merge key is its path: deleting by name drops them all)
+    base = _container(k8s_docs()[("StatefulSet", "v2v-server")])["volumeMounts"]
+    assert c["volumeMounts"] == [m for m in base if m["mountPath"] != "/data/videos"]
+    _mounts(sts, {("ConfigMap", "v2v-config"): k8s_docs()[("ConfigMap", "v2v-config")]})  # each names a volume
+
+
+def _kustomize(path: Path) -> dict:
+    out = subprocess.run(["kubectl", "kustomize", str(path)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(out.stdout) if d}
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl not installed")
+@pytest.mark.parametrize("overlay", ["k8s-warm", "k8s-bucket"])
+def test_k8s_warm_cache_component_runs_the_servers_line_with_warm_cache_first(overlay, tmp_path):
+    """The optional component (deploy/k8s-warm-cache) gives each server pod an init container
+    running the server container's own line with --warm-cache: same image, environment
+    (shard index, CPU request), mounts (corpus, frame cache) and resources, so it fills the
+    cache the server then reads. Added last to another overlay (the bucket's), it copies that
+    overlay's line."""
+    if overlay == "k8s-warm":
+        docs = _kustomize(DEPLOY / "k8s-warm")
+    else:  # an overlay of the bucket overlay with the component, as deploy/k8s-warm-cache says
+        shutil.copytree(DEPLOY, tmp_path / "deploy")
+        (tmp_path / "deploy" / "mine").mkdir()
+        (tmp_path / "deploy" / "mine" / "kustomization.yaml").write_text(
+            "resources: [../k8s-bucket]\ncomponents: [../k8s-warm-cache]\n")
+        docs = _kustomize(tmp_path / "deploy" / "mine")
+    sts = docs[("StatefulSet", "v2v-server")]
+    spec = sts["spec"]["template"]["spec"]
+    server, (warm,) = _container(sts), spec["initContainers"]
+    assert warm["name"] == "warm-cache" and warm["args"] == server["args"] + ["--warm-cache"]
+    for key in ("image", "env", "volumeMounts", "resources"):
+        assert warm[key] == server[key], key
+    cpu = str(server["resources"]["requests"]["cpu"])
+    subst = {"SHARD_INDEX": "1", "SHARDS": "2", "CPU_REQUEST": cpu}
+    ns = check_flags("v2v-serve", warm["args"], subst)
+    assert ns.warm_cache
+    conf = yaml.safe_load(docs[("ConfigMap", "v2v-config")]["data"]["server.yaml"])
+    cfg = check_serve_config(ns, _write(yaml.safe_dump(conf)))
+    assert cfg.frame_cache_gb > 0 and cfg.serving.shard_spec == (1, 2) and cfg.workers == int(cpu)
+    assert cfg.videos == ("/data/videos" if overlay == "k8s-warm" else "s3://v2v-corpus/webvid/")
+    assert any(m["mountPath"] == cfg.cache_dir for m in warm["volumeMounts"])
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
+    for version in ("1.29", "1.32"):
+        kv.validate(sts, version, strict=True)
 
 
 def test_compose_bucket_override_and_raycluster_read_the_bucket():
