@@ -530,8 +530,7 @@ def test_k8s_warm_cache_component_runs_the_servers_line_with_warm_cache_first(ov
     subst = {"SHARD_INDEX": "1", "SHARDS": "2", "CPU_REQUEST": cpu}
     ns = check_flags("v2v-serve", warm["args"], subst)
     assert ns.warm_cache
-    conf = yaml.safe_load(docs[("ConfigMap", "v2v-config")]["data"]["server.yaml"])
-    cfg = check_serve_config(ns, _write(yaml.safe_dump(conf)))
+    cfg = check_serve_config(ns, _write(docs[("ConfigMap", "v2v-config")]["data"]["server.yaml"]))
     assert cfg.frame_cache_gb > 0 and cfg.serving.shard_spec == (1, 2) and cfg.workers == int(cpu)
     assert cfg.videos == ("/data/videos" if overlay == "k8s-warm" else "s3://v2v-corpus/webvid/")
     assert any(m["mountPath"] == cfg.cache_dir for m in warm["volumeMounts"])
@@ -562,7 +561,97 @@ def test_compose_bucket_override_and_raycluster_read_the_bucket():
         same_corpus_and_cache(cfg, bcfg)
         assert cfg.to_dict() == bcfg.to_dict()
     assert "aws_credentials" in comp["secrets"]
-    ray = yaml.safe_load((DEPLOY / "ray" / "raycluster.yaml").read_text())
+    ray = ray_docs()[("RayCluster", "v2v")]
     pods = [ray["spec"]["headGroupSpec"]] + ray["spec"]["workerGroupSpecs"]
     for g in pods:
         _store_env({e["name"]: e for e in g["template"]["spec"]["containers"][0]["env"]})
+
+
+# ---------------------------------------------------------------------------------- KubeRay
+def ray_docs(text: str = None) -> dict:
+    text = text if text is not None else (DEPLOY / "ray" / "raycluster.yaml").read_text()
+    return {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(text) if d}
+
+
+def _ray_config_file(docs: dict, path: str, groups: dict) -> str:
+    """A local copy of the file every pod of ``groups`` reads at ``path``: the ConfigMap key
+    its mount holds there (the same in each)."""
+    contents = set()
+    for g in groups.values():
+        spec = g["template"]["spec"]
+        vols = {v["name"]: v for v in spec["volumes"]}
+        m = under(path, spec["containers"][0]["volumeMounts"])
+        cm = vols[m["name"]]["configMap"]["name"]
+        contents.add(docs[("ConfigMap", cm)]["data"][PurePosixPath(path).relative_to(m["mountPath"]).as_posix()])
+    (content,) = contents
+    return _write(content)
+
+
+def _ray_serve_config(docs: dict, path: str, groups: dict):
+    """The ServeConfig the pods of ``groups`` read at ``path``."""
+    from v2v_server.ops.config import load_config
+
+    return load_config(_ray_config_file(docs, path, groups))
+
+
+def _pod(spec: dict) -> dict:
+    return {"apiVersion": "v1", "kind": "Pod", "metadata": {"name": "v2v"}, "spec": spec}
+
+
+def test_raycluster_pods_that_decode_or_scan_keep_a_frame_cache():
+    """The job line (the file's header) reads the serve config the head mounts; that config
+    turns the frame cache on (cache_dir, frame_cache_gb), and the head (the driver's scan) and
+    the CPU group (the V2V actors) mount a volume of their own there, larger than the budget.
+    Every pod template is a valid Pod spec."""
+    text = (DEPLOY / "ray" / "raycluster.yaml").read_text()
+    docs = ray_docs(text)
+    ray = docs[("RayCluster", "v2v")]
+    groups = {"head": ray["spec"]["headGroupSpec"], **{g["groupName"]: g for g in ray["spec"]["workerGroupSpecs"]}}
+    comments = [ln.lstrip("#").strip() for ln in text.splitlines() if ln.startswith("#")]
+    first = next(i for i, ln in enumerate(comments) if ln.startswith("ray job submit"))
+    last = next(i for i in range(first, len(comments)) if not comments[i].endswith("\\"))
+    job = " ".join(ln.rstrip("\\").strip() for ln in comments[first:last + 1])
+    prog, args = program(shlex.split(job.split(" -- ", 1)[1]))
+    ns = check_flags(prog, args)
+    assert ns.engine == "ray" and ns.serve_config
+    cfg = _ray_serve_config(docs, ns.serve_config, {"head": groups["head"], "v2v-cpu": groups["v2v-cpu"]})
+    assert cfg.frame_cache_gb > 0 and cfg.cache_dir
+    for name in ("head", "v2v-cpu"):
+        spec = groups[name]["template"]["spec"]
+        vols = {v["name"]: v for v in spec["volumes"]}
+        mounts = spec["containers"][0]["volumeMounts"]
+        under(cfg.videos, mounts)
+        cache = vols[under(cfg.cache_dir, mounts)["name"]]
+        assert "emptyDir" in cache, name  # node-local, the pod's own
+        assert cfg.frame_cache_gb * (1 << 30) < size_bytes(cache["emptyDir"]["sizeLimit"]), name
+    assert "v2v_cpu" in groups["v2v-cpu"]["rayStartParams"]["resources"]  # the actors decode there only
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
+    for g in groups.values():
+        kv.validate(_pod(g["template"]["spec"]), "1.32", strict=True)
+    kv.validate(docs[("ConfigMap", "v2v-ray-serve")], "1.32", strict=True)
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl not installed")
+def test_ray_warm_overlay_fills_each_cpu_pods_cache_with_the_jobs_config():
+    """deploy/ray-warm: each CPU-group pod runs ``v2v-serve --warm-cache`` first, with the
+    serve config the job reads (same corpus, recipe and cache), one process per CPU the group
+    declares, and the worker container's image, environment, mounts and resources."""
+    docs = _kustomize(DEPLOY / "ray-warm")
+    assert ray_docs()[("ConfigMap", "v2v-ray-serve")] == docs[("ConfigMap", "v2v-ray-serve")]
+    ray = docs[("RayCluster", "v2v")]
+    cpu, gpu = ray["spec"]["workerGroupSpecs"]
+    spec = cpu["template"]["spec"]
+    (warm,), worker = spec["initContainers"], spec["containers"][0]
+    for key in ("image", "env", "volumeMounts", "resources"):
+        assert warm[key] == worker[key], key
+    prog, args = program(warm["command"])
+    ns = check_flags(prog, args)
+    assert prog == "v2v-serve" and ns.warm_cache
+    want = _ray_serve_config(docs, ns.config, {"v2v-cpu": cpu})
+    cfg = check_serve_config(ns, _ray_config_file(docs, ns.config, {"v2v-cpu": cpu}))
+    same_corpus_and_cache(cfg, want)
+    assert cfg.to_dict() == {**want.to_dict(), "workers": cfg.workers, "insecure": True}  # the test's insecure
+    assert cfg.workers == int(cpu["rayStartParams"]["num-cpus"]) == int(worker["resources"]["requests"]["cpu"])
+    assert "initContainers" not in gpu["template"]["spec"] and "initContainers" not in ray["spec"]["headGroupSpec"]["template"]["spec"]
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
+    kv.validate(_pod(spec), "1.32", strict=True)
