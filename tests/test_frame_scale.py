@@ -15,6 +15,7 @@ import pytest
 
 from harness.corpus import write_size_change_video, write_video
 from tests import sample_hashes
+from tests.test_frames import write_clip
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_frames, video_samples
@@ -33,10 +34,13 @@ SMALL = dict(sequence_length=4, num_bins=2, crop_size=32, max_samples_per_video=
 
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory) -> Path:
-    """bikes.mp4 (8-bit limited range, 596 x 336 display) and a 10-bit source (uint16 frames)."""
+    """bikes.mp4 (8-bit limited range, 596 x 336 display), a 10-bit source (uint16 frames) and a
+    phone-style portrait clip (coded 160 x 96, a display matrix turning it to 96 x 160)."""
     d = tmp_path_factory.mktemp("scale")
     shutil.copy(CLIPS / "bikes.mp4", d / "bikes.mp4")
     write_video(d / "ten_bit.mkv", 30, 120, 90, codec="ffv1", pix_fmt="yuv420p10le")
+    texture = cv2.resize(np.random.default_rng(3).integers(0, 256, (24, 40), dtype=np.uint8), (160, 96))
+    write_clip(d / "portrait.mp4", texture, n=14, rotation=90)
     return d
 
 
@@ -54,10 +58,12 @@ def _expected(path: Path, height: int, keep: float, n: int) -> list:
     return out
 
 
-@pytest.mark.parametrize("video,height", [("bikes.mp4", 120), ("bikes.mp4", 500), ("ten_bit.mkv", 64)])
+@pytest.mark.parametrize("video,height", [("bikes.mp4", 120), ("bikes.mp4", 500), ("ten_bit.mkv", 64),
+                                          ("portrait.mp4", 100)])
 def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video, height):
     """The pass the workers, ``--warm-cache`` and the Ray engine read (``video_frames``) gives
-    INTER_AREA of the full-range frame (down and up), then the kept rows; uint16 stays uint16."""
+    INTER_AREA of the full-range frame (down and up, rotated as displayed), then the kept rows;
+    uint16 stays uint16."""
     cfg = SampleRecipe(**SMALL, frame_height=height)
     want = _expected(corpus / video, height, cfg.keep_top_fraction, 12)
     with video_frames(cfg, LocalSource(corpus), video) as fp:
