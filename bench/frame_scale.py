@@ -13,8 +13,13 @@ Measured per source, in this process, rounds interleaved, medians:
 * the decode bound: frames per CPU-second of PyAV, one thread, luma at full range
   (``decode.decode_luma``, what a worker's pass reads), and its ratio to the first size;
 * decoding with ``frame_height`` (``--height``, 336 by default): frames per CPU-second of the
-  same pass scaled (``decode_luma(..., height)``), and the scaling alone, CPU-ms per frame
-  (``decode.scale_frame`` on decoded frames);
+  same pass scaled, keeping the top ``--keep-top`` (the recipe's ``keep_top_fraction``, 0.54)
+  of the scaled rows (``decode_luma(..., kept, height)``, what a worker's pass reads), and the
+  scaling alone, CPU-ms per frame (``decode.scale_frame`` on decoded frames);
+* against the whole frame (the way frames were scaled before ``scale_frame`` resized only the
+  rows that feed the kept rows): the same two figures with the whole frame expanded and scaled
+  and the kept rows cut afterwards (``decode_luma(..., None, height)``, ``scale_frame(g,
+  height)[:kept]``), in the same rounds, and the ratios;
 * cached bytes per hour of video: the bytes a ``raw`` frame-cache entry holds per frame (real
   entries, written through ``samples.make.video_frames``: the kept 54 % of each frame), times
   25 fps x 3600 s, without and with ``frame_height``;
@@ -36,6 +41,7 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from bench.speed import clip_path
+from v2v_server.samples.recipe import SampleRecipe
 
 #: libx264 bitrates (bits/s) by frame height: common upload bitrates for 25-30 fps SDR video.
 BITRATES = {336: 1_000_000, 720: 5_000_000, 1080: 8_000_000}
@@ -85,22 +91,32 @@ def _rate(passes: Callable[[], int], min_cpu_s: float) -> Tuple[float, float]:
             return n / cpu, n / (time.perf_counter() - w0)
 
 
-def _decode(path: Path, threads: int = 1, height: int = 0) -> int:
+def _decode(path: Path, threads: int = 1, height: int = 0, keep: float = 1.0) -> int:
+    """Frames of one pass over ``path``: luma at full range, scaled to ``height`` rows (0: not),
+    the top ``keep`` of them kept (1.0: the whole frame scaled, as before only kept rows were)."""
     from v2v_server.videos.decode import decode_luma, open_video
+    from v2v_server.videos.frames import kept_rows
 
     c, s, _ = open_video(path, threads)
-    return sum(1 for _ in decode_luma(c, s, None, height))
+    rows = None if keep >= 1.0 else (lambda h: kept_rows(keep, h))
+    return sum(1 for _ in decode_luma(c, s, rows, height))
 
 
-def _scale_ms(path: Path, height: int, min_cpu_s: float) -> float:
-    """CPU-ms per frame of ``scale_frame`` on the decoded full-range frames of ``path``."""
+def _scale_ms(path: Path, height: int, min_cpu_s: float, keep: float = 1.0, whole: bool = False) -> float:
+    """CPU-ms per frame of ``scale_frame`` on the decoded full-range frames of ``path``, keeping
+    the top ``keep`` of the scaled rows; ``whole``: the whole frame scaled, then those rows cut."""
     from v2v_server.videos.decode import iter_luma, scale_frame
+    from v2v_server.videos.frames import kept_rows
 
     frames = [g.copy() for g in iter_luma(path)]
+    kept = kept_rows(keep, height)
 
     def one() -> int:
         for g in frames:
-            scale_frame(g, height)
+            if whole:
+                scale_frame(g, height)[:kept]
+            else:
+                scale_frame(g, height, kept)
         return len(frames)
     return 1e3 / _rate(one, min_cpu_s)[0]
 
@@ -108,7 +124,6 @@ def _scale_ms(path: Path, height: int, min_cpu_s: float) -> float:
 def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     """Bytes per frame of the ``raw`` frame-cache entry a worker's pass writes for ``path`` (the
     default kept 54 %; ``frame_height`` = ``height``), read from the cache's own listing."""
-    from v2v_server.samples.recipe import SampleRecipe
     from v2v_server.samples.make import video_frames
     from v2v_server.videos.source_spec import open_source
 
@@ -123,7 +138,8 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
 
 
 def measure(clip: Path, sizes: Sequence[Tuple[int, int]], frames: int, height: int, threads: Sequence[int],
-            rounds: int, min_cpu_s: float, threads_from: int = 720) -> dict:
+            rounds: int, min_cpu_s: float, threads_from: int = 720,
+            keep: float = SampleRecipe.keep_top_fraction) -> dict:
     """The rows of the report (see the module docstring); medians over ``rounds`` interleaved rounds."""
     tmp = Path(tempfile.mkdtemp(prefix="v2v-fscale-"))
     try:
@@ -140,8 +156,12 @@ def measure(clip: Path, sizes: Sequence[Tuple[int, int]], frames: int, height: i
             for (w, h), p in srcs.items():
                 runs.setdefault(f"decode {w}x{h}", []).append(_rate(lambda: _decode(p), min_cpu_s)[0])
                 runs.setdefault(f"decode+scale {w}x{h}", []).append(
+                    _rate(lambda: _decode(p, 1, height, keep), min_cpu_s)[0])
+                runs.setdefault(f"decode+scale whole {w}x{h}", []).append(
                     _rate(lambda: _decode(p, 1, height), min_cpu_s)[0])
-                runs.setdefault(f"scale_ms {w}x{h}", []).append(_scale_ms(p, height, min_cpu_s / 2))
+                runs.setdefault(f"scale_ms {w}x{h}", []).append(_scale_ms(p, height, min_cpu_s / 2, keep))
+                runs.setdefault(f"scale_ms whole {w}x{h}", []).append(
+                    _scale_ms(p, height, min_cpu_s / 2, keep, whole=True))
             for (w, h) in hd:
                 for t in threads:
                     cpu, wall = _rate(lambda: _decode(srcs[(w, h)], t), min_cpu_s)
@@ -156,21 +176,23 @@ def measure(clip: Path, sizes: Sequence[Tuple[int, int]], frames: int, height: i
                          "file_bytes": p.stat().st_size, "frames": frames,
                          "decode_fps_cpu": med[f"decode {w}x{h}"],
                          "decode_scaled_fps_cpu": med[f"decode+scale {w}x{h}"],
-                         "scale_ms": med[f"scale_ms {w}x{h}"],
+                         "decode_scaled_whole_fps_cpu": med[f"decode+scale whole {w}x{h}"],
+                         "scale_ms": med[f"scale_ms {w}x{h}"], "scale_whole_ms": med[f"scale_ms whole {w}x{h}"],
                          "cache_bytes_per_frame": cache_plain, "cache_bytes_per_frame_scaled": cache_scaled})
         thread_rows = [{"size": f"{w}x{h}", "threads": t, "fps_cpu": med[f"threads {w}x{h} {t} cpu"],
                         "fps_wall": med[f"threads {w}x{h} {t} wall"]} for (w, h) in hd for t in threads]
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return {"clip": clip.name, "frames": frames, "height": height, "rounds": rounds, "min_cpu_s": min_cpu_s,
+    return {"clip": clip.name, "frames": frames, "height": height, "keep": keep, "rounds": rounds, "min_cpu_s": min_cpu_s,
             "encode_s": encode_s, "rows": rows, "threads": thread_rows}
 
 
 def markdown(r: dict, command: str) -> str:
-    """The report: how the sources were made, the scale table, the threads table."""
+    """The report: how the sources were made, the scale table, the kept rows against the whole
+    frame, the threads table."""
     import os
 
-    hgt = r["height"]
+    hgt, keep = r["height"], r["keep"]
     base = r["rows"][0]
     hour = FPS * 3600
     lines = [
@@ -202,11 +224,32 @@ def markdown(r: dict, command: str) -> str:
     lines += [
         "",
         "Decode bound: PyAV, one thread, luma at full range (`decode.decode_luma`, the pass a worker reads). "
-        f"Scaling: `decode.scale_frame` (OpenCV INTER_AREA on the full-range frame) alone, on decoded frames; "
+        f"With `frame_height`: the same pass scaled, the top {keep:g} of the scaled rows kept (`keep_top_fraction` "
+        f"{keep:g}). Scaling: `decode.scale_frame` (OpenCV INTER_AREA on full-range luma, the source rows that feed "
+        f"the kept rows only) alone, on decoded frames; "
         f"its share is its CPU over one frame's decoding. Cached bytes: a real `raw` entry written by a worker's "
         f"pass (the default `keep_top_fraction` 0.54: the kept rows of each frame), per frame, times {FPS} fps x 3600 s.",
         "",
     ]
+    scaled = [row for row in r["rows"] if row["height"] != hgt]
+    if scaled and keep < 1.0:
+        lines += [
+            f"Scaling only the kept rows against scaling the whole frame and cutting the kept rows afterwards "
+            f"(`keep_top_fraction` {keep:g}; the frames are equal value for value, `tests/test_frame_scale.py`), "
+            "same rounds:",
+            "",
+            "| source | scaling, whole frame, CPU-ms/frame | kept rows only | CPU vs whole frame | "
+            "decode + scale, whole frame, frames/CPU-s | kept rows only | speed vs whole frame |",
+            "|---|---:|---:|---:|---:|---:|---:|",
+        ]
+        for row in scaled:
+            lines.append(
+                f"| {row['size']} | {row['scale_whole_ms']:.2f} | {row['scale_ms']:.2f} | "
+                f"{row['scale_ms'] / row['scale_whole_ms']:.2f}x | {row['decode_scaled_whole_fps_cpu']:,.0f} | "
+                f"{row['decode_scaled_fps_cpu']:,.0f} | "
+                f"{row['decode_scaled_fps_cpu'] / row['decode_scaled_whole_fps_cpu']:.2f}x |")
+        lines += ["", f"With `keep_top_fraction` 1.0 (corpora without WebVid's watermark) every row is kept and "
+                  "both ways do the same work.", ""]
     top = r["rows"][-1]
     if top["height"] > hgt:
         lines += [
@@ -253,6 +296,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES), help="W x H of each source, comma list")
     ap.add_argument("--frames", type=int, default=150, help="frames per source")
     ap.add_argument("--height", type=int, default=336, help="the frame_height measured")
+    ap.add_argument("--keep-top", type=float, default=SampleRecipe.keep_top_fraction,
+                    help="the keep_top_fraction measured (default the recipe's)")
     ap.add_argument("--threads", default="1,2,4", help="decode_threads measured at 720 rows and more")
     ap.add_argument("--threads-from", type=int, default=720, help="measure decode_threads at sizes of this many rows and more")
     ap.add_argument("--rounds", type=int, default=3)
@@ -260,7 +305,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--out", help="write frame_scale.md and frame_scale.json to this folder")
     a = ap.parse_args(argv)
     r = measure(clip_path(a.clip), [_size(s) for s in a.sizes.split(",")], a.frames, a.height,
-                [int(t) for t in a.threads.split(",")], a.rounds, a.min_cpu_s, a.threads_from)
+                [int(t) for t in a.threads.split(",")], a.rounds, a.min_cpu_s, a.threads_from, a.keep_top)
     args = sys.argv[1:] if argv is None else list(argv)
     text = markdown(r, " ".join(["python -m bench.frame_scale", *args]))
     print(text)

@@ -15,6 +15,7 @@ def test_frame_scale_bench_writes_its_report(tmp_path):
     assert [row["size"] for row in r["rows"]] == ["64x36", "128x72"]
     for row in r["rows"]:
         assert row["decode_fps_cpu"] > 0 and row["decode_scaled_fps_cpu"] > 0 and row["scale_ms"] > 0
+        assert row["decode_scaled_whole_fps_cpu"] > 0 and row["scale_whole_ms"] > 0  # the whole-frame baseline
         # a raw entry holds the kept 54 % of each frame, a little more for its framing
         kept = row["width"] * math.floor(row["height"] * 0.54)
         assert kept <= row["cache_bytes_per_frame"] < kept * 1.1 + 256
@@ -25,3 +26,5 @@ def test_frame_scale_bench_writes_its_report(tmp_path):
     md = (tmp_path / "frame_scale.md").read_text()
     assert "python -m bench.frame_scale --sizes 64x36,128x72" in md
     assert "| 128x72 | 2 |" in md and "`frame_height: 40` caches" in md
+    assert r["keep"] == 0.54 and "Scaling only the kept rows against scaling the whole frame" in md
+    assert len([ln for ln in md.splitlines() if ln.startswith(("| 64x36 |", "| 128x72 |"))]) == 2 + 2 + 2

@@ -184,28 +184,42 @@ def test_trainer_image_is_pytorch_cuda_runtime_with_client_and_trainer():
 
 
 # ---------------------------------------------------------------------------------- compose
-def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
-    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+def defaults(value):
+    """A compose value with every ``${VAR:-default}`` replaced by its default (what runs when
+    the variable is unset)."""
+    if isinstance(value, list):
+        return [defaults(v) for v in value]
+    return re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", value)
+
+
+def image_owns(image: dict, path: str) -> bool:
+    """Whether the image's RUN lines make ``path`` and give it to the image's user (a named
+    volume mounted there starts with that owner and is writable)."""
+    runs = " ".join(image["run"])
+    return bool(re.search(rf"mkdir -p [^&]*{re.escape(path)}(\s|$)", runs)) and bool(
+        re.search(rf"chown {image['user']}:{image['user']} [^&]*{re.escape(path)}(\s|$)", runs))
+
+
+def compose_services(comp: dict, tmp_path: Path) -> dict:
+    """{name: (prog, args, namespace, config or None, mounts, service)} for every service, its
+    flags checked against the program's parser, its paths against its mounts and image."""
     svcs = comp["services"]
-    images = {}
-    for name, s in svcs.items():
-        if "build" in s:
-            assert (DEPLOY / s["build"]["context"] / s["build"]["dockerfile"]).is_file()
-            images[name] = dockerfile(Path(s["build"]["dockerfile"]).name)
+    built = {s["image"]: s["build"] for s in svcs.values() if "build" in s}
     named_volumes = set(comp.get("volumes", {}))
-    shards, trainers = {}, {}
+    out = {}
     for name, s in svcs.items():
-        img = images[name]
-        argv = s.get("entrypoint", img["entrypoint"]) + s.get("command", img.get("cmd", []))
+        build = s.get("build") or built[s["image"]]  # an image another service builds
+        assert (DEPLOY / build["context"] / build["dockerfile"]).is_file()
+        img = dockerfile(Path(build["dockerfile"]).name)
+        argv = s.get("entrypoint", img["entrypoint"]) + defaults(s.get("command", img.get("cmd", [])))
         mounts = []
         for v in s.get("volumes", []):
-            v = re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", v)  # ${VAR:-default}: the default
-            src, dst = v.split(":")[:2]
+            src, dst = defaults(v).split(":")[:2]
             if src.startswith((".", "/")):
                 assert (DEPLOY / src).is_dir(), f"{name}: {src} is no folder"
             else:
                 assert src in named_volumes, f"{name}: volume {src} not declared"
-            mounts.append({"mountPath": dst, "source": src})
+            mounts.append({"mountPath": dst, "source": src, "readOnly": v.endswith(":ro")})
         p = program(argv)
         if p is None:
             # the key maker: run its shell line against a scratch folder, then check the files
@@ -214,6 +228,7 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
             line = argv[2].replace(keys_mount, str(tmp_path / "keys")).replace(
                 "v2v-keygen", f"{shlex.quote(sys.executable)} -m v2v_server.ops.keygen")
             subprocess.run(["sh", "-c", line], check=True, capture_output=True, timeout=60)
+            out[name] = (None, argv, None, None, mounts, s)
             continue
         prog, args = p
         ns = check_flags(prog, args)
@@ -223,30 +238,49 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
                     image_file(img, path)
                 else:
                     under(path, mounts)
-        if prog == "v2v-serve":
-            cfg = check_serve_config(ns)
-            shards[name] = (cfg, args, s)
-            # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
-            assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
-                                                          cfg.crop_size), name
-            hc = " ".join(s["healthcheck"]["test"])
-            assert f"127.0.0.1:{cfg.metrics_port}/" in hc
-            assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
-            for flag in ("--curve-secret-key", "--curve-allow"):
-                assert flag_values(args, flag)[0].startswith("/keys/")
-        else:
-            cfg = load_trainer_config(str(image_file(img, ns.config)) if ns.config else None)
-            cfg = apply_overrides(cfg, ns.set)
-            trainers[name] = (ns, cfg, mounts)
+        cfg = check_serve_config(ns) if prog == "v2v-serve" else None
+        if cfg is not None and cfg.frame_cache_gb > 0:
+            # the frame cache on a writable named volume of its own, made and owned in the image
+            m = under(cfg.cache_dir, mounts)
+            assert m["source"] in named_volumes and not m["readOnly"], f"{name}: {cfg.cache_dir} on {m}"
+            assert image_owns(img, m["mountPath"]), f"{name}: the image does not make {m['mountPath']} for its user"
+        out[name] = (prog, args, ns, cfg, mounts, s)
+    return out
+
+
+def same_corpus_and_cache(a, b) -> None:
+    """Two v2v-serve configs that read the same corpus share, into the same frame cache, under
+    the same recipe (so the entries one stores are the ones the other looks up)."""
+    for key in ("videos", "cache_dir", "frame_cache_gb", "frame_cache_format"):
+        assert getattr(a, key) == getattr(b, key), key
+    assert a.serving.shard_spec == b.serving.shard_spec
+    assert a.recipe.fingerprint() == b.recipe.fingerprint()
+
+
+def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
+    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+    svcs = compose_services(comp, tmp_path)
+    shards = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" not in v[1]}
+    trainers = {n: v for n, v in svcs.items() if v[0] == "v2v-train"}
+    for name, (_, args, ns, cfg, _, s) in shards.items():
+        # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
+        assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
+                                                      cfg.crop_size), name
+        hc = " ".join(s["healthcheck"]["test"])
+        assert f"127.0.0.1:{cfg.metrics_port}/" in hc
+        assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
+        for flag in ("--curve-secret-key", "--curve-allow"):
+            assert flag_values(args, flag)[0].startswith("/keys/")
     # the shards split the corpus: 0/N .. N-1/N, each once
-    specs = sorted(c.shard for c, _, _ in shards.values())
+    specs = sorted(v[3].shard for v in shards.values())
     assert specs == [f"{i}/{len(shards)}" for i in range(len(shards))] and len(shards) == 2
-    (ns, tcfg, mounts), = trainers.values()
-    want = {f"tcp://{name}:{port_of(c.bind)}" for name, (c, _, _) in shards.items()}
+    (_, _, ns, _, mounts, _), = trainers.values()
+    tcfg = apply_overrides(load_trainer_config(str(image_file(dockerfile("Dockerfile.trainer"), ns.config))), ns.set)
+    want = {f"tcp://{name}:{port_of(v[3].bind)}" for name, v in shards.items()}
     assert set(ns.connect.split(",")) == want  # the trainer reads every shard
     # the keys the servers and the trainer name are the ones the key maker writes
     keys = tmp_path / "keys"
-    for c, args, _ in shards.values():
+    for _, args, *_ in shards.values():
         assert (keys / Path(flag_values(args, "--curve-secret-key")[0]).relative_to("/keys")).is_file()
         allow = keys / Path(flag_values(args, "--curve-allow")[0]).relative_to("/keys")
         assert list(allow.glob("*.key"))
@@ -256,6 +290,34 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
     from v2v_client.connection import load_curve_keys
 
     load_curve_keys(*[str(keys / Path(k).relative_to("/keys")) for k in tcfg["stream"]["curve_keys"]])
+
+
+def test_compose_shards_keep_a_frame_cache_each_and_the_warm_profile_fills_it(tmp_path):
+    """Every shard caches frames (--frame-cache-gb, --cache-dir) on a volume no other shard
+    mounts (writers are told apart by process id, and each container has its own); the
+    ``warm`` profile's service per shard runs --warm-cache over that shard's corpus into that
+    volume, and the shard waits for it only when the profile is on."""
+    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+    svcs = compose_services(comp, tmp_path)
+    shards = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" not in v[1]}
+    warm = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" in v[1]}
+    cache_volumes = {}
+    for name, (_, _, _, cfg, mounts, s) in shards.items():
+        assert cfg.frame_cache_gb > 0 and cfg.cache_dir, name
+        vol = under(cfg.cache_dir, mounts)["source"]
+        assert vol not in cache_volumes.values(), f"{name} shares its cache volume {vol}"
+        cache_volumes[name] = vol
+        (dep, cond), = [(d, c) for d, c in s["depends_on"].items() if d in warm]
+        assert cond == {"condition": "service_completed_successfully", "required": False}, name
+        _, wargs, wns, wcfg, wmounts, ws = warm[dep]
+        assert ws["profiles"] == ["warm"] and ws["restart"] == "no" and ws["healthcheck"] == {"disable": True}
+        assert "depends_on" not in ws and "ports" not in ws  # a one-shot pass: it waits on nothing, serves nothing
+        same_corpus_and_cache(wcfg, cfg)
+        assert under(wcfg.cache_dir, wmounts)["source"] == vol
+        assert under(wcfg.videos, wmounts)["source"] == under(cfg.videos, mounts)["source"]
+        assert wcfg.workers == cfg.workers
+    assert len(warm) == len(shards) == 2
+    assert all(not any(m["mountPath"] == "/keys" for m in v[4]) for v in warm.values())  # no bind: no keys
 
 
 # ---------------------------------------------------------------------------------- kubernetes
@@ -274,6 +336,9 @@ def _mounts(doc, docs):
     """The container's mounts with what each volume is: configmap data key, secret items, ..."""
     spec = doc["spec"]["template"]["spec"]
     vols = {v["name"]: v for v in spec["volumes"]}
+    for claim in doc["spec"].get("volumeClaimTemplates", []):  # a StatefulSet's volume per pod
+        assert claim["metadata"]["name"] not in vols
+        vols[claim["metadata"]["name"]] = {"name": claim["metadata"]["name"], "claimTemplate": claim["spec"]}
     out = []
     for m in _container(doc)["volumeMounts"]:
         v = dict(vols[m["name"]])
@@ -337,6 +402,12 @@ def test_k8s_statefulset_service_pdb_job_agree():
     for flag in PATH_FLAGS:
         for path in flag_values(args, flag):
             _check_path(path, mounts, secret_files)
+    # the frame cache: on a volume of the pod's own (a claim per pod, never shared), its budget
+    # below the volume's size
+    assert cfg.frame_cache_gb > 0 and cfg.cache_dir
+    claim = _check_path(cfg.cache_dir, mounts, secret_files)["volume"]["claimTemplate"]
+    assert claim["accessModes"] == ["ReadWriteOnce"]
+    assert cfg.frame_cache_gb * (1 << 30) < size_bytes(claim["resources"]["requests"]["storage"])
     # ports: stream and metrics exposed, probes on the metrics port, the Service on both
     ports = {p["name"]: p["containerPort"] for p in c["ports"]}
     assert ports["stream"] == port_of(cfg.bind) and ports["metrics"] == cfg.metrics_port
@@ -421,22 +492,166 @@ def test_k8s_bucket_overlay_reads_the_corpus_from_a_bucket():
     ns.config = None
     assert check_serve_config(ns).videos == "s3://v2v-corpus/webvid/"
     assert all(v["name"] != "videos" for v in sts["spec"]["template"]["spec"]["volumes"])  # no corpus volume
+    # every other mount of the base stays (a mount's merge key is its path: deleting by name drops them all)
+    base = _container(k8s_docs()[("StatefulSet", "v2v-server")])["volumeMounts"]
+    assert c["volumeMounts"] == [m for m in base if m["mountPath"] != "/data/videos"]
+    _mounts(sts, {("ConfigMap", "v2v-config"): k8s_docs()[("ConfigMap", "v2v-config")]})  # each names a volume
+
+
+def _kustomize(path: Path) -> dict:
+    out = subprocess.run(["kubectl", "kustomize", str(path)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(out.stdout) if d}
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl not installed")
+@pytest.mark.parametrize("overlay", ["k8s-warm", "k8s-bucket"])
+def test_k8s_warm_cache_component_runs_the_servers_line_with_warm_cache_first(overlay, tmp_path):
+    """The optional component (deploy/k8s-warm-cache) gives each server pod an init container
+    running the server container's own line with --warm-cache: same image, environment
+    (shard index, CPU request), mounts (corpus, frame cache) and resources, so it fills the
+    cache the server then reads. Added last to another overlay (the bucket's), it copies that
+    overlay's line."""
+    if overlay == "k8s-warm":
+        docs = _kustomize(DEPLOY / "k8s-warm")
+    else:  # an overlay of the bucket overlay with the component, as deploy/k8s-warm-cache says
+        shutil.copytree(DEPLOY, tmp_path / "deploy")
+        (tmp_path / "deploy" / "mine").mkdir()
+        (tmp_path / "deploy" / "mine" / "kustomization.yaml").write_text(
+            "resources: [../k8s-bucket]\ncomponents: [../k8s-warm-cache]\n")
+        docs = _kustomize(tmp_path / "deploy" / "mine")
+    sts = docs[("StatefulSet", "v2v-server")]
+    spec = sts["spec"]["template"]["spec"]
+    server, (warm,) = _container(sts), spec["initContainers"]
+    assert warm["name"] == "warm-cache" and warm["args"] == server["args"] + ["--warm-cache"]
+    for key in ("image", "env", "volumeMounts", "resources"):
+        assert warm[key] == server[key], key
+    cpu = str(server["resources"]["requests"]["cpu"])
+    subst = {"SHARD_INDEX": "1", "SHARDS": "2", "CPU_REQUEST": cpu}
+    ns = check_flags("v2v-serve", warm["args"], subst)
+    assert ns.warm_cache
+    cfg = check_serve_config(ns, _write(docs[("ConfigMap", "v2v-config")]["data"]["server.yaml"]))
+    assert cfg.frame_cache_gb > 0 and cfg.serving.shard_spec == (1, 2) and cfg.workers == int(cpu)
+    assert cfg.videos == ("/data/videos" if overlay == "k8s-warm" else "s3://v2v-corpus/webvid/")
+    assert any(m["mountPath"] == cfg.cache_dir for m in warm["volumeMounts"])
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
+    for version in ("1.29", "1.32"):
+        kv.validate(sts, version, strict=True)
 
 
 def test_compose_bucket_override_and_raycluster_read_the_bucket():
     comp = yaml.safe_load((DEPLOY / "docker-compose.bucket.yml").read_text())
     base = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
-    for name in ("shard0", "shard1"):
+    for name in ("shard0", "shard1", "warm0", "warm1"):  # the warm profile's services read the bucket too
         s = comp["services"][name]
         assert name in base["services"]
         assert s["environment"]["AWS_SHARED_CREDENTIALS_FILE"] == "/run/secrets/aws_credentials"
         assert "AWS_ENDPOINT_URL" in s["environment"] and s["secrets"] == ["aws_credentials"]
-        ns = check_flags("v2v-serve", [a.replace("${V2V_BUCKET:-s3://v2v-corpus/webvid/}", "s3://v2v-corpus/webvid/")
-                                       for a in s["command"]])
+        args = defaults(s["command"])
+        assert ("--warm-cache" in args) == name.startswith("warm")
+        ns = check_flags("v2v-serve", args)
         ns.config = None
-        assert check_serve_config(ns).videos == "s3://v2v-corpus/webvid/"
+        cfg = check_serve_config(ns)
+        assert cfg.videos == "s3://v2v-corpus/webvid/"
+        # the rest of the line is the base file's: the same shard, workers and frame cache
+        bns = check_flags("v2v-serve", defaults(base["services"][name]["command"]))
+        bns.config = None
+        bcfg = check_serve_config(bns)
+        bcfg = type(bcfg).from_dict({**bcfg.to_dict(), "videos": cfg.videos}, source="base")
+        same_corpus_and_cache(cfg, bcfg)
+        assert cfg.to_dict() == bcfg.to_dict()
     assert "aws_credentials" in comp["secrets"]
-    ray = yaml.safe_load((DEPLOY / "ray" / "raycluster.yaml").read_text())
+    ray = ray_docs()[("RayCluster", "v2v")]
     pods = [ray["spec"]["headGroupSpec"]] + ray["spec"]["workerGroupSpecs"]
     for g in pods:
         _store_env({e["name"]: e for e in g["template"]["spec"]["containers"][0]["env"]})
+
+
+# ---------------------------------------------------------------------------------- KubeRay
+def ray_docs(text: str = None) -> dict:
+    text = text if text is not None else (DEPLOY / "ray" / "raycluster.yaml").read_text()
+    return {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(text) if d}
+
+
+def _ray_config_file(docs: dict, path: str, groups: dict) -> str:
+    """A local copy of the file every pod of ``groups`` reads at ``path``: the ConfigMap key
+    its mount holds there (the same in each)."""
+    contents = set()
+    for g in groups.values():
+        spec = g["template"]["spec"]
+        vols = {v["name"]: v for v in spec["volumes"]}
+        m = under(path, spec["containers"][0]["volumeMounts"])
+        cm = vols[m["name"]]["configMap"]["name"]
+        contents.add(docs[("ConfigMap", cm)]["data"][PurePosixPath(path).relative_to(m["mountPath"]).as_posix()])
+    (content,) = contents
+    return _write(content)
+
+
+def _ray_serve_config(docs: dict, path: str, groups: dict):
+    """The ServeConfig the pods of ``groups`` read at ``path``."""
+    from v2v_server.ops.config import load_config
+
+    return load_config(_ray_config_file(docs, path, groups))
+
+
+def _pod(spec: dict) -> dict:
+    return {"apiVersion": "v1", "kind": "Pod", "metadata": {"name": "v2v"}, "spec": spec}
+
+
+def test_raycluster_pods_that_decode_or_scan_keep_a_frame_cache():
+    """The job line (the file's header) reads the serve config the head mounts; that config
+    turns the frame cache on (cache_dir, frame_cache_gb), and the head (the driver's scan) and
+    the CPU group (the V2V actors) mount a volume of their own there, larger than the budget.
+    Every pod template is a valid Pod spec."""
+    text = (DEPLOY / "ray" / "raycluster.yaml").read_text()
+    docs = ray_docs(text)
+    ray = docs[("RayCluster", "v2v")]
+    groups = {"head": ray["spec"]["headGroupSpec"], **{g["groupName"]: g for g in ray["spec"]["workerGroupSpecs"]}}
+    comments = [ln.lstrip("#").strip() for ln in text.splitlines() if ln.startswith("#")]
+    first = next(i for i, ln in enumerate(comments) if ln.startswith("ray job submit"))
+    last = next(i for i in range(first, len(comments)) if not comments[i].endswith("\\"))
+    job = " ".join(ln.rstrip("\\").strip() for ln in comments[first:last + 1])
+    prog, args = program(shlex.split(job.split(" -- ", 1)[1]))
+    ns = check_flags(prog, args)
+    assert ns.engine == "ray" and ns.serve_config
+    cfg = _ray_serve_config(docs, ns.serve_config, {"head": groups["head"], "v2v-cpu": groups["v2v-cpu"]})
+    assert cfg.frame_cache_gb > 0 and cfg.cache_dir
+    for name in ("head", "v2v-cpu"):
+        spec = groups[name]["template"]["spec"]
+        vols = {v["name"]: v for v in spec["volumes"]}
+        mounts = spec["containers"][0]["volumeMounts"]
+        under(cfg.videos, mounts)
+        cache = vols[under(cfg.cache_dir, mounts)["name"]]
+        assert "emptyDir" in cache, name  # node-local, the pod's own
+        assert cfg.frame_cache_gb * (1 << 30) < size_bytes(cache["emptyDir"]["sizeLimit"]), name
+    assert "v2v_cpu" in groups["v2v-cpu"]["rayStartParams"]["resources"]  # the actors decode there only
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
+    for g in groups.values():
+        kv.validate(_pod(g["template"]["spec"]), "1.32", strict=True)
+    kv.validate(docs[("ConfigMap", "v2v-ray-serve")], "1.32", strict=True)
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl not installed")
+def test_ray_warm_overlay_fills_each_cpu_pods_cache_with_the_jobs_config():
+    """deploy/ray-warm: each CPU-group pod runs ``v2v-serve --warm-cache`` first, with the
+    serve config the job reads (same corpus, recipe and cache), one process per CPU the group
+    declares, and the worker container's image, environment, mounts and resources."""
+    docs = _kustomize(DEPLOY / "ray-warm")
+    assert ray_docs()[("ConfigMap", "v2v-ray-serve")] == docs[("ConfigMap", "v2v-ray-serve")]
+    ray = docs[("RayCluster", "v2v")]
+    cpu, gpu = ray["spec"]["workerGroupSpecs"]
+    spec = cpu["template"]["spec"]
+    (warm,), worker = spec["initContainers"], spec["containers"][0]
+    for key in ("image", "env", "volumeMounts", "resources"):
+        assert warm[key] == worker[key], key
+    prog, args = program(warm["command"])
+    ns = check_flags(prog, args)
+    assert prog == "v2v-serve" and ns.warm_cache
+    want = _ray_serve_config(docs, ns.config, {"v2v-cpu": cpu})
+    cfg = check_serve_config(ns, _ray_config_file(docs, ns.config, {"v2v-cpu": cpu}))
+    same_corpus_and_cache(cfg, want)
+    assert cfg.to_dict() == {**want.to_dict(), "workers": cfg.workers, "insecure": True}  # the test's insecure
+    assert cfg.workers == int(cpu["rayStartParams"]["num-cpus"]) == int(worker["resources"]["requests"]["cpu"])
+    assert "initContainers" not in gpu["template"]["spec"] and "initContainers" not in ray["spec"]["headGroupSpec"]["template"]["spec"]
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
+    kv.validate(_pod(spec), "1.32", strict=True)

@@ -15,11 +15,12 @@ import pytest
 
 from harness.corpus import write_size_change_video, write_video
 from tests import sample_hashes
+from tests.test_frames import write_clip
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_frames, video_samples
 from v2v_server.videos.corpus import check_video
-from v2v_server.videos.decode import decode_luma, iter_luma, open_video
+from v2v_server.videos.decode import decode_luma, feeding_rows, iter_luma, open_video, scale_frame, scaled_size
 from v2v_server.videos.local import LocalSource
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import open_source
@@ -33,10 +34,13 @@ SMALL = dict(sequence_length=4, num_bins=2, crop_size=32, max_samples_per_video=
 
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory) -> Path:
-    """bikes.mp4 (8-bit limited range, 596 x 336 display) and a 10-bit source (uint16 frames)."""
+    """bikes.mp4 (8-bit limited range, 596 x 336 display), a 10-bit source (uint16 frames) and a
+    phone-style portrait clip (coded 160 x 96, a display matrix turning it to 96 x 160)."""
     d = tmp_path_factory.mktemp("scale")
     shutil.copy(CLIPS / "bikes.mp4", d / "bikes.mp4")
     write_video(d / "ten_bit.mkv", 30, 120, 90, codec="ffv1", pix_fmt="yuv420p10le")
+    texture = cv2.resize(np.random.default_rng(3).integers(0, 256, (24, 40), dtype=np.uint8), (160, 96))
+    write_clip(d / "portrait.mp4", texture, n=14, rotation=90)
     return d
 
 
@@ -54,10 +58,12 @@ def _expected(path: Path, height: int, keep: float, n: int) -> list:
     return out
 
 
-@pytest.mark.parametrize("video,height", [("bikes.mp4", 120), ("bikes.mp4", 500), ("ten_bit.mkv", 64)])
+@pytest.mark.parametrize("video,height", [("bikes.mp4", 120), ("bikes.mp4", 500), ("ten_bit.mkv", 64),
+                                          ("portrait.mp4", 100)])
 def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video, height):
     """The pass the workers, ``--warm-cache`` and the Ray engine read (``video_frames``) gives
-    INTER_AREA of the full-range frame (down and up), then the kept rows; uint16 stays uint16."""
+    INTER_AREA of the full-range frame (down and up, rotated as displayed), then the kept rows;
+    uint16 stays uint16."""
     cfg = SampleRecipe(**SMALL, frame_height=height)
     want = _expected(corpus / video, height, cfg.keep_top_fraction, 12)
     with video_frames(cfg, LocalSource(corpus), video) as fp:
@@ -70,6 +76,59 @@ def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video
     first = next(decode_luma(c, s, cfg.windows.kept_rows, height)).copy()
     c.close()
     np.testing.assert_array_equal(first, want[0])
+
+
+def _whole_then_kept(a: np.ndarray, height: int, kept: int) -> np.ndarray:
+    """What the recipe defines: the whole frame resized (INTER_AREA), then its top ``kept`` rows."""
+    h, w = scaled_size(a.shape[0], a.shape[1], height)
+    return (a if (h, w) == a.shape else cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA))[:kept]
+
+
+#: (H, W, frame_height, kept): HD to WebVid's height at the default 0.54, integer factors (OpenCV's
+#: block-average path), enlargements, a factor near 1 whose cut would scale 1:1 (OpenCV copies
+#: those), kept rows that end on a source row boundary (181 x 1080 / 336 is not whole, 168 is).
+EDGES = [(1080, 1920, 336, 181), (720, 1280, 336, 181), (2160, 3840, 336, 181), (1080, 1920, 540, 291),
+         (1080, 1920, 336, 168), (336, 596, 500, 270), (336, 596, 1000, 540), (285, 133, 284, 112),
+         (1149, 165, 1148, 456), (1080, 1920, 1079, 582), (7, 5, 3, 1), (1, 4, 3, 2)]
+
+
+def test_scaling_only_the_kept_rows_equals_scaling_the_whole_frame():
+    """``scale_frame`` resizes only the rows that feed the kept rows, with the whole frame's
+    factors: equal, value for value, to resizing the whole frame and cutting, for uint8 and
+    uint16, shrinking and enlarging, at the edges above and 600 random sizes."""
+    rng = np.random.default_rng(53)
+    cases = EDGES + [(int(H), int(W), int(rng.integers(1, 2 * H + 2)), 0)
+                     for H, W in zip(rng.integers(1, 1300, 600), rng.integers(1, 300, 600))]
+    for i, (H, W, height, kept) in enumerate(cases):
+        kept = kept or max(1, int(height * rng.random()))
+        dtype = np.uint8 if i % 2 else np.uint16
+        a = rng.integers(0, np.iinfo(dtype).max + 1, (H, W), dtype=dtype)
+        want = _whole_then_kept(a, height, kept)
+        got = scale_frame(a, height, kept)
+        assert got.dtype == dtype and got.shape == want.shape, (H, W, height, kept)
+        np.testing.assert_array_equal(got, want, err_msg=f"{H}x{W} -> {height} rows, {kept} kept")
+    a = rng.integers(0, 256, (1080, 1920), dtype=np.uint8)  # rows given as a function of the scaled height
+    np.testing.assert_array_equal(scale_frame(a, 336, lambda h: h // 2), _whole_then_kept(a, 336, 168))
+    np.testing.assert_array_equal(scale_frame(a, 336), _whole_then_kept(a, 336, 336))
+
+
+@pytest.mark.parametrize("H,W,height,kept", [e for e in EDGES if e[2] < e[0] and e[3] > 1])
+def test_the_kept_rows_read_source_rows_up_to_their_area_only(H, W, height, kept):
+    """Kept row y averages the source rows its area [y s, (y + 1) s) overlaps, s = H / height:
+    a source row below ceil(kept s) changes no kept row, the last one that area reaches
+    changes the last kept row, and ``feeding_rows`` covers it."""
+    rng = np.random.default_rng(7)
+    a = rng.integers(0, 200, (H, W), dtype=np.uint8)
+    base = _whole_then_kept(a, height, kept)
+    last = -(-kept * H // height) - 1  # the last source row kept row kept - 1 overlaps
+    assert last < feeding_rows(H, height, kept) <= H
+    below = a.copy()
+    below[last + 1:] = 255
+    np.testing.assert_array_equal(_whole_then_kept(below, height, kept), base)
+    edge = a.copy()
+    edge[last] = 255
+    changed = np.flatnonzero((_whole_then_kept(edge, height, kept) != base).any(axis=1))
+    assert changed.max() == kept - 1, changed
 
 
 def test_frame_height_zero_is_the_decoded_frame(corpus):

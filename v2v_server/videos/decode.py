@@ -285,17 +285,47 @@ def scaled_size(height: int, width: int, frame_height: int) -> Tuple[int, int]:
     return frame_height, max(1, int(round(width * frame_height / height)))
 
 
-def scale_frame(luma: np.ndarray, frame_height: int) -> np.ndarray:
-    """Full-range luma (uint8 or uint16 (H, W)) scaled to ``frame_height`` rows (width per
+def feeding_rows(height: int, frame_height: int, kept: int) -> int:
+    """Rows from the top of a displayed ``height``-row frame that the top ``kept`` rows of it
+    scaled to ``frame_height`` rows (:func:`scale_frame`) are made from.
+
+    INTER_AREA gives output row ``y`` the source rows its area ``[y s, (y + 1) s)`` overlaps,
+    ``s = height / frame_height`` (averaged when shrinking; when enlarging, the one or two rows
+    it lies over, the second weighted 0 unless the area crosses into it). The kept rows therefore
+    read source rows ``0 .. ceil(kept s) - 1``; one more row is fed so that OpenCV's
+    floating-point cell at that edge is never cut by the frame's end. All ``height`` rows when
+    that reaches the end."""
+    return min(height, -(-kept * height // frame_height) + 1)
+
+
+def scale_frame(luma: np.ndarray, frame_height: int, rows: Rows = None,
+                expand: Callable[[np.ndarray], np.ndarray] = full_range) -> np.ndarray:
+    """The top ``rows`` of a displayed frame scaled to ``frame_height`` rows (width per
     :func:`scaled_size`) with OpenCV's ``INTER_AREA`` (pixel-area averaging when shrinking,
-    bilinear when enlarging); ``luma`` itself when its height already is ``frame_height``.
-    Scaling averages intensities, so it must act on full-range luma, never on codes."""
+    bilinear when enlarging), as uint8 or uint16 (rows', W') full-range luma.
+
+    ``luma``: (H, W) uint8 or uint16, full-range luma, or codes that ``expand`` maps to full
+    range (:func:`decode_codes`' pairs): scaling averages intensities, so it acts on full-range
+    luma, never on codes. ``rows``: as :data:`Rows`, of the *scaled* height (``None``: all).
+    Only the source rows that feed the kept rows are expanded and resized
+    (:func:`feeding_rows`), with the scale factor of the whole frame, so the result equals
+    ``cv2.resize(expand(luma), (W', frame_height), INTER_AREA)[:rows]`` value for value
+    (``tests/test_frame_scale.py`` checks this over random sizes, scale factors and row counts).
+    ``expand(luma)[:rows]`` (no resize) when H already is ``frame_height``."""
     import cv2
 
     h, w = scaled_size(luma.shape[0], luma.shape[1], frame_height)
+    kept = h if rows is None else min(h, rows(h) if callable(rows) else rows)
     if (h, w) == luma.shape:
-        return luma
-    return cv2.resize(_unit_stride(luma), (w, h), interpolation=cv2.INTER_AREA)
+        return _unit_stride(expand(luma[:kept]))
+    height, width = luma.shape
+    n = feeding_rows(height, h, max(kept, 1))
+    fx, fy = w / width, h / height  # the whole frame's factors, as cv2.resize(luma, (w, h)) takes them
+    if (int(round(n * fy)), w) == (n, width):
+        n = height  # the cut would scale 1:1, which OpenCV answers with a copy instead of INTER_AREA
+    src = _unit_stride(expand(luma[:n]))
+    out = cv2.resize(src, None, fx=fx, fy=fy, interpolation=cv2.INTER_AREA)
+    return out[:kept]
 
 
 def decode_codes(container, stream, rows: Rows = None, height: int = 0, times: Optional[List] = None,
@@ -309,10 +339,11 @@ def decode_codes(container, stream, rows: Rows = None, height: int = 0, times: O
     ``start`` and only frames whose presentation time lies in ``[start, end)`` are yielded.
     Closes the container when done.
 
-    With ``height`` > 0 every displayed frame is first expanded to full range and scaled to
-    ``height`` rows (:func:`scale_frame`), and ``rows`` then cut from the scaled frame (a
-    function ``rows`` gets the scaled height); ``codes`` is then that full-range frame and
-    ``expand`` is :func:`full_range`. ``times``, when given, receives each yielded frame's
+    With ``height`` > 0 every displayed frame is expanded to full range and scaled to
+    ``height`` rows, and ``rows`` cut from the scaled frame (a function ``rows`` gets the
+    scaled height): :func:`scale_frame`, which expands and scales only the source rows that
+    feed the kept rows. ``codes`` is then that full-range frame and ``expand`` is
+    :func:`full_range`. ``times``, when given, receives each yielded frame's
     presentation time in seconds (None when the frame has none): frames come in presentation
     order, and their times are facts only (windows count frames, whatever their spacing).
 
@@ -340,10 +371,7 @@ def decode_codes(container, stream, rows: Rows = None, height: int = 0, times: O
             if not height:
                 yield _codes(frame, conv, rows), conv[1]
                 continue
-            y = scale_frame(conv[1](_codes(frame, conv)), height)
-            if rows is not None:
-                y = y[: (rows(y.shape[0]) if callable(rows) else rows)]
-            yield y, full_range
+            yield scale_frame(_codes(frame, conv), height, rows, conv[1]), full_range
         if segment is not None and kept == 0:
             length = float(stream.duration * stream.time_base) if stream.duration and stream.time_base else \
                 (container.duration or 0) / 1e6
