@@ -3,17 +3,15 @@ the frame cache: its identity (size, mtime, ctime, inode) and git's racy rule.""
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
-import stat
 import time
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Iterator, List, Optional, Union
 
 from v2v_server.videos.decode import VideoError, inside, scan_corpus
 from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.segments import base_path
-from v2v_server.videos.shards import TarMember, split_member
+from v2v_server.videos.shards import ARCHIVES, PIECE, gather_pieces, split_member
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.store_io import StoreError
 
@@ -79,63 +77,83 @@ class LocalSource(VideoSource):
         if names is not None:
             root = Path(self.root)
             return self._listed(names, lambda rel: inside(root, root / rel), extensions)
-        found, rejected = scan_corpus(Path(self.root), tuple(extensions) + (".tar",))
-        return self._with_members([p.as_posix() for p in found], [(p.as_posix(), why) for p, why in rejected],
+        found, rejected = scan_corpus(Path(self.root), tuple(extensions) + ARCHIVES)
+        names = [p.as_posix() for p in found]
+        others = [(p.as_posix(), why) for p, why in rejected]
+        is_piece = lambda r: r[1].startswith("not a video file") and PIECE.match(r[0])  # noqa: E731
+        parts, problems = gather_pieces([rel for rel, why in others if is_piece((rel, why))], set(names))
+        self.shards.pieces.update(parts)
+        return self._with_members(sorted(names + list(parts)), [r for r in others if not is_piece(r)] + problems,
                                   extensions)
 
+    def _exists(self, rel: str) -> bool:
+        return Path(self.root, rel).is_file()
+
+    def _siblings(self, part: str) -> List[str]:
+        folder = PurePosixPath(part).parent
+        try:
+            return [(folder / n).as_posix() for n in os.listdir(Path(self.root, folder))]
+        except OSError:
+            return []
+
     @contextlib.contextmanager
-    def _open_raw(self, rel: str):
+    def _open_raw(self, rel: str, expected: Optional[tuple] = None):
         with open(corpus_file(self.root, rel), "rb") as f:
             yield f
+
+    def _in_archive(self, rel: str) -> bool:
+        """Whether ``rel`` names a member of an archive of the corpus (not a file under a folder
+        named like one)."""
+        member = split_member(rel)
+        if member is None:
+            return False
+        try:
+            return bool(self.pieces(member[0]))
+        except VideoError:
+            return False
 
     @contextlib.contextmanager
     def open(self, rel: str) -> Iterator[Path]:
         rel = base_path(rel)  # a segment reads its video (the pass keeps its time range)
-        member = split_member(rel)
-        if member is None or not Path(self.root, member[0]).is_file():
+        if not self._in_archive(rel):
             yield corpus_file(self.root, rel)
             return
-        where = self._member_at(rel, None)
-        with self._open_raw(member[0]) as f:
-            yield TarMember(f, *where)
+        with self._open_member(rel) as f:
+            yield f
 
     def where(self, rel: str) -> str:
         return str(Path(self.root) / rel)
 
     def identity(self, rel: str) -> Optional[str]:
         rel = base_path(rel)
-        member = split_member(rel)
         try:
-            shard = self._shard_stat(member[0]) if member is not None else None
-            if shard is not None:
-                corpus_file(self.root, member[0])  # a link out of the root is refused
-                offset, size = self._member_at(rel, None)
-                return None if racy(shard) else f"tar {file_identity(shard)} member {offset} {size}"
+            if self._in_archive(rel):
+                archive = split_member(rel)[0]
+                stats = self._archive_stats(archive)
+                where = " ".join(map(str, self._member_at(rel, None)))
+                held = " + ".join(file_identity(st) for st in stats)
+                return None if any(racy(st) for st in stats) else f"{archive[-3:].lower()} {held} member {where}"
             st = os.stat(corpus_file(self.root, rel))
         except OSError as e:
             raise VideoError(f"cannot read: {e.strerror or e}") from None
         return None if racy(st) else f"file {file_identity(st)}"
 
-    def _shard_version(self, tar: str) -> Optional[str]:
-        """The shard file's identity (:func:`file_identity`); None while it is racy or cannot
-        be read."""
-        try:
-            st = os.stat(Path(self.root, tar))
-        except OSError:
-            return None
-        return None if racy(st) else file_identity(st)
+    def _archive_stats(self, archive: str) -> List[os.stat_result]:
+        """The status of the archive's file, or of each piece of a split zip part (links
+        followed; one out of the root is refused).
 
-    def _shard_stat(self, tar: str) -> Optional[os.stat_result]:
-        """The status of ``tar`` (links followed) when it is a file, a tar shard; None when it is
-        missing or no file (a folder named like a shard), the errors ``Path.is_file`` takes for
-        no; others raise."""
+        Raises:
+            VideoError, OSError: one is missing."""
+        return [os.stat(corpus_file(self.root, p)) for p in self.pieces(archive)]
+
+    def _shard_version(self, tar: str) -> Optional[str]:
+        """The archive's identity (:func:`file_identity`, of each piece of a split zip part); None
+        while it is racy or cannot be read."""
         try:
-            st = os.stat(Path(self.root, tar))
-        except OSError as e:
-            if e.errno in (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP):
-                return None
-            raise
-        return st if stat.S_ISREG(st.st_mode) else None
+            stats = self._archive_stats(tar)
+        except (OSError, VideoError):
+            return None
+        return None if any(racy(st) for st in stats) else " + ".join(file_identity(st) for st in stats)
 
     def spec(self) -> dict:
         return {"root": self.root, "video_list": self.video_list, "names": self.names, **self._cache_spec()}

@@ -1,4 +1,4 @@
-"""The manifest of an object-store corpus: its listing (key, size, ETag; tar members with their
+"""The manifest of an object-store corpus: its listing (key, size, ETag; archive members with their
 offset) kept as one sorted JSON line per object, so a restart and every shard read one listing
 without walking the bucket, and a worker looks up single entries without loading it
 (:class:`ManifestIndex`). A ``videos.store.StoreSource`` holds its listing as a
@@ -39,11 +39,12 @@ def default_cache_dir() -> Path:
 
 
 def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]]) -> None:
-    """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a video
-    member of a tar shard ``shard.tar/member`` -> (size, the shard's ETag, offset of the
-    member's data in the shard)) atomically: a header line ``{"v2v_manifest": 1, "url",
-    "objects", "listed_at"}``, then one ``[key, size, etag(, offset)]`` JSON line per entry,
-    sorted by key."""
+    """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a
+    member of an archive ``shard.tar/member`` -> (size, the archive's ETag, offset of the
+    member's data in the shard), ``part.zip/member`` -> (size, the part's ETag, offset of its
+    local header, compressed size, CRC-32, method, flag bits): :func:`member_entry`) atomically:
+    a header line ``{"v2v_manifest": 1, "url", "objects", "listed_at"}``, then one ``[key, size,
+    etag(, offset...)]`` JSON line per entry, sorted by key."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
     with open(tmp, "w", encoding="utf-8") as f:
@@ -66,7 +67,7 @@ def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
             objects = {}
             for line in f:
                 key, size, etag, *offset = json.loads(line)
-                objects[key] = (int(size), str(etag), *(int(o) for o in offset[:1]))
+                objects[key] = (int(size), str(etag), *(int(o) for o in offset))
     except (OSError, ValueError, TypeError):
         return None
     return objects if len(objects) == header.get("objects") else None
@@ -105,7 +106,7 @@ class ManifestIndex:
         return pos, (len(self.mm) if end < 0 else end)
 
     def get(self, key: str) -> Optional[tuple]:
-        """The entry of ``key``: (size, ETag[, offset]), or None."""
+        """The entry of ``key``: (size, ETag[, offset...]), or None."""
         lo, hi = self.start, len(self.mm)
         while lo < hi:
             mid = (lo + hi) // 2
@@ -115,7 +116,7 @@ class ManifestIndex:
                 continue
             k, size, etag, *offset = json.loads(self.mm[a:b])
             if k == key:
-                return (int(size), str(etag), *(int(o) for o in offset[:1]))
+                return (int(size), str(etag), *(int(o) for o in offset))
             if k < key:
                 lo = b + 1
             else:
@@ -125,8 +126,8 @@ class ManifestIndex:
 
 class StoreListing:
     """The listing a store source holds: key relative to the prefix -> (size in bytes, ETag[,
-    offset in bytes of a tar member's data]) of every object under ``url`` and of the members
-    of its tar shards (whose indexes go to ``shards``), kept as the manifest file at ``path``
+    where an archive member lies]: :func:`member_entry`) of every object under ``url`` and of the
+    members of its archives (whose indexes go to ``shards``), kept as the manifest file at ``path``
     (None: none is kept) unless ``refresh`` asks for a new listing. The server loads a whole
     listing once; a worker, which holds none, looks single entries up in the manifest file
     (:class:`ManifestIndex`)."""
@@ -146,11 +147,11 @@ class StoreListing:
         return None
 
     def keep(self, objects: Dict[str, tuple]) -> None:
-        """Hold ``objects`` (a listing or manifest) and give the tar members it has to ``shards``."""
+        """Hold ``objects`` (a listing or manifest) and give the archive members it has to ``shards``."""
         self.objects = objects
         for rel, v in objects.items():
-            if len(v) == 3:
-                self.shards.add(rel, v[2], v[0])
+            if len(v) >= 3:
+                self.shards.add(rel, index_entry(v))
 
     def listed(self, objects: Dict[str, tuple]) -> None:
         """Hold ``objects``, a listing just made of the store, and write it as the manifest."""
@@ -170,9 +171,9 @@ class StoreListing:
                             self.path, e)
 
     def save_members(self) -> None:
-        """Write the tar members read from shard headers (no listing) as the manifest."""
-        objects = {f"{tar}/{m}": (size, "", offset) for tar, ms in self.shards.members.items()
-                   for m, (offset, size) in ms.items()}
+        """Write the archive members read from their indexes (no listing) as the manifest."""
+        objects = {f"{archive}/{m}": member_entry(e, "") for archive, ms in self.shards.members.items()
+                   for m, e in ms.items()}
         self.save(objects)
         self.objects = objects
 
@@ -184,6 +185,17 @@ class StoreListing:
         if self.path and not self._index_tried:
             self._index, self._index_tried = ManifestIndex.open(Path(self.path), self.url), True
         return self._index.get(rel) if self._index is not None else None
+
+
+def member_entry(entry: Tuple[int, ...], etag: str) -> tuple:
+    """The manifest's entry of an archive member from its index ``entry`` (``shards``: offset,
+    size, then a zip member's fields) and its archive's ``etag``: (size, ETag, offset, ...)."""
+    return (entry[1], etag, entry[0], *entry[2:])
+
+
+def index_entry(v: tuple) -> Tuple[int, ...]:
+    """The index entry (``shards``) of the manifest's member entry ``v`` (:func:`member_entry`)."""
+    return (v[2], v[0], *v[3:])
 
 
 def etag_of(info: dict) -> str:

@@ -1,9 +1,23 @@
-"""Tar shards (the WebDataset convention): their members read in place by offset, and brace
-patterns of shard names (``webvid-{000000..000999}.tar``)."""
+"""Archives of videos read in place: tar shards (the WebDataset convention) and zip parts
+(OpenVid-1M, VidGen-1M), their member indexes, split zip parts (``part_partaa``,
+``part_partab``... as ``split`` cuts them), and brace patterns of archive names
+(``webvid-{000000..000999}.tar``, ``OpenVid_part{0..185}.zip``).
+
+A member's entry in an index is a tuple of ints: ``(offset, size)`` for a tar member (offset of
+its data, bytes of content); ``(offset, size, compressed size, CRC-32, method, flag bits)`` for a
+zip member (offset of its local header, then the central directory's fields)."""
 from __future__ import annotations
 
 import io
-from typing import Dict, List, Optional, Tuple
+import re
+from typing import Dict, Iterable, List, Optional, Sequence, Set, Tuple
+
+#: The archive kinds whose members a corpus serves, by extension.
+ARCHIVES = (".tar", ".zip")
+
+#: A piece of a split zip part, as ``split -b`` names it after the joined file's stem
+#: (``OpenVid_part73_partaa``, ``_partab``...; OpenVid-1M's download script joins them with ``cat``).
+PIECE = re.compile(r"^(?P<stem>.+)_part(?P<suffix>[a-z]{2,})$")
 
 
 def tar_members(f) -> Dict[str, Tuple[int, int]]:
@@ -24,9 +38,33 @@ def tar_members(f) -> Dict[str, Tuple[int, int]]:
     return out
 
 
-class TarMember(io.RawIOBase):
-    """A read-only, seekable window ``[offset, offset + size)`` of the binary file ``f``: one
-    member of a tar shard, read in place (FFmpeg decodes it like a file of its own)."""
+def zip_members(f) -> Dict[str, Tuple[int, ...]]:
+    """Member name -> ``(offset of its local header, size, compressed size, CRC-32, method,
+    flag bits)`` (bytes; the method as ``zipfile.ZIP_STORED``...) of every file of the zip
+    read from the binary file object ``f``: its central directory, read by ``zipfile`` (ZIP64
+    included; on a store, the blocks at the end of the object). Folders are left out; of two
+    members with one name the later is kept, as ``unzip`` keeps it.
+
+    Raises:
+        zipfile.BadZipFile: no end record, or a central directory that is truncated or corrupt.
+        OSError, ValueError: the file cannot be read.
+    """
+    import zipfile
+
+    with zipfile.ZipFile(f) as z:
+        return {i.filename: (i.header_offset, i.file_size, i.compress_size, i.CRC, i.compress_type, i.flag_bits)
+                for i in z.infolist() if not i.is_dir()}
+
+
+def archive_members(archive: str, f) -> Dict[str, Tuple[int, ...]]:
+    """The member index of ``archive`` (a name ending in ``.tar`` or ``.zip``) read from ``f``:
+    :func:`tar_members` or :func:`zip_members`; their errors."""
+    return zip_members(f) if archive.lower().endswith(".zip") else tar_members(f)
+
+
+class MemberFile(io.RawIOBase):
+    """A read-only, seekable window ``[offset, offset + size)`` of the binary file ``f``: a tar
+    member or a stored zip member, read in place (FFmpeg decodes it like a file of its own)."""
 
     def __init__(self, f, offset: int, size: int):
         super().__init__()
@@ -57,6 +95,144 @@ class TarMember(io.RawIOBase):
         return len(data)
 
 
+class ZipMemberError(ValueError):
+    """A zip member that cannot be read (the message names the member and why)."""
+
+
+def open_member(f, name: str, entry: Tuple[int, ...]):
+    """The member ``name`` of the archive read from ``f``, given its index ``entry`` (see the
+    module docstring), as a readable, seekable binary file: a tar member or a stored zip member
+    is a :class:`MemberFile` over its bytes in place; a compressed zip member (deflate, bzip2,
+    LZMA) is ``zipfile``'s streaming reader over its compressed bytes, which checks the CRC-32
+    at the end (a seek backwards starts decompressing again from the member's start).
+
+    Raises:
+        ZipMemberError: the local header at the entry's offset is not this member's, or the
+            member is encrypted or compressed by a method ``zipfile`` does not read.
+        OSError: the archive cannot be read.
+    """
+    if len(entry) == 2:
+        return MemberFile(f, *entry)
+    import struct
+    import zipfile
+
+    offset, size, csize, crc, method, flags = entry
+    f.seek(offset)
+    head = f.read(zipfile.sizeFileHeader)
+    fields = struct.unpack(zipfile.structFileHeader, head) if len(head) == zipfile.sizeFileHeader else None
+    if fields is None or fields[0] != zipfile.stringFileHeader:
+        raise ZipMemberError(f"zip member {name}: no local header at offset {offset} (corrupt archive)")
+    name_len, extra_len = fields[-2], fields[-1]
+    data = offset + zipfile.sizeFileHeader + name_len + extra_len
+    if flags & 0x1:
+        raise ZipMemberError(f"zip member {name}: encrypted (not served)")
+    if method == zipfile.ZIP_STORED:
+        return MemberFile(f, data, size)
+    if method not in (zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA):
+        raise ZipMemberError(f"zip member {name}: compression method {method} is not read (stored, deflate, "
+                             f"bzip2 and LZMA are)")
+    info = zipfile.ZipInfo(name)
+    info.compress_type, info.file_size, info.compress_size, info.CRC, info.flag_bits = method, size, csize, crc, flags
+    return zipfile.ZipExtFile(MemberFile(f, data, csize), "r", info)
+
+
+class JoinedFile(io.RawIOBase):
+    """The binary files ``files`` read one after another as one read-only, seekable file: a
+    split zip part read as the archive ``cat`` would join, without joining it."""
+
+    def __init__(self, files: Sequence):
+        super().__init__()
+        self.files, self.starts, self.pos = list(files), [0], 0
+        for f in self.files:
+            self.starts.append(self.starts[-1] + f.seek(0, io.SEEK_END))
+        self.size = self.starts[-1]
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, pos: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
+        self.pos = min(max(0, base + pos), self.size)
+        return self.pos
+
+    def readinto(self, b) -> int:
+        import bisect
+
+        n = min(len(b), self.size - self.pos)
+        if n <= 0:
+            return 0
+        i = bisect.bisect_right(self.starts, self.pos) - 1
+        f, local = self.files[i], self.pos - self.starts[i]
+        n = min(n, self.starts[i + 1] - self.pos)  # within one piece; the caller reads on
+        f.seek(local)
+        data = f.read(n)
+        b[:len(data)] = data
+        self.pos += len(data)
+        return len(data)
+
+
+def piece_archive(name: str) -> Optional[str]:
+    """The zip part that ``name`` is a piece of (``a/X_partab`` -> ``a/X.zip``), or None."""
+    m = PIECE.match(name)
+    if m is None:
+        return None
+    stem = m.group("stem")
+    return stem if stem.lower().endswith(".zip") else stem + ".zip"
+
+
+def _suffixes(first: str):
+    """``split``'s suffixes from ``first`` on: ``aa, ab, ..., az, ba...``."""
+    s = list(first)
+    while True:
+        yield "".join(s)
+        i = len(s) - 1
+        while i >= 0 and s[i] == "z":
+            s[i] = "a"
+            i -= 1
+        if i < 0:
+            return
+        s[i] = chr(ord(s[i]) + 1)
+
+
+def missing_piece(pieces: Sequence[str]) -> Optional[str]:
+    """The first piece absent from ``pieces`` (names of one part's pieces, any order), which
+    ``split`` numbers ``aa, ab...`` without a gap; None when none is missing before the last."""
+    found = sorted(pieces)
+    m = PIECE.match(found[0])
+    stem, width = m.group("stem"), len(m.group("suffix"))
+    for have, want in zip(found, _suffixes("a" * width)):
+        if have != f"{stem}_part{want}":
+            return f"{stem}_part{want}"
+    return None
+
+
+def gather_pieces(names: Iterable[str], whole: Set[str]) -> Tuple[Dict[str, List[str]], List[Tuple[str, str]]]:
+    """``(parts, rejected)`` of the split pieces among ``names`` (others are left out): each
+    zip part whose pieces are all present -> its pieces in order, and ``(name, reason)`` for a
+    part with a piece missing (named) and for the pieces of a part present whole (in ``whole``)."""
+    groups: Dict[str, List[str]] = {}
+    for n in names:
+        part = piece_archive(n)
+        if part is not None:
+            groups.setdefault(part, []).append(n)
+    parts, rejected = {}, []
+    for part, pieces in sorted(groups.items()):
+        gap = missing_piece(pieces)
+        if part in whole:
+            rejected += [(p, f"a piece of the zip part {part}, which is present whole (read from it)") for p in pieces]
+        elif gap:
+            rejected.append((part, f"split zip part: piece {gap} is missing (found {', '.join(sorted(pieces))})"))
+        else:
+            parts[part] = sorted(pieces)
+    return parts, rejected
+
+
 def expand_braces(pattern: str) -> List[str]:
     """The names a brace pattern stands for, in order: ``{000..003}`` is a zero-padded numeric
     range (as the WebDataset tools write shard names), ``{a,b}`` a list; several braces
@@ -85,48 +261,55 @@ def expand_braces(pattern: str) -> List[str]:
 
 
 def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
-    """``(root, names)`` of a corpus given as a brace pattern of tar shards
+    """``(root, names)`` of a corpus given as a brace pattern of archives
     (``s3://b/webvid-{000000..000009}.tar``: root ``s3://b/``, names ``webvid-000000.tar``...;
     the root is the pattern up to the last ``/`` before the first brace), or ``(videos, None)``
-    for a folder or prefix; a single ``.tar`` is a pattern of one."""
+    for a folder or prefix; a single ``.tar`` or ``.zip`` is a pattern of one."""
     brace = videos.find("{")
-    if brace < 0 and not videos.lower().endswith(".tar"):
+    if brace < 0 and not videos.lower().endswith(ARCHIVES):
         return videos, None
     cut = videos.rfind("/", 0, brace if brace >= 0 else len(videos)) + 1
     return videos[:cut] or ".", expand_braces(videos[cut:])
 
 
-
 def split_member(rel: str) -> Optional[Tuple[str, str]]:
-    """``("shard.tar", "member.mp4")`` for a tar member's id path, else None."""
-    i = rel.lower().find(".tar/")
-    return (rel[:i + 4], rel[i + 5:]) if i >= 0 else None
+    """``("shard.tar", "member.mp4")`` or ``("part.zip", "member.mp4")`` for an archive
+    member's id path (the first ``.tar/`` or ``.zip/`` ends the archive's name), else None."""
+    low = rel.lower()
+    hits = [i for i in (low.find(".tar/"), low.find(".zip/")) if i >= 0]
+    if not hits:
+        return None
+    i = min(hits)
+    return rel[:i + 4], rel[i + 5:]
 
 
 class ShardIndex:
-    """The member indexes of one source's tar shards: shard -> member name -> (offset of its
-    data, size) in bytes, each read from the shard's headers (:func:`tar_members`) once per
-    process and version of the shard, or given by a listing that holds them (a store's
-    manifest)."""
+    """The member indexes of one source's archives: archive -> member name -> entry (see the
+    module docstring), each read from the archive (:func:`archive_members`) once per process
+    and version of the archive, or given by a listing that holds them (a store's manifest);
+    and the pieces of its split zip parts (part -> pieces in order, one name for a whole one)."""
 
     def __init__(self):
-        self.members: Dict[str, Dict[str, Tuple[int, int]]] = {}
+        self.members: Dict[str, Dict[str, Tuple[int, ...]]] = {}
         self._versions: Dict[str, Optional[str]] = {}
+        #: Zip part -> its pieces in order (``[part]`` itself when whole), as found.
+        self.pieces: Dict[str, List[str]] = {}
 
-    def of(self, tar: str, version: Optional[str], open_raw) -> Dict[str, Tuple[int, int]]:
-        """The index of the shard ``tar``, read (``open_raw(tar)``: a context manager giving the
-        shard as a binary file) when it is not held or when ``version``, what stands for the
-        shard's content, differs from the one it was read at; None: always read it.
+    def of(self, archive: str, version: Optional[str], open_archive) -> Dict[str, Tuple[int, ...]]:
+        """The index of ``archive``, read (``open_archive(archive)``: a context manager giving it
+        as a binary file) when it is not held or when ``version``, what stands for the
+        archive's content, differs from the one it was read at; None: always read it.
 
         Raises:
-            tarfile.TarError, OSError, VideoError: the shard cannot be read (as ``open_raw``)."""
-        if tar not in self.members or version is None or self._versions.get(tar, "") != version:
-            with open_raw(tar) as f:
-                self.members[tar] = tar_members(f)
-            self._versions[tar] = version
-        return self.members[tar]
+            tarfile.TarError, zipfile.BadZipFile, OSError, VideoError: the archive cannot be
+                read (as :func:`archive_members` and ``open_archive``)."""
+        if archive not in self.members or version is None or self._versions.get(archive, "") != version:
+            with open_archive(archive) as f:
+                self.members[archive] = archive_members(archive, f)
+            self._versions[archive] = version
+        return self.members[archive]
 
-    def add(self, rel: str, offset: int, size: int) -> None:
-        """Hold the member ``rel`` (``shard.tar/member.mp4``) found by a listing."""
-        tar, name = split_member(rel)
-        self.members.setdefault(tar, {})[name] = (offset, size)
+    def add(self, rel: str, entry: Tuple[int, ...]) -> None:
+        """Hold the member ``rel`` (``shard.tar/member.mp4``) found by a listing, its ``entry``."""
+        archive, name = split_member(rel)
+        self.members.setdefault(archive, {})[name] = tuple(entry)

@@ -11,10 +11,10 @@ from typing import Dict, List, Optional, Tuple
 
 from v2v_server.videos.decode import VideoError, printable, utf8_name
 from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.manifest import StoreListing, etag_of
+from v2v_server.videos.manifest import StoreListing, etag_of, member_entry
 from v2v_server.videos.segments import base_path
-from v2v_server.videos.shards import TarMember, split_member, tar_members
-from v2v_server.videos.source import VideoSource
+from v2v_server.videos.shards import ARCHIVES, gather_pieces, piece_archive, split_member
+from v2v_server.videos.source import VideoSource, archive_kind
 from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_filesystem, time_fetches
 
 log = logging.getLogger("v2v.source")
@@ -76,6 +76,8 @@ class StoreSource(VideoSource):
         self._fs = None
         self.stats = ReadStats()
         self.cache = ObjectCache(Path(self.cache_dir) / "objects", settings.cache_max_gb)
+        #: Archive -> why its index could not be read while listing.
+        self._unreadable: Dict[str, str] = {}
 
     # ------------------------------------------------------------------ the filesystem
     @property
@@ -147,24 +149,52 @@ class StoreSource(VideoSource):
             if info.get("type", "file") != "file" or not key.startswith(self.prefix):
                 continue
             objects[key[len(self.prefix):]] = (int(info.get("size") or 0), etag_of(info))
-        for rel in [k for k in objects if k.lower().endswith(".tar")]:  # shards: their members, once
+        parts, _ = gather_pieces(objects, set(objects))  # split zip parts: read as their pieces joined
+        self.shards.pieces.update(parts)
+        for rel in [k for k in objects if k.lower().endswith(ARCHIVES)] + list(parts):  # archives: their members, once
             self._add_members(objects, rel)
         log.info("%s: listed %d object(s) in %.1f s", self.root, len(objects), time.monotonic() - t0)
         self.listing.listed(objects)
         return objects
 
-    def _add_members(self, objects: dict, tar: str) -> None:
-        """Add the members of the shard ``tar`` to ``objects`` as ``tar/member`` -> (size, the
-        shard's ETag, offset); an unreadable shard gets no member (it is reported when listed)."""
+    def _add_members(self, objects: dict, archive: str) -> None:
+        """Add the members of ``archive`` to ``objects`` as ``archive/member`` -> its manifest entry
+        (``manifest.member_entry``; a split part's ETag: its pieces', joined by ``+``); an
+        unreadable archive gets no member (it is reported when listed)."""
         try:
-            with self._open_raw(tar) as f:
-                members = tar_members(f)
-        except Exception as e:  # noqa: BLE001 - one bad shard never stops the listing
-            log.warning("tar shard %s cannot be read: %s: %s", self.where(tar), type(e).__name__, e)
+            members = self.archive_index(archive)
+        except Exception as e:  # noqa: BLE001 - one bad archive never stops the listing
+            self._unreadable[archive] = f"{type(e).__name__}: {e}"
             return
-        etag = objects.get(tar, (0, ""))[1]
-        for name, (offset, size) in members.items():
-            objects[f"{tar}/{name}"] = (size, etag, offset)
+        etag = "+".join(objects.get(p, (0, ""))[1] for p in self.pieces(archive))
+        for name, entry in members.items():
+            objects[f"{archive}/{name}"] = member_entry(entry, etag)
+
+    def _exists(self, rel: str) -> bool:
+        if self.listing.entry(rel) is not None:
+            return True
+        if self.listing.objects is not None and not self.names and not self.video_list:
+            return False  # the whole prefix is listed
+        try:
+            with self._request():
+                self.fs.info(self._path(rel))
+            return True
+        except VideoError:
+            return False
+
+    def _siblings(self, part: str) -> List[str]:
+        stem = part[:-len(".zip")] + "_part"
+        if self.listing.objects is not None:
+            found = [k for k in self.listing.objects if k.startswith(stem)]
+            if found or (not self.names and not self.video_list):
+                return found
+        try:
+            with self._request():
+                keys = self.fs.glob(self._path(stem) + "*")
+        except VideoError:
+            return []
+        base = self._path("")
+        return [k[len(base):] for k in keys if k.startswith(base)]
 
     def list_videos(self, extensions):
         names = self._names()
@@ -180,45 +210,61 @@ class StoreSource(VideoSource):
         for rel in sorted(self.objects()):
             if not utf8_name(rel):
                 rejected.append((printable(rel), "key is not valid UTF-8 (sample ids are UTF-8): rename it"))
-            elif rel.endswith("/") or not rel or rel.lower().endswith(".tar"):
-                continue  # a shard stands for its members, listed after it
+            elif rel.endswith("/") or not rel or rel.lower().endswith(ARCHIVES) or piece_archive(rel):
+                continue  # an archive stands for its members, listed after it
             elif split_member(rel) is not None and not rel.lower().endswith(tuple(extensions)):
-                continue  # a shard's metadata member (.json, .txt): not a video, not worth a line
+                if split_member(rel)[0].lower().endswith(".zip"):  # a zip part is a folder in a file
+                    rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
+                # a tar shard's metadata member (.json, .txt): not a video, not worth a line
             elif rel.lower().endswith(tuple(extensions)):
                 videos.append(rel)
             else:
                 rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
-        return videos, rejected
+        return videos, rejected + self._archive_problems(self.objects(), extensions)
+
+    def _archive_problems(self, objects: dict, extensions) -> List[Tuple[str, str]]:
+        """``(archive, reason)`` for each archive of the listing that gives no video member (it
+        cannot be read, or holds none) and each split part with a piece missing."""
+        parts, problems = gather_pieces(objects, set(objects))
+        members = [m for m in map(split_member, objects) if m is not None]
+        held, vids = {a for a, _ in members}, {a for a, m in members if m.lower().endswith(tuple(extensions))}
+        for archive in sorted([k for k in objects if k.lower().endswith(ARCHIVES)] + list(parts)):
+            if archive not in held:
+                why = self._unreadable.get(archive, "no member listed (--refresh-manifest reads it again)")
+                problems.append((archive, f"{archive_kind(archive)} cannot be read: {why}"))
+            elif archive not in vids:
+                problems.append((archive, f"{archive_kind(archive)} holds no video member"))
+        return problems
 
     # ------------------------------------------------------------------ reading
     @contextlib.contextmanager
     def open(self, rel: str):
         rel = base_path(rel)  # a segment reads its object (the pass keeps its time range)
-        member = split_member(rel)
-        if member is None:
+        if split_member(rel) is None:
             with self._open_raw(rel) as f:
                 yield f
             return
-        entry = self.listing.entry(rel)
-        with self._open_raw(member[0], entry) as f:
-            yield TarMember(f, *self._member_at(rel, entry))
+        with self._open_member(rel, self.listing.entry(rel)) as f:
+            yield f
 
     def identity(self, rel: str) -> Optional[str]:
         rel = base_path(rel)
         member = split_member(rel)
-        obj = member[0] if member is not None else rel
-        with self._request():
-            info = self.fs.info(self._path(obj))  # one HEAD request: no content read
-        self.stats.reads += 1
-        now, size = etag_of(info), int(info.get("size") or 0)
-        entry = self.listing.entry(rel)  # the listing's entry: the object's, or the member's (its shard's ETag, its offset)
+        infos = []
+        for obj in self.pieces(member[0]) if member is not None else [rel]:  # a split zip part: each piece
+            with self._request():
+                infos.append(self.fs.info(self._path(obj)))  # one HEAD request: no content read
+            self.stats.reads += 1
+        tags, size = [etag_of(i) for i in infos], sum(int(i.get("size") or 0) for i in infos)
+        now = "+".join(tags) if all(tags) else ""
+        entry = self.listing.entry(rel)  # the listing's entry: the object's, or the member's (its archive's ETag, where it lies)
         self._check_unchanged(entry, now)
         if not now:  # no version tag (an HTTP server without ETag): the size alone cannot vouch for the bytes
             return None
         if member is None:
             return f"object {size} {now}"
-        offset, msize = self._member_at(rel, entry)
-        return f"tar {size} {now} member {offset} {msize}"
+        where = " ".join(map(str, self._member_at(rel, entry)))
+        return f"{member[0][-3:].lower()} {size} {now} member {where}"
 
     @contextlib.contextmanager
     def _request(self):
