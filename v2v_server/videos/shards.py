@@ -133,7 +133,42 @@ def open_member(f, name: str, entry: Tuple[int, ...]):
                              f"bzip2 and LZMA are)")
     info = zipfile.ZipInfo(name)
     info.compress_type, info.file_size, info.compress_size, info.CRC, info.flag_bits = method, size, csize, crc, flags
-    return zipfile.ZipExtFile(MemberFile(f, data, csize), "r", info)
+    return CompressedMember(zipfile.ZipExtFile(MemberFile(f, data, csize), "r", info), size)
+
+
+class CompressedMember(io.RawIOBase):
+    """A compressed zip member (``reader``: zipfile's streaming reader, ``size``: bytes of
+    content) whose seeks move only a position until the next read: FFmpeg's probes of the
+    size (a seek to the end and back) then cost no decompression, and a seek backwards
+    restarts decompression from the member's start once, when read from."""
+
+    def __init__(self, reader, size: int):
+        super().__init__()
+        self.reader, self.size, self.pos = reader, size, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, pos: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
+        self.pos = min(max(0, base + pos), self.size)
+        return self.pos
+
+    def readinto(self, b) -> int:
+        if self.pos >= self.size:
+            return 0
+        if self.reader.tell() != self.pos:
+            self.reader.seek(self.pos)
+        data = self.reader.read(len(b))
+        b[:len(data)] = data
+        self.pos += len(data)
+        return len(data)
 
 
 class JoinedFile(io.RawIOBase):
