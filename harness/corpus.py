@@ -96,3 +96,44 @@ def write_size_change_video(path: Path, first: int, second: int, size1=(320, 240
         b = write_video(Path(d) / "b.mpg", second, *size2, codec="mpeg2video")
         path.write_bytes(a.read_bytes() + b.read_bytes())
     return path
+
+
+def write_zip_parts(parts: Path, ref: Path, clips: Path) -> Dict[str, str]:
+    """OpenVid-style zip parts of the clips in ``clips`` under ``parts``, and under ``ref`` the
+    same members as plain files in folders named like the parts (so both give the same sample
+    ids): ``p-0.zip`` stored (two clips and a ``readme.txt``), ``p-1.zip`` deflated (a clip in
+    a subfolder), ``p-2.zip`` ZIP64 (written by Info-ZIP's ``zip -fz``), and ``p-3.zip`` stored
+    and split into ``p-3_partaa``, ``_partab``, ``_partac`` as ``split -n 3`` cuts it (the
+    joined file is not kept). Returns member id -> the clip it holds.
+
+    Raises:
+        FileNotFoundError: no ``zip`` command (Info-ZIP) on PATH.
+    """
+    import subprocess
+    import zipfile
+
+    layout = {"p-0.zip/000000.mp4": "bikes.mp4", "p-0.zip/000001.mp4": "webvid_like_596x336.mp4",
+              "p-1.zip/clips/000000.mp4": "bigbuckbunny.mp4", "p-2.zip/000000.mp4": "bikes.mp4",
+              "p-3.zip/000000.mp4": "webvid_like_596x336.mp4", "p-3.zip/000001.mp4": "bikes.mp4"}
+    parts.mkdir(parents=True, exist_ok=True)
+    for rel, clip in layout.items():
+        (ref / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(clips / clip, ref / rel)
+    with zipfile.ZipFile(parts / "p-0.zip", "w", zipfile.ZIP_STORED) as z:
+        for name in ("000000.mp4", "000001.mp4"):
+            z.write(ref / "p-0.zip" / name, name)
+        z.writestr("readme.txt", "OpenVid-style part\n")
+    with zipfile.ZipFile(parts / "p-1.zip", "w", zipfile.ZIP_DEFLATED) as z:
+        z.write(ref / "p-1.zip/clips/000000.mp4", "clips/000000.mp4")
+    subprocess.run(["zip", "-q", "-fz", "-0", str((parts / "p-2.zip").resolve()), "000000.mp4"],
+                   cwd=ref / "p-2.zip", check=True)
+    joined = parts / "p-3.zip"
+    with zipfile.ZipFile(joined, "w", zipfile.ZIP_STORED) as z:
+        for name in ("000000.mp4", "000001.mp4"):
+            z.write(ref / "p-3.zip" / name, name)
+    data = joined.read_bytes()
+    cut = [0, len(data) // 3, 2 * len(data) // 3, len(data)]
+    for i, suffix in enumerate(("aa", "ab", "ac")):
+        (parts / f"p-3_part{suffix}").write_bytes(data[cut[i]:cut[i + 1]])
+    joined.unlink()
+    return layout

@@ -145,6 +145,9 @@ class CompressedMember(io.RawIOBase):
     def __init__(self, reader, size: int):
         super().__init__()
         self.reader, self.size, self.pos = reader, size, 0
+        #: The first read that failed (corrupt data: a bad CRC-32, a broken stream): it is raised
+        #: once, as :class:`ZipMemberError`, and later reads find the end (FFmpeg retries a read).
+        self.error: Optional[str] = None
 
     def readable(self) -> bool:
         return True
@@ -161,11 +164,15 @@ class CompressedMember(io.RawIOBase):
         return self.pos
 
     def readinto(self, b) -> int:
-        if self.pos >= self.size:
+        if self.pos >= self.size or self.error is not None:
             return 0
-        if self.reader.tell() != self.pos:
-            self.reader.seek(self.pos)
-        data = self.reader.read(len(b))
+        try:
+            if self.reader.tell() != self.pos:
+                self.reader.seek(self.pos)
+            data = self.reader.read(len(b))
+        except Exception as e:  # zipfile.BadZipFile, zlib.error, EOFError, lzma.LZMAError, OSError
+            self.error = f"zip member {self.reader.name}: corrupt data ({type(e).__name__}: {e})"
+            raise ZipMemberError(self.error) from None
         b[:len(data)] = data
         self.pos += len(data)
         return len(data)

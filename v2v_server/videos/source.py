@@ -339,7 +339,7 @@ class VideoSource:
             except Exception as e:  # one unreadable archive never stops the listing
                 pieces = self.shards.pieces.get(rel) or [rel]
                 hint = (f" (read as its pieces {', '.join(pieces)} joined: is a later piece missing?)"
-                        if len(pieces) > 1 else "")
+                        if pieces != [rel] else "")
                 rejected.append((rel, f"{kind} cannot be read: {type(e).__name__}: {e}{hint}"))
                 continue
             vids = [m for m in members if m.lower().endswith(tuple(extensions))]
