@@ -329,6 +329,35 @@ def test_tar_shards_local_bucket_and_brace_pattern(store, tmp_path, monkeypatch)
     assert objects is not None and len(objects["shard-0.tar/000001.mp4"]) == 3
 
 
+def test_zip_parts_in_a_bucket_a_brace_range_and_over_http(store, tmp_path, monkeypatch):
+    """OpenVid-style zip parts (stored, deflated, ZIP64, one split into pieces) uploaded to S3
+    give the samples of the same clips as files, listed from the prefix (members and pieces in
+    the manifest: a restart reads no central directory) or named by a brace range (nothing
+    listed; the split part's pieces found beside it, over plain HTTP by asking for each)."""
+    from harness.corpus import write_zip_parts
+
+    if shutil.which("zip") is None:
+        pytest.skip("Info-ZIP's zip not installed (it writes the ZIP64 part)")
+    parts, ref = tmp_path / "parts", tmp_path / "ref"
+    write_zip_parts(parts, ref, CLIPS)
+    for k, v in _env(store, tmp_path).items():
+        monkeypatch.setenv(k, v)
+    store.upload(parts, "s3://corpus/zips/")
+    expected = _rows(str(ref))
+    assert len(expected) == 12 and "p-3.zip/000001.mp4#1" in expected
+    assert _rows("s3://corpus/zips/") == expected
+    assert _rows("s3://corpus/zips/p-{0..3}.zip") == expected
+    assert _rows(f"{store.filer_url}/buckets/corpus/zips/p-{{0..3}}.zip") == expected  # over plain HTTP
+    objects = read_manifest(manifest_path("s3://corpus/zips/", None, str(tmp_path / "cache" / "v2v")),
+                            "s3://corpus/zips/")
+    deflated = objects["p-1.zip/clips/000000.mp4"]
+    assert len(deflated) == 7 and deflated[5] == 8  # size, ETag, offset, compressed size, CRC-32, method, flags
+    split = objects["p-3.zip/000001.mp4"]
+    assert split[1] == "+".join(objects[f"p-3_part{s}"][1] for s in ("aa", "ab", "ac"))
+    src = _source(store, tmp_path, "s3://corpus/zips/")
+    assert src.list_videos((".mp4",))[1] == [("p-0.zip/readme.txt", "not a video file (extension '.txt')")]
+
+
 def test_tar_shards_served_over_zeromq(store, tmp_path):
     tars, ref = _shards(tmp_path)
     store.upload(tars, "s3://corpus/zmq-shards/")

@@ -197,3 +197,36 @@ def test_bad_parts_and_members_are_named_once_and_the_rest_served(tmp_path):
     for name in want:
         if name != "good.zip/000000.mp4":
             assert sum(name in line for line in log.splitlines()) == 1, (name, log)
+
+
+def test_archives_find_a_split_part_and_read_it_joined(tmp_path):
+    """``Archives`` over a folder's primitives: a split part's pieces found in order and read as
+    the bytes ``cat`` would join; a gap named; a part that is neither whole nor in pieces missing."""
+    import contextlib
+
+    from v2v_server.videos.archives import Archives
+    from v2v_server.videos.decode import VideoError
+
+    data = os.urandom(10_000)
+    for i, piece in enumerate(("x_partaa", "x_partab", "x_partac")):
+        (tmp_path / piece).write_bytes(data[i * 4000:(i + 1) * 4000])
+    (tmp_path / "y_partaa").write_bytes(b"a")
+    (tmp_path / "y_partac").write_bytes(b"c")
+
+    @contextlib.contextmanager
+    def open_raw(rel, expected=None):
+        with open(tmp_path / rel, "rb") as f:
+            yield f
+
+    archives = Archives(str(tmp_path), open_raw, lambda rel: (tmp_path / rel).is_file(),
+                        lambda part: os.listdir(tmp_path), lambda archive: None)
+    assert archives.pieces("x.zip") == ["x_partaa", "x_partab", "x_partac"]
+    with archives.open("x.zip") as f:
+        assert f.read() == data
+        f.seek(3990)
+        assert f.read(20) == data[3990:4010]  # across two pieces
+        assert f.seek(-5, os.SEEK_END) == 9995 and f.read() == data[-5:]
+    with pytest.raises(VideoError, match=r"piece y_partab is missing \(found y_partaa, y_partac\)"):
+        archives.pieces("y.zip")
+    with pytest.raises(VideoError, match="missing from"):
+        archives.pieces("z.zip")

@@ -82,8 +82,8 @@ class LocalSource(VideoSource):
         others = [(p.as_posix(), why) for p, why in rejected]
         is_piece = lambda r: r[1].startswith("not a video file") and PIECE.match(r[0])  # noqa: E731
         parts, problems = gather_pieces([rel for rel, why in others if is_piece((rel, why))], set(names))
-        self.shards.pieces.update(parts)
-        return self._with_members(sorted(names + list(parts)), [r for r in others if not is_piece(r)] + problems,
+        self.archives.index.pieces.update(parts)
+        return self.archives.expand(sorted(names + list(parts)), [r for r in others if not is_piece(r)] + problems,
                                   extensions)
 
     def _exists(self, rel: str) -> bool:
@@ -108,7 +108,7 @@ class LocalSource(VideoSource):
         if member is None:
             return False
         try:
-            return bool(self.pieces(member[0]))
+            return bool(self.archives.pieces(member[0]))
         except VideoError:
             return False
 
@@ -118,7 +118,7 @@ class LocalSource(VideoSource):
         if not self._in_archive(rel):
             yield corpus_file(self.root, rel)
             return
-        with self._open_member(rel) as f:
+        with self.archives.open_member(rel) as f:
             yield f
 
     def where(self, rel: str) -> str:
@@ -130,7 +130,7 @@ class LocalSource(VideoSource):
             if self._in_archive(rel):
                 archive = split_member(rel)[0]
                 stats = self._archive_stats(archive)
-                where = " ".join(map(str, self._member_at(rel, None)))
+                where = " ".join(map(str, self.archives.member_at(rel, None)))
                 held = " + ".join(file_identity(st) for st in stats)
                 return None if any(racy(st) for st in stats) else f"{archive[-3:].lower()} {held} member {where}"
             st = os.stat(corpus_file(self.root, rel))
@@ -144,7 +144,7 @@ class LocalSource(VideoSource):
 
         Raises:
             VideoError, OSError: one is missing."""
-        return [os.stat(corpus_file(self.root, p)) for p in self.pieces(archive)]
+        return [os.stat(corpus_file(self.root, p)) for p in self.archives.pieces(archive)]
 
     def _shard_version(self, tar: str) -> Optional[str]:
         """The archive's identity (:func:`file_identity`, of each piece of a split zip part); None

@@ -206,17 +206,18 @@ class JoinedFile(io.RawIOBase):
     def readinto(self, b) -> int:
         import bisect
 
-        n = min(len(b), self.size - self.pos)
-        if n <= 0:
-            return 0
-        i = bisect.bisect_right(self.starts, self.pos) - 1
-        f, local = self.files[i], self.pos - self.starts[i]
-        n = min(n, self.starts[i + 1] - self.pos)  # within one piece; the caller reads on
-        f.seek(local)
-        data = f.read(n)
-        b[:len(data)] = data
-        self.pos += len(data)
-        return len(data)
+        want, done = min(len(b), self.size - self.pos), 0
+        while done < want:  # a read across pieces is whole: zipfile reads headers in one call
+            i = bisect.bisect_right(self.starts, self.pos) - 1
+            f = self.files[i]
+            f.seek(self.pos - self.starts[i])
+            data = f.read(min(want - done, self.starts[i + 1] - self.pos))
+            if not data:
+                break  # a piece shorter than it was: the reader finds the archive cut short
+            b[done:done + len(data)] = data
+            done += len(data)
+            self.pos += len(data)
+        return done
 
 
 def piece_archive(name: str) -> Optional[str]:
@@ -240,6 +241,14 @@ def _suffixes(first: str):
         if i < 0:
             return
         s[i] = chr(ord(s[i]) + 1)
+
+
+def piece_names(part: str):
+    """The names the pieces of the zip part ``part`` would have, in order (``a/X.zip`` ->
+    ``a/X_partaa``, ``a/X_partab``...), without end: what a reader without a listing (plain
+    HTTP) asks for until one is missing."""
+    stem = part[:-len(".zip")] if part.lower().endswith(".zip") else part
+    return (f"{stem}_part{suffix}" for suffix in _suffixes("aa"))
 
 
 def missing_piece(pieces: Sequence[str]) -> Optional[str]:

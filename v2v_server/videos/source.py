@@ -33,21 +33,20 @@ the server skips and logs once; the server stays up.
 """
 from __future__ import annotations
 
-import contextlib
 import logging
 import sqlite3
 import tempfile
-from pathlib import Path, PurePosixPath
-from typing import Dict, List, Optional, Sequence, Tuple
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple
 
 from v2v_server.faults import warn_once
+from v2v_server.videos.archives import Archives
 from v2v_server.videos.corpus_index import CorpusIndex, index_path
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.manifest import default_cache_dir, index_entry
+from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.segments import range_problem, split_segment
-from v2v_server.videos.shards import (ARCHIVES, JoinedFile, ShardIndex, ZipMemberError, missing_piece, open_member,
-                                      piece_archive, split_member)
+from v2v_server.videos.shards import ARCHIVES, split_member
 from v2v_server.videos.video_list import read_video_list
 
 
@@ -77,8 +76,8 @@ class VideoSource:
         #: The host's decoded-frame cache, None when off: what ``frames.open_frames`` reads.
         self.frame_cache: Optional[FrameCache] = frame_cache
         self.cache_dir = cache_dir or str(default_cache_dir())
-        #: The member indexes of the corpus's archives and the pieces of its split zip parts.
-        self.shards = ShardIndex()
+        #: The corpus's archives: their member indexes, split parts' pieces, their members opened.
+        self.archives = Archives(self.root, self._open_raw, self._exists, self._siblings, self._shard_version)
         self._index: Optional[CorpusIndex] = None  # opened at the first use in this process
         self._index_failed = False
 
@@ -154,7 +153,7 @@ class VideoSource:
         """
         if self.names:
             if self.video_list:
-                raise ValueError(f"--videos {self.root}: a brace pattern of tar shards names the shards itself; "
+                raise ValueError(f"--videos {self.root}: a brace pattern of archives names them itself; "
                                  f"give it or --video-list {self.video_list}, not both")
             return list(self.names)
         return read_video_list(self.video_list) if self.video_list else None
@@ -191,7 +190,7 @@ class VideoSource:
 
     def _listed(self, names: Sequence[str], exists, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """Keep the names of a video list that ``exists(name)`` and have a video extension; a
-        ``.tar`` or ``.zip`` name stands for its video members (:meth:`_with_members`), and a name
+        ``.tar`` or ``.zip`` name stands for its video members (``Archives.expand``), and a name
         inside an archive (``shard.tar/member.mp4``, with or without a time range) for that member."""
         videos, rejected = [], []
         for rel in names:
@@ -204,55 +203,13 @@ class VideoSource:
             elif not base.lower().endswith(tuple(extensions)):
                 rejected.append((rel, f"listed in {self.video_list} but not a video file (extensions "
                                       f"{', '.join(extensions)})"))
-            elif not (self._has_member(base, exists) if split_member(base) else exists(base)):
+            elif not (self.archives.has_member(base, exists) if split_member(base) else exists(base)):
                 rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
             else:
                 videos.append(rel)
-        return self._with_members(videos, rejected, extensions)
+        return self.archives.expand(videos, rejected, extensions)
 
-    def _has_member(self, rel: str, exists) -> bool:
-        """Whether the archive member ``rel`` (``shard.tar/member.mp4``, a list entry such as a
-        segment's video) is in its archive, which ``exists`` (a zip part: whole or in pieces)."""
-        archive, name = split_member(rel)
-        try:
-            return (exists(archive) or archive.lower().endswith(".zip")) and name in self.archive_index(archive)
-        except Exception:  # an unreadable archive: the member is missing
-            return False
-
-    # ------------------------------------------------------------------ archives
-    def archive_index(self, archive: str) -> Dict[str, Tuple[int, ...]]:
-        """Member name -> index entry (``videos.shards``: offset and size in bytes, and a zip
-        member's fields) of the archive at ``archive`` (relative path), read once per process
-        and version of the archive (:meth:`_shard_version`): one rewritten in place is read again.
-
-        Raises:
-            VideoError: it is missing, or a split part lacks a piece (named).
-            tarfile.TarError, zipfile.BadZipFile, OSError: it cannot be read."""
-        return self.shards.of(archive, self._shard_version(archive), self._open_archive)
-
-    def pieces(self, archive: str) -> List[str]:
-        """The files or objects that hold ``archive``: ``[archive]`` when it is one, else (a zip
-        part) its pieces ``archive-stem_partaa``, ``_partab``... in order, all present.
-
-        Raises:
-            VideoError: it is missing, or a piece of it is (named)."""
-        got = self.shards.pieces.get(archive)
-        if got is not None:
-            return got
-        if self._exists(archive):
-            got = [archive]
-        else:
-            found = [n for n in self._siblings(archive) if piece_archive(n) == archive] \
-                if archive.lower().endswith(".zip") else []
-            if not found:
-                raise VideoError(f"missing from {self.root}")
-            gap = missing_piece(found)
-            if gap:
-                raise VideoError(f"split zip part: piece {gap} is missing (found {', '.join(sorted(found))})")
-            got = sorted(found)
-        self.shards.pieces[archive] = got
-        return got
-
+    # ------------------------------------------------------------------ what the archives read
     def _exists(self, rel: str) -> bool:
         """Whether the file or object ``rel`` exists."""
         raise NotImplementedError
@@ -261,36 +218,9 @@ class VideoSource:
         """Names beside the zip part ``part`` that may be its pieces (``stem_part*``)."""
         raise NotImplementedError
 
-    @contextlib.contextmanager
-    def _open_archive(self, archive: str, expected: Optional[tuple] = None):
-        """The archive at ``archive`` as one binary file: the file or object (checked against
-        ``expected``, its listing entry, on a store), or a split part's pieces joined."""
-        pieces = self.pieces(archive)
-        if pieces == [archive]:
-            with self._open_raw(archive, expected) as f:
-                yield f
-            return
-        with contextlib.ExitStack() as stack:
-            yield JoinedFile([stack.enter_context(self._open_raw(p)) for p in pieces])
-
-    @contextlib.contextmanager
-    def _open_member(self, rel: str, entry: Optional[tuple] = None):
-        """The archive member ``rel`` as a readable, seekable binary file (``shards.open_member``),
-        located by its listing ``entry`` (a store's manifest) or its archive's index.
-
-        Raises:
-            VideoError: no such member, or it cannot be read (encrypted, corrupt header...)."""
-        archive, name = split_member(rel)
-        where = self._member_at(rel, entry)
-        with self._open_archive(archive, entry) as f:
-            try:
-                yield open_member(f, name, where)
-            except ZipMemberError as e:
-                raise VideoError(str(e)) from None
-
-    def _shard_version(self, tar: str) -> Optional[str]:
-        """What stands for the content of archive ``tar`` when its index is reused; None: read
-        the index again. A store's archive is held to its listed ETag when it is opened
+    def _shard_version(self, archive: str) -> Optional[str]:
+        """What stands for the content of ``archive`` when its index is reused; None: read the
+        index again. A store's archive is held to its listed ETag when it is opened
         (``StoreSource._check_unchanged``), so its index stands."""
         return ""
 
@@ -298,60 +228,3 @@ class VideoSource:
         """A context manager giving the file or object at ``rel`` as a binary file (an object
         checked against ``expected``, its listing entry)."""
         raise NotImplementedError
-
-    def _member_at(self, rel: str, entry: Optional[tuple]) -> Tuple[int, ...]:
-        """The index entry of the archive member ``rel``: from its manifest ``entry`` (a store's),
-        else the archive's index.
-
-        Raises:
-            VideoError: the archive has no such member, or cannot be read."""
-        if entry is not None and len(entry) >= 3:
-            return index_entry(entry)
-        archive, name = split_member(rel)
-        try:
-            where = self.archive_index(archive).get(name)
-        except VideoError:
-            raise
-        except Exception as e:
-            raise VideoError(f"{archive_kind(archive)} {archive} cannot be read: {type(e).__name__}: {e}") from None
-        if where is None:
-            raise VideoError(f"no member {name!r} in the {archive_kind(archive)} {archive}")
-        return where
-
-    def _with_members(self, names: List[str], rejected: List[Tuple[str, str]], extensions: Sequence[str]
-                      ) -> Tuple[List[str], List[Tuple[str, str]]]:
-        """``names`` with each archive replaced by its video members, ``shard.tar/member.mp4``.
-        A tar shard follows the WebDataset convention: a sample's files share a key, the video
-        is the member with a video extension, the others (``.json``, ``.txt``) are not served
-        and not named. A zip part is a folder in a file: each other member is named, as a
-        folder's other files are."""
-        out = []
-        for rel in names:
-            if not rel.lower().endswith(ARCHIVES):
-                out.append(rel)
-                continue
-            kind = archive_kind(rel)
-            try:
-                members = self.archive_index(rel)
-            except VideoError as e:
-                rejected.append((rel, f"{kind}: {e}"))
-                continue
-            except Exception as e:  # one unreadable archive never stops the listing
-                pieces = self.shards.pieces.get(rel) or [rel]
-                hint = (f" (read as its pieces {', '.join(pieces)} joined: is a later piece missing?)"
-                        if pieces != [rel] else "")
-                rejected.append((rel, f"{kind} cannot be read: {type(e).__name__}: {e}{hint}"))
-                continue
-            vids = [m for m in members if m.lower().endswith(tuple(extensions))]
-            out += [f"{rel}/{m}" for m in vids]
-            if not vids:
-                rejected.append((rel, f"{kind} holds no video member"))
-            elif kind == "zip part":
-                rejected += [(f"{rel}/{m}", f"not a video file (extension {PurePosixPath(m).suffix or 'none'!r})")
-                             for m in members if not m.lower().endswith(tuple(extensions))]
-        return out, rejected
-
-
-def archive_kind(archive: str) -> str:
-    """``"zip part"`` or ``"tar shard"``: what a message calls the archive ``archive``."""
-    return "zip part" if archive.lower().endswith(".zip") else "tar shard"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import logging
 import time
 from pathlib import Path
@@ -13,8 +14,9 @@ from v2v_server.videos.decode import VideoError, printable, utf8_name
 from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.manifest import StoreListing, etag_of, member_entry
 from v2v_server.videos.segments import base_path
-from v2v_server.videos.shards import ARCHIVES, gather_pieces, piece_archive, split_member
-from v2v_server.videos.source import VideoSource, archive_kind
+from v2v_server.videos.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
+from v2v_server.videos.archives import listing_problems
+from v2v_server.videos.source import VideoSource
 from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_filesystem, time_fetches
 
 log = logging.getLogger("v2v.source")
@@ -72,7 +74,7 @@ class StoreSource(VideoSource):
         self.storage_options = dict(storage_options or {})
         self.settings = settings
         #: The listing: the objects under the prefix and the manifest that keeps them.
-        self.listing = StoreListing(self.root, manifest, refresh_manifest, self.shards)
+        self.listing = StoreListing(self.root, manifest, refresh_manifest, self.archives.index)
         self._fs = None
         self.stats = ReadStats()
         self.cache = ObjectCache(Path(self.cache_dir) / "objects", settings.cache_max_gb)
@@ -150,7 +152,7 @@ class StoreSource(VideoSource):
                 continue
             objects[key[len(self.prefix):]] = (int(info.get("size") or 0), etag_of(info))
         parts, _ = gather_pieces(objects, set(objects))  # split zip parts: read as their pieces joined
-        self.shards.pieces.update(parts)
+        self.archives.index.pieces.update(parts)
         for rel in [k for k in objects if k.lower().endswith(ARCHIVES)] + list(parts):  # archives: their members, once
             self._add_members(objects, rel)
         log.info("%s: listed %d object(s) in %.1f s", self.root, len(objects), time.monotonic() - t0)
@@ -162,11 +164,11 @@ class StoreSource(VideoSource):
         (``manifest.member_entry``; a split part's ETag: its pieces', joined by ``+``); an
         unreadable archive gets no member (it is reported when listed)."""
         try:
-            members = self.archive_index(archive)
+            members = self.archives.members(archive)
         except Exception as e:  # noqa: BLE001 - one bad archive never stops the listing
             self._unreadable[archive] = f"{type(e).__name__}: {e}"
             return
-        etag = "+".join(objects.get(p, (0, ""))[1] for p in self.pieces(archive))
+        etag = "+".join(objects.get(p, (0, ""))[1] for p in self.archives.pieces(archive))
         for name, entry in members.items():
             objects[f"{archive}/{name}"] = member_entry(entry, etag)
 
@@ -175,12 +177,17 @@ class StoreSource(VideoSource):
             return True
         if self.listing.objects is not None and not self.names and not self.video_list:
             return False  # the whole prefix is listed
+        t0 = time.perf_counter()
         try:
-            with self._request():
-                self.fs.info(self._path(rel))
+            self.fs.info(self._path(rel))  # one HEAD request
             return True
-        except VideoError:
+        except FileNotFoundError:  # not a fault: a split part is looked for piece by piece
             return False
+        except Exception as e:
+            raise VideoError(f"cannot open: {type(e).__name__}: {e}") from None
+        finally:
+            self.stats.reads += 1
+            self.stats.read_s += time.perf_counter() - t0
 
     def _siblings(self, part: str) -> List[str]:
         stem = part[:-len(".zip")] + "_part"
@@ -188,6 +195,8 @@ class StoreSource(VideoSource):
             found = [k for k in self.listing.objects if k.startswith(stem)]
             if found or (not self.names and not self.video_list):
                 return found
+        if self.protocol in ("http", "https"):  # no listing: ask for each piece until one is missing
+            return list(itertools.takewhile(self._exists, piece_names(part)))
         try:
             with self._request():
                 keys = self.fs.glob(self._path(stem) + "*")
@@ -220,21 +229,7 @@ class StoreSource(VideoSource):
                 videos.append(rel)
             else:
                 rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
-        return videos, rejected + self._archive_problems(self.objects(), extensions)
-
-    def _archive_problems(self, objects: dict, extensions) -> List[Tuple[str, str]]:
-        """``(archive, reason)`` for each archive of the listing that gives no video member (it
-        cannot be read, or holds none) and each split part with a piece missing."""
-        parts, problems = gather_pieces(objects, set(objects))
-        members = [m for m in map(split_member, objects) if m is not None]
-        held, vids = {a for a, _ in members}, {a for a, m in members if m.lower().endswith(tuple(extensions))}
-        for archive in sorted([k for k in objects if k.lower().endswith(ARCHIVES)] + list(parts)):
-            if archive not in held:
-                why = self._unreadable.get(archive, "no member listed (--refresh-manifest reads it again)")
-                problems.append((archive, f"{archive_kind(archive)} cannot be read: {why}"))
-            elif archive not in vids:
-                problems.append((archive, f"{archive_kind(archive)} holds no video member"))
-        return problems
+        return videos, rejected + listing_problems(self.objects(), self._unreadable, extensions)
 
     # ------------------------------------------------------------------ reading
     @contextlib.contextmanager
@@ -244,14 +239,14 @@ class StoreSource(VideoSource):
             with self._open_raw(rel) as f:
                 yield f
             return
-        with self._open_member(rel, self.listing.entry(rel)) as f:
+        with self.archives.open_member(rel, self.listing.entry(rel)) as f:
             yield f
 
     def identity(self, rel: str) -> Optional[str]:
         rel = base_path(rel)
         member = split_member(rel)
         infos = []
-        for obj in self.pieces(member[0]) if member is not None else [rel]:  # a split zip part: each piece
+        for obj in self.archives.pieces(member[0]) if member is not None else [rel]:  # a split zip part: each piece
             with self._request():
                 infos.append(self.fs.info(self._path(obj)))  # one HEAD request: no content read
             self.stats.reads += 1
@@ -263,7 +258,7 @@ class StoreSource(VideoSource):
             return None
         if member is None:
             return f"object {size} {now}"
-        where = " ".join(map(str, self._member_at(rel, entry)))
+        where = " ".join(map(str, self.archives.member_at(rel, entry)))
         return f"{member[0][-3:].lower()} {size} {now} member {where}"
 
     @contextlib.contextmanager
