@@ -62,13 +62,13 @@ def archive_members(archive: str, f) -> Dict[str, Tuple[int, ...]]:
     return zip_members(f) if archive.lower().endswith(".zip") else tar_members(f)
 
 
-class MemberFile(io.RawIOBase):
-    """A read-only, seekable window ``[offset, offset + size)`` of the binary file ``f``: a tar
-    member or a stored zip member, read in place (FFmpeg decodes it like a file of its own)."""
+class SizedReader(io.RawIOBase):
+    """A read-only, seekable binary file of ``size`` bytes at position ``pos``: seeks stay within
+    ``[0, size]`` and only move the position; a subclass reads from it (``readinto``)."""
 
-    def __init__(self, f, offset: int, size: int):
+    def __init__(self, size: int):
         super().__init__()
-        self.f, self.offset, self.size, self.pos = f, offset, size, 0
+        self.size, self.pos = size, 0
 
     def readable(self) -> bool:
         return True
@@ -83,6 +83,15 @@ class MemberFile(io.RawIOBase):
         base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
         self.pos = min(max(0, base + pos), self.size)
         return self.pos
+
+
+class MemberFile(SizedReader):
+    """A read-only, seekable window ``[offset, offset + size)`` of the binary file ``f``: a tar
+    member or a stored zip member, read in place (FFmpeg decodes it like a file of its own)."""
+
+    def __init__(self, f, offset: int, size: int):
+        super().__init__(size)
+        self.f, self.offset = f, offset
 
     def readinto(self, b) -> int:
         n = min(len(b), self.size - self.pos)
@@ -136,32 +145,18 @@ def open_member(f, name: str, entry: Tuple[int, ...]):
     return CompressedMember(zipfile.ZipExtFile(MemberFile(f, data, csize), "r", info), size)
 
 
-class CompressedMember(io.RawIOBase):
+class CompressedMember(SizedReader):
     """A compressed zip member (``reader``: zipfile's streaming reader, ``size``: bytes of
     content) whose seeks move only a position until the next read: FFmpeg's probes of the
     size (a seek to the end and back) then cost no decompression, and a seek backwards
     restarts decompression from the member's start once, when read from."""
 
     def __init__(self, reader, size: int):
-        super().__init__()
-        self.reader, self.size, self.pos = reader, size, 0
+        super().__init__(size)
+        self.reader = reader
         #: The first read that failed (corrupt data: a bad CRC-32, a broken stream): it is raised
         #: once, as :class:`ZipMemberError`, and later reads find the end (FFmpeg retries a read).
         self.error: Optional[str] = None
-
-    def readable(self) -> bool:
-        return True
-
-    def seekable(self) -> bool:
-        return True
-
-    def tell(self) -> int:
-        return self.pos
-
-    def seek(self, pos: int, whence: int = io.SEEK_SET) -> int:
-        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
-        self.pos = min(max(0, base + pos), self.size)
-        return self.pos
 
     def readinto(self, b) -> int:
         if self.pos >= self.size or self.error is not None:
@@ -178,30 +173,15 @@ class CompressedMember(io.RawIOBase):
         return len(data)
 
 
-class JoinedFile(io.RawIOBase):
+class JoinedFile(SizedReader):
     """The binary files ``files`` read one after another as one read-only, seekable file: a
     split zip part read as the archive ``cat`` would join, without joining it."""
 
     def __init__(self, files: Sequence):
-        super().__init__()
-        self.files, self.starts, self.pos = list(files), [0], 0
+        self.files, self.starts = list(files), [0]
         for f in self.files:
             self.starts.append(self.starts[-1] + f.seek(0, io.SEEK_END))
-        self.size = self.starts[-1]
-
-    def readable(self) -> bool:
-        return True
-
-    def seekable(self) -> bool:
-        return True
-
-    def tell(self) -> int:
-        return self.pos
-
-    def seek(self, pos: int, whence: int = io.SEEK_SET) -> int:
-        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
-        self.pos = min(max(0, base + pos), self.size)
-        return self.pos
+        super().__init__(self.starts[-1])
 
     def readinto(self, b) -> int:
         import bisect
