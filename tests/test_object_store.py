@@ -356,6 +356,19 @@ def test_zip_parts_in_a_bucket_a_brace_range_and_over_http(store, tmp_path, monk
     assert split[1] == "+".join(objects[f"p-3_part{s}"][1] for s in ("aa", "ab", "ac"))
     src = _source(store, tmp_path, "s3://corpus/zips/")
     assert src.list_videos((".mp4",))[1] == [("p-0.zip/readme.txt", "not a video file (extension '.txt')")]
+    # bad parts beside good ones: each named once in the listing, the good part's members kept
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    good = (parts / "p-1.zip").read_bytes()
+    (bad / "p-1.zip").write_bytes(good)
+    (bad / "cut.zip").write_bytes(good[:-30])
+    (bad / "gap_partaa").write_bytes(good[:1000])
+    (bad / "gap_partac").write_bytes(good[2000:])
+    store.upload(bad, "s3://corpus/badzips/")
+    videos, rejected = _source(store, tmp_path, "s3://corpus/badzips/").list_videos((".mp4",))
+    assert videos == ["p-1.zip/clips/000000.mp4"]
+    assert rejected == [("cut.zip", "zip part cannot be read: BadZipFile: File is not a zip file"),
+                        ("gap.zip", "split zip part: piece gap_partab is missing (found gap_partaa, gap_partac)")]
 
 
 def test_tar_shards_served_over_zeromq(store, tmp_path):

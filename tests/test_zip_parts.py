@@ -230,3 +230,11 @@ def test_archives_find_a_split_part_and_read_it_joined(tmp_path):
         archives.pieces("y.zip")
     with pytest.raises(VideoError, match="missing from"):
         archives.pieces("z.zip")
+
+
+def test_zip_parts_served_over_zeromq_as_the_files(parts):
+    """The server and its worker processes (each building the source from its spec, finding the
+    split part's pieces itself) serve the parts' epoch as the files' byte for byte."""
+    folder, ref = parts
+    from_parts, _ = _epoch(str(folder))
+    assert len(from_parts) == 12 and from_parts == _epoch(str(ref))[0]

@@ -169,4 +169,4 @@ def listing_problems(objects: Dict[str, tuple], unreadable: Dict[str, str], exte
             problems.append((archive, f"{archive_kind(archive)} cannot be read: {why}"))
         elif archive not in vids:
             problems.append((archive, f"{archive_kind(archive)} holds no video member"))
-    return problems
+    return sorted(problems)
