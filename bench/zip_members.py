@@ -96,9 +96,9 @@ def _read_ratio(part: Path, name: str) -> float:
     return f.read_bytes / entry[2]
 
 
-def measure(root: Path, work: Path, repeat: int) -> list:
+def measure(root: Path, work: Path, repeat: int, clips=CLIPS) -> list:
     rows = []
-    for clip in CLIPS:
+    for clip in clips:
         for layout in ("moov last", "moov first"):
             name = clip if layout == "moov last" else f"fast_{clip}"
             src = work / name
@@ -143,11 +143,13 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--out", default=None, help="folder for zip_members.md and .json")
+    p.add_argument("--clips", default=",".join(CLIPS), help="bundled clips to measure, comma-separated")
     args = p.parse_args(argv)
     root = Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos"
     with tempfile.TemporaryDirectory() as tmp:
-        rows = measure(root, Path(tmp), args.repeat)
-    command = "python -m bench.zip_members" + (f" --repeat {args.repeat}" if args.repeat != 5 else "")
+        rows = measure(root, Path(tmp), args.repeat, args.clips.split(","))
+    command = "python -m bench.zip_members" + (f" --repeat {args.repeat}" if args.repeat != 5 else "") + (
+        f" --clips {args.clips}" if args.clips != ",".join(CLIPS) else "")
     text = report(rows, command)
     print(text)
     if args.out:

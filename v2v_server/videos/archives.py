@@ -160,7 +160,7 @@ def listing_problems(objects: Dict[str, tuple], unreadable: Dict[str, str], exte
     """``(archive, reason)`` for each archive of a store's listing ``objects`` (key -> entry,
     members included) that gives no video member (it could not be read, ``unreadable``:
     archive -> why, or holds none) and each split zip part with a piece missing."""
-    parts, problems = gather_pieces(objects, set(objects))
+    parts, problems = gather_pieces([k for k in objects if split_member(k) is None], set(objects))
     members = [m for m in map(split_member, objects) if m is not None]
     held, vids = {a for a, _ in members}, {a for a, m in members if m.lower().endswith(tuple(extensions))}
     for archive in sorted([k for k in objects if k.lower().endswith(ARCHIVES)] + list(parts)):
