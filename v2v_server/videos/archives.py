@@ -117,7 +117,7 @@ class Archives:
         return where
 
     def expand(self, names: List[str], rejected: List[Tuple[str, str]], extensions: Sequence[str]
-                      ) -> Tuple[List[str], List[Tuple[str, str]]]:
+               ) -> Tuple[List[str], List[Tuple[str, str]]]:
         """``names`` with each archive replaced by its video members, ``shard.tar/member.mp4``.
         A tar shard follows the WebDataset convention: a sample's files share a key, the video
         is the member with a video extension, the others (``.json``, ``.txt``) are not served

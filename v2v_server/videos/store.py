@@ -10,12 +10,12 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
+from v2v_server.videos.archives import listing_problems
 from v2v_server.videos.decode import VideoError, printable, utf8_name
 from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.manifest import StoreListing, etag_of, member_entry
 from v2v_server.videos.segments import base_path
 from v2v_server.videos.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
-from v2v_server.videos.archives import listing_problems
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_filesystem, time_fetches
 
