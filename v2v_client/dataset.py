@@ -23,7 +23,7 @@ from typing import Iterator, Optional, Sequence, Tuple, Union
 import torch
 
 from v2v_wire.codecs import available, check_compression
-from v2v_wire.protocol import DEFAULT_OUTPUTS, OUTPUTS, check_outputs
+from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_CREDITS, OUTPUTS, check_outputs
 
 from .connection import StreamError, StreamTimeout, load_curve_keys
 from .endpoint import EndpointStream, StreamOptions, padding_copy
@@ -52,7 +52,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             ``v2v_wire.outputs``); the server's workers compute the union of what its connected
             clients ask for.
         credits: batches the server may have in flight to this iterator (prefetch depth);
-            the server refuses more than its ``max_credits`` (default 64) with a clear error.
+            the server refuses more than its ``max_credits`` (default ``DEFAULT_MAX_CREDITS``, 64) with a clear error.
         timeout_s: seconds without any message from the server (batches or heartbeats)
             before iteration raises ``StreamTimeout``; also bounds the wait for the first
             answer, so an absent server gives a clear error, never a hang. A heartbeating
@@ -279,8 +279,8 @@ def _check_options(credits, timeout_s, group, shm, compact_flow, compression) ->
     Raises:
         ValueError: naming the argument and the value given.
     """
-    if isinstance(credits, bool) or not isinstance(credits, int) or not 1 <= credits <= 1024:
-        raise ValueError(f"credits must be an int in [1, 1024], got {credits!r}")
+    if isinstance(credits, bool) or not isinstance(credits, int) or not 1 <= credits <= MAX_CREDITS:
+        raise ValueError(f"credits must be an int in [1, {MAX_CREDITS}], got {credits!r}")
     if not timeout_s > 0:
         raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
     if not isinstance(group, str) or not group or len(group) > 128:

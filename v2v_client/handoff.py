@@ -28,7 +28,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from v2v_wire.protocol import BATCH_DIR_RE, BATCH_FILE_HEADER, BATCH_FILE_RE, WIRE_DTYPES, ProtocolError
+from v2v_wire.protocol import BATCH_DIR_RE, BATCH_FILE_HEADER, BATCH_FILE_RE, ProtocolError, array_spec
 
 #: Mapped batch files kept open per connection (the server keeps a few buffers per layout).
 MAX_MAPPINGS = 16
@@ -80,15 +80,7 @@ def shm_layout(specs, ref, file_size: int) -> List[tuple]:
         raise ProtocolError("fields 'arrays' and 'shm.offsets' must be lists of the same length")
     out = []
     for i, (spec, off) in enumerate(zip(specs, ref["offsets"])):
-        if not isinstance(spec, dict):
-            raise ProtocolError("array spec must be a map")
-        name, dtype, shape = spec.get("name"), spec.get("dtype"), spec.get("shape")
-        if not isinstance(name, str) or dtype not in WIRE_DTYPES:
-            raise ProtocolError(f"bad array spec {spec!r:.120}")
-        if not isinstance(shape, list) or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0
-                                                  for s in shape) or len(shape) > 8:
-            raise ProtocolError(f"bad shape in array spec {spec!r:.120}")
-        dt = np.dtype(dtype)
+        name, dt, shape = array_spec(spec)
         nbytes = math.prod(shape) * dt.itemsize  # Python ints: no overflow
         if isinstance(off, bool) or not isinstance(off, int) or off < BATCH_FILE_HEADER or off % dt.itemsize \
                 or off + nbytes > file_size:

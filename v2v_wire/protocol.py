@@ -245,6 +245,31 @@ def encode_arrays(arrays: Dict[str, np.ndarray]) -> Tuple[List[dict], List[np.nd
     return specs, frames
 
 
+#: Most batches one client may hold in flight (its ``credits``): what a client may ask for and the
+#: ceiling of a server's ``max_credits`` (a typo like ``100000`` is an error, not an OOM).
+MAX_CREDITS = 1024
+
+
+def array_spec(spec) -> Tuple[str, np.dtype, List[int]]:
+    """``(name, dtype, shape)`` of one entry of a header's ``arrays`` list (a map with ``name``,
+    a ``dtype`` of ``WIRE_DTYPES`` and a ``shape`` of at most 8 whole numbers >= 0, booleans
+    refused): the one check of an array spec, for socket frames, shared-memory slots and batch
+    files alike.
+
+    Raises:
+        ProtocolError: naming the malformed field, with the spec (cut to 120 characters).
+    """
+    if not isinstance(spec, dict):
+        raise ProtocolError("array spec must be a map")
+    name, dtype, shape = spec.get("name"), spec.get("dtype"), spec.get("shape")
+    if not isinstance(name, str) or dtype not in WIRE_DTYPES:
+        raise ProtocolError(f"bad array spec {spec!r:.120}")
+    if not isinstance(shape, list) or len(shape) > 8 or not all(
+            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
+        raise ProtocolError(f"bad shape in array spec {spec!r:.120}")
+    return name, np.dtype(dtype), shape
+
+
 def decode_arrays(specs, frames: Sequence, max_bytes: int = MAX_BATCH_BYTES) -> Dict[str, np.ndarray]:
     """Read-only numpy views of raw frames (zero-copy), checked against ``specs``.
 
@@ -261,17 +286,10 @@ def decode_arrays(specs, frames: Sequence, max_bytes: int = MAX_BATCH_BYTES) -> 
                             f"message has {len(frames)} frames")
     out = {}
     for spec, fr in zip(specs, frames):
-        if not isinstance(spec, dict):
-            raise ProtocolError("array spec must be a map")
-        name, dtype, shape = spec.get("name"), spec.get("dtype"), spec.get("shape")
-        if not isinstance(name, str) or dtype not in WIRE_DTYPES:
-            raise ProtocolError(f"bad array spec {spec!r}")
-        if not isinstance(shape, list) or not all(isinstance(s, int) and s >= 0 for s in shape) or len(shape) > 8:
-            raise ProtocolError(f"bad shape in array spec {spec!r}")
+        name, dt, shape = array_spec(spec)
         buf = fr.buffer if hasattr(fr, "buffer") else memoryview(fr)
-        dt = np.dtype(dtype)
         need = math.prod(shape) * dt.itemsize  # Python ints: a shape that overflows int64 is refused, not wrapped
         if need > max_bytes or need != len(buf):
-            raise ProtocolError(f"array {name!r}: {len(buf)} bytes, spec {dtype}{shape} needs {need}")
+            raise ProtocolError(f"array {name!r}: {len(buf)} bytes, spec {dt.name}{shape} needs {need}")
         out[name] = np.frombuffer(buf, dtype=dt).reshape(shape)
     return out

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from v2v_server.delivery.batcher import SHUFFLES, Batcher
-from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
+from v2v_server.delivery.ledger import DEFAULT_MAX_CREDITS, BatchRecord, DeliveryLedger
 from v2v_server.checks import check_choice, check_float, check_int
 from v2v_server.settings import setting
 from v2v_wire.ids import SampleKey
-from v2v_wire.protocol import OUTPUTS
+from v2v_wire.protocol import MAX_CREDITS, OUTPUTS
 from v2v_server.delivery.schedule import MAX_TASK_CRASHES, EpochScheduler, Job
 from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
 from v2v_wire.worker_messages import Task
@@ -30,8 +30,6 @@ log = logging.getLogger("v2v.server")
 Msg = Tuple[bytes, dict]
 
 
-#: Upper limits (a typo like ``max_credits: 100000`` is an error, not an OOM).
-MAX_CREDITS = 1024
 MAX_SHUFFLE_BUFFER = 4096
 
 
@@ -70,7 +68,7 @@ class DeliveryPolicy:
                                       flag="--client-timeout")
     revoke_s: Optional[float] = setting(None, help="seconds a client may leave a revoke unanswered before it is "
                                                    "dropped (default: the client timeout)", flag="--revoke-timeout")
-    max_credits: int = setting(64, help="most batches one client may hold")
+    max_credits: int = setting(DEFAULT_MAX_CREDITS, help="most batches one client may hold")
     task_timeout_s: float = setting(300.0, help="seconds a worker may send nothing on a task before the task is "
                                                 "reassigned and the worker replaced", flag="--task-timeout")
     shuffle: str = setting("epoch", help="epoch: each epoch hands the videos out in an order drawn from (seed, "

@@ -33,6 +33,9 @@ from typing import Any, Deque, Dict, Hashable, Iterable, List, Optional, Set, Tu
 
 from v2v_wire.ids import SampleKey
 
+#: Credits a client may hold when its server names no ``max_credits`` (``DeliveryPolicy``'s default).
+DEFAULT_MAX_CREDITS = 64
+
 
 @dataclass
 class BatchRecord:
@@ -90,7 +93,7 @@ class DeliveryLedger:
     """
 
     def __init__(self, lease_s: float, client_timeout_s: float, revoke_s: Optional[float] = None,
-                 max_credits: int = 64, group_wait_s: Optional[float] = None):
+                 max_credits: int = DEFAULT_MAX_CREDITS, group_wait_s: Optional[float] = None):
         self.lease_s = lease_s
         self.client_timeout_s = client_timeout_s
         self.revoke_s = client_timeout_s if revoke_s is None else revoke_s

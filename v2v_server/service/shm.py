@@ -32,7 +32,7 @@ import numpy as np
 
 from v2v_server.faults import cause_of, warn_once
 from v2v_wire.outputs import max_sample_bytes
-from v2v_wire.protocol import BATCH_DIR_RE, WIRE_DTYPES, ProtocolError
+from v2v_wire.protocol import BATCH_DIR_RE, ProtocolError, array_spec
 
 log = logging.getLogger("v2v.datapath")
 
@@ -57,16 +57,10 @@ def slot_layout(specs) -> Tuple[List[int], int]:
         raise ProtocolError("array specs must be a list")
     offsets, end = [], 0
     for spec in specs:
-        if not isinstance(spec, dict):
-            raise ProtocolError("array spec must be a map")
-        dtype, shape = spec.get("dtype"), spec.get("shape")
-        if not isinstance(spec.get("name"), str) or dtype not in WIRE_DTYPES:
-            raise ProtocolError(f"bad array spec {spec!r}")
-        if not isinstance(shape, list) or not all(isinstance(d, int) and d >= 0 for d in shape) or len(shape) > 8:
-            raise ProtocolError(f"bad shape in array spec {spec!r}")
+        _, dtype, shape = array_spec(spec)
         start = -(-end // SLOT_ALIGN) * SLOT_ALIGN
         offsets.append(start)
-        end = start + math.prod(shape) * np.dtype(dtype).itemsize  # Python ints: no overflow
+        end = start + math.prod(shape) * dtype.itemsize  # Python ints: no overflow
     return offsets, end
 
 
