@@ -42,9 +42,11 @@ class ServingSettings:
     videos: Optional[str] = setting(None, help="corpus: a folder (searched recursively) or an object-store URL "
                                                "(s3://bucket/prefix/, gs://, az://; extras v2v[s3], v2v[gcs], "
                                                "v2v[azure]; docs/object_store.md); default: the bundled sample clips")
-    video_list: Optional[str] = setting(None, help="list file selecting and ordering the videos (the V2V authors' "
-                                                   "format: first field a path relative to videos, rest ignored, "
-                                                   "# comments); nothing is listed from the store")
+    video_list: Optional[str] = setting(None, help="list file selecting and ordering the videos: lines `path`, "
+                                                   "`path start end` (a segment) or the V2V authors' `path frames "
+                                                   "[a b]`, the path relative to videos and everything before the "
+                                                   "trailing numbers; # comments (docs/corpora.md); nothing is "
+                                                   "listed from the store")
     storage_options: dict = setting(help="options for the store's filesystem (s3fs, gcsfs, adlfs), e.g. "
                                          "{endpoint_url: ..., anon: true}; credentials otherwise come from the "
                                          "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
