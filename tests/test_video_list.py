@@ -75,3 +75,4 @@ def test_check_shows_every_refused_line(corpus, capsys):
     assert f"{len(BAD) + 1} other entries ignored" in out
     for n in range(2, 2 + len(BAD)):
         assert out.count(f"listed in {lst} line {n}:") == 1
+
