@@ -59,6 +59,14 @@ def _seconds(t: float) -> str:
     return "0" if s in ("", "-0") else s
 
 
+def clean_path(rel: str) -> str:
+    """A listed path as a sample-id path: leading ``./`` and ``/`` dropped, so ids match a
+    folder's listing."""
+    while rel.startswith("./"):
+        rel = rel[2:]
+    return rel.lstrip("/")
+
+
 def segment_name(path: str, start: float, end: float) -> str:
     """The entry name of the segment ``[start, end)`` seconds of ``path``: ``path#t=start,end``."""
     return f"{path}{FRAGMENT}{_seconds(start)},{_seconds(end)}"

@@ -48,6 +48,7 @@ from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.segments import range_problem, split_segment
 from v2v_server.videos.shards import ARCHIVES, split_member
 from v2v_server.videos.video_list import VideoList, read_video_list
+from v2v_server.videos.video_tables import TableSettings
 
 
 log = logging.getLogger("v2v")
@@ -78,6 +79,9 @@ class VideoSource:
         self.cache_dir = cache_dir or str(default_cache_dir())
         #: The corpus's archives: their member indexes, split parts' pieces, their members opened.
         self.archives = Archives(self.root, self._open_raw, self._exists, self._siblings, self._shard_version)
+        #: How a table video list is read (its path column, filter, window frames): set by
+        #: ``ops.config.source_from_config`` from the settings; the defaults otherwise.
+        self.list_table = TableSettings()
         self._index: Optional[CorpusIndex] = None  # opened at the first use in this process
         self._index_failed = False
 
@@ -157,7 +161,7 @@ class VideoSource:
                 raise ValueError(f"--videos {self.root}: a brace pattern of archives names them itself; "
                                  f"give it or --video-list {self.video_list}, not both")
             return VideoList(list(self.names), [])
-        return read_video_list(self.video_list) if self.video_list else None
+        return read_video_list(self.video_list, self.list_table) if self.video_list else None
 
     def list_videos(self, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """``(videos, rejected)``: sample-id paths of the videos (the list's order with a video

@@ -1,5 +1,6 @@
-"""Video lists: a file of the V2V authors' format that selects and orders the videos of a corpus
-(a local file, or an object beside the corpus in the store), read by every ``VideoSource``.
+"""Video lists: a file of the V2V authors' format, or a metadata table (``videos.video_tables``),
+that selects and orders the videos of a corpus (a local file, or an object beside the corpus in
+the store), read by every ``VideoSource``.
 
 A line is ``path``, ``path start end`` (a segment, ``videos.segments``) or the authors'
 ``path frames [a b]``: the path is everything before the trailing numbers, so it may hold
@@ -11,9 +12,10 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import List, NamedTuple, Tuple, Union
+from typing import List, NamedTuple, Optional, Tuple, Union
 
-from v2v_server.videos.segments import parse_time, segment_name
+from v2v_server.videos.segments import clean_path, parse_time, segment_name
+from v2v_server.videos.video_tables import TableSettings, read_table, table_format
 
 #: A field that is meant as a number: what a list line's trailing fields are told apart by.
 _NUMBERISH = re.compile(r"[-+]?(?:nan|inf(?:inity)?|[\d.:_eE+-]*\d[\d.:_eE+-]*)", re.IGNORECASE)
@@ -55,14 +57,6 @@ def _read_text(path: str) -> str:
         raise FileNotFoundError(f"video_list {path}: no such file") from None
 
 
-def clean_path(rel: str) -> str:
-    """A listed path as a sample-id path: leading ``./`` and ``/`` dropped, so ids match a
-    folder's listing."""
-    while rel.startswith("./"):
-        rel = rel[2:]
-    return rel.lstrip("/")
-
-
 class LineError(ValueError):
     """A list line that is refused: ``path`` is what it names (the line itself when it names
     no path), the message why."""
@@ -102,8 +96,10 @@ def parse_line(line: str) -> str:
     return path
 
 
-def read_video_list(path: str) -> VideoList:
+def read_video_list(path: str, table: Optional[TableSettings] = None) -> VideoList:
     """The videos a list file names, in its order, duplicates dropped, and the lines refused.
+    A table (``.csv``, ``.tsv``, ``.jsonl``, ``.json``, ``.parquet``) is read by
+    ``video_tables.read_table`` with ``table`` (default ``TableSettings()``).
 
     The V2V authors' format (HYLZ-2019/V2V ``config/webvid10000_unfiltered.txt``): one video per
     line, its path relative to the corpus root, then the authors' numbers (a frame count and two
@@ -116,8 +112,16 @@ def read_video_list(path: str) -> VideoList:
 
     Raises:
         FileNotFoundError: no file at ``path``.
-        ValueError: naming the file, when it lists nothing and refuses nothing.
+        ValueError: naming the file, when it lists nothing and refuses nothing; for a table,
+            naming the setting too (``video_tables.read_table``).
     """
+    if table_format(path):
+        table = table or TableSettings()
+        out, refused = read_table(path, table)
+        if not out and not refused:
+            raise ValueError(f"video_list {path}: lists no video"
+                             + (f" (no row passes video_list_filter {table.filter!r})" if table.filter else ""))
+        return VideoList(out, refused)
     out, seen, refused, named = [], set(), [], set()
     for n, line in enumerate(_read_text(path).splitlines(), 1):
         s = line.strip()
