@@ -97,7 +97,8 @@ def openvid(corpus):
                      + "c.mp4,short,5.0,0.9,0.99,static,15,25,0.6\n"  # below a 21-frame window
                      + "my clip.mp4,by seconds x fps,5.0,0.9,0.99,static,,25,24.04\n"
                      + "gone.mp4,missing,5.0,0.9,0.99,static,601,25,24.04\n"
-                     + "a.mp4,again,5.1,0.9,0.98,pan_left,601,25,24.04\n")
+                     + "a.mp4,again,5.1,0.9,0.98,pan_left,601,25,24.04\n"
+                     + ",no path,5.0,0.9,0.99,static,601,25,24.04\n")
     return corpus, table
 
 
@@ -107,7 +108,8 @@ def test_an_openvid_csv_with_a_filter_skips_short_rows_unopened(openvid):
     src.list_table = TableSettings(None, MOVING, 21)
     videos, rejected = src.list_videos((".mp4",))
     assert videos == ["a.mp4", "my clip.mp4"]
-    assert rejected == [(str(table), f"1 row(s) of {table} skipped without opening their video: their frame (or "
+    assert rejected == [("(no path)", f"listed in {table}: a row with no video"),
+                        (str(table), f"1 row(s) of {table} skipped without opening their video: their frame (or "
                                      f"seconds x fps) is below one window's 21 frames (e.g. c.mp4)"),
                         ("gone.mp4", f"listed in {table} but missing from {corpus}")]
 
@@ -117,7 +119,7 @@ def test_check_serves_a_filtered_table_and_shows_the_rows_skipped(openvid, capsy
     rc = cli.main(["--videos", str(corpus), "--video-list", str(table), "--video-list-filter", MOVING,
                    "--check", "--sequence-length", "4", "--crop-size", "64", "--max-samples-per-video", "1"])
     out = capsys.readouterr().out
-    assert rc == 0 and "2 usable video(s) of 2" in out and "2 other entries ignored" in out
+    assert rc == 0 and "2 usable video(s) of 2" in out and "3 other entries ignored" in out
     assert f"1 row(s) of {table} skipped without opening their video" in out and "b.mp4" not in out
 
 

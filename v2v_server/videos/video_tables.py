@@ -35,6 +35,8 @@ TABLE_FORMATS = {".csv": "read_csv", ".tsv": "read_csv", ".jsonl": "read_json", 
                  ".json": "read_json", ".parquet": "read_parquet"}
 #: The columns taken as the path, in order, when none is named.
 PATH_COLUMNS = ("video", "path", "file")
+#: What a refused row without a path is named by.
+NO_PATH = "(no path)"
 #: Panda-70M's column of ``[start, end]`` pairs.
 TIMESTAMP_COLUMN = "timestamp"
 
@@ -162,12 +164,21 @@ def _first_line(e: Exception) -> str:
     return str(e).strip().splitlines()[0]
 
 
-def _load(con, path: str, column: Optional[str]) -> Tuple[List[str], str, List[str]]:
-    """Load the table at ``path`` into DuckDB's table ``t``, its path columns as text, then turn
-    file access off (the filter is an expression over ``t``, nothing else).
+#: The columns the window check reads (:func:`_frames_sql`).
+NUMBER_COLUMNS = ("frame", "fps", "seconds")
+
+
+def _load(con, path: str, settings: TableSettings) -> Tuple[List[str], Optional[str], List[str], List[str]]:
+    """Load the columns of the table at ``path`` that a row's entry and the filter read into
+    DuckDB's table ``t`` (its path columns as text), then turn file access off: the filter is an
+    expression over ``t``, nothing else.
+
+    The filter's columns are those whose name its text holds (case aside, as DuckDB's
+    identifiers): a superset of those it reads, so a caption column the filter does not name is
+    not loaded.
 
     Returns:
-        ``(columns, path template, columns the template reads)``.
+        ``(columns of the table, path template, path columns, range columns)``.
 
     Raises:
         FileNotFoundError, ValueError: naming the file or the setting.
@@ -175,11 +186,17 @@ def _load(con, path: str, column: Optional[str]) -> Tuple[List[str], str, List[s
     reader = table_format(path)
     what = reader[len("read_"):]
     columns = [r[0] for r in _run(con, path, f"DESCRIBE SELECT * FROM {_source(path, reader)}", what).fetchall()]
-    template, fields = _path_spec(path, columns, column)
-    _run(con, path, f"CREATE TABLE t AS SELECT * FROM {_source(path, reader, fields)}", what)
+    template, fields = _path_spec(path, columns, settings.column)
+    lower = {c.lower(): c for c in columns}
+    ranges = [lower["start"], lower["end"]] if "start" in lower and "end" in lower else \
+        [lower[TIMESTAMP_COLUMN]] if TIMESTAMP_COLUMN in lower else []
+    wanted = fields + ranges + [lower[c] for c in NUMBER_COLUMNS if c in lower] + \
+        [c for c in columns if settings.filter and c.lower() in settings.filter.lower()]
+    keep = ", ".join(_quote(c) for c in dict.fromkeys(wanted))
+    _run(con, path, f"CREATE TABLE t AS SELECT {keep} FROM {_source(path, reader, fields)}", what)
     con.execute("SET enable_external_access = false")
     con.execute("SET lock_configuration = true")
-    return columns, template, fields
+    return columns, template, fields, ranges
 
 
 def _pairs(cell) -> List[Tuple[float, float]]:
@@ -233,11 +250,9 @@ def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tupl
     import duckdb
 
     con = _connect(path)
-    columns, template, fields = _load(con, path, settings.column)
+    columns, template, fields, ranges = _load(con, path, settings)
     lower = {c.lower(): c for c in columns}
-    ranges = ["start", "end"] if "start" in lower and "end" in lower else \
-        [TIMESTAMP_COLUMN] if TIMESTAMP_COLUMN in lower else []
-    select = [_quote(f) for f in fields] + [_quote(lower[c]) for c in ranges] + [_frames_sql(lower, bool(ranges))]
+    select = [_quote(f) for f in fields] + [_quote(c) for c in ranges] + [_frames_sql(lower, bool(ranges))]
     sql = f"SELECT {', '.join(select)} FROM t" + (f" WHERE ({settings.filter})" if settings.filter else "")
     try:
         rows = con.execute(sql).fetchall()
@@ -255,31 +270,39 @@ def _entries(path: str, rows: list, template: Optional[str], fields: List[str], 
     number)."""
     out, seen, refused, short = [], set(), [], []
     need = window_frames - 0.5  # the table's numbers are rounded (OpenVid's seconds to 1/100 s)
+
+    def refuse(rel: str, why: str) -> None:
+        if (rel, why) not in seen:  # a bad row repeated is named once
+            seen.add((rel, why))
+            refused.append((rel or NO_PATH, f"listed in {path}: {why}"))
+
+    if template is None and not ranges:  # one path column, whole videos (OpenVid): the loop below, lean
+        for v, n in rows:
+            rel = "" if v is None else clean_path(str(v))
+            if not rel:
+                refuse(rel, f"a row with no {fields[0]}")
+            elif rel not in seen:
+                seen.add(rel)
+                (short if n is not None and n < need else out).append(rel)
+        rows = []
     for row in rows:
         values, cells, frames = row[:len(fields)], row[len(fields):-1], row[-1]
         named = ["" if v is None else str(v) for v in values]
         rel = clean_path(named[0] if template is None else template.format(**dict(zip(fields, named))))
         try:
-            if not all(named):
+            if not all(named) or not rel:
                 raise ValueError(f"a row with no {' / '.join(fields)}")
-            spans = _pairs(cells[0]) if ranges == [TIMESTAMP_COLUMN] else \
+            spans = _pairs(cells[0]) if len(ranges) == 1 else \
                 [(parse_time(str(cells[0])), parse_time(str(cells[1])))] if ranges else [None]
         except ValueError as e:
-            why = f"listed in {path}: " + (f"{' / '.join(ranges)} {_cell(cells)}: {e}" if all(named) else str(e))
-            if (rel, why) not in seen:  # a bad row repeated is named once
-                seen.add((rel, why))
-                refused.append((rel, why))
+            refuse(rel, f"{' / '.join(ranges)} {_cell(cells)}: {e}" if all(named) and rel else str(e))
             continue
         for span in spans:
             n = frames if span is None or frames is None else (span[1] - span[0]) * frames
             entry = rel if span is None else segment_name(rel, *span)
-            if entry in seen:
-                continue
-            seen.add(entry)
-            if n is not None and n < need:
-                short.append(entry)
-            else:
-                out.append(entry)
+            if entry not in seen:
+                seen.add(entry)
+                (short if n is not None and n < need else out).append(entry)
     if short:
         how = "range's length x fps" if ranges else "frame (or seconds x fps)"
         refused.append((path, f"{len(short)} row(s) of {path} skipped without opening their video: their {how} "
