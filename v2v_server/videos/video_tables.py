@@ -126,7 +126,8 @@ def _connect(path: str):
     if "://" in path and not path.startswith("file://"):
         import fsspec
 
-        con.register_filesystem(fsspec.filesystem(path.split("://", 1)[0]))
+        # a fresh filesystem: the environment's credentials as they are now, not a cached instance's
+        con.register_filesystem(fsspec.filesystem(path.split("://", 1)[0], skip_instance_cache=True))
     return con
 
 
