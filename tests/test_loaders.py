@@ -57,6 +57,20 @@ def test_dist_position_reads_the_process_group_then_the_environment(monkeypatch)
         dist.destroy_process_group()
 
 
+def test_a_world_size_without_a_rank_is_refused(monkeypatch):
+    """WORLD_SIZE=3 without RANK would make every process rank 0, each taking rank 0's share."""
+    import pytest
+
+    from v2v_client import dist_position
+
+    monkeypatch.delenv("RANK", raising=False)
+    monkeypatch.setenv("WORLD_SIZE", "3")
+    with pytest.raises(ValueError, match="WORLD_SIZE=3 in the environment but no RANK"):
+        dist_position()
+    monkeypatch.setenv("WORLD_SIZE", "1")
+    assert dist_position() == (0, 1)
+
+
 def test_stateful_dataloader_resumes_an_older_checkpoint_after_the_epoch_ended(tmp_path):
     r = faults.scenario_resume_after_end(tmp_path, LAYOUT, ckpt_step=2, grace_s=3.0)
     assert (r["lost"], r["duplicated"], r["unexpected"]) == (0, 0, 0), r

@@ -155,7 +155,7 @@ def test_video_list_in_the_authors_format(store, corpus, tmp_path):
                    "gone/1066687471.mp4 250 1.0 1.0\n"
                    f"{ODD}   301\n"
                    "bikes.mp4\n")
-    assert read_video_list(str(lst)) == ["webvid_like_596x336.mp4", "gone/1066687471.mp4", ODD, "bikes.mp4"]
+    assert read_video_list(str(lst)).videos == ["webvid_like_596x336.mp4", "gone/1066687471.mp4", ODD, "bikes.mp4"]
     env = _env(store, tmp_path)
     # a folder checks the list against the files at start
     r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(corpus), "--video-list", str(lst),

@@ -140,6 +140,15 @@ def test_no_ring_where_shared_memory_is_off(tmp_path, monkeypatch):
     ring.close()
 
 
+def test_a_shm_folder_that_is_not_one_is_named(tmp_path, monkeypatch, caplog):
+    """V2V_SHM_DIR set to a missing folder falls back to the socket, with one warning naming it."""
+    monkeypatch.setenv("V2V_SHM_DIR", str(tmp_path / "typo"))
+    with caplog.at_level("WARNING", logger="v2v.datapath"):
+        assert create_ring(L, NB, S) is None and create_ring(L, NB, S) is None
+    assert [r.getMessage() for r in caplog.records] == \
+        [f"V2V_SHM_DIR={tmp_path / 'typo'} is not a folder: no shared memory, arrays go over the socket"]
+
+
 def _die_before_mapping(*args):
     os._exit(3)
 

@@ -154,7 +154,7 @@ def segment_corpus(tmp_path):
 
 def test_list_file_ranges_become_segments_and_bad_ones_are_named(segment_corpus):
     root, lst = segment_corpus
-    assert read_video_list(str(lst))[:2] == ["bbb_camera_596x336.mp4#t=1,9.5", "bbb_camera_596x336.mp4#t=0,4"]
+    assert read_video_list(str(lst)).videos[:2] == ["bbb_camera_596x336.mp4#t=1,9.5", "bbb_camera_596x336.mp4#t=0,4"]
     videos, rejected = LocalSource(root, video_list=str(lst)).list_videos((".mp4",))
     assert videos == ["bbb_camera_596x336.mp4#t=1,9.5", "bbb_camera_596x336.mp4#t=0,4", "bikes.mp4#t=30,40",
                       "bikes.mp4"]

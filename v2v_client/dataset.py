@@ -319,7 +319,8 @@ def dist_position() -> Tuple[int, int]:
     Raises:
         ValueError: the two disagree (a process group of world size 1 in a process whose
             environment says 2: the ranks would not form one group and would yield unequal
-            batch counts), or the environment holds something that is not a rank.
+            batch counts), the environment holds something that is not a rank, or it gives a
+            WORLD_SIZE above 1 without a RANK.
     """
     env = None
     if os.environ.get("WORLD_SIZE") is not None:
@@ -328,6 +329,9 @@ def dist_position() -> Tuple[int, int]:
         except ValueError:
             raise ValueError(f"RANK={os.environ.get('RANK')!r} / WORLD_SIZE={os.environ.get('WORLD_SIZE')!r} "
                              f"in the environment are not integers") from None
+        if env[1] > 1 and os.environ.get("RANK") is None:  # every process would take rank 0's share
+            raise ValueError(f"WORLD_SIZE={env[1]} in the environment but no RANK: set RANK, or pass rank= and "
+                             f"world_size= to V2VStreamDataset explicitly")
     dist = None
     try:
         import torch.distributed as td

@@ -9,7 +9,7 @@ from typing import List, Optional
 from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config, source_from_config
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
-from v2v_server.ops.logs import setup_logging
+from v2v_server.ops.logs import LEVELS, setup_logging
 from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
 from v2v_server.delivery.journal import JournalError
 from v2v_server.videos.store_io import StoreError
@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--warm-cache", action="store_true",
                    help="fill this host's frame cache (frame_cache_gb > 0) with every video of the corpus or "
                         "shard, print what was stored and exit (docs/frame_cache.md)")
-    p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+    p.add_argument("--log-level", default="INFO", type=str.upper, choices=LEVELS, help="logging level (default INFO)")
     for title, part in (("sample recipe", SampleRecipe), ("delivery", DeliveryPolicy), ("serving", ServingSettings)):
         add_flags(p, part, title)
     return p

@@ -24,6 +24,7 @@ from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import open_source
 from v2v_server.videos.store import StoreSettings, store_root
 from v2v_server.videos.video_list import is_url
+from v2v_server.videos.video_tables import TABLE_FORMATS, TableSettings, table_format
 from v2v_wire.protocol import is_loopback  # noqa: F401  (config's checks and sockets use it)
 
 __all__ = ["SampleRecipe", "DeliveryPolicy", "ServingSettings", "ServeConfig", "load_config", "parse_shard",
@@ -42,9 +43,18 @@ class ServingSettings:
     videos: Optional[str] = setting(None, help="corpus: a folder (searched recursively) or an object-store URL "
                                                "(s3://bucket/prefix/, gs://, az://; extras v2v[s3], v2v[gcs], "
                                                "v2v[azure]; docs/object_store.md); default: the bundled sample clips")
-    video_list: Optional[str] = setting(None, help="list file selecting and ordering the videos (the V2V authors' "
-                                                   "format: first field a path relative to videos, rest ignored, "
-                                                   "# comments); nothing is listed from the store")
+    video_list: Optional[str] = setting(None, help="list file selecting and ordering the videos: lines `path`, "
+                                                   "`path start end` (a segment) or the V2V authors' `path frames "
+                                                   "[a b]`, the path relative to videos and everything before the "
+                                                   "trailing numbers; # comments; or a metadata table (.csv, .tsv, "
+                                                   ".jsonl, .json, .parquet; extra v2v[corpora]) whose rows name "
+                                                   "the videos (docs/corpora.md); nothing is listed from the store")
+    video_list_column: Optional[str] = setting(None, help="table video lists: the column holding a video's path "
+                                                          "relative to videos, or a template over columns such as "
+                                                          "'{videoID}.mp4'; default: the first of video, path, file")
+    video_list_filter: Optional[str] = setting(None, help="table video lists: the rows served, an SQL expression "
+                                                          "over the table's columns evaluated by DuckDB, e.g. "
+                                                          "'frame >= 201 and \"motion score\" > 0.5'")
     storage_options: dict = setting(help="options for the store's filesystem (s3fs, gcsfs, adlfs), e.g. "
                                          "{endpoint_url: ..., anon: true}; credentials otherwise come from the "
                                          "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
@@ -132,6 +142,13 @@ class ServingSettings:
             v = getattr(self, name)
             if v is not None and (not isinstance(v, str) or not v):
                 raise ValueError(f"{name} must be a path, got {v!r}")
+        for name in ("video_list_column", "video_list_filter"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, str) or not v.strip()):
+                raise ValueError(f"{name} must be text, got {v!r}")
+            if v is not None and not (self.video_list and table_format(self.video_list)):
+                raise ValueError(f"{name} reads a table video list (video_list ending in "
+                                 f"{', '.join(TABLE_FORMATS)}), got video_list {self.video_list!r}")
         if not isinstance(self.storage_options, dict):
             raise ValueError(f"storage_options must be a mapping of filesystem options, got {self.storage_options!r}")
         check_bool("refresh_manifest", self.refresh_manifest)
@@ -260,7 +277,8 @@ def parse_shard(spec) -> Tuple[int, int]:
 
 def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) -> VideoSource:
     """The source ``cfg`` (a ``ServeConfig``) describes: ``videos`` or ``cfg.videos``, its
-    ``video_list``, ``storage_options``, store settings and manifest (``manifest.manifest_path``)."""
+    ``video_list`` (a table's column, filter and the window's frames included),
+    ``storage_options``, store settings and manifest (``manifest.manifest_path``)."""
     videos = cfg.videos if videos is None else videos
     manifest = None
     if videos is not None and is_url(str(videos)):
@@ -271,9 +289,12 @@ def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) 
         manifest = str(manifest_path(key, cfg.state_dir, cfg.cache_dir))
     settings = StoreSettings(read_timeout_s=cfg.store_read_timeout_s, max_attempts=cfg.store_max_attempts,
                              read_block_mb=cfg.read_block_mb, cache_max_gb=cfg.cache_max_gb)
-    return open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
-                       refresh_manifest=cfg.refresh_manifest, settings=settings, cache_dir=cfg.cache_dir,
-                       frame_cache_gb=cfg.frame_cache_gb, frame_cache_format=cfg.frame_cache_format)
+    source = open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
+                         refresh_manifest=cfg.refresh_manifest, settings=settings, cache_dir=cfg.cache_dir,
+                         frame_cache_gb=cfg.frame_cache_gb, frame_cache_format=cfg.frame_cache_format)
+    source.list_table = TableSettings(cfg.video_list_column, cfg.video_list_filter,
+                                      cfg.recipe.windows.frames_per_sample)
+    return source
 
 
 def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeConfig:

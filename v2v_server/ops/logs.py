@@ -22,11 +22,22 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(d)
 
 
+#: The logging levels a command accepts by name.
+LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+
 def setup_logging(level: str, fmt: str, name: str) -> None:
-    """Log to stderr at ``level``, as text lines prefixed by ``name`` or as JSON objects."""
+    """Log to stderr at ``level`` (a name of :data:`LEVELS`, any case), as text lines prefixed
+    by ``name`` or as JSON objects.
+
+    Raises:
+        ValueError: ``level`` is not a level's name.
+    """
+    if str(level).upper() not in LEVELS:
+        raise ValueError(f"log level {level!r} is not one of {', '.join(LEVELS)}")
     handler = logging.StreamHandler(sys.stderr)
     if fmt == "json":
         handler.setFormatter(JsonFormatter())
     else:
         handler.setFormatter(logging.Formatter(f"%(asctime)s {name} %(levelname)s %(message)s"))
-    logging.basicConfig(level=getattr(logging, str(level).upper(), logging.INFO), handlers=[handler], force=True)
+    logging.basicConfig(level=str(level).upper(), handlers=[handler], force=True)

@@ -202,6 +202,19 @@ def _unlink(path: str) -> None:
         pass
 
 
+def shm_root() -> Optional[str]:
+    """The folder of this process's shared memory: ``$V2V_SHM_DIR``, else ``SHM_DIR``; None when
+    it is switched off (``V2V_SHM_DIR=""``) or is not a folder, which a variable set to one
+    names in one warning (arrays then go over the socket)."""
+    root = os.environ.get("V2V_SHM_DIR", SHM_DIR)
+    if root and not os.path.isdir(root):
+        if "V2V_SHM_DIR" in os.environ:
+            warn_once(log, ("V2V_SHM_DIR", root), "V2V_SHM_DIR=%s is not a folder: no shared memory, arrays go "
+                      "over the socket", root)
+        return None
+    return root or None
+
+
 def create_ring(sequence_length: int, num_bins: int, crop_size: int,
                 directory: Optional[str] = None) -> Optional[SlotRing]:
     """A :class:`SlotRing` of ``RING_SLOTS`` slots sized for the config in ``directory``
@@ -209,7 +222,7 @@ def create_ring(sequence_length: int, num_bins: int, crop_size: int,
     or switched off (``V2V_SHM_DIR=""``; a failure logs one line): the worker then sends its
     arrays as frames."""
     if directory is None:
-        directory = os.environ.get("V2V_SHM_DIR", SHM_DIR)
+        directory = shm_root()
     if not directory or not os.path.isdir(directory):
         return None
     try:
@@ -310,7 +323,7 @@ class BatchDir:
         """A fresh directory under ``root`` (default: ``$V2V_SHM_DIR``, else ``SHM_DIR``), or
         None where shared memory is unavailable or switched off (``V2V_SHM_DIR=""``)."""
         if root is None:
-            root = os.environ.get("V2V_SHM_DIR", SHM_DIR)
+            root = shm_root()
         if not root or not os.path.isdir(root):
             return None
         remove_stale_shm(root)

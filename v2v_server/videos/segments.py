@@ -17,39 +17,54 @@ from typing import Optional, Tuple
 
 #: What separates a video's path from its time range in an entry name.
 FRAGMENT = "#t="
-_CLOCK = re.compile(r"^(?:(\d+):)?(\d{1,2}):(\d{1,2}(?:\.\d+)?)$")
+#: A time: seconds as a decimal (``12.5``), or a clock ``[H:]MM:SS[.fff]`` whose minutes and
+#: seconds are below 60 (the npt times of W3C Media Fragments 1.0, which FFmpeg's duration syntax
+#: shares); a sign is read so that a negative range is named as such (``range_problem``).
+_SECONDS = re.compile(r"-?(?:\d+(?:\.\d*)?|\.\d+)", re.ASCII)
+_CLOCK = re.compile(r"(-?)(?:(\d+):)?(\d{1,2}):(\d{2}(?:\.\d*)?)", re.ASCII)
+#: What a time's syntax is, for messages.
+TIME_SYNTAX = "seconds such as 12.5, or a clock time H:MM:SS.sss"
 
 
 def parse_time(text: str) -> float:
-    """Seconds from ``text``: a decimal number (``12.5``) or a clock time (``0:01:02.5``,
-    ``01:02.5``).
+    """Seconds from ``text``: a decimal number (``12.5``, ``-3``) or a clock time (``0:01:02.5``,
+    ``01:02.5``) whose minute and second fields are below 60. Exponents, ``nan``, ``inf``,
+    digit separators and surrounding blanks are not times.
 
     Raises:
-        ValueError: anything else, or a value that is not finite.
+        ValueError: anything else (``'0:00:99'``, ``'1e3'``, ``'nan'``), naming ``text``.
     """
-    m = _CLOCK.match(text)
+    if _SECONDS.fullmatch(text):
+        t = float(text)
+        if math.isfinite(t):
+            return t
+    m = _CLOCK.fullmatch(text)
     if m:
-        h, mnt, sec = m.groups()
-        return int(h or 0) * 3600 + int(mnt) * 60 + float(sec)
-    t = float(text)
-    if not math.isfinite(t):
-        raise ValueError(f"time {text!r} is not finite")
-    return t
-
-
-def is_time(text: str) -> bool:
-    """Whether ``text`` reads as a time (:func:`parse_time`)."""
-    try:
-        parse_time(text)
-        return True
-    except ValueError:
-        return False
+        sign, h, mnt, sec = m.groups()
+        if int(mnt) < 60 and float(sec) < 60:
+            try:
+                t = float(int(h or 0) * 3600 + int(mnt) * 60) + float(sec)
+            except OverflowError:  # hours beyond a float
+                t = math.inf
+            if math.isfinite(t):
+                return -t if sign else t
+            raise ValueError(f"time {text!r} is not finite")
+        raise ValueError(f"time {text!r}: a clock time's minutes and seconds are below 60")
+    raise ValueError(f"time {text!r} is not a time ({TIME_SYNTAX})")
 
 
 def _seconds(t: float) -> str:
     """``t`` in seconds to the millisecond, without trailing zeros: ``12.5``, ``20``."""
     s = f"{t:.3f}".rstrip("0").rstrip(".")
     return "0" if s in ("", "-0") else s
+
+
+def clean_path(rel: str) -> str:
+    """A listed path as a sample-id path: leading ``./`` and ``/`` dropped, so ids match a
+    folder's listing."""
+    while rel.startswith("./"):
+        rel = rel[2:]
+    return rel.lstrip("/")
 
 
 def segment_name(path: str, start: float, end: float) -> str:

@@ -47,7 +47,8 @@ from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.segments import range_problem, split_segment
 from v2v_server.videos.shards import ARCHIVES, split_member
-from v2v_server.videos.video_list import read_video_list
+from v2v_server.videos.video_list import VideoList, read_video_list
+from v2v_server.videos.video_tables import TableSettings
 
 
 log = logging.getLogger("v2v")
@@ -78,6 +79,9 @@ class VideoSource:
         self.cache_dir = cache_dir or str(default_cache_dir())
         #: The corpus's archives: their member indexes, split parts' pieces, their members opened.
         self.archives = Archives(self.root, self._open_raw, self._exists, self._siblings, self._shard_version)
+        #: How a table video list is read (its path column, filter, window frames): set by
+        #: ``ops.config.source_from_config`` from the settings; the defaults otherwise.
+        self.list_table = TableSettings()
         self._index: Optional[CorpusIndex] = None  # opened at the first use in this process
         self._index_failed = False
 
@@ -145,8 +149,9 @@ class VideoSource:
         """
         raise NotImplementedError
 
-    def _names(self) -> Optional[List[str]]:
-        """The entries that replace a listing: the brace pattern's, else the video list's.
+    def _names(self) -> Optional[VideoList]:
+        """The entries that replace a listing: the brace pattern's, else the video list's (with
+        the list lines it refuses).
 
         Raises:
             ValueError: both a brace pattern and a video list are given.
@@ -155,8 +160,8 @@ class VideoSource:
             if self.video_list:
                 raise ValueError(f"--videos {self.root}: a brace pattern of archives names them itself; "
                                  f"give it or --video-list {self.video_list}, not both")
-            return list(self.names)
-        return read_video_list(self.video_list) if self.video_list else None
+            return VideoList(list(self.names), [])
+        return read_video_list(self.video_list, self.list_table) if self.video_list else None
 
     def list_videos(self, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """``(videos, rejected)``: sample-id paths of the videos (the list's order with a video
@@ -188,12 +193,13 @@ class VideoSource:
         counters under ``frame_cache``; empty for a local folder without one."""
         return {"frame_cache": self.frame_cache.take_stats()} if self.frame_cache is not None else {}
 
-    def _listed(self, names: Sequence[str], exists, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
+    def _listed(self, names: VideoList, exists, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """Keep the names of a video list that ``exists(name)`` and have a video extension; a
         ``.tar`` or ``.zip`` name stands for its video members (``Archives.expand``), and a name
-        inside an archive (``shard.tar/member.mp4``, with or without a time range) for that member."""
-        videos, rejected = [], []
-        for rel in names:
+        inside an archive (``shard.tar/member.mp4``, with or without a time range) for that member.
+        The lines the list refused come first among the rejected."""
+        videos, rejected = [], list(names.refused)
+        for rel in names.videos:
             base, times = split_segment(rel)
             problem = range_problem(*times) if times else None
             if problem:

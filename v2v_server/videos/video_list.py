@@ -1,11 +1,37 @@
-"""Video lists: a file of the V2V authors' format that selects and orders the videos of a corpus
-(a local file, or an object beside the corpus in the store), read by every ``VideoSource``."""
+"""Video lists: a file of the V2V authors' format, or a metadata table (``videos.video_tables``),
+that selects and orders the videos of a corpus (a local file, or an object beside the corpus in
+the store), read by every ``VideoSource``.
+
+A line is ``path``, ``path start end`` (a segment, ``videos.segments``) or the authors'
+``path frames [a b]``: the path is everything before the trailing numbers, so it may hold
+spaces (``my clip.mp4 0 12``). A trailing field that looks like a number (digits, ``nan``,
+``inf``, ``1e309``, ``0:00:99``) is read strictly: a line whose numbers do not parse is refused
+and named, never served as a whole video.
+"""
 from __future__ import annotations
 
+import re
 from pathlib import Path
-from typing import List, Union
+from typing import List, NamedTuple, Optional, Tuple, Union
 
-from v2v_server.videos.segments import is_time, parse_time, segment_name
+from v2v_server.videos.segments import clean_path, parse_time, segment_name
+from v2v_server.videos.video_tables import TableSettings, read_table, table_format
+
+#: A field that is meant as a number: what a list line's trailing fields are told apart by.
+_NUMBERISH = re.compile(r"[-+]?(?:nan|inf(?:inity)?|[\d.:_eE+-]*\d[\d.:_eE+-]*)", re.IGNORECASE)
+#: A number of the authors' lines (a frame count, a score).
+_DECIMAL = re.compile(r"\d+(?:\.\d+)?", re.ASCII)
+#: The line forms, for messages.
+LINE_FORMS = "a line is `path`, `path start end` or `path frames [a b]`"
+
+
+class VideoList(NamedTuple):
+    """What a video list gives: ``videos``, the entry names in the list's order, duplicates
+    dropped; ``refused``, ``(path, reason)`` for each line or row not served, each once (the
+    reason names the list and the line)."""
+
+    videos: List[str]
+    refused: List[Tuple[str, str]]
 
 
 def is_url(videos: Union[str, Path, None]) -> bool:
@@ -14,45 +40,103 @@ def is_url(videos: Union[str, Path, None]) -> bool:
     return isinstance(videos, str) and "://" in videos and not videos.startswith("file://")
 
 
-def read_video_list(path: str) -> List[str]:
-    """The videos a list file names, in its order, duplicates dropped: the V2V authors' format
-    (HYLZ-2019/V2V ``config/webvid10000_unfiltered.txt``): one video per line, its first
-    whitespace-separated field a path relative to the corpus root (later fields, such as
-    frame counts, are ignored); ``#`` starts a comment line; blank lines are skipped. Leading
-    ``./`` is dropped so ids match a folder's listing. A line of exactly three fields ``path start
-    end`` whose second and third are times (seconds, or ``H:MM:SS.sss``: Panda-70M's clip
-    timestamps) names the segment ``path#t=start,end`` (``videos.segments``); a video may have
-    several. The authors' lines carry one or three numbers after the path and stay whole videos.
+def _read_text(path: str) -> str:
+    """The text of the list file at ``path``, a local path or a URL.
 
     Raises:
-        FileNotFoundError: no file at ``path``.
-        ValueError: naming the file, when it lists nothing.
+        FileNotFoundError: naming ``path``.
     """
     if is_url(path):  # a list kept beside the corpus in the store
         import fsspec
 
         with fsspec.open(path, "rt", encoding="utf-8") as f:
-            lines = f.read().splitlines()
-    else:
+            return f.read()
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"video_list {path}: no such file") from None
+
+
+class LineError(ValueError):
+    """A list line that is refused: ``path`` is what it names (the line itself when it names
+    no path), the message why."""
+
+    def __init__(self, path: str, why: str):
+        super().__init__(why)
+        self.path = path
+
+
+def parse_line(line: str) -> str:
+    """The entry one list line (not blank, not a comment) names: its path, or the segment
+    ``path#t=start,end`` of a ``path start end`` line. The path is everything before the
+    trailing fields that look like numbers (``_NUMBERISH``), so it may hold spaces.
+
+    Raises:
+        LineError: the trailing numbers do not parse (a time that is not one, ``nan``, an
+            authors' field that is not a number) or are more than 3; the message names the field.
+    """
+    parts = line.split()
+    k = 0
+    while k < len(parts) - 1 and _NUMBERISH.fullmatch(parts[-1 - k]):
+        k += 1
+    fields = parts[len(parts) - k:] if k else []
+    path = clean_path(line.rsplit(None, k)[0] if k else line)
+    if not path:
+        raise LineError(line, "names no path")
+    if len(fields) == 2:
         try:
-            lines = Path(path).read_text(encoding="utf-8").splitlines()
-        except FileNotFoundError:
-            raise FileNotFoundError(f"video_list {path}: no such file") from None
-    out, seen = [], set()
-    for line in lines:
+            return segment_name(path, parse_time(fields[0]), parse_time(fields[1]))
+        except ValueError as e:
+            raise LineError(path, str(e)) from None
+    if len(fields) > 3:
+        raise LineError(path, f"{len(fields)} numbers after the path ({LINE_FORMS})")
+    bad = [f for f in fields if not _DECIMAL.fullmatch(f)]
+    if bad:
+        raise LineError(path, f"{bad[0]!r} is not a number ({LINE_FORMS})")
+    return path
+
+
+def read_video_list(path: str, table: Optional[TableSettings] = None) -> VideoList:
+    """The videos a list file names, in its order, duplicates dropped, and the lines refused.
+    A table (``.csv``, ``.tsv``, ``.jsonl``, ``.json``, ``.parquet``) is read by
+    ``video_tables.read_table`` with ``table`` (default ``TableSettings()``).
+
+    The V2V authors' format (HYLZ-2019/V2V ``config/webvid10000_unfiltered.txt``): one video per
+    line, its path relative to the corpus root, then the authors' numbers (a frame count and two
+    scores, ignored); ``#`` starts a comment line; blank lines are skipped. A line ``path start
+    end`` whose numbers are times (seconds, or ``H:MM:SS.sss``: Panda-70M's clip timestamps,
+    ``segments.parse_time``) names the segment ``path#t=start,end``; a video may have several.
+    The path is everything before the trailing numbers (:func:`parse_line`). A line whose
+    numbers do not parse is refused with its line number; the same line again is not named
+    again.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: naming the file, when it lists nothing and refuses nothing; for a table,
+            naming the setting too (``video_tables.read_table``).
+    """
+    if table_format(path):
+        table = table or TableSettings()
+        out, refused = read_table(path, table)
+        if not out and not refused:
+            raise ValueError(f"video_list {path}: lists no video"
+                             + (f" (no row passes video_list_filter {table.filter!r})" if table.filter else ""))
+        return VideoList(out, refused)
+    out, seen, refused, named = [], set(), [], set()
+    for n, line in enumerate(_read_text(path).splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
-        fields = s.split()
-        rel = fields[0]
-        while rel.startswith("./"):
-            rel = rel[2:]
-        rel = rel.lstrip("/")
-        if rel and len(fields) == 3 and is_time(fields[1]) and is_time(fields[2]):
-            rel = segment_name(rel, parse_time(fields[1]), parse_time(fields[2]))
-        if rel and rel not in seen:
+        try:
+            rel = parse_line(s)
+        except LineError as e:
+            if s not in named:
+                named.add(s)
+                refused.append((e.path, f"listed in {path} line {n}: {e}"))
+            continue
+        if rel not in seen:
             seen.add(rel)
             out.append(rel)
-    if not out:
+    if not out and not refused:
         raise ValueError(f"video_list {path}: lists no video")
-    return out
+    return VideoList(out, refused)
