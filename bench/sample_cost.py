@@ -7,7 +7,8 @@ copies of the WebVid-like clip (596 x 336 H.264; ``--clip`` another), every outp
 sample (40 voxel grids of 5 bins, 128 x 128), at ``crops_per_window`` 1 and 4. Per sample it
 prints the CPU-milliseconds of the whole path, of simulation and of flow (``stats["busy"]``,
 which ``make_sample`` times with a wall clock: run it on an otherwise idle machine), and the
-rest (decoding, cropping, range expansion, narrowing). Against the decode bound measured in
+cost of its statistics (``samples/stats.py``: event rates, active pixels, flow magnitude, timed
+under ``busy["stats"]``) and the rest (decoding, cropping, range expansion, narrowing). Against the decode bound measured in
 the same run (``bench.speed.bare_decode``: PyAV, luma plane, one thread) it gives the worker's
 share of the bound and its *ceiling*: the share if simulation and flow cost nothing, the most
 any bit-identical speed-up of them can give. Rounds are interleaved; medians are printed.
@@ -32,11 +33,11 @@ from bench.speed import SPAN, bare_decode, clip_path, make_corpus, warm_kernel, 
 
 def path_cost(corpus: Path, crops: int, videos: int) -> dict:
     """CPU-ms per sample of the worker's path (``bench.speed.worker_core``, every output, the
-    flow as its grid) at ``crops`` crops per window: total, simulate, flow and the rest."""
+    flow as its grid) at ``crops`` crops per window: total, simulate, flow, stats and the rest."""
     busy: dict = {}
     total = 1e3 / worker_core(corpus, ("voxels", "frames", "flow"), crops, videos, flow_grid=True, busy=busy)
-    sim, flo = (busy.get(k, 0.0) * 1e3 / busy["samples"] for k in ("simulate", "flow"))
-    return {"total": total, "simulate": sim, "flow": flo, "rest": total - sim - flo}
+    sim, flo, st = (busy.get(k, 0.0) * 1e3 / busy["samples"] for k in ("simulate", "flow", "stats"))
+    return {"total": total, "simulate": sim, "flow": flo, "stats": st, "rest": total - sim - flo - st}
 
 
 def gray_decode(path: Path) -> dict:
@@ -65,7 +66,7 @@ def gray_decode(path: Path) -> dict:
 
 def measure(clip: Path, videos: int = 4, rounds: int = 3) -> dict:
     """Medians over ``rounds`` interleaved rounds: ``bound`` (samples/CPU-s), ``rows`` (crops per
-    window -> CPU-ms per sample: total, simulate, flow, rest; share of the bound; ceiling),
+    window -> CPU-ms per sample: total, simulate, flow, stats, rest; share of the bound; ceiling),
     ``gray`` (speed vs plain decoding, luma identical)."""
     corpus = make_corpus(Path(tempfile.mkdtemp(prefix="v2v-cost-")) / "c", videos, clip)
     warm_kernel()
@@ -98,12 +99,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     b = r["bound"]
     print(f"decode bound: {b:.2f} samples/CPU-s ({1e3 / b:.0f} CPU-ms per 201-frame window); "
           f"clip {clip.name}, {a.rounds} interleaved rounds, medians\n")
-    print("| crops per window | CPU-ms per sample | simulate | flow | rest (decode, crop, narrow) "
+    print("| crops per window | CPU-ms per sample | simulate | flow | stats | rest (decode, crop, narrow) "
           "| share of decode bound | ceiling (simulate, flow free) |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for crops, m in r["rows"].items():
         print(f"| {crops} | {m['total']:.0f} | {m['simulate']:.0f} ({m['simulate'] / m['total']:.0%}) "
-              f"| {m['flow']:.0f} ({m['flow'] / m['total']:.0%}) | {m['rest']:.0f} | {m['share']:.0%} "
+              f"| {m['flow']:.0f} ({m['flow'] / m['total']:.0%}) | {m['stats']:.1f} ({m['stats'] / m['total']:.1%}) "
+              f"| {m['rest']:.0f} | {m['share']:.0%} "
               f"| {m['ceiling']:.0%} |")
     print(f"\nAV_CODEC_FLAG_GRAY: decode {r['gray']['speed']:.2f}x plain, luma identical: {r['gray']['identical']}")
     return 0

@@ -13,6 +13,7 @@ def test_sample_cost_splits_a_workers_time():
     for crops, m in r["rows"].items():
         assert m["simulate"] > 0 and m["flow"] > 0 and 0 < m["rest"] < m["total"]
         assert m["ceiling"] > m["share"] > 0
+        assert 0 < m["stats"] < m["simulate"]  # the statistics are timed, and cost less than the simulation
     # four crops share one window's decoding: less CPU per sample, a larger share of it simulating
     one, four = r["rows"][1], r["rows"][4]
     assert four["total"] < one["total"] and four["simulate"] / four["total"] > one["simulate"] / one["total"]

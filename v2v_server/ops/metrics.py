@@ -28,6 +28,10 @@ Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
   ``v2v_frame_cache_misses_total{cause}``, ``v2v_frame_cache_stored_total``,
   ``v2v_frame_cache_written_bytes_total``, ``v2v_frame_cache_not_stored_total{cause}``; gauges
   ``v2v_frame_cache_bytes``, ``v2v_frame_cache_entries``, ``v2v_frame_cache_budget_bytes``;
+* histograms of the samples made (``SampleHistograms``, from each sample's params, see
+  ``samples/stats.py``): ``v2v_sample_events_per_pixel_second{polarity}``,
+  ``v2v_sample_active_pixel_fraction``, ``v2v_sample_flow_px_per_frame``,
+  ``v2v_sample_contrast_threshold{polarity}``, ``v2v_sample_noise_std``;
 * ``v2v_fs_errors_total{where}``: filesystem errors of the work the server does on its own
   schedule (``FS_WHERE``), each logged once per cause; serving goes on (docs/faults.md).
 """
@@ -41,7 +45,7 @@ import time
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from typing import Dict, Optional, Tuple
 
-from prometheus_client import CollectorRegistry, Counter
+from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
 
@@ -104,6 +108,7 @@ class ServerMetrics:
         self.windows_cut = counter("v2v_windows_cut", "Windows a shot cut removed (shot_cuts: avoid): a window in "
                                    "progress that a cut fell inside")
         self.frame_cache = FrameCacheCounters(counter)
+        self.sample_stats = SampleHistograms(r)
         self.fs_errors = counter("v2v_fs_errors", "Filesystem errors of the server's own periodic work, by where: "
                                  + "; ".join(f"{k} ({v})" for k, v in FS_WHERE.items()), ("where",))
         for w in FS_WHERE:
@@ -129,8 +134,11 @@ class ServerMetrics:
                 self.on_fs_error("progress", "stderr", e)
 
     # ------------------------------------------------------------------ events (server.py calls these)
-    def on_sample_made(self) -> None:
+    def on_sample_made(self, params: Optional[dict] = None) -> None:
+        """A sample kept from a worker; its ``params`` (the worker's map) feed the histograms."""
         self.samples_made.inc()
+        if params is not None:
+            self.sample_stats.observe(params)
 
     def on_batch_sent(self, nsamples: int, nbytes: int) -> None:
         self.batches_sent.inc()
@@ -373,6 +381,49 @@ class FrameCacheCounters:
         hits, misses, ratio = self.looked()
         return (f"{hits} hit(s), misses {', '.join(f'{c} {n}' for c, n in misses.items())} ({ratio:.0%} hits), "
                 f"{entries} entries, {nbytes / (1 << 30):.2f} of {budget / (1 << 30):.2f} GiB")
+
+class SampleHistograms:
+    """Histograms of the samples made, on ``registry``: their event rates, active pixels and flow
+    (``params["stats"]``, ``samples.stats.event_stats``) and their drawn thresholds and noise.
+    Buckets span the default recipe's draws and real sensors' rates (docs/fidelity.md)."""
+
+    #: events / pixel / s: a still scene's noise (0.01) to a fast pan at a low threshold (1000)
+    RATE_BUCKETS = (0.01, 0.03, 0.1, 0.3, 1, 3, 10, 30, 100, 300, 1000)
+    FRACTION_BUCKETS = (0.01, 0.05, 0.1, 0.25, 0.5, 0.75, 0.9, 0.99, 1.0)
+    FLOW_BUCKETS = (0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32)
+    THRESHOLD_BUCKETS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+    NOISE_BUCKETS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2)
+
+    def __init__(self, registry):
+        def hist(name, doc, buckets, labels=()):
+            return Histogram(name, doc, labelnames=labels, buckets=buckets, registry=registry)
+
+        self.rate = hist("v2v_sample_events_per_pixel_second", "Signal events per pixel per second of each sample "
+                         "made, by polarity (voxel sums over the sample's duration)", self.RATE_BUCKETS, ("polarity",))
+        self.active = hist("v2v_sample_active_pixel_fraction", "Fraction of a sample's pixels with at least one event",
+                           self.FRACTION_BUCKETS)
+        self.flow = hist("v2v_sample_flow_px_per_frame", "Mean optical-flow magnitude of a sample, pixels per frame",
+                         self.FLOW_BUCKETS)
+        self.threshold = hist("v2v_sample_contrast_threshold", "Contrast threshold drawn for a sample (log "
+                              "intensity), by polarity", self.THRESHOLD_BUCKETS, ("polarity",))
+        self.noise = hist("v2v_sample_noise_std", "Background-noise sigma drawn for a sample (log intensity per "
+                          "frame pair)", self.NOISE_BUCKETS)
+
+    def observe(self, params: dict) -> None:
+        """Add one sample's ``params``; a missing or malformed value is left out (the map is the
+        worker's, passed on to clients as it is)."""
+        if not isinstance(params, dict):
+            return
+        st = params.get("stats") if isinstance(params.get("stats"), dict) else {}
+        for value, h in ((st.get("rate_pos"), self.rate.labels(polarity="pos")),
+                         (st.get("rate_neg"), self.rate.labels(polarity="neg")),
+                         (st.get("active_fraction"), self.active), (st.get("flow_mag"), self.flow),
+                         (params.get("pos_threshold"), self.threshold.labels(polarity="pos")),
+                         (params.get("neg_threshold"), self.threshold.labels(polarity="neg")),
+                         (params.get("noise_std"), self.noise)):
+            if _count(value):
+                h.observe(value)
+
 
 def _count(v) -> bool:
     """Whether ``v`` is a plausible counter increment from a worker (a number, not a bool, in range)."""

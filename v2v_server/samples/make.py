@@ -23,6 +23,7 @@ import numpy as np
 
 from v2v_server.samples.augment import augment_plan, degrade_window
 from v2v_server.samples.recipe import SampleRecipe
+from v2v_server.samples.stats import add_stats
 from v2v_server.videos.source import VideoSource
 from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.flow.estimate import FlowEstimator
@@ -398,7 +399,8 @@ def _samples(recipe: SampleRecipe, fp: FramePass, rel_path: str, epoch: int, out
                 arrays = make_sample(recipe, plan, degrade_window(plan, frames), outputs, flow, info.fps,
                                      stats.setdefault("busy", {}), flow_grid)
                 stats["storing"] = fp.storing
-                yield key, arrays, sample_meta(plan, info.fps, start)
+                yield key, arrays, add_stats(sample_meta(plan, info.fps, start), arrays, recipe,
+                                             (layout.cuts, layout.shot_start) if layout.avoid_cuts else None, stats["busy"])
             win = None
             if layout.done:  # every window is made: the rest of the video serves nothing
                 fp.end()

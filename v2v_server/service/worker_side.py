@@ -123,7 +123,7 @@ class WorkerSide:
                 if msg.slot is not None:  # copied out (or not wanted): the worker may write it again
                     self.give_slot(ident, msg.slot)
             if kept:
-                self.metrics.on_sample_made()
+                self.metrics.on_sample_made(msg.meta)
         else:
             self.on_done(w, msg)
 
