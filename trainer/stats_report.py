@@ -1,0 +1,220 @@
+"""``v2v-stats``: what a stream's samples look like, next to a real camera, as an HTML page.
+
+    v2v-stats --videos v2v_server/sample_videos --recording tests/data/events/davis346_road.aedat4 --out report/
+    v2v-stats --server tcp://host:5555 --samples 500 --out report/
+
+Reads ``--samples`` N samples' params from a running server (``--server``), or simulates them
+from a corpus (``--videos``: folder, list or bucket, with ``--config``'s recipe, as ``v2v-serve``
+would make them in epoch 0), with a progress bar, and writes ``OUT/index.html`` with PNG figures
+beside it and ``OUT/stats.json`` (every row and summary): distributions of events per pixel per
+second (per sample and per voxel grid), active-pixel fraction, thresholds, noise and flow
+magnitude; windows per video and shot lengths; a table of the videos' resolutions and codecs
+(corpus only: a server's params name the video, not its format). ``--recording FILE`` (any
+format ``v2v-eval`` reads) overlays the same statistics measured on the recording in windows of
+the samples' duration and of one voxel grid's; a recording shorter than a window is named and
+left out of that overlay. Bad input (an unreachable server, an empty corpus, an unreadable
+recording) is one line naming it, and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import html
+import json
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+
+from trainer.stream_stats import (Collected, StatsInputError, check_recording, from_corpus, from_server,
+                                  recording_windows, summary)
+
+#: (row key, label) of the per-sample statistics shown and summarised.
+STATS = (("rate", "events / pixel / s (both polarities)"), ("rate_pos", "positive events / pixel / s"),
+         ("rate_neg", "negative events / pixel / s"), ("active_fraction", "fraction of pixels with an event"),
+         ("flow_mag", "mean flow magnitude, px / frame"), ("pos_threshold", "c+ (log intensity)"),
+         ("neg_threshold", "c- (log intensity)"), ("noise_std", "noise sigma (log intensity / frame pair)"))
+
+
+def _values(rows: List[dict], key: str) -> List[float]:
+    if key == "rate":
+        return [r["rate_pos"] + r["rate_neg"] for r in rows if "rate_pos" in r]
+    return [float(r[key]) for r in rows if isinstance(r.get(key), (int, float))]
+
+
+def _hist(ax, values, label, log=False, **kw):
+    v = np.asarray(values, dtype=np.float64)
+    if log:
+        v = v[v > 0]
+        if not v.size:
+            return
+        bins = np.logspace(np.log10(v.min()) - 0.05, np.log10(v.max()) + 0.05, 30)
+        ax.set_xscale("log")
+    else:
+        bins = 30
+    if v.size:
+        ax.hist(v, bins=bins, label=label, density=True, **kw)
+
+
+def figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
+    """Write the report's PNG figures into ``out``; returns their file names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+
+    def save(fig, name):
+        fig.tight_layout()
+        fig.savefig(out / name, dpi=90)
+        plt.close(fig)
+        names.append(name)
+
+    rows = col.rows
+    wins = (rec or {}).get("sample", {}).get("windows", [])
+    gwins = (rec or {}).get("grid", {}).get("windows", [])
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    _hist(axes[0], _values(rows, "rate"), "simulated samples", log=True, alpha=0.6)
+    _hist(axes[0], [w["rate_pos"] + w["rate_neg"] for w in wins], "recording, same duration", log=True, alpha=0.6)
+    axes[0].set_title("events / pixel / s per sample")
+    _hist(axes[1], [g for r in rows for g in r.get("grid_rates", [])], "simulated voxel grids", log=True, alpha=0.6)
+    _hist(axes[1], [w["rate_pos"] + w["rate_neg"] for w in gwins], "recording, one grid's duration", log=True,
+          alpha=0.6)
+    axes[1].set_title("events / pixel / s per voxel grid")
+    _hist(axes[2], _values(rows, "active_fraction"), "simulated samples", alpha=0.6)
+    _hist(axes[2], [w["active_fraction"] for w in wins], "recording, same duration", alpha=0.6)
+    axes[2].set_title("fraction of pixels with at least one event")
+    for ax in axes:
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+    save(fig, "events.png")
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    _hist(axes[0], _values(rows, "pos_threshold"), "c+", alpha=0.6)
+    _hist(axes[0], _values(rows, "neg_threshold"), "c-", alpha=0.6)
+    axes[0].set_title("contrast thresholds drawn (log intensity)")
+    axes[0].legend(fontsize=8)
+    _hist(axes[1], _values(rows, "noise_std"), "noise sigma", alpha=0.8)
+    axes[1].set_title("background-noise sigma drawn")
+    _hist(axes[2], _values(rows, "flow_mag"), "flow", alpha=0.8)
+    axes[2].set_title("mean optical-flow magnitude, px / frame")
+    save(fig, "params.png")
+    if col.videos:
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+        vids = col.videos
+        axes[0].barh(range(len(vids)), [v["windows"] for v in vids], color="tab:blue")
+        axes[0].set_yticks(range(len(vids)), [v["path"] for v in vids], fontsize=7)
+        axes[0].set_title("windows per video")
+        axes[1].hist([s for v in vids for s in v["shot_lengths"]], bins=30, color="tab:green")
+        axes[1].set_title("shot lengths, frames")
+        save(fig, "videos.png")
+    return names
+
+
+def _table(header, rows) -> str:
+    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def page(col: Collected, rec: Optional[dict], notes: List[str], pngs: List[str], summ: dict) -> str:
+    """The report's HTML (figures by file name, a summary table, the videos' table, notes)."""
+    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else v  # noqa: E731
+    parts = [f"<h1>v2v-stats</h1><p>{len(col.rows)} samples from {html.escape(col.source)}</p>"]
+    parts += [f'<p class="note">{html.escape(n)}</p>' for n in notes]
+    srows = [(label, *(fmt(summ["samples"][k].get(q, "")) for q in ("n", "mean", "p10", "p50", "p90")))
+             for k, label in STATS]
+    for scope in ("sample", "grid"):
+        for k in ("rate", "active_fraction"):
+            s = summ.get("recording", {}).get(scope, {}).get(k)
+            if s and s.get("n"):
+                srows.append((f"recording, {scope} windows: {dict(STATS)[k]}",
+                              *(fmt(s.get(q, "")) for q in ("n", "mean", "p10", "p50", "p90"))))
+    parts.append("<h2>Summary</h2>" + _table(("statistic", "n", "mean", "p10", "median", "p90"), srows))
+    parts += [f'<h2>{html.escape(p[:-4])}</h2><img src="{p}" alt="{p[:-4]}">' for p in pngs]
+    if col.videos:
+        parts.append("<h2>Videos</h2>" + _table(
+            ("video", "resolution", "codec", "fps", "frames", "windows", "shots", "not usable because"),
+            [(v["path"], (v["size"] or "?").split()[0], v["codec"], f"{v['fps']:.3g}", v["frames"], v["windows"], len(v["shot_lengths"]),
+              v["reason"]) for v in col.videos]))
+    style = ("body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse}"
+             "td,th{border:1px solid #aaa;padding:2px 8px;text-align:right}img{max-width:100%}.note{color:#a40}")
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>v2v-stats</title><style>{style}</style>"
+            f"</head><body>{''.join(parts)}<p>Numbers: <a href='stats.json'>stats.json</a></p></body></html>")
+
+
+def _recording(path: str, rows: List[dict], cfg_recipe, notes: List[str]) -> Optional[dict]:
+    """The recording measured in windows of one sample's and one voxel grid's duration (at the
+    samples' median frame rate); notes say which durations it is shorter than."""
+    fps = float(np.median(_values(rows, "video_fps"))) if rows else 25.0
+    grid_s = cfg_recipe.num_bins * cfg_recipe.frames_per_bin / fps
+    out = {}
+    for scope, seconds in (("sample", grid_s * cfg_recipe.sequence_length), ("grid", grid_s)):
+        r = recording_windows(path, seconds)
+        if not r["windows"]:
+            notes.append(f"recording {path} ({r['duration_s']:.3g} s) is shorter than one {scope} window "
+                         f"({seconds:.3g} s): no {scope}-level overlay")
+        out[scope] = r
+    return out
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog="v2v-stats", description=__doc__.splitlines()[0])
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--server", help="read samples from the server at this endpoint (tcp://host:port)")
+    src.add_argument("--videos", help="simulate samples from this corpus (folder, list file or bucket URL)")
+    ap.add_argument("--config", help="v2v-serve YAML: the recipe used with --videos (default: the paper's)")
+    ap.add_argument("--samples", type=int, default=200, help="samples to read or simulate (N)")
+    ap.add_argument("--epochs", type=int, default=1, help="--videos: epochs to simulate (each draws new sensor "
+                    "parameters for the same windows) until --samples are made")
+    ap.add_argument("--recording", help="a real recording to overlay (any format v2v-eval reads)")
+    ap.add_argument("--timeout", type=float, default=30.0, help="--server: seconds without a batch before giving up")
+    ap.add_argument("--out", required=True, help="folder for index.html, its PNGs and stats.json")
+    a = ap.parse_args(argv)
+    if a.samples < 1 or a.epochs < 1:
+        ap.error("--samples and --epochs must be >= 1")
+    from tqdm import tqdm
+
+    from v2v_server.ops.config import load_config
+
+    try:
+        cfg = load_config(a.config)
+    except (OSError, ValueError) as e:
+        print(f"v2v-stats: config {a.config}: {e}", file=sys.stderr)
+        return 2
+    notes: List[str] = []
+    try:
+        if a.recording:
+            check_recording(a.recording)
+        with tqdm(total=a.samples, unit="sample", desc="sampling", leave=False) as bar:
+            col = (from_server(a.server, a.samples, a.timeout, bar.update) if a.server
+                   else from_corpus(cfg, a.videos, a.samples, bar.update, a.epochs))
+        if not col.rows:
+            raise StatsInputError(f"{col.source}: gave no sample")
+        rec = _recording(a.recording, col.rows, cfg.recipe, notes) if a.recording else None
+    except StatsInputError as e:
+        print(f"v2v-stats: {e}", file=sys.stderr)
+        return 2
+    if len(col.rows) < a.samples:
+        notes.append(f"{col.source} gave {len(col.rows)} of the {a.samples} samples asked for")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    summ = {"samples": {k: summary(_values(col.rows, k)) for k, _ in STATS}}
+    summ["samples"]["grid_rate"] = summary(g for r in col.rows for g in r.get("grid_rates", []))
+    if rec:
+        summ["recording"] = {s: {"rate": summary(w["rate_pos"] + w["rate_neg"] for w in rec[s]["windows"]),
+                                 "active_fraction": summary(w["active_fraction"] for w in rec[s]["windows"])}
+                             for s in rec}
+    pngs = figures(col, rec, out)
+    (out / "index.html").write_text(page(col, rec, notes, pngs, summ))
+    (out / "stats.json").write_text(json.dumps({"source": col.source, "notes": notes, "summary": summ,
+                                                "samples": col.rows, "videos": col.videos, "recording": rec},
+                                               indent=1))
+    for n in notes:
+        print(f"v2v-stats: {n}", file=sys.stderr)
+    print(f"v2v-stats: wrote {out / 'index.html'} ({len(col.rows)} samples)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,218 @@
+"""The statistics ``v2v-stats`` reports: samples' params read from a server or simulated from a
+corpus, and the same event statistics measured on a real recording in windows of the samples'
+duration.
+
+A sample's statistics are made by the worker (``v2v_server.samples.stats``: events per pixel per
+second by polarity over the sample and per voxel grid, active-pixel fraction, flow magnitude);
+this module only gathers them into rows, one per sample, and measures a recording the same way:
+events per pixel per second by polarity and the fraction of pixels with at least one event, in
+consecutive windows of a fixed duration from the first event (the last, incomplete window is left
+out).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Iterator, List, Optional
+
+import numpy as np
+
+#: The params copied into a row (besides the sample's ``stats``), when present.
+ROW_KEYS = ("sample_id", "pos_threshold", "neg_threshold", "noise_std", "hot_pixel_count", "src_start_frame",
+            "src_frames", "video_fps", "pauses", "shot", "shot_start_frame")
+
+
+class StatsInputError(RuntimeError):
+    """An input ``v2v-stats`` cannot use (server, corpus or recording); the message names it."""
+
+
+def sample_row(params: dict) -> dict:
+    """One sample's row: the ``ROW_KEYS`` of its ``params`` and its ``stats`` flattened
+    (``grid_rates`` kept as a list); the video is the sample id's path."""
+    row = {k: params[k] for k in ROW_KEYS if k in params}
+    row.update(params.get("stats") or {})
+    sid = str(params.get("sample_id", ""))
+    row["video"] = sid.rpartition("#")[0] or sid
+    return row
+
+
+@dataclass
+class Collected:
+    """What was gathered: ``rows`` (one per sample, :func:`sample_row`), ``videos`` (one dict per
+    video of a simulated corpus: ``path``, ``width``, ``height``, ``fps``, ``codec``, ``frames``,
+    ``windows``, ``shot_lengths`` in frames), ``source`` (what was read, in words)."""
+
+    rows: List[dict] = field(default_factory=list)
+    videos: List[dict] = field(default_factory=list)
+    source: str = ""
+
+
+def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int], None]) -> Collected:
+    """The params of ``n`` samples read from the server at ``endpoint`` (a ``V2VStreamDataset``
+    asking for the default outputs: the worker measures what it makes).
+
+    Raises:
+        StatsInputError: the server does not answer within ``timeout_s`` or ends the stream
+            with an error.
+    """
+    from v2v_client import V2VStreamDataset
+    from v2v_client.session import StreamError
+
+    out = Collected(source=f"server {endpoint}")
+    ds = V2VStreamDataset(endpoint, timeout_s=timeout_s, raw=True)
+    try:
+        for batch in ds:
+            for params in batch["params"]:
+                out.rows.append(sample_row(params))
+                progress(1)
+                if len(out.rows) >= n:
+                    return out
+    except StreamError as e:
+        raise StatsInputError(f"server {endpoint}: {e}") from None
+    finally:
+        ds.close()
+    return out
+
+
+def _probe(source, rel: str) -> dict:
+    """The codec and frame rate of ``rel`` as its container declares them."""
+    import av
+
+    try:
+        with source.open(rel) as path, av.open(path if isinstance(path, str) else path) as c:
+            s = c.streams.video[0]
+            return {"codec": s.codec_context.name, "fps": float(s.average_rate or 0)}
+    except Exception as e:  # a probe failure leaves the columns empty: the pass reports the file
+        return {"codec": f"? ({type(e).__name__})", "fps": 0.0}
+
+
+def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], epochs: int = 1) -> Collected:
+    """``n`` samples simulated from the corpus at ``videos_arg`` (folder, list or bucket, as
+    ``v2v-serve --videos``) with ``cfg``'s recipe (a ``ServeConfig``), in epochs 0 .. ``epochs`` - 1
+    (each epoch draws every sample's parameters afresh), video by video in the corpus's order;
+    each video's windows and shots from ``corpus.check_video``.
+
+    Raises:
+        StatsInputError: the corpus cannot be listed or holds no video.
+    """
+    from v2v_server.ops.config import source_from_config
+    from v2v_server.samples.make import video_samples
+    from v2v_server.videos.corpus import check_video
+
+    try:
+        source = source_from_config(cfg, videos_arg)
+        names, _rejected = source.list_videos(cfg.video_extensions)
+    except (OSError, ValueError) as e:
+        raise StatsInputError(f"corpus {videos_arg}: {e}") from None
+    if not names:
+        raise StatsInputError(f"corpus {videos_arg}: no video (extensions {', '.join(cfg.video_extensions)})")
+    recipe = cfg.recipe
+    out = Collected(source=f"corpus {videos_arg}")
+    usable = []
+    for rel in names:
+        v = check_video(recipe.windows, source, rel)
+        cuts = sorted(int(c) for c in v.get("cuts", []))
+        bounds = [0] + cuts + [int(v.get("frames", 0))]
+        out.videos.append({"path": rel, "size": v.get("size", ""), "frames": int(v.get("frames", 0)),
+                           "windows": int(v.get("windows", 0)), "reason": v.get("reason", ""),
+                           "shot_lengths": [b - a for a, b in zip(bounds, bounds[1:]) if b > a], **_probe(source, rel)})
+        if v.get("usable"):
+            usable.append(rel)
+    for epoch in range(epochs):
+        for rel in usable:
+            for _key, _arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True):
+                out.rows.append(sample_row(meta))
+                progress(1)
+                if len(out.rows) >= n:
+                    return out
+    return out
+
+
+def _windows(chunks: Iterator[np.ndarray], width: int, height: int, window_us: int) -> List[dict]:
+    """Per complete window of ``window_us`` from the first event: ``pos``, ``neg`` (events) and
+    ``active`` (pixels with an event); windows without any event included."""
+    npix = width * height
+    out: List[dict] = []
+    t0, cur = None, 0
+    seen = np.zeros(npix, bool)
+    pos = neg = 0
+    for ch in chunks:
+        if not len(ch):
+            continue
+        if t0 is None:
+            t0 = int(ch["t"][0])
+        k = (ch["t"] - t0) // window_us
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(k)) + 1, [len(ch)]])
+        for a, b in zip(starts[:-1], starts[1:]):
+            kk = int(k[a])
+            while kk > cur:  # the window in progress is complete (and any empty ones after it)
+                out.append({"pos": pos, "neg": neg, "active": int(np.count_nonzero(seen))})
+                seen[:] = False
+                pos = neg = 0
+                cur += 1
+            seg = ch[a:b]
+            npos = int(np.count_nonzero(seg["p"] > 0))
+            pos, neg = pos + npos, neg + len(seg) - npos
+            inside = (seg["x"] < width) & (seg["y"] < height)
+            seen[seg["y"][inside].astype(np.int64) * width + seg["x"][inside]] = True
+    return out
+
+
+def check_recording(path: str) -> None:
+    """Open the recording at ``path`` (its header and size), before any sampling.
+
+    Raises:
+        StatsInputError: it cannot be read (``RecordingError``'s message).
+    """
+    from trainer.recordings import RecordingError, open_recording
+
+    try:
+        open_recording(path)
+    except RecordingError as e:
+        raise StatsInputError(f"recording {e}") from None
+
+
+def recording_windows(path: str, window_s: float) -> dict:
+    """Events per pixel per second by polarity (``rate_pos``, ``rate_neg``) and the active-pixel
+    fraction of each complete ``window_s`` window of the recording at ``path`` (any format
+    ``trainer.recordings.open_recording`` reads).
+
+    Returns:
+        ``{"path", "sensor": "WxH", "format", "window_s", "duration_s", "windows": [{"rate_pos",
+        "rate_neg", "active_fraction"}...]}``; ``windows`` is empty when the recording is
+        shorter than one window.
+
+    Raises:
+        StatsInputError: the file cannot be read (``RecordingError``'s message).
+    """
+    from trainer.recordings import RecordingError, open_recording
+
+    try:
+        rec = open_recording(path)
+        npix = rec.width * rec.height
+        first = last = None
+        window_us = max(1, int(round(window_s * 1e6)))
+
+        def chunks():
+            nonlocal first, last
+            for ch in rec.chunks():
+                if len(ch):
+                    first = int(ch["t"][0]) if first is None else first
+                    last = int(ch["t"][-1])
+                yield ch
+
+        wins = _windows(chunks(), rec.width, rec.height, window_us)
+    except RecordingError as e:
+        raise StatsInputError(f"recording {e}") from None
+    rows = [{"rate_pos": w["pos"] / npix / window_s, "rate_neg": w["neg"] / npix / window_s,
+             "active_fraction": w["active"] / npix} for w in wins]
+    return {"path": str(path), "sensor": f"{rec.width}x{rec.height}", "format": rec.format, "window_s": window_s,
+            "duration_s": (last - first) / 1e6 if first is not None else 0.0, "windows": rows}
+
+
+def summary(values) -> Dict[str, float]:
+    """``n``, ``mean`` and the 10th, 50th and 90th percentiles of ``values`` (NaN-free floats)."""
+    a = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    if not a.size:
+        return {"n": 0}
+    p10, p50, p90 = np.percentile(a, [10, 50, 90])
+    return {"n": int(a.size), "mean": float(a.mean()), "p10": float(p10), "p50": float(p50), "p90": float(p90)}
