@@ -42,18 +42,25 @@ def _values(rows: List[dict], key: str) -> List[float]:
     return [float(r[key]) for r in rows if isinstance(r.get(key), (int, float))]
 
 
-def _hist(ax, values, label, log=False, **kw):
-    v = np.asarray(values, dtype=np.float64)
+def _hist(ax, series, log=False) -> None:
+    """Density histograms of each ``(values, label)`` in ``series`` on shared bins (log-spaced
+    with ``log``, zeros left out there)."""
+    arrays = [np.asarray(v, dtype=np.float64) for v, _ in series]
     if log:
-        v = v[v > 0]
-        if not v.size:
-            return
-        bins = np.logspace(np.log10(v.min()) - 0.05, np.log10(v.max()) + 0.05, 30)
+        arrays = [a[a > 0] for a in arrays]
         ax.set_xscale("log")
+    allv = np.concatenate(arrays) if arrays else np.empty(0)
+    if not allv.size:
+        return
+    lo, hi = allv.min(), allv.max()
+    if log:
+        bins = np.logspace(np.log10(lo) - 0.05, np.log10(hi) + 0.05, 40)
     else:
-        bins = 30
-    if v.size:
-        ax.hist(v, bins=bins, label=label, density=True, **kw)
+        bins = np.linspace(lo, hi if hi > lo else lo + 1e-3, 40)
+    for a, (_, label) in zip(arrays, series):
+        if a.size:
+            ax.hist(a, bins=bins, label=label, density=True, alpha=0.6)
+    ax.legend(fontsize=8)
 
 
 def figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
@@ -75,28 +82,22 @@ def figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
     wins = (rec or {}).get("sample", {}).get("windows", [])
     gwins = (rec or {}).get("grid", {}).get("windows", [])
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    _hist(axes[0], _values(rows, "rate"), "simulated samples", log=True, alpha=0.6)
-    _hist(axes[0], [w["rate_pos"] + w["rate_neg"] for w in wins], "recording, same duration", log=True, alpha=0.6)
+    rate = lambda ws: [w["rate_pos"] + w["rate_neg"] for w in ws]  # noqa: E731
+    _hist(axes[0], [(_values(rows, "rate"), "simulated samples"), (rate(wins), "recording, same duration")], log=True)
     axes[0].set_title("events / pixel / s per sample")
-    _hist(axes[1], [g for r in rows for g in r.get("grid_rates", [])], "simulated voxel grids", log=True, alpha=0.6)
-    _hist(axes[1], [w["rate_pos"] + w["rate_neg"] for w in gwins], "recording, one grid's duration", log=True,
-          alpha=0.6)
+    _hist(axes[1], [([g for r in rows for g in r.get("grid_rates", [])], "simulated voxel grids"),
+                    (rate(gwins), "recording, one grid's duration")], log=True)
     axes[1].set_title("events / pixel / s per voxel grid")
-    _hist(axes[2], _values(rows, "active_fraction"), "simulated samples", alpha=0.6)
-    _hist(axes[2], [w["active_fraction"] for w in wins], "recording, same duration", alpha=0.6)
+    _hist(axes[2], [(_values(rows, "active_fraction"), "simulated samples"),
+                    ([w["active_fraction"] for w in wins], "recording, same duration")])
     axes[2].set_title("fraction of pixels with at least one event")
-    for ax in axes:
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8)
     save(fig, "events.png")
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    _hist(axes[0], _values(rows, "pos_threshold"), "c+", alpha=0.6)
-    _hist(axes[0], _values(rows, "neg_threshold"), "c-", alpha=0.6)
+    _hist(axes[0], [(_values(rows, "pos_threshold"), "c+"), (_values(rows, "neg_threshold"), "c-")])
     axes[0].set_title("contrast thresholds drawn (log intensity)")
-    axes[0].legend(fontsize=8)
-    _hist(axes[1], _values(rows, "noise_std"), "noise sigma", alpha=0.8)
+    _hist(axes[1], [(_values(rows, "noise_std"), "noise sigma")])
     axes[1].set_title("background-noise sigma drawn")
-    _hist(axes[2], _values(rows, "flow_mag"), "flow", alpha=0.8)
+    _hist(axes[2], [(_values(rows, "flow_mag"), "flow")])
     axes[2].set_title("mean optical-flow magnitude, px / frame")
     save(fig, "params.png")
     if col.videos:
