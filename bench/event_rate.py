@@ -13,6 +13,11 @@ contrast threshold would match each: ``python -m bench.event_rate``.
    rate; the threshold whose simulated median rate equals the recording's median (log-log
    interpolation of step 2), and the range whose rates span the recording's 10-90 %.
 
+4. A still scene: the first frame of the bundled camera clip, 128 x 128, repeated for one sample
+   (201 frames), simulated with ``STILL_DRAWS`` default-recipe draws of the sensor parameters:
+   the rate the noise and hot pixels alone make, the floor under which no window's event count
+   can tell stillness from motion.
+
 Writes ``docs/event_rate.json`` and ``docs/img/event_rate.png``; docs/fidelity.md reads them. The
 scenes differ (a film and street clips against a road, grass and a dark room): a matching
 threshold makes the rates alike on this corpus, not the scenes.
@@ -32,6 +37,8 @@ from harness.data import DAVIS346, EVT2, EVT3, SAMPLE_VIDEOS
 ROOT = Path(__file__).resolve().parents[1]
 #: The fixed thresholds of step 2 (log intensity): the default range [0.05, 2.0] and beyond it.
 THRESHOLDS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
+#: Default-recipe parameter draws simulated on the still scene (step 4).
+STILL_DRAWS = 60
 RECORDINGS = {"DAVIS346 (road)": DAVIS346, "Prophesee Gen3 (grass)": EVT2, "Prophesee EVK4 (dark room)": EVT3}
 
 
@@ -52,6 +59,29 @@ def _match(curve_c, curve_rate, rate: float) -> Optional[float]:
     return float(np.exp(np.interp(np.log(rate), lr[order], lc[order])))
 
 
+def still_rates(draws: int = STILL_DRAWS) -> List[float]:
+    """Events per pixel per second of a still scene (step 4), one per default-recipe draw."""
+    import cv2
+
+    from v2v_server.samples.recipe import SampleRecipe
+    from v2v_server.samples.stats import event_stats
+    from v2v_server.simulation.simulate import sample_params, simulate_voxels
+
+    cfg = SampleRecipe()
+    cap = cv2.VideoCapture(str(SAMPLE_VIDEOS / "bbb_camera_596x336.mp4"))
+    ok, bgr = cap.read()
+    cap.release()
+    s = cfg.crop_size
+    frames = np.repeat(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)[None, :s, :s], cfg.frames_per_sample, axis=0)
+    out = []
+    for i in range(draws):
+        rng = np.random.default_rng(i)
+        vox, _ = simulate_voxels(frames, sample_params(rng, cfg.ranges, (s, s)), cfg.frames_per_sample - 1, rng=rng)
+        st = event_stats(vox.reshape(cfg.sequence_length, cfg.num_bins, s, s), None, None, 25.0, cfg.num_bins, 1, True)
+        out.append(st["rate_pos"] + st["rate_neg"])
+    return out
+
+
 def measure(epochs: int = 4, per_threshold: int = 3) -> dict:
     """Steps 1-3 (see the module doc); returns the JSON written."""
     from trainer.stream_stats import recording_windows
@@ -69,6 +99,10 @@ def measure(epochs: int = 4, per_threshold: int = 3) -> dict:
                        "grid_rates": [g for r in default for g in r["grid_rates"]],
                        "thresholds": [[r["pos_threshold"], r["neg_threshold"]] for r in default]},
            "sweep": {str(c): v for c, v in sweep.items()}, "recordings": {}}
+    still = still_rates()
+    out["still"] = {"rates": still, "p50_p90_p99_max": [float(v) for v in np.percentile(still, [50, 90, 99, 100])],
+                    "default_grids_below_p90": float((np.array(out["default"]["grid_rates"])
+                                                      < np.percentile(still, 90)).mean())}
     g = np.array(out["default"]["grid_rates"])
     out["default"]["grid_p10_p50_p90"] = [float(v) for v in np.percentile(g, [10, 50, 90])]
     for name, path in RECORDINGS.items():
@@ -132,6 +166,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     print(f"default recipe, {len(r['default']['grid_rates'])} voxel grids of {r['grid_s']:.2f} s: "
           f"events/pixel/s p10 {lo:.3g}, median {mid:.3g}, p90 {hi:.3g}")
     print("sweep (threshold: median rate): " + ", ".join(f"{c}: {v:.3g}" for c, v in r["sweep"].items()))
+    st = r["still"]
+    print(f"still scene, {len(st['rates'])} default draws: events/pixel/s median/p90/p99/max "
+          + "/".join(f"{v:.3g}" for v in st["p50_p90_p99_max"])
+          + f"; {st['default_grids_below_p90']:.0%} of default grids below its p90")
     for name, rec in r["recordings"].items():
         fmt = lambda v: "outside the sweep" if v is None else f"{v:.3g}"  # noqa: E731
         print(f"{name}: {rec['windows']} windows of {rec['window_s']:.2f} s, p10/median/p90 " + "/".join(f"{v:.3g}" for v in rec["p10_p50_p90"])

@@ -83,10 +83,13 @@ def event_stats(voxels: Optional[np.ndarray], counts: Optional[np.ndarray], flow
         if voxels.ndim != 4:
             raise ValueError(f"voxels must be (L, B, H, W), got {voxels.shape}")
         L, nb, h, w = voxels.shape
-        wide = np.int16 if voxels.dtype.itemsize == 1 else np.int64
-        a = np.abs(voxels.reshape(L, -1), dtype=wide)  # int8 -128 needs the wider type
-        grid = a.sum(axis=1, dtype=np.int64)
-        total, net = int(grid.sum()), int(voxels.sum(dtype=np.int32 if voxels.dtype.itemsize == 1 else np.int64))
+        small = voxels.dtype.itemsize == 1
+        # |int8| in int16 (-128 has no int8 absolute value); sums of int8 in int32 hold 2^31 / 128
+        # = 16M bins x pixels, far above a sample's; wider voxels (low thresholds) sum in int64
+        a = np.abs(voxels.reshape(L, -1), dtype=np.int16 if small else np.int64)
+        acc = np.int32 if small else np.int64
+        grid = a.sum(axis=1, dtype=acc).astype(np.int64)
+        total, net = int(grid.sum()), int(voxels.sum(dtype=acc))
         pos, neg = (total + net) // 2, (total - net) // 2
         flat = voxels.reshape(L * nb, h * w)
         # a pixel is active when any of its bins is non-zero: for int8, any byte (a 10x faster reduction)
