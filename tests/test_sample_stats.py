@@ -28,6 +28,9 @@ def test_rates_active_pixels_and_flow_by_hand():
     vox[1, 0, 0, 1] = -128
     wide = [event_stats(vox.astype(d), None, None, 10.0, 1, 2, True) for d in (np.int8, np.int16, np.int32)]
     assert wide[0] == wide[1] == wide[2] and wide[0]["rate_neg"] == pytest.approx(130 / 4 / 0.4)
+    deep = vox.astype(np.int16)
+    deep[0, 0, 0, 1] = -32768  # int16's own absolute-value overflow
+    assert event_stats(deep, None, None, 10.0, 1, 2, True) == event_stats(deep.astype(np.int64), None, None, 10.0, 1, 2, True)
 
 
 def test_bad_arrays_and_rates_are_named():

@@ -84,17 +84,19 @@ def event_stats(voxels: Optional[np.ndarray], counts: Optional[np.ndarray], flow
             raise ValueError(f"voxels must be (L, B, H, W), got {voxels.shape}")
         L, nb, h, w = voxels.shape
         small = voxels.dtype.itemsize == 1
-        # |int8| in int16 (-128 has no int8 absolute value); sums of int8 in int32 hold 2^31 / 128
-        # = 16M bins x pixels, far above a sample's; wider voxels (low thresholds) sum in int64
-        a = np.abs(voxels.reshape(L, -1), dtype=np.int16 if small else np.int64)
+        # |int8| in int16 (-128 has no int8 absolute value); |int16| in int16 unless -32768 is there
+        a = np.abs(voxels.reshape(L, -1), dtype=np.int16 if small else None)
+        if not small and a.dtype.itemsize < 8 and a.min() < 0:
+            a = np.abs(voxels.reshape(L, -1), dtype=np.int64)
+        # int8 sums in int32 hold 2^31 / 128 = 16M bins x pixels, far above a sample's; wider in int64
         acc = np.int32 if small else np.int64
         grid = a.sum(axis=1, dtype=acc).astype(np.int64)
         total, net = int(grid.sum()), int(voxels.sum(dtype=acc))
         pos, neg = (total + net) // 2, (total - net) // 2
         flat = voxels.reshape(L * nb, h * w)
-        # a pixel is active when any of its bins is non-zero: for int8, any byte (a 10x faster reduction)
-        active = np.count_nonzero(flat.view(np.uint8).max(axis=0) if voxels.dtype.itemsize == 1 else
-                                  (flat != 0).any(axis=0))
+        # a pixel is active when any of its bins is non-zero: the max of its bins' bits read as
+        # unsigned integers (10x faster than any() over a boolean copy)
+        active = np.count_nonzero(flat.view(f"u{voxels.dtype.itemsize}").max(axis=0))
     else:
         L = h = w = 0
     if L:
