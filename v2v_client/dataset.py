@@ -320,7 +320,7 @@ def dist_position() -> Tuple[int, int]:
         ValueError: the two disagree (a process group of world size 1 in a process whose
             environment says 2: the ranks would not form one group and would yield unequal
             batch counts), the environment holds something that is not a rank, or it gives a
-            WORLD_SIZE above 1 without a RANK.
+            WORLD_SIZE above 1 without a RANK and no process group is initialised.
     """
     env = None
     if os.environ.get("WORLD_SIZE") is not None:
@@ -329,9 +329,6 @@ def dist_position() -> Tuple[int, int]:
         except ValueError:
             raise ValueError(f"RANK={os.environ.get('RANK')!r} / WORLD_SIZE={os.environ.get('WORLD_SIZE')!r} "
                              f"in the environment are not integers") from None
-        if env[1] > 1 and os.environ.get("RANK") is None:  # every process would take rank 0's share
-            raise ValueError(f"WORLD_SIZE={env[1]} in the environment but no RANK: set RANK, or pass rank= and "
-                             f"world_size= to V2VStreamDataset explicitly")
     dist = None
     try:
         import torch.distributed as td
@@ -340,6 +337,11 @@ def dist_position() -> Tuple[int, int]:
             dist = td.get_rank(), td.get_world_size()
     except (RuntimeError, ValueError):  # a backend half set up is the same as none here
         dist = None
+    if dist is None and env is not None and env[1] > 1 and os.environ.get("RANK") is None:
+        # no process group to ask (Lightning's rank 0 sets WORLD_SIZE without RANK, but has one by
+        # the time it iterates): every process would take rank 0's share
+        raise ValueError(f"WORLD_SIZE={env[1]} in the environment but no RANK and no torch.distributed process "
+                         f"group: set RANK, or pass rank= and world_size= to V2VStreamDataset explicitly")
     if dist is not None and env is not None and dist[1] != env[1]:
         raise ValueError(f"torch.distributed says world size {dist[1]} but WORLD_SIZE={env[1]} in the "
                          f"environment: pass rank= and world_size= to V2VStreamDataset explicitly")
