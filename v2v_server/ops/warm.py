@@ -28,9 +28,9 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
         with video_frames(cfg.recipe, source, rel) as fp:
             cached = fp.cached
             layout = cfg.recipe.windows.layout(fp.declared)  # the frames the sample pass reads, no more
-            for i, _ in enumerate(fp.frames):
+            for i, f in enumerate(fp.frames):
                 out["frames"] += 1
-                layout.step(i, fp.cut_at(i))
+                layout.step(i, f.cut)
                 if layout.done:
                     fp.end()
                     break

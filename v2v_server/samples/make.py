@@ -385,9 +385,9 @@ def _samples(recipe: SampleRecipe, fp: FramePass, rel_path: str, epoch: int, out
     layout = recipe.windows.layout(fp.declared)
     win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
     start = 0  # its first frame
-    for i, (codes, expand) in enumerate(fp.frames):  # the frames of the layout's windows at most (video_frames)
+    for i, (codes, expand, cut) in enumerate(fp.frames):  # the frames of the layout's windows at most (video_frames)
         stats["frames"] = i + 1
-        ev = layout.step(i, fp.cut_at(i))
+        ev = layout.step(i, cut)
         stats.update(cuts=layout.cuts, dropped=layout.dropped)
         full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled
         if ev.drops is not None:  # a cut inside the window in progress: it would show two scenes
