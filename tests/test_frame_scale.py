@@ -178,9 +178,9 @@ def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
                       frame_height=40)
     for name, fails in (("same_aspect.mpg", False), ("other_aspect.mpg", True)):
         v = check_video(cfg.windows, LocalSource(d), name)
-        stats: dict = {}
-        served = list(video_samples(cfg, LocalSource(d), name, 0, ("voxels",), stats=stats))
-        assert bool(v.get("failed_windows")) == fails == bool(stats.get("failed")), (name, v, stats)
+        run = video_samples(cfg, LocalSource(d), name, 0, ("voxels",))
+        served = list(run)
+        assert bool(v.get("failed_windows")) == fails == bool(run.record().failed), (name, v, run.record())
         assert v["windows"] == len(served), (name, v)
 
 

@@ -77,13 +77,14 @@ def test_served_windows_never_span_a_cut():
     cfg = SampleRecipe(sequence_length=8, max_samples_per_video=20)  # 41-frame windows
     clip = "webvid_like_596x336.mp4"
     cuts = LABELLED[clip]
-    stats: dict = {}
-    metas = [m for _, _, m in video_samples(cfg, LocalSource(SAMPLE_VIDEOS), clip, 0, ("frames",), stats=stats)]
+    run = video_samples(cfg, LocalSource(SAMPLE_VIDEOS), clip, 0, ("frames",))
+    metas = [m for _, _, m in run]
     assert metas, "shots longer than 41 frames give windows"
     for m in metas:
         first, last = m["src_start_frame"], m["src_start_frame"] + cfg.frames_per_sample - 1
         assert not [c for c in cuts if first < c <= last], m["sample_id"]
-    assert stats["cuts"] == len(cuts) and stats["dropped"] > 0
+    found = run.record()
+    assert list(found.cuts) == cuts and found.dropped > 0
     ids = [m["sample_id"] for m in metas]
     assert [parse_sample_id(i).window for i in ids] == list(range(len(ids)))  # 0 .. n - 1
     # the same windows with shot_cuts off span cuts, as the authors' loader's do
