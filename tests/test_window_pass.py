@@ -4,6 +4,8 @@ samples served and what the sample pass reports agree window by window, decoded 
 the frame cache."""
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from harness.corpus import write_scenes_video
@@ -74,3 +76,20 @@ def test_the_sample_pass_reports_the_windows_check_fails(corpus):
     assert sorted(found.failed) == verdict["failed_windows"], (verdict, found)
     assert found.windows == verdict["windows"] + len(verdict["failed_windows"])
     assert found.verdict(recipe.windows) == (verdict["windows"], verdict["failed_windows"], verdict["reason"])
+
+
+def test_the_pass_record_is_what_a_corpus_index_keeps(corpus):
+    """The record of a pass round-trips through JSON with the facts ``--check`` prints."""
+    recipe = _recipe("avoid")
+    verdict = check_video(recipe.windows, LocalSource(corpus), CLIP)
+    _, found = _served(recipe, LocalSource(corpus))
+    kept = json.loads(json.dumps(found.to_dict()))
+    assert kept["frames"] == verdict["frames"] and kept["cuts"] == verdict["cuts"] and kept["fps"] == 25.0
+    assert (kept["width"], kept["height"]) == (96, 80) and kept["layout"] == "span=11,windows=10,cuts=avoid"
+    assert len(kept["starts"]) == verdict["windows"] + len(verdict["failed_windows"]) and kept["error"] is None
+    assert sorted(map(int, kept["failed"])) == verdict["failed_windows"]
+    stride = recipe.windows.window_stride
+    # windows start at a shot's first frame + k x stride, and span no cut
+    shots = [0] + kept["cuts"]
+    assert all(any((s - c) % stride == 0 and s >= c for c in shots) for s in kept["starts"])
+    assert not any(s < c <= s + stride for s in kept["starts"] for c in kept["cuts"])

@@ -17,7 +17,7 @@ they follow, and the verdict).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Dict, Iterator, List, Mapping, Optional, Tuple
+from typing import Callable, Dict, Iterator, List, Mapping, NamedTuple, Optional, Tuple
 
 import numpy as np
 
@@ -28,6 +28,12 @@ from v2v_server.videos.windows import WindowSettings
 #: Words of the reason a file with too few frames for one window gets: a property of the clip,
 #: not a fault (the server logs such a skip at INFO, faults at WARNING).
 SHORT_CLIP = "shorter than one window of"
+
+
+def error_reason(error: BaseException) -> str:
+    """What stopped a reading, in a verdict's words: a ``VideoError`` gives its message, anything
+    else ``"TypeName: message"``."""
+    return str(error) if isinstance(error, VideoError) else f"{type(error).__name__}: {error}"
 
 
 def verdict(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] = None,
@@ -57,7 +63,7 @@ def verdict(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] 
     if bad:
         reason = "; ".join(failed[k] for k in bad)
     elif error is not None:
-        reason = str(error) if isinstance(error, VideoError) else f"{type(error).__name__}: {error}"
+        reason = error_reason(error)
     elif windows == 0 and cuts and w.avoid_cuts:
         reason = f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} {w.frames_per_sample} frames"
     elif windows == 0:
@@ -67,15 +73,14 @@ def verdict(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] 
     return windows, bad, reason
 
 
-@dataclass(frozen=True)
-class WindowFrame:
+class WindowFrame(NamedTuple):
     """One frame of a window pass and what it does to the windows, in this order: ``drops``
     (the window in progress that a cut at this frame abandons), ``fails`` (the window that this
     frame, of another size, fails: the one it ends or continues), ``ends`` (the window this frame
     completes, as its last frame), ``starts`` (the window this frame starts); each an index or
     None. ``offset``: the frame's place in the window in progress after it (0 where it starts
     one; None when none is). ``index``: the frame's number from 0; ``codes``, ``expand``: as
-    ``frames.PassFrame``."""
+    ``frames.PassFrame``. A tuple: one is made per frame read."""
 
     index: int
     codes: Optional[np.ndarray]
@@ -128,6 +133,14 @@ class VideoPass:
         ``(windows, failed_windows, reason)``; a failed window's reason names it."""
         failed = {k: f"window {k}: {why}" for k, why in self.failed.items()}
         return verdict(w, self.frames, failed, self.error, self.windows, len(self.cuts))
+
+    def to_dict(self) -> dict:
+        """The record as JSON-safe values, as a corpus index keeps it: every attribute, ``failed``
+        keyed by the window as a string, ``error`` as its reason (``verdict``'s words) or None."""
+        d = {k: getattr(self, k) for k in ("frames", "width", "height", "fps", "layout", "dropped", "complete")}
+        d.update(cuts=list(self.cuts), starts=list(self.starts), failed={str(k): v for k, v in self.failed.items()},
+                 error=None if self.error is None else error_reason(self.error))
+        return d
 
     def reason(self, w: WindowSettings) -> Optional[str]:
         """Why the pass gave fewer windows than it should, failed windows aside (they are
