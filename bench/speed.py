@@ -135,11 +135,11 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     n = 0
     t = time.process_time()
     for name in names:
-        stats: dict = {}
-        for sid, arrays, meta in video_samples(cfg, source or LocalSource(corpus), name, epoch, outputs, (), flow, stats, flow_grid):
+        run = video_samples(cfg, source or LocalSource(corpus), name, epoch, outputs, (), flow, flow_grid)
+        for sid, arrays, meta in run:
             wire_arrays(cfg, arrays)
             n += 1
-        for k, v in stats.get("busy", {}).items():
+        for k, v in run.busy.items():
             busy[k] = busy.get(k, 0.0) + v
     busy["samples"] = busy.get("samples", 0) + n
     return n / (time.process_time() - t)

@@ -137,3 +137,39 @@ def write_zip_parts(parts: Path, ref: Path, clips: Path) -> Dict[str, str]:
         (parts / f"p-3_part{suffix}").write_bytes(data[cut[i]:cut[i + 1]])
     joined.unlink()
     return layout
+
+
+def write_scenes_video(path: Path, parts) -> Path:
+    """An MPEG-PS clip (``.mpg``) of ``parts``, each ``(scene, frames, width, height)`` one MPEG-2
+    stream after the other (a decoder reads them as one stream whose frame size changes where
+    two parts differ). ``scene`` "a": a bright bar sliding right over a horizontal gradient; "b":
+    a dark bar sliding left over a vertical one. Consecutive parts of one scene continue it
+    (scaled to the part's size: no shot cut); a change of scene is a hard cut."""
+    import tempfile
+
+    import av
+
+    path = Path(path)
+    data, at = b"", {"a": 0, "b": 0}
+    with tempfile.TemporaryDirectory() as d:
+        for j, (scene, n, w, h) in enumerate(parts):
+            part = Path(d) / f"{j}.mpg"
+            with av.open(str(part), "w") as c:
+                s = c.add_stream("mpeg2video", rate=25)
+                s.width, s.height, s.pix_fmt = w, h, "yuv420p"
+                for i in range(at[scene], at[scene] + n):
+                    if scene == "a":
+                        img = np.tile(np.linspace(30, 200, w, dtype=np.uint8), (h, 1))
+                        x, lit = int((0.1 + 0.01 * i) * w), 250
+                    else:
+                        img = np.tile(np.linspace(220, 40, h, dtype=np.uint8)[:, None], (1, w))
+                        x, lit = int((0.8 - 0.01 * i) * w), 10
+                    img[:, x:x + max(2, w // 20)] = lit
+                    for p in s.encode(av.VideoFrame.from_ndarray(np.repeat(img[..., None], 3, axis=2), format="rgb24")):
+                        c.mux(p)
+                for p in s.encode():
+                    c.mux(p)
+            at[scene] += n
+            data += part.read_bytes()
+    path.write_bytes(data)
+    return path

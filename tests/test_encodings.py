@@ -166,7 +166,7 @@ def test_ten_bit_frames_reach_the_core_as_uint16(corpus, ten, eight):
     frames = {}
     for name in (ten, eight):
         with video_frames(cfg, LocalSource(corpus), name) as fp:
-            frames[name] = [expand(codes).copy() for codes, expand in fp.frames]
+            frames[name] = [f.expand(f.codes).copy() for f in fp.frames]
     assert frames[ten][0].dtype == np.uint16 and frames[eight][0].dtype == np.uint8
     assert len(frames[ten]) == len(frames[eight]) >= 2 * 20 + 1  # both windows (with shot_cuts avoid, every frame)
     assert int(max(f.max() for f in frames[ten])) > 255 * 256  # full range, not 10-bit codes
@@ -187,7 +187,7 @@ def test_variable_frame_rate_frames_are_taken_in_order(corpus):
     assert info.fps == pytest.approx(float(s.average_rate)) and info.fps == pytest.approx((N - 1) / times[-1], rel=0.1)
     cfg = SampleRecipe(**RECIPE)
     with video_frames(cfg, LocalSource(corpus), "vfr.mp4") as fp:
-        read = [expand(codes).copy() for codes, expand in fp.frames]
+        read = [f.expand(f.codes).copy() for f in fp.frames]
     c, s, _ = open_video(path)
     order = [f.to_ndarray(format="gray")[: len(read[0])] for f in c.decode(s)][: len(read)]
     c.close()

@@ -67,7 +67,7 @@ def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video
     cfg = SampleRecipe(**SMALL, frame_height=height)
     want = _expected(corpus / video, height, cfg.keep_top_fraction, 12)
     with video_frames(cfg, LocalSource(corpus), video) as fp:
-        got = [expand(codes).copy() for codes, expand in (next(fp.frames) for _ in range(12))]
+        got = [f.expand(f.codes).copy() for f in (next(fp.frames) for _ in range(12))]
     assert got[0].shape == (cfg.windows.kept_rows(height), want[0].shape[1])
     assert got[0].dtype == want[0].dtype == (np.uint16 if video == "ten_bit.mkv" else np.uint8)
     for a, b in zip(got, want):
@@ -136,7 +136,7 @@ def test_frame_height_zero_is_the_decoded_frame(corpus):
     assert cfg.frame_height == 0
     plain = [g[: cfg.windows.kept_rows(g.shape[0])].copy() for _, g in zip(range(5), iter_luma(corpus / "bikes.mp4"))]
     with video_frames(cfg, LocalSource(corpus), "bikes.mp4") as fp:
-        got = [expand(codes).copy() for codes, expand in (next(fp.frames) for _ in range(5))]
+        got = [f.expand(f.codes).copy() for f in (next(fp.frames) for _ in range(5))]
     for a, b in zip(got, plain):
         np.testing.assert_array_equal(a, b)
     assert SampleRecipe(**SMALL, frame_height=0).fingerprint() == cfg.fingerprint() != \
@@ -178,9 +178,9 @@ def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
                       frame_height=40)
     for name, fails in (("same_aspect.mpg", False), ("other_aspect.mpg", True)):
         v = check_video(cfg.windows, LocalSource(d), name)
-        stats: dict = {}
-        served = list(video_samples(cfg, LocalSource(d), name, 0, ("voxels",), stats=stats))
-        assert bool(v.get("failed_windows")) == fails == bool(stats.get("failed")), (name, v, stats)
+        run = video_samples(cfg, LocalSource(d), name, 0, ("voxels",))
+        served = list(run)
+        assert bool(v.get("failed_windows")) == fails == bool(run.record().failed), (name, v, run.record())
         assert v["windows"] == len(served), (name, v)
 
 

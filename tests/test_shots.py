@@ -77,13 +77,14 @@ def test_served_windows_never_span_a_cut():
     cfg = SampleRecipe(sequence_length=8, max_samples_per_video=20)  # 41-frame windows
     clip = "webvid_like_596x336.mp4"
     cuts = LABELLED[clip]
-    stats: dict = {}
-    metas = [m for _, _, m in video_samples(cfg, LocalSource(SAMPLE_VIDEOS), clip, 0, ("frames",), stats=stats)]
+    run = video_samples(cfg, LocalSource(SAMPLE_VIDEOS), clip, 0, ("frames",))
+    metas = [m for _, _, m in run]
     assert metas, "shots longer than 41 frames give windows"
     for m in metas:
         first, last = m["src_start_frame"], m["src_start_frame"] + cfg.frames_per_sample - 1
         assert not [c for c in cuts if first < c <= last], m["sample_id"]
-    assert stats["cuts"] == len(cuts) and stats["dropped"] > 0
+    found = run.record()
+    assert list(found.cuts) == cuts and found.dropped > 0
     ids = [m["sample_id"] for m in metas]
     assert [parse_sample_id(i).window for i in ids] == list(range(len(ids)))  # 0 .. n - 1
     # the same windows with shot_cuts off span cuts, as the authors' loader's do
@@ -116,7 +117,8 @@ def test_cached_epoch_reuses_the_stored_cuts(tmp_path, monkeypatch):
 
     monkeypatch.setattr(frames_mod, "ShotDetector", NoDetection)
     with video_frames(cfg, src, clip) as fp:
-        assert fp.cached and sorted(fp.cuts) == LABELLED[clip][:len(fp.cuts)] and fp.cuts
+        cuts = [i for i, f in enumerate(fp.frames) if f.cut]
+        assert fp.cached and cuts == LABELLED[clip][:len(cuts)] and cuts
     again = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",))]
     assert again == first
     assert src.frame_cache.take_stats()["hits"] == 2
@@ -171,7 +173,7 @@ def test_a_segment_gives_the_frames_of_its_range_only(segment_corpus):
     whole = [f.copy() for f in iter_luma(root / "bbb_camera_596x336.mp4")]
     cfg = SampleRecipe(keep_top_fraction=1.0, shot_cuts="off")
     with video_frames(cfg, src, "bbb_camera_596x336.mp4#t=1,9.5") as fp:
-        got = [expand(codes).copy() for codes, expand in fp.frames]
+        got = [f.expand(f.codes).copy() for f in fp.frames]
     assert len(got) == 213  # frames at 1.00 .. 9.48 s of a 25 fps video
     assert all(np.array_equal(g, whole[25 + i]) for i, g in enumerate(got))
     # ids are unique per segment, and samples lie inside the range (frame 0 = the range's start)
@@ -212,7 +214,7 @@ def test_segments_of_a_tar_member_and_through_the_ray_engine(tmp_path):
 
     def frames(video):
         with video_frames(cfg.recipe, src, video) as fp:
-            return [expand(codes).tobytes() for codes, expand in fp.frames]
+            return [f.expand(f.codes).tobytes() for f in fp.frames]
 
     assert frames(videos[0]) == frames(videos[1]) and len(frames(videos[1])) == 100  # 2.00 .. 5.96 s
 

@@ -141,7 +141,7 @@ def test_segments_of_a_deflated_member(tmp_path):
 
     def frames(video):
         with video_frames(cfg.recipe, src, video) as fp:
-            return [expand(codes).tobytes() for codes, expand in fp.frames]
+            return [f.expand(f.codes).tobytes() for f in fp.frames]
 
     assert frames(videos[0]) == frames(videos[1]) and len(frames(videos[1])) == 100  # 2.00 .. 5.96 s
 

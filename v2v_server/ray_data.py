@@ -3,7 +3,7 @@
 For clusters that already run Ray: Ray places the decoding (a ``map_batches`` stage on an actor
 pool of CPU workers) on CPU nodes, streams rows with backpressure to Ray Train ranks on GPU
 nodes, and splits the stream between ranks (``streaming_split``). Sample content is made by the
-same functions ``v2v-serve``'s workers call (``samples.video_samples``, ``corpus.verdict``),
+same functions ``v2v-serve``'s workers call (``samples.video_samples``, ``window_pass.WindowPass``),
 so a sample is identical, bit for bit, to what ``v2v-serve`` sends for the same
 (seed, epoch, sample_id).
 
@@ -52,10 +52,12 @@ from v2v_server.flow.estimate import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
 from v2v_server.videos.segments import split_segment
-from v2v_server.videos.corpus import check_video, pass_verdict, verdict
+from v2v_server.videos.corpus import check_video
 from v2v_server.videos.decode import open_video
+from v2v_server.videos.frames import FramePass, PassFrame
 from v2v_server.videos.local import LocalSource
 from v2v_server.videos.source import VideoSource
+from v2v_server.videos.window_pass import WindowPass
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
            "v2v_dataset", "VOXEL_DTYPE"]
@@ -88,9 +90,10 @@ class RayCorpus:
 
 
 def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int, Optional[str]]:
-    """Windows the video at ``rel`` of ``source`` (the corpus) gives per epoch, from its video packets (demuxed, not
-    decoded); with ``shot_cuts: avoid``, from one decode pass that finds its cuts
-    (``corpus.check_video``: the windows depend on them).
+    """Windows the video at ``rel`` of ``source`` (the corpus) gives per epoch: the window pass
+    (``window_pass.WindowPass``) over its video packets (demuxed, not decoded); with
+    ``shot_cuts: avoid``, or for a segment, over its decoded frames (``corpus.check_video``: the
+    windows depend on the cuts, or on the range's frames).
 
     Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
     ``v2v-serve`` logs for it (``open_video``'s ``VideoError`` message, or ``"N frames,
@@ -98,26 +101,24 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int,
     do not decode is found out later, while decoding, with the decoder's reason.
     """
     w = cfg.recipe.windows
-    if w.avoid_cuts or split_segment(rel)[1]:  # windows depend on the cuts, or on the range's frames
+    if w.avoid_cuts or split_segment(rel)[1]:
         r = check_video(w, source, rel)
         return r["windows"], (None if r["usable"] else r["reason"])
-    frames, error = 0, None
+    windows = WindowPass(w)
+    error = None
     try:
         with source.open(rel) as path:
-            container, stream, _ = open_video(path)
+            container, stream, info = open_video(path)
             try:
-                need = w.frames_for(w.max_windows)
-                for packet in container.demux(stream):
-                    if packet.size:
-                        frames += 1
-                        if frames >= need:
-                            break
+                packets = (PassFrame(None, None) for packet in container.demux(stream) if packet.size)
+                for _ in windows.over(FramePass(info, 0, packets, False)):
+                    pass
             finally:
                 container.close()
     except Exception as e:  # a demuxing error after some packets: those packets still count
-        error = e if frames == 0 else None
-    windows, _, reason = verdict(w, frames, None, error)
-    return windows, reason
+        error = e if windows.frames == 0 else None
+    count, _, reason = windows.record(error).verdict(w)
+    return count, reason
 
 
 def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] = None) -> RayCorpus:
@@ -237,11 +238,10 @@ class SampleMaker:
         keep = {parse_sample_id(sid, kpw) for sid in wanted}
         skip = [key for w in range(self.cfg.max_samples_per_video) for key in window_keys(video, w, kpw)
                 if key not in keep]
-        stats: dict = {}
         error: Optional[str] = None
+        run = video_samples(self.cfg.recipe, self.source, video, epoch, self.outputs, skip, self.flow)
         try:
-            for key, arrays, meta in video_samples(self.cfg.recipe, self.source, video, epoch, self.outputs, skip,
-                                                   self.flow, stats):
+            for key, arrays, meta in run:
                 sid = key.sample_id(kpw)
                 flags = wanted.pop(sid, None)
                 if flags is None:
@@ -250,13 +250,15 @@ class SampleMaker:
                 params = json.dumps(meta)
                 for pad in flags:
                     yield self._row(sid, arrays, params, epoch, pad)
-                if not wanted and not stats.get("storing"):
+                if not wanted and not run.storing:
                     break  # the rest of the video is not read; a pass storing it into the frame cache ends whole
         except Exception as e:  # one file's failure is that file's verdict, never the job's death
-            error = pass_verdict(self.cfg.recipe.windows, stats, e)
+            error = run.record(e).reason(self.cfg.recipe.windows)
+        run.close()
         if wanted:  # windows the file did not give: a verdict, and padding rows in their place
-            error = error or pass_verdict(self.cfg.recipe.windows, stats) or (
-                f"{stats.get('frames', 0)} frames decoded, fewer than its packets promised")
+            found = run.record()
+            error = error or found.reason(self.cfg.recipe.windows) or (
+                f"{found.frames} frames decoded, fewer than its packets promised")
             log.warning("skipped %s: %s", self.source.where(video), error)
             zeros = _zeros(self.cfg, self.outputs)
             for sid, flags in wanted.items():

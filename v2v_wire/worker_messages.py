@@ -229,7 +229,7 @@ class Done:
         task: the task's id.
         windows: complete windows the file gave (``schedule.EpochScheduler.task_done``).
         failed: window (as a string) -> why that window cannot be made.
-        error: why the pass gave fewer windows than it should (``corpus.pass_verdict``), or None.
+        error: why the pass gave fewer windows than it should (``window_pass.VideoPass.reason``), or None.
         failure: the exception that stopped the pass, if one did.
         frames: frames decoded.
         cuts, dropped: shot cuts found, windows they removed.

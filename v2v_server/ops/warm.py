@@ -15,6 +15,7 @@ from v2v_server.samples.make import video_frames
 from v2v_server.videos.frames import lookup_entry
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import map_videos
+from v2v_server.videos.window_pass import WindowPass
 
 
 def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
@@ -23,19 +24,16 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
     decoding error)."""
     source.take_stats()  # the counters read below are this video's alone
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
+    windows = WindowPass(cfg.recipe.windows)
     cached = False
     try:
         with video_frames(cfg.recipe, source, rel) as fp:
             cached = fp.cached
-            layout = cfg.recipe.windows.layout(fp.declared)  # the frames the sample pass reads, no more
-            for i, _ in enumerate(fp.frames):
-                out["frames"] += 1
-                layout.step(i, fp.cut_at(i))
-                if layout.done:
-                    fp.end()
-                    break
+            for _ in windows.over(fp):  # the frames the sample pass reads, no more
+                pass
     except Exception as e:  # one bad file never stops the warm-up
         out["state"] = f"not stored: {type(e).__name__}: {e}"
+    out["frames"] = windows.frames
     st = source.take_stats().get("frame_cache", {})
     out["bytes"] = int(st.get("bytes_written", 0))
     if out["state"]:

@@ -16,7 +16,7 @@ import hashlib
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, Iterable, Iterator, List, Optional, Tuple
+from typing import Dict, FrozenSet, Iterable, Iterator, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -30,6 +30,7 @@ from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.videos.decode import to_uint8
 from v2v_server.videos.frames import FramePass, open_frames
+from v2v_server.videos.window_pass import VideoPass, WindowPass
 
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
@@ -293,21 +294,15 @@ class _CropCut:
 
 
 class _Window:
-    """The window being decoded: its crops (:class:`_CropCut`), its first frame's shape and
-    code -> full-range map. A frame of another size fails the window (``stats["failed"]``)."""
+    """The window being decoded: its first frame, the code -> full-range map of that frame and
+    its crops (:class:`_CropCut`)."""
 
-    def __init__(self, k: int, shape: tuple, expand, cuts: List[_CropCut]):
-        self.k, self.shape, self.expand, self.cuts = k, shape, expand, cuts
+    def __init__(self, start: int, expand, cuts: List[_CropCut]):
+        self.start, self.expand, self.cuts = start, expand, cuts
 
-    def add(self, off: int, codes: np.ndarray, expand, full: list, stats: dict) -> None:
+    def add(self, off: int, codes: np.ndarray, expand, full: list) -> None:
         """Frame ``off`` of the window; ``full`` caches the frame at full range (made at most
         once per frame, shared by the windows the frame belongs to)."""
-        if self.cuts and codes.shape != self.shape:
-            # a stream whose frame size changes: this window fails (this epoch), the next is planned anew
-            stats.setdefault("failed", {})[self.k] = (
-                f"frame size changed from {self.shape[1]}x{self.shape[0]} to {codes.shape[1]}x{codes.shape[0]} "
-                f"at frame {stats['frames'] - 1}")
-            self.cuts = []
         for cut in self.cuts:
             if off < cut.consumed:
                 if cut.plan.scale != 1.0 and not full:
@@ -320,42 +315,119 @@ class _Window:
             yield cut.key, cut.plan, cut.frames(self.expand)
 
 
-def video_samples(
-    recipe: SampleRecipe,
-    source: VideoSource,
-    rel_path: str,
-    epoch: int,
-    outputs: Iterable[str],
-    skip: Iterable[SampleKey] = (),
-    flow: Optional[FlowEstimator] = None,
-    stats: Optional[dict] = None,
-    flow_grid: bool = False,
-) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-    """Decode the video at ``rel_path`` of ``source`` (the corpus, a
-    ``videos.source.VideoSource``) once, sequentially, and yield its samples.
+class SamplePass:
+    """The samples of one sequential pass over the video at ``rel_path`` of ``source`` (the
+    corpus, a ``videos.source.VideoSource``): an iterator of ``(key, arrays, meta)``.
 
     With ``recipe.crops_per_window`` = K, each window gives K samples: K crops, each with its own
     plan (crop, flip, pauses, sensor parameters) from its own id, cut from the same decoded
     frames as they pass (the window is never held at full size).
 
-    Yields ``(key, arrays, meta)`` (``key`` an ``ids.SampleKey``) for each sample of a complete
-    window whose key is not in ``skip``, in window then crop order; a sample's random choices
-    come from its sample id (``SampleKey.sample_id``).
-    Decoding stops after the last window that can be used (known from the container's
-    declared frame count when it has one). When given, ``stats`` receives
-    ``frames`` (frames decoded), ``windows`` (complete windows, skipped and failed ones
-    included), ``width``, ``height``, ``fps``, ``busy`` (seconds simulating and estimating
-    flow, see ``make_sample``), ``storing`` (as each sample is yielded: whether the pass is still
-    storing the video in the frame cache, ``frames.FramePass.storing``; a consumer that stops
-    early then drops the entry) and, when some window could not be made, ``failed`` (window ->
-    reason; e.g. the frame size changed inside it: that window fails, the following ones are
-    planned on the new size). ``flow_grid``: see ``make_sample``.
+    Yields ``(key, arrays, meta)`` (``key`` an ``ids.SampleKey``; ``arrays``: ``make_sample``'s)
+    for each sample of a complete window whose key is not in ``skip``, in window then crop
+    order; a sample's random choices come from its sample id (``SampleKey.sample_id``). Windows
+    are found by the videos stage's window pass (``videos.window_pass.WindowPass``): a window
+    that a cut drops or a frame of another size fails gives no sample (the following ones are
+    planned on the new size). Decoding stops after the last window that can be used (known from
+    the container's declared frame count when it has one). ``flow_grid``: see ``make_sample``.
+
+    Attributes:
+        busy: seconds spent simulating (``"simulate"``) and estimating flow (``"flow"``), summed
+            over the samples made (``make_sample``'s ``busy``).
 
     Raises:
-        VideoError: the file cannot be opened or decoded (samples already yielded are good).
+        VideoError: while iterating, the file cannot be opened or decoded (samples already
+            yielded are good; :meth:`record` keeps what the pass found before).
     """
-    with video_frames(recipe, source, rel_path) as fp:
-        yield from _samples(recipe, fp, rel_path, epoch, outputs, skip, flow, stats, flow_grid)
+
+    def __init__(self, recipe: SampleRecipe, source: VideoSource, rel_path: str, epoch: int, outputs: Iterable[str],
+                 skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False):
+        self._cutter = _Cutter(recipe, rel_path, epoch, tuple(outputs), frozenset(skip), flow, flow_grid)
+        self.busy: Dict[str, float] = self._cutter.busy
+        # opens the video on the first sample asked for; holds the cutter, not this object, so
+        # dropping the pass closes it at once (a frame-cache entry being stored is dropped)
+        self._run = self._cutter.samples(source)
+
+    @property
+    def storing(self) -> bool:
+        """Whether the pass is still storing the video in the frame cache
+        (``frames.FramePass.storing``): a consumer that stops early then drops the entry."""
+        fp = self._cutter.windows.frame_pass
+        return fp is not None and fp.storing
+
+    def record(self, error: Optional[BaseException] = None) -> VideoPass:
+        """What the pass found so far: frames, cuts, complete and failed windows
+        (``videos.window_pass.VideoPass``); ``error``: what stopped it, if anything."""
+        return self._cutter.windows.record(error)
+
+    def __iter__(self) -> "SamplePass":
+        return self
+
+    def __next__(self) -> Tuple[SampleKey, Dict[str, np.ndarray], dict]:
+        return next(self._run)
+
+    def close(self) -> None:
+        """Stop the pass here: the video is closed (a frame-cache entry being stored is dropped)."""
+        self._run.close()
+
+
+@dataclass
+class _Cutter:
+    """What a :class:`SamplePass` cuts, and its window pass."""
+
+    recipe: SampleRecipe
+    rel_path: str
+    epoch: int
+    outputs: Tuple[str, ...]
+    skip: FrozenSet[SampleKey]
+    flow: Optional[FlowEstimator]
+    flow_grid: bool
+    busy: Dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.windows = WindowPass(self.recipe.windows)
+
+    def samples(self, source: VideoSource) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
+        with video_frames(self.recipe, source, self.rel_path) as fp:
+            yield from self._cut(fp)
+
+    def _cut(self, fp: FramePass) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
+        recipe, info, kpw = self.recipe, fp.info, self.recipe.crops_per_window
+        last = recipe.frames_per_sample - 1  # a window's last frame, from its first
+        win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
+        for f in self.windows.over(fp):  # the frames of the layout's windows at most (video_frames)
+            full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled
+            if f.drops is not None or f.fails is not None:  # it would show two scenes, or frames of two sizes
+                win = None
+            if f.ends is not None and win is not None:  # this frame ends the window in progress ...
+                win.add(last, f.codes, f.expand, full)
+                for key, plan, frames in win.finish():
+                    arrays = make_sample(recipe, plan, degrade_window(plan, frames), self.outputs, self.flow, info.fps,
+                                         self.busy, self.flow_grid)
+                    yield key, arrays, add_stats(sample_meta(plan, info.fps, win.start), arrays, recipe,
+                                                 self.windows.shot if recipe.windows.avoid_cuts else None, self.busy)
+                win = None
+            if f.starts is not None:  # ... and starts the next one
+                k = f.starts
+                win = _Window(f.index, f.expand,
+                              [_CropCut(recipe, key, plan_window(recipe, self.epoch, key.sample_id(kpw), k, f.codes.shape))
+                               for key in window_keys(self.rel_path, k, kpw) if key not in self.skip])
+            if win is not None and f.offset is not None:
+                win.add(f.offset, f.codes, f.expand, full)
+
+
+def video_samples(recipe: SampleRecipe, source: VideoSource, rel_path: str, epoch: int, outputs: Iterable[str],
+                  skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False
+                  ) -> SamplePass:
+    """Decode the video at ``rel_path`` of ``source`` once, sequentially, and give its samples:
+    a :class:`SamplePass` (iterate it for ``(key, arrays, meta)``; its ``record`` says what the
+    pass found).
+
+    Raises:
+        VideoError: while iterating, the file cannot be opened or decoded (samples already
+            yielded are good).
+    """
+    return SamplePass(recipe, source, rel_path, epoch, outputs, skip, flow, flow_grid)
 
 
 def video_frames(recipe: SampleRecipe, source: VideoSource, rel_path: str):
@@ -370,45 +442,3 @@ def video_frames(recipe: SampleRecipe, source: VideoSource, rel_path: str):
     w = recipe.windows
     return open_frames(source, rel_path, w.kept_rows, w.decode_threads, w.decode_fast,
                        w.frame_settings(), w.frame_limit, w.window_stride, w.frame_height, detect=w.avoid_cuts)
-
-
-def _samples(recipe: SampleRecipe, fp: FramePass, rel_path: str, epoch: int, outputs: Iterable[str],
-             skip: Iterable[SampleKey], flow: Optional[FlowEstimator], stats: Optional[dict], flow_grid: bool
-             ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-    """:func:`video_samples` of the video's frames ``fp`` (decoded, or replayed from the frame cache)."""
-    skip = set(skip)
-    span = recipe.frames_per_sample
-    kpw = recipe.crops_per_window
-    info = fp.info
-    stats = {} if stats is None else stats
-    stats.update(frames=0, windows=0, cuts=0, dropped=0, width=info.width, height=info.height, fps=info.fps)
-    layout = recipe.windows.layout(fp.declared)
-    win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
-    start = 0  # its first frame
-    for i, (codes, expand) in enumerate(fp.frames):  # the frames of the layout's windows at most (video_frames)
-        stats["frames"] = i + 1
-        ev = layout.step(i, fp.cut_at(i))
-        stats.update(cuts=layout.cuts, dropped=layout.dropped)
-        full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled
-        if ev.drops is not None:  # a cut inside the window in progress: it would show two scenes
-            win = None
-        if ev.ends is not None:  # this frame ends the window in progress ...
-            win.add(span - 1, codes, expand, full, stats)
-            stats["windows"] += 1
-            for key, plan, frames in win.finish():
-                arrays = make_sample(recipe, plan, degrade_window(plan, frames), outputs, flow, info.fps,
-                                     stats.setdefault("busy", {}), flow_grid)
-                stats["storing"] = fp.storing
-                yield key, arrays, add_stats(sample_meta(plan, info.fps, start), arrays, recipe,
-                                             (layout.cuts, layout.shot_start) if layout.avoid_cuts else None, stats["busy"])
-            win = None
-            if layout.done:  # every window is made: the rest of the video serves nothing
-                fp.end()
-                return
-        if ev.starts is not None:  # ... and starts the next one
-            k, start = ev.starts, i
-            win = _Window(k, codes.shape, expand,
-                          [_CropCut(recipe, key, plan_window(recipe, epoch, key.sample_id(kpw), k, codes.shape))
-                           for key in window_keys(rel_path, k, kpw) if key not in skip])
-        if win is not None:
-            win.add(i - start, codes, expand, full, stats)

@@ -28,7 +28,6 @@ import zmq
 
 from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
-from v2v_server.videos.corpus import pass_verdict
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import source_from_spec
 from v2v_server.service.shm import SlotRing
@@ -132,12 +131,13 @@ def pack_arrays(arrays: dict, names) -> tuple:
 
 class _StageClock:
     """Seconds a worker spends per stage (decode, simulate, flow, serialize, send) since its
-    previous message. Simulate and flow come from ``samples.video_samples``'s ``stats["busy"]``; decode is
-    the rest of the time spent making a sample (decoding, cropping, planning); send includes
-    waiting for the server to take the message (back-pressure)."""
+    previous message. Simulate and flow come from the sample pass's ``busy``
+    (``samples.make.SamplePass``); decode is the rest of the time spent making a sample
+    (decoding, cropping, planning); send includes waiting for the server to take the message
+    (back-pressure)."""
 
-    def __init__(self, stats: dict):
-        self.stats = stats
+    def __init__(self, busy: dict):
+        self.busy = busy
         self.t = time.perf_counter()
         self.acc = {"decode": 0.0, "simulate": 0.0, "flow": 0.0, "serialize": 0.0, "send": 0.0}
         self.busy_seen = {"simulate": 0.0, "flow": 0.0}
@@ -149,7 +149,7 @@ class _StageClock:
 
     def made(self) -> None:
         dt = self._lap()
-        busy = self.stats.get("busy", {})
+        busy = self.busy
         inner = 0.0
         for k in ("simulate", "flow"):
             d = busy.get(k, 0.0) - self.busy_seen[k]
@@ -175,17 +175,15 @@ def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socke
     """Make every sample of one task of ``source`` and send it (through ``inbox``'s slot ring when it has
     one), then send ``done``; an exception that stops the pass goes in it as a
     ``worker_messages.Failure`` saying it was raised in ``worker`` (its identity) on what."""
-    stats: dict = {}
     error = failure = last = None
     preset = cfg.flow_preset
     flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task.outputs else None
-    clock = _StageClock(stats)  # seconds per stage, reported with each message
     skip = [SampleKey(task.video, w, c) for w, c in task.skip]
+    run = video_samples(cfg, source, task.video, task.epoch, task.outputs, skip, flow,
+                        flow_grid=True)  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
+    clock = _StageClock(run.busy)  # seconds per stage, reported with each message
     try:
-        for key, arrays, meta in video_samples(
-            cfg, source, task.video, task.epoch, task.outputs, skip, flow, stats,
-            flow_grid=True,  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
-        ):
+        for key, arrays, meta in run:
             clock.made()
             arrays = wire_arrays(cfg, arrays)
             specs, frames = encode_arrays(arrays)
@@ -208,13 +206,12 @@ def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socke
         after = "before its first sample" if last is None else f"after sample {last.sample_id(cfg.crops_per_window)}"
         failure = Failure.of(e, f"in worker {worker}, pid {os.getpid()}, while making {task.video} in epoch "
                                 f"{task.epoch}, {after}")
-    # failed windows are reported one by one below, not in the file's verdict
-    error = pass_verdict(cfg.windows, stats, error)
+    found = run.record(error)
     clock.made()  # decoding after the last window
-    done = Done(task.task, stats.get("windows", 0),
-                {str(k): str(v) for k, v in stats.get("failed", {}).items()},  # window -> reason
-                error, failure, stats.get("frames", 0),
-                stats.get("cuts", 0), stats.get("dropped", 0),  # shot cuts found, windows they removed
+    done = Done(task.task, found.windows,
+                {str(k): str(v) for k, v in found.failed.items()},  # window -> reason, one by one
+                found.reason(cfg.windows),  # the file's verdict, failed windows aside
+                failure, found.frames, len(found.cuts), found.dropped,  # shot cuts found, windows they removed
                 clock.report(), source.take_stats())  # object-store reads of this task (empty for a folder)
     _send(sock, [pack(done.to_wire())], parent_pid)
 

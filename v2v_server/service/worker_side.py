@@ -19,7 +19,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.assembly import BatchAssembler, sample_from_slot, sample_from_worker
 from v2v_server.service.pool import WorkerPool
-from v2v_server.videos.corpus import SHORT_CLIP
+from v2v_server.videos.window_pass import SHORT_CLIP
 from v2v_server.videos.source import VideoSource
 from v2v_wire.protocol import ProtocolError, pack, unpack
 from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, worker_message

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import List, Tuple
 
 from v2v_server.videos.corpus_index import layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
+from v2v_server.videos.frames import FramePass, PassFrame
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import map_videos
+from v2v_server.videos.window_pass import WindowPass
 from v2v_server.videos.windows import WindowSettings
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
@@ -55,59 +57,9 @@ def corpus_fingerprint(videos: List[str]) -> str:
     return h.hexdigest()[:16]
 
 
-#: Words of the reason :func:`verdict` gives a file that has too few frames for one window: a
-#: property of the clip, not a fault (the server logs such a skip at INFO, faults at WARNING).
-SHORT_CLIP = "shorter than one window of"
-
-
 #: Spread of a file's frame intervals (longest less shortest), as a share of the median one, above
 #: which ``--check`` reports a variable frame rate (timestamp rounding stays far below it).
 VFR_SPREAD = 0.1
-
-
-def verdict(w: WindowSettings, frames: int, failed: Optional[Dict[int, str]] = None,
-            error: Optional[BaseException] = None, windows: Optional[int] = None,
-            cuts: int = 0) -> Tuple[int, List[int], Optional[str]]:
-    """What a file is worth, from what reading it found: the one rule ``--check``, the
-    workers and the Ray pipeline apply.
-
-    Args:
-        frames: frames read (decoded, or counted from packets) before the end or ``error``.
-        failed: windows that cannot be made -> why (e.g. the frame size changes inside one).
-        error: what stopped the reading, if anything: a ``VideoError`` gives its message,
-            anything else ``"TypeName: message"``.
-        windows: complete windows the reading found (``shots.WindowLayout``); None: as many as
-            ``frames`` holds (``w.windows_in``, the layout without cuts).
-        cuts: shot cuts the reading found (named when they leave no window).
-
-    Returns:
-        ``(windows, failed_windows, reason)``: samples per epoch (``w.windows_in(frames)``
-        less the failed windows), the failed windows among them
-        (sorted), and why the file gives none or fewer (None when nothing is wrong): the failed
-        windows' reasons, else the error's, else too few frames.
-    """
-    failed = failed or {}
-    whole = w.windows_in(frames) if windows is None else windows
-    bad = sorted(k for k in failed if k < whole)
-    windows = whole - len(bad)
-    if bad:
-        reason = "; ".join(failed[k] for k in bad)
-    elif error is not None:
-        reason = str(error) if isinstance(error, VideoError) else f"{type(error).__name__}: {error}"
-    elif windows == 0 and cuts and w.avoid_cuts:
-        reason = f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} {w.frames_per_sample} frames"
-    elif windows == 0:
-        reason = f"{frames} frames, {SHORT_CLIP} {w.frames_per_sample} frames"
-    else:
-        reason = None
-    return windows, bad, reason
-
-
-def pass_verdict(w: WindowSettings, stats: dict, error: Optional[BaseException] = None) -> Optional[str]:
-    """Why a sample pass over a file (``samples.make.video_samples``'s ``stats``) gave fewer
-    windows than it should, or None: :func:`verdict` of what the pass found."""
-    windows = stats.get("windows", 0) if w.avoid_cuts else None
-    return verdict(w, stats.get("frames", 0), None, error, windows, stats.get("cuts", 0))[2]
 
 
 def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
@@ -115,7 +67,9 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
     "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
     says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
     made, ``more`` when decoding stopped with every window complete, ``variable_rate`` when the
-    frames read are unevenly spaced in time); see :func:`verdict`.
+    frames read are unevenly spaced in time): the window pass's record
+    (``window_pass.VideoPass.verdict``) of the frames the workers cut (scaled, kept rows),
+    scored by the same detector; a frame's size in a message is the whole displayed frame's.
 
     Answered from the host's corpus index (``source.corpus_index()``) while the file's identity
     holds, else by decoding it; a verdict that decoding reached without an error (a read
@@ -131,63 +85,42 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
             return {**known, "path": rel}
     out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": "", "cuts": [],
            "dropped": 0}
-    bad: dict = {}  # window -> why it cannot be made
-    error = None
-    try:
-        with source.open(rel) as path:
-            _check_frames(windows, path, out, bad, split_segment(rel)[1])
-    except Exception as e:  # report every failure as a verdict; one bad file never stops the check
-        error = e
-    # windows before a failure still count
-    count, failed, reason = verdict(windows, out["frames"], bad, error, out.get("complete", 0), len(out["cuts"]))
-    out.pop("complete", None)
-    out.update(windows=count, usable=count > 0, reason=reason or "", cuts=list(out["cuts"]))
-    if failed:
-        out["failed_windows"] = failed
-    if index is not None and error is None:
-        index.record(where, identity, key, out)
-    return out
-
-
-def _check_frames(windows: WindowSettings, path, out: dict, bad: dict, segment=None) -> None:
-    """Decode ``path`` for :func:`check_video`: frames, cuts and complete windows into ``out``,
-    failed windows into ``bad``; the windows as the sample pass places them (the same rows
-    scored by the same detector, ``shots.WindowLayout``)."""
-    container, stream, info = open_video(path)
-    out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
-    layout = windows.layout()
-    detector = ShotDetector()
-    out["cuts"] = detector.cuts  # grows as cuts are found
-    shape = None  # first frame size of the window in progress
-    shown = {}  # the displayed (scaled) height of the frame at hand: a frame's size in a message is the whole frame's
+    shown = {}  # the displayed (scaled) height of the frame at hand
 
     def rows(h: int) -> int:  # the rows the sample pass scores and cuts
         shown["h"] = h
         return windows.kept_rows(h)
 
+    found = WindowPass(windows, lambda y: (shown.get("h", y.shape[0]), y.shape[1]))
     times: list = []  # presentation times, for a variable frame rate
-    # the frames the workers cut (scaled, kept rows), scored by the same detector
-    for i, (y, expand) in enumerate(decode_codes(container, stream, rows, windows.frame_height, times, segment)):
-        ev = layout.step(i, detector.score(y, expand))
-        out.update(frames=i + 1, dropped=layout.dropped, complete=layout.windows)
-        if ev.drops is not None:
-            bad.pop(ev.drops, None)  # the index goes to the next window
-        # the window this frame belongs to, other than one it starts: the one it ends, or the one in progress
-        k = ev.ends if ev.ends is not None else layout.windows if ev.starts is None and layout.current is not None \
-            else None
-        size = (shown.get("h", y.shape[0]), y.shape[1])
-        if k is not None and size != shape and k not in bad:  # a window's frames keep its first frame's size
-            bad[k] = (f"window {k}: frame size changed from {shape[1]}x{shape[0]} to "
-                      f"{size[1]}x{size[0]} at frame {i}")
-        if ev.starts is not None:
-            shape = size
-        if layout.done:
-            out["more"] = True  # every window is complete: stop decoding
-            break
-    gaps = frame_intervals(times)
-    if gaps and gaps[2] - gaps[0] > VFR_SPREAD * gaps[1]:
-        out["variable_rate"] = (f"variable frame rate: frame intervals {gaps[0] * 1e3:.3g}-{gaps[2] * 1e3:.3g} ms, "
-                                f"taken as if evenly spaced at the average {info.fps:.3g} fps")
+    error = None
+    try:
+        with source.open(rel) as path:
+            container, stream, info = open_video(path)
+            out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
+            detector = ShotDetector()
+            frames = (PassFrame(y, expand, detector.score(y, expand))
+                      for y, expand in decode_codes(container, stream, rows, windows.frame_height, times,
+                                                    split_segment(rel)[1]))
+            for _ in found.over(FramePass(info, 0, frames, False)):
+                pass
+        gaps = frame_intervals(times)
+        if gaps and gaps[2] - gaps[0] > VFR_SPREAD * gaps[1]:
+            out["variable_rate"] = (f"variable frame rate: frame intervals {gaps[0] * 1e3:.3g}-{gaps[2] * 1e3:.3g} "
+                                    f"ms, taken as if evenly spaced at the average {info.fps:.3g} fps")
+    except Exception as e:  # report every failure as a verdict; one bad file never stops the check
+        error = e
+    record = found.record(error)
+    count, failed, reason = record.verdict(windows)  # windows before a failure still count
+    out.update(windows=count, usable=count > 0, reason=reason or "", frames=record.frames, cuts=list(record.cuts),
+               dropped=record.dropped)
+    if failed:
+        out["failed_windows"] = failed
+    if record.complete:
+        out["more"] = True  # every window is complete: decoding stopped
+    if index is not None and error is None:
+        index.record(where, identity, key, out)
+    return out
 
 
 def check_corpus(windows: WindowSettings, source: VideoSource, videos: List[str], processes: int = 1) -> List[dict]:

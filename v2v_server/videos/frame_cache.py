@@ -259,12 +259,13 @@ class EntryWriter:
                 self.failed = "budget"
                 self.abort()
 
-    def finish(self) -> None:
-        """The decode ended cleanly: write the trailer and commit the entry (counted)."""
+    def finish(self, facts: Optional[dict] = None) -> None:
+        """The decode ended cleanly: write the trailer, with ``facts`` the pass found (e.g. its
+        shot cuts) beside the header's, and commit the entry (counted)."""
         if self.f is None:
             self.cache.skipped[self.failed or "write_error"] += 1
             return
-        meta = dict(self.header, identity=self.identity, format=self.cache.format, dtype=self.dtype or "|u1",
+        meta = dict(self.header, **(facts or {}), identity=self.identity, format=self.cache.format, dtype=self.dtype or "|u1",
                     shapes=self.runs, offsets=self.offsets, sizes=self.sizes, sums=self.sums, keys=self.keys)
         try:
             trailer = json.dumps(meta, separators=(",", ":")).encode("utf-8")

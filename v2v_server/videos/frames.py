@@ -2,7 +2,8 @@
 (``frame_cache``) when it holds the video, else decoded (``decode``) and, with a cache, stored
 as they pass.
 
-Either way the cutter gets ``(codes, expand)`` per frame, as ``decode.decode_codes`` yields them:
+Either way the cutter gets ``(codes, expand, cut)`` per frame (``PassFrame``), the first two as
+``decode.decode_codes`` yields them:
 decoded frames carry the stream's code -> full-range map, cached ones are already full range
 (``expand`` is ``decode.full_range``, the identity). Expansion is per pixel, so the cutter's samples are the same.
 """
@@ -12,8 +13,8 @@ import contextlib
 import itertools
 import math
 import os
-from dataclasses import asdict, dataclass
-from typing import Callable, Iterator, Optional, Tuple
+from dataclasses import asdict
+from typing import Callable, Iterator, NamedTuple, Optional, Tuple
 
 import numpy as np
 
@@ -25,32 +26,52 @@ from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 
 
-@dataclass
+class PassFrame(NamedTuple):
+    """One frame of a pass: ``codes`` and ``expand`` as ``decode.decode_codes`` yields them
+    (``codes`` None for a frame counted from its packet, not decoded), and ``cut``: it starts a
+    new shot (False without detection)."""
+
+    codes: Optional[np.ndarray]
+    expand: Optional[Callable[[np.ndarray], np.ndarray]]
+    cut: bool = False
+
+
 class FramePass:
-    """A video opened for one pass: ``info`` (the stream's facts), ``declared`` (the container's
-    frame count, 0 when it gives none), ``frames`` (an iterator of ``(codes, expand)``, at most
-    ``limit_of(declared)`` of them), ``cached`` (replayed from the frame cache), ``writer``
-    (storing the decoded frames into the frame cache; None when replayed or the cache is off),
-    ``cuts`` (with shot detection: the frames that start a shot, known for frame i once frame i
-    has been given; a replayed pass has the cuts stored with its entry; None without detection)."""
+    """A video opened for one pass.
 
-    info: VideoInfo
-    declared: int
-    frames: Iterator[Frame]
-    cached: bool
-    writer: Optional[EntryWriter] = None
-    cuts: Optional[set] = None
-    ended: bool = False
+    Attributes:
+        info: the stream's facts (``decode.VideoInfo``).
+        declared: the container's frame count, 0 when it gives none.
+        frames: an iterator of :class:`PassFrame`, at most ``limit_of(declared)`` of them
+            (``open_frames``); with shot detection each says whether it starts a shot (a
+            replayed pass gives the cuts stored with its entry).
+        cached: replayed from the frame cache.
+        writer: storing the decoded frames into the frame cache (None when replayed or the
+            cache is off); the entry is committed, with the cuts found, only when the pass ends
+            cleanly: its frames run out, or the consumer says :meth:`end`.
+    """
 
-    def cut_at(self, i: int) -> bool:
-        """Whether frame ``i`` (already given) starts a new shot (False without detection)."""
-        return bool(self.cuts) and i in self.cuts
+    def __init__(self, info: VideoInfo, declared: int, frames: Iterator[PassFrame], cached: bool,
+                 writer: Optional[EntryWriter] = None):
+        self.info, self.declared, self.cached, self.writer = info, declared, cached, writer
+        self._ended = False
+        self.frames = frames
+
+    @classmethod
+    def decoded(cls, info: VideoInfo, declared: int, frames: Iterator[Frame], limit: int,
+                writer: Optional[EntryWriter], detect: bool) -> "FramePass":
+        """A pass over the first ``limit`` decoded ``frames``, each stored by ``writer`` (at
+        full range) as it passes and, with ``detect``, scored for a cut before it is given
+        (``shots.ShotDetector``)."""
+        fp = cls(info, declared, iter(()), False, writer)
+        fp.frames = fp._decoded(frames, limit, detect)
+        return fp
 
     def end(self) -> None:
         """The consumer has what it needs: the frames given so far are the whole pass. The
         frames are closed, and a pass storing the video commits its entry (a pass closed
         without ``end`` drops it). Call it between frames, not while ``frames`` is running."""
-        self.ended = True
+        self._ended = True
         close = getattr(self.frames, "close", None)
         if close is not None:
             close()
@@ -60,6 +81,25 @@ class FramePass:
         """Whether the pass is still storing the video: then it must read ``frames`` to their end
         for the entry to be committed (stopping early drops it)."""
         return self.writer is not None and self.writer.writing
+
+    def _decoded(self, frames: Iterator[Frame], limit: int, detect: bool) -> Iterator[PassFrame]:
+        done = False
+        writer = self.writer
+        detector = ShotDetector() if detect else None
+        try:
+            for codes, expand in itertools.islice(frames, limit):
+                cut = detector is not None and detector.score(codes, expand)
+                if writer is not None:
+                    writer.add(expand(codes))
+                yield PassFrame(codes, expand, cut)
+            done = True
+        finally:
+            if writer is not None:  # a decoding error, or the consumer stopped: nothing partial is kept
+                if done or self._ended:
+                    writer.finish(None if detector is None else
+                                  {"shots": {"detector": DETECTOR_VERSION, "cuts": detector.cuts}})
+                else:
+                    writer.abort(incomplete=True)
 
 
 def kept_rows(keep_top_fraction: float, height: int) -> int:
@@ -120,12 +160,11 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
                     yield from itertools.islice(decode_codes(container, stream, rows, height, segment=segment), start,
                                                 limit)
 
-            cuts = None
-            if detect:  # an entry written with detection holds its cuts (the settings name the detector)
-                cuts = set(int(c) for c in entry.meta.get("shots", {}).get("cuts", ()))
+            # an entry written with detection holds its cuts (the settings name the detector)
+            cuts = frozenset(int(c) for c in entry.meta.get("shots", {}).get("cuts", ())) if detect else frozenset()
             try:
-                yield FramePass(VideoInfo(**entry.meta["info"]), declared, _replay(cache, name, entry, limit, redecode),
-                                True, cuts=cuts)
+                yield FramePass(VideoInfo(**entry.meta["info"]), declared,
+                                _replay(cache, name, entry, limit, redecode, cuts), True)
             finally:
                 entry.close()
             return
@@ -135,49 +174,23 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         writer = None
         if cache is not None and identity is not None:  # a racy identity is never stored
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
-        fp = FramePass(info, declared, iter(()), False, writer, set() if detect else None)
-        fp.frames = _decoded(decode_codes(container, stream, rows, height, segment=segment), limit_of(declared), writer,
-                             fp)
-        yield fp
+        yield FramePass.decoded(info, declared, decode_codes(container, stream, rows, height, segment=segment),
+                                limit_of(declared), writer, detect)
 
 
 def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
-            redecode: Callable[[int], Iterator[Frame]]) -> Iterator[Frame]:
-    """The entry's frames; from the first bad one on (truncated, bit-flipped), the entry is
-    removed and the rest decoded."""
+            redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> Iterator[PassFrame]:
+    """The entry's frames (``cuts``: those that start a shot); from the first bad one on
+    (truncated, bit-flipped), the entry is removed and the rest decoded."""
     i = 0
     try:
         for a in entry.read():
             if i >= limit:
                 return
-            yield a, full_range
+            yield PassFrame(a, full_range, i in cuts)
             i += 1
         return
     except CorruptEntry as e:
         cache.corrupt(name, f"{e}; frames {i}.. decoded")
-    yield from redecode(i)
-
-
-def _decoded(frames: Iterator[Frame], limit: int, writer: Optional[EntryWriter], fp: FramePass) -> Iterator[Frame]:
-    """The first ``limit`` decoded frames, each stored by ``writer`` (at full range) as it passes
-    and, with detection (``fp.cuts`` not None), scored for a cut before it is given; the entry
-    is committed (with the cuts found) only when the pass ends cleanly: its frames run out, or
-    the consumer said ``fp.end()``."""
-    done = False
-    detector = ShotDetector() if fp.cuts is not None else None
-    try:
-        for i, (codes, expand) in enumerate(itertools.islice(frames, limit)):
-            if detector is not None and detector.score(codes, expand):
-                fp.cuts.add(i)
-            if writer is not None:
-                writer.add(expand(codes))
-            yield codes, expand
-        done = True
-    finally:
-        if writer is not None:  # a decoding error, or the consumer stopped: nothing partial is kept
-            if done or fp.ended:
-                if detector is not None:
-                    writer.header["shots"] = {"detector": DETECTOR_VERSION, "cuts": detector.cuts}
-                writer.finish()
-            else:
-                writer.abort(incomplete=True)
+    for j, (codes, expand) in enumerate(redecode(i), i):
+        yield PassFrame(codes, expand, j in cuts)

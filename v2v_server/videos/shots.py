@@ -167,6 +167,12 @@ class WindowLayout:
         self.cuts = 0
 
     @property
+    def key(self) -> str:
+        """What places the windows, as a record's key: ``"span=S,windows=N,cuts=avoid|off"`` (the
+        cuts themselves depend on the frames: ``WindowSettings.frame_settings`` names them)."""
+        return f"span={self.span},windows={self.max_windows},cuts={'avoid' if self.avoid_cuts else 'off'}"
+
+    @property
     def done(self) -> bool:
         """Every window the layout may give is complete: later frames serve nothing."""
         return self.windows >= self.max_windows

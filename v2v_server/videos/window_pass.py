@@ -1,0 +1,225 @@
+"""The window pass: what one pass over a video's frames makes of its windows, and what the video
+is worth. The one rule that every reader of a video applies: the sample pass
+(``samples.make.video_samples``), ``v2v-serve --check`` (``corpus.check_video``), ``--warm-cache``
+(``ops.warm``) and the Ray scan (``ray_data.count_windows``).
+
+Windows lie where ``shots.WindowLayout`` places them, fed with each frame's shot cut. A cut inside
+the window in progress drops it (its index goes to the next window, so any failure recorded for it
+is forgotten); a frame whose size differs from its window's first frame fails that window (the
+first such frame names the reason). The pass stops reading once every window the layout allows is
+complete.
+
+:meth:`WindowPass.over` is the generator: it yields every frame read with what it does to the
+windows (:class:`WindowFrame`). :meth:`WindowPass.record` gives, at the end or wherever the reader
+stopped, the frozen per-video record (:class:`VideoPass`: frames, fps, cuts, windows, the layout
+they follow, and the verdict).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Iterator, List, Mapping, NamedTuple, Optional, Tuple
+
+import numpy as np
+
+from v2v_server.videos.decode import VideoError
+from v2v_server.videos.frames import FramePass
+from v2v_server.videos.windows import WindowSettings
+
+#: Words of the reason a file with too few frames for one window gets: a property of the clip,
+#: not a fault (the server logs such a skip at INFO, faults at WARNING).
+SHORT_CLIP = "shorter than one window of"
+
+
+def error_reason(error: BaseException) -> str:
+    """What stopped a reading, in a verdict's words: a ``VideoError`` gives its message, anything
+    else ``"TypeName: message"``."""
+    return str(error) if isinstance(error, VideoError) else f"{type(error).__name__}: {error}"
+
+
+def verdict(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] = None,
+            error: Optional[BaseException] = None, windows: Optional[int] = None,
+            cuts: int = 0) -> Tuple[int, List[int], Optional[str]]:
+    """What a file is worth, from what reading it found.
+
+    Args:
+        frames: frames read (decoded, or counted from packets) before the end or ``error``.
+        failed: windows that cannot be made -> why (e.g. the frame size changes inside one).
+        error: what stopped the reading, if anything: a ``VideoError`` gives its message,
+            anything else ``"TypeName: message"``.
+        windows: complete windows the reading found (``shots.WindowLayout``); None: as many as
+            ``frames`` holds (``w.windows_in``, the layout without cuts).
+        cuts: shot cuts the reading found (named when they leave no window).
+
+    Returns:
+        ``(windows, failed_windows, reason)``: samples per epoch (the complete windows less the
+        failed ones), the failed windows among them (sorted), and why the file gives none or
+        fewer (None when nothing is wrong): the failed windows' reasons, else the error's, else
+        too few frames.
+    """
+    failed = failed or {}
+    whole = w.windows_in(frames) if windows is None else windows
+    bad = sorted(k for k in failed if k < whole)
+    windows = whole - len(bad)
+    if bad:
+        reason = "; ".join(failed[k] for k in bad)
+    elif error is not None:
+        reason = error_reason(error)
+    elif windows == 0 and cuts and w.avoid_cuts:
+        reason = f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} {w.frames_per_sample} frames"
+    elif windows == 0:
+        reason = f"{frames} frames, {SHORT_CLIP} {w.frames_per_sample} frames"
+    else:
+        reason = None
+    return windows, bad, reason
+
+
+class WindowFrame(NamedTuple):
+    """One frame of a window pass and what it does to the windows, in this order: ``drops``
+    (the window in progress that a cut at this frame abandons), ``fails`` (the window that this
+    frame, of another size, fails: the one it ends or continues), ``ends`` (the window this frame
+    completes, as its last frame), ``starts`` (the window this frame starts); each an index or
+    None. ``offset``: the frame's place in the window in progress after it (0 where it starts
+    one; None when none is). ``index``: the frame's number from 0; ``codes``, ``expand``: as
+    ``frames.PassFrame``. A tuple: one is made per frame read."""
+
+    index: int
+    codes: Optional[np.ndarray]
+    expand: Optional[Callable[[np.ndarray], np.ndarray]]
+    drops: Optional[int]
+    fails: Optional[int]
+    ends: Optional[int]
+    starts: Optional[int]
+    offset: Optional[int]
+
+
+@dataclass(frozen=True)
+class VideoPass:
+    """What one window pass over a video found: the record its readers report from (a worker's
+    ``Done``, ``--check``'s line, the Ray engine's verdict) and a corpus index can keep.
+
+    Attributes:
+        frames: frames read.
+        width, height: the stream's frame size, pixels (0 when it was not opened).
+        fps: its frame rate, Hz (0.0 when it was not opened).
+        layout: the window layout the windows follow (``shots.WindowLayout.key``).
+        cuts: the frames that start a shot, in order (none without detection).
+        starts: the first frame of each complete window, failed ones included, in window order.
+        dropped: windows a cut fell inside.
+        failed: window -> why it cannot be made (a frame of another size inside it).
+        complete: every window the layout allows is complete: the pass stopped there (the video
+            may hold more frames).
+        error: what stopped the pass, or None.
+    """
+
+    frames: int = 0
+    width: int = 0
+    height: int = 0
+    fps: float = 0.0
+    layout: str = ""
+    cuts: Tuple[int, ...] = ()
+    starts: Tuple[int, ...] = ()
+    dropped: int = 0
+    failed: Mapping[int, str] = field(default_factory=dict)
+    complete: bool = False
+    error: Optional[BaseException] = None
+
+    @property
+    def windows(self) -> int:
+        """Complete windows, failed ones included."""
+        return len(self.starts)
+
+    def verdict(self, w: WindowSettings) -> Tuple[int, List[int], Optional[str]]:
+        """:func:`verdict` of what the pass found, failed windows included (``--check``):
+        ``(windows, failed_windows, reason)``; a failed window's reason names it."""
+        failed = {k: f"window {k}: {why}" for k, why in self.failed.items()}
+        return verdict(w, self.frames, failed, self.error, self.windows, len(self.cuts))
+
+    def to_dict(self) -> dict:
+        """The record as JSON-safe values, as a corpus index keeps it: every attribute, ``failed``
+        keyed by the window as a string, ``error`` as its reason (``verdict``'s words) or None."""
+        d = {k: getattr(self, k) for k in ("frames", "width", "height", "fps", "layout", "dropped", "complete")}
+        d.update(cuts=list(self.cuts), starts=list(self.starts), failed={str(k): v for k, v in self.failed.items()},
+                 error=None if self.error is None else error_reason(self.error))
+        return d
+
+    def reason(self, w: WindowSettings) -> Optional[str]:
+        """Why the pass gave fewer windows than it should, failed windows aside (they are
+        reported one by one): the error's reason, or too few frames; None when nothing is wrong."""
+        return verdict(w, self.frames, None, self.error, self.windows, len(self.cuts))[2]
+
+
+def frame_shape(codes: np.ndarray) -> Tuple[int, int]:
+    """A frame's size as the windows compare it: its ``(rows, columns)``."""
+    return codes.shape[0], codes.shape[1]
+
+
+class WindowPass:
+    """The windows of one pass over a video's frames (explicit state, no I/O of its own).
+
+    Args:
+        windows: the videos stage's settings (span, window count, shot cuts).
+        size_of: a frame's size as compared and named in a failure, ``(height, width)`` pixels,
+            from its codes (default :func:`frame_shape`; ``--check`` names the displayed height).
+    """
+
+    def __init__(self, windows: WindowSettings,
+                 size_of: Callable[[np.ndarray], Tuple[int, int]] = frame_shape):
+        self.settings, self.size_of = windows, size_of
+        self.layout = windows.layout()
+        self.frame_pass: Optional[FramePass] = None  # the pass :meth:`over` reads
+        self.info = None
+        self.frames = 0
+        self.cuts: List[int] = []
+        self.starts: List[int] = []
+        self.failed: Dict[int, str] = {}
+        self.current: Optional[int] = None  # first frame of the window in progress
+        self.shape: Optional[Tuple[int, int]] = None  # its first frame's size
+
+    @property
+    def shot(self) -> Tuple[int, int]:
+        """The shot at hand: its index in the video (the cuts before it) and its first frame."""
+        return len(self.cuts), self.cuts[-1] if self.cuts else 0
+
+    def over(self, fp: FramePass) -> Iterator[WindowFrame]:
+        """Every frame of ``fp`` (a ``frames.FramePass``) with what it does to the windows, laid
+        out for its declared frame count (``WindowSettings.layout``); once every window is
+        complete, ``fp.end()`` (a pass storing the video commits its entry) and stop.
+
+        Raises:
+            what reading ``fp.frames`` raises (``VideoError``); :meth:`record` keeps what came before.
+        """
+        self.frame_pass, self.info = fp, fp.info
+        layout = self.layout = self.settings.layout(fp.declared)
+        for i, f in enumerate(fp.frames):
+            self.frames = i + 1
+            if f.cut:
+                self.cuts.append(i)
+            ev = layout.step(i, f.cut)
+            if ev.drops is not None:
+                self.failed.pop(ev.drops, None)  # the index goes to the next window
+            # the window this frame belongs to, other than one it starts: the one it ends, or the one in progress
+            k = ev.ends if ev.ends is not None else layout.windows if ev.starts is None and layout.current is not None \
+                else None
+            size = None if f.codes is None else self.size_of(f.codes)
+            fails = None
+            if k is not None and size != self.shape and k not in self.failed:
+                fails = k
+                self.failed[k] = (f"frame size changed from {self.shape[1]}x{self.shape[0]} to "
+                                  f"{size[1]}x{size[0]} at frame {i}")
+            if ev.ends is not None:
+                self.starts.append(self.current)
+            if ev.starts is not None:
+                self.shape = size
+            self.current = layout.current
+            yield WindowFrame(i, f.codes, f.expand, ev.drops, fails, ev.ends, ev.starts,
+                              None if layout.current is None else i - layout.current)
+            if layout.done:  # every window is made: the rest of the video serves nothing
+                fp.end()
+                return
+
+    def record(self, error: Optional[BaseException] = None) -> VideoPass:
+        """What the pass found so far (``error``: what stopped it, if anything)."""
+        info = self.info
+        return VideoPass(self.frames, info.width if info else 0, info.height if info else 0,
+                         float(info.fps) if info else 0.0, self.layout.key, tuple(self.cuts), tuple(self.starts),
+                         self.layout.dropped, dict(self.failed), self.layout.done, error)
