@@ -62,19 +62,23 @@ def real_clip() -> Tuple[Optional[Path], str]:
 @dataclass(frozen=True)
 class Transition:
     """One change of shot: frames ``old_last`` (the last showing only the old shot) and
-    ``new_first`` (the first showing only the new one); a window holding both spans it. A
-    detected cut matches it at frames ``old_last + 1 .. new_first`` (for a fade, anywhere in its fade-in)."""
+    ``new_first`` (the first showing only the new one); a window holding two consecutive frames
+    between them (a step of the transition) spans it. A detected cut matches it at frames
+    ``old_last + 1 .. new_first`` (for a fade, anywhere in its fade-out or fade-in)."""
 
     kind: str
     old_last: int
     new_first: int
 
     def spanned_by(self, first: int, last: int) -> bool:
-        """Whether the window of frames ``first .. last`` holds frames of both shots."""
-        return first <= self.old_last and last >= self.new_first
+        """Whether the window of frames ``first .. last`` holds a step of the transition."""
+        return first < self.new_first and last > self.old_last
 
     def matches(self, cut: int) -> bool:
-        return self.old_last < cut <= self.new_first + (8 if self.kind == "fade" else 0)
+        """Whether a cut found at frame ``cut`` is this transition's."""
+        if self.kind == "fade":
+            return self.old_last - 7 < cut <= self.new_first + 8
+        return self.old_last < cut <= self.new_first
 
 
 SIZE = (360, 640)

@@ -96,8 +96,9 @@ def test_fast_pans_and_a_flash_stay_one_shot_and_cuts_and_fades_are_found(edited
     assert [c for c in cuts if 385 <= c <= 395] == [388]  # the 3-frame flash at 388-390: one cut, not two
 
 
-@pytest.mark.xfail(strict=True, reason="a dissolve is cut only where the two shots differ enough frame to frame "
-                                       "(docs/shots.md): windows start 2 frames before one's end and hold another")
+@pytest.mark.xfail(strict=True, reason="a dissolve is cut only where its frames change more than the shots' motion "
+                                       "does (docs/shots.md): a window starts inside one, another holds a whole "
+                                       "dissolve between two moving shots")
 def test_a_clip_with_a_dissolve_gives_no_window_across_it(edited):
     transitions, r, kept, w = edited
     dissolves = [t for t in transitions if t.kind == "dissolve"]

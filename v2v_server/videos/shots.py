@@ -2,15 +2,15 @@
 
 An event camera never sees a cut, and no optical flow exists across one, so a sample must not
 span one (docs/corpora.md). The decode pass that cuts samples finds the cuts from the luma it
-already has (:class:`ShotDetector`, a few tens of microseconds a frame), and
+already has (:class:`ShotDetector`, on 48x27 thumbnails with the camera's motion taken out), and
 :class:`WindowLayout` places the windows: at each shot's first frame + k x ``stride`` while a
 whole window fits before the shot ends (``shot_cuts: avoid``), or at k x ``stride`` whatever
 they hold (``shot_cuts: off``, the authors' loader, HYLZ-2019/V2V ``data/v2v_datasets.py``).
 
 The detector is causal (it decides on frame i when frame i arrives), so the cutter needs no
 look-ahead buffer; a false cut only loses a window, a missed one makes a bad sample, so it leans
-to cutting. Measured on labelled cuts (hard cuts, fades through black, dissolves, fast camera motion):
-``python -m bench.shots`` (docs/shots.md).
+to cutting. Measured on labelled transitions (a real edited video, hard cuts, fades through black,
+dissolves, fast pans, a flash) beside TransNetV2: ``python -m bench.shots`` (docs/shots.md).
 """
 from __future__ import annotations
 
