@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Optional, Union
 
 from v2v_server.videos.manifest import default_cache_dir
+from v2v_server.videos.shots import DETECTOR_VERSION
 
 #: The index's file name under the cache folder.
 INDEX_FILE = "corpus_index.sqlite"
@@ -59,8 +60,9 @@ _SIZE = re.compile(r"^(\d+)x(\d+) (\S+) \S+ ([0-9.e+-]+) fps$")
 def layout_key(w) -> str:
     """The window layout of an index entry: a short hash (16 hex digits) of the settings of the
     ``windows.WindowSettings`` ``w`` that move a window or change a verdict
-    (``w.frame_settings()``, ``shot_cuts``, ``crop_size``)."""
-    settings = {**w.frame_settings(), "shot_cuts": w.shot_cuts, "crop_size": w.crop_size}
+    (``w.frame_settings()``, ``shot_cuts``, ``crop_size``), and the shot detector (an entry holds
+    the cuts it found, whatever ``shot_cuts`` is)."""
+    settings = {**w.frame_settings(), "shot_cuts": w.shot_cuts, "crop_size": w.crop_size, "shots": DETECTOR_VERSION}
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 

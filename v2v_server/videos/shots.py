@@ -2,15 +2,15 @@
 
 An event camera never sees a cut, and no optical flow exists across one, so a sample must not
 span one (docs/corpora.md). The decode pass that cuts samples finds the cuts from the luma it
-already has (:class:`ShotDetector`, a few tens of microseconds a frame), and
+already has (:class:`ShotDetector`, on 48x27 thumbnails with the camera's motion taken out), and
 :class:`WindowLayout` places the windows: at each shot's first frame + k x ``stride`` while a
 whole window fits before the shot ends (``shot_cuts: avoid``), or at k x ``stride`` whatever
 they hold (``shot_cuts: off``, the authors' loader, HYLZ-2019/V2V ``data/v2v_datasets.py``).
 
 The detector is causal (it decides on frame i when frame i arrives), so the cutter needs no
 look-ahead buffer; a false cut only loses a window, a missed one makes a bad sample, so it leans
-to cutting. Measured on labelled cuts (hard cuts, fades through black, dissolves, fast camera motion):
-``python -m bench.shots`` (docs/shots.md).
+to cutting. Measured on labelled transitions (a real edited video, hard cuts, fades through black,
+dissolves, fast pans, a flash) beside TransNetV2: ``python -m bench.shots`` (docs/shots.md).
 """
 from __future__ import annotations
 
@@ -23,11 +23,15 @@ import numpy as np
 
 #: ``shot_cuts`` values: ``avoid`` places windows inside shots; ``off`` ignores cuts.
 SHOT_CUTS = ("avoid", "off")
-#: Side of the thumbnail a frame is scored on (block means of the kept region).
-THUMB = 16
+#: Thumbnail a frame is scored on, (rows, columns): TransNetV2's and Panda-70M's 48x27 (block
+#: means of the kept region).
+THUMB = (27, 48)
+#: Largest camera shift between two frames the score looks through, in thumbnail pixels (x; half
+#: of it in y): 8 of 48 columns is 107 px a frame at 640 columns.
+SHIFT = 8
 #: What names the detector in a frame-cache entry: a cached entry's cuts are reused only by
 #: the same detector.
-DETECTOR_VERSION = "mad16-1"
+DETECTOR_VERSION = "shift48-1"
 
 
 def code_table(expand: Callable[[np.ndarray], np.ndarray], dtype) -> np.ndarray:
@@ -42,67 +46,112 @@ def code_table(expand: Callable[[np.ndarray], np.ndarray], dtype) -> np.ndarray:
 @numba.njit(cache=True, nogil=True)
 def _thumbnail(codes, table, out):  # pragma: no cover - compiled
     h, w = codes.shape
-    n = out.shape[0]
+    rows, n = out.shape
     cols = 4 * n  # one sample row per block (a row read costs a run of cache lines), 4 samples in it
     out[:, :] = 0.0
-    for i in range(n):
-        y = (2 * i + 1) * h // (2 * n)
+    for i in range(rows):
+        y = (2 * i + 1) * h // (2 * rows)
         for j in range(cols):
             x = (2 * j + 1) * w // (2 * cols)
             out[i, j // 4] += table[codes[y, x]]
-    for i in range(n):
+    for i in range(rows):
         for j in range(n):
             out[i, j] *= 0.25
 
 
 @numba.njit(cache=True, nogil=True)
-def _compare(thumb, prev):  # pragma: no cover - compiled
-    """(mean |thumb - prev|, mean of thumb)."""
-    d = 0.0
+def _mean(thumb):  # pragma: no cover - compiled
     m = 0.0
     for i in range(thumb.shape[0]):
         for j in range(thumb.shape[1]):
-            d += abs(thumb[i, j] - prev[i, j])
             m += thumb[i, j]
-    return d / thumb.size, m / thumb.size
+    return m / thumb.size
+
+
+@numba.njit(cache=True, nogil=True)
+def _shifted_difference(thumb, prev, dy, dx, step):  # pragma: no cover - compiled
+    """Mean |thumb - prev| where they overlap with ``prev`` moved by (dy, dx), on every
+    ``step``-th row and column."""
+    h, w = thumb.shape
+    s = 0.0
+    n = 0
+    for y in range(max(0, dy), min(h, h + dy), step):
+        for x in range(max(0, dx), min(w, w + dx), step):
+            s += abs(thumb[y, x] - prev[y - dy, x - dx])
+            n += 1
+    return s / n
+
+
+@numba.njit(cache=True, nogil=True)
+def _difference(thumb, prev, enough, shift):  # pragma: no cover - compiled
+    """Mean |thumb - prev| (8-bit scale) at the camera shift that makes it least: within
+    +-``shift`` columns and +-``shift`` // 2 rows. Shifts are tried only when the unshifted
+    difference reaches ``enough`` (below it no shift matters to the rule); they are compared on
+    every other row and column, and the best one and its neighbours scored on all pixels."""
+    best = _shifted_difference(thumb, prev, 0, 0, 1)
+    if best < enough:
+        return best
+    coarse, by, bx = best, 0, 0
+    for dy in range(-(shift // 2), shift // 2 + 1):
+        for dx in range(-shift, shift + 1):
+            v = _shifted_difference(thumb, prev, dy, dx, 2)
+            if v < coarse:
+                coarse, by, bx = v, dy, dx
+    for dy in range(max(-(shift // 2), by - 1), min(shift // 2, by + 1) + 1):
+        for dx in range(max(-shift, bx - 1), min(shift, bx + 1) + 1):
+            best = min(best, _shifted_difference(thumb, prev, dy, dx, 1))
+    return best
 
 
 def thumbnail(codes: np.ndarray, table: np.ndarray) -> np.ndarray:
-    """A frame's ``THUMB`` x ``THUMB`` block values on the 8-bit scale: float32 (16, 16), 0..255.
+    """A frame's ``THUMB`` block values on the 8-bit scale: float32 (27, 48), 0..255.
 
     ``codes``: a frame as ``decode.decode_codes`` yields it, (H, W) uint8 or uint16 codes, any
     strides; ``table``: its :func:`code_table`. Each block is the mean of 4 samples along the
-    block's middle row: the cost does not grow with the frame size (16 rows are read, about
-    20 us a frame with the detector's update, docs/shots.md), and averaging makes the score
-    less sensitive to texture moving inside a block.
+    block's middle row: the cost does not grow with the frame size (27 rows are read,
+    docs/shots.md), and averaging makes the score less sensitive to texture moving inside a block.
     """
-    out = np.empty((THUMB, THUMB), np.float32)
+    out = np.empty(THUMB, np.float32)
     _thumbnail(codes, table, out)
     return out
+
+
+def difference(thumb: np.ndarray, prev: np.ndarray, enough: float = 0.0) -> float:
+    """How much ``thumb`` differs from ``prev`` (two :func:`thumbnail` arrays) once the camera's
+    motion between them is taken out: the least mean absolute difference (8-bit scale) over the
+    shifts of ``prev`` by up to ``SHIFT`` columns and ``SHIFT`` // 2 rows. A pan scores what its
+    borders and parallax change, a cut what the whole frame does. Shifts are tried only when the
+    unshifted difference reaches ``enough`` (a smaller one is returned as it is)."""
+    return float(_difference(thumb, prev, float(enough), SHIFT))
 
 
 class ShotDetector:
     """Finds hard cuts and fades through black, one frame at a time.
 
     Feed every frame's :func:`thumbnail` to :meth:`update`, in order; it returns True when the
-    frame starts a new shot (a cut between it and the previous frame). Rules, on the mean
-    absolute difference ``d`` of consecutive thumbnails (8-bit scale):
+    frame starts a new shot (a cut between it and the previous frame). Rules, on the
+    motion-compensated difference ``d`` of consecutive thumbnails (:func:`difference`):
 
     * hard cut: ``d >= threshold`` and ``d >= ratio`` x the mean of the shot's last ``history``
-      differences (fast camera motion raises that mean; a cut stands out of it);
+      differences (a moving scene raises that mean; a cut stands out of it);
+    * flash: a frame within ``flash`` frames of the last cut that matches the frame before that
+      cut (``d < threshold``) ends a camera flash, not a shot: it is no second cut;
     * fade through black: the first frame that is not dark (thumbnail mean above ``dark``)
       after one or more dark frames.
 
-    Dissolves are not a rule: at block-mean scale a cross-fade changes every block steadily one
-    way, as a slow pan over an edge does, and a rule that cut one cut the other
-    (docs/shots.md measures what a dissolve leaves). ``cuts`` lists the frames found
-    (indices from 0). Pure: no I/O, no clock.
+    Camera motion up to ``SHIFT`` thumbnail pixels a frame is taken out of ``d``, so fast pans stay
+    one shot while cuts between shots of one setting and palette stand out (docs/shots.md: the
+    labelled real clip). Dissolves are not a rule: inside one, ``d`` rises above ``threshold``
+    only where the two shots differ enough, and the frames it cuts at are those (docs/shots.md).
+    ``cuts`` lists the frames found (indices from 0). Pure: no I/O, no clock.
     """
 
-    def __init__(self, threshold: float = 24.0, ratio: float = 2.0, history: int = 8, dark: float = 10.0):
-        self.threshold, self.ratio, self.dark = float(threshold), float(ratio), float(dark)
+    def __init__(self, threshold: float = 14.0, ratio: float = 2.5, history: int = 8, dark: float = 10.0,
+                 flash: int = 3):
+        self.threshold, self.ratio, self.dark, self.flash = float(threshold), float(ratio), float(dark), int(flash)
         self.diffs: deque = deque(maxlen=int(history))
         self.prev: Optional[np.ndarray] = None
+        self.before_cut: Optional[np.ndarray] = None  # the frame before the last cut
         self.was_dark = False
         self.frames = 0
         self.cuts: List[int] = []
@@ -120,17 +169,22 @@ class ShotDetector:
         """Score the next frame's thumbnail; True when it starts a new shot (appended to ``cuts``)."""
         i = self.frames
         self.frames += 1
-        d, mean = _compare(thumb, thumb if self.prev is None else self.prev)
-        dark = mean <= self.dark
+        dark = float(_mean(thumb)) <= self.dark
         cut = False
         if self.prev is not None:
+            d = difference(thumb, self.prev, self.threshold)
             past = sum(self.diffs) / len(self.diffs) if self.diffs else 0.0
             cut = (d >= self.threshold and d >= self.ratio * past) or (self.was_dark and not dark)
+            if cut and self.cuts and i - self.cuts[-1] <= self.flash and self.before_cut is not None \
+                    and difference(thumb, self.before_cut, self.threshold) < self.threshold:
+                cut = False  # back to the frame before the last cut: that was a flash
+            elif cut:
+                self.before_cut = self.prev
+                self.diffs.clear()  # the new shot's motion is measured against the cut's own difference
             self.diffs.append(d)
         self.prev, self.was_dark = thumb, dark
         if cut:
             self.cuts.append(i)
-            self.diffs.clear()
         return cut
 
 
