@@ -275,3 +275,15 @@ def test_segments_of_a_tar_member_and_through_the_ray_engine(tmp_path):
     rows = {str(r["sample_id"][0]): r["frames"].tobytes() for d in epoch_descriptors(rc, 0)
             for r in maker.video_rows(d["video"], 0, json.loads(d["entries"]))}
     assert rows == {f"{clip}#t=2,6#{w}": f for w, f in plain} | {f"s.tar/{clip}#t=2,6#{w}": f for w, f in member}
+
+
+def test_the_recipe_fingerprint_names_the_shot_detector_where_windows_follow_cuts(monkeypatch):
+    """Under ``shot_cuts: avoid`` windows start at the cuts the detector finds, so servers with
+    other detectors must not pass for one recipe (the client refuses a resume state or a shard
+    of another fingerprint); under ``off`` the detector moves nothing."""
+    import v2v_server.samples.recipe as recipe
+
+    avoid, off = recipe.SampleRecipe(), recipe.SampleRecipe(shot_cuts="off")
+    before = avoid.fingerprint(), off.fingerprint()
+    monkeypatch.setattr(recipe, "DETECTOR_VERSION", "another-detector")
+    assert avoid.fingerprint() != before[0] and off.fingerprint() == before[1]

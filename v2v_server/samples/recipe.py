@@ -21,7 +21,7 @@ from v2v_server.flow.options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, un
 from v2v_server.settings import setting
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
-from v2v_server.videos.shots import SHOT_CUTS
+from v2v_server.videos.shots import DETECTOR_VERSION, SHOT_CUTS
 from v2v_server.videos.windows import WindowSettings
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import OUTPUTS, check_outputs
@@ -97,11 +97,14 @@ class SampleRecipe:
 
     def fingerprint(self) -> str:
         """A short hash of what decides a sample's content (the recipe less the outputs each
-        client asks for and the decoding threads): sample ids name the same samples only under
-        the same fingerprint."""
+        client asks for and the decoding threads; with ``shot_cuts: avoid``, the shot detector's
+        ``DETECTOR_VERSION``, since windows start at the cuts it finds): sample ids name the same
+        samples only under the same fingerprint."""
         content = {k: v for k, v in self.recipe_dict().items() if k not in ("outputs", "decode_threads")}
         if not content["frame_height"]:  # no scaling: the fingerprint of the same recipe without the key
             del content["frame_height"]
+        if self.windows.avoid_cuts:  # windows start at the cuts this detector finds: another one moves them
+            content["shot_detector"] = DETECTOR_VERSION
         return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def recipe_dict(self) -> dict:
