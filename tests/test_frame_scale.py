@@ -169,13 +169,15 @@ def test_entry_of_one_frame_height_is_not_hit_at_another(corpus, tmp_path):
 
 def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
     """A stream whose frame size changes: under a frame_height both sizes scale to one height,
-    so only a change of aspect ratio fails a window, in ``--check`` as in the workers."""
+    so only a change of aspect ratio fails a window, in ``--check`` as in the workers. Windows
+    at k x stride (``shot_cuts: off``): the shot detector sees the change of aspect as a cut,
+    and under ``avoid`` no window would hold it."""
     d = tmp_path / "c"
     d.mkdir()
     write_size_change_video(d / "same_aspect.mpg", 14, 20, size1=(96, 80), size2=(144, 120))
     write_size_change_video(d / "other_aspect.mpg", 14, 20, size1=(96, 80), size2=(80, 80))
     cfg = SampleRecipe(sequence_length=4, num_bins=2, crop_size=16, max_samples_per_video=3, keep_top_fraction=1.0,
-                      frame_height=40)
+                      frame_height=40, shot_cuts="off")
     for name, fails in (("same_aspect.mpg", False), ("other_aspect.mpg", True)):
         v = check_video(cfg.windows, LocalSource(d), name)
         run = video_samples(cfg, LocalSource(d), name, 0, ("voxels",))
