@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import itertools
 import json
 import os
 import re
@@ -42,7 +43,7 @@ import tarfile
 import tempfile
 import zipfile
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, Iterable, Iterator, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -87,36 +88,38 @@ class Footage:
         self.hd = (hd_height, 2 * round(hd_height * 16 / 9 / 2))
         self.count = 0
 
-    def shot(self, frames: int, size: Tuple[int, int]) -> np.ndarray:
-        """A new shot of ``frames`` frames at ``size`` (H, W); HD sizes rendered at 336 rows and
-        upscaled."""
+    def shot(self, frames: int, size: Tuple[int, int]) -> Iterator[np.ndarray]:
+        """A new shot of ``frames`` frames at ``size`` (H, W), frame by frame; HD sizes rendered
+        at 336 rows and upscaled as they are taken (an HD shot is never held whole)."""
         self.count += 1
         base = size if size[0] <= 360 else (336, 2 * round(336 * size[1] / size[0] / 2))
         clip = render_clip(self.photos[self.count % len(self.photos)], base, frames,
                            np.random.default_rng(self.count))
-        if base == size:
-            return clip
-        return np.stack([cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_CUBIC) for f in clip])
+        return iter(clip) if base == size else \
+            (cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_CUBIC) for f in clip)
 
 
-def encode(path: Path, frames: np.ndarray, fps: int = 25, rotation: Optional[int] = None) -> float:
-    """Write grey ``uint8 (T, H, W)`` frames as H.264 (libx264 ultrafast, crf 20) at ``fps``;
+def encode(path: Path, frames: Iterable[np.ndarray], fps: int = 25, rotation: Optional[int] = None) -> float:
+    """Write grey ``uint8 (H, W)`` frames as H.264 (libx264 ultrafast, crf 20) at ``fps``;
     ``rotation``: a display matrix, degrees counter-clockwise. Returns the seconds it lasts."""
     import av
 
     path.parent.mkdir(parents=True, exist_ok=True)
+    count = 0
     with av.open(str(path), "w") as c:
         s = c.add_stream("libx264", rate=fps)
-        s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
         s.options = {"crf": "20", "preset": "ultrafast"}
         if rotation is not None:
             s.set_display_rotation(rotation)
         for f in frames:
+            if not count:
+                s.width, s.height, s.pix_fmt = f.shape[1], f.shape[0], "yuv420p"
+            count += 1
             for p in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(f), format="gray").reformat(format="yuv420p")):
                 c.mux(p)
         for p in s.encode():
             c.mux(p)
-    return len(frames) / fps
+    return count / fps
 
 
 def seconds_of(path: Path) -> float:
@@ -178,7 +181,7 @@ def make_panda(root: Path, fp: Footage, clips: int) -> float:
         w.writerow(PANDA_HEADER)
         for v in range(clips):
             vid = f"-{v:02d}Xk9aQ_zY"
-            encode(root / "videos" / f"{vid}.mp4", np.concatenate([fp.shot(n, fp.hd) for n in shots]))
+            encode(root / "videos" / f"{vid}.mp4", itertools.chain.from_iterable(fp.shot(n, fp.hd) for n in shots))
             starts = np.cumsum((0,) + shots) / 25
             pairs = [[clock(a + 0.2), clock(b - 0.2)] for a, b in zip(starts[:-1], starts[1:])]
             total += sum(b - a - 0.4 for a, b in zip(starts[:-1], starts[1:]))
@@ -248,7 +251,8 @@ def read_check(out: str) -> dict:
     summary = SUMMARY.search(out)
     if summary is None:
         raise ValueError(f"no --check summary line in:\n{out}")
-    verdicts = [[m["path"], m["verdict"], m["detail"]] for m in map(LINE.match, out.splitlines()[1:]) if m]
+    verdicts = [[m["path"], m["verdict"], m["detail"]] for m in map(LINE.match, out.splitlines()[1:])
+                if m and not SUMMARY.match(m[0])]
     return {"entries": int(summary[2]), "usable": int(summary[1]), "samples": int(summary[3]),
             "skipped": [v for v in verdicts if v[1] in ("unusable", "ignored")], "verdicts": verdicts}
 
