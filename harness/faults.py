@@ -39,16 +39,17 @@ GOOD_VIDEOS = SAMPLE_VIDEOS
 class Layout:
     """Small samples so scenarios run in seconds: L voxels x 5 bins, crop, windows per video."""
 
-    def __init__(self, L: int = 4, crop: int = 64, windows: int = 2, batch: int = 2):
-        self.L, self.crop, self.windows, self.batch = L, crop, windows, batch
+    def __init__(self, L: int = 4, crop: int = 64, windows: int = 2, batch: int = 2, shot_cuts: str = "avoid"):
+        self.L, self.crop, self.windows, self.batch, self.shot_cuts = L, crop, windows, batch, shot_cuts
 
     def args(self) -> List[str]:
         return ["--sequence-length", str(self.L), "--crop-size", str(self.crop), "--max-samples-per-video",
-                str(self.windows), "--batch-size", str(self.batch), "--seed", "11", "--flow-preset", "ultrafast"]
+                str(self.windows), "--batch-size", str(self.batch), "--seed", "11", "--flow-preset", "ultrafast",
+                "--shot-cuts", self.shot_cuts]
 
     def cfg(self) -> ServeConfig:
         return ServeConfig(sequence_length=self.L, crop_size=self.crop, max_samples_per_video=self.windows,
-                           workers=2)
+                           workers=2, shot_cuts=self.shot_cuts)
 
 
 def expected_ids(corpus: Path, layout: Layout, exclude=()) -> List[str]:
@@ -477,10 +478,12 @@ def scenario_old_checkpoint(tmp: Path, layout: Layout, ckpt_step: int = 2) -> di
 
 def scenario_partial_file(tmp: Path, layout: Layout, epochs: int = 2) -> dict:
     """A clip whose frame size changes inside window 1: that window fails in each epoch (with
-    a reason; ``--check`` says so) and the file's other windows are served in every epoch."""
+    a reason; ``--check`` says so) and the file's other windows are served in every epoch.
+    Windows at k x stride (``shot_cuts: off``): the shot detector takes a change of frame size
+    for a cut, and under ``avoid`` no window would hold it."""
     from harness.corpus import write_size_change_video
 
-    layout = Layout(layout.L, layout.crop, 3, layout.batch)  # three windows: the middle one fails
+    layout = Layout(layout.L, layout.crop, 3, layout.batch, "off")  # three windows: the middle one fails
     corpus = good_corpus(tmp, 1)
     span = layout.L * 5 + 1
     write_size_change_video(corpus / "size_change.mpg", span + span // 2, 2 * span)

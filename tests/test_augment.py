@@ -12,7 +12,8 @@ from v2v_server.videos.local import LocalSource
 from v2v_server.simulation.simulate import ParamRanges
 
 OUTS = ("voxels", "frames", "flow")
-DIFFERENT_KEYS = {"pos_threshold", "neg_threshold", "fixed_sensor_params"}  # what fixed_sensor_params changes
+# what fixed_sensor_params changes: the thresholds, and the statistics of the events they make
+DIFFERENT_KEYS = {"pos_threshold", "neg_threshold", "fixed_sensor_params", "stats"}
 
 
 def cfg(**kw):
@@ -75,7 +76,9 @@ def test_degradation_changes_frames_and_voxels_only(videos):
         a, ma = always[sid]
         s = ma["dynamic_range_scale"]
         assert 2.0 <= s <= 3.0
-        assert {k: v for k, v in ma.items() if k != "dynamic_range_scale"} == meta  # crop, flip, pauses, params
+        # crop, flip, pauses, params (the event statistics follow the degraded frames' events)
+        assert {k: v for k, v in ma.items() if k not in ("dynamic_range_scale", "stats")} == \
+            {k: v for k, v in meta.items() if k != "stats"}
         # the ground truth is the degraded clip: exactly the formula on the plain frames
         assert np.array_equal(a["frames"], degrade_dynamic_range(arrays["frames"], s))
         assert not np.array_equal(a["voxels"], arrays["voxels"])  # V2V saw the degraded frames
