@@ -620,3 +620,22 @@ def test_a_sample_counts_only_under_its_own_key_in_its_own_task():
     assert job.samples == 6
     assert job.failed == {SampleKey(t.video, 1, 0): "frame size changed", SampleKey(t.video, 1, 1): "frame size changed"}
     assert s.owed(0) == {SampleKey(t.video, w, c) for w, c in [(0, 0), (2, 0), (2, 1)]}
+
+
+def test_an_epoch_makes_a_job_when_a_video_is_first_looked_up():
+    """Opening an epoch makes no job per video (``schedule.Jobs``): the plan holds the jobs
+    handed out or asked for, knows the epoch's size, and counts the done ones."""
+    s = EpochScheduler([f"v{i}.mp4" for i in range(5)], epochs=1, shuffle_seed=0)
+    t = s.next_task("w", 0.0)
+    plan = s.plans[0]
+    assert list(plan.jobs) == [t.video] and plan.progress() == (5, 0)
+    other = next(v for v in s.videos if v != t.video)
+    assert other not in plan.jobs and plan.jobs.get(other) is None
+    assert plan.jobs[other].state == "queued" and plan.jobs[other].epoch == 0 and other in plan.jobs
+    with pytest.raises(KeyError):
+        plan.jobs["not_listed.mp4"]
+    s.task_done(t.task_id, "w", 0)  # a file too short for a window: its job is done
+    assert plan.progress() == (5, 1) and plan.jobs[t.video].state == "done"
+    while (t := s.next_task("w", 1.0)) is not None:
+        s.task_done(t.task_id, "w", 0)
+    assert plan.progress() == (5, 5) and plan.complete and len(plan.jobs) == 5

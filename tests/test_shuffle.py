@@ -291,3 +291,10 @@ def test_a_served_epoch_has_its_own_order_and_a_restarted_server_repeats_it(tmp_
     listing = stream_order(corpus, "--epochs", "2", "--shuffle", "none", content=plain)
     assert listing[0] == listing[1] != first[0]
     assert plain == shuffled  # each sample's content depends on (seed, epoch, id), not on the order
+
+
+def test_the_epoch_order_sorts_by_the_hash_of_seed_epoch_and_path():
+    import hashlib
+
+    key = lambda v: hashlib.blake2b(f"3/7/{v}".encode(), digest_size=8).digest()  # noqa: E731
+    assert video_order(VIDEOS + ["ü/ä.mp4"], 3, 7) == sorted(VIDEOS + ["ü/ä.mp4"], key=key)

@@ -44,8 +44,12 @@ def video_order(videos: Iterable[str], seed: int, epoch: int) -> List[str]:
     Returns:
         A new list holding the same paths.
     """
-    def key(v: str) -> bytes:
-        return hashlib.blake2b(f"{seed}/{epoch}/{v}".encode(), digest_size=8).digest()
+    base = hashlib.blake2b(f"{seed}/{epoch}/".encode(), digest_size=8)
+
+    def key(v: str) -> bytes:  # the hash of f"{seed}/{epoch}/{v}", its prefix hashed once
+        h = base.copy()
+        h.update(v.encode())
+        return h.digest()
 
     return sorted(videos, key=key)
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 import collections
 import itertools
 from dataclasses import dataclass, field
-from typing import Deque, Dict, FrozenSet, Hashable, Iterable, List, Optional, Set, Tuple
+from typing import Deque, Dict, FrozenSet, Hashable, Iterable, List, Optional, Set, Tuple, Union
 
 from v2v_server.delivery.batcher import video_order
 from v2v_wire.ids import SampleKey, window_keys
@@ -61,7 +61,7 @@ class Task:
     skip: FrozenSet[SampleKey]
 
 
-@dataclass
+@dataclass(slots=True)  # one per video and open epoch: no instance dict
 class Job:
     epoch: int
     video: str
@@ -77,11 +77,34 @@ class Job:
     gave_up: bool = False  # crashed too often: the rest of the file is skipped this epoch
 
 
+class Jobs(Dict[str, Job]):
+    """One epoch's jobs by video, made when first looked up: ``jobs[video]`` gives a video of
+    ``videos`` that nothing touched yet a new queued :class:`Job`, so opening an epoch makes
+    no object per video (a corpus of a million files would otherwise allocate a million jobs,
+    and the garbage collector walk them, before the first task). ``get``, ``in``, ``len`` and
+    iteration see only the jobs made; ``len(videos)`` is the epoch's size.
+
+    Raises:
+        KeyError: ``jobs[video]`` for a video not in ``videos``.
+    """
+
+    def __init__(self, epoch: int, videos: Union[Set[str], FrozenSet[str]]):
+        super().__init__()
+        self.epoch, self.videos = epoch, videos
+
+    def __missing__(self, video: str) -> Job:
+        if video not in self.videos:
+            raise KeyError(video)
+        job = self[video] = Job(self.epoch, video)
+        return job
+
+
 @dataclass
 class EpochPlan:
     """Every sample of one epoch: jobs, who holds what (records), what is live in batches.
     Per-video indexes keep each update proportional to one file, not the corpus.
-    ``crops_per_window``: samples per window (numbers a video's samples, ``SampleKey.at``)."""
+    ``crops_per_window``: samples per window (numbers a video's samples, ``SampleKey.at``).
+    ``jobs``: a :class:`Jobs` (a plain dict holds every job itself)."""
 
     epoch: int
     crops_per_window: int = 1
@@ -104,6 +127,11 @@ class EpochPlan:
     def have(self, video: str) -> Set[SampleKey]:
         """Samples of ``video`` delivered or live."""
         return {k for k, n in self.held.get(video, {}).items() if n > 0} | self.live_by_video.get(video, set())
+
+    def progress(self) -> Tuple[int, int]:
+        """``(videos, done)``: the epoch's videos, and those whose job is done (O(1))."""
+        n = len(self.jobs.videos) if isinstance(self.jobs, Jobs) else len(self.jobs)
+        return n, n - len(self.open_jobs)
 
     def add_live(self, key: SampleKey) -> None:
         self.live.add(key)
@@ -166,11 +194,11 @@ class EpochPlan:
         > ``limit``); None when some file's count is unknown before that."""
         total = 0
         for v in self.open_jobs:
-            job = self.jobs[v]
-            n = job.samples if job.samples is not None else counts.get(v, per_video)
+            job = self.jobs.get(v)  # None: not handed out yet, no job made (``Jobs``)
+            n = job.samples if job is not None and job.samples is not None else counts.get(v, per_video)
             if n is None:
                 return None
-            total += max(0, n - len(self.have(v)) - len(job.failed))
+            total += max(0, n - len(self.have(v)) - (len(job.failed) if job is not None else 0))
             if total > limit:
                 break
         return total
@@ -263,7 +291,7 @@ class EpochScheduler:
         self.videos, self.shuffle_seed = list(videos), shuffle_seed
         self.max_windows = max_windows
         self.counts: Dict[str, int] = {}  # video -> samples its last complete pass gave (any epoch)
-        self.known = set(self.videos)
+        self.known = frozenset(self.videos)
         self.max_epochs = epochs
         self.max_task_crashes = max_task_crashes
         self.lookahead = lookahead
@@ -286,13 +314,12 @@ class EpochScheduler:
             return False
         e = self.next_epoch
         self.next_epoch += 1
-        plan = EpochPlan(e, self.crops_per_window)
+        plan = EpochPlan(e, self.crops_per_window, Jobs(e, self.known))
         for consumer, keys in self.pending_records.pop(e, {}).items():
             plan.set_record(consumer, keys)
-        for v in self.epoch_order(e):
-            plan.jobs[v] = Job(e, v)
-            plan.open_jobs[v] = None
-            self.queue.append((e, v))
+        order = self.epoch_order(e)
+        plan.open_jobs = dict.fromkeys(order)  # every job starts queued
+        self.queue.extend((e, v) for v in order)
         self.plans[e] = plan
         plan.check_complete()
         return True

@@ -269,8 +269,8 @@ class V2VServer:
                 "queue_batches": len(self.ledger.ready), "inflight_batches": self.ledger.in_flight(),
                 "workers": len(alive), "workers_busy": sum(1 for w in alive if not w.idle),
                 "epoch": newest if newest is not None else -1,
-                "epoch_videos": len(plan.jobs) if plan else 0,
-                "epoch_videos_done": sum(1 for j in plan.jobs.values() if j.state == "done") if plan else 0,
+                "epoch_videos": plan.progress()[0] if plan else 0,
+                "epoch_videos_done": plan.progress()[1] if plan else 0,
                 "shuffle_samples": held, "shuffle_capacity": capacity, **self._frame_cache_state(),
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
 

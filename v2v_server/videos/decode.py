@@ -461,51 +461,77 @@ def scan_corpus(root: Path, extensions: Sequence[str]) -> Tuple[List[Path], List
     names that are not valid UTF-8 (a sample id is its path, and ids travel as UTF-8; such a
     name is reported with its undecodable bytes escaped, ``\\xff``).
     """
+    videos, rejected = scan_corpus_names(root, extensions)
+    return [Path(v) for v in videos], [(Path(r), why) for r, why in rejected]
+
+
+def scan_corpus_names(root: Union[str, Path], extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
+    """:func:`scan_corpus` with POSIX strings for paths, sorted; ``"."`` names ``root``
+    itself. Only symbolic links are resolved (a folder's other entries lie where the folder
+    does), so the walk costs one directory read per folder and a path resolution per link:
+    linear in the entries."""
     root = Path(root)
-    videos: List[Path] = []
-    rejected: List[Tuple[Path, str]] = []
+    videos: List[str] = []
+    rejected: List[Tuple[str, str]] = []
+    try:
+        real_root = root.resolve(strict=True)
+    except (OSError, RuntimeError) as e:
+        return [], [(".", f"folder cannot be resolved: {e}")]
     seen_dirs = set()
-    stack = [root]
+    stack = [("", str(root), str(real_root))]  # (path relative to root, path, resolved path)
     while stack:
-        d = stack.pop()
-        try:
-            real = d.resolve(strict=True)
-        except (OSError, RuntimeError) as e:
-            rejected.append((d.relative_to(root), f"folder cannot be resolved: {e}"))
-            continue
+        rel_dir, d, real = stack.pop()
         if real in seen_dirs:
             continue
         seen_dirs.add(real)
         try:
-            entries = sorted(d.iterdir())
+            with os.scandir(d) as it:
+                entries = sorted(it, key=lambda e: e.name)
         except OSError as e:
-            rejected.append((d.relative_to(root), f"folder cannot be read: {e.strerror or e}"))
+            rejected.append((rel_dir or ".", f"folder cannot be read: {e.strerror or e}"))
             continue
-        for p in entries:
-            rel = p.relative_to(root)
+        for entry in entries:
+            rel = f"{rel_dir}/{entry.name}" if rel_dir else entry.name
             if not utf8_name(rel):
-                rejected.append((Path(printable(rel)), "file name is not valid UTF-8 (sample ids are UTF-8): rename it"))
+                rejected.append((printable(rel), "file name is not valid UTF-8 (sample ids are UTF-8): rename it"))
                 continue
             try:
-                target = p.resolve(strict=True)
+                link = entry.is_symlink()
+                if link:
+                    target = Path(entry.path).resolve(strict=True)
+                    if not target.is_relative_to(real_root):
+                        rejected.append((rel, "points outside the corpus root"))
+                        continue
+                    real_target, is_dir = str(target), target.is_dir()
+                    is_file = not is_dir and target.is_file()
+                else:
+                    real_target = os.path.join(real, entry.name)
+                    is_dir = entry.is_dir(follow_symlinks=False)
+                    is_file = not is_dir and entry.is_file(follow_symlinks=False)
             except RuntimeError:
                 rejected.append((rel, "symlink loop"))
                 continue
             except OSError as e:
-                reason = "symlink loop" if e.errno == 40 else "dangling symlink" if p.is_symlink() else str(e)
+                reason = "symlink loop" if e.errno == 40 else "dangling symlink" if entry.is_symlink() else str(e)
                 rejected.append((rel, reason))
                 continue
-            if not inside(root, p):
-                rejected.append((rel, "points outside the corpus root"))
-                continue
-            if target.is_dir():
-                stack.append(p)
-            elif p.suffix.lower() in extensions and target.is_file():
+            suffix = name_suffix(entry.name)
+            if is_dir:
+                stack.append((rel, entry.path, real_target))
+            elif suffix.lower() in extensions and is_file:
                 videos.append(rel)
             else:
-                rejected.append((rel, f"not a video file (extension {p.suffix or 'none'!r})"))
-    key = lambda p: p.as_posix()  # noqa: E731
-    return sorted(videos, key=key), sorted(rejected, key=lambda r: key(r[0]))
+                rejected.append((rel, f"not a video file (extension {suffix or 'none'!r})"))
+    videos.sort()
+    rejected.sort(key=lambda r: r[0])
+    return videos, rejected
+
+
+def name_suffix(name: str) -> str:
+    """The extension of a file name as ``Path.suffix`` gives it: from its last dot, with the
+    dot; ``''`` for none, for a name that only starts with a dot, and for a trailing dot."""
+    i = name.rfind(".")
+    return name[i:] if 0 < i < len(name) - 1 else ""
 
 
 def find_videos(root: Path, extensions: Sequence[str]) -> List[Path]:

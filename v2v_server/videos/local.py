@@ -8,7 +8,7 @@ import time
 from pathlib import Path, PurePosixPath
 from typing import Iterator, List, Optional, Union
 
-from v2v_server.videos.decode import VideoError, inside, scan_corpus
+from v2v_server.videos.decode import VideoError, inside, scan_corpus_names
 from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.segments import base_path
 from v2v_server.videos.shards import ARCHIVES, PIECE, gather_pieces, split_member
@@ -77,9 +77,7 @@ class LocalSource(VideoSource):
         if names is not None:
             root = Path(self.root)
             return self._listed(names, lambda rel: inside(root, root / rel), extensions)
-        found, rejected = scan_corpus(Path(self.root), tuple(extensions) + ARCHIVES)
-        names = [p.as_posix() for p in found]
-        others = [(p.as_posix(), why) for p, why in rejected]
+        names, others = scan_corpus_names(self.root, tuple(extensions) + ARCHIVES)
         is_piece = lambda r: r[1].startswith("not a video file") and PIECE.match(r[0])  # noqa: E731
         parts, problems = gather_pieces([rel for rel, why in others if is_piece((rel, why))], set(names))
         self.archives.index.pieces.update(parts)
