@@ -17,9 +17,8 @@ holds (pure numpy, no second simulation) and carried in the sample's params unde
   unit a network sees, and short enough (B frame intervals) to compare with a short recording.
 * ``active_fraction``: the fraction of pixels with at least one event in the sample.
 * ``flow_mag``: mean optical-flow magnitude, pixels per frame (the flow between voxel boundaries
-  divided by the frame intervals it spans), always of the dense flow in the wire's flow dtype: a
-  sample that carries a tracked option's grid has it expanded first (``add_stats``), so a worker
-  and the Ray engine give one value for one sample.
+  divided by the frame intervals it spans; a tracked option's grid values when the sample carries
+  the grid: their mean is the dense flow's up to the bilinear expansion's weighting).
 * the noise events' share is **not** counted: the kernel adds the background noise to each
   pixel's potential before the threshold crossing, so an event has no single cause; counting it
   would need a second, noise-free simulation of the window (twice the kernel's cost).
@@ -34,8 +33,6 @@ import time
 from typing import Dict, Optional
 
 import numpy as np
-
-from v2v_wire.flowgrid import expand_grids
 
 #: Significant digits kept of each statistic (the params travel with every sample).
 DIGITS = 5
@@ -130,13 +127,9 @@ def add_stats(meta: dict, arrays: Dict[str, np.ndarray], recipe, shot: Optional[
     """
     t = time.thread_time()
     exact = recipe.frames_per_bin == 1 and recipe.refine == "off" and not recipe.nonidealities
-    flow = arrays.get("flow")
-    if flow is None and arrays.get("flow_grid") is not None:
-        # the dense flow a client expands the grid to, bit for bit, in the wire's flow dtype: one
-        # statistic whichever form the flow travels in (a worker's grid, the Ray engine's dense rows)
-        flow = expand_grids(arrays["flow_grid"], (recipe.crop_size, recipe.crop_size)).astype(recipe.flow_dtype)
-    meta["stats"] = event_stats(arrays.get("voxels"), arrays.get("polarity_counts"), flow, meta["video_fps"],
-                                recipe.num_bins, recipe.frames_per_bin, exact)
+    meta["stats"] = event_stats(arrays.get("voxels"), arrays.get("polarity_counts"),
+                                arrays.get("flow", arrays.get("flow_grid")), meta["video_fps"], recipe.num_bins,
+                                recipe.frames_per_bin, exact)
     if shot is not None:
         meta.update(shot=int(shot[0]), shot_start_frame=int(shot[1]))
     if busy is not None:
