@@ -17,7 +17,7 @@ from harness.data import ROOT, SAMPLE_VIDEOS
 BESIDE = ROOT.parent / "shared"
 
 
-def outside_repo(path) -> bool:
+def in_beside(path) -> bool:
     """Whether ``path`` (str, bytes or path-like; relative to the working directory) lies in
     :data:`BESIDE`, the folder beside the repository the suite must not read."""
     try:
@@ -30,7 +30,7 @@ def outside_repo(path) -> bool:
 def _refuse_reads_beside(event: str, args: tuple) -> None:
     """Audit hook (``sys.addaudithook``): an open, listing or glob of a path beside the
     repository raises ``PermissionError`` naming it, so the test that made it fails."""
-    if event in ("open", "os.listdir", "os.scandir", "glob.glob") and args and outside_repo(args[0]):
+    if event in ("open", "os.listdir", "os.scandir", "glob.glob") and args and in_beside(args[0]):
         raise PermissionError(f"test material outside the repository: {os.fsdecode(args[0])} (the suite reads "
                               f"only what the repository holds: harness/data.py names it)")
 

@@ -2,7 +2,7 @@
 it (a fresh clone with nothing beside it runs every test; ``harness/data.py`` names the test
 material). Two checks: the source of ``tests/``, ``harness/`` and ``bench/`` is read for paths
 that climb above the repository root, and ``tests/conftest.py`` refuses, while the suite runs,
-any read of a folder beside the repository (``outside_repo``)."""
+any read of a folder beside the repository (``in_beside``)."""
 from __future__ import annotations
 
 import re
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import ROOT, outside_repo
+from .conftest import ROOT, in_beside
 
 FOLDERS = ("tests", "harness", "bench")
 #: the one line allowed to name the folder beside the repository: the guard that refuses it
@@ -81,8 +81,8 @@ def test_a_read_beside_the_repository_is_refused_while_the_suite_runs():
     """The runtime guard: opening or listing the material folder CI keeps beside the clone
     fails, naming the path, whether or not it exists; the repository stays readable."""
     beside = ROOT.parent / "shared" / "data" / "videos" / "bikes.mp4"
-    assert outside_repo(str(beside)) and outside_repo(bytes(beside)) and outside_repo(beside)
-    assert not outside_repo(str(ROOT / "tests" / "data" / "events")) and not outside_repo(str(ROOT.parent / "sharedx"))
+    assert in_beside(str(beside)) and in_beside(bytes(beside)) and in_beside(beside)
+    assert not in_beside(str(ROOT / "tests" / "data" / "events")) and not in_beside(str(ROOT.parent / "sharedx"))
     with pytest.raises(PermissionError, match="outside the repository: .*shared"):
         open(beside, "rb")
     with pytest.raises(PermissionError, match="outside the repository"):
