@@ -11,8 +11,8 @@ INTER_CUBIC) to ``--hd-height`` rows at 16:9:
   the bundled montage;
 * ``openvid``: OpenVid-style stored zip parts of HD clips and a CSV with OpenVid-1M's header,
   naming each clip by its bare file name as OpenVid's does, with a short row, a row the filter
-  drops and a row whose clip is in no part; the recipe first pairs the CSV with the parts'
-  members (:data:`OPENVID_PREPARE`, Python's ``zipfile`` and DuckDB);
+  drops and a row whose clip is in no part, given with the parts as a brace range so that each
+  row is paired with its part's member (``archives.pair_members``);
 * ``panda``: HD source videos of three shots each (hard cuts) and a Panda-70M CSV of one
   timestamp range per shot;
 * ``webdataset``: two uncompressed tar shards of ``KEY.mp4`` + ``KEY.json`` samples;
@@ -48,33 +48,20 @@ from typing import Dict, Iterable, Iterator, List, Optional, Tuple
 import cv2
 import numpy as np
 
+from harness.corpus import OPENVID_HEADER
 from harness.data import ROOT, SAMPLE_VIDEOS
 from harness.motion_clips import render_clip, source_images
 
 #: The command of each recipe, run in the corpus folder.
 RECIPES = {
     "webvid": "v2v-serve --videos webvid/ --keep-top-fraction 0.54 --check",
-    "openvid": "v2v-serve --videos parts/ --video-list OpenVidHD_parts.csv --video-list-column member "
+    "openvid": "v2v-serve --videos 'parts/OpenVid_part{0..LAST}.zip' --video-list OpenVidHD.csv "
                "--video-list-filter '\"motion score\" > 0.5' --keep-top-fraction 1.0 --frame-height 336 --check",
     "panda": "v2v-serve --videos videos/ --video-list panda70m.csv --video-list-column '{videoID}.mp4' "
              "--keep-top-fraction 1.0 --frame-height 336 --check",
     "webdataset": "v2v-serve --videos 'shards/shard-{000000..000001}.tar' --keep-top-fraction 1.0 --check",
     "phone": "v2v-serve --videos phone/ --keep-top-fraction 1.0 --frame-height 336 --check",
 }
-#: OpenVid's CSV names a clip by its file name, not by the part holding it: this pairs each row
-#: with the member ``OpenVid_partN.zip/NAME`` (a row whose clip is in no part keeps an empty
-#: ``member``, which ``--check`` names).
-OPENVID_PREPARE = """python - <<'EOF'
-import csv, duckdb, glob, os, zipfile
-with open("members.csv", "w", newline="") as f:
-    w = csv.writer(f); w.writerow(["member", "video"])
-    for p in sorted(glob.glob("parts/OpenVid_part*.zip")):
-        w.writerows((f"{os.path.basename(p)}/{n}", os.path.basename(n)) for n in zipfile.ZipFile(p).namelist())
-duckdb.sql("COPY (SELECT m.member, c.* FROM read_csv('OpenVidHD.csv') c LEFT JOIN read_csv('members.csv') m "
-           "USING (video)) TO 'OpenVidHD_parts.csv'")
-EOF"""
-OPENVID_HEADER = ["video", "caption", "aesthetic score", "motion score", "temporal consistency score",
-                  "camera motion", "frame", "fps", "seconds"]
 PANDA_HEADER = ["videoID", "url", "timestamp", "caption", "matching_score"]
 MONTAGE = "webvid_like_596x336.mp4"
 
@@ -257,6 +244,12 @@ def read_check(out: str) -> dict:
             "skipped": [v for v in verdicts if v[1] in ("unusable", "ignored")], "verdicts": verdicts}
 
 
+def recipe(name: str, clips: int) -> str:
+    """The command of ``name``'s recipe for a corpus of ``clips`` clips (OpenVid's parts: a brace
+    range up to the last part, ``LAST`` in :data:`RECIPES`; 185 for OpenVid-1M itself)."""
+    return RECIPES[name].replace("LAST", str(clips - 1))
+
+
 def run(clips: int, hd_height: int, only: Optional[List[str]] = None) -> dict:
     """Generate every corpus and run its recipe; the report (see the module's docstring)."""
     fp = Footage(hd_height)
@@ -270,11 +263,8 @@ def run(clips: int, hd_height: int, only: Optional[List[str]] = None) -> dict:
             root = Path(tmp, name)
             root.mkdir()
             footage_s = make(root, fp, clips)
-            row = {"corpus": name, "command": RECIPES[name]}
-            if name == "openvid":
-                row["prepare"] = OPENVID_PREPARE
-                run_command(OPENVID_PREPARE, root, env)
-            row.update(read_check(run_command(RECIPES[name], root, env)))
+            row = {"corpus": name, "command": recipe(name, clips)}
+            row.update(read_check(run_command(row["command"], root, env)))
             row["footage_s"] = round(footage_s, 2)
             row["samples_per_clip_hour"] = round(row["samples"] / (footage_s / 3600), 1)
             rows.append(row)

@@ -98,6 +98,52 @@ def write_size_change_video(path: Path, first: int, second: int, size1=(320, 240
     return path
 
 
+#: OpenVid-1M's CSV header (OpenVid-1M.csv, OpenVidHD.csv).
+OPENVID_HEADER = ["video", "caption", "aesthetic score", "motion score", "temporal consistency score",
+                  "camera motion", "frame", "fps", "seconds"]
+
+
+def write_openvid(root: Path, clips: Path) -> Dict[str, str]:
+    """An OpenVid-1M-style download under ``root``: zip parts ``parts/OpenVid_part0.zip``
+    (stored), ``OpenVid_part1.zip`` (deflated, its clip in a folder, as some of OpenVid's
+    parts hold theirs) and ``OpenVid_part2.zip`` split into ``_partaa`` / ``_partab`` pieces;
+    ``OpenVid.csv`` with OpenVid's header naming each clip by its bare file name as OpenVid's
+    does, a quoted caption holding a comma, plus a row too short by its ``frame`` column, a row
+    of motion score 0.1 and a row naming a clip in no part. Under ``root/ref``, the members as
+    plain files in folders named like the parts (their sample ids). Returns member id -> clip.
+    """
+    import csv
+    import zipfile
+
+    layout = {"OpenVid_part0.zip/alpha_0.mp4": "bikes.mp4", "OpenVid_part0.zip/beta_3.mp4": "bigbuckbunny.mp4",
+              "OpenVid_part1.zip/videos/gamma_1.mp4": "webvid_like_596x336.mp4",
+              "OpenVid_part2.zip/delta_0.mp4": "bikes.mp4"}
+    parts, ref = root / "parts", root / "ref"
+    parts.mkdir(parents=True, exist_ok=True)
+    for rel, clip in layout.items():
+        (ref / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(clips / clip, ref / rel)
+        part, name = rel.split("/", 1)
+        method = zipfile.ZIP_DEFLATED if part == "OpenVid_part1.zip" else zipfile.ZIP_STORED
+        with zipfile.ZipFile(parts / part, "a", method) as z:
+            z.write(ref / rel, name)
+    joined = parts / "OpenVid_part2.zip"
+    data = joined.read_bytes()
+    (parts / "OpenVid_part2_partaa").write_bytes(data[:len(data) // 2])
+    (parts / "OpenVid_part2_partab").write_bytes(data[len(data) // 2:])
+    joined.unlink()
+    with open(root / "OpenVid.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(OPENVID_HEADER)
+        for rel in layout:
+            name = rel.rsplit("/", 1)[1]
+            w.writerow([name, f"a scene, {name}", 5.1, 0.9, 0.99, "pan_right", 300, 25, 12.0])
+        w.writerow(["short_9.mp4", "too short", 5.0, 0.9, 0.99, "static", 12, 25, 0.48])
+        w.writerow(["calm_2.mp4", "barely moves", 5.0, 0.1, 0.99, "static", 300, 25, 12.0])
+        w.writerow(["elsewhere_5.mp4", "in a part not downloaded", 5.0, 0.9, 0.99, "static", 300, 25, 12.0])
+    return layout
+
+
 def write_zip_parts(parts: Path, ref: Path, clips: Path) -> Dict[str, str]:
     """OpenVid-style zip parts of the clips in ``clips`` under ``parts``, and under ``ref`` the
     same members as plain files in folders named like the parts (so both give the same sample

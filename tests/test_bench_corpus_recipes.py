@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from bench.corpus_recipes import RECIPES, main
+from bench.corpus_recipes import RECIPES, main, recipe
 
 
 @pytest.mark.timeout(600)  # about 40 CPU-seconds: rendering and encoding the corpora, five v2v-serve --check runs
@@ -18,18 +18,20 @@ def test_corpus_recipes_bench_reports_every_recipe(tmp_path, capsys):
     assert list(rows) == list(RECIPES) and r["command"] == "python -m bench.corpus_recipes --clips 1 --hd-height 240 " \
                                                           f"--json {out}"
     for name, row in rows.items():
-        assert row["command"] == RECIPES[name] and row["footage_s"] > 0
+        assert row["command"] == recipe(name, 1) and row["footage_s"] > 0
         assert row["samples"] > 0 and row["samples_per_clip_hour"] == round(row["samples"] / row["footage_s"] * 3600, 1)
         assert ("--keep-top-fraction 0.54" in row["command"]) == (name == "webvid")
         assert ("--frame-height 336" in row["command"]) == (name in ("openvid", "panda", "phone"))
     # WebVid's montage: every shot shorter than a window
     assert [s[0] for s in rows["webvid"]["skipped"]] == ["webvid_like_596x336.mp4"]
     assert "every shot is shorter than one window" in rows["webvid"]["skipped"][0][2]
-    # OpenVid: the short row skipped by the table's numbers, the row of a clip in no part named,
-    # the low-motion row dropped by the filter: one member served, from its zip part
+    # OpenVid: the CSV's bare names paired with the parts' members; the short row skipped by the
+    # table's numbers, the row of a clip in no part named, the low-motion row dropped by the
+    # filter: one member served, from its zip part
     openvid = rows["openvid"]
+    assert "OpenVid_part{0..0}.zip" in openvid["command"]
     assert openvid["entries"] == 1 and openvid["verdicts"][0][0] == "OpenVid_part0.zip/clip_0000.mp4"
-    assert any("a row with no member" in s[2] for s in openvid["skipped"])
+    assert any("no member of" in s[2] and "not_downloaded.mp4" in s[2] for s in openvid["skipped"])
     assert any("skipped without opening their video" in s[2] and "short_0000.mp4" in s[2] for s in openvid["skipped"])
     # Panda: one range per shot; the 4.4 s shot is opened (no fps column) and gives none
     panda = rows["panda"]

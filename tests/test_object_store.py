@@ -371,6 +371,22 @@ def test_zip_parts_in_a_bucket_a_brace_range_and_over_http(store, tmp_path, monk
                         ("gap.zip", "split zip part: piece gap_partab is missing (found gap_partaa, gap_partac)")]
 
 
+def test_openvid_parts_in_a_bucket_served_from_their_csv(store, tmp_path):
+    """OpenVid-style parts in S3 (one split into pieces) and their CSV naming clips without
+    their part, served over ZeroMQ: every row's member gives the samples the same clips give
+    from a folder (each sample holding its member's frames), nothing listed from the bucket."""
+    from harness.corpus import write_openvid
+
+    layout = write_openvid(tmp_path, CLIPS)
+    store.upload(tmp_path / "parts", "s3://corpus/openvid/")
+    folder, _ = _epoch(str(tmp_path / "ref"))
+    bucket, log = _epoch("s3://corpus/openvid/OpenVid_part{0..2}.zip", "--video-list", str(tmp_path / "OpenVid.csv"),
+                         env=_env(store, tmp_path))
+    assert sorted({k.rsplit("#", 1)[0] for k in bucket}) == sorted(layout) and bucket == folder
+    assert "elsewhere_5.mp4" in log and "listed" not in " ".join(
+        line for line in log.splitlines() if "object(s)" in line)
+
+
 def test_tar_shards_served_over_zeromq(store, tmp_path):
     tars, ref = _shards(tmp_path)
     store.upload(tars, "s3://corpus/zmq-shards/")
@@ -447,7 +463,7 @@ def test_manifest_index_finds_every_entry_without_loading_the_manifest(tmp_path)
     assert ManifestIndex.open(tmp_path / "none.jsonl", URL) is None
 
 
-def test_a_missing_list_file_or_a_pattern_with_a_list_is_a_clear_error_at_start(tmp_path):
+def test_a_missing_list_file_or_a_list_naming_nothing_is_a_clear_error_at_start(tmp_path):
     def serve(*args):
         return subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", *args], capture_output=True,
                               text=True, timeout=120)
@@ -456,7 +472,7 @@ def test_a_missing_list_file_or_a_pattern_with_a_list_is_a_clear_error_at_start(
     assert r.returncode == 2 and f"video_list {tmp_path / 'absent.txt'}: no such file" in r.stderr
     (tmp_path / "list.txt").write_text("a.tar\n")
     r = serve("--videos", str(tmp_path / "s-{0..1}.tar"), "--video-list", str(tmp_path / "list.txt"))
-    assert r.returncode == 2 and "not both" in r.stderr
+    assert r.returncode == 2 and "no member of the 2 archive(s)" in r.stdout  # the list selects the shards' members
     (tmp_path / "empty.txt").write_text("# nothing\n\n")
     r = serve("--video-list", str(tmp_path / "empty.txt"))
     assert r.returncode == 2 and "lists no video" in r.stderr

@@ -244,3 +244,57 @@ def test_zip_parts_served_over_zeromq_as_the_files(parts):
     folder, ref = parts
     from_parts, _ = _epoch(str(folder))
     assert len(from_parts) == 12 and from_parts == _epoch(str(ref))[0]
+
+
+def test_pairing_a_list_with_archive_members_is_by_id_path_then_file_name():
+    from v2v_server.videos.archives import pair_members
+
+    members = ["p0.zip/a.mp4", "p0.zip/dir/b.mp4", "p1.zip/c.mp4", "p1.zip/x/d.mp4", "p2.zip/d.mp4", "p2.zip/x/e.mp4",
+               "p3.zip/y/f.mp4", "p4.zip/z/f.mp4"]
+    entries = ["a.mp4", "b.mp4", "dir/b.mp4", "p1.zip/c.mp4", "a.mp4#t=1,3", "d.mp4", "x/d.mp4", "zz.mp4",
+               "dir/zz.mp4", "e.mp4", "a.mp4", "f.mp4", "y/e.mp4"]
+    ids, refused = pair_members(entries, members, "L.csv", "P")
+    # a bare name by its file name (b.mp4 sits in a folder of its part) unless a member's path
+    # is the name (d.mp4), a path by the member's path, an id as it is, a segment keeps its
+    # range; duplicates once
+    assert ids == ["p0.zip/a.mp4", "p0.zip/dir/b.mp4", "p1.zip/c.mp4", "p0.zip/a.mp4#t=1,3", "p2.zip/d.mp4",
+                   "p1.zip/x/d.mp4", "p2.zip/x/e.mp4"]
+    assert refused == [
+        ("f.mp4", "listed in L.csv: more than one member of P is named so (p3.zip/y/f.mp4, p4.zip/z/f.mp4): "
+                  "name one as part.zip/member in the list"),
+        ("(3 entries)", "listed in L.csv but no member of P: zz.mp4, dir/zz.mp4, y/e.mp4")]
+    many = [f"n{i}.mp4" for i in range(7)]
+    assert pair_members(many, members, "L", "P")[1] == [
+        ("(7 entries)", "listed in L but no member of P: n0.mp4, n1.mp4, n2.mp4, n3.mp4, n4.mp4, ...")]
+
+
+def test_openvid_parts_and_their_csv_serve_each_long_clip_of_the_named_member(tmp_path):
+    """OpenVid's CSV names clips without their part: given with the parts (a brace range, a
+    split part among them), each row is paired with its member, so every long clip's windows
+    are served holding that member's frames; the table's short row is skipped unopened, the
+    filter drops its row, and the row of a part not downloaded is one line."""
+    pytest.importorskip("duckdb")
+    from harness.corpus import write_openvid
+
+    layout = write_openvid(tmp_path, CLIPS)
+    _settle()
+    parts, table = tmp_path / "parts", str(tmp_path / "OpenVid.csv")
+    pattern = str(parts / "OpenVid_part{0..2}.zip")
+    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", pattern,
+                        "--video-list", table, "--video-list-filter", '"motion score" > 0.5', *LAYOUT.args(),
+                        "--cache-dir", str(tmp_path / "cache")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    lines = {line.split()[0]: line for line in r.stdout.splitlines()[1:-1]}
+    assert sorted(k for k in lines if k in layout) == sorted(layout)
+    assert all("window(s)" in lines[k] for k in layout), r.stdout
+    assert "1 row(s) of" in r.stdout and "skipped without opening" in r.stdout
+    assert f"listed in {table} but no member of the 3 archive(s) given in {parts}/: elsewhere_5.mp4" in r.stdout
+    assert "calm_2.mp4" not in r.stdout
+    assert f"{len(layout)} usable video(s) of {len(layout)}" in r.stdout
+    src = open_source(pattern, video_list=table)
+    videos, _ = src.list_videos(EXTS)
+    assert videos == list(layout)  # the table's order
+    cfg = LAYOUT.cfg()
+    got = samples(cfg, src, videos, 0)
+    assert len(got) == 2 * len(layout) and got == samples(cfg, LocalSource(tmp_path / "ref"), videos, 0)

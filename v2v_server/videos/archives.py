@@ -10,6 +10,7 @@ from typing import Callable, ContextManager, Dict, List, Optional, Sequence, Tup
 
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.manifest import index_entry
+from v2v_server.videos.segments import segment_name, split_segment
 from v2v_server.videos.shards import (ARCHIVES, JoinedFile, ShardIndex, ZipMemberError, gather_pieces, missing_piece,
                                       open_member, piece_archive, split_member)
 
@@ -148,6 +149,62 @@ class Archives:
                 rejected += [(f"{rel}/{m}", f"not a video file (extension {PurePosixPath(m).suffix or 'none'!r})")
                              for m in members if not m.lower().endswith(tuple(extensions))]
         return out, rejected
+
+
+#: How many unmatched names a pairing's one refusal line shows.
+SHOWN_UNMATCHED = 5
+
+
+def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str, archives: str
+                 ) -> Tuple[List[str], List[Tuple[str, str]]]:
+    """The archive members a video list's entries name, for a list that names clips without
+    the archive holding them (OpenVid-1M's CSV names ``clip.mp4``, served from
+    ``OpenVid_part3.zip/clip.mp4``).
+
+    An entry (a segment's time range kept, ``videos.segments``) names the member whose id is
+    the entry (``part.zip/clip.mp4``), else whose path inside its archive is the entry, else,
+    for an entry without ``/``, whose file name is the entry (what ``unzip -j`` would write).
+    Pure: the same lists give the same ids wherever the archives are read from.
+
+    Args:
+        entries: the list's entries, in its order.
+        members: ids of the archives' video members (``part.zip/dir/clip.mp4``).
+        video_list, archives: the list and the archives as given, for messages.
+
+    Returns:
+        ``(ids, refused)``: the member ids in the list's order, duplicates dropped; ``(entry,
+        reason)`` for each entry that more than one member matches (naming them), and one
+        ``(count, reason)`` for all entries no member matches (a list of a whole corpus served
+        from some of its parts names most clips in none: one line, the first few named).
+    """
+    by_id = set(members)
+    by_path: Dict[str, List[str]] = {}
+    by_file: Dict[str, List[str]] = {}
+    for m in members:
+        name = split_member(m)[1]
+        by_path.setdefault(name, []).append(m)
+        by_file.setdefault(PurePosixPath(name).name, []).append(m)
+    out, seen, refused, unmatched = [], set(), [], []
+    for entry in entries:
+        base, times = split_segment(entry)
+        found = [base] if base in by_id else by_path.get(base) or ([] if "/" in base else by_file.get(base, []))
+        if len(found) > 1:
+            refused.append((entry, f"listed in {video_list}: more than one member of {archives} is named so "
+                                   f"({', '.join(sorted(found)[:3])}{', ...' if len(found) > 3 else ''}): "
+                                   f"name one as part.zip/member in the list"))
+            continue
+        if not found:
+            unmatched.append(entry)
+            continue
+        rel = segment_name(found[0], *times) if times else found[0]
+        if rel not in seen:
+            seen.add(rel)
+            out.append(rel)
+    if unmatched:
+        shown = ", ".join(unmatched[:SHOWN_UNMATCHED]) + (", ..." if len(unmatched) > SHOWN_UNMATCHED else "")
+        refused.append((f"({len(unmatched)} entr{'y' if len(unmatched) == 1 else 'ies'})",
+                        f"listed in {video_list} but no member of {archives}: {shown}"))
+    return out, refused
 
 
 def archive_kind(archive: str) -> str:

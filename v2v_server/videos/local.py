@@ -73,7 +73,7 @@ class LocalSource(VideoSource):
             raise StoreError(f"--videos {self.root}: not a folder")
 
     def list_videos(self, extensions):
-        names = self._names()
+        names = self._names(extensions)
         if names is not None:
             root = Path(self.root)
             return self._listed(names, lambda rel: inside(root, root / rel), extensions)

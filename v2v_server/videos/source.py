@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 
 from v2v_server.faults import warn_once
-from v2v_server.videos.archives import Archives
+from v2v_server.videos.archives import Archives, pair_members
 from v2v_server.videos.corpus_index import CorpusIndex, index_path
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frame_cache import FrameCache
@@ -149,17 +149,17 @@ class VideoSource:
         """
         raise NotImplementedError
 
-    def _names(self) -> Optional[VideoList]:
-        """The entries that replace a listing: the brace pattern's, else the video list's (with
-        the list lines it refuses).
-
-        Raises:
-            ValueError: both a brace pattern and a video list are given.
-        """
+    def _names(self, extensions: Sequence[str]) -> Optional[VideoList]:
+        """The entries that replace a listing: the video list's (with the list lines it
+        refuses), the archives a brace pattern (or one archive) names, or, with both, the list's
+        entries paired with those archives' video members (:func:`archives.pair_members`)."""
+        if self.names and self.video_list:
+            listed = read_video_list(self.video_list, self.list_table)
+            members, rejected = self.archives.expand(list(self.names), [], extensions)
+            where = f"the {len(self.names)} archive(s) given in {self.root}" if len(self.names) > 1 else self.names[0]
+            paired, refused = pair_members(listed.videos, members, self.video_list, where)
+            return VideoList(paired, listed.refused + rejected + refused)
         if self.names:
-            if self.video_list:
-                raise ValueError(f"--videos {self.root}: a brace pattern of archives names them itself; "
-                                 f"give it or --video-list {self.video_list}, not both")
             return VideoList(list(self.names), [])
         return read_video_list(self.video_list, self.list_table) if self.video_list else None
 

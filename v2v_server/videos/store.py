@@ -206,7 +206,7 @@ class StoreSource(VideoSource):
         return [k[len(base):] for k in keys if k.startswith(base)]
 
     def list_videos(self, extensions):
-        names = self._names()
+        names = self._names(extensions)
         if names is not None:  # nothing is listed from the store: a missing video is found when it is opened
             known = self.listing.read()  # the tar members read at an earlier start
             if known is not None:
