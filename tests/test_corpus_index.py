@@ -125,3 +125,42 @@ def test_the_ray_scan_counts_windows_from_the_index(corpus, tmp_path):
         result = json.loads(db.execute("SELECT result FROM entries WHERE location = ?", (loc,)).fetchone()[0])
         db.execute("UPDATE entries SET result = ? WHERE location = ?", (json.dumps({**result, "windows": 7}), loc))
     assert scan_corpus_windows(corpus, cfg).windows == {**first.windows, "bikes.mp4": 7}
+
+
+def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty_video(corpus, tmp_path):
+    """After a pass that filled the index (``--check``), a server of the same layout knows an
+    epoch's size at start (its log; the ``v2v_epoch_samples`` gauge) and never opens the
+    videos the index knows to give no window; one epoch delivers exactly that many samples."""
+    import subprocess
+    import sys
+    import urllib.request
+
+    from harness.serve import ServeProcess
+    from v2v_client.dataset import V2VStreamDataset
+
+    layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
+              "--cache-dir", str(tmp_path / "cache")]
+    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(corpus), *layout],
+                       capture_output=True, text=True, timeout=300)
+    summary = r.stdout.splitlines()[-1]
+    empty = [line.split()[0] for line in r.stdout.splitlines() if " unusable " in line]
+    samples = int(summary.split(", ")[1].split()[0])
+    assert r.returncode == 0 and empty and samples > 0, r.stdout  # the 201-frame windows: two clips give none
+    with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
+                       "--log-level", "info", *layout]) as srv:
+        ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+               for sid in b["sample_ids"]]
+    log = srv.log
+    assert len(ids) == len(set(ids)) == samples
+    assert f"{len(empty)} video(s) not opened: the corpus index" in log
+    assert f"an epoch holds {samples} sample(s) of {3 - len(empty)} video(s)" in log
+    assert not any(name in log for name in empty), log  # not opened, so never named as a short clip
+
+
+def test_the_epoch_size_known_at_start_is_a_gauge():
+    from v2v_server.ops.metrics import ServerMetrics
+
+    m = ServerMetrics(progress=False)
+    assert b"v2v_epoch_samples 0.0" in m.exposition(now=0.0)  # not known
+    m.set_epoch_samples(1234, epochs=3)
+    assert b"v2v_epoch_samples 1234.0" in m.exposition(now=100.0)

@@ -207,6 +207,7 @@ def test_objects_changed_or_deleted_after_listing_are_skipped_with_the_key(store
     listing = _source(store, tmp_path, url)
     videos, _ = listing.list_videos((".mp4",))
     assert videos == ["bigbuckbunny.mp4", "bikes.mp4", "webvid_like_596x336.mp4"]
+    assert listing.listed_identity("bikes.mp4") == listing.identity("bikes.mp4") is not None
     fs = store.fs()
     fs.put_file(str(corpus / "webvid_like_596x336.mp4"), "corpus/changing/bikes.mp4")  # overwritten
     fs.rm_file("corpus/changing/bigbuckbunny.mp4")  # deleted
@@ -356,6 +357,10 @@ def test_zip_parts_in_a_bucket_a_brace_range_and_over_http(store, tmp_path, monk
     assert split[1] == "+".join(objects[f"p-3_part{s}"][1] for s in ("aa", "ab", "ac"))
     src = _source(store, tmp_path, "s3://corpus/zips/")
     assert src.list_videos((".mp4",))[1] == [("p-0.zip/readme.txt", "not a video file (extension '.txt')")]
+    # the identity the server's start reads from the listing is the one a worker asks the store for
+    for rel in ("p-0.zip/000001.mp4", "p-1.zip/clips/000000.mp4", "p-3.zip/000001.mp4", "p-2.zip/000000.mp4#t=1,2"):
+        assert src.listed_identity(rel) == src.identity(rel) is not None
+    assert src.listed_identity("p-0.zip/absent.mp4") is None
     # bad parts beside good ones: each named once in the listing, the good part's members kept
     bad = tmp_path / "bad"
     bad.mkdir()

@@ -373,6 +373,17 @@ def test_progress_line_shows_epoch_rate_clients_and_workers(capsys):
     finally:
         m.close()
     assert ServerMetrics(progress=False)._progress is None
+    # an epoch's size known at start (the corpus index): a bounded run shows the bar's total
+    m = ServerMetrics(progress=True)
+    try:
+        m.set_epoch_samples(10, epochs=3)
+        m._progress._last -= 2.0
+        m.on_batch_sent(4, 1000)
+        m.set_state(**state)
+        assert m._progress.bar.total == 30 and m._progress.line.startswith("10 samples/epoch, epoch 2 (1/3 videos)")
+        assert "4/30 samples" in str(m._progress.bar)
+    finally:
+        m.close()
 
 
 def test_trainer_metrics_as_prometheus(videos):

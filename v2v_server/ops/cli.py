@@ -10,7 +10,9 @@ from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, Ser
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
-from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, select_shard
+from v2v_server.videos.corpus import (SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, known_windows,
+                                      select_shard)
+from v2v_server.videos.corpus_index import index_path
 from v2v_server.delivery.journal import JournalError
 from v2v_server.videos.store_io import StoreError
 from v2v_server.ops.warm import cache_line, format_warm, warm_cache
@@ -90,8 +92,20 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: --videos {source.root}: no video files ({', '.join(cfg.video_extensions)})"
               + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)
         return 2
+    known = known_windows(cfg.recipe.windows, source, videos)
+    if known.empty:  # gives no sample: not opened again while its identity holds
+        log.info("%d video(s) not opened: the corpus index %s knows they give no window at this layout "
+                 "(--check says why)", len(known.empty), index_path(source.cache_dir))
+        videos = [v for v in videos if v not in known.empty]
+        if not videos:
+            print(f"v2v-serve: --videos {source.root}: no video gives a window at this layout (the corpus index "
+                  f"{index_path(source.cache_dir)} knows them all; --check says why)", file=sys.stderr)
+            return 2
+    epoch_samples = known.samples if known.known == len(videos) + len(known.empty) else None
+    if epoch_samples is not None:
+        log.info("an epoch holds %d sample(s) of %d video(s) (corpus index)", epoch_samples, len(videos))
     try:
-        server = V2VServer(cfg, source, videos, corpus=listing)
+        server = V2VServer(cfg, source, videos, corpus=listing, epoch_samples=epoch_samples)
     except (JournalError, OSError) as e:  # the journal of --state-dir
         print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
         return 2

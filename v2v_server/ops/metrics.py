@@ -127,6 +127,7 @@ class ServerMetrics:
         self._expo_at = 0.0
         self.port: Optional[int] = None
         self._progress: Optional[_Progress] = None
+        self._epoch_samples = 0  # 0: not known at start
         if sys.stderr.isatty() if progress is None else progress:
             try:  # tqdm draws the line when it is made: a terminal already gone leaves it off
                 self._progress = _Progress()
@@ -139,6 +140,13 @@ class ServerMetrics:
         self.samples_made.inc()
         if params is not None:
             self.sample_stats.observe(params)
+
+    def set_epoch_samples(self, n: int, epochs: Optional[int] = None) -> None:
+        """The samples one epoch holds, known at start (the corpus index), of a run of ``epochs``
+        (None: unbounded): the gauge ``v2v_epoch_samples`` and the progress line's total."""
+        self._epoch_samples = n
+        if self._progress is not None:
+            self._draw(lambda p: p.set_epoch_samples(n, epochs))
 
     def on_batch_sent(self, nsamples: int, nbytes: int) -> None:
         self.batches_sent.inc()
@@ -262,7 +270,7 @@ class ServerMetrics:
 
     def snapshot(self) -> dict:
         with self._lock:
-            return dict(self._state)
+            return {**self._state, "epoch_samples": self._epoch_samples}
 
     def exposition(self, now: Optional[float] = None) -> bytes:
         """The Prometheus text of every metric, rendered at most once per ``EXPOSITION_S``
@@ -462,6 +470,8 @@ class _StateCollector:
             ("v2v_epoch", "epoch", "Newest epoch being made (-1 before the first)"),
             ("v2v_epoch_videos", "epoch_videos", "Videos of the newest epoch"),
             ("v2v_epoch_videos_done", "epoch_videos_done", "Videos of the newest epoch fully made"),
+            ("v2v_epoch_samples", "epoch_samples", "Samples one epoch holds, as the corpus index knew at start "
+             "(0: not every video known)"),
             ("v2v_shuffle_buffer_samples", "shuffle_samples", "Made samples waiting in open batches (shuffle buffer)"),
             ("v2v_shuffle_buffer_capacity_samples", "shuffle_capacity",
              "Samples the open batches hold when full (shuffle_buffer rounded up to whole batches, per epoch "
@@ -490,17 +500,27 @@ class _Progress:
         self._last = time.monotonic()
         self._last_bytes = 0
         self.line = ""
+        self.per_epoch = ""  # the samples of an epoch, when known at start
 
     def add(self, nsamples: int, nbytes: int) -> None:
         self.bar.update(nsamples)
         self.nbytes += nbytes
+
+    def set_epoch_samples(self, n: int, epochs: Optional[int]) -> None:
+        """An epoch holds ``n`` samples: with a bounded run of ``epochs``, the bar counts to
+        ``n * epochs`` and shows the time left; unbounded, the line names ``n``."""
+        if epochs:
+            self.bar.total = n * epochs
+            self.bar.bar_format = "{n_fmt}/{total_fmt}{unit} [{elapsed}<{remaining}, {rate_fmt}]{postfix}"
+        self.per_epoch = f"{n} samples/epoch, "
+        self.bar.refresh()
 
     def show(self, now: float, st: dict) -> None:
         if now - self._last < 1.0:
             return
         mbs = (self.nbytes - self._last_bytes) / 1e6 / (now - self._last)  # over the last second or so
         self._last, self._last_bytes = now, self.nbytes
-        self.line = (f"epoch {st.get('epoch', -1)} ({st.get('epoch_videos_done', 0)}/{st.get('epoch_videos', 0)} "
+        self.line = (f"{self.per_epoch}epoch {st.get('epoch', -1)} ({st.get('epoch_videos_done', 0)}/{st.get('epoch_videos', 0)} "
                      f"videos), {mbs:.1f} MB/s, {len(st.get('clients', {}))} client(s), workers busy "
                      f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}, shuffle buffer "
                      f"{st.get('shuffle_samples', 0)}/{st.get('shuffle_capacity', 0)}")

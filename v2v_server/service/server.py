@@ -69,7 +69,8 @@ class V2VServer:
         ValueError: for an empty ``videos`` list.
     """
 
-    def __init__(self, cfg: ServeConfig, source: VideoSource, videos: List[str], corpus: Optional[str] = None):
+    def __init__(self, cfg: ServeConfig, source: VideoSource, videos: List[str], corpus: Optional[str] = None,
+                 epoch_samples: Optional[int] = None):
         if not videos:
             raise ValueError(f"no video files under {source.root}")
         self.cfg = cfg
@@ -81,6 +82,10 @@ class V2VServer:
         self.recipe = cfg.recipe.fingerprint()
         self._stop = threading.Event()
         self.metrics = ServerMetrics()
+        #: Samples an epoch holds, when known at start (the corpus index knew every video); None otherwise.
+        self.epoch_samples = epoch_samples
+        if epoch_samples is not None:
+            self.metrics.set_epoch_samples(epoch_samples, cfg.delivery.epochs)
         self.journal = (Journal(cfg.state_dir, self.recipe, crops_per_window=cfg.crops_per_window,
                                 on_error=lambda path, e: self.metrics.on_fs_error("journal", path, e))
                         if cfg.state_dir is not None else None)  # JournalError: another recipe's journal

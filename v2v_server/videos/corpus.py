@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import List, Tuple
+from typing import List, NamedTuple, Sequence, Set, Tuple
 
 from v2v_server.videos.corpus_index import layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
@@ -121,6 +121,33 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
     if index is not None and error is None:
         index.record(where, identity, key, out)
     return out
+
+
+class KnownWindows(NamedTuple):
+    """What the corpus index says of a listing at a server's start (:func:`known_windows`):
+    ``known``, how many of its videos it knows; ``samples``, their samples per epoch together;
+    ``empty``, those known to give no window."""
+
+    known: int
+    samples: int
+    empty: Set[str]
+
+
+def known_windows(windows: WindowSettings, source: VideoSource, videos: Sequence[str]) -> KnownWindows:
+    """What the host's corpus index knows of ``videos`` under the layout of ``windows``, each
+    video's identity unchanged (``source.listed_identity``: a file's status, a store's listing,
+    no request per object). The server reads it at start: an epoch's size when every video is
+    known, and the videos not worth opening. Nothing is known without an index."""
+    index = source.corpus_index()
+    known, samples, empty = 0, 0, set()
+    if index is None:
+        return KnownWindows(0, 0, empty)
+    for rel, n in index.windows(((rel, source.where(rel), source.listed_identity(rel)) for rel in videos),
+                                layout_key(windows)):
+        known, samples = known + 1, samples + n
+        if n == 0:
+            empty.add(rel)
+    return KnownWindows(known, samples, empty)
 
 
 def check_corpus(windows: WindowSettings, source: VideoSource, videos: List[str], processes: int = 1) -> List[dict]:

@@ -24,7 +24,7 @@ import re
 import sqlite3
 import time
 from pathlib import Path
-from typing import Optional, Union
+from typing import Dict, Iterable, Iterator, Optional, Tuple, Union
 
 from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.shots import DETECTOR_VERSION
@@ -112,6 +112,34 @@ class CorpusIndex:
         if row is None or row[0] != identity:
             return None
         return json.loads(row[1])
+
+    def windows(self, videos: Iterable[Tuple[str, str, Optional[str]]], layout: str,
+                chunk: int = 500) -> Iterator[Tuple[str, int]]:
+        """``(key, windows)``, the samples per epoch recorded under ``layout``, for each ``(key,
+        location, identity)`` of ``videos`` whose entry holds (same identity; None never does),
+        read in queries of ``chunk`` locations: memory is bounded by the chunk, not the corpus.
+        Nothing is queried when no entry of ``layout`` exists."""
+        if self._db.execute("SELECT 1 FROM entries WHERE layout = ? LIMIT 1", (layout,)).fetchone() is None:
+            return
+        batch: Dict[str, Tuple[str, str]] = {}  # location -> (key, identity)
+
+        def flush():
+            marks = ",".join("?" * len(batch))
+            rows = self._db.execute(f"SELECT location, identity, windows FROM entries WHERE layout = ? AND location IN "
+                                    f"({marks})", (layout, *batch)).fetchall()
+            held = dict(batch)
+            batch.clear()
+            for loc, ident, n in rows:
+                if held[loc][1] == ident:
+                    yield held[loc][0], int(n)
+
+        for key, location, identity in videos:
+            if identity is not None:
+                batch[location] = (key, identity)
+                if len(batch) >= chunk:
+                    yield from flush()
+        if batch:
+            yield from flush()
 
     def record(self, location: str, identity: Optional[str], layout: str, result: dict) -> bool:
         """Keep ``result`` (a ``check_video`` verdict) for the video at ``location`` of

@@ -149,6 +149,16 @@ class VideoSource:
         """
         raise NotImplementedError
 
+    def listed_identity(self, rel: str) -> Optional[str]:
+        """:meth:`identity` of ``rel`` where it costs no request to a store (a folder's file:
+        its status; a store's object or member: its listing entry, else None), for questions
+        asked of every video at once, such as the server's start; None also when it cannot be
+        read (decoding then says why)."""
+        try:
+            return self.identity(rel)
+        except VideoError:
+            return None
+
     def _names(self, extensions: Sequence[str]) -> Optional[VideoList]:
         """The entries that replace a listing: the video list's (with the list lines it
         refuses), the archives a brace pattern (or one archive) names, or, with both, the list's
