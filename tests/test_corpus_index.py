@@ -164,3 +164,46 @@ def test_the_epoch_size_known_at_start_is_a_gauge():
     assert b"v2v_epoch_samples 0.0" in m.exposition(now=0.0)  # not known
     m.set_epoch_samples(1234, epochs=3)
     assert b"v2v_epoch_samples 1234.0" in m.exposition(now=100.0)
+
+
+def test_a_served_epoch_or_a_warm_up_fills_the_index_for_the_next_start(corpus, tmp_path):
+    """The first pass that learns a video writes its entry: one epoch served (no ``--check``)
+    or ``--warm-cache``; the next server start then knows the epoch's size and opens no video
+    known to give none. Such an entry lacks ``--check``'s frame timing, so ``--check`` decodes
+    the video again and its verdicts equal a check's on a fresh index."""
+    import subprocess
+    import sys
+
+    from harness.serve import ServeProcess
+    from v2v_client.dataset import V2VStreamDataset
+
+    layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3"]
+
+    def epoch(cache):
+        with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
+                           "--log-level", "info", "--cache-dir", str(cache), *layout]) as srv:
+            ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+                   for sid in b["sample_ids"]]
+        return ids, srv.log
+
+    def check(cache, *extra):
+        return subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(corpus), *layout,
+                               "--cache-dir", str(cache), *extra], capture_output=True, text=True, timeout=300)
+
+    ids, log = epoch(tmp_path / "a")
+    assert "corpus index" not in log  # nothing known at the first start
+    with sqlite3.connect(tmp_path / "a" / INDEX_FILE) as db:
+        rows = db.execute("SELECT location, windows, result FROM entries").fetchall()
+    assert len(rows) == 3 and sum(r[1] for r in rows) == len(ids) > 0
+    assert all(json.loads(r[2])["frame_timing"] is False for r in rows)
+    again, log = epoch(tmp_path / "a")
+    empty = [os.path.basename(r[0]) for r in rows if r[1] == 0]
+    assert sorted(again) == sorted(ids) and empty
+    assert f"an epoch holds {len(ids)} sample(s)" in log and f"{len(empty)} video(s) not opened" in log
+    # --check answers a sample pass's entries by decoding (its own timing), as on a fresh index
+    assert check(tmp_path / "a", "--check").stdout == check(tmp_path / "fresh", "--check").stdout
+    # --warm-cache writes the entries too
+    r = check(tmp_path / "w", "--warm-cache", "--frame-cache-gb", "1")
+    assert r.returncode == 0, r.stderr
+    with sqlite3.connect(tmp_path / "w" / INDEX_FILE) as db:
+        assert sorted(db.execute("SELECT location, windows FROM entries")) == sorted((r[0], r[1]) for r in rows)

@@ -12,6 +12,7 @@ from typing import List, Optional, Sequence
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_frames
+from v2v_server.videos.corpus import record_pass
 from v2v_server.videos.frames import lookup_entry
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import map_videos
@@ -25,15 +26,17 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
     source.take_stats()  # the counters read below are this video's alone
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
     windows = WindowPass(cfg.recipe.windows)
-    cached = False
+    cached, error = False, None
     try:
         with video_frames(cfg.recipe, source, rel) as fp:
             cached = fp.cached
             for _ in windows.over(fp):  # the frames the sample pass reads, no more
                 pass
     except Exception as e:  # one bad file never stops the warm-up
+        error = e
         out["state"] = f"not stored: {type(e).__name__}: {e}"
     out["frames"] = windows.frames
+    record_pass(cfg.recipe.windows, source, rel, windows.record(error))  # the next start knows its windows
     st = source.take_stats().get("frame_cache", {})
     out["bytes"] = int(st.get("bytes_written", 0))
     if out["state"]:

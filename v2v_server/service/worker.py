@@ -38,6 +38,7 @@ from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, T
 from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import SampleKey
 from v2v_server.samples.make import video_samples
+from v2v_server.videos.corpus import record_pass
 
 log = logging.getLogger("v2v.worker")
 
@@ -208,6 +209,7 @@ def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socke
                                 f"{task.epoch}, {after}")
     found = run.record(error)
     clock.made()  # decoding after the last window
+    record_pass(cfg.windows, source, task.video, found)  # the next start knows its windows (corpus index)
     done = Done(task.task, found.windows,
                 {str(k): str(v) for k, v in found.failed.items()},  # window -> reason, one by one
                 found.reason(cfg.windows),  # the file's verdict, failed windows aside

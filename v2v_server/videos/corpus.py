@@ -3,9 +3,12 @@ file of a corpus and say what it is worth, before training)."""
 from __future__ import annotations
 
 import hashlib
+import logging
+import sqlite3
 from pathlib import Path
 from typing import List, NamedTuple, Sequence, Set, Tuple
 
+from v2v_server.faults import warn_once
 from v2v_server.videos.corpus_index import layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.frames import FramePass, PassFrame
@@ -13,8 +16,10 @@ from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import map_videos
-from v2v_server.videos.window_pass import WindowPass
+from v2v_server.videos.window_pass import VideoPass, WindowPass
 from v2v_server.videos.windows import WindowSettings
+
+log = logging.getLogger("v2v")
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
 SAMPLE_VIDEOS = Path(__file__).resolve().parents[1] / "sample_videos"
@@ -81,10 +86,9 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
         except VideoError:
             identity = None  # missing or unreadable: decoding says why
         known = index.lookup(where, identity, key)
-        if known is not None:
+        if known is not None and known.get("frame_timing", True):  # a sample pass's entry lacks --check's timing
             return {**known, "path": rel}
-    out = {"path": rel, "usable": False, "windows": 0, "frames": 0, "size": "", "reason": "", "cuts": [],
-           "dropped": 0}
+    out = {}
     shown = {}  # the displayed (scaled) height of the frame at hand
 
     def rows(h: int) -> int:  # the rows the sample pass scores and cuts
@@ -97,7 +101,6 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
     try:
         with source.open(rel) as path:
             container, stream, info = open_video(path)
-            out["size"] = f"{info.width}x{info.height} {info.codec} {info.pix_fmt} {info.fps:.3g} fps"
             detector = ShotDetector()
             frames = (PassFrame(y, expand, detector.score(y, expand))
                       for y, expand in decode_codes(container, stream, rows, windows.frame_height, times,
@@ -110,17 +113,50 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
                                     f"ms, taken as if evenly spaced at the average {info.fps:.3g} fps")
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
-    record = found.record(error)
+    out = {**pass_verdict(windows, rel, found.record(error)), **out}
+    if index is not None and error is None:
+        index.record(where, identity, key, out)
+    return out
+
+
+def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> dict:
+    """``check_video``'s verdict of the video at ``rel`` from a window pass's ``record``
+    (``window_pass.VideoPass``), frame timing aside: ``{"path", "usable", "windows", "frames",
+    "size", "reason", "cuts", "dropped"}``, with ``failed_windows`` and ``more`` where they apply."""
     count, failed, reason = record.verdict(windows)  # windows before a failure still count
-    out.update(windows=count, usable=count > 0, reason=reason or "", frames=record.frames, cuts=list(record.cuts),
-               dropped=record.dropped)
+    out = {"path": rel, "usable": count > 0, "windows": count, "frames": record.frames,
+           "size": (f"{record.width}x{record.height} {record.codec} {record.pix_fmt} {record.fps:.3g} fps"
+                    if record.codec else ""),
+           "reason": reason or "", "cuts": list(record.cuts), "dropped": record.dropped}
     if failed:
         out["failed_windows"] = failed
     if record.complete:
         out["more"] = True  # every window is complete: decoding stopped
-    if index is not None and error is None:
-        index.record(where, identity, key, out)
     return out
+
+
+def record_pass(windows: WindowSettings, source: VideoSource, rel: str, record: VideoPass) -> bool:
+    """Keep what a sample pass or ``--warm-cache`` found of the video at ``rel`` in the host's
+    corpus index, so that the server's next start knows its windows without ``--check``: when
+    the pass ran whole (no error), with shot detection (``shot_cuts: avoid``: an entry holds
+    the cuts found, as ``--check``'s do), and no entry holds for the video yet. These passes
+    do not time frames, so the entry says ``frame_timing: False`` and ``--check`` decodes the
+    video again for its own line. An index that cannot be written is one warning; the pass's
+    samples are unaffected. Returns whether an entry was written."""
+    if record.error is not None or not windows.avoid_cuts:
+        return False
+    index = source.corpus_index()
+    if index is None:
+        return False
+    where, key, identity = source.where(rel), layout_key(windows), source.listed_identity(rel)
+    try:
+        if identity is None or index.lookup(where, identity, key) is not None:
+            return False
+        return index.record(where, identity, key, {**pass_verdict(windows, rel, record), "frame_timing": False})
+    except (sqlite3.Error, OSError) as e:
+        warn_once(log, ("corpus index write", str(index.path)), "corpus index %s cannot be written (%s); the "
+                  "samples are served without it", index.path, e)
+        return False
 
 
 class KnownWindows(NamedTuple):

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Dict, Optional, Tuple
 
-from v2v_server.videos.shards import ShardIndex
+from v2v_server.videos.shards import ShardIndex, split_member
 
 log = logging.getLogger("v2v.source")
 
@@ -185,6 +185,31 @@ class StoreListing:
         if self.path and not self._index_tried:
             self._index, self._index_tried = ManifestIndex.open(Path(self.path), self.url), True
         return self._index.get(rel) if self._index is not None else None
+
+    def identity(self, rel: str, objects) -> Optional[str]:
+        """:func:`object_identity` of ``rel`` (an object, or an archive member) held in the
+        ``objects`` listed here (the object, or its archive or archive's pieces), from their
+        entries: None when one is not listed or has no version tag."""
+        held = [self.entry(o) for o in objects]
+        if any(e is None or not e[1] for e in held):
+            return None
+        where = None
+        if split_member(rel) is not None:
+            entry = self.entry(rel)
+            if entry is None or len(entry) < 3:
+                return None
+            where = index_entry(entry)
+        return object_identity(rel, sum(int(e[0]) for e in held), "+".join(e[1] for e in held), where)
+
+
+def object_identity(rel: str, size: int, tag: str, where: Optional[Tuple[int, ...]]) -> str:
+    """The identity (``VideoSource.identity``) of the object ``rel``, or of the archive member
+    ``rel`` at index entry ``where`` (``shards``), whose object or pieces hold ``size`` bytes at
+    the version tag ``tag`` (their ETags joined by ``+``)."""
+    member = split_member(rel)
+    if member is None:
+        return f"object {size} {tag}"
+    return f"{member[0][-3:].lower()} {size} {tag} member {' '.join(map(str, where))}"
 
 
 def member_entry(entry: Tuple[int, ...], etag: str) -> tuple:

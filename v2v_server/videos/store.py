@@ -13,7 +13,7 @@ from typing import Dict, List, Optional, Tuple
 from v2v_server.videos.archives import listing_problems
 from v2v_server.videos.decode import VideoError, printable, utf8_name
 from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.manifest import StoreListing, etag_of, index_entry, member_entry
+from v2v_server.videos.manifest import StoreListing, etag_of, member_entry, object_identity
 from v2v_server.videos.segments import base_path
 from v2v_server.videos.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
 from v2v_server.videos.source import VideoSource
@@ -256,10 +256,7 @@ class StoreSource(VideoSource):
         self._check_unchanged(entry, now)
         if not now:  # no version tag (an HTTP server without ETag): the size alone cannot vouch for the bytes
             return None
-        if member is None:
-            return f"object {size} {now}"
-        where = " ".join(map(str, self.archives.member_at(rel, entry)))
-        return f"{member[0][-3:].lower()} {size} {now} member {where}"
+        return object_identity(rel, size, now, self.archives.member_at(rel, entry) if member is not None else None)
 
     def listed_identity(self, rel: str) -> Optional[str]:
         """:meth:`identity` as the listing (the manifest) gives it, without a request: None
@@ -267,16 +264,7 @@ class StoreSource(VideoSource):
         rel = base_path(rel)
         member = split_member(rel)
         objs = (self.archives.index.pieces.get(member[0]) or [member[0]]) if member is not None else [rel]
-        entries = [self.listing.entry(o) for o in objs]
-        if any(e is None or not e[1] for e in entries):
-            return None
-        size, tag = sum(int(e[0]) for e in entries), "+".join(e[1] for e in entries)
-        if member is None:
-            return f"object {size} {tag}"
-        entry = self.listing.entry(rel)
-        if entry is None or len(entry) < 3:
-            return None
-        return f"{member[0][-3:].lower()} {size} {tag} member {' '.join(map(str, index_entry(entry)))}"
+        return self.listing.identity(rel, objs)
 
     @contextlib.contextmanager
     def _request(self):

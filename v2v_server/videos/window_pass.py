@@ -101,6 +101,7 @@ class VideoPass:
         frames: frames read.
         width, height: the stream's frame size, pixels (0 when it was not opened).
         fps: its frame rate, Hz (0.0 when it was not opened).
+        codec, pix_fmt: the stream's codec and pixel format names ('' when it was not opened).
         layout: the window layout the windows follow (``shots.WindowLayout.key``).
         cuts: the frames that start a shot, in order (none without detection).
         starts: the first frame of each complete window, failed ones included, in window order.
@@ -122,6 +123,8 @@ class VideoPass:
     failed: Mapping[int, str] = field(default_factory=dict)
     complete: bool = False
     error: Optional[BaseException] = None
+    codec: str = ""
+    pix_fmt: str = ""
 
     @property
     def windows(self) -> int:
@@ -137,7 +140,8 @@ class VideoPass:
     def to_dict(self) -> dict:
         """The record as JSON-safe values, as a corpus index keeps it: every attribute, ``failed``
         keyed by the window as a string, ``error`` as its reason (``verdict``'s words) or None."""
-        d = {k: getattr(self, k) for k in ("frames", "width", "height", "fps", "layout", "dropped", "complete")}
+        d = {k: getattr(self, k) for k in ("frames", "width", "height", "fps", "codec", "pix_fmt", "layout", "dropped",
+                                           "complete")}
         d.update(cuts=list(self.cuts), starts=list(self.starts), failed={str(k): v for k, v in self.failed.items()},
                  error=None if self.error is None else error_reason(self.error))
         return d
@@ -222,4 +226,5 @@ class WindowPass:
         info = self.info
         return VideoPass(self.frames, info.width if info else 0, info.height if info else 0,
                          float(info.fps) if info else 0.0, self.layout.key, tuple(self.cuts), tuple(self.starts),
-                         self.layout.dropped, dict(self.failed), self.layout.done, error)
+                         self.layout.dropped, dict(self.failed), self.layout.done, error,
+                         info.codec if info else "", info.pix_fmt if info else "")
