@@ -38,6 +38,31 @@ def _refuse_reads_beside(event: str, args: tuple) -> None:
 sys.addaudithook(_refuse_reads_beside)
 
 
+@pytest.fixture(autouse=True)
+def _own_home_cache(tmp_path_factory, monkeypatch):
+    """Each test gets its own home cache (``$XDG_CACHE_HOME/v2v``: manifests, the corpus index),
+    so what one test's passes learned (a server start reads the corpus index) never changes
+    another's, whatever the order, and the suite leaves the user's ``~/.cache`` alone."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("xdg-cache")))
+
+
+def pytest_configure(config):
+    """Module- and session-scoped fixtures (started before any test's own home cache) get one
+    of the session's, under pytest's temporary folder, not the user's ``~/.cache``."""
+    import tempfile
+
+    if "XDG_CACHE_HOME" not in os.environ:
+        config._v2v_home_cache = tempfile.TemporaryDirectory(prefix="v2v-tests-xdg-")
+        os.environ["XDG_CACHE_HOME"] = config._v2v_home_cache.name
+
+
+def pytest_unconfigure(config):
+    held = getattr(config, "_v2v_home_cache", None)
+    if held is not None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+        held.cleanup()
+
+
 def video_dir() -> Path:
     """Folder of the real clips the tests read: the bundled ones, inside the repository."""
     return SAMPLE_VIDEOS
