@@ -106,11 +106,8 @@ def test_epoch_has_every_id_once_and_the_zeromq_path_content(ray_session, videos
         np.testing.assert_array_equal(r["frames"], arrays["frames"])
         assert r["flow"].dtype == arrays["flow"].dtype == np.float16
         np.testing.assert_array_equal(r["flow"], arrays["flow"])
-        # the flow statistic is taken from the flow's form on the wire: the worker's tracked grid,
-        # the Ray engine's dense rows (their means differ by the bilinear weighting); all else is one
-        mine = json.loads(r["params"])
-        mag = mine["stats"].pop("flow_mag"), params["stats"].pop("flow_mag")
-        assert mine == params and abs(mag[0] - mag[1]) <= 0.2 * max(mag), mag
+        # the params, statistics included (the flow's: of the tracked grid on both engines), are one
+        assert json.loads(r["params"]) == params and "flow_mag" in params["stats"]
         assert np.abs(r["voxels"]).sum() > 0  # real events, not placeholder zeros
 
 

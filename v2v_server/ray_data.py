@@ -51,6 +51,7 @@ from v2v_wire.protocol import check_outputs
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
+from v2v_wire.flowgrid import expand_grids
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.corpus import check_video
 from v2v_server.videos.decode import open_video
@@ -197,6 +198,9 @@ def _row_arrays(cfg: ServeConfig, arrays: Dict[str, np.ndarray], sample_id: str)
     """A sample's arrays in their column dtypes and layouts (``outputs.row_array``: voxels
     int16, never wrapped; frames uint8 with a channel axis; flow ``cfg.flow_dtype``, as the
     ZeroMQ wire; polarity counts uint8)."""
+    if "flow_grid" in arrays:  # a tracked option's grid, made dense as a client makes a worker's (same bits)
+        arrays = dict(arrays)
+        arrays["flow"] = expand_grids(arrays.pop("flow_grid"), (cfg.crop_size, cfg.crop_size))
     return {name: row_array(name, a, cfg.flow_dtype, sample_id) for name, a in arrays.items()}
 
 
@@ -239,7 +243,8 @@ class SampleMaker:
         skip = [key for w in range(self.cfg.max_samples_per_video) for key in window_keys(video, w, kpw)
                 if key not in keep]
         error: Optional[str] = None
-        run = video_samples(self.cfg.recipe, self.source, video, epoch, self.outputs, skip, self.flow)
+        # a tracked flow comes as its grid, as from a worker: the sample's statistics are of the same arrays
+        run = video_samples(self.cfg.recipe, self.source, video, epoch, self.outputs, skip, self.flow, flow_grid=True)
         try:
             for key, arrays, meta in run:
                 sid = key.sample_id(kpw)

@@ -17,8 +17,10 @@ holds (pure numpy, no second simulation) and carried in the sample's params unde
   unit a network sees, and short enough (B frame intervals) to compare with a short recording.
 * ``active_fraction``: the fraction of pixels with at least one event in the sample.
 * ``flow_mag``: mean optical-flow magnitude, pixels per frame (the flow between voxel boundaries
-  divided by the frame intervals it spans; a tracked option's grid values when the sample carries
-  the grid: their mean is the dense flow's up to the bilinear expansion's weighting).
+  divided by the frame intervals it spans). A tracked option's flow is measured at its grid
+  points, the form both engines make it in (``v2v-serve``'s workers send the grid, the Ray engine
+  expands it after the statistics), so one sample has one value whichever engine made it; its
+  mean is the dense flow's up to the bilinear expansion's weighting.
 * the noise events' share is **not** counted: the kernel adds the background noise to each
   pixel's potential before the threshold crossing, so an event has no single cause; counting it
   would need a second, noise-free simulation of the window (twice the kernel's cost).
