@@ -57,6 +57,11 @@ def racy(st: os.stat_result, now_ns: Optional[int] = None) -> bool:
     return st.st_ctime_ns >= now_ns - bound
 
 
+def _plain_identity(st: os.stat_result) -> Optional[str]:
+    """The identity of a plain file of status ``st``; None while it is racy."""
+    return None if racy(st) else f"file {file_identity(st)}"
+
+
 class LocalSource(VideoSource):
     """A corpus folder (searched recursively, symlinks that stay inside it followed); ``root``
     a path or a ``file://`` URL, the other arguments as :class:`~v2v_server.videos.source.VideoSource`'s."""
@@ -66,6 +71,7 @@ class LocalSource(VideoSource):
         root = str(root)
         super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names,
                          frame_cache, cache_dir)
+        self._abs_root = os.path.abspath(self.root)
 
     def check(self) -> None:
         """Raises StoreError: the folder does not exist."""
@@ -120,7 +126,9 @@ class LocalSource(VideoSource):
             yield f
 
     def where(self, rel: str) -> str:
-        return str(Path(self.root) / rel)
+        """The file's absolute path (the corpus index's location: the same file whatever
+        working folder or spelling of the root it was served from)."""
+        return os.path.join(self._abs_root, rel)
 
     def identity(self, rel: str) -> Optional[str]:
         rel = base_path(rel)
@@ -134,7 +142,19 @@ class LocalSource(VideoSource):
             st = os.stat(corpus_file(self.root, rel))
         except OSError as e:
             raise VideoError(f"cannot read: {e.strerror or e}") from None
-        return None if racy(st) else f"file {file_identity(st)}"
+        return _plain_identity(st)
+
+    def listed_identity(self, rel: str) -> Optional[str]:
+        """:meth:`identity` without resolving the path (a listed file lies inside the folder;
+        a link out of it has no entry to match, since :meth:`identity` refuses it): the
+        start's question asked of every video costs one ``stat``."""
+        rel = base_path(rel)
+        if split_member(rel) is not None:
+            return super().listed_identity(rel)
+        try:
+            return _plain_identity(os.stat(os.path.join(self.root, rel)))
+        except OSError:
+            return None
 
     def _archive_stats(self, archive: str) -> List[os.stat_result]:
         """The status of the archive's file, or of each piece of a split zip part (links
