@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import sqlite3
 import tempfile
 import time
@@ -63,8 +64,12 @@ def start(entries: int) -> dict:
         names = [f"{i // 1000:04d}/clip_{i:07d}.mp4" for i in range(entries)]
         for d in {n.split("/")[0] for n in names}:
             (corpus / d).mkdir()
-        for n in names:
-            os.link(SAMPLE_VIDEOS / CLIP, corpus / n)
+        copies = []  # a file holds at most 65,000 links (ext4): one copy of the clip per 60,000
+        for i, n in enumerate(names):
+            if i % 60_000 == 0:
+                copies.append(Path(tmp, f"{CLIP}.{len(copies)}"))
+                shutil.copyfile(SAMPLE_VIDEOS / CLIP, copies[-1])
+            os.link(copies[-1], corpus / n)
         time.sleep(2 * RACY_NS / 1e9)
         cfg = ServeConfig(cache_dir=str(cache))
         w = cfg.recipe.windows
