@@ -102,7 +102,7 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int,
     do not decode is found out later, while decoding, with the decoder's reason.
     """
     w = cfg.recipe.windows
-    if w.avoid_cuts or split_segment(rel)[1]:
+    if w.reads_frames or split_segment(rel)[1]:
         r = check_video(w, source, rel)
         return r["windows"], (None if r["usable"] else r["reason"])
     windows = WindowPass(w)

@@ -397,15 +397,16 @@ class _Cutter:
         win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
         for f in self.windows.over(fp):  # the frames of the layout's windows at most (video_frames)
             full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled
-            if f.drops is not None or f.fails is not None:  # it would show two scenes, or frames of two sizes
-                win = None
+            if f.drops is not None or f.fails is not None or f.skips is not None:
+                win = None  # it would show two scenes, frames of two sizes, or (skipped) almost no change
             if f.ends is not None and win is not None:  # this frame ends the window in progress ...
                 win.add(last, f.codes, f.expand, full)
                 for key, plan, frames in win.finish():
                     arrays = make_sample(recipe, plan, degrade_window(plan, frames), self.outputs, self.flow, info.fps,
                                          self.busy, self.flow_grid)
                     yield key, arrays, add_stats(sample_meta(plan, info.fps, win.start), arrays, recipe,
-                                                 self.windows.shot if recipe.windows.avoid_cuts else None, self.busy)
+                                                 self.windows.shot if recipe.windows.avoid_cuts else None, self.busy,
+                                                 self.windows.motions[-1])
                 win = None
             if f.starts is not None:  # ... and starts the next one
                 k = f.starts

@@ -22,7 +22,8 @@ from v2v_server.settings import setting
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
 from v2v_server.videos.shots import DETECTOR_VERSION, SHOT_CUTS
-from v2v_server.videos.windows import WindowSettings
+from v2v_server.videos.motion import MOTION_VERSION, STATIC_MOTION
+from v2v_server.videos.windows import STATIC_WINDOWS, WindowSettings
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import OUTPUTS, check_outputs
 
@@ -58,6 +59,10 @@ class SampleRecipe:
                                            "frame + k x stride; shot cuts found while decoding, docs/corpora.md); "
                                            "off: windows at k x stride whatever they hold (the authors' loader)",
                              choices=SHOT_CUTS)
+    static_windows: str = setting("keep", help="keep: every window (the paper's pauses and still shots included); skip: "
+                                                "windows whose frames barely change (motion below "
+                                                f"{STATIC_MOTION} log intensity a frame pair) give no sample, decided "
+                                                "before simulation (docs/fidelity.md)", choices=STATIC_WINDOWS)
     crops_per_window: int = setting(1, help="random crops per decoded window, each its own sample (own crop, flip, "
                                             "pauses, sensor parameters; ids path#window.crop when > 1)")
     pause_enabled: bool = setting(True, help="pause augmentation (a Markov chain repeating the previous frame)")
@@ -93,7 +98,7 @@ class SampleRecipe:
         reads): ``videos.windows.WindowSettings``, built (and checked) once, by ``__post_init__``."""
         return WindowSettings(self.frames_per_sample, self.max_samples_per_video, self.shot_cuts,
                               self.keep_top_fraction, self.crop_size, self.frame_height, self.decode_threads,
-                              self.decode_fast)
+                              self.decode_fast, self.static_windows)
 
     def fingerprint(self) -> str:
         """A short hash of what decides a sample's content (the recipe less the outputs each
@@ -105,6 +110,10 @@ class SampleRecipe:
             del content["frame_height"]
         if self.windows.avoid_cuts:  # windows start at the cuts this detector finds: another one moves them
             content["shot_detector"] = DETECTOR_VERSION
+        if content["static_windows"] == "keep":  # every window: the fingerprint of the same recipe without the key
+            del content["static_windows"]
+        else:  # which windows are static is this measure's and threshold's
+            content["static_motion"] = f"{MOTION_VERSION}<{STATIC_MOTION}"
         return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def recipe_dict(self) -> dict:

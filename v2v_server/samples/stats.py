@@ -21,6 +21,9 @@ holds (pure numpy, no second simulation) and carried in the sample's params unde
   points, the form both engines make it in (``v2v-serve``'s workers send the grid, the Ray engine
   expands it after the statistics), so one sample has one value whichever engine made it; its
   mean is the dense flow's up to the bilinear expansion's weighting.
+* ``motion``: the window's mean change of log intensity per frame pair, on its source frames
+  (``videos.motion``: what ``static_windows`` compares with ``STATIC_MOTION``); a property of
+  the window, the same for every crop of it.
 * the noise events' share is **not** counted: the kernel adds the background noise to each
   pixel's potential before the threshold crossing, so an event has no single cause; counting it
   would need a second, noise-free simulation of the window (twice the kernel's cost).
@@ -117,11 +120,12 @@ def event_stats(voxels: Optional[np.ndarray], counts: Optional[np.ndarray], flow
 
 
 def add_stats(meta: dict, arrays: Dict[str, np.ndarray], recipe, shot: Optional[tuple] = None,
-              busy: Optional[dict] = None) -> dict:
+              busy: Optional[dict] = None, motion: Optional[float] = None) -> dict:
     """``meta`` (a sample's params, with ``video_fps``) with ``"stats"``: :func:`event_stats` of the
     sample's ``arrays`` (as ``samples.make.make_sample`` returns them) under ``recipe`` (a
     ``SampleRecipe``); given ``shot`` = (shot index in the video, its first frame), also ``shot``
-    and ``shot_start_frame``. ``busy``, when given, accumulates the CPU seconds spent (this
+    and ``shot_start_frame``; given ``motion`` (the window's, ``videos.motion``), also the
+    statistic ``motion``. ``busy``, when given, accumulates the CPU seconds spent (this
     thread's, so a loaded host does not inflate them) under ``"stats"``. Returns ``meta``, updated in place.
 
     Raises:
@@ -132,6 +136,8 @@ def add_stats(meta: dict, arrays: Dict[str, np.ndarray], recipe, shot: Optional[
     meta["stats"] = event_stats(arrays.get("voxels"), arrays.get("polarity_counts"),
                                 arrays.get("flow", arrays.get("flow_grid")), meta["video_fps"], recipe.num_bins,
                                 recipe.frames_per_bin, exact)
+    if motion is not None:
+        meta["stats"]["motion"] = _round(motion)
     if shot is not None:
         meta.update(shot=int(shot[0]), shot_start_frame=int(shot[1]))
     if busy is not None:

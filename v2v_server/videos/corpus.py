@@ -130,6 +130,8 @@ def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> dict:
            "reason": reason or "", "cuts": list(record.cuts), "dropped": record.dropped}
     if failed:
         out["failed_windows"] = failed
+    if record.static:
+        out["static"] = record.static  # windows given up as static (static_windows: skip)
     if record.complete:
         out["more"] = True  # every window is complete: decoding stopped
     return out
@@ -202,6 +204,8 @@ def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
                  if cuts else "; one shot")
         if r.get("dropped"):
             shots += f", {r['dropped']} window(s) removed by cuts"
+        if r.get("static"):
+            shots += f", {r['static']} static window(s) skipped"
         detail = (f"{r['frames']}{'+' if r.get('more') else ''} frames, {r['size']}" if r["usable"]
                   else r["reason"]) + (shots if r["frames"] else "")
         if r["usable"] and r.get("failed_windows"):

@@ -192,11 +192,13 @@ class ShotDetector:
 class LayoutEvent:
     """What one frame does to the windows: ``ends`` (the window that this frame completes, or
     None), ``drops`` (the window in progress that a cut at this frame abandons, or None),
-    ``starts`` (the window index this frame starts, or None)."""
+    ``starts`` (the window index this frame starts, or None), ``skips`` (the window this frame
+    would complete, given up as static, or None)."""
 
     ends: Optional[int] = None
     drops: Optional[int] = None
     starts: Optional[int] = None
+    skips: Optional[int] = None
 
 
 class WindowLayout:
@@ -207,32 +209,41 @@ class WindowLayout:
     each shot's first frame + k x ``stride``; a window a cut falls inside is dropped, and the
     next shot starts its own windows at the cut. Without, at k x ``stride``. Windows are
     numbered 0, 1, 2... in the order they complete, so a video's window indices are always
-    0 .. n - 1 and a window's index is a pure function of the frames and cuts before it. At most
-    ``max_windows`` windows; :attr:`done` once they are complete.
+    0 .. n - 1 and a window's index is a pure function of the frames and cuts before it. With
+    ``skip_static``, a window its last frame finds static (``step(static=True)``) is given up as
+    a cut's is: its index goes to the next window. At most ``max_windows`` windows; :attr:`done`
+    once they are complete.
     """
 
-    def __init__(self, span: int, max_windows: int, avoid_cuts: bool = True):
+    def __init__(self, span: int, max_windows: int, avoid_cuts: bool = True, skip_static: bool = False):
         self.span, self.stride, self.max_windows = int(span), int(span) - 1, int(max_windows)
-        self.avoid_cuts = bool(avoid_cuts)
+        self.avoid_cuts, self.skip_static = bool(avoid_cuts), bool(skip_static)
         self.shot_start = 0
         self.current: Optional[int] = None  # first frame of the window in progress
         self.windows = 0  # complete windows
         self.dropped = 0  # windows a cut fell inside
+        self.static = 0  # windows given up as static
         self.cuts = 0
 
     @property
     def key(self) -> str:
         """What places the windows, as a record's key: ``"span=S,windows=N,cuts=avoid|off"`` (the
         cuts themselves depend on the frames: ``WindowSettings.frame_settings`` names them)."""
-        return f"span={self.span},windows={self.max_windows},cuts={'avoid' if self.avoid_cuts else 'off'}"
+        return (f"span={self.span},windows={self.max_windows},cuts={'avoid' if self.avoid_cuts else 'off'}"
+                + (",static=skip" if self.skip_static else ""))
 
     @property
     def done(self) -> bool:
         """Every window the layout may give is complete: later frames serve nothing."""
         return self.windows >= self.max_windows
 
-    def step(self, i: int, cut: bool = False) -> LayoutEvent:
-        """Frame ``i`` (in order from 0); ``cut``: it starts a new shot. Returns what it does."""
+    def ends_at(self, i: int) -> bool:
+        """Whether frame ``i``, unless it starts a shot, completes the window in progress."""
+        return self.current is not None and i == self.current + self.stride
+
+    def step(self, i: int, cut: bool = False, static: bool = False) -> LayoutEvent:
+        """Frame ``i`` (in order from 0); ``cut``: it starts a new shot; ``static``: the window
+        it completes, if any, is static (given up with ``skip_static``). Returns what it does."""
         ev = LayoutEvent()
         if cut:
             self.cuts += 1
@@ -242,9 +253,13 @@ class WindowLayout:
                     ev.drops = self.windows
                     self.dropped += 1
                     self.current = None
-        if self.current is not None and i == self.current + self.stride:
-            ev.ends = self.windows
-            self.windows += 1
+        if self.ends_at(i):
+            if static and self.skip_static:
+                ev.skips = self.windows
+                self.static += 1
+            else:
+                ev.ends = self.windows
+                self.windows += 1
             self.current = None
         if self.current is None and not self.done and (i - self.shot_start) % self.stride == 0:
             self.current = i

@@ -23,6 +23,7 @@ import numpy as np
 
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frames import FramePass
+from v2v_server.videos.motion import STATIC_MOTION, MotionMeter
 from v2v_server.videos.windows import WindowSettings
 
 #: Words of the reason a file with too few frames for one window gets: a property of the clip,
@@ -38,7 +39,7 @@ def error_reason(error: BaseException) -> str:
 
 def verdict(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] = None,
             error: Optional[BaseException] = None, windows: Optional[int] = None,
-            cuts: int = 0) -> Tuple[int, List[int], Optional[str]]:
+            cuts: int = 0, static: int = 0) -> Tuple[int, List[int], Optional[str]]:
     """What a file is worth, from what reading it found.
 
     Args:
@@ -49,6 +50,7 @@ def verdict(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] 
         windows: complete windows the reading found (``shots.WindowLayout``); None: as many as
             ``frames`` holds (``w.windows_in``, the layout without cuts).
         cuts: shot cuts the reading found (named when they leave no window).
+        static: windows given up as static (named when they leave none).
 
     Returns:
         ``(windows, failed_windows, reason)``: samples per epoch (the complete windows less the
@@ -64,6 +66,9 @@ def verdict(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] 
         reason = "; ".join(failed[k] for k in bad)
     elif error is not None:
         reason = error_reason(error)
+    elif windows == 0 and static:
+        reason = (f"{frames} frames: every window is static ({static} skipped: motion below {STATIC_MOTION} "
+                  f"log-intensity a frame, static_windows: skip)")
     elif windows == 0 and cuts and w.avoid_cuts:
         reason = f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} {w.frames_per_sample} frames"
     elif windows == 0:
@@ -78,7 +83,7 @@ class WindowFrame(NamedTuple):
     (the window in progress that a cut at this frame abandons), ``fails`` (the window that this
     frame, of another size, fails: the one it ends or continues), ``ends`` (the window this frame
     completes, as its last frame), ``starts`` (the window this frame starts); each an index or
-    None. ``offset``: the frame's place in the window in progress after it (0 where it starts
+    None; ``skips``: the window this frame would complete, given up as static. ``offset``: the frame's place in the window in progress after it (0 where it starts
     one; None when none is). ``index``: the frame's number from 0; ``codes``, ``expand``: as
     ``frames.PassFrame``. A tuple: one is made per frame read."""
 
@@ -90,6 +95,7 @@ class WindowFrame(NamedTuple):
     ends: Optional[int]
     starts: Optional[int]
     offset: Optional[int]
+    skips: Optional[int] = None
 
 
 @dataclass(frozen=True)
@@ -102,6 +108,9 @@ class VideoPass:
         width, height: the stream's frame size, pixels (0 when it was not opened).
         fps: its frame rate, Hz (0.0 when it was not opened).
         codec, pix_fmt: the stream's codec and pixel format names ('' when it was not opened).
+        motions: each complete window's motion, in window order (``motion``: the mean change of
+            log intensity per frame pair; 0.0 where frames were counted, not decoded).
+        static: windows given up as static (``static_windows: skip``).
         layout: the window layout the windows follow (``shots.WindowLayout.key``).
         cuts: the frames that start a shot, in order (none without detection).
         starts: the first frame of each complete window, failed ones included, in window order.
@@ -125,6 +134,8 @@ class VideoPass:
     error: Optional[BaseException] = None
     codec: str = ""
     pix_fmt: str = ""
+    motions: Tuple[float, ...] = ()
+    static: int = 0
 
     @property
     def windows(self) -> int:
@@ -135,7 +146,7 @@ class VideoPass:
         """:func:`verdict` of what the pass found, failed windows included (``--check``):
         ``(windows, failed_windows, reason)``; a failed window's reason names it."""
         failed = {k: f"window {k}: {why}" for k, why in self.failed.items()}
-        return verdict(w, self.frames, failed, self.error, self.windows, len(self.cuts))
+        return verdict(w, self.frames, failed, self.error, self.windows, len(self.cuts), self.static)
 
     def to_dict(self) -> dict:
         """The record as JSON-safe values, as a corpus index keeps it: every attribute, ``failed``
@@ -143,13 +154,14 @@ class VideoPass:
         d = {k: getattr(self, k) for k in ("frames", "width", "height", "fps", "codec", "pix_fmt", "layout", "dropped",
                                            "complete")}
         d.update(cuts=list(self.cuts), starts=list(self.starts), failed={str(k): v for k, v in self.failed.items()},
+                 motions=list(self.motions), static=self.static,
                  error=None if self.error is None else error_reason(self.error))
         return d
 
     def reason(self, w: WindowSettings) -> Optional[str]:
         """Why the pass gave fewer windows than it should, failed windows aside (they are
         reported one by one): the error's reason, or too few frames; None when nothing is wrong."""
-        return verdict(w, self.frames, None, self.error, self.windows, len(self.cuts))[2]
+        return verdict(w, self.frames, None, self.error, self.windows, len(self.cuts), self.static)[2]
 
 
 def frame_shape(codes: np.ndarray) -> Tuple[int, int]:
@@ -175,6 +187,7 @@ class WindowPass:
         self.frames = 0
         self.cuts: List[int] = []
         self.starts: List[int] = []
+        self.motions: List[float] = []  # each complete window's motion (``motion``: mean change per frame pair)
         self.failed: Dict[int, str] = {}
         self.current: Optional[int] = None  # first frame of the window in progress
         self.shape: Optional[Tuple[int, int]] = None  # its first frame's size
@@ -194,13 +207,19 @@ class WindowPass:
         """
         self.frame_pass, self.info = fp, fp.info
         layout = self.layout = self.settings.layout(fp.declared)
+        meter, change = MotionMeter(), 0.0  # change: of the window in progress, summed over its frame pairs
         for i, f in enumerate(fp.frames):
             self.frames = i + 1
             if f.cut:
                 self.cuts.append(i)
-            ev = layout.step(i, f.cut)
-            if ev.drops is not None:
-                self.failed.pop(ev.drops, None)  # the index goes to the next window
+            if layout.current is not None:
+                change += meter.score(f.codes, f.expand)
+            else:
+                meter.score(f.codes, f.expand)
+            motion = change / layout.stride
+            ev = layout.step(i, f.cut, motion < STATIC_MOTION)
+            if ev.drops is not None or ev.skips is not None:
+                self.failed.pop(ev.drops if ev.drops is not None else ev.skips, None)  # the index goes to the next window
             # the window this frame belongs to, other than one it starts: the one it ends, or the one in progress
             k = ev.ends if ev.ends is not None else layout.windows if ev.starts is None and layout.current is not None \
                 else None
@@ -212,11 +231,14 @@ class WindowPass:
                                   f"{size[1]}x{size[0]} at frame {i}")
             if ev.ends is not None:
                 self.starts.append(self.current)
+                self.motions.append(motion)
             if ev.starts is not None:
                 self.shape = size
+            if layout.current is None or ev.starts is not None:
+                change = 0.0
             self.current = layout.current
             yield WindowFrame(i, f.codes, f.expand, ev.drops, fails, ev.ends, ev.starts,
-                              None if layout.current is None else i - layout.current)
+                              None if layout.current is None else i - layout.current, ev.skips)
             if layout.done:  # every window is made: the rest of the video serves nothing
                 fp.end()
                 return
@@ -227,4 +249,5 @@ class WindowPass:
         return VideoPass(self.frames, info.width if info else 0, info.height if info else 0,
                          float(info.fps) if info else 0.0, self.layout.key, tuple(self.cuts), tuple(self.starts),
                          self.layout.dropped, dict(self.failed), self.layout.done, error,
-                         info.codec if info else "", info.pix_fmt if info else "")
+                         info.codec if info else "", info.pix_fmt if info else "", tuple(self.motions),
+                         self.layout.static)

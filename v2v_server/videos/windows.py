@@ -16,8 +16,11 @@ from v2v_server.checks import check_choice, check_int
 from v2v_server.videos.decode import DECODE_FAST
 from v2v_server.videos.frame_cache import decode_settings
 from v2v_server.videos.frames import kept_rows
+from v2v_server.videos.motion import MOTION_VERSION, STATIC_MOTION
 from v2v_server.videos.shots import DETECTOR_VERSION, SHOT_CUTS, WindowLayout
 
+#: What ``static_windows`` takes: keep static windows (the paper's) or skip them (docs/fidelity.md).
+STATIC_WINDOWS = ("keep", "skip")
 #: Largest frame_height (8K UHD).
 MAX_FRAME_HEIGHT = 4320
 
@@ -35,6 +38,8 @@ class WindowSettings:
         frame_height: scale decoded frames to this height, pixels (0 = as decoded).
         decode_threads: FFmpeg threads per pass (>= 1).
         decode_fast: the decoder shortcut, ``decode.DECODE_FAST``.
+        static_windows: ``"keep"`` or ``"skip"`` windows whose motion is below
+            ``motion.STATIC_MOTION`` (decided from the frames, before simulation).
 
     Raises:
         ValueError: naming the field, for a value out of its range.
@@ -48,6 +53,7 @@ class WindowSettings:
     frame_height: int = 0
     decode_threads: int = 1
     decode_fast: str = "off"
+    static_windows: str = "keep"
 
     def __post_init__(self):
         check_int("frames_per_sample", self.frames_per_sample, 2)
@@ -60,6 +66,7 @@ class WindowSettings:
         check_int("frame_height", self.frame_height, 0, MAX_FRAME_HEIGHT, "pixels; 0 = no scaling")
         check_int("decode_threads", self.decode_threads, 1)
         check_choice("decode_fast", self.decode_fast, tuple(DECODE_FAST))
+        check_choice("static_windows", self.static_windows, STATIC_WINDOWS)
 
     @property
     def window_stride(self) -> int:
@@ -71,6 +78,17 @@ class WindowSettings:
     def avoid_cuts(self) -> bool:
         """Whether windows lie inside one shot (``shot_cuts: avoid``)."""
         return self.shot_cuts == "avoid"
+
+    @property
+    def skip_static(self) -> bool:
+        """Whether static windows are skipped (``static_windows: skip``)."""
+        return self.static_windows == "skip"
+
+    @property
+    def reads_frames(self) -> bool:
+        """Whether where windows lie depends on the frames (their cuts, or which are static), so
+        a count of windows must decode them."""
+        return self.avoid_cuts or self.skip_static
 
     def windows_in(self, frames: int) -> int:
         """Windows a video of ``frames`` frames holds laid out from frame 0, at most ``max_windows``."""
@@ -94,14 +112,15 @@ class WindowSettings:
     def frame_limit(self, declared: int) -> int:
         """Frames a pass may read: those of the windows the declared frame count allows; with
         ``shot_cuts: avoid`` every declared frame (where windows lie depends on the cuts; the
-        pass ends once the last window is complete, ``WindowLayout.done``)."""
-        if self.avoid_cuts:
+        pass ends once the last window is complete, ``WindowLayout.done``); so with
+        ``static_windows: skip``, whose skipped windows are replaced by later ones."""
+        if self.reads_frames:
             return declared if declared >= self.frames_per_sample else (1 << 62)
         return self.frames_for(self.worth_decoding(declared))
 
     def layout(self, declared: int = 0) -> WindowLayout:
         """The windows of a video whose container declares ``declared`` frames (0: unknown)."""
-        return WindowLayout(self.frames_per_sample, self.worth_decoding(declared), self.avoid_cuts)
+        return WindowLayout(self.frames_per_sample, self.worth_decoding(declared), self.avoid_cuts, self.skip_static)
 
     def frame_settings(self) -> dict:
         """The settings that change the frames a pass reads (``frame_cache.decode_settings``):
@@ -110,4 +129,6 @@ class WindowSettings:
                                    self.max_windows, self.frame_height)
         if self.avoid_cuts:  # the entry holds the frames up to the last window, and the cuts this detector found
             settings["shots"] = DETECTOR_VERSION
+        if self.skip_static:  # and the frames of the windows that replace static ones
+            settings["static"] = f"{MOTION_VERSION}<{STATIC_MOTION}"
         return settings
