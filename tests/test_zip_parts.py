@@ -292,6 +292,11 @@ def test_openvid_parts_and_their_csv_serve_each_long_clip_of_the_named_member(tm
     assert f"listed in {table} but no member of the 3 archive(s) given in {parts}/: elsewhere_5.mp4" in r.stdout
     assert "calm_2.mp4" not in r.stdout
     assert f"{len(layout)} usable video(s) of {len(layout)}" in r.stdout
+    # given the folder instead, the names are missing from it, and the line says how to pair them
+    _, missing = LocalSource(parts, video_list=table).list_videos(EXTS)
+    assert missing[0] == ("alpha_0.mp4", f"listed in {table} but missing from {parts} (the folder holds archives "
+                          "such as OpenVid_part0.zip: give them as --videos, a brace range or one archive, to serve "
+                          "the list's names from their members)")
     src = open_source(pattern, video_list=table)
     videos, _ = src.list_videos(EXTS)
     assert videos == list(layout)  # the table's order

@@ -72,6 +72,7 @@ class LocalSource(VideoSource):
         super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names,
                          frame_cache, cache_dir)
         self._abs_root = os.path.abspath(self.root)
+        self._hint: Optional[str] = None  # _pairing_hint's answer, once found
 
     def check(self) -> None:
         """Raises StoreError: the folder does not exist."""
@@ -89,6 +90,16 @@ class LocalSource(VideoSource):
         self.archives.index.pieces.update(parts)
         return self.archives.expand(sorted(names + list(parts)), [r for r in others if not is_piece(r)] + problems,
                                   extensions)
+
+    def _pairing_hint(self) -> str:
+        if self._hint is None:  # one listing of the folder's top level, at the first name missing
+            try:
+                parts = sorted(n for n in os.listdir(self.root) if n.lower().endswith(ARCHIVES) or PIECE.match(n))
+            except OSError:
+                parts = []
+            self._hint = (f" (the folder holds archives such as {parts[0]}: give them as --videos, a brace range "
+                          f"or one archive, to serve the list's names from their members)") if parts else ""
+        return self._hint
 
     def _exists(self, rel: str) -> bool:
         return Path(self.root, rel).is_file()

@@ -219,11 +219,19 @@ class VideoSource:
             elif not base.lower().endswith(tuple(extensions)):
                 rejected.append((rel, f"listed in {self.video_list} but not a video file (extensions "
                                       f"{', '.join(extensions)})"))
-            elif not (self.archives.has_member(base, exists) if split_member(base) else exists(base)):
+            elif split_member(base) and not self.archives.has_member(base, exists):
                 rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
+            elif not split_member(base) and not exists(base):
+                rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}{self._pairing_hint()}"))
             else:
                 videos.append(rel)
         return self.archives.expand(videos, rejected, extensions)
+
+    def _pairing_hint(self) -> str:
+        """For a listed name missing from the corpus: how to pair the list with archives the
+        corpus folder holds (``archives.pair_members``), or "" when it holds none (a store is
+        not listed for it)."""
+        return ""
 
     # ------------------------------------------------------------------ what the archives read
     def _exists(self, rel: str) -> bool:
