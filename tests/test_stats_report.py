@@ -57,6 +57,9 @@ def test_corpus_report_with_recording_opens_in_chromium(tmp_path, short_config, 
     assert len(rec["sample"]["windows"]) == 1 and len(rec["grid"]["windows"]) == 11
     assert rec["grid"]["window_s"] == pytest.approx(0.2) and rec["grid"]["sensor"] == "346x260"
     assert data["summary"]["recording"]["grid"]["rate"]["n"] == 11
+    # the bundled clips move: no sample's window is static, and each carries its motion
+    assert data["summary"]["static_windows"] == {"threshold": 0.005, "count": 0, "of": 12}
+    assert all(row["motion"] >= 0.005 for row in data["samples"])
     page = out / "index.html"
     for png in ("events.png", "params.png", "videos.png"):
         assert f'src="{png}"' in page.read_text() and (out / png).stat().st_size > 10_000

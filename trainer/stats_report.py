@@ -26,6 +26,8 @@ from typing import List, Optional
 
 import numpy as np
 
+from v2v_server.videos.motion import STATIC_MOTION
+
 from trainer.stream_stats import (Collected, StatsInputError, check_recording, from_corpus, from_server,
                                   recording_windows, summary)
 
@@ -33,7 +35,8 @@ from trainer.stream_stats import (Collected, StatsInputError, check_recording, f
 STATS = (("rate", "events / pixel / s (both polarities)"), ("rate_pos", "positive events / pixel / s"),
          ("rate_neg", "negative events / pixel / s"), ("active_fraction", "fraction of pixels with an event"),
          ("flow_mag", "mean flow magnitude, px / frame"), ("pos_threshold", "c+ (log intensity)"),
-         ("neg_threshold", "c- (log intensity)"), ("noise_std", "noise sigma (log intensity / frame pair)"))
+         ("neg_threshold", "c- (log intensity)"), ("noise_std", "noise sigma (log intensity / frame pair)"),
+         ("motion", "window motion (log intensity change / frame pair)"))
 
 
 def _values(rows: List[dict], key: str) -> List[float]:
@@ -132,6 +135,9 @@ def page(col: Collected, rec: Optional[dict], notes: List[str], pngs: List[str],
                 srows.append((f"recording, {scope} windows: {dict(STATS)[k]}",
                               *(fmt(s.get(q, "")) for q in ("n", "mean", "p10", "p50", "p90"))))
     parts.append("<h2>Summary</h2>" + _table(("statistic", "n", "mean", "p10", "median", "p90"), srows))
+    st = summ["static_windows"]
+    parts.append(f"<p>Static windows (motion below {st['threshold']} log intensity a frame pair; "
+                 f"<code>static_windows: skip</code> serves none): {st['count']} of {st['of']} samples</p>")
     parts += [f'<h2>{html.escape(p[:-4])}</h2><img src="{p}" alt="{p[:-4]}">' for p in pngs]
     if col.videos:
         parts.append("<h2>Videos</h2>" + _table(
@@ -202,6 +208,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     summ = {"samples": {k: summary(_values(col.rows, k)) for k, _ in STATS}}
     summ["samples"]["grid_rate"] = summary(g for r in col.rows for g in r.get("grid_rates", []))
+    motions = _values(col.rows, "motion")
+    summ["static_windows"] = {"threshold": STATIC_MOTION, "count": sum(m < STATIC_MOTION for m in motions),
+                              "of": len(motions)}
     if rec:
         summ["recording"] = {s: {"rate": summary(w["rate_pos"] + w["rate_neg"] for w in rec[s]["windows"]),
                                  "active_fraction": summary(w["active_fraction"] for w in rec[s]["windows"])}
