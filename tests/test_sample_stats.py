@@ -64,12 +64,13 @@ def test_worker_params_carry_the_kernels_event_counts():
         # the window's shot (one shot: no cut in this clip), thresholds and span beside them
         assert meta["shot"] == 0 and meta["shot_start_frame"] == 0
         assert {"pos_threshold", "neg_threshold", "noise_std", "src_start_frame", "src_frames"} <= set(meta)
+        assert st["motion"] > 0.005  # the window moves
 
 
 def test_histograms_on_metrics_page():
     m = ServerMetrics(progress=False)
     params = {"pos_threshold": 0.4, "neg_threshold": 0.5, "noise_std": 0.03,
-              "stats": {"rate_pos": 2.0, "rate_neg": 1.5, "active_fraction": 0.6, "flow_mag": 1.2}}
+              "stats": {"rate_pos": 2.0, "rate_neg": 1.5, "active_fraction": 0.6, "flow_mag": 1.2, "motion": 0.003}}
     m.on_sample_made(params)
     m.on_sample_made({"stats": "not a map", "pos_threshold": "x"})  # a malformed map adds nothing
     text = m.exposition().decode()
@@ -81,4 +82,5 @@ def test_histograms_on_metrics_page():
     assert get("v2v_sample_flow_px_per_frame_sum") == 1.2
     assert get("v2v_sample_contrast_threshold_count", {"polarity": "pos"}) == 1
     assert get("v2v_sample_noise_std_sum") == 0.03
+    assert get("v2v_sample_window_motion_bucket", {"le": "0.005"}) == 1  # a static window
     assert "# TYPE v2v_sample_events_per_pixel_second histogram" in text

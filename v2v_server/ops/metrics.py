@@ -401,6 +401,8 @@ class SampleHistograms:
     FLOW_BUCKETS = (0.1, 0.25, 0.5, 1, 2, 4, 8, 16, 32)
     THRESHOLD_BUCKETS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
     NOISE_BUCKETS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2)
+    #: log-intensity change per frame pair: a frozen window (under STATIC_MOTION, 0.005) to a fast pan
+    MOTION_BUCKETS = (0.001, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
 
     def __init__(self, registry):
         def hist(name, doc, buckets, labels=()):
@@ -416,6 +418,8 @@ class SampleHistograms:
                               "intensity), by polarity", self.THRESHOLD_BUCKETS, ("polarity",))
         self.noise = hist("v2v_sample_noise_std", "Background-noise sigma drawn for a sample (log intensity per "
                           "frame pair)", self.NOISE_BUCKETS)
+        self.motion = hist("v2v_sample_window_motion", "Mean change of log intensity per frame pair of a sample's "
+                           "window, before simulation (under 0.005: static, videos.motion)", self.MOTION_BUCKETS)
 
     def observe(self, params: dict) -> None:
         """Add one sample's ``params``; a missing or malformed value is left out (the map is the
@@ -428,7 +432,7 @@ class SampleHistograms:
                          (st.get("active_fraction"), self.active), (st.get("flow_mag"), self.flow),
                          (params.get("pos_threshold"), self.threshold.labels(polarity="pos")),
                          (params.get("neg_threshold"), self.threshold.labels(polarity="neg")),
-                         (params.get("noise_std"), self.noise)):
+                         (params.get("noise_std"), self.noise), (st.get("motion"), self.motion)):
             if _count(value):
                 h.observe(value)
 
