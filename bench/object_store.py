@@ -45,7 +45,7 @@ class Epochs:
         from v2v_server.ray_data import SampleMaker, epoch_descriptors, scan_corpus_windows
 
         self.rc = scan_corpus_windows(videos, cfg)
-        self.maker = SampleMaker(cfg.to_dict(), videos, ("voxels", "frames"))
+        self.maker = SampleMaker.of(cfg, videos, ("voxels", "frames"))
         self.descs = epoch_descriptors(self.rc, 0)
 
     def run(self):

@@ -524,8 +524,8 @@ def test_ray_stage_hits_its_node_local_cache(tmp_path):
 
     cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path))
     rc = scan_corpus_windows(str(CLIPS), cfg)
-    maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels", "frames"))
-    plain = SampleMaker(ServeConfig(**SMALL).to_dict(), rc.root, ("voxels", "frames"))
+    maker = SampleMaker.of(cfg, rc.root, ("voxels", "frames"))
+    plain = SampleMaker.of(ServeConfig(**SMALL), rc.root, ("voxels", "frames"))
 
     def rows(m, epoch):
         return {str(r["sample_id"][0]): r["voxels"].tobytes() + r["frames"].tobytes()
@@ -563,8 +563,8 @@ def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
             yield a
 
     monkeypatch.setattr(frame_cache.CachedVideo, "read", counted)
-    maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels",))
-    plain = SampleMaker(ServeConfig(**SMALL).to_dict(), rc.root, ("voxels",))
+    maker = SampleMaker.of(cfg, rc.root, ("voxels",))
+    plain = SampleMaker.of(ServeConfig(**SMALL), rc.root, ("voxels",))
 
     def rows(m):
         return {str(r["sample_id"][0]): r["voxels"].tobytes() for r in m.video_rows("bikes.mp4", 0, first)}

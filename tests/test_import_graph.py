@@ -103,9 +103,10 @@ def test_wire_package_stands_alone():
 #: The server's stage folders, lowest first: each imports only the stages before it (and
 #: ``v2v_server.checks``, ``v2v_server.faults`` and ``v2v_server.settings``, below all of them),
 #: at run time and for annotations alike (an ``if TYPE_CHECKING:`` import counts). ``ops``
-#: (settings, metrics, logs) sits below the ``service`` that uses them; the command that wires
+#: (settings, metrics, logs) sits below the ``service`` that uses them; the Ray engine
+#: (``ray_data``, the other engine beside the service) above them all; the command that wires
 #: everything, ``v2v-serve``, is above every stage.
-STAGES = ("flow", "videos", "simulation", "samples", "delivery", "ops", "service")
+STAGES = ("flow", "videos", "simulation", "samples", "delivery", "ops", "service", "ray_data")
 COMMANDS = {"v2v_server.ops.cli"}
 #: what a stage may import from v2v_server besides the stages below it (the package itself runs
 #: on any import of a module in it)

@@ -136,7 +136,7 @@ def test_ray_path_reads_the_bucket_as_the_folder(store, corpus, tmp_path, monkey
     assert rc_bucket.windows == rc_folder.windows and rc_bucket.root == URL
 
     def rows(rc):
-        maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels", "frames"))
+        maker = SampleMaker.of(cfg, rc.root, ("voxels", "frames"))
         out = {}
         for d in epoch_descriptors(rc, 0):
             import json
@@ -303,7 +303,7 @@ def _rows(videos: str, cfg=None) -> dict:
 
     cfg = cfg or LAYOUT.cfg()
     rc = scan_corpus_windows(videos, cfg)
-    maker = SampleMaker(cfg.to_dict(), rc.root, ("voxels", "frames"))  # as v2v_dataset builds its actors
+    maker = SampleMaker.of(cfg, rc.root, ("voxels", "frames"))  # as v2v_dataset builds its actors
     out = {}
     for d in epoch_descriptors(rc, 0):
         for r in maker.video_rows(d["video"], 0, json.loads(d["entries"])):

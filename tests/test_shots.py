@@ -271,7 +271,7 @@ def test_segments_of_a_tar_member_and_through_the_ray_engine(tmp_path):
     assert len(member) == len(plain) == 2  # 100 frames: two windows of 41
     rc = scan_corpus_windows(str(tmp_path), cfg)
     assert rc.windows == {v: 2 for v in videos}
-    maker = SampleMaker(cfg.to_dict(), rc.root, ("frames",))
+    maker = SampleMaker.of(cfg, rc.root, ("frames",))
     rows = {str(r["sample_id"][0]): r["frames"].tobytes() for d in epoch_descriptors(rc, 0)
             for r in maker.video_rows(d["video"], 0, json.loads(d["entries"]))}
     assert rows == {f"{clip}#t=2,6#{w}": f for w, f in plain} | {f"s.tar/{clip}#t=2,6#{w}": f for w, f in member}

@@ -51,6 +51,7 @@ from v2v_wire.protocol import check_outputs
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
+from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.flowgrid import expand_grids
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.corpus import check_video
@@ -58,6 +59,7 @@ from v2v_server.videos.decode import open_video
 from v2v_server.videos.frames import FramePass, PassFrame
 from v2v_server.videos.local import LocalSource
 from v2v_server.videos.source import VideoSource
+from v2v_server.videos.source_spec import source_from_spec
 from v2v_server.videos.window_pass import WindowPass
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
@@ -189,12 +191,12 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
     return [{"video": rel, "epoch": int(epoch), "entries": json.dumps(e)} for rel, e in entries.items()]
 
 
-def _zeros(cfg: ServeConfig, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
+def _zeros(cfg: SampleRecipe, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
     """A padding row's arrays: zeros in each column's dtype and layout (``outputs.zeros_row``)."""
     return {k: zeros_row(k, cfg.sequence_length, cfg.num_bins, cfg.crop_size, cfg.flow_dtype) for k in outputs}
 
 
-def _row_arrays(cfg: ServeConfig, arrays: Dict[str, np.ndarray], sample_id: str) -> Dict[str, np.ndarray]:
+def _row_arrays(cfg: SampleRecipe, arrays: Dict[str, np.ndarray], sample_id: str) -> Dict[str, np.ndarray]:
     """A sample's arrays in their column dtypes and layouts (``outputs.row_array``: voxels
     int16, never wrapped; frames uint8 with a channel axis; flow ``cfg.flow_dtype``, as the
     ZeroMQ wire; polarity counts uint8)."""
@@ -207,27 +209,43 @@ def _row_arrays(cfg: ServeConfig, arrays: Dict[str, np.ndarray], sample_id: str)
 class SampleMaker:
     """The ``map_batches`` stage: one Ray actor, one CPU; makes the samples of video descriptors.
 
-    Built once per actor: the config, OpenCV set to one thread, the optical-flow estimator (and
-    any compiled kernel sample making loads on first use). Each call takes a batch of
+    Built once per actor, from only what it uses: the sample recipe, the corpus's source (from
+    the driver's ``VideoSource.spec()``), OpenCV set to one thread, the optical-flow estimator
+    (and any compiled kernel sample making loads on first use). Each call takes a batch of
     descriptors (see :func:`epoch_descriptors`) and yields one single-row batch per entry,
     as soon as the sample is made (rows stream; the actor never holds a whole video).
 
     Args:
-        cfg_dict: ``ServeConfig.to_dict()``.
-        root: corpus folder as seen from the actor's node, or the object-store URL (read with
-            ``cfg_dict``'s ``storage_options`` and the node's store credentials).
+        recipe_dict: ``SampleRecipe.recipe_dict()``.
+        source_spec: ``VideoSource.spec()`` of the corpus as the driver opened it (a folder as
+            seen from the actor's node, or an object-store URL read with the node's credentials).
         outputs: subset of ``OUTPUTS`` to make.
+
+    Raises:
+        ValueError: naming the key, for a recipe that does not check.
     """
 
-    def __init__(self, cfg_dict: dict, root: str, outputs: Sequence[str]):
+    def __init__(self, recipe_dict: dict, source_spec: dict, outputs: Sequence[str]):
         import cv2
 
         cv2.setNumThreads(1)
-        self.cfg = ServeConfig.from_dict(cfg_dict, source="ray stage config")
-        self.source = source_from_config(self.cfg, root)
+        self.recipe = SampleRecipe.recipe_from_dict(recipe_dict, source="ray stage recipe")
+        self.source = source_from_spec(source_spec)
         self.outputs = tuple(outputs)
-        self.flow = FlowEstimator(self.cfg.flow_preset) if "flow" in self.outputs else None
+        self.flow = FlowEstimator(self.recipe.flow_preset) if "flow" in self.outputs else None
         logging.basicConfig(level=logging.INFO, format="v2v-ray %(process)d: %(message)s")
+
+    @staticmethod
+    def arguments(cfg: ServeConfig, root: str, outputs: Sequence[str]) -> dict:
+        """The constructor's arguments for the corpus at ``root`` served with ``cfg``: what the
+        driver hands each actor (plain values that pickle)."""
+        return {"recipe_dict": cfg.recipe.recipe_dict(), "source_spec": source_from_config(cfg, root).spec(),
+                "outputs": tuple(outputs)}
+
+    @classmethod
+    def of(cls, cfg: ServeConfig, root: str, outputs: Sequence[str]) -> "SampleMaker":
+        """The stage as an actor builds it (:meth:`arguments`), in this process."""
+        return cls(**cls.arguments(cfg, root, outputs))
 
     def __call__(self, batch: Mapping[str, np.ndarray]) -> Iterator[Dict[str, np.ndarray]]:
         for video, epoch, entries in zip(batch["video"], batch["epoch"], batch["entries"]):
@@ -238,34 +256,34 @@ class SampleMaker:
         wanted: Dict[str, List[bool]] = {}
         for sid, pad in entries:
             wanted.setdefault(sid, []).append(bool(pad))
-        kpw = self.cfg.crops_per_window
+        kpw = self.recipe.crops_per_window
         keep = {parse_sample_id(sid, kpw) for sid in wanted}
-        skip = [key for w in range(self.cfg.max_samples_per_video) for key in window_keys(video, w, kpw)
+        skip = [key for w in range(self.recipe.max_samples_per_video) for key in window_keys(video, w, kpw)
                 if key not in keep]
         error: Optional[str] = None
         # a tracked flow comes as its grid, as from a worker: the sample's statistics are of the same arrays
-        run = video_samples(self.cfg.recipe, self.source, video, epoch, self.outputs, skip, self.flow, flow_grid=True)
+        run = video_samples(self.recipe, self.source, video, epoch, self.outputs, skip, self.flow, flow_grid=True)
         try:
             for key, arrays, meta in run:
                 sid = key.sample_id(kpw)
                 flags = wanted.pop(sid, None)
                 if flags is None:
                     continue
-                arrays = _row_arrays(self.cfg, arrays, sid)
+                arrays = _row_arrays(self.recipe, arrays, sid)
                 params = json.dumps(meta)
                 for pad in flags:
                     yield self._row(sid, arrays, params, epoch, pad)
                 if not wanted and not run.storing:
                     break  # the rest of the video is not read; a pass storing it into the frame cache ends whole
         except Exception as e:  # one file's failure is that file's verdict, never the job's death
-            error = run.record(e).reason(self.cfg.recipe.windows)
+            error = run.record(e).reason(self.recipe.windows)
         run.close()
         if wanted:  # windows the file did not give: a verdict, and padding rows in their place
             found = run.record()
-            error = error or found.reason(self.cfg.recipe.windows) or (
+            error = error or found.reason(self.recipe.windows) or (
                 f"{found.frames} frames decoded, fewer than its packets promised")
             log.warning("skipped %s: %s", self.source.where(video), error)
-            zeros = _zeros(self.cfg, self.outputs)
+            zeros = _zeros(self.recipe, self.outputs)
             for sid, flags in wanted.items():
                 for _ in flags:
                     yield self._row(sid, zeros, json.dumps({"sample_id": sid, "skipped": error}), epoch, True)
@@ -352,6 +370,6 @@ def v2v_dataset(
     remote = {"resources": {resource: 1}} if resource else {}
     return ds.map_batches(
         maker, batch_size=1, batch_format="numpy", num_cpus=1, compute=pool,
-        fn_constructor_kwargs={"cfg_dict": cfg.to_dict(), "root": corpus.root, "outputs": tuple(outputs)},
+        fn_constructor_kwargs=SampleMaker.arguments(cfg, corpus.root, outputs),
         **remote,
     )

@@ -206,17 +206,16 @@ def _simulate(recipe: SampleRecipe, plan: WindowPlan, seq: np.ndarray, fps: floa
         plan.info["refine"] = "off"
         return vox, polarity_counts(n_pos, n_neg, recipe.sequence_length, recipe.num_bins)
     if recipe.nonidealities:
-        from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
+        from v2v_server.simulation.nonideal import simulate_voxels_nonideal
 
-        ni = NonIdealities.from_dict(recipe.nonidealities)
-        vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, ni, fps=fps or 25.0, rng=plan.rng,
-                                                refine=recipe.refine)
+        vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, recipe.nonideal_spec, fps=fps or 25.0,
+                                                rng=plan.rng, refine=recipe.refine_spec)
         plan.info["nonidealities"] = info["nonidealities"]
         plan.info["refine"] = info.get("refine", "off")
     elif recipe.refine != "off":
         from v2v_server.simulation.refine import simulate_voxels_refined
 
-        vox, _, info = simulate_voxels_refined(seq, plan.params, bins, recipe.refine, rng=plan.rng)
+        vox, _, info = simulate_voxels_refined(seq, plan.params, bins, recipe.refine_spec, rng=plan.rng)
         plan.info.update(refine=info["refine"], subframes_mean=float(info["subframes_mean"]))
     else:
         # the wire's narrow dtype straight from the kernel, unless bins are summed below

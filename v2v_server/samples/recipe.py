@@ -100,6 +100,21 @@ class SampleRecipe:
                               self.keep_top_fraction, self.crop_size, self.frame_height, self.decode_threads,
                               self.decode_fast, self.static_windows)
 
+    @cached_property
+    def refine_spec(self):
+        """``refine`` parsed (``simulation.refine.RefineSpec``), once per recipe: what each window's
+        simulation is given."""
+        from v2v_server.simulation.refine import parse_refine
+
+        return parse_refine(self.refine)
+
+    @cached_property
+    def nonideal_spec(self):
+        """``nonidealities`` parsed (``simulation.nonideal.NonIdealities``), once per recipe."""
+        from v2v_server.simulation.nonideal import NonIdealities
+
+        return NonIdealities.from_dict(self.nonidealities or None)
+
     def fingerprint(self) -> str:
         """A short hash of what decides a sample's content (the recipe less the outputs each
         client asks for and the decoding threads; with ``shot_cuts: avoid``, the shot detector's
