@@ -64,7 +64,9 @@ class Transition:
     """One change of shot: frames ``old_last`` (the last showing only the old shot) and
     ``new_first`` (the first showing only the new one); a window holding two consecutive frames
     between them (a step of the transition) spans it. A detected cut matches it at frames
-    ``old_last + 1 .. new_first`` (for a fade, anywhere in its fade-out or fade-in)."""
+    ``old_last + 1 .. new_first`` (for a fade, anywhere in its fade-out or fade-in; for a
+    dissolve, also at ``new_first + 1``: the first clean frame still differs from the last blend
+    by one step, so its end is seen one frame later)."""
 
     kind: str
     old_last: int
@@ -78,6 +80,8 @@ class Transition:
         """Whether a cut found at frame ``cut`` is this transition's."""
         if self.kind == "fade":
             return self.old_last - 7 < cut <= self.new_first + 8
+        if self.kind == "dissolve":
+            return self.old_last < cut <= self.new_first + 1
         return self.old_last < cut <= self.new_first
 
 

@@ -92,13 +92,25 @@ def test_fast_pans_and_a_flash_stay_one_shot_and_cuts_and_fades_are_found(edited
         if t.kind in ("cut", "fade"):
             assert any(t.matches(c) for c in cuts), t
             assert not [s for s in kept if t.spanned_by(s, s + w.window_stride)], t
-    assert not [c for c in cuts if c < 100 or 100 < c < 200 or 212 <= c < 312]  # pans at 20, 40, 80 px a frame
+    dissolve = transitions[1]  # between the 40 and the 80 px a frame pans: its end may be cut
+    # pans at 20, 40, 80 px a frame
+    assert not [c for c in cuts if c < 100 or 100 < c < 200 or (212 <= c < 312 and not dissolve.matches(c))]
     assert [c for c in cuts if 385 <= c <= 395] == [388]  # the 3-frame flash at 388-390: one cut, not two
 
 
-@pytest.mark.xfail(strict=True, reason="a dissolve is cut only where its frames change more than the shots' motion "
-                                       "does (docs/shots.md): a window starts inside one, another holds a whole "
-                                       "dissolve between two moving shots")
+def test_a_dissolve_the_detector_finds_is_in_no_window(edited):
+    """A dissolve the hard-cut rule catches part way is cut again where it settles, so the window
+    that starts at that cut holds none of its later steps."""
+    transitions, r, kept, w = edited
+    found = [t for t in transitions if t.kind == "dissolve" and any(t.matches(c) for c in r["cuts"])]
+    assert found  # the dissolve between the 40 and the 80 px a frame pans
+    assert not [(s, t) for t in found for s in kept if t.spanned_by(s, s + w.window_stride)]
+
+
+@pytest.mark.xfail(strict=True, reason="a dissolve whose steps stay under the hard-cut rule gives no cut: the one "
+                                       "between a 20 px a frame pan and camera footage changes the frame less per "
+                                       "step than the pan does, and the multi-frame rules measured for it also cut "
+                                       "the real clip's dancing (docs/shots.md)")
 def test_a_clip_with_a_dissolve_gives_no_window_across_it(edited):
     transitions, r, kept, w = edited
     dissolves = [t for t in transitions if t.kind == "dissolve"]

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Callable, Iterable, List, Optional
+from typing import Callable, Iterable, List, Optional, Tuple
 
 import numba
 import numpy as np
@@ -31,7 +31,7 @@ THUMB = (27, 48)
 SHIFT = 8
 #: What names the detector in a frame-cache entry: a cached entry's cuts are reused only by
 #: the same detector.
-DETECTOR_VERSION = "shift48-1"
+DETECTOR_VERSION = "shift48-2"
 
 
 def code_table(expand: Callable[[np.ndarray], np.ndarray], dtype) -> np.ndarray:
@@ -126,7 +126,7 @@ def difference(thumb: np.ndarray, prev: np.ndarray, enough: float = 0.0) -> floa
 
 
 class ShotDetector:
-    """Finds hard cuts and fades through black, one frame at a time.
+    """Finds hard cuts, fades through black and the end of a dissolve, one frame at a time.
 
     Feed every frame's :func:`thumbnail` to :meth:`update`, in order; it returns True when the
     frame starts a new shot (a cut between it and the previous frame). Rules, on the
@@ -137,21 +137,32 @@ class ShotDetector:
     * flash: a frame within ``flash`` frames of the last cut that matches the frame before that
       cut (``d < threshold``) ends a camera flash, not a shot: it is no second cut;
     * fade through black: the first frame that is not dark (thumbnail mean above ``dark``)
-      after one or more dark frames.
+      after one or more dark frames;
+    * end of a gradual transition: after a hard cut, when the next frame's ``d`` is still at least
+      ``settle`` x the cut's own (the change goes on: a dissolve the hard rule caught part way,
+      not a cut, after which the frames match again), the new shot starts at the second frame in
+      a row whose ``d`` falls below that (a dissolve's last step, into its first clean frame, can
+      still be large). A second cut there keeps the transition's later steps out of every window;
+      a run still raised ``longest`` frames after the cut is the new shot's own motion: no cut.
 
     Camera motion up to ``SHIFT`` thumbnail pixels a frame is taken out of ``d``, so fast pans stay
     one shot while cuts between shots of one setting and palette stand out (docs/shots.md: the
-    labelled real clip). Dissolves are not a rule: inside one, ``d`` rises above ``threshold``
-    only where the two shots differ enough, and the frames it cuts at are those (docs/shots.md).
+    labelled real clip). A dissolve is found only where its steps reach the hard-cut rule: one
+    between shots that differ little per frame beside their own motion gives no cut
+    (docs/shots.md measures the multi-frame rules tried for it and why none is kept).
     ``cuts`` lists the frames found (indices from 0). Pure: no I/O, no clock.
     """
 
     def __init__(self, threshold: float = 14.0, ratio: float = 2.5, history: int = 8, dark: float = 10.0,
-                 flash: int = 3):
+                 flash: int = 3, settle: float = 0.5, longest: int = 25):
         self.threshold, self.ratio, self.dark, self.flash = float(threshold), float(ratio), float(dark), int(flash)
+        self.settle, self.longest = float(settle), int(longest)
         self.diffs: deque = deque(maxlen=int(history))
         self.prev: Optional[np.ndarray] = None
         self.before_cut: Optional[np.ndarray] = None  # the frame before the last cut
+        # the hard cut whose following frames are watched for a transition still under way:
+        # (its frame, its d, whether a later d stayed raised, calm frames in a row since), or None
+        self.run: Optional[Tuple[int, float, bool, int]] = None
         self.was_dark = False
         self.frames = 0
         self.cuts: List[int] = []
@@ -165,6 +176,23 @@ class ShotDetector:
             table = self.tables[expand] = code_table(expand, codes.dtype)
         return self.update(thumbnail(codes, table))
 
+    def _transition_ends(self, i: int, d: float) -> bool:
+        """Follow the frames after the last hard cut (``run``): True at the frame a transition
+        still under way at that cut has settled (the gradual-transition rule of the class)."""
+        at, cut_d, raised, calm = self.run
+        if i - at > self.longest:
+            self.run = None  # raised this long: the new shot's motion, not a transition
+        elif d >= self.settle * cut_d:
+            self.run = (at, cut_d, True, 0)
+        elif not raised:
+            self.run = None  # the frame after the cut matches: a hard cut
+        elif calm == 0:
+            self.run = (at, cut_d, True, 1)  # the first calm frame may be the transition's last step
+        else:
+            self.run = None
+            return True
+        return False
+
     def update(self, thumb: np.ndarray) -> bool:
         """Score the next frame's thumbnail; True when it starts a new shot (appended to ``cuts``)."""
         i = self.frames
@@ -174,11 +202,17 @@ class ShotDetector:
         if self.prev is not None:
             d = difference(thumb, self.prev, self.threshold)
             past = sum(self.diffs) / len(self.diffs) if self.diffs else 0.0
-            cut = (d >= self.threshold and d >= self.ratio * past) or (self.was_dark and not dark)
+            hard = d >= self.threshold and d >= self.ratio * past
+            cut = hard or (self.was_dark and not dark)
             if cut and self.cuts and i - self.cuts[-1] <= self.flash and self.before_cut is not None \
                     and difference(thumb, self.before_cut, self.threshold) < self.threshold:
                 cut = False  # back to the frame before the last cut: that was a flash
+                self.run = None
             elif cut:
+                self.run = (i, d, False, 0) if hard else None
+            elif self.run is not None:
+                cut = self._transition_ends(i, d)
+            if cut:
                 self.before_cut = self.prev
                 self.diffs.clear()  # the new shot's motion is measured against the cut's own difference
             self.diffs.append(d)
