@@ -648,13 +648,14 @@ def test_frame_cache_gauges_and_status_line_from_worker_counters():
     from prometheus_client.exposition import generate_latest
 
     from v2v_server.ops.metrics import ServerMetrics
+    from v2v_wire.worker_messages import Done
 
     m = ServerMetrics(progress=False)
     assert m.frame_cache_state(0, 0, 1 << 30)["frame_cache_hit_ratio"] == 0.0
     for fc in ({"hits": 3, "misses": {"absent": 1, "corrupt": 1}, "stored": 1},
                {"hits": 2, "misses": {"changed": 1, "absent": -4}},
                {"hits": True, "misses": "none"}):
-        m.on_worker_message({"stages": {}, "store": {"frame_cache": fc}})
+        m.on_worker_message(Done(1, store={"frame_cache": fc}))
     state = m.frame_cache_state(3 << 29, 2, 1 << 30)
     assert state == {"frame_cache_bytes": 3 << 29, "frame_cache_entries": 2, "frame_cache_budget": 1 << 30,
                      "frame_cache_hit_ratio": 5 / 8}

@@ -183,9 +183,14 @@ def test_cached_epoch_reuses_the_stored_cuts(tmp_path, monkeypatch):
 
 
 def test_metrics_count_cuts_and_the_windows_they_removed():
+    from v2v_wire.protocol import ProtocolError
+    from v2v_wire.worker_messages import Done, worker_message
+
     m = ServerMetrics(progress=False)
-    m.on_worker_message({"type": "done", "stages": {}, "cuts": 9, "dropped": 4})
-    m.on_worker_message({"type": "done", "stages": {}, "cuts": "x", "dropped": -1})  # malformed: ignored
+    m.on_worker_message(worker_message({"type": "done", "task": 1, "stages": {}, "cuts": 9, "dropped": 4}, 1))
+    with pytest.raises(ProtocolError, match="cuts"):  # malformed: refused at the edge, never counted
+        worker_message({"type": "done", "task": 2, "stages": {}, "cuts": "x", "dropped": -1}, 1)
+    m.on_worker_message(Done(3, dropped=-1))  # a negative count adds nothing
     assert m.registry.get_sample_value("v2v_shot_cuts_total") == 9
     assert m.registry.get_sample_value("v2v_windows_cut_total") == 4
 

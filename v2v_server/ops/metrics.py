@@ -43,13 +43,14 @@ import sys
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, HTTPServer
-from typing import Dict, Optional, Tuple
+from typing import Dict, Optional, Tuple, Union
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
 
 from v2v_server.videos.frame_cache import MISS_CAUSES, SKIP_CAUSES
+from v2v_wire.worker_messages import Done, Sample
 
 #: Work a worker reports time for, in pipeline order.
 STAGES = ("decode", "simulate", "flow", "serialize", "send")
@@ -203,21 +204,18 @@ class ServerMetrics:
                  "workers_restarted", "files_skipped", "bad_messages", "tasks_timed_out")
         return {n: int(self.registry.get_sample_value(f"v2v_{n}_total") or 0) for n in names}
 
-    def on_worker_message(self, header: dict) -> None:
-        """Add the stage seconds a worker message carries (``header["stages"]``, a dict of
-        stage -> seconds since the worker's previous message) and its object-store reads
-        (``header["store"]``: ``bytes``, ``reads``, ``read_s``, ``retries``, ``skipped``, see
-        ``videos.source.VideoSource.take_stats``), and a ``done`` message's shot ``cuts`` and the
-        windows they removed (``dropped``); ignores anything malformed."""
-        stages = header.get("stages") if isinstance(header, dict) else None
-        if not isinstance(stages, dict):
-            return
-        if header.get("type") == "done":
-            for key, c in (("cuts", self.shot_cuts), ("dropped", self.windows_cut)):
-                if _count(header.get(key)):
-                    c.inc(header[key])
-        store = header.get("store")
-        if isinstance(store, dict):
+    def on_worker_message(self, msg: Union[Sample, Done]) -> None:
+        """Add what a worker message checked at the edge (``worker_messages.worker_message``)
+        carries: its stage seconds (``stages``: stage -> seconds since the worker's previous
+        message), and a ``Done``'s shot ``cuts``, the windows they removed (``dropped``) and its
+        object-store reads (``store``: ``bytes``, ``reads``, ``read_s``, ``retries``,
+        ``skipped`` and the frame cache's counters, ``videos.source.VideoSource.take_stats``,
+        whose values a counter ignores when malformed)."""
+        if isinstance(msg, Done):
+            for v, c in ((msg.cuts, self.shot_cuts), (msg.dropped, self.windows_cut)):
+                if _count(v):
+                    c.inc(v)
+            store = msg.store
             for key, c in (("bytes", self.store_bytes), ("reads", self.store_reads), ("read_s", self.store_seconds),
                            ("retries", self.store_retries), ("skipped", self.store_skipped)):
                 v = store.get(key)
@@ -226,8 +224,8 @@ class ServerMetrics:
             fc = store.get("frame_cache")
             if isinstance(fc, dict):
                 self.frame_cache.add(fc)
-        for s, v in stages.items():
-            if s in STAGES and isinstance(v, (int, float)) and 0 <= v < 1e6:
+        for s, v in msg.stages.items():
+            if s in STAGES and 0 <= v < 1e6:
                 self.busy.labels(stage=s).inc(v)
 
     def frame_cache_state(self, nbytes: int, entries: int, budget: int) -> dict:

@@ -93,7 +93,6 @@ class WorkerSide:
             return
         if w is None:
             return  # a replaced worker's last words
-        self.metrics.on_worker_message(h)  # stage seconds
         try:
             msg = worker_message(h, self.cfg.crops_per_window)
         except ProtocolError as e:
@@ -103,6 +102,8 @@ class WorkerSide:
                 self.give_slot(ident, slot)  # a malformed header never costs the worker a slot
             return
         now = time.monotonic()
+        if isinstance(msg, (Sample, Done)):
+            self.metrics.on_worker_message(msg)  # stage seconds, a task's cuts and store reads
         if isinstance(msg, Ready):
             if w.ring is not None and not msg.ring:
                 log.warning("worker %s could not map its slot ring; it sends arrays as socket frames", ident.decode())
