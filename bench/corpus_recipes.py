@@ -20,7 +20,7 @@ INTER_CUBIC) to ``--hd-height`` rows at 16:9:
   them a quarter (``.mp4`` and ``.mov``).
 
 Each recipe's command (:data:`RECIPES`, the text docs/corpora.md shows) runs as ``v2v-serve``
-would, ``python -m v2v_server.ops.cli`` with this checkout on ``PYTHONPATH``, in the corpus
+would, ``python -m v2v_server.cli`` with this checkout on ``PYTHONPATH``, in the corpus
 folder, ``XDG_CACHE_HOME`` in the temporary folder (the corpus index starts empty), and its
 ``--check`` report is read back. Footage listed: the seconds of every video the listing names
 (frames / fps of the written file; a range's length), a table's filtered and short rows
@@ -218,10 +218,10 @@ SUMMARY = re.compile(r"^(\d+) usable video\(s\) of (\d+), (\d+) sample\(s\) per 
 
 def run_command(command: str, cwd: Path, env: Dict[str, str]) -> str:
     """Run a recipe's shell text in ``cwd``, ``v2v-serve`` being this checkout's
-    ``python -m v2v_server.ops.cli``; its stdout. Raises ``RuntimeError`` with its output when it fails."""
+    ``python -m v2v_server.cli``; its stdout. Raises ``RuntimeError`` with its output when it fails."""
     argv = shlex.split(command)
     if argv[0] == "v2v-serve":
-        argv = [sys.executable, "-m", "v2v_server.ops.cli", *argv[1:]]
+        argv = [sys.executable, "-m", "v2v_server.cli", *argv[1:]]
         p = subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True)
     else:  # a shell step (a heredoc)
         p = subprocess.run(["bash", "-c", command.replace("python ", f"{shlex.quote(sys.executable)} ", 1)],

@@ -108,7 +108,7 @@ def serve(clip: Path, videos: int, samples: int) -> dict:
         corpus = make_corpus(tmp / "c", videos, clip)
         settle()
         cache = ["--frame-cache-gb", "64", "--cache-dir", str(tmp / "cache")]
-        subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(corpus), "--workers", "2",
+        subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(corpus), "--workers", "2",
                         "--warm-cache", *cache], check=True, capture_output=True, timeout=1800)
         return {"off": producer(corpus, 2, samples, []), "raw": producer(corpus, 2, samples, cache)}
     finally:

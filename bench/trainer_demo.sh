@@ -67,7 +67,7 @@ if [ "$TASK" = eraft ]; then
 fi
 
 # --keep-top-fraction 1.0: these clips carry no watermark, so crops come from the whole frame.
-python -m v2v_server.ops.cli --videos "$SERVED" --workers "$WORKERS" --bind "tcp://127.0.0.1:$PORT" \
+python -m v2v_server.cli --videos "$SERVED" --workers "$WORKERS" --bind "tcp://127.0.0.1:$PORT" \
     --sequence-length "$SEQ" --num-bins 5 --crop-size 64 --batch-size "$BATCH" --keep-top-fraction 1.0 \
     --seed 0 > "$OUT/serve.log" 2>&1 &
 SERVER=$!

@@ -61,7 +61,7 @@ class ServeProcess:
 
     def start(self) -> "ServeProcess":
         env = dict(os.environ, PYTHONUNBUFFERED="1", **(self.env or {}))
-        self.proc = subprocess.Popen([*self.wrap, sys.executable, "-m", "v2v_server.ops.cli", *self.args],
+        self.proc = subprocess.Popen([*self.wrap, sys.executable, "-m", "v2v_server.cli", *self.args],
                                      stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True, env=env)
         self._reader = threading.Thread(target=self._read, daemon=True)

@@ -58,12 +58,12 @@ def test_v2v_eval_names_the_checkpoint_whose_configuration_does_not_build(tmp_pa
 def test_v2v_serve_reads_the_same(tmp_path):
     cfg = tmp_path / "serve.yaml"
     cfg.write_text("nonidealities: {leak_hertz: 1}\n")
-    r = _run("v2v_server.ops.cli", "--config", str(cfg))
+    r = _run("v2v_server.cli", "--config", str(cfg))
     _assert_config_error(r, "v2v-serve", str(cfg), "['leak_hertz']", "in nonidealities", "'leak_hz'")
 
 
 def test_an_unknown_log_level_is_refused_not_read_as_info():
-    from v2v_server.ops.cli import build_parser
+    from v2v_server.cli import build_parser
 
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--log-level", "INFOO"])

@@ -140,7 +140,7 @@ def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
               "--cache-dir", str(tmp_path / "cache")]
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(corpus), *layout],
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(corpus), *layout],
                        capture_output=True, text=True, timeout=300)
     summary = r.stdout.splitlines()[-1]
     empty = [line.split()[0] for line in r.stdout.splitlines() if " unusable " in line]
@@ -187,7 +187,7 @@ def test_a_served_epoch_or_a_warm_up_fills_the_index_for_the_next_start(corpus, 
         return ids, srv.log
 
     def check(cache, *extra):
-        return subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(corpus), *layout,
+        return subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(corpus), *layout,
                                "--cache-dir", str(cache), *extra], capture_output=True, text=True, timeout=300)
 
     ids, log = epoch(tmp_path / "a")

@@ -17,7 +17,7 @@ import yaml
 
 from trainer.config import apply_overrides, load_config as load_trainer_config
 from trainer.train import build_arg_parser as train_parser
-from v2v_server.ops.cli import build_parser as serve_parser, config_from_args
+from v2v_server.cli import build_parser as serve_parser, config_from_args
 from v2v_server.service.shm import shm_bytes
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -108,7 +108,7 @@ def _need(corpus: Path, name: str) -> Path:
 def check_lines(corpus) -> dict:
     """``v2v-serve --check`` of the folder: file -> its line of the report."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(corpus), *FLAGS, "--check"],
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(corpus), *FLAGS, "--check"],
                        capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
     return {line.split()[0]: line for line in (r.stdout + r.stderr).splitlines() if line.split()}
 

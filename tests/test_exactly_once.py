@@ -120,7 +120,7 @@ def test_outputs_follow_the_clients_and_limits_are_clear(tmp_path):
         it2.close()
         with pytest.raises(StreamError, match="at most 8 batches in flight"):
             next(iter(V2VStreamDataset(srv.endpoint, credits=9, timeout_s=30)))
-    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--workers", "2000", "--check"],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--workers", "2000", "--check"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "workers must be <= 256" in out.stderr
     cfg = tmp_path / "c.yaml"
@@ -138,7 +138,7 @@ def test_check_names_the_window_where_the_frame_size_changes(tmp_path):
     span = LAYOUT.L * 5 + 1
     write_size_change_video(tmp_path / "sc.mpg", span + span // 2, 2 * span)
     # windows at k x stride: the shot detector takes the change of size for a cut
-    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(tmp_path),
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(tmp_path),
                           *LAYOUT.args(), "--max-samples-per-video", "3", "--shot-cuts", "off"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr

@@ -79,7 +79,7 @@ def test_check_lists_every_file_with_its_verdict(tmp_path):
 
     exp = make_fault_corpus(tmp_path / "c", faults.GOOD_VIDEOS, LAYOUT.L * 5 + 1)
     exp["deleted_during_epoch.mp4"] = "usable"  # still there: only the serving scenario deletes it
-    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(tmp_path / "c"),
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(tmp_path / "c"),
                           *LAYOUT.args()], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     lines = {ln.split()[0]: ln for ln in out.stdout.splitlines()[1:-1]}
@@ -94,7 +94,7 @@ def test_corpus_without_usable_video_is_a_clear_error(tmp_path):
     d.mkdir()
     (d / "a.mp4").write_bytes(b"")
     (d / "b.mp4").write_text("not a video")
-    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(d)],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(d)],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "0 usable video(s) of 2" in out.stdout
     with ServeProcess(["--videos", str(d), "--workers", "1"]) as srv:

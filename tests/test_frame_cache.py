@@ -313,7 +313,7 @@ def test_unusable_cache_dir_at_start_is_one_clear_line(tmp_path, flags):
     bad = tmp_path / "not_a_folder"
     bad.write_text("a file")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(CLIPS), "--epochs", "1",
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(CLIPS), "--epochs", "1",
                         "--bind", "tcp://127.0.0.1:0", "--cache-dir", str(bad), *flags],
                        capture_output=True, text=True, timeout=60, env=env)
     lines = r.stderr.strip().splitlines()
@@ -604,7 +604,7 @@ def test_tar_member_entries_follow_their_shard(tmp_path):
 def test_warm_cache_then_check(tmp_path):
     """``v2v-serve --warm-cache`` stores every video, a second run finds them cached, and
     ``--check`` reports the cache."""
-    args = [sys.executable, "-m", "v2v_server.ops.cli", "--workers", "2", "--cache-dir", str(tmp_path),
+    args = [sys.executable, "-m", "v2v_server.cli", "--workers", "2", "--cache-dir", str(tmp_path),
             "--sequence-length", "8"]
     r = subprocess.run(args + ["--warm-cache"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "needs a frame cache" in r.stderr

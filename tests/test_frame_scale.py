@@ -197,7 +197,7 @@ def test_bad_frame_height_names_the_key(value, words):
 
 def test_v2v_serve_bad_frame_height_is_a_configuration_error():
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--frame-height", "200", "--check"],
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--frame-height", "200", "--check"],
                        capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     line = next(x for x in r.stderr.splitlines() if x.startswith("v2v-serve: configuration error: "))

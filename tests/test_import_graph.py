@@ -107,7 +107,7 @@ def test_wire_package_stands_alone():
 #: (``ray_data``, the other engine beside the service) above them all; the command that wires
 #: everything, ``v2v-serve``, is above every stage.
 STAGES = ("flow", "videos", "simulation", "samples", "delivery", "ops", "service", "ray_data")
-COMMANDS = {"v2v_server.ops.cli"}
+COMMANDS = {"v2v_server.cli"}
 #: what a stage may import from v2v_server besides the stages below it (the package itself runs
 #: on any import of a module in it)
 BELOW_ALL = {"v2v_server", "v2v_server.checks", "v2v_server.faults", "v2v_server.settings"}

@@ -158,7 +158,7 @@ def test_video_list_in_the_authors_format(store, corpus, tmp_path):
     assert read_video_list(str(lst)).videos == ["webvid_like_596x336.mp4", "gone/1066687471.mp4", ODD, "bikes.mp4"]
     env = _env(store, tmp_path)
     # a folder checks the list against the files at start
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(corpus), "--video-list", str(lst),
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(corpus), "--video-list", str(lst),
                         "--check", *LAYOUT.args()], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "3 usable video(s) of 3" in r.stdout and "gone/1066687471.mp4" in r.stdout and "missing" in r.stdout
@@ -182,7 +182,7 @@ def test_segments_from_a_bucket_are_the_folders_segments(store, corpus, tmp_path
 
 def test_wrong_credentials_and_missing_bucket_stop_the_server_naming_the_url(store, corpus, tmp_path):
     def serve(videos, **kw):
-        return subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", videos, "--check"],
+        return subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", videos, "--check"],
                               env={**os.environ, **_env(store, tmp_path, **kw)}, capture_output=True, text=True,
                               timeout=120)
 
@@ -429,7 +429,7 @@ def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_count
     store.upload(corpus, url, ["bikes.mp4", "webvid_like_596x336.mp4"])
     state = tmp_path / "state"
     env = _env(store, tmp_path)
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", url, "--state-dir", str(state),
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", url, "--state-dir", str(state),
                         "--check", *LAYOUT.args()], env={**os.environ, **env}, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0 and manifest_path(url, str(state)).is_file(), r.stderr  # listed once, kept
@@ -470,7 +470,7 @@ def test_manifest_index_finds_every_entry_without_loading_the_manifest(tmp_path)
 
 def test_a_missing_list_file_or_a_list_naming_nothing_is_a_clear_error_at_start(tmp_path):
     def serve(*args):
-        return subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", *args], capture_output=True,
+        return subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", *args], capture_output=True,
                               text=True, timeout=120)
 
     r = serve("--video-list", str(tmp_path / "absent.txt"))

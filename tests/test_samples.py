@@ -149,7 +149,7 @@ def test_config_yaml_and_flags(tmp_path):
     p.write_text("keep_top_fraction: 0\n")
     with pytest.raises(ValueError, match="keep_top_fraction"):
         load_config(str(p))
-    from v2v_server.ops.cli import build_parser, config_from_args
+    from v2v_server.cli import build_parser, config_from_args
     args = build_parser().parse_args(["--keep-top-fraction", "1.0", "--crop-size", "64"])
     assert config_from_args(args).keep_top_fraction == 1.0
     p.write_text("a: [unclosed\n")

@@ -90,7 +90,7 @@ def test_shards_partition_any_corpus_and_the_hash_is_stable_across_processes():
 def test_check_lists_only_the_shards_files_and_logs_json(videos):
     found = [p.as_posix() for p in scan_corpus(videos, (".mp4",))[0]]
     for i in range(2):
-        r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(videos), "--shard",
+        r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(videos), "--shard",
                             f"{i}/2", "--log-format", "json", *layout()], capture_output=True, text=True, timeout=120)
         listed = [ln.split()[0] for ln in r.stdout.splitlines()[1:-1] if " ignored " not in ln]
         assert sorted(listed) == sorted(select_shard(found, i, 2)), r.stdout

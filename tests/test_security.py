@@ -51,7 +51,7 @@ def test_non_loopback_bind_needs_keys_or_insecure(tmp_path):
         ServeConfig(bind="tcp://0.0.0.0:5555")
     assert ServeConfig(bind="tcp://0.0.0.0:5555", insecure=True).insecure
     # the CLI refuses before binding anything
-    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--bind", "tcp://0.0.0.0:5999"],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--bind", "tcp://0.0.0.0:5999"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "curve_secret_key" in out.stderr and "--insecure" not in out.stdout
     with pytest.raises(ValueError, match="together"):

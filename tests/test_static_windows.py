@@ -107,7 +107,7 @@ def test_skip_served_by_v2v_serve_is_exactly_once_and_check_names_the_skips(stil
     shutil.copyfile(videos / "bikes.mp4", corpus / "bikes.mp4")
     args = ["--sequence-length", "8", "--crop-size", "64", "--keep-top-fraction", "1.0", "--static-windows", "skip",
             "--seed", "5", "--flow-preset", "ultrafast"]
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(corpus), *args],
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(corpus), *args],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "2 static window(s) skipped" in r.stdout, r.stdout + r.stderr
     want = sorted(f"{v['path']}#{k}" for v in (check_video(ServeConfig(**{

@@ -182,11 +182,11 @@ def test_loadtest_cli_reports_json(videos):
 def test_bad_config_fails_at_startup_naming_field(tmp_path, videos):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("num_bins: 0\n")
-    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--config", str(cfg), "--videos", str(videos)],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--config", str(cfg), "--videos", str(videos)],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "num_bins" in out.stderr and str(cfg) in out.stderr
     cfg.write_text("sequence_lenght: 10\n")
-    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--config", str(cfg)],
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--config", str(cfg)],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "sequence_lenght" in out.stderr
 
@@ -229,7 +229,7 @@ def test_ipv6_loopback_on_both_ends(videos):
 def test_a_workers_socket_path_too_long_is_blamed_on_tmpdir_not_the_endpoint(videos, tmp_path):
     deep = tmp_path / ("d" * 60) / ("e" * 60)
     deep.mkdir(parents=True)
-    out = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--videos", str(videos), "--bind",
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(videos), "--bind",
                           f"tcp://127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60,
                          env={**__import__("os").environ, "TMPDIR": str(deep)})
     assert out.returncode == 2
@@ -278,7 +278,7 @@ def test_sigterm_to_the_process_group_stops_the_server_without_restarting_worker
     import urllib.request
 
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "v2v_server.ops.cli",
+    proc = subprocess.Popen([sys.executable, "-m", "v2v_server.cli",
                              *serve_args(videos, "--bind", f"tcp://127.0.0.1:{free_port()}", "--metrics-port", str(port))],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})

@@ -177,7 +177,7 @@ def test_bad_parts_and_members_are_named_once_and_the_rest_served(tmp_path):
     folder = tmp_path / "parts"
     _bad_parts(folder)
     _settle()
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", str(folder),
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(folder),
                         *LAYOUT.args()], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
@@ -280,7 +280,7 @@ def test_openvid_parts_and_their_csv_serve_each_long_clip_of_the_named_member(tm
     _settle()
     parts, table = tmp_path / "parts", str(tmp_path / "OpenVid.csv")
     pattern = str(parts / "OpenVid_part{0..2}.zip")
-    r = subprocess.run([sys.executable, "-m", "v2v_server.ops.cli", "--check", "--videos", pattern,
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", pattern,
                         "--video-list", table, "--video-list-filter", '"motion score" > 0.5', *LAYOUT.args(),
                         "--cache-dir", str(tmp_path / "cache")],
                        capture_output=True, text=True, timeout=300)

@@ -3,7 +3,7 @@ shards (:func:`open_source`; ``ops.config.source_from_config`` reads a ``ServeCo
 ``VideoSource.spec()`` a process hands to its workers (:func:`source_from_spec`).
 
 A source is built once per process, at the process's edge, and the built source is handed to
-every stage below: ``v2v-serve`` (``ops.cli.main``) and ``service.local.serve_local`` at server
+every stage below: ``v2v-serve`` (``cli.main``) and ``service.local.serve_local`` at server
 start, each worker process at its start (``service.worker.worker_main``), the pools of
 ``--check`` and ``--warm-cache`` once per pool process (:func:`map_videos`), and the Ray engine
 at its scan and once per actor (``ray_data``).
