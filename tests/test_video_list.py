@@ -8,7 +8,7 @@ import shutil
 
 import pytest
 
-from v2v_server.ops import cli
+from v2v_server import cli
 from v2v_server.samples.make import video_frames
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
