@@ -105,7 +105,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if epoch_samples is not None:
         log.info("an epoch holds %d sample(s) of %d video(s) (corpus index)", epoch_samples, len(videos))
     try:
-        server = V2VServer(cfg, source, videos, corpus=listing, epoch_samples=epoch_samples)
+        server = V2VServer(cfg, source, videos, corpus=listing, epoch_samples=epoch_samples, skipped=known.empty)
     except (JournalError, OSError) as e:  # the journal of --state-dir
         print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
         return 2

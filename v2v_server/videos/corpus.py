@@ -6,7 +6,7 @@ import hashlib
 import logging
 import sqlite3
 from pathlib import Path
-from typing import List, NamedTuple, Sequence, Set, Tuple
+from typing import Dict, List, NamedTuple, Sequence, Tuple
 
 from v2v_server.faults import warn_once
 from v2v_server.videos.corpus_index import layout_key
@@ -164,11 +164,11 @@ def record_pass(windows: WindowSettings, source: VideoSource, rel: str, record: 
 class KnownWindows(NamedTuple):
     """What the corpus index says of a listing at a server's start (:func:`known_windows`):
     ``known``, how many of its videos it knows; ``samples``, their samples per epoch together;
-    ``empty``, those known to give no window."""
+    ``empty``, those known to give no window -> why (the verdict's reason)."""
 
     known: int
     samples: int
-    empty: Set[str]
+    empty: Dict[str, str]
 
 
 def known_windows(windows: WindowSettings, source: VideoSource, videos: Sequence[str]) -> KnownWindows:
@@ -177,14 +177,14 @@ def known_windows(windows: WindowSettings, source: VideoSource, videos: Sequence
     no request per object). The server reads it at start: an epoch's size when every video is
     known, and the videos not worth opening. Nothing is known without an index."""
     index = source.corpus_index()
-    known, samples, empty = 0, 0, set()
+    known, samples, empty = 0, 0, {}
     if index is None:
         return KnownWindows(0, 0, empty)
-    for rel, n in index.windows(((rel, source.where(rel), source.listed_identity(rel)) for rel in videos),
-                                layout_key(windows)):
+    for rel, n, reason in index.windows(((rel, source.where(rel), source.listed_identity(rel)) for rel in videos),
+                                        layout_key(windows)):
         known, samples = known + 1, samples + n
         if n == 0:
-            empty.add(rel)
+            empty[rel] = reason
     return KnownWindows(known, samples, empty)
 
 

@@ -114,8 +114,9 @@ class CorpusIndex:
         return json.loads(row[1])
 
     def windows(self, videos: Iterable[Tuple[str, str, Optional[str]]], layout: str,
-                chunk: int = 500) -> Iterator[Tuple[str, int]]:
-        """``(key, windows)``, the samples per epoch recorded under ``layout``, for each ``(key,
+                chunk: int = 500) -> Iterator[Tuple[str, int, str]]:
+        """``(key, windows, reason)``, the samples per epoch and the reason recorded under
+        ``layout`` (why it gives none or fewer, '' when nothing is wrong), for each ``(key,
         location, identity)`` of ``videos`` whose entry holds (same identity; None never does),
         read in queries of ``chunk`` locations: memory is bounded by the chunk, not the corpus.
         Nothing is queried when no entry of ``layout`` exists."""
@@ -125,13 +126,13 @@ class CorpusIndex:
 
         def flush():
             marks = ",".join("?" * len(batch))
-            rows = self._db.execute(f"SELECT location, identity, windows FROM entries WHERE layout = ? AND location IN "
-                                    f"({marks})", (layout, *batch)).fetchall()
+            rows = self._db.execute(f"SELECT location, identity, windows, reason FROM entries WHERE layout = ? AND "
+                                    f"location IN ({marks})", (layout, *batch)).fetchall()
             held = dict(batch)
             batch.clear()
-            for loc, ident, n in rows:
+            for loc, ident, n, reason in rows:
                 if held[loc][1] == ident:
-                    yield held[loc][0], int(n)
+                    yield held[loc][0], int(n), reason
 
         for key, location, identity in videos:
             if identity is not None:
