@@ -88,7 +88,7 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
         known = index.lookup(where, identity, key)
         if known is not None and known.get("frame_timing", True):  # a sample pass's entry lacks --check's timing
             return {**known, "path": rel}
-    out = {}
+    out = {}  # what only this pass measures (frame timing), beside the window pass's verdict
     shown = {}  # the displayed (scaled) height of the frame at hand
 
     def rows(h: int) -> int:  # the rows the sample pass scores and cuts

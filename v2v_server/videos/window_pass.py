@@ -212,10 +212,9 @@ class WindowPass:
             self.frames = i + 1
             if f.cut:
                 self.cuts.append(i)
+            step = meter.score(f.codes, f.expand)  # every frame: the next one is measured against it
             if layout.current is not None:
-                change += meter.score(f.codes, f.expand)
-            else:
-                meter.score(f.codes, f.expand)
+                change += step
             motion = change / layout.stride
             ev = layout.step(i, f.cut, motion < STATIC_MOTION)
             if ev.drops is not None or ev.skips is not None:
