@@ -31,6 +31,7 @@ import zmq
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.corpus import corpus_fingerprint
+from v2v_server.videos.disk_cache import UsageScan
 from v2v_server.videos.source import VideoSource
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.core import DeliveryCore
@@ -46,7 +47,6 @@ from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION
 
 log = logging.getLogger("v2v.server")
 
-#: Times a task may kill its worker before its file is given up for that epoch.
 #: Client messages handled per loop turn (then the workers get their turn).
 CLIENT_BURST = 100
 #: Seconds between scans of the frame cache's folder for its bytes and entries (gauges).
@@ -79,7 +79,8 @@ class V2VServer:
             raise ValueError(f"no video files under {source.root}")
         self.cfg = cfg
         self.source = source
-        self._fc_scanned = (float("-inf"), (0, 0))  # (when, (bytes, entries)) of the frame cache's last scan
+        fc = source.frame_cache
+        self.frame_cache_scan = UsageScan(fc.disk, FRAME_CACHE_SCAN_S) if fc is not None else None
         self.root = self.source.root
         self.videos = list(videos)
         self.corpus = corpus or corpus_fingerprint(self.videos)  # of the listing before sharding
@@ -282,31 +283,19 @@ class V2VServer:
                 "epoch": newest if newest is not None else -1,
                 "epoch_videos": plan.progress()[0] if plan else 0,
                 "epoch_videos_done": plan.progress()[1] if plan else 0,
-                "shuffle_samples": held, "shuffle_capacity": capacity, **self._frame_cache_state(),
+                "shuffle_samples": held, "shuffle_capacity": capacity,
+                **({} if (fc := self._frame_cache_usage()) is None else self.metrics.frame_cache_state(*fc)),
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
 
     def _frame_cache_usage(self) -> Optional[Tuple[int, int, int]]:
-        """The host's frame cache as ``(bytes, entries, budget)``, its folder scanned at most every
-        ``FRAME_CACHE_SCAN_S``; None when there is none. A folder that cannot be scanned (a
-        file in its place, a vanished mount, EIO) keeps the last values, counted and logged
-        once (``ServerMetrics.on_fs_error``)."""
-        fc = self.source.frame_cache
-        if fc is None:
+        """The host's frame cache as ``(bytes, entries, budget)`` (``disk_cache.UsageScan``); None
+        when there is none. A failed scan is counted and logged once (``ServerMetrics.on_fs_error``)."""
+        if self.frame_cache_scan is None:
             return None
-        now = time.monotonic()
-        if now - self._fc_scanned[0] >= FRAME_CACHE_SCAN_S:
-            usage = self._fc_scanned[1]
-            try:
-                usage = fc.disk.usage()
-            except OSError as e:
-                self.metrics.on_fs_error("frame_cache", fc.disk.folder, e)
-            self._fc_scanned = (now, usage)
-        return (*self._fc_scanned[1], fc.disk.max_bytes)
-
-    def _frame_cache_state(self) -> dict:
-        """The host's frame cache as gauges (none when there is no cache)."""
-        usage = self._frame_cache_usage()
-        return {} if usage is None else self.metrics.frame_cache_state(*usage)
+        usage, err = self.frame_cache_scan.read(time.monotonic())
+        if err is not None:
+            self.metrics.on_fs_error("frame_cache", self.frame_cache_scan.disk.folder, err)
+        return usage
 
     def _corpus_empty(self) -> bool:
         """Every file failed and nothing was ever made: no epoch can hold a sample."""

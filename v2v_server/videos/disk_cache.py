@@ -204,3 +204,31 @@ def remove_quietly(path: Optional[Path]) -> None:
     if path is not None:
         with contextlib.suppress(OSError):
             path.unlink()
+
+
+class UsageScan:
+    """A disk cache's ``(bytes, entries, budget)`` for gauges, its folder scanned at most every
+    ``interval_s`` seconds (a scan lists the whole folder; a server asks four times a second).
+
+    Args:
+        disk: the cache whose folder is scanned.
+        interval_s: seconds between scans.
+    """
+
+    def __init__(self, disk: "DiskCache", interval_s: float = 5.0):
+        self.disk, self.interval_s = disk, interval_s
+        self._when, self._usage = float("-inf"), (0, 0)
+
+    def read(self, now: float) -> Tuple[Tuple[int, int, int], Optional[OSError]]:
+        """``((bytes, entries, budget), error)`` at monotonic time ``now`` (seconds): a folder
+        that cannot be scanned (a file in its place, a vanished mount, EIO) keeps the last
+        values and returns the ``OSError`` of that scan for the caller to count; ``error`` is
+        None otherwise."""
+        err = None
+        if now - self._when >= self.interval_s:
+            try:
+                self._usage = self.disk.usage()
+            except OSError as e:
+                err = e
+            self._when = now
+        return (*self._usage, self.disk.max_bytes), err
