@@ -150,7 +150,7 @@ def buffer_sizes(sizes=(12, 32, 64, 128, 256), videos: int = 200, windows: int =
     keys = [SampleKey(f"v{v}", w, 0) for v in range(videos) for w in range(windows)]
 
     def one(size, counted, seed):
-        ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=1.0)
+        ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=1.0, max_credits=64)
         b = Batcher(batch, list, ledger, lanes=-(-size // batch), seed=seed)
         for i, k in enumerate(keys):
             more = len(keys) - 1 - i if counted else None

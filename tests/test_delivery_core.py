@@ -516,7 +516,7 @@ def test_hung_task_is_reassigned_and_its_late_copy_ignored():
 
 
 def test_ack_of_unknown_or_resent_batch_frees_no_credit():
-    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, revoke_s=50.0)
+    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64, revoke_s=50.0)
     led.join(b"a", "A", ("voxels",), 1, 0.0)
     led.join(b"b", "B", ("voxels",), 1, 0.0)
     for i in range(4):
@@ -532,7 +532,7 @@ def test_ack_of_unknown_or_resent_batch_frees_no_credit():
 
 
 def test_unanswered_revoke_expires_and_drops_the_client():
-    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, revoke_s=3.0)
+    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64, revoke_s=3.0)
     led.join(b"a", "A", ("voxels",), 2, 0.0)
     led.add_batch(BatchRecord(0, 0, [("v", 0)], None, outputs=frozenset({"voxels"})))
     led.sends(0.0)
@@ -545,7 +545,7 @@ def test_unanswered_revoke_expires_and_drops_the_client():
 
 
 def test_a_held_batch_has_no_lease_and_goes_back_when_its_client_leaves():
-    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, revoke_s=3.0)
+    led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64, revoke_s=3.0)
     led.join(b"a", "A", ("voxels",), 2, 0.0)
     for i in range(2):
         led.add_batch(BatchRecord(i, 0, [("v", i)], None, outputs=frozenset({"voxels"})))
@@ -560,7 +560,7 @@ def test_a_held_batch_has_no_lease_and_goes_back_when_its_client_leaves():
 
 
 def test_twenty_clients_share_fairly():
-    led = DeliveryLedger(lease_s=100.0, client_timeout_s=100.0)
+    led = DeliveryLedger(lease_s=100.0, client_timeout_s=100.0, max_credits=64)
     idents = [bytes([i]) for i in range(20)]
     for i in idents:
         led.join(i, i, ("voxels",), 4, 0.0)
@@ -574,7 +574,7 @@ def test_twenty_clients_share_fairly():
 
 
 def test_ddp_group_waits_for_all_ranks():
-    led = DeliveryLedger(lease_s=100.0, client_timeout_s=10.0)
+    led = DeliveryLedger(lease_s=100.0, client_timeout_s=10.0, max_credits=64)
     led.join(b"r0", ("g", 0), ("voxels",), 2, 0.0, group="g", rank=0, world_size=2)
     led.add_batch(BatchRecord(0, 0, [("v", 0)], None, outputs=frozenset({"voxels"})))
     assert led.sends(1.0)[0] == []  # rank 1 has not said hello yet: its resume state may hold samples

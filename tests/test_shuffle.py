@@ -59,7 +59,7 @@ def test_shuffle_none_keeps_the_listing_order_and_arrival_order():
     assert policy.lanes == 1
     sched = EpochScheduler(["c.mp4", "a.mp4", "b.mp4"], epochs=2)
     assert handed_out(sched) == [(e, v) for e in (0, 1) for v in ("c.mp4", "a.mp4", "b.mp4")]
-    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64)
     batcher = Batcher(2, list, ledger, lanes=policy.lanes)
     keys = [SampleKey("c.mp4", w, 0) for w in range(3)] + [SampleKey("a.mp4", 0, 0)]
     for k in keys:
@@ -79,7 +79,7 @@ def sequential_keys(videos=VIDEOS, windows=5):
 
 def test_the_shuffle_buffer_batches_every_sample_once_and_mixes_one_workers_videos():
     keys = sequential_keys()
-    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64)
     batcher = Batcher(8, list, ledger, lanes=4, seed=1)
     feed(batcher, keys)
     held, capacity = batcher.fill()
@@ -90,7 +90,7 @@ def test_the_shuffle_buffer_batches_every_sample_once_and_mixes_one_workers_vide
     assert collections.Counter(k for b in batches for k in b) == collections.Counter(keys)
     assert [len(b) for b in batches] == [8] * 15  # 120 samples: only the last batch may be smaller
     mixed = np.mean([len({k.video for k in b}) for b in batches])
-    plain = Batcher(8, list, DeliveryLedger(lease_s=1.0, client_timeout_s=100.0), lanes=1)
+    plain = Batcher(8, list, DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64), lanes=1)
     feed(plain, keys)
     plain.flush(lambda e: True)
     unmixed = np.mean([len({k.video for k in plain.ledger.batches[i].keys}) for i in plain.ledger.ready])
@@ -99,7 +99,7 @@ def test_the_shuffle_buffer_batches_every_sample_once_and_mixes_one_workers_vide
 
 def test_the_shuffle_buffer_repeats_its_batches_for_the_same_arrivals_and_seed():
     def batches(seed):
-        ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+        ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64)
         b = Batcher(8, list, ledger, lanes=4, seed=seed)
         feed(b, sequential_keys())
         b.flush(lambda e: True)
@@ -109,7 +109,7 @@ def test_the_shuffle_buffer_repeats_its_batches_for_the_same_arrivals_and_seed()
 
 
 def test_leftovers_wait_for_the_end_of_their_epoch_and_drops_leave_the_buffer():
-    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64)
     batcher = Batcher(4, list, ledger, lanes=3, seed=0)
     feed(batcher, sequential_keys(VIDEOS[:2], 2), epoch=0)
     feed(batcher, sequential_keys(VIDEOS[2:4], 2), epoch=1)
@@ -125,7 +125,7 @@ def test_leftovers_wait_for_the_end_of_their_epoch_and_drops_leave_the_buffer():
 def test_a_full_open_batch_is_its_buffers_rows_and_goes_zero_copy():
     """Each open batch fills rows of its own buffer (``BatchAssembler.place`` lane), so a batch
     the shuffle buffer makes is consecutive rows of one buffer: ``make_batch`` copies nothing."""
-    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64)
     batcher = Batcher(4, make_batch, ledger, lanes=3, seed=0)
     asm = BatchAssembler(4)
     for i, key in enumerate(sequential_keys(VIDEOS[:6], 2)):
@@ -145,7 +145,7 @@ def test_an_epoch_smaller_than_the_buffer_fills_whole_batches_as_it_comes_zero_c
     spreads them over 3 open batches only, so 3 full batches (each one buffer's rows) leave as
     the samples arrive and nothing is left for the epoch-end flush to copy."""
     keys = sequential_keys(VIDEOS[:6], 2)
-    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64)
     batcher = Batcher(4, make_batch, ledger, lanes=16, seed=0)
     asm = BatchAssembler(4)
     for i, key in enumerate(keys):
@@ -166,7 +166,7 @@ def test_a_count_not_a_multiple_of_the_batch_keeps_every_sample_once():
     needs, every sample is batched once, and the batches made before the flush are full ones (2
     for this seed: at most 3 can fill, as many as the random spread fills)."""
     keys = sequential_keys(VIDEOS[:13], 1)
-    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+    ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64)
     batcher = Batcher(4, list, ledger, lanes=16, seed=3)
     for i, key in enumerate(keys):
         batcher.add(0, ("voxels",), key, key, batcher.lane(0, ("voxels",), more=len(keys) - 1 - i))
@@ -179,7 +179,7 @@ def test_a_large_epoch_mixes_as_without_a_count():
     """While more samples are to come than the buffer holds, a known count changes no choice:
     the same batches form as when the count is unknown."""
     def batches(counted):
-        ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0)
+        ledger = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64)
         b = Batcher(8, list, ledger, lanes=4, seed=1)
         keys = sequential_keys()
         for i, k in enumerate(keys[:80]):

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
 
 from v2v_server.delivery.batcher import SHUFFLES, Batcher
-from v2v_server.delivery.ledger import DEFAULT_MAX_CREDITS, BatchRecord, DeliveryLedger
+from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
 from v2v_server.checks import check_choice, check_float, check_int
 from v2v_server.settings import setting
 from v2v_wire.ids import SampleKey
@@ -68,7 +68,7 @@ class DeliveryPolicy:
                                       flag="--client-timeout")
     revoke_s: Optional[float] = setting(None, help="seconds a client may leave a revoke unanswered before it is "
                                                    "dropped (default: the client timeout)", flag="--revoke-timeout")
-    max_credits: int = setting(DEFAULT_MAX_CREDITS, help="most batches one client may hold")
+    max_credits: int = setting(64, help="most batches one client may hold")
     task_timeout_s: float = setting(300.0, help="seconds a worker may send nothing on a task before the task is "
                                                 "reassigned and the worker replaced", flag="--task-timeout")
     shuffle: str = setting("epoch", help="epoch: each epoch hands the videos out in an order drawn from (seed, "
@@ -164,7 +164,7 @@ class DeliveryCore:
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
                                     max_windows=p.max_samples_per_video)
-        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, revoke_s=p.revoke_s, max_credits=p.max_credits)
+        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
         self.crops_per_window = p.crops_per_window
         self.task_timeout_s = p.task_timeout_s

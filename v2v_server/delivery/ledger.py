@@ -33,10 +33,6 @@ from typing import Any, Deque, Dict, Hashable, Iterable, List, Optional, Set, Tu
 
 from v2v_wire.ids import SampleKey
 
-#: Credits a client may hold when its server names no ``max_credits`` (``DeliveryPolicy``'s default).
-DEFAULT_MAX_CREDITS = 64
-
-
 @dataclass
 class BatchRecord:
     """A batch made and not yet acknowledged.
@@ -86,14 +82,15 @@ class DeliveryLedger:
     Args:
         lease_s: seconds a sent batch may stay unacknowledged before it is revoked.
         client_timeout_s: seconds of silence before a client is dropped.
+        max_credits: most credits a client may ask for; more is clamped (``core.DeliveryPolicy``
+            owns its default).
         revoke_s: seconds a revoke may stay unanswered before the client is dropped
             (default ``client_timeout_s``).
-        max_credits: most credits a client may ask for; more is clamped.
         group_wait_s: how long a DDP group waits for its missing ranks.
     """
 
-    def __init__(self, lease_s: float, client_timeout_s: float, revoke_s: Optional[float] = None,
-                 max_credits: int = DEFAULT_MAX_CREDITS, group_wait_s: Optional[float] = None):
+    def __init__(self, lease_s: float, client_timeout_s: float, max_credits: int, revoke_s: Optional[float] = None,
+                 group_wait_s: Optional[float] = None):
         self.lease_s = lease_s
         self.client_timeout_s = client_timeout_s
         self.revoke_s = client_timeout_s if revoke_s is None else revoke_s
