@@ -336,3 +336,30 @@ def test_an_array_spec_whose_shape_overflows_is_a_protocol_error():
 
     with pytest.raises(ProtocolError, match="needs"):
         decode_arrays([{"name": "voxels", "dtype": "uint8", "shape": [1 << 32, 1 << 32]}], [b""])
+
+
+@pytest.mark.parametrize("spec", [
+    {"name": "voxels", "dtype": "uint8", "shape": [True, 4]},  # a boolean is not a whole number here
+    {"name": "voxels", "dtype": "uint8", "shape": [2, -1]},
+    {"name": "voxels", "dtype": "uint8", "shape": [2.0, 4]},
+    {"name": "voxels", "dtype": "uint8", "shape": (2, 4)},  # a list, as msgpack gives it
+    {"name": "voxels", "dtype": "uint8", "shape": [1] * 9},
+    {"name": "voxels", "dtype": "object", "shape": [2, 4]},
+    {"name": 3, "dtype": "uint8", "shape": [2, 4]},
+    ["voxels", "uint8", [2, 4]],
+])
+def test_one_array_spec_check_refuses_a_malformed_spec_on_every_path(spec):
+    """``v2v_wire.protocol.array_spec`` is the one check of an array spec: socket frames
+    (``decode_arrays``), shared-memory slots (``service.shm.slot_layout``) and batch files
+    (``v2v_client.handoff.shm_layout``) refuse the same specs, booleans in a shape included."""
+    from v2v_client.handoff import shm_layout
+    from v2v_server.service.shm import slot_layout
+    from v2v_wire.protocol import BATCH_FILE_HEADER, ProtocolError, array_spec, decode_arrays
+
+    good = {"name": "voxels", "dtype": "uint8", "shape": [2, 4]}
+    assert array_spec(good) == ("voxels", np.dtype("uint8"), [2, 4])
+    assert decode_arrays([good], [bytes(8)])["voxels"].shape == (2, 4)
+    for check in (lambda: array_spec(spec), lambda: decode_arrays([spec], [bytes(8)]), lambda: slot_layout([spec]),
+                  lambda: shm_layout([spec], {"offsets": [BATCH_FILE_HEADER]}, BATCH_FILE_HEADER + 64)):
+        with pytest.raises(ProtocolError):
+            check()
