@@ -11,7 +11,7 @@ from typing import Optional
 
 import pytest
 
-from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config
+from v2v_server.ops.config import SampleRecipe, ServeConfig, load_config
 from v2v_server.settings import add_flags, documented, flag_values, load_yaml, reference_markdown, setting
 from v2v_server.checks import check_choice, check_float, check_int, check_prob
 
@@ -44,13 +44,13 @@ def test_flags_come_from_the_model():
 
 def test_every_serve_key_is_a_flag_or_yaml_only_and_the_reference_lists_it():
     p = argparse.ArgumentParser()
-    for part in (SampleRecipe, DeliveryPolicy, ServingSettings):
+    for _, part in ServeConfig.PARTS:
         add_flags(p, part)
     dests = {a.dest for a in p._actions}
     yaml_only = {"ranges", "nonidealities", "degrade_dynamic_range", "video_extensions", "storage_options"}
     names = {f.name for f in documented(ServeConfig)}
     assert names - dests == yaml_only
-    md = reference_markdown(ServeConfig, (SampleRecipe, DeliveryPolicy, ServingSettings))
+    md = reference_markdown(ServeConfig, [part for _, part in ServeConfig.PARTS])
     assert all(f"| `{n}` |" in md for n in names)
 
 

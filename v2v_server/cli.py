@@ -7,6 +7,7 @@ import sys
 from typing import List, Optional
 
 from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config, source_from_config
+from v2v_server.videos.store import StoreSettings
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
@@ -36,7 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fill this host's frame cache (frame_cache_gb > 0) with every video of the corpus or "
                         "shard, print what was stored and exit (docs/frame_cache.md)")
     p.add_argument("--log-level", default="INFO", type=str.upper, choices=LEVELS, help="logging level (default INFO)")
-    for title, part in (("sample recipe", SampleRecipe), ("delivery", DeliveryPolicy), ("serving", ServingSettings)):
+    for title, part in (("sample recipe", SampleRecipe), ("delivery", DeliveryPolicy), ("serving", ServingSettings),
+                        ("object store", StoreSettings)):
         add_flags(p, part, title)
     return p
 

@@ -4,7 +4,8 @@ A ``ServeConfig`` is built from defaults, then a YAML file (``--config``), then 
 flags; every value is validated once, when its part is built, and a bad one raises
 ``ValueError`` naming the field. The sample recipe's keys are owned by
 ``samples.recipe.SampleRecipe`` (defaults: the paper's WebVid recipe, Lou et al. 2025, Sec. 4),
-the delivery keys by ``delivery.core.DeliveryPolicy``, the rest by :class:`ServingSettings` here.
+the delivery keys by ``delivery.core.DeliveryPolicy``, the object store's by
+``videos.store.StoreSettings``, the rest by :class:`ServingSettings` here.
 """
 from __future__ import annotations
 
@@ -60,9 +61,6 @@ class ServingSettings:
                                          "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
     cache_dir: Optional[str] = setting(None, help="folder of the store manifest when there is no state_dir, and "
                                                   "of the object and frame caches (default $XDG_CACHE_HOME/v2v)")
-    cache_max_gb: float = setting(StoreSettings.cache_max_gb, help="GiB of whole store objects kept on local disk for corpora read every "
-                                            "epoch (least recently used removed first); 0 = off, read from the "
-                                            "store each time")
     frame_cache_gb: float = setting(0.0, help="GiB of decoded frames kept on this host's disk under cache_dir/frames, "
                                               "shared by every worker and server process of the host: each video is "
                                               "decoded once, later epochs cut their samples from the cache "
@@ -72,12 +70,6 @@ class ServingSettings:
                                       choices=FRAME_CACHE_FORMATS)
     refresh_manifest: bool = setting(False, help="list the store again instead of reading the manifest written at "
                                                  "the first start")
-    store_read_timeout_s: float = setting(StoreSettings.read_timeout_s, help="seconds a store request may stay unanswered before it fails "
-                                                     "(then retried)", flag="--store-read-timeout")
-    store_max_attempts: int = setting(StoreSettings.max_attempts, help="attempts per store request (botocore standard retry mode: "
-                                              "exponential backoff on throttling, 5xx and connection errors)")
-    read_block_mb: float = setting(StoreSettings.read_block_mb, help="MiB fetched per store request while decoding (one request for a "
-                                             "smaller video)")
     workers: int = setting(2, help="worker processes")
     bind: str = setting("tcp://127.0.0.1:5555", help="ZeroMQ endpoint to bind (port 0 = any free port)")
     end_grace_s: float = setting(600.0, help="with epochs: seconds the server stays up after the last epoch with no "
@@ -152,11 +144,6 @@ class ServingSettings:
         if not isinstance(self.storage_options, dict):
             raise ValueError(f"storage_options must be a mapping of filesystem options, got {self.storage_options!r}")
         check_bool("refresh_manifest", self.refresh_manifest)
-        _set(self, "store_read_timeout_s", check_float("store_read_timeout_s", self.store_read_timeout_s))
-        _set(self, "read_block_mb", check_float("read_block_mb", self.read_block_mb))
-        _set(self, "cache_max_gb", check_float("cache_max_gb", self.cache_max_gb, positive=False))
-        if self.cache_max_gb < 0:
-            raise ValueError(f"cache_max_gb must be >= 0 GiB (0 = no cache), got {self.cache_max_gb!r}")
         _set(self, "frame_cache_gb", check_float("frame_cache_gb", self.frame_cache_gb, positive=False))
         if self.frame_cache_gb < 0:
             raise ValueError(f"frame_cache_gb must be >= 0 GiB (0 = no frame cache), got {self.frame_cache_gb!r}")
@@ -166,7 +153,6 @@ class ServingSettings:
                 import zstandard  # noqa: F401  (the zstd entries' codec; a decode host's [server] lacks it)
             except ImportError:
                 raise ValueError("frame_cache_format zstd needs the zstandard package: pip install 'v2v[wire]'") from None
-        check_int("store_max_attempts", self.store_max_attempts, 1, 20, "attempts")
         if self.state_dir is not None:
             if not isinstance(self.state_dir, str) or not self.state_dir:
                 raise ValueError(f"state_dir must be a folder path, got {self.state_dir!r}")
@@ -181,7 +167,8 @@ class ServeConfig:
       content (its ``windows`` are the videos stage's settings);
     * ``delivery``: :class:`~v2v_server.delivery.core.DeliveryPolicy`, batches, shuffling, leases
       and epochs (its recipe-derived fields filled from ``recipe``);
-    * ``serving``: :class:`ServingSettings`, corpus, workers, transport, security, operations.
+    * ``serving``: :class:`ServingSettings`, corpus, workers, transport, security, operations;
+    * ``store``: :class:`~v2v_server.videos.store.StoreSettings`, how an object-store corpus is read.
 
     YAML files and flags name every part's keys flat (``seed: 3``, ``--workers 8``), and so does
     the constructor (``ServeConfig(seed=3, workers=8)``); reading a flat key (``cfg.workers``)
@@ -194,7 +181,8 @@ class ServeConfig:
     """
 
     #: The parts, in the order docs/config.md lists them: (attribute, settings class).
-    PARTS = (("recipe", SampleRecipe), ("delivery", DeliveryPolicy), ("serving", ServingSettings))
+    PARTS = (("recipe", SampleRecipe), ("delivery", DeliveryPolicy), ("serving", ServingSettings),
+             ("store", StoreSettings))
     __slots__ = tuple(name for name, _ in PARTS)
 
     def __init__(self, **keys):
@@ -206,7 +194,8 @@ class ServeConfig:
         delivery = DeliveryPolicy(**given["delivery"], offered=tuple(recipe.outputs),
                                   crops_per_window=recipe.crops_per_window, seed=recipe.seed,
                                   max_samples_per_video=recipe.max_samples_per_video)
-        for name, part in zip(self.__slots__, (recipe, delivery, ServingSettings(**given["serving"]))):
+        for name, part in zip(self.__slots__, (recipe, delivery, ServingSettings(**given["serving"]),
+                                               StoreSettings(**given["store"]))):
             object.__setattr__(self, name, part)
 
     def __getattr__(self, name: str):
@@ -287,10 +276,8 @@ def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) 
         if cfg.video_list:
             key += f" listed by {Path(cfg.video_list).resolve()}"
         manifest = str(manifest_path(key, cfg.state_dir, cfg.cache_dir))
-    settings = StoreSettings(read_timeout_s=cfg.store_read_timeout_s, max_attempts=cfg.store_max_attempts,
-                             read_block_mb=cfg.read_block_mb, cache_max_gb=cfg.cache_max_gb)
     source = open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
-                         refresh_manifest=cfg.refresh_manifest, settings=settings, cache_dir=cfg.cache_dir,
+                         refresh_manifest=cfg.refresh_manifest, settings=cfg.store, cache_dir=cfg.cache_dir,
                          frame_cache_gb=cfg.frame_cache_gb, frame_cache_format=cfg.frame_cache_format)
     source.list_table = TableSettings(cfg.video_list_column, cfg.video_list_filter,
                                       cfg.recipe.windows.frames_per_sample)

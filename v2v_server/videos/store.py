@@ -1,5 +1,5 @@
 """A corpus under an object-store prefix (``StoreSource``), read through fsspec, and the
-store's settings (``StoreSettings``: the one owner of their defaults)."""
+store's settings (``StoreSettings``: the one owner of their defaults and checks)."""
 from __future__ import annotations
 
 import contextlib
@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
+from v2v_server.checks import check_float, check_int
+from v2v_server.settings import setting
 from v2v_server.videos.archives import listing_problems
 from v2v_server.videos.decode import VideoError, printable, utf8_name
 from v2v_server.videos.frame_cache import FrameCache
@@ -24,24 +26,43 @@ log = logging.getLogger("v2v.source")
 
 @dataclasses.dataclass(frozen=True)
 class StoreSettings:
-    """How a :class:`StoreSource` reads its store (``ServeConfig``'s ``store_read_timeout_s``,
-    ``store_max_attempts``, ``read_block_mb`` and ``cache_max_gb`` take their defaults from
-    here).
+    """Object store: how a corpus under a store prefix is read.
+
+    The one owner of these keys' defaults, help and checks (``docs/config.md``'s store keys are
+    generated from the fields made with ``setting``); ``ops.config.ServeConfig`` composes it,
+    and a :class:`StoreSource` reads it.
 
     Attributes:
-        read_timeout_s: seconds a store request may stay silent before it fails (then retried).
-        max_attempts: attempts per request (botocore ``standard`` retry mode for S3).
+        store_read_timeout_s: seconds a store request may stay silent before it fails (then retried).
+        store_max_attempts: attempts per request (botocore ``standard`` retry mode for S3), 1..20.
         read_block_mb: MiB fetched per request while decoding (one request for a clip smaller
             than this); at most four blocks per open video are kept.
         cache_max_gb: GiB of a bounded local cache of whole objects for corpora read every
             epoch (``cache_dir/objects``, least recently used removed first); 0 reads from the
             store every time.
+
+    Raises:
+        ValueError: naming the key, for a value out of its range.
     """
 
-    read_timeout_s: float = 20.0
-    max_attempts: int = 3
-    read_block_mb: float = 8.0
-    cache_max_gb: float = 0.0
+    store_read_timeout_s: float = setting(20.0, help="seconds a store request may stay unanswered before it fails "
+                                                     "(then retried)", flag="--store-read-timeout")
+    store_max_attempts: int = setting(3, help="attempts per store request (botocore standard retry mode: "
+                                              "exponential backoff on throttling, 5xx and connection errors)")
+    read_block_mb: float = setting(8.0, help="MiB fetched per store request while decoding (one request for a "
+                                             "smaller video)")
+    cache_max_gb: float = setting(0.0, help="GiB of whole store objects kept on local disk for corpora read every "
+                                            "epoch (least recently used removed first); 0 = off, read from the "
+                                            "store each time")
+
+    def __post_init__(self):
+        _set = object.__setattr__  # frozen: normalised once, here
+        _set(self, "store_read_timeout_s", check_float("store_read_timeout_s", self.store_read_timeout_s))
+        _set(self, "read_block_mb", check_float("read_block_mb", self.read_block_mb))
+        _set(self, "cache_max_gb", check_float("cache_max_gb", self.cache_max_gb, positive=False))
+        if self.cache_max_gb < 0:
+            raise ValueError(f"cache_max_gb must be >= 0 GiB (0 = no cache), got {self.cache_max_gb!r}")
+        check_int("store_max_attempts", self.store_max_attempts, 1, 20, "attempts")
 
 
 def store_root(url: str) -> str:
@@ -89,8 +110,8 @@ class StoreSource(VideoSource):
         return self._fs
 
     def _make_fs(self):
-        return make_filesystem(self.protocol, self.root, self.storage_options, self.settings.read_timeout_s,
-                               self.settings.max_attempts, self.stats)
+        return make_filesystem(self.protocol, self.root, self.storage_options, self.settings.store_read_timeout_s,
+                               self.settings.store_max_attempts, self.stats)
 
     def _path(self, rel: str) -> str:
         """The filesystem path of ``rel``: the key for object stores, the whole URL for http(s)."""
