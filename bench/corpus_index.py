@@ -72,13 +72,13 @@ def start(entries: int) -> dict:
             os.link(copies[-1], corpus / n)
         time.sleep(2 * RACY_NS / 1e9)
         cfg = ServeConfig(cache_dir=str(cache))
-        w = cfg.recipe.windows
+        w, d = cfg.recipe.windows, cfg.recipe.decode
         source = LocalSource(corpus, cache_dir=str(cache))
-        verdict = check_video(w, source, names[0])  # one real verdict, written for every link
+        verdict = check_video(w, d, source, names[0])  # one real verdict, written for every link
         db = sqlite3.connect(index_path(cache))
         with db:
             db.executemany("INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                           ((source.where(n), layout_key(w), source.listed_identity(n), verdict["frames"],
+                           ((source.where(n), layout_key(w, d), source.listed_identity(n), verdict["frames"],
                              verdict["windows"], 1, "", "[]", 596, 336, "h264", 25.0, json.dumps(verdict), 0.0)
                             for n in names))
         db.close()
@@ -86,7 +86,7 @@ def start(entries: int) -> dict:
         source = LocalSource(corpus, cache_dir=str(cache))  # a fresh start's source
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         t0 = time.perf_counter()
-        known = known_windows(w, source, names)
+        known = known_windows(w, d, source, names)
         s = time.perf_counter() - t0
         assert known.known == entries and known.samples == entries * verdict["windows"]
         return {"entries": entries, "seconds": round(s, 2), "us_per_video": round(s / entries * 1e6, 1),

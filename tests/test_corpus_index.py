@@ -45,22 +45,23 @@ def corpus(tmp_path, videos):
     return d
 
 
-WINDOWS = ServeConfig(sequence_length=8).recipe.windows  # 41-frame windows: every clip gives some
+RECIPE = ServeConfig(sequence_length=8).recipe  # 41-frame windows: every clip gives some
+WINDOWS = (RECIPE.windows, RECIPE.decode)  # what a pass reads: check_video's and layout_key's first arguments
 
 
 def test_a_second_check_answers_from_the_index_without_opening_a_video(corpus, tmp_path):
     cache = tmp_path / "cache"
     names = sorted(p.name for p in corpus.iterdir())
     first_src = CountingSource(corpus, cache_dir=str(cache))
-    first = check_corpus(WINDOWS, first_src, names)
+    first = check_corpus(*WINDOWS, first_src, names)
     assert sorted(first_src.opened) == names and all(r["usable"] for r in first)
     again_src = CountingSource(corpus, cache_dir=str(cache))  # another process, the same host
-    again = check_corpus(WINDOWS, again_src, names)
+    again = check_corpus(*WINDOWS, again_src, names)
     assert again_src.opened == [] and again == first
     # the file is plain SQLite: one row per video under this layout, with the verdict's facts
     with sqlite3.connect(cache / INDEX_FILE) as db:
         rows = db.execute("SELECT location, windows, frames, width, height, codec, cuts FROM entries "
-                          "WHERE layout = ? ORDER BY location", (layout_key(WINDOWS),)).fetchall()
+                          "WHERE layout = ? ORDER BY location", (layout_key(*WINDOWS),)).fetchall()
     assert [os.path.basename(r[0]) for r in rows] == names
     for r, c in zip(rows, sorted(first, key=lambda c: c["path"])):
         assert (r[1], r[2]) == (c["windows"], c["frames"]) and c["size"].startswith(f"{r[3]}x{r[4]} {r[5]}")
@@ -70,16 +71,16 @@ def test_a_second_check_answers_from_the_index_without_opening_a_video(corpus, t
 def test_a_rewritten_video_or_another_layout_is_read_again(corpus, tmp_path, videos):
     cache = tmp_path / "cache"
     src = CountingSource(corpus, cache_dir=str(cache))
-    before = check_video(WINDOWS, src, "bikes.mp4")
+    before = check_video(*WINDOWS, src, "bikes.mp4")
     shutil.copyfile(videos / "bbb_camera_596x336.mp4", corpus / "bikes.mp4")  # same name, other content
     settle()
-    after = check_video(WINDOWS, src, "bikes.mp4")
+    after = check_video(*WINDOWS, src, "bikes.mp4")
     assert src.opened == ["bikes.mp4", "bikes.mp4"]
     assert (after["frames"], after["cuts"]) != (before["frames"], before["cuts"])
-    assert after == check_video(WINDOWS, src, "bikes.mp4") and len(src.opened) == 2  # the new entry holds
-    other = ServeConfig(sequence_length=4).recipe.windows
-    assert layout_key(other) != layout_key(WINDOWS)
-    check_video(other, src, "bikes.mp4")
+    assert after == check_video(*WINDOWS, src, "bikes.mp4") and len(src.opened) == 2  # the new entry holds
+    other = ServeConfig(sequence_length=4).recipe
+    assert layout_key(other.windows, other.decode) != layout_key(*WINDOWS)
+    check_video(other.windows, other.decode, src, "bikes.mp4")
     assert len(src.opened) == 3 and len(CorpusIndex(cache / INDEX_FILE)) == 2
 
 
@@ -104,7 +105,7 @@ def test_an_unreadable_index_is_one_warning_and_the_check_goes_on(corpus, tmp_pa
     (cache / INDEX_FILE).write_bytes(b"this is not an SQLite file" * 100)
     src = CountingSource(corpus, cache_dir=str(cache))
     with caplog.at_level(logging.WARNING, logger="v2v"):
-        results = check_corpus(WINDOWS, src, ["bikes.mp4", "bbb_camera_596x336.mp4"])
+        results = check_corpus(*WINDOWS, src, ["bikes.mp4", "bbb_camera_596x336.mp4"])
     assert all(r["usable"] for r in results) and len(src.opened) == 2
     lines = [r.getMessage() for r in caplog.records if "corpus index" in r.getMessage()]
     assert len(lines) == 1 and str(cache / INDEX_FILE) in lines[0], lines
@@ -118,7 +119,8 @@ def test_the_ray_scan_counts_windows_from_the_index(corpus, tmp_path):
 
     cfg = ServeConfig(sequence_length=8, cache_dir=str(tmp_path / "cache"))
     first = scan_corpus_windows(corpus, cfg)
-    assert first.windows == {r["path"]: r["windows"] for r in check_corpus(cfg.recipe.windows, LocalSource(corpus),
+    assert first.windows == {r["path"]: r["windows"] for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode,
+                                                                           LocalSource(corpus),
                                                                            sorted(first.windows))}
     with sqlite3.connect(tmp_path / "cache" / INDEX_FILE) as db:
         loc = str(corpus / "bikes.mp4")

@@ -68,12 +68,12 @@ def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video
     want = _expected(corpus / video, height, cfg.keep_top_fraction, 12)
     with video_frames(cfg, LocalSource(corpus), video) as fp:
         got = [f.expand(f.codes).copy() for f in (next(fp.frames) for _ in range(12))]
-    assert got[0].shape == (cfg.windows.kept_rows(height), want[0].shape[1])
+    assert got[0].shape == (cfg.decode.kept_rows(height), want[0].shape[1])
     assert got[0].dtype == want[0].dtype == (np.uint16 if video == "ten_bit.mkv" else np.uint8)
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
     c, s, _ = open_video(corpus / video)  # the readers outside the sample pass (evaluation, benches)
-    first = next(decode_luma(c, s, cfg.windows.kept_rows, height)).copy()
+    first = next(decode_luma(c, s, cfg.decode.kept_rows, height)).copy()
     c.close()
     np.testing.assert_array_equal(first, want[0])
 
@@ -134,7 +134,7 @@ def test_the_kept_rows_read_source_rows_up_to_their_area_only(H, W, height, kept
 def test_frame_height_zero_is_the_decoded_frame(corpus):
     cfg = SampleRecipe(**SMALL)
     assert cfg.frame_height == 0
-    plain = [g[: cfg.windows.kept_rows(g.shape[0])].copy() for _, g in zip(range(5), iter_luma(corpus / "bikes.mp4"))]
+    plain = [g[: cfg.decode.kept_rows(g.shape[0])].copy() for _, g in zip(range(5), iter_luma(corpus / "bikes.mp4"))]
     with video_frames(cfg, LocalSource(corpus), "bikes.mp4") as fp:
         got = [f.expand(f.codes).copy() for f in (next(fp.frames) for _ in range(5))]
     for a, b in zip(got, plain):
@@ -179,7 +179,7 @@ def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
     cfg = SampleRecipe(sequence_length=4, num_bins=2, crop_size=16, max_samples_per_video=3, keep_top_fraction=1.0,
                       frame_height=40, shot_cuts="off")
     for name, fails in (("same_aspect.mpg", False), ("other_aspect.mpg", True)):
-        v = check_video(cfg.windows, LocalSource(d), name)
+        v = check_video(cfg.windows, cfg.decode, LocalSource(d), name)
         run = video_samples(cfg, LocalSource(d), name, 0, ("voxels",))
         served = list(run)
         assert bool(v.get("failed_windows")) == fails == bool(run.record().failed), (name, v, run.record())

@@ -57,7 +57,8 @@ def checked_ids(root, cfg: ServeConfig) -> list:
     from v2v_server.videos.local import LocalSource
 
     vids = [p.as_posix() for p in scan_corpus(root, cfg.video_extensions)[0]]
-    return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg.recipe.windows, LocalSource(root), vids)
+    return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode, LocalSource(root),
+                                                           vids)
                   for k in range(r["windows"]))
 
 

@@ -34,7 +34,8 @@ def _cuts(frames) -> list:
 
 @pytest.mark.parametrize("clip", sorted(LABELLED))
 def test_detector_finds_the_labelled_cuts(clip):
-    r = check_video(SampleRecipe(shot_cuts="off").windows, LocalSource(SAMPLE_VIDEOS), clip)
+    off = SampleRecipe(shot_cuts="off")
+    r = check_video(off.windows, off.decode, LocalSource(SAMPLE_VIDEOS), clip)
     assert r["cuts"] == LABELLED[clip]
 
 
@@ -67,10 +68,11 @@ def test_on_the_labelled_real_clip_every_kept_window_is_free_of_cuts():
     path, why = real_clip()
     if path is None:
         pytest.skip(why)
-    w = SampleRecipe(sequence_length=8, max_samples_per_video=1000).windows
-    r = check_video(w, LocalSource(path.parent), path.name)
+    recipe = SampleRecipe(sequence_length=8, max_samples_per_video=1000)
+    w = recipe.windows
+    r = check_video(w, recipe.decode, LocalSource(path.parent), path.name)
     assert r["frames"] == 5301 and set(REAL_CLIP_CUTS) <= set(r["cuts"])
-    kept = shot_windows(r["cuts"], r["frames"], w.frames_per_sample, w.max_windows)
+    kept = shot_windows(r["cuts"], r["frames"], w.frames_per_sample, w.max_samples_per_video)
     assert len(kept) == r["windows"] >= 40
     assert not [(s, c) for s in kept for c in REAL_CLIP_CUTS if s < c <= s + w.window_stride]
 
@@ -80,9 +82,10 @@ def edited(tmp_path_factory):
     """The edited clip of bundled footage (harness.shot_labels.edited_clip), encoded, and its windows."""
     root = tmp_path_factory.mktemp("edited")
     transitions = write_edited_clip(str(root / "edited.mp4"))
-    w = SampleRecipe(sequence_length=8, max_samples_per_video=100).windows
-    r = check_video(w, LocalSource(root), "edited.mp4")
-    return transitions, r, shot_windows(r["cuts"], r["frames"], w.frames_per_sample, w.max_windows), w
+    recipe = SampleRecipe(sequence_length=8, max_samples_per_video=100)
+    w = recipe.windows
+    r = check_video(w, recipe.decode, LocalSource(root), "edited.mp4")
+    return transitions, r, shot_windows(r["cuts"], r["frames"], w.frames_per_sample, w.max_samples_per_video), w
 
 
 def test_fast_pans_and_a_flash_stay_one_shot_and_cuts_and_fades_are_found(edited):
@@ -154,10 +157,11 @@ def test_served_windows_never_span_a_cut():
 
 def test_montages_give_no_window_and_check_says_why():
     cfg = SampleRecipe()
-    r = check_video(cfg.windows, LocalSource(SAMPLE_VIDEOS), "bikes.mp4")
+    r = check_video(cfg.windows, cfg.decode, LocalSource(SAMPLE_VIDEOS), "bikes.mp4")
     assert not r["usable"] and r["dropped"] == 5
     assert "5 shot cut(s): every shot is shorter than one window of 201 frames" in r["reason"]
-    table = format_check([r, check_video(cfg.windows, LocalSource(SAMPLE_VIDEOS), "bbb_camera_596x336.mp4")], [])
+    other = check_video(cfg.windows, cfg.decode, LocalSource(SAMPLE_VIDEOS), "bbb_camera_596x336.mp4")
+    table = format_check([r, other], [])
     assert "5 cut(s) at frame(s) 30, 76, 137, 187, 242" in table and "one shot" in table
     assert "5 shot cut(s) found, 5 window(s) removed by cuts" in table
 
@@ -226,7 +230,7 @@ def test_list_file_ranges_become_segments_and_bad_ones_are_named(segment_corpus)
     assert dict(rejected) == {"bikes.mp4#t=5,3": f"listed in {lst}: time range 5-3 s is reversed",
                               "bikes.mp4#t=4,4": f"listed in {lst}: time range 4-4 s is empty"}
     cfg = SampleRecipe(sequence_length=8)
-    beyond = check_video(cfg.windows, LocalSource(root, video_list=str(lst)), "bikes.mp4#t=30,40")
+    beyond = check_video(cfg.windows, cfg.decode, LocalSource(root, video_list=str(lst)), "bikes.mp4#t=30,40")
     assert not beyond["usable"] and beyond["reason"] == "no frame in the time range 30-40 s (the video lasts 10 s)"
 
 

@@ -43,8 +43,8 @@ def _served(recipe: SampleRecipe, source) -> tuple:
 def test_the_clip_holds_a_failed_window_that_a_cut_drops(corpus):
     """Without shot cuts avoided, a window holds the first size change; with, a cut falls inside
     that window after the change and drops it, and a later window still fails."""
-    off = check_video(_recipe("off").windows, LocalSource(corpus), CLIP)
-    avoid = check_video(_recipe("avoid").windows, LocalSource(corpus), CLIP)
+    off = check_video(_recipe("off").windows, _recipe("off").decode, LocalSource(corpus), CLIP)
+    avoid = check_video(_recipe("avoid").windows, _recipe("avoid").decode, LocalSource(corpus), CLIP)
     stride = _recipe("off").windows.window_stride
     first = off["failed_windows"][0]
     assert any(first * stride < c < (first + 1) * stride for c in avoid["cuts"]), (off, avoid)
@@ -55,7 +55,7 @@ def test_the_clip_holds_a_failed_window_that_a_cut_drops(corpus):
 @pytest.mark.parametrize("cached", [False, True])
 def test_check_and_the_samples_served_agree_window_by_window(corpus, tmp_path, shot_cuts, cached):
     recipe = _recipe(shot_cuts)
-    verdict = check_video(recipe.windows, LocalSource(corpus), CLIP)
+    verdict = check_video(recipe.windows, recipe.decode, LocalSource(corpus), CLIP)
     failed = verdict.get("failed_windows", [])
     source = open_source(str(corpus), cache_dir=str(tmp_path), frame_cache_gb=1.0) if cached else LocalSource(corpus)
     for _ in range(2 if cached else 1):  # the second pass replays the entry the first stored
@@ -71,7 +71,7 @@ def test_the_sample_pass_reports_the_windows_check_fails(corpus):
     """A dropped window's failure is forgotten (its index goes to the next window, which is
     served), so the pass's failed windows and verdict are ``--check``'s."""
     recipe = _recipe("avoid")
-    verdict = check_video(recipe.windows, LocalSource(corpus), CLIP)
+    verdict = check_video(recipe.windows, recipe.decode, LocalSource(corpus), CLIP)
     served, found = _served(recipe, LocalSource(corpus))
     assert sorted(found.failed) == verdict["failed_windows"], (verdict, found)
     assert found.windows == verdict["windows"] + len(verdict["failed_windows"])
@@ -81,7 +81,7 @@ def test_the_sample_pass_reports_the_windows_check_fails(corpus):
 def test_the_pass_record_is_what_a_corpus_index_keeps(corpus):
     """The record of a pass round-trips through JSON with the facts ``--check`` prints."""
     recipe = _recipe("avoid")
-    verdict = check_video(recipe.windows, LocalSource(corpus), CLIP)
+    verdict = check_video(recipe.windows, recipe.decode, LocalSource(corpus), CLIP)
     _, found = _served(recipe, LocalSource(corpus))
     kept = json.loads(json.dumps(found.to_dict()))
     assert kept["frames"] == verdict["frames"] and kept["cuts"] == verdict["cuts"] and kept["fps"] == 25.0

@@ -109,7 +109,7 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
     out = Collected(source=f"corpus {videos_arg}")
     usable = []
     for rel in names:
-        v = check_video(recipe.windows, source, rel)
+        v = check_video(recipe.windows, recipe.decode, source, rel)
         cuts = sorted(int(c) for c in v.get("cuts", []))
         bounds = [0] + cuts + [int(v.get("frames", 0))]
         out.videos.append({"path": rel, "size": v.get("size", ""), "frames": int(v.get("frames", 0)),

@@ -75,7 +75,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         log.info("shard %d/%d: %d of %d video file(s)", index, count, len(mine), len(videos))
         videos = mine
     if args.check:
-        results = check_corpus(cfg.recipe.windows, source, videos, cfg.workers)
+        results = check_corpus(cfg.recipe.windows, cfg.recipe.decode, source, videos, cfg.workers)
         print(format_check(results, rejected))
         if source.frame_cache is not None:
             print(cache_line(source, cfg, videos))
@@ -94,7 +94,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: --videos {source.root}: no video files ({', '.join(cfg.video_extensions)})"
               + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)
         return 2
-    known = known_windows(cfg.recipe.windows, source, videos)
+    known = known_windows(cfg.recipe.windows, cfg.recipe.decode, source, videos)
     if known.empty:  # gives no sample: not opened again while its identity holds
         log.info("%d video(s) not opened: the corpus index %s knows they give no window at this layout "
                  "(--check says why)", len(known.empty), index_path(source.cache_dir))

@@ -105,7 +105,7 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int,
     """
     w = cfg.recipe.windows
     if w.reads_frames or split_segment(rel)[1]:
-        r = check_video(w, source, rel)
+        r = check_video(w, cfg.recipe.decode, source, rel)
         return r["windows"], (None if r["usable"] else r["reason"])
     windows = WindowPass(w)
     error = None

@@ -279,17 +279,17 @@ class EpochScheduler:
         crops_per_window: samples per window (K of ``ids.py``).
         shuffle_seed: None: every epoch hands the videos out in the listing's order; an int:
             epoch ``e`` hands them out in ``batcher.video_order(videos, shuffle_seed, e)``.
-        max_windows: windows a file gives at most per epoch (``max_samples_per_video``; None:
-            no bound known), for :meth:`to_come` before a file's first pass ends.
+        max_samples_per_video: windows a file gives at most per epoch (None: no bound known),
+            for :meth:`to_come` before a file's first pass ends.
 
     Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
 
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = MAX_TASK_CRASHES,
                  lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1,
-                 shuffle_seed: Optional[int] = None, max_windows: Optional[int] = None):
+                 shuffle_seed: Optional[int] = None, max_samples_per_video: Optional[int] = None):
         self.videos, self.shuffle_seed = list(videos), shuffle_seed
-        self.max_windows = max_windows
+        self.max_samples_per_video = max_samples_per_video
         self.counts: Dict[str, int] = {}  # video -> samples its last complete pass gave (any epoch)
         self.known = frozenset(self.videos)
         self.max_epochs = epochs
@@ -343,13 +343,13 @@ class EpochScheduler:
 
     def to_come(self, epoch: int, limit: int) -> Optional[int]:
         """How many samples ``epoch`` can still make (``EpochPlan.to_come``: each queued
-        or running file's count from this epoch's or an earlier pass, else ``max_windows x
+        or running file's count from this epoch's or an earlier pass, else ``max_samples_per_video x
         crops_per_window``); a number > ``limit`` means at least that many, None means unknown.
         0 for an epoch not open."""
         p = self.plans.get(epoch)
         if p is None:
             return 0
-        per_video = None if self.max_windows is None else self.max_windows * self.crops_per_window
+        per_video = None if self.max_samples_per_video is None else self.max_samples_per_video * self.crops_per_window
         return p.to_come(self.counts, per_video, limit)
 
     def prune(self, forgettable: Iterable[int]) -> None:

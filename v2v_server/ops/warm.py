@@ -13,7 +13,7 @@ from typing import List, Optional, Sequence
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_frames
 from v2v_server.videos.corpus import record_pass
-from v2v_server.videos.frames import lookup_entry
+from v2v_server.videos.frames import entry_settings, lookup_entry
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import map_videos
 from v2v_server.videos.window_pass import WindowPass
@@ -36,7 +36,8 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
         error = e
         out["state"] = f"not stored: {type(e).__name__}: {e}"
     out["frames"] = windows.frames
-    record_pass(cfg.recipe.windows, source, rel, windows.record(error))  # the next start knows its windows
+    # the next start knows its windows
+    record_pass(cfg.recipe.windows, cfg.recipe.decode, source, rel, windows.record(error))
     st = source.take_stats().get("frame_cache", {})
     out["bytes"] = int(st.get("bytes_written", 0))
     if out["state"]:
@@ -60,7 +61,7 @@ def warm_cache(cfg: ServeConfig, source: VideoSource, videos: List[str]) -> List
     """
     if source.frame_cache is None:
         raise ValueError("--warm-cache needs a frame cache: give frame_cache_gb > 0 (and cache_dir)")
-    return map_videos(warm_video, cfg, source, videos, cfg.workers)
+    return map_videos(warm_video, (cfg,), source, videos, cfg.workers)
 
 
 def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] = ()) -> str:
@@ -74,7 +75,7 @@ def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] 
     if cfg is None or not videos:
         return line
     hits = 0
-    settings = cfg.recipe.windows.frame_settings()
+    settings = entry_settings(cfg.recipe.decode, cfg.recipe.windows)
     for rel in videos:
         try:
             entry = lookup_entry(fc, source, rel, settings)[2]

@@ -434,11 +434,10 @@ def video_frames(recipe: SampleRecipe, source: VideoSource, rel_path: str):
     """A context manager giving the ``frames.FramePass`` a sample pass reads from the video at
     ``rel_path`` of ``source`` (a ``VideoSource``): replayed from the source's frame
     cache when it holds the video, else decoded (and stored): the kept rows, the frames the
-    windows need (``WindowSettings.frame_limit``). ``v2v-serve --warm-cache`` reads the same pass.
+    windows need (``WindowSettings.frame_limit``), decoded as ``recipe.decode`` says
+    (``frames.open_frames``). ``v2v-serve --warm-cache`` reads the same pass.
 
     Raises:
         VideoError: the file cannot be opened.
     """
-    w = recipe.windows
-    return open_frames(source, rel_path, w.kept_rows, w.decode_threads, w.decode_fast,
-                       w.frame_settings(), w.frame_limit, w.window_stride, w.frame_height, detect=w.avoid_cuts)
+    return open_frames(source, rel_path, recipe.decode, recipe.windows)

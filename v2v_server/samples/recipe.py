@@ -3,7 +3,8 @@
 Defaults follow the paper's WebVid recipe (Lou et al. 2025, Sec. 4). The recipe owns the default,
 help text and checks of each of its keys (``docs/config.md`` is generated from them); the stages
 below get the parts they read: the videos stage a ``videos.windows.WindowSettings``
-(:attr:`SampleRecipe.windows`), the simulation the sensor ranges (``simulation.simulate.ParamRanges``),
+(:attr:`SampleRecipe.windows`) and a ``videos.frames.DecodeSettings`` (:attr:`SampleRecipe.decode`),
+the simulation the sensor ranges (``simulation.simulate.ParamRanges``),
 the flow the option's name. ``v2v_server.ops.config.ServeConfig`` composes it with the serving
 settings; a worker process is given the recipe alone (:meth:`SampleRecipe.recipe_dict`).
 """
@@ -21,6 +22,7 @@ from v2v_server.flow.options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, un
 from v2v_server.settings import setting
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
+from v2v_server.videos.frames import DecodeSettings
 from v2v_server.videos.shots import DETECTOR_VERSION, SHOT_CUTS
 from v2v_server.videos.motion import MOTION_VERSION, STATIC_MOTION
 from v2v_server.videos.windows import STATIC_WINDOWS, WindowSettings
@@ -94,11 +96,15 @@ class SampleRecipe:
 
     @cached_property
     def windows(self) -> WindowSettings:
-        """The videos stage's settings of this recipe (where windows lie, which frames a pass
-        reads): ``videos.windows.WindowSettings``, built (and checked) once, by ``__post_init__``."""
-        return WindowSettings(self.frames_per_sample, self.max_samples_per_video, self.shot_cuts,
-                              self.keep_top_fraction, self.crop_size, self.frame_height, self.decode_threads,
-                              self.decode_fast, self.static_windows)
+        """Where this recipe's windows lie (and so which frames a pass reads), the videos stage's
+        ``videos.windows.WindowSettings``, built (and checked) once, by ``__post_init__``."""
+        return WindowSettings(self.frames_per_sample, self.max_samples_per_video, self.shot_cuts, self.static_windows)
+
+    @cached_property
+    def decode(self) -> DecodeSettings:
+        """How this recipe's frames are decoded (kept rows, scale, threads, shortcut), the videos
+        stage's ``videos.frames.DecodeSettings``, built (and checked) once, by ``__post_init__``."""
+        return DecodeSettings(self.keep_top_fraction, self.frame_height, self.decode_threads, self.decode_fast)
 
     @cached_property
     def refine_spec(self):
@@ -152,14 +158,16 @@ class SampleRecipe:
 
     def __post_init__(self):
         """Check the recipe's fields (``ValueError`` names the first bad one) and normalise them;
-        builds :attr:`windows`, which checks the fields the videos stage reads."""
+        builds :attr:`windows` and :attr:`decode`, which check the fields the videos stage reads."""
         _set = object.__setattr__  # a frozen recipe normalises its own fields once, here
         for name in ("sequence_length", "num_bins", "frames_per_bin", "crops_per_window"):
             check_int(name, getattr(self, name), 1)
         check_int("seed", self.seed, 0)
         for name in ("hflip_prob", "p_pause_when_running", "p_pause_when_paused"):
             _set(self, name, check_prob(name, getattr(self, name)))
-        self.windows  # built once here, which checks the fields the videos stage reads (crop_size, frame_height, ...)
+        self.windows  # built once here, which checks the window fields (frames_per_sample, shot_cuts, ...)
+        self.decode  # and the decoding fields (keep_top_fraction, frame_height, ...)
+        check_int("crop_size", self.crop_size, 8, 4096, "pixels")
         if self.frame_height and math.floor(self.frame_height * self.keep_top_fraction) < self.crop_size:
             raise ValueError(f"frame_height {self.frame_height} keeps {math.floor(self.frame_height * self.keep_top_fraction)}"
                              f" rows (keep_top_fraction {self.keep_top_fraction}), fewer than crop_size "

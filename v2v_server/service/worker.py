@@ -209,7 +209,7 @@ def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socke
                                 f"{task.epoch}, {after}")
     found = run.record(error)
     clock.made()  # decoding after the last window
-    record_pass(cfg.windows, source, task.video, found)  # the next start knows its windows (corpus index)
+    record_pass(cfg.windows, cfg.decode, source, task.video, found)  # the next start knows its windows (corpus index)
     done = Done(task.task, found.windows,
                 {str(k): str(v) for k, v in found.failed.items()},  # window -> reason, one by one
                 found.reason(cfg.windows),  # the file's verdict, failed windows aside

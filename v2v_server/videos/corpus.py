@@ -11,7 +11,7 @@ from typing import Dict, List, NamedTuple, Sequence, Tuple
 from v2v_server.faults import warn_once
 from v2v_server.videos.corpus_index import layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
-from v2v_server.videos.frames import FramePass, PassFrame
+from v2v_server.videos.frames import DecodeSettings, FramePass, PassFrame
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector
 from v2v_server.videos.source import VideoSource
@@ -67,19 +67,20 @@ def corpus_fingerprint(videos: List[str]) -> str:
 VFR_SPREAD = 0.1
 
 
-def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
+def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str) -> dict:
     """Verdict for one file of ``source`` (the corpus): ``{"path", "usable", "windows", "frames", "size", "reason",
     "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
     says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
     made, ``more`` when decoding stopped with every window complete, ``variable_rate`` when the
     frames read are unevenly spaced in time): the window pass's record
-    (``window_pass.VideoPass.verdict``) of the frames the workers cut (scaled, kept rows),
-    scored by the same detector; a frame's size in a message is the whole displayed frame's.
+    (``window_pass.VideoPass.verdict``, windows laid out by ``windows``) of the frames the
+    workers cut (scaled and kept rows as ``decode`` says), scored by the same detector; a
+    frame's size in a message is the whole displayed frame's.
 
     Answered from the host's corpus index (``source.corpus_index()``) while the file's identity
     holds, else by decoding it; a verdict that decoding reached without an error (a read
     failure may be passing) is recorded there for the next pass."""
-    index, where, key, identity = source.corpus_index(), source.where(rel), layout_key(windows), None
+    index, where, key, identity = source.corpus_index(), source.where(rel), layout_key(windows, decode), None
     if index is not None:
         try:
             identity = source.identity(rel)
@@ -93,7 +94,7 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
 
     def rows(h: int) -> int:  # the rows the sample pass scores and cuts
         shown["h"] = h
-        return windows.kept_rows(h)
+        return decode.kept_rows(h)
 
     found = WindowPass(windows, lambda y: (shown.get("h", y.shape[0]), y.shape[1]))
     times: list = []  # presentation times, for a variable frame rate
@@ -103,7 +104,7 @@ def check_video(windows: WindowSettings, source: VideoSource, rel: str) -> dict:
             container, stream, info = open_video(path)
             detector = ShotDetector()
             frames = (PassFrame(y, expand, detector.score(y, expand))
-                      for y, expand in decode_codes(container, stream, rows, windows.frame_height, times,
+                      for y, expand in decode_codes(container, stream, rows, decode.frame_height, times,
                                                     split_segment(rel)[1]))
             for _ in found.over(FramePass(info, 0, frames, False)):
                 pass
@@ -137,7 +138,8 @@ def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> dict:
     return out
 
 
-def record_pass(windows: WindowSettings, source: VideoSource, rel: str, record: VideoPass) -> bool:
+def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str,
+                record: VideoPass) -> bool:
     """Keep what a sample pass or ``--warm-cache`` found of the video at ``rel`` in the host's
     corpus index, so that the server's next start knows its windows without ``--check``: when
     the pass ran whole (no error), with shot detection (``shot_cuts: avoid``: an entry holds
@@ -150,7 +152,7 @@ def record_pass(windows: WindowSettings, source: VideoSource, rel: str, record: 
     index = source.corpus_index()
     if index is None:
         return False
-    where, key, identity = source.where(rel), layout_key(windows), source.listed_identity(rel)
+    where, key, identity = source.where(rel), layout_key(windows, decode), source.listed_identity(rel)
     try:
         if identity is None or index.lookup(where, identity, key) is not None:
             return False
@@ -171,27 +173,30 @@ class KnownWindows(NamedTuple):
     empty: Dict[str, str]
 
 
-def known_windows(windows: WindowSettings, source: VideoSource, videos: Sequence[str]) -> KnownWindows:
-    """What the host's corpus index knows of ``videos`` under the layout of ``windows``, each
-    video's identity unchanged (``source.listed_identity``: a file's status, a store's listing,
-    no request per object). The server reads it at start: an epoch's size when every video is
-    known, and the videos not worth opening. Nothing is known without an index."""
+def known_windows(windows: WindowSettings, decode: DecodeSettings, source: VideoSource,
+                  videos: Sequence[str]) -> KnownWindows:
+    """What the host's corpus index knows of ``videos`` under the layout of ``windows`` and
+    ``decode`` (``corpus_index.layout_key``), each video's identity unchanged
+    (``source.listed_identity``: a file's status, a store's listing, no request per object).
+    The server reads it at start: an epoch's size when every video is known, and the videos not
+    worth opening. Nothing is known without an index."""
     index = source.corpus_index()
     known, samples, empty = 0, 0, {}
     if index is None:
         return KnownWindows(0, 0, empty)
     for rel, n, reason in index.windows(((rel, source.where(rel), source.listed_identity(rel)) for rel in videos),
-                                        layout_key(windows)):
+                                        layout_key(windows, decode)):
         known, samples = known + 1, samples + n
         if n == 0:
             empty[rel] = reason
     return KnownWindows(known, samples, empty)
 
 
-def check_corpus(windows: WindowSettings, source: VideoSource, videos: List[str], processes: int = 1) -> List[dict]:
+def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, videos: List[str],
+                 processes: int = 1) -> List[dict]:
     """``check_video`` for every file of ``source``, in ``processes`` processes (``source``
     itself in this one, or built once in each of them from its ``spec()``)."""
-    return map_videos(check_video, windows, source, videos, processes)
+    return map_videos(check_video, (windows, decode), source, videos, processes)
 
 
 def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:

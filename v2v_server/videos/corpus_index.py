@@ -13,8 +13,8 @@ offset and size), the frame cache's rule: a video rewritten in place gets a new 
 video whose identity cannot vouch for its content (changed within the file system's timestamp
 resolution of now, an object without a version tag) is neither stored nor answered from the
 index. The window layout is :func:`layout_key`: every setting that moves a window or changes a
-verdict (``WindowSettings.frame_settings``, ``shot_cuts``, ``crop_size``), so one video has one
-entry per layout it was read under.
+verdict (``frames.entry_settings``, ``shot_cuts``), so one video has one entry per layout it was
+read under.
 """
 from __future__ import annotations
 
@@ -26,8 +26,10 @@ import time
 from pathlib import Path
 from typing import Dict, Iterable, Iterator, Optional, Tuple, Union
 
+from v2v_server.videos.frames import DecodeSettings, entry_settings
 from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.shots import DETECTOR_VERSION
+from v2v_server.videos.windows import WindowSettings
 
 #: The index's file name under the cache folder.
 INDEX_FILE = "corpus_index.sqlite"
@@ -38,7 +40,7 @@ INDEX_VERSION = 1
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS entries (
     location TEXT NOT NULL,      -- where the video lives (VideoSource.where: a path or URL, a member, a segment)
-    layout TEXT NOT NULL,        -- layout_key(WindowSettings)
+    layout TEXT NOT NULL,        -- layout_key(windows, decode)
     identity TEXT NOT NULL,      -- VideoSource.identity when the entry was written
     frames INTEGER NOT NULL,     -- frames read (decoding stops once the last window is complete)
     windows INTEGER NOT NULL,    -- samples per epoch (windows that can be made)
@@ -57,12 +59,12 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 _SIZE = re.compile(r"^(\d+)x(\d+) (\S+) \S+ ([0-9.e+-]+) fps$")
 
 
-def layout_key(w) -> str:
-    """The window layout of an index entry: a short hash (16 hex digits) of the settings of the
-    ``windows.WindowSettings`` ``w`` that move a window or change a verdict
-    (``w.frame_settings()``, ``shot_cuts``, ``crop_size``), and the shot detector (an entry holds
-    the cuts it found, whatever ``shot_cuts`` is)."""
-    settings = {**w.frame_settings(), "shot_cuts": w.shot_cuts, "crop_size": w.crop_size, "shots": DETECTOR_VERSION}
+def layout_key(windows: WindowSettings, decode: DecodeSettings) -> str:
+    """The window layout of an index entry: a short hash (16 hex digits) of the settings that
+    move a window or change a verdict (the frames a pass reads, ``frames.entry_settings``, and
+    ``windows.shot_cuts``), and the shot detector (an entry holds the cuts it found, whatever
+    ``shot_cuts`` is)."""
+    settings = {**entry_settings(decode, windows), "shot_cuts": windows.shot_cuts, "shots": DETECTOR_VERSION}
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -89,14 +89,14 @@ class CorruptEntry(RuntimeError):
     frame and why)."""
 
 
-def decode_settings(decode_fast: str, keep_top_fraction: float, frames_per_sample: int, max_windows: int,
+def decode_settings(decode_fast: str, keep_top_fraction: float, frames_per_sample: int, max_samples_per_video: int,
                     frame_height: int = 0) -> dict:
     """What, beside the source, decides the frames an entry holds: the decoder shortcut
     (``decode_fast``), the frame scale (``frame_height``, 0 = as decoded), the rows kept, and
-    how many frames a pass decodes (windows of ``frames_per_sample``, at most ``max_windows``);
-    part of the entry's name."""
+    how many frames a pass decodes (windows of ``frames_per_sample``, at most
+    ``max_samples_per_video``, named ``max_windows`` in the entry's settings); part of the entry's name."""
     settings = {"v": VERSION, "decode_fast": decode_fast, "keep_top_fraction": float(keep_top_fraction),
-                "frames_per_sample": int(frames_per_sample), "max_windows": int(max_windows)}
+                "frames_per_sample": int(frames_per_sample), "max_windows": int(max_samples_per_video)}
     if frame_height:  # unscaled entries keep the names they had before frames could be scaled
         settings["frame_height"] = int(frame_height)
     return settings

@@ -6,6 +6,10 @@ Either way the cutter gets ``(codes, expand, cut)`` per frame (``PassFrame``), t
 ``decode.decode_codes`` yields them:
 decoded frames carry the stream's code -> full-range map, cached ones are already full range
 (``expand`` is ``decode.full_range``, the identity). Expansion is per pixel, so the cutter's samples are the same.
+
+How frames are decoded (kept rows, scale, threads, shortcut) is this stage's
+:class:`DecodeSettings`; where windows lie, and so how many frames a pass reads, is
+``windows.WindowSettings``; both together name a frame-cache entry (:func:`entry_settings`).
 """
 from __future__ import annotations
 
@@ -13,17 +17,72 @@ import contextlib
 import itertools
 import math
 import os
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Callable, Iterator, NamedTuple, Optional, Tuple
 
 import numpy as np
 
-from v2v_server.videos.decode import Rows, VideoInfo, decode_codes, full_range, open_video
-from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache
+from v2v_server.checks import check_choice, check_int
+from v2v_server.videos.decode import DECODE_FAST, VideoInfo, decode_codes, full_range, open_video
+from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache, decode_settings
+from v2v_server.videos.motion import MOTION_VERSION, STATIC_MOTION
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector
+from v2v_server.videos.windows import WindowSettings
 
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
+
+#: Largest frame_height (8K UHD).
+MAX_FRAME_HEIGHT = 4320
+
+
+@dataclass(frozen=True)
+class DecodeSettings:
+    """How a pass decodes a video's frames, wherever its windows lie. The defaults have one
+    owner, the sample recipe (``v2v_server.samples.recipe.SampleRecipe``), which builds one for
+    this stage; the checks of these values are here.
+
+    Attributes:
+        keep_top_fraction: share of a displayed frame's height kept from the top, in (0, 1].
+        frame_height: scale decoded frames to this height, pixels (0 = as decoded, at most
+            ``MAX_FRAME_HEIGHT``).
+        decode_threads: FFmpeg threads per pass (>= 1).
+        decode_fast: the decoder shortcut, ``decode.DECODE_FAST``.
+
+    Raises:
+        ValueError: naming the field, for a value out of its range.
+    """
+
+    keep_top_fraction: float
+    frame_height: int
+    decode_threads: int
+    decode_fast: str
+
+    def __post_init__(self):
+        if not isinstance(self.keep_top_fraction, (int, float)) or isinstance(self.keep_top_fraction, bool) \
+                or not (0 < self.keep_top_fraction <= 1):
+            raise ValueError(f"keep_top_fraction must be in (0, 1], got {self.keep_top_fraction!r}")
+        check_int("frame_height", self.frame_height, 0, MAX_FRAME_HEIGHT, "pixels; 0 = no scaling")
+        check_int("decode_threads", self.decode_threads, 1)
+        check_choice("decode_fast", self.decode_fast, tuple(DECODE_FAST))
+
+    def kept_rows(self, height: int) -> int:
+        """Rows kept from the top of a displayed frame of ``height`` pixels (:func:`kept_rows`)."""
+        return kept_rows(self.keep_top_fraction, height)
+
+
+def entry_settings(decode: DecodeSettings, windows: WindowSettings) -> dict:
+    """The settings that change the frames a pass reads (``frame_cache.decode_settings``): what,
+    with the corpus and the video, names a frame-cache entry. With ``shot_cuts: avoid`` the entry
+    holds the frames up to the last window and the cuts this detector found; with
+    ``static_windows: skip``, the frames of the windows that replace static ones."""
+    settings = decode_settings(decode.decode_fast, decode.keep_top_fraction, windows.frames_per_sample,
+                               windows.max_samples_per_video, decode.frame_height)
+    if windows.avoid_cuts:
+        settings["shots"] = DETECTOR_VERSION
+    if windows.skip_static:
+        settings["static"] = f"{MOTION_VERSION}<{STATIC_MOTION}"
+    return settings
 
 
 class PassFrame(NamedTuple):
@@ -131,25 +190,25 @@ def lookup_entry(cache: FrameCache, source, rel: str, settings: dict
 
 
 @contextlib.contextmanager
-def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings: dict,
-                limit_of: Callable[[int], int], stride: int, height: int = 0, detect: bool = False
-                ) -> Iterator[FramePass]:
-    """The frames of video ``rel`` of ``source`` (a ``videos.source.VideoSource``), from its
-    frame cache (``source.frame_cache``, None when off) or decoded with ``threads`` and
-    ``fast`` (``decode.open_video``), scaled to ``height`` rows when not 0 and top ``rows`` of
-    that kept (``decode.decode_codes``). ``settings``: the decode settings
-    that name the entry (``frame_cache.decode_settings``); ``limit_of(declared)``: frames the
-    pass needs; ``stride``: frames between windows; ``detect``: find the shot cuts
-    (``shots.ShotDetector`` on the kept rows; stored with the entry, so a replay finds none again).
+def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSettings) -> Iterator[FramePass]:
+    """The frames of video ``rel`` of ``source`` (a ``videos.source.VideoSource``) that a pass
+    over ``windows`` reads (``WindowSettings.frame_limit`` of the declared count), from its frame
+    cache (``source.frame_cache``, None when off; the entry named by :func:`entry_settings`) or
+    decoded as ``decode`` says (``decode.open_video``, ``decode.decode_codes``: scaled to
+    ``frame_height`` rows when not 0, the kept rows of that). With ``shot_cuts: avoid`` the shot
+    cuts are found (``shots.ShotDetector`` on the kept rows; stored with the entry, so a replay
+    finds none again).
 
     Raises:
         VideoError: the video cannot be opened or decoded (as ``source.open``, ``open_video``).
     """
+    rows, threads, fast, height = decode.kept_rows, decode.decode_threads, decode.decode_fast, decode.frame_height
+    limit_of, detect = windows.frame_limit, windows.avoid_cuts
     cache: Optional[FrameCache] = source.frame_cache
     name = identity = None
     segment = split_segment(rel)[1]  # a segment: its time range of the video
     if cache is not None:
-        name, identity, entry = lookup_entry(cache, source, rel, settings)
+        name, identity, entry = lookup_entry(cache, source, rel, entry_settings(decode, windows))
         if entry is not None:
             declared = int(entry.meta["declared"])
             limit = limit_of(declared)
@@ -173,7 +232,8 @@ def open_frames(source, rel: str, rows: Rows, threads: int, fast: str, settings:
         declared = 0 if segment else int(getattr(stream, "frames", 0) or 0)  # a segment: unknown
         writer = None
         if cache is not None and identity is not None:  # a racy identity is never stored
-            writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared}, stride)
+            writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared},
+                                  windows.window_stride)
         yield FramePass.decoded(info, declared, decode_codes(container, stream, rows, height, segment=segment),
                                 limit_of(declared), writer, detect)
 

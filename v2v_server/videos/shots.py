@@ -262,7 +262,7 @@ class WindowLayout:
     @property
     def key(self) -> str:
         """What places the windows, as a record's key: ``"span=S,windows=N,cuts=avoid|off"`` (the
-        cuts themselves depend on the frames: ``WindowSettings.frame_settings`` names them)."""
+        cuts themselves depend on the frames: ``frames.entry_settings`` names them)."""
         return (f"span={self.span},windows={self.max_windows},cuts={'avoid' if self.avoid_cuts else 'off'}"
                 + (",static=skip" if self.skip_static else ""))
 

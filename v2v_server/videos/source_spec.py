@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 from pathlib import Path
-from typing import Any, Callable, List, Optional, Sequence, Tuple, TypeVar, Union
+from typing import Callable, List, Optional, Sequence, Tuple, TypeVar, Union
 
 from v2v_server.videos.frame_cache import DEFAULT_FORMAT, FrameCache
 from v2v_server.videos.local import LocalSource
@@ -53,28 +53,28 @@ def source_from_spec(spec: dict) -> VideoSource:
     return open_source(spec.pop("root"), frame_cache=FrameCache(**fc) if fc is not None else None, **spec)
 
 
-#: A pool process's job of :func:`map_videos`: the function, its first argument and the source
+#: A pool process's job of :func:`map_videos`: the function, its leading arguments and the source
 #: built once at the process's start (building a source opens its filesystem client and reads
 #: its manifest and tar indexes: not once per video).
-_job: Optional[Tuple[Callable, Any, VideoSource]] = None
+_job: Optional[Tuple[Callable, tuple, VideoSource]] = None
 
 
-def _start_job(fn: Callable, arg: Any, spec: dict) -> None:
+def _start_job(fn: Callable, args: tuple, spec: dict) -> None:
     global _job
-    _job = (fn, arg, source_from_spec(spec))
+    _job = (fn, args, source_from_spec(spec))
 
 
 def _run_job(rel: str):
-    fn, arg, source = _job
-    return fn(arg, source, rel)
+    fn, args, source = _job
+    return fn(*args, source, rel)
 
 
-def map_videos(fn: Callable[[Any, VideoSource, str], T], arg: Any, source: VideoSource, videos: Sequence[str],
+def map_videos(fn: Callable[..., T], args: tuple, source: VideoSource, videos: Sequence[str],
                processes: int) -> List[T]:
-    """``[fn(arg, source, rel) for rel in videos]`` in ``processes`` spawned processes, each of
-    which builds the source once from ``source.spec()`` (``fn`` and ``arg`` must pickle); in
+    """``[fn(*args, source, rel) for rel in videos]`` in ``processes`` spawned processes, each of
+    which builds the source once from ``source.spec()`` (``fn`` and ``args`` must pickle); in
     this process, through ``source`` itself, when ``processes`` <= 1 or there is one video."""
     if processes <= 1 or len(videos) <= 1:
-        return [fn(arg, source, rel) for rel in videos]
-    with mp.get_context("spawn").Pool(min(processes, len(videos)), _start_job, (fn, arg, source.spec())) as pool:
+        return [fn(*args, source, rel) for rel in videos]
+    with mp.get_context("spawn").Pool(min(processes, len(videos)), _start_job, (fn, args, source.spec())) as pool:
         return pool.map(_run_job, videos, chunksize=1)
