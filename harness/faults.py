@@ -56,8 +56,8 @@ def expected_ids(corpus: Path, layout: Layout, exclude=()) -> List[str]:
     """Every sample id one epoch of ``corpus`` holds, from ``--check``'s verdicts."""
     vids = [p.as_posix() for p in scan_corpus(corpus, layout.cfg().video_extensions)[0]]
     vids = [v for v in vids if v not in exclude]
-    out = []
-    for r in check_corpus(layout.cfg().recipe.windows, layout.cfg().recipe.decode, LocalSource(corpus), vids):
+    out, recipe = [], layout.cfg().recipe
+    for r in check_corpus(recipe.windows, recipe.decode, LocalSource(corpus), vids):
         failed = set(r.get("failed_windows", ()))  # windows --check says cannot be made (e.g. frame size changes)
         out += [f"{r['path']}#{k}" for k in range(r["windows"] + len(failed)) if k not in failed]
     return sorted(out)
