@@ -31,22 +31,23 @@ class ClientSide:
         cfg: the server's ``ServeConfig``.
         core: the delivery core.
         metrics: counters of batches, bytes, leases and bad messages.
-        assembler: the batch buffers (its ``files`` are what shared-memory clients read).
         stream_info: ``() -> dict``, the ``info`` of a welcome.
 
-    ``attach(frontend)`` once the socket is bound.
+    ``attach(frontend, assembler)`` once the socket is bound (``assembler``: the batch
+    buffers; its ``files`` are what shared-memory clients read).
     """
 
-    def __init__(self, cfg: ServeConfig, core: DeliveryCore, metrics: ServerMetrics, assembler: BatchAssembler,
+    def __init__(self, cfg: ServeConfig, core: DeliveryCore, metrics: ServerMetrics,
                  stream_info: Callable[[], dict]):
-        self.cfg, self.core, self.metrics, self.assembler, self.stream_info = cfg, core, metrics, assembler, stream_info
+        self.cfg, self.core, self.metrics, self.stream_info = cfg, core, metrics, stream_info
+        self.assembler: Optional[BatchAssembler] = None
         self.frontend: Optional[zmq.Socket] = None
         self.bad = BadPeers()
         self.shm_clients: set = set()  # idents whose hello asked for shared-memory batches
         self.compression: Dict[bytes, str] = {}  # ident -> the compression its hello asked for
 
-    def attach(self, frontend: zmq.Socket) -> None:
-        self.frontend = frontend
+    def attach(self, frontend: zmq.Socket, assembler: BatchAssembler) -> None:
+        self.frontend, self.assembler = frontend, assembler
 
     def socket_codecs(self) -> List[str]:
         """The codecs connected clients asked for over sockets (what workers compress with)."""
@@ -77,7 +78,7 @@ class ClientSide:
             if b.batch_id < 0:
                 header["padding"] = True  # DDP: a repeat for a rank that has nothing to repeat; never acked
             try:
-                self.frontend.send_multipart([ident, pack(header)] + frames, copy=False)
+                b.payload.send(self.frontend, [ident, pack(header)], frames)
             except zmq.ZMQError as e:  # peer vanished (ROUTER_MANDATORY)
                 log.warning("client %s unreachable (%s); dropping it", ident.hex(), e)
                 self.core.forget(ident)

@@ -105,13 +105,12 @@ class V2VServer:
         self._ended_at: Optional[float] = None  # since when the stream ended with no trainer connected
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
-        self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
-        self.assembler.on_error = lambda path, e: self.metrics.on_fs_error("shm", path, e)
+        self.assembler: Optional[BatchAssembler] = None  # built once the bind says where its buffers live
         self._resent_seen = 0  # ledger.resent already counted
-        self.workers = WorkerSide(cfg, self.source, self.core, self.metrics, self.assembler)
+        self.workers = WorkerSide(cfg, self.source, self.core, self.metrics)
         for video, why in (skipped or {}).items():  # known to give no window: logged and counted as if read
             self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)")
-        self.clients = ClientSide(cfg, self.core, self.metrics, self.assembler, self.stream_info)
+        self.clients = ClientSide(cfg, self.core, self.metrics, self.stream_info)
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -126,12 +125,15 @@ class V2VServer:
             if self.cfg.metrics_port is not None:
                 self.metrics.serve(self.cfg.metrics_host, self.cfg.metrics_port)
             self.bound_endpoint = self.sockets.bind(self.cfg)
-            if self.bound_endpoint.startswith("ipc://"):  # trainers on this host: batch buffers in /dev/shm
-                self.assembler.files = BatchDir.create()
+            # shared-memory samples go straight into batch rows; for trainers on this host
+            # (ipc://) the batch buffers are files in /dev/shm they read
+            self.assembler = BatchAssembler(self.cfg.batch_size, files=BatchDir.create() if self.bound_endpoint
+                                            .startswith("ipc://") else None,
+                                            on_error=lambda path, e: self.metrics.on_fs_error("shm", path, e))
             self.pool = WorkerPool(worker_config(self.cfg), self.source.spec(), self.sockets.backend_endpoint,
                                    self.cfg.workers)
-            self.workers.attach(self.backend, self.pool)
-            self.clients.attach(self.frontend)
+            self.workers.attach(self.backend, self.pool, self.assembler)
+            self.clients.attach(self.frontend, self.assembler)
             self.pool.start()
             rings = any(w.ring is not None for w in self.pool.workers.values())
             log.info("serving %d video(s) from %s on %s with %d worker(s); samples travel %s",
@@ -151,7 +153,8 @@ class V2VServer:
             self.workers.stop()
         if getattr(self, "sockets", None) is not None:
             self.sockets.close()
-        self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
+        if self.assembler is not None:
+            self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
         if self.journal is not None:
             self.journal.close()
         self._count_resent()
