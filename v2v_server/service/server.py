@@ -44,6 +44,7 @@ from v2v_server.service.worker import worker_config
 from v2v_server.service.sockets import ServerSockets
 from v2v_server.service.worker_side import WorkerSide
 from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION
+from v2v_wire.stream_messages import End, Heartbeat, ServerError, Shutdown
 
 log = logging.getLogger("v2v.server")
 
@@ -182,7 +183,7 @@ class V2VServer:
         for ident in list(self.ledger.clients):  # a send to a peer gone drops it from the ledger
             if ident not in self._told_end:
                 self._told_end.add(ident)
-                self.clients.send(ident, {"type": "end"})
+                self.clients.send(ident, End())
         if self.ledger.clients:
             self._ended_at = None
             return False
@@ -230,7 +231,7 @@ class V2VServer:
                 if self.journal is not None:
                     self.journal.sync(now)
                 if now >= next_beat:
-                    self.clients.broadcast({"type": "heartbeat"})
+                    self.clients.broadcast(Heartbeat())
                     next_beat = now + self.cfg.heartbeat_s
                 if now >= next_status:
                     self._log_status()
@@ -241,15 +242,15 @@ class V2VServer:
                     msg = (f"no usable video under {self.root}: "
                            + "; ".join(f"{k}: {v}" for k, v in sorted(self.workers.skipped_files.items())))
                     log.error(msg)
-                    self.clients.broadcast({"type": "error", "message": msg})
+                    self.clients.broadcast(ServerError(msg))
                     return 2
         except Exception as e:  # a bug of ours: say so to every client before going down
             log.exception("server loop failed: %s", e)
-            self.clients.broadcast({"type": "shutdown"})
+            self.clients.broadcast(Shutdown())
             raise
         # graceful stop: batches still unacknowledged stay with their trainers' resume state
         # (a restarted server re-makes whatever they did not take); tell clients to wait or resume
-        self.clients.broadcast({"type": "shutdown"})
+        self.clients.broadcast(Shutdown())
         return 0
 
     # ------------------------------------------------------------------ status
