@@ -158,7 +158,7 @@ class _BatchBuffer:
         self.bump()
 
     def bump(self) -> None:
-        """A new generation: the buffer is about to be refilled (nothing views it any more)."""
+        """A new generation: the buffer is about to be refilled (no lease or send is out)."""
         self.gen += 1
         if self._mm is not None:
             struct.pack_into("<Q", self._mm, 0, self.gen)
@@ -397,7 +397,7 @@ class BatchPayload:
         :class:`BatchDir`, the buffer's generation, byte offset of each array in the file, in
         the order of ``specs``), or None when the arrays are not consecutive rows of a
         file-backed buffer (send :meth:`wire` frames instead). The rows stay untouched while
-        this payload exists (a buffer is refilled only once nothing views it)."""
+        this payload exists (it holds a lease on them)."""
         if self._rows is None or self._rows[0].file is None:
             return None
         buf, r0 = self._rows
