@@ -205,9 +205,14 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
                 pending, batch = [], None
                 continue
             else:
-                specs, out = make_batch(pending).wire(outputs, codec)
-            push.send_multipart([pack({"type": "batch", "arrays": specs,
-                                       "sample_ids": [s.sample_id for s in pending]})] + out, copy=False)
+                batch = make_batch(pending)
+                specs, out = batch.wire(outputs, codec)
+            head = [pack({"type": "batch", "arrays": specs, "sample_ids": [s.sample_id for s in pending]})]
+            if path == "old":
+                push.send_multipart(head + out, copy=False)
+            else:  # the buffer's rows stay leased until ZeroMQ has sent them
+                batch.send(push, head, out)
+                batch = None
             sent += sum(a.nbytes if isinstance(a, np.ndarray) else len(a.buffer) for a in out)
             pending, out = [], None
     push.close(linger=-1)  # every batch handed to the kernel before the clock stops

@@ -565,10 +565,9 @@ def scenario_slow_trainer(tmp: Path, layout: Layout, lease_s: float = 0.5, step_
         it = iter(ds)
         for b in it:
             log.append((time.monotonic(), list(b["sample_ids"])))
-            conn = ds._stream._conns[0]
-            peak = max(peak, conn.held())
+            peak = max(peak, ds.held())
             time.sleep(step_s)
-            peak = max(peak, conn.held())
+            peak = max(peak, ds.held())
         rc = srv.wait(30)
         resent = srv.log.count("go back to the queue")
     return row(f"trainer steps {step_s} s slower than lease {lease_s} s", expected, _ids(log), None,

@@ -4,6 +4,7 @@ A real server and the I/O thread around it are covered by test_stream.py and tes
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from v2v_client.session import Drained, EpochDone, ServerPadding, ServerSession, StreamError
 from v2v_wire.protocol import encode_arrays, pack, unpack
@@ -96,3 +97,29 @@ def test_a_refused_welcome_ends_the_session_naming_why():
     assert s.on_message([pack({"type": "welcome", "hello_id": 1, "info": {}})]) == "over"
     (err,) = _items(s)
     assert isinstance(err, StreamError) and str(err) == "v2v server at tcp://127.0.0.1:1: another recipe"
+
+
+def test_server_messages_round_trip_typed_and_a_bad_field_is_named():
+    from v2v_wire import stream_messages as sm
+
+    msgs = [sm.Welcome({"crop_size": 8}, 3), sm.Batch(4, 0, ("v#0",), ({"a": 1},), ({"name": "voxels"},)),
+            sm.Batch(-1, 2, ("v#1",), ({},), (), {"file": "b0", "gen": 1, "offsets": [64]}, True),
+            sm.Revoke((1, 2)), sm.EpochDone(0), sm.EpochDone(1, 5), sm.Drained(), sm.End(), sm.End("done"),
+            sm.Heartbeat(), sm.Shutdown(), sm.ServerError("boom"), sm.ServerError("gone", "dropped")]
+    for m in msgs:
+        assert sm.stream_message(unpack(pack(m.to_wire()))) == m
+    assert sm.stream_message({"type": "news"}) is None  # a newer server's message this client can do without
+    bad = [({"type": "batch", "batch_id": 1, "epoch": "0", "sample_ids": [], "params": [], "arrays": []}, "epoch"),
+           ({"type": "batch", "batch_id": 1, "epoch": 0, "sample_ids": [3], "params": [], "arrays": []}, "sample_ids"),
+           ({"type": "batch", "batch_id": 1, "epoch": 0, "sample_ids": [], "params": [], "arrays": [],
+             "padding": 1}, "padding"),
+           ({"type": "revoke", "batch_ids": [True]}, "batch_ids"), ({"type": "epoch_done"}, "epoch"),
+           ({"type": "welcome", "info": []}, "info"), ({"type": "error", "message": 7}, "message"),
+           ({"type": 5}, "type")]
+    for h, name in bad:
+        with pytest.raises(sm.StreamMessageError, match=f"field '{name}'"):
+            sm.stream_message(h)
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels"], _hello)
+    assert s.on_message([pack({"type": "epoch_done", "epoch": -1})]) == "over"
+    err = s.items.get_nowait()
+    assert isinstance(err, StreamError) and "epoch_done message: field 'epoch'" in str(err)

@@ -146,11 +146,12 @@ class DeliveryMachine(RuleBasedStateMachine):
 
     # ------------------------------------------------------------------ plumbing
     def deliver(self, msgs):
+        """Hand each trainer its messages as the wire carries them (typed messages as headers)."""
         by_ident = {t.ident: t for t in self.trainers}
         for ident, m in msgs:
             t = by_ident.get(ident)
             if t is not None:
-                t.inbox.append(m)
+                t.inbox.append(m if isinstance(m, dict) else m.to_wire())
 
     def server_turn(self):
         for w in self.workers:

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import os
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import zmq
 
 from v2v_server.service.assembly import BatchAssembler, make_batch, sample_from_slot, sample_from_worker
 from v2v_server.service.shm import BatchDir, SlotRing, create_ring, slot_bytes
@@ -78,7 +80,6 @@ def test_a_held_batch_is_never_overwritten_and_idle_buffers_are_reused(tmp_path)
     asm = BatchAssembler(2, spare=1)
     held = make_batch([_via_slot(relay, worker, asm, i, _arrays(i)) for i in range(2)])
     want = _wire_bytes(held)
-    _, frames = held.wire(("voxels",))  # a zero-copy send in flight holds a view too
     dropped = make_batch([_via_slot(relay, worker, asm, i, _arrays(i)) for i in range(2, 4)])
     dropped_buf = id(dropped.arrays["voxels"].base)  # (a reference would keep it busy)
     del dropped  # acknowledged: nothing views its buffer any more
@@ -87,7 +88,36 @@ def test_a_held_batch_is_never_overwritten_and_idle_buffers_are_reused(tmp_path)
     assert _wire_bytes(held) == want  # the held batch kept its content
     ids = [f"v.mp4#{i}" for i in (4, 5)]
     assert again.sample_ids == ids and np.array_equal(again.arrays["frames"][1], _arrays(5)["frames"])
-    del frames
+
+
+def test_a_buffer_is_not_refilled_while_a_zero_copy_send_of_it_is_in_flight():
+    big = lambda i: {"voxels": np.full((4, 2, 96, 96), i, np.int8)}  # noqa: E731  (past ZeroMQ's copy threshold)
+    asm = BatchAssembler(2, spare=1)
+    ctx = zmq.Context()
+    tx, rx = ctx.socket(zmq.PAIR), ctx.socket(zmq.PAIR)
+    tx.bind("inproc://relay-lease")
+    rx.connect("inproc://relay-lease")
+    samples = [asm.place(f"v#{i}", {}, big(i)) for i in range(2)]
+    buf = samples[0].buffer
+    batch = make_batch(samples)
+    specs, frames = batch.wire(("voxels",))
+    batch.send(tx, [b"head"], frames)
+    del samples, batch, frames  # acknowledged, but ZeroMQ still holds the frames: not yet received
+    assert not buf.idle()
+    other = make_batch([asm.place(f"v#{i}", {}, big(i)) for i in range(2, 4)])
+    assert asm.reused == 0 and not np.shares_memory(other.arrays["voxels"], buf.arrays["voxels"])
+    got = rx.recv_multipart()
+    assert got[0] == b"head" and np.frombuffer(got[1], np.int8).reshape(2, 4, 2, 96, 96)[1].min() == 1
+    deadline = time.monotonic() + 5
+    while not buf.idle() and time.monotonic() < deadline:  # ZeroMQ releases the frames on its own thread
+        time.sleep(0.01)
+    assert buf.idle()
+    del other
+    make_batch([asm.place(f"v#{i}", {}, big(i)) for i in range(4, 6)])
+    assert asm.reused == 1
+    tx.close(0)
+    rx.close(0)
+    ctx.term()
 
 
 def test_mixed_layouts_fall_back_to_one_stacking_copy(tmp_path):

@@ -278,11 +278,11 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
     try:
         endpoint = f"tcp://127.0.0.1:{port}"
         bad_ds = V2VStreamDataset(endpoint, outputs=("voxels",), compression="zstd", raw=True, timeout_s=10)
-        bad_ds._stream._consumer = "bad"
+        bad_ds.consumer = "bad"
         with pytest.raises(StreamError, match=r"array 'voxels' part 1: zstd frame does not decompress"):
             next(iter(bad_ds))
         ok_ds = V2VStreamDataset(endpoint, outputs=("voxels",), compression="zstd", raw=True, timeout_s=10)
-        ok_ds._stream._consumer = "good"
+        ok_ds.consumer = "good"
         b = next(iter(ok_ds))
         assert torch.equal(b["voxels"], torch.from_numpy(good))
     finally:
@@ -293,7 +293,7 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
 def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_the_codec(monkeypatch):
     """compression="auto": nothing on ipc:// and loopback, zstd to other hosts; a server that
     answers it cannot compress gets a second hello without compression, and the stream goes on."""
-    from v2v_client import endpoint as ep
+    from v2v_client import options
 
     assert is_loopback("ipc:///tmp/x.sock") and is_loopback("tcp://127.0.0.1:5555") and is_loopback("tcp://[::1]:5")
     assert is_loopback("tcp://localhost:5555") and not is_loopback("tcp://10.0.0.7:5555")
@@ -301,7 +301,7 @@ def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_th
     router = ctx.socket(zmq.ROUTER)
     router.setsockopt(zmq.LINGER, 0)
     port = router.bind_to_random_port("tcp://127.0.0.1")
-    monkeypatch.setattr(ep, "is_loopback", lambda endpoint: False)  # as if this server were on another host
+    monkeypatch.setattr(options, "is_loopback", lambda endpoint: False)  # as if this server were on another host
     hellos = []
 
     def serve() -> None:

@@ -4,8 +4,8 @@ The thread says ``hello`` (the outputs wanted, its ``credits``, who it is and th
 state), receives batches, answers revokes, sends heartbeats, and forwards an ``ack`` naming
 each batch as it is handed to the training loop (the ack frees exactly that batch's credit). So
 the server never has more than ``credits`` batches in flight to this connection, and a slow
-trainer never grows anybody's memory. ``V2VStreamDataset`` (``dataset.py``) owns the
-connections and the resume state.
+trainer never grows anybody's memory. ``endpoint.EndpointStream`` owns its connection and the
+consumer's record; the connection reports to it only through the ``items`` queue.
 
 This module is the shell: the socket, the poll loop, heartbeats, reconnection and the pipe
 from the consumer. What the messages mean (hello, welcome, batches, revokes, the batches held)
@@ -33,36 +33,42 @@ log = logging.getLogger("v2v.client")
 
 
 class Connection:
-    """One DEALER connection to one endpoint and its I/O thread.
+    """One DEALER connection to one endpoint and its I/O thread, which owns the socket: it says
+    hello (with the consumer's resume state), receives batches, answers revokes, heartbeats,
+    and forwards the acknowledgements the consumer queues (flushed before ``bye``). It reports
+    only through ``items`` (decoded batches and control items; the protocol itself is the
+    :class:`~v2v_client.session.ServerSession` ``session``). A batch is either taken by the
+    training loop (``take``: acknowledged) or given back to the server, never both
+    (``session.held``), and a batch given back loses its arrays at once.
 
-    The thread owns the socket: it says hello (with the dataset's resume state), receives
-    batches, answers revokes, heartbeats, and forwards the acknowledgements the consumer
-    queues through an inproc pair (flushed before ``bye`` when the iterator closes). It hands
-    the consumer decoded batches and control items through ``items``. A fan-in wrapper may
-    create one per endpoint; the dataset ``ds`` supplies settings and the resume state.
+    Args:
+        endpoint: the server's ZeroMQ endpoint.
+        options: the stream's ``options.StreamOptions``.
+        record: the consumer's ``endpoint.ConsumerRecord`` (thread-safe): its resume state goes
+            in every hello, the welcome's recipe is checked against it, and a DataLoader
+            worker's receipts are recorded in it.
+        consumer: the id the hello names the consumer by.
+        convert: makes a batch's numpy arrays the consumer's (None keeps numpy arrays).
+        receipts, iteration: in a DataLoader worker under ``StreamLoader``, the pipe on which
+            the main process says which batches the training loop received, and the loader's
+            iteration this connection serves.
 
-    A batch is either taken by the training loop (``take``: acknowledged) or given back to the
-    server (revoked after its lease, the epoch already complete here, or everything held when
-    the server dropped this client or this process was silent longer than the server's client
-    timeout), never both (``session.held``: :class:`~v2v_client.session.HeldBatches`), and a batch
-    given back loses its arrays at once, so a stalled trainer's memory stays bounded by its credits.
-
-    The protocol itself (hello, welcome, batches, revokes, the batches held) is the
-    :class:`~v2v_client.session.ServerSession` this connection's I/O thread owns (``session``);
-    ``convert`` makes a batch's numpy arrays the consumer's (``tensors.batch_to_torch`` for
-    the dataset; None keeps numpy arrays).
+    Raises:
+        ValueError: for ``options.curve_keys`` naming bad key files.
     """
 
     #: Fraction of the server's client timeout after which a silent process assumes it was dropped.
     SILENCE_FRACTION = 0.8
 
-    def __init__(self, ds, endpoint: Optional[str] = None, convert: Optional[Convert] = None):
-        self.ds = ds
-        self.endpoint = endpoint or ds.endpoint
-        shm = ds.wants_shm(self.endpoint)  # ask for batches through the server's shared memory
-        compression, auto = ds.compression_for(self.endpoint)
-        self.session = ServerSession(self.endpoint, ds.outputs, ds._hello_header, welcomed=ds.welcomed,
-                                     convert=convert, raw=ds.raw, shm=shm, keep=ds.credits + 2,
+    def __init__(self, endpoint: str, options, record, consumer: str, convert: Optional[Convert] = None,
+                 receipts=None, iteration: int = 0):
+        self.endpoint, self.options, self.record = endpoint, options, record
+        self.curve = load_curve_keys(*options.curve_keys) if options.curve_keys else None
+        compression, auto = options.compression_for(endpoint)
+        self.session = ServerSession(endpoint, options.outputs, lambda: options.hello(consumer, record.resume()),
+                                     welcomed=lambda info: record.check_recipe(info.get("recipe")),
+                                     convert=convert, raw=options.raw,
+                                     shm=options.wants_shm(endpoint), keep=options.credits + 2,
                                      compression=compression, compression_auto=auto)
         self._closing = threading.Event()
         self._ctx = zmq.Context.instance()
@@ -70,8 +76,8 @@ class Connection:
         self._pipe = ConsumerPipe(self._ctx)
         self.last_io = time.monotonic()
         self._lingering = False
-        self._receipts = getattr(ds, "receipts", None)  # DataLoader worker: what the training loop received
-        self._iteration, self._abandoned = getattr(ds, "iteration", 0), False  # LoaderLink.end_iteration
+        self._receipts = receipts  # DataLoader worker: what the training loop received
+        self._iteration, self._abandoned = iteration, False  # LoaderLink.end_iteration
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
@@ -89,6 +95,10 @@ class Connection:
         """Batches received and neither taken by the consumer nor given back."""
         return len(self.session.held)
 
+    def ended(self) -> bool:
+        """True once the I/O thread has ended and every item it queued was taken."""
+        return not self._thread.is_alive() and self.session.items.empty()
+
     # consumer side -------------------------------------------------------
     def silent_too_long(self, now: float) -> bool:
         """True when the I/O thread has not run for most of the server's client timeout (the
@@ -96,26 +106,15 @@ class Connection:
         limit = (self.session.info or {}).get("client_timeout_s")
         return isinstance(limit, (int, float)) and now - self.last_io > self.SILENCE_FRACTION * limit
 
-    def _claim(self, item: dict) -> bool:
-        """Take a received batch for the consumer; False when it was given back meanwhile (its
-        lease expired, or this client was dropped or silent too long)."""
-        return self.session.held.claim(item, lambda: self.silent_too_long(time.monotonic()))
-
-    def take(self, item: dict) -> bool:
-        """Claim a received batch for the training loop and acknowledge it; False when it was
-        given back meanwhile (its lease expired, or this client was dropped)."""
-        if not self._claim(item):
+    def take(self, item: dict, hold: bool = False) -> bool:
+        """Claim a received batch and tell the server: acknowledged for the training loop, or
+        with ``hold`` held for a DataLoader worker's queue (no lease: :meth:`ack` follows when
+        the training loop receives it, else closing the connection gives it back). False when
+        it was given back meanwhile (its lease expired, or this client was dropped or silent
+        too long)."""
+        if not self.session.held.claim(item, lambda: self.silent_too_long(time.monotonic())):
             return False
-        self._queue_for_server({"type": "ack", "batch_ids": [item["batch_id"]]})
-        return True
-
-    def hold(self, item: dict) -> bool:
-        """Claim a received batch for a DataLoader worker's queue: like :meth:`take`, but the
-        server is told the batch is held (no lease) rather than acknowledged; :meth:`ack`
-        follows when the training loop receives it, else closing the connection gives it back."""
-        if not self._claim(item):
-            return False
-        self._queue_for_server({"type": "hold", "batch_ids": [item["batch_id"]]})
+        self._queue_for_server({"type": "hold" if hold else "ack", "batch_ids": [item["batch_id"]]})
         return True
 
     def ack(self, batch_ids) -> None:
@@ -157,8 +156,8 @@ class Connection:
         sock.setsockopt(zmq.RCVHWM, 0)
         if is_ipv6(self.endpoint):
             sock.setsockopt(zmq.IPV6, 1)
-        if self.ds.curve is not None:
-            pub, sec, server_pub = self.ds.curve
+        if self.curve is not None:
+            pub, sec, server_pub = self.curve
             sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = pub, sec, server_pub
         sock.connect(self.endpoint)
         _send(sock, self.session.hello(new_socket=True))  # a new socket carries no message of an older session
@@ -186,7 +185,7 @@ class Connection:
                     self._abandoned = True
                     self.session.items.put(LoopAbandoned())
                 continue
-            mine = self.ds.received(msg["batch_ids"])
+            mine = self.record.received(msg["batch_ids"])
             if mine:
                 _send(sock, pack({"type": "ack", "batch_ids": mine}))
 
@@ -204,11 +203,11 @@ class Connection:
 
     def _serve(self) -> None:
         """Poll the socket, the acknowledgements and the receipts; receive messages, heartbeat,
-        and on a lost server reconnect (``ds.reconnect``) or end the stream with an error."""
+        and on a lost server reconnect (``options.reconnect``) or end the stream with an error."""
         sock = self._sock
         give_up_at = None
         last_heard = time.monotonic()
-        next_beat = last_heard + self.ds.heartbeat_s
+        next_beat = last_heard + self.options.heartbeat_s
         poller = self._poller(sock)
         while not self._closing.is_set():
             events = dict(poller.poll(100))
@@ -222,7 +221,7 @@ class Connection:
             if self._pipe.receiver in events:
                 self._pipe.forward(sock)
             self._take_receipts(sock)
-            if self._lingering and (self._abandoned or not self.ds.in_loader()):
+            if self._lingering and (self._abandoned or not self.record.in_pipeline()):
                 return  # every batch handed to the DataLoader was received, or none will be: bye
             lost = None
             if sock in events:
@@ -233,8 +232,8 @@ class Connection:
                     return
                 if verdict == "lost":
                     lost = "the server shut down"
-            if lost is None and now - last_heard > self.ds.timeout_s:
-                lost = f"no message for {self.ds.timeout_s:.0f} s"
+            if lost is None and now - last_heard > self.options.timeout_s:
+                lost = f"no message for {self.options.timeout_s:.0f} s"
             if lost is not None:
                 give_up_at = self._lost(lost, now, give_up_at)
                 if give_up_at is None:
@@ -246,7 +245,7 @@ class Connection:
                 continue
             if now >= next_beat:
                 _send(sock, pack({"type": "heartbeat"}))
-                next_beat = now + self.ds.heartbeat_s
+                next_beat = now + self.options.heartbeat_s
 
     def _receive(self, sock: zmq.Socket) -> Tuple[Optional[str], bool]:
         """Handle every message waiting on ``sock`` and send the replies they call for:
@@ -265,13 +264,13 @@ class Connection:
                 return verdict, heard
 
     def _lost(self, why: str, now: float, give_up_at: Optional[float]) -> Optional[float]:
-        """The server went away (``why``): the time to stop reconnecting at (``ds.reconnect``),
+        """The server went away (``why``): the time to stop reconnecting at (``options.reconnect``),
         or None when the stream ends here (the error is queued for the consumer)."""
-        if not self.ds.reconnect:
+        if not self.options.reconnect:
             what = "no answer" if self.session.info is None else "no message"
             if why.startswith("no message"):
                 self.session.items.put(StreamTimeout(
-                    f"{what} from the v2v server at {self.endpoint} for {self.ds.timeout_s:.0f} s "
+                    f"{what} from the v2v server at {self.endpoint} for {self.options.timeout_s:.0f} s "
                     f"(is v2v-serve running and reachable?)"))
             else:
                 self.session.items.put(StreamError(
@@ -280,11 +279,11 @@ class Connection:
             return None
         if give_up_at is None:
             log.warning("lost the v2v server at %s (%s); reconnecting for up to %.0f s",
-                        self.endpoint, why, self.ds.reconnect_timeout_s)
-            return now + self.ds.reconnect_timeout_s
+                        self.endpoint, why, self.options.reconnect_timeout_s)
+            return now + self.options.reconnect_timeout_s
         if now > give_up_at:
             self.session.items.put(StreamTimeout(f"could not reconnect to the v2v server at {self.endpoint} "
-                                         f"within {self.ds.reconnect_timeout_s:.0f} s"))
+                                         f"within {self.options.reconnect_timeout_s:.0f} s"))
             return None
         return give_up_at
 

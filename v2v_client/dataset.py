@@ -26,9 +26,10 @@ from v2v_wire.codecs import available, check_compression
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_CREDITS, OUTPUTS, check_outputs
 
 from .connection import StreamError, StreamTimeout, load_curve_keys
-from .endpoint import EndpointStream, StreamOptions, padding_copy
+from .endpoint import EndpointStream, padding_copy
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
 from .metrics import TrainerMetrics
+from .options import StreamOptions
 from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "padding_copy"]
@@ -143,10 +144,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._auto_position = (rank is None, world_size is None)
         rank, world_size = _checked_position(rank, world_size)
         self.endpoint = endpoint
-        self.outputs = outputs
-        self.credits = credits
-        self.rank, self.world_size, self.group = rank, world_size, group
-        self.options = StreamOptions(self.outputs, credits, float(timeout_s), float(heartbeat_s), raw, bool(reconnect),
+        #: every stream setting, read from here alone (a fan-in's children are made from it)
+        self.options = StreamOptions(outputs, credits, float(timeout_s), float(heartbeat_s), raw, bool(reconnect),
                                      float(reconnect_timeout_s), tuple(curve_keys) if curve_keys else None, rank,
                                      world_size, group, shm, compact_flow, compression)
         if curve_keys:
@@ -155,7 +154,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         # several servers (a list, "a,b", or a DNS name with several addresses): fan-in
         self._fanin: Optional[FanInStream] = None
         self._meter = TrainerMetrics()
-        self._link = None  # set by a StreamLoader: its workers' receipt pipes and records (loader.py)
+        self._link = None  # a StreamLoader's workers' receipt pipes and records (read_by, loader.py)
         if not isinstance(endpoint, str) or "," in endpoint:
             endpoints = split_endpoints(endpoint)
             if len(endpoints) == 1:
@@ -170,15 +169,40 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         def child(ep: str, credits: int) -> EndpointStream:  # one server's stream: these options, its share
             return EndpointStream(ep, replace(self.options, credits=credits))
 
-        fanin = FanInStream(endpoints, child, self.credits)
+        fanin = FanInStream(endpoints, child, self.options.credits)
         if self._stream is not None:
             fanin.load_state_dict(self._stream.state_dict())
         return fanin
+
+    def read_by(self, link) -> None:
+        """Read by the DataLoader workers of a ``StreamLoader``: ``link`` (``loader.LoaderLink``)
+        holds each worker's receipt pipe and the record the main process keeps for it."""
+        self._link = link
+
+    @property
+    def outputs(self) -> Tuple[str, ...]:
+        """The outputs asked for (``options.outputs``)."""
+        return self.options.outputs
+
+    @property
+    def rank(self) -> int:
+        """This reader's DDP rank (``options.rank``; resolved when iteration starts when not given)."""
+        return self.options.rank
+
+    @property
+    def world_size(self) -> int:
+        """The DDP world size (``options.world_size``; resolved when iteration starts when not given)."""
+        return self.options.world_size
 
     @property
     def info(self) -> Optional[dict]:
         """The server's stream info from its welcome (the first server's with a fan-in), once connected."""
         return (self._fanin or self._stream).info
+
+    def held(self) -> int:
+        """Batches received from the server(s) and neither handed to the training loop nor
+        given back yet (bounded by ``credits``: what a stalled trainer holds)."""
+        return (self._fanin or self._stream).held()
 
     def metrics(self) -> dict:
         """Trainer-side metrics: batches, samples and tensor bytes handed to the training loop
@@ -192,13 +216,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if not (auto_rank or auto_world):
             return
         rank, world = dist_position()
-        rank = rank if auto_rank else self.rank
-        world = world if auto_world else self.world_size
+        rank = rank if auto_rank else self.options.rank
+        world = world if auto_world else self.options.world_size
         if not 0 <= rank < world:
             raise ValueError(f"rank {rank} is not in [0, world_size={world})")
-        if (rank, world) == (self.rank, self.world_size):
+        if (rank, world) == (self.options.rank, self.options.world_size):
             return
-        self.rank, self.world_size = rank, world
         self.options = replace(self.options, rank=rank, world_size=world)  # a fan-in's children are made from it
         if self._stream is not None:
             self._stream.set_position(rank, world)
@@ -206,12 +229,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     @property
     def consumer(self) -> str:
         """The id the server knows this reader by (DataLoader workers add ``/<worker id>``)."""
-        return self._stream._consumer if self._stream is not None else ""
+        return self._stream.consumer if self._stream is not None else ""
 
     @consumer.setter
     def consumer(self, value: str) -> None:
         if self._stream is not None:
-            self._stream._consumer = value
+            self._stream.consumer = value
 
     def __iter__(self) -> Iterator[dict]:
         self._position()

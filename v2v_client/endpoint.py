@@ -6,50 +6,24 @@ through ``fanin.FanInStream``).
 """
 from __future__ import annotations
 
+import functools
 import queue
 import threading
 import uuid
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Dict, Iterator, List, Optional, Set, Tuple
 
 import torch
 
-from v2v_wire.codecs import available
 from v2v_wire.ids import compact_ids
-from v2v_wire.protocol import is_loopback
 
-from .connection import Connection, load_curve_keys
+from .connection import Connection
+from .options import StreamOptions
 from .session import Drained, EpochDone, LoopAbandoned, ServerPadding, StreamError
 from .tensors import batch_to_torch, select_samples
 from .fanin import read_state
 
-__all__ = ["StreamOptions", "EndpointStream", "ConsumerRecord", "padding_copy", "AUTO_REMOTE"]
-
-#: Compression ``compression="auto"`` asks servers on other hosts for (docs/wire.md measures it:
-#: 6.3x fewer bytes per default sample, decompressed at about 1.2 GB/s per core).
-AUTO_REMOTE = "zstd"
-
-
-@dataclass(frozen=True)
-class StreamOptions:
-    """What a stream asks a server for and how it talks to it (validated by
-    ``V2VStreamDataset``; see its arguments)."""
-
-    outputs: Tuple[str, ...]
-    credits: int
-    timeout_s: float
-    heartbeat_s: float
-    raw: bool
-    reconnect: bool
-    reconnect_timeout_s: float
-    curve_keys: Optional[Tuple[str, str]]
-    rank: int
-    world_size: int
-    group: str
-    shm: object
-    compact_flow: bool = False
-    compression: str = "auto"
-
+__all__ = ["EndpointStream", "ConsumerRecord", "padding_copy"]
 
 def padding_copy(batch: dict, epoch: int) -> dict:
     """A DDP padding batch of ``epoch`` repeating ``batch``: its tensors cloned, every sample
@@ -176,6 +150,11 @@ class ConsumerRecord:
                     mine.append(bid)
         return mine
 
+    def in_pipeline(self) -> int:
+        """Batches yielded to the DataLoader whose receipt has not come."""
+        with self.lock:
+            return len(self.pipeline)
+
     def clear_pipeline(self) -> None:
         """Forget the batches in the DataLoader's queues (they go back to the server)."""
         with self.lock:
@@ -187,28 +166,23 @@ class EndpointStream:
 
     Args:
         endpoint: the server's ZeroMQ endpoint.
-        options: :class:`StreamOptions`.
+        options: :class:`~v2v_client.options.StreamOptions`, the one place its settings are read from.
 
-    Iterating opens a connection (one per iterator; a new one replaces the previous) and
-    yields the batch dicts ``V2VStreamDataset`` documents: each sample once per epoch, DDP
-    padding where owed, a DataLoader worker's batches held until the loop receives them.
-    ``state_dict()`` / ``load_state_dict()`` carry the consumer's :class:`ConsumerRecord`
-    (``record``) across restarts.
+    Iterating opens a connection it owns (one per iterator; a new one replaces the previous),
+    reads what the connection queues, and yields the batch dicts ``V2VStreamDataset``
+    documents: each sample once per epoch, DDP padding where owed, a DataLoader worker's
+    batches held until the loop receives them. ``state_dict()`` / ``load_state_dict()`` carry
+    the consumer's :class:`ConsumerRecord` (``record``) across restarts.
     """
 
     def __init__(self, endpoint: str, options: StreamOptions):
         self.endpoint = endpoint
         self.options = options
-        o = options
-        self.outputs, self.credits, self.timeout_s, self.heartbeat_s = o.outputs, o.credits, o.timeout_s, o.heartbeat_s
-        self.raw, self.reconnect, self.reconnect_timeout_s = o.raw, o.reconnect, o.reconnect_timeout_s
-        self.rank, self.world_size, self.group, self.shm = o.rank, o.world_size, o.group, o.shm
-        self.compact_flow, self.compression = o.compact_flow, o.compression
-        self.curve = load_curve_keys(*o.curve_keys) if o.curve_keys else None
-        self.info: Optional[dict] = None
         self.record = ConsumerRecord()
+        self._info: Optional[dict] = None  # the stream info of the last connection closed
         self._conns: list = []
-        self._consumer = uuid.uuid4().hex  # who acknowledges: survives reconnects and restarts (state_dict)
+        #: who acknowledges: survives reconnects and restarts (state_dict)
+        self.consumer = uuid.uuid4().hex
         self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
         self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
         # In a DataLoader worker under ``StreamLoader``: the pipe on which the main process says
@@ -217,17 +191,22 @@ class EndpointStream:
         self.worker: Optional[int] = None
         self.iteration = 0  # the loader's iterations over this worker's pipe so far, less one
 
-    def welcomed(self, info: dict) -> Optional[str]:
-        """The server's welcome: its stream info. Returns why this stream refuses the server
-        (None when it does not): a resume state made under another sample recipe names other
-        samples with the same ids."""
-        self.info = info
-        return self.record.check_recipe(info.get("recipe"))
+    @property
+    def info(self) -> Optional[dict]:
+        """The server's stream info from the newest connection's welcome (None before any)."""
+        for conn in reversed(self._conns):
+            if conn.info is not None:
+                return conn.info
+        return self._info
+
+    def held(self) -> int:
+        """Batches the open connections received and neither took nor gave back (at most
+        ``options.credits`` per connection)."""
+        return sum(conn.held() for conn in list(self._conns))
 
     def set_position(self, rank: int, world_size: int) -> None:
         """The DDP position the next connection says hello with."""
         self.options = replace(self.options, rank=rank, world_size=world_size)
-        self.rank, self.world_size = rank, world_size
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
@@ -235,7 +214,7 @@ class EndpointStream:
         yielded so far in epochs still open, batches yielded per open epoch, and the consumer
         id the server knows it by. Plain, JSON/torch.save-safe data."""
         r = self.record.state()
-        return {"version": 1, "consumer": self._consumer, "completed_epoch": r["completed_epoch"],
+        return {"version": 1, "consumer": self.consumer, "completed_epoch": r["completed_epoch"],
                 "delivered": r["delivered"], "batches": r["batches"], "recipe": r["recipe"]}
 
     def load_state_dict(self, state: dict) -> None:
@@ -248,7 +227,7 @@ class EndpointStream:
         """
         self.record.load(state)
         if isinstance(state.get("consumer"), str) and state["consumer"]:
-            self._consumer = state["consumer"]
+            self.consumer = state["consumer"]
 
     def attach_loader(self, worker: int, receipts, state: Optional[dict]) -> None:
         """Read by DataLoader worker ``worker`` of a ``StreamLoader``: batches are
@@ -264,57 +243,34 @@ class EndpointStream:
         self.iteration = self.iteration + 1 if receipts is self.receipts else 0
         self.worker, self.receipts = worker, receipts
 
-    def received(self, batch_ids) -> List[int]:
-        """The training loop received these batches (a receipt from the main process): they
-        count as yielded; returns those this stream had handed to the DataLoader."""
-        return self.record.received(batch_ids)
-
-    def in_loader(self) -> int:
-        """Batches yielded to the DataLoader whose receipt has not come."""
-        return len(self.record.pipeline)
-
-    def wants_shm(self, endpoint: str) -> bool:
-        """Whether a connection to ``endpoint`` asks for batches through the server's shared
-        memory: ``shm=True`` always (the server agrees only when bound to ``ipc://``),
-        ``"auto"`` for ``ipc://`` endpoints (the server is on this host)."""
-        return self.shm is True or (self.shm == "auto" and endpoint.startswith("ipc://"))
-
-    def compression_for(self, endpoint: str) -> Tuple[str, bool]:
-        """The compression a connection to ``endpoint`` asks for, and whether it was chosen by
-        default (``"auto"``: none for ``ipc://``, ``inproc://`` and loopback ``tcp://``, where
-        bytes cost less than compressing them; ``AUTO_REMOTE`` across hosts when its library
-        is installed)."""
-        if self.compression != "auto":
-            return self.compression, False
-        return (AUTO_REMOTE if not is_loopback(endpoint) and available(AUTO_REMOTE) else "none"), True
-
-    def _hello_header(self) -> dict:
-        """The hello message: outputs, credits, who we are, and the resume state."""
-        resume = self.record.resume()
-        info = torch.utils.data.get_worker_info()
-        consumer = self._consumer if info is None else f"{self._consumer}/{info.id}"
-        h = {"type": "hello", "outputs": list(self.outputs), "credits": self.credits, "consumer": consumer,
-             "resume": resume}
-        if self.world_size > 1:
-            h.update(rank=self.rank, world_size=self.world_size, group=self.group)
-        return h
-
     def close(self) -> None:
         """Close every open connection of this stream (also done when iterators are collected);
         batches a DataLoader worker yielded and the loop never received go back to the server."""
         for conn in list(self._conns):
-            conn.close()
-        self._conns.clear()
+            self._drop(conn)
         self.record.clear_pipeline()
 
-    # ------------------------------------------------------------------ iteration
-    def _to_tensors(self, arrays: dict, flow_size, flow_dtype: str) -> dict:
-        """A batch's wire arrays as this stream's tensors (the connection's ``convert``)."""
-        return batch_to_torch(arrays, self.raw, flow_size, flow_dtype, self.compact_flow)
+    def _drop(self, conn: Connection) -> None:
+        """Close ``conn`` and forget it, keeping its stream info."""
+        conn.close()
+        if conn.info is not None:
+            self._info = conn.info
+        if conn in self._conns:
+            self._conns.remove(conn)
 
-    def __iter__(self) -> Iterator[dict]:
-        conn = Connection(self, convert=self._to_tensors)
+    def _connect(self) -> Connection:
+        """A connection for a new iterator, saying hello with this stream's options and record."""
+        worker = torch.utils.data.get_worker_info()
+        consumer = self.consumer if worker is None else f"{self.consumer}/{worker.id}"
+        convert = functools.partial(_to_tensors, self.options.raw, self.options.compact_flow)
+        conn = Connection(self.endpoint, self.options, self.record, consumer, convert, self.receipts,
+                          self.iteration)
         self._conns.append(conn)
+        return conn
+
+    # ------------------------------------------------------------------ iteration
+    def __iter__(self) -> Iterator[dict]:
+        conn = self._connect()
         abandoned = False
         try:
             while True:
@@ -342,10 +298,8 @@ class EndpointStream:
             if self.receipts is not None and not abandoned and self.record.pipeline:
                 conn.linger()  # ended (drained, end of stream) with batches in the loader's queues
             else:
-                conn.close()  # receipts already written are taken first; the rest goes back with bye
+                self._drop(conn)  # receipts already written are taken first; the rest goes back with bye
                 self.record.clear_pipeline()
-                if conn in self._conns:
-                    self._conns.remove(conn)
 
     def _next_item(self, conn: Connection):
         """The next item the connection's I/O thread queued (a batch or a control item).
@@ -357,13 +311,13 @@ class EndpointStream:
             try:
                 return conn.items.get(timeout=1.0)
             except queue.Empty:
-                if not conn._thread.is_alive() and conn.items.empty():
+                if conn.ended():
                     raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
                 # the I/O thread decides when the server is gone (timeout_s without a message)
 
     def _epoch_done(self, done: EpochDone) -> List[dict]:
         """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
-        owed = self.record.complete(done.epoch, done.batches if self.world_size > 1 else None)
+        owed = self.record.complete(done.epoch, done.batches if self.options.world_size > 1 else None)
         pads: List[dict] = []
         for _ in range(owed or 0):
             if self._last is None:
@@ -386,13 +340,12 @@ class EndpointStream:
         or held for a DataLoader worker), its samples already delivered or queued dropped
         (a batch of repeats only becomes DDP padding, or nothing with one rank), preceded by
         any padding owed, and yielded."""
-        self.info = conn.info
         epoch = item["epoch"]
         if self.record.is_complete(epoch):
             conn.give_back(item)  # never acknowledge what we would drop
             return
         loader = self.receipts is not None
-        if not (conn.hold(item) if loader else conn.take(item)):
+        if not conn.take(item, hold=loader):
             return  # given back meanwhile (lease expired, or this client was dropped)
         keep = self.record.new_samples(epoch, item["batch_id"], item["sample_ids"], loader)
         item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
@@ -403,7 +356,7 @@ class EndpointStream:
             item["receipt"] = {"worker": self.worker, "batch_id": item["batch_id"], "epoch": epoch,
                                "completed_epoch": self.record.completed_epoch}
         if len(keep) < len(item["sample_ids"]):
-            if not keep and self.world_size == 1:
+            if not keep and self.options.world_size == 1:
                 return  # all re-sent duplicates: hand nothing on
             if keep:
                 item = select_samples(item, keep)
@@ -414,3 +367,9 @@ class EndpointStream:
                 yield padding_copy(item, e)
         self._last = item
         yield item
+
+
+def _to_tensors(raw: bool, compact_flow: bool, arrays: dict, flow_size, flow_dtype: str) -> dict:
+    """A batch's wire arrays as a stream's tensors (a connection's ``convert``:
+    ``tensors.batch_to_torch`` with the stream's ``raw`` and ``compact_flow``)."""
+    return batch_to_torch(arrays, raw, flow_size, flow_dtype, compact_flow)

@@ -317,6 +317,12 @@ class FanInStream:
             self.info = info
         return item
 
+    def held(self) -> int:
+        """Batches received from every server and neither taken nor given back yet."""
+        with self._lock:
+            children = list(self._children)
+        return sum(c.held() for c in children)
+
     def close(self) -> None:
         """Close every server's open connections."""
         for c in list(self._children):

@@ -122,7 +122,7 @@ class StreamLoader(torch.utils.data.DataLoader):
                 self._link.close()
             self._link = LoaderLink(self.num_workers, {w: dict(r) for w, r in self._records.items()},
                                     self.multiprocessing_context)
-            self.dataset._link = self._link
+            self.dataset.read_by(self._link)
         else:  # persistent workers go on: the previous iteration is over for them first
             self._link.end_iteration()
         return self._receive(super().__iter__())

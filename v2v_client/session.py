@@ -19,7 +19,9 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.outputs import ARRAYS
+from v2v_wire import stream_messages as sm
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, ProtocolError, output_of, pack, unpack
+from v2v_wire.stream_messages import stream_message
 
 from .handoff import ShmReader, check_shm_dir, shm_dir_problem
 
@@ -232,49 +234,48 @@ class ServerSession:
         return out
 
     def on_message(self, frames) -> Optional[str]:
-        """Handle one server message (its frames: header, then array frames); "over" when the
-        stream has ended or failed (the reason is queued on ``items``), "lost" when the server
-        is shutting down, else None."""
+        """Handle one server message (its frames: header, then array frames), read at this
+        edge as its typed message (``v2v_wire.stream_messages``); "over" when the stream has
+        ended or failed (the reason is queued on ``items``; a malformed message names the
+        field), "lost" when the server is shutting down, else None."""
         try:
-            h = unpack(frames[0])
-            kind = h["type"]
-            if self._awaiting is not None and (kind in ("batch", "revoke") or (
-                    kind == "error" and h.get("code") in ("dropped", "unknown_client"))):
+            m = stream_message(unpack(frames[0]))
+            rehello = isinstance(m, sm.ServerError) and m.code in ("dropped", "unknown_client")
+            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke)) or rehello):
                 # sent before the server read our latest hello: about a session that is over
                 return None
-            if kind == "batch":
-                self._on_batch(h, frames)
-            elif kind == "welcome":
-                self._on_welcome(h)
+            if isinstance(m, sm.Batch):
+                self._on_batch(m, frames)
+            elif isinstance(m, sm.Welcome):
+                self._on_welcome(m)
                 refusal = self._welcomed(self.info)
                 if refusal is not None:
                     self.items.put(StreamError(f"v2v server at {self.endpoint}: {refusal}"))
                     return "over"
-            elif kind == "revoke":
-                self._on_revoke(h)
-            elif kind == "epoch_done":
-                n = h.get("batches")
-                self.items.put(EpochDone(int(h["epoch"]), n if isinstance(n, int) else None))
-            elif kind == "drained":
+            elif isinstance(m, sm.Revoke):
+                self._on_revoke(m)
+            elif isinstance(m, sm.EpochDone):
+                self.items.put(EpochDone(m.epoch, m.batches))
+            elif isinstance(m, sm.Drained):
                 self.items.put(Drained())
-            elif kind == "end":
-                self.items.put(StopIteration(h.get("reason", "end of stream")))
+            elif isinstance(m, sm.End):
+                self.items.put(StopIteration("end of stream" if m.reason is None else m.reason))
                 return "over"
-            elif kind == "shutdown":
+            elif isinstance(m, sm.Shutdown):
                 return "lost"
-            elif kind == "error" and h.get("code") == "compression" and self._compression_auto:
+            elif isinstance(m, sm.ServerError) and m.code == "compression" and self._compression_auto:
                 # the server lacks the codec we picked by default: take the arrays as they are
-                log.warning("v2v server at %s: %s; receiving arrays uncompressed", self.endpoint, h.get("message"))
+                log.warning("v2v server at %s: %s; receiving arrays uncompressed", self.endpoint, m.message)
                 self.compression = "none"
                 self._replies.append(self.hello())
-            elif kind == "error" and h.get("code") in ("dropped", "unknown_client"):
+            elif rehello:
                 # dropped for silence or an unanswered revoke, or the server restarted behind our socket:
                 # whatever we hold goes elsewhere, so hand none of it on; introduce ourselves again
                 log.warning("v2v server at %s: %s; saying hello again with the resume state", self.endpoint,
-                            h.get("message"))
+                            m.message)
                 self._replies.append(self.hello())
-            elif kind == "error":
-                self.items.put(StreamError(f"v2v server at {self.endpoint}: {h.get('message')}"))
+            elif isinstance(m, sm.ServerError):
+                self.items.put(StreamError(f"v2v server at {self.endpoint}: {m.message}"))
                 return "over"
         except (ProtocolError, KeyError, TypeError, ValueError) as e:
             self.items.put(StreamError(f"bad message from the v2v server at {self.endpoint}: {e}"))
@@ -288,53 +289,52 @@ class ServerSession:
 
     # -- messages --
 
-    def _on_batch(self, h: dict, frames) -> None:
+    def _on_batch(self, m: sm.Batch, frames) -> None:
         """A batch: its arrays (from the frames, or from the server's batch file on the same
         host) checked against the header, converted, and queued for the consumer.
 
         Raises:
             ProtocolError: arrays missing, of the wrong length, or a hand-off not asked for.
         """
-        shm = h.get("shm") is not None
-        if shm:  # same host: the arrays are in the server's batch file
+        ref = None if m.shm is None else {"shm": m.shm, "arrays": list(m.arrays)}  # handoff.ShmReader's header
+        if ref is not None:  # same host: the arrays are in the server's batch file
             if self._shm is None or len(frames) != 1:
                 raise ProtocolError("a shared-memory batch this client did not ask for")
-            arrays = self._shm.read(h, copy=self._copy_shm)
+            arrays = self._shm.read(ref, copy=self._copy_shm)
             if arrays is None:
-                return self._torn(h)
+                return self._torn(m.batch_id)
         else:
-            arrays = decode_batch_arrays(h.get("arrays"), frames[1:], MAX_SERVER_MSG)
+            arrays = decode_batch_arrays(list(m.arrays), frames[1:], MAX_SERVER_MSG)
         missing = [o for o in self.outputs if o not in {output_of(k) for k in arrays}]
         if missing:
-            raise ProtocolError(f"batch {h.get('batch_id')} lacks requested outputs {missing}")
-        ids = h["sample_ids"]
-        if not isinstance(ids, list) or any(a.shape[:1] != (len(ids),) for a in arrays.values()):
-            raise ProtocolError(f"batch {h.get('batch_id')}: sample ids do not match the arrays")
+            raise ProtocolError(f"batch {m.batch_id} lacks requested outputs {missing}")
+        if any(a.shape[:1] != (len(m.sample_ids),) for a in arrays.values()):
+            raise ProtocolError(f"batch {m.batch_id}: sample ids do not match the arrays")
         info = self.info or {}
         crop = info.get("crop_size")
         item = self._convert(arrays, (crop, crop) if isinstance(crop, int) and crop > 0 else None,
                              info.get("flow_dtype", ARRAYS["flow"].dtypes[0]))
-        if shm and not self._copy_shm:
+        if ref is not None and not self._copy_shm:
             del arrays  # converted from the mapping: check it still held this batch
-            if not self._shm.valid(h):
-                return self._torn(h)
-        item["sample_ids"] = list(ids)
-        item["params"] = list(h["params"])
-        item["epoch"] = int(h["epoch"])
-        item["batch_id"] = int(h["batch_id"])
-        if h.get("padding") is True:  # DDP padding from the server: not leased, never acknowledged
+            if not self._shm.valid(ref):
+                return self._torn(m.batch_id)
+        item["sample_ids"] = list(m.sample_ids)
+        item["params"] = list(m.params)
+        item["epoch"] = m.epoch
+        item["batch_id"] = m.batch_id
+        if m.padding:  # DDP padding from the server: not leased, never acknowledged
             self.items.put(ServerPadding(item))
             return None
         self.held.add(item)
         self.items.put(item)
         return None
 
-    def _on_welcome(self, h: dict) -> None:
+    def _on_welcome(self, m: sm.Welcome) -> None:
         """The server's answer to our hello: its stream info, and whether we can read its
         batch directory (else we ask again without the same-host hand-off)."""
-        if h.get("hello_id") == self._awaiting:
+        if m.hello_id == self._awaiting:
             self._awaiting = None
-        self.info = h.get("info", {})
+        self.info = m.info
         if self._shm is not None:
             d = self.info.get("shm_dir")
             why = None if d is None else shm_dir_problem(check_shm_dir(d))
@@ -349,26 +349,25 @@ class ServerSession:
         self.shm, self._shm = False, None
         self._replies.append(self.hello())
 
-    def _on_revoke(self, h: dict) -> None:
+    def _on_revoke(self, m: sm.Revoke) -> None:
         """Batches the server asks back: those still held (not yet handed to the consumer) are
         released, their arrays freed at once."""
-        released = self.held.revoke(h.get("batch_ids") if isinstance(h.get("batch_ids"), list) else [])
+        released = self.held.revoke(list(m.batch_ids))
         if released:
             self._replies.append(pack({"type": "released", "batch_ids": released}))
 
-    def _torn(self, h: dict) -> None:
-        """A shared-memory batch whose buffer the server refilled before we copied it: the
-        batch was acknowledged (or dropped) already, so it is not ours; give it back. The
-        same batch torn twice means its file is gone while the server still holds it (the
+    def _torn(self, bid: int) -> None:
+        """A shared-memory batch (id ``bid``) whose buffer the server refilled before we copied
+        it: the batch was acknowledged (or dropped) already, so it is not ours; give it back.
+        The same batch torn twice means its file is gone while the server still holds it (the
         directory was removed under it): read over the socket from now on, so the batch comes
         as frames instead of the same reference again."""
-        bid = h.get("batch_id")
         self._torn_ids[bid] = self._torn_ids.get(bid, 0) + 1
         if self._torn_ids[bid] >= 2:
             self._socket_instead(f"batch {bid} is gone from the server's shared memory again")
             return None
         log.warning("v2v stream %s: batch %s was gone from the server's shared memory before it was read "
                     "(this process stalled?); giving it back", self.endpoint, bid)
-        if isinstance(bid, int) and not isinstance(bid, bool) and bid >= 0:
+        if bid >= 0:
             self._replies.append(pack({"type": "released", "batch_ids": [bid]}))
         return None

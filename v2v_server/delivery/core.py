@@ -23,11 +23,12 @@ from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import MAX_CREDITS, OUTPUTS
 from v2v_server.delivery.schedule import MAX_TASK_CRASHES, EpochScheduler, Job
 from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
+from v2v_wire.stream_messages import Drained, EpochDone, Revoke, ServerError, StreamMessage, Welcome
 from v2v_wire.worker_messages import Task
 
 log = logging.getLogger("v2v.server")
 
-Msg = Tuple[bytes, dict]
+Msg = Tuple[bytes, StreamMessage]
 
 
 MAX_SHUFFLE_BUFFER = 4096
@@ -259,8 +260,8 @@ class DeliveryCore:
         """A client says hello (first time or again): refused with an error, or welcomed."""
         missing = [o for o in h.outputs if o not in self.offered]
         if missing:
-            return [(ident, {"type": "error", "code": "outputs",
-                             "message": f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}"})]
+            return [(ident, ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}",
+                                        "outputs"))]
         consumer, group = self.consumer_of(ident, h)
         r = h.resume
         self.sched.apply_resume(consumer, r.completed_epoch, {e: set(ks) for e, ks in r.delivered.items()})
@@ -276,16 +277,15 @@ class DeliveryCore:
         if self.outputs is None or any(o not in self.outputs for o in h.outputs):
             log.info("client %s asks for %s: workers now compute %s", ident.hex(), list(h.outputs),
                      list(self.ledger.outputs_wanted()))
-        return [(ident, {"type": "welcome", "info": info(), "hello_id": h.hello_id})]
+        return [(ident, Welcome(info(), h.hello_id))]
 
     def message(self, ident: bytes, msg, now: float) -> List[Msg]:
         """Any client message but hello (see ``wire``)."""
         if not self.ledger.touch(ident, now):
             if isinstance(msg, Bye):
                 return []
-            return [(ident, {"type": "error", "code": "unknown_client",
-                             "message": "unknown client (this server may have restarted, or dropped it for "
-                                        "silence): say hello first"})]
+            return [(ident, ServerError("unknown client (this server may have restarted, or dropped it for "
+                                        "silence): say hello first", "unknown_client"))]
         c = self.ledger.clients[ident]
         if isinstance(msg, Ack):
             for b in self.ledger.ack(ident, msg.batch_ids):
@@ -336,11 +336,10 @@ class DeliveryCore:
         revokes, drops = self.ledger.expire(now)
         for ident, ids in revokes.items():
             log.info("lease of batch(es) %s expired at client %s; asking for them back", ids, ident.hex())
-            msgs.append((ident, {"type": "revoke", "batch_ids": ids}))
+            msgs.append((ident, Revoke(tuple(ids))))
         for ident, why in drops:
             log.warning("client %s %s; dropping it (its batches go to others)", ident.hex(), why)
-            msgs.append((ident, {"type": "error", "code": "dropped",
-                                 "message": f"dropped by the server: {why}; discard what you hold"}))
+            msgs.append((ident, ServerError(f"dropped by the server: {why}; discard what you hold", "dropped")))
         sends, stale = self.ledger.sends(now)
         for b in stale:
             log.info("batch %d carries %s, which no connected client takes as is; its samples are made again",
@@ -363,7 +362,7 @@ class DeliveryCore:
                 c.told_drained = False
             elif not c.told_drained:
                 c.told_drained = True
-                msgs.append((ident, {"type": "drained"}))
+                msgs.append((ident, Drained()))
         return msgs
 
     def _announce(self) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
@@ -382,13 +381,13 @@ class DeliveryCore:
             self.announced.add(e)
             for ident, c in self.ledger.clients.items():
                 c.completed = max(c.completed, e)
-                msg = {"type": "epoch_done", "epoch": e}
+                batches = None
                 if c.group is not None and c.world_size > 1:
-                    msg["batches"], pad = self.padding.epoch_done(c, e)
+                    batches, pad = self.padding.epoch_done(c, e)
                     if pad is not None:
                         pads.append((ident, pad))
                         c.sent += 1
-                msgs.append((ident, msg))
+                msgs.append((ident, EpochDone(e, batches)))
             log.info("epoch %d complete", e)
             if self.journal is not None:
                 self.journal.epoch_complete(e)

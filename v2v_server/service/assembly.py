@@ -48,11 +48,12 @@ import math
 import mmap
 import os
 import struct
-import sys
+import weakref
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+import zmq
 
 from v2v_server.service.shm import SLOT_ALIGN, BatchDir, SlotRing
 from v2v_wire.batches import encode_batch, frame_size, stack_arrays
@@ -74,6 +75,9 @@ class SamplePayload:
             the sample was copied into (voxels int8/int16/int32 ``(L, B, H, W)``, frames
             uint8 ``(L + 1, H, W)``, flow float16/float32 ``(L, 2, H, W)``); the views keep
             the ZeroMQ frames (or the buffer) alive.
+
+    A sample in a batch buffer holds a lease on it (:meth:`_BatchBuffer.lease`) until it is
+    dropped: the buffer is not refilled while the sample exists.
     """
 
     sample_id: str
@@ -136,31 +140,47 @@ def packed_frames(specs: Sequence[dict], frames: Sequence,
 class _BatchBuffer:
     """One batch's arrays, ``(batch_size, ...)`` each, filled row by row as samples arrive;
     in a :class:`BatchDir` file (``file``, byte ``offsets`` of the arrays, ``gen``) or in
-    private memory (``file`` None)."""
+    private memory (``file`` None).
 
-    __slots__ = ("arrays", "next", "sealed", "file", "offsets", "gen", "_mm")
+    Who uses the rows is counted, never inferred: each sample or batch viewing them holds a
+    lease (:meth:`lease`, returned when that holder is dropped), and each zero-copy send of
+    them holds its ZeroMQ tracker (:meth:`sent`) until the kernel has the bytes. The buffer
+    is refilled only when :meth:`idle`."""
+
+    __slots__ = ("arrays", "next", "sealed", "file", "offsets", "gen", "_mm", "leases", "sends")
 
     def __init__(self, arrays: Dict[str, np.ndarray], file: Optional[str] = None,
                  offsets: Optional[Dict[str, int]] = None, mm: Optional[mmap.mmap] = None):
         self.arrays, self.next, self.sealed = arrays, 0, False
         self.file, self.offsets, self._mm, self.gen = file, offsets or {}, mm, 0
+        self.leases = 0  # samples and batches viewing the rows, not yet dropped
+        self.sends: list = []  # zmq.MessageTracker of zero-copy sends of the rows, maybe in flight
         self.bump()
 
     def bump(self) -> None:
-        """A new generation: the buffer is about to be refilled (nothing views it any more)."""
+        """A new generation: the buffer is about to be refilled (no lease or send is out)."""
         self.gen += 1
         if self._mm is not None:
             struct.pack_into("<Q", self._mm, 0, self.gen)
 
+    def lease(self, holder: object) -> None:
+        """Count ``holder`` (a :class:`SamplePayload` or :class:`BatchPayload` viewing rows)
+        as a user of the buffer until it is dropped (its last reference gone)."""
+        self.leases += 1
+        weakref.finalize(holder, self._release)
+
+    def _release(self) -> None:
+        self.leases -= 1
+
+    def sent(self, tracker) -> None:
+        """A zero-copy send of rows is in flight until ``tracker`` (``zmq.MessageTracker``) is done."""
+        self.sends.append(tracker)
 
     def idle(self) -> bool:
-        """True when nothing outside this object views the arrays (no sample, batch or
-        ZeroMQ message in flight: a zero-copy send holds a reference until the kernel has the
-        bytes)."""
-        for a in self.arrays.values():
-            if sys.getrefcount(a) > 3:  # the dict, the loop variable and the call's argument
-                return False
-        return True
+        """True when no lease is out and every zero-copy send of the rows has completed."""
+        if self.sends:
+            self.sends = [t for t in self.sends if not t.done]
+        return self.leases == 0 and not self.sends
 
 
 class BatchAssembler:
@@ -169,22 +189,30 @@ class BatchAssembler:
     rows of one ``(batch_size, ...)`` buffer per array, so :func:`make_batch` finds the batch
     already assembled.
 
-    Buffers are reused once idle (no sample, batch or in-flight zero-copy send views them),
-    so the relay does not map, fault in and zero fresh pages for every batch; at most
-    ``spare`` idle buffers per layout are kept, the rest go back to the allocator.
+    Buffers are reused once idle (no sample or batch holds a lease on them and no zero-copy
+    send of them is in flight: :meth:`BatchPayload.send`), so the relay does not map, fault
+    in and zero fresh pages for every batch; at most ``spare`` idle buffers per layout are
+    kept, the rest go back to the allocator.
 
     Args:
         batch_size: rows per buffer (``ServeConfig.batch_size``).
         spare: idle buffers kept per layout for reuse.
+        files: where buffers live as files a same-host client maps (:class:`BatchDir`), or
+            None for private memory.
+        on_error: told ``(path, OSError)`` when a batch file cannot be made or removed (the
+            server counts it and logs it once); default: a warning in the log.
+
+    Raises:
+        ValueError: for ``batch_size`` < 1.
     """
 
-    def __init__(self, batch_size: int, spare: int = 2, files: Optional[BatchDir] = None):
+    def __init__(self, batch_size: int, spare: int = 2, files: Optional[BatchDir] = None,
+                 on_error: Optional[Callable[[str, OSError], None]] = None):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.batch_size, self.spare, self.files = batch_size, spare, files
-        #: told ``(path, OSError)`` when a batch file cannot be made or removed (the server
-        #: counts it and logs it once); default: a warning in the log
-        self.on_error = lambda path, e: log.warning("batch buffer %s: %s: batches go as socket frames", path, e)
+        self.on_error = on_error or (lambda path, e: log.warning("batch buffer %s: %s: batches go as socket "
+                                                                 "frames", path, e))
         self._open: Dict[tuple, _BatchBuffer] = {}  # (layout, lane) -> buffer being filled
         self._used: Dict[tuple, List[_BatchBuffer]] = {}  # handed out, maybe still viewed
         self.reused = 0
@@ -203,8 +231,6 @@ class BatchAssembler:
             except OSError as e:
                 self.on_error(self.files.path, e)
             else:
-                # np.ndarray over the mapping (base: the mmap), so every row view references
-                # these very arrays and the reference count in idle() sees it
                 views = {k: np.ndarray(shapes[k], a.dtype, buffer=mm, offset=offsets[k]) for k, a in arrays.items()}
                 return _BatchBuffer(views, name, offsets, mm)
         return _BatchBuffer({k: np.empty(shapes[k], a.dtype) for k, a in arrays.items()})
@@ -237,7 +263,7 @@ class BatchAssembler:
                 else:
                     del self._used[other]
         # open buffers left idle (their open batch was flushed or dropped) are no lane's any more
-        for key in [k for k, b in self._open.items() if b is not None and b.idle()]:
+        for key in [k for k, b in self._open.items() if b.idle()]:
             del self._open[key]
         used = self._used.setdefault(sig, [])
         idle = [b for b in used if b.idle()]
@@ -262,7 +288,7 @@ class BatchAssembler:
         sig = tuple((k, a.dtype.str, a.shape) for k, a in arrays.items())
         buf = self._open.get((sig, lane))
         if buf is None or buf.sealed or buf.next >= self.batch_size:
-            self._open[(sig, lane)] = None  # the open buffer is not idle while we hold it here
+            self._open.pop((sig, lane), None)
             buf = self._open[(sig, lane)] = self._fresh(sig, arrays)
         row = buf.next
         buf.next += 1
@@ -275,7 +301,9 @@ class BatchAssembler:
             v = dst.view()
             v.flags.writeable = False
             views[k] = v
-        return SamplePayload(sample_id, meta, views, buf, row)
+        s = SamplePayload(sample_id, meta, views, buf, row)
+        buf.lease(s)
+        return s
 
 
 def sample_from_slot(msg: Sample, ring: SlotRing, assembler: BatchAssembler, frames: Sequence = (),
@@ -310,6 +338,10 @@ class BatchPayload:
         samples: the :class:`SamplePayload` of each sample (views of the workers' frames)
             until the batch is stacked, then None (the frames are released: a batch is held
             once, never twice).
+
+    A batch that is rows of a batch buffer holds a lease on it until it is dropped (acked,
+    shrunk or its epoch dropped), and each of its zero-copy sends until ZeroMQ is done with
+    it (:meth:`send`): the rows stay untouched while either is out.
     """
 
     sample_ids: List[str]
@@ -365,7 +397,7 @@ class BatchPayload:
         :class:`BatchDir`, the buffer's generation, byte offset of each array in the file, in
         the order of ``specs``), or None when the arrays are not consecutive rows of a
         file-backed buffer (send :meth:`wire` frames instead). The rows stay untouched while
-        this payload exists (a buffer is refilled only once nothing views it)."""
+        this payload exists (it holds a lease on them)."""
         if self._rows is None or self._rows[0].file is None:
             return None
         buf, r0 = self._rows
@@ -376,6 +408,26 @@ class BatchPayload:
                 specs.append({"name": k, "dtype": v.dtype.name, "shape": list(v.shape)})
                 offsets.append(buf.offsets[k] + r0 * (full.nbytes // full.shape[0]))
         return specs, {"file": buf.file, "gen": buf.gen, "offsets": offsets}
+
+    def send(self, socket, head: Sequence, frames: Sequence) -> None:
+        """Send ``head`` (frames of the message before the arrays: identity, header) then
+        ``frames`` (from :meth:`wire`, sent zero-copy) as one message on ``socket`` (a
+        ``zmq.Socket``); when the arrays are rows of a batch buffer, the buffer is not
+        refilled before ZeroMQ has released every array frame of this send (a worker's
+        compressed frames, sent as received, view no buffer).
+
+        Raises:
+            zmq.ZMQError: as ``socket.send_multipart`` does (e.g. an unreachable peer on a
+                ROUTER with ``ROUTER_MANDATORY``); nothing is then in flight.
+        """
+        if self._rows is None:
+            socket.send_multipart(list(head) + list(frames), copy=False)
+            return
+        parts = [zmq.Frame(f, track=True) if isinstance(f, np.ndarray) else f for f in frames]
+        socket.send_multipart(list(head) + parts, copy=False)
+        trackers = [p.tracker for p, f in zip(parts, frames) if p is not f]
+        if trackers:
+            self._rows[0].sent(zmq.MessageTracker(*trackers))
 
 
 def make_batch(samples: Sequence[SamplePayload]) -> BatchPayload:
@@ -396,8 +448,10 @@ def make_batch(samples: Sequence[SamplePayload]) -> BatchPayload:
     packed = [s.packed for s in samples] if any(s.packed for s in samples) else []
     if buf is not None and all(s.buffer is buf and s.row == r0 + i for i, s in enumerate(samples)):
         buf.sealed = True  # later samples start a fresh buffer; these rows are the batch's
-        return BatchPayload(ids, meta, None, {k: v[r0:r0 + len(samples)] for k, v in buf.arrays.items()},
-                            (buf, r0), packed)
+        batch = BatchPayload(ids, meta, None, {k: v[r0:r0 + len(samples)] for k, v in buf.arrays.items()},
+                             (buf, r0), packed)
+        buf.lease(batch)
+        return batch
     return BatchPayload(ids, meta, list(samples), packed=packed)
 
 

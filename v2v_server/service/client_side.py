@@ -20,6 +20,7 @@ from v2v_server.service.assembly import BatchAssembler
 from v2v_wire import codecs
 from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
 from v2v_wire.protocol import MAX_CLIENT_MSG, pack
+from v2v_wire.stream_messages import Batch, Revoke, ServerError, StreamMessage
 
 log = logging.getLogger("v2v.server")
 
@@ -31,22 +32,23 @@ class ClientSide:
         cfg: the server's ``ServeConfig``.
         core: the delivery core.
         metrics: counters of batches, bytes, leases and bad messages.
-        assembler: the batch buffers (its ``files`` are what shared-memory clients read).
         stream_info: ``() -> dict``, the ``info`` of a welcome.
 
-    ``attach(frontend)`` once the socket is bound.
+    ``attach(frontend, assembler)`` once the socket is bound (``assembler``: the batch
+    buffers; its ``files`` are what shared-memory clients read).
     """
 
-    def __init__(self, cfg: ServeConfig, core: DeliveryCore, metrics: ServerMetrics, assembler: BatchAssembler,
+    def __init__(self, cfg: ServeConfig, core: DeliveryCore, metrics: ServerMetrics,
                  stream_info: Callable[[], dict]):
-        self.cfg, self.core, self.metrics, self.assembler, self.stream_info = cfg, core, metrics, assembler, stream_info
+        self.cfg, self.core, self.metrics, self.stream_info = cfg, core, metrics, stream_info
+        self.assembler: Optional[BatchAssembler] = None
         self.frontend: Optional[zmq.Socket] = None
         self.bad = BadPeers()
         self.shm_clients: set = set()  # idents whose hello asked for shared-memory batches
         self.compression: Dict[bytes, str] = {}  # ident -> the compression its hello asked for
 
-    def attach(self, frontend: zmq.Socket) -> None:
-        self.frontend = frontend
+    def attach(self, frontend: zmq.Socket, assembler: BatchAssembler) -> None:
+        self.frontend, self.assembler = frontend, assembler
 
     def socket_codecs(self) -> List[str]:
         """The codecs connected clients asked for over sockets (what workers compress with)."""
@@ -70,33 +72,31 @@ class ClientSide:
             else:  # compressed arrays are the workers' frames, forwarded as they came
                 specs, frames = b.payload.wire(c.outputs, self.compression.get(ident, "none"))
                 nbytes = sum(_nbytes(f) for f in frames)
-            header = {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
-                      "sample_ids": b.payload.sample_ids, "params": b.payload.meta, "arrays": specs}
-            if ref is not None:
-                header["shm"] = shm
-            if b.batch_id < 0:
-                header["padding"] = True  # DDP: a repeat for a rank that has nothing to repeat; never acked
+            # batch id < 0: DDP padding, a repeat for a rank that has nothing to repeat; never acked
+            header = Batch(b.batch_id, b.epoch, tuple(b.payload.sample_ids), tuple(b.payload.meta), tuple(specs),
+                           shm if ref is not None else None, b.batch_id < 0)
             try:
-                self.frontend.send_multipart([ident, pack(header)] + frames, copy=False)
+                b.payload.send(self.frontend, [ident, pack(header.to_wire())], frames)
             except zmq.ZMQError as e:  # peer vanished (ROUTER_MANDATORY)
                 log.warning("client %s unreachable (%s); dropping it", ident.hex(), e)
                 self.core.forget(ident)
                 continue
             self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)
         for ident, msg in msgs:
-            if msg.get("type") == "revoke":
-                for _ in msg.get("batch_ids", ()):
+            if isinstance(msg, Revoke):
+                for _ in msg.batch_ids:
                     self.metrics.on_lease_expired()
             self.send(ident, msg)
 
-    def send(self, ident: bytes, msg: dict) -> None:
-        """One control message to one client (forgotten if it cannot be reached)."""
+    def send(self, ident: bytes, msg: StreamMessage) -> None:
+        """One control message (``v2v_wire.stream_messages``) to one client (forgotten if it
+        cannot be reached)."""
         try:
-            self.frontend.send_multipart([ident, pack(msg)], zmq.NOBLOCK)
+            self.frontend.send_multipart([ident, pack(msg.to_wire())], zmq.NOBLOCK)
         except zmq.ZMQError:
             self.core.forget(ident)
 
-    def broadcast(self, msg: dict) -> None:
+    def broadcast(self, msg: StreamMessage) -> None:
         """One control message to every connected client."""
         for ident in list(self.core.ledger.clients):
             self.send(ident, msg)
@@ -109,7 +109,7 @@ class ClientSide:
         if banned:
             log.warning("client %s keeps sending bad messages: ignoring it for %.0f s", ident.hex(), self.bad.ban_s)
         if not self.bad.banned(ident, now) or banned:
-            self.send(ident, {"type": "error", "message": f"protocol error: {why}"})
+            self.send(ident, ServerError(f"protocol error: {why}"))
         self.core.forget(ident)
 
     def on_message(self, frames) -> None:
@@ -135,10 +135,9 @@ class ClientSide:
             for gone in set(self.compression) - set(self.core.ledger.clients):
                 del self.compression[gone]
             if not codecs.available(msg.compression):
-                self.send(ident, {"type": "error", "code": "compression",
-                                  "message": f"this server cannot compress with {msg.compression!r}: "
+                self.send(ident, ServerError(f"this server cannot compress with {msg.compression!r}: "
                                              f"{msg.compression} needs the 'wire' extra on the server "
-                                             f"(pip install 'v2v[wire]'); ask for compression 'none'"})
+                                             f"(pip install 'v2v[wire]'); ask for compression 'none'", "compression"))
                 return
             self.compression[ident] = msg.compression
             replies = self.core.hello(ident, msg, now, self.stream_info)

@@ -44,6 +44,7 @@ from v2v_server.service.worker import worker_config
 from v2v_server.service.sockets import ServerSockets
 from v2v_server.service.worker_side import WorkerSide
 from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION
+from v2v_wire.stream_messages import End, Heartbeat, ServerError, Shutdown
 
 log = logging.getLogger("v2v.server")
 
@@ -105,13 +106,12 @@ class V2VServer:
         self._ended_at: Optional[float] = None  # since when the stream ended with no trainer connected
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
-        self.assembler = BatchAssembler(cfg.batch_size)  # shared-memory samples go straight into batch rows
-        self.assembler.on_error = lambda path, e: self.metrics.on_fs_error("shm", path, e)
+        self.assembler: Optional[BatchAssembler] = None  # built once the bind says where its buffers live
         self._resent_seen = 0  # ledger.resent already counted
-        self.workers = WorkerSide(cfg, self.source, self.core, self.metrics, self.assembler)
+        self.workers = WorkerSide(cfg, self.source, self.core, self.metrics)
         for video, why in (skipped or {}).items():  # known to give no window: logged and counted as if read
             self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)")
-        self.clients = ClientSide(cfg, self.core, self.metrics, self.assembler, self.stream_info)
+        self.clients = ClientSide(cfg, self.core, self.metrics, self.stream_info)
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -126,12 +126,15 @@ class V2VServer:
             if self.cfg.metrics_port is not None:
                 self.metrics.serve(self.cfg.metrics_host, self.cfg.metrics_port)
             self.bound_endpoint = self.sockets.bind(self.cfg)
-            if self.bound_endpoint.startswith("ipc://"):  # trainers on this host: batch buffers in /dev/shm
-                self.assembler.files = BatchDir.create()
+            # shared-memory samples go straight into batch rows; for trainers on this host
+            # (ipc://) the batch buffers are files in /dev/shm they read
+            self.assembler = BatchAssembler(self.cfg.batch_size, files=BatchDir.create() if self.bound_endpoint
+                                            .startswith("ipc://") else None,
+                                            on_error=lambda path, e: self.metrics.on_fs_error("shm", path, e))
             self.pool = WorkerPool(worker_config(self.cfg), self.source.spec(), self.sockets.backend_endpoint,
                                    self.cfg.workers)
-            self.workers.attach(self.backend, self.pool)
-            self.clients.attach(self.frontend)
+            self.workers.attach(self.backend, self.pool, self.assembler)
+            self.clients.attach(self.frontend, self.assembler)
             self.pool.start()
             rings = any(w.ring is not None for w in self.pool.workers.values())
             log.info("serving %d video(s) from %s on %s with %d worker(s); samples travel %s",
@@ -151,7 +154,8 @@ class V2VServer:
             self.workers.stop()
         if getattr(self, "sockets", None) is not None:
             self.sockets.close()
-        self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
+        if self.assembler is not None:
+            self.assembler.close()  # the batch files in /dev/shm go, also after a crash of the loop
         if self.journal is not None:
             self.journal.close()
         self._count_resent()
@@ -179,7 +183,7 @@ class V2VServer:
         for ident in list(self.ledger.clients):  # a send to a peer gone drops it from the ledger
             if ident not in self._told_end:
                 self._told_end.add(ident)
-                self.clients.send(ident, {"type": "end"})
+                self.clients.send(ident, End())
         if self.ledger.clients:
             self._ended_at = None
             return False
@@ -227,7 +231,7 @@ class V2VServer:
                 if self.journal is not None:
                     self.journal.sync(now)
                 if now >= next_beat:
-                    self.clients.broadcast({"type": "heartbeat"})
+                    self.clients.broadcast(Heartbeat())
                     next_beat = now + self.cfg.heartbeat_s
                 if now >= next_status:
                     self._log_status()
@@ -238,15 +242,15 @@ class V2VServer:
                     msg = (f"no usable video under {self.root}: "
                            + "; ".join(f"{k}: {v}" for k, v in sorted(self.workers.skipped_files.items())))
                     log.error(msg)
-                    self.clients.broadcast({"type": "error", "message": msg})
+                    self.clients.broadcast(ServerError(msg))
                     return 2
         except Exception as e:  # a bug of ours: say so to every client before going down
             log.exception("server loop failed: %s", e)
-            self.clients.broadcast({"type": "shutdown"})
+            self.clients.broadcast(Shutdown())
             raise
         # graceful stop: batches still unacknowledged stay with their trainers' resume state
         # (a restarted server re-makes whatever they did not take); tell clients to wait or resume
-        self.clients.broadcast({"type": "shutdown"})
+        self.clients.broadcast(Shutdown())
         return 0
 
     # ------------------------------------------------------------------ status

@@ -35,22 +35,22 @@ class WorkerSide:
         source: the corpus's ``videos.source.VideoSource`` (where a video lives, for log lines).
         core: the delivery core the reports go to.
         metrics: counters of samples, restarts, timeouts and skipped files.
-        assembler: where samples that arrive in shared-memory slots are copied.
 
-    ``attach(backend, pool)`` once the socket is bound and the pool started.
+    ``attach(backend, pool, assembler)`` once the socket is bound and the pool started
+    (``assembler``: where samples that arrive in shared-memory slots are copied).
     """
 
-    def __init__(self, cfg: ServeConfig, source: VideoSource, core: DeliveryCore, metrics: ServerMetrics,
-                 assembler: BatchAssembler):
-        self.cfg, self.source, self.core, self.metrics, self.assembler = cfg, source, core, metrics, assembler
+    def __init__(self, cfg: ServeConfig, source: VideoSource, core: DeliveryCore, metrics: ServerMetrics):
+        self.cfg, self.source, self.core, self.metrics = cfg, source, core, metrics
+        self.assembler: Optional[BatchAssembler] = None
         self.backend: Optional[zmq.Socket] = None
         self.pool: Optional[WorkerPool] = None
         self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
         self.logged_failures: set = set()
         self.seen = False  # some worker said ready (/readyz)
 
-    def attach(self, backend: zmq.Socket, pool: WorkerPool) -> None:
-        self.backend, self.pool = backend, pool
+    def attach(self, backend: zmq.Socket, pool: WorkerPool, assembler: BatchAssembler) -> None:
+        self.backend, self.pool, self.assembler = backend, pool, assembler
 
     def stop(self) -> None:
         """Ask every worker to stop (then the pool terminates what is left)."""
