@@ -53,7 +53,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             ``v2v_wire.outputs``); the server's workers compute the union of what its connected
             clients ask for.
         credits: batches the server may have in flight to this iterator (prefetch depth);
-            the server refuses more than its ``max_credits`` (default ``DEFAULT_MAX_CREDITS``, 64) with a clear error.
+            the server refuses more than its ``max_credits`` setting (default 64,
+            ``DeliveryPolicy.max_credits``) with a clear error.
         timeout_s: seconds without any message from the server (batches or heartbeats)
             before iteration raises ``StreamTimeout``; also bounds the wait for the first
             answer, so an absent server gives a clear error, never a hang. A heartbeating
