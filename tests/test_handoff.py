@@ -95,6 +95,37 @@ def test_a_buffer_is_refilled_only_after_its_batch_is_gone_and_a_late_reader_see
     asm.close()
 
 
+def test_a_private_copy_is_never_refilled_while_a_tensor_or_view_of_it_lives(shm_root):
+    """The client's copies go into reused memory: memory a tensor (torch.from_numpy) or a numpy
+    view of a copy still references is not lent again, and memory nothing references is."""
+    torch = pytest.importorskip("torch")
+    files = BatchDir.create(shm_root)
+    asm = BatchAssembler(4, files=files)
+    batches = [_batch(asm, 4 * j) for j in range(3)]
+    headers = [_header(b) for b in batches]
+    reader = ShmReader(keep=2)
+    reader.set_dir(files.path)
+    first = reader.read(headers[0])
+    expect = {k: v.copy() for k, v in first.items()}
+    where = {k: v.__array_interface__["data"][0] for k, v in first.items()}
+    tensor, view = torch.from_numpy(first["voxels"]), first["frames"][1:]
+    del first  # the dict goes; a tensor and a view stay, as in a training step
+    second = reader.read(headers[1])
+    assert not any(np.shares_memory(second[k], view) or np.shares_memory(second[k], tensor.numpy())
+                   for k in OUT)
+    assert np.array_equal(tensor.numpy(), expect["voxels"]) and np.array_equal(view, expect["frames"][1:])
+    del tensor, view
+    third = reader.read(headers[2])  # the first copy's memory is idle again: lent once more
+    assert all(np.array_equal(third[k], batches[2].arrays[k]) for k in OUT)
+    assert {k: v.__array_interface__["data"][0] for k, v in third.items()} == where
+    assert not any(np.shares_memory(third[k], second[k]) for k in OUT)
+    reused = reader.read(headers[0])
+    del second
+    assert all(np.array_equal(reused[k], expect[k]) for k in OUT)
+    reader.close()
+    asm.close()
+
+
 def test_the_client_refuses_a_header_pointing_outside_the_file_or_directory(shm_root):
     files = BatchDir.create(shm_root)
     asm = BatchAssembler(4, files=files)

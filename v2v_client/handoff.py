@@ -11,9 +11,10 @@ batch was already acknowledged elsewhere, e.g. after this process stalled past i
 detected by the generation stamped at the start of the file: :meth:`ShmReader.read` then
 returns None and the caller gives the batch back.
 
-The copies go into a small pool of reused buffers (fresh pages would cost the kernel a page
-fault and zeroing per 4 KiB, as much again as the copy); a pool buffer is reused only once
-nothing (no tensor, no view) references it.
+The copies go into a small pool of reused memory blocks (fresh pages would cost the kernel a
+page fault and zeroing per 4 KiB, as much again as the copy). A block is lent as one array over
+it; every array and tensor made from the copies references that array, so the block comes back
+to the pool when the array is collected, and never while anything still views it.
 """
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ import mmap
 import os
 import stat
 import struct
-import sys
+import threading
+import weakref
 from typing import Dict, List, Optional
 
 import numpy as np
@@ -91,33 +93,34 @@ def shm_layout(specs, ref, file_size: int) -> List[tuple]:
 
 
 class _Pool:
-    """Reused private buffers (uint8, one per batch) for the copies out of the batch files."""
+    """Reused private memory for the copies out of the batch files: at most ``keep`` idle
+    blocks (anonymous mappings) are kept, each lent as a uint8 array over it whose collection
+    gives the block back (``weakref.finalize``): numpy views and ``torch.from_numpy`` tensors of
+    the copies reference that array (a block's array owns no data, so no view skips it), so
+    nothing that still views a block can see it refilled."""
 
     def __init__(self, keep: int):
         self.keep = keep
-        self.bufs: List[np.ndarray] = []
+        self.idle: List[mmap.mmap] = []
+        self._lock = threading.Lock()  # a block comes back in whichever thread drops its array
 
     def get(self, nbytes: int) -> np.ndarray:
-        """A buffer of ``nbytes`` that nothing else references (a pooled one when possible)."""
-        # a pooled buffer is free when its references are the list's, the loop variable's and
-        # getrefcount's argument (no tensor or view: views of it reference it directly);
-        # plain for-loops, not enumerate, whose tuple would hold one more
-        for b in self.bufs:
-            if b.nbytes == nbytes and sys.getrefcount(b) <= 3:
-                return b
-        new = np.empty(nbytes, np.uint8)
-        if len(self.bufs) >= self.keep:  # forget one that nothing views, else do not pool the new one
-            gone = None
-            for b in self.bufs:
-                if sys.getrefcount(b) <= 3:
-                    gone = b
-                    break
-            if gone is None:
-                return new
-            self.bufs = [b for b in self.bufs if b is not gone]
-            del gone
-        self.bufs.append(new)
-        return new
+        """A uint8 array of ``nbytes`` over a block nothing else holds (an idle one when one
+        of that size is kept)."""
+        with self._lock:
+            block = next((b for b in self.idle if len(b) == nbytes), None)
+            if block is not None:
+                self.idle.remove(block)
+        if block is None:
+            block = mmap.mmap(-1, max(nbytes, 1))
+        lent = np.frombuffer(block, np.uint8, count=nbytes)
+        weakref.finalize(lent, self._back, block)
+        return lent
+
+    def _back(self, block: mmap.mmap) -> None:
+        with self._lock:
+            if len(self.idle) < self.keep:
+                self.idle.append(block)
 
 
 class ShmReader:
