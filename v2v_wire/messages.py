@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Dict, FrozenSet, Optional, Tuple
 
 from v2v_wire.codecs import COMPRESSIONS
+from v2v_wire.fields import show
 from v2v_wire.ids import SampleKey, expand_ids, parse_sample_ids
 from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError, check_outputs
 from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
@@ -109,20 +110,15 @@ class Bye:
 def _int(h: dict, name: str, lo: int, hi: int, default=None) -> int:
     v = h.get(name, default)
     if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-        raise WireError(f"field {name!r} must be an integer in [{lo}, {hi}], got {_show(v)}")
+        raise WireError(f"field {name!r} must be an integer in [{lo}, {hi}], got {show(v)}")
     return v
-
-
-def _show(v) -> str:
-    r = repr(v)
-    return r if len(r) <= 60 else r[:57] + "..."
 
 
 def _ids(h: dict, name: str) -> Tuple[int, ...]:
     v = h.get(name)
     if not isinstance(v, list) or not all(isinstance(b, int) and not isinstance(b, bool) and 0 <= b < 2 ** 63
                                           for b in v):
-        raise WireError(f"field {name!r} must be a list of batch ids (integers >= 0), got {_show(v)}")
+        raise WireError(f"field {name!r} must be a list of batch ids (integers >= 0), got {show(v)}")
     return tuple(v)
 
 
@@ -134,21 +130,21 @@ def _resume(v, crops_per_window: int = 1) -> Resume:
     if v is None:
         return Resume()
     if not isinstance(v, dict):
-        raise WireError(f"field 'resume' must be a map, got {_show(v)}")
+        raise WireError(f"field 'resume' must be a map, got {show(v)}")
     completed = _int(v, "completed_epoch", -1, 2 ** 31, -1)
     delivered, batches = {}, {}
     d = v.get("delivered", {})
     if not isinstance(d, dict):
-        raise WireError(f"field 'resume.delivered' must be a map, got {_show(d)}")
+        raise WireError(f"field 'resume.delivered' must be a map, got {show(d)}")
     for e, ids in d.items():
         if not (isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 9):
-            raise WireError(f"field 'resume.delivered' keys must be epoch numbers, got {_show(e)}")
+            raise WireError(f"field 'resume.delivered' keys must be epoch numbers, got {show(e)}")
         if not isinstance(ids, str):
             raise WireError(f"field 'resume.delivered[{e}]' must be a string of sample ids (ids.compact_ids)")
         delivered[int(e)] = _parse_keys(ids, crops_per_window)
     bt = v.get("batches", {})
     if not isinstance(bt, dict):
-        raise WireError(f"field 'resume.batches' must be a map, got {_show(bt)}")
+        raise WireError(f"field 'resume.batches' must be a map, got {show(bt)}")
     for e, n in bt.items():
         if not (isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 9) or isinstance(n, bool) \
                 or not isinstance(n, int) or not 0 <= n < 2 ** 31:
@@ -170,7 +166,7 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
     if not isinstance(h, dict) or not isinstance(h.get("type"), str):
         raise WireError("message must be a map with a string 'type'")
     if h.get("v") != PROTOCOL_VERSION or isinstance(h.get("v"), bool):
-        raise WireError(f"protocol version {_show(h.get('v'))}, expected {PROTOCOL_VERSION}")
+        raise WireError(f"protocol version {show(h.get('v'))}, expected {PROTOCOL_VERSION}")
     kind = h["type"]
     if kind == "hello":
         outs = h.get("outputs")
@@ -178,25 +174,25 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
             outs = check_outputs(outs if isinstance(outs, list) else None, "field 'outputs'")
         except ValueError:
             raise WireError(f"field 'outputs' must be a non-empty list from {list(OUTPUTS)}, "
-                            f"got {_show(outs)}") from None
+                            f"got {show(outs)}") from None
         credits = _int(h, "credits", 1, 1 << 20)
         if credits > max_credits:
             raise WireError(f"field 'credits' is {credits}; this server allows at most {max_credits} batches in "
                             f"flight per client")
         consumer = h.get("consumer", "")
         if not isinstance(consumer, str) or len(consumer) > 128:
-            raise WireError(f"field 'consumer' must be a string of at most 128 characters, got {_show(consumer)}")
+            raise WireError(f"field 'consumer' must be a string of at most 128 characters, got {show(consumer)}")
         group = h.get("group")
         if group is not None and (not isinstance(group, str) or len(group) > 128):
-            raise WireError(f"field 'group' must be a string of at most 128 characters, got {_show(group)}")
+            raise WireError(f"field 'group' must be a string of at most 128 characters, got {show(group)}")
         world = _int(h, "world_size", 1, 65536, 1)
         rank = _int(h, "rank", 0, world - 1, 0)
         shm = h.get("shm", False)
         if not isinstance(shm, bool):
-            raise WireError(f"field 'shm' must be true or false, got {_show(shm)}")
+            raise WireError(f"field 'shm' must be true or false, got {show(shm)}")
         compression = h.get("compression", "none")
         if compression not in COMPRESSIONS:
-            raise WireError(f"field 'compression' must be one of {list(COMPRESSIONS)}, got {_show(compression)}")
+            raise WireError(f"field 'compression' must be one of {list(COMPRESSIONS)}, got {show(compression)}")
         return Hello(outs, credits, consumer, _resume(h.get("resume"), crops_per_window),
                      group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm, compression)
     if kind == "ack":
@@ -211,7 +207,7 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
         return Heartbeat()
     if kind == "bye":
         return Bye()
-    raise WireError(f"unknown message type {_show(kind)}")
+    raise WireError(f"unknown message type {show(kind)}")
 
 
 def decode_client(frame, max_bytes: int, max_credits: int, crops_per_window: int = 1) -> object:

@@ -13,9 +13,10 @@ arrays are read (``protocol.decode_batch_arrays``, ``v2v_client.handoff``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional, Tuple, Union
 
+from v2v_wire.fields import FieldReader, show
 from v2v_wire.protocol import ProtocolError
 
 
@@ -24,34 +25,8 @@ class StreamMessageError(ProtocolError):
     error names the message and the field)."""
 
 
-def _show(v) -> str:
-    r = repr(v)
-    return r if len(r) <= 60 else r[:57] + "..."
-
-
-def _bad(kind: str, name: str, want: str, v) -> StreamMessageError:
-    return StreamMessageError(f"{kind} message: field {name!r} must be {want}, got {_show(v)}")
-
-
-def _int(h: dict, kind: str, name: str, lo: int = 0, default=None) -> int:
-    v = h.get(name, default)
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v < 2 ** 63:
-        raise _bad(kind, name, f"an integer >= {lo}", v)
-    return v
-
-
-def _list(h: dict, kind: str, name: str, item: type, default=None) -> tuple:
-    v = h.get(name, default)
-    if not isinstance(v, (list, tuple)) or not all(isinstance(x, item) and not isinstance(x, bool) for x in v):
-        raise _bad(kind, name, f"a list of {item.__name__}", v)
-    return tuple(v)
-
-
-def _opt_str(h: dict, kind: str, name: str) -> Optional[str]:
-    v = h.get(name)
-    if v is not None and not isinstance(v, str):
-        raise _bad(kind, name, "a string or absent", v)
-    return v
+_read = FieldReader(StreamMessageError)
+_bad, _int, _list, _opt_str = _read.bad, _read.integer, _read.items, _read.optional_string
 
 
 @dataclass(frozen=True)
@@ -238,7 +213,7 @@ def stream_message(h: dict) -> Optional[StreamMessage]:
     """
     kind = h.get("type") if isinstance(h, dict) else None
     if not isinstance(kind, str):
-        raise StreamMessageError(f"server message: field 'type' must be a string, got {_show(kind)}")
+        raise StreamMessageError(f"server message: field 'type' must be a string, got {show(kind)}")
     cls = _TYPES.get(kind)
     return None if cls is None else cls.from_wire(h)
 

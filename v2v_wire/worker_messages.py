@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple, Union
 
 from v2v_wire.ids import SampleKey
+from v2v_wire.fields import FieldReader, show
 from v2v_wire.protocol import ProtocolError
 
 
@@ -31,47 +32,8 @@ class WorkerMessageError(ProtocolError):
     type or range (the error names the message and the field)."""
 
 
-def _show(v) -> str:
-    r = repr(v)
-    return r if len(r) <= 60 else r[:57] + "..."
-
-
-def _bad(kind: str, name: str, want: str, v) -> WorkerMessageError:
-    return WorkerMessageError(f"{kind} message: field {name!r} must be {want}, got {_show(v)}")
-
-
-def _int(h: dict, kind: str, name: str, default=None) -> int:
-    v = h.get(name, default)
-    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2 ** 63:
-        raise _bad(kind, name, "an integer >= 0", v)
-    return v
-
-
-def _str(h: dict, kind: str, name: str, field_name: Optional[str] = None) -> str:
-    """The string ``h[name]`` (``field_name``: how the error names it, default ``name``)."""
-    v = h.get(name)
-    if not isinstance(v, str):
-        raise _bad(kind, field_name or name, "a string", v)
-    return v
-
-
-def _list(h: dict, kind: str, name: str, item: type) -> tuple:
-    """The list ``h[name]`` (default empty) of ``item`` s, as a tuple."""
-    v = h.get(name, [])
-    if not isinstance(v, (list, tuple)) or not all(isinstance(s, item) for s in v):
-        raise _bad(kind, name, "a list of " + ("strings" if item is str else "maps"), v)
-    return tuple(v)
-
-
-def _map(h: dict, kind: str, name: str, values: Optional[tuple] = None) -> dict:
-    """The map ``h[name]`` (default empty) with string keys and, when ``values`` is given, values
-    of those types (never a bool)."""
-    v = h.get(name, {})
-    if not isinstance(v, dict) or not all(isinstance(k, str) and (values is None or isinstance(x, values)
-                                                                  and not isinstance(x, bool)) for k, x in v.items()):
-        want = "a map of strings to " + ("anything" if values is None else "/".join(t.__name__ for t in values))
-        raise _bad(kind, name, want, v)
-    return v
+_read = FieldReader(WorkerMessageError)
+_bad, _int, _str, _list, _map = _read.bad, _read.integer, _read.string, _read.items, _read.mapping
 
 
 @dataclass(frozen=True)
@@ -145,7 +107,8 @@ class Task:
                                                             for i in s) for s in skip):
             raise _bad("task", "skip", "a list of [window, crop] pairs", skip)
         return cls(_int(h, "task", "task"), _int(h, "task", "epoch"), _str(h, "task", "video"),
-                   _list(h, "task", "outputs", str), tuple((w, c) for w, c in skip), _list(h, "task", "codecs", str))
+                   _list(h, "task", "outputs", str, ()), tuple((w, c) for w, c in skip),
+                   _list(h, "task", "codecs", str, ()))
 
 
 @dataclass(frozen=True)
@@ -211,13 +174,13 @@ class Sample:
         meta = h.get("meta")
         if not isinstance(meta, dict):
             raise _bad("sample", "meta", "a map", meta)  # its contents are the clients' (msgpack-able)
-        packed = _list(h, "sample", "packed", dict)
+        packed = _list(h, "sample", "packed", dict, ())
         for p in packed:
             if not (isinstance(p.get("codec"), str) and isinstance(p.get("name"), str)
                     and isinstance(p.get("nbytes"), int) and not isinstance(p.get("nbytes"), bool)):
                 raise _bad("sample", "packed", "a list of {codec, name, nbytes}", p)
         slot = None if h.get("slot") is None else _int(h, "sample", "slot")
-        return cls(_int(h, "sample", "task"), key, meta, _list(h, "sample", "arrays", dict), packed, slot,
+        return cls(_int(h, "sample", "task"), key, meta, _list(h, "sample", "arrays", dict, ()), packed, slot,
                    _map(h, "sample", "stages", (int, float)))
 
 
@@ -261,8 +224,9 @@ class Done:
         if error is not None and not isinstance(error, str):
             raise _bad("done", "error", "a string or null", error)
         failure = None if h.get("failure") is None else Failure.from_wire(h["failure"])
-        return cls(_int(h, "done", "task"), _int(h, "done", "windows", 0), _map(h, "done", "failed", (str,)), error,
-                   failure, _int(h, "done", "frames", 0), _int(h, "done", "cuts", 0), _int(h, "done", "dropped", 0),
+        count = {k: _int(h, "done", k, default=0) for k in ("windows", "frames", "cuts", "dropped")}
+        return cls(_int(h, "done", "task"), count["windows"], _map(h, "done", "failed", (str,)), error,
+                   failure, count["frames"], count["cuts"], count["dropped"],
                    _map(h, "done", "stages", (int, float)), _map(h, "done", "store"))
 
 
@@ -310,7 +274,7 @@ def worker_message(h: dict, crops_per_window: int = 1) -> WorkerMessage:
         return Done.from_wire(h)
     if kind == "ready":
         return Ready.from_wire(h)
-    raise WorkerMessageError(f"unknown worker message type {_show(kind)}")
+    raise WorkerMessageError(f"unknown worker message type {show(kind)}")
 
 
 def server_message(h: dict) -> ServerMessage:
@@ -323,7 +287,7 @@ def server_message(h: dict) -> ServerMessage:
     for cls in (Task, Slot, Stop):
         if kind == cls.__name__.lower():
             return cls.from_wire(h)
-    raise WorkerMessageError(f"unknown server message type {_show(kind)}")
+    raise WorkerMessageError(f"unknown server message type {show(kind)}")
 
 
 __all__ = ["Done", "Failure", "Ready", "Sample", "ServerMessage", "Slot", "Stop", "Task", "WorkerMessage",
