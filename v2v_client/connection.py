@@ -23,6 +23,7 @@ from typing import Callable, Optional, Tuple
 
 import zmq
 
+from v2v_wire.messages import Ack, Bye, Heartbeat, Hold, Released
 from v2v_wire.protocol import is_ipv6, pack, unpack
 
 from .session import MAX_SERVER_MSG, Convert, LoopAbandoned, ServerSession, StreamError, StreamTimeout
@@ -114,18 +115,18 @@ class Connection:
         too long)."""
         if not self.session.held.claim(item, lambda: self.silent_too_long(time.monotonic())):
             return False
-        self._queue_for_server({"type": "hold" if hold else "ack", "batch_ids": [item["batch_id"]]})
+        self._queue_for_server((Hold if hold else Ack)((item["batch_id"],)).to_wire())
         return True
 
     def ack(self, batch_ids) -> None:
         """Acknowledge batches this connection holds (the training loop received them)."""
         if batch_ids:
-            self._queue_for_server({"type": "ack", "batch_ids": list(batch_ids)})
+            self._queue_for_server(Ack(tuple(batch_ids)).to_wire())
 
     def give_back(self, item: dict) -> None:
         """Return a received batch to the server unused (e.g. an epoch this consumer already completed)."""
         if self.session.held.give_back(item):
-            self._queue_for_server({"type": "released", "batch_ids": [item["batch_id"]]})
+            self._queue_for_server(Released((item["batch_id"],)).to_wire())
 
     def _queue_for_server(self, msg: dict) -> None:
         """Hand ``msg`` to the I/O thread, which sends it. Dropped once that thread has ended
@@ -187,7 +188,7 @@ class Connection:
                 continue
             mine = self.record.received(msg["batch_ids"])
             if mine:
-                _send(sock, pack({"type": "ack", "batch_ids": mine}))
+                _send(sock, pack(Ack(tuple(mine)).to_wire()))
 
     def _run(self) -> None:
         """The I/O thread: the loop over the socket; any failure goes to the consumer as a
@@ -244,7 +245,7 @@ class Connection:
                 last_heard = now
                 continue
             if now >= next_beat:
-                _send(sock, pack({"type": "heartbeat"}))
+                _send(sock, pack(Heartbeat().to_wire()))
                 next_beat = now + self.options.heartbeat_s
 
     def _receive(self, sock: zmq.Socket) -> Tuple[Optional[str], bool]:
@@ -294,7 +295,7 @@ class Connection:
             try:
                 self._pipe.forward(sock)
                 self._take_receipts(sock)
-                sock.send(pack({"type": "bye"}), zmq.NOBLOCK)
+                sock.send(pack(Bye().to_wire()), zmq.NOBLOCK)
             except zmq.ZMQError:
                 pass
             sock.close()

@@ -18,6 +18,7 @@ import threading
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from v2v_wire.codecs import decode_batch_arrays
+from v2v_wire.messages import Released
 from v2v_wire.outputs import ARRAYS
 from v2v_wire import stream_messages as sm
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, ProtocolError, output_of, pack, unpack
@@ -354,7 +355,7 @@ class ServerSession:
         released, their arrays freed at once."""
         released = self.held.revoke(list(m.batch_ids))
         if released:
-            self._replies.append(pack({"type": "released", "batch_ids": released}))
+            self._replies.append(pack(Released(tuple(released)).to_wire()))
 
     def _torn(self, bid: int) -> None:
         """A shared-memory batch (id ``bid``) whose buffer the server refilled before we copied
@@ -369,5 +370,5 @@ class ServerSession:
         log.warning("v2v stream %s: batch %s was gone from the server's shared memory before it was read "
                     "(this process stalled?); giving it back", self.endpoint, bid)
         if bid >= 0:
-            self._replies.append(pack({"type": "released", "batch_ids": [bid]}))
+            self._replies.append(pack(Released((bid,)).to_wire()))
         return None

@@ -76,12 +76,22 @@ class Hello:
 
 @dataclass(frozen=True)
 class Ack:
+    """The training loop received these batches: the server forgets them."""
+
     batch_ids: Tuple[int, ...]
+
+    def to_wire(self) -> dict:
+        return {"type": "ack", "batch_ids": list(self.batch_ids)}
 
 
 @dataclass(frozen=True)
 class Released:
+    """The client gives these batches back unused (revoked, torn, or of a completed epoch)."""
+
     batch_ids: Tuple[int, ...]
+
+    def to_wire(self) -> dict:
+        return {"type": "released", "batch_ids": list(self.batch_ids)}
 
 
 @dataclass(frozen=True)
@@ -91,20 +101,34 @@ class Hold:
 
     batch_ids: Tuple[int, ...]
 
+    def to_wire(self) -> dict:
+        return {"type": "hold", "batch_ids": list(self.batch_ids)}
+
 
 @dataclass(frozen=True)
 class Credit:
+    """The client's new credit (batches it may have in flight)."""
+
     credit: int
+
+    def to_wire(self) -> dict:
+        return {"type": "credit", "credit": self.credit}
 
 
 @dataclass(frozen=True)
 class Heartbeat:
-    pass
+    """The client is alive."""
+
+    def to_wire(self) -> dict:
+        return {"type": "heartbeat"}
 
 
 @dataclass(frozen=True)
 class Bye:
-    pass
+    """The client closes its connection: what it holds unacknowledged goes back."""
+
+    def to_wire(self) -> dict:
+        return {"type": "bye"}
 
 
 def _int(h: dict, name: str, lo: int, hi: int, default=None) -> int:
