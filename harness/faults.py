@@ -740,15 +740,19 @@ def scenario_ddp_late_rank(tmp: Path, layout: Layout, delay_s: float = 3.0) -> d
 
 
 def scenario_fair_sharing(tmp: Path, layout: Layout, clients: int = 20) -> dict:
-    """``clients`` trainers read one stream at once: each gets a near-equal share."""
+    """``clients`` trainers read one stream at once: each gets a near-equal share. The trainers
+    dial before the server starts (ZeroMQ holds their hellos until it binds), so all of them are
+    there when its first batch is ready: a share measures the fair rotation, not how long 20
+    threads took to connect on a loaded machine while the first ones drained the stream."""
     corpus = good_corpus(tmp, 4)
     expected = expected_ids(corpus, layout)
     logs: List[list] = [[] for _ in range(clients)]
-    with _serve(corpus, layout, "--epochs", "1", "--batch-size", "1") as srv:
-        ths = [threading.Thread(target=read_all, args=(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1),
-                                                        logs[i]), daemon=True) for i in range(clients)]
-        for t in ths:
-            t.start()
+    srv = _serve(corpus, layout, "--epochs", "1", "--batch-size", "1")
+    ths = [threading.Thread(target=read_all, args=(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1),
+                                                    logs[i]), daemon=True) for i in range(clients)]
+    for t in ths:
+        t.start()
+    with srv:
         for t in ths:
             t.join(180)
         rc = srv.wait(30)
