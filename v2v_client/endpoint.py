@@ -25,6 +25,7 @@ from .fanin import read_state
 
 __all__ = ["EndpointStream", "ConsumerRecord", "padding_copy"]
 
+
 def padding_copy(batch: dict, epoch: int) -> dict:
     """A DDP padding batch of ``epoch`` repeating ``batch``: its tensors cloned, every sample
     flagged in ``padding`` (bool (B,), all True: the loss must ignore them), ``batch_id`` -1."""
