@@ -7,19 +7,26 @@ VidGen's JSON, a Parquet file) selects and orders its videos, read by DuckDB (ex
   a local path or a store URL (read through fsspec, credentials from the environment, as a list
   file in the store is).
 * **The path** of a row: the column :attr:`TableSettings.column` (default: the first of
-  :data:`PATH_COLUMNS` the table has), or a template over columns (``{videoID}.mp4``).
+  :data:`PATH_COLUMNS` the table has), or a template over columns (``{videoID}.mp4``; a field
+  is a column's whole name, dots and brackets included: ``{video.id}``). A cell is text or an
+  integer; the path is folded as a list line's is (``segments.clean_path``).
 * **Time ranges**: columns ``start`` and ``end`` give one segment per row, Panda-70M's
   ``timestamp`` column (a list of ``[start, end]`` pairs) one per pair; times as in list files
-  (``segments.parse_time``).
-* **Filter**: :attr:`TableSettings.filter`, an SQL expression over the columns (``frame >= 201
-  and "motion score" > 0.5``) that DuckDB evaluates, with the table loaded and file access off.
+  (``segments.parse_time``), or numbers of seconds, or durations (INTERVAL, TIME).
+* **Filter**: :attr:`TableSettings.filter`, one SQL expression over the columns (``frame >=
+  201 and "motion score" > 0.5``) that DuckDB parses as one expression and nothing else (its
+  relation API's ``filter``: a second statement or a clause is refused, never run) and
+  evaluates with the table loaded and file access off. Ctrl-C stops a slow one at once.
 * **Too short by the table's numbers**: a row whose ``frame`` (else ``seconds`` x ``fps``; for
   a range, its length x ``fps``) rounds below one window's frames is skipped without opening
   its video, and counted in one refused entry (``--check`` shows it, the server logs it once).
 
-A configuration error (no path column, a template's unknown column, a filter that does not
-parse or names an unknown column) raises ``ValueError`` naming the file and the setting; a row
-that cannot be read (no path, a time that does not parse) is refused with its path, once.
+A configuration error (no path column, a template's unknown column, a filter that is not one
+expression, does not parse or names an unknown column) raises ``ValueError`` naming the file
+and the setting. A CSV line that cannot be read (not UTF-8, too many or too few cells, a cell
+not of its column's type) is refused with its line number; a row that gives no entry (no path,
+a path that leaves the root or holds a NUL byte, a cell of another type, a time that does not
+parse) is refused with its path, once; the rest of the table is served.
 """
 from __future__ import annotations
 
@@ -109,8 +116,7 @@ def _template(path: str, columns: Sequence[str], column: str) -> Template:
         if whole not in columns and (not field or spec or conv):
             raise ValueError(f"video_list_column {column!r}: a template names columns only, as '{{videoID}}.mp4'")
         if whole not in columns:
-            raise ValueError(f"video_list_column {column!r}: video_list {path} has no column {whole!r} "
-                             f"(columns: {list(columns)})")
+            raise _no_column(path, column, whole, columns)
         pieces.append((text, whole))
     if all(f is None for _, f in pieces):
         raise ValueError(f"video_list_column {column!r}: a template names columns only, as '{{videoID}}.mp4'")
@@ -135,33 +141,29 @@ def _path_spec(path: str, columns: Sequence[str], column: Optional[str]) -> Tupl
         return None, [hit]
     if column in columns or "{" not in column:
         if column not in columns:
-            raise ValueError(f"video_list_column {column!r}: video_list {path} has no column {column!r} "
-                             f"(columns: {list(columns)})")
+            raise _no_column(path, column, column, columns)
         return None, [column]
     pieces = _template(path, columns, column)
     return pieces, list(dict.fromkeys(f for _, f in pieces if f is not None))
 
 
 def _by_lower(columns: Sequence[str]) -> Dict[str, str]:
-    """Column by its lower-case name, the first of names that differ only in case."""
+    """Column by its lower-case name (DuckDB reads names that differ only in case as distinct
+    names: ``Video`` beside ``video`` is ``Video_1``)."""
     lower: Dict[str, str] = {}
     for c in columns:
         lower.setdefault(c.lower(), c)
     return lower
 
 
-def _check_case(path: str, columns: Sequence[str], wanted: Sequence[str]) -> None:
-    """DuckDB's SQL names columns case aside: a column read whose name another's differs from
-    only in case would read the wrong one.
-
-    Raises:
-        ValueError: naming the file and both columns.
-    """
-    for c in wanted:
-        twins = [o for o in columns if o.lower() == c.lower()]
-        if len(twins) > 1:
-            raise ValueError(f"video_list {path}: columns {' and '.join(map(repr, twins))} differ only in case, "
-                             f"and SQL cannot tell them apart: rename one to read {c!r}")
+def _no_column(path: str, column: str, name: str, columns: Sequence[str]) -> ValueError:
+    """The error for ``video_list_column`` ``column`` naming ``name``, which the table lacks. A
+    column whose name differs from another's only in case is read by DuckDB (whose SQL names
+    columns case aside) under the name ``Name_1``: the message says so."""
+    twin = [c for c in columns if c.lower().startswith(name.lower() + "_") and c[len(name) + 1:].isdigit()]
+    hint = (f"; a column whose name differs from another's only in case is read as {twin[0]!r}" if twin else "")
+    return ValueError(f"video_list_column {column!r}: video_list {path} has no column {name!r} "
+                      f"(columns: {list(columns)}{hint})")
 
 
 def _connect(path: str):
@@ -301,7 +303,6 @@ def _load(con, path: str, settings: TableSettings) -> Tuple[_Loaded, List[Tuple[
         [lower[TIMESTAMP_COLUMN]] if TIMESTAMP_COLUMN in lower else []
     named = [c for c in columns if settings.filter and c.lower() in settings.filter.lower()]
     wanted = list(dict.fromkeys(fields + ranges + [lower[c] for c in NUMBER_COLUMNS if c in lower] + named))
-    _check_case(path, columns, wanted)
     keep = ", ".join(_quote(c) for c in wanted)
     _run(con, path, f"CREATE TABLE t AS SELECT {keep} FROM {_source(path, reader, fields, rejects=True)}", what)
     refused = _rejected_lines(con, path) if reader == "read_csv" else []
