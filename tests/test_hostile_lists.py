@@ -241,3 +241,12 @@ def test_a_folder_of_zip_parts_with_its_table_is_served(tmp_path, monkeypatch):
     assert "WARNING ignored (1 entry): listed in w/openvid.csv but no member of the archives in parts: " \
         "elsewhere_5.mp4" in log
     assert "parts/w/openvid.csv" not in log and "parts/(" not in log and "Traceback" not in log
+
+
+def test_a_cell_holding_a_newline_is_named_on_one_line(corpus, capsys):
+    table = corpus / "nl.csv"
+    table.write_text('video\na.mp4\n"forged.mp4\nWARNING all good.mp4"\n')
+    rc, out, _ = _check(capsys, corpus, "--video-list", str(table))
+    assert rc == 0 and "1 usable video(s) of 1" in out and "1 other entry ignored" in out
+    assert len(out.splitlines()) == 4  # header, a.mp4, the refused row, the summary
+    assert f"forged.mp4\\nWARNING all good.mp4" in out and f"listed in {table} but missing from {corpus}" in out

@@ -67,7 +67,8 @@ def clean_path(rel: str) -> str:
     folder's listing. A path that leaves the root keeps its leading ``..``
     (:func:`path_problem` names it); an empty path stays empty."""
     rel = rel.lstrip("/")
-    rel = posixpath.normpath(rel) if rel else rel
+    if "//" in rel or "/." in rel or rel.startswith(".") or rel.endswith("/"):  # else normpath keeps it
+        rel = posixpath.normpath(rel)
     return "" if rel == "." else rel
 
 

@@ -45,7 +45,7 @@ from v2v_server.videos.corpus_index import CorpusIndex, index_path
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.manifest import default_cache_dir
-from v2v_server.videos.segments import base_path, range_problem, split_segment
+from v2v_server.videos.segments import base_path, printable_name, range_problem, split_segment
 from v2v_server.videos.shards import ARCHIVES, split_member
 from v2v_server.videos.video_list import VideoList, read_video_list
 from v2v_server.videos.video_tables import TableSettings
@@ -231,7 +231,8 @@ class VideoSource:
                 rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
             else:
                 videos.append(rel)
-        return self.archives.expand(videos, rejected, extensions)
+        videos, rejected = self.archives.expand(videos, rejected, extensions)
+        return videos, [(printable_name(rel), why) for rel, why in rejected]  # a cell's newline stays on its line
 
     def _paired(self, names: VideoList, exists, extensions: Sequence[str]) -> VideoList:
         """A list's video names that are no file of the corpus paired with the video members of

@@ -267,7 +267,7 @@ def _reason(e: Exception) -> str:
 #: The columns the window check reads (:func:`_frames_sql`).
 NUMBER_COLUMNS = ("frame", "fps", "seconds")
 class _Loaded(NamedTuple):
-    """What :func:`_load` found: the table's ``columns`` and their DuckDB ``types``, the path
+    """What :func:`_load` found: the table's ``columns``, the DuckDB ``types`` of those loaded, the path
     ``template`` (None: one column) over ``fields``, and the time-range columns ``ranges``."""
 
     columns: List[str]
@@ -296,7 +296,7 @@ def _load(con, path: str, settings: TableSettings) -> Tuple[_Loaded, List[Tuple[
     reader = table_format(path)
     what = reader[len("read_"):]
     described = _run(con, path, f"DESCRIBE SELECT * FROM {_source(path, reader)}", what)
-    columns, types = [r[0] for r in described], {r[0]: str(r[1]) for r in described}
+    columns = [r[0] for r in described]
     template, fields = _path_spec(path, columns, settings.column)
     lower = _by_lower(columns)
     ranges = [lower["start"], lower["end"]] if "start" in lower and "end" in lower else \
@@ -306,6 +306,7 @@ def _load(con, path: str, settings: TableSettings) -> Tuple[_Loaded, List[Tuple[
     keep = ", ".join(_quote(c) for c in wanted)
     _run(con, path, f"CREATE TABLE t AS SELECT {keep} FROM {_source(path, reader, fields, rejects=True)}", what)
     refused = _rejected_lines(con, path) if reader == "read_csv" else []
+    types = {r[0]: str(r[1]) for r in con.execute("DESCRIBE t").fetchall()}  # a CSV's path columns: text
     con.execute("SET enable_external_access = false")
     con.execute("SET lock_configuration = true")
     return _Loaded(columns, types, template, fields, ranges), refused
@@ -425,6 +426,9 @@ def _select(con, path: str, settings: TableSettings, loaded: _Loaded) -> list:
     lower = _by_lower(loaded.columns)
     select = [_quote(f) for f in loaded.fields] + [_quote(c) for c in loaded.ranges] + \
         [_frames_sql(lower, loaded.types, bool(loaded.ranges))]
+    if _lean(loaded):  # whether a path may need folding or naming: a superset, that the rule then decides
+        select.append(f"{_quote(loaded.fields[0])} = '' OR regexp_matches({_quote(loaded.fields[0])}, "
+                      f"'^[./]|//|/[.]|/$|\\x00')")
     where = f"video_list_filter {settings.filter!r} on video_list {path}"
     log.debug("video_list %s: selecting its rows (video_list_filter %r)", path, settings.filter)
     try:
@@ -464,7 +468,7 @@ def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tupl
 def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tuple[List[str], List[Tuple[str, str]]]:
     """:func:`read_table`'s entries from the selected ``rows`` (path fields, range cells, frame
     number)."""
-    out, seen, refused, short = [], set(), [], []
+    out, seen, refused, short, rows_left = [], set(), [], [], []
     need = window_frames - 0.5  # the table's numbers are rounded (OpenVid's seconds to 1/100 s)
     fields, ranges, template = loaded.fields, loaded.ranges, loaded.template
     json_typed = [loaded.types.get(f) == "JSON" for f in fields]
@@ -474,9 +478,17 @@ def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tupl
             seen.add((rel, why))
             refused.append((printable_name(rel) or NO_PATH, f"listed in {path}: {why}"))
 
+    if _lean(loaded):  # one path column of text, whole videos (OpenVid): a path that needs no look is the entry
+        for v, n, look in rows:
+            if look is not False:  # NULL, empty, or a path to fold or name: the loop below
+                rows_left.append((v, n))
+            elif v not in seen:
+                seen.add(v)
+                (short if n is not None and n < need else out).append(v)
+        rows = rows_left
     for row in rows:
         values, cells, frames = row[:len(fields)], row[len(fields):-1], row[-1]
-        if template is None and not json_typed[0] and type(values[0]) is str:  # a path column of text: lean
+        if template is None and not json_typed[0] and type(values[0]) is str:  # a path column of text
             named = list(values)
             rel = clean_path(values[0])
         else:
@@ -507,6 +519,12 @@ def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tupl
         refused.append((path, f"{len(short)} row(s) of {path} skipped without opening their video: their {how} "
                               f"is below one window's {window_frames} frames (e.g. {', '.join(short[:3])})"))
     return out, refused
+
+
+def _lean(loaded: _Loaded) -> bool:
+    """Whether rows are whole videos named by one text column: DuckDB then tells which paths
+    need :func:`segments.clean_path` or :func:`segments.path_problem` at all (:func:`_select`)."""
+    return loaded.template is None and not loaded.ranges and loaded.types.get(loaded.fields[0]) == "VARCHAR"
 
 
 def _spans(cells: Sequence, ranges: List[str], types: Dict[str, str]) -> List[Optional[Tuple[float, float]]]:
