@@ -250,3 +250,22 @@ def test_a_cell_holding_a_newline_is_named_on_one_line(corpus, capsys):
     assert rc == 0 and "1 usable video(s) of 1" in out and "1 other entry ignored" in out
     assert len(out.splitlines()) == 4  # header, a.mp4, the refused row, the summary
     assert f"forged.mp4\\nWARNING all good.mp4" in out and f"listed in {table} but missing from {corpus}" in out
+
+
+@pytest.mark.parametrize("name, said", [
+    ("clip.csv", 'cannot be read as csv: Invalid Input Error: Error when sniffing file "{table}". It was not '
+                 "possible to automatically detect the CSV parsing dialect\n"),
+    ("bad.jsonl", "cannot be read as json: line 2 is not JSON: Expecting property name enclosed in double quotes: "
+                  "line 1 column 20 (char 19)\n"),  # DuckDB's own message says line 3
+    ("clip.parquet", "cannot be read as parquet: Invalid Input Error: No magic bytes found at end of file '{table}'\n"),
+])
+def test_a_table_the_reader_cannot_take_is_one_whole_line(corpus, capsys, name, said):
+    """The reader's reason whole, on one line: a CSV sniffer's first line alone says only
+    where, and its suggestions and dialect lists are not the user's problem."""
+    table = corpus / name
+    if name == "bad.jsonl":
+        table.write_text('{"video": "a.mp4"}\n{"video": "b.mp4", x}\n')
+    else:
+        shutil.copy(SAMPLE_VIDEOS / CLIP, table)  # a video where a table should be
+    rc, out, err = _check(capsys, corpus, "--video-list", str(table))
+    assert rc == 2 and out == "" and err == f"v2v-serve: video_list {table}: " + said.format(table=table)

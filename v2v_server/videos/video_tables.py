@@ -36,6 +36,7 @@ import decimal
 import json
 import logging
 import math
+import re
 import string
 import threading
 from dataclasses import dataclass
@@ -254,13 +255,35 @@ def _run(con, path: str, sql: str, what: str):
             raise FileNotFoundError(f"video_list {path}: no such file") from None
         raise ValueError(f"video_list {path}: cannot be read: {_reason(e)}") from None
     except duckdb.Error as e:
-        raise ValueError(f"video_list {path}: cannot be read as {what}: {_reason(e)}") from None
+        found = _bad_json_line(path) if what == "json" and "Malformed JSON" in str(e) else None
+        raise ValueError(f"video_list {path}: cannot be read as {what}: {found or _reason(e)}") from None
+
+
+def _bad_json_line(path: str) -> Optional[str]:
+    """Where a local, uncompressed JSON Lines file first breaks: ``line N is not JSON: why``
+    (DuckDB's message counts one line too many); None when every line parses, or for a
+    ``.json`` file (one JSON array may span lines), a compressed or a remote one: DuckDB's
+    message stands."""
+    if "://" in path or not path.lower().endswith((".jsonl", ".ndjson")):
+        return None
+    try:
+        with open(path, "rb") as f:
+            for n, line in enumerate(f, 1):
+                if line.strip():
+                    try:
+                        json.loads(line)
+                    except ValueError as e:
+                        return f"line {n} is not JSON: {e}"
+    except OSError:
+        return None
+    return None
 
 
 def _reason(e: Exception) -> str:
-    """DuckDB's message of ``e`` on one line, whole: the lines that say what went wrong,
-    without the echo of our query and the reader's suggestions."""
-    text = str(e).strip().split("\nLINE ")[0].split("\nPossible Solution")[0]
+    """DuckDB's message of ``e`` on one line: every line that says what went wrong (a CSV
+    error's line number is on its first line, its reason on the third), without the echo of our
+    query, the reader's suggestions or the CSV sniffer's list of dialects it tried."""
+    text = re.split(r"\nLINE |\nPossible (?:Solution|fixes)|The search space used", str(e).strip())[0]
     return " ".join(line.strip() for line in text.splitlines() if line.strip())
 
 
