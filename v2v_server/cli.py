@@ -68,6 +68,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (StoreError, FileNotFoundError, ValueError) as e:  # the store, the cache folder or the video list file
         print(f"v2v-serve: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C while a store is listed or a table is read (its query stopped)
+        print(f"v2v-serve: interrupted while listing {cfg.video_list or cfg.videos or SAMPLE_VIDEOS}",
+              file=sys.stderr)
+        return 130
     listing = corpus_fingerprint(videos)  # of the whole listing: shards compare it
     index, count = cfg.serving.shard_spec
     if count > 1:
@@ -89,7 +93,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(format_warm(results, source))
         return 0 if any(r["state"] in ("stored", "cached") for r in results) else 2
     for rel, reason in rejected:  # a listed video that is missing is named here, once
-        (log.warning if source.video_list else log.info)("ignored %s: %s", source.where(rel), reason)
+        (log.warning if source.video_list else log.info)("ignored %s: %s", source.where_ignored(rel), reason)
     if not videos:
         print(f"v2v-serve: --videos {source.root}: no video files ({', '.join(cfg.video_extensions)})"
               + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)

@@ -144,7 +144,7 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
         source.check()
     found, rejected = source.list_videos(cfg.video_extensions)
     for rel, reason in rejected:
-        log.info("ignored %s: %s", source.where(rel), reason)
+        log.info("ignored %s: %s", source.where_ignored(rel), reason)
     windows, skipped = {}, {}
     for rel in found:
         n, reason = count_windows(cfg, source, rel)

@@ -155,8 +155,8 @@ class Archives:
 SHOWN_UNMATCHED = 5
 
 
-def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str, archives: str
-                 ) -> Tuple[List[str], List[Tuple[str, str]]]:
+def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str, archives: str,
+                 present: Callable[[str], bool] = lambda entry: False) -> Tuple[List[str], List[Tuple[str, str]]]:
     """The archive members a video list's entries name, for a list that names clips without
     the archive holding them (OpenVid-1M's CSV names ``clip.mp4``, served from
     ``OpenVid_part3.zip/clip.mp4``).
@@ -170,6 +170,8 @@ def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str
         entries: the list's entries, in its order.
         members: ids of the archives' video members (``part.zip/dir/clip.mp4``).
         video_list, archives: the list and the archives as given, for messages.
+        present: whether an entry names a file of the corpus itself (a folder's plain file
+            beside its archives): such an entry is kept as it is, in its place.
 
     Returns:
         ``(ids, refused)``: the member ids in the list's order, duplicates dropped; ``(entry,
@@ -186,6 +188,11 @@ def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str
         by_file.setdefault(PurePosixPath(name).name, []).append(m)
     out, seen, refused, unmatched = [], set(), [], []
     for entry in entries:
+        if present(entry):
+            if entry not in seen:
+                seen.add(entry)
+                out.append(entry)
+            continue
         base, times = split_segment(entry)
         found = [base] if base in by_id else by_path.get(base) or ([] if "/" in base else by_file.get(base, []))
         if len(found) > 1:

@@ -6,7 +6,7 @@ import contextlib
 import os
 import time
 from pathlib import Path, PurePosixPath
-from typing import Iterator, List, Optional, Union
+from typing import Iterator, List, Optional, Sequence, Tuple, Union
 
 from v2v_server.videos.decode import VideoError, inside, scan_corpus_names
 from v2v_server.videos.frame_cache import FrameCache
@@ -72,7 +72,7 @@ class LocalSource(VideoSource):
         super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names,
                          frame_cache, cache_dir)
         self._abs_root = os.path.abspath(self.root)
-        self._hint: Optional[str] = None  # _pairing_hint's answer, once found
+        self._members: Optional[Tuple[List[str], List[Tuple[str, str]]]] = None  # _corpus_archives' answer
 
     def check(self) -> None:
         """Raises StoreError: the folder does not exist."""
@@ -84,22 +84,26 @@ class LocalSource(VideoSource):
         if names is not None:
             root = Path(self.root)
             return self._listed(names, lambda rel: inside(root, root / rel), extensions)
-        names, others = scan_corpus_names(self.root, tuple(extensions) + ARCHIVES)
+        names, others, problems = self._scan(tuple(extensions) + ARCHIVES)
+        return self.archives.expand(names, others + problems, extensions)
+
+    def _scan(self, kinds: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]], List[Tuple[str, str]]]:
+        """``(names, others, problems)``: the files of the folder with an extension of
+        ``kinds``, and its split zip parts whose pieces are all present (kept in the archives'
+        index), sorted; the other files, why; the pieces of parts that cannot be joined, why."""
+        names, others = scan_corpus_names(self.root, kinds)
         is_piece = lambda r: r[1].startswith("not a video file") and PIECE.match(r[0])  # noqa: E731
         parts, problems = gather_pieces([rel for rel, why in others if is_piece((rel, why))], set(names))
         self.archives.index.pieces.update(parts)
-        return self.archives.expand(sorted(names + list(parts)), [r for r in others if not is_piece(r)] + problems,
-                                  extensions)
+        return sorted(names + list(parts)), [r for r in others if not is_piece(r)], problems
 
-    def _pairing_hint(self) -> str:
-        if self._hint is None:  # one listing of the folder's top level, at the first name missing
-            try:
-                parts = sorted(n for n in os.listdir(self.root) if n.lower().endswith(ARCHIVES) or PIECE.match(n))
-            except OSError:
-                parts = []
-            self._hint = (f" (the folder holds archives such as {parts[0]}: give them as --videos, a brace range "
-                          f"or one archive, to serve the list's names from their members)") if parts else ""
-        return self._hint
+    def _corpus_archives(self, extensions):
+        """The video members of the folder's archives (tar shards, zip parts whole or in pieces,
+        at any depth), listed once per source."""
+        if self._members is None:
+            archives, _, problems = self._scan(ARCHIVES)
+            self._members = self.archives.expand(archives, problems, extensions)
+        return self._members
 
     def _exists(self, rel: str) -> bool:
         return Path(self.root, rel).is_file()

@@ -12,6 +12,7 @@ Pure: no I/O.
 from __future__ import annotations
 
 import math
+import posixpath
 import re
 from typing import Optional, Tuple
 
@@ -60,11 +61,35 @@ def _seconds(t: float) -> str:
 
 
 def clean_path(rel: str) -> str:
-    """A listed path as a sample-id path: leading ``./`` and ``/`` dropped, so ids match a
-    folder's listing."""
-    while rel.startswith("./"):
-        rel = rel[2:]
-    return rel.lstrip("/")
+    """A listed path as a sample-id path: a leading ``/`` dropped and the path folded as POSIX
+    ``normpath`` folds it (``./``, ``//``, ``dir/..``), so that one file has one id however a
+    list spells it (``clip.mp4``, ``./clip.mp4``, ``sub/../clip.mp4``) and ids match a
+    folder's listing. A path that leaves the root keeps its leading ``..``
+    (:func:`path_problem` names it); an empty path stays empty."""
+    rel = rel.lstrip("/")
+    if "//" in rel or "/." in rel or rel.startswith(".") or rel.endswith("/"):  # else normpath keeps it
+        rel = posixpath.normpath(rel)
+    return "" if rel == "." else rel
+
+
+def path_problem(rel: str) -> Optional[str]:
+    """Why the cleaned listed path ``rel`` (:func:`clean_path`) can name no file of the corpus,
+    or None: it holds a NUL byte (no file system allows one), or it leaves the corpus root."""
+    if "\0" in rel:
+        return "holds a NUL byte, which no file name can"
+    if rel == ".." or rel.startswith("../"):
+        return "leaves the corpus root (a listed path is relative to it)"
+    return None
+
+
+#: Characters a message shows escaped: control characters, which would break or forge a log line.
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def printable_name(rel: str) -> str:
+    """``rel`` for a message or a report: control characters (a NUL byte, a newline) escaped as
+    ``\\x00``, ``\\n``..."""
+    return _CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode(), rel)
 
 
 def segment_name(path: str, start: float, end: float) -> str:

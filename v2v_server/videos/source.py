@@ -45,7 +45,7 @@ from v2v_server.videos.corpus_index import CorpusIndex, index_path
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.manifest import default_cache_dir
-from v2v_server.videos.segments import range_problem, split_segment
+from v2v_server.videos.segments import base_path, printable_name, range_problem, split_segment
 from v2v_server.videos.shards import ARCHIVES, split_member
 from v2v_server.videos.video_list import VideoList, read_video_list
 from v2v_server.videos.video_tables import TableSettings
@@ -207,10 +207,16 @@ class VideoSource:
         """Keep the names of a video list that ``exists(name)`` and have a video extension; a
         ``.tar`` or ``.zip`` name stands for its video members (``Archives.expand``), and a name
         inside an archive (``shard.tar/member.mp4``, with or without a time range) for that member.
-        The lines the list refused come first among the rejected."""
+        Names that are no file of the corpus are first paired with the members of the archives
+        it holds (:meth:`_paired`). The lines the list refused come first among the rejected."""
+        names = self._paired(names, exists, extensions)
         videos, rejected = [], list(names.refused)
         for rel in names.videos:
-            base, times = split_segment(rel)
+            try:
+                base, times = split_segment(rel)
+            except ValueError as e:
+                rejected.append((rel, f"listed in {self.video_list}: {e}"))
+                continue
             problem = range_problem(*times) if times else None
             if problem:
                 rejected.append((rel, f"listed in {self.video_list}: {problem}"))
@@ -222,16 +228,43 @@ class VideoSource:
             elif split_member(base) and not self.archives.has_member(base, exists):
                 rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
             elif not split_member(base) and not exists(base):
-                rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}{self._pairing_hint()}"))
+                rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
             else:
                 videos.append(rel)
-        return self.archives.expand(videos, rejected, extensions)
+        videos, rejected = self.archives.expand(videos, rejected, extensions)
+        return videos, [(printable_name(rel), why) for rel, why in rejected]  # a cell's newline stays on its line
 
-    def _pairing_hint(self) -> str:
-        """For a listed name missing from the corpus: how to pair the list with archives the
-        corpus folder holds (``archives.pair_members``), or "" when it holds none (a store is
-        not listed for it)."""
-        return ""
+    def _paired(self, names: VideoList, exists, extensions: Sequence[str]) -> VideoList:
+        """A list's video names that are no file of the corpus paired with the video members of
+        the archives the corpus holds (:meth:`_corpus_archives`), as with a brace range of them
+        (``archives.pair_members``: OpenVid-1M's table names ``clip.mp4``, served from
+        ``OpenVid_part3.zip/clip.mp4`` in the folder of parts); the names that are files are
+        kept in their place. ``names`` as it is when every name is a file, or the corpus holds
+        no archive."""
+        def lost(rel: str) -> bool:
+            base = base_path(rel)
+            return base.lower().endswith(tuple(extensions)) and not split_member(base) and not exists(base)
+
+        missing = {rel for rel in names.videos if lost(rel)}
+        found = self._corpus_archives(extensions) if missing else None
+        if not found or not (found[0] or found[1]):
+            return names
+        members, problems = found
+        paired, refused = pair_members(names.videos, members, self.video_list, f"the archives in {self.root}",
+                                       present=lambda rel: rel not in missing)
+        return VideoList(paired, names.refused + problems + refused)
+
+    def _corpus_archives(self, extensions: Sequence[str]) -> Optional[Tuple[List[str], List[Tuple[str, str]]]]:
+        """``(members, rejected)``: the ids of the video members of the archives the corpus
+        holds, and the archives (or members) that give none, why; None when the corpus is not
+        searched for them (a store, read name by name with a list)."""
+        return None
+
+    def where_ignored(self, rel: str) -> str:
+        """Where an entry not served lives, for a log line: :meth:`where` of a corpus path; the
+        video list itself, or what names a group of its lines (``(3 entries)``, ``(line 7)``,
+        ``(no path)``), as it is."""
+        return rel if rel == self.video_list or (rel.startswith("(") and rel.endswith(")")) else self.where(rel)
 
     # ------------------------------------------------------------------ what the archives read
     def _exists(self, rel: str) -> bool:

@@ -10,11 +10,12 @@ and named, never served as a whole video.
 """
 from __future__ import annotations
 
+import codecs
 import re
 from pathlib import Path
 from typing import List, NamedTuple, Optional, Tuple, Union
 
-from v2v_server.videos.segments import clean_path, parse_time, segment_name
+from v2v_server.videos.segments import clean_path, parse_time, path_problem, printable_name, segment_name
 from v2v_server.videos.video_tables import TableSettings, read_table, table_format
 
 #: A field that is meant as a number: what a list line's trailing fields are told apart by.
@@ -40,21 +41,35 @@ def is_url(videos: Union[str, Path, None]) -> bool:
     return isinstance(videos, str) and "://" in videos and not videos.startswith("file://")
 
 
-def _read_text(path: str) -> str:
-    """The text of the list file at ``path``, a local path or a URL.
+def _read_bytes(path: str) -> bytes:
+    """The bytes of the list file at ``path``, a local path or a URL.
 
     Raises:
-        FileNotFoundError: naming ``path``.
+        FileNotFoundError: no file at ``path``, naming it.
+        ValueError: it cannot be read (the system's reason), naming it.
     """
     if is_url(path):  # a list kept beside the corpus in the store
         import fsspec
 
-        with fsspec.open(path, "rt", encoding="utf-8") as f:
+        with fsspec.open(path, "rb") as f:
             return f.read()
     try:
-        return Path(path).read_text(encoding="utf-8")
+        return Path(path).read_bytes()
     except FileNotFoundError:
         raise FileNotFoundError(f"video_list {path}: no such file") from None
+    except OSError as e:
+        raise ValueError(f"video_list {path}: cannot be read: {e.strerror or e}") from None
+
+
+def _lines(data: bytes):
+    """``(number, text, bad)`` of each line of a list file's bytes (split at ``\\n``, ``\\r``
+    and ``\\r\\n`` only: a name may hold U+2028), counted from 1; ``text`` is None for a line
+    that is not UTF-8, ``bad`` then its first undecodable bytes, escaped (``\\xe9``)."""
+    for n, raw in enumerate(data.removeprefix(codecs.BOM_UTF8).splitlines(), 1):
+        try:
+            yield n, raw.decode("utf-8"), ""
+        except UnicodeDecodeError as e:
+            yield n, None, raw[e.start:e.end].decode("latin-1").encode("unicode_escape").decode()
 
 
 class LineError(ValueError):
@@ -72,7 +87,8 @@ def parse_line(line: str) -> str:
     trailing fields that look like numbers (``_NUMBERISH``), so it may hold spaces.
 
     Raises:
-        LineError: the trailing numbers do not parse (a time that is not one, ``nan``, an
+        LineError: the path leaves the corpus root or holds a NUL byte
+            (``segments.path_problem``); the trailing numbers do not parse (a time that is not one, ``nan``, an
             authors' field that is not a number) or are more than 3; the message names the field.
     """
     parts = line.split()
@@ -82,7 +98,10 @@ def parse_line(line: str) -> str:
     fields = parts[len(parts) - k:] if k else []
     path = clean_path(line.rsplit(None, k)[0] if k else line)
     if not path:
-        raise LineError(line, "names no path")
+        raise LineError(printable_name(line), "names no path")
+    problem = path_problem(path)
+    if problem:
+        raise LineError(printable_name(path), f"the path {problem}")
     if len(fields) == 2:
         try:
             return segment_name(path, parse_time(fields[0]), parse_time(fields[1]))
@@ -106,15 +125,20 @@ def read_video_list(path: str, table: Optional[TableSettings] = None) -> VideoLi
     scores, ignored); ``#`` starts a comment line; blank lines are skipped. A line ``path start
     end`` whose numbers are times (seconds, or ``H:MM:SS.sss``: Panda-70M's clip timestamps,
     ``segments.parse_time``) names the segment ``path#t=start,end``; a video may have several.
-    The path is everything before the trailing numbers (:func:`parse_line`). A line whose
-    numbers do not parse is refused with its line number; the same line again is not named
-    again.
+    The path is everything before the trailing numbers (:func:`parse_line`), folded
+    (``segments.clean_path``: ``sub/../clip.mp4`` is ``clip.mp4``, served once). A line whose
+    numbers do not parse, whose path leaves the corpus root or holds a NUL byte, or that is not
+    UTF-8 is refused with its line number and the rest is served; the same line again is not
+    named again. A UTF-8 byte order mark is skipped.
 
     Raises:
         FileNotFoundError: no file at ``path``.
-        ValueError: naming the file, when it lists nothing and refuses nothing; for a table,
+        ValueError: naming the file: it is a folder or cannot be read, or it lists nothing and
+            refuses nothing; for a table,
             naming the setting too (``video_tables.read_table``).
     """
+    if not is_url(path) and Path(path).is_dir():
+        raise ValueError(f"video_list {path}: is a folder, not a list file")
     if table_format(path):
         table = table or TableSettings()
         out, refused = read_table(path, table)
@@ -123,8 +147,12 @@ def read_video_list(path: str, table: Optional[TableSettings] = None) -> VideoLi
                              + (f" (no row passes video_list_filter {table.filter!r})" if table.filter else ""))
         return VideoList(out, refused)
     out, seen, refused, named = [], set(), [], set()
-    for n, line in enumerate(_read_text(path).splitlines(), 1):
-        s = line.strip()
+    for n, s, bad in _lines(_read_bytes(path)):
+        if s is None:  # sample ids are UTF-8: this line names no id; the rest is served
+            refused.append((f"(line {n})", f"listed in {path} line {n}: not UTF-8 (bytes {bad}): "
+                                           f"save the list as UTF-8"))
+            continue
+        s = s.strip()
         if not s or s.startswith("#"):
             continue
         try:
