@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import sqlite3
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Sequence, Tuple
 
-from v2v_server.faults import warn_once
 from v2v_server.videos.corpus_index import layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.frames import DecodeSettings, FramePass, PassFrame
@@ -80,15 +78,11 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     Answered from the host's corpus index (``source.corpus_index()``) while the file's identity
     holds, else by decoding it; a verdict that decoding reached without an error (a read
     failure may be passing) is recorded there for the next pass."""
-    index, where, key, identity = source.corpus_index(), source.where(rel), layout_key(windows, decode), None
-    if index is not None:
-        try:
-            identity = source.identity(rel)
-        except VideoError:
-            identity = None  # missing or unreadable: decoding says why
-        known = index.lookup(where, identity, key)
-        if known is not None and known.get("frame_timing", True):  # a sample pass's entry lacks --check's timing
-            return {**known, "path": rel}
+    index = source.corpus_index()
+    identity = _identity(source, rel) if index is not None else None  # before decoding: what the verdict is of
+    known = indexed_verdict(windows, decode, source, rel)
+    if known is not None:
+        return known
     out = {}  # what only this pass measures (frame timing), beside the window pass's verdict
     shown = {}  # the displayed (scaled) height of the frame at hand
 
@@ -116,8 +110,29 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
         error = e
     out = {**pass_verdict(windows, rel, found.record(error)), **out}
     if index is not None and error is None:
-        index.record(where, identity, key, out)
+        index.record(source.where(rel), identity, layout_key(windows, decode), out)
     return out
+
+
+def _identity(source: VideoSource, rel: str):
+    """The identity of the video at ``rel`` now (``VideoSource.identity``), None when it is
+    missing or unreadable (decoding says why)."""
+    try:
+        return source.identity(rel)
+    except VideoError:
+        return None
+
+
+def indexed_verdict(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str):
+    """``check_video``'s verdict of the video at ``rel`` as the host's corpus index holds it
+    (the video's identity unchanged, the entry made by a pass that timed frames), or None."""
+    index = source.corpus_index()
+    if index is None:
+        return None
+    known = index.lookup(source.where(rel), _identity(source, rel), layout_key(windows, decode))
+    if known is not None and known.get("frame_timing", True):  # a sample pass's entry lacks --check's timing
+        return {**known, "path": rel}
+    return None
 
 
 def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> dict:
@@ -153,14 +168,9 @@ def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     if index is None:
         return False
     where, key, identity = source.where(rel), layout_key(windows, decode), source.listed_identity(rel)
-    try:
-        if identity is None or index.lookup(where, identity, key) is not None:
-            return False
-        return index.record(where, identity, key, {**pass_verdict(windows, rel, record), "frame_timing": False})
-    except (sqlite3.Error, OSError) as e:
-        warn_once(log, ("corpus index write", str(index.path)), "corpus index %s cannot be written (%s); the "
-                  "samples are served without it", index.path, e)
+    if identity is None or index.lookup(where, identity, key) is not None:
         return False
+    return index.record(where, identity, key, {**pass_verdict(windows, rel, record), "frame_timing": False})
 
 
 class KnownWindows(NamedTuple):
@@ -189,14 +199,21 @@ def known_windows(windows: WindowSettings, decode: DecodeSettings, source: Video
         known, samples = known + 1, samples + n
         if n == 0:
             empty[rel] = reason
+    if index.fault is not None:  # a fault on the way: nothing it answered is trusted
+        return KnownWindows(0, 0, {})
     return KnownWindows(known, samples, empty)
 
 
 def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, videos: List[str],
                  processes: int = 1) -> List[dict]:
     """``check_video`` for every file of ``source``, in ``processes`` processes (``source``
-    itself in this one, or built once in each of them from its ``spec()``)."""
-    return map_videos(check_video, (windows, decode), source, videos, processes)
+    itself in this one, or built once in each of them from its ``spec()``). The corpus index's
+    answers are read here first: a fault of the index is found (and named) once, in this
+    process, and the processes leave it off; only the videos it does not know are decoded."""
+    known = {rel: indexed_verdict(windows, decode, source, rel) for rel in videos}
+    todo = [rel for rel in videos if known[rel] is None]
+    made = dict(zip(todo, map_videos(check_video, (windows, decode), source, todo, processes)))
+    return [known[rel] or made[rel] for rel in videos]
 
 
 def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
