@@ -129,25 +129,31 @@ def test_the_ray_scan_counts_windows_from_the_index(corpus, tmp_path):
     assert scan_corpus_windows(corpus, cfg).windows == {**first.windows, "bikes.mp4": 7}
 
 
-def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty_video(corpus, tmp_path):
+@pytest.mark.parametrize("recipe", [(), ("--crops-per-window", "2"),
+                                    ("--crops-per-window", "3", "--shot-cuts", "off", "--static-windows", "skip")],
+                         ids=["one-crop", "two-crops", "three-crops-no-cuts-static-skipped"])
+def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty_video(corpus, tmp_path, recipe):
     """After a pass that filled the index (``--check``), a server of the same layout knows an
     epoch's size at start (its log; the ``v2v_epoch_samples`` gauge) and never opens the
-    videos the index knows to give no window; one epoch delivers exactly that many samples."""
+    videos the index knows to give no window; one epoch delivers exactly that many samples,
+    the number ``--check`` printed: ``crops_per_window`` samples a window, whatever the recipe."""
     import subprocess
     import sys
-    import urllib.request
 
     from harness.serve import ServeProcess
     from v2v_client.dataset import V2VStreamDataset
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
-              "--cache-dir", str(tmp_path / "cache")]
+              "--cache-dir", str(tmp_path / "cache"), *recipe]
     r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(corpus), *layout],
                        capture_output=True, text=True, timeout=300)
     summary = r.stdout.splitlines()[-1]
     empty = [line.split()[0] for line in r.stdout.splitlines() if " unusable " in line]
     samples = int(summary.split(", ")[1].split()[0])
-    assert r.returncode == 0 and empty and samples > 0, r.stdout  # the 201-frame windows: two clips give none
+    windows = sum(int(line.split()[1]) for line in r.stdout.splitlines()[1:-1] if line.split()[2] == "window(s)")
+    assert r.returncode == 0 and samples > 0, r.stdout
+    assert samples == windows * (int(recipe[1]) if recipe else 1), r.stdout
+    assert empty, r.stdout  # the 201-frame windows: bigbuckbunny.mp4 (132 frames) gives none
     with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
                        "--log-level", "info", *layout]) as srv:
         ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
@@ -159,6 +165,24 @@ def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty
     for name in empty:  # named once, from the index: a read would have named it again, without the remark
         lines = [ln for ln in log.splitlines() if f"{corpus / name}:" in ln]
         assert len(lines) == 1 and "skipped" in lines[0] and "(known from the corpus index: not opened)" in lines[0]
+
+
+def test_the_ray_count_of_an_epoch_is_the_samples_it_lists(corpus, tmp_path):
+    """With ``crops_per_window`` 2 the Ray engine's ``samples_per_epoch`` (its log, Ray Train's
+    epoch sizes) is the rows ``epoch_descriptors`` lists and ``--check``'s count."""
+    import subprocess
+    import sys
+
+    from v2v_server.ray_data import epoch_descriptors, scan_corpus_windows
+
+    cfg = ServeConfig(sequence_length=8, crops_per_window=2, cache_dir=str(tmp_path / "cache"))
+    rc = scan_corpus_windows(corpus, cfg)
+    rows = sum(len(json.loads(d["entries"])) for d in epoch_descriptors(rc, 0, crops_per_window=2))
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(corpus),
+                        "--sequence-length", "8", "--crops-per-window", "2", "--cache-dir", str(tmp_path / "cache")],
+                       capture_output=True, text=True, timeout=300)
+    assert rc.samples_per_epoch == rows == 2 * sum(rc.windows.values()) > 0
+    assert f", {rows} sample(s) per epoch ({rows // 2} window(s) x 2 crops);" in r.stdout, r.stdout
 
 
 def test_the_epoch_size_known_at_start_is_a_gauge():

@@ -216,8 +216,9 @@ def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoS
     return [known[rel] or made[rel] for rel in videos]
 
 
-def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
-    """A table: one line per file with its verdict, then a summary line."""
+def format_check(results: List[dict], rejected: List[Tuple[str, str]], crops_per_window: int = 1) -> str:
+    """A table: one line per file with its verdict (its windows), then a summary line: the
+    samples an epoch holds, ``crops_per_window`` per window (``SampleRecipe.epoch_samples``)."""
     lines = [f"{'file':<48} {'verdict':<12} detail"]
     for r in results:
         verdict = f"{r['windows']} window(s)" if r["usable"] else "unusable"
@@ -238,8 +239,10 @@ def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
     for rel, reason in rejected:
         lines.append(f"{Path(rel).as_posix():<48} {'ignored':<12} {reason}")
     usable = [r for r in results if r["usable"]]
-    lines.append(f"{len(usable)} usable video(s) of {len(results)}, {sum(r['windows'] for r in usable)} sample(s) "
-                 f"per epoch; {sum(len(r.get('cuts') or ()) for r in results)} shot cut(s) found, "
+    windows = sum(r["windows"] for r in usable)
+    crops = f" ({windows} window(s) x {crops_per_window} crops)" if crops_per_window > 1 else ""
+    lines.append(f"{len(usable)} usable video(s) of {len(results)}, {windows * crops_per_window} sample(s) "
+                 f"per epoch{crops}; {sum(len(r.get('cuts') or ()) for r in results)} shot cut(s) found, "
                  f"{sum(r.get('dropped', 0) for r in results)} window(s) removed by cuts; "
                  f"{len(rejected)} other entr{'y' if len(rejected) == 1 else 'ies'} ignored")
     return "\n".join(lines)
