@@ -48,6 +48,12 @@ class Archives:
             tarfile.TarError, zipfile.BadZipFile, OSError: it cannot be read."""
         return self.index.of(archive, self._version(archive), self.open)
 
+    def refused(self, archive: str) -> List[Tuple[str, str]]:
+        """``(where, why)`` for each entry of ``archive`` (read by :meth:`members`) that is not
+        served (``shards.MemberIndex.refused``): ``archive/member``, or the archive for a line
+        naming several members."""
+        return [(f"{archive}/{name}" if name else archive, why) for name, why in self.index.refused.get(archive, ())]
+
     def pieces(self, archive: str) -> List[str]:
         """The files or objects that hold ``archive``: ``[archive]`` when it is one, else (a zip
         part) its pieces ``archive-stem_partaa``, ``_partab``... in order, all present.
@@ -141,6 +147,7 @@ class Archives:
                         if pieces != [rel] else "")
                 rejected.append((rel, f"{kind} cannot be read: {type(e).__name__}: {e}{hint}"))
                 continue
+            rejected += self.refused(rel)
             vids = [m for m in members if m.lower().endswith(tuple(extensions))]
             out += [f"{rel}/{m}" for m in vids]
             if not vids:
