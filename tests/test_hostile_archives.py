@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.test_object_store import _source, store  # noqa: F401  (store: the session's SeaweedFS S3 server)
 from v2v_server.videos.local import RACY_NS
 
 LAYOUT = ["--sequence-length", "8", "--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset",
@@ -166,3 +167,22 @@ def test_the_server_serves_the_rest_and_logs_each_refusal(hostile, tmp_path):
                   "twice.zip: zip part: 2 members are named clip.mp4", "twice.tar: tar shard: 2 members are named",
                   "renamed.mp4: the local header at offset 0 names 'original.mp4'"):
         assert sum(words in line for line in log.splitlines()) == 1, (words, log)
+
+
+def test_a_bucket_of_hostile_parts_names_each_refusal_again_from_its_manifest(hostile, tmp_path, store):
+    """The parts in S3 (SeaweedFS): the listing names each refusal, and so does a restart that
+    reads the manifest instead of the parts' central directories (the refusals travel in its
+    header); the members served are those of the folder."""
+    store.upload(hostile, "s3://corpus/hostile/")
+    first = _source(store, tmp_path, "s3://corpus/hostile/").list_videos((".mp4",))
+    again = _source(store, tmp_path, "s3://corpus/hostile/").list_videos((".mp4",))
+    folder = _check(hostile, tmp_path / "cache-folder")
+    listed = sorted(k for k, v in _lines(folder.stdout).items() if not v.startswith("ignored"))
+    assert sorted(first[0]) == sorted(again[0]) == listed
+    assert sorted(first[1]) == sorted(again[1])
+    named = {where: why for where, why in first[1]}
+    assert named["shared.zip"].startswith("zip part: members a.mp4, b.mp4, c.mp4 overlap")
+    assert named["overlap.zip"].startswith("zip part: members x.mp4, y.mp4 overlap")
+    assert named["lying.zip/long.mp4"].startswith("zip part: its bytes")
+    assert named["twice.zip"].startswith("zip part: 2 members are named clip.mp4")
+    assert named["twice.tar"].startswith("tar shard: 2 members are named clip.mp4")

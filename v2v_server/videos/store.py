@@ -101,8 +101,6 @@ class StoreSource(VideoSource):
         self.cache = ObjectCache(Path(self.cache_dir) / "objects", settings.cache_max_gb)
         #: Archive -> why its index could not be read while listing.
         self._unreadable: Dict[str, str] = {}
-        #: ``(archive/member or archive, why)`` of the archive entries not served, found while listing.
-        self._refused: List[Tuple[str, str]] = []
 
     # ------------------------------------------------------------------ the filesystem
     @property
@@ -191,7 +189,6 @@ class StoreSource(VideoSource):
         except Exception as e:  # noqa: BLE001 - one bad archive never stops the listing
             self._unreadable[archive] = f"{type(e).__name__}: {e}"
             return
-        self._refused += self.archives.refused(archive)
         etag = "+".join(objects.get(p, (0, ""))[1] for p in self.archives.pieces(archive))
         for name, entry in members.items():
             objects[f"{archive}/{name}"] = member_entry(entry, etag)
@@ -253,7 +250,8 @@ class StoreSource(VideoSource):
                 videos.append(rel)
             else:
                 rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
-        return videos, rejected + self._refused + listing_problems(self.objects(), self._unreadable, extensions)
+        refused = [r for archive in sorted(self.archives.index.refused) for r in self.archives.refused(archive)]
+        return videos, rejected + refused + listing_problems(self.objects(), self._unreadable, extensions)
 
     # ------------------------------------------------------------------ reading
     @contextlib.contextmanager
