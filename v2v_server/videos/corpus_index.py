@@ -211,7 +211,8 @@ class CorpusIndex:
 
 
 #: The fields a stored verdict must hold, and their types (``corpus.pass_verdict`` writes them).
-_VERDICT = (("usable", bool), ("windows", int), ("frames", int), ("size", str), ("reason", str), ("cuts", list))
+_VERDICT = (("usable", bool), ("windows", int), ("frames", int), ("size", str), ("reason", str), ("cuts", list),
+            ("dropped", int))
 
 
 def stored_count(location: str, value) -> int:
