@@ -378,10 +378,11 @@ def test_after_a_fault_every_method_answers_as_an_empty_index(tmp_path, caplog):
     assert len(lines) == 1 and str(tmp_path / INDEX_FILE) in lines[0], lines
 
 
-def test_a_server_starting_on_an_entry_of_a_non_integer_windows_serves_the_whole_epoch(corpus, tmp_path):
-    """``v2v-serve`` reads the index at start (``known_windows``): a ``windows`` value v2v never
-    writes is one warning, the epoch's size is then unknown (not a wrong one) and every sample
-    is served."""
+@pytest.mark.parametrize("fault", ["windows-value", "locked"])
+def test_a_server_starting_on_a_faulty_index_serves_the_whole_epoch(corpus, tmp_path, fault):
+    """``v2v-serve`` reads the index at start (``known_windows``) and its workers write to it: a
+    ``windows`` value v2v never writes, or a lock another process holds, is one warning, the
+    epoch's size is then unknown (not a wrong one) and every sample is served."""
     from harness.serve import ServeProcess
     from v2v_client.dataset import V2VStreamDataset
 
@@ -390,12 +391,21 @@ def test_a_server_starting_on_an_entry_of_a_non_integer_windows_serves_the_whole
     cache = tmp_path / "cache"
     r, _ = _check(corpus, cache, *layout)
     samples = int(r.stdout.splitlines()[-1].split(", ")[1].split()[0])
-    with sqlite3.connect(cache / INDEX_FILE) as db:
-        db.execute("UPDATE entries SET windows = 'two' WHERE location = ?", (str(corpus / "bikes.mp4"),))
-    with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
-                       "--log-level", "info", "--cache-dir", str(cache), *layout]) as srv:
-        ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
-               for sid in b["sample_ids"]]
+    holder = sqlite3.connect(cache / INDEX_FILE, isolation_level=None)
+    if fault == "windows-value":
+        holder.execute("UPDATE entries SET windows = 'two' WHERE location = ?", (str(corpus / "bikes.mp4"),))
+        words = f"the entry of {corpus / 'bikes.mp4'} holds windows 'two', not a count"
+    else:
+        holder.execute("BEGIN EXCLUSIVE")
+        holder.execute("DELETE FROM entries")  # not committed: the server would read the entries, and cannot
+        words = "database is locked (another process holds its lock)"
+    try:
+        with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
+                           "--log-level", "info", "--cache-dir", str(cache), *layout]) as srv:
+            ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+                   for sid in b["sample_ids"]]
+    finally:
+        holder.close()
     assert len(ids) == len(set(ids)) == samples > 0
-    _one_warning(srv.log, cache / INDEX_FILE, f"the entry of {corpus / 'bikes.mp4'} holds windows 'two', not a count")
+    _one_warning(srv.log, cache / INDEX_FILE, words)
     assert "an epoch holds" not in srv.log
