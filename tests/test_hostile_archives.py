@@ -1,9 +1,9 @@
 """Hostile and careless archives, built byte by byte: zip parts whose central directory points
 several entries at one local header or at overlapping bytes (the overlapping "zip bomb"), a
 member running into the central directory, an entry whose local header names another member,
-and two members of one name in a zip part or a tar shard. Each is refused with one line naming
-the part and the members and why; the rest of the part is served, by ``--check`` and by the
-server alike."""
+two members of one name in a zip part or a tar shard, and a sparse tar member (its bytes not in
+one piece). Each is refused with one line naming the part and the members and why; the rest of
+the part is served, by ``--check``, by the server and from a bucket's listing and manifest."""
 from __future__ import annotations
 
 import io
@@ -109,6 +109,15 @@ def hostile(tmp_path, videos):
             info = tarfile.TarInfo("clip.mp4")
             info.size = len(data)
             tar.addfile(info, io.BytesIO(data))
+    # 6. a sparse tar member (GNU tar -S: a hole, then a clip), beside a plain one
+    work = tmp_path / "sparse"
+    work.mkdir()
+    with open(work / "hole.mp4", "wb") as f:
+        f.truncate(1 << 20)
+        f.seek(1 << 20)
+        f.write(good)
+    (work / "plain.mp4").write_bytes(good)
+    subprocess.run(["tar", "-S", "-cf", str(d / "sparse.tar"), "hole.mp4", "plain.mp4"], cwd=work, check=True)
     time.sleep(2 * RACY_NS / 1e9)
     return d
 
@@ -144,8 +153,11 @@ def test_hostile_zip_entries_are_refused_by_name_and_the_rest_served(hostile, tm
     assert rows["twice.zip"].startswith("ignored zip part: 2 members are named clip.mp4; the last (at offset ")
     assert rows["twice.zip"].endswith("is served, as tar and unzip extract it, the one at offset 0 is not")
     assert rows["twice.tar"].startswith("ignored tar shard: 2 members are named clip.mp4; the last (at offset ")
+    # a sparse tar member is not read in place (its bytes are not in one piece); its neighbour is served
+    assert rows["sparse.tar/hole.mp4"].startswith("ignored tar shard: a sparse member (tar -S)")
+    assert rows["sparse.tar/plain.mp4"].startswith("2 window(s)")
     summary = r.stdout.splitlines()[-1]
-    assert summary.startswith("5 usable video(s) of 6, 10 sample(s) per epoch") and "5 other entries ignored" in summary
+    assert summary.startswith("6 usable video(s) of 7, 12 sample(s) per epoch") and "6 other entries ignored" in summary
 
 
 def test_the_server_serves_the_rest_and_logs_each_refusal(hostile, tmp_path):
@@ -158,14 +170,15 @@ def test_the_server_serves_the_rest_and_logs_each_refusal(hostile, tmp_path):
                for sid in b["sample_ids"]]
     videos = {sid.split("#")[0] for sid in ids}
     assert videos == {"shared.zip/good.mp4", "overlap.zip/good.mp4", "lying.zip/good.mp4", "twice.zip/clip.mp4",
-                      "twice.tar/clip.mp4"}, videos
-    assert len(ids) == len(set(ids)) == 10
+                      "twice.tar/clip.mp4", "sparse.tar/plain.mp4"}, videos
+    assert len(ids) == len(set(ids)) == 12
     log = srv.log
     assert "Traceback" not in log
     for words in ("shared.zip: zip part: members a.mp4, b.mp4, c.mp4 overlap", "overlap.zip: zip part: members "
                   "x.mp4, y.mp4 overlap", "lying.zip/long.mp4: zip part: its bytes",
                   "twice.zip: zip part: 2 members are named clip.mp4", "twice.tar: tar shard: 2 members are named",
-                  "renamed.mp4: the local header at offset 0 names 'original.mp4'"):
+                  "renamed.mp4: the local header at offset 0 names 'original.mp4'",
+                  "sparse.tar/hole.mp4: tar shard: a sparse member"):
         assert sum(words in line for line in log.splitlines()) == 1, (words, log)
 
 
@@ -186,3 +199,4 @@ def test_a_bucket_of_hostile_parts_names_each_refusal_again_from_its_manifest(ho
     assert named["lying.zip/long.mp4"].startswith("zip part: its bytes")
     assert named["twice.zip"].startswith("zip part: 2 members are named clip.mp4")
     assert named["twice.tar"].startswith("tar shard: 2 members are named clip.mp4")
+    assert named["sparse.tar/hole.mp4"].startswith("tar shard: a sparse member")
