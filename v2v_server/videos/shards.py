@@ -35,13 +35,15 @@ def last_of_each_name(kind: str, entries: Sequence[Tuple[str, Tuple[int, ...]]])
     on disk (each overwrites the one before), and each earlier one is refused, named with its
     offset (``kind``: what a message calls the archive)."""
     members: Dict[str, Tuple[int, ...]] = {}
-    count: Dict[str, int] = {}
-    for name, entry in entries:
-        count[name] = count.get(name, 0) + 1
-        members[name] = entry
+    last: Dict[str, int] = {}
+    for k, (name, entry) in enumerate(entries):
+        members[name], last[name] = entry, k
+    count = {name: 0 for name in last}
+    for name, _ in entries:
+        count[name] += 1
     refused = [("", f"{kind}: {count[name]} members are named {name}; the last (at offset {members[name][0]}) "
                     f"is served, as tar and unzip extract it, the one at offset {entry[0]} is not")
-               for name, entry in entries if count[name] > 1 and members[name] is not entry]
+               for k, (name, entry) in enumerate(entries) if last[name] != k]
     return MemberIndex(members, refused)
 
 
