@@ -3,7 +3,6 @@ file of a corpus and say what it is worth, before training)."""
 from __future__ import annotations
 
 import hashlib
-import logging
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Sequence, Tuple
 
@@ -17,7 +16,6 @@ from v2v_server.videos.source_spec import map_videos
 from v2v_server.videos.window_pass import VideoPass, WindowPass
 from v2v_server.videos.windows import WindowSettings
 
-log = logging.getLogger("v2v")
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
 SAMPLE_VIDEOS = Path(__file__).resolve().parents[1] / "sample_videos"

@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Callable, Dict, Iterable, Iterator, Optional, Tuple, Union
 
 from v2v_server.faults import warn_once
-
 from v2v_server.videos.frames import DecodeSettings, entry_settings
 from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.shots import DETECTOR_VERSION
