@@ -200,3 +200,35 @@ def test_a_bucket_of_hostile_parts_names_each_refusal_again_from_its_manifest(ho
     assert named["twice.zip"].startswith("zip part: 2 members are named clip.mp4")
     assert named["twice.tar"].startswith("tar shard: 2 members are named clip.mp4")
     assert named["sparse.tar/hole.mp4"].startswith("tar shard: a sparse member")
+
+
+def test_names_holding_a_control_character_are_refused_by_name(tmp_path, videos):
+    """A newline (or another control character) in a file name, a zip member's or a tar
+    member's would end a line of the log, of --check's table and of a trainer's resume hello
+    (sample ids travel newline-joined: a resumed trainer would get those samples again): each
+    is refused, shown escaped on one line; the other videos are served."""
+    good = (videos / "bikes.mp4").read_bytes()
+    d = tmp_path / "corpus"
+    d.mkdir()
+    (d / "plain.mp4").write_bytes(good)
+    (d / "two\nlines.mp4").write_bytes(good)
+    z = ZipWriter()
+    z.member("ok.mp4", good)
+    z.member("tab\there.mp4", good)
+    z.write(d / "p.zip")
+    with tarfile.open(d / "s.tar", "w") as tar:
+        for name in ("fine.mp4", "cr\rhere.mp4", "meta\nsilent.json"):
+            info = tarfile.TarInfo(name)
+            info.size = len(good)
+            tar.addfile(info, io.BytesIO(good))
+    time.sleep(2 * RACY_NS / 1e9)
+    r = _check(d, tmp_path / "cache")
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    rows = _lines(r.stdout)
+    assert len(r.stdout.splitlines()) == 8, r.stdout  # header, 3 videos, 3 refusals, summary: one line each
+    assert {k for k, v in rows.items() if not v.startswith("ignored")} == {"plain.mp4", "p.zip/ok.mp4",
+                                                                         "s.tar/fine.mp4"}
+    assert rows["two\\nlines.mp4"] == ("ignored name holds the control character \\n (sample ids travel one per "
+                                       "line): rename it")
+    assert rows["p.zip/tab\\there.mp4"].startswith("ignored zip part member: name holds the control character \\t")
+    assert rows["s.tar/cr\\rhere.mp4"].startswith("ignored tar shard member: name holds the control character \\r")
