@@ -248,6 +248,8 @@ def fault_text(e: BaseException) -> str:
     low = text.lower()
     if "locked" in low or "busy" in low:
         return f"{text} (another process holds its lock)"
+    if "unable to open" in low:
+        return f"{text} (its folder cannot be written, or the path is not a file)"
     if "readonly" in low or "read-only" in low or isinstance(e, PermissionError):
         return f"{text} (it cannot be written: its permissions or a read-only file system)"
     if "malformed" in low or (isinstance(e, sqlite3.DatabaseError) and not isinstance(e, sqlite3.OperationalError)):
