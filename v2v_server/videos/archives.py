@@ -48,12 +48,13 @@ class Archives:
             tarfile.TarError, zipfile.BadZipFile, OSError: it cannot be read."""
         return self.index.of(archive, self._version(archive), self.open)
 
-    def refused(self, archive: str) -> List[Tuple[str, str]]:
-        """``(where, why)`` for each entry of ``archive`` (read by :meth:`members`) that is not
-        served (``shards.MemberIndex.refused``): ``archive/member``, or the archive for a line
-        naming several members."""
-        return [(printable(f"{archive}/{name}" if name else archive), printable(why))
-                for name, why in self.index.refused.get(archive, ())]
+    def refused(self, archive: Optional[str] = None) -> List[Tuple[str, str]]:
+        """``(where, why)`` for each entry of ``archive`` (read by :meth:`members`; None: of every
+        archive read, in order) that is not served (``shards.MemberIndex.refused``):
+        ``archive/member``, or the archive for a line naming several members."""
+        archives = sorted(self.index.refused) if archive is None else [archive]
+        return [(printable(f"{a}/{name}" if name else a), printable(why))
+                for a in archives for name, why in self.index.refused.get(a, ())]
 
     def pieces(self, archive: str) -> List[str]:
         """The files or objects that hold ``archive``: ``[archive]`` when it is one, else (a zip

@@ -459,6 +459,15 @@ def printable(path: Path) -> str:
 _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
 
 
+def name_problem(name: str, what: str = "file name") -> Optional[str]:
+    """Why ``name`` (a file's path as the file system gave it, a key: ``what``) cannot be a
+    sample id's path, or None: it is not valid UTF-8 (:func:`utf8_name`), or it holds a
+    control character (:func:`control_character`)."""
+    if not utf8_name(name):
+        return f"{what} is not valid UTF-8 (sample ids are UTF-8): rename it"
+    return control_character(name)
+
+
 def control_character(name: str) -> Optional[str]:
     """Why ``name`` (a file, key or archive member path) cannot be a sample id's path: the
     first control character it holds (a newline, a tab...), escaped, with the reason; None
@@ -511,11 +520,8 @@ def scan_corpus_names(root: Union[str, Path], extensions: Sequence[str]) -> Tupl
             continue
         for entry in entries:
             rel = f"{rel_dir}/{entry.name}" if rel_dir else entry.name
-            if not utf8_name(rel):
-                rejected.append((printable(rel), "file name is not valid UTF-8 (sample ids are UTF-8): rename it"))
-                continue
-            if control_character(entry.name):
-                rejected.append((printable(rel), control_character(entry.name)))
+            if name_problem(rel) is not None:
+                rejected.append((printable(rel), name_problem(rel)))
                 continue
             try:
                 link = entry.is_symlink()
