@@ -9,6 +9,7 @@ from typing import Dict, List, NamedTuple, Sequence, Tuple
 from v2v_server.videos.corpus_index import layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.frames import DecodeSettings, FramePass, PassFrame
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector
 from v2v_server.videos.source import VideoSource
@@ -205,10 +206,15 @@ def known_windows(windows: WindowSettings, decode: DecodeSettings, source: Video
 def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, videos: List[str],
                  processes: int = 1) -> List[dict]:
     """``check_video`` for every file of ``source``, in ``processes`` processes (``source``
-    itself in this one, or built once in each of them from its ``spec()``). The corpus index's
-    answers are read here first: a fault of the index is found (and named) once, in this
-    process, and the processes leave it off; only the videos it does not know are decoded."""
-    known = {rel: indexed_verdict(windows, decode, source, rel) for rel in videos}
+    itself in this one, or built once in each of them from its ``spec()``). The corpus index is
+    opened here first, and for a folder (a video's identity is a ``stat``) its answers are read
+    here: a fault of the index is then found (and named) once, in this process, the processes
+    leave it off, and only the videos it does not know are decoded. A store's identities cost
+    a request each, made by the processes in parallel, which read its answers themselves."""
+    local = isinstance(source, LocalSource)
+    index = source.corpus_index()
+    known = {rel: indexed_verdict(windows, decode, source, rel) if local and index is not None else None
+             for rel in videos}
     todo = [rel for rel in videos if known[rel] is None]
     made = dict(zip(todo, map_videos(check_video, (windows, decode), source, todo, processes)))
     return [known[rel] or made[rel] for rel in videos]
