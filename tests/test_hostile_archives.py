@@ -1,8 +1,8 @@
 """Hostile and careless archives, built byte by byte: zip parts whose central directory points
 several entries at one local header or at overlapping bytes (the overlapping "zip bomb"), a
 member running into the central directory, an entry whose local header names another member,
-two members of one name in a zip part or a tar shard, and a sparse tar member (its bytes not in
-one piece). Each is refused with one line naming the part and the members and why; the rest of
+two members of one name in a zip part or a tar shard, a sparse tar member (its bytes not in
+one piece) and links in a tar shard. Each is refused with one line naming the part and the members and why; the rest of
 the part is served, by ``--check``, by the server and from a bucket's listing and manifest."""
 from __future__ import annotations
 
@@ -118,6 +118,15 @@ def hostile(tmp_path, videos):
         f.write(good)
     (work / "plain.mp4").write_bytes(good)
     subprocess.run(["tar", "-S", "-cf", str(d / "sparse.tar"), "hole.mp4", "plain.mp4"], cwd=work, check=True)
+    # 7. a hard link and a symbolic link to a shard's clip: the clip again under two more ids
+    with tarfile.open(d / "links.tar", "w") as tar:
+        info = tarfile.TarInfo("a.mp4")
+        info.size = len(good)
+        tar.addfile(info, io.BytesIO(good))
+        for name, kind in (("b.mp4", tarfile.LNKTYPE), ("c.mp4", tarfile.SYMTYPE)):
+            link = tarfile.TarInfo(name)
+            link.type, link.linkname = kind, "a.mp4"
+            tar.addfile(link)
     time.sleep(2 * RACY_NS / 1e9)
     return d
 
@@ -144,7 +153,8 @@ def test_hostile_zip_entries_are_refused_by_name_and_the_rest_served(hostile, tm
                                                     "names 'original.mp4', not this member")
     assert rows["lying.zip/long.mp4"].startswith("ignored zip part: its bytes") and "run into the central" in \
         rows["lying.zip/long.mp4"]
-    assert not any(k.split("/")[-1] in ("a.mp4", "b.mp4", "c.mp4", "x.mp4", "y.mp4") for k in rows), rows
+    assert not any(k.split("/")[-1] in ("a.mp4", "b.mp4", "c.mp4", "x.mp4", "y.mp4") for k in rows
+                   if k.endswith(".mp4") and k.split("/")[0] in ("shared.zip", "overlap.zip")), rows
     for part in ("shared.zip", "overlap.zip", "lying.zip"):  # the rest of each part is served
         assert rows[f"{part}/good.mp4"].startswith("2 window(s)"), rows
     # of two members named clip.mp4 the last (bbb, 596x336) is served, the first is named
@@ -156,8 +166,12 @@ def test_hostile_zip_entries_are_refused_by_name_and_the_rest_served(hostile, tm
     # a sparse tar member is not read in place (its bytes are not in one piece); its neighbour is served
     assert rows["sparse.tar/hole.mp4"].startswith("ignored tar shard: a sparse member (tar -S)")
     assert rows["sparse.tar/plain.mp4"].startswith("2 window(s)")
+    # links in a shard are not followed: the clip is served once, under its own name
+    assert rows["links.tar/a.mp4"].startswith("2 window(s)")
+    assert rows["links.tar/b.mp4"].startswith("ignored tar shard: a hard link to a.mp4: not served")
+    assert rows["links.tar/c.mp4"].startswith("ignored tar shard: a symbolic link to a.mp4: not served")
     summary = r.stdout.splitlines()[-1]
-    assert summary.startswith("6 usable video(s) of 7, 12 sample(s) per epoch") and "6 other entries ignored" in summary
+    assert summary.startswith("7 usable video(s) of 8, 14 sample(s) per epoch") and "8 other entries ignored" in summary
 
 
 def test_the_server_serves_the_rest_and_logs_each_refusal(hostile, tmp_path):
@@ -170,8 +184,8 @@ def test_the_server_serves_the_rest_and_logs_each_refusal(hostile, tmp_path):
                for sid in b["sample_ids"]]
     videos = {sid.split("#")[0] for sid in ids}
     assert videos == {"shared.zip/good.mp4", "overlap.zip/good.mp4", "lying.zip/good.mp4", "twice.zip/clip.mp4",
-                      "twice.tar/clip.mp4", "sparse.tar/plain.mp4"}, videos
-    assert len(ids) == len(set(ids)) == 12
+                      "twice.tar/clip.mp4", "sparse.tar/plain.mp4", "links.tar/a.mp4"}, videos
+    assert len(ids) == len(set(ids)) == 14
     log = srv.log
     assert "Traceback" not in log
     for words in ("shared.zip: zip part: members a.mp4, b.mp4, c.mp4 overlap", "overlap.zip: zip part: members "

@@ -51,8 +51,9 @@ def tar_members(f) -> MemberIndex:
     """The member index of the tar read from the binary file object ``f``: name -> (offset
     of its data, size) in bytes of every regular file, in one pass over the headers (the data
     between them is skipped by seeking; an object-store file fetches the blocks that hold
-    headers); of several members of one name the last (:func:`last_of_each_name`). A sparse
-    member (GNU ``tar -S``), whose bytes are not stored in one piece, is refused.
+    headers); of several members of one name the last (:func:`last_of_each_name`). Refused:
+    a sparse member (GNU ``tar -S``), whose bytes are not stored in one piece, and a hard or
+    symbolic link (served, it would be its target again under a second id).
 
     Raises:
         tarfile.TarError: not a tar archive.
@@ -60,11 +61,15 @@ def tar_members(f) -> MemberIndex:
     import tarfile
 
     with tarfile.open(fileobj=f, mode="r:") as tar:
-        files = [m for m in tar if m.isfile()]
+        every = list(tar)
+    files = [m for m in every if m.isfile()]
     kept = last_of_each_name("tar shard", [(m.name, (m.offset_data, m.size)) for m in files if not m.issparse()])
     sparse = [(m.name, f"tar shard: a sparse member (tar -S): its {m.size} bytes are not stored in one piece, "
                        f"not served") for m in files if m.issparse()]
-    return MemberIndex(kept.members, sparse + kept.refused)
+    links = [(m.name, f"tar shard: a {'hard' if m.islnk() else 'symbolic'} link to {m.linkname}: not served (a "
+                      f"link in a shard is not followed; its target is served under its own name)")
+             for m in every if (m.islnk() or m.issym()) and m.name not in kept.members]
+    return MemberIndex(kept.members, sparse + links + kept.refused)
 
 
 #: Bytes of a zip local header before its name (``zipfile.sizeFileHeader``).
