@@ -80,6 +80,18 @@ next start). Workers log a cache volume's fault once per cause and count it
 (`v2v_frame_cache_misses_total{cause="corrupt"}`, `..._not_stored_total{cause="write_error"}`); the
 object cache reads a video from the store when its folder fails.
 
+The corpus index (`cache_dir/corpus_index.sqlite`) is a cache of what passes learned, never a
+source of samples: a file that cannot be opened, has damaged pages, cannot be written (another
+user's file, a read-only file system), whose lock another process holds for more than 5 s (once,
+not per video), or holds an entry v2v never writes (a non-integer `windows`) is one warning
+naming the file and the fault. The index is then off in that process and in the processes it
+starts (`--check`'s pool, the server's workers), `--check` prints the verdicts of a run without
+it, and a server serves every sample (the epoch's size is then unknown at start). Tests:
+`tests/test_corpus_index.py` (`test_a_damaged_index_is_one_warning_and_the_check_answers_as_without_it`,
+`test_a_locked_index_is_one_warning_after_one_wait_not_one_per_video`,
+`test_a_read_only_index_is_one_warning_and_the_check_goes_on`,
+`test_a_server_starting_on_a_faulty_index_serves_the_whole_epoch`).
+
 At start the choice differs per setting: a `--cache-dir` whose cache folder cannot be made or
 written, with a cache on, is a one-line error naming it (exit 2): a cache asked for and unusable
 is a setting to fix, not a run at a fifth of the speed. A `--state-dir` that cannot hold the

@@ -90,7 +90,7 @@ def _read_s(source: LocalSource, rel: str) -> float:
 def _read_ratio(part: Path, name: str) -> float:
     """Bytes taken from the archive per byte of the member while it is decoded."""
     with open(part, "rb") as raw:
-        entry = zip_members(raw)[name]
+        entry = zip_members(raw).members[name]
         f = Counted(raw)
         _decode(open_member(f, name, entry))
     return f.read_bytes / entry[2]

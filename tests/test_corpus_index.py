@@ -129,25 +129,31 @@ def test_the_ray_scan_counts_windows_from_the_index(corpus, tmp_path):
     assert scan_corpus_windows(corpus, cfg).windows == {**first.windows, "bikes.mp4": 7}
 
 
-def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty_video(corpus, tmp_path):
+@pytest.mark.parametrize("recipe", [(), ("--crops-per-window", "2"),
+                                    ("--crops-per-window", "3", "--shot-cuts", "off", "--static-windows", "skip")],
+                         ids=["one-crop", "two-crops", "three-crops-no-cuts-static-skipped"])
+def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty_video(corpus, tmp_path, recipe):
     """After a pass that filled the index (``--check``), a server of the same layout knows an
     epoch's size at start (its log; the ``v2v_epoch_samples`` gauge) and never opens the
-    videos the index knows to give no window; one epoch delivers exactly that many samples."""
+    videos the index knows to give no window; one epoch delivers exactly that many samples,
+    the number ``--check`` printed: ``crops_per_window`` samples a window, whatever the recipe."""
     import subprocess
     import sys
-    import urllib.request
 
     from harness.serve import ServeProcess
     from v2v_client.dataset import V2VStreamDataset
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
-              "--cache-dir", str(tmp_path / "cache")]
+              "--cache-dir", str(tmp_path / "cache"), *recipe]
     r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(corpus), *layout],
                        capture_output=True, text=True, timeout=300)
     summary = r.stdout.splitlines()[-1]
     empty = [line.split()[0] for line in r.stdout.splitlines() if " unusable " in line]
     samples = int(summary.split(", ")[1].split()[0])
-    assert r.returncode == 0 and empty and samples > 0, r.stdout  # the 201-frame windows: two clips give none
+    windows = sum(int(line.split()[1]) for line in r.stdout.splitlines()[1:-1] if line.split()[2] == "window(s)")
+    assert r.returncode == 0 and samples > 0, r.stdout
+    assert samples == windows * (int(recipe[1]) if recipe else 1), r.stdout
+    assert empty, r.stdout  # the 201-frame windows: bigbuckbunny.mp4 (132 frames) gives none
     with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
                        "--log-level", "info", *layout]) as srv:
         ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
@@ -159,6 +165,24 @@ def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty
     for name in empty:  # named once, from the index: a read would have named it again, without the remark
         lines = [ln for ln in log.splitlines() if f"{corpus / name}:" in ln]
         assert len(lines) == 1 and "skipped" in lines[0] and "(known from the corpus index: not opened)" in lines[0]
+
+
+def test_the_ray_count_of_an_epoch_is_the_samples_it_lists(corpus, tmp_path):
+    """With ``crops_per_window`` 2 the Ray engine's ``samples_per_epoch`` (its log, Ray Train's
+    epoch sizes) is the rows ``epoch_descriptors`` lists and ``--check``'s count."""
+    import subprocess
+    import sys
+
+    from v2v_server.ray_data import epoch_descriptors, scan_corpus_windows
+
+    cfg = ServeConfig(sequence_length=8, crops_per_window=2, cache_dir=str(tmp_path / "cache"))
+    rc = scan_corpus_windows(corpus, cfg)
+    rows = sum(len(json.loads(d["entries"])) for d in epoch_descriptors(rc, 0, crops_per_window=2))
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(corpus),
+                        "--sequence-length", "8", "--crops-per-window", "2", "--cache-dir", str(tmp_path / "cache")],
+                       capture_output=True, text=True, timeout=300)
+    assert rc.samples_per_epoch == rows == 2 * sum(rc.windows.values()) > 0
+    assert f", {rows} sample(s) per epoch ({rows // 2} window(s) x 2 crops);" in r.stdout, r.stdout
 
 
 def test_the_epoch_size_known_at_start_is_a_gauge():
@@ -211,3 +235,177 @@ def test_a_served_epoch_or_a_warm_up_fills_the_index_for_the_next_start(corpus, 
     assert r.returncode == 0, r.stderr
     with sqlite3.connect(tmp_path / "w" / INDEX_FILE) as db:
         assert sorted(db.execute("SELECT location, windows FROM entries")) == sorted((r[0], r[1]) for r in rows)
+
+
+# ---------------------------------------------------------------- faults of an index that opens
+# The index is a cache: a damaged, read-only or locked file, or an entry holding a value v2v
+# never writes, is one warning naming the file and the fault; the verdicts and samples are
+# those of a run without it, and no command ends in a traceback.
+
+CHECK = ["--sequence-length", "8", "--workers", "2"]  # two processes: the fault is still named once
+
+
+def _check(corpus, cache, *extra):
+    import subprocess
+    import sys
+
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(corpus), *CHECK,
+                        "--cache-dir", str(cache), *extra], capture_output=True, text=True, timeout=300)
+    return r, time.monotonic() - t0
+
+
+def _filled(corpus, tmp_path):
+    """A cache folder whose index knows the corpus (a --check ran), its file checkpointed (every
+    entry in the main file, no WAL), and the fresh check's output."""
+    cache = tmp_path / "cache"
+    r, _ = _check(corpus, cache)
+    assert r.returncode == 0 and "corpus index" not in r.stderr, r.stderr
+    with sqlite3.connect(cache / INDEX_FILE) as db:
+        db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        assert db.execute("SELECT COUNT(*) FROM entries").fetchone()[0] == 3
+    return cache, r.stdout
+
+
+def _garble_entries(path) -> None:
+    """Overwrite the pages of the ``entries`` table and its key with bytes no B-tree page holds,
+    leaving the schema and ``meta`` pages whole: the file opens, then a read of an entry fails."""
+    with sqlite3.connect(path) as db:
+        size = db.execute("PRAGMA page_size").fetchone()[0]
+        roots = [r for (r,) in db.execute("SELECT rootpage FROM sqlite_master WHERE tbl_name = 'entries'")]
+    assert len(roots) == 2
+    with open(path, "r+b") as f:
+        for page in roots:
+            f.seek((page - 1) * size)
+            f.write(b"\xde\xad\xbe\xef" * (size // 4))
+
+
+def _one_warning(stderr: str, path, words: str) -> None:
+    lines = [ln for ln in stderr.splitlines() if "corpus index" in ln]
+    assert len(lines) == 1 and f"corpus index {path}: " in lines[0] and words in lines[0], stderr
+    assert "Traceback" not in stderr
+
+
+def test_a_damaged_index_is_one_warning_and_the_check_answers_as_without_it(corpus, tmp_path):
+    cache, fresh = _filled(corpus, tmp_path)
+    _garble_entries(cache / INDEX_FILE)
+    r, _ = _check(corpus, cache)
+    assert r.returncode == 0 and r.stdout == fresh
+    _one_warning(r.stderr, cache / INDEX_FILE, "database disk image is malformed (the file is damaged")
+
+
+def test_an_entry_holding_what_v2v_never_writes_is_one_warning(corpus, tmp_path):
+    cache, fresh = _filled(corpus, tmp_path)
+    with sqlite3.connect(cache / INDEX_FILE) as db:
+        db.execute("UPDATE entries SET result = ? WHERE location = ?",
+                   (json.dumps({"usable": True, "windows": "many"}), str(corpus / "bikes.mp4")))
+    r, _ = _check(corpus, cache)
+    assert r.returncode == 0 and r.stdout == fresh
+    _one_warning(r.stderr, cache / INDEX_FILE, f"the entry of {corpus / 'bikes.mp4'} holds windows 'many'")
+
+
+def test_a_locked_index_is_one_warning_after_one_wait_not_one_per_video(corpus, tmp_path):
+    """Another process holds the write lock (a ``sqlite3`` shell inside ``BEGIN EXCLUSIVE``): the
+    first write (at open) waits ``BUSY_TIMEOUT_S`` once, then the index is off; without the
+    guard each video's entry waited 30 s and the check died with ``database is locked``."""
+    from v2v_server.videos.corpus_index import BUSY_TIMEOUT_S
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    holder = sqlite3.connect(cache / INDEX_FILE, isolation_level=None)
+    try:
+        holder.execute("CREATE TABLE other (x)")
+        holder.execute("BEGIN EXCLUSIVE")
+        holder.execute("INSERT INTO other VALUES (1)")
+        r, took = _check(corpus, cache)
+        fresh, _ = _check(corpus, tmp_path / "fresh")
+    finally:
+        holder.close()
+    assert r.returncode == 0 and r.stdout == fresh.stdout
+    _one_warning(r.stderr, cache / INDEX_FILE, "database is locked (another process holds its lock)")
+    assert took < 3 * 30, took  # three videos: one wait of BUSY_TIMEOUT_S, not a 30 s wait per video
+    assert BUSY_TIMEOUT_S < 30
+
+
+def _read_only(path):
+    """Make the file ``path`` read-only for this process: its mode as a user; as root, whom
+    modes do not stop, the immutable attribute (``chattr +i``, ext4 and most local file
+    systems). Returns the undo, or skips naming why neither holds."""
+    import subprocess
+
+    if os.geteuid() != 0:
+        os.chmod(path, 0o444)
+        return lambda: os.chmod(path, 0o644)
+    r = subprocess.run(["chattr", "+i", str(path)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"running as root, where a file's mode does not stop a write, and chattr +i fails here "
+                    f"({r.stderr.strip() or r.returncode}): no read-only file to test with")
+    return lambda: subprocess.run(["chattr", "-i", str(path)], check=True)
+
+
+def test_a_read_only_index_is_one_warning_and_the_check_goes_on(corpus, tmp_path):
+    """Written by another user (or on a read-only file system): it is read-only here, and a check
+    under another layout must write. One warning, the verdicts of a check without it."""
+    cache, _ = _filled(corpus, tmp_path)
+    undo = _read_only(cache / INDEX_FILE)
+    try:
+        r, _ = _check(corpus, cache, "--sequence-length", "6")
+    finally:
+        undo()
+    fresh, _ = _check(corpus, tmp_path / "fresh", "--sequence-length", "6")
+    assert r.returncode == 0 and r.stdout == fresh.stdout
+    _one_warning(r.stderr, cache / INDEX_FILE, "attempt to write a readonly database (it cannot be written")
+
+
+def test_after_a_fault_every_method_answers_as_an_empty_index(tmp_path, caplog):
+    """``lookup``, ``windows`` and ``record`` meet the fault of one entry (a non-integer
+    ``windows``); from then on the index is off in this process: nothing is answered, nothing
+    kept, one warning."""
+    index = CorpusIndex(tmp_path / INDEX_FILE)
+    verdict = {"path": "a.mp4", "usable": True, "windows": 2, "frames": 401, "size": "64x48 h264 yuv420p 25 fps",
+               "reason": "", "cuts": [], "dropped": 0}
+    for loc in ("/c/a.mp4", "/c/b.mp4"):
+        assert index.record(loc, "id", "L", verdict)
+    with sqlite3.connect(tmp_path / INDEX_FILE) as db:
+        db.execute("UPDATE entries SET windows = '2.5x' WHERE location = '/c/b.mp4'")
+    with caplog.at_level(logging.WARNING, logger="v2v"):
+        got = list(index.windows([("a", "/c/a.mp4", "id"), ("b", "/c/b.mp4", "id")], "L"))
+        assert got == [] and index.fault is not None
+        assert "holds windows '2.5x', not a count" in index.fault
+        assert index.lookup("/c/a.mp4", "id", "L") is None and not index.record("/c/c.mp4", "id", "L", verdict)
+        assert list(index.windows([("a", "/c/a.mp4", "id")], "L")) == [] and len(index) == 0
+    lines = [r.getMessage() for r in caplog.records if "corpus index" in r.getMessage()]
+    assert len(lines) == 1 and str(tmp_path / INDEX_FILE) in lines[0], lines
+
+
+@pytest.mark.parametrize("fault", ["windows-value", "locked"])
+def test_a_server_starting_on_a_faulty_index_serves_the_whole_epoch(corpus, tmp_path, fault):
+    """``v2v-serve`` reads the index at start (``known_windows``) and its workers write to it: a
+    ``windows`` value v2v never writes, or a lock another process holds, is one warning, the
+    epoch's size is then unknown (not a wrong one) and every sample is served."""
+    from harness.serve import ServeProcess
+    from v2v_client.dataset import V2VStreamDataset
+
+    layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
+              "--sequence-length", "8"]
+    cache = tmp_path / "cache"
+    r, _ = _check(corpus, cache, *layout)
+    samples = int(r.stdout.splitlines()[-1].split(", ")[1].split()[0])
+    holder = sqlite3.connect(cache / INDEX_FILE, isolation_level=None)
+    if fault == "windows-value":
+        holder.execute("UPDATE entries SET windows = 'two' WHERE location = ?", (str(corpus / "bikes.mp4"),))
+        words = f"the entry of {corpus / 'bikes.mp4'} holds windows 'two', not a count"
+    else:
+        holder.execute("BEGIN EXCLUSIVE")
+        holder.execute("DELETE FROM entries")  # not committed: the server would read the entries, and cannot
+        words = "database is locked (another process holds its lock)"
+    try:
+        with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
+                           "--log-level", "info", "--cache-dir", str(cache), *layout]) as srv:
+            ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+                   for sid in b["sample_ids"]]
+    finally:
+        holder.close()
+    assert len(ids) == len(set(ids)) == samples > 0
+    _one_warning(srv.log, cache / INDEX_FILE, words)
+    assert "an epoch holds" not in srv.log

@@ -80,7 +80,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         videos = mine
     if args.check:
         results = check_corpus(cfg.recipe.windows, cfg.recipe.decode, source, videos, cfg.workers)
-        print(format_check(results, rejected))
+        print(format_check(results, rejected, cfg.recipe.crops_per_window))
         if source.frame_cache is not None:
             print(cache_line(source, cfg, videos))
         return 0 if any(r["usable"] for r in results) else 2
@@ -107,7 +107,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"v2v-serve: --videos {source.root}: no video gives a window at this layout (the corpus index "
                   f"{index_path(source.cache_dir)} knows them all; --check says why)", file=sys.stderr)
             return 2
-    epoch_samples = known.samples if known.known == len(videos) + len(known.empty) else None
+    epoch_samples = (cfg.recipe.epoch_samples(known.samples) if known.known == len(videos) + len(known.empty)
+                     else None)
     if epoch_samples is not None:
         log.info("an epoch holds %d sample(s) of %d video(s) (corpus index)", epoch_samples, len(videos))
     try:

@@ -81,15 +81,19 @@ class RayCorpus:
         root: the corpus: a folder, a store prefix URL, or a brace pattern of tar shards (as given).
         windows: usable video (POSIX path relative to ``root``) -> windows per epoch.
         skipped: unusable video -> reason (the ``skipped PATH: reason`` of ``v2v-serve``).
+        crops_per_window: samples per window (the recipe's ``crops_per_window``).
     """
 
     root: str
     windows: Dict[str, int]
     skipped: Dict[str, str]
+    crops_per_window: int = 1
 
     @property
     def samples_per_epoch(self) -> int:
-        return sum(self.windows.values())
+        """Rows of an epoch before padding: ``crops_per_window`` per window, as
+        :func:`epoch_descriptors` lists them and ``v2v-serve`` serves them."""
+        return sum(self.windows.values()) * self.crops_per_window
 
 
 def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int, Optional[str]]:
@@ -154,7 +158,8 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
         else:
             windows[rel] = n
     # a brace pattern stays whole: the actors rebuild the source from it (its shards, its manifest)
-    return RayCorpus(str(videos) if source.names else source.root, windows, skipped)
+    return RayCorpus(str(videos) if source.names else source.root, windows, skipped,
+                     cfg.recipe.crops_per_window)
 
 
 def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = (), ranks: int = 1,

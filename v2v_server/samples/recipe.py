@@ -94,6 +94,12 @@ class SampleRecipe:
         """Frame indices one sample spans: L * B * frames_per_bin + 1."""
         return self.sequence_length * self.num_bins * self.frames_per_bin + 1
 
+    def epoch_samples(self, windows: int) -> int:
+        """Samples an epoch holds of ``windows`` windows: each window gives ``crops_per_window``
+        samples (ids ``path#window.crop``, ``v2v_wire.ids``). What ``--check``, the server's
+        start, the Ray engine's count and their progress bars report."""
+        return windows * self.crops_per_window
+
     @cached_property
     def windows(self) -> WindowSettings:
         """Where this recipe's windows lie (and so which frames a pass reads), the videos stage's

@@ -8,7 +8,7 @@ import contextlib
 from pathlib import PurePosixPath
 from typing import Callable, ContextManager, Dict, List, Optional, Sequence, Tuple
 
-from v2v_server.videos.decode import VideoError
+from v2v_server.videos.decode import VideoError, control_character, printable
 from v2v_server.videos.manifest import index_entry
 from v2v_server.videos.segments import segment_name, split_segment
 from v2v_server.videos.shards import (ARCHIVES, JoinedFile, ShardIndex, ZipMemberError, gather_pieces, missing_piece,
@@ -47,6 +47,14 @@ class Archives:
             VideoError: it is missing, or a split part lacks a piece (named).
             tarfile.TarError, zipfile.BadZipFile, OSError: it cannot be read."""
         return self.index.of(archive, self._version(archive), self.open)
+
+    def refused(self, archive: Optional[str] = None) -> List[Tuple[str, str]]:
+        """``(where, why)`` for each entry of ``archive`` (read by :meth:`members`; None: of every
+        archive read, in order) that is not served (``shards.MemberIndex.refused``):
+        ``archive/member``, or the archive for a line naming several members."""
+        archives = sorted(self.index.refused) if archive is None else [archive]
+        return [(printable(f"{a}/{name}" if name else a), printable(why))
+                for a in archives for name, why in self.index.refused.get(a, ())]
 
     def pieces(self, archive: str) -> List[str]:
         """The files or objects that hold ``archive``: ``[archive]`` when it is one, else (a zip
@@ -141,13 +149,17 @@ class Archives:
                         if pieces != [rel] else "")
                 rejected.append((rel, f"{kind} cannot be read: {type(e).__name__}: {e}{hint}"))
                 continue
-            vids = [m for m in members if m.lower().endswith(tuple(extensions))]
+            rejected += self.refused(rel)
+            named = [m for m in members if control_character(m)  # a tar shard's metadata members stay silent
+                     and (kind == "zip part" or m.lower().endswith(tuple(extensions)))]
+            rejected += [(printable(f"{rel}/{m}"), f"{kind} member: {control_character(m)}") for m in named]
+            vids = [m for m in members if m.lower().endswith(tuple(extensions)) and not control_character(m)]
             out += [f"{rel}/{m}" for m in vids]
             if not vids:
                 rejected.append((rel, f"{kind} holds no video member"))
             elif kind == "zip part":
                 rejected += [(f"{rel}/{m}", f"not a video file (extension {PurePosixPath(m).suffix or 'none'!r})")
-                             for m in members if not m.lower().endswith(tuple(extensions))]
+                             for m in members if not m.lower().endswith(tuple(extensions)) and m not in named]
         return out, rejected
 
 

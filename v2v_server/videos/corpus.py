@@ -3,15 +3,13 @@ file of a corpus and say what it is worth, before training)."""
 from __future__ import annotations
 
 import hashlib
-import logging
-import sqlite3
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Sequence, Tuple
 
-from v2v_server.faults import warn_once
 from v2v_server.videos.corpus_index import layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.frames import DecodeSettings, FramePass, PassFrame
+from v2v_server.videos.local import LocalSource
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import ShotDetector
 from v2v_server.videos.source import VideoSource
@@ -19,7 +17,6 @@ from v2v_server.videos.source_spec import map_videos
 from v2v_server.videos.window_pass import VideoPass, WindowPass
 from v2v_server.videos.windows import WindowSettings
 
-log = logging.getLogger("v2v")
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.
 SAMPLE_VIDEOS = Path(__file__).resolve().parents[1] / "sample_videos"
@@ -80,15 +77,11 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     Answered from the host's corpus index (``source.corpus_index()``) while the file's identity
     holds, else by decoding it; a verdict that decoding reached without an error (a read
     failure may be passing) is recorded there for the next pass."""
-    index, where, key, identity = source.corpus_index(), source.where(rel), layout_key(windows, decode), None
-    if index is not None:
-        try:
-            identity = source.identity(rel)
-        except VideoError:
-            identity = None  # missing or unreadable: decoding says why
-        known = index.lookup(where, identity, key)
-        if known is not None and known.get("frame_timing", True):  # a sample pass's entry lacks --check's timing
-            return {**known, "path": rel}
+    index = source.corpus_index()
+    identity = _identity(source, rel) if index is not None else None  # before decoding: what the verdict is of
+    known = indexed_verdict(windows, decode, source, rel)
+    if known is not None:
+        return known
     out = {}  # what only this pass measures (frame timing), beside the window pass's verdict
     shown = {}  # the displayed (scaled) height of the frame at hand
 
@@ -116,8 +109,29 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
         error = e
     out = {**pass_verdict(windows, rel, found.record(error)), **out}
     if index is not None and error is None:
-        index.record(where, identity, key, out)
+        index.record(source.where(rel), identity, layout_key(windows, decode), out)
     return out
+
+
+def _identity(source: VideoSource, rel: str):
+    """The identity of the video at ``rel`` now (``VideoSource.identity``), None when it is
+    missing or unreadable (decoding says why)."""
+    try:
+        return source.identity(rel)
+    except VideoError:
+        return None
+
+
+def indexed_verdict(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str):
+    """``check_video``'s verdict of the video at ``rel`` as the host's corpus index holds it
+    (the video's identity unchanged, the entry made by a pass that timed frames), or None."""
+    index = source.corpus_index()
+    if index is None:
+        return None
+    known = index.lookup(source.where(rel), _identity(source, rel), layout_key(windows, decode))
+    if known is not None and known.get("frame_timing", True):  # a sample pass's entry lacks --check's timing
+        return {**known, "path": rel}
+    return None
 
 
 def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> dict:
@@ -153,14 +167,9 @@ def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     if index is None:
         return False
     where, key, identity = source.where(rel), layout_key(windows, decode), source.listed_identity(rel)
-    try:
-        if identity is None or index.lookup(where, identity, key) is not None:
-            return False
-        return index.record(where, identity, key, {**pass_verdict(windows, rel, record), "frame_timing": False})
-    except (sqlite3.Error, OSError) as e:
-        warn_once(log, ("corpus index write", str(index.path)), "corpus index %s cannot be written (%s); the "
-                  "samples are served without it", index.path, e)
+    if identity is None or index.lookup(where, identity, key) is not None:
         return False
+    return index.record(where, identity, key, {**pass_verdict(windows, rel, record), "frame_timing": False})
 
 
 class KnownWindows(NamedTuple):
@@ -189,18 +198,31 @@ def known_windows(windows: WindowSettings, decode: DecodeSettings, source: Video
         known, samples = known + 1, samples + n
         if n == 0:
             empty[rel] = reason
+    if index.fault is not None:  # a fault on the way: nothing it answered is trusted
+        return KnownWindows(0, 0, {})
     return KnownWindows(known, samples, empty)
 
 
 def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, videos: List[str],
                  processes: int = 1) -> List[dict]:
     """``check_video`` for every file of ``source``, in ``processes`` processes (``source``
-    itself in this one, or built once in each of them from its ``spec()``)."""
-    return map_videos(check_video, (windows, decode), source, videos, processes)
+    itself in this one, or built once in each of them from its ``spec()``). The corpus index is
+    opened here first, and for a folder (a video's identity is a ``stat``) its answers are read
+    here: a fault of the index is then found (and named) once, in this process, the processes
+    leave it off, and only the videos it does not know are decoded. A store's identities cost
+    a request each, made by the processes in parallel, which read its answers themselves."""
+    local = isinstance(source, LocalSource)
+    index = source.corpus_index()
+    known = {rel: indexed_verdict(windows, decode, source, rel) if local and index is not None else None
+             for rel in videos}
+    todo = [rel for rel in videos if known[rel] is None]
+    made = dict(zip(todo, map_videos(check_video, (windows, decode), source, todo, processes)))
+    return [known[rel] or made[rel] for rel in videos]
 
 
-def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
-    """A table: one line per file with its verdict, then a summary line."""
+def format_check(results: List[dict], rejected: List[Tuple[str, str]], crops_per_window: int = 1) -> str:
+    """A table: one line per file with its verdict (its windows), then a summary line: the
+    samples an epoch holds, ``crops_per_window`` per window (``SampleRecipe.epoch_samples``)."""
     lines = [f"{'file':<48} {'verdict':<12} detail"]
     for r in results:
         verdict = f"{r['windows']} window(s)" if r["usable"] else "unusable"
@@ -221,8 +243,10 @@ def format_check(results: List[dict], rejected: List[Tuple[str, str]]) -> str:
     for rel, reason in rejected:
         lines.append(f"{Path(rel).as_posix():<48} {'ignored':<12} {reason}")
     usable = [r for r in results if r["usable"]]
-    lines.append(f"{len(usable)} usable video(s) of {len(results)}, {sum(r['windows'] for r in usable)} sample(s) "
-                 f"per epoch; {sum(len(r.get('cuts') or ()) for r in results)} shot cut(s) found, "
+    windows = sum(r["windows"] for r in usable)
+    crops = f" ({windows} window(s) x {crops_per_window} crops)" if crops_per_window > 1 else ""
+    lines.append(f"{len(usable)} usable video(s) of {len(results)}, {windows * crops_per_window} sample(s) "
+                 f"per epoch{crops}; {sum(len(r.get('cuts') or ()) for r in results)} shot cut(s) found, "
                  f"{sum(r.get('dropped', 0) for r in results)} window(s) removed by cuts; "
                  f"{len(rejected)} other entr{'y' if len(rejected) == 1 else 'ies'} ignored")
     return "\n".join(lines)

@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import re
 import sqlite3
 import time
 from pathlib import Path
-from typing import Dict, Iterable, Iterator, Optional, Tuple, Union
+from typing import Callable, Dict, Iterable, Iterator, Optional, Tuple, Union
 
+from v2v_server.faults import warn_once
 from v2v_server.videos.frames import DecodeSettings, entry_settings
 from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.shots import DETECTOR_VERSION
@@ -36,6 +38,13 @@ INDEX_FILE = "corpus_index.sqlite"
 
 #: Format of the rows; an index of another version is set aside and written anew.
 INDEX_VERSION = 1
+
+#: Seconds a read or write waits for another process's write: a write is one row (milliseconds),
+#: so a lock held longer is another program's (a ``sqlite3`` shell in a transaction), and the
+#: index is left off rather than every pass waiting on it.
+BUSY_TIMEOUT_S = 5.0
+
+log = logging.getLogger("v2v")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS entries (
@@ -77,43 +86,74 @@ def index_path(cache_dir: Optional[Union[str, Path]]) -> Path:
 class CorpusIndex:
     """The corpus index file at ``path`` (made, with its folder, when missing).
 
+    The index is a cache: a fault of the file never stops a pass or changes a sample. The
+    first fault met (the folder or file cannot be made or opened, its pages are damaged, it
+    cannot be written, another process holds its lock past ``timeout_s``, an entry holds a
+    value this index never writes) is one warning naming the file and the fault; the index is
+    then off in this process (:attr:`fault` says why), and every method answers as an empty
+    index does: :meth:`lookup` None, :meth:`windows` nothing, :meth:`record` False.
+
     Args:
         path: the SQLite file (:func:`index_path`).
-        timeout_s: how long a write waits for another process's write to finish.
-
-    Raises:
-        OSError: the folder cannot be made.
-        sqlite3.DatabaseError: ``path`` is not an SQLite file (naming it).
+        timeout_s: how long a read or write waits for another process's write to finish,
+            seconds (a write is one row: far shorter).
     """
 
-    def __init__(self, path: Union[str, Path], timeout_s: float = 30.0):
+    def __init__(self, path: Union[str, Path], timeout_s: float = BUSY_TIMEOUT_S):
         self.path = Path(path)
+        #: Why the index is off in this process (the first fault met), None while it serves.
+        self.fault: Optional[str] = None
+        self._db: Optional[sqlite3.Connection] = None
+        self._safely(None, lambda: self._open(timeout_s))
+
+    def _open(self, timeout_s: float) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.executescript(_SCHEMA)
+        row = self._db.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()
+        if row is not None and row[0] != str(INDEX_VERSION):  # written by another format: start afresh
+            self._db.execute("DELETE FROM entries")
+        # a write at every open: a file that cannot be written, or whose lock another process
+        # holds, is found here, once, by the process that opens it first (its pool's workers
+        # are then told to leave it off), not by each worker at its first entry
+        self._db.execute("INSERT OR REPLACE INTO meta VALUES ('version', ?)", (str(INDEX_VERSION),))
+
+    def _safely(self, default, work: Callable):
+        """``work()``, or ``default`` when the index is off or ``work`` meets a fault (then off)."""
+        if self.fault is not None:
+            return default
         try:
-            self._db = sqlite3.connect(str(self.path), timeout=timeout_s, isolation_level=None,
-                                       check_same_thread=False)
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.executescript(_SCHEMA)
-            row = self._db.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()
-            if row is None:
-                self._db.execute("INSERT OR IGNORE INTO meta VALUES ('version', ?)", (str(INDEX_VERSION),))
-            elif row[0] != str(INDEX_VERSION):  # written by another format: start afresh
-                self._db.execute("DELETE FROM entries")
-                self._db.execute("UPDATE meta SET value = ? WHERE key = 'version'", (str(INDEX_VERSION),))
-        except sqlite3.DatabaseError as e:
-            raise sqlite3.DatabaseError(f"corpus index {self.path}: {e}") from None
+            return work()
+        except (sqlite3.Error, OSError, ValueError, TypeError, KeyError) as e:
+            self._off(e)
+            return default
+
+    def _off(self, e: BaseException) -> None:
+        """Turn the index off after the fault ``e``: one warning naming the file, the fault and what to do."""
+        self.fault = fault_text(e)
+        warn_once(log, ("corpus index", str(self.path)), "corpus index %s: %s; the videos are read without it "
+                  "(the index is a cache: samples are the same)", self.path, self.fault)
+        if self._db is not None:
+            try:
+                self._db.close()
+            except sqlite3.Error:
+                pass
+            self._db = None
 
     def lookup(self, location: str, identity: Optional[str], layout: str) -> Optional[dict]:
         """The ``--check`` verdict (``videos.corpus.check_video``'s dict) recorded for the video
         at ``location`` under ``layout``, or None: no entry, an entry of another identity (the
-        video changed), or ``identity`` None (it cannot vouch for the content)."""
+        video changed), ``identity`` None (it cannot vouch for the content), or the index off."""
         if identity is None:
             return None
-        row = self._db.execute("SELECT identity, result FROM entries WHERE location = ? AND layout = ?",
-                               (location, layout)).fetchone()
-        if row is None or row[0] != identity:
-            return None
-        return json.loads(row[1])
+
+        def read():
+            row = self._db.execute("SELECT identity, result FROM entries WHERE location = ? AND layout = ?",
+                                   (location, layout)).fetchone()
+            return None if row is None or row[0] != identity else stored_verdict(location, row[1])
+
+        return self._safely(None, read)
 
     def windows(self, videos: Iterable[Tuple[str, str, Optional[str]]], layout: str,
                 chunk: int = 500) -> Iterator[Tuple[str, int, str]]:
@@ -121,46 +161,99 @@ class CorpusIndex:
         ``layout`` (why it gives none or fewer, '' when nothing is wrong), for each ``(key,
         location, identity)`` of ``videos`` whose entry holds (same identity; None never does),
         read in queries of ``chunk`` locations: memory is bounded by the chunk, not the corpus.
-        Nothing is queried when no entry of ``layout`` exists."""
-        if self._db.execute("SELECT 1 FROM entries WHERE layout = ? LIMIT 1", (layout,)).fetchone() is None:
+        Nothing is queried when no entry of ``layout`` exists. A fault met on the way ends
+        the answers (:attr:`fault` is then set: what was answered before it is not to be trusted)."""
+        if not self._safely(False, lambda: self._db.execute("SELECT 1 FROM entries WHERE layout = ? LIMIT 1",
+                                                            (layout,)).fetchone() is not None):
             return
         batch: Dict[str, Tuple[str, str]] = {}  # location -> (key, identity)
 
-        def flush():
+        def read() -> list:
             marks = ",".join("?" * len(batch))
             rows = self._db.execute(f"SELECT location, identity, windows, reason FROM entries WHERE layout = ? AND "
                                     f"location IN ({marks})", (layout, *batch)).fetchall()
-            held = dict(batch)
-            batch.clear()
-            for loc, ident, n, reason in rows:
-                if held[loc][1] == ident:
-                    yield held[loc][0], int(n), reason
+            return [(batch[loc][0], stored_count(loc, n), str(reason)) for loc, ident, n, reason in rows
+                    if batch[loc][1] == ident]
 
         for key, location, identity in videos:
             if identity is not None:
                 batch[location] = (key, identity)
                 if len(batch) >= chunk:
-                    yield from flush()
+                    yield from self._safely([], read)
+                    batch.clear()
+                    if self.fault is not None:
+                        return
         if batch:
-            yield from flush()
+            yield from self._safely([], read)
 
     def record(self, location: str, identity: Optional[str], layout: str, result: dict) -> bool:
         """Keep ``result`` (a ``check_video`` verdict) for the video at ``location`` of
         ``identity`` under ``layout``, replacing an older entry; nothing is kept when
-        ``identity`` is None. Returns whether it was kept."""
+        ``identity`` is None or the index is off. Returns whether it was kept."""
         if identity is None:
             return False
         m = _SIZE.match(result.get("size") or "")
         w, h, codec, fps = (int(m[1]), int(m[2]), m[3], float(m[4])) if m else (None, None, None, None)
-        self._db.execute(
-            "INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            (location, layout, identity, int(result.get("frames", 0)), int(result.get("windows", 0)),
-             int(bool(result.get("usable"))), result.get("reason") or "", json.dumps(list(result.get("cuts") or [])),
-             w, h, codec, fps, json.dumps(result), time.time()))
-        return True
+        row = (location, layout, identity, int(result.get("frames", 0)), int(result.get("windows", 0)),
+               int(bool(result.get("usable"))), result.get("reason") or "", json.dumps(list(result.get("cuts") or [])),
+               w, h, codec, fps, json.dumps(result), time.time())
+        return self._safely(False, lambda: self._db.execute(
+            "INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", row) is not None)
 
     def __len__(self) -> int:
-        return self._db.execute("SELECT COUNT(*) FROM entries").fetchone()[0]
+        return self._safely(0, lambda: self._db.execute("SELECT COUNT(*) FROM entries").fetchone()[0])
 
     def close(self) -> None:
-        self._db.close()
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
+
+#: The fields a stored verdict must hold, and their types (``corpus.pass_verdict`` writes them).
+_VERDICT = (("usable", bool), ("windows", int), ("frames", int), ("size", str), ("reason", str), ("cuts", list),
+            ("dropped", int))
+
+
+def stored_count(location: str, value) -> int:
+    """An entry's ``windows`` column as a count.
+
+    Raises:
+        ValueError: it is not a non-negative integer (naming the entry and the value)."""
+    if type(value) is not int or value < 0:
+        raise ValueError(f"the entry of {location} holds windows {value!r}, not a count")
+    return value
+
+
+def stored_verdict(location: str, text) -> dict:
+    """An entry's ``result`` column as a verdict dict.
+
+    Raises:
+        ValueError: it is not JSON of a verdict (naming the entry and the field at fault)."""
+    try:
+        verdict = json.loads(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"the entry of {location} holds a result that is not JSON") from None
+    if not isinstance(verdict, dict):
+        raise ValueError(f"the entry of {location} holds a result that is not a verdict")
+    for key, kind in _VERDICT:
+        value = verdict.get(key)
+        if not isinstance(value, kind) or (kind is int and (isinstance(value, bool) or value < 0)):
+            raise ValueError(f"the entry of {location} holds {key} {value!r} in its result")
+    return verdict
+
+
+def fault_text(e: BaseException) -> str:
+    """What a fault of the index file means, and what to do: SQLite's own words first."""
+    text = str(e) or type(e).__name__
+    low = text.lower()
+    if "locked" in low or "busy" in low:
+        return f"{text} (another process holds its lock)"
+    if "unable to open" in low:
+        return f"{text} (its folder cannot be written, or the path is not a file)"
+    if "readonly" in low or "read-only" in low or isinstance(e, PermissionError):
+        return f"{text} (it cannot be written: its permissions or a read-only file system)"
+    if "malformed" in low or (isinstance(e, sqlite3.DatabaseError) and not isinstance(e, sqlite3.OperationalError)):
+        return f"{text} (the file is damaged: delete it to start a new index)"
+    if isinstance(e, (ValueError, TypeError, KeyError)):
+        return f"{text} (not written by v2v: delete the file to start a new index)"
+    return text

@@ -13,6 +13,7 @@ Frames carrying a display matrix (phone videos) are rotated as a player would sh
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
@@ -448,8 +449,35 @@ def utf8_name(path: Path) -> bool:
 
 
 def printable(path: Path) -> str:
-    """``path`` for a log line or a report: bytes that are not UTF-8 escaped (``\\xff``)."""
-    return os.fsencode(str(path)).decode("utf-8", "backslashreplace")
+    """``path`` for a log line or a report: bytes that are not UTF-8 escaped (``\\xff``), and
+    control characters (``\\n``, ``\\t``...) written as escapes, so that one name is one line."""
+    text = os.fsencode(str(path)).decode("utf-8", "backslashreplace")
+    return "".join(repr(c)[1:-1] if _CONTROL.match(c) else c for c in text)
+
+
+#: Control characters (C0, DEL, C1): in a name they would end a log line or a resume hello's line.
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def name_problem(name: str, what: str = "file name") -> Optional[str]:
+    """Why ``name`` (a file's path as the file system gave it, a key: ``what``) cannot be a
+    sample id's path, or None: it is not valid UTF-8 (:func:`utf8_name`), or it holds a
+    control character (:func:`control_character`)."""
+    if not utf8_name(name):
+        return f"{what} is not valid UTF-8 (sample ids are UTF-8): rename it"
+    return control_character(name)
+
+
+def control_character(name: str) -> Optional[str]:
+    """Why ``name`` (a file, key or archive member path) cannot be a sample id's path: the
+    first control character it holds (a newline, a tab...), escaped, with the reason; None
+    when it holds none. Sample ids travel newline-joined in a trainer's resume hello and are
+    written one per line in logs and reports."""
+    m = _CONTROL.search(name)
+    if m is None:
+        return None
+    return (f"name holds the control character {repr(m.group())[1:-1]!s} (sample ids travel one per line): "
+            f"rename it")
 
 
 def scan_corpus(root: Path, extensions: Sequence[str]) -> Tuple[List[Path], List[Tuple[Path, str]]]:
@@ -492,8 +520,8 @@ def scan_corpus_names(root: Union[str, Path], extensions: Sequence[str]) -> Tupl
             continue
         for entry in entries:
             rel = f"{rel_dir}/{entry.name}" if rel_dir else entry.name
-            if not utf8_name(rel):
-                rejected.append((printable(rel), "file name is not valid UTF-8 (sample ids are UTF-8): rename it"))
+            if name_problem(rel) is not None:
+                rejected.append((printable(rel), name_problem(rel)))
                 continue
             try:
                 link = entry.is_symlink()

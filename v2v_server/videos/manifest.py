@@ -11,7 +11,7 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Dict, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 from v2v_server.videos.shards import ShardIndex, split_member
 
@@ -38,18 +38,25 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
 
 
-def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]]) -> None:
+def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]],
+                   refused: Optional[Dict[str, List[Tuple[str, str]]]] = None) -> None:
     """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a
     member of an archive ``shard.tar/member`` -> (size, the archive's ETag, offset of the
     member's data in the shard), ``part.zip/member`` -> (size, the part's ETag, offset of its
     local header, compressed size, CRC-32, method, flag bits): :func:`member_entry`) atomically:
-    a header line ``{"v2v_manifest": 1, "url", "objects", "listed_at"}``, then one ``[key, size,
-    etag(, offset...)]`` JSON line per entry, sorted by key."""
+    a header line ``{"v2v_manifest": 1, "url", "objects", "listed_at"}`` (and ``"refused"``:
+    archive -> ``[[member or '', why], ...]``, the archive entries not served,
+    ``shards.ShardIndex.refused``, when there are any: a restart names them again without
+    reading the archive), then one ``[key, size, etag(, offset...)]`` JSON line per entry,
+    sorted by key."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
     with open(tmp, "w", encoding="utf-8") as f:
-        f.write(json.dumps({"v2v_manifest": MANIFEST_VERSION, "url": url, "objects": len(objects),
-                            "listed_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n")
+        header = {"v2v_manifest": MANIFEST_VERSION, "url": url, "objects": len(objects),
+                  "listed_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        if any(refused.values() if refused else ()):
+            header["refused"] = {a: [list(r) for r in rs] for a, rs in sorted(refused.items()) if rs}
+        f.write(json.dumps(header, ensure_ascii=False) + "\n")
         for key in sorted(objects):
             f.write(json.dumps([key, *objects[key]], ensure_ascii=False) + "\n")
     os.replace(tmp, path)
@@ -71,6 +78,21 @@ def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
     except (OSError, ValueError, TypeError):
         return None
     return objects if len(objects) == header.get("objects") else None
+
+
+def manifest_refused(path: Path, url: str) -> Dict[str, List[Tuple[str, str]]]:
+    """The archive entries not served that the manifest at ``path`` names (see
+    :func:`write_manifest`): archive -> ``(member or '', why)``; empty when it names none or
+    is not a manifest of ``url``."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            header = json.loads(f.readline() or "null")
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(header, dict) or header.get("url") != url or not isinstance(header.get("refused"), dict):
+        return {}
+    return {str(a): [(str(r[0]), str(r[1])) for r in rs if isinstance(r, list) and len(r) == 2]
+            for a, rs in header["refused"].items() if isinstance(rs, list)}
 
 
 class ManifestIndex:
@@ -143,7 +165,10 @@ class StoreListing:
         """The manifest's listing; None when there is none to read (no manifest kept, a new
         listing asked for, the file absent, damaged or of another URL)."""
         if self.path and not self.refresh:
-            return read_manifest(Path(self.path), self.url)
+            objects = read_manifest(Path(self.path), self.url)
+            if objects is not None:
+                self.shards.refused.update(manifest_refused(Path(self.path), self.url))
+            return objects
         return None
 
     def keep(self, objects: Dict[str, tuple]) -> None:
@@ -164,7 +189,7 @@ class StoreListing:
         at the next start)."""
         if self.path:
             try:
-                write_manifest(Path(self.path), self.url, objects)
+                write_manifest(Path(self.path), self.url, objects, self.shards.refused)
                 log.info("manifest written to %s", self.path)
             except OSError as e:
                 log.warning("cannot write the manifest %s: %s (the store is listed again at the next start)",

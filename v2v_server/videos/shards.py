@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import io
 import re
-from typing import Dict, Iterable, List, Optional, Sequence, Set, Tuple
+from typing import Dict, Iterable, List, NamedTuple, Optional, Sequence, Set, Tuple
 
 #: The archive kinds whose members a corpus serves, by extension.
 ARCHIVES = (".tar", ".zip")
@@ -20,30 +20,78 @@ ARCHIVES = (".tar", ".zip")
 PIECE = re.compile(r"^(?P<stem>.+)_part(?P<suffix>[a-z]{2,})$")
 
 
-def tar_members(f) -> Dict[str, Tuple[int, int]]:
-    """Member name -> (offset of its data, size) in bytes of every regular file of the tar
-    read from the binary file object ``f``, in one pass over the headers (the data between
-    them is skipped by seeking; an object-store file fetches the blocks that hold headers).
+class MemberIndex(NamedTuple):
+    """An archive's member index: ``members``, name -> entry (see the module docstring) of each
+    member served; ``refused``, ``(name, why)`` for each entry that is not: a member's name, or
+    '' for a line about the archive that names its members."""
+
+    members: Dict[str, Tuple[int, ...]]
+    refused: List[Tuple[str, str]]
+
+
+def last_of_each_name(kind: str, entries: Sequence[Tuple[str, Tuple[int, ...]]]) -> MemberIndex:
+    """The members of ``entries`` (name, entry; archive order) with one entry per name: of
+    several members of one name the last is served, as ``tar -x`` and ``unzip`` leave it
+    on disk (each overwrites the one before), and each earlier one is refused, named with its
+    offset (``kind``: what a message calls the archive)."""
+    members: Dict[str, Tuple[int, ...]] = {}
+    last: Dict[str, int] = {}
+    for k, (name, entry) in enumerate(entries):
+        members[name], last[name] = entry, k
+    count = {name: 0 for name in last}
+    for name, _ in entries:
+        count[name] += 1
+    refused = [("", f"{kind}: {count[name]} members are named {name}; the last (at offset {members[name][0]}) "
+                    f"is served, as tar and unzip extract it, the one at offset {entry[0]} is not")
+               for k, (name, entry) in enumerate(entries) if last[name] != k]
+    return MemberIndex(members, refused)
+
+
+def tar_members(f) -> MemberIndex:
+    """The member index of the tar read from the binary file object ``f``: name -> (offset
+    of its data, size) in bytes of every regular file, in one pass over the headers (the data
+    between them is skipped by seeking; an object-store file fetches the blocks that hold
+    headers); of several members of one name the last (:func:`last_of_each_name`). Refused:
+    a sparse member (GNU ``tar -S``), whose bytes are not stored in one piece, and a hard or
+    symbolic link (served, it would be its target again under a second id).
 
     Raises:
         tarfile.TarError: not a tar archive.
     """
     import tarfile
 
-    out = {}
     with tarfile.open(fileobj=f, mode="r:") as tar:
-        for m in tar:
-            if m.isfile():
-                out[m.name] = (m.offset_data, m.size)
-    return out
+        every = list(tar)
+    files = [m for m in every if m.isfile()]
+    kept = last_of_each_name("tar shard", [(m.name, (m.offset_data, m.size)) for m in files if not m.issparse()])
+    sparse = [(m.name, f"tar shard: a sparse member (tar -S): its {m.size} bytes are not stored in one piece, "
+                       f"not served") for m in files if m.issparse()]
+    links = [(m.name, f"tar shard: a {'hard' if m.islnk() else 'symbolic'} link to {m.linkname}: not served (a "
+                      f"link in a shard is not followed; its target is served under its own name)")
+             for m in every if (m.islnk() or m.issym()) and m.name not in kept.members]
+    return MemberIndex(kept.members, sparse + links + kept.refused)
 
 
-def zip_members(f) -> Dict[str, Tuple[int, ...]]:
-    """Member name -> ``(offset of its local header, size, compressed size, CRC-32, method,
-    flag bits)`` (bytes; the method as ``zipfile.ZIP_STORED``...) of every file of the zip
-    read from the binary file object ``f``: its central directory, read by ``zipfile`` (ZIP64
-    included; on a store, the blocks at the end of the object). Folders are left out; of two
-    members with one name the later is kept, as ``unzip`` keeps it.
+#: Bytes of a zip local header before its name (``zipfile.sizeFileHeader``).
+LOCAL_HEADER = 30
+
+
+def zip_members(f) -> MemberIndex:
+    """The member index of the zip read from the binary file object ``f``: name -> ``(offset
+    of its local header, size, compressed size, CRC-32, method, flag bits)`` (bytes; the
+    method as ``zipfile.ZIP_STORED``...) of every file, from its central directory, read by
+    ``zipfile`` (ZIP64 included; on a store, the blocks at the end of the object). Folders
+    are left out. Refused (:attr:`MemberIndex.refused`), the rest served:
+
+    * members whose bytes overlap (several central-directory entries at one local header, or
+      one member's compressed bytes running over the next one's header: the layout of an
+      overlapping "zip bomb", whose one kernel each member would inflate again), each group
+      in one line; ``unzip -t`` refuses such a part whole;
+    * a member whose bytes run into the central directory;
+    * of several members of one name, all but the last (:func:`last_of_each_name`).
+
+    A member's extent is its local header, name and compressed bytes (its extra field, known
+    only from the local header, is not read here: ``open_member`` checks that header).
 
     Raises:
         zipfile.BadZipFile: no end record, or a central directory that is truncated or corrupt.
@@ -52,11 +100,47 @@ def zip_members(f) -> Dict[str, Tuple[int, ...]]:
     import zipfile
 
     with zipfile.ZipFile(f) as z:
-        return {i.filename: (i.header_offset, i.file_size, i.compress_size, i.CRC, i.compress_type, i.flag_bits)
-                for i in z.infolist() if not i.is_dir()}
+        infos = [i for i in z.infolist() if not i.is_dir()]
+        directory = z.start_dir
+    refused: List[Tuple[str, str]] = []
+    bad: Set[int] = set()
+    spans = sorted((i.header_offset, i.header_offset + LOCAL_HEADER + _name_bytes(i) + i.compress_size, n)
+                   for n, i in enumerate(infos))
+    group, end = [], -1
+    for start, stop, n in spans + [(1 << 64, 1 << 64, -1)]:
+        if start < end:
+            group.append(n)
+            end = max(end, stop)
+            continue
+        if len(group) > 1:
+            names = [infos[k].filename for k in group]
+            shown = ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
+            lo, hi = min(infos[k].header_offset for k in group), end
+            refused.append(("", f"zip part: members {shown} overlap (bytes {lo}-{hi} are shared by {len(group)} "
+                                f"central-directory entries, the layout of a zip bomb): none of them is served, "
+                                f"as unzip -t refuses the part"))
+            bad.update(group)
+        group, end = [n], stop
+    for start, stop, n in spans:
+        if n not in bad and stop > directory:
+            refused.append((infos[n].filename, f"zip part: its bytes {start}-{stop} run into the central directory "
+                                               f"(at {directory}): corrupt or hostile, not served"))
+            bad.add(n)
+    kept = last_of_each_name("zip part", [(i.filename, (i.header_offset, i.file_size, i.compress_size, i.CRC,
+                                                        i.compress_type, i.flag_bits))
+                                          for n, i in enumerate(infos) if n not in bad])
+    return MemberIndex(kept.members, refused + kept.refused)
 
 
-def archive_members(archive: str, f) -> Dict[str, Tuple[int, ...]]:
+def _name_bytes(info) -> int:
+    """Bytes of a zip member's name as its headers hold it (UTF-8 with flag bit 11, else CP437)."""
+    try:
+        return len(info.orig_filename.encode("utf-8" if info.flag_bits & 0x800 else "cp437"))
+    except UnicodeEncodeError:  # decoded with another metadata encoding: the bound without its name
+        return 0
+
+
+def archive_members(archive: str, f) -> MemberIndex:
     """The member index of ``archive`` (a name ending in ``.tar`` or ``.zip``) read from ``f``:
     :func:`tar_members` or :func:`zip_members`; their errors."""
     return zip_members(f) if archive.lower().endswith(".zip") else tar_members(f)
@@ -116,8 +200,9 @@ def open_member(f, name: str, entry: Tuple[int, ...]):
     at the end (a seek backwards starts decompressing again from the member's start).
 
     Raises:
-        ZipMemberError: the local header at the entry's offset is not this member's, or the
-            member is encrypted or compressed by a method ``zipfile`` does not read.
+        ZipMemberError: the local header at the entry's offset is not this member's (no
+            header, or one of another name), or the member is encrypted or compressed by a
+            method ``zipfile`` does not read.
         OSError: the archive cannot be read.
     """
     if len(entry) == 2:
@@ -132,6 +217,11 @@ def open_member(f, name: str, entry: Tuple[int, ...]):
     if fields is None or fields[0] != zipfile.stringFileHeader:
         raise ZipMemberError(f"zip member {name}: no local header at offset {offset} (corrupt archive)")
     name_len, extra_len = fields[-2], fields[-1]
+    raw = f.read(name_len)
+    local = raw.decode("utf-8" if fields[3] & 0x800 else "cp437", "replace").split("\x00")[0]
+    if local != name:
+        raise ZipMemberError(f"zip member {name}: the local header at offset {offset} names {local!r}, not this "
+                             f"member (entries that share a header, or a corrupt part): not served")
     data = offset + zipfile.sizeFileHeader + name_len + extra_len
     if flags & 0x1:
         raise ZipMemberError(f"zip member {name}: encrypted (not served)")
@@ -322,6 +412,8 @@ class ShardIndex:
 
     def __init__(self):
         self.members: Dict[str, Dict[str, Tuple[int, ...]]] = {}
+        #: Archive -> its entries not served, ``(member name or '', why)`` (:class:`MemberIndex`).
+        self.refused: Dict[str, List[Tuple[str, str]]] = {}
         self._versions: Dict[str, Optional[str]] = {}
         #: Zip part -> its pieces in order (``[part]`` itself when whole), as found.
         self.pieces: Dict[str, List[str]] = {}
@@ -336,7 +428,7 @@ class ShardIndex:
                 read (as :func:`archive_members` and ``open_archive``)."""
         if archive not in self.members or version is None or self._versions.get(archive, "") != version:
             with open_archive(archive) as f:
-                self.members[archive] = archive_members(archive, f)
+                self.members[archive], self.refused[archive] = archive_members(archive, f)
             self._versions[archive] = version
         return self.members[archive]
 

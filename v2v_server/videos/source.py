@@ -34,12 +34,10 @@ the server skips and logs once; the server stays up.
 from __future__ import annotations
 
 import logging
-import sqlite3
 import tempfile
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 
-from v2v_server.faults import warn_once
 from v2v_server.videos.archives import Archives, pair_members
 from v2v_server.videos.corpus_index import CorpusIndex, index_path
 from v2v_server.videos.decode import VideoError
@@ -83,22 +81,23 @@ class VideoSource:
         #: ``ops.config.source_from_config`` from the settings; the defaults otherwise.
         self.list_table = TableSettings()
         self._index: Optional[CorpusIndex] = None  # opened at the first use in this process
-        self._index_failed = False
+        self._index_off = False  # off in this process (a fault met, here or in the process that built this one)
 
     def corpus_index(self) -> Optional[CorpusIndex]:
         """The host's corpus index (``corpus_index.CorpusIndex`` at ``cache_dir/corpus_index.sqlite``):
         what passes learned about the corpus's videos, answered without decoding while a video's
-        identity holds. Opened at the first call in this process; None when it cannot be (a
-        warning names the file and why, once: the videos are then read as if never seen)."""
-        if self._index is None and not self._index_failed:
-            path = index_path(self.cache_dir)
-            try:
-                self._index = CorpusIndex(path)
-            except (OSError, sqlite3.Error) as e:
-                self._index_failed = True
-                warn_once(log, ("corpus index", str(path)), "corpus index %s cannot be used (%s); videos are read "
-                          "without it", path, e)
-        return self._index
+        identity holds. Opened at the first call in this process; None when it is off (a fault
+        met: one warning names the file and why, and the videos are read as if never seen)."""
+        if self._index is None and not self._index_off:
+            self._index = CorpusIndex(index_path(self.cache_dir))
+        if self._index is not None and self._index.fault is not None:
+            self._index_off = True
+        return None if self._index_off else self._index
+
+    def leave_corpus_index_off(self) -> None:
+        """Never open the corpus index in this process: the process that built this source from
+        its ``spec()`` met a fault of it (and warned once)."""
+        self._index_off = True
 
     def _cache_folders(self) -> List[Path]:
         """The folders of the caches that are on."""
@@ -126,6 +125,8 @@ class VideoSource:
     def _cache_spec(self) -> dict:
         """The caches' part of :meth:`spec`."""
         spec: dict = {"cache_dir": self.cache_dir}
+        if self._index_off:  # a fault met here: the processes built from the spec leave it off too
+            spec["corpus_index"] = False
         if self.frame_cache is not None:
             fc = self.frame_cache
             spec["frame_cache"] = {"folder": str(fc.disk.folder), "max_bytes": fc.disk.max_bytes, "fmt": fc.format}

@@ -50,7 +50,11 @@ def source_from_spec(spec: dict) -> VideoSource:
     the module docstring)."""
     spec = dict(spec)
     fc = spec.pop("frame_cache", None)
-    return open_source(spec.pop("root"), frame_cache=FrameCache(**fc) if fc is not None else None, **spec)
+    index_on = spec.pop("corpus_index", True)
+    source = open_source(spec.pop("root"), frame_cache=FrameCache(**fc) if fc is not None else None, **spec)
+    if not index_on:
+        source.leave_corpus_index_off()
+    return source
 
 
 #: A pool process's job of :func:`map_videos`: the function, its leading arguments and the source

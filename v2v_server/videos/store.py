@@ -13,7 +13,7 @@ from typing import Dict, List, Optional, Tuple
 from v2v_server.checks import check_float, check_int
 from v2v_server.settings import setting
 from v2v_server.videos.archives import listing_problems
-from v2v_server.videos.decode import VideoError, printable, utf8_name
+from v2v_server.videos.decode import VideoError, name_problem, printable
 from v2v_server.videos.frame_cache import FrameCache
 from v2v_server.videos.manifest import StoreListing, etag_of, member_entry, object_identity
 from v2v_server.videos.segments import base_path
@@ -238,8 +238,8 @@ class StoreSource(VideoSource):
             return got
         videos, rejected = [], []
         for rel in sorted(self.objects()):
-            if not utf8_name(rel):
-                rejected.append((printable(rel), "key is not valid UTF-8 (sample ids are UTF-8): rename it"))
+            if name_problem(rel, "key") is not None:
+                rejected.append((printable(rel), name_problem(rel, "key")))
             elif rel.endswith("/") or not rel or rel.lower().endswith(ARCHIVES) or piece_archive(rel):
                 continue  # an archive stands for its members, listed after it
             elif split_member(rel) is not None and not rel.lower().endswith(tuple(extensions)):
@@ -250,7 +250,7 @@ class StoreSource(VideoSource):
                 videos.append(rel)
             else:
                 rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
-        return videos, rejected + listing_problems(self.objects(), self._unreadable, extensions)
+        return videos, rejected + self.archives.refused() + listing_problems(self.objects(), self._unreadable, extensions)
 
     # ------------------------------------------------------------------ reading
     @contextlib.contextmanager
