@@ -16,6 +16,8 @@ from typing import Callable, Dict, Iterator, List, Optional
 
 import numpy as np
 
+from trainer.grid_stats import cell_stats, recording_cells, voxel_cell_stats
+
 #: The params copied into a row (besides the sample's ``stats``), when present.
 ROW_KEYS = ("sample_id", "pos_threshold", "neg_threshold", "noise_std", "hot_pixel_count", "src_start_frame",
             "src_frames", "video_fps", "pauses", "shot", "shot_start_frame")
@@ -25,14 +27,24 @@ class StatsInputError(RuntimeError):
     """An input ``v2v-stats`` cannot use (server, corpus or recording); the message names it."""
 
 
-def sample_row(params: dict) -> dict:
+def sample_row(params: dict, voxels: Optional[np.ndarray] = None, recipe=None) -> dict:
     """One sample's row: the ``ROW_KEYS`` of its ``params`` and its ``stats`` flattened
-    (``grid_rates`` kept as a list); the video is the sample id's path."""
+    (``grid_rates`` kept as a list); the video is the sample id's path. Given the sample's
+    ``voxels`` (L, B, H, W) and the ``recipe`` that made them (a ``SampleRecipe``, for the
+    grid's duration), also ``cells``: ``grid_stats.voxel_cell_stats`` of each voxel grid."""
     row = {k: params[k] for k in ROW_KEYS if k in params}
     row.update(params.get("stats") or {})
     sid = str(params.get("sample_id", ""))
     row["video"] = sid.rpartition("#")[0] or sid
+    fps = params.get("video_fps")
+    if voxels is not None and recipe is not None and fps:
+        row["cells"] = voxel_cell_stats(voxels, grid_seconds(recipe, float(fps)))
     return row
+
+
+def grid_seconds(recipe, fps: float) -> float:
+    """One voxel grid's duration, seconds: ``num_bins x frames_per_bin`` frame intervals at ``fps`` Hz."""
+    return recipe.num_bins * recipe.frames_per_bin / float(fps)
 
 
 @dataclass
@@ -46,9 +58,10 @@ class Collected:
     source: str = ""
 
 
-def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int], None]) -> Collected:
+def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int], None], recipe=None) -> Collected:
     """The params of ``n`` samples read from the server at ``endpoint`` (a ``V2VStreamDataset``
-    asking for the default outputs: the worker measures what it makes).
+    asking for the default outputs: the worker measures what it makes); with ``recipe`` (the
+    server's ``SampleRecipe``: bins and frames per bin) each row's grid ``cells`` from its voxels.
 
     Raises:
         StatsInputError: the server does not answer within ``timeout_s`` or ends the stream
@@ -61,8 +74,9 @@ def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int
     ds = V2VStreamDataset(endpoint, timeout_s=timeout_s, raw=True)
     try:
         for batch in ds:
-            for params in batch["params"]:
-                out.rows.append(sample_row(params))
+            vox = batch.get("voxels")
+            for i, params in enumerate(batch["params"]):
+                out.rows.append(sample_row(params, None if vox is None else np.asarray(vox[i]), recipe))
                 progress(1)
                 if len(out.rows) >= n:
                     return out
@@ -119,8 +133,8 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
             usable.append(rel)
     for epoch in range(epochs):
         for rel in usable:
-            for _key, _arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True):
-                out.rows.append(sample_row(meta))
+            for _key, arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True):
+                out.rows.append(sample_row(meta, arrays["voxels"], recipe))
                 progress(1)
                 if len(out.rows) >= n:
                     return out
@@ -207,6 +221,30 @@ def recording_windows(path: str, window_s: float) -> dict:
              "active_fraction": w["active"] / npix} for w in wins]
     return {"path": str(path), "sensor": f"{rec.width}x{rec.height}", "format": rec.format, "window_s": window_s,
             "duration_s": (last - first) / 1e6 if first is not None else 0.0, "windows": rows}
+
+
+def recording_grid(path: str, cell_s: float, bins: int) -> dict:
+    """The recording at ``path`` cut into grid cells of ``cell_s`` seconds of ``bins`` bins
+    (``grid_stats.recording_cells``) and each cell's ``grid_stats.cell_stats``.
+
+    Returns:
+        ``{"path", "sensor": "WxH", "format", "cell_s", "bins", "cells": [...]}``; ``cells`` is
+        empty when the recording is shorter than one cell.
+
+    Raises:
+        StatsInputError: the file cannot be read (``RecordingError``'s message).
+    """
+    from trainer.recordings import RecordingError, open_recording
+
+    cells: List[dict] = []
+    try:
+        rec = open_recording(path)
+        for pos, neg in recording_cells(rec.chunks(), rec.width, rec.height, max(bins, int(round(cell_s * 1e6))), bins):
+            cells += cell_stats(pos, neg, cell_s)
+    except RecordingError as e:
+        raise StatsInputError(f"recording {e}") from None
+    return {"path": str(path), "sensor": f"{rec.width}x{rec.height}", "format": rec.format, "cell_s": cell_s,
+            "bins": bins, "cells": cells}
 
 
 def summary(values) -> Dict[str, float]:
