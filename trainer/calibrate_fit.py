@@ -24,7 +24,8 @@ repeatable (same inputs, same seed, same recipe: the same fitted values).
 Every fitted value lies inside :data:`BOUNDS`, the ranges the kernel is tested at
 (``tests/test_stability.py``: thresholds 1e-3 .. 10 log units, noise sigma 0 .. 10; the
 non-idealities' tests in ``tests/test_nonideal.py``), narrowed where a wider value would be no
-camera (a threshold spread above half the threshold, shot noise above 10 Hz per pixel).
+camera (a threshold spread above half the threshold, shot noise above 10 Hz per pixel); a
+threshold range's centre stays <= 8 so its upper end (+25 %) stays inside the tested 10.
 """
 from __future__ import annotations
 
@@ -36,9 +37,12 @@ import numpy as np
 from trainer.grid_stats import cell_stats, recording_cells, summarise, voxel_cell_stats
 
 #: (lo, hi) of every fitted value (log-intensity units, Hz): inside the kernel's tested ranges.
-BOUNDS = {"threshold": (0.02, 5.0), "noise_std": (0.0, 0.5), "threshold_sigma_rel": (0.0, 0.5),
+BOUNDS = {"threshold": (0.02, 8.0), "noise_std": (0.0, 0.5), "threshold_sigma_rel": (0.0, 0.5),
           "shot_noise_hz": (0.0, 10.0), "potential_spread": (0.0, 1.0)}
 
+#: Multiplicative steps on the threshold alone before a search starts (the event count is about
+#: proportional to 1 / threshold): the search starts near the recording's rate.
+START_STEPS = 4
 #: Fewest grid cells (corpus fit) or frame intervals (frames fit) a recording must hold.
 MIN_CELLS = 3
 #: Quietest recording fitted: median events per pixel per second over its cells.
@@ -306,9 +310,14 @@ def fit_corpus(win: CorpusWindows, target: RecordingTarget, recipe, max_evals: i
     lo, hi = recipe.ranges.threshold
     b = BOUNDS
     bounds = [tuple(np.log(b["threshold"])), b["noise_std"], b["threshold_sigma_rel"], b["shot_noise_hz"]]
-    x0 = [np.log(np.clip((lo + hi) / 2, *b["threshold"])), min(recipe.ranges.noise_std[1], b["noise_std"][1]),
-          0.0, min(recipe.nonideal_spec.shot_noise_hz, b["shot_noise_hz"][1])]
-    x, n = _minimize(loss, x0, [0.5, 0.02, 0.1, 0.05], bounds, max_evals, progress)
+    x0 = np.array([np.log(np.clip((lo + hi) / 2, *b["threshold"])), min(recipe.ranges.noise_std[1], b["noise_std"][1]),
+                   0.0, min(recipe.nonideal_spec.shot_noise_hz, b["shot_noise_hz"][1])])
+    for _ in range(START_STEPS):  # the rate is about proportional to 1 / threshold: a few steps to the start
+        m = stats_of(*corpus_parts(x0, recipe.ranges, recipe.nonideal_spec, target.hot_fraction))
+        progress(1)
+        x0[0] = np.clip(x0[0] + np.log(max(m["rate_net"], 1e-9) / tgt["rate_net"]), *bounds[0])
+    x, n = _minimize(loss, x0, [0.3, 0.02, 0.1, 0.05], bounds, max_evals - START_STEPS, progress)
+    n += START_STEPS
     ranges, ni = corpus_parts(x, recipe.ranges, recipe.nonideal_spec, target.hot_fraction)
     before = stats_of(recipe.ranges, recipe.nonideal_spec)
     after = stats_of(ranges, ni)
@@ -446,15 +455,16 @@ def fit_frames(target: FrameTarget, recipe, seed: int = 0, max_evals: int = 120,
 
     t0 = time.perf_counter()
     cp = cn = 0.3
-    for _ in range(6):  # N is about proportional to 1 / c: a few multiplicative steps to the start
+    for _ in range(START_STEPS):  # N is about proportional to 1 / c: a few multiplicative steps to the start
         m = stats([np.log(cp), np.log(cn), 0.0, 0.0, 1.0])
+        progress(1)
         cp *= max(m["n_pos"], 1) / max(tgt["n_pos"], 1)
         cn *= max(m["n_neg"], 1) / max(tgt["n_neg"], 1)
         cp, cn = (float(np.clip(c, *BOUNDS["threshold"])) for c in (cp, cn))
     b = BOUNDS
     bounds = [tuple(np.log(b["threshold"]))] * 2 + [b["threshold_sigma_rel"], b["noise_std"], b["potential_spread"]]
     x, n = _minimize(loss, [np.log(cp), np.log(cn), 0.0, 0.0, 1.0], [0.1, 0.1, 0.05, 0.02, 0.3], bounds,
-                     max_evals, progress)
+                     max_evals - START_STEPS, progress)
     lo, hi = recipe.ranges.threshold
     before = stats([np.log((lo + hi) / 2)] * 2 + [0.0, float(np.mean(recipe.ranges.noise_std)), 1.0])
     after = stats(x)
@@ -462,7 +472,7 @@ def fit_frames(target: FrameTarget, recipe, seed: int = 0, max_evals: int = 120,
     params = {"c_pos": cp, "c_neg": cn, "threshold_sigma": float(x[2]) * min(cp, cn), "noise_std": float(x[3]),
               "potential_spread": float(x[4])}
     ranges, ni = frame_parts(params, recipe)
-    return FitResult("frames", params, ranges.to_dict(), _changed(ni), before, after, tgt, n + 6,
+    return FitResult("frames", params, ranges.to_dict(), _changed(ni), before, after, tgt, n + START_STEPS,
                      time.perf_counter() - t0)
 
 
