@@ -21,8 +21,8 @@ from v2v_server.ops.config import load_config
 from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
 from v2v_server.simulation.simulate import SensorParams
 
-#: windows of 41 frames (8 voxel grids of 0.2 s at 25 fps): the bundled clips give 24 of them
-SHORT = "sequence_length: 8\nbatch_size: 2\n"
+#: windows of 41 frames (8 voxel grids of 0.2 s at 25 fps), at most 3 a clip: the bundled clips give 12
+SHORT = "sequence_length: 8\nmax_samples_per_video: 3\nbatch_size: 2\n"
 
 
 @pytest.fixture
@@ -62,8 +62,8 @@ def test_fit_from_frames_meets_the_davis346_targets():
 @pytest.mark.parametrize("recording", [DAVIS346, EVT3], ids=["davis346", "evk4"])
 def test_fit_by_statistics_brings_a_served_stream_to_the_recording(tmp_path, short_recipe, recording, capsys):
     out = tmp_path / "fitted.yaml"
-    assert main(["--recording", str(recording), "--fit", "statistics", "--recipe", short_recipe, "--windows", "8",
-                 "--evaluations", "40", "--out", str(out)]) == 0
+    assert main(["--recording", str(recording), "--fit", "statistics", "--recipe", short_recipe, "--windows", "24",
+                 "--evaluations", "30", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "events / pixel / s, net" in printed and "base recipe" in printed and f"wrote {out}" in printed
     fitted = load_config(str(out))  # a recipe v2v-serve takes
@@ -73,8 +73,9 @@ def test_fit_by_statistics_brings_a_served_stream_to_the_recording(tmp_path, sho
     assert fitted.recipe.ranges.noise_std[1] <= BOUNDS["noise_std"][1]
     target = recording_target(str(recording), 0.2, 5).stats
 
-    def served(cfg):  # the first 8 samples of epoch 0: the windows the fit saw, with the samples' own draws
-        col = from_corpus(cfg, str(SAMPLE_VIDEOS), 8, lambda n: None)
+    def served(cfg):  # the 12 windows the fit saw (as epochs 0 and 1 crop them), 3 epochs of the samples' own draws
+        col = from_corpus(cfg, str(SAMPLE_VIDEOS), 36, lambda n: None, 3)
+        assert len(col.rows) == 36
         return summarise([c for r in col.rows for c in r["cells"]])
 
     after, before = served(fitted), served(load_config(short_recipe))

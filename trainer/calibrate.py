@@ -157,7 +157,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                     help="auto: from frames when the recording has them, else by statistics")
     ap.add_argument("--seed", type=int, default=0, help="seed of the fit's fixed draws (same seed, same fit)")
     ap.add_argument("--evaluations", type=int, default=100, help="most simulations the search makes")
-    ap.add_argument("--windows", type=int, default=32, help="fit by statistics: most corpus windows simulated")
+    ap.add_argument("--windows", type=int, default=48, help="fit by statistics: most corpus windows simulated "
+                    "(each video's windows as cut in epochs 0 and 1, video by video)")
     a = ap.parse_args(argv)
     if a.evaluations < 10 or a.windows < 1 or a.seed < 0:
         ap.error("--evaluations must be >= 10, --windows >= 1, --seed >= 0")

@@ -24,7 +24,7 @@ repeatable (same inputs, same seed, same recipe: the same fitted values).
 Every fitted value lies inside :data:`BOUNDS`, the ranges the kernel is tested at
 (``tests/test_stability.py``: thresholds 1e-3 .. 10 log units, noise sigma 0 .. 10; the
 non-idealities' tests in ``tests/test_nonideal.py``), narrowed where a wider value would be no
-camera (a threshold spread above half the threshold, shot noise above 10 Hz per pixel); a
+camera (a threshold spread above a quarter of the threshold, shot noise above 10 Hz per pixel); a
 threshold range's centre stays <= 8 so its upper end (+25 %) stays inside the tested 10.
 """
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 from trainer.grid_stats import cell_stats, recording_cells, summarise, voxel_cell_stats
 
 #: (lo, hi) of every fitted value (log-intensity units, Hz): inside the kernel's tested ranges.
-BOUNDS = {"threshold": (0.02, 8.0), "noise_std": (0.0, 0.5), "threshold_sigma_rel": (0.0, 0.5),
+BOUNDS = {"threshold": (0.02, 8.0), "noise_std": (0.0, 0.5), "threshold_sigma_rel": (0.0, 0.25),
           "shot_noise_hz": (0.0, 10.0), "potential_spread": (0.0, 1.0)}
 
 #: Multiplicative steps on the threshold alone before a search starts (the event count is about
@@ -181,11 +181,14 @@ class CorpusWindows:
     draws: List[dict]
 
 
-def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambda n: None) -> CorpusWindows:
+def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambda n: None,
+                   epochs: int = 2) -> CorpusWindows:
     """Up to ``max_windows`` windows of the corpus at ``videos`` cut as ``cfg``'s recipe (a
-    ``ServeConfig``) cuts them in epoch 0: the same recipe with one frame pair per voxel grid
-    gives every frame of the window (crop, flip and pause offsets are drawn before the sensor
-    parameters, so they are the served samples').
+    ``ServeConfig``) cuts them in epochs 0 .. ``epochs`` - 1, video by video (each epoch crops,
+    flips and pauses a window anew, so several epochs show the fit what a stream's crops hold,
+    not one draw of them): the same recipe with one frame pair per voxel grid gives every frame
+    of the window (crop, flip and pause offsets are drawn before the sensor parameters, so they
+    are the served samples').
 
     Raises:
         CalibrationError: the corpus cannot be listed or gives no window.
@@ -206,17 +209,28 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
         raise CalibrationError(f"corpus {videos}: {e}") from None
     out = CorpusWindows([], [], [])
     rng = np.random.default_rng(seed)
-    for rel in names:
-        for _key, arrays, meta in video_samples(frames_recipe, source, rel, 0, ("frames",)):
+    for rel, epoch in ((rel, e) for rel in names for e in range(epochs)):
+        for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",)):
+            shape = arrays["frames"].shape[1:]
             out.seqs.append(arrays["frames"])
             out.fps.append(float(meta["video_fps"]))
-            out.draws.append({"u": rng.random(6), "pot": rng.random(arrays["frames"].shape[1:]),
-                              "hot_u": rng.random(arrays["frames"].shape[1:]),
-                              "hot_n": rng.standard_normal(arrays["frames"].shape[1:]),
+            out.draws.append({"pot": rng.random(shape), "hot_u": rng.random(shape), "hot_n": rng.standard_normal(shape),
                               "noise_seed": int(rng.integers(2**62)), "pixel_seed": int(rng.integers(2**62))})
             progress(1)
             if len(out.seqs) >= max_windows:
-                return out
+                break
+        if len(out.seqs) >= max_windows:
+            break
+    if not out.seqs:
+        raise CalibrationError(f"corpus {videos}: no window to simulate (no usable video for the recipe's "
+                               f"{r.frames_per_sample}-frame windows)")
+    # the variates that pick each window's parameters inside the ranges: a Latin hypercube over the
+    # windows, so a few windows cover each range evenly (as many served samples would)
+    from scipy.stats import qmc
+
+    for d, u in zip(out.draws, qmc.LatinHypercube(d=6, seed=rng).random(len(out.draws))):
+        d["u"] = u
+    return out
     if not out.seqs:
         raise CalibrationError(f"corpus {videos}: no window to simulate (no usable video for the recipe's "
                                f"{r.frames_per_sample}-frame windows)")
@@ -287,7 +301,7 @@ def fit_corpus(win: CorpusWindows, target: RecordingTarget, recipe, max_evals: i
                progress=lambda n: None) -> FitResult:
     """Fit ``recipe``'s (a ``SampleRecipe``) sensor ranges so that ``win`` simulated with them
     matches ``target`` on the grid (module docstring): the loss is
-    ``10 e_rate^2 + e_active^2 + 0.5 e_still^2``, each ``e`` the log ratio of the simulated
+    ``100 e_rate^2 + e_active^2 + 0.5 e_still^2``, each ``e`` the log ratio of the simulated
     median to the recording's (the rate first: a rate within 25 % is the promise; the active
     fraction depends on the scenes, which differ between corpus and recording)."""
     import time
@@ -304,7 +318,7 @@ def fit_corpus(win: CorpusWindows, target: RecordingTarget, recipe, max_evals: i
         e_rate = np.log(max(m["rate_net"], 1e-9) / tgt["rate_net"])
         e_act = np.log(max(m["active_fraction"], 1e-9) / tgt["active_fraction"])
         e_still = np.log((m["still_rate"] + eps) / (tgt["still_rate"] + eps))
-        return float(10 * e_rate ** 2 + e_act ** 2 + 0.5 * e_still ** 2)
+        return float(100 * e_rate ** 2 + e_act ** 2 + 0.5 * e_still ** 2)
 
     t0 = time.perf_counter()
     lo, hi = recipe.ranges.threshold
