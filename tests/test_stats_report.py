@@ -132,6 +132,8 @@ def test_server_report(tmp_path, short_config):
     data = json.loads((out / "stats.json").read_text())
     assert len(data["samples"]) == 4 and data["source"] == f"server {srv.endpoint}"
     assert all(r["rate_pos"] > 0 and "pos_threshold" in r for r in data["samples"])
+    # the same grid from the voxels the server sent: 8 voxel grids of 0.2 s a sample
+    assert all(len(r["cells"]) == 8 for r in data["samples"]) and data["summary"]["grid"]["stream"]["rate_net"]["n"] == 32
     assert data["videos"] == []  # a server's params do not say a video's format
 
 

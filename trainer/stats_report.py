@@ -12,8 +12,11 @@ magnitude; windows per video and shot lengths; a table of the videos' resolution
 (corpus only: a server's params name the video, not its format). ``--recording FILE`` (any
 format ``v2v-eval`` reads) overlays the same statistics measured on the recording in windows of
 the samples' duration and of one voxel grid's; a recording shorter than a window is named and
-left out of that overlay. Bad input (an unreachable server, an empty corpus, an unreadable
-recording) is one line naming it, and exit status 2.
+left out of that overlay. The page opens with every event statistic on one grid for both sides
+(``trainer.grid_stats``: the stream's voxel grids, the recording in cells of one voxel grid's
+duration and bins; the grid is stated). Bad input (an unreachable server, an empty corpus, an
+unreadable recording, an ``--out`` that is a file or cannot be made, checked before any sampling)
+is one line naming it, and exit status 2.
 """
 from __future__ import annotations
 

@@ -7,7 +7,8 @@ second by polarity over the sample and per voxel grid, active-pixel fraction, fl
 this module only gathers them into rows, one per sample, and measures a recording the same way:
 events per pixel per second by polarity and the fraction of pixels with at least one event, in
 consecutive windows of a fixed duration from the first event (the last, incomplete window is left
-out).
+out). Each row also carries ``cells``, the ``trainer.grid_stats`` statistics of each of its voxel
+grids, and :func:`recording_grid` measures a recording on the same grid.
 """
 from __future__ import annotations
 
