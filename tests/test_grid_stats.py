@@ -2,8 +2,6 @@
 (its cells hold exactly its events of the time they cover)."""
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -24,7 +22,10 @@ def test_cell_stats_by_hand():
     assert c["active_fraction"] == pytest.approx(3 / 20) and c["polarity_balance"] == pytest.approx(5 / 7)
     assert c["events_per_active"] == pytest.approx(7 / 3) and c["still_rate"] == pytest.approx(1 / 20 / 0.5)
     (empty,) = cell_stats(np.zeros_like(pos), np.zeros_like(neg), 0.5)
-    assert empty["rate_signal"] == 0 and math.isnan(empty["polarity_balance"]) and math.isnan(empty["events_per_active"])
+    assert empty["rate_signal"] == 0 and empty["polarity_balance"] is None and empty["events_per_active"] is None
+    assert summarise([c, empty])["polarity_balance"] == {"n": 1, "median": c["polarity_balance"],
+                                                          "p10": c["polarity_balance"], "p90": c["polarity_balance"],
+                                                          "mean": c["polarity_balance"]}
     with pytest.raises(ValueError, match="cell_s"):
         cell_stats(pos, neg, 0)
 

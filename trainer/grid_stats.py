@@ -10,8 +10,8 @@ equal length, so both sides give per cell and per pixel the counts N+ and N- of 
   holds (the stream's voxels with one frame pair per bin give N+ or N- of each bin, so there
   signal and net are equal);
 * ``active_fraction``: the share of pixels with at least one event in the cell;
-* ``polarity_balance``: N+ / (N+ + N-) (NaN in a cell without events);
-* ``events_per_active``: events per active pixel (NaN in a cell without events);
+* ``polarity_balance``: N+ / (N+ + N-) (None in a cell without events);
+* ``events_per_active``: events per active pixel (None in a cell without events);
 * ``still_rate``: the rate of *isolated* events, per pixel per second: events at a pixel none of
   whose 8 neighbours fires in the cell. A moving edge fires neighbouring pixels together; an
   event with no neighbour is background activity (the background-activity filter's criterion,
@@ -56,7 +56,9 @@ def cell_stats(pos: np.ndarray, neg: np.ndarray, cell_s: float) -> List[Dict[str
         cell_s: one cell's duration, seconds (> 0).
 
     Returns:
-        C dicts with the keys of :data:`GRID_STATS` (floats; NaN where a cell has no event).
+        C dicts with the keys of :data:`GRID_STATS` (floats; None for the balance and the events
+        per active pixel of a cell without events: JSON's null, which every reader of
+        ``stats.json`` parses, where NaN is no JSON).
 
     Raises:
         ValueError: shapes that differ or are not 4-D, or ``cell_s`` not > 0.
@@ -80,8 +82,8 @@ def cell_stats(pos: np.ndarray, neg: np.ndarray, cell_s: float) -> List[Dict[str
         ev = int(sp[k] + sn[k])
         out.append({"rate_signal": ev / npix / cell_s, "rate_net": int(net[k]) / npix / cell_s,
                     "active_fraction": int(n_act[k]) / npix,
-                    "polarity_balance": float(sp[k]) / ev if ev else float("nan"),
-                    "events_per_active": ev / int(n_act[k]) if n_act[k] else float("nan"),
+                    "polarity_balance": float(sp[k]) / ev if ev else None,
+                    "events_per_active": ev / int(n_act[k]) if n_act[k] else None,
                     "still_rate": int(iso[k]) / npix / cell_s})
     return out
 

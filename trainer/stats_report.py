@@ -304,6 +304,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     except StatsInputError as e:
         print(f"v2v-stats: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"v2v-stats: interrupted; nothing written to {out}", file=sys.stderr)
+        return 130
     if len(col.rows) < a.samples:
         notes.append(f"{col.source} gave {len(col.rows)} of the {a.samples} samples asked for")
     summ = {"samples": {k: summary(_values(col.rows, k)) for k, _ in STATS}}
