@@ -148,8 +148,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     ap = argparse.ArgumentParser(prog="v2v-calibrate", description=__doc__.splitlines()[0])
     ap.add_argument("--recording", required=True, help="a real recording (any format v2v-eval reads)")
-    ap.add_argument("--videos", help="corpus for a fit by statistics (folder, list file or bucket URL; default: the "
-                    "bundled clips); its config keys (video_list...) come from --recipe")
+    ap.add_argument("--videos", help="corpus for a fit by statistics (folder, list file or bucket URL; default: --recipe's "
+                    "videos, else the bundled clips); its config keys (video_list...) come from --recipe")
     ap.add_argument("--recipe", help="base v2v-serve YAML: kept, with its ranges and nonidealities fitted "
                     "(default: the paper's recipe)")
     ap.add_argument("--out", required=True, help="the fitted recipe's YAML file")
@@ -162,7 +162,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = ap.parse_args(argv)
     if a.evaluations < 10 or a.windows < 1 or a.seed < 0:
         ap.error("--evaluations must be >= 10, --windows >= 1, --seed >= 0")
-    a.videos = a.videos or str(SAMPLE_VIDEOS)
     from tqdm import tqdm
 
     from v2v_server.ops.config import load_config
@@ -173,6 +172,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         check_out(out, a.recipe)
         base = load_yaml(a.recipe) if a.recipe else {}
         cfg = load_config(a.recipe)
+        a.videos = a.videos or cfg.videos or str(SAMPLE_VIDEOS)
     except (OSError, ValueError) as e:  # CalibrationError is a ValueError
         print(f"v2v-calibrate: {'' if isinstance(e, CalibrationError) else f'--recipe {a.recipe}: '}{e}",
               file=sys.stderr)
