@@ -54,3 +54,23 @@ def test_recording_cells_hold_the_recordings_events():
     # the DAVIS346 road scene (issue 64): 0.30 net events / pixel / s, 1.5 % of pixels active per 0.2 s
     assert s["rate_net"]["median"] == pytest.approx(0.30, abs=0.01)
     assert s["active_fraction"]["median"] == pytest.approx(0.0155, abs=0.001)
+
+
+def test_a_samples_grid_duration_comes_from_its_params():
+    """Two frame pairs a bin: a voxel grid spans 10 frame intervals (0.4 s at 25 fps), read from the
+    sample's own params (what a server's samples carry), with no recipe given."""
+    import dataclasses
+
+    from harness.data import SAMPLE_VIDEOS
+    from trainer.stream_stats import sample_row
+    from v2v_server.samples.make import video_samples
+    from v2v_server.samples.recipe import SampleRecipe
+    from v2v_server.videos.source_spec import open_source
+
+    recipe = dataclasses.replace(SampleRecipe(), sequence_length=4, frames_per_bin=2, max_samples_per_video=1)
+    _key, arrays, meta = next(iter(video_samples(recipe, open_source(SAMPLE_VIDEOS), "bikes.mp4", 0, ("voxels",))))
+    row = sample_row(meta, arrays["voxels"])
+    vox = arrays["voxels"].astype(np.int64)
+    assert meta["video_fps"] == 25 and len(row["cells"]) == 4
+    for cell, grid in zip(row["cells"], vox):
+        assert cell["rate_net"] * grid[0].size * 0.4 == pytest.approx(np.abs(grid).sum())

@@ -31,15 +31,21 @@ class StatsInputError(RuntimeError):
 def sample_row(params: dict, voxels: Optional[np.ndarray] = None, recipe=None) -> dict:
     """One sample's row: the ``ROW_KEYS`` of its ``params`` and its ``stats`` flattened
     (``grid_rates`` kept as a list); the video is the sample id's path. Given the sample's
-    ``voxels`` (L, B, H, W) and the ``recipe`` that made them (a ``SampleRecipe``, for the
-    grid's duration), also ``cells``: ``grid_stats.voxel_cell_stats`` of each voxel grid."""
+    ``voxels`` (L, B, H, W), also ``cells``: ``grid_stats.voxel_cell_stats`` of each voxel
+    grid, whose duration is B x frames per bin frame intervals at ``video_fps``: frames per bin
+    from the params (``src_frames + pauses`` is the window's L x B x frames_per_bin + 1 frames),
+    else from ``recipe`` (a ``SampleRecipe``), else 1."""
     row = {k: params[k] for k in ROW_KEYS if k in params}
     row.update(params.get("stats") or {})
     sid = str(params.get("sample_id", ""))
     row["video"] = sid.rpartition("#")[0] or sid
     fps = params.get("video_fps")
-    if voxels is not None and recipe is not None and fps:
-        row["cells"] = voxel_cell_stats(voxels, grid_seconds(recipe, float(fps)))
+    if voxels is not None and fps:
+        L, B = voxels.shape[:2]
+        fpb = recipe.frames_per_bin if recipe is not None else 1
+        if isinstance(params.get("src_frames"), int) and isinstance(params.get("pauses"), int):
+            fpb = max(1, (params["src_frames"] + params["pauses"] - 1) // (L * B))
+        row["cells"] = voxel_cell_stats(voxels, B * fpb / float(fps))
     return row
 
 
