@@ -33,7 +33,7 @@ def _screenshot(page, png) -> None:
     try:
         subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                        f"--user-data-dir={profile}", "--window-size=1400,2400", f"--screenshot={png}",
+                        f"--user-data-dir={profile}", "--window-size=1400,4000", f"--screenshot={png}",
                         page.as_uri()], check=True, capture_output=True, timeout=120)
     finally:
         shutil.rmtree(profile, ignore_errors=True)
@@ -60,8 +60,19 @@ def test_corpus_report_with_recording_opens_in_chromium(tmp_path, short_config, 
     # the bundled clips move: no sample's window is static, and each carries its motion
     assert data["summary"]["static_windows"] == {"threshold": 0.005, "count": 0, "of": 12}
     assert all(row["motion"] >= 0.005 for row in data["samples"])
+    # every statistic on one grid: the stream's 96 voxel grids of 0.2 s, the recording's 11 cells of 0.2 s
+    grid = data["summary"]["grid"]
+    assert grid["cell_s"] == pytest.approx(0.2) and grid["bins"] == 5 and grid["frames_per_bin"] == 1
+    assert grid["stream"]["rate_net"]["n"] == 96 and grid["recording"]["rate_net"]["n"] == 11
+    assert grid["recording"]["active_fraction"]["median"] == pytest.approx(0.0155, abs=0.001)
+    for key in ("rate_signal", "rate_net", "active_fraction", "polarity_balance", "events_per_active", "still_rate"):
+        assert grid["stream"][key]["n"] > 0 and grid["recording"][key]["n"] == 11, key
+    assert all(len(r["cells"]) == 8 for r in data["samples"])
     page = out / "index.html"
-    for png in ("events.png", "params.png", "videos.png"):
+    text = page.read_text()
+    assert "Grid: one voxel grid, 5 bins x 1 frame interval(s) = 0.2 s" in text and "11 cells of 0.2 s" in text
+    assert 'src="grid.png"' in text
+    for png in ("events.png", "params.png", "videos.png", "grid.png"):
         assert f'src="{png}"' in page.read_text() and (out / png).stat().st_size > 10_000
     shot = tmp_path / "page.png"
     _screenshot(page, shot)
@@ -71,6 +82,46 @@ def test_corpus_report_with_recording_opens_in_chromium(tmp_path, short_config, 
     # the figures are drawn: matplotlib's blue bars (tab:blue, #1f77b4) are on the page, in quantity
     blue = np.all(np.abs(img - np.array([0x1f, 0x77, 0xb4]) / 255) < 0.12, axis=-1)
     assert blue.sum() > 2000, blue.sum()
+    # and the recording beside the stream: matplotlib's second colour (tab:orange, #ff7f0e) at the
+    # histograms' alpha 0.6 over white
+    orange = np.all(np.abs(img - (0.4 + 0.6 * np.array([0xff, 0x7f, 0x0e]) / 255)) < 0.06, axis=-1)
+    assert orange.sum() > 1000, orange.sum()
+
+
+#: names that mean something to matplotlib (mathtext), HTML, printf and a terminal
+HOSTILE_NAMES = ("price_$5_$10.mp4", "a%d<b>&amp;%s.mp4", "new\nline.mp4", "日本語の動画.mp4")
+
+
+def test_hostile_video_names_are_drawn_and_escaped(tmp_path, short_config, capsys):
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    names = list(HOSTILE_NAMES)
+    for n in names:
+        shutil.copy(SAMPLE_VIDEOS / "bikes.mp4", corpus / n)
+    out = tmp_path / "report"
+    assert main(["--videos", str(corpus), "--config", short_config, "--samples", "2", "--out", str(out)]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    data = json.loads((out / "stats.json").read_text())
+    assert sorted(v["path"] for v in data["videos"]) == sorted(names)
+    text = (out / "index.html").read_text()
+    assert "<td>a%d&lt;b&gt;&amp;amp;%s.mp4</td>" in text and "<b>&amp;" not in text
+    assert "<td>price_$5_$10.mp4</td>" in text and (out / "videos.png").stat().st_size > 5_000
+    shot = tmp_path / "page.png"
+    _screenshot(out / "index.html", shot)  # the page opens as a user's browser opens it
+    assert shot.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("case", ["an existing file", "a folder that cannot be made"])
+def test_bad_out_is_one_line_before_any_sampling(tmp_path, short_config, capsys, case):
+    blocker = tmp_path / "taken"
+    blocker.write_text("not a folder")
+    out = blocker if case == "an existing file" else blocker / "report"
+    # an empty corpus would be refused too: --out is checked before the corpus is read
+    (tmp_path / "empty").mkdir()
+    assert main(["--videos", str(tmp_path / "empty"), "--config", short_config, "--out", str(out)]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"v2v-stats: --out {out}: "), lines
+    assert blocker.read_text() == "not a folder"
 
 
 def test_server_report(tmp_path, short_config):
@@ -81,6 +132,8 @@ def test_server_report(tmp_path, short_config):
     data = json.loads((out / "stats.json").read_text())
     assert len(data["samples"]) == 4 and data["source"] == f"server {srv.endpoint}"
     assert all(r["rate_pos"] > 0 and "pos_threshold" in r for r in data["samples"])
+    # the same grid from the voxels the server sent: 8 voxel grids of 0.2 s a sample
+    assert all(len(r["cells"]) == 8 for r in data["samples"]) and data["summary"]["grid"]["stream"]["rate_net"]["n"] == 32
     assert data["videos"] == []  # a server's params do not say a video's format
 
 

@@ -12,8 +12,11 @@ magnitude; windows per video and shot lengths; a table of the videos' resolution
 (corpus only: a server's params name the video, not its format). ``--recording FILE`` (any
 format ``v2v-eval`` reads) overlays the same statistics measured on the recording in windows of
 the samples' duration and of one voxel grid's; a recording shorter than a window is named and
-left out of that overlay. Bad input (an unreachable server, an empty corpus, an unreadable
-recording) is one line naming it, and exit status 2.
+left out of that overlay. The page opens with every event statistic on one grid for both sides
+(``trainer.grid_stats``: the stream's voxel grids, the recording in cells of one voxel grid's
+duration and bins; the grid is stated). Bad input (an unreachable server, an empty corpus, an
+unreadable recording, an ``--out`` that is a file or cannot be made, checked before any sampling)
+is one line naming it, and exit status 2.
 """
 from __future__ import annotations
 
@@ -28,8 +31,9 @@ import numpy as np
 
 from v2v_server.videos.motion import STATIC_MOTION
 
-from trainer.stream_stats import (Collected, StatsInputError, check_recording, from_corpus, from_server,
-                                  recording_windows, summary)
+from trainer.grid_stats import GRID_STATS, summarise
+from trainer.stream_stats import (Collected, StatsInputError, check_recording, from_corpus, from_server, grid_seconds,
+                                  recording_grid, recording_windows, summary)
 
 #: (row key, label) of the per-sample statistics shown and summarised.
 STATS = (("rate", "events / pixel / s (both polarities)"), ("rate_pos", "positive events / pixel / s"),
@@ -49,6 +53,7 @@ def _hist(ax, series, log=False) -> None:
     """Density histograms of each ``(values, label)`` in ``series`` on shared bins (log-spaced
     with ``log``, zeros left out there)."""
     arrays = [np.asarray(v, dtype=np.float64) for v, _ in series]
+    arrays = [a[np.isfinite(a)] for a in arrays]
     if log:
         arrays = [a[a > 0] for a in arrays]
         ax.set_xscale("log")
@@ -66,11 +71,45 @@ def _hist(ax, series, log=False) -> None:
     ax.legend(fontsize=8)
 
 
+def name_label(name: str) -> str:
+    """A corpus name as a figure label, drawn as written: ``$`` escaped (matplotlib reads text
+    between two ``$`` as mathtext: ``price_$5_$10.mp4`` would be parsed as a formula and fail)
+    and control characters (a newline, a tab) shown as their escapes, so one name stays one line."""
+    text = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in name)
+    return text.replace("$", r"\$")
+
+
 def figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
-    """Write the report's PNG figures into ``out``; returns their file names."""
+    """Write the report's PNG figures into ``out``; returns their file names. Names are drawn
+    through :func:`name_label`; a glyph the font lacks (a name in a script DejaVu does not
+    cover) is drawn as a box without a warning."""
+    import warnings
+
     import matplotlib
 
     matplotlib.use("Agg")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Glyph \d+ .* missing from", category=UserWarning)
+        return _figures(col, rec, out)
+
+
+def _grid_figure(plt, col: Collected, rec: Optional[dict], save) -> None:
+    """One panel per statistic of ``grid_stats.GRID_STATS``: the stream's voxel grids against
+    the recording's cells of the same duration."""
+    cells = [c for r in col.rows for c in r.get("cells", [])]
+    rcells = (rec or {}).get("cells", {}).get("cells", [])
+    if not cells:
+        return
+    fig, axes = plt.subplots(2, 3, figsize=(15, 7))
+    for ax, (key, label, _) in zip(axes.ravel(), GRID_STATS):
+        log = key in ("rate_signal", "rate_net", "still_rate", "events_per_active", "active_fraction")
+        _hist(ax, [([c[key] for c in cells], "stream, per voxel grid"),
+                   ([c[key] for c in rcells], "recording, per cell of the same duration")], log=log)
+        ax.set_title(label, fontsize=9)
+    save(fig, "grid.png")
+
+
+def _figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
     import matplotlib.pyplot as plt
 
     names = []
@@ -81,6 +120,7 @@ def figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
         plt.close(fig)
         names.append(name)
 
+    _grid_figure(plt, col, rec, save)
     rows = col.rows
     wins = (rec or {}).get("sample", {}).get("windows", [])
     gwins = (rec or {}).get("grid", {}).get("windows", [])
@@ -107,7 +147,7 @@ def figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
         fig, axes = plt.subplots(1, 2, figsize=(12, 4))
         vids = col.videos
         axes[0].barh(range(len(vids)), [v["windows"] for v in vids], color="tab:blue")
-        axes[0].set_yticks(range(len(vids)), [v["path"] for v in vids], fontsize=7)
+        axes[0].set_yticks(range(len(vids)), [name_label(v["path"]) for v in vids], fontsize=7)
         axes[0].set_title("windows per video")
         axes[1].hist([s for v in vids for s in v["shot_lengths"]], bins=30, color="tab:green")
         axes[1].set_title("shot lengths, frames")
@@ -119,6 +159,30 @@ def _table(header, rows) -> str:
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _grid_section(grid: Optional[dict]) -> str:
+    """The page's same-grid table: each ``grid_stats`` statistic of the stream's voxel grids and
+    of the recording's cells, median and p10 - p90, under a line stating the grid."""
+    if not grid:
+        return ""
+    def cell(s):
+        if not s.get("n"):
+            return "n/a"
+        return f"{s['median']:.4g} ({s['p10']:.3g} - {s['p90']:.3g})"
+
+    rec = grid.get("recording")
+    head = ("statistic", "stream: median (p10 - p90)") + (("recording: median (p10 - p90)",) if rec else ())
+    rows = [(label, cell(grid["stream"][k]), *((cell(rec[k]),) if rec else ())) for k, label, _ in GRID_STATS]
+    stated = (f"Grid: one voxel grid, {grid['bins']} bins x {grid['frames_per_bin']} frame interval(s) = "
+              f"{grid['cell_s']:.3g} s at the samples' median {grid['fps']:.3g} fps; {grid['stream']['rate_net'].get('n', 0)} "
+              "voxel grids of the stream")
+    if rec:
+        stated += (f", {rec['rate_net'].get('n', 0)} cells of {grid['cell_s']:.3g} s ({grid['bins']} bins each) of the "
+                   "recording from its first event")
+    return (f"<h2>Same grid: stream and recording</h2><p class='grid'>{html.escape(stated)}. Isolated events: an event "
+            "whose pixel has no firing neighbour in the cell (noise in still regions).</p>"
+            + _table(head, rows))
 
 
 def page(col: Collected, rec: Optional[dict], notes: List[str], pngs: List[str], summ: dict) -> str:
@@ -134,7 +198,8 @@ def page(col: Collected, rec: Optional[dict], notes: List[str], pngs: List[str],
             if s and s.get("n"):
                 srows.append((f"recording, {scope} windows: {dict(STATS)[k]}",
                               *(fmt(s.get(q, "")) for q in ("n", "mean", "p10", "p50", "p90"))))
-    parts.append("<h2>Summary</h2>" + _table(("statistic", "n", "mean", "p10", "median", "p90"), srows))
+    parts.append(_grid_section(summ.get("grid")))
+    parts.append("<h2>Per sample</h2>" + _table(("statistic", "n", "mean", "p10", "median", "p90"), srows))
     st = summ["static_windows"]
     parts.append(f"<p>Static windows (motion below {st['threshold']} log intensity a frame pair; "
                  f"<code>static_windows: skip</code> serves none): {st['count']} of {st['of']} samples</p>")
@@ -152,16 +217,48 @@ def page(col: Collected, rec: Optional[dict], notes: List[str], pngs: List[str],
 
 def _recording(path: str, rows: List[dict], cfg_recipe, notes: List[str]) -> Optional[dict]:
     """The recording measured in windows of one sample's and one voxel grid's duration (at the
-    samples' median frame rate); notes say which durations it is shorter than."""
+    samples' median frame rate), and on the grid (``cells``: ``stream_stats.recording_grid``,
+    cells of one voxel grid's duration and bins); notes say which durations it is shorter than."""
     fps = float(np.median(_values(rows, "video_fps"))) if rows else 25.0
     grid_s = cfg_recipe.num_bins * cfg_recipe.frames_per_bin / fps
-    out = {}
+    out: dict = {}
     for scope, seconds in (("sample", grid_s * cfg_recipe.sequence_length), ("grid", grid_s)):
         r = recording_windows(path, seconds)
         if not r["windows"]:
             notes.append(f"recording {path} ({r['duration_s']:.3g} s) is shorter than one {scope} window "
                          f"({seconds:.3g} s): no {scope}-level overlay")
         out[scope] = r
+    out["cells"] = recording_grid(path, grid_s, cfg_recipe.num_bins)
+    return out
+
+
+def out_problem(out: Path) -> str:
+    """Why ``--out`` cannot take the report (made here when missing), or "" when it can: checked
+    before any sampling."""
+    if out.exists() and not out.is_dir():
+        return "exists and is not a folder"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        return f"cannot be made ({e.strerror or e})"
+    probe = out / ".v2v-stats-write-check"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        return f"cannot be written ({e.strerror or e})"
+    return ""
+
+
+def grid_summary(rows: List[dict], rec: Optional[dict], recipe) -> dict:
+    """The same-grid summary: ``grid_stats.summarise`` of the stream's voxel grids
+    (``stream``) and of the recording's cells (``recording``, when one is given), with the grid
+    (``bins``, ``frames_per_bin``, ``fps``: the samples' median, ``cell_s``)."""
+    fps = float(np.median(_values(rows, "video_fps"))) if rows else 25.0
+    out = {"bins": recipe.num_bins, "frames_per_bin": recipe.frames_per_bin, "fps": fps,
+           "cell_s": grid_seconds(recipe, fps), "stream": summarise([c for r in rows for c in r.get("cells", [])])}
+    if rec and "cells" in rec:
+        out["recording"] = summarise(rec["cells"]["cells"])
     return out
 
 
@@ -189,12 +286,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (OSError, ValueError) as e:
         print(f"v2v-stats: config {a.config}: {e}", file=sys.stderr)
         return 2
+    out = Path(a.out)
+    why = out_problem(out)
+    if why:
+        print(f"v2v-stats: --out {out}: {why}", file=sys.stderr)
+        return 2
     notes: List[str] = []
     try:
         if a.recording:
             check_recording(a.recording)
         with tqdm(total=a.samples, unit="sample", desc="sampling", leave=False) as bar:
-            col = (from_server(a.server, a.samples, a.timeout, bar.update) if a.server
+            col = (from_server(a.server, a.samples, a.timeout, bar.update, cfg.recipe) if a.server
                    else from_corpus(cfg, a.videos, a.samples, bar.update, a.epochs))
         if not col.rows:
             raise StatsInputError(f"{col.source}: gave no sample")
@@ -202,10 +304,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     except StatsInputError as e:
         print(f"v2v-stats: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"v2v-stats: interrupted; nothing written to {out}", file=sys.stderr)
+        return 130
     if len(col.rows) < a.samples:
         notes.append(f"{col.source} gave {len(col.rows)} of the {a.samples} samples asked for")
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
     summ = {"samples": {k: summary(_values(col.rows, k)) for k, _ in STATS}}
     summ["samples"]["grid_rate"] = summary(g for r in col.rows for g in r.get("grid_rates", []))
     motions = _values(col.rows, "motion")
@@ -214,7 +317,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if rec:
         summ["recording"] = {s: {"rate": summary(w["rate_pos"] + w["rate_neg"] for w in rec[s]["windows"]),
                                  "active_fraction": summary(w["active_fraction"] for w in rec[s]["windows"])}
-                             for s in rec}
+                             for s in ("sample", "grid")}
+    summ["grid"] = grid_summary(col.rows, rec, cfg.recipe)
     pngs = figures(col, rec, out)
     (out / "index.html").write_text(page(col, rec, notes, pngs, summ))
     (out / "stats.json").write_text(json.dumps({"source": col.source, "notes": notes, "summary": summ,

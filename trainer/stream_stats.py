@@ -7,7 +7,8 @@ second by polarity over the sample and per voxel grid, active-pixel fraction, fl
 this module only gathers them into rows, one per sample, and measures a recording the same way:
 events per pixel per second by polarity and the fraction of pixels with at least one event, in
 consecutive windows of a fixed duration from the first event (the last, incomplete window is left
-out).
+out). Each row also carries ``cells``, the ``trainer.grid_stats`` statistics of each of its voxel
+grids, and :func:`recording_grid` measures a recording on the same grid.
 """
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from dataclasses import dataclass, field
 from typing import Callable, Dict, Iterator, List, Optional
 
 import numpy as np
+
+from trainer.grid_stats import cell_stats, recording_cells, voxel_cell_stats
 
 #: The params copied into a row (besides the sample's ``stats``), when present.
 ROW_KEYS = ("sample_id", "pos_threshold", "neg_threshold", "noise_std", "hot_pixel_count", "src_start_frame",
@@ -25,14 +28,30 @@ class StatsInputError(RuntimeError):
     """An input ``v2v-stats`` cannot use (server, corpus or recording); the message names it."""
 
 
-def sample_row(params: dict) -> dict:
+def sample_row(params: dict, voxels: Optional[np.ndarray] = None, recipe=None) -> dict:
     """One sample's row: the ``ROW_KEYS`` of its ``params`` and its ``stats`` flattened
-    (``grid_rates`` kept as a list); the video is the sample id's path."""
+    (``grid_rates`` kept as a list); the video is the sample id's path. Given the sample's
+    ``voxels`` (L, B, H, W), also ``cells``: ``grid_stats.voxel_cell_stats`` of each voxel
+    grid, whose duration is B x frames per bin frame intervals at ``video_fps``: frames per bin
+    from the params (``src_frames + pauses`` is the window's L x B x frames_per_bin + 1 frames),
+    else from ``recipe`` (a ``SampleRecipe``), else 1."""
     row = {k: params[k] for k in ROW_KEYS if k in params}
     row.update(params.get("stats") or {})
     sid = str(params.get("sample_id", ""))
     row["video"] = sid.rpartition("#")[0] or sid
+    fps = params.get("video_fps")
+    if voxels is not None and fps:
+        L, B = voxels.shape[:2]
+        fpb = recipe.frames_per_bin if recipe is not None else 1
+        if isinstance(params.get("src_frames"), int) and isinstance(params.get("pauses"), int):
+            fpb = max(1, (params["src_frames"] + params["pauses"] - 1) // (L * B))
+        row["cells"] = voxel_cell_stats(voxels, B * fpb / float(fps))
     return row
+
+
+def grid_seconds(recipe, fps: float) -> float:
+    """One voxel grid's duration, seconds: ``num_bins x frames_per_bin`` frame intervals at ``fps`` Hz."""
+    return recipe.num_bins * recipe.frames_per_bin / float(fps)
 
 
 @dataclass
@@ -46,9 +65,10 @@ class Collected:
     source: str = ""
 
 
-def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int], None]) -> Collected:
+def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int], None], recipe=None) -> Collected:
     """The params of ``n`` samples read from the server at ``endpoint`` (a ``V2VStreamDataset``
-    asking for the default outputs: the worker measures what it makes).
+    asking for the default outputs: the worker measures what it makes); with ``recipe`` (the
+    server's ``SampleRecipe``: bins and frames per bin) each row's grid ``cells`` from its voxels.
 
     Raises:
         StatsInputError: the server does not answer within ``timeout_s`` or ends the stream
@@ -61,8 +81,9 @@ def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int
     ds = V2VStreamDataset(endpoint, timeout_s=timeout_s, raw=True)
     try:
         for batch in ds:
-            for params in batch["params"]:
-                out.rows.append(sample_row(params))
+            vox = batch.get("voxels")
+            for i, params in enumerate(batch["params"]):
+                out.rows.append(sample_row(params, None if vox is None else np.asarray(vox[i]), recipe))
                 progress(1)
                 if len(out.rows) >= n:
                     return out
@@ -119,8 +140,8 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
             usable.append(rel)
     for epoch in range(epochs):
         for rel in usable:
-            for _key, _arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True):
-                out.rows.append(sample_row(meta))
+            for _key, arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True):
+                out.rows.append(sample_row(meta, arrays["voxels"], recipe))
                 progress(1)
                 if len(out.rows) >= n:
                     return out
@@ -207,6 +228,30 @@ def recording_windows(path: str, window_s: float) -> dict:
              "active_fraction": w["active"] / npix} for w in wins]
     return {"path": str(path), "sensor": f"{rec.width}x{rec.height}", "format": rec.format, "window_s": window_s,
             "duration_s": (last - first) / 1e6 if first is not None else 0.0, "windows": rows}
+
+
+def recording_grid(path: str, cell_s: float, bins: int) -> dict:
+    """The recording at ``path`` cut into grid cells of ``cell_s`` seconds of ``bins`` bins
+    (``grid_stats.recording_cells``) and each cell's ``grid_stats.cell_stats``.
+
+    Returns:
+        ``{"path", "sensor": "WxH", "format", "cell_s", "bins", "cells": [...]}``; ``cells`` is
+        empty when the recording is shorter than one cell.
+
+    Raises:
+        StatsInputError: the file cannot be read (``RecordingError``'s message).
+    """
+    from trainer.recordings import RecordingError, open_recording
+
+    cells: List[dict] = []
+    try:
+        rec = open_recording(path)
+        for pos, neg in recording_cells(rec.chunks(), rec.width, rec.height, max(bins, int(round(cell_s * 1e6))), bins):
+            cells += cell_stats(pos, neg, cell_s)
+    except RecordingError as e:
+        raise StatsInputError(f"recording {e}") from None
+    return {"path": str(path), "sensor": f"{rec.width}x{rec.height}", "format": rec.format, "cell_s": cell_s,
+            "bins": bins, "cells": cells}
 
 
 def summary(values) -> Dict[str, float]:

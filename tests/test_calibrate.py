@@ -1,0 +1,143 @@
+"""``v2v-calibrate`` (trainer/calibrate.py, trainer/calibrate_fit.py) on the shared real recordings: the
+fit from the DAVIS346's own APS frames, the fit by statistics over the bundled clips for the DAVIS346
+and the Prophesee EVK4, each checked against the issue's targets with a stream made from the fitted
+recipe; repeatable fits; refusals. Small fits (tens of simulations, a few windows, seed 0): the full
+figures come from ``python -m bench.calibrate`` (docs/calibrate.md)."""
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from harness.data import DAVIS346, EVT2, EVT3, SAMPLE_VIDEOS
+from trainer.calibrate import main
+from trainer.calibrate_fit import BOUNDS, THRESHOLD_SPREAD, fit_frames, frame_stats, frame_target, recording_target
+from trainer.grid_stats import summarise
+from trainer.stream_stats import from_corpus
+from v2v_server.ops.config import load_config
+from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
+from v2v_server.simulation.simulate import SensorParams
+
+#: windows of 41 frames (8 voxel grids of 0.2 s at 25 fps), at most 3 a clip: the bundled clips give 12
+SHORT = "sequence_length: 8\nmax_samples_per_video: 3\nbatch_size: 2\n"
+
+
+@pytest.fixture
+def short_recipe(tmp_path):
+    p = tmp_path / "short.yaml"
+    p.write_text(SHORT)
+    return str(p)
+
+
+def _one_line(capsys) -> str:
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("v2v-calibrate: ")]
+    assert len(lines) == 1, lines
+    return lines[0]
+
+
+def test_fit_from_frames_meets_the_davis346_targets():
+    target = frame_target(str(DAVIS346))
+    res = fit_frames(target, load_config(None).recipe, seed=0, max_evals=60)
+    p = res.params
+    # simulate the recording's frames again with the fitted values and other draws (seed 1)
+    rng = np.random.default_rng(1)
+    pot = rng.uniform(-p["c_neg"], p["c_pos"], target.frames.shape[1:]) * p["potential_spread"]
+    vox, _, _ = simulate_voxels_nonideal(target.frames, SensorParams(p["c_pos"], p["c_neg"], p["noise_std"]), 1,
+                                         NonIdealities(threshold_sigma=p["threshold_sigma"]), fps=target.fps,
+                                         initial_potential=pot, rng=rng)
+    sim = frame_stats(vox[:, 0], target)
+    real_events = target.n_pos + target.n_neg
+    real_active = float(np.mean(target.counts > 0))
+    assert abs(sim["events"] / real_events - 1) <= 0.10, (sim, real_events)
+    assert abs(sim["active_fraction"] / real_active - 1) <= 0.25, (sim, real_active)
+    assert sim["corr"] >= 0.752, sim  # the real-sensor bench's plain V2V (docs/fidelity.md)
+    # the base recipe (thresholds at its range's centre) is far from it: the fit did the work
+    assert abs(res.before["events"] / real_events - 1) > 0.10 and res.before["corr"] < 0.752
+    assert BOUNDS["threshold"][0] <= min(p["c_pos"], p["c_neg"]) and max(p["c_pos"], p["c_neg"]) <= BOUNDS["threshold"][1]
+
+
+@pytest.mark.parametrize("recording", [DAVIS346, EVT3], ids=["davis346", "evk4"])
+def test_fit_by_statistics_brings_a_served_stream_to_the_recording(tmp_path, short_recipe, recording, capsys):
+    out = tmp_path / "fitted.yaml"
+    assert main(["--recording", str(recording), "--fit", "statistics", "--recipe", short_recipe, "--windows", "24",
+                 "--evaluations", "30", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "events / pixel / s, net" in printed and "base recipe" in printed and f"wrote {out}" in printed
+    fitted = load_config(str(out))  # a recipe v2v-serve takes
+    assert fitted.recipe.sequence_length == 8  # the base recipe kept
+    lo, hi = fitted.recipe.ranges.threshold
+    assert BOUNDS["threshold"][0] * (1 - THRESHOLD_SPREAD) <= lo <= hi <= 10.0  # the kernel's tested thresholds
+    assert fitted.recipe.ranges.noise_std[1] <= BOUNDS["noise_std"][1]
+    target = recording_target(str(recording), 0.2, 5).stats
+
+    def served(cfg):  # the 12 windows the fit saw (as epochs 0 and 1 crop them), 3 epochs of the samples' own draws
+        col = from_corpus(cfg, str(SAMPLE_VIDEOS), 36, lambda n: None, 3)
+        assert len(col.rows) == 36
+        return summarise([c for r in col.rows for c in r["cells"]])
+
+    after, before = served(fitted), served(load_config(short_recipe))
+    rate = after["rate_net"]["median"] / target["rate_net"]["median"]
+    assert 0.75 <= rate <= 1.25, rate
+    miss = lambda s: abs(np.log(s["active_fraction"]["median"] / target["active_fraction"]["median"]))  # noqa: E731
+    assert miss(after) < miss(before), (after["active_fraction"], before["active_fraction"])
+
+
+def test_fits_repeat(tmp_path, short_recipe):
+    outs = []
+    for i, argv in enumerate([["--recording", str(DAVIS346), "--evaluations", "12"],
+                              ["--recording", str(DAVIS346), "--evaluations", "12"],
+                              ["--recording", str(EVT3), "--recipe", short_recipe, "--windows", "2", "--evaluations", "12"],
+                              ["--recording", str(EVT3), "--recipe", short_recipe, "--windows", "2", "--evaluations", "12"]]):
+        out = tmp_path / f"f{i}.yaml"
+        assert main([*argv, "--out", str(out)]) == 0
+        outs.append(out.read_text())
+    assert outs[0] == outs[1] and outs[2] == outs[3] and outs[0] != outs[2]
+    assert "its frames" in outs[0] and "statistics over the corpus" in outs[2]
+    assert yaml.safe_load(outs[2])["sequence_length"] == 8  # the base recipe's keys are kept
+
+
+def _h5(path, t_s, x, y, p, size=(128, 128)):
+    with h5py.File(path, "w") as f:
+        f.attrs["sensor_resolution"] = size
+        for k, v in (("ts", t_s), ("xs", x), ("ys", y), ("ps", p)):
+            f.create_dataset(f"events/{k}", data=np.asarray(v))
+    return path
+
+
+@pytest.mark.parametrize("case", ["too short", "too quiet", "no motion", "no frames", "out is a folder"])
+def test_unusable_input_is_one_line_and_exit_2(tmp_path, short_recipe, capsys, case):
+    rng = np.random.default_rng(0)
+    out, extra = tmp_path / "fitted.yaml", []
+    if case == "too short":  # 0.1 s of events: no whole 0.2-s cell
+        rec, named = EVT2, f"recording {EVT2}: too short"
+    elif case == "too quiet":  # 5 events in 2 s
+        rec = _h5(tmp_path / "quiet.h5", np.linspace(0, 2, 5), [3] * 5, [4] * 5, [1] * 5)
+        named = f"recording {rec}: too quiet"
+    elif case == "no motion":  # 100 events per 0.2 s at random pixels: nothing moves, every event alone
+        n = 1000
+        rec = _h5(tmp_path / "noise.h5", np.sort(rng.uniform(0, 2, n)), rng.integers(0, 128, n),
+                  rng.integers(0, 128, n), rng.integers(0, 2, n))
+        named = f"recording {rec}: no motion"
+    elif case == "no frames":
+        rec, extra, named = EVT3, ["--fit", "frames"], f"recording {EVT3}: no intensity frames"
+    else:
+        out.mkdir()
+        rec, named = DAVIS346, f"--out {out}: is a folder"
+    assert main(["--recording", str(rec), "--recipe", short_recipe, "--windows", "2", "--evaluations", "12",
+                 "--out", str(out), *extra]) == 2
+    line = _one_line(capsys)
+    assert named in line, line
+    assert not out.is_file()
+
+
+def test_the_written_recipe_serves(tmp_path):
+    """The fitted YAML is a v2v-serve config: its check passes with it (the default recipe's keys kept)."""
+    from v2v_server.cli import main as serve_main
+
+    out = tmp_path / "fitted.yaml"
+    assert main(["--recording", str(DAVIS346), "--evaluations", "12", "--out", str(out)]) == 0
+    assert serve_main(["--videos", str(SAMPLE_VIDEOS), "--config", str(out), "--check"]) == 0
+    assert json.dumps(load_config(str(out)).recipe.recipe_dict()["ranges"])
