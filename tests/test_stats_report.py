@@ -102,7 +102,10 @@ def test_hostile_video_names_are_drawn_and_escaped(tmp_path, short_config, capsy
     assert main(["--videos", str(corpus), "--config", short_config, "--samples", "2", "--out", str(out)]) == 0
     assert "Traceback" not in capsys.readouterr().err
     data = json.loads((out / "stats.json").read_text())
-    assert sorted(v["path"] for v in data["videos"]) == sorted(names)
+    # a name holding a control character is refused by the corpus (sample ids travel one per
+    # line); the page shows the others as written
+    served = [n for n in names if "\n" not in n]
+    assert sorted(v["path"] for v in data["videos"]) == sorted(served)
     text = (out / "index.html").read_text()
     assert "<td>a%d&lt;b&gt;&amp;amp;%s.mp4</td>" in text and "<b>&amp;" not in text
     assert "<td>price_$5_$10.mp4</td>" in text and (out / "videos.png").stat().st_size > 5_000
