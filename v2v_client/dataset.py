@@ -28,6 +28,7 @@ from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_CREDITS, OUTPUTS, check_outpu
 from .connection import StreamError, StreamTimeout, load_curve_keys
 from .endpoint import EndpointStream, padding_copy
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
+from .launchers import adapt, check_whole, rank_part
 from .metrics import TrainerMetrics
 from .options import StreamOptions
 from .tensors import batch_to_torch
@@ -156,6 +157,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._fanin: Optional[FanInStream] = None
         self._meter = TrainerMetrics()
         self._link = None  # a StreamLoader's workers' receipt pipes and records (read_by, loader.py)
+        self.held_state: Optional[dict] = None  # state_dict() while accelerate's dispatcher hands out a group
         if not isinstance(endpoint, str) or "," in endpoint:
             endpoints = split_endpoints(endpoint)
             if len(endpoints) == 1:
@@ -227,6 +229,16 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._stream is not None:
             self._stream.set_position(rank, world)
 
+    def read_alone(self) -> None:
+        """Read as the job's one consumer (accelerate's dispatcher: process 0 reads for every rank)."""
+        self.options = replace(self.options, rank=0, world_size=1)
+        if self._stream is not None:
+            self._stream.set_position(0, 1)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Called before each pass by accelerate; refuses a wrapper keeping part (``launchers.check_whole``)."""
+        check_whole(self)
+
     @property
     def consumer(self) -> str:
         """The id the server knows this reader by (DataLoader workers add ``/<worker id>``)."""
@@ -257,7 +269,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                                    "reads every server in its own thread)")
             self._stream.attach_loader(worker.id, self._link.receipts[worker.id], self._link.records.get(worker.id))
         inner = iter(self._fanin) if self._fanin is not None else iter(self._stream)
-        return self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else "")
+        return adapt(self, self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else ""))
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
@@ -273,7 +285,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._link is not None:
             raise RuntimeError("this V2VStreamDataset is read by StreamLoader workers: checkpoint the loader "
                                "(loader.state_dict()), which holds what each worker's training loop received")
-        return (self._fanin or self._stream).state_dict()
+        return self.held_state if self.held_state is not None else (self._fanin or self._stream).state_dict()
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()`` output; the next iteration resumes the epoch without
@@ -283,6 +295,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             ValueError: for a state of another format.
         """
+        state = rank_part(state, *dist_position())  # one rank's part of what launchers' save hook gathered
         read_state(state)
         if self._stream is not None:
             self._stream.load_state_dict(state)
