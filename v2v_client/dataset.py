@@ -37,6 +37,10 @@ __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch",
 
 log = logging.getLogger("v2v.client")
 
+#: why ``len()`` of the dataset fails: loaders that index or sample a dataset cannot read a stream
+NO_LENGTH = ("V2VStreamDataset is a stream without a length: hand loaders that index or sample a dataset "
+             "(DeepSpeed's training_data=) DataLoader(ds, batch_size=None) instead")
+
 
 class V2VStreamDataset(torch.utils.data.IterableDataset):
     """Batches of V2V training data streamed from a ``v2v-serve`` endpoint.
@@ -107,29 +111,26 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         ``flow`` float32 (B, L, 2, H, W), forward optical flow in pixels from frame l to
         l + 1 (channel 0 = x, 1 = y); with ``compact_flow`` and a tracked flow option
         instead ``flow_grid`` float32 (B, L, 2, n, n), the flow at the grid points;
-        ``padding`` bool (B,): True for a repeated sample the loss must ignore (only DDP
-        padding batches have any; their ``sample_ids`` are the repeated ids);
+        ``padding`` bool (B,): True for a repeated sample the loss must ignore (DDP padding
+        batches; the filler rows of accelerate's dispatch, ``v2v_client.launchers``);
         ``sample_ids`` list of B str; ``params`` list of B dicts (sensor parameters and
         augmentation); ``epoch`` int; ``batch_id`` int (-1 for padding). Only requested
         outputs are present.
 
-    Within an epoch each sample id is yielded once (with ``padding`` False), over all the
-    connections (DataLoader workers, DDP ranks) that share the stream: the server hands every
-    batch to one connection, takes the resume state as the truth, and the client drops any
-    re-sent sample it has already yielded. ``state_dict()`` / ``load_state_dict()``
-    (torchdata StatefulDataLoader convention) carry those ids across a trainer restart.
+    Within an epoch each sample id is yielded once (``padding`` False) over all the connections
+    that share the stream (DataLoader workers, DDP ranks): the server hands every batch to one, takes
+    the resume state as the truth, and the client drops re-sent samples it already yielded.
+    ``state_dict()`` / ``load_state_dict()`` (StatefulDataLoader's convention) carry those ids.
 
-    Use with ``DataLoader(ds, batch_size=None, pin_memory=True)``. Iteration ends when the
-    server ends the stream (``--epochs``). Leaving the loop early (``break``) sends the
-    acknowledgements of what was taken before saying goodbye. Iterate one dataset object with
-    one iterator at a time (the server knows it as one consumer; a new iterator replaces the
-    previous connection); DataLoader workers each get their own consumer id.
+    Use with ``DataLoader(ds, batch_size=None, pin_memory=True)``; it has no length. Iteration ends
+    when the server ends the stream (``--epochs``); leaving the loop early (``break``) acknowledges
+    what was taken before saying goodbye. Iterate one dataset object with one iterator at a time (the
+    server knows it as one consumer); DataLoader workers each get their own consumer id.
 
     Raises (from iteration):
         StreamTimeout: the server is absent or silent for ``timeout_s``.
         StreamError: the server reported an error, broke the protocol or shut down.
-        ValueError: at construction, for bad ``outputs``, ``credits``, ``timeout_s``,
-            ``rank``/``world_size`` or keys.
+        ValueError: at construction, for bad ``outputs``, ``credits``, ``timeout_s``, ``rank``/``world_size`` or keys.
     """
 
     def __init__(self, endpoint: Union[str, Sequence[str]], outputs: Sequence[str] = DEFAULT_OUTPUTS, credits: int = 4,
@@ -234,6 +235,9 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self.options = replace(self.options, rank=0, world_size=1)
         if self._stream is not None:
             self._stream.set_position(0, 1)
+
+    def __len__(self) -> int:
+        raise TypeError(NO_LENGTH)
 
     def set_epoch(self, epoch: int) -> None:
         """Called before each pass by accelerate; refuses a wrapper keeping part (``launchers.check_whole``)."""
