@@ -51,11 +51,15 @@ def _accelerate(endpoint, out, *args) -> list:
 def test_accelerate_dispatch_plain_prepare_and_gradient_accumulation(tmp_path):
     """accelerator.prepare(DataLoader(ds, batch_size=None)) with accelerate's default (dispatch):
     each rank's slice is one whole batch, ids decoded from its tensors; with 3 accumulation steps
-    the gradients sync at the third step and at the stream's last batch (end_of_dataloader)."""
+    the gradients sync at the third step and at the stream's last batch (end_of_dataloader).
+    skip_first_batches (it would drop batches the server counts as delivered) is refused first."""
     corpus = faults.good_corpus(tmp_path, 2)
     expected = faults.expected_ids(corpus, LAYOUT)
     with _serve(corpus) as srv:
+        skipped = _accelerate(srv.endpoint, tmp_path / "skip", "--mode", "dispatch", "--skip-first", "1")
         ranks = _accelerate(srv.endpoint, tmp_path / "out", "--mode", "plain", "--accumulate", "3")
+    assert skipped[0]["batches"] == 0, skipped[0]
+    assert skipped[0]["error"].startswith("RuntimeError: accelerate's skip_first_batches would throw away"), skipped
     assert [r["error"] for r in ranks] == [None, None]
     _once([s for r in ranks for s in r["seen"]], expected)
     assert [r["batches"] for r in ranks] == [len(expected) // 4] * 2  # 2 samples a batch, one batch a rank a step
