@@ -141,3 +141,45 @@ def test_deepspeed_engine_over_the_stream_and_training_data_refused(tmp_path):
     for r in ranks:
         assert r["refused"].startswith("TypeError: V2VStreamDataset is a stream without a length"), r
         assert "DataLoader(ds, batch_size=None)" in r["refused"]
+
+
+def _stream_batch(ids, epoch=0, batch_id=0):
+    """A batch as V2VStreamDataset yields it (frames only), its params carrying nested values."""
+    import torch
+
+    n = len(ids)
+    return {"frames": torch.arange(n, dtype=torch.float32)[:, None, None, None, None].expand(n, 3, 1, 4, 4).clone(),
+            "sample_ids": list(ids), "params": [{"sample_id": s, "stats": {"motion": 0.5}, "flip": False} for s in ids],
+            "epoch": epoch, "batch_id": batch_id, "padding": torch.zeros(n, dtype=torch.bool)}
+
+
+def test_dispatched_batches_survive_accelerates_concatenate_slice_and_placement():
+    """A group of batches of different sizes and id lengths, through accelerate's own concatenate,
+    slice_tensors and send_to_device as its dispatcher calls them: each slice decodes to exactly
+    its batch's ids and params, filler rows flagged as padding."""
+    import torch
+    from accelerate.utils import concatenate, find_batch_size, send_to_device, slice_tensors
+
+    from v2v_client.launchers import DispatchedBatch, dispatched, pack_rows
+
+    group = [_stream_batch(["a.mp4#0", "b.mp4#0"], batch_id=4), _stream_batch(["a-much-longer-name.mp4#1"], batch_id=5)]
+    packed = [pack_rows(b) for b in group]
+    width = -(-max(len(r) for p in packed for r in p) // 64) * 64
+    cat = concatenate([dispatched(b, p, 2, width) for b, p in zip(group, packed)])
+    assert isinstance(cat, DispatchedBatch) and find_batch_size(cat) == 4
+    for r, b in enumerate(group):
+        part = send_to_device(slice_tensors(cat, slice(2 * r, 2 * r + 2)), torch.device("cpu"))
+        n = len(b["sample_ids"])
+        assert part["sample_ids"][:n] == b["sample_ids"] and part["params"][:n] == b["params"]
+        assert part["padding"].tolist() == [False] * n + [True] * (2 - n)
+        assert (part["epoch"], part["batch_id"]) == (0, b["batch_id"]) and part.get("missing") is None
+        assert torch.equal(part["frames"][:n], b["frames"])
+
+
+def test_a_gathered_state_gives_each_rank_its_part_and_refuses_another_world_size():
+    from v2v_client.launchers import rank_part
+
+    state = {"v2v_ranks": [{"consumer": "r0"}, {"consumer": "r1"}]}
+    assert rank_part(state, 1, 2) == {"consumer": "r1"} and rank_part({"consumer": "x"}, 0, 1) == {"consumer": "x"}
+    with pytest.raises(ValueError, match="saved by 2 ranks and is loaded by 3"):
+        rank_part(state, 0, 3)

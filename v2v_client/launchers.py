@@ -135,6 +135,8 @@ def _dispatch(ds, batches: Iterator[dict], group: int) -> Iterator[DispatchedBat
                 yield dispatched(b, p, rows, width)
     finally:
         ds.held_state = None
+        if hasattr(batches, "close"):
+            batches.close()  # the connection says goodbye now, not when the iterator is collected
 
 
 def _loader_of(ds):
