@@ -299,7 +299,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             ValueError: for a state of another format.
         """
-        state = rank_part(state, *dist_position())  # one rank's part of what launchers' save hook gathered
+        state = rank_part(state, dist_position)  # one rank's part of what launchers' save hook gathered
         read_state(state)
         if self._stream is not None:
             self._stream.load_state_dict(state)

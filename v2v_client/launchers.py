@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import itertools
 import sys
-from typing import Iterator, List, Optional
+from typing import Callable, Iterator, List, Optional, Tuple
 
 import msgpack
 import torch
@@ -202,13 +202,15 @@ def _world() -> int:
     return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
 
 
-def rank_part(state: dict, rank: int, world: int) -> dict:
-    """This rank's part of a state :func:`prepare_loader`'s save hook gathered (any other state as it is).
+def rank_part(state: dict, position: Callable[[], Tuple[int, int]]) -> dict:
+    """This rank's part of a state :func:`prepare_loader`'s save hook gathered (``position()``:
+    this process's ``(rank, world_size)``, asked only then); any other state as it is.
 
     Raises:
         ValueError: the state was saved by another number of ranks.
     """
     if isinstance(state, dict) and RANKS in state:
+        rank, world = position()
         parts = state[RANKS]
         if len(parts) != world:
             raise ValueError(f"this V2VStreamDataset state was saved by {len(parts)} ranks and is loaded by "
@@ -226,7 +228,7 @@ def _gather_states(loader):
         world = _world()
         rank = torch.distributed.get_rank() if world > 1 else 0
         parts: List[Optional[dict]] = [None] * world
-        own = rank_part(snap[DATASET_STATE], rank, world)
+        own = rank_part(snap[DATASET_STATE], lambda: (rank, world))
         if world > 1:
             torch.distributed.all_gather_object(parts, own)
         else:
