@@ -92,8 +92,19 @@ def _checkpoints(out: Path, world: int):
     return last, json.loads((out / f"ckpt.rank{rank}.step{last}.json").read_text())
 
 
+def _attempt_group(attempt: int) -> None:
+    """The process group of this attempt, on torchelastic's agent store under a prefix of its own:
+    the agent keeps its store across restarts, and a restarted rank reading the previous attempt's
+    gloo addresses before its peer replaced them fails in connectFullMesh (Connection refused)."""
+    rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+    store = torch.distributed.TCPStore(os.environ["MASTER_ADDR"], int(os.environ["MASTER_PORT"]), world,
+                                       is_master=False)
+    torch.distributed.init_process_group("gloo", store=torch.distributed.PrefixStore(f"attempt{attempt}", store),
+                                         rank=rank, world_size=world)
+
+
 def elastic(ds, rec, out: Path, kill_after: int) -> None:
-    torch.distributed.init_process_group("gloo")
+    _attempt_group(rec["attempt"])
     rank, world = torch.distributed.get_rank(), torch.distributed.get_world_size()
     model = torch.nn.parallel.DistributedDataParallel(torch.nn.Linear(1, 1))
     opt = torch.optim.SGD(model.parameters(), lr=0.01)
