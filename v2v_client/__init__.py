@@ -3,7 +3,7 @@
 ``import v2v_client`` and its network side (``connection``, ``session``: a server's batches as
 numpy arrays) need only the base install (``pip install v2v``: numpy, pyzmq, msgpack, PyYAML);
 the names that make tensors (``V2VStreamDataset``, ``StreamLoader``, ``batch_to_torch``,
-``expand_flow_grid``, ``dist_position``) import torch when first used (``pip install
+``expand_flow_grid``, ``dist_position``, ``prepare_loader``) import torch when first used (``pip install
 'v2v[client]'``).
 """
 from importlib import import_module
@@ -11,11 +11,12 @@ from importlib import import_module
 from .session import StreamError, StreamTimeout
 
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "expand_flow_grid",
-           "StreamLoader"]
+           "StreamLoader", "prepare_loader"]
 
 #: The public names that need torch, by the module that defines them.
 _TORCH_NAMES = {"V2VStreamDataset": "dataset", "dist_position": "dataset", "batch_to_torch": "tensors",
-                "expand_flow_grid": "flowgrid", "StreamLoader": "loader"}
+                "expand_flow_grid": "flowgrid", "StreamLoader": "loader",
+                "prepare_loader": "launchers"}
 
 
 def __getattr__(name: str):

@@ -28,6 +28,7 @@ from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_CREDITS, OUTPUTS, check_outpu
 from .connection import StreamError, StreamTimeout, load_curve_keys
 from .endpoint import EndpointStream, padding_copy
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
+from .launchers import adapt, check_whole, rank_part
 from .metrics import TrainerMetrics
 from .options import StreamOptions
 from .tensors import batch_to_torch
@@ -35,6 +36,10 @@ from .tensors import batch_to_torch
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "padding_copy"]
 
 log = logging.getLogger("v2v.client")
+
+#: why ``len()`` of the dataset fails: loaders that index or sample a dataset cannot read a stream
+NO_LENGTH = ("V2VStreamDataset is a stream without a length: hand loaders that index or sample a dataset "
+             "(DeepSpeed's training_data=) DataLoader(ds, batch_size=None) instead")
 
 
 class V2VStreamDataset(torch.utils.data.IterableDataset):
@@ -106,29 +111,26 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         ``flow`` float32 (B, L, 2, H, W), forward optical flow in pixels from frame l to
         l + 1 (channel 0 = x, 1 = y); with ``compact_flow`` and a tracked flow option
         instead ``flow_grid`` float32 (B, L, 2, n, n), the flow at the grid points;
-        ``padding`` bool (B,): True for a repeated sample the loss must ignore (only DDP
-        padding batches have any; their ``sample_ids`` are the repeated ids);
+        ``padding`` bool (B,): True for a repeated sample the loss must ignore (DDP padding
+        batches; the filler rows of accelerate's dispatch, ``v2v_client.launchers``);
         ``sample_ids`` list of B str; ``params`` list of B dicts (sensor parameters and
         augmentation); ``epoch`` int; ``batch_id`` int (-1 for padding). Only requested
         outputs are present.
 
-    Within an epoch each sample id is yielded once (with ``padding`` False), over all the
-    connections (DataLoader workers, DDP ranks) that share the stream: the server hands every
-    batch to one connection, takes the resume state as the truth, and the client drops any
-    re-sent sample it has already yielded. ``state_dict()`` / ``load_state_dict()``
-    (torchdata StatefulDataLoader convention) carry those ids across a trainer restart.
+    Within an epoch each sample id is yielded once (``padding`` False) over all the connections
+    that share the stream (DataLoader workers, DDP ranks): the server hands every batch to one, takes
+    the resume state as the truth, and the client drops re-sent samples it already yielded.
+    ``state_dict()`` / ``load_state_dict()`` (StatefulDataLoader's convention) carry those ids.
 
-    Use with ``DataLoader(ds, batch_size=None, pin_memory=True)``. Iteration ends when the
-    server ends the stream (``--epochs``). Leaving the loop early (``break``) sends the
-    acknowledgements of what was taken before saying goodbye. Iterate one dataset object with
-    one iterator at a time (the server knows it as one consumer; a new iterator replaces the
-    previous connection); DataLoader workers each get their own consumer id.
+    Use with ``DataLoader(ds, batch_size=None, pin_memory=True)``; it has no length. Iteration ends
+    when the server ends the stream (``--epochs``); leaving the loop early (``break``) acknowledges
+    what was taken before saying goodbye. Iterate one dataset object with one iterator at a time (the
+    server knows it as one consumer); DataLoader workers each get their own consumer id.
 
     Raises (from iteration):
         StreamTimeout: the server is absent or silent for ``timeout_s``.
         StreamError: the server reported an error, broke the protocol or shut down.
-        ValueError: at construction, for bad ``outputs``, ``credits``, ``timeout_s``,
-            ``rank``/``world_size`` or keys.
+        ValueError: at construction, for bad ``outputs``, ``credits``, ``timeout_s``, ``rank``/``world_size`` or keys.
     """
 
     def __init__(self, endpoint: Union[str, Sequence[str]], outputs: Sequence[str] = DEFAULT_OUTPUTS, credits: int = 4,
@@ -156,6 +158,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._fanin: Optional[FanInStream] = None
         self._meter = TrainerMetrics()
         self._link = None  # a StreamLoader's workers' receipt pipes and records (read_by, loader.py)
+        self.held_state: Optional[dict] = None  # state_dict() while accelerate's dispatcher hands out a group
         if not isinstance(endpoint, str) or "," in endpoint:
             endpoints = split_endpoints(endpoint)
             if len(endpoints) == 1:
@@ -227,6 +230,19 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._stream is not None:
             self._stream.set_position(rank, world)
 
+    def read_alone(self) -> None:
+        """Read as the job's one consumer (accelerate's dispatcher: process 0 reads for every rank)."""
+        self.options = replace(self.options, rank=0, world_size=1)
+        if self._stream is not None:
+            self._stream.set_position(0, 1)
+
+    def __len__(self) -> int:
+        raise TypeError(NO_LENGTH)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Called before each pass by accelerate; refuses a wrapper keeping part (``launchers.check_whole``)."""
+        check_whole(self)
+
     @property
     def consumer(self) -> str:
         """The id the server knows this reader by (DataLoader workers add ``/<worker id>``)."""
@@ -257,7 +273,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                                    "reads every server in its own thread)")
             self._stream.attach_loader(worker.id, self._link.receipts[worker.id], self._link.records.get(worker.id))
         inner = iter(self._fanin) if self._fanin is not None else iter(self._stream)
-        return self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else "")
+        return adapt(self, self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else ""))
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
@@ -273,7 +289,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._link is not None:
             raise RuntimeError("this V2VStreamDataset is read by StreamLoader workers: checkpoint the loader "
                                "(loader.state_dict()), which holds what each worker's training loop received")
-        return (self._fanin or self._stream).state_dict()
+        return self.held_state if self.held_state is not None else (self._fanin or self._stream).state_dict()
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()`` output; the next iteration resumes the epoch without
@@ -283,6 +299,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             ValueError: for a state of another format.
         """
+        state = rank_part(state, dist_position)  # one rank's part of what launchers' save hook gathered
         read_state(state)
         if self._stream is not None:
             self._stream.load_state_dict(state)

@@ -1,0 +1,186 @@
+"""The stream under the launchers people train with, each run by torchrun with 2 CPU ranks (gloo)
+against a real server on 127.0.0.1: every epoch-0 id reaches a training loop exactly once across
+the ranks (padding excluded), or the unsupported way fails before the first step with one line
+saying what to do instead (docs/launchers.md lists them). Hugging Face Accelerate in both its modes
+(``harness/accelerate_job.py``), Lightning Fabric, PyTorch Ignite, torchrun elastic restarts and
+DeepSpeed (``harness/launcher_job.py``)."""
+from __future__ import annotations
+
+import collections
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from harness import faults
+from harness.faults import Layout
+from harness.serve import ServeProcess
+
+LAYOUT = Layout(L=2, crop=32, windows=2, batch=2)
+
+
+def _torchrun(module: str, args, out: Path, *torchrun_args: str) -> list:
+    """Run ``module`` on 2 ranks; the ranks' records (``rank{R}.json`` in ``out``), by rank."""
+    out.mkdir()
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                        *torchrun_args, "-m", module, *[str(a) for a in args]],
+                       capture_output=True, text=True, timeout=300)
+    ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
+    assert len(ranks) == 2, f"exit {r.returncode}: {r.stderr[-3000:]}"
+    return ranks
+
+
+def _serve(corpus: Path) -> ServeProcess:
+    # a grace after the end of the stream: a job resumed from an older checkpoint finds the server
+    return ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--end-grace-s", "60",
+                         "--client-timeout", "3", *LAYOUT.args()])
+
+
+def _once(seen, expected) -> None:
+    counts = collections.Counter(seen)
+    assert sorted(seen) == expected, (f"doubled {sorted(k for k, v in counts.items() if v > 1)}, "
+                                      f"lost {sorted(set(expected) - set(counts))}")
+
+
+def _accelerate(endpoint, out, *args) -> list:
+    return _torchrun("harness.accelerate_job", [endpoint, out, *args], out)
+
+
+def test_accelerate_dispatch_plain_prepare_and_gradient_accumulation(tmp_path):
+    """accelerator.prepare(DataLoader(ds, batch_size=None)) with accelerate's default (dispatch):
+    each rank's slice is one whole batch, ids decoded from its tensors; with 3 accumulation steps
+    the gradients sync at the third step and at the stream's last batch (end_of_dataloader).
+    skip_first_batches (it would drop batches the server counts as delivered) is refused first."""
+    corpus = faults.good_corpus(tmp_path, 2)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with _serve(corpus) as srv:
+        skipped = _accelerate(srv.endpoint, tmp_path / "skip", "--mode", "dispatch", "--skip-first", "1")
+        ranks = _accelerate(srv.endpoint, tmp_path / "out", "--mode", "plain", "--accumulate", "3")
+    assert skipped[0]["batches"] == 0, skipped[0]
+    assert skipped[0]["error"].startswith("RuntimeError: accelerate's skip_first_batches would throw away"), skipped
+    assert [r["error"] for r in ranks] == [None, None]
+    _once([s for r in ranks for s in r["seen"]], expected)
+    assert [r["batches"] for r in ranks] == [len(expected) // 4] * 2  # 2 samples a batch, one batch a rank a step
+    for r in ranks:
+        assert r["sync"] == [False, False, True, True] and r["end"] == [False, False, False, True], r
+
+
+def test_accelerate_per_rank_refused_by_plain_prepare_and_exact_with_prepare_loader(tmp_path):
+    """dispatch_batches=False: plain prepare would wrap the dataset in IterableDatasetShard (1/N of
+    each rank's share kept) and is refused before any batch; prepare_loader reads it whole per rank."""
+    corpus = faults.good_corpus(tmp_path, 1)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with _serve(corpus) as srv:
+        refused = _accelerate(srv.endpoint, tmp_path / "plain", "--mode", "plain", "--per-rank-config")
+        ranks = _accelerate(srv.endpoint, tmp_path / "out", "--mode", "per-rank")
+    for r in refused:
+        assert r["batches"] == 0 and r["error"].startswith("RuntimeError: accelerate's dispatch_batches=False"), r
+        assert "v2v_client.prepare_loader(accelerator" in r["error"]
+    assert [r["error"] for r in ranks] == [None, None]
+    assert ranks[0]["batches"] == ranks[1]["batches"]
+    _once([s for r in ranks for s in r["seen"]], expected)
+
+
+@pytest.mark.parametrize("mode", ["dispatch", "per-rank"])
+def test_accelerate_save_state_mid_epoch_then_load_state_on_new_ranks(tmp_path, mode):
+    """use_stateful_dataloader=True: save_state after step 1, leave after step 2 (what step 2 took
+    is not in the checkpoint), new ranks load_state and read on: every id once across what the
+    checkpoint holds and the second run. A stateful loader from plain prepare is refused first."""
+    corpus = faults.good_corpus(tmp_path, 2)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with _serve(corpus) as srv:
+        if mode == "dispatch":
+            refused = _accelerate(srv.endpoint, tmp_path / "plain", "--mode", "plain", "--stateful")
+            assert refused[0]["batches"] == 0 and "v2v_client.prepare_loader" in refused[0]["error"], refused[0]
+        first = _accelerate(srv.endpoint, tmp_path / "a", "--mode", mode, "--stateful", "--save-at", "1",
+                            "--stop-after", "2")
+        again = _accelerate(srv.endpoint, tmp_path / "b", "--mode", mode, "--stateful", "--resume",
+                            tmp_path / "a" / "ckpt")
+    assert [r["error"] for r in first + again] == [None] * 4
+    assert all(r["batches"] == 3 for r in first) and again[0]["batches"] == again[1]["batches"] > 0
+    _once([s for r in first for s in r["saved"]] + [s for r in again for s in r["seen"]], expected)
+
+
+def _launcher(tmp_path, launcher: str, copies: int = 1, *torchrun_args: str):
+    corpus = faults.good_corpus(tmp_path, copies)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with _serve(corpus) as srv:
+        ranks = _torchrun("harness.launcher_job", [launcher, srv.endpoint, tmp_path / "out"], tmp_path / "out",
+                          *torchrun_args)
+    assert ranks[0]["batches"] == ranks[1]["batches"] > 0
+    _once([s for r in ranks for s in r["seen"]], expected)
+    return ranks
+
+
+def test_lightning_fabric_setup_dataloaders(tmp_path):
+    _launcher(tmp_path, "fabric")
+
+
+def test_ignite_engine_over_the_stream_and_auto_dataloader_refusing_batch_size_none(tmp_path):
+    """idist.auto_dataloader(ds, batch_size=None) fails in Ignite's own batch-size scaling (before
+    any batch); an Engine over DataLoader(ds, batch_size=None) trains each id once."""
+    ranks = _launcher(tmp_path, "ignite")
+    assert all(r["refused"] == "TypeError: '>=' not supported between instances of 'NoneType' and 'int'"
+               for r in ranks), ranks
+
+
+def test_torchrun_elastic_restart_after_a_rank_is_killed_mid_epoch(tmp_path):
+    """torchrun --max-restarts 1: rank 1 is SIGKILLed after step 1 on the first attempt; the
+    restarted ranks resume from the last step both checkpointed (step 0)."""
+    ranks = _launcher(tmp_path, "elastic", 2, "--max-restarts", "1")
+    assert [(r["attempt"], r["resumed_from"]) for r in ranks] == [(1, 0), (1, 0)]
+
+
+def test_deepspeed_engine_over_the_stream_and_training_data_refused(tmp_path):
+    """deepspeed.initialize(training_data=ds) builds a DistributedSampler over indices: the
+    dataset's len() says in one line what to give instead; the engine over
+    DataLoader(ds, batch_size=None) trains each id once."""
+    ranks = _launcher(tmp_path, "deepspeed")
+    for r in ranks:
+        assert r["refused"].startswith("TypeError: V2VStreamDataset is a stream without a length"), r
+        assert "DataLoader(ds, batch_size=None)" in r["refused"]
+
+
+def _stream_batch(ids, epoch=0, batch_id=0):
+    """A batch as V2VStreamDataset yields it (frames only), its params carrying nested values."""
+    import torch
+
+    n = len(ids)
+    return {"frames": torch.arange(n, dtype=torch.float32)[:, None, None, None, None].expand(n, 3, 1, 4, 4).clone(),
+            "sample_ids": list(ids), "params": [{"sample_id": s, "stats": {"motion": 0.5}, "flip": False} for s in ids],
+            "epoch": epoch, "batch_id": batch_id, "padding": torch.zeros(n, dtype=torch.bool)}
+
+
+def test_dispatched_batches_survive_accelerates_concatenate_slice_and_placement():
+    """A group of batches of different sizes and id lengths, through accelerate's own concatenate,
+    slice_tensors and send_to_device as its dispatcher calls them: each slice decodes to exactly
+    its batch's ids and params, filler rows flagged as padding."""
+    import torch
+    from accelerate.utils import concatenate, find_batch_size, send_to_device, slice_tensors
+
+    from v2v_client.launchers import DispatchedBatch, dispatched, pack_rows
+
+    group = [_stream_batch(["a.mp4#0", "b.mp4#0"], batch_id=4), _stream_batch(["a-much-longer-name.mp4#1"], batch_id=5)]
+    packed = [pack_rows(b) for b in group]
+    width = -(-max(len(r) for p in packed for r in p) // 64) * 64
+    cat = concatenate([dispatched(b, p, 2, width) for b, p in zip(group, packed)])
+    assert isinstance(cat, DispatchedBatch) and find_batch_size(cat) == 4
+    for r, b in enumerate(group):
+        part = send_to_device(slice_tensors(cat, slice(2 * r, 2 * r + 2)), torch.device("cpu"))
+        n = len(b["sample_ids"])
+        assert part["sample_ids"][:n] == b["sample_ids"] and part["params"][:n] == b["params"]
+        assert part["padding"].tolist() == [False] * n + [True] * (2 - n)
+        assert (part["epoch"], part["batch_id"]) == (0, b["batch_id"]) and part.get("missing") is None
+        assert torch.equal(part["frames"][:n], b["frames"])
+
+
+def test_a_gathered_state_gives_each_rank_its_part_and_refuses_another_world_size():
+    from v2v_client.launchers import rank_part
+
+    state = {"v2v_ranks": [{"consumer": "r0"}, {"consumer": "r1"}]}
+    assert rank_part(state, lambda: (1, 2)) == {"consumer": "r1"}
+    assert rank_part({"consumer": "x"}, lambda: 1 / 0) == {"consumer": "x"}  # a plain state: no position asked
+    with pytest.raises(ValueError, match="saved by 2 ranks and is loaded by 3"):
+        rank_part(state, lambda: (0, 3))

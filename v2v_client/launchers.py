@@ -1,0 +1,272 @@
+"""``V2VStreamDataset`` under Hugging Face Accelerate, which wraps the DataLoader it is given.
+
+``Accelerator.prepare`` reads an IterableDataset in one of two ways (``accelerate.data_loader``):
+
+* **dispatch** (``DataLoaderConfiguration(dispatch_batches=None)``, the default, or ``True``):
+  process 0 iterates the loader, concatenates one batch per process along dim 0, broadcasts the
+  result and hands process ``r`` the ``r``-th equal slice. A batch may hold only tensors, and the
+  slices are equal row counts (``split_batches=True`` needs a loader batch size: accelerate refuses
+  ``batch_size=None`` itself). So process 0 reads the
+  whole stream as its one consumer (world size 1) and hands on :class:`DispatchedBatch` es:
+  groups of N batches padded to one row count (padding rows flagged), a stream that ends inside a
+  group completed with padding batches, the ids, params, epoch and batch id of each row packed in
+  a ``sample_meta`` uint8 tensor that every rank's slice decodes. Each rank's slice is then
+  exactly one of the stream's batches.
+* **per rank** (``dispatch_batches=False``): accelerate wraps the dataset in ``IterableDatasetShard``,
+  which needs a batch size and keeps 1/N of what it reads: with each rank reading its own share of
+  the stream that would drop samples, so :func:`check_whole` (the dataset's ``set_epoch``, which
+  accelerate calls first) refuses it in one line naming :func:`prepare_loader`. That builds
+  accelerate's own ``DataLoaderShard`` around the unwrapped loader: device placement, ``set_epoch``,
+  ``end_of_dataloader`` and its state snapshots stay accelerate's.
+
+Resuming (``use_stateful_dataloader=True``, ``save_state`` / ``load_state``): accelerate saves the
+loader state of every process under one file name (``dl_state_dict.bin``), so the last process to
+write wins. :func:`prepare_loader` registers a save hook that gathers every rank's dataset state into
+each rank's snapshot (``{"v2v_ranks": [state of rank 0, ...]}``): every process writes the same file
+and each rank loads its own part (:func:`rank_part`). A stateful loader under more than one process
+not made by :func:`prepare_loader` is refused at its first batch, as is ``skip_first_batches``
+(it would throw away batches the server counts as delivered).
+"""
+from __future__ import annotations
+
+import itertools
+import sys
+from typing import Callable, Iterator, List, Optional, Tuple
+
+import msgpack
+import torch
+
+from .endpoint import padding_copy
+
+__all__ = ["DispatchedBatch", "prepare_loader", "check_whole", "adapt", "rank_part", "pack_rows", "unpack_rows"]
+
+#: the key of a dispatched batch's packed rows: uint8 (rows, width), one msgpack
+#: ``[sample_id, params, epoch, batch_id]`` per row, zero-filled
+META = "sample_meta"
+#: the key of the per-rank states :func:`prepare_loader`'s save hook writes
+RANKS = "v2v_ranks"
+#: torchdata StatefulDataLoader's key of its dataset's ``state_dict()`` in its own state
+DATASET_STATE = "dataset_state"
+_WIDTH_STEP = 64  # the packed rows' width is a multiple of this (bytes)
+
+
+class DispatchedBatch(dict):
+    """A batch as accelerate's dispatch mode moves it: only tensors of one leading size (rows),
+    so accelerate can concatenate, broadcast, slice and place it (its functions rebuild a mapping
+    with its own type). ``batch["sample_ids"]`` (list of str), ``batch["params"]`` (list of dicts),
+    ``batch["epoch"]`` and ``batch["batch_id"]`` (int) are decoded from ``sample_meta`` on access,
+    so a training loop reads it as it reads a plain batch; ``padding`` bool (rows,) flags the rows
+    the loss must ignore."""
+
+    FIELDS = ("sample_ids", "params", "epoch", "batch_id")
+
+    def __missing__(self, key):
+        if key not in self.FIELDS or META not in self:
+            raise KeyError(key)
+        rows = unpack_rows(dict.__getitem__(self, META))
+        if key in ("sample_ids", "params"):
+            return [r[self.FIELDS.index(key)] for r in rows]
+        return int(rows[0][self.FIELDS.index(key)]) if rows else -1
+
+    def get(self, key, default=None):
+        try:
+            return self[key]
+        except KeyError:
+            return default
+
+
+def pack_rows(batch: dict) -> List[bytes]:
+    """One msgpack ``[sample_id, params, epoch, batch_id]`` per sample of a stream batch."""
+    return [msgpack.packb([sid, p, int(batch["epoch"]), int(batch["batch_id"])])
+            for sid, p in zip(batch["sample_ids"], batch["params"])]
+
+
+def unpack_rows(meta: torch.Tensor) -> list:
+    """The ``[sample_id, params, epoch, batch_id]`` of each row of a ``sample_meta`` uint8 tensor
+    (rows, width), on any device."""
+    out = []
+    for row in meta.detach().cpu().numpy():
+        unpacker = msgpack.Unpacker(raw=False, strict_map_key=False)
+        unpacker.feed(row.tobytes())  # the zero fill after the row's object is never read
+        out.append(next(unpacker))
+    return out
+
+
+def dispatched(batch: dict, packed: List[bytes], rows: int, width: int) -> DispatchedBatch:
+    """``batch`` as a :class:`DispatchedBatch` of ``rows`` rows (the rows past its own repeat its
+    first sample, flagged in ``padding``) with its packed rows (``pack_rows``) in ``width`` bytes.
+
+    Raises:
+        TypeError: the batch holds something that is neither a tensor nor one of ``FIELDS``.
+    """
+    n = len(packed)
+    fill = [0] * (rows - n)
+    out = DispatchedBatch()
+    for key, value in batch.items():
+        if isinstance(value, torch.Tensor):
+            out[key] = torch.cat([value, value[fill]]) if fill else value
+        elif key not in DispatchedBatch.FIELDS:
+            raise TypeError(f"batch entry {key!r} ({type(value).__name__}) cannot be dispatched by accelerate")
+    out["padding"] = torch.cat([batch["padding"], torch.ones(len(fill), dtype=torch.bool)])
+    meta = torch.zeros((rows, width), dtype=torch.uint8)
+    for i, row in enumerate(packed + [packed[0]] * len(fill)):
+        meta[i, :len(row)] = torch.frombuffer(bytearray(row), dtype=torch.uint8)
+    out[META] = meta
+    return out
+
+
+def _dispatch(ds, batches: Iterator[dict], group: int) -> Iterator[DispatchedBatch]:
+    """Process 0's stream for accelerate's dispatcher: groups of ``group`` batches (the last
+    completed with padding batches), each padded to the group's largest row count.
+    While a group is being handed out, ``ds.held_state`` is the state before it: accelerate snapshots
+    the loader state before each batch it takes, and its training step holds whole groups only."""
+    try:
+        while True:
+            before = ds.state_dict()
+            pulled = list(itertools.islice(batches, group))
+            if not pulled:
+                return
+            pulled += [padding_copy(pulled[-1], pulled[-1]["epoch"]) for _ in range(group - len(pulled))]
+            packed = [pack_rows(b) for b in pulled]
+            rows = max(len(p) for p in packed)
+            width = -(-max(len(r) for p in packed for r in p) // _WIDTH_STEP) * _WIDTH_STEP
+            for i, (b, p) in enumerate(zip(pulled, packed)):
+                ds.held_state = before if i < len(pulled) - 1 else None
+                yield dispatched(b, p, rows, width)
+    finally:
+        ds.held_state = None
+        if hasattr(batches, "close"):
+            batches.close()  # the connection says goodbye now, not when the iterator is collected
+
+
+def _loader_of(ds):
+    """The accelerate loader iterating ``ds`` now (directly or through ``IterableDatasetShard``),
+    or None (accelerate not in use)."""
+    if "accelerate.data_loader" not in sys.modules:
+        return None
+    from accelerate.state import GradientState
+
+    for dl in GradientState().dataloader_references:
+        inner = getattr(dl, "dataset", None) if dl is not None else None
+        if inner is ds or getattr(inner, "dataset", None) is ds:
+            return dl
+    return None
+
+
+def check_whole(ds) -> None:
+    """Refuse accelerate's ``IterableDatasetShard`` around ``ds`` (``dispatch_batches=False``).
+
+    Raises:
+        RuntimeError: one line saying what to do instead.
+    """
+    dl = _loader_of(ds)
+    if dl is not None and dl.dataset is not ds:
+        raise RuntimeError("accelerate's dispatch_batches=False wraps V2VStreamDataset in IterableDatasetShard, "
+                           "which keeps 1/N of what each rank's own connection receives: build the loader with "
+                           "v2v_client.prepare_loader(accelerator, DataLoader(ds, batch_size=None)) instead of "
+                           "accelerator.prepare")
+
+
+def adapt(ds, batches: Iterator[dict]) -> Iterator[dict]:
+    """``ds``'s batches as the loader reading it needs them, decided at the first batch (when
+    accelerate has registered its loader): accelerate's dispatcher over several processes gets
+    :func:`_dispatch` with ``ds`` read as the only consumer (``ds.read_alone()``); anything else
+    gets the batches as they are.
+
+    Raises:
+        RuntimeError: (at the first batch) ``skip_first_batches``, or a stateful accelerate loader
+            over several processes not made by :func:`prepare_loader`.
+    """
+    dl = _loader_of(ds)
+    if dl is not None:
+        if getattr(dl, "skip_batches", 0):
+            raise RuntimeError("accelerate's skip_first_batches would throw away batches the v2v server counts as "
+                               "delivered: resume with use_stateful_dataloader=True and save_state/load_state")
+        from accelerate.data_loader import DataLoaderDispatcher
+
+        processes = dl.state.num_processes if isinstance(dl, DataLoaderDispatcher) else 1
+        stateful = getattr(dl, "use_stateful_dataloader", False)
+        if stateful and _world() > 1 and not getattr(ds, "gathers_state", False):
+            raise RuntimeError("accelerate saves one loader state for every process: build the loader with "
+                               "v2v_client.prepare_loader(accelerator, DataLoader(ds, batch_size=None)), whose save "
+                               "hook keeps each rank's V2VStreamDataset state")
+        if processes > 1:
+            ds.read_alone()
+            yield from _dispatch(ds, batches, processes)
+            return
+    yield from batches
+
+
+def _world() -> int:
+    dist = torch.distributed
+    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+
+
+def rank_part(state: dict, position: Callable[[], Tuple[int, int]]) -> dict:
+    """This rank's part of a state :func:`prepare_loader`'s save hook gathered (``position()``:
+    this process's ``(rank, world_size)``, asked only then); any other state as it is.
+
+    Raises:
+        ValueError: the state was saved by another number of ranks.
+    """
+    if isinstance(state, dict) and RANKS in state:
+        rank, world = position()
+        parts = state[RANKS]
+        if len(parts) != world:
+            raise ValueError(f"this V2VStreamDataset state was saved by {len(parts)} ranks and is loaded by "
+                             f"{world}: resume with the world size it was saved with")
+        return parts[rank]
+    return state
+
+
+def _gather_states(loader):
+    """A save-state pre-hook: every rank's dataset state (from its loader's snapshot) in each rank's snapshot."""
+    def hook(models, weights, output_dir) -> None:
+        snap = loader.state_dict()
+        if not isinstance(snap, dict) or DATASET_STATE not in snap:
+            return
+        world = _world()
+        rank = torch.distributed.get_rank() if world > 1 else 0
+        parts: List[Optional[dict]] = [None] * world
+        own = rank_part(snap[DATASET_STATE], lambda: (rank, world))
+        if world > 1:
+            torch.distributed.all_gather_object(parts, own)
+        else:
+            parts = [own]
+        snap[DATASET_STATE] = {RANKS: parts}
+    return hook
+
+
+def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
+    """``loader`` (``DataLoader(V2VStreamDataset(...), batch_size=None)``) prepared by ``accelerator``
+    in the mode its ``DataLoaderConfiguration`` names, in place of ``accelerator.prepare(loader)``:
+    dispatch (the default) as accelerate builds it; per rank (``dispatch_batches=False``) as
+    accelerate's ``DataLoaderShard`` around the whole dataset, so each rank reads its own share of
+    the stream. With ``use_stateful_dataloader=True`` it registers the save hook that keeps every
+    rank's dataset state in the saved loader state. The result is registered with the accelerator
+    (``save_state`` / ``load_state`` cover it; ``accelerator.prepare`` passes it through).
+
+    Raises:
+        TypeError: the loader does not read a V2VStreamDataset.
+        ValueError: the loader batches the stream's batches again (``batch_size`` not None).
+    """
+    from accelerate.data_loader import prepare_data_loader
+
+    ds = loader.dataset
+    if not callable(getattr(ds, "read_alone", None)):
+        raise TypeError(f"prepare_loader reads a V2VStreamDataset; this loader reads {type(ds).__name__}")
+    if loader.batch_size is not None:
+        raise ValueError(f"the loader has batch_size={loader.batch_size}: V2VStreamDataset yields whole batches, "
+                         f"use DataLoader(ds, batch_size=None)")
+    dispatch = accelerator.dispatch_batches
+    if accelerator.num_processes > 1 and (dispatch is False or (dispatch is None and not accelerator.device_placement)):
+        loader = prepare_data_loader(loader, accelerator.device, num_processes=1, process_index=0,
+                                     put_on_device=accelerator.device_placement, dispatch_batches=False,
+                                     non_blocking=accelerator.non_blocking,
+                                     use_stateful_dataloader=accelerator.use_stateful_dataloader)
+        loader._is_accelerate_prepared = True  # accelerate's own mark: prepare_data_loader registers it as it is
+    loader = accelerator.prepare_data_loader(loader)
+    if accelerator.use_stateful_dataloader:
+        accelerator.register_save_state_pre_hook(_gather_states(loader))
+        ds.gathers_state = True
+    return loader
