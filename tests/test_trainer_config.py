@@ -216,9 +216,9 @@ def test_the_bundled_configs_are_all_pinned():
 
 
 @pytest.mark.parametrize("item,message", [
-    ("optim.amsgrad=1", "config field 'optim.amsgrad': Expected a bool. Got value: 1"),
-    ("log.checkpoint_every=2.5", "config field 'log.checkpoint_every': Expected a int. Got value: 2.5"),
-    ("model.skip_type=mul", "config field 'model.skip_type'"),
+    ("optim.amsgrad=1", "config field 'optim.amsgrad' must be a bool, got 1"),
+    ("log.checkpoint_every=2.5", "config field 'log.checkpoint_every' must be an int, got 2.5"),
+    ("model.skip_type=mul", "config field 'model.skip_type' must be one of ['sum', 'concat'], got 'mul'"),
     ("max_steps=null", "config field 'max_steps' may not be null"),
     ("optim.lr=.nan", "config field 'optim.lr' must be a finite number, got nan"),
     ("optim.lr='5'", "config field 'optim.lr' must be a float, got the string '5'"),

@@ -376,12 +376,17 @@ def _parser(task: str) -> ArgumentParser:
     return parser
 
 
-def _library_error(e: Exception) -> ValueError:
-    """jsonargparse's message as one line naming the field: ``config field 'optim.amsgrad':
-    Expected a bool. Got value: 1``."""
-    msg = re.sub(r"<class '(\w+)'>", r"\1", " ".join(str(e).split()))
-    m = re.match(r'Parser key "([^"]+)": (.*)', msg)
-    return ValueError(f"config field {m.group(1)!r}: {m.group(2)}" if m else msg)
+def _library_error(e: Exception, cfg: dict, schema: dict) -> ValueError:
+    """jsonargparse's refusal of a field as one line in the words of the other checks:
+    ``config field 'optim.amsgrad' must be a bool, got 1``."""
+    msg = " ".join(str(e).split())
+    m = re.match(r'Parser key "([^"]+)"', msg)
+    if not m:
+        return ValueError(msg)
+    key, node, ref = m.group(1), cfg, schema
+    for part in key.split("."):
+        node, ref = node.get(part) if isinstance(node, dict) else None, ref.get(part)
+    return ValueError(f"config field {key!r} must be {_type_name(ref[1])}, got {node!r}")
 
 
 def check_types(cfg: dict) -> dict:
@@ -403,7 +408,7 @@ def check_types(cfg: dict) -> dict:
         try:
             parsed = _parser(task).parse_object(known, defaults=False).as_dict()
         except ArgumentError as e:
-            raise _library_error(e) from None
+            raise _library_error(e, known, schema) from None
         _write_back(cfg, parsed, schema)
         return cfg
 
@@ -448,7 +453,8 @@ def _type_name(t) -> str:
         return f"one of {list(get_args(t))}"
     if get_origin(t) is Union:
         return " or ".join("null" if a is type(None) else _type_name(a) for a in get_args(t))
-    return f"a {getattr(t, '__name__', t)}"
+    name = getattr(t, "__name__", str(t))
+    return f"{'an' if name[0] in 'aeiou' else 'a'} {name}"
 
 
 def _write_back(cfg: dict, parsed: dict, schema: dict, prefix: str = "") -> None:
