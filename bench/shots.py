@@ -29,7 +29,7 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -38,7 +38,7 @@ from harness.shot_labels import LABELLED, REAL_CLIP_CUTS, Transition, edited_cli
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
 from v2v_server.videos.decode import decode_codes, full_range, iter_luma, open_video
 from v2v_server.videos import shots
-from v2v_server.videos.shots import ShotDetector, shot_windows
+from v2v_server.videos.shots import ShotDetector, WindowLayout
 
 ROWS = lambda h: int(h * 0.54)  # noqa: E731  (the recipe's kept rows)
 SPANS = (41, 201)  # window lengths: --sequence-length 8, and the paper's recipe
@@ -112,6 +112,24 @@ def _score(found: List[int], truth: List[Transition]) -> Tuple[int, int, int]:
         elif not any(t.matches(c) for t in truth):
             fp += 1
     return tp, fp, len(left)
+
+
+def shot_windows(cuts: Iterable[int], frames: int, span: int, max_windows: int, avoid_cuts: bool = True) -> List[int]:
+    """The first frame of each window of a video of ``frames`` frames with ``cuts`` (frames that
+    start a shot), as the server's :class:`~v2v_server.videos.shots.WindowLayout` places them:
+    a second pass over the frame indices alone, for scoring detectors on their cuts without
+    decoding again. Windows span ``span`` frames, at most ``max_windows`` of them; with
+    ``avoid_cuts`` none spans a cut (``shot_cuts: off`` is ``avoid_cuts=False``)."""
+    cut_set = set(int(c) for c in cuts)
+    layout = WindowLayout(span, max_windows, avoid_cuts)
+    starts: List[int] = []
+    for i in range(frames):
+        ev = layout.step(i, i in cut_set)
+        if ev.ends is not None:
+            starts.append(i - layout.stride)
+        if layout.done:
+            break
+    return starts
 
 
 def _windows(cuts: List[int], frames: int, span: int, margin: int = 0) -> List[int]:

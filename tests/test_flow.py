@@ -12,6 +12,7 @@ from v2v_server.flow import estimate as flow_mod
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.flow.estimate import FlowEstimator, dis_flow
+from v2v_server.luma import to_uint8
 from v2v_server.flow.options import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowOption, FlowUnavailable, TrackParams,
                                      check_option, unavailable_reason)
 from v2v_server.samples.make import make_sample, plan_window, video_samples
@@ -409,3 +410,16 @@ def test_voxel_flows_float16_is_the_float32_flow_cast(name):
         got = np.empty((3, 2, 96, 112), np.float32)
         _expand_grids(g, *_expand_tables(8, 96, 112), got)
         np.testing.assert_allclose(got, want, rtol=0, atol=2e-5)
+
+
+@pytest.mark.parametrize("name", ["tracked", "ultrafast"])
+def test_deeper_frames_give_the_flow_of_their_8_bit_frames(name):
+    """uint16 frames are read through the one conversion the ground-truth frames use
+    (``v2v_server.luma.to_uint8``, rounded), not their top 8 bits."""
+    f8 = panning_frames(11, 2)
+    f16 = (f8.astype(np.uint16) << 8) | 0xC0  # low bits where rounding and the top byte disagree
+    assert (to_uint8(f16) != (f16 >> 8)).mean() > 0.05
+    est = FlowEstimator(name)
+    np.testing.assert_array_equal(est.voxel_flows(f16, 5), est.voxel_flows(to_uint8(f16), 5))
+    a, b = f16[0], f16[5]
+    np.testing.assert_array_equal(dis_flow(a, b, "ultrafast"), dis_flow(to_uint8(a), to_uint8(b), "ultrafast"))

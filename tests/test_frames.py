@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from v2v_server.samples.recipe import SampleRecipe
 
-from v2v_server.videos.decode import (choose_video_stream, is_full_range, iter_luma, open_video, range_table,
-                              to_uint8)
+from v2v_server.luma import to_uint8
+from v2v_server.videos.decode import choose_video_stream, is_full_range, iter_luma, open_video, range_table
 
 S = 64  # clip side, pixels
 LEVELS = (0, 255, 128)
@@ -68,7 +68,9 @@ def test_range_tables():
     assert range_table(10, full_range=True)[1023] == 65535
     assert is_full_range("yuvj420p", 0) and is_full_range("yuv420p", 2) and not is_full_range("yuv420p", 0)
     assert is_full_range("gray", 0) and not is_full_range("gray", 1)
-    assert np.array_equal(to_uint8(np.array([0, 128, 65535, 257 * 100], np.uint16)), [0, 0, 255, 100])
+    assert np.array_equal(to_uint8(np.array([0, 128, 129, 385, 65535, 257 * 100], np.uint16)), [0, 0, 1, 1, 255, 100])
+    with pytest.raises(ValueError, match="uint8 or uint16, got float32"):
+        to_uint8(np.zeros(3, np.float32))
     with pytest.raises(ValueError, match="bit depth"):
         range_table(7, False)
 

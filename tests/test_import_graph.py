@@ -101,7 +101,8 @@ def test_wire_package_stands_alone():
 
 
 #: The server's stage folders, lowest first: each imports only the stages before it (and
-#: ``v2v_server.checks``, ``v2v_server.faults`` and ``v2v_server.settings``, below all of them),
+#: ``v2v_server.checks``, ``v2v_server.faults``, ``v2v_server.settings`` and ``v2v_server.luma``, the
+#: one uint16 -> uint8 conversion that flow, decode and the sample maker use, below all of them),
 #: at run time and for annotations alike (an ``if TYPE_CHECKING:`` import counts). ``ops``
 #: (settings, metrics, logs) sits below the ``service`` that uses them; the Ray engine
 #: (``ray_data``, the other engine beside the service) above them all; the command that wires
@@ -110,7 +111,7 @@ STAGES = ("flow", "videos", "simulation", "samples", "delivery", "ops", "service
 COMMANDS = {"v2v_server.cli"}
 #: what a stage may import from v2v_server besides the stages below it (the package itself runs
 #: on any import of a module in it)
-BELOW_ALL = {"v2v_server", "v2v_server.checks", "v2v_server.faults", "v2v_server.settings"}
+BELOW_ALL = {"v2v_server", "v2v_server.checks", "v2v_server.faults", "v2v_server.settings", "v2v_server.luma"}
 #: names a parameter carrying the whole server configuration goes by
 CONFIG_NAMES = {"cfg", "config", "cfg_dict", "serve_config"}
 

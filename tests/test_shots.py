@@ -13,12 +13,13 @@ from v2v_server.videos import frames as frames_mod
 from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_video, format_check
 from v2v_server.videos.decode import iter_luma
 from v2v_server.videos.segments import parse_time, range_problem, segment_name, split_segment
-from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, shot_windows, thumbnail
+from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, thumbnail
 from v2v_server.videos.local import LocalSource
 from v2v_server.videos.source_spec import open_source
 from v2v_server.videos.video_list import read_video_list
 from v2v_wire.ids import parse_sample_id
 
+from bench.shots import shot_windows
 from harness.shot_labels import LABELLED, REAL_CLIP_CUTS, real_clip, write_edited_clip
 
 
@@ -122,12 +123,6 @@ def test_a_clip_with_a_dissolve_gives_no_window_across_it(edited):
 
 
 def test_layout_places_windows_inside_shots():
-    assert shot_windows([], 450, 201, 10) == [0, 200]
-    assert shot_windows([5], 420, 201, 10) == [5, 205]
-    assert shot_windows([5], 420, 201, 10, avoid_cuts=False) == [0, 200]  # the authors' layout
-    assert shot_windows([201], 420, 201, 10) == [0, 201]  # a shot of exactly one window
-    assert shot_windows([200], 420, 201, 10) == [200]  # 200 frames hold no window
-    assert shot_windows([], 10_000, 201, 3) == [0, 200, 400]  # at most max_windows
     lay = WindowLayout(5, 10)
     events = [lay.step(i, i == 6) for i in range(12)]
     assert events[6].drops == 1 and events[6].starts == 1  # window 1 started at 4, cut at 6: dropped, restarted

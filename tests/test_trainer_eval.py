@@ -13,6 +13,8 @@ from trainer.evaluate import (H5Sequence, events_to_voxels, evaluate_e2vid, flow
                               reconstruction_metrics, video_sequence)
 from trainer.core import Trainer
 from tests.trainer_fixtures import write_edge_events
+from trainer.event_grids import voxel_grids
+from trainer.recordings import EVENT_DTYPE
 
 torch.set_num_threads(2)
 
@@ -73,6 +75,30 @@ def test_events_to_voxels_signs_bins_and_errors():
         events_to_voxels(xs, ys, ts[::-1], ps, np.array([0.0, 1.0]), 2, 2, 3)
     with pytest.raises(ValueError):
         events_to_voxels(xs + 5, ys, ts, ps, np.array([0.0, 1.0]), 2, 2, 3)
+
+
+def test_events_to_voxels_is_voxel_grids_over_whole_arrays():
+    """Float seconds through events_to_voxels and integer microseconds through voxel_grids give
+    the same grids (times exact in both units), with hand-checked values at the edges: an event
+    on an edge opens the later interval, one just before it goes to the last bin."""
+    ts = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.125, 1.875, 2.5])  # 2.5: after the last edge, ignored
+    xs, ys = np.array([0, 1, 2, 0, 1, 2, 0, 1]), np.array([0, 0, 1, 1, 0, 0, 1, 1])
+    ps = np.array([1, 0, 1, 1, -1, 1, 0, 1])
+    vox, counts = events_to_voxels(xs, ys, ts, ps, np.array([0.0, 1.0, 2.0]), 4, 2, 3)
+    want = np.zeros((2, 4, 2, 3), np.int32)
+    want[0, 0, 0, 0], want[0, 1, 0, 1], want[0, 2, 1, 2], want[0, 3, 1, 0] = 1, -1, 1, 1
+    want[1, 0, 0, 1], want[1, 0, 0, 2], want[1, 3, 1, 0] = -1, 1, -1
+    assert vox.dtype == np.int32 and counts.dtype == np.int32
+    np.testing.assert_array_equal(vox, want)
+    np.testing.assert_array_equal(counts, [[[1, 1, 0], [1, 0, 1]], [[0, 1, 1], [1, 0, 0]]])
+    ev = np.zeros(len(ts), EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"], ev["p"] = (ts * 1_000_000).astype(np.int64), xs, ys, np.where(ps > 0, 1, -1)
+    grids = list(voxel_grids([ev[:3], ev[3:]], np.array([0, 1_000_000, 2_000_000]), 4, 2, 3))
+    assert [k for k, _, _ in grids] == [0, 1]
+    np.testing.assert_array_equal(np.stack([v for _, v, _ in grids]), vox)
+    np.testing.assert_array_equal(np.stack([c for _, _, c in grids]), counts)
+    empty, none = events_to_voxels(xs[:0], ys[:0], ts[:0], ps[:0], np.array([0.0, 1.0]), 2, 2, 3)
+    assert empty.shape == (1, 2, 2, 3) and not empty.any() and not none.any()
 
 
 def test_reconstruction_metrics_and_data_range_switch():

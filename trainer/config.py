@@ -9,14 +9,17 @@ from __future__ import annotations
 import contextlib
 import copy
 import functools
+import math
+import re
 import sys
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Iterable, Optional
+from typing import Any, Iterable, Literal, Optional, Union, get_args, get_origin, get_type_hints
 
 import yaml
+from jsonargparse import ArgumentError, ArgumentParser
 
 from v2v_server.settings import YamlLoader, load_yaml, setting
-from v2v_server.checks import check_bool, check_choice, check_float, check_int, check_keys
+from v2v_server.checks import check_choice, check_keys
 
 __all__ = ["DEFAULTS", "SECTIONS", "TASK_SECTIONS", "LOSS_PRESETS", "FLOW_SOURCES", "RunSettings", "default_config",
            "load_config", "apply_overrides", "apply_loss_preset", "SPELLINGS", "merge", "check_types",
@@ -267,10 +270,11 @@ TASK_SECTIONS = {"e2vid": {"model": E2VIDModel, "loss": E2VIDLoss},
 
 
 def _schema(task: str) -> dict:
-    """{key: dataclass field or {section key: field}} of ``task``'s configuration."""
-    out = {f.name: f for f in fields(RunSettings)}
+    """{key: (dataclass field, its type for jsonargparse) or {section key: (field, type)}} of
+    ``task``'s configuration."""
+    out = {f.name: (f, _library_type(RunSettings, f)) for f in fields(RunSettings)}
     for name, cls in {**SECTIONS, **TASK_SECTIONS[task]}.items():
-        out[name] = {f.name: f for f in fields(cls)}
+        out[name] = {f.name: (f, _library_type(cls, f)) for f in fields(cls)}
     return out
 
 
@@ -350,58 +354,122 @@ def _check_keys(cfg: dict, ref: dict, section: str = ""):
             _check_keys(v, ref[k], f"{section}.{k}" if section else k)
 
 
-def _check_value(field_, v, name: str):
-    """``v`` checked against the declared type of ``field_`` (floats accept ints); returns it."""
-    ann = str(field_.type)
-    optional = ann.startswith("Optional[")
-    if v is None and (optional or field_.default is None):
-        return v
-    base = ann[len("Optional["):-1] if optional else ann
-    label = f"config field {name!r}"
-    if base == "bool":
-        return check_bool(label, v)
-    if base == "int":
-        return check_int(label, v)
-    if base == "float":
-        return check_float(label, v, positive=False)
-    if base == "str":
-        if not isinstance(v, str):
-            raise ValueError(f"{label} must be a string, got {v!r}")
-        choices = field_.metadata.get("choices")
-        if choices and v not in choices:
-            v = SPELLINGS.get(v, v)
-        return check_choice(label, v, choices) if choices else v
-    return v
+def _library_type(cls, f) -> Any:
+    """The type jsonargparse checks a field against: its annotation, with its ``choices`` as a
+    ``Literal``; a field defaulting to None may be None."""
+    t = get_type_hints(cls)[f.name]
+    optional = type(None) in get_args(t) or f.default is None
+    choices = f.metadata.get("choices")
+    if choices:
+        t = Literal[tuple(choices)]
+    return Optional[t] if optional and t is not Any else t
 
 
-def check_types(cfg: dict, schema: Optional[dict] = None, prefix: str = "") -> dict:
+@functools.lru_cache(maxsize=None)
+def _parser(task: str) -> ArgumentParser:
+    """The jsonargparse parser of ``task``'s configuration: one key per field of ``RunSettings``
+    and one ``section.key`` per field of each section."""
+    parser = ArgumentParser(exit_on_error=False, default_env=False)
+    for key, ref in _schema(task).items():
+        for sub, (_, t) in (ref.items() if isinstance(ref, dict) else [(None, ref)]):
+            parser.add_argument(f"--{key}" + (f".{sub}" if sub else ""), type=t, default=None)
+    return parser
+
+
+def _library_error(e: Exception, cfg: dict, schema: dict) -> ValueError:
+    """jsonargparse's refusal of a field as one line in the words of the other checks:
+    ``config field 'optim.amsgrad' must be a bool, got 1``."""
+    msg = " ".join(str(e).split())
+    m = re.match(r'Parser key "([^"]+)"', msg)
+    if not m:
+        return ValueError(msg)
+    key, node, ref = m.group(1), cfg, schema
+    for part in key.split("."):
+        node, ref = node.get(part) if isinstance(node, dict) else None, ref.get(part)
+    return ValueError(f"config field {key!r} must be {_type_name(ref[1])}, got {node!r}")
+
+
+def check_types(cfg: dict) -> dict:
     """Check ``cfg`` against the declared fields of its task (``RunSettings`` and the section
-    dataclasses), in place, and return it: ints must be integers, floats numbers (stored as
-    ``float``), booleans booleans, strings strings of the listed choices; a field declared
-    Optional (or defaulting to None) may be None.
+    dataclasses; jsonargparse checks each value against its annotation), in place, and return
+    it: ints must be integers, floats finite numbers (stored as ``float``), booleans booleans,
+    strings strings of the listed choices (``SPELLINGS`` read as the listed one); only a field
+    declared Optional (or defaulting to None) may be None. Keys outside the schema are left
+    alone (:func:`load_config` and :func:`apply_overrides` refuse them, naming the allowed ones).
 
     Raises:
         ConfigError: (a ``ValueError``) naming the dotted field.
     """
     with _config_errors():
-        if schema is None:
-            task = cfg.get("task", "e2vid")
-            check_choice("config field 'task'", task, tuple(TASK_SECTIONS))
-            schema = _schema(task)
-        return _check_section(cfg, schema, prefix)
+        task = cfg.get("task", "e2vid")
+        check_choice("config field 'task'", task, tuple(TASK_SECTIONS))
+        schema = _schema(task)
+        known = _known(cfg, schema, "")
+        try:
+            parsed = _parser(task).parse_object(known, defaults=False).as_dict()
+        except ArgumentError as e:
+            raise _library_error(e, known, schema) from None
+        _write_back(cfg, parsed, schema)
+        return cfg
 
 
-def _check_section(cfg: dict, schema: dict, prefix: str) -> dict:
-    for k, v in list(cfg.items()):
-        name = prefix + k
-        ref = schema.get(k)
+def _known(cfg: dict, schema: dict, prefix: str) -> dict:
+    """The keys of ``cfg`` that ``schema`` declares, spellings replaced (in ``cfg`` too) by the
+    listed choice. ``ValueError`` for what jsonargparse would let through: a section that is not
+    a mapping, None where the field may not be None, a float that is not finite, a string for a
+    number or a boolean."""
+    out = {}
+    for k, v in cfg.items():
+        name, ref = prefix + k, schema.get(k)
         if isinstance(ref, dict):
             if not isinstance(v, dict):
                 raise ValueError(f"config field {name!r} must be a mapping, got {v!r}")
-            _check_section(v, ref, name + ".")
+            out[k] = _known(v, ref, name + ".")
         elif ref is not None:
-            cfg[k] = _check_value(ref, v, name)
-    return cfg
+            field_, t = ref
+            choices = field_.metadata.get("choices")
+            if choices and isinstance(v, str) and v not in choices:
+                v = cfg[k] = SPELLINGS.get(v, v)  # stored as the listed choice
+            if v is None and t is not Any and type(None) not in get_args(t):
+                raise ValueError(f"config field {name!r} may not be null")
+            if isinstance(v, float) and not math.isfinite(v) and t is not Any:
+                raise ValueError(f"config field {name!r} must be a finite number, got {v!r}")
+            if isinstance(v, str) and not _takes_text(t):
+                raise ValueError(f"config field {name!r} must be {_type_name(t)}, got the string {v!r}")
+            out[k] = v
+    return out
+
+
+def _takes_text(t) -> bool:
+    """Whether type ``t`` holds strings (jsonargparse would also read "5" as the int 5 and
+    "yes" as true; a configuration's numbers and booleans are written as such)."""
+    args = get_args(t)
+    return t is Any or t is str or any(isinstance(a, str) or _takes_text(a) for a in args)
+
+
+def _type_name(t) -> str:
+    """``a float``, ``one of ['sum', 'concat']``, ``a str or null``: what type ``t`` holds."""
+    if get_origin(t) is Literal:
+        return f"one of {list(get_args(t))}"
+    if get_origin(t) is Union:
+        return " or ".join("null" if a is type(None) else _type_name(a) for a in get_args(t))
+    name = getattr(t, "__name__", str(t))
+    return f"{'an' if name[0] in 'aeiou' else 'a'} {name}"
+
+
+def _write_back(cfg: dict, parsed: dict, schema: dict, prefix: str = "") -> None:
+    """The one conversion the check makes, in place: an int given for a float field is stored
+    as the float jsonargparse made of it; every other value stays as given (a string field's
+    ``'null'`` is that string). ``ValueError`` for another string jsonargparse read as null (a
+    choice that is not one)."""
+    for k, v in parsed.items():
+        given, ref = cfg.get(k), schema.get(k)
+        if isinstance(ref, dict):
+            _write_back(given, v, ref, f"{prefix}{k}.")
+        elif v is None and given is not None and not (isinstance(given, str) and (ref[1] is Any or str in get_args(ref[1]))):
+            raise ValueError(f"config field {prefix + k!r} must be {_type_name(ref[1])}, got {given!r}")
+        elif isinstance(v, float) and isinstance(given, int) and not isinstance(given, bool):
+            cfg[k] = v
 
 
 def load_config(path: Optional[str] = None, task: Optional[str] = None) -> dict:
@@ -480,7 +548,7 @@ def _apply(cfg: dict, overrides: Iterable[str]) -> None:
 def apply_loss_preset(loss: dict, name: str) -> dict:
     """Set ``loss["preset"]`` and the preset's term keys (``LOSS_PRESETS[name]``) in place and
     return ``loss``. Raises ``ValueError`` naming the known presets for another name."""
-    if name not in LOSS_PRESETS:
+    if not isinstance(name, str) or name not in LOSS_PRESETS:
         raise ValueError(f"config field 'loss.preset' must be one of {list(LOSS_PRESETS)} or null, got {name!r}")
     loss.update(LOSS_PRESETS[name])
     loss["preset"] = name

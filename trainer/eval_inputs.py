@@ -41,7 +41,8 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
     import cv2
 
     from v2v_server.simulation.simulate import SensorParams, simulate_voxels
-    from v2v_server.videos.decode import iter_luma, to_uint8
+    from v2v_server.luma import to_uint8
+    from v2v_server.videos.decode import iter_luma
 
     out = []
     frames_it = iter_luma(path)  # the stream's reader: full-range, display-oriented luma

@@ -46,17 +46,21 @@ def count_edges(chunks, events_per_grid: int) -> np.ndarray:
 
 def voxel_grids(chunks, edges_us: np.ndarray, num_bins: int, height: int, width: int
                 ) -> Iterator[Tuple[int, np.ndarray, np.ndarray]]:
-    """The paper's discrete voxel grids between consecutive edges, built from event chunks.
+    """The paper's discrete voxel grids between consecutive edges, built from event chunks: the
+    one voxel-grid routine of the trainer (:func:`events_to_voxels` reads whole arrays through it).
 
     Interval k covers ``[edges[k], edges[k+1])``; an event at t in it goes to bin
-    ``floor(B * (t - t0) / (t1 - t0))`` (computed exactly in integer microseconds, clipped to
-    B - 1) and adds +1 for positive polarity, -1 for negative: the bin value is N+ - N-.
+    ``floor(B * (t - t0) / (t1 - t0))`` (clipped to B - 1; computed exactly for integer
+    microseconds, in float64 for float seconds) and adds its polarity ``p``: +1 for positive,
+    -1 for negative, so the bin value is N+ - N-.
 
     Args:
-        chunks: iterable of :data:`trainer.recordings.EVENT_DTYPE` arrays, t non-decreasing across chunks
-            (:meth:`Recording.chunks`); events outside every interval are ignored.
-        edges_us: int64 (K+1,) increasing edges, microseconds (frame timestamps or
-            :func:`window_edges`).
+        chunks: iterable of :data:`trainer.recordings.EVENT_DTYPE` arrays (or anything indexed by
+            ``"t"``, ``"x"``, ``"y"``, ``"p"`` with p in {-1, 1} and t in the edges' unit), t
+            non-decreasing across chunks (:meth:`Recording.chunks`); events outside every
+            interval are ignored.
+        edges_us: (K+1,) increasing edges: int64 microseconds (frame timestamps or
+            :func:`window_edges`), or float seconds (kept as float64).
         num_bins: B.
         height, width: sensor size, pixels.
 
@@ -68,7 +72,8 @@ def voxel_grids(chunks, edges_us: np.ndarray, num_bins: int, height: int, width:
     Raises:
         ValueError: edges that do not increase.
     """
-    edges = np.asarray(edges_us, np.int64)
+    edges = np.asarray(edges_us)
+    edges = edges.astype(np.float64 if edges.dtype.kind == "f" else np.int64, copy=False)
     if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
         raise ValueError("edges_us must be an increasing 1-D array of >= 2 timestamps")
     n, hw, nb = edges.size - 1, height * width, int(num_bins)
@@ -96,7 +101,7 @@ def voxel_grids(chunks, edges_us: np.ndarray, num_bins: int, height: int, width:
             if a == b:
                 continue
             t0, dt = edges[j], edges[j + 1] - edges[j]
-            bins = np.minimum((nb * (t[a:b] - t0)) // dt, nb - 1)
+            bins = np.minimum(_bins(nb * (t[a:b] - t0), dt), nb - 1)
             pix = ev["y"][a:b].astype(np.int64) * width + ev["x"][a:b]
             # in place: the cost follows the chunk's events, not the sensor's pixels
             np.add.at(vox, bins * hw + pix, ev["p"][a:b])
@@ -105,6 +110,14 @@ def voxel_grids(chunks, edges_us: np.ndarray, num_bins: int, height: int, width:
         yield emit()
         vox[:], cnt[:] = 0, 0
         k += 1
+
+
+def _bins(scaled: np.ndarray, dt) -> np.ndarray:
+    """``floor(scaled / dt)`` as int64: exact integer division for integer times, float64
+    division then floor for float times."""
+    if scaled.dtype.kind in "iu" and isinstance(dt, (int, np.integer)):
+        return scaled // dt
+    return np.floor(scaled / dt).astype(np.int64)
 
 
 # -- the event_cnn_minimal H5 layout read whole (the paper protocol's scorer uses it) --
@@ -139,19 +152,9 @@ def events_to_voxels(xs: np.ndarray, ys: np.ndarray, ts: np.ndarray, ps: np.ndar
     if xs.size and (xs.min() < 0 or ys.min() < 0 or xs.max() >= width or ys.max() >= height):
         raise ValueError(f"event coordinates outside the {height}x{width} sensor")
     pol = np.where(np.asarray(ps) > 0, 1, -1).astype(np.int64)
-    n = t_edges.size - 1
-    voxels = np.zeros((n, num_bins, height, width), np.int32)
-    counts = np.zeros((n, height, width), np.int32)
-    idx = np.searchsorted(ts, t_edges, side="left")
-    hw = height * width
-    for i in range(n):
-        a, b = idx[i], idx[i + 1]
-        if a == b:
-            continue
-        t0, t1 = t_edges[i], t_edges[i + 1]
-        bins = np.clip(np.floor(num_bins * (ts[a:b] - t0) / (t1 - t0)).astype(np.int64), 0, num_bins - 1)
-        pix = ys[a:b] * width + xs[a:b]
-        lin = bins * hw + pix
-        voxels[i] = np.bincount(lin, weights=pol[a:b], minlength=num_bins * hw).reshape(num_bins, height, width).astype(np.int32)
-        counts[i] = np.bincount(pix, minlength=hw).reshape(height, width)
+    chunks = [{"t": ts, "x": xs, "y": ys, "p": pol}] if ts.size else []
+    voxels = np.empty((t_edges.size - 1, num_bins, height, width), np.int32)
+    counts = np.empty((t_edges.size - 1, height, width), np.int32)
+    for k, vox, cnt in voxel_grids(chunks, t_edges, num_bins, height, width):
+        voxels[k], counts[k] = vox, cnt
     return voxels, counts

@@ -42,6 +42,7 @@ import numpy as np
 
 from v2v_server.flow.options import (DEFAULT_FLOW, DIS_PRESETS, DISParams, FlowOption, FlowUnavailable, check_option,
                            load_raft, raft_weights, unavailable_reason)
+from v2v_server.luma import to_uint8
 from v2v_wire.flowgrid import expand_grids
 from v2v_server.flow.tracking import (ZOOM_INLIERS, _dropped_inside, _fill_lost, _from_resized,
                        _same_as_previous, _to_resized, _track_grid, _zoom_fit)
@@ -55,11 +56,11 @@ MIN_DIS_SIDE = 16
 
 
 def _to_u8(frame: np.ndarray) -> np.ndarray:
-    if frame.dtype == np.uint8:
-        return np.ascontiguousarray(frame)  # DIS asserts contiguous frames
-    if frame.dtype == np.uint16:
-        return (frame >> 8).astype(np.uint8)
-    raise ValueError(f"flow: frames must be uint8 or uint16, got {frame.dtype}")
+    """``frame`` as contiguous uint8 (DIS asserts contiguous frames): uint16 rounded by
+    :func:`v2v_server.luma.to_uint8`, as the sample's ground-truth frames are."""
+    if frame.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"flow: frames must be uint8 or uint16, got {frame.dtype}")
+    return np.ascontiguousarray(to_uint8(frame))
 
 
 def _create_dis(params: DISParams, shape) -> "cv2.DISOpticalFlow":
@@ -107,7 +108,7 @@ def dis_flow(a: np.ndarray, b: np.ndarray, preset: str = "medium") -> np.ndarray
     ``FlowEstimator.voxel_flows``.
 
     Args:
-        a, b: (H, W) uint8 or uint16 luma frames (uint16 is reduced to its top 8 bits).
+        a, b: (H, W) uint8 or uint16 luma frames (uint16 rounded to 8 bits, ``v2v_server.luma.to_uint8``).
         preset: "ultrafast", "fast" or "medium" (``cv2.DISOPTICAL_FLOW_PRESET_*``).
 
     Returns:

@@ -28,7 +28,7 @@ from v2v_server.videos.source import VideoSource
 from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
-from v2v_server.videos.decode import to_uint8
+from v2v_server.luma import to_uint8
 from v2v_server.videos.frames import FramePass, open_frames
 from v2v_server.videos.window_pass import VideoPass, WindowPass
 

@@ -83,14 +83,6 @@ def is_full_range(pix_fmt: str, color_range: int) -> bool:
     return pix_fmt.startswith("gray") and int(color_range) != COLOR_RANGE_MPEG
 
 
-def to_uint8(luma: np.ndarray) -> np.ndarray:
-    """Full-range uint16 luma (0..65535) -> uint8 (0..255), rounded; uint8 input is returned
-    as is. For outputs that travel as 8 bits (ground-truth frames) or need 8 bits (DIS flow)."""
-    if luma.dtype == np.uint8:
-        return luma
-    return ((luma.astype(np.uint32) + 128) // 257).astype(np.uint8)
-
-
 def full_range(a: np.ndarray) -> np.ndarray:
     """The ``expand`` of codes already at full range (8-bit full-range streams, cached frames): ``a`` itself."""
     return a

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Callable, Iterable, List, Optional, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import numba
 import numpy as np
@@ -300,17 +300,3 @@ class WindowLayout:
             ev.starts = self.windows
         return ev
 
-
-def shot_windows(cuts: Iterable[int], frames: int, span: int, max_windows: int, avoid_cuts: bool = True) -> List[int]:
-    """The first frame of each window of a video of ``frames`` frames with ``cuts`` (frames that
-    start a shot), as :class:`WindowLayout` places them."""
-    cut_set = set(int(c) for c in cuts)
-    layout = WindowLayout(span, max_windows, avoid_cuts)
-    starts: List[int] = []
-    for i in range(frames):
-        ev = layout.step(i, i in cut_set)
-        if ev.ends is not None:
-            starts.append(i - layout.stride)
-        if layout.done:
-            break
-    return starts
