@@ -58,9 +58,6 @@ class Connection:
         ValueError: for ``options.curve_keys`` naming bad key files.
     """
 
-    #: Fraction of the server's client timeout after which a silent process assumes it was dropped.
-    SILENCE_FRACTION = 0.8
-
     def __init__(self, endpoint: str, options, record, consumer: str, convert: Optional[Convert] = None,
                  receipts=None, iteration: int = 0):
         self.endpoint, self.options, self.record = endpoint, options, record
@@ -75,10 +72,10 @@ class Connection:
         self._ctx = zmq.Context.instance()
         self._ident = uuid.uuid4().bytes
         self._pipe = ConsumerPipe(self._ctx)
-        self.last_io = time.monotonic()
         self._lingering = False
         self._receipts = receipts  # DataLoader worker: what the training loop received
         self._iteration, self._abandoned = iteration, False  # LoaderLink.end_iteration
+        self._unreceived = False
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
@@ -101,22 +98,26 @@ class Connection:
         return not self._thread.is_alive() and self.session.items.empty()
 
     # consumer side -------------------------------------------------------
-    def silent_too_long(self, now: float) -> bool:
-        """True when the I/O thread has not run for most of the server's client timeout (the
-        process was suspended): the server has, or is about to have, dropped this client."""
-        limit = (self.session.info or {}).get("client_timeout_s")
-        return isinstance(limit, (int, float)) and now - self.last_io > self.SILENCE_FRACTION * limit
-
-    def take(self, item: dict, hold: bool = False) -> bool:
-        """Claim a received batch and tell the server: acknowledged for the training loop, or
-        with ``hold`` held for a DataLoader worker's queue (no lease: :meth:`ack` follows when
-        the training loop receives it, else closing the connection gives it back). False when
-        it was given back meanwhile (its lease expired, or this client was dropped or silent
-        too long)."""
-        if not self.session.held.claim(item, lambda: self.silent_too_long(time.monotonic())):
-            return False
-        self._queue_for_server((Hold if hold else Ack)((item["batch_id"],)).to_wire())
-        return True
+    def take(self, item: dict, on_claim: Callable[[], object] = lambda: None, ack: bool = True) -> Tuple[bool, object]:
+        """Claim a received batch for the training loop once the server granted it (asked
+        for now if it was not yet: ``HeldBatches.to_ask``), calling ``on_claim()`` as part of
+        the claim, and acknowledge it (``ack``; a DataLoader worker acknowledges when the
+        loop's receipt comes, :meth:`ack`). Returns ``(True, on_claim())``, or ``(False, None)``
+        when it was given back meanwhile (revoked before it was asked, refused, or discarded
+        when this client said hello again) or the connection ended."""
+        held = self.session.held
+        ask = held.to_ask(item)
+        if ask:
+            self._queue_for_server(Hold(tuple(ask)).to_wire())
+        ok, result = held.claim(item, on_claim, lambda: not self._closing.is_set() and self._thread.is_alive())
+        if not ok:
+            return False, None
+        if ack:
+            self._queue_for_server(Ack((item["batch_id"],)).to_wire())
+        ask = held.to_ask()
+        if ask:
+            self._queue_for_server(Hold(tuple(ask)).to_wire())
+        return True, result
 
     def ack(self, batch_ids) -> None:
         """Acknowledge batches this connection holds (the training loop received them)."""
@@ -125,7 +126,7 @@ class Connection:
 
     def give_back(self, item: dict) -> None:
         """Return a received batch to the server unused (e.g. an epoch this consumer already completed)."""
-        if self.session.held.give_back(item):
+        if self.session.held.give_back(item) is not None:
             self._queue_for_server(Released((item["batch_id"],)).to_wire())
 
     def _queue_for_server(self, msg: dict) -> None:
@@ -139,10 +140,14 @@ class Connection:
         receipts, and close once none is left (or at :meth:`close`)."""
         self._lingering = True
 
-    def close(self) -> None:
-        """Stop the I/O thread: acknowledgements already queued are sent, then ``bye``."""
+    def close(self, unreceived: bool = False) -> None:
+        """Stop the I/O thread: acknowledgements already queued are sent, the batches asked
+        for or granted and never handed on are given back (``unreceived``: in a DataLoader
+        worker, also those handed to the loader whose receipt has not come: the loader dropped
+        them), then ``bye``."""
         if self._closing.is_set():
             return
+        self._unreceived = unreceived
         self._closing.set()
         self._thread.join(5.0)
         self._pipe.close_sender()
@@ -201,6 +206,7 @@ class Connection:
             self.session.items.put(StreamError(f"stream from {self.endpoint} failed: {type(e).__name__}: {e}"))
         finally:
             self._finish(self._sock)
+            self.session.held.discard("the connection ended")  # wakes a consumer waiting for a grant
 
     def _serve(self) -> None:
         """Poll the socket, the acknowledgements and the receipts; receive messages, heartbeat,
@@ -213,12 +219,6 @@ class Connection:
         while not self._closing.is_set():
             events = dict(poller.poll(100))
             now = time.monotonic()
-            if self.silent_too_long(now):
-                # suspended longer than the server waits for us: it has dropped us; start afresh
-                log.warning("v2v stream %s: this process was silent for %.0f s; saying hello again",
-                            self.endpoint, now - self.last_io)
-                _send(sock, self.session.hello())
-            self.last_io = now
             if self._pipe.receiver in events:
                 self._pipe.forward(sock)
             self._take_receipts(sock)
@@ -295,6 +295,11 @@ class Connection:
             try:
                 self._pipe.forward(sock)
                 self._take_receipts(sock)
+                ours = self.session.held.discard("the connection closes")
+                if self._receipts is not None and (self._abandoned or self._unreceived):
+                    ours += self.record.pipeline_ids()  # granted, queued in the loader, dropped by it
+                if ours:  # asked or granted and never handed on: back to the queue, not lost with us
+                    sock.send(pack(Released(tuple(ours)).to_wire()), zmq.NOBLOCK)
                 sock.send(pack(Bye().to_wire()), zmq.NOBLOCK)
             except zmq.ZMQError:
                 pass

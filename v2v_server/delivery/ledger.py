@@ -9,13 +9,20 @@ Rules (README "Nothing lost, nothing let in"):
   ``max_credits``) bound the batches it holds. Sending a batch takes a slot; only an ``ack``
   or ``released`` naming a batch id this client holds frees it. Acks for anything else free
   nothing, so re-sends can never inflate a client's credits.
-* **Leases.** A batch unacknowledged ``lease_s`` after it was sent is revoked (the client is
-  asked to give it back). A revoke that is not answered within ``revoke_s`` expires: the
-  client is dropped, everything it held goes back to the queue, and it is told so. A batch
-  the client says it ``hold``s (handed to a DataLoader's queue, acknowledged when the
-  training loop receives it) has no lease: it stays with the client until acknowledged,
-  released, or the client leaves or is dropped.
+* **Leases and grants.** A batch sent is *leased*: unacknowledged ``lease_s`` after it was
+  sent it is revoked (the client is asked to give it back). A revoke that is not answered
+  within ``revoke_s`` expires: the client is dropped, everything leased to it goes back to the
+  queue, and it is told so. A client hands a batch on only once it is *granted*: its ``hold``
+  of a batch it still holds (leased or revoked) makes it the consumer's (``hold`` returns it;
+  the caller records it delivered). A granted batch has no lease and is never taken back:
+  dropping or forgetting the client forgets it (its samples stay delivered); only the
+  client's ``released`` gives it back (``released`` returns it as granted: the caller records
+  it undelivered). Its slot is freed by the ``ack`` that follows.
 * **Silence.** A client silent for ``client_timeout_s`` is dropped the same way.
+* **The server's own stalls do not count.** Time the server did not listen (a gap of more
+  than ``STALL_S`` between two ``expire`` calls: the process was stopped, swapped out, or
+  blocked) is added to every deadline, so a client is never dropped, nor a lease revoked, for
+  a silence that was the server's.
 * **Fair sharing.** Ready batches go round-robin to the clients with a free slot (least
   recently served first); a batch given back prefers another client.
 * **Groups.** Clients of a DDP group (``world_size > 1``) receive nothing until all ranks of
@@ -32,6 +39,11 @@ from dataclasses import dataclass, field
 from typing import Any, Deque, Dict, Hashable, Iterable, List, Optional, Set, Tuple
 
 from v2v_wire.ids import SampleKey
+
+#: Seconds between two ``DeliveryLedger.expire`` calls beyond which the server counts itself
+#: stalled (its loop runs every 0.1 s): the gap is added to every deadline.
+STALL_S = 1.0
+
 
 @dataclass
 class BatchRecord:
@@ -66,6 +78,7 @@ class ClientRecord:
     world_size: int = 1
     held: Dict[int, float] = field(default_factory=dict)  # batch id -> lease deadline
     revoked: Dict[int, float] = field(default_factory=dict)  # batch id -> revoke deadline
+    granted: Dict[int, None] = field(default_factory=dict)  # batch ids granted, not yet acknowledged
     served: int = 0  # round-robin position (ledger's send counter when last served)
     sent: int = 0
     completed: int = -1  # its consumer was told epochs up to this one are complete: none of them is sent
@@ -73,7 +86,7 @@ class ClientRecord:
 
     @property
     def free(self) -> int:
-        return self.credits - len(self.held) - len(self.revoked)
+        return self.credits - len(self.held) - len(self.revoked) - len(self.granted)
 
 
 class DeliveryLedger:
@@ -102,6 +115,8 @@ class DeliveryLedger:
         self.where: Dict[int, bytes] = {}  # batch id -> client holding it
         self.group_since: Dict[str, float] = {}  # group -> time its first current member said hello
         self._tick = 0
+        self._last_expire: Optional[float] = None
+        self.stalls = 0  # stalls of the server's own loop added to the deadlines
         self.sent = 0
         self.resent = 0
         self.acked = 0
@@ -124,11 +139,15 @@ class DeliveryLedger:
         return back
 
     def leave(self, ident: bytes) -> List[int]:
-        """Forget a client (bye, drop, unreachable); what it held goes back to the front of
-        the queue. Returns those batch ids."""
+        """Forget a client (bye, drop, unreachable); what was leased to it goes back to the
+        front of the queue (ids returned). What was granted to it is forgotten: its samples
+        stay delivered to its consumer (it may have handed them on)."""
         c = self.clients.pop(ident, None)
         if c is None:
             return []
+        for bid in c.granted:
+            self.batches.pop(bid, None)
+            self.where.pop(bid, None)
         back = sorted(set(c.held) | set(c.revoked))
         for bid in reversed(back):
             self.where.pop(bid, None)
@@ -205,60 +224,96 @@ class DeliveryLedger:
         return out, stale
 
     def _take(self, c, bid: int) -> bool:
-        """Take ``bid`` off client ``c`` (held or revoked); False when ``c`` does not hold it."""
-        if bid not in c.held and bid not in c.revoked:
+        """Take ``bid`` off client ``c`` (leased, revoked or granted); False when ``c`` does not hold it."""
+        if bid not in c.held and bid not in c.revoked and bid not in c.granted:
             return False
         c.held.pop(bid, None)
         c.revoked.pop(bid, None)
+        c.granted.pop(bid, None)
         self.where.pop(bid, None)
         return True
 
-    def ack(self, ident: bytes, batch_ids: Iterable[int]) -> List[BatchRecord]:
-        """The client handed these batches to its training loop. Returns the batches this
-        acknowledgement delivered (only those this client holds; anything else is ignored
-        and frees no slot)."""
+    def hold(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[int], List[BatchRecord]]:
+        """The client asks for these batches to be granted. Returns ``(granted, new)``: the ids
+        of the request that are granted to it (those it holds: leased, revoked (the revoke is
+        withdrawn) or granted already), and the batches this call granted (the caller records
+        their samples delivered before it answers). Ids it does not hold are not granted."""
         c = self.clients.get(ident)
         if c is None:
-            return []
-        done = []
+            return [], []
+        ok, new = [], []
         for bid in batch_ids:
+            if bid in c.granted:
+                ok.append(bid)
+            elif (bid in c.held or bid in c.revoked) and bid in self.batches:
+                c.held.pop(bid, None)
+                c.revoked.pop(bid, None)
+                c.granted[bid] = None
+                ok.append(bid)
+                new.append(self.batches[bid])
+        return ok, new
+
+    def ack(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[BatchRecord], List[BatchRecord]]:
+        """The training loop received these batches: their slots are freed and the ledger
+        forgets them. Returns ``(acked, new)``: the batches acknowledged, and among them those
+        that were not granted before (the caller records them delivered). Ids this client does
+        not hold are ignored and free no slot."""
+        c = self.clients.get(ident)
+        if c is None:
+            return [], []
+        done, new = [], []
+        for bid in batch_ids:
+            was_granted = bid in c.granted
             if self._take(c, bid):
                 b = self.batches.pop(bid, None)
                 if b is not None:
                     self.acked += 1
                     done.append(b)
-        return done
+                    if not was_granted:
+                        new.append(b)
+        return done, new
 
-    def hold(self, ident: bytes, batch_ids: Iterable[int]) -> None:
-        """The client handed these batches to its data loader: their leases end (a revoke
-        already sent is withdrawn; the client answers it no more)."""
+    def released(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[int], List[BatchRecord]]:
+        """The client gave these batches back unused; they go back to the front of the queue.
+        Returns ``(ids back in the queue, those of them that were granted)``: the caller
+        records the granted ones undelivered again."""
         c = self.clients.get(ident)
         if c is None:
-            return
+            return [], []
+        back, ungranted = [], []
         for bid in batch_ids:
-            if bid in c.held or bid in c.revoked:
-                c.revoked.pop(bid, None)
-                c.held[bid] = math.inf
-
-    def released(self, ident: bytes, batch_ids: Iterable[int]) -> List[int]:
-        """The client gave back revoked (or held) batches; they go back to the queue."""
-        c = self.clients.get(ident)
-        if c is None:
-            return []
-        back = []
-        for bid in batch_ids:
+            was_granted = bid in c.granted
             if self._take(c, bid):
                 if bid in self.batches:
                     self.batches[bid].avoid = ident
                     self.ready.appendleft(bid)
                     self.resent += 1
                     back.append(bid)
-        return back
+                    if was_granted:
+                        ungranted.append(self.batches[bid])
+        return back, ungranted
+
+    def _skip_stall(self, now: float) -> None:
+        """Add a stall of the server's own loop (``STALL_S`` or more since the last call) to
+        every deadline: a client is judged only on time the server listened."""
+        gap = 0.0 if self._last_expire is None else now - self._last_expire
+        self._last_expire = now
+        if gap <= STALL_S:
+            return
+        self.stalls += 1
+        for c in self.clients.values():
+            c.last_seen += gap
+            for d in (c.held, c.revoked):
+                for bid in d:
+                    d[bid] += gap
+        for g in self.group_since:
+            self.group_since[g] += gap
 
     def expire(self, now: float) -> Tuple[Dict[bytes, List[int]], List[Tuple[bytes, str]]]:
         """Leases and clients past their time. Returns ``(revokes, drops)``: batch ids to ask
         back per client, and ``(ident, reason)`` of clients dropped (silent, or not answering
         a revoke); their batches are already back in the queue."""
+        self._skip_stall(now)
         revokes: Dict[bytes, List[int]] = {}
         drops: List[Tuple[bytes, str]] = []
         for ident, c in list(self.clients.items()):
@@ -310,7 +365,7 @@ class DeliveryLedger:
 
     # ------------------------------------------------------------------ views
     def in_flight(self) -> int:
-        return sum(len(c.held) + len(c.revoked) for c in self.clients.values())
+        return sum(len(c.held) + len(c.revoked) + len(c.granted) for c in self.clients.values())
 
     def outputs_wanted(self) -> Tuple[str, ...]:
         """The union of what connected clients ask for."""

@@ -502,6 +502,20 @@ class EpochScheduler:
         plan.add_record(consumer, keys)
         self._reconcile(plan, set())
 
+    def undelivered(self, consumer: Consumer, epoch: int, keys: Iterable[SampleKey]) -> None:
+        """``consumer`` gave back a granted batch of ``keys`` unused, and the batch is queued
+        again: the keys leave its record and are live again."""
+        plan = self.plans.get(epoch)
+        if plan is None:
+            return
+        rec = plan.records.get(consumer, set())
+        for k in keys:
+            if k in rec:
+                rec.discard(k)
+                plan.held[k.video][k] -= 1
+            plan.add_live(k)
+        plan.complete = False if plan.live else plan.complete
+
     def discarded(self, epoch: int, keys: Iterable[SampleKey]) -> None:
         """Live samples thrown away undelivered (filtered out of a batch): owed again unless
         some consumer already holds them."""
