@@ -164,14 +164,18 @@ class DeliveryCore:
         videos: corpus-relative paths.
         policy: the delivery settings (:class:`DeliveryPolicy`).
         make_batch: ``samples -> payload`` (``sample()``'s built samples, in batch order).
+        journal: ``journal.Journal`` (``--state-dir``) or None.
+        stall_s: see ``ledger.DeliveryLedger`` (the server passes ``ledger.STALL_S``).
     """
 
-    def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None):
+    def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None,
+                 stall_s: Optional[float] = None):
         p = self.policy = policy
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
                                     max_samples_per_video=p.max_samples_per_video)
-        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s)
+        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s,
+                                     stall_s=stall_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
         self.crops_per_window = p.crops_per_window
         self.task_timeout_s = p.task_timeout_s

@@ -19,9 +19,9 @@ Rules (README "Nothing lost, nothing let in"):
   client's ``released`` gives it back (``released`` returns it as granted: the caller records
   it undelivered). Its slot is freed by the ``ack`` that follows.
 * **Silence.** A client silent for ``client_timeout_s`` is dropped the same way.
-* **The server's own stalls do not count.** Time the server did not listen (a gap of more
-  than ``STALL_S`` between two ``expire`` calls: the process was stopped, swapped out, or
-  blocked) is added to every deadline, so a client is never dropped, nor a lease revoked, for
+* **The server's own stalls do not count.** With ``stall_s`` (the server: ``STALL_S``), time
+  the server did not listen (a gap of more than ``stall_s`` between two ``expire`` calls: the
+  process was stopped, swapped out, or blocked) is added to every deadline, so a client is never dropped, nor a lease revoked, for
   a silence that was the server's.
 * **Fair sharing.** Ready batches go round-robin to the clients with a free slot (least
   recently served first); a batch given back prefers another client.
@@ -100,10 +100,13 @@ class DeliveryLedger:
         revoke_s: seconds a revoke may stay unanswered before the client is dropped
             (default ``client_timeout_s``).
         group_wait_s: how long a DDP group waits for its missing ranks.
+        stall_s: a gap between two ``expire`` calls longer than this is the server's own
+            stall, added to every deadline (None: every gap counts, as when a caller jumps
+            its clock).
     """
 
     def __init__(self, lease_s: float, client_timeout_s: float, max_credits: int, revoke_s: Optional[float] = None,
-                 group_wait_s: Optional[float] = None):
+                 group_wait_s: Optional[float] = None, stall_s: Optional[float] = None):
         self.lease_s = lease_s
         self.client_timeout_s = client_timeout_s
         self.revoke_s = client_timeout_s if revoke_s is None else revoke_s
@@ -115,6 +118,7 @@ class DeliveryLedger:
         self.where: Dict[int, bytes] = {}  # batch id -> client holding it
         self.group_since: Dict[str, float] = {}  # group -> time its first current member said hello
         self._tick = 0
+        self.stall_s = stall_s
         self._last_expire: Optional[float] = None
         self.stalls = 0  # stalls of the server's own loop added to the deadlines
         self.sent = 0
@@ -294,11 +298,11 @@ class DeliveryLedger:
         return back, ungranted
 
     def _skip_stall(self, now: float) -> None:
-        """Add a stall of the server's own loop (``STALL_S`` or more since the last call) to
+        """Add a stall of the server's own loop (more than ``stall_s`` since the last call) to
         every deadline: a client is judged only on time the server listened."""
         gap = 0.0 if self._last_expire is None else now - self._last_expire
         self._last_expire = now
-        if gap <= STALL_S:
+        if self.stall_s is None or gap <= self.stall_s:
             return
         self.stalls += 1
         for c in self.clients.values():
