@@ -406,6 +406,16 @@ class LeaseMachine(RuleBasedStateMachine):
         c.up[:0] = late  # the dead process's messages were on the wire before the new hello
 
     @invariant()
+    def credits_bound_what_is_held(self):
+        """Leased, revoked and granted-unacknowledged batches together never exceed a client's
+        credits, at the server or in the client's book."""
+        for c in self.net.core.ledger.clients.values():
+            assert len(c.held) + len(c.revoked) + len(c.granted) <= c.credits
+        for c in self.net.clients:
+            if c.alive:
+                assert len(c.held.current) <= c.credits and c.held.asked | c.held.granted <= set(c.held.current)
+
+    @invariant()
     def no_sample_twice(self):
         dup = {k: n for k, n in self.net.trained().items() if n > 1}
         assert not dup, f"trained twice: {dup}"
@@ -507,3 +517,37 @@ def test_a_stalled_server_drops_nobody_for_its_own_silence():
     assert c is not None and not c.revoked and set(c.held) == set(held) and net.core.ledger.stalls == 1
     assert STALL_S < TIMEOUT
     net.run_to_end()
+
+
+def test_an_epoch_is_announced_once_its_granted_batches_are_acknowledged():
+    """A granted batch may still be given back unused (the loop left before taking it): its
+    epoch is announced complete only once it is acknowledged, so nobody forgets an epoch that
+    reopens; given back, it is sent again."""
+    net = Net(("a",), (2,))
+    core = net.core
+    core.hello(b"a.1", Hello(("voxels",), 4, consumer="a"), 0.0, dict)
+    net.tick()
+    held = sorted(core.ledger.clients[b"a.1"].held)
+    last = max(held)
+    for bid in held[:-1]:
+        core.message(b"a.1", Hold((bid,)), 0.0)
+        core.message(b"a.1", Ack((bid,)), 0.0)
+    while True:  # everything of epoch 0 but the last batch acknowledged
+        sends, msgs = core.tick(0.1)
+        new = [b.batch_id for _, b in sends if b.epoch == 0]
+        if not new:
+            break
+        for bid in new:
+            core.message(b"a.1", Hold((bid,)), 0.1)
+            core.message(b"a.1", Ack((bid,)), 0.1)
+    assert core.ledger.batches[last].epoch == 0
+    assert core.message(b"a.1", Hold((last,)), 0.2)[0][1].batch_ids == (last,)
+    assert core.sched.plans[0].complete and 0 not in core.announced  # granted, not acknowledged
+    back = core.message(b"a.1", Released((last,)), 0.3)
+    assert back == [] and not core.sched.plans[0].complete and last in core.ledger.ready
+    sends, _ = core.tick(0.4)
+    assert (b"a.1", last) in [(i, b.batch_id) for i, b in sends]  # sent again
+    core.message(b"a.1", Hold((last,)), 0.5)
+    core.message(b"a.1", Ack((last,)), 0.5)
+    core.tick(0.6)
+    assert 0 in core.announced
