@@ -1,14 +1,15 @@
 """Cost of the grant protocol (docs/delivery.md, "Leases and grants") on the fast path, against
 the ack-only protocol it replaced, in one run.
 
-Run: ``python -m bench.lease [--batches 20000] [--read 60] [--step-ms 20] [--rounds 2]``.
+Run: ``python -m bench.lease [--batches 20000] [--read 40] [--step-ms 20] [--rounds 2] [--fill-s 12]``.
 
 * **Server main loop** (``DeliveryCore``, no sockets, as ``bench.journal``): microseconds of core
   time per batch when the client only acknowledges (``ack``: the batch is delivered and its slot
   freed in one message) and when it asks for the grant first (``hold`` answered by ``granted``,
   then ``ack``).
-* **Trainer** (a real ``v2v-serve`` on 127.0.0.1, tiny samples, one ``V2VStreamDataset`` with 4
-  credits and a training step of ``--step-ms``): milliseconds the training loop waits in
+* **Trainer** (a real ``v2v-serve`` on 127.0.0.1, tiny samples, 64 batches made ahead during
+  ``--fill-s`` before each round so the loop waits on the protocol and not on the workers; one
+  ``V2VStreamDataset`` with 4 credits and a training step of ``--step-ms``): milliseconds the training loop waits in
   ``next()`` per batch and batches per second, with the grant protocol and with the ack-only
   client (``HeldBatches`` taking whatever it still holds, asking for nothing: the rule that could
   double a batch), alternating ``--rounds`` times against the same server.
@@ -34,7 +35,8 @@ class _Payload:
 
 
 def core_cost(batches: int, grant: bool, batch_size: int = 12) -> float:
-    """Seconds of core time per batch delivered over ``batches`` batches."""
+    """Seconds of core time per batch spent on the client's messages about it (``ack``; or
+    ``hold`` then ``ack``) over ``batches`` batches."""
     videos = [f"v{i:03d}.mp4" for i in range(100)]
     policy = DeliveryPolicy(batch_size=batch_size, epochs=None, lease_s=1e9, client_timeout_s=1e9)
     core = DeliveryCore(videos, policy, lambda samples: _Payload([s["sample_id"] for s in samples]))
@@ -48,8 +50,8 @@ def core_cost(batches: int, grant: bool, batch_size: int = 12) -> float:
             key = SampleKey(task.video, k)
             core.sample("w", task.task, key, now, lambda lane, key=key: {"sample_id": key.sample_id()})
         core.done("w", task.task, 10, {}, None)
-        t0 = time.perf_counter()
         sends, _ = core.tick(now)
+        t0 = time.perf_counter()
         for ident, b in sends:
             if grant:
                 core.message(ident, Hold((b.batch_id,)), now)
@@ -81,13 +83,15 @@ def ack_only():
         HeldBatches.claim, HeldBatches.to_ask = saved
 
 
-def read(endpoint: str, n: int, step_s: float) -> tuple:
-    """(ms waited in ``next()`` per batch (median), batches per second) over ``n`` batches."""
+def read(endpoint: str, n: int, step_s: float, fill_s: float) -> tuple:
+    """(ms waited in ``next()`` per batch (median), batches per second) over ``n`` batches, after
+    ``fill_s`` seconds in which the server fills its queue (so the loop waits on the protocol,
+    not on the workers)."""
     from v2v_client import V2VStreamDataset
 
+    time.sleep(fill_s)
     it = iter(V2VStreamDataset(endpoint, timeout_s=60, credits=4))
-    next(it)  # connected, the queue filling
-    time.sleep(1.0)
+    next(it)
     waits = []
     t_start = time.perf_counter()
     for _ in range(n):
@@ -103,12 +107,13 @@ def read(endpoint: str, n: int, step_s: float) -> tuple:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--batches", type=int, default=20000, help="batches through the core per protocol")
-    ap.add_argument("--read", type=int, default=60, help="batches the trainer reads per round")
+    ap.add_argument("--read", type=int, default=40, help="batches the trainer reads per round")
+    ap.add_argument("--fill-s", type=float, default=12.0, help="seconds the server fills its queue before a round")
     ap.add_argument("--step-ms", type=float, default=20.0, help="the trainer's training step")
     ap.add_argument("--rounds", type=int, default=2)
     args = ap.parse_args()
     base, grant = core_cost(args.batches, False), core_cost(args.batches, True)
-    print("| server main loop | us per batch | ratio |\n|---|---|---|")
+    print("| server main loop: the client's messages | us per batch | ratio |\n|---|---|---|")
     print(f"| ack only | {base * 1e6:.1f} | 1.00 |")
     print(f"| hold, granted, ack | {grant * 1e6:.1f} | {grant / base:.2f} |")
 
@@ -118,11 +123,13 @@ def main() -> None:
 
     layout = Layout(L=4, crop=32, windows=50, batch=2)
     got = {"ack only": [], "grant": []}
-    with ServeProcess(["--videos", str(SAMPLE_VIDEOS), "--workers", "2", *layout.args()]) as srv:
-        for _ in range(args.rounds):
-            with ack_only():
-                got["ack only"].append(read(srv.endpoint, args.read, args.step_ms / 1e3))
-            got["grant"].append(read(srv.endpoint, args.read, args.step_ms / 1e3))
+    with ServeProcess(["--videos", str(SAMPLE_VIDEOS), "--workers", "2", "--prefetch-batches", "64",
+                       *layout.args()]) as srv:
+        read(srv.endpoint, 4, 0.0, args.fill_s)  # warm-up: workers started, outputs known
+        for r in range(args.rounds):  # ABBA...: neither protocol always reads first
+            for name in (("ack only", "grant") if r % 2 == 0 else ("grant", "ack only")):
+                with ack_only() if name == "ack only" else contextlib.nullcontext():
+                    got[name].append(read(srv.endpoint, args.read, args.step_ms / 1e3, args.fill_s))
     print(f"\n| trainer, {args.step_ms:.0f} ms steps, 4 credits | ms waited in next() per batch (median of rounds) "
           f"| batches/s | ratio of batches/s |\n|---|---|---|---|")
     base_rate = statistics.median(r for _, r in got["ack only"])

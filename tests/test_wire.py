@@ -232,7 +232,8 @@ def test_mixed_clients_one_compressing_one_not_on_one_server(server, videos):
 
 def hellos_to(router, seconds: float):
     """``(ident, hello)`` for each hello a fake server's ROUTER socket receives within
-    ``seconds`` (other messages are read and ignored)."""
+    ``seconds``; a ``hold`` is granted (the fake server's batches are the asker's), other
+    messages are read and ignored."""
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
         if router.poll(200):
@@ -240,6 +241,8 @@ def hellos_to(router, seconds: float):
             h = unpack(msg)
             if h["type"] == "hello":
                 yield ident, h
+            elif h["type"] == "hold":
+                router.send_multipart([ident, pack({"type": "granted", "batch_ids": h["batch_ids"]})])
 
 
 def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
