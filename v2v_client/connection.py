@@ -99,25 +99,23 @@ class Connection:
 
     # consumer side -------------------------------------------------------
     def take(self, item: dict, on_claim: Callable[[], object] = lambda: None, ack: bool = True) -> Tuple[bool, object]:
-        """Claim a received batch for the training loop once the server granted it (asked
-        for now if it was not yet: ``HeldBatches.to_ask``), calling ``on_claim()`` as part of
-        the claim, and acknowledge it (``ack``; a DataLoader worker acknowledges when the
-        loop's receipt comes, :meth:`ack`). Returns ``(True, on_claim())``, or ``(False, None)``
-        when it was given back meanwhile (revoked before it was asked, refused, or discarded
-        when this client said hello again) or the connection ended."""
-        held = self.session.held
-        ask = held.to_ask(item)
-        if ask:
-            self._queue_for_server(Hold(tuple(ask)).to_wire())
-        ok, result = held.claim(item, on_claim, lambda: not self._closing.is_set() and self._thread.is_alive())
-        if not ok:
-            return False, None
-        if ack:
+        """Claim a received batch for the training loop once granted (``HeldBatches.claim``,
+        with ``on_claim``), and ``ack`` it (a DataLoader worker acks on the loop's receipt).
+        Returns ``(True, on_claim())``, or ``(False, None)`` when it was given back meanwhile
+        (revoked before it was asked, refused, discarded by a new hello) or the connection ended."""
+        self._ask(item)
+        ok, result = self.session.held.claim(item, on_claim, lambda: not self._closing.is_set()
+                                             and self._thread.is_alive())
+        if ok and ack:
             self._queue_for_server(Ack((item["batch_id"],)).to_wire())
-        ask = held.to_ask()
-        if ask:
-            self._queue_for_server(Hold(tuple(ask)).to_wire())
-        return True, result
+        self._ask()
+        return ok, result
+
+    def _ask(self, item: Optional[dict] = None) -> None:
+        """Ask for ``item``'s grant and those ahead of it (``HeldBatches.to_ask``)."""
+        ids = self.session.held.to_ask(item)
+        if ids:
+            self._queue_for_server(Hold(tuple(ids)).to_wire())
 
     def ack(self, batch_ids) -> None:
         """Acknowledge batches this connection holds (the training loop received them)."""
@@ -141,10 +139,8 @@ class Connection:
         self._lingering = True
 
     def close(self, unreceived: bool = False) -> None:
-        """Stop the I/O thread: acknowledgements already queued are sent, the batches asked
-        for or granted and never handed on are given back (``unreceived``: in a DataLoader
-        worker, also those handed to the loader whose receipt has not come: the loader dropped
-        them), then ``bye``."""
+        """Stop the I/O thread: queued acks are sent, batches asked for or granted and not taken
+        are given back (``unreceived``: also a DataLoader worker's batches the loader dropped), then ``bye``."""
         if self._closing.is_set():
             return
         self._unreceived = unreceived

@@ -22,7 +22,7 @@ from v2v_server.settings import setting
 from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import MAX_CREDITS, OUTPUTS
 from v2v_server.delivery.schedule import MAX_TASK_CRASHES, EpochScheduler, Job
-from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
+from v2v_wire.messages import Ack, Bye, Credit, Hello, Hold, Released
 from v2v_wire.stream_messages import Drained, EpochDone, Granted, Revoke, ServerError, StreamMessage, Welcome
 from v2v_wire.worker_messages import Task
 
@@ -303,7 +303,8 @@ class DeliveryCore:
             refused = tuple(b for b in msg.batch_ids if b not in set(ok))
             return [(ident, Granted(tuple(ok), refused))]
         if isinstance(msg, Ack):
-            self._delivered(c, self.ledger.ack(ident, msg.batch_ids)[1])
+            self._delivered(c, self.ledger.hold(ident, msg.batch_ids)[1])  # acked without a hold: granted now
+            self.ledger.ack(ident, msg.batch_ids)
         elif isinstance(msg, Released):
             back, ungranted = self.ledger.released(ident, msg.batch_ids)
             for b in ungranted:
@@ -315,14 +316,12 @@ class DeliveryCore:
             if back:
                 log.info("batch(es) %s go back to the queue: the client released them", back)
         elif isinstance(msg, Credit):
-            self.ledger.grant(ident, msg.credit)
+            self.ledger.add_credits(ident, msg.credit)
         elif isinstance(msg, Bye):
             back = self.ledger.leave(ident)
             if back:
                 log.info("client %s left; batch(es) %s go back to the queue", ident.hex(), back)
-        elif isinstance(msg, Heartbeat):
-            pass
-        return []
+        return []  # a heartbeat only touched the client
 
     def _delivered(self, c, batches: List[BatchRecord]) -> None:
         """Record ``batches`` (granted to client ``c``) delivered to its consumer: in the

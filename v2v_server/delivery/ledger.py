@@ -88,6 +88,25 @@ class ClientRecord:
     def free(self) -> int:
         return self.credits - len(self.held) - len(self.revoked) - len(self.granted)
 
+    def holds(self, bid: int) -> bool:
+        return bid in self.held or bid in self.revoked or bid in self.granted
+
+    def take(self, bid: int) -> bool:
+        """Forget ``bid`` (leased, revoked or granted); False when this client does not hold it."""
+        if not self.holds(bid):
+            return False
+        self.held.pop(bid, None)
+        self.revoked.pop(bid, None)
+        self.granted.pop(bid, None)
+        return True
+
+    def shift(self, gap: float) -> None:
+        """Move every deadline ``gap`` seconds later (the server stalled)."""
+        self.last_seen += gap
+        for d in (self.held, self.revoked):
+            for bid in d:
+                d[bid] += gap
+
 
 class DeliveryLedger:
     """Credits, leases, acks, revokes and re-sends for every connected client.
@@ -155,10 +174,7 @@ class DeliveryLedger:
         back = sorted(set(c.held) | set(c.revoked))
         for bid in reversed(back):
             self.where.pop(bid, None)
-            if bid in self.batches:
-                self.batches[bid].avoid = ident
-                self.ready.appendleft(bid)
-                self.resent += 1
+            self._requeue(bid, ident)
         if c.group is not None and not any(o.group == c.group for o in self.clients.values()):
             self.group_since.pop(c.group, None)
         return back
@@ -171,7 +187,7 @@ class DeliveryLedger:
         c.last_seen = now
         return True
 
-    def grant(self, ident: bytes, n: int) -> None:
+    def add_credits(self, ident: bytes, n: int) -> None:
         """Give a client ``n`` more credits (an explicit grant, clamped to ``max_credits``)."""
         c = self.clients.get(ident)
         if c is not None and n > 0:
@@ -227,21 +243,9 @@ class DeliveryLedger:
             out.append((c.ident, b))
         return out, stale
 
-    def _take(self, c, bid: int) -> bool:
-        """Take ``bid`` off client ``c`` (leased, revoked or granted); False when ``c`` does not hold it."""
-        if bid not in c.held and bid not in c.revoked and bid not in c.granted:
-            return False
-        c.held.pop(bid, None)
-        c.revoked.pop(bid, None)
-        c.granted.pop(bid, None)
-        self.where.pop(bid, None)
-        return True
-
     def hold(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[int], List[BatchRecord]]:
-        """The client asks for these batches to be granted. Returns ``(granted, new)``: the ids
-        of the request that are granted to it (those it holds: leased, revoked (the revoke is
-        withdrawn) or granted already), and the batches this call granted (the caller records
-        their samples delivered before it answers). Ids it does not hold are not granted."""
+        """The client asks for these batches' grants. Returns ``(ids granted: those it holds,
+        a revoke withdrawn; the batches this call granted: the caller records them delivered)``."""
         c = self.clients.get(ident)
         if c is None:
             return [], []
@@ -249,69 +253,64 @@ class DeliveryLedger:
         for bid in batch_ids:
             if bid in c.granted:
                 ok.append(bid)
-            elif (bid in c.held or bid in c.revoked) and bid in self.batches:
-                c.held.pop(bid, None)
-                c.revoked.pop(bid, None)
+            elif c.take(bid) and bid in self.batches:
                 c.granted[bid] = None
                 ok.append(bid)
                 new.append(self.batches[bid])
         return ok, new
 
-    def ack(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[BatchRecord], List[BatchRecord]]:
-        """The training loop received these batches: their slots are freed and the ledger
-        forgets them. Returns ``(acked, new)``: the batches acknowledged, and among them those
-        that were not granted before (the caller records them delivered). Ids this client does
-        not hold are ignored and free no slot."""
+    def ack(self, ident: bytes, batch_ids: Iterable[int]) -> List[BatchRecord]:
+        """The training loop received these granted batches (``hold`` first: the core grants
+        what an ack names): their slots are freed and the ledger forgets them. Returns them;
+        ids this client does not hold are ignored and free no slot."""
         c = self.clients.get(ident)
         if c is None:
-            return [], []
-        done, new = [], []
+            return []
+        done = []
         for bid in batch_ids:
-            was_granted = bid in c.granted
-            if self._take(c, bid):
+            if c.take(bid):
+                self.where.pop(bid, None)
                 b = self.batches.pop(bid, None)
                 if b is not None:
                     self.acked += 1
                     done.append(b)
-                    if not was_granted:
-                        new.append(b)
-        return done, new
+        return done
 
     def released(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[int], List[BatchRecord]]:
-        """The client gave these batches back unused; they go back to the front of the queue.
-        Returns ``(ids back in the queue, those of them that were granted)``: the caller
-        records the granted ones undelivered again."""
+        """The client gave these batches back unused: to the front of the queue. Returns ``(ids
+        queued again, the batches of them that were granted: the caller records them undelivered)``."""
         c = self.clients.get(ident)
         if c is None:
             return [], []
         back, ungranted = [], []
         for bid in batch_ids:
             was_granted = bid in c.granted
-            if self._take(c, bid):
-                if bid in self.batches:
-                    self.batches[bid].avoid = ident
-                    self.ready.appendleft(bid)
-                    self.resent += 1
-                    back.append(bid)
-                    if was_granted:
-                        ungranted.append(self.batches[bid])
+            if c.take(bid) and self.where.pop(bid, None) is not None and self._requeue(bid, ident):
+                back.append(bid)
+                if was_granted:
+                    ungranted.append(self.batches[bid])
         return back, ungranted
 
+    def _requeue(self, bid: int, ident: bytes) -> bool:
+        """``bid`` goes to the front of the queue (``ident`` gave it back: another client is
+        preferred); False when it is gone."""
+        if bid not in self.batches:
+            return False
+        self.batches[bid].avoid = ident
+        self.ready.appendleft(bid)
+        self.resent += 1
+        return True
+
     def _skip_stall(self, now: float) -> None:
-        """Add a stall of the server's own loop (more than ``stall_s`` since the last call) to
-        every deadline: a client is judged only on time the server listened."""
+        """Add a stall of the server's loop (over ``stall_s`` since the last call) to every deadline."""
         gap = 0.0 if self._last_expire is None else now - self._last_expire
         self._last_expire = now
         if self.stall_s is None or gap <= self.stall_s:
             return
         self.stalls += 1
         for c in self.clients.values():
-            c.last_seen += gap
-            for d in (c.held, c.revoked):
-                for bid in d:
-                    d[bid] += gap
-        for g in self.group_since:
-            self.group_since[g] += gap
+            c.shift(gap)
+        self.group_since = {g: t + gap for g, t in self.group_since.items()}
 
     def expire(self, now: float) -> Tuple[Dict[bytes, List[int]], List[Tuple[bytes, str]]]:
         """Leases and clients past their time. Returns ``(revokes, drops)``: batch ids to ask
