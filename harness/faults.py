@@ -634,12 +634,12 @@ def scenario_revoke_ignored(tmp: Path, layout: Layout, lease_s: float = 1.0, rev
                held=len(held), codes=sorted(set(codes)), server_exit=rc)
 
 
-def scenario_slow_trainer(tmp: Path, layout: Layout, lease_s: float = 0.5, step_s: float = 0.7, credits: int = 2
-                          ) -> dict:
+def scenario_slow_trainer(tmp: Path, layout: Layout, lease_s: float = 0.5, step_s: float = 0.7, credits: int = 2,
+                          copies: int = 1) -> dict:
     """A trainer whose steps are slower than the lease, alone on the stream: the batches beyond
     the two granted ahead of its loop are revoked and re-sent, and that never grows what it
     holds beyond its credits."""
-    corpus = good_corpus(tmp, 1)
+    corpus = good_corpus(tmp, copies)
     expected = expected_ids(corpus, layout)
     log: list = []
     peak = 0

@@ -76,7 +76,7 @@ def test_a_revoke_left_unanswered_expires(tmp_path):
 
 def test_a_trainer_slower_than_its_lease_never_holds_more_than_its_credits(tmp_path):
     # 4 credits: two batches granted ahead of the loop, the other two leased and revoked in turn
-    r = faults.scenario_slow_trainer(tmp_path, LAYOUT, lease_s=0.4, step_s=0.6, credits=4)
+    r = faults.scenario_slow_trainer(tmp_path, LAYOUT, lease_s=0.4, step_s=0.6, credits=4, copies=2)
     exactly_once(r)
     assert r["facts"]["peak_held"] <= 4 and r["facts"]["requeues"] > 0, r
 

@@ -18,7 +18,8 @@ Message types (protocol 4; client messages are decoded and schema-checked by ``w
   welcome repeats it as ``max_hello_bytes``); a larger one up to twice that gets an ``error``.
 * server -> client: ``welcome`` (stream info: also ``shard``, ``corpus`` and ``recipe``
   fingerprints), ``batch``, ``revoke`` (batch ids), ``granted`` (batch ids of a ``hold`` that are
-  the consumer's for good: the client hands a batch on only once granted), ``heartbeat``, ``epoch_done`` (epoch;
+  the consumer's for good: the client hands a batch on only once granted; ``refused``: those no
+  longer the client's), ``heartbeat``, ``epoch_done`` (epoch;
   ``batches`` per rank for a DDP group), ``drained`` (a bounded stream has nothing left for this
   client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
   ``dropped`` / ``unknown_client``: discard what you hold, say hello again).
