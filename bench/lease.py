@@ -1,12 +1,12 @@
 """Cost of the grant protocol (docs/delivery.md, "Leases and grants") on the fast path, against
 the ack-only protocol it replaced, in one run.
 
-Run: ``python -m bench.lease [--batches 20000] [--read 40] [--step-ms 20] [--rounds 2] [--fill-s 12]``.
+Run: ``python -m bench.lease [--batches 40000] [--read 40] [--step-ms 20] [--rounds 4] [--fill-s 12]``.
 
 * **Server main loop** (``DeliveryCore``, no sockets, as ``bench.journal``): microseconds of core
-  time per batch when the client only acknowledges (``ack``: the batch is delivered and its slot
-  freed in one message) and when it asks for the grant first (``hold`` answered by ``granted``,
-  then ``ack``).
+  time per batch spent on the client's messages when it only acknowledges (``ack``: granted,
+  delivered and its slot freed in one message) and when it asks for the grant first (``hold``
+  answered by ``granted``, then ``ack``); medians of ``--rounds`` alternating runs each way.
 * **Trainer** (a real ``v2v-serve`` on 127.0.0.1, tiny samples, 64 batches made ahead during
   ``--fill-s`` before each round so the loop waits on the protocol and not on the workers; one
   ``V2VStreamDataset`` with 4 credits and a training step of ``--step-ms``): milliseconds the training loop waits in
@@ -106,13 +106,16 @@ def read(endpoint: str, n: int, step_s: float, fill_s: float) -> tuple:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--batches", type=int, default=20000, help="batches through the core per protocol")
+    ap.add_argument("--batches", type=int, default=40000, help="batches through the core per protocol")
     ap.add_argument("--read", type=int, default=40, help="batches the trainer reads per round")
     ap.add_argument("--fill-s", type=float, default=12.0, help="seconds the server fills its queue before a round")
     ap.add_argument("--step-ms", type=float, default=20.0, help="the trainer's training step")
-    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=4)
     args = ap.parse_args()
-    base, grant = core_cost(args.batches, False), core_cost(args.batches, True)
+    runs = {False: [], True: []}
+    for r in range(2 * args.rounds):  # alternating, medians: the machine may be shared
+        runs[r % 2 == 1].append(core_cost(args.batches // (2 * args.rounds), r % 2 == 1))
+    base, grant = statistics.median(runs[False]), statistics.median(runs[True])
     print("| server main loop: the client's messages | us per batch | ratio |\n|---|---|---|")
     print(f"| ack only | {base * 1e6:.1f} | 1.00 |")
     print(f"| hold, granted, ack | {grant * 1e6:.1f} | {grant / base:.2f} |")

@@ -551,3 +551,38 @@ def test_an_epoch_is_announced_once_its_granted_batches_are_acknowledged():
     core.message(b"a.1", Ack((last,)), 0.5)
     core.tick(0.6)
     assert 0 in core.announced
+
+
+def test_the_rule_it_replaced_doubles_on_the_same_schedule(monkeypatch):
+    """The client rule before grants (take any batch still held, ask for nothing), paused after
+    its claim on the schedule above: the server gives the batch to B meanwhile and A yields it
+    too. The same pieces tell the two rules apart."""
+
+    def claim(self, item, on_claim, wait):
+        with self.lock:
+            if self.current.get(item["batch_id"]) is not item:
+                return False, None
+            del self.current[item["batch_id"]]
+            return True, on_claim()
+
+    monkeypatch.setattr(HeldBatches, "claim", claim)
+    monkeypatch.setattr(HeldBatches, "to_ask", lambda self, item=None: [])
+    net = Net(("a", "b"), (4, 1))
+    a, b = net.clients
+    net.connect(a)
+    net.server_reads(a, len(a.up))
+    net.tick()
+    while not a.items:
+        net.io_reads(a)
+    net.consumer_next(a)
+    net.consumer_claims(a)
+    assert a.claimed is not None  # taken, its ack queued: then A stops
+    net.connect(b)
+    for _ in range(int((LEASE + REVOKE + TIMEOUT + 2) / 0.5)):
+        for _ in range(4):
+            net.step(b)
+        net.heartbeat(b)
+        net.advance(0.5)
+    net.consumer_yields(a)
+    with pytest.raises(AssertionError, match="trained twice"):
+        net.run_to_end()
