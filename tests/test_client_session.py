@@ -170,3 +170,15 @@ def test_client_messages_go_out_as_the_server_parses_them():
     s.on_message([pack({"type": "revoke", "batch_ids": [11, 12]})])
     assert [cm.decode_client(r, 1 << 16, 64) for r in s.replies()] == [cm.Hold((9,)), cm.Hold((10,)), cm.Hold((11,)),
                                                                          cm.Released((12,))]
+
+
+def test_a_hold_unanswered_for_a_whole_heartbeat_is_asked_again():
+    """A grant lost when a connection broke behind ZeroMQ's reconnect would leave the consumer
+    waiting: the I/O thread asks again, each heartbeat, for what stayed unanswered since the last."""
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], _hello)
+    _welcomed(s)
+    s.on_message(_batch(7))
+    assert s.held.still_asked(set()) == (set(), {7})  # asked just now: not yet
+    assert s.held.still_asked({7}) == ({7}, {7})  # a heartbeat later, unanswered: again
+    s.on_message([pack({"type": "granted", "batch_ids": [7]})])
+    assert s.held.still_asked({7}) == (set(), set())

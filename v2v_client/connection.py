@@ -38,9 +38,8 @@ class Connection:
     hello (with the consumer's resume state), receives batches, answers revokes, heartbeats,
     and forwards the acknowledgements the consumer queues (flushed before ``bye``). It reports
     only through ``items`` (decoded batches and control items; the protocol itself is the
-    :class:`~v2v_client.session.ServerSession` ``session``). A batch is either taken by the
-    training loop (``take``: acknowledged) or given back to the server, never both
-    (``session.held``), and a batch given back loses its arrays at once.
+    :class:`~v2v_client.session.ServerSession` ``session``). A batch is either taken by the loop
+    once granted (``take``) or given back, never both (``session.held``: arrays freed at once).
 
     Args:
         endpoint: the server's ZeroMQ endpoint.
@@ -74,8 +73,7 @@ class Connection:
         self._pipe = ConsumerPipe(self._ctx)
         self._lingering = False
         self._receipts = receipts  # DataLoader worker: what the training loop received
-        self._iteration, self._abandoned = iteration, False  # LoaderLink.end_iteration
-        self._unreceived = False
+        self._iteration, self._abandoned, self._unreceived = iteration, False, False  # LoaderLink.end_iteration, close
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
@@ -210,7 +208,7 @@ class Connection:
         sock = self._sock
         give_up_at = None
         last_heard = time.monotonic()
-        next_beat = last_heard + self.options.heartbeat_s
+        next_beat, asked = last_heard + self.options.heartbeat_s, set()
         poller = self._poller(sock)
         while not self._closing.is_set():
             events = dict(poller.poll(100))
@@ -243,6 +241,9 @@ class Connection:
             if now >= next_beat:
                 _send(sock, pack(Heartbeat().to_wire()))
                 next_beat = now + self.options.heartbeat_s
+                again, asked = self.session.held.still_asked(asked)
+                if again:
+                    _send(sock, pack(Hold(tuple(sorted(again))).to_wire()))
 
     def _receive(self, sock: zmq.Socket) -> Tuple[Optional[str], bool]:
         """Handle every message waiting on ``sock`` and send the replies they call for:

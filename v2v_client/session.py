@@ -157,6 +157,13 @@ class HeldBatches:
                     self._pop_locked(bid)
             self.lock.notify_all()
 
+    def still_asked(self, before: Set[int]) -> Tuple[Set[int], Set[int]]:
+        """``(asked then and still unanswered, asked now)``: the I/O thread asks again for what
+        stays unanswered a whole heartbeat (a grant lost when a connection broke and ZeroMQ
+        reconnected behind it; the server answers a repeated ``hold`` the same)."""
+        with self.lock:
+            return before & self.asked, set(self.asked)
+
     def claim(self, item: dict, on_claim: Callable[[], object], wait: Callable[[], bool]) -> Tuple[bool, object]:
         """Take a received batch out for the consumer once it is granted, calling ``on_claim()``
         under the lock (the consumer records its samples there: a hello, which reads that
