@@ -200,7 +200,7 @@ class Connection:
             self.session.items.put(StreamError(f"stream from {self.endpoint} failed: {type(e).__name__}: {e}"))
         finally:
             self._finish(self._sock)
-            self.session.held.discard("the connection ended")  # wakes a consumer waiting for a grant
+            self.session.held.discard(None)  # wakes a consumer waiting for a grant
 
     def _serve(self) -> None:
         """Poll the socket, the acknowledgements and the receipts; receive messages, heartbeat,
@@ -292,7 +292,7 @@ class Connection:
             try:
                 self._pipe.forward(sock)
                 self._take_receipts(sock)
-                ours = self.session.held.discard("the connection closes")
+                ours = self.session.held.discard(None)
                 if self._receipts is not None and (self._abandoned or self._unreceived):
                     ours += self.record.pipeline_ids()  # granted, queued in the loader, dropped by it
                 if ours:  # asked or granted and never handed on: back to the queue, not lost with us

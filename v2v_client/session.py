@@ -113,7 +113,7 @@ class HeldBatches:
         self.asked: Set[int] = set()
         self.granted: Set[int] = set()
         self.ahead = max(1, ahead)
-        self.discarded = 0  # batches given up in a re-hello or a silence
+        self.discarded = 0  # batches given up when saying hello again
 
     def add(self, item: dict) -> None:
         """A received batch (a batch given back may come again: this copy is the live one, leased)."""
@@ -207,10 +207,10 @@ class HeldBatches:
                     released.append(b)
         return released
 
-    def discard(self, why: str) -> List[int]:
-        """Give up every batch held (the server re-sends or re-makes them), logging ``why``;
-        returns those that were asked or granted (to say ``released`` for when the connection
-        closes)."""
+    def discard(self, why: Optional[str]) -> List[int]:
+        """Give up every batch held (the server re-sends or re-makes them), logging ``why`` (None:
+        a connection closing, nothing to say); returns those that were asked or granted (to say
+        ``released`` for when the connection closes)."""
         with self.lock:
             return self._discard_locked(why)
 
@@ -225,14 +225,14 @@ class HeldBatches:
         strip_arrays(item)
         self.lock.notify_all()
 
-    def _discard_locked(self, why: str) -> List[int]:
-        if self.current:
+    def _discard_locked(self, why: Optional[str]) -> List[int]:
+        if self.current and why is not None:
             log.warning("v2v stream %s: discarding %d batch(es) not yet used: %s", self.endpoint,
                         len(self.current), why)
         ours = sorted(self.asked | self.granted)
         for item in self.current.values():
             strip_arrays(item)
-        self.discarded += len(self.current)
+        self.discarded += len(self.current) if why is not None else 0
         self.current.clear()
         self.asked.clear()
         self.granted.clear()
