@@ -447,6 +447,88 @@ def scenario_silent_client(tmp: Path, layout: Layout, client_timeout_s: float = 
                None, f"{drops} drop(s) logged; server exit {rc}", drops=drops, server_exit=rc)
 
 
+FROZEN_CLIENT = r"""
+import os, signal, sys, time
+from v2v_client import V2VStreamDataset
+credits, step_s, stop_at = int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
+ds = V2VStreamDataset(sys.argv[1], timeout_s=60, credits=credits)
+for n, b in enumerate(ds, 1):
+    print("ids", " ".join(b["sample_ids"]), flush=True)
+    if n == stop_at:  # stopped right at the yield, before its ack may have left the process
+        os.kill(os.getpid(), signal.SIGSTOP)
+    time.sleep(step_s)
+"""
+
+
+def busy_cores(n: int) -> List[subprocess.Popen]:
+    """``n`` processes that keep a core busy each (stop them with ``stop_busy``)."""
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+
+def stop_busy(procs: List[subprocess.Popen]) -> None:
+    for p in procs:
+        p.kill()
+        p.wait(10)
+
+
+def scenario_frozen_client(tmp: Path, layout: Layout, client_timeout_s: float = 2.0, freeze_s: float = 5.0,
+                           credits: int = 4, step_s: float = 0.3, at_yield: bool = False, busy: int = 2) -> dict:
+    """Client A (``credits``, ``step_s`` steps) is frozen (SIGSTOP) for ``freeze_s`` seconds, past
+    the server's ``client_timeout_s``, while client B reads, with ``busy`` processes keeping the
+    cores busy. By default the test stops A from outside at whatever point it is (between
+    receiving a batch and yielding it, or elsewhere); with ``at_yield`` A stops itself right as
+    its second batch is yielded. Every batch A yielded was granted first, so the server gave
+    none of them to B; what A held and had not yet been granted went to B."""
+    corpus = good_corpus(tmp, 3)
+    expected = expected_ids(corpus, layout)
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    ids: List[str] = []
+    log_b: list = []
+    hogs = busy_cores(busy)
+
+    def slow_reader(ds, log):  # the other trainer takes its time, so the stream outlives the freeze
+        for b in ds:
+            log.append((time.monotonic(), list(b["sample_ids"])))
+            time.sleep(0.5)
+
+    try:
+        with _serve(corpus, layout, "--epochs", "1", "--client-timeout", str(client_timeout_s)) as srv:
+            p = subprocess.Popen([sys.executable, "-c", FROZEN_CLIENT, srv.endpoint, str(credits), str(step_s),
+                                  "2" if at_yield else "0"], stdout=subprocess.PIPE, text=True, env=env)
+            try:
+                ids += p.stdout.readline().split()[1:]
+                if at_yield:
+                    ids += p.stdout.readline().split()[1:]
+                    deadline = time.monotonic() + 30
+                    while Path(f"/proc/{p.pid}/stat").read_text().split(")")[1].split()[0] != "T":
+                        assert time.monotonic() < deadline, "the client never stopped itself"
+                        time.sleep(0.01)
+                else:
+                    time.sleep(step_s * 1.5)  # mid-way through a step, its queue filled up to its credits
+                    p.send_signal(signal.SIGSTOP)
+                other = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
+                tb = threading.Thread(target=slow_reader, args=(other, log_b), daemon=True)
+                tb.start()
+                time.sleep(freeze_s)
+                p.send_signal(signal.SIGCONT)
+                for line in p.stdout:
+                    ids += line.split()[1:]
+                p.wait(60)
+                tb.join(60)
+            finally:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGCONT)
+                    p.kill()
+            rc = srv.wait(30)
+            drops = srv.log.count("dropping it")
+    finally:
+        stop_busy(hogs)
+    where = "at its yield" if at_yield else "mid-step"
+    return row(f"trainer frozen {freeze_s:.0f} s {where} > client timeout, {busy} busy cores", expected,
+               ids + _ids(log_b), None, f"{drops} drop(s) logged; server exit {rc}", drops=drops, server_exit=rc,
+               a_batches=len(ids))
+
+
 def _take(it, n: int, log: list) -> None:
     for _ in range(n):
         b = next(it)
@@ -552,11 +634,12 @@ def scenario_revoke_ignored(tmp: Path, layout: Layout, lease_s: float = 1.0, rev
                held=len(held), codes=sorted(set(codes)), server_exit=rc)
 
 
-def scenario_slow_trainer(tmp: Path, layout: Layout, lease_s: float = 0.5, step_s: float = 0.7, credits: int = 2
-                          ) -> dict:
-    """A trainer whose steps are slower than the lease, alone on the stream: revokes and
-    re-sends never grow what it holds beyond its credits."""
-    corpus = good_corpus(tmp, 1)
+def scenario_slow_trainer(tmp: Path, layout: Layout, lease_s: float = 0.5, step_s: float = 0.7, credits: int = 2,
+                          copies: int = 1) -> dict:
+    """A trainer whose steps are slower than the lease, alone on the stream: the batches beyond
+    the two granted ahead of its loop are revoked and re-sent, and that never grows what it
+    holds beyond its credits."""
+    corpus = good_corpus(tmp, copies)
     expected = expected_ids(corpus, layout)
     log: list = []
     peak = 0
@@ -946,6 +1029,8 @@ SCENARIOS = {
     "fuzzing_peer": scenario_fuzzing_peer,
     "break_loop": scenario_break_loop,
     "silent_client": scenario_silent_client,
+    "frozen_client": scenario_frozen_client,
+    "frozen_at_yield": lambda tmp, layout: scenario_frozen_client(tmp, layout, at_yield=True),
     "old_checkpoint": scenario_old_checkpoint,
     "partial_file": scenario_partial_file,
     "revoke_ignored": scenario_revoke_ignored,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from v2v_client.session import Drained, EpochDone, ServerPadding, ServerSession, StreamError
-from v2v_wire.protocol import encode_arrays, pack, unpack
+from v2v_wire.protocol import PROTOCOL_VERSION, encode_arrays, pack, unpack
 
 RESUME = {"completed_epoch": -1, "delivered": {}, "batches": {}}
 
@@ -37,19 +37,45 @@ def _welcomed(s: ServerSession) -> None:
     assert s.on_message([pack({"type": "welcome", "hello_id": 1, "info": {"crop_size": 8}})]) is None
 
 
-def test_batches_come_out_as_numpy_items_held_until_claimed_or_revoked():
+def test_batches_come_out_as_numpy_items_taken_only_once_granted():
     s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], _hello)
     _welcomed(s)
-    assert s.on_message(_batch(7)) is None and s.on_message(_batch(8)) is None
-    a, b = _items(s)
+    for bid in (7, 8, 9):
+        assert s.on_message(_batch(bid)) is None
+    a, b, c = _items(s)
     assert a["batch_id"] == 7 and a["voxels"].dtype == np.int8 and a["voxels"].shape == (2, 4, 5, 8, 8)
     assert int(a["voxels"][0, 0, 0, 0, 0]) == 7 and a["sample_ids"] == ["v.mp4#7.0", "v.mp4#7.1"]
-    assert len(s.held) == 2 and s.replies() == []
-    assert s.held.claim(a, lambda: False)  # taken by the consumer: a revoke cannot reach it
-    assert s.on_message([pack({"type": "revoke", "batch_ids": [7, 8]})]) is None
-    assert [unpack(r) for r in s.replies()] == [{"v": 3, "type": "released", "batch_ids": [8]}]
-    assert "voxels" not in b and b["sample_ids"]  # given back: arrays freed, ids kept
-    assert not s.held.claim(b, lambda: False) and len(s.held) == 0
+    # the first GRANT_AHEAD batches are asked for as they come; the third waits for the consumer
+    assert len(s.held) == 3 and [unpack(r) for r in s.replies()] == [
+        {"v": PROTOCOL_VERSION, "type": "hold", "batch_ids": [7]}, {"v": PROTOCOL_VERSION, "type": "hold", "batch_ids": [8]}]
+    assert s.held.claim(a, lambda: "recorded", lambda: False) == (False, None)  # not granted: never taken
+    assert s.on_message([pack({"type": "revoke", "batch_ids": [7, 8, 9]})]) is None
+    # asked ones stay (the server reads the hold before anything later); the leased one goes back
+    assert [unpack(r) for r in s.replies()] == [{"v": PROTOCOL_VERSION, "type": "released", "batch_ids": [9]}]
+    assert "voxels" not in c and c["sample_ids"]  # given back: arrays freed, ids kept
+    assert s.on_message([pack({"type": "granted", "batch_ids": [7], "refused": [8]})]) is None
+    assert s.held.claim(a, lambda: "recorded", lambda: False) == (True, "recorded")
+    assert "voxels" not in b and s.held.claim(b, lambda: "recorded", lambda: False) == (False, None)
+    assert not s.held.claim(c, lambda: None, lambda: False)[0] and len(s.held) == 0
+
+
+def test_a_new_hello_discards_granted_batches_and_names_only_what_was_claimed():
+    """The claim (with the consumer's record) and a hello's resume state are one step each:
+    a batch claimed before the hello is in its resume state; one granted but not claimed is
+    discarded by it and never taken."""
+    record = {"ids": []}
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], lambda: dict(_hello(), resume=dict(record)))
+    _welcomed(s)
+    s.on_message(_batch(1))
+    s.on_message(_batch(2))
+    a, b = _items(s)
+    s.on_message([pack({"type": "granted", "batch_ids": [1, 2]})])
+    assert s.held.claim(a, lambda: record["ids"].extend(a["sample_ids"]), lambda: False)[0]
+    hello = unpack(s.hello())
+    assert hello["resume"]["ids"] == ["v.mp4#1.0", "v.mp4#1.1"]
+    assert s.held.claim(b, lambda: record["ids"].extend(b["sample_ids"]), lambda: False) == (False, None)
+    s.on_message([pack({"type": "granted", "batch_ids": [2]})])  # a late answer about the older session
+    assert len(s.held) == 0 and record["ids"] == ["v.mp4#1.0", "v.mp4#1.1"]
 
 
 def test_control_messages_become_items_and_the_end_or_an_error_ends_the_session():
@@ -80,12 +106,14 @@ def test_a_batch_lacking_an_output_or_a_dropped_session_is_handled():
     _welcomed(s)
     s.on_message(_batch(4))
     (item,) = _items(s)
+    assert [unpack(r)["type"] for r in s.replies()] == ["hold"]
     assert s.on_message([pack({"type": "error", "code": "dropped", "message": "silent"})]) is None
     (again,) = [unpack(r) for r in s.replies()]
     assert again["type"] == "hello" and again["hello_id"] == 2  # introduced again with the resume state
     assert s.held.discarded == 1 and "voxels" not in item  # what it held goes elsewhere
-    # until the welcome to that hello, batches and revokes of the old session are ignored
+    # until the welcome to that hello, batches, revokes and grants of the old session are ignored
     assert s.on_message(_batch(5)) is None and _items(s) == []
+    assert s.on_message([pack({"type": "granted", "batch_ids": [4]})]) is None and s.replies() == []
     s.on_message([pack({"type": "welcome", "hello_id": 2, "info": {}})])
     s.on_message(_batch(6))
     assert [i["batch_id"] for i in _items(s)] == [6]
@@ -136,5 +164,21 @@ def test_client_messages_go_out_as_the_server_parses_them():
     s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], _hello)
     _welcomed(s)
     s.on_message(_batch(9))
-    s.on_message([pack({"type": "revoke", "batch_ids": [9]})])
-    assert [cm.decode_client(r, 1 << 16, 64) for r in s.replies()] == [cm.Released((9,))]
+    s.on_message([pack({"type": "granted", "batch_ids": [], "refused": [9]})])
+    for bid in (10, 11, 12):
+        s.on_message(_batch(bid))
+    s.on_message([pack({"type": "revoke", "batch_ids": [11, 12]})])
+    assert [cm.decode_client(r, 1 << 16, 64) for r in s.replies()] == [cm.Hold((9,)), cm.Hold((10,)), cm.Hold((11,)),
+                                                                         cm.Released((12,))]
+
+
+def test_a_hold_unanswered_for_a_whole_heartbeat_is_asked_again():
+    """A grant lost when a connection broke behind ZeroMQ's reconnect would leave the consumer
+    waiting: the I/O thread asks again, each heartbeat, for what stayed unanswered since the last."""
+    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], _hello)
+    _welcomed(s)
+    s.on_message(_batch(7))
+    assert s.held.still_asked(set()) == (set(), {7})  # asked just now: not yet
+    assert s.held.still_asked({7}) == ({7}, {7})  # a heartbeat later, unanswered: again
+    s.on_message([pack({"type": "granted", "batch_ids": [7]})])
+    assert s.held.still_asked({7}) == (set(), set())

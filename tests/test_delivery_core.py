@@ -545,19 +545,35 @@ def test_unanswered_revoke_expires_and_drops_the_client():
     assert [d[0] for d in drops] == [b"a"] and list(led.ready) == [0] and b"a" not in led.clients
 
 
-def test_a_held_batch_has_no_lease_and_goes_back_when_its_client_leaves():
+def test_a_granted_batch_has_no_lease_and_is_never_taken_back():
     led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64, revoke_s=3.0)
+    led.join(b"a", "A", ("voxels",), 3, 0.0)
+    for i in range(3):
+        led.add_batch(BatchRecord(i, 0, [("v", i)], None, outputs=frozenset({"voxels"})))
+    led.sends(0.0)
+    ok, new = led.hold(b"a", [0, 7])  # asked before its lease ran out; 7 is not its batch
+    assert ok == [0] and [b.batch_id for b in new] == [0]
+    led.touch(b"a", 1.5)
+    assert led.expire(1.5) == ({b"a": [1, 2]}, [])  # only the batches not granted are asked back
+    ok, new = led.hold(b"a", [1])  # asked for after the revoke was sent: granted, the revoke withdrawn
+    assert ok == [1] and led.hold(b"a", [1]) == ([1], [])  # asked again: granted already, nothing new
+    led.touch(b"a", 500.0)
+    assert led.expire(500.0) == ({}, [(b"a", "did not answer the revoke of batch(es) [2] within 3 s")])
+    # dropped: the batch leased goes back; the granted ones stay its consumer's (it may have yielded them)
+    assert list(led.ready) == [2] and 0 not in led.batches and 1 not in led.batches
+
+
+def test_a_granted_batch_given_back_goes_to_the_queue_and_an_ack_frees_its_slot():
+    led = DeliveryLedger(lease_s=10.0, client_timeout_s=100.0, max_credits=64)
     led.join(b"a", "A", ("voxels",), 2, 0.0)
     for i in range(2):
         led.add_batch(BatchRecord(i, 0, [("v", i)], None, outputs=frozenset({"voxels"})))
     led.sends(0.0)
-    led.hold(b"a", [0])  # handed to a DataLoader's queue before its lease ran out
-    led.touch(b"a", 1.5)
-    assert led.expire(1.5) == ({b"a": [1]}, [])  # only the batch not held is asked back
-    led.hold(b"a", [1])  # held after the revoke was sent: the revoke is withdrawn
-    led.touch(b"a", 500.0)
-    assert led.expire(500.0) == ({}, [])
-    assert sorted(led.leave(b"a")) == [0, 1] and sorted(led.ready) == [0, 1]
+    led.hold(b"a", [0, 1])
+    assert led.clients[b"a"].free == 0  # granted and not acknowledged: still its slots
+    assert [b.batch_id for b in led.ack(b"a", [0])] == [0] and led.clients[b"a"].free == 1
+    back, ungranted = led.released(b"a", [1])
+    assert back == [1] and [b.batch_id for b in ungranted] == [1] and list(led.ready) == [1]
 
 
 def test_twenty_clients_share_fairly():

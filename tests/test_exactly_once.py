@@ -38,6 +38,24 @@ def test_client_suspended_past_its_timeout_hands_on_nothing_it_held(tmp_path):
     assert r["facts"]["drops"] > 0, r  # it really was dropped
 
 
+@pytest.mark.parametrize("run", range(2))
+def test_a_client_frozen_past_its_timeout_on_busy_cores_doubles_and_loses_nothing(tmp_path, run):
+    """The delivery scenario of issue 61: A (credits 4, 0.3 s steps) stopped for 5 s past a 2 s
+    client timeout, wherever it was between receiving a batch and yielding it, while B reads and
+    two busy processes load the cores; run twice."""
+    r = faults.scenario_frozen_client(tmp_path, LAYOUT, client_timeout_s=2.0, freeze_s=5.0, credits=4, step_s=0.3)
+    exactly_once(r)
+    assert r["facts"]["drops"] > 0 and r["facts"]["server_exit"] == 0, r  # it really was dropped
+
+
+def test_a_client_stopped_at_its_yield_past_its_timeout_doubles_and_loses_nothing(tmp_path):
+    """A stops itself (SIGSTOP) right as its second batch reaches its loop, before the ack may
+    have left the process, for 5 s past the 2 s client timeout, on busy cores."""
+    r = faults.scenario_frozen_client(tmp_path, LAYOUT, client_timeout_s=2.0, freeze_s=5.0, at_yield=True)
+    exactly_once(r)
+    assert r["facts"]["drops"] > 0 and r["facts"]["a_batches"] >= 2, r
+
+
 def test_checkpoint_older_than_the_last_ack_loses_nothing(tmp_path):
     r = faults.scenario_old_checkpoint(tmp_path, LAYOUT, ckpt_step=2)
     exactly_once(r)
@@ -57,9 +75,10 @@ def test_a_revoke_left_unanswered_expires(tmp_path):
 
 
 def test_a_trainer_slower_than_its_lease_never_holds_more_than_its_credits(tmp_path):
-    r = faults.scenario_slow_trainer(tmp_path, LAYOUT, lease_s=0.4, step_s=0.6, credits=2)
+    # 4 credits: two batches granted ahead of the loop, the other two leased and revoked in turn
+    r = faults.scenario_slow_trainer(tmp_path, LAYOUT, lease_s=0.4, step_s=0.6, credits=4, copies=2)
     exactly_once(r)
-    assert r["facts"]["peak_held"] <= 2 and r["facts"]["requeues"] > 0, r
+    assert r["facts"]["peak_held"] <= 4 and r["facts"]["requeues"] > 0, r
 
 
 def test_a_hung_worker_is_replaced_and_the_trainer_waits(tmp_path):

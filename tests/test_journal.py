@@ -134,3 +134,17 @@ def test_a_terminal_gone_turns_the_progress_line_off_and_is_counted_once(monkeyp
         stream.close()
     except OSError:
         pass
+
+
+def test_a_grant_given_back_unused_leaves_the_record_after_a_restart(tmp_path):
+    """A granted batch is journaled before its grant is sent; given back unused, its samples
+    leave the consumer's record, and a restarted server reads both records."""
+    j = Journal(str(tmp_path), "r1")
+    a = ("c:a", 0)
+    j.delivered(a, 0, [K("x.mp4", 0), K("x.mp4", 1)])
+    j.delivered(a, 0, [K("x.mp4", 2)])
+    j.undelivered(a, 0, [K("x.mp4", 2)])
+    j.close()
+    k = Journal(str(tmp_path), "r1")
+    assert k.records == {a: {0: {K("x.mp4", 0), K("x.mp4", 1)}}}
+    k.close()

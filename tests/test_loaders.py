@@ -201,3 +201,48 @@ def test_stream_loader_persistent_worker_killed_mid_iteration(tmp_path):
             trained += b["sample_ids"]
         assert srv.log.count("all 1 epoch(s) delivered") == 1, srv.log[-3000:]
     assert sorted(trained) == expected
+
+
+def test_a_dataloader_worker_stopped_past_its_timeout_with_batches_queued_doubles_nothing(tmp_path):
+    """A DataLoader worker stopped (SIGSTOP) past the server's client timeout while batches it
+    yielded wait in the loader's queue: the server drops its connection, but those batches were
+    granted before they were queued, so they are not sent to the other trainer reading meanwhile;
+    the loop receives them, the worker resumes, and every sample reaches one loop once."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from v2v_client import StreamLoader, V2VStreamDataset
+
+    corpus = faults.good_corpus(tmp_path, 3)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    trained, other = [], []
+    # the server waits for the stopped worker's consumer after the end (the batches granted to it
+    # and not yet queued in the loader are made again when it says hello again)
+    with faults._serve(corpus, LAYOUT, "--epochs", "1", "--client-timeout", "1.5", "--end-grace-s", "60") as srv:
+        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=1,
+                              prefetch_factor=2, persistent_workers=True)
+        it = iter(loader)
+        trained += next(it)["sample_ids"]
+        time.sleep(1.0)  # the worker fills the loader's queue
+        pid = loader._iterator._workers[0].pid
+        os.kill(pid, signal.SIGSTOP)
+        wake = threading.Timer(5.0, os.kill, (pid, signal.SIGCONT))
+        wake.start()
+
+        def read_other():
+            for b in V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1):
+                other.extend(b["sample_ids"])
+                time.sleep(0.3)
+
+        tb = threading.Thread(target=read_other, daemon=True)
+        tb.start()
+        try:
+            for b in it:
+                trained += b["sample_ids"]
+        finally:
+            wake.join()
+        tb.join(60)
+        assert srv.log.count("dropping it") >= 1, srv.log[-3000:]  # the worker's connection was dropped
+    assert sorted(trained + other) == expected

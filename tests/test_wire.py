@@ -230,16 +230,19 @@ def test_mixed_clients_one_compressing_one_not_on_one_server(server, videos):
         client.close()
 
 
-def hellos_to(router, seconds: float):
+def hellos_to(router, seconds: float, stop=None):
     """``(ident, hello)`` for each hello a fake server's ROUTER socket receives within
-    ``seconds`` (other messages are read and ignored)."""
+    ``seconds`` or until ``stop`` (an Event) is set; a ``hold`` is granted (the fake server's
+    batches are the asker's), other messages are read and ignored."""
     deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and not (stop is not None and stop.is_set()):
         if router.poll(200):
             ident, msg = router.recv_multipart()
             h = unpack(msg)
             if h["type"] == "hello":
                 yield ident, h
+            elif h["type"] == "hold":
+                router.send_multipart([ident, pack({"type": "granted", "batch_ids": h["batch_ids"]})])
 
 
 def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
@@ -256,9 +259,13 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
     bad = bytearray(parts[1])
     bad[len(bad) // 2] ^= 0x55  # one altered byte
 
-    def serve(n_clients: int) -> None:
+    import threading
+
+    stop = threading.Event()
+
+    def serve() -> None:
         served = 0
-        for ident, h in hellos_to(router, 30):
+        for ident, h in hellos_to(router, 30, stop):
             router.send_multipart([ident, pack({"type": "welcome", "hello_id": h.get("hello_id"),
                                                 "info": {"crop_size": 4}})])
             corrupt = h["consumer"].startswith("bad")
@@ -268,12 +275,8 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
                                                 "sample_ids": ["a#0", "a#1"], "params": [{}, {}],
                                                 "arrays": [spec]}), parts[0], bytes(bad) if corrupt else parts[1]])
             served += 1
-            if served == n_clients:
-                return
 
-    import threading
-
-    t = threading.Thread(target=serve, args=(2,), daemon=True)
+    t = threading.Thread(target=serve, daemon=True)
     t.start()
     try:
         endpoint = f"tcp://127.0.0.1:{port}"
@@ -286,6 +289,7 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
         b = next(iter(ok_ds))
         assert torch.equal(b["voxels"], torch.from_numpy(good))
     finally:
+        stop.set()
         t.join(30)
         router.close(0)
 
@@ -303,9 +307,12 @@ def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_th
     port = router.bind_to_random_port("tcp://127.0.0.1")
     monkeypatch.setattr(options, "is_loopback", lambda endpoint: False)  # as if this server were on another host
     hellos = []
+    import threading
+
+    stop = threading.Event()
 
     def serve() -> None:
-        for ident, h in hellos_to(router, 30):
+        for ident, h in hellos_to(router, 30, stop):
             hellos.append(h.get("compression", "none"))
             if h.get("compression", "none") != "none":
                 router.send_multipart([ident, pack({"type": "error", "code": "compression", "message": "no zstd"})])
@@ -314,9 +321,6 @@ def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_th
             router.send_multipart([ident, pack({"type": "batch", "batch_id": 0, "epoch": 0, "sample_ids": ["a#0"],
                                                 "params": [{}], "arrays": [{"name": "voxels", "dtype": "int8",
                                                                             "shape": [1, 2]}]}), b"\x01\x02"])
-            return
-
-    import threading
 
     t = threading.Thread(target=serve, daemon=True)
     t.start()
@@ -325,6 +329,7 @@ def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_th
         b = next(iter(ds))
         assert b["voxels"].tolist() == [[1, 2]] and hellos == ["zstd", "none"]
     finally:
+        stop.set()
         t.join(30)
         router.close(0)
 

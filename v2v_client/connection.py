@@ -38,9 +38,8 @@ class Connection:
     hello (with the consumer's resume state), receives batches, answers revokes, heartbeats,
     and forwards the acknowledgements the consumer queues (flushed before ``bye``). It reports
     only through ``items`` (decoded batches and control items; the protocol itself is the
-    :class:`~v2v_client.session.ServerSession` ``session``). A batch is either taken by the
-    training loop (``take``: acknowledged) or given back to the server, never both
-    (``session.held``), and a batch given back loses its arrays at once.
+    :class:`~v2v_client.session.ServerSession` ``session``). A batch is either taken by the loop
+    once granted (``take``) or given back, never both (``session.held``: arrays freed at once).
 
     Args:
         endpoint: the server's ZeroMQ endpoint.
@@ -58,9 +57,6 @@ class Connection:
         ValueError: for ``options.curve_keys`` naming bad key files.
     """
 
-    #: Fraction of the server's client timeout after which a silent process assumes it was dropped.
-    SILENCE_FRACTION = 0.8
-
     def __init__(self, endpoint: str, options, record, consumer: str, convert: Optional[Convert] = None,
                  receipts=None, iteration: int = 0):
         self.endpoint, self.options, self.record = endpoint, options, record
@@ -75,10 +71,9 @@ class Connection:
         self._ctx = zmq.Context.instance()
         self._ident = uuid.uuid4().bytes
         self._pipe = ConsumerPipe(self._ctx)
-        self.last_io = time.monotonic()
         self._lingering = False
         self._receipts = receipts  # DataLoader worker: what the training loop received
-        self._iteration, self._abandoned = iteration, False  # LoaderLink.end_iteration
+        self._iteration, self._abandoned, self._unreceived = iteration, False, False  # LoaderLink.end_iteration, close
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()
 
@@ -101,22 +96,24 @@ class Connection:
         return not self._thread.is_alive() and self.session.items.empty()
 
     # consumer side -------------------------------------------------------
-    def silent_too_long(self, now: float) -> bool:
-        """True when the I/O thread has not run for most of the server's client timeout (the
-        process was suspended): the server has, or is about to have, dropped this client."""
-        limit = (self.session.info or {}).get("client_timeout_s")
-        return isinstance(limit, (int, float)) and now - self.last_io > self.SILENCE_FRACTION * limit
+    def take(self, item: dict, on_claim: Callable[[], object] = lambda: None, ack: bool = True) -> Tuple[bool, object]:
+        """Claim a received batch for the training loop once granted (``HeldBatches.claim``,
+        with ``on_claim``), and ``ack`` it (a DataLoader worker acks on the loop's receipt).
+        Returns ``(True, on_claim())``, or ``(False, None)`` when it was given back meanwhile
+        (revoked before it was asked, refused, discarded by a new hello) or the connection ended."""
+        self._ask(item)
+        ok, result = self.session.held.claim(item, on_claim, lambda: not self._closing.is_set()
+                                             and self._thread.is_alive())
+        if ok and ack:
+            self._queue_for_server(Ack((item["batch_id"],)).to_wire())
+        self._ask()
+        return ok, result
 
-    def take(self, item: dict, hold: bool = False) -> bool:
-        """Claim a received batch and tell the server: acknowledged for the training loop, or
-        with ``hold`` held for a DataLoader worker's queue (no lease: :meth:`ack` follows when
-        the training loop receives it, else closing the connection gives it back). False when
-        it was given back meanwhile (its lease expired, or this client was dropped or silent
-        too long)."""
-        if not self.session.held.claim(item, lambda: self.silent_too_long(time.monotonic())):
-            return False
-        self._queue_for_server((Hold if hold else Ack)((item["batch_id"],)).to_wire())
-        return True
+    def _ask(self, item: Optional[dict] = None) -> None:
+        """Ask for ``item``'s grant and those ahead of it (``HeldBatches.to_ask``)."""
+        ids = self.session.held.to_ask(item)
+        if ids:
+            self._queue_for_server(Hold(tuple(ids)).to_wire())
 
     def ack(self, batch_ids) -> None:
         """Acknowledge batches this connection holds (the training loop received them)."""
@@ -125,7 +122,7 @@ class Connection:
 
     def give_back(self, item: dict) -> None:
         """Return a received batch to the server unused (e.g. an epoch this consumer already completed)."""
-        if self.session.held.give_back(item):
+        if self.session.held.give_back(item) is not None:
             self._queue_for_server(Released((item["batch_id"],)).to_wire())
 
     def _queue_for_server(self, msg: dict) -> None:
@@ -139,10 +136,12 @@ class Connection:
         receipts, and close once none is left (or at :meth:`close`)."""
         self._lingering = True
 
-    def close(self) -> None:
-        """Stop the I/O thread: acknowledgements already queued are sent, then ``bye``."""
+    def close(self, unreceived: bool = False) -> None:
+        """Stop the I/O thread: queued acks are sent, batches asked for or granted and not taken
+        are given back (``unreceived``: also a DataLoader worker's batches the loader dropped), then ``bye``."""
         if self._closing.is_set():
             return
+        self._unreceived = unreceived
         self._closing.set()
         self._thread.join(5.0)
         self._pipe.close_sender()
@@ -201,6 +200,7 @@ class Connection:
             self.session.items.put(StreamError(f"stream from {self.endpoint} failed: {type(e).__name__}: {e}"))
         finally:
             self._finish(self._sock)
+            self.session.held.discard(None)  # wakes a consumer waiting for a grant
 
     def _serve(self) -> None:
         """Poll the socket, the acknowledgements and the receipts; receive messages, heartbeat,
@@ -208,17 +208,11 @@ class Connection:
         sock = self._sock
         give_up_at = None
         last_heard = time.monotonic()
-        next_beat = last_heard + self.options.heartbeat_s
+        next_beat, asked = last_heard + self.options.heartbeat_s, set()
         poller = self._poller(sock)
         while not self._closing.is_set():
             events = dict(poller.poll(100))
             now = time.monotonic()
-            if self.silent_too_long(now):
-                # suspended longer than the server waits for us: it has dropped us; start afresh
-                log.warning("v2v stream %s: this process was silent for %.0f s; saying hello again",
-                            self.endpoint, now - self.last_io)
-                _send(sock, self.session.hello())
-            self.last_io = now
             if self._pipe.receiver in events:
                 self._pipe.forward(sock)
             self._take_receipts(sock)
@@ -247,6 +241,9 @@ class Connection:
             if now >= next_beat:
                 _send(sock, pack(Heartbeat().to_wire()))
                 next_beat = now + self.options.heartbeat_s
+                again, asked = self.session.held.still_asked(asked)
+                if again:
+                    _send(sock, pack(Hold(tuple(sorted(again))).to_wire()))
 
     def _receive(self, sock: zmq.Socket) -> Tuple[Optional[str], bool]:
         """Handle every message waiting on ``sock`` and send the replies they call for:
@@ -295,6 +292,11 @@ class Connection:
             try:
                 self._pipe.forward(sock)
                 self._take_receipts(sock)
+                ours = self.session.held.discard(None)
+                if self._receipts is not None and (self._abandoned or self._unreceived):
+                    ours += self.record.pipeline_ids()  # granted, queued in the loader, dropped by it
+                if ours:  # asked or granted and never handed on: back to the queue, not lost with us
+                    sock.send(pack(Released(tuple(ours)).to_wire()), zmq.NOBLOCK)
                 sock.send(pack(Bye().to_wire()), zmq.NOBLOCK)
             except zmq.ZMQError:
                 pass

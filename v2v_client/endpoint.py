@@ -72,11 +72,16 @@ class ConsumerRecord:
                 self.recipe = state["recipe"]
 
     def resume(self) -> dict:
-        """The hello's resume state: the completed epoch, ids yielded (compacted) and batches
-        per open epoch."""
+        """The hello's resume state: the completed epoch, ids yielded (compacted; in a
+        DataLoader worker also those in the loader's queues: the loop may still receive them)
+        and batches per open epoch."""
         with self.lock:
+            ids = {e: set(v) for e, v in self.delivered.items()}
+            for e, sids in self.pipeline.values():
+                if e > self.completed_epoch:
+                    ids.setdefault(e, set()).update(sids)
             return {"completed_epoch": self.completed_epoch,
-                    "delivered": {str(e): compact_ids(ids) for e, ids in self.delivered.items()},
+                    "delivered": {str(e): compact_ids(v) for e, v in ids.items()},
                     "batches": {str(e): n for e, n in self.batches.items()}}
 
     def check_recipe(self, recipe) -> Optional[str]:
@@ -155,6 +160,11 @@ class ConsumerRecord:
         """Batches yielded to the DataLoader whose receipt has not come."""
         with self.lock:
             return len(self.pipeline)
+
+    def pipeline_ids(self) -> List[int]:
+        """Batch ids yielded to the DataLoader whose receipt has not come."""
+        with self.lock:
+            return list(self.pipeline)
 
     def clear_pipeline(self) -> None:
         """Forget the batches in the DataLoader's queues (they go back to the server)."""
@@ -251,9 +261,10 @@ class EndpointStream:
             self._drop(conn)
         self.record.clear_pipeline()
 
-    def _drop(self, conn: Connection) -> None:
-        """Close ``conn`` and forget it, keeping its stream info."""
-        conn.close()
+    def _drop(self, conn: Connection, unreceived: bool = False) -> None:
+        """Close ``conn`` and forget it, keeping its stream info; ``unreceived``: the loader
+        dropped what this DataLoader worker queued (its batches without a receipt go back)."""
+        conn.close(unreceived)
         if conn.info is not None:
             self._info = conn.info
         if conn in self._conns:
@@ -298,8 +309,8 @@ class EndpointStream:
         finally:
             if self.receipts is not None and not abandoned and self.record.pipeline:
                 conn.linger()  # ended (drained, end of stream) with batches in the loader's queues
-            else:
-                self._drop(conn)  # receipts already written are taken first; the rest goes back with bye
+            else:  # receipts already written are taken first; the batches the loop will not receive go back
+                self._drop(conn, unreceived=abandoned)
                 self.record.clear_pipeline()
 
     def _next_item(self, conn: Connection):
@@ -337,8 +348,9 @@ class EndpointStream:
         yield item
 
     def _batch(self, conn: Connection, item: dict) -> Iterator[dict]:
-        """A received batch: given back when its epoch is complete here; else claimed (taken,
-        or held for a DataLoader worker), its samples already delivered or queued dropped
+        """A received batch: given back when its epoch is complete here; else claimed once the
+        server granted it (acknowledged, or in a DataLoader worker acknowledged when the loop's
+        receipt comes) and its samples recorded in the same step, those already delivered or queued dropped
         (a batch of repeats only becomes DDP padding, or nothing with one rank), preceded by
         any padding owed, and yielded."""
         epoch = item["epoch"]
@@ -346,9 +358,10 @@ class EndpointStream:
             conn.give_back(item)  # never acknowledge what we would drop
             return
         loader = self.receipts is not None
-        if not conn.take(item, hold=loader):
-            return  # given back meanwhile (lease expired, or this client was dropped)
-        keep = self.record.new_samples(epoch, item["batch_id"], item["sample_ids"], loader)
+        taken, keep = conn.take(item, lambda: self.record.new_samples(epoch, item["batch_id"], item["sample_ids"],
+                                                                      loader), ack=not loader)
+        if not taken:
+            return  # given back meanwhile (revoked before it was granted, or this client said hello again)
         item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
         if loader:
             if not keep:

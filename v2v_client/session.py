@@ -15,10 +15,10 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 from v2v_wire.codecs import decode_batch_arrays
-from v2v_wire.messages import Released
+from v2v_wire.messages import Hold, Released
 from v2v_wire.outputs import ARRAYS
 from v2v_wire import stream_messages as sm
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, ProtocolError, output_of, pack, unpack
@@ -26,7 +26,7 @@ from v2v_wire.stream_messages import stream_message
 
 from .handoff import ShmReader, check_shm_dir, shm_dir_problem
 
-__all__ = ["ServerSession", "HeldBatches", "StreamError", "StreamTimeout", "EpochDone", "Drained", "LoopAbandoned", "ServerPadding",
+__all__ = ["ServerSession", "HeldBatches", "GRANT_AHEAD", "StreamError", "StreamTimeout", "EpochDone", "Drained", "LoopAbandoned", "ServerPadding",
            "MAX_SERVER_MSG", "strip_arrays"]
 
 log = logging.getLogger("v2v.client")
@@ -86,74 +86,158 @@ def _as_received(arrays: Dict, flow_size, flow_dtype) -> Dict:
     return dict(arrays)
 
 
+#: Batches a connection asks to be granted ahead of the consumer (its ``hold``s in flight plus
+#: those granted and not yet taken): the grant's round trip overlaps the training steps, and a
+#: trainer that dies for good takes at most this many granted batches with it.
+GRANT_AHEAD = 2
+
+
 class HeldBatches:
     """The batches a session received and the consumer has neither taken nor given back
-    (batch id -> its queued item). A batch is either claimed by the consumer or given back
-    (revoked, dropped, released), never both: ``lock`` makes the choice exclusive, and a
-    batch given back loses its arrays at once."""
+    (batch id -> its queued item), and where each stands: *leased* (the server may take it
+    back: a revoke releases it), *asked* (a ``hold`` is on its way: kept until the answer) or
+    *granted* (the consumer's for good). The consumer takes a batch only once it is granted
+    (:meth:`claim`); a batch is either taken or given back (revoked, refused, discarded,
+    released), never both: ``lock`` (a condition the consumer waits on) makes the choice
+    exclusive, and a batch given back loses its arrays at once.
 
-    def __init__(self, endpoint: str):
+    Args:
+        endpoint: named in logs.
+        ahead: batches asked or granted ahead of the consumer at most (``GRANT_AHEAD``).
+    """
+
+    def __init__(self, endpoint: str, ahead: int = GRANT_AHEAD):
         self.endpoint = endpoint
-        self.lock = threading.Lock()
+        self.lock = threading.Condition()
         self.current: Dict[int, dict] = {}
-        self.discarded = 0  # batches given up in a re-hello or a silence
+        self.asked: Set[int] = set()
+        self.granted: Set[int] = set()
+        self.ahead = max(1, ahead)
+        self.discarded = 0  # batches given up when saying hello again
 
     def add(self, item: dict) -> None:
-        """A received batch (a batch given back may come again: this copy is the live one)."""
+        """A received batch (a batch given back may come again: this copy is the live one, leased)."""
         with self.lock:
-            self.current[item["batch_id"]] = item
+            bid = item["batch_id"]
+            self.current.pop(bid, None)
+            self.asked.discard(bid)
+            self.granted.discard(bid)
+            self.current[bid] = item
 
-    def claim(self, item: dict, silent_too_long: Callable[[], bool]) -> bool:
-        """Take a received batch out for the consumer; False when it was given back meanwhile
-        (its lease expired, or this client was dropped), or when ``silent_too_long()`` says
-        the server has dropped us (every held batch is discarded then)."""
+    def to_ask(self, item: Optional[dict] = None) -> List[int]:
+        """Leased batches to ask the server for now, marked asked: ``item`` when it is still
+        held and leased, then the oldest leased ones while fewer than ``ahead`` are asked or
+        granted. The caller sends them in a ``hold``."""
+        with self.lock:
+            out = []
+            if item is not None and self.current.get(item["batch_id"]) is item and self._leased(item["batch_id"]):
+                out.append(item["batch_id"])
+                self.asked.add(item["batch_id"])
+            for bid in self.current:
+                if len(self.asked) + len(self.granted) >= self.ahead:
+                    break
+                if self._leased(bid):
+                    out.append(bid)
+                    self.asked.add(bid)
+            return out
+
+    def _leased(self, bid: int) -> bool:
+        return bid not in self.asked and bid not in self.granted
+
+    def answer(self, granted: Sequence[int], refused: Sequence[int]) -> None:
+        """The server's answer to our holds: ``granted`` batches may be taken, ``refused`` ones
+        are no longer ours (given back here)."""
+        with self.lock:
+            for bid in granted:
+                if bid in self.asked:
+                    self.asked.discard(bid)
+                    self.granted.add(bid)
+            for bid in refused:
+                if bid in self.asked:
+                    self._pop_locked(bid)
+            self.lock.notify_all()
+
+    def still_asked(self, before: Set[int]) -> Tuple[Set[int], Set[int]]:
+        """``(asked then and still unanswered, asked now)``: the I/O thread asks again for what
+        stays unanswered a whole heartbeat (a grant lost when a connection broke and ZeroMQ
+        reconnected behind it; the server answers a repeated ``hold`` the same)."""
+        with self.lock:
+            return before & self.asked, set(self.asked)
+
+    def claim(self, item: dict, on_claim: Callable[[], object], wait: Callable[[], bool]) -> Tuple[bool, object]:
+        """Take a received batch out for the consumer once it is granted, calling ``on_claim()``
+        under the lock (the consumer records its samples there: a hello, which reads that
+        record under the same lock, either precedes the claim and discards the batch, or
+        follows it and names its samples). Waits for the answer while ``wait()`` is true.
+        Returns ``(True, on_claim())``, or ``(False, None)`` when the batch was given back
+        meanwhile (revoked before it was asked, refused, or discarded by a new hello)."""
         bid = item["batch_id"]
         with self.lock:
+            while self.current.get(bid) is item and bid not in self.granted:
+                if not wait():
+                    return False, None
+                self.lock.wait(0.1)
             if self.current.get(bid) is not item:
-                return False
-            if silent_too_long():
-                self._discard_locked("this process was silent longer than the server's client timeout")
-                return False
+                return False, None
             del self.current[bid]
-        return True
+            self.granted.discard(bid)
+            return True, on_claim()
 
-    def give_back(self, item: dict) -> bool:
-        """Release a received batch unused (its arrays freed); False when it was no longer held."""
+    def give_back(self, item: dict) -> Optional[bool]:
+        """Release a received batch unused (its arrays freed): None when it was no longer held,
+        else whether the server may have granted it (asked or granted: the caller says
+        ``released`` either way; a leased one goes back when the lease or the connection ends
+        too, but saying so frees its slot at once)."""
         with self.lock:
-            if self.current.get(item["batch_id"]) is not item:
-                return False
-            del self.current[item["batch_id"]]
-            strip_arrays(item)
-        return True
+            bid = item["batch_id"]
+            if self.current.get(bid) is not item:
+                return None
+            maybe_granted = bid in self.asked or bid in self.granted
+            self._pop_locked(bid)
+        return maybe_granted
 
     def revoke(self, batch_ids) -> List[int]:
-        """Release the batches the server asks back; returns those that were still held."""
+        """Release the leased batches the server asks back; returns those released (asked
+        and granted ones stay: the server grants what it was asked for before it reads more)."""
         released = []
         with self.lock:
             for b in batch_ids:
-                item = self.current.pop(b, None) if isinstance(b, int) else None
-                if item is not None:
-                    strip_arrays(item)
+                if isinstance(b, int) and b in self.current and self._leased(b):
+                    self._pop_locked(b)
                     released.append(b)
         return released
 
-    def discard(self, why: str) -> None:
-        """Give up every batch held (the server re-sends them elsewhere), logging ``why``."""
+    def discard(self, why: Optional[str]) -> List[int]:
+        """Give up every batch held (the server re-sends or re-makes them), logging ``why`` (None:
+        a connection closing, nothing to say); returns those that were asked or granted (to say
+        ``released`` for when the connection closes)."""
         with self.lock:
-            self._discard_locked(why)
+            return self._discard_locked(why)
 
     def __len__(self) -> int:
         with self.lock:
             return len(self.current)
 
-    def _discard_locked(self, why: str) -> None:
-        if self.current:
+    def _pop_locked(self, bid: int) -> None:
+        item = self.current.pop(bid)
+        self.asked.discard(bid)
+        self.granted.discard(bid)
+        strip_arrays(item)
+        self.lock.notify_all()
+
+    def _discard_locked(self, why: Optional[str]) -> List[int]:
+        if self.current and why is not None:
             log.warning("v2v stream %s: discarding %d batch(es) not yet used: %s", self.endpoint,
                         len(self.current), why)
+        ours = sorted(self.asked | self.granted)
         for item in self.current.values():
             strip_arrays(item)
-        self.discarded += len(self.current)
+        self.discarded += len(self.current) if why is not None else 0
         self.current.clear()
+        self.asked.clear()
+        self.granted.clear()
+        self.lock.notify_all()
+        return ours
 
 
 class ServerSession:
@@ -210,10 +294,12 @@ class ServerSession:
         Raises:
             StreamError: the hello (its resume state) is larger than the server takes.
         """
-        self.held.discard("saying hello again")
+        with self.held.lock:  # the resume state and the discard as one step (``HeldBatches.claim``)
+            self.held.discard("saying hello again")
+            header = self._hello_header()
         self._hello_seq += 1
         self._awaiting = self._hello_seq
-        h = dict(self._hello_header(), hello_id=self._hello_seq)
+        h = dict(header, hello_id=self._hello_seq)
         if self.shm:
             h["shm"] = True
         if self.compression != "none":
@@ -242,7 +328,7 @@ class ServerSession:
         try:
             m = stream_message(unpack(frames[0]))
             rehello = isinstance(m, sm.ServerError) and m.code in ("dropped", "unknown_client")
-            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke)) or rehello):
+            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted)) or rehello):
                 # sent before the server read our latest hello: about a session that is over
                 return None
             if isinstance(m, sm.Batch):
@@ -255,6 +341,9 @@ class ServerSession:
                     return "over"
             elif isinstance(m, sm.Revoke):
                 self._on_revoke(m)
+            elif isinstance(m, sm.Granted):
+                self.held.answer(m.batch_ids, m.refused)
+                self._ask()
             elif isinstance(m, sm.EpochDone):
                 self.items.put(EpochDone(m.epoch, m.batches))
             elif isinstance(m, sm.Drained):
@@ -328,7 +417,14 @@ class ServerSession:
             return None
         self.held.add(item)
         self.items.put(item)
+        self._ask()
         return None
+
+    def _ask(self) -> None:
+        """Ask for the grants the consumer will need next (``HeldBatches.to_ask``)."""
+        ids = self.held.to_ask()
+        if ids:
+            self._replies.append(pack(Hold(tuple(ids)).to_wire()))
 
     def _on_welcome(self, m: sm.Welcome) -> None:
         """The server's answer to our hello: its stream info, and whether we can read its

@@ -76,7 +76,9 @@ class Hello:
 
 @dataclass(frozen=True)
 class Ack:
-    """The training loop received these batches: the server forgets them."""
+    """The training loop received these batches (granted first): the server forgets them and
+    frees their slots. An ack of a batch held but not granted grants it too (a client that never
+    says ``hold``)."""
 
     batch_ids: Tuple[int, ...]
 
@@ -86,7 +88,8 @@ class Ack:
 
 @dataclass(frozen=True)
 class Released:
-    """The client gives these batches back unused (revoked, torn, or of a completed epoch)."""
+    """The client gives these batches back unused (revoked, torn, of a completed epoch, or
+    granted and never handed on): they go to the queue again."""
 
     batch_ids: Tuple[int, ...]
 
@@ -96,8 +99,9 @@ class Released:
 
 @dataclass(frozen=True)
 class Hold:
-    """The client handed these batches to its data loader (DataLoader workers): no lease; an
-    ack follows when the training loop receives one, else the connection gives it back."""
+    """The client asks for these batches to be granted (``stream_messages.Granted``) before it
+    hands them on: a granted batch is the consumer's (delivered, no lease, never sent
+    elsewhere); an ack follows when the training loop receives it, or ``released``."""
 
     batch_ids: Tuple[int, ...]
 

@@ -6,18 +6,20 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types (protocol 3; client messages are decoded and schema-checked by ``wire.py``):
+Message types (protocol 4; client messages are decoded and schema-checked by ``wire.py``):
 
 * client -> server: ``hello`` (outputs, credits = how many batches it may hold,
   consumer id, optional DDP ``rank``/``world_size``/``group``, ``resume``:
   ``completed_epoch``, ``delivered`` {epoch: the sample ids, one video per line as
   ``path#w1,w2,...`` (``ids.compact_ids``)}, ``batches`` {epoch: batches yielded}), ``ack``
-  (batch ids; frees exactly those slots), ``hold`` (batch ids handed to a DataLoader's queues:
-  no lease, acknowledged later), ``released`` (batch ids given back), ``credit`` (widen the
+  (batch ids; frees exactly those slots), ``hold`` (batch ids the client
+  asks to be granted before it hands them on: answered by ``granted``), ``released`` (batch ids given back), ``credit`` (widen the
   window), ``heartbeat``, ``bye``. A client message is at most ``MAX_CLIENT_MSG`` bytes (the
   welcome repeats it as ``max_hello_bytes``); a larger one up to twice that gets an ``error``.
 * server -> client: ``welcome`` (stream info: also ``shard``, ``corpus`` and ``recipe``
-  fingerprints), ``batch``, ``revoke`` (batch ids), ``heartbeat``, ``epoch_done`` (epoch;
+  fingerprints), ``batch``, ``revoke`` (batch ids), ``granted`` (batch ids of a ``hold`` that are
+  the consumer's for good: the client hands a batch on only once granted; ``refused``: those no
+  longer the client's), ``heartbeat``, ``epoch_done`` (epoch;
   ``batches`` per rank for a DDP group), ``drained`` (a bounded stream has nothing left for this
   client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
   ``dropped`` / ``unknown_client``: discard what you hold, say hello again).
@@ -57,7 +59,7 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a

@@ -106,6 +106,28 @@ class Revoke:
 
 
 @dataclass(frozen=True)
+class Granted:
+    """The answer to a ``hold``: ``batch_ids`` are the client's consumer's for good (recorded
+    as delivered to it, never sent to anybody else, never asked back); ``refused``: those of
+    the hold the client no longer holds (taken back: it must not hand them on). A client hands
+    a batch to its training loop only once it was granted."""
+
+    batch_ids: Tuple[int, ...]
+    refused: Tuple[int, ...] = ()
+
+    def to_wire(self) -> dict:
+        h = {"type": "granted", "batch_ids": list(self.batch_ids)}
+        if self.refused:
+            h["refused"] = list(self.refused)
+        return h
+
+    @classmethod
+    def from_wire(cls, h: dict) -> "Granted":
+        refused = _list(h, "granted", "refused", int) if "refused" in h else ()
+        return cls(_list(h, "granted", "batch_ids", int), refused)
+
+
+@dataclass(frozen=True)
 class EpochDone:
     """Every sample of ``epoch`` was delivered; with DDP, ``batches``: the batches each rank
     must yield for it (None without DDP)."""
@@ -198,9 +220,9 @@ class ServerError:
         return cls(message, _opt_str(h, "error", "code"))
 
 
-StreamMessage = Union[Welcome, Batch, Revoke, EpochDone, Drained, End, Heartbeat, Shutdown, ServerError]
+StreamMessage = Union[Welcome, Batch, Revoke, Granted, EpochDone, Drained, End, Heartbeat, Shutdown, ServerError]
 
-_TYPES = {"welcome": Welcome, "batch": Batch, "revoke": Revoke, "epoch_done": EpochDone, "drained": Drained,
+_TYPES = {"welcome": Welcome, "batch": Batch, "revoke": Revoke, "granted": Granted, "epoch_done": EpochDone, "drained": Drained,
           "end": End, "heartbeat": Heartbeat, "shutdown": Shutdown, "error": ServerError}
 
 
@@ -218,5 +240,5 @@ def stream_message(h: dict) -> Optional[StreamMessage]:
     return None if cls is None else cls.from_wire(h)
 
 
-__all__ = ["Batch", "Drained", "End", "EpochDone", "Heartbeat", "Revoke", "ServerError", "Shutdown",
+__all__ = ["Batch", "Drained", "End", "EpochDone", "Granted", "Heartbeat", "Revoke", "ServerError", "Shutdown",
            "StreamMessage", "StreamMessageError", "Welcome", "stream_message"]

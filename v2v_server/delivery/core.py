@@ -22,8 +22,8 @@ from v2v_server.settings import setting
 from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import MAX_CREDITS, OUTPUTS
 from v2v_server.delivery.schedule import MAX_TASK_CRASHES, EpochScheduler, Job
-from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
-from v2v_wire.stream_messages import Drained, EpochDone, Revoke, ServerError, StreamMessage, Welcome
+from v2v_wire.messages import Ack, Bye, Credit, Hello, Hold, Released
+from v2v_wire.stream_messages import Drained, EpochDone, Granted, Revoke, ServerError, StreamMessage, Welcome
 from v2v_wire.worker_messages import Task
 
 log = logging.getLogger("v2v.server")
@@ -125,10 +125,16 @@ class GroupPadding:
                 self.taken.setdefault((group, e), {})[rank] = n
 
     def acked(self, group: str, rank: int, batch: BatchRecord) -> None:
-        """Rank ``rank`` of ``group`` acknowledged ``batch`` (its training loop received it)."""
+        """Rank ``rank`` of ``group`` was granted ``batch`` (it yields it)."""
         counts = self.taken.setdefault((group, batch.epoch), {})
         counts[rank] = counts.get(rank, 0) + 1
         self.pad_source[group] = batch
+
+    def released(self, group: str, rank: int, batch: BatchRecord) -> None:
+        """Rank ``rank`` gave back ``batch``, granted and counted before: it yielded it not."""
+        counts = self.taken.get((group, batch.epoch), {})
+        if counts.get(rank, 0) > 0:
+            counts[rank] -= 1
 
     def epoch_done(self, c, epoch: int) -> Tuple[int, Optional[BatchRecord]]:
         """For the rank of client ``c`` (``ledger.ClientRecord``) once ``epoch`` is complete:
@@ -158,14 +164,18 @@ class DeliveryCore:
         videos: corpus-relative paths.
         policy: the delivery settings (:class:`DeliveryPolicy`).
         make_batch: ``samples -> payload`` (``sample()``'s built samples, in batch order).
+        journal: ``journal.Journal`` (``--state-dir``) or None.
+        stall_s: see ``ledger.DeliveryLedger`` (the server passes ``ledger.STALL_S``).
     """
 
-    def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None):
+    def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None,
+                 stall_s: Optional[float] = None):
         p = self.policy = policy
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
                                     max_samples_per_video=p.max_samples_per_video)
-        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s)
+        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s,
+                                     stall_s=stall_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
         self.crops_per_window = p.crops_per_window
         self.task_timeout_s = p.task_timeout_s
@@ -287,29 +297,41 @@ class DeliveryCore:
             return [(ident, ServerError("unknown client (this server may have restarted, or dropped it for "
                                         "silence): say hello first", "unknown_client"))]
         c = self.ledger.clients[ident]
+        if isinstance(msg, Hold):
+            ok, new = self.ledger.hold(ident, msg.batch_ids)
+            self._delivered(c, new)  # recorded (and journaled) before the grant leaves
+            refused = tuple(b for b in msg.batch_ids if b not in set(ok))
+            return [(ident, Granted(tuple(ok), refused))]
         if isinstance(msg, Ack):
-            for b in self.ledger.ack(ident, msg.batch_ids):
-                self.sched.delivered(c.consumer, b.epoch, b.keys)
-                if self.journal is not None:
-                    self.journal.delivered(c.consumer, b.epoch, b.keys)
-                if c.group is not None and c.world_size > 1:
-                    self.padding.acked(c.group, c.rank, b)
+            self._delivered(c, self.ledger.hold(ident, msg.batch_ids)[1])  # acked without a hold: granted now
+            self.ledger.ack(ident, msg.batch_ids)
         elif isinstance(msg, Released):
-            back = self.ledger.released(ident, msg.batch_ids)
+            back, ungranted = self.ledger.released(ident, msg.batch_ids)
+            for b in ungranted:
+                self.sched.undelivered(c.consumer, b.epoch, b.keys)
+                if self.journal is not None:
+                    self.journal.undelivered(c.consumer, b.epoch, b.keys)
+                if c.group is not None and c.world_size > 1:
+                    self.padding.released(c.group, c.rank, b)
             if back:
-                log.info("batch(es) %s go back to the queue: their lease expired and the client released them",
-                         back)
-        elif isinstance(msg, Hold):
-            self.ledger.hold(ident, msg.batch_ids)
+                log.info("batch(es) %s go back to the queue: the client released them", back)
         elif isinstance(msg, Credit):
-            self.ledger.grant(ident, msg.credit)
+            self.ledger.add_credits(ident, msg.credit)
         elif isinstance(msg, Bye):
             back = self.ledger.leave(ident)
             if back:
                 log.info("client %s left; batch(es) %s go back to the queue", ident.hex(), back)
-        elif isinstance(msg, Heartbeat):
-            pass
-        return []
+        return []  # a heartbeat only touched the client
+
+    def _delivered(self, c, batches: List[BatchRecord]) -> None:
+        """Record ``batches`` (granted to client ``c``) delivered to its consumer: in the
+        scheduler, the journal and its DDP group's counts."""
+        for b in batches:
+            self.sched.delivered(c.consumer, b.epoch, b.keys)
+            if self.journal is not None:
+                self.journal.delivered(c.consumer, b.epoch, b.keys)
+            if c.group is not None and c.world_size > 1:
+                self.padding.acked(c.group, c.rank, b)
 
     def forget(self, ident: bytes) -> List[int]:
         """A client broke the protocol or cannot be reached: drop it (its batches go back)."""
@@ -366,16 +388,20 @@ class DeliveryCore:
         return msgs
 
     def _announce(self) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
-        """``epoch_done`` for each newly complete epoch, in order. A DDP rank that has yielded
+        """``epoch_done`` for each newly complete epoch, in order, once none of its batches is
+        granted and unacknowledged (a client may still give one back). A DDP rank that has yielded
         fewer batches of it than the group's most is told how many to reach; one that was never
         sent any batch first gets a padding batch (a copy of the group's last batch, batch id
         -1, every sample flagged) so it has something to repeat."""
         msgs: List[Msg] = []
         pads: List[Tuple[bytes, BatchRecord]] = []
+        granted = {b.epoch for b in self.ledger.batches.values()}  # granted and not acknowledged yet
         for e in sorted(self.sched.plans):
             if not self.sched.plans[e].complete:
                 self.announced.discard(e)
                 break  # in order: a client forgets an epoch's ids once told it is complete
+            if e not in self.announced and e in granted:
+                break  # a granted batch may still be given back unused: announced once acknowledged
             if e in self.announced:
                 continue
             self.announced.add(e)

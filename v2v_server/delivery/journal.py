@@ -10,8 +10,10 @@ hello, still replaces its record (it is authoritative for its own samples: what 
 after its checkpoint is owed again).
 
 File ``DIR/delivered.journal``: a header then msgpack records appended as they happen:
-``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (acknowledged; ``index`` is
+``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (granted: the consumer may
+hand them on, so the grant is written before it is sent; ``index`` is
 ``ids.SampleKey.ordinal``, the sample's number in its video under the journal's recipe),
+``{"u": [consumer, rank], "e": epoch, "k": [...]}`` (granted, then given back unused),
 ``{"s": [consumer, rank], "c": completed_epoch, "r": {epoch: keys}}`` (a resume state replaced
 a record), ``{"done": epoch}`` (an epoch complete; its records are dropped). When an epoch
 completes the file is rewritten from memory (a temporary file, fsync, rename).
@@ -123,6 +125,10 @@ class Journal:
             e = int(rec["e"])
             if e > self.completed:
                 self.records.setdefault(tuple(rec["d"]), {}).setdefault(e, set()).update(self._keys(rec["k"]))
+        elif "u" in rec:
+            d = self.records.get(tuple(rec["u"]), {}).get(int(rec["e"]))
+            if d is not None:
+                d.difference_update(self._keys(rec["k"]))
         elif "s" in rec:
             self._replace(tuple(rec["s"]), int(rec["c"]), {int(e): self._keys(ks) for e, ks in rec["r"].items()})
 
@@ -191,6 +197,14 @@ class Journal:
         pairs = self._pairs(keys)
         if pairs and epoch > self.completed:
             rec = {"d": list(consumer), "e": epoch, "k": pairs}
+            self._apply(rec)
+            self._append(rec)
+
+    def undelivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
+        """``consumer`` gave back ``keys`` of ``epoch`` it was granted and never handed on."""
+        pairs = self._pairs(keys)
+        if pairs and epoch > self.completed:
+            rec = {"u": list(consumer), "e": epoch, "k": pairs}
             self._apply(rec)
             self._append(rec)
 

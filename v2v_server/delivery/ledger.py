@@ -9,13 +9,20 @@ Rules (README "Nothing lost, nothing let in"):
   ``max_credits``) bound the batches it holds. Sending a batch takes a slot; only an ``ack``
   or ``released`` naming a batch id this client holds frees it. Acks for anything else free
   nothing, so re-sends can never inflate a client's credits.
-* **Leases.** A batch unacknowledged ``lease_s`` after it was sent is revoked (the client is
-  asked to give it back). A revoke that is not answered within ``revoke_s`` expires: the
-  client is dropped, everything it held goes back to the queue, and it is told so. A batch
-  the client says it ``hold``s (handed to a DataLoader's queue, acknowledged when the
-  training loop receives it) has no lease: it stays with the client until acknowledged,
-  released, or the client leaves or is dropped.
+* **Leases and grants.** A batch sent is *leased*: unacknowledged ``lease_s`` after it was
+  sent it is revoked (the client is asked to give it back). A revoke that is not answered
+  within ``revoke_s`` expires: the client is dropped, everything leased to it goes back to the
+  queue, and it is told so. A client hands a batch on only once it is *granted*: its ``hold``
+  of a batch it still holds (leased or revoked) makes it the consumer's (``hold`` returns it;
+  the caller records it delivered). A granted batch has no lease and is never taken back:
+  dropping or forgetting the client forgets it (its samples stay delivered); only the
+  client's ``released`` gives it back (``released`` returns it as granted: the caller records
+  it undelivered). Its slot is freed by the ``ack`` that follows.
 * **Silence.** A client silent for ``client_timeout_s`` is dropped the same way.
+* **The server's own stalls do not count.** With ``stall_s`` (the server: ``STALL_S``), time
+  the server did not listen (a gap of more than ``stall_s`` between two ``expire`` calls: the
+  process was stopped, swapped out, or blocked) is added to every deadline, so a client is never dropped, nor a lease revoked, for
+  a silence that was the server's.
 * **Fair sharing.** Ready batches go round-robin to the clients with a free slot (least
   recently served first); a batch given back prefers another client.
 * **Groups.** Clients of a DDP group (``world_size > 1``) receive nothing until all ranks of
@@ -32,6 +39,11 @@ from dataclasses import dataclass, field
 from typing import Any, Deque, Dict, Hashable, Iterable, List, Optional, Set, Tuple
 
 from v2v_wire.ids import SampleKey
+
+#: Seconds between two ``DeliveryLedger.expire`` calls beyond which the server counts itself
+#: stalled (its loop runs every 0.1 s): the gap is added to every deadline.
+STALL_S = 1.0
+
 
 @dataclass
 class BatchRecord:
@@ -66,6 +78,7 @@ class ClientRecord:
     world_size: int = 1
     held: Dict[int, float] = field(default_factory=dict)  # batch id -> lease deadline
     revoked: Dict[int, float] = field(default_factory=dict)  # batch id -> revoke deadline
+    granted: Dict[int, None] = field(default_factory=dict)  # batch ids granted, not yet acknowledged
     served: int = 0  # round-robin position (ledger's send counter when last served)
     sent: int = 0
     completed: int = -1  # its consumer was told epochs up to this one are complete: none of them is sent
@@ -73,7 +86,26 @@ class ClientRecord:
 
     @property
     def free(self) -> int:
-        return self.credits - len(self.held) - len(self.revoked)
+        return self.credits - len(self.held) - len(self.revoked) - len(self.granted)
+
+    def holds(self, bid: int) -> bool:
+        return bid in self.held or bid in self.revoked or bid in self.granted
+
+    def take(self, bid: int) -> bool:
+        """Forget ``bid`` (leased, revoked or granted); False when this client does not hold it."""
+        if not self.holds(bid):
+            return False
+        self.held.pop(bid, None)
+        self.revoked.pop(bid, None)
+        self.granted.pop(bid, None)
+        return True
+
+    def shift(self, gap: float) -> None:
+        """Move every deadline ``gap`` seconds later (the server stalled)."""
+        self.last_seen += gap
+        for d in (self.held, self.revoked):
+            for bid in d:
+                d[bid] += gap
 
 
 class DeliveryLedger:
@@ -87,10 +119,13 @@ class DeliveryLedger:
         revoke_s: seconds a revoke may stay unanswered before the client is dropped
             (default ``client_timeout_s``).
         group_wait_s: how long a DDP group waits for its missing ranks.
+        stall_s: a gap between two ``expire`` calls longer than this is the server's own
+            stall, added to every deadline (None: every gap counts, as when a caller jumps
+            its clock).
     """
 
     def __init__(self, lease_s: float, client_timeout_s: float, max_credits: int, revoke_s: Optional[float] = None,
-                 group_wait_s: Optional[float] = None):
+                 group_wait_s: Optional[float] = None, stall_s: Optional[float] = None):
         self.lease_s = lease_s
         self.client_timeout_s = client_timeout_s
         self.revoke_s = client_timeout_s if revoke_s is None else revoke_s
@@ -102,6 +137,9 @@ class DeliveryLedger:
         self.where: Dict[int, bytes] = {}  # batch id -> client holding it
         self.group_since: Dict[str, float] = {}  # group -> time its first current member said hello
         self._tick = 0
+        self.stall_s = stall_s
+        self._last_expire: Optional[float] = None
+        self.stalls = 0  # stalls of the server's own loop added to the deadlines
         self.sent = 0
         self.resent = 0
         self.acked = 0
@@ -124,18 +162,19 @@ class DeliveryLedger:
         return back
 
     def leave(self, ident: bytes) -> List[int]:
-        """Forget a client (bye, drop, unreachable); what it held goes back to the front of
-        the queue. Returns those batch ids."""
+        """Forget a client (bye, drop, unreachable); what was leased to it goes back to the
+        front of the queue (ids returned). What was granted to it is forgotten: its samples
+        stay delivered to its consumer (it may have handed them on)."""
         c = self.clients.pop(ident, None)
         if c is None:
             return []
+        for bid in c.granted:
+            self.batches.pop(bid, None)
+            self.where.pop(bid, None)
         back = sorted(set(c.held) | set(c.revoked))
         for bid in reversed(back):
             self.where.pop(bid, None)
-            if bid in self.batches:
-                self.batches[bid].avoid = ident
-                self.ready.appendleft(bid)
-                self.resent += 1
+            self._requeue(bid, ident)
         if c.group is not None and not any(o.group == c.group for o in self.clients.values()):
             self.group_since.pop(c.group, None)
         return back
@@ -148,7 +187,7 @@ class DeliveryLedger:
         c.last_seen = now
         return True
 
-    def grant(self, ident: bytes, n: int) -> None:
+    def add_credits(self, ident: bytes, n: int) -> None:
         """Give a client ``n`` more credits (an explicit grant, clamped to ``max_credits``)."""
         c = self.clients.get(ident)
         if c is not None and n > 0:
@@ -204,61 +243,80 @@ class DeliveryLedger:
             out.append((c.ident, b))
         return out, stale
 
-    def _take(self, c, bid: int) -> bool:
-        """Take ``bid`` off client ``c`` (held or revoked); False when ``c`` does not hold it."""
-        if bid not in c.held and bid not in c.revoked:
-            return False
-        c.held.pop(bid, None)
-        c.revoked.pop(bid, None)
-        self.where.pop(bid, None)
-        return True
+    def hold(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[int], List[BatchRecord]]:
+        """The client asks for these batches' grants. Returns ``(ids granted: those it holds,
+        a revoke withdrawn; the batches this call granted: the caller records them delivered)``."""
+        c = self.clients.get(ident)
+        if c is None:
+            return [], []
+        ok, new = [], []
+        for bid in batch_ids:
+            if bid in c.granted:
+                ok.append(bid)
+            elif c.take(bid) and bid in self.batches:
+                c.granted[bid] = None
+                ok.append(bid)
+                new.append(self.batches[bid])
+        return ok, new
 
     def ack(self, ident: bytes, batch_ids: Iterable[int]) -> List[BatchRecord]:
-        """The client handed these batches to its training loop. Returns the batches this
-        acknowledgement delivered (only those this client holds; anything else is ignored
-        and frees no slot)."""
+        """The training loop received these granted batches (``hold`` first: the core grants
+        what an ack names): their slots are freed and the ledger forgets them. Returns them;
+        ids this client does not hold are ignored and free no slot."""
         c = self.clients.get(ident)
         if c is None:
             return []
         done = []
         for bid in batch_ids:
-            if self._take(c, bid):
+            if c.take(bid):
+                self.where.pop(bid, None)
                 b = self.batches.pop(bid, None)
                 if b is not None:
                     self.acked += 1
                     done.append(b)
         return done
 
-    def hold(self, ident: bytes, batch_ids: Iterable[int]) -> None:
-        """The client handed these batches to its data loader: their leases end (a revoke
-        already sent is withdrawn; the client answers it no more)."""
+    def released(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[int], List[BatchRecord]]:
+        """The client gave these batches back unused: to the front of the queue. Returns ``(ids
+        queued again, the batches of them that were granted: the caller records them undelivered)``."""
         c = self.clients.get(ident)
         if c is None:
-            return
+            return [], []
+        back, ungranted = [], []
         for bid in batch_ids:
-            if bid in c.held or bid in c.revoked:
-                c.revoked.pop(bid, None)
-                c.held[bid] = math.inf
+            was_granted = bid in c.granted
+            if c.take(bid) and self.where.pop(bid, None) is not None and self._requeue(bid, ident):
+                back.append(bid)
+                if was_granted:
+                    ungranted.append(self.batches[bid])
+        return back, ungranted
 
-    def released(self, ident: bytes, batch_ids: Iterable[int]) -> List[int]:
-        """The client gave back revoked (or held) batches; they go back to the queue."""
-        c = self.clients.get(ident)
-        if c is None:
-            return []
-        back = []
-        for bid in batch_ids:
-            if self._take(c, bid):
-                if bid in self.batches:
-                    self.batches[bid].avoid = ident
-                    self.ready.appendleft(bid)
-                    self.resent += 1
-                    back.append(bid)
-        return back
+    def _requeue(self, bid: int, ident: bytes) -> bool:
+        """``bid`` goes to the front of the queue (``ident`` gave it back: another client is
+        preferred); False when it is gone."""
+        if bid not in self.batches:
+            return False
+        self.batches[bid].avoid = ident
+        self.ready.appendleft(bid)
+        self.resent += 1
+        return True
+
+    def _skip_stall(self, now: float) -> None:
+        """Add a stall of the server's loop (over ``stall_s`` since the last call) to every deadline."""
+        gap = 0.0 if self._last_expire is None else now - self._last_expire
+        self._last_expire = now
+        if self.stall_s is None or gap <= self.stall_s:
+            return
+        self.stalls += 1
+        for c in self.clients.values():
+            c.shift(gap)
+        self.group_since = {g: t + gap for g, t in self.group_since.items()}
 
     def expire(self, now: float) -> Tuple[Dict[bytes, List[int]], List[Tuple[bytes, str]]]:
         """Leases and clients past their time. Returns ``(revokes, drops)``: batch ids to ask
         back per client, and ``(ident, reason)`` of clients dropped (silent, or not answering
         a revoke); their batches are already back in the queue."""
+        self._skip_stall(now)
         revokes: Dict[bytes, List[int]] = {}
         drops: List[Tuple[bytes, str]] = []
         for ident, c in list(self.clients.items()):
@@ -310,7 +368,7 @@ class DeliveryLedger:
 
     # ------------------------------------------------------------------ views
     def in_flight(self) -> int:
-        return sum(len(c.held) + len(c.revoked) for c in self.clients.values())
+        return sum(len(c.held) + len(c.revoked) + len(c.granted) for c in self.clients.values())
 
     def outputs_wanted(self) -> Tuple[str, ...]:
         """The union of what connected clients ask for."""

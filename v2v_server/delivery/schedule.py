@@ -162,6 +162,17 @@ class EpochPlan:
                 ks = self.held.setdefault(key.video, {})
                 ks[key] = ks.get(key, 0) + 1
 
+    def given_back(self, consumer: Consumer, keys: Iterable[SampleKey]) -> None:
+        """``consumer`` gave back a batch of ``keys`` it was granted, and the batch is queued
+        again: the keys leave its record and are live again (the epoch is open again)."""
+        rec = self.records.get(consumer, set())
+        for k in keys:
+            if k in rec:
+                rec.discard(k)
+                self.held[k.video][k] -= 1
+            self.add_live(k)
+            self.complete = False
+
     # ------------------------------------------------------------------ jobs
     def owed_in(self, video: str) -> Set[SampleKey]:
         """Samples of ``video`` still to make: not delivered, live or failed, among the
@@ -501,6 +512,11 @@ class EpochScheduler:
             return
         plan.add_record(consumer, keys)
         self._reconcile(plan, set())
+
+    def undelivered(self, consumer: Consumer, epoch: int, keys: Iterable[SampleKey]) -> None:
+        """``consumer`` gave back a granted batch of ``keys`` of ``epoch`` unused; it is queued again."""
+        if epoch in self.plans:
+            self.plans[epoch].given_back(consumer, keys)
 
     def discarded(self, epoch: int, keys: Iterable[SampleKey]) -> None:
         """Live samples thrown away undelivered (filtered out of a batch): owed again unless

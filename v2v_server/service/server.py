@@ -34,6 +34,7 @@ from v2v_server.videos.corpus import corpus_fingerprint
 from v2v_server.videos.disk_cache import UsageScan
 from v2v_server.videos.source import VideoSource
 from v2v_server.delivery.journal import Journal
+from v2v_server.delivery.ledger import STALL_S
 from v2v_server.delivery.core import DeliveryCore
 from v2v_server.service.client_side import ClientSide
 from v2v_server.service.assembly import BatchAssembler, make_batch
@@ -98,8 +99,8 @@ class V2VServer:
         if self.journal is not None and self.journal.records:
             log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
                      self.journal.path, len(self.journal.records), self.journal.completed)
-        self.core = DeliveryCore(self.videos, cfg.delivery, make_batch,
-                                 self.journal)
+        # a stall of this loop (stopped, swapped out) is not its clients' silence: ledger.STALL_S
+        self.core = DeliveryCore(self.videos, cfg.delivery, make_batch, self.journal, stall_s=STALL_S)
         self.sched, self.ledger = self.core.sched, self.core.ledger
         self.ended = False  # every epoch delivered (at least once)
         self._told_end: set = set()  # connections told the stream ended

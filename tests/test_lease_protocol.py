@@ -1,0 +1,588 @@
+"""The grant protocol (docs/delivery.md, "Leases and grants") through every interleaving.
+
+The server's pure delivery core (``v2v_server.delivery.core.DeliveryCore``) and the client's
+real batch book (``v2v_client.session.HeldBatches``: leased, asked, granted; the claim and the
+hello's resume state as one step each) talk over two FIFO channels per connection with
+messages in flight. Every step of the client between receiving a batch and yielding it is a
+separate step: the I/O thread reads one message; the consumer asks for a grant, claims, queues
+the ack, yields; the I/O thread forwards what the consumer queued. Any client may stop taking
+steps at any point (SIGSTOP, a GC pause, swap) while the server's clock runs on, the server may
+itself stall, connections may break (whatever was in flight is lost, the client says hello on
+a new socket), and trainers may crash and resume from any older checkpoint. After every step
+no sample reaches two training loops' histories in an epoch; at the end every sample of every
+epoch was trained on exactly once.
+
+``test_a_client_paused_at_each_point_*`` drives the same pieces through one fixed schedule per
+point, pausing the client there for longer than the lease, the revoke timeout and the client
+timeout together while another client reads.
+"""
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import pytest
+from hypothesis import HealthCheck, settings, strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+
+from v2v_client.session import HeldBatches
+from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+from v2v_server.delivery.ledger import STALL_S
+from v2v_wire.ids import SampleKey, parse_sample_id
+from v2v_wire.messages import Ack, Bye, Heartbeat, Hello, Hold, Released, Resume
+
+WINDOWS = {"a.mp4": 3, "b.mp4": 2, "c.mp4": 3}
+EPOCHS = 2
+LEASE, TIMEOUT, REVOKE = 2.0, 4.0, 1.5
+SEEN = collections.Counter()
+
+
+@dataclass
+class Payload:
+    sample_ids: List[str]
+
+    def subset(self, keep):
+        return Payload([self.sample_ids[i] for i in keep])
+
+
+@dataclass
+class Sample:
+    sample_id: str
+
+
+def make_batch(samples):
+    return Payload([s.sample_id for s in samples])
+
+
+@dataclass
+class Client:
+    """One trainer process: its I/O thread's session (``held``, awaited hello), the consumer's
+    queue and record, and the channels of its current connection."""
+
+    name: str
+    credits: int = 2
+    gen: int = 0
+    alive: bool = False
+    held: HeldBatches = None
+    awaiting: Optional[int] = None
+    hello_seq: int = 0
+    up: list = field(default_factory=list)  # client -> server, in flight
+    down: list = field(default_factory=list)  # server -> client, in flight
+    pipe: list = field(default_factory=list)  # consumer -> I/O thread (acks, holds, releases)
+    items: list = field(default_factory=list)  # I/O thread -> consumer (batches, epoch ends)
+    pending: Optional[dict] = None  # the batch the consumer waits on for a grant
+    claimed: Optional[tuple] = None  # (epoch, ids) claimed, not yet yielded
+    completed: int = -1
+    delivered: Dict[int, set] = field(default_factory=dict)  # the record: ids claimed per open epoch
+    history: list = field(default_factory=list)  # (epoch, sample id) the training loop got
+    checkpoints: list = field(default_factory=list)
+
+    @property
+    def ident(self) -> bytes:
+        return f"{self.name}.{self.gen}".encode()
+
+    def resume(self) -> Resume:
+        return Resume(self.completed, {e: frozenset(parse_sample_id(s) for s in ids)
+                                       for e, ids in self.delivered.items() if e > self.completed})
+
+
+class Net:
+    """The server, its workers (instant) and the clients, on one clock."""
+
+    def __init__(self, names=("t0", "t1"), credits=(2, 2)):
+        self.now = 0.0
+        self.last_tick = 0.0
+        self.core = DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=EPOCHS, lease_s=LEASE,
+                                                               client_timeout_s=TIMEOUT, revoke_s=REVOKE,
+                                                               max_credits=4, shuffle="none"), make_batch,
+                                 stall_s=STALL_S)
+        self.clients = [Client(n, c) for n, c in zip(names, credits)]
+
+    # ------------------------------------------------------------------ server
+    def server_reads(self, c: Client, n: int = 1) -> None:
+        """The server reads up to ``n`` messages of ``c``'s connection (in order)."""
+        for _ in range(n):
+            if not c.up:
+                return
+            ident, m = c.up.pop(0)
+            if isinstance(m, Hello):
+                replies = self.core.hello(ident, m, self.now, dict)
+            else:
+                replies = self.core.message(ident, m, self.now)
+            self.route(replies)
+
+    def route(self, msgs) -> None:
+        by_ident = {c.ident: c for c in self.clients if c.alive}
+        for ident, m in msgs:
+            c = by_ident.get(ident)
+            if c is not None:
+                c.down.append(m if isinstance(m, dict) else m.to_wire())
+
+    def tick(self) -> None:
+        """One turn of the server loop: workers make what is asked, then leases, sends, epochs."""
+        for _ in range(4):
+            t = self.core.task_for(b"w", self.now)
+            if t is None:
+                break
+            for k in range(WINDOWS[t.video]):
+                if (k, 0) not in t.skip:
+                    self.core.sample(b"w", t.task, SampleKey(t.video, k), self.now,
+                                     lambda lane, s=SampleKey(t.video, k).sample_id(): Sample(s))
+            self.core.done(b"w", t.task, WINDOWS[t.video], {}, None)
+        sends, msgs = self.core.tick(self.now)
+        self.route([(i, {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
+                         "sample_ids": list(b.payload.sample_ids)}) for i, b in sends])
+        self.route(msgs)
+        self.last_tick = self.now
+
+    def advance(self, dt: float, listening: bool = True) -> None:
+        """The clock runs ``dt``; a listening server reads everything and ticks every 0.5 s."""
+        if not listening:
+            self.now += dt
+            return
+        end = self.now + dt
+        while self.now < end:
+            self.now = min(end, self.now + 0.5)
+            for c in self.clients:
+                self.server_reads(c, len(c.up))
+            self.tick()
+
+    # ------------------------------------------------------------------ the client's steps
+    def connect(self, c: Client) -> None:
+        c.gen += 1
+        c.alive = True
+        c.up, c.down, c.pipe, c.items = [], [], [], []
+        c.pending = c.claimed = None
+        c.held = HeldBatches(c.name)
+        self.hello(c, new_socket=True)
+
+    def hello(self, c: Client, new_socket: bool = False) -> None:
+        with c.held.lock:  # as ServerSession.hello: discard and read the record in one step
+            c.held.discard("hello")
+            resume = c.resume()
+        c.hello_seq += 1
+        c.awaiting = None if new_socket else c.hello_seq
+        c.up.append((c.ident, Hello(("voxels",), c.credits, consumer=c.name, resume=resume,
+                                    hello_id=c.hello_seq)))
+
+    def io_reads(self, c: Client) -> None:
+        """The I/O thread handles one message from the server (``ServerSession.on_message``)."""
+        if not c.down:
+            return
+        m = c.down.pop(0)
+        kind = m["type"]
+        rehello = kind == "error" and m.get("code") in ("dropped", "unknown_client")
+        if c.awaiting is not None and (kind in ("batch", "revoke", "granted") or rehello):
+            return
+        if kind == "welcome":
+            if m.get("hello_id") == c.awaiting:
+                c.awaiting = None
+        elif kind == "batch":
+            item = dict(m)
+            c.held.add(item)
+            c.items.append(item)
+            self.send(c, Hold, c.held.to_ask())
+        elif kind == "revoke":
+            SEEN["revoke"] += 1
+            self.send(c, Released, c.held.revoke(m["batch_ids"]))
+        elif kind == "granted":
+            SEEN["granted"] += 1
+            c.held.answer(m["batch_ids"], m.get("refused", []))
+            self.send(c, Hold, c.held.to_ask())
+        elif kind == "epoch_done":
+            c.items.append({"epoch_done": m["epoch"]})
+        elif rehello:
+            SEEN["rehello"] += 1
+            self.hello(c)
+
+    def send(self, c: Client, kind, ids) -> None:
+        if ids:
+            c.up.append((c.ident, kind(tuple(ids))))
+
+    def io_forwards(self, c: Client) -> None:
+        """The I/O thread sends what the consumer queued."""
+        c.up.extend((c.ident, m) for m in c.pipe)
+        c.pipe.clear()
+
+    def consumer_next(self, c: Client) -> None:
+        """The consumer takes the next item and asks for its grant (``Connection.take``)."""
+        if c.pending is not None or c.claimed is not None or not c.items:
+            return
+        item = c.items.pop(0)
+        if "epoch_done" in item:
+            e = item["epoch_done"]
+            if e > c.completed:
+                c.completed = e
+                c.delivered = {k: v for k, v in c.delivered.items() if k > e}
+            return
+        if item["epoch"] <= c.completed:
+            if c.held.give_back(item) is not None:
+                c.pipe.append(Released((item["batch_id"],)))
+            return
+        ask = c.held.to_ask(item)
+        if ask:
+            c.pipe.append(Hold(tuple(ask)))
+        c.pending = item
+
+    def consumer_claims(self, c: Client) -> None:
+        """The consumer claims its batch if granted, recording its samples in the same step."""
+        item = c.pending
+        if item is None:
+            return
+
+        def record():
+            seen = c.delivered.setdefault(item["epoch"], set())
+            keep = [s for s in item["sample_ids"] if s not in seen]
+            seen.update(keep)
+            return keep
+
+        ok, keep = c.held.claim(item, record, lambda: False)
+        if ok:
+            c.pending, c.claimed = None, (item["epoch"], keep)
+            c.pipe.append(Ack((item["batch_id"],)))
+            ask = c.held.to_ask()
+            if ask:
+                c.pipe.append(Hold(tuple(ask)))
+        elif c.held.current.get(item["batch_id"]) is not item:
+            c.pending = None  # given back meanwhile: the next one
+
+    def consumer_yields(self, c: Client) -> None:
+        """The training loop gets the claimed batch; the trainer checkpoints."""
+        if c.claimed is None:
+            return
+        e, keep = c.claimed
+        c.claimed = None
+        SEEN["yield"] += 1
+        c.history += [(e, s) for s in keep]
+        c.checkpoints.append((c.completed, {k: set(v) for k, v in c.delivered.items()}, len(c.history)))
+
+    def step(self, c: Client) -> None:
+        """Every part of the client takes one step."""
+        self.io_forwards(c)
+        self.io_reads(c)
+        self.consumer_yields(c)
+        self.consumer_claims(c)
+        self.consumer_next(c)
+
+    def heartbeat(self, c: Client) -> None:
+        c.up.append((c.ident, Heartbeat()))
+
+    def close(self, c: Client) -> None:
+        """Leaving the loop: acks sent, asked or granted batches released, bye."""
+        self.io_forwards(c)
+        ours = c.held.discard("close")
+        self.send(c, Released, ours)
+        c.up.append((c.ident, Bye()))
+        for _ in range(len(c.up)):
+            self.server_reads(c)
+        c.alive = False
+
+    # ------------------------------------------------------------------ checks
+    def trained(self):
+        return collections.Counter(x for c in self.clients for x in c.history)
+
+    def run_to_end(self, rounds: int = 2000) -> None:
+        for c in self.clients:
+            if not c.alive:
+                self.connect(c)
+        for _ in range(rounds):
+            if self.core.finished() and not any(c.up or c.down or c.pipe or c.items or c.pending or c.claimed
+                                                 for c in self.clients):
+                break  # finished, and nothing in flight that could reopen an epoch
+            for c in self.clients:
+                for _ in range(4):
+                    self.step(c)
+                self.heartbeat(c)
+            self.advance(0.5)
+        assert self.core.finished(), "the stream never finished"
+        expected = {(e, SampleKey(v, k).sample_id()) for e in range(EPOCHS) for v, n in WINDOWS.items()
+                    for k in range(n)}
+        got = self.trained()
+        assert {k: n for k, n in got.items() if n > 1} == {}, "trained twice"
+        assert expected - set(got) == set(), "lost"
+
+
+class LeaseMachine(RuleBasedStateMachine):
+    def __init__(self):
+        super().__init__()
+        self.net = Net(("t0", "t1", "t2"), (2, 3, 1))
+        for c in self.net.clients:
+            self.net.connect(c)
+
+    def client(self, i) -> Client:
+        return self.net.clients[i]
+
+    @rule(i=st.integers(0, 2), part=st.sampled_from(["forward", "read", "next", "claim", "yield"]))
+    def client_part(self, i, part):
+        c = self.client(i)
+        if not c.alive:
+            return
+        n = self.net
+        {"forward": n.io_forwards, "read": n.io_reads, "next": n.consumer_next, "claim": n.consumer_claims,
+         "yield": n.consumer_yields}[part](c)
+
+    @rule(i=st.integers(0, 2), n=st.integers(1, 8))
+    def client_runs(self, i, n):
+        """Every part of the client takes ``n`` steps (the server reads and ticks between)."""
+        c = self.client(i)
+        for _ in range(n):
+            if c.alive:
+                self.net.step(c)
+                self.net.server_reads(c, len(c.up))
+                self.net.tick()
+
+    @rule(i=st.integers(0, 2), n=st.integers(1, 3))
+    def server_reads(self, i, n):
+        self.net.server_reads(self.client(i), n)
+
+    @rule()
+    def server_ticks(self):
+        self.net.tick()
+
+    @rule(dt=st.sampled_from([0.5, 1.0, 2.5, 5.0]), beats=st.lists(st.booleans(), min_size=3, max_size=3))
+    def time_passes(self, dt, beats):
+        """The clock runs; the clients whose I/O thread runs (``beats``) heartbeat; the others
+        are paused at whatever point they were."""
+        for c, beat in zip(self.net.clients, beats):
+            if beat and c.alive:
+                self.net.heartbeat(c)
+            SEEN["paused"] += not beat
+        self.net.advance(dt)
+
+    @rule(dt=st.sampled_from([2.0, 6.0]))
+    def server_stalls(self, dt):
+        """The server process stops (SIGSTOP, swap) while clients go on; then its loop runs."""
+        SEEN["server_stall"] += 1
+        for c in self.net.clients:
+            if c.alive:
+                self.net.heartbeat(c)
+        self.net.advance(dt, listening=False)
+        self.net.tick()
+
+    @rule(i=st.integers(0, 2))
+    def connection_breaks(self, i):
+        """The connection breaks: what was in flight either way is lost; a new socket says hello."""
+        c = self.client(i)
+        if c.alive:
+            SEEN["reconnect"] += 1
+            c.up.clear()
+            c.down.clear()
+            c.held.discard("new socket")
+            c.pending = None
+            c.items = [x for x in c.items if "epoch_done" in x]
+            c.hello_seq += 1
+            with c.held.lock:
+                resume = c.resume()
+            c.up.append((c.ident, Hello(("voxels",), c.credits, consumer=c.name, resume=resume, hello_id=c.hello_seq)))
+            c.awaiting = None
+
+    @rule(i=st.integers(0, 2))
+    def leave_loop(self, i):
+        c = self.client(i)
+        if c.alive and c.claimed is None:
+            self.net.close(c)
+
+    @rule(i=st.integers(0, 2))
+    def join(self, i):
+        c = self.client(i)
+        if not c.alive:
+            self.net.connect(c)
+
+    @precondition(lambda self: any(c.checkpoints for c in self.net.clients))
+    @rule(data=st.data())
+    def crash_and_resume(self, data):
+        """A trainer dies (its messages in flight may still arrive) and restarts from any older
+        checkpoint: its model forgets what came after."""
+        i = data.draw(st.sampled_from([i for i, c in enumerate(self.net.clients) if c.checkpoints]))
+        c = self.client(i)
+        j = data.draw(st.integers(0, len(c.checkpoints) - 1))
+        c.completed, delivered, n = c.checkpoints[j]
+        c.delivered, c.history = {k: set(v) for k, v in delivered.items()}, c.history[:n]
+        del c.checkpoints[j + 1:]
+        SEEN["crash"] += 1
+        late = list(c.up)
+        self.net.connect(c)
+        c.up[:0] = late  # the dead process's messages were on the wire before the new hello
+
+    @invariant()
+    def credits_bound_what_is_held(self):
+        """Leased, revoked and granted-unacknowledged batches together never exceed a client's
+        credits, at the server or in the client's book."""
+        for c in self.net.core.ledger.clients.values():
+            assert len(c.held) + len(c.revoked) + len(c.granted) <= c.credits
+        for c in self.net.clients:
+            if c.alive:
+                assert len(c.held.current) <= c.credits and c.held.asked | c.held.granted <= set(c.held.current)
+
+    @invariant()
+    def no_sample_twice(self):
+        dup = {k: n for k, n in self.net.trained().items() if n > 1}
+        assert not dup, f"trained twice: {dup}"
+
+    def teardown(self):
+        self.net.run_to_end()
+
+
+LeaseMachine.TestCase.settings = settings(max_examples=300, stateful_step_count=60, deadline=None,
+                                          suppress_health_check=list(HealthCheck))
+TestLeaseProtocol = LeaseMachine.TestCase
+
+
+# ------------------------------------------------------------------ one schedule per pause point
+POINTS = ["received", "asked", "hold_at_server", "granted_in_flight", "granted", "claimed", "ack_queued",
+          "ack_sent"]
+
+
+def _to_point(net: Net, a: Client, point: str) -> None:
+    """Run client ``a`` alone from its hello to ``point`` on its first batch."""
+    for _ in range(40):
+        net.server_reads(a, len(a.up))
+        net.tick()
+        if a.down and a.down[0]["type"] != "batch":
+            net.io_reads(a)
+            continue
+        if a.down:
+            break
+    net.io_reads(a)  # the batch: received, and asked for at once (GRANT_AHEAD)
+    if point == "received":
+        a.up.clear()  # paused before the I/O thread's hold left the process
+        a.held.asked.clear()
+        return
+    if point == "asked":
+        return
+    net.server_reads(a, len(a.up))  # the hold is read: granted (and recorded) at the server
+    if point == "hold_at_server":
+        return
+    while a.down and a.down[0]["type"] != "granted":
+        net.io_reads(a)
+    if point == "granted_in_flight":
+        return
+    net.io_reads(a)
+    net.consumer_next(a)
+    if point == "granted":
+        return
+    net.consumer_claims(a)
+    assert a.claimed is not None
+    if point == "claimed":
+        a.pipe.clear()  # the ack not yet queued
+        return
+    if point == "ack_queued":
+        return
+    net.io_forwards(a)
+    assert point == "ack_sent"
+
+
+@pytest.mark.parametrize("point", POINTS)
+def test_a_client_paused_at_each_point_between_receipt_and_yield_doubles_and_loses_nothing(point):
+    """Client A is stopped at ``point`` on its first batch for longer than the lease, the revoke
+    timeout and the client timeout together, while client B reads and the server ticks; then A
+    resumes where it stopped (its I/O thread first or its consumer first), and both run to the
+    end: every sample of every epoch reaches one training loop, once."""
+    for io_first in (True, False):
+        net = Net(("a", "b"), (4, 1))
+        a, b = net.clients
+        net.connect(a)
+        _to_point(net, a, point)
+        net.connect(b)
+        for _ in range(int((LEASE + REVOKE + TIMEOUT + 2) / 0.5)):
+            for _ in range(4):
+                net.step(b)
+            net.heartbeat(b)
+            net.advance(0.5)
+        if io_first:
+            net.io_forwards(a)
+            net.io_reads(a)
+        net.consumer_yields(a)
+        net.consumer_claims(a)
+        net.consumer_yields(a)
+        net.run_to_end()
+
+
+def test_a_stalled_server_drops_nobody_for_its_own_silence():
+    """The server's loop stops for longer than the client timeout while the clients' messages
+    wait in its socket: when it runs again, nobody is dropped and no lease is revoked."""
+    net = Net(("a",), (2,))
+    (a,) = net.clients
+    net.connect(a)
+    for _ in range(6):
+        net.step(a)
+        net.advance(0.5)
+    assert a.ident in net.core.ledger.clients
+    held = dict(net.core.ledger.clients[a.ident].held)
+    net.heartbeat(a)
+    net.advance(TIMEOUT + LEASE + 1, listening=False)
+    net.tick()  # before reading the waiting messages: the stall is not the client's silence
+    c = net.core.ledger.clients.get(a.ident)
+    assert c is not None and not c.revoked and set(c.held) == set(held) and net.core.ledger.stalls == 1
+    assert STALL_S < TIMEOUT
+    net.run_to_end()
+
+
+def test_an_epoch_is_announced_once_its_granted_batches_are_acknowledged():
+    """A granted batch may still be given back unused (the loop left before taking it): its
+    epoch is announced complete only once it is acknowledged, so nobody forgets an epoch that
+    reopens; given back, it is sent again."""
+    net = Net(("a",), (2,))
+    core = net.core
+    core.hello(b"a.1", Hello(("voxels",), 4, consumer="a"), 0.0, dict)
+    net.tick()
+    held = sorted(core.ledger.clients[b"a.1"].held)
+    last = max(held)
+    for bid in held[:-1]:
+        core.message(b"a.1", Hold((bid,)), 0.0)
+        core.message(b"a.1", Ack((bid,)), 0.0)
+    while True:  # everything of epoch 0 but the last batch acknowledged
+        sends, msgs = core.tick(0.1)
+        new = [b.batch_id for _, b in sends if b.epoch == 0]
+        if not new:
+            break
+        for bid in new:
+            core.message(b"a.1", Hold((bid,)), 0.1)
+            core.message(b"a.1", Ack((bid,)), 0.1)
+    assert core.ledger.batches[last].epoch == 0
+    assert core.message(b"a.1", Hold((last,)), 0.2)[0][1].batch_ids == (last,)
+    assert core.sched.plans[0].complete and 0 not in core.announced  # granted, not acknowledged
+    back = core.message(b"a.1", Released((last,)), 0.3)
+    assert back == [] and not core.sched.plans[0].complete and last in core.ledger.ready
+    sends, _ = core.tick(0.4)
+    assert (b"a.1", last) in [(i, b.batch_id) for i, b in sends]  # sent again
+    core.message(b"a.1", Hold((last,)), 0.5)
+    core.message(b"a.1", Ack((last,)), 0.5)
+    core.tick(0.6)
+    assert 0 in core.announced
+
+
+def test_the_rule_it_replaced_doubles_on_the_same_schedule(monkeypatch):
+    """The client rule before grants (take any batch still held, ask for nothing), paused after
+    its claim on the schedule above: the server gives the batch to B meanwhile and A yields it
+    too. The same pieces tell the two rules apart."""
+
+    def claim(self, item, on_claim, wait):
+        with self.lock:
+            if self.current.get(item["batch_id"]) is not item:
+                return False, None
+            del self.current[item["batch_id"]]
+            return True, on_claim()
+
+    monkeypatch.setattr(HeldBatches, "claim", claim)
+    monkeypatch.setattr(HeldBatches, "to_ask", lambda self, item=None: [])
+    net = Net(("a", "b"), (4, 1))
+    a, b = net.clients
+    net.connect(a)
+    net.server_reads(a, len(a.up))
+    net.tick()
+    while not a.items:
+        net.io_reads(a)
+    net.consumer_next(a)
+    net.consumer_claims(a)
+    assert a.claimed is not None  # taken, its ack queued: then A stops
+    net.connect(b)
+    for _ in range(int((LEASE + REVOKE + TIMEOUT + 2) / 0.5)):
+        for _ in range(4):
+            net.step(b)
+        net.heartbeat(b)
+        net.advance(0.5)
+    net.consumer_yields(a)
+    with pytest.raises(AssertionError, match="trained twice"):
+        net.run_to_end()
