@@ -25,7 +25,7 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
     decoding error)."""
     source.take_stats()  # the counters read below are this video's alone
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
-    windows = WindowPass(cfg.recipe.windows)
+    windows = WindowPass(cfg.recipe.windows, cfg.recipe.reads)
     cached, error = False, None
     try:
         with video_frames(cfg.recipe, source, rel) as fp:

@@ -6,7 +6,7 @@ import hashlib
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Sequence, Tuple
 
-from v2v_server.videos.corpus_index import layout_key
+from v2v_server.videos.corpus_index import check_record, layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.frames import DecodeSettings, FramePass, PassFrame
 from v2v_server.videos.local import LocalSource
@@ -89,7 +89,7 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
         shown["h"] = h
         return decode.kept_rows(h)
 
-    found = WindowPass(windows, lambda y: (shown.get("h", y.shape[0]), y.shape[1]))
+    found = WindowPass(windows, check_record(windows, decode), lambda y: (shown.get("h", y.shape[0]), y.shape[1]))
     times: list = []  # presentation times, for a variable frame rate
     error = None
     try:

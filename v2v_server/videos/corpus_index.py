@@ -12,13 +12,12 @@ ctime and inode of a file; an object's ETag; a tar or zip member's shard identit
 offset and size), the frame cache's rule: a video rewritten in place gets a new identity, and a
 video whose identity cannot vouch for its content (changed within the file system's timestamp
 resolution of now, an object without a version tag) is neither stored nor answered from the
-index. The window layout is :func:`layout_key`: every setting that moves a window or changes a
-verdict (``frames.entry_settings``, ``shot_cuts``), so one video has one entry per layout it was
-read under.
+index. The window layout is :func:`layout_key`, the key of what a pass reads
+(``pass_record.PassRecord``): every setting that moves a window or changes a verdict, so one
+video has one entry per layout it was read under.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import re
@@ -28,16 +27,17 @@ from pathlib import Path
 from typing import Callable, Dict, Iterable, Iterator, Optional, Tuple, Union
 
 from v2v_server.faults import warn_once
-from v2v_server.videos.frames import DecodeSettings, entry_settings
+from v2v_server.videos.frames import DecodeSettings
 from v2v_server.videos.manifest import default_cache_dir
-from v2v_server.videos.shots import DETECTOR_VERSION
+from v2v_server.videos.pass_record import PassRecord
 from v2v_server.videos.windows import WindowSettings
 
 #: The index's file name under the cache folder.
 INDEX_FILE = "corpus_index.sqlite"
 
-#: Format of the rows; an index of another version is set aside and written anew.
-INDEX_VERSION = 1
+#: Format of the rows and of their layout keys (``layout_key``); the rows of an index of another
+#: version are deleted at open, and the index written anew.
+INDEX_VERSION = 2
 
 #: Seconds a read or write waits for another process's write: a write is one row (milliseconds),
 #: so a lock held longer is another program's (a ``sqlite3`` shell in a transaction), and the
@@ -69,12 +69,17 @@ _SIZE = re.compile(r"^(\d+)x(\d+) (\S+) \S+ ([0-9.e+-]+) fps$")
 
 
 def layout_key(windows: WindowSettings, decode: DecodeSettings) -> str:
-    """The window layout of an index entry: a short hash (16 hex digits) of the settings that
-    move a window or change a verdict (the frames a pass reads, ``frames.entry_settings``, and
-    ``windows.shot_cuts``), and the shot detector (an entry holds the cuts it found, whatever
-    ``shot_cuts`` is)."""
-    settings = {**entry_settings(decode, windows), "shot_cuts": windows.shot_cuts, "shots": DETECTOR_VERSION}
-    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    """The window layout of an index entry: the key of what ``--check``'s pass decoding as
+    ``decode`` over ``windows`` reads (``pass_record.PassRecord.key``, shot cuts scored whatever
+    ``shot_cuts`` says: an entry holds them), so every setting that moves a window or changes a
+    verdict is in it once."""
+    return check_record(windows, decode).key
+
+
+def check_record(windows: WindowSettings, decode: DecodeSettings) -> PassRecord:
+    """What ``--check``'s pass over ``windows`` decoding as ``decode`` reads: the sample pass's
+    record, shot cuts scored whatever ``shot_cuts`` says (``corpus.check_video`` reports them)."""
+    return PassRecord.of(decode, windows, scores_cuts=True)
 
 
 def index_path(cache_dir: Optional[Union[str, Path]]) -> Path:

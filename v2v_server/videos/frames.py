@@ -24,8 +24,8 @@ import numpy as np
 
 from v2v_server.checks import check_choice, check_int
 from v2v_server.videos.decode import DECODE_FAST, VideoInfo, decode_codes, full_range, open_video
-from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache, decode_settings
-from v2v_server.videos.motion import MOTION_VERSION, STATIC_MOTION
+from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache, entry_name_settings
+from v2v_server.videos.pass_record import PassRecord
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector
 from v2v_server.videos.windows import WindowSettings
@@ -72,17 +72,13 @@ class DecodeSettings:
 
 
 def entry_settings(decode: DecodeSettings, windows: WindowSettings) -> dict:
-    """The settings that change the frames a pass reads (``frame_cache.decode_settings``): what,
-    with the corpus and the video, names a frame-cache entry. With ``shot_cuts: avoid`` the entry
-    holds the frames up to the last window and the cuts this detector found; with
-    ``static_windows: skip``, the frames of the windows that replace static ones."""
-    settings = decode_settings(decode.decode_fast, decode.keep_top_fraction, windows.frames_per_sample,
-                               windows.max_samples_per_video, decode.frame_height)
-    if windows.avoid_cuts:
-        settings["shots"] = DETECTOR_VERSION
-    if windows.skip_static:
-        settings["static"] = f"{MOTION_VERSION}<{STATIC_MOTION}"
-    return settings
+    """What, with the corpus and the video, names a frame-cache entry: the entry format's version
+    and the key of what a pass decoding as ``decode`` over ``windows`` reads
+    (``pass_record.PassRecord.key``: decoder, scale, rows kept, window layout, detector and
+    motion versions). With ``shot_cuts: avoid`` the entry holds the frames up to the last window
+    and the cuts the detector found; with ``static_windows: skip``, the frames of the windows
+    that replace static ones."""
+    return entry_name_settings(PassRecord.of(decode, windows).key)
 
 
 class PassFrame(NamedTuple):

@@ -24,6 +24,7 @@ import numpy as np
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frames import FramePass
 from v2v_server.videos.motion import STATIC_MOTION, MotionMeter
+from v2v_server.videos.pass_record import PassRecord
 from v2v_server.videos.windows import WindowSettings
 
 #: Words of the reason a file with too few frames for one window gets: a property of the clip,
@@ -111,7 +112,8 @@ class VideoPass:
         motions: each complete window's motion, in window order (``motion``: the mean change of
             log intensity per frame pair; 0.0 where frames were counted, not decoded).
         static: windows given up as static (``static_windows: skip``).
-        layout: the window layout the windows follow (``shots.WindowLayout.key``).
+        layout: the key of what the pass read (``pass_record.PassRecord.key``: decoding, window
+            layout, detector and motion versions; the corpus index's layout key).
         cuts: the frames that start a shot, in order (none without detection).
         starts: the first frame of each complete window, failed ones included, in window order.
         dropped: windows a cut fell inside.
@@ -174,13 +176,15 @@ class WindowPass:
 
     Args:
         windows: the videos stage's settings (span, window count, shot cuts).
+        reads: what the pass reads (``pass_record.PassRecord``, built from ``windows`` and the
+            decode settings): the verdict names its key (``VideoPass.layout``).
         size_of: a frame's size as compared and named in a failure, ``(height, width)`` pixels,
             from its codes (default :func:`frame_shape`; ``--check`` names the displayed height).
     """
 
-    def __init__(self, windows: WindowSettings,
+    def __init__(self, windows: WindowSettings, reads: PassRecord,
                  size_of: Callable[[np.ndarray], Tuple[int, int]] = frame_shape):
-        self.settings, self.size_of = windows, size_of
+        self.settings, self.size_of, self.reads = windows, size_of, reads
         self.layout = windows.layout()
         self.frame_pass: Optional[FramePass] = None  # the pass :meth:`over` reads
         self.info = None
@@ -246,7 +250,7 @@ class WindowPass:
         """What the pass found so far (``error``: what stopped it, if anything)."""
         info = self.info
         return VideoPass(self.frames, info.width if info else 0, info.height if info else 0,
-                         float(info.fps) if info else 0.0, self.layout.key, tuple(self.cuts), tuple(self.starts),
+                         float(info.fps) if info else 0.0, self.reads.key, tuple(self.cuts), tuple(self.starts),
                          self.layout.dropped, dict(self.failed), self.layout.done, error,
                          info.codec if info else "", info.pix_fmt if info else "", tuple(self.motions),
                          self.layout.static)
