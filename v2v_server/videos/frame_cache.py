@@ -179,6 +179,11 @@ class EntryWriter:
 
     def __init__(self, cache: "FrameCache", name: str, identity: str, header: dict, stride: int):
         self.cache, self.name, self.identity, self.header, self.stride = cache, name, identity, header, stride
+        #: What became of the entry: "" while it is written; ``"stored"``, ``"exists"`` (another
+        #: process stored it first) or a cause of ``SKIP_CAUSES``.
+        self.outcome = ""
+        #: Bytes the entry took on disk once stored, else 0.
+        self.stored_bytes = 0
         self.tmp: Optional[Path] = None
         self.f = None
         self.failed: Optional[str] = None
@@ -258,7 +263,8 @@ class EntryWriter:
         """The decode ended cleanly: write the trailer, with ``facts`` the pass found (e.g. its
         shot cuts) beside the header's, and commit the entry (counted)."""
         if self.f is None:
-            self.cache.skipped[self.failed or "write_error"] += 1
+            self.outcome = self.failed or "write_error"
+            self.cache.skipped[self.outcome] += 1
             return
         meta = dict(self.header, **(facts or {}), identity=self.identity, format=self.cache.format, dtype=self.dtype or "|u1",
                     shapes=self.runs, offsets=self.offsets, sizes=self.sizes, sums=self.sums, keys=self.keys)
@@ -273,18 +279,24 @@ class EntryWriter:
             status = self.cache.disk.commit(self.tmp, self.name)
         except OSError as e:
             self._fail(e)
+            self.outcome = self.failed
             self.cache.skipped[self.failed] += 1
             return
         if status == "added":
+            self.outcome, self.stored_bytes = "stored", self.pos + len(trailer)
             self.cache.stored += 1
-            self.cache.bytes_written += self.pos + len(trailer)
+            self.cache.bytes_written += self.stored_bytes
         elif status == "budget":
+            self.outcome = "budget"
             self.cache.skipped["budget"] += 1
+        else:
+            self.outcome = "exists"
 
     def abort(self, incomplete: bool = False) -> None:
         """Drop what was written: a failed write, or (``incomplete``) a pass that did not end
         cleanly (a decoding error, the consumer stopped), counted unless a write had failed."""
         if incomplete and self.f is not None:
+            self.outcome = "incomplete"
             self.cache.skipped["incomplete"] += 1
         if self.f is not None:
             try:

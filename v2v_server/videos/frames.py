@@ -103,14 +103,29 @@ class FramePass:
         cached: replayed from the frame cache.
         writer: storing the decoded frames into the frame cache (None when replayed or the
             cache is off); the entry is committed, with the cuts found, only when the pass ends
-            cleanly: its frames run out, or the consumer says :meth:`end`.
+            cleanly: its frames run out, or the consumer says :meth:`end`
+            (``EntryWriter.outcome`` says what became of it).
+        damaged: a replayed entry was found damaged, removed, and the rest of the video decoded
+            (not stored).
     """
 
     def __init__(self, info: VideoInfo, declared: int, frames: Iterator[PassFrame], cached: bool,
                  writer: Optional[EntryWriter] = None):
         self.info, self.declared, self.cached, self.writer = info, declared, cached, writer
+        self.damaged = False
         self._ended = False
         self.frames = frames
+
+    @classmethod
+    def replayed(cls, info: VideoInfo, declared: int, cache: FrameCache, name: str, entry: CachedVideo, limit: int,
+                 redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> "FramePass":
+        """A pass over the first ``limit`` frames of the frame-cache entry ``entry`` (named
+        ``name``; ``cuts``: the frames that start a shot); from its first bad frame on
+        (truncated, bit-flipped) the entry is removed, :attr:`damaged` set, and the rest
+        decoded by ``redecode(first_frame)``."""
+        fp = cls(info, declared, iter(()), True)
+        fp.frames = fp._replayed(cache, name, entry, limit, redecode, cuts)
+        return fp
 
     @classmethod
     def decoded(cls, info: VideoInfo, declared: int, frames: Iterator[Frame], limit: int,
@@ -136,6 +151,22 @@ class FramePass:
         """Whether the pass is still storing the video: then it must read ``frames`` to their end
         for the entry to be committed (stopping early drops it)."""
         return self.writer is not None and self.writer.writing
+
+    def _replayed(self, cache: FrameCache, name: str, entry: CachedVideo, limit: int,
+                  redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> Iterator[PassFrame]:
+        i = 0
+        try:
+            for a in entry.read():
+                if i >= limit:
+                    return
+                yield PassFrame(a, full_range, i in cuts)
+                i += 1
+            return
+        except CorruptEntry as e:
+            cache.corrupt(name, f"{e}; frames {i}.. decoded")
+            self.damaged = True
+        for j, (codes, expand) in enumerate(redecode(i), i):
+            yield PassFrame(codes, expand, j in cuts)
 
     def _decoded(self, frames: Iterator[Frame], limit: int, detect: bool) -> Iterator[PassFrame]:
         done = False
@@ -218,8 +249,8 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
             # an entry written with detection holds its cuts (the settings name the detector)
             cuts = frozenset(int(c) for c in entry.meta.get("shots", {}).get("cuts", ())) if detect else frozenset()
             try:
-                yield FramePass(VideoInfo(**entry.meta["info"]), declared,
-                                _replay(cache, name, entry, limit, redecode, cuts), True)
+                yield FramePass.replayed(VideoInfo(**entry.meta["info"]), declared, cache, name, entry, limit,
+                                         redecode, cuts)
             finally:
                 entry.close()
             return
@@ -233,20 +264,3 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
         yield FramePass.decoded(info, declared, decode_codes(container, stream, rows, height, segment=segment),
                                 limit_of(declared), writer, detect)
 
-
-def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
-            redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> Iterator[PassFrame]:
-    """The entry's frames (``cuts``: those that start a shot); from the first bad one on
-    (truncated, bit-flipped), the entry is removed and the rest decoded."""
-    i = 0
-    try:
-        for a in entry.read():
-            if i >= limit:
-                return
-            yield PassFrame(a, full_range, i in cuts)
-            i += 1
-        return
-    except CorruptEntry as e:
-        cache.corrupt(name, f"{e}; frames {i}.. decoded")
-    for j, (codes, expand) in enumerate(redecode(i), i):
-        yield PassFrame(codes, expand, j in cuts)
