@@ -90,7 +90,8 @@ def test_an_identity_that_cannot_vouch_is_neither_recorded_nor_answered(tmp_path
     cache does; an entry answers only the identity it was made from."""
     index = CorpusIndex(tmp_path / INDEX_FILE)
     verdict = {"path": "a.mp4", "usable": True, "windows": 2, "frames": 401, "size": "64x48 h264 yuv420p 25 fps",
-               "reason": "", "cuts": [], "dropped": 0}
+               "reason": "", "cuts": [], "dropped": 0, "cause": "",
+               "stream": {"width": 64, "height": 48, "codec": "h264", "pix_fmt": "yuv420p", "fps": 25.0}}
     assert not index.record("/c/a.mp4", None, "L", verdict) and len(index) == 0
     assert index.record("/c/a.mp4", "file 1 2 3 4", "L", verdict) and len(index) == 1
     assert index.lookup("/c/a.mp4", None, "L") is None
@@ -363,7 +364,8 @@ def test_after_a_fault_every_method_answers_as_an_empty_index(tmp_path, caplog):
     kept, one warning."""
     index = CorpusIndex(tmp_path / INDEX_FILE)
     verdict = {"path": "a.mp4", "usable": True, "windows": 2, "frames": 401, "size": "64x48 h264 yuv420p 25 fps",
-               "reason": "", "cuts": [], "dropped": 0}
+               "reason": "", "cuts": [], "dropped": 0, "cause": "",
+               "stream": {"width": 64, "height": 48, "codec": "h264", "pix_fmt": "yuv420p", "fps": 25.0}}
     for loc in ("/c/a.mp4", "/c/b.mp4"):
         assert index.record(loc, "id", "L", verdict)
     with sqlite3.connect(tmp_path / INDEX_FILE) as db:
@@ -409,3 +411,44 @@ def test_a_server_starting_on_a_faulty_index_serves_the_whole_epoch(corpus, tmp_
     assert len(ids) == len(set(ids)) == samples > 0
     _one_warning(srv.log, cache / INDEX_FILE, words)
     assert "an epoch holds" not in srv.log
+
+
+def _write_ntsc(path, frames: int) -> None:
+    """A clip of ``frames`` 64x48 frames at 30000/1001 Hz (NTSC's 29.97)."""
+    import av
+    import numpy as np
+    from fractions import Fraction
+
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("mpeg4", rate=Fraction(30000, 1001))
+        s.width, s.height, s.pix_fmt = 64, 48, "yuv420p"
+        for i in range(frames):
+            y = np.full((48, 64, 3), 40, np.uint8)
+            y[:, (2 * i) % 56:(2 * i) % 56 + 8] = 220
+            for p in s.encode(av.VideoFrame.from_ndarray(y, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+
+
+def test_the_index_keeps_typed_stream_facts_and_the_exact_frame_rate(tmp_path):
+    """A row's size, codec and frame rate come from the verdict's typed ``stream``, not from its
+    printed ``size``: 29.97 Hz stays 30000/1001 (printed as 30), and a clip too short for a
+    window has the cause ``short``, the code the server logs it by."""
+    d = tmp_path / "corpus"
+    d.mkdir()
+    _write_ntsc(d / "ntsc.mp4", 60)
+    _write_ntsc(d / "short.mp4", 10)
+    settle()
+    cache = tmp_path / "cache"
+    src = LocalSource(d, cache_dir=str(cache))
+    ntsc, short = (check_video(*WINDOWS, src, name) for name in ("ntsc.mp4", "short.mp4"))
+    assert ntsc["size"] == "64x48 mpeg4 yuv420p 30 fps" and ntsc["stream"]["fps"] == 30000 / 1001
+    assert (ntsc["cause"], short["cause"]) == ("", "short") and not short["usable"]
+    with sqlite3.connect(cache / INDEX_FILE) as db:
+        rows = dict((os.path.basename(r[0]), r[1:]) for r in db.execute(
+            "SELECT location, width, height, codec, fps, cause FROM entries WHERE layout = ?", (layout_key(*WINDOWS),)))
+    assert rows["ntsc.mp4"] == (64, 48, "mpeg4", 30000 / 1001, "")
+    assert rows["short.mp4"][3:] == (30000 / 1001, "short")
+    again = check_video(*WINDOWS, src, "ntsc.mp4")  # answered from the index: the same typed facts
+    assert again["stream"] == ntsc["stream"]

@@ -642,6 +642,30 @@ def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, mo
     assert [r["frames"] for r in again] == [r["frames"] for r in first]
 
 
+def test_warm_states_come_from_the_pass_itself(tmp_path):
+    """A warm-up's state and bytes are what became of the entry its own pass wrote
+    (``EntryWriter.outcome``) or replayed (``FramePass.damaged``): stored with its bytes, cached,
+    a damaged entry not cached (removed and the rest decoded), over the budget not stored."""
+    from v2v_server.ops.warm import warm_video
+
+    cfg = ServeConfig(**SMALL, workers=1)
+    src = _cached(CLIPS, tmp_path / "big")
+    stored = warm_video(cfg, src, "bikes.mp4")
+    entry, = _entries(tmp_path / "big")
+    assert stored["state"] == "stored" and 0 < stored["bytes"] <= entry.stat().st_size, stored
+    assert warm_video(cfg, src, "bikes.mp4") == dict(stored, state="cached", bytes=0)
+    with open(entry, "r+b") as f:  # a flipped bit in the first frame: the trailer holds, the frame fails its sum
+        f.seek(64)
+        byte = f.read(1)
+        f.seek(64)
+        f.write(bytes([byte[0] ^ 1]))
+    damaged = warm_video(cfg, src, "bikes.mp4")
+    assert damaged["state"].startswith("not stored") and damaged["frames"] == stored["frames"], damaged
+    assert _entries(tmp_path / "big") == []  # removed; the rest decoded, not stored
+    tiny = _cached(CLIPS, tmp_path / "tiny", gb=1e-6)
+    assert warm_video(cfg, tiny, "bikes.mp4")["state"] == "not stored: budget"
+
+
 def test_frame_cache_gauges_and_status_line_from_worker_counters():
     """The server's frame-cache gauges, hit ratio and status line, from the counters workers
     report (malformed ones ignored)."""

@@ -297,9 +297,9 @@ def test_the_recipe_fingerprint_names_the_shot_detector_where_windows_follow_cut
     """Under ``shot_cuts: avoid`` windows start at the cuts the detector finds, so servers with
     other detectors must not pass for one recipe (the client refuses a resume state or a shard
     of another fingerprint); under ``off`` the detector moves nothing."""
-    import v2v_server.samples.recipe as recipe
+    import v2v_server.videos.pass_record as pass_record
+    from v2v_server.samples.recipe import SampleRecipe
 
-    avoid, off = recipe.SampleRecipe(), recipe.SampleRecipe(shot_cuts="off")
-    before = avoid.fingerprint(), off.fingerprint()
-    monkeypatch.setattr(recipe, "DETECTOR_VERSION", "another-detector")
-    assert avoid.fingerprint() != before[0] and off.fingerprint() == before[1]
+    before = SampleRecipe().fingerprint(), SampleRecipe(shot_cuts="off").fingerprint()
+    monkeypatch.setattr(pass_record, "DETECTOR_VERSION", "another-detector")
+    assert SampleRecipe().fingerprint() != before[0] and SampleRecipe(shot_cuts="off").fingerprint() == before[1]

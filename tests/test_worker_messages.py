@@ -35,7 +35,8 @@ WORKER_SIDE = [Ready(True), Ready(False),
                Sample(4, SampleKey("clips/a.mp4", 3, 1), {"crop": [0, 8]}, SPECS, stages={"decode": 0.5}),
                Sample(4, SampleKey("a.mp4", 0), {}, SPECS, ({"codec": "zstd", "name": "voxels", "nbytes": 90},), 2),
                Done(4, 2, {"1": "frame size changed"}, "OSError: moov atom not found", _decode_error(), 80, 1, 1,
-                    {"send": 0.25}, {"frame_cache": {"hits": 3}}),
+                    {"send": 0.25}, {"frame_cache": {"hits": 3}}, "error"),
+               Done(6, 0, error="132 frames, shorter than one window of 151 frames", cause="short"),
                Done(5)]
 SERVER_SIDE = [Task(4, 0, "a.mp4", ("voxels", "flow"), ((1, 0), (2, 1)), ("zstd",)), Task(5, 3, "b.mkv", ("frames",)),
                Slot(2), Stop()]
@@ -56,7 +57,7 @@ def test_the_keys_on_the_wire_are_the_ones_workers_and_servers_always_sent():
     assert set(WORKER_SIDE[3].to_wire()) == {"type", "task", "key", "meta", "arrays", "packed", "slot", "stages"}
     assert WORKER_SIDE[3].to_wire()["key"] == ["a.mp4", 0, 0]
     assert set(WORKER_SIDE[4].to_wire()) == {"type", "task", "frames", "windows", "error", "failure", "stages", "cuts",
-                                             "dropped", "store", "failed"}
+                                             "dropped", "store", "failed", "cause"}
 
 
 BAD = [  # (header, the message and field the error must name)
@@ -85,6 +86,7 @@ BAD_FROM_WORKERS = [
     ({"type": "done", "task": 1, "failure": {"exc_type": "OSError", "message": "", "traceback": ""}},
      "done message: field 'failure.where'"),
     ({"type": "done", "task": 1, "failure": "OSError"}, "done message: field 'failure'"),
+    ({"type": "done", "task": 1, "cause": "shorter than one window"}, "done message: field 'cause'"),
     ({"type": "hello"}, "unknown worker message type"),
 ]
 

@@ -111,7 +111,7 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int,
     if w.reads_frames or split_segment(rel)[1]:
         r = check_video(w, cfg.recipe.decode, source, rel)
         return r["windows"], (None if r["usable"] else r["reason"])
-    windows = WindowPass(w)
+    windows = WindowPass(w, cfg.recipe.reads)
     error = None
     try:
         with source.open(rel) as path:

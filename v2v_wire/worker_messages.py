@@ -184,6 +184,13 @@ class Sample:
                    _map(h, "sample", "stages", (int, float)))
 
 
+#: Why a pass gave fewer windows than it could, as a code (``window_pass.judged``): ``""``
+#: nothing is wrong; ``"short"`` too few frames (or every shot too short): a property of the
+#: clip, not a fault; ``"static"`` every window static; ``"failed"`` windows that cannot be
+#: made; ``"error"`` what stopped the reading.
+CAUSES = ("", "short", "static", "failed", "error")
+
+
 @dataclass(frozen=True)
 class Done:
     """Worker -> server: a task's pass over its video ended.
@@ -193,6 +200,7 @@ class Done:
         windows: complete windows the file gave (``schedule.EpochScheduler.task_done``).
         failed: window (as a string) -> why that window cannot be made.
         error: why the pass gave fewer windows than it should (``window_pass.VideoPass.reason``), or None.
+        cause: that reason's cause as a code, one of :data:`CAUSES` (``""`` without one).
         failure: the exception that stopped the pass, if one did.
         frames: frames decoded.
         cuts, dropped: shot cuts found, windows they removed.
@@ -210,12 +218,13 @@ class Done:
     dropped: int = 0
     stages: Dict[str, float] = field(default_factory=dict)
     store: Dict[str, object] = field(default_factory=dict)
+    cause: str = ""
 
     def to_wire(self) -> dict:
         return {"type": "done", "task": self.task, "windows": self.windows, "failed": self.failed,
                 "error": self.error, "failure": None if self.failure is None else self.failure.to_wire(),
                 "frames": self.frames, "cuts": self.cuts, "dropped": self.dropped, "stages": self.stages,
-                "store": self.store}
+                "store": self.store, "cause": self.cause}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Done":
@@ -225,9 +234,12 @@ class Done:
             raise _bad("done", "error", "a string or null", error)
         failure = None if h.get("failure") is None else Failure.from_wire(h["failure"])
         count = {k: _int(h, "done", k, default=0) for k in ("windows", "frames", "cuts", "dropped")}
+        cause = h.get("cause", "")
+        if cause not in CAUSES:
+            raise _bad("done", "cause", f"one of {list(CAUSES)}", cause)
         return cls(_int(h, "done", "task"), count["windows"], _map(h, "done", "failed", (str,)), error,
                    failure, count["frames"], count["cuts"], count["dropped"],
-                   _map(h, "done", "stages", (int, float)), _map(h, "done", "store"))
+                   _map(h, "done", "stages", (int, float)), _map(h, "done", "store"), cause)
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from typing import List, Optional, Sequence
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_frames
 from v2v_server.videos.corpus import record_pass
+from v2v_server.videos.frame_cache import SKIP_CAUSES
 from v2v_server.videos.frames import entry_settings, lookup_entry
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import map_videos
@@ -23,13 +24,11 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
     """Read video ``rel`` of ``source`` through its frame cache: ``{"path", "frames", "state", "bytes"}``, state ``cached`` (already there, read back
     whole), ``stored``, or ``not stored: CAUSE`` (budget, disk_full, write_error, or the
     decoding error)."""
-    source.take_stats()  # the counters read below are this video's alone
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
-    windows = WindowPass(cfg.recipe.windows)
-    cached, error = False, None
+    windows = WindowPass(cfg.recipe.windows, cfg.recipe.reads)
+    fp, error = None, None
     try:
         with video_frames(cfg.recipe, source, rel) as fp:
-            cached = fp.cached
             for _ in windows.over(fp):  # the frames the sample pass reads, no more
                 pass
     except Exception as e:  # one bad file never stops the warm-up
@@ -38,17 +37,19 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
     out["frames"] = windows.frames
     # the next start knows its windows
     record_pass(cfg.recipe.windows, cfg.recipe.decode, source, rel, windows.record(error))
-    st = source.take_stats().get("frame_cache", {})
-    out["bytes"] = int(st.get("bytes_written", 0))
+    source.take_stats()  # this video's counters are spent here: the pass says what became of its entry
+    writer = fp.writer if fp is not None else None  # what became of the entry this pass wrote
+    out["bytes"] = writer.stored_bytes if writer is not None else 0
     if out["state"]:
         return out
-    if cached and not st.get("misses", {}).get("corrupt"):
+    if fp.cached and not fp.damaged:
         out["state"] = "cached"
-    elif st.get("stored"):
+    elif writer is not None and writer.outcome == "stored":
         out["state"] = "stored"
-    else:
-        causes = [c for c, n in st.get("not_stored", {}).items() if n]
-        out["state"] = "not stored: " + (", ".join(causes) or "already stored by another process")
+    elif writer is not None and writer.outcome in SKIP_CAUSES:
+        out["state"] = f"not stored: {writer.outcome}"
+    else:  # a damaged entry's rest decoded, an identity that cannot vouch, or another process's entry
+        out["state"] = "not stored: already stored by another process"
     return out
 
 

@@ -384,7 +384,7 @@ class _Cutter:
     busy: Dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
-        self.windows = WindowPass(self.recipe.windows)
+        self.windows = WindowPass(self.recipe.windows, self.recipe.reads)
 
     def samples(self, source: VideoSource) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
         with video_frames(self.recipe, source, self.rel_path) as fp:

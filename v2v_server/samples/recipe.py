@@ -23,11 +23,16 @@ from v2v_server.settings import setting
 from v2v_server.simulation.simulate import ParamRanges
 from v2v_server.videos.decode import DECODE_FAST
 from v2v_server.videos.frames import DecodeSettings
-from v2v_server.videos.shots import DETECTOR_VERSION, SHOT_CUTS
-from v2v_server.videos.motion import MOTION_VERSION, STATIC_MOTION
+from v2v_server.videos.motion import STATIC_MOTION
+from v2v_server.videos.pass_record import PassRecord
+from v2v_server.videos.shots import SHOT_CUTS
 from v2v_server.videos.windows import STATIC_WINDOWS, WindowSettings
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import OUTPUTS, check_outputs
+
+#: The pass record's fields, named as the recipe's keys they hold (``PassRecord.content`` gives
+#: them to the fingerprint).
+_PASS_FIELDS = frozenset(f.name for f in fields(PassRecord))
 
 #: Wire dtypes of dense flow (``v2v_wire.outputs``).
 FLOW_DTYPES = ARRAYS["flow"].dtypes
@@ -127,20 +132,24 @@ class SampleRecipe:
 
         return NonIdealities.from_dict(self.nonidealities or None)
 
+    @cached_property
+    def reads(self) -> PassRecord:
+        """What a pass over a video reads under this recipe (``videos.pass_record.PassRecord``):
+        the frame cache's, the corpus index's and the window pass's one key."""
+        return PassRecord.of(self.decode, self.windows)
+
     def fingerprint(self) -> str:
-        """A short hash of what decides a sample's content (the recipe less the outputs each
-        client asks for and the decoding threads; with ``shot_cuts: avoid``, the shot detector's
-        ``DETECTOR_VERSION``, since windows start at the cuts it finds): sample ids name the same
-        samples only under the same fingerprint."""
-        content = {k: v for k, v in self.recipe_dict().items() if k not in ("outputs", "decode_threads")}
-        if not content["frame_height"]:  # no scaling: the fingerprint of the same recipe without the key
-            del content["frame_height"]
-        if self.windows.avoid_cuts:  # windows start at the cuts this detector finds: another one moves them
-            content["shot_detector"] = DETECTOR_VERSION
-        if content["static_windows"] == "keep":  # every window: the fingerprint of the same recipe without the key
-            del content["static_windows"]
-        else:  # which windows are static is this measure's and threshold's
-            content["static_motion"] = f"{MOTION_VERSION}<{STATIC_MOTION}"
+        """A short hash of what decides a sample's content: the recipe less the outputs each
+        client asks for and the decoding threads, its pass settings as the pass record gives
+        them (:attr:`reads`, ``PassRecord.content``: the shot detector's version with
+        ``shot_cuts: avoid``, the motion measure's with ``static_windows: skip``, a setting at
+        its neutral value left out): sample ids name the same samples only under the same
+        fingerprint."""
+        reads = self.reads.content()
+        del reads["frames_per_sample"]  # sequence_length, num_bins and frames_per_bin, beside it, name it
+        content = {k: v for k, v in self.recipe_dict().items()
+                   if k not in ("outputs", "decode_threads") and k not in _PASS_FIELDS}
+        content.update(reads)
         return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def recipe_dict(self) -> dict:

@@ -66,8 +66,8 @@ class V2VServer:
         videos: sample-id paths of the videos, relative to ``root`` (POSIX strings).
         corpus: the fingerprint of the whole listing before sharding (``corpus.corpus_fingerprint``).
         epoch_samples: samples an epoch holds, when known at start (``corpus.known_windows``).
-        skipped: videos of the listing not served, known to give no window -> why: logged and
-            counted as a skip found by reading them would be.
+        skipped: videos of the listing not served, known to give no window -> ``(cause, reason)``
+            (``corpus.KnownWindows.empty``): logged and counted as a skip found by reading them would be.
 
     Call ``run()`` (blocks until ``--epochs`` are delivered or ``stop()`` is called).
 
@@ -76,7 +76,7 @@ class V2VServer:
     """
 
     def __init__(self, cfg: ServeConfig, source: VideoSource, videos: List[str], corpus: Optional[str] = None,
-                 epoch_samples: Optional[int] = None, skipped: Optional[Dict[str, str]] = None):
+                 epoch_samples: Optional[int] = None, skipped: Optional[Dict[str, Tuple[str, str]]] = None):
         if not videos:
             raise ValueError(f"no video files under {source.root}")
         self.cfg = cfg
@@ -110,8 +110,8 @@ class V2VServer:
         self.assembler: Optional[BatchAssembler] = None  # built once the bind says where its buffers live
         self._resent_seen = 0  # ledger.resent already counted
         self.workers = WorkerSide(cfg, self.source, self.core, self.metrics)
-        for video, why in (skipped or {}).items():  # known to give no window: logged and counted as if read
-            self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)")
+        for video, (cause, why) in (skipped or {}).items():  # known to give no window: logged and counted as if read
+            self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)", cause=cause)
         self.clients = ClientSide(cfg, self.core, self.metrics, self.stream_info)
 
     # ------------------------------------------------------------------ lifecycle

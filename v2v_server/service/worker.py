@@ -210,11 +210,11 @@ def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socke
     found = run.record(error)
     clock.made()  # decoding after the last window
     record_pass(cfg.windows, cfg.decode, source, task.video, found)  # the next start knows its windows (corpus index)
+    cause, reason = found.cause(cfg.windows)  # the file's verdict, failed windows aside
     done = Done(task.task, found.windows,
                 {str(k): str(v) for k, v in found.failed.items()},  # window -> reason, one by one
-                found.reason(cfg.windows),  # the file's verdict, failed windows aside
-                failure, found.frames, len(found.cuts), found.dropped,  # shot cuts found, windows they removed
-                clock.report(), source.take_stats())  # object-store reads of this task (empty for a folder)
+                reason, failure, found.frames, len(found.cuts), found.dropped,  # shot cuts found, windows they removed
+                clock.report(), source.take_stats(), cause)  # object-store reads of this task (empty for a folder)
     _send(sock, [pack(done.to_wire())], parent_pid)
 
 

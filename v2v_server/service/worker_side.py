@@ -19,7 +19,6 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.assembly import BatchAssembler, sample_from_slot, sample_from_worker
 from v2v_server.service.pool import WorkerPool
-from v2v_server.videos.window_pass import SHORT_CLIP
 from v2v_server.videos.source import VideoSource
 from v2v_wire.protocol import ProtocolError, pack, unpack
 from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, worker_message
@@ -145,13 +144,16 @@ class WorkerSide:
         for k, why in sorted(msg.failed.items()):
             self.log_failure(job.video, f"window {k}: {why}")
         if msg.error:
-            self.log_failure(job.video, msg.error, served=msg.windows, failure=msg.failure)
+            self.log_failure(job.video, msg.error, served=msg.windows, failure=msg.failure, cause=msg.cause)
 
-    def log_failure(self, video: str, reason: str, served: int = 0, failure: Optional[Failure] = None) -> None:
+    def log_failure(self, video: str, reason: str, served: int = 0, failure: Optional[Failure] = None,
+                    cause: str = "") -> None:
         """Log once per (file, reason) why a file, or the rest of it after ``served``
         windows, is skipped this epoch: the file's verdict, the reason the Ray engine gives too;
         with the worker's ``failure`` (the exception that stopped the pass), its type, where it
-        was raised and its traceback on a debug line (``--log-level DEBUG``)."""
+        was raised and its traceback on a debug line (``--log-level DEBUG``). ``cause``: the
+        reason's code (``worker_messages.CAUSES``): a ``"short"`` clip is logged at INFO, a
+        property of the clip, not a fault."""
         if video not in self.skipped_files:
             self.metrics.on_file_skipped()
         self.skipped_files.setdefault(video, reason)
@@ -162,8 +164,8 @@ class WorkerSide:
             if served:
                 log.warning("%s: %s in window %d; windows 0-%d were served, the rest of the file is skipped this "
                             "epoch", self.source.where(video), reason, served, served - 1)
-            else:  # a clip too short for one window is no fault of the file: not a warning
-                log.log(logging.INFO if SHORT_CLIP in reason else logging.WARNING, "skipped %s: %s",
+            else:  # a clip too short for one window (cause "short") is no fault of the file: not a warning
+                log.log(logging.INFO if cause == "short" else logging.WARNING, "skipped %s: %s",
                         self.source.where(video), reason)
 
     def dispatch(self, now: float, codecs: List[str]) -> None:

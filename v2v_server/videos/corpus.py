@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Dict, List, NamedTuple, Sequence, Tuple
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
-from v2v_server.videos.corpus_index import layout_key
+from v2v_server.videos.corpus_index import check_record, layout_key
 from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
 from v2v_server.videos.frames import DecodeSettings, FramePass, PassFrame
 from v2v_server.videos.local import LocalSource
@@ -89,7 +89,7 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
         shown["h"] = h
         return decode.kept_rows(h)
 
-    found = WindowPass(windows, lambda y: (shown.get("h", y.shape[0]), y.shape[1]))
+    found = WindowPass(windows, check_record(windows, decode), lambda y: (shown.get("h", y.shape[0]), y.shape[1]))
     times: list = []  # presentation times, for a variable frame rate
     error = None
     try:
@@ -137,12 +137,14 @@ def indexed_verdict(windows: WindowSettings, decode: DecodeSettings, source: Vid
 def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> dict:
     """``check_video``'s verdict of the video at ``rel`` from a window pass's ``record``
     (``window_pass.VideoPass``), frame timing aside: ``{"path", "usable", "windows", "frames",
-    "size", "reason", "cuts", "dropped"}``, with ``failed_windows`` and ``more`` where they apply."""
-    count, failed, reason = record.verdict(windows)  # windows before a failure still count
+    "size", "reason", "cuts", "dropped", "stream", "cause"}`` (``stream``: ``VideoPass.stream``, None when not opened;
+    ``cause``: the reason's code, ``window_pass.judged``), with
+    ``failed_windows`` and ``more`` where they apply."""
+    count, failed, cause, reason = record.judged(windows)  # windows before a failure still count
+    stream = record.stream()
     out = {"path": rel, "usable": count > 0, "windows": count, "frames": record.frames,
-           "size": (f"{record.width}x{record.height} {record.codec} {record.pix_fmt} {record.fps:.3g} fps"
-                    if record.codec else ""),
-           "reason": reason or "", "cuts": list(record.cuts), "dropped": record.dropped}
+           "size": size_text(stream), "stream": stream, "reason": reason or "", "cause": cause,
+           "cuts": list(record.cuts), "dropped": record.dropped}
     if failed:
         out["failed_windows"] = failed
     if record.static:
@@ -150,6 +152,15 @@ def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> dict:
     if record.complete:
         out["more"] = True  # every window is complete: decoding stopped
     return out
+
+
+def size_text(stream: Optional[dict]) -> str:
+    """A verdict's ``size`` as ``--check`` prints it: ``"WxH codec pix_fmt FPS fps"`` (the frame
+    rate to 3 digits) of its ``stream`` (``VideoPass.stream``), ``""`` without one. For people:
+    a reader takes the typed ``stream``."""
+    if not stream:
+        return ""
+    return f"{stream['width']}x{stream['height']} {stream['codec']} {stream['pix_fmt']} {stream['fps']:.3g} fps"
 
 
 def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str,
@@ -175,11 +186,12 @@ def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
 class KnownWindows(NamedTuple):
     """What the corpus index says of a listing at a server's start (:func:`known_windows`):
     ``known``, how many of its videos it knows; ``samples``, their samples per epoch together;
-    ``empty``, those known to give no window -> why (the verdict's reason)."""
+    ``empty``, those known to give no window -> ``(cause, reason)``, the verdict's reason and
+    its code (``window_pass.judged``)."""
 
     known: int
     samples: int
-    empty: Dict[str, str]
+    empty: Dict[str, Tuple[str, str]]
 
 
 def known_windows(windows: WindowSettings, decode: DecodeSettings, source: VideoSource,
@@ -193,11 +205,11 @@ def known_windows(windows: WindowSettings, decode: DecodeSettings, source: Video
     known, samples, empty = 0, 0, {}
     if index is None:
         return KnownWindows(0, 0, empty)
-    for rel, n, reason in index.windows(((rel, source.where(rel), source.listed_identity(rel)) for rel in videos),
-                                        layout_key(windows, decode)):
+    for rel, n, cause, reason in index.windows(((rel, source.where(rel), source.listed_identity(rel))
+                                                for rel in videos), layout_key(windows, decode)):
         known, samples = known + 1, samples + n
         if n == 0:
-            empty[rel] = reason
+            empty[rel] = (cause, reason)
     if index.fault is not None:  # a fault on the way: nothing it answered is trusted
         return KnownWindows(0, 0, {})
     return KnownWindows(known, samples, empty)

@@ -12,32 +12,32 @@ ctime and inode of a file; an object's ETag; a tar or zip member's shard identit
 offset and size), the frame cache's rule: a video rewritten in place gets a new identity, and a
 video whose identity cannot vouch for its content (changed within the file system's timestamp
 resolution of now, an object without a version tag) is neither stored nor answered from the
-index. The window layout is :func:`layout_key`: every setting that moves a window or changes a
-verdict (``frames.entry_settings``, ``shot_cuts``), so one video has one entry per layout it was
-read under.
+index. The window layout is :func:`layout_key`, the key of what a pass reads
+(``pass_record.PassRecord``): every setting that moves a window or changes a verdict, so one
+video has one entry per layout it was read under.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import re
 import sqlite3
 import time
 from pathlib import Path
 from typing import Callable, Dict, Iterable, Iterator, Optional, Tuple, Union
 
 from v2v_server.faults import warn_once
-from v2v_server.videos.frames import DecodeSettings, entry_settings
+from v2v_server.videos.frames import DecodeSettings
 from v2v_server.videos.manifest import default_cache_dir
-from v2v_server.videos.shots import DETECTOR_VERSION
+from v2v_server.videos.pass_record import PassRecord
 from v2v_server.videos.windows import WindowSettings
+from v2v_wire.worker_messages import CAUSES
 
 #: The index's file name under the cache folder.
 INDEX_FILE = "corpus_index.sqlite"
 
-#: Format of the rows; an index of another version is set aside and written anew.
-INDEX_VERSION = 1
+#: Format of the rows and of their layout keys (``layout_key``); the rows of an index of another
+#: version are deleted at open, and the index written anew.
+INDEX_VERSION = 3
 
 #: Seconds a read or write waits for another process's write: a write is one row (milliseconds),
 #: so a lock held longer is another program's (a ``sqlite3`` shell in a transaction), and the
@@ -55,8 +55,10 @@ CREATE TABLE IF NOT EXISTS entries (
     windows INTEGER NOT NULL,    -- samples per epoch (windows that can be made)
     usable INTEGER NOT NULL,     -- 1 when the video gives a window
     reason TEXT NOT NULL,        -- why it gives none or fewer ('' when nothing is wrong)
+    cause TEXT NOT NULL,         -- that reason as a code (v2v_wire.worker_messages.CAUSES: short, static, ...)
     cuts TEXT NOT NULL,          -- JSON list: the frames that start a shot
-    width INTEGER, height INTEGER, codec TEXT, fps REAL,
+    width INTEGER, height INTEGER, codec TEXT,
+    fps REAL,                    -- frames per second as the container gives it (29.97002997..., not rounded)
     result TEXT NOT NULL,        -- JSON: the whole --check verdict (videos.corpus.check_video)
     written_at REAL NOT NULL,    -- Unix time, seconds
     PRIMARY KEY (location, layout)
@@ -64,17 +66,20 @@ CREATE TABLE IF NOT EXISTS entries (
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
 
-#: ``check_video``'s ``size`` field: ``"WxH codec pix_fmt FPS fps"``.
-_SIZE = re.compile(r"^(\d+)x(\d+) (\S+) \S+ ([0-9.e+-]+) fps$")
 
 
 def layout_key(windows: WindowSettings, decode: DecodeSettings) -> str:
-    """The window layout of an index entry: a short hash (16 hex digits) of the settings that
-    move a window or change a verdict (the frames a pass reads, ``frames.entry_settings``, and
-    ``windows.shot_cuts``), and the shot detector (an entry holds the cuts it found, whatever
-    ``shot_cuts`` is)."""
-    settings = {**entry_settings(decode, windows), "shot_cuts": windows.shot_cuts, "shots": DETECTOR_VERSION}
-    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    """The window layout of an index entry: the key of what ``--check``'s pass decoding as
+    ``decode`` over ``windows`` reads (``pass_record.PassRecord.key``, shot cuts scored whatever
+    ``shot_cuts`` says: an entry holds them), so every setting that moves a window or changes a
+    verdict is in it once."""
+    return check_record(windows, decode).key
+
+
+def check_record(windows: WindowSettings, decode: DecodeSettings) -> PassRecord:
+    """What ``--check``'s pass over ``windows`` decoding as ``decode`` reads: the sample pass's
+    record, shot cuts scored whatever ``shot_cuts`` says (``corpus.check_video`` reports them)."""
+    return PassRecord.of(decode, windows, scores_cuts=True)
 
 
 def index_path(cache_dir: Optional[Union[str, Path]]) -> Path:
@@ -156,9 +161,10 @@ class CorpusIndex:
         return self._safely(None, read)
 
     def windows(self, videos: Iterable[Tuple[str, str, Optional[str]]], layout: str,
-                chunk: int = 500) -> Iterator[Tuple[str, int, str]]:
-        """``(key, windows, reason)``, the samples per epoch and the reason recorded under
-        ``layout`` (why it gives none or fewer, '' when nothing is wrong), for each ``(key,
+                chunk: int = 500) -> Iterator[Tuple[str, int, str, str]]:
+        """``(key, windows, cause, reason)``, the samples per epoch and the reason recorded under
+        ``layout`` (why it gives none or fewer, '' when nothing is wrong) with its code
+        (``v2v_wire.worker_messages.CAUSES``), for each ``(key,
         location, identity)`` of ``videos`` whose entry holds (same identity; None never does),
         read in queries of ``chunk`` locations: memory is bounded by the chunk, not the corpus.
         Nothing is queried when no entry of ``layout`` exists. A fault met on the way ends
@@ -170,10 +176,10 @@ class CorpusIndex:
 
         def read() -> list:
             marks = ",".join("?" * len(batch))
-            rows = self._db.execute(f"SELECT location, identity, windows, reason FROM entries WHERE layout = ? AND "
-                                    f"location IN ({marks})", (layout, *batch)).fetchall()
-            return [(batch[loc][0], stored_count(loc, n), str(reason)) for loc, ident, n, reason in rows
-                    if batch[loc][1] == ident]
+            rows = self._db.execute(f"SELECT location, identity, windows, cause, reason FROM entries WHERE layout = ? "
+                                    f"AND location IN ({marks})", (layout, *batch)).fetchall()
+            return [(batch[loc][0], stored_count(loc, n), stored_cause(loc, cause), str(reason))
+                    for loc, ident, n, cause, reason in rows if batch[loc][1] == ident]
 
         for key, location, identity in videos:
             if identity is not None:
@@ -192,13 +198,13 @@ class CorpusIndex:
         ``identity`` is None or the index is off. Returns whether it was kept."""
         if identity is None:
             return False
-        m = _SIZE.match(result.get("size") or "")
-        w, h, codec, fps = (int(m[1]), int(m[2]), m[3], float(m[4])) if m else (None, None, None, None)
+        stream = result.get("stream") or {}  # the stream's typed facts (window_pass.VideoPass.stream)
+        w, h, codec, fps = (stream.get(k) for k in ("width", "height", "codec", "fps"))
         row = (location, layout, identity, int(result.get("frames", 0)), int(result.get("windows", 0)),
-               int(bool(result.get("usable"))), result.get("reason") or "", json.dumps(list(result.get("cuts") or [])),
-               w, h, codec, fps, json.dumps(result), time.time())
+               int(bool(result.get("usable"))), result.get("reason") or "", result.get("cause") or "",
+               json.dumps(list(result.get("cuts") or [])), w, h, codec, fps, json.dumps(result), time.time())
         return self._safely(False, lambda: self._db.execute(
-            "INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", row) is not None)
+            "INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", row) is not None)
 
     def __len__(self) -> int:
         return self._safely(0, lambda: self._db.execute("SELECT COUNT(*) FROM entries").fetchone()[0])
@@ -211,7 +217,7 @@ class CorpusIndex:
 
 #: The fields a stored verdict must hold, and their types (``corpus.pass_verdict`` writes them).
 _VERDICT = (("usable", bool), ("windows", int), ("frames", int), ("size", str), ("reason", str), ("cuts", list),
-            ("dropped", int))
+            ("dropped", int), ("stream", (dict, type(None))), ("cause", str))
 
 
 def stored_count(location: str, value) -> int:
@@ -221,6 +227,16 @@ def stored_count(location: str, value) -> int:
         ValueError: it is not a non-negative integer (naming the entry and the value)."""
     if type(value) is not int or value < 0:
         raise ValueError(f"the entry of {location} holds windows {value!r}, not a count")
+    return value
+
+
+def stored_cause(location: str, value) -> str:
+    """An entry's ``cause`` column as a code of ``v2v_wire.worker_messages.CAUSES``.
+
+    Raises:
+        ValueError: it is not one (naming the entry and the value)."""
+    if value not in CAUSES:
+        raise ValueError(f"the entry of {location} holds cause {value!r}, not one of {list(CAUSES)}")
     return value
 
 

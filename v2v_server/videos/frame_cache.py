@@ -8,8 +8,8 @@ frame count. Later epochs replay those frames instead of decoding; the cutter
 decoded (``tests/test_frame_cache.py``).
 
 An entry is one file (``disk_cache.DiskCache`` under ``cache_dir/frames``: atomic rename,
-byte budget, policy ``keep``), named by the corpus, the video's id path and the decode
-settings that change frames (:func:`decode_settings`); its trailer records the identity of
+byte budget, policy ``keep``), named by the corpus, the video's id path and the key
+of what the pass reads (:func:`entry_name_settings`); its trailer records the identity of
 the source it was decoded from (``VideoSource.identity``: size, modification time, change time
 and inode of a file; ETag of an object; a tar member's offset and size within its shard's
 identity). A different identity is a miss (``changed``), the entry is removed and the video
@@ -56,9 +56,10 @@ log = logging.getLogger("v2v.frame_cache")
 FORMATS = ("raw", "zstd")
 #: The format of entries unless one is asked for (raw: memory-mapped, the fastest, docs/frame_cache.md).
 DEFAULT_FORMAT = "raw"
-#: Version of the entry layout and of the frames it holds (the luma conversion of
-#: ``videos.decode``): a change makes every older entry a miss.
-VERSION = 3
+#: Version of the entry layout, of the frames it holds (the luma conversion of ``videos.decode``)
+#: and of how its name is made (``entry_name_settings``): a change makes every older entry a
+#: miss under a name no lookup makes again, left to the budget's eviction.
+VERSION = 4
 MAGIC = b"V2VFRM1\n"
 _FOOTER = struct.Struct("<QI")
 #: Miss causes counted (``FrameCache.take_stats``).
@@ -89,17 +90,11 @@ class CorruptEntry(RuntimeError):
     frame and why)."""
 
 
-def decode_settings(decode_fast: str, keep_top_fraction: float, frames_per_sample: int, max_samples_per_video: int,
-                    frame_height: int = 0) -> dict:
-    """What, beside the source, decides the frames an entry holds: the decoder shortcut
-    (``decode_fast``), the frame scale (``frame_height``, 0 = as decoded), the rows kept, and
-    how many frames a pass decodes (windows of ``frames_per_sample``, at most
-    ``max_samples_per_video``, named ``max_windows`` in the entry's settings); part of the entry's name."""
-    settings = {"v": VERSION, "decode_fast": decode_fast, "keep_top_fraction": float(keep_top_fraction),
-                "frames_per_sample": int(frames_per_sample), "max_windows": int(max_samples_per_video)}
-    if frame_height:  # unscaled entries keep the names they had before frames could be scaled
-        settings["frame_height"] = int(frame_height)
-    return settings
+def entry_name_settings(pass_key: str) -> dict:
+    """What, beside the corpus and the video, names an entry: this format's :data:`VERSION` and
+    ``pass_key``, the key of what the pass reads (``pass_record.PassRecord.key``: decoder
+    shortcut, scale, rows kept, window layout, detector and motion versions)."""
+    return {"v": VERSION, "pass": pass_key}
 
 
 @dataclass
@@ -184,6 +179,11 @@ class EntryWriter:
 
     def __init__(self, cache: "FrameCache", name: str, identity: str, header: dict, stride: int):
         self.cache, self.name, self.identity, self.header, self.stride = cache, name, identity, header, stride
+        #: What became of the entry: "" while it is written; ``"stored"``, ``"exists"`` (another
+        #: process stored it first) or a cause of ``SKIP_CAUSES``.
+        self.outcome = ""
+        #: Bytes the entry took on disk once stored, else 0.
+        self.stored_bytes = 0
         self.tmp: Optional[Path] = None
         self.f = None
         self.failed: Optional[str] = None
@@ -263,7 +263,8 @@ class EntryWriter:
         """The decode ended cleanly: write the trailer, with ``facts`` the pass found (e.g. its
         shot cuts) beside the header's, and commit the entry (counted)."""
         if self.f is None:
-            self.cache.skipped[self.failed or "write_error"] += 1
+            self.outcome = self.failed or "write_error"
+            self.cache.skipped[self.outcome] += 1
             return
         meta = dict(self.header, **(facts or {}), identity=self.identity, format=self.cache.format, dtype=self.dtype or "|u1",
                     shapes=self.runs, offsets=self.offsets, sizes=self.sizes, sums=self.sums, keys=self.keys)
@@ -278,18 +279,24 @@ class EntryWriter:
             status = self.cache.disk.commit(self.tmp, self.name)
         except OSError as e:
             self._fail(e)
+            self.outcome = self.failed
             self.cache.skipped[self.failed] += 1
             return
         if status == "added":
+            self.outcome, self.stored_bytes = "stored", self.pos + len(trailer)
             self.cache.stored += 1
-            self.cache.bytes_written += self.pos + len(trailer)
+            self.cache.bytes_written += self.stored_bytes
         elif status == "budget":
+            self.outcome = "budget"
             self.cache.skipped["budget"] += 1
+        else:
+            self.outcome = "exists"
 
     def abort(self, incomplete: bool = False) -> None:
         """Drop what was written: a failed write, or (``incomplete``) a pass that did not end
         cleanly (a decoding error, the consumer stopped), counted unless a write had failed."""
         if incomplete and self.f is not None:
+            self.outcome = "incomplete"
             self.cache.skipped["incomplete"] += 1
         if self.f is not None:
             try:

@@ -24,8 +24,8 @@ import numpy as np
 
 from v2v_server.checks import check_choice, check_int
 from v2v_server.videos.decode import DECODE_FAST, VideoInfo, decode_codes, full_range, open_video
-from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache, decode_settings
-from v2v_server.videos.motion import MOTION_VERSION, STATIC_MOTION
+from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache, entry_name_settings
+from v2v_server.videos.pass_record import PassRecord
 from v2v_server.videos.segments import split_segment
 from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector
 from v2v_server.videos.windows import WindowSettings
@@ -72,17 +72,13 @@ class DecodeSettings:
 
 
 def entry_settings(decode: DecodeSettings, windows: WindowSettings) -> dict:
-    """The settings that change the frames a pass reads (``frame_cache.decode_settings``): what,
-    with the corpus and the video, names a frame-cache entry. With ``shot_cuts: avoid`` the entry
-    holds the frames up to the last window and the cuts this detector found; with
-    ``static_windows: skip``, the frames of the windows that replace static ones."""
-    settings = decode_settings(decode.decode_fast, decode.keep_top_fraction, windows.frames_per_sample,
-                               windows.max_samples_per_video, decode.frame_height)
-    if windows.avoid_cuts:
-        settings["shots"] = DETECTOR_VERSION
-    if windows.skip_static:
-        settings["static"] = f"{MOTION_VERSION}<{STATIC_MOTION}"
-    return settings
+    """What, with the corpus and the video, names a frame-cache entry: the entry format's version
+    and the key of what a pass decoding as ``decode`` over ``windows`` reads
+    (``pass_record.PassRecord.key``: decoder, scale, rows kept, window layout, detector and
+    motion versions). With ``shot_cuts: avoid`` the entry holds the frames up to the last window
+    and the cuts the detector found; with ``static_windows: skip``, the frames of the windows
+    that replace static ones."""
+    return entry_name_settings(PassRecord.of(decode, windows).key)
 
 
 class PassFrame(NamedTuple):
@@ -107,14 +103,29 @@ class FramePass:
         cached: replayed from the frame cache.
         writer: storing the decoded frames into the frame cache (None when replayed or the
             cache is off); the entry is committed, with the cuts found, only when the pass ends
-            cleanly: its frames run out, or the consumer says :meth:`end`.
+            cleanly: its frames run out, or the consumer says :meth:`end`
+            (``EntryWriter.outcome`` says what became of it).
+        damaged: a replayed entry was found damaged, removed, and the rest of the video decoded
+            (not stored).
     """
 
     def __init__(self, info: VideoInfo, declared: int, frames: Iterator[PassFrame], cached: bool,
                  writer: Optional[EntryWriter] = None):
         self.info, self.declared, self.cached, self.writer = info, declared, cached, writer
+        self.damaged = False
         self._ended = False
         self.frames = frames
+
+    @classmethod
+    def replayed(cls, info: VideoInfo, declared: int, cache: FrameCache, name: str, entry: CachedVideo, limit: int,
+                 redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> "FramePass":
+        """A pass over the first ``limit`` frames of the frame-cache entry ``entry`` (named
+        ``name``; ``cuts``: the frames that start a shot); from its first bad frame on
+        (truncated, bit-flipped) the entry is removed, :attr:`damaged` set, and the rest
+        decoded by ``redecode(first_frame)``."""
+        fp = cls(info, declared, iter(()), True)
+        fp.frames = fp._replayed(cache, name, entry, limit, redecode, cuts)
+        return fp
 
     @classmethod
     def decoded(cls, info: VideoInfo, declared: int, frames: Iterator[Frame], limit: int,
@@ -140,6 +151,22 @@ class FramePass:
         """Whether the pass is still storing the video: then it must read ``frames`` to their end
         for the entry to be committed (stopping early drops it)."""
         return self.writer is not None and self.writer.writing
+
+    def _replayed(self, cache: FrameCache, name: str, entry: CachedVideo, limit: int,
+                  redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> Iterator[PassFrame]:
+        i = 0
+        try:
+            for a in entry.read():
+                if i >= limit:
+                    return
+                yield PassFrame(a, full_range, i in cuts)
+                i += 1
+            return
+        except CorruptEntry as e:
+            cache.corrupt(name, f"{e}; frames {i}.. decoded")
+            self.damaged = True
+        for j, (codes, expand) in enumerate(redecode(i), i):
+            yield PassFrame(codes, expand, j in cuts)
 
     def _decoded(self, frames: Iterator[Frame], limit: int, detect: bool) -> Iterator[PassFrame]:
         done = False
@@ -222,8 +249,8 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
             # an entry written with detection holds its cuts (the settings name the detector)
             cuts = frozenset(int(c) for c in entry.meta.get("shots", {}).get("cuts", ())) if detect else frozenset()
             try:
-                yield FramePass(VideoInfo(**entry.meta["info"]), declared,
-                                _replay(cache, name, entry, limit, redecode, cuts), True)
+                yield FramePass.replayed(VideoInfo(**entry.meta["info"]), declared, cache, name, entry, limit,
+                                         redecode, cuts)
             finally:
                 entry.close()
             return
@@ -237,20 +264,3 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
         yield FramePass.decoded(info, declared, decode_codes(container, stream, rows, height, segment=segment),
                                 limit_of(declared), writer, detect)
 
-
-def _replay(cache: FrameCache, name: str, entry: CachedVideo, limit: int,
-            redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> Iterator[PassFrame]:
-    """The entry's frames (``cuts``: those that start a shot); from the first bad one on
-    (truncated, bit-flipped), the entry is removed and the rest decoded."""
-    i = 0
-    try:
-        for a in entry.read():
-            if i >= limit:
-                return
-            yield PassFrame(a, full_range, i in cuts)
-            i += 1
-        return
-    except CorruptEntry as e:
-        cache.corrupt(name, f"{e}; frames {i}.. decoded")
-    for j, (codes, expand) in enumerate(redecode(i), i):
-        yield PassFrame(codes, expand, j in cuts)

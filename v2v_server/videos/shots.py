@@ -260,13 +260,6 @@ class WindowLayout:
         self.cuts = 0
 
     @property
-    def key(self) -> str:
-        """What places the windows, as a record's key: ``"span=S,windows=N,cuts=avoid|off"`` (the
-        cuts themselves depend on the frames: ``frames.entry_settings`` names them)."""
-        return (f"span={self.span},windows={self.max_windows},cuts={'avoid' if self.avoid_cuts else 'off'}"
-                + (",static=skip" if self.skip_static else ""))
-
-    @property
     def done(self) -> bool:
         """Every window the layout may give is complete: later frames serve nothing."""
         return self.windows >= self.max_windows

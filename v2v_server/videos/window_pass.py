@@ -24,10 +24,10 @@ import numpy as np
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frames import FramePass
 from v2v_server.videos.motion import STATIC_MOTION, MotionMeter
+from v2v_server.videos.pass_record import PassRecord
 from v2v_server.videos.windows import WindowSettings
 
-#: Words of the reason a file with too few frames for one window gets: a property of the clip,
-#: not a fault (the server logs such a skip at INFO, faults at WARNING).
+#: Words of the reason a file with too few frames for one window gets.
 SHORT_CLIP = "shorter than one window of"
 
 
@@ -58,24 +58,37 @@ def verdict(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] 
         fewer (None when nothing is wrong): the failed windows' reasons, else the error's, else
         too few frames.
     """
+    windows, bad, _, reason = judged(w, frames, failed, error, windows, cuts, static)
+    return windows, bad, reason
+
+
+def judged(w: WindowSettings, frames: int, failed: Optional[Mapping[int, str]] = None,
+           error: Optional[BaseException] = None, windows: Optional[int] = None,
+           cuts: int = 0, static: int = 0) -> Tuple[int, List[int], str, Optional[str]]:
+    """:func:`verdict` with its reason's cause as a code: ``(windows, failed_windows, cause,
+    reason)``, ``cause`` one of ``worker_messages.CAUSES`` (``"failed"``: windows that cannot be
+    made; ``"error"``: what stopped the reading; ``"static"``: every window static; ``"short"``:
+    too few frames for a window, or every shot too short, a property of the clip, not a fault;
+    ``""``: nothing is wrong)."""
     failed = failed or {}
     whole = w.windows_in(frames) if windows is None else windows
     bad = sorted(k for k in failed if k < whole)
     windows = whole - len(bad)
     if bad:
-        reason = "; ".join(failed[k] for k in bad)
+        cause, reason = "failed", "; ".join(failed[k] for k in bad)
     elif error is not None:
-        reason = error_reason(error)
+        cause, reason = "error", error_reason(error)
     elif windows == 0 and static:
-        reason = (f"{frames} frames: every window is static ({static} skipped: motion below {STATIC_MOTION} "
-                  f"log-intensity a frame, static_windows: skip)")
+        cause, reason = "static", (f"{frames} frames: every window is static ({static} skipped: motion below "
+                                   f"{STATIC_MOTION} log-intensity a frame, static_windows: skip)")
     elif windows == 0 and cuts and w.avoid_cuts:
-        reason = f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} {w.frames_per_sample} frames"
+        cause, reason = "short", (f"{frames} frames, {cuts} shot cut(s): every shot is {SHORT_CLIP} "
+                                  f"{w.frames_per_sample} frames")
     elif windows == 0:
-        reason = f"{frames} frames, {SHORT_CLIP} {w.frames_per_sample} frames"
+        cause, reason = "short", f"{frames} frames, {SHORT_CLIP} {w.frames_per_sample} frames"
     else:
-        reason = None
-    return windows, bad, reason
+        cause, reason = "", None
+    return windows, bad, cause, reason
 
 
 class WindowFrame(NamedTuple):
@@ -111,7 +124,8 @@ class VideoPass:
         motions: each complete window's motion, in window order (``motion``: the mean change of
             log intensity per frame pair; 0.0 where frames were counted, not decoded).
         static: windows given up as static (``static_windows: skip``).
-        layout: the window layout the windows follow (``shots.WindowLayout.key``).
+        layout: the key of what the pass read (``pass_record.PassRecord.key``: decoding, window
+            layout, detector and motion versions; the corpus index's layout key).
         cuts: the frames that start a shot, in order (none without detection).
         starts: the first frame of each complete window, failed ones included, in window order.
         dropped: windows a cut fell inside.
@@ -142,11 +156,26 @@ class VideoPass:
         """Complete windows, failed ones included."""
         return len(self.starts)
 
+    def stream(self) -> Optional[dict]:
+        """The stream's facts as typed values: ``{"width", "height"}`` (int, pixels), ``{"codec",
+        "pix_fmt"}`` (names) and ``"fps"`` (float, Hz, as the container gives it: 29.97... stays
+        29.97...); None when the stream was not opened."""
+        if not self.codec:
+            return None
+        return {"width": self.width, "height": self.height, "codec": self.codec, "pix_fmt": self.pix_fmt,
+                "fps": self.fps}
+
     def verdict(self, w: WindowSettings) -> Tuple[int, List[int], Optional[str]]:
         """:func:`verdict` of what the pass found, failed windows included (``--check``):
         ``(windows, failed_windows, reason)``; a failed window's reason names it."""
+        windows, bad, _, reason = self.judged(w)
+        return windows, bad, reason
+
+    def judged(self, w: WindowSettings) -> Tuple[int, List[int], str, Optional[str]]:
+        """:meth:`verdict` with its reason's cause as a code (:func:`judged`): ``(windows,
+        failed_windows, cause, reason)``."""
         failed = {k: f"window {k}: {why}" for k, why in self.failed.items()}
-        return verdict(w, self.frames, failed, self.error, self.windows, len(self.cuts), self.static)
+        return judged(w, self.frames, failed, self.error, self.windows, len(self.cuts), self.static)
 
     def to_dict(self) -> dict:
         """The record as JSON-safe values, as a corpus index keeps it: every attribute, ``failed``
@@ -161,7 +190,11 @@ class VideoPass:
     def reason(self, w: WindowSettings) -> Optional[str]:
         """Why the pass gave fewer windows than it should, failed windows aside (they are
         reported one by one): the error's reason, or too few frames; None when nothing is wrong."""
-        return verdict(w, self.frames, None, self.error, self.windows, len(self.cuts), self.static)[2]
+        return self.cause(w)[1]
+
+    def cause(self, w: WindowSettings) -> Tuple[str, Optional[str]]:
+        """:meth:`reason` with its cause as a code (:func:`judged`): ``(cause, reason)``."""
+        return judged(w, self.frames, None, self.error, self.windows, len(self.cuts), self.static)[2:]
 
 
 def frame_shape(codes: np.ndarray) -> Tuple[int, int]:
@@ -174,13 +207,15 @@ class WindowPass:
 
     Args:
         windows: the videos stage's settings (span, window count, shot cuts).
+        reads: what the pass reads (``pass_record.PassRecord``, built from ``windows`` and the
+            decode settings): the verdict names its key (``VideoPass.layout``).
         size_of: a frame's size as compared and named in a failure, ``(height, width)`` pixels,
             from its codes (default :func:`frame_shape`; ``--check`` names the displayed height).
     """
 
-    def __init__(self, windows: WindowSettings,
+    def __init__(self, windows: WindowSettings, reads: PassRecord,
                  size_of: Callable[[np.ndarray], Tuple[int, int]] = frame_shape):
-        self.settings, self.size_of = windows, size_of
+        self.settings, self.size_of, self.reads = windows, size_of, reads
         self.layout = windows.layout()
         self.frame_pass: Optional[FramePass] = None  # the pass :meth:`over` reads
         self.info = None
@@ -246,7 +281,7 @@ class WindowPass:
         """What the pass found so far (``error``: what stopped it, if anything)."""
         info = self.info
         return VideoPass(self.frames, info.width if info else 0, info.height if info else 0,
-                         float(info.fps) if info else 0.0, self.layout.key, tuple(self.cuts), tuple(self.starts),
+                         float(info.fps) if info else 0.0, self.reads.key, tuple(self.cuts), tuple(self.starts),
                          self.layout.dropped, dict(self.failed), self.layout.done, error,
                          info.codec if info else "", info.pix_fmt if info else "", tuple(self.motions),
                          self.layout.static)
