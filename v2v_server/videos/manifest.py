@@ -38,6 +38,14 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
 
 
+def cache_folder(cache_dir: Optional[str]) -> str:
+    """The folder of the host's caches: ``cache_dir`` as configured, else :func:`default_cache_dir`.
+    The one rule: the start-up path (``ops.startup``) resolves a configuration's folder with it,
+    and a source built without a configuration (``VideoSource``) its own; everything below
+    takes the resolved folder."""
+    return str(cache_dir) if cache_dir else str(default_cache_dir())
+
+
 def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]],
                    refused: Optional[Dict[str, List[Tuple[str, str]]]] = None) -> None:
     """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a
