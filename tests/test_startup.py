@@ -4,15 +4,17 @@ Ray engine's scan (``ray_data.scan_corpus_windows``) refuse the same bad setting
 error, and build their source from the same configuration keys."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from v2v_server import cli
-from v2v_server.ops.config import ServeConfig
+from v2v_server.ops.config import ServeConfig, source_from_config
 from v2v_server.ops.startup import resolve_config, start_source
 from v2v_server.ray_data import SampleMaker, scan_corpus_windows
 from v2v_server.service.local import local_server
 from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.manifest import cache_folder, default_cache_dir
+from v2v_server.videos.manifest import cache_folder, default_cache_dir, manifest_path
 from v2v_server.videos.source import CacheDirError
 from v2v_server.videos.store_io import StoreError
 
@@ -71,6 +73,11 @@ def test_the_cache_folder_is_resolved_once_and_carried_down(tmp_path, monkeypatc
     assert str(start.source.frame_cache.disk.folder) == str(tmp_path / "xdg" / "v2v" / "frames")
     spec = SampleMaker.arguments(resolve_config(ServeConfig()), CLIPS, ("voxels",))["source_spec"]
     assert spec["cache_dir"] == want
+    assert start.source.corpus_index().path == Path(want) / "corpus_index.sqlite"
+    bucket = source_from_config(ServeConfig(), "s3://corpus/clips/")  # not reached: built only
+    assert Path(bucket.listing.path).parent == Path(want) / "manifests"
+    with pytest.raises(ValueError, match="needs a state_dir or a resolved cache folder"):
+        manifest_path("s3://corpus/clips/", None, None)
     given = start_source(ServeConfig(cache_dir=str(tmp_path / "mine")))
     assert given.config.cache_dir == given.source.cache_dir == str(tmp_path / "mine")
     assert resolve_config(given.config) == given.config

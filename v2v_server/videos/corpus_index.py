@@ -29,7 +29,6 @@ from typing import Callable, Dict, Iterable, Iterator, Optional, Tuple, Union
 
 from v2v_server.faults import warn_once
 from v2v_server.videos.frames import DecodeSettings, entry_settings
-from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.shots import DETECTOR_VERSION
 from v2v_server.videos.windows import WindowSettings
 
@@ -77,10 +76,10 @@ def layout_key(windows: WindowSettings, decode: DecodeSettings) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def index_path(cache_dir: Optional[Union[str, Path]]) -> Path:
-    """Where the index of a host lives: ``cache_dir/corpus_index.sqlite``, under
-    ``default_cache_dir()`` when ``cache_dir`` is None."""
-    return Path(cache_dir or default_cache_dir()) / INDEX_FILE
+def index_path(cache_dir: Union[str, Path]) -> Path:
+    """Where the index of a host lives: ``cache_dir/corpus_index.sqlite``, ``cache_dir`` the
+    resolved cache folder (``manifest.cache_folder``, applied by the source)."""
+    return Path(cache_dir) / INDEX_FILE
 
 
 class CorpusIndex:
