@@ -85,6 +85,25 @@ class LocalServer:
                 return self
             time.sleep(self.poll_s)
 
+    def pause(self, timeout_s: float = 5.0) -> None:
+        """Freeze the server (SIGSTOP): connections open, nothing answers. Returns once every
+        thread of the process is stopped (a stop is delivered to each thread when it next runs)."""
+        os.killpg(self.proc.pid, signal.SIGSTOP)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            states = []
+            for t in Path(f"/proc/{self.proc.pid}/task").iterdir():
+                try:
+                    states.append((t / "stat").read_text().rsplit(")", 1)[1].split()[0])
+                except (OSError, IndexError):
+                    continue
+            if states and all(st in ("T", "t") for st in states):
+                return
+            time.sleep(0.01)
+
+    def resume(self) -> None:
+        os.killpg(self.proc.pid, signal.SIGCONT)
+
     def upload(self, local_root: Path, url: str, names: Optional[Iterable[str]] = None) -> None:
         """Copy the files under ``local_root`` (or only ``names``, relative POSIX paths) to
         ``url`` (``SCHEME://bucket/prefix/``), keeping their relative paths as keys; the
@@ -202,25 +221,6 @@ class SeaweedS3(LocalServer):
             return fs.cat_file("v2v-ready-probe/probe") == b"ok"
         except Exception:  # not up yet: connection refused, 5xx while the filer starts
             return False
-
-    def pause(self, timeout_s: float = 5.0) -> None:
-        """Freeze the server (SIGSTOP): connections open, nothing answers. Returns once every
-        thread of the process is stopped (a stop is delivered to each thread when it next runs)."""
-        os.killpg(self.proc.pid, signal.SIGSTOP)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            states = []
-            for t in Path(f"/proc/{self.proc.pid}/task").iterdir():
-                try:
-                    states.append((t / "stat").read_text().rsplit(")", 1)[1].split()[0])
-                except (OSError, IndexError):
-                    continue
-            if states and all(st in ("T", "t") for st in states):
-                return
-            time.sleep(0.01)
-
-    def resume(self) -> None:
-        os.killpg(self.proc.pid, signal.SIGCONT)
 
     def _cleanup(self) -> None:
         for port in self._ports:  # the unix sockets SeaweedFS puts in /tmp, named by port

@@ -6,18 +6,22 @@ the frame cache serving epoch 1 with no video byte fetched."""
 from __future__ import annotations
 
 import functools
+import threading
+import time
 from pathlib import Path
 
 import pytest
 
 from harness.cloud_emulators import AzuriteBlob, EmulatorUnavailable, GcsEmulator
+from v2v_server import cli
 from v2v_server.ops.config import ServeConfig
 from v2v_server.videos.decode import VideoError
 from tests.store_checks import check_frame_cache_hit, samples
 from v2v_server.ops.config import source_from_config
 from v2v_server.videos.local import LocalSource
 from v2v_server.videos.source_spec import source_from_spec
-from v2v_server.videos.store import StoreSource
+from v2v_server.videos.store import StoreSettings, StoreSource
+from v2v_server.videos.store_io import StoreError
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
@@ -156,3 +160,80 @@ def test_frame_cache_hit_saves_the_download(store, tmp_path):
     byte of video fetched; an object overwritten in place is a ``changed`` miss, decoded anew.
     Samples equal the folder's (``store_checks.check_frame_cache_hit``, the same check as S3's)."""
     check_frame_cache_hit(store, _cfg(), tmp_path, store.storage_options(), _folder_samples)
+
+
+def _settled(store, url: str, **settings) -> StoreSource:
+    """A source with these store settings that has listed the corpus and read from it once
+    (its connection open), before the store goes silent."""
+    src = StoreSource(url, store.storage_options(), settings=StoreSettings(**settings))
+    src.list_videos((".mp4",))
+    with src.open("bikes.mp4") as f:
+        assert f.read(8)[4:8] == b"ftyp"
+    return src
+
+
+def test_a_silent_store_fails_the_read_within_the_timeout_and_attempts(store, url):
+    """store_read_timeout_s and store_max_attempts reach gcsfs and adlfs: one attempt of 1 s
+    against a store that stops answering fails the read at once (gcsfs alone would wait for
+    the answer with no timeout; adlfs's client would retry 3 times from 15 s)."""
+    src = _settled(store, url, store_read_timeout_s=1.0, store_max_attempts=1)
+    store.pause()
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(VideoError, match="cannot open: "):
+            with src.open("webvid_like_596x336.mp4"):
+                pass
+        took = time.monotonic() - t0
+    finally:
+        store.resume()
+    assert took < 30, f"a silent store held the read {took:.1f} s"
+    with src.open("webvid_like_596x336.mp4") as f:  # answering again: reads resume
+        assert f.read(8)[4:8] == b"ftyp"
+
+
+def test_a_store_silent_for_less_than_the_attempts_is_retried(store, url):
+    """Silent for one and a half timeouts: the read that timed out is attempted again and
+    returns the object whole (store_max_attempts 4)."""
+    src = _settled(store, url, store_read_timeout_s=1.0, store_max_attempts=4)
+    store.pause()
+    threading.Timer(1.6, store.resume).start()
+    try:
+        with src.open("webvid_like_596x336.mp4") as f:
+            assert f.read() == (CLIPS / "webvid_like_596x336.mp4").read_bytes()
+    finally:
+        time.sleep(1.7)
+        store.resume()
+
+
+@pytest.mark.parametrize("url, key, value", [("https://127.0.0.1:9/clips/", "store_max_attempts", 5),
+                                             ("memory://corpus/clips/", "store_read_timeout_s", 5.0),
+                                             ("memory://corpus/clips/", "store_max_attempts", 2)])
+def test_a_store_that_cannot_take_a_retry_setting_refuses_it_by_name(url, key, value, capsys):
+    """fsspec's http(s) filesystem takes a timeout but makes one attempt; the memory filesystem
+    takes neither: any value but the default is refused, naming the key, by the source and by
+    v2v-serve (one line, exit 2); the defaults pass."""
+    StoreSource(url)
+    with pytest.raises(StoreError, match=f"--videos {url}: {key} {value!r} cannot be honoured"):
+        StoreSource(url, settings=StoreSettings(**{key: value}))
+    flag = {"store_max_attempts": "--store-max-attempts", "store_read_timeout_s": "--store-read-timeout"}[key]
+    assert cli.main(["--videos", url, flag, str(value), "--bind", "tcp://127.0.0.1:0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"v2v-serve: --videos {url}: {key} {value!r} cannot be honoured"), err
+
+
+def test_an_http_server_that_never_answers_fails_the_read_within_the_timeout():
+    """store_read_timeout_s reaches fsspec's http(s) filesystem (aiohttp's read timeout): a
+    server on 127.0.0.1 that accepts and never answers fails the open after about 1 s."""
+    import socket
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(8)
+        url = f"http://127.0.0.1:{server.getsockname()[1]}/clips/"
+        src = StoreSource(url, settings=StoreSettings(store_read_timeout_s=1.0))
+        t0 = time.monotonic()
+        with pytest.raises(VideoError):  # its metadata request timed out (aiohttp's default: 5 min in all)
+            with src.open("bikes.mp4"):
+                pass
+        took = time.monotonic() - t0
+    assert took < 20, f"a silent http server held the read {took:.1f} s"

@@ -362,7 +362,7 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
         data_workers = max(1, int(free))
     try:
         corpus = scan_corpus_windows(videos, scfg)
-    except (NotADirectoryError, FileNotFoundError, ValueError, RuntimeError) as e:  # RuntimeError: StoreError
+    except (FileNotFoundError, ValueError, RuntimeError) as e:  # StoreError (a missing folder too), CacheDirError
         log.error("%s", e)
         return 2
     if not corpus.samples_per_epoch:

@@ -6,7 +6,8 @@ import logging
 import sys
 from typing import List, Optional
 
-from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config, source_from_config
+from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config
+from v2v_server.ops.startup import start_source
 from v2v_server.videos.store import StoreSettings
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
@@ -61,10 +62,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: configuration error: {e}", file=sys.stderr)
         return 2
     try:
-        source = source_from_config(cfg, cfg.videos or str(SAMPLE_VIDEOS))
-        source.check()
-        source.check_cache_dir()
-        videos, rejected = source.list_videos(cfg.video_extensions)
+        start = start_source(cfg)
     except (StoreError, FileNotFoundError, ValueError) as e:  # the store, the cache folder or the video list file
         print(f"v2v-serve: {e}", file=sys.stderr)
         return 2
@@ -72,6 +70,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: interrupted while listing {cfg.video_list or cfg.videos or SAMPLE_VIDEOS}",
               file=sys.stderr)
         return 130
+    cfg, source, videos, rejected = start.config, start.source, start.videos, start.rejected
     listing = corpus_fingerprint(videos)  # of the whole listing: shards compare it
     index, count = cfg.serving.shard_spec
     if count > 1:

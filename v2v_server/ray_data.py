@@ -46,6 +46,7 @@ import numpy as np
 
 from v2v_server.delivery.batcher import video_order
 from v2v_server.ops.config import ServeConfig, source_from_config
+from v2v_server.ops.startup import resolve_config, start_source
 from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS, row_array, zeros_row
 from v2v_wire.protocol import check_outputs
 from v2v_server.flow.estimate import FlowEstimator
@@ -57,7 +58,6 @@ from v2v_server.videos.segments import split_segment
 from v2v_server.videos.corpus import check_video
 from v2v_server.videos.decode import open_video
 from v2v_server.videos.frames import FramePass, PassFrame
-from v2v_server.videos.local import LocalSource
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import source_from_spec
 from v2v_server.videos.window_pass import WindowPass
@@ -136,17 +136,16 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
     Logs ``skipped PATH: reason`` (logger ``v2v.ray``, WARNING) for each unusable file and
     ``ignored PATH: reason`` (INFO) for other entries, as ``v2v-serve`` does.
 
+    The corpus is opened, checked and listed by the start-up path ``v2v-serve`` runs
+    (``ops.startup.start_source``).
+
     Raises:
-        NotADirectoryError: ``videos`` is a local path but not a folder.
-        StoreError: the store cannot be reached or listed (naming the URL).
+        StoreError: ``videos`` is a local path but not a folder, or the store cannot be reached
+            or listed (naming the URL).
+        source.CacheDirError: a cache that is on cannot be kept in ``cache_dir`` (naming it).
     """
-    cfg = config or ServeConfig()
-    source = source_from_config(cfg, str(videos))
-    if isinstance(source, LocalSource) and not Path(source.root).is_dir():
-        raise NotADirectoryError(f"videos {source.root}: not a folder")
-    if not isinstance(source, LocalSource):
-        source.check()
-    found, rejected = source.list_videos(cfg.video_extensions)
+    start = start_source(config or ServeConfig(), videos)
+    cfg, source, found, rejected = start.config, start.source, start.videos, start.rejected
     for rel, reason in rejected:
         log.info("ignored %s: %s", source.where_ignored(rel), reason)
     windows, skipped = {}, {}
@@ -346,7 +345,7 @@ def v2v_dataset(
         import ray.data
     except ImportError as e:  # pragma: no cover - depends on the extra
         raise ImportError("v2v_dataset needs Ray Data: pip install 'v2v[ray]'") from e
-    cfg = config or ServeConfig()
+    cfg = resolve_config(config or ServeConfig())  # the actors keep their caches where the scan did
     if seed is not None:
         cfg = ServeConfig.from_dict({**cfg.to_dict(), "seed": int(seed)}, source="ray config")
     outputs = check_outputs(outputs)

@@ -19,7 +19,7 @@ from v2v_server.delivery.core import DeliveryPolicy
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.settings import documented, load_yaml, reference_markdown, setting
 from v2v_server.videos.frame_cache import DEFAULT_FORMAT as DEFAULT_FRAME_CACHE_FORMAT, FORMATS as FRAME_CACHE_FORMATS
-from v2v_server.videos.manifest import manifest_path
+from v2v_server.videos.manifest import cache_folder, manifest_path
 from v2v_server.videos.shards import split_pattern
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.source_spec import open_source
@@ -269,15 +269,16 @@ def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) 
     ``video_list`` (a table's column, filter and the window's frames included),
     ``storage_options``, store settings and manifest (``manifest.manifest_path``)."""
     videos = cfg.videos if videos is None else videos
+    cache_dir = cache_folder(cfg.cache_dir)  # resolved once; the manifest and the source take the folder
     manifest = None
     if videos is not None and is_url(str(videos)):
         # one manifest per listing: of a prefix (all its objects), or of a pattern's or a list's tar members
         key = str(videos) if split_pattern(str(videos))[1] else store_root(str(videos))
         if cfg.video_list:
             key += f" listed by {Path(cfg.video_list).resolve()}"
-        manifest = str(manifest_path(key, cfg.state_dir, cfg.cache_dir))
+        manifest = str(manifest_path(key, cfg.state_dir, cache_dir))
     source = open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
-                         refresh_manifest=cfg.refresh_manifest, settings=cfg.store, cache_dir=cfg.cache_dir,
+                         refresh_manifest=cfg.refresh_manifest, settings=cfg.store, cache_dir=cache_dir,
                          frame_cache_gb=cfg.frame_cache_gb, frame_cache_format=cfg.frame_cache_format)
     source.list_table = TableSettings(cfg.video_list_column, cfg.video_list_filter,
                                       cfg.recipe.windows.frames_per_sample)

@@ -7,26 +7,31 @@ import contextlib
 import threading
 from typing import Iterator, Optional
 
-from v2v_server.ops.config import load_config
-from v2v_server.videos.corpus import SAMPLE_VIDEOS
+from v2v_server.ops.config import ServeConfig, load_config
+from v2v_server.ops.startup import start_source
 from v2v_server.service.server import V2VServer
-from v2v_server.videos.source_spec import open_source
 
 
 @contextlib.contextmanager
-def local_server(videos: Optional[str], workers: int, batch_size: int, ready_timeout_s: float = 120.0) -> Iterator[str]:
-    """Serve ``videos`` (default: the bundled clips) from a thread of this process; yields the
-    bound endpoint (``tcp://127.0.0.1:<free port>``) and always stops the server and its workers.
+def local_server(videos: Optional[str], workers: int, batch_size: int, ready_timeout_s: float = 120.0, *,
+                 config: Optional[ServeConfig] = None) -> Iterator[str]:
+    """Serve ``videos`` (default: ``config.videos``, else the bundled clips) from a thread of this
+    process; yields the bound endpoint (``tcp://127.0.0.1:<free port>``) and always stops the
+    server and its workers. ``config``: the other keys (default: every key's default); the
+    corpus is opened, checked and listed by the start-up path ``v2v-serve`` runs
+    (``ops.startup.start_source``).
 
     Raises:
-        ValueError: a bad ``workers``/``batch_size`` (from the config check, naming the field), or
-            a folder with no video files.
+        ValueError: a bad ``workers``/``batch_size`` (from the config check, naming the field), a
+            cache folder that cannot keep the caches that are on (``source.CacheDirError``), or a
+            folder with no video files.
+        StoreError: the folder does not exist, or the store cannot be reached or listed.
         RuntimeError: the server stopped or stayed silent before it served (its error chained).
     """
-    cfg = load_config(None, {"workers": workers, "batch_size": batch_size, "bind": "tcp://127.0.0.1:*"})
-    source = open_source(videos or SAMPLE_VIDEOS)  # a folder or an object-store URL
-    found, _rejected = source.list_videos(cfg.video_extensions)
-    server = V2VServer(cfg, source, found)
+    keys = {"workers": workers, "batch_size": batch_size, "bind": "tcp://127.0.0.1:*"}
+    cfg = load_config(None, {**(config.to_dict() if config is not None else {}), **keys})
+    start = start_source(cfg, videos)  # a folder or an object-store URL
+    server = V2VServer(start.config, start.source, start.videos)
     ready, failure = threading.Event(), []
 
     def run() -> None:

@@ -2,8 +2,8 @@
 cuts, windows, verdict), kept on the host's disk so that later passes, later jobs and the Ray
 engine's scan answer from it instead of decoding the video again.
 
-One SQLite file, ``cache_dir/corpus_index.sqlite`` (``default_cache_dir()`` when no ``cache_dir``
-is given), one row per (video, window layout): the ``sqlite3`` shell, DuckDB
+One SQLite file, ``cache_dir/corpus_index.sqlite`` (the resolved cache folder,
+``manifest.cache_folder``), one row per (video, window layout): the ``sqlite3`` shell, DuckDB
 (``SELECT * FROM sqlite_scan('corpus_index.sqlite', 'entries')``) and pandas read it. Several
 processes of a host read and write it at once (WAL journal, a busy timeout).
 
@@ -27,7 +27,6 @@ from typing import Callable, Dict, Iterable, Iterator, Optional, Tuple, Union
 
 from v2v_server.faults import warn_once
 from v2v_server.videos.frames import DecodeSettings
-from v2v_server.videos.manifest import default_cache_dir
 from v2v_server.videos.pass_record import PassRecord
 from v2v_server.videos.windows import WindowSettings
 from v2v_wire.worker_messages import CAUSES
@@ -82,10 +81,10 @@ def check_record(windows: WindowSettings, decode: DecodeSettings) -> PassRecord:
     return PassRecord.of(decode, windows, scores_cuts=True)
 
 
-def index_path(cache_dir: Optional[Union[str, Path]]) -> Path:
-    """Where the index of a host lives: ``cache_dir/corpus_index.sqlite``, under
-    ``default_cache_dir()`` when ``cache_dir`` is None."""
-    return Path(cache_dir or default_cache_dir()) / INDEX_FILE
+def index_path(cache_dir: Union[str, Path]) -> Path:
+    """Where the index of a host lives: ``cache_dir/corpus_index.sqlite``, ``cache_dir`` the
+    resolved cache folder (``manifest.cache_folder``, applied by the source)."""
+    return Path(cache_dir) / INDEX_FILE
 
 
 class CorpusIndex:

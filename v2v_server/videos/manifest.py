@@ -23,19 +23,34 @@ MANIFEST_VERSION = 1
 def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional[str] = None) -> Path:
     """Where the manifest of the corpus at ``url`` is kept: ``STATE_DIR/manifest-H.jsonl`` when
     the server has a ``state_dir`` (it then travels with the delivery journal), else
-    ``CACHE_DIR/manifests/H.jsonl`` with ``cache_dir`` defaulting to ``$XDG_CACHE_HOME/v2v``
-    (``~/.cache/v2v``); H is a hash of the URL. Shards on one host share it; shards on other
-    hosts list the store once each and, the store unchanged, write the same manifest."""
+    ``CACHE_DIR/manifests/H.jsonl`` with ``cache_dir`` the resolved cache folder
+    (:func:`cache_folder`, applied by the caller); H is a hash of the URL. Shards on one host
+    share it; shards on other hosts list the store once each and, the store unchanged, write
+    the same manifest.
+
+    Raises:
+        ValueError: neither ``state_dir`` nor ``cache_dir`` is given.
+    """
     h = hashlib.sha256(url.encode("utf-8")).hexdigest()[:16]
     if state_dir:
         return Path(state_dir) / f"manifest-{h}.jsonl"
-    return Path(cache_dir or default_cache_dir()) / "manifests" / f"{h}.jsonl"
+    if not cache_dir:
+        raise ValueError(f"the manifest of {url} needs a state_dir or a resolved cache folder")
+    return Path(cache_dir) / "manifests" / f"{h}.jsonl"
 
 
 def default_cache_dir() -> Path:
     """``$XDG_CACHE_HOME/v2v`` (``~/.cache/v2v``): manifests and the object cache when no
     ``cache_dir`` is given."""
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
+
+
+def cache_folder(cache_dir: Optional[str]) -> str:
+    """The folder of the host's caches: ``cache_dir`` as configured, else :func:`default_cache_dir`.
+    The one rule, applied where a folder enters: the configuration's (``ops.config.source_from_config``,
+    run by the start-up path ``ops.startup``), or a source's built without a configuration
+    (``source_spec.open_source``, ``VideoSource``); everything below takes the resolved folder."""
+    return str(cache_dir) if cache_dir else str(default_cache_dir())
 
 
 def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]],

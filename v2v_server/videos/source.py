@@ -42,7 +42,7 @@ from v2v_server.videos.archives import Archives, pair_members
 from v2v_server.videos.corpus_index import CorpusIndex, index_path
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.manifest import default_cache_dir
+from v2v_server.videos.manifest import cache_folder
 from v2v_server.videos.segments import base_path, printable_name, range_problem, split_segment
 from v2v_server.videos.shards import ARCHIVES, split_member
 from v2v_server.videos.video_list import VideoList, read_video_list
@@ -66,7 +66,7 @@ class VideoSource:
         names: entries given with the corpus itself (a brace pattern's shard names), listed
             instead of the store.
         frame_cache: the host's decoded-frame cache (``frame_cache.FrameCache``); None: off.
-        cache_dir: the folder of the host's caches (default ``manifest.default_cache_dir``).
+        cache_dir: the folder of the host's caches (None: the host's default, ``manifest.cache_folder``).
     """
 
     def __init__(self, root: str, video_list: Optional[str] = None, names: Optional[List[str]] = None,
@@ -74,7 +74,7 @@ class VideoSource:
         self.root, self.video_list, self.names = root, video_list, names
         #: The host's decoded-frame cache, None when off: what ``frames.open_frames`` reads.
         self.frame_cache: Optional[FrameCache] = frame_cache
-        self.cache_dir = cache_dir or str(default_cache_dir())
+        self.cache_dir = cache_folder(cache_dir)  # resolved here once: index, caches and spec() take it
         #: The corpus's archives: their member indexes, split parts' pieces, their members opened.
         self.archives = Archives(self.root, self._open_raw, self._exists, self._siblings, self._shard_version)
         #: How a table video list is read (its path column, filter, window frames): set by

@@ -3,10 +3,10 @@ shards (:func:`open_source`; ``ops.config.source_from_config`` reads a ``ServeCo
 ``VideoSource.spec()`` a process hands to its workers (:func:`source_from_spec`).
 
 A source is built once per process, at the process's edge, and the built source is handed to
-every stage below: ``v2v-serve`` (``cli.main``) and ``service.local.serve_local`` at server
-start, each worker process at its start (``service.worker.worker_main``), the pools of
-``--check`` and ``--warm-cache`` once per pool process (:func:`map_videos`), and the Ray engine
-at its scan and once per actor (``ray_data``).
+every stage below: the start-up path (``ops.startup.start_source``, run by ``v2v-serve``, the
+in-process ``service.local.local_server`` and the Ray engine's scan) at server start, each
+worker process at its start (``service.worker.worker_main``), the pools of ``--check`` and
+``--warm-cache`` once per pool process (:func:`map_videos`), and each Ray actor (``ray_data``).
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from typing import Callable, List, Optional, Sequence, Tuple, TypeVar, Union
 
 from v2v_server.videos.frame_cache import DEFAULT_FORMAT, FrameCache
 from v2v_server.videos.local import LocalSource
-from v2v_server.videos.manifest import default_cache_dir
+from v2v_server.videos.manifest import cache_folder
 from v2v_server.videos.shards import split_pattern
 from v2v_server.videos.source import VideoSource
 from v2v_server.videos.store import StoreSettings, StoreSource
@@ -32,10 +32,12 @@ def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dic
                 frame_cache: Optional[FrameCache] = None) -> VideoSource:
     """The source of a corpus given as a folder, a URL, or a brace pattern / path of tar shards.
     Its frame cache is ``frame_cache`` when given, else with ``frame_cache_gb`` > 0 the host's
-    frame cache under ``cache_dir/frames`` within that many GiB, else none. ``settings``: how a
-    store is read (ignored for a folder)."""
+    frame cache under ``cache_dir/frames`` within that many GiB, else none (``cache_dir``: the
+    host's default when None, ``manifest.cache_folder``). ``settings``: how a store is read
+    (ignored for a folder)."""
+    cache_dir = cache_folder(cache_dir)
     if frame_cache is None and frame_cache_gb > 0:
-        folder = Path(cache_dir or default_cache_dir()) / "frames"
+        folder = Path(cache_dir) / "frames"
         frame_cache = FrameCache(folder, int(frame_cache_gb * (1 << 30)), frame_cache_format)
     if names is None:
         videos, names = split_pattern(str(videos))

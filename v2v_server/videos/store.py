@@ -19,7 +19,8 @@ from v2v_server.videos.manifest import StoreListing, etag_of, member_entry, obje
 from v2v_server.videos.segments import base_path
 from v2v_server.videos.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
 from v2v_server.videos.source import VideoSource
-from v2v_server.videos.store_io import ObjectCache, ReadStats, StoreError, make_filesystem, time_fetches
+from v2v_server.videos.store_io import (MAX_ATTEMPTS, READ_TIMEOUT_S, ObjectCache, ReadStats, StoreError, make_filesystem,
+                                        retry_policy, time_fetches)
 
 log = logging.getLogger("v2v.source")
 
@@ -33,8 +34,12 @@ class StoreSettings:
     and a :class:`StoreSource` reads it.
 
     Attributes:
-        store_read_timeout_s: seconds a store request may stay silent before it fails (then retried).
-        store_max_attempts: attempts per request (botocore ``standard`` retry mode for S3), 1..20.
+        store_read_timeout_s: seconds a store request may wait to connect, or between bytes of
+            its answer, before it fails (then retried); honoured by S3, GCS, Azure and http(s)
+            (``store_io.make_filesystem``).
+        store_max_attempts: attempts per request, 1..20: botocore's ``standard`` retry mode for
+            S3, gcsfs's retry loop for GCS, azure-storage-blob's retry policy for Azure; other
+            stores make one attempt and refuse another value (``store_io.retry_policy``).
         read_block_mb: MiB fetched per request while decoding (one request for a clip smaller
             than this); at most four blocks per open video are kept.
         cache_max_gb: GiB of a bounded local cache of whole objects for corpora read every
@@ -45,10 +50,15 @@ class StoreSettings:
         ValueError: naming the key, for a value out of its range.
     """
 
-    store_read_timeout_s: float = setting(20.0, help="seconds a store request may stay unanswered before it fails "
-                                                     "(then retried)", flag="--store-read-timeout")
-    store_max_attempts: int = setting(3, help="attempts per store request (botocore standard retry mode: "
-                                              "exponential backoff on throttling, 5xx and connection errors)")
+    store_read_timeout_s: float = setting(READ_TIMEOUT_S, help="seconds a store request may wait to connect, or "
+                                                               "between bytes of its answer, before it fails (then "
+                                                               "retried); s3://, gs://, az:// and http(s)://",
+                                          flag="--store-read-timeout")
+    store_max_attempts: int = setting(MAX_ATTEMPTS, help="attempts per store request, with exponential backoff on "
+                                                         "throttling, 5xx, connection errors and timeouts: s3:// "
+                                                         "(botocore standard retry mode), gs:// (gcsfs's retry loop), "
+                                                         "az:// (azure-storage-blob's retry policy); other stores "
+                                                         "make one attempt and refuse another value")
     read_block_mb: float = setting(8.0, help="MiB fetched per store request while decoding (one request for a "
                                              "smaller video)")
     cache_max_gb: float = setting(0.0, help="GiB of whole store objects kept on local disk for corpora read every "
@@ -94,6 +104,7 @@ class StoreSource(VideoSource):
         self.prefix = self.root.split("://", 1)[1]
         self.storage_options = dict(storage_options or {})
         self.settings = settings
+        retry_policy(self.protocol, self.root, settings.store_read_timeout_s, settings.store_max_attempts)
         #: The listing: the objects under the prefix and the manifest that keeps them.
         self.listing = StoreListing(self.root, manifest, refresh_manifest, self.archives.index)
         self._fs = None

@@ -43,15 +43,29 @@ class ReadStats:
 
 def make_filesystem(protocol: str, root: str, storage_options: dict, read_timeout_s: float, max_attempts: int,
                     stats: ReadStats):
-    """The fsspec filesystem of ``protocol``: no instance or listing cache; for S3 botocore's
-    ``standard`` retry mode with ``max_attempts`` and ``read_timeout_s`` as the one retry
-    policy (s3fs's own loop off), its retries counted in ``stats``; for GCS at an emulator's
-    endpoint gcsfs's plain class (:func:`_gcs_emulator`); ``storage_options`` over these
-    defaults.
+    """The fsspec filesystem of ``protocol``: no instance or listing cache, and the store
+    settings' ``read_timeout_s`` (seconds a request may wait to connect, or between bytes of
+    its answer) and ``max_attempts`` (attempts per request, with backoff) as the one retry
+    policy of every store that takes them (:data:`RETRY_POLICY`):
+
+    - S3 (s3fs): botocore's ``standard`` retry mode (s3fs's own loop off), its retries
+      counted in ``stats``;
+    - GCS (gcsfs): ``requests_timeout`` as aiohttp's connect and read timeouts, and gcsfs's
+      retry loop (``gcsfs.retry.retry_request``, which a timeout also enters) bounded to
+      ``max_attempts`` for the JSON API's requests (:func:`_gcs_class`); at an emulator's
+      endpoint gcsfs's plain class (:func:`_gcs_emulator`);
+    - Azure (adlfs): the Blob service client with azure-storage-blob's exponential retry
+      policy of ``max_attempts - 1`` retries and ``connection_timeout``/``read_timeout``
+      (:func:`_azure_client`);
+    - http(s) (fsspec's aiohttp filesystem): the timeout as aiohttp's connect and read
+      timeouts; one attempt per request (:func:`retry_policy` refuses another count).
+
+    ``storage_options`` over these defaults; a store that cannot take a setting refuses any
+    value but its default, by name (:func:`retry_policy`).
 
     Raises:
         StoreError: naming ``root``, when no library serves ``protocol`` (with the extra to
-            install).
+            install), or a retry setting this store cannot take.
     """
     import fsspec
 
@@ -64,19 +78,99 @@ def make_filesystem(protocol: str, root: str, storage_options: dict, read_timeou
         extra = STORE_EXTRAS.get(protocol)
         raise StoreError(f"--videos {root}: no filesystem for {protocol}:// ({e})"
                          + (f"; pip install '{extra}'" if extra else "")) from None
+    policy = retry_policy(protocol, root, read_timeout_s, max_attempts)
     opts: dict = {"skip_instance_cache": True, "use_listings_cache": False}
-    if protocol in ("s3", "s3a"):
+    if policy == "botocore":
         opts["config_kwargs"] = {"retries": {"mode": "standard", "max_attempts": max_attempts},
                                  "read_timeout": read_timeout_s, "connect_timeout": read_timeout_s}
+    elif policy == "gcsfs":
+        import aiohttp
+
+        cls = _gcs_class(cls, max_attempts)
+        opts["requests_timeout"] = aiohttp.ClientTimeout(sock_connect=read_timeout_s, sock_read=read_timeout_s)
+    elif policy == "azure":  # adlfs passes these to each download; the client's own policy covers the rest
+        opts.update(connection_timeout=read_timeout_s, read_timeout=read_timeout_s)
+    elif policy == "aiohttp":
+        import aiohttp
+
+        opts["client_kwargs"] = {"timeout": aiohttp.ClientTimeout(sock_connect=read_timeout_s,
+                                                                  sock_read=read_timeout_s)}
     user = dict(storage_options)
-    if "config_kwargs" in user and "config_kwargs" in opts:
-        user["config_kwargs"] = {**opts["config_kwargs"], **user["config_kwargs"]}
+    for merged in ("config_kwargs", "client_kwargs"):
+        if merged in user and merged in opts:
+            user[merged] = {**opts[merged], **user[merged]}
     opts.update(user)
     fs = cls(**opts)
-    if protocol in ("s3", "s3a"):
+    if policy == "botocore":
         fs.retries = 1  # s3fs's own retry loop off: botocore's retry mode above is the one policy
         _count_retries(fs, stats)
+    elif policy == "azure":
+        fs.service_client = _azure_client(fs.service_client, read_timeout_s, max_attempts)
     return fs
+
+
+#: protocol -> how the store settings' timeout and attempts reach its library (make_filesystem)
+RETRY_POLICY = {"s3": "botocore", "s3a": "botocore", "gs": "gcsfs", "gcs": "gcsfs",
+                "az": "azure", "abfs": "azure", "abfss": "azure", "http": "aiohttp", "https": "aiohttp"}
+#: the store settings' defaults (owned here, where they are applied; ``store.StoreSettings`` reads them)
+READ_TIMEOUT_S, MAX_ATTEMPTS = 20.0, 3
+
+
+def retry_policy(protocol: str, root: str, read_timeout_s: float, max_attempts: int) -> str:
+    """How ``protocol``'s filesystem takes the store settings (:data:`RETRY_POLICY`); a setting
+    its library cannot take passes at its default (which describes the stores that take it)
+    and is refused at any other value: fsspec's http(s) filesystem takes a timeout but makes
+    one attempt per request, and other filesystems take neither.
+
+    Raises:
+        StoreError: naming ``root``, the setting and the stores that take it.
+    """
+    policy = RETRY_POLICY.get(protocol, "")
+    refused = [("store_max_attempts", max_attempts, MAX_ATTEMPTS)] if policy in ("aiohttp", "") else []
+    if not policy:
+        refused.insert(0, ("store_read_timeout_s", read_timeout_s, READ_TIMEOUT_S))
+    takers = {"store_read_timeout_s": "s3://, gs://, az:// and http(s)://", "store_max_attempts": "s3://, gs:// and az://"}
+    for name, value, default in refused:
+        if value != default:
+            raise StoreError(f"--videos {root}: {name} {value!r} cannot be honoured for {protocol}:// (its "
+                             f"filesystem takes no such setting; {takers[name]} do): leave it at its "
+                             f"default {default!r}")
+    return policy
+
+
+def _gcs_class(base: type, max_attempts: int) -> type:
+    """``base`` (a gcsfs filesystem class) with each JSON-API request (``_request``: listings,
+    metadata and the range reads of an open file) attempted ``max_attempts`` times in all.
+    gcsfs binds its count (``GCSFileSystem.retries``, 6) to ``_request`` when the class is
+    defined (``gcsfs.retry.retry_request``), so the count is bound again here, on the same
+    undecorated method.
+
+    Raises:
+        StoreError: this gcsfs defines ``_request`` without that decorator (the count could
+            not be honoured).
+    """
+    from gcsfs.retry import retry_request
+
+    defined = next(k.__dict__["_request"] for k in base.__mro__ if "_request" in k.__dict__)
+    plain = getattr(defined, "__wrapped__", None)
+    if plain is None:
+        raise StoreError(f"store_max_attempts cannot be honoured: {base.__module__}.{base.__name__}._request "
+                         f"has no retry count to bind (gcsfs 2026.10.1's is gcsfs.retry.retry_request's)")
+    return type(base.__name__, (base,), {"retries": max_attempts, "_request": retry_request(retries=max_attempts)(plain)})
+
+
+def _azure_client(client, read_timeout_s: float, max_attempts: int):
+    """The Blob service client adlfs built (its account URL and credential), again with
+    azure-storage-blob's exponential retry policy of ``max_attempts - 1`` retries (backoff
+    1 s, then 1 + 2**k s, jittered) and ``read_timeout_s`` to connect and between bytes
+    read: adlfs builds its client with the SDK's defaults (3 retries from 15 s) and takes no
+    option for them."""
+    from azure.storage.blob.aio import ExponentialRetry  # the async client takes the async policy
+
+    retry = ExponentialRetry(initial_backoff=1, increment_base=2, retry_total=max_attempts - 1,
+                             random_jitter_range=1)
+    return type(client)(account_url=client.url, credential=client.credential, retry_policy=retry,
+                        connection_timeout=read_timeout_s, read_timeout=read_timeout_s)
 
 
 def _gcs_emulator(storage_options: dict) -> bool:
