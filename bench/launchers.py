@@ -43,7 +43,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--length", type=int, default=8)
     a = p.parse_args(argv)
     layout = Layout(L=a.length, crop=a.crop, windows=a.windows, batch=4)
-    print(f"| mode | steps per rank | rank 0 CPU s/step | rank 1 CPU s/step | wall s/step |\n|---|---|---|---|---|")
+    print("| mode | steps per rank | rank 0 CPU s/step | rank 1 CPU s/step | wall s/step |\n|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         corpus = faults.good_corpus(Path(tmp), a.copies)
         for mode in ("dispatch", "per-rank"):

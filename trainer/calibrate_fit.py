@@ -30,7 +30,7 @@ threshold range's centre stays <= 8 so its upper end (+25 %) stays inside the te
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Tuple
 
 import numpy as np
 

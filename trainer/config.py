@@ -575,8 +575,6 @@ def reference_markdown() -> str:
 
 
 if __name__ == "__main__":
-    import sys
-
     if sys.argv[1:] != ["--markdown"]:
         raise SystemExit("usage: python -m trainer.config --markdown")
     print(reference_markdown())

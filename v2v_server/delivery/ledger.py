@@ -34,7 +34,6 @@ Rules (README "Nothing lost, nothing let in"):
 from __future__ import annotations
 
 import collections
-import math
 from dataclasses import dataclass, field
 from typing import Any, Deque, Dict, Hashable, Iterable, List, Optional, Set, Tuple
 
