@@ -502,8 +502,20 @@ def test_cache_folder_replaced_by_a_file_while_serving(tmp_path):
     frames = tmp_path / "cache" / "frames"
 
     def replace():
-        shutil.rmtree(frames, ignore_errors=True)
-        frames.write_bytes(b"not a folder")
+        # workers keep writing entries while this runs, and may make the folder again between
+        # moving it away and writing the file: repeat until the file is what sits there
+        for attempt in range(100):
+            try:
+                frames.rename(tmp_path / f"frames.gone{attempt}")
+            except FileNotFoundError:
+                pass
+            try:
+                with open(frames, "xb") as f:
+                    f.write(b"not a folder")
+                return
+            except (FileExistsError, IsADirectoryError):
+                continue
+        raise AssertionError(f"{frames} kept being made again by the workers")
 
     log: list = []
     key = 'v2v_fs_errors_total{where="frame_cache"}'
