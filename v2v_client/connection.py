@@ -14,6 +14,7 @@ stream passes ``tensors.batch_to_torch`` as the conversion).
 """
 from __future__ import annotations
 
+import functools
 import logging
 import queue
 import threading
@@ -62,7 +63,9 @@ class Connection:
         self.endpoint, self.options, self.record = endpoint, options, record
         self.curve = load_curve_keys(*options.curve_keys) if options.curve_keys else None
         compression, auto = options.compression_for(endpoint)
-        self.session = ServerSession(endpoint, options.outputs, lambda: options.hello(consumer, record.resume()),
+        # a DataLoader worker (``receipts``) ends its iteration on ``drained``: its hello says so
+        hello = functools.partial(options.hello, consumer, ends_on_drained=receipts is not None)
+        self.session = ServerSession(endpoint, options.outputs, lambda: hello(record.resume()),
                                      welcomed=lambda info: record.check_recipe(info.get("recipe")),
                                      convert=convert, raw=options.raw,
                                      shm=options.wants_shm(endpoint), keep=options.credits + 2,
