@@ -374,18 +374,14 @@ class DeliveryCore:
         """``drained`` to each client holding nothing, once, when a bounded stream has nothing
         left to make or send: the rest is held by other clients. A DataLoader worker waiting
         for a batch ends its iteration on it, so the loader (in order) can take the batches
-        the other workers hold; it is sent nothing after it (``ClientRecord.takes``: its
-        ``drained`` stands), and a batch given back later goes to whoever still reads: a
-        client that ignores ``drained``, or the next connection of the consumer that held it
-        (see docs/delivery.md, "Drained")."""
+        the other workers hold; it is sent nothing after it (``ClientRecord.takes``), and a batch
+        given back later goes to whoever still reads (docs/delivery.md, "Drained")."""
         s = self.sched
         drained = (s.max_epochs is not None and s.next_epoch >= s.max_epochs and not s.queue and not s.running
                    and not self.ledger.ready and not self.batcher.waiting())
         msgs: List[Msg] = []
         for ident, c in self.ledger.clients.items():
-            if not c.takes:
-                continue  # it ended its iteration on the first one
-            if not drained or c.held or c.revoked:
+            if (not drained or c.held or c.revoked) and c.takes:  # one that ends on drained stays told
                 c.told_drained = False
             elif not c.told_drained:
                 c.told_drained = True

@@ -156,10 +156,9 @@ class DeliveryLedger:
     def join(self, ident: bytes, consumer: Hashable, outputs: tuple, credits: int, now: float,
              group: Optional[str] = None, rank: int = 0, world_size: int = 1, completed: int = -1,
              ends_on_drained: bool = False) -> List[int]:
-        """A client says hello (again); ``completed`` is the last epoch its resume state calls
-        complete (it is sent nothing of those); ``ends_on_drained``: a DataLoader worker (see
-        ``ClientRecord.takes``). An earlier connection with the same identity or the same
-        consumer is dropped first (its batches go back to the queue; ids returned)."""
+        """A client says hello (again); ``completed``: the last epoch its resume state calls complete
+        (none of those is sent); ``ends_on_drained``: see ``ClientRecord.takes``. An earlier connection with
+        the same identity or consumer is dropped first (its batches go back to the queue; ids returned)."""
         back: List[int] = []
         for other in [c.ident for c in self.clients.values() if c.ident == ident or c.consumer == consumer]:
             back += self.leave(other)
