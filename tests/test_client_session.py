@@ -172,6 +172,24 @@ def test_client_messages_go_out_as_the_server_parses_them():
                                                                          cm.Released((12,))]
 
 
+def test_a_dataloader_workers_hello_says_it_ends_on_drained():
+    """A StreamLoader worker's hello says ``ends_on_drained`` (the server then sends it nothing
+    after ``drained``); a trainer's does not; the server's edge takes only true or false."""
+    import msgpack
+
+    from v2v_client.options import StreamOptions
+    from v2v_wire import messages as cm
+
+    opts = StreamOptions(outputs=("voxels",), credits=2, timeout_s=10.0, heartbeat_s=1.0, raw=False, reconnect=False,
+                         reconnect_timeout_s=10.0, curve_keys=None, rank=0, world_size=1, group=None, shm=False)
+    worker = cm.decode_client(pack(opts.hello("c/0", RESUME, ends_on_drained=True)), 1 << 16, 64)
+    trainer = cm.decode_client(pack(opts.hello("c", RESUME)), 1 << 16, 64)
+    assert worker.ends_on_drained is True and trainer.ends_on_drained is False
+    bad = dict(opts.hello("c/0", RESUME), ends_on_drained=1, v=PROTOCOL_VERSION)
+    with pytest.raises(cm.WireError, match="ends_on_drained"):
+        cm.decode_client(msgpack.packb(bad), 1 << 16, 64)
+
+
 def test_a_hold_unanswered_for_a_whole_heartbeat_is_asked_again():
     """A grant lost when a connection broke behind ZeroMQ's reconnect would leave the consumer
     waiting: the I/O thread asks again, each heartbeat, for what stayed unanswered since the last."""

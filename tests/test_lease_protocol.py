@@ -586,3 +586,103 @@ def test_the_rule_it_replaced_doubles_on_the_same_schedule(monkeypatch):
     net.consumer_yields(a)
     with pytest.raises(AssertionError, match="trained twice"):
         net.run_to_end()
+
+
+def _one_epoch_core() -> DeliveryCore:
+    return DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=1, lease_s=LEASE, client_timeout_s=TIMEOUT,
+                                                      revoke_s=REVOKE, max_credits=4, shuffle="none"), make_batch,
+                        stall_s=STALL_S)
+
+
+def _make_everything(core: DeliveryCore, now: float) -> None:
+    """The server's workers make every sample asked for (instantly)."""
+    while True:
+        t = core.task_for(b"w", now)
+        if t is None:
+            return
+        for k in range(WINDOWS[t.video]):
+            if (k, 0) not in t.skip:
+                core.sample(b"w", t.task, SampleKey(t.video, k), now,
+                            lambda lane, s=SampleKey(t.video, k).sample_id(): Sample(s))
+        core.done(b"w", t.task, WINDOWS[t.video], {}, None)
+
+
+def _turn(core: DeliveryCore, now: float) -> Dict[bytes, list]:
+    """One turn of the server loop: what each client is sent (batch ids, and "drained")."""
+    _make_everything(core, now)
+    sends, msgs = core.tick(now)
+    out: Dict[bytes, list] = collections.defaultdict(list)
+    for ident, b in sends:
+        out[ident].append(b.batch_id)
+    for ident, m in msgs:
+        out[ident].append(m.to_wire()["type"])
+    return out
+
+
+def _hello(core: DeliveryCore, ident: bytes, consumer: str, now: float, delivered=(), ends_on_drained=True):
+    resume = Resume(-1, {0: frozenset(parse_sample_id(s) for s in delivered)} if delivered else {})
+    core.hello(ident, Hello(("voxels",), 2, consumer=consumer, resume=resume, ends_on_drained=ends_on_drained),
+               now, dict)
+
+
+def _two_workers_then_a_new_iteration(ends_on_drained: bool):
+    """A StreamLoader's two workers (consumers x/0 and x/1, 2 credits each) read the 4 batches
+    of a 1-epoch stream; the loop receives 3 and leaves the iteration while x/1's fourth batch
+    ``b``, granted, waits in the loader's queue. In the next iteration worker 0 says hello
+    first and is told ``drained`` (``b`` is still granted to worker 1's old connection, which
+    has not closed yet); then worker 1's old connection gives ``b`` back, and worker 1 says
+    hello. Returns (the core, ``b``, what each connection was sent after the first iteration)."""
+    core = _one_epoch_core()
+    for ident, consumer in ((b"x0.1", "x/0"), (b"x1.1", "x/1")):
+        _hello(core, ident, consumer, 0.0, ends_on_drained=ends_on_drained)
+    sent = _turn(core, 0.0)
+    a_ids, b_ids = sorted(sent[b"x0.1"]), sorted(sent[b"x1.1"])
+    assert len(a_ids) == len(b_ids) == 2
+    received = {}
+    for ident, bids in ((b"x0.1", a_ids), (b"x1.1", b_ids)):
+        core.message(ident, Hold(tuple(bids)), 0.1)
+        received[ident] = [s for bid in bids[: 2 if ident == b"x0.1" else 1]
+                           for s in core.ledger.batches[bid].payload.sample_ids]
+    core.message(b"x0.1", Ack(tuple(a_ids)), 0.2)
+    core.message(b"x1.1", Ack((b_ids[0],)), 0.2)
+    b = b_ids[1]
+    _turn(core, 0.3)
+    # the next iteration: worker 0's old connection closes, its new one says hello
+    core.message(b"x0.1", Bye(), 1.0)
+    _hello(core, b"x0.2", "x/0", 1.0, received[b"x0.1"], ends_on_drained)
+    after = collections.defaultdict(list)
+    for ident, got in _turn(core, 1.1).items():
+        after[ident] += got
+    # worker 1's old connection gives b back and closes; its new one says hello
+    core.message(b"x1.1", Released((b,)), 2.0)
+    core.message(b"x1.1", Bye(), 2.0)
+    for ident, got in _turn(core, 2.1).items():
+        after[ident] += got
+    _hello(core, b"x1.2", "x/1", 2.2, received[b"x1.1"], ends_on_drained)
+    for ident, got in _turn(core, 2.3).items():
+        after[ident] += got
+    return core, b, after
+
+
+def test_a_dataloader_worker_told_drained_is_sent_nothing_after_it():
+    """A StreamLoader worker ends its iteration on ``drained``: the server must send it nothing
+    after it. Else the batch a sibling's old connection gives back goes to the worker that is
+    leaving, the sibling's new connection is told ``drained`` meanwhile (the batch is leased
+    elsewhere), the leaving worker gives it back with its ``bye``, and nobody in the iteration
+    reads it: the loop's iteration ends without its samples (seen under load in
+    tests/test_loaders.py's break-and-iterate-again scenario)."""
+    core, b, after = _two_workers_then_a_new_iteration(ends_on_drained=True)
+    assert after[b"x0.2"] == ["drained"], after  # told while b is granted to its sibling: allowed
+    assert after[b"x1.2"] == [b], after  # b goes to the worker that still reads
+    core.message(b"x0.2", Bye(), 3.0)
+    core.message(b"x1.2", Hold((b,)), 3.0)
+    core.message(b"x1.2", Ack((b,)), 3.0)
+    _turn(core, 3.1)
+    assert core.finished()
+
+
+def test_a_client_that_reads_on_after_drained_is_still_sent_what_comes_back():
+    """A client that does not end on ``drained`` (a trainer without DataLoader workers) is
+    sent a batch given back after it was told ``drained``."""
+    core, b, after = _two_workers_then_a_new_iteration(ends_on_drained=False)
+    assert after[b"x0.2"] == ["drained", b], after

@@ -199,8 +199,14 @@ def test_stream_loader_persistent_worker_killed_mid_iteration(tmp_path):
         del it
         for b in loader:  # new workers; the killed one's batches come back after the client timeout
             trained += b["sample_ids"]
+        assert sorted(trained) == expected, srv.log[-3000:]
+        # the loop's iteration ends once every worker was told drained, which the server says
+        # once it has granted everything; the last acks (the loop's receipts, forwarded by the
+        # workers) may reach it a moment later
+        deadline = time.monotonic() + MARGIN_S
+        while "all 1 epoch(s) delivered" not in srv.log and time.monotonic() < deadline:
+            time.sleep(0.1)
         assert srv.log.count("all 1 epoch(s) delivered") == 1, srv.log[-3000:]
-    assert sorted(trained) == expected
 
 
 def test_a_dataloader_worker_stopped_past_its_timeout_with_batches_queued_doubles_nothing(tmp_path):

@@ -14,6 +14,7 @@ stream passes ``tensors.batch_to_torch`` as the conversion).
 """
 from __future__ import annotations
 
+import functools
 import logging
 import queue
 import threading
@@ -62,7 +63,8 @@ class Connection:
         self.endpoint, self.options, self.record = endpoint, options, record
         self.curve = load_curve_keys(*options.curve_keys) if options.curve_keys else None
         compression, auto = options.compression_for(endpoint)
-        self.session = ServerSession(endpoint, options.outputs, lambda: options.hello(consumer, record.resume()),
+        hello = functools.partial(options.hello, consumer, ends_on_drained=receipts is not None)  # a loader worker
+        self.session = ServerSession(endpoint, options.outputs, lambda: hello(record.resume()),
                                      welcomed=lambda info: record.check_recipe(info.get("recipe")),
                                      convert=convert, raw=options.raw,
                                      shm=options.wants_shm(endpoint), keep=options.credits + 2,
@@ -71,8 +73,7 @@ class Connection:
         self._ctx = zmq.Context.instance()
         self._ident = uuid.uuid4().bytes
         self._pipe = ConsumerPipe(self._ctx)
-        self._lingering = False
-        self._receipts = receipts  # DataLoader worker: what the training loop received
+        self._lingering, self._receipts = False, receipts  # DataLoader worker: what the training loop received
         self._iteration, self._abandoned, self._unreceived = iteration, False, False  # LoaderLink.end_iteration, close
         self._thread = threading.Thread(target=self._run, name="v2v-stream-io", daemon=True)
         self._thread.start()

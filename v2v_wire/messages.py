@@ -72,6 +72,7 @@ class Hello:
     hello_id: int = 0  # echoed in the welcome, so the client can tell old-session messages apart
     shm: bool = False  # same host: send batches as references into the server's shared-memory files
     compression: str = "none"  # codecs.COMPRESSIONS: how this client wants arrays sent over the socket
+    ends_on_drained: bool = False  # a DataLoader worker: its iteration ends on ``drained`` (sent nothing after it)
 
 
 @dataclass(frozen=True)
@@ -221,8 +222,11 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
         compression = h.get("compression", "none")
         if compression not in COMPRESSIONS:
             raise WireError(f"field 'compression' must be one of {list(COMPRESSIONS)}, got {show(compression)}")
+        ends = h.get("ends_on_drained", False)
+        if not isinstance(ends, bool):
+            raise WireError(f"field 'ends_on_drained' must be true or false, got {show(ends)}")
         return Hello(outs, credits, consumer, _resume(h.get("resume"), crops_per_window),
-                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm, compression)
+                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm, compression, ends)
     if kind == "ack":
         return Ack(_ids(h, "batch_ids"))
     if kind == "released":

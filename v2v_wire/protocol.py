@@ -11,7 +11,9 @@ Message types (protocol 4; client messages are decoded and schema-checked by ``w
 * client -> server: ``hello`` (outputs, credits = how many batches it may hold,
   consumer id, optional DDP ``rank``/``world_size``/``group``, ``resume``:
   ``completed_epoch``, ``delivered`` {epoch: the sample ids, one video per line as
-  ``path#w1,w2,...`` (``ids.compact_ids``)}, ``batches`` {epoch: batches yielded}), ``ack``
+  ``path#w1,w2,...`` (``ids.compact_ids``)}, ``batches`` {epoch: batches yielded}, optional
+  ``ends_on_drained``: a DataLoader worker that ends its iteration on ``drained``, so it is sent
+  no batch after it), ``ack``
   (batch ids; frees exactly those slots), ``hold`` (batch ids the client
   asks to be granted before it hands them on: answered by ``granted``), ``released`` (batch ids given back), ``credit`` (widen the
   window), ``heartbeat``, ``bye``. A client message is at most ``MAX_CLIENT_MSG`` bytes (the

@@ -280,7 +280,7 @@ class DeliveryCore:
         if group is not None:
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         back = self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
-                                r.completed_epoch)
+                                r.completed_epoch, h.ends_on_drained)
         if back:
             log.info("client %s said hello again; batch(es) %s go back to the queue", ident.hex(), back)
         self._drop_delivered()
@@ -374,13 +374,14 @@ class DeliveryCore:
         """``drained`` to each client holding nothing, once, when a bounded stream has nothing
         left to make or send: the rest is held by other clients. A DataLoader worker waiting
         for a batch ends its iteration on it, so the loader (in order) can take the batches
-        the other workers hold; a batch given back later goes to whoever still reads."""
+        the other workers hold; it is sent nothing after it (``ClientRecord.takes``), and a batch
+        given back later goes to whoever still reads (docs/delivery.md, "Drained")."""
         s = self.sched
         drained = (s.max_epochs is not None and s.next_epoch >= s.max_epochs and not s.queue and not s.running
                    and not self.ledger.ready and not self.batcher.waiting())
         msgs: List[Msg] = []
         for ident, c in self.ledger.clients.items():
-            if not drained or c.held or c.revoked:
+            if (not drained or c.held or c.revoked) and c.takes:  # one that ends on drained stays told
                 c.told_drained = False
             elif not c.told_drained:
                 c.told_drained = True

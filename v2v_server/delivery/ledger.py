@@ -82,10 +82,18 @@ class ClientRecord:
     sent: int = 0
     completed: int = -1  # its consumer was told epochs up to this one are complete: none of them is sent
     told_drained: bool = False  # told nothing more is coming unless a batch held elsewhere comes back
+    ends_on_drained: bool = False  # a DataLoader worker: it ends its iteration on ``drained``
 
     @property
     def free(self) -> int:
         return self.credits - len(self.held) - len(self.revoked) - len(self.granted)
+
+    @property
+    def takes(self) -> bool:
+        """It may be sent batches: not a client that ends its iteration on ``drained`` and was
+        told it (it is leaving; a batch sent now would bounce back after others were told
+        ``drained`` too, and nobody would read it)."""
+        return not (self.ends_on_drained and self.told_drained)
 
     def holds(self, bid: int) -> bool:
         return bid in self.held or bid in self.revoked or bid in self.granted
@@ -145,15 +153,17 @@ class DeliveryLedger:
 
     # ------------------------------------------------------------------ clients
     def join(self, ident: bytes, consumer: Hashable, outputs: tuple, credits: int, now: float,
-             group: Optional[str] = None, rank: int = 0, world_size: int = 1, completed: int = -1) -> List[int]:
-        """A client says hello (again); ``completed`` is the last epoch its resume state calls
-        complete (it is sent nothing of those). An earlier connection with the same identity or
-        the same consumer is dropped first (its batches go back to the queue; ids returned)."""
+             group: Optional[str] = None, rank: int = 0, world_size: int = 1, completed: int = -1,
+             ends_on_drained: bool = False) -> List[int]:
+        """A client says hello (again); ``completed``: the last epoch its resume state calls complete
+        (none of those is sent); ``ends_on_drained``: see ``ClientRecord.takes``. An earlier connection with
+        the same identity or consumer is dropped first (its batches go back to the queue; ids returned)."""
         back: List[int] = []
         for other in [c.ident for c in self.clients.values() if c.ident == ident or c.consumer == consumer]:
             back += self.leave(other)
         credits = max(1, min(int(credits), self.max_credits))
-        c = ClientRecord(ident, consumer, tuple(outputs), credits, now, group, rank, world_size, completed=completed)
+        c = ClientRecord(ident, consumer, tuple(outputs), credits, now, group, rank, world_size, completed=completed,
+                         ends_on_drained=ends_on_drained)
         c.served = self._tick  # a newcomer is served after those waiting longer
         self.clients[ident] = c
         if group is not None and world_size > 1:
@@ -213,7 +223,7 @@ class DeliveryLedger:
         out: List[Tuple[bytes, BatchRecord]] = []
         stale: List[BatchRecord] = []
         for bid in list(self.ready):
-            free = [c for c in self.clients.values() if c.free > 0 and self._group_ready(c, now)]
+            free = [c for c in self.clients.values() if c.free > 0 and c.takes and self._group_ready(c, now)]
             if not free:
                 break
             b = self.batches.get(bid)
@@ -228,7 +238,7 @@ class DeliveryLedger:
                 del self.batches[bid]
                 stale.append(b)
                 continue
-            cand = [c for c in fits if c.free > 0 and self._group_ready(c, now)]
+            cand = [c for c in fits if c.free > 0 and c.takes and self._group_ready(c, now)]
             if not cand:
                 continue
             c = min(cand, key=lambda x: (x.ident == b.avoid, x.served, x.ident))
