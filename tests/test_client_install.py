@@ -58,7 +58,14 @@ NETWORK_READER = textwrap.dedent("""
                 if isinstance(item, dict):
                     batch = item
     assert batch is not None, "no batch within 180 s"
-    taken = session.held.claim(batch, lambda: False)
+    # the session asked for the batch's grant as it arrived (its replies carry the hold): read on
+    # until the server's answer is in, then take it
+    while batch["batch_id"] not in session.held.granted and time.monotonic() < deadline:
+        if sock.poll(1000):
+            session.on_message(sock.recv_multipart(copy=False))
+            for r in session.replies():
+                sock.send(r)
+    taken, _ = session.held.claim(batch, lambda: None, lambda: False)
     sock.send(pack({"type": "ack", "batch_ids": [batch["batch_id"]]}))
     sock.send(pack({"type": "bye"}))
     sock.close()
