@@ -119,3 +119,15 @@ def _warm_kernel_cache():
     frames = np.zeros((6, 4, 4), np.uint8)
     simulate_voxels(frames, SensorParams(0.1, 0.1, 0.01), 5, rng=np.random.default_rng(0))
     simulate_voxels(frames, SensorParams(0.1, 0.1, 0.01), 5, rng=np.random.default_rng(0), compute_dtype=np.float64)
+
+
+@pytest.fixture(autouse=True)
+def _ordinary_scheduling(request):
+    """Each test starts with the suite's process on the ordinary time-sharing policy, and a test
+    that leaves it real-time is named: the process's children inherit the policy, and a
+    real-time server or busy process beside it starves everything else on the machine."""
+    yield
+    if sys.platform.startswith("linux") and os.sched_getscheduler(0) != os.SCHED_OTHER:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        with open(os.environ.get("V2V_SCHED_LOG", os.devnull), "a") as f:
+            f.write(f"{request.node.nodeid} left the test process on a real-time policy\n")
