@@ -125,7 +125,9 @@ def _warm_kernel_cache():
 def _ordinary_scheduling(request):
     """Each test starts with the suite's process on the ordinary time-sharing policy, and a test
     that leaves it real-time is named: the process's children inherit the policy, and a
-    real-time server or busy process beside it starves everything else on the machine."""
+    real-time server or busy process beside it starves everything else on the machine. SVT-AV1,
+    the encoder tests/test_encodings.py makes its AV1 clip with, puts the encoding thread on
+    SCHED_FIFO when it runs as root."""
     yield
     if sys.platform.startswith("linux") and os.sched_getscheduler(0) != os.SCHED_OTHER:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
