@@ -562,6 +562,17 @@ def _narrowed(net: np.ndarray, narrow: bool, overflow: int, lo: int, hi: int) ->
     return net
 
 
+def _interruptible(*args):
+    """``_kernel(*args)``, with Ctrl-C during the compiled call raised as KeyboardInterrupt:
+    numba's dispatcher reports the pending interrupt as a SystemError wrapping it."""
+    try:
+        return _kernel(*args)
+    except SystemError as e:
+        if isinstance(e.__context__, KeyboardInterrupt):
+            raise e.__context__ from None
+        raise
+
+
 def run_kernel(
     src: np.ndarray,
     potential: np.ndarray,
@@ -629,19 +640,12 @@ def run_kernel(
         if dtype is not widths[0]:
             potential[...] = start  # the narrower attempt overflowed: again, wider
         net = np.empty((n_pairs, h, w), dtype)
-        try:
-            ev, lost, overflow, lo, hi, es, ep, ef, epol = _kernel(
-                flat, lut_a, use_lut, pair_of_step, n_pairs, pot_flat, cpa, cna, ex, float(noise_std),
-                np.uint64(int(noise_seed) & (2**64 - 1)), int(first_pair), int(refractory_cap),
-                net.reshape(n_pairs, npix), float(np.iinfo(dtype).max),
-                pos.reshape(pos.shape[0], pos.shape[1] * pos.shape[2]),
-                neg.reshape(neg.shape[0], neg.shape[1] * neg.shape[2]), bool(split), bool(events))
-        except SystemError as e:
-            # Ctrl-C while the compiled kernel runs: numba's dispatcher reports the pending
-            # KeyboardInterrupt as a SystemError wrapping it; callers handle the interrupt
-            if isinstance(e.__context__, KeyboardInterrupt):
-                raise e.__context__ from None
-            raise
+        ev, lost, overflow, lo, hi, es, ep, ef, epol = _interruptible(
+            flat, lut_a, use_lut, pair_of_step, n_pairs, pot_flat, cpa, cna, ex, float(noise_std),
+            np.uint64(int(noise_seed) & (2**64 - 1)), int(first_pair), int(refractory_cap),
+            net.reshape(n_pairs, npix), float(np.iinfo(dtype).max),
+            pos.reshape(pos.shape[0], pos.shape[1] * pos.shape[2]), neg.reshape(neg.shape[0], neg.shape[1] * neg.shape[2]),
+            bool(split), bool(events))
         if overflow < 0:
             break
     net = _narrowed(net, narrow, overflow, lo, hi)
