@@ -1,6 +1,6 @@
 """Decoder shortcuts as a speed/accuracy trade: ``python -m bench.decode_fast``.
 
-Each ``decode_fast`` setting (``v2v_server.videos.decode.DECODE_FAST``: FFmpeg's H.264 decoder skipping
+Each ``decode_fast`` setting (``v2v_server.frames.decode.DECODE_FAST``: FFmpeg's H.264 decoder skipping
 its deblocking filter on no frames, non-reference frames, B-frames or every frame) is measured
 against full decoding on
 
@@ -43,7 +43,7 @@ def make_corpus(out: Path, frames: int) -> list:
     """Encode the corpus into ``out``; returns the file names."""
     import av
 
-    from v2v_server.videos.decode import iter_luma
+    from v2v_server.frames.decode import iter_luma
 
     sources = []
     for clip in sorted(CLIPS.glob("*.mp4")):
@@ -77,7 +77,7 @@ def make_corpus(out: Path, frames: int) -> list:
 
 def decode_speed(path: Path, fast: str) -> float:
     """Luma frames per CPU-second of decoding ``path`` with ``fast`` (one thread)."""
-    from v2v_server.videos.decode import decode_luma, open_video
+    from v2v_server.frames.decode import decode_luma, open_video
 
     container, stream, _ = open_video(path, 1, fast)
     t0, n = time.process_time(), 0
@@ -97,7 +97,7 @@ def has_b_frames(path: Path) -> bool:
 def samples(root: Path, name: str, fast: str, noise=None) -> dict:
     from v2v_server.ops.config import ServeConfig
     from v2v_server.samples.make import video_samples
-    from v2v_server.videos.local import LocalSource
+    from v2v_server.sources.local import LocalSource
     from v2v_wire.outputs import DEFAULT_OUTPUTS
 
     kw = {} if noise is None else {"ranges": {"noise_std": [noise, noise], "hot_pixel_fraction": [0.0, 0.0]}}

@@ -58,7 +58,7 @@ def time_option(est: FlowEstimator, sample: np.ndarray, step: int, repeats: int)
 def time_decode(repeats: int, frames: int = 201) -> float:
     """CPU ms to decode one sample's frames (201, luma) of the bundled 596 x 336 clip, one thread:
     the cost the flow is compared with (min over ``repeats``)."""
-    from v2v_server.videos.decode import decode_luma, open_video
+    from v2v_server.frames.decode import decode_luma, open_video
 
     here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "v2v_server", "sample_videos")
     best = float("inf")
@@ -161,7 +161,7 @@ def real_clip_residuals(options: List[str], crops: int = 12, seed: int = 0) -> D
     frames (4 voxels) per clip, next to the residual of zero flow. Lower means the flow explains
     more of the change between the boundary frames; it is not the flow error (motion blur,
     occlusion and lighting leave a floor, and a wrong flow can match by chance)."""
-    from v2v_server.videos.decode import decode_luma, open_video
+    from v2v_server.frames.decode import decode_luma, open_video
 
     cv2.setNumThreads(1)
     here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "v2v_server", "sample_videos")

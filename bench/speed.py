@@ -56,7 +56,7 @@ def make_corpus(root: Path, copies: int, clip: Optional[Path] = None) -> Path:
 # ---------------------------------------------------------------------------- baselines
 def bare_decode(path: Path, repeats: int) -> float:
     """Frames per CPU-second: PyAV decode, Y plane viewed, one thread."""
-    from v2v_server.videos.decode import decode_luma, open_video
+    from v2v_server.frames.decode import decode_luma, open_video
 
     n = 0
     t = time.process_time()
@@ -124,7 +124,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     from v2v_server.samples.recipe import SampleRecipe
     from v2v_server.flow.estimate import FlowEstimator
     from v2v_server.samples.make import video_samples
-    from v2v_server.videos.local import LocalSource
+    from v2v_server.sources.local import LocalSource
     from v2v_server.service.worker import wire_arrays
 
     cv2.setNumThreads(1)

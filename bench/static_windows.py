@@ -1,4 +1,4 @@
-"""Which windows are static: a window's motion (``videos.motion``: the mean change of log intensity
+"""Which windows are static: a window's motion (``frames.motion``: the mean change of log intensity
 per frame pair, measured on its frames before any simulation) against the signal events it makes
 at the paper's most sensitive contrast threshold, and where ``STATIC_MOTION`` falls between
 still and moving footage.
@@ -82,8 +82,8 @@ def measure(folders: Dict[str, Path]) -> dict:
     """Per material: each window's motion and signal events per pixel per frame pair."""
     from v2v_server.ops.config import load_config
     from v2v_server.samples.make import video_samples
-    from v2v_server.videos.local import LocalSource
-    from v2v_server.videos.motion import STATIC_MOTION
+    from v2v_server.sources.local import LocalSource
+    from v2v_server.frames.motion import STATIC_MOTION
 
     cfg = load_config(None, OVERRIDES)
     out = {"static_motion": STATIC_MOTION, "materials": {}}
@@ -108,8 +108,8 @@ def meter_cost(sizes=((181, 596), (583, 1920)), frames: int = 400) -> Dict[str, 
     of 3 runs over ``frames`` frames alternating between a random frame and it shifted by 1 px."""
     import time
 
-    from v2v_server.videos.decode import full_range
-    from v2v_server.videos.motion import MotionMeter
+    from v2v_server.frames.decode import full_range
+    from v2v_server.frames.motion import MotionMeter
 
     out = {}
     rng = np.random.default_rng(1)

@@ -46,9 +46,9 @@ DEFAULT_CLIPS = ["bikes.mp4", "bigbuckbunny.mp4", "webvid_like_596x336.mp4"]
 
 
 def read_crop(path: Path, n: int, crop: int) -> np.ndarray:
-    """First ``n`` full-range luma frames of a clip (``v2v_server.videos.decode.iter_luma``), centre crop
+    """First ``n`` full-range luma frames of a clip (``v2v_server.frames.decode.iter_luma``), centre crop
     ``crop x crop`` at native resolution: uint8 (n, crop, crop). Raises ValueError if the clip is shorter."""
-    from v2v_server.videos.decode import iter_luma
+    from v2v_server.frames.decode import iter_luma
 
     out = []
     frames = iter_luma(path)

@@ -58,8 +58,8 @@ t0 = time.perf_counter()
 engine, path = sys.argv[1], sys.argv[2]
 csv = path.endswith(".csv")
 if engine == "v2v":  # read_video_list end to end: DuckDB, the path column, the frame check
-    from v2v_server.videos.video_list import read_video_list
-    from v2v_server.videos.video_tables import TableSettings
+    from v2v_server.sources.video_list import read_video_list
+    from v2v_server.sources.video_tables import TableSettings
     paths = read_video_list(path, TableSettings(None, FILTER, 201)).videos
 elif engine == "duckdb":
     import duckdb

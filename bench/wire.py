@@ -44,7 +44,7 @@ def real_samples(epochs: int = 2):
     from v2v_server.samples.recipe import SampleRecipe
     from v2v_server.flow.estimate import FlowEstimator
     from v2v_server.samples.make import video_samples
-    from v2v_server.videos.local import LocalSource
+    from v2v_server.sources.local import LocalSource
     from v2v_server.service.worker import wire_arrays
     from v2v_wire.outputs import DEFAULT_OUTPUTS
 

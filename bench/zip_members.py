@@ -27,9 +27,9 @@ import time
 import zipfile
 from pathlib import Path
 
-from v2v_server.videos.decode import decode_codes, open_video
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.shards import open_member, zip_members
+from v2v_server.frames.decode import decode_codes, open_video
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.shards import open_member, zip_members
 
 CLIPS = ("bikes.mp4", "webvid_like_596x336.mp4", "bigbuckbunny.mp4")
 MODES = ("file", "stored", "deflated")

@@ -25,12 +25,12 @@ import zmq
 
 from v2v_client import V2VStreamDataset
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.corpus import check_corpus
-from v2v_server.videos.local import LocalSource
+from v2v_server.frames.corpus import check_corpus
+from v2v_server.sources.local import LocalSource
 from harness.data import SAMPLE_VIDEOS
 from harness.serve import ServeProcess
 from v2v_wire.protocol import PROTOCOL_VERSION, pack
-from v2v_server.videos.decode import scan_corpus
+from v2v_server.sources.folder_scan import scan_corpus
 
 ROOT = Path(__file__).resolve().parents[1]
 GOOD_VIDEOS = SAMPLE_VIDEOS

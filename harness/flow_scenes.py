@@ -30,7 +30,7 @@ def textures(quick: bool = False) -> List[Tuple[str, np.ndarray]]:
     if quick:
         out = out[:4]
     here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "v2v_server", "sample_videos")
-    from v2v_server.videos.decode import decode_luma, open_video
+    from v2v_server.frames.decode import decode_luma, open_video
 
     for name in sorted(os.listdir(here)):
         if not name.endswith(".mp4"):

@@ -101,8 +101,8 @@ def _pan(image: np.ndarray, speed: int, frames: int = SHOT) -> np.ndarray:
 
 
 def _frames(clip: str, picks) -> np.ndarray:
-    from v2v_server.videos.corpus import SAMPLE_VIDEOS
-    from v2v_server.videos.decode import iter_luma
+    from v2v_server.frames.corpus import SAMPLE_VIDEOS
+    from v2v_server.frames.decode import iter_luma
 
     want = set(picks)
     return np.stack([f for i, f in enumerate(iter_luma(SAMPLE_VIDEOS / clip)) if i in want])

@@ -73,7 +73,7 @@ def read_luma_clip(name: str = "bikes.mp4", n: int = 60, size=(96, 128)) -> np.n
     """First n full-range luma frames of a real clip, resized to size=(H, W), uint8 (n, H, W)."""
     import cv2
 
-    from v2v_server.videos.decode import iter_luma
+    from v2v_server.frames.decode import iter_luma
 
     out = []
     frames = iter_luma(video_dir() / name)  # the stream's reader (full-range luma)

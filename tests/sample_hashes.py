@@ -27,7 +27,7 @@ import torch
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
-from v2v_server.videos.local import LocalSource
+from v2v_server.sources.local import LocalSource
 from v2v_server.service.worker import wire_arrays
 from v2v_client.flowgrid import expand_flow_grid
 from v2v_wire.outputs import DEFAULT_OUTPUTS

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Optional
 
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.source_spec import open_source
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.source_spec import open_source
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"

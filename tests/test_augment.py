@@ -8,7 +8,7 @@ import pytest
 from v2v_server.samples.augment import augment_plan, degrade_dynamic_range, parse_degrade, video_thresholds
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import plan_window, video_samples
-from v2v_server.videos.local import LocalSource
+from v2v_server.sources.local import LocalSource
 from v2v_server.simulation.simulate import ParamRanges
 
 OUTS = ("voxels", "frames", "flow")

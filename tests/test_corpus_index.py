@@ -1,4 +1,4 @@
-"""The corpus index (``v2v_server.videos.corpus_index``): ``--check`` and the Ray engine's scan
+"""The corpus index (``v2v_server.frames.corpus_index``): ``--check`` and the Ray engine's scan
 answer a video from it while its identity holds, decode it again when it changes, and the file
 is plain SQLite a user can query."""
 from __future__ import annotations
@@ -13,9 +13,9 @@ import time
 import pytest
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.corpus import check_corpus, check_video
-from v2v_server.videos.corpus_index import INDEX_FILE, CorpusIndex, layout_key
-from v2v_server.videos.local import RACY_NS, LocalSource
+from v2v_server.frames.corpus import check_corpus, check_video
+from v2v_server.frames.corpus_index import INDEX_FILE, CorpusIndex, layout_key
+from v2v_server.sources.local import RACY_NS, LocalSource
 
 
 class CountingSource(LocalSource):
@@ -309,7 +309,7 @@ def test_a_locked_index_is_one_warning_after_one_wait_not_one_per_video(corpus, 
     """Another process holds the write lock (a ``sqlite3`` shell inside ``BEGIN EXCLUSIVE``): the
     first write (at open) waits ``BUSY_TIMEOUT_S`` once, then the index is off; without the
     guard each video's entry waited 30 s and the check died with ``database is locked``."""
-    from v2v_server.videos.corpus_index import BUSY_TIMEOUT_S
+    from v2v_server.frames.corpus_index import BUSY_TIMEOUT_S
 
     cache = tmp_path / "cache"
     cache.mkdir()

@@ -5,7 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from v2v_server.videos.decode import name_suffix, scan_corpus, scan_corpus_names
+from v2v_server.sources.names import name_suffix
+from v2v_server.sources.folder_scan import scan_corpus, scan_corpus_names
 
 EXT = (".mp4", ".mkv", ".tar")
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.decode import DECODE_FAST, decode_luma, open_video
+from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.frames.decode import DECODE_FAST, decode_luma, open_video
 
 
 def luma(fast: str) -> np.ndarray:

@@ -18,9 +18,9 @@ import pytest
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_frames, video_samples
-from v2v_server.videos.local import LocalSource
+from v2v_server.sources.local import LocalSource
 from v2v_server.luma import to_uint8
-from v2v_server.videos.decode import open_video
+from v2v_server.frames.decode import open_video
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIP = ROOT / "v2v_server" / "sample_videos" / "bbb_camera_596x336.mp4"

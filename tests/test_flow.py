@@ -16,7 +16,7 @@ from v2v_server.luma import to_uint8
 from v2v_server.flow.options import (DEFAULT_FLOW, FLOW_OPTIONS, DISParams, FlowOption, FlowUnavailable, TrackParams,
                                      check_option, unavailable_reason)
 from v2v_server.samples.make import make_sample, plan_window, video_samples
-from v2v_server.videos.local import LocalSource
+from v2v_server.sources.local import LocalSource
 
 STEP = 5
 

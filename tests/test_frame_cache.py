@@ -1,4 +1,4 @@
-"""The decoded-frame cache (v2v_server/videos/frame_cache.py): samples cut from cached frames are
+"""The decoded-frame cache (v2v_server/frames/frame_cache.py): samples cut from cached frames are
 the samples cut from decoded ones, cold or warm, in both formats and for awkward sources; every
 fault of an entry (a killed writer, a full budget or disk, a truncated or bit-flipped entry, a
 source replaced in place, the folder deleted while serving, two writers at once) ends in
@@ -24,10 +24,10 @@ from tests import sample_hashes
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
-from v2v_server.videos.frame_cache import MAGIC
-from v2v_server.videos.local import RACY_NS, LocalSource
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.source_spec import open_source
+from v2v_server.frames.frame_cache import MAGIC
+from v2v_server.sources.local import RACY_NS, LocalSource
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.source_spec import open_source
 from v2v_wire.outputs import DEFAULT_OUTPUTS, OUTPUTS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -268,7 +268,7 @@ def test_a_file_changed_within_the_timestamp_resolution_is_not_stored(tmp_path):
     shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
     cfg = SampleRecipe(**SMALL)
     src = _cached(corpus, tmp_path / "cache")
-    from v2v_server.videos.local import racy
+    from v2v_server.sources.local import racy
 
     st = os.stat(corpus / "v.mp4")
     assert racy(st, st.st_ctime_ns) and not racy(st, st.st_ctime_ns + RACY_NS + 1)
@@ -556,7 +556,7 @@ def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
     import json as _json
 
     from v2v_server.ray_data import SampleMaker, epoch_descriptors, scan_corpus_windows
-    from v2v_server.videos import frame_cache
+    from v2v_server.frames import frame_cache
     from v2v_wire.ids import parse_sample_id
 
     cfg = ServeConfig(**SMALL, frame_cache_gb=1.0, cache_dir=str(tmp_path))
@@ -637,7 +637,7 @@ def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, mo
     """With one worker the warm-up reads every video through the source it is given (never
     rebuilt from its spec), each video's state from that video's counters alone."""
     from v2v_server.ops import warm
-    from v2v_server.videos import source_spec
+    from v2v_server.sources import source_spec
 
     cfg = ServeConfig(**SMALL, workers=1)
     src = _cached(CLIPS, tmp_path)

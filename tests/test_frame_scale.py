@@ -19,11 +19,11 @@ from tests.test_frames import write_clip
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_frames, video_samples
-from v2v_server.videos.corpus import check_video
-from v2v_server.videos.decode import decode_luma, feeding_rows, iter_luma, open_video, scale_frame, scaled_size
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.source_spec import open_source
+from v2v_server.frames.corpus import check_video
+from v2v_server.frames.decode import decode_luma, feeding_rows, iter_luma, open_video, scale_frame, scaled_size
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.source_spec import open_source
 from v2v_wire.outputs import OUTPUTS
 
 ROOT = Path(__file__).resolve().parents[1]

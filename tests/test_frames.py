@@ -12,7 +12,7 @@ import pytest
 from v2v_server.samples.recipe import SampleRecipe
 
 from v2v_server.luma import to_uint8
-from v2v_server.videos.decode import choose_video_stream, is_full_range, iter_luma, open_video, range_table
+from v2v_server.frames.decode import choose_video_stream, is_full_range, iter_luma, open_video, range_table
 
 S = 64  # clip side, pixels
 LEVELS = (0, 255, 128)
@@ -157,7 +157,7 @@ def test_served_end_to_end_full_range_rotated_and_cover(tmp_path):
 def test_ten_bit_clip_feeds_the_core_at_full_precision(tmp_path, monkeypatch):
     """A 10-bit clip reaches the V2V core as uint16 0..65535; its frames output is 8-bit full range."""
     from v2v_server.samples import make as samples
-    from v2v_server.videos.local import LocalSource
+    from v2v_server.sources.local import LocalSource
     from v2v_server.ops.config import ServeConfig
 
     write_clip(tmp_path / "deep.mkv", pattern(), n=6, pix_fmt="yuv420p10le")

@@ -65,7 +65,7 @@ def test_a_samples_grid_duration_comes_from_its_params():
     from trainer.stream_stats import sample_row
     from v2v_server.samples.make import video_samples
     from v2v_server.samples.recipe import SampleRecipe
-    from v2v_server.videos.source_spec import open_source
+    from v2v_server.sources.source_spec import open_source
 
     recipe = dataclasses.replace(SampleRecipe(), sequence_length=4, frames_per_bin=2, max_samples_per_video=1)
     _key, arrays, meta = next(iter(video_samples(recipe, open_source(SAMPLE_VIDEOS), "bikes.mp4", 0, ("voxels",))))

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from tests.test_object_store import _source, store  # noqa: F401  (store: the session's SeaweedFS S3 server)
-from v2v_server.videos.local import RACY_NS
+from v2v_server.sources.local import RACY_NS
 
 LAYOUT = ["--sequence-length", "8", "--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset",
           "ultrafast", "--seed", "3"]

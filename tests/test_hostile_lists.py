@@ -18,10 +18,10 @@ import pytest
 
 from harness.serve import ServeProcess
 from v2v_server import cli
-from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.local import RACY_NS, LocalSource
-from v2v_server.videos.video_list import read_video_list
-from v2v_server.videos.video_tables import TableSettings
+from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.sources.local import RACY_NS, LocalSource
+from v2v_server.sources.video_list import read_video_list
+from v2v_server.sources.video_tables import TableSettings
 
 CLIP = "bbb_camera_596x336.mp4"  # 25 fps, one shot
 CHECK = ["--check", "--sequence-length", "4", "--crop-size", "64", "--max-samples-per-video", "1"]

@@ -102,16 +102,21 @@ def test_wire_package_stands_alone():
 
 #: The server's stage folders, lowest first: each imports only the stages before it (and
 #: ``v2v_server.checks``, ``v2v_server.faults``, ``v2v_server.settings`` and ``v2v_server.luma``, the
-#: one uint16 -> uint8 conversion that flow, decode and the sample maker use, below all of them),
-#: at run time and for annotations alike (an ``if TYPE_CHECKING:`` import counts). ``ops``
+#: one uint16 -> uint8 conversion that flow, decode and the sample maker use, and
+#: ``v2v_server.disk_cache``, the one budgeted on-disk cache and the cache folder's default, that the
+#: sources' object cache and the frames' frame cache both use, below all of them), at run time
+#: and for annotations alike (an ``if TYPE_CHECKING:`` import counts). ``sources`` (where a
+#: video's bytes come from: list, open, identity) sits below ``frames`` (what a pass reads of
+#: them: decode, scale, cache, shots, windows, the index), which takes a source. ``ops``
 #: (settings, metrics, logs) sits below the ``service`` that uses them; the Ray engine
 #: (``ray_data``, the other engine beside the service) above them all; the command that wires
 #: everything, ``v2v-serve``, is above every stage.
-STAGES = ("flow", "videos", "simulation", "samples", "delivery", "ops", "service", "ray_data")
+STAGES = ("flow", "sources", "frames", "simulation", "samples", "delivery", "ops", "service", "ray_data")
 COMMANDS = {"v2v_server.cli"}
 #: what a stage may import from v2v_server besides the stages below it (the package itself runs
 #: on any import of a module in it)
-BELOW_ALL = {"v2v_server", "v2v_server.checks", "v2v_server.faults", "v2v_server.settings", "v2v_server.luma"}
+BELOW_ALL = {"v2v_server", "v2v_server.checks", "v2v_server.faults", "v2v_server.settings", "v2v_server.luma",
+             "v2v_server.disk_cache"}
 #: names a parameter carrying the whole server configuration goes by
 CONFIG_NAMES = {"cfg", "config", "cfg_dict", "serve_config"}
 

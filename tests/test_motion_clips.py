@@ -5,9 +5,9 @@ import pytest
 from harness import motion_clips as mc
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.videos.corpus import check_video
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.decode import decode_luma, open_video
+from v2v_server.frames.corpus import check_video
+from v2v_server.sources.local import LocalSource
+from v2v_server.frames.decode import decode_luma, open_video
 
 
 def test_camera_path_is_smooth_and_starts_at_rest():

@@ -20,12 +20,12 @@ from harness.object_store import SeaweedS3
 from harness.serve import ServeProcess, free_port
 from tests.store_checks import check_frame_cache_hit
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.decode import VideoError
-from v2v_server.videos.manifest import manifest_path, read_manifest
+from v2v_server.sources.names import VideoError
+from v2v_server.sources.manifest import manifest_path, read_manifest
 from v2v_server.ops.config import source_from_config
-from v2v_server.videos.store import StoreSource
-from v2v_server.videos.store_io import StoreError
-from v2v_server.videos.video_list import read_video_list
+from v2v_server.sources.store import StoreSource
+from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.video_list import read_video_list
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
@@ -455,7 +455,7 @@ def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_count
 
 
 def test_manifest_index_finds_every_entry_without_loading_the_manifest(tmp_path):
-    from v2v_server.videos.manifest import ManifestIndex, write_manifest
+    from v2v_server.sources.manifest import ManifestIndex, write_manifest
 
     objects = {f"{i // 100:03d}/{i:07d}.mp4": (i, f"etag{i}") for i in range(2000)}
     objects.update({'a"quote\\x.mp4': (1, "q"), ODD: (2, "h"), "ü.mp4": (3, "u"), "s.tar/000001.mp4": (5, "t", 1536)})
@@ -499,7 +499,7 @@ def test_object_cache_on_a_folder_that_fails_reads_from_the_store(tmp_path):
     object with no version tag (an HTTP server without ETag) is not cached."""
     import io
 
-    from v2v_server.videos.store_io import ObjectCache
+    from v2v_server.sources.store_io import ObjectCache
 
     body = os.urandom(3 << 20)
     (tmp_path / "objects").write_bytes(b"a file where the folder was")

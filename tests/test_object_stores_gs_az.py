@@ -15,13 +15,13 @@ import pytest
 from harness.cloud_emulators import AzuriteBlob, EmulatorUnavailable, GcsEmulator
 from v2v_server import cli
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.decode import VideoError
+from v2v_server.sources.names import VideoError
 from tests.store_checks import check_frame_cache_hit, samples
 from v2v_server.ops.config import source_from_config
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.source_spec import source_from_spec
-from v2v_server.videos.store import StoreSettings, StoreSource
-from v2v_server.videos.store_io import StoreError
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.source_spec import source_from_spec
+from v2v_server.sources.store import StoreSettings, StoreSource
+from v2v_server.sources.store_io import StoreError
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
@@ -109,7 +109,7 @@ def test_the_environment_alone_points_at_the_store(store, url, monkeypatch):
 
 def test_gcs_endpoints_of_google_keep_the_layout_probe(monkeypatch):
     """Only an endpoint away from Google gets gcsfs's plain class (store_io._gcs_emulator)."""
-    from v2v_server.videos.store_io import _gcs_emulator
+    from v2v_server.sources.store_io import _gcs_emulator
 
     monkeypatch.delenv("STORAGE_EMULATOR_HOST", raising=False)
     assert not _gcs_emulator({})

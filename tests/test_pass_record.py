@@ -1,4 +1,4 @@
-"""One record of what a pass reads (``videos.pass_record.PassRecord``), one key from it: a change
+"""One record of what a pass reads (``frames.pass_record.PassRecord``), one key from it: a change
 of any field gives a new frame-cache entry, a new corpus-index row and a new recipe fingerprint;
 a setting outside the record (it changes samples, not what a pass reads) reuses them all."""
 from __future__ import annotations
@@ -10,17 +10,17 @@ from pathlib import Path
 
 import pytest
 
-import v2v_server.videos.pass_record as pass_record
+import v2v_server.frames.pass_record as pass_record
 from harness.corpus import write_scenes_video
 from v2v_server.samples.make import video_frames
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.videos.corpus import check_video
-from v2v_server.videos.corpus_index import INDEX_FILE, INDEX_VERSION, CorpusIndex, layout_key
-from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.frames import corpus_key, entry_settings
-from v2v_server.videos.local import RACY_NS
-from v2v_server.videos.pass_record import PassRecord
-from v2v_server.videos.source_spec import open_source
+from v2v_server.frames.corpus import check_video
+from v2v_server.frames.corpus_index import INDEX_FILE, INDEX_VERSION, CorpusIndex, layout_key
+from v2v_server.frames.frame_cache import FrameCache
+from v2v_server.frames.frame_pass import corpus_key, entry_settings
+from v2v_server.sources.local import RACY_NS
+from v2v_server.frames.pass_record import PassRecord
+from v2v_server.sources.source_spec import open_source
 
 CLIP = "scenes.mpg"
 # small windows over a small clip: every variant below still gives windows

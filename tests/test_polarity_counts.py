@@ -14,7 +14,7 @@ from v2v_wire.ids import parse_sample_id
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
-from v2v_server.videos.local import LocalSource
+from v2v_server.sources.local import LocalSource
 from v2v_server.simulation.kernel import noise_field
 from v2v_server.simulation.simulate import (SensorParams, log_intensity_lut, polarity_counts, simulate_voxels)
 from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS

@@ -52,9 +52,9 @@ def clips(tmp_path_factory, videos):
 def checked_ids(root, cfg: ServeConfig) -> list:
     """Every sample id of one epoch of the folder ``root`` by ``--check``'s verdicts (the
     ZeroMQ path's scan, not the Ray engine's)."""
-    from v2v_server.videos.corpus import check_corpus
-    from v2v_server.videos.decode import scan_corpus
-    from v2v_server.videos.local import LocalSource
+    from v2v_server.frames.corpus import check_corpus
+    from v2v_server.sources.folder_scan import scan_corpus
+    from v2v_server.sources.local import LocalSource
 
     vids = [p.as_posix() for p in scan_corpus(root, cfg.video_extensions)[0]]
     return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode, LocalSource(root),

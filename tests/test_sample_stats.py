@@ -9,7 +9,7 @@ from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.stats import event_stats
-from v2v_server.videos.local import LocalSource
+from v2v_server.sources.local import LocalSource
 from harness.data import SAMPLE_VIDEOS
 
 

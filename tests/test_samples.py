@@ -9,7 +9,7 @@ from v2v_server.ops.config import ServeConfig, load_config
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.protocol import (ProtocolError, decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack)
 from v2v_server.samples.make import pause_offsets, sample_rng, video_samples
-from v2v_server.videos.local import LocalSource
+from v2v_server.sources.local import LocalSource
 from v2v_wire.ids import SampleKey
 
 

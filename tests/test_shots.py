@@ -9,14 +9,14 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.samples.make import video_frames, video_samples
-from v2v_server.videos import frames as frames_mod
-from v2v_server.videos.corpus import SAMPLE_VIDEOS, check_video, format_check
-from v2v_server.videos.decode import iter_luma
-from v2v_server.videos.segments import parse_time, range_problem, segment_name, split_segment
-from v2v_server.videos.shots import ShotDetector, WindowLayout, code_table, thumbnail
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.source_spec import open_source
-from v2v_server.videos.video_list import read_video_list
+from v2v_server.frames import frame_pass as frames_mod
+from v2v_server.frames.corpus import SAMPLE_VIDEOS, check_video, format_check
+from v2v_server.frames.decode import iter_luma
+from v2v_server.sources.segments import parse_time, range_problem, segment_name, split_segment
+from v2v_server.frames.shots import ShotDetector, WindowLayout, code_table, thumbnail
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.source_spec import open_source
+from v2v_server.sources.video_list import read_video_list
 from v2v_wire.ids import parse_sample_id
 
 from bench.shots import shot_windows
@@ -297,7 +297,7 @@ def test_the_recipe_fingerprint_names_the_shot_detector_where_windows_follow_cut
     """Under ``shot_cuts: avoid`` windows start at the cuts the detector finds, so servers with
     other detectors must not pass for one recipe (the client refuses a resume state or a shard
     of another fingerprint); under ``off`` the detector moves nothing."""
-    import v2v_server.videos.pass_record as pass_record
+    import v2v_server.frames.pass_record as pass_record
     from v2v_server.samples.recipe import SampleRecipe
 
     before = SampleRecipe().fingerprint(), SampleRecipe(shot_cuts="off").fingerprint()

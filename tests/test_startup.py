@@ -13,10 +13,11 @@ from v2v_server.ops.config import ServeConfig, source_from_config
 from v2v_server.ops.startup import resolve_config, start_source
 from v2v_server.ray_data import SampleMaker, scan_corpus_windows
 from v2v_server.service.local import local_server
-from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.manifest import cache_folder, default_cache_dir, manifest_path
-from v2v_server.videos.source import CacheDirError
-from v2v_server.videos.store_io import StoreError
+from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.disk_cache import cache_folder, default_cache_dir
+from v2v_server.sources.manifest import manifest_path
+from v2v_server.sources.source import CacheDirError
+from v2v_server.sources.store_io import StoreError
 
 CLIPS = str(SAMPLE_VIDEOS)
 

@@ -1,4 +1,4 @@
-"""Static windows (``static_windows``, ``videos.motion``): a window whose frames barely change is
+"""Static windows (``static_windows``, ``frames.motion``): a window whose frames barely change is
 found from its frames before any simulation; ``keep`` (the default) serves today's samples,
 ``skip`` never serves one below ``STATIC_MOTION``, gives its index to the next window as a cut
 does, and keeps every epoch exactly once."""
@@ -16,11 +16,11 @@ from harness.serve import ServeProcess
 from tests.store_checks import samples
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_samples
-from v2v_server.videos.corpus import check_video
-from v2v_server.videos.decode import full_range
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.motion import STATIC_MOTION, MotionMeter
-from v2v_server.videos.shots import WindowLayout
+from v2v_server.frames.corpus import check_video
+from v2v_server.frames.decode import full_range
+from v2v_server.sources.local import LocalSource
+from v2v_server.frames.motion import STATIC_MOTION, MotionMeter
+from v2v_server.frames.shots import WindowLayout
 
 SPAN = 41  # sequence_length 8: 41-frame windows
 
@@ -84,7 +84,7 @@ def test_keep_serves_every_window_and_skip_none_below_the_threshold(still_then_p
     verdict = check_video(skip.recipe.windows, skip.recipe.decode, src, rel)
     assert verdict["windows"] == 2 and verdict["static"] == 2
     # the frame cache replays the pass that found them: the same samples
-    from v2v_server.videos.source_spec import open_source
+    from v2v_server.sources.source_spec import open_source
 
     cached = open_source(str(still_then_pan), cache_dir=str(still_then_pan / "cache"), frame_cache_gb=1.0)
     first = samples(skip, cached, [rel], 0)

@@ -11,11 +11,11 @@ import pytest
 from v2v_server import cli
 from v2v_server.samples.make import video_frames
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.segments import parse_time
-from v2v_server.videos.video_list import read_video_list
-from v2v_server.videos.video_tables import TableSettings
+from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.segments import parse_time
+from v2v_server.sources.video_list import read_video_list
+from v2v_server.sources.video_tables import TableSettings
 
 CLIP = "bbb_camera_596x336.mp4"  # 25 fps, one shot
 

@@ -11,9 +11,9 @@ import pytest
 from harness.corpus import write_scenes_video
 from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.videos.corpus import check_video
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.source_spec import open_source
+from v2v_server.frames.corpus import check_video
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.source_spec import open_source
 
 CLIP = "scenes.mpg"
 

@@ -23,7 +23,7 @@ from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import parse_sample_id
 from v2v_wire.protocol import DEFAULT_OUTPUTS, is_loopback, pack, unpack
 from v2v_server.samples.make import make_sample, video_samples
-from v2v_server.videos.local import LocalSource
+from v2v_server.sources.local import LocalSource
 from v2v_server.service.worker import wire_arrays
 
 L, B, CROP, MAXW, SEED = 8, 5, 96, 2, 7

@@ -27,7 +27,7 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
     truth of voxel l is the frame at its end.
 
     Args:
-        path: video file, read like the stream reads it (``v2v_server.videos.decode.iter_luma``:
+        path: video file, read like the stream reads it (``v2v_server.frames.decode.iter_luma``:
             full-range, display-oriented luma; uint16 for sources deeper than 8 bits).
         num_bins: B.
         contrast_threshold: c+ = c- (log-intensity units); no noise or hot pixels.
@@ -42,7 +42,7 @@ def video_sequence(path: str, num_bins: int, contrast_threshold: float = 0.2, ma
 
     from v2v_server.simulation.simulate import SensorParams, simulate_voxels
     from v2v_server.luma import to_uint8
-    from v2v_server.videos.decode import iter_luma
+    from v2v_server.frames.decode import iter_luma
 
     out = []
     frames_it = iter_luma(path)  # the stream's reader: full-range, display-oriented luma

@@ -29,7 +29,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from v2v_server.videos.motion import STATIC_MOTION
+from v2v_server.frames.motion import STATIC_MOTION
 
 from trainer.grid_stats import GRID_STATS, summarise
 from trainer.stream_stats import (Collected, StatsInputError, check_recording, from_corpus, from_server, grid_seconds,

@@ -117,7 +117,7 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
     """
     from v2v_server.ops.config import source_from_config
     from v2v_server.samples.make import video_samples
-    from v2v_server.videos.corpus import check_video
+    from v2v_server.frames.corpus import check_video
 
     try:
         source = source_from_config(cfg, videos_arg)

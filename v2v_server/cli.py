@@ -8,15 +8,14 @@ from typing import List, Optional
 
 from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config
 from v2v_server.ops.startup import start_source
-from v2v_server.videos.store import StoreSettings
+from v2v_server.sources.store import StoreSettings
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
-from v2v_server.videos.corpus import (SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, known_windows,
-                                      select_shard)
-from v2v_server.videos.corpus_index import index_path
+from v2v_server.frames.corpus import (SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, known_windows, select_shard)
+from v2v_server.frames.corpus_index import index_path
 from v2v_server.delivery.journal import JournalError
-from v2v_server.videos.store_io import StoreError
+from v2v_server.sources.store_io import StoreError
 from v2v_server.ops.warm import cache_line, format_warm, warm_cache
 
 

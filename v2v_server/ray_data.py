@@ -54,13 +54,13 @@ from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.flowgrid import expand_grids
-from v2v_server.videos.segments import split_segment
-from v2v_server.videos.corpus import check_video
-from v2v_server.videos.decode import open_video
-from v2v_server.videos.frames import FramePass, PassFrame
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.source_spec import source_from_spec
-from v2v_server.videos.window_pass import WindowPass
+from v2v_server.sources.segments import split_segment
+from v2v_server.frames.corpus import check_video
+from v2v_server.frames.decode import open_video
+from v2v_server.frames.frame_pass import FramePass, PassFrame
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.source_spec import source_from_spec
+from v2v_server.frames.window_pass import WindowPass
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
            "v2v_dataset", "VOXEL_DTYPE"]

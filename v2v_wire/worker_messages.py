@@ -205,7 +205,7 @@ class Done:
         frames: frames decoded.
         cuts, dropped: shot cuts found, windows they removed.
         stages: seconds per stage since the previous message; store: the task's object-store
-            reads (``videos.source.VideoSource.take_stats``).
+            reads (``sources.source.VideoSource.take_stats``).
     """
 
     task: int

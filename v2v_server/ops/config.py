@@ -5,7 +5,7 @@ flags; every value is validated once, when its part is built, and a bad one rais
 ``ValueError`` naming the field. The sample recipe's keys are owned by
 ``samples.recipe.SampleRecipe`` (defaults: the paper's WebVid recipe, Lou et al. 2025, Sec. 4),
 the delivery keys by ``delivery.core.DeliveryPolicy``, the object store's by
-``videos.store.StoreSettings``, the rest by :class:`ServingSettings` here.
+``sources.store.StoreSettings``, the rest by :class:`ServingSettings` here.
 """
 from __future__ import annotations
 
@@ -18,14 +18,15 @@ from v2v_server.checks import check_bool, check_choice, check_float, check_int, 
 from v2v_server.delivery.core import DeliveryPolicy
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.settings import documented, load_yaml, reference_markdown, setting
-from v2v_server.videos.frame_cache import DEFAULT_FORMAT as DEFAULT_FRAME_CACHE_FORMAT, FORMATS as FRAME_CACHE_FORMATS
-from v2v_server.videos.manifest import cache_folder, manifest_path
-from v2v_server.videos.shards import split_pattern
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.source_spec import open_source
-from v2v_server.videos.store import StoreSettings, store_root
-from v2v_server.videos.video_list import is_url
-from v2v_server.videos.video_tables import TABLE_FORMATS, TableSettings, table_format
+from v2v_server.frames.frame_cache import DEFAULT_FORMAT as DEFAULT_FRAME_CACHE_FORMAT, FORMATS as FRAME_CACHE_FORMATS
+from v2v_server.disk_cache import cache_folder
+from v2v_server.sources.manifest import manifest_path
+from v2v_server.sources.shards import split_pattern
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.source_spec import open_source
+from v2v_server.sources.store import StoreSettings, store_root
+from v2v_server.sources.video_list import is_url
+from v2v_server.sources.video_tables import TABLE_FORMATS, TableSettings, table_format
 from v2v_wire.protocol import is_loopback  # noqa: F401  (config's checks and sockets use it)
 
 __all__ = ["SampleRecipe", "DeliveryPolicy", "ServingSettings", "ServeConfig", "load_config", "parse_shard",
@@ -168,7 +169,7 @@ class ServeConfig:
     * ``delivery``: :class:`~v2v_server.delivery.core.DeliveryPolicy`, batches, shuffling, leases
       and epochs (its recipe-derived fields filled from ``recipe``);
     * ``serving``: :class:`ServingSettings`, corpus, workers, transport, security, operations;
-    * ``store``: :class:`~v2v_server.videos.store.StoreSettings`, how an object-store corpus is read.
+    * ``store``: :class:`~v2v_server.sources.store.StoreSettings`, how an object-store corpus is read.
 
     YAML files and flags name every part's keys flat (``seed: 3``, ``--workers 8``), and so does
     the constructor (``ServeConfig(seed=3, workers=8)``); reading a flat key (``cfg.workers``)

@@ -49,7 +49,7 @@ from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
 
-from v2v_server.videos.frame_cache import MISS_CAUSES, SKIP_CAUSES
+from v2v_server.frames.frame_cache import MISS_CAUSES, SKIP_CAUSES
 from v2v_wire.worker_messages import Done, Sample
 
 #: Work a worker reports time for, in pipeline order.
@@ -209,7 +209,7 @@ class ServerMetrics:
         carries: its stage seconds (``stages``: stage -> seconds since the worker's previous
         message), and a ``Done``'s shot ``cuts``, the windows they removed (``dropped``) and its
         object-store reads (``store``: ``bytes``, ``reads``, ``read_s``, ``retries``,
-        ``skipped`` and the frame cache's counters, ``videos.source.VideoSource.take_stats``,
+        ``skipped`` and the frame cache's counters, ``sources.source.VideoSource.take_stats``,
         whose values a counter ignores when malformed)."""
         if isinstance(msg, Done):
             for v, c in ((msg.cuts, self.shot_cuts), (msg.dropped, self.windows_cut)):
@@ -417,7 +417,7 @@ class SampleHistograms:
         self.noise = hist("v2v_sample_noise_std", "Background-noise sigma drawn for a sample (log intensity per "
                           "frame pair)", self.NOISE_BUCKETS)
         self.motion = hist("v2v_sample_window_motion", "Mean change of log intensity per frame pair of a sample's "
-                           "window, before simulation (under 0.005: static, videos.motion)", self.MOTION_BUCKETS)
+                           "window, before simulation (under 0.005: static, frames.motion)", self.MOTION_BUCKETS)
 
     def observe(self, params: dict) -> None:
         """Add one sample's ``params``; a missing or malformed value is left out (the map is the

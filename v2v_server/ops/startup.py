@@ -19,9 +19,9 @@ from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
 from v2v_server.ops.config import ServeConfig, source_from_config
-from v2v_server.videos.corpus import SAMPLE_VIDEOS
-from v2v_server.videos.manifest import cache_folder
-from v2v_server.videos.source import VideoSource
+from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.disk_cache import cache_folder
+from v2v_server.sources.source import VideoSource
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""``v2v-serve --warm-cache``: fill this host's frame cache (``videos.frame_cache``) with every
+"""``v2v-serve --warm-cache``: fill this host's frame cache (``frames.frame_cache``) with every
 video of the corpus (or of this host's shard) before training starts, so that clusters that
 prepare CPU hosts ahead of GPU time serve the first epoch from the cache too; and the cache's
 line of ``v2v-serve --check``.
@@ -12,12 +12,12 @@ from typing import List, Optional, Sequence
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_frames
-from v2v_server.videos.corpus import record_pass
-from v2v_server.videos.frame_cache import SKIP_CAUSES
-from v2v_server.videos.frames import entry_settings, lookup_entry
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.source_spec import map_videos
-from v2v_server.videos.window_pass import WindowPass
+from v2v_server.frames.corpus import record_pass
+from v2v_server.frames.frame_cache import SKIP_CAUSES
+from v2v_server.frames.frame_pass import entry_settings, lookup_entry
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.source_spec import map_videos
+from v2v_server.frames.window_pass import WindowPass
 
 
 def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:

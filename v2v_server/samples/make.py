@@ -2,7 +2,7 @@
 
 A video is cut into windows of ``frames_per_sample`` (201) source frames that follow each other
 ``window_stride`` (200) apart (a window's last frame is the next one's first, as in the authors'
-loader), placed by ``videos.shots.WindowLayout``: with ``shot_cuts: avoid`` inside the video's
+loader), placed by ``frames.shots.WindowLayout``: with ``shot_cuts: avoid`` inside the video's
 shots (each shot's first frame + k x 200, the cuts found by the same pass), with ``off`` at
 k x 200 from frame 0; at most ``max_samples_per_video`` windows, numbered 0.. in frame order.
 Everything random in a sample (pauses, crop, flip, sensor parameters, initial potential, noise)
@@ -24,13 +24,13 @@ import numpy as np
 from v2v_server.samples.augment import augment_plan, degrade_window
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.stats import add_stats
-from v2v_server.videos.source import VideoSource
+from v2v_server.sources.source import VideoSource
 from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.luma import to_uint8
-from v2v_server.videos.frames import FramePass, open_frames
-from v2v_server.videos.window_pass import VideoPass, WindowPass
+from v2v_server.frames.frame_pass import FramePass, open_frames
+from v2v_server.frames.window_pass import VideoPass, WindowPass
 
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
@@ -316,7 +316,7 @@ class _Window:
 
 class SamplePass:
     """The samples of one sequential pass over the video at ``rel_path`` of ``source`` (the
-    corpus, a ``videos.source.VideoSource``): an iterator of ``(key, arrays, meta)``.
+    corpus, a ``sources.source.VideoSource``): an iterator of ``(key, arrays, meta)``.
 
     With ``recipe.crops_per_window`` = K, each window gives K samples: K crops, each with its own
     plan (crop, flip, pauses, sensor parameters) from its own id, cut from the same decoded
@@ -325,7 +325,7 @@ class SamplePass:
     Yields ``(key, arrays, meta)`` (``key`` an ``ids.SampleKey``; ``arrays``: ``make_sample``'s)
     for each sample of a complete window whose key is not in ``skip``, in window then crop
     order; a sample's random choices come from its sample id (``SampleKey.sample_id``). Windows
-    are found by the videos stage's window pass (``videos.window_pass.WindowPass``): a window
+    are found by the videos stage's window pass (``frames.window_pass.WindowPass``): a window
     that a cut drops or a frame of another size fails gives no sample (the following ones are
     planned on the new size). Decoding stops after the last window that can be used (known from
     the container's declared frame count when it has one). ``flow_grid``: see ``make_sample``.
@@ -356,7 +356,7 @@ class SamplePass:
 
     def record(self, error: Optional[BaseException] = None) -> VideoPass:
         """What the pass found so far: frames, cuts, complete and failed windows
-        (``videos.window_pass.VideoPass``); ``error``: what stopped it, if anything."""
+        (``frames.window_pass.VideoPass``); ``error``: what stopped it, if anything."""
         return self._cutter.windows.record(error)
 
     def __iter__(self) -> "SamplePass":

@@ -2,8 +2,8 @@
 
 Defaults follow the paper's WebVid recipe (Lou et al. 2025, Sec. 4). The recipe owns the default,
 help text and checks of each of its keys (``docs/config.md`` is generated from them); the stages
-below get the parts they read: the videos stage a ``videos.windows.WindowSettings``
-(:attr:`SampleRecipe.windows`) and a ``videos.frames.DecodeSettings`` (:attr:`SampleRecipe.decode`),
+below get the parts they read: the videos stage a ``frames.windows.WindowSettings``
+(:attr:`SampleRecipe.windows`) and a ``frames.frame_pass.DecodeSettings`` (:attr:`SampleRecipe.decode`),
 the simulation the sensor ranges (``simulation.simulate.ParamRanges``),
 the flow the option's name. ``v2v_server.ops.config.ServeConfig`` composes it with the serving
 settings; a worker process is given the recipe alone (:meth:`SampleRecipe.recipe_dict`).
@@ -21,12 +21,12 @@ from v2v_server.checks import check_bool, check_choice, check_int, check_keys, c
 from v2v_server.flow.options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
 from v2v_server.settings import setting
 from v2v_server.simulation.simulate import ParamRanges
-from v2v_server.videos.decode import DECODE_FAST
-from v2v_server.videos.frames import DecodeSettings
-from v2v_server.videos.motion import STATIC_MOTION
-from v2v_server.videos.pass_record import PassRecord
-from v2v_server.videos.shots import SHOT_CUTS
-from v2v_server.videos.windows import STATIC_WINDOWS, WindowSettings
+from v2v_server.frames.decode import DECODE_FAST
+from v2v_server.frames.frame_pass import DecodeSettings
+from v2v_server.frames.motion import STATIC_MOTION
+from v2v_server.frames.pass_record import PassRecord
+from v2v_server.frames.shots import SHOT_CUTS
+from v2v_server.frames.windows import STATIC_WINDOWS, WindowSettings
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import OUTPUTS, check_outputs
 
@@ -108,13 +108,13 @@ class SampleRecipe:
     @cached_property
     def windows(self) -> WindowSettings:
         """Where this recipe's windows lie (and so which frames a pass reads), the videos stage's
-        ``videos.windows.WindowSettings``, built (and checked) once, by ``__post_init__``."""
+        ``frames.windows.WindowSettings``, built (and checked) once, by ``__post_init__``."""
         return WindowSettings(self.frames_per_sample, self.max_samples_per_video, self.shot_cuts, self.static_windows)
 
     @cached_property
     def decode(self) -> DecodeSettings:
         """How this recipe's frames are decoded (kept rows, scale, threads, shortcut), the videos
-        stage's ``videos.frames.DecodeSettings``, built (and checked) once, by ``__post_init__``."""
+        stage's ``frames.frame_pass.DecodeSettings``, built (and checked) once, by ``__post_init__``."""
         return DecodeSettings(self.keep_top_fraction, self.frame_height, self.decode_threads, self.decode_fast)
 
     @cached_property
@@ -134,7 +134,7 @@ class SampleRecipe:
 
     @cached_property
     def reads(self) -> PassRecord:
-        """What a pass over a video reads under this recipe (``videos.pass_record.PassRecord``):
+        """What a pass over a video reads under this recipe (``frames.pass_record.PassRecord``):
         the frame cache's, the corpus index's and the window pass's one key."""
         return PassRecord.of(self.decode, self.windows)
 

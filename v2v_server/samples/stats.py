@@ -22,7 +22,7 @@ holds (pure numpy, no second simulation) and carried in the sample's params unde
   expands it after the statistics), so one sample has one value whichever engine made it; its
   mean is the dense flow's up to the bilinear expansion's weighting.
 * ``motion``: the window's mean change of log intensity per frame pair, on its source frames
-  (``videos.motion``: what ``static_windows`` compares with ``STATIC_MOTION``); a property of
+  (``frames.motion``: what ``static_windows`` compares with ``STATIC_MOTION``); a property of
   the window, the same for every crop of it.
 * the noise events' share is **not** counted: the kernel adds the background noise to each
   pixel's potential before the threshold crossing, so an event has no single cause; counting it
@@ -124,7 +124,7 @@ def add_stats(meta: dict, arrays: Dict[str, np.ndarray], recipe, shot: Optional[
     """``meta`` (a sample's params, with ``video_fps``) with ``"stats"``: :func:`event_stats` of the
     sample's ``arrays`` (as ``samples.make.make_sample`` returns them) under ``recipe`` (a
     ``SampleRecipe``); given ``shot`` = (shot index in the video, its first frame), also ``shot``
-    and ``shot_start_frame``; given ``motion`` (the window's, ``videos.motion``), also the
+    and ``shot_start_frame``; given ``motion`` (the window's, ``frames.motion``), also the
     statistic ``motion``. ``busy``, when given, accumulates the CPU seconds spent (this
     thread's, so a loaded host does not inflate them) under ``"stats"``. Returns ``meta``, updated in place.
 

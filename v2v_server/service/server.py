@@ -30,9 +30,9 @@ from typing import Dict, List, Optional, Tuple
 import zmq
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.videos.corpus import corpus_fingerprint
-from v2v_server.videos.disk_cache import UsageScan
-from v2v_server.videos.source import VideoSource
+from v2v_server.frames.corpus import corpus_fingerprint
+from v2v_server.disk_cache import UsageScan
+from v2v_server.sources.source import VideoSource
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.ledger import STALL_S
 from v2v_server.delivery.core import DeliveryCore
@@ -60,7 +60,7 @@ class V2VServer:
 
     Args:
         cfg: validated ``ServeConfig``.
-        source: the corpus (``videos.source.VideoSource``, a folder or an object-store
+        source: the corpus (``sources.source.VideoSource``, a folder or an object-store
             prefix, built at the server's start); the server only opens the videos listed in
             ``videos``, and its workers build the same source from ``source.spec()``.
         videos: sample-id paths of the videos, relative to ``root`` (POSIX strings).

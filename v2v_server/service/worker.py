@@ -28,8 +28,8 @@ import zmq
 
 from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.source_spec import source_from_spec
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.source_spec import source_from_spec
 from v2v_server.service.shm import SlotRing
 from v2v_server.ops.logs import setup_logging
 from v2v_wire.outputs import wire_dtype
@@ -38,7 +38,7 @@ from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, T
 from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import SampleKey
 from v2v_server.samples.make import video_samples
-from v2v_server.videos.corpus import record_pass
+from v2v_server.frames.corpus import record_pass
 
 log = logging.getLogger("v2v.worker")
 
@@ -246,7 +246,7 @@ def worker_main(cfg_dict: dict, root, endpoint: str, identity: bytes, parent_pid
 
     Args:
         cfg_dict: ``worker_config(cfg)``.
-        root: the corpus's ``VideoSource.spec()`` (``videos.source``), built here once.
+        root: the corpus's ``VideoSource.spec()`` (``sources.source``), built here once.
         ring: ``SlotRing.spec`` of this worker's shared-memory slots (the file is unlinked as
             soon as it is mapped), or None to send arrays as frames.
     """

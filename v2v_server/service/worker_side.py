@@ -19,7 +19,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.assembly import BatchAssembler, sample_from_slot, sample_from_worker
 from v2v_server.service.pool import WorkerPool
-from v2v_server.videos.source import VideoSource
+from v2v_server.sources.source import VideoSource
 from v2v_wire.protocol import ProtocolError, pack, unpack
 from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, worker_message
 
@@ -31,7 +31,7 @@ class WorkerSide:
 
     Args:
         cfg: the server's ``ServeConfig``.
-        source: the corpus's ``videos.source.VideoSource`` (where a video lives, for log lines).
+        source: the corpus's ``sources.source.VideoSource`` (where a video lives, for log lines).
         core: the delivery core the reports go to.
         metrics: counters of samples, restarts, timeouts and skipped files.
 

@@ -35,6 +35,20 @@ TMP_SUFFIX = ".tmp"
 _SERIAL = itertools.count()
 
 
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/v2v`` (``~/.cache/v2v``): manifests and the object cache when no
+    ``cache_dir`` is given."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
+
+
+def cache_folder(cache_dir: Optional[str]) -> str:
+    """The folder of the host's caches: ``cache_dir`` as configured, else :func:`default_cache_dir`.
+    The one rule, applied where a folder enters: the configuration's (``ops.config.source_from_config``,
+    run by the start-up path ``ops.startup``), or a source's built without a configuration
+    (``source_spec.open_source``, ``VideoSource``); everything below takes the resolved folder."""
+    return str(cache_dir) if cache_dir else str(default_cache_dir())
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)

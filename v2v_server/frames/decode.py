@@ -12,13 +12,13 @@ Frames carrying a display matrix (phone videos) are rotated as a player would sh
 """
 from __future__ import annotations
 
-import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
+
+from v2v_server.sources.names import VideoError
 
 #: Pixel formats whose plane 0 is 8-bit luma: read directly, no colour conversion.
 _Y8_FORMATS = {"yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p", "nv12", "nv21", "gray",
@@ -27,10 +27,6 @@ _Y8_FORMATS = {"yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444
 Rows = Union[None, int, Callable[[int], int]]
 #: FFmpeg ``AVColorRange`` values (``frame.color_range``).
 COLOR_RANGE_MPEG, COLOR_RANGE_JPEG = 1, 2
-
-
-class VideoError(RuntimeError):
-    """A file that cannot be used as a video (the message says why)."""
 
 
 @dataclass
@@ -328,7 +324,7 @@ def decode_codes(container, stream, rows: Rows = None, height: int = 0, times: O
     ``expand(x)`` maps ``codes`` or any crop or flip of it to full-range luma. Expansion is
     per pixel, so expanding a crop equals cropping the expanded frame, at a fraction of the
     cost; resampling must expand first. ``segment``: a time range ``(start, end)`` in seconds from
-    the stream's start (``videos.segments``): the container seeks to the key frame before
+    the stream's start (``sources.segments``): the container seeks to the key frame before
     ``start`` and only frames whose presentation time lies in ``[start, end)`` are yielded.
     Closes the container when done.
 
@@ -420,140 +416,3 @@ def decode_luma(container, stream, rows: Rows = None, height: int = 0) -> Iterat
             yield _unit_stride(expand(codes))
     finally:
         gen.close()
-
-
-def inside(root: Path, path: Path) -> bool:
-    """True when ``path`` resolves (symlinks followed) to a file under ``root``."""
-    try:
-        return path.resolve(strict=True).is_relative_to(Path(root).resolve(strict=True))
-    except (OSError, RuntimeError):
-        return False
-
-
-def utf8_name(path: Path) -> bool:
-    """Whether ``path`` (as the file system gave it) is valid UTF-8: Python keeps other bytes
-    as lone surrogates, which cannot be encoded into a sample id."""
-    try:
-        str(path).encode("utf-8")
-        return True
-    except UnicodeEncodeError:
-        return False
-
-
-def printable(path: Path) -> str:
-    """``path`` for a log line or a report: bytes that are not UTF-8 escaped (``\\xff``), and
-    control characters (``\\n``, ``\\t``...) written as escapes, so that one name is one line."""
-    text = os.fsencode(str(path)).decode("utf-8", "backslashreplace")
-    return "".join(repr(c)[1:-1] if _CONTROL.match(c) else c for c in text)
-
-
-#: Control characters (C0, DEL, C1): in a name they would end a log line or a resume hello's line.
-_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
-
-
-def name_problem(name: str, what: str = "file name") -> Optional[str]:
-    """Why ``name`` (a file's path as the file system gave it, a key: ``what``) cannot be a
-    sample id's path, or None: it is not valid UTF-8 (:func:`utf8_name`), or it holds a
-    control character (:func:`control_character`)."""
-    if not utf8_name(name):
-        return f"{what} is not valid UTF-8 (sample ids are UTF-8): rename it"
-    return control_character(name)
-
-
-def control_character(name: str) -> Optional[str]:
-    """Why ``name`` (a file, key or archive member path) cannot be a sample id's path: the
-    first control character it holds (a newline, a tab...), escaped, with the reason; None
-    when it holds none. Sample ids travel newline-joined in a trainer's resume hello and are
-    written one per line in logs and reports."""
-    m = _CONTROL.search(name)
-    if m is None:
-        return None
-    return (f"name holds the control character {repr(m.group())[1:-1]!s} (sample ids travel one per line): "
-            f"rename it")
-
-
-def scan_corpus(root: Path, extensions: Sequence[str]) -> Tuple[List[Path], List[Tuple[Path, str]]]:
-    """Walk ``root`` recursively (sorted, symlink loops cut) for video files.
-
-    Returns ``(videos, rejected)``: video paths relative to ``root`` with an accepted
-    extension, and ``(relative path, reason)`` for every other entry met: other extensions,
-    symlink loops, dangling links, links that leave the corpus root, unreadable folders, and
-    names that are not valid UTF-8 (a sample id is its path, and ids travel as UTF-8; such a
-    name is reported with its undecodable bytes escaped, ``\\xff``).
-    """
-    videos, rejected = scan_corpus_names(root, extensions)
-    return [Path(v) for v in videos], [(Path(r), why) for r, why in rejected]
-
-
-def scan_corpus_names(root: Union[str, Path], extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
-    """:func:`scan_corpus` with POSIX strings for paths, sorted; ``"."`` names ``root``
-    itself. Only symbolic links are resolved (a folder's other entries lie where the folder
-    does), so the walk costs one directory read per folder and a path resolution per link:
-    linear in the entries."""
-    root = Path(root)
-    videos: List[str] = []
-    rejected: List[Tuple[str, str]] = []
-    try:
-        real_root = root.resolve(strict=True)
-    except (OSError, RuntimeError) as e:
-        return [], [(".", f"folder cannot be resolved: {e}")]
-    seen_dirs = set()
-    stack = [("", str(root), str(real_root))]  # (path relative to root, path, resolved path)
-    while stack:
-        rel_dir, d, real = stack.pop()
-        if real in seen_dirs:
-            continue
-        seen_dirs.add(real)
-        try:
-            with os.scandir(d) as it:
-                entries = sorted(it, key=lambda e: e.name)
-        except OSError as e:
-            rejected.append((rel_dir or ".", f"folder cannot be read: {e.strerror or e}"))
-            continue
-        for entry in entries:
-            rel = f"{rel_dir}/{entry.name}" if rel_dir else entry.name
-            if name_problem(rel) is not None:
-                rejected.append((printable(rel), name_problem(rel)))
-                continue
-            try:
-                link = entry.is_symlink()
-                if link:
-                    target = Path(entry.path).resolve(strict=True)
-                    if not target.is_relative_to(real_root):
-                        rejected.append((rel, "points outside the corpus root"))
-                        continue
-                    real_target, is_dir = str(target), target.is_dir()
-                    is_file = not is_dir and target.is_file()
-                else:
-                    real_target = os.path.join(real, entry.name)
-                    is_dir = entry.is_dir(follow_symlinks=False)
-                    is_file = not is_dir and entry.is_file(follow_symlinks=False)
-            except RuntimeError:
-                rejected.append((rel, "symlink loop"))
-                continue
-            except OSError as e:
-                reason = "symlink loop" if e.errno == 40 else "dangling symlink" if entry.is_symlink() else str(e)
-                rejected.append((rel, reason))
-                continue
-            suffix = name_suffix(entry.name)
-            if is_dir:
-                stack.append((rel, entry.path, real_target))
-            elif suffix.lower() in extensions and is_file:
-                videos.append(rel)
-            else:
-                rejected.append((rel, f"not a video file (extension {suffix or 'none'!r})"))
-    videos.sort()
-    rejected.sort(key=lambda r: r[0])
-    return videos, rejected
-
-
-def name_suffix(name: str) -> str:
-    """The extension of a file name as ``Path.suffix`` gives it: from its last dot, with the
-    dot; ``''`` for none, for a name that only starts with a dot, and for a trailing dot."""
-    i = name.rfind(".")
-    return name[i:] if 0 < i < len(name) - 1 else ""
-
-
-def find_videos(root: Path, extensions: Sequence[str]) -> List[Path]:
-    """Video files under ``root`` (see ``scan_corpus``), relative to ``root``."""
-    return scan_corpus(root, extensions)[0]

@@ -8,12 +8,13 @@ import time
 from pathlib import Path, PurePosixPath
 from typing import Iterator, List, Optional, Sequence, Tuple, Union
 
-from v2v_server.videos.decode import VideoError, inside, scan_corpus_names
-from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.segments import base_path
-from v2v_server.videos.shards import ARCHIVES, PIECE, gather_pieces, split_member
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.store_io import StoreError
+from v2v_server.sources.names import VideoError, inside
+from v2v_server.sources.folder_scan import scan_corpus_names
+from v2v_server.frames.frame_cache import FrameCache
+from v2v_server.sources.segments import base_path
+from v2v_server.sources.shards import ARCHIVES, PIECE, gather_pieces, split_member
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.store_io import StoreError
 
 
 def corpus_file(root, rel: str) -> Path:
@@ -64,7 +65,7 @@ def _plain_identity(st: os.stat_result) -> Optional[str]:
 
 class LocalSource(VideoSource):
     """A corpus folder (searched recursively, symlinks that stay inside it followed); ``root``
-    a path or a ``file://`` URL, the other arguments as :class:`~v2v_server.videos.source.VideoSource`'s."""
+    a path or a ``file://`` URL, the other arguments as :class:`~v2v_server.sources.source.VideoSource`'s."""
 
     def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None,
                  frame_cache: Optional[FrameCache] = None, cache_dir: Optional[str] = None):

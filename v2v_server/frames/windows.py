@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from v2v_server.checks import check_choice, check_int
-from v2v_server.videos.shots import SHOT_CUTS, WindowLayout
+from v2v_server.frames.shots import SHOT_CUTS, WindowLayout
 
 #: What ``static_windows`` takes: keep static windows (the paper's) or skip them (docs/fidelity.md).
 STATIC_WINDOWS = ("keep", "skip")

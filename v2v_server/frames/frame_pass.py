@@ -23,12 +23,12 @@ from typing import Callable, Iterator, NamedTuple, Optional, Tuple
 import numpy as np
 
 from v2v_server.checks import check_choice, check_int
-from v2v_server.videos.decode import DECODE_FAST, VideoInfo, decode_codes, full_range, open_video
-from v2v_server.videos.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache, entry_name_settings
-from v2v_server.videos.pass_record import PassRecord
-from v2v_server.videos.segments import split_segment
-from v2v_server.videos.shots import DETECTOR_VERSION, ShotDetector
-from v2v_server.videos.windows import WindowSettings
+from v2v_server.frames.decode import DECODE_FAST, VideoInfo, decode_codes, full_range, open_video
+from v2v_server.frames.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache, entry_name_settings
+from v2v_server.frames.pass_record import PassRecord
+from v2v_server.sources.segments import split_segment
+from v2v_server.frames.shots import DETECTOR_VERSION, ShotDetector
+from v2v_server.frames.windows import WindowSettings
 
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 
@@ -218,7 +218,7 @@ def lookup_entry(cache: FrameCache, source, rel: str, settings: dict
 
 @contextlib.contextmanager
 def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSettings) -> Iterator[FramePass]:
-    """The frames of video ``rel`` of ``source`` (a ``videos.source.VideoSource``) that a pass
+    """The frames of video ``rel`` of ``source`` (a ``sources.source.VideoSource``) that a pass
     over ``windows`` reads (``WindowSettings.frame_limit`` of the declared count), from its frame
     cache (``source.frame_cache``, None when off; the entry named by :func:`entry_settings`) or
     decoded as ``decode`` says (``decode.open_video``, ``decode.decode_codes``: scaled to

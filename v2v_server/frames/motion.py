@@ -17,7 +17,7 @@ from typing import Callable, Dict, Optional
 import numba
 import numpy as np
 
-from v2v_server.videos.shots import code_table
+from v2v_server.frames.shots import code_table
 
 #: Window motion (mean |delta L| per frame pair, log-intensity units) below which a window is
 #: static: at c = 0.05, under 0.1 signal events per pixel per frame pair (docs/fidelity.md).

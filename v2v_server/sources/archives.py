@@ -1,4 +1,4 @@
-"""The archives of one corpus (tar shards and zip parts, ``videos.shards``) as a ``VideoSource``
+"""The archives of one corpus (tar shards and zip parts, ``sources.shards``) as a ``VideoSource``
 reads them: each archive's member index, kept per process and version of the archive; the
 pieces of a split zip part, found beside it and read joined; a member opened for decoding; a
 listing's archives replaced by their video members."""
@@ -8,11 +8,10 @@ import contextlib
 from pathlib import PurePosixPath
 from typing import Callable, ContextManager, Dict, List, Optional, Sequence, Tuple
 
-from v2v_server.videos.decode import VideoError, control_character, printable
-from v2v_server.videos.manifest import index_entry
-from v2v_server.videos.segments import segment_name, split_segment
-from v2v_server.videos.shards import (ARCHIVES, JoinedFile, ShardIndex, ZipMemberError, gather_pieces, missing_piece,
-                                      open_member, piece_archive, split_member)
+from v2v_server.sources.names import VideoError, control_character, printable
+from v2v_server.sources.manifest import index_entry
+from v2v_server.sources.segments import segment_name, split_segment
+from v2v_server.sources.shards import (ARCHIVES, JoinedFile, ShardIndex, ZipMemberError, gather_pieces, missing_piece, open_member, piece_archive, split_member)
 
 
 class Archives:
@@ -39,7 +38,7 @@ class Archives:
             return False
 
     def members(self, archive: str) -> Dict[str, Tuple[int, ...]]:
-        """Member name -> index entry (``videos.shards``: offset and size in bytes, and a zip
+        """Member name -> index entry (``sources.shards``: offset and size in bytes, and a zip
         member's fields) of the archive at ``archive`` (relative path), read once per process
         and version of the archive (``version``): one rewritten in place is read again.
 
@@ -173,7 +172,7 @@ def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str
     the archive holding them (OpenVid-1M's CSV names ``clip.mp4``, served from
     ``OpenVid_part3.zip/clip.mp4``).
 
-    An entry (a segment's time range kept, ``videos.segments``) names the member whose id is
+    An entry (a segment's time range kept, ``sources.segments``) names the member whose id is
     the entry (``part.zip/clip.mp4``), else whose path inside its archive is the entry, else,
     for an entry without ``/``, whose file name is the entry (what ``unzip -j`` would write).
     Pure: the same lists give the same ids wherever the archives are read from.

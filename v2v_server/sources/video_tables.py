@@ -42,7 +42,7 @@ import threading
 from dataclasses import dataclass
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, TypeVar
 
-from v2v_server.videos.segments import TIME_SYNTAX, clean_path, parse_time, path_problem, printable_name, segment_name
+from v2v_server.sources.segments import (TIME_SYNTAX, clean_path, parse_time, path_problem, printable_name, segment_name)
 
 T = TypeVar("T")
 log = logging.getLogger("v2v")

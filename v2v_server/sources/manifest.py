@@ -1,7 +1,7 @@
 """The manifest of an object-store corpus: its listing (key, size, ETag; archive members with their
 offset) kept as one sorted JSON line per object, so a restart and every shard read one listing
 without walking the bucket, and a worker looks up single entries without loading it
-(:class:`ManifestIndex`). A ``videos.store.StoreSource`` holds its listing as a
+(:class:`ManifestIndex`). A ``sources.store.StoreSource`` holds its listing as a
 :class:`StoreListing`, which writes and reads it."""
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-from v2v_server.videos.shards import ShardIndex, split_member
+from v2v_server.sources.shards import ShardIndex, split_member
 
 log = logging.getLogger("v2v.source")
 
@@ -37,20 +37,6 @@ def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional
     if not cache_dir:
         raise ValueError(f"the manifest of {url} needs a state_dir or a resolved cache folder")
     return Path(cache_dir) / "manifests" / f"{h}.jsonl"
-
-
-def default_cache_dir() -> Path:
-    """``$XDG_CACHE_HOME/v2v`` (``~/.cache/v2v``): manifests and the object cache when no
-    ``cache_dir`` is given."""
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "v2v"
-
-
-def cache_folder(cache_dir: Optional[str]) -> str:
-    """The folder of the host's caches: ``cache_dir`` as configured, else :func:`default_cache_dir`.
-    The one rule, applied where a folder enters: the configuration's (``ops.config.source_from_config``,
-    run by the start-up path ``ops.startup``), or a source's built without a configuration
-    (``source_spec.open_source``, ``VideoSource``); everything below takes the resolved folder."""
-    return str(cache_dir) if cache_dir else str(default_cache_dir())
 
 
 def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]],

@@ -12,15 +12,14 @@ from typing import Dict, List, Optional, Tuple
 
 from v2v_server.checks import check_float, check_int
 from v2v_server.settings import setting
-from v2v_server.videos.archives import listing_problems
-from v2v_server.videos.decode import VideoError, name_problem, printable
-from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.manifest import StoreListing, etag_of, member_entry, object_identity
-from v2v_server.videos.segments import base_path
-from v2v_server.videos.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.store_io import (MAX_ATTEMPTS, READ_TIMEOUT_S, ObjectCache, ReadStats, StoreError, make_filesystem,
-                                        retry_policy, time_fetches)
+from v2v_server.sources.archives import listing_problems
+from v2v_server.sources.names import VideoError, name_problem, printable
+from v2v_server.frames.frame_cache import FrameCache
+from v2v_server.sources.manifest import StoreListing, etag_of, member_entry, object_identity
+from v2v_server.sources.segments import base_path
+from v2v_server.sources.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.store_io import (MAX_ATTEMPTS, READ_TIMEOUT_S, ObjectCache, ReadStats, StoreError, make_filesystem, retry_policy, time_fetches)
 
 log = logging.getLogger("v2v.source")
 
@@ -89,7 +88,7 @@ class StoreSource(VideoSource):
             defaults below; credentials otherwise come from the store's standard configuration
             (for S3: ``AWS_*`` variables incl. ``AWS_ENDPOINT_URL``, shared config files,
             instance roles).
-        video_list, names, frame_cache, cache_dir: as :class:`~v2v_server.videos.source.VideoSource`'s.
+        video_list, names, frame_cache, cache_dir: as :class:`~v2v_server.sources.source.VideoSource`'s.
         manifest: the manifest file (see ``manifest.manifest_path``); None keeps none.
         refresh_manifest: list the store again instead of reading the manifest.
         settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).

@@ -1,6 +1,6 @@
 """Reading objects from a store: the fsspec filesystem with one retry policy, the counters of a
 process's reads (bytes, range requests, seconds, retries, skipped objects) and the bounded local
-cache of whole objects. ``videos.store.StoreSource`` wires them."""
+cache of whole objects. ``sources.store.StoreSource`` wires them."""
 from __future__ import annotations
 
 import contextlib
@@ -12,7 +12,7 @@ from pathlib import Path
 log = logging.getLogger("v2v.source")
 
 from v2v_server.faults import cause_of, warn_once
-from v2v_server.videos.disk_cache import DiskCache, remove_quietly
+from v2v_server.disk_cache import DiskCache, remove_quietly
 
 #: Protocols read through fsspec, and the extra that installs each one's library.
 STORE_EXTRAS = {"s3": "v2v[s3]", "s3a": "v2v[s3]", "gs": "v2v[gcs]", "gcs": "v2v[gcs]", "az": "v2v[azure]",

@@ -1,8 +1,8 @@
-"""Video lists: a file of the V2V authors' format, or a metadata table (``videos.video_tables``),
+"""Video lists: a file of the V2V authors' format, or a metadata table (``sources.video_tables``),
 that selects and orders the videos of a corpus (a local file, or an object beside the corpus in
 the store), read by every ``VideoSource``.
 
-A line is ``path``, ``path start end`` (a segment, ``videos.segments``) or the authors'
+A line is ``path``, ``path start end`` (a segment, ``sources.segments``) or the authors'
 ``path frames [a b]``: the path is everything before the trailing numbers, so it may hold
 spaces (``my clip.mp4 0 12``). A trailing field that looks like a number (digits, ``nan``,
 ``inf``, ``1e309``, ``0:00:99``) is read strictly: a line whose numbers do not parse is refused
@@ -15,8 +15,8 @@ import re
 from pathlib import Path
 from typing import List, NamedTuple, Optional, Tuple, Union
 
-from v2v_server.videos.segments import clean_path, parse_time, path_problem, printable_name, segment_name
-from v2v_server.videos.video_tables import TableSettings, read_table, table_format
+from v2v_server.sources.segments import clean_path, parse_time, path_problem, printable_name, segment_name
+from v2v_server.sources.video_tables import TableSettings, read_table, table_format
 
 #: A field that is meant as a number: what a list line's trailing fields are told apart by.
 _NUMBERISH = re.compile(r"[-+]?(?:nan|inf(?:inity)?|[\d.:_eE+-]*\d[\d.:_eE+-]*)", re.IGNORECASE)

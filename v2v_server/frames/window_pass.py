@@ -21,11 +21,11 @@ from typing import Callable, Dict, Iterator, List, Mapping, NamedTuple, Optional
 
 import numpy as np
 
-from v2v_server.videos.decode import VideoError
-from v2v_server.videos.frames import FramePass
-from v2v_server.videos.motion import STATIC_MOTION, MotionMeter
-from v2v_server.videos.pass_record import PassRecord
-from v2v_server.videos.windows import WindowSettings
+from v2v_server.sources.names import VideoError
+from v2v_server.frames.frame_pass import FramePass
+from v2v_server.frames.motion import STATIC_MOTION, MotionMeter
+from v2v_server.frames.pass_record import PassRecord
+from v2v_server.frames.windows import WindowSettings
 
 #: Words of the reason a file with too few frames for one window gets.
 SHORT_CLIP = "shorter than one window of"

@@ -3,8 +3,8 @@ understands: ``s3://`` through s3fs, ``gs://`` through gcsfs, ``az://`` through 
 narrowed and ordered by a video list in the V2V authors' format.
 
 Every reader of the corpus goes through a :class:`VideoSource`, the seam this module defines
-(``videos.local.LocalSource`` for a folder, ``videos.store.StoreSource`` for a store prefix,
-both built by ``videos.source_spec``): ``v2v-serve`` (listing, shards, the corpus fingerprint,
+(``sources.local.LocalSource`` for a folder, ``sources.store.StoreSource`` for a store prefix,
+both built by ``sources.source_spec``): ``v2v-serve`` (listing, shards, the corpus fingerprint,
 ``--check``), its worker processes (``source.open(rel)`` per task), and the Ray engine
 (``ray_data``). Each process builds its source once (at its start) and hands the built source
 to the stages that read videos; a source's ``frame_cache`` is the host's decoded-frame cache
@@ -15,7 +15,7 @@ give the same ids and, for the same seed, bit-identical samples. ``open(rel)`` y
 it in ``read_block_mb`` blocks (PyAV reads straight from it, no local copy; ``cache_max_gb``
 keeps whole objects on local disk instead). Archives given as ``.tar`` or ``.zip`` files or
 objects, a brace pattern or list entries stand for their video members, ids
-``shard.tar/member.mp4`` or ``part.zip/member.mp4``, read in place by offset (``videos.shards``):
+``shard.tar/member.mp4`` or ``part.zip/member.mp4``, read in place by offset (``sources.shards``):
 tar shards in the WebDataset convention, zip parts (stored or compressed members, ZIP64, a part
 split into ``part_partaa``, ``part_partab``... pieces read as one).
 
@@ -28,7 +28,7 @@ reports when it opens an object with the manifest's: an object overwritten since
 Transient store errors are retried by the storage library (botocore's ``standard`` retry mode
 for S3: ``max_attempts`` attempts with exponential backoff, for throttling, 5xx and
 connection errors); a read that still fails, or a store that stops answering for
-``read_timeout_s`` (``videos.store.StoreSettings``), fails that video's task, whose windows
+``read_timeout_s`` (``sources.store.StoreSettings``), fails that video's task, whose windows
 the server skips and logs once; the server stays up.
 """
 from __future__ import annotations
@@ -38,15 +38,15 @@ import tempfile
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 
-from v2v_server.videos.archives import Archives, pair_members
-from v2v_server.videos.corpus_index import CorpusIndex, index_path
-from v2v_server.videos.decode import VideoError
-from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.manifest import cache_folder
-from v2v_server.videos.segments import base_path, printable_name, range_problem, split_segment
-from v2v_server.videos.shards import ARCHIVES, split_member
-from v2v_server.videos.video_list import VideoList, read_video_list
-from v2v_server.videos.video_tables import TableSettings
+from v2v_server.sources.archives import Archives, pair_members
+from v2v_server.frames.corpus_index import CorpusIndex, index_path
+from v2v_server.sources.names import VideoError
+from v2v_server.frames.frame_cache import FrameCache
+from v2v_server.disk_cache import cache_folder
+from v2v_server.sources.segments import base_path, printable_name, range_problem, split_segment
+from v2v_server.sources.shards import ARCHIVES, split_member
+from v2v_server.sources.video_list import VideoList, read_video_list
+from v2v_server.sources.video_tables import TableSettings
 
 
 log = logging.getLogger("v2v")
@@ -181,7 +181,7 @@ class VideoSource:
 
     def open(self, rel: str):
         """A context manager giving what ``open_video`` reads for the video at ``rel`` (for a
-        segment, ``videos.segments``, its whole video).
+        segment, ``sources.segments``, its whole video).
 
         Raises:
             VideoError: it is missing, or changed since it was listed.

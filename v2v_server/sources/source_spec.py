@@ -14,13 +14,13 @@ import multiprocessing as mp
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence, Tuple, TypeVar, Union
 
-from v2v_server.videos.frame_cache import DEFAULT_FORMAT, FrameCache
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.manifest import cache_folder
-from v2v_server.videos.shards import split_pattern
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.store import StoreSettings, StoreSource
-from v2v_server.videos.video_list import is_url
+from v2v_server.frames.frame_cache import DEFAULT_FORMAT, FrameCache
+from v2v_server.sources.local import LocalSource
+from v2v_server.disk_cache import cache_folder
+from v2v_server.sources.shards import split_pattern
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.store import StoreSettings, StoreSource
+from v2v_server.sources.video_list import is_url
 
 T = TypeVar("T")
 

@@ -48,7 +48,7 @@ from typing import Dict, Iterator, List, Optional, Tuple
 import numpy as np
 
 from v2v_server.faults import cause_of, warn_once
-from v2v_server.videos.disk_cache import DiskCache, is_disk_full, remove_quietly
+from v2v_server.disk_cache import DiskCache, is_disk_full, remove_quietly
 
 log = logging.getLogger("v2v.frame_cache")
 
@@ -56,7 +56,7 @@ log = logging.getLogger("v2v.frame_cache")
 FORMATS = ("raw", "zstd")
 #: The format of entries unless one is asked for (raw: memory-mapped, the fastest, docs/frame_cache.md).
 DEFAULT_FORMAT = "raw"
-#: Version of the entry layout, of the frames it holds (the luma conversion of ``videos.decode``)
+#: Version of the entry layout, of the frames it holds (the luma conversion of ``frames.decode``)
 #: and of how its name is made (``entry_name_settings``): a change makes every older entry a
 #: miss under a name no lookup makes again, left to the budget's eviction.
 VERSION = 4

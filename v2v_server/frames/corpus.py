@@ -6,16 +6,17 @@ import hashlib
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
-from v2v_server.videos.corpus_index import check_record, layout_key
-from v2v_server.videos.decode import VideoError, decode_codes, frame_intervals, open_video
-from v2v_server.videos.frames import DecodeSettings, FramePass, PassFrame
-from v2v_server.videos.local import LocalSource
-from v2v_server.videos.segments import split_segment
-from v2v_server.videos.shots import ShotDetector
-from v2v_server.videos.source import VideoSource
-from v2v_server.videos.source_spec import map_videos
-from v2v_server.videos.window_pass import VideoPass, WindowPass
-from v2v_server.videos.windows import WindowSettings
+from v2v_server.frames.corpus_index import check_record, layout_key
+from v2v_server.sources.names import VideoError
+from v2v_server.frames.decode import decode_codes, frame_intervals, open_video
+from v2v_server.frames.frame_pass import DecodeSettings, FramePass, PassFrame
+from v2v_server.sources.local import LocalSource
+from v2v_server.sources.segments import split_segment
+from v2v_server.frames.shots import ShotDetector
+from v2v_server.sources.source import VideoSource
+from v2v_server.sources.source_spec import map_videos
+from v2v_server.frames.window_pass import VideoPass, WindowPass
+from v2v_server.frames.windows import WindowSettings
 
 
 #: The bundled demo corpus (see sample_videos/SOURCES.md): served when no corpus is given.

@@ -24,8 +24,8 @@ import json
 from dataclasses import dataclass
 from typing import Optional
 
-from v2v_server.videos.motion import MOTION_VERSION, STATIC_MOTION
-from v2v_server.videos.shots import DETECTOR_VERSION
+from v2v_server.frames.motion import MOTION_VERSION, STATIC_MOTION
+from v2v_server.frames.shots import DETECTOR_VERSION
 
 #: Version of the key's content: a change makes every frame-cache entry and index row a miss.
 PASS_VERSION = 1

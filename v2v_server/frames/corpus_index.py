@@ -26,9 +26,9 @@ from pathlib import Path
 from typing import Callable, Dict, Iterable, Iterator, Optional, Tuple, Union
 
 from v2v_server.faults import warn_once
-from v2v_server.videos.frames import DecodeSettings
-from v2v_server.videos.pass_record import PassRecord
-from v2v_server.videos.windows import WindowSettings
+from v2v_server.frames.frame_pass import DecodeSettings
+from v2v_server.frames.pass_record import PassRecord
+from v2v_server.frames.windows import WindowSettings
 from v2v_wire.worker_messages import CAUSES
 
 #: The index's file name under the cache folder.
@@ -58,7 +58,7 @@ CREATE TABLE IF NOT EXISTS entries (
     cuts TEXT NOT NULL,          -- JSON list: the frames that start a shot
     width INTEGER, height INTEGER, codec TEXT,
     fps REAL,                    -- frames per second as the container gives it (29.97002997..., not rounded)
-    result TEXT NOT NULL,        -- JSON: the whole --check verdict (videos.corpus.check_video)
+    result TEXT NOT NULL,        -- JSON: the whole --check verdict (frames.corpus.check_video)
     written_at REAL NOT NULL,    -- Unix time, seconds
     PRIMARY KEY (location, layout)
 );
@@ -146,7 +146,7 @@ class CorpusIndex:
             self._db = None
 
     def lookup(self, location: str, identity: Optional[str], layout: str) -> Optional[dict]:
-        """The ``--check`` verdict (``videos.corpus.check_video``'s dict) recorded for the video
+        """The ``--check`` verdict (``frames.corpus.check_video``'s dict) recorded for the video
         at ``location`` under ``layout``, or None: no entry, an entry of another identity (the
         video changed), ``identity`` None (it cannot vouch for the content), or the index off."""
         if identity is None:
