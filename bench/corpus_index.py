@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from harness.data import SAMPLE_VIDEOS
+from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ray_data import scan_corpus_windows
 from v2v_server.frames.corpus import check_video, known_windows
@@ -73,8 +74,8 @@ def start(entries: int) -> dict:
         time.sleep(2 * RACY_NS / 1e9)
         cfg = ServeConfig(cache_dir=str(cache))
         w, d = cfg.recipe.windows, cfg.recipe.decode
-        source = LocalSource(corpus, cache_dir=str(cache))
-        verdict = check_video(w, d, source, names[0])  # one real verdict, written for every link
+        source, caches = LocalSource(corpus), HostCaches(str(cache))
+        verdict = check_video(w, d, source, names[0], caches)  # one real verdict, written for every link
         db = sqlite3.connect(index_path(cache))
         with db:
             db.executemany("INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -83,10 +84,10 @@ def start(entries: int) -> dict:
                             for n in names))
         db.close()
         assert len(CorpusIndex(index_path(cache))) == entries
-        source = LocalSource(corpus, cache_dir=str(cache))  # a fresh start's source
+        source, caches = LocalSource(corpus), HostCaches(str(cache))  # a fresh start's
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         t0 = time.perf_counter()
-        known = known_windows(w, d, source, names)
+        known = known_windows(w, d, source, names, caches)
         s = time.perf_counter() - t0
         assert known.known == entries and known.samples == entries * verdict["windows"]
         return {"entries": entries, "seconds": round(s, 2), "us_per_video": round(s / entries * 1e6, 1),

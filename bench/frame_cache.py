@@ -40,15 +40,15 @@ def settle() -> None:
     time.sleep(RACY_NS / 1e9 + 0.02)
 
 
-def _source(corpus: Path, cache: Path, fmt: str, gb: float = 64.0):
-    from v2v_server.sources.source_spec import open_source
+def _caches(cache: Path, fmt: str, gb: float = 64.0):
+    from v2v_server.frames.host_caches import HostCaches
 
-    return open_source(str(corpus), cache_dir=str(cache), frame_cache_gb=gb, frame_cache_format=fmt)
+    return HostCaches.open(str(cache), frame_cache_gb=gb, frame_cache_format=fmt)
 
 
-def _entry_bytes(src) -> List[int]:
-    """Bytes of each entry in the frame cache of ``src``."""
-    return [size for _, size, _ in src.frame_cache.disk.entries()]
+def _entry_bytes(caches) -> List[int]:
+    """Bytes of each entry in the frame cache of ``caches``."""
+    return [size for _, size, _ in caches.frame_cache.disk.entries()]
 
 
 def measure(clip: Path, videos: int, rounds: int) -> dict:
@@ -68,19 +68,19 @@ def measure(clip: Path, videos: int, rounds: int) -> dict:
             runs.setdefault("off", []).append(worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True))
             for fmt in ("raw", "zstd"):
                 cache = tmp / f"cache-{fmt}-{r}"
-                src = _source(corpus, cache, fmt)
+                caches = _caches(cache, fmt)
                 runs.setdefault(f"{fmt} epoch 0", []).append(
-                    worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, source=src, epoch=0))
+                    worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, frame_cache=caches.frame_cache, epoch=0))
                 runs.setdefault(f"{fmt} epoch 1", []).append(
-                    worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, source=src, epoch=1))
-                sizes[fmt] = _entry_bytes(src)
+                    worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, frame_cache=caches.frame_cache, epoch=1))
+                sizes[fmt] = _entry_bytes(caches)
                 shutil.rmtree(cache)
         half = sum(sizes["raw"]) / 2
-        src = _source(corpus, tmp / "cache-half", "raw", half / (1 << 30))
-        worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, source=src, epoch=0)
-        src.take_stats()
-        budget_rate = worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, source=src, epoch=1)
-        st = src.take_stats()["frame_cache"]
+        caches = _caches(tmp / "cache-half", "raw", half / (1 << 30))
+        worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, frame_cache=caches.frame_cache, epoch=0)
+        caches.take_stats()
+        budget_rate = worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, frame_cache=caches.frame_cache, epoch=1)
+        st = caches.take_stats()["frame_cache"]
         looked = st["hits"] + sum(st["misses"].values())
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -124,15 +124,16 @@ def _scale_ms(path: Path, height: int, min_cpu_s: float, keep: float = 1.0, whol
 def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     """Bytes per frame of the ``raw`` frame-cache entry a worker's pass writes for ``path`` (the
     default kept 54 %; ``frame_height`` = ``height``), read from the cache's own listing."""
+    from v2v_server.frames.host_caches import HostCaches
     from v2v_server.samples.make import video_frames
-    from v2v_server.sources.source_spec import open_source
+    from v2v_server.sources.local import LocalSource
 
     cfg = SampleRecipe(sequence_length=2, num_bins=2, crop_size=8, max_samples_per_video=1000,
                       frame_height=height)
-    src = open_source(str(path.parent), cache_dir=str(cache), frame_cache_gb=64.0)
-    with video_frames(cfg, src, path.name) as fp:
+    fc = HostCaches.open(str(cache), frame_cache_gb=64.0).frame_cache
+    with video_frames(cfg, LocalSource(path.parent), path.name, fc) as fp:
         n = sum(1 for _ in fp.frames)
-    sizes = [size for _, size, _ in src.frame_cache.disk.entries()]
+    sizes = [size for _, size, _ in fc.disk.entries()]
     assert len(sizes) == 1, sizes
     return sizes[0] / n
 

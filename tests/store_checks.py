@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Optional
 
+from tests.cached import Cached, cached
 from v2v_server.sources.local import LocalSource
-from v2v_server.sources.source_spec import open_source
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"
@@ -14,11 +14,13 @@ OUTPUTS = ("voxels", "frames")
 
 
 def samples(cfg, root, names, epoch: int) -> dict:
-    """sample id -> bytes of its :data:`OUTPUTS`, for ``names`` of ``root`` (a folder or a source)."""
+    """sample id -> bytes of its :data:`OUTPUTS`, for ``names`` of ``root`` (a source, or a
+    ``Cached`` one read through its frame cache)."""
     from v2v_server.samples.make import video_samples
 
+    source, fc = (root.source, root.frame_cache) if isinstance(root, Cached) else (root, None)
     return {k.sample_id(1): b"".join(a[o].tobytes() for o in OUTPUTS)
-            for v in names for k, a, _ in video_samples(cfg.recipe, root, v, epoch, OUTPUTS)}
+            for v in names for k, a, _ in video_samples(cfg.recipe, source, v, epoch, OUTPUTS, frame_cache=fc)}
 
 
 def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[dict] = None,
@@ -35,7 +37,7 @@ def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[
     names = ["bikes.mp4", "webvid_like_596x336.mp4"]
     store.upload(CLIPS, url, names=names)
     cache = str(tmp_path / "cache")
-    src = open_source(url, storage_options=storage_options, cache_dir=cache, frame_cache_gb=1.0)
+    src = cached(url, cache, storage_options=storage_options)
     assert samples(cfg, src, names, 0) == folder_samples(tuple(names), 0)
     first = src.take_stats()
     assert first["frame_cache"]["stored"] == 2 and first["bytes"] > 0, first
@@ -46,7 +48,7 @@ def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[
     now = tmp_path / "now"
     now.mkdir()
     (now / "bikes.mp4").write_bytes((CLIPS / "bigbuckbunny.mp4").read_bytes())
-    fresh = open_source(url, storage_options=storage_options, cache_dir=cache, frame_cache_gb=1.0)  # new listing
+    fresh = cached(url, cache, storage_options=storage_options)  # new listing
     assert samples(cfg, fresh, ["bikes.mp4"], 2) == samples(cfg, LocalSource(now), ["bikes.mp4"], 2)  # decoded anew
     stats = fresh.take_stats()["frame_cache"]
     assert stats["misses"]["changed"] == 1 and stats["hits"] == 0, stats

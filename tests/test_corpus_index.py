@@ -15,6 +15,7 @@ import pytest
 from v2v_server.ops.config import ServeConfig
 from v2v_server.frames.corpus import check_corpus, check_video
 from v2v_server.frames.corpus_index import INDEX_FILE, CorpusIndex, layout_key
+from v2v_server.frames.host_caches import HostCaches
 from v2v_server.sources.local import RACY_NS, LocalSource
 
 
@@ -52,11 +53,11 @@ WINDOWS = (RECIPE.windows, RECIPE.decode)  # what a pass reads: check_video's an
 def test_a_second_check_answers_from_the_index_without_opening_a_video(corpus, tmp_path):
     cache = tmp_path / "cache"
     names = sorted(p.name for p in corpus.iterdir())
-    first_src = CountingSource(corpus, cache_dir=str(cache))
-    first = check_corpus(*WINDOWS, first_src, names)
+    first_src = CountingSource(corpus)
+    first = check_corpus(*WINDOWS, first_src, names, caches=HostCaches(str(cache)))
     assert sorted(first_src.opened) == names and all(r["usable"] for r in first)
-    again_src = CountingSource(corpus, cache_dir=str(cache))  # another process, the same host
-    again = check_corpus(*WINDOWS, again_src, names)
+    again_src = CountingSource(corpus)  # another process, the same host
+    again = check_corpus(*WINDOWS, again_src, names, caches=HostCaches(str(cache)))
     assert again_src.opened == [] and again == first
     # the file is plain SQLite: one row per video under this layout, with the verdict's facts
     with sqlite3.connect(cache / INDEX_FILE) as db:
@@ -70,17 +71,17 @@ def test_a_second_check_answers_from_the_index_without_opening_a_video(corpus, t
 
 def test_a_rewritten_video_or_another_layout_is_read_again(corpus, tmp_path, videos):
     cache = tmp_path / "cache"
-    src = CountingSource(corpus, cache_dir=str(cache))
-    before = check_video(*WINDOWS, src, "bikes.mp4")
+    src, caches = CountingSource(corpus), HostCaches(str(cache))
+    before = check_video(*WINDOWS, src, "bikes.mp4", caches)
     shutil.copyfile(videos / "bbb_camera_596x336.mp4", corpus / "bikes.mp4")  # same name, other content
     settle()
-    after = check_video(*WINDOWS, src, "bikes.mp4")
+    after = check_video(*WINDOWS, src, "bikes.mp4", caches)
     assert src.opened == ["bikes.mp4", "bikes.mp4"]
     assert (after["frames"], after["cuts"]) != (before["frames"], before["cuts"])
-    assert after == check_video(*WINDOWS, src, "bikes.mp4") and len(src.opened) == 2  # the new entry holds
+    assert after == check_video(*WINDOWS, src, "bikes.mp4", caches) and len(src.opened) == 2  # the new entry holds
     other = ServeConfig(sequence_length=4).recipe
     assert layout_key(other.windows, other.decode) != layout_key(*WINDOWS)
-    check_video(other.windows, other.decode, src, "bikes.mp4")
+    check_video(other.windows, other.decode, src, "bikes.mp4", caches)
     assert len(src.opened) == 3 and len(CorpusIndex(cache / INDEX_FILE)) == 2
 
 
@@ -104,9 +105,9 @@ def test_an_unreadable_index_is_one_warning_and_the_check_goes_on(corpus, tmp_pa
     cache = tmp_path / "cache"
     cache.mkdir()
     (cache / INDEX_FILE).write_bytes(b"this is not an SQLite file" * 100)
-    src = CountingSource(corpus, cache_dir=str(cache))
+    src = CountingSource(corpus)
     with caplog.at_level(logging.WARNING, logger="v2v"):
-        results = check_corpus(*WINDOWS, src, ["bikes.mp4", "bbb_camera_596x336.mp4"])
+        results = check_corpus(*WINDOWS, src, ["bikes.mp4", "bbb_camera_596x336.mp4"], caches=HostCaches(str(cache)))
     assert all(r["usable"] for r in results) and len(src.opened) == 2
     lines = [r.getMessage() for r in caplog.records if "corpus index" in r.getMessage()]
     assert len(lines) == 1 and str(cache / INDEX_FILE) in lines[0], lines
@@ -441,8 +442,8 @@ def test_the_index_keeps_typed_stream_facts_and_the_exact_frame_rate(tmp_path):
     _write_ntsc(d / "short.mp4", 10)
     settle()
     cache = tmp_path / "cache"
-    src = LocalSource(d, cache_dir=str(cache))
-    ntsc, short = (check_video(*WINDOWS, src, name) for name in ("ntsc.mp4", "short.mp4"))
+    src, caches = LocalSource(d), HostCaches(str(cache))
+    ntsc, short = (check_video(*WINDOWS, src, name, caches) for name in ("ntsc.mp4", "short.mp4"))
     assert ntsc["size"] == "64x48 mpeg4 yuv420p 30 fps" and ntsc["stream"]["fps"] == 30000 / 1001
     assert (ntsc["cause"], short["cause"]) == ("", "short") and not short["usable"]
     with sqlite3.connect(cache / INDEX_FILE) as db:
@@ -450,5 +451,5 @@ def test_the_index_keeps_typed_stream_facts_and_the_exact_frame_rate(tmp_path):
             "SELECT location, width, height, codec, fps, cause FROM entries WHERE layout = ?", (layout_key(*WINDOWS),)))
     assert rows["ntsc.mp4"] == (64, 48, "mpeg4", 30000 / 1001, "")
     assert rows["short.mp4"][3:] == (30000 / 1001, "short")
-    again = check_video(*WINDOWS, src, "ntsc.mp4")  # answered from the index: the same typed facts
+    again = check_video(*WINDOWS, src, "ntsc.mp4", caches)  # answered from the index: the same typed facts
     assert again["stream"] == ntsc["stream"]

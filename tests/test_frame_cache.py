@@ -21,13 +21,12 @@ import pytest
 
 from harness.corpus import write_size_change_video, write_video
 from tests import sample_hashes
+from tests.cached import Cached, cached
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.samples.make import video_samples
 from v2v_server.frames.frame_cache import MAGIC
 from v2v_server.sources.local import RACY_NS, LocalSource
-from v2v_server.sources.source import VideoSource
-from v2v_server.sources.source_spec import open_source
 from v2v_wire.outputs import DEFAULT_OUTPUTS, OUTPUTS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,14 +39,14 @@ def _samples(cfg, root, video, epoch=0, outputs=DEFAULT_OUTPUTS) -> dict:
     """{sample id: (sha of each array, params)} of one video of one epoch of ``root`` (a folder
     or a ``VideoSource``)."""
     out = {}
-    source = root if isinstance(root, VideoSource) else LocalSource(root)
-    for key, arrays, meta in video_samples(cfg, source, video, epoch, outputs, flow_grid=True):
+    source, fc = (root.source, root.caches.frame_cache) if isinstance(root, Cached) else (LocalSource(root), None)
+    for key, arrays, meta in video_samples(cfg, source, video, epoch, outputs, flow_grid=True, frame_cache=fc):
         out[key.sample_id(cfg.crops_per_window)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
     return out
 
 
-def _cached(root, cache_dir, gb=1.0, fmt="raw"):
-    return open_source(str(root), cache_dir=str(cache_dir), frame_cache_gb=gb, frame_cache_format=fmt)
+def _cached(root, cache_dir, gb=1.0, fmt="raw") -> Cached:
+    return cached(root, cache_dir, gb, fmt)
 
 
 def _settle() -> None:
@@ -67,7 +66,7 @@ def test_pinned_table_holds_cold_and_warm(tmp_path):
     want = json.loads(sample_hashes.TABLE.read_text())
     src = _cached(CLIPS, tmp_path)
     for state in ("cold", "warm"):
-        got = sample_hashes.compute(src)
+        got = sample_hashes.compute(src.source, src.caches.frame_cache)
         assert got == want, state
         stats = src.take_stats()["frame_cache"]
         if state == "warm":
@@ -292,7 +291,8 @@ def test_cache_folder_deleted_while_serving(tmp_path):
     want = _samples(cfg, CLIPS, "bikes.mp4")
     src = _cached(CLIPS, tmp_path)
     got = {}
-    for i, (key, arrays, meta) in enumerate(video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True)):
+    run = video_samples(cfg, src.source, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True, frame_cache=src.caches.frame_cache)
+    for i, (key, arrays, meta) in enumerate(run):
         got[key.sample_id(1)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
         if i == 0:
             shutil.rmtree(tmp_path / "frames")
@@ -350,8 +350,8 @@ def _make_samples(root: str, cache_dir: str, video: str, kill_after: int) -> Non
     import signal
 
     cfg = SampleRecipe(**SMALL)
-    src = open_source(root, cache_dir=cache_dir, frame_cache_gb=1.0)
-    for i, _ in enumerate(video_samples(cfg, src, video, 0, DEFAULT_OUTPUTS)):
+    src = _cached(root, cache_dir)
+    for i, _ in enumerate(video_samples(cfg, src.source, video, 0, DEFAULT_OUTPUTS, frame_cache=src.caches.frame_cache)):
         if i == kill_after:
             os.kill(os.getpid(), signal.SIGKILL)
 
@@ -384,7 +384,8 @@ def test_two_writers_make_one_entry(tmp_path):
     # not stored (an abandoned pass would count as incomplete)
     cfg = SampleRecipe(**SMALL)
     src = _cached(CLIPS, tmp_path / "one")
-    passes = [video_samples(cfg, src, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True) for _ in range(2)]
+    passes = [video_samples(cfg, src.source, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True,
+                                         frame_cache=src.caches.frame_cache) for _ in range(2)]
     got: tuple = ({}, {})
     for pair in itertools.zip_longest(*passes):
         for seen, sample in zip(got, pair):
@@ -545,7 +546,7 @@ def test_ray_stage_hits_its_node_local_cache(tmp_path):
 
     for epoch in (0, 1):
         assert rows(maker, epoch) == rows(plain, epoch)
-    stats = maker.source.take_stats()["frame_cache"]
+    stats = maker.caches.take_stats()["frame_cache"]
     assert stats["hits"] == stats["stored"] == len(epoch_descriptors(rc, 0)), stats
 
 
@@ -583,10 +584,10 @@ def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
 
     want = rows(plain)
     assert rows(maker) == want and not replay
-    stats = maker.source.take_stats()["frame_cache"]
+    stats = maker.caches.take_stats()["frame_cache"]
     assert stats["stored"] == 1 and stats["not_stored"]["incomplete"] == 0, stats
     assert rows(maker) == want
-    assert maker.source.take_stats()["frame_cache"]["hits"] == 1
+    assert maker.caches.take_stats()["frame_cache"]["hits"] == 1
     assert replay["read"] == cfg.recipe.windows.window_stride + 1 < replay["stored"], replay  # window 0 ends at the next one's first frame
 
 
@@ -647,9 +648,9 @@ def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, mo
         raise AssertionError("the source was built again")
 
     monkeypatch.setattr(source_spec, "source_from_spec", built)
-    first = warm.warm_cache(cfg, src, videos)
+    first = warm.warm_cache(cfg, src.source, src.caches, videos)
     assert [r["state"] for r in first] == ["stored", "stored"] and all(r["frames"] > 0 for r in first), first
-    again = warm.warm_cache(cfg, src, videos)
+    again = warm.warm_cache(cfg, src.source, src.caches, videos)
     assert [r["state"] for r in again] == ["cached", "cached"], again
     assert [r["frames"] for r in again] == [r["frames"] for r in first]
 
@@ -662,20 +663,20 @@ def test_warm_states_come_from_the_pass_itself(tmp_path):
 
     cfg = ServeConfig(**SMALL, workers=1)
     src = _cached(CLIPS, tmp_path / "big")
-    stored = warm_video(cfg, src, "bikes.mp4")
+    stored = warm_video(cfg, src.source, "bikes.mp4", src.caches)
     entry, = _entries(tmp_path / "big")
     assert stored["state"] == "stored" and 0 < stored["bytes"] <= entry.stat().st_size, stored
-    assert warm_video(cfg, src, "bikes.mp4") == dict(stored, state="cached", bytes=0)
+    assert warm_video(cfg, src.source, "bikes.mp4", src.caches) == dict(stored, state="cached", bytes=0)
     with open(entry, "r+b") as f:  # a flipped bit in the first frame: the trailer holds, the frame fails its sum
         f.seek(64)
         byte = f.read(1)
         f.seek(64)
         f.write(bytes([byte[0] ^ 1]))
-    damaged = warm_video(cfg, src, "bikes.mp4")
+    damaged = warm_video(cfg, src.source, "bikes.mp4", src.caches)
     assert damaged["state"].startswith("not stored") and damaged["frames"] == stored["frames"], damaged
     assert _entries(tmp_path / "big") == []  # removed; the rest decoded, not stored
     tiny = _cached(CLIPS, tmp_path / "tiny", gb=1e-6)
-    assert warm_video(cfg, tiny, "bikes.mp4")["state"] == "not stored: budget"
+    assert warm_video(cfg, tiny.source, "bikes.mp4", tiny.caches)["state"] == "not stored: budget"
 
 
 def test_frame_cache_gauges_and_status_line_from_worker_counters():

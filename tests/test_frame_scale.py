@@ -15,6 +15,7 @@ import pytest
 
 from harness.corpus import write_size_change_video, write_video
 from tests import sample_hashes
+from tests.cached import Cached, cached
 from tests.test_frames import write_clip
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
@@ -22,8 +23,6 @@ from v2v_server.samples.make import video_frames, video_samples
 from v2v_server.frames.corpus import check_video
 from v2v_server.frames.decode import decode_luma, feeding_rows, iter_luma, open_video, scale_frame, scaled_size
 from v2v_server.sources.local import LocalSource
-from v2v_server.sources.source import VideoSource
-from v2v_server.sources.source_spec import open_source
 from v2v_wire.outputs import OUTPUTS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -146,7 +145,7 @@ def test_frame_height_zero_is_the_decoded_frame(corpus):
 @pytest.mark.parametrize("fmt", ["raw", "zstd"])
 def test_cached_samples_equal_decoded_with_scaling(corpus, tmp_path, fmt):
     """Every output, cold and warm, equal to the decoded samples under a frame_height."""
-    src = open_source(str(corpus), cache_dir=str(tmp_path), frame_cache_gb=1.0, frame_cache_format=fmt)
+    src = cached(corpus, tmp_path, fmt=fmt)
     for video, height in (("bikes.mp4", 100), ("ten_bit.mkv", 72)):
         cfg = SampleRecipe(**SMALL, frame_height=height)
         decoded = _samples(cfg, corpus, video)
@@ -158,7 +157,7 @@ def test_cached_samples_equal_decoded_with_scaling(corpus, tmp_path, fmt):
 
 
 def test_entry_of_one_frame_height_is_not_hit_at_another(corpus, tmp_path):
-    src = open_source(str(corpus), cache_dir=str(tmp_path), frame_cache_gb=1.0)
+    src = cached(corpus, tmp_path)
     for height in (100, 120, 0, 100):
         cfg = SampleRecipe(**SMALL, frame_height=height)
         assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, corpus, "bikes.mp4"), height
@@ -205,10 +204,10 @@ def test_v2v_serve_bad_frame_height_is_a_configuration_error():
 
 
 def _samples(cfg, root, video) -> dict:
-    """{sample id: digest} of one video of ``root`` (a folder or a ``VideoSource``)."""
-    source = root if isinstance(root, VideoSource) else LocalSource(root)
+    """{sample id: digest} of one video of ``root`` (a folder or a ``Cached`` corpus)."""
+    source, fc = (root.source, root.frame_cache) if isinstance(root, Cached) else (LocalSource(root), None)
     return {key.sample_id(cfg.crops_per_window): sample_hashes._digest(arrays, sample_hashes._canonical(meta))
-            for key, arrays, meta in video_samples(cfg, source, video, 0, OUTPUTS, flow_grid=True)}
+            for key, arrays, meta in video_samples(cfg, source, video, 0, OUTPUTS, flow_grid=True, frame_cache=fc)}
 
 
 def test_served_samples_under_frame_height_are_the_recipes(corpus):

@@ -12,6 +12,7 @@ import pytest
 
 import v2v_server.frames.pass_record as pass_record
 from harness.corpus import write_scenes_video
+from tests.cached import Cached, cached
 from v2v_server.samples.make import video_frames
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.corpus import check_video
@@ -55,12 +56,12 @@ def corpus(tmp_path: Path) -> Path:
     return d
 
 
-def _read(recipe: SampleRecipe, source) -> None:
+def _read(recipe: SampleRecipe, corpus: Cached) -> None:
     """One sample pass (stored in the frame cache) and one ``--check`` pass (recorded in the index)."""
-    with video_frames(recipe, source, CLIP) as fp:
+    with video_frames(recipe, corpus.source, CLIP, corpus.frame_cache) as fp:
         for _ in fp.frames:
             pass
-    assert check_video(recipe.windows, recipe.decode, source, CLIP)["usable"]
+    assert check_video(recipe.windows, recipe.decode, corpus.source, CLIP, corpus.caches)["usable"]
 
 
 def _keys(recipe: SampleRecipe, corpus: Path) -> dict:
@@ -84,7 +85,7 @@ def test_every_field_of_the_record_is_changed_by_the_test():
 def test_a_change_of_any_field_is_a_new_entry_row_and_fingerprint(name, corpus, tmp_path, monkeypatch):
     before, after = CHANGES[name]
     cache = tmp_path / "cache"
-    source = open_source(str(corpus), cache_dir=str(cache), frame_cache_gb=1.0)
+    source = cached(corpus, cache)
     old = SampleRecipe(**{**BASE, **before})
     _read(old, source)
     assert _stored(cache) == (1, 1)
@@ -105,7 +106,7 @@ def test_a_change_of_any_field_is_a_new_entry_row_and_fingerprint(name, corpus, 
 
 def test_a_setting_outside_the_record_reuses_the_entry_and_the_row(corpus, tmp_path):
     cache = tmp_path / "cache"
-    source = open_source(str(corpus), cache_dir=str(cache), frame_cache_gb=1.0)
+    source = cached(corpus, cache)
     base = SampleRecipe(**BASE)
     _read(base, source)
     for key, value in OUTSIDE.items():

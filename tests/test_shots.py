@@ -14,6 +14,7 @@ from v2v_server.frames.corpus import SAMPLE_VIDEOS, check_video, format_check
 from v2v_server.frames.decode import iter_luma
 from v2v_server.sources.segments import parse_time, range_problem, segment_name, split_segment
 from v2v_server.frames.shots import ShotDetector, WindowLayout, code_table, thumbnail
+from v2v_server.frames.host_caches import HostCaches
 from v2v_server.sources.local import LocalSource
 from v2v_server.sources.source_spec import open_source
 from v2v_server.sources.video_list import read_video_list
@@ -163,22 +164,23 @@ def test_montages_give_no_window_and_check_says_why():
 
 def test_cached_epoch_reuses_the_stored_cuts(tmp_path, monkeypatch):
     cfg = SampleRecipe(sequence_length=8, max_samples_per_video=20)
-    src = open_source(SAMPLE_VIDEOS, cache_dir=str(tmp_path), frame_cache_gb=1.0)
+    src, caches = open_source(SAMPLE_VIDEOS), HostCaches.open(str(tmp_path), frame_cache_gb=1.0)
+    fc = caches.frame_cache
     clip = "webvid_like_596x336.mp4"
-    first = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",))]
-    assert src.frame_cache.take_stats()["stored"] == 1
+    first = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",), frame_cache=fc)]
+    assert fc.take_stats()["stored"] == 1
 
     class NoDetection:
         def __init__(self, *a, **k):
             raise AssertionError("a cached pass ran the shot detector")
 
     monkeypatch.setattr(frames_mod, "ShotDetector", NoDetection)
-    with video_frames(cfg, src, clip) as fp:
+    with video_frames(cfg, src, clip, fc) as fp:
         cuts = [i for i, f in enumerate(fp.frames) if f.cut]
         assert fp.cached and cuts == LABELLED[clip][:len(cuts)] and cuts
-    again = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",))]
+    again = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",), frame_cache=fc)]
     assert again == first
-    assert src.frame_cache.take_stats()["hits"] == 2
+    assert fc.take_stats()["hits"] == 2
 
 
 def test_metrics_count_cuts_and_the_windows_they_removed():

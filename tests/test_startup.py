@@ -16,7 +16,7 @@ from v2v_server.service.local import local_server
 from v2v_server.frames.corpus import SAMPLE_VIDEOS
 from v2v_server.disk_cache import cache_folder, default_cache_dir
 from v2v_server.sources.manifest import manifest_path
-from v2v_server.sources.source import CacheDirError
+from v2v_server.disk_cache import CacheDirError
 from v2v_server.sources.store_io import StoreError
 
 CLIPS = str(SAMPLE_VIDEOS)
@@ -64,17 +64,17 @@ def test_every_path_reads_the_video_list_of_the_config(tmp_path, capsys):
 
 
 def test_the_cache_folder_is_resolved_once_and_carried_down(tmp_path, monkeypatch):
-    """No ``cache_dir``: the start-up path resolves the host's default once; the source, its
-    corpus index and the Ray actors' source spec all use that folder."""
+    """No ``cache_dir``: the start-up path resolves the host's default once; the source, the
+    caches beside it (frame cache, corpus index) and the Ray actors' specs all use that folder."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     start = start_source(ServeConfig(frame_cache_gb=1.0))
     want = str(tmp_path / "xdg" / "v2v")
     assert cache_folder(None) == str(default_cache_dir()) == want
-    assert start.config.cache_dir == start.source.cache_dir == want
-    assert str(start.source.frame_cache.disk.folder) == str(tmp_path / "xdg" / "v2v" / "frames")
-    spec = SampleMaker.arguments(resolve_config(ServeConfig()), CLIPS, ("voxels",))["source_spec"]
-    assert spec["cache_dir"] == want
-    assert start.source.corpus_index().path == Path(want) / "corpus_index.sqlite"
+    assert start.config.cache_dir == start.source.cache_dir == start.caches.cache_dir == want
+    assert str(start.caches.frame_cache.disk.folder) == str(tmp_path / "xdg" / "v2v" / "frames")
+    actor = SampleMaker.arguments(resolve_config(ServeConfig()), CLIPS, ("voxels",))
+    assert actor["source_spec"]["cache_dir"] == actor["caches_spec"]["cache_dir"] == want
+    assert start.caches.corpus_index().path == Path(want) / "corpus_index.sqlite"
     bucket = source_from_config(ServeConfig(), "s3://corpus/clips/")  # not reached: built only
     assert Path(bucket.listing.path).parent == Path(want) / "manifests"
     with pytest.raises(ValueError, match="needs a state_dir or a resolved cache folder"):

@@ -84,9 +84,9 @@ def test_keep_serves_every_window_and_skip_none_below_the_threshold(still_then_p
     verdict = check_video(skip.recipe.windows, skip.recipe.decode, src, rel)
     assert verdict["windows"] == 2 and verdict["static"] == 2
     # the frame cache replays the pass that found them: the same samples
-    from v2v_server.sources.source_spec import open_source
+    from tests.cached import cached as cached_corpus
 
-    cached = open_source(str(still_then_pan), cache_dir=str(still_then_pan / "cache"), frame_cache_gb=1.0)
+    cached = cached_corpus(still_then_pan, still_then_pan / "cache")
     first = samples(skip, cached, [rel], 0)
     assert samples(skip, cached, [rel], 0) == first == samples(skip, src, [rel], 0)
     assert cached.take_stats()["frame_cache"]["hits"] >= 1

@@ -5,6 +5,7 @@ the frame cache."""
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 
@@ -12,8 +13,8 @@ from harness.corpus import write_scenes_video
 from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.corpus import check_video
-from v2v_server.sources.local import LocalSource
-from v2v_server.sources.source_spec import open_source
+from v2v_server.sources.local import RACY_NS, LocalSource
+from tests.cached import Cached, cached as cached_corpus
 
 CLIP = "scenes.mpg"
 
@@ -31,12 +32,14 @@ def corpus(tmp_path_factory):
     changes again inside a later window, no cut there)."""
     d = tmp_path_factory.mktemp("window_pass")
     write_scenes_video(d / CLIP, [("a", 25, 96, 80), ("a", 5, 128, 80), ("b", 35, 128, 80), ("b", 30, 96, 80)])
+    time.sleep(RACY_NS / 1e9 + 0.02)  # a file changed within the racy window is decoded and never stored
     return d
 
 
 def _served(recipe: SampleRecipe, source) -> tuple:
     """The windows the sample pass serves, and its record (``window_pass.VideoPass``)."""
-    run = video_samples(recipe, source, CLIP, 0, ("frames",))
+    source, fc = (source.source, source.frame_cache) if isinstance(source, Cached) else (source, None)
+    run = video_samples(recipe, source, CLIP, 0, ("frames",), frame_cache=fc)
     return sorted({key.window for key, _, _ in run}), run.record()
 
 
@@ -57,7 +60,7 @@ def test_check_and_the_samples_served_agree_window_by_window(corpus, tmp_path, s
     recipe = _recipe(shot_cuts)
     verdict = check_video(recipe.windows, recipe.decode, LocalSource(corpus), CLIP)
     failed = verdict.get("failed_windows", [])
-    source = open_source(str(corpus), cache_dir=str(tmp_path), frame_cache_gb=1.0) if cached else LocalSource(corpus)
+    source = cached_corpus(corpus, tmp_path) if cached else LocalSource(corpus)
     for _ in range(2 if cached else 1):  # the second pass replays the entry the first stored
         served, found = _served(recipe, source)
         assert served == [k for k in range(verdict["windows"] + len(failed)) if k not in failed], (verdict, served)

@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from harness.corpus import write_zip_parts
+from tests.cached import cached
 from tests.store_checks import samples
 from tests.test_object_store import CLIPS, LAYOUT, _epoch
 from v2v_server.samples.recipe import SampleRecipe
@@ -83,12 +84,12 @@ def test_a_member_follows_its_part_in_the_frame_cache(tmp_path):
             z.write(CLIPS / clip, "x.mp4")
 
     write("bikes.mp4")
-    src = open_source(str(folder), cache_dir=str(tmp_path / "cache"), frame_cache_gb=1.0)
-    assert src.identity("a.zip/x.mp4") is None  # just written: racy, decoded and not stored
+    src = cached(folder, tmp_path / "cache")
+    assert src.source.identity("a.zip/x.mp4") is None  # just written: racy, decoded and not stored
     _settle()
     with zipfile.ZipFile(folder / "a.zip") as z:
         info = z.getinfo("x.mp4")
-    ident = src.identity("a.zip/x.mp4")
+    ident = src.source.identity("a.zip/x.mp4")
     assert ident.startswith("zip ") and ident.endswith(
         f" member {info.header_offset} {info.file_size} {info.compress_size} {info.CRC} 8 0")
     recipe = SampleRecipe(sequence_length=4, num_bins=2, crop_size=32, max_samples_per_video=2)
@@ -104,7 +105,7 @@ def test_a_member_follows_its_part_in_the_frame_cache(tmp_path):
     assert src.take_stats()["frame_cache"]["hits"] == 1
     write("webvid_like_596x336.mp4")
     _settle()
-    assert src.identity("a.zip/x.mp4") != ident
+    assert src.source.identity("a.zip/x.mp4") != ident
     assert samples(cfg, src, ["a.zip/x.mp4"], 0) == plain("webvid_like_596x336.mp4") != want
     assert src.take_stats()["frame_cache"]["misses"]["changed"] == 1
     # a split part: rewriting one piece changes every member's identity

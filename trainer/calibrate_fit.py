@@ -195,22 +195,23 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
     """
     import dataclasses
 
-    from v2v_server.ops.config import source_from_config
+    from v2v_server.ops.startup import start_source
     from v2v_server.samples.make import video_samples
+    from v2v_server.sources.store_io import StoreError
 
     r = cfg.recipe
     frames_recipe = dataclasses.replace(r, sequence_length=r.sequence_length * r.num_bins * r.frames_per_bin,
                                         num_bins=1, frames_per_bin=1, outputs=("frames",), nonidealities={},
                                         refine="off")
     try:
-        source = source_from_config(cfg, videos)
-        names, _ = source.list_videos(cfg.video_extensions)
-    except (OSError, ValueError) as e:
+        start = start_source(cfg, videos)  # the start-up path v2v-serve runs: the same source and caches
+    except (OSError, ValueError, StoreError) as e:
         raise CalibrationError(f"corpus {videos}: {e}") from None
+    source, fc, names = start.source, start.caches.frame_cache, start.videos
     out = CorpusWindows([], [], [])
     rng = np.random.default_rng(seed)
     for rel, epoch in ((rel, e) for rel in names for e in range(epochs)):
-        for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",)):
+        for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",), frame_cache=fc):
             shape = arrays["frames"].shape[1:]
             out.seqs.append(arrays["frames"])
             out.fps.append(float(meta["video_fps"]))

@@ -115,22 +115,23 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
     Raises:
         StatsInputError: the corpus cannot be listed or holds no video.
     """
-    from v2v_server.ops.config import source_from_config
-    from v2v_server.samples.make import video_samples
     from v2v_server.frames.corpus import check_video
+    from v2v_server.ops.startup import start_source
+    from v2v_server.samples.make import video_samples
+    from v2v_server.sources.store_io import StoreError
 
     try:
-        source = source_from_config(cfg, videos_arg)
-        names, _rejected = source.list_videos(cfg.video_extensions)
-    except (OSError, ValueError) as e:
+        start = start_source(cfg, videos_arg)  # the start-up path v2v-serve runs: the same source and caches
+    except (OSError, ValueError, StoreError) as e:
         raise StatsInputError(f"corpus {videos_arg}: {e}") from None
+    source, caches, names = start.source, start.caches, start.videos
     if not names:
         raise StatsInputError(f"corpus {videos_arg}: no video (extensions {', '.join(cfg.video_extensions)})")
     recipe = cfg.recipe
     out = Collected(source=f"corpus {videos_arg}")
     usable = []
     for rel in names:
-        v = check_video(recipe.windows, recipe.decode, source, rel)
+        v = check_video(recipe.windows, recipe.decode, source, rel, caches)
         cuts = sorted(int(c) for c in v.get("cuts", []))
         bounds = [0] + cuts + [int(v.get("frames", 0))]
         out.videos.append({"path": rel, "size": v.get("size", ""), "frames": int(v.get("frames", 0)),
@@ -140,7 +141,8 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
             usable.append(rel)
     for epoch in range(epochs):
         for rel in usable:
-            for _key, arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True):
+            for _key, arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True,
+                                                    frame_cache=caches.frame_cache):
                 out.rows.append(sample_row(meta, arrays["voxels"], recipe))
                 progress(1)
                 if len(out.rows) >= n:

@@ -69,7 +69,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: interrupted while listing {cfg.video_list or cfg.videos or SAMPLE_VIDEOS}",
               file=sys.stderr)
         return 130
-    cfg, source, videos, rejected = start.config, start.source, start.videos, start.rejected
+    cfg, source, caches, videos, rejected = start.config, start.source, start.caches, start.videos, start.rejected
     listing = corpus_fingerprint(videos)  # of the whole listing: shards compare it
     index, count = cfg.serving.shard_spec
     if count > 1:
@@ -77,18 +77,18 @@ def main(argv: Optional[List[str]] = None) -> int:
         log.info("shard %d/%d: %d of %d video file(s)", index, count, len(mine), len(videos))
         videos = mine
     if args.check:
-        results = check_corpus(cfg.recipe.windows, cfg.recipe.decode, source, videos, cfg.workers)
+        results = check_corpus(cfg.recipe.windows, cfg.recipe.decode, source, videos, cfg.workers, caches)
         print(format_check(results, rejected, cfg.recipe.crops_per_window))
-        if source.frame_cache is not None:
-            print(cache_line(source, cfg, videos))
+        if caches.frame_cache is not None:
+            print(cache_line(source, caches.frame_cache, cfg, videos))
         return 0 if any(r["usable"] for r in results) else 2
     if args.warm_cache:
         try:
-            results = warm_cache(cfg, source, videos)
+            results = warm_cache(cfg, source, caches, videos)
         except ValueError as e:
             print(f"v2v-serve: {e}", file=sys.stderr)
             return 2
-        print(format_warm(results, source))
+        print(format_warm(results, caches.frame_cache))
         return 0 if any(r["state"] in ("stored", "cached") for r in results) else 2
     for rel, reason in rejected:  # a listed video that is missing is named here, once
         (log.warning if source.video_list else log.info)("ignored %s: %s", source.where_ignored(rel), reason)
@@ -96,21 +96,21 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: --videos {source.root}: no video files ({', '.join(cfg.video_extensions)})"
               + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)
         return 2
-    known = known_windows(cfg.recipe.windows, cfg.recipe.decode, source, videos)
+    known = known_windows(cfg.recipe.windows, cfg.recipe.decode, source, videos, caches)
     if known.empty:  # gives no sample: not opened again while its identity holds
         log.info("%d video(s) not opened: the corpus index %s knows they give no window at this layout "
-                 "(--check says why)", len(known.empty), index_path(source.cache_dir))
+                 "(--check says why)", len(known.empty), index_path(caches.cache_dir))
         videos = [v for v in videos if v not in known.empty]
         if not videos:
             print(f"v2v-serve: --videos {source.root}: no video gives a window at this layout (the corpus index "
-                  f"{index_path(source.cache_dir)} knows them all; --check says why)", file=sys.stderr)
+                  f"{index_path(caches.cache_dir)} knows them all; --check says why)", file=sys.stderr)
             return 2
     epoch_samples = (cfg.recipe.epoch_samples(known.samples) if known.known == len(videos) + len(known.empty)
                      else None)
     if epoch_samples is not None:
         log.info("an epoch holds %d sample(s) of %d video(s) (corpus index)", epoch_samples, len(videos))
     try:
-        server = V2VServer(cfg, source, videos, corpus=listing, epoch_samples=epoch_samples, skipped=known.empty)
+        server = V2VServer(cfg, source, caches, videos, corpus=listing, epoch_samples=epoch_samples, skipped=known.empty)
     except (JournalError, OSError) as e:  # the journal of --state-dir
         print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
         return 2

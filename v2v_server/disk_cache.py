@@ -25,6 +25,7 @@ import errno
 import fcntl
 import itertools
 import os
+import tempfile
 from pathlib import Path
 from typing import Iterator, List, Optional, Tuple
 
@@ -47,6 +48,29 @@ def cache_folder(cache_dir: Optional[str]) -> str:
     run by the start-up path ``ops.startup``), or a source's built without a configuration
     (``source_spec.open_source``, ``VideoSource``); everything below takes the resolved folder."""
     return str(cache_dir) if cache_dir else str(default_cache_dir())
+
+
+class CacheDirError(ValueError):
+    """A cache that is on cannot be kept in ``cache_dir`` (the message names the folder)."""
+
+
+def check_cache_folders(cache_dir: str, folders: List[Path]) -> None:
+    """At start: each folder of a cache that is on (a source's object cache, the frame cache)
+    can be made and written. A cache asked for and unusable is a setting to fix, not a run to
+    make at a fraction of the speed: ``v2v-serve`` exits with this one line. (While serving, the
+    same faults are served by reading without the cache: docs/faults.md.)
+
+    Raises:
+        CacheDirError: naming ``cache_dir`` and the folder, with the system's reason.
+    """
+    for folder in folders:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=folder):
+                pass
+        except OSError as e:
+            raise CacheDirError(f"--cache-dir {cache_dir}: cannot keep a cache in {folder}: "
+                                f"{e.strerror or e}") from None
 
 
 def _pid_alive(pid: int) -> bool:

@@ -45,7 +45,8 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 import numpy as np
 
 from v2v_server.delivery.batcher import video_order
-from v2v_server.ops.config import ServeConfig, source_from_config
+from v2v_server.frames.host_caches import HostCaches
+from v2v_server.ops.config import ServeConfig, caches_from_config, source_from_config
 from v2v_server.ops.startup import resolve_config, start_source
 from v2v_wire.outputs import ARRAYS, DEFAULT_OUTPUTS, OUTPUTS, row_array, zeros_row
 from v2v_wire.protocol import check_outputs
@@ -96,11 +97,13 @@ class RayCorpus:
         return sum(self.windows.values()) * self.crops_per_window
 
 
-def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int, Optional[str]]:
+def count_windows(cfg: ServeConfig, source: VideoSource, rel: str,
+                  caches: Optional[HostCaches] = None) -> Tuple[int, Optional[str]]:
     """Windows the video at ``rel`` of ``source`` (the corpus) gives per epoch: the window pass
     (``window_pass.WindowPass``) over its video packets (demuxed, not decoded); with
     ``shot_cuts: avoid``, or for a segment, over its decoded frames (``corpus.check_video``: the
-    windows depend on the cuts, or on the range's frames).
+    windows depend on the cuts, or on the range's frames; answered from the corpus index of
+    ``caches`` while the video's identity holds).
 
     Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
     ``v2v-serve`` logs for it (``open_video``'s ``VideoError`` message, or ``"N frames,
@@ -109,7 +112,7 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str) -> Tuple[int,
     """
     w = cfg.recipe.windows
     if w.reads_frames or split_segment(rel)[1]:
-        r = check_video(w, cfg.recipe.decode, source, rel)
+        r = check_video(w, cfg.recipe.decode, source, rel, caches)
         return r["windows"], (None if r["usable"] else r["reason"])
     windows = WindowPass(w, cfg.recipe.reads)
     error = None
@@ -142,15 +145,15 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
     Raises:
         StoreError: ``videos`` is a local path but not a folder, or the store cannot be reached
             or listed (naming the URL).
-        source.CacheDirError: a cache that is on cannot be kept in ``cache_dir`` (naming it).
+        disk_cache.CacheDirError: a cache that is on cannot be kept in ``cache_dir`` (naming it).
     """
     start = start_source(config or ServeConfig(), videos)
-    cfg, source, found, rejected = start.config, start.source, start.videos, start.rejected
+    cfg, source, caches, found, rejected = start.config, start.source, start.caches, start.videos, start.rejected
     for rel, reason in rejected:
         log.info("ignored %s: %s", source.where_ignored(rel), reason)
     windows, skipped = {}, {}
     for rel in found:
-        n, reason = count_windows(cfg, source, rel)
+        n, reason = count_windows(cfg, source, rel, caches)
         if reason:
             skipped[rel] = reason
             log.warning("skipped %s: %s", source.where(rel), reason)
@@ -214,7 +217,7 @@ class SampleMaker:
     """The ``map_batches`` stage: one Ray actor, one CPU; makes the samples of video descriptors.
 
     Built once per actor, from only what it uses: the sample recipe, the corpus's source (from
-    the driver's ``VideoSource.spec()``), OpenCV set to one thread, the optical-flow estimator
+    the driver's ``VideoSource.spec()``) and the host's caches beside it (``HostCaches.spec()``), OpenCV set to one thread, the optical-flow estimator
     (and any compiled kernel sample making loads on first use). Each call takes a batch of
     descriptors (see :func:`epoch_descriptors`) and yields one single-row batch per entry,
     as soon as the sample is made (rows stream; the actor never holds a whole video).
@@ -223,18 +226,21 @@ class SampleMaker:
         recipe_dict: ``SampleRecipe.recipe_dict()``.
         source_spec: ``VideoSource.spec()`` of the corpus as the driver opened it (a folder as
             seen from the actor's node, or an object-store URL read with the node's credentials).
+        caches_spec: ``HostCaches.spec()`` of the caches ``cfg`` describes (the frame cache, the
+            corpus index), at the same path on the actor's node.
         outputs: subset of ``OUTPUTS`` to make.
 
     Raises:
         ValueError: naming the key, for a recipe that does not check.
     """
 
-    def __init__(self, recipe_dict: dict, source_spec: dict, outputs: Sequence[str]):
+    def __init__(self, recipe_dict: dict, source_spec: dict, caches_spec: dict, outputs: Sequence[str]):
         import cv2
 
         cv2.setNumThreads(1)
         self.recipe = SampleRecipe.recipe_from_dict(recipe_dict, source="ray stage recipe")
         self.source = source_from_spec(source_spec)
+        self.caches = HostCaches.from_spec(caches_spec)
         self.outputs = tuple(outputs)
         self.flow = FlowEstimator(self.recipe.flow_preset) if "flow" in self.outputs else None
         logging.basicConfig(level=logging.INFO, format="v2v-ray %(process)d: %(message)s")
@@ -244,7 +250,7 @@ class SampleMaker:
         """The constructor's arguments for the corpus at ``root`` served with ``cfg``: what the
         driver hands each actor (plain values that pickle)."""
         return {"recipe_dict": cfg.recipe.recipe_dict(), "source_spec": source_from_config(cfg, root).spec(),
-                "outputs": tuple(outputs)}
+                "caches_spec": caches_from_config(cfg).spec(), "outputs": tuple(outputs)}
 
     @classmethod
     def of(cls, cfg: ServeConfig, root: str, outputs: Sequence[str]) -> "SampleMaker":
@@ -266,7 +272,8 @@ class SampleMaker:
                 if key not in keep]
         error: Optional[str] = None
         # a tracked flow comes as its grid, as from a worker: the sample's statistics are of the same arrays
-        run = video_samples(self.recipe, self.source, video, epoch, self.outputs, skip, self.flow, flow_grid=True)
+        run = video_samples(self.recipe, self.source, video, epoch, self.outputs, skip, self.flow, flow_grid=True,
+                            frame_cache=self.caches.frame_cache)
         try:
             for key, arrays, meta in run:
                 sid = key.sample_id(kpw)

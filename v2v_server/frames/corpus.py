@@ -14,7 +14,8 @@ from v2v_server.sources.local import LocalSource
 from v2v_server.sources.segments import split_segment
 from v2v_server.frames.shots import ShotDetector
 from v2v_server.sources.source import VideoSource
-from v2v_server.sources.source_spec import map_videos
+from v2v_server.frames.host_caches import HostCaches
+from v2v_server.frames.video_pool import map_videos
 from v2v_server.frames.window_pass import VideoPass, WindowPass
 from v2v_server.frames.windows import WindowSettings
 
@@ -65,7 +66,8 @@ def corpus_fingerprint(videos: List[str]) -> str:
 VFR_SPREAD = 0.1
 
 
-def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str) -> dict:
+def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str,
+                caches: Optional[HostCaches] = None) -> dict:
     """Verdict for one file of ``source`` (the corpus): ``{"path", "usable", "windows", "frames", "size", "reason",
     "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
     says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
@@ -75,12 +77,12 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     workers cut (scaled and kept rows as ``decode`` says), scored by the same detector; a
     frame's size in a message is the whole displayed frame's.
 
-    Answered from the host's corpus index (``source.corpus_index()``) while the file's identity
-    holds, else by decoding it; a verdict that decoding reached without an error (a read
-    failure may be passing) is recorded there for the next pass."""
-    index = source.corpus_index()
+    Answered from the host's corpus index (``caches.corpus_index()``; none without ``caches``)
+    while the file's identity holds, else by decoding it; a verdict that decoding reached without
+    an error (a read failure may be passing) is recorded there for the next pass."""
+    index = caches.corpus_index() if caches is not None else None
     identity = _identity(source, rel) if index is not None else None  # before decoding: what the verdict is of
-    known = indexed_verdict(windows, decode, source, rel)
+    known = indexed_verdict(windows, decode, source, rel, caches)
     if known is not None:
         return known
     out = {}  # what only this pass measures (frame timing), beside the window pass's verdict
@@ -123,10 +125,12 @@ def _identity(source: VideoSource, rel: str):
         return None
 
 
-def indexed_verdict(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str):
-    """``check_video``'s verdict of the video at ``rel`` as the host's corpus index holds it
-    (the video's identity unchanged, the entry made by a pass that timed frames), or None."""
-    index = source.corpus_index()
+def indexed_verdict(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str,
+                    caches: Optional[HostCaches]):
+    """``check_video``'s verdict of the video at ``rel`` as the host's corpus index
+    (``caches.corpus_index()``) holds it (the video's identity unchanged, the entry made by a
+    pass that timed frames), or None."""
+    index = caches.corpus_index() if caches is not None else None
     if index is None:
         return None
     known = index.lookup(source.where(rel), _identity(source, rel), layout_key(windows, decode))
@@ -165,17 +169,17 @@ def size_text(stream: Optional[dict]) -> str:
 
 
 def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str,
-                record: VideoPass) -> bool:
+                record: VideoPass, caches: Optional[HostCaches]) -> bool:
     """Keep what a sample pass or ``--warm-cache`` found of the video at ``rel`` in the host's
     corpus index, so that the server's next start knows its windows without ``--check``: when
     the pass ran whole (no error), with shot detection (``shot_cuts: avoid``: an entry holds
     the cuts found, as ``--check``'s do), and no entry holds for the video yet. These passes
     do not time frames, so the entry says ``frame_timing: False`` and ``--check`` decodes the
     video again for its own line. An index that cannot be written is one warning; the pass's
-    samples are unaffected. Returns whether an entry was written."""
+    samples are unaffected. Returns whether an entry was written (never without ``caches``)."""
     if record.error is not None or not windows.avoid_cuts:
         return False
-    index = source.corpus_index()
+    index = caches.corpus_index() if caches is not None else None
     if index is None:
         return False
     where, key, identity = source.where(rel), layout_key(windows, decode), source.listed_identity(rel)
@@ -196,13 +200,13 @@ class KnownWindows(NamedTuple):
 
 
 def known_windows(windows: WindowSettings, decode: DecodeSettings, source: VideoSource,
-                  videos: Sequence[str]) -> KnownWindows:
+                  videos: Sequence[str], caches: Optional[HostCaches]) -> KnownWindows:
     """What the host's corpus index knows of ``videos`` under the layout of ``windows`` and
     ``decode`` (``corpus_index.layout_key``), each video's identity unchanged
     (``source.listed_identity``: a file's status, a store's listing, no request per object).
     The server reads it at start: an epoch's size when every video is known, and the videos not
-    worth opening. Nothing is known without an index."""
-    index = source.corpus_index()
+    worth opening. Nothing is known without an index (``caches.corpus_index()``)."""
+    index = caches.corpus_index() if caches is not None else None
     known, samples, empty = 0, 0, {}
     if index is None:
         return KnownWindows(0, 0, empty)
@@ -217,19 +221,20 @@ def known_windows(windows: WindowSettings, decode: DecodeSettings, source: Video
 
 
 def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, videos: List[str],
-                 processes: int = 1) -> List[dict]:
-    """``check_video`` for every file of ``source``, in ``processes`` processes (``source``
-    itself in this one, or built once in each of them from its ``spec()``). The corpus index is
+                 processes: int = 1, caches: Optional[HostCaches] = None) -> List[dict]:
+    """``check_video`` for every file of ``source``, in ``processes`` processes (``source`` and
+    ``caches`` themselves in this one, or built once in each of them from their ``spec()``,
+    ``video_pool.map_videos``). The corpus index (``caches.corpus_index()``) is
     opened here first, and for a folder (a video's identity is a ``stat``) its answers are read
     here: a fault of the index is then found (and named) once, in this process, the processes
     leave it off, and only the videos it does not know are decoded. A store's identities cost
     a request each, made by the processes in parallel, which read its answers themselves."""
     local = isinstance(source, LocalSource)
-    index = source.corpus_index()
-    known = {rel: indexed_verdict(windows, decode, source, rel) if local and index is not None else None
+    index = caches.corpus_index() if caches is not None else None
+    known = {rel: indexed_verdict(windows, decode, source, rel, caches) if local and index is not None else None
              for rel in videos}
     todo = [rel for rel in videos if known[rel] is None]
-    made = dict(zip(todo, map_videos(check_video, (windows, decode), source, todo, processes)))
+    made = dict(zip(todo, map_videos(check_video, (windows, decode), source, caches, todo, processes)))
     return [known[rel] or made[rel] for rel in videos]
 
 

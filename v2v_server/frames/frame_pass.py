@@ -217,10 +217,11 @@ def lookup_entry(cache: FrameCache, source, rel: str, settings: dict
 
 
 @contextlib.contextmanager
-def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSettings) -> Iterator[FramePass]:
+def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSettings,
+                frame_cache: Optional[FrameCache] = None) -> Iterator[FramePass]:
     """The frames of video ``rel`` of ``source`` (a ``sources.source.VideoSource``) that a pass
-    over ``windows`` reads (``WindowSettings.frame_limit`` of the declared count), from its frame
-    cache (``source.frame_cache``, None when off; the entry named by :func:`entry_settings`) or
+    over ``windows`` reads (``WindowSettings.frame_limit`` of the declared count), from the host's
+    ``frame_cache`` (``HostCaches.frame_cache``, None when off; the entry named by :func:`entry_settings`) or
     decoded as ``decode`` says (``decode.open_video``, ``decode.decode_codes``: scaled to
     ``frame_height`` rows when not 0, the kept rows of that). With ``shot_cuts: avoid`` the shot
     cuts are found (``shots.ShotDetector`` on the kept rows; stored with the entry, so a replay
@@ -231,7 +232,7 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
     """
     rows, threads, fast, height = decode.kept_rows, decode.decode_threads, decode.decode_fast, decode.frame_height
     limit_of, detect = windows.frame_limit, windows.avoid_cuts
-    cache: Optional[FrameCache] = source.frame_cache
+    cache = frame_cache
     name = identity = None
     segment = split_segment(rel)[1]  # a segment: its time range of the video
     if cache is not None:

@@ -18,6 +18,7 @@ from v2v_server.checks import check_bool, check_choice, check_float, check_int, 
 from v2v_server.delivery.core import DeliveryPolicy
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.settings import documented, load_yaml, reference_markdown, setting
+from v2v_server.frames.host_caches import HostCaches
 from v2v_server.frames.frame_cache import DEFAULT_FORMAT as DEFAULT_FRAME_CACHE_FORMAT, FORMATS as FRAME_CACHE_FORMATS
 from v2v_server.disk_cache import cache_folder
 from v2v_server.sources.manifest import manifest_path
@@ -279,11 +280,17 @@ def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) 
             key += f" listed by {Path(cfg.video_list).resolve()}"
         manifest = str(manifest_path(key, cfg.state_dir, cache_dir))
     source = open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
-                         refresh_manifest=cfg.refresh_manifest, settings=cfg.store, cache_dir=cache_dir,
-                         frame_cache_gb=cfg.frame_cache_gb, frame_cache_format=cfg.frame_cache_format)
+                         refresh_manifest=cfg.refresh_manifest, settings=cfg.store, cache_dir=cache_dir)
     source.list_table = TableSettings(cfg.video_list_column, cfg.video_list_filter,
                                       cfg.recipe.windows.frames_per_sample)
     return source
+
+
+def caches_from_config(cfg: ServeConfig) -> HostCaches:
+    """The host's caches ``cfg`` describes, passed beside its source: the frame cache
+    (``frame_cache_gb``, ``frame_cache_format``) and the corpus index, in the cache folder
+    (``disk_cache.cache_folder`` of ``cache_dir``)."""
+    return HostCaches.open(cache_folder(cfg.cache_dir), cfg.frame_cache_gb, cfg.frame_cache_format)
 
 
 def load_config(path: Optional[str], overrides: Optional[dict] = None) -> ServeConfig:

@@ -7,9 +7,11 @@ Ray engine (``ray_data.scan_corpus_windows``). In order:
 1. the cache folder: ``cache_dir`` as configured, else the host's default
    (``manifest.cache_folder``), resolved here once and carried by the returned config;
 2. the source the config describes (``config.source_from_config``: the store's options and
-   settings, the video list and its table settings, the manifest, the frame cache);
+   settings, the video list and its table settings, the manifest), and the host's caches beside
+   it (``config.caches_from_config``: the frame cache, the corpus index);
 3. ``VideoSource.check``: the folder exists, or the store answers;
-4. ``VideoSource.check_cache_dir``: the caches that are on can be kept in the cache folder;
+4. ``VideoSource.check_cache_dir``, ``HostCaches.check_cache_dir``: the caches that are on (a
+   store's object cache, the frame cache) can be kept in the cache folder;
 5. the listing (``VideoSource.list_videos``): the videos, and the entries refused with why.
 """
 from __future__ import annotations
@@ -18,7 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
-from v2v_server.ops.config import ServeConfig, source_from_config
+from v2v_server.frames.host_caches import HostCaches
+from v2v_server.ops.config import ServeConfig, caches_from_config, source_from_config
 from v2v_server.frames.corpus import SAMPLE_VIDEOS
 from v2v_server.disk_cache import cache_folder
 from v2v_server.sources.source import VideoSource
@@ -31,12 +34,15 @@ class Startup:
     Attributes:
         config: the configuration as given, its ``cache_dir`` resolved to the folder used.
         source: the corpus, checked (``check`` and ``check_cache_dir`` passed).
+        caches: the host's frame cache and corpus index, passed beside ``source``
+            (``check_cache_dir`` passed).
         videos: the sample-id paths of the corpus's videos, in listing order.
         rejected: ``(path, reason)`` for each entry of the corpus that is not served.
     """
 
     config: ServeConfig
     source: VideoSource
+    caches: HostCaches
     videos: List[str]
     rejected: List[Tuple[str, str]]
 
@@ -54,14 +60,16 @@ def start_source(cfg: ServeConfig, videos: Union[str, Path, None] = None) -> Sta
 
     Raises:
         StoreError: the folder does not exist, or the store cannot be reached or listed (naming it).
-        source.CacheDirError: a cache that is on cannot be kept in the cache folder (naming it).
+        disk_cache.CacheDirError: a cache that is on cannot be kept in the cache folder (naming it).
         FileNotFoundError, ValueError: the video list file is missing or does not parse.
         KeyboardInterrupt: Ctrl-C while a store or a table is read.
     """
     cfg = resolve_config(cfg)
     where: Optional[str] = str(videos) if videos is not None else cfg.videos
     source = source_from_config(cfg, where or str(SAMPLE_VIDEOS))
+    caches = caches_from_config(cfg)
     source.check()
     source.check_cache_dir()
+    caches.check_cache_dir()
     found, rejected = source.list_videos(cfg.video_extensions)
-    return Startup(cfg, source, found, rejected)
+    return Startup(cfg, source, caches, found, rejected)

@@ -13,22 +13,23 @@ from typing import List, Optional, Sequence
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_frames
 from v2v_server.frames.corpus import record_pass
-from v2v_server.frames.frame_cache import SKIP_CAUSES
+from v2v_server.frames.frame_cache import SKIP_CAUSES, FrameCache
+from v2v_server.frames.host_caches import HostCaches
 from v2v_server.frames.frame_pass import entry_settings, lookup_entry
 from v2v_server.sources.source import VideoSource
-from v2v_server.sources.source_spec import map_videos
+from v2v_server.frames.video_pool import map_videos
 from v2v_server.frames.window_pass import WindowPass
 
 
-def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
-    """Read video ``rel`` of ``source`` through its frame cache: ``{"path", "frames", "state", "bytes"}``, state ``cached`` (already there, read back
+def warm_video(cfg: ServeConfig, source: VideoSource, rel: str, caches: HostCaches) -> dict:
+    """Read video ``rel`` of ``source`` through the host's frame cache (``caches.frame_cache``): ``{"path", "frames", "state", "bytes"}``, state ``cached`` (already there, read back
     whole), ``stored``, or ``not stored: CAUSE`` (budget, disk_full, write_error, or the
     decoding error)."""
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
     windows = WindowPass(cfg.recipe.windows, cfg.recipe.reads)
     fp, error = None, None
     try:
-        with video_frames(cfg.recipe, source, rel) as fp:
+        with video_frames(cfg.recipe, source, rel, caches.frame_cache) as fp:
             for _ in windows.over(fp):  # the frames the sample pass reads, no more
                 pass
     except Exception as e:  # one bad file never stops the warm-up
@@ -36,8 +37,8 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
         out["state"] = f"not stored: {type(e).__name__}: {e}"
     out["frames"] = windows.frames
     # the next start knows its windows
-    record_pass(cfg.recipe.windows, cfg.recipe.decode, source, rel, windows.record(error))
-    source.take_stats()  # this video's counters are spent here: the pass says what became of its entry
+    record_pass(cfg.recipe.windows, cfg.recipe.decode, source, rel, windows.record(error), caches)
+    caches.take_stats()  # this video's counters are spent here: the pass says what became of its entry
     writer = fp.writer if fp is not None else None  # what became of the entry this pass wrote
     out["bytes"] = writer.stored_bytes if writer is not None else 0
     if out["state"]:
@@ -53,27 +54,27 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
     return out
 
 
-def warm_cache(cfg: ServeConfig, source: VideoSource, videos: List[str]) -> List[dict]:
-    """:func:`warm_video` for every video, in ``cfg.workers`` processes (``source`` itself
-    in this one, or built once in each of them from its ``spec()``).
+def warm_cache(cfg: ServeConfig, source: VideoSource, caches: HostCaches, videos: List[str]) -> List[dict]:
+    """:func:`warm_video` for every video, in ``cfg.workers`` processes (``source`` and
+    ``caches`` themselves in this one, or built once in each of them from their ``spec()``).
 
     Raises:
         ValueError: the frame cache is off (``frame_cache_gb`` 0).
     """
-    if source.frame_cache is None:
+    if caches.frame_cache is None:
         raise ValueError("--warm-cache needs a frame cache: give frame_cache_gb > 0 (and cache_dir)")
-    return map_videos(warm_video, (cfg,), source, videos, cfg.workers)
+    return map_videos(warm_video, (cfg,), source, caches, videos, cfg.workers)
 
 
-def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] = ()) -> str:
-    """One line on the host's frame cache: entries, bytes against the budget, folder; with
-    ``cfg`` and ``videos``, how many of those videos an epoch would cut from it (a stale or
-    damaged entry found here is removed, as a worker would)."""
-    fc = source.frame_cache
+def cache_line(source: Optional[VideoSource], fc: FrameCache, cfg: Optional[ServeConfig] = None,
+               videos: Sequence[str] = ()) -> str:
+    """One line on the host's frame cache ``fc``: entries, bytes against the budget, folder;
+    with ``source``, ``cfg`` and ``videos``, how many of those videos of ``source`` an epoch would
+    cut from it (a stale or damaged entry found here is removed, as a worker would)."""
     nbytes, entries = fc.disk.usage()
     line = (f"frame cache {fc.disk.folder}: {entries} entr{'y' if entries == 1 else 'ies'}, "
             f"{nbytes / (1 << 30):.2f} of {fc.disk.max_bytes / (1 << 30):.2f} GiB ({fc.format})")
-    if cfg is None or not videos:
+    if source is None or cfg is None or not videos:
         return line
     hits = 0
     settings = entry_settings(cfg.recipe.decode, cfg.recipe.windows)
@@ -91,8 +92,9 @@ def cache_line(source, cfg: Optional[ServeConfig] = None, videos: Sequence[str] 
         f", misses: {causes}" if causes else "")
 
 
-def format_warm(results: List[dict], source) -> str:
-    """A table: one line per video with what the warm-up did, then totals and :func:`cache_line`."""
+def format_warm(results: List[dict], fc: FrameCache) -> str:
+    """A table: one line per video with what the warm-up did, then totals and :func:`cache_line`
+    of the frame cache ``fc``."""
     lines = [f"{'file':<48} {'frames':>7}  state"]
     for r in results:
         lines.append(f"{r['path']:<48} {r['frames']:>7}  {r['state']}")
@@ -100,5 +102,5 @@ def format_warm(results: List[dict], source) -> str:
     rest = len(results) - n["stored"] - n["cached"]
     written = sum(r["bytes"] for r in results)
     lines.append(f"{n['stored']} stored ({written / (1 << 30):.2f} GiB), {n['cached']} already cached, {rest} not stored")
-    lines.append(cache_line(source))
+    lines.append(cache_line(None, fc))
     return "\n".join(lines)

@@ -29,6 +29,7 @@ from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.luma import to_uint8
+from v2v_server.frames.frame_cache import FrameCache
 from v2v_server.frames.frame_pass import FramePass, open_frames
 from v2v_server.frames.window_pass import VideoPass, WindowPass
 
@@ -340,12 +341,13 @@ class SamplePass:
     """
 
     def __init__(self, recipe: SampleRecipe, source: VideoSource, rel_path: str, epoch: int, outputs: Iterable[str],
-                 skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False):
+                 skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False,
+                 frame_cache: Optional[FrameCache] = None):
         self._cutter = _Cutter(recipe, rel_path, epoch, tuple(outputs), frozenset(skip), flow, flow_grid)
         self.busy: Dict[str, float] = self._cutter.busy
         # opens the video on the first sample asked for; holds the cutter, not this object, so
         # dropping the pass closes it at once (a frame-cache entry being stored is dropped)
-        self._run = self._cutter.samples(source)
+        self._run = self._cutter.samples(source, frame_cache)
 
     @property
     def storing(self) -> bool:
@@ -386,8 +388,9 @@ class _Cutter:
     def __post_init__(self):
         self.windows = WindowPass(self.recipe.windows, self.recipe.reads)
 
-    def samples(self, source: VideoSource) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-        with video_frames(self.recipe, source, self.rel_path) as fp:
+    def samples(self, source: VideoSource, frame_cache: Optional[FrameCache]
+                ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
+        with video_frames(self.recipe, source, self.rel_path, frame_cache) as fp:
             yield from self._cut(fp)
 
     def _cut(self, fp: FramePass) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
@@ -417,9 +420,10 @@ class _Cutter:
 
 
 def video_samples(recipe: SampleRecipe, source: VideoSource, rel_path: str, epoch: int, outputs: Iterable[str],
-                  skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False
-                  ) -> SamplePass:
-    """Decode the video at ``rel_path`` of ``source`` once, sequentially, and give its samples:
+                  skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False,
+                  frame_cache: Optional[FrameCache] = None) -> SamplePass:
+    """Decode the video at ``rel_path`` of ``source`` once, sequentially (or replay it from the
+    host's ``frame_cache``, ``HostCaches.frame_cache``, None when off), and give its samples:
     a :class:`SamplePass` (iterate it for ``(key, arrays, meta)``; its ``record`` says what the
     pass found).
 
@@ -427,17 +431,17 @@ def video_samples(recipe: SampleRecipe, source: VideoSource, rel_path: str, epoc
         VideoError: while iterating, the file cannot be opened or decoded (samples already
             yielded are good).
     """
-    return SamplePass(recipe, source, rel_path, epoch, outputs, skip, flow, flow_grid)
+    return SamplePass(recipe, source, rel_path, epoch, outputs, skip, flow, flow_grid, frame_cache)
 
 
-def video_frames(recipe: SampleRecipe, source: VideoSource, rel_path: str):
+def video_frames(recipe: SampleRecipe, source: VideoSource, rel_path: str, frame_cache: Optional[FrameCache] = None):
     """A context manager giving the ``frames.FramePass`` a sample pass reads from the video at
-    ``rel_path`` of ``source`` (a ``VideoSource``): replayed from the source's frame
-    cache when it holds the video, else decoded (and stored): the kept rows, the frames the
+    ``rel_path`` of ``source`` (a ``VideoSource``): replayed from the host's ``frame_cache``
+    (``HostCaches.frame_cache``) when it holds the video, else decoded (and stored): the kept rows, the frames the
     windows need (``WindowSettings.frame_limit``), decoded as ``recipe.decode`` says
     (``frames.open_frames``). ``v2v-serve --warm-cache`` reads the same pass.
 
     Raises:
         VideoError: the file cannot be opened.
     """
-    return open_frames(source, rel_path, recipe.decode, recipe.windows)
+    return open_frames(source, rel_path, recipe.decode, recipe.windows, frame_cache)

@@ -23,7 +23,7 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
 
     Raises:
         ValueError: a bad ``workers``/``batch_size`` (from the config check, naming the field), a
-            cache folder that cannot keep the caches that are on (``source.CacheDirError``), or a
+            cache folder that cannot keep the caches that are on (``disk_cache.CacheDirError``), or a
             folder with no video files.
         StoreError: the folder does not exist, or the store cannot be reached or listed.
         RuntimeError: the server stopped or stayed silent before it served (its error chained).
@@ -31,7 +31,7 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
     keys = {"workers": workers, "batch_size": batch_size, "bind": "tcp://127.0.0.1:*"}
     cfg = load_config(None, {**(config.to_dict() if config is not None else {}), **keys})
     start = start_source(cfg, videos)  # a folder or an object-store URL
-    server = V2VServer(start.config, start.source, start.videos)
+    server = V2VServer(start.config, start.source, start.caches, start.videos)
     ready, failure = threading.Event(), []
 
     def run() -> None:

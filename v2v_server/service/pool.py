@@ -42,19 +42,19 @@ class WorkerPool:
 
     Args:
         cfg_dict: ``worker.worker_config(cfg)`` for the workers (the sample recipe, the log format).
-        root: corpus root.
+        corpus: what each worker builds its corpus from (``worker.worker_main``'s ``corpus``).
         endpoint: the server's worker endpoint (ipc).
         size: number of workers.
         target: process entry point (``worker_main``; tests may pass another), called as
-            ``target(cfg_dict, root, endpoint, identity, parent_pid[, ring_spec])``; the sixth
+            ``target(cfg_dict, corpus, endpoint, identity, parent_pid[, ring_spec])``; the sixth
             argument, ``SlotRing.spec``, only when the worker has a ring.
         shm: give each worker a shared-memory slot ring (where ``/dev/shm`` allows; the
             worker falls back to sending frames otherwise).
     """
 
-    def __init__(self, cfg_dict: dict, root: str, endpoint: str, size: int, target: Callable = worker_main,
+    def __init__(self, cfg_dict: dict, corpus, endpoint: str, size: int, target: Callable = worker_main,
                  shm: bool = True):
-        self.cfg_dict, self.root, self.endpoint, self.size, self.target = cfg_dict, root, endpoint, size, target
+        self.cfg_dict, self.corpus, self.endpoint, self.size, self.target = cfg_dict, corpus, endpoint, size, target
         self.shm = shm
         self.workers: Dict[bytes, WorkerProc] = {}
         self.restarts = 0
@@ -67,7 +67,7 @@ class WorkerPool:
         ident = f"w{position}.{generation}".encode()
         c = self.cfg_dict["recipe"]
         ring = create_ring(c["sequence_length"], c["num_bins"], c["crop_size"]) if self.shm else None
-        args = (self.cfg_dict, self.root, self.endpoint, ident, os.getpid())
+        args = (self.cfg_dict, self.corpus, self.endpoint, ident, os.getpid())
         proc = mp.get_context("spawn").Process(target=self.target, args=args + ((ring.spec,) if ring else ()),
                                                name=f"v2v-worker-{position}", daemon=True)
         try:

@@ -32,6 +32,7 @@ import zmq
 from v2v_server.ops.config import ServeConfig
 from v2v_server.frames.corpus import corpus_fingerprint
 from v2v_server.disk_cache import UsageScan
+from v2v_server.frames.host_caches import HostCaches
 from v2v_server.sources.source import VideoSource
 from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.ledger import STALL_S
@@ -63,6 +64,8 @@ class V2VServer:
         source: the corpus (``sources.source.VideoSource``, a folder or an object-store
             prefix, built at the server's start); the server only opens the videos listed in
             ``videos``, and its workers build the same source from ``source.spec()``.
+        caches: the host's frame cache and corpus index (``frames.host_caches.HostCaches``),
+            passed beside ``source``; its workers build the same from ``caches.spec()``.
         videos: sample-id paths of the videos, relative to ``root`` (POSIX strings).
         corpus: the fingerprint of the whole listing before sharding (``corpus.corpus_fingerprint``).
         epoch_samples: samples an epoch holds, when known at start (``corpus.known_windows``).
@@ -75,13 +78,14 @@ class V2VServer:
         ValueError: for an empty ``videos`` list.
     """
 
-    def __init__(self, cfg: ServeConfig, source: VideoSource, videos: List[str], corpus: Optional[str] = None,
+    def __init__(self, cfg: ServeConfig, source: VideoSource, caches: HostCaches, videos: List[str],
+                 corpus: Optional[str] = None,
                  epoch_samples: Optional[int] = None, skipped: Optional[Dict[str, Tuple[str, str]]] = None):
         if not videos:
             raise ValueError(f"no video files under {source.root}")
         self.cfg = cfg
-        self.source = source
-        fc = source.frame_cache
+        self.source, self.caches = source, caches
+        fc = caches.frame_cache
         self.frame_cache_scan = UsageScan(fc.disk, FRAME_CACHE_SCAN_S) if fc is not None else None
         self.root = self.source.root
         self.videos = list(videos)
@@ -132,7 +136,8 @@ class V2VServer:
             self.assembler = BatchAssembler(self.cfg.batch_size, files=BatchDir.create() if self.bound_endpoint
                                             .startswith("ipc://") else None,
                                             on_error=lambda path, e: self.metrics.on_fs_error("shm", path, e))
-            self.pool = WorkerPool(worker_config(self.cfg), self.source.spec(), self.sockets.backend_endpoint,
+            corpus = {"source": self.source.spec(), "caches": self.caches.spec()}
+            self.pool = WorkerPool(worker_config(self.cfg), corpus, self.sockets.backend_endpoint,
                                    self.cfg.workers)
             self.workers.attach(self.backend, self.pool, self.assembler)
             self.clients.attach(self.frontend, self.assembler)

@@ -29,6 +29,7 @@ import zmq
 from v2v_wire import codecs
 from v2v_server.ops.config import SampleRecipe, ServeConfig
 from v2v_server.sources.source import VideoSource
+from v2v_server.frames.host_caches import HostCaches
 from v2v_server.sources.source_spec import source_from_spec
 from v2v_server.service.shm import SlotRing
 from v2v_server.ops.logs import setup_logging
@@ -171,9 +172,9 @@ class _StageClock:
         return out
 
 
-def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socket, parent_pid: int, flows: dict,
-             inbox: Optional[_Inbox] = None, worker: str = "?") -> None:
-    """Make every sample of one task of ``source`` and send it (through ``inbox``'s slot ring when it has
+def run_task(cfg: SampleRecipe, source: VideoSource, caches: HostCaches, task: Task, sock: zmq.Socket,
+             parent_pid: int, flows: dict, inbox: Optional[_Inbox] = None, worker: str = "?") -> None:
+    """Make every sample of one task of ``source`` (its frames through the host's ``caches``) and send it (through ``inbox``'s slot ring when it has
     one), then send ``done``; an exception that stops the pass goes in it as a
     ``worker_messages.Failure`` saying it was raised in ``worker`` (its identity) on what."""
     error = failure = last = None
@@ -181,7 +182,7 @@ def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socke
     flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task.outputs else None
     skip = [SampleKey(task.video, w, c) for w, c in task.skip]
     run = video_samples(cfg, source, task.video, task.epoch, task.outputs, skip, flow,
-                        flow_grid=True)  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
+                        flow_grid=True, frame_cache=caches.frame_cache)  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
     clock = _StageClock(run.busy)  # seconds per stage, reported with each message
     try:
         for key, arrays, meta in run:
@@ -209,12 +210,13 @@ def run_task(cfg: SampleRecipe, source: VideoSource, task: Task, sock: zmq.Socke
                                 f"{task.epoch}, {after}")
     found = run.record(error)
     clock.made()  # decoding after the last window
-    record_pass(cfg.windows, cfg.decode, source, task.video, found)  # the next start knows its windows (corpus index)
+    record_pass(cfg.windows, cfg.decode, source, task.video, found, caches)  # the next start knows its windows (corpus index)
     cause, reason = found.cause(cfg.windows)  # the file's verdict, failed windows aside
     done = Done(task.task, found.windows,
                 {str(k): str(v) for k, v in found.failed.items()},  # window -> reason, one by one
                 reason, failure, found.frames, len(found.cuts), found.dropped,  # shot cuts found, windows they removed
-                clock.report(), source.take_stats(), cause)  # object-store reads of this task (empty for a folder)
+                clock.report(), {**source.take_stats(), **caches.take_stats()},  # store reads, frame-cache counters
+                cause)
     _send(sock, [pack(done.to_wire())], parent_pid)
 
 
@@ -240,13 +242,15 @@ def exit_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, _exit)
 
 
-def worker_main(cfg_dict: dict, root, endpoint: str, identity: bytes, parent_pid: int,
+def worker_main(cfg_dict: dict, corpus: dict, endpoint: str, identity: bytes, parent_pid: int,
                 ring: Optional[dict] = None) -> None:
     """Entry point of a worker process (started with the ``spawn`` method).
 
     Args:
         cfg_dict: ``worker_config(cfg)``.
-        root: the corpus's ``VideoSource.spec()`` (``sources.source``), built here once.
+        corpus: ``{"source": VideoSource.spec(), "caches": HostCaches.spec()}``: the corpus
+            (``sources.source``) and the host's caches beside it (``frames.host_caches``), built
+            here once.
         ring: ``SlotRing.spec`` of this worker's shared-memory slots (the file is unlinked as
             soon as it is mapped), or None to send arrays as frames.
     """
@@ -272,7 +276,8 @@ def worker_main(cfg_dict: dict, root, endpoint: str, identity: bytes, parent_pid
         except (OSError, ValueError) as e:
             log.warning("cannot map slot ring %s (%s): sending arrays over the socket", ring.get("path"), e)
     inbox = _Inbox(sock, slots)
-    source = source_from_spec(root)  # the corpus folder, or the object store (one client per worker)
+    source = source_from_spec(corpus["source"])  # the corpus folder, or the object store (one client per worker)
+    caches = HostCaches.from_spec(corpus["caches"])
     flows: dict = {}
     try:
         _send(sock, [pack(Ready(slots is not None).to_wire())], parent_pid)
@@ -281,7 +286,7 @@ def worker_main(cfg_dict: dict, root, endpoint: str, identity: bytes, parent_pid
             if isinstance(msg, Stop):
                 return
             if isinstance(msg, Task):
-                run_task(cfg, source, msg, sock, parent_pid, flows, inbox, identity.decode())
+                run_task(cfg, source, caches, msg, sock, parent_pid, flows, inbox, identity.decode())
     finally:
         sock.close(0)
         ctx.term()

@@ -10,7 +10,6 @@ from typing import Iterator, List, Optional, Sequence, Tuple, Union
 
 from v2v_server.sources.names import VideoError, inside
 from v2v_server.sources.folder_scan import scan_corpus_names
-from v2v_server.frames.frame_cache import FrameCache
 from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, PIECE, gather_pieces, split_member
 from v2v_server.sources.source import VideoSource
@@ -68,10 +67,9 @@ class LocalSource(VideoSource):
     a path or a ``file://`` URL, the other arguments as :class:`~v2v_server.sources.source.VideoSource`'s."""
 
     def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None,
-                 frame_cache: Optional[FrameCache] = None, cache_dir: Optional[str] = None):
+                 cache_dir: Optional[str] = None):
         root = str(root)
-        super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names,
-                         frame_cache, cache_dir)
+        super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names, cache_dir)
         self._abs_root = os.path.abspath(self.root)
         self._members: Optional[Tuple[List[str], List[Tuple[str, str]]]] = None  # _corpus_archives' answer
 
@@ -190,4 +188,4 @@ class LocalSource(VideoSource):
         return None if any(racy(st) for st in stats) else " + ".join(file_identity(st) for st in stats)
 
     def spec(self) -> dict:
-        return {"root": self.root, "video_list": self.video_list, "names": self.names, **self._cache_spec()}
+        return {"root": self.root, "video_list": self.video_list, "names": self.names, "cache_dir": self.cache_dir}

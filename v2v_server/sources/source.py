@@ -7,8 +7,9 @@ Every reader of the corpus goes through a :class:`VideoSource`, the seam this mo
 both built by ``sources.source_spec``): ``v2v-serve`` (listing, shards, the corpus fingerprint,
 ``--check``), its worker processes (``source.open(rel)`` per task), and the Ray engine
 (``ray_data``). Each process builds its source once (at its start) and hands the built source
-to the stages that read videos; a source's ``frame_cache`` is the host's decoded-frame cache
-(``frame_cache.FrameCache``) or None, given to its constructor. A source lists the corpus as **sample-id paths**: POSIX paths
+to the stages that read videos. A source knows where bytes come from, nothing of what is made of
+them: the host's frame cache and corpus index (``frames.host_caches.HostCaches``) are passed
+beside it to the frames side. A source lists the corpus as **sample-id paths**: POSIX paths
 relative to the folder or key prefix, so the same files in a folder and under a bucket prefix
 give the same ids and, for the same seed, bit-identical samples. ``open(rel)`` yields what
 ``decode.open_video`` reads: a local path, or a file object on the stored object that fetches
@@ -34,15 +35,12 @@ the server skips and logs once; the server stays up.
 from __future__ import annotations
 
 import logging
-import tempfile
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 
 from v2v_server.sources.archives import Archives, pair_members
-from v2v_server.frames.corpus_index import CorpusIndex, index_path
 from v2v_server.sources.names import VideoError
-from v2v_server.frames.frame_cache import FrameCache
-from v2v_server.disk_cache import cache_folder
+from v2v_server.disk_cache import cache_folder, check_cache_folders
 from v2v_server.sources.segments import base_path, printable_name, range_problem, split_segment
 from v2v_server.sources.shards import ARCHIVES, split_member
 from v2v_server.sources.video_list import VideoList, read_video_list
@@ -50,10 +48,6 @@ from v2v_server.sources.video_tables import TableSettings
 
 
 log = logging.getLogger("v2v")
-
-
-class CacheDirError(ValueError):
-    """A cache that is on cannot be kept in ``cache_dir`` (the message names the folder)."""
 
 
 class VideoSource:
@@ -65,72 +59,31 @@ class VideoSource:
         video_list: the video list file that selects and orders the videos, if any.
         names: entries given with the corpus itself (a brace pattern's shard names), listed
             instead of the store.
-        frame_cache: the host's decoded-frame cache (``frame_cache.FrameCache``); None: off.
-        cache_dir: the folder of the host's caches (None: the host's default, ``manifest.cache_folder``).
+        cache_dir: the folder of the host's caches (None: the host's default,
+            ``disk_cache.cache_folder``): a store's manifests and object cache.
     """
 
     def __init__(self, root: str, video_list: Optional[str] = None, names: Optional[List[str]] = None,
-                 frame_cache: Optional[FrameCache] = None, cache_dir: Optional[str] = None):
+                 cache_dir: Optional[str] = None):
         self.root, self.video_list, self.names = root, video_list, names
-        #: The host's decoded-frame cache, None when off: what ``frames.open_frames`` reads.
-        self.frame_cache: Optional[FrameCache] = frame_cache
-        self.cache_dir = cache_folder(cache_dir)  # resolved here once: index, caches and spec() take it
+        self.cache_dir = cache_folder(cache_dir)  # resolved here once: the store's caches and spec() take it
         #: The corpus's archives: their member indexes, split parts' pieces, their members opened.
         self.archives = Archives(self.root, self._open_raw, self._exists, self._siblings, self._shard_version)
         #: How a table video list is read (its path column, filter, window frames): set by
         #: ``ops.config.source_from_config`` from the settings; the defaults otherwise.
         self.list_table = TableSettings()
-        self._index: Optional[CorpusIndex] = None  # opened at the first use in this process
-        self._index_off = False  # off in this process (a fault met, here or in the process that built this one)
-
-    def corpus_index(self) -> Optional[CorpusIndex]:
-        """The host's corpus index (``corpus_index.CorpusIndex`` at ``cache_dir/corpus_index.sqlite``):
-        what passes learned about the corpus's videos, answered without decoding while a video's
-        identity holds. Opened at the first call in this process; None when it is off (a fault
-        met: one warning names the file and why, and the videos are read as if never seen)."""
-        if self._index is None and not self._index_off:
-            self._index = CorpusIndex(index_path(self.cache_dir))
-        if self._index is not None and self._index.fault is not None:
-            self._index_off = True
-        return None if self._index_off else self._index
-
-    def leave_corpus_index_off(self) -> None:
-        """Never open the corpus index in this process: the process that built this source from
-        its ``spec()`` met a fault of it (and warned once)."""
-        self._index_off = True
-
     def _cache_folders(self) -> List[Path]:
-        """The folders of the caches that are on."""
-        return [self.frame_cache.disk.folder] if self.frame_cache is not None else []
+        """The folders of this source's caches that are on (a store's object cache)."""
+        return []
 
     def check_cache_dir(self) -> None:
-        """At start: the folders of the caches that are on (``cache_dir/frames`` with
-        ``frame_cache_gb`` > 0, ``cache_dir/objects`` with ``cache_max_gb`` > 0) can be made
-        and written. A cache asked for and unusable is a setting to fix, not a run to make at a
-        fraction of the speed: ``v2v-serve`` exits with this one line. (While serving, the same
-        faults are served by decoding: docs/faults.md.)
+        """At start: this source's caches that are on (``cache_dir/objects`` with
+        ``cache_max_gb`` > 0) can be kept (``disk_cache.check_cache_folders``).
 
         Raises:
             CacheDirError: naming ``cache_dir`` and the folder, with the system's reason.
         """
-        for folder in self._cache_folders():
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-                with tempfile.TemporaryFile(dir=folder):
-                    pass
-            except OSError as e:
-                raise CacheDirError(f"--cache-dir {self.cache_dir}: cannot keep a cache in {folder}: "
-                                    f"{e.strerror or e}") from None
-
-    def _cache_spec(self) -> dict:
-        """The caches' part of :meth:`spec`."""
-        spec: dict = {"cache_dir": self.cache_dir}
-        if self._index_off:  # a fault met here: the processes built from the spec leave it off too
-            spec["corpus_index"] = False
-        if self.frame_cache is not None:
-            fc = self.frame_cache
-            spec["frame_cache"] = {"folder": str(fc.disk.folder), "max_bytes": fc.disk.max_bytes, "fmt": fc.format}
-        return spec
+        check_cache_folders(self.cache_dir, self._cache_folders())
 
     def identity(self, rel: str) -> Optional[str]:
         """The identity of the video at ``rel`` as it is now, without reading its content:
@@ -200,9 +153,8 @@ class VideoSource:
     def take_stats(self) -> dict:
         """Reads since the last call: for a store, ``bytes`` fetched, ``reads`` (range
         requests), ``read_s`` (seconds waiting for the store), ``retries`` (botocore's),
-        ``skipped`` (objects missing or changed since listed); with a frame cache, its
-        counters under ``frame_cache``; empty for a local folder without one."""
-        return {"frame_cache": self.frame_cache.take_stats()} if self.frame_cache is not None else {}
+        ``skipped`` (objects missing or changed since listed); empty for a local folder."""
+        return {}
 
     def _listed(self, names: VideoList, exists, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """Keep the names of a video list that ``exists(name)`` and have a video extension; a

@@ -14,7 +14,6 @@ from v2v_server.checks import check_float, check_int
 from v2v_server.settings import setting
 from v2v_server.sources.archives import listing_problems
 from v2v_server.sources.names import VideoError, name_problem, printable
-from v2v_server.frames.frame_cache import FrameCache
 from v2v_server.sources.manifest import StoreListing, etag_of, member_entry, object_identity
 from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
@@ -88,7 +87,7 @@ class StoreSource(VideoSource):
             defaults below; credentials otherwise come from the store's standard configuration
             (for S3: ``AWS_*`` variables incl. ``AWS_ENDPOINT_URL``, shared config files,
             instance roles).
-        video_list, names, frame_cache, cache_dir: as :class:`~v2v_server.sources.source.VideoSource`'s.
+        video_list, names, cache_dir: as :class:`~v2v_server.sources.source.VideoSource`'s.
         manifest: the manifest file (see ``manifest.manifest_path``); None keeps none.
         refresh_manifest: list the store again instead of reading the manifest.
         settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).
@@ -97,8 +96,8 @@ class StoreSource(VideoSource):
     def __init__(self, url: str, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False,
                  settings: StoreSettings = StoreSettings(), names: Optional[List[str]] = None,
-                 frame_cache: Optional[FrameCache] = None, cache_dir: Optional[str] = None):
-        super().__init__(store_root(url), video_list, names, frame_cache, cache_dir)
+                 cache_dir: Optional[str] = None):
+        super().__init__(store_root(url), video_list, names, cache_dir)
         self.protocol = url.split("://", 1)[0].lower()
         self.prefix = self.root.split("://", 1)[1]
         self.storage_options = dict(storage_options or {})
@@ -341,11 +340,11 @@ class StoreSource(VideoSource):
             f.close()
 
     def _cache_folders(self) -> List[Path]:
-        return super()._cache_folders() + ([self.cache.disk.folder] if self.settings.cache_max_gb > 0 else [])
+        return [self.cache.disk.folder] if self.settings.cache_max_gb > 0 else []
 
     def take_stats(self) -> dict:
-        return {**self.stats.take(), **super().take_stats()}
+        return self.stats.take()
 
     def spec(self) -> dict:
         return {"root": self.root, "storage_options": self.storage_options, "video_list": self.video_list,
-                "manifest": self.listing.path, "settings": self.settings, **self._cache_spec()}
+                "manifest": self.listing.path, "settings": self.settings, "cache_dir": self.cache_dir}
