@@ -1,4 +1,4 @@
-"""The corpus walk (``decode.scan_corpus_names``): what it lists and rejects in a real folder
+"""The corpus walk (``folder_scan.scan_corpus_names``): what it lists and rejects in a real folder
 with links of every kind, and the extension rule it shares with ``Path.suffix``."""
 import os
 from pathlib import Path

@@ -18,7 +18,7 @@ import pytest
 
 from harness.serve import ServeProcess
 from v2v_server import cli
-from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.sources.listing import SAMPLE_VIDEOS
 from v2v_server.sources.local import RACY_NS, LocalSource
 from v2v_server.sources.video_list import read_video_list
 from v2v_server.sources.video_tables import TableSettings

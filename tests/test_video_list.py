@@ -11,7 +11,7 @@ import pytest
 from v2v_server import cli
 from v2v_server.samples.make import video_frames
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.sources.listing import SAMPLE_VIDEOS
 from v2v_server.sources.local import LocalSource
 from v2v_server.sources.segments import parse_time
 from v2v_server.sources.video_list import read_video_list

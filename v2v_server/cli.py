@@ -12,7 +12,8 @@ from v2v_server.sources.store import StoreSettings
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
-from v2v_server.frames.corpus import (SAMPLE_VIDEOS, check_corpus, corpus_fingerprint, format_check, known_windows, select_shard)
+from v2v_server.sources.listing import SAMPLE_VIDEOS, corpus_fingerprint, select_shard
+from v2v_server.frames.corpus import check_corpus, format_check, known_windows
 from v2v_server.frames.corpus_index import index_path
 from v2v_server.delivery.journal import JournalError
 from v2v_server.sources.store_io import StoreError

@@ -3,7 +3,7 @@ cuts, windows, verdict), kept on the host's disk so that later passes, later job
 engine's scan answer from it instead of decoding the video again.
 
 One SQLite file, ``cache_dir/corpus_index.sqlite`` (the resolved cache folder,
-``manifest.cache_folder``), one row per (video, window layout): the ``sqlite3`` shell, DuckDB
+``disk_cache.cache_folder``), one row per (video, window layout): the ``sqlite3`` shell, DuckDB
 (``SELECT * FROM sqlite_scan('corpus_index.sqlite', 'entries')``) and pandas read it. Several
 processes of a host read and write it at once (WAL journal, a busy timeout).
 
@@ -83,7 +83,7 @@ def check_record(windows: WindowSettings, decode: DecodeSettings) -> PassRecord:
 
 def index_path(cache_dir: Union[str, Path]) -> Path:
     """Where the index of a host lives: ``cache_dir/corpus_index.sqlite``, ``cache_dir`` the
-    resolved cache folder (``manifest.cache_folder``, applied by the source)."""
+    resolved cache folder (``disk_cache.cache_folder``, applied by the source)."""
     return Path(cache_dir) / INDEX_FILE
 
 

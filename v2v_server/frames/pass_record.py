@@ -5,7 +5,7 @@ Every setting that changes the frames a pass gives or where its windows lie is a
 (span, window count, shot cuts, static windows) and the versions of the shot detector and of the
 motion measure that place windows. Its :attr:`PassRecord.key` is the one key of those settings:
 
-* the frame cache names an entry by it (``frames.entry_settings``, with the corpus and the video);
+* the frame cache names an entry by it (``frame_pass.entry_settings``, with the corpus and the video);
 * the corpus index keys a row's window layout by it (``corpus_index.layout_key``: the record of
   ``--check``'s pass, which scores shot cuts whatever ``shot_cuts`` says; the sample pass's
   under ``shot_cuts: avoid``);
@@ -61,7 +61,7 @@ class PassRecord:
 
     @classmethod
     def of(cls, decode, windows, scores_cuts: Optional[bool] = None) -> "PassRecord":
-        """The record of a pass decoding as ``decode`` says (``frames.DecodeSettings``) over the
+        """The record of a pass decoding as ``decode`` says (``frame_pass.DecodeSettings``) over the
         windows of ``windows`` (``windows.WindowSettings``), with this build's detector and
         motion versions where they decide what the pass gives. ``scores_cuts``: the pass scores
         shot cuts (None: where windows follow them, ``shot_cuts: avoid``, as a sample pass

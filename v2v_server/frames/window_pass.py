@@ -98,7 +98,7 @@ class WindowFrame(NamedTuple):
     completes, as its last frame), ``starts`` (the window this frame starts); each an index or
     None; ``skips``: the window this frame would complete, given up as static. ``offset``: the frame's place in the window in progress after it (0 where it starts
     one; None when none is). ``index``: the frame's number from 0; ``codes``, ``expand``: as
-    ``frames.PassFrame``. A tuple: one is made per frame read."""
+    ``frame_pass.PassFrame``. A tuple: one is made per frame read."""
 
     index: int
     codes: Optional[np.ndarray]
@@ -233,7 +233,7 @@ class WindowPass:
         return len(self.cuts), self.cuts[-1] if self.cuts else 0
 
     def over(self, fp: FramePass) -> Iterator[WindowFrame]:
-        """Every frame of ``fp`` (a ``frames.FramePass``) with what it does to the windows, laid
+        """Every frame of ``fp`` (a ``frame_pass.FramePass``) with what it does to the windows, laid
         out for its declared frame count (``WindowSettings.layout``); once every window is
         complete, ``fp.end()`` (a pass storing the video commits its entry) and stop.
 

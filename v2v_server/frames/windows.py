@@ -6,7 +6,7 @@ authors' loader (HYLZ-2019/V2V ``data/v2v_datasets.py``, ``step_size = frames_pe
 ``shot_cuts`` decides whether they start at each shot's first frame (``avoid``) or at k x stride
 from frame 0 (``off``): ``shots.WindowLayout``. The defaults of these values have one owner, the
 sample recipe (``v2v_server.samples.recipe.SampleRecipe``), which builds a :class:`WindowSettings`
-for this stage (and a ``frames.DecodeSettings`` for how frames are decoded); the checks of the
+for this stage (and a ``frame_pass.DecodeSettings`` for how frames are decoded); the checks of the
 values this class holds are here.
 """
 from __future__ import annotations

@@ -5,7 +5,7 @@ One sequence, called by every way of running the service, so that none skips a s
 Ray engine (``ray_data.scan_corpus_windows``). In order:
 
 1. the cache folder: ``cache_dir`` as configured, else the host's default
-   (``manifest.cache_folder``), resolved here once and carried by the returned config;
+   (``disk_cache.cache_folder``), resolved here once and carried by the returned config;
 2. the source the config describes (``config.source_from_config``: the store's options and
    settings, the video list and its table settings, the manifest), and the host's caches beside
    it (``config.caches_from_config``: the frame cache, the corpus index);
@@ -22,7 +22,7 @@ from typing import List, Optional, Tuple, Union
 
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig, caches_from_config, source_from_config
-from v2v_server.frames.corpus import SAMPLE_VIDEOS
+from v2v_server.sources.listing import SAMPLE_VIDEOS
 from v2v_server.disk_cache import cache_folder
 from v2v_server.sources.source import VideoSource
 
@@ -56,7 +56,7 @@ def resolve_config(cfg: ServeConfig) -> ServeConfig:
 
 def start_source(cfg: ServeConfig, videos: Union[str, Path, None] = None) -> Startup:
     """Run the start-up path (module docstring) for the corpus ``videos`` (default
-    ``cfg.videos``, else the bundled clips ``corpus.SAMPLE_VIDEOS``).
+    ``cfg.videos``, else the bundled clips ``listing.SAMPLE_VIDEOS``).
 
     Raises:
         StoreError: the folder does not exist, or the store cannot be reached or listed (naming it).

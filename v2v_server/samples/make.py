@@ -352,7 +352,7 @@ class SamplePass:
     @property
     def storing(self) -> bool:
         """Whether the pass is still storing the video in the frame cache
-        (``frames.FramePass.storing``): a consumer that stops early then drops the entry."""
+        (``frame_pass.FramePass.storing``): a consumer that stops early then drops the entry."""
         fp = self._cutter.windows.frame_pass
         return fp is not None and fp.storing
 
@@ -435,11 +435,11 @@ def video_samples(recipe: SampleRecipe, source: VideoSource, rel_path: str, epoc
 
 
 def video_frames(recipe: SampleRecipe, source: VideoSource, rel_path: str, frame_cache: Optional[FrameCache] = None):
-    """A context manager giving the ``frames.FramePass`` a sample pass reads from the video at
+    """A context manager giving the ``frame_pass.FramePass`` a sample pass reads from the video at
     ``rel_path`` of ``source`` (a ``VideoSource``): replayed from the host's ``frame_cache``
     (``HostCaches.frame_cache``) when it holds the video, else decoded (and stored): the kept rows, the frames the
     windows need (``WindowSettings.frame_limit``), decoded as ``recipe.decode`` says
-    (``frames.open_frames``). ``v2v-serve --warm-cache`` reads the same pass.
+    (``frame_pass.open_frames``). ``v2v-serve --warm-cache`` reads the same pass.
 
     Raises:
         VideoError: the file cannot be opened.
