@@ -60,6 +60,7 @@ def _read(recipe: SampleRecipe, source) -> None:
     with video_frames(recipe, source, CLIP) as fp:
         for _ in fp.frames:
             pass
+        fp.commit()
     assert check_video(recipe.windows, recipe.decode, source, CLIP)["usable"]
 
 

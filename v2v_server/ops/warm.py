@@ -31,6 +31,7 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str) -> dict:
         with video_frames(cfg.recipe, source, rel) as fp:
             for _ in windows.over(fp):  # the frames the sample pass reads, no more
                 pass
+            fp.commit()  # the pass is whole: store the entry it wrote
     except Exception as e:  # one bad file never stops the warm-up
         error = e
         out["state"] = f"not stored: {type(e).__name__}: {e}"
