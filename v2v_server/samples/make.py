@@ -441,9 +441,10 @@ class _Cutter:
         :attr:`seconds`."""
         recipe = self.recipe
         made = make_sample(recipe, plan, degrade_window(plan, frames), self.outputs, self.flow, fps, self.flow_grid)
+        meta = sample_meta(plan, fps, start, made.simulation)
         t = time.thread_time()  # statistics: this thread's CPU time, so a loaded host does not inflate it
-        meta = add_stats(sample_meta(plan, fps, start, made.simulation), made.arrays, recipe,
-                         self.windows.shot if recipe.windows.avoid_cuts else None, self.windows.motions[-1])
+        meta = add_stats(meta, made.arrays, recipe, self.windows.shot if recipe.windows.avoid_cuts else None,
+                         self.windows.motions[-1])
         self.seconds = self.seconds + made.seconds + StageSeconds(stats=time.thread_time() - t)
         return key, made.arrays, meta
 
