@@ -56,7 +56,7 @@ def pause_offsets(rng: np.random.Generator, n_out: int, p_run: float, p_paused: 
     return np.concatenate([[0], np.cumsum(adv)])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # eq=False: identity, as SensorParams (arrays have no truth value)
 class WindowPlan:
     """The random choices of one sample, made before its frames are decoded: a frozen record,
     built whole by :func:`plan_window` (a step that derives another plan returns a new one,
