@@ -5,10 +5,10 @@ Runs a worker's own path (``bench.speed.worker_core``: ``samples.video_samples``
 narrowing, the flow as its grid as a served worker sends it) in this process on one thread, on
 copies of the WebVid-like clip (596 x 336 H.264; ``--clip`` another), every output (voxels, frames, tracked flow), the paper's
 sample (40 voxel grids of 5 bins, 128 x 128), at ``crops_per_window`` 1 and 4. Per sample it
-prints the CPU-milliseconds of the whole path, of simulation and of flow (``SamplePass.busy``,
+prints the CPU-milliseconds of the whole path, of simulation and of flow (``SamplePass.seconds``,
 which ``make_sample`` times with a wall clock: run it on an otherwise idle machine), and the
 cost of its statistics (``samples/stats.py``: event rates, active pixels, flow magnitude, timed
-under ``busy["stats"]``) and the rest (decoding, cropping, range expansion, narrowing). Against the decode bound measured in
+under ``SamplePass.seconds.stats``) and the rest (decoding, cropping, range expansion, narrowing). Against the decode bound measured in
 the same run (``bench.speed.bare_decode``: PyAV, luma plane, one thread) it gives the worker's
 share of the bound and its *ceiling*: the share if simulation and flow cost nothing, the most
 any bit-identical speed-up of them can give. Rounds are interleaved; medians are printed.

@@ -28,6 +28,7 @@ import shutil
 import sys
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import List, Optional
 
@@ -116,8 +117,8 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     """Samples per CPU-second of one worker's work (decode, crop, simulate, flow, narrowing)
     in this process, one thread, with the recipe's ``decode_fast`` setting. ``flow_grid``:
     the tracked flow as its grid, as a served worker sends it. ``busy``, when given, receives
-    ``samples`` and the seconds spent simulating and estimating flow (``make_sample``'s
-    ``busy``: ``simulate``, ``flow``). ``frame_cache``: the host's frame cache to read through
+    ``samples`` and the seconds spent per stage (``SamplePass.seconds``: ``simulate``,
+    ``flow``, ``stats``). ``frame_cache``: the host's frame cache to read through
     (``HostCaches.frame_cache``), None for none; ``epoch``: the epoch drawn."""
     import cv2
 
@@ -139,7 +140,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
         for sid, arrays, meta in run:
             wire_arrays(cfg, arrays)
             n += 1
-        for k, v in run.busy.items():
+        for k, v in asdict(run.seconds).items():
             busy[k] = busy.get(k, 0.0) + v
     busy["samples"] = busy.get("samples", 0) + n
     return n / (time.process_time() - t)

@@ -184,8 +184,8 @@ def test_make_sample_flow_uses_every_frame_and_pauses():
                       pause_enabled=False)
     src = panning_frames(cfg.frames_per_sample, 4)[:, :128, :128]
     plan = plan_window(cfg, 0, "x#0", 0, src.shape[1:])
-    plan.offsets = np.array([0, 1, 2, 2, 3, 4, 5, 6, 7, 8, 9], np.int64)  # frame 2 repeated
-    fl = make_sample(cfg, plan, src, ("flow",))["flow"]
+    plan = dataclasses.replace(plan, offsets=np.array([0, 1, 2, 2, 3, 4, 5, 6, 7, 8, 9], np.int64))  # frame 2 repeated
+    fl = make_sample(cfg, plan, src, ("flow",)).arrays["flow"]
     assert (median_epe(fl[0], -16.0, 0.0, 20)) < 1.0  # frames 0 -> 4: 4 moves of 4 px
     assert (median_epe(fl[1], -20.0, 0.0, 24)) < 1.0  # frames 4 -> 9: 5 moves
 

@@ -591,6 +591,35 @@ def test_ray_stage_reads_a_video_whole_only_to_store_it(tmp_path, monkeypatch):
     assert replay["read"] == cfg.recipe.windows.window_stride + 1 < replay["stored"], replay  # window 0 ends at the next one's first frame
 
 
+def test_an_entry_is_stored_by_its_owners_commit_of_a_whole_pass(tmp_path):
+    """The block that opens a pass stores its entry with ``FramePass.commit``, and only once the
+    pass is whole: a commit mid-pass is refused, and leaving the block without one stores nothing
+    (counted incomplete); a pass read to its end and committed is stored, once, and the next
+    pass replays it whole."""
+    from v2v_server.samples.make import video_frames
+
+    cfg = SampleRecipe(shot_cuts="off", **SMALL)
+    src = _cached(CLIPS, tmp_path)
+    with video_frames(cfg, src.source, "bikes.mp4", src.frame_cache) as fp:
+        next(fp.frames)
+        with pytest.raises(RuntimeError, match="reading"):
+            fp.commit()
+    with pytest.raises(RuntimeError, match="closed"):
+        fp.commit()
+    stats = src.take_stats()["frame_cache"]
+    assert _entries(tmp_path) == [] and stats["stored"] == 0 and stats["not_stored"]["incomplete"] == 1, stats
+    with video_frames(cfg, src.source, "bikes.mp4", src.frame_cache) as fp:
+        n = sum(1 for _ in fp.frames)
+        assert fp.storing and _entries(tmp_path) == []  # whole, not yet stored
+        fp.commit()
+        assert not fp.storing and fp.writer.outcome == "stored"
+        with pytest.raises(RuntimeError, match="committed"):
+            fp.commit()
+    assert len(_entries(tmp_path)) == 1 and src.take_stats()["frame_cache"]["stored"] == 1
+    with video_frames(cfg, src.source, "bikes.mp4", src.frame_cache) as fp:
+        assert fp.cached and sum(1 for _ in fp.frames) == n == cfg.windows.frame_limit(fp.declared)
+
+
 def test_tar_member_entries_follow_their_shard(tmp_path):
     """Tar shards: a member's entry records its shard's identity and its offset; rewriting the
     shard is a miss."""

@@ -61,6 +61,7 @@ def _read(recipe: SampleRecipe, corpus: Cached) -> None:
     with video_frames(recipe, corpus.source, CLIP, corpus.frame_cache) as fp:
         for _ in fp.frames:
             pass
+        fp.commit()
     assert check_video(recipe.windows, recipe.decode, corpus.source, CLIP, corpus.caches)["usable"]
 
 

@@ -1,6 +1,8 @@
 """Samples: determinism, outputs computed only on request, pauses, crops, config and wire helpers."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -275,8 +277,7 @@ def test_crop_cut_slices_as_crop_frame(flip, x):
 
     cfg = SampleRecipe(seed=2)
     codes = np.random.default_rng(x).integers(0, 256, (181, 596)).astype(np.uint8)
-    plan = plan_window(cfg, 0, "v.mp4#0", 0, codes.shape)
-    plan.crop_x, plan.flip = x, flip
+    plan = dataclasses.replace(plan_window(cfg, 0, "v.mp4#0", 0, codes.shape), crop_x=x, flip=flip)
     rng = np.random.default_rng(x + flip)
     frames = [rng.integers(0, 256, (181, 596)).astype(np.uint8) for _ in range(plan.consumed)]
     lut = rng.permutation(256).astype(np.uint8)  # a code -> full-range map (any table)

@@ -133,7 +133,7 @@ def test_only_tracked_options_have_a_grid_and_expansion_checks_its_input(real_cl
 
     plan = plan_window(cfg, 0, "x.mp4#0", 0, (real_clip.shape[1], real_clip.shape[2]))
     frames = np.zeros((plan.consumed, CROP, CROP), np.uint8)
-    out = make_sample(cfg, plan, frames, ("flow",), est, flow_grid=True)
+    out = make_sample(cfg, plan, frames, ("flow",), est, flow_grid=True).arrays
     assert set(out) == {"flow"} and out["flow"].shape == (L, 2, CROP, CROP)  # dense for non-tracked options
     with pytest.raises(ValueError, match=r"\(\.\.\., 2, n, n\)"):
         expand_flow_grid(torch.zeros(3, 8, 8), (CROP, CROP))

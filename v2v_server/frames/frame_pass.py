@@ -1,6 +1,7 @@
 """One pass over a video's frames for the sample cutter: replayed from the host's frame cache
-(``frame_cache``) when it holds the video, else decoded (``decode``) and, with a cache, stored
-as they pass.
+(``frame_cache``) when it holds the video, else decoded (``decode``) and, with a cache, written
+as they pass: the entry is stored when the pass's owner commits it (``FramePass.commit``), once
+the pass is whole.
 
 Either way the cutter gets ``(codes, expand, cut)`` per frame (``PassFrame``), the first two as
 ``decode.decode_codes`` yields them:
@@ -92,7 +93,13 @@ class PassFrame(NamedTuple):
 
 
 class FramePass:
-    """A video opened for one pass.
+    """A video opened for one pass, built once with its frames (``replayed``, ``decoded``, or
+    any iterator of :class:`PassFrame`).
+
+    The pass ends in one of three ways: its frames run out, or the consumer says :meth:`end`
+    (it has what it needs): the pass is whole, and its owner stores the entry it wrote with
+    :meth:`commit`; or it is closed (:meth:`close`) without a commit, which drops the entry (a
+    decoding error, a consumer that stopped early: nothing partial is stored).
 
     Attributes:
         info: the stream's facts (``decode.VideoInfo``).
@@ -101,20 +108,18 @@ class FramePass:
             (``open_frames``); with shot detection each says whether it starts a shot (a
             replayed pass gives the cuts stored with its entry).
         cached: replayed from the frame cache.
-        writer: storing the decoded frames into the frame cache (None when replayed or the
-            cache is off); the entry is committed, with the cuts found, only when the pass ends
-            cleanly: its frames run out, or the consumer says :meth:`end`
-            (``EntryWriter.outcome`` says what became of it).
-        damaged: a replayed entry was found damaged, removed, and the rest of the video decoded
-            (not stored).
+        writer: storing the frames into the frame cache as they pass (full range; None when
+            replayed or the cache is off); ``EntryWriter.outcome`` says what became of the entry.
+        detector: the shot detector scoring the frames (None without detection); the cuts it
+            found are stored with the entry.
     """
 
-    def __init__(self, info: VideoInfo, declared: int, frames: Iterator[PassFrame], cached: bool,
-                 writer: Optional[EntryWriter] = None):
-        self.info, self.declared, self.cached, self.writer = info, declared, cached, writer
-        self.damaged = False
-        self._ended = False
-        self.frames = frames
+    def __init__(self, info: VideoInfo, declared: int, frames: Iterator[PassFrame], cached: bool = False,
+                 writer: Optional[EntryWriter] = None, detector: Optional[ShotDetector] = None):
+        self.info, self.declared, self.cached, self.writer, self.detector = info, declared, cached, writer, detector
+        self._source = frames
+        self._state = "reading"  # -> "whole" (ran out, or ended) -> "committed"; "closed" from any
+        self.frames: Iterator[PassFrame] = self._passed(frames)
 
     @classmethod
     def replayed(cls, info: VideoInfo, declared: int, cache: FrameCache, name: str, entry: CachedVideo, limit: int,
@@ -123,9 +128,7 @@ class FramePass:
         ``name``; ``cuts``: the frames that start a shot); from its first bad frame on
         (truncated, bit-flipped) the entry is removed, :attr:`damaged` set, and the rest
         decoded by ``redecode(first_frame)``."""
-        fp = cls(info, declared, iter(()), True)
-        fp.frames = fp._replayed(cache, name, entry, limit, redecode, cuts)
-        return fp
+        return cls(info, declared, _Replay(cache, name, entry, limit, redecode, cuts), True)
 
     @classmethod
     def decoded(cls, info: VideoInfo, declared: int, frames: Iterator[Frame], limit: int,
@@ -133,27 +136,107 @@ class FramePass:
         """A pass over the first ``limit`` decoded ``frames``, each stored by ``writer`` (at
         full range) as it passes and, with ``detect``, scored for a cut before it is given
         (``shots.ShotDetector``)."""
-        fp = cls(info, declared, iter(()), False, writer)
-        fp.frames = fp._decoded(frames, limit, detect)
-        return fp
+        detector = ShotDetector() if detect else None
+        return cls(info, declared, _detected(frames, limit, detector), False, writer, detector)
 
-    def end(self) -> None:
-        """The consumer has what it needs: the frames given so far are the whole pass. The
-        frames are closed, and a pass storing the video commits its entry (a pass closed
-        without ``end`` drops it). Call it between frames, not while ``frames`` is running."""
-        self._ended = True
-        close = getattr(self.frames, "close", None)
-        if close is not None:
-            close()
+    @property
+    def damaged(self) -> bool:
+        """A replayed entry was found damaged, removed, and the rest of the video decoded (not stored)."""
+        return isinstance(self._source, _Replay) and self._source.damaged
 
     @property
     def storing(self) -> bool:
         """Whether the pass is still storing the video: then it must read ``frames`` to their end
-        for the entry to be committed (stopping early drops it)."""
+        (or :meth:`end`) and be committed for the entry to be stored (stopping early drops it)."""
         return self.writer is not None and self.writer.writing
 
-    def _replayed(self, cache: FrameCache, name: str, entry: CachedVideo, limit: int,
-                  redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> Iterator[PassFrame]:
+    def end(self) -> None:
+        """The consumer has what it needs: the frames given so far are the whole pass. The
+        frames are closed; the entry being stored waits for :meth:`commit`. Call it between
+        frames, not while ``frames`` is running."""
+        if self._state == "reading":
+            self._state = "whole"
+        self._stop()
+
+    def commit(self) -> None:
+        """Store the entry this pass wrote in the frame cache, with the shot cuts found (nothing
+        to do without one): the step that makes an entry, taken by the pass's owner once the
+        pass is whole (its frames ran out, or :meth:`end`). Once per pass.
+
+        Raises:
+            RuntimeError: the pass is not whole (it is still reading, was closed, or was
+                committed already): a partial entry is never stored.
+        """
+        if self._state != "whole":
+            raise RuntimeError(f"cannot commit the frame-cache entry of a pass that is {self._state}: only a whole "
+                               "pass (its frames run out, or end()) is stored")
+        self._state = "committed"
+        if self.writer is not None:
+            self.writer.finish(None if self.detector is None else
+                               {"shots": {"detector": DETECTOR_VERSION, "cuts": self.detector.cuts}})
+
+    def close(self) -> None:
+        """Finish with the pass: the frames are closed, and an entry not committed is dropped
+        (counted as incomplete, ``EntryWriter.abort``)."""
+        self._stop()
+        if self._state != "committed":
+            self._state = "closed"
+            if self.writer is not None:
+                self.writer.abort(incomplete=True)
+
+    def _stop(self) -> None:
+        """Close the frames and what they are read from (a decoder, an entry's replay)."""
+        self.frames.close()
+        close = getattr(self._source, "close", None)  # any iterator may be given: a generator has close()
+        if close is not None:
+            close()
+
+    def _passed(self, frames: Iterator[PassFrame]) -> Iterator[PassFrame]:
+        """``frames``, each stored by :attr:`writer` (at full range) before it is given; the pass
+        is whole once they run out."""
+        writer = self.writer
+        try:
+            for f in frames:
+                if writer is not None:
+                    writer.add(f.expand(f.codes))
+                yield f
+            if self._state == "reading":
+                self._state = "whole"
+        finally:  # stopped early or failed: the source stops with it
+            close = getattr(frames, "close", None)
+            if close is not None:
+                close()
+
+
+def _detected(frames: Iterator[Frame], limit: int, detector: Optional[ShotDetector]) -> Iterator[PassFrame]:
+    """The first ``limit`` of ``frames`` as :class:`PassFrame`, each scored by ``detector`` for a cut
+    (no cuts without one)."""
+    for codes, expand in itertools.islice(frames, limit):
+        yield PassFrame(codes, expand, detector is not None and detector.score(codes, expand))
+
+
+class _Replay:
+    """The first ``limit`` frames of the frame-cache entry ``entry`` (named ``name`` in ``cache``)
+    as :class:`PassFrame` (full range; ``cuts``: the frames that start a shot); from its first
+    bad frame on the entry is removed, :attr:`damaged` set, and the rest decoded by
+    ``redecode(first_frame)``. An iterator; :meth:`close` stops it."""
+
+    def __init__(self, cache: FrameCache, name: str, entry: CachedVideo, limit: int,
+                 redecode: Callable[[int], Iterator[Frame]], cuts: frozenset):
+        self.damaged = False
+        self._frames = self._read(cache, name, entry, limit, redecode, cuts)
+
+    def __iter__(self) -> "_Replay":
+        return self
+
+    def __next__(self) -> PassFrame:
+        return next(self._frames)
+
+    def close(self) -> None:
+        self._frames.close()
+
+    def _read(self, cache: FrameCache, name: str, entry: CachedVideo, limit: int,
+              redecode: Callable[[int], Iterator[Frame]], cuts: frozenset) -> Iterator[PassFrame]:
         i = 0
         try:
             for a in entry.read():
@@ -167,25 +250,6 @@ class FramePass:
             self.damaged = True
         for j, (codes, expand) in enumerate(redecode(i), i):
             yield PassFrame(codes, expand, j in cuts)
-
-    def _decoded(self, frames: Iterator[Frame], limit: int, detect: bool) -> Iterator[PassFrame]:
-        done = False
-        writer = self.writer
-        detector = ShotDetector() if detect else None
-        try:
-            for codes, expand in itertools.islice(frames, limit):
-                cut = detector is not None and detector.score(codes, expand)
-                if writer is not None:
-                    writer.add(expand(codes))
-                yield PassFrame(codes, expand, cut)
-            done = True
-        finally:
-            if writer is not None:  # a decoding error, or the consumer stopped: nothing partial is kept
-                if done or self._ended:
-                    writer.finish(None if detector is None else
-                                  {"shots": {"detector": DETECTOR_VERSION, "cuts": detector.cuts}})
-                else:
-                    writer.abort(incomplete=True)
 
 
 def kept_rows(keep_top_fraction: float, height: int) -> int:
@@ -227,6 +291,10 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
     cuts are found (``shots.ShotDetector`` on the kept rows; stored with the entry, so a replay
     finds none again).
 
+    The block that opens the pass owns the entry it stores: once the pass is whole (its frames
+    run out, or ``FramePass.end``) the block calls ``FramePass.commit`` to store it; leaving the
+    block without that (an error, a consumer that stopped early) drops it.
+
     Raises:
         VideoError: the video cannot be opened or decoded (as ``source.open``, ``open_video``).
     """
@@ -249,10 +317,12 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
 
             # an entry written with detection holds its cuts (the settings name the detector)
             cuts = frozenset(int(c) for c in entry.meta.get("shots", {}).get("cuts", ())) if detect else frozenset()
+            fp = FramePass.replayed(VideoInfo(**entry.meta["info"]), declared, cache, name, entry, limit, redecode,
+                                    cuts)
             try:
-                yield FramePass.replayed(VideoInfo(**entry.meta["info"]), declared, cache, name, entry, limit,
-                                         redecode, cuts)
+                yield fp
             finally:
+                fp.close()
                 entry.close()
             return
     with source.open(rel) as path:
@@ -262,6 +332,10 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
         if cache is not None and identity is not None:  # a racy identity is never stored
             writer = cache.writer(name, identity, {"video": rel, "info": asdict(info), "declared": declared},
                                   windows.window_stride)
-        yield FramePass.decoded(info, declared, decode_codes(container, stream, rows, height, segment=segment),
-                                limit_of(declared), writer, detect)
+        fp = FramePass.decoded(info, declared, decode_codes(container, stream, rows, height, segment=segment),
+                               limit_of(declared), writer, detect)
+        try:
+            yield fp
+        finally:
+            fp.close()  # an entry the owner did not commit is dropped
 

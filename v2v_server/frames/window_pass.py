@@ -235,7 +235,8 @@ class WindowPass:
     def over(self, fp: FramePass) -> Iterator[WindowFrame]:
         """Every frame of ``fp`` (a ``frame_pass.FramePass``) with what it does to the windows, laid
         out for its declared frame count (``WindowSettings.layout``); once every window is
-        complete, ``fp.end()`` (a pass storing the video commits its entry) and stop.
+        complete, ``fp.end()`` (the frames are closed: the pass is whole, and its owner may
+        commit the entry it wrote, ``FramePass.commit``) and stop.
 
         Raises:
             what reading ``fp.frames`` raises (``VideoError``); :meth:`record` keeps what came before.

@@ -32,6 +32,7 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str, caches: HostCach
         with video_frames(cfg.recipe, source, rel, caches.frame_cache) as fp:
             for _ in windows.over(fp):  # the frames the sample pass reads, no more
                 pass
+            fp.commit()  # the pass is whole: store the entry it wrote
     except Exception as e:  # one bad file never stops the warm-up
         error = e
         out["state"] = f"not stored: {type(e).__name__}: {e}"

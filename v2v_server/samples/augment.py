@@ -106,28 +106,30 @@ def video_thresholds(seed: int, video: str, ranges: ParamRanges) -> tuple:
     return p.pos_threshold, p.neg_threshold
 
 
-def augment_plan(recipe, epoch: int, plan) -> None:
-    """Apply the ablations ``recipe`` (a ``recipe.SampleRecipe``) asks for to a freshly drawn
-    ``make.WindowPlan`` in place:
-    fixed thresholds replace ``plan.params``' c+ / c-, and the degradation scale is drawn
-    into ``plan.info["dynamic_range_scale"]``. Does nothing when both are off."""
+def augment_plan(recipe, epoch: int, plan):
+    """A freshly drawn ``make.WindowPlan`` with the ablations ``recipe`` (a
+    ``recipe.SampleRecipe``) asks for: a new plan (``dataclasses.replace``) whose ``params``
+    hold the video's fixed c+ / c- (``fixed_sensor_params`` True), and whose
+    ``dynamic_range_scale`` is the degradation scale drawn (1.0 when the coin said no). The
+    plan itself when both are off."""
     if recipe.fixed_sensor_params:
         video = plan.sample_id.rsplit("#", 1)[0]
         cp, cn = video_thresholds(recipe.seed, video, recipe.ranges)
-        plan.params = replace(plan.params, pos_threshold=cp, neg_threshold=cn)
-        plan.info["fixed_sensor_params"] = True
+        plan = replace(plan, params=replace(plan.params, pos_threshold=cp, neg_threshold=cn),
+                       fixed_sensor_params=True)
     deg = recipe.degrade_dynamic_range
     if deg:
         rng = aux_rng(recipe.seed, _TAG_DEGRADE, epoch, plan.sample_id)
         apply = rng.random() < deg["probability"]
         s = float(rng.uniform(*deg["scale"]))
-        plan.info["dynamic_range_scale"] = s if apply else 1.0
+        plan = replace(plan, dynamic_range_scale=s if apply else 1.0)
+    return plan
 
 
 def degrade_window(plan, window_frames: np.ndarray) -> np.ndarray:
     """``window_frames`` degraded by the scale ``augment_plan`` drew (the array itself when
     there is none or it is 1.0)."""
-    s: Optional[float] = plan.info.get("dynamic_range_scale")
+    s: Optional[float] = plan.dynamic_range_scale
     if s is None or s == 1.0:
         return window_frames
     return degrade_dynamic_range(window_frames, s)

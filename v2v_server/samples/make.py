@@ -15,8 +15,8 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Dict, FrozenSet, Iterable, Iterator, List, Optional, Tuple
+from dataclasses import dataclass
+from typing import Dict, FrozenSet, Iterable, Iterator, List, Mapping, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -57,14 +57,19 @@ def pause_offsets(rng: np.random.Generator, n_out: int, p_run: float, p_paused: 
     return np.concatenate([[0], np.cumsum(adv)])
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)  # eq=False: identity, as SensorParams (arrays have no truth value)
 class WindowPlan:
-    """The random choices of one sample, made before its frames are decoded.
+    """The random choices of one sample, made before its frames are decoded: a frozen record,
+    built whole by :func:`plan_window` (a step that derives another plan returns a new one,
+    ``dataclasses.replace``).
 
-    ``offsets``: (frames_per_sample,) source offsets inside the window (pauses);
+    ``offsets``: int64 (frames_per_sample,) source offsets inside the window (pauses);
     ``scale``: resize factor of the kept region (>= 1, only when it is smaller than the crop);
     ``crop_y``, ``crop_x``: top-left corner of the crop in the scaled kept region, pixels;
-    ``flip``: horizontal flip; ``params``: sensor parameters.
+    ``flip``: horizontal flip; ``params``: sensor parameters; ``rng``: the sample's generator
+    (``sample_rng``), which the simulation draws from after the plan's choices;
+    ``fixed_sensor_params``: ``params`` hold the video's fixed c+ / c-, and
+    ``dynamic_range_scale``: the degradation scale drawn, None when off (``augment.augment_plan``).
     """
 
     sample_id: str
@@ -76,12 +81,60 @@ class WindowPlan:
     flip: bool
     params: SensorParams
     rng: np.random.Generator
-    info: dict = field(default_factory=dict)
+    fixed_sensor_params: bool = False
+    dynamic_range_scale: Optional[float] = None
 
     @property
     def consumed(self) -> int:
         """Source frames this window reads (<= frames_per_sample because of pauses)."""
         return int(self.offsets[-1]) + 1
+
+    @property
+    def info(self) -> dict:
+        """The ablations applied, as the sample's params name them (a new dict, empty when both
+        are off): ``fixed_sensor_params`` (True) and ``dynamic_range_scale`` (float)."""
+        out: dict = {}
+        if self.fixed_sensor_params:
+            out["fixed_sensor_params"] = True
+        if self.dynamic_range_scale is not None:
+            out["dynamic_range_scale"] = self.dynamic_range_scale
+        return out
+
+
+@dataclass(frozen=True)
+class StageSeconds:
+    """Seconds spent per stage of making samples, for the server's metrics
+    (``v2v_worker_busy_seconds_total``): ``simulate`` (voxels, polarity counts) and ``flow``
+    (optical flow) by the wall clock; ``stats`` (``stats.add_stats``) in this thread's CPU time,
+    so a loaded host does not inflate it. ``a + b`` sums two records, ``a - b`` gives what was
+    spent between two readings of a running total."""
+
+    simulate: float = 0.0
+    flow: float = 0.0
+    stats: float = 0.0
+
+    def __add__(self, other: "StageSeconds") -> "StageSeconds":
+        return StageSeconds(self.simulate + other.simulate, self.flow + other.flow, self.stats + other.stats)
+
+    def __sub__(self, other: "StageSeconds") -> "StageSeconds":
+        return StageSeconds(self.simulate - other.simulate, self.flow - other.flow, self.stats - other.stats)
+
+
+@dataclass(frozen=True)
+class MadeSample:
+    """What :func:`make_sample` made of one sample.
+
+    Attributes:
+        arrays: the requested outputs by name (shapes and dtypes: :func:`make_sample`).
+        simulation: what the V2V core used, for the sample's params (:func:`sample_meta`):
+            ``refine`` ("off" or the refinement's name), with non-idealities also
+            ``nonidealities``, with refinement ``subframes_mean``; empty when nothing was simulated.
+        seconds: the time this sample took per stage (``stats`` 0: statistics come after).
+    """
+
+    arrays: Dict[str, np.ndarray]
+    simulation: Mapping[str, object]
+    seconds: StageSeconds
 
 
 def plan_window(recipe: SampleRecipe, epoch: int, sample_id: str, window: int, kept_hw: Tuple[int, int]) -> WindowPlan:
@@ -100,9 +153,8 @@ def plan_window(recipe: SampleRecipe, epoch: int, sample_id: str, window: int, k
     crop_x = int(rng.integers(0, sw - s + 1))
     flip = bool(rng.random() < recipe.hflip_prob)
     params = sample_params(rng, recipe.ranges, (s, s))
-    plan = WindowPlan(sample_id, window, offsets, scale, crop_y, crop_x, flip, params, rng)
-    augment_plan(recipe, epoch, plan)  # ablations (off by default), from their own generators
-    return plan
+    # ablations (off by default), from their own generators
+    return augment_plan(recipe, epoch, WindowPlan(sample_id, window, offsets, scale, crop_y, crop_x, flip, params, rng))
 
 
 def crop_frame(recipe: SampleRecipe, plan: WindowPlan, luma: np.ndarray) -> np.ndarray:
@@ -126,9 +178,8 @@ def make_sample(
     outputs: Iterable[str],
     flow: Optional[FlowEstimator] = None,
     fps: float = 0.0,
-    busy: Optional[dict] = None,
     flow_grid: bool = False,
-) -> Dict[str, np.ndarray]:
+) -> MadeSample:
     """Compute the requested outputs of one sample.
 
     Args:
@@ -138,15 +189,14 @@ def make_sample(
         outputs: any of ``OUTPUTS`` ("voxels", "frames", "flow", "polarity_counts"); only
             these are computed.
         fps: source frame rate, Hz (for non-idealities given as rates).
-        busy: when given, ``busy["simulate"]`` and ``busy["flow"]`` accumulate the seconds
-            spent simulating voxels and estimating flow (for the server's metrics).
         flow_grid: with a tracked flow option, give the flow as ``flow_grid`` float32
             (L, 2, n, n), its values at the tracking grid's points
             (``FlowEstimator.voxel_flow_grids``; what a worker sends), instead of the dense
             ``flow``; other options give dense ``flow`` either way.
 
     Returns:
-        dict with ``voxels`` (L, B, S, S) signed event counts (int8/int16/int32, the narrowest
+        a :class:`MadeSample`: what the simulation used, the seconds spent simulating and
+        estimating flow, and its ``arrays``, a dict with ``voxels`` (L, B, S, S) signed event counts (int8/int16/int32, the narrowest
         that holds them, for plain V2V with one frame per bin; else int32), ``frames`` uint8
         (L + 1, S, S) at voxel boundaries, ``flow`` (L, 2, S, S) in pixels from frame l to
         l + 1 (``recipe.flow_preset``, see ``flow.py``; tracked options use every source frame
@@ -158,10 +208,11 @@ def make_sample(
     seq = window_frames[plan.offsets]  # pauses repeat frames
     step = recipe.num_bins * recipe.frames_per_bin
     out: Dict[str, np.ndarray] = {}
+    simulation: Mapping[str, object] = {}
     t0 = time.perf_counter()
     simulated = "voxels" in outputs or "polarity_counts" in outputs
     if simulated:
-        vox, counts = _simulate(recipe, plan, seq, fps, "polarity_counts" in outputs)
+        vox, counts, simulation = _simulate(recipe, plan, seq, fps, "polarity_counts" in outputs)
         if "voxels" in outputs:
             if recipe.frames_per_bin > 1:
                 L, _, h, w = vox.shape
@@ -180,19 +231,16 @@ def make_sample(
             out["flow_grid"] = flow.voxel_flow_grids(seq, step, repeats)
         else:
             out["flow"] = flow.voxel_flows(seq, step, repeats, dtype=recipe.flow_dtype)
-    if busy is not None:
-        if simulated:
-            busy["simulate"] = busy.get("simulate", 0.0) + (t1 - t0)
-        if "flow" in outputs:
-            busy["flow"] = busy.get("flow", 0.0) + (time.perf_counter() - t1)
-    return out
+    seconds = StageSeconds(simulate=t1 - t0 if simulated else 0.0,
+                           flow=time.perf_counter() - t1 if "flow" in outputs else 0.0)
+    return MadeSample(out, simulation, seconds)
 
 
 def _simulate(recipe: SampleRecipe, plan: WindowPlan, seq: np.ndarray, fps: float,
-              polarity: bool = False) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+              polarity: bool = False) -> Tuple[np.ndarray, Optional[np.ndarray], Dict[str, object]]:
     """Voxels of one window: plain V2V, V2V with refinement, V2V with non-idealities, or
-    both composed (one kernel call either way), as configured; what was used goes into
-    ``plan.info`` (and so into the sample's params). With ``polarity``, also the
+    both composed (one kernel call either way), as configured, and what was used (for the
+    sample's params: :attr:`MadeSample.simulation`). With ``polarity``, also the
     ``polarity_counts`` of the same kernel call (plain V2V only), else None.
 
     Raises:
@@ -204,29 +252,27 @@ def _simulate(recipe: SampleRecipe, plan: WindowPlan, seq: np.ndarray, fps: floa
         # same kernel, same draws and the same voxels; N+ and N- kept (the kernel's slower split path)
         vox, _, (n_pos, n_neg) = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=recipe.frames_per_bin == 1,
                                                  split=True)
-        plan.info["refine"] = "off"
-        return vox, polarity_counts(n_pos, n_neg, recipe.sequence_length, recipe.num_bins)
+        return vox, polarity_counts(n_pos, n_neg, recipe.sequence_length, recipe.num_bins), {"refine": "off"}
     if recipe.nonidealities:
         from v2v_server.simulation.nonideal import simulate_voxels_nonideal
 
         vox, _, info = simulate_voxels_nonideal(seq, plan.params, bins, recipe.nonideal_spec, fps=fps or 25.0,
                                                 rng=plan.rng, refine=recipe.refine_spec)
-        plan.info["nonidealities"] = info["nonidealities"]
-        plan.info["refine"] = info.get("refine", "off")
-    elif recipe.refine != "off":
+        return vox, None, {"nonidealities": info["nonidealities"], "refine": info.get("refine", "off")}
+    if recipe.refine != "off":
         from v2v_server.simulation.refine import simulate_voxels_refined
 
         vox, _, info = simulate_voxels_refined(seq, plan.params, bins, recipe.refine_spec, rng=plan.rng)
-        plan.info.update(refine=info["refine"], subframes_mean=float(info["subframes_mean"]))
-    else:
-        # the wire's narrow dtype straight from the kernel, unless bins are summed below
-        vox, _ = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=recipe.frames_per_bin == 1)
-        plan.info["refine"] = "off"
-    return vox, None
+        return vox, None, {"refine": info["refine"], "subframes_mean": float(info["subframes_mean"])}
+    # the wire's narrow dtype straight from the kernel, unless bins are summed below
+    vox, _ = simulate_voxels(seq, plan.params, bins, rng=plan.rng, narrow=recipe.frames_per_bin == 1)
+    return vox, None, {"refine": "off"}
 
 
-def sample_meta(plan: WindowPlan, video_fps: float, src_start: int) -> dict:
-    """msgpack-safe description of a sample's random choices and sensor parameters."""
+def sample_meta(plan: WindowPlan, video_fps: float, src_start: int, simulation: Optional[Mapping[str, object]] = None) -> dict:
+    """msgpack-safe description of a sample's random choices and sensor parameters: a new dict
+    of the plan's choices, the ablations applied (``WindowPlan.info``) and what the simulation
+    used (``simulation``, :attr:`MadeSample.simulation`)."""
     d = plan.params.summary()
     d.update(
         sample_id=plan.sample_id,
@@ -235,6 +281,7 @@ def sample_meta(plan: WindowPlan, video_fps: float, src_start: int) -> dict:
         src_frames=plan.consumed, video_fps=float(video_fps),
     )
     d.update(plan.info)
+    d.update(simulation or {})
     return d
 
 
@@ -331,10 +378,6 @@ class SamplePass:
     planned on the new size). Decoding stops after the last window that can be used (known from
     the container's declared frame count when it has one). ``flow_grid``: see ``make_sample``.
 
-    Attributes:
-        busy: seconds spent simulating (``"simulate"``) and estimating flow (``"flow"``), summed
-            over the samples made (``make_sample``'s ``busy``).
-
     Raises:
         VideoError: while iterating, the file cannot be opened or decoded (samples already
             yielded are good; :meth:`record` keeps what the pass found before).
@@ -344,10 +387,15 @@ class SamplePass:
                  skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False,
                  frame_cache: Optional[FrameCache] = None):
         self._cutter = _Cutter(recipe, rel_path, epoch, tuple(outputs), frozenset(skip), flow, flow_grid)
-        self.busy: Dict[str, float] = self._cutter.busy
         # opens the video on the first sample asked for; holds the cutter, not this object, so
         # dropping the pass closes it at once (a frame-cache entry being stored is dropped)
         self._run = self._cutter.samples(source, frame_cache)
+
+    @property
+    def seconds(self) -> StageSeconds:
+        """The seconds spent so far per stage (simulate, flow, stats), summed over the samples
+        made: a record, read between samples (a reader takes the difference of two readings)."""
+        return self._cutter.seconds
 
     @property
     def storing(self) -> bool:
@@ -374,7 +422,8 @@ class SamplePass:
 
 @dataclass
 class _Cutter:
-    """What a :class:`SamplePass` cuts, and its window pass."""
+    """What a :class:`SamplePass` cuts, its window pass, and the seconds spent so far per stage
+    (the one writer of ``seconds``: a new record after each sample)."""
 
     recipe: SampleRecipe
     rel_path: str
@@ -383,15 +432,29 @@ class _Cutter:
     skip: FrozenSet[SampleKey]
     flow: Optional[FlowEstimator]
     flow_grid: bool
-    busy: Dict[str, float] = field(default_factory=dict)
+    seconds: StageSeconds = StageSeconds()
 
     def __post_init__(self):
         self.windows = WindowPass(self.recipe.windows, self.recipe.reads)
+
+    def _sample(self, key: SampleKey, plan: WindowPlan, frames: np.ndarray, fps: float, start: int
+                ) -> Tuple[SampleKey, Dict[str, np.ndarray], dict]:
+        """One sample of a complete window: ``(key, arrays, meta)``; its seconds are added to
+        :attr:`seconds`."""
+        recipe = self.recipe
+        made = make_sample(recipe, plan, degrade_window(plan, frames), self.outputs, self.flow, fps, self.flow_grid)
+        meta = sample_meta(plan, fps, start, made.simulation)
+        t = time.thread_time()  # statistics: this thread's CPU time, so a loaded host does not inflate it
+        meta = add_stats(meta, made.arrays, recipe, self.windows.shot if recipe.windows.avoid_cuts else None,
+                         self.windows.motions[-1])
+        self.seconds = self.seconds + made.seconds + StageSeconds(stats=time.thread_time() - t)
+        return key, made.arrays, meta
 
     def samples(self, source: VideoSource, frame_cache: Optional[FrameCache]
                 ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
         with video_frames(self.recipe, source, self.rel_path, frame_cache) as fp:
             yield from self._cut(fp)
+            fp.commit()  # the window pass read every frame it needs: a pass storing the video stores its entry
 
     def _cut(self, fp: FramePass) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
         recipe, info, kpw = self.recipe, fp.info, self.recipe.crops_per_window
@@ -404,11 +467,7 @@ class _Cutter:
             if f.ends is not None and win is not None:  # this frame ends the window in progress ...
                 win.add(last, f.codes, f.expand, full)
                 for key, plan, frames in win.finish():
-                    arrays = make_sample(recipe, plan, degrade_window(plan, frames), self.outputs, self.flow, info.fps,
-                                         self.busy, self.flow_grid)
-                    yield key, arrays, add_stats(sample_meta(plan, info.fps, win.start), arrays, recipe,
-                                                 self.windows.shot if recipe.windows.avoid_cuts else None, self.busy,
-                                                 self.windows.motions[-1])
+                    yield self._sample(key, plan, frames, info.fps, win.start)
                 win = None
             if f.starts is not None:  # ... and starts the next one
                 k = f.starts

@@ -34,7 +34,6 @@ the window's source span (``src_start_frame``, ``src_frames``) are in the params
 """
 from __future__ import annotations
 
-import time
 from typing import Dict, Optional
 
 import numpy as np
@@ -120,19 +119,18 @@ def event_stats(voxels: Optional[np.ndarray], counts: Optional[np.ndarray], flow
 
 
 def add_stats(meta: dict, arrays: Dict[str, np.ndarray], recipe, shot: Optional[tuple] = None,
-              busy: Optional[dict] = None, motion: Optional[float] = None) -> dict:
+              motion: Optional[float] = None) -> dict:
     """``meta`` (a sample's params, with ``video_fps``) with ``"stats"``: :func:`event_stats` of the
     sample's ``arrays`` (as ``samples.make.make_sample`` returns them) under ``recipe`` (a
     ``SampleRecipe``); given ``shot`` = (shot index in the video, its first frame), also ``shot``
     and ``shot_start_frame``; given ``motion`` (the window's, ``frames.motion``), also the
-    statistic ``motion``. ``busy``, when given, accumulates the CPU seconds spent (this
-    thread's, so a loaded host does not inflate them) under ``"stats"``. Returns ``meta``, updated in place.
+    statistic ``motion``. Returns a new dict (``meta`` is left as it is).
 
     Raises:
         ValueError: as :func:`event_stats`.
     """
-    t = time.thread_time()
     exact = recipe.frames_per_bin == 1 and recipe.refine == "off" and not recipe.nonidealities
+    meta = dict(meta)
     meta["stats"] = event_stats(arrays.get("voxels"), arrays.get("polarity_counts"),
                                 arrays.get("flow", arrays.get("flow_grid")), meta["video_fps"], recipe.num_bins,
                                 recipe.frames_per_bin, exact)
@@ -140,6 +138,4 @@ def add_stats(meta: dict, arrays: Dict[str, np.ndarray], recipe, shot: Optional[
         meta["stats"]["motion"] = _round(motion)
     if shot is not None:
         meta.update(shot=int(shot[0]), shot_start_frame=int(shot[1]))
-    if busy is not None:
-        busy["stats"] = busy.get("stats", 0.0) + time.thread_time() - t
     return meta

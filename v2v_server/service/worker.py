@@ -38,7 +38,7 @@ from v2v_wire.protocol import ProtocolError, encode_arrays, pack, unpack
 from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, Task, server_message
 from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import SampleKey
-from v2v_server.samples.make import video_samples
+from v2v_server.samples.make import SamplePass, video_samples
 from v2v_server.frames.corpus import record_pass
 
 log = logging.getLogger("v2v.worker")
@@ -133,16 +133,16 @@ def pack_arrays(arrays: dict, names) -> tuple:
 
 class _StageClock:
     """Seconds a worker spends per stage (decode, simulate, flow, serialize, send) since its
-    previous message. Simulate and flow come from the sample pass's ``busy``
-    (``samples.make.SamplePass``); decode is the rest of the time spent making a sample
-    (decoding, cropping, planning); send includes waiting for the server to take the message
-    (back-pressure)."""
+    previous message. Simulate and flow are what the sample pass reports it spent
+    (``samples.make.SamplePass.seconds``, read after each sample); decode is the rest of the
+    time spent making a sample (decoding, cropping, planning); send includes waiting for the
+    server to take the message (back-pressure)."""
 
-    def __init__(self, busy: dict):
-        self.busy = busy
+    def __init__(self, run: SamplePass):
+        self.run = run
         self.t = time.perf_counter()
         self.acc = {"decode": 0.0, "simulate": 0.0, "flow": 0.0, "serialize": 0.0, "send": 0.0}
-        self.busy_seen = {"simulate": 0.0, "flow": 0.0}
+        self.seen = run.seconds  # the pass's running total at the previous reading
 
     def _lap(self) -> float:
         now = time.perf_counter()
@@ -151,14 +151,11 @@ class _StageClock:
 
     def made(self) -> None:
         dt = self._lap()
-        busy = self.busy
-        inner = 0.0
-        for k in ("simulate", "flow"):
-            d = busy.get(k, 0.0) - self.busy_seen[k]
-            self.busy_seen[k] = busy.get(k, 0.0)
-            self.acc[k] += d
-            inner += d
-        self.acc["decode"] += max(0.0, dt - inner)
+        total = self.run.seconds
+        d, self.seen = total - self.seen, total
+        self.acc["simulate"] += d.simulate
+        self.acc["flow"] += d.flow
+        self.acc["decode"] += max(0.0, dt - (d.simulate + d.flow))
 
     def serialized(self) -> None:
         self.acc["serialize"] += self._lap()
@@ -183,7 +180,7 @@ def run_task(cfg: SampleRecipe, source: VideoSource, caches: HostCaches, task: T
     skip = [SampleKey(task.video, w, c) for w, c in task.skip]
     run = video_samples(cfg, source, task.video, task.epoch, task.outputs, skip, flow,
                         flow_grid=True, frame_cache=caches.frame_cache)  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
-    clock = _StageClock(run.busy)  # seconds per stage, reported with each message
+    clock = _StageClock(run)  # seconds per stage, reported with each message
     try:
         for key, arrays, meta in run:
             clock.made()
