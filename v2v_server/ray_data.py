@@ -198,19 +198,19 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
     return [{"video": rel, "epoch": int(epoch), "entries": json.dumps(e)} for rel, e in entries.items()]
 
 
-def _zeros(cfg: SampleRecipe, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
+def _zeros(recipe: SampleRecipe, outputs: Sequence[str]) -> Dict[str, np.ndarray]:
     """A padding row's arrays: zeros in each column's dtype and layout (``outputs.zeros_row``)."""
-    return {k: zeros_row(k, cfg.sequence_length, cfg.num_bins, cfg.crop_size, cfg.flow_dtype) for k in outputs}
+    return {k: zeros_row(k, recipe.sequence_length, recipe.num_bins, recipe.crop_size, recipe.flow_dtype) for k in outputs}
 
 
-def _row_arrays(cfg: SampleRecipe, arrays: Dict[str, np.ndarray], sample_id: str) -> Dict[str, np.ndarray]:
+def _row_arrays(recipe: SampleRecipe, arrays: Dict[str, np.ndarray], sample_id: str) -> Dict[str, np.ndarray]:
     """A sample's arrays in their column dtypes and layouts (``outputs.row_array``: voxels
-    int16, never wrapped; frames uint8 with a channel axis; flow ``cfg.flow_dtype``, as the
+    int16, never wrapped; frames uint8 with a channel axis; flow ``recipe.flow_dtype``, as the
     ZeroMQ wire; polarity counts uint8)."""
     if "flow_grid" in arrays:  # a tracked option's grid, made dense as a client makes a worker's (same bits)
         arrays = dict(arrays)
-        arrays["flow"] = expand_grids(arrays.pop("flow_grid"), (cfg.crop_size, cfg.crop_size))
-    return {name: row_array(name, a, cfg.flow_dtype, sample_id) for name, a in arrays.items()}
+        arrays["flow"] = expand_grids(arrays.pop("flow_grid"), (recipe.crop_size, recipe.crop_size))
+    return {name: row_array(name, a, recipe.flow_dtype, sample_id) for name, a in arrays.items()}
 
 
 class SampleMaker:

@@ -103,15 +103,15 @@ def _send(sock: zmq.Socket, frames, parent_pid: int) -> None:
     sock.send_multipart(frames, copy=False)
 
 
-def wire_arrays(cfg: SampleRecipe, arrays: dict) -> dict:
+def wire_arrays(recipe: SampleRecipe, arrays: dict) -> dict:
     """A sample's arrays in their wire dtypes (``outputs.wire_dtype``: voxels the narrowest
-    int that holds every count, frames and polarity counts uint8, dense flow ``cfg.flow_dtype``,
+    int that holds every count, frames and polarity counts uint8, dense flow ``recipe.flow_dtype``,
     a tracked option's ``flow_grid`` float32). Counts that arrive narrowed by their producer
     (``simulate_voxels(narrow=True)``) are not scanned again; float16 is made by the vectorised
     ``flow.to_float16`` (bit-identical to numpy's cast)."""
     out = {}
     for name, a in arrays.items():
-        dt = wire_dtype(name, a, cfg.flow_dtype)
+        dt = wire_dtype(name, a, recipe.flow_dtype)
         out[name] = to_float16(a) if dt == np.float16 else a.astype(dt, copy=False)
     return out
 
@@ -169,22 +169,22 @@ class _StageClock:
         return out
 
 
-def run_task(cfg: SampleRecipe, source: VideoSource, caches: HostCaches, task: Task, sock: zmq.Socket,
+def run_task(recipe: SampleRecipe, source: VideoSource, caches: HostCaches, task: Task, sock: zmq.Socket,
              parent_pid: int, flows: dict, inbox: Optional[_Inbox] = None, worker: str = "?") -> None:
     """Make every sample of one task of ``source`` (its frames through the host's ``caches``) and send it (through ``inbox``'s slot ring when it has
     one), then send ``done``; an exception that stops the pass goes in it as a
     ``worker_messages.Failure`` saying it was raised in ``worker`` (its identity) on what."""
     error = failure = last = None
-    preset = cfg.flow_preset
+    preset = recipe.flow_preset
     flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task.outputs else None
     skip = [SampleKey(task.video, w, c) for w, c in task.skip]
-    run = video_samples(cfg, source, task.video, task.epoch, task.outputs, skip, flow,
+    run = video_samples(recipe, source, task.video, task.epoch, task.outputs, skip, flow,
                         flow_grid=True, frame_cache=caches.frame_cache)  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
     clock = _StageClock(run)  # seconds per stage, reported with each message
     try:
         for key, arrays, meta in run:
             clock.made()
-            arrays = wire_arrays(cfg, arrays)
+            arrays = wire_arrays(recipe, arrays)
             specs, frames = encode_arrays(arrays)
             packed_specs, packed = pack_arrays(arrays, task.codecs)
             clock.serialized()
@@ -202,13 +202,13 @@ def run_task(cfg: SampleRecipe, source: VideoSource, caches: HostCaches, task: T
             last = key
     except Exception as e:  # any failure on one file is that file's verdict, not the worker's death
         error = e
-        after = "before its first sample" if last is None else f"after sample {last.sample_id(cfg.crops_per_window)}"
+        after = "before its first sample" if last is None else f"after sample {last.sample_id(recipe.crops_per_window)}"
         failure = Failure.of(e, f"in worker {worker}, pid {os.getpid()}, while making {task.video} in epoch "
                                 f"{task.epoch}, {after}")
     found = run.record(error)
     clock.made()  # decoding after the last window
-    record_pass(cfg.windows, cfg.decode, source, task.video, found, caches)  # the next start knows its windows (corpus index)
-    cause, reason = found.cause(cfg.windows)  # the file's verdict, failed windows aside
+    record_pass(recipe.windows, recipe.decode, source, task.video, found, caches)  # the next start knows its windows (corpus index)
+    cause, reason = found.cause(recipe.windows)  # the file's verdict, failed windows aside
     done = Done(task.task, found.windows,
                 {str(k): str(v) for k, v in found.failed.items()},  # window -> reason, one by one
                 reason, failure, found.frames, len(found.cuts), found.dropped,  # shot cuts found, windows they removed
@@ -255,7 +255,7 @@ def worker_main(cfg_dict: dict, corpus: dict, endpoint: str, identity: bytes, pa
     import cv2
 
     cv2.setNumThreads(1)
-    cfg = SampleRecipe.recipe_from_dict(cfg_dict["recipe"], source="worker recipe")
+    recipe = SampleRecipe.recipe_from_dict(cfg_dict["recipe"], source="worker recipe")
     if cfg_dict.get("log_format") == "json":  # one format for the whole server's stderr
         setup_logging("INFO", "json", "v2v-worker")
     else:
@@ -283,7 +283,7 @@ def worker_main(cfg_dict: dict, corpus: dict, endpoint: str, identity: bytes, pa
             if isinstance(msg, Stop):
                 return
             if isinstance(msg, Task):
-                run_task(cfg, source, caches, msg, sock, parent_pid, flows, inbox, identity.decode())
+                run_task(recipe, source, caches, msg, sock, parent_pid, flows, inbox, identity.decode())
     finally:
         sock.close(0)
         ctx.term()
