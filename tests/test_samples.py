@@ -273,7 +273,7 @@ def test_crops_per_window_config_validation():
 @pytest.mark.parametrize("flip", [False, True])
 @pytest.mark.parametrize("x", [0, 5, 468])
 def test_crop_cut_slices_as_crop_frame(flip, x):
-    from v2v_server.samples.make import _CropCut, crop_frame, plan_window
+    from v2v_server.samples.make import _CropFrames, crop_frame, plan_window
 
     cfg = SampleRecipe(seed=2)
     codes = np.random.default_rng(x).integers(0, 256, (181, 596)).astype(np.uint8)
@@ -285,7 +285,7 @@ def test_crop_cut_slices_as_crop_frame(flip, x):
     want = np.stack([expand(crop_frame(cfg, plan, f)) for f in frames])
     # every row kept as codes (flipped and mapped once at the end), or one row under another map
     for other in (None, 3):
-        cut = _CropCut(cfg, SampleKey("v.mp4", 0), plan)
+        cut = _CropFrames(cfg, SampleKey("v.mp4", 0), plan)
         for k, f in enumerate(frames):
             cut.add(k, f, k != other, expand, None)
         np.testing.assert_array_equal(cut.frames(expand), want)

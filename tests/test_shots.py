@@ -128,7 +128,7 @@ def test_layout_places_windows_inside_shots():
     lay = WindowLayout(5, 10)
     events = [lay.step(i, i == 6) for i in range(12)]
     assert events[6].drops == 1 and events[6].starts == 1  # window 1 started at 4, cut at 6: dropped, restarted
-    assert lay.dropped == 1 and lay.windows == 2  # windows [0, 4] and [6, 10]
+    assert lay.dropped == 1 and lay.completed == 2  # windows [0, 4] and [6, 10]
 
 
 def test_served_windows_never_span_a_cut():

@@ -65,7 +65,7 @@ def test_a_static_window_gives_its_index_to_the_next_as_a_cut_does():
     lay = WindowLayout(5, 10, skip_static=True)
     events = [lay.step(i, static=i == 4) for i in range(13)]
     assert events[4].skips == 0 and events[4].ends is None and events[4].starts == 0
-    assert events[8].ends == 0 and events[12].ends == 1 and lay.static == 1 and lay.windows == 2
+    assert events[8].ends == 0 and events[12].ends == 1 and lay.static == 1 and lay.completed == 2
     keep = WindowLayout(5, 10)
     assert keep.step(0).starts == 0 and [keep.step(i, static=True).ends for i in range(1, 5)][-1] == 0
 

@@ -114,20 +114,20 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str,
     if w.reads_frames or split_segment(rel)[1]:
         r = check_video(w, cfg.recipe.decode, source, rel, caches)
         return r["windows"], (None if r["usable"] else r["reason"])
-    windows = WindowPass(w, cfg.recipe.reads)
+    window_pass = WindowPass(w, cfg.recipe.reads)
     error = None
     try:
         with source.open(rel) as path:
             container, stream, info = open_video(path)
             try:
                 packets = (PassFrame(None, None) for packet in container.demux(stream) if packet.size)
-                for _ in windows.over(FramePass(info, 0, packets, False)):
+                for _ in window_pass.over(FramePass(info, 0, packets, False)):
                     pass
             finally:
                 container.close()
     except Exception as e:  # a demuxing error after some packets: those packets still count
-        error = e if windows.frames == 0 else None
-    count, _, reason = windows.record(error).verdict(w)
+        error = e if window_pass.frames == 0 else None
+    count, _, reason = window_pass.record(error).verdict(w)
     return count, reason
 
 

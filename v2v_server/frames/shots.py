@@ -254,7 +254,7 @@ class WindowLayout:
         self.avoid_cuts, self.skip_static = bool(avoid_cuts), bool(skip_static)
         self.shot_start = 0
         self.current: Optional[int] = None  # first frame of the window in progress
-        self.windows = 0  # complete windows
+        self.completed = 0  # complete windows
         self.dropped = 0  # windows a cut fell inside
         self.static = 0  # windows given up as static
         self.cuts = 0
@@ -262,7 +262,7 @@ class WindowLayout:
     @property
     def done(self) -> bool:
         """Every window the layout may give is complete: later frames serve nothing."""
-        return self.windows >= self.max_windows
+        return self.completed >= self.max_windows
 
     def ends_at(self, i: int) -> bool:
         """Whether frame ``i``, unless it starts a shot, completes the window in progress."""
@@ -277,19 +277,19 @@ class WindowLayout:
             if self.avoid_cuts:
                 self.shot_start = i
                 if self.current is not None and i > self.current:
-                    ev.drops = self.windows
+                    ev.drops = self.completed
                     self.dropped += 1
                     self.current = None
         if self.ends_at(i):
             if static and self.skip_static:
-                ev.skips = self.windows
+                ev.skips = self.completed
                 self.static += 1
             else:
-                ev.ends = self.windows
-                self.windows += 1
+                ev.ends = self.completed
+                self.completed += 1
             self.current = None
         if self.current is None and not self.done and (i - self.shot_start) % self.stride == 0:
             self.current = i
-            ev.starts = self.windows
+            ev.starts = self.completed
         return ev
 

@@ -256,7 +256,7 @@ class WindowPass:
             if ev.drops is not None or ev.skips is not None:
                 self.failed.pop(ev.drops if ev.drops is not None else ev.skips, None)  # the index goes to the next window
             # the window this frame belongs to, other than one it starts: the one it ends, or the one in progress
-            k = ev.ends if ev.ends is not None else layout.windows if ev.starts is None and layout.current is not None \
+            k = ev.ends if ev.ends is not None else layout.completed if ev.starts is None and layout.current is not None \
                 else None
             size = None if f.codes is None else self.size_of(f.codes)
             fails = None

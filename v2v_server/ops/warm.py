@@ -26,19 +26,19 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str, caches: HostCach
     whole), ``stored``, or ``not stored: CAUSE`` (budget, disk_full, write_error, or the
     decoding error)."""
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
-    windows = WindowPass(cfg.recipe.windows, cfg.recipe.reads)
+    window_pass = WindowPass(cfg.recipe.windows, cfg.recipe.reads)
     fp, error = None, None
     try:
         with video_frames(cfg.recipe, source, rel, caches.frame_cache) as fp:
-            for _ in windows.over(fp):  # the frames the sample pass reads, no more
+            for _ in window_pass.over(fp):  # the frames the sample pass reads, no more
                 pass
             fp.commit()  # the pass is whole: store the entry it wrote
     except Exception as e:  # one bad file never stops the warm-up
         error = e
         out["state"] = f"not stored: {type(e).__name__}: {e}"
-    out["frames"] = windows.frames
+    out["frames"] = window_pass.frames
     # the next start knows its windows
-    record_pass(cfg.recipe.windows, cfg.recipe.decode, source, rel, windows.record(error), caches)
+    record_pass(cfg.recipe.windows, cfg.recipe.decode, source, rel, window_pass.record(error), caches)
     caches.take_stats()  # this video's counters are spent here: the pass says what became of its entry
     writer = fp.writer if fp is not None else None  # what became of the entry this pass wrote
     out["bytes"] = writer.stored_bytes if writer is not None else 0

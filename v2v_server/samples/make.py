@@ -285,7 +285,7 @@ def sample_meta(plan: WindowPlan, video_fps: float, src_start: int, simulation: 
     return d
 
 
-class _CropCut:
+class _CropFrames:
     """One crop of the window being decoded: its plan and its frames so far, (consumed, S, S).
 
     Full range is applied per pixel on the crop (exact, and far cheaper than on the frame),
@@ -342,24 +342,24 @@ class _CropCut:
 
 class _Window:
     """The window being decoded: its first frame, the code -> full-range map of that frame and
-    its crops (:class:`_CropCut`)."""
+    its crops (:class:`_CropFrames`)."""
 
-    def __init__(self, start: int, expand, cuts: List[_CropCut]):
-        self.start, self.expand, self.cuts = start, expand, cuts
+    def __init__(self, start: int, expand, crops: List[_CropFrames]):
+        self.start, self.expand, self.crops = start, expand, crops
 
     def add(self, off: int, codes: np.ndarray, expand, full: list) -> None:
         """Frame ``off`` of the window; ``full`` caches the frame at full range (made at most
         once per frame, shared by the windows the frame belongs to)."""
-        for cut in self.cuts:
-            if off < cut.consumed:
-                if cut.plan.scale != 1.0 and not full:
+        for crop in self.crops:
+            if off < crop.consumed:
+                if crop.plan.scale != 1.0 and not full:
                     full.append(np.ascontiguousarray(expand(codes)))
-                cut.add(off, codes, expand is self.expand, expand, full[0] if full else None)
+                crop.add(off, codes, expand is self.expand, expand, full[0] if full else None)
 
     def finish(self) -> Iterator[Tuple[SampleKey, "WindowPlan", np.ndarray]]:
         """Each crop's key, plan and full-range frames, once the window is complete."""
-        for cut in self.cuts:
-            yield cut.key, cut.plan, cut.frames(self.expand)
+        for crop in self.crops:
+            yield crop.key, crop.plan, crop.frames(self.expand)
 
 
 class SamplePass:
@@ -386,28 +386,28 @@ class SamplePass:
     def __init__(self, recipe: SampleRecipe, source: VideoSource, rel_path: str, epoch: int, outputs: Iterable[str],
                  skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False,
                  frame_cache: Optional[FrameCache] = None):
-        self._cutter = _Cutter(recipe, rel_path, epoch, tuple(outputs), frozenset(skip), flow, flow_grid)
+        self._samples = _WindowSamples(recipe, rel_path, epoch, tuple(outputs), frozenset(skip), flow, flow_grid)
         # opens the video on the first sample asked for; holds the cutter, not this object, so
         # dropping the pass closes it at once (a frame-cache entry being stored is dropped)
-        self._run = self._cutter.samples(source, frame_cache)
+        self._run = self._samples.samples(source, frame_cache)
 
     @property
     def seconds(self) -> StageSeconds:
         """The seconds spent so far per stage (simulate, flow, stats), summed over the samples
         made: a record, read between samples (a reader takes the difference of two readings)."""
-        return self._cutter.seconds
+        return self._samples.seconds
 
     @property
     def storing(self) -> bool:
         """Whether the pass is still storing the video in the frame cache
         (``frame_pass.FramePass.storing``): a consumer that stops early then drops the entry."""
-        fp = self._cutter.windows.frame_pass
+        fp = self._samples.window_pass.frame_pass
         return fp is not None and fp.storing
 
     def record(self, error: Optional[BaseException] = None) -> VideoPass:
         """What the pass found so far: frames, cuts, complete and failed windows
         (``frames.window_pass.VideoPass``); ``error``: what stopped it, if anything."""
-        return self._cutter.windows.record(error)
+        return self._samples.window_pass.record(error)
 
     def __iter__(self) -> "SamplePass":
         return self
@@ -421,8 +421,8 @@ class SamplePass:
 
 
 @dataclass
-class _Cutter:
-    """What a :class:`SamplePass` cuts, its window pass, and the seconds spent so far per stage
+class _WindowSamples:
+    """What a :class:`SamplePass` makes, its window pass, and the seconds spent so far per stage
     (the one writer of ``seconds``: a new record after each sample)."""
 
     recipe: SampleRecipe
@@ -435,7 +435,7 @@ class _Cutter:
     seconds: StageSeconds = StageSeconds()
 
     def __post_init__(self):
-        self.windows = WindowPass(self.recipe.windows, self.recipe.reads)
+        self.window_pass = WindowPass(self.recipe.windows, self.recipe.reads)
 
     def _sample(self, key: SampleKey, plan: WindowPlan, frames: np.ndarray, fps: float, start: int
                 ) -> Tuple[SampleKey, Dict[str, np.ndarray], dict]:
@@ -445,8 +445,8 @@ class _Cutter:
         made = make_sample(recipe, plan, degrade_window(plan, frames), self.outputs, self.flow, fps, self.flow_grid)
         meta = sample_meta(plan, fps, start, made.simulation)
         t = time.thread_time()  # statistics: this thread's CPU time, so a loaded host does not inflate it
-        meta = add_stats(meta, made.arrays, recipe, self.windows.shot if recipe.windows.avoid_cuts else None,
-                         self.windows.motions[-1])
+        meta = add_stats(meta, made.arrays, recipe, self.window_pass.shot if recipe.windows.avoid_cuts else None,
+                         self.window_pass.motions[-1])
         self.seconds = self.seconds + made.seconds + StageSeconds(stats=time.thread_time() - t)
         return key, made.arrays, meta
 
@@ -460,7 +460,7 @@ class _Cutter:
         recipe, info, kpw = self.recipe, fp.info, self.recipe.crops_per_window
         last = recipe.frames_per_sample - 1  # a window's last frame, from its first
         win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
-        for f in self.windows.over(fp):  # the frames of the layout's windows at most (video_frames)
+        for f in self.window_pass.over(fp):  # the frames of the layout's windows at most (video_frames)
             full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled
             if f.drops is not None or f.fails is not None or f.skips is not None:
                 win = None  # it would show two scenes, frames of two sizes, or (skipped) almost no change
@@ -472,7 +472,7 @@ class _Cutter:
             if f.starts is not None:  # ... and starts the next one
                 k = f.starts
                 win = _Window(f.index, f.expand,
-                              [_CropCut(recipe, key, plan_window(recipe, self.epoch, key.sample_id(kpw), k, f.codes.shape))
+                              [_CropFrames(recipe, key, plan_window(recipe, self.epoch, key.sample_id(kpw), k, f.codes.shape))
                                for key in window_keys(self.rel_path, k, kpw) if key not in self.skip])
             if win is not None and f.offset is not None:
                 win.add(f.offset, f.codes, f.expand, full)
