@@ -1,4 +1,4 @@
-"""Decode once, cut every epoch: a host's cache of decoded frames.
+"""Decode once, read every epoch: a host's cache of decoded frames.
 
 The first time any process of a host decodes a video it stores what the sample cutter reads:
 every decoded frame's kept region (the top rows, display rotation applied) at full range

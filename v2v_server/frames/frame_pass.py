@@ -1,4 +1,4 @@
-"""One pass over a video's frames for the sample cutter: replayed from the host's frame cache
+"""One pass over a video's frames for the sample pass: replayed from the host's frame cache
 (``frame_cache``) when it holds the video, else decoded (``decode``) and, with a cache, written
 as they pass: the entry is stored when the pass's owner commits it (``FramePass.commit``), once
 the pass is whole.

@@ -1,4 +1,4 @@
-"""The videos stage's window settings: where a video's windows lie.
+"""The frames stage's window settings: where a video's windows lie.
 
 A window is ``frames_per_sample`` source frames (201 at the paper's recipe); windows follow each
 other ``window_stride`` (200) apart, so a window's last frame is the next one's first, as in the
