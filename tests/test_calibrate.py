@@ -14,12 +14,11 @@ import yaml
 
 from harness.data import DAVIS346, EVT2, EVT3, SAMPLE_VIDEOS
 from trainer.calibrate import main
-from trainer.calibrate_fit import BOUNDS, THRESHOLD_SPREAD, fit_frames, frame_stats, frame_target, recording_target
+from trainer.calibrate_fit import (BOUNDS, THRESHOLD_SPREAD, fit_frames, frame_stats, frame_target, recording_target,
+                                   simulate_frames)
 from trainer.grid_stats import summarise
 from trainer.stream_stats import from_corpus
 from v2v_server.ops.config import load_config
-from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
-from v2v_server.simulation.simulate import SensorParams
 
 #: windows of 41 frames (8 voxel grids of 0.2 s at 25 fps), at most 3 a clip: the bundled clips give 12
 SHORT = "sequence_length: 8\nmax_samples_per_video: 3\nbatch_size: 2\n"
@@ -42,13 +41,7 @@ def test_fit_from_frames_meets_the_davis346_targets():
     target = frame_target(str(DAVIS346))
     res = fit_frames(target, load_config(None).recipe, seed=0, max_evals=60)
     p = res.params
-    # simulate the recording's frames again with the fitted values and other draws (seed 1)
-    rng = np.random.default_rng(1)
-    pot = rng.uniform(-p["c_neg"], p["c_pos"], target.frames.shape[1:]) * p["potential_spread"]
-    vox, _, _ = simulate_voxels_nonideal(target.frames, SensorParams(p["c_pos"], p["c_neg"], p["noise_std"]), 1,
-                                         NonIdealities(threshold_sigma=p["threshold_sigma"]), fps=target.fps,
-                                         initial_potential=pot, rng=rng)
-    sim = frame_stats(vox[:, 0], target)
+    sim = frame_stats(simulate_frames(target, p, seed=1), target)  # the fitted values again, other draws
     real_events = target.n_pos + target.n_neg
     real_active = float(np.mean(target.counts > 0))
     assert abs(sim["events"] / real_events - 1) <= 0.10, (sim, real_events)
