@@ -30,12 +30,10 @@ import yaml
 
 from harness.data import DAVIS346, EVT3, SAMPLE_VIDEOS
 from trainer.calibrate_fit import (CORPUS_STATS, FRAME_STATS, corpus_windows, fit_corpus, fit_frames, frame_stats,
-                                   frame_target, recording_target)
+                                   frame_target, recording_target, simulate_frames)
 from trainer.grid_stats import summarise
 from trainer.stream_stats import from_corpus
 from v2v_server.ops.config import load_config
-from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
-from v2v_server.simulation.simulate import SensorParams
 
 #: the recipe of the fits by statistics: the default with 41-frame windows (module docstring)
 BASE = {"sequence_length": 8}
@@ -47,15 +45,10 @@ def frames_row(max_evals: int) -> dict:
     t0 = time.perf_counter()
     res = fit_frames(target, load_config(None).recipe, seed=0, max_evals=max_evals)
     seconds = time.perf_counter() - t0
-    p = res.params
-    rng = np.random.default_rng(1)
-    pot = rng.uniform(-p["c_neg"], p["c_pos"], target.frames.shape[1:]) * p["potential_spread"]
-    vox, _, _ = simulate_voxels_nonideal(target.frames, SensorParams(p["c_pos"], p["c_neg"], p["noise_std"]), 1,
-                                         NonIdealities(threshold_sigma=p["threshold_sigma"]), fps=target.fps,
-                                         initial_potential=pot, rng=rng)
+    other_draws = frame_stats(simulate_frames(target, res.params, seed=1), target)
     return {"recording": DAVIS346.name, "intervals": int(target.real.shape[0]), "target": res.target,
-            "default": res.before, "fitted": res.after, "fitted_other_draws": frame_stats(vox[:, 0], target),
-            "params": p, "simulations": res.evaluations, "seconds": seconds}
+            "default": res.before, "fitted": res.after, "fitted_other_draws": other_draws,
+            "params": res.params, "simulations": res.evaluations, "seconds": seconds}
 
 
 def corpus_row(path: Path, max_evals: int, epochs: int, cfg_path: Path) -> dict:

@@ -64,7 +64,10 @@ def core_cost(batches: int, grant: bool, batch_size: int = 12) -> float:
 
 @contextlib.contextmanager
 def ack_only():
-    """The client as it was before grants: a batch still held is taken at once, nothing is asked."""
+    """Within the ``with`` block, ``v2v_client.session.HeldBatches`` follows the ack-only rule,
+    the baseline of this bench and of tests/test_lease_protocol.py: a batch still held is taken
+    at once and no grant is asked for (so a batch the server meanwhile gave another client is
+    yielded too). The grant rule is restored on leaving the block."""
     from v2v_client.session import HeldBatches
 
     saved = HeldBatches.claim, HeldBatches.to_ask

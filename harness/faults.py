@@ -19,7 +19,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import Callable, List, Optional, Tuple
 
 import zmq
 
@@ -172,15 +172,19 @@ for b in ds:
 """
 
 
+def _trainer_process(script: str, *args: str) -> subprocess.Popen:
+    """``script`` run by a child Python that imports this checkout, with ``args``; its stdout a text pipe."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.Popen([sys.executable, "-c", script, *args], stdout=subprocess.PIPE, text=True, env=env)
+
+
 def scenario_client_kill(tmp: Path, layout: Layout, kill_after_steps: int = 2) -> dict:
     corpus = good_corpus(tmp, 2)
     expected = expected_ids(corpus, layout)
     ckpt = tmp / "trainer_ckpt.json"
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--client-timeout", "2",
                        *layout.args()]) as srv:
-        p = subprocess.Popen([sys.executable, "-c", CLIENT_SCRIPT, srv.endpoint, str(ckpt)], stdout=subprocess.PIPE,
-                             text=True, env=env)
+        p = _trainer_process(CLIENT_SCRIPT, srv.endpoint, str(ckpt))
         steps = 0
         for line in p.stdout:
             steps += line.startswith("step")
@@ -189,8 +193,7 @@ def scenario_client_kill(tmp: Path, layout: Layout, kill_after_steps: int = 2) -
         p.send_signal(signal.SIGKILL)
         p.wait(10)
         t_kill = time.monotonic()
-        p2 = subprocess.Popen([sys.executable, "-c", CLIENT_SCRIPT, srv.endpoint, str(ckpt)], stdout=subprocess.PIPE,
-                              text=True, env=env)
+        p2 = _trainer_process(CLIENT_SCRIPT, srv.endpoint, str(ckpt))
         first = None
         for line in p2.stdout:
             if first is None and line.startswith("step"):
@@ -405,42 +408,54 @@ for b in ds:
 """
 
 
+def _stopped_while_another_reads(endpoint: str, p: subprocess.Popen, stop: Callable[[], List[str]], stopped_s: float,
+                                 other_step_s: float) -> Tuple[List[str], list]:
+    """Trainer A (process ``p``, printing ``ids ...`` lines) is stopped by ``stop()``, which
+    returns the ids A printed until then and leaves A stopped (SIGSTOP); trainer B then reads
+    ``endpoint``, ``other_step_s`` seconds a batch so the stream outlives the stop. After
+    ``stopped_s`` seconds A is resumed and both read to the end. Returns (the ids A printed,
+    B's log); A is killed if anything fails on the way."""
+    log_b: list = []
+
+    def slow_reader(ds):
+        for b in ds:
+            log_b.append((time.monotonic(), list(b["sample_ids"])))
+            time.sleep(other_step_s)
+
+    try:
+        ids = stop()
+        other = V2VStreamDataset(endpoint, timeout_s=60, credits=1)
+        tb = threading.Thread(target=slow_reader, args=(other,), daemon=True)
+        tb.start()
+        time.sleep(stopped_s)
+        p.send_signal(signal.SIGCONT)
+        for line in p.stdout:
+            ids += line.split()[1:]
+        p.wait(60)
+        tb.join(60)
+    finally:
+        if p.poll() is None:
+            p.send_signal(signal.SIGCONT)
+            p.kill()
+    return ids, log_b
+
+
 def scenario_silent_client(tmp: Path, layout: Layout, client_timeout_s: float = 2.0) -> dict:
     """A trainer process suspended (SIGSTOP) longer than the server's client timeout, then
     resumed: it was dropped and its batches went to another trainer, so it must hand none
     of what it held to its training loop."""
     corpus = good_corpus(tmp, 3)
     expected = expected_ids(corpus, layout)
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    ids: List[str] = []
-    log_b: list = []
-
-    def slow_reader(ds, log):  # the other trainer takes its time, so the stream outlives the suspension
-        for b in ds:
-            log.append((time.monotonic(), list(b["sample_ids"])))
-            time.sleep(1.0)
-
     with _serve(corpus, layout, "--epochs", "1", "--client-timeout", str(client_timeout_s)) as srv:
-        p = subprocess.Popen([sys.executable, "-c", SILENT_CLIENT, srv.endpoint], stdout=subprocess.PIPE, text=True,
-                             env=env)
-        try:
-            line = p.stdout.readline()
-            ids += line.split()[1:]
+        p = _trainer_process(SILENT_CLIENT, srv.endpoint)
+
+        def stop() -> List[str]:
+            ids = p.stdout.readline().split()[1:]
             time.sleep(0.3)  # its queue fills up to its credits
             p.send_signal(signal.SIGSTOP)
-            other = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
-            tb = threading.Thread(target=slow_reader, args=(other, log_b), daemon=True)
-            tb.start()
-            time.sleep(client_timeout_s * 2 + 1)
-            p.send_signal(signal.SIGCONT)
-            for line in p.stdout:
-                ids += line.split()[1:]
-            p.wait(60)
-            tb.join(60)
-        finally:
-            if p.poll() is None:
-                p.send_signal(signal.SIGCONT)
-                p.kill()
+            return ids
+
+        ids, log_b = _stopped_while_another_reads(srv.endpoint, p, stop, client_timeout_s * 2 + 1, other_step_s=1.0)
         rc = srv.wait(30)
         drops = srv.log.count("dropping it")
     return row(f"trainer suspended {client_timeout_s * 2 + 1:.0f} s > client timeout", expected, ids + _ids(log_b),
@@ -481,26 +496,17 @@ def scenario_frozen_client(tmp: Path, layout: Layout, client_timeout_s: float = 
     none of them to B; what A held and had not yet been granted went to B."""
     corpus = good_corpus(tmp, 3)
     expected = expected_ids(corpus, layout)
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    ids: List[str] = []
-    log_b: list = []
     hogs = busy_cores(busy)
-
-    def slow_reader(ds, log):  # the other trainer takes its time, so the stream outlives the freeze
-        for b in ds:
-            log.append((time.monotonic(), list(b["sample_ids"])))
-            time.sleep(0.5)
-
     try:
         # a grace period after the end: A, dropped while frozen, may hold granted batches it has
         # not yielded, which the server counts as A's until A's resume hello names what it took
         # (B can finish the rest of the epoch while A is still stopped)
         with _serve(corpus, layout, "--epochs", "1", "--client-timeout", str(client_timeout_s),
                     "--end-grace-s", "5") as srv:
-            p = subprocess.Popen([sys.executable, "-c", FROZEN_CLIENT, srv.endpoint, str(credits), str(step_s),
-                                  "2" if at_yield else "0"], stdout=subprocess.PIPE, text=True, env=env)
-            try:
-                ids += p.stdout.readline().split()[1:]
+            p = _trainer_process(FROZEN_CLIENT, srv.endpoint, str(credits), str(step_s), "2" if at_yield else "0")
+
+            def stop() -> List[str]:
+                ids = p.stdout.readline().split()[1:]
                 if at_yield:
                     ids += p.stdout.readline().split()[1:]
                     deadline = time.monotonic() + 30
@@ -510,19 +516,9 @@ def scenario_frozen_client(tmp: Path, layout: Layout, client_timeout_s: float = 
                 else:
                     time.sleep(step_s * 1.5)  # mid-way through a step, its queue filled up to its credits
                     p.send_signal(signal.SIGSTOP)
-                other = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
-                tb = threading.Thread(target=slow_reader, args=(other, log_b), daemon=True)
-                tb.start()
-                time.sleep(freeze_s)
-                p.send_signal(signal.SIGCONT)
-                for line in p.stdout:
-                    ids += line.split()[1:]
-                p.wait(60)
-                tb.join(60)
-            finally:
-                if p.poll() is None:
-                    p.send_signal(signal.SIGCONT)
-                    p.kill()
+                return ids
+
+            ids, log_b = _stopped_while_another_reads(srv.endpoint, p, stop, freeze_s, other_step_s=0.5)
             rc = srv.wait(60)
             drops = srv.log.count("dropping it")
     finally:

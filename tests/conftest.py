@@ -109,6 +109,19 @@ def real_clip() -> np.ndarray:
     return read_luma_clip()
 
 
+#: a short recipe: windows of 41 frames (8 voxel grids of 0.2 s at 25 fps) in batches of 2, so the
+#: bundled clips give samples fast
+SHORT_RECIPE = "sequence_length: 8\nbatch_size: 2\n"
+
+
+@pytest.fixture
+def short_recipe(tmp_path) -> str:
+    """The path (str) of :data:`SHORT_RECIPE` written as a recipe file in the test's own folder."""
+    p = tmp_path / "short.yaml"
+    p.write_text(SHORT_RECIPE)
+    return str(p)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _warm_kernel_cache():
     """Compile (or load from numba's cache) the kernel's common signatures once, before any

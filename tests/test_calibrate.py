@@ -14,22 +14,19 @@ import yaml
 
 from harness.data import DAVIS346, EVT2, EVT3, SAMPLE_VIDEOS
 from trainer.calibrate import main
-from trainer.calibrate_fit import BOUNDS, THRESHOLD_SPREAD, fit_frames, frame_stats, frame_target, recording_target
+from trainer.calibrate_fit import (BOUNDS, THRESHOLD_SPREAD, fit_frames, frame_stats, frame_target, recording_target,
+                                   simulate_frames)
 from trainer.grid_stats import summarise
 from trainer.stream_stats import from_corpus
 from v2v_server.ops.config import load_config
-from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
-from v2v_server.simulation.simulate import SensorParams
-
-#: windows of 41 frames (8 voxel grids of 0.2 s at 25 fps), at most 3 a clip: the bundled clips give 12
-SHORT = "sequence_length: 8\nmax_samples_per_video: 3\nbatch_size: 2\n"
 
 
 @pytest.fixture
-def short_recipe(tmp_path):
-    p = tmp_path / "short.yaml"
-    p.write_text(SHORT)
-    return str(p)
+def capped_recipe(short_recipe):
+    """The short recipe (tests/conftest.py) with at most 3 windows a clip: the bundled clips give 12."""
+    with open(short_recipe, "a") as f:
+        f.write("max_samples_per_video: 3\n")
+    return short_recipe
 
 
 def _one_line(capsys) -> str:
@@ -42,13 +39,7 @@ def test_fit_from_frames_meets_the_davis346_targets():
     target = frame_target(str(DAVIS346))
     res = fit_frames(target, load_config(None).recipe, seed=0, max_evals=60)
     p = res.params
-    # simulate the recording's frames again with the fitted values and other draws (seed 1)
-    rng = np.random.default_rng(1)
-    pot = rng.uniform(-p["c_neg"], p["c_pos"], target.frames.shape[1:]) * p["potential_spread"]
-    vox, _, _ = simulate_voxels_nonideal(target.frames, SensorParams(p["c_pos"], p["c_neg"], p["noise_std"]), 1,
-                                         NonIdealities(threshold_sigma=p["threshold_sigma"]), fps=target.fps,
-                                         initial_potential=pot, rng=rng)
-    sim = frame_stats(vox[:, 0], target)
+    sim = frame_stats(simulate_frames(target, p, seed=1), target)  # the fitted values again, other draws
     real_events = target.n_pos + target.n_neg
     real_active = float(np.mean(target.counts > 0))
     assert abs(sim["events"] / real_events - 1) <= 0.10, (sim, real_events)
@@ -60,9 +51,9 @@ def test_fit_from_frames_meets_the_davis346_targets():
 
 
 @pytest.mark.parametrize("recording", [DAVIS346, EVT3], ids=["davis346", "evk4"])
-def test_fit_by_statistics_brings_a_served_stream_to_the_recording(tmp_path, short_recipe, recording, capsys):
+def test_fit_by_statistics_brings_a_served_stream_to_the_recording(tmp_path, capped_recipe, recording, capsys):
     out = tmp_path / "fitted.yaml"
-    assert main(["--recording", str(recording), "--fit", "statistics", "--recipe", short_recipe, "--windows", "24",
+    assert main(["--recording", str(recording), "--fit", "statistics", "--recipe", capped_recipe, "--windows", "24",
                  "--evaluations", "30", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "events / pixel / s, net" in printed and "base recipe" in printed and f"wrote {out}" in printed
@@ -78,19 +69,19 @@ def test_fit_by_statistics_brings_a_served_stream_to_the_recording(tmp_path, sho
         assert len(col.rows) == 36
         return summarise([c for r in col.rows for c in r["cells"]])
 
-    after, before = served(fitted), served(load_config(short_recipe))
+    after, before = served(fitted), served(load_config(capped_recipe))
     rate = after["rate_net"]["median"] / target["rate_net"]["median"]
     assert 0.75 <= rate <= 1.25, rate
     miss = lambda s: abs(np.log(s["active_fraction"]["median"] / target["active_fraction"]["median"]))  # noqa: E731
     assert miss(after) < miss(before), (after["active_fraction"], before["active_fraction"])
 
 
-def test_fits_repeat(tmp_path, short_recipe):
+def test_fits_repeat(tmp_path, capped_recipe):
     outs = []
     for i, argv in enumerate([["--recording", str(DAVIS346), "--evaluations", "12"],
                               ["--recording", str(DAVIS346), "--evaluations", "12"],
-                              ["--recording", str(EVT3), "--recipe", short_recipe, "--windows", "2", "--evaluations", "12"],
-                              ["--recording", str(EVT3), "--recipe", short_recipe, "--windows", "2", "--evaluations", "12"]]):
+                              ["--recording", str(EVT3), "--recipe", capped_recipe, "--windows", "2", "--evaluations", "12"],
+                              ["--recording", str(EVT3), "--recipe", capped_recipe, "--windows", "2", "--evaluations", "12"]]):
         out = tmp_path / f"f{i}.yaml"
         assert main([*argv, "--out", str(out)]) == 0
         outs.append(out.read_text())
@@ -108,7 +99,7 @@ def _h5(path, t_s, x, y, p, size=(128, 128)):
 
 
 @pytest.mark.parametrize("case", ["too short", "too quiet", "no motion", "no frames", "out is a folder"])
-def test_unusable_input_is_one_line_and_exit_2(tmp_path, short_recipe, capsys, case):
+def test_unusable_input_is_one_line_and_exit_2(tmp_path, capped_recipe, capsys, case):
     rng = np.random.default_rng(0)
     out, extra = tmp_path / "fitted.yaml", []
     if case == "too short":  # 0.1 s of events: no whole 0.2-s cell
@@ -126,7 +117,7 @@ def test_unusable_input_is_one_line_and_exit_2(tmp_path, short_recipe, capsys, c
     else:
         out.mkdir()
         rec, named = DAVIS346, f"--out {out}: is a folder"
-    assert main(["--recording", str(rec), "--recipe", short_recipe, "--windows", "2", "--evaluations", "12",
+    assert main(["--recording", str(rec), "--recipe", capped_recipe, "--windows", "2", "--evaluations", "12",
                  "--out", str(out), *extra]) == 2
     line = _one_line(capsys)
     assert named in line, line

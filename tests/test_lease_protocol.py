@@ -26,6 +26,7 @@ import pytest
 from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
+from bench.lease import ack_only
 from v2v_client.session import HeldBatches
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
 from v2v_server.delivery.ledger import STALL_S
@@ -473,6 +474,17 @@ def _to_point(net: Net, a: Client, point: str) -> None:
     assert point == "ack_sent"
 
 
+def _b_reads_past_every_timeout(net: Net, b: Client) -> None:
+    """Client B connects and reads, with heartbeats, while the server's clock runs past the
+    lease, the revoke timeout and the client timeout together (the other client paused)."""
+    net.connect(b)
+    for _ in range(int((LEASE + REVOKE + TIMEOUT + 2) / 0.5)):
+        for _ in range(4):
+            net.step(b)
+        net.heartbeat(b)
+        net.advance(0.5)
+
+
 @pytest.mark.parametrize("point", POINTS)
 def test_a_client_paused_at_each_point_between_receipt_and_yield_doubles_and_loses_nothing(point):
     """Client A is stopped at ``point`` on its first batch for longer than the lease, the revoke
@@ -484,12 +496,7 @@ def test_a_client_paused_at_each_point_between_receipt_and_yield_doubles_and_los
         a, b = net.clients
         net.connect(a)
         _to_point(net, a, point)
-        net.connect(b)
-        for _ in range(int((LEASE + REVOKE + TIMEOUT + 2) / 0.5)):
-            for _ in range(4):
-                net.step(b)
-            net.heartbeat(b)
-            net.advance(0.5)
+        _b_reads_past_every_timeout(net, b)
         if io_first:
             net.io_forwards(a)
             net.io_reads(a)
@@ -553,39 +560,25 @@ def test_an_epoch_is_announced_once_its_granted_batches_are_acknowledged():
     assert 0 in core.announced
 
 
-def test_the_rule_it_replaced_doubles_on_the_same_schedule(monkeypatch):
-    """The client rule before grants (take any batch still held, ask for nothing), paused after
-    its claim on the schedule above: the server gives the batch to B meanwhile and A yields it
-    too. The same pieces tell the two rules apart."""
-
-    def claim(self, item, on_claim, wait):
-        with self.lock:
-            if self.current.get(item["batch_id"]) is not item:
-                return False, None
-            del self.current[item["batch_id"]]
-            return True, on_claim()
-
-    monkeypatch.setattr(HeldBatches, "claim", claim)
-    monkeypatch.setattr(HeldBatches, "to_ask", lambda self, item=None: [])
-    net = Net(("a", "b"), (4, 1))
-    a, b = net.clients
-    net.connect(a)
-    net.server_reads(a, len(a.up))
-    net.tick()
-    while not a.items:
-        net.io_reads(a)
-    net.consumer_next(a)
-    net.consumer_claims(a)
-    assert a.claimed is not None  # taken, its ack queued: then A stops
-    net.connect(b)
-    for _ in range(int((LEASE + REVOKE + TIMEOUT + 2) / 0.5)):
-        for _ in range(4):
-            net.step(b)
-        net.heartbeat(b)
-        net.advance(0.5)
-    net.consumer_yields(a)
-    with pytest.raises(AssertionError, match="trained twice"):
-        net.run_to_end()
+def test_the_rule_it_replaced_doubles_on_the_same_schedule():
+    """The ack-only client rule (take any batch still held, ask for nothing: ``bench.lease``'s
+    baseline), paused after its claim on the schedule above: the server gives the batch to B
+    meanwhile and A yields it too. The same pieces tell the two rules apart."""
+    with ack_only():
+        net = Net(("a", "b"), (4, 1))
+        a, b = net.clients
+        net.connect(a)
+        net.server_reads(a, len(a.up))
+        net.tick()
+        while not a.items:
+            net.io_reads(a)
+        net.consumer_next(a)
+        net.consumer_claims(a)
+        assert a.claimed is not None  # taken, its ack queued: then A stops
+        _b_reads_past_every_timeout(net, b)
+        net.consumer_yields(a)
+        with pytest.raises(AssertionError, match="trained twice"):
+            net.run_to_end()
 
 
 def _one_epoch_core() -> DeliveryCore:

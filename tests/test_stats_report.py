@@ -14,17 +14,6 @@ from harness.data import DAVIS346, EVT2, SAMPLE_VIDEOS
 from harness.serve import ServeProcess, free_port
 from trainer.stats_report import main
 
-#: a short recipe (windows of 41 frames: 1.64 s at 25 fps, grids of 0.2 s) so the clips give samples fast
-SHORT = "sequence_length: 8\nbatch_size: 2\n"
-
-
-@pytest.fixture
-def short_config(tmp_path):
-    p = tmp_path / "short.yaml"
-    p.write_text(SHORT)
-    return str(p)
-
-
 def _screenshot(page, png) -> None:
     chromium = shutil.which("chromium")
     if chromium is None:
@@ -39,9 +28,9 @@ def _screenshot(page, png) -> None:
         shutil.rmtree(profile, ignore_errors=True)
 
 
-def test_corpus_report_with_recording_opens_in_chromium(tmp_path, short_config, capsys):
+def test_corpus_report_with_recording_opens_in_chromium(tmp_path, short_recipe, capsys):
     out = tmp_path / "report"
-    rc = main(["--videos", str(SAMPLE_VIDEOS), "--config", short_config, "--samples", "12",
+    rc = main(["--videos", str(SAMPLE_VIDEOS), "--config", short_recipe, "--samples", "12",
                "--recording", str(DAVIS346), "--out", str(out)])
     assert rc == 0
     data = json.loads((out / "stats.json").read_text())
@@ -92,14 +81,14 @@ def test_corpus_report_with_recording_opens_in_chromium(tmp_path, short_config, 
 HOSTILE_NAMES = ("price_$5_$10.mp4", "a%d<b>&amp;%s.mp4", "new\nline.mp4", "日本語の動画.mp4")
 
 
-def test_hostile_video_names_are_drawn_and_escaped(tmp_path, short_config, capsys):
+def test_hostile_video_names_are_drawn_and_escaped(tmp_path, short_recipe, capsys):
     corpus = tmp_path / "corpus"
     corpus.mkdir()
     names = list(HOSTILE_NAMES)
     for n in names:
         shutil.copy(SAMPLE_VIDEOS / "bikes.mp4", corpus / n)
     out = tmp_path / "report"
-    assert main(["--videos", str(corpus), "--config", short_config, "--samples", "2", "--out", str(out)]) == 0
+    assert main(["--videos", str(corpus), "--config", short_recipe, "--samples", "2", "--out", str(out)]) == 0
     assert "Traceback" not in capsys.readouterr().err
     data = json.loads((out / "stats.json").read_text())
     # a name holding a control character is refused by the corpus (sample ids travel one per
@@ -115,20 +104,20 @@ def test_hostile_video_names_are_drawn_and_escaped(tmp_path, short_config, capsy
 
 
 @pytest.mark.parametrize("case", ["an existing file", "a folder that cannot be made"])
-def test_bad_out_is_one_line_before_any_sampling(tmp_path, short_config, capsys, case):
+def test_bad_out_is_one_line_before_any_sampling(tmp_path, short_recipe, capsys, case):
     blocker = tmp_path / "taken"
     blocker.write_text("not a folder")
     out = blocker if case == "an existing file" else blocker / "report"
     # an empty corpus would be refused too: --out is checked before the corpus is read
     (tmp_path / "empty").mkdir()
-    assert main(["--videos", str(tmp_path / "empty"), "--config", short_config, "--out", str(out)]) == 2
+    assert main(["--videos", str(tmp_path / "empty"), "--config", short_recipe, "--out", str(out)]) == 2
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith(f"v2v-stats: --out {out}: "), lines
     assert blocker.read_text() == "not a folder"
 
 
-def test_server_report(tmp_path, short_config):
-    args = ["--videos", str(SAMPLE_VIDEOS), "--workers", "1", "--config", short_config, "--max-credits", "4"]
+def test_server_report(tmp_path, short_recipe):
+    args = ["--videos", str(SAMPLE_VIDEOS), "--workers", "1", "--config", short_recipe, "--max-credits", "4"]
     with ServeProcess(args) as srv:
         out = tmp_path / "report"
         assert main(["--server", srv.endpoint, "--samples", "4", "--timeout", "60", "--out", str(out)]) == 0
@@ -140,9 +129,9 @@ def test_server_report(tmp_path, short_config):
     assert data["videos"] == []  # a server's params do not say a video's format
 
 
-def test_short_recording_is_named_and_the_report_written(tmp_path, short_config, capsys):
+def test_short_recording_is_named_and_the_report_written(tmp_path, short_recipe, capsys):
     out = tmp_path / "r"
-    assert main(["--videos", str(SAMPLE_VIDEOS), "--config", short_config, "--samples", "2",
+    assert main(["--videos", str(SAMPLE_VIDEOS), "--config", short_recipe, "--samples", "2",
                  "--recording", str(EVT2), "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert f"recording {EVT2}" in err and "shorter than one grid window" in err
@@ -152,7 +141,7 @@ def test_short_recording_is_named_and_the_report_written(tmp_path, short_config,
 
 
 @pytest.mark.parametrize("case", ["empty corpus", "unreadable recording", "unreachable server"])
-def test_bad_input_is_one_line_and_exit_2(tmp_path, short_config, capsys, case):
+def test_bad_input_is_one_line_and_exit_2(tmp_path, short_recipe, capsys, case):
     out = str(tmp_path / "out")
     if case == "empty corpus":
         (tmp_path / "empty").mkdir()
@@ -164,6 +153,6 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, short_config, capsys, case):
     else:
         ep = f"tcp://127.0.0.1:{free_port()}"
         argv, named = ["--server", ep, "--timeout", "2"], f"server {ep}"
-    assert main([*argv, "--config", short_config, "--samples", "2", "--out", out]) == 2
+    assert main([*argv, "--config", short_recipe, "--samples", "2", "--out", out]) == 2
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("v2v-stats: ")]
     assert len(lines) == 1 and named in lines[0], lines

@@ -432,20 +432,30 @@ def target_frame_stats(target: FrameTarget) -> Dict[str, float]:
             "active_fraction": float(np.mean(target.counts > 0)), "corr": 1.0}
 
 
-def simulate_frames(target: FrameTarget, x: np.ndarray, seed: int) -> np.ndarray:
-    """V2V (with the threshold spread) on ``target``'s frames for a frames fit's vector ``x`` =
-    (log c+, log c-, threshold spread relative to min(c+, c-), noise sigma, initial-potential
-    spread); the draws fixed by ``seed``. Returns int32 (K, H, W) signed counts."""
+def simulate_frames(target: FrameTarget, params: Dict[str, float], seed: int) -> np.ndarray:
+    """V2V (with the threshold spread) on ``target``'s frames for a frames fit's ``params`` as
+    :func:`fit_frames` returns them (``c_pos``, ``c_neg``, ``threshold_sigma``, ``noise_std``
+    in log intensity; ``potential_spread``: the initial potential drawn in that fraction of
+    (-c-, c+)); the draws fixed by ``seed``: the fit's own simulations, and its check with
+    other draws. Returns int32 (K, H, W) signed counts."""
     from v2v_server.simulation.nonideal import NonIdealities, simulate_voxels_nonideal
     from v2v_server.simulation.simulate import SensorParams
 
-    cp, cn = float(np.exp(x[0])), float(np.exp(x[1]))
+    cp, cn = params["c_pos"], params["c_neg"]
     rng = np.random.default_rng(seed)
-    pot = (rng.uniform(-cn, cp, target.frames.shape[1:])) * float(x[4])
-    ni = NonIdealities(threshold_sigma=float(x[2]) * min(cp, cn))
-    vox, _, _ = simulate_voxels_nonideal(target.frames, SensorParams(cp, cn, float(x[3])), 1, ni, fps=target.fps,
-                                         initial_potential=pot, rng=rng)
+    pot = rng.uniform(-cn, cp, target.frames.shape[1:]) * params["potential_spread"]
+    ni = NonIdealities(threshold_sigma=params["threshold_sigma"])
+    vox, _, _ = simulate_voxels_nonideal(target.frames, SensorParams(cp, cn, params["noise_std"]), 1, ni,
+                                         fps=target.fps, initial_potential=pot, rng=rng)
     return vox[:, 0]
+
+
+def _frame_params(x) -> Dict[str, float]:
+    """A frames fit's vector ``x`` = (log c+, log c-, threshold spread relative to min(c+, c-),
+    noise sigma, initial-potential spread) as :func:`simulate_frames`'s ``params``."""
+    cp, cn = float(np.exp(x[0])), float(np.exp(x[1]))
+    return {"c_pos": cp, "c_neg": cn, "threshold_sigma": float(x[2]) * min(cp, cn), "noise_std": float(x[3]),
+            "potential_spread": float(x[4])}
 
 
 def fit_frames(target: FrameTarget, recipe, seed: int = 0, max_evals: int = 120, progress=lambda n: None) -> FitResult:
@@ -460,7 +470,7 @@ def fit_frames(target: FrameTarget, recipe, seed: int = 0, max_evals: int = 120,
     tgt = target_frame_stats(target)
 
     def stats(x):
-        return frame_stats(simulate_frames(target, x, seed), target)
+        return frame_stats(simulate_frames(target, _frame_params(x), seed), target)
 
     def loss(x):
         m = stats(x)
@@ -483,9 +493,7 @@ def fit_frames(target: FrameTarget, recipe, seed: int = 0, max_evals: int = 120,
     lo, hi = recipe.ranges.threshold
     before = stats([np.log((lo + hi) / 2)] * 2 + [0.0, float(np.mean(recipe.ranges.noise_std)), 1.0])
     after = stats(x)
-    cp, cn = float(np.exp(x[0])), float(np.exp(x[1]))
-    params = {"c_pos": cp, "c_neg": cn, "threshold_sigma": float(x[2]) * min(cp, cn), "noise_std": float(x[3]),
-              "potential_spread": float(x[4])}
+    params = _frame_params(x)
     ranges, ni = frame_parts(params, recipe)
     return FitResult("frames", params, ranges.to_dict(), _changed(ni), before, after, tgt, n + START_STEPS,
                      time.perf_counter() - t0)
