@@ -232,10 +232,6 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
     for d, u in zip(out.draws, qmc.LatinHypercube(d=6, seed=rng).random(len(out.draws))):
         d["u"] = u
     return out
-    if not out.seqs:
-        raise CalibrationError(f"corpus {videos}: no window to simulate (no usable video for the recipe's "
-                               f"{r.frames_per_sample}-frame windows)")
-    return out
 
 
 def simulate_windows(win: CorpusWindows, ranges, nonideal, num_bins: int, frames_per_bin: int) -> List[dict]:
