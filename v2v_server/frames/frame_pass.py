@@ -266,7 +266,7 @@ def corpus_key(source) -> str:
 
 def lookup_entry(cache: FrameCache, source, rel: str, settings: dict
                  ) -> Tuple[str, Optional[str], Optional[CachedVideo]]:
-    """Video ``rel`` of ``source`` in its frame cache ``cache``: the entry's name (by the corpus,
+    """Video ``rel`` of ``source`` in the host's frame cache ``cache``: the entry's name (by the corpus,
     ``rel`` and the decode ``settings``), the source's identity (None: it cannot vouch for the
     video's bytes now, ``VideoSource.identity``), and the entry opened for reading
     when it holds the video, else None (``FrameCache.lookup``: the miss counted, a stale or
