@@ -86,10 +86,10 @@ def test_store_lists_the_clips_with_sizes_and_versions(store, url, tmp_path):
     assert videos == NAMES and rejected == []
     objects = src.objects()
     for name in NAMES:
-        size, version = objects[name]
+        size, version = objects[name].size, objects[name].tag
         assert size == (CLIPS / name).stat().st_size
         assert version and version == _version(store, f"corpus/clips/{name}")
-    assert len({v for _, v in objects.values()}) == len(NAMES)
+    assert len({v.tag for v in objects.values()}) == len(NAMES)
     # the manifest written under state_dir gives a second source the same listing without the store
     again = source_from_config(cfg)
     again._fs = False  # no filesystem: a request to the store would raise AttributeError

@@ -42,7 +42,7 @@ from v2v_server.videos.archives import Archives, pair_members
 from v2v_server.videos.corpus_index import CorpusIndex, index_path
 from v2v_server.videos.decode import VideoError
 from v2v_server.videos.frame_cache import FrameCache
-from v2v_server.videos.manifest import cache_folder
+from v2v_server.videos.manifest import ListedObject, cache_folder
 from v2v_server.videos.segments import base_path, printable_name, range_problem, split_segment
 from v2v_server.videos.shards import ARCHIVES, split_member
 from v2v_server.videos.video_list import VideoList, read_video_list
@@ -282,7 +282,7 @@ class VideoSource:
         (``StoreSource._check_unchanged``), so its index stands."""
         return ""
 
-    def _open_raw(self, rel: str, expected: Optional[tuple] = None):
+    def _open_raw(self, rel: str, expected: Optional[ListedObject] = None):
         """A context manager giving the file or object at ``rel`` as a binary file (an object
         checked against ``expected``, its listing entry)."""
         raise NotImplementedError
