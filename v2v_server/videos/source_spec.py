@@ -42,8 +42,9 @@ def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dic
     if names is None:
         videos, names = split_pattern(str(videos))
     if is_url(str(videos)):
-        return StoreSource(str(videos), storage_options, video_list, manifest, refresh_manifest, settings, names,
-                           frame_cache, cache_dir)
+        return StoreSource(str(videos), storage_options=storage_options, video_list=video_list, manifest=manifest,
+                           refresh_manifest=refresh_manifest, settings=settings, names=names,
+                           frame_cache=frame_cache, cache_dir=cache_dir)
     return LocalSource(videos, video_list, names, frame_cache, cache_dir)
 
 

@@ -83,7 +83,7 @@ def store_root(url: str) -> str:
 class StoreSource(VideoSource):
     """A corpus under an object-store prefix, read through fsspec.
 
-    Args:
+    Args (all but ``url`` by keyword):
         url: ``s3://bucket/prefix/`` (a trailing ``/`` is implied) or another fsspec URL.
         storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the
             defaults below; credentials otherwise come from the store's standard configuration
@@ -95,7 +95,7 @@ class StoreSource(VideoSource):
         settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).
     """
 
-    def __init__(self, url: str, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
+    def __init__(self, url: str, *, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False,
                  settings: StoreSettings = StoreSettings(), names: Optional[List[str]] = None,
                  frame_cache: Optional[FrameCache] = None, cache_dir: Optional[str] = None):
@@ -154,10 +154,9 @@ class StoreSource(VideoSource):
 
     # ------------------------------------------------------------------ listing
     def objects(self) -> Dict[str, ListedObject]:
-        """Key relative to the prefix -> its entry (size, ETag) of every object under the
-        prefix and every member of its archives (where it lies): the
-        manifest when there is one (and ``refresh_manifest`` is off), else a paginated listing
-        of the store, then written as the manifest.
+        """Key relative to the prefix -> its entry (size, ETag; an archive member's: where it lies)
+        of every object and archive member under the prefix: the manifest when there is one (and
+        ``refresh_manifest`` is off), else a paginated listing of the store, then written as the manifest.
 
         Raises:
             StoreError: the listing fails (naming the URL).
