@@ -125,6 +125,27 @@ def test_a_stored_verdict_reads_back_as_the_record_it_was(tmp_path):
     assert "the entry of /c/a.mp4 holds cuts ['30'] in its result" in index.fault
 
 
+@pytest.mark.parametrize("version", ["2", "3"])
+def test_an_index_whose_table_has_other_columns_is_made_anew(tmp_path, version):
+    """A file whose ``entries`` table was made with other columns (here without ``cause``), of
+    another version or of this one, is started afresh at open: its table made anew, its rows
+    gone, and the index serves (no fault, an entry kept and answered)."""
+    path = tmp_path / INDEX_FILE
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE entries (location TEXT NOT NULL, layout TEXT NOT NULL, identity TEXT NOT NULL, "
+                   "frames INTEGER NOT NULL, windows INTEGER NOT NULL, usable INTEGER NOT NULL, reason TEXT NOT NULL, "
+                   "cuts TEXT NOT NULL, width INTEGER, height INTEGER, codec TEXT, fps REAL, result TEXT NOT NULL, "
+                   "written_at REAL NOT NULL, PRIMARY KEY (location, layout))")
+        db.execute("INSERT INTO entries VALUES ('/c/b.mp4', 'L', 'id', 1, 1, 1, '', '[]', 1, 1, 'h264', 25.0, '{}', 0)")
+        db.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+        db.execute("INSERT INTO meta VALUES ('version', ?)", (version,))
+    db.close()
+    index = CorpusIndex(path)
+    assert index.fault is None and len(index) == 0
+    assert index.record("/c/a.mp4", "id", "L", VERDICT) and index.lookup("/c/a.mp4", "id", "L") == VERDICT
+    assert index.fault is None
+
+
 def test_an_unreadable_index_is_one_warning_and_the_check_goes_on(corpus, tmp_path, caplog):
     cache = tmp_path / "cache"
     cache.mkdir()

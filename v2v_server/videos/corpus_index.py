@@ -37,7 +37,8 @@ from v2v_wire.worker_messages import CAUSES
 INDEX_FILE = "corpus_index.sqlite"
 
 #: Format of the rows and of their layout keys (``layout_key``); the rows of an index of another
-#: version are deleted at open, and the index written anew.
+#: version, or whose table has other columns, are deleted at open (the table made anew), and the
+#: index written anew.
 INDEX_VERSION = 3
 
 #: Seconds a read or write waits for another process's write: a write is one row (milliseconds),
@@ -47,7 +48,7 @@ BUSY_TIMEOUT_S = 5.0
 
 log = logging.getLogger("v2v")
 
-_SCHEMA = """
+_ENTRIES = """
 CREATE TABLE IF NOT EXISTS entries (
     location TEXT NOT NULL,      -- where the video lives (VideoSource.where: a path or URL, a member, a segment)
     layout TEXT NOT NULL,        -- layout_key(windows, decode)
@@ -63,9 +64,25 @@ CREATE TABLE IF NOT EXISTS entries (
     result TEXT NOT NULL,        -- JSON: the whole --check verdict (Verdict.to_json)
     written_at REAL NOT NULL,    -- Unix time, seconds
     PRIMARY KEY (location, layout)
-);
+)"""
+_SCHEMA = _ENTRIES + """;
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
+
+
+def _columns(db: sqlite3.Connection) -> list:
+    """The names of the ``entries`` table's columns in ``db``, in order."""
+    return [r[1] for r in db.execute("PRAGMA table_info(entries)")]
+
+
+def _schema_columns() -> list:
+    """The columns :data:`_ENTRIES` makes (the schema is their one owner)."""
+    db = sqlite3.connect(":memory:")
+    try:
+        db.execute(_ENTRIES)
+        return _columns(db)
+    finally:
+        db.close()
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -208,8 +225,13 @@ class CorpusIndex:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.executescript(_SCHEMA)
         row = self._db.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()
-        if row is not None and row[0] != str(INDEX_VERSION):  # written by another format: start afresh
-            self._db.execute("DELETE FROM entries")
+        if (row is not None and row[0] != str(INDEX_VERSION)) or _columns(self._db) != _schema_columns():
+            # written by another format: start afresh, the table too (CREATE TABLE IF NOT EXISTS keeps
+            # an existing table's columns, into which this format's rows do not fit)
+            self._db.execute("BEGIN IMMEDIATE")
+            self._db.execute("DROP TABLE entries")
+            self._db.execute(_ENTRIES)
+            self._db.execute("COMMIT")
         # a write at every open: a file that cannot be written, or whose lock another process
         # holds, is found here, once, by the process that opens it first (its pool's workers
         # are then told to leave it off), not by each worker at its first entry
