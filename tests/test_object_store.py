@@ -462,7 +462,8 @@ def test_manifest_index_finds_every_entry_without_loading_the_manifest(tmp_path)
     objects = {f"{i // 100:03d}/{i:07d}.mp4": ListedObject(i, f"etag{i}") for i in range(2000)}
     objects.update({'a"quote\\x.mp4': ListedObject(1, "q"), ODD: ListedObject(2, "h"), "ü.mp4": ListedObject(3, "u"),
                     "s.tar/000001.mp4": ListedObject(5, "t", TarMember(1536, 5)),
-                    "p.zip/a.mp4": ListedObject(7, "z", ZipMember(4096, 7, 6, 0xDEADBEEF, zipfile.ZIP_DEFLATED, 0x800))})
+                    "p.zip/a.mp4": ListedObject(7, "z", ZipMember(4096, 7, 6, 0xDEADBEEF, zipfile.ZIP_DEFLATED,
+                                                                  0x800))})
     write_manifest(tmp_path / "m.jsonl", URL, objects)
     # the lines keep their one shape: key, size, ETag, then a tar member's offset or a zip member's five numbers
     lines = [json.loads(line) for line in (tmp_path / "m.jsonl").read_text(encoding="utf-8").splitlines()[1:]]

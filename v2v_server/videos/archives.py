@@ -41,8 +41,9 @@ class Archives:
             return False
 
     def members(self, archive: str) -> Dict[str, MemberEntry]:
-        """Member name -> where it lies (``shards.TarMember`` or ``ZipMember``) in the archive at ``archive`` (relative path), read once per process
-        and version of the archive (``version``): one rewritten in place is read again.
+        """Member name -> where it lies (``shards.TarMember`` or ``ZipMember``) in the archive at
+        ``archive`` (relative path), read once per process and version of the archive
+        (``version``): one rewritten in place is read again.
 
         Raises:
             VideoError: it is missing, or a split part lacks a piece (named).

@@ -159,7 +159,8 @@ def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     where, key, identity = source.where(rel), layout_key(windows, decode), source.listed_identity(rel)
     if identity is None or index.lookup(where, identity, key) is not None:
         return False
-    return index.record(where, identity, key, dataclasses.replace(pass_verdict(windows, rel, record), frame_timing=False))
+    verdict = dataclasses.replace(pass_verdict(windows, rel, record), frame_timing=False)
+    return index.record(where, identity, key, verdict)
 
 
 class KnownWindows(NamedTuple):

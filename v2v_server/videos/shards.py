@@ -110,7 +110,8 @@ def tar_members(f) -> MemberIndex:
     with tarfile.open(fileobj=f, mode="r:") as tar:
         every = list(tar)
     files = [m for m in every if m.isfile()]
-    kept = last_of_each_name("tar shard", [(m.name, TarMember(m.offset_data, m.size)) for m in files if not m.issparse()])
+    kept = last_of_each_name("tar shard", [(m.name, TarMember(m.offset_data, m.size))
+                                           for m in files if not m.issparse()])
     sparse = [(m.name, f"tar shard: a sparse member (tar -S): its {m.size} bytes are not stored in one piece, "
                        f"not served") for m in files if m.issparse()]
     links = [(m.name, f"tar shard: a {'hard' if m.islnk() else 'symbolic'} link to {m.linkname}: not served (a "
@@ -240,8 +241,8 @@ class ZipMemberError(ValueError):
 
 
 def open_member(f, name: str, entry: MemberEntry):
-    """The member ``name`` of the archive read from ``f``, given its index ``entry``, as a readable, seekable binary file: a tar member or a stored zip member
-    is a :class:`MemberFile` over its bytes in place; a compressed zip member (deflate, bzip2,
+    """The member ``name`` of the archive read from ``f``, given its index ``entry``, as a
+    readable, seekable binary file: a tar member or a stored zip member is a :class:`MemberFile` over its bytes in place; a compressed zip member (deflate, bzip2,
     LZMA) is ``zipfile``'s streaming reader over its compressed bytes, which checks the CRC-32
     at the end (a seek backwards starts decompressing again from the member's start).
 
