@@ -78,9 +78,10 @@ def start(entries: int) -> dict:
         verdict = check_video(w, d, source, names[0], caches)  # one real verdict, written for every link
         db = sqlite3.connect(index_path(cache))
         with db:
-            db.executemany("INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                           ((source.where(n), layout_key(w, d), source.listed_identity(n), verdict["frames"],
-                             verdict["windows"], 1, "", "[]", 596, 336, "h264", 25.0, json.dumps(verdict), 0.0)
+            db.executemany("INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                           ((source.where(n), layout_key(w, d), source.listed_identity(n), verdict.frames,
+                             verdict.windows, 1, "", "", "[]", 596, 336, "h264", 25.0, json.dumps(verdict.to_json()),
+                             0.0)
                             for n in names))
         db.close()
         assert len(CorpusIndex(index_path(cache))) == entries
@@ -89,7 +90,7 @@ def start(entries: int) -> dict:
         t0 = time.perf_counter()
         known = known_windows(w, d, source, names, caches)
         s = time.perf_counter() - t0
-        assert known.known == entries and known.samples == entries * verdict["windows"]
+        assert known.known == entries and known.samples == entries * verdict.windows
         return {"entries": entries, "seconds": round(s, 2), "us_per_video": round(s / entries * 1e6, 1),
                 "peak_rss_growth_mb": round((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024, 1)}
 

@@ -93,7 +93,7 @@ def _read_ratio(part: Path, name: str) -> float:
         entry = zip_members(raw).members[name]
         f = Counted(raw)
         _decode(open_member(f, name, entry))
-    return f.read_bytes / entry[2]
+    return f.read_bytes / entry.compressed
 
 
 def measure(root: Path, work: Path, repeat: int, clips=CLIPS) -> list:

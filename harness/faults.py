@@ -58,8 +58,8 @@ def expected_ids(corpus: Path, layout: Layout, exclude=()) -> List[str]:
     vids = [v for v in vids if v not in exclude]
     out, recipe = [], layout.cfg().recipe
     for r in check_corpus(recipe.windows, recipe.decode, LocalSource(corpus), vids):
-        failed = set(r.get("failed_windows", ()))  # windows --check says cannot be made (e.g. frame size changes)
-        out += [f"{r['path']}#{k}" for k in range(r["windows"] + len(failed)) if k not in failed]
+        failed = set(r.failed_windows)  # windows --check says cannot be made (e.g. frame size changes)
+        out += [f"{r.path}#{k}" for k in range(r.windows + len(failed)) if k not in failed]
     return sorted(out)
 
 

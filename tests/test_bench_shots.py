@@ -22,7 +22,7 @@ def test_a_bundled_montage_gives_the_windows_the_server_counts():
     recipe = SampleRecipe(sequence_length=8, max_samples_per_video=1000)
     w = recipe.windows
     r = check_video(w, recipe.decode, LocalSource(SAMPLE_VIDEOS), "bikes.mp4")
-    assert r["cuts"] and r["windows"] > 1
-    kept = shot_windows(r["cuts"], r["frames"], w.frames_per_sample, w.max_samples_per_video)
-    assert len(kept) == r["windows"]
-    assert not [(s, c) for s in kept for c in r["cuts"] if s < c <= s + w.window_stride]
+    assert r.cuts and r.windows > 1
+    kept = shot_windows(list(r.cuts), r.frames, w.frames_per_sample, w.max_samples_per_video)
+    assert len(kept) == r.windows
+    assert not [(s, c) for s in kept for c in r.cuts if s < c <= s + w.window_stride]

@@ -14,9 +14,10 @@ import pytest
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.frames.corpus import check_corpus, check_video
-from v2v_server.frames.corpus_index import INDEX_FILE, CorpusIndex, layout_key
+from v2v_server.frames.corpus_index import INDEX_FILE, CorpusIndex, Verdict, layout_key
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.sources.local import RACY_NS, LocalSource
+from v2v_server.frames.window_pass import StreamFacts
 
 
 class CountingSource(LocalSource):
@@ -55,7 +56,7 @@ def test_a_second_check_answers_from_the_index_without_opening_a_video(corpus, t
     names = sorted(p.name for p in corpus.iterdir())
     first_src = CountingSource(corpus)
     first = check_corpus(*WINDOWS, first_src, names, caches=HostCaches(str(cache)))
-    assert sorted(first_src.opened) == names and all(r["usable"] for r in first)
+    assert sorted(first_src.opened) == names and all(r.usable for r in first)
     again_src = CountingSource(corpus)  # another process, the same host
     again = check_corpus(*WINDOWS, again_src, names, caches=HostCaches(str(cache)))
     assert again_src.opened == [] and again == first
@@ -64,9 +65,10 @@ def test_a_second_check_answers_from_the_index_without_opening_a_video(corpus, t
         rows = db.execute("SELECT location, windows, frames, width, height, codec, cuts FROM entries "
                           "WHERE layout = ? ORDER BY location", (layout_key(*WINDOWS),)).fetchall()
     assert [os.path.basename(r[0]) for r in rows] == names
-    for r, c in zip(rows, sorted(first, key=lambda c: c["path"])):
-        assert (r[1], r[2]) == (c["windows"], c["frames"]) and c["size"].startswith(f"{r[3]}x{r[4]} {r[5]}")
-        assert json.loads(r[6]) == list(c["cuts"])
+    for r, c in zip(rows, sorted(first, key=lambda c: c.path)):
+        assert (r[1], r[2]) == (c.windows, c.frames) and (r[3], r[4], r[5]) == (c.stream.width, c.stream.height,
+                                                                                c.stream.codec)
+        assert json.loads(r[6]) == list(c.cuts)
 
 
 def test_a_rewritten_video_or_another_layout_is_read_again(corpus, tmp_path, videos):
@@ -77,7 +79,7 @@ def test_a_rewritten_video_or_another_layout_is_read_again(corpus, tmp_path, vid
     settle()
     after = check_video(*WINDOWS, src, "bikes.mp4", caches)
     assert src.opened == ["bikes.mp4", "bikes.mp4"]
-    assert (after["frames"], after["cuts"]) != (before["frames"], before["cuts"])
+    assert (after.frames, after.cuts) != (before.frames, before.cuts)
     assert after == check_video(*WINDOWS, src, "bikes.mp4", caches) and len(src.opened) == 2  # the new entry holds
     other = ServeConfig(sequence_length=4).recipe
     assert layout_key(other.windows, other.decode) != layout_key(*WINDOWS)
@@ -85,20 +87,64 @@ def test_a_rewritten_video_or_another_layout_is_read_again(corpus, tmp_path, vid
     assert len(src.opened) == 3 and len(CorpusIndex(cache / INDEX_FILE)) == 2
 
 
+#: A verdict as ``--check`` makes it, for the index's own tests.
+VERDICT = Verdict(path="a.mp4", usable=True, windows=2, frames=401, reason="", cause="", cuts=(30, 76), dropped=0,
+                  stream=StreamFacts(width=64, height=48, codec="h264", pix_fmt="yuv420p", fps=25.0),
+                  failed_windows=(1,), more=True)
+
+
 def test_an_identity_that_cannot_vouch_is_neither_recorded_nor_answered(tmp_path):
     """A video without an identity (changed within the timestamp resolution of now, an object
     without a version tag: ``VideoSource.identity`` None) is decoded every time, as the frame
     cache does; an entry answers only the identity it was made from."""
     index = CorpusIndex(tmp_path / INDEX_FILE)
-    verdict = {"path": "a.mp4", "usable": True, "windows": 2, "frames": 401, "size": "64x48 h264 yuv420p 25 fps",
-               "reason": "", "cuts": [], "dropped": 0, "cause": "",
-               "stream": {"width": 64, "height": 48, "codec": "h264", "pix_fmt": "yuv420p", "fps": 25.0}}
+    verdict = VERDICT
     assert not index.record("/c/a.mp4", None, "L", verdict) and len(index) == 0
     assert index.record("/c/a.mp4", "file 1 2 3 4", "L", verdict) and len(index) == 1
     assert index.lookup("/c/a.mp4", None, "L") is None
     assert index.lookup("/c/a.mp4", "file 1 2 3 5", "L") is None  # changed since
     assert index.lookup("/c/a.mp4", "file 1 2 3 4", "M") is None  # another layout
     assert index.lookup("/c/a.mp4", "file 1 2 3 4", "L") == verdict
+
+
+def test_a_stored_verdict_reads_back_as_the_record_it_was(tmp_path):
+    """The ``result`` column holds the verdict's fields as JSON and reads back as the same frozen
+    record (tuples, stream facts); a key it does not name (a printed size) is left aside, and a
+    field of another type is the index's fault, naming the entry and the field."""
+    index = CorpusIndex(tmp_path / INDEX_FILE)
+    assert index.record("/c/a.mp4", "id", "L", VERDICT)
+    assert index.lookup("/c/a.mp4", "id", "L") == VERDICT
+    with sqlite3.connect(tmp_path / INDEX_FILE) as db:
+        result = json.loads(db.execute("SELECT result FROM entries").fetchone()[0])
+        assert result["stream"] == {"width": 64, "height": 48, "codec": "h264", "pix_fmt": "yuv420p", "fps": 25.0}
+        assert result["cuts"] == [30, 76] and "size" not in result
+        db.execute("UPDATE entries SET result = ?", (json.dumps({**result, "size": "64x48 h264 yuv420p 25 fps"}),))
+    assert index.lookup("/c/a.mp4", "id", "L") == VERDICT
+    with sqlite3.connect(tmp_path / INDEX_FILE) as db:
+        db.execute("UPDATE entries SET result = ?", (json.dumps({**result, "cuts": ["30"]}),))
+    assert index.lookup("/c/a.mp4", "id", "L") is None
+    assert "the entry of /c/a.mp4 holds cuts ['30'] in its result" in index.fault
+
+
+@pytest.mark.parametrize("version", ["2", "3"])
+def test_an_index_whose_table_has_other_columns_is_made_anew(tmp_path, version):
+    """A file whose ``entries`` table was made with other columns (here without ``cause``), of
+    another version or of this one, is started afresh at open: its table made anew, its rows
+    gone, and the index serves (no fault, an entry kept and answered)."""
+    path = tmp_path / INDEX_FILE
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE entries (location TEXT NOT NULL, layout TEXT NOT NULL, identity TEXT NOT NULL, "
+                   "frames INTEGER NOT NULL, windows INTEGER NOT NULL, usable INTEGER NOT NULL, reason TEXT NOT NULL, "
+                   "cuts TEXT NOT NULL, width INTEGER, height INTEGER, codec TEXT, fps REAL, result TEXT NOT NULL, "
+                   "written_at REAL NOT NULL, PRIMARY KEY (location, layout))")
+        db.execute("INSERT INTO entries VALUES ('/c/b.mp4', 'L', 'id', 1, 1, 1, '', '[]', 1, 1, 'h264', 25.0, '{}', 0)")
+        db.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+        db.execute("INSERT INTO meta VALUES ('version', ?)", (version,))
+    db.close()
+    index = CorpusIndex(path)
+    assert index.fault is None and len(index) == 0
+    assert index.record("/c/a.mp4", "id", "L", VERDICT) and index.lookup("/c/a.mp4", "id", "L") == VERDICT
+    assert index.fault is None
 
 
 def test_an_unreadable_index_is_one_warning_and_the_check_goes_on(corpus, tmp_path, caplog):
@@ -108,7 +154,7 @@ def test_an_unreadable_index_is_one_warning_and_the_check_goes_on(corpus, tmp_pa
     src = CountingSource(corpus)
     with caplog.at_level(logging.WARNING, logger="v2v"):
         results = check_corpus(*WINDOWS, src, ["bikes.mp4", "bbb_camera_596x336.mp4"], caches=HostCaches(str(cache)))
-    assert all(r["usable"] for r in results) and len(src.opened) == 2
+    assert all(r.usable for r in results) and len(src.opened) == 2
     lines = [r.getMessage() for r in caplog.records if "corpus index" in r.getMessage()]
     assert len(lines) == 1 and str(cache / INDEX_FILE) in lines[0], lines
 
@@ -121,7 +167,7 @@ def test_the_ray_scan_counts_windows_from_the_index(corpus, tmp_path):
 
     cfg = ServeConfig(sequence_length=8, cache_dir=str(tmp_path / "cache"))
     first = scan_corpus_windows(corpus, cfg)
-    assert first.windows == {r["path"]: r["windows"] for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode,
+    assert first.windows == {r.path: r.windows for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode,
                                                                            LocalSource(corpus),
                                                                            sorted(first.windows))}
     with sqlite3.connect(tmp_path / "cache" / INDEX_FILE) as db:
@@ -364,9 +410,7 @@ def test_after_a_fault_every_method_answers_as_an_empty_index(tmp_path, caplog):
     ``windows``); from then on the index is off in this process: nothing is answered, nothing
     kept, one warning."""
     index = CorpusIndex(tmp_path / INDEX_FILE)
-    verdict = {"path": "a.mp4", "usable": True, "windows": 2, "frames": 401, "size": "64x48 h264 yuv420p 25 fps",
-               "reason": "", "cuts": [], "dropped": 0, "cause": "",
-               "stream": {"width": 64, "height": 48, "codec": "h264", "pix_fmt": "yuv420p", "fps": 25.0}}
+    verdict = VERDICT
     for loc in ("/c/a.mp4", "/c/b.mp4"):
         assert index.record(loc, "id", "L", verdict)
     with sqlite3.connect(tmp_path / INDEX_FILE) as db:
@@ -433,8 +477,8 @@ def _write_ntsc(path, frames: int) -> None:
 
 
 def test_the_index_keeps_typed_stream_facts_and_the_exact_frame_rate(tmp_path):
-    """A row's size, codec and frame rate come from the verdict's typed ``stream``, not from its
-    printed ``size``: 29.97 Hz stays 30000/1001 (printed as 30), and a clip too short for a
+    """A row's size, codec and frame rate come from the verdict's typed ``stream``: 29.97 Hz
+    stays 30000/1001 (printed as 30 by ``--check``), and a clip too short for a
     window has the cause ``short``, the code the server logs it by."""
     d = tmp_path / "corpus"
     d.mkdir()
@@ -444,12 +488,12 @@ def test_the_index_keeps_typed_stream_facts_and_the_exact_frame_rate(tmp_path):
     cache = tmp_path / "cache"
     src, caches = LocalSource(d), HostCaches(str(cache))
     ntsc, short = (check_video(*WINDOWS, src, name, caches) for name in ("ntsc.mp4", "short.mp4"))
-    assert ntsc["size"] == "64x48 mpeg4 yuv420p 30 fps" and ntsc["stream"]["fps"] == 30000 / 1001
-    assert (ntsc["cause"], short["cause"]) == ("", "short") and not short["usable"]
+    assert ntsc.stream.text() == "64x48 mpeg4 yuv420p 30 fps" and ntsc.stream.fps == 30000 / 1001
+    assert (ntsc.cause, short.cause) == ("", "short") and not short.usable
     with sqlite3.connect(cache / INDEX_FILE) as db:
         rows = dict((os.path.basename(r[0]), r[1:]) for r in db.execute(
             "SELECT location, width, height, codec, fps, cause FROM entries WHERE layout = ?", (layout_key(*WINDOWS),)))
     assert rows["ntsc.mp4"] == (64, 48, "mpeg4", 30000 / 1001, "")
     assert rows["short.mp4"][3:] == (30000 / 1001, "short")
     again = check_video(*WINDOWS, src, "ntsc.mp4", caches)  # answered from the index: the same typed facts
-    assert again["stream"] == ntsc["stream"]
+    assert again.stream == ntsc.stream and again == ntsc

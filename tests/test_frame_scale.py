@@ -181,8 +181,8 @@ def test_check_judges_frame_sizes_as_the_workers_cut_them(tmp_path):
         v = check_video(cfg.windows, cfg.decode, LocalSource(d), name)
         run = video_samples(cfg, LocalSource(d), name, 0, ("voxels",))
         served = list(run)
-        assert bool(v.get("failed_windows")) == fails == bool(run.record().failed), (name, v, run.record())
-        assert v["windows"] == len(served), (name, v)
+        assert bool(v.failed_windows) == fails == bool(run.record().failed), (name, v, run.record())
+        assert v.windows == len(served), (name, v)
 
 
 @pytest.mark.parametrize("value,words", [(-1, "frame_height must be an integer >= 0"),

@@ -37,7 +37,7 @@ def test_clips_are_videos_the_server_accepts(tmp_path):
     assert "motion_camera.mp4" in names and "motion_astronaut.mp4" in names
     recipe = SampleRecipe(sequence_length=2, num_bins=5, crop_size=64)
     verdict = check_video(recipe.windows, recipe.decode, LocalSource(str(tmp_path)), "motion_astronaut.mp4")
-    assert verdict["usable"] and verdict["frames"] == 12, verdict
+    assert verdict.usable and verdict.frames == 12, verdict
     c, s, _ = open_video(tmp_path / "motion_astronaut.mp4")
     frames = np.stack([f.copy() for f in decode_luma(c, s)])
     assert frames.shape == (12, 64, 96)

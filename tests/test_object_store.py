@@ -4,12 +4,14 @@ in the V2V authors' format, shards, the manifest, and the faults (wrong credenti
 bucket, objects deleted or overwritten after listing, a store that stops answering)."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
 import sys
 import time
 import urllib.request
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,7 @@ from tests.store_checks import check_frame_cache_hit
 from v2v_server.ops.config import ServeConfig
 from v2v_server.sources.names import VideoError
 from v2v_server.sources.manifest import manifest_path, read_manifest
+from v2v_server.sources.shards import TarMember, ZipMember
 from v2v_server.ops.config import source_from_config
 from v2v_server.sources.store import StoreSource
 from v2v_server.sources.store_io import StoreError
@@ -89,7 +92,7 @@ def test_bucket_epoch_is_the_folder_epoch_byte_for_byte(store, corpus, tmp_path)
     assert all(bucket[k] == folder[k] for k in folder)
     # the listing was kept under --state-dir, with each object's size and ETag
     objects = read_manifest(manifest_path(URL, str(state)), URL)
-    assert objects is not None and objects[ODD][0] == (corpus / ODD).stat().st_size and objects[ODD][1]
+    assert objects is not None and objects[ODD].size == (corpus / ODD).stat().st_size and objects[ODD].tag
     assert "manifest written to" in log
 
 
@@ -139,7 +142,6 @@ def test_ray_path_reads_the_bucket_as_the_folder(store, corpus, tmp_path, monkey
         maker = SampleMaker.of(cfg, rc.root, ("voxels", "frames"))
         out = {}
         for d in epoch_descriptors(rc, 0):
-            import json
             for r in maker.video_rows(d["video"], 0, json.loads(d["entries"])):
                 out[str(r["sample_id"][0])] = r["voxels"].tobytes() + r["frames"].tobytes()
         return out
@@ -327,7 +329,7 @@ def test_tar_shards_local_bucket_and_brace_pattern(store, tmp_path, monkeypatch)
     # the manifest keeps each member's offset: a restart (or a worker) reads no tar header
     objects = read_manifest(manifest_path("s3://corpus/shards/", None, str(tmp_path / "cache" / "v2v")),
                             "s3://corpus/shards/")
-    assert objects is not None and len(objects["shard-0.tar/000001.mp4"]) == 3
+    assert objects is not None and isinstance(objects["shard-0.tar/000001.mp4"].member, TarMember)
 
 
 def test_zip_parts_in_a_bucket_a_brace_range_and_over_http(store, tmp_path, monkeypatch):
@@ -351,10 +353,10 @@ def test_zip_parts_in_a_bucket_a_brace_range_and_over_http(store, tmp_path, monk
     assert _rows(f"{store.filer_url}/buckets/corpus/zips/p-{{0..3}}.zip") == expected  # over plain HTTP
     objects = read_manifest(manifest_path("s3://corpus/zips/", None, str(tmp_path / "cache" / "v2v")),
                             "s3://corpus/zips/")
-    deflated = objects["p-1.zip/clips/000000.mp4"]
-    assert len(deflated) == 7 and deflated[5] == 8  # size, ETag, offset, compressed size, CRC-32, method, flags
+    deflated = objects["p-1.zip/clips/000000.mp4"].member
+    assert isinstance(deflated, ZipMember) and deflated.method == zipfile.ZIP_DEFLATED
     split = objects["p-3.zip/000001.mp4"]
-    assert split[1] == "+".join(objects[f"p-3_part{s}"][1] for s in ("aa", "ab", "ac"))
+    assert split.tag == "+".join(objects[f"p-3_part{s}"].tag for s in ("aa", "ab", "ac"))
     src = _source(store, tmp_path, "s3://corpus/zips/")
     assert src.list_videos((".mp4",))[1] == [("p-0.zip/readme.txt", "not a video file (extension '.txt')")]
     # the identity the server's start reads from the listing is the one a worker asks the store for
@@ -455,11 +457,18 @@ def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_count
 
 
 def test_manifest_index_finds_every_entry_without_loading_the_manifest(tmp_path):
-    from v2v_server.sources.manifest import ManifestIndex, write_manifest
+    from v2v_server.sources.manifest import ListedObject, ManifestIndex, write_manifest
 
-    objects = {f"{i // 100:03d}/{i:07d}.mp4": (i, f"etag{i}") for i in range(2000)}
-    objects.update({'a"quote\\x.mp4': (1, "q"), ODD: (2, "h"), "ü.mp4": (3, "u"), "s.tar/000001.mp4": (5, "t", 1536)})
+    objects = {f"{i // 100:03d}/{i:07d}.mp4": ListedObject(i, f"etag{i}") for i in range(2000)}
+    objects.update({'a"quote\\x.mp4': ListedObject(1, "q"), ODD: ListedObject(2, "h"), "ü.mp4": ListedObject(3, "u"),
+                    "s.tar/000001.mp4": ListedObject(5, "t", TarMember(1536, 5)),
+                    "p.zip/a.mp4": ListedObject(7, "z", ZipMember(4096, 7, 6, 0xDEADBEEF, zipfile.ZIP_DEFLATED,
+                                                                  0x800))})
     write_manifest(tmp_path / "m.jsonl", URL, objects)
+    # the lines keep their one shape: key, size, ETag, then a tar member's offset or a zip member's five numbers
+    lines = [json.loads(line) for line in (tmp_path / "m.jsonl").read_text(encoding="utf-8").splitlines()[1:]]
+    assert ["s.tar/000001.mp4", 5, "t", 1536] in lines and ["000/0000001.mp4", 1, "etag1"] in lines
+    assert ["p.zip/a.mp4", 7, "z", 4096, 6, 0xDEADBEEF, 8, 0x800] in lines
     index = ManifestIndex.open(tmp_path / "m.jsonl", URL)
     assert all(index.get(k) == v for k, v in objects.items())
     assert all(index.get(k) is None for k in ("", "000", "zzz.mp4", "s.tar", "000/0000000.mp3"))

@@ -86,10 +86,10 @@ def test_store_lists_the_clips_with_sizes_and_versions(store, url, tmp_path):
     assert videos == NAMES and rejected == []
     objects = src.objects()
     for name in NAMES:
-        size, version = objects[name]
+        size, version = objects[name].size, objects[name].tag
         assert size == (CLIPS / name).stat().st_size
         assert version and version == _version(store, f"corpus/clips/{name}")
-    assert len({v for _, v in objects.values()}) == len(NAMES)
+    assert len({v.tag for v in objects.values()}) == len(NAMES)
     # the manifest written under state_dir gives a second source the same listing without the store
     again = source_from_config(cfg)
     again._fs = False  # no filesystem: a request to the store would raise AttributeError
@@ -122,13 +122,13 @@ def test_gcs_endpoints_of_google_keep_the_layout_probe(monkeypatch):
 
 
 def test_a_missing_bucket_is_named(store):
-    src = StoreSource(f"{store.scheme}://no-such-bucket/clips/", store.storage_options())
+    src = StoreSource(f"{store.scheme}://no-such-bucket/clips/", storage_options=store.storage_options())
     with pytest.raises(Exception, match="no-such-bucket"):
         src.check()
 
 
 def test_store_epoch_is_the_folder_epoch_byte_for_byte(store, url):
-    src = StoreSource(url, store.storage_options())
+    src = StoreSource(url, storage_options=store.storage_options())
     videos, _ = src.list_videos(_cfg().video_extensions)
     want = _folder_samples(tuple(NAMES), 0)
     assert len(want) == 2 * len(NAMES)
@@ -142,13 +142,13 @@ def test_store_epoch_is_the_folder_epoch_byte_for_byte(store, url):
 def test_identity_follows_an_overwrite_in_place(store, url):
     u = f"{store.scheme}://corpus/ident/"
     store.upload(CLIPS, u, names=["bikes.mp4"])
-    listed = StoreSource(u, store.storage_options())
+    listed = StoreSource(u, storage_options=store.storage_options())
     listed.list_videos((".mp4",))
     first = listed.identity("bikes.mp4")
     assert first == f"object {(CLIPS / 'bikes.mp4').stat().st_size} {_version(store, 'corpus/ident/bikes.mp4')}"
     assert listed.identity("bikes.mp4") == first  # nothing written: the same identity
     store.upload(CLIPS, u, names=["bikes.mp4"])  # the same bytes written again: a new version all the same
-    fresh = StoreSource(u, store.storage_options())
+    fresh = StoreSource(u, storage_options=store.storage_options())
     second = fresh.identity("bikes.mp4")
     assert second != first and second.startswith(first.rsplit(" ", 1)[0] + " ")  # same size, new version
     with pytest.raises(VideoError, match="changed since it was listed"):
@@ -165,7 +165,7 @@ def test_frame_cache_hit_saves_the_download(store, tmp_path):
 def _settled(store, url: str, **settings) -> StoreSource:
     """A source with these store settings that has listed the corpus and read from it once
     (its connection open), before the store goes silent."""
-    src = StoreSource(url, store.storage_options(), settings=StoreSettings(**settings))
+    src = StoreSource(url, storage_options=store.storage_options(), settings=StoreSettings(**settings))
     src.list_videos((".mp4",))
     with src.open("bikes.mp4") as f:
         assert f.read(8)[4:8] == b"ftyp"

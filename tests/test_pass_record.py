@@ -16,7 +16,7 @@ from tests.cached import Cached, cached
 from v2v_server.samples.make import video_frames
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.corpus import check_video
-from v2v_server.frames.corpus_index import INDEX_FILE, INDEX_VERSION, CorpusIndex, layout_key
+from v2v_server.frames.corpus_index import INDEX_FILE, INDEX_VERSION, CorpusIndex, Verdict, layout_key
 from v2v_server.frames.frame_cache import FrameCache
 from v2v_server.frames.frame_pass import corpus_key, entry_settings
 from v2v_server.sources.local import RACY_NS
@@ -62,7 +62,7 @@ def _read(recipe: SampleRecipe, corpus: Cached) -> None:
         for _ in fp.frames:
             pass
         fp.commit()
-    assert check_video(recipe.windows, recipe.decode, corpus.source, CLIP, corpus.caches)["usable"]
+    assert check_video(recipe.windows, recipe.decode, corpus.source, CLIP, corpus.caches).usable
 
 
 def _keys(recipe: SampleRecipe, corpus: Path) -> dict:
@@ -129,8 +129,8 @@ def test_the_default_recipe_keeps_its_fingerprint():
 def test_rows_of_another_index_version_are_swept(tmp_path):
     path = tmp_path / INDEX_FILE
     index = CorpusIndex(path)
-    verdict = {"path": "a.mp4", "usable": True, "windows": 2, "frames": 401, "size": "64x48 h264 yuv420p 25 fps",
-               "reason": "", "cuts": [], "dropped": 0}
+    verdict = Verdict(path="a.mp4", usable=True, windows=2, frames=401, reason="", cause="", cuts=(), dropped=0,
+                      stream=None)
     assert index.record("/c/a.mp4", "file 1 2 3 4", "L", verdict) and len(index) == 1
     index.close()
     with sqlite3.connect(path) as db:

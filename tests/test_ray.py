@@ -57,9 +57,9 @@ def checked_ids(root, cfg: ServeConfig) -> list:
     from v2v_server.sources.local import LocalSource
 
     vids = [p.as_posix() for p in scan_corpus(root, cfg.video_extensions)[0]]
-    return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode, LocalSource(root),
+    return sorted(f"{r.path}#{k}" for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode, LocalSource(root),
                                                            vids)
-                  for k in range(r["windows"]))
+                  for k in range(r.windows))
 
 
 @pytest.fixture(scope="module")

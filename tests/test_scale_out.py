@@ -49,8 +49,8 @@ def corpus(tmp_path, videos, copies=1):
 def expected_ids(root):
     cfg = ServeConfig(sequence_length=L, crop_size=CROP, max_samples_per_video=WINDOWS, workers=1)
     vids = [p.as_posix() for p in scan_corpus(root, cfg.video_extensions)[0]]
-    return sorted(f"{r['path']}#{k}" for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode, LocalSource(root), vids)
-                  for k in range(r["windows"]))
+    return sorted(f"{r.path}#{k}" for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode, LocalSource(root), vids)
+                  for k in range(r.windows))
 
 
 def read_all(ds, limit_s=120.0):

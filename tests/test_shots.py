@@ -39,7 +39,7 @@ def _cuts(frames) -> list:
 def test_detector_finds_the_labelled_cuts(clip):
     off = SampleRecipe(shot_cuts="off")
     r = check_video(off.windows, off.decode, LocalSource(SAMPLE_VIDEOS), clip)
-    assert r["cuts"] == LABELLED[clip]
+    assert list(r.cuts) == LABELLED[clip]
 
 
 def _joined():
@@ -74,9 +74,9 @@ def test_on_the_labelled_real_clip_every_kept_window_is_free_of_cuts():
     recipe = SampleRecipe(sequence_length=8, max_samples_per_video=1000)
     w = recipe.windows
     r = check_video(w, recipe.decode, LocalSource(path.parent), path.name)
-    assert r["frames"] == 5301 and set(REAL_CLIP_CUTS) <= set(r["cuts"])
-    kept = shot_windows(r["cuts"], r["frames"], w.frames_per_sample, w.max_samples_per_video)
-    assert len(kept) == r["windows"] >= 40
+    assert r.frames == 5301 and set(REAL_CLIP_CUTS) <= set(r.cuts)
+    kept = shot_windows(list(r.cuts), r.frames, w.frames_per_sample, w.max_samples_per_video)
+    assert len(kept) == r.windows >= 40
     assert not [(s, c) for s in kept for c in REAL_CLIP_CUTS if s < c <= s + w.window_stride]
 
 
@@ -88,12 +88,12 @@ def edited(tmp_path_factory):
     recipe = SampleRecipe(sequence_length=8, max_samples_per_video=100)
     w = recipe.windows
     r = check_video(w, recipe.decode, LocalSource(root), "edited.mp4")
-    return transitions, r, shot_windows(r["cuts"], r["frames"], w.frames_per_sample, w.max_samples_per_video), w
+    return transitions, r, shot_windows(list(r.cuts), r.frames, w.frames_per_sample, w.max_samples_per_video), w
 
 
 def test_fast_pans_and_a_flash_stay_one_shot_and_cuts_and_fades_are_found(edited):
     transitions, r, kept, w = edited
-    cuts = r["cuts"]
+    cuts = list(r.cuts)
     for t in transitions:
         if t.kind in ("cut", "fade"):
             assert any(t.matches(c) for c in cuts), t
@@ -108,7 +108,7 @@ def test_a_dissolve_the_detector_finds_is_in_no_window(edited):
     """A dissolve the hard-cut rule catches part way is cut again where it settles, so the window
     that starts at that cut holds none of its later steps."""
     transitions, r, kept, w = edited
-    found = [t for t in transitions if t.kind == "dissolve" and any(t.matches(c) for c in r["cuts"])]
+    found = [t for t in transitions if t.kind == "dissolve" and any(t.matches(c) for c in r.cuts)]
     assert found  # the dissolve between the 40 and the 80 px a frame pans
     assert not [(s, t) for t in found for s in kept if t.spanned_by(s, s + w.window_stride)]
 
@@ -155,8 +155,8 @@ def test_served_windows_never_span_a_cut():
 def test_montages_give_no_window_and_check_says_why():
     cfg = SampleRecipe()
     r = check_video(cfg.windows, cfg.decode, LocalSource(SAMPLE_VIDEOS), "bikes.mp4")
-    assert not r["usable"] and r["dropped"] == 5
-    assert "5 shot cut(s): every shot is shorter than one window of 201 frames" in r["reason"]
+    assert not r.usable and r.dropped == 5
+    assert "5 shot cut(s): every shot is shorter than one window of 201 frames" in r.reason
     other = check_video(cfg.windows, cfg.decode, LocalSource(SAMPLE_VIDEOS), "bbb_camera_596x336.mp4")
     table = format_check([r, other], [])
     assert "5 cut(s) at frame(s) 30, 76, 137, 187, 242" in table and "one shot" in table
@@ -229,7 +229,7 @@ def test_list_file_ranges_become_segments_and_bad_ones_are_named(segment_corpus)
                               "bikes.mp4#t=4,4": f"listed in {lst}: time range 4-4 s is empty"}
     cfg = SampleRecipe(sequence_length=8)
     beyond = check_video(cfg.windows, cfg.decode, LocalSource(root, video_list=str(lst)), "bikes.mp4#t=30,40")
-    assert not beyond["usable"] and beyond["reason"] == "no frame in the time range 30-40 s (the video lasts 10 s)"
+    assert not beyond.usable and beyond.reason == "no frame in the time range 30-40 s (the video lasts 10 s)"
 
 
 def test_a_segment_gives_the_frames_of_its_range_only(segment_corpus):

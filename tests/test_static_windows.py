@@ -82,7 +82,7 @@ def test_keep_serves_every_window_and_skip_none_below_the_threshold(still_then_p
     assert all(m["stats"]["motion"] >= STATIC_MOTION for _, _, m in got)
     assert [m["src_start_frame"] for _, _, m in got] == [2 * (SPAN - 1), 3 * (SPAN - 1)]
     verdict = check_video(skip.recipe.windows, skip.recipe.decode, src, rel)
-    assert verdict["windows"] == 2 and verdict["static"] == 2
+    assert verdict.windows == 2 and verdict.static == 2
     # the frame cache replays the pass that found them: the same samples
     from tests.cached import cached as cached_corpus
 
@@ -111,8 +111,8 @@ def test_skip_served_by_v2v_serve_is_exactly_once_and_check_names_the_skips(stil
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and "2 static window(s) skipped" in r.stdout, r.stdout + r.stderr
     recipe = ServeConfig(sequence_length=8, crop_size=64, keep_top_fraction=1.0, static_windows="skip").recipe
-    want = sorted(f"{v['path']}#{k}" for v in (check_video(recipe.windows, recipe.decode, LocalSource(corpus), n)
-                                               for n in ("still_then_pan.mp4", "bikes.mp4")) for k in range(v["windows"]))
+    want = sorted(f"{v.path}#{k}" for v in (check_video(recipe.windows, recipe.decode, LocalSource(corpus), n)
+                                               for n in ("still_then_pan.mp4", "bikes.mp4")) for k in range(v.windows))
     with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--batch-size", "2", *args]) as srv:
         got = [(sid, p["stats"]["motion"]) for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
                for sid, p in zip(b["sample_ids"], b["params"])]

@@ -31,7 +31,7 @@ def expected_ids(videos):
     cfg = SampleRecipe(sequence_length=L, num_bins=B, max_samples_per_video=MAXW)
     ids = set()
     for rel in find_videos(videos, (".mp4",)):
-        n = check_video(cfg.windows, cfg.decode, LocalSource(str(videos)), rel.as_posix())["windows"]
+        n = check_video(cfg.windows, cfg.decode, LocalSource(str(videos)), rel.as_posix()).windows
         ids.update(f"{rel.as_posix()}#{k}" for k in range(n))
     return ids
 

@@ -49,9 +49,9 @@ def test_the_clip_holds_a_failed_window_that_a_cut_drops(corpus):
     off = check_video(_recipe("off").windows, _recipe("off").decode, LocalSource(corpus), CLIP)
     avoid = check_video(_recipe("avoid").windows, _recipe("avoid").decode, LocalSource(corpus), CLIP)
     stride = _recipe("off").windows.window_stride
-    first = off["failed_windows"][0]
-    assert any(first * stride < c < (first + 1) * stride for c in avoid["cuts"]), (off, avoid)
-    assert avoid["dropped"] >= 1 and avoid["failed_windows"], avoid
+    first = off.failed_windows[0]
+    assert any(first * stride < c < (first + 1) * stride for c in avoid.cuts), (off, avoid)
+    assert avoid.dropped >= 1 and avoid.failed_windows, avoid
 
 
 @pytest.mark.parametrize("shot_cuts", ["avoid", "off"])
@@ -59,13 +59,13 @@ def test_the_clip_holds_a_failed_window_that_a_cut_drops(corpus):
 def test_check_and_the_samples_served_agree_window_by_window(corpus, tmp_path, shot_cuts, cached):
     recipe = _recipe(shot_cuts)
     verdict = check_video(recipe.windows, recipe.decode, LocalSource(corpus), CLIP)
-    failed = verdict.get("failed_windows", [])
+    failed = verdict.failed_windows
     source = cached_corpus(corpus, tmp_path) if cached else LocalSource(corpus)
     for _ in range(2 if cached else 1):  # the second pass replays the entry the first stored
         served, found = _served(recipe, source)
-        assert served == [k for k in range(verdict["windows"] + len(failed)) if k not in failed], (verdict, served)
-        assert list(found.cuts) == (verdict["cuts"] if shot_cuts == "avoid" else [])
-        assert found.dropped == verdict["dropped"] and found.frames == verdict["frames"], (verdict, found)
+        assert served == [k for k in range(verdict.windows + len(failed)) if k not in failed], (verdict, served)
+        assert found.cuts == (verdict.cuts if shot_cuts == "avoid" else ())
+        assert found.dropped == verdict.dropped and found.frames == verdict.frames, (verdict, found)
     if cached:
         assert source.take_stats()["frame_cache"]["hits"] == 1
 
@@ -76,9 +76,9 @@ def test_the_sample_pass_reports_the_windows_check_fails(corpus):
     recipe = _recipe("avoid")
     verdict = check_video(recipe.windows, recipe.decode, LocalSource(corpus), CLIP)
     served, found = _served(recipe, LocalSource(corpus))
-    assert sorted(found.failed) == verdict["failed_windows"], (verdict, found)
-    assert found.windows == verdict["windows"] + len(verdict["failed_windows"])
-    assert found.verdict(recipe.windows) == (verdict["windows"], verdict["failed_windows"], verdict["reason"])
+    assert tuple(sorted(found.failed)) == verdict.failed_windows, (verdict, found)
+    assert found.windows == verdict.windows + len(verdict.failed_windows)
+    assert found.verdict(recipe.windows) == (verdict.windows, list(verdict.failed_windows), verdict.reason)
 
 
 def test_the_pass_record_is_what_a_corpus_index_keeps(corpus):
@@ -87,10 +87,10 @@ def test_the_pass_record_is_what_a_corpus_index_keeps(corpus):
     verdict = check_video(recipe.windows, recipe.decode, LocalSource(corpus), CLIP)
     _, found = _served(recipe, LocalSource(corpus))
     kept = json.loads(json.dumps(found.to_dict()))
-    assert kept["frames"] == verdict["frames"] and kept["cuts"] == verdict["cuts"] and kept["fps"] == 25.0
+    assert kept["frames"] == verdict.frames and kept["cuts"] == list(verdict.cuts) and kept["fps"] == 25.0
     assert (kept["width"], kept["height"]) == (96, 80) and kept["layout"] == recipe.reads.key
-    assert len(kept["starts"]) == verdict["windows"] + len(verdict["failed_windows"]) and kept["error"] is None
-    assert sorted(map(int, kept["failed"])) == verdict["failed_windows"]
+    assert len(kept["starts"]) == verdict.windows + len(verdict.failed_windows) and kept["error"] is None
+    assert sorted(map(int, kept["failed"])) == list(verdict.failed_windows)
     stride = recipe.windows.window_stride
     # windows start at a shot's first frame + k x stride, and span no cut
     shots = [0] + kept["cuts"]

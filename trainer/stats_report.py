@@ -207,7 +207,7 @@ def page(col: Collected, rec: Optional[dict], notes: List[str], pngs: List[str],
     if col.videos:
         parts.append("<h2>Videos</h2>" + _table(
             ("video", "resolution", "codec", "fps", "frames", "windows", "shots", "not usable because"),
-            [(v["path"], (v["size"] or "?").split()[0], v["codec"], f"{v['fps']:.3g}", v["frames"], v["windows"], len(v["shot_lengths"]),
+            [(v["path"], f"{v['width']}x{v['height']}" if v["width"] else "?", v["codec"], f"{v['fps']:.3g}", v["frames"], v["windows"], len(v["shot_lengths"]),
               v["reason"]) for v in col.videos]))
     style = ("body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse}"
              "td,th{border:1px solid #aaa;padding:2px 8px;text-align:right}img{max-width:100%}.note{color:#a40}")

@@ -132,12 +132,12 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
     usable = []
     for rel in names:
         v = check_video(recipe.windows, recipe.decode, source, rel, caches)
-        cuts = sorted(int(c) for c in v.get("cuts", []))
-        bounds = [0] + cuts + [int(v.get("frames", 0))]
-        out.videos.append({"path": rel, "size": v.get("size", ""), "frames": int(v.get("frames", 0)),
-                           "windows": int(v.get("windows", 0)), "reason": v.get("reason", ""),
-                           "shot_lengths": [b - a for a, b in zip(bounds, bounds[1:]) if b > a], **_probe(source, rel)})
-        if v.get("usable"):
+        bounds = [0, *sorted(v.cuts), v.frames]
+        width, height = (v.stream.width, v.stream.height) if v.stream is not None else (0, 0)
+        out.videos.append({"path": rel, "width": width, "height": height, "frames": v.frames, "windows": v.windows,
+                           "reason": v.reason, "shot_lengths": [b - a for a, b in zip(bounds, bounds[1:]) if b > a],
+                           **_probe(source, rel)})
+        if v.usable:
             usable.append(rel)
     for epoch in range(epochs):
         for rel in usable:

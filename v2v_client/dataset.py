@@ -140,17 +140,17 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto",
                  compact_flow: bool = False, compression: str = "auto"):
         super().__init__()
-        outputs = check_outputs(outputs)
-        _check_options(credits, timeout_s, group, shm, compact_flow, compression)
+        outputs = _check_options(outputs, credits, timeout_s, group, shm, compact_flow, compression)
         # a position not given is resolved when iteration starts (``_position``): a dataset built
         # before the process group exists (a DataModule's __init__) still joins the DDP group
         self._auto_position = (rank is None, world_size is None)
         rank, world_size = _checked_position(rank, world_size)
         self.endpoint = endpoint
         #: every stream setting, read from here alone (a fan-in's children are made from it)
-        self.options = StreamOptions(outputs, credits, float(timeout_s), float(heartbeat_s), raw, bool(reconnect),
-                                     float(reconnect_timeout_s), tuple(curve_keys) if curve_keys else None, rank,
-                                     world_size, group, shm, compact_flow, compression)
+        self.options = StreamOptions(outputs=outputs, credits=credits, timeout_s=timeout_s, heartbeat_s=heartbeat_s,
+                                     raw=raw, reconnect=reconnect, reconnect_timeout_s=reconnect_timeout_s,
+                                     curve_keys=curve_keys, rank=rank, world_size=world_size, group=group, shm=shm,
+                                     compact_flow=compact_flow, compression=compression)
         if curve_keys:
             load_curve_keys(*curve_keys)  # bad key files are an error here, not at the first iteration
         self._stream: Optional[EndpointStream] = None
@@ -314,12 +314,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             self._stream.close()
 
 
-def _check_options(credits, timeout_s, group, shm, compact_flow, compression) -> None:
-    """The constructor's option checks.
+def _check_options(outputs, credits, timeout_s, group, shm, compact_flow, compression) -> Tuple[str, ...]:
+    """The constructor's option checks; the outputs as ``check_outputs`` gives them.
 
     Raises:
         ValueError: naming the argument and the value given.
     """
+    outputs = check_outputs(outputs)
     if isinstance(credits, bool) or not isinstance(credits, int) or not 1 <= credits <= MAX_CREDITS:
         raise ValueError(f"credits must be an int in [1, {MAX_CREDITS}], got {credits!r}")
     if not timeout_s > 0:
@@ -334,6 +335,7 @@ def _check_options(credits, timeout_s, group, shm, compact_flow, compression) ->
         check_compression(compression)
         if not available(compression):
             raise ValueError(f"compression {compression!r} needs its library here: pip install 'v2v[wire]'")
+    return outputs
 
 
 def _checked_position(rank: Optional[int], world_size: Optional[int]) -> Tuple[int, int]:

@@ -16,10 +16,11 @@ __all__ = ["StreamOptions", "AUTO_REMOTE"]
 AUTO_REMOTE = "zstd"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class StreamOptions:
     """What a stream asks a server for and how it talks to it (validated by
-    ``V2VStreamDataset``; see its arguments for each field's meaning and unit: ``outputs``,
+    ``V2VStreamDataset``; the seconds made floats, ``curve_keys`` a tuple or None, here; see
+    its arguments for each field's meaning and unit: ``outputs``,
     ``credits`` (batches), ``timeout_s`` / ``heartbeat_s`` / ``reconnect_timeout_s``
     (seconds), ``raw``, ``reconnect``, ``curve_keys`` (key file paths), DDP ``rank`` /
     ``world_size`` / ``group``, ``shm`` (True, False or ``"auto"``), ``compact_flow``,
@@ -39,6 +40,13 @@ class StreamOptions:
     shm: object
     compact_flow: bool = False
     compression: str = "auto"
+
+    def __post_init__(self):
+        _set = object.__setattr__  # frozen: normalised once, here
+        for name in ("timeout_s", "heartbeat_s", "reconnect_timeout_s"):
+            _set(self, name, float(getattr(self, name)))
+        _set(self, "reconnect", bool(self.reconnect))
+        _set(self, "curve_keys", tuple(self.curve_keys) if self.curve_keys else None)
 
     def wants_shm(self, endpoint: str) -> bool:
         """Whether a connection to ``endpoint`` asks for batches through the server's shared

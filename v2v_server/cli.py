@@ -82,7 +82,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(format_check(results, rejected, cfg.recipe.crops_per_window))
         if caches.frame_cache is not None:
             print(cache_line(source, caches.frame_cache, cfg, videos))
-        return 0 if any(r["usable"] for r in results) else 2
+        return 0 if any(r.usable for r in results) else 2
     if args.warm_cache:
         try:
             results = warm_cache(cfg, source, caches, videos)

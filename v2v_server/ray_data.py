@@ -113,7 +113,7 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str,
     w = cfg.recipe.windows
     if w.reads_frames or split_segment(rel)[1]:
         r = check_video(w, cfg.recipe.decode, source, rel, caches)
-        return r["windows"], (None if r["usable"] else r["reason"])
+        return r.windows, (None if r.usable else r.reason)
     window_pass = WindowPass(w, cfg.recipe.reads)
     error = None
     try:

@@ -2,10 +2,11 @@
 training; and what the host's corpus index knows of a listing at a server's start."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
-from v2v_server.frames.corpus_index import check_record, layout_key
+from v2v_server.frames.corpus_index import Verdict, check_record, layout_key
 from v2v_server.sources.names import VideoError
 from v2v_server.frames.decode import decode_codes, frame_intervals, open_video
 from v2v_server.frames.frame_pass import DecodeSettings, FramePass, PassFrame
@@ -25,13 +26,10 @@ VFR_SPREAD = 0.1
 
 
 def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str,
-                caches: Optional[HostCaches] = None) -> dict:
-    """Verdict for one file of ``source`` (the corpus): ``{"path", "usable", "windows", "frames", "size", "reason",
-    "cuts", "dropped"}`` (``cuts``: the frames that start a shot, found whatever ``shot_cuts``
-    says; ``dropped``: windows a cut removed; ``failed_windows`` when some window cannot be
-    made, ``more`` when decoding stopped with every window complete, ``variable_rate`` when the
-    frames read are unevenly spaced in time): the window pass's record
-    (``window_pass.VideoPass.verdict``, windows laid out by ``windows``) of the frames the
+                caches: Optional[HostCaches] = None) -> Verdict:
+    """The :class:`~v2v_server.frames.corpus_index.Verdict` of one file of ``source`` (the
+    corpus), never raising for a bad file (its failure is the verdict's reason): the window
+    pass's record (``window_pass.VideoPass``, windows laid out by ``windows``) of the frames the
     workers cut (scaled and kept rows as ``decode`` says), scored by the same detector; a
     frame's size in a message is the whole displayed frame's.
 
@@ -43,7 +41,7 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     known = indexed_verdict(windows, decode, source, rel, caches)
     if known is not None:
         return known
-    out = {}  # what only this pass measures (frame timing), beside the window pass's verdict
+    variable_rate = ""  # what only this pass measures (frame timing), beside the window pass's verdict
     shown = {}  # the displayed (scaled) height of the frame at hand
 
     def rows(h: int) -> int:  # the rows the sample pass scores and cuts
@@ -64,11 +62,11 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
                 pass
         gaps = frame_intervals(times)
         if gaps and gaps[2] - gaps[0] > VFR_SPREAD * gaps[1]:
-            out["variable_rate"] = (f"variable frame rate: frame intervals {gaps[0] * 1e3:.3g}-{gaps[2] * 1e3:.3g} "
+            variable_rate = (f"variable frame rate: frame intervals {gaps[0] * 1e3:.3g}-{gaps[2] * 1e3:.3g} "
                                     f"ms, taken as if evenly spaced at the average {info.fps:.3g} fps")
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
-    out = {**pass_verdict(windows, rel, found.record(error)), **out}
+    out = dataclasses.replace(pass_verdict(windows, rel, found.record(error)), variable_rate=variable_rate)
     if index is not None and error is None:
         index.record(source.where(rel), identity, layout_key(windows, decode), out)
     return out
@@ -92,38 +90,19 @@ def indexed_verdict(windows: WindowSettings, decode: DecodeSettings, source: Vid
     if index is None:
         return None
     known = index.lookup(source.where(rel), _identity(source, rel), layout_key(windows, decode))
-    if known is not None and known.get("frame_timing", True):  # a sample pass's entry lacks --check's timing
-        return {**known, "path": rel}
+    if known is not None and known.frame_timing:  # a sample pass's entry lacks --check's timing
+        return dataclasses.replace(known, path=rel)
     return None
 
 
-def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> dict:
+def pass_verdict(windows: WindowSettings, rel: str, record: VideoPass) -> Verdict:
     """``check_video``'s verdict of the video at ``rel`` from a window pass's ``record``
-    (``window_pass.VideoPass``), frame timing aside: ``{"path", "usable", "windows", "frames",
-    "size", "reason", "cuts", "dropped", "stream", "cause"}`` (``stream``: ``VideoPass.stream``, None when not opened;
-    ``cause``: the reason's code, ``window_pass.judged``), with
-    ``failed_windows`` and ``more`` where they apply."""
-    count, failed, cause, reason = record.judged(windows)  # windows before a failure still count
-    stream = record.stream()
-    out = {"path": rel, "usable": count > 0, "windows": count, "frames": record.frames,
-           "size": size_text(stream), "stream": stream, "reason": reason or "", "cause": cause,
-           "cuts": list(record.cuts), "dropped": record.dropped}
-    if failed:
-        out["failed_windows"] = failed
-    if record.static:
-        out["static"] = record.static  # windows given up as static (static_windows: skip)
-    if record.complete:
-        out["more"] = True  # every window is complete: decoding stopped
-    return out
-
-
-def size_text(stream: Optional[dict]) -> str:
-    """A verdict's ``size`` as ``--check`` prints it: ``"WxH codec pix_fmt FPS fps"`` (the frame
-    rate to 3 digits) of its ``stream`` (``VideoPass.stream``), ``""`` without one. For people:
-    a reader takes the typed ``stream``."""
-    if not stream:
-        return ""
-    return f"{stream['width']}x{stream['height']} {stream['codec']} {stream['pix_fmt']} {stream['fps']:.3g} fps"
+    (``window_pass.VideoPass``), frame timing aside (``cause``: the reason's code,
+    ``window_pass.judged``; windows before a failure still count)."""
+    count, failed, cause, reason = record.judged(windows)
+    return Verdict(path=rel, usable=count > 0, windows=count, frames=record.frames, reason=reason or "", cause=cause,
+                   cuts=tuple(record.cuts), dropped=record.dropped, stream=record.stream(),
+                   failed_windows=tuple(failed), static=record.static, more=record.complete)
 
 
 def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, rel: str,
@@ -143,7 +122,8 @@ def record_pass(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     where, key, identity = source.where(rel), layout_key(windows, decode), source.listed_identity(rel)
     if identity is None or index.lookup(where, identity, key) is not None:
         return False
-    return index.record(where, identity, key, {**pass_verdict(windows, rel, record), "frame_timing": False})
+    verdict = dataclasses.replace(pass_verdict(windows, rel, record), frame_timing=False)
+    return index.record(where, identity, key, verdict)
 
 
 class KnownWindows(NamedTuple):
@@ -179,7 +159,7 @@ def known_windows(windows: WindowSettings, decode: DecodeSettings, source: Video
 
 
 def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, videos: List[str],
-                 processes: int = 1, caches: Optional[HostCaches] = None) -> List[dict]:
+                 processes: int = 1, caches: Optional[HostCaches] = None) -> List[Verdict]:
     """``check_video`` for every file of ``source``, in ``processes`` processes (``source`` and
     ``caches`` themselves in this one, or built once in each of them from their ``spec()``,
     ``video_pool.map_videos``). The corpus index (``caches.corpus_index()``) is
@@ -196,33 +176,34 @@ def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoS
     return [known[rel] or made[rel] for rel in videos]
 
 
-def format_check(results: List[dict], rejected: List[Tuple[str, str]], crops_per_window: int = 1) -> str:
+def format_check(results: List[Verdict], rejected: List[Tuple[str, str]], crops_per_window: int = 1) -> str:
     """A table: one line per file with its verdict (its windows), then a summary line: the
     samples an epoch holds, ``crops_per_window`` per window (``SampleRecipe.epoch_samples``)."""
     lines = [f"{'file':<48} {'verdict':<12} detail"]
     for r in results:
-        verdict = f"{r['windows']} window(s)" if r["usable"] else "unusable"
-        cuts = r.get("cuts") or []
+        verdict = f"{r.windows} window(s)" if r.usable else "unusable"
+        cuts = r.cuts
         shots = (f"; {len(cuts)} cut(s) at frame(s) {', '.join(map(str, cuts[:12]))}{' ...' if len(cuts) > 12 else ''}"
                  if cuts else "; one shot")
-        if r.get("dropped"):
-            shots += f", {r['dropped']} window(s) removed by cuts"
-        if r.get("static"):
-            shots += f", {r['static']} static window(s) skipped"
-        detail = (f"{r['frames']}{'+' if r.get('more') else ''} frames, {r['size']}" if r["usable"]
-                  else r["reason"]) + (shots if r["frames"] else "")
-        if r["usable"] and r.get("failed_windows"):
-            detail += f"; {r['reason']}"
-        if r["usable"] and r.get("variable_rate"):
-            detail += f"; {r['variable_rate']}"
-        lines.append(f"{r['path']:<48} {verdict:<12} {detail}")
+        if r.dropped:
+            shots += f", {r.dropped} window(s) removed by cuts"
+        if r.static:
+            shots += f", {r.static} static window(s) skipped"
+        size = r.stream.text() if r.stream is not None else ""
+        detail = (f"{r.frames}{'+' if r.more else ''} frames, {size}" if r.usable else r.reason) + \
+            (shots if r.frames else "")
+        if r.usable and r.failed_windows:
+            detail += f"; {r.reason}"
+        if r.usable and r.variable_rate:
+            detail += f"; {r.variable_rate}"
+        lines.append(f"{r.path:<48} {verdict:<12} {detail}")
     for rel, reason in rejected:
         lines.append(f"{Path(rel).as_posix():<48} {'ignored':<12} {reason}")
-    usable = [r for r in results if r["usable"]]
-    windows = sum(r["windows"] for r in usable)
+    usable = [r for r in results if r.usable]
+    windows = sum(r.windows for r in usable)
     crops = f" ({windows} window(s) x {crops_per_window} crops)" if crops_per_window > 1 else ""
     lines.append(f"{len(usable)} usable video(s) of {len(results)}, {windows * crops_per_window} sample(s) "
-                 f"per epoch{crops}; {sum(len(r.get('cuts') or ()) for r in results)} shot cut(s) found, "
-                 f"{sum(r.get('dropped', 0) for r in results)} window(s) removed by cuts; "
+                 f"per epoch{crops}; {sum(len(r.cuts) for r in results)} shot cut(s) found, "
+                 f"{sum(r.dropped for r in results)} window(s) removed by cuts; "
                  f"{len(rejected)} other entr{'y' if len(rejected) == 1 else 'ies'} ignored")
     return "\n".join(lines)

@@ -18,6 +18,7 @@ video has one entry per layout it was read under.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sqlite3
@@ -28,6 +29,7 @@ from typing import Callable, Dict, Iterable, Iterator, Optional, Tuple, Union
 from v2v_server.faults import warn_once
 from v2v_server.frames.frame_pass import DecodeSettings
 from v2v_server.frames.pass_record import PassRecord
+from v2v_server.frames.window_pass import StreamFacts
 from v2v_server.frames.windows import WindowSettings
 from v2v_wire.worker_messages import CAUSES
 
@@ -35,7 +37,8 @@ from v2v_wire.worker_messages import CAUSES
 INDEX_FILE = "corpus_index.sqlite"
 
 #: Format of the rows and of their layout keys (``layout_key``); the rows of an index of another
-#: version are deleted at open, and the index written anew.
+#: version, or whose table has other columns, are deleted at open (the table made anew), and the
+#: index written anew.
 INDEX_VERSION = 3
 
 #: Seconds a read or write waits for another process's write: a write is one row (milliseconds),
@@ -45,7 +48,7 @@ BUSY_TIMEOUT_S = 5.0
 
 log = logging.getLogger("v2v")
 
-_SCHEMA = """
+_ENTRIES = """
 CREATE TABLE IF NOT EXISTS entries (
     location TEXT NOT NULL,      -- where the video lives (VideoSource.where: a path or URL, a member, a segment)
     layout TEXT NOT NULL,        -- layout_key(windows, decode)
@@ -58,13 +61,119 @@ CREATE TABLE IF NOT EXISTS entries (
     cuts TEXT NOT NULL,          -- JSON list: the frames that start a shot
     width INTEGER, height INTEGER, codec TEXT,
     fps REAL,                    -- frames per second as the container gives it (29.97002997..., not rounded)
-    result TEXT NOT NULL,        -- JSON: the whole --check verdict (frames.corpus.check_video)
+    result TEXT NOT NULL,        -- JSON: the whole --check verdict (Verdict.to_json)
     written_at REAL NOT NULL,    -- Unix time, seconds
     PRIMARY KEY (location, layout)
-);
+)"""
+_SCHEMA = _ENTRIES + """;
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
 
+
+def _columns(db: sqlite3.Connection) -> list:
+    """The names of the ``entries`` table's columns in ``db``, in order."""
+    return [r[1] for r in db.execute("PRAGMA table_info(entries)")]
+
+
+def _schema_columns() -> list:
+    """The columns :data:`_ENTRIES` makes (the schema is their one owner)."""
+    db = sqlite3.connect(":memory:")
+    try:
+        db.execute(_ENTRIES)
+        return _columns(db)
+    finally:
+        db.close()
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Verdict:
+    """What ``v2v-serve --check`` says of one video (``corpus.check_video``), as the corpus
+    index keeps it.
+
+    Attributes:
+        path: the video's id in its corpus (``shard.tar/a.mp4``, ``a.mp4#t=1,2``).
+        usable: it gives a window.
+        windows: samples per epoch (windows that can be made).
+        frames: frames read (decoding stops once the last window is complete: see ``more``).
+        reason: why it gives none or fewer ('' when nothing is wrong; failed windows named).
+        cause: that reason as a code (``v2v_wire.worker_messages.CAUSES``; '' when none).
+        cuts: the frames that start a shot, found whatever ``shot_cuts`` says.
+        dropped: windows a cut removed.
+        stream: the stream's facts (``window_pass.StreamFacts``), None when it was not opened.
+        failed_windows: the windows that cannot be made (a frame of another size inside).
+        static: windows given up as static (``static_windows: skip``).
+        more: every window is complete: decoding stopped, the video may hold more frames.
+        variable_rate: the frames read are unevenly spaced in time: what ``--check`` says of
+            it ('' when they are even, or when the pass did not time frames).
+        frame_timing: the pass timed frames (``--check``'s); a sample pass's entry does not,
+            and ``--check`` decodes the video again for its own line.
+    """
+
+    path: str
+    usable: bool
+    windows: int
+    frames: int
+    reason: str
+    cause: str
+    cuts: Tuple[int, ...]
+    dropped: int
+    stream: Optional[StreamFacts]
+    failed_windows: Tuple[int, ...] = ()
+    static: int = 0
+    more: bool = False
+    variable_rate: str = ""
+    frame_timing: bool = True
+
+    def to_json(self) -> dict:
+        """The verdict as JSON-safe values (the index's ``result`` column): every field, ``stream``
+        as an object of its fields or null."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, location: str, value) -> "Verdict":
+        """The verdict :meth:`to_json` wrote, for the entry of ``location`` (for messages);
+        keys it does not name are left aside.
+
+        Raises:
+            ValueError: a field is missing or of another type (naming the entry and the field)."""
+        if not isinstance(value, dict):
+            raise ValueError(f"the entry of {location} holds a result that is not a verdict")
+        got = {}
+        optional = {f.name for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+        for name, kind in _VERDICT.items():
+            if name not in value and name in optional:
+                continue
+            v = value.get(name)
+            if name == "stream":
+                got[name] = None if v is None else _stream(location, v)
+            elif kind is tuple:
+                if not isinstance(v, list) or not all(_count(n) for n in v):
+                    raise ValueError(f"the entry of {location} holds {name} {v!r} in its result")
+                got[name] = tuple(v)
+            elif not isinstance(v, kind) or (kind is int and not _count(v)):
+                raise ValueError(f"the entry of {location} holds {name} {v!r} in its result")
+            else:
+                got[name] = v
+        return cls(**got)
+
+
+def _count(v) -> bool:
+    """Whether ``v`` is a non-negative int (a bool is not)."""
+    return type(v) is int and v >= 0
+
+
+def _stream(location: str, v) -> StreamFacts:
+    """A verdict's ``stream`` object as :class:`StreamFacts`.
+
+    Raises:
+        ValueError: a field is missing or of another type (naming the entry)."""
+    ok = (isinstance(v, dict) and all(_count(v.get(k)) for k in ("width", "height"))
+          and all(isinstance(v.get(k), str) for k in ("codec", "pix_fmt"))
+          and type(v.get("fps")) in (int, float))
+    if not ok:
+        raise ValueError(f"the entry of {location} holds stream {v!r} in its result")
+    return StreamFacts(width=v["width"], height=v["height"], codec=v["codec"], pix_fmt=v["pix_fmt"],
+                       fps=float(v["fps"]))
 
 
 def layout_key(windows: WindowSettings, decode: DecodeSettings) -> str:
@@ -116,8 +225,13 @@ class CorpusIndex:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.executescript(_SCHEMA)
         row = self._db.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()
-        if row is not None and row[0] != str(INDEX_VERSION):  # written by another format: start afresh
-            self._db.execute("DELETE FROM entries")
+        if (row is not None and row[0] != str(INDEX_VERSION)) or _columns(self._db) != _schema_columns():
+            # written by another format: start afresh, the table too (CREATE TABLE IF NOT EXISTS keeps
+            # an existing table's columns, into which this format's rows do not fit)
+            self._db.execute("BEGIN IMMEDIATE")
+            self._db.execute("DROP TABLE entries")
+            self._db.execute(_ENTRIES)
+            self._db.execute("COMMIT")
         # a write at every open: a file that cannot be written, or whose lock another process
         # holds, is found here, once, by the process that opens it first (its pool's workers
         # are then told to leave it off), not by each worker at its first entry
@@ -145,8 +259,8 @@ class CorpusIndex:
                 pass
             self._db = None
 
-    def lookup(self, location: str, identity: Optional[str], layout: str) -> Optional[dict]:
-        """The ``--check`` verdict (``frames.corpus.check_video``'s dict) recorded for the video
+    def lookup(self, location: str, identity: Optional[str], layout: str) -> Optional[Verdict]:
+        """The ``--check`` verdict recorded for the video
         at ``location`` under ``layout``, or None: no entry, an entry of another identity (the
         video changed), ``identity`` None (it cannot vouch for the content), or the index off."""
         if identity is None:
@@ -191,17 +305,17 @@ class CorpusIndex:
         if batch:
             yield from self._safely([], read)
 
-    def record(self, location: str, identity: Optional[str], layout: str, result: dict) -> bool:
-        """Keep ``result`` (a ``check_video`` verdict) for the video at ``location`` of
-        ``identity`` under ``layout``, replacing an older entry; nothing is kept when
-        ``identity`` is None or the index is off. Returns whether it was kept."""
+    def record(self, location: str, identity: Optional[str], layout: str, result: Verdict) -> bool:
+        """Keep ``result`` for the video at ``location`` of ``identity`` under ``layout``,
+        replacing an older entry; nothing is kept when ``identity`` is None or the index is
+        off. Returns whether it was kept."""
         if identity is None:
             return False
-        stream = result.get("stream") or {}  # the stream's typed facts (window_pass.VideoPass.stream)
-        w, h, codec, fps = (stream.get(k) for k in ("width", "height", "codec", "fps"))
-        row = (location, layout, identity, int(result.get("frames", 0)), int(result.get("windows", 0)),
-               int(bool(result.get("usable"))), result.get("reason") or "", result.get("cause") or "",
-               json.dumps(list(result.get("cuts") or [])), w, h, codec, fps, json.dumps(result), time.time())
+        s = result.stream
+        w, h, codec, fps = (s.width, s.height, s.codec, s.fps) if s is not None else (None, None, None, None)
+        row = (location, layout, identity, result.frames, result.windows, int(result.usable), result.reason,
+               result.cause, json.dumps(list(result.cuts)), w, h, codec, fps, json.dumps(result.to_json()),
+               time.time())
         return self._safely(False, lambda: self._db.execute(
             "INSERT OR REPLACE INTO entries VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", row) is not None)
 
@@ -214,9 +328,11 @@ class CorpusIndex:
             self._db = None
 
 
-#: The fields a stored verdict must hold, and their types (``corpus.pass_verdict`` writes them).
-_VERDICT = (("usable", bool), ("windows", int), ("frames", int), ("size", str), ("reason", str), ("cuts", list),
-            ("dropped", int), ("stream", (dict, type(None))), ("cause", str))
+#: The type of each field of a stored verdict (:class:`Verdict`; ``tuple``: a JSON list of counts),
+#: in the order they are checked (the first at fault is named).
+_VERDICT = {"usable": bool, "windows": int, "frames": int, "reason": str, "cuts": tuple, "dropped": int,
+            "stream": dict, "cause": str, "path": str, "failed_windows": tuple, "static": int, "more": bool,
+            "variable_rate": str, "frame_timing": bool}
 
 
 def stored_count(location: str, value) -> int:
@@ -239,8 +355,8 @@ def stored_cause(location: str, value) -> str:
     return value
 
 
-def stored_verdict(location: str, text) -> dict:
-    """An entry's ``result`` column as a verdict dict.
+def stored_verdict(location: str, text) -> Verdict:
+    """An entry's ``result`` column as a :class:`Verdict`.
 
     Raises:
         ValueError: it is not JSON of a verdict (naming the entry and the field at fault)."""
@@ -248,13 +364,7 @@ def stored_verdict(location: str, text) -> dict:
         verdict = json.loads(text)
     except (TypeError, ValueError):
         raise ValueError(f"the entry of {location} holds a result that is not JSON") from None
-    if not isinstance(verdict, dict):
-        raise ValueError(f"the entry of {location} holds a result that is not a verdict")
-    for key, kind in _VERDICT:
-        value = verdict.get(key)
-        if not isinstance(value, kind) or (kind is int and (isinstance(value, bool) or value < 0)):
-            raise ValueError(f"the entry of {location} holds {key} {value!r} in its result")
-    return verdict
+    return Verdict.from_json(location, verdict)
 
 
 def fault_text(e: BaseException) -> str:

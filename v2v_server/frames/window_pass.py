@@ -111,7 +111,25 @@ class WindowFrame(NamedTuple):
     skips: Optional[int] = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
+class StreamFacts:
+    """A video stream's facts as a pass opened it: ``width``, ``height`` (int, pixels),
+    ``codec``, ``pix_fmt`` (FFmpeg's names) and ``fps`` (float, Hz, as the container gives it:
+    29.97... stays 29.97...)."""
+
+    width: int
+    height: int
+    codec: str
+    pix_fmt: str
+    fps: float
+
+    def text(self) -> str:
+        """``"WxH codec pix_fmt FPS fps"``, the frame rate to 3 digits: how ``--check`` prints
+        it (for people; a reader takes the fields)."""
+        return f"{self.width}x{self.height} {self.codec} {self.pix_fmt} {self.fps:.3g} fps"
+
+
+@dataclass(frozen=True, kw_only=True)
 class VideoPass:
     """What one window pass over a video found: the record its readers report from (a worker's
     ``Done``, ``--check``'s line, the Ray engine's verdict) and a corpus index can keep.
@@ -156,14 +174,11 @@ class VideoPass:
         """Complete windows, failed ones included."""
         return len(self.starts)
 
-    def stream(self) -> Optional[dict]:
-        """The stream's facts as typed values: ``{"width", "height"}`` (int, pixels), ``{"codec",
-        "pix_fmt"}`` (names) and ``"fps"`` (float, Hz, as the container gives it: 29.97... stays
-        29.97...); None when the stream was not opened."""
+    def stream(self) -> Optional[StreamFacts]:
+        """The stream's facts (:class:`StreamFacts`); None when the stream was not opened."""
         if not self.codec:
             return None
-        return {"width": self.width, "height": self.height, "codec": self.codec, "pix_fmt": self.pix_fmt,
-                "fps": self.fps}
+        return StreamFacts(width=self.width, height=self.height, codec=self.codec, pix_fmt=self.pix_fmt, fps=self.fps)
 
     def verdict(self, w: WindowSettings) -> Tuple[int, List[int], Optional[str]]:
         """:func:`verdict` of what the pass found, failed windows included (``--check``):
@@ -281,8 +296,8 @@ class WindowPass:
     def record(self, error: Optional[BaseException] = None) -> VideoPass:
         """What the pass found so far (``error``: what stopped it, if anything)."""
         info = self.info
-        return VideoPass(self.frames, info.width if info else 0, info.height if info else 0,
-                         float(info.fps) if info else 0.0, self.reads.key, tuple(self.cuts), tuple(self.starts),
-                         self.layout.dropped, dict(self.failed), self.layout.done, error,
-                         info.codec if info else "", info.pix_fmt if info else "", tuple(self.motions),
-                         self.layout.static)
+        return VideoPass(frames=self.frames, width=info.width if info else 0, height=info.height if info else 0,
+                         fps=float(info.fps) if info else 0.0, layout=self.reads.key, cuts=tuple(self.cuts),
+                         starts=tuple(self.starts), dropped=self.layout.dropped, failed=dict(self.failed),
+                         complete=self.layout.done, error=error, codec=info.codec if info else "",
+                         pix_fmt=info.pix_fmt if info else "", motions=tuple(self.motions), static=self.layout.static)

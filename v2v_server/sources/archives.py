@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import contextlib
 from pathlib import PurePosixPath
-from typing import Callable, ContextManager, Dict, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Callable, ContextManager, Dict, List, Optional, Sequence, Tuple
 
 from v2v_server.sources.names import VideoError, control_character, printable
-from v2v_server.sources.manifest import index_entry
 from v2v_server.sources.segments import segment_name, split_segment
-from v2v_server.sources.shards import (ARCHIVES, JoinedFile, ShardIndex, ZipMemberError, gather_pieces, missing_piece, open_member, piece_archive, split_member)
+from v2v_server.sources.shards import (ARCHIVES, JoinedFile, MemberEntry, ShardIndex, ZipMemberError, gather_pieces, missing_piece, open_member, piece_archive, split_member)
+
+if TYPE_CHECKING:
+    from v2v_server.sources.manifest import ListedObject
 
 
 class Archives:
@@ -37,10 +39,10 @@ class Archives:
         except Exception:  # an unreadable archive: the member is missing
             return False
 
-    def members(self, archive: str) -> Dict[str, Tuple[int, ...]]:
-        """Member name -> index entry (``sources.shards``: offset and size in bytes, and a zip
-        member's fields) of the archive at ``archive`` (relative path), read once per process
-        and version of the archive (``version``): one rewritten in place is read again.
+    def members(self, archive: str) -> Dict[str, MemberEntry]:
+        """Member name -> where it lies (``shards.TarMember`` or ``ZipMember``) in the archive at
+        ``archive`` (relative path), read once per process and version of the archive
+        (``version``): one rewritten in place is read again.
 
         Raises:
             VideoError: it is missing, or a split part lacks a piece (named).
@@ -79,7 +81,7 @@ class Archives:
         return got
 
     @contextlib.contextmanager
-    def open(self, archive: str, expected: Optional[tuple] = None):
+    def open(self, archive: str, expected: Optional[ListedObject] = None):
         """The archive at ``archive`` as one binary file: the file or object (checked against
         ``expected``, its listing entry, on a store), or a split part's pieces joined."""
         pieces = self.pieces(archive)
@@ -91,7 +93,7 @@ class Archives:
             yield JoinedFile([stack.enter_context(self._open_raw(p)) for p in pieces])
 
     @contextlib.contextmanager
-    def open_member(self, rel: str, entry: Optional[tuple] = None):
+    def open_member(self, rel: str, entry: Optional[ListedObject] = None):
         """The archive member ``rel`` as a readable, seekable binary file (``shards.open_member``),
         located by its listing ``entry`` (a store's manifest) or its archive's index.
 
@@ -105,14 +107,14 @@ class Archives:
             except ZipMemberError as e:
                 raise VideoError(str(e)) from None
 
-    def member_at(self, rel: str, entry: Optional[tuple]) -> Tuple[int, ...]:
-        """The index entry of the archive member ``rel``: from its manifest ``entry`` (a store's),
-        else the archive's index.
+    def member_at(self, rel: str, entry: Optional[ListedObject]) -> MemberEntry:
+        """Where the archive member ``rel`` lies in its archive: from its listing ``entry`` (a
+        store's manifest), else the archive's index.
 
         Raises:
             VideoError: the archive has no such member, or cannot be read."""
-        if entry is not None and len(entry) >= 3:
-            return index_entry(entry)
+        if entry is not None and entry.member is not None:
+            return entry.member
         archive, name = split_member(rel)
         try:
             where = self.members(archive).get(name)
@@ -194,7 +196,7 @@ def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str
     by_path: Dict[str, List[str]] = {}
     by_file: Dict[str, List[str]] = {}
     for m in members:
-        name = split_member(m)[1]
+        name = split_member(m).name
         by_path.setdefault(name, []).append(m)
         by_file.setdefault(PurePosixPath(name).name, []).append(m)
     out, seen, refused, unmatched = [], set(), [], []
@@ -230,7 +232,7 @@ def archive_kind(archive: str) -> str:
     return "zip part" if archive.lower().endswith(".zip") else "tar shard"
 
 
-def listing_problems(objects: Dict[str, tuple], unreadable: Dict[str, str], extensions: Sequence[str]
+def listing_problems(objects: Dict[str, ListedObject], unreadable: Dict[str, str], extensions: Sequence[str]
                      ) -> List[Tuple[str, str]]:
     """``(archive, reason)`` for each archive of a store's listing ``objects`` (key -> entry,
     members included) that gives no video member (it could not be read, ``unreadable``:

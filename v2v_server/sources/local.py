@@ -10,6 +10,7 @@ from typing import Iterator, List, Optional, Sequence, Tuple, Union
 
 from v2v_server.sources.names import VideoError, inside
 from v2v_server.sources.folder_scan import scan_corpus_names
+from v2v_server.sources.manifest import ListedObject
 from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, PIECE, gather_pieces, split_member
 from v2v_server.sources.source import VideoSource
@@ -115,7 +116,7 @@ class LocalSource(VideoSource):
             return []
 
     @contextlib.contextmanager
-    def _open_raw(self, rel: str, expected: Optional[tuple] = None):
+    def _open_raw(self, rel: str, expected: Optional[ListedObject] = None):
         with open(corpus_file(self.root, rel), "rb") as f:
             yield f
 
@@ -126,7 +127,7 @@ class LocalSource(VideoSource):
         if member is None:
             return False
         try:
-            return bool(self.archives.pieces(member[0]))
+            return bool(self.archives.pieces(member.archive))
         except VideoError:
             return False
 
@@ -148,9 +149,9 @@ class LocalSource(VideoSource):
         rel = base_path(rel)
         try:
             if self._in_archive(rel):
-                archive = split_member(rel)[0]
+                archive = split_member(rel).archive
                 stats = self._archive_stats(archive)
-                where = " ".join(map(str, self.archives.member_at(rel, None)))
+                where = " ".join(map(str, self.archives.member_at(rel, None).numbers()))
                 held = " + ".join(file_identity(st) for st in stats)
                 return None if any(racy(st) for st in stats) else f"{archive[-3:].lower()} {held} member {where}"
             st = os.stat(corpus_file(self.root, rel))

@@ -5,19 +5,54 @@ without walking the bucket, and a worker looks up single entries without loading
 :class:`StoreListing`, which writes and reads it."""
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
 import os
 import time
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
-from v2v_server.sources.shards import ShardIndex, split_member
+from v2v_server.sources.shards import MemberEntry, ShardIndex, TarMember, ZipMember, split_member
 
 log = logging.getLogger("v2v.source")
 
 MANIFEST_VERSION = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class ListedObject:
+    """A listing's entry for one key: ``size``, bytes of the object (of an archive member: of
+    its content); ``tag``, the version tag (``etag_of``; a member's: its archive's, a split
+    part's pieces' joined by ``+``; '' when the store gives none); ``member``, where an archive
+    member lies in its archive (``shards.TarMember`` or ``ZipMember``), None for an object."""
+
+    size: int
+    tag: str
+    member: Optional[MemberEntry] = None
+
+    def line(self, key: str) -> list:
+        """The manifest's JSON line for ``key`` (see :func:`write_manifest`)."""
+        if self.member is None:
+            return [key, self.size, self.tag]
+        return [key, self.size, self.tag, self.member.offset, *self.member.numbers()[2:]]
+
+
+def listed_from_line(values: Sequence) -> Tuple[str, ListedObject]:
+    """``(key, entry)`` of a manifest line's JSON values (:meth:`ListedObject.line`): after key,
+    size and tag, no number for an object, one (the data's offset) for a tar member, five (the
+    local header's offset, compressed size, CRC-32, method, flag bits) for a zip member.
+
+    Raises:
+        ValueError, TypeError: a line of another shape."""
+    key, size, tag, *numbers = values
+    size, numbers = int(size), [int(n) for n in numbers]
+    if len(numbers) not in (0, 1, 5):
+        raise ValueError(f"manifest entry {key!r}: {len(numbers)} numbers after size and tag (0, 1 or 5 expected)")
+    member = (None if not numbers else TarMember(numbers[0], size) if len(numbers) == 1
+              else ZipMember(numbers[0], size, *numbers[1:]))
+    return str(key), ListedObject(size, str(tag), member)
 
 
 def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional[str] = None) -> Path:
@@ -39,17 +74,17 @@ def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional
     return Path(cache_dir) / "manifests" / f"{h}.jsonl"
 
 
-def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]],
+def write_manifest(path: Path, url: str, objects: Dict[str, ListedObject],
                    refused: Optional[Dict[str, List[Tuple[str, str]]]] = None) -> None:
-    """Write ``objects`` (key relative to the prefix -> (size in bytes, ETag), or for a
-    member of an archive ``shard.tar/member`` -> (size, the archive's ETag, offset of the
-    member's data in the shard), ``part.zip/member`` -> (size, the part's ETag, offset of its
-    local header, compressed size, CRC-32, method, flag bits): :func:`member_entry`) atomically:
+    """Write ``objects`` (key relative to the prefix, or ``shard.tar/member`` for an archive's
+    member -> :class:`ListedObject`) atomically:
     a header line ``{"v2v_manifest": 1, "url", "objects", "listed_at"}`` (and ``"refused"``:
     archive -> ``[[member or '', why], ...]``, the archive entries not served,
     ``shards.ShardIndex.refused``, when there are any: a restart names them again without
-    reading the archive), then one ``[key, size, etag(, offset...)]`` JSON line per entry,
-    sorted by key."""
+    reading the archive), then one JSON line per entry, sorted by key: ``[key, size, etag]`` for
+    an object; ``[key, size, etag, offset of its data]`` for a tar member; ``[key, size, etag,
+    offset of its local header, compressed size, CRC-32, method, flag bits]`` for a zip member
+    (the archive's ETag; sizes and offsets in bytes)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
     with open(tmp, "w", encoding="utf-8") as f:
@@ -59,14 +94,14 @@ def write_manifest(path: Path, url: str, objects: Dict[str, Tuple[int, str]],
             header["refused"] = {a: [list(r) for r in rs] for a, rs in sorted(refused.items()) if rs}
         f.write(json.dumps(header, ensure_ascii=False) + "\n")
         for key in sorted(objects):
-            f.write(json.dumps([key, *objects[key]], ensure_ascii=False) + "\n")
+            f.write(json.dumps(objects[key].line(key), ensure_ascii=False) + "\n")
     os.replace(tmp, path)
 
 
-def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
+def read_manifest(path: Path, url: str) -> Optional[Dict[str, ListedObject]]:
     """The objects of the manifest at ``path`` (see :func:`write_manifest`), or None when there
-    is none, it is of another URL or version, or it is cut short (a crash while written by
-    another process: it is then listed again)."""
+    is none, it is of another URL or version, it is cut short (a crash while written by
+    another process) or a line is of another shape: it is then listed again."""
     try:
         with open(path, encoding="utf-8") as f:
             header = json.loads(f.readline() or "null")
@@ -74,8 +109,8 @@ def read_manifest(path: Path, url: str) -> Optional[Dict[str, Tuple[int, str]]]:
                 return None
             objects = {}
             for line in f:
-                key, size, etag, *offset = json.loads(line)
-                objects[key] = (int(size), str(etag), *(int(o) for o in offset))
+                key, entry = listed_from_line(json.loads(line))
+                objects[key] = entry
     except (OSError, ValueError, TypeError):
         return None
     return objects if len(objects) == header.get("objects") else None
@@ -128,8 +163,11 @@ class ManifestIndex:
         end = self.mm.find(b"\n", pos)
         return pos, (len(self.mm) if end < 0 else end)
 
-    def get(self, key: str) -> Optional[tuple]:
-        """The entry of ``key``: (size, ETag[, offset...]), or None."""
+    def get(self, key: str) -> Optional[ListedObject]:
+        """The entry of ``key``, or None.
+
+        Raises:
+            ValueError, TypeError: its line is of another shape (a damaged manifest)."""
         lo, hi = self.start, len(self.mm)
         while lo < hi:
             mid = (lo + hi) // 2
@@ -137,9 +175,10 @@ class ManifestIndex:
             if a >= hi:  # no line starts in [mid, hi): look left
                 hi = mid
                 continue
-            k, size, etag, *offset = json.loads(self.mm[a:b])
+            values = json.loads(self.mm[a:b])
+            k = values[0]
             if k == key:
-                return (int(size), str(etag), *(int(o) for o in offset))
+                return listed_from_line(values)[1]
             if k < key:
                 lo = b + 1
             else:
@@ -148,8 +187,8 @@ class ManifestIndex:
 
 
 class StoreListing:
-    """The listing a store source holds: key relative to the prefix -> (size in bytes, ETag[,
-    where an archive member lies]: :func:`member_entry`) of every object under ``url`` and of the
+    """The listing a store source holds: key relative to the prefix -> :class:`ListedObject`
+    of every object under ``url`` and of the
     members of its archives (whose indexes go to ``shards``), kept as the manifest file at ``path``
     (None: none is kept) unless ``refresh`` asks for a new listing. The server loads a whole
     listing once; a worker, which holds none, looks single entries up in the manifest file
@@ -158,11 +197,11 @@ class StoreListing:
     def __init__(self, url: str, path: Optional[str], refresh: bool, shards: ShardIndex):
         self.url, self.path, self.refresh, self.shards = url, path, refresh, shards
         #: The listing this process holds, None until one is read or made.
-        self.objects: Optional[Dict[str, tuple]] = None
+        self.objects: Optional[Dict[str, ListedObject]] = None
         self._index: Optional[ManifestIndex] = None
         self._index_tried = False
 
-    def read(self) -> Optional[Dict[str, tuple]]:
+    def read(self) -> Optional[Dict[str, ListedObject]]:
         """The manifest's listing; None when there is none to read (no manifest kept, a new
         listing asked for, the file absent, damaged or of another URL)."""
         if self.path and not self.refresh:
@@ -172,20 +211,20 @@ class StoreListing:
             return objects
         return None
 
-    def keep(self, objects: Dict[str, tuple]) -> None:
+    def keep(self, objects: Dict[str, ListedObject]) -> None:
         """Hold ``objects`` (a listing or manifest) and give the archive members it has to ``shards``."""
         self.objects = objects
         for rel, v in objects.items():
-            if len(v) >= 3:
-                self.shards.add(rel, index_entry(v))
+            if v.member is not None:
+                self.shards.add(rel, v.member)
 
-    def listed(self, objects: Dict[str, tuple]) -> None:
+    def listed(self, objects: Dict[str, ListedObject]) -> None:
         """Hold ``objects``, a listing just made of the store, and write it as the manifest."""
         self.save(objects)
         self.refresh = False
         self.keep(objects)
 
-    def save(self, objects: Dict[str, tuple]) -> None:
+    def save(self, objects: Dict[str, ListedObject]) -> None:
         """Write ``objects`` as the manifest (a failure is logged: the store is listed again
         at the next start)."""
         if self.path:
@@ -198,12 +237,12 @@ class StoreListing:
 
     def save_members(self) -> None:
         """Write the archive members read from their indexes (no listing) as the manifest."""
-        objects = {f"{archive}/{m}": member_entry(e, "") for archive, ms in self.shards.members.items()
+        objects = {f"{archive}/{m}": ListedObject(e.size, "", e) for archive, ms in self.shards.members.items()
                    for m, e in ms.items()}
         self.save(objects)
         self.objects = objects
 
-    def entry(self, rel: str) -> Optional[tuple]:
+    def entry(self, rel: str) -> Optional[ListedObject]:
         """The listing's entry for ``rel``: from the listing this process holds (the server),
         else looked up in the manifest file (a worker: one entry, not the whole manifest)."""
         if self.objects is not None:
@@ -217,36 +256,27 @@ class StoreListing:
         ``objects`` listed here (the object, or its archive or archive's pieces), from their
         entries: None when one is not listed or has no version tag."""
         held = [self.entry(o) for o in objects]
-        if any(e is None or not e[1] for e in held):
+        if any(e is None or not e.tag for e in held):
             return None
         where = None
         if split_member(rel) is not None:
             entry = self.entry(rel)
-            if entry is None or len(entry) < 3:
+            if entry is None or entry.member is None:
                 return None
-            where = index_entry(entry)
-        return object_identity(rel, sum(int(e[0]) for e in held), "+".join(e[1] for e in held), where)
+            where = entry.member
+        return object_identity(rel, sum(e.size for e in held), "+".join(e.tag for e in held), where)
 
 
-def object_identity(rel: str, size: int, tag: str, where: Optional[Tuple[int, ...]]) -> str:
+def object_identity(rel: str, size: int, tag: str, where: Optional[MemberEntry]) -> str:
     """The identity (``VideoSource.identity``) of the object ``rel``, or of the archive member
-    ``rel`` at index entry ``where`` (``shards``), whose object or pieces hold ``size`` bytes at
-    the version tag ``tag`` (their ETags joined by ``+``)."""
+    ``rel`` at ``where`` in its archive, whose object or pieces hold ``size`` bytes at the
+    version tag ``tag`` (their ETags joined by ``+``): ``object SIZE TAG``, or ``tar SIZE TAG
+    member OFFSET SIZE`` (``zip ... member`` and the zip member's six numbers,
+    ``ZipMember.numbers``)."""
     member = split_member(rel)
     if member is None:
         return f"object {size} {tag}"
-    return f"{member[0][-3:].lower()} {size} {tag} member {' '.join(map(str, where))}"
-
-
-def member_entry(entry: Tuple[int, ...], etag: str) -> tuple:
-    """The manifest's entry of an archive member from its index ``entry`` (``shards``: offset,
-    size, then a zip member's fields) and its archive's ``etag``: (size, ETag, offset, ...)."""
-    return (entry[1], etag, entry[0], *entry[2:])
-
-
-def index_entry(v: tuple) -> Tuple[int, ...]:
-    """The index entry (``shards``) of the manifest's member entry ``v`` (:func:`member_entry`)."""
-    return (v[2], v[0], *v[3:])
+    return f"{member.archive[-3:].lower()} {size} {tag} member {' '.join(map(str, where.numbers()))}"
 
 
 def etag_of(info: dict) -> str:

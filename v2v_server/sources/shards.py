@@ -3,14 +3,16 @@
 ``part_partab``... as ``split`` cuts them), and brace patterns of archive names
 (``webvid-{000000..000999}.tar``, ``OpenVid_part{0..185}.zip``).
 
-A member's entry in an index is a tuple of ints: ``(offset, size)`` for a tar member (offset of
-its data, bytes of content); ``(offset, size, compressed size, CRC-32, method, flag bits)`` for a
-zip member (offset of its local header, then the central directory's fields)."""
+A member's entry in an index is a :class:`TarMember` (offset of its data, bytes of content) or a
+:class:`ZipMember` (offset of its local header, then the central directory's fields): a
+:data:`MemberEntry`. An archive member's id path (``shard.tar/member.mp4``) splits into an
+:class:`ArchivePath`."""
 from __future__ import annotations
 
+import dataclasses
 import io
 import re
-from typing import Dict, Iterable, List, NamedTuple, Optional, Sequence, Set, Tuple
+from typing import Dict, Iterable, List, NamedTuple, Optional, Sequence, Set, Tuple, Union
 
 #: The archive kinds whose members a corpus serves, by extension.
 ARCHIVES = (".tar", ".zip")
@@ -20,36 +22,81 @@ ARCHIVES = (".tar", ".zip")
 PIECE = re.compile(r"^(?P<stem>.+)_part(?P<suffix>[a-z]{2,})$")
 
 
-class MemberIndex(NamedTuple):
-    """An archive's member index: ``members``, name -> entry (see the module docstring) of each
-    member served; ``refused``, ``(name, why)`` for each entry that is not: a member's name, or
-    '' for a line about the archive that names its members."""
+@dataclasses.dataclass(frozen=True)
+class TarMember:
+    """Where a tar member lies: ``offset``, of its data in the archive, and ``size``, bytes of
+    content (both ints, bytes)."""
 
-    members: Dict[str, Tuple[int, ...]]
+    offset: int
+    size: int
+
+    def numbers(self) -> Tuple[int, ...]:
+        """``(offset, size)``: what an identity string (``manifest.object_identity``) writes."""
+        return (self.offset, self.size)
+
+
+@dataclasses.dataclass(frozen=True)
+class ZipMember:
+    """Where a zip member lies and how it is stored: ``offset`` of its local header in the
+    archive, ``size`` (bytes of content), then its central-directory fields: ``compressed``
+    (bytes), ``crc`` (CRC-32), ``method`` (``zipfile.ZIP_STORED``, ``ZIP_DEFLATED``...) and
+    ``flags`` (the general-purpose flag bits). All ints."""
+
+    offset: int
+    size: int
+    compressed: int
+    crc: int
+    method: int
+    flags: int
+
+    def numbers(self) -> Tuple[int, ...]:
+        """``(offset, size, compressed, crc, method, flags)``: what an identity string
+        (``manifest.object_identity``) writes."""
+        return (self.offset, self.size, self.compressed, self.crc, self.method, self.flags)
+
+
+#: A member's entry in an archive's index.
+MemberEntry = Union[TarMember, ZipMember]
+
+
+class ArchivePath(NamedTuple):
+    """An archive member's id path split: ``archive`` (``shard.tar``, ``dir/part.zip``) and
+    ``name``, the member's path inside it (``member.mp4``, ``clips/a.mp4``)."""
+
+    archive: str
+    name: str
+
+
+class MemberIndex(NamedTuple):
+    """An archive's member index: ``members``, name -> :data:`MemberEntry` of each member
+    served; ``refused``, ``(name, why)`` for each entry that is not: a member's name, or ''
+    for a line about the archive that names its members."""
+
+    members: Dict[str, MemberEntry]
     refused: List[Tuple[str, str]]
 
 
-def last_of_each_name(kind: str, entries: Sequence[Tuple[str, Tuple[int, ...]]]) -> MemberIndex:
+def last_of_each_name(kind: str, entries: Sequence[Tuple[str, MemberEntry]]) -> MemberIndex:
     """The members of ``entries`` (name, entry; archive order) with one entry per name: of
     several members of one name the last is served, as ``tar -x`` and ``unzip`` leave it
     on disk (each overwrites the one before), and each earlier one is refused, named with its
     offset (``kind``: what a message calls the archive)."""
-    members: Dict[str, Tuple[int, ...]] = {}
+    members: Dict[str, MemberEntry] = {}
     last: Dict[str, int] = {}
     for k, (name, entry) in enumerate(entries):
         members[name], last[name] = entry, k
     count = {name: 0 for name in last}
     for name, _ in entries:
         count[name] += 1
-    refused = [("", f"{kind}: {count[name]} members are named {name}; the last (at offset {members[name][0]}) "
-                    f"is served, as tar and unzip extract it, the one at offset {entry[0]} is not")
+    refused = [("", f"{kind}: {count[name]} members are named {name}; the last (at offset {members[name].offset}) "
+                    f"is served, as tar and unzip extract it, the one at offset {entry.offset} is not")
                for k, (name, entry) in enumerate(entries) if last[name] != k]
     return MemberIndex(members, refused)
 
 
 def tar_members(f) -> MemberIndex:
-    """The member index of the tar read from the binary file object ``f``: name -> (offset
-    of its data, size) in bytes of every regular file, in one pass over the headers (the data
+    """The member index of the tar read from the binary file object ``f``: name ->
+    :class:`TarMember` (offset of its data, size; bytes) of every regular file, in one pass over the headers (the data
     between them is skipped by seeking; an object-store file fetches the blocks that hold
     headers); of several members of one name the last (:func:`last_of_each_name`). Refused:
     a sparse member (GNU ``tar -S``), whose bytes are not stored in one piece, and a hard or
@@ -63,7 +110,8 @@ def tar_members(f) -> MemberIndex:
     with tarfile.open(fileobj=f, mode="r:") as tar:
         every = list(tar)
     files = [m for m in every if m.isfile()]
-    kept = last_of_each_name("tar shard", [(m.name, (m.offset_data, m.size)) for m in files if not m.issparse()])
+    kept = last_of_each_name("tar shard", [(m.name, TarMember(m.offset_data, m.size))
+                                           for m in files if not m.issparse()])
     sparse = [(m.name, f"tar shard: a sparse member (tar -S): its {m.size} bytes are not stored in one piece, "
                        f"not served") for m in files if m.issparse()]
     links = [(m.name, f"tar shard: a {'hard' if m.islnk() else 'symbolic'} link to {m.linkname}: not served (a "
@@ -77,9 +125,9 @@ LOCAL_HEADER = 30
 
 
 def zip_members(f) -> MemberIndex:
-    """The member index of the zip read from the binary file object ``f``: name -> ``(offset
-    of its local header, size, compressed size, CRC-32, method, flag bits)`` (bytes; the
-    method as ``zipfile.ZIP_STORED``...) of every file, from its central directory, read by
+    """The member index of the zip read from the binary file object ``f``: name ->
+    :class:`ZipMember` (offset of its local header, size, compressed size, CRC-32, method,
+    flag bits) of every file, from its central directory, read by
     ``zipfile`` (ZIP64 included; on a store, the blocks at the end of the object). Folders
     are left out. Refused (:attr:`MemberIndex.refused`), the rest served:
 
@@ -126,8 +174,8 @@ def zip_members(f) -> MemberIndex:
             refused.append((infos[n].filename, f"zip part: its bytes {start}-{stop} run into the central directory "
                                                f"(at {directory}): corrupt or hostile, not served"))
             bad.add(n)
-    kept = last_of_each_name("zip part", [(i.filename, (i.header_offset, i.file_size, i.compress_size, i.CRC,
-                                                        i.compress_type, i.flag_bits))
+    kept = last_of_each_name("zip part", [(i.filename, ZipMember(i.header_offset, i.file_size, i.compress_size, i.CRC,
+                                                                 i.compress_type, i.flag_bits))
                                           for n, i in enumerate(infos) if n not in bad])
     return MemberIndex(kept.members, refused + kept.refused)
 
@@ -192,10 +240,9 @@ class ZipMemberError(ValueError):
     """A zip member that cannot be read (the message names the member and why)."""
 
 
-def open_member(f, name: str, entry: Tuple[int, ...]):
-    """The member ``name`` of the archive read from ``f``, given its index ``entry`` (see the
-    module docstring), as a readable, seekable binary file: a tar member or a stored zip member
-    is a :class:`MemberFile` over its bytes in place; a compressed zip member (deflate, bzip2,
+def open_member(f, name: str, entry: MemberEntry):
+    """The member ``name`` of the archive read from ``f``, given its index ``entry``, as a
+    readable, seekable binary file: a tar member or a stored zip member is a :class:`MemberFile` over its bytes in place; a compressed zip member (deflate, bzip2,
     LZMA) is ``zipfile``'s streaming reader over its compressed bytes, which checks the CRC-32
     at the end (a seek backwards starts decompressing again from the member's start).
 
@@ -205,12 +252,12 @@ def open_member(f, name: str, entry: Tuple[int, ...]):
             method ``zipfile`` does not read.
         OSError: the archive cannot be read.
     """
-    if len(entry) == 2:
-        return MemberFile(f, *entry)
+    if isinstance(entry, TarMember):
+        return MemberFile(f, entry.offset, entry.size)
     import struct
     import zipfile
 
-    offset, size, csize, crc, method, flags = entry
+    offset, size, csize, crc, method, flags = entry.numbers()
     f.seek(offset)
     head = f.read(zipfile.sizeFileHeader)
     fields = struct.unpack(zipfile.structFileHeader, head) if len(head) == zipfile.sizeFileHeader else None
@@ -393,32 +440,33 @@ def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
     return videos[:cut] or ".", expand_braces(videos[cut:])
 
 
-def split_member(rel: str) -> Optional[Tuple[str, str]]:
-    """``("shard.tar", "member.mp4")`` or ``("part.zip", "member.mp4")`` for an archive
-    member's id path (the first ``.tar/`` or ``.zip/`` ends the archive's name), else None."""
+def split_member(rel: str) -> Optional[ArchivePath]:
+    """``ArchivePath("shard.tar", "member.mp4")`` or ``ArchivePath("part.zip", "member.mp4")``
+    for an archive member's id path (the first ``.tar/`` or ``.zip/`` ends the archive's
+    name), else None."""
     low = rel.lower()
     hits = [i for i in (low.find(".tar/"), low.find(".zip/")) if i >= 0]
     if not hits:
         return None
     i = min(hits)
-    return rel[:i + 4], rel[i + 5:]
+    return ArchivePath(rel[:i + 4], rel[i + 5:])
 
 
 class ShardIndex:
-    """The member indexes of one source's archives: archive -> member name -> entry (see the
-    module docstring), each read from the archive (:func:`archive_members`) once per process
+    """The member indexes of one source's archives: archive -> member name -> :data:`MemberEntry`,
+    each read from the archive (:func:`archive_members`) once per process
     and version of the archive, or given by a listing that holds them (a store's manifest);
     and the pieces of its split zip parts (part -> pieces in order, one name for a whole one)."""
 
     def __init__(self):
-        self.members: Dict[str, Dict[str, Tuple[int, ...]]] = {}
+        self.members: Dict[str, Dict[str, MemberEntry]] = {}
         #: Archive -> its entries not served, ``(member name or '', why)`` (:class:`MemberIndex`).
         self.refused: Dict[str, List[Tuple[str, str]]] = {}
         self._versions: Dict[str, Optional[str]] = {}
         #: Zip part -> its pieces in order (``[part]`` itself when whole), as found.
         self.pieces: Dict[str, List[str]] = {}
 
-    def of(self, archive: str, version: Optional[str], open_archive) -> Dict[str, Tuple[int, ...]]:
+    def of(self, archive: str, version: Optional[str], open_archive) -> Dict[str, MemberEntry]:
         """The index of ``archive``, read (``open_archive(archive)``: a context manager giving it
         as a binary file) when it is not held or when ``version``, what stands for the
         archive's content, differs from the one it was read at; None: always read it.
@@ -432,7 +480,7 @@ class ShardIndex:
             self._versions[archive] = version
         return self.members[archive]
 
-    def add(self, rel: str, entry: Tuple[int, ...]) -> None:
+    def add(self, rel: str, entry: MemberEntry) -> None:
         """Hold the member ``rel`` (``shard.tar/member.mp4``) found by a listing, its ``entry``."""
         archive, name = split_member(rel)
-        self.members.setdefault(archive, {})[name] = tuple(entry)
+        self.members.setdefault(archive, {})[name] = entry

@@ -40,6 +40,7 @@ from typing import List, Optional, Sequence, Tuple
 
 from v2v_server.sources.archives import Archives, pair_members
 from v2v_server.sources.names import VideoError
+from v2v_server.sources.manifest import ListedObject
 from v2v_server.disk_cache import cache_folder, check_cache_folders
 from v2v_server.sources.segments import base_path, printable_name, range_problem, split_segment
 from v2v_server.sources.shards import ARCHIVES, split_member
@@ -234,7 +235,7 @@ class VideoSource:
         (``StoreSource._check_unchanged``), so its index stands."""
         return ""
 
-    def _open_raw(self, rel: str, expected: Optional[tuple] = None):
+    def _open_raw(self, rel: str, expected: Optional[ListedObject] = None):
         """A context manager giving the file or object at ``rel`` as a binary file (an object
         checked against ``expected``, its listing entry)."""
         raise NotImplementedError

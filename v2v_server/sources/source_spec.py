@@ -32,8 +32,8 @@ def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dic
     if names is None:
         videos, names = split_pattern(str(videos))
     if is_url(str(videos)):
-        return StoreSource(str(videos), storage_options, video_list, manifest, refresh_manifest, settings, names,
-                           cache_dir)
+        return StoreSource(str(videos), storage_options=storage_options, video_list=video_list, manifest=manifest,
+                           refresh_manifest=refresh_manifest, settings=settings, names=names, cache_dir=cache_dir)
     return LocalSource(videos, video_list, names, cache_dir)
 
 

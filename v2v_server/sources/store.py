@@ -8,13 +8,13 @@ import itertools
 import logging
 import time
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional
 
 from v2v_server.checks import check_float, check_int
 from v2v_server.settings import setting
 from v2v_server.sources.archives import listing_problems
 from v2v_server.sources.names import VideoError, name_problem, printable
-from v2v_server.sources.manifest import StoreListing, etag_of, member_entry, object_identity
+from v2v_server.sources.manifest import ListedObject, StoreListing, etag_of, object_identity
 from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
 from v2v_server.sources.source import VideoSource
@@ -81,7 +81,7 @@ def store_root(url: str) -> str:
 class StoreSource(VideoSource):
     """A corpus under an object-store prefix, read through fsspec.
 
-    Args:
+    Args (all but ``url`` by keyword):
         url: ``s3://bucket/prefix/`` (a trailing ``/`` is implied) or another fsspec URL.
         storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the
             defaults below; credentials otherwise come from the store's standard configuration
@@ -93,7 +93,7 @@ class StoreSource(VideoSource):
         settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).
     """
 
-    def __init__(self, url: str, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
+    def __init__(self, url: str, *, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False,
                  settings: StoreSettings = StoreSettings(), names: Optional[List[str]] = None,
                  cache_dir: Optional[str] = None):
@@ -151,10 +151,10 @@ class StoreSource(VideoSource):
             raise self._fail("cannot reach the store", e) from None
 
     # ------------------------------------------------------------------ listing
-    def objects(self) -> Dict[str, Tuple[int, str]]:
-        """Key relative to the prefix -> (size, ETag) of every object under the prefix: the
-        manifest when there is one (and ``refresh_manifest`` is off), else a paginated listing
-        of the store, then written as the manifest.
+    def objects(self) -> Dict[str, ListedObject]:
+        """Key relative to the prefix -> its entry (size, ETag; an archive member's: where it lies)
+        of every object and archive member under the prefix: the manifest when there is one (and
+        ``refresh_manifest`` is off), else a paginated listing of the store, then written as the manifest.
 
         Raises:
             StoreError: the listing fails (naming the URL).
@@ -180,7 +180,7 @@ class StoreSource(VideoSource):
         for key, info in found.items():
             if info.get("type", "file") != "file" or not key.startswith(self.prefix):
                 continue
-            objects[key[len(self.prefix):]] = (int(info.get("size") or 0), etag_of(info))
+            objects[key[len(self.prefix):]] = ListedObject(int(info.get("size") or 0), etag_of(info))
         parts, _ = gather_pieces(objects, set(objects))  # split zip parts: read as their pieces joined
         self.archives.index.pieces.update(parts)
         for rel in [k for k in objects if k.lower().endswith(ARCHIVES)] + list(parts):  # archives: their members, once
@@ -190,17 +190,17 @@ class StoreSource(VideoSource):
         return objects
 
     def _add_members(self, objects: dict, archive: str) -> None:
-        """Add the members of ``archive`` to ``objects`` as ``archive/member`` -> its manifest entry
-        (``manifest.member_entry``; a split part's ETag: its pieces', joined by ``+``); an
+        """Add the members of ``archive`` to ``objects`` as ``archive/member`` -> its entry (its
+        size, the archive's ETag (a split part's: its pieces', joined by ``+``), where it lies); an
         unreadable archive gets no member (it is reported when listed)."""
         try:
             members = self.archives.members(archive)
         except Exception as e:  # noqa: BLE001 - one bad archive never stops the listing
             self._unreadable[archive] = f"{type(e).__name__}: {e}"
             return
-        etag = "+".join(objects.get(p, (0, ""))[1] for p in self.archives.pieces(archive))
+        etag = "+".join(objects[p].tag if p in objects else "" for p in self.archives.pieces(archive))
         for name, entry in members.items():
-            objects[f"{archive}/{name}"] = member_entry(entry, etag)
+            objects[f"{archive}/{name}"] = ListedObject(entry.size, etag, entry)
 
     def _exists(self, rel: str) -> bool:
         if self.listing.entry(rel) is not None:
@@ -252,7 +252,7 @@ class StoreSource(VideoSource):
             elif rel.endswith("/") or not rel or rel.lower().endswith(ARCHIVES) or piece_archive(rel):
                 continue  # an archive stands for its members, listed after it
             elif split_member(rel) is not None and not rel.lower().endswith(tuple(extensions)):
-                if split_member(rel)[0].lower().endswith(".zip"):  # a zip part is a folder in a file
+                if split_member(rel).archive.lower().endswith(".zip"):  # a zip part is a folder in a file
                     rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
                 # a tar shard's metadata member (.json, .txt): not a video, not worth a line
             elif rel.lower().endswith(tuple(extensions)):
@@ -276,7 +276,7 @@ class StoreSource(VideoSource):
         rel = base_path(rel)
         member = split_member(rel)
         infos = []
-        for obj in self.archives.pieces(member[0]) if member is not None else [rel]:  # a split zip part: each piece
+        for obj in self.archives.pieces(member.archive) if member is not None else [rel]:  # a split zip part: each piece
             with self._request():
                 infos.append(self.fs.info(self._path(obj)))  # one HEAD request: no content read
             self.stats.reads += 1
@@ -293,7 +293,7 @@ class StoreSource(VideoSource):
         for an object or member it does not hold, or one without a version tag."""
         rel = base_path(rel)
         member = split_member(rel)
-        objs = (self.archives.index.pieces.get(member[0]) or [member[0]]) if member is not None else [rel]
+        objs = (self.archives.index.pieces.get(member.archive) or [member.archive]) if member is not None else [rel]
         return self.listing.identity(rel, objs)
 
     @contextlib.contextmanager
@@ -311,16 +311,16 @@ class StoreSource(VideoSource):
         finally:
             self.stats.read_s += time.perf_counter() - t0
 
-    def _check_unchanged(self, expected: Optional[tuple], now: str) -> None:
+    def _check_unchanged(self, expected: Optional[ListedObject], now: str) -> None:
         """Raises VideoError: the object's ETag ``now`` differs from the listing's (``expected``:
         its manifest entry)."""
-        if expected is not None and expected[1] and now and now != expected[1]:
+        if expected is not None and expected.tag and now and now != expected.tag:
             self.stats.skipped += 1
-            raise VideoError(f"changed since it was listed (ETag {expected[1]} -> {now}); skipped until "
+            raise VideoError(f"changed since it was listed (ETag {expected.tag} -> {now}); skipped until "
                              f"--refresh-manifest")
 
     @contextlib.contextmanager
-    def _open_raw(self, rel: str, expected: Optional[tuple] = None):
+    def _open_raw(self, rel: str, expected: Optional[ListedObject] = None):
         """The object at ``rel`` as a file, checked against the listing's ETag (``expected``:
         its manifest entry, looked up when not given)."""
         block = max(1, int(self.settings.read_block_mb * (1 << 20)))
