@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 
 from v2v_server.frames.corpus_index import Verdict, check_record, layout_key
 from v2v_server.sources.names import VideoError
-from v2v_server.frames.decode import decode_codes, frame_intervals, open_video
+from v2v_server.frames.decode import DecodedFrame, decode_frames, frame_intervals, open_video
 from v2v_server.frames.frame_pass import DecodeSettings, FramePass, PassFrame
 from v2v_server.sources.local import LocalSource
 from v2v_server.sources.segments import split_segment
@@ -42,34 +42,35 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     if known is not None:
         return known
     variable_rate = ""  # what only this pass measures (frame timing), beside the window pass's verdict
-    shown = {}  # the displayed (scaled) height of the frame at hand
-
-    def rows(h: int) -> int:  # the rows the sample pass scores and cuts
-        shown["h"] = h
-        return decode.kept_rows(h)
-
-    found = WindowPass(windows, check_record(windows, decode), lambda y: (shown.get("h", y.shape[0]), y.shape[1]))
+    found = WindowPass(windows, check_record(windows, decode))
     times: list = []  # presentation times, for a variable frame rate
     error = None
     try:
         with source.open(rel) as path:
             container, stream, info = open_video(path)
             detector = ShotDetector()
-            frames = (PassFrame(y, expand, detector.score(y, expand))
-                      for y, expand in decode_codes(container, stream, rows, decode.frame_height, times,
-                                                    split_segment(rel)[1]))
-            for _ in found.over(FramePass(info, 0, frames, False)):
+            # the rows the sample pass scores and cuts; a size change is named by the displayed frame's
+            decoded = decode_frames(container, stream, decode.kept_rows, decode.frame_height, split_segment(rel)[1])
+            for _ in found.over(FramePass(info, 0, _timed(decoded, detector, times), False)):
                 pass
         gaps = frame_intervals(times)
         if gaps and gaps[2] - gaps[0] > VFR_SPREAD * gaps[1]:
             variable_rate = (f"variable frame rate: frame intervals {gaps[0] * 1e3:.3g}-{gaps[2] * 1e3:.3g} "
-                                    f"ms, taken as if evenly spaced at the average {info.fps:.3g} fps")
+                             f"ms, taken as if evenly spaced at the average {info.fps:.3g} fps")
     except Exception as e:  # report every failure as a verdict; one bad file never stops the check
         error = e
     out = dataclasses.replace(pass_verdict(windows, rel, found.record(error)), variable_rate=variable_rate)
     if index is not None and error is None:
         index.record(source.where(rel), identity, layout_key(windows, decode), out)
     return out
+
+
+def _timed(decoded: Iterator[DecodedFrame], detector: ShotDetector, times: list) -> Iterator[PassFrame]:
+    """The pass frames of ``decoded`` scored by ``detector``, each named by its displayed size;
+    each frame's presentation time is appended to ``times``."""
+    for d in decoded:
+        times.append(d.time)
+        yield PassFrame(d.codes, d.expand, detector.score(d.codes, d.expand), (d.shown_height, d.codes.shape[1]))
 
 
 def _identity(source: VideoSource, rel: str):

@@ -12,9 +12,10 @@ Frames carrying a display matrix (phone videos) are rotated as a player would sh
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, Iterator, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -144,14 +145,12 @@ def display_rotation(frame) -> int:
     return int(round(float(deg or 0) / 90.0)) % 4
 
 
-def _codes(frame, conv, rows: "Rows" = None) -> np.ndarray:
-    """Plane-0 codes of ``frame`` (a view where possible), display-oriented, top ``rows`` kept."""
+def _codes(frame, conv) -> np.ndarray:
+    """Plane-0 codes of ``frame`` (a view where possible), display-oriented."""
     y = conv[0](frame)
     k = display_rotation(frame)
     if k:
         y = np.rot90(y, k)
-    if rows is not None:
-        y = y[: (rows(y.shape[0]) if callable(rows) else rows)]
     return y
 
 
@@ -317,24 +316,50 @@ def scale_frame(luma: np.ndarray, frame_height: int, rows: Rows = None,
     return out[:kept]
 
 
-def decode_codes(container, stream, rows: Rows = None, height: int = 0, times: Optional[List] = None,
+class DecodedFrame(NamedTuple):
+    """One frame as :func:`decode_frames` yields it.
+
+    Attributes:
+        codes: the display-oriented, row-cut plane-0 array as stored (a view, possibly
+            strided), or with a frame height the full-range scaled rows (:func:`decode_codes`).
+        expand: maps ``codes`` or any crop or flip of it to full-range luma.
+        shown_height: rows of the displayed frame (rotated, and scaled to the frame height
+            when one is set) before the kept rows are cut from it, pixels.
+        time: presentation time in seconds from the stream's start, None when the frame has none.
+    """
+
+    codes: np.ndarray
+    expand: Callable[[np.ndarray], np.ndarray]
+    shown_height: int
+    time: Optional[float]
+
+
+def decode_codes(container, stream, rows: Rows = None, height: int = 0,
                  segment: Optional[Tuple[float, float]] = None) -> Iterator[Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]]:
-    """Like :func:`decode_luma`, but yield ``(codes, expand)`` per frame: ``codes`` is the
-    display-oriented, row-cut plane-0 array as stored (a view, possibly strided) and
-    ``expand(x)`` maps ``codes`` or any crop or flip of it to full-range luma. Expansion is
-    per pixel, so expanding a crop equals cropping the expanded frame, at a fraction of the
-    cost; resampling must expand first. ``segment``: a time range ``(start, end)`` in seconds from
-    the stream's start (``sources.segments``): the container seeks to the key frame before
-    ``start`` and only frames whose presentation time lies in ``[start, end)`` are yielded.
-    Closes the container when done.
+    """``(codes, expand)`` of each frame :func:`decode_frames` yields (its arguments and errors):
+    what a pass cuts windows from. Closes the container when done."""
+    with contextlib.closing(decode_frames(container, stream, rows, height, segment)) as frames:
+        for f in frames:
+            yield f.codes, f.expand
+
+
+def decode_frames(container, stream, rows: Rows = None, height: int = 0,
+                  segment: Optional[Tuple[float, float]] = None) -> Iterator[DecodedFrame]:
+    """Like :func:`decode_luma`, but yield a :class:`DecodedFrame` per frame: its ``codes``
+    (display-oriented, row-cut plane-0 array as stored) and ``expand``, which maps ``codes`` or
+    any crop or flip of it to full-range luma. Expansion is per pixel, so expanding a crop
+    equals cropping the expanded frame, at a fraction of the cost; resampling must expand first.
+    ``segment``: a time range ``(start, end)`` in seconds from the stream's start
+    (``sources.segments``): the container seeks to the key frame before ``start`` and only
+    frames whose presentation time lies in ``[start, end)`` are yielded. Closes the container
+    when done.
 
     With ``height`` > 0 every displayed frame is expanded to full range and scaled to
     ``height`` rows, and ``rows`` cut from the scaled frame (a function ``rows`` gets the
     scaled height): :func:`scale_frame`, which expands and scales only the source rows that
     feed the kept rows. ``codes`` is then that full-range frame and ``expand`` is
-    :func:`full_range`. ``times``, when given, receives each yielded frame's
-    presentation time in seconds (None when the frame has none): frames come in presentation
-    order, and their times are facts only (windows count frames, whatever their spacing).
+    :func:`full_range`. Frames come in presentation order; their times are facts only
+    (windows count frames, whatever their spacing).
 
     Raises:
         VideoError: when decoding fails part-way (the frames yielded before were good), or a
@@ -355,12 +380,13 @@ def decode_codes(container, stream, rows: Rows = None, height: int = 0, times: O
             if conv is None:
                 conv = convs[key] = _converter(frame)
             kept += 1
-            if times is not None:
-                times.append(frame.time)
+            shown = _codes(frame, conv)
             if not height:
-                yield _codes(frame, conv, rows), conv[1]
+                cut = shown[: (rows(shown.shape[0]) if callable(rows) else rows)] if rows is not None else shown
+                yield DecodedFrame(cut, conv[1], shown.shape[0], frame.time)
                 continue
-            yield scale_frame(_codes(frame, conv), height, rows, conv[1]), full_range
+            yield DecodedFrame(scale_frame(shown, height, rows, conv[1]), full_range,
+                               scaled_size(shown.shape[0], shown.shape[1], height)[0], frame.time)
         if segment is not None and kept == 0:
             length = float(stream.duration * stream.time_base) if stream.duration and stream.time_base else \
                 (container.duration or 0) / 1e6

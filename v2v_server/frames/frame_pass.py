@@ -84,12 +84,15 @@ def entry_settings(decode: DecodeSettings, windows: WindowSettings) -> dict:
 
 class PassFrame(NamedTuple):
     """One frame of a pass: ``codes`` and ``expand`` as ``decode.decode_codes`` yields them
-    (``codes`` None for a frame counted from its packet, not decoded), and ``cut``: it starts a
-    new shot (False without detection)."""
+    (``codes`` None for a frame counted from its packet, not decoded), ``cut``: it starts a
+    new shot (False without detection), and ``size``: the ``(height, width)`` in pixels a
+    failure names when the frame's size changes (``--check``'s: the displayed height,
+    ``decode.DecodedFrame.shown_height``; None: the codes' own shape)."""
 
     codes: Optional[np.ndarray]
     expand: Optional[Callable[[np.ndarray], np.ndarray]]
     cut: bool = False
+    size: Optional[Tuple[int, int]] = None
 
 
 class FramePass:

@@ -224,13 +224,13 @@ class WindowPass:
         windows: the videos stage's settings (span, window count, shot cuts).
         reads: what the pass reads (``pass_record.PassRecord``, built from ``windows`` and the
             decode settings): the verdict names its key (``VideoPass.layout``).
-        size_of: a frame's size as compared and named in a failure, ``(height, width)`` pixels,
-            from its codes (default :func:`frame_shape`; ``--check`` names the displayed height).
+
+    A frame's size, as compared and named in a failure, is its ``PassFrame.size`` when the
+    decoder gave one (``--check``: the displayed height), else its codes' (:func:`frame_shape`).
     """
 
-    def __init__(self, windows: WindowSettings, reads: PassRecord,
-                 size_of: Callable[[np.ndarray], Tuple[int, int]] = frame_shape):
-        self.settings, self.size_of, self.reads = windows, size_of, reads
+    def __init__(self, windows: WindowSettings, reads: PassRecord):
+        self.settings, self.reads = windows, reads
         self.layout = windows.layout()
         self.frame_pass: Optional[FramePass] = None  # the pass :meth:`over` reads
         self.info = None
@@ -273,7 +273,7 @@ class WindowPass:
             # the window this frame belongs to, other than one it starts: the one it ends, or the one in progress
             k = ev.ends if ev.ends is not None else layout.completed if ev.starts is None and layout.current is not None \
                 else None
-            size = None if f.codes is None else self.size_of(f.codes)
+            size = None if f.codes is None else f.size or frame_shape(f.codes)
             fails = None
             if k is not None and size != self.shape and k not in self.failed:
                 fails = k
