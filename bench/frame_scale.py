@@ -133,6 +133,7 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     fc = HostCaches.open(str(cache), frame_cache_gb=64.0).frame_cache
     with video_frames(cfg, LocalSource(path.parent), path.name, fc) as fp:
         n = sum(1 for _ in fp.frames)
+        fp.commit()  # the pass is whole: store its entry, as a worker's pass does
     sizes = [size for _, size, _ in fc.disk.entries()]
     assert len(sizes) == 1, sizes
     return sizes[0] / n
