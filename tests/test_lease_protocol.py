@@ -679,3 +679,46 @@ def test_a_client_that_reads_on_after_drained_is_still_sent_what_comes_back():
     sent a batch given back after it was told ``drained``."""
     core, b, after = _two_workers_then_a_new_iteration(ends_on_drained=False)
     assert after[b"x0.2"] == ["drained", b], after
+
+
+def test_a_client_that_closed_after_its_last_messages_still_gives_back_what_it_released():
+    """A trainer breaks out of its loop: its ``hold``, the batches it gives back and ``bye`` go
+    out and its connection closes. A server that reads them after the close cannot send the
+    answer to the hold (a real ROUTER with ``ROUTER_MANDATORY`` and no such peer), and must still
+    read the release that follows as the client's: the batch goes back to the queue, not to a
+    consumer that never yielded it. The client is forgotten once its messages are read."""
+    import zmq
+
+    from v2v_server.delivery.ledger import BatchRecord
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.ops.metrics import ServerMetrics
+    from v2v_server.service.client_side import ClientSide
+    from v2v_wire.protocol import pack
+
+    cfg = ServeConfig()
+    core = DeliveryCore(["v.mp4"], DeliveryPolicy(), lambda samples: samples)
+    clients = ClientSide(cfg, core, ServerMetrics(), lambda: {})
+    ctx = zmq.Context()
+    frontend = ctx.socket(zmq.ROUTER)
+    frontend.setsockopt(zmq.ROUTER_MANDATORY, 1)
+    frontend.bind("inproc://v2v-closed-client")
+    try:
+        clients.attach(frontend, None)
+        ident = b"gone"
+        hello = Hello(("voxels",), 2, consumer="A", resume=Resume(-1, {}))
+        core.hello(ident, hello, 0.0, lambda: {})  # its welcome was sent while it was connected
+        core.ledger.add_batch(BatchRecord(7, 0, [SampleKey("v.mp4", 0)], None, outputs=frozenset({"voxels"})))
+        assert [(to, b.batch_id) for to, b in core.ledger.sends(0.0)[0]] == [(ident, 7)]
+
+        def said(msg) -> None:  # what the closed client sent, read now
+            clients.on_message([zmq.Frame(ident), zmq.Frame(pack(msg.to_wire()))])
+
+        said(Hold((7,)))  # granted; the answer cannot be sent
+        said(Released((7,)))
+        assert list(core.ledger.ready) == [7]  # back to the queue for another trainer
+        said(Bye())
+        clients.forget_unreachable()
+        assert ident not in core.ledger.clients and not clients.unreachable
+    finally:
+        frontend.close(0)
+        ctx.term()

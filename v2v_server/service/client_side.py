@@ -24,6 +24,9 @@ from v2v_wire.stream_messages import Batch, Revoke, ServerError, StreamMessage
 
 log = logging.getLogger("v2v.server")
 
+#: Client messages handled per loop turn (then the workers get their turn).
+CLIENT_BURST = 100
+
 
 class ClientSide:
     """The clients as the server loop sees them.
@@ -46,6 +49,9 @@ class ClientSide:
         self.bad = BadPeers()
         self.shm_clients: set = set()  # idents whose hello asked for shared-memory batches
         self.compression: Dict[bytes, str] = {}  # ident -> the compression its hello asked for
+        #: Clients a message could not reach (their connection closed): forgotten by
+        #: :meth:`forget_unreachable` once the messages they sent before closing are read.
+        self.unreachable: set = set()
 
     def attach(self, frontend: zmq.Socket, assembler: BatchAssembler) -> None:
         self.frontend, self.assembler = frontend, assembler
@@ -79,7 +85,7 @@ class ClientSide:
                 b.payload.send(self.frontend, [ident, pack(header.to_wire())], frames)
             except zmq.ZMQError as e:  # peer vanished (ROUTER_MANDATORY)
                 log.warning("client %s unreachable (%s); dropping it", ident.hex(), e)
-                self.core.forget(ident)
+                self.unreachable.add(ident)
                 continue
             self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)
         for ident, msg in msgs:
@@ -89,12 +95,38 @@ class ClientSide:
             self.send(ident, msg)
 
     def send(self, ident: bytes, msg: StreamMessage) -> None:
-        """One control message (``v2v_wire.stream_messages``) to one client (forgotten if it
-        cannot be reached)."""
+        """One control message (``v2v_wire.stream_messages``) to one client (forgotten once its
+        last messages are read, if it cannot be reached: :meth:`forget_unreachable`)."""
         try:
             self.frontend.send_multipart([ident, pack(msg.to_wire())], zmq.NOBLOCK)
         except zmq.ZMQError:
-            self.core.forget(ident)
+            self.unreachable.add(ident)
+
+    def read(self, ready: bool) -> None:
+        """Read and answer up to :data:`CLIENT_BURST` client messages when the frontend is
+        ``ready``; once nothing is left unread, :meth:`forget_unreachable`."""
+        drained = not ready
+        for _ in range(CLIENT_BURST if ready else 0):
+            try:
+                frames = self.frontend.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                drained = True
+                break
+            self.on_message(frames)
+        if drained:  # what an unreachable client sent before it closed has been read
+            self.forget_unreachable()
+
+    def forget_unreachable(self) -> None:
+        """Forget the clients a message could not reach (their batches go to others; what was
+        granted stays their consumer's). Called once the frontend has nothing left to read: a
+        client that closed its connection right after its last messages (a ``hold``, the
+        batches it gives back, ``bye``) is unreachable before those are read, and forgetting it
+        at the failed answer to its ``hold`` would drop the release that follows, leaving the
+        batches it gave back delivered to nobody."""
+        for ident in self.unreachable:
+            if ident in self.core.ledger.clients:
+                self.core.forget(ident)
+        self.unreachable.clear()
 
     def broadcast(self, msg: StreamMessage) -> None:
         """One control message to every connected client."""

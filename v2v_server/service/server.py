@@ -50,8 +50,6 @@ from v2v_wire.stream_messages import End, Heartbeat, ServerError, Shutdown
 
 log = logging.getLogger("v2v.server")
 
-#: Client messages handled per loop turn (then the workers get their turn).
-CLIENT_BURST = 100
 #: Seconds between scans of the frame cache's folder for its bytes and entries (gauges).
 FRAME_CACHE_SCAN_S = 5.0
 
@@ -210,13 +208,7 @@ class V2VServer:
                 if len(self.ledger.ready) < self.cfg.prefetch_batches:
                     poller.register(self.backend, zmq.POLLIN)
                 events = dict(poller.poll(100))
-                if self.frontend in events:
-                    for _ in range(CLIENT_BURST):
-                        try:
-                            frames = self.frontend.recv_multipart(zmq.NOBLOCK, copy=False)
-                        except zmq.Again:
-                            break
-                        self.clients.on_message(frames)
+                self.clients.read(self.frontend in events)
                 if self.backend in events:
                     for _ in range(16):
                         if len(self.ledger.ready) >= self.cfg.prefetch_batches:
