@@ -132,3 +132,24 @@ def test_the_written_recipe_serves(tmp_path):
     assert main(["--recording", str(DAVIS346), "--evaluations", "12", "--out", str(out)]) == 0
     assert serve_main(["--videos", str(SAMPLE_VIDEOS), "--config", str(out), "--check"]) == 0
     assert json.dumps(load_config(str(out)).recipe.recipe_dict()["ranges"])
+
+
+def test_a_file_that_cannot_be_read_is_skipped_and_the_others_give_windows(tmp_path, short_recipe, caplog):
+    """A corpus holding a file that is no video: it is skipped with one line naming it, as
+    v2v-serve skips it, and the windows come from the other clips."""
+    import logging
+    import shutil
+
+    from trainer.calibrate_fit import corpus_windows
+    from v2v_server.ops.config import load_config
+
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    (corpus / "a_broken.mp4").write_bytes(b"not a video")
+    shutil.copy(SAMPLE_VIDEOS / "bikes.mp4", corpus / "bikes.mp4")
+    cfg = load_config(short_recipe, {"cache_dir": str(tmp_path / "cache")})
+    with caplog.at_level(logging.WARNING, logger="v2v.calibrate"):
+        win = corpus_windows(cfg, str(corpus), max_windows=2, seed=0, epochs=1)
+    assert len(win.seqs) == 2
+    skips = [r.getMessage() for r in caplog.records if r.name == "v2v.calibrate"]
+    assert len(skips) == 1 and "a_broken.mp4" in skips[0] and "cannot open" in skips[0], skips

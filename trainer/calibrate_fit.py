@@ -29,12 +29,15 @@ threshold range's centre stays <= 8 so its upper end (+25 %) stays inside the te
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Tuple
 
 import numpy as np
 
 from trainer.grid_stats import cell_stats, recording_cells, summarise, voxel_cell_stats
+
+log = logging.getLogger("v2v.calibrate")
 
 #: (lo, hi) of every fitted value (log-intensity units, Hz): inside the kernel's tested ranges.
 BOUNDS = {"threshold": (0.02, 8.0), "noise_std": (0.0, 0.5), "threshold_sigma_rel": (0.0, 0.25),
@@ -197,6 +200,7 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
 
     from v2v_server.ops.startup import start_source
     from v2v_server.samples.make import video_samples
+    from v2v_server.sources.names import VideoError
     from v2v_server.sources.store_io import StoreError
 
     r = cfg.recipe
@@ -210,21 +214,30 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
     source, fc, names = start.source, start.caches.frame_cache, start.videos
     out = CorpusWindows([], [], [])
     rng = np.random.default_rng(seed)
+    skipped = set()
     for rel, epoch in ((rel, e) for rel in names for e in range(epochs)):
-        for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",), frame_cache=fc):
-            shape = arrays["frames"].shape[1:]
-            out.seqs.append(arrays["frames"])
-            out.fps.append(float(meta["video_fps"]))
-            out.draws.append({"pot": rng.random(shape), "hot_u": rng.random(shape), "hot_n": rng.standard_normal(shape),
-                              "noise_seed": int(rng.integers(2**62)), "pixel_seed": int(rng.integers(2**62))})
-            progress(1)
-            if len(out.seqs) >= max_windows:
-                break
+        if rel in skipped:
+            continue
+        try:
+            for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",), frame_cache=fc):
+                shape = arrays["frames"].shape[1:]
+                out.seqs.append(arrays["frames"])
+                out.fps.append(float(meta["video_fps"]))
+                out.draws.append({"pot": rng.random(shape), "hot_u": rng.random(shape),
+                                  "hot_n": rng.standard_normal(shape), "noise_seed": int(rng.integers(2**62)),
+                                  "pixel_seed": int(rng.integers(2**62))})
+                progress(1)
+                if len(out.seqs) >= max_windows:
+                    break
+        except VideoError as e:  # one bad file is skipped, as v2v-serve skips it; its windows before stay
+            skipped.add(rel)
+            log.warning("skipped %s: %s", source.where(rel), e)
         if len(out.seqs) >= max_windows:
             break
     if not out.seqs:
         raise CalibrationError(f"corpus {videos}: no window to simulate (no usable video for the recipe's "
-                               f"{r.frames_per_sample}-frame windows)")
+                               f"{r.frames_per_sample}-frame windows"
+                               + (f"; {len(skipped)} file(s) could not be read" if skipped else "") + ")")
     # the variates that pick each window's parameters inside the ranges: a Latin hypercube over the
     # windows, so a few windows cover each range evenly (as many served samples would)
     from scipy.stats import qmc
