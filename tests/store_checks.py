@@ -52,3 +52,27 @@ def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[
     assert samples(cfg, fresh, ["bikes.mp4"], 2) == samples(cfg, LocalSource(now), ["bikes.mp4"], 2)  # decoded anew
     stats = fresh.take_stats()["frame_cache"]
     assert stats["misses"]["changed"] == 1 and stats["hits"] == 0, stats
+
+
+def check_a_paused_store_fails_the_read(store, src, name: str) -> bytes:
+    """Opening ``name`` of ``src`` while ``store`` (a harness server) stops answering fails with
+    ``VideoError`` within 30 s, not a wait on a silent store; once it answers again the object
+    reads. Returns its first 16 bytes, read then."""
+    import time
+
+    import pytest
+
+    from v2v_server.sources.names import VideoError
+
+    store.pause()
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(VideoError, match="cannot open: "):
+            with src.open(name):
+                pass
+        took = time.monotonic() - t0
+    finally:
+        store.resume()
+    assert took < 30, f"a silent store held the read {took:.1f} s"
+    with src.open(name) as f:  # answering again: reads resume
+        return f.read(16)
