@@ -45,10 +45,6 @@ def _samples(cfg, root, video, epoch=0, outputs=DEFAULT_OUTPUTS) -> dict:
     return out
 
 
-def _cached(root, cache_dir, gb=1.0, fmt="raw") -> Cached:
-    return cached(root, cache_dir, gb, fmt)
-
-
 def _settle() -> None:
     """Wait out the racy window (``source.RACY_NS``) of files this test just wrote: a file
     changed within it is decoded and not stored (git's racy rule)."""
@@ -64,7 +60,7 @@ def test_pinned_table_holds_cold_and_warm(tmp_path):
     """The committed sample table (tests/data/sample_hashes.json) is what the cache serves, cold
     (decoding and storing) and warm (cut from the entries), for every recipe of the table."""
     want = json.loads(sample_hashes.TABLE.read_text())
-    src = _cached(CLIPS, tmp_path)
+    src = cached(CLIPS, tmp_path)
     for state in ("cold", "warm"):
         got = sample_hashes.compute(src.source, src.caches.frame_cache)
         assert got == want, state
@@ -101,7 +97,7 @@ def test_awkward_sources_identical_cached_and_decoded(tmp_path, fmt):
     whose frame size changes mid-way: every output (polarity counts too), one and four crops,
     cached (cold and warm) equal to decoded."""
     corpus = _awkward_corpus(tmp_path / "corpus")
-    src = _cached(corpus, tmp_path / "cache", fmt=fmt)
+    src = cached(corpus, tmp_path / "cache", fmt=fmt)
     for crops in (1, 4):
         cfg = SampleRecipe(**SMALL, crops_per_window=crops, keep_top_fraction=1.0)
         for video in sorted(p.name for p in corpus.iterdir()):
@@ -115,7 +111,7 @@ def test_awkward_sources_identical_cached_and_decoded(tmp_path, fmt):
 
 def test_later_epochs_draw_anew_from_the_same_entry(tmp_path):
     cfg = SampleRecipe(**SMALL)
-    src = _cached(CLIPS, tmp_path)
+    src = cached(CLIPS, tmp_path)
     e0 = _samples(cfg, src, "bikes.mp4", epoch=0)
     e1 = _samples(cfg, src, "bikes.mp4", epoch=1)
     assert e1 == _samples(cfg, CLIPS, "bikes.mp4", epoch=1)
@@ -137,7 +133,7 @@ def test_damaged_entry_is_decoded_again(tmp_path, fault, fmt):
     cfg = SampleRecipe(**SMALL)
     video = "bikes.mp4"
     want = _samples(cfg, CLIPS, video)
-    src = _cached(CLIPS, tmp_path, fmt=fmt)
+    src = cached(CLIPS, tmp_path, fmt=fmt)
     assert _samples(cfg, src, video) == want
     (entry,) = _entries(tmp_path)
     size = entry.stat().st_size
@@ -186,7 +182,7 @@ def test_trailer_that_passes_its_crc_but_sizes_frames_wrong_is_corrupt(tmp_path,
     before any frame is read or allocated: decoded, removed, stored again."""
     cfg = SampleRecipe(**SMALL)
     want = _samples(cfg, CLIPS, "bikes.mp4")
-    src = _cached(CLIPS, tmp_path)
+    src = cached(CLIPS, tmp_path)
     assert _samples(cfg, src, "bikes.mp4") == want
     (entry,) = _entries(tmp_path)
 
@@ -213,7 +209,7 @@ def test_source_replaced_in_place_is_a_miss(tmp_path):
     shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
     _settle()
     cfg = SampleRecipe(**SMALL)
-    src = _cached(corpus, tmp_path / "cache")
+    src = cached(corpus, tmp_path / "cache")
     _samples(cfg, src, "v.mp4")
     shutil.copy(CLIPS / "webvid_like_596x336.mp4", corpus / "v.mp4")  # same name, other content
     _settle()
@@ -238,7 +234,7 @@ def test_rewrite_in_place_keeping_size_mtime_and_inode_is_a_miss(tmp_path):
     v = write_video(corpus / "v.avi", 40, w, h, codec="rawvideo", pix_fmt="gray", gray=True)
     _settle()
     cfg = SampleRecipe(**SMALL)
-    src = _cached(corpus, tmp_path / "cache")
+    src = cached(corpus, tmp_path / "cache")
     before = _samples(cfg, src, "v.avi")
     assert src.take_stats()["frame_cache"]["stored"] == 1
     st, data = os.stat(v), v.read_bytes()
@@ -266,7 +262,7 @@ def test_a_file_changed_within_the_timestamp_resolution_is_not_stored(tmp_path):
     corpus.mkdir()
     shutil.copy(CLIPS / "bikes.mp4", corpus / "v.mp4")
     cfg = SampleRecipe(**SMALL)
-    src = _cached(corpus, tmp_path / "cache")
+    src = cached(corpus, tmp_path / "cache")
     from v2v_server.sources.local import racy
 
     st = os.stat(corpus / "v.mp4")
@@ -289,7 +285,7 @@ def test_cache_folder_deleted_while_serving(tmp_path):
     """The folder removed mid-write (the entry cannot be committed) and between epochs."""
     cfg = SampleRecipe(**SMALL)
     want = _samples(cfg, CLIPS, "bikes.mp4")
-    src = _cached(CLIPS, tmp_path)
+    src = cached(CLIPS, tmp_path)
     got = {}
     run = video_samples(cfg, src.source, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True, frame_cache=src.caches.frame_cache)
     for i, (key, arrays, meta) in enumerate(run):
@@ -326,13 +322,13 @@ def test_budget_holds_and_keeps_what_it_admitted(tmp_path):
     the next epoch hits those and decodes the rest; the folder never holds more than the budget."""
     cfg = SampleRecipe(**SMALL)
     clips = ["bikes.mp4", "webvid_like_596x336.mp4", "bigbuckbunny.mp4"]
-    probe = _cached(CLIPS, tmp_path / "probe")
+    probe = cached(CLIPS, tmp_path / "probe")
     sizes = {}
     for c in clips:
         _samples(cfg, probe, c)
         sizes[c] = max(_entries(tmp_path / "probe"), key=lambda p: p.stat().st_mtime_ns).stat().st_size
     budget = sizes["bikes.mp4"] + sizes["webvid_like_596x336.mp4"] + sizes["bigbuckbunny.mp4"] // 2
-    src = _cached(CLIPS, tmp_path / "cache", gb=budget / (1 << 30))
+    src = cached(CLIPS, tmp_path / "cache", gb=budget / (1 << 30))
     for epoch in (0, 1):
         for c in clips:
             assert _samples(cfg, src, c, epoch) == _samples(cfg, CLIPS, c, epoch)
@@ -350,7 +346,7 @@ def _make_samples(root: str, cache_dir: str, video: str, kill_after: int) -> Non
     import signal
 
     cfg = SampleRecipe(**SMALL)
-    src = _cached(root, cache_dir)
+    src = cached(root, cache_dir)
     for i, _ in enumerate(video_samples(cfg, src.source, video, 0, DEFAULT_OUTPUTS, frame_cache=src.caches.frame_cache)):
         if i == kill_after:
             os.kill(os.getpid(), signal.SIGKILL)
@@ -363,7 +359,7 @@ def test_writer_killed_mid_write_leaves_no_entry(tmp_path):
     assert r.returncode == -9
     assert not _entries(tmp_path) and list((tmp_path / "frames").glob("*.tmp"))  # the half-written file
     cfg = SampleRecipe(**SMALL)
-    src = _cached(CLIPS, tmp_path)
+    src = cached(CLIPS, tmp_path)
     assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, CLIPS, "bikes.mp4")
     assert src.take_stats()["frame_cache"]["stored"] == 1
     assert len(_entries(tmp_path)) == 1 and not list((tmp_path / "frames").glob("*.tmp"))  # the dead writer's file removed
@@ -383,7 +379,7 @@ def test_two_writers_make_one_entry(tmp_path):
     # commit: the second finds the entry there, drops its own and is counted neither stored nor
     # not stored (an abandoned pass would count as incomplete)
     cfg = SampleRecipe(**SMALL)
-    src = _cached(CLIPS, tmp_path / "one")
+    src = cached(CLIPS, tmp_path / "one")
     passes = [video_samples(cfg, src.source, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True,
                                          frame_cache=src.caches.frame_cache) for _ in range(2)]
     got: tuple = ({}, {})
@@ -411,7 +407,7 @@ def test_full_disk_is_decoded_and_counted(tmp_path):
         pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
     try:
         cfg = SampleRecipe(**SMALL)
-        src = _cached(CLIPS, mnt, gb=1.0)
+        src = cached(CLIPS, mnt, gb=1.0)
         assert _samples(cfg, src, "webvid_like_596x336.mp4") == _samples(cfg, CLIPS, "webvid_like_596x336.mp4")
         stats = src.take_stats()["frame_cache"]
         assert stats["not_stored"]["disk_full"] == 1 and stats["stored"] == 0, stats
@@ -421,7 +417,7 @@ def test_full_disk_is_decoded_and_counted(tmp_path):
 
 
 def test_settings_that_change_frames_name_other_entries(tmp_path):
-    src = _cached(CLIPS, tmp_path)
+    src = cached(CLIPS, tmp_path)
     for kw in ({}, {"decode_fast": "all"}, {"keep_top_fraction": 0.8}):
         cfg = SampleRecipe(**SMALL, **kw)
         assert _samples(cfg, src, "bikes.mp4") == _samples(cfg, CLIPS, "bikes.mp4")
@@ -599,7 +595,7 @@ def test_an_entry_is_stored_by_its_owners_commit_of_a_whole_pass(tmp_path):
     from v2v_server.samples.make import video_frames
 
     cfg = SampleRecipe(shot_cuts="off", **SMALL)
-    src = _cached(CLIPS, tmp_path)
+    src = cached(CLIPS, tmp_path)
     with video_frames(cfg, src.source, "bikes.mp4", src.frame_cache) as fp:
         next(fp.frames)
         with pytest.raises(RuntimeError, match="reading"):
@@ -631,7 +627,7 @@ def test_tar_member_entries_follow_their_shard(tmp_path):
         t.add(CLIPS / "bikes.mp4", arcname="a.mp4")
     _settle()
     cfg = SampleRecipe(**SMALL)
-    src = _cached(shard.parent, tmp_path / "cache")
+    src = cached(shard.parent, tmp_path / "cache")
     want = _samples(cfg, shard.parent, "s.tar/a.mp4")
     assert _samples(cfg, src, "s.tar/a.mp4") == want and _samples(cfg, src, "s.tar/a.mp4") == want
     assert src.take_stats()["frame_cache"]["hits"] == 1
@@ -670,7 +666,7 @@ def test_warm_cache_in_one_process_reads_through_the_callers_source(tmp_path, mo
     from v2v_server.sources import source_spec
 
     cfg = ServeConfig(**SMALL, workers=1)
-    src = _cached(CLIPS, tmp_path)
+    src = cached(CLIPS, tmp_path)
     videos = ["bikes.mp4", "webvid_like_596x336.mp4"]
 
     def built(spec):
@@ -691,7 +687,7 @@ def test_warm_states_come_from_the_pass_itself(tmp_path):
     from v2v_server.ops.warm import warm_video
 
     cfg = ServeConfig(**SMALL, workers=1)
-    src = _cached(CLIPS, tmp_path / "big")
+    src = cached(CLIPS, tmp_path / "big")
     stored = warm_video(cfg, src.source, "bikes.mp4", src.caches)
     entry, = _entries(tmp_path / "big")
     assert stored["state"] == "stored" and 0 < stored["bytes"] <= entry.stat().st_size, stored
@@ -704,7 +700,7 @@ def test_warm_states_come_from_the_pass_itself(tmp_path):
     damaged = warm_video(cfg, src.source, "bikes.mp4", src.caches)
     assert damaged["state"].startswith("not stored") and damaged["frames"] == stored["frames"], damaged
     assert _entries(tmp_path / "big") == []  # removed; the rest decoded, not stored
-    tiny = _cached(CLIPS, tmp_path / "tiny", gb=1e-6)
+    tiny = cached(CLIPS, tmp_path / "tiny", gb=1e-6)
     assert warm_video(cfg, tiny.source, "bikes.mp4", tiny.caches)["state"] == "not stored: budget"
 
 
