@@ -1,6 +1,7 @@
 """Hostile and careless archives, built byte by byte: zip parts whose central directory points
 several entries at one local header or at overlapping bytes (the overlapping "zip bomb"), a
-member running into the central directory, an entry whose local header names another member,
+member running into the central directory or past the end of the file (a zip entry of 8 GiB, a
+tar shard cut short), an entry whose local header names another member,
 two members of one name in a zip part or a tar shard, a sparse tar member (its bytes not in
 one piece) and links in a tar shard. Each is refused with one line naming the part and the members and why; the rest of
 the part is served, by ``--check``, by the server and from a bucket's listing and manifest."""
@@ -45,10 +46,15 @@ class ZipWriter:
         return zlib.crc32(data if method == 0 else zlib.decompress(data, -15))
 
     def entry(self, name: str, offset: int, crc: int, csize: int, size: int, method: int = 0) -> None:
-        """A central-directory entry for ``name`` pointing at the local header at ``offset``."""
-        self.entries.append(struct.pack("<4s4B4HL2L5H2L", b"PK\x01\x02", 20, 3, 20, 0, 0x800, method, 0, 0x21,
-                                        crc, csize, size, len(name.encode()), 0, 0, 0, 0, 0o100644 << 16, offset)
-                            + name.encode())
+        """A central-directory entry for ``name`` pointing at the local header at ``offset``; sizes
+        of 4 GiB or more go in a ZIP64 extra field (APPNOTE 4.5.3)."""
+        extra = b""
+        if max(csize, size) >= 0xFFFFFFFF:
+            extra = struct.pack("<2H2Q", 1, 16, size, csize)
+            csize = size = 0xFFFFFFFF
+        self.entries.append(struct.pack("<4s4B4HL2L5H2L", b"PK\x01\x02", 45, 3, 45, 0, 0x800, method, 0, 0x21,
+                                        crc, csize, size, len(name.encode()), len(extra), 0, 0, 0, 0o100644 << 16,
+                                        offset) + name.encode() + extra)
 
     def member(self, name: str, data: bytes) -> None:
         """A plain stored member: its local header and its entry."""
@@ -151,7 +157,7 @@ def test_hostile_zip_entries_are_refused_by_name_and_the_rest_served(hostile, tm
     assert rows["overlap.zip"].startswith("ignored zip part: members x.mp4, y.mp4 overlap")
     assert rows["lying.zip/renamed.mp4"].startswith("unusable zip member renamed.mp4: the local header at offset 0 "
                                                     "names 'original.mp4', not this member")
-    assert rows["lying.zip/long.mp4"].startswith("ignored zip part: its bytes") and "run into the central" in \
+    assert rows["lying.zip/long.mp4"].startswith("ignored zip part: its bytes") and "run past the end of the file" in \
         rows["lying.zip/long.mp4"]
     assert not any(k.split("/")[-1] in ("a.mp4", "b.mp4", "c.mp4", "x.mp4", "y.mp4") for k in rows
                    if k.endswith(".mp4") and k.split("/")[0] in ("shared.zip", "overlap.zip")), rows
@@ -246,3 +252,43 @@ def test_names_holding_a_control_character_are_refused_by_name(tmp_path, videos)
                                        "line): rename it")
     assert rows["p.zip/tab\\there.mp4"].startswith("ignored zip part member: name holds the control character \\t")
     assert rows["s.tar/cr\\rhere.mp4"].startswith("ignored tar shard member: name holds the control character \\r")
+
+
+def test_a_member_whose_sizes_run_past_the_end_loses_only_itself(tmp_path, videos):
+    """A size that runs past the end of the file (a lying entry: 8 GiB stored in a small part; a
+    tar shard cut short in its last member) is not an overlap of entries: only that member is
+    refused, named on one line, and the good member beside it is served. Several entries at one
+    local header (the zip-bomb layout) still refuse the part (test above)."""
+    good = (videos / "bikes.mp4").read_bytes()
+    d = tmp_path / "corpus"
+    d.mkdir()
+    z = ZipWriter()
+    z.entry("big.mp4", z.local("big.mp4", good[:1000]), zlib.crc32(good), 8 << 30, 8 << 30)
+    z.member("ok.mp4", good)
+    z.write(d / "liar.zip")
+    z = ZipWriter()
+    z.member("ok.mp4", good)
+    z.entry("long.mp4", z.local("long.mp4", good[:1000]), zlib.crc32(good), len(good), len(good))
+    z.write(d / "cut.zip")
+    shard = io.BytesIO()
+    with tarfile.open(fileobj=shard, mode="w") as tar:
+        for name in ("fine.mp4", "cut.mp4"):
+            info = tarfile.TarInfo(name)
+            info.size = len(good)
+            tar.addfile(info, io.BytesIO(good))
+    (d / "cut.tar").write_bytes(shard.getvalue()[:2 * 512 + len(good) + 4096])
+    time.sleep(2 * RACY_NS / 1e9)
+    r = _check(d, tmp_path / "cache")
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    rows = _lines(r.stdout)
+    for served in ("liar.zip/ok.mp4", "cut.zip/ok.mp4", "cut.tar/fine.mp4"):
+        assert rows[served].startswith("2 window(s)"), rows
+    size = (d / "liar.zip").stat().st_size
+    assert rows["liar.zip/big.mp4"] == (f"ignored zip part: its bytes 0-{30 + 7 + (8 << 30)} run past the end of the "
+                                        f"file ({size} bytes): corrupt or hostile, not served"), rows
+    assert rows["cut.zip/long.mp4"].startswith("ignored zip part: its bytes") and "past the end of the file" in \
+        rows["cut.zip/long.mp4"], rows
+    assert rows["cut.tar/cut.mp4"].startswith("ignored tar shard: its bytes") and "run past the end of the shard" \
+        in rows["cut.tar/cut.mp4"], rows
+    assert not any("overlap" in v for v in rows.values()), rows
+    assert r.stdout.splitlines()[-1].startswith("3 usable video(s) of 3, 6 sample(s) per epoch"), r.stdout

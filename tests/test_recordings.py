@@ -449,6 +449,29 @@ def test_eval_scores_davis_between_frame_timestamps(tmp_path, tiny_checkpoints):
     assert _mp4_frames(tmp_path / "vid" / "davis346_road.mp4") == 6
 
 
+def test_eval_records_a_truncated_recording_as_truncated(tmp_path, tiny_checkpoints, caplog):
+    """A recording cut short: v2v-eval warns that it is truncated and metrics.json says so too,
+    although the pass that scores the grids stops before the cut (a fact of the file, found by
+    the pass that read its frames, is not undone by a later pass that ends earlier)."""
+    import json
+
+    from trainer.evaluate import main
+
+    src = shared(DAVIS).read_bytes()
+    p = tmp_path / "cut.aedat4"
+    p.write_bytes(src[:len(src) // 2])
+    with caplog.at_level(logging.WARNING, logger="trainer.recordings"):
+        assert main(["--checkpoint", tiny_checkpoints["e2vid"], "--recording", str(p), "--end", "0.2", "--device",
+                     "cpu", "--out", str(tmp_path / "ev")]) == 0
+    assert "truncated" in caplog.text
+    info = json.loads((tmp_path / "ev" / "metrics.json").read_text())["recordings"][str(p)]
+    assert info["truncated"] is True and info["frames_scored"] > 0
+    assert main(["--checkpoint", tiny_checkpoints["e2vid"], "--recording", str(shared(DAVIS)), "--end", "0.2",
+                 "--device", "cpu", "--out", str(tmp_path / "whole")]) == 0
+    assert json.loads((tmp_path / "whole" / "metrics.json").read_text())["recordings"][str(shared(DAVIS))][
+        "truncated"] is False
+
+
 def test_eval_writes_video_of_a_recording_without_frames(tmp_path, tiny_checkpoints):
     import json
 

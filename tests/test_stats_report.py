@@ -139,6 +139,14 @@ def test_short_recording_is_named_and_the_report_written(tmp_path, short_recipe,
     data = json.loads((out / "stats.json").read_text())
     assert data["recording"]["grid"]["windows"] == [] and (out / "index.html").exists()
     assert "shorter than one sample window" in (out / "index.html").read_text()
+    # a recording cut short is measured up to the cut, and the report says so
+    cut = tmp_path / "cut.aedat4"
+    cut.write_bytes(DAVIS346.read_bytes()[:DAVIS346.stat().st_size // 2])
+    assert main(["--videos", str(SAMPLE_VIDEOS), "--config", short_recipe, "--samples", "2",
+                 "--recording", str(cut), "--out", str(tmp_path / "cut")]) == 0
+    data = json.loads((tmp_path / "cut" / "stats.json").read_text())
+    assert data["recording"]["sample"]["truncated"] is True
+    assert any(n.startswith(f"recording {cut} is truncated") for n in data["notes"]), data["notes"]
 
 
 @pytest.mark.parametrize("case", ["empty corpus", "unreadable recording", "unreachable server"])
@@ -157,3 +165,35 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, short_recipe, capsys, case):
     assert main([*argv, "--config", short_recipe, "--samples", "2", "--out", out]) == 2
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("v2v-stats: ")]
     assert len(lines) == 1 and named in lines[0], lines
+
+
+def test_frames_read_by_a_check_that_stops_early_are_a_lower_bound_everywhere(tmp_path, capsys):
+    """The check stops decoding a video once the recipe's windows are complete: a 30-frame clip
+    with one 6-frame window a video shows its 6 frames as a lower bound in stats.json, on the page
+    and in ``--check`` alike (``6+``), never as the clip's length; uncapped, the true 30."""
+    import subprocess
+    import sys
+    import time
+
+    from harness.corpus import write_video
+    from v2v_server.sources.local import RACY_NS
+
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    write_video(corpus / "clip30.mp4", 30, 128, 96)
+    time.sleep(2 * RACY_NS / 1e9)
+    for cap, frames, bound in ((1, 6, True), (10, 30, False)):
+        recipe = tmp_path / f"cap{cap}.yaml"
+        recipe.write_text(f"sequence_length: 1\nbatch_size: 2\nmax_samples_per_video: {cap}\n")
+        out = tmp_path / f"report{cap}"
+        assert main(["--videos", str(corpus), "--config", str(recipe), "--samples", "1", "--out", str(out)]) == 0
+        video = json.loads((out / "stats.json").read_text())["videos"][0]
+        assert (video["frames"], video["shot_lengths"], video["lower_bound"]) == (frames, [frames], bound), video
+        page = (out / "index.html").read_text()
+        assert (f"<td>{frames}+</td>" in page) == bound and (f"<td>{frames}</td>" in page) != bound
+        check = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--videos", str(corpus), "--config",
+                                str(recipe), "--cache-dir", str(tmp_path / "cache")], capture_output=True, text=True,
+                               timeout=300)
+        row = check.stdout.splitlines()[1]
+        assert (f" {frames}+ frames" in row and "no cut in the frames read" in row if bound else
+                f" {frames} frames" in row and "one shot" in row), check.stdout

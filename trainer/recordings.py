@@ -107,8 +107,11 @@ class Recording:
         width, height: sensor size, pixels.
         size_source: where the size came from: ``"header"``, ``"argument"``, ``"frames"`` or
             ``"inferred from the header's plugin name <name>"``.
-        dropped_backward: events dropped for running backwards in the last full pass.
-        truncated: whether the last pass met the end of the file inside a packet or word.
+        dropped_backward: events dropped for running backwards in the last pass, up to where it stopped
+            (v2v-eval: the pass over the grids it scores).
+        truncated: whether a pass (over the events, the frames or the IMU) has met the end of the
+            file inside a packet or word: a fact of the file, kept once found (a later pass that
+            stops before the cut does not clear it).
         text_chunk_bytes: bytes of ``events.txt`` parsed per chunk (ECD layout; 4 MiB).
     """
 
@@ -139,7 +142,7 @@ class Recording:
         Raises:
             RecordingError: events outside the sensor, bytes that are not the format, no event.
         """
-        self.dropped_backward, self.truncated = 0, False
+        self.dropped_backward = 0
         last_t = np.iinfo(np.int64).min
         n_out = 0
         for ev in self._raw_chunks():

@@ -149,10 +149,17 @@ def _figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
         axes[0].barh(range(len(vids)), [v["windows"] for v in vids], color="tab:blue")
         axes[0].set_yticks(range(len(vids)), [name_label(v["path"]) for v in vids], fontsize=7)
         axes[0].set_title("windows per video")
-        axes[1].hist([s for v in vids for s in v["shot_lengths"]], bins=30, color="tab:green")
-        axes[1].set_title("shot lengths, frames")
+        axes[1].hist([s for v in vids for s in _whole_shots(v)], bins=30, color="tab:green")
+        axes[1].set_title("shot lengths, frames (shots read whole)")
         save(fig, "videos.png")
     return names
+
+
+def _whole_shots(video: dict) -> List[int]:
+    """The lengths of ``video``'s shots read whole: the last one is left out when the check
+    stopped decoding before the end (``lower_bound``), its length being only a lower bound."""
+    lengths = video["shot_lengths"]
+    return lengths[:-1] if video.get("lower_bound") else lengths
 
 
 def _table(header, rows) -> str:
@@ -188,6 +195,7 @@ def _grid_section(grid: Optional[dict]) -> str:
 def page(col: Collected, rec: Optional[dict], notes: List[str], pngs: List[str], summ: dict) -> str:
     """The report's HTML (figures by file name, a summary table, the videos' table, notes)."""
     fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else v  # noqa: E731
+    more = lambda v: "+" if v.get("lower_bound") else ""  # noqa: E731
     parts = [f"<h1>v2v-stats</h1><p>{len(col.rows)} samples from {html.escape(col.source)}</p>"]
     parts += [f'<p class="note">{html.escape(n)}</p>' for n in notes]
     srows = [(label, *(fmt(summ["samples"][k].get(q, "")) for q in ("n", "mean", "p10", "p50", "p90")))
@@ -207,8 +215,12 @@ def page(col: Collected, rec: Optional[dict], notes: List[str], pngs: List[str],
     if col.videos:
         parts.append("<h2>Videos</h2>" + _table(
             ("video", "resolution", "codec", "fps", "frames", "windows", "shots", "not usable because"),
-            [(v["path"], f"{v['width']}x{v['height']}" if v["width"] else "?", v["codec"], f"{v['fps']:.3g}", v["frames"], v["windows"], len(v["shot_lengths"]),
-              v["reason"]) for v in col.videos]))
+            [(v["path"], f"{v['width']}x{v['height']}" if v["width"] else "?", v["codec"], f"{v['fps']:.3g}",
+              f"{v['frames']}{more(v)}", v["windows"], f"{len(v['shot_lengths'])}{more(v)}", v["reason"])
+             for v in col.videos]))
+        if any(v.get("lower_bound") for v in col.videos):
+            parts.append("<p>N+: the check stops decoding a video once the recipe's windows are complete "
+                         "(max_samples_per_video), so it read N frames and shots and the video may hold more.</p>")
     style = ("body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse}"
              "td,th{border:1px solid #aaa;padding:2px 8px;text-align:right}img{max-width:100%}.note{color:#a40}")
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>v2v-stats</title><style>{style}</style>"
@@ -228,6 +240,9 @@ def _recording(path: str, rows: List[dict], cfg_recipe, notes: List[str]) -> Opt
             notes.append(f"recording {path} ({r['duration_s']:.3g} s) is shorter than one {scope} window "
                          f"({seconds:.3g} s): no {scope}-level overlay")
         out[scope] = r
+    if out["sample"]["truncated"]:
+        notes.append(f"recording {path} is truncated (it ends inside a packet or word): the events before the cut "
+                     "are measured")
     out["cells"] = recording_grid(path, grid_s, cfg_recipe.num_bins)
     return out
 

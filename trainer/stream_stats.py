@@ -58,7 +58,11 @@ def grid_seconds(recipe, fps: float) -> float:
 class Collected:
     """What was gathered: ``rows`` (one per sample, :func:`sample_row`), ``videos`` (one dict per
     video of a simulated corpus: ``path``, ``width``, ``height``, ``fps``, ``codec``, ``frames``,
-    ``windows``, ``shot_lengths`` in frames), ``source`` (what was read, in words)."""
+    ``windows``, ``shot_lengths`` in frames, ``lower_bound``), ``source`` (what was read, in
+    words). The check decodes a video only until the recipe's windows are complete
+    (``max_samples_per_video``), as ``v2v-serve --check`` does: with ``lower_bound`` true it
+    stopped there, and ``frames`` and the last of ``shot_lengths`` are lower bounds (``--check``
+    shows ``9+ frames``)."""
 
     rows: List[dict] = field(default_factory=list)
     videos: List[dict] = field(default_factory=list)
@@ -136,7 +140,7 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
         width, height = (v.stream.width, v.stream.height) if v.stream is not None else (0, 0)
         out.videos.append({"path": rel, "width": width, "height": height, "frames": v.frames, "windows": v.windows,
                            "reason": v.reason, "shot_lengths": [b - a for a, b in zip(bounds, bounds[1:]) if b > a],
-                           **_probe(source, rel)})
+                           "lower_bound": bool(v.more), **_probe(source, rel)})
         if v.usable:
             usable.append(rel)
     for epoch in range(epochs):
@@ -200,9 +204,10 @@ def recording_windows(path: str, window_s: float) -> dict:
     ``trainer.recordings.open_recording`` reads).
 
     Returns:
-        ``{"path", "sensor": "WxH", "format", "window_s", "duration_s", "windows": [{"rate_pos",
-        "rate_neg", "active_fraction"}...]}``; ``windows`` is empty when the recording is
-        shorter than one window.
+        ``{"path", "sensor": "WxH", "format", "window_s", "duration_s", "truncated", "windows":
+        [{"rate_pos", "rate_neg", "active_fraction"}...]}``; ``windows`` is empty when the
+        recording is shorter than one window; ``truncated``: the file ends inside a packet or
+        word (``Recording.truncated``: the events before the cut are measured).
 
     Raises:
         StatsInputError: the file cannot be read (``RecordingError``'s message).
@@ -229,7 +234,8 @@ def recording_windows(path: str, window_s: float) -> dict:
     rows = [{"rate_pos": w["pos"] / npix / window_s, "rate_neg": w["neg"] / npix / window_s,
              "active_fraction": w["active"] / npix} for w in wins]
     return {"path": str(path), "sensor": f"{rec.width}x{rec.height}", "format": rec.format, "window_s": window_s,
-            "duration_s": (last - first) / 1e6 if first is not None else 0.0, "windows": rows}
+            "duration_s": (last - first) / 1e6 if first is not None else 0.0, "truncated": rec.truncated,
+            "windows": rows}
 
 
 def recording_grid(path: str, cell_s: float, bins: int) -> dict:

@@ -185,7 +185,7 @@ def format_check(results: List[Verdict], rejected: List[Tuple[str, str]], crops_
         verdict = f"{r.windows} window(s)" if r.usable else "unusable"
         cuts = r.cuts
         shots = (f"; {len(cuts)} cut(s) at frame(s) {', '.join(map(str, cuts[:12]))}{' ...' if len(cuts) > 12 else ''}"
-                 if cuts else "; one shot")
+                 if cuts else "; no cut in the frames read" if r.more else "; one shot")
         if r.dropped:
             shots += f", {r.dropped} window(s) removed by cuts"
         if r.static:

@@ -99,17 +99,30 @@ def tar_members(f) -> MemberIndex:
     :class:`TarMember` (offset of its data, size; bytes) of every regular file, in one pass over the headers (the data
     between them is skipped by seeking; an object-store file fetches the blocks that hold
     headers); of several members of one name the last (:func:`last_of_each_name`). Refused:
-    a sparse member (GNU ``tar -S``), whose bytes are not stored in one piece, and a hard or
-    symbolic link (served, it would be its target again under a second id).
+    a sparse member (GNU ``tar -S``), whose bytes are not stored in one piece, a hard or
+    symbolic link (served, it would be its target again under a second id), and a member whose
+    size runs past the end of the shard (a shard cut short, or a lying header): only that
+    member, the ones before it are served.
 
     Raises:
         tarfile.TarError: not a tar archive.
     """
     import tarfile
 
+    end = f.seek(0, io.SEEK_END)
+    f.seek(0)
     with tarfile.open(fileobj=f, mode="r:") as tar:
-        every = list(tar)
-    files = [m for m in every if m.isfile()]
+        try:
+            for _ in tar:
+                pass
+        except tarfile.ReadError:  # "unexpected end of data": the last header's size runs past the end
+            if not tar.members:
+                raise
+        every = tar.members
+    cut = [(m.name, f"tar shard: its bytes {m.offset_data}-{m.offset_data + m.size} run past the end of the shard "
+                    f"({end} bytes): cut short or corrupt, not served")
+           for m in every if m.isfile() and not m.issparse() and m.offset_data + m.size > end]
+    files = [m for m in every if m.isfile() and (m.issparse() or m.offset_data + m.size <= end)]
     kept = last_of_each_name("tar shard", [(m.name, TarMember(m.offset_data, m.size))
                                            for m in files if not m.issparse()])
     sparse = [(m.name, f"tar shard: a sparse member (tar -S): its {m.size} bytes are not stored in one piece, "
@@ -117,7 +130,7 @@ def tar_members(f) -> MemberIndex:
     links = [(m.name, f"tar shard: a {'hard' if m.islnk() else 'symbolic'} link to {m.linkname}: not served (a "
                       f"link in a shard is not followed; its target is served under its own name)")
              for m in every if (m.islnk() or m.issym()) and m.name not in kept.members]
-    return MemberIndex(kept.members, sparse + links + kept.refused)
+    return MemberIndex(kept.members, cut + sparse + links + kept.refused)
 
 
 #: Bytes of a zip local header before its name (``zipfile.sizeFileHeader``).
@@ -131,11 +144,12 @@ def zip_members(f) -> MemberIndex:
     ``zipfile`` (ZIP64 included; on a store, the blocks at the end of the object). Folders
     are left out. Refused (:attr:`MemberIndex.refused`), the rest served:
 
-    * members whose bytes overlap (several central-directory entries at one local header, or
-      one member's compressed bytes running over the next one's header: the layout of an
-      overlapping "zip bomb", whose one kernel each member would inflate again), each group
-      in one line; ``unzip -t`` refuses such a part whole;
-    * a member whose bytes run into the central directory;
+    * a member whose bytes run into the central directory or past the end of the file (sizes
+      that lie, or a part cut short): only that member, named; its neighbours are served;
+    * of the rest, members whose bytes overlap (several central-directory entries at one local
+      header, or one member's compressed bytes running over the next one's header: the layout
+      of an overlapping "zip bomb", whose one kernel each member would inflate again), each
+      group in one line; ``unzip -t`` refuses such a part whole;
     * of several members of one name, all but the last (:func:`last_of_each_name`).
 
     A member's extent is its local header, name and compressed bytes (its extra field, known
@@ -150,12 +164,20 @@ def zip_members(f) -> MemberIndex:
     with zipfile.ZipFile(f) as z:
         infos = [i for i in z.infolist() if not i.is_dir()]
         directory = z.start_dir
+    size = f.seek(0, io.SEEK_END)
     refused: List[Tuple[str, str]] = []
     bad: Set[int] = set()
     spans = sorted((i.header_offset, i.header_offset + LOCAL_HEADER + _name_bytes(i) + i.compress_size, n)
                    for n, i in enumerate(infos))
+    for start, stop, n in spans:
+        if stop > directory:
+            past = f"past the end of the file ({size} bytes)" if stop > size else \
+                f"into the central directory (at {directory})"
+            refused.append((infos[n].filename, f"zip part: its bytes {start}-{stop} run {past}: corrupt or hostile, "
+                                               f"not served"))
+            bad.add(n)
     group, end = [], -1
-    for start, stop, n in spans + [(1 << 64, 1 << 64, -1)]:
+    for start, stop, n in [span for span in spans if span[2] not in bad] + [(1 << 64, 1 << 64, -1)]:
         if start < end:
             group.append(n)
             end = max(end, stop)
@@ -169,11 +191,6 @@ def zip_members(f) -> MemberIndex:
                                 f"as unzip -t refuses the part"))
             bad.update(group)
         group, end = [n], stop
-    for start, stop, n in spans:
-        if n not in bad and stop > directory:
-            refused.append((infos[n].filename, f"zip part: its bytes {start}-{stop} run into the central directory "
-                                               f"(at {directory}): corrupt or hostile, not served"))
-            bad.add(n)
     kept = last_of_each_name("zip part", [(i.filename, ZipMember(i.header_offset, i.file_size, i.compress_size, i.CRC,
                                                                  i.compress_type, i.flag_bits))
                                           for n, i in enumerate(infos) if n not in bad])
