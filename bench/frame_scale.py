@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from bench.speed import clip_path
+from v2v_server.frames.frame_pass import DecodeSettings
 from v2v_server.samples.recipe import SampleRecipe
 
 #: libx264 bitrates (bits/s) by frame height: common upload bitrates for 25-30 fps SDR video.
@@ -141,7 +142,7 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
 
 def measure(clip: Path, sizes: Sequence[Tuple[int, int]], frames: int, height: int, threads: Sequence[int],
             rounds: int, min_cpu_s: float, threads_from: int = 720,
-            keep: float = SampleRecipe.keep_top_fraction) -> dict:
+            keep: float = DecodeSettings.keep_top_fraction) -> dict:
     """The rows of the report (see the module docstring); medians over ``rounds`` interleaved rounds."""
     tmp = Path(tempfile.mkdtemp(prefix="v2v-fscale-"))
     try:
@@ -298,7 +299,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES), help="W x H of each source, comma list")
     ap.add_argument("--frames", type=int, default=150, help="frames per source")
     ap.add_argument("--height", type=int, default=336, help="the frame_height measured")
-    ap.add_argument("--keep-top", type=float, default=SampleRecipe.keep_top_fraction,
+    ap.add_argument("--keep-top", type=float, default=DecodeSettings.keep_top_fraction,
                     help="the keep_top_fraction measured (default the recipe's)")
     ap.add_argument("--threads", default="1,2,4", help="decode_threads measured at 720 rows and more")
     ap.add_argument("--threads-from", type=int, default=720, help="measure decode_threads at sizes of this many rows and more")

@@ -223,22 +223,20 @@ class SampleMaker:
     as soon as the sample is made (rows stream; the actor never holds a whole video).
 
     Args:
-        recipe_dict: ``SampleRecipe.recipe_dict()``.
+        recipe: the sample recipe (``ServeConfig.recipe``; it pickles to the actor).
         source_spec: ``VideoSource.spec()`` of the corpus as the driver opened it (a folder as
             seen from the actor's node, or an object-store URL read with the node's credentials).
         caches_spec: ``HostCaches.spec()`` of the caches ``cfg`` describes (the frame cache, the
             corpus index), at the same path on the actor's node.
         outputs: subset of ``OUTPUTS`` to make.
 
-    Raises:
-        ValueError: naming the key, for a recipe that does not check.
     """
 
-    def __init__(self, recipe_dict: dict, source_spec: dict, caches_spec: dict, outputs: Sequence[str]):
+    def __init__(self, recipe: SampleRecipe, source_spec: dict, caches_spec: dict, outputs: Sequence[str]):
         import cv2
 
         cv2.setNumThreads(1)
-        self.recipe = SampleRecipe.recipe_from_dict(recipe_dict, source="ray stage recipe")
+        self.recipe = recipe
         self.source = source_from_spec(source_spec)
         self.caches = HostCaches.from_spec(caches_spec)
         self.outputs = tuple(outputs)
@@ -249,7 +247,7 @@ class SampleMaker:
     def arguments(cfg: ServeConfig, root: str, outputs: Sequence[str]) -> dict:
         """The constructor's arguments for the corpus at ``root`` served with ``cfg``: what the
         driver hands each actor (plain values that pickle)."""
-        return {"recipe_dict": cfg.recipe.recipe_dict(), "source_spec": source_from_config(cfg, root).spec(),
+        return {"recipe": cfg.recipe, "source_spec": source_from_config(cfg, root).spec(),
                 "caches_spec": caches_from_config(cfg).spec(), "outputs": tuple(outputs)}
 
     @classmethod

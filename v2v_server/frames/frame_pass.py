@@ -30,6 +30,7 @@ from v2v_server.frames.pass_record import PassRecord
 from v2v_server.sources.segments import split_segment
 from v2v_server.frames.shots import DETECTOR_VERSION, ShotDetector
 from v2v_server.frames.windows import WindowSettings
+from v2v_server.settings import setting
 
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 
@@ -39,9 +40,9 @@ MAX_FRAME_HEIGHT = 4320
 
 @dataclass(frozen=True)
 class DecodeSettings:
-    """How a pass decodes a video's frames, wherever its windows lie. The defaults have one
-    owner, the sample recipe (``v2v_server.samples.recipe.SampleRecipe``), which builds one for
-    this stage; the checks of these values are here.
+    """How a pass decodes a video's frames, wherever its windows lie. This class declares its
+    keys once (default, help, checks); the sample recipe (``v2v_server.samples.recipe.SampleRecipe``)
+    composes it.
 
     Attributes:
         keep_top_fraction: share of a displayed frame's height kept from the top, in (0, 1].
@@ -54,10 +55,15 @@ class DecodeSettings:
         ValueError: naming the field, for a value out of its range.
     """
 
-    keep_top_fraction: float
-    frame_height: int
-    decode_threads: int
-    decode_fast: str
+    keep_top_fraction: float = setting(0.54, help="fraction of each frame's height, from the top, that crops come "
+                                                  "from (WebVid's watermark; 1.0 for clips without one)")
+    frame_height: int = setting(0, help="scale every decoded frame to this height in pixels (width keeps the aspect "
+                                        "ratio; OpenCV INTER_AREA on full-range luma) before the kept region, the "
+                                        "frame cache and the crops; 0 = frames as decoded (docs/frame_scale.md)")
+    decode_threads: int = setting(1, help="FFmpeg decoding threads per worker")
+    decode_fast: str = setting("off", help="skip H.264's deblocking filter on some frames: off | noref | bidir | all "
+                                           "(faster decoding, measured error: docs/decode_fast.md)",
+                               choices=tuple(DECODE_FAST))
 
     def __post_init__(self):
         if not isinstance(self.keep_top_fraction, (int, float)) or isinstance(self.keep_top_fraction, bool) \

@@ -11,10 +11,12 @@ values this class holds are here.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from v2v_server.checks import check_choice, check_int
+from v2v_server.frames.motion import STATIC_MOTION
 from v2v_server.frames.shots import SHOT_CUTS, WindowLayout
+from v2v_server.settings import setting
 
 #: What ``static_windows`` takes: keep static windows (the paper's) or skip them (docs/fidelity.md).
 STATIC_WINDOWS = ("keep", "skip")
@@ -25,20 +27,27 @@ class WindowSettings:
     """Where a video's windows lie, and so how many of its frames a pass reads.
 
     Attributes:
-        frames_per_sample: source frames one window spans (>= 2; ``L x B x frames_per_bin + 1``).
         max_samples_per_video: windows a video gives at most per epoch (>= 1).
         shot_cuts: ``"avoid"`` (windows inside one shot) or ``"off"`` (k x stride), ``shots.SHOT_CUTS``.
         static_windows: ``"keep"`` or ``"skip"`` windows whose motion is below
             ``motion.STATIC_MOTION`` (decided from the frames, before simulation).
+        frames_per_sample: source frames one window spans (>= 2; ``L x B x frames_per_bin + 1``,
+            given by the recipe, whose keys decide it: not a key of its own).
 
     Raises:
         ValueError: naming the field, for a value out of its range.
     """
 
-    frames_per_sample: int
-    max_samples_per_video: int
-    shot_cuts: str
-    static_windows: str
+    max_samples_per_video: int = setting(10, help="windows (samples with crops_per_window 1) per video per epoch")
+    shot_cuts: str = setting("avoid", help="avoid: windows lie inside one shot (they start at each shot's first "
+                                           "frame + k x stride; shot cuts found while decoding, docs/corpora.md); "
+                                           "off: windows at k x stride whatever they hold (the authors' loader)",
+                             choices=SHOT_CUTS)
+    static_windows: str = setting("keep", help="keep: every window (the paper's pauses and still shots included); skip: "
+                                                "windows whose frames barely change (motion below "
+                                                f"{STATIC_MOTION} log intensity a frame pair) give no sample, decided "
+                                                "before simulation (docs/fidelity.md)", choices=STATIC_WINDOWS)
+    frames_per_sample: int = field(kw_only=True)
 
     def __post_init__(self):
         check_int("frames_per_sample", self.frames_per_sample, 2)

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Tuple, Union
 
-from v2v_server.checks import check_bool, check_choice, check_float, check_int, check_keys
+from v2v_server.checks import check_bool, check_choice, check_float, check_int
 from v2v_server.delivery.core import DeliveryPolicy
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.settings import documented, load_yaml, reference_markdown, setting
+from v2v_server.settings import documented, load_yaml, owners, reference_markdown, setting, split_keys
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.frames.frame_cache import DEFAULT_FORMAT as DEFAULT_FRAME_CACHE_FORMAT, FORMATS as FRAME_CACHE_FORMATS
 from v2v_server.disk_cache import cache_folder
@@ -188,10 +188,7 @@ class ServeConfig:
     __slots__ = tuple(name for name, _ in PARTS)
 
     def __init__(self, **keys):
-        check_keys(keys, _OWNERS)
-        given = {name: {} for name, _ in self.PARTS}
-        for k, v in keys.items():
-            given[_OWNERS[k]][k] = v
+        given = split_keys(ServeConfig, keys)
         recipe = SampleRecipe(**given["recipe"])
         delivery = DeliveryPolicy(**given["delivery"], offered=tuple(recipe.outputs),
                                   crops_per_window=recipe.crops_per_window, seed=recipe.seed,
@@ -249,7 +246,7 @@ class ServeConfig:
 
 
 #: Flat key -> the ``ServeConfig`` part that owns it.
-_OWNERS = {f.name: name for name, cls in ServeConfig.PARTS for f in documented(cls)}
+_OWNERS = owners(ServeConfig)
 
 
 def parse_shard(spec) -> Tuple[int, int]:

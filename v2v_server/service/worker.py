@@ -21,6 +21,7 @@ import os
 import signal
 import sys
 import time
+from dataclasses import dataclass
 from typing import Optional, Union
 
 import numpy as np
@@ -217,10 +218,18 @@ def run_task(recipe: SampleRecipe, source: VideoSource, caches: HostCaches, task
     _send(sock, [pack(done.to_wire())], parent_pid)
 
 
-def worker_config(cfg: ServeConfig) -> dict:
-    """What a worker process is given: the sample recipe (``SampleRecipe.recipe_dict``) and
-    the server's log format; nothing of transport, security or delivery."""
-    return {"recipe": cfg.recipe.recipe_dict(), "log_format": cfg.log_format}
+@dataclass(frozen=True)
+class WorkerSetup:
+    """What a worker process is given (it pickles to the spawned process): the sample recipe and
+    the server's log format (``"text"`` or ``"json"``); nothing of transport, security or delivery."""
+
+    recipe: SampleRecipe
+    log_format: str = "text"
+
+
+def worker_config(cfg: ServeConfig) -> WorkerSetup:
+    """The :class:`WorkerSetup` of the server configured by ``cfg``."""
+    return WorkerSetup(cfg.recipe, cfg.log_format)
 
 
 def exit_on_sigterm() -> None:
@@ -239,12 +248,12 @@ def exit_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, _exit)
 
 
-def worker_main(cfg_dict: dict, corpus: dict, endpoint: str, identity: bytes, parent_pid: int,
+def worker_main(setup: WorkerSetup, corpus: dict, endpoint: str, identity: bytes, parent_pid: int,
                 ring: Optional[dict] = None) -> None:
     """Entry point of a worker process (started with the ``spawn`` method).
 
     Args:
-        cfg_dict: ``worker_config(cfg)``.
+        setup: the recipe and log format (``worker_config(cfg)``).
         corpus: ``{"source": VideoSource.spec(), "caches": HostCaches.spec()}``: the corpus
             (``sources.source``) and the host's caches beside it (``frames.host_caches``), built
             here once.
@@ -255,8 +264,8 @@ def worker_main(cfg_dict: dict, corpus: dict, endpoint: str, identity: bytes, pa
     import cv2
 
     cv2.setNumThreads(1)
-    recipe = SampleRecipe.recipe_from_dict(cfg_dict["recipe"], source="worker recipe")
-    if cfg_dict.get("log_format") == "json":  # one format for the whole server's stderr
+    recipe = setup.recipe
+    if setup.log_format == "json":  # one format for the whole server's stderr
         setup_logging("INFO", "json", "v2v-worker")
     else:
         logging.basicConfig(level=logging.INFO, format="v2v-worker %(process)d: %(message)s")
