@@ -23,14 +23,10 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 from v2v_server.frames.motion import MOTION_VERSION, STATIC_MOTION
 from v2v_server.frames.shots import DETECTOR_VERSION
-
-if TYPE_CHECKING:
-    from v2v_server.frames.frame_pass import DecodeSettings
-    from v2v_server.frames.windows import WindowSettings
 
 #: Version of the key's content: a change makes every frame-cache entry and index row a miss.
 PASS_VERSION = 1
@@ -61,8 +57,8 @@ class PassRecord:
             measure and threshold decide which windows are static), else ``""``.
     """
 
-    decode: "DecodeSettings"
-    windows: "WindowSettings"
+    decode: object  # frame_pass.DecodeSettings (frame_pass names this module's record: no import back)
+    windows: object  # windows.WindowSettings
     shot_detector: str = ""
     static_motion: str = ""
 
