@@ -21,7 +21,7 @@ Measured per source, in this process, rounds interleaved, medians:
   and the kept rows cut afterwards (``decode_luma(..., None, height)``, ``scale_frame(g,
   height)[:kept]``), in the same rounds, and the ratios;
 * cached bytes per hour of video: the bytes a ``raw`` frame-cache entry holds per frame (real
-  entries, written through ``samples.make.video_frames``: the kept 54 % of each frame), times
+  entries, written through ``frames.video_read.read_video``: the kept 54 % of each frame), times
   25 fps x 3600 s, without and with ``frame_height``;
 * decode threads per worker (``--threads``, 1 2 4) at the sizes of 720 rows and more
   (``--threads-from``): frames
@@ -126,15 +126,15 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     """Bytes per frame of the ``raw`` frame-cache entry a worker's pass writes for ``path`` (the
     default kept 54 %; ``frame_height`` = ``height``), read from the cache's own listing."""
     from v2v_server.frames.host_caches import HostCaches
-    from v2v_server.samples.make import video_frames
+    from v2v_server.frames.video_read import read_video, reraise
     from v2v_server.sources.local import LocalSource
 
     cfg = SampleRecipe(sequence_length=2, num_bins=2, crop_size=8, max_samples_per_video=1000,
                       frame_height=height)
-    fc = HostCaches.open(str(cache), frame_cache_gb=64.0).frame_cache
-    with video_frames(cfg, LocalSource(path.parent), path.name, fc) as fp:
-        n = sum(1 for _ in fp.frames)
-        fp.commit()  # the pass is whole: store its entry, as a worker's pass does
+    caches = HostCaches.open(str(cache), frame_cache_gb=64.0)
+    fc = caches.frame_cache
+    with read_video(LocalSource(path.parent), path.name, cfg.reads, caches, handler=reraise) as read:
+        n = sum(1 for _ in read.frames)  # the read stores the entry of its whole pass, as a worker's does
     sizes = [size for _, size, _ in fc.disk.entries()]
     assert len(sizes) == 1, sizes
     return sizes[0] / n

@@ -113,13 +113,13 @@ def reference_loader(path: Path, samples: int, crop: int = 128) -> float:
 
 # ---------------------------------------------------------------------------- ours, one core
 def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_fast: str = "off",
-                flow_grid: bool = False, busy: Optional[dict] = None, frame_cache=None, epoch: int = 0) -> float:
+                flow_grid: bool = False, busy: Optional[dict] = None, caches=None, epoch: int = 0) -> float:
     """Samples per CPU-second of one worker's work (decode, crop, simulate, flow, narrowing)
     in this process, one thread, with the recipe's ``decode_fast`` setting. ``flow_grid``:
     the tracked flow as its grid, as a served worker sends it. ``busy``, when given, receives
     ``samples`` and the seconds spent per stage (``SamplePass.seconds``: ``simulate``,
-    ``flow``, ``stats``). ``frame_cache``: the host's frame cache to read through
-    (``HostCaches.frame_cache``), None for none; ``epoch``: the epoch drawn."""
+    ``flow``, ``stats``). ``caches``: the host's caches to read through (``HostCaches``: the
+    frame cache), None for none; ``epoch``: the epoch drawn."""
     import cv2
 
     from v2v_server.samples.recipe import SampleRecipe
@@ -136,7 +136,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     n = 0
     t = time.process_time()
     for name in names:
-        run = video_samples(cfg, LocalSource(corpus), name, epoch, outputs, (), flow, flow_grid, frame_cache)
+        run = video_samples(cfg, LocalSource(corpus), name, epoch, outputs, (), flow, flow_grid, caches)
         for sid, arrays, meta in run:
             wire_arrays(cfg, arrays)
             n += 1

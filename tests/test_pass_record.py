@@ -12,12 +12,12 @@ import pytest
 import v2v_server.frames.pass_record as pass_record
 from harness.corpus import write_scenes_video
 from tests.cached import Cached, cached
-from v2v_server.samples.make import video_frames
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.corpus import check_video
 from v2v_server.frames.corpus_index import INDEX_FILE, INDEX_VERSION, CorpusIndex, Verdict, layout_key
 from v2v_server.frames.frame_cache import FrameCache
 from v2v_server.frames.frame_pass import corpus_key, entry_settings
+from v2v_server.frames.video_read import read_video, reraise
 from v2v_server.sources.local import RACY_NS
 from v2v_server.sources.source_spec import open_source
 
@@ -56,10 +56,9 @@ def corpus(tmp_path: Path) -> Path:
 
 def _read(recipe: SampleRecipe, corpus: Cached) -> None:
     """One sample pass (stored in the frame cache) and one ``--check`` pass (recorded in the index)."""
-    with video_frames(recipe, corpus.source, CLIP, corpus.frame_cache) as fp:
-        for _ in fp.frames:
+    with read_video(corpus.source, CLIP, recipe.reads, corpus.caches, handler=reraise) as read:
+        for _ in read.frames:
             pass
-        fp.commit()
     assert check_video(recipe.windows, recipe.decode, corpus.source, CLIP, corpus.caches).usable
 
 

@@ -9,7 +9,7 @@ import shutil
 import pytest
 
 from v2v_server import cli
-from v2v_server.samples.make import video_frames
+from v2v_server.frames.frame_pass import open_frames
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.sources.listing import SAMPLE_VIDEOS
 from v2v_server.sources.local import LocalSource
@@ -64,7 +64,8 @@ def test_a_path_with_spaces_is_served_and_the_authors_lines_stay_whole(corpus):
     src = LocalSource(corpus, video_list=str(lst))
     videos, rejected = src.list_videos((".mp4",))
     assert videos == ["my clip.mp4#t=0,4", "my clip.mp4", "a.mp4"] and rejected == []
-    with video_frames(SampleRecipe(shot_cuts="off"), src, "my clip.mp4#t=0,4") as fp:
+    off = SampleRecipe(shot_cuts="off")
+    with open_frames(src, "my clip.mp4#t=0,4", off.decode, off.windows) as fp:
         assert sum(1 for _ in fp.frames) == 100  # 0.00 .. 3.96 s at 25 fps
 
 
@@ -143,7 +144,8 @@ def test_panda_timestamp_lists_give_one_segment_per_pair(corpus):
     assert [p for p, _ in rejected] == ["my clip.mp4", "b.mp4", "0012345.mp4#t=1,2"]  # an id keeps its zeros
     assert "timestamp '[[\"0:00:01.000\", \"0:00:99.000\"]]': time '0:00:99.000'" in rejected[0][1]
     assert rejected[1][1] == f"listed in {table}: timestamp 'not a list': not a list of [start, end] pairs"
-    with video_frames(SampleRecipe(shot_cuts="off"), src, videos[1]) as fp:
+    off = SampleRecipe(shot_cuts="off")
+    with open_frames(src, videos[1], off.decode, off.windows) as fp:
         assert sum(1 for _ in fp.frames) == 100  # 4.00 .. 7.96 s at 25 fps
 
 

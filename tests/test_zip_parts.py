@@ -127,7 +127,7 @@ def test_segments_of_a_deflated_member(tmp_path):
     """A time range of a deflated member (a seek to the key frame before it, backwards through
     the streaming reader) gives the frames of the same range of the file."""
     from v2v_server.ops.config import ServeConfig
-    from v2v_server.samples.make import video_frames
+    from v2v_server.frames.frame_pass import open_frames
 
     clip = "bbb_camera_596x336.mp4"
     with zipfile.ZipFile(tmp_path / "p.zip", "w", zipfile.ZIP_DEFLATED) as z:
@@ -141,7 +141,7 @@ def test_segments_of_a_deflated_member(tmp_path):
     assert videos == [f"p.zip/{clip}#t=2,6", f"{clip}#t=2,6"]
 
     def frames(video):
-        with video_frames(cfg.recipe, src, video) as fp:
+        with open_frames(src, video, cfg.recipe.decode, cfg.recipe.windows) as fp:
             return [f.expand(f.codes).tobytes() for f in fp.frames]
 
     assert frames(videos[0]) == frames(videos[1]) and len(frames(videos[1])) == 100  # 2.00 .. 5.96 s

@@ -211,7 +211,7 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
         start = start_source(cfg, videos)  # the start-up path v2v-serve runs: the same source and caches
     except (OSError, ValueError, StoreError) as e:
         raise CalibrationError(f"corpus {videos}: {e}") from None
-    source, fc, names = start.source, start.caches.frame_cache, start.videos
+    source, caches, names = start.source, start.caches, start.videos
     out = CorpusWindows([], [], [])
     rng = np.random.default_rng(seed)
     skipped = set()
@@ -219,7 +219,7 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
         if rel in skipped:
             continue
         try:
-            for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",), frame_cache=fc):
+            for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",), caches=caches):
                 shape = arrays["frames"].shape[1:]
                 out.seqs.append(arrays["frames"])
                 out.fps.append(float(meta["video_fps"]))

@@ -146,7 +146,7 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
     for epoch in range(epochs):
         for rel in usable:
             for _key, arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True,
-                                                    frame_cache=caches.frame_cache):
+                                                    caches=caches):
                 out.rows.append(sample_row(meta, arrays["voxels"], recipe))
                 progress(1)
                 if len(out.rows) >= n:

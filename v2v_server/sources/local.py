@@ -74,6 +74,11 @@ class LocalSource(VideoSource):
         self._abs_root = os.path.abspath(self.root)
         self._members: Optional[Tuple[List[str], List[Tuple[str, str]]]] = None  # _corpus_archives' answer
 
+    @property
+    def location(self) -> str:
+        """The folder's absolute path: the same corpus whatever folder a process started in."""
+        return self._abs_root
+
     def check(self) -> None:
         """Raises StoreError: the folder does not exist."""
         if not Path(self.root).is_dir():

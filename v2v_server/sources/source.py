@@ -55,6 +55,9 @@ class VideoSource:
     """A corpus: lists videos as sample-id paths and opens them for decoding. See the module
     docstring; ``source_spec.open_source`` builds one.
 
+    What a source can do, for the readers that ask (rather than testing its class):
+    :attr:`identity_costs_request` and :attr:`location`.
+
     Args:
         root: the corpus as given (a folder path or a URL), for logs and errors.
         video_list: the video list file that selects and orders the videos, if any.
@@ -73,6 +76,18 @@ class VideoSource:
         #: How a table video list is read (its path column, filter, window frames): set by
         #: ``ops.config.source_from_config`` from the settings; the defaults otherwise.
         self.list_table = TableSettings()
+
+    #: Whether :meth:`identity` costs a request to a store (an object's ETag), so that questions
+    #: asked of every video at once are asked where they can run in parallel; False where it is
+    #: a ``stat`` of this host's file system (a folder's file, or a member of its archive).
+    identity_costs_request = False
+
+    @property
+    def location(self) -> str:
+        """The corpus as one name for what this host keeps of it (the frame cache's entries):
+        :attr:`root` as given (a URL); a folder's absolute path (``LocalSource``)."""
+        return self.root
+
     def _cache_folders(self) -> List[Path]:
         """The folders of this source's caches that are on (a store's object cache)."""
         return []

@@ -93,6 +93,9 @@ class StoreSource(VideoSource):
         settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).
     """
 
+    #: An object's identity is its ETag or generation, read from the store.
+    identity_costs_request = True
+
     def __init__(self, url: str, *, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False,
                  settings: StoreSettings = StoreSettings(), names: Optional[List[str]] = None,
