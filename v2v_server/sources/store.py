@@ -83,18 +83,16 @@ class StoreSource(VideoSource):
 
     Args (all but ``url`` by keyword):
         url: ``s3://bucket/prefix/`` (a trailing ``/`` is implied) or another fsspec URL.
-        storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the
-            defaults below; credentials otherwise come from the store's standard configuration
-            (for S3: ``AWS_*`` variables incl. ``AWS_ENDPOINT_URL``, shared config files,
-            instance roles).
+        storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the defaults below;
+            credentials otherwise come from the store's standard configuration (for S3: ``AWS_*``
+            variables incl. ``AWS_ENDPOINT_URL``, shared config files, instance roles).
         video_list, names, cache_dir: as :class:`~v2v_server.sources.source.VideoSource`'s.
         manifest: the manifest file (see ``manifest.manifest_path``); None keeps none.
         refresh_manifest: list the store again instead of reading the manifest.
         settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).
     """
 
-    #: An object's identity is its ETag or generation, read from the store.
-    identity_costs_request = True
+    identity_costs_request = True  # an object's identity (ETag, generation) is read from the store
 
     def __init__(self, url: str, *, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False,
