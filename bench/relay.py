@@ -65,7 +65,7 @@ def real_sample(path: str) -> None:
     """Save the first sample of the bundled 596 x 336 clip (default recipe) as a worker sends
     it (voxels int8, frames uint8, the tracked flow as ``flow_grid``) to ``path`` (.npz)."""
     from v2v_server.samples.recipe import SampleRecipe
-    from v2v_server.sources.listing import SAMPLE_VIDEOS
+    from v2v_server.ops.startup import SAMPLE_VIDEOS
     from v2v_server.samples.make import video_samples
     from v2v_server.sources.local import LocalSource
     from v2v_server.service.worker import wire_arrays

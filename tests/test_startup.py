@@ -13,7 +13,7 @@ from v2v_server.ops.config import ServeConfig, source_from_config
 from v2v_server.ops.startup import resolve_config, start_source
 from v2v_server.ray_data import SampleMaker, scan_corpus_windows
 from v2v_server.service.local import local_server
-from v2v_server.sources.listing import SAMPLE_VIDEOS
+from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.disk_cache import cache_folder, default_cache_dir
 from v2v_server.sources.manifest import manifest_path
 from v2v_server.disk_cache import CacheDirError

@@ -11,11 +11,14 @@ import pytest
 from v2v_server import cli
 from v2v_server.frames.frame_pass import open_frames
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.sources.listing import SAMPLE_VIDEOS
+from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.sources.local import LocalSource
 from v2v_server.sources.segments import parse_time
 from v2v_server.sources.video_list import read_video_list
 from v2v_server.sources.video_tables import TableSettings
+from v2v_server.frames.known import short_entries
+from v2v_server.ops.config import ServeConfig
+from v2v_server.ops.startup import start_source
 
 CLIP = "bbb_camera_596x336.mp4"  # 25 fps, one shot
 
@@ -104,15 +107,20 @@ def openvid(corpus):
 
 
 def test_an_openvid_csv_with_a_filter_skips_short_rows_unopened(openvid):
+    """The table gives each row's frames (a source knows nothing of windows); the start-up path
+    drops the rows too short for one window (the frames side's rule) before any is opened."""
     corpus, table = openvid
-    src = LocalSource(corpus, video_list=str(table))
-    src.list_table = TableSettings(None, MOVING, 21)
+    src = LocalSource(corpus, video_list=str(table), table=TableSettings(None, MOVING))
     videos, rejected = src.list_videos((".mp4",))
-    assert videos == ["a.mp4", "my clip.mp4"]
+    assert videos == ["a.mp4", "c.mp4", "my clip.mp4"] and src.listed_frames.frames["c.mp4"] == 15
     assert rejected == [("(no path)", f"listed in {table}: a row with no video"),
-                        (str(table), f"1 row(s) of {table} skipped without opening their video: their frame (or "
-                                     f"seconds x fps) is below one window's 21 frames (e.g. c.mp4)"),
                         ("gone.mp4", f"listed in {table} but missing from {corpus}")]
+    start = start_source(ServeConfig(videos=str(corpus), video_list=str(table), video_list_filter=MOVING,
+                                     sequence_length=4))  # windows of 21 frames
+    assert start.videos == ["a.mp4", "my clip.mp4"] and start.listed == 2
+    assert start.rejected == rejected + [(str(table), f"1 row(s) of {table} skipped without opening their video: "
+                                                      f"their frame (or seconds x fps) is below one window's 21 "
+                                                      f"frames (e.g. c.mp4)")]
 
 
 def test_check_serves_a_filtered_table_and_shows_the_rows_skipped(openvid, capsys):
@@ -137,8 +145,7 @@ PANDA = ("videoID,url,timestamp,caption,matching_score\n"
 def test_panda_timestamp_lists_give_one_segment_per_pair(corpus):
     table = corpus / "panda70m.csv"
     table.write_text(PANDA)
-    src = LocalSource(corpus, video_list=str(table))
-    src.list_table = TableSettings("{videoID}.mp4", None, 21)
+    src = LocalSource(corpus, video_list=str(table), table=TableSettings("{videoID}.mp4"))
     videos, rejected = src.list_videos((".mp4",))
     assert videos == ["a.mp4#t=0,4", "a.mp4#t=4,8"]  # the repeated pair collapses, the repeated bad row is named once
     assert [p for p, _ in rejected] == ["my clip.mp4", "b.mp4", "0012345.mp4#t=1,2"]  # an id keeps its zeros
@@ -158,11 +165,14 @@ def test_parquet_and_json_tables(corpus, fmt):
     duckdb.execute("COPY (SELECT * FROM (VALUES ('a.mp4', 601, 25.0, [['0:00:00', '0:00:04'], ['0:00:04', "
                    "'0:00:04.4']]), ('my clip.mp4', 601, 25.0, [['0:00:02', '0:00:06']]), ('x.mp4', 10, 25.0, "
                    f"[['0', '9']])) AS t(path, frame, fps, timestamp)) TO '{path}' ({options})")
-    got = read_video_list(str(path), TableSettings(None, "frame >= 21", 21))
+    got = read_video_list(str(path), TableSettings(None, "frame >= 21"))
+    assert got.videos == ["a.mp4#t=0,4", "a.mp4#t=4,4.4", "my clip.mp4#t=2,6"] and got.refused == []
     # a range's length x fps decides: 0.4 s x 25 = 10 frames < 21
-    assert got.videos == ["a.mp4#t=0,4", "my clip.mp4#t=2,6"]
-    assert got.refused == [(str(path), f"1 row(s) of {path} skipped without opening their video: their range's "
-                                       f"length x fps is below one window's 21 frames (e.g. a.mp4#t=4,4.4)")]
+    assert got.frames.frames == {"a.mp4#t=0,4": 100, "a.mp4#t=4,4.4": pytest.approx(10), "my clip.mp4#t=2,6": 100}
+    kept, short = short_entries(SampleRecipe(sequence_length=4).windows, got.videos, got.frames)
+    assert kept == ["a.mp4#t=0,4", "my clip.mp4#t=2,6"]
+    assert short == [(str(path), f"1 row(s) of {path} skipped without opening their video: their range's "
+                                 f"length x fps is below one window's 21 frames (e.g. a.mp4#t=4,4.4)")]
 
 
 @pytest.mark.parametrize("flags, named", [
@@ -200,5 +210,6 @@ def test_a_table_in_the_store(tmp_path, monkeypatch):
         s3.upload(tmp_path, "s3://meta/")
         for k, v in s3.env().items():
             monkeypatch.setenv(k, v)
-        got = read_video_list("s3://meta/OpenVid-1M.csv", TableSettings(None, None, 21))
-    assert got.videos == ["a.mp4"] and "1 row(s)" in got.refused[0][1]
+        got = read_video_list("s3://meta/OpenVid-1M.csv")
+    assert got.videos == ["a.mp4", "c.mp4"] and got.frames.frames == {"a.mp4": 601, "c.mp4": 15}
+    assert short_entries(SampleRecipe(sequence_length=4).windows, got.videos, got.frames)[0] == ["a.mp4"]

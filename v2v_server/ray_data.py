@@ -122,14 +122,15 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str,
 
 def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] = None) -> RayCorpus:
     """List the videos of ``videos`` (as ``v2v-serve --videos``: a folder or an object-store
-    URL, with ``config``'s ``video_list``, ``storage_options`` and manifest) and count their
-    windows.
+    URL, with ``config``'s ``video_list``, ``storage_options`` and manifest), keep ``config``'s
+    ``shard`` of them, and count their windows.
 
     Logs ``skipped PATH: reason`` (logger ``v2v.ray``, WARNING) for each unusable file and
     ``ignored PATH: reason`` (INFO) for other entries, as ``v2v-serve`` does.
 
-    The corpus is opened, checked and listed by the start-up path ``v2v-serve`` runs
-    (``ops.startup.start_source``).
+    The corpus is opened, checked, listed and sharded, and the videos the host's corpus index
+    knows to give no window left out unopened, by the start-up path ``v2v-serve`` runs
+    (``ops.startup.start_source``): the same videos ``v2v-serve`` serves for the same settings.
 
     Raises:
         StoreError: ``videos`` is a local path but not a folder, or the store cannot be reached
@@ -137,11 +138,14 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
         disk_cache.CacheDirError: a cache that is on cannot be kept in ``cache_dir`` (naming it).
     """
     start = start_source(config or ServeConfig(), videos)
-    cfg, source, caches, found, rejected = start.config, start.source, start.caches, start.videos, start.rejected
-    for rel, reason in rejected:
+    cfg, source, caches = start.config, start.source, start.caches
+    for rel, reason in start.rejected:
         log.info("ignored %s: %s", source.where_ignored(rel), reason)
     windows, skipped = {}, {}
-    for rel in found:
+    for rel, (_, reason) in start.skipped.items():
+        skipped[rel] = reason
+        log.warning("skipped %s: %s (known from the corpus index: not opened)", source.where(rel), reason)
+    for rel in start.served:
         n, reason = count_windows(cfg, source, rel, caches)
         if reason:
             skipped[rel] = reason

@@ -77,6 +77,13 @@ class WindowSettings:
         a count of windows must decode them."""
         return self.avoid_cuts or self.skip_static
 
+    def holds_window(self, listed_frames: float) -> bool:
+        """Whether a video a list counts ``listed_frames`` frames for holds one window: at least
+        ``frames_per_sample``, less half a frame (a table's numbers are rounded: OpenVid's
+        seconds to 1/100 s). One that does not is dropped before it is opened
+        (``known.short_entries``)."""
+        return listed_frames >= self.frames_per_sample - 0.5
+
     def windows_in(self, frames: int) -> int:
         """Windows a video of ``frames`` frames holds laid out from frame 0, at most ``max_samples_per_video``."""
         return max(0, min(self.max_samples_per_video, (frames - 1) // self.window_stride))

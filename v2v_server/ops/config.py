@@ -21,12 +21,9 @@ from v2v_server.settings import documented, load_yaml, owners, reference_markdow
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.frames.frame_cache import DEFAULT_FORMAT as DEFAULT_FRAME_CACHE_FORMAT, FORMATS as FRAME_CACHE_FORMATS
 from v2v_server.disk_cache import cache_folder
-from v2v_server.sources.manifest import manifest_path
-from v2v_server.sources.shards import split_pattern
 from v2v_server.sources.source import VideoSource
 from v2v_server.sources.source_spec import open_source
-from v2v_server.sources.store import StoreSettings, store_root
-from v2v_server.sources.video_list import is_url
+from v2v_server.sources.store import StoreSettings
 from v2v_server.sources.video_tables import TABLE_FORMATS, TableSettings, table_format
 from v2v_wire.protocol import is_loopback  # noqa: F401  (config's checks and sockets use it)
 
@@ -264,23 +261,14 @@ def parse_shard(spec) -> Tuple[int, int]:
 
 
 def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) -> VideoSource:
-    """The source ``cfg`` (a ``ServeConfig``) describes: ``videos`` or ``cfg.videos``, its
-    ``video_list`` (a table's column, filter and the window's frames included),
-    ``storage_options``, store settings and manifest (``manifest.manifest_path``)."""
-    videos = cfg.videos if videos is None else videos
-    cache_dir = cache_folder(cfg.cache_dir)  # resolved once; the manifest and the source take the folder
-    manifest = None
-    if videos is not None and is_url(str(videos)):
-        # one manifest per listing: of a prefix (all its objects), or of a pattern's or a list's tar members
-        key = str(videos) if split_pattern(str(videos))[1] else store_root(str(videos))
-        if cfg.video_list:
-            key += f" listed by {Path(cfg.video_list).resolve()}"
-        manifest = str(manifest_path(key, cfg.state_dir, cache_dir))
-    source = open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
-                         refresh_manifest=cfg.refresh_manifest, settings=cfg.store, cache_dir=cache_dir)
-    source.list_table = TableSettings(cfg.video_list_column, cfg.video_list_filter,
-                                      cfg.recipe.windows.frames_per_sample)
-    return source
+    """The source ``cfg`` (a ``ServeConfig``) describes (``source_spec.open_source``): ``videos``
+    or ``cfg.videos``, its ``video_list`` read with the table's column and filter,
+    ``storage_options``, store settings, and a store's listing kept as a manifest (in
+    ``state_dir``, else the cache folder)."""
+    return open_source(cfg.videos if videos is None else videos, storage_options=cfg.storage_options,
+                       video_list=cfg.video_list, table=TableSettings(cfg.video_list_column, cfg.video_list_filter),
+                       keep_manifest=True, state_dir=cfg.state_dir, refresh_manifest=cfg.refresh_manifest,
+                       settings=cfg.store, cache_dir=cache_folder(cfg.cache_dir))
 
 
 def caches_from_config(cfg: ServeConfig) -> HostCaches:

@@ -15,6 +15,7 @@ from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, PIECE, gather_pieces, split_member
 from v2v_server.sources.source import VideoSource
 from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.video_tables import TableSettings
 
 
 def corpus_file(root, rel: str) -> Path:
@@ -68,9 +69,10 @@ class LocalSource(VideoSource):
     a path or a ``file://`` URL, the other arguments as :class:`~v2v_server.sources.source.VideoSource`'s."""
 
     def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None,
-                 cache_dir: Optional[str] = None):
+                 cache_dir: Optional[str] = None, table: TableSettings = TableSettings()):
         root = str(root)
-        super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names, cache_dir)
+        super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names, cache_dir,
+                         table)
         self._abs_root = os.path.abspath(self.root)
         self._members: Optional[Tuple[List[str], List[Tuple[str, str]]]] = None  # _corpus_archives' answer
 
@@ -194,4 +196,5 @@ class LocalSource(VideoSource):
         return None if any(racy(st) for st in stats) else " + ".join(file_identity(st) for st in stats)
 
     def spec(self) -> dict:
-        return {"root": self.root, "video_list": self.video_list, "names": self.names, "cache_dir": self.cache_dir}
+        return {"root": self.root, "video_list": self.video_list, "names": self.names, "cache_dir": self.cache_dir,
+                "table": self.table}

@@ -45,7 +45,7 @@ from v2v_server.disk_cache import cache_folder, check_cache_folders
 from v2v_server.sources.segments import base_path, printable_name, range_problem, split_segment
 from v2v_server.sources.shards import ARCHIVES, split_member
 from v2v_server.sources.video_list import VideoList, read_video_list
-from v2v_server.sources.video_tables import TableSettings
+from v2v_server.sources.video_tables import ListedFrames, TableSettings
 
 
 log = logging.getLogger("v2v")
@@ -65,17 +65,19 @@ class VideoSource:
             instead of the store.
         cache_dir: the folder of the host's caches (None: the host's default,
             ``disk_cache.cache_folder``): a store's manifests and object cache.
+        table: how a table video list is read (its path column, its filter).
     """
 
     def __init__(self, root: str, video_list: Optional[str] = None, names: Optional[List[str]] = None,
-                 cache_dir: Optional[str] = None):
-        self.root, self.video_list, self.names = root, video_list, names
+                 cache_dir: Optional[str] = None, table: TableSettings = TableSettings()):
+        self.root, self.video_list, self.names, self.table = root, video_list, names, table
         self.cache_dir = cache_folder(cache_dir)  # resolved here once: the store's caches and spec() take it
         #: The corpus's archives: their member indexes, split parts' pieces, their members opened.
         self.archives = Archives(self.root, self._open_raw, self._exists, self._siblings, self._shard_version)
-        #: How a table video list is read (its path column, filter, window frames): set by
-        #: ``ops.config.source_from_config`` from the settings; the defaults otherwise.
-        self.list_table = TableSettings()
+        #: The frames the video list counted for the videos of the last listing, by their ids
+        #: (a table's numbers; none without one): the frames side drops those too short for a
+        #: window before any is opened (``frames.known.short_entries``).
+        self.listed_frames = ListedFrames()
 
     #: Whether :meth:`identity` costs a request to a store (an object's ETag), so that questions
     #: asked of every video at once are asked where they can run in parallel; False where it is
@@ -134,14 +136,15 @@ class VideoSource:
         refuses), the archives a brace pattern (or one archive) names, or, with both, the list's
         entries paired with those archives' video members (:func:`archives.pair_members`)."""
         if self.names and self.video_list:
-            listed = read_video_list(self.video_list, self.list_table)
+            listed = read_video_list(self.video_list, self.table)
             members, rejected = self.archives.expand(list(self.names), [], extensions)
             where = f"the {len(self.names)} archive(s) given in {self.root}" if len(self.names) > 1 else self.names[0]
-            paired, refused = pair_members(listed.videos, members, self.video_list, where)
-            return VideoList(paired, listed.refused + rejected + refused)
+            named: dict = {}
+            paired, refused = pair_members(listed.videos, members, self.video_list, where, named=named)
+            return VideoList(paired, listed.refused + rejected + refused, listed.frames.renamed(named))
         if self.names:
             return VideoList(list(self.names), [])
-        return read_video_list(self.video_list, self.list_table) if self.video_list else None
+        return read_video_list(self.video_list, self.table) if self.video_list else None
 
     def list_videos(self, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """``(videos, rejected)``: sample-id paths of the videos (the list's order with a video
@@ -179,6 +182,7 @@ class VideoSource:
         Names that are no file of the corpus are first paired with the members of the archives
         it holds (:meth:`_paired`). The lines the list refused come first among the rejected."""
         names = self._paired(names, exists, extensions)
+        self.listed_frames = names.frames
         videos, rejected = [], list(names.refused)
         for rel in names.videos:
             try:
@@ -219,9 +223,10 @@ class VideoSource:
         if not found or not (found[0] or found[1]):
             return names
         members, problems = found
+        named: dict = {}
         paired, refused = pair_members(names.videos, members, self.video_list, f"the archives in {self.root}",
-                                       present=lambda rel: rel not in missing)
-        return VideoList(paired, names.refused + problems + refused)
+                                       present=lambda rel: rel not in missing, named=named)
+        return VideoList(paired, names.refused + problems + refused, names.frames.renamed(named))
 
     def _corpus_archives(self, extensions: Sequence[str]) -> Optional[Tuple[List[str], List[Tuple[str, str]]]]:
         """``(members, rejected)``: the ids of the video members of the archives the corpus

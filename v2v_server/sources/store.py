@@ -18,6 +18,7 @@ from v2v_server.sources.manifest import ListedObject, StoreListing, etag_of, obj
 from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
 from v2v_server.sources.source import VideoSource
+from v2v_server.sources.video_tables import TableSettings
 from v2v_server.sources.store_io import (MAX_ATTEMPTS, READ_TIMEOUT_S, ObjectCache, ReadStats, StoreError, make_filesystem, retry_policy, time_fetches)
 
 log = logging.getLogger("v2v.source")
@@ -78,6 +79,14 @@ def store_root(url: str) -> str:
     return url if url.endswith("/") else url + "/"
 
 
+def listing_key(url: str, pattern: bool, video_list: Optional[str] = None) -> str:
+    """What names one listing of a store, and so its manifest (``manifest.manifest_path``): the
+    prefix's URL (:func:`store_root`: all its objects), or a brace pattern as given (its
+    archives' members); with a video list, the list's absolute path too (a list's members only)."""
+    key = url if pattern else store_root(url)
+    return key + (f" listed by {Path(video_list).resolve()}" if video_list else "")
+
+
 class StoreSource(VideoSource):
     """A corpus under an object-store prefix, read through fsspec.
 
@@ -86,7 +95,7 @@ class StoreSource(VideoSource):
         storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the defaults below;
             credentials otherwise come from the store's standard configuration (for S3: ``AWS_*``
             variables incl. ``AWS_ENDPOINT_URL``, shared config files, instance roles).
-        video_list, names, cache_dir: as :class:`~v2v_server.sources.source.VideoSource`'s.
+        video_list, names, cache_dir, table: as :class:`~v2v_server.sources.source.VideoSource`'s.
         manifest: the manifest file (see ``manifest.manifest_path``); None keeps none.
         refresh_manifest: list the store again instead of reading the manifest.
         settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).
@@ -97,8 +106,8 @@ class StoreSource(VideoSource):
     def __init__(self, url: str, *, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False,
                  settings: StoreSettings = StoreSettings(), names: Optional[List[str]] = None,
-                 cache_dir: Optional[str] = None):
-        super().__init__(store_root(url), video_list, names, cache_dir)
+                 cache_dir: Optional[str] = None, table: TableSettings = TableSettings()):
+        super().__init__(store_root(url), video_list, names, cache_dir, table)
         self.protocol = url.split("://", 1)[0].lower()
         self.prefix = self.root.split("://", 1)[1]
         self.storage_options = dict(storage_options or {})
@@ -115,13 +124,11 @@ class StoreSource(VideoSource):
     # ------------------------------------------------------------------ the filesystem
     @property
     def fs(self):
+        """The store's filesystem (``store_io.make_filesystem``), made at the first use."""
         if self._fs is None:
-            self._fs = self._make_fs()
+            self._fs = make_filesystem(self.protocol, self.root, self.storage_options,
+                                       self.settings.store_read_timeout_s, self.settings.store_max_attempts, self.stats)
         return self._fs
-
-    def _make_fs(self):
-        return make_filesystem(self.protocol, self.root, self.storage_options, self.settings.store_read_timeout_s,
-                               self.settings.store_max_attempts, self.stats)
 
     def _path(self, rel: str) -> str:
         """The filesystem path of ``rel``: the key for object stores, the whole URL for http(s)."""
@@ -348,4 +355,5 @@ class StoreSource(VideoSource):
 
     def spec(self) -> dict:
         return {"root": self.root, "storage_options": self.storage_options, "video_list": self.video_list,
-                "manifest": self.listing.path, "settings": self.settings, "cache_dir": self.cache_dir}
+                "manifest": self.listing.path, "settings": self.settings, "cache_dir": self.cache_dir,
+                "table": self.table}

@@ -17,9 +17,9 @@ VidGen's JSON, a Parquet file) selects and orders its videos, read by DuckDB (ex
   201 and "motion score" > 0.5``) that DuckDB parses as one expression and nothing else (its
   relation API's ``filter``: a second statement or a clause is refused, never run) and
   evaluates with the table loaded and file access off. Ctrl-C stops a slow one at once.
-* **Too short by the table's numbers**: a row whose ``frame`` (else ``seconds`` x ``fps``; for
-  a range, its length x ``fps``) rounds below one window's frames is skipped without opening
-  its video, and counted in one refused entry (``--check`` shows it, the server logs it once).
+* **Frames by the table's numbers**: a row's ``frame`` (else ``seconds`` x ``fps``; for a range,
+  its length x ``fps``) is given with its entry (``ListedFrames``): the frames side drops an
+  entry too short for one window without opening its video (``frames.known.short_entries``).
 
 A configuration error (no path column, a template's unknown column, a filter that is not one
 expression, does not parse or names an unknown column) raises ``ValueError`` naming the file
@@ -39,7 +39,7 @@ import math
 import re
 import string
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, TypeVar
 
 from v2v_server.sources.segments import (TIME_SYNTAX, clean_path, parse_time, path_problem, printable_name, segment_name)
@@ -78,13 +78,36 @@ class TableSettings:
         column: the path column, or a template over columns (``{videoID}.mp4``); None: the
             first of :data:`PATH_COLUMNS` the table has.
         filter: SQL boolean expression over the columns (DuckDB's dialect); None: every row.
-        window_frames: frames one window spans; rows shorter by the table's numbers are skipped
-            (0: none are).
     """
 
     column: Optional[str] = None
     filter: Optional[str] = None
-    window_frames: int = 0
+
+
+@dataclass(frozen=True)
+class ListedFrames:
+    """The frame counts a video list gives for its entries, before any is opened.
+
+    Attributes:
+        frames: entry -> its frames by the list's numbers (a table's ``frame`` column, else
+            ``seconds`` x ``fps``, for a range its length x ``fps``; rounded as the table
+            rounds them: OpenVid's seconds to 1/100 s); an entry the list gives none for is not
+            in it.
+        counted: how they were counted, for a message (``"frame (or seconds x fps)"``,
+            ``"range's length x fps"``).
+        video_list: the list, for a message.
+    """
+
+    frames: Dict[str, float] = field(default_factory=dict)
+    counted: str = ""
+    video_list: str = ""
+
+    def renamed(self, names: Dict[str, str]) -> "ListedFrames":
+        """The counts under other names: ``names`` maps each new name to the entry it stands
+        for (a list's clip paired with the archive member that holds it); entries it does not
+        name are left out."""
+        return ListedFrames({new: self.frames[old] for new, old in names.items() if old in self.frames},
+                            self.counted, self.video_list)
 
 
 def _quote(column: str) -> str:
@@ -465,11 +488,11 @@ def _select(con, path: str, settings: TableSettings, loaded: _Loaded) -> list:
         raise ValueError(f"{where}: {_reason(e)} (columns: {loaded.columns})") from None
 
 
-def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tuple[str, str]]]:
-    """The entries a table video list gives, in the table's order, duplicates dropped, and
-    ``(path, reason)`` for each row refused (a CSV line that cannot be read, no path, a path
-    that is no file's, a time that does not parse) and, in one entry named by the table, the
-    rows too short for a window. See the module docstring.
+def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tuple[str, str]], ListedFrames]:
+    """The entries a table video list gives, in the table's order, duplicates dropped, ``(path,
+    reason)`` for each row refused (a CSV line that cannot be read, no path, a path that is no
+    file's, a time that does not parse), and the frames the table counts for its entries
+    (:class:`ListedFrames`). See the module docstring.
 
     Raises:
         FileNotFoundError: no file at ``path``.
@@ -484,15 +507,16 @@ def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tupl
         rows = _select(con, path, settings, loaded)
     finally:
         con.close()
-    out, more = _entries(path, rows, loaded, settings.window_frames)
-    return out, refused + more
+    out, more, frames = _entries(path, rows, loaded)
+    counted = "range's length x fps" if loaded.ranges else "frame (or seconds x fps)"
+    return out, refused + more, ListedFrames(frames, counted, path)
 
 
-def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tuple[List[str], List[Tuple[str, str]]]:
+def _entries(path: str, rows: list, loaded: _Loaded) -> Tuple[List[str], List[Tuple[str, str]], Dict[str, float]]:
     """:func:`read_table`'s entries from the selected ``rows`` (path fields, range cells, frame
-    number)."""
-    out, seen, refused, short, rows_left = [], set(), [], [], []
-    need = window_frames - 0.5  # the table's numbers are rounded (OpenVid's seconds to 1/100 s)
+    number), the rows refused, and each entry's frames by the table's numbers."""
+    out, seen, refused, rows_left = [], set(), [], []
+    counts: Dict[str, float] = {}
     fields, ranges, template = loaded.fields, loaded.ranges, loaded.template
     json_typed = [loaded.types.get(f) == "JSON" for f in fields]
 
@@ -507,7 +531,9 @@ def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tupl
                 rows_left.append((v, n))
             elif v not in seen:
                 seen.add(v)
-                (short if n is not None and n < need else out).append(v)
+                out.append(v)
+                if n is not None:
+                    counts[v] = float(n)
         rows = rows_left
     for row in rows:
         values, cells, frames = row[:len(fields)], row[len(fields):-1], row[-1]
@@ -536,12 +562,10 @@ def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tupl
             entry = rel if span is None else segment_name(rel, *span)
             if entry not in seen:
                 seen.add(entry)
-                (short if n is not None and n < need else out).append(entry)
-    if short:
-        how = "range's length x fps" if ranges else "frame (or seconds x fps)"
-        refused.append((path, f"{len(short)} row(s) of {path} skipped without opening their video: their {how} "
-                              f"is below one window's {window_frames} frames (e.g. {', '.join(short[:3])})"))
-    return out, refused
+                out.append(entry)
+                if n is not None:
+                    counts[entry] = float(n)
+    return out, refused, counts
 
 
 def _lean(loaded: _Loaded) -> bool:
