@@ -57,7 +57,7 @@ import sys, time
 t0 = time.perf_counter()
 engine, path = sys.argv[1], sys.argv[2]
 csv = path.endswith(".csv")
-if engine == "v2v":  # read_video_list end to end: DuckDB, the path column, each row's frames
+if engine == "v2v":  # read_video_list end to end: DuckDB, the filter, the path column
     from v2v_server.sources.video_list import read_video_list
     from v2v_server.sources.video_tables import TableSettings
     paths = read_video_list(path, TableSettings(None, FILTER)).videos

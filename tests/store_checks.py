@@ -62,7 +62,7 @@ def check_a_paused_store_fails_the_read(store, src, name: str) -> bytes:
 
     import pytest
 
-    from v2v_server.sources.names import VideoError
+    from v2v_server.sources.errors import VideoError
 
     store.pause()
     try:

@@ -21,7 +21,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.frame_pass import open_frames
 from v2v_server.samples.make import video_samples
-from v2v_server.frames.corpus import check_video
+from v2v_server.frames.check import check_video
 from v2v_server.frames.decode import decode_luma, feeding_rows, iter_luma, open_video, scale_frame, scaled_size
 from v2v_server.sources.local import LocalSource
 from v2v_wire.outputs import OUTPUTS

@@ -13,7 +13,7 @@ import v2v_server.frames.pass_record as pass_record
 from harness.corpus import write_scenes_video
 from tests.cached import Cached, cached
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.frames.corpus import check_video
+from v2v_server.frames.check import check_video
 from v2v_server.frames.corpus_index import INDEX_FILE, INDEX_VERSION, CorpusIndex, Verdict, layout_key
 from v2v_server.frames.frame_cache import FrameCache
 from v2v_server.frames.frame_pass import corpus_key, entry_settings

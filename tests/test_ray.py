@@ -54,7 +54,7 @@ def clips(tmp_path_factory, videos):
 def checked_ids(root, cfg: ServeConfig) -> list:
     """Every sample id of one epoch of the folder ``root`` by ``--check``'s verdicts (the
     ZeroMQ path's scan, not the Ray engine's)."""
-    from v2v_server.frames.corpus import check_corpus
+    from v2v_server.frames.check import check_corpus
     from v2v_server.sources.folder_scan import scan_corpus
     from v2v_server.sources.local import LocalSource
 

@@ -21,7 +21,7 @@ import torch
 from v2v_client import V2VStreamDataset
 from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
 from v2v_server.ops.config import ServeConfig, parse_shard
-from v2v_server.frames.corpus import check_corpus
+from v2v_server.frames.check import check_corpus
 from v2v_server.ops.startup import select_shard, shard_of
 from v2v_server.sources.local import LocalSource
 from v2v_server.ops.logs import JsonFormatter

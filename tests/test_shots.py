@@ -12,7 +12,7 @@ from v2v_server.frames.frame_pass import open_frames
 from v2v_server.samples.make import video_samples
 from v2v_server.frames import frame_pass as frames_mod
 from v2v_server.ops.startup import SAMPLE_VIDEOS
-from v2v_server.frames.corpus import check_video, format_check
+from v2v_server.frames.check import check_video, format_check
 from v2v_server.frames.decode import iter_luma
 from v2v_server.sources.segments import parse_time, range_problem, segment_name, split_segment
 from v2v_server.frames.shots import ShotDetector, WindowLayout, code_table, thumbnail

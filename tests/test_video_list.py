@@ -16,9 +16,11 @@ from v2v_server.sources.local import LocalSource
 from v2v_server.sources.segments import parse_time
 from v2v_server.sources.video_list import read_video_list
 from v2v_server.sources.video_tables import TableSettings
-from v2v_server.frames.known import short_entries
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.startup import start_source
+
+#: Windows of 21 frames (L = 4 of 5 bins): the frames side's rule for a table's short rows.
+WINDOW21 = SampleRecipe(sequence_length=4).windows
 
 CLIP = "bbb_camera_596x336.mp4"  # 25 fps, one shot
 
@@ -107,20 +109,22 @@ def openvid(corpus):
 
 
 def test_an_openvid_csv_with_a_filter_skips_short_rows_unopened(openvid):
-    """The table gives each row's frames (a source knows nothing of windows); the start-up path
-    drops the rows too short for one window (the frames side's rule) before any is opened."""
+    """The rows too short for one window are left unopened by the frames side's rule
+    (``WindowSettings.short_of``), which the source's table reader is given: the same through
+    the start-up path."""
     corpus, table = openvid
-    src = LocalSource(corpus, video_list=str(table), table=TableSettings(None, MOVING))
+    src = LocalSource(corpus, video_list=str(table), table=TableSettings(None, MOVING, WINDOW21.short_of))
     videos, rejected = src.list_videos((".mp4",))
-    assert videos == ["a.mp4", "c.mp4", "my clip.mp4"] and src.listed_frames.frames["c.mp4"] == 15
+    assert videos == ["a.mp4", "my clip.mp4"]
     assert rejected == [("(no path)", f"listed in {table}: a row with no video"),
+                        (str(table), f"1 row(s) of {table} skipped without opening their video: their frame (or "
+                                     f"seconds x fps) is below one window's 21 frames (e.g. c.mp4)"),
                         ("gone.mp4", f"listed in {table} but missing from {corpus}")]
     start = start_source(ServeConfig(videos=str(corpus), video_list=str(table), video_list_filter=MOVING,
                                      sequence_length=4))  # windows of 21 frames
-    assert start.videos == ["a.mp4", "my clip.mp4"] and start.listed == 2
-    assert start.rejected == rejected + [(str(table), f"1 row(s) of {table} skipped without opening their video: "
-                                                      f"their frame (or seconds x fps) is below one window's 21 "
-                                                      f"frames (e.g. c.mp4)")]
+    assert (start.videos, start.rejected) == (videos, rejected)
+    assert LocalSource(corpus, video_list=str(table), table=TableSettings(None, MOVING)).list_videos((".mp4",))[0] \
+        == ["a.mp4", "c.mp4", "my clip.mp4"]  # no rule given: every row is served
 
 
 def test_check_serves_a_filtered_table_and_shows_the_rows_skipped(openvid, capsys):
@@ -165,14 +169,11 @@ def test_parquet_and_json_tables(corpus, fmt):
     duckdb.execute("COPY (SELECT * FROM (VALUES ('a.mp4', 601, 25.0, [['0:00:00', '0:00:04'], ['0:00:04', "
                    "'0:00:04.4']]), ('my clip.mp4', 601, 25.0, [['0:00:02', '0:00:06']]), ('x.mp4', 10, 25.0, "
                    f"[['0', '9']])) AS t(path, frame, fps, timestamp)) TO '{path}' ({options})")
-    got = read_video_list(str(path), TableSettings(None, "frame >= 21"))
-    assert got.videos == ["a.mp4#t=0,4", "a.mp4#t=4,4.4", "my clip.mp4#t=2,6"] and got.refused == []
+    got = read_video_list(str(path), TableSettings(None, "frame >= 21", WINDOW21.short_of))
     # a range's length x fps decides: 0.4 s x 25 = 10 frames < 21
-    assert got.frames.frames == {"a.mp4#t=0,4": 100, "a.mp4#t=4,4.4": pytest.approx(10), "my clip.mp4#t=2,6": 100}
-    kept, short = short_entries(SampleRecipe(sequence_length=4).windows, got.videos, got.frames)
-    assert kept == ["a.mp4#t=0,4", "my clip.mp4#t=2,6"]
-    assert short == [(str(path), f"1 row(s) of {path} skipped without opening their video: their range's "
-                                 f"length x fps is below one window's 21 frames (e.g. a.mp4#t=4,4.4)")]
+    assert got.videos == ["a.mp4#t=0,4", "my clip.mp4#t=2,6"]
+    assert got.refused == [(str(path), f"1 row(s) of {path} skipped without opening their video: their range's "
+                                       f"length x fps is below one window's 21 frames (e.g. a.mp4#t=4,4.4)")]
 
 
 @pytest.mark.parametrize("flags, named", [
@@ -210,6 +211,5 @@ def test_a_table_in_the_store(tmp_path, monkeypatch):
         s3.upload(tmp_path, "s3://meta/")
         for k, v in s3.env().items():
             monkeypatch.setenv(k, v)
-        got = read_video_list("s3://meta/OpenVid-1M.csv")
-    assert got.videos == ["a.mp4", "c.mp4"] and got.frames.frames == {"a.mp4": 601, "c.mp4": 15}
-    assert short_entries(SampleRecipe(sequence_length=4).windows, got.videos, got.frames)[0] == ["a.mp4"]
+        got = read_video_list("s3://meta/OpenVid-1M.csv", TableSettings(None, None, WINDOW21.short_of))
+    assert got.videos == ["a.mp4"] and "1 row(s)" in got.refused[0][1]

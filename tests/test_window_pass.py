@@ -12,7 +12,7 @@ import pytest
 from harness.corpus import write_scenes_video
 from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.frames.corpus import check_video
+from v2v_server.frames.check import check_video
 from v2v_server.sources.local import RACY_NS, LocalSource
 from tests.cached import Cached, cached as cached_corpus
 

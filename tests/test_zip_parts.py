@@ -211,8 +211,8 @@ def test_archives_find_a_split_part_and_read_it_joined(tmp_path):
     the bytes ``cat`` would join; a gap named; a part that is neither whole nor in pieces missing."""
     import contextlib
 
-    from v2v_server.sources.archives import Archives
-    from v2v_server.sources.names import VideoError
+    from v2v_server.sources.archive_members import Archives
+    from v2v_server.sources.errors import VideoError
 
     data = os.urandom(10_000)
     for i, piece in enumerate(("x_partaa", "x_partab", "x_partac")):
@@ -248,7 +248,7 @@ def test_zip_parts_served_over_zeromq_as_the_files(parts):
 
 
 def test_pairing_a_list_with_archive_members_is_by_id_path_then_file_name():
-    from v2v_server.sources.archives import pair_members
+    from v2v_server.sources.archive_members import pair_members
 
     members = ["p0.zip/a.mp4", "p0.zip/dir/b.mp4", "p1.zip/c.mp4", "p1.zip/x/d.mp4", "p2.zip/d.mp4", "p2.zip/x/e.mp4",
                "p3.zip/y/f.mp4", "p4.zip/z/f.mp4"]

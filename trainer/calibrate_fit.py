@@ -200,8 +200,8 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
 
     from v2v_server.ops.startup import start_source
     from v2v_server.samples.make import video_samples
-    from v2v_server.sources.names import VideoError
-    from v2v_server.sources.store_io import StoreError
+    from v2v_server.sources.errors import VideoError
+    from v2v_server.sources.errors import StoreError
 
     r = cfg.recipe
     frames_recipe = dataclasses.replace(r, sequence_length=r.sequence_length * r.num_bins * r.frames_per_bin,

@@ -12,10 +12,10 @@ from v2v_server.sources.store import StoreSettings
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
-from v2v_server.frames.corpus import check_corpus, format_check
+from v2v_server.frames.check import check_corpus, format_check
 from v2v_server.frames.corpus_index import index_path
 from v2v_server.delivery.journal import JournalError
-from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.errors import StoreError
 from v2v_server.ops.warm import cache_line, format_warm, warm_cache
 
 

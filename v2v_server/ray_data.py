@@ -56,7 +56,7 @@ from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.flowgrid import expand_grids
 from v2v_server.sources.segments import split_segment
-from v2v_server.frames.corpus import check_video
+from v2v_server.frames.check import check_video
 from v2v_server.frames.video_read import as_verdict, read_video
 from v2v_server.sources.source import VideoSource
 from v2v_server.sources.source_spec import source_from_spec
@@ -100,7 +100,7 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str,
     """Windows the video at ``rel`` of ``source`` (the corpus) gives per epoch, read the one way
     every reader reads a video (``video_read.read_video``) for the part this count needs: its
     video packets (demuxed, not decoded); with ``shot_cuts: avoid`` or ``static_windows: skip``,
-    or for a segment, its decoded frames as ``--check`` reads them (``corpus.check_video``: the
+    or for a segment, its decoded frames as ``--check`` reads them (``check.check_video``: the
     windows depend on the cuts, the motion or the range's frames; answered from the corpus index
     of ``caches`` while the video's identity holds).
 

@@ -1,31 +1,14 @@
-"""What is known of a listing before any of its videos is opened, at a server's start: the videos
-its video list counts too few frames for one window (:func:`short_entries`), and what the host's
-corpus index learned of the rest (:func:`known_windows`)."""
+"""What the host's corpus index knows of a listing before any of its videos is opened, at a
+server's start (:func:`known_windows`): an epoch's size, and the videos not worth opening."""
 from __future__ import annotations
 
-from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Dict, NamedTuple, Optional, Sequence, Tuple
 
 from v2v_server.frames.corpus_index import layout_key
 from v2v_server.frames.frame_pass import DecodeSettings
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.frames.windows import WindowSettings
 from v2v_server.sources.source import VideoSource
-from v2v_server.sources.video_tables import ListedFrames
-
-
-def short_entries(windows: WindowSettings, videos: Sequence[str], listed: ListedFrames
-                  ) -> Tuple[List[str], List[Tuple[str, str]]]:
-    """``(kept, refused)``: the ``videos`` whose video list counts enough frames for one window
-    (``WindowSettings.holds_window`` of ``listed``, a table's numbers; a video it gives no count
-    for is kept), in their order, and one ``(list, reason)`` naming those it drops, never opened.
-    """
-    short = [v for v in videos if v in listed.frames and not windows.holds_window(listed.frames[v])]
-    if not short:
-        return list(videos), []
-    dropped = set(short)
-    why = (f"{len(short)} row(s) of {listed.video_list} skipped without opening their video: their "
-           f"{listed.counted} is below one window's {windows.frames_per_sample} frames (e.g. {', '.join(short[:3])})")
-    return [v for v in videos if v not in dropped], [(listed.video_list, why)]
 
 
 class KnownWindows(NamedTuple):

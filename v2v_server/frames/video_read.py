@@ -36,7 +36,7 @@ from v2v_server.frames.host_caches import HostCaches
 from v2v_server.frames.pass_record import PassRecord
 from v2v_server.frames.window_pass import VideoPass, WindowFrame, WindowPass
 from v2v_server.frames.windows import WindowSettings
-from v2v_server.sources.names import VideoError
+from v2v_server.sources.errors import VideoError
 from v2v_server.sources.source import VideoSource
 
 T = TypeVar("T")

@@ -1,7 +1,7 @@
 """The window pass: what one pass over a video's frames makes of its windows, and what the video
 is worth. The one rule that every reader of a video applies, through the one way into a video
 (``video_read.read_video``): the sample pass (``samples.make.video_samples``), ``v2v-serve
---check`` (``corpus.check_video``), ``--warm-cache`` (``ops.warm``) and the Ray scan
+--check`` (``check.check_video``), ``--warm-cache`` (``ops.warm``) and the Ray scan
 (``ray_data.count_windows``).
 
 Windows lie where ``shots.WindowLayout`` places them, fed with each frame's shot cut. A cut inside
@@ -22,7 +22,7 @@ from typing import Callable, Dict, Iterator, List, Mapping, NamedTuple, Optional
 
 import numpy as np
 
-from v2v_server.sources.names import VideoError
+from v2v_server.sources.errors import VideoError
 from v2v_server.frames.frame_pass import FramePass
 from v2v_server.frames.motion import STATIC_MOTION, MotionMeter
 from v2v_server.frames.pass_record import PassRecord

@@ -12,6 +12,7 @@ values this class holds are here.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 from v2v_server.checks import check_choice, check_int
 from v2v_server.frames.motion import STATIC_MOTION
@@ -77,12 +78,14 @@ class WindowSettings:
         a count of windows must decode them."""
         return self.avoid_cuts or self.skip_static
 
-    def holds_window(self, listed_frames: float) -> bool:
-        """Whether a video a list counts ``listed_frames`` frames for holds one window: at least
-        ``frames_per_sample``, less half a frame (a table's numbers are rounded: OpenVid's
-        seconds to 1/100 s). One that does not is dropped before it is opened
-        (``known.short_entries``)."""
-        return listed_frames >= self.frames_per_sample - 0.5
+    def short_of(self, listed_frames: float) -> Optional[str]:
+        """Why a video a list counts ``listed_frames`` frames for holds no window (fewer than
+        ``frames_per_sample``, less half a frame: a table's numbers are rounded, OpenVid's
+        seconds to 1/100 s), or None when it may hold one. The rule a source's table reader is
+        given for the rows it leaves unopened (``video_tables.TableSettings.unopened``)."""
+        if listed_frames < self.frames_per_sample - 0.5:
+            return f"below one window's {self.frames_per_sample} frames"
+        return None
 
     def windows_in(self, frames: int) -> int:
         """Windows a video of ``frames`` frames holds laid out from frame 0, at most ``max_samples_per_video``."""

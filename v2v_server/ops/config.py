@@ -262,12 +262,13 @@ def parse_shard(spec) -> Tuple[int, int]:
 
 def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) -> VideoSource:
     """The source ``cfg`` (a ``ServeConfig``) describes (``source_spec.open_source``): ``videos``
-    or ``cfg.videos``, its ``video_list`` read with the table's column and filter,
-    ``storage_options``, store settings, and a store's listing kept as a manifest (in
+    or ``cfg.videos``, its ``video_list`` read with the table's column and filter (and the rows
+    too short for a window left unopened, the frames side's rule ``WindowSettings.short_of``),
+    ``storage_options``, store settings, and a store's objects kept as a manifest (in
     ``state_dir``, else the cache folder)."""
+    table = TableSettings(cfg.video_list_column, cfg.video_list_filter, cfg.recipe.windows.short_of)
     return open_source(cfg.videos if videos is None else videos, storage_options=cfg.storage_options,
-                       video_list=cfg.video_list, table=TableSettings(cfg.video_list_column, cfg.video_list_filter),
-                       keep_manifest=True, state_dir=cfg.state_dir, refresh_manifest=cfg.refresh_manifest,
+                       video_list=cfg.video_list, table=table, keep_manifest=True, state_dir=cfg.state_dir, refresh_manifest=cfg.refresh_manifest,
                        settings=cfg.store, cache_dir=cache_folder(cfg.cache_dir))
 
 

@@ -12,9 +12,9 @@ Ray engine (``ray_data.scan_corpus_windows``). In order:
 3. ``VideoSource.check``: the folder exists, or the store answers;
 4. ``VideoSource.check_cache_dir``, ``HostCaches.check_cache_dir``: the caches that are on (a
    store's object cache, the frame cache) can be kept in the cache folder;
-5. the listing (``VideoSource.list_videos``): the videos, and the entries refused with why; the
-   videos its video list counts too few frames for a window dropped unopened
-   (``frames.known.short_entries``);
+5. the listing (``VideoSource.list_videos``): the videos, and the entries refused with why (a
+   table's rows too short for a window among them, by the frames side's rule the source was
+   given, ``WindowSettings.short_of``);
 6. the listing's fingerprint (:func:`corpus_fingerprint`), which servers sharding one corpus
    compare, then this server's shard of it (``shard: I/N``, :func:`select_shard`);
 7. what the host's corpus index knows of the shard's videos (``frames.known.known_windows``):
@@ -30,7 +30,7 @@ from typing import Dict, List, Optional, Tuple, Union
 
 from v2v_server.disk_cache import cache_folder
 from v2v_server.frames.host_caches import HostCaches
-from v2v_server.frames.known import KnownWindows, known_windows, short_entries
+from v2v_server.frames.known import KnownWindows, known_windows
 from v2v_server.ops.config import ServeConfig, caches_from_config, source_from_config
 from v2v_server.sources.source import VideoSource
 
@@ -51,8 +51,7 @@ class Startup:
             (``check_cache_dir`` passed).
         videos: the sample-id paths of this server's shard of the corpus's videos, in listing
             order (what ``--check`` and ``--warm-cache`` read).
-        rejected: ``(path, reason)`` for each entry of the corpus that is not served (the
-            listing's refusals; the videos too short by the video list's numbers).
+        rejected: ``(path, reason)`` for each entry of the corpus that is not served.
         corpus: the fingerprint of the whole listing before sharding (:func:`corpus_fingerprint`).
         listed: how many videos the whole listing holds.
         known: what the host's corpus index knows of :attr:`videos` (``frames.known.KnownWindows``).
@@ -112,13 +111,12 @@ def start_source(cfg: ServeConfig, videos: Union[str, Path, None] = None) -> Sta
     source.check_cache_dir()
     caches.check_cache_dir()
     found, rejected = source.list_videos(cfg.video_extensions)
-    found, short = short_entries(cfg.recipe.windows, found, source.listed_frames)
     index, count = cfg.serving.shard_spec
     mine = select_shard(found, index, count)
     if count > 1:
         log.info("shard %d/%d: %d of %d video file(s)", index, count, len(mine), len(found))
     known = known_windows(cfg.recipe.windows, cfg.recipe.decode, source, mine, caches)
-    return Startup(cfg, source, caches, mine, rejected + short, corpus_fingerprint(found), len(found), known)
+    return Startup(cfg, source, caches, mine, rejected, corpus_fingerprint(found), len(found), known)
 
 
 def shard_of(rel_path: str, count: int) -> int:

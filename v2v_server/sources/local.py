@@ -8,13 +8,14 @@ import time
 from pathlib import Path, PurePosixPath
 from typing import Iterator, List, Optional, Sequence, Tuple, Union
 
-from v2v_server.sources.names import VideoError, inside
+from v2v_server.sources.errors import VideoError
+from v2v_server.sources.names import inside
 from v2v_server.sources.folder_scan import scan_corpus_names
 from v2v_server.sources.manifest import ListedObject
 from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, PIECE, gather_pieces, split_member
 from v2v_server.sources.source import VideoSource
-from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.errors import StoreError
 from v2v_server.sources.video_tables import TableSettings
 
 

@@ -22,7 +22,7 @@ split into ``part_partaa``, ``part_partab``... pieces read as one).
 
 An object store is listed once and the listing is kept as a **manifest** (one JSON line per
 object: key relative to the prefix, size in bytes, ETag), so a restart and every shard of the
-corpus read the same listing without walking the bucket again (``manifest.StoreListing``;
+corpus read the same listing without walking the bucket again (``manifest.Manifest``;
 ``manifest.manifest_path`` says where it is kept). A worker compares the ETag the store
 reports when it opens an object with the manifest's: an object overwritten since it was listed is skipped with the key named.
 
@@ -38,14 +38,14 @@ import logging
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 
-from v2v_server.sources.archives import Archives, pair_members
-from v2v_server.sources.names import VideoError
+from v2v_server.sources.archive_members import Archives, pair_members
+from v2v_server.sources.errors import VideoError
 from v2v_server.sources.manifest import ListedObject
 from v2v_server.disk_cache import cache_folder, check_cache_folders
 from v2v_server.sources.segments import base_path, printable_name, range_problem, split_segment
 from v2v_server.sources.shards import ARCHIVES, split_member
 from v2v_server.sources.video_list import VideoList, read_video_list
-from v2v_server.sources.video_tables import ListedFrames, TableSettings
+from v2v_server.sources.video_tables import TableSettings
 
 
 log = logging.getLogger("v2v")
@@ -65,7 +65,8 @@ class VideoSource:
             instead of the store.
         cache_dir: the folder of the host's caches (None: the host's default,
             ``disk_cache.cache_folder``): a store's manifests and object cache.
-        table: how a table video list is read (its path column, its filter).
+        table: how a table video list is read (its path column, its filter, the reader's rule
+            for rows not worth opening).
     """
 
     def __init__(self, root: str, video_list: Optional[str] = None, names: Optional[List[str]] = None,
@@ -74,10 +75,7 @@ class VideoSource:
         self.cache_dir = cache_folder(cache_dir)  # resolved here once: the store's caches and spec() take it
         #: The corpus's archives: their member indexes, split parts' pieces, their members opened.
         self.archives = Archives(self.root, self._open_raw, self._exists, self._siblings, self._shard_version)
-        #: The frames the video list counted for the videos of the last listing, by their ids
-        #: (a table's numbers; none without one): the frames side drops those too short for a
-        #: window before any is opened (``frames.known.short_entries``).
-        self.listed_frames = ListedFrames()
+
 
     #: Whether :meth:`identity` costs a request to a store (an object's ETag), so that questions
     #: asked of every video at once are asked where they can run in parallel; False where it is
@@ -134,14 +132,13 @@ class VideoSource:
     def _names(self, extensions: Sequence[str]) -> Optional[VideoList]:
         """The entries that replace a listing: the video list's (with the list lines it
         refuses), the archives a brace pattern (or one archive) names, or, with both, the list's
-        entries paired with those archives' video members (:func:`archives.pair_members`)."""
+        entries paired with those archives' video members (:func:`archive_members.pair_members`)."""
         if self.names and self.video_list:
             listed = read_video_list(self.video_list, self.table)
             members, rejected = self.archives.expand(list(self.names), [], extensions)
             where = f"the {len(self.names)} archive(s) given in {self.root}" if len(self.names) > 1 else self.names[0]
-            named: dict = {}
-            paired, refused = pair_members(listed.videos, members, self.video_list, where, named=named)
-            return VideoList(paired, listed.refused + rejected + refused, listed.frames.renamed(named))
+            paired, refused = pair_members(listed.videos, members, self.video_list, where)
+            return VideoList(paired, listed.refused + rejected + refused)
         if self.names:
             return VideoList(list(self.names), [])
         return read_video_list(self.video_list, self.table) if self.video_list else None
@@ -182,7 +179,6 @@ class VideoSource:
         Names that are no file of the corpus are first paired with the members of the archives
         it holds (:meth:`_paired`). The lines the list refused come first among the rejected."""
         names = self._paired(names, exists, extensions)
-        self.listed_frames = names.frames
         videos, rejected = [], list(names.refused)
         for rel in names.videos:
             try:
@@ -210,7 +206,7 @@ class VideoSource:
     def _paired(self, names: VideoList, exists, extensions: Sequence[str]) -> VideoList:
         """A list's video names that are no file of the corpus paired with the video members of
         the archives the corpus holds (:meth:`_corpus_archives`), as with a brace range of them
-        (``archives.pair_members``: OpenVid-1M's table names ``clip.mp4``, served from
+        (``archive_members.pair_members``: OpenVid-1M's table names ``clip.mp4``, served from
         ``OpenVid_part3.zip/clip.mp4`` in the folder of parts); the names that are files are
         kept in their place. ``names`` as it is when every name is a file, or the corpus holds
         no archive."""
@@ -223,10 +219,9 @@ class VideoSource:
         if not found or not (found[0] or found[1]):
             return names
         members, problems = found
-        named: dict = {}
         paired, refused = pair_members(names.videos, members, self.video_list, f"the archives in {self.root}",
-                                       present=lambda rel: rel not in missing, named=named)
-        return VideoList(paired, names.refused + problems + refused, names.frames.renamed(named))
+                                       present=lambda rel: rel not in missing)
+        return VideoList(paired, names.refused + problems + refused)
 
     def _corpus_archives(self, extensions: Sequence[str]) -> Optional[Tuple[List[str], List[Tuple[str, str]]]]:
         """``(members, rejected)``: the ids of the video members of the archives the corpus

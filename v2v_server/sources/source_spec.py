@@ -20,8 +20,8 @@ from v2v_server.disk_cache import cache_folder
 from v2v_server.sources.shards import split_pattern
 from v2v_server.sources.source import VideoSource
 from v2v_server.sources.manifest import manifest_path
-from v2v_server.sources.store import StoreSettings, StoreSource, listing_key
-from v2v_server.sources.video_list import is_url
+from v2v_server.sources.store import StoreSettings, StoreSource, manifest_key
+from v2v_server.sources.names import is_url
 from v2v_server.sources.video_tables import TableSettings
 
 
@@ -40,14 +40,14 @@ def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dic
         manifest: the file that keeps a store's listing (a process rebuilding another's
             source gets it in the spec); None: with ``keep_manifest``, the one kept for this
             listing where the host keeps them (``state_dir``, else the cache folder:
-            ``manifest.manifest_path`` of ``store.listing_key``), else none.
+            ``manifest.manifest_path`` of ``store.manifest_key``), else none.
     """
     cache_dir = cache_folder(cache_dir)
     if names is None:
         videos, names = split_pattern(str(videos))
     if is_url(str(videos)):
         if manifest is None and keep_manifest:
-            manifest = str(manifest_path(listing_key(str(videos), bool(names), video_list), state_dir, cache_dir))
+            manifest = str(manifest_path(manifest_key(str(videos), bool(names), video_list), state_dir, cache_dir))
         return StoreSource(str(videos), storage_options=storage_options, video_list=video_list, manifest=manifest,
                            refresh_manifest=refresh_manifest, settings=settings, names=names, cache_dir=cache_dir,
                            table=table)

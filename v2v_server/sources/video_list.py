@@ -13,10 +13,11 @@ from __future__ import annotations
 import codecs
 import re
 from pathlib import Path
-from typing import List, NamedTuple, Optional, Tuple, Union
+from typing import List, NamedTuple, Optional, Tuple
 
+from v2v_server.sources.names import is_url
 from v2v_server.sources.segments import clean_path, parse_time, path_problem, printable_name, segment_name
-from v2v_server.sources.video_tables import ListedFrames, TableSettings, read_table, table_format
+from v2v_server.sources.video_tables import TableSettings, read_table, table_format
 
 #: A field that is meant as a number: what a list line's trailing fields are told apart by.
 _NUMBERISH = re.compile(r"[-+]?(?:nan|inf(?:inity)?|[\d.:_eE+-]*\d[\d.:_eE+-]*)", re.IGNORECASE)
@@ -29,18 +30,10 @@ LINE_FORMS = "a line is `path`, `path start end` or `path frames [a b]`"
 class VideoList(NamedTuple):
     """What a video list gives: ``videos``, the entry names in the list's order, duplicates
     dropped; ``refused``, ``(path, reason)`` for each line or row not served, each once (the
-    reason names the list and the line); ``frames``, the frames the list counts for its entries
-    (a table's numbers, ``video_tables.ListedFrames``; none for a list file)."""
+    reason names the list and the line)."""
 
     videos: List[str]
     refused: List[Tuple[str, str]]
-    frames: ListedFrames = ListedFrames()
-
-
-def is_url(videos: Union[str, Path, None]) -> bool:
-    """True for a corpus given as a URL (``s3://``, ``gs://``...), False for a local folder
-    (``file://`` URLs included: they are folders)."""
-    return isinstance(videos, str) and "://" in videos and not videos.startswith("file://")
 
 
 def _read_bytes(path: str) -> bytes:
@@ -143,11 +136,11 @@ def read_video_list(path: str, table: Optional[TableSettings] = None) -> VideoLi
         raise ValueError(f"video_list {path}: is a folder, not a list file")
     if table_format(path):
         table = table or TableSettings()
-        out, refused, frames = read_table(path, table)
+        out, refused = read_table(path, table)
         if not out and not refused:
             raise ValueError(f"video_list {path}: lists no video"
                              + (f" (no row passes video_list_filter {table.filter!r})" if table.filter else ""))
-        return VideoList(out, refused, frames)
+        return VideoList(out, refused)
     out, seen, refused, named = [], set(), [], set()
     for n, s, bad in _lines(_read_bytes(path)):
         if s is None:  # sample ids are UTF-8: this line names no id; the rest is served

@@ -17,9 +17,11 @@ VidGen's JSON, a Parquet file) selects and orders its videos, read by DuckDB (ex
   201 and "motion score" > 0.5``) that DuckDB parses as one expression and nothing else (its
   relation API's ``filter``: a second statement or a clause is refused, never run) and
   evaluates with the table loaded and file access off. Ctrl-C stops a slow one at once.
-* **Frames by the table's numbers**: a row's ``frame`` (else ``seconds`` x ``fps``; for a range,
-  its length x ``fps``) is given with its entry (``ListedFrames``): the frames side drops an
-  entry too short for one window without opening its video (``frames.known.short_entries``).
+* **Rows not worth opening by the table's numbers**: a row's ``frame`` (else ``seconds`` x
+  ``fps``; for a range, its length x ``fps``) is put to the reader's rule
+  (:attr:`TableSettings.unopened`: the frames side's, ``frames.windows.WindowSettings.short_of``,
+  a row too short for one window), and the rows it refuses are skipped without opening their
+  video, counted in one refused entry (``--check`` shows it, the server logs it once).
 
 A configuration error (no path column, a template's unknown column, a filter that is not one
 expression, does not parse or names an unknown column) raises ``ValueError`` naming the file
@@ -39,9 +41,10 @@ import math
 import re
 import string
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, TypeVar
 
+from v2v_server.sources.names import is_url
 from v2v_server.sources.segments import (TIME_SYNTAX, clean_path, parse_time, path_problem, printable_name, segment_name)
 
 T = TypeVar("T")
@@ -78,36 +81,16 @@ class TableSettings:
         column: the path column, or a template over columns (``{videoID}.mp4``); None: the
             first of :data:`PATH_COLUMNS` the table has.
         filter: SQL boolean expression over the columns (DuckDB's dialect); None: every row.
+        unopened: the reader's rule for a row it would not open, given the frames the table
+            counts for it (rounded as the table rounds them: OpenVid's seconds to 1/100 s): why
+            (``"below one window's 201 frames"``), or None to serve it; None: every row is
+            served. The frames side's rule, ``frames.windows.WindowSettings.short_of``: a source
+            knows nothing of windows.
     """
 
     column: Optional[str] = None
     filter: Optional[str] = None
-
-
-@dataclass(frozen=True)
-class ListedFrames:
-    """The frame counts a video list gives for its entries, before any is opened.
-
-    Attributes:
-        frames: entry -> its frames by the list's numbers (a table's ``frame`` column, else
-            ``seconds`` x ``fps``, for a range its length x ``fps``; rounded as the table
-            rounds them: OpenVid's seconds to 1/100 s); an entry the list gives none for is not
-            in it.
-        counted: how they were counted, for a message (``"frame (or seconds x fps)"``,
-            ``"range's length x fps"``).
-        video_list: the list, for a message.
-    """
-
-    frames: Dict[str, float] = field(default_factory=dict)
-    counted: str = ""
-    video_list: str = ""
-
-    def renamed(self, names: Dict[str, str]) -> "ListedFrames":
-        """The counts under other names: ``names`` maps each new name to the entry it stands
-        for (a list's clip paired with the archive member that holds it); entries it does not
-        name are left out."""
-        return ListedFrames({new: self.frames[old] for new, old in names.items() if old in self.frames},
-                            self.counted, self.video_list)
+    unopened: Optional[Callable[[float], Optional[str]]] = None
 
 
 def _quote(column: str) -> str:
@@ -205,7 +188,7 @@ def _connect(path: str):
     con = duckdb.connect(":memory:", config={"autoinstall_known_extensions": False,
                                              "autoload_known_extensions": False})
     con.execute("SET enable_progress_bar = false")
-    if "://" in path and not path.startswith("file://"):
+    if is_url(path):
         import fsspec
 
         # a fresh filesystem: the environment's credentials as they are now, not a cached instance's
@@ -287,7 +270,7 @@ def _bad_json_line(path: str) -> Optional[str]:
     (DuckDB's message counts one line too many); None when every line parses, or for a
     ``.json`` file (one JSON array may span lines), a compressed or a remote one: DuckDB's
     message stands."""
-    if "://" in path or not path.lower().endswith((".jsonl", ".ndjson")):
+    if is_url(path) or not path.lower().endswith((".jsonl", ".ndjson")):
         return None
     try:
         with open(path, "rb") as f:
@@ -488,11 +471,12 @@ def _select(con, path: str, settings: TableSettings, loaded: _Loaded) -> list:
         raise ValueError(f"{where}: {_reason(e)} (columns: {loaded.columns})") from None
 
 
-def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tuple[str, str]], ListedFrames]:
-    """The entries a table video list gives, in the table's order, duplicates dropped, ``(path,
-    reason)`` for each row refused (a CSV line that cannot be read, no path, a path that is no
-    file's, a time that does not parse), and the frames the table counts for its entries
-    (:class:`ListedFrames`). See the module docstring.
+def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tuple[str, str]]]:
+    """The entries a table video list gives, in the table's order, duplicates dropped, and
+    ``(path, reason)`` for each row refused (a CSV line that cannot be read, no path, a path
+    that is no file's, a time that does not parse) and, in one entry named by the table, the
+    rows the reader's rule leaves unopened (:attr:`TableSettings.unopened`). See the module
+    docstring.
 
     Raises:
         FileNotFoundError: no file at ``path``.
@@ -507,17 +491,23 @@ def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tupl
         rows = _select(con, path, settings, loaded)
     finally:
         con.close()
-    out, more, frames = _entries(path, rows, loaded)
-    counted = "range's length x fps" if loaded.ranges else "frame (or seconds x fps)"
-    return out, refused + more, ListedFrames(frames, counted, path)
+    out, more = _entries(path, rows, loaded, settings.unopened)
+    return out, refused + more
 
 
-def _entries(path: str, rows: list, loaded: _Loaded) -> Tuple[List[str], List[Tuple[str, str]], Dict[str, float]]:
+def _entries(path: str, rows: list, loaded: _Loaded, unopened: Optional[Callable[[float], Optional[str]]]
+             ) -> Tuple[List[str], List[Tuple[str, str]]]:
     """:func:`read_table`'s entries from the selected ``rows`` (path fields, range cells, frame
-    number), the rows refused, and each entry's frames by the table's numbers."""
-    out, seen, refused, rows_left = [], set(), [], []
-    counts: Dict[str, float] = {}
+    number), and the rows refused; ``unopened``: the reader's rule (:class:`TableSettings`)."""
+    out, seen, refused, short, rows_left = [], set(), [], [], []
+    why = None  # what the reader's rule said of the rows it left unopened
     fields, ranges, template = loaded.fields, loaded.ranges, loaded.template
+
+    def keep(entry: str, n) -> None:
+        nonlocal why
+        no = unopened(float(n)) if unopened is not None and n is not None else None
+        (short if no else out).append(entry)
+        why = why or no
     json_typed = [loaded.types.get(f) == "JSON" for f in fields]
 
     def refuse(rel: str, why: str) -> None:
@@ -531,9 +521,7 @@ def _entries(path: str, rows: list, loaded: _Loaded) -> Tuple[List[str], List[Tu
                 rows_left.append((v, n))
             elif v not in seen:
                 seen.add(v)
-                out.append(v)
-                if n is not None:
-                    counts[v] = float(n)
+                keep(v, n)
         rows = rows_left
     for row in rows:
         values, cells, frames = row[:len(fields)], row[len(fields):-1], row[-1]
@@ -562,10 +550,12 @@ def _entries(path: str, rows: list, loaded: _Loaded) -> Tuple[List[str], List[Tu
             entry = rel if span is None else segment_name(rel, *span)
             if entry not in seen:
                 seen.add(entry)
-                out.append(entry)
-                if n is not None:
-                    counts[entry] = float(n)
-    return out, refused, counts
+                keep(entry, n)
+    if short:
+        how = "range's length x fps" if ranges else "frame (or seconds x fps)"
+        refused.append((path, f"{len(short)} row(s) of {path} skipped without opening their video: their {how} "
+                              f"is {why} (e.g. {', '.join(short[:3])})"))
+    return out, refused
 
 
 def _lean(loaded: _Loaded) -> bool:

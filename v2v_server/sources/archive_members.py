@@ -8,7 +8,8 @@ import contextlib
 from pathlib import PurePosixPath
 from typing import TYPE_CHECKING, Callable, ContextManager, Dict, List, Optional, Sequence, Tuple
 
-from v2v_server.sources.names import VideoError, control_character, printable
+from v2v_server.sources.errors import VideoError
+from v2v_server.sources.names import control_character, printable
 from v2v_server.sources.segments import segment_name, split_segment
 from v2v_server.sources.shards import (ARCHIVES, JoinedFile, MemberEntry, ShardIndex, ZipMemberError, gather_pieces, missing_piece, open_member, piece_archive, split_member)
 
@@ -169,8 +170,7 @@ SHOWN_UNMATCHED = 5
 
 
 def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str, archives: str,
-                 present: Callable[[str], bool] = lambda entry: False,
-                 named: Optional[Dict[str, str]] = None) -> Tuple[List[str], List[Tuple[str, str]]]:
+                 present: Callable[[str], bool] = lambda entry: False) -> Tuple[List[str], List[Tuple[str, str]]]:
     """The archive members a video list's entries name, for a list that names clips without
     the archive holding them (OpenVid-1M's CSV names ``clip.mp4``, served from
     ``OpenVid_part3.zip/clip.mp4``).
@@ -186,7 +186,6 @@ def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str
         video_list, archives: the list and the archives as given, for messages.
         present: whether an entry names a file of the corpus itself (a folder's plain file
             beside its archives): such an entry is kept as it is, in its place.
-        named: when given, filled with each id -> the entry that named it.
 
     Returns:
         ``(ids, refused)``: the member ids in the list's order, duplicates dropped; ``(entry,
@@ -207,8 +206,6 @@ def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str
             if entry not in seen:
                 seen.add(entry)
                 out.append(entry)
-                if named is not None:
-                    named[entry] = entry
             continue
         base, times = split_segment(entry)
         found = [base] if base in by_id else by_path.get(base) or ([] if "/" in base else by_file.get(base, []))
@@ -224,8 +221,6 @@ def pair_members(entries: Sequence[str], members: Sequence[str], video_list: str
         if rel not in seen:
             seen.add(rel)
             out.append(rel)
-            if named is not None:
-                named[rel] = entry
     if unmatched:
         shown = ", ".join(unmatched[:SHOWN_UNMATCHED]) + (", ..." if len(unmatched) > SHOWN_UNMATCHED else "")
         refused.append((f"({len(unmatched)} entr{'y' if len(unmatched) == 1 else 'ies'})",
@@ -238,7 +233,7 @@ def archive_kind(archive: str) -> str:
     return "zip part" if archive.lower().endswith(".zip") else "tar shard"
 
 
-def listing_problems(objects: Dict[str, ListedObject], unreadable: Dict[str, str], extensions: Sequence[str]
+def archive_problems(objects: Dict[str, ListedObject], unreadable: Dict[str, str], extensions: Sequence[str]
                      ) -> List[Tuple[str, str]]:
     """``(archive, reason)`` for each archive of a store's listing ``objects`` (key -> entry,
     members included) that gives no video member (it could not be read, ``unreadable``:
