@@ -234,6 +234,24 @@ def markdown(r: dict, command: str) -> str:
         f"pass (the default `keep_top_fraction` 0.54: the kept rows of each frame), per frame, times {FPS} fps x 3600 s.",
         "",
     ]
+    lines += _kept_rows_section(r)
+    top = r["rows"][-1]
+    if top["height"] > hgt:
+        lines += [
+            f"At {top['size']}, `frame_height: {hgt}` caches {top['cache_bytes_per_frame'] / top['cache_bytes_per_frame_scaled']:.1f}x "
+            f"fewer bytes per frame and makes a worker's decoding pass {top['decode_fps_cpu'] / top['decode_scaled_fps_cpu']:.2f}x "
+            f"as costly per frame (decoding and scaling against decoding alone); its frames then have the "
+            f"{hgt}-row field of view a {base['size']} source gives every crop.",
+            "",
+        ]
+    return "\n".join(lines + _threads_section(r))
+
+
+def _kept_rows_section(r: dict) -> List[str]:
+    """The report's lines comparing scaling the kept rows only with scaling the whole frame
+    (none when nothing is scaled or every row is kept)."""
+    hgt, keep = r["height"], r["keep"]
+    lines: List[str] = []
     scaled = [row for row in r["rows"] if row["height"] != hgt]
     if scaled and keep < 1.0:
         lines += [
@@ -253,15 +271,14 @@ def markdown(r: dict, command: str) -> str:
                 f"{row['decode_scaled_fps_cpu'] / row['decode_scaled_whole_fps_cpu']:.2f}x |")
         lines += ["", f"With `keep_top_fraction` 1.0 (corpora without WebVid's watermark) every row is kept and "
                   "both ways do the same work.", ""]
-    top = r["rows"][-1]
-    if top["height"] > hgt:
-        lines += [
-            f"At {top['size']}, `frame_height: {hgt}` caches {top['cache_bytes_per_frame'] / top['cache_bytes_per_frame_scaled']:.1f}x "
-            f"fewer bytes per frame and makes a worker's decoding pass {top['decode_fps_cpu'] / top['decode_scaled_fps_cpu']:.2f}x "
-            f"as costly per frame (decoding and scaling against decoding alone); its frames then have the "
-            f"{hgt}-row field of view a {base['size']} source gives every crop.",
-            "",
-        ]
+    return lines
+
+
+def _threads_section(r: dict) -> List[str]:
+    """The report's lines on decode threads per worker (none when they were not measured)."""
+    import os
+
+    lines: List[str] = []
     if r["threads"]:
         lines += [
             f"Decode threads per worker (`decode_threads`), the same sources: frames per CPU-second (all threads of "
@@ -285,7 +302,7 @@ def markdown(r: dict, command: str) -> str:
                          "frames per CPU-second).")
         lines += ["", "More decode threads pay only where a worker's cores would otherwise idle; with one worker "
                   "per core (`workers` = cores), keep `decode_threads: 1` and add workers.", ""]
-    return "\n".join(lines)
+    return lines
 
 
 def _size(s: str) -> Tuple[int, int]:
