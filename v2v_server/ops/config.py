@@ -163,7 +163,7 @@ class ServeConfig:
     Parts (attribute: class, owner of its keys' defaults, help and checks):
 
     * ``recipe``: :class:`~v2v_server.samples.recipe.SampleRecipe`, what decides a sample's
-      content (its ``windows`` are the videos stage's settings);
+      content (it composes the frames stage's ``WindowSettings`` and ``DecodeSettings``);
     * ``delivery``: :class:`~v2v_server.delivery.core.DeliveryPolicy`, batches, shuffling, leases
       and epochs (its recipe-derived fields filled from ``recipe``);
     * ``serving``: :class:`ServingSettings`, corpus, workers, transport, security, operations;
