@@ -8,7 +8,7 @@ than a 201-frame window, so every link is usable under the default recipe), scan
 prints seconds per scan, per clip, and the ratio first / second.
 
 ``--start-entries 65000,250000,1000000`` also measures what a ``v2v-serve`` start pays to read
-a warm index (``frames.corpus.known_windows``: a status and a lookup per video, 500 lookups a
+a warm index (``frames.known.known_windows``: a status and a lookup per video, 500 lookups a
 query) on folders of that many links whose entries are all in the index (written with SQLite
 directly from one real verdict, one row per link): seconds, microseconds per video, and the
 growth of the process's peak RSS over the call.
@@ -29,7 +29,8 @@ from harness.data import SAMPLE_VIDEOS
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ray_data import scan_corpus_windows
-from v2v_server.frames.corpus import check_video, known_windows
+from v2v_server.frames.check import check_video
+from v2v_server.frames.known import known_windows
 from v2v_server.frames.corpus_index import CorpusIndex, index_path, layout_key
 from v2v_server.sources.local import RACY_NS, LocalSource
 

@@ -12,7 +12,7 @@ INTER_CUBIC) to ``--hd-height`` rows at 16:9:
 * ``openvid``: OpenVid-style stored zip parts of HD clips and a CSV with OpenVid-1M's header,
   naming each clip by its bare file name as OpenVid's does, with a short row, a row the filter
   drops and a row whose clip is in no part, given with the parts as a brace range so that each
-  row is paired with its part's member (``archives.pair_members``);
+  row is paired with its part's member (``archive_members.pair_members``);
 * ``panda``: HD source videos of three shots each (hard cuts) and a Panda-70M CSV of one
   timestamp range per shot;
 * ``webdataset``: two uncompressed tar shards of ``KEY.mp4`` + ``KEY.json`` samples;

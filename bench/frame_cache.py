@@ -70,16 +70,16 @@ def measure(clip: Path, videos: int, rounds: int) -> dict:
                 cache = tmp / f"cache-{fmt}-{r}"
                 caches = _caches(cache, fmt)
                 runs.setdefault(f"{fmt} epoch 0", []).append(
-                    worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, frame_cache=caches.frame_cache, epoch=0))
+                    worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, caches=caches, epoch=0))
                 runs.setdefault(f"{fmt} epoch 1", []).append(
-                    worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, frame_cache=caches.frame_cache, epoch=1))
+                    worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, caches=caches, epoch=1))
                 sizes[fmt] = _entry_bytes(caches)
                 shutil.rmtree(cache)
         half = sum(sizes["raw"]) / 2
         caches = _caches(tmp / "cache-half", "raw", half / (1 << 30))
-        worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, frame_cache=caches.frame_cache, epoch=0)
+        worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, caches=caches, epoch=0)
         caches.take_stats()
-        budget_rate = worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, frame_cache=caches.frame_cache, epoch=1)
+        budget_rate = worker_core(corpus, OUTPUTS, 1, videos, flow_grid=True, caches=caches, epoch=1)
         st = caches.take_stats()["frame_cache"]
         looked = st["hits"] + sum(st["misses"].values())
     finally:
@@ -91,12 +91,12 @@ def measure(clip: Path, videos: int, rounds: int) -> dict:
 
 def frames_per_video(clip: Path) -> int:
     """Frames one pass of the clip decodes at the paper's recipe (what an entry holds)."""
+    from v2v_server.frames.video_read import read_video
     from v2v_server.samples.recipe import SampleRecipe
-    from v2v_server.samples.make import video_frames
     from v2v_server.sources.local import LocalSource
 
-    with video_frames(SampleRecipe(shot_cuts="off"), LocalSource(clip.parent), clip.name) as fp:
-        return sum(1 for _ in fp.frames)
+    with read_video(LocalSource(clip.parent), clip.name, SampleRecipe(shot_cuts="off").reads) as read:
+        return sum(1 for _ in read.frames)
 
 
 def serve(clip: Path, videos: int, samples: int) -> dict:

@@ -21,7 +21,7 @@ Measured per source, in this process, rounds interleaved, medians:
   and the kept rows cut afterwards (``decode_luma(..., None, height)``, ``scale_frame(g,
   height)[:kept]``), in the same rounds, and the ratios;
 * cached bytes per hour of video: the bytes a ``raw`` frame-cache entry holds per frame (real
-  entries, written through ``samples.make.video_frames``: the kept 54 % of each frame), times
+  entries, written through ``frames.video_read.read_video``: the kept 54 % of each frame), times
   25 fps x 3600 s, without and with ``frame_height``;
 * decode threads per worker (``--threads``, 1 2 4) at the sizes of 720 rows and more
   (``--threads-from``): frames
@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from bench.speed import clip_path
+from v2v_server.frames.frame_pass import DecodeSettings
 from v2v_server.samples.recipe import SampleRecipe
 
 #: libx264 bitrates (bits/s) by frame height: common upload bitrates for 25-30 fps SDR video.
@@ -125,15 +126,15 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
     """Bytes per frame of the ``raw`` frame-cache entry a worker's pass writes for ``path`` (the
     default kept 54 %; ``frame_height`` = ``height``), read from the cache's own listing."""
     from v2v_server.frames.host_caches import HostCaches
-    from v2v_server.samples.make import video_frames
+    from v2v_server.frames.video_read import read_video, reraise
     from v2v_server.sources.local import LocalSource
 
     cfg = SampleRecipe(sequence_length=2, num_bins=2, crop_size=8, max_samples_per_video=1000,
                       frame_height=height)
-    fc = HostCaches.open(str(cache), frame_cache_gb=64.0).frame_cache
-    with video_frames(cfg, LocalSource(path.parent), path.name, fc) as fp:
-        n = sum(1 for _ in fp.frames)
-        fp.commit()  # the pass is whole: store its entry, as a worker's pass does
+    caches = HostCaches.open(str(cache), frame_cache_gb=64.0)
+    fc = caches.frame_cache
+    with read_video(LocalSource(path.parent), path.name, cfg.reads, caches, handler=reraise) as read:
+        n = sum(1 for _ in read.frames)  # the read stores the entry of its whole pass, as a worker's does
     sizes = [size for _, size, _ in fc.disk.entries()]
     assert len(sizes) == 1, sizes
     return sizes[0] / n
@@ -141,7 +142,7 @@ def entry_bytes_per_frame(path: Path, height: int, cache: Path) -> float:
 
 def measure(clip: Path, sizes: Sequence[Tuple[int, int]], frames: int, height: int, threads: Sequence[int],
             rounds: int, min_cpu_s: float, threads_from: int = 720,
-            keep: float = SampleRecipe.keep_top_fraction) -> dict:
+            keep: float = DecodeSettings.keep_top_fraction) -> dict:
     """The rows of the report (see the module docstring); medians over ``rounds`` interleaved rounds."""
     tmp = Path(tempfile.mkdtemp(prefix="v2v-fscale-"))
     try:
@@ -233,6 +234,24 @@ def markdown(r: dict, command: str) -> str:
         f"pass (the default `keep_top_fraction` 0.54: the kept rows of each frame), per frame, times {FPS} fps x 3600 s.",
         "",
     ]
+    lines += _kept_rows_section(r)
+    top = r["rows"][-1]
+    if top["height"] > hgt:
+        lines += [
+            f"At {top['size']}, `frame_height: {hgt}` caches {top['cache_bytes_per_frame'] / top['cache_bytes_per_frame_scaled']:.1f}x "
+            f"fewer bytes per frame and makes a worker's decoding pass {top['decode_fps_cpu'] / top['decode_scaled_fps_cpu']:.2f}x "
+            f"as costly per frame (decoding and scaling against decoding alone); its frames then have the "
+            f"{hgt}-row field of view a {base['size']} source gives every crop.",
+            "",
+        ]
+    return "\n".join(lines + _threads_section(r))
+
+
+def _kept_rows_section(r: dict) -> List[str]:
+    """The report's lines comparing scaling the kept rows only with scaling the whole frame
+    (none when nothing is scaled or every row is kept)."""
+    hgt, keep = r["height"], r["keep"]
+    lines: List[str] = []
     scaled = [row for row in r["rows"] if row["height"] != hgt]
     if scaled and keep < 1.0:
         lines += [
@@ -252,15 +271,14 @@ def markdown(r: dict, command: str) -> str:
                 f"{row['decode_scaled_fps_cpu'] / row['decode_scaled_whole_fps_cpu']:.2f}x |")
         lines += ["", f"With `keep_top_fraction` 1.0 (corpora without WebVid's watermark) every row is kept and "
                   "both ways do the same work.", ""]
-    top = r["rows"][-1]
-    if top["height"] > hgt:
-        lines += [
-            f"At {top['size']}, `frame_height: {hgt}` caches {top['cache_bytes_per_frame'] / top['cache_bytes_per_frame_scaled']:.1f}x "
-            f"fewer bytes per frame and makes a worker's decoding pass {top['decode_fps_cpu'] / top['decode_scaled_fps_cpu']:.2f}x "
-            f"as costly per frame (decoding and scaling against decoding alone); its frames then have the "
-            f"{hgt}-row field of view a {base['size']} source gives every crop.",
-            "",
-        ]
+    return lines
+
+
+def _threads_section(r: dict) -> List[str]:
+    """The report's lines on decode threads per worker (none when they were not measured)."""
+    import os
+
+    lines: List[str] = []
     if r["threads"]:
         lines += [
             f"Decode threads per worker (`decode_threads`), the same sources: frames per CPU-second (all threads of "
@@ -284,7 +302,7 @@ def markdown(r: dict, command: str) -> str:
                          "frames per CPU-second).")
         lines += ["", "More decode threads pay only where a worker's cores would otherwise idle; with one worker "
                   "per core (`workers` = cores), keep `decode_threads: 1` and add workers.", ""]
-    return "\n".join(lines)
+    return lines
 
 
 def _size(s: str) -> Tuple[int, int]:
@@ -298,7 +316,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES), help="W x H of each source, comma list")
     ap.add_argument("--frames", type=int, default=150, help="frames per source")
     ap.add_argument("--height", type=int, default=336, help="the frame_height measured")
-    ap.add_argument("--keep-top", type=float, default=SampleRecipe.keep_top_fraction,
+    ap.add_argument("--keep-top", type=float, default=DecodeSettings.keep_top_fraction,
                     help="the keep_top_fraction measured (default the recipe's)")
     ap.add_argument("--threads", default="1,2,4", help="decode_threads measured at 720 rows and more")
     ap.add_argument("--threads-from", type=int, default=720, help="measure decode_threads at sizes of this many rows and more")

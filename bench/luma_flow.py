@@ -16,7 +16,7 @@ import numpy as np
 
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.luma import to_uint8
-from v2v_server.sources.listing import SAMPLE_VIDEOS
+from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.frames.decode import iter_luma
 
 CLIP = SAMPLE_VIDEOS / "bbb_camera_596x336.mp4"

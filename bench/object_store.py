@@ -66,7 +66,7 @@ def startup(cfg_kw: dict, tmp: Path, videos: str, manifest: bool) -> tuple:
     cfg = _cfg(tmp, **cfg_kw)
     src = source_from_config(cfg, videos)
     if not manifest and getattr(src, "manifest", None):
-        Path(src.listing.path).unlink(missing_ok=True)
+        Path(src.manifest.path).unlink(missing_ok=True)
     tracemalloc.start()
     t0 = time.perf_counter()
     src.check()

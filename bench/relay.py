@@ -65,7 +65,7 @@ def real_sample(path: str) -> None:
     """Save the first sample of the bundled 596 x 336 clip (default recipe) as a worker sends
     it (voxels int8, frames uint8, the tracked flow as ``flow_grid``) to ``path`` (.npz)."""
     from v2v_server.samples.recipe import SampleRecipe
-    from v2v_server.sources.listing import SAMPLE_VIDEOS
+    from v2v_server.ops.startup import SAMPLE_VIDEOS
     from v2v_server.samples.make import video_samples
     from v2v_server.sources.local import LocalSource
     from v2v_server.service.worker import wire_arrays
@@ -143,10 +143,9 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
            acks: Optional[str] = None, codec: str = "none") -> None:
     import zmq
 
-    from v2v_server.service.assembly import (BatchAssembler, SamplePayload, make_batch, sample_from_slot,
-                                             sample_from_worker)
+    from v2v_server.service.assembly import BatchAssembler, SamplePayload, sample_from_slot, sample_from_worker
     from v2v_server.service.shm import BatchDir, SlotRing
-    from v2v_wire.protocol import decode_arrays, encode_arrays, narrow_int_dtype, pack, unpack
+    from v2v_wire.protocol import decode_arrays, unpack
     from v2v_wire.worker_messages import Sample
 
     ctx = zmq.Context()
@@ -169,7 +168,6 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
         rel.setsockopt(zmq.SNDTIMEO, 2000)
         rel.bind(release)
     pending, sent, sent_batches, data = [], 0, 0, 0
-    outputs = ("voxels", "frames", "flow")
     clock = _Clock()
     for i in range(n):
         frames = clock.recv(pull)
@@ -188,33 +186,9 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
         del frames
         if len(pending) == B:
             data += sum(x.nbytes for x in pending)
-            if path == "old":
-                arrays = {k: np.stack([s.arrays[k] for s in pending]) for k in pending[0].arrays}
-                arrays["voxels"] = arrays["voxels"].astype(narrow_int_dtype(arrays["voxels"]), copy=False)
-                specs, out = encode_arrays(arrays)
-            elif path == "handoff":
-                while len(inflight) >= CREDITS:  # the client's window is full: wait for an ack
-                    inflight.pop(int(ack.recv()), None)
-                batch = make_batch(pending)
-                specs, ref = batch.shm_ref(outputs)
-                inflight[sent_batches] = batch
-                push.send(pack({"type": "batch", "batch_id": sent_batches, "arrays": specs, "shm": ref,
-                                "dir": files.path, "sample_ids": [s.sample_id for s in pending]}))
-                sent += sum(batch.arrays[x["name"]].nbytes for x in specs)
-                sent_batches += 1
-                pending, batch = [], None
-                continue
-            else:
-                batch = make_batch(pending)
-                specs, out = batch.wire(outputs, codec)
-            head = [pack({"type": "batch", "arrays": specs, "sample_ids": [s.sample_id for s in pending]})]
-            if path == "old":
-                push.send_multipart(head + out, copy=False)
-            else:  # the buffer's rows stay leased until ZeroMQ has sent them
-                batch.send(push, head, out)
-                batch = None
-            sent += sum(a.nbytes if isinstance(a, np.ndarray) else len(a.buffer) for a in out)
-            pending, out = [], None
+            sent += _send_batch(path, pending, push, codec, files, inflight, ack, sent_batches)
+            sent_batches += path == "handoff"
+            pending = []
     push.close(linger=-1)  # every batch handed to the kernel before the clock stops
     while inflight:  # handoff: the client has copied every batch out before the files go
         inflight.pop(int(ack.recv()), None)
@@ -228,6 +202,37 @@ def _relay(src: str, release: str, dst: str, n: int, path: str, ring_spec: Optio
     ctx.term()
     if ring is not None:
         ring.close()
+
+
+def _send_batch(path: str, pending: list, push, codec: str, files, inflight: dict, ack, batch_id: int) -> int:
+    """Send the batch of the ``pending`` samples the way ``path`` does (``old``: a stacked copy;
+    ``handoff``: by reference into ``files``, held in ``inflight`` until ``ack`` says the client
+    copied it, at most ``CREDITS`` of them; else the zero-copy batch, ``codec`` compressed); the
+    bytes sent."""
+    from v2v_server.service.assembly import make_batch
+    from v2v_wire.protocol import encode_arrays, narrow_int_dtype, pack
+
+    outputs = ("voxels", "frames", "flow")
+    ids = [s.sample_id for s in pending]
+    if path == "handoff":
+        while len(inflight) >= CREDITS:  # the client's window is full: wait for an ack
+            inflight.pop(int(ack.recv()), None)
+        batch = make_batch(pending)
+        specs, ref = batch.shm_ref(outputs)
+        inflight[batch_id] = batch
+        push.send(pack({"type": "batch", "batch_id": batch_id, "arrays": specs, "shm": ref, "dir": files.path,
+                        "sample_ids": ids}))
+        return sum(batch.arrays[x["name"]].nbytes for x in specs)
+    if path == "old":  # before: a copy per sample, np.stack per batch
+        arrays = {k: np.stack([s.arrays[k] for s in pending]) for k in pending[0].arrays}
+        arrays["voxels"] = arrays["voxels"].astype(narrow_int_dtype(arrays["voxels"]), copy=False)
+        specs, out = encode_arrays(arrays)
+        push.send_multipart([pack({"type": "batch", "arrays": specs, "sample_ids": ids})] + out, copy=False)
+    else:  # the buffer's rows stay leased until ZeroMQ has sent them
+        batch = make_batch(pending)
+        specs, out = batch.wire(outputs, codec)
+        batch.send(push, [pack({"type": "batch", "arrays": specs, "sample_ids": ids})], out)
+    return sum(a.nbytes if isinstance(a, np.ndarray) else len(a.buffer) for a in out)
 
 
 def _client(src: str, batches: int, q, acks: Optional[str] = None) -> None:

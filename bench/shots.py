@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from harness.shot_labels import LABELLED, REAL_CLIP_CUTS, Transition, edited_clip, real_clip
-from v2v_server.sources.listing import SAMPLE_VIDEOS
+from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.frames.decode import decode_codes, full_range, iter_luma, open_video
 from v2v_server.frames import shots
 from v2v_server.frames.shots import ShotDetector, WindowLayout

@@ -30,7 +30,7 @@ import tempfile
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import List, Optional
+from typing import Callable, List, Optional
 
 import numpy as np
 
@@ -113,13 +113,13 @@ def reference_loader(path: Path, samples: int, crop: int = 128) -> float:
 
 # ---------------------------------------------------------------------------- ours, one core
 def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_fast: str = "off",
-                flow_grid: bool = False, busy: Optional[dict] = None, frame_cache=None, epoch: int = 0) -> float:
+                flow_grid: bool = False, busy: Optional[dict] = None, caches=None, epoch: int = 0) -> float:
     """Samples per CPU-second of one worker's work (decode, crop, simulate, flow, narrowing)
     in this process, one thread, with the recipe's ``decode_fast`` setting. ``flow_grid``:
     the tracked flow as its grid, as a served worker sends it. ``busy``, when given, receives
     ``samples`` and the seconds spent per stage (``SamplePass.seconds``: ``simulate``,
-    ``flow``, ``stats``). ``frame_cache``: the host's frame cache to read through
-    (``HostCaches.frame_cache``), None for none; ``epoch``: the epoch drawn."""
+    ``flow``, ``stats``). ``caches``: the host's caches to read through (``HostCaches``: the
+    frame cache), None for none; ``epoch``: the epoch drawn."""
     import cv2
 
     from v2v_server.samples.recipe import SampleRecipe
@@ -136,7 +136,7 @@ def worker_core(corpus: Path, outputs, crops: int = 1, videos: int = 2, decode_f
     n = 0
     t = time.process_time()
     for name in names:
-        run = video_samples(cfg, LocalSource(corpus), name, epoch, outputs, (), flow, flow_grid, frame_cache)
+        run = video_samples(cfg, LocalSource(corpus), name, epoch, outputs, (), flow, flow_grid, caches)
         for sid, arrays, meta in run:
             wire_arrays(cfg, arrays)
             n += 1
@@ -286,6 +286,83 @@ def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 
 
 
 # ---------------------------------------------------------------------------- main
+def per_core_rows(corpus: Path, clip: Path, rounds: int, row: Callable) -> None:
+    """The per-core rows (``row(name, value, unit, ratio, target)`` each): bare decoding, the
+    reference-style loader and one worker core's rates, measured in ``rounds`` interleaved rounds."""
+    from v2v_server.samples.recipe import SampleRecipe
+
+    default_flow = SampleRecipe(shot_cuts="off").flow_preset
+    outs = ("voxels", "frames", "flow")
+    # warm the decoder and load every compiled function (kernel, flow) once, unmeasured: a
+    # first call that loads numba's cache is ~0.1-0.3 s slower and would bias its row
+    worker_core(corpus, ("voxels",), videos=1)
+    worker_core(corpus, outs, crops=4, videos=1)
+    worker_core(corpus, ("voxels",), videos=1, decode_fast="bidir")
+    warm_kernel()
+    # the per-core rows are ratios: each round measures every row once, in turn, so that a change of
+    # the shared machine's speed hits all rows of a round alike; the ratios are the medians
+    # of the per-round ratios, the rates the medians of the rounds
+    rnd = {k: [] for k in ("fps", "ref", "vox", "allo", "k4", "voxb", "allb")}
+    for _ in range(rounds):
+        rnd["fps"].append(bare_decode(clip, 3))
+        rnd["ref"].append(reference_loader(clip, 4))
+        rnd["vox"].append(worker_core(corpus, ("voxels",)))
+        rnd["voxb"].append(worker_core(corpus, ("voxels",), decode_fast="bidir"))
+        rnd["allb"].append(worker_core(corpus, outs, decode_fast="bidir"))
+        # crops 1 and crops 4 in alternating order (ABBA over rounds): whichever row runs
+        # first after the voxels-only one read ~4 % slower on this machine (6 rounds)
+        for k in ((1, 4) if len(rnd["k4"]) % 2 == 0 else (4, 1)):
+            rnd["allo" if k == 1 else "k4"].append(worker_core(corpus, outs, crops=k))
+    med = lambda v: float(np.median(v))  # noqa: E731
+    per = lambda num, den: med([x / y for x, y in zip(rnd[num], rnd[den])])  # noqa: E731
+    fps = med(rnd["fps"])
+    bound, ref, vox, allo, k4 = fps / SPAN, med(rnd["ref"]), med(rnd["vox"]), med(rnd["allo"]), med(rnd["k4"])
+    dec = lambda k: per(k, "fps") * SPAN  # noqa: E731  (share of the decode bound, per round)
+    note = f" (median of {rounds} interleaved rounds)"
+    row("bare decode (PyAV, Y plane, 1 thread)", bound, "samples/CPU-s", f"{fps:.0f} frames/CPU-s")
+    row("reference-style loader (cv2 seek, BGR, float64 V2V, no flow)", ref, "samples/CPU-s",
+        f"{dec('ref'):.0%} of decode bound")
+    row("ours, one worker core, voxels only", vox, "samples/CPU-s",
+        f"{dec('vox'):.0%} of decode bound, {per('vox', 'ref'):.1f}x reference{note}", ">= 85 %")
+    row(f"ours, one worker core, every output (flow {default_flow})", allo, "samples/CPU-s",
+        f"{dec('allo'):.0%} of decode bound, {per('allo', 'ref'):.1f}x reference", ">= 85 %")
+    row("ours, one worker core, voxels only, decode_fast bidir", med(rnd["voxb"]), "samples/CPU-s",
+        f"{per('voxb', 'vox'):.2f}x decode_fast off")
+    row(f"ours, one worker core, every output (flow {default_flow}), decode_fast bidir", med(rnd["allb"]),
+        "samples/CPU-s", f"{per('allb', 'allo'):.2f}x decode_fast off")
+    k4r = [x / y for x, y in zip(rnd["k4"], rnd["allo"])]
+    row("crops_per_window 4, every output", k4, "samples/CPU-s",
+        f"{med(k4r):.2f}x crops 1 (rounds: {', '.join(f'{r:.2f}' for r in k4r)})", ">= 2.5x")
+
+
+def stream_rows(corpus: Path, folder: str, batches: int, stall: float, row: Callable) -> None:
+    """The rows through a served stream (``row`` as :func:`per_core_rows`): the relay's CPU per
+    GB, the client's, 1 and 2 workers' rates, and the server's memory over a ``stall`` s stall;
+    ``folder``: where the ``ipc://`` socket goes."""
+    outs = ("voxels", "frames", "flow")
+    s1 = stream(corpus, 1, batches, outs, [])
+    s2 = stream(corpus, 2, batches, outs, ["--crops-per-window", "4"])
+    # a short 2-core stream: polling, heartbeats and the workers' competition for the cores
+    # are in these per-GB rows; the relay's per-byte cost alone is bench.relay's
+    row("relay: server main process CPU per GB (2 workers, crops 4, whole stream)", s2["server_cpu_s_per_gb"],
+        "CPU-s/GB", f"{s2['gb']:.2f} GB of samples; per byte alone: bench.relay")
+    ipc = f"ipc://{folder}/v2v.sock"
+    s3 = stream(corpus, 2, batches, outs, ["--crops-per-window", "4"], endpoint=ipc)
+    row("relay over ipc:// (same host, whole stream)", s3["server_cpu_s_per_gb"], "CPU-s/GB",
+        f"{s3['samples_per_s']:.1f} samples/s")
+    row("client CPU per GB of samples, raw=True (flow expanded from the grid)", s2["client_cpu_s_per_gb"],
+        "CPU-s/GB", "")
+    row("stream, 1 worker, every output", s1["samples_per_s"], "samples/s",
+        f"first batch after {s1['first_batch_s']:.1f} s")
+    s2b = stream(corpus, 2, batches, outs, [])
+    row("stream, 2 workers, every output", s2b["samples_per_s"], "samples/s",
+        f"{s2b['samples_per_s'] / s1['samples_per_s']:.2f}x 1 worker (2 cores, shared); first batch after "
+        f"{s2b['first_batch_s']:.1f} s", "~2x")
+    mem = stalled_memory(corpus, stall)
+    row(f"server tree RSS growth over a {stall:.0f} s stall", mem["growth_mb"], "MB",
+        f"from {mem['start_mb']:.0f} MB; data-path bound {mem['data_bound_mb']:.0f} MB", "<= bound")
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--copies", type=int, default=6, help="copies of the WebVid-like clip in the corpus (2 windows each)")
@@ -297,9 +374,6 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                 "(at least 201 frames)")
     a = p.parse_args(argv)
     clip = clip_path(a.clip)
-    from v2v_server.samples.recipe import SampleRecipe
-
-    default_flow = SampleRecipe(shot_cuts="off").flow_preset
     rows = []
 
     def row(name, value, unit, ratio="", target=""):
@@ -308,68 +382,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     with tempfile.TemporaryDirectory(prefix="v2v-speed-") as d:
         corpus = make_corpus(Path(d) / "webvid", a.copies, clip)
-        outs = ("voxels", "frames", "flow")
-        # warm the decoder and load every compiled function (kernel, flow) once, unmeasured: a
-        # first call that loads numba's cache is ~0.1-0.3 s slower and would bias its row
-        worker_core(corpus, ("voxels",), videos=1)
-        worker_core(corpus, outs, crops=4, videos=1)
-        worker_core(corpus, ("voxels",), videos=1, decode_fast="bidir")
-        warm_kernel()
-        # the per-core rows are ratios: each round measures every row once, in turn, so that a change of
-        # the shared machine's speed hits all rows of a round alike; the ratios are the medians
-        # of the per-round ratios, the rates the medians of the rounds
-        rnd = {k: [] for k in ("fps", "ref", "vox", "allo", "k4", "voxb", "allb")}
-        for _ in range(a.rounds):
-            rnd["fps"].append(bare_decode(clip, 3))
-            rnd["ref"].append(reference_loader(clip, 4))
-            rnd["vox"].append(worker_core(corpus, ("voxels",)))
-            rnd["voxb"].append(worker_core(corpus, ("voxels",), decode_fast="bidir"))
-            rnd["allb"].append(worker_core(corpus, outs, decode_fast="bidir"))
-            # crops 1 and crops 4 in alternating order (ABBA over rounds): whichever row runs
-            # first after the voxels-only one read ~4 % slower on this machine (6 rounds)
-            for k in ((1, 4) if len(rnd["k4"]) % 2 == 0 else (4, 1)):
-                rnd["allo" if k == 1 else "k4"].append(worker_core(corpus, outs, crops=k))
-        med = lambda v: float(np.median(v))  # noqa: E731
-        per = lambda num, den: med([x / y for x, y in zip(rnd[num], rnd[den])])  # noqa: E731
-        fps = med(rnd["fps"])
-        bound, ref, vox, allo, k4 = fps / SPAN, med(rnd["ref"]), med(rnd["vox"]), med(rnd["allo"]), med(rnd["k4"])
-        dec = lambda k: per(k, "fps") * SPAN  # noqa: E731  (share of the decode bound, per round)
-        note = f" (median of {a.rounds} interleaved rounds)"
-        row("bare decode (PyAV, Y plane, 1 thread)", bound, "samples/CPU-s", f"{fps:.0f} frames/CPU-s")
-        row("reference-style loader (cv2 seek, BGR, float64 V2V, no flow)", ref, "samples/CPU-s",
-            f"{dec('ref'):.0%} of decode bound")
-        row("ours, one worker core, voxels only", vox, "samples/CPU-s",
-            f"{dec('vox'):.0%} of decode bound, {per('vox', 'ref'):.1f}x reference{note}", ">= 85 %")
-        row(f"ours, one worker core, every output (flow {default_flow})", allo, "samples/CPU-s",
-            f"{dec('allo'):.0%} of decode bound, {per('allo', 'ref'):.1f}x reference", ">= 85 %")
-        row("ours, one worker core, voxels only, decode_fast bidir", med(rnd["voxb"]), "samples/CPU-s",
-            f"{per('voxb', 'vox'):.2f}x decode_fast off")
-        row(f"ours, one worker core, every output (flow {default_flow}), decode_fast bidir", med(rnd["allb"]),
-            "samples/CPU-s", f"{per('allb', 'allo'):.2f}x decode_fast off")
-        k4r = [x / y for x, y in zip(rnd["k4"], rnd["allo"])]
-        row("crops_per_window 4, every output", k4, "samples/CPU-s",
-            f"{med(k4r):.2f}x crops 1 (rounds: {', '.join(f'{r:.2f}' for r in k4r)})", ">= 2.5x")
-        s1 = stream(corpus, 1, a.batches, outs, [])
-        s2 = stream(corpus, 2, a.batches, outs, ["--crops-per-window", "4"])
-        # a short 2-core stream: polling, heartbeats and the workers' competition for the cores
-        # are in these per-GB rows; the relay's per-byte cost alone is bench.relay's
-        row("relay: server main process CPU per GB (2 workers, crops 4, whole stream)", s2["server_cpu_s_per_gb"],
-            "CPU-s/GB", f"{s2['gb']:.2f} GB of samples; per byte alone: bench.relay")
-        ipc = f"ipc://{d}/v2v.sock"
-        s3 = stream(corpus, 2, a.batches, outs, ["--crops-per-window", "4"], endpoint=ipc)
-        row("relay over ipc:// (same host, whole stream)", s3["server_cpu_s_per_gb"], "CPU-s/GB",
-            f"{s3['samples_per_s']:.1f} samples/s")
-        row("client CPU per GB of samples, raw=True (flow expanded from the grid)", s2["client_cpu_s_per_gb"],
-            "CPU-s/GB", "")
-        row("stream, 1 worker, every output", s1["samples_per_s"], "samples/s",
-            f"first batch after {s1['first_batch_s']:.1f} s")
-        s2b = stream(corpus, 2, a.batches, outs, [])
-        row("stream, 2 workers, every output", s2b["samples_per_s"], "samples/s",
-            f"{s2b['samples_per_s'] / s1['samples_per_s']:.2f}x 1 worker (2 cores, shared); first batch after "
-            f"{s2b['first_batch_s']:.1f} s", "~2x")
-        mem = stalled_memory(corpus, a.stall)
-        row(f"server tree RSS growth over a {a.stall:.0f} s stall", mem["growth_mb"], "MB",
-            f"from {mem['start_mb']:.0f} MB; data-path bound {mem['data_bound_mb']:.0f} MB", "<= bound")
+        per_core_rows(corpus, clip, a.rounds, row)
+        stream_rows(corpus, d, a.batches, a.stall, row)
     lines = ["| measurement | value | unit | ratio / note | target |", "|---|---:|---|---|---|"]
     for name, value, unit, ratio, target in rows:
         lines.append(f"| {name} | {value:.3g} | {unit} | {ratio} | {target} |")

@@ -57,10 +57,10 @@ import sys, time
 t0 = time.perf_counter()
 engine, path = sys.argv[1], sys.argv[2]
 csv = path.endswith(".csv")
-if engine == "v2v":  # read_video_list end to end: DuckDB, the path column, the frame check
+if engine == "v2v":  # read_video_list end to end: DuckDB, the filter, the path column
     from v2v_server.sources.video_list import read_video_list
     from v2v_server.sources.video_tables import TableSettings
-    paths = read_video_list(path, TableSettings(None, FILTER, 201)).videos
+    paths = read_video_list(path, TableSettings(None, FILTER)).videos
 elif engine == "duckdb":
     import duckdb
     con = duckdb.connect()

@@ -1,7 +1,8 @@
 """The shape of the code: the largest classes and functions, and lines per subpackage.
 
 Usage: ``python -m harness.code_shape [--top N] [--limit-class N] [--limit-function N] [PATH ...]``
-(default paths: ``v2v_wire v2v_server v2v_client trainer``). Prints, for each subpackage (a
+(default paths: the packages ``v2v_wire v2v_server v2v_client trainer``, and ``bench harness``, the
+benches and what tests and benches share, held to the same bounds). Prints, for each subpackage (a
 folder with Python files), its modules and lines; then the ``N`` largest classes and functions
 with their file and line; then every class and function over the limits. Exits 1 when some
 class or function is over its limit, else 0. The limits default to the bounds
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Iterable, List, Tuple
 
-DEFAULT_PATHS = ("v2v_wire", "v2v_server", "v2v_client", "trainer")
+DEFAULT_PATHS = ("v2v_wire", "v2v_server", "v2v_client", "trainer", "bench", "harness")
 #: Where the bounds are stated, relative to the repository root, and the sentence that states them.
 BOUNDS_DOC = "docs/architecture.md"
 BOUNDS_SENTENCE = re.compile(r"no\s+class\s+over\s+(\d+)\s+lines,\s+no\s+function\s+over\s+(\d+)")

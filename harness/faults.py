@@ -25,7 +25,7 @@ import zmq
 
 from v2v_client import V2VStreamDataset
 from v2v_server.ops.config import ServeConfig
-from v2v_server.frames.corpus import check_corpus
+from v2v_server.frames.check import check_corpus
 from v2v_server.sources.local import LocalSource
 from harness.data import SAMPLE_VIDEOS
 from harness.serve import ServeProcess

@@ -101,7 +101,7 @@ def _pan(image: np.ndarray, speed: int, frames: int = SHOT) -> np.ndarray:
 
 
 def _frames(clip: str, picks) -> np.ndarray:
-    from v2v_server.sources.listing import SAMPLE_VIDEOS
+    from v2v_server.ops.startup import SAMPLE_VIDEOS
     from v2v_server.frames.decode import iter_luma
 
     want = set(picks)

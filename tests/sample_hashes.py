@@ -77,10 +77,10 @@ def _as_received(cfg: SampleRecipe, arrays: dict) -> dict:
     return out
 
 
-def compute(source=None, frame_cache=None) -> dict:
+def compute(source=None, caches=None) -> dict:
     """{recipe: {sample_id: {output or "params": hash}}} for every sample of the bundled clips
-    (``source``: a ``VideoSource`` over their folder, default the folder itself; ``frame_cache``:
-    the host's frame cache the passes read through, default none)."""
+    (``source``: a ``VideoSource`` over their folder, default the folder itself; ``caches``:
+    the host's caches the passes read through, ``HostCaches``, default none)."""
     source = LocalSource(CLIPS) if source is None else source
     table = {}
     for name, overrides in RECIPES:
@@ -88,7 +88,7 @@ def compute(source=None, frame_cache=None) -> dict:
         rows = {}
         for clip in PINNED_CLIPS:
             for key, arrays, meta in video_samples(cfg, source, clip, 0, DEFAULT_OUTPUTS, flow_grid=True,
-                                                   frame_cache=frame_cache):
+                                                   caches=caches):
                 rows[key.sample_id(cfg.crops_per_window)] = _digest(_as_received(cfg, wire_arrays(cfg, arrays)), _canonical(meta))
         table[name] = rows
     return table

@@ -18,9 +18,9 @@ def samples(cfg, root, names, epoch: int) -> dict:
     ``Cached`` one read through its frame cache)."""
     from v2v_server.samples.make import video_samples
 
-    source, fc = (root.source, root.frame_cache) if isinstance(root, Cached) else (root, None)
+    source, caches = (root.source, root.caches) if isinstance(root, Cached) else (root, None)
     return {k.sample_id(1): b"".join(a[o].tobytes() for o in OUTPUTS)
-            for v in names for k, a, _ in video_samples(cfg.recipe, source, v, epoch, OUTPUTS, frame_cache=fc)}
+            for v in names for k, a, _ in video_samples(cfg.recipe, source, v, epoch, OUTPUTS, caches=caches)}
 
 
 def check_frame_cache_hit(store, cfg, tmp_path: Path, storage_options: Optional[dict] = None,
@@ -62,7 +62,7 @@ def check_a_paused_store_fails_the_read(store, src, name: str) -> bytes:
 
     import pytest
 
-    from v2v_server.sources.names import VideoError
+    from v2v_server.sources.errors import VideoError
 
     store.pause()
     try:

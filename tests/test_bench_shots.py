@@ -1,8 +1,8 @@
 """bench/shots.py's second window pass (``shot_windows``): the starts the server's
 ``WindowLayout`` gives for a list of cuts, without decoding."""
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.sources.listing import SAMPLE_VIDEOS
-from v2v_server.frames.corpus import check_video
+from v2v_server.ops.startup import SAMPLE_VIDEOS
+from v2v_server.frames.check import check_video
 from v2v_server.sources.local import LocalSource
 
 from bench.shots import shot_windows

@@ -12,10 +12,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run(*args: str) -> subprocess.CompletedProcess:
+def _run(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, cwd=ROOT, env=env,
-                          timeout=300)
+                          timeout=timeout)
 
 
 def _assert_config_error(r: subprocess.CompletedProcess, prog: str, *named: str) -> None:
@@ -60,6 +60,28 @@ def test_v2v_serve_reads_the_same(tmp_path):
     cfg.write_text("nonidealities: {leak_hertz: 1}\n")
     r = _run("v2v_server.cli", "--config", str(cfg))
     _assert_config_error(r, "v2v-serve", str(cfg), "['leak_hertz']", "in nonidealities", "'leak_hz'")
+
+
+@pytest.mark.parametrize("key, yaml, bound", [
+    ("ranges.threshold", "ranges: {threshold: [0.1, 1.0e308]}", "above 10, the largest contrast threshold"),
+    ("ranges.noise_std", "ranges: {noise_std: [0.0, 1.0e308]}", "above 10, the largest noise sigma"),
+    ("nonidealities.threshold_sigma", "nonidealities: {threshold_sigma: 1.0e308}", "above 10, the largest threshold spread"),
+])
+def test_a_sensor_value_beyond_what_the_kernel_is_tested_at_is_refused_at_start(tmp_path, key, yaml, bound):
+    """A recipe (hand-written or fitted) whose sensor range the simulation kernel is not tested at
+    (tests/test_stability.py) stops the server at start with one line naming the key and the
+    bound, instead of failing every file while serving: the same rule for serving and ``--check``,
+    and for the recipe built in Python."""
+    from v2v_server.ops.config import load_config
+
+    cfg = tmp_path / "fit.yaml"
+    cfg.write_text(yaml + "\n")
+    for mode in (["--check"], []):
+        r = _run("v2v_server.cli", "--config", str(cfg), "--bind", "tcp://127.0.0.1:0", "--epochs", "1", *mode,
+                 timeout=120)
+        _assert_config_error(r, "v2v-serve", str(cfg), f"{key}: 1e+308 is {bound}", "tested at")
+    with pytest.raises(ValueError, match=rf"{key}: 1e\+308 is {bound}"):
+        load_config(str(cfg))
 
 
 def test_an_unknown_log_level_is_refused_not_read_as_info():

@@ -13,7 +13,7 @@ import time
 import pytest
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.frames.corpus import check_corpus, check_video
+from v2v_server.frames.check import check_corpus, check_video
 from v2v_server.frames.corpus_index import INDEX_FILE, CorpusIndex, Verdict, layout_key
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.sources.local import RACY_NS, LocalSource

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.sources.listing import SAMPLE_VIDEOS
+from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.frames.decode import DECODE_FAST, decode_luma, open_video
 
 

@@ -17,7 +17,8 @@ import pytest
 
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.samples.make import video_frames, video_samples
+from v2v_server.frames.frame_pass import open_frames
+from v2v_server.samples.make import video_samples
 from v2v_server.sources.local import LocalSource
 from v2v_server.luma import to_uint8
 from v2v_server.frames.decode import open_video
@@ -166,7 +167,7 @@ def test_ten_bit_frames_reach_the_core_as_uint16(corpus, ten, eight):
     cfg = SampleRecipe(**RECIPE)
     frames = {}
     for name in (ten, eight):
-        with video_frames(cfg, LocalSource(corpus), name) as fp:
+        with open_frames(LocalSource(corpus), name, cfg.decode, cfg.windows) as fp:
             frames[name] = [f.expand(f.codes).copy() for f in fp.frames]
     assert frames[ten][0].dtype == np.uint16 and frames[eight][0].dtype == np.uint8
     assert len(frames[ten]) == len(frames[eight]) >= 2 * 20 + 1  # both windows (with shot_cuts avoid, every frame)
@@ -187,7 +188,7 @@ def test_variable_frame_rate_frames_are_taken_in_order(corpus):
     assert sorted(set(steps.tolist())) == list(VFR_STEPS) and len(times) == N
     assert info.fps == pytest.approx(float(s.average_rate)) and info.fps == pytest.approx((N - 1) / times[-1], rel=0.1)
     cfg = SampleRecipe(**RECIPE)
-    with video_frames(cfg, LocalSource(corpus), "vfr.mp4") as fp:
+    with open_frames(LocalSource(corpus), "vfr.mp4", cfg.decode, cfg.windows) as fp:
         read = [f.expand(f.codes).copy() for f in fp.frames]
     c, s, _ = open_video(path)
     order = [f.to_ndarray(format="gray")[: len(read[0])] for f in c.decode(s)][: len(read)]

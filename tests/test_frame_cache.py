@@ -39,8 +39,8 @@ def _samples(cfg, root, video, epoch=0, outputs=DEFAULT_OUTPUTS) -> dict:
     """{sample id: (sha of each array, params)} of one video of one epoch of ``root`` (a folder
     or a ``VideoSource``)."""
     out = {}
-    source, fc = (root.source, root.caches.frame_cache) if isinstance(root, Cached) else (LocalSource(root), None)
-    for key, arrays, meta in video_samples(cfg, source, video, epoch, outputs, flow_grid=True, frame_cache=fc):
+    source, caches = (root.source, root.caches) if isinstance(root, Cached) else (LocalSource(root), None)
+    for key, arrays, meta in video_samples(cfg, source, video, epoch, outputs, flow_grid=True, caches=caches):
         out[key.sample_id(cfg.crops_per_window)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
     return out
 
@@ -62,7 +62,7 @@ def test_pinned_table_holds_cold_and_warm(tmp_path):
     want = json.loads(sample_hashes.TABLE.read_text())
     src = cached(CLIPS, tmp_path)
     for state in ("cold", "warm"):
-        got = sample_hashes.compute(src.source, src.caches.frame_cache)
+        got = sample_hashes.compute(src.source, src.caches)
         assert got == want, state
         stats = src.take_stats()["frame_cache"]
         if state == "warm":
@@ -287,7 +287,7 @@ def test_cache_folder_deleted_while_serving(tmp_path):
     want = _samples(cfg, CLIPS, "bikes.mp4")
     src = cached(CLIPS, tmp_path)
     got = {}
-    run = video_samples(cfg, src.source, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True, frame_cache=src.caches.frame_cache)
+    run = video_samples(cfg, src.source, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True, caches=src.caches)
     for i, (key, arrays, meta) in enumerate(run):
         got[key.sample_id(1)] = sample_hashes._digest(arrays, sample_hashes._canonical(meta))
         if i == 0:
@@ -347,7 +347,7 @@ def _make_samples(root: str, cache_dir: str, video: str, kill_after: int) -> Non
 
     cfg = SampleRecipe(**SMALL)
     src = cached(root, cache_dir)
-    for i, _ in enumerate(video_samples(cfg, src.source, video, 0, DEFAULT_OUTPUTS, frame_cache=src.caches.frame_cache)):
+    for i, _ in enumerate(video_samples(cfg, src.source, video, 0, DEFAULT_OUTPUTS, caches=src.caches)):
         if i == kill_after:
             os.kill(os.getpid(), signal.SIGKILL)
 
@@ -381,7 +381,7 @@ def test_two_writers_make_one_entry(tmp_path):
     cfg = SampleRecipe(**SMALL)
     src = cached(CLIPS, tmp_path / "one")
     passes = [video_samples(cfg, src.source, "bikes.mp4", 0, DEFAULT_OUTPUTS, flow_grid=True,
-                                         frame_cache=src.caches.frame_cache) for _ in range(2)]
+                                         caches=src.caches) for _ in range(2)]
     got: tuple = ({}, {})
     for pair in itertools.zip_longest(*passes):
         for seen, sample in zip(got, pair):
@@ -592,11 +592,11 @@ def test_an_entry_is_stored_by_its_owners_commit_of_a_whole_pass(tmp_path):
     pass is whole: a commit mid-pass is refused, and leaving the block without one stores nothing
     (counted incomplete); a pass read to its end and committed is stored, once, and the next
     pass replays it whole."""
-    from v2v_server.samples.make import video_frames
+    from v2v_server.frames.frame_pass import open_frames
 
     cfg = SampleRecipe(shot_cuts="off", **SMALL)
     src = cached(CLIPS, tmp_path)
-    with video_frames(cfg, src.source, "bikes.mp4", src.frame_cache) as fp:
+    with open_frames(src.source, "bikes.mp4", cfg.decode, cfg.windows, src.frame_cache) as fp:
         next(fp.frames)
         with pytest.raises(RuntimeError, match="reading"):
             fp.commit()
@@ -604,7 +604,7 @@ def test_an_entry_is_stored_by_its_owners_commit_of_a_whole_pass(tmp_path):
         fp.commit()
     stats = src.take_stats()["frame_cache"]
     assert _entries(tmp_path) == [] and stats["stored"] == 0 and stats["not_stored"]["incomplete"] == 1, stats
-    with video_frames(cfg, src.source, "bikes.mp4", src.frame_cache) as fp:
+    with open_frames(src.source, "bikes.mp4", cfg.decode, cfg.windows, src.frame_cache) as fp:
         n = sum(1 for _ in fp.frames)
         assert fp.storing and _entries(tmp_path) == []  # whole, not yet stored
         fp.commit()
@@ -612,7 +612,7 @@ def test_an_entry_is_stored_by_its_owners_commit_of_a_whole_pass(tmp_path):
         with pytest.raises(RuntimeError, match="committed"):
             fp.commit()
     assert len(_entries(tmp_path)) == 1 and src.take_stats()["frame_cache"]["stored"] == 1
-    with video_frames(cfg, src.source, "bikes.mp4", src.frame_cache) as fp:
+    with open_frames(src.source, "bikes.mp4", cfg.decode, cfg.windows, src.frame_cache) as fp:
         assert fp.cached and sum(1 for _ in fp.frames) == n == cfg.windows.frame_limit(fp.declared)
 
 

@@ -19,8 +19,9 @@ from tests.cached import Cached, cached
 from tests.test_frames import write_clip
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.samples.make import video_frames, video_samples
-from v2v_server.frames.corpus import check_video
+from v2v_server.frames.frame_pass import open_frames
+from v2v_server.samples.make import video_samples
+from v2v_server.frames.check import check_video
 from v2v_server.frames.decode import decode_luma, feeding_rows, iter_luma, open_video, scale_frame, scaled_size
 from v2v_server.sources.local import LocalSource
 from v2v_wire.outputs import OUTPUTS
@@ -60,12 +61,12 @@ def _expected(path: Path, height: int, keep: float, n: int) -> list:
 @pytest.mark.parametrize("video,height", [("bikes.mp4", 120), ("bikes.mp4", 500), ("ten_bit.mkv", 64),
                                           ("portrait.mp4", 100)])
 def test_scaled_frames_are_inter_area_of_full_range_then_kept_rows(corpus, video, height):
-    """The pass the workers, ``--warm-cache`` and the Ray engine read (``video_frames``) gives
+    """The frames the workers, ``--warm-cache`` and the Ray engine read (``open_frames``) are
     INTER_AREA of the full-range frame (down and up, rotated as displayed), then the kept rows;
     uint16 stays uint16."""
     cfg = SampleRecipe(**SMALL, frame_height=height)
     want = _expected(corpus / video, height, cfg.keep_top_fraction, 12)
-    with video_frames(cfg, LocalSource(corpus), video) as fp:
+    with open_frames(LocalSource(corpus), video, cfg.decode, cfg.windows) as fp:
         got = [f.expand(f.codes).copy() for f in (next(fp.frames) for _ in range(12))]
     assert got[0].shape == (cfg.decode.kept_rows(height), want[0].shape[1])
     assert got[0].dtype == want[0].dtype == (np.uint16 if video == "ten_bit.mkv" else np.uint8)
@@ -134,7 +135,7 @@ def test_frame_height_zero_is_the_decoded_frame(corpus):
     cfg = SampleRecipe(**SMALL)
     assert cfg.frame_height == 0
     plain = [g[: cfg.decode.kept_rows(g.shape[0])].copy() for _, g in zip(range(5), iter_luma(corpus / "bikes.mp4"))]
-    with video_frames(cfg, LocalSource(corpus), "bikes.mp4") as fp:
+    with open_frames(LocalSource(corpus), "bikes.mp4", cfg.decode, cfg.windows) as fp:
         got = [f.expand(f.codes).copy() for f in (next(fp.frames) for _ in range(5))]
     for a, b in zip(got, plain):
         np.testing.assert_array_equal(a, b)
@@ -205,9 +206,9 @@ def test_v2v_serve_bad_frame_height_is_a_configuration_error():
 
 def _samples(cfg, root, video) -> dict:
     """{sample id: digest} of one video of ``root`` (a folder or a ``Cached`` corpus)."""
-    source, fc = (root.source, root.frame_cache) if isinstance(root, Cached) else (LocalSource(root), None)
+    source, caches = (root.source, root.caches) if isinstance(root, Cached) else (LocalSource(root), None)
     return {key.sample_id(cfg.crops_per_window): sample_hashes._digest(arrays, sample_hashes._canonical(meta))
-            for key, arrays, meta in video_samples(cfg, source, video, 0, OUTPUTS, flow_grid=True, frame_cache=fc)}
+            for key, arrays, meta in video_samples(cfg, source, video, 0, OUTPUTS, flow_grid=True, caches=caches)}
 
 
 def test_served_samples_under_frame_height_are_the_recipes(corpus):

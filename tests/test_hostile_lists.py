@@ -18,7 +18,7 @@ import pytest
 
 from harness.serve import ServeProcess
 from v2v_server import cli
-from v2v_server.sources.listing import SAMPLE_VIDEOS
+from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.sources.local import RACY_NS, LocalSource
 from v2v_server.sources.video_list import read_video_list
 from v2v_server.sources.video_tables import TableSettings
@@ -61,7 +61,7 @@ def test_a_filter_is_one_expression_and_nothing_else(corpus, capsys, smuggled):
 
 
 def test_one_expression_may_hold_a_subquery_over_the_table(corpus):
-    got = read_video_list(str(corpus / "table.csv"), TableSettings(None, "frame >= (SELECT max(frame) FROM t)", 0))
+    got = read_video_list(str(corpus / "table.csv"), TableSettings(None, "frame >= (SELECT max(frame) FROM t)"))
     assert got.videos == ["a.mp4", "b.mp4"] and got.refused == []
 
 

@@ -22,12 +22,12 @@ from harness.object_store import SeaweedS3
 from harness.serve import ServeProcess, free_port
 from tests.store_checks import check_a_paused_store_fails_the_read, check_frame_cache_hit
 from v2v_server.ops.config import ServeConfig
-from v2v_server.sources.names import VideoError
+from v2v_server.sources.errors import VideoError
 from v2v_server.sources.manifest import manifest_path, read_manifest
 from v2v_server.sources.shards import TarMember, ZipMember
 from v2v_server.ops.config import source_from_config
 from v2v_server.sources.store import StoreSource
-from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.errors import StoreError
 from v2v_server.sources.video_list import read_video_list
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,13 +15,13 @@ import pytest
 from harness.cloud_emulators import AzuriteBlob, EmulatorUnavailable, GcsEmulator
 from v2v_server import cli
 from v2v_server.ops.config import ServeConfig
-from v2v_server.sources.names import VideoError
+from v2v_server.sources.errors import VideoError
 from tests.store_checks import check_a_paused_store_fails_the_read, check_frame_cache_hit, samples
 from v2v_server.ops.config import source_from_config
 from v2v_server.sources.local import LocalSource
 from v2v_server.sources.source_spec import source_from_spec
 from v2v_server.sources.store import StoreSettings, StoreSource
-from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.errors import StoreError
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIPS = ROOT / "v2v_server" / "sample_videos"

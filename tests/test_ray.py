@@ -7,6 +7,8 @@ import json
 import logging
 import re
 import shutil
+import subprocess
+import sys
 import threading
 from collections import Counter
 
@@ -52,7 +54,7 @@ def clips(tmp_path_factory, videos):
 def checked_ids(root, cfg: ServeConfig) -> list:
     """Every sample id of one epoch of the folder ``root`` by ``--check``'s verdicts (the
     ZeroMQ path's scan, not the Ray engine's)."""
-    from v2v_server.frames.corpus import check_corpus
+    from v2v_server.frames.check import check_corpus
     from v2v_server.sources.folder_scan import scan_corpus
     from v2v_server.sources.local import LocalSource
 
@@ -110,6 +112,56 @@ def test_epoch_has_every_id_once_and_the_zeromq_path_content(ray_session, videos
         # the params, statistics included (the flow's: of the tracked grid on both engines), are one
         assert json.loads(r["params"]) == params and "flow_mag" in params["stats"]
         assert np.abs(r["voxels"]).sum() > 0  # real events, not placeholder zeros
+
+
+@pytest.mark.timeout(300)
+def test_a_shard_is_the_same_samples_through_every_engine(ray_session, clips, tmp_path):
+    """One start-up path (``ops.startup.start_source``): ``v2v-serve --shard 1/2``, the in-process
+    server and the Ray engine with ``shard: 1/2`` serve the same ids with the same arrays, the
+    same shard of the listing; a video the host's corpus index knows to give no window is left
+    unopened by all three."""
+    from harness.corpus import write_video
+    from v2v_server.ops.startup import start_source
+    from v2v_server.service.local import local_server
+
+    # --check teaches the host's corpus index that brief.mp4 gives no window
+
+    corpus = tmp_path / "corpus"
+    shutil.copytree(clips, corpus)
+    write_video(corpus / "brief.mp4", 9, 96, 64)  # shard 1 of 2 by its name; shorter than one window
+    cache = tmp_path / "cache"
+    cfg = layout(shard="1/2", cache_dir=str(cache), shot_cuts="off", batch_size=2)
+    cli_args = serve_args(corpus, "--shard", "1/2", "--cache-dir", str(cache), "--shot-cuts", "off",
+                          "--batch-size", "2", "--epochs", "1")
+    checked = subprocess.run([sys.executable, "-m", "v2v_server.cli", *cli_args, "--check"], capture_output=True,
+                             text=True, timeout=120)
+    assert checked.returncode == 0 and "brief.mp4" in checked.stdout, checked.stdout + checked.stderr
+    start = start_source(cfg, str(corpus))
+    assert start.videos == ["bigbuckbunny.mp4", "brief.mp4", "webvid_like_596x336.mp4"]
+    assert list(start.skipped) == ["brief.mp4"] and "brief.mp4" not in start.served and start.listed == 4
+
+    def stream(endpoint) -> dict:
+        out = {}
+        for b in V2VStreamDataset(endpoint, outputs=("voxels", "frames"), timeout_s=60, raw=True):
+            for i, sid in enumerate(b["sample_ids"]):
+                assert sid not in out, sid
+                out[sid] = (b["voxels"][i].numpy().astype(np.int16), b["frames"][i].numpy())
+        return out
+
+    with ServeProcess(cli_args) as srv:
+        served = stream(srv.endpoint)
+        assert srv.wait(30) == 0
+    assert "1 video(s) not opened" in srv.log
+    with local_server(None, workers=1, batch_size=2, config=ServeConfig.from_dict(
+            {**cfg.to_dict(), "videos": str(corpus), "epochs": 1})) as endpoint:
+        local = stream(endpoint)
+    rows = {r["sample_id"]: r for r in v2v_dataset(corpus, cfg, epoch=0, outputs=("voxels", "frames")).take_all()}
+    want = sorted(f"{v}#{k}" for v in ("bigbuckbunny.mp4", "webvid_like_596x336.mp4") for k in range(MAXW))
+    assert sorted(served) == sorted(local) == sorted(rows) == want
+    for sid in want:
+        for got in (local[sid], (rows[sid]["voxels"], rows[sid]["frames"])):
+            np.testing.assert_array_equal(got[0], served[sid][0])
+            np.testing.assert_array_equal(got[1], served[sid][1])
 
 
 @pytest.mark.timeout(240)

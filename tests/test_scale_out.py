@@ -21,8 +21,8 @@ import torch
 from v2v_client import V2VStreamDataset
 from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
 from v2v_server.ops.config import ServeConfig, parse_shard
-from v2v_server.frames.corpus import check_corpus
-from v2v_server.sources.listing import select_shard, shard_of
+from v2v_server.frames.check import check_corpus
+from v2v_server.ops.startup import select_shard, shard_of
 from v2v_server.sources.local import LocalSource
 from v2v_server.ops.logs import JsonFormatter
 from harness.serve import ServeProcess, free_port
@@ -83,7 +83,7 @@ def test_shards_partition_any_corpus_and_the_hash_is_stable_across_processes():
         assert sorted(sum(parts, [])) == sorted(names)  # every file in exactly one shard
         assert all(len(p) > 0 for p in parts)
     # the hash does not depend on Python's per-process salt (PYTHONHASHSEED) nor on the host
-    code = "from v2v_server.sources.listing import shard_of; print([shard_of(f'dir/c{i}.mp4', 4) for i in range(50)])"
+    code = "from v2v_server.ops.startup import shard_of; print([shard_of(f'dir/c{i}.mp4', 4) for i in range(50)])"
     outs = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                            env=dict(os.environ, PYTHONHASHSEED=str(seed))).stdout for seed in (1, 2)}
     assert len(outs) == 1 and json.loads(outs.pop()) == [shard_of(f"dir/c{i}.mp4", 4) for i in range(50)]

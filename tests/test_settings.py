@@ -117,15 +117,39 @@ def test_trainer_config_is_declared_once_and_its_reference_is_current():
 
 
 def test_workers_get_the_recipe_only():
+    import dataclasses
+    import pickle
+
     from v2v_server.service.worker import worker_config
 
-    cfg = load_config(None, {"seed": 7, "workers": 3, "crops_per_window": 2, "lease_s": 5.0})
-    w = worker_config(cfg)
-    assert set(w) == {"recipe", "log_format"} and "workers" not in w["recipe"] and "lease_s" not in w["recipe"]
-    r = SampleRecipe.recipe_from_dict(w["recipe"])
-    assert r == cfg.recipe and r.seed == 7 and r.crops_per_window == 2
-    with pytest.raises(ValueError, match="worker recipe: unknown key"):
-        SampleRecipe.recipe_from_dict({**w["recipe"], "workers": 3}, source="worker recipe")
+    cfg = load_config(None, {"seed": 7, "workers": 3, "crops_per_window": 2, "lease_s": 5.0, "shot_cuts": "off",
+                             "log_format": "json"})
+    w = pickle.loads(pickle.dumps(worker_config(cfg)))  # as the spawned process receives it
+    assert [f.name for f in dataclasses.fields(w)] == ["recipe", "log_format"] and w.log_format == "json"
+    r = w.recipe
+    assert type(r) is SampleRecipe and r == cfg.recipe and r.seed == 7 and r.crops_per_window == 2
+    assert r.shot_cuts == r.windows.shot_cuts == "off" and not hasattr(r, "workers") and not hasattr(r, "lease_s")
+
+
+def test_each_recipe_key_is_declared_once():
+    """The recipe composes the frames stage's settings: a key of ``WindowSettings`` or
+    ``DecodeSettings`` is declared there only, and reads through the recipe and the config."""
+    import dataclasses
+
+    from v2v_server.frames.frame_pass import DecodeSettings
+    from v2v_server.frames.windows import WindowSettings
+
+    own = [f.name for f in dataclasses.fields(SampleRecipe) if "help" in f.metadata]
+    parts = [f.name for part in (WindowSettings, DecodeSettings) for f in documented(part)]
+    assert parts and not set(own) & set(parts)
+    keys = [f.name for f in documented(ServeConfig)]
+    assert len(keys) == len(set(keys)) and set(own) | set(parts) <= set(keys)
+    cfg = load_config(None, {"shot_cuts": "off", "decode_fast": "all", "keep_top_fraction": 0.75, "seed": 2})
+    assert (cfg.shot_cuts, cfg.recipe.shot_cuts, cfg.recipe.windows.shot_cuts) == ("off",) * 3
+    assert cfg.decode_fast == cfg.recipe.decode.decode_fast == "all" and cfg.recipe.decode.keep_top_fraction == 0.75
+    assert cfg.recipe.reads.decode is cfg.recipe.decode and cfg.recipe.reads.windows is cfg.recipe.windows
+    with pytest.raises(ValueError, match="shot_cuts must be one of"):
+        load_config(None, {"shot_cuts": "sometimes"})
 
 
 def test_unknown_keys_anywhere_name_the_file_the_section_and_the_allowed_keys(tmp_path):

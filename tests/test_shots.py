@@ -8,10 +8,11 @@ import pytest
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.ops.metrics import ServerMetrics
-from v2v_server.samples.make import video_frames, video_samples
+from v2v_server.frames.frame_pass import open_frames
+from v2v_server.samples.make import video_samples
 from v2v_server.frames import frame_pass as frames_mod
-from v2v_server.sources.listing import SAMPLE_VIDEOS
-from v2v_server.frames.corpus import check_video, format_check
+from v2v_server.ops.startup import SAMPLE_VIDEOS
+from v2v_server.frames.check import check_video, format_check
 from v2v_server.frames.decode import iter_luma
 from v2v_server.sources.segments import parse_time, range_problem, segment_name, split_segment
 from v2v_server.frames.shots import ShotDetector, WindowLayout, code_table, thumbnail
@@ -168,7 +169,7 @@ def test_cached_epoch_reuses_the_stored_cuts(tmp_path, monkeypatch):
     src, caches = open_source(SAMPLE_VIDEOS), HostCaches.open(str(tmp_path), frame_cache_gb=1.0)
     fc = caches.frame_cache
     clip = "webvid_like_596x336.mp4"
-    first = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",), frame_cache=fc)]
+    first = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",), caches=caches)]
     assert fc.take_stats()["stored"] == 1
 
     class NoDetection:
@@ -176,10 +177,10 @@ def test_cached_epoch_reuses_the_stored_cuts(tmp_path, monkeypatch):
             raise AssertionError("a cached pass ran the shot detector")
 
     monkeypatch.setattr(frames_mod, "ShotDetector", NoDetection)
-    with video_frames(cfg, src, clip, fc) as fp:
+    with open_frames(src, clip, cfg.decode, cfg.windows, fc) as fp:
         cuts = [i for i, f in enumerate(fp.frames) if f.cut]
         assert fp.cached and cuts == LABELLED[clip][:len(cuts)] and cuts
-    again = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",), frame_cache=fc)]
+    again = [(k, a["voxels"].tobytes()) for k, a, _ in video_samples(cfg, src, clip, 0, ("voxels",), caches=caches)]
     assert again == first
     assert fc.take_stats()["hits"] == 2
 
@@ -237,7 +238,7 @@ def test_a_segment_gives_the_frames_of_its_range_only(segment_corpus):
     src = LocalSource(root, video_list=str(lst))
     whole = [f.copy() for f in iter_luma(root / "bbb_camera_596x336.mp4")]
     cfg = SampleRecipe(keep_top_fraction=1.0, shot_cuts="off")
-    with video_frames(cfg, src, "bbb_camera_596x336.mp4#t=1,9.5") as fp:
+    with open_frames(src, "bbb_camera_596x336.mp4#t=1,9.5", cfg.decode, cfg.windows) as fp:
         got = [f.expand(f.codes).copy() for f in fp.frames]
     assert len(got) == 213  # frames at 1.00 .. 9.48 s of a 25 fps video
     assert all(np.array_equal(g, whole[25 + i]) for i, g in enumerate(got))
@@ -278,7 +279,7 @@ def test_segments_of_a_tar_member_and_through_the_ray_engine(tmp_path):
     assert videos == [f"s.tar/{clip}#t=2,6", f"{clip}#t=2,6"] and [r for r, _ in rejected] == ["s.tar/gone.mp4#t=1,2"]
 
     def frames(video):
-        with video_frames(cfg.recipe, src, video) as fp:
+        with open_frames(src, video, cfg.recipe.decode, cfg.recipe.windows) as fp:
             return [f.expand(f.codes).tobytes() for f in fp.frames]
 
     assert frames(videos[0]) == frames(videos[1]) and len(frames(videos[1])) == 100  # 2.00 .. 5.96 s

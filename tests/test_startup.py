@@ -13,11 +13,11 @@ from v2v_server.ops.config import ServeConfig, source_from_config
 from v2v_server.ops.startup import resolve_config, start_source
 from v2v_server.ray_data import SampleMaker, scan_corpus_windows
 from v2v_server.service.local import local_server
-from v2v_server.sources.listing import SAMPLE_VIDEOS
+from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.disk_cache import cache_folder, default_cache_dir
 from v2v_server.sources.manifest import manifest_path
 from v2v_server.disk_cache import CacheDirError
-from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.errors import StoreError
 
 CLIPS = str(SAMPLE_VIDEOS)
 
@@ -76,7 +76,7 @@ def test_the_cache_folder_is_resolved_once_and_carried_down(tmp_path, monkeypatc
     assert actor["source_spec"]["cache_dir"] == actor["caches_spec"]["cache_dir"] == want
     assert start.caches.corpus_index().path == Path(want) / "corpus_index.sqlite"
     bucket = source_from_config(ServeConfig(), "s3://corpus/clips/")  # not reached: built only
-    assert Path(bucket.listing.path).parent == Path(want) / "manifests"
+    assert Path(bucket.manifest.path).parent == Path(want) / "manifests"
     with pytest.raises(ValueError, match="needs a state_dir or a resolved cache folder"):
         manifest_path("s3://corpus/clips/", None, None)
     given = start_source(ServeConfig(cache_dir=str(tmp_path / "mine")))

@@ -16,7 +16,7 @@ from harness.serve import ServeProcess
 from tests.store_checks import samples
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.make import video_samples
-from v2v_server.frames.corpus import check_video
+from v2v_server.frames.check import check_video
 from v2v_server.frames.decode import full_range
 from v2v_server.sources.local import LocalSource
 from v2v_server.frames.motion import STATIC_MOTION, MotionMeter

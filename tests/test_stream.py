@@ -18,7 +18,7 @@ from harness.serve import ServeProcess, free_port
 from v2v_wire.protocol import decode_arrays, pack, unpack
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.frames.corpus import check_video
+from v2v_server.frames.check import check_video
 from v2v_server.sources.local import LocalSource
 from v2v_server.sources.folder_scan import find_videos
 

@@ -9,13 +9,18 @@ import shutil
 import pytest
 
 from v2v_server import cli
-from v2v_server.samples.make import video_frames
+from v2v_server.frames.frame_pass import open_frames
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.sources.listing import SAMPLE_VIDEOS
+from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.sources.local import LocalSource
 from v2v_server.sources.segments import parse_time
 from v2v_server.sources.video_list import read_video_list
 from v2v_server.sources.video_tables import TableSettings
+from v2v_server.ops.config import ServeConfig
+from v2v_server.ops.startup import start_source
+
+#: Windows of 21 frames (L = 4 of 5 bins): the frames side's rule for a table's short rows.
+WINDOW21 = SampleRecipe(sequence_length=4).windows
 
 CLIP = "bbb_camera_596x336.mp4"  # 25 fps, one shot
 
@@ -64,7 +69,8 @@ def test_a_path_with_spaces_is_served_and_the_authors_lines_stay_whole(corpus):
     src = LocalSource(corpus, video_list=str(lst))
     videos, rejected = src.list_videos((".mp4",))
     assert videos == ["my clip.mp4#t=0,4", "my clip.mp4", "a.mp4"] and rejected == []
-    with video_frames(SampleRecipe(shot_cuts="off"), src, "my clip.mp4#t=0,4") as fp:
+    off = SampleRecipe(shot_cuts="off")
+    with open_frames(src, "my clip.mp4#t=0,4", off.decode, off.windows) as fp:
         assert sum(1 for _ in fp.frames) == 100  # 0.00 .. 3.96 s at 25 fps
 
 
@@ -103,15 +109,22 @@ def openvid(corpus):
 
 
 def test_an_openvid_csv_with_a_filter_skips_short_rows_unopened(openvid):
+    """The rows too short for one window are left unopened by the frames side's rule
+    (``WindowSettings.short_of``), which the source's table reader is given: the same through
+    the start-up path."""
     corpus, table = openvid
-    src = LocalSource(corpus, video_list=str(table))
-    src.list_table = TableSettings(None, MOVING, 21)
+    src = LocalSource(corpus, video_list=str(table), table=TableSettings(None, MOVING, WINDOW21.short_of))
     videos, rejected = src.list_videos((".mp4",))
     assert videos == ["a.mp4", "my clip.mp4"]
     assert rejected == [("(no path)", f"listed in {table}: a row with no video"),
                         (str(table), f"1 row(s) of {table} skipped without opening their video: their frame (or "
                                      f"seconds x fps) is below one window's 21 frames (e.g. c.mp4)"),
                         ("gone.mp4", f"listed in {table} but missing from {corpus}")]
+    start = start_source(ServeConfig(videos=str(corpus), video_list=str(table), video_list_filter=MOVING,
+                                     sequence_length=4))  # windows of 21 frames
+    assert (start.videos, start.rejected) == (videos, rejected)
+    assert LocalSource(corpus, video_list=str(table), table=TableSettings(None, MOVING)).list_videos((".mp4",))[0] \
+        == ["a.mp4", "c.mp4", "my clip.mp4"]  # no rule given: every row is served
 
 
 def test_check_serves_a_filtered_table_and_shows_the_rows_skipped(openvid, capsys):
@@ -136,14 +149,14 @@ PANDA = ("videoID,url,timestamp,caption,matching_score\n"
 def test_panda_timestamp_lists_give_one_segment_per_pair(corpus):
     table = corpus / "panda70m.csv"
     table.write_text(PANDA)
-    src = LocalSource(corpus, video_list=str(table))
-    src.list_table = TableSettings("{videoID}.mp4", None, 21)
+    src = LocalSource(corpus, video_list=str(table), table=TableSettings("{videoID}.mp4"))
     videos, rejected = src.list_videos((".mp4",))
     assert videos == ["a.mp4#t=0,4", "a.mp4#t=4,8"]  # the repeated pair collapses, the repeated bad row is named once
     assert [p for p, _ in rejected] == ["my clip.mp4", "b.mp4", "0012345.mp4#t=1,2"]  # an id keeps its zeros
     assert "timestamp '[[\"0:00:01.000\", \"0:00:99.000\"]]': time '0:00:99.000'" in rejected[0][1]
     assert rejected[1][1] == f"listed in {table}: timestamp 'not a list': not a list of [start, end] pairs"
-    with video_frames(SampleRecipe(shot_cuts="off"), src, videos[1]) as fp:
+    off = SampleRecipe(shot_cuts="off")
+    with open_frames(src, videos[1], off.decode, off.windows) as fp:
         assert sum(1 for _ in fp.frames) == 100  # 4.00 .. 7.96 s at 25 fps
 
 
@@ -156,7 +169,7 @@ def test_parquet_and_json_tables(corpus, fmt):
     duckdb.execute("COPY (SELECT * FROM (VALUES ('a.mp4', 601, 25.0, [['0:00:00', '0:00:04'], ['0:00:04', "
                    "'0:00:04.4']]), ('my clip.mp4', 601, 25.0, [['0:00:02', '0:00:06']]), ('x.mp4', 10, 25.0, "
                    f"[['0', '9']])) AS t(path, frame, fps, timestamp)) TO '{path}' ({options})")
-    got = read_video_list(str(path), TableSettings(None, "frame >= 21", 21))
+    got = read_video_list(str(path), TableSettings(None, "frame >= 21", WINDOW21.short_of))
     # a range's length x fps decides: 0.4 s x 25 = 10 frames < 21
     assert got.videos == ["a.mp4#t=0,4", "my clip.mp4#t=2,6"]
     assert got.refused == [(str(path), f"1 row(s) of {path} skipped without opening their video: their range's "
@@ -198,5 +211,5 @@ def test_a_table_in_the_store(tmp_path, monkeypatch):
         s3.upload(tmp_path, "s3://meta/")
         for k, v in s3.env().items():
             monkeypatch.setenv(k, v)
-        got = read_video_list("s3://meta/OpenVid-1M.csv", TableSettings(None, None, 21))
+        got = read_video_list("s3://meta/OpenVid-1M.csv", TableSettings(None, None, WINDOW21.short_of))
     assert got.videos == ["a.mp4"] and "1 row(s)" in got.refused[0][1]

@@ -12,7 +12,7 @@ import pytest
 from harness.corpus import write_scenes_video
 from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.frames.corpus import check_video
+from v2v_server.frames.check import check_video
 from v2v_server.sources.local import RACY_NS, LocalSource
 from tests.cached import Cached, cached as cached_corpus
 
@@ -38,8 +38,8 @@ def corpus(tmp_path_factory):
 
 def _served(recipe: SampleRecipe, source) -> tuple:
     """The windows the sample pass serves, and its record (``window_pass.VideoPass``)."""
-    source, fc = (source.source, source.frame_cache) if isinstance(source, Cached) else (source, None)
-    run = video_samples(recipe, source, CLIP, 0, ("frames",), frame_cache=fc)
+    source, caches = (source.source, source.caches) if isinstance(source, Cached) else (source, None)
+    run = video_samples(recipe, source, CLIP, 0, ("frames",), caches=caches)
     return sorted({key.window for key, _, _ in run}), run.record()
 
 

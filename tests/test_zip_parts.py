@@ -127,7 +127,7 @@ def test_segments_of_a_deflated_member(tmp_path):
     """A time range of a deflated member (a seek to the key frame before it, backwards through
     the streaming reader) gives the frames of the same range of the file."""
     from v2v_server.ops.config import ServeConfig
-    from v2v_server.samples.make import video_frames
+    from v2v_server.frames.frame_pass import open_frames
 
     clip = "bbb_camera_596x336.mp4"
     with zipfile.ZipFile(tmp_path / "p.zip", "w", zipfile.ZIP_DEFLATED) as z:
@@ -141,7 +141,7 @@ def test_segments_of_a_deflated_member(tmp_path):
     assert videos == [f"p.zip/{clip}#t=2,6", f"{clip}#t=2,6"]
 
     def frames(video):
-        with video_frames(cfg.recipe, src, video) as fp:
+        with open_frames(src, video, cfg.recipe.decode, cfg.recipe.windows) as fp:
             return [f.expand(f.codes).tobytes() for f in fp.frames]
 
     assert frames(videos[0]) == frames(videos[1]) and len(frames(videos[1])) == 100  # 2.00 .. 5.96 s
@@ -211,8 +211,8 @@ def test_archives_find_a_split_part_and_read_it_joined(tmp_path):
     the bytes ``cat`` would join; a gap named; a part that is neither whole nor in pieces missing."""
     import contextlib
 
-    from v2v_server.sources.archives import Archives
-    from v2v_server.sources.names import VideoError
+    from v2v_server.sources.archive_members import Archives
+    from v2v_server.sources.errors import VideoError
 
     data = os.urandom(10_000)
     for i, piece in enumerate(("x_partaa", "x_partab", "x_partac")):
@@ -248,7 +248,7 @@ def test_zip_parts_served_over_zeromq_as_the_files(parts):
 
 
 def test_pairing_a_list_with_archive_members_is_by_id_path_then_file_name():
-    from v2v_server.sources.archives import pair_members
+    from v2v_server.sources.archive_members import pair_members
 
     members = ["p0.zip/a.mp4", "p0.zip/dir/b.mp4", "p1.zip/c.mp4", "p1.zip/x/d.mp4", "p2.zip/d.mp4", "p2.zip/x/e.mp4",
                "p3.zip/y/f.mp4", "p4.zip/z/f.mp4"]

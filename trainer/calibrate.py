@@ -144,7 +144,7 @@ def run_fit(a, cfg, bar) -> FitResult:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    from v2v_server.sources.listing import SAMPLE_VIDEOS
+    from v2v_server.ops.startup import SAMPLE_VIDEOS
 
     ap = argparse.ArgumentParser(prog="v2v-calibrate", description=__doc__.splitlines()[0])
     ap.add_argument("--recording", required=True, help="a real recording (any format v2v-eval reads)")

@@ -200,8 +200,8 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
 
     from v2v_server.ops.startup import start_source
     from v2v_server.samples.make import video_samples
-    from v2v_server.sources.names import VideoError
-    from v2v_server.sources.store_io import StoreError
+    from v2v_server.sources.errors import VideoError
+    from v2v_server.sources.errors import StoreError
 
     r = cfg.recipe
     frames_recipe = dataclasses.replace(r, sequence_length=r.sequence_length * r.num_bins * r.frames_per_bin,
@@ -211,7 +211,7 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
         start = start_source(cfg, videos)  # the start-up path v2v-serve runs: the same source and caches
     except (OSError, ValueError, StoreError) as e:
         raise CalibrationError(f"corpus {videos}: {e}") from None
-    source, fc, names = start.source, start.caches.frame_cache, start.videos
+    source, caches, names = start.source, start.caches, start.videos
     out = CorpusWindows([], [], [])
     rng = np.random.default_rng(seed)
     skipped = set()
@@ -219,7 +219,7 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
         if rel in skipped:
             continue
         try:
-            for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",), frame_cache=fc):
+            for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",), caches=caches):
                 shape = arrays["frames"].shape[1:]
                 out.seqs.append(arrays["frames"])
                 out.fps.append(float(meta["video_fps"]))

@@ -337,7 +337,7 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
         log.error("--engine ray needs Ray: pip install 'v2v[ray]'")
         return 2
     from v2v_server.ops.config import load_config as load_serve_config
-    from v2v_server.sources.listing import SAMPLE_VIDEOS
+    from v2v_server.ops.startup import SAMPLE_VIDEOS
     from v2v_server.ray_data import scan_corpus_windows, v2v_dataset
 
     try:

@@ -114,15 +114,15 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
     """``n`` samples simulated from the corpus at ``videos_arg`` (folder, list or bucket, as
     ``v2v-serve --videos``) with ``cfg``'s recipe (a ``ServeConfig``), in epochs 0 .. ``epochs`` - 1
     (each epoch draws every sample's parameters afresh), video by video in the corpus's order;
-    each video's windows and shots from ``corpus.check_video``.
+    each video's windows and shots from ``check.check_video``.
 
     Raises:
         StatsInputError: the corpus cannot be listed or holds no video.
     """
-    from v2v_server.frames.corpus import check_video
+    from v2v_server.frames.check import check_video
     from v2v_server.ops.startup import start_source
     from v2v_server.samples.make import video_samples
-    from v2v_server.sources.store_io import StoreError
+    from v2v_server.sources.errors import StoreError
 
     try:
         start = start_source(cfg, videos_arg)  # the start-up path v2v-serve runs: the same source and caches
@@ -146,7 +146,7 @@ def from_corpus(cfg, videos_arg: str, n: int, progress: Callable[[int], None], e
     for epoch in range(epochs):
         for rel in usable:
             for _key, arrays, meta in video_samples(recipe, source, rel, epoch, ("voxels", "flow"), flow_grid=True,
-                                                    frame_cache=caches.frame_cache):
+                                                    caches=caches):
                 out.rows.append(sample_row(meta, arrays["voxels"], recipe))
                 progress(1)
                 if len(out.rows) >= n:

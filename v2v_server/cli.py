@@ -7,16 +7,15 @@ import sys
 from typing import List, Optional
 
 from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, ServingSettings, load_config
-from v2v_server.ops.startup import start_source
+from v2v_server.ops.startup import SAMPLE_VIDEOS, start_source
 from v2v_server.sources.store import StoreSettings
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
-from v2v_server.sources.listing import SAMPLE_VIDEOS, corpus_fingerprint, select_shard
-from v2v_server.frames.corpus import check_corpus, format_check, known_windows
+from v2v_server.frames.check import check_corpus, format_check
 from v2v_server.frames.corpus_index import index_path
 from v2v_server.delivery.journal import JournalError
-from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.errors import StoreError
 from v2v_server.ops.warm import cache_line, format_warm, warm_cache
 
 
@@ -70,16 +69,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-serve: interrupted while listing {cfg.video_list or cfg.videos or SAMPLE_VIDEOS}",
               file=sys.stderr)
         return 130
-    cfg, source, caches, videos, rejected = start.config, start.source, start.caches, start.videos, start.rejected
-    listing = corpus_fingerprint(videos)  # of the whole listing: shards compare it
-    index, count = cfg.serving.shard_spec
-    if count > 1:
-        mine = select_shard(videos, index, count)
-        log.info("shard %d/%d: %d of %d video file(s)", index, count, len(mine), len(videos))
-        videos = mine
+    cfg, source, caches, videos = start.config, start.source, start.caches, start.videos
     if args.check:
         results = check_corpus(cfg.recipe.windows, cfg.recipe.decode, source, videos, cfg.workers, caches)
-        print(format_check(results, rejected, cfg.recipe.crops_per_window))
+        print(format_check(results, start.rejected, cfg.recipe.crops_per_window))
         if caches.frame_cache is not None:
             print(cache_line(source, caches.frame_cache, cfg, videos))
         return 0 if any(r.usable for r in results) else 2
@@ -91,27 +84,24 @@ def main(argv: Optional[List[str]] = None) -> int:
             return 2
         print(format_warm(results, caches.frame_cache))
         return 0 if any(r["state"] in ("stored", "cached") for r in results) else 2
-    for rel, reason in rejected:  # a listed video that is missing is named here, once
+    for rel, reason in start.rejected:  # a listed video that is missing is named here, once
         (log.warning if source.video_list else log.info)("ignored %s: %s", source.where_ignored(rel), reason)
     if not videos:
         print(f"v2v-serve: --videos {source.root}: no video files ({', '.join(cfg.video_extensions)})"
-              + (f" in shard {cfg.shard}" if count > 1 else ""), file=sys.stderr)
+              + (f" in shard {cfg.shard}" if cfg.shard else ""), file=sys.stderr)
         return 2
-    known = known_windows(cfg.recipe.windows, cfg.recipe.decode, source, videos, caches)
-    if known.empty:  # gives no sample: not opened again while its identity holds
+    if start.skipped:  # gives no sample: not opened again while its identity holds
         log.info("%d video(s) not opened: the corpus index %s knows they give no window at this layout "
-                 "(--check says why)", len(known.empty), index_path(caches.cache_dir))
-        videos = [v for v in videos if v not in known.empty]
-        if not videos:
+                 "(--check says why)", len(start.skipped), index_path(caches.cache_dir))
+        if not start.served:
             print(f"v2v-serve: --videos {source.root}: no video gives a window at this layout (the corpus index "
                   f"{index_path(caches.cache_dir)} knows them all; --check says why)", file=sys.stderr)
             return 2
-    epoch_samples = (cfg.recipe.epoch_samples(known.samples) if known.known == len(videos) + len(known.empty)
-                     else None)
-    if epoch_samples is not None:
-        log.info("an epoch holds %d sample(s) of %d video(s) (corpus index)", epoch_samples, len(videos))
+    if start.epoch_samples is not None:
+        log.info("an epoch holds %d sample(s) of %d video(s) (corpus index)", start.epoch_samples, len(start.served))
     try:
-        server = V2VServer(cfg, source, caches, videos, corpus=listing, epoch_samples=epoch_samples, skipped=known.empty)
+        server = V2VServer(cfg, source, caches, start.served, corpus=start.corpus, epoch_samples=start.epoch_samples,
+                           skipped=start.skipped)
     except (JournalError, OSError) as e:  # the journal of --state-dir
         print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
         return 2

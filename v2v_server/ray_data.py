@@ -9,8 +9,8 @@ so a sample is identical, bit for bit, to what ``v2v-serve`` sends for the same
 
 Layout of the pipeline:
 
-1. :func:`scan_corpus_windows` lists the corpus (``video.scan_corpus``) and counts each file's
-   windows by demuxing its packets (no decoding, ~1/50 of a decode pass); a file that cannot be
+1. :func:`scan_corpus_windows` lists the corpus (the start-up path ``v2v-serve`` runs) and counts
+   each file's windows by demuxing its packets (no decoding, ~1/50 of a decode pass); a file that cannot be
    opened or is too short is skipped here with the same ``skipped PATH: reason`` line as
    ``v2v-serve``. The result (:class:`RayCorpus`) does not depend on the epoch: keep it.
 2. :func:`epoch_descriptors` lists the epoch's sample ids, drops the excluded ones (resume:
@@ -56,12 +56,10 @@ from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.flowgrid import expand_grids
 from v2v_server.sources.segments import split_segment
-from v2v_server.frames.corpus import check_video
-from v2v_server.frames.decode import open_video
-from v2v_server.frames.frame_pass import FramePass, PassFrame
+from v2v_server.frames.check import check_video
+from v2v_server.frames.video_read import as_verdict, read_video
 from v2v_server.sources.source import VideoSource
 from v2v_server.sources.source_spec import source_from_spec
-from v2v_server.frames.window_pass import WindowPass
 
 __all__ = ["RayCorpus", "scan_corpus_windows", "count_windows", "epoch_descriptors", "SampleMaker",
            "v2v_dataset", "VOXEL_DTYPE"]
@@ -99,11 +97,12 @@ class RayCorpus:
 
 def count_windows(cfg: ServeConfig, source: VideoSource, rel: str,
                   caches: Optional[HostCaches] = None) -> Tuple[int, Optional[str]]:
-    """Windows the video at ``rel`` of ``source`` (the corpus) gives per epoch: the window pass
-    (``window_pass.WindowPass``) over its video packets (demuxed, not decoded); with
-    ``shot_cuts: avoid``, or for a segment, over its decoded frames (``corpus.check_video``: the
-    windows depend on the cuts, or on the range's frames; answered from the corpus index of
-    ``caches`` while the video's identity holds).
+    """Windows the video at ``rel`` of ``source`` (the corpus) gives per epoch, read the one way
+    every reader reads a video (``video_read.read_video``) for the part this count needs: its
+    video packets (demuxed, not decoded); with ``shot_cuts: avoid`` or ``static_windows: skip``,
+    or for a segment, its decoded frames as ``--check`` reads them (``check.check_video``: the
+    windows depend on the cuts, the motion or the range's frames; answered from the corpus index
+    of ``caches`` while the video's identity holds).
 
     Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
     ``v2v-serve`` logs for it (``open_video``'s ``VideoError`` message, or ``"N frames,
@@ -112,35 +111,26 @@ def count_windows(cfg: ServeConfig, source: VideoSource, rel: str,
     """
     w = cfg.recipe.windows
     if w.reads_frames or split_segment(rel)[1]:
-        r = check_video(w, cfg.recipe.decode, source, rel, caches)
-        return r.windows, (None if r.usable else r.reason)
-    window_pass = WindowPass(w, cfg.recipe.reads)
-    error = None
-    try:
-        with source.open(rel) as path:
-            container, stream, info = open_video(path)
-            try:
-                packets = (PassFrame(None, None) for packet in container.demux(stream) if packet.size)
-                for _ in window_pass.over(FramePass(info, 0, packets, False)):
-                    pass
-            finally:
-                container.close()
-    except Exception as e:  # a demuxing error after some packets: those packets still count
-        error = e if window_pass.frames == 0 else None
-    count, _, reason = window_pass.record(error).verdict(w)
-    return count, reason
+        v = check_video(w, cfg.recipe.decode, source, rel, caches)
+    else:
+        with read_video(source, rel, cfg.recipe.reads, part="packets") as read:
+            for _ in read.frames:
+                pass
+        v = read.verdict()
+    return v.windows, (None if v.usable else v.reason)
 
 
 def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] = None) -> RayCorpus:
     """List the videos of ``videos`` (as ``v2v-serve --videos``: a folder or an object-store
-    URL, with ``config``'s ``video_list``, ``storage_options`` and manifest) and count their
-    windows.
+    URL, with ``config``'s ``video_list``, ``storage_options`` and manifest), keep ``config``'s
+    ``shard`` of them, and count their windows.
 
     Logs ``skipped PATH: reason`` (logger ``v2v.ray``, WARNING) for each unusable file and
     ``ignored PATH: reason`` (INFO) for other entries, as ``v2v-serve`` does.
 
-    The corpus is opened, checked and listed by the start-up path ``v2v-serve`` runs
-    (``ops.startup.start_source``).
+    The corpus is opened, checked, listed and sharded, and the videos the host's corpus index
+    knows to give no window left out unopened, by the start-up path ``v2v-serve`` runs
+    (``ops.startup.start_source``): the same videos ``v2v-serve`` serves for the same settings.
 
     Raises:
         StoreError: ``videos`` is a local path but not a folder, or the store cannot be reached
@@ -148,11 +138,14 @@ def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] 
         disk_cache.CacheDirError: a cache that is on cannot be kept in ``cache_dir`` (naming it).
     """
     start = start_source(config or ServeConfig(), videos)
-    cfg, source, caches, found, rejected = start.config, start.source, start.caches, start.videos, start.rejected
-    for rel, reason in rejected:
+    cfg, source, caches = start.config, start.source, start.caches
+    for rel, reason in start.rejected:
         log.info("ignored %s: %s", source.where_ignored(rel), reason)
     windows, skipped = {}, {}
-    for rel in found:
+    for rel, (_, reason) in start.skipped.items():
+        skipped[rel] = reason
+        log.warning("skipped %s: %s (known from the corpus index: not opened)", source.where(rel), reason)
+    for rel in start.served:
         n, reason = count_windows(cfg, source, rel, caches)
         if reason:
             skipped[rel] = reason
@@ -223,22 +216,20 @@ class SampleMaker:
     as soon as the sample is made (rows stream; the actor never holds a whole video).
 
     Args:
-        recipe_dict: ``SampleRecipe.recipe_dict()``.
+        recipe: the sample recipe (``ServeConfig.recipe``; it pickles to the actor).
         source_spec: ``VideoSource.spec()`` of the corpus as the driver opened it (a folder as
             seen from the actor's node, or an object-store URL read with the node's credentials).
         caches_spec: ``HostCaches.spec()`` of the caches ``cfg`` describes (the frame cache, the
             corpus index), at the same path on the actor's node.
         outputs: subset of ``OUTPUTS`` to make.
 
-    Raises:
-        ValueError: naming the key, for a recipe that does not check.
     """
 
-    def __init__(self, recipe_dict: dict, source_spec: dict, caches_spec: dict, outputs: Sequence[str]):
+    def __init__(self, recipe: SampleRecipe, source_spec: dict, caches_spec: dict, outputs: Sequence[str]):
         import cv2
 
         cv2.setNumThreads(1)
-        self.recipe = SampleRecipe.recipe_from_dict(recipe_dict, source="ray stage recipe")
+        self.recipe = recipe
         self.source = source_from_spec(source_spec)
         self.caches = HostCaches.from_spec(caches_spec)
         self.outputs = tuple(outputs)
@@ -249,7 +240,7 @@ class SampleMaker:
     def arguments(cfg: ServeConfig, root: str, outputs: Sequence[str]) -> dict:
         """The constructor's arguments for the corpus at ``root`` served with ``cfg``: what the
         driver hands each actor (plain values that pickle)."""
-        return {"recipe_dict": cfg.recipe.recipe_dict(), "source_spec": source_from_config(cfg, root).spec(),
+        return {"recipe": cfg.recipe, "source_spec": source_from_config(cfg, root).spec(),
                 "caches_spec": caches_from_config(cfg).spec(), "outputs": tuple(outputs)}
 
     @classmethod
@@ -270,11 +261,10 @@ class SampleMaker:
         keep = {parse_sample_id(sid, kpw) for sid in wanted}
         skip = [key for w in range(self.recipe.max_samples_per_video) for key in window_keys(video, w, kpw)
                 if key not in keep]
-        error: Optional[str] = None
-        # a tracked flow comes as its grid, as from a worker: the sample's statistics are of the same arrays
-        run = video_samples(self.recipe, self.source, video, epoch, self.outputs, skip, self.flow, flow_grid=True,
-                            frame_cache=self.caches.frame_cache)
-        try:
+        # a tracked flow comes as its grid, as from a worker: the sample's statistics are of the same arrays;
+        # one file's failure is that file's verdict, never the job's death
+        with video_samples(self.recipe, self.source, video, epoch, self.outputs, skip, self.flow, flow_grid=True,
+                           caches=self.caches, handler=as_verdict) as run:
             for key, arrays, meta in run:
                 sid = key.sample_id(kpw)
                 flags = wanted.pop(sid, None)
@@ -286,13 +276,9 @@ class SampleMaker:
                     yield self._row(sid, arrays, params, epoch, pad)
                 if not wanted and not run.storing:
                     break  # the rest of the video is not read; a pass storing it into the frame cache ends whole
-        except Exception as e:  # one file's failure is that file's verdict, never the job's death
-            error = run.record(e).reason(self.recipe.windows)
-        run.close()
         if wanted:  # windows the file did not give: a verdict, and padding rows in their place
             found = run.record()
-            error = error or found.reason(self.recipe.windows) or (
-                f"{found.frames} frames decoded, fewer than its packets promised")
+            error = found.reason(self.recipe.windows) or f"{found.frames} frames decoded, fewer than its packets promised"
             log.warning("skipped %s: %s", self.source.where(video), error)
             zeros = _zeros(self.recipe, self.outputs)
             for sid, flags in wanted.items():

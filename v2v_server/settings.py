@@ -12,6 +12,10 @@ A configuration class is a dataclass whose fields are made with :func:`setting`.
 * the validators every field uses are in ``v2v_server.checks`` (below every stage, which
   validates its own mappings with them).
 
+A class may compose others (``PARTS``, ``(attribute, class)`` pairs): each part declares its own
+keys once, and the composition takes and gives them flat, as users write them
+(:func:`documented`, :func:`owners`, :func:`split_keys`).
+
 Dataclasses rather than pydantic: no dependency for a decode host, and the checks here are a
 handful of small functions; a worker process imports this module in well under a millisecond.
 """
@@ -21,11 +25,14 @@ import argparse
 import dataclasses
 import re
 from pathlib import Path
-from typing import Any, Iterable, List, Optional, Sequence
+from typing import Any, Dict, Iterable, List, Optional, Sequence
 
 import yaml
 
-__all__ = ["setting", "documented", "add_flags", "flag_values", "load_yaml", "reference_markdown", "YamlLoader"]
+from v2v_server.checks import check_keys
+
+__all__ = ["setting", "documented", "owners", "split_keys", "add_flags", "flag_values", "load_yaml",
+           "reference_markdown", "YamlLoader"]
 
 
 def setting(default: Any = dataclasses.MISSING, *, help: str, flag: Optional[str] = None, group: str = "",
@@ -48,12 +55,38 @@ def setting(default: Any = dataclasses.MISSING, *, help: str, flag: Optional[str
 
 
 def documented(cls) -> List[dataclasses.Field]:
-    """The fields of ``cls`` made with :func:`setting`, in order; for a composition of settings
-    classes (a class with ``PARTS``, ``(attribute, class)`` pairs), those of every part."""
-    parts = getattr(cls, "PARTS", None)
-    if parts is not None:
-        return [f for _, part in parts for f in documented(part)]
-    return [f for f in dataclasses.fields(cls) if "help" in f.metadata]
+    """The fields of ``cls`` made with :func:`setting`, in order, then, for a composition of
+    settings classes (a class with ``PARTS``, ``(attribute, class)`` pairs), those of every part."""
+    return _own(cls) + [f for _, part in getattr(cls, "PARTS", ()) for f in documented(part)]
+
+
+def _own(cls) -> List[dataclasses.Field]:
+    """The fields ``cls`` itself declares with :func:`setting` (none for a class that only composes)."""
+    return [f for f in dataclasses.fields(cls) if "help" in f.metadata] if dataclasses.is_dataclass(cls) else []
+
+
+def owners(cls) -> Dict[str, str]:
+    """Flat key -> the attribute of the part of ``cls`` that declares it (``""``: ``cls`` itself),
+    for every key :func:`documented` gives."""
+    out = {f.name: "" for f in _own(cls)}
+    for attr, part in getattr(cls, "PARTS", ()):
+        out.update((f.name, attr) for f in documented(part))
+    return out
+
+
+def split_keys(cls, keys: dict) -> Dict[str, dict]:
+    """``keys`` (flat, as users write them) grouped by the part of ``cls`` that declares each
+    (:func:`owners`): ``{"": cls's own, attribute: that part's, ...}``, every group present.
+
+    Raises:
+        ValueError: naming every unknown key and the allowed ones (``checks.check_keys``).
+    """
+    owner = owners(cls)
+    check_keys(keys, owner)
+    groups: Dict[str, dict] = {"": {}, **{attr: {} for attr, _ in getattr(cls, "PARTS", ())}}
+    for k, v in keys.items():
+        groups[owner[k]][k] = v
+    return groups
 
 
 def _flag(f: dataclasses.Field) -> str:

@@ -3,7 +3,7 @@
 Pure: no sockets, no clock of its own (``now`` is an argument, seconds). ``server.py``
 turns its answers into ZeroMQ messages; ``tests/test_delivery_core.py`` drives it directly.
 
-Rules (README "Nothing lost, nothing let in"):
+Rules (docs/delivery.md, "Nothing lost, nothing let in"):
 
 * **Credits by batch id.** A client's ``credits`` (how many batches it may hold, fixed at hello, at most
   ``max_credits``) bound the batches it holds. Sending a batch takes a slot; only an ``ack``

@@ -87,7 +87,7 @@ def _schema_columns() -> list:
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Verdict:
-    """What ``v2v-serve --check`` says of one video (``corpus.check_video``), as the corpus
+    """What ``v2v-serve --check`` says of one video (``check.check_video``), as the corpus
     index keeps it.
 
     Attributes:
@@ -186,7 +186,7 @@ def layout_key(windows: WindowSettings, decode: DecodeSettings) -> str:
 
 def check_record(windows: WindowSettings, decode: DecodeSettings) -> PassRecord:
     """What ``--check``'s pass over ``windows`` decoding as ``decode`` reads: the sample pass's
-    record, shot cuts scored whatever ``shot_cuts`` says (``corpus.check_video`` reports them)."""
+    record, shot cuts scored whatever ``shot_cuts`` says (``check.check_video`` reports them)."""
     return PassRecord.of(decode, windows, scores_cuts=True)
 
 

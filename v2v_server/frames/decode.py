@@ -19,7 +19,7 @@ from typing import Callable, Dict, Iterator, NamedTuple, Optional, Sequence, Tup
 
 import numpy as np
 
-from v2v_server.sources.names import VideoError
+from v2v_server.sources.errors import VideoError
 
 #: Pixel formats whose plane 0 is 8-bit luma: read directly, no colour conversion.
 _Y8_FORMATS = {"yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p", "nv12", "nv21", "gray",

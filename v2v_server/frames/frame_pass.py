@@ -1,7 +1,9 @@
-"""One pass over a video's frames for the sample pass: replayed from the host's frame cache
-(``frame_cache``) when it holds the video, else decoded (``decode``) and, with a cache, written
-as they pass: the entry is stored when the pass's owner commits it (``FramePass.commit``), once
-the pass is whole.
+"""The frames of one pass over a video, as each part of a pass reads them (``video_read.read_video``
+opens them, the one way into a video): the sample pass's (:func:`open_frames`) replayed from the
+host's frame cache (``frame_cache``) when it holds the video, else decoded (``decode``) and, with
+a cache, written as they pass, the entry stored when the pass's owner commits it
+(``FramePass.commit``), once the pass is whole; ``--check``'s, decoded and timed
+(:func:`open_timed`); the Ray scan's count, demuxed packets only (:func:`open_packets`).
 
 Either way the cutter gets ``(codes, expand, cut)`` per frame (``PassFrame``), the first two as
 ``decode.decode_codes`` yields them:
@@ -17,19 +19,20 @@ from __future__ import annotations
 import contextlib
 import itertools
 import math
-import os
 from dataclasses import asdict, dataclass
 from typing import Callable, Iterator, NamedTuple, Optional, Tuple
 
 import numpy as np
 
 from v2v_server.checks import check_choice, check_int
-from v2v_server.frames.decode import DECODE_FAST, VideoInfo, decode_codes, full_range, open_video
+from v2v_server.frames.decode import (DECODE_FAST, DecodedFrame, VideoInfo, decode_codes, decode_frames, full_range,
+                                      open_video)
 from v2v_server.frames.frame_cache import CachedVideo, CorruptEntry, EntryWriter, FrameCache, entry_name_settings
 from v2v_server.frames.pass_record import PassRecord
 from v2v_server.sources.segments import split_segment
 from v2v_server.frames.shots import DETECTOR_VERSION, ShotDetector
 from v2v_server.frames.windows import WindowSettings
+from v2v_server.settings import setting
 
 Frame = Tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]
 
@@ -39,9 +42,9 @@ MAX_FRAME_HEIGHT = 4320
 
 @dataclass(frozen=True)
 class DecodeSettings:
-    """How a pass decodes a video's frames, wherever its windows lie. The defaults have one
-    owner, the sample recipe (``v2v_server.samples.recipe.SampleRecipe``), which builds one for
-    this stage; the checks of these values are here.
+    """How a pass decodes a video's frames, wherever its windows lie. This class declares its
+    keys once (default, help, checks); the sample recipe (``v2v_server.samples.recipe.SampleRecipe``)
+    composes it.
 
     Attributes:
         keep_top_fraction: share of a displayed frame's height kept from the top, in (0, 1].
@@ -54,10 +57,15 @@ class DecodeSettings:
         ValueError: naming the field, for a value out of its range.
     """
 
-    keep_top_fraction: float
-    frame_height: int
-    decode_threads: int
-    decode_fast: str
+    keep_top_fraction: float = setting(0.54, help="fraction of each frame's height, from the top, that crops come "
+                                                  "from (WebVid's watermark; 1.0 for clips without one)")
+    frame_height: int = setting(0, help="scale every decoded frame to this height in pixels (width keeps the aspect "
+                                        "ratio; OpenCV INTER_AREA on full-range luma) before the kept region, the "
+                                        "frame cache and the crops; 0 = frames as decoded (docs/frame_scale.md)")
+    decode_threads: int = setting(1, help="FFmpeg decoding threads per worker")
+    decode_fast: str = setting("off", help="skip H.264's deblocking filter on some frames: off | noref | bidir | all "
+                                           "(faster decoding, measured error: docs/decode_fast.md)",
+                               choices=tuple(DECODE_FAST))
 
     def __post_init__(self):
         if not isinstance(self.keep_top_fraction, (int, float)) or isinstance(self.keep_top_fraction, bool) \
@@ -115,11 +123,15 @@ class FramePass:
             replayed or the cache is off); ``EntryWriter.outcome`` says what became of the entry.
         detector: the shot detector scoring the frames (None without detection); the cuts it
             found are stored with the entry.
+        times: presentation times (seconds, None for a frame without one) of the frames given
+            so far, for a timed pass (:func:`open_timed`); None otherwise.
     """
 
     def __init__(self, info: VideoInfo, declared: int, frames: Iterator[PassFrame], cached: bool = False,
-                 writer: Optional[EntryWriter] = None, detector: Optional[ShotDetector] = None):
+                 writer: Optional[EntryWriter] = None, detector: Optional[ShotDetector] = None,
+                 times: Optional[list] = None):
         self.info, self.declared, self.cached, self.writer, self.detector = info, declared, cached, writer, detector
+        self.times = times
         self._source = frames
         self._state = "reading"  # -> "whole" (ran out, or ended) -> "committed"; "closed" from any
         self.frames: Iterator[PassFrame] = self._passed(frames)
@@ -146,6 +158,11 @@ class FramePass:
     def damaged(self) -> bool:
         """A replayed entry was found damaged, removed, and the rest of the video decoded (not stored)."""
         return isinstance(self._source, _Replay) and self._source.damaged
+
+    @property
+    def whole(self) -> bool:
+        """Whether the pass is whole (its frames ran out, or :meth:`end`), committed or not."""
+        return self._state in ("whole", "committed")
 
     @property
     def storing(self) -> bool:
@@ -262,9 +279,9 @@ def kept_rows(keep_top_fraction: float, height: int) -> int:
 
 
 def corpus_key(source) -> str:
-    """The corpus as an entry name's part: the URL, or the folder's absolute path."""
-    root = str(source.root)
-    return root if "://" in root else os.path.abspath(root)
+    """The corpus as an entry name's part: the source's own name for it (``VideoSource.location``:
+    the URL, or the folder's absolute path)."""
+    return source.location
 
 
 def lookup_entry(cache: FrameCache, source, rel: str, settings: dict
@@ -342,3 +359,68 @@ def open_frames(source, rel: str, decode: DecodeSettings, windows: WindowSetting
         finally:
             fp.close()  # an entry the owner did not commit is dropped
 
+
+@contextlib.contextmanager
+def open_timed(source, rel: str, decode: DecodeSettings, detect: bool = True) -> Iterator[FramePass]:
+    """The frames of video ``rel`` of ``source`` as ``--check`` reads them: decoded (never from the
+    frame cache, which keeps no times), each with its presentation time (``FramePass.times``) and
+    named, when its size changes, by the displayed frame's (``PassFrame.size``: the displayed
+    height, ``decode.DecodedFrame.shown_height``); the kept rows and frame scale of ``decode``,
+    the decoder's defaults otherwise; with ``detect``, scored for shot cuts (``shots.ShotDetector``).
+    All of them: the container's frame count is not taken on trust.
+
+    Raises:
+        VideoError: the video cannot be opened or decoded (as ``source.open``, ``open_video``).
+    """
+    with source.open(rel) as path:
+        container, stream, info = open_video(path)
+        times: list = []
+        decoded = decode_frames(container, stream, decode.kept_rows, decode.frame_height, split_segment(rel)[1])
+        fp = FramePass(info, 0, _timed(decoded, ShotDetector() if detect else None, times), times=times)
+        try:
+            yield fp
+        finally:
+            fp.close()
+
+
+def _timed(decoded: Iterator[DecodedFrame], detector: Optional[ShotDetector], times: list) -> Iterator[PassFrame]:
+    """The pass frames of ``decoded``, scored by ``detector`` (no cuts without one), each named by
+    its displayed size; each frame's presentation time is appended to ``times``."""
+    for d in decoded:
+        times.append(d.time)
+        cut = detector is not None and detector.score(d.codes, d.expand)
+        yield PassFrame(d.codes, d.expand, cut, (d.shown_height, d.codes.shape[1]))
+
+
+@contextlib.contextmanager
+def open_packets(source, rel: str) -> Iterator[FramePass]:
+    """The frames of video ``rel`` of ``source`` counted from its video packets, demuxed and not
+    decoded (about 1/50 of a decode pass): a :class:`PassFrame` without codes per packet that
+    holds data, all of them. Packets before a demuxing error count; the error stops the pass only
+    when no packet came (then it is the video's).
+
+    Raises:
+        VideoError: the video cannot be opened (as ``source.open``, ``open_video``).
+    """
+    with source.open(rel) as path:
+        container, stream, info = open_video(path)
+        fp = FramePass(info, 0, _packets(container, stream))
+        try:
+            yield fp
+        finally:
+            fp.close()
+            container.close()
+
+
+def _packets(container, stream) -> Iterator[PassFrame]:
+    """A codeless :class:`PassFrame` per video packet of ``container`` that holds data (see
+    :func:`open_packets` for a demuxing error)."""
+    counted = 0
+    try:
+        for packet in container.demux(stream):
+            if packet.size:
+                counted += 1
+                yield PassFrame(None, None)
+    except Exception:  # av raises many error types; the packets demuxed so far are the stream's
+        if counted == 0:
+            raise

@@ -1,9 +1,10 @@
 """What a pass over a video reads, as one frozen record, and the one key derived from it.
 
-Every setting that changes the frames a pass gives or where its windows lie is a field of
-:class:`PassRecord`: the decoder shortcut, the frame scale, the rows kept, the window layout
-(span, window count, shot cuts, static windows) and the versions of the shot detector and of the
-motion measure that place windows. Its :attr:`PassRecord.key` is the one key of those settings:
+Every setting that changes the frames a pass gives or where its windows lie is in
+:class:`PassRecord`, which holds the stage's own settings rather than copies of their keys: the
+``DecodeSettings`` (decoder shortcut, frame scale, rows kept) and the ``WindowSettings`` (span,
+window count, shot cuts, static windows), with the versions of the shot detector and of the
+motion measure that place windows. A new field of either part is in the key by itself. Its :attr:`PassRecord.key` is the one key of those settings:
 
 * the frame cache names an entry by it (``frame_pass.entry_settings``, with the corpus and the video);
 * the corpus index keys a row's window layout by it (``corpus_index.layout_key``: the record of
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Optional
 
 from v2v_server.frames.motion import MOTION_VERSION, STATIC_MOTION
@@ -31,31 +32,33 @@ from v2v_server.frames.shots import DETECTOR_VERSION
 PASS_VERSION = 1
 
 
-@dataclass(frozen=True)
+#: Settings of the parts that do not change what a pass reads: how many threads decode it.
+UNREAD = frozenset({"decode_threads"})
+
+#: Settings added after the key's first version, left out of it at the value that reads as before
+#: (``frame_height`` 0: no scaling; ``static_windows`` keep), so that the keys made before them stay.
+NEUTRAL = {"frame_height": 0, "static_windows": "keep"}
+
+
+@dataclass(frozen=True, eq=False)
 class PassRecord:
     """What a pass over a video reads, beside the video (module docstring); built by :meth:`of`.
+    Two records are equal when they read the same (:meth:`content`): a setting outside it
+    (``decode_threads``) makes no other record.
 
     Attributes:
-        decode_fast: the decoder shortcut (``decode.DECODE_FAST``).
-        keep_top_fraction: share of a displayed frame's height kept from the top, in (0, 1].
-        frame_height: decoded frames scaled to this height, pixels (0 = as decoded).
-        frames_per_sample: source frames one window spans.
-        max_samples_per_video: windows a pass reads at most.
-        shot_cuts: ``"avoid"`` or ``"off"`` (``shots.SHOT_CUTS``).
-        static_windows: ``"keep"`` or ``"skip"`` (``windows.STATIC_WINDOWS``).
+        decode: how frames are decoded (``frame_pass.DecodeSettings``: decoder shortcut, frame
+            scale, rows kept; its threads are not read, :data:`UNREAD`).
+        windows: where windows lie (``windows.WindowSettings``: span, window count, shot cuts,
+            static windows).
         shot_detector: the version of the shot detector whose cuts the pass finds (with
             ``shot_cuts: avoid`` they place windows; ``--check`` reports them), else ``""``.
         static_motion: ``"MOTION_VERSION<STATIC_MOTION"`` with ``static_windows: skip`` (the
             measure and threshold decide which windows are static), else ``""``.
     """
 
-    decode_fast: str
-    keep_top_fraction: float
-    frame_height: int
-    frames_per_sample: int
-    max_samples_per_video: int
-    shot_cuts: str
-    static_windows: str
+    decode: object  # frame_pass.DecodeSettings (frame_pass names this module's record: no import back)
+    windows: object  # windows.WindowSettings
     shot_detector: str = ""
     static_motion: str = ""
 
@@ -67,27 +70,32 @@ class PassRecord:
         shot cuts (None: where windows follow them, ``shot_cuts: avoid``, as a sample pass
         does; True for ``--check``'s pass, which reports the cuts whatever ``shot_cuts`` says)."""
         detects = windows.avoid_cuts if scores_cuts is None else bool(scores_cuts)
-        return cls(decode.decode_fast, decode.keep_top_fraction, int(decode.frame_height),
-                   int(windows.frames_per_sample), int(windows.max_samples_per_video), windows.shot_cuts,
-                   windows.static_windows, DETECTOR_VERSION if detects else "",
+        return cls(decode, windows, DETECTOR_VERSION if detects else "",
                    f"{MOTION_VERSION}<{STATIC_MOTION}" if windows.skip_static else "")
 
-    def content(self) -> dict:
-        """The record as a plain dict under the recipe's key names, a key left out at its
-        neutral value (``frame_height`` 0: no scaling; ``static_windows`` keep; a version not
-        in use), so that a setting added at its neutral value keeps every key as it is."""
-        d = {"decode_fast": self.decode_fast, "keep_top_fraction": self.keep_top_fraction,
-             "frames_per_sample": int(self.frames_per_sample), "max_samples_per_video": int(self.max_samples_per_video),
-             "shot_cuts": self.shot_cuts}
-        if self.frame_height:
-            d["frame_height"] = int(self.frame_height)
-        if self.static_windows != "keep":
-            d["static_windows"] = self.static_windows
-        if self.shot_detector:
-            d["shot_detector"] = self.shot_detector
-        if self.static_motion:
-            d["static_motion"] = self.static_motion
+    @property
+    def scores_cuts(self) -> bool:
+        """Whether the pass scores shot cuts (``shots.ShotDetector``)."""
+        return bool(self.shot_detector)
+
+    def values(self) -> dict:
+        """Every value the record holds, under the recipe's key names: each field of its parts
+        but :data:`UNREAD`, then the versions."""
+        d = {f.name: getattr(part, f.name) for part in (self.decode, self.windows) for f in fields(part)
+             if f.name not in UNREAD}
+        d.update(shot_detector=self.shot_detector, static_motion=self.static_motion)
         return d
+
+    def content(self) -> dict:
+        """:meth:`values` less a setting at its neutral value (:data:`NEUTRAL`) and a version not
+        in use, so that a setting added at its neutral value keeps every key as it is."""
+        return {k: v for k, v in self.values().items() if v != NEUTRAL.get(k, "")}
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, PassRecord) and self.content() == other.content()
+
+    def __hash__(self) -> int:
+        return hash(self.key)
 
     @property
     def key(self) -> str:

@@ -1,7 +1,8 @@
 """The window pass: what one pass over a video's frames makes of its windows, and what the video
-is worth. The one rule that every reader of a video applies: the sample pass
-(``samples.make.video_samples``), ``v2v-serve --check`` (``corpus.check_video``), ``--warm-cache``
-(``ops.warm``) and the Ray scan (``ray_data.count_windows``).
+is worth. The one rule that every reader of a video applies, through the one way into a video
+(``video_read.read_video``): the sample pass (``samples.make.video_samples``), ``v2v-serve
+--check`` (``check.check_video``), ``--warm-cache`` (``ops.warm``) and the Ray scan
+(``ray_data.count_windows``).
 
 Windows lie where ``shots.WindowLayout`` places them, fed with each frame's shot cut. A cut inside
 the window in progress drops it (its index goes to the next window, so any failure recorded for it
@@ -21,7 +22,7 @@ from typing import Callable, Dict, Iterator, List, Mapping, NamedTuple, Optional
 
 import numpy as np
 
-from v2v_server.sources.names import VideoError
+from v2v_server.sources.errors import VideoError
 from v2v_server.frames.frame_pass import FramePass
 from v2v_server.frames.motion import STATIC_MOTION, MotionMeter
 from v2v_server.frames.pass_record import PassRecord
@@ -221,17 +222,17 @@ class WindowPass:
     """The windows of one pass over a video's frames (explicit state, no I/O of its own).
 
     Args:
-        windows: the videos stage's settings (span, window count, shot cuts).
-        reads: what the pass reads (``pass_record.PassRecord``, built from ``windows`` and the
-            decode settings): the verdict names its key (``VideoPass.layout``).
+        reads: what the pass reads (``pass_record.PassRecord``): its ``windows``
+            (``windows.WindowSettings``: span, window count, shot cuts) lay the windows out, and
+            the verdict names its key (``VideoPass.layout``).
 
     A frame's size, as compared and named in a failure, is its ``PassFrame.size`` when the
     decoder gave one (``--check``: the displayed height), else its codes' (:func:`frame_shape`).
     """
 
-    def __init__(self, windows: WindowSettings, reads: PassRecord):
-        self.settings, self.reads = windows, reads
-        self.layout = windows.layout()
+    def __init__(self, reads: PassRecord):
+        self.settings, self.reads = reads.windows, reads
+        self.layout = self.settings.layout()
         self.frame_pass: Optional[FramePass] = None  # the pass :meth:`over` reads
         self.info = None
         self.frames = 0

@@ -11,10 +11,13 @@ values this class holds are here.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Optional
 
 from v2v_server.checks import check_choice, check_int
+from v2v_server.frames.motion import STATIC_MOTION
 from v2v_server.frames.shots import SHOT_CUTS, WindowLayout
+from v2v_server.settings import setting
 
 #: What ``static_windows`` takes: keep static windows (the paper's) or skip them (docs/fidelity.md).
 STATIC_WINDOWS = ("keep", "skip")
@@ -25,20 +28,27 @@ class WindowSettings:
     """Where a video's windows lie, and so how many of its frames a pass reads.
 
     Attributes:
-        frames_per_sample: source frames one window spans (>= 2; ``L x B x frames_per_bin + 1``).
         max_samples_per_video: windows a video gives at most per epoch (>= 1).
         shot_cuts: ``"avoid"`` (windows inside one shot) or ``"off"`` (k x stride), ``shots.SHOT_CUTS``.
         static_windows: ``"keep"`` or ``"skip"`` windows whose motion is below
             ``motion.STATIC_MOTION`` (decided from the frames, before simulation).
+        frames_per_sample: source frames one window spans (>= 2; ``L x B x frames_per_bin + 1``,
+            given by the recipe, whose keys decide it: not a key of its own).
 
     Raises:
         ValueError: naming the field, for a value out of its range.
     """
 
-    frames_per_sample: int
-    max_samples_per_video: int
-    shot_cuts: str
-    static_windows: str
+    max_samples_per_video: int = setting(10, help="windows (samples with crops_per_window 1) per video per epoch")
+    shot_cuts: str = setting("avoid", help="avoid: windows lie inside one shot (they start at each shot's first "
+                                           "frame + k x stride; shot cuts found while decoding, docs/corpora.md); "
+                                           "off: windows at k x stride whatever they hold (the authors' loader)",
+                             choices=SHOT_CUTS)
+    static_windows: str = setting("keep", help="keep: every window (the paper's pauses and still shots included); skip: "
+                                                "windows whose frames barely change (motion below "
+                                                f"{STATIC_MOTION} log intensity a frame pair) give no sample, decided "
+                                                "before simulation (docs/fidelity.md)", choices=STATIC_WINDOWS)
+    frames_per_sample: int = field(kw_only=True)
 
     def __post_init__(self):
         check_int("frames_per_sample", self.frames_per_sample, 2)
@@ -67,6 +77,15 @@ class WindowSettings:
         """Whether where windows lie depends on the frames (their cuts, or which are static), so
         a count of windows must decode them."""
         return self.avoid_cuts or self.skip_static
+
+    def short_of(self, listed_frames: float) -> Optional[str]:
+        """Why a video a list counts ``listed_frames`` frames for holds no window (fewer than
+        ``frames_per_sample``, less half a frame: a table's numbers are rounded, OpenVid's
+        seconds to 1/100 s), or None when it may hold one. The rule a source's table reader is
+        given for the rows it leaves unopened (``video_tables.TableSettings.unopened``)."""
+        if listed_frames < self.frames_per_sample - 0.5:
+            return f"below one window's {self.frames_per_sample} frames"
+        return None
 
     def windows_in(self, frames: int) -> int:
         """Windows a video of ``frames`` frames holds laid out from frame 0, at most ``max_samples_per_video``."""

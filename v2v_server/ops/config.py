@@ -14,19 +14,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Tuple, Union
 
-from v2v_server.checks import check_bool, check_choice, check_float, check_int, check_keys
+from v2v_server.checks import check_bool, check_choice, check_float, check_int
 from v2v_server.delivery.core import DeliveryPolicy
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.settings import documented, load_yaml, reference_markdown, setting
+from v2v_server.settings import documented, load_yaml, owners, reference_markdown, setting, split_keys
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.frames.frame_cache import DEFAULT_FORMAT as DEFAULT_FRAME_CACHE_FORMAT, FORMATS as FRAME_CACHE_FORMATS
 from v2v_server.disk_cache import cache_folder
-from v2v_server.sources.manifest import manifest_path
-from v2v_server.sources.shards import split_pattern
 from v2v_server.sources.source import VideoSource
 from v2v_server.sources.source_spec import open_source
-from v2v_server.sources.store import StoreSettings, store_root
-from v2v_server.sources.video_list import is_url
+from v2v_server.sources.store import StoreSettings
 from v2v_server.sources.video_tables import TABLE_FORMATS, TableSettings, table_format
 from v2v_wire.protocol import is_loopback  # noqa: F401  (config's checks and sockets use it)
 
@@ -166,7 +163,7 @@ class ServeConfig:
     Parts (attribute: class, owner of its keys' defaults, help and checks):
 
     * ``recipe``: :class:`~v2v_server.samples.recipe.SampleRecipe`, what decides a sample's
-      content (its ``windows`` are the videos stage's settings);
+      content (it composes the frames stage's ``WindowSettings`` and ``DecodeSettings``);
     * ``delivery``: :class:`~v2v_server.delivery.core.DeliveryPolicy`, batches, shuffling, leases
       and epochs (its recipe-derived fields filled from ``recipe``);
     * ``serving``: :class:`ServingSettings`, corpus, workers, transport, security, operations;
@@ -188,10 +185,7 @@ class ServeConfig:
     __slots__ = tuple(name for name, _ in PARTS)
 
     def __init__(self, **keys):
-        check_keys(keys, _OWNERS)
-        given = {name: {} for name, _ in self.PARTS}
-        for k, v in keys.items():
-            given[_OWNERS[k]][k] = v
+        given = split_keys(ServeConfig, keys)
         recipe = SampleRecipe(**given["recipe"])
         delivery = DeliveryPolicy(**given["delivery"], offered=tuple(recipe.outputs),
                                   crops_per_window=recipe.crops_per_window, seed=recipe.seed,
@@ -249,7 +243,7 @@ class ServeConfig:
 
 
 #: Flat key -> the ``ServeConfig`` part that owns it.
-_OWNERS = {f.name: name for name, cls in ServeConfig.PARTS for f in documented(cls)}
+_OWNERS = owners(ServeConfig)
 
 
 def parse_shard(spec) -> Tuple[int, int]:
@@ -267,23 +261,15 @@ def parse_shard(spec) -> Tuple[int, int]:
 
 
 def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) -> VideoSource:
-    """The source ``cfg`` (a ``ServeConfig``) describes: ``videos`` or ``cfg.videos``, its
-    ``video_list`` (a table's column, filter and the window's frames included),
-    ``storage_options``, store settings and manifest (``manifest.manifest_path``)."""
-    videos = cfg.videos if videos is None else videos
-    cache_dir = cache_folder(cfg.cache_dir)  # resolved once; the manifest and the source take the folder
-    manifest = None
-    if videos is not None and is_url(str(videos)):
-        # one manifest per listing: of a prefix (all its objects), or of a pattern's or a list's tar members
-        key = str(videos) if split_pattern(str(videos))[1] else store_root(str(videos))
-        if cfg.video_list:
-            key += f" listed by {Path(cfg.video_list).resolve()}"
-        manifest = str(manifest_path(key, cfg.state_dir, cache_dir))
-    source = open_source(videos, storage_options=cfg.storage_options, video_list=cfg.video_list, manifest=manifest,
-                         refresh_manifest=cfg.refresh_manifest, settings=cfg.store, cache_dir=cache_dir)
-    source.list_table = TableSettings(cfg.video_list_column, cfg.video_list_filter,
-                                      cfg.recipe.windows.frames_per_sample)
-    return source
+    """The source ``cfg`` (a ``ServeConfig``) describes (``source_spec.open_source``): ``videos``
+    or ``cfg.videos``, its ``video_list`` read with the table's column and filter (and the rows
+    too short for a window left unopened, the frames side's rule ``WindowSettings.short_of``),
+    ``storage_options``, store settings, and a store's objects kept as a manifest (in
+    ``state_dir``, else the cache folder)."""
+    table = TableSettings(cfg.video_list_column, cfg.video_list_filter, cfg.recipe.windows.short_of)
+    return open_source(cfg.videos if videos is None else videos, storage_options=cfg.storage_options,
+                       video_list=cfg.video_list, table=table, keep_manifest=True, state_dir=cfg.state_dir, refresh_manifest=cfg.refresh_manifest,
+                       settings=cfg.store, cache_dir=cache_folder(cfg.cache_dir))
 
 
 def caches_from_config(cfg: ServeConfig) -> HostCaches:

@@ -3,22 +3,21 @@ video of the corpus (or of this host's shard) before training starts, so that cl
 prepare CPU hosts ahead of GPU time serve the first epoch from the cache too; and the cache's
 line of ``v2v-serve --check``.
 
-Each video is read through the same pass a worker makes (``samples.make.video_frames``): decoded
-and stored on a miss, read back (every frame's checksum verified) on a hit.
+Each video is read the one way every reader reads one, as a worker's sample pass reads it
+(``frames.video_read.read_video``, part ``"frames"``): decoded and stored on a miss, read back
+(every frame's checksum verified) on a hit, and recorded in the host's corpus index.
 """
 from __future__ import annotations
 
 from typing import List, Optional, Sequence
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.samples.make import video_frames
-from v2v_server.frames.corpus import record_pass
 from v2v_server.frames.frame_cache import SKIP_CAUSES, FrameCache
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.frames.frame_pass import entry_settings, lookup_entry
 from v2v_server.sources.source import VideoSource
 from v2v_server.frames.video_pool import map_videos
-from v2v_server.frames.window_pass import WindowPass
+from v2v_server.frames.video_read import read_video
 
 
 def warm_video(cfg: ServeConfig, source: VideoSource, rel: str, caches: HostCaches) -> dict:
@@ -26,20 +25,14 @@ def warm_video(cfg: ServeConfig, source: VideoSource, rel: str, caches: HostCach
     whole), ``stored``, or ``not stored: CAUSE`` (budget, disk_full, write_error, or the
     decoding error)."""
     out = {"path": rel, "frames": 0, "state": "", "bytes": 0}
-    window_pass = WindowPass(cfg.recipe.windows, cfg.recipe.reads)
-    fp, error = None, None
-    try:
-        with video_frames(cfg.recipe, source, rel, caches.frame_cache) as fp:
-            for _ in window_pass.over(fp):  # the frames the sample pass reads, no more
-                pass
-            fp.commit()  # the pass is whole: store the entry it wrote
-    except Exception as e:  # one bad file never stops the warm-up
-        error = e
-        out["state"] = f"not stored: {type(e).__name__}: {e}"
-    out["frames"] = window_pass.frames
-    # the next start knows its windows
-    record_pass(cfg.recipe.windows, cfg.recipe.decode, source, rel, window_pass.record(error), caches)
+    with read_video(source, rel, cfg.recipe.reads, caches) as read:  # one bad file never stops the warm-up
+        for _ in read.frames:  # the frames the sample pass reads, no more
+            pass
+    if read.error is not None:
+        out["state"] = f"not stored: {type(read.error).__name__}: {read.error}"
+    out["frames"] = read.window_pass.frames
     caches.take_stats()  # this video's counters are spent here: the pass says what became of its entry
+    fp = read.frame_pass
     writer = fp.writer if fp is not None else None  # what became of the entry this pass wrote
     out["bytes"] = writer.stored_bytes if writer is not None else 0
     if out["state"]:

@@ -16,7 +16,7 @@ import hashlib
 import math
 import time
 from dataclasses import dataclass
-from typing import Dict, FrozenSet, Iterable, Iterator, List, Mapping, Optional, Tuple
+from typing import Callable, Dict, FrozenSet, Iterable, Iterator, List, Mapping, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -29,9 +29,9 @@ from v2v_wire.ids import SampleKey, window_keys
 from v2v_server.flow.estimate import FlowEstimator
 from v2v_server.simulation.simulate import SensorParams, polarity_counts, sample_params, simulate_voxels
 from v2v_server.luma import to_uint8
-from v2v_server.frames.frame_cache import FrameCache
-from v2v_server.frames.frame_pass import FramePass, open_frames
-from v2v_server.frames.window_pass import VideoPass, WindowPass
+from v2v_server.frames.host_caches import HostCaches
+from v2v_server.frames.video_read import read_video, reraise
+from v2v_server.frames.window_pass import VideoPass, WindowFrame, WindowPass
 
 
 def sample_rng(seed: int, epoch: int, sample_id: str) -> np.random.Generator:
@@ -364,7 +364,8 @@ class _Window:
 
 class SamplePass:
     """The samples of one sequential pass over the video at ``rel_path`` of ``source`` (the
-    corpus, a ``sources.source.VideoSource``): an iterator of ``(key, arrays, meta)``.
+    corpus, a ``sources.source.VideoSource``): an iterator of ``(key, arrays, meta)``, and a
+    context manager around the reader's work on them.
 
     With ``recipe.crops_per_window`` = K, each window gives K samples: K crops, each with its own
     plan (crop, flip, pauses, sensor parameters) from its own id, cut from the same decoded
@@ -372,24 +373,30 @@ class SamplePass:
 
     Yields ``(key, arrays, meta)`` (``key`` an ``ids.SampleKey``; ``arrays``: ``make_sample``'s)
     for each sample of a complete window whose key is not in ``skip``, in window then crop
-    order; a sample's random choices come from its sample id (``SampleKey.sample_id``). Windows
-    are found by the videos stage's window pass (``frames.window_pass.WindowPass``): a window
-    that a cut drops or a frame of another size fails gives no sample (the following ones are
-    planned on the new size). Decoding stops after the last window that can be used (known from
-    the container's declared frame count when it has one). ``flow_grid``: see ``make_sample``.
+    order; a sample's random choices come from its sample id (``SampleKey.sample_id``). The
+    video is read the one way every reader reads one (``frames.video_read.read_video``, part
+    ``"frames"``): from the host's frame cache or decoded and stored, through the window pass
+    (``frames.window_pass.WindowPass``), so a window that a cut drops or a frame of another size
+    fails gives no sample (the following ones are planned on the new size); decoding stops after
+    the last window that can be used (known from the container's declared frame count when it
+    has one); a whole pass is recorded in the host's corpus index. ``flow_grid``: see
+    ``make_sample``.
 
-    Raises:
-        VideoError: while iterating, the file cannot be opened or decoded (samples already
-            yielded are good; :meth:`record` keeps what the pass found before).
+    A failure (decoding, or making a sample; inside the ``with`` block, the reader's own work
+    too) goes to ``handler`` (``video_read.as_verdict``: it ends the pass and is its
+    :attr:`error`; ``video_read.reraise``: it propagates); samples already yielded are good.
     """
 
     def __init__(self, recipe: SampleRecipe, source: VideoSource, rel_path: str, epoch: int, outputs: Iterable[str],
                  skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False,
-                 frame_cache: Optional[FrameCache] = None):
-        self._samples = _WindowSamples(recipe, rel_path, epoch, tuple(outputs), frozenset(skip), flow, flow_grid)
+                 caches: Optional[HostCaches] = None, handler: Callable[[Exception], None] = reraise):
+        #: The read of the video (``video_read.VideoRead``): its record, verdict and frame pass.
+        self.read = read_video(source, rel_path, recipe.reads, caches, handler=handler)
+        self._samples = _WindowSamples(recipe, rel_path, epoch, tuple(outputs), frozenset(skip), flow, flow_grid,
+                                       self.read.window_pass)
         # opens the video on the first sample asked for; holds the cutter, not this object, so
         # dropping the pass closes it at once (a frame-cache entry being stored is dropped)
-        self._run = self._samples.samples(source, frame_cache)
+        self._run = self.read.run(self._samples.cut(self.read.frames))
 
     @property
     def seconds(self) -> StageSeconds:
@@ -399,21 +406,34 @@ class SamplePass:
 
     @property
     def storing(self) -> bool:
-        """Whether the pass is still storing the video in the frame cache
-        (``frame_pass.FramePass.storing``): a consumer that stops early then drops the entry."""
-        fp = self._samples.window_pass.frame_pass
-        return fp is not None and fp.storing
+        """Whether the pass is still storing the video in the frame cache (``VideoRead.storing``):
+        a consumer that stops early then drops the entry."""
+        return self.read.storing
 
-    def record(self, error: Optional[BaseException] = None) -> VideoPass:
-        """What the pass found so far: frames, cuts, complete and failed windows
-        (``frames.window_pass.VideoPass``); ``error``: what stopped it, if anything."""
-        return self._samples.window_pass.record(error)
+    @property
+    def error(self) -> Optional[Exception]:
+        """What ended the pass, kept by the handler (``VideoRead.error``), or None."""
+        return self.read.error
+
+    def record(self) -> VideoPass:
+        """What the pass found so far: frames, cuts, complete and failed windows, what ended it
+        (``frames.window_pass.VideoPass``, ``VideoRead.record``)."""
+        return self.read.record()
 
     def __iter__(self) -> "SamplePass":
         return self
 
     def __next__(self) -> Tuple[SampleKey, Dict[str, np.ndarray], dict]:
         return next(self._run)
+
+    def __enter__(self) -> "SamplePass":
+        return self
+
+    def __exit__(self, kind, error, tb) -> bool:
+        """The end of the reader's block: the pass ends there (``VideoRead.__exit__``), an
+        exception of the block handled as one of the pass."""
+        self._run.close()
+        return self.read.__exit__(kind, error, tb)
 
     def close(self) -> None:
         """Stop the pass here: the video is closed (a frame-cache entry being stored is dropped)."""
@@ -422,8 +442,8 @@ class SamplePass:
 
 @dataclass
 class _WindowSamples:
-    """What a :class:`SamplePass` makes, its window pass, and the seconds spent so far per stage
-    (the one writer of ``seconds``: a new record after each sample)."""
+    """What a :class:`SamplePass` makes, the window pass it cuts from, and the seconds spent so
+    far per stage (the one writer of ``seconds``: a new record after each sample)."""
 
     recipe: SampleRecipe
     rel_path: str
@@ -432,10 +452,8 @@ class _WindowSamples:
     skip: FrozenSet[SampleKey]
     flow: Optional[FlowEstimator]
     flow_grid: bool
+    window_pass: WindowPass
     seconds: StageSeconds = StageSeconds()
-
-    def __post_init__(self):
-        self.window_pass = WindowPass(self.recipe.windows, self.recipe.reads)
 
     def _sample(self, key: SampleKey, plan: WindowPlan, frames: np.ndarray, fps: float, start: int
                 ) -> Tuple[SampleKey, Dict[str, np.ndarray], dict]:
@@ -450,24 +468,19 @@ class _WindowSamples:
         self.seconds = self.seconds + made.seconds + StageSeconds(stats=time.thread_time() - t)
         return key, made.arrays, meta
 
-    def samples(self, source: VideoSource, frame_cache: Optional[FrameCache]
-                ) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-        with video_frames(self.recipe, source, self.rel_path, frame_cache) as fp:
-            yield from self._cut(fp)
-            fp.commit()  # the window pass read every frame it needs: a pass storing the video stores its entry
-
-    def _cut(self, fp: FramePass) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
-        recipe, info, kpw = self.recipe, fp.info, self.recipe.crops_per_window
+    def cut(self, frames: Iterator[WindowFrame]) -> Iterator[Tuple[SampleKey, Dict[str, np.ndarray], dict]]:
+        """The samples of the window pass's ``frames`` (``VideoRead.frames``), as they pass."""
+        recipe, kpw = self.recipe, self.recipe.crops_per_window
         last = recipe.frames_per_sample - 1  # a window's last frame, from its first
         win: Optional[_Window] = None  # the window being cut (frames are added as they pass)
-        for f in self.window_pass.over(fp):  # the frames of the layout's windows at most (video_frames)
+        for f in frames:  # the frames of the layout's windows at most
             full: list = []  # the whole kept region at full range, made once per frame when a crop is resampled
             if f.drops is not None or f.fails is not None or f.skips is not None:
                 win = None  # it would show two scenes, frames of two sizes, or (skipped) almost no change
             if f.ends is not None and win is not None:  # this frame ends the window in progress ...
                 win.add(last, f.codes, f.expand, full)
-                for key, plan, frames in win.finish():
-                    yield self._sample(key, plan, frames, info.fps, win.start)
+                for key, plan, window in win.finish():
+                    yield self._sample(key, plan, window, self.window_pass.info.fps, win.start)
                 win = None
             if f.starts is not None:  # ... and starts the next one
                 k = f.starts
@@ -480,27 +493,15 @@ class _WindowSamples:
 
 def video_samples(recipe: SampleRecipe, source: VideoSource, rel_path: str, epoch: int, outputs: Iterable[str],
                   skip: Iterable[SampleKey] = (), flow: Optional[FlowEstimator] = None, flow_grid: bool = False,
-                  frame_cache: Optional[FrameCache] = None) -> SamplePass:
+                  caches: Optional[HostCaches] = None, handler: Callable[[Exception], None] = reraise) -> SamplePass:
     """Decode the video at ``rel_path`` of ``source`` once, sequentially (or replay it from the
-    host's ``frame_cache``, ``HostCaches.frame_cache``, None when off), and give its samples:
-    a :class:`SamplePass` (iterate it for ``(key, arrays, meta)``; its ``record`` says what the
-    pass found).
+    frame cache of the host's ``caches``, None: none), and give its samples: a
+    :class:`SamplePass` (iterate it for ``(key, arrays, meta)``; its ``record`` says what the
+    pass found). ``handler``: the error policy (``video_read.reraise``, the default here: a
+    failure propagates; ``video_read.as_verdict``: it ends the pass as its ``error``).
 
     Raises:
-        VideoError: while iterating, the file cannot be opened or decoded (samples already
-            yielded are good).
+        VideoError: while iterating, with ``reraise``: the file cannot be opened or decoded
+            (samples already yielded are good).
     """
-    return SamplePass(recipe, source, rel_path, epoch, outputs, skip, flow, flow_grid, frame_cache)
-
-
-def video_frames(recipe: SampleRecipe, source: VideoSource, rel_path: str, frame_cache: Optional[FrameCache] = None):
-    """A context manager giving the ``frame_pass.FramePass`` a sample pass reads from the video at
-    ``rel_path`` of ``source`` (a ``VideoSource``): replayed from the host's ``frame_cache``
-    (``HostCaches.frame_cache``) when it holds the video, else decoded (and stored): the kept rows, the frames the
-    windows need (``WindowSettings.frame_limit``), decoded as ``recipe.decode`` says
-    (``frame_pass.open_frames``). ``v2v-serve --warm-cache`` reads the same pass.
-
-    Raises:
-        VideoError: the file cannot be opened.
-    """
-    return open_frames(source, rel_path, recipe.decode, recipe.windows, frame_cache)
+    return SamplePass(recipe, source, rel_path, epoch, outputs, skip, flow, flow_grid, caches, handler)

@@ -1,44 +1,40 @@
 """The sample recipe: everything that decides a sample's content, the samples stage's settings.
 
-Defaults follow the paper's WebVid recipe (Lou et al. 2025, Sec. 4). The recipe owns the default,
-help text and checks of each of its keys (``docs/config.md`` is generated from them); the stages
-below get the parts they read: the videos stage a ``frames.windows.WindowSettings``
-(:attr:`SampleRecipe.windows`) and a ``frames.frame_pass.DecodeSettings`` (:attr:`SampleRecipe.decode`),
-the simulation the sensor ranges (``simulation.simulate.ParamRanges``),
-the flow the option's name. ``v2v_server.ops.config.ServeConfig`` composes it with the serving
-settings; a worker process is given the recipe alone (:meth:`SampleRecipe.recipe_dict`).
+Defaults follow the paper's WebVid recipe (Lou et al. 2025, Sec. 4). The recipe declares the keys
+it owns (default, help text, checks; ``docs/config.md`` is generated from them) and composes the
+frames stage's settings, which declare theirs: where windows lie (``frames.windows.WindowSettings``,
+:attr:`SampleRecipe.windows`) and how frames are decoded (``frames.frame_pass.DecodeSettings``,
+:attr:`SampleRecipe.decode`). Users write every key flat (``shot_cuts: off``, ``--crop-size 64``)
+and the recipe reads them flat (``recipe.shot_cuts``). The simulation gets the sensor ranges
+(``simulation.simulate.ParamRanges``), the flow the option's name.
+``v2v_server.ops.config.ServeConfig`` composes the recipe with the serving settings; a worker
+process is given the recipe itself (``service.worker.WorkerSetup``).
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Tuple
 
-from v2v_server.checks import check_bool, check_choice, check_int, check_keys, check_prob
+from v2v_server.checks import check_bool, check_choice, check_int, check_prob
 from v2v_server.flow.options import DEFAULT_FLOW, FLOW_OPTIONS, check_option, unavailable_reason
-from v2v_server.settings import setting
+from v2v_server.settings import documented, owners, setting, split_keys
 from v2v_server.simulation.simulate import ParamRanges
-from v2v_server.frames.decode import DECODE_FAST
 from v2v_server.frames.frame_pass import DecodeSettings
-from v2v_server.frames.motion import STATIC_MOTION
 from v2v_server.frames.pass_record import PassRecord
-from v2v_server.frames.shots import SHOT_CUTS
-from v2v_server.frames.windows import STATIC_WINDOWS, WindowSettings
+from v2v_server.frames.windows import WindowSettings
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import OUTPUTS, check_outputs
-
-#: The pass record's fields, named as the recipe's keys they hold (``PassRecord.content`` gives
-#: them to the fingerprint).
-_PASS_FIELDS = frozenset(f.name for f in fields(PassRecord))
 
 #: Wire dtypes of dense flow (``v2v_wire.outputs``).
 FLOW_DTYPES = ARRAYS["flow"].dtypes
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class SampleRecipe:
     """The sample recipe: everything that decides a sample's content.
 
@@ -48,28 +44,30 @@ class SampleRecipe:
     ``keep_top_fraction`` of each frame is kept (WebVid watermark), a random ``crop_size`` x
     ``crop_size`` crop (pixels) is taken, flipped horizontally with probability ``hflip_prob``.
     Pauses: a per-frame Markov chain repeats the previous frame.
+
+    Built from flat keys (``SampleRecipe(seed=3, shot_cuts="off")``): its own, and those of the
+    parts it composes (:attr:`PARTS`), which build them; a part's key reads through the recipe
+    too (``recipe.shot_cuts`` is ``recipe.windows.shot_cuts``). A part given whole
+    (``windows=WindowSettings(...)``, as ``dataclasses.replace`` gives it) stands for its keys.
+
+    Attributes:
+        windows: where this recipe's windows lie (``frames.windows.WindowSettings``), with the
+            window span the recipe's keys decide (:attr:`frames_per_sample`).
+        decode: how its frames are decoded (``frames.frame_pass.DecodeSettings``).
+
+    Raises:
+        ValueError: naming the key, for an unknown key or a bad value.
     """
+
+    #: The frames stage's settings the recipe composes: (attribute, class).
+    PARTS = (("windows", WindowSettings), ("decode", DecodeSettings))
 
     seed: int = setting(0, help="base seed: sample content depends only on (seed, epoch, sample id)")
     sequence_length: int = setting(40, help="voxel grids per sample, L")
     num_bins: int = setting(5, help="temporal bins per voxel grid, B")
     frames_per_bin: int = setting(1, help="frame pairs summed into one bin; a sample spans L x B x this + 1 frames")
     crop_size: int = setting(128, help="square crop side, pixels")
-    keep_top_fraction: float = setting(0.54, help="fraction of each frame's height, from the top, that crops come "
-                                                  "from (WebVid's watermark; 1.0 for clips without one)")
-    frame_height: int = setting(0, help="scale every decoded frame to this height in pixels (width keeps the aspect "
-                                        "ratio; OpenCV INTER_AREA on full-range luma) before the kept region, the "
-                                        "frame cache and the crops; 0 = frames as decoded (docs/frame_scale.md)")
     hflip_prob: float = setting(0.5, help="probability of a horizontal flip")
-    max_samples_per_video: int = setting(10, help="windows (samples with crops_per_window 1) per video per epoch")
-    shot_cuts: str = setting("avoid", help="avoid: windows lie inside one shot (they start at each shot's first "
-                                           "frame + k x stride; shot cuts found while decoding, docs/corpora.md); "
-                                           "off: windows at k x stride whatever they hold (the authors' loader)",
-                             choices=SHOT_CUTS)
-    static_windows: str = setting("keep", help="keep: every window (the paper's pauses and still shots included); skip: "
-                                                "windows whose frames barely change (motion below "
-                                                f"{STATIC_MOTION} log intensity a frame pair) give no sample, decided "
-                                                "before simulation (docs/fidelity.md)", choices=STATIC_WINDOWS)
     crops_per_window: int = setting(1, help="random crops per decoded window, each its own sample (own crop, flip, "
                                             "pauses, sensor parameters; ids path#window.crop when > 1)")
     pause_enabled: bool = setting(True, help="pause augmentation (a Markov chain repeating the previous frame)")
@@ -89,10 +87,29 @@ class SampleRecipe:
                                           factory=dict)
     fixed_sensor_params: bool = setting(False, help="each video keeps one (c+, c-) drawn from (seed, video) for every "
                                                     "window and epoch (the paper's '-F' datasets)")
-    decode_threads: int = setting(1, help="FFmpeg decoding threads per worker")
-    decode_fast: str = setting("off", help="skip H.264's deblocking filter on some frames: off | noref | bidir | all "
-                                           "(faster decoding, measured error: docs/decode_fast.md)",
-                               choices=tuple(DECODE_FAST))
+    windows: WindowSettings = dataclasses.field(default=None)
+    decode: DecodeSettings = dataclasses.field(default=None)
+
+    def __init__(self, **keys):
+        for attr, part in self.PARTS:  # a part given whole stands for its keys
+            given = keys.pop(attr, None)
+            if given is not None:
+                keys = {**{f.name: getattr(given, f.name) for f in documented(part)}, **keys}
+        groups = split_keys(SampleRecipe, keys)
+        for f in dataclasses.fields(self):
+            if f.name in groups[""]:
+                object.__setattr__(self, f.name, groups[""][f.name])
+            elif f.name not in groups:
+                object.__setattr__(self, f.name, f.default_factory() if f.default is dataclasses.MISSING
+                                   else f.default)
+        self._build(groups)
+
+    def __getattr__(self, name: str):
+        """A part's key, read through the recipe (``recipe.shot_cuts``)."""
+        part = _PART_KEYS.get(name)
+        if part is None or part not in self.__dict__:  # not a key, or the recipe is not built yet
+            raise AttributeError(f"SampleRecipe has no key {name!r}")
+        return getattr(self.__dict__[part], name)
 
     @property
     def frames_per_sample(self) -> int:
@@ -104,18 +121,6 @@ class SampleRecipe:
         samples (ids ``path#window.crop``, ``v2v_wire.ids``). What ``--check``, the server's
         start, the Ray engine's count and their progress bars report."""
         return windows * self.crops_per_window
-
-    @cached_property
-    def windows(self) -> WindowSettings:
-        """Where this recipe's windows lie (and so which frames a pass reads), the videos stage's
-        ``frames.windows.WindowSettings``, built (and checked) once, by ``__post_init__``."""
-        return WindowSettings(self.frames_per_sample, self.max_samples_per_video, self.shot_cuts, self.static_windows)
-
-    @cached_property
-    def decode(self) -> DecodeSettings:
-        """How this recipe's frames are decoded (kept rows, scale, threads, shortcut), the videos
-        stage's ``frames.frame_pass.DecodeSettings``, built (and checked) once, by ``__post_init__``."""
-        return DecodeSettings(self.keep_top_fraction, self.frame_height, self.decode_threads, self.decode_fast)
 
     @cached_property
     def refine_spec(self):
@@ -147,41 +152,29 @@ class SampleRecipe:
         fingerprint."""
         reads = self.reads.content()
         del reads["frames_per_sample"]  # sequence_length, num_bins and frames_per_bin, beside it, name it
-        content = {k: v for k, v in self.recipe_dict().items()
-                   if k not in ("outputs", "decode_threads") and k not in _PASS_FIELDS}
+        content = {k: v for k, v in self.recipe_dict().items() if k != "outputs" and _PART_KEYS.get(k) is None}
         content.update(reads)
         return hashlib.sha256(json.dumps(content, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def recipe_dict(self) -> dict:
-        """The recipe's keys as a plain, msgpack/YAML-safe dict (what a worker process gets)."""
-        d = {f.name: getattr(self, f.name) for f in fields(SampleRecipe)}
+        """Every key of the recipe, its parts' included, flat, as a plain, msgpack/YAML-safe dict
+        (ranges as lists): what a fitted recipe file or a fingerprint is made of."""
+        d = {f.name: getattr(self, f.name) for f in documented(SampleRecipe)}
         d.update(ranges=self.ranges.to_dict(), outputs=list(self.outputs))
         return d
 
-    @classmethod
-    def recipe_from_dict(cls, d: dict, source: str = "recipe") -> "SampleRecipe":
-        """A validated ``SampleRecipe`` from ``recipe_dict()`` output.
-
-        Raises:
-            ValueError: naming ``source`` and the key, for an unknown key or a bad value.
-        """
-        check_keys(d, (f.name for f in fields(SampleRecipe)), source=source)
-        try:
-            return SampleRecipe(**{k: (tuple(v) if k == "outputs" and isinstance(v, list) else v) for k, v in d.items()})
-        except ValueError as e:
-            raise ValueError(f"{source}: {e}") from None
-
-    def __post_init__(self):
+    def _build(self, parts: dict):
         """Check the recipe's fields (``ValueError`` names the first bad one) and normalise them;
-        builds :attr:`windows` and :attr:`decode`, which check the fields the videos stage reads."""
+        builds :attr:`windows` and :attr:`decode` from their keys in ``parts`` (``split_keys``),
+        which check them."""
         _set = object.__setattr__  # a frozen recipe normalises its own fields once, here
         for name in ("sequence_length", "num_bins", "frames_per_bin", "crops_per_window"):
             check_int(name, getattr(self, name), 1)
         check_int("seed", self.seed, 0)
         for name in ("hflip_prob", "p_pause_when_running", "p_pause_when_paused"):
             _set(self, name, check_prob(name, getattr(self, name)))
-        self.windows  # built once here, which checks the window fields (frames_per_sample, shot_cuts, ...)
-        self.decode  # and the decoding fields (keep_top_fraction, frame_height, ...)
+        _set(self, "windows", WindowSettings(**parts["windows"], frames_per_sample=self.frames_per_sample))
+        _set(self, "decode", DecodeSettings(**parts["decode"]))
         check_int("crop_size", self.crop_size, 8, 4096, "pixels")
         if self.frame_height and math.floor(self.frame_height * self.keep_top_fraction) < self.crop_size:
             raise ValueError(f"frame_height {self.frame_height} keeps {math.floor(self.frame_height * self.keep_top_fraction)}"
@@ -213,3 +206,7 @@ class SampleRecipe:
         _set(self, "degrade_dynamic_range", parse_degrade(self.degrade_dynamic_range))
         check_bool("pause_enabled", self.pause_enabled)
         check_bool("fixed_sensor_params", self.fixed_sensor_params)
+
+
+#: A part's key -> the recipe's attribute holding that part.
+_PART_KEYS = {k: part for k, part in owners(SampleRecipe).items() if part}

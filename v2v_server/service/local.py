@@ -18,20 +18,22 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
     """Serve ``videos`` (default: ``config.videos``, else the bundled clips) from a thread of this
     process; yields the bound endpoint (``tcp://127.0.0.1:<free port>``) and always stops the
     server and its workers. ``config``: the other keys (default: every key's default); the
-    corpus is opened, checked and listed by the start-up path ``v2v-serve`` runs
-    (``ops.startup.start_source``).
+    corpus is opened, checked, listed and sharded (``shard``), and the videos the host's corpus
+    index knows to give no window left out, by the start-up path ``v2v-serve`` runs
+    (``ops.startup.start_source``), so both serve the same samples.
 
     Raises:
         ValueError: a bad ``workers``/``batch_size`` (from the config check, naming the field), a
             cache folder that cannot keep the caches that are on (``disk_cache.CacheDirError``), or a
-            folder with no video files.
+            folder (or shard) with no video to serve.
         StoreError: the folder does not exist, or the store cannot be reached or listed.
         RuntimeError: the server stopped or stayed silent before it served (its error chained).
     """
     keys = {"workers": workers, "batch_size": batch_size, "bind": "tcp://127.0.0.1:*"}
     cfg = load_config(None, {**(config.to_dict() if config is not None else {}), **keys})
-    start = start_source(cfg, videos)  # a folder or an object-store URL
-    server = V2VServer(start.config, start.source, start.caches, start.videos)
+    start = start_source(cfg, videos)  # a folder or an object-store URL; the shard of cfg.shard
+    server = V2VServer(start.config, start.source, start.caches, start.served, corpus=start.corpus,
+                       epoch_samples=start.epoch_samples, skipped=start.skipped)
     ready, failure = threading.Event(), []
 
     def run() -> None:

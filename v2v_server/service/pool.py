@@ -19,7 +19,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 from v2v_server.faults import cause_of, warn_once
 from v2v_server.service.shm import SlotRing, create_ring
-from v2v_server.service.worker import worker_main
+from v2v_server.service.worker import WorkerSetup, worker_main
 
 log = logging.getLogger("v2v.server")
 
@@ -41,20 +41,21 @@ class WorkerPool:
     """``size`` spawned worker processes connected to ``endpoint``.
 
     Args:
-        cfg_dict: ``worker.worker_config(cfg)`` for the workers (the sample recipe, the log format).
+        setup: what each worker is given (``worker.worker_config(cfg)``: the sample recipe, the
+            log format).
         corpus: what each worker builds its corpus from (``worker.worker_main``'s ``corpus``).
         endpoint: the server's worker endpoint (ipc).
         size: number of workers.
         target: process entry point (``worker_main``; tests may pass another), called as
-            ``target(cfg_dict, corpus, endpoint, identity, parent_pid[, ring_spec])``; the sixth
+            ``target(setup, corpus, endpoint, identity, parent_pid[, ring_spec])``; the sixth
             argument, ``SlotRing.spec``, only when the worker has a ring.
         shm: give each worker a shared-memory slot ring (where ``/dev/shm`` allows; the
             worker falls back to sending frames otherwise).
     """
 
-    def __init__(self, cfg_dict: dict, corpus, endpoint: str, size: int, target: Callable = worker_main,
+    def __init__(self, setup: WorkerSetup, corpus, endpoint: str, size: int, target: Callable = worker_main,
                  shm: bool = True):
-        self.cfg_dict, self.corpus, self.endpoint, self.size, self.target = cfg_dict, corpus, endpoint, size, target
+        self.setup, self.corpus, self.endpoint, self.size, self.target = setup, corpus, endpoint, size, target
         self.shm = shm
         self.workers: Dict[bytes, WorkerProc] = {}
         self.restarts = 0
@@ -65,9 +66,9 @@ class WorkerPool:
 
     def _spawn(self, position: int, generation: int) -> None:
         ident = f"w{position}.{generation}".encode()
-        c = self.cfg_dict["recipe"]
-        ring = create_ring(c["sequence_length"], c["num_bins"], c["crop_size"]) if self.shm else None
-        args = (self.cfg_dict, self.corpus, self.endpoint, ident, os.getpid())
+        r = self.setup.recipe
+        ring = create_ring(r.sequence_length, r.num_bins, r.crop_size) if self.shm else None
+        args = (self.setup, self.corpus, self.endpoint, ident, os.getpid())
         proc = mp.get_context("spawn").Process(target=self.target, args=args + ((ring.spec,) if ring else ()),
                                                name=f"v2v-worker-{position}", daemon=True)
         try:

@@ -30,7 +30,7 @@ from typing import Dict, List, Optional, Tuple
 import zmq
 
 from v2v_server.ops.config import ServeConfig
-from v2v_server.sources.listing import corpus_fingerprint
+from v2v_server.ops.startup import corpus_fingerprint
 from v2v_server.disk_cache import UsageScan
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.sources.source import VideoSource
@@ -65,10 +65,10 @@ class V2VServer:
         caches: the host's frame cache and corpus index (``frames.host_caches.HostCaches``),
             passed beside ``source``; its workers build the same from ``caches.spec()``.
         videos: sample-id paths of the videos, relative to ``root`` (POSIX strings).
-        corpus: the fingerprint of the whole listing before sharding (``listing.corpus_fingerprint``).
-        epoch_samples: samples an epoch holds, when known at start (``corpus.known_windows``).
+        corpus: the fingerprint of the whole listing before sharding (``ops.startup.corpus_fingerprint``).
+        epoch_samples: samples an epoch holds, when known at start (``frames.known.known_windows``).
         skipped: videos of the listing not served, known to give no window -> ``(cause, reason)``
-            (``corpus.KnownWindows.empty``): logged and counted as a skip found by reading them would be.
+            (``frames.known.KnownWindows.empty``): logged and counted as a skip found by reading them would be.
 
     Call ``run()`` (blocks until ``--epochs`` are delivered or ``stop()`` is called).
 

@@ -21,6 +21,7 @@ import os
 import signal
 import sys
 import time
+from dataclasses import dataclass
 from typing import Optional, Union
 
 import numpy as np
@@ -39,7 +40,7 @@ from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, T
 from v2v_server.flow.estimate import FlowEstimator, to_float16
 from v2v_wire.ids import SampleKey
 from v2v_server.samples.make import SamplePass, video_samples
-from v2v_server.frames.corpus import record_pass
+from v2v_server.frames.video_read import as_verdict
 
 log = logging.getLogger("v2v.worker")
 
@@ -171,17 +172,19 @@ class _StageClock:
 
 def run_task(recipe: SampleRecipe, source: VideoSource, caches: HostCaches, task: Task, sock: zmq.Socket,
              parent_pid: int, flows: dict, inbox: Optional[_Inbox] = None, worker: str = "?") -> None:
-    """Make every sample of one task of ``source`` (its frames through the host's ``caches``) and send it (through ``inbox``'s slot ring when it has
-    one), then send ``done``; an exception that stops the pass goes in it as a
-    ``worker_messages.Failure`` saying it was raised in ``worker`` (its identity) on what."""
-    error = failure = last = None
+    """Make every sample of one task of ``source`` (its frames through the host's ``caches``) and
+    send it (through ``inbox``'s slot ring when it has one), then send ``done``. A failure, of the
+    pass or of this worker's work on a sample, is the file's verdict (``video_read.as_verdict``),
+    not the worker's death: it goes in ``done`` as a ``worker_messages.Failure`` saying it was
+    raised in ``worker`` (its identity) on what."""
+    failure = last = None
     preset = recipe.flow_preset
     flow = flows.setdefault(preset, FlowEstimator(preset)) if "flow" in task.outputs else None
     skip = [SampleKey(task.video, w, c) for w, c in task.skip]
-    run = video_samples(recipe, source, task.video, task.epoch, task.outputs, skip, flow,
-                        flow_grid=True, frame_cache=caches.frame_cache)  # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
-    clock = _StageClock(run)  # seconds per stage, reported with each message
-    try:
+    # a tracked option's flow goes as its grid (~20 KB, not 2.6 MB); clients expand it
+    with video_samples(recipe, source, task.video, task.epoch, task.outputs, skip, flow, flow_grid=True,
+                       caches=caches, handler=as_verdict) as run:
+        clock = _StageClock(run)  # seconds per stage, reported with each message
         for key, arrays, meta in run:
             clock.made()
             arrays = wire_arrays(recipe, arrays)
@@ -200,14 +203,12 @@ def run_task(recipe: SampleRecipe, source: VideoSource, caches: HostCaches, task
             _send(sock, [pack(header.to_wire())] + frames + packed, parent_pid)
             clock.sent()
             last = key
-    except Exception as e:  # any failure on one file is that file's verdict, not the worker's death
-        error = e
+    if run.error is not None:
         after = "before its first sample" if last is None else f"after sample {last.sample_id(recipe.crops_per_window)}"
-        failure = Failure.of(e, f"in worker {worker}, pid {os.getpid()}, while making {task.video} in epoch "
-                                f"{task.epoch}, {after}")
-    found = run.record(error)
+        failure = Failure.of(run.error, f"in worker {worker}, pid {os.getpid()}, while making {task.video} in epoch "
+                                        f"{task.epoch}, {after}")
+    found = run.record()
     clock.made()  # decoding after the last window
-    record_pass(recipe.windows, recipe.decode, source, task.video, found, caches)  # the next start knows its windows (corpus index)
     cause, reason = found.cause(recipe.windows)  # the file's verdict, failed windows aside
     done = Done(task.task, found.windows,
                 {str(k): str(v) for k, v in found.failed.items()},  # window -> reason, one by one
@@ -217,10 +218,18 @@ def run_task(recipe: SampleRecipe, source: VideoSource, caches: HostCaches, task
     _send(sock, [pack(done.to_wire())], parent_pid)
 
 
-def worker_config(cfg: ServeConfig) -> dict:
-    """What a worker process is given: the sample recipe (``SampleRecipe.recipe_dict``) and
-    the server's log format; nothing of transport, security or delivery."""
-    return {"recipe": cfg.recipe.recipe_dict(), "log_format": cfg.log_format}
+@dataclass(frozen=True)
+class WorkerSetup:
+    """What a worker process is given (it pickles to the spawned process): the sample recipe and
+    the server's log format (``"text"`` or ``"json"``); nothing of transport, security or delivery."""
+
+    recipe: SampleRecipe
+    log_format: str = "text"
+
+
+def worker_config(cfg: ServeConfig) -> WorkerSetup:
+    """The :class:`WorkerSetup` of the server configured by ``cfg``."""
+    return WorkerSetup(cfg.recipe, cfg.log_format)
 
 
 def exit_on_sigterm() -> None:
@@ -239,12 +248,12 @@ def exit_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, _exit)
 
 
-def worker_main(cfg_dict: dict, corpus: dict, endpoint: str, identity: bytes, parent_pid: int,
+def worker_main(setup: WorkerSetup, corpus: dict, endpoint: str, identity: bytes, parent_pid: int,
                 ring: Optional[dict] = None) -> None:
     """Entry point of a worker process (started with the ``spawn`` method).
 
     Args:
-        cfg_dict: ``worker_config(cfg)``.
+        setup: the recipe and log format (``worker_config(cfg)``).
         corpus: ``{"source": VideoSource.spec(), "caches": HostCaches.spec()}``: the corpus
             (``sources.source``) and the host's caches beside it (``frames.host_caches``), built
             here once.
@@ -255,8 +264,8 @@ def worker_main(cfg_dict: dict, corpus: dict, endpoint: str, identity: bytes, pa
     import cv2
 
     cv2.setNumThreads(1)
-    recipe = SampleRecipe.recipe_from_dict(cfg_dict["recipe"], source="worker recipe")
-    if cfg_dict.get("log_format") == "json":  # one format for the whole server's stderr
+    recipe = setup.recipe
+    if setup.log_format == "json":  # one format for the whole server's stderr
         setup_logging("INFO", "json", "v2v-worker")
     else:
         logging.basicConfig(level=logging.INFO, format="v2v-worker %(process)d: %(message)s")

@@ -52,7 +52,8 @@ import numpy as np
 
 from v2v_server.checks import check_keys
 from v2v_server.simulation.kernel import run_kernel
-from v2v_server.simulation.simulate import SensorParams, _lut64, check_frames, draw_noise_seed, simulate_voxels, start_state
+from v2v_server.simulation.simulate import (TESTED, SensorParams, _lut64, check_frames, check_tested, draw_noise_seed,
+                                           simulate_voxels, start_state)
 
 __all__ = ["NonIdealities", "PixelState", "add_pixel_events", "draw_pixel_state", "effective_noise",
            "simulate_voxels_nonideal"]
@@ -66,7 +67,8 @@ class NonIdealities:
 
     Raises:
         ValueError: naming ``nonidealities.<key>`` for a negative / non-finite value, a
-            fraction outside [0, 1], a non-integer cap, or an unknown ``noise_mode``.
+            fraction outside [0, 1], a non-integer cap, an unknown ``noise_mode``, or a
+            ``threshold_sigma`` outside what the kernel is tested at (``simulate.check_tested``).
     """
 
     threshold_sigma: float = 0.0
@@ -101,6 +103,8 @@ class NonIdealities:
                 raise ValueError(f"{name} must be in [0, 1], got {v!r}")
             if f.name == "noise_reference_fps" and x == 0:
                 raise ValueError(f"{name} must be > 0, got {v!r}")
+            if f.name in TESTED:
+                check_tested(name, f.name, x)
             object.__setattr__(self, f.name, x)
 
     @classmethod

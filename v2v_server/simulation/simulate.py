@@ -29,9 +29,52 @@ LOG_EPS = 1e-3
 #: Display gamma undone before the log (``I = (F / full_scale) ** GAMMA``).
 GAMMA = 2.2
 
+#: What the simulation kernel is tested at, per recipe value that reaches it: ``(lo, hi, what)``
+#: (tests/test_stability.py draws contrast thresholds of 1e-3 .. 10 log-intensity units, the ratio
+#: of c- to c+ up to 100 either way, noise sigma 0 .. 10 and hot-pixel values up to 100 in
+#: magnitude, and checks the residual's range, the conservation law and counts that never wrap).
+#: A hot pixel's value is N(0, s^2): ``hot_pixel_std`` up to 20 keeps 5 s inside the tested 100.
+#: A pixel's threshold spread (``nonidealities.threshold_sigma``) is a threshold: at most the
+#: largest tested. Every configuration's ranges are checked against it when read (YAML, flags,
+#: a fitted recipe: :func:`check_tested`, called by ``ParamRanges`` and ``nonideal.NonIdealities``).
+TESTED = {
+    "threshold": (1e-3, 10.0, "contrast threshold"),
+    "ratio": (1.0, 100.0, "threshold ratio"),
+    "noise_std": (0.0, 10.0, "noise sigma"),
+    "hot_pixel_std": (0.0, 20.0, "hot-pixel spread"),
+    "threshold_sigma": (0.0, 10.0, "threshold spread"),
+}
+
+
+def check_tested(name: str, kind: str, *values: float) -> None:
+    """Refuse a value outside the range the kernel is tested at (:data:`TESTED`): the one rule
+    for a configuration's sensor values, wherever they come from.
+
+    Args:
+        name: the key as the user wrote it, for the message (``ranges.threshold``).
+        kind: its entry of :data:`TESTED` (``threshold``).
+        values: the values to check (a range's lo and hi).
+
+    Raises:
+        ValueError: naming ``name``, the value and the bound, e.g. ``ranges.threshold: 1e+308
+            is above 10, the largest contrast threshold the simulation kernel is tested at
+            (tests/test_stability.py)``.
+    """
+    lo, hi, what = TESTED[kind]
+    for v in values:
+        if v > hi:
+            raise ValueError(f"{name}: {v:g} is above {hi:g}, the largest {what} the simulation kernel is tested at "
+                             f"(tests/test_stability.py)")
+        if v < lo:
+            raise ValueError(f"{name}: {v:g} is below {lo:g}, the smallest {what} the simulation kernel is tested at "
+                             f"(tests/test_stability.py)")
+
+
 __all__ = [
     "LOG_EPS",
     "GAMMA",
+    "TESTED",
+    "check_tested",
     "SensorParams",
     "ParamRanges",
     "log_intensity_lut",
@@ -135,7 +178,8 @@ class ParamRanges:
 
     Raises:
         ValueError: naming the field, when a range is not two finite numbers lo <= hi, or
-            lies outside its domain (thresholds > 0, ratio >= 1, the rest >= 0, fraction <= 1).
+            lies outside its domain (thresholds > 0, ratio >= 1, the rest >= 0, fraction <= 1)
+            or outside what the kernel is tested at (:data:`TESTED`, :func:`check_tested`).
     """
 
     threshold: Tuple[float, float] = (0.05, 2.0)
@@ -166,6 +210,8 @@ class ParamRanges:
                 raise ValueError(
                     f"ranges.{f.name} must be finite with {bound} {dmin} <= lo <= hi <= {dmax}, got {value!r}"
                 )
+            if f.name in TESTED:
+                check_tested(f"ranges.{f.name}", f.name, lo, hi)
             object.__setattr__(self, f.name, (lo, hi))
 
     @classmethod

@@ -8,13 +8,15 @@ import time
 from pathlib import Path, PurePosixPath
 from typing import Iterator, List, Optional, Sequence, Tuple, Union
 
-from v2v_server.sources.names import VideoError, inside
+from v2v_server.sources.errors import VideoError
+from v2v_server.sources.names import inside
 from v2v_server.sources.folder_scan import scan_corpus_names
 from v2v_server.sources.manifest import ListedObject
 from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, PIECE, gather_pieces, split_member
 from v2v_server.sources.source import VideoSource
-from v2v_server.sources.store_io import StoreError
+from v2v_server.sources.errors import StoreError
+from v2v_server.sources.video_tables import TableSettings
 
 
 def corpus_file(root, rel: str) -> Path:
@@ -68,11 +70,17 @@ class LocalSource(VideoSource):
     a path or a ``file://`` URL, the other arguments as :class:`~v2v_server.sources.source.VideoSource`'s."""
 
     def __init__(self, root: Union[str, Path], video_list: Optional[str] = None, names: Optional[List[str]] = None,
-                 cache_dir: Optional[str] = None):
+                 cache_dir: Optional[str] = None, table: TableSettings = TableSettings()):
         root = str(root)
-        super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names, cache_dir)
+        super().__init__(root[len("file://"):] if root.startswith("file://") else root, video_list, names, cache_dir,
+                         table)
         self._abs_root = os.path.abspath(self.root)
         self._members: Optional[Tuple[List[str], List[Tuple[str, str]]]] = None  # _corpus_archives' answer
+
+    @property
+    def location(self) -> str:
+        """The folder's absolute path: the same corpus whatever folder a process started in."""
+        return self._abs_root
 
     def check(self) -> None:
         """Raises StoreError: the folder does not exist."""
@@ -189,4 +197,5 @@ class LocalSource(VideoSource):
         return None if any(racy(st) for st in stats) else " + ".join(file_identity(st) for st in stats)
 
     def spec(self) -> dict:
-        return {"root": self.root, "video_list": self.video_list, "names": self.names, "cache_dir": self.cache_dir}
+        return {"root": self.root, "video_list": self.video_list, "names": self.names, "cache_dir": self.cache_dir,
+                "table": self.table}

@@ -1,8 +1,8 @@
-"""The manifest of an object-store corpus: its listing (key, size, ETag; archive members with their
-offset) kept as one sorted JSON line per object, so a restart and every shard read one listing
-without walking the bucket, and a worker looks up single entries without loading it
-(:class:`ManifestIndex`). A ``sources.store.StoreSource`` holds its listing as a
-:class:`StoreListing`, which writes and reads it."""
+"""The manifest of an object-store corpus: the store's objects as one walk of the bucket found them
+(key, size, ETag; archive members with their offset), kept as one sorted JSON line per object, so
+a restart and every shard read them without walking the bucket again, and a worker looks up
+single entries without loading it (:class:`ManifestIndex`). A ``sources.store.StoreSource``
+holds its objects as a :class:`Manifest`, which writes and reads the file."""
 from __future__ import annotations
 
 import dataclasses
@@ -186,13 +186,12 @@ class ManifestIndex:
         return None
 
 
-class StoreListing:
-    """The listing a store source holds: key relative to the prefix -> :class:`ListedObject`
-    of every object under ``url`` and of the
-    members of its archives (whose indexes go to ``shards``), kept as the manifest file at ``path``
-    (None: none is kept) unless ``refresh`` asks for a new listing. The server loads a whole
-    listing once; a worker, which holds none, looks single entries up in the manifest file
-    (:class:`ManifestIndex`)."""
+class Manifest:
+    """The objects a store source holds: key relative to the prefix -> :class:`ListedObject` of
+    every object under ``url`` and of the members of its archives (whose indexes go to
+    ``shards``), kept as the manifest file at ``path`` (None: none is kept) unless ``refresh``
+    asks for a new walk of the store. The server loads them all once; a worker, which holds
+    none, looks single entries up in the manifest file (:class:`ManifestIndex`)."""
 
     def __init__(self, url: str, path: Optional[str], refresh: bool, shards: ShardIndex):
         self.url, self.path, self.refresh, self.shards = url, path, refresh, shards

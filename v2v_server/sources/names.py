@@ -1,4 +1,5 @@
-"""What a video is called, and the error raised when one cannot be read.
+"""What a video and a corpus are called: which names can be sample ids, how a name is written in a
+log line, and whether a corpus or a list is given as a URL.
 
 A sample id's path is a video's name as the corpus gives it (a file's path relative to the folder,
 a key relative to the prefix, an archive member's ``archive/member`` path); these rules say which
@@ -9,11 +10,7 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
-from typing import Optional
-
-
-class VideoError(RuntimeError):
-    """A file that cannot be used as a video (the message says why)."""
+from typing import Optional, Union
 
 
 def inside(root: Path, path: Path) -> bool:
@@ -64,6 +61,13 @@ def control_character(name: str) -> Optional[str]:
         return None
     return (f"name holds the control character {repr(m.group())[1:-1]!s} (sample ids travel one per line): "
             f"rename it")
+
+
+def is_url(videos: Union[str, Path, None]) -> bool:
+    """The one rule for whether a corpus, a list or a table is given as a URL (``s3://``,
+    ``gs://``, ``https://``...: read through fsspec) or as a local path (``file://`` URLs
+    included: they are local)."""
+    return isinstance(videos, str) and "://" in videos and not videos.startswith("file://")
 
 
 def name_suffix(name: str) -> str:

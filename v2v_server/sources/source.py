@@ -22,7 +22,7 @@ split into ``part_partaa``, ``part_partab``... pieces read as one).
 
 An object store is listed once and the listing is kept as a **manifest** (one JSON line per
 object: key relative to the prefix, size in bytes, ETag), so a restart and every shard of the
-corpus read the same listing without walking the bucket again (``manifest.StoreListing``;
+corpus read the same listing without walking the bucket again (``manifest.Manifest``;
 ``manifest.manifest_path`` says where it is kept). A worker compares the ETag the store
 reports when it opens an object with the manifest's: an object overwritten since it was listed is skipped with the key named.
 
@@ -38,8 +38,8 @@ import logging
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 
-from v2v_server.sources.archives import Archives, pair_members
-from v2v_server.sources.names import VideoError
+from v2v_server.sources.archive_members import Archives, pair_members
+from v2v_server.sources.errors import VideoError
 from v2v_server.sources.manifest import ListedObject
 from v2v_server.disk_cache import cache_folder, check_cache_folders
 from v2v_server.sources.segments import base_path, printable_name, range_problem, split_segment
@@ -55,6 +55,9 @@ class VideoSource:
     """A corpus: lists videos as sample-id paths and opens them for decoding. See the module
     docstring; ``source_spec.open_source`` builds one.
 
+    What a source can do, for the readers that ask (rather than testing its class):
+    :attr:`identity_costs_request` and :attr:`location`.
+
     Args:
         root: the corpus as given (a folder path or a URL), for logs and errors.
         video_list: the video list file that selects and orders the videos, if any.
@@ -62,17 +65,29 @@ class VideoSource:
             instead of the store.
         cache_dir: the folder of the host's caches (None: the host's default,
             ``disk_cache.cache_folder``): a store's manifests and object cache.
+        table: how a table video list is read (its path column, its filter, the reader's rule
+            for rows not worth opening).
     """
 
     def __init__(self, root: str, video_list: Optional[str] = None, names: Optional[List[str]] = None,
-                 cache_dir: Optional[str] = None):
-        self.root, self.video_list, self.names = root, video_list, names
+                 cache_dir: Optional[str] = None, table: TableSettings = TableSettings()):
+        self.root, self.video_list, self.names, self.table = root, video_list, names, table
         self.cache_dir = cache_folder(cache_dir)  # resolved here once: the store's caches and spec() take it
         #: The corpus's archives: their member indexes, split parts' pieces, their members opened.
         self.archives = Archives(self.root, self._open_raw, self._exists, self._siblings, self._shard_version)
-        #: How a table video list is read (its path column, filter, window frames): set by
-        #: ``ops.config.source_from_config`` from the settings; the defaults otherwise.
-        self.list_table = TableSettings()
+
+
+    #: Whether :meth:`identity` costs a request to a store (an object's ETag), so that questions
+    #: asked of every video at once are asked where they can run in parallel; False where it is
+    #: a ``stat`` of this host's file system (a folder's file, or a member of its archive).
+    identity_costs_request = False
+
+    @property
+    def location(self) -> str:
+        """The corpus as one name for what this host keeps of it (the frame cache's entries):
+        :attr:`root` as given (a URL); a folder's absolute path (``LocalSource``)."""
+        return self.root
+
     def _cache_folders(self) -> List[Path]:
         """The folders of this source's caches that are on (a store's object cache)."""
         return []
@@ -117,16 +132,16 @@ class VideoSource:
     def _names(self, extensions: Sequence[str]) -> Optional[VideoList]:
         """The entries that replace a listing: the video list's (with the list lines it
         refuses), the archives a brace pattern (or one archive) names, or, with both, the list's
-        entries paired with those archives' video members (:func:`archives.pair_members`)."""
+        entries paired with those archives' video members (:func:`archive_members.pair_members`)."""
         if self.names and self.video_list:
-            listed = read_video_list(self.video_list, self.list_table)
+            listed = read_video_list(self.video_list, self.table)
             members, rejected = self.archives.expand(list(self.names), [], extensions)
             where = f"the {len(self.names)} archive(s) given in {self.root}" if len(self.names) > 1 else self.names[0]
             paired, refused = pair_members(listed.videos, members, self.video_list, where)
             return VideoList(paired, listed.refused + rejected + refused)
         if self.names:
             return VideoList(list(self.names), [])
-        return read_video_list(self.video_list, self.list_table) if self.video_list else None
+        return read_video_list(self.video_list, self.table) if self.video_list else None
 
     def list_videos(self, extensions: Sequence[str]) -> Tuple[List[str], List[Tuple[str, str]]]:
         """``(videos, rejected)``: sample-id paths of the videos (the list's order with a video
@@ -191,7 +206,7 @@ class VideoSource:
     def _paired(self, names: VideoList, exists, extensions: Sequence[str]) -> VideoList:
         """A list's video names that are no file of the corpus paired with the video members of
         the archives the corpus holds (:meth:`_corpus_archives`), as with a brace range of them
-        (``archives.pair_members``: OpenVid-1M's table names ``clip.mp4``, served from
+        (``archive_members.pair_members``: OpenVid-1M's table names ``clip.mp4``, served from
         ``OpenVid_part3.zip/clip.mp4`` in the folder of parts); the names that are files are
         kept in their place. ``names`` as it is when every name is a file, or the corpus holds
         no archive."""

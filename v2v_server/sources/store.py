@@ -12,13 +12,17 @@ from typing import Dict, List, Optional
 
 from v2v_server.checks import check_float, check_int
 from v2v_server.settings import setting
-from v2v_server.sources.archives import listing_problems
-from v2v_server.sources.names import VideoError, name_problem, printable
-from v2v_server.sources.manifest import ListedObject, StoreListing, etag_of, object_identity
+from v2v_server.sources.archive_members import archive_problems
+from v2v_server.sources.errors import VideoError
+from v2v_server.sources.names import name_problem, printable
+from v2v_server.sources.manifest import ListedObject, Manifest, etag_of, object_identity
 from v2v_server.sources.segments import base_path
 from v2v_server.sources.shards import ARCHIVES, gather_pieces, piece_archive, piece_names, split_member
 from v2v_server.sources.source import VideoSource
-from v2v_server.sources.store_io import (MAX_ATTEMPTS, READ_TIMEOUT_S, ObjectCache, ReadStats, StoreError, make_filesystem, retry_policy, time_fetches)
+from v2v_server.sources.video_tables import TableSettings
+from v2v_server.sources.errors import StoreError
+from v2v_server.sources.store_io import (MAX_ATTEMPTS, READ_TIMEOUT_S, ObjectCache, ReadStats, make_filesystem, retry_policy,
+                                         time_fetches)
 
 log = logging.getLogger("v2v.source")
 
@@ -78,33 +82,42 @@ def store_root(url: str) -> str:
     return url if url.endswith("/") else url + "/"
 
 
+def manifest_key(url: str, pattern: bool, video_list: Optional[str] = None) -> str:
+    """What names one listing of a store, and so its manifest (``manifest.manifest_path``): the
+    prefix's URL (:func:`store_root`: all its objects), or a brace pattern as given (its
+    archives' members); with a video list, the list's absolute path too (a list's members only)."""
+    key = url if pattern else store_root(url)
+    return key + (f" listed by {Path(video_list).resolve()}" if video_list else "")
+
+
 class StoreSource(VideoSource):
     """A corpus under an object-store prefix, read through fsspec.
 
     Args (all but ``url`` by keyword):
         url: ``s3://bucket/prefix/`` (a trailing ``/`` is implied) or another fsspec URL.
-        storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the
-            defaults below; credentials otherwise come from the store's standard configuration
-            (for S3: ``AWS_*`` variables incl. ``AWS_ENDPOINT_URL``, shared config files,
-            instance roles).
-        video_list, names, cache_dir: as :class:`~v2v_server.sources.source.VideoSource`'s.
+        storage_options: passed to the filesystem (``endpoint_url``, ``key``...), over the defaults below;
+            credentials otherwise come from the store's standard configuration (for S3: ``AWS_*``
+            variables incl. ``AWS_ENDPOINT_URL``, shared config files, instance roles).
+        video_list, names, cache_dir, table: as :class:`~v2v_server.sources.source.VideoSource`'s.
         manifest: the manifest file (see ``manifest.manifest_path``); None keeps none.
         refresh_manifest: list the store again instead of reading the manifest.
         settings: timeouts, attempts, read blocks and the object cache (``cache_dir/objects``).
     """
 
+    identity_costs_request = True  # an object's identity (ETag, generation) is read from the store
+
     def __init__(self, url: str, *, storage_options: Optional[dict] = None, video_list: Optional[str] = None,
                  manifest: Optional[str] = None, refresh_manifest: bool = False,
                  settings: StoreSettings = StoreSettings(), names: Optional[List[str]] = None,
-                 cache_dir: Optional[str] = None):
-        super().__init__(store_root(url), video_list, names, cache_dir)
+                 cache_dir: Optional[str] = None, table: TableSettings = TableSettings()):
+        super().__init__(store_root(url), video_list, names, cache_dir, table)
         self.protocol = url.split("://", 1)[0].lower()
         self.prefix = self.root.split("://", 1)[1]
         self.storage_options = dict(storage_options or {})
         self.settings = settings
         retry_policy(self.protocol, self.root, settings.store_read_timeout_s, settings.store_max_attempts)
-        #: The listing: the objects under the prefix and the manifest that keeps them.
-        self.listing = StoreListing(self.root, manifest, refresh_manifest, self.archives.index)
+        #: The objects under the prefix and the manifest file that keeps them.
+        self.manifest = Manifest(self.root, manifest, refresh_manifest, self.archives.index)
         self._fs = None
         self.stats = ReadStats()
         self.cache = ObjectCache(Path(self.cache_dir) / "objects", settings.cache_max_gb)
@@ -114,13 +127,11 @@ class StoreSource(VideoSource):
     # ------------------------------------------------------------------ the filesystem
     @property
     def fs(self):
+        """The store's filesystem (``store_io.make_filesystem``), made at the first use."""
         if self._fs is None:
-            self._fs = self._make_fs()
+            self._fs = make_filesystem(self.protocol, self.root, self.storage_options,
+                                       self.settings.store_read_timeout_s, self.settings.store_max_attempts, self.stats)
         return self._fs
-
-    def _make_fs(self):
-        return make_filesystem(self.protocol, self.root, self.storage_options, self.settings.store_read_timeout_s,
-                               self.settings.store_max_attempts, self.stats)
 
     def _path(self, rel: str) -> str:
         """The filesystem path of ``rel``: the key for object stores, the whole URL for http(s)."""
@@ -159,13 +170,13 @@ class StoreSource(VideoSource):
         Raises:
             StoreError: the listing fails (naming the URL).
         """
-        if self.listing.objects is not None:
-            return self.listing.objects
-        got = self.listing.read()
+        if self.manifest.objects is not None:
+            return self.manifest.objects
+        got = self.manifest.read()
         if got is not None:
             log.info("%s: %d object(s) from the manifest %s (--refresh-manifest lists the store again)",
-                     self.root, len(got), self.listing.path)
-            self.listing.keep(got)
+                     self.root, len(got), self.manifest.path)
+            self.manifest.keep(got)
             return got
         t0 = time.monotonic()
         try:
@@ -186,7 +197,7 @@ class StoreSource(VideoSource):
         for rel in [k for k in objects if k.lower().endswith(ARCHIVES)] + list(parts):  # archives: their members, once
             self._add_members(objects, rel)
         log.info("%s: listed %d object(s) in %.1f s", self.root, len(objects), time.monotonic() - t0)
-        self.listing.listed(objects)
+        self.manifest.listed(objects)
         return objects
 
     def _add_members(self, objects: dict, archive: str) -> None:
@@ -203,9 +214,9 @@ class StoreSource(VideoSource):
             objects[f"{archive}/{name}"] = ListedObject(entry.size, etag, entry)
 
     def _exists(self, rel: str) -> bool:
-        if self.listing.entry(rel) is not None:
+        if self.manifest.entry(rel) is not None:
             return True
-        if self.listing.objects is not None and not self.names and not self.video_list:
+        if self.manifest.objects is not None and not self.names and not self.video_list:
             return False  # the whole prefix is listed
         t0 = time.perf_counter()
         try:
@@ -221,8 +232,8 @@ class StoreSource(VideoSource):
 
     def _siblings(self, part: str) -> List[str]:
         stem = part[:-len(".zip")] + "_part"
-        if self.listing.objects is not None:
-            found = [k for k in self.listing.objects if k.startswith(stem)]
+        if self.manifest.objects is not None:
+            found = [k for k in self.manifest.objects if k.startswith(stem)]
             if found or (not self.names and not self.video_list):
                 return found
         if self.protocol in ("http", "https"):  # no listing: ask for each piece until one is missing
@@ -238,12 +249,12 @@ class StoreSource(VideoSource):
     def list_videos(self, extensions):
         names = self._names(extensions)
         if names is not None:  # nothing is listed from the store: a missing video is found when it is opened
-            known = self.listing.read()  # the tar members read at an earlier start
+            known = self.manifest.read()  # the tar members read at an earlier start
             if known is not None:
-                self.listing.keep(known)
+                self.manifest.keep(known)
             got = self._listed(names, lambda rel: True, extensions)
-            if known is None and self.listing.path and any(split_member(v) for v in got[0]):
-                self.listing.save_members()  # the shards' members, so that workers and restarts need not read headers
+            if known is None and self.manifest.path and any(split_member(v) for v in got[0]):
+                self.manifest.save_members()  # the shards' members, so that workers and restarts need not read headers
             return got
         videos, rejected = [], []
         for rel in sorted(self.objects()):
@@ -259,7 +270,7 @@ class StoreSource(VideoSource):
                 videos.append(rel)
             else:
                 rejected.append((rel, f"not a video file (extension {Path(rel).suffix or 'none'!r})"))
-        return videos, rejected + self.archives.refused() + listing_problems(self.objects(), self._unreadable, extensions)
+        return videos, rejected + self.archives.refused() + archive_problems(self.objects(), self._unreadable, extensions)
 
     # ------------------------------------------------------------------ reading
     @contextlib.contextmanager
@@ -269,7 +280,7 @@ class StoreSource(VideoSource):
             with self._open_raw(rel) as f:
                 yield f
             return
-        with self.archives.open_member(rel, self.listing.entry(rel)) as f:
+        with self.archives.open_member(rel, self.manifest.entry(rel)) as f:
             yield f
 
     def identity(self, rel: str) -> Optional[str]:
@@ -282,7 +293,7 @@ class StoreSource(VideoSource):
             self.stats.reads += 1
         tags, size = [etag_of(i) for i in infos], sum(int(i.get("size") or 0) for i in infos)
         now = "+".join(tags) if all(tags) else ""
-        entry = self.listing.entry(rel)  # the listing's entry: the object's, or the member's (its archive's ETag, where it lies)
+        entry = self.manifest.entry(rel)  # the listing's entry: the object's, or the member's (its archive's ETag, where it lies)
         self._check_unchanged(entry, now)
         if not now:  # no version tag (an HTTP server without ETag): the size alone cannot vouch for the bytes
             return None
@@ -294,7 +305,7 @@ class StoreSource(VideoSource):
         rel = base_path(rel)
         member = split_member(rel)
         objs = (self.archives.index.pieces.get(member.archive) or [member.archive]) if member is not None else [rel]
-        return self.listing.identity(rel, objs)
+        return self.manifest.identity(rel, objs)
 
     @contextlib.contextmanager
     def _request(self):
@@ -329,7 +340,7 @@ class StoreSource(VideoSource):
                              cache_options={"maxblocks": 4})
         try:
             now = etag_of(getattr(f, "details", None) or {})
-            self._check_unchanged(self.listing.entry(rel) if expected is None else expected, now)
+            self._check_unchanged(self.manifest.entry(rel) if expected is None else expected, now)
             time_fetches(f, self.stats)
             if self.settings.cache_max_gb > 0:
                 with self.cache.open(f"{self.root}{rel}", now, f) as local:
@@ -347,4 +358,5 @@ class StoreSource(VideoSource):
 
     def spec(self) -> dict:
         return {"root": self.root, "storage_options": self.storage_options, "video_list": self.video_list,
-                "manifest": self.listing.path, "settings": self.settings, "cache_dir": self.cache_dir}
+                "manifest": self.manifest.path, "settings": self.settings, "cache_dir": self.cache_dir,
+                "table": self.table}

@@ -13,15 +13,11 @@ log = logging.getLogger("v2v.source")
 
 from v2v_server.faults import cause_of, warn_once
 from v2v_server.disk_cache import DiskCache, remove_quietly
+from v2v_server.sources.errors import StoreError
 
 #: Protocols read through fsspec, and the extra that installs each one's library.
 STORE_EXTRAS = {"s3": "v2v[s3]", "s3a": "v2v[s3]", "gs": "v2v[gcs]", "gcs": "v2v[gcs]", "az": "v2v[azure]",
                 "abfs": "v2v[azure]", "abfss": "v2v[azure]"}
-
-
-class StoreError(RuntimeError):
-    """The corpus cannot be reached at all (no such bucket, refused credentials, no library for
-    the URL's protocol); the message names the URL. ``v2v-serve`` exits 2 on it."""
 
 
 class ReadStats:

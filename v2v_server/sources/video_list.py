@@ -13,8 +13,9 @@ from __future__ import annotations
 import codecs
 import re
 from pathlib import Path
-from typing import List, NamedTuple, Optional, Tuple, Union
+from typing import List, NamedTuple, Optional, Tuple
 
+from v2v_server.sources.names import is_url
 from v2v_server.sources.segments import clean_path, parse_time, path_problem, printable_name, segment_name
 from v2v_server.sources.video_tables import TableSettings, read_table, table_format
 
@@ -33,12 +34,6 @@ class VideoList(NamedTuple):
 
     videos: List[str]
     refused: List[Tuple[str, str]]
-
-
-def is_url(videos: Union[str, Path, None]) -> bool:
-    """True for a corpus given as a URL (``s3://``, ``gs://``...), False for a local folder
-    (``file://`` URLs included: they are folders)."""
-    return isinstance(videos, str) and "://" in videos and not videos.startswith("file://")
 
 
 def _read_bytes(path: str) -> bytes:

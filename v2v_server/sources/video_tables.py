@@ -17,9 +17,11 @@ VidGen's JSON, a Parquet file) selects and orders its videos, read by DuckDB (ex
   201 and "motion score" > 0.5``) that DuckDB parses as one expression and nothing else (its
   relation API's ``filter``: a second statement or a clause is refused, never run) and
   evaluates with the table loaded and file access off. Ctrl-C stops a slow one at once.
-* **Too short by the table's numbers**: a row whose ``frame`` (else ``seconds`` x ``fps``; for
-  a range, its length x ``fps``) rounds below one window's frames is skipped without opening
-  its video, and counted in one refused entry (``--check`` shows it, the server logs it once).
+* **Rows not worth opening by the table's numbers**: a row's ``frame`` (else ``seconds`` x
+  ``fps``; for a range, its length x ``fps``) is put to the reader's rule
+  (:attr:`TableSettings.unopened`: the frames side's, ``frames.windows.WindowSettings.short_of``,
+  a row too short for one window), and the rows it refuses are skipped without opening their
+  video, counted in one refused entry (``--check`` shows it, the server logs it once).
 
 A configuration error (no path column, a template's unknown column, a filter that is not one
 expression, does not parse or names an unknown column) raises ``ValueError`` naming the file
@@ -42,6 +44,7 @@ import threading
 from dataclasses import dataclass
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, TypeVar
 
+from v2v_server.sources.names import is_url
 from v2v_server.sources.segments import (TIME_SYNTAX, clean_path, parse_time, path_problem, printable_name, segment_name)
 
 T = TypeVar("T")
@@ -78,13 +81,16 @@ class TableSettings:
         column: the path column, or a template over columns (``{videoID}.mp4``); None: the
             first of :data:`PATH_COLUMNS` the table has.
         filter: SQL boolean expression over the columns (DuckDB's dialect); None: every row.
-        window_frames: frames one window spans; rows shorter by the table's numbers are skipped
-            (0: none are).
+        unopened: the reader's rule for a row it would not open, given the frames the table
+            counts for it (rounded as the table rounds them: OpenVid's seconds to 1/100 s): why
+            (``"below one window's 201 frames"``), or None to serve it; None: every row is
+            served. The frames side's rule, ``frames.windows.WindowSettings.short_of``: a source
+            knows nothing of windows.
     """
 
     column: Optional[str] = None
     filter: Optional[str] = None
-    window_frames: int = 0
+    unopened: Optional[Callable[[float], Optional[str]]] = None
 
 
 def _quote(column: str) -> str:
@@ -182,7 +188,7 @@ def _connect(path: str):
     con = duckdb.connect(":memory:", config={"autoinstall_known_extensions": False,
                                              "autoload_known_extensions": False})
     con.execute("SET enable_progress_bar = false")
-    if "://" in path and not path.startswith("file://"):
+    if is_url(path):
         import fsspec
 
         # a fresh filesystem: the environment's credentials as they are now, not a cached instance's
@@ -264,7 +270,7 @@ def _bad_json_line(path: str) -> Optional[str]:
     (DuckDB's message counts one line too many); None when every line parses, or for a
     ``.json`` file (one JSON array may span lines), a compressed or a remote one: DuckDB's
     message stands."""
-    if "://" in path or not path.lower().endswith((".jsonl", ".ndjson")):
+    if is_url(path) or not path.lower().endswith((".jsonl", ".ndjson")):
         return None
     try:
         with open(path, "rb") as f:
@@ -469,7 +475,8 @@ def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tupl
     """The entries a table video list gives, in the table's order, duplicates dropped, and
     ``(path, reason)`` for each row refused (a CSV line that cannot be read, no path, a path
     that is no file's, a time that does not parse) and, in one entry named by the table, the
-    rows too short for a window. See the module docstring.
+    rows the reader's rule leaves unopened (:attr:`TableSettings.unopened`). See the module
+    docstring.
 
     Raises:
         FileNotFoundError: no file at ``path``.
@@ -484,16 +491,23 @@ def read_table(path: str, settings: TableSettings) -> Tuple[List[str], List[Tupl
         rows = _select(con, path, settings, loaded)
     finally:
         con.close()
-    out, more = _entries(path, rows, loaded, settings.window_frames)
+    out, more = _entries(path, rows, loaded, settings.unopened)
     return out, refused + more
 
 
-def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tuple[List[str], List[Tuple[str, str]]]:
+def _entries(path: str, rows: list, loaded: _Loaded, unopened: Optional[Callable[[float], Optional[str]]]
+             ) -> Tuple[List[str], List[Tuple[str, str]]]:
     """:func:`read_table`'s entries from the selected ``rows`` (path fields, range cells, frame
-    number)."""
+    number), and the rows refused; ``unopened``: the reader's rule (:class:`TableSettings`)."""
     out, seen, refused, short, rows_left = [], set(), [], [], []
-    need = window_frames - 0.5  # the table's numbers are rounded (OpenVid's seconds to 1/100 s)
+    why = None  # what the reader's rule said of the rows it left unopened
     fields, ranges, template = loaded.fields, loaded.ranges, loaded.template
+
+    def keep(entry: str, n) -> None:
+        nonlocal why
+        no = unopened(float(n)) if unopened is not None and n is not None else None
+        (short if no else out).append(entry)
+        why = why or no
     json_typed = [loaded.types.get(f) == "JSON" for f in fields]
 
     def refuse(rel: str, why: str) -> None:
@@ -507,7 +521,7 @@ def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tupl
                 rows_left.append((v, n))
             elif v not in seen:
                 seen.add(v)
-                (short if n is not None and n < need else out).append(v)
+                keep(v, n)
         rows = rows_left
     for row in rows:
         values, cells, frames = row[:len(fields)], row[len(fields):-1], row[-1]
@@ -536,11 +550,11 @@ def _entries(path: str, rows: list, loaded: _Loaded, window_frames: int) -> Tupl
             entry = rel if span is None else segment_name(rel, *span)
             if entry not in seen:
                 seen.add(entry)
-                (short if n is not None and n < need else out).append(entry)
+                keep(entry, n)
     if short:
         how = "range's length x fps" if ranges else "frame (or seconds x fps)"
         refused.append((path, f"{len(short)} row(s) of {path} skipped without opening their video: their {how} "
-                              f"is below one window's {window_frames} frames (e.g. {', '.join(short[:3])})"))
+                              f"is {why} (e.g. {', '.join(short[:3])})"))
     return out, refused
 
 

@@ -8,7 +8,8 @@ import contextlib
 from pathlib import PurePosixPath
 from typing import TYPE_CHECKING, Callable, ContextManager, Dict, List, Optional, Sequence, Tuple
 
-from v2v_server.sources.names import VideoError, control_character, printable
+from v2v_server.sources.errors import VideoError
+from v2v_server.sources.names import control_character, printable
 from v2v_server.sources.segments import segment_name, split_segment
 from v2v_server.sources.shards import (ARCHIVES, JoinedFile, MemberEntry, ShardIndex, ZipMemberError, gather_pieces, missing_piece, open_member, piece_archive, split_member)
 
@@ -232,7 +233,7 @@ def archive_kind(archive: str) -> str:
     return "zip part" if archive.lower().endswith(".zip") else "tar shard"
 
 
-def listing_problems(objects: Dict[str, ListedObject], unreadable: Dict[str, str], extensions: Sequence[str]
+def archive_problems(objects: Dict[str, ListedObject], unreadable: Dict[str, str], extensions: Sequence[str]
                      ) -> List[Tuple[str, str]]:
     """``(archive, reason)`` for each archive of a store's listing ``objects`` (key -> entry,
     members included) that gives no video member (it could not be read, ``unreadable``:
