@@ -30,6 +30,22 @@ def test_lightning_ddp_with_the_dataset_built_before_fit(tmp_path):
     assert sorted(seen) == expected  # every sample once over both ranks, padding aside
 
 
+def test_a_stream_and_its_loader_are_truthy_though_they_have_no_length():
+    """len() refuses (loaders that index a dataset, DeepSpeed's training_data=, must not take a
+    stream), but ``if ds:`` and ``if loader:`` are true, as for any dataset a loop holds."""
+    import pytest
+
+    from v2v_client import StreamLoader, V2VStreamDataset
+
+    ds = V2VStreamDataset("tcp://127.0.0.1:9")  # never iterated: no connection is made
+    loader = StreamLoader(ds, num_workers=1)
+    with pytest.raises(TypeError, match="stream without a length"):
+        len(ds)
+    with pytest.raises(TypeError, match="stream without a length"):
+        len(loader)
+    assert bool(ds) and bool(loader)
+
+
 def test_dist_position_reads_the_process_group_then_the_environment(monkeypatch):
     import pytest
     import torch.distributed as dist

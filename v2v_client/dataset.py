@@ -239,6 +239,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     def __len__(self) -> int:
         raise TypeError(NO_LENGTH)
 
+    def __bool__(self) -> bool:
+        """True: a stream is a dataset whatever ``len`` says (``if self.ds:`` would otherwise ask
+        ``__len__``, which refuses loaders that index a dataset)."""
+        return True
+
     def set_epoch(self, epoch: int) -> None:
         """Called before each pass by accelerate; refuses a wrapper keeping part (``launchers.check_whole``)."""
         check_whole(self)
