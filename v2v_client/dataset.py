@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import replace
-from typing import Iterator, Optional, Sequence, Tuple, Union
+from typing import Iterator, List, Optional, Sequence, Tuple, Union
 
 import torch
 
@@ -28,7 +28,7 @@ from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_CREDITS, OUTPUTS, check_outpu
 from .connection import StreamError, StreamTimeout, load_curve_keys
 from .endpoint import EndpointStream, padding_copy
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
-from .launchers import adapt, check_whole, rank_part
+from .launchers import adapt, check_whole, rank_part, unseen
 from .metrics import TrainerMetrics
 from .options import StreamOptions
 from .tensors import batch_to_torch
@@ -159,6 +159,9 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._meter = TrainerMetrics()
         self._link = None  # a StreamLoader's workers' receipt pipes and records (read_by, loader.py)
         self.held_state: Optional[dict] = None  # state_dict() while accelerate's dispatcher hands out a group
+        # batches yielded that the loop never received (an accelerate loader read them ahead; hold_over)
+        self._held_over: List[dict] = []
+        self._held_before: Optional[dict] = None
         if not isinstance(endpoint, str) or "," in endpoint:
             endpoints = split_endpoints(endpoint)
             if len(endpoints) == 1:
@@ -236,6 +239,21 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._stream is not None:
             self._stream.set_position(0, 1)
 
+    def hold_over(self, batches: List[dict], before: Optional[dict] = None) -> None:
+        """``batches`` were yielded but the training loop never received them (accelerate's
+        loaders read ahead of the loop, ``launchers``): the next iteration yields them first,
+        before anything from the server, and ``state_dict()`` leaves them out until then.
+        ``before``: this dataset's state without them, when the caller knows it."""
+        self._held_over = list(batches) + self._held_over
+        self._held_before = before
+
+    def _replay(self, inner: Iterator[dict]) -> Iterator[dict]:
+        """The batches held over (:meth:`hold_over`), then ``inner``."""
+        while self._held_over:
+            self._held_before = None
+            yield self._held_over.pop(0)
+        yield from inner
+
     def __len__(self) -> int:
         raise TypeError(NO_LENGTH)
 
@@ -277,7 +295,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 raise RuntimeError("V2VStreamDataset over several servers is read with num_workers=0 (the fan-in "
                                    "reads every server in its own thread)")
             self._stream.attach_loader(worker.id, self._link.receipts[worker.id], self._link.records.get(worker.id))
-        inner = iter(self._fanin) if self._fanin is not None else iter(self._stream)
+        inner = self._replay(iter(self._fanin) if self._fanin is not None else iter(self._stream))
         return adapt(self, self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else ""))
 
     # ------------------------------------------------------------------ state
@@ -285,7 +303,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         """Where this consumer stands: epochs the server declared complete, the sample ids
         yielded so far in epochs still open, batches yielded per open epoch, and the consumer
         id the server knows it by. Plain, JSON/torch.save-safe data. With several servers: the
-        epoch all of them completed and the ids yielded in later epochs.
+        epoch all of them completed and the ids yielded in later epochs. Batches held over
+        (:meth:`hold_over`: yielded, never received by the loop) are left out until yielded again.
 
         Raises:
             RuntimeError: the dataset is read by a ``StreamLoader``'s workers (their records are
@@ -294,7 +313,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._link is not None:
             raise RuntimeError("this V2VStreamDataset is read by StreamLoader workers: checkpoint the loader "
                                "(loader.state_dict()), which holds what each worker's training loop received")
-        return self.held_state if self.held_state is not None else (self._fanin or self._stream).state_dict()
+        if self.held_state is not None:
+            return self.held_state
+        if self._held_over:
+            return self._held_before or unseen((self._fanin or self._stream).state_dict(), self._held_over)
+        return (self._fanin or self._stream).state_dict()
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()`` output; the next iteration resumes the epoch without
@@ -306,6 +329,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         """
         state = rank_part(state, dist_position)  # one rank's part of what launchers' save hook gathered
         read_state(state)
+        self._held_over, self._held_before = [], None  # the state says what was received
         if self._stream is not None:
             self._stream.load_state_dict(state)
         if self._fanin is not None:
