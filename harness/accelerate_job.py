@@ -8,12 +8,13 @@
     --stateful --save-at K --stop-after K2   save_state after step K, leave the loop after step K2
     --resume DIR       load_state(DIR) first
     --skip-first N     read accelerator.skip_first_batches(loader, N) instead
+    --prepare-twice    prepare_loader the loader it returned again (``twice``: whether it gave the same one)
     --again            after leaving the loop (--stop-after), iterate the loader again to its end
 
 Each rank writes ``OUT_DIR/rank{R}.json``: the ids it trained on (padding excluded; with
 ``--save-at``, ``saved``: those trained up to the checkpoint), ``seen_epochs`` / ``saved_epochs`` (the
 same as ``[epoch, id]``), padding rows, batches, per step ``epochs`` (the batch's server epoch),
-``sync_gradients`` and ``end_of_dataloader``, ``error`` (the first line of an exception,
+``sync_gradients`` and ``end_of_dataloader``, ``twice``, ``error`` (the first line of an exception,
 raised before any step or during one), and ``cpu_s`` / ``wall_s``: this process's CPU seconds (all
 its threads) and seconds from its first batch to the end of the loop (``bench/launchers.py``).
 """
@@ -40,6 +41,7 @@ def main() -> None:
     ap.add_argument("--stop-after", type=int, default=-1)
     ap.add_argument("--resume", default="")
     ap.add_argument("--skip-first", type=int, default=0)
+    ap.add_argument("--prepare-twice", action="store_true")
     ap.add_argument("--again", action="store_true")
     ap.add_argument("--outputs", default="frames", help="comma-separated; frames must be among them")
     args = ap.parse_args()
@@ -61,12 +63,16 @@ def main() -> None:
     else:
         loader = prepare_loader(acc, loader)
         model, opt = acc.prepare(model, opt)
+    twice = None
+    if args.prepare_twice:
+        again = prepare_loader(acc, loader)
+        twice, loader = again is loader, again
     if args.resume:
         acc.load_state(args.resume)
     if args.skip_first:
         loader = acc.skip_first_batches(loader, args.skip_first)
     rec = {"rank": acc.process_index, "seen": [], "seen_epochs": [], "saved": None, "saved_epochs": None,
-           "padding": [], "batches": 0, "epochs": [], "sync": [], "end": [], "error": None,
+           "padding": [], "batches": 0, "epochs": [], "sync": [], "end": [], "error": None, "twice": twice,
            "cpu_s": None, "wall_s": None}
     try:
         first = _train(acc, model, opt, loader, args, rec, args.stop_after)

@@ -174,6 +174,23 @@ def test_accelerate_loop_left_and_read_again_gets_what_the_loader_took_ahead(tmp
     _once_per_epoch([p for r in ranks for p in r["seen_epochs"]], expected)
 
 
+def test_accelerate_prepare_loader_twice_is_the_same_loader(tmp_path):
+    """prepare_loader applied to the loader it returned (per rank, stateful) gives that loader
+    back: save_state then holds one loader state, and new ranks that load it receive none of the
+    samples the checkpoint holds again."""
+    corpus = _three_clips(tmp_path)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with _serve(corpus, epochs=2) as srv:
+        first = _accelerate(srv.endpoint, tmp_path / "a", "--mode", "per-rank", "--stateful", "--prepare-twice",
+                            "--save-at", "1", "--stop-after", "1", clean=True)
+        again = _accelerate(srv.endpoint, tmp_path / "b", "--mode", "per-rank", "--stateful", "--resume",
+                            tmp_path / "a" / "ckpt", clean=True)
+    assert [r["twice"] for r in first] == [True, True]
+    assert not sorted(tmp_path.glob("a/ckpt/dl_state_dict_*.bin"))  # one loader registered
+    _once_per_epoch([p for r in first for p in r["saved_epochs"]] + [p for r in again for p in r["seen_epochs"]],
+                    expected)
+
+
 def _launcher(tmp_path, launcher: str, copies: int = 1, *torchrun_args: str):
     corpus = faults.good_corpus(tmp_path, copies)
     expected = faults.expected_ids(corpus, LAYOUT)
@@ -255,6 +272,30 @@ def test_a_gathered_state_gives_each_rank_its_part_and_refuses_another_world_siz
     assert rank_part({"consumer": "x"}, lambda: 1 / 0) == {"consumer": "x"}  # a plain state: no position asked
     with pytest.raises(ValueError, match="saved by 2 ranks and is loaded by 3"):
         rank_part(state, lambda: (0, 3))
+
+
+def test_prepare_loader_refuses_a_loader_accelerate_prepared_already():
+    """prepare_loader over accelerator.prepare's loader would register a second loader (and per
+    rank read IterableDatasetShard): refused in one line; its own loader comes back as it is."""
+    import torch
+    from accelerate import Accelerator
+    from accelerate.state import AcceleratorState, GradientState
+
+    from v2v_client import V2VStreamDataset, prepare_loader
+
+    try:
+        acc = Accelerator(cpu=True)
+        ds = V2VStreamDataset("tcp://127.0.0.1:9")  # never iterated: no connection is made
+        mine = prepare_loader(acc, torch.utils.data.DataLoader(ds, batch_size=None))
+        assert prepare_loader(acc, mine) is mine and len(acc._dataloaders) == 1
+        plain = acc.prepare(torch.utils.data.DataLoader(ds, batch_size=None))
+        with pytest.raises(ValueError, match="prepare_loader takes the DataLoader itself"):
+            prepare_loader(acc, plain)
+        with pytest.raises(ValueError, match="prepare_loader takes the DataLoader itself"):
+            prepare_loader(Accelerator(cpu=True), mine)  # another accelerator's
+    finally:
+        AcceleratorState._reset_state(True)
+        GradientState._reset_state()
 
 
 def test_a_state_without_batches_the_loop_never_received():

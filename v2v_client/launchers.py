@@ -338,12 +338,24 @@ def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
     rank's dataset state in the saved loader state. The result is registered with the accelerator
     (``save_state`` / ``load_state`` cover it; ``accelerator.prepare`` passes it through).
 
+    A loader this function made for ``accelerator`` is returned as it is (preparing it again
+    would register a second loader, whose never-read state ``save_state`` writes first).
+
     Raises:
         TypeError: the loader does not read a V2VStreamDataset.
-        ValueError: the loader batches the stream's batches again (``batch_size`` not None).
+        ValueError: the loader batches the stream's batches again (``batch_size`` not None), or
+            accelerate prepared it already (``accelerator.prepare``, or ``prepare_loader`` for
+            another accelerator).
     """
     from accelerate.data_loader import prepare_data_loader
 
+    made_for = getattr(loader, "_v2v_prepared_by", None)
+    if made_for is accelerator:
+        return loader
+    if made_for is not None or getattr(loader, "_is_accelerate_prepared", False):
+        raise ValueError("prepare_loader takes the DataLoader itself, not one accelerate prepared already: "
+                         "call prepare_loader(accelerator, DataLoader(ds, batch_size=None)) once and use what it "
+                         "returns")
     ds = loader.dataset
     if not callable(getattr(ds, "read_alone", None)):
         raise TypeError(f"prepare_loader reads a V2VStreamDataset; this loader reads {type(ds).__name__}")
@@ -361,4 +373,5 @@ def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
     if accelerator.use_stateful_dataloader:
         accelerator.register_save_state_pre_hook(_gather_states(loader))
         ds.gathers_state = True
+    loader._v2v_prepared_by = accelerator
     return loader
