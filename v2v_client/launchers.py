@@ -30,7 +30,7 @@ not made by :func:`prepare_loader` is refused at its first batch, as is ``skip_f
 
 Reading ahead: accelerate's loaders take a batch (per rank) or a group (dispatch) before the loop
 has received the one before. When the loop leaves or the stream fails, those batches go back to
-the dataset, which yields them first next time (``V2VStreamDataset.hold_over``).
+the dataset, which yields them first next time (:class:`ReadAhead`).
 """
 from __future__ import annotations
 
@@ -43,8 +43,8 @@ import torch
 
 from .endpoint import padding_copy
 
-__all__ = ["DispatchedBatch", "prepare_loader", "check_whole", "adapt", "rank_part", "pack_rows", "unpack_rows",
-           "unseen"]
+__all__ = ["DispatchedBatch", "ReadAhead", "prepare_loader", "check_whole", "adapt", "rank_part", "pack_rows",
+           "unpack_rows", "unseen"]
 
 #: the key of a dispatched batch's packed rows: uint8 (rows, width), one msgpack
 #: ``[sample_id, params, epoch, batch_id]`` per row, zero-filled
@@ -144,14 +144,53 @@ def unseen(state: dict, batches: List[dict]) -> dict:
     return state
 
 
+class ReadAhead:
+    """What accelerate's loaders, which read ahead of the training loop, make a
+    ``V2VStreamDataset``'s ``state_dict()`` say (:meth:`state`): ``held_state``, the state the
+    dispatcher's snapshots must see while it hands out a group (:func:`_dispatch`), and the
+    batches held over, yielded but never received by a loop that left or saw the stream fail:
+    the dataset's next iteration yields those first (:meth:`replay`), before anything from the
+    server, and its state leaves them out until then."""
+
+    def __init__(self):
+        self.held_state: Optional[dict] = None
+        self.batches: List[dict] = []  # held over, oldest first
+        self.before: Optional[dict] = None  # the dataset's state without them, when known
+
+    def hold_over(self, batches: List[dict], before: Optional[dict] = None) -> None:
+        """Hold ``batches`` over (they were pulled after those held already, if any)."""
+        self.batches = list(batches) + self.batches
+        self.before = before
+
+    def replay(self, inner: Iterator[dict]) -> Iterator[dict]:
+        """The batches held over, then ``inner``'s."""
+        while self.batches:
+            self.before = None
+            yield self.batches.pop(0)
+        yield from inner
+
+    def state(self, live: Callable[[], dict]) -> dict:
+        """The dataset's state: ``held_state`` when set, else ``live()`` (the stream's, which
+        counts the batches held over) without the batches held over."""
+        if self.held_state is not None:
+            return self.held_state
+        if not self.batches:
+            return live()
+        return self.before if self.before is not None else unseen(live(), self.batches)
+
+    def clear(self) -> None:
+        """Forget the batches held over (a loaded state says what the loop received)."""
+        self.batches, self.before = [], None
+
+
 def _hold_over(ds, batches: Iterator[dict], unreceived: List[dict], before: Optional[dict] = None) -> None:
     """The loop left (or the stream failed) without receiving ``unreceived``, batches of the
-    stream the loader took ahead of it: close the stream, and have the dataset yield them first
-    when it is iterated again (``ds.hold_over``; ``before``: its state without them, when known)."""
+    stream the loader took ahead of it: close the stream, and hold them over for the dataset's
+    next iteration (:class:`ReadAhead`; ``before``: its state without them, when known)."""
     if hasattr(batches, "close"):
         batches.close()  # the connection says goodbye now, not when the iterator is collected
     if unreceived:
-        ds.hold_over(unreceived, before)
+        ds.read_ahead.hold_over(unreceived, before)
 
 
 def _read_ahead(ds, batches: Iterator[dict]) -> Iterator[dict]:
@@ -159,8 +198,8 @@ def _read_ahead(ds, batches: Iterator[dict]) -> Iterator[dict]:
     (``DataLoaderShard``, a one-process ``DataLoaderDispatcher``): each batch is received by the
     loop once the loader asks for the next one (or the stream ends). When the loop leaves (the
     loader drops this iterator) or the stream fails, the batch yielded last never reached the
-    loop: the dataset yields it first when it is iterated again (``hold_over``), and its state
-    leaves it out meanwhile. Accelerate's snapshots are taken before each pull: they hold every
+    loop: the dataset yields it first when it is iterated again (:class:`ReadAhead`), and its
+    state leaves it out meanwhile. Accelerate's snapshots are taken before each pull: they hold every
     batch up to the one the loop is about to receive, so a resume from one gets it again."""
     pending: Optional[dict] = None  # yielded, not yet received by the loop
     try:
@@ -184,7 +223,7 @@ def _dispatch(ds, batches: Iterator[dict], group: int) -> Iterator[DispatchedBat
 
     State: accelerate snapshots the loader state before each batch it takes, fetches a whole
     group before it hands the previous one to the loop, and its training step holds whole
-    groups only. So while a group is handed out, ``ds.held_state`` is the state before it, and
+    groups only. So while a group is handed out, ``ds.read_ahead.held_state`` is the state before it, and
     after its last batch the state after it (without the next epoch's first batch, pulled to
     learn that the epoch ended). When the loop leaves, the group fetched last (and that first
     batch) never reached it: the dataset yields them first when it is iterated again
@@ -195,7 +234,7 @@ def _dispatch(ds, batches: Iterator[dict], group: int) -> Iterator[DispatchedBat
     back_to: Optional[dict] = None  # the state without them
     try:
         while True:
-            ds.held_state = None
+            ds.read_ahead.held_state = None
             before = after if stash is not None else ds.state_dict()
             if not unreceived:
                 back_to = before
@@ -219,12 +258,12 @@ def _dispatch(ds, batches: Iterator[dict], group: int) -> Iterator[DispatchedBat
             width = -(-max(len(r) for p in packed for r in p) // _WIDTH_STEP) * _WIDTH_STEP
             for i, (b, p) in enumerate(zip(members, packed)):
                 last = i == len(members) - 1
-                ds.held_state = after if last else before
+                ds.read_ahead.held_state = after if last else before
                 if last:  # the loader hands the previous group on once it holds this one
                     unreceived, back_to = pulled + ([stash] if stash is not None else []), before
                 yield dispatched(b, p, rows, width)
     finally:
-        ds.held_state = None
+        ds.read_ahead.held_state = None
         _hold_over(ds, batches, unreceived, back_to)
 
 
