@@ -8,10 +8,13 @@
     --stateful --save-at K --stop-after K2   save_state after step K, leave the loop after step K2
     --resume DIR       load_state(DIR) first
     --skip-first N     read accelerator.skip_first_batches(loader, N) instead
+    --prepare-twice    prepare_loader the loader it returned again (``twice``: whether it gave the same one)
+    --again            after leaving the loop (--stop-after), iterate the loader again to its end
 
 Each rank writes ``OUT_DIR/rank{R}.json``: the ids it trained on (padding excluded; with
-``--save-at``, ``saved``: those trained up to the checkpoint), padding rows, batches, per step
-``sync_gradients`` and ``end_of_dataloader``, ``error`` (the first line of an exception,
+``--save-at``, ``saved``: those trained up to the checkpoint), ``seen_epochs`` / ``saved_epochs`` (the
+same as ``[epoch, id]``), padding rows, batches, per step ``epochs`` (the batch's server epoch),
+``sync_gradients`` and ``end_of_dataloader``, ``twice``, ``error`` (the first line of an exception,
 raised before any step or during one), and ``cpu_s`` / ``wall_s``: this process's CPU seconds (all
 its threads) and seconds from its first batch to the end of the loop (``bench/launchers.py``).
 """
@@ -38,6 +41,8 @@ def main() -> None:
     ap.add_argument("--stop-after", type=int, default=-1)
     ap.add_argument("--resume", default="")
     ap.add_argument("--skip-first", type=int, default=0)
+    ap.add_argument("--prepare-twice", action="store_true")
+    ap.add_argument("--again", action="store_true")
     ap.add_argument("--outputs", default="frames", help="comma-separated; frames must be among them")
     args = ap.parse_args()
 
@@ -58,42 +63,59 @@ def main() -> None:
     else:
         loader = prepare_loader(acc, loader)
         model, opt = acc.prepare(model, opt)
+    twice = None
+    if args.prepare_twice:
+        again = prepare_loader(acc, loader)
+        twice, loader = again is loader, again
     if args.resume:
         acc.load_state(args.resume)
     if args.skip_first:
         loader = acc.skip_first_batches(loader, args.skip_first)
-    rec = {"rank": acc.process_index, "seen": [], "saved": None, "padding": [], "batches": 0, "sync": [], "end": [],
-           "error": None, "cpu_s": None, "wall_s": None}
+    rec = {"rank": acc.process_index, "seen": [], "seen_epochs": [], "saved": None, "saved_epochs": None,
+           "padding": [], "batches": 0, "epochs": [], "sync": [], "end": [], "error": None, "twice": twice,
+           "cpu_s": None, "wall_s": None}
     try:
-        for step, batch in enumerate(loader):
-            if step == 0:
-                cpu0, wall0 = time.process_time(), time.monotonic()
-            with acc.accumulate(model):
-                keep = ~batch["padding"]
-                ids = batch["sample_ids"]
-                rec["seen"] += [s for s, k in zip(ids, keep.tolist()) if k]
-                rec["padding"] += [s for s, k in zip(ids, keep.tolist()) if not k]
-                x = batch["frames"].flatten(1).mean(1, keepdim=True)
-                loss = ((model(x) - 1.0) ** 2 * keep.float()[:, None]).mean()
-                acc.backward(loss)
-                opt.step()
-                opt.zero_grad()
-                rec["sync"].append(acc.sync_gradients)
-                rec["end"].append(acc.gradient_state.end_of_dataloader)
-            rec["batches"] += 1
-            if step == args.save_at:
-                acc.save_state(os.path.join(args.out, "ckpt"))
-                rec["saved"] = list(rec["seen"])
-            if step == args.stop_after:
-                break
+        first = _train(acc, model, opt, loader, args, rec, args.stop_after)
+        if args.again:
+            _train(acc, model, opt, loader, args, rec, -1)
         if rec["batches"]:
-            rec["cpu_s"], rec["wall_s"] = time.process_time() - cpu0, time.monotonic() - wall0
+            rec["cpu_s"], rec["wall_s"] = time.process_time() - first[0], time.monotonic() - first[1]
     except Exception as e:  # noqa: BLE001 - the test reads the line the user would read
         rec["error"] = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
     Path(args.out, f"rank{acc.process_index}.json").write_text(json.dumps(rec))
     if rec["error"] is None:
         acc.wait_for_everyone()
     acc.end_training()
+
+
+def _train(acc, model, opt, loader, args, rec, stop_after: int):
+    """One pass of the training loop over ``loader`` (left after step ``stop_after``), recording into
+    ``rec``; the CPU and wall clocks at its first batch."""
+    clocks = (time.process_time(), time.monotonic())
+    for step, batch in enumerate(loader):
+        if step == 0:
+            clocks = (time.process_time(), time.monotonic())
+        with acc.accumulate(model):
+            keep = ~batch["padding"]
+            ids = batch["sample_ids"]
+            rec["epochs"].append(batch["epoch"])
+            rec["seen"] += [s for s, k in zip(ids, keep.tolist()) if k]
+            rec["seen_epochs"] += [[batch["epoch"], s] for s, k in zip(ids, keep.tolist()) if k]
+            rec["padding"] += [s for s, k in zip(ids, keep.tolist()) if not k]
+            x = batch["frames"].flatten(1).mean(1, keepdim=True)
+            loss = ((model(x) - 1.0) ** 2 * keep.float()[:, None]).mean()
+            acc.backward(loss)
+            opt.step()
+            opt.zero_grad()
+            rec["sync"].append(acc.sync_gradients)
+            rec["end"].append(acc.gradient_state.end_of_dataloader)
+        rec["batches"] += 1
+        if step == args.save_at:
+            acc.save_state(os.path.join(args.out, "ckpt"))
+            rec["saved"], rec["saved_epochs"] = list(rec["seen"]), list(rec["seen_epochs"])
+        if step == stop_after:
+            break
+    return clocks
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """A Lightning DDP job reading a v2v stream: 2 CPU ranks (gloo) launched by Lightning's own
 ``ddp`` launcher (it re-runs this module once per extra rank), the dataset built at import,
-before the process group exists, as a DataModule's ``__init__`` would.
+before the process group exists, as a DataModule's ``__init__`` would, and tested for truth in
+each training step (``if self.ds:``).
 
     python -m harness.lightning_ddp ENDPOINT OUT_DIR [--devices 2]
 
@@ -34,10 +35,13 @@ def main() -> None:
     class Tiny(L.LightningModule):
         def __init__(self):
             super().__init__()
+            self.ds = ds
             self.w = torch.nn.Parameter(torch.zeros(1))
             self.seen, self.padding, self.batches = [], [], 0
 
         def training_step(self, batch, _):
+            if not self.ds:  # the idiom: a dataset is truthy whatever len() says
+                raise RuntimeError("no dataset")
             self.batches += 1
             keep = ~batch["padding"]
             self.seen += [s for s, k in zip(batch["sample_ids"], keep.tolist()) if k]

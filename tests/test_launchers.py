@@ -21,21 +21,42 @@ from harness.serve import ServeProcess
 LAYOUT = Layout(L=2, crop=32, windows=2, batch=2)
 
 
-def _torchrun(module: str, args, out: Path, *torchrun_args: str) -> list:
-    """Run ``module`` on 2 ranks; the ranks' records (``rank{R}.json`` in ``out``), by rank."""
+def _torchrun(module: str, args, out: Path, *torchrun_args: str, clean: bool = False) -> list:
+    """Run ``module`` on 2 ranks; the ranks' records (``rank{R}.json`` in ``out``), by rank.
+    ``clean``: every rank must also exit with status 0 (a rank that dies leaving fails torchrun)."""
     out.mkdir()
     r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
                         *torchrun_args, "-m", module, *[str(a) for a in args]],
                        capture_output=True, text=True, timeout=300)
     ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
     assert len(ranks) == 2, f"exit {r.returncode}: {r.stderr[-3000:]}"
+    assert not clean or r.returncode == 0, f"exit {r.returncode}: {r.stderr[-3000:]}"
     return ranks
 
 
-def _serve(corpus: Path) -> ServeProcess:
+def _serve(corpus: Path, epochs: int = 1) -> ServeProcess:
     # a grace after the end of the stream: a job resumed from an older checkpoint finds the server
-    return ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--end-grace-s", "60",
+    return ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", str(epochs), "--end-grace-s", "60",
                          "--client-timeout", "3", *LAYOUT.args()])
+
+
+def _three_clips(tmp_path: Path) -> Path:
+    """Three of the good clips: 6 samples an epoch, 3 batches of 2 (an odd count of batches: under
+    dispatch over 2 ranks, an epoch fills no whole number of steps)."""
+    corpus = faults.good_corpus(tmp_path, 1)
+    for p in sorted(corpus.glob("*.mp4"))[3:]:
+        p.unlink()
+    return corpus
+
+
+def _once_per_epoch(seen_epochs, expected, epochs: int = 2) -> None:
+    """Each epoch's ids (``[epoch, id]`` pairs) are ``expected``, each once."""
+    by_epoch = collections.defaultdict(list)
+    for e, sid in seen_epochs:
+        by_epoch[e].append(sid)
+    assert sorted(by_epoch) == list(range(epochs)), sorted(by_epoch)
+    for e in range(epochs):
+        _once(by_epoch[e], expected)
 
 
 def _once(seen, expected) -> None:
@@ -44,8 +65,8 @@ def _once(seen, expected) -> None:
                                       f"lost {sorted(set(expected) - set(counts))}")
 
 
-def _accelerate(endpoint, out, *args) -> list:
-    return _torchrun("harness.accelerate_job", [endpoint, out, *args], out)
+def _accelerate(endpoint, out, *args, clean: bool = False) -> list:
+    return _torchrun("harness.accelerate_job", [endpoint, out, *args], out, clean=clean)
 
 
 def test_accelerate_dispatch_plain_prepare_and_gradient_accumulation(tmp_path):
@@ -101,6 +122,73 @@ def test_accelerate_save_state_mid_epoch_then_load_state_on_new_ranks(tmp_path, 
     assert [r["error"] for r in first + again] == [None] * 4
     assert all(r["batches"] == 3 for r in first) and again[0]["batches"] == again[1]["batches"] > 0
     _once([s for r in first for s in r["saved"]] + [s for r in again for s in r["seen"]], expected)
+
+
+def test_accelerate_dispatch_steps_never_mix_two_epochs(tmp_path):
+    """Two epochs of 3 batches each under dispatch over 2 ranks: every step's slices share one
+    epoch (a group the end of an epoch cuts short is completed with padding of that epoch), so
+    each rank yields the same number of batches per epoch and a loop that ends its epoch on
+    batch["epoch"] leaves it at the same step on every rank; each epoch's ids once."""
+    corpus = _three_clips(tmp_path)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with _serve(corpus, epochs=2) as srv:
+        ranks = _accelerate(srv.endpoint, tmp_path / "out", "--mode", "dispatch", clean=True)
+    assert [r["error"] for r in ranks] == [None, None]
+    assert ranks[0]["epochs"] == ranks[1]["epochs"], [r["epochs"] for r in ranks]
+    _once_per_epoch([p for r in ranks for p in r["seen_epochs"]], expected)
+
+
+@pytest.mark.parametrize("mode", ["dispatch", "per-rank"])
+def test_accelerate_save_state_leave_the_loop_and_resume_over_two_epochs(tmp_path, mode):
+    """How a job stops for preemption: every rank calls save_state after its step and leaves the
+    loop at once (after the 2nd step under dispatch, the 1st per rank), then new ranks load_state
+    and read to the end: each epoch's ids once across the checkpoint and the second run, and every
+    rank of both runs exits cleanly. Per rank, accelerate's loader has taken one batch ahead of the
+    loop when it leaves: that batch must come again."""
+    corpus = _three_clips(tmp_path)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    step = "1" if mode == "dispatch" else "0"
+    with _serve(corpus, epochs=2) as srv:
+        first = _accelerate(srv.endpoint, tmp_path / "a", "--mode", mode, "--stateful", "--save-at", step,
+                            "--stop-after", step, clean=True)
+        again = _accelerate(srv.endpoint, tmp_path / "b", "--mode", mode, "--stateful", "--resume",
+                            tmp_path / "a" / "ckpt", clean=True)
+    assert [r["error"] for r in first + again] == [None] * 4
+    if mode == "dispatch":
+        assert first[0]["epochs"] == first[1]["epochs"] and again[0]["epochs"] == again[1]["epochs"]
+    _once_per_epoch([p for r in first for p in r["saved_epochs"]] + [p for r in again for p in r["seen_epochs"]],
+                    expected)
+
+
+@pytest.mark.parametrize("mode", ["dispatch", "per-rank"])
+def test_accelerate_loop_left_and_read_again_gets_what_the_loader_took_ahead(tmp_path, mode):
+    """Leave the loop after the first step, then iterate the same loader again to the end: the
+    batches accelerate's loader had taken ahead of the loop (per rank the next batch, under
+    dispatch the next step's group) reach the second pass; each epoch's ids once."""
+    corpus = _three_clips(tmp_path)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with _serve(corpus, epochs=2) as srv:
+        ranks = _accelerate(srv.endpoint, tmp_path / "out", "--mode", mode, "--stop-after", "0", "--again",
+                            clean=True)
+    assert [r["error"] for r in ranks] == [None, None]
+    _once_per_epoch([p for r in ranks for p in r["seen_epochs"]], expected)
+
+
+def test_accelerate_prepare_loader_twice_is_the_same_loader(tmp_path):
+    """prepare_loader applied to the loader it returned (per rank, stateful) gives that loader
+    back: save_state then holds one loader state, and new ranks that load it receive none of the
+    samples the checkpoint holds again."""
+    corpus = _three_clips(tmp_path)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with _serve(corpus, epochs=2) as srv:
+        first = _accelerate(srv.endpoint, tmp_path / "a", "--mode", "per-rank", "--stateful", "--prepare-twice",
+                            "--save-at", "1", "--stop-after", "1", clean=True)
+        again = _accelerate(srv.endpoint, tmp_path / "b", "--mode", "per-rank", "--stateful", "--resume",
+                            tmp_path / "a" / "ckpt", clean=True)
+    assert [r["twice"] for r in first] == [True, True]
+    assert not sorted(tmp_path.glob("a/ckpt/dl_state_dict_*.bin"))  # one loader registered
+    _once_per_epoch([p for r in first for p in r["saved_epochs"]] + [p for r in again for p in r["seen_epochs"]],
+                    expected)
 
 
 def _launcher(tmp_path, launcher: str, copies: int = 1, *torchrun_args: str):
@@ -184,3 +272,49 @@ def test_a_gathered_state_gives_each_rank_its_part_and_refuses_another_world_siz
     assert rank_part({"consumer": "x"}, lambda: 1 / 0) == {"consumer": "x"}  # a plain state: no position asked
     with pytest.raises(ValueError, match="saved by 2 ranks and is loaded by 3"):
         rank_part(state, lambda: (0, 3))
+
+
+def test_prepare_loader_refuses_a_loader_accelerate_prepared_already():
+    """prepare_loader over accelerator.prepare's loader would register a second loader (and per
+    rank read IterableDatasetShard): refused in one line; its own loader comes back as it is."""
+    import torch
+    from accelerate import Accelerator
+    from accelerate.state import AcceleratorState, GradientState
+
+    from v2v_client import V2VStreamDataset, prepare_loader
+
+    try:
+        acc = Accelerator(cpu=True)
+        ds = V2VStreamDataset("tcp://127.0.0.1:9")  # never iterated: no connection is made
+        mine = prepare_loader(acc, torch.utils.data.DataLoader(ds, batch_size=None))
+        assert prepare_loader(acc, mine) is mine and len(acc._dataloaders) == 1
+        plain = acc.prepare(torch.utils.data.DataLoader(ds, batch_size=None))
+        with pytest.raises(ValueError, match="prepare_loader takes the DataLoader itself"):
+            prepare_loader(acc, plain)
+        with pytest.raises(ValueError, match="prepare_loader takes the DataLoader itself"):
+            prepare_loader(Accelerator(cpu=True), mine)  # another accelerator's
+    finally:
+        AcceleratorState._reset_state(True)
+        GradientState._reset_state()
+
+
+def test_a_state_without_batches_the_loop_never_received():
+    """unseen: the samples (not the padding rows) of each batch leave their epoch's delivered ids,
+    and the batch its epoch's count (a fan-in's: the count of the shard its server serves); an
+    epoch the state calls complete is left as it is."""
+    import torch
+
+    from v2v_client.launchers import unseen
+
+    def batch(ids, epoch, padding=None, **extra):
+        return {"sample_ids": ids, "epoch": epoch, "padding": torch.tensor(padding or [False] * len(ids)), **extra}
+
+    state = {"version": 1, "consumer": "c", "completed_epoch": 0, "recipe": "r",
+             "delivered": {"1": ["a#0", "a#1", "b#0"], "2": ["c#0"]}, "batches": {"1": 2, "2": 1}}
+    out = unseen(state, [batch(["a#1", "b#0"], 1, [False, True]), batch(["z#0"], 0)])
+    assert out["delivered"] == {"1": ["a#0", "b#0"], "2": ["c#0"]} and out["batches"] == {"1": 1, "2": 1}
+    assert state["delivered"]["1"] == ["a#0", "a#1", "b#0"]  # the state given is not changed
+    fanin = {"version": 1, "consumer": "c", "completed_epoch": -1, "delivered": {"0": ["a#0", "b#0"]},
+             "shard_batches": {"0/2": {"0": 1}, "1/2": {"0": 1}}, "shard_of": {"tcp://h:1": "0/2", "tcp://h:2": "1/2"}}
+    out = unseen(fanin, [batch(["b#0"], 0, endpoint="tcp://h:2")])
+    assert out["delivered"] == {"0": ["a#0"]} and out["shard_batches"] == {"0/2": {"0": 1}, "1/2": {"0": 0}}

@@ -30,6 +30,27 @@ def test_lightning_ddp_with_the_dataset_built_before_fit(tmp_path):
     assert sorted(seen) == expected  # every sample once over both ranks, padding aside
 
 
+def test_a_stream_and_its_loader_are_truthy_though_they_have_no_length():
+    """len() refuses (loaders that index a dataset, DeepSpeed's training_data=, must not take a
+    stream), but ``if ds:`` and ``if loader:`` are true for the dataset and StreamLoader, as for any
+    dataset a loop holds. torch's own DataLoader asks the dataset's len() for its truth: the error
+    says how to test it instead."""
+    import pytest
+    import torch
+
+    from v2v_client import StreamLoader, V2VStreamDataset
+
+    ds = V2VStreamDataset("tcp://127.0.0.1:9")  # never iterated: no connection is made
+    loader = StreamLoader(ds, num_workers=1)
+    with pytest.raises(TypeError, match="stream without a length"):
+        len(ds)
+    with pytest.raises(TypeError, match="stream without a length"):
+        len(loader)
+    assert bool(ds) and bool(loader)
+    with pytest.raises(TypeError, match="test it with `is not None`"):
+        bool(torch.utils.data.DataLoader(ds, batch_size=None))
+
+
 def test_dist_position_reads_the_process_group_then_the_environment(monkeypatch):
     import pytest
     import torch.distributed as dist

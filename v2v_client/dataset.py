@@ -28,7 +28,7 @@ from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_CREDITS, OUTPUTS, check_outpu
 from .connection import StreamError, StreamTimeout, load_curve_keys
 from .endpoint import EndpointStream, padding_copy
 from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
-from .launchers import adapt, check_whole, rank_part
+from .launchers import ReadAhead, adapt, check_whole, rank_part
 from .metrics import TrainerMetrics
 from .options import StreamOptions
 from .tensors import batch_to_torch
@@ -39,20 +39,20 @@ log = logging.getLogger("v2v.client")
 
 #: why ``len()`` of the dataset fails: loaders that index or sample a dataset cannot read a stream
 NO_LENGTH = ("V2VStreamDataset is a stream without a length: hand loaders that index or sample a dataset "
-             "(DeepSpeed's training_data=) DataLoader(ds, batch_size=None) instead")
+             "(DeepSpeed's training_data=) DataLoader(ds, batch_size=None) instead; a DataLoader over it has no "
+             "length either (test it with `is not None`, not `if loader:`)")
 
 
 class V2VStreamDataset(torch.utils.data.IterableDataset):
     """Batches of V2V training data streamed from a ``v2v-serve`` endpoint.
 
     Args:
-        endpoint: ZeroMQ endpoint of the server, e.g. ``tcp://127.0.0.1:5555``; or several
-            servers (shards, ``v2v-serve --shard I/N``): a list, a comma-separated string, or
-            a ``tcp://NAME:PORT`` whose name resolves to several addresses (a Kubernetes
-            headless Service). Then one connection per server is read and the batches are
-            merged (``v2v_client.fanin``): ``credits`` is split between the servers, each
-            reconnects on its own, the stream ends when every server ended it and
-            ``state_dict()`` covers them all. ``rank``/``world_size`` apply to each server.
+        endpoint: ZeroMQ endpoint of the server, e.g. ``tcp://127.0.0.1:5555``; or several servers (shards,
+            ``v2v-serve --shard I/N``): a list, a comma-separated string, or a ``tcp://NAME:PORT`` whose name
+            resolves to several addresses (a Kubernetes headless Service). Then one connection per server is
+            read and the batches are merged (``v2v_client.fanin``): ``credits`` is split between the servers,
+            each reconnects on its own, the stream ends when every server ended it and ``state_dict()`` covers
+            them all. ``rank``/``world_size`` apply to each server.
         outputs: which of ``OUTPUTS`` to receive (default ``DEFAULT_OUTPUTS``: ``"voxels"``,
             ``"frames"``, ``"flow"``; ``"polarity_counts"`` only when named; dtypes and shapes in
             ``v2v_wire.outputs``); the server's workers compute the union of what its connected
@@ -60,11 +60,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         credits: batches the server may have in flight to this iterator (prefetch depth);
             the server refuses more than its ``max_credits`` setting (default 64,
             ``DeliveryPolicy.max_credits``) with a clear error.
-        timeout_s: seconds without any message from the server (batches or heartbeats)
-            before iteration raises ``StreamTimeout``; also bounds the wait for the first
-            answer, so an absent server gives a clear error, never a hang. A heartbeating
-            server that has nothing to send yet (a hung worker, ranks still joining) is
-            waited for.
+        timeout_s: seconds without any message from the server (batches or heartbeats) before iteration raises
+            ``StreamTimeout``; also bounds the wait for the first answer, so an absent server gives a clear
+            error, never a hang. A heartbeating server that has nothing to send yet (a hung worker, ranks still
+            joining) is waited for.
         heartbeat_s: seconds between heartbeats to the server.
         raw: keep wire dtypes (int8/int16 voxels, uint8 frames, float16 flow) for
             conversion on the GPU.
@@ -73,37 +72,32 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             instead of raising.
         curve_keys: ``(client_secret_file, server_public_file)`` from ``v2v-keygen`` to talk
             to a server that requires CurveZMQ.
-        rank, world_size: DDP position; what is not given is resolved each time iteration
-            starts (:func:`dist_position`: ``torch.distributed`` when initialised, else the
-            ``RANK`` / ``WORLD_SIZE`` that torchrun and Lightning set, else 0 and 1), so a
-            dataset built before the process group exists still joins the group. With
-            ``world_size > 1`` the ranks form one group
-            on the server (``group``, default ``"default"``; give each DDP job on one server
-            its own): nothing is sent until every rank said hello (or the server's client
-            timeout passed), and every rank yields the same number of batches per epoch —
-            a rank that got fewer repeats its last batch with every sample flagged in
-            ``padding`` (see below). Use ``num_workers=0`` with DDP.
+        rank, world_size: DDP position; what is not given is resolved each time iteration starts
+            (:func:`dist_position`: ``torch.distributed`` when initialised, else the ``RANK`` / ``WORLD_SIZE``
+            that torchrun and Lightning set, else 0 and 1), so a dataset built before the process group exists
+            still joins the group. With ``world_size > 1`` the ranks form one group on the server (``group``,
+            default ``"default"``; give each DDP job on one server its own): nothing is sent until every rank
+            said hello (or the server's client timeout passed), and every rank yields the same number of batches
+            per epoch — a rank that got fewer repeats its last batch with every sample flagged in ``padding``
+            (see below). Use ``num_workers=0`` with DDP.
         group: name of the DDP group (see ``rank``).
-        shm: same-host hand-off. ``"auto"`` (default): for an ``ipc://`` endpoint, ask the
-            server to leave each batch in its shared-memory batch file (``/dev/shm``) and send
-            only a reference; the arrays are then copied out of the file once (no socket copy
-            on either side; ``v2v_client.handoff``). The server agrees only when bound to
-            ``ipc://``; anything else still arrives as socket frames, and the batches are the
-            same either way. ``True`` asks for any endpoint, ``False`` never.
-        compact_flow: a tracked flow option (the server's ``flow_preset``, default
-            ``tracked``) sends each sample's flow as its grid of tracked points, 2 x n x n
-            values per voxel grid (n = 8: 20 KB per sample against 2.6 MB dense), and this
-            client makes it dense (``flow`` below, with the server's own bilinear weights;
-            about one float16-to-float32 conversion pass of CPU). With ``compact_flow=True`` the
-            batch keeps ``flow_grid`` float32 (B, L, 2, n, n) instead of ``flow``, to expand
-            on the GPU with ``v2v_client.expand_flow_grid(grid.to(device), (H, W))``; servers
-            with another flow option still send (and this client yields) dense ``flow``.
-        compression: how arrays that travel over the socket are compressed, per connection:
-            ``"none"``, ``"lz4"`` or ``"zstd"`` (``v2v_wire.codecs``; the server's workers
-            compress, this client's I/O thread decompresses, overlapped with training).
-            ``"auto"`` (default): none for ``ipc://`` and loopback ``tcp://``, ``"zstd"``
-            to other hosts (when ``zstandard`` is installed here and on the server; docs/wire.md
-            measures the trade). The batches are the same either way.
+        shm: same-host hand-off. ``"auto"`` (default): for an ``ipc://`` endpoint, ask the server to leave each
+            batch in its shared-memory batch file (``/dev/shm``) and send only a reference; the arrays are then
+            copied out of the file once (no socket copy on either side; ``v2v_client.handoff``). The server
+            agrees only when bound to ``ipc://``; anything else still arrives as socket frames, and the batches
+            are the same either way. ``True`` asks for any endpoint, ``False`` never.
+        compact_flow: a tracked flow option (the server's ``flow_preset``, default ``tracked``) sends each
+            sample's flow as its grid of tracked points, 2 x n x n values per voxel grid (n = 8: 20 KB per
+            sample against 2.6 MB dense), and this client makes it dense (``flow`` below, with the server's own
+            bilinear weights; about one float16-to-float32 conversion pass of CPU). With ``compact_flow=True``
+            the batch keeps ``flow_grid`` float32 (B, L, 2, n, n) instead of ``flow``, to expand on the GPU with
+            ``v2v_client.expand_flow_grid(grid.to(device), (H, W))``; servers with another flow option still
+            send (and this client yields) dense ``flow``.
+        compression: how arrays that travel over the socket are compressed, per connection: ``"none"``,
+            ``"lz4"`` or ``"zstd"`` (``v2v_wire.codecs``; the server's workers compress, this client's I/O
+            thread decompresses, overlapped with training). ``"auto"`` (default): none for ``ipc://`` and
+            loopback ``tcp://``, ``"zstd"`` to other hosts (when ``zstandard`` is installed here and on the
+            server; docs/wire.md measures the trade). The batches are the same either way.
 
     Yields dicts, one per batch of B samples:
         ``voxels`` float32 (B, L, num_bins, H, W), signed event counts per bin;
@@ -158,7 +152,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._fanin: Optional[FanInStream] = None
         self._meter = TrainerMetrics()
         self._link = None  # a StreamLoader's workers' receipt pipes and records (read_by, loader.py)
-        self.held_state: Optional[dict] = None  # state_dict() while accelerate's dispatcher hands out a group
+        self.read_ahead = ReadAhead()  # what accelerate's loaders, reading ahead of the loop, make state_dict() say
         if not isinstance(endpoint, str) or "," in endpoint:
             endpoints = split_endpoints(endpoint)
             if len(endpoints) == 1:
@@ -239,6 +233,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     def __len__(self) -> int:
         raise TypeError(NO_LENGTH)
 
+    def __bool__(self) -> bool:
+        """True whatever ``len`` says (``if self.ds:`` would ask ``__len__``, which refuses)."""
+        return True
+
     def set_epoch(self, epoch: int) -> None:
         """Called before each pass by accelerate; refuses a wrapper keeping part (``launchers.check_whole``)."""
         check_whole(self)
@@ -272,7 +270,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 raise RuntimeError("V2VStreamDataset over several servers is read with num_workers=0 (the fan-in "
                                    "reads every server in its own thread)")
             self._stream.attach_loader(worker.id, self._link.receipts[worker.id], self._link.records.get(worker.id))
-        inner = iter(self._fanin) if self._fanin is not None else iter(self._stream)
+        inner = self.read_ahead.replay(iter(self._fanin) if self._fanin is not None else iter(self._stream))
         return adapt(self, self._meter.wrap(inner, self.endpoint if isinstance(self.endpoint, str) else ""))
 
     # ------------------------------------------------------------------ state
@@ -280,7 +278,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         """Where this consumer stands: epochs the server declared complete, the sample ids
         yielded so far in epochs still open, batches yielded per open epoch, and the consumer
         id the server knows it by. Plain, JSON/torch.save-safe data. With several servers: the
-        epoch all of them completed and the ids yielded in later epochs.
+        epoch all of them completed and the ids yielded in later epochs. Under accelerate's
+        loaders, as ``launchers.ReadAhead`` says.
 
         Raises:
             RuntimeError: the dataset is read by a ``StreamLoader``'s workers (their records are
@@ -289,7 +288,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._link is not None:
             raise RuntimeError("this V2VStreamDataset is read by StreamLoader workers: checkpoint the loader "
                                "(loader.state_dict()), which holds what each worker's training loop received")
-        return self.held_state if self.held_state is not None else (self._fanin or self._stream).state_dict()
+        return self.read_ahead.state((self._fanin or self._stream).state_dict)
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()`` output; the next iteration resumes the epoch without
@@ -301,6 +300,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         """
         state = rank_part(state, dist_position)  # one rank's part of what launchers' save hook gathered
         read_state(state)
+        self.read_ahead.clear()  # the state says what the loop received
         if self._stream is not None:
             self._stream.load_state_dict(state)
         if self._fanin is not None:

@@ -8,10 +8,11 @@
   slices are equal row counts (``split_batches=True`` needs a loader batch size: accelerate refuses
   ``batch_size=None`` itself). So process 0 reads the
   whole stream as its one consumer (world size 1) and hands on :class:`DispatchedBatch` es:
-  groups of N batches padded to one row count (padding rows flagged), a stream that ends inside a
-  group completed with padding batches, the ids, params, epoch and batch id of each row packed in
-  a ``sample_meta`` uint8 tensor that every rank's slice decodes. Each rank's slice is then
-  exactly one of the stream's batches.
+  groups of N batches of one epoch padded to one row count (padding rows flagged), a group that
+  the end of its epoch or of the stream cuts short completed with padding batches, the ids,
+  params, epoch and batch id of each row packed in a ``sample_meta`` uint8 tensor that every
+  rank's slice decodes. Each rank's slice is then exactly one of the stream's batches, and each
+  step's slices share one epoch.
 * **per rank** (``dispatch_batches=False``): accelerate wraps the dataset in ``IterableDatasetShard``,
   which needs a batch size and keeps 1/N of what it reads: with each rank reading its own share of
   the stream that would drop samples, so :func:`check_whole` (the dataset's ``set_epoch``, which
@@ -26,10 +27,14 @@ each rank's snapshot (``{"v2v_ranks": [state of rank 0, ...]}``): every process 
 and each rank loads its own part (:func:`rank_part`). A stateful loader under more than one process
 not made by :func:`prepare_loader` is refused at its first batch, as is ``skip_first_batches``
 (it would throw away batches the server counts as delivered).
+
+Reading ahead: accelerate's loaders take a batch (per rank) or a group (dispatch) before the loop
+has received the one before. When the loop leaves or the stream fails, those batches go back to
+the dataset, which yields them first next time (:class:`ReadAhead`).
 """
 from __future__ import annotations
 
-import itertools
+import copy
 import sys
 from typing import Callable, Iterator, List, Optional, Tuple
 
@@ -38,7 +43,8 @@ import torch
 
 from .endpoint import padding_copy
 
-__all__ = ["DispatchedBatch", "prepare_loader", "check_whole", "adapt", "rank_part", "pack_rows", "unpack_rows"]
+__all__ = ["DispatchedBatch", "ReadAhead", "prepare_loader", "check_whole", "adapt", "rank_part", "pack_rows",
+           "unpack_rows", "unseen"]
 
 #: the key of a dispatched batch's packed rows: uint8 (rows, width), one msgpack
 #: ``[sample_id, params, epoch, batch_id]`` per row, zero-filled
@@ -115,28 +121,150 @@ def dispatched(batch: dict, packed: List[bytes], rows: int, width: int) -> Dispa
     return out
 
 
-def _dispatch(ds, batches: Iterator[dict], group: int) -> Iterator[DispatchedBatch]:
-    """Process 0's stream for accelerate's dispatcher: groups of ``group`` batches (the last
-    completed with padding batches), each padded to the group's largest row count.
-    While a group is being handed out, ``ds.held_state`` is the state before it: accelerate snapshots
-    the loader state before each batch it takes, and its training step holds whole groups only."""
+def unseen(state: dict, batches: List[dict]) -> dict:
+    """``state`` (a ``V2VStreamDataset.state_dict()``, one server's or a fan-in's) without
+    ``batches``, batches the dataset yielded that the training loop has not received: their
+    samples (``padding`` False) leave their epoch's delivered ids and each batch its epoch's
+    batch count (a resume from it has them sent again: the server takes a hello's state as the
+    truth). An epoch the state calls complete is left as it is."""
+    state = copy.deepcopy(state)
+    delivered = state.get("delivered", {})
+    for b in batches:
+        epoch = str(int(b["epoch"]))
+        if epoch not in delivered:
+            continue  # an epoch the state calls complete: nothing of it is kept to remove
+        ids = {sid for sid, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad}
+        delivered[epoch] = [sid for sid in delivered[epoch] if sid not in ids]
+        if "shard_batches" in state:  # a fan-in's: batches per shard of the server it came from
+            counts = state["shard_batches"].get(state.get("shard_of", {}).get(b.get("endpoint"), b.get("endpoint")), {})
+        else:
+            counts = state.get("batches", {})
+        if counts.get(epoch, 0) > 0:
+            counts[epoch] -= 1
+    return state
+
+
+class ReadAhead:
+    """What accelerate's loaders, which read ahead of the training loop, make a
+    ``V2VStreamDataset``'s ``state_dict()`` say (:meth:`state`): ``held_state``, the state the
+    dispatcher's snapshots must see while it hands out a group (:func:`_dispatch`), and the
+    batches held over, yielded but never received by a loop that left or saw the stream fail:
+    the dataset's next iteration yields those first (:meth:`replay`), before anything from the
+    server, and its state leaves them out until then."""
+
+    def __init__(self):
+        self.held_state: Optional[dict] = None
+        self.batches: List[dict] = []  # held over, oldest first
+        self.before: Optional[dict] = None  # the dataset's state without them, when known
+
+    def hold_over(self, batches: List[dict], before: Optional[dict] = None) -> None:
+        """Hold ``batches`` over (they were pulled after those held already, if any)."""
+        self.batches = list(batches) + self.batches
+        self.before = before
+
+    def replay(self, inner: Iterator[dict]) -> Iterator[dict]:
+        """The batches held over, then ``inner``'s."""
+        while self.batches:
+            self.before = None
+            yield self.batches.pop(0)
+        yield from inner
+
+    def state(self, live: Callable[[], dict]) -> dict:
+        """The dataset's state: ``held_state`` when set, else ``live()`` (the stream's, which
+        counts the batches held over) without the batches held over."""
+        if self.held_state is not None:
+            return self.held_state
+        if not self.batches:
+            return live()
+        return self.before if self.before is not None else unseen(live(), self.batches)
+
+    def clear(self) -> None:
+        """Forget the batches held over (a loaded state says what the loop received)."""
+        self.batches, self.before = [], None
+
+
+def _hold_over(ds, batches: Iterator[dict], unreceived: List[dict], before: Optional[dict] = None) -> None:
+    """The loop left (or the stream failed) without receiving ``unreceived``, batches of the
+    stream the loader took ahead of it: close the stream, and hold them over for the dataset's
+    next iteration (:class:`ReadAhead`; ``before``: its state without them, when known)."""
+    if hasattr(batches, "close"):
+        batches.close()  # the connection says goodbye now, not when the iterator is collected
+    if unreceived:
+        ds.read_ahead.hold_over(unreceived, before)
+
+
+def _read_ahead(ds, batches: Iterator[dict]) -> Iterator[dict]:
+    """``batches`` for an accelerate loader that reads one batch ahead of its loop
+    (``DataLoaderShard``, a one-process ``DataLoaderDispatcher``): each batch is received by the
+    loop once the loader asks for the next one (or the stream ends). When the loop leaves (the
+    loader drops this iterator) or the stream fails, the batch yielded last never reached the
+    loop: the dataset yields it first when it is iterated again (:class:`ReadAhead`), and its
+    state leaves it out meanwhile. Accelerate's snapshots are taken before each pull: they hold every
+    batch up to the one the loop is about to receive, so a resume from one gets it again."""
+    pending: Optional[dict] = None  # yielded, not yet received by the loop
     try:
         while True:
-            before = ds.state_dict()
-            pulled = list(itertools.islice(batches, group))
-            if not pulled:
+            try:
+                b = next(batches)
+            except StopIteration:
+                pending = None  # the loader hands its last batch on now
                 return
-            pulled += [padding_copy(pulled[-1], pulled[-1]["epoch"]) for _ in range(group - len(pulled))]
-            packed = [pack_rows(b) for b in pulled]
+            pending = b
+            yield b
+    finally:
+        _hold_over(ds, batches, [pending] if pending is not None else [])
+
+
+def _dispatch(ds, batches: Iterator[dict], group: int) -> Iterator[DispatchedBatch]:
+    """Process 0's stream for accelerate's dispatcher: groups of ``group`` batches of one epoch
+    (a group that the end of its epoch or of the stream cuts short is completed with padding
+    batches of that epoch, so every rank yields the same number of batches per epoch and each
+    step's slices share one epoch), each padded to the group's largest row count.
+
+    State: accelerate snapshots the loader state before each batch it takes, fetches a whole
+    group before it hands the previous one to the loop, and its training step holds whole
+    groups only. So while a group is handed out, ``ds.read_ahead.held_state`` is the state before it, and
+    after its last batch the state after it (without the next epoch's first batch, pulled to
+    learn that the epoch ended). When the loop leaves, the group fetched last (and that first
+    batch) never reached it: the dataset yields them first when it is iterated again
+    (:func:`_hold_over`)."""
+    stash: Optional[dict] = None  # the next group's first batch (another epoch's)
+    after: Optional[dict] = None  # the state after the group handed out last, with a stash
+    unreceived: List[dict] = []  # stream batches pulled that the loop has not received, oldest first
+    back_to: Optional[dict] = None  # the state without them
+    try:
+        while True:
+            ds.read_ahead.held_state = None
+            before = after if stash is not None else ds.state_dict()
+            if not unreceived:
+                back_to = before
+            pulled, stash, after = ([stash] if stash is not None else []), None, None
+            for b in batches:
+                unreceived.append(b)
+                if pulled and b["epoch"] != pulled[0]["epoch"]:
+                    stash = b
+                    after = unseen(ds.state_dict(), [stash])
+                    break
+                pulled.append(b)
+                if len(pulled) == group:
+                    break
+            if not pulled:
+                unreceived = []  # the stream ended: the loader hands its last group on now
+                return
+            epoch = pulled[0]["epoch"]
+            members = pulled + [padding_copy(pulled[-1], epoch) for _ in range(group - len(pulled))]
+            packed = [pack_rows(b) for b in members]
             rows = max(len(p) for p in packed)
             width = -(-max(len(r) for p in packed for r in p) // _WIDTH_STEP) * _WIDTH_STEP
-            for i, (b, p) in enumerate(zip(pulled, packed)):
-                ds.held_state = before if i < len(pulled) - 1 else None
+            for i, (b, p) in enumerate(zip(members, packed)):
+                last = i == len(members) - 1
+                ds.read_ahead.held_state = after if last else before
+                if last:  # the loader hands the previous group on once it holds this one
+                    unreceived, back_to = pulled + ([stash] if stash is not None else []), before
                 yield dispatched(b, p, rows, width)
     finally:
-        ds.held_state = None
-        if hasattr(batches, "close"):
-            batches.close()  # the connection says goodbye now, not when the iterator is collected
+        ds.read_ahead.held_state = None
+        _hold_over(ds, batches, unreceived, back_to)
 
 
 def _loader_of(ds):
@@ -170,8 +298,9 @@ def check_whole(ds) -> None:
 def adapt(ds, batches: Iterator[dict]) -> Iterator[dict]:
     """``ds``'s batches as the loader reading it needs them, decided at the first batch (when
     accelerate has registered its loader): accelerate's dispatcher over several processes gets
-    :func:`_dispatch` with ``ds`` read as the only consumer (``ds.read_alone()``); anything else
-    gets the batches as they are.
+    :func:`_dispatch` with ``ds`` read as the only consumer (``ds.read_alone()``); accelerate's
+    other loaders, which read one batch ahead, :func:`_read_ahead`; anything else gets the
+    batches as they are.
 
     Raises:
         RuntimeError: (at the first batch) ``skip_first_batches``, or a stateful accelerate loader
@@ -193,7 +322,9 @@ def adapt(ds, batches: Iterator[dict]) -> Iterator[dict]:
         if processes > 1:
             ds.read_alone()
             yield from _dispatch(ds, batches, processes)
-            return
+        else:
+            yield from _read_ahead(ds, batches)
+        return
     yield from batches
 
 
@@ -246,12 +377,24 @@ def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
     rank's dataset state in the saved loader state. The result is registered with the accelerator
     (``save_state`` / ``load_state`` cover it; ``accelerator.prepare`` passes it through).
 
+    A loader this function made for ``accelerator`` is returned as it is (preparing it again
+    would register a second loader, whose never-read state ``save_state`` writes first).
+
     Raises:
         TypeError: the loader does not read a V2VStreamDataset.
-        ValueError: the loader batches the stream's batches again (``batch_size`` not None).
+        ValueError: the loader batches the stream's batches again (``batch_size`` not None), or
+            accelerate prepared it already (``accelerator.prepare``, or ``prepare_loader`` for
+            another accelerator).
     """
     from accelerate.data_loader import prepare_data_loader
 
+    made_for = getattr(loader, "_v2v_prepared_by", None)
+    if made_for is accelerator:
+        return loader
+    if made_for is not None or getattr(loader, "_is_accelerate_prepared", False):
+        raise ValueError("prepare_loader takes the DataLoader itself, not one accelerate prepared already: "
+                         "call prepare_loader(accelerator, DataLoader(ds, batch_size=None)) once and use what it "
+                         "returns")
     ds = loader.dataset
     if not callable(getattr(ds, "read_alone", None)):
         raise TypeError(f"prepare_loader reads a V2VStreamDataset; this loader reads {type(ds).__name__}")
@@ -269,4 +412,5 @@ def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
     if accelerator.use_stateful_dataloader:
         accelerator.register_save_state_pre_hook(_gather_states(loader))
         ds.gathers_state = True
+    loader._v2v_prepared_by = accelerator
     return loader

@@ -112,6 +112,11 @@ class StreamLoader(torch.utils.data.DataLoader):
         self._records: Dict[int, dict] = {}
         self._link: Optional[LoaderLink] = None
 
+    def __bool__(self) -> bool:
+        """True: a loader of a stream is one whatever ``len`` says (DataLoader's ``__len__`` asks
+        the dataset's, which refuses)."""
+        return True
+
     # ------------------------------------------------------------------ iteration
     def __iter__(self):
         if self.num_workers == 0:
