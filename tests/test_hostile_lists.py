@@ -68,7 +68,7 @@ def test_one_expression_may_hold_a_subquery_over_the_table(corpus):
 # -------------------------------------------------------------------------------- item 4: Ctrl-C
 def test_ctrl_c_during_a_slow_filter_stops_at_once_with_one_line(corpus):
     """A filter DuckDB would evaluate for hours: SIGINT to the real ``v2v-serve --check`` ends
-    it within seconds, with one line and exit code 130."""
+    it within seconds, with one line and exit code 130 (tests/test_interrupts.py: every command, every moment)."""
     table = corpus / "table.csv"
     slow = "frame > 0 AND (SELECT count(*) FROM range(1000000000000) WHERE hash(range) % 7 = 1) > 0"
     proc = subprocess.Popen([sys.executable, "-m", "v2v_server.cli", "--videos", str(corpus), *CHECK,
@@ -90,7 +90,7 @@ def test_ctrl_c_during_a_slow_filter_stops_at_once_with_one_line(corpus):
         proc.kill()
         proc.wait()
     assert proc.returncode == 130, err
-    assert err == f"v2v-serve: interrupted while listing {table}\n" and out == ""
+    assert err == f"v2v-serve: interrupted (Ctrl-C); stopped while listing {table}\n" and out == ""
     assert stopped_s < 30  # the query runs for hours unless interrupted
 
 

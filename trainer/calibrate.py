@@ -27,6 +27,8 @@ from typing import List, Optional
 
 import numpy as np
 
+from v2v_wire.commands import input_overwritten, writable_problem, write_whole
+
 from trainer.calibrate_fit import (CORPUS_STATS, FRAME_STATS, CalibrationError, FitResult, corpus_windows,
                                    fit_corpus, fit_frames, frame_target, recording_target)
 
@@ -90,23 +92,25 @@ def fitted_yaml(base: dict, res: FitResult, recording: str, seed: int) -> str:
     return "\n".join(head) + "\n" + yaml.safe_dump(data, sort_keys=False)
 
 
-def check_out(out: Path, recipe: Optional[str]) -> None:
-    """Refuse an ``--out`` that cannot be written, before any work: a folder, the base recipe
-    itself, or a parent that is not a folder and cannot be made.
+def check_out(out: Path, recording: str, recipe: Optional[str], videos: str, cfg) -> None:
+    """Refuse an ``--out`` before any work: one that is an input (the recording, or a file of a
+    recording folder; the base recipe; the corpus, its video list or one of its videos) or that
+    cannot be written (a folder, a read-only file, a folder that cannot be made or written).
 
     Raises:
         CalibrationError: naming ``--out`` and why.
     """
+    from v2v_server.sources.shards import ARCHIVES
+
     if out.is_dir():
         raise CalibrationError(f"--out {out}: is a folder; give the fitted recipe's file name")
-    if recipe is not None and out.exists() and out.resolve() == Path(recipe).resolve():
-        raise CalibrationError(f"--out {out}: is the base recipe (--recipe); write the fitted one beside it")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise CalibrationError(f"--out {out}: its folder cannot be made ({e.strerror or e})") from None
-    if not out.parent.is_dir():
-        raise CalibrationError(f"--out {out}: {out.parent} is not a folder")
+    why = input_overwritten(out, [("the recording (--recording)", recording), ("the base recipe (--recipe)", recipe),
+                                  ("the corpus (--videos)", videos), ("the corpus's video list", cfg.video_list)],
+                            [("inside the recording (--recording)", recording, None),
+                             ("a video of the corpus (--videos)", videos, tuple(cfg.video_extensions) + ARCHIVES)])
+    why = why or writable_problem(out)
+    if why:
+        raise CalibrationError(f"--out {out}: {why}")
 
 
 def _has_frames(path: str) -> bool:
@@ -169,10 +173,10 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     out = Path(a.out)
     try:
-        check_out(out, a.recipe)
         base = load_yaml(a.recipe) if a.recipe else {}
         cfg = load_config(a.recipe)
         a.videos = a.videos or cfg.videos or str(SAMPLE_VIDEOS)
+        check_out(out, a.recording, a.recipe, a.videos, cfg)
     except (OSError, ValueError) as e:  # CalibrationError is a ValueError
         print(f"v2v-calibrate: {'' if isinstance(e, CalibrationError) else f'--recipe {a.recipe}: '}{e}",
               file=sys.stderr)
@@ -182,16 +186,15 @@ def main(argv: Optional[List[str]] = None) -> int:
             res = run_fit(a, cfg, bar)
         text = fitted_yaml(base, res, a.recording, a.seed)
         load_config(None, {k: v for k, v in text_mapping(text).items()})  # the fitted recipe validates
-        out.write_text(text)
+        write_whole(out, text)
     except CalibrationError as e:
         print(f"v2v-calibrate: {e}", file=sys.stderr)
         return 2
     except OSError as e:
         print(f"v2v-calibrate: --out {out}: cannot be written ({e.strerror or e})", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("v2v-calibrate: interrupted; nothing written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:  # v2v_wire.commands says it, with this
+        raise type(e)(f"nothing written to {out}") from None
     print(table(res))
     for n in res.notes:
         print(n)
@@ -208,4 +211,6 @@ def text_mapping(text: str) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from v2v_wire.commands import main_of_module
+
+    sys.exit(main_of_module("v2v-calibrate", main))
