@@ -931,7 +931,7 @@ def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: i
                     finished = False
                     break
         ended = srv.log.count("all 1 epoch(s) delivered")
-        rc = srv.stop()  # SIGINT: a clean stop, exit 0
+        rc = srv.stop()  # SIGINT: a clean stop, exit 130 (128 + SIGINT), as for every command
     kind = "persistent" if persistent else "non-persistent"
     return row(f"StreamLoader, 2 {kind} workers, break after {take} batches and iterate again", expected,
                _ids(log), None, f"{rounds} iterations; stream ended {ended}x; server exit {rc}", rounds=rounds,

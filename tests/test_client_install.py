@@ -160,6 +160,10 @@ def test_client_extra_installs_no_server_packages_and_reads_a_stream(client_venv
     with ServeProcess(args) as srv:
         # the venv's python, from a folder outside the checkout: it imports the installed v2v only
         out = _run([client_venv, "-c", READER, srv.endpoint], 600, cwd=client_venv.parent.parent).stdout
+        # the console script pip wrote (its entry, v2v_wire.commands, needs nothing of the server's)
+        measured = _run([client_venv.parent / "v2v-loadtest", "--connect", srv.endpoint, "--batches", "1", "--warmup",
+                         "0", "--outputs", "voxels"], 600, cwd=client_venv.parent.parent).stdout
+    assert measured.startswith("1 batches"), measured
     got = json.loads(out.strip().splitlines()[-1])
     assert got["importable"] == {"numba": False, "av": False, "cv2": False, "torch": True, "zmq": True}
     assert got["loaded"] == [] and got["have_numba"] is False

@@ -14,9 +14,15 @@ from v2v_server.service.local import local_server
 def test_demo_serves_bundled_clips_and_stops(tmp_path, capsys):
     before = {t.name for t in threading.enumerate()}
     png = tmp_path / "preview.png"
-    assert demo.main(["--workers", "1", "--batch-size", "2", "--batches", "2", "--preview", str(png)]) == 0
+    assert demo.main(["--workers", "1", "--batch-size", "2", "--batches", "2", "--preview", str(png), "--json"]) == 0
     assert png.stat().st_size > 1000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    printed = capsys.readouterr().out.strip().splitlines()
+    report = json.loads(printed[-1])
+    # the closing lines say what the numbers mean, in words (no bare wait fraction or epoch list)
+    said = "\n".join(printed[-4:-1])
+    assert said.startswith("read 2 batches (3 samples, 3 different) in ") and "samples/s" in said, said
+    assert "the demo trains nothing, so it waited for each batch" in said and "would not wait at all" in said
+    assert f"The batches came from epoch" in said and "an epoch is one pass over every window" in said
     # one epoch of the bundled clips is 3 samples (batches of 2, then 1)
     assert report["batches"] == 2 and report["samples"] == report["unique_samples"] == 3
     # the server thread (and with it its worker pool) is gone once main returns

@@ -17,6 +17,7 @@ import time
 import pytest
 
 from harness.serve import ServeProcess
+from tests.test_object_store import _source, store  # noqa: F401  (store: the session's SeaweedFS S3 server)
 from v2v_server import cli
 from v2v_server.ops.startup import SAMPLE_VIDEOS
 from v2v_server.sources.local import RACY_NS, LocalSource
@@ -68,7 +69,7 @@ def test_one_expression_may_hold_a_subquery_over_the_table(corpus):
 # -------------------------------------------------------------------------------- item 4: Ctrl-C
 def test_ctrl_c_during_a_slow_filter_stops_at_once_with_one_line(corpus):
     """A filter DuckDB would evaluate for hours: SIGINT to the real ``v2v-serve --check`` ends
-    it within seconds, with one line and exit code 130."""
+    it within seconds, with one line and exit code 130 (tests/test_interrupts.py: every command, every moment)."""
     table = corpus / "table.csv"
     slow = "frame > 0 AND (SELECT count(*) FROM range(1000000000000) WHERE hash(range) % 7 = 1) > 0"
     proc = subprocess.Popen([sys.executable, "-m", "v2v_server.cli", "--videos", str(corpus), *CHECK,
@@ -90,7 +91,7 @@ def test_ctrl_c_during_a_slow_filter_stops_at_once_with_one_line(corpus):
         proc.kill()
         proc.wait()
     assert proc.returncode == 130, err
-    assert err == f"v2v-serve: interrupted while listing {table}\n" and out == ""
+    assert err == f"v2v-serve: interrupted (Ctrl-C); stopped while listing {table}\n" and out == ""
     assert stopped_s < 30  # the query runs for hours unless interrupted
 
 
@@ -206,9 +207,82 @@ def test_names_holding_characters_that_mean_something_elsewhere(corpus, capsys):
     for given in (lst, table):
         videos, rejected = LocalSource(corpus, video_list=str(given)).list_videos((".mp4",))
         assert videos == NAMES
-        assert rejected == [("clip#t=x.mp4", f"listed in {given}: clip#t=x.mp4: a time range is #t=start,end")]
+        assert rejected == [("clip#t=x.mp4", f"listed in {given} but missing from {corpus} (a time range is "
+                                             f"written path#t=start,end (seconds such as 12.5, or a clock time "
+                                             f"H:MM:SS.sss), or as a list line `path start end`)")]
     rc, out, err = _check(capsys, corpus, "--video-list", str(table), "--video-list-column", "{video}")
     assert rc == 0 and f"{len(NAMES)} usable video(s) of {len(NAMES)}" in out, out + err
+
+
+# ------------------------------------------- issue 70 item 12: names and headers that look like syntax
+SYNTAX_NAMES = ["clip#t=1,2.mp4", "a.mp4#3.mp4", "x{000..001}.mp4", "g*[a]?.mp4", "t#t=0,4#t=x.mp4"]
+
+
+def test_names_that_look_like_the_services_syntax_are_read_as_plain_names(tmp_path, capsys):
+    """A file whose name holds the segment fragment (``clip#t=1,2.mp4``), a sample id's ``#``,
+    a brace range or glob characters is that file: in a folder (one given by a name with braces
+    too), in a zip part, and named by a list or a table; it is served, never read as a segment of
+    ``clip``. A list's name that holds ``#t=`` but no range and names no file is refused with how
+    a range is written."""
+    import zipfile
+
+    from v2v_server.samples.make import video_samples
+    from v2v_server.samples.recipe import SampleRecipe
+
+    root = tmp_path / "clips{2024}"  # a folder whose own name is a brace pattern's
+    root.mkdir()
+    for name in SYNTAX_NAMES:
+        shutil.copy(SAMPLE_VIDEOS / CLIP, root / name)
+    lst, table = root / "names.txt", root / "names.csv"
+    lst.write_text("\n".join(SYNTAX_NAMES + ["clip#t=1,2.mp4 0 1", "gone#t=5.mp4"]) + "\n")
+    table.write_text("video\n" + "\n".join(f'"{n}"' for n in SYNTAX_NAMES + ["gone#t=5.mp4"]) + "\n")
+    for given, extra in ((lst, ["clip#t=1,2.mp4#t=0,1"]), (table, [])):
+        videos, rejected = LocalSource(root, video_list=str(given)).list_videos((".mp4",))
+        assert videos == SYNTAX_NAMES + extra, videos
+        assert len(rejected) == 1 and rejected[0][0] == "gone#t=5.mp4" and "missing from" in rejected[0][1] \
+            and "a time range is written path#t=start,end" in rejected[0][1], rejected
+    # the zip part after the lists (a list's missing names would be paired with its members)
+    with zipfile.ZipFile(root / "part.zip", "w") as z:
+        z.write(SAMPLE_VIDEOS / CLIP, "clip#t=1,2.mp4")
+    time.sleep(2 * RACY_NS / 1e9)
+    rc, out, err = _check(capsys, root)
+    rows = {line.split()[0]: line for line in out.splitlines()[1:-1]}
+    served = SYNTAX_NAMES + ["part.zip/clip#t=1,2.mp4"]
+    assert rc == 0 and all("1 window(s)" in rows[n] for n in served), out + err
+    assert f"{len(served)} usable video(s) of {len(served)}" in out, out
+    # the worker's pass reads the file whole, under its own name
+    keys = [key for key, _, _ in video_samples(SampleRecipe(sequence_length=4, crop_size=64, max_samples_per_video=1),
+                                               LocalSource(root), "clip#t=1,2.mp4", 0, ("frames",))]
+    assert [(k.video, k.window) for k in keys] == [("clip#t=1,2.mp4", 0)]
+
+
+def test_a_table_column_named_like_a_range_but_holding_dates_is_an_ordinary_column(corpus):
+    """``timestamp``, ``start`` and ``end`` name time ranges (Panda-70M's pairs, a clip's
+    seconds); the same headers over dates or points in time (when a video was fetched, a Unix
+    time) are columns like any other: the rows are whole videos, none refused."""
+    for name, text in (("fetched.csv", "video,timestamp\na.mp4,2023-05-01 10:00:00\nb.mp4,2023-05-02\n"),
+                       ("unix.csv", "video,timestamp\na.mp4,1683000000\nb.mp4,1683000001\n"),
+                       ("dates.csv", "video,start,end\na.mp4,2023-01-01,2023-01-02\nb.mp4,2023-02-01,2023-02-03\n")):
+        (corpus / name).write_text(text)
+        assert read_video_list(str(corpus / name)) == (["a.mp4", "b.mp4"], []), name
+    (corpus / "panda.csv").write_text("video,timestamp\na.mp4,\"[['0:00:01.000', '0:00:04.000']]\"\n")
+    assert read_video_list(str(corpus / "panda.csv")).videos == ["a.mp4#t=1,4"]  # the pairs still are ranges
+
+
+def test_a_split_part_whose_name_holds_glob_characters_is_found_in_a_bucket(tmp_path, store):
+    """A zip part named without a listing (a pattern of one) whose name holds ``[1]``: its
+    pieces are found by their names, not by a glob that reads ``[1]`` as a character class."""
+    parts = tmp_path / "parts"
+    parts.mkdir()
+    whole = tmp_path / "whole.zip"
+    with __import__("zipfile").ZipFile(whole, "w") as z:
+        z.write(SAMPLE_VIDEOS / CLIP, "clip.mp4")
+    data = whole.read_bytes()
+    (parts / "p[1]_partaa").write_bytes(data[:len(data) // 2])
+    (parts / "p[1]_partab").write_bytes(data[len(data) // 2:])
+    store.upload(parts, "s3://corpus/globs/")
+    videos, rejected = _source(store, tmp_path, "s3://corpus/globs/p[1].zip").list_videos((".mp4",))
+    assert videos == ["p[1].zip/clip.mp4"] and rejected == [], rejected
 
 
 # ----------------------------------------------------------------- item 12: a folder of zip parts

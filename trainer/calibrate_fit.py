@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -53,6 +53,11 @@ MIN_RATE = 1e-3
 #: Share of isolated events (``grid_stats.still_rate`` over the signal rate) above which a
 #: recording holds no motion, only noise.
 MAX_ISOLATED = 0.9
+#: Largest share of one polarity (median N+ / (N+ + N-) over the cells, or 1 minus it) a fitted
+#: recording may have: a camera's moving edges fire both polarities (the shared recordings:
+#: 0.44-0.52); one polarity alone is a recording whose polarity field or biases are wrong, and a
+#: fit would drive the other threshold to its bound.
+MAX_POLARITY_SHARE = 0.95
 #: Half-width of a fitted threshold range, relative to its centre (the paper draws each
 #: sample's thresholds from a range; a fit keeps a range, narrowed around the camera's value).
 THRESHOLD_SPREAD = 0.25
@@ -114,7 +119,9 @@ def _minimize(loss: Callable[[np.ndarray], float], x0, steps, bounds, max_evals:
 
 
 def check_cells(path: str, target: Dict[str, Dict[str, float]], n_cells: int, cell_s: float) -> None:
-    """Refuse a recording too short, too quiet or without motion for a fit.
+    """Refuse a recording too short, too quiet, without motion or of one polarity for a fit
+    (both fits: a fit by statistics on its grid cells, a fit from frames on its frame
+    intervals).
 
     Args:
         target: ``grid_stats.summarise`` of its cells; n_cells: how many; cell_s: a cell's seconds.
@@ -133,6 +140,30 @@ def check_cells(path: str, target: Dict[str, Dict[str, float]], n_cells: int, ce
     if iso > MAX_ISOLATED:
         raise CalibrationError(f"recording {path}: no motion: {100 * iso:.0f} % of its events are isolated "
                                f"(noise, no moving edge); a fit needs a scene that moves")
+    on = target["polarity_balance"].get("median", 0.5)
+    if max(on, 1 - on) > MAX_POLARITY_SHARE:
+        raise CalibrationError(f"recording {path}: one polarity: {100 * max(on, 1 - on):.0f} % of its events are "
+                               f"{'ON' if on > 0.5 else 'OFF'} (median over its {n_cells} cells); a camera's moving "
+                               f"edges fire both, so its polarity field or biases are wrong, and a fit would drive the "
+                               f"{'OFF' if on > 0.5 else 'ON'} threshold to its bound")
+
+
+def check_bounds(path: str, params: Dict[str, float], names: Tuple[str, ...]) -> None:
+    """Refuse a fit whose ``names`` (thresholds of ``params``) ended at a bound of
+    :data:`BOUNDS`: the recording's events could not be matched inside the tested range, and the
+    written recipe would say so only by its numbers.
+
+    Raises:
+        CalibrationError: naming the recording, the value and the bound.
+    """
+    lo, hi = BOUNDS["threshold"]
+    for name in names:
+        v = params[name]
+        if v <= lo * 1.001 or v >= hi * 0.999:
+            raise CalibrationError(f"recording {path}: the fit ran into a bound: {name} {v:.4g} at the tested "
+                                   f"{'lower' if v <= lo * 1.001 else 'upper'} limit ({lo:g} - {hi:g}): its events "
+                                   f"cannot be matched (a degenerate recording: too few events of one polarity, "
+                                   f"or events that do not follow its frames)")
 
 
 @dataclass
@@ -198,40 +229,23 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
     """
     import dataclasses
 
-    from v2v_server.ops.startup import start_source
-    from v2v_server.samples.make import video_samples
-    from v2v_server.sources.errors import VideoError
-    from v2v_server.sources.errors import StoreError
-
     r = cfg.recipe
     frames_recipe = dataclasses.replace(r, sequence_length=r.sequence_length * r.num_bins * r.frames_per_bin,
                                         num_bins=1, frames_per_bin=1, outputs=("frames",), nonidealities={},
                                         refine="off")
-    try:
-        start = start_source(cfg, videos)  # the start-up path v2v-serve runs: the same source and caches
-    except (OSError, ValueError, StoreError) as e:
-        raise CalibrationError(f"corpus {videos}: {e}") from None
-    source, caches, names = start.source, start.caches, start.videos
     out = CorpusWindows([], [], [])
     rng = np.random.default_rng(seed)
-    skipped = set()
-    for rel, epoch in ((rel, e) for rel in names for e in range(epochs)):
-        if rel in skipped:
-            continue
-        try:
-            for _key, arrays, meta in video_samples(frames_recipe, source, rel, epoch, ("frames",), caches=caches):
-                shape = arrays["frames"].shape[1:]
-                out.seqs.append(arrays["frames"])
-                out.fps.append(float(meta["video_fps"]))
-                out.draws.append({"pot": rng.random(shape), "hot_u": rng.random(shape),
-                                  "hot_n": rng.standard_normal(shape), "noise_seed": int(rng.integers(2**62)),
-                                  "pixel_seed": int(rng.integers(2**62))})
-                progress(1)
-                if len(out.seqs) >= max_windows:
-                    break
-        except VideoError as e:  # one bad file is skipped, as v2v-serve skips it; its windows before stay
-            skipped.add(rel)
-            log.warning("skipped %s: %s", source.where(rel), e)
+    skipped: set = set()
+    for _epoch, arrays, meta in corpus_samples(cfg, videos, frames_recipe, ("frames",),
+                                               lambda names: ((rel, e) for rel in names for e in range(epochs)),
+                                               skipped):
+        shape = arrays["frames"].shape[1:]
+        out.seqs.append(arrays["frames"])
+        out.fps.append(float(meta["video_fps"]))
+        out.draws.append({"pot": rng.random(shape), "hot_u": rng.random(shape),
+                          "hot_n": rng.standard_normal(shape), "noise_seed": int(rng.integers(2**62)),
+                          "pixel_seed": int(rng.integers(2**62))})
+        progress(1)
         if len(out.seqs) >= max_windows:
             break
     if not out.seqs:
@@ -245,6 +259,36 @@ def corpus_windows(cfg, videos: str, max_windows: int, seed: int, progress=lambd
     for d, u in zip(out.draws, qmc.LatinHypercube(d=6, seed=rng).random(len(out.draws))):
         d["u"] = u
     return out
+
+
+def corpus_samples(cfg, videos: str, recipe, outputs, passes, skipped: set):
+    """``(epoch, arrays, meta)`` of each sample ``recipe`` (a ``SampleRecipe``) makes from the corpus at
+    ``videos`` (opened as ``v2v-serve`` opens it, with ``cfg``'s source and caches), for each
+    ``(video, epoch)`` that ``passes(names)`` gives, in its order (the worker's sample pass,
+    ``samples.make.video_samples``). A file that cannot be read is skipped with one line naming
+    it, as ``v2v-serve`` skips it, and added to ``skipped`` (its samples before stay).
+
+    Raises:
+        CalibrationError: the corpus cannot be listed.
+    """
+    from v2v_server.ops.startup import start_source
+    from v2v_server.samples.make import video_samples
+    from v2v_server.sources.errors import StoreError, VideoError
+
+    try:
+        start = start_source(cfg, videos)  # the start-up path v2v-serve runs: the same source and caches
+    except (OSError, ValueError, StoreError) as e:
+        raise CalibrationError(f"corpus {videos}: {e}") from None
+    source, caches = start.source, start.caches
+    for rel, epoch in passes(start.videos):
+        if rel in skipped:
+            continue
+        try:
+            for _key, arrays, meta in video_samples(recipe, source, rel, epoch, outputs, caches=caches):
+                yield epoch, arrays, meta
+        except VideoError as e:  # one bad file is skipped, as v2v-serve skips it; its windows before stay
+            skipped.add(rel)
+            log.warning("skipped %s: %s", source.where(rel), e)
 
 
 def simulate_windows(win: CorpusWindows, ranges, nonideal, num_bins: int, frames_per_bin: int) -> List[dict]:
@@ -308,12 +352,16 @@ def medians(cells: List[dict], keys=CORPUS_STATS) -> Dict[str, float]:
 
 
 def fit_corpus(win: CorpusWindows, target: RecordingTarget, recipe, max_evals: int = 80,
-               progress=lambda n: None) -> FitResult:
+               progress=lambda n: None, sensor: Optional[Dict[str, float]] = None) -> FitResult:
     """Fit ``recipe``'s (a ``SampleRecipe``) sensor ranges so that ``win`` simulated with them
     matches ``target`` on the grid (module docstring): the loss is
     ``100 e_rate^2 + e_active^2 + 0.5 e_still^2``, each ``e`` the log ratio of the simulated
     median to the recording's (the rate first: a rate within 25 % is the promise; the active
-    fraction depends on the scenes, which differ between corpus and recording)."""
+    fraction depends on the scenes, which differ between corpus and recording).
+
+    ``sensor``: the camera fitted from the recording's frames (:func:`fit_frames`' params), which
+    seeds the fit: the ratio range up to its max(c+, c-) / min, the search's start at its
+    threshold spread (relative) and noise sigma; the threshold's level is the corpus's to find."""
     import time
 
     B, fpb = recipe.num_bins, recipe.frames_per_bin
@@ -331,11 +379,19 @@ def fit_corpus(win: CorpusWindows, target: RecordingTarget, recipe, max_evals: i
         return float(100 * e_rate ** 2 + e_act ** 2 + 0.5 * e_still ** 2)
 
     t0 = time.perf_counter()
-    lo, hi = recipe.ranges.threshold
+    base, (lo, hi) = recipe, recipe.ranges.threshold
     b = BOUNDS
     bounds = [tuple(np.log(b["threshold"])), b["noise_std"], b["threshold_sigma_rel"], b["shot_noise_hz"]]
     x0 = np.array([np.log(np.clip((lo + hi) / 2, *b["threshold"])), min(recipe.ranges.noise_std[1], b["noise_std"][1]),
                    0.0, min(recipe.nonideal_spec.shot_noise_hz, b["shot_noise_hz"][1])])
+    if sensor is not None:
+        import dataclasses
+
+        c = min(sensor["c_pos"], sensor["c_neg"])
+        recipe = dataclasses.replace(recipe, ranges=dataclasses.replace(
+            recipe.ranges, ratio=(1.0, max(sensor["c_pos"], sensor["c_neg"]) / c)))
+        x0[1] = min(2 * sensor["noise_std"], b["noise_std"][1])  # the frames fit's sigma is the range's mean
+        x0[2] = min(sensor["threshold_sigma"] / c, b["threshold_sigma_rel"][1])
     for _ in range(START_STEPS):  # the rate is about proportional to 1 / threshold: a few steps to the start
         m = stats_of(*corpus_parts(x0, recipe.ranges, recipe.nonideal_spec, target.hot_fraction))
         progress(1)
@@ -343,7 +399,7 @@ def fit_corpus(win: CorpusWindows, target: RecordingTarget, recipe, max_evals: i
     x, n = _minimize(loss, x0, [0.3, 0.02, 0.1, 0.05], bounds, max_evals - START_STEPS, progress)
     n += START_STEPS
     ranges, ni = corpus_parts(x, recipe.ranges, recipe.nonideal_spec, target.hot_fraction)
-    before = stats_of(recipe.ranges, recipe.nonideal_spec)
+    before = stats_of(base.ranges, base.nonideal_spec)
     after = stats_of(ranges, ni)
     fitted = {"threshold_centre": float(np.exp(x[0])), "noise_std_max": float(x[1]),
               "threshold_sigma": ni.threshold_sigma, "shot_noise_hz": ni.shot_noise_hz,
@@ -377,8 +433,9 @@ class FrameTarget:
 def frame_target(path: str) -> FrameTarget:
     """The recording at ``path`` with its frames and the events between them (one frame
     interval per cell, ``trainer.event_grids.voxel_grids`` with one bin), refused when it has
-    no frames, fewer than :data:`MIN_CELLS` intervals, fewer than :data:`MIN_RATE` events per
-    pixel per second, or frames that do not change (no motion).
+    no frames or fewer than :data:`MIN_CELLS` intervals, by :func:`check_cells` on its intervals
+    (the rules of a fit by statistics: too quiet, events that are noise alone, one polarity), or
+    when its frames do not change (no motion).
 
     Raises:
         CalibrationError: naming ``path`` and what is missing.
@@ -407,10 +464,8 @@ def frame_target(path: str) -> FrameTarget:
         raise CalibrationError(f"recording {e}") from None
     fps = 1e6 / float(np.median(np.diff(ts)))
     events, net = int(counts.sum()), int(real.sum(dtype=np.int64))
-    rate = events / real.size * fps
-    if rate < MIN_RATE:
-        raise CalibrationError(f"recording {path}: too quiet: {rate:.3g} events / pixel / s between its frames, "
-                               f"below the {MIN_RATE:g} a fit needs")
+    pos, neg = (counts + real) // 2, (counts - real) // 2  # one bin per interval: N+ and N- of each pixel
+    check_cells(str(path), summarise(cell_stats(pos[:, None], neg[:, None], 1.0 / fps)), k, 1.0 / fps)
     lut = log_intensity_lut(255, np.float64)
     moving = float(np.mean(np.abs(np.diff(lut[frames], axis=0)) > 0.1))
     if moving < 1e-4:
@@ -524,3 +579,109 @@ def frame_parts(params: Dict[str, float], recipe):
                          hot_pixel_std=(0.0, 0.0))
     ni = dataclasses.replace(recipe.nonideal_spec, threshold_sigma=params["threshold_sigma"])
     return ranges, ni
+
+
+# -- the written recipe's stream --------------------------------------------------------------
+
+#: Samples the served check makes: the written recipe's stream over the corpus, as ``v2v-serve``
+#: makes it (its epochs' own crops and sensor draws, not the fit's fixed ones).
+SERVED_SAMPLES = 24
+#: Most epochs the served check reads to make them (a small corpus has few windows an epoch).
+SERVED_EPOCHS = 8
+#: A served net rate further than this (relative) from the recording's moves the thresholds
+#: (:func:`match_served_rate`): inside the promised 25 % with room for another epoch's draws.
+RATE_TOLERANCE = 0.10
+#: Most rounds of that correction.
+RATE_ROUNDS = 3
+
+
+@dataclass
+class Served:
+    """The stream a recipe serves over a corpus, on the grid: ``stats`` (``grid_stats.summarise``
+    of its voxel grids), ``samples`` and ``epochs`` read, ``grids`` (voxel grids), ``cell_s``
+    (one voxel grid's duration, s, at the samples' median frame rate)."""
+    stats: Dict[str, Dict[str, float]]
+    samples: int
+    epochs: int
+    grids: int
+    cell_s: float
+
+    def median(self, key: str) -> float:
+        return self.stats[key].get("median", float("nan"))
+
+
+def served_stream(cfg, videos: str, n: int = SERVED_SAMPLES, progress=lambda n: None) -> Served:
+    """The first ``n`` samples that ``cfg``'s recipe (a ``ServeConfig``: what ``v2v-serve
+    --config`` takes) serves over the corpus at ``videos``, epoch by epoch (0, 1, ... at most
+    :data:`SERVED_EPOCHS`) and video by video, made by the worker's sample pass with each
+    epoch's own crops and sensor draws, each voxel grid a cell of ``grid_stats``.
+
+    Raises:
+        CalibrationError: the corpus cannot be listed or gives no sample.
+    """
+    from trainer.stream_stats import sample_row
+
+    cells: List[dict] = []
+    fps: List[float] = []
+    last_epoch, skipped = 0, set()
+    passes = lambda names: ((rel, e) for e in range(SERVED_EPOCHS) for rel in names)  # noqa: E731
+    for epoch, arrays, meta in corpus_samples(cfg, videos, cfg.recipe, ("voxels",), passes, skipped):
+        cells += sample_row(meta, arrays["voxels"], cfg.recipe)["cells"]
+        fps.append(float(meta["video_fps"]))
+        last_epoch = epoch
+        progress(1)
+        if len(fps) >= n:
+            break
+    if not fps:
+        raise CalibrationError(f"corpus {videos}: gives no sample with the recipe")
+    r = cfg.recipe
+    return Served(summarise(cells), len(fps), last_epoch + 1, len(cells),
+                  r.num_bins * r.frames_per_bin / float(np.median(fps)))
+
+
+def scaled_thresholds(ranges: Dict[str, list], nonideal: Dict[str, float], factor: float):
+    """``(ranges, nonidealities)`` (as a recipe writes them) with the threshold range and the
+    threshold spread times ``factor``, the range's centre kept inside :data:`BOUNDS` and its
+    upper end at or under the kernel's tested 10."""
+    lo, hi = ranges["threshold"]
+    centre = (lo + hi) / 2
+    factor = float(np.clip(centre * factor, *BOUNDS["threshold"]) / centre)
+    factor = min(factor, 10.0 / hi)
+    out = dict(ranges, threshold=[lo * factor, hi * factor])
+    ni = dict(nonideal)
+    if ni.get("threshold_sigma"):
+        ni["threshold_sigma"] = ni["threshold_sigma"] * factor
+    return out, ni
+
+
+def match_served_rate(serve: Callable[[Dict[str, list], Dict[str, float]], Served], ranges: Dict[str, list],
+                      nonideal: Dict[str, float], target_rate: float):
+    """Bring the served stream's median net rate to ``target_rate`` (events / pixel / s), as
+    Stoffregen et al. (ECCV 2020) matched their training data's event rate to the camera's: the
+    threshold range is scaled until the stream ``serve(ranges, nonidealities)`` gives is within
+    :data:`RATE_TOLERANCE` of it (at most :data:`RATE_ROUNDS` rounds; the rate goes about as one
+    over the threshold, a secant in log-log after the first step).
+
+    Returns:
+        ``(ranges, nonidealities, served, factors)``: the last recipe's parts and stream, and
+        the threshold factor of each round.
+    """
+    served = serve(ranges, nonideal)
+    factors: List[float] = []
+    slope, last = -1.0, None
+    for _ in range(RATE_ROUNDS):
+        rate = served.median("rate_net")
+        err = np.log(max(rate, 1e-12) / target_rate)
+        if abs(err) <= np.log1p(RATE_TOLERANCE):
+            break
+        centre = float(np.mean(ranges["threshold"]))
+        if last is not None and abs(np.log(centre) - last[0]) > 1e-6:
+            slope = float(np.clip((err - last[1]) / (np.log(centre) - last[0]), -3.0, -0.3))
+        last = (np.log(centre), err)
+        new_ranges, new_ni = scaled_thresholds(ranges, nonideal, float(np.exp(-err / slope)))
+        if np.isclose(np.mean(new_ranges["threshold"]), centre):
+            break  # at a bound: no further
+        ranges, nonideal = new_ranges, new_ni
+        factors.append(float(np.mean(ranges["threshold"]) / centre))
+        served = serve(ranges, nonideal)
+    return ranges, nonideal, served, factors

@@ -222,11 +222,16 @@ class Trainer:
         """Write ``checkpoint_NNNNNNN.pt`` and refresh ``checkpoint_last.pt``; returns the former."""
         ck = self.checkpoint(stream)
         path = self.out / f"checkpoint_{self.step:07d}.pt"
-        tmp = path.with_suffix(".tmp")
-        torch.save(ck, tmp)
-        os.replace(tmp, path)
-        shutil.copyfile(path, self.out / "checkpoint_last.tmp")
-        os.replace(self.out / "checkpoint_last.tmp", self.out / "checkpoint_last.pt")
+        tmp, last = path.with_suffix(".tmp"), self.out / "checkpoint_last.tmp"
+        try:  # whole files or none: an interrupt while writing leaves no temporary file behind
+            torch.save(ck, tmp)
+            os.replace(tmp, path)
+            shutil.copyfile(path, last)
+            os.replace(last, self.out / "checkpoint_last.pt")
+        except BaseException:
+            for t in (tmp, last):
+                t.unlink(missing_ok=True)
+            raise
         return path
 
     def load_checkpoint(self, path: str, stream=None) -> None:

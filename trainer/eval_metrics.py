@@ -233,31 +233,36 @@ def evaluate_recording(model, task: str, grids, device: torch.device, frames: Op
     if task == "eraft":
         model.reset_states()
     states, prev, n = None, None, 0
-    for k, vox, _ in grids:
-        v = torch.from_numpy(vox.astype(np.float32))[None].to(device)
-        n += 1
-        if not recon:
-            flow = (model(prev if prev is not None else torch.zeros_like(v), v) if task == "eraft" else model(v))
-            prev = v
+    try:
+        for k, vox, _ in grids:
+            v = torch.from_numpy(vox.astype(np.float32))[None].to(device)
+            n += 1
+            if not recon:
+                flow = (model(prev if prev is not None else torch.zeros_like(v), v) if task == "eraft" else model(v))
+                prev = v
+                if writer is not None:
+                    writer.write(flow_to_bgr(flow[0].float().cpu().numpy()))
+                continue
+            pred, states = model(v, states)
+            p = pred[0, 0].float().cpu().numpy()
             if writer is not None:
-                writer.write(flow_to_bgr(flow[0].float().cpu().numpy()))
-            continue
-        pred, states = model(v, states)
-        p = pred[0, 0].float().cpu().numpy()
+                img = (np.clip(p, 0, 1) * 255 + 0.5).astype(np.uint8)
+                import cv2
+
+                cv2.imwrite(str(video_dir / f"{name}_{k:05d}.png"), img)
+                writer.write(img)
+            if frames is None or k < skip_first or k + 1 >= len(frames):
+                continue
+            gt = gt_all[k + 1]
+            if save_every and save_dir is not None and k % save_every == 0:
+                from .viz import gray_to_u8, save_grid, voxel_to_u8
+
+                save_grid(str(save_dir / f"{name}_cmp_{k:05d}.png"), [[voxel_to_u8(vox), gray_to_u8(p), gray_to_u8(gt)]])
+            _score(res, p, gt, mean_img, ssim_data_range, lpips_model if "lpips" in res else None, device)
+    except BaseException:
         if writer is not None:
-            img = (np.clip(p, 0, 1) * 255 + 0.5).astype(np.uint8)
-            import cv2
-
-            cv2.imwrite(str(video_dir / f"{name}_{k:05d}.png"), img)
-            writer.write(img)
-        if frames is None or k < skip_first or k + 1 >= len(frames):
-            continue
-        gt = gt_all[k + 1]
-        if save_every and save_dir is not None and k % save_every == 0:
-            from .viz import gray_to_u8, save_grid, voxel_to_u8
-
-            save_grid(str(save_dir / f"{name}_cmp_{k:05d}.png"), [[voxel_to_u8(vox), gray_to_u8(p), gray_to_u8(gt)]])
-        _score(res, p, gt, mean_img, ssim_data_range, lpips_model if "lpips" in res else None, device)
+            writer.abort()
+        raise
     if writer is not None:
         writer.close()
     res["_grids"] = n

@@ -68,6 +68,8 @@ from typing import Dict, Optional
 import numpy as np
 import torch
 
+from v2v_wire.commands import input_overwritten, writable_problem, write_whole
+
 from .config import ConfigError, exit_on_config_error
 from .eval_inputs import input_sequence, load_model, recording_input, video_sequence
 from .eval_metrics import (evaluate_e2vid, evaluate_eraft, evaluate_evflow, evaluate_recording, flow_metrics,
@@ -156,11 +158,39 @@ def _provenance(record: dict, lpips_metric: str) -> str:
             f"{record['trained_perceptual_term']}")
 
 
+def output_problem(args) -> str:
+    """Why ``--out`` or ``--write-video`` cannot take what ``v2v-eval`` writes, or "": either
+    folder, ``metrics.json``, ``paper_table.md`` or a recording's MP4 (``<stem>.mp4``,
+    ``<stem>_flow.mp4``) would be one of its inputs, or a folder cannot be made or written.
+    Checked before any model is loaded."""
+    inputs = [("the checkpoint (--checkpoint)", args.checkpoint), ("--data-root", args.data_root),
+              ("--select-checkpoint", args.select_checkpoint),
+              *((f"an input (--{kind} {x})", x) for kind in ("h5", "video", "recording") for x in getattr(args, kind)),
+              *((f"LPIPS weights (--lpips-weights {x})", x) for x in args.lpips_weights or ())]
+    folders = [(flag, Path(d)) for flag, d in (("--out", args.out), ("--write-video", args.write_video)) if d]
+    for flag, d in folders:
+        written = [d, d / "metrics.json", d / "paper_table.md"]
+        written += [d / f"{Path(r).stem or Path(r).name}{tail}.mp4" for r in args.recording for tail in ("", "_flow")]
+        for target in written:
+            why = input_overwritten(target, inputs)
+            if why:
+                return f"{flag} {d}: " + (why if target == d else f"its {target.name} {why}")
+    for flag, d in folders:
+        why = writable_problem(d, folder=True)
+        if why:
+            return f"{flag} {d}: {why}"
+    return ""
+
+
 @exit_on_config_error("v2v-eval")
 def main(argv=None) -> int:
     p = build_arg_parser()
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    why = output_problem(args)
+    if why:
+        print(f"v2v-eval: {why}", file=sys.stderr)
+        return 2
     from .core import resolve_device
     from .models.lpips import LPIPSUnavailable
 
@@ -266,7 +296,7 @@ def _write_summary(summary: dict, out: Optional[Path]) -> None:
     text = json.dumps(summary, indent=2)
     print(text)
     if out:
-        (out / "metrics.json").write_text(text)
+        write_whole(out / "metrics.json", text)
 
 
 def paper_scorer(model, num_bins: int, device: torch.device, lpips_model=None):
@@ -327,10 +357,12 @@ def _paper_main(p: argparse.ArgumentParser, args, device, lp, lpips_metric: str)
         table = paper_markdown(r, f"{name} {Path(ck).name}") + "\n\n" + _provenance(r, lpips_metric)
         print(table)
         if out:
-            (out / "paper_table.md").write_text(table + "\n")
+            write_whole(out / "paper_table.md", table + "\n")
     _write_summary(summary, out)
     return 0
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    from v2v_wire.commands import main_of_module
+
+    sys.exit(main_of_module("v2v-eval", main))

@@ -22,6 +22,8 @@ from typing import Callable, Iterable, List, Optional
 import numpy as np
 import torch
 
+from v2v_wire.commands import write_whole
+
 __all__ = ["Schedule", "RunHooks", "RunLog", "train_loop"]
 
 log = logging.getLogger("trainer")
@@ -153,7 +155,7 @@ def _summary(trainer, losses: List[float], n: int, elapsed: float, wait: float, 
 def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, checkpoint: Callable[[], None],
                hooks: Optional[RunHooks] = None) -> dict:
     """Train ``trainer`` (``trainer.core.Trainer``) on ``batches`` until ``max_steps`` total
-    steps, the batches end, or Ctrl-C (which still checkpoints).
+    steps, the batches end, or Ctrl-C or SIGTERM (which still checkpoint, then stop the run).
 
     Returns (and, with ``hooks.files``, writes to ``summary.json``) the summary: task,
     perceptual_term (the trainer's: an LPIPS backbone, ``trainer.models.lpips.STAND_IN``, or None), steps,
@@ -168,18 +170,17 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
 
     Raises:
         FloatingPointError: a non-finite loss, found at the logging step after it.
+        KeyboardInterrupt: Ctrl-C or SIGTERM (``v2v_wire.commands.Terminated``), raised again
+            once the checkpoint and the summary are written, naming the step.
     """
     hooks = hooks or RunHooks()
     run_log = RunLog(trainer.out, trainer.spec.csv_columns() + list(hooks.csv_extra), trainer.step) if hooks.files else None
-    bar = None
-    if schedule.progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=max_steps, initial=trainer.step, unit="step", dynamic_ncols=True, file=sys.stderr)
+    bar = _progress_bar(max_steps, trainer.step) if schedule.progress else None
     wait, t_start = 0.0, time.perf_counter()
     start_step, every = trainer.step, schedule.checkpoint_every
     rows = _PendingRows(run_log, bar)
     it = iter(batches)
+    interrupted: Optional[KeyboardInterrupt] = None
     try:
         while trainer.step < max_steps:
             t0 = time.perf_counter()
@@ -207,8 +208,8 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
                 if run_log is not None:
                     run_log.sync()
                 checkpoint()
-    except KeyboardInterrupt:
-        log.warning("interrupted at step %d: saving a checkpoint", trainer.step)
+    except KeyboardInterrupt as e:  # Ctrl-C or SIGTERM (v2v_wire.commands.Terminated): checkpoint, then stop
+        interrupted = e
     finally:
         try:
             rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
@@ -225,6 +226,15 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
         checkpoint()
     summary = _summary(trainer, rows.losses, n, elapsed, wait, hooks.summary_extra())
     if hooks.files:
-        (trainer.out / "summary.json").write_text(json.dumps(summary, indent=2))
+        write_whole(trainer.out / "summary.json", json.dumps(summary, indent=2))
         log.info("done: %s", json.dumps(summary))
+    if interrupted is not None:  # the command says it in one line (v2v_wire.commands), with where it stopped
+        raise type(interrupted)(f"stopped at step {trainer.step}" + (f"; checkpoint in {trainer.out}" * hooks.files))
     return summary
+
+
+def _progress_bar(max_steps: int, step: int):
+    """The run's tqdm bar on stderr, from ``step`` to ``max_steps``."""
+    from tqdm import tqdm
+
+    return tqdm(total=max_steps, initial=step, unit="step", dynamic_ncols=True, file=sys.stderr)

@@ -57,8 +57,8 @@
 CPU only (``tests/test_trainer_fast.py``, one step of each of the five networks: fp32 loss
 within rtol 1e-5, outputs within 1e-5, gradients within rtol 1e-4 + 1e-5 x the largest
 gradient; bf16 loss within rtol 1e-4, outputs within 8e-3, gradients within rtol 2e-2 + 2e-2 x
-the largest; compiled by inductor, the fp32 tolerances with E-RAFT's gradients within 5e-5 x the
-largest); CUDA graphs, TF32 matmuls and CUDA's fused kernels could not be run here. A compiled
+the largest; compiled, the fp32 tolerances: by inductor for four networks, E-RAFT through dynamo and
+AOT autograd only, as inductor's cold compile of its step takes minutes); CUDA graphs, TF32 matmuls and CUDA's fused kernels could not be run here. A compiled
 network draws its dropout masks (ETNet's) from inductor's generator, not eager's: other masks,
 the same distribution.
 """

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import html
+import io
 import json
 import sys
 from pathlib import Path
@@ -30,6 +31,7 @@ from typing import List, Optional
 import numpy as np
 
 from v2v_server.frames.motion import STATIC_MOTION
+from v2v_wire.commands import input_overwritten, writable_problem, write_whole
 
 from trainer.grid_stats import GRID_STATS, summarise
 from trainer.stream_stats import (Collected, StatsInputError, check_recording, from_corpus, from_server, grid_seconds,
@@ -116,8 +118,10 @@ def _figures(col: Collected, rec: Optional[dict], out: Path) -> List[str]:
 
     def save(fig, name):
         fig.tight_layout()
-        fig.savefig(out / name, dpi=90)
+        png = io.BytesIO()
+        fig.savefig(png, format="png", dpi=90)
         plt.close(fig)
+        write_whole(out / name, png.getvalue())
         names.append(name)
 
     _grid_figure(plt, col, rec, save)
@@ -247,22 +251,21 @@ def _recording(path: str, rows: List[dict], cfg_recipe, notes: List[str]) -> Opt
     return out
 
 
-def out_problem(out: Path) -> str:
-    """Why ``--out`` cannot take the report (made here when missing), or "" when it can: checked
-    before any sampling."""
-    if out.exists() and not out.is_dir():
-        return "exists and is not a folder"
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        return f"cannot be made ({e.strerror or e})"
-    probe = out / ".v2v-stats-write-check"
-    try:
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as e:
-        return f"cannot be written ({e.strerror or e})"
-    return ""
+#: The files the report writes in ``--out`` (its figures are among PNG_NAMES).
+REPORT_FILES = ("index.html", "stats.json")
+PNG_NAMES = ("grid.png", "events.png", "params.png", "videos.png")
+
+
+def out_problem(out: Path, inputs) -> str:
+    """Why ``--out`` cannot take the report (made here when missing), or "" when it can:
+    checked before any sampling. ``inputs``: ``(what, path)`` of what the command reads (the
+    recording, the recipe, the corpus); neither ``--out`` nor a file the report writes there
+    may be one of them."""
+    for target in (out, *(out / name for name in REPORT_FILES + PNG_NAMES)):
+        why = input_overwritten(target, inputs)
+        if why:
+            return why if target == out else f"its {target.name} {why}"
+    return writable_problem(out, folder=True)
 
 
 def grid_summary(rows: List[dict], rec: Optional[dict], recipe) -> dict:
@@ -302,7 +305,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"v2v-stats: config {a.config}: {e}", file=sys.stderr)
         return 2
     out = Path(a.out)
-    why = out_problem(out)
+    why = out_problem(out, [("the recording (--recording)", a.recording), ("the recipe (--config)", a.config),
+                            ("the corpus (--videos)", a.videos), ("the corpus's video list", cfg.video_list)])
     if why:
         print(f"v2v-stats: --out {out}: {why}", file=sys.stderr)
         return 2
@@ -319,9 +323,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except StatsInputError as e:
         print(f"v2v-stats: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"v2v-stats: interrupted; nothing written to {out}", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:  # v2v_wire.commands says it, with this
+        raise type(e)(f"nothing written to {out}") from None
     if len(col.rows) < a.samples:
         notes.append(f"{col.source} gave {len(col.rows)} of the {a.samples} samples asked for")
     summ = {"samples": {k: summary(_values(col.rows, k)) for k, _ in STATS}}
@@ -335,10 +338,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                              for s in ("sample", "grid")}
     summ["grid"] = grid_summary(col.rows, rec, cfg.recipe)
     pngs = figures(col, rec, out)
-    (out / "index.html").write_text(page(col, rec, notes, pngs, summ))
-    (out / "stats.json").write_text(json.dumps({"source": col.source, "notes": notes, "summary": summ,
+    write_whole(out / "stats.json", json.dumps({"source": col.source, "notes": notes, "summary": summ,
                                                 "samples": col.rows, "videos": col.videos, "recording": rec},
                                                indent=1))
+    write_whole(out / "index.html", page(col, rec, notes, pngs, summ))
     for n in notes:
         print(f"v2v-stats: {n}", file=sys.stderr)
     print(f"v2v-stats: wrote {out / 'index.html'} ({len(col.rows)} samples)")
@@ -346,4 +349,6 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from v2v_wire.commands import main_of_module
+
+    sys.exit(main_of_module("v2v-stats", main))

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from v2v_server.settings import add_flags, flag_values
+from v2v_wire.commands import input_overwritten, writable_problem, write_whole
 
 from .config import RunSettings, apply_overrides, check_types, exit_on_config_error, load_config
 from .core import Trainer, resolve_device
@@ -55,6 +56,22 @@ def build_arg_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: The files a run writes in ``--out`` besides its checkpoints and ``samples/``.
+RUN_FILES = ("config.json", "train.log", "train_log.csv", "summary.json")
+
+
+def out_problem(out: Path, config) -> str:
+    """Why the run's ``--out`` cannot take it, or "": the folder or one of :data:`RUN_FILES` in
+    it is the ``--config`` file (a run's own ``config.json`` given back as its config: copy it
+    first), or the folder cannot be made or written. A resume reads ``checkpoint_last.pt`` there
+    and the run then writes newer ones: that is what resuming is, not an input overwritten."""
+    for target in (out, *(out / name for name in RUN_FILES)):
+        why = input_overwritten(target, [("the config (--config)", config)])
+        if why:
+            return why if target == out else f"its {target.name} {why}"
+    return writable_problem(out, folder=True)
+
+
 @exit_on_config_error("v2v-train")
 def main(argv=None) -> int:
     args = build_arg_parser().parse_args(argv)
@@ -63,6 +80,10 @@ def main(argv=None) -> int:
     cfg.update({k: v for k, v in flag_values(args, RunSettings).items() if k != "task"})
     check_types(cfg)
     out = Path(str(cfg["out"]).format(task=cfg["task"]))
+    why = out_problem(out, args.config)
+    if why:
+        print(f"v2v-train: --out {out}: {why}", file=sys.stderr)
+        return 2
     _setup_logging(out)
     if args.engine == "ray":
         from .ray_train import run_ray
@@ -70,8 +91,7 @@ def main(argv=None) -> int:
         return run_ray(cfg, args, out)
     device = resolve_device(cfg["device"])
     log.info("task %s on %s, stream %s asking for %s", cfg["task"], device, cfg["connect"], stream_outputs(cfg))
-    with open(out / "config.json", "w") as f:
-        json.dump(cfg, f, indent=2)
+    write_whole(out / "config.json", json.dumps(cfg, indent=2))
     try:
         trainer = Trainer(cfg, str(out), device)
     except (FlowSourceUnavailable, LPIPSUnavailable) as e:  # RAFT or LPIPS asked for, weights missing
@@ -97,4 +117,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    from v2v_wire.commands import main_of_module
+
+    sys.exit(main_of_module("v2v-train", main))

@@ -2,6 +2,7 @@
 MP4 writer for a sequence of them."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Sequence
 
@@ -56,12 +57,15 @@ def save_grid(path: str, rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> 
 
 class Mp4Writer:
     """Encode (H, W) uint8 grey or (H, W, 3) uint8 BGR frames as an H.264 MP4 with PyAV, one at a
-    time (odd sizes are padded by one pixel: yuv420p needs even ones)."""
+    time (odd sizes are padded by one pixel: yuv420p needs even ones). The file is written
+    beside ``path`` under a temporary name and renamed to it by :meth:`close`: an interrupted
+    run (:meth:`abort`) leaves no partial MP4."""
 
     def __init__(self, path: Path, fps: float):
         import av
 
-        self.path, self.fps = path, fps
+        self.path, self.fps = Path(path), fps
+        self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.part")
         self._av, self._c, self._s = av, None, None
 
     def write(self, img: np.ndarray) -> None:
@@ -72,7 +76,7 @@ class Mp4Writer:
         if self._c is None:
             from fractions import Fraction
 
-            self._c = self._av.open(str(self.path), "w")
+            self._c = self._av.open(str(self._tmp), "w", format="mp4")
             self._s = self._c.add_stream("libx264", rate=Fraction(self.fps).limit_denominator(1000))
             self._s.width, self._s.height, self._s.pix_fmt = img.shape[1], img.shape[0], "yuv420p"
             self._s.options = {"crf": "18", "preset": "fast"}
@@ -81,7 +85,20 @@ class Mp4Writer:
             self._c.mux(pkt)
 
     def close(self) -> None:
+        """Finish the MP4 and give it its name."""
         if self._c is not None:
             for pkt in self._s.encode():
                 self._c.mux(pkt)
             self._c.close()
+            self._c = None
+            os.replace(self._tmp, self.path)
+
+    def abort(self) -> None:
+        """Drop what was written (an interrupted or failed run)."""
+        if self._c is not None:
+            try:
+                self._c.close()
+            except Exception:  # noqa: BLE001 - the partial file goes anyway
+                pass
+            self._c = None
+        self._tmp.unlink(missing_ok=True)

@@ -12,10 +12,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import List, Optional
 
+from v2v_wire.commands import input_overwritten, writable_problem
+
 from .dataset import V2VStreamDataset
-from .loadtest import format_report, run_loadtest
+from .loadtest import run_loadtest
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -26,7 +29,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--batches", type=int, default=6, help="batches to measure")
     p.add_argument("--preview", default="preview.png", help="where to write the preview PNG")
     p.add_argument("--timeout", type=float, default=120.0)
+    p.add_argument("--json", action="store_true", help="print the measurement as one JSON object on the last line "
+                   "(as v2v-loadtest --json)")
     a = p.parse_args(argv)
+    why = input_overwritten(a.preview, [("the corpus (--videos)", a.videos)],
+                            [("inside the corpus (--videos)", a.videos, None)]) or writable_problem(Path(a.preview))
+    if why:
+        print(f"v2v-demo: --preview {a.preview}: {why}", file=sys.stderr)
+        return 2
     try:  # the server and the preview (OpenCV) come with the server's packages only
         from v2v_server.service.local import local_server
 
@@ -46,10 +56,29 @@ def main(argv: Optional[List[str]] = None) -> int:
         shapes = {k: (tuple(v.shape), str(v.dtype)) for k, v in first.items() if hasattr(v, "shape")}
         print(f"batch layout: {shapes}")
         r = run_loadtest(endpoint, a.batches, timeout_s=a.timeout)
-        print(format_report(r))
-        print(json.dumps(r))
+        print(demo_report(r, a.workers))
+        if a.json:
+            print(json.dumps(r))
     return 0
 
 
+def demo_report(r: dict, workers: int) -> str:
+    """What the demo measured (``run_loadtest``'s dict ``r``), in words a newcomer reads: the
+    rate of batches and samples, that it is the server's rate (the demo trains nothing, so the
+    reader always waits for the next batch), and which epochs the batches came from."""
+    epochs = r["epochs_seen"]
+    span = f"epoch {epochs[0]}" if len(epochs) == 1 else f"epochs {epochs[0]}-{epochs[-1]}"
+    return (f"read {r['batches']} batches ({r['samples']} samples, {r['unique_samples']} different) in "
+            f"{r['seconds']:.1f} s: {r['samples_per_s']:.2f} samples/s, {r['mbytes_per_s']:.1f} MB/s from "
+            f"{workers} worker(s).\n"
+            f"This is how fast the server makes samples: the demo trains nothing, so it waited for each batch "
+            f"({100 * r['wait_fraction']:.0f} % of the time); a trainer whose step takes longer than "
+            f"{1 / max(r['batches_per_s'], 1e-9):.2f} s per batch would not wait at all.\n"
+            f"The batches came from {span}: an epoch is one pass over every window of the corpus (the bundled "
+            f"clips' is a few samples), and the preview's batch was read before these.")
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    from v2v_wire.commands import main_of_module
+
+    sys.exit(main_of_module("v2v-demo", main))

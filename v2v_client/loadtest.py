@@ -116,4 +116,6 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from v2v_wire.commands import main_of_module
+
+    sys.exit(main_of_module("v2v-loadtest", main))

@@ -65,10 +65,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (StoreError, FileNotFoundError, ValueError) as e:  # the store, the cache folder or the video list file
         print(f"v2v-serve: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # Ctrl-C while a store is listed or a table is read (its query stopped)
-        print(f"v2v-serve: interrupted while listing {cfg.video_list or cfg.videos or SAMPLE_VIDEOS}",
-              file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:  # while a store is listed or a table is read (its query stopped)
+        raise type(e)(f"stopped while listing {cfg.video_list or cfg.videos or SAMPLE_VIDEOS}") from None
     cfg, source, caches, videos = start.config, start.source, start.caches, start.videos
     if args.check:
         results = check_corpus(cfg.recipe.windows, cfg.recipe.decode, source, videos, cfg.workers, caches)
@@ -105,9 +103,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (JournalError, OSError) as e:  # the journal of --state-dir
         print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
         return 2
-    install_signal_handlers(server)
+    stopped_by = install_signal_handlers(server)
     try:
-        return server.run()
+        status = server.run()
+        return 128 + stopped_by[0] if stopped_by else status  # a server stopped by a signal says so
     except Exception as e:  # bind errors and the like: one clear line
         if isinstance(e, OSError) or e.__class__.__module__.startswith("zmq"):
             print(f"v2v-serve: cannot serve: {e}", file=sys.stderr)
@@ -116,4 +115,6 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from v2v_wire.commands import main_of_module
+
+    sys.exit(main_of_module("v2v-serve", main))

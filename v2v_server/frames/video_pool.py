@@ -5,6 +5,7 @@ its manifest and archive indexes: not once per video). ``--check`` and ``--warm-
 from __future__ import annotations
 
 import multiprocessing as mp
+import signal
 from typing import Callable, List, Optional, Sequence, Tuple, TypeVar
 
 from v2v_server.frames.host_caches import HostCaches
@@ -33,9 +34,17 @@ def map_videos(fn: Callable[..., T], args: tuple, source: VideoSource, caches: H
     """``[fn(*args, source, rel, caches=caches) for rel in videos]`` in ``processes`` spawned processes,
     each of which builds the source and the caches once from ``source.spec()`` and
     ``caches.spec()`` (``fn`` and ``args`` must pickle); in this process, through ``source`` and
-    ``caches`` themselves, when ``processes`` <= 1 or there is one video."""
+    ``caches`` themselves, when ``processes`` <= 1 or there is one video.
+
+    The processes start with Ctrl-C ignored (a terminal sends it to the whole process group):
+    this process answers it, and leaving the pool stops them."""
     if processes <= 1 or len(videos) <= 1:
         return [fn(*args, source, rel, caches=caches) for rel in videos]
-    with mp.get_context("spawn").Pool(min(processes, len(videos)), _start_job,
-                                      (fn, args, source.spec(), caches.spec())) as pool:
+    was = signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited by the processes started now
+    try:
+        pool = mp.get_context("spawn").Pool(min(processes, len(videos)), _start_job,
+                                            (fn, args, source.spec(), caches.spec()))
+    finally:
+        signal.signal(signal.SIGINT, was)
+    with pool:
         return pool.map(_run_job, videos, chunksize=1)

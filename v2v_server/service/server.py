@@ -319,12 +319,18 @@ class V2VServer:
                 "shard": "%d/%d" % c.serving.shard_spec, "corpus": self.corpus, "recipe": self.recipe,
                 "max_hello_bytes": MAX_CLIENT_MSG}
 
-def install_signal_handlers(server: V2VServer) -> None:
-    """SIGINT/SIGTERM stop the server cleanly (finish the loop, stop workers, close sockets)."""
+def install_signal_handlers(server: V2VServer) -> List[int]:
+    """SIGINT/SIGTERM stop the server cleanly (finish the loop, stop workers, close sockets).
+    Returns the list the signal that stopped it is appended to (``v2v-serve`` then exits with
+    128 + its number, as a shell reports a process a signal ended)."""
+    stopped_by: List[int] = []
 
     def handler(signum, _frame):
-        log.info("signal %d: shutting down", signum)
+        if not stopped_by:
+            log.info("%s: shutting down", signal.Signals(signum).name)
+        stopped_by.append(signum)
         server.stop()
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    return stopped_by

@@ -48,6 +48,8 @@ from typing import NamedTuple, Optional
 import numba
 import numpy as np
 
+from v2v_wire.commands import interrupt_in
+
 __all__ = ["KernelResult", "run_kernel", "noise_field", "full_scale_of", "NOISE_MAX", "NOISE_LANES"]
 
 
@@ -563,13 +565,16 @@ def _narrowed(net: np.ndarray, narrow: bool, overflow: int, lo: int, hi: int) ->
 
 
 def _interruptible(*args):
-    """``_kernel(*args)``, with Ctrl-C during the compiled call raised as KeyboardInterrupt:
-    numba's dispatcher reports the pending interrupt as a SystemError wrapping it."""
+    """``_kernel(*args)``, with Ctrl-C (or SIGTERM, ``v2v_wire.commands.Terminated``) during the
+    compiled call raised as itself: numba's dispatcher reports the pending interrupt as a
+    SystemError wrapping it, once per nested dispatcher (four deep here), and
+    ``commands.interrupt_in`` finds it at any depth."""
     try:
         return _kernel(*args)
     except SystemError as e:
-        if isinstance(e.__context__, KeyboardInterrupt):
-            raise e.__context__ from None
+        interrupt = interrupt_in(e)
+        if interrupt is not None:
+            raise interrupt from None
         raise
 
 

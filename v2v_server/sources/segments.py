@@ -25,6 +25,8 @@ _SECONDS = re.compile(r"-?(?:\d+(?:\.\d*)?|\.\d+)", re.ASCII)
 _CLOCK = re.compile(r"(-?)(?:(\d+):)?(\d{1,2}):(\d{2}(?:\.\d*)?)", re.ASCII)
 #: What a time's syntax is, for messages.
 TIME_SYNTAX = "seconds such as 12.5, or a clock time H:MM:SS.sss"
+#: How a segment is named, for a message about a name that holds ``#t=`` but is none.
+RANGE_FORM = f"a time range is written path#t=start,end ({TIME_SYNTAX}), or as a list line `path start end`"
 
 
 def parse_time(text: str) -> float:
@@ -100,22 +102,30 @@ def segment_name(path: str, start: float, end: float) -> str:
 def split_segment(rel: str) -> Tuple[str, Optional[Tuple[float, float]]]:
     """``(path, (start, end))`` of a segment's entry name, ``(rel, None)`` for a whole video.
 
-    Raises:
-        ValueError: ``rel`` carries a ``#t=`` fragment that is not two times.
+    An entry is a segment only when it ends in ``#t=start,end`` with two times
+    (:func:`parse_time`): any other name is a file's own name, read as it is. A file named
+    ``clip#t=1,2.mp4`` (its name ends in ``.mp4``, not in a time) is that file, in a folder, a
+    bucket, an archive or a list alike; no video name ends in a time, so the two never meet.
     """
     path, sep, times = rel.rpartition(FRAGMENT)
     if not sep:
         return rel, None
     start, comma, end = times.partition(",")
-    if not comma:
-        raise ValueError(f"{rel}: a time range is #t=start,end")
-    return path, (parse_time(start), parse_time(end))
+    try:
+        return (path, (parse_time(start), parse_time(end))) if comma else (rel, None)
+    except ValueError:
+        return rel, None
+
+
+def looks_like_segment(rel: str) -> bool:
+    """Whether ``rel`` holds the segment fragment ``#t=`` without being a segment (its range
+    does not parse): a message about it then says how a range is written."""
+    return FRAGMENT in rel and split_segment(rel)[1] is None
 
 
 def base_path(rel: str) -> str:
-    """The video file an entry reads: ``rel`` without its time range."""
-    path, sep, _ = rel.rpartition(FRAGMENT)
-    return path if sep else rel
+    """The video file an entry reads: ``rel`` without its time range (:func:`split_segment`)."""
+    return split_segment(rel)[0]
 
 
 def range_problem(start: float, end: float) -> Optional[str]:

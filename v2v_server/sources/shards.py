@@ -449,8 +449,16 @@ def split_pattern(videos: str) -> Tuple[str, Optional[List[str]]]:
     """``(root, names)`` of a corpus given as a brace pattern of archives
     (``s3://b/webvid-{000000..000009}.tar``: root ``s3://b/``, names ``webvid-000000.tar``...;
     the root is the pattern up to the last ``/`` before the first brace), or ``(videos, None)``
-    for a folder or prefix; a single ``.tar`` or ``.zip`` is a pattern of one."""
+    for a folder or prefix; a single ``.tar`` or ``.zip`` is a pattern of one. A local folder
+    that exists is that folder, whatever its name holds (``clips{2024}``, ``a{1,2}``).
+
+    Raises:
+        ValueError: a brace that is neither form (``expand_braces``)."""
+    import os
+
     brace = videos.find("{")
+    if brace >= 0 and "://" not in videos and os.path.isdir(videos):
+        return videos, None
     if brace < 0 and not videos.lower().endswith(ARCHIVES):
         return videos, None
     cut = videos.rfind("/", 0, brace if brace >= 0 else len(videos)) + 1

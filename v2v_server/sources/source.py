@@ -42,7 +42,8 @@ from v2v_server.sources.archive_members import Archives, pair_members
 from v2v_server.sources.errors import VideoError
 from v2v_server.sources.manifest import ListedObject
 from v2v_server.disk_cache import cache_folder, check_cache_folders
-from v2v_server.sources.segments import base_path, printable_name, range_problem, split_segment
+from v2v_server.sources.segments import (RANGE_FORM, base_path, looks_like_segment, printable_name, range_problem,
+                                         split_segment)
 from v2v_server.sources.shards import ARCHIVES, split_member
 from v2v_server.sources.video_list import VideoList, read_video_list
 from v2v_server.sources.video_tables import TableSettings
@@ -181,11 +182,7 @@ class VideoSource:
         names = self._paired(names, exists, extensions)
         videos, rejected = [], list(names.refused)
         for rel in names.videos:
-            try:
-                base, times = split_segment(rel)
-            except ValueError as e:
-                rejected.append((rel, f"listed in {self.video_list}: {e}"))
-                continue
+            base, times = split_segment(rel)
             problem = range_problem(*times) if times else None
             if problem:
                 rejected.append((rel, f"listed in {self.video_list}: {problem}"))
@@ -193,11 +190,11 @@ class VideoSource:
                 videos.append(rel)
             elif not base.lower().endswith(tuple(extensions)):
                 rejected.append((rel, f"listed in {self.video_list} but not a video file (extensions "
-                                      f"{', '.join(extensions)})"))
-            elif split_member(base) and not self.archives.has_member(base, exists):
-                rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
-            elif not split_member(base) and not exists(base):
-                rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"))
+                                      f"{', '.join(extensions)})" + (f" ({RANGE_FORM})" if looks_like_segment(rel)
+                                                                    else "")))
+            elif not (self.archives.has_member(base, exists) if split_member(base) else exists(base)):
+                rejected.append((rel, f"listed in {self.video_list} but missing from {self.root}"
+                                      + (f" ({RANGE_FORM})" if looks_like_segment(rel) else "")))
             else:
                 videos.append(rel)
         videos, rejected = self.archives.expand(videos, rejected, extensions)

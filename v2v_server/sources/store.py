@@ -238,13 +238,13 @@ class StoreSource(VideoSource):
                 return found
         if self.protocol in ("http", "https"):  # no listing: ask for each piece until one is missing
             return list(itertools.takewhile(self._exists, piece_names(part)))
+        base, whole = self._path(""), self._path(stem)
         try:
-            with self._request():
-                keys = self.fs.glob(self._path(stem) + "*")
-        except VideoError:
+            with self._request():  # the folder's names, not a glob: a part's name may hold [ ] * ?
+                keys = self.fs.ls(whole.rpartition("/")[0], detail=False)
+        except (VideoError, FileNotFoundError):
             return []
-        base = self._path("")
-        return [k[len(base):] for k in keys if k.startswith(base)]
+        return [k[len(base):] for k in keys if k.startswith(whole) and k.startswith(base)]
 
     def list_videos(self, extensions):
         names = self._names(extensions)

@@ -12,7 +12,9 @@ VidGen's JSON, a Parquet file) selects and orders its videos, read by DuckDB (ex
   integer; the path is folded as a list line's is (``segments.clean_path``).
 * **Time ranges**: columns ``start`` and ``end`` give one segment per row, Panda-70M's
   ``timestamp`` column (a list of ``[start, end]`` pairs) one per pair; times as in list files
-  (``segments.parse_time``), or numbers of seconds, or durations (INTERVAL, TIME).
+  (``segments.parse_time``), or numbers of seconds, or durations (INTERVAL, TIME). A column of
+  that name holding dates or points in time (a ``timestamp`` of when a video was fetched, a
+  Unix time) is an ordinary column: its rows are whole videos.
 * **Filter**: :attr:`TableSettings.filter`, one SQL expression over the columns (``frame >=
   201 and "motion score" > 0.5``) that DuckDB parses as one expression and nothing else (its
   relation API's ``filter``: a second statement or a clause is refused, never run) and
@@ -338,7 +340,22 @@ def _load(con, path: str, settings: TableSettings) -> Tuple[_Loaded, List[Tuple[
     types = {r[0]: str(r[1]) for r in con.execute("DESCRIBE t").fetchall()}  # a CSV's path columns: text
     con.execute("SET enable_external_access = false")
     con.execute("SET lock_configuration = true")
-    return _Loaded(columns, types, template, fields, ranges), refused
+    return _Loaded(columns, types, template, fields, _time_ranges(ranges, types)), refused
+
+
+def _time_ranges(ranges: List[str], types: Dict[str, str]) -> List[str]:
+    """The columns among ``ranges`` (``start`` and ``end``, or ``timestamp``) that hold clips'
+    time ranges by their DuckDB ``types``: a column of dates or points in time (``DATE``,
+    ``TIMESTAMP``: when a video was made or fetched) or, for ``timestamp``, of numbers (a Unix
+    time) has the name of a range column but is a column like any other, and its rows are whole
+    videos; ``[]`` then."""
+    def is_date(c: str) -> bool:
+        return types.get(c, "").upper().startswith(("DATE", "TIMESTAMP"))
+
+    if len(ranges) == 1:  # Panda-70M's timestamp: a list of [start, end] pairs, or its text
+        kind = types.get(ranges[0], "").upper()
+        return ranges if kind in ("VARCHAR", "JSON") or kind.endswith("]") else []
+    return [] if any(is_date(c) for c in ranges) else ranges
 
 
 def _rejected_lines(con, path: str) -> List[Tuple[str, str]]:

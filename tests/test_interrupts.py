@@ -1,0 +1,203 @@
+"""Ctrl-C and SIGTERM at any moment, for every console script of ``pyproject.toml``: each is run as
+its installed script runs it (``from v2v_wire.commands import X; sys.exit(X())``), and the signal
+is sent during start-up (the moment the SIGTERM handler is installed, before the command's module
+is imported: numpy, torch, numba still loading) and while it works (a fit in numba's kernel, a
+stream waited for, a corpus decoded). Each answers with one line naming the command and exit
+status 130 (SIGINT) or 143 (SIGTERM), no traceback (numba's ``SystemError`` around an interrupt
+included), and leaves no partial file: an output is whole or absent, and no temporary file stays."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from harness.data import DAVIS346, SAMPLE_VIDEOS
+from harness.serve import free_port
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _scripts() -> dict:
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+
+
+def test_every_console_script_starts_in_the_one_entry():
+    """A script that skipped ``v2v_wire.commands`` would answer an interrupt during its imports
+    with a traceback (SIGINT) or die without a word (SIGTERM)."""
+    from v2v_wire import commands
+
+    scripts = _scripts()
+    assert set(scripts) == set(commands.COMMANDS) == set(COMMANDS), scripts
+    for name, target in scripts.items():
+        module, _, fn = target.partition(":")
+        assert module == "v2v_wire.commands" and callable(getattr(commands, fn)), (name, target)
+
+
+def test_an_interrupt_wrapped_by_numba_is_found_at_any_depth():
+    from v2v_wire.commands import Terminated, interrupt_in, interrupted_status
+
+    def wrapped(inner: BaseException, depth: int) -> BaseException:
+        e = inner
+        for _ in range(depth):  # as numba's nested dispatchers report it: SystemError during handling
+            try:
+                try:
+                    raise e
+                except BaseException:
+                    raise SystemError("CPUDispatcher(<function _kernel>) returned a result with an exception set")
+            except SystemError as s:
+                e = s
+        return e
+
+    for depth in (0, 1, 4):
+        assert isinstance(interrupt_in(wrapped(KeyboardInterrupt(), depth)), KeyboardInterrupt)
+        assert interrupted_status(wrapped(Terminated(), depth)) == 143
+        assert interrupted_status(wrapped(KeyboardInterrupt(), depth)) == 130
+    assert interrupt_in(wrapped(ValueError("no"), 4)) is None
+
+
+def _handler_installed(pid: int) -> bool:
+    """Whether the process has a handler for SIGTERM (``/proc/PID/status`` SigCgt): the entry's
+    first act, before any of the command's imports."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("SigCgt:"):
+                return bool(int(line.split()[1], 16) & (1 << (signal.SIGTERM - 1)))
+    except OSError:
+        pass
+    return False
+
+
+def _tiny_checkpoint(folder: Path) -> str:
+    import torch
+
+    from trainer.config import default_config, merge
+    from trainer.core import Trainer
+
+    cfg = merge(default_config("e2vid"), {"model": {"num_bins": 5, "base_num_channels": 4}})
+    return str(Trainer(cfg, str(folder), torch.device("cpu")).save_checkpoint())
+
+
+#: script -> (its arguments, with {tmp} and {port}; what on its output says it is working, or
+#: the seconds after start-up to wait instead)
+COMMANDS = {
+    "v2v-serve": (["--videos", str(SAMPLE_VIDEOS), "--workers", "1", "--bind", "tcp://127.0.0.1:{port}",
+                   "--cache-dir", "{tmp}/cache", "--sequence-length", "8", "--crop-size", "64"], " serving "),
+    "v2v-loadtest": (["--connect", "tcp://127.0.0.1:{port}", "--timeout", "60"], 3.0),
+    "v2v-demo": (["--workers", "1", "--preview", "{tmp}/preview.png"], "server running"),
+    "v2v-keygen": (["trainer-01", "--out", "{tmp}/keys"], None),
+    "v2v-train": (["--task", "e2vid", "--connect", "tcp://127.0.0.1:{port}", "--out", "{tmp}/run", "--device", "cpu"],
+                  "task e2vid"),
+    "v2v-eval": (["--checkpoint", "{checkpoint}", "--recording", str(DAVIS346), "--device", "cpu", "--out",
+                  "{tmp}/eval", "--write-video", "{tmp}/video"], 4.0),
+    "v2v-stats": (["--videos", str(SAMPLE_VIDEOS), "--samples", "40", "--out", "{tmp}/report"], "sampling"),
+    "v2v-calibrate": (["--recording", str(DAVIS346), "--evaluations", "80", "--out", "{tmp}/fitted.yaml"],
+                      "simulation"),
+}
+CHECK = (["--check", "--videos", str(SAMPLE_VIDEOS), "--workers", "2", "--cache-dir", "{tmp}/cache"], 3.0)
+
+CASES = [(name, "start-up", signal.SIGTERM) for name in COMMANDS] + \
+        [(name, "start-up", signal.SIGINT) for name in ("v2v-calibrate", "v2v-stats")] + \
+        [(name, "working", signal.SIGINT) for name, (_, when) in COMMANDS.items() if when is not None] + \
+        [(name, "working", signal.SIGTERM) for name in ("v2v-serve", "v2v-calibrate", "v2v-train", "v2v-demo")] + \
+        [("v2v-serve --check", "working", signal.SIGINT), ("v2v-serve --check", "working", signal.SIGTERM)]
+
+
+def _run(name: str, args: list, when, sig: int, tmp: Path, moment: str) -> subprocess.CompletedProcess:
+    script = name.split()[0]
+    fn = _scripts()[script].partition(":")[2]
+    code = f"import sys\nfrom v2v_wire.commands import {fn}\nsys.exit({fn}())"
+    out_f, err_f = open(tmp / "stdout", "w+"), open(tmp / "stderr", "w+")
+    proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=out_f, stderr=err_f, cwd=tmp,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        deadline = time.monotonic() + 240
+        while not _handler_installed(proc.pid):
+            assert proc.poll() is None and time.monotonic() < deadline, "never installed its SIGTERM handler"
+            time.sleep(0.002)
+        if moment == "working":
+            start = time.monotonic()
+            while True:
+                assert time.monotonic() < deadline, (name, "never started working", (tmp / "stderr").read_text())
+                if proc.poll() is not None:
+                    break
+                if isinstance(when, float):
+                    if time.monotonic() - start >= when:
+                        break
+                elif when in (tmp / "stderr").read_text() + (tmp / "stdout").read_text():
+                    time.sleep(0.5)
+                    break
+                time.sleep(0.05)
+        assert proc.poll() is None, (name, moment, "ended before the signal", (tmp / "stderr").read_text())
+        proc.send_signal(sig)
+        proc.wait(120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    out_f.seek(0)
+    err_f.seek(0)
+    r = subprocess.CompletedProcess(proc.args, proc.returncode, out_f.read(), err_f.read())
+    out_f.close()
+    err_f.close()
+    return r
+
+
+def _whole(path: Path) -> bool:
+    """Whether a file a command wrote is complete for its kind."""
+    data = path.read_bytes()
+    if path.suffix == ".json":
+        json.loads(data)
+        return True
+    if path.suffix == ".png":
+        return data.endswith(b"IEND\xaeB`\x82")
+    if path.suffix == ".html":
+        return data.rstrip().endswith(b"</html>")
+    if path.suffix == ".yaml":
+        import yaml
+
+        return isinstance(yaml.safe_load(data), dict)
+    if path.suffix == ".mp4":
+        import av
+
+        with av.open(str(path)) as c:
+            return sum(1 for _ in c.decode(video=0)) > 0
+    return True
+
+
+@pytest.mark.parametrize("name, moment, sig", CASES,
+                         ids=[f"{n.replace(' ', '')}-{m}-{signal.Signals(s).name}" for n, m, s in CASES])
+def test_an_interrupt_at_any_moment_is_one_line_and_leaves_no_partial_file(tmp_path, name, moment, sig):
+    args, when = CHECK if name == "v2v-serve --check" else COMMANDS[name]
+    fill = {"tmp": str(tmp_path), "port": str(free_port())}
+    if "{checkpoint}" in args:
+        fill["checkpoint"] = _tiny_checkpoint(tmp_path / "ck")
+    args = [a.format(**fill) for a in args]
+    r = _run(name, args, when, sig, tmp_path, moment)
+    script = name.split()[0]
+    status = 128 + sig
+    assert r.returncode == status, (r.returncode, r.stderr[-3000:])
+    assert "Traceback" not in r.stderr and "Exception ignored" not in r.stderr, r.stderr[-3000:]
+    lines = [ln for ln in r.stderr.replace("\r", "\n").splitlines() if ln.strip()]
+    if script == "v2v-serve" and moment == "working" and name == "v2v-serve":  # the server's own stop, logged
+        assert sum(f"{signal.Signals(sig).name}: shutting down" in ln for ln in lines) == 1, lines[-5:]
+    else:
+        said = f"{script}: {'stopped (SIGTERM)' if sig == signal.SIGTERM else 'interrupted (Ctrl-C)'}"
+        assert lines and lines[-1].startswith(said), lines[-5:]
+        assert sum(ln.startswith(f"{script}: ") and ("interrupted" in ln or "stopped" in ln) for ln in lines) == 1
+    leftovers = [p for p in tmp_path.rglob("*") if p.is_file() and (p.name.endswith((".tmp", ".part")) or
+                                                                    ".v2v-write-check" in p.name)]
+    assert not leftovers, leftovers
+    for p in tmp_path.rglob("*"):
+        if p.is_file() and (p.parent.name in ("report", "eval", "video", "run", "keys") or
+                            p.name in ("fitted.yaml", "preview.png")):
+            assert _whole(p), p
+    keys = tmp_path / "keys"
+    if keys.exists():  # both halves of the key pair, or neither
+        assert len([p for p in keys.iterdir() if not p.name.startswith(".")]) in (0, 2), list(keys.iterdir())
