@@ -413,7 +413,7 @@ def test_full_disk_is_decoded_and_counted(tmp_path):
         assert stats["not_stored"]["disk_full"] == 1 and stats["stored"] == 0, stats
         assert not list((mnt / "frames").iterdir())  # no entry, no temporary file left
     finally:
-        subprocess.run(["umount", str(mnt)], check=False)
+        subprocess.run(["umount", "--lazy", str(mnt)], check=False)  # detached even while a file is open
 
 
 def test_settings_that_change_frames_name_other_entries(tmp_path):
