@@ -1,0 +1,177 @@
+"""What each connection is told about the ends of epochs and of the stream, pure.
+
+An epoch ends per connection, in order (docs/delivery.md, "Ends of epochs"): connection C is told
+``epoch_done`` for epoch e once e is complete, no batch of e is ready, leased or revoked, C's own
+consumer holds no grant of e, and every other consumer's grant of e is at least ``grant_wait_s``
+old. So a reader sitting on its grants (a stuck loop, an hour of validation, a hostile client)
+delays only itself, and delays the others by at most ``grant_wait_s``; a grant given back after
+the others were told goes to a reader that was not (the one that gave it back, when it reads on).
+A bounded stream ends for C (``end``) once C was told its last epoch; the server may exit once
+the stream is over and no reader was connected for ``end_grace_s``.
+"""
+from __future__ import annotations
+
+import bisect
+import logging
+from typing import Dict, Hashable, List, Optional, Set, Tuple
+
+from v2v_server.delivery.ledger import ClientRecord, DeliveryLedger
+from v2v_server.delivery.padding import GroupPadding
+from v2v_server.delivery.schedule import EpochScheduler
+from v2v_server.delivery.table import GRANTED, STRANDED, BatchRecord
+from v2v_wire.stream_messages import Drained, End, EpochDone, StreamMessage
+
+log = logging.getLogger("v2v.server")
+
+Msg = Tuple[bytes, StreamMessage]
+
+
+class EpochEnds:
+    """Tells connections the ends of epochs (with DDP padding), ``drained`` and ``end``, and says
+    when the server may exit.
+
+    Args:
+        sched, ledger, batcher, padding: the core's parts (read; ``ClientRecord.completed`` and
+            ``told_drained`` are set here, and ``EpochPlan.told``).
+        journal: ``journal.Journal`` or None: told each epoch closed for good.
+        grant_wait_s: seconds another consumer's grant of an epoch may delay a connection's end of
+            it (the lease).
+        end_grace_s: seconds a bounded stream's server stays up with no reader after it is over.
+    """
+
+    def __init__(self, sched: EpochScheduler, ledger: DeliveryLedger, batcher, padding: GroupPadding, journal,
+                 grant_wait_s: float, end_grace_s: float):
+        self.sched, self.ledger, self.batcher, self.padding, self.journal = sched, ledger, batcher, padding, journal
+        self.grant_wait_s, self.end_grace_s = grant_wait_s, end_grace_s
+        self.told_upto = -1  # the newest epoch told complete to some connection
+        self.ended = False  # the stream is over (logged once)
+        self._idle_since: Optional[float] = None  # over, with no reader connected, since
+
+    # ------------------------------------------------------------------ per tick
+    def tell(self, now: float) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
+        """``epoch_done`` for every epoch each connection may now be told (a DDP rank that was
+        never sent a batch first gets a padding batch, ``GroupPadding.epoch_done``), then ``end``
+        to each connection told its last epoch. Returns ``(padding sends, messages)``."""
+        own, live, fresh = self._holders(now)
+        pads: List[Tuple[bytes, BatchRecord]] = []
+        msgs: List[Msg] = []
+        for ident, c in self.ledger.clients.items():
+            blocked = sorted(live | own.get(c.consumer, set()) | {e for e, who in fresh.items() if who - {c.consumer}})
+            while True:
+                step = self._next(c, blocked)
+                if step is None:
+                    break
+                e, per_epoch = step
+                batches = None
+                if per_epoch and c.ddp:
+                    batches, pad = self.padding.epoch_done(c, e)
+                    if pad is not None:
+                        pads.append((ident, pad))
+                        c.sent += 1
+                c.completed = e
+                msgs.append((ident, EpochDone(e, batches)))
+                self._told(e)
+            last = self.sched.max_epochs
+            if last is not None and c.completed >= last - 1 and not c.told_end:
+                c.told_end = True
+                msgs.append((ident, End()))
+        self._close_for_good(own, live)
+        return pads, msgs
+
+    def _holders(self, now: float):
+        """``(own, live, fresh)``: per consumer the epochs it holds grants of; the epochs with a
+        batch ready, leased, revoked or waiting in the shuffle buffer; per epoch the consumers
+        holding a grant of it younger than ``grant_wait_s``."""
+        own: Dict[Hashable, Set[int]] = {}
+        live: Set[int] = set()
+        fresh: Dict[int, Set[Hashable]] = {}
+        for b in self.ledger.table.batches.values():
+            if b.state in (GRANTED, STRANDED):
+                own.setdefault(b.consumer, set()).add(b.epoch)
+                if now - b.since < self.grant_wait_s:
+                    fresh.setdefault(b.epoch, set()).add(b.consumer)
+            else:
+                live.add(b.epoch)
+        live.update(self.batcher.waiting_epochs())
+        return own, live, fresh
+
+    def _next(self, c: ClientRecord, blocked: List[int]) -> Optional[Tuple[int, bool]]:
+        """The epoch connection ``c`` may be told next, and whether it is one epoch with its plan
+        (else the newest of a run of forgotten or never opened epochs, told at once); None."""
+        e = c.completed + 1
+        s = self.sched
+        if e >= s.next_epoch:
+            return None
+        i = bisect.bisect_left(blocked, e)
+        first_blocked = blocked[i] if i < len(blocked) else None
+        plan = s.plans.get(e)
+        if plan is not None:
+            return (e, True) if plan.complete and first_blocked != e else None
+        upto = min([p for p in s.plans if p > e] + [s.next_epoch]) - 1  # run of epochs without a plan
+        if first_blocked is not None:
+            upto = min(upto, first_blocked - 1)
+        return (upto, False) if upto >= e else None
+
+    def _told(self, e: int) -> None:
+        plan = self.sched.plans.get(e)
+        if plan is not None:
+            plan.told = True
+        if e > self.told_upto:
+            self.told_upto = e
+            log.info("epoch %d complete", e)
+
+    def _close_for_good(self, own: Dict[Hashable, Set[int]], live: Set[int]) -> None:
+        """Epochs told to every connection may be forgotten by the scheduler (it keeps the newest
+        few); those also held by nobody, and every epoch before them, leave the journal (its
+        watermark: a restart starts after it)."""
+        low = min((c.completed for c in self.ledger.clients.values()), default=self.told_upto)
+        held = live.union(*own.values()) if own else set(live)
+        done = min(low, min(held) - 1) if held else low
+        if self.journal is not None and done > self.journal.completed:
+            plans = self.sched.plans
+            if all(plans[e].complete for e in plans if e <= done):
+                self.journal.epoch_complete(done)
+        self.sched.prune(e for e in self.sched.plans if e <= low)
+        self.padding.prune({c.group for c in self.ledger.clients.values()},
+                           lambda e: e not in self.sched.plans and e < self.sched.next_epoch)
+
+    def drained(self) -> List[Msg]:
+        """``drained`` to each client holding nothing, once, when a bounded stream has nothing
+        left to make or send: the rest is held by other clients. A DataLoader worker waiting
+        for a batch ends its iteration on it, so the loader (in order) can take the batches
+        the other workers hold; it is sent nothing after it (``ClientRecord.takes``), and a batch
+        given back later goes to whoever still reads (docs/delivery.md, "Drained")."""
+        s = self.sched
+        drained = (s.max_epochs is not None and s.next_epoch >= s.max_epochs and not s.queue and not s.running
+                   and not self.ledger.table.ready_count() and not self.batcher.waiting())
+        msgs: List[Msg] = []
+        table = self.ledger.table
+        for ident, c in self.ledger.clients.items():
+            leased = any(table.get(b).state != GRANTED for b in table.held_by(ident))
+            if (not drained or leased) and c.takes:  # one that ends on drained stays told
+                c.told_drained = False
+            elif not c.told_drained:
+                c.told_drained = True
+                msgs.append((ident, Drained()))
+        return msgs
+
+    # ------------------------------------------------------------------ the server's life
+    def exit_due(self, now: float) -> bool:
+        """A bounded stream is over (``EpochScheduler.finished(told=True)``) and no reader was connected for
+        ``end_grace_s``: the server may exit."""
+        if not self.sched.finished(told=True):
+            self.ended, self._idle_since = False, None
+            return False
+        if not self.ended:
+            log.info("all %d epoch(s) delivered; ending the stream (the server stays up %.0f s with no trainer "
+                     "connected, for trainers that resume)", self.sched.max_epochs, self.end_grace_s)
+            self.ended = True
+        if self.ledger.clients:
+            self._idle_since = None
+            return False
+        if self._idle_since is None:
+            self._idle_since = now
+        if now - self._idle_since >= self.end_grace_s:
+            log.info("no trainer for %.0f s after the end of the stream; exiting", now - self._idle_since)
+            return True
+        return False
