@@ -27,10 +27,11 @@ from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_CREDITS, OUTPUTS, check_outpu
 
 from .connection import StreamError, StreamTimeout, load_curve_keys
 from .endpoint import EndpointStream, padding_copy
-from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
+from .fanin import FanInStream, resolve_endpoints, split_endpoints
 from .launchers import ReadAhead, adapt, check_whole, rank_part
 from .metrics import TrainerMetrics
 from .options import StreamOptions
+from .resume import ResumeState
 from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "padding_copy"]
@@ -299,7 +300,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             ValueError: for a state of another format.
         """
         state = rank_part(state, dist_position)  # one rank's part of what launchers' save hook gathered
-        read_state(state)
+        ResumeState().load(state)  # ValueError for a state of another format, before anything changes
         self.read_ahead.clear()  # the state says what the loop received
         if self._stream is not None:
             self._stream.load_state_dict(state)

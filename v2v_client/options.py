@@ -62,16 +62,3 @@ class StreamOptions:
         if self.compression != "auto":
             return self.compression, False
         return (AUTO_REMOTE if not is_loopback(endpoint) and available(AUTO_REMOTE) else "none"), True
-
-    def hello(self, consumer: str, resume: dict, ends_on_drained: bool = False) -> dict:
-        """The hello message of a connection: the outputs, credits and DDP position of these
-        options, the ``consumer`` id the server knows the reader by, and its ``resume`` state
-        (``endpoint.ConsumerRecord.resume``); ``ends_on_drained``: a ``StreamLoader`` worker,
-        whose iteration ends on ``drained`` (the server sends it nothing after telling it so)."""
-        h = {"type": "hello", "outputs": list(self.outputs), "credits": self.credits, "consumer": consumer,
-             "resume": resume}
-        if ends_on_drained:
-            h["ends_on_drained"] = True
-        if self.world_size > 1:
-            h.update(rank=self.rank, world_size=self.world_size, group=self.group)
-        return h

@@ -23,7 +23,7 @@ from typing import Dict, FrozenSet, Optional, Tuple
 
 from v2v_wire.codecs import COMPRESSIONS
 from v2v_wire.fields import show
-from v2v_wire.ids import SampleKey, expand_ids, parse_sample_ids
+from v2v_wire.ids import SampleKey, compact_ids, expand_ids, parse_sample_ids
 from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError, check_outputs
 from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
@@ -61,7 +61,29 @@ class Resume:
 
 
 @dataclass(frozen=True)
+class ResumeIds:
+    """A resume state as a client holds and sends it: ``completed_epoch``; per open epoch the
+    sample ids its training loop got (``delivered``, strings: the client does not know the
+    server's crops per window) and the batches it yielded (``batches``). The server reads it back
+    as :class:`Resume`."""
+
+    completed_epoch: int = -1
+    delivered: Dict[int, Tuple[str, ...]] = field(default_factory=dict)
+    batches: Dict[int, int] = field(default_factory=dict)
+
+    def to_wire(self) -> dict:
+        return {"completed_epoch": self.completed_epoch,
+                "delivered": {str(e): compact_ids(ids) for e, ids in self.delivered.items()},
+                "batches": {str(e): n for e, n in self.batches.items()}}
+
+
+@dataclass(frozen=True)
 class Hello:
+    """A client introduces itself (docs/delivery.md, "Hello"): the outputs it wants, its
+    credits, the consumer it reads as and where that consumer stands (``resume``: a
+    :class:`ResumeIds` when a client builds it, the :class:`Resume` the server reads), its DDP
+    position, and how batches reach it."""
+
     outputs: Tuple[str, ...]
     credits: int
     consumer: str = ""
@@ -73,6 +95,20 @@ class Hello:
     shm: bool = False  # same host: send batches as references into the server's shared-memory files
     compression: str = "none"  # codecs.COMPRESSIONS: how this client wants arrays sent over the socket
     ends_on_drained: bool = False  # a DataLoader worker: its iteration ends on ``drained`` (sent nothing after it)
+
+    def to_wire(self) -> dict:
+        """The message a client sends (``resume`` must be a :class:`ResumeIds`)."""
+        h = {"type": "hello", "outputs": list(self.outputs), "credits": self.credits, "consumer": self.consumer,
+             "resume": self.resume.to_wire(), "hello_id": self.hello_id}
+        if self.world_size > 1:
+            h.update(rank=self.rank, world_size=self.world_size, group=self.group)
+        if self.shm:
+            h["shm"] = True
+        if self.compression != "none":
+            h["compression"] = self.compression
+        if self.ends_on_drained:
+            h["ends_on_drained"] = True
+        return h
 
 
 @dataclass(frozen=True)
