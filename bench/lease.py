@@ -1,4 +1,4 @@
-"""Cost of the grant protocol (docs/delivery.md, "Leases and grants") on the fast path, against
+"""Cost of the grant protocol (docs/delivery.md, "The protocol") on the fast path, against
 the ack-only protocol it replaced, in one run.
 
 Run: ``python -m bench.lease [--batches 40000] [--read 40] [--step-ms 20] [--rounds 4] [--fill-s 12]``.

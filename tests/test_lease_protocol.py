@@ -88,6 +88,7 @@ class Client:
     credits: int = 2
     gen: int = 0
     alive: bool = False
+    instance: str = "p0"  # the process's token: a crash makes a new process
     session: ServerSession = None
     record: ResumeState = None
     up: list = field(default_factory=list)  # client -> server, in flight (typed messages)
@@ -177,7 +178,7 @@ class Net:
         c.alive = True
         c.up, c.down = [], []
         c.pending = c.claimed = None
-        c.session = ServerSession(c.name, options(c.credits), c.record, c.name)
+        c.session = ServerSession(c.name, options(c.credits), c.record, c.name, instance=c.instance)
         c.session.hello(new_socket=True)
         c.send()
 
@@ -342,12 +343,14 @@ class LeaseMachine(RuleBasedStateMachine):
 
     @rule(i=st.integers(0, 2))
     def connection_breaks(self, i):
-        """The connection breaks: what was in flight either way is lost; a new socket says hello."""
+        """The connection breaks: what was in flight either way is lost; a new socket (a new
+        identity, ``Connection._socket``) says hello."""
         c = self.client(i)
         if c.alive:
             SEEN["reconnect"] += 1
             c.up.clear()
             c.down.clear()
+            c.gen += 1
             c.session.outgoing()  # decided, never sent: the old socket is gone
             c.session.hello(new_socket=True)
             c.send()
@@ -379,6 +382,7 @@ class LeaseMachine(RuleBasedStateMachine):
         del c.checkpoints[j + 1:]
         SEEN["crash"] += 1
         late = list(c.up)
+        c.instance = f"p{c.gen}"  # a new process
         self.net.connect(c)
         c.up[:0] = late  # the dead process's messages were on the wire before the new hello
 

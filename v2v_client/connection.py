@@ -46,20 +46,20 @@ class Connection:
         receipts, iteration: in a DataLoader worker under ``StreamLoader``, the pipe on which
             the main process says which batches the training loop received, and the loader's
             iteration this connection serves.
+        instance: the reader process's token (``ServerSession``).
 
     Raises:
         ValueError: for ``options.curve_keys`` naming bad key files.
     """
 
     def __init__(self, endpoint: str, options, record, consumer: str, convert: Optional[Convert] = None,
-                 receipts=None, iteration: int = 0):
+                 receipts=None, iteration: int = 0, instance: str = ""):
         self.endpoint, self.options, self.record = endpoint, options, record
         self.curve = load_curve_keys(*options.curve_keys) if options.curve_keys else None
         self.session = ServerSession(endpoint, options, record, consumer, convert=convert,
-                                     ends_on_drained=receipts is not None, iteration=iteration)
+                                     ends_on_drained=receipts is not None, iteration=iteration, instance=instance)
         self._closing = threading.Event()
         self._ctx = zmq.Context.instance()
-        self._ident = uuid.uuid4().bytes
         self._wake = Wakeup(self._ctx)
         self._lingering, self._receipts = False, receipts  # DataLoader worker: what the training loop received
         self._unreceived = False  # close: the loader dropped what this worker queued
@@ -123,8 +123,11 @@ class Connection:
 
     # the I/O thread ------------------------------------------------------
     def _socket(self) -> zmq.Socket:
+        """A new socket, with an identity of its own: what the server sent the old one (batches,
+        grants, revokes of the session that was) can never arrive on it, and the server lets the
+        new connection in as the same reader's (docs/delivery.md, "Who may say hello")."""
         sock = self._ctx.socket(zmq.DEALER)
-        sock.setsockopt(zmq.IDENTITY, self._ident)
+        sock.setsockopt(zmq.IDENTITY, uuid.uuid4().bytes)
         sock.setsockopt(zmq.LINGER, 1000)
         sock.setsockopt(zmq.MAXMSGSIZE, MAX_SERVER_MSG)
         sock.setsockopt(zmq.RCVHWM, 0)

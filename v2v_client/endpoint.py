@@ -48,9 +48,11 @@ class EndpointStream:
     the reader's ``resume.ResumeState`` (``record``) across restarts.
     """
 
-    def __init__(self, endpoint: str, options: StreamOptions):
+    def __init__(self, endpoint: str, options: StreamOptions, instance: Optional[str] = None):
         self.endpoint = endpoint
         self.options = options
+        #: this reader process's token (the dataset's): the server lets one instance read a consumer at a time
+        self.instance = instance or uuid.uuid4().hex
         #: the reader's record; its consumer id (who acknowledges) survives reconnects and restarts
         self.record = ResumeState(uuid.uuid4().hex)
         self._info: Optional[dict] = None  # the stream info of the last connection closed
@@ -85,9 +87,9 @@ class EndpointStream:
     def consumer(self, value: str) -> None:
         self.record.consumer = value
 
-    def set_position(self, rank: int, world_size: int) -> None:
-        """The DDP position the next connection says hello with."""
-        self.options = replace(self.options, rank=rank, world_size=world_size)
+    def set_position(self, rank: int, world_size: int, group: Optional[str] = None) -> None:
+        """The DDP position (and group) the next connection says hello with."""
+        self.options = replace(self.options, rank=rank, world_size=world_size, group=group or self.options.group)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
@@ -137,12 +139,25 @@ class EndpointStream:
             self._conns.remove(conn)
 
     def _connect(self) -> Connection:
-        """A connection for a new iterator, saying hello with this stream's options and record."""
+        """A connection for a new iterator, saying hello with this stream's options and record. The
+        stream reads one connection at a time: an older iterator's connection closes first (that
+        iterator raises if it is resumed), so two iterators never read as one consumer.
+
+        Raises:
+            ValueError: the record was saved by another DDP rank (``ResumeState.place``).
+        """
+        o = self.options
+        self.record.place(o.group, o.rank, o.world_size)
         worker = torch.utils.data.get_worker_info()
+        if worker is None:
+            for old in list(self._conns):
+                old.items.put(StreamError(f"this V2VStreamDataset reading {self.endpoint} was iterated again: one "
+                                          f"iterator at a time reads a consumer (the newer one reads on)"))
+                self._drop(old)
         consumer = self.consumer if worker is None else f"{self.consumer}/{worker.id}"
-        convert = functools.partial(_to_tensors, self.options.raw, self.options.compact_flow)
-        conn = Connection(self.endpoint, self.options, self.record, consumer, convert, self.receipts,
-                          self.iteration)
+        convert = functools.partial(_to_tensors, o.raw, o.compact_flow)
+        conn = Connection(self.endpoint, o, self.record, consumer, convert, self.receipts, self.iteration,
+                          self.instance)
         self._conns.append(conn)
         return conn
 

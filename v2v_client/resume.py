@@ -57,6 +57,9 @@ class ResumeState:
         self.shard_batches: Dict[str, Dict[int, int]] = {}  # a fan-in's batches per shard per open epoch
         self.shard_of: Dict[str, str] = {}  # a fan-in's endpoint -> the shard it served
         self.pipeline: Dict[int, Tuple[int, List[str]]] = {}
+        #: the consumers a state gathered from every rank of a job speaks for (``gathered``)
+        self.supersedes: Tuple[Tuple[str, int], ...] = ()
+        self.origins: Set[str] = set()  # the servers (their welcome's ``server``) that granted its ids
 
     # ------------------------------------------------------------------ plain form
     def state(self) -> dict:
@@ -67,6 +70,10 @@ class ResumeState:
                    "batches": {str(e): n for e, n in self.batches.items()}, "recipe": self.recipe}
             if self.position is not None:
                 out.update(zip(("group", "rank", "world_size"), self.position))
+            if self.supersedes:
+                out["supersedes"] = [list(c) for c in self.supersedes]
+            if self.origins:
+                out["origins"] = sorted(self.origins)
             if self.shard_batches or self.shard_of:
                 out["shard_batches"] = {sh: {str(e): n for e, n in per.items()} for sh, per in self.shard_batches.items()}
                 out["shard_of"] = dict(self.shard_of)
@@ -92,10 +99,12 @@ class ResumeState:
         position = None
         if isinstance(state.get("world_size"), int) and isinstance(state.get("rank"), int):
             position = (str(state.get("group") or ""), state["rank"], state["world_size"])
+        supersedes = tuple((str(n), int(r)) for n, r in state.get("supersedes") or ())
+        origins = {str(o) for o in state.get("origins") or ()}
         with self.lock:
             self.completed_epoch, self.delivered, self.batches = completed, delivered, batches
             self.shard_batches, self.shard_of = shards, dict(state.get("shard_of") or {})
-            self.position = position
+            self.position, self.supersedes, self.origins = position, supersedes, origins
             if isinstance(state.get("consumer"), str) and state["consumer"]:
                 self.consumer = state["consumer"]
             if isinstance(state.get("recipe"), str):
@@ -116,7 +125,8 @@ class ResumeState:
             for e, sids in self.pipeline.values():
                 if e > self.completed_epoch:
                     ids.setdefault(e, set()).update(sids)
-            return ResumeIds(self.completed_epoch, {e: tuple(sorted(v)) for e, v in ids.items()}, dict(self.batches))
+            return ResumeIds(self.completed_epoch, {e: tuple(sorted(v)) for e, v in ids.items()}, dict(self.batches),
+                             self.supersedes, tuple(sorted(self.origins))[-16:])
 
     def check_recipe(self, recipe) -> Optional[str]:
         """A server's recipe fingerprint: why the record refuses it (its ids were made under
@@ -130,6 +140,79 @@ class ResumeState:
             if isinstance(recipe, str):
                 self.recipe = recipe
         return None
+
+    # ------------------------------------------------------------------ DDP positions
+    def key(self) -> Tuple[str, int]:
+        """The consumer the server knew this state's reader as: ``("g:<group>", rank)`` for a
+        DDP rank, else ``("c:<consumer id>", 0)``."""
+        if self.position is not None and self.position[2] > 1:
+            return "g:" + (self.position[0] or "default"), self.position[1]
+        return "c:" + self.consumer, 0
+
+    @classmethod
+    def gathered(cls, states: List[dict]) -> "ResumeState":
+        """One state for a job resumed at another world size, from the state of every rank of the
+        job that saved them: the newest completed epoch among them (the server told it complete
+        to one of them, so each of its samples reached some rank), the ids of the later epochs
+        together, per epoch the most batches a rank yielded (where DDP padding counts from), and
+        the consumers it speaks for (``supersedes``: every rank's). Every rank of the new job
+        loads it (docs/delivery.md, "A world size changes").
+
+        Raises:
+            ValueError: no state, or one of another format.
+        """
+        if not states:
+            raise ValueError("no rank's state to gather")
+        parts = []
+        for st in states:
+            p = cls()
+            p.load(st)
+            parts.append(p)
+        out = cls(parts[0].consumer)
+        out.completed_epoch = done = max(p.completed_epoch for p in parts)
+        for p in parts:
+            for e, ids in p.delivered.items():
+                if e > done:
+                    out.delivered.setdefault(e, set()).update(ids)
+            for e, n in p.batches.items():
+                if e > done:
+                    out.batches[e] = max(out.batches.get(e, 0), n)
+            out.recipe = out.recipe or p.recipe
+        out.supersedes = tuple(dict.fromkeys(k for p in parts for k in (p.key(),) + p.supersedes))
+        out.origins = set().union(*(p.origins for p in parts))
+        return out
+
+    def place(self, group: str, rank: int, world_size: int) -> None:
+        """This state's reader is about to say hello as ``rank`` of ``world_size`` in ``group``.
+        A state saved by one rank of a DDP job at another position speaks for that rank alone:
+        refused. One reader's whole state (world size 1) may start every rank of a new job (it
+        then speaks for that reader); a gathered state may start any position.
+
+        Raises:
+            ValueError: one line saying what to load instead.
+        """
+        with self.lock:
+            saved = self.position
+            if saved is not None and not self.supersedes and (saved[1], saved[2]) != (rank, world_size):
+                if saved[2] > 1:
+                    raise ValueError(
+                        f"this V2VStreamDataset state was saved by rank {saved[1]} of {saved[2]} and is loaded by rank "
+                        f"{rank} of {world_size}: it holds that rank's samples only. Resume at world size {saved[2]} "
+                        f"with each rank's own state, or load every rank's state in each rank: "
+                        f"ds.load_state_dict({{'v2v_ranks': [state of rank 0, ..., state of rank {saved[2] - 1}]}})")
+                self.supersedes = ((f"c:{self.consumer}", 0),)  # one reader's whole state, now read by a job
+            self.position = (group if world_size > 1 else "", rank, world_size)
+
+    def welcomed(self, server: Optional[str]) -> None:
+        """Server ``server`` (its welcome's id) welcomed this state's hello: what it grants is
+        named by its id from now on (``origins``), and the consumers a gathered state superseded
+        are settled there (later hellos speak for this reader alone)."""
+        with self.lock:
+            self.supersedes = ()
+            if not any(self.delivered.values()) and not self.pipeline:
+                self.origins.clear()  # nothing of another server's left
+            if isinstance(server, str) and server:
+                self.origins.add(server)
 
     # ------------------------------------------------------------------ the stream's steps
     def complete(self, epoch: int, batches_due: Optional[int] = None) -> Optional[int]:

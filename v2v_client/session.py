@@ -150,6 +150,8 @@ class ServerSession:
             arrays (views of the received message).
         ends_on_drained, iteration: a ``StreamLoader`` DataLoader worker: its iteration ends on
             ``drained``; the loader's iteration it serves (``receipts.Abandon`` names it).
+        instance: the reader process's token (the dataset's): the server lets one instance read
+            a consumer at a time (docs/delivery.md, "Who may say hello").
         welcomed: given the server's stream info, why the reader refuses this server (the stream
             ends with a :class:`StreamError`), or None; default: the record's recipe check.
 
@@ -161,8 +163,9 @@ class ServerSession:
 
     def __init__(self, endpoint: str, options, record: ResumeState, consumer: str, *,
                  convert: Optional[Convert] = None, ends_on_drained: bool = False, iteration: int = 0,
-                 welcomed: Optional[Callable[[dict], Optional[str]]] = None):
+                 instance: str = "", welcomed: Optional[Callable[[dict], Optional[str]]] = None):
         self.endpoint, self.options, self.record, self.consumer = endpoint, options, record, consumer
+        self.instance = instance
         self.outputs = tuple(options.outputs)
         self._welcomed = welcomed or (lambda info: record.check_recipe(info.get("recipe")))
         self.items: "queue.Queue" = queue.Queue()
@@ -201,7 +204,8 @@ class ServerSession:
         self._hello_seq += 1
         self._awaiting = None if new_socket else self._hello_seq
         h = Hello(self.outputs, o.credits, self.consumer, resume, o.group if o.world_size > 1 else None, o.rank,
-                  o.world_size, self._hello_seq, self.reader.shm is not None, self.compression, self.ends_on_drained)
+                  o.world_size, self._hello_seq, self.reader.shm is not None, self.compression, self.ends_on_drained,
+                  self.instance)
         size = len(pack(h.to_wire()))
         limit = (self.info or {}).get("max_hello_bytes", MAX_CLIENT_MSG)
         if size > limit:
@@ -364,6 +368,7 @@ class ServerSession:
         if m.hello_id == self._awaiting:
             self._awaiting = None
         self.info = m.info
+        self.record.welcomed(self.info.get("server"))
         refusal = self._welcomed(self.info)
         if refusal is not None:
             self.items.put(StreamError(f"v2v server at {self.endpoint}: {refusal}"))

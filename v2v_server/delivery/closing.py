@@ -119,6 +119,8 @@ class EpochEnds:
         if e > self.told_upto:
             self.told_upto = e
             log.info("epoch %d complete", e)
+            if self.journal is not None:
+                self.journal.epoch_told(e)
 
     def _close_for_good(self, own: Dict[Hashable, Set[int]], live: Set[int]) -> None:
         """Epochs told to every connection may be forgotten by the scheduler (it keeps the newest
@@ -140,7 +142,7 @@ class EpochEnds:
         left to make or send: the rest is held by other clients. A DataLoader worker waiting
         for a batch ends its iteration on it, so the loader (in order) can take the batches
         the other workers hold; it is sent nothing after it (``ClientRecord.takes``), and a batch
-        given back later goes to whoever still reads (docs/delivery.md, "Drained")."""
+        given back later goes to whoever still reads (docs/delivery.md, "The protocol", rule 6)."""
         s = self.sched
         drained = (s.max_epochs is not None and s.next_epoch >= s.max_epochs and not s.queue and not s.running
                    and not self.ledger.table.ready_count() and not self.batcher.waiting())
@@ -156,9 +158,9 @@ class EpochEnds:
         return msgs
 
     # ------------------------------------------------------------------ the server's life
-    def exit_due(self, now: float) -> bool:
-        """A bounded stream is over (``EpochScheduler.finished(told=True)``) and no reader was connected for
-        ``end_grace_s``: the server may exit."""
+    def exit_due(self, now: float, waiting: bool = False) -> bool:
+        """A bounded stream is over (``EpochScheduler.finished(told=True)``) and no reader was
+        connected (nor ``waiting`` to be let in) for ``end_grace_s``: the server may exit."""
         if not self.sched.finished(told=True):
             self.ended, self._idle_since = False, None
             return False
@@ -166,7 +168,7 @@ class EpochEnds:
             log.info("all %d epoch(s) delivered; ending the stream (the server stays up %.0f s with no trainer "
                      "connected, for trainers that resume)", self.sched.max_epochs, self.end_grace_s)
             self.ended = True
-        if self.ledger.clients:
+        if self.ledger.clients or waiting:
             self._idle_since = None
             return False
         if self._idle_since is None:

@@ -14,11 +14,14 @@ was given (``assembly.make_batch`` in the server), and a payload is only asked f
 from __future__ import annotations
 
 import logging
+import uuid
 from dataclasses import dataclass
-from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
+from typing import Callable, Hashable, List, Optional, Sequence, Tuple
 
+from v2v_server.delivery.admission import WAIT, Admission, name_of
 from v2v_server.delivery.batcher import SHUFFLES, Batcher
 from v2v_server.delivery.closing import EpochEnds
+from v2v_server.delivery.feed import WorkerFeed
 from v2v_server.delivery.ledger import DeliveryLedger
 from v2v_server.delivery.padding import GroupPadding
 from v2v_server.delivery.table import STRANDED, BatchRecord
@@ -37,6 +40,9 @@ Msg = Tuple[bytes, StreamMessage]
 
 
 MAX_SHUFFLE_BUFFER = 4096
+#: Seconds after a hello its consumer's older connection (of another reader process) must still
+#: speak for the hello to be refused as a second live reader (docs/delivery.md, "Who may say hello").
+CLAIM_MARGIN_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -145,62 +151,26 @@ class DeliveryCore:
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
         self.padding = GroupPadding()
         self.ends = EpochEnds(self.sched, self.ledger, self.batcher, self.padding, journal, p.lease_s, end_grace_s)
+        #: what a welcome names this server by (``info()["server"]``): the journal's, else this process's
+        self.server_id = journal.server_id if journal is not None else uuid.uuid4().hex[:16]
+        self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id)
+        self.feed = WorkerFeed(self.sched, self.ledger, self.batcher)
         self.info: Callable[[], dict] = dict
-        self.offered = tuple(p.offered)
-        self.task_outputs: Dict[int, tuple] = {}
-        self.outputs: Optional[tuple] = None  # what workers compute now: the union clients ask for
-        self.samples_made = 0
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
         if journal is not None:
             for consumer, delivered in journal.records.items():
                 self.sched.apply_resume(consumer, journal.completed, delivered)
 
-    # ------------------------------------------------------------------ workers
+    # ------------------------------------------------------------------ workers (``feed.WorkerFeed``)
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
-        """The ``task`` message for an idle worker, or None (nothing to do, or no client yet).
-        Its ``skip`` lists the ``(window, crop)`` of each sample of the video not to make;
-        ``codecs``: what the worker compresses each sample with (those clients asked for)."""
-        outs = self.ledger.outputs_wanted()
-        if outs:
-            self.outputs = tuple(o for o in OUTPUTS if o in outs)
-        if self.outputs is None:
-            return None
-        t = self.sched.next_task(worker, now)
-        if t is None:
-            return None
-        self.task_outputs[t.task_id] = self.outputs
-        return Task(t.task_id, t.epoch, t.video, self.outputs, tuple((k.window, k.crop) for k in sorted(t.skip)),
-                    tuple(codecs))
+        return self.feed.task_for(worker, now, codecs)
 
     def sample(self, worker: Hashable, task_id, key: SampleKey, now: float, build: Callable) -> bool:
-        """A worker sent sample ``key`` of ``task_id``'s video; ``build(lane)`` makes the sample
-        object (called only when the sample is wanted, with the open batch it joins,
-        ``Batcher.lane``, so the data path can copy it into that batch's buffer; it may raise,
-        which drops the sample and makes it owed again). Returns True when the sample was kept."""
-        key = self.sched.accept_sample(task_id, worker, key, now)
-        if key is None:
-            return False
-        epoch = self.sched.running[task_id].epoch
-        outputs = self.task_outputs.get(task_id, ())
-        lane = self.batcher.lane(epoch, outputs, self._to_come(epoch))
-        try:
-            s = build(lane)
-        except Exception:
-            self.sched.discarded(epoch, [key])
-            raise
-        self.samples_made += 1
-        self.batcher.add(epoch, outputs, key, s, lane)
-        return True
+        return self.feed.sample(worker, task_id, key, now, build)
 
     def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str]) -> Optional[Job]:
-        """A worker finished a task: ``windows`` complete windows the file gave, ``failed``
-        windows (window -> reason), ``error`` when the pass stopped early (see
-        ``EpochScheduler.task_done``). Returns the job (None for a late or stranger copy)."""
-        job = self.sched.task_done(task_id, worker, windows, failed, error)
-        if job is not None:
-            self.task_outputs.pop(task_id, None)
-        return job
+        return self.feed.done(worker, task_id, windows, failed, error)
 
     def worker_lost(self, worker: Hashable) -> Optional[Job]:
         return self.sched.worker_lost(worker)
@@ -209,51 +179,76 @@ class DeliveryCore:
         """Tasks silent for ``task_timeout_s``: reassigned; the workers should be replaced."""
         return self.sched.expire(now, self.policy.task_timeout_s)
 
-    def _to_come(self, epoch: int) -> Optional[int]:
-        """At most how many more samples ``epoch`` brings after the one just accepted, counted
-        only until past the shuffle buffer (``lanes x batch_size``): a number over it means at
-        least that many, and ``Batcher.lane`` then picks among every open batch, as when the
-        count is unknown. None: unknown, or one lane, where no count changes the choice."""
-        if self.batcher.lanes == 1:
-            return None
-        return self.sched.to_come(epoch, self.batcher.lanes * self.batcher.batch_size)
+    @property
+    def outputs(self) -> Optional[tuple]:
+        """What workers compute now: the union clients ask for (None before any hello)."""
+        return self.feed.outputs
+
+    @property
+    def samples_made(self) -> int:
+        return self.feed.samples_made
 
     # ------------------------------------------------------------------ clients
     def hello(self, ident: bytes, h: Hello, now: float) -> List[Msg]:
-        """A client says hello (first time or again): refused with an error, or welcomed. Its
-        consumer's other connections leave first, its stranded grants are settled by its resume
-        state (named: the loop got them; not named: back to the queue), and the state replaces
-        its record (docs/delivery.md, "Hello")."""
-        missing = [o for o in h.outputs if o not in self.offered]
-        if missing:
-            return [(ident, ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}",
-                                        "outputs"))]
+        """A client says hello (first time or again): refused with an error, held while another
+        reader's connection of its consumer is live (``[]``; a later :meth:`tick` answers it), or
+        welcomed (``admission.Admission``; docs/delivery.md, "Who may say hello")."""
         consumer, group = consumer_of(ident, h)
-        for other in [i for i, c in self.ledger.clients.items() if c.consumer == consumer and i != ident]:
-            self._leave(other, "its consumer said hello on another connection")
+        pending = self.admission.pending
+        verdict = self.admission.check(ident, h, consumer, group, now)
+        if verdict == WAIT:
+            if ident not in pending:
+                log.info("client %s waits: %s is read by another live connection", ident.hex(), name_of(consumer))
+            pending[ident] = (h, pending.get(ident, (h, now))[1])
+            return []
+        heard = pending.pop(ident, (h, now))[1]
+        if verdict is not None:
+            log.warning("client %s refused: %s", ident.hex(), verdict.message)
+            return [(ident, verdict)]
+        return self._welcome(ident, h, consumer, group, now, heard)
+
+    def _welcome(self, ident: bytes, h: Hello, consumer: Hashable, group: Optional[str], now: float,
+                 heard: float) -> List[Msg]:
+        """Let a hello in: older connections of its reader are fenced, the grants stranded with
+        the consumers it speaks for are settled by its resume state (named: the loop got them;
+        not named: back to the queue), and the state replaces their records."""
+        msgs: List[Msg] = []
+        speaks = self.admission.speaks_for(consumer, h)
+        for c in self.admission.others(ident, speaks):  # the same reader's: it closed them itself
+            self._leave(c.ident, "a newer connection of its reader said hello")
+            msgs.append((c.ident, ServerError("a newer connection of this reader took its consumer over", "fenced")))
         self._leave(ident, "it said hello again")
         r = h.resume
-        _, back = self.ledger.settle(consumer, lambda b: b.epoch <= r.completed_epoch
-                                     or set(b.keys) <= r.delivered.get(b.epoch, frozenset()))
-        for b in back:
-            self._undelivered(consumer, group, h.rank, b)
+        for who in speaks:
+            _, back = self.ledger.settle(who, lambda b: b.epoch <= r.completed_epoch
+                                         or set(b.keys) <= r.delivered.get(b.epoch, frozenset()))
+            for b in back:
+                self._undelivered(who, b)
+            if who != consumer:  # a gathered state speaks for it: its samples are in the state
+                self.sched.apply_resume(who, r.completed_epoch, {})
+                if self.journal is not None:
+                    self.journal.replaced(who, r.completed_epoch, {})
         self.sched.apply_resume(consumer, r.completed_epoch, {e: set(ks) for e, ks in r.delivered.items()})
         if self.journal is not None:
             self.journal.replaced(consumer, r.completed_epoch, r.delivered)
         if group is not None:
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
-                         r.completed_epoch, h.ends_on_drained)
+                         r.completed_epoch, h.ends_on_drained, h.instance, heard)
         self._drop_delivered()
         if self.outputs is None or any(o not in self.outputs for o in h.outputs):
             log.info("client %s asks for %s: workers now compute %s", ident.hex(), list(h.outputs),
                      list(self.ledger.outputs_wanted()))
-        return [(ident, Welcome(self.info(), h.hello_id))]
+        return msgs + [(ident, Welcome(dict(self.info(), server=self.server_id), h.hello_id))]
 
     def message(self, ident: bytes, msg, now: float) -> List[Msg]:
         """Any client message but hello (``v2v_wire.messages``); its cost is linear in its size."""
         c = self.ledger.touch(ident, now)
         if c is None:
+            if ident in self.admission.pending:  # its hello waits: nothing to say but heartbeats
+                if isinstance(msg, Bye):
+                    del self.admission.pending[ident]
+                return []
             if isinstance(msg, Bye):
                 return []
             return [(ident, ServerError("unknown client (this server may have restarted, or dropped it for "
@@ -269,7 +264,7 @@ class DeliveryCore:
         elif isinstance(msg, Released):
             back, ungranted = self.ledger.released(ident, msg.batch_ids)
             for b in ungranted:
-                self._undelivered(c.consumer, c.group if c.ddp else None, c.rank, b)
+                self._undelivered(c.consumer, b)
             if back:
                 log.info("batch(es) %s go back to the queue: the client released them", back)
         elif isinstance(msg, Credit):
@@ -282,20 +277,24 @@ class DeliveryCore:
         """Record ``batches`` (granted to client ``c``) delivered to its consumer: in the
         scheduler, the journal and its DDP group's counts."""
         for b in batches:
+            plan = self.sched.plans.get(b.epoch)
+            if plan is not None:
+                plan.served = True  # who has what of it is this server's to know from now on
             self.sched.delivered(c.consumer, b.epoch, b.keys)
             if self.journal is not None:
                 self.journal.delivered(c.consumer, b.epoch, b.keys)
             if c.ddp:
                 self.padding.acked(c.group, c.rank, b)
 
-    def _undelivered(self, consumer: Hashable, group: Optional[str], rank: int, b: BatchRecord) -> None:
+    def _undelivered(self, consumer: Hashable, b: BatchRecord) -> None:
         """A batch granted to ``consumer`` went back to the queue unused: its samples leave the
         consumer's record (scheduler, journal, DDP counts)."""
         self.sched.undelivered(consumer, b.epoch, b.keys)
         if self.journal is not None:
             self.journal.undelivered(consumer, b.epoch, b.keys)
-        if group is not None:
-            self.padding.released(group, rank, b)
+        name, rank = consumer
+        if name.startswith("g:"):
+            self.padding.released(name[2:], rank, b)
 
     def _leave(self, ident: bytes, why: str) -> None:
         """Connection ``ident`` is gone: what was leased to it goes back to the queue, what was
@@ -318,6 +317,7 @@ class DeliveryCore:
     def caught_up(self) -> None:
         """Nothing the clients sent is left unread: forget the connections found unreachable."""
         for ident in self._unreachable:
+            self.admission.pending.pop(ident, None)
             if ident in self.ledger.clients:
                 self._leave(ident, "it cannot be reached")
         self._unreachable.clear()
@@ -353,26 +353,33 @@ class DeliveryCore:
             log.info("batch %d carries %s, which no connected client takes as is; its samples are made again",
                      b.batch_id, sorted(b.outputs))
             self.sched.discarded(b.epoch, b.keys)
+        for ident, (h, _) in list(self.admission.pending.items()):  # hellos waiting for an older connection
+            msgs += self.hello(ident, h, now)
         pads, told = self.ends.tell(now)
         return sends + pads, msgs + told + self.ends.drained()
 
     # ------------------------------------------------------------------ views
     def finished(self) -> bool:
-        """Every epoch of a bounded stream is complete and nothing is left in the table but
-        grants stranded with consumers that left."""
-        return self.sched.finished() and all(b.state == STRANDED for b in self.ledger.batches.values())
+        """Every epoch of a bounded stream is complete, nothing is left in the table but grants
+        stranded with consumers that left, and no hello waits (its state may reopen an epoch)."""
+        return (self.sched.finished() and not self.admission.pending
+                and all(b.state == STRANDED for b in self.ledger.batches.values()))
 
     def exit_due(self, now: float) -> bool:
         """The server may exit (``closing.EpochEnds.exit_due``)."""
-        return self.ends.exit_due(now)
+        return self.ends.exit_due(now, bool(self.admission.pending))
 
     def connected(self) -> List[bytes]:
-        """The connections said hello and not gone."""
-        return list(self.ledger.clients)
+        """The connections said hello and not gone (those whose hello waits included)."""
+        return list(self.ledger.clients) + [i for i in self.admission.pending if i not in self.ledger.clients]
 
     def client_outputs(self, ident: bytes) -> Optional[tuple]:
         """What connection ``ident`` asked for (None: not connected)."""
         return getattr(self.ledger.clients.get(ident), "outputs", None)
+
+    def epoch_bound(self) -> Optional[int]:
+        """The most sample ids one epoch of a resume state may name (``Admission.epoch_bound``)."""
+        return self.admission.epoch_bound()
 
     def ready_count(self) -> int:
         """Batches ready to send (the server reads its workers while fewer wait)."""

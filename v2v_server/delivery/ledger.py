@@ -4,7 +4,7 @@ batches they hold (``table.BatchTable``), moved between states only by the table
 Pure: no sockets, no clock of its own (``now`` is an argument, seconds). The rules it applies
 (credits by batch id, leases and revokes, grants never taken back, silence, the server's own
 stalls, fair sharing, DDP groups waiting for their ranks) are written once, in docs/delivery.md
-("The server's table"); ``core.DeliveryCore`` is its one caller.
+("The protocol"); ``core.DeliveryCore`` is its one caller.
 """
 from __future__ import annotations
 
@@ -40,7 +40,8 @@ class ClientRecord:
     told_drained: bool = False  # told nothing more is coming unless a batch held elsewhere comes back
     told_end: bool = False  # told the stream ended (it was told its last epoch)
     ends_on_drained: bool = False  # a DataLoader worker: it ends its iteration on ``drained``
-    instance: str = ""  # the reader process's token (docs/delivery.md, "One reader per consumer")
+    instance: str = ""  # the reader process's token (docs/delivery.md, "Who may say hello")
+    heard: float = 0.0  # when it last said something itself (its hello's arrival, then any message)
 
     @property
     def takes(self) -> bool:
@@ -113,15 +114,16 @@ class DeliveryLedger:
     # ------------------------------------------------------------------ clients
     def join(self, ident: bytes, consumer: Hashable, outputs: tuple, credits: int, now: float,
              group: Optional[str] = None, rank: int = 0, world_size: int = 1, completed: int = -1,
-             ends_on_drained: bool = False, instance: str = "") -> Tuple[List[int], List[BatchRecord]]:
+             ends_on_drained: bool = False, instance: str = "", heard: Optional[float] = None
+             ) -> Tuple[List[int], List[BatchRecord]]:
         """A connection says hello (again); ``completed``: the last epoch its resume state calls
-        complete (none of those is sent); ``ends_on_drained``: see ``ClientRecord.takes``. An
-        earlier connection of the same identity leaves first (:meth:`leave`; what it returns is
-        returned)."""
+        complete (none of those is sent); ``ends_on_drained``: see ``ClientRecord.takes``;
+        ``heard``: when its hello arrived (default ``now``). An earlier connection of the same
+        identity leaves first (:meth:`leave`; what it returns is returned)."""
         back = self.leave(ident)
         credits = max(1, min(int(credits), self.max_credits))
         c = ClientRecord(ident, consumer, tuple(outputs), credits, now, group, rank, world_size, completed=completed,
-                         ends_on_drained=ends_on_drained, instance=instance)
+                         ends_on_drained=ends_on_drained, instance=instance, heard=now if heard is None else heard)
         c.served = self._tick  # a newcomer is served after those waiting longer
         self.clients[ident] = c
         if c.ddp:
@@ -153,7 +155,7 @@ class DeliveryLedger:
         """The client said something: its record, or None for an unknown client."""
         c = self.clients.get(ident)
         if c is not None:
-            c.last_seen = now
+            c.last_seen = c.heard = now
         return c
 
     def add_credits(self, ident: bytes, n: int) -> None:
@@ -181,9 +183,9 @@ class DeliveryLedger:
     def sends(self, now: float) -> Tuple[List[Tuple[bytes, BatchRecord]], List[BatchRecord]]:
         """Lease ready batches to clients with free slots (ready -> leased), in queue order,
         skipping batches only busy clients can take. Returns ``(sends, stale)``: the caller sends
-        each ``(ident, batch)``; ``stale`` batches lack an output every connected client asks for
-        (made before those clients came): they left the table and their samples must be made
-        again."""
+        each ``(ident, batch)``; ``stale`` batches lack an output every connected client asks for,
+        or every client with a free slot (made before those clients came): they left the table and
+        their samples must be made again."""
         out: List[Tuple[bytes, BatchRecord]] = []
         stale: List[BatchRecord] = []
         groups = self._ready_groups(now)
@@ -201,6 +203,9 @@ class DeliveryLedger:
                 continue  # else a reopened epoch: it waits for a client that has not completed it
             cand = [c for c in fits if c.ident in open_]
             if not cand:
+                if any(b.epoch > c.completed for c in open_.values()):  # only busy clients fit, a free one
+                    self.table.forget(bid)  # lacks an output: made again with it (a full client may never free)
+                    stale.append(b)
                 continue
             c = min(cand, key=lambda x: (x.ident == b.avoid, x.served, x.ident))
             self._tick += 1

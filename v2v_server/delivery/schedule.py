@@ -113,6 +113,7 @@ class EpochPlan:
     live: Set[SampleKey] = field(default_factory=set)
     complete: bool = False
     told: bool = False  # some reader was told it is complete: it no longer holds the stream back
+    served: bool = False  # this server granted some of its samples (so it knows who has what since)
     held: Dict[str, Dict[SampleKey, int]] = field(default_factory=dict)  # video -> sample -> records holding it
     live_by_video: Dict[str, Set[SampleKey]] = field(default_factory=dict)
     open_jobs: Dict[str, None] = field(default_factory=dict)  # videos of jobs queued or running, in epoch order
@@ -536,9 +537,9 @@ class EpochScheduler:
         """A consumer's resume state (authoritative for that consumer): in every epoch after
         ``completed_epoch`` its record becomes exactly ``delivered[epoch]``; samples it had
         acknowledged beyond that become owed again (a complete epoch reopens). A fresh
-        scheduler starts at ``completed_epoch + 1``."""
+        scheduler starts at ``completed_epoch + 1`` when it has that epoch to serve."""
         delivered = {e: {k for k in ks if k.video in self.known} for e, ks in delivered.items()}
-        if not self.plans and self.next_epoch <= completed_epoch:
+        if not self.plans and self.next_epoch <= completed_epoch < (self.max_epochs or completed_epoch + 2) - 1:
             self.next_epoch = completed_epoch + 1
         for e, plan in self.plans.items():
             if e <= completed_epoch:
