@@ -19,7 +19,7 @@ sending garbage for a while (its messages are then dropped before decoding).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, FrozenSet, Optional, Tuple
+from typing import Callable, Dict, FrozenSet, Optional, Tuple
 
 from v2v_wire.codecs import COMPRESSIONS
 from v2v_wire.fields import show
@@ -208,8 +208,30 @@ def _ids(h: dict, name: str) -> Tuple[int, ...]:
     return tuple(v)
 
 
-def _parse_keys(text: str, crops_per_window: int = 1) -> FrozenSet[SampleKey]:
-    return frozenset(parse_sample_ids(expand_ids(text), crops_per_window))
+#: ``bound(video)``: how many samples ``video`` gives under the server's recipe (``sys.maxsize``
+#: while unknown), or None when the server does not serve it (a fan-in's other shards: its ids
+#: are skipped unread).
+Bound = Callable[[str], Optional[int]]
+
+
+def _parse_keys(text: str, crops_per_window: int = 1, bound: Optional[Bound] = None) -> FrozenSet[SampleKey]:
+    """The keys of a resume epoch's ``ids.compact_ids`` text. With ``bound``, a line of a video the
+    server does not serve is skipped unread, and one naming more ids than its video gives is an
+    error before any of them is parsed: the cost stays linear in the text, and the memory in what
+    the server serves."""
+    if bound is None:
+        return frozenset(parse_sample_ids(expand_ids(text), crops_per_window))
+    keep = []
+    for line in text.split("\n"):
+        video = line.rpartition("#")[0]
+        n = bound(video)
+        if n is None:
+            continue
+        ids = line.count(",") + 1
+        if ids > n:
+            raise WireError(f"field 'resume.delivered' names {ids} sample ids of {video[:80]!r}, which gives {n}")
+        keep.append(line)
+    return frozenset(parse_sample_ids(expand_ids("\n".join(keep)), crops_per_window)) if keep else frozenset()
 
 
 def _epoch(e) -> bool:
@@ -226,7 +248,7 @@ def _supersedes(v) -> Tuple[ConsumerKey, ...]:
     return tuple((name, rank) for name, rank in v)
 
 
-def _resume(v, crops_per_window: int = 1, max_ids: Optional[int] = None) -> Resume:
+def _resume(v, crops_per_window: int = 1, bound: Optional[Bound] = None) -> Resume:
     if v is None:
         return Resume()
     if not isinstance(v, dict):
@@ -241,10 +263,7 @@ def _resume(v, crops_per_window: int = 1, max_ids: Optional[int] = None) -> Resu
             raise WireError(f"field 'resume.delivered' keys must be epoch numbers (0 .. {MAX_EPOCH}), got {show(e)}")
         if not isinstance(ids, str):
             raise WireError(f"field 'resume.delivered[{e}]' must be a string of sample ids (ids.compact_ids)")
-        if max_ids is not None and ids.count(",") + ids.count("\n") >= max_ids:  # counted before any is parsed
-            raise WireError(f"field 'resume.delivered[{e}]' names {ids.count(',') + ids.count(chr(10)) + 1} sample "
-                            f"ids; an epoch of this server holds {max_ids}")
-        delivered[int(e)] = _parse_keys(ids, crops_per_window)
+        delivered[int(e)] = _parse_keys(ids, crops_per_window, bound)
     bt = v.get("batches", {})
     if not isinstance(bt, dict):
         raise WireError(f"field 'resume.batches' must be a map, got {show(bt)}")
@@ -259,10 +278,10 @@ def _resume(v, crops_per_window: int = 1, max_ids: Optional[int] = None) -> Resu
     return Resume(completed, delivered, batches, _supersedes(v.get("supersedes", [])), tuple(origins))
 
 
-def parse_client(h: dict, max_credits: int, crops_per_window: int = 1, max_ids: Optional[int] = None) -> object:
+def parse_client(h: dict, max_credits: int, crops_per_window: int = 1, bound: Optional[Bound] = None) -> object:
     """Check a decoded client header against the schema of its ``type`` (resume ids are read
-    with the server's ``crops_per_window``, see ``ids.py``; an epoch of a resume state may name at
-    most ``max_ids`` of them, counted before they are parsed: None, no bound).
+    with the server's ``crops_per_window``, see ``ids.py``, and its videos' ``bound``: see
+    :data:`Bound`; None reads them all).
 
     Returns one of :class:`Hello`, :class:`Ack`, :class:`Released`, :class:`Hold`,
     :class:`Credit`, :class:`Heartbeat`, :class:`Bye`.
@@ -306,7 +325,7 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1, max_ids: 
         instance = h.get("instance", "")
         if not isinstance(instance, str) or len(instance) > 64:
             raise WireError(f"field 'instance' must be a string of at most 64 characters, got {show(instance)}")
-        return Hello(outs, credits, consumer, _resume(h.get("resume"), crops_per_window, max_ids),
+        return Hello(outs, credits, consumer, _resume(h.get("resume"), crops_per_window, bound),
                      group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm, compression, ends, instance)
     if kind == "ack":
         return Ack(_ids(h, "batch_ids"))
@@ -324,15 +343,15 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1, max_ids: 
 
 
 def decode_client(frame, max_bytes: int, max_credits: int, crops_per_window: int = 1,
-                  max_ids: Optional[int] = None) -> object:
+                  bound: Optional[Bound] = None) -> object:
     """Bounded decoding + schema check of one client frame (bytes, memoryview or zmq.Frame;
-    ``max_ids``: see :func:`parse_client`).
+    ``bound``: see :func:`parse_client`).
 
     Raises:
         WireError: for anything but a well-formed message of a known type.
     """
     buf = frame.buffer if hasattr(frame, "buffer") else frame
-    return parse_client(bounded_unpackb(buf, max_bytes), max_credits, crops_per_window, max_ids)
+    return parse_client(bounded_unpackb(buf, max_bytes), max_credits, crops_per_window, bound)
 
 
 # ---------------------------------------------------------------------- misbehaving peers

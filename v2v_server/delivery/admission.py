@@ -12,7 +12,8 @@ resume states the server cannot tell are false (docs/delivery.md, "Who may say h
 * **One world size per DDP group**, while any rank of it is connected.
 * **Resume states checked**, at a cost linear in their size: no epoch past the last one of a
   bounded stream; with ``--state-dir`` no completed epoch the journal never saw told; ids of the
-  corpus's videos within the windows each video has; and no id this server never granted to
+  corpus's videos within the windows each video has (counted before they are parsed, other
+  videos' ids skipped unread: ``messages.Bound``); and no id this server never granted to
   that consumer (or to the consumers a gathered state speaks for), in an open epoch whose grants
   it knows: with ``--state-dir`` every one; without, one the state says this server granted (its
   ``origins`` name this server only), or, with no ``origins``, one this server has granted from.
@@ -20,6 +21,7 @@ resume states the server cannot tell are false (docs/delivery.md, "Who may say h
 """
 from __future__ import annotations
 
+import sys
 from typing import Dict, Hashable, List, Optional, Set, Tuple
 
 from v2v_server.delivery.ledger import ClientRecord, DeliveryLedger
@@ -117,13 +119,13 @@ class Admission:
             n = self.max_windows * self.k
         return n
 
-    def epoch_bound(self) -> Optional[int]:
-        """Samples an epoch can hold, when every video's count (or the recipe's bound) is known;
-        None otherwise (what a resume state's epoch may name at most, counted before parsing)."""
-        s = self.sched
-        if self.max_windows is not None:
-            return len(s.known) * self.max_windows * self.k
-        return sum(s.counts.values()) if len(s.counts) == len(s.known) else None
+    def bound(self, video: str) -> Optional[int]:
+        """What a resume state may name of ``video`` (``messages.Bound``): the samples it gives
+        (``sys.maxsize`` while unknown), None for a video this server does not serve."""
+        if video not in self.sched.known:
+            return None
+        n = self.windows_of(video)
+        return sys.maxsize if n is None else n
 
     def verifies(self, epoch: int, origins: Tuple[str, ...]) -> bool:
         """A resume state naming servers ``origins`` can be checked against who this server

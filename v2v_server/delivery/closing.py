@@ -44,6 +44,7 @@ class EpochEnds:
         self.sched, self.ledger, self.batcher, self.padding, self.journal = sched, ledger, batcher, padding, journal
         self.grant_wait_s, self.end_grace_s = grant_wait_s, end_grace_s
         self.told_upto = -1  # the newest epoch told complete to some connection
+        self._low: Optional[int] = None  # the oldest epoch every connection was told, at the last full turn
         self.ended = False  # the stream is over (logged once)
         self._idle_since: Optional[float] = None  # over, with no reader connected, since
 
@@ -52,9 +53,13 @@ class EpochEnds:
         """``epoch_done`` for every epoch each connection may now be told (a DDP rank that was
         never sent a batch first gets a padding batch, ``GroupPadding.epoch_done``), then ``end``
         to each connection told its last epoch. Returns ``(padding sends, messages)``."""
-        own, live, fresh = self._holders(now)
         pads: List[Tuple[bytes, BatchRecord]] = []
         msgs: List[Msg] = []
+        low = min((c.completed for c in self.ledger.clients.values()), default=self.told_upto)
+        if low == self._low and not any(self._may_tell(c) for c in self.ledger.clients.values()):
+            return pads, msgs  # nothing to tell and nothing to forget: the common turn costs O(connections)
+        self._low = low
+        own, live, fresh = self._holders(now)
         for ident, c in self.ledger.clients.items():
             blocked = sorted(live | own.get(c.consumer, set()) | {e for e, who in fresh.items() if who - {c.consumer}})
             while True:
@@ -77,6 +82,15 @@ class EpochEnds:
                 msgs.append((ident, End()))
         self._close_for_good(own, live)
         return pads, msgs
+
+    def _may_tell(self, c: ClientRecord) -> bool:
+        """Connection ``c`` might be told something now: its next epoch is opened and complete
+        (or forgotten), or the stream's end."""
+        e, s = c.completed + 1, self.sched
+        if s.max_epochs is not None and c.completed >= s.max_epochs - 1:
+            return not c.told_end
+        plan = s.plans.get(e)
+        return e < s.next_epoch and (plan is None or plan.complete)
 
     def _holders(self, now: float):
         """``(own, live, fresh)``: per consumer the epochs it holds grants of; the epochs with a

@@ -235,7 +235,7 @@ class DeliveryCore:
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
                          r.completed_epoch, h.ends_on_drained, h.instance, heard)
-        self._drop_delivered()
+        self.feed.drop_delivered()
         if self.outputs is None or any(o not in self.outputs for o in h.outputs):
             log.info("client %s asks for %s: workers now compute %s", ident.hex(), list(h.outputs),
                      list(self.ledger.outputs_wanted()))
@@ -322,18 +322,6 @@ class DeliveryCore:
                 self._leave(ident, "it cannot be reached")
         self._unreachable.clear()
 
-    def _drop_delivered(self) -> None:
-        """Remove from queued batches and pending samples everything some trainer already has."""
-        table = self.ledger.table
-        for bid, gone in table.ready_samples(self.sched.is_delivered):
-            b = table.get(bid)
-            gone_set = set(gone)
-            keep = [i for i, k in enumerate(b.keys) if k not in gone_set]
-            table.shrink(bid, keep, b.payload.subset(keep) if keep else None)
-            self.sched.discarded(b.epoch, gone)
-        for epoch, gone in self.batcher.drop(self.sched.is_delivered):
-            self.sched.discarded(epoch, gone)
-
     # ------------------------------------------------------------------ time
     def tick(self, now: float) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
         """Batch leftovers, expire leases and clients, lease ready batches, tell the ends of
@@ -377,9 +365,14 @@ class DeliveryCore:
         """What connection ``ident`` asked for (None: not connected)."""
         return getattr(self.ledger.clients.get(ident), "outputs", None)
 
-    def epoch_bound(self) -> Optional[int]:
-        """The most sample ids one epoch of a resume state may name (``Admission.epoch_bound``)."""
-        return self.admission.epoch_bound()
+    def resume_bound(self, video: str) -> Optional[int]:
+        """What a resume state may name of ``video`` (``messages.Bound``, ``Admission.bound``)."""
+        return self.admission.bound(video)
+
+    @property
+    def resent(self) -> int:
+        """Batches given back to the queue so far (the server counts them into its metrics)."""
+        return self.ledger.table.resent
 
     def ready_count(self) -> int:
         """Batches ready to send (the server reads its workers while fewer wait)."""

@@ -77,3 +77,16 @@ class WorkerFeed:
         if self.batcher.lanes == 1:
             return None
         return self.sched.to_come(epoch, self.batcher.lanes * self.batcher.batch_size)
+
+    def drop_delivered(self) -> None:
+        """Remove from ready batches and samples waiting for a batch everything some consumer has
+        (a resume state said so): they are not sent twice."""
+        table = self.ledger.table
+        for bid, gone in table.ready_samples(self.sched.is_delivered):
+            b = table.get(bid)
+            gone_set = set(gone)
+            keep = [i for i, k in enumerate(b.keys) if k not in gone_set]
+            table.shrink(bid, keep, b.payload.subset(keep) if keep else None)
+            self.sched.discarded(b.epoch, gone)
+        for epoch, gone in self.batcher.drop(self.sched.is_delivered):
+            self.sched.discarded(epoch, gone)

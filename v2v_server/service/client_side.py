@@ -140,7 +140,7 @@ class ClientSide:
             if len(frames) != 2:
                 raise WireError(f"expected 1 frame after the identity, got {len(frames) - 1}")
             msg = decode_client(frames[1], MAX_CLIENT_MSG, self.cfg.max_credits, self.cfg.crops_per_window,
-                                self.core.epoch_bound())
+                                self.core.resume_bound)
         except WireError as e:
             self._bad_peer(ident, str(e), now)
             return

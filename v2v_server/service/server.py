@@ -243,7 +243,7 @@ class V2VServer:
     def _count_resent(self) -> None:
         """Count the batches given back to the queue into the metrics (the core requeues them
         inside its pure decisions; this is where the loop learns of them)."""
-        resent = self.core.status()["resent"]
+        resent = self.core.resent
         for _ in range(resent - self._resent_seen):
             self.metrics.on_batch_resent()
         self._resent_seen = resent
