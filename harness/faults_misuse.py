@@ -78,7 +78,8 @@ def _ddp_job(endpoint: str, world: int, logs: List[list], errors: list, step_s: 
     default, as a user who leaves it); each rank's real samples to ``logs[rank]``."""
     def rank(r: int) -> None:
         try:
-            ds = V2VStreamDataset(endpoint, timeout_s=60, credits=1, rank=r, world_size=world, group=group)
+            kw = {} if group is None else {"group": group}  # None: as a user who leaves it at its default
+            ds = V2VStreamDataset(endpoint, timeout_s=60, credits=1, rank=r, world_size=world, **kw)
             for b in ds:
                 started.set()
                 logs[r].append((time.monotonic(), [s for s, p in zip(b["sample_ids"], b["padding"].tolist()) if not p]))

@@ -746,3 +746,51 @@ def test_a_client_that_closed_after_its_last_messages_still_gives_back_what_it_r
     finally:
         frontend.close(0)
         ctx.term()
+
+
+def test_a_reader_sitting_on_a_grant_forever_never_makes_an_unbounded_stream_keep_more_epochs():
+    """On a stream without ``--epochs``, reader A keeps one grant of epoch 0 and never
+    acknowledges it while reader B reads 12 epochs: B is told each epoch complete, and the server
+    keeps a bounded number of epochs open (it does not accumulate one per epoch B reads, as it
+    did when an epoch waited for every grant of it); A's grant stays in the table, A's."""
+    core = DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=None, lease_s=LEASE,
+                                                      client_timeout_s=TIMEOUT, revoke_s=REVOKE, max_credits=4,
+                                                      shuffle="none"), make_batch, stall_s=STALL_S)
+    core.hello(b"a", Hello(("voxels",), 1, consumer="a"), 0.0)
+    core.hello(b"b", Hello(("voxels",), 2, consumer="b"), 0.0)
+    kept, told_b, most_open, now = None, [], 0, 0.0
+    while len(told_b) < 12 and now < 600:
+        now += 0.5
+        _make_everything(core, now)
+        core.message(b"a", Heartbeat(), now)
+        core.message(b"b", Heartbeat(), now)
+        sends, msgs = core.tick(now)
+        for ident, b in sends:
+            core.message(ident, Hold((b.batch_id,)), now)
+            if ident == b"a" and kept is None:
+                kept = b.batch_id  # A's one grant, never acknowledged
+            elif ident == b"b":
+                core.message(ident, Ack((b.batch_id,)), now)
+        told_b += [m.epoch for i, m in msgs if i == b"b" and m.to_wire()["type"] == "epoch_done"]
+        most_open = max(most_open, len(core.sched.plans))
+    assert told_b == list(range(12)), told_b
+    assert most_open <= core.sched.keep_epochs + core.sched.lookahead + 2, most_open
+    assert core.ledger.table.get(kept).state == "granted" and core.ledger.clients[b"a"].completed < 0
+
+
+def test_a_client_found_unreachable_is_forgotten_only_once_its_messages_are_read():
+    """The answer to a hold cannot reach a client that closed right after its last messages: the
+    core is told (``unreachable``) and still reads the release that follows as that client's (the
+    batch goes back to the queue); once nothing is left unread (``caught_up``) it is forgotten."""
+    core = _one_epoch_core()
+    core.hello(b"gone", Hello(("voxels",), 2, consumer="g"), 0.0)
+    _make_everything(core, 0.0)
+    sends, _ = core.tick(0.0)
+    bid = next(b.batch_id for i, b in sends if i == b"gone")
+    assert core.message(b"gone", Hold((bid,)), 0.1)[0][1].batch_ids == (bid,)
+    core.unreachable(b"gone")  # the granted answer could not be sent
+    core.message(b"gone", Released((bid,)), 0.1)
+    assert core.ledger.table.get(bid).state == "ready" and b"gone" in core.connected()
+    core.message(b"gone", Bye(), 0.1)
+    core.caught_up()
+    assert core.connected() == [] and core.ledger.table.get(bid).state == "ready"

@@ -139,9 +139,12 @@ class EpochEnds:
     def _close_for_good(self, own: Dict[Hashable, Set[int]], live: Set[int]) -> None:
         """Epochs told to every connection may be forgotten by the scheduler (it keeps the newest
         few); those also held by nobody, and every epoch before them, leave the journal (its
-        watermark: a restart starts after it)."""
-        low = min((c.completed for c in self.ledger.clients.values()), default=self.told_upto)
-        held = live.union(*own.values()) if own else set(live)
+        watermark: a restart starts after it). A connection, or a grant, more than the scheduler's
+        ``keep_epochs`` behind the newest epoch told holds neither back: a reader sitting on its
+        grants never makes the server keep more epochs (what it holds stays in the table)."""
+        floor = self.told_upto - self.sched.keep_epochs
+        low = max(floor, min((c.completed for c in self.ledger.clients.values()), default=self.told_upto))
+        held = {e for e in live.union(*own.values()) if e > floor} if own else {e for e in live if e > floor}
         done = min(low, min(held) - 1) if held else low
         if self.journal is not None and done > self.journal.completed:
             plans = self.sched.plans
