@@ -110,11 +110,6 @@ class ResumeState:
             if isinstance(state.get("recipe"), str):
                 self.recipe = state["recipe"]
 
-    def copy(self) -> "ResumeState":
-        out = ResumeState(self.consumer)
-        out.load(self.state())
-        return out
-
     # ------------------------------------------------------------------ wire form
     def hello_resume(self) -> ResumeIds:
         """A hello's resume state: the completed epoch, the ids handed on per open epoch (in a
@@ -284,6 +279,17 @@ class ResumeState:
             per = self.batches if shard is None else self.shard_batches.setdefault(shard, {})
             per[epoch] = per.get(epoch, 0) + 1
 
+    def not_handed_on(self, epoch: int, sample_ids: Iterable[str], endpoint: Optional[str] = None) -> None:
+        """Undo :meth:`handed_on` for a batch of an open ``epoch`` that the training loop never
+        received (``launchers.unseen``); ``endpoint``: a fan-in's, counted for the shard it serves."""
+        with self.lock:
+            if epoch > self.completed_epoch and epoch in self.delivered:
+                self.delivered[epoch].difference_update(sample_ids)
+                shard = self.shard_of.get(endpoint, endpoint)
+                per = self.shard_batches.get(shard, {}) if self.shard_batches else self.batches
+                if per.get(epoch, 0) > 0:
+                    per[epoch] -= 1
+
     def _forget_upto(self, epoch: int) -> None:
         self.completed_epoch = max(self.completed_epoch, epoch)
         for d in [self.delivered, self.batches, *self.shard_batches.values()]:
@@ -291,10 +297,6 @@ class ResumeState:
                 del d[e]
 
     # ------------------------------------------------------------------ a DataLoader worker's pipeline
-    def in_pipeline(self) -> int:
-        with self.lock:
-            return len(self.pipeline)
-
     def pipeline_ids(self) -> List[int]:
         with self.lock:
             return list(self.pipeline)

@@ -289,7 +289,7 @@ class ServerSession:
     def lingering_done(self) -> bool:
         """A worker's connection kept open for the batches in the loader's queues may close:
         every one was received, or the loop left."""
-        return self.abandoned or not self.record.in_pipeline()
+        return self.abandoned or not self.record.pipeline_ids()
 
     # ------------------------------------------------------------------ what comes in
     def on_message(self, frames) -> Optional[str]:
