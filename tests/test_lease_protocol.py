@@ -584,6 +584,46 @@ def test_a_reader_sitting_on_a_grant_delays_the_others_end_of_the_epoch_by_the_l
     assert [m.to_wire()["type"] for i, m in msgs if i == b"a.1"][:2] == ["epoch_done", "end"]
 
 
+def test_a_reader_sitting_on_what_it_was_sent_delays_the_others_end_of_the_epoch_within_the_stated_bound():
+    """docs/delivery.md's bound: reader A never takes what it is sent and answers each revoke
+    with a ``hold`` at the last moment (the latest a leased batch can become a grant), then sits
+    on the grants; reader B, reading everything else, is told the epoch complete and the stream
+    ended at most ``2 lease_s + revoke_s`` after the last batch sent to A."""
+    core = _one_epoch_core()
+    core.hello(b"a.1", Hello(("voxels",), 2, consumer="a"), 0.0)
+    core.hello(b"b.1", Hello(("voxels",), 1, consumer="b"), 0.0)
+    _make_everything(core, 0.0)
+    sent_to_a: Dict[int, float] = {}
+    revoked_at: Dict[int, float] = {}
+    told_b: List[str] = []
+    for step in range(400):
+        now = 0.05 * step
+        core.message(b"a.1", Heartbeat(), now)
+        core.message(b"b.1", Heartbeat(), now)
+        for bid, t in list(revoked_at.items()):
+            if now >= t + REVOKE - 0.1:  # the revoke's deadline is about to pass: A asks for it
+                assert core.message(b"a.1", Hold((bid,)), now)[0][1].batch_ids == (bid,)
+                del revoked_at[bid]
+        sends, msgs = core.tick(now)
+        for ident, m in msgs:
+            if ident == b"a.1" and isinstance(m, sm.Revoke):
+                revoked_at.update((bid, now) for bid in m.batch_ids)
+        told_b += [m.to_wire()["type"] for i, m in msgs if i == b"b.1" and m.to_wire()["type"] != "drained"]
+        if told_b:
+            break
+        for ident, b in sends:
+            if ident == b"a.1":
+                sent_to_a[b.batch_id] = now
+            else:
+                core.message(ident, Hold((b.batch_id,)), now)
+                core.message(ident, Ack((b.batch_id,)), now)
+    assert told_b == ["epoch_done", "end"] and sent_to_a and not revoked_at
+    assert b"a.1" in core.ledger.clients and core.ledger.clients[b"a.1"].completed == -1  # A sits on 2 grants
+    assert {core.ledger.table.get(bid).state for bid in sent_to_a} == {"granted"}
+    waited = now - max(sent_to_a.values())
+    assert LEASE + REVOKE < waited <= 2 * LEASE + REVOKE + 0.1, (now, sent_to_a)  # the worst case, within the bound
+
+
 def test_the_rule_it_replaced_doubles_on_the_same_schedule():
     """The ack-only client rule (take any batch still held, ask for nothing: ``bench.lease``'s
     baseline), paused after its claim on the schedule above: the server gives the batch to B

@@ -1,23 +1,8 @@
 """Which hellos are let in, pure: one live reader per consumer, one world size per DDP group, and
-resume states the server cannot tell are false (docs/delivery.md, "Who may say hello").
-
-* **One reader per consumer.** A hello of consumer X while another connection of X is live: from
-  the same reader process (its ``instance`` token: a new iterator, a loader's next worker, a
-  reconnect) the newer connection wins and the older is fenced; from another process (a second
-  job with the same consumer id or DDP group, or a restarted trainer whose old connection the
-  server has not yet found silent) the hello waits until the older connection leaves (bye, or
-  dropped for silence: a crashed trainer's restart), and is refused with one line naming the
-  consumer as soon as the older one speaks ``claim_margin_s`` or more after the hello arrived
-  (it is alive: a second reader; what a dead process had in flight arrives sooner).
-* **One world size per DDP group**, while any rank of it is connected.
-* **Resume states checked**, at a cost linear in their size: no epoch past the last one of a
-  bounded stream; with ``--state-dir`` no completed epoch the journal never saw told; ids of the
-  corpus's videos within the windows each video has (counted before they are parsed, other
-  videos' ids skipped unread: ``messages.Bound``); and no id this server never granted to
-  that consumer (or to the consumers a gathered state speaks for), in an open epoch whose grants
-  it knows: with ``--state-dir`` every one; without, one the state says this server granted (its
-  ``origins`` name this server only), or, with no ``origins``, one this server has granted from.
-  A state naming another server's grants (a restart without ``--state-dir``) is taken on trust.
+resume states the server cannot tell are false. The rules are docs/delivery.md ("Who may say
+hello"); :meth:`Admission.check` applies them in that order, :meth:`Admission.resume_problem` at a
+cost linear in the state (a video's ids counted before they are parsed, other videos' skipped
+unread: ``messages.Bound``).
 """
 from __future__ import annotations
 
@@ -44,8 +29,8 @@ def name_of(consumer: Hashable) -> str:
 
 
 class Admission:
-    """The checks a hello passes (module docstring), and the hellos waiting for an older
-    connection of their consumer (``pending``: ident -> (hello, since when)).
+    """The checks a hello passes (docs/delivery.md, "Who may say hello"), and the hellos waiting
+    for an older connection of their consumer (``pending``: ident -> (hello, since when)).
 
     Args:
         sched, ledger: the core's parts (read only).
@@ -129,7 +114,8 @@ class Admission:
 
     def verifies(self, epoch: int, origins: Tuple[str, ...]) -> bool:
         """A resume state naming servers ``origins`` can be checked against who this server
-        granted what of ``epoch`` (module docstring)."""
+        granted what of ``epoch`` (docs/delivery.md, "Who may say hello": an epoch whose grants it
+        knows)."""
         plan = self.sched.plans.get(epoch)
         if plan is None:
             return False

@@ -1,13 +1,7 @@
-"""What each connection is told about the ends of epochs and of the stream, pure.
-
-An epoch ends per connection, in order (docs/delivery.md, "Ends of epochs"): connection C is told
-``epoch_done`` for epoch e once e is complete, no batch of e is ready, leased or revoked, C's own
-consumer holds no grant of e, and every other consumer's grant of e is at least ``grant_wait_s``
-old. So a reader sitting on its grants (a stuck loop, an hour of validation, a hostile client)
-delays only itself, and delays the others by at most ``grant_wait_s``; a grant given back after
-the others were told goes to a reader that was not (the one that gave it back, when it reads on).
-A bounded stream ends for C (``end``) once C was told its last epoch; the server may exit once
-the stream is over and no reader was connected for ``end_grace_s``.
+"""What each connection is told about the ends of epochs and of the stream (``epoch_done``,
+``end``, ``drained``), and when the server may exit, pure. The rules, and the bound on how long a
+reader sitting on its grants delays the others, are docs/delivery.md ("Ends of epochs and of the
+stream"); :class:`EpochEnds` applies them each turn of the server's loop.
 """
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """DDP padding, per group of ranks: what each rank of a group yielded per epoch, so that every
-rank yields the same number of batches (docs/delivery.md, "DDP" and "Ends of epochs"). Pure."""
+rank yields the same number of batches (docs/delivery.md, "DDP" and "Ends of epochs and of the
+stream"). Pure."""
 from __future__ import annotations
 
 from typing import Callable, Dict, Optional, Tuple

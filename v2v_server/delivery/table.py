@@ -1,22 +1,11 @@
 """The server's one table of batches: every batch made and not yet acknowledged, each in exactly
 one state, changed only by the transition methods of :class:`BatchTable`.
 
-Pure: no sockets, no clock of its own. The states and the rules that move a batch between them
-are docs/delivery.md ("The server's table"); each method below names the transition it makes:
-
-======== ================================================ =====================================
-state    meaning                                          holder
-======== ================================================ =====================================
-ready    queued, to be sent (``avoid``: a connection that none
-         gave it back, sent it elsewhere first)
-leased   sent; taken back when ``deadline`` passes         the connection it was sent to
-revoked  asked back; its connection is dropped when        the same connection
-         ``deadline`` passes unanswered
-granted  its samples are its consumer's for good; never    the connection it was granted on
-         taken back
-stranded granted, and that connection is gone: waits for   none (``consumer`` keeps it)
-         its consumer's next hello
-======== ================================================ =====================================
+Pure: no sockets, no clock of its own. The states (:data:`STATES`) and the rules that move a
+batch between them are docs/delivery.md ("The server's table"), once; each method below names the
+transition it makes. A leased, revoked or granted batch is held by its connection
+(``BatchRecord.holder``); a stranded one by none (its ``consumer`` keeps it); a ready one is sent
+to another connection than the one that gave it back (``avoid``) first.
 
 An acknowledged batch leaves the table (:meth:`retire`). Besides the table, two indexes kept by
 the same methods make every lookup O(1): the ready queue's order and each connection's batches.
