@@ -75,9 +75,11 @@ class DeliveryPolicy:
 
     batch_size: int = setting(12, help="samples per batch (the last batch of an epoch may be smaller)")
     epochs: Optional[int] = setting(None, help="end the stream after this many epochs (default: unbounded)")
-    lease_s: float = setting(60.0, help="seconds before an unacknowledged batch is sent again", flag="--lease")
-    client_timeout_s: float = setting(10.0, help="seconds of client silence before its batches go back to the queue",
-                                      flag="--client-timeout")
+    lease_s: float = setting(60.0, help="seconds a sent batch waits for its client's hold before it is asked "
+                                        "back (revoke)", flag="--lease")
+    client_timeout_s: float = setting(10.0, help="seconds of client silence before it is dropped (what it was sent "
+                                                 "and not granted goes back to the queue; its grants wait for its "
+                                                 "consumer's next hello)", flag="--client-timeout")
     revoke_s: Optional[float] = setting(None, help="seconds a client may leave a revoke unanswered before it is "
                                                    "dropped (default: the client timeout)", flag="--revoke-timeout")
     max_credits: int = setting(64, help="most batches one client may hold")
