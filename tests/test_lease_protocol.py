@@ -36,6 +36,7 @@ from v2v_client.options import StreamOptions
 from v2v_client.resume import ResumeState
 from v2v_client.session import ServerSession
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+from v2v_server.delivery.journal import FILE as JOURNAL_FILE, Journal
 from v2v_server.delivery.ledger import STALL_S
 from v2v_wire import stream_messages as sm
 from v2v_wire.ids import SampleKey, parse_sample_id
@@ -624,7 +625,7 @@ def test_a_reader_sitting_on_what_it_was_sent_delays_the_others_end_of_the_epoch
     assert LEASE + REVOKE < waited <= 2 * LEASE + REVOKE + 0.1, (now, sent_to_a)  # the worst case, within the bound
 
 
-def test_the_rule_it_replaced_doubles_on_the_same_schedule():
+def test_the_ack_only_rule_doubles_on_the_same_schedule():
     """The ack-only client rule (take any batch still held, ask for nothing: ``bench.lease``'s
     baseline), paused after its claim on the schedule above: the server gives the batch to B
     meanwhile and A yields it too. The same pieces tell the two rules apart."""
@@ -834,3 +835,43 @@ def test_a_client_found_unreachable_is_forgotten_only_once_its_messages_are_read
     core.message(b"gone", Bye(), 0.1)
     core.caught_up()
     assert core.connected() == [] and core.ledger.table.get(bid).state == "ready"
+
+
+def test_a_host_crash_that_loses_the_journals_last_second_costs_what_the_docs_say(tmp_path):
+    """docs/delivery.md, "Limits" (f): a grant appended after the journal's last ``fsync`` is
+    gone after a host crash (the file cut back to its synced size). If its reader resumes first,
+    its state is let in; if another reader opens the epoch first, that reader is sent the
+    samples and the first one's honest state naming them is refused (``resume``)."""
+    def core_on() -> DeliveryCore:
+        return DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=1, lease_s=LEASE,
+                                                          client_timeout_s=TIMEOUT, revoke_s=REVOKE,
+                                                          max_credits=4, shuffle="none"), make_batch,
+                            journal=Journal(str(tmp_path), "recipe"), stall_s=STALL_S)
+
+    path = tmp_path / JOURNAL_FILE
+    core = core_on()
+    _hello(core, b"a", "a", 0.0, ends_on_drained=False)
+    bid = _turn(core, 0.0)[b"a"][0]
+    core.journal.sync()
+    synced = path.stat().st_size
+    assert core.message(b"a", Hold((bid,)), 0.1)[0][1].batch_ids == (bid,)
+    ids = frozenset(core.ledger.table.get(bid).keys)
+    core.journal.close()
+    with open(path, "r+b") as f:  # the host crashed: what was not synced is gone
+        f.truncate(synced)
+
+    def a_resumes(core: DeliveryCore, ident: bytes):
+        resume = Resume(-1, {0: ids}, origins=(core.server_id,))
+        return core.hello(ident, Hello(("voxels",), 2, consumer="a", resume=resume), 1.0)[0][1]
+
+    first = core_on()
+    assert isinstance(a_resumes(first, b"a1"), sm.Welcome)
+    first.journal.close()
+    with open(path, "r+b") as f:
+        f.truncate(synced)
+    second = core_on()
+    _hello(second, b"b", "b", 0.5, ends_on_drained=False)
+    sent_to_b = {k for x in _turn(second, 0.5)[b"b"] if isinstance(x, int) for k in second.ledger.table.get(x).keys}
+    assert ids <= sent_to_b
+    refused = a_resumes(second, b"a2")
+    assert isinstance(refused, sm.ServerError) and refused.code == "resume", refused

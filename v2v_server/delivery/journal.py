@@ -24,8 +24,7 @@ completes the file is rewritten from memory (a temporary file, fsync, rename).
 Durability: each record is one ``write`` to a file opened with ``O_APPEND`` (in the page cache
 at once: it survives the server process being killed); ``fsync`` at most every ``fsync_s``
 seconds (1 s) from the main loop and at close, so a host crash loses at most that last second:
-its samples are owed again (never lost, perhaps doubled), and a resume state naming a grant of
-it is refused (docs/delivery.md, "Limits" (f)).
+its samples are owed again (never lost; perhaps doubled, docs/delivery.md "Limits" (f)).
 
 A write that fails while serving (a full or failing disk, the folder removed or replaced) never
 stops the server: the records stay current in memory, the error goes to ``on_error`` (the
