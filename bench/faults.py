@@ -1,5 +1,5 @@
-"""Fault scenarios (``harness/faults.py``, ``harness/faults_deploy.py``) against a real v2v-serve on 127.0.0.1: is any
-sample lost or doubled?
+"""Fault scenarios (``harness/faults.py``, ``harness/faults_misuse.py``, ``harness/faults_deploy.py``) against a real
+v2v-serve on 127.0.0.1: is any sample lost or doubled?
 
 Run: ``python -m bench.faults [--only NAME ...] [--out docs/faults.md]``. Prints a table:
 scenario, samples expected, delivered, lost, duplicated, seconds to recover, notes.
@@ -14,10 +14,10 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
-from harness import faults, faults_deploy
+from harness import faults, faults_deploy, faults_misuse
 from harness.faults import Layout
 
-SCENARIOS = {**faults.SCENARIOS, **faults_deploy.SCENARIOS}
+SCENARIOS = {**faults.SCENARIOS, **faults_misuse.SCENARIOS, **faults_deploy.SCENARIOS}
 
 
 def format_table(rows: List[dict]) -> str:

@@ -1,4 +1,4 @@
-"""Cost of the grant protocol (docs/delivery.md, "Leases and grants") on the fast path, against
+"""Cost of the grant protocol (docs/delivery.md, "The protocol") on the fast path, against
 the ack-only protocol it replaced, in one run.
 
 Run: ``python -m bench.lease [--batches 40000] [--read 40] [--step-ms 20] [--rounds 4] [--fill-s 12]``.
@@ -40,7 +40,7 @@ def core_cost(batches: int, grant: bool, batch_size: int = 12) -> float:
     videos = [f"v{i:03d}.mp4" for i in range(100)]
     policy = DeliveryPolicy(batch_size=batch_size, epochs=None, lease_s=1e9, client_timeout_s=1e9)
     core = DeliveryCore(videos, policy, lambda samples: _Payload([s["sample_id"] for s in samples]))
-    core.hello(b"t", Hello(("voxels",), 64, "trainer"), 0.0, dict)
+    core.hello(b"t", Hello(("voxels",), 64, "trainer"), 0.0)
     now, done, busy = 0.0, 0, 0.0
     while done < batches:
         task = core.task_for("w", now)

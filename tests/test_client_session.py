@@ -1,19 +1,29 @@
-"""The client's protocol handling without a socket or torch: ``v2v_client.session.ServerSession``
-fed the server's messages as ``v2v_wire`` encodes them (header in, items and replies out).
-A real server and the I/O thread around it are covered by test_stream.py and test_wire.py."""
+"""The client's protocol handling without a socket, a thread or torch: ``v2v_client.session.ServerSession``
+fed the server's messages as ``v2v_wire`` encodes them (header in; items and typed outgoing
+messages out). A real server and the I/O thread around it are covered by test_stream.py and
+test_wire.py."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from v2v_client.session import Drained, EpochDone, ServerPadding, ServerSession, StreamError
+from v2v_client.options import StreamOptions
+from v2v_client.receipts import Abandon, Receipt
+from v2v_client.resume import ResumeState
+from v2v_client.session import LoopAbandoned, ServerPadding, ServerSession, StreamError
+from v2v_wire import messages as cm
 from v2v_wire.protocol import PROTOCOL_VERSION, encode_arrays, pack, unpack
+from v2v_wire.stream_messages import Drained, EpochDone
 
-RESUME = {"completed_epoch": -1, "delivered": {}, "batches": {}}
+
+def _options(outputs=("voxels", "frames"), **kw) -> StreamOptions:
+    return StreamOptions(**{"outputs": tuple(outputs), "credits": 2, "timeout_s": 10.0, "heartbeat_s": 1.0,
+                            "raw": False, "reconnect": False, "reconnect_timeout_s": 10.0, "curve_keys": None,
+                            "rank": 0, "world_size": 1, "group": "default", "shm": False, **kw})
 
 
-def _hello() -> dict:
-    return {"type": "hello", "outputs": ["voxels", "frames"], "credits": 2, "consumer": "c", "resume": RESUME}
+def _session(outputs=("voxels", "frames"), record=None, **kw) -> ServerSession:
+    return ServerSession("tcp://127.0.0.1:1", _options(outputs), record or ResumeState("c"), "c", **kw)
 
 
 def _batch(batch_id: int, n: int = 2, epoch: int = 0, **extra) -> list:
@@ -32,13 +42,14 @@ def _items(s: ServerSession) -> list:
 
 
 def _welcomed(s: ServerSession) -> None:
-    hello = unpack(s.hello(new_socket=True))
-    assert hello["type"] == "hello" and hello["hello_id"] == 1 and "shm" not in hello
+    s.hello(new_socket=True)
+    (hello,) = s.outgoing()
+    assert isinstance(hello, cm.Hello) and hello.hello_id == 1 and not hello.shm and hello.consumer == "c"
     assert s.on_message([pack({"type": "welcome", "hello_id": 1, "info": {"crop_size": 8}})]) is None
 
 
 def test_batches_come_out_as_numpy_items_taken_only_once_granted():
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], _hello)
+    s = _session()
     _welcomed(s)
     for bid in (7, 8, 9):
         assert s.on_message(_batch(bid)) is None
@@ -46,12 +57,11 @@ def test_batches_come_out_as_numpy_items_taken_only_once_granted():
     assert a["batch_id"] == 7 and a["voxels"].dtype == np.int8 and a["voxels"].shape == (2, 4, 5, 8, 8)
     assert int(a["voxels"][0, 0, 0, 0, 0]) == 7 and a["sample_ids"] == ["v.mp4#7.0", "v.mp4#7.1"]
     # the first GRANT_AHEAD batches are asked for as they come; the third waits for the consumer
-    assert len(s.held) == 3 and [unpack(r) for r in s.replies()] == [
-        {"v": PROTOCOL_VERSION, "type": "hold", "batch_ids": [7]}, {"v": PROTOCOL_VERSION, "type": "hold", "batch_ids": [8]}]
+    assert len(s.held) == 3 and s.outgoing() == [cm.Hold((7,)), cm.Hold((8,))]
     assert s.held.claim(a, lambda: "recorded", lambda: False) == (False, None)  # not granted: never taken
     assert s.on_message([pack({"type": "revoke", "batch_ids": [7, 8, 9]})]) is None
     # asked ones stay (the server reads the hold before anything later); the leased one goes back
-    assert [unpack(r) for r in s.replies()] == [{"v": PROTOCOL_VERSION, "type": "released", "batch_ids": [9]}]
+    assert s.outgoing() == [cm.Released((9,))]
     assert "voxels" not in c and c["sample_ids"]  # given back: arrays freed, ids kept
     assert s.on_message([pack({"type": "granted", "batch_ids": [7], "refused": [8]})]) is None
     assert s.held.claim(a, lambda: "recorded", lambda: False) == (True, "recorded")
@@ -63,23 +73,26 @@ def test_a_new_hello_discards_granted_batches_and_names_only_what_was_claimed():
     """The claim (with the consumer's record) and a hello's resume state are one step each:
     a batch claimed before the hello is in its resume state; one granted but not claimed is
     discarded by it and never taken."""
-    record = {"ids": []}
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], lambda: dict(_hello(), resume=dict(record)))
+    record = ResumeState("c")
+    s = _session(record=record)
     _welcomed(s)
     s.on_message(_batch(1))
     s.on_message(_batch(2))
     a, b = _items(s)
     s.on_message([pack({"type": "granted", "batch_ids": [1, 2]})])
-    assert s.held.claim(a, lambda: record["ids"].extend(a["sample_ids"]), lambda: False)[0]
-    hello = unpack(s.hello())
-    assert hello["resume"]["ids"] == ["v.mp4#1.0", "v.mp4#1.1"]
-    assert s.held.claim(b, lambda: record["ids"].extend(b["sample_ids"]), lambda: False) == (False, None)
+    s.outgoing()
+    assert s.take(a, lambda: record.claim(0, 1, a["sample_ids"], False))[0]
+    assert s.outgoing() == [cm.Ack((1,))]
+    s.hello()
+    (hello,) = s.outgoing()
+    assert hello.resume.delivered == {0: ("v.mp4#1.0", "v.mp4#1.1")} and hello.resume.batches == {0: 1}
+    assert s.take(b, lambda: record.claim(0, 2, b["sample_ids"], False)) == (False, None)
     s.on_message([pack({"type": "granted", "batch_ids": [2]})])  # a late answer about the older session
-    assert len(s.held) == 0 and record["ids"] == ["v.mp4#1.0", "v.mp4#1.1"]
+    assert len(s.held) == 0 and record.delivered == {0: {"v.mp4#1.0", "v.mp4#1.1"}}
 
 
 def test_control_messages_become_items_and_the_end_or_an_error_ends_the_session():
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels"], _hello)
+    s = _session(("voxels",))
     _welcomed(s)
     assert s.on_message([pack({"type": "epoch_done", "epoch": 0, "batches": 3})]) is None
     assert s.on_message([pack({"type": "drained"})]) is None
@@ -96,31 +109,31 @@ def test_control_messages_become_items_and_the_end_or_an_error_ends_the_session(
 
 
 def test_a_batch_lacking_an_output_or_a_dropped_session_is_handled():
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "flow"], _hello)
+    s = _session(("voxels", "flow"))
     _welcomed(s)
     assert s.on_message(_batch(3)) == "over"
     (err,) = _items(s)
     assert isinstance(err, StreamError) and "lacks requested outputs ['flow']" in str(err)
 
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels"], _hello)
+    s = _session(("voxels",))
     _welcomed(s)
     s.on_message(_batch(4))
     (item,) = _items(s)
-    assert [unpack(r)["type"] for r in s.replies()] == ["hold"]
+    assert s.outgoing() == [cm.Hold((4,))]
     assert s.on_message([pack({"type": "error", "code": "dropped", "message": "silent"})]) is None
-    (again,) = [unpack(r) for r in s.replies()]
-    assert again["type"] == "hello" and again["hello_id"] == 2  # introduced again with the resume state
+    (again,) = s.outgoing()
+    assert isinstance(again, cm.Hello) and again.hello_id == 2  # introduced again with the resume state
     assert s.held.discarded == 1 and "voxels" not in item  # what it held goes elsewhere
     # until the welcome to that hello, batches, revokes and grants of the old session are ignored
     assert s.on_message(_batch(5)) is None and _items(s) == []
-    assert s.on_message([pack({"type": "granted", "batch_ids": [4]})]) is None and s.replies() == []
+    assert s.on_message([pack({"type": "granted", "batch_ids": [4]})]) is None and s.outgoing() == []
     s.on_message([pack({"type": "welcome", "hello_id": 2, "info": {}})])
     s.on_message(_batch(6))
     assert [i["batch_id"] for i in _items(s)] == [6]
 
 
 def test_a_refused_welcome_ends_the_session_naming_why():
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels"], _hello, welcomed=lambda info: "another recipe")
+    s = _session(("voxels",), welcomed=lambda info: "another recipe")
     s.hello(new_socket=True)
     assert s.on_message([pack({"type": "welcome", "hello_id": 1, "info": {}})]) == "over"
     (err,) = _items(s)
@@ -147,7 +160,7 @@ def test_server_messages_round_trip_typed_and_a_bad_field_is_named():
     for h, name in bad:
         with pytest.raises(sm.StreamMessageError, match=f"field '{name}'"):
             sm.stream_message(h)
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels"], _hello)
+    s = _session(("voxels",))
     assert s.on_message([pack({"type": "epoch_done", "epoch": -1})]) == "over"
     err = s.items.get_nowait()
     assert isinstance(err, StreamError) and "epoch_done message: field 'epoch'" in str(err)
@@ -161,39 +174,85 @@ def test_client_messages_go_out_as_the_server_parses_them():
     msgs = [cm.Ack((1, 2)), cm.Hold((3,)), cm.Released((4, 5, 6)), cm.Credit(7), cm.Heartbeat(), cm.Bye()]
     for m in msgs:
         assert cm.decode_client(pack(m.to_wire()), 1 << 16, 64) == m
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], _hello)
+    s = _session()
     _welcomed(s)
     s.on_message(_batch(9))
     s.on_message([pack({"type": "granted", "batch_ids": [], "refused": [9]})])
     for bid in (10, 11, 12):
         s.on_message(_batch(bid))
     s.on_message([pack({"type": "revoke", "batch_ids": [11, 12]})])
-    assert [cm.decode_client(r, 1 << 16, 64) for r in s.replies()] == [cm.Hold((9,)), cm.Hold((10,)), cm.Hold((11,)),
-                                                                         cm.Released((12,))]
+    out = s.outgoing()
+    assert out == [cm.Hold((9,)), cm.Hold((10,)), cm.Hold((11,)), cm.Released((12,))]
+    assert [cm.decode_client(pack(m.to_wire()), 1 << 16, 64) for m in out] == out
 
 
 def test_a_dataloader_workers_hello_says_it_ends_on_drained():
     """A StreamLoader worker's hello says ``ends_on_drained`` (the server then sends it nothing
-    after ``drained``); a trainer's does not; the server's edge takes only true or false."""
+    after ``drained``); a trainer's does not; the server's edge takes only true or false, and
+    reads the hello a session builds back equal."""
     import msgpack
 
-    from v2v_client.options import StreamOptions
-    from v2v_wire import messages as cm
-
-    opts = StreamOptions(outputs=("voxels",), credits=2, timeout_s=10.0, heartbeat_s=1.0, raw=False, reconnect=False,
-                         reconnect_timeout_s=10.0, curve_keys=None, rank=0, world_size=1, group=None, shm=False)
-    worker = cm.decode_client(pack(opts.hello("c/0", RESUME, ends_on_drained=True)), 1 << 16, 64)
-    trainer = cm.decode_client(pack(opts.hello("c", RESUME)), 1 << 16, 64)
-    assert worker.ends_on_drained is True and trainer.ends_on_drained is False
-    bad = dict(opts.hello("c/0", RESUME), ends_on_drained=1, v=PROTOCOL_VERSION)
+    for ends in (True, False):
+        s = _session(ends_on_drained=ends)
+        s.hello(new_socket=True)
+        (hello,) = s.outgoing()
+        parsed = cm.decode_client(pack(hello.to_wire()), 1 << 16, 64)
+        assert parsed.ends_on_drained is ends and (parsed.consumer, parsed.credits, parsed.outputs) == (
+            "c", 2, ("voxels", "frames"))
+    bad = dict(hello.to_wire(), ends_on_drained=1, v=PROTOCOL_VERSION)
     with pytest.raises(cm.WireError, match="ends_on_drained"):
         cm.decode_client(msgpack.packb(bad), 1 << 16, 64)
+
+
+def test_the_loaders_receipts_acknowledge_and_an_abandoned_iteration_gives_back_what_it_queued():
+    """In a DataLoader worker a claimed batch waits in the record's pipeline (no ack) until the
+    loop's receipt; a receipt acknowledges it; when the loader leaves the iteration the consumer
+    is told, and closing gives back the batches still queued in the loader and says bye."""
+    record = ResumeState("c")
+    s = _session(record=record, ends_on_drained=True, iteration=3)
+    _welcomed(s)
+    for bid in (1, 2):
+        s.on_message(_batch(bid))
+    a, b = _items(s)
+    s.on_message([pack({"type": "granted", "batch_ids": [1, 2]})])
+    s.outgoing()
+    for item in (a, b):
+        ok, keep = s.take(item, lambda item=item: record.claim(0, item["batch_id"], item["sample_ids"], True),
+                          ack=False)
+        assert ok and keep == [0, 1]
+    assert s.outgoing() == [] and record.pipeline_ids() == [1, 2] and not s.lingering_done()
+    s.on_loader(Receipt((1, 99)))
+    assert s.outgoing() == [cm.Ack((1,))] and record.delivered == {0: {"v.mp4#1.0", "v.mp4#1.1"}}
+    s.on_loader(Abandon(2))  # another iteration's
+    assert _items(s) == [] and not s.abandoned
+    s.on_loader(Abandon(3))
+    assert isinstance(_items(s)[0], LoopAbandoned) and s.lingering_done()
+    assert s.closing() == [cm.Released((2,)), cm.Bye()]
+
+
+def test_time_brings_heartbeats_and_asks_again_for_what_stays_unanswered():
+    """``tick(now)`` sends a heartbeat every ``heartbeat_s`` (1 s here) and, with it, asks again for
+    a grant unanswered a whole heartbeat (the clock is the caller's: a simulator passes its own)."""
+    s = _session()
+    _welcomed(s)
+    s.on_message(_batch(7))
+    assert s.outgoing() == [cm.Hold((7,))]
+    s.tick(10.0)
+    assert s.outgoing() == []
+    s.tick(11.0)
+    assert s.outgoing() == [cm.Heartbeat()]  # asked just now: not yet
+    s.tick(11.5)
+    s.tick(12.0)
+    assert s.outgoing() == [cm.Heartbeat(), cm.Hold((7,))]  # a heartbeat later, unanswered: again
+    s.on_message([pack({"type": "granted", "batch_ids": [7]})])
+    s.tick(13.0)
+    assert s.outgoing() == [cm.Heartbeat()]
 
 
 def test_a_hold_unanswered_for_a_whole_heartbeat_is_asked_again():
     """A grant lost when a connection broke behind ZeroMQ's reconnect would leave the consumer
     waiting: the I/O thread asks again, each heartbeat, for what stayed unanswered since the last."""
-    s = ServerSession("tcp://127.0.0.1:1", ["voxels", "frames"], _hello)
+    s = _session()
     _welcomed(s)
     s.on_message(_batch(7))
     assert s.held.still_asked(set()) == (set(), {7})  # asked just now: not yet

@@ -10,7 +10,7 @@ import time
 import msgpack
 import pytest
 
-from harness import faults
+from harness import faults, faults_misuse
 from harness.faults import Layout
 from v2v_client import StreamError, V2VStreamDataset
 from v2v_server.ops.config import load_config
@@ -190,3 +190,77 @@ def test_wire_ignores_sample_ids_with_non_ascii_digits():
     h = decode_client(msgpack.packb({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["voxels"], "credits": 2,
                                      "resume": {"delivered": {"0": "a.mp4#1\na.mp4#٣\n../x#2"}}}), 1 << 20, 64)
     assert h.resume.delivered[0] == frozenset({SampleKey("a.mp4", 1), SampleKey("../x", 2)})  # the server only knows its own files
+
+
+# ---------------------------------------------------------------------- careless and hostile clients (issue 69)
+def test_a_second_trainer_on_one_consumer_id_is_refused_and_the_first_reads_everything(tmp_path):
+    r = faults_misuse.scenario_two_readers_one_consumer(tmp_path, LAYOUT)
+    exactly_once(r)
+    f = r["facts"]
+    assert f["second_batches"] == 0 and f["server_exit"] == 0, r
+    assert f["refused"] and "consumer" in f["refused"][0] and "one reader per consumer" in f["refused"][0], r
+
+
+def test_a_second_ddp_job_on_the_default_group_is_refused_with_a_line_saying_to_set_group(tmp_path):
+    r = faults_misuse.scenario_two_ddp_jobs_one_group(tmp_path, LAYOUT)
+    exactly_once(r)
+    f = r["facts"]
+    assert f["second_samples"] == 0 and not f["first_errors"] and f["server_exit"] == 0, r
+    assert f["refused"] and all("group=" in line for line in f["refused"]), r
+
+
+@pytest.mark.parametrize("old,new", [(2, 1), (1, 2)])
+def test_a_job_resumed_at_another_world_size_trains_every_sample_once(tmp_path, old, new):
+    """From one rank's state alone a 2 -> 1 resume is refused before the first batch with one
+    line saying what to load; from every rank's state (and 1 -> 2 from the one state) it is exact."""
+    r = faults_misuse.scenario_world_size_change(tmp_path, LAYOUT, old, new)
+    exactly_once(r)
+    f = r["facts"]
+    assert not f["errors"], r
+    if old > 1:
+        assert f["refused"] and "v2v_ranks" in f["refused"][0] and f"rank 0 of {old}" in f["refused"][0], r
+
+
+def test_a_trainer_woken_after_another_read_every_epoch_gets_back_what_it_held(tmp_path):
+    r = faults_misuse.scenario_wake_after_others_ran_ahead(tmp_path, LAYOUT, epochs=2, freeze_s=6.0)
+    exactly_once(r)
+    assert r["facts"]["a_exit"] == 0 and r["facts"]["a_samples"] > 0, r
+
+
+def test_a_peer_sitting_on_grants_delays_the_honest_trainers_end_by_the_lease_at_most(tmp_path):
+    r = faults_misuse.scenario_sitting_on_grants(tmp_path, LAYOUT, lease_s=2.0)
+    exactly_once(r)
+    f = r["facts"]
+    assert f["held"] > 0 and not f["errors"] and f["ended_after_s"] is not None, r
+    assert f["ended_after_s"] < 2.0 + 3.0, r  # the lease, plus a loaded machine's turns
+
+
+def test_a_loop_that_stops_reading_delays_nobody_and_gets_what_it_held(tmp_path):
+    r = faults_misuse.scenario_loop_stops_reading(tmp_path, LAYOUT, pause_s=4.0)
+    exactly_once(r)
+    assert r["facts"]["b_samples"] > 0, r
+
+
+def test_lying_resume_states_are_refused_and_cost_what_they_weigh(tmp_path):
+    r = faults_misuse.scenario_lying_resume_states(tmp_path, LAYOUT, big=200_000)
+    exactly_once(r)
+    f = r["facts"]
+    big = f["codes"].pop("200000 ids")
+    assert set(f["codes"].values()) == {"resume"} and big == "error", r  # the ids counted before any is parsed
+    assert "never granted" in f["messages"]["never sent"] and "--epochs 2" in f["messages"]["completed 5"], r
+    assert "which gives 2" in f["messages"]["200000 ids"] and f["holds_s"] < 5 and f["longest_wait_s"] < 5, r
+    assert not f["errors"] and f["server_exit"] == 0, r
+    assert f["rss_after_mb"] <= 1.1 * f["rss_before_mb"], r
+
+
+def test_a_first_hello_past_the_last_epoch_is_refused_and_moves_nothing(tmp_path):
+    r = faults_misuse.scenario_first_hello_far_ahead(tmp_path, LAYOUT)
+    exactly_once(r)
+    assert r["facts"]["code"] == "resume" and "--epochs 2" in r["facts"]["message"], r
+
+
+def test_an_old_client_is_refused_with_one_line():
+    """A hello of the protocol before this one is answered with an error naming both versions."""
+    with pytest.raises(WireError, match=f"protocol version {PROTOCOL_VERSION - 1}, expected {PROTOCOL_VERSION}"):
+        decode_client(msgpack.packb({"type": "hello", "v": PROTOCOL_VERSION - 1, "outputs": ["voxels"],
+                                     "credits": 1}), 1 << 20, 64)

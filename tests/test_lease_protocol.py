@@ -1,16 +1,19 @@
-"""The grant protocol (docs/delivery.md, "Leases and grants") through every interleaving.
+"""The grant protocol (docs/delivery.md, "The protocol") through every interleaving.
 
 The server's pure delivery core (``v2v_server.delivery.core.DeliveryCore``) and the client's
-real batch book (``v2v_client.session.HeldBatches``: leased, asked, granted; the claim and the
-hello's resume state as one step each) talk over two FIFO channels per connection with
-messages in flight. Every step of the client between receiving a batch and yielding it is a
-separate step: the I/O thread reads one message; the consumer asks for a grant, claims, queues
-the ack, yields; the I/O thread forwards what the consumer queued. Any client may stop taking
-steps at any point (SIGSTOP, a GC pause, swap) while the server's clock runs on, the server may
-itself stall, connections may break (whatever was in flight is lost, the client says hello on
-a new socket), and trainers may crash and resume from any older checkpoint. After every step
-no sample reaches two training loops' histories in an epoch; at the end every sample of every
-epoch was trained on exactly once.
+real protocol objects (``v2v_client.session.ServerSession`` with its ``HeldBatches`` book and the
+reader's ``v2v_client.resume.ResumeState``) talk over two FIFO channels per connection with
+messages in flight, every message going through the real wire encoding both ways (the client's
+typed messages packed and read back by the server's bounded decoder; the server's messages as
+the frames the session reads). Every step of the client between receiving a batch and yielding
+it is a separate step: the I/O thread reads one message (and sends what the session decided);
+the consumer takes the next item, tries to take it (``ServerSession.take``: ask, claim once
+granted, ack), yields it; the I/O thread sends what the consumer's steps decided. Any client may
+stop taking steps at any point (SIGSTOP, a GC pause, swap) while the server's clock runs on, the
+server may itself stall, connections may break (whatever was in flight is lost, the client says
+hello on a new socket), and trainers may crash and resume from any older checkpoint. After
+every step no sample reaches two training loops' histories in an epoch; at the end every sample
+of every epoch was trained on exactly once.
 
 ``test_a_client_paused_at_each_point_*`` drives the same pieces through one fixed schedule per
 point, pausing the client there for longer than the lease, the revoke timeout and the client
@@ -19,19 +22,26 @@ timeout together while another client reads.
 from __future__ import annotations
 
 import collections
+import queue
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
 from bench.lease import ack_only
-from v2v_client.session import HeldBatches
+from v2v_client.options import StreamOptions
+from v2v_client.resume import ResumeState
+from v2v_client.session import ServerSession
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+from v2v_server.delivery.journal import FILE as JOURNAL_FILE, Journal
 from v2v_server.delivery.ledger import STALL_S
+from v2v_wire import stream_messages as sm
 from v2v_wire.ids import SampleKey, parse_sample_id
-from v2v_wire.messages import Ack, Bye, Heartbeat, Hello, Hold, Released, Resume
+from v2v_wire.messages import Ack, Bye, Heartbeat, Hello, Hold, Released, Resume, decode_client
+from v2v_wire.protocol import encode_arrays, pack, unpack
 
 WINDOWS = {"a.mp4": 3, "b.mp4": 2, "c.mp4": 3}
 EPOCHS = 2
@@ -56,36 +66,46 @@ def make_batch(samples):
     return Payload([s.sample_id for s in samples])
 
 
+def batch_frames(b) -> list:
+    """A batch as the server sends it: its header, then one tiny voxels array frame."""
+    n = len(b.payload.sample_ids)
+    specs, frames = encode_arrays({"voxels": np.zeros((n, 1), np.int8)})
+    header = sm.Batch(b.batch_id, b.epoch, tuple(b.payload.sample_ids), ({},) * n, tuple(specs), None, b.batch_id < 0)
+    return [pack(header.to_wire())] + [memoryview(f).cast("B") for f in frames]
+
+
+def options(credits: int) -> StreamOptions:
+    return StreamOptions(outputs=("voxels",), credits=credits, timeout_s=60.0, heartbeat_s=1.0, raw=False,
+                         reconnect=False, reconnect_timeout_s=60.0, curve_keys=None, rank=0, world_size=1,
+                         group="default", shm=False)
+
+
 @dataclass
 class Client:
-    """One trainer process: its I/O thread's session (``held``, awaited hello), the consumer's
-    queue and record, and the channels of its current connection."""
+    """One trainer process: its I/O thread's real session, its record, the consumer's step in
+    progress, and the channels of its current connection."""
 
     name: str
     credits: int = 2
     gen: int = 0
     alive: bool = False
-    held: HeldBatches = None
-    awaiting: Optional[int] = None
-    hello_seq: int = 0
-    up: list = field(default_factory=list)  # client -> server, in flight
-    down: list = field(default_factory=list)  # server -> client, in flight
-    pipe: list = field(default_factory=list)  # consumer -> I/O thread (acks, holds, releases)
-    items: list = field(default_factory=list)  # I/O thread -> consumer (batches, epoch ends)
-    pending: Optional[dict] = None  # the batch the consumer waits on for a grant
+    instance: str = "p0"  # the process's token: a crash makes a new process
+    session: ServerSession = None
+    record: ResumeState = None
+    up: list = field(default_factory=list)  # client -> server, in flight (typed messages)
+    down: list = field(default_factory=list)  # server -> client, in flight (frames)
+    pending: Optional[dict] = None  # the batch the consumer is taking (waits on a grant)
     claimed: Optional[tuple] = None  # (epoch, ids) claimed, not yet yielded
-    completed: int = -1
-    delivered: Dict[int, set] = field(default_factory=dict)  # the record: ids claimed per open epoch
     history: list = field(default_factory=list)  # (epoch, sample id) the training loop got
-    checkpoints: list = field(default_factory=list)
+    checkpoints: list = field(default_factory=list)  # (record state, len(history))
 
     @property
     def ident(self) -> bytes:
         return f"{self.name}.{self.gen}".encode()
 
-    def resume(self) -> Resume:
-        return Resume(self.completed, {e: frozenset(parse_sample_id(s) for s in ids)
-                                       for e, ids in self.delivered.items() if e > self.completed})
+    def send(self) -> None:
+        """The I/O thread sends what the session decided."""
+        self.up.extend((self.ident, m) for m in self.session.outgoing())
 
 
 class Net:
@@ -99,16 +119,20 @@ class Net:
                                                                max_credits=4, shuffle="none"), make_batch,
                                  stall_s=STALL_S)
         self.clients = [Client(n, c) for n, c in zip(names, credits)]
+        for c in self.clients:
+            c.record = ResumeState(c.name)
 
     # ------------------------------------------------------------------ server
     def server_reads(self, c: Client, n: int = 1) -> None:
-        """The server reads up to ``n`` messages of ``c``'s connection (in order)."""
+        """The server reads up to ``n`` messages of ``c``'s connection (in order), as its edge
+        decodes them."""
         for _ in range(n):
             if not c.up:
                 return
             ident, m = c.up.pop(0)
+            m = decode_client(pack(m.to_wire()), 1 << 20, 4)
             if isinstance(m, Hello):
-                replies = self.core.hello(ident, m, self.now, dict)
+                replies = self.core.hello(ident, m, self.now)
             else:
                 replies = self.core.message(ident, m, self.now)
             self.route(replies)
@@ -118,7 +142,7 @@ class Net:
         for ident, m in msgs:
             c = by_ident.get(ident)
             if c is not None:
-                c.down.append(m if isinstance(m, dict) else m.to_wire())
+                c.down.append(batch_frames(m) if hasattr(m, "payload") else [pack(m.to_wire())])
 
     def tick(self) -> None:
         """One turn of the server loop: workers make what is asked, then leases, sends, epochs."""
@@ -132,8 +156,7 @@ class Net:
                                      lambda lane, s=SampleKey(t.video, k).sample_id(): Sample(s))
             self.core.done(b"w", t.task, WINDOWS[t.video], {}, None)
         sends, msgs = self.core.tick(self.now)
-        self.route([(i, {"type": "batch", "batch_id": b.batch_id, "epoch": b.epoch,
-                         "sample_ids": list(b.payload.sample_ids)}) for i, b in sends])
+        self.route(sends)
         self.route(msgs)
         self.last_tick = self.now
 
@@ -151,101 +174,57 @@ class Net:
 
     # ------------------------------------------------------------------ the client's steps
     def connect(self, c: Client) -> None:
+        """A new connection (a new iterator, or a restarted process): a new session says hello."""
         c.gen += 1
         c.alive = True
-        c.up, c.down, c.pipe, c.items = [], [], [], []
+        c.up, c.down = [], []
         c.pending = c.claimed = None
-        c.held = HeldBatches(c.name)
-        self.hello(c, new_socket=True)
-
-    def hello(self, c: Client, new_socket: bool = False) -> None:
-        with c.held.lock:  # as ServerSession.hello: discard and read the record in one step
-            c.held.discard("hello")
-            resume = c.resume()
-        c.hello_seq += 1
-        c.awaiting = None if new_socket else c.hello_seq
-        c.up.append((c.ident, Hello(("voxels",), c.credits, consumer=c.name, resume=resume,
-                                    hello_id=c.hello_seq)))
+        c.session = ServerSession(c.name, options(c.credits), c.record, c.name, instance=c.instance)
+        c.session.hello(new_socket=True)
+        c.send()
 
     def io_reads(self, c: Client) -> None:
-        """The I/O thread handles one message from the server (``ServerSession.on_message``)."""
+        """The I/O thread hands one message from the server to the session and sends what it decided."""
         if not c.down:
             return
-        m = c.down.pop(0)
-        kind = m["type"]
-        rehello = kind == "error" and m.get("code") in ("dropped", "unknown_client")
-        if c.awaiting is not None and (kind in ("batch", "revoke", "granted") or rehello):
-            return
-        if kind == "welcome":
-            if m.get("hello_id") == c.awaiting:
-                c.awaiting = None
-        elif kind == "batch":
-            item = dict(m)
-            c.held.add(item)
-            c.items.append(item)
-            self.send(c, Hold, c.held.to_ask())
-        elif kind == "revoke":
-            SEEN["revoke"] += 1
-            self.send(c, Released, c.held.revoke(m["batch_ids"]))
-        elif kind == "granted":
-            SEEN["granted"] += 1
-            c.held.answer(m["batch_ids"], m.get("refused", []))
-            self.send(c, Hold, c.held.to_ask())
-        elif kind == "epoch_done":
-            c.items.append({"epoch_done": m["epoch"]})
-        elif rehello:
-            SEEN["rehello"] += 1
-            self.hello(c)
-
-    def send(self, c: Client, kind, ids) -> None:
-        if ids:
-            c.up.append((c.ident, kind(tuple(ids))))
+        frames = c.down.pop(0)
+        kind = unpack(frames[0])["type"]
+        SEEN[kind] += 1
+        c.session.on_message(frames)
+        c.send()
 
     def io_forwards(self, c: Client) -> None:
-        """The I/O thread sends what the consumer queued."""
-        c.up.extend((c.ident, m) for m in c.pipe)
-        c.pipe.clear()
+        """The I/O thread sends what the consumer's steps decided."""
+        c.send()
 
     def consumer_next(self, c: Client) -> None:
-        """The consumer takes the next item and asks for its grant (``Connection.take``)."""
-        if c.pending is not None or c.claimed is not None or not c.items:
+        """The consumer takes the next item off the queue: an epoch's end is recorded; a batch of
+        an epoch it completed is given back; any other batch becomes the one it takes."""
+        if c.pending is not None or c.claimed is not None:
             return
-        item = c.items.pop(0)
-        if "epoch_done" in item:
-            e = item["epoch_done"]
-            if e > c.completed:
-                c.completed = e
-                c.delivered = {k: v for k, v in c.delivered.items() if k > e}
+        try:
+            item = c.session.items.get_nowait()
+        except queue.Empty:
             return
-        if item["epoch"] <= c.completed:
-            if c.held.give_back(item) is not None:
-                c.pipe.append(Released((item["batch_id"],)))
-            return
-        ask = c.held.to_ask(item)
-        if ask:
-            c.pipe.append(Hold(tuple(ask)))
-        c.pending = item
+        if isinstance(item, sm.EpochDone):
+            c.record.complete(item.epoch)
+        elif isinstance(item, dict):
+            if c.record.is_complete(item["epoch"]):
+                c.session.give_back(item)
+            else:
+                c.pending = item
 
     def consumer_claims(self, c: Client) -> None:
-        """The consumer claims its batch if granted, recording its samples in the same step."""
+        """The consumer tries to take its batch (``ServerSession.take``: asks for its grant, claims
+        it once granted recording its samples in the same step, acks it)."""
         item = c.pending
         if item is None:
             return
-
-        def record():
-            seen = c.delivered.setdefault(item["epoch"], set())
-            keep = [s for s in item["sample_ids"] if s not in seen]
-            seen.update(keep)
-            return keep
-
-        ok, keep = c.held.claim(item, record, lambda: False)
+        ok, keep = c.session.take(item, lambda: c.record.claim(item["epoch"], item["batch_id"], item["sample_ids"],
+                                                                 False))
         if ok:
-            c.pending, c.claimed = None, (item["epoch"], keep)
-            c.pipe.append(Ack((item["batch_id"],)))
-            ask = c.held.to_ask()
-            if ask:
-                c.pipe.append(Hold(tuple(ask)))
-        elif c.held.current.get(item["batch_id"]) is not item:
+            c.pending, c.claimed = None, (item["epoch"], [item["sample_ids"][i] for i in keep])
+        elif c.session.held.current.get(item["batch_id"]) is not item:
             c.pending = None  # given back meanwhile: the next one
 
     def consumer_yields(self, c: Client) -> None:
@@ -256,7 +235,7 @@ class Net:
         c.claimed = None
         SEEN["yield"] += 1
         c.history += [(e, s) for s in keep]
-        c.checkpoints.append((c.completed, {k: set(v) for k, v in c.delivered.items()}, len(c.history)))
+        c.checkpoints.append((c.record.state(), len(c.history)))
 
     def step(self, c: Client) -> None:
         """Every part of the client takes one step."""
@@ -267,14 +246,13 @@ class Net:
         self.consumer_next(c)
 
     def heartbeat(self, c: Client) -> None:
-        c.up.append((c.ident, Heartbeat()))
+        """The I/O thread's clock: heartbeats, and asking again for what stays unanswered."""
+        c.session.tick(self.now)
+        c.send()
 
     def close(self, c: Client) -> None:
-        """Leaving the loop: acks sent, asked or granted batches released, bye."""
-        self.io_forwards(c)
-        ours = c.held.discard("close")
-        self.send(c, Released, ours)
-        c.up.append((c.ident, Bye()))
+        """Leaving the loop: what the session queued, its releases and bye, read by the server."""
+        c.up.extend((c.ident, m) for m in c.session.outgoing() + c.session.closing())
         for _ in range(len(c.up)):
             self.server_reads(c)
         c.alive = False
@@ -283,13 +261,16 @@ class Net:
     def trained(self):
         return collections.Counter(x for c in self.clients for x in c.history)
 
+    def quiet(self) -> bool:
+        return not any(c.up or c.down or not c.session.items.empty() or c.pending or c.claimed
+                       for c in self.clients if c.session is not None)
+
     def run_to_end(self, rounds: int = 2000) -> None:
         for c in self.clients:
             if not c.alive:
                 self.connect(c)
         for _ in range(rounds):
-            if self.core.finished() and not any(c.up or c.down or c.pipe or c.items or c.pending or c.claimed
-                                                 for c in self.clients):
+            if self.core.finished() and self.quiet():
                 break  # finished, and nothing in flight that could reopen an epoch
             for c in self.clients:
                 for _ in range(4):
@@ -363,20 +344,17 @@ class LeaseMachine(RuleBasedStateMachine):
 
     @rule(i=st.integers(0, 2))
     def connection_breaks(self, i):
-        """The connection breaks: what was in flight either way is lost; a new socket says hello."""
+        """The connection breaks: what was in flight either way is lost; a new socket (a new
+        identity, ``Connection._socket``) says hello."""
         c = self.client(i)
         if c.alive:
             SEEN["reconnect"] += 1
             c.up.clear()
             c.down.clear()
-            c.held.discard("new socket")
-            c.pending = None
-            c.items = [x for x in c.items if "epoch_done" in x]
-            c.hello_seq += 1
-            with c.held.lock:
-                resume = c.resume()
-            c.up.append((c.ident, Hello(("voxels",), c.credits, consumer=c.name, resume=resume, hello_id=c.hello_seq)))
-            c.awaiting = None
+            c.gen += 1
+            c.session.outgoing()  # decided, never sent: the old socket is gone
+            c.session.hello(new_socket=True)
+            c.send()
 
     @rule(i=st.integers(0, 2))
     def leave_loop(self, i):
@@ -398,11 +376,14 @@ class LeaseMachine(RuleBasedStateMachine):
         i = data.draw(st.sampled_from([i for i, c in enumerate(self.net.clients) if c.checkpoints]))
         c = self.client(i)
         j = data.draw(st.integers(0, len(c.checkpoints) - 1))
-        c.completed, delivered, n = c.checkpoints[j]
-        c.delivered, c.history = {k: set(v) for k, v in delivered.items()}, c.history[:n]
+        state, n = c.checkpoints[j]
+        c.record = ResumeState(c.name)
+        c.record.load(state)
+        c.history = c.history[:n]
         del c.checkpoints[j + 1:]
         SEEN["crash"] += 1
         late = list(c.up)
+        c.instance = f"p{c.gen}"  # a new process
         self.net.connect(c)
         c.up[:0] = late  # the dead process's messages were on the wire before the new hello
 
@@ -411,10 +392,11 @@ class LeaseMachine(RuleBasedStateMachine):
         """Leased, revoked and granted-unacknowledged batches together never exceed a client's
         credits, at the server or in the client's book."""
         for c in self.net.core.ledger.clients.values():
-            assert len(c.held) + len(c.revoked) + len(c.granted) <= c.credits
+            assert self.net.core.ledger.table.held_count(c.ident) <= c.credits
         for c in self.net.clients:
             if c.alive:
-                assert len(c.held.current) <= c.credits and c.held.asked | c.held.granted <= set(c.held.current)
+                held = c.session.held
+                assert len(held.current) <= c.credits and held.asked | held.granted <= set(held.current)
 
     @invariant()
     def no_sample_twice(self):
@@ -437,10 +419,13 @@ POINTS = ["received", "asked", "hold_at_server", "granted_in_flight", "granted",
 
 def _to_point(net: Net, a: Client, point: str) -> None:
     """Run client ``a`` alone from its hello to ``point`` on its first batch."""
+    def kind(i=0):
+        return unpack(a.down[i][0])["type"]
+
     for _ in range(40):
         net.server_reads(a, len(a.up))
         net.tick()
-        if a.down and a.down[0]["type"] != "batch":
+        if a.down and kind() != "batch":
             net.io_reads(a)
             continue
         if a.down:
@@ -448,14 +433,14 @@ def _to_point(net: Net, a: Client, point: str) -> None:
     net.io_reads(a)  # the batch: received, and asked for at once (GRANT_AHEAD)
     if point == "received":
         a.up.clear()  # paused before the I/O thread's hold left the process
-        a.held.asked.clear()
+        a.session.held.asked.clear()
         return
     if point == "asked":
         return
     net.server_reads(a, len(a.up))  # the hold is read: granted (and recorded) at the server
     if point == "hold_at_server":
         return
-    while a.down and a.down[0]["type"] != "granted":
+    while a.down and kind() != "granted":
         net.io_reads(a)
     if point == "granted_in_flight":
         return
@@ -466,7 +451,7 @@ def _to_point(net: Net, a: Client, point: str) -> None:
     net.consumer_claims(a)
     assert a.claimed is not None
     if point == "claimed":
-        a.pipe.clear()  # the ack not yet queued
+        a.session.outgoing()  # paused before the ack was queued: it never leaves
         return
     if point == "ack_queued":
         return
@@ -515,52 +500,132 @@ def test_a_stalled_server_drops_nobody_for_its_own_silence():
     for _ in range(6):
         net.step(a)
         net.advance(0.5)
+    table = net.core.ledger.table
     assert a.ident in net.core.ledger.clients
-    held = dict(net.core.ledger.clients[a.ident].held)
+    held = {bid: table.get(bid).state for bid in table.held_by(a.ident)}
     net.heartbeat(a)
     net.advance(TIMEOUT + LEASE + 1, listening=False)
     net.tick()  # before reading the waiting messages: the stall is not the client's silence
     c = net.core.ledger.clients.get(a.ident)
-    assert c is not None and not c.revoked and set(c.held) == set(held) and net.core.ledger.stalls == 1
+    assert c is not None and net.core.ledger.stalls == 1
+    assert {bid: table.get(bid).state for bid in table.held_by(a.ident)} == held  # nothing revoked or taken
     assert STALL_S < TIMEOUT
     net.run_to_end()
 
 
-def test_an_epoch_is_announced_once_its_granted_batches_are_acknowledged():
-    """A granted batch may still be given back unused (the loop left before taking it): its
-    epoch is announced complete only once it is acknowledged, so nobody forgets an epoch that
-    reopens; given back, it is sent again."""
-    net = Net(("a",), (2,))
-    core = net.core
-    core.hello(b"a.1", Hello(("voxels",), 4, consumer="a"), 0.0, dict)
-    net.tick()
-    held = sorted(core.ledger.clients[b"a.1"].held)
-    last = max(held)
+def _read_epoch_0_but_one(core: DeliveryCore, ident: bytes) -> int:
+    """``ident`` (4 credits) is sent every batch of the one-epoch stream at once, is granted and
+    acknowledges all but the last, which it asks for and keeps granted; returns that batch's id."""
+    _make_everything(core, 0.0)
+    sends, _ = core.tick(0.0)
+    held = sorted(b.batch_id for i, b in sends if i == ident)
+    assert len(held) == 4 and not core.ledger.ready  # 8 samples, 2 a batch
     for bid in held[:-1]:
-        core.message(b"a.1", Hold((bid,)), 0.0)
-        core.message(b"a.1", Ack((bid,)), 0.0)
-    while True:  # everything of epoch 0 but the last batch acknowledged
-        sends, msgs = core.tick(0.1)
-        new = [b.batch_id for _, b in sends if b.epoch == 0]
-        if not new:
-            break
-        for bid in new:
-            core.message(b"a.1", Hold((bid,)), 0.1)
-            core.message(b"a.1", Ack((bid,)), 0.1)
-    assert core.ledger.batches[last].epoch == 0
-    assert core.message(b"a.1", Hold((last,)), 0.2)[0][1].batch_ids == (last,)
-    assert core.sched.plans[0].complete and 0 not in core.announced  # granted, not acknowledged
+        core.message(ident, Hold((bid,)), 0.1)
+        core.message(ident, Ack((bid,)), 0.1)
+    assert core.message(ident, Hold((held[-1],)), 0.2)[0][1].batch_ids == (held[-1],)
+    return held[-1]
+
+
+def test_a_reader_is_told_an_epoch_complete_only_once_it_holds_no_grant_of_it():
+    """A granted batch may still be given back unused (the loop left before taking it): its
+    holder is told its epoch complete only once it is acknowledged, so it never forgets an epoch
+    it still holds samples of; given back, the batch is sent again."""
+    core = _one_epoch_core()
+    core.hello(b"a.1", Hello(("voxels",), 4, consumer="a"), 0.0)
+    last = _read_epoch_0_but_one(core, b"a.1")
+    core.tick(0.3)
+    a = core.ledger.clients[b"a.1"]
+    assert core.sched.plans[0].complete and a.completed == -1  # granted, not acknowledged
     back = core.message(b"a.1", Released((last,)), 0.3)
     assert back == [] and not core.sched.plans[0].complete and last in core.ledger.ready
     sends, _ = core.tick(0.4)
     assert (b"a.1", last) in [(i, b.batch_id) for i, b in sends]  # sent again
     core.message(b"a.1", Hold((last,)), 0.5)
     core.message(b"a.1", Ack((last,)), 0.5)
-    core.tick(0.6)
-    assert 0 in core.announced
+    _, msgs = core.tick(0.6)
+    assert a.completed == 0 and [m.to_wire()["type"] for i, m in msgs if i == b"a.1"][:2] == ["epoch_done", "end"]
 
 
-def test_the_rule_it_replaced_doubles_on_the_same_schedule():
+def test_a_reader_sitting_on_a_grant_delays_the_others_end_of_the_epoch_by_the_lease_at_most():
+    """Reader A keeps a grant of epoch 0 and never acknowledges it (a stuck loop, an hour of
+    validation): reader B, holding nothing of epoch 0, is told the epoch complete and the stream
+    ended ``lease_s`` after A's grant at most, never waiting on A. A grant A gives back after
+    that goes to A, which was not told, never to B; A is told once it took it."""
+    core = _one_epoch_core()
+    core.hello(b"a.1", Hello(("voxels",), 2, consumer="a"), 0.0)
+    core.hello(b"b.1", Hello(("voxels",), 1, consumer="b"), 0.0)
+    table = core.ledger.table
+    _make_everything(core, 0.0)
+    kept = None
+    granted_at = None
+    for step in range(100):
+        now = 0.1 * step
+        core.message(b"a.1", Heartbeat(), now)
+        core.message(b"b.1", Heartbeat(), now)
+        sends, msgs = core.tick(now)
+        told_b = [m.to_wire()["type"] for i, m in msgs if i == b"b.1" and m.to_wire()["type"] != "drained"]
+        if told_b:
+            break
+        for ident, b in sends:
+            core.message(ident, Hold((b.batch_id,)), now)
+            if ident == b"a.1" and granted_at is None:
+                granted_at, kept = now, b.batch_id  # A keeps its first grant and never acknowledges it
+            else:
+                core.message(ident, Ack((b.batch_id,)), now)
+    assert told_b == ["epoch_done", "end"] and granted_at is not None
+    assert now - granted_at <= LEASE + 0.2, (now, granted_at)
+    assert core.ledger.clients[b"a.1"].completed == -1  # A holds samples of epoch 0 still
+    core.message(b"a.1", Released((kept,)), now)
+    sends, msgs = core.tick(now + 0.1)
+    assert [(i, b.batch_id) for i, b in sends] == [(b"a.1", kept)]  # to A, the one not told
+    core.message(b"a.1", Hold((kept,)), now + 0.2)
+    core.message(b"a.1", Ack((kept,)), now + 0.2)
+    _, msgs = core.tick(now + 0.3)
+    assert [m.to_wire()["type"] for i, m in msgs if i == b"a.1"][:2] == ["epoch_done", "end"]
+
+
+def test_a_reader_sitting_on_what_it_was_sent_delays_the_others_end_of_the_epoch_within_the_stated_bound():
+    """docs/delivery.md's bound: reader A never takes what it is sent and answers each revoke
+    with a ``hold`` at the last moment (the latest a leased batch can become a grant), then sits
+    on the grants; reader B, reading everything else, is told the epoch complete and the stream
+    ended at most ``2 lease_s + revoke_s`` after the last batch sent to A."""
+    core = _one_epoch_core()
+    core.hello(b"a.1", Hello(("voxels",), 2, consumer="a"), 0.0)
+    core.hello(b"b.1", Hello(("voxels",), 1, consumer="b"), 0.0)
+    _make_everything(core, 0.0)
+    sent_to_a: Dict[int, float] = {}
+    revoked_at: Dict[int, float] = {}
+    told_b: List[str] = []
+    for step in range(400):
+        now = 0.05 * step
+        core.message(b"a.1", Heartbeat(), now)
+        core.message(b"b.1", Heartbeat(), now)
+        for bid, t in list(revoked_at.items()):
+            if now >= t + REVOKE - 0.1:  # the revoke's deadline is about to pass: A asks for it
+                assert core.message(b"a.1", Hold((bid,)), now)[0][1].batch_ids == (bid,)
+                del revoked_at[bid]
+        sends, msgs = core.tick(now)
+        for ident, m in msgs:
+            if ident == b"a.1" and isinstance(m, sm.Revoke):
+                revoked_at.update((bid, now) for bid in m.batch_ids)
+        told_b += [m.to_wire()["type"] for i, m in msgs if i == b"b.1" and m.to_wire()["type"] != "drained"]
+        if told_b:
+            break
+        for ident, b in sends:
+            if ident == b"a.1":
+                sent_to_a[b.batch_id] = now
+            else:
+                core.message(ident, Hold((b.batch_id,)), now)
+                core.message(ident, Ack((b.batch_id,)), now)
+    assert told_b == ["epoch_done", "end"] and sent_to_a and not revoked_at
+    assert b"a.1" in core.ledger.clients and core.ledger.clients[b"a.1"].completed == -1  # A sits on 2 grants
+    assert {core.ledger.table.get(bid).state for bid in sent_to_a} == {"granted"}
+    waited = now - max(sent_to_a.values())
+    assert LEASE + REVOKE < waited <= 2 * LEASE + REVOKE + 0.1, (now, sent_to_a)  # the worst case, within the bound
+
+
+def test_the_ack_only_rule_doubles_on_the_same_schedule():
     """The ack-only client rule (take any batch still held, ask for nothing: ``bench.lease``'s
     baseline), paused after its claim on the schedule above: the server gives the batch to B
     meanwhile and A yields it too. The same pieces tell the two rules apart."""
@@ -570,7 +635,7 @@ def test_the_rule_it_replaced_doubles_on_the_same_schedule():
         net.connect(a)
         net.server_reads(a, len(a.up))
         net.tick()
-        while not a.items:
+        while a.session.items.empty():
             net.io_reads(a)
         net.consumer_next(a)
         net.consumer_claims(a)
@@ -615,7 +680,7 @@ def _turn(core: DeliveryCore, now: float) -> Dict[bytes, list]:
 def _hello(core: DeliveryCore, ident: bytes, consumer: str, now: float, delivered=(), ends_on_drained=True):
     resume = Resume(-1, {0: frozenset(parse_sample_id(s) for s in delivered)} if delivered else {})
     core.hello(ident, Hello(("voxels",), 2, consumer=consumer, resume=resume, ends_on_drained=ends_on_drained),
-               now, dict)
+               now)
 
 
 def _two_workers_then_a_new_iteration(ends_on_drained: bool):
@@ -697,7 +762,7 @@ def test_a_client_that_closed_after_its_last_messages_still_gives_back_what_it_r
 
     cfg = ServeConfig()
     core = DeliveryCore(["v.mp4"], DeliveryPolicy(), lambda samples: samples)
-    clients = ClientSide(cfg, core, ServerMetrics(), lambda: {})
+    clients = ClientSide(cfg, core, ServerMetrics())
     ctx = zmq.Context()
     frontend = ctx.socket(zmq.ROUTER)
     frontend.setsockopt(zmq.ROUTER_MANDATORY, 1)
@@ -706,7 +771,7 @@ def test_a_client_that_closed_after_its_last_messages_still_gives_back_what_it_r
         clients.attach(frontend, None)
         ident = b"gone"
         hello = Hello(("voxels",), 2, consumer="A", resume=Resume(-1, {}))
-        core.hello(ident, hello, 0.0, lambda: {})  # its welcome was sent while it was connected
+        core.hello(ident, hello, 0.0)  # its welcome was sent while it was connected
         core.ledger.add_batch(BatchRecord(7, 0, [SampleKey("v.mp4", 0)], None, outputs=frozenset({"voxels"})))
         assert [(to, b.batch_id) for to, b in core.ledger.sends(0.0)[0]] == [(ident, 7)]
 
@@ -717,8 +782,96 @@ def test_a_client_that_closed_after_its_last_messages_still_gives_back_what_it_r
         said(Released((7,)))
         assert list(core.ledger.ready) == [7]  # back to the queue for another trainer
         said(Bye())
-        clients.forget_unreachable()
-        assert ident not in core.ledger.clients and not clients.unreachable
+        core.caught_up()
+        assert core.connected() == []
     finally:
         frontend.close(0)
         ctx.term()
+
+
+def test_a_reader_sitting_on_a_grant_forever_never_makes_an_unbounded_stream_keep_more_epochs():
+    """On a stream without ``--epochs``, reader A keeps one grant of epoch 0 and never
+    acknowledges it while reader B reads 12 epochs: B is told each epoch complete, and the server
+    keeps a bounded number of epochs open (it does not accumulate one per epoch B reads, as it
+    did when an epoch waited for every grant of it); A's grant stays in the table, A's."""
+    core = DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=None, lease_s=LEASE,
+                                                      client_timeout_s=TIMEOUT, revoke_s=REVOKE, max_credits=4,
+                                                      shuffle="none"), make_batch, stall_s=STALL_S)
+    core.hello(b"a", Hello(("voxels",), 1, consumer="a"), 0.0)
+    core.hello(b"b", Hello(("voxels",), 2, consumer="b"), 0.0)
+    kept, told_b, most_open, now = None, [], 0, 0.0
+    while len(told_b) < 12 and now < 600:
+        now += 0.5
+        _make_everything(core, now)
+        core.message(b"a", Heartbeat(), now)
+        core.message(b"b", Heartbeat(), now)
+        sends, msgs = core.tick(now)
+        for ident, b in sends:
+            core.message(ident, Hold((b.batch_id,)), now)
+            if ident == b"a" and kept is None:
+                kept = b.batch_id  # A's one grant, never acknowledged
+            elif ident == b"b":
+                core.message(ident, Ack((b.batch_id,)), now)
+        told_b += [m.epoch for i, m in msgs if i == b"b" and m.to_wire()["type"] == "epoch_done"]
+        most_open = max(most_open, len(core.sched.plans))
+    assert told_b == list(range(12)), told_b
+    assert most_open <= core.sched.keep_epochs + core.sched.lookahead + 2, most_open
+    assert core.ledger.table.get(kept).state == "granted" and core.ledger.clients[b"a"].completed < 0
+
+
+def test_a_client_found_unreachable_is_forgotten_only_once_its_messages_are_read():
+    """The answer to a hold cannot reach a client that closed right after its last messages: the
+    core is told (``unreachable``) and still reads the release that follows as that client's (the
+    batch goes back to the queue); once nothing is left unread (``caught_up``) it is forgotten."""
+    core = _one_epoch_core()
+    core.hello(b"gone", Hello(("voxels",), 2, consumer="g"), 0.0)
+    _make_everything(core, 0.0)
+    sends, _ = core.tick(0.0)
+    bid = next(b.batch_id for i, b in sends if i == b"gone")
+    assert core.message(b"gone", Hold((bid,)), 0.1)[0][1].batch_ids == (bid,)
+    core.unreachable(b"gone")  # the granted answer could not be sent
+    core.message(b"gone", Released((bid,)), 0.1)
+    assert core.ledger.table.get(bid).state == "ready" and b"gone" in core.connected()
+    core.message(b"gone", Bye(), 0.1)
+    core.caught_up()
+    assert core.connected() == [] and core.ledger.table.get(bid).state == "ready"
+
+
+def test_a_host_crash_that_loses_the_journals_last_second_costs_what_the_docs_say(tmp_path):
+    """docs/delivery.md, "Limits" (f): a grant appended after the journal's last ``fsync`` is
+    gone after a host crash (the file cut back to its synced size). If its reader resumes first,
+    its state is let in; if another reader opens the epoch first, that reader is sent the
+    samples and the first one's honest state naming them is refused (``resume``)."""
+    def core_on() -> DeliveryCore:
+        return DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=1, lease_s=LEASE,
+                                                          client_timeout_s=TIMEOUT, revoke_s=REVOKE,
+                                                          max_credits=4, shuffle="none"), make_batch,
+                            journal=Journal(str(tmp_path), "recipe"), stall_s=STALL_S)
+
+    path = tmp_path / JOURNAL_FILE
+    core = core_on()
+    _hello(core, b"a", "a", 0.0, ends_on_drained=False)
+    bid = _turn(core, 0.0)[b"a"][0]
+    core.journal.sync()
+    synced = path.stat().st_size
+    assert core.message(b"a", Hold((bid,)), 0.1)[0][1].batch_ids == (bid,)
+    ids = frozenset(core.ledger.table.get(bid).keys)
+    core.journal.close()
+    with open(path, "r+b") as f:  # the host crashed: what was not synced is gone
+        f.truncate(synced)
+
+    def a_resumes(core: DeliveryCore, ident: bytes):
+        resume = Resume(-1, {0: ids}, origins=(core.server_id,))
+        return core.hello(ident, Hello(("voxels",), 2, consumer="a", resume=resume), 1.0)[0][1]
+
+    first = core_on()
+    assert isinstance(a_resumes(first, b"a1"), sm.Welcome)
+    first.journal.close()
+    with open(path, "r+b") as f:
+        f.truncate(synced)
+    second = core_on()
+    _hello(second, b"b", "b", 0.5, ends_on_drained=False)
+    sent_to_b = {k for x in _turn(second, 0.5)[b"b"] if isinstance(x, int) for k in second.ledger.table.get(x).keys}
+    assert ids <= sent_to_b
+    refused = a_resumes(second, b"a2")
+    assert isinstance(refused, sm.ServerError) and refused.code == "resume", refused

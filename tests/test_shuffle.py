@@ -195,7 +195,7 @@ def one_worker_stream(policy: DeliveryPolicy, videos, windows: int):
     the epoch's samples arrived (no tick yet), and epoch -> every key batched once a tick
     flushed the leftovers."""
     core = DeliveryCore(videos, policy, list)
-    core.hello(b"t", Hello(("voxels",), 64), 0.0, dict)
+    core.hello(b"t", Hello(("voxels",), 64), 0.0)
     while (task := core.task_for(b"w", 0.0)) is not None:
         for w in range(windows):
             key = SampleKey(task.video, w, 0)

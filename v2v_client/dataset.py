@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
+import uuid
 from dataclasses import replace
 from typing import Iterator, Optional, Sequence, Tuple, Union
 
@@ -27,10 +28,11 @@ from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_CREDITS, OUTPUTS, check_outpu
 
 from .connection import StreamError, StreamTimeout, load_curve_keys
 from .endpoint import EndpointStream, padding_copy
-from .fanin import FanInStream, read_state, resolve_endpoints, split_endpoints
-from .launchers import ReadAhead, adapt, check_whole, rank_part
+from .fanin import FanInStream, resolve_endpoints, split_endpoints
+from .launchers import RANKS, ReadAhead, adapt, check_whole, rank_part
 from .metrics import TrainerMetrics
-from .options import StreamOptions
+from .options import StreamOptions, job_group
+from .resume import ResumeState
 from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "padding_copy"]
@@ -75,12 +77,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         rank, world_size: DDP position; what is not given is resolved each time iteration starts
             (:func:`dist_position`: ``torch.distributed`` when initialised, else the ``RANK`` / ``WORLD_SIZE``
             that torchrun and Lightning set, else 0 and 1), so a dataset built before the process group exists
-            still joins the group. With ``world_size > 1`` the ranks form one group on the server (``group``,
-            default ``"default"``; give each DDP job on one server its own): nothing is sent until every rank
-            said hello (or the server's client timeout passed), and every rank yields the same number of batches
-            per epoch — a rank that got fewer repeats its last batch with every sample flagged in ``padding``
-            (see below). Use ``num_workers=0`` with DDP.
-        group: name of the DDP group (see ``rank``).
+            still joins the group. With ``world_size > 1`` the ranks form one group on the server (``group``):
+            nothing is sent until every rank said hello (or the server's client timeout passed), and every rank
+            yields the same number of batches per epoch — a rank that got fewer repeats its last batch with every
+            sample flagged in ``padding`` (see below). Use ``num_workers=0`` with DDP.
+        group: name of the DDP group (see ``rank``); default: a loaded state's, else named from the job's
+            launcher (:func:`resolve_position`), so two jobs never share one.
         shm: same-host hand-off. ``"auto"`` (default): for an ``ipc://`` endpoint, ask the server to leave each
             batch in its shared-memory batch file (``/dev/shm``) and send only a reference; the arrays are then
             copied out of the file once (no socket copy on either side; ``v2v_client.handoff``). The server
@@ -131,13 +133,15 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  timeout_s: float = 30.0, heartbeat_s: float = 1.0, raw: bool = False,
                  reconnect: bool = False, reconnect_timeout_s: float = 300.0,
                  curve_keys: Optional[Tuple[str, str]] = None, rank: Optional[int] = None,
-                 world_size: Optional[int] = None, group: str = "default", shm: Union[bool, str] = "auto",
+                 world_size: Optional[int] = None, group: Optional[str] = None, shm: Union[bool, str] = "auto",
                  compact_flow: bool = False, compression: str = "auto"):
         super().__init__()
         outputs = _check_options(outputs, credits, timeout_s, group, shm, compact_flow, compression)
         # a position not given is resolved when iteration starts (``_position``): a dataset built
         # before the process group exists (a DataModule's __init__) still joins the DDP group
         self._auto_position = (rank is None, world_size is None)
+        self._group = group  # None: resolved when iteration starts (``_position``)
+        self._instance = uuid.uuid4().hex  # this reader process's token: one reader per consumer
         rank, world_size = _checked_position(rank, world_size)
         self.endpoint = endpoint
         #: every stream setting, read from here alone (a fan-in's children are made from it)
@@ -160,12 +164,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             else:
                 self._fanin = self._make_fanin(endpoints)
         if self._fanin is None:
-            self._stream = EndpointStream(self.endpoint, self.options)
+            self._stream = EndpointStream(self.endpoint, self.options, self._instance)
 
     # ------------------------------------------------------------------ fan-in and metrics
     def _make_fanin(self, endpoints) -> FanInStream:
         def child(ep: str, credits: int) -> EndpointStream:  # one server's stream: these options, its share
-            return EndpointStream(ep, replace(self.options, credits=credits))
+            return EndpointStream(ep, replace(self.options, credits=credits), self._instance)
 
         fanin = FanInStream(endpoints, child, self.options.credits)
         if self._stream is not None:
@@ -208,21 +212,15 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         return self._meter.snapshot()
 
     def _position(self) -> None:
-        """Resolve ``rank`` / ``world_size`` not given to the constructor, now (see
-        :func:`dist_position`), and hand them to the per-server streams."""
-        auto_rank, auto_world = self._auto_position
-        if not (auto_rank or auto_world):
+        """Resolve the DDP position now (:func:`resolve_position`) and hand it to the per-server streams."""
+        saved = (self._fanin or self._stream).record.position
+        position = resolve_position(self._auto_position, self.options, self._group, saved)
+        if position == (self.options.rank, self.options.world_size, self.options.group):
             return
-        rank, world = dist_position()
-        rank = rank if auto_rank else self.options.rank
-        world = world if auto_world else self.options.world_size
-        if not 0 <= rank < world:
-            raise ValueError(f"rank {rank} is not in [0, world_size={world})")
-        if (rank, world) == (self.options.rank, self.options.world_size):
-            return
-        self.options = replace(self.options, rank=rank, world_size=world)  # a fan-in's children are made from it
+        rank, world, group = position
+        self.options = replace(self.options, rank=rank, world_size=world, group=group)  # a fan-in's children too
         if self._stream is not None:
-            self._stream.set_position(rank, world)
+            self._stream.set_position(rank, world, group)
 
     def read_alone(self) -> None:
         """Read as the job's one consumer (accelerate's dispatcher: process 0 reads for every rank)."""
@@ -290,16 +288,17 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                                "(loader.state_dict()), which holds what each worker's training loop received")
         return self.read_ahead.state((self._fanin or self._stream).state_dict)
 
-    def load_state_dict(self, state: dict) -> None:
-        """Restore ``state_dict()`` output; the next iteration resumes the epoch without
-        repeating or skipping samples (the server takes this state as the truth: samples
-        yielded after it was saved are sent again).
+    def load_state_dict(self, state) -> None:
+        """Restore ``state_dict()`` output, or every rank's (:func:`state_for_rank`); the next
+        iteration resumes the epoch without repeating or skipping samples (the server takes this
+        state as the truth: samples yielded after it was saved are sent again).
 
         Raises:
-            ValueError: for a state of another format.
+            ValueError: for a state of another format (a rank's state loaded at another position
+                is refused when iteration starts, naming what to load).
         """
-        state = rank_part(state, dist_position)  # one rank's part of what launchers' save hook gathered
-        read_state(state)
+        state = state_for_rank(state)
+        ResumeState().load(state)  # ValueError for a state of another format, before anything changes
         self.read_ahead.clear()  # the state says what the loop received
         if self._stream is not None:
             self._stream.load_state_dict(state)
@@ -325,7 +324,7 @@ def _check_options(outputs, credits, timeout_s, group, shm, compact_flow, compre
         raise ValueError(f"credits must be an int in [1, {MAX_CREDITS}], got {credits!r}")
     if not timeout_s > 0:
         raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
-    if not isinstance(group, str) or not group or len(group) > 128:
+    if group is not None and (not isinstance(group, str) or not group or len(group) > 128):
         raise ValueError(f"group must be a non-empty string of at most 128 characters, got {group!r}")
     if shm not in (True, False, "auto"):
         raise ValueError(f"shm must be True, False or 'auto', got {shm!r}")
@@ -352,6 +351,36 @@ def _checked_position(rank: Optional[int], world_size: Optional[int]) -> Tuple[i
     if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank < world_size:
         raise ValueError(f"rank must be an int in [0, world_size={world_size}), got {rank!r}")
     return rank, world_size
+
+
+def state_for_rank(state) -> dict:
+    """What this process loads of a saved state: one rank's state as it is; of every rank's
+    states (a list, or ``{"v2v_ranks": [...]}``: what ``launchers.prepare_loader``'s save hook
+    keeps) its own rank's at the world size they were saved at (``launchers.rank_part``), else all
+    of them gathered (``ResumeState.gathered``: a job resumed at another world size)."""
+    if isinstance(state, list) or (isinstance(state, dict) and RANKS in state
+                                   and len(state[RANKS]) != dist_position()[1]):
+        return ResumeState.gathered(state if isinstance(state, list) else state[RANKS]).state()
+    return rank_part(state, dist_position)
+
+
+def resolve_position(auto: Tuple[bool, bool], options: StreamOptions, group: Optional[str],
+                     saved: Optional[Tuple[str, int, int]]) -> Tuple[int, int, str]:
+    """``(rank, world_size, group)`` a dataset reads at when iteration starts: the rank and world
+    size given to it, else :func:`dist_position`'s (``auto``: which were not given); the group
+    given, else the one the loaded state was saved in (``saved``, ``ResumeState.position``), else
+    ``options.job_group()`` (named from the job's launcher).
+
+    Raises:
+        ValueError: a rank outside ``[0, world_size)``.
+    """
+    rank, world = options.rank, options.world_size
+    if auto[0] or auto[1]:
+        r, w = dist_position()
+        rank, world = (r if auto[0] else rank), (w if auto[1] else world)
+        if not 0 <= rank < world:
+            raise ValueError(f"rank {rank} is not in [0, world_size={world})")
+    return rank, world, group or (saved[0] if saved is not None and saved[2] > 1 and saved[0] else None) or job_group()
 
 
 def dist_position() -> Tuple[int, int]:

@@ -1,29 +1,28 @@
-"""One server's stream: the consumer's record (ids yielded per open epoch, batches per epoch,
-the last completed epoch: :class:`ConsumerRecord`), the hello that carries it, and the iteration
-over a :class:`~v2v_client.connection.Connection` that drops re-sent samples and adds DDP
-padding (:class:`EndpointStream`). ``V2VStreamDataset`` reads one of these per server (several
-through ``fanin.FanInStream``).
+"""One server's stream: the iteration over a :class:`~v2v_client.connection.Connection` that
+drops re-sent samples and adds DDP padding (:class:`EndpointStream`), with the reader's record
+(``resume.ResumeState``) that every hello carries. ``V2VStreamDataset`` reads one of these per
+server (several through ``fanin.FanInStream``).
 """
 from __future__ import annotations
 
 import functools
 import queue
-import threading
 import uuid
 from dataclasses import replace
-from typing import Dict, Iterator, List, Optional, Set, Tuple
+from typing import Dict, Iterator, List, Optional
 
 import torch
 
-from v2v_wire.ids import compact_ids
+from v2v_wire.stream_messages import Drained, EpochDone
 
 from .connection import Connection
 from .options import StreamOptions
-from .session import Drained, EpochDone, LoopAbandoned, ServerPadding, StreamError
+from .receipts import Handed
+from .resume import ResumeState
+from .session import LoopAbandoned, ServerPadding, StreamError
 from .tensors import batch_to_torch, select_samples
-from .fanin import read_state
 
-__all__ = ["EndpointStream", "ConsumerRecord", "padding_copy"]
+__all__ = ["EndpointStream", "padding_copy"]
 
 
 def padding_copy(batch: dict, epoch: int) -> dict:
@@ -33,143 +32,6 @@ def padding_copy(batch: dict, epoch: int) -> dict:
     out.update(padding=torch.ones(len(batch["sample_ids"]), dtype=torch.bool), epoch=epoch, batch_id=-1,
                sample_ids=list(batch["sample_ids"]), params=list(batch["params"]))
     return out
-
-
-class ConsumerRecord:
-    """What one consumer has had from one server, per open epoch: the sample ids yielded, the
-    batches yielded (DDP padding included), the last epoch the server declared complete, the
-    recipe fingerprint the ids were made under, and, in a DataLoader worker, the batches
-    yielded to the DataLoader whose receipt has not come (``pipeline``: batch id -> (epoch,
-    sample ids)). Pure and thread-safe: the I/O thread records receipts while the consumer
-    iterates."""
-
-    def __init__(self):
-        self.lock = threading.Lock()
-        self.completed_epoch = -1
-        self.delivered: Dict[int, Set[str]] = {}
-        self.batches: Dict[int, int] = {}  # batches yielded per open epoch (DDP padding)
-        self.recipe: Optional[str] = None  # fingerprint of the recipe the sample ids were made under
-        self.pipeline: Dict[int, Tuple[int, List[str]]] = {}
-
-    def state(self) -> dict:
-        """The record's part of a stream's ``state_dict`` (plain data)."""
-        with self.lock:
-            return {"completed_epoch": self.completed_epoch,
-                    "delivered": {str(e): sorted(ids) for e, ids in self.delivered.items()},
-                    "batches": {str(e): n for e, n in self.batches.items()}, "recipe": self.recipe}
-
-    def load(self, state: dict) -> None:
-        """Restore :meth:`state` output (a stream's ``state_dict``).
-
-        Raises:
-            ValueError: for a state of another format.
-        """
-        completed, delivered = read_state(state)
-        with self.lock:
-            self.completed_epoch, self.delivered = completed, delivered
-            self.batches = {int(e): int(n) for e, n in state.get("batches", {}).items()}
-            if isinstance(state.get("recipe"), str):
-                self.recipe = state["recipe"]
-
-    def resume(self) -> dict:
-        """The hello's resume state: the completed epoch, ids yielded (compacted; in a
-        DataLoader worker also those in the loader's queues: the loop may still receive them)
-        and batches per open epoch."""
-        with self.lock:
-            ids = {e: set(v) for e, v in self.delivered.items()}
-            for e, sids in self.pipeline.values():
-                if e > self.completed_epoch:
-                    ids.setdefault(e, set()).update(sids)
-            return {"completed_epoch": self.completed_epoch,
-                    "delivered": {str(e): compact_ids(v) for e, v in ids.items()},
-                    "batches": {str(e): n for e, n in self.batches.items()}}
-
-    def check_recipe(self, recipe) -> Optional[str]:
-        """A server's recipe fingerprint: why the record refuses it (its ids were made under
-        another recipe), or None (the fingerprint is kept)."""
-        with self.lock:
-            if self.recipe is not None and isinstance(recipe, str) and recipe != self.recipe:
-                return (f"it serves another sample recipe ({recipe}) than the one this resume state was made "
-                        f"under ({self.recipe}): seed, sequence length, bins, crop or crops per window differ, "
-                        f"so its sample ids name other samples. Resume against a server with the same recipe, or "
-                        f"start without the state")
-            if isinstance(recipe, str):
-                self.recipe = recipe
-        return None
-
-    def complete(self, epoch: int, batches_due: Optional[int]) -> Optional[int]:
-        """The server declared ``epoch`` complete: its ids are forgotten. Returns the padding
-        batches still owed (``batches_due``, with DDP: batches every rank must yield, minus
-        those yielded; 0 without), or None when the epoch was complete already."""
-        with self.lock:
-            if epoch <= self.completed_epoch:
-                return None
-            owed = 0 if batches_due is None else max(0, batches_due - self.batches.get(epoch, 0))
-            self.completed_epoch = epoch
-            for e in [e for e in self.delivered if e <= epoch]:
-                del self.delivered[e]
-            for e in [e for e in self.batches if e <= epoch]:
-                del self.batches[e]
-        return owed
-
-    def is_complete(self, epoch: int) -> bool:
-        """Whether the server declared ``epoch`` complete (its batches are given back unused)."""
-        with self.lock:
-            return epoch <= self.completed_epoch
-
-    def count_padding(self, epoch: int) -> bool:
-        """A padding batch of ``epoch`` is yielded (counted); False when the epoch is complete."""
-        with self.lock:
-            if epoch <= self.completed_epoch:
-                return False
-            self.batches[epoch] = self.batches.get(epoch, 0) + 1
-        return True
-
-    def new_samples(self, epoch: int, batch_id: int, sample_ids: List[str], loader: bool) -> List[int]:
-        """Positions of a claimed batch's samples neither yielded nor in the pipeline already.
-        They are recorded as yielded (the batch counted), or with ``loader`` put in the
-        pipeline until the training loop's receipt (:meth:`received`)."""
-        with self.lock:
-            seen = self.delivered.setdefault(epoch, set())
-            queued = {s for e, ids in self.pipeline.values() if e == epoch for s in ids}
-            keep = [i for i, sid in enumerate(sample_ids) if sid not in seen and sid not in queued]
-            if loader:
-                if keep:
-                    self.pipeline[batch_id] = (epoch, [sample_ids[i] for i in keep])
-            else:
-                seen.update(sample_ids[i] for i in keep)
-                self.batches[epoch] = self.batches.get(epoch, 0) + 1
-        return keep
-
-    def received(self, batch_ids) -> List[int]:
-        """The training loop received these batches: they count as yielded; returns those
-        that were in the pipeline."""
-        mine = []
-        with self.lock:
-            for bid in batch_ids:
-                entry = self.pipeline.pop(bid, None)
-                if entry is not None:
-                    epoch, ids = entry
-                    if epoch > self.completed_epoch:
-                        self.delivered.setdefault(epoch, set()).update(ids)
-                        self.batches[epoch] = self.batches.get(epoch, 0) + 1
-                    mine.append(bid)
-        return mine
-
-    def in_pipeline(self) -> int:
-        """Batches yielded to the DataLoader whose receipt has not come."""
-        with self.lock:
-            return len(self.pipeline)
-
-    def pipeline_ids(self) -> List[int]:
-        """Batch ids yielded to the DataLoader whose receipt has not come."""
-        with self.lock:
-            return list(self.pipeline)
-
-    def clear_pipeline(self) -> None:
-        """Forget the batches in the DataLoader's queues (they go back to the server)."""
-        with self.lock:
-            self.pipeline.clear()
 
 
 class EndpointStream:
@@ -183,17 +45,18 @@ class EndpointStream:
     reads what the connection queues, and yields the batch dicts ``V2VStreamDataset``
     documents: each sample once per epoch, DDP padding where owed, a DataLoader worker's
     batches held until the loop receives them. ``state_dict()`` / ``load_state_dict()`` carry
-    the consumer's :class:`ConsumerRecord` (``record``) across restarts.
+    the reader's ``resume.ResumeState`` (``record``) across restarts.
     """
 
-    def __init__(self, endpoint: str, options: StreamOptions):
+    def __init__(self, endpoint: str, options: StreamOptions, instance: Optional[str] = None):
         self.endpoint = endpoint
         self.options = options
-        self.record = ConsumerRecord()
+        #: this reader process's token (the dataset's): the server lets one instance read a consumer at a time
+        self.instance = instance or uuid.uuid4().hex
+        #: the reader's record; its consumer id (who acknowledges) survives reconnects and restarts
+        self.record = ResumeState(uuid.uuid4().hex)
         self._info: Optional[dict] = None  # the stream info of the last connection closed
         self._conns: list = []
-        #: who acknowledges: survives reconnects and restarts (state_dict)
-        self.consumer = uuid.uuid4().hex
         self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
         self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
         # In a DataLoader worker under ``StreamLoader``: the pipe on which the main process says
@@ -215,18 +78,25 @@ class EndpointStream:
         ``options.credits`` per connection)."""
         return sum(conn.held() for conn in list(self._conns))
 
-    def set_position(self, rank: int, world_size: int) -> None:
-        """The DDP position the next connection says hello with."""
-        self.options = replace(self.options, rank=rank, world_size=world_size)
+    @property
+    def consumer(self) -> str:
+        """The id the server knows this reader by (DataLoader workers add ``/<worker id>``)."""
+        return self.record.consumer
+
+    @consumer.setter
+    def consumer(self, value: str) -> None:
+        self.record.consumer = value
+
+    def set_position(self, rank: int, world_size: int, group: Optional[str] = None) -> None:
+        """The DDP position (and group) the next connection says hello with."""
+        self.options = replace(self.options, rank=rank, world_size=world_size, group=group or self.options.group)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
-        """Where this consumer stands: epochs the server declared complete, the sample ids
-        yielded so far in epochs still open, batches yielded per open epoch, and the consumer
-        id the server knows it by. Plain, JSON/torch.save-safe data."""
-        r = self.record.state()
-        return {"version": 1, "consumer": self.consumer, "completed_epoch": r["completed_epoch"],
-                "delivered": r["delivered"], "batches": r["batches"], "recipe": r["recipe"]}
+        """Where this consumer stands (``ResumeState.state``): epochs the server declared
+        complete, the sample ids yielded so far in epochs still open, batches yielded per open
+        epoch, and the consumer id the server knows it by. Plain, JSON/torch.save-safe data."""
+        return self.record.state()
 
     def load_state_dict(self, state: dict) -> None:
         """Restore ``state_dict()`` output; the next iteration resumes the epoch without
@@ -237,8 +107,6 @@ class EndpointStream:
             ValueError: for a state of another format.
         """
         self.record.load(state)
-        if isinstance(state.get("consumer"), str) and state["consumer"]:
-            self.consumer = state["consumer"]
 
     def attach_loader(self, worker: int, receipts, state: Optional[dict]) -> None:
         """Read by DataLoader worker ``worker`` of a ``StreamLoader``: batches are
@@ -271,12 +139,25 @@ class EndpointStream:
             self._conns.remove(conn)
 
     def _connect(self) -> Connection:
-        """A connection for a new iterator, saying hello with this stream's options and record."""
+        """A connection for a new iterator, saying hello with this stream's options and record. The
+        stream reads one connection at a time: an older iterator's connection closes first (that
+        iterator raises if it is resumed), so two iterators never read as one consumer.
+
+        Raises:
+            ValueError: the record was saved by another DDP rank (``ResumeState.place``).
+        """
+        o = self.options
+        self.record.place(o.group, o.rank, o.world_size)
         worker = torch.utils.data.get_worker_info()
+        if worker is None:
+            for old in list(self._conns):
+                old.items.put(StreamError(f"this V2VStreamDataset reading {self.endpoint} was iterated again: one "
+                                          f"iterator at a time reads a consumer (the newer one reads on)"))
+                self._drop(old)
         consumer = self.consumer if worker is None else f"{self.consumer}/{worker.id}"
-        convert = functools.partial(_to_tensors, self.options.raw, self.options.compact_flow)
-        conn = Connection(self.endpoint, self.options, self.record, consumer, convert, self.receipts,
-                          self.iteration)
+        convert = functools.partial(_to_tensors, o.raw, o.compact_flow)
+        conn = Connection(self.endpoint, o, self.record, consumer, convert, self.receipts, self.iteration,
+                          self.instance)
         self._conns.append(conn)
         return conn
 
@@ -358,8 +239,8 @@ class EndpointStream:
             conn.give_back(item)  # never acknowledge what we would drop
             return
         loader = self.receipts is not None
-        taken, keep = conn.take(item, lambda: self.record.new_samples(epoch, item["batch_id"], item["sample_ids"],
-                                                                      loader), ack=not loader)
+        taken, keep = conn.take(item, lambda: self.record.claim(epoch, item["batch_id"], item["sample_ids"], loader),
+                                ack=not loader)
         if not taken:
             return  # given back meanwhile (revoked before it was granted, or this client said hello again)
         item["padding"] = torch.zeros(len(item["sample_ids"]), dtype=torch.bool)
@@ -367,8 +248,7 @@ class EndpointStream:
             if not keep:
                 conn.ack([item["batch_id"]])  # nothing new in it: nothing for the loop to receive
                 return
-            item["receipt"] = {"worker": self.worker, "batch_id": item["batch_id"], "epoch": epoch,
-                               "completed_epoch": self.record.completed_epoch}
+            item["receipt"] = Handed(self.worker, item["batch_id"], epoch, self.record.completed_epoch)
         if len(keep) < len(item["sample_ids"]):
             if not keep and self.options.world_size == 1:
                 return  # all re-sent duplicates: hand nothing on

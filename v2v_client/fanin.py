@@ -34,7 +34,9 @@ import queue
 import socket
 import threading
 import uuid
-from typing import Callable, Dict, Iterator, List, Optional, Sequence, Set, Tuple, Union
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Union
+
+from .resume import ResumeState
 
 Endpoints = Union[str, Sequence[str]]
 
@@ -150,19 +152,6 @@ def check_servers(infos: Dict[str, dict]) -> None:
                          + "; ".join(problems))
 
 
-def read_state(state) -> Tuple[int, Dict[int, Set[str]]]:
-    """``(completed_epoch, delivered per epoch)`` of a ``state_dict()`` (of a fan-in or of one
-    endpoint), shared by both ``load_state_dict`` methods.
-
-    Raises:
-        ValueError: for a state of another format.
-    """
-    if not isinstance(state, dict) or state.get("version") != 1:
-        raise ValueError("state must come from V2VStreamDataset.state_dict() (version 1)")
-    return (int(state.get("completed_epoch", -1)),
-            {int(e): set(ids) for e, ids in state.get("delivered", {}).items()})
-
-
 class FanInStream:
     """Merge the batches of several servers into one stream (see the module docstring).
 
@@ -187,42 +176,29 @@ class FanInStream:
         self._make_child = make_child
         self.credits_each = max(1, -(-int(credits) // len(self.endpoints)))
         self._lock = threading.Lock()
-        self._completed = -1  # completed epoch as last loaded (before any child exists)
-        self._delivered: Dict[int, Set[str]] = {}  # ids handed to the training loop, per epoch
         self._children: List = []
         self.counts: Dict[str, Dict[str, int]] = {e: {"batches": 0, "samples": 0} for e in self.endpoints}
         self.info: Optional[dict] = None
+        # what the fan-in handed to the training loop (per shard "I/N" its batch counts, for DDP);
         # one consumer to every server, kept in state_dict(): a resumed fan-in is the same consumer,
         # so each server takes its resume state for the one it knows
-        self._consumer = uuid.uuid4().hex
-        self._recipe: Optional[str] = None
-        self._batches: Dict[str, Dict[int, int]] = {}  # shard "I/N" -> batches handed on per open epoch
-        self._shard_of: Dict[str, str] = {}  # endpoint -> the shard it served (for its DDP batch counts)
+        self.record = ResumeState(uuid.uuid4().hex)
 
     # ------------------------------------------------------------------ state
     def completed_epoch(self) -> int:
         """The last epoch every server has completed (-1 before any)."""
         with self._lock:
             children = list(self._children)
-            base = self._completed
+        base = self.record.completed_epoch
         if not children:
             return base
         return min(max(base, int(c.state_dict().get("completed_epoch", -1))) for c in children)
 
     def state_dict(self) -> dict:
-        """Single-endpoint format (version 1) covering every server: the epoch all servers
-        completed and the sample ids handed to the training loop in later epochs."""
-        done = self.completed_epoch()
-        with self._lock:
-            for e in [e for e in self._delivered if e <= done]:
-                del self._delivered[e]
-            for per in self._batches.values():
-                for e in [e for e in per if e <= done]:
-                    del per[e]
-            return {"version": 1, "consumer": self._consumer, "completed_epoch": done, "recipe": self._recipe,
-                    "delivered": {str(e): sorted(ids) for e, ids in self._delivered.items()},
-                    "shard_batches": {sh: {str(e): n for e, n in per.items()} for sh, per in self._batches.items()},
-                    "shard_of": dict(self._shard_of)}
+        """Single-endpoint format (``ResumeState.state``) covering every server: the epoch all
+        servers completed and the sample ids handed to the training loop in later epochs."""
+        self.record.complete(self.completed_epoch())
+        return self.record.state()
 
     def load_state_dict(self, state: dict) -> None:
         """Take a state from ``state_dict()`` (of a fan-in or of one endpoint); used by the
@@ -231,26 +207,19 @@ class FanInStream:
         Raises:
             ValueError: for a state of another format.
         """
-        completed, delivered = read_state(state)
+        record = ResumeState(self.record.consumer)
+        record.load(state)
         with self._lock:
-            self._completed, self._delivered = completed, delivered
-            self._children = []
-            if isinstance(state.get("consumer"), str) and state["consumer"]:
-                self._consumer = state["consumer"]
-            self._recipe = state.get("recipe") if isinstance(state.get("recipe"), str) else self._recipe
-            self._batches = {sh: {int(e): int(n) for e, n in per.items()}
-                             for sh, per in (state.get("shard_batches") or {}).items()}
-            self._shard_of = dict(state.get("shard_of") or {})
+            self.record, self._children = record, []
 
     # ------------------------------------------------------------------ iteration
     def __iter__(self) -> Iterator[dict]:
         state = self.state_dict()
         children = [self._make_child(ep, self.credits_each) for ep in self.endpoints]
         for ep, c in zip(self.endpoints, children):  # the fan-in's consumer id and recipe; the batches of its shard
-            per = self._batches.get(self._shard_of.get(ep, ep), {})
-            c.load_state_dict(dict(state, batches={str(e): n for e, n in per.items()}))
+            per = state.get("shard_batches", {}).get(state.get("shard_of", {}).get(ep, ep), {})
+            c.load_state_dict(dict(state, batches=per))
         with self._lock:
-            self._completed = state["completed_epoch"]
             self._children = children
         items: "queue.Queue" = queue.Queue()
         go = [threading.Event() for _ in children]
@@ -302,17 +271,16 @@ class FanInStream:
         ep = self.endpoints[i]
         item["endpoint"] = ep
         info = children[i].info or {}
+        shard = str(info.get("shard", ep))
+        r = self.record
+        with r.lock:
+            r.shard_of[ep] = shard
+            if isinstance(info.get("recipe"), str):
+                r.recipe = info["recipe"]
+        r.handed_on(int(item["epoch"]), item["sample_ids"], shard=shard)
         with self._lock:
-            epoch = int(item["epoch"])
-            self._delivered.setdefault(epoch, set()).update(item["sample_ids"])
-            shard = str(info.get("shard", ep))
-            self._shard_of[ep] = shard
-            per = self._batches.setdefault(shard, {})
-            per[epoch] = per.get(epoch, 0) + 1
             self.counts[ep]["batches"] += 1
             self.counts[ep]["samples"] += len(item["sample_ids"])
-            if isinstance(info.get("recipe"), str):
-                self._recipe = info["recipe"]
         if self.info is None:
             self.info = info
         return item

@@ -34,7 +34,6 @@ the dataset, which yields them first next time (:class:`ReadAhead`).
 """
 from __future__ import annotations
 
-import copy
 import sys
 from typing import Callable, Iterator, List, Optional, Tuple
 
@@ -42,6 +41,7 @@ import msgpack
 import torch
 
 from .endpoint import padding_copy
+from .resume import ResumeState
 
 __all__ = ["DispatchedBatch", "ReadAhead", "prepare_loader", "check_whole", "adapt", "rank_part", "pack_rows",
            "unpack_rows", "unseen"]
@@ -124,24 +124,19 @@ def dispatched(batch: dict, packed: List[bytes], rows: int, width: int) -> Dispa
 def unseen(state: dict, batches: List[dict]) -> dict:
     """``state`` (a ``V2VStreamDataset.state_dict()``, one server's or a fan-in's) without
     ``batches``, batches the dataset yielded that the training loop has not received: their
-    samples (``padding`` False) leave their epoch's delivered ids and each batch its epoch's
-    batch count (a resume from it has them sent again: the server takes a hello's state as the
-    truth). An epoch the state calls complete is left as it is."""
-    state = copy.deepcopy(state)
-    delivered = state.get("delivered", {})
+    samples (``padding`` False) are not handed on (``ResumeState.not_handed_on``), so a resume
+    from it has them sent again (the server takes a hello's state as the truth). The state given
+    is not changed.
+
+    Raises:
+        ValueError: a state of another format.
+    """
+    record = ResumeState()
+    record.load(state)
     for b in batches:
-        epoch = str(int(b["epoch"]))
-        if epoch not in delivered:
-            continue  # an epoch the state calls complete: nothing of it is kept to remove
-        ids = {sid for sid, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad}
-        delivered[epoch] = [sid for sid in delivered[epoch] if sid not in ids]
-        if "shard_batches" in state:  # a fan-in's: batches per shard of the server it came from
-            counts = state["shard_batches"].get(state.get("shard_of", {}).get(b.get("endpoint"), b.get("endpoint")), {})
-        else:
-            counts = state.get("batches", {})
-        if counts.get(epoch, 0) > 0:
-            counts[epoch] -= 1
-    return state
+        ids = [sid for sid, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad]
+        record.not_handed_on(int(b["epoch"]), ids, endpoint=b.get("endpoint"))
+    return record.state()
 
 
 class ReadAhead:

@@ -29,15 +29,16 @@ from typing import Dict, Optional
 
 import torch
 
-from v2v_wire.protocol import pack
+from .receipts import Abandon, Handed, Receipt
+from .resume import ResumeState
 
 __all__ = ["StreamLoader", "LoaderLink"]
 
 
 class LoaderLink:
     """What a ``StreamLoader`` gives its dataset for the workers: per worker the read end of
-    its receipt pipe and the record the main process keeps (``EndpointStream.state_dict()``
-    format without the consumer id)."""
+    its receipt pipe and the record the main process keeps (``ResumeState.state()``, plain data
+    the worker process is handed)."""
 
     def __init__(self, num_workers: int, records: Dict[int, dict], context=None):
         ctx = context or multiprocessing
@@ -52,7 +53,7 @@ class LoaderLink:
     def receipt(self, worker: int, batch_id: int) -> None:
         """Tell ``worker`` the loop received ``batch_id`` (a worker that is gone is ignored: the
         loader raises its own error for it)."""
-        self._tell(worker, {"type": "receipt", "batch_ids": [batch_id]})
+        self._tell(worker, Receipt((batch_id,)).to_bytes())
 
     def end_iteration(self) -> None:
         """Tell every worker the loop left iteration ``iteration`` and the loader is about to
@@ -61,12 +62,12 @@ class LoaderLink:
         left iteration wait for batches while all its credits are held by batches whose
         receipts will never come, and the loader's reset waits for them forever."""
         for w in range(len(self._send)):
-            self._tell(w, {"type": "abandon", "iteration": self.iteration})
+            self._tell(w, Abandon(self.iteration).to_bytes())
         self.iteration += 1
 
-    def _tell(self, worker: int, msg: dict) -> None:
+    def _tell(self, worker: int, data: bytes) -> None:
         try:
-            self._send[worker].send_bytes(pack(msg))
+            self._send[worker].send_bytes(data)
         except (OSError, ValueError):
             pass
 
@@ -109,7 +110,7 @@ class StreamLoader(torch.utils.data.DataLoader):
             raise ValueError("StreamLoader: batch_size must be None (the server makes the batches)")
         kwargs["batch_size"] = None
         super().__init__(dataset, **kwargs)
-        self._records: Dict[int, dict] = {}
+        self._records: Dict[int, ResumeState] = {}  # per worker: what the loop received from it
         self._link: Optional[LoaderLink] = None
 
     def __bool__(self) -> bool:
@@ -125,7 +126,7 @@ class StreamLoader(torch.utils.data.DataLoader):
             # workers are made for this iteration: new pipes, and the records they resume from
             if self._link is not None:
                 self._link.close()
-            self._link = LoaderLink(self.num_workers, {w: dict(r) for w, r in self._records.items()},
+            self._link = LoaderLink(self.num_workers, {w: r.state() for w, r in self._records.items()},
                                     self.multiprocessing_context)
             self.dataset.read_by(self._link)
         else:  # persistent workers go on: the previous iteration is over for them first
@@ -135,10 +136,11 @@ class StreamLoader(torch.utils.data.DataLoader):
     def _receive(self, it):
         try:
             for batch in it:
-                r = batch.pop("receipt", None)
+                r: Optional[Handed] = batch.pop("receipt", None)
                 if r is not None:
-                    self._record(r, batch)
-                    self._link.receipt(r["worker"], r["batch_id"])
+                    self._records.setdefault(r.worker, ResumeState()).handed_on(r.epoch, batch["sample_ids"],
+                                                                                r.completed_epoch)
+                    self._link.receipt(r.worker, r.batch_id)
                 yield batch
         except Exception:
             # a worker died or raised: torch keeps persistent workers as they are, so the next
@@ -149,19 +151,6 @@ class StreamLoader(torch.utils.data.DataLoader):
                 self._iterator = None
             raise
 
-    def _record(self, r: dict, batch: dict) -> None:
-        rec = self._records.setdefault(r["worker"], {"version": 1, "completed_epoch": -1, "delivered": {},
-                                                     "batches": {}})
-        done = max(rec["completed_epoch"], int(r["completed_epoch"]))
-        if done > rec["completed_epoch"]:
-            rec["completed_epoch"] = done
-            for key in ("delivered", "batches"):
-                rec[key] = {e: v for e, v in rec[key].items() if int(e) > done}
-        e = str(r["epoch"])
-        if int(e) > done:
-            rec["delivered"].setdefault(e, []).extend(batch["sample_ids"])
-            rec["batches"][e] = rec["batches"].get(e, 0) + 1
-
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
         """The consumer id and, with workers, each worker's record (epochs completed, sample
@@ -170,8 +159,7 @@ class StreamLoader(torch.utils.data.DataLoader):
         if self.num_workers == 0:
             return {"version": 1, "dataset": self.dataset.state_dict()}
         return {"version": 1, "consumer": self.dataset.consumer,
-                "workers": {str(w): {k: (dict(v) if isinstance(v, dict) else v) for k, v in r.items()}
-                            for w, r in self._records.items()}}
+                "workers": {str(w): r.state() for w, r in self._records.items()}}
 
     def load_state_dict(self, state: dict) -> None:
         """Resume from ``state_dict()``: the next iteration's workers (made anew) start from
@@ -191,8 +179,11 @@ class StreamLoader(torch.utils.data.DataLoader):
         if self.num_workers == 0 or any(w >= self.num_workers for w in workers):
             raise ValueError(f"this state was saved by a loader with workers {sorted(workers)}; this one has "
                              f"num_workers={self.num_workers}")
+        records = {w: ResumeState() for w in workers}
+        for w, r in workers.items():
+            records[w].load(r)
         self.dataset.consumer = state["consumer"]
-        self._records = workers
+        self._records = records
         if self._iterator is not None:  # persistent workers hold their own records: start them anew
             self._iterator._shutdown_workers()
             self._iterator = None

@@ -3,13 +3,32 @@ the one object the dataset, the per-server stream and its connection read their 
 """
 from __future__ import annotations
 
+import hashlib
+import os
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
 from v2v_wire.codecs import available
 from v2v_wire.protocol import is_loopback
 
-__all__ = ["StreamOptions", "AUTO_REMOTE"]
+__all__ = ["StreamOptions", "AUTO_REMOTE", "job_group", "LAUNCHER_VARIABLES"]
+
+#: What launchers set that tells one job from another on a host: torchrun's (and accelerate
+#: launch's) run id and rendezvous endpoint, Lightning's and Ray Train's ``MASTER_ADDR`` /
+#: ``MASTER_PORT``, Slurm's job and step.
+LAUNCHER_VARIABLES = ("TORCHELASTIC_RUN_ID", "MASTER_ADDR", "MASTER_PORT", "SLURM_JOB_ID", "SLURM_STEP_ID")
+
+
+def job_group(environ=os.environ) -> str:
+    """The DDP group a job's ranks read as when ``group=`` is not given: named from what its
+    launcher set (``LAUNCHER_VARIABLES``), the same for every rank of one job and for its elastic
+    restarts, different for two jobs on one host (they need different rendezvous ports);
+    ``"default"`` when no launcher set any (ranks started by hand: a second job then finds the
+    group's ranks read, and is refused with a line saying to set ``group=``)."""
+    seen = [f"{k}={environ[k]}" for k in LAUNCHER_VARIABLES if environ.get(k)]
+    if not seen:
+        return "default"
+    return "job-" + hashlib.blake2b("\n".join(seen).encode(), digest_size=8).hexdigest()
 
 #: Compression ``compression="auto"`` asks servers on other hosts for (docs/wire.md measures it:
 #: 6.3x fewer bytes per default sample, decompressed at about 1.2 GB/s per core).
@@ -36,7 +55,7 @@ class StreamOptions:
     curve_keys: Optional[Tuple[str, str]]
     rank: int
     world_size: int
-    group: str
+    group: Optional[str]
     shm: object
     compact_flow: bool = False
     compression: str = "auto"
@@ -62,16 +81,3 @@ class StreamOptions:
         if self.compression != "auto":
             return self.compression, False
         return (AUTO_REMOTE if not is_loopback(endpoint) and available(AUTO_REMOTE) else "none"), True
-
-    def hello(self, consumer: str, resume: dict, ends_on_drained: bool = False) -> dict:
-        """The hello message of a connection: the outputs, credits and DDP position of these
-        options, the ``consumer`` id the server knows the reader by, and its ``resume`` state
-        (``endpoint.ConsumerRecord.resume``); ``ends_on_drained``: a ``StreamLoader`` worker,
-        whose iteration ends on ``drained`` (the server sends it nothing after telling it so)."""
-        h = {"type": "hello", "outputs": list(self.outputs), "credits": self.credits, "consumer": consumer,
-             "resume": resume}
-        if ends_on_drained:
-            h["ends_on_drained"] = True
-        if self.world_size > 1:
-            h.update(rank=self.rank, world_size=self.world_size, group=self.group)
-        return h

@@ -1,45 +1,52 @@
-"""The client's side of the protocol with one server, without a socket or torch: a server
-message in, items for the consumer and replies for the server out.
+"""The client's side of the protocol with one server, without a socket, a thread of its own, a
+clock of its own or torch: server messages, the consumer's steps, the loader's receipts and the
+time in; every message the client sends out, typed (``v2v_wire.messages``).
 
 :class:`ServerSession` holds what one connection knows of its session with a server: the
 hello it last said (and whether the welcome came), the server's stream info, the batches
-received and not yet taken or given back, and whether batches come through the server's
-shared memory and how they are compressed. The I/O thread of
-:class:`~v2v_client.connection.Connection` owns one: it sends ``hello()``, feeds each message
-to ``on_message()``, and sends the ``replies()``. The consumer claims the queued batches
-from its :class:`HeldBatches` (``held``). It imports numpy, ``v2v_wire`` and ``handoff`` only (no torch, no socket),
-so a host with ``pip install .`` (no torch) reads a stream through it as numpy arrays.
+received and not yet taken or given back (:class:`~v2v_client.held.HeldBatches`), the reader's
+record (:class:`~v2v_client.resume.ResumeState`), and in a DataLoader worker the loader's
+iteration. It decides every outgoing message: the hello, ``hold`` (and asking again for what
+stays unanswered), ``ack`` (on a claim, or on the loop's receipt in a DataLoader worker),
+``released`` (revoked, refused, torn, given back, on close), ``heartbeat`` and ``bye``. The I/O
+thread of :class:`~v2v_client.connection.Connection` only moves the bytes: it feeds
+``on_message``, ``on_loader`` and ``tick`` and sends what ``outgoing()`` returns. The rules are
+written once in docs/delivery.md ("The protocol"). Numpy, ``v2v_wire`` and ``handoff`` only, so
+a host with ``pip install .`` (no torch) reads a stream through it as numpy arrays.
 """
 from __future__ import annotations
 
+import collections
 import logging
 import queue
-import threading
-from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
+from typing import Callable, Dict, List, Optional, Tuple, Union
 
-from v2v_wire.codecs import decode_batch_arrays
-from v2v_wire.messages import Hold, Released
-from v2v_wire.outputs import ARRAYS
 from v2v_wire import stream_messages as sm
+from v2v_wire.codecs import decode_batch_arrays
+from v2v_wire.messages import Ack, Bye, Heartbeat, Hello, Hold, Released
+from v2v_wire.outputs import ARRAYS
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, ProtocolError, output_of, pack, unpack
 from v2v_wire.stream_messages import stream_message
 
 from .handoff import ShmReader, check_shm_dir, shm_dir_problem
+from .held import BOOKKEEPING, GRANT_AHEAD, HeldBatches, strip_arrays
+from .receipts import Abandon, Receipt
+from .resume import ResumeState
 
-__all__ = ["ServerSession", "HeldBatches", "GRANT_AHEAD", "StreamError", "StreamTimeout", "EpochDone", "Drained", "LoopAbandoned", "ServerPadding",
-           "MAX_SERVER_MSG", "strip_arrays"]
+__all__ = ["ServerSession", "HeldBatches", "GRANT_AHEAD", "StreamError", "StreamTimeout", "LoopAbandoned",
+           "ServerPadding", "MAX_SERVER_MSG", "strip_arrays", "BOOKKEEPING", "Outgoing"]
 
 log = logging.getLogger("v2v.client")
 
 #: Largest message accepted from the server, bytes (ZMQ_MAXMSGSIZE).
 MAX_SERVER_MSG = MAX_BATCH_BYTES
 
-#: The entries of a batch item that are not arrays (kept when a batch is given back).
-BOOKKEEPING = ("sample_ids", "params", "epoch", "batch_id", "receipt")
-
 #: ``convert(arrays, flow_size, flow_dtype)``: a batch's wire arrays (name -> numpy array) as
 #: the consumer's arrays (``tensors.batch_to_torch`` with the stream's options, for the dataset).
 Convert = Callable[[Dict, Optional[Tuple[int, int]], str], Dict]
+
+#: What a session sends: the client -> server messages of ``v2v_wire.messages``.
+Outgoing = Union[Hello, Hold, Ack, Released, Heartbeat, Bye]
 
 
 class StreamError(RuntimeError):
@@ -57,269 +64,234 @@ class ServerPadding:
         self.item = item
 
 
-class Drained:
-    """The server has nothing left to send this connection unless a batch held elsewhere comes back."""
-
-
 class LoopAbandoned:
     """A DataLoader worker's iteration is over: the training loop left it (``break``, a new
     ``for``) and the loader discarded what this worker had queued, so no receipt will come for
     the batches still held; the iteration ends and they go back to the server."""
 
 
-class EpochDone:
-    """The server declared ``epoch`` complete; ``batches``: with DDP, the batches every rank of
-    the group must yield in it (None without DDP)."""
-
-    def __init__(self, epoch: int, batches: Optional[int] = None):
-        self.epoch = epoch
-        self.batches = batches
-
-
-def strip_arrays(item: dict) -> None:
-    """Free the arrays of a batch that will not be used (keeps its ids for bookkeeping)."""
-    for k in [k for k in item if k not in BOOKKEEPING]:
-        del item[k]
-
-
 def _as_received(arrays: Dict, flow_size, flow_dtype) -> Dict:
     return dict(arrays)
 
 
-#: Batches a connection asks to be granted ahead of the consumer (its ``hold``s in flight plus
-#: those granted and not yet taken): the grant's round trip overlaps the training steps, and a
-#: trainer that dies for good takes at most this many granted batches with it.
-GRANT_AHEAD = 2
-
-
-class HeldBatches:
-    """The batches a session received and the consumer has neither taken nor given back
-    (batch id -> its queued item), and where each stands: *leased* (the server may take it
-    back: a revoke releases it), *asked* (a ``hold`` is on its way: kept until the answer) or
-    *granted* (the consumer's for good). The consumer takes a batch only once it is granted
-    (:meth:`claim`); a batch is either taken or given back (revoked, refused, discarded,
-    released), never both: ``lock`` (a condition the consumer waits on) makes the choice
-    exclusive, and a batch given back loses its arrays at once.
+class BatchReader:
+    """How one session reads a batch's arrays: from its frames (decompressed), or from the server's
+    batch file on the same host (``handoff.ShmReader``), checked against the header and converted
+    for the consumer.
 
     Args:
-        endpoint: named in logs.
-        ahead: batches asked or granted ahead of the consumer at most (``GRANT_AHEAD``).
+        outputs: the outputs asked for; a batch lacking one is a protocol error.
+        convert: ``Convert`` (None keeps the numpy arrays: views of the received message).
+        copy: whether ``convert`` keeps the memory it is given (a shared-memory batch is then
+            copied out of the server's buffer first).
+        shm: read batches through the server's shared memory; ``keep``: private buffers kept.
     """
 
-    def __init__(self, endpoint: str, ahead: int = GRANT_AHEAD):
-        self.endpoint = endpoint
-        self.lock = threading.Condition()
-        self.current: Dict[int, dict] = {}
-        self.asked: Set[int] = set()
-        self.granted: Set[int] = set()
-        self.ahead = max(1, ahead)
-        self.discarded = 0  # batches given up when saying hello again
+    def __init__(self, outputs: Tuple[str, ...], convert: Optional[Convert], copy: bool, shm: bool, keep: int):
+        self.outputs = outputs
+        self._convert = convert or _as_received
+        self._copy = copy or convert is None
+        self.shm: Optional[ShmReader] = ShmReader(keep=keep) if shm else None
+        self._torn: Dict[int, int] = {}  # shared-memory batches found gone, by batch id
 
-    def add(self, item: dict) -> None:
-        """A received batch (a batch given back may come again: this copy is the live one, leased)."""
-        with self.lock:
-            bid = item["batch_id"]
-            self.current.pop(bid, None)
-            self.asked.discard(bid)
-            self.granted.discard(bid)
-            self.current[bid] = item
+    def read(self, m: sm.Batch, frames, info: dict) -> Optional[dict]:
+        """The batch's item (arrays, ``sample_ids``, ``params``, ``epoch``, ``batch_id``), or None
+        when its shared-memory buffer was refilled before it was read (:meth:`torn` counts it).
 
-    def to_ask(self, item: Optional[dict] = None) -> List[int]:
-        """Leased batches to ask the server for now, marked asked: ``item`` when it is still
-        held and leased, then the oldest leased ones while fewer than ``ahead`` are asked or
-        granted. The caller sends them in a ``hold``."""
-        with self.lock:
-            out = []
-            if item is not None and self.current.get(item["batch_id"]) is item and self._leased(item["batch_id"]):
-                out.append(item["batch_id"])
-                self.asked.add(item["batch_id"])
-            for bid in self.current:
-                if len(self.asked) + len(self.granted) >= self.ahead:
-                    break
-                if self._leased(bid):
-                    out.append(bid)
-                    self.asked.add(bid)
-            return out
-
-    def _leased(self, bid: int) -> bool:
-        return bid not in self.asked and bid not in self.granted
-
-    def answer(self, granted: Sequence[int], refused: Sequence[int]) -> None:
-        """The server's answer to our holds: ``granted`` batches may be taken, ``refused`` ones
-        are no longer ours (given back here)."""
-        with self.lock:
-            for bid in granted:
-                if bid in self.asked:
-                    self.asked.discard(bid)
-                    self.granted.add(bid)
-            for bid in refused:
-                if bid in self.asked:
-                    self._pop_locked(bid)
-            self.lock.notify_all()
-
-    def still_asked(self, before: Set[int]) -> Tuple[Set[int], Set[int]]:
-        """``(asked then and still unanswered, asked now)``: the I/O thread asks again for what
-        stays unanswered a whole heartbeat (a grant lost when a connection broke and ZeroMQ
-        reconnected behind it; the server answers a repeated ``hold`` the same)."""
-        with self.lock:
-            return before & self.asked, set(self.asked)
-
-    def claim(self, item: dict, on_claim: Callable[[], object], wait: Callable[[], bool]) -> Tuple[bool, object]:
-        """Take a received batch out for the consumer once it is granted, calling ``on_claim()``
-        under the lock (the consumer records its samples there: a hello, which reads that
-        record under the same lock, either precedes the claim and discards the batch, or
-        follows it and names its samples). Waits for the answer while ``wait()`` is true.
-        Returns ``(True, on_claim())``, or ``(False, None)`` when the batch was given back
-        meanwhile (revoked before it was asked, refused, or discarded by a new hello)."""
-        bid = item["batch_id"]
-        with self.lock:
-            while self.current.get(bid) is item and bid not in self.granted:
-                if not wait():
-                    return False, None
-                self.lock.wait(0.1)
-            if self.current.get(bid) is not item:
-                return False, None
-            del self.current[bid]
-            self.granted.discard(bid)
-            return True, on_claim()
-
-    def give_back(self, item: dict) -> Optional[bool]:
-        """Release a received batch unused (its arrays freed): None when it was no longer held,
-        else whether the server may have granted it (asked or granted: the caller says
-        ``released`` either way; a leased one goes back when the lease or the connection ends
-        too, but saying so frees its slot at once)."""
-        with self.lock:
-            bid = item["batch_id"]
-            if self.current.get(bid) is not item:
+        Raises:
+            ProtocolError: arrays missing, of the wrong length, or a hand-off not asked for.
+        """
+        ref = None if m.shm is None else {"shm": m.shm, "arrays": list(m.arrays)}  # handoff.ShmReader's header
+        if ref is not None:  # same host: the arrays are in the server's batch file
+            if self.shm is None or len(frames) != 1:
+                raise ProtocolError("a shared-memory batch this client did not ask for")
+            arrays = self.shm.read(ref, copy=self._copy)
+            if arrays is None:
                 return None
-            maybe_granted = bid in self.asked or bid in self.granted
-            self._pop_locked(bid)
-        return maybe_granted
+        else:
+            arrays = decode_batch_arrays(list(m.arrays), frames[1:], MAX_SERVER_MSG)
+        missing = [o for o in self.outputs if o not in {output_of(k) for k in arrays}]
+        if missing:
+            raise ProtocolError(f"batch {m.batch_id} lacks requested outputs {missing}")
+        if any(a.shape[:1] != (len(m.sample_ids),) for a in arrays.values()):
+            raise ProtocolError(f"batch {m.batch_id}: sample ids do not match the arrays")
+        crop = info.get("crop_size")
+        item = self._convert(arrays, (crop, crop) if isinstance(crop, int) and crop > 0 else None,
+                             info.get("flow_dtype", ARRAYS["flow"].dtypes[0]))
+        if ref is not None and not self._copy:
+            del arrays  # converted from the mapping: check it still held this batch
+            if not self.shm.valid(ref):
+                return None
+        item.update(sample_ids=list(m.sample_ids), params=list(m.params), epoch=m.epoch, batch_id=m.batch_id)
+        return item
 
-    def revoke(self, batch_ids) -> List[int]:
-        """Release the leased batches the server asks back; returns those released (asked
-        and granted ones stay: the server grants what it was asked for before it reads more)."""
-        released = []
-        with self.lock:
-            for b in batch_ids:
-                if isinstance(b, int) and b in self.current and self._leased(b):
-                    self._pop_locked(b)
-                    released.append(b)
-        return released
+    def torn(self, bid: int) -> int:
+        """Batch ``bid`` was found gone from the shared memory: how often so far."""
+        self._torn[bid] = self._torn.get(bid, 0) + 1
+        return self._torn[bid]
 
-    def discard(self, why: Optional[str]) -> List[int]:
-        """Give up every batch held (the server re-sends or re-makes them), logging ``why`` (None:
-        a connection closing, nothing to say); returns those that were asked or granted (to say
-        ``released`` for when the connection closes)."""
-        with self.lock:
-            return self._discard_locked(why)
-
-    def __len__(self) -> int:
-        with self.lock:
-            return len(self.current)
-
-    def _pop_locked(self, bid: int) -> None:
-        item = self.current.pop(bid)
-        self.asked.discard(bid)
-        self.granted.discard(bid)
-        strip_arrays(item)
-        self.lock.notify_all()
-
-    def _discard_locked(self, why: Optional[str]) -> List[int]:
-        if self.current and why is not None:
-            log.warning("v2v stream %s: discarding %d batch(es) not yet used: %s", self.endpoint,
-                        len(self.current), why)
-        ours = sorted(self.asked | self.granted)
-        for item in self.current.values():
-            strip_arrays(item)
-        self.discarded += len(self.current) if why is not None else 0
-        self.current.clear()
-        self.asked.clear()
-        self.granted.clear()
-        self.lock.notify_all()
-        return ours
+    def close(self) -> None:
+        if self.shm is not None:
+            self.shm.close()
+            self.shm = None
 
 
 class ServerSession:
-    """One connection's session with one server: protocol state, no socket, no torch.
+    """One connection's session with one server: protocol state, no socket, no thread, no torch.
 
     Args:
         endpoint: the server's endpoint (named in errors and logs).
-        outputs: the outputs the hello asks for; a batch lacking one is a protocol error.
-        hello_header: makes the hello message (dict: outputs, credits, consumer, resume state);
-            called for every (re-)hello.
-        welcomed: given the server's stream info; returns why the consumer refuses this
-            server (the stream then ends with a :class:`StreamError`), or None.
+        options: the stream's ``options.StreamOptions`` (outputs, credits, DDP position,
+            heartbeat, same-host hand-off and compression wanted).
+        record: the reader's ``resume.ResumeState``: its resume state goes in every hello, the
+            welcome's recipe is checked against it, claims and receipts are recorded in it.
+        consumer: the id the hello names the reader by.
         convert: a batch's wire arrays to the consumer's (``Convert``); None keeps the numpy
             arrays (views of the received message).
-        raw: whether ``convert`` keeps the received memory (then a shared-memory batch is
-            copied out of the server's buffer before ``convert``).
-        shm: ask for batches through the server's shared memory (same host).
-        keep: private buffers a shared-memory reader keeps (the credits plus a few).
-        compression: the compression asked for ("none", "lz4", "zstd"); ``compression_auto``:
-            chosen by default, so a server lacking the codec is asked again without it.
+        ends_on_drained, iteration: a ``StreamLoader`` DataLoader worker: its iteration ends on
+            ``drained``; the loader's iteration it serves (``receipts.Abandon`` names it).
+        instance: the reader process's token (the dataset's): the server lets one instance read
+            a consumer at a time (docs/delivery.md, "Who may say hello").
+        welcomed: given the server's stream info, why the reader refuses this server (the stream
+            ends with a :class:`StreamError`), or None; default: the record's recipe check.
 
     Items queued on ``items`` for the consumer: batch dicts (arrays as ``convert`` makes them,
     ``sample_ids``, ``params``, ``epoch``, ``batch_id``), :class:`ServerPadding`,
-    :class:`EpochDone`, :class:`Drained`, ``StopIteration`` (the end) and :class:`StreamError`.
+    ``stream_messages.EpochDone`` and ``Drained``, :class:`LoopAbandoned`, ``StopIteration`` (the
+    end) and :class:`StreamError`.
     """
 
-    def __init__(self, endpoint: str, outputs: Sequence[str], hello_header: Callable[[], dict], *,
-                 welcomed: Callable[[dict], Optional[str]] = lambda info: None, convert: Optional[Convert] = None,
-                 raw: bool = False, shm: bool = False, keep: int = 4, compression: str = "none",
-                 compression_auto: bool = False):
-        self.endpoint = endpoint
-        self.outputs = tuple(outputs)
-        self._hello_header, self._welcomed = hello_header, welcomed
-        self._convert = convert or _as_received
-        self._copy_shm = raw or convert is None  # the items keep the memory they are given
+    def __init__(self, endpoint: str, options, record: ResumeState, consumer: str, *,
+                 convert: Optional[Convert] = None, ends_on_drained: bool = False, iteration: int = 0,
+                 instance: str = "", welcomed: Optional[Callable[[dict], Optional[str]]] = None):
+        self.endpoint, self.options, self.record, self.consumer = endpoint, options, record, consumer
+        self.instance = instance
+        self.outputs = tuple(options.outputs)
+        self._welcomed = welcomed or (lambda info: record.check_recipe(info.get("recipe")))
         self.items: "queue.Queue" = queue.Queue()
         self.info: Optional[dict] = None
         self.held = HeldBatches(endpoint)
-        self._replies: List[bytes] = []
+        self._out: "collections.deque[Outgoing]" = collections.deque()  # appended by both threads, in order
         self._hello_seq = 0
         self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
-        self._torn_ids: Dict[int, int] = {}  # shared-memory batches found gone, by batch id
-        self.shm = shm
-        self._shm = ShmReader(keep=keep) if shm else None
-        self.compression, self._compression_auto = compression, compression_auto
+        self.reader = BatchReader(self.outputs, convert, options.raw, options.wants_shm(endpoint), options.credits + 2)
+        self.compression, self._compression_auto = options.compression_for(endpoint)
+        self.ends_on_drained, self.iteration = ends_on_drained, iteration
+        self.abandoned = False  # the loader left this iteration (a DataLoader worker)
+        self._next_beat: Optional[float] = None
+        self._asked: set = set()  # holds unanswered at the last heartbeat
 
-    # -- the I/O thread's side --
+    # ------------------------------------------------------------------ what goes out
+    def outgoing(self) -> List[Outgoing]:
+        """The messages decided since the last call, in order (then forgotten)."""
+        out = []
+        while self._out:
+            out.append(self._out.popleft())
+        return out
 
-    def hello(self, new_socket: bool = False) -> bytes:
-        """A (re-)hello: whatever this session still holds is discarded first, since the server
-        takes the resume state as the truth and re-sends the rest. On a ``new_socket`` no
-        message of an older session can arrive, so no welcome is awaited.
+    def hello(self, new_socket: bool = False) -> None:
+        """Say hello (again): whatever this session still holds is discarded first, since the
+        server takes the resume state as the truth and re-sends the rest. On a ``new_socket``
+        no message of an older session can arrive, so no welcome is awaited.
 
         Raises:
             StreamError: the hello (its resume state) is larger than the server takes.
         """
+        o = self.options
         with self.held.lock:  # the resume state and the discard as one step (``HeldBatches.claim``)
             self.held.discard("saying hello again")
-            header = self._hello_header()
+            resume = self.record.hello_resume()
         self._hello_seq += 1
-        self._awaiting = self._hello_seq
-        h = dict(header, hello_id=self._hello_seq)
-        if self.shm:
-            h["shm"] = True
-        if self.compression != "none":
-            h["compression"] = self.compression
-        data = pack(h)
+        self._awaiting = None if new_socket else self._hello_seq
+        h = Hello(self.outputs, o.credits, self.consumer, resume, o.group if o.world_size > 1 else None, o.rank,
+                  o.world_size, self._hello_seq, self.reader.shm is not None, self.compression, self.ends_on_drained,
+                  self.instance)
+        size = len(pack(h.to_wire()))
         limit = (self.info or {}).get("max_hello_bytes", MAX_CLIENT_MSG)
-        if len(data) > limit:
-            n = sum(len(v) for v in h.get("resume", {}).get("delivered", {}).values())
-            raise StreamError(f"the resume state is too large to send: {len(data)} bytes, the server at "
+        if size > limit:
+            n = sum(len(s) for ids in resume.delivered.values() for s in ids)
+            raise StreamError(f"the resume state is too large to send: {size} bytes, the server at "
                               f"{self.endpoint} takes at most {limit} ({n} characters of sample ids in open epochs). "
                               f"Checkpoint after the epoch completes, or split the corpus into shards")
-        if new_socket:
-            self._awaiting = None
-        return data
+        self._out.append(h)
 
-    def replies(self) -> List[bytes]:
-        """The messages the last ``on_message`` calls owe the server, in order (then forgotten)."""
-        out, self._replies = self._replies, []
-        return out
+    def tick(self, now: float) -> None:
+        """Time passed (seconds, the caller's clock): a heartbeat every ``heartbeat_s``, and with
+        it a ``hold`` again for every grant asked for and unanswered a whole heartbeat (lost when
+        a connection broke behind ZeroMQ's reconnect; the server answers a repeated hold the same)."""
+        if self._next_beat is None:
+            self._next_beat = now + self.options.heartbeat_s
+        if now < self._next_beat:
+            return
+        self._next_beat = now + self.options.heartbeat_s
+        self._out.append(Heartbeat())
+        again, self._asked = self.held.still_asked(self._asked)
+        if again:
+            self._out.append(Hold(tuple(sorted(again))))
 
+    def closing(self, unreceived: bool = False) -> List[Outgoing]:
+        """The last messages of a connection that closes: the batches asked for or granted and
+        not taken go back (``released``; in a DataLoader worker whose iteration was abandoned,
+        or with ``unreceived``, also those waiting in the loader's queues), then ``bye``. The
+        book is empty after it: a consumer waiting for a grant wakes."""
+        ours = self.held.discard(None)
+        if self.ends_on_drained and (self.abandoned or unreceived):
+            ours += self.record.pipeline_ids()  # granted, queued in the loader, dropped by it
+        if ours:
+            self._out.append(Released(tuple(ours)))
+        self._out.append(Bye())
+        return self.outgoing()
+
+    # ------------------------------------------------------------------ the consumer's steps
+    def take(self, item: dict, on_claim: Callable[[], object], wait: Callable[[], bool] = lambda: False,
+             ack: bool = True) -> Tuple[bool, object]:
+        """Claim a received batch for the training loop once granted (``HeldBatches.claim``, with
+        ``on_claim``; its ``hold`` is asked for first if it was not), waiting while ``wait()``,
+        and ``ack`` it (a DataLoader worker acks on the loop's receipt instead); then ask for the
+        grants the consumer needs next. Returns ``(True, on_claim())``, or ``(False, None)``
+        when it was given back meanwhile or is not granted yet and ``wait()`` said stop."""
+        self._ask(item)
+        ok, result = self.held.claim(item, on_claim, wait)
+        if ok and ack:
+            self._out.append(Ack((item["batch_id"],)))
+        self._ask()
+        return ok, result
+
+    def give_back(self, item: dict) -> None:
+        """Return a received batch unused (e.g. of an epoch this reader already completed): out
+        of the book first, then ``released`` (rule 4 of docs/delivery.md)."""
+        if self.held.give_back(item) is not None:
+            self._out.append(Released((item["batch_id"],)))
+
+    def ack(self, batch_ids) -> None:
+        """Acknowledge batches this connection took (the loop received them, or they held
+        nothing new for it)."""
+        if batch_ids:
+            self._out.append(Ack(tuple(batch_ids)))
+
+    def _ask(self, item: Optional[dict] = None) -> None:
+        ids = self.held.to_ask(item)
+        if ids:
+            self._out.append(Hold(tuple(ids)))
+
+    # ------------------------------------------------------------------ the loader (a DataLoader worker)
+    def on_loader(self, msg: Union[Receipt, Abandon]) -> None:
+        """What ``StreamLoader`` in the main process said: the loop received these batches
+        (recorded, acknowledged), or it left this iteration (:class:`LoopAbandoned` for the
+        consumer: no receipt will come, what is held goes back at close)."""
+        if isinstance(msg, Abandon):
+            if msg.iteration == self.iteration and not self.abandoned:
+                self.abandoned = True
+                self.items.put(LoopAbandoned())
+            return
+        self.ack(self.record.received(msg.batch_ids))
+
+    def lingering_done(self) -> bool:
+        """A worker's connection kept open for the batches in the loader's queues may close:
+        every one was received, or the loop left."""
+        return self.abandoned or not self.record.pipeline_ids()
+
+    # ------------------------------------------------------------------ what comes in
     def on_message(self, frames) -> Optional[str]:
         """Handle one server message (its frames: header, then array frames), read at this
         edge as its typed message (``v2v_wire.stream_messages``); "over" when the stream has
@@ -329,90 +301,59 @@ class ServerSession:
             m = stream_message(unpack(frames[0]))
             rehello = isinstance(m, sm.ServerError) and m.code in ("dropped", "unknown_client")
             if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted)) or rehello):
-                # sent before the server read our latest hello: about a session that is over
-                return None
+                return None  # sent before the server read our latest hello: about a session that is over
             if isinstance(m, sm.Batch):
                 self._on_batch(m, frames)
             elif isinstance(m, sm.Welcome):
-                self._on_welcome(m)
-                refusal = self._welcomed(self.info)
-                if refusal is not None:
-                    self.items.put(StreamError(f"v2v server at {self.endpoint}: {refusal}"))
-                    return "over"
+                return self._on_welcome(m)
             elif isinstance(m, sm.Revoke):
-                self._on_revoke(m)
+                released = self.held.revoke(list(m.batch_ids))  # leased ones go back, arrays freed
+                if released:
+                    self._out.append(Released(tuple(released)))
             elif isinstance(m, sm.Granted):
                 self.held.answer(m.batch_ids, m.refused)
                 self._ask()
-            elif isinstance(m, sm.EpochDone):
-                self.items.put(EpochDone(m.epoch, m.batches))
-            elif isinstance(m, sm.Drained):
-                self.items.put(Drained())
+            elif isinstance(m, (sm.EpochDone, sm.Drained)):
+                self.items.put(m)
             elif isinstance(m, sm.End):
                 self.items.put(StopIteration("end of stream" if m.reason is None else m.reason))
                 return "over"
             elif isinstance(m, sm.Shutdown):
                 return "lost"
-            elif isinstance(m, sm.ServerError) and m.code == "compression" and self._compression_auto:
-                # the server lacks the codec we picked by default: take the arrays as they are
-                log.warning("v2v server at %s: %s; receiving arrays uncompressed", self.endpoint, m.message)
-                self.compression = "none"
-                self._replies.append(self.hello())
-            elif rehello:
-                # dropped for silence or an unanswered revoke, or the server restarted behind our socket:
-                # whatever we hold goes elsewhere, so hand none of it on; introduce ourselves again
-                log.warning("v2v server at %s: %s; saying hello again with the resume state", self.endpoint,
-                            m.message)
-                self._replies.append(self.hello())
             elif isinstance(m, sm.ServerError):
-                self.items.put(StreamError(f"v2v server at {self.endpoint}: {m.message}"))
-                return "over"
+                return self._on_error(m, rehello)
         except (ProtocolError, KeyError, TypeError, ValueError) as e:
             self.items.put(StreamError(f"bad message from the v2v server at {self.endpoint}: {e}"))
             return "over"
         return None
 
+    def _on_error(self, m: sm.ServerError, rehello: bool) -> Optional[str]:
+        if m.code == "compression" and self._compression_auto:
+            # the server lacks the codec we picked by default: take the arrays as they are
+            log.warning("v2v server at %s: %s; receiving arrays uncompressed", self.endpoint, m.message)
+            self.compression = "none"
+            self.hello()
+            return None
+        if rehello:
+            # dropped for silence or an unanswered revoke, or the server restarted behind our socket:
+            # whatever we hold goes elsewhere, so hand none of it on; introduce ourselves again
+            log.warning("v2v server at %s: %s; saying hello again with the resume state", self.endpoint, m.message)
+            self.hello()
+            return None
+        self.items.put(StreamError(f"v2v server at {self.endpoint}: {m.message}"))
+        return "over"
+
     def close(self) -> None:
         """Unmap the server's batch files (a shared-memory session)."""
-        if self._shm is not None:
-            self._shm.close()
-
-    # -- messages --
+        self.reader.close()
 
     def _on_batch(self, m: sm.Batch, frames) -> None:
-        """A batch: its arrays (from the frames, or from the server's batch file on the same
-        host) checked against the header, converted, and queued for the consumer.
-
-        Raises:
-            ProtocolError: arrays missing, of the wrong length, or a hand-off not asked for.
-        """
-        ref = None if m.shm is None else {"shm": m.shm, "arrays": list(m.arrays)}  # handoff.ShmReader's header
-        if ref is not None:  # same host: the arrays are in the server's batch file
-            if self._shm is None or len(frames) != 1:
-                raise ProtocolError("a shared-memory batch this client did not ask for")
-            arrays = self._shm.read(ref, copy=self._copy_shm)
-            if arrays is None:
-                return self._torn(m.batch_id)
-        else:
-            arrays = decode_batch_arrays(list(m.arrays), frames[1:], MAX_SERVER_MSG)
-        missing = [o for o in self.outputs if o not in {output_of(k) for k in arrays}]
-        if missing:
-            raise ProtocolError(f"batch {m.batch_id} lacks requested outputs {missing}")
-        if any(a.shape[:1] != (len(m.sample_ids),) for a in arrays.values()):
-            raise ProtocolError(f"batch {m.batch_id}: sample ids do not match the arrays")
-        info = self.info or {}
-        crop = info.get("crop_size")
-        item = self._convert(arrays, (crop, crop) if isinstance(crop, int) and crop > 0 else None,
-                             info.get("flow_dtype", ARRAYS["flow"].dtypes[0]))
-        if ref is not None and not self._copy_shm:
-            del arrays  # converted from the mapping: check it still held this batch
-            if not self._shm.valid(ref):
-                return self._torn(m.batch_id)
-        item["sample_ids"] = list(m.sample_ids)
-        item["params"] = list(m.params)
-        item["epoch"] = m.epoch
-        item["batch_id"] = m.batch_id
-        if m.padding:  # DDP padding from the server: not leased, never acknowledged
+        """A batch: read (``BatchReader.read``), queued for the consumer and asked for; DDP
+        padding (not leased, never acknowledged) is handed on as :class:`ServerPadding`."""
+        item = self.reader.read(m, frames, self.info or {})
+        if item is None:
+            return self._torn(m.batch_id)
+        if m.padding:
             self.items.put(ServerPadding(item))
             return None
         self.held.add(item)
@@ -420,38 +361,32 @@ class ServerSession:
         self._ask()
         return None
 
-    def _ask(self) -> None:
-        """Ask for the grants the consumer will need next (``HeldBatches.to_ask``)."""
-        ids = self.held.to_ask()
-        if ids:
-            self._replies.append(pack(Hold(tuple(ids)).to_wire()))
-
-    def _on_welcome(self, m: sm.Welcome) -> None:
-        """The server's answer to our hello: its stream info, and whether we can read its
-        batch directory (else we ask again without the same-host hand-off)."""
+    def _on_welcome(self, m: sm.Welcome) -> Optional[str]:
+        """The server's answer to our hello: its stream info, checked by ``welcomed``, and
+        whether we can read its batch directory (else we ask again without the same-host
+        hand-off). "over" when the reader refuses this server."""
         if m.hello_id == self._awaiting:
             self._awaiting = None
         self.info = m.info
-        if self._shm is not None:
+        self.record.welcomed(self.info.get("server"))
+        refusal = self._welcomed(self.info)
+        if refusal is not None:
+            self.items.put(StreamError(f"v2v server at {self.endpoint}: {refusal}"))
+            return "over"
+        if self.reader.shm is not None:
             d = self.info.get("shm_dir")
             why = None if d is None else shm_dir_problem(check_shm_dir(d))
             if why is not None:
                 self._socket_instead(f"the server's batch directory {d} {why}")
             else:
-                self._shm.set_dir(d)
+                self.reader.shm.set_dir(d)
+        return None
 
     def _socket_instead(self, why: str) -> None:
         """Stop reading batches through the server's shared memory: say hello again without it."""
         log.warning("v2v stream %s: %s; asking for batches over the socket", self.endpoint, why)
-        self.shm, self._shm = False, None
-        self._replies.append(self.hello())
-
-    def _on_revoke(self, m: sm.Revoke) -> None:
-        """Batches the server asks back: those still held (not yet handed to the consumer) are
-        released, their arrays freed at once."""
-        released = self.held.revoke(list(m.batch_ids))
-        if released:
-            self._replies.append(pack(Released(tuple(released)).to_wire()))
+        self.reader.close()
+        self.hello()
 
     def _torn(self, bid: int) -> None:
         """A shared-memory batch (id ``bid``) whose buffer the server refilled before we copied
@@ -459,12 +394,11 @@ class ServerSession:
         The same batch torn twice means its file is gone while the server still holds it (the
         directory was removed under it): read over the socket from now on, so the batch comes
         as frames instead of the same reference again."""
-        self._torn_ids[bid] = self._torn_ids.get(bid, 0) + 1
-        if self._torn_ids[bid] >= 2:
+        if self.reader.torn(bid) >= 2:
             self._socket_instead(f"batch {bid} is gone from the server's shared memory again")
             return None
         log.warning("v2v stream %s: batch %s was gone from the server's shared memory before it was read "
                     "(this process stalled?); giving it back", self.endpoint, bid)
         if bid >= 0:
-            self._replies.append(pack(Released((bid,)).to_wire()))
+            self._out.append(Released((bid,)))
         return None

@@ -19,11 +19,11 @@ sending garbage for a while (its messages are then dropped before decoding).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, FrozenSet, Optional, Tuple
+from typing import Callable, Dict, FrozenSet, Optional, Tuple
 
 from v2v_wire.codecs import COMPRESSIONS
 from v2v_wire.fields import show
-from v2v_wire.ids import SampleKey, expand_ids, parse_sample_ids
+from v2v_wire.ids import SampleKey, compact_ids, expand_ids, parse_sample_ids
 from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, ProtocolError, check_outputs
 from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
@@ -50,18 +50,58 @@ def bounded_unpackb(buf, max_bytes: int) -> object:
 
 
 # ---------------------------------------------------------------------- typed messages
+#: Largest epoch number a resume state may name (a 32-bit signed int).
+MAX_EPOCH = 2 ** 31 - 1
+
+#: A consumer a gathered resume state speaks for: ``("g:<group>", rank)`` or ``("c:<consumer id>", 0)``.
+ConsumerKey = Tuple[str, int]
+
+
 @dataclass(frozen=True)
 class Resume:
     """A trainer's position: ``completed_epoch``; per open epoch the sample keys it already
-    has (``delivered``) and the batches it yielded (``batches``, for DDP padding)."""
+    has (``delivered``) and the batches it yielded (``batches``, for DDP padding); the consumers
+    it speaks for besides its own (``supersedes``: a state gathered from every rank of a job
+    resumed at another world size); the servers its ids were granted by (``origins``)."""
 
     completed_epoch: int = -1
     delivered: Dict[int, FrozenSet[SampleKey]] = field(default_factory=dict)
     batches: Dict[int, int] = field(default_factory=dict)
+    supersedes: Tuple[ConsumerKey, ...] = ()
+    origins: Tuple[str, ...] = ()  # the servers (welcome info's ``server``) that granted its ids
+
+
+@dataclass(frozen=True)
+class ResumeIds:
+    """A resume state as a client holds and sends it: ``completed_epoch``; per open epoch the
+    sample ids its training loop got (``delivered``, strings: the client does not know the
+    server's crops per window) and the batches it yielded (``batches``). The server reads it back
+    as :class:`Resume`."""
+
+    completed_epoch: int = -1
+    delivered: Dict[int, Tuple[str, ...]] = field(default_factory=dict)
+    batches: Dict[int, int] = field(default_factory=dict)
+    supersedes: Tuple[ConsumerKey, ...] = ()
+    origins: Tuple[str, ...] = ()
+
+    def to_wire(self) -> dict:
+        h = {"completed_epoch": self.completed_epoch,
+             "delivered": {str(e): compact_ids(ids) for e, ids in self.delivered.items()},
+             "batches": {str(e): n for e, n in self.batches.items()}}
+        if self.supersedes:
+            h["supersedes"] = [[name, rank] for name, rank in self.supersedes]
+        if self.origins:
+            h["origins"] = list(self.origins)
+        return h
 
 
 @dataclass(frozen=True)
 class Hello:
+    """A client introduces itself (docs/delivery.md, "Who may say hello"): the outputs it wants, its
+    credits, the consumer it reads as and where that consumer stands (``resume``: a
+    :class:`ResumeIds` when a client builds it, the :class:`Resume` the server reads), its DDP
+    position, and how batches reach it."""
+
     outputs: Tuple[str, ...]
     credits: int
     consumer: str = ""
@@ -73,6 +113,23 @@ class Hello:
     shm: bool = False  # same host: send batches as references into the server's shared-memory files
     compression: str = "none"  # codecs.COMPRESSIONS: how this client wants arrays sent over the socket
     ends_on_drained: bool = False  # a DataLoader worker: its iteration ends on ``drained`` (sent nothing after it)
+    instance: str = ""  # the reader process's token (docs/delivery.md, "Who may say hello")
+
+    def to_wire(self) -> dict:
+        """The message a client sends (``resume`` must be a :class:`ResumeIds`)."""
+        h = {"type": "hello", "outputs": list(self.outputs), "credits": self.credits, "consumer": self.consumer,
+             "resume": self.resume.to_wire(), "hello_id": self.hello_id}
+        if self.world_size > 1:
+            h.update(rank=self.rank, world_size=self.world_size, group=self.group)
+        if self.shm:
+            h["shm"] = True
+        if self.compression != "none":
+            h["compression"] = self.compression
+        if self.ends_on_drained:
+            h["ends_on_drained"] = True
+        if self.instance:
+            h["instance"] = self.instance
+        return h
 
 
 @dataclass(frozen=True)
@@ -151,40 +208,80 @@ def _ids(h: dict, name: str) -> Tuple[int, ...]:
     return tuple(v)
 
 
-def _parse_keys(text: str, crops_per_window: int = 1) -> FrozenSet[SampleKey]:
-    return frozenset(parse_sample_ids(expand_ids(text), crops_per_window))
+#: ``bound(video)``: how many samples ``video`` gives under the server's recipe (``sys.maxsize``
+#: while unknown), or None when the server does not serve it (a fan-in's other shards: its ids
+#: are skipped unread).
+Bound = Callable[[str], Optional[int]]
 
 
-def _resume(v, crops_per_window: int = 1) -> Resume:
+def _parse_keys(text: str, crops_per_window: int = 1, bound: Optional[Bound] = None) -> FrozenSet[SampleKey]:
+    """The keys of a resume epoch's ``ids.compact_ids`` text. With ``bound``, a line of a video the
+    server does not serve is skipped unread, and one naming more ids than its video gives is an
+    error before any of them is parsed: the cost stays linear in the text, and the memory in what
+    the server serves."""
+    if bound is None:
+        return frozenset(parse_sample_ids(expand_ids(text), crops_per_window))
+    keep = []
+    for line in text.split("\n"):
+        video = line.rpartition("#")[0]
+        n = bound(video)
+        if n is None:
+            continue
+        ids = line.count(",") + 1
+        if ids > n:
+            raise WireError(f"field 'resume.delivered' names {ids} sample ids of {video[:80]!r}, which gives {n}")
+        keep.append(line)
+    return frozenset(parse_sample_ids(expand_ids("\n".join(keep)), crops_per_window)) if keep else frozenset()
+
+
+def _epoch(e) -> bool:
+    """``e`` is an epoch number as a map key: ASCII digits naming 0 .. ``MAX_EPOCH``."""
+    return isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 10 and int(e) <= MAX_EPOCH
+
+
+def _supersedes(v) -> Tuple[ConsumerKey, ...]:
+    if not isinstance(v, list) or not all(isinstance(x, list) and len(x) == 2 and isinstance(x[0], str)
+                                          and x[0][:2] in ("g:", "c:") and 2 < len(x[0]) <= 130
+                                          and isinstance(x[1], int) and not isinstance(x[1], bool)
+                                          and 0 <= x[1] < 65536 for x in v):
+        raise WireError(f"field 'resume.supersedes' must list [consumer, rank] pairs, got {show(v)}")
+    return tuple((name, rank) for name, rank in v)
+
+
+def _resume(v, crops_per_window: int = 1, bound: Optional[Bound] = None) -> Resume:
     if v is None:
         return Resume()
     if not isinstance(v, dict):
         raise WireError(f"field 'resume' must be a map, got {show(v)}")
-    completed = _int(v, "completed_epoch", -1, 2 ** 31, -1)
+    completed = _int(v, "completed_epoch", -1, MAX_EPOCH, -1)
     delivered, batches = {}, {}
     d = v.get("delivered", {})
     if not isinstance(d, dict):
         raise WireError(f"field 'resume.delivered' must be a map, got {show(d)}")
     for e, ids in d.items():
-        if not (isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 9):
-            raise WireError(f"field 'resume.delivered' keys must be epoch numbers, got {show(e)}")
+        if not _epoch(e):
+            raise WireError(f"field 'resume.delivered' keys must be epoch numbers (0 .. {MAX_EPOCH}), got {show(e)}")
         if not isinstance(ids, str):
             raise WireError(f"field 'resume.delivered[{e}]' must be a string of sample ids (ids.compact_ids)")
-        delivered[int(e)] = _parse_keys(ids, crops_per_window)
+        delivered[int(e)] = _parse_keys(ids, crops_per_window, bound)
     bt = v.get("batches", {})
     if not isinstance(bt, dict):
         raise WireError(f"field 'resume.batches' must be a map, got {show(bt)}")
     for e, n in bt.items():
-        if not (isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 9) or isinstance(n, bool) \
-                or not isinstance(n, int) or not 0 <= n < 2 ** 31:
+        if not _epoch(e) or isinstance(n, bool) or not isinstance(n, int) or not 0 <= n < 2 ** 31:
             raise WireError("field 'resume.batches' must map epoch numbers to counts")
         batches[int(e)] = n
-    return Resume(completed, delivered, batches)
+    origins = v.get("origins", [])
+    if not isinstance(origins, list) or len(origins) > 16 or not all(isinstance(o, str) and 0 < len(o) <= 64
+                                                                      for o in origins):
+        raise WireError(f"field 'resume.origins' must list at most 16 server ids, got {show(origins)}")
+    return Resume(completed, delivered, batches, _supersedes(v.get("supersedes", [])), tuple(origins))
 
 
-def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object:
+def parse_client(h: dict, max_credits: int, crops_per_window: int = 1, bound: Optional[Bound] = None) -> object:
     """Check a decoded client header against the schema of its ``type`` (resume ids are read
-    with the server's ``crops_per_window``, see ``ids.py``).
+    with the server's ``crops_per_window``, see ``ids.py``, and its videos' ``bound``: see
+    :data:`Bound`; None reads them all).
 
     Returns one of :class:`Hello`, :class:`Ack`, :class:`Released`, :class:`Hold`,
     :class:`Credit`, :class:`Heartbeat`, :class:`Bye`.
@@ -225,8 +322,11 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
         ends = h.get("ends_on_drained", False)
         if not isinstance(ends, bool):
             raise WireError(f"field 'ends_on_drained' must be true or false, got {show(ends)}")
-        return Hello(outs, credits, consumer, _resume(h.get("resume"), crops_per_window),
-                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm, compression, ends)
+        instance = h.get("instance", "")
+        if not isinstance(instance, str) or len(instance) > 64:
+            raise WireError(f"field 'instance' must be a string of at most 64 characters, got {show(instance)}")
+        return Hello(outs, credits, consumer, _resume(h.get("resume"), crops_per_window, bound),
+                     group, rank, world, _int(h, "hello_id", 0, 2 ** 62, 0), shm, compression, ends, instance)
     if kind == "ack":
         return Ack(_ids(h, "batch_ids"))
     if kind == "released":
@@ -242,14 +342,16 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1) -> object
     raise WireError(f"unknown message type {show(kind)}")
 
 
-def decode_client(frame, max_bytes: int, max_credits: int, crops_per_window: int = 1) -> object:
-    """Bounded decoding + schema check of one client frame (bytes, memoryview or zmq.Frame).
+def decode_client(frame, max_bytes: int, max_credits: int, crops_per_window: int = 1,
+                  bound: Optional[Bound] = None) -> object:
+    """Bounded decoding + schema check of one client frame (bytes, memoryview or zmq.Frame;
+    ``bound``: see :func:`parse_client`).
 
     Raises:
         WireError: for anything but a well-formed message of a known type.
     """
     buf = frame.buffer if hasattr(frame, "buffer") else frame
-    return parse_client(bounded_unpackb(buf, max_bytes), max_credits, crops_per_window)
+    return parse_client(bounded_unpackb(buf, max_bytes), max_credits, crops_per_window, bound)
 
 
 # ---------------------------------------------------------------------- misbehaving peers

@@ -6,12 +6,15 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types (protocol 4; client messages are decoded and schema-checked by ``wire.py``):
+Message types (protocol 5; client messages are decoded and schema-checked by ``messages.py``):
 
 * client -> server: ``hello`` (outputs, credits = how many batches it may hold,
-  consumer id, optional DDP ``rank``/``world_size``/``group``, ``resume``:
+  consumer id, ``instance`` (the reader process's token: a consumer is read by one instance at a
+  time), optional DDP ``rank``/``world_size``/``group``, ``resume``:
   ``completed_epoch``, ``delivered`` {epoch: the sample ids, one video per line as
   ``path#w1,w2,...`` (``ids.compact_ids``)}, ``batches`` {epoch: batches yielded}, optional
+  ``supersedes`` [[consumer, rank], ...]: the consumers a state gathered from every rank of a job
+  speaks for, resumed at another world size; optional
   ``ends_on_drained``: a DataLoader worker that ends its iteration on ``drained``, so it is sent
   no batch after it), ``ack``
   (batch ids; frees exactly those slots), ``hold`` (batch ids the client
@@ -24,7 +27,9 @@ Message types (protocol 4; client messages are decoded and schema-checked by ``w
   longer the client's), ``heartbeat``, ``epoch_done`` (epoch;
   ``batches`` per rank for a DDP group), ``drained`` (a bounded stream has nothing left for this
   client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
-  ``dropped`` / ``unknown_client``: discard what you hold, say hello again).
+  ``dropped`` / ``unknown_client``: discard what you hold, say hello again; ``claimed``: another
+  live reader holds the consumer; ``resume``: the server can tell the resume state is false;
+  ``group``: the DDP group is read at another world size).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error, the exception that stopped the pass as ``failure``); server -> worker: ``task``,
   ``slot``, ``stop`` (typed and checked in ``worker_messages``).
@@ -61,7 +66,7 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a

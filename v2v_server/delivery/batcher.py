@@ -24,7 +24,8 @@ import itertools
 import random
 from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple
 
-from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
+from v2v_server.delivery.ledger import DeliveryLedger
+from v2v_server.delivery.table import BatchRecord
 from v2v_wire.ids import SampleKey
 
 #: ``shuffle`` settings: ``epoch`` draws a new order each epoch and mixes batches; ``none`` keeps
@@ -173,6 +174,10 @@ class Batcher:
     def waiting(self) -> bool:
         """Some sample waits for a batch."""
         return any(items for group in self.pending.values() for items in group.values())
+
+    def waiting_epochs(self) -> set:
+        """The epochs of the samples waiting for a batch."""
+        return {epoch for (epoch, _), group in self.pending.items() if any(group.values())}
 
     def fill(self) -> Tuple[int, int]:
         """``(samples waiting, capacity)`` of the shuffle buffer: the open batches' samples,

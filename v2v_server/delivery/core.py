@@ -1,9 +1,11 @@
-"""The delivery core: the epoch scheduler and the delivery ledger glued together, still pure.
+"""The delivery core: the epoch scheduler, the delivery ledger and the epochs' ends glued
+together, still pure.
 
 ``DeliveryCore`` takes what workers and clients said (already decoded and schema-checked)
 and answers with what to send; it owns no socket, process or clock (``now`` is an argument,
-seconds). ``server.py`` moves the bytes; ``tests/test_delivery_core.py`` drives this class
-through thousands of interleavings with hypothesis.
+seconds). ``service/`` moves the bytes and reads nothing inside it but through its methods;
+``tests/test_delivery_core.py`` and ``tests/test_lease_protocol.py`` drive it through thousands
+of interleavings with hypothesis. The protocol it keeps is docs/delivery.md ("The protocol").
 
 Batch payloads are opaque here: ``make_batch(samples)`` builds one from what ``sample()``
 was given (``assembly.make_batch`` in the server), and a payload is only asked for
@@ -12,18 +14,24 @@ was given (``assembly.make_batch`` in the server), and a payload is only asked f
 from __future__ import annotations
 
 import logging
+import uuid
 from dataclasses import dataclass
-from typing import Callable, Dict, Hashable, List, Optional, Sequence, Tuple
+from typing import Callable, Hashable, List, Optional, Sequence, Tuple
 
+from v2v_server.delivery.admission import WAIT, Admission, name_of
 from v2v_server.delivery.batcher import SHUFFLES, Batcher
-from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
+from v2v_server.delivery.closing import EpochEnds
+from v2v_server.delivery.feed import WorkerFeed
+from v2v_server.delivery.ledger import DeliveryLedger
+from v2v_server.delivery.padding import GroupPadding
+from v2v_server.delivery.table import STRANDED, BatchRecord
 from v2v_server.checks import check_choice, check_float, check_int
 from v2v_server.settings import setting
 from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import MAX_CREDITS, OUTPUTS
 from v2v_server.delivery.schedule import MAX_TASK_CRASHES, EpochScheduler, Job
 from v2v_wire.messages import Ack, Bye, Credit, Hello, Hold, Released
-from v2v_wire.stream_messages import Drained, EpochDone, Granted, Revoke, ServerError, StreamMessage, Welcome
+from v2v_wire.stream_messages import Granted, Revoke, ServerError, StreamMessage, Welcome
 from v2v_wire.worker_messages import Task
 
 log = logging.getLogger("v2v.server")
@@ -32,6 +40,9 @@ Msg = Tuple[bytes, StreamMessage]
 
 
 MAX_SHUFFLE_BUFFER = 4096
+#: Seconds after a hello its consumer's older connection (of another reader process) must still
+#: speak for the hello to be refused as a second live reader (docs/delivery.md, "Who may say hello").
+CLAIM_MARGIN_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -64,9 +75,11 @@ class DeliveryPolicy:
 
     batch_size: int = setting(12, help="samples per batch (the last batch of an epoch may be smaller)")
     epochs: Optional[int] = setting(None, help="end the stream after this many epochs (default: unbounded)")
-    lease_s: float = setting(60.0, help="seconds before an unacknowledged batch is sent again", flag="--lease")
-    client_timeout_s: float = setting(10.0, help="seconds of client silence before its batches go back to the queue",
-                                      flag="--client-timeout")
+    lease_s: float = setting(60.0, help="seconds a sent batch waits for its client's hold before it is asked "
+                                        "back (revoke)", flag="--lease")
+    client_timeout_s: float = setting(10.0, help="seconds of client silence before it is dropped (what it was sent "
+                                                 "and not granted goes back to the queue; its grants wait for its "
+                                                 "consumer's next hello)", flag="--client-timeout")
     revoke_s: Optional[float] = setting(None, help="seconds a client may leave a revoke unanswered before it is "
                                                    "dropped (default: the client timeout)", flag="--revoke-timeout")
     max_credits: int = setting(64, help="most batches one client may hold")
@@ -105,60 +118,18 @@ class DeliveryPolicy:
         return -(-self.shuffle_buffer // self.batch_size) if self.shuffle == "epoch" else 1
 
 
-class GroupPadding:
-    """What DDP padding needs, per group of ranks (``world_size > 1``): how many batches of
-    each epoch each rank yielded, and the group's last acknowledged batch (what a rank that was
-    sent nothing repeats). Pure."""
-
-    def __init__(self):
-        self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
-        self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch
-
-    def resumed(self, group: str, rank: int, completed_epoch: int, batches: Dict[int, int]) -> None:
-        """A rank's resume state: in each epoch after ``completed_epoch`` it yielded
-        ``batches[epoch]`` batches (0 where the state names none)."""
-        for (g, e), counts in self.taken.items():
-            if g == group and e > completed_epoch:
-                counts[rank] = batches.get(e, 0)
-        for e, n in batches.items():
-            if e > completed_epoch:
-                self.taken.setdefault((group, e), {})[rank] = n
-
-    def acked(self, group: str, rank: int, batch: BatchRecord) -> None:
-        """Rank ``rank`` of ``group`` was granted ``batch`` (it yields it)."""
-        counts = self.taken.setdefault((group, batch.epoch), {})
-        counts[rank] = counts.get(rank, 0) + 1
-        self.pad_source[group] = batch
-
-    def released(self, group: str, rank: int, batch: BatchRecord) -> None:
-        """Rank ``rank`` gave back ``batch``, granted and counted before: it yielded it not."""
-        counts = self.taken.get((group, batch.epoch), {})
-        if counts.get(rank, 0) > 0:
-            counts[rank] -= 1
-
-    def epoch_done(self, c, epoch: int) -> Tuple[int, Optional[BatchRecord]]:
-        """For the rank of client ``c`` (``ledger.ClientRecord``) once ``epoch`` is complete:
-        the batches every rank of its group reaches (the most any of them yielded), and a
-        padding batch (batch id -1, a copy of the group's last acknowledged batch) when ``c``
-        was never sent a batch and is behind, else None."""
-        counts = self.taken.get((c.group, epoch), {})
-        most = max(counts.values()) if counts else 0
-        src = self.pad_source.get(c.group)
-        if c.sent == 0 and counts.get(c.rank, 0) < most and src is not None:
-            return most, BatchRecord(-1, epoch, src.keys, src.payload, outputs=src.outputs)
-        return most, None
-
-    def prune(self, live_groups: set, forgotten: Callable[[int], bool]) -> None:
-        """Forget groups with no client left and epochs ``forgotten(epoch)`` says are gone."""
-        for g in [g for g in self.pad_source if g not in live_groups]:
-            del self.pad_source[g]
-        for key in [k for k in self.taken if forgotten(k[1])]:
-            del self.taken[key]
+def consumer_of(ident: bytes, h: Hello) -> Tuple[Hashable, Optional[str]]:
+    """``(consumer, group)`` of a hello: ``("g:<group>", rank)`` and the group for a DDP rank,
+    else ``("c:<consumer id>", 0)`` (the connection's identity when the hello names none) and None."""
+    if h.world_size > 1:
+        group = h.group or "default"
+        return ("g:" + group, h.rank), group
+    return ("c:" + (h.consumer or ident.hex()), 0), None
 
 
 class DeliveryCore:
-    """Scheduler + ledger + batching (:class:`Batcher`) + DDP padding (:class:`GroupPadding`),
-    for one server.
+    """Scheduler + ledger + batching (:class:`Batcher`) + DDP padding (:class:`GroupPadding`) +
+    the epochs' ends (``closing.EpochEnds``), for one server.
 
     Args:
         videos: corpus-relative paths.
@@ -166,10 +137,13 @@ class DeliveryCore:
         make_batch: ``samples -> payload`` (``sample()``'s built samples, in batch order).
         journal: ``journal.Journal`` (``--state-dir``) or None.
         stall_s: see ``ledger.DeliveryLedger`` (the server passes ``ledger.STALL_S``).
+        end_grace_s: seconds a bounded stream's server stays up with no reader once it is over.
+
+    ``info`` (``() -> dict``, default ``dict``): the stream info each ``welcome`` carries.
     """
 
     def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None,
-                 stall_s: Optional[float] = None):
+                 stall_s: Optional[float] = None, end_grace_s: float = 600.0):
         p = self.policy = policy
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
@@ -177,184 +151,186 @@ class DeliveryCore:
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s,
                                      stall_s=stall_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
-        self.crops_per_window = p.crops_per_window
-        self.task_timeout_s = p.task_timeout_s
-        self.offered = tuple(p.offered)
-        self.task_outputs: Dict[int, tuple] = {}
-        self.outputs: Optional[tuple] = None  # what workers compute now: the union clients ask for
         self.padding = GroupPadding()
-        self.announced: set = set()
-        self.samples_made = 0
-        # journal.Journal (``--state-dir``): told every acknowledgement, resume state and complete
-        # epoch; its records, read at start, are applied like resume states
-        self.journal = journal
+        self.ends = EpochEnds(self.sched, self.ledger, self.batcher, self.padding, journal, p.lease_s, end_grace_s)
+        #: what a welcome names this server by (``info()["server"]``): the journal's, else this process's
+        self.server_id = journal.server_id if journal is not None else uuid.uuid4().hex[:16]
+        self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id)
+        self.feed = WorkerFeed(self.sched, self.ledger, self.batcher)
+        self.info: Callable[[], dict] = dict
+        self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
+        self.journal = journal  # told every grant, resume state and closed epoch; read at start
         if journal is not None:
             for consumer, delivered in journal.records.items():
                 self.sched.apply_resume(consumer, journal.completed, delivered)
 
-    # ------------------------------------------------------------------ workers
+    # ------------------------------------------------------------------ workers (``feed.WorkerFeed``)
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
-        """The ``task`` message for an idle worker, or None (nothing to do, or no client yet).
-        Its ``skip`` lists the ``(window, crop)`` of each sample of the video not to make;
-        ``codecs``: what the worker compresses each sample with (those clients asked for)."""
-        outs = self.ledger.outputs_wanted()
-        if outs:
-            self.outputs = tuple(o for o in OUTPUTS if o in outs)
-        if self.outputs is None:
-            return None
-        t = self.sched.next_task(worker, now)
-        if t is None:
-            return None
-        self.task_outputs[t.task_id] = self.outputs
-        return Task(t.task_id, t.epoch, t.video, self.outputs, tuple((k.window, k.crop) for k in sorted(t.skip)),
-                    tuple(codecs))
+        return self.feed.task_for(worker, now, codecs)
 
     def sample(self, worker: Hashable, task_id, key: SampleKey, now: float, build: Callable) -> bool:
-        """A worker sent sample ``key`` of ``task_id``'s video; ``build(lane)`` makes the sample
-        object (called only when the sample is wanted, with the open batch it joins,
-        ``Batcher.lane``, so the data path can copy it into that batch's buffer; it may raise,
-        which drops the sample and makes it owed again). Returns True when the sample was kept."""
-        key = self.sched.accept_sample(task_id, worker, key, now)
-        if key is None:
-            return False
-        epoch = self.sched.running[task_id].epoch
-        outputs = self.task_outputs.get(task_id, ())
-        lane = self.batcher.lane(epoch, outputs, self._to_come(epoch))
-        try:
-            s = build(lane)
-        except Exception:
-            self.sched.discarded(epoch, [key])
-            raise
-        self.samples_made += 1
-        self.batcher.add(epoch, outputs, key, s, lane)
-        return True
+        return self.feed.sample(worker, task_id, key, now, build)
 
     def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str]) -> Optional[Job]:
-        """A worker finished a task: ``windows`` complete windows the file gave, ``failed``
-        windows (window -> reason), ``error`` when the pass stopped early (see
-        ``EpochScheduler.task_done``). Returns the job (None for a late or stranger copy)."""
-        job = self.sched.task_done(task_id, worker, windows, failed, error)
-        if job is not None:
-            self.task_outputs.pop(task_id, None)
-        return job
+        return self.feed.done(worker, task_id, windows, failed, error)
 
     def worker_lost(self, worker: Hashable) -> Optional[Job]:
         return self.sched.worker_lost(worker)
 
     def timed_out(self, now: float) -> List[Tuple[Hashable, Job]]:
         """Tasks silent for ``task_timeout_s``: reassigned; the workers should be replaced."""
-        return self.sched.expire(now, self.task_timeout_s)
+        return self.sched.expire(now, self.policy.task_timeout_s)
 
-    def _to_come(self, epoch: int) -> Optional[int]:
-        """At most how many more samples ``epoch`` brings after the one just accepted, counted
-        only until past the shuffle buffer (``lanes x batch_size``): a number over it means at
-        least that many, and ``Batcher.lane`` then picks among every open batch, as when the
-        count is unknown. None: unknown, or one lane, where no count changes the choice."""
-        if self.batcher.lanes == 1:
-            return None
-        return self.sched.to_come(epoch, self.batcher.lanes * self.batcher.batch_size)
+    @property
+    def outputs(self) -> Optional[tuple]:
+        """What workers compute now: the union clients ask for (None before any hello)."""
+        return self.feed.outputs
 
-    def _epoch_ended(self, epoch: int) -> bool:
-        """None of ``epoch``'s jobs runs or waits (or the epoch is forgotten)."""
-        plan = self.sched.plans.get(epoch)
-        return plan is None or not plan.open_jobs
+    @property
+    def samples_made(self) -> int:
+        return self.feed.samples_made
 
     # ------------------------------------------------------------------ clients
-    def consumer_of(self, ident: bytes, h: Hello) -> Tuple[Hashable, Optional[str]]:
-        if h.world_size > 1:
-            group = h.group or "default"
-            return ("g:" + group, h.rank), group
-        return ("c:" + (h.consumer or ident.hex()), 0), None
+    def hello(self, ident: bytes, h: Hello, now: float) -> List[Msg]:
+        """A client says hello (first time or again): refused with an error, held while another
+        reader's connection of its consumer is live (``[]``; a later :meth:`tick` answers it), or
+        welcomed (``admission.Admission``; docs/delivery.md, "Who may say hello")."""
+        consumer, group = consumer_of(ident, h)
+        pending = self.admission.pending
+        verdict = self.admission.check(ident, h, consumer, group, now)
+        if verdict == WAIT:
+            if ident not in pending:
+                log.info("client %s waits: %s is read by another live connection", ident.hex(), name_of(consumer))
+            pending[ident] = (h, pending.get(ident, (h, now))[1])
+            return []
+        heard = pending.pop(ident, (h, now))[1]
+        if verdict is not None:
+            log.warning("client %s refused: %s", ident.hex(), verdict.message)
+            return [(ident, verdict)]
+        return self._welcome(ident, h, consumer, group, now, heard)
 
-    def hello(self, ident: bytes, h: Hello, now: float, info: Callable[[], dict]) -> List[Msg]:
-        """A client says hello (first time or again): refused with an error, or welcomed."""
-        missing = [o for o in h.outputs if o not in self.offered]
-        if missing:
-            return [(ident, ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}",
-                                        "outputs"))]
-        consumer, group = self.consumer_of(ident, h)
+    def _welcome(self, ident: bytes, h: Hello, consumer: Hashable, group: Optional[str], now: float,
+                 heard: float) -> List[Msg]:
+        """Let a hello in: older connections of its reader are fenced, the grants stranded with
+        the consumers it speaks for are settled by its resume state (named: the loop got them;
+        not named: back to the queue), and the state replaces their records."""
+        msgs: List[Msg] = []
+        speaks = self.admission.speaks_for(consumer, h)
+        for c in self.admission.others(ident, speaks):  # the same reader's: it closed them itself
+            self._leave(c.ident, "a newer connection of its reader said hello")
+            msgs.append((c.ident, ServerError("a newer connection of this reader took its consumer over", "fenced")))
+        self._leave(ident, "it said hello again")
         r = h.resume
+        for who in speaks:
+            _, back = self.ledger.settle(who, lambda b: b.epoch <= r.completed_epoch
+                                         or set(b.keys) <= r.delivered.get(b.epoch, frozenset()))
+            for b in back:
+                self._undelivered(who, b)
+            if who != consumer:  # a gathered state speaks for it: its samples are in the state
+                self.sched.apply_resume(who, r.completed_epoch, {})
+                if self.journal is not None:
+                    self.journal.replaced(who, r.completed_epoch, {})
         self.sched.apply_resume(consumer, r.completed_epoch, {e: set(ks) for e, ks in r.delivered.items()})
         if self.journal is not None:
             self.journal.replaced(consumer, r.completed_epoch, r.delivered)
         if group is not None:
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
-        back = self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
-                                r.completed_epoch, h.ends_on_drained)
-        if back:
-            log.info("client %s said hello again; batch(es) %s go back to the queue", ident.hex(), back)
-        self._drop_delivered()
+        self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
+                         r.completed_epoch, h.ends_on_drained, h.instance, heard)
+        self.feed.drop_delivered()
         if self.outputs is None or any(o not in self.outputs for o in h.outputs):
             log.info("client %s asks for %s: workers now compute %s", ident.hex(), list(h.outputs),
                      list(self.ledger.outputs_wanted()))
-        return [(ident, Welcome(info(), h.hello_id))]
+        return msgs + [(ident, Welcome(dict(self.info(), server=self.server_id), h.hello_id))]
 
     def message(self, ident: bytes, msg, now: float) -> List[Msg]:
-        """Any client message but hello (see ``wire``)."""
-        if not self.ledger.touch(ident, now):
+        """Any client message but hello (``v2v_wire.messages``); its cost is linear in its size."""
+        c = self.ledger.touch(ident, now)
+        if c is None:
+            if ident in self.admission.pending:  # its hello waits: nothing to say but heartbeats
+                if isinstance(msg, Bye):
+                    del self.admission.pending[ident]
+                return []
             if isinstance(msg, Bye):
                 return []
             return [(ident, ServerError("unknown client (this server may have restarted, or dropped it for "
                                         "silence): say hello first", "unknown_client"))]
-        c = self.ledger.clients[ident]
         if isinstance(msg, Hold):
-            ok, new = self.ledger.hold(ident, msg.batch_ids)
+            ok, new = self.ledger.hold(ident, msg.batch_ids, now)
             self._delivered(c, new)  # recorded (and journaled) before the grant leaves
-            refused = tuple(b for b in msg.batch_ids if b not in set(ok))
-            return [(ident, Granted(tuple(ok), refused))]
+            granted = set(ok)
+            return [(ident, Granted(tuple(ok), tuple(b for b in dict.fromkeys(msg.batch_ids) if b not in granted)))]
         if isinstance(msg, Ack):
-            self._delivered(c, self.ledger.hold(ident, msg.batch_ids)[1])  # acked without a hold: granted now
+            self._delivered(c, self.ledger.hold(ident, msg.batch_ids, now)[1])  # acked without a hold: granted now
             self.ledger.ack(ident, msg.batch_ids)
         elif isinstance(msg, Released):
             back, ungranted = self.ledger.released(ident, msg.batch_ids)
             for b in ungranted:
-                self.sched.undelivered(c.consumer, b.epoch, b.keys)
-                if self.journal is not None:
-                    self.journal.undelivered(c.consumer, b.epoch, b.keys)
-                if c.group is not None and c.world_size > 1:
-                    self.padding.released(c.group, c.rank, b)
+                self._undelivered(c.consumer, b)
             if back:
                 log.info("batch(es) %s go back to the queue: the client released them", back)
         elif isinstance(msg, Credit):
             self.ledger.add_credits(ident, msg.credit)
         elif isinstance(msg, Bye):
-            back = self.ledger.leave(ident)
-            if back:
-                log.info("client %s left; batch(es) %s go back to the queue", ident.hex(), back)
+            self._leave(ident, "it left")
         return []  # a heartbeat only touched the client
 
     def _delivered(self, c, batches: List[BatchRecord]) -> None:
         """Record ``batches`` (granted to client ``c``) delivered to its consumer: in the
         scheduler, the journal and its DDP group's counts."""
         for b in batches:
+            plan = self.sched.plans.get(b.epoch)
+            if plan is not None:
+                plan.served = True  # who has what of it is this server's to know from now on
             self.sched.delivered(c.consumer, b.epoch, b.keys)
             if self.journal is not None:
                 self.journal.delivered(c.consumer, b.epoch, b.keys)
-            if c.group is not None and c.world_size > 1:
+            if c.ddp:
                 self.padding.acked(c.group, c.rank, b)
 
-    def forget(self, ident: bytes) -> List[int]:
-        """A client broke the protocol or cannot be reached: drop it (its batches go back)."""
-        return self.ledger.leave(ident)
+    def _undelivered(self, consumer: Hashable, b: BatchRecord) -> None:
+        """A batch granted to ``consumer`` went back to the queue unused: its samples leave the
+        consumer's record (scheduler, journal, DDP counts)."""
+        self.sched.undelivered(consumer, b.epoch, b.keys)
+        if self.journal is not None:
+            self.journal.undelivered(consumer, b.epoch, b.keys)
+        name, rank = consumer
+        if name.startswith("g:"):
+            self.padding.released(name[2:], rank, b)
 
-    def _drop_delivered(self) -> None:
-        """Remove from queued batches and pending samples everything some trainer already has."""
-        for bid, gone in self.ledger.drop_samples(self.sched.is_delivered):
-            b = self.ledger.batches[bid]
-            gone_set = set(gone)
-            keep = [i for i, k in enumerate(b.keys) if k not in gone_set]
-            self.ledger.shrink(bid, keep, b.payload.subset(keep) if keep else None)
-            self.sched.discarded(b.epoch, gone)
-        for epoch, gone in self.batcher.drop(self.sched.is_delivered):
-            self.sched.discarded(epoch, gone)
+    def _leave(self, ident: bytes, why: str) -> None:
+        """Connection ``ident`` is gone: what was leased to it goes back to the queue, what was
+        granted to it is stranded (its consumer's next hello settles it)."""
+        back, stranded = self.ledger.leave(ident)
+        if back or stranded:
+            log.info("client %s: %s; batch(es) %s go back to the queue%s", ident.hex(), why, back,
+                     f", {[b.batch_id for b in stranded]} stay its consumer's" if stranded else "")
+
+    def forget(self, ident: bytes) -> None:
+        """A client broke the protocol: it is gone now."""
+        self._leave(ident, "it broke the protocol")
+
+    def unreachable(self, ident: bytes) -> None:
+        """A message could not reach connection ``ident`` (its socket closed): it is forgotten at
+        :meth:`caught_up`, once every message it sent before closing was read (docs/delivery.md,
+        "A client that closes right after its last messages")."""
+        self._unreachable.add(ident)
+
+    def caught_up(self) -> None:
+        """Nothing the clients sent is left unread: forget the connections found unreachable."""
+        for ident in self._unreachable:
+            self.admission.pending.pop(ident, None)
+            if ident in self.ledger.clients:
+                self._leave(ident, "it cannot be reached")
+        self._unreachable.clear()
 
     # ------------------------------------------------------------------ time
     def tick(self, now: float) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
-        """Batch leftovers, expire leases and clients, allocate batches, announce complete
-        epochs. Returns ``(sends, messages)``: batches to send (the caller calls
-        ``forget`` for a client it cannot reach) and control messages."""
+        """Batch leftovers, expire leases and clients, lease ready batches, tell the ends of
+        epochs and of the stream. Returns ``(sends, messages)``: batches to send (the caller
+        calls :meth:`unreachable` for a client it cannot reach), then control messages, in order."""
         msgs: List[Msg] = []
-        self.batcher.flush(self._epoch_ended)
+        self.batcher.flush(lambda e: e not in self.sched.plans or not self.sched.plans[e].open_jobs)
         revokes, drops = self.ledger.expire(now)
         for ident, ids in revokes.items():
             log.info("lease of batch(es) %s expired at client %s; asking for them back", ids, ident.hex())
@@ -367,62 +343,50 @@ class DeliveryCore:
             log.info("batch %d carries %s, which no connected client takes as is; its samples are made again",
                      b.batch_id, sorted(b.outputs))
             self.sched.discarded(b.epoch, b.keys)
-        pads, announced = self._announce()
-        return sends + pads, msgs + announced + self._drained()
+        for ident, (h, _) in list(self.admission.pending.items()):  # hellos waiting for an older connection
+            msgs += self.hello(ident, h, now)
+        pads, told = self.ends.tell(now)
+        return sends + pads, msgs + told + self.ends.drained()
 
-    def _drained(self) -> List[Msg]:
-        """``drained`` to each client holding nothing, once, when a bounded stream has nothing
-        left to make or send: the rest is held by other clients. A DataLoader worker waiting
-        for a batch ends its iteration on it, so the loader (in order) can take the batches
-        the other workers hold; it is sent nothing after it (``ClientRecord.takes``), and a batch
-        given back later goes to whoever still reads (docs/delivery.md, "Drained")."""
-        s = self.sched
-        drained = (s.max_epochs is not None and s.next_epoch >= s.max_epochs and not s.queue and not s.running
-                   and not self.ledger.ready and not self.batcher.waiting())
-        msgs: List[Msg] = []
-        for ident, c in self.ledger.clients.items():
-            if (not drained or c.held or c.revoked) and c.takes:  # one that ends on drained stays told
-                c.told_drained = False
-            elif not c.told_drained:
-                c.told_drained = True
-                msgs.append((ident, Drained()))
-        return msgs
-
-    def _announce(self) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
-        """``epoch_done`` for each newly complete epoch, in order, once none of its batches is
-        granted and unacknowledged (a client may still give one back). A DDP rank that has yielded
-        fewer batches of it than the group's most is told how many to reach; one that was never
-        sent any batch first gets a padding batch (a copy of the group's last batch, batch id
-        -1, every sample flagged) so it has something to repeat."""
-        msgs: List[Msg] = []
-        pads: List[Tuple[bytes, BatchRecord]] = []
-        granted = {b.epoch for b in self.ledger.batches.values()}  # granted and not acknowledged yet
-        for e in sorted(self.sched.plans):
-            if not self.sched.plans[e].complete:
-                self.announced.discard(e)
-                break  # in order: a client forgets an epoch's ids once told it is complete
-            if e not in self.announced and e in granted:
-                break  # a granted batch may still be given back unused: announced once acknowledged
-            if e in self.announced:
-                continue
-            self.announced.add(e)
-            for ident, c in self.ledger.clients.items():
-                c.completed = max(c.completed, e)
-                batches = None
-                if c.group is not None and c.world_size > 1:
-                    batches, pad = self.padding.epoch_done(c, e)
-                    if pad is not None:
-                        pads.append((ident, pad))
-                        c.sent += 1
-                msgs.append((ident, EpochDone(e, batches)))
-            log.info("epoch %d complete", e)
-            if self.journal is not None:
-                self.journal.epoch_complete(e)
-        self.sched.prune(self.announced)
-        self.padding.prune({c.group for c in self.ledger.clients.values()},
-                           lambda e: e not in self.sched.plans and e < self.sched.next_epoch)
-        return pads, msgs
-
+    # ------------------------------------------------------------------ views
     def finished(self) -> bool:
-        """Every epoch of a bounded stream is complete and acknowledged."""
-        return self.sched.finished() and not self.ledger.batches
+        """Every epoch of a bounded stream is complete, nothing is left in the table but grants
+        stranded with consumers that left, and no hello waits (its state may reopen an epoch)."""
+        return (self.sched.finished() and not self.admission.pending
+                and all(b.state == STRANDED for b in self.ledger.batches.values()))
+
+    def exit_due(self, now: float) -> bool:
+        """The server may exit (``closing.EpochEnds.exit_due``)."""
+        return self.ends.exit_due(now, bool(self.admission.pending))
+
+    def connected(self) -> List[bytes]:
+        """The connections said hello and not gone (those whose hello waits included)."""
+        return list(self.ledger.clients) + [i for i in self.admission.pending if i not in self.ledger.clients]
+
+    def client_outputs(self, ident: bytes) -> Optional[tuple]:
+        """What connection ``ident`` asked for (None: not connected)."""
+        return getattr(self.ledger.clients.get(ident), "outputs", None)
+
+    def resume_bound(self, video: str) -> Optional[int]:
+        """What a resume state may name of ``video`` (``messages.Bound``, ``Admission.bound``)."""
+        return self.admission.bound(video)
+
+    @property
+    def resent(self) -> int:
+        """Batches given back to the queue so far (the server counts them into its metrics)."""
+        return self.ledger.table.resent
+
+    def ready_count(self) -> int:
+        """Batches ready to send (the server reads its workers while fewer wait)."""
+        return self.ledger.table.ready_count()
+
+    def status(self) -> dict:
+        """Plain numbers for status lines and gauges: ``clients`` (ident -> (credits, batches
+        held)), ``ready``, ``in_flight``, ``acked``, ``resent``, ``states`` (batches per state),
+        ``epoch`` (the newest opened, -1 before any) and its ``progress`` ((videos, done))."""
+        t = self.ledger.table
+        newest = max(self.sched.plans) if self.sched.plans else None
+        return {"clients": {i: (c.credits, t.held_count(i)) for i, c in self.ledger.clients.items()},
+                "ready": t.ready_count(), "in_flight": t.in_flight(), "acked": t.acked, "resent": t.resent,
+                "states": t.states(), "epoch": -1 if newest is None else newest,
+                "progress": self.sched.plans[newest].progress() if newest is not None else (0, 0)}

@@ -9,19 +9,22 @@ state makes, ``EpochScheduler.apply_resume``); a trainer's own resume state, whe
 hello, still replaces its record (it is authoritative for its own samples: what it acknowledged
 after its checkpoint is owed again).
 
-File ``DIR/delivered.journal``: a header then msgpack records appended as they happen:
+File ``DIR/delivered.journal``: a header (its recipe fingerprint and ``server``: the id every
+server on this journal welcomes clients with, so their resume states name it) then msgpack
+records appended as they happen:
 ``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (granted: the consumer may
 hand them on, so the grant is written before it is sent; ``index`` is
 ``ids.SampleKey.ordinal``, the sample's number in its video under the journal's recipe),
 ``{"u": [consumer, rank], "e": epoch, "k": [...]}`` (granted, then given back unused),
 ``{"s": [consumer, rank], "c": completed_epoch, "r": {epoch: keys}}`` (a resume state replaced
-a record), ``{"done": epoch}`` (an epoch complete; its records are dropped). When an epoch
+a record), ``{"t": epoch}`` (an epoch was told complete to some reader: a resume state may say
+it is complete), ``{"done": epoch}`` (an epoch closed for good; its records are dropped). When an epoch
 completes the file is rewritten from memory (a temporary file, fsync, rename).
 
 Durability: each record is one ``write`` to a file opened with ``O_APPEND`` (in the page cache
 at once: it survives the server process being killed); ``fsync`` at most every ``fsync_s``
-seconds (1 s) from the main loop and at close, so a host crash loses at most that last second,
-whose samples are then sent again (never lost).
+seconds (1 s) from the main loop and at close, so a host crash loses at most that last second:
+its samples are owed again (never lost; perhaps doubled, docs/delivery.md "Limits" (f)).
 
 A write that fails while serving (a full or failing disk, the folder removed or replaced) never
 stops the server: the records stay current in memory, the error goes to ``on_error`` (the
@@ -34,6 +37,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+import uuid
 from pathlib import Path
 from typing import Callable, Dict, Hashable, Iterable, List, Optional, Set
 
@@ -83,9 +87,11 @@ class Journal:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.path = self.dir / FILE
         self.fingerprint = fingerprint
+        self.server_id = uuid.uuid4().hex[:16]  # kept in the header: the same for every server on this journal
         self.fsync_s = fsync_s
         self.crops_per_window = crops_per_window
         self.completed = -1
+        self.told = -1  # the newest epoch told complete to some reader
         self.records: Records = {}
         self._dirty = False
         self._last_sync = 0.0
@@ -105,6 +111,8 @@ class Journal:
                 raise JournalError(f"{self.path}: not a v2v delivery journal ({e or 'empty'})") from None
             if not isinstance(header, dict) or header.get("journal") != 1:
                 raise JournalError(f"{self.path}: not a v2v delivery journal")
+            if isinstance(header.get("server"), str):
+                self.server_id = header["server"]
             if header.get("recipe") != self.fingerprint:
                 raise JournalError(f"{self.path} was written by a server with another sample recipe (seed, "
                                    f"sequence length, bins, crops...): its sample ids name other samples. Use "
@@ -121,6 +129,8 @@ class Journal:
     def _apply(self, rec: dict) -> None:
         if "done" in rec:
             self._complete(int(rec["done"]))
+        elif "t" in rec:
+            self.told = max(self.told, int(rec["t"]))
         elif "d" in rec:
             e = int(rec["e"])
             if e > self.completed:
@@ -142,6 +152,7 @@ class Journal:
 
     def _complete(self, epoch: int) -> None:
         self.completed = max(self.completed, epoch)
+        self.told = max(self.told, epoch)
         for d in self.records.values():
             for e in [e for e in d if e <= self.completed]:
                 del d[e]
@@ -214,6 +225,12 @@ class Journal:
         self._apply(rec)
         self._append(rec)
 
+    def epoch_told(self, epoch: int) -> None:
+        """``epoch`` was told complete to some reader (its records stay: others may hold it)."""
+        if epoch > self.told:
+            self._apply({"t": epoch})
+            self._append({"t": epoch})
+
     def epoch_complete(self, epoch: int) -> None:
         """``epoch`` is complete: its records are dropped and the file is rewritten without them."""
         if epoch <= self.completed:
@@ -232,9 +249,11 @@ class Journal:
     def _rewrite(self) -> None:
         tmp = self.path.with_suffix(".tmp")
         with open(tmp, "wb") as f:
-            f.write(msgpack.packb({"journal": 1, "recipe": self.fingerprint}))
+            f.write(msgpack.packb({"journal": 1, "recipe": self.fingerprint, "server": self.server_id}))
             if self.completed >= 0:
                 f.write(msgpack.packb({"done": self.completed}))
+            if self.told > self.completed:
+                f.write(msgpack.packb({"t": self.told}))
             for consumer, d in self.records.items():
                 for e, ks in d.items():
                     f.write(msgpack.packb({"d": list(consumer), "e": e, "k": self._pairs(sorted(ks))}))

@@ -112,6 +112,8 @@ class EpochPlan:
     records: Dict[Consumer, Set[SampleKey]] = field(default_factory=dict)
     live: Set[SampleKey] = field(default_factory=set)
     complete: bool = False
+    told: bool = False  # some reader was told it is complete: it no longer holds the stream back
+    served: bool = False  # this server granted some of its samples (so it knows who has what since)
     held: Dict[str, Dict[SampleKey, int]] = field(default_factory=dict)  # video -> sample -> records holding it
     live_by_video: Dict[str, Set[SampleKey]] = field(default_factory=dict)
     open_jobs: Dict[str, None] = field(default_factory=dict)  # videos of jobs queued or running, in epoch order
@@ -285,11 +287,10 @@ class EpochScheduler:
         epochs: stop after this many epochs (None: unbounded).
         max_task_crashes: crashes blamed on one sample before it fails for the epoch (twice
             as many in one file give the file up for the epoch; see ``worker_lost``).
-        lookahead: epochs that may be open beyond the oldest incomplete one.
+        lookahead: epochs open beyond the oldest one neither complete nor ``EpochPlan.told``.
         keep_epochs: complete epochs kept so an older resume state can reopen them.
         crops_per_window: samples per window (K of ``ids.py``).
-        shuffle_seed: None: every epoch hands the videos out in the listing's order; an int:
-            epoch ``e`` hands them out in ``batcher.video_order(videos, shuffle_seed, e)``.
+        shuffle_seed: None: the listing's order; an int: ``batcher.video_order(videos, seed, epoch)``.
         max_samples_per_video: windows a file gives at most per epoch (None: no bound known),
             for :meth:`to_come` before a file's first pass ends.
 
@@ -320,8 +321,8 @@ class EpochScheduler:
     def _open_epoch(self) -> bool:
         if self.max_epochs is not None and self.next_epoch >= self.max_epochs:
             return False
-        incomplete = [e for e, p in self.plans.items() if not p.complete]
-        if incomplete and self.next_epoch - min(incomplete) > self.lookahead:
+        behind = [e for e, p in self.plans.items() if not (p.complete or p.told)]
+        if behind and self.next_epoch - min(behind) > self.lookahead:
             return False
         e = self.next_epoch
         self.next_epoch += 1
@@ -339,10 +340,11 @@ class EpochScheduler:
         """The order ``epoch`` hands the videos out in (``batcher.video_order``, or the listing's)."""
         return list(self.videos) if self.shuffle_seed is None else video_order(self.videos, self.shuffle_seed, epoch)
 
-    def finished(self) -> bool:
-        """True when the last of ``epochs`` epochs is complete (never for unbounded streams)."""
+    def finished(self, told: bool = False) -> bool:
+        """The last of ``epochs`` epochs is complete (never for unbounded streams); with ``told``,
+        an epoch told complete to some reader counts (what a later reader lacks waits for it)."""
         return (self.max_epochs is not None and self.next_epoch >= self.max_epochs
-                and all(p.complete for p in self.plans.values()))
+                and all(p.complete or (told and p.told) for p in self.plans.values()))
 
     def owed(self, epoch: int) -> Set[SampleKey]:
         """Samples of ``epoch`` that must still be made: not delivered, live or failed, in
@@ -535,9 +537,9 @@ class EpochScheduler:
         """A consumer's resume state (authoritative for that consumer): in every epoch after
         ``completed_epoch`` its record becomes exactly ``delivered[epoch]``; samples it had
         acknowledged beyond that become owed again (a complete epoch reopens). A fresh
-        scheduler starts at ``completed_epoch + 1``."""
+        scheduler starts at ``completed_epoch + 1`` when it has that epoch to serve."""
         delivered = {e: {k for k in ks if k.video in self.known} for e, ks in delivered.items()}
-        if not self.plans and self.next_epoch <= completed_epoch:
+        if not self.plans and self.next_epoch <= completed_epoch < (self.max_epochs or completed_epoch + 2) - 1:
             self.next_epoch = completed_epoch + 1
         for e, plan in self.plans.items():
             if e <= completed_epoch:

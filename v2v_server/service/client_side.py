@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable, Dict, List, Optional
+from typing import Dict, List, Optional
 
 import zmq
 
@@ -35,30 +35,26 @@ class ClientSide:
         cfg: the server's ``ServeConfig``.
         core: the delivery core.
         metrics: counters of batches, bytes, leases and bad messages.
-        stream_info: ``() -> dict``, the ``info`` of a welcome.
 
     ``attach(frontend, assembler)`` once the socket is bound (``assembler``: the batch
     buffers; its ``files`` are what shared-memory clients read).
     """
 
-    def __init__(self, cfg: ServeConfig, core: DeliveryCore, metrics: ServerMetrics,
-                 stream_info: Callable[[], dict]):
-        self.cfg, self.core, self.metrics, self.stream_info = cfg, core, metrics, stream_info
+    def __init__(self, cfg: ServeConfig, core: DeliveryCore, metrics: ServerMetrics):
+        self.cfg, self.core, self.metrics = cfg, core, metrics
         self.assembler: Optional[BatchAssembler] = None
         self.frontend: Optional[zmq.Socket] = None
         self.bad = BadPeers()
         self.shm_clients: set = set()  # idents whose hello asked for shared-memory batches
         self.compression: Dict[bytes, str] = {}  # ident -> the compression its hello asked for
-        #: Clients a message could not reach (their connection closed): forgotten by
-        #: :meth:`forget_unreachable` once the messages they sent before closing are read.
-        self.unreachable: set = set()
 
     def attach(self, frontend: zmq.Socket, assembler: BatchAssembler) -> None:
         self.frontend, self.assembler = frontend, assembler
 
     def socket_codecs(self) -> List[str]:
         """The codecs connected clients asked for over sockets (what workers compress with)."""
-        return sorted({c for i, c in self.compression.items() if c != "none" and i in self.core.ledger.clients
+        connected = set(self.core.connected())
+        return sorted({c for i, c in self.compression.items() if c != "none" and i in connected
                        and i not in self.shm_clients})
 
     def send_batches(self, now: float) -> None:
@@ -66,17 +62,17 @@ class ClientSide:
         client that cannot be reached is forgotten (its batches go to others)."""
         sends, msgs = self.core.tick(now)
         for ident, b in sends:
-            c = self.core.ledger.clients.get(ident)
-            if c is None:
+            outputs = self.core.client_outputs(ident)
+            if outputs is None:
                 continue
             ref = None
             if ident in self.shm_clients and b.batch_id >= 0:  # same host: a reference into the batch file
-                ref = b.payload.shm_ref(c.outputs)
+                ref = b.payload.shm_ref(outputs)
             if ref is not None:
                 (specs, shm), frames = ref, []
                 nbytes = sum(b.payload.arrays[s["name"]].nbytes for s in specs)
             else:  # compressed arrays are the workers' frames, forwarded as they came
-                specs, frames = b.payload.wire(c.outputs, self.compression.get(ident, "none"))
+                specs, frames = b.payload.wire(outputs, self.compression.get(ident, "none"))
                 nbytes = sum(_nbytes(f) for f in frames)
             # batch id < 0: DDP padding, a repeat for a rank that has nothing to repeat; never acked
             header = Batch(b.batch_id, b.epoch, tuple(b.payload.sample_ids), tuple(b.payload.meta), tuple(specs),
@@ -85,7 +81,7 @@ class ClientSide:
                 b.payload.send(self.frontend, [ident, pack(header.to_wire())], frames)
             except zmq.ZMQError as e:  # peer vanished (ROUTER_MANDATORY)
                 log.warning("client %s unreachable (%s); dropping it", ident.hex(), e)
-                self.unreachable.add(ident)
+                self.core.unreachable(ident)
                 continue
             self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)
         for ident, msg in msgs:
@@ -96,15 +92,16 @@ class ClientSide:
 
     def send(self, ident: bytes, msg: StreamMessage) -> None:
         """One control message (``v2v_wire.stream_messages``) to one client (forgotten once its
-        last messages are read, if it cannot be reached: :meth:`forget_unreachable`)."""
+        last messages are read, if it cannot be reached: ``DeliveryCore.unreachable``)."""
         try:
             self.frontend.send_multipart([ident, pack(msg.to_wire())], zmq.NOBLOCK)
         except zmq.ZMQError:
-            self.unreachable.add(ident)
+            self.core.unreachable(ident)
 
     def read(self, ready: bool) -> None:
         """Read and answer up to :data:`CLIENT_BURST` client messages when the frontend is
-        ``ready``; once nothing is left unread, :meth:`forget_unreachable`."""
+        ``ready``; once nothing is left unread, the core forgets the clients found unreachable
+        (``DeliveryCore.caught_up``)."""
         drained = not ready
         for _ in range(CLIENT_BURST if ready else 0):
             try:
@@ -114,23 +111,11 @@ class ClientSide:
                 break
             self.on_message(frames)
         if drained:  # what an unreachable client sent before it closed has been read
-            self.forget_unreachable()
-
-    def forget_unreachable(self) -> None:
-        """Forget the clients a message could not reach (their batches go to others; what was
-        granted stays their consumer's). Called once the frontend has nothing left to read: a
-        client that closed its connection right after its last messages (a ``hold``, the
-        batches it gives back, ``bye``) is unreachable before those are read, and forgetting it
-        at the failed answer to its ``hold`` would drop the release that follows, leaving the
-        batches it gave back delivered to nobody."""
-        for ident in self.unreachable:
-            if ident in self.core.ledger.clients:
-                self.core.forget(ident)
-        self.unreachable.clear()
+            self.core.caught_up()
 
     def broadcast(self, msg: StreamMessage) -> None:
         """One control message to every connected client."""
-        for ident in list(self.core.ledger.clients):
+        for ident in self.core.connected():
             self.send(ident, msg)
 
     def _bad_peer(self, ident: bytes, why: str, now: float) -> None:
@@ -154,17 +139,19 @@ class ClientSide:
         try:
             if len(frames) != 2:
                 raise WireError(f"expected 1 frame after the identity, got {len(frames) - 1}")
-            msg = decode_client(frames[1], MAX_CLIENT_MSG, self.cfg.max_credits, self.cfg.crops_per_window)
+            msg = decode_client(frames[1], MAX_CLIENT_MSG, self.cfg.max_credits, self.cfg.crops_per_window,
+                                self.core.resume_bound)
         except WireError as e:
             self._bad_peer(ident, str(e), now)
             return
         if isinstance(msg, Hello):
-            self.shm_clients &= set(self.core.ledger.clients)  # forget clients gone since
+            connected = set(self.core.connected())
+            self.shm_clients &= connected  # forget clients gone since
             if msg.shm and self.assembler.files is not None:
                 self.shm_clients.add(ident)
             else:
                 self.shm_clients.discard(ident)
-            for gone in set(self.compression) - set(self.core.ledger.clients):
+            for gone in set(self.compression) - connected:
                 del self.compression[gone]
             if not codecs.available(msg.compression):
                 self.send(ident, ServerError(f"this server cannot compress with {msg.compression!r}: "
@@ -172,7 +159,7 @@ class ClientSide:
                                              f"(pip install 'v2v[wire]'); ask for compression 'none'", "compression"))
                 return
             self.compression[ident] = msg.compression
-            replies = self.core.hello(ident, msg, now, self.stream_info)
+            replies = self.core.hello(ident, msg, now)
         else:
             replies = self.core.message(ident, msg, now)
         for to, reply in replies:

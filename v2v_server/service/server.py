@@ -8,16 +8,18 @@ The decisions live in small pure modules, tested directly (``tests/test_delivery
 
 * ``schedule.EpochScheduler``: which samples are owed in which epoch, which task makes them,
   resume states (authoritative), per-epoch failures of single samples, task timeouts;
-* ``ledger.DeliveryLedger``: credits by batch id, leases, revokes that expire, re-sends, fair
-  sharing, DDP groups;
-* ``core.DeliveryCore``: the two glued together with batching (still pure);
+* ``ledger.DeliveryLedger`` and its ``table.BatchTable``: the one table of batches and their
+  states, credits by batch id, leases, revokes that expire, re-sends, fair sharing, DDP groups;
+* ``core.DeliveryCore``: the two glued together with batching, the ends of epochs and of the
+  stream, and the connections found unreachable (still pure; this module reads it only through
+  its methods);
 * ``v2v_wire.messages``: bounded decoding and typed messages from clients; ``pool.WorkerPool``:
   processes.
 
 This module only moves bytes: its loop reads the sockets, hands worker messages to
 ``worker_side.WorkerSide`` and client messages to ``client_side.ClientSide`` (which ask those
-modules and send what they say), and owns the server's life: start, end of stream, status,
-shutdown. A batch's arrays stay an opaque ``assembly.BatchPayload``.
+modules and send what they say), and owns the server's life: start, exit (when the core says
+the stream is over), status, shutdown. A batch's arrays stay an opaque ``assembly.BatchPayload``.
 """
 from __future__ import annotations
 
@@ -46,7 +48,7 @@ from v2v_server.service.worker import worker_config
 from v2v_server.service.sockets import ServerSockets
 from v2v_server.service.worker_side import WorkerSide
 from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION
-from v2v_wire.stream_messages import End, Heartbeat, ServerError, Shutdown
+from v2v_wire.stream_messages import Heartbeat, ServerError, Shutdown
 
 log = logging.getLogger("v2v.server")
 
@@ -102,19 +104,17 @@ class V2VServer:
             log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
                      self.journal.path, len(self.journal.records), self.journal.completed)
         # a stall of this loop (stopped, swapped out) is not its clients' silence: ledger.STALL_S
-        self.core = DeliveryCore(self.videos, cfg.delivery, make_batch, self.journal, stall_s=STALL_S)
-        self.sched, self.ledger = self.core.sched, self.core.ledger
-        self.ended = False  # every epoch delivered (at least once)
-        self._told_end: set = set()  # connections told the stream ended
-        self._ended_at: Optional[float] = None  # since when the stream ended with no trainer connected
+        self.core = DeliveryCore(self.videos, cfg.delivery, make_batch, self.journal, stall_s=STALL_S,
+                                 end_grace_s=cfg.end_grace_s)
+        self.core.info = self.stream_info
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
         self.assembler: Optional[BatchAssembler] = None  # built once the bind says where its buffers live
-        self._resent_seen = 0  # ledger.resent already counted
+        self._resent_seen = 0  # batches given back to the queue already counted
         self.workers = WorkerSide(cfg, self.source, self.core, self.metrics)
         for video, (cause, why) in (skipped or {}).items():  # known to give no window: logged and counted as if read
             self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)", cause=cause)
-        self.clients = ClientSide(cfg, self.core, self.metrics, self.stream_info)
+        self.clients = ClientSide(cfg, self.core, self.metrics)
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -170,34 +170,6 @@ class V2VServer:
                  m["samples_made"], m["workers_restarted"], m["tasks_timed_out"], m["files_skipped"])
 
     # ------------------------------------------------------------------ main loop
-    def _end_of_stream(self, now: float) -> bool:
-        """With ``--epochs``: once every epoch is delivered, tell each connected trainer the
-        stream ended (once per connection), and stay up ``end_grace_s`` with no trainer
-        connected so that one resuming from an older checkpoint still gets the samples it
-        lacks (its resume state reopens those epochs, ``schedule.apply_resume``). True when
-        the server may exit."""
-        if not self.core.finished():
-            self._ended_at = None
-            self._told_end.clear()
-            return False
-        if not self.ended:
-            log.info("all %d epoch(s) delivered; ending the stream (the server stays up %.0f s with no trainer "
-                     "connected, for trainers that resume)", self.cfg.epochs, self.cfg.end_grace_s)
-            self.ended = True
-        for ident in list(self.ledger.clients):  # a send to a peer gone drops it from the ledger
-            if ident not in self._told_end:
-                self._told_end.add(ident)
-                self.clients.send(ident, End())
-        if self.ledger.clients:
-            self._ended_at = None
-            return False
-        if self._ended_at is None:
-            self._ended_at = now
-        if now - self._ended_at >= self.cfg.end_grace_s:
-            log.info("no trainer for %.0f s after the end of the stream; exiting", now - self._ended_at)
-            return True
-        return False
-
     def _loop(self) -> int:
         next_beat = 0.0
         next_status = time.monotonic() + 30.0
@@ -205,13 +177,13 @@ class V2VServer:
             while not self._stop.is_set():
                 poller = zmq.Poller()
                 poller.register(self.frontend, zmq.POLLIN)
-                if len(self.ledger.ready) < self.cfg.prefetch_batches:
+                if self.core.ready_count() < self.cfg.prefetch_batches:
                     poller.register(self.backend, zmq.POLLIN)
                 events = dict(poller.poll(100))
                 self.clients.read(self.frontend in events)
                 if self.backend in events:
                     for _ in range(16):
-                        if len(self.ledger.ready) >= self.cfg.prefetch_batches:
+                        if self.core.ready_count() >= self.cfg.prefetch_batches:
                             break
                         try:
                             frames = self.backend.recv_multipart(zmq.NOBLOCK, copy=False)
@@ -234,7 +206,7 @@ class V2VServer:
                 if now >= next_status:
                     self._log_status()
                     next_status = now + 30.0
-                if self._end_of_stream(now):
+                if self.core.exit_due(now):
                     return 0
                 if self._corpus_empty():
                     msg = (f"no usable video under {self.root}: "
@@ -255,12 +227,13 @@ class V2VServer:
     def _log_status(self) -> None:
         self._count_resent()
         m = self.metrics.totals()
+        st = self.core.status()
         held, capacity = self.core.batcher.fill()
         log.info("status: %d client(s), %d batches sent (%d re-sent, %d acknowledged), %d samples made, "
                  "%d ready, %d in flight, shuffle buffer %d/%d samples, %d worker restart(s), %d task timeout(s), "
                  "%d file failure(s), %d bad message(s) (%d log lines suppressed)",
-                 len(self.ledger.clients), m["batches_sent"], m["batches_resent"], self.ledger.acked,
-                 m["samples_made"], len(self.ledger.ready), self.ledger.in_flight(), held, capacity,
+                 len(st["clients"]), m["batches_sent"], m["batches_resent"], st["acked"],
+                 m["samples_made"], st["ready"], st["in_flight"], held, capacity,
                  m["workers_restarted"],
                  m["tasks_timed_out"], len(self.workers.skipped_files), m["bad_messages"], self.clients.bad.suppressed)
         usage = self._frame_cache_usage()
@@ -268,23 +241,21 @@ class V2VServer:
             log.info("frame cache: %s", self.metrics.frame_cache_line(*usage))
 
     def _count_resent(self) -> None:
-        """Count the ledger's re-queued batches into the metrics (the ledger re-queues them
+        """Count the batches given back to the queue into the metrics (the core requeues them
         inside its pure decisions; this is where the loop learns of them)."""
-        for _ in range(self.ledger.resent - self._resent_seen):
+        resent = self.core.resent
+        for _ in range(resent - self._resent_seen):
             self.metrics.on_batch_resent()
-        self._resent_seen = self.ledger.resent
+        self._resent_seen = resent
 
     def _metrics_state(self) -> dict:  # the gauges, as plain numbers
         alive = [w for w in (self.pool.workers.values() if self.pool else ()) if w.proc.is_alive()]
-        newest = max(self.sched.plans) if self.sched.plans else None
-        plan = self.sched.plans.get(newest) if newest is not None else None
+        st = self.core.status()
         held, capacity = self.core.batcher.fill()
-        return {"clients": {c.ident.hex()[:12]: (c.credits, len(c.held)) for c in self.ledger.clients.values()},
-                "queue_batches": len(self.ledger.ready), "inflight_batches": self.ledger.in_flight(),
+        return {"clients": {i.hex()[:12]: v for i, v in st["clients"].items()},
+                "queue_batches": st["ready"], "inflight_batches": st["in_flight"],
                 "workers": len(alive), "workers_busy": sum(1 for w in alive if not w.idle),
-                "epoch": newest if newest is not None else -1,
-                "epoch_videos": plan.progress()[0] if plan else 0,
-                "epoch_videos_done": plan.progress()[1] if plan else 0,
+                "epoch": st["epoch"], "epoch_videos": st["progress"][0], "epoch_videos_done": st["progress"][1],
                 "shuffle_samples": held, "shuffle_capacity": capacity,
                 **({} if (fc := self._frame_cache_usage()) is None else self.metrics.frame_cache_state(*fc)),
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
@@ -301,8 +272,9 @@ class V2VServer:
 
     def _corpus_empty(self) -> bool:
         """Every file failed and nothing was ever made: no epoch can hold a sample."""
-        return (self.core.samples_made == 0 and all(v in self.sched.file_failures for v in self.videos) and
-                any(p.complete for p in self.sched.plans.values()))
+        sched = self.core.sched
+        return (self.core.samples_made == 0 and all(v in sched.file_failures for v in self.videos) and
+                any(p.complete for p in sched.plans.values()))
 
     # ------------------------------------------------------------------ clients
     def stream_info(self) -> dict:

@@ -1,0 +1,153 @@
+"""Which hellos are let in, pure: one live reader per consumer, one world size per DDP group, and
+resume states the server cannot tell are false. The rules are docs/delivery.md ("Who may say
+hello"); :meth:`Admission.check` applies them in that order, :meth:`Admission.resume_problem` at a
+cost linear in the state (a video's ids counted before they are parsed, other videos' skipped
+unread: ``messages.Bound``).
+"""
+from __future__ import annotations
+
+import sys
+from typing import Dict, Hashable, List, Optional, Set, Tuple
+
+from v2v_server.delivery.ledger import ClientRecord, DeliveryLedger
+from v2v_server.delivery.schedule import EpochScheduler
+from v2v_wire.messages import Hello, Resume
+from v2v_wire.stream_messages import ServerError
+
+__all__ = ["Admission", "WAIT", "name_of"]
+
+#: ``Admission.check``'s answer for a hello that waits for an older connection of its consumer.
+WAIT = "wait"
+
+
+def name_of(consumer: Hashable) -> str:
+    """A consumer as a log line or an error names it: ``DDP group "g" rank 1`` or ``consumer "id"``."""
+    name, rank = consumer
+    if name.startswith("g:"):
+        return f"DDP group {name[2:]!r} rank {rank}"
+    return f"consumer {name[2:]!r}"
+
+
+class Admission:
+    """The checks a hello passes (docs/delivery.md, "Who may say hello"), and the hellos waiting
+    for an older connection of their consumer (``pending``: ident -> (hello, since when)).
+
+    Args:
+        sched, ledger: the core's parts (read only).
+        journal: ``journal.Journal`` or None.
+        policy: the delivery settings (``core.DeliveryPolicy``): the outputs offered, the recipe's
+            crops per window and the windows a file gives at most (bounds of a video's sample
+            ids before its first pass).
+        claim_margin_s: how long after a hello its consumer's older connection must still speak
+            to count as alive (a dead process's last messages arrive before).
+        server_id: the id this server's welcomes carry (what ``origins`` name).
+    """
+
+    def __init__(self, sched: EpochScheduler, ledger: DeliveryLedger, journal, policy, claim_margin_s: float,
+                 server_id: str):
+        self.sched, self.ledger, self.journal = sched, ledger, journal
+        self.offered = tuple(policy.offered)
+        self.k, self.max_windows = policy.crops_per_window, policy.max_samples_per_video
+        self.claim_margin_s, self.server_id = claim_margin_s, server_id
+        self.pending: Dict[bytes, Tuple[Hello, float]] = {}
+
+    # ------------------------------------------------------------------ who reads
+    def others(self, ident: bytes, consumers: Set[Hashable]) -> List[ClientRecord]:
+        """The live connections, other than ``ident``, of any of ``consumers``."""
+        return [c for i, c in self.ledger.clients.items() if i != ident and c.consumer in consumers]
+
+    def check(self, ident: bytes, h: Hello, consumer: Hashable, group: Optional[str], now: float):
+        """None (let in), :data:`WAIT`, or the ``ServerError`` that refuses the hello."""
+        if any(o not in self.offered for o in h.outputs):
+            return ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}", "outputs")
+        speaks = self.speaks_for(consumer, h)
+        foreign = [c for c in self.others(ident, speaks) if c.instance != h.instance or not h.instance]
+        if foreign:
+            since = self.pending.get(ident, (None, now))[1]
+            alive = [c for c in foreign if c.heard >= since + self.claim_margin_s]
+            if not alive:
+                return WAIT
+            return ServerError(f"{name_of(alive[0].consumer)} is read by another live connection "
+                               f"({alive[0].ident.hex()[:12]}): one reader per consumer. "
+                               + ("Give each DDP job on this server its own group=" if group is not None else
+                                  "Give each reader its own consumer id (a new V2VStreamDataset, or no state)")
+                               + ", or stop the other reader", "claimed")
+        if group is not None:
+            worlds = {c.world_size for c in self.ledger.clients.values()
+                      if c.ident != ident and c.group == group and c.ddp}
+            if worlds and worlds != {h.world_size}:
+                return ServerError(f"DDP group {group!r} is read at world size {worlds.pop()} by live ranks; this "
+                                   f"rank says {h.world_size}: give each DDP job on this server its own group=",
+                                   "group")
+        peers = set(speaks)
+        if h.resume.supersedes and group is not None:  # the new job's ranks may have taken the old ones' records
+            peers |= {("g:" + group, r) for r in range(h.world_size)}
+        why = self.resume_problem(consumer, h.resume, peers)
+        if why is not None:
+            return ServerError(f"{name_of(consumer)}: its resume state {why}", "resume")
+        return None
+
+    def speaks_for(self, consumer: Hashable, h: Hello) -> Set[Hashable]:
+        """The consumers a hello speaks for: its own, and those its gathered state supersedes that
+        are not in its own DDP world (those say hello themselves)."""
+        out = {consumer}
+        for name, rank in h.resume.supersedes:
+            if not (h.world_size > 1 and name == "g:" + (h.group or "default") and rank < h.world_size):
+                out.add((name, rank))
+        return out
+
+    # ------------------------------------------------------------------ resume states
+    def windows_of(self, video: str) -> Optional[int]:
+        """Samples ``video`` gives (its last complete pass), or at most (the recipe's bound); None: unknown."""
+        n = self.sched.counts.get(video)
+        if n is None and self.max_windows is not None:
+            n = self.max_windows * self.k
+        return n
+
+    def bound(self, video: str) -> Optional[int]:
+        """What a resume state may name of ``video`` (``messages.Bound``): the samples it gives
+        (``sys.maxsize`` while unknown), None for a video this server does not serve."""
+        if video not in self.sched.known:
+            return None
+        n = self.windows_of(video)
+        return sys.maxsize if n is None else n
+
+    def verifies(self, epoch: int, origins: Tuple[str, ...]) -> bool:
+        """A resume state naming servers ``origins`` can be checked against who this server
+        granted what of ``epoch`` (docs/delivery.md, "Who may say hello": an epoch whose grants it
+        knows)."""
+        plan = self.sched.plans.get(epoch)
+        if plan is None:
+            return False
+        if self.journal is not None or set(origins) == {self.server_id}:
+            return True
+        return not origins and plan.served
+
+    def resume_problem(self, consumer: Hashable, r: Resume, speaks: Set[Hashable]) -> Optional[str]:
+        """Why the server can tell resume state ``r`` of ``consumer`` is false, or None (linear in
+        its size); ``speaks``: the consumers whose grants its ids may name."""
+        s, last = self.sched, self.sched.max_epochs
+        if last is not None and r.completed_epoch >= last:
+            return f"says epoch {r.completed_epoch} is complete; this server serves epochs 0 to {last - 1} (--epochs {last})"
+        if self.journal is not None and r.completed_epoch > self.journal.told:
+            return (f"says epoch {r.completed_epoch} is complete; this server's journal ({self.journal.path}) told "
+                    f"epochs up to {self.journal.told} complete: resume against the server and --state-dir the state "
+                    f"was made with, or without the state")
+        for e, keys in r.delivered.items():
+            if e <= r.completed_epoch or not keys:
+                continue
+            if last is not None and e >= last:
+                return f"names samples of epoch {e}; this server serves epochs 0 to {last - 1} (--epochs {last})"
+            for key in keys:
+                n = self.windows_of(key.video) if key.video in s.known else None
+                if n is not None and key.ordinal(self.k) >= n:
+                    return (f"names sample {key.sample_id(self.k)} of epoch {e}; {key.video} gives {n} sample(s) "
+                            f"under this server's recipe")
+            if self.verifies(e, r.origins):
+                plan = s.plans[e]
+                had = set().union(*(plan.records.get(c, ()) for c in speaks))
+                never = [k for k in keys if k.video in s.known and k not in had]
+                if never:
+                    return (f"names {len(never)} sample(s) of epoch {e} this server never granted to it (such as "
+                            f"{min(never).sample_id(self.k)}): load the state this reader saved, or start it without one")
+        return None

@@ -1,0 +1,59 @@
+"""DDP padding, per group of ranks: what each rank of a group yielded per epoch, so that every
+rank yields the same number of batches (docs/delivery.md, "DDP" and "Ends of epochs and of the
+stream"). Pure."""
+from __future__ import annotations
+
+from typing import Callable, Dict, Optional, Tuple
+
+from v2v_server.delivery.table import BatchRecord
+
+
+class GroupPadding:
+    """What DDP padding needs, per group of ranks (``world_size > 1``): how many batches of
+    each epoch each rank yielded, and the group's last acknowledged batch (what a rank that was
+    sent nothing repeats). Pure."""
+
+    def __init__(self):
+        self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
+        self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch
+
+    def resumed(self, group: str, rank: int, completed_epoch: int, batches: Dict[int, int]) -> None:
+        """A rank's resume state: in each epoch after ``completed_epoch`` it yielded
+        ``batches[epoch]`` batches (0 where the state names none)."""
+        for (g, e), counts in self.taken.items():
+            if g == group and e > completed_epoch:
+                counts[rank] = batches.get(e, 0)
+        for e, n in batches.items():
+            if e > completed_epoch:
+                self.taken.setdefault((group, e), {})[rank] = n
+
+    def acked(self, group: str, rank: int, batch: BatchRecord) -> None:
+        """Rank ``rank`` of ``group`` was granted ``batch`` (it yields it)."""
+        counts = self.taken.setdefault((group, batch.epoch), {})
+        counts[rank] = counts.get(rank, 0) + 1
+        self.pad_source[group] = batch
+
+    def released(self, group: str, rank: int, batch: BatchRecord) -> None:
+        """Rank ``rank`` gave back ``batch``, granted and counted before: it yielded it not."""
+        counts = self.taken.get((group, batch.epoch), {})
+        if counts.get(rank, 0) > 0:
+            counts[rank] -= 1
+
+    def epoch_done(self, c, epoch: int) -> Tuple[int, Optional[BatchRecord]]:
+        """For the rank of client ``c`` (``ledger.ClientRecord``) once ``epoch`` is complete:
+        the batches every rank of its group reaches (the most any of them yielded), and a
+        padding batch (batch id -1, a copy of the group's last acknowledged batch) when ``c``
+        was never sent a batch and is behind, else None."""
+        counts = self.taken.get((c.group, epoch), {})
+        most = max(counts.values()) if counts else 0
+        src = self.pad_source.get(c.group)
+        if c.sent == 0 and counts.get(c.rank, 0) < most and src is not None:
+            return most, BatchRecord(-1, epoch, src.keys, src.payload, outputs=src.outputs)
+        return most, None
+
+    def prune(self, live_groups: set, forgotten: Callable[[int], bool]) -> None:
+        """Forget groups with no client left and epochs ``forgotten(epoch)`` says are gone."""
+        for g in [g for g in self.pad_source if g not in live_groups]:
+            del self.pad_source[g]
+        for key in [k for k in self.taken if forgotten(k[1])]:
+            del self.taken[key]
