@@ -148,3 +148,17 @@ def test_a_grant_given_back_unused_leaves_the_record_after_a_restart(tmp_path):
     k = Journal(str(tmp_path), "r1")
     assert k.records == {a: {0: {K("x.mp4", 0), K("x.mp4", 1)}}}
     k.close()
+
+
+def test_the_journals_bench_drives_the_core_it_measures(tmp_path):
+    """``python -m bench.journal`` (docs/delivery.md's cost of ``--state-dir``) runs against the
+    core as it is: both runs acknowledge batches, the journal's run leaves a journal whose
+    records a restart reads."""
+    from bench.journal import run
+
+    assert run(30, 12) > 0
+    assert run(30, 12, str(tmp_path)) > 0
+    kept = Journal(str(tmp_path), "bench")
+    recorded = sum(len(keys) for record in kept.records.values() for keys in record.values())
+    assert recorded >= 30 * 12 and recorded % 12 == 0, recorded  # whole batches, at least those asked for
+    kept.close()

@@ -837,41 +837,68 @@ def test_a_client_found_unreachable_is_forgotten_only_once_its_messages_are_read
     assert core.connected() == [] and core.ledger.table.get(bid).state == "ready"
 
 
-def test_a_host_crash_that_loses_the_journals_last_second_costs_what_the_docs_say(tmp_path):
-    """docs/delivery.md, "Limits" (f): a grant appended after the journal's last ``fsync`` is
-    gone after a host crash (the file cut back to its synced size). If its reader resumes first,
-    its state is let in; if another reader opens the epoch first, that reader is sent the
-    samples and the first one's honest state naming them is refused (``resume``)."""
+def test_a_host_crash_never_takes_from_the_journal_a_grant_a_client_received(tmp_path):
+    """docs/delivery.md, "Restarts with a journal": the server's client side (the real
+    ``ClientSide`` on a real ROUTER socket) puts a grant's record on disk before the grant leaves.
+    When the client receives it nothing of the journal is unsynced, so a host crash then (the
+    file cut back to that size) keeps it: the reader's resume is let in and no other reader is
+    sent those samples. Cut back to before the grant's record (what an ``fsync`` once a second
+    alone allows), the other reader is sent them and the honest state is refused: a doubling."""
+    import zmq
+
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.ops.metrics import ServerMetrics
+    from v2v_server.service.client_side import ClientSide
+
     def core_on() -> DeliveryCore:
         return DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=1, lease_s=LEASE,
                                                           client_timeout_s=TIMEOUT, revoke_s=REVOKE,
                                                           max_credits=4, shuffle="none"), make_batch,
-                            journal=Journal(str(tmp_path), "recipe"), stall_s=STALL_S)
+                            journal=Journal(str(tmp_path), "recipe", fsync_s=1e9), stall_s=STALL_S)
 
     path = tmp_path / JOURNAL_FILE
     core = core_on()
-    _hello(core, b"a", "a", 0.0, ends_on_drained=False)
-    bid = _turn(core, 0.0)[b"a"][0]
-    core.journal.sync()
-    synced = path.stat().st_size
-    assert core.message(b"a", Hold((bid,)), 0.1)[0][1].batch_ids == (bid,)
+    ctx = zmq.Context()
+    router, dealer = ctx.socket(zmq.ROUTER), ctx.socket(zmq.DEALER)
+    try:
+        port = router.bind_to_random_port("tcp://127.0.0.1")
+        dealer.setsockopt(zmq.IDENTITY, b"a")
+        dealer.connect(f"tcp://127.0.0.1:{port}")
+        clients = ClientSide(ServeConfig(), core, ServerMetrics(progress=False))
+        clients.frontend = router
+        _hello(core, b"a", "a", 0.0, ends_on_drained=False)
+        bid = _turn(core, 0.0)[b"a"][0]
+        before = path.stat().st_size
+        dealer.send(pack(Hold((bid,)).to_wire()))
+        assert router.poll(5000), "the hold never arrived"
+        clients.read(True)
+        assert dealer.poll(5000), "no answer to the hold"
+        granted = sm.stream_message(unpack(dealer.recv_multipart()[0]))
+        assert isinstance(granted, sm.Granted) and tuple(granted.batch_ids) == (bid,), granted
+        assert not core.journal.unsynced  # what the client holds is on disk
+        on_disk = path.stat().st_size
+    finally:
+        dealer.close(0)
+        router.close(0)
+        ctx.term()
+    assert on_disk > before
     ids = frozenset(core.ledger.table.get(bid).keys)
     core.journal.close()
-    with open(path, "r+b") as f:  # the host crashed: what was not synced is gone
-        f.truncate(synced)
 
-    def a_resumes(core: DeliveryCore, ident: bytes):
-        resume = Resume(-1, {0: ids}, origins=(core.server_id,))
-        return core.hello(ident, Hello(("voxels",), 2, consumer="a", resume=resume), 1.0)[0][1]
+    def after_crash(size: int):
+        """Another reader, then the grant's reader resuming honestly, on a server restarted from
+        the journal cut back to ``size`` bytes: (the samples ``b`` is sent, the answer to ``a``)."""
+        with open(path, "r+b") as f:
+            f.truncate(size)
+        restarted = core_on()
+        _hello(restarted, b"b", "b", 0.5, ends_on_drained=False)
+        to_b = {k for x in _turn(restarted, 0.5)[b"b"] if isinstance(x, int) for k in restarted.ledger.table.get(x).keys}
+        resume = Resume(-1, {0: ids}, origins=(restarted.server_id,))
+        answer = restarted.hello(b"a2", Hello(("voxels",), 2, consumer="a", resume=resume), 1.0)[0][1]
+        restarted.journal.close()
+        return to_b, answer
 
-    first = core_on()
-    assert isinstance(a_resumes(first, b"a1"), sm.Welcome)
-    first.journal.close()
-    with open(path, "r+b") as f:
-        f.truncate(synced)
-    second = core_on()
-    _hello(second, b"b", "b", 0.5, ends_on_drained=False)
-    sent_to_b = {k for x in _turn(second, 0.5)[b"b"] if isinstance(x, int) for k in second.ledger.table.get(x).keys}
-    assert ids <= sent_to_b
-    refused = a_resumes(second, b"a2")
-    assert isinstance(refused, sm.ServerError) and refused.code == "resume", refused
+    to_b, answer = after_crash(on_disk)
+    assert not ids & to_b and isinstance(answer, sm.Welcome), (to_b, answer)
+    to_b, answer = after_crash(before)  # the grant's record lost: the doubling a durable grant prevents
+    assert ids <= to_b and isinstance(answer, sm.ServerError) and answer.code == "resume", answer

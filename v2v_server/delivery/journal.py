@@ -23,8 +23,8 @@ completes the file is rewritten from memory (a temporary file, fsync, rename).
 
 Durability: each record is one ``write`` to a file opened with ``O_APPEND`` (in the page cache
 at once: it survives the server process being killed); ``fsync`` at most every ``fsync_s``
-seconds (1 s) from the main loop and at close, so a host crash loses at most that last second:
-its samples are owed again (never lost; perhaps doubled, docs/delivery.md "Limits" (f)).
+seconds (1 s) from the main loop and at close, and before any grant or epoch end is sent
+(:meth:`durable`): a host crash loses only records no client was told of yet.
 
 A write that fails while serving (a full or failing disk, the folder removed or replaced) never
 stops the server: the records stay current in memory, the error goes to ``on_error`` (the
@@ -271,13 +271,27 @@ class Journal:
                 self._recover()
             return
         if self._dirty and (force or now - self._last_sync >= self.fsync_s):
-            try:
-                os.fsync(self._fd)
-            except OSError as e:
-                self._fail(e)
-                return
-            self._dirty = False
-            self._last_sync = now
+            self.durable(now)
+
+    def durable(self, now: Optional[float] = None) -> None:
+        """``fsync`` what was appended, now: the server calls it before a grant or an epoch's
+        end leaves, so what a client was told survives a host crash (one ``fsync`` per loop turn
+        that tells one; nothing when nothing was appended). A journal whose writes failed is
+        left to :meth:`sync`'s retries (its records are current in memory only)."""
+        if self.failed or not self._dirty:
+            return
+        try:
+            os.fsync(self._fd)
+        except OSError as e:
+            self._fail(e)
+            return
+        self._dirty = False
+        self._last_sync = time.monotonic() if now is None else now
+
+    @property
+    def unsynced(self) -> bool:
+        """Whether records were appended since the last ``fsync`` (a host crash would lose them)."""
+        return self._dirty and not self.failed
 
     def close(self) -> None:
         """``fsync`` and close the file."""

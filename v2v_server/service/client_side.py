@@ -20,7 +20,7 @@ from v2v_server.service.assembly import BatchAssembler
 from v2v_wire import codecs
 from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
 from v2v_wire.protocol import MAX_CLIENT_MSG, pack
-from v2v_wire.stream_messages import Batch, Revoke, ServerError, StreamMessage
+from v2v_wire.stream_messages import Batch, EpochDone, Granted, Revoke, ServerError, StreamMessage
 
 log = logging.getLogger("v2v.server")
 
@@ -84,6 +84,7 @@ class ClientSide:
                 self.core.unreachable(ident)
                 continue
             self.metrics.on_batch_sent(len(b.payload.sample_ids), nbytes)
+        self._durable(msgs)
         for ident, msg in msgs:
             if isinstance(msg, Revoke):
                 for _ in msg.batch_ids:
@@ -102,16 +103,27 @@ class ClientSide:
         """Read and answer up to :data:`CLIENT_BURST` client messages when the frontend is
         ``ready``; once nothing is left unread, the core forgets the clients found unreachable
         (``DeliveryCore.caught_up``)."""
-        drained = not ready
+        drained, replies = not ready, []
         for _ in range(CLIENT_BURST if ready else 0):
             try:
                 frames = self.frontend.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
                 drained = True
                 break
-            self.on_message(frames)
+            replies += self.on_message(frames)
+        self._durable(replies)
+        for to, reply in replies:
+            self.send(to, reply)
         if drained:  # what an unreachable client sent before it closed has been read
             self.core.caught_up()
+
+    def _durable(self, msgs: List[tuple]) -> None:
+        """What a grant or an epoch's end tells a client is on disk before it leaves
+        (``Journal.durable``: one ``fsync`` for the turn's messages), so a host crash never
+        takes from the journal what a client holds (docs/delivery.md, "Restarts with a journal")."""
+        journal = self.core.journal
+        if journal is not None and journal.unsynced and any(isinstance(m, (Granted, EpochDone)) for _, m in msgs):
+            journal.durable()
 
     def broadcast(self, msg: StreamMessage) -> None:
         """One control message to every connected client."""
@@ -129,13 +141,14 @@ class ClientSide:
             self.send(ident, ServerError(f"protocol error: {why}"))
         self.core.forget(ident)
 
-    def on_message(self, frames) -> None:
-        """One message from a client (identity frame, message frame): decoded with bounds,
-        schema-checked, answered; a bad one strikes its peer (``messages.BadPeers``)."""
+    def on_message(self, frames) -> List[tuple]:
+        """One message from a client (identity frame, message frame): decoded with bounds and
+        schema-checked; returns the core's answers, ``[(ident, message)]``, for :meth:`read` to
+        send. A bad one strikes its peer (``messages.BadPeers``) and is answered here."""
         ident = frames[0].bytes
         now = time.monotonic()
         if self.bad.banned(ident, now):
-            return
+            return []
         try:
             if len(frames) != 2:
                 raise WireError(f"expected 1 frame after the identity, got {len(frames) - 1}")
@@ -143,7 +156,7 @@ class ClientSide:
                                 self.core.resume_bound)
         except WireError as e:
             self._bad_peer(ident, str(e), now)
-            return
+            return []
         if isinstance(msg, Hello):
             connected = set(self.core.connected())
             self.shm_clients &= connected  # forget clients gone since
@@ -157,13 +170,10 @@ class ClientSide:
                 self.send(ident, ServerError(f"this server cannot compress with {msg.compression!r}: "
                                              f"{msg.compression} needs the 'wire' extra on the server "
                                              f"(pip install 'v2v[wire]'); ask for compression 'none'", "compression"))
-                return
+                return []
             self.compression[ident] = msg.compression
-            replies = self.core.hello(ident, msg, now)
-        else:
-            replies = self.core.message(ident, msg, now)
-        for to, reply in replies:
-            self.send(to, reply)
+            return self.core.hello(ident, msg, now)
+        return self.core.message(ident, msg, now)
 
 
 def _nbytes(frame) -> int:
