@@ -1,0 +1,169 @@
+"""DDP jobs: ``world_size`` rank processes, one dataset each (``rank=r, world_size=n``), stepping
+in lockstep (each step's all-reduce waits for every rank's batch), killed and restarted
+together (as torchrun restarts a group), possibly at another world size.
+
+A rank's batches are DDP padding where the server or the dataset flags them (``padding``): the
+oracle keeps only the rest. Every rank must yield the same number of batches: a rank whose
+stream ends while another got a batch would leave the job hanging in its next all-reduce, which
+the job reports as a liveness failure.
+"""
+from __future__ import annotations
+
+from typing import List, Optional, Tuple
+
+from v2v_client.launchers import RANKS, rank_part
+
+from harness.delivery_sim.stream import SimIterator, SimStream
+from harness.delivery_sim.trainer import Reader, stream_options
+
+
+class Rank(Reader):
+    """One rank's process of a :class:`DDPJob` incarnation."""
+
+    def __init__(self, job: "DDPJob", rank: int, world: int, incarnation: int, state: Optional[dict]):
+        stream = SimStream(stream_options(job.credits, job.timeout_s, rank=rank, world_size=world, group=job.group),
+                           f"{job.consumer}")
+        if state is not None:
+            stream.load_state_dict(state)
+        super().__init__(job.run, f"{job.name}.{incarnation}r{rank}", stream)
+        self.job, self.rank = job, rank
+        self.item: Optional[Tuple[str, object]] = None  # what this rank brings to the current step
+        self.waiting = False
+        self.sim.after(0.0, self._start, proc=self.proc)
+
+    def _start(self) -> None:
+        self.it = SimIterator(self.stream, self, self.wake)
+        self.step()
+
+    def wake(self) -> None:
+        if self.waiting:
+            self.waiting = False
+            self.sim.after(0.0, self.step, proc=self.proc)
+
+    def step(self) -> None:
+        """Ask the stream for this step's batch (once it comes, wait at the all-reduce)."""
+        if self.item is not None or self.proc.dead:
+            return
+        kind, x = self.it.next()
+        if kind == "wait":
+            self.waiting = True
+            return
+        self.item = (kind, x)
+        self.job.arrived()
+
+    def pending(self):
+        out = list(super().pending())
+        if self.item is not None and self.item[0] == "batch":  # claimed, waiting at the all-reduce
+            x = self.item[1]
+            out += [(x["epoch"], s) for s, pad in zip(x["sample_ids"], x["padding"]) if not pad]
+        return out
+
+    def pending_batches(self) -> int:
+        return super().pending_batches() + (self.item is not None and self.item[0] == "batch")
+
+    def consumer_key(self) -> str:
+        return f"{self.job.group}/{self.rank}"
+
+
+class DDPJob:
+    """A DDP job of ``world`` ranks in ``group`` (its lineage: ``name``).
+
+    Args:
+        run: the deployment.
+        name: names the ranks' processes and the lineage.
+        world: the world size it starts with.
+        group: the ``group=`` argument (two jobs left at ``"default"`` share one).
+        credits, timeout_s: each rank's dataset's.
+        ckpt_every, step_s: steps between checkpoints; a step's seconds (range).
+    """
+
+    def __init__(self, run, name: str, world: int, group: str = "default", credits: int = 2, timeout_s: float = 30.0,
+                 honest: bool = True, ckpt_every: int = 2, step_s=(0.005, 0.05)):
+        self.run, self.name, self.group = run, name, group
+        self.credits, self.timeout_s = credits, timeout_s
+        self.consumer = name
+        self.lineage = name
+        self.ckpt_every, self.step_s = ckpt_every, step_s
+        run.oracle.lineage(name, honest)
+        self.world = world
+        self.checkpoints: List[Tuple[List[Optional[dict]], int]] = [([None] * world, 0)]
+        self.incarnation = 0
+        self.ranks: List[Rank] = []
+        self.steps = 0
+        self.done = False
+        self.gone = False  # died for good: never starts again
+
+    def start(self, world: Optional[int] = None, states: Optional[List[Optional[dict]]] = None) -> None:
+        if self.gone:
+            return
+        world = world or self.world
+        self.incarnation += 1
+        self.world = world
+        states = states or [None] * world
+        self.ranks = [Rank(self, r, world, self.incarnation, states[r] if r < len(states) else None)
+                      for r in range(world)]
+
+    def arrived(self) -> None:
+        """A rank brought its item: once every rank has, the step runs (or the job ends)."""
+        if any(r.item is None for r in self.ranks):
+            return
+        kinds = {r.item[0] for r in self.ranks}
+        oracle = self.run.oracle
+        if kinds == {"batch"}:
+            for r in self.ranks:
+                oracle.yielded(self.lineage, r.item[1])
+                r.item = None
+            self.steps += 1
+            if self.steps % self.ckpt_every == 0:
+                self.checkpoints.append(([r.stream.state_dict() for r in self.ranks],
+                                         len(oracle.lineages[self.lineage].history)))
+            lo, hi = self.step_s
+            dt = self.run.sim.uniform(lo, hi)
+            for r in self.ranks:
+                self.run.sim.after(dt, r.step, proc=r.proc)
+            return
+        self.done = True
+        if "batch" in kinds:
+            got = [r.rank for r in self.ranks if r.item[0] == "batch"]
+            ended = [(r.rank, r.item[1]) for r in self.ranks if r.item[0] != "batch"]
+            self.run.sim.fail("liveness", f"{self.name}: rank(s) {got} got a batch while rank(s) {ended} ended: the "
+                                          f"job hangs in its next all-reduce")
+        errors = [f"rank {r.rank}: {r.item[1]}" for r in self.ranks if r.item[0] == "error"]
+        if errors:
+            oracle.lineages[self.lineage].error = "; ".join(errors)
+        elif all(r.item[1] == "end of stream" for r in self.ranks):
+            oracle.ended(self.lineage)
+
+    def kill(self, for_good: bool = False) -> None:
+        for r in self.ranks:
+            r.kill(for_good, r.consumer_key())
+        if for_good:
+            self.gone = True
+            self.run.oracle.lineages[self.lineage].dead_for_good = True
+
+    def restart(self, back: int = 0, gap: float = 0.0, world: Optional[int] = None, load: str = "own") -> None:
+        """Kill every rank; ``gap`` seconds later start again from a checkpoint (``back``: that
+        many older) at ``world`` ranks. ``load``: ``"own"``, each rank loads its own rank's saved
+        state (the first ``world`` of them; a new rank starts with none); ``"gathered"``, every
+        rank loads the job's gathered state through ``launchers.rank_part`` (which refuses
+        another world size: the job then restarts at the size it was saved with, as the error
+        says)."""
+        if self.gone:
+            return
+        self.kill()
+        self.done = False
+        states, kept = self.checkpoints[max(0, len(self.checkpoints) - 1 - back)]
+        self.run.oracle.rolled_back(self.lineage, kept)
+        world = world or len(states)
+        if load == "gathered" and world != len(states):
+            try:
+                rank_part({RANKS: states}, lambda: (0, world))
+            except ValueError as e:
+                self.run.sim.log(self.name, f"resume refused: {e}; restarting at world size {len(states)}")
+                world = len(states)
+        self.run.sim.log(self.name, f"restarts in {gap:.2f} s at world size {world} from a checkpoint of "
+                                    f"{len(states)} rank(s) ({kept} samples)")
+        self.run.sim.after(gap, self.start, world, states)
+
+    def procs(self) -> List[Rank]:
+        return [r for r in self.ranks if not r.proc.dead]

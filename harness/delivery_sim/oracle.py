@@ -1,0 +1,185 @@
+"""The invariants, checked as the simulated run goes (docs/simulator.md, "What it checks").
+
+The oracle keeps its own books of what reached each training loop, independent of the
+protocol's: a *lineage* is one training job's model (a job restarted from a checkpoint is the
+same lineage, and forgets what it trained on after that checkpoint), and its *kept history*
+is the (epoch, sample id) pairs its model was trained on (padding excluded).
+
+* **No sample in two loops** (after every step): a pair reaches a kept history only if no
+  kept history has it.
+* **An announced epoch lacks nothing** (when the server announces an epoch complete): every
+  sample of it is in a kept history, or on its way to a loop (held granted, claimed or queued
+  in a loader by a live process), or held by a process that was killed or forgotten by a
+  model that resumed from a checkpoint (its resume state lacks it: the epoch reopens). At the end of a run every sample of every
+  epoch is in exactly one kept history, except what the docs allow: a window that failed with
+  a reason, and what was granted to a consumer that died for good and never taken (at most
+  ``GRANT_AHEAD + 1`` batches each; a ``StreamLoader`` worker's queued batches besides).
+* **Liveness**: every honest lineage's stream ends (the server's ``end``) by its deadline.
+* **Memory** (after every server turn): no client holds more batches than its credits; the
+  ledger holds batches of open epochs only; the server keeps records for at most the epochs it
+  can serve, each no larger than an epoch; a client holds at most its credits.
+"""
+from __future__ import annotations
+
+from typing import Dict, Iterable, List, Optional, Set, Tuple
+
+from v2v_client.session import GRANT_AHEAD
+
+from harness.delivery_sim.world import Sim
+
+Key = Tuple[int, str]
+
+
+class Lineage:
+    """One training job's model: its kept history and whether it is honest and alive."""
+
+    def __init__(self, name: str, honest: bool = True):
+        self.name, self.honest = name, honest
+        self.history: List[Key] = []
+        self.ended_at: Optional[float] = None
+        self.dead_for_good = False
+        self.error: Optional[str] = None
+        self.batches: Dict[int, Dict[int, int]] = {}  # DDP: epoch -> rank -> batches yielded
+
+
+class Oracle:
+    """The books and the checks of one run (``corpus``: the server's ``Corpus``; ``epochs``:
+    the bounded stream's epochs)."""
+
+    def __init__(self, sim: Sim, corpus, epochs: Optional[int], epoch_size: int):
+        self.sim, self.corpus, self.epochs = sim, corpus, epochs
+        self.epoch_ids = corpus.epoch_ids()
+        self.epoch_size = epoch_size
+        self.lineages: Dict[str, Lineage] = {}
+        self.kept: Dict[Key, str] = {}
+        self.announced: Dict[int, float] = {}
+        self.excused: Dict[int, Set[str]] = {}
+        self.killed_with: Dict[str, Set[Key]] = {}  # consumer -> what its killed processes held
+        self.killed_batches: Dict[str, int] = {}  # consumer -> batches held by its last killed process
+        self.dead_consumers: Set[str] = set()  # consumers that died for good
+        self.forgotten: Set[Key] = set()  # what models forgot resuming from a checkpoint (owed again)
+        self.live_clients: List = []  # objects with ``pending() -> Iterable[Key]`` and ``alive()``
+        self.max_epoch_opened = -1
+        self.yields = 0
+
+    def lineage(self, name: str, honest: bool = True) -> Lineage:
+        if name not in self.lineages:
+            self.lineages[name] = Lineage(name, honest)
+        return self.lineages[name]
+
+    # ------------------------------------------------------------------ what loops get
+    def yielded(self, lineage: str, item: dict) -> None:
+        """A training loop of ``lineage`` got ``item`` (``sample_ids``, ``padding``, ``epoch``)."""
+        lin = self.lineages[lineage]
+        e = item["epoch"]
+        self.yields += 1
+        for sid, pad in zip(item["sample_ids"], item["padding"]):
+            if pad:
+                continue
+            key = (e, sid)
+            other = self.kept.get(key)
+            if other is not None:
+                self.sim.fail("doubled", f"sample {sid} of epoch {e} reached the loop of {lineage} and was "
+                                         f"already in the loop of {other}")
+            self.kept[key] = lineage
+            lin.history.append(key)
+
+    def rolled_back(self, lineage: str, kept: int) -> None:
+        """``lineage`` resumed from a checkpoint taken after ``kept`` samples: its model forgot the rest."""
+        lin = self.lineages[lineage]
+        for key in lin.history[kept:]:
+            if self.kept.get(key) == lineage:
+                del self.kept[key]
+        self.forgotten.update(lin.history[kept:])
+        del lin.history[kept:]
+        lin.ended_at = None  # it reads again
+        self.sim.log("oracle", f"{lineage} rolled back to {kept} samples")
+
+    def ended(self, lineage: str) -> None:
+        lin = self.lineages[lineage]
+        if lin.ended_at is None:
+            lin.ended_at = self.sim.now
+            self.sim.log("oracle", f"{lineage}'s stream ended")
+
+    def killed(self, consumer: str, held: Iterable[Key], batches: int, for_good: bool) -> None:
+        """A process reading as ``consumer`` was killed holding ``held`` (granted, claimed or
+        queued: on their way to its loop) in ``batches`` batches; ``for_good``: it never says
+        hello again as that consumer."""
+        self.killed_with.setdefault(consumer, set()).update(held)
+        self.killed_batches[consumer] = batches
+        if for_good:
+            self.dead_consumers.add(consumer)
+
+    # ------------------------------------------------------------------ announcements
+    def on_announce(self, epoch: int) -> None:
+        """The server announced ``epoch`` complete: everything of it is somewhere (but what
+        ``excused[epoch]`` says failed with a reason)."""
+        self.announced[epoch] = self.sim.now
+        pending = set()
+        for c in self.live_clients:
+            if c.alive():
+                pending.update(c.pending())
+        held_by_dead = set().union(self.forgotten, *self.killed_with.values())
+        missing = sorted(sid for sid in self.epoch_ids - self.excused.get(epoch, set())
+                         if (epoch, sid) not in self.kept and (epoch, sid) not in pending
+                         and (epoch, sid) not in held_by_dead)
+        if missing:
+            self.sim.fail("lost", f"epoch {epoch} announced complete, and {len(missing)} of its samples are in no "
+                                  f"training loop, on no way to one, held by no killed trainer and forgotten by no "
+                                  f"model: {missing[:8]}")
+
+    # ------------------------------------------------------------------ the end
+    def final(self, deadline: float) -> None:
+        """At the end of a run: liveness, then every epoch exactly once (but the docs' exceptions)."""
+        for lin in self.lineages.values():
+            if lin.honest and not lin.dead_for_good and lin.error is not None:
+                self.sim.fail("error", f"{lin.name} (an honest trainer) failed: {lin.error}")
+        for lin in self.lineages.values():
+            if lin.honest and not lin.dead_for_good and lin.ended_at is None:
+                self.sim.fail("liveness", f"{lin.name}'s stream did not end by t={deadline:.1f} s "
+                                          f"(epochs announced: {sorted(self.announced)})")
+        if self.epochs is None:
+            return
+        allowed = set()
+        for consumer in self.dead_consumers:
+            allowed |= self.killed_with.get(consumer, set())
+        for e in range(self.epochs):
+            excused = self.excused.get(e, set())
+            lost = sorted(sid for sid in self.epoch_ids - excused
+                          if (e, sid) not in self.kept and (e, sid) not in allowed)
+            if lost:
+                self.sim.fail("lost", f"{len(lost)} samples of epoch {e} reached no training loop: {lost[:8]}")
+
+    def dead_bound(self, consumer: str, extra: int = 0) -> None:
+        """The docs' exception is bounded: a consumer that died for good held at most
+        ``GRANT_AHEAD + 1`` batches granted and not taken (``extra``: a loader worker's queue)."""
+        n = self.killed_batches.get(consumer, 0)
+        if n > GRANT_AHEAD + 1 + extra:
+            self.sim.fail("lost", f"{consumer} died for good holding {n} batches on their way to its loop; the "
+                                  f"docs allow {GRANT_AHEAD + 1 + extra}")
+
+    # ------------------------------------------------------------------ memory
+    def memory(self, probe, clients: Iterable) -> None:
+        """The bounds on what the server and the clients keep (see the module docstring)."""
+        fail = self.sim.fail
+        for ident, held, credits in probe.client_holdings():
+            if held > credits:
+                fail("memory", f"client {ident.hex()[:8]} holds {held} batches with {credits} credits")
+        plans = probe.plan_epochs()
+        if plans:
+            self.max_epoch_opened = max(self.max_epoch_opened, plans[-1])
+        if len(plans) > 6:
+            fail("memory", f"the scheduler keeps {len(plans)} epochs open: {plans}")
+        for bid, epoch, n in probe.batches():
+            if epoch not in plans:
+                fail("memory", f"batch {bid} of epoch {epoch} stays in the ledger; the epoch is forgotten")
+        for where, epoch, consumer, n in probe.records():
+            if n > self.epoch_size:
+                fail("memory", f"the server keeps {n} sample ids for {consumer} in epoch {epoch} ({where}); "
+                               f"an epoch holds {self.epoch_size}")
+            if epoch > self.max_epoch_opened + 2:
+                fail("memory", f"the server keeps a record of {consumer} for epoch {epoch} ({where}); it has "
+                               f"opened epochs up to {self.max_epoch_opened} only")
+        for c in clients:
+            if c.alive() and c.held() > c.credits():
+                fail("memory", f"{c.name} holds {c.held()} batches with {c.credits()} credits")

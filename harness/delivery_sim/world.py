@@ -1,0 +1,113 @@
+"""The simulator's world: one seeded random source, a simulated clock, an event queue, and the
+processes whose events it runs (a process can be paused for any length, or killed).
+
+Everything that happens is an event ``(time, sequence, process, function, args)`` taken from
+one heap in order; ``Sim.rng`` (one ``random.Random(seed)``) decides every delay, choice and
+fault, so a seed replays the same run (the core iterates sets of strings: replays also need
+one ``PYTHONHASHSEED``, which the command line fixes). After every event the checks run
+(``Sim.checks``); the first one that fails stops the run with a :class:`Violation` naming the
+step, and the trace (``trace=True``) holds every message and decision up to it.
+"""
+from __future__ import annotations
+
+import heapq
+import random
+from typing import Callable, List, Optional
+
+
+class Violation(AssertionError):
+    """An invariant broke: ``kind`` (``doubled``, ``lost``, ``liveness``, ``memory``, ``error``),
+    what happened, and the simulated time and step it was found at."""
+
+    def __init__(self, kind: str, what: str, now: float = 0.0, step: int = 0):
+        super().__init__(f"{kind} at t={now:.3f} s, step {step}: {what}")
+        self.kind, self.what, self.now, self.step = kind, what, now, step
+
+
+class Proc:
+    """A process (a trainer, a DataLoader worker, the server, a decode worker): its events run
+    only while it lives and is not paused. ``paused_until``: simulated seconds; an event due
+    while paused runs when the pause ends, in its original order."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.dead = False
+        self.paused_until = 0.0
+
+    def __repr__(self) -> str:
+        return f"Proc({self.name}{', dead' if self.dead else ''})"
+
+
+class Sim:
+    """The clock, the random source and the event queue.
+
+    Args:
+        seed: the one seed every decision is drawn from.
+        trace: keep a line per event worth telling (``log``); else ``log`` costs nothing.
+    """
+
+    def __init__(self, seed: int, trace: bool = False):
+        self.seed = seed
+        self.rng = random.Random(seed)
+        self.now = 0.0
+        self.steps = 0
+        self._q: list = []
+        self._seq = 0
+        self.trace: Optional[List[str]] = [] if trace else None
+        self.checks: List[Callable[[], None]] = []
+        self.stop_when: Callable[[], bool] = lambda: False
+
+    def at(self, t: float, fn: Callable, *args, proc: Optional[Proc] = None) -> None:
+        """Run ``fn(*args)`` at simulated time ``t`` (not before now), as part of ``proc``."""
+        self._seq += 1
+        heapq.heappush(self._q, (max(t, self.now), self._seq, proc, fn, args))
+
+    def after(self, dt: float, fn: Callable, *args, proc: Optional[Proc] = None) -> None:
+        self.at(self.now + dt, fn, *args, proc=proc)
+
+    def log(self, who: str, what) -> None:
+        """One trace line (``what`` may be a callable, made only when tracing)."""
+        if self.trace is not None:
+            self.trace.append(f"{self.now:10.4f} #{self.steps:<6} {who}: {what() if callable(what) else what}")
+
+    def run(self, until: float) -> None:
+        """Run events in order until simulated time ``until``, or ``stop_when()``; the checks
+        run after each event.
+
+        Raises:
+            Violation: the first check that fails.
+        """
+        q = self._q
+        while q and not self.stop_when():
+            t, _, proc, fn, args = q[0]
+            if t > until:
+                break
+            heapq.heappop(q)
+            if proc is not None:
+                if proc.dead:
+                    continue
+                if proc.paused_until > t:
+                    self._seq += 1
+                    heapq.heappush(q, (proc.paused_until, self._seq, proc, fn, args))
+                    continue
+            self.now = t
+            self.steps += 1
+            fn(*args)
+            for check in self.checks:
+                check()
+        self.now = max(self.now, min(until, q[0][0]) if q and not self.stop_when() else self.now)
+
+    def fail(self, kind: str, what: str) -> None:
+        """Raise a :class:`Violation` at the current step."""
+        self.log("CHECK", f"{kind}: {what}")
+        raise Violation(kind, what, self.now, self.steps)
+
+    # ------------------------------------------------------------------ draws
+    def chance(self, p: float) -> bool:
+        return p > 0 and self.rng.random() < p
+
+    def uniform(self, lo: float, hi: float) -> float:
+        return self.rng.uniform(lo, hi)
+
+    def pick(self, seq):
+        return seq[self.rng.randrange(len(seq))]
