@@ -252,6 +252,9 @@ class ReceiptPipe:
         if self.reader is not None:
             self.reader.take_receipts()
 
+    def close(self) -> None:
+        pass
+
 
 def _peek(data) -> str:
     """A message in a trace line."""

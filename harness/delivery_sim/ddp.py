@@ -62,7 +62,7 @@ class Rank(Reader):
         return super().pending_batches() + (self.item is not None and self.item[0] == "batch")
 
     def consumer_key(self) -> str:
-        return f"{self.job.group}/{self.rank}"
+        return f"g:{self.job.group}/{self.rank}"
 
 
 class DDPJob:
@@ -102,6 +102,8 @@ class DDPJob:
         states = states or [None] * world
         self.ranks = [Rank(self, r, world, self.incarnation, states[r] if r < len(states) else None)
                       for r in range(world)]
+        if self.run.oracle.lineages[self.lineage].honest:
+            self.run.oracle.owners.update(r.consumer_key() for r in self.ranks)
 
     def arrived(self) -> None:
         """A rank brought its item: once every rank has, the step runs (or the job ends)."""

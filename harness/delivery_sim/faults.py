@@ -62,18 +62,20 @@ def kill_for_good(run: Run, job) -> None:
         job.kill(for_good=True)
 
 
-def duration(run: Run, scale: Sequence[float]) -> float:
+def duration(run: Run, scale: Sequence[float], most: float = 90.0) -> float:
     """A pause length: short, past the lease, past the revoke and client timeouts, or long
-    (``scale``: the lease, revoke and client timeout of the run)."""
+    (``scale``: the lease, revoke and client timeout of the run), at most ``most`` seconds."""
     lease, revoke, timeout = scale
     rng = run.sim.rng
-    return rng.choice([rng.uniform(0.01, 0.3), rng.uniform(lease, lease + revoke + 1),
-                       rng.uniform(timeout, 3 * timeout), rng.uniform(20.0, 90.0)])
+    return min(most, rng.choice([rng.uniform(0.01, 0.3), rng.uniform(lease, lease + revoke + 1),
+                                 rng.uniform(timeout, 3 * timeout), rng.uniform(20.0, 90.0)]))
 
 
-def draw_plan(run: Run, jobs: List, kinds: Sequence[str], n: int, span: float, journal_ok: bool) -> List[str]:
+def draw_plan(run: Run, jobs: List, kinds: Sequence[str], n: int, span: float, journal_ok: bool,
+              most: float = 90.0) -> List[str]:
     """``n`` faults of ``kinds`` on ``jobs`` at times in ``[0, span)``. ``journal_ok``: the
-    server may be killed and restarted (with a journal, or with one consumer only)."""
+    server may be killed and restarted (with a journal, or with one consumer only); ``most``:
+    the longest pause or loop stop, seconds."""
     sim, p = run.sim, run.setup.policy
     scale = (p.lease_s, p.revoke_s or p.client_timeout_s, p.client_timeout_s)
     out = []
@@ -84,7 +86,7 @@ def draw_plan(run: Run, jobs: List, kinds: Sequence[str], n: int, span: float, j
         kind = sim.pick(list(kinds))
         job = sim.pick(jobs)
         if kind == "pause":
-            d = duration(run, scale)
+            d = duration(run, scale, most)
             run.at(t, pause, run, job, d, True)
             run.fault_until(t + d)
         elif kind == "restart":
@@ -97,7 +99,7 @@ def draw_plan(run: Run, jobs: List, kinds: Sequence[str], n: int, span: float, j
             killed_for_good.add(job.name)
             run.at(t, kill_for_good, run, job)
         elif kind == "stop_reading":
-            d = duration(run, scale)
+            d = duration(run, scale, most)
             run.at(t, stop_reading, run, job, d)
             run.fault_until(t + d)
         elif kind == "blip":

@@ -168,8 +168,12 @@ class Net:
         """The server sends ``frames`` to ``ident``; False when ZeroMQ has no route to it
         (closed, dead, or reconnecting: the ROUTER's send fails)."""
         link = self.links.get(ident)
-        if link is None or link.closed or link.client.proc.dead or self.sim.now < link.routable_at:
+        if link is None or self.sim.now < link.routable_at:
             return False
+        if link.closed or link.client.proc.dead:
+            # the peer's close (its FIN) reaches the ROUTER after what it sent before closing: until
+            # that is read, a send is queued (and goes nowhere)
+            return any(m.alive for m in link.up)
         t = self._delay(link.down_last, link)
         link.down_last = t
         self._push(link, link.down, frames, t, self._arrive_down, link.client.proc)

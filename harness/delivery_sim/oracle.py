@@ -8,9 +8,10 @@ is the (epoch, sample id) pairs its model was trained on (padding excluded).
 * **No sample in two loops** (after every step): a pair reaches a kept history only if no
   kept history has it.
 * **An announced epoch lacks nothing** (when the server announces an epoch complete): every
-  sample of it is in a kept history, or on its way to a loop (held granted, claimed or queued
-  in a loader by a live process), or held by a process that was killed or forgotten by a
-  model that resumed from a checkpoint (its resume state lacks it: the epoch reopens). At the end of a run every sample of every
+  sample of it is in a kept history, on its way to a loop (held granted, claimed or queued in
+  a loader by a live process), or recorded at the server to an honest consumer that has not
+  died for good (its next hello takes back what it lacks: a killed trainer, a model that
+  resumed from an older checkpoint, a grant that never reached its client). At the end of a run every sample of every
   epoch is in exactly one kept history, except what the docs allow: a window that failed with
   a reason, and what was granted to a consumer that died for good and never taken (at most
   ``GRANT_AHEAD + 1`` batches each; a ``StreamLoader`` worker's queued batches besides).
@@ -57,10 +58,12 @@ class Oracle:
         self.killed_with: Dict[str, Set[Key]] = {}  # consumer -> what its killed processes held
         self.killed_batches: Dict[str, int] = {}  # consumer -> batches held by its last killed process
         self.dead_consumers: Set[str] = set()  # consumers that died for good
-        self.forgotten: Set[Key] = set()  # what models forgot resuming from a checkpoint (owed again)
         self.live_clients: List = []  # objects with ``pending() -> Iterable[Key]`` and ``alive()``
         self.max_epoch_opened = -1
         self.yields = 0
+        self.holders = lambda epoch, sid: []  # where the server keeps a sample (set by the run: ServerProbe.holders)
+        self.recorded_to = lambda epoch, sid: []  # the consumers it is recorded to (ServerProbe.recorded_to)
+        self.owners: Set[str] = set()  # consumer keys of honest jobs (``ServerProbe`` format: "c:t0/0")
 
     def lineage(self, name: str, honest: bool = True) -> Lineage:
         if name not in self.lineages:
@@ -90,7 +93,6 @@ class Oracle:
         for key in lin.history[kept:]:
             if self.kept.get(key) == lineage:
                 del self.kept[key]
-        self.forgotten.update(lin.history[kept:])
         del lin.history[kept:]
         lin.ended_at = None  # it reads again
         self.sim.log("oracle", f"{lineage} rolled back to {kept} samples")
@@ -106,27 +108,37 @@ class Oracle:
         queued: on their way to its loop) in ``batches`` batches; ``for_good``: it never says
         hello again as that consumer."""
         self.killed_with.setdefault(consumer, set()).update(held)
-        self.killed_batches[consumer] = batches
+        if batches or consumer not in self.killed_batches:
+            self.killed_batches[consumer] = batches
         if for_good:
             self.dead_consumers.add(consumer)
 
     # ------------------------------------------------------------------ announcements
     def on_announce(self, epoch: int) -> None:
-        """The server announced ``epoch`` complete: everything of it is somewhere (but what
-        ``excused[epoch]`` says failed with a reason)."""
+        """The server announced ``epoch`` complete: every sample of it (but what failed with a
+        reason) is in a kept history, on its way to a loop, or recorded at the server to an
+        honest consumer that has not died for good (its next hello takes it back if it does
+        not have it: docs/delivery.md, "Nothing is lost"), or held by one that died for good."""
         self.announced[epoch] = self.sim.now
         pending = set()
         for c in self.live_clients:
             if c.alive():
                 pending.update(c.pending())
-        held_by_dead = set().union(self.forgotten, *self.killed_with.values())
-        missing = sorted(sid for sid in self.epoch_ids - self.excused.get(epoch, set())
-                         if (epoch, sid) not in self.kept and (epoch, sid) not in pending
-                         and (epoch, sid) not in held_by_dead)
-        if missing:
-            self.sim.fail("lost", f"epoch {epoch} announced complete, and {len(missing)} of its samples are in no "
-                                  f"training loop, on no way to one, held by no killed trainer and forgotten by no "
-                                  f"model: {missing[:8]}")
+        lost = []
+        for sid in sorted(self.epoch_ids - self.excused.get(epoch, set())):
+            key = (epoch, sid)
+            if key in self.kept or key in pending:
+                continue
+            owners = self.recorded_to(epoch, sid)
+            if any(o in self.owners and o not in self.dead_consumers for o in owners):
+                continue
+            if any(key in self.killed_with.get(o, ()) for o in owners if o in self.dead_consumers):
+                continue
+            lost.append(sid)
+        if lost:
+            self.sim.fail("lost", f"epoch {epoch} announced complete, and {len(lost)} of its samples are in no training "
+                                  f"loop, on no way to one, and recorded to no honest consumer: "
+                                  f"{self._where(epoch, lost)}")
 
     # ------------------------------------------------------------------ the end
     def final(self, deadline: float) -> None:
@@ -141,14 +153,21 @@ class Oracle:
         if self.epochs is None:
             return
         allowed = set()
-        for consumer in self.dead_consumers:
+        for consumer in sorted(self.dead_consumers):
             allowed |= self.killed_with.get(consumer, set())
+            self.dead_bound(consumer)
         for e in range(self.epochs):
             excused = self.excused.get(e, set())
             lost = sorted(sid for sid in self.epoch_ids - excused
                           if (e, sid) not in self.kept and (e, sid) not in allowed)
             if lost:
-                self.sim.fail("lost", f"{len(lost)} samples of epoch {e} reached no training loop: {lost[:8]}")
+                self.sim.fail("lost", f"{len(lost)} samples of epoch {e} reached no training loop: "
+                                      f"{self._where(e, lost)}")
+
+    def _where(self, epoch: int, sids: List[str]) -> str:
+        """The first few of ``sids`` with where the server keeps each."""
+        return ", ".join(f"{sid} (server: {', '.join(self.holders(epoch, sid))})" for sid in sids[:6]) + \
+            (f" and {len(sids) - 6} more" if len(sids) > 6 else "")
 
     def dead_bound(self, consumer: str, extra: int = 0) -> None:
         """The docs' exception is bounded: a consumer that died for good held at most
@@ -181,5 +200,5 @@ class Oracle:
                 fail("memory", f"the server keeps a record of {consumer} for epoch {epoch} ({where}); it has "
                                f"opened epochs up to {self.max_epoch_opened} only")
         for c in clients:
-            if c.alive() and c.held() > c.credits():
-                fail("memory", f"{c.name} holds {c.held()} batches with {c.credits()} credits")
+            if c.alive() and c.held() > c.credit_limit():
+                fail("memory", f"{c.name} holds {c.held()} batches with {c.credit_limit()} credits")

@@ -71,6 +71,8 @@ class Run:
         self.incarnation += 1
         self.server = SimServer(self.sim, self.net, self.cfg, self.incarnation)
         self.probe = ServerProbe(self.server)
+        self.oracle.holders = self.probe.holders
+        self.oracle.recorded_to = self.probe.recorded_to
         self._announced = set()
         self.sim.log("run", f"server {self.incarnation} starts" + (" from its journal" if self.state_dir else ""))
 

@@ -2,11 +2,12 @@
 issue's named scenarios (``named.py``), and :func:`run_seeds` that runs one over many seeds."""
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 from typing import Callable, Dict, Iterable
 
-from harness.delivery_sim.families import FAMILIES
+from harness.delivery_sim.families import FAMILIES, MAIN
 from harness.delivery_sim.run import simulate
 
 
@@ -24,6 +25,9 @@ def _doc(fn) -> str:
 
 
 SCENARIOS: Dict[str, Scenario] = {name: Scenario(name, fn, _doc(fn)) for name, fn in FAMILIES.items()}
+SCENARIOS.update({f"{name}/main": Scenario(f"{name}/main", functools.partial(fn, profile=MAIN),
+                                           f"{_doc(fn)} (what main 609430b survives)")
+                  for name, fn in FAMILIES.items() if name not in ("elastic", "ddp")})
 
 
 def run_one(name: str, seed: int, trace: bool = False):

@@ -363,6 +363,33 @@ class ServerProbe:
                 for e, keys in d.items():
                     yield "journal", e, consumer, len(keys)
 
+    def recorded_to(self, epoch: int, sid: str) -> List[str]:
+        """The consumers (``"c:<id>/0"``, ``"g:<group>/<rank>"``) whose record of ``epoch`` has ``sid``."""
+        from v2v_wire.ids import parse_sample_id
+
+        key = parse_sample_id(sid)
+        s = self.core.sched
+        plan = s.plans.get(epoch)
+        recs = plan.records if plan is not None else s.pending_records.get(epoch, {})
+        return [f"{c[0]}/{c[1]}" for c, ks in recs.items() if key in ks]
+
+    def holders(self, epoch: int, sid: str) -> List[str]:
+        """Where the server keeps sample ``sid`` of ``epoch``: the consumers whose record has it
+        (open plan or pending), ``live`` (in a batch or the shuffle buffer), or ``unknown``."""
+        from v2v_wire.ids import parse_sample_id
+
+        key = parse_sample_id(sid)
+        s = self.core.sched
+        plan = s.plans.get(epoch)
+        if plan is None:
+            recs = s.pending_records.get(epoch, {})
+            out = [f"{c[0]}/{c[1]} (pending)" for c, ks in recs.items() if key in ks]
+            return out or [f"no plan (next epoch {s.next_epoch})"]
+        out = [f"{c[0]}/{c[1]}" for c, ks in plan.records.items() if key in ks]
+        if key in plan.live:
+            out.append("live")
+        return out or ["nobody"]
+
     def next_epoch(self) -> int:
         return self.core.sched.next_epoch
 

@@ -44,7 +44,7 @@ class Reader:
     def held(self) -> int:
         return self.it.conn.held() if self.it is not None and self.it.conn.alive else 0
 
-    def credits(self) -> int:
+    def credit_limit(self) -> int:
         return self.stream.options.credits
 
     def pending(self) -> Iterable[Key]:
@@ -74,6 +74,8 @@ class Reader:
     def kill(self, for_good: bool, consumer: str) -> None:
         """SIGKILL: the process and its socket go; what it held is on no way to a loop now."""
         if self.proc.dead:
+            if for_good:  # died before: its consumer is gone for good now
+                self.run.oracle.killed(consumer, (), 0, True)
             return
         self.sim.log(self.name, "killed" + (" for good" if for_good else ""))
         self.run.oracle.killed(consumer, self.pending(), self.pending_batches(), for_good)
@@ -156,6 +158,9 @@ class TrainerJob:
         self.lineage = name
         self.ckpt_every, self.step_s = ckpt_every, step_s
         run.oracle.lineage(name, honest)
+        self.key = f"c:{self.consumer}/0"  # as the server keys its consumer
+        if honest:
+            run.oracle.owners.add(self.key)
         self.checkpoints: List[Tuple[dict, int]] = [({"version": 1, "consumer": self.consumer, "completed_epoch": -1,
                                                       "delivered": {}, "batches": {}}, 0)]
         self.incarnation = 0
@@ -174,7 +179,7 @@ class TrainerJob:
 
     def kill(self, for_good: bool = False) -> None:
         if self.proc is not None:
-            self.proc.kill(for_good, self.consumer)
+            self.proc.kill(for_good, self.key)
         if for_good:
             self.gone = True
             self.run.oracle.lineages[self.lineage].dead_for_good = True
