@@ -59,7 +59,7 @@ class SimConnection:
         self.link: Link = self.net.connect(self.ident, self)
         self.last_heard = self.sim.now
         self._send(self.session.hello(new_socket=True))
-        self.sim.after(options.heartbeat_s, self._beat, proc=self.proc)
+        self.sim.after(options.heartbeat_s, self._beat, proc=self.proc, lane="io")
         if receipts is not None:
             receipts.reader = self
 
@@ -83,14 +83,14 @@ class SimConnection:
         elif verdict == "lost":
             self._lost("the server shut down")
 
-    def _beat(self) -> None:
+    def _beat(self, again: int = 0) -> None:
         """The poll loop's timers: silence, heartbeat, re-asks, a lingering iteration's end."""
         if not self.alive:
             return
         now = self.sim.now
-        if now >= self.link.cut_until and any(m.alive and m.t <= now for m in self.link.down):
+        if again < 3 and now >= self.link.cut_until and any(m.alive and m.t <= now for m in self.link.down):
             # a message came while this process was stopped: the poll reads the socket first
-            self.sim.at(now, self._beat, proc=self.proc)
+            self.sim.at(now, self._beat, again + 1, proc=self.proc, lane="io")
             return
         self._forward()
         self.take_receipts()
@@ -105,7 +105,7 @@ class SimConnection:
             again, self.asked = self.session.held.still_asked(self.asked)
             if again:
                 self._send(pack(Hold(tuple(sorted(again))).to_wire()))
-        self.sim.after(self.options.heartbeat_s, self._beat, proc=self.proc)
+        self.sim.after(self.options.heartbeat_s, self._beat, proc=self.proc, lane="io")
 
     def _lost(self, why: str) -> None:
         """``Connection._lost``: reconnect on a new socket (same identity) or end with an error."""
@@ -181,7 +181,7 @@ class SimConnection:
         self.pipe.append(pack(msg))
         if not self._forward_due:
             self._forward_due = True
-            self.sim.after(self.sim.uniform(0.0, 0.002), self._forward_if_alive, proc=self.proc)
+            self.sim.after(self.sim.uniform(0.0, 0.002), self._forward_if_alive, proc=self.proc, lane="io")
 
     def _forward_if_alive(self) -> None:
         if self.alive:

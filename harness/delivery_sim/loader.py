@@ -124,7 +124,7 @@ class _Pipe:
     def send_bytes(self, data: bytes) -> None:
         worker = self.job.workers[self.w] if self.w < len(self.job.workers) else None
         if worker is not None and not worker.proc.dead:
-            self.job.run.sim.after(PIPE_S, self.read_end.write, data, proc=worker.proc)
+            self.job.run.sim.after(PIPE_S, self.read_end.write, data, proc=worker.proc, lane="io")
 
     def close(self) -> None:
         pass

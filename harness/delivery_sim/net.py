@@ -162,7 +162,7 @@ class Net:
         t = self._delay(link.up_last, link)
         t = max(t, link.routable_at)
         link.up_last = t
-        self._push(link, link.up, frames, t, self._arrive_up, self.server.proc)
+        self._push(link, link.up, frames, t, self._arrive_up, self.server.proc, "main")
 
     def send_down(self, ident: bytes, frames: list) -> bool:
         """The server sends ``frames`` to ``ident``; False when ZeroMQ has no route to it
@@ -176,34 +176,34 @@ class Net:
             return any(m.alive for m in link.up)
         t = self._delay(link.down_last, link)
         link.down_last = t
-        self._push(link, link.down, frames, t, self._arrive_down, link.client.proc)
+        self._push(link, link.down, frames, t, self._arrive_down, link.client.proc, "io")
         return True
 
-    def _push(self, link: Link, queue: Deque[Msg], frames: list, t: float, arrive, proc: Proc) -> None:
+    def _push(self, link: Link, queue: Deque[Msg], frames: list, t: float, arrive, proc: Proc, lane: str) -> None:
         self.sent += 1
         copies = 2 if self.f.dup and self.sim.rng.random() < self.f.dup else 1
         self.duplicated += copies - 1
         for _ in range(copies):
             m = Msg(frames, t)
             queue.append(m)
-            self.sim.at(t, arrive, link, m, proc=proc)
+            self.sim.at(t, arrive, link, m, proc=proc, lane=lane)
 
     def _arrive_up(self, link: Link, m: Msg) -> None:
-        if self._held_back(link, m, self._arrive_up, self.server.proc if self.server else None):
+        if self._held_back(link, m, self._arrive_up, self.server.proc if self.server else None, "main"):
             return
         if m.alive and self.server is not None:
             self.server.receive(link.ident, m.frames)
 
     def _arrive_down(self, link: Link, m: Msg) -> None:
-        if self._held_back(link, m, self._arrive_down, link.client.proc):
+        if self._held_back(link, m, self._arrive_down, link.client.proc, "io"):
             return
         if m.alive and not link.closed:
             link.client.deliver(m.frames)
 
-    def _held_back(self, link: Link, m: Msg, arrive, proc: Optional[Proc]) -> bool:
+    def _held_back(self, link: Link, m: Msg, arrive, proc: Optional[Proc], lane: str) -> bool:
         """A message due while its link is cut waits for the heal (keeping its place)."""
         if m.alive and self.sim.now < link.cut_until:
-            self.sim.at(link.cut_until, arrive, link, m, proc=proc)
+            self.sim.at(link.cut_until, arrive, link, m, proc=proc, lane=lane)
             return True
         queue = link.up if arrive == self._arrive_up else link.down
         if queue and queue[0] is m:

@@ -40,7 +40,7 @@ class Lineage:
         self.ended_at: Optional[float] = None
         self.dead_for_good = False
         self.error: Optional[str] = None
-        self.batches: Dict[int, Dict[int, int]] = {}  # DDP: epoch -> rank -> batches yielded
+        self.deadline: Optional[float] = None  # its stream must end by then (else the run's deadline)
 
 
 class Oracle:
@@ -147,8 +147,9 @@ class Oracle:
             if lin.honest and not lin.dead_for_good and lin.error is not None:
                 self.sim.fail("error", f"{lin.name} (an honest trainer) failed: {lin.error}")
         for lin in self.lineages.values():
-            if lin.honest and not lin.dead_for_good and lin.ended_at is None:
-                self.sim.fail("liveness", f"{lin.name}'s stream did not end by t={deadline:.1f} s "
+            if lin.honest and not lin.dead_for_good and (lin.ended_at is None or lin.ended_at > (lin.deadline or 1e300)):
+                by = deadline if lin.deadline is None else lin.deadline
+                self.sim.fail("liveness", f"{lin.name}'s stream did not end by t={by:.1f} s "
                                           f"(epochs announced: {sorted(self.announced)})")
         if self.epochs is None:
             return

@@ -88,7 +88,7 @@ class Run:
         """The server process is stopped (SIGSTOP, swapped out) for ``seconds``."""
         if self.server is not None:
             p = self.server.proc
-            p.paused_until = max(p.paused_until, self.sim.now + seconds)
+            p.pause(self.sim.now + seconds, self.sim.rng)
             self.fault_until(self.sim.now + seconds)
             self.sim.log("run", f"server stalls for {seconds:.2f} s")
 
@@ -117,6 +117,10 @@ class Run:
                 self.oracle.on_announce(e)
             self._announced = set(announced)
         self.oracle.memory(probe, self.oracle.live_clients)
+        for lin in self.oracle.lineages.values():
+            if lin.deadline is not None and lin.ended_at is None and self.sim.now > lin.deadline:
+                self.sim.fail("liveness", f"{lin.name}'s stream did not end by t={lin.deadline:.1f} s, the bound "
+                                          f"(epochs announced: {sorted(self.oracle.announced)})")
 
     def honest_done(self) -> bool:
         return all(lin.ended_at is not None or lin.dead_for_good or lin.error is not None

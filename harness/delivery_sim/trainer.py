@@ -121,6 +121,11 @@ class Trainer(Reader):
         if kind == "batch":
             self.run.oracle.yielded(self.job.lineage, x)
             self.steps += 1
+            if self.job.stop_epoch is not None and x["epoch"] >= self.job.stop_epoch:  # the user stops there
+                self.done = True
+                self.it.stop(abandoned=True)
+                self.run.oracle.ended(self.job.lineage)
+                return
             if self.steps % self.job.ckpt_every == 0:
                 self.job.checkpoint(self.stream.state_dict())
             lo, hi = self.job.step_s
@@ -131,6 +136,18 @@ class Trainer(Reader):
             self.run.oracle.ended(self.job.lineage)
         elif kind == "error":
             self.job.failed(self, x)
+
+    def break_loop(self) -> None:
+        """The loop leaves its ``for`` (``break``, ``max_steps``) and starts a new one: the
+        iterator is closed (acks sent, what is granted and not taken given back, ``bye``) and a
+        new connection says hello with the record."""
+        if self.done or self.it is None:
+            return
+        self.sim.log(self.name, "breaks out of its loop and iterates again")
+        self.it.stop(abandoned=True)
+        self.waiting = False
+        self.it = SimIterator(self.stream, self, self.wake)
+        self.sim.after(0.0, self._loop, proc=self.proc)
 
     def stop_reading(self, seconds: float) -> None:
         """The loop stops calling ``next()`` for ``seconds`` (a validation pass, a debugger)."""
@@ -148,15 +165,17 @@ class TrainerJob:
         consumer: the consumer id (two jobs given the same one are the issue's mistake).
         honest: a dishonest job's failures are not the protocol's.
         ckpt_every, step_s: steps between checkpoints; seconds a step takes (range).
+        stop_epoch: on an unbounded stream, the job stops once it got a batch of this epoch.
     """
 
     def __init__(self, run, name: str, options, consumer: Optional[str] = None, honest: bool = True,
-                 ckpt_every: int = 2, step_s: Tuple[float, float] = (0.005, 0.05)):
+                 ckpt_every: int = 2, step_s: Tuple[float, float] = (0.005, 0.05), stop_epoch: Optional[int] = None):
         self.run, self.name, self.options = run, name, options
         self.timeout_s = options.timeout_s
         self.consumer = consumer or name
         self.lineage = name
         self.ckpt_every, self.step_s = ckpt_every, step_s
+        self.stop_epoch = stop_epoch  # an unbounded stream: the user stops after a batch of this epoch
         run.oracle.lineage(name, honest)
         self.key = f"c:{self.consumer}/0"  # as the server keys its consumer
         if honest:

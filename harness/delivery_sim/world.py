@@ -27,12 +27,20 @@ class Violation(AssertionError):
 class Proc:
     """A process (a trainer, a DataLoader worker, the server, a decode worker): its events run
     only while it lives and is not paused. ``paused_until``: simulated seconds; an event due
-    while paused runs when the pause ends, in its original order."""
+    while paused runs when the pause ends, in its original order within its thread (``lane``:
+    ``"io"`` for a client's I/O thread, ``"main"`` for its loop); the threads resume in the
+    order ``wake`` (lane -> seconds after the pause) draws."""
 
     def __init__(self, name: str):
         self.name = name
         self.dead = False
         self.paused_until = 0.0
+        self.wake: dict = {}
+
+    def pause(self, until: float, rng) -> None:
+        """Stop until ``until``; on waking each thread goes on after its own short delay."""
+        self.paused_until = max(self.paused_until, until)
+        self.wake = {"io": rng.uniform(0.0, 0.003), "main": rng.uniform(0.0, 0.003)}
 
     def __repr__(self) -> str:
         return f"Proc({self.name}{', dead' if self.dead else ''})"
@@ -56,14 +64,16 @@ class Sim:
         self.trace: Optional[List[str]] = [] if trace else None
         self.checks: List[Callable[[], None]] = []
         self.stop_when: Callable[[], bool] = lambda: False
+        self.max_steps = 3_000_000
 
-    def at(self, t: float, fn: Callable, *args, proc: Optional[Proc] = None) -> None:
-        """Run ``fn(*args)`` at simulated time ``t`` (not before now), as part of ``proc``."""
+    def at(self, t: float, fn: Callable, *args, proc: Optional[Proc] = None, lane: str = "main") -> None:
+        """Run ``fn(*args)`` at simulated time ``t`` (not before now), as part of ``proc``'s
+        thread ``lane``."""
         self._seq += 1
-        heapq.heappush(self._q, (max(t, self.now), self._seq, proc, fn, args))
+        heapq.heappush(self._q, (max(t, self.now), self._seq, proc, lane, fn, args))
 
-    def after(self, dt: float, fn: Callable, *args, proc: Optional[Proc] = None) -> None:
-        self.at(self.now + dt, fn, *args, proc=proc)
+    def after(self, dt: float, fn: Callable, *args, proc: Optional[Proc] = None, lane: str = "main") -> None:
+        self.at(self.now + dt, fn, *args, proc=proc, lane=lane)
 
     def log(self, who: str, what) -> None:
         """One trace line (``what`` may be a callable, made only when tracing)."""
@@ -79,23 +89,27 @@ class Sim:
         """
         q = self._q
         while q and not self.stop_when():
-            t, _, proc, fn, args = q[0]
+            t, _, proc, lane, fn, args = q[0]
             if t > until:
                 break
             heapq.heappop(q)
             if proc is not None:
                 if proc.dead:
                     continue
-                if proc.paused_until > t:
+                resumes = proc.paused_until + proc.wake.get(lane, 0.0)  # this thread runs again then
+                if resumes > t and proc.paused_until > 0.0:
                     self._seq += 1
-                    heapq.heappush(q, (proc.paused_until, self._seq, proc, fn, args))
+                    heapq.heappush(q, (resumes, self._seq, proc, lane, fn, args))
                     continue
             self.now = t
             self.steps += 1
+            if self.steps > self.max_steps:
+                self.fail("runaway", f"more than {self.max_steps} steps: a busy loop in the simulated processes")
             fn(*args)
             for check in self.checks:
                 check()
-        self.now = max(self.now, min(until, q[0][0]) if q and not self.stop_when() else self.now)
+        if not q or (q[0][0] > until and not self.stop_when()):
+            self.now = max(self.now, until)
 
     def fail(self, kind: str, what: str) -> None:
         """Raise a :class:`Violation` at the current step."""
