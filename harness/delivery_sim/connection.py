@@ -241,16 +241,25 @@ class SimConnection:
 
 class ReceiptPipe:
     """A ``StreamLoader`` worker's receipt pipe (``multiprocessing.Pipe``): what the main
-    process wrote and the worker's current connection has not read yet."""
+    process wrote (in the pipe at once, whether the worker runs or not) and the worker's current
+    connection has not read yet."""
 
     def __init__(self):
         self.waiting: List[bytes] = []
         self.reader: Optional[SimConnection] = None
 
-    def write(self, data: bytes) -> None:
+    def arrive(self, data: bytes) -> None:
+        """Written by the main process: in the pipe now."""
         self.waiting.append(data)
+
+    def poke(self) -> None:
+        """The reading I/O thread notices the pipe is readable."""
         if self.reader is not None:
             self.reader.take_receipts()
+
+    def write(self, data: bytes) -> None:
+        self.arrive(data)
+        self.poke()
 
     def close(self) -> None:
         pass

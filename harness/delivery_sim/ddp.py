@@ -154,7 +154,9 @@ class DDPJob:
             return
         self.kill()
         self.done = False
-        states, kept = self.checkpoints[max(0, len(self.checkpoints) - 1 - back)]
+        i = max(0, len(self.checkpoints) - 1 - back)
+        states, kept = self.checkpoints[i]
+        del self.checkpoints[i + 1:]  # the job goes on from there
         self.run.oracle.rolled_back(self.lineage, kept)
         world = world or len(states)
         if load == "gathered" and world != len(states):

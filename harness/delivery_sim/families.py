@@ -49,17 +49,18 @@ class Profile:
     max_epochs: int
     faults: Tuple[str, ...]
     max_pause_s: float = 90.0
-    spikes: bool = True  # messages delayed up to 3 s (a SYN retransmit takes 1 s)
+    spikes: bool = True  # messages delayed up to 3 s (a SYN retransmit takes 1 s), connections up to 0.1 s
 
 
 FULL = Profile("full", 3, TRAINER_FAULTS)
 #: what main 609430b survives: no server crash (F1, F2, F4), two epochs at most (F1: a checkpoint older
-#: than the kept epochs), pauses shorter than the client's timeout_s (F5), no broken connection (F11)
-MAIN = Profile("main", 2, tuple(f for f in TRAINER_FAULTS if f not in ("server_crash", "blip")), max_pause_s=25.0)
+#: than the kept epochs), pauses shorter than the client's timeout_s (F5), no broken connection (F11),
+#: no partition nor delayed message (F9: a dead process's hello delivered late)
+MAIN = Profile("main", 2, tuple(f for f in TRAINER_FAULTS if f not in ("server_crash", "blip", "cut")), max_pause_s=25.0,
+               spikes=False)
 #: what main 609430b survives with StreamLoader workers: MAIN, no delayed or partitioned message
 #: (F9, F10, F12), no stop long enough for the server to drop a worker (F10), no trainer dying for good (F13)
-MAIN_LOADER = Profile("main", 2, tuple(f for f in MAIN.faults if f not in ("cut", "kill_for_good")), max_pause_s=1.5,
-                      spikes=False)
+MAIN_LOADER = Profile("main", 2, tuple(f for f in MAIN.faults if f != "kill_for_good"), max_pause_s=1.5, spikes=False)
 
 
 def draw_setup(rng, profile: Profile, journal=None) -> Setup:
@@ -80,7 +81,8 @@ def draw_setup(rng, profile: Profile, journal=None) -> Setup:
                             seed=rng.randrange(100), max_samples_per_video=max(windows.values()))
     wf = WorkerFaults(die=rng.choice([0.0, 0.0, 0.01, 0.05]), hang=rng.choice([0.0, 0.0, 0.01]), late=0.5)
     net = NetFaults(latency_s=rng.uniform(0.0001, 0.005), jitter_s=rng.uniform(0.0, 0.01),
-                    spike=rng.choice([0.0, 0.0, 0.01, 0.05]) if profile.spikes else 0.0, spike_s=rng.uniform(0.1, 3.0))
+                    spike=rng.choice([0.0, 0.0, 0.01, 0.05]) if profile.spikes else 0.0, spike_s=rng.uniform(0.1, 3.0),
+                    connect_s=0.1 if profile.spikes else 0.001)
     setup = Setup(corpus, policy, workers=rng.randint(1, 3), prefetch=rng.randint(1, 6),
                   journal=rng.random() < 0.5 if journal is None else journal, net=net, worker_faults=wf)
     setup.deadline = deadline(setup)
@@ -117,7 +119,7 @@ def trainers(seed: int, trace: bool = False, profile: Profile = FULL, dup: bool 
     setup = draw_setup(rng, profile)
     if dup:
         setup.net.dup = rng.choice([0.01, 0.05, 0.2])
-        setup.net.spike = rng.choice([0.01, 0.05])
+        setup.net.spike = rng.choice([0.01, 0.05]) if profile.spikes else 0.0
     run = Run(seed, setup, trace, rng)
     jobs = [_trainer(run, rng, f"t{i}") for i in range(rng.randint(1, 3))]
     _faults(run, rng, jobs, profile, 6, setup.journal or len(jobs) == 1)
@@ -175,9 +177,13 @@ def loader(seed: int, trace: bool = False, profile: Profile = FULL) -> Run:
 
 
 def mixed(seed: int, trace: bool = False, profile: Profile = FULL) -> Run:
-    """One of the honest families (trainers, ddp, loader, network), chosen by the seed."""
-    return (trainers, ddp, loader, network)[seed % 4](seed, trace, profile)
+    """One of the honest families (trainers, ddp, loader, network; no ddp in ``MAIN``: F8), by the seed."""
+    families = (trainers, loader, network) if profile is MAIN else (trainers, ddp, loader, network)
+    return families[seed % len(families)](seed, trace, profile)
 
 
 FAMILIES = {"trainers": trainers, "ddp": ddp, "loader": loader, "network": network, "elastic": elastic,
             "mixed": mixed}
+#: what each family's ``FULL`` profile finds on main 609430b (/work/notes/i69sim-findings.md)
+FAILS_ON_MAIN = {"trainers": "F1, F2, F3, F4, F5, F11", "ddp": "F7, F8", "loader": "F9, F10, F12, F13",
+                 "network": "F5, F11", "elastic": "issue 69 item 3", "mixed": "F1-F13"}

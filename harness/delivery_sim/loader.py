@@ -124,7 +124,9 @@ class _Pipe:
     def send_bytes(self, data: bytes) -> None:
         worker = self.job.workers[self.w] if self.w < len(self.job.workers) else None
         if worker is not None and not worker.proc.dead:
-            self.job.run.sim.after(PIPE_S, self.read_end.write, data, proc=worker.proc, lane="io")
+            sim = self.job.run.sim
+            sim.after(PIPE_S, self.read_end.arrive, data)  # in the pipe, whether the worker runs or not
+            sim.after(PIPE_S, self.read_end.poke, proc=worker.proc, lane="io")
 
     def close(self) -> None:
         pass
@@ -223,7 +225,9 @@ class LoaderJob:
         if self.gone:
             return
         self.kill()
-        state, kept = self.checkpoints[max(0, len(self.checkpoints) - 1 - back)]
+        i = max(0, len(self.checkpoints) - 1 - back)
+        state, kept = self.checkpoints[i]
+        del self.checkpoints[i + 1:]  # the job goes on from there
         self.run.oracle.rolled_back(self.lineage, kept)
         self.sim.log(self.name, f"restarts in {gap:.2f} s from a loader checkpoint ({kept} samples)")
         self.sim.after(gap, self.start, state)

@@ -81,17 +81,20 @@ def world_size_change_refused(seed: int, trace: bool = False) -> Run:
 
 
 def wakes_after_others_ran_ahead(seed: int, trace: bool = False) -> Run:
-    """Trainer A (credits 4) frozen past every timeout while B reads all 6 epochs; then A wakes."""
+    """Trainer A (credits 4) frozen past every timeout while B reads all 6 epochs; then A wakes (its
+    I/O thread first: it reads ``dropped`` before the loop takes the batch it holds granted)."""
     run = _run(seed, trace, epochs=6)
-    a = _trainer(run, "a", credits=4)
+    a = _trainer(run, "a", credits=4, step_s=(0.3, 0.3))
     _trainer(run, "b")
-    run.at(0.1, lambda: _pause(run, a, 10.0 + 2.0 + 2.0 + 2.0))
+    run.at(0.2, lambda: _pause(run, a, 10.0 + 2.0 + 2.0 + 2.0, io_first=True))  # mid-step, grants ahead held
     return run
 
 
-def _pause(run: Run, job, seconds: float) -> None:
+def _pause(run: Run, job, seconds: float, io_first: bool = False) -> None:
     for p in job.procs():
         p.proc.pause(run.sim.now + seconds, run.sim.rng)
+        if io_first:
+            p.proc.wake = {"io": 0.0, "main": 0.002}
         run.sim.log(p.name, f"paused for {seconds:.1f} s")
 
 

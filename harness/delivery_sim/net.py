@@ -41,6 +41,7 @@ class NetFaults:
     spike_s: float = 1.0
     dup: float = 0.0
     reconnect_s: float = 0.1  # ZeroMQ's reconnect interval
+    connect_s: float = 0.1  # most seconds a new socket takes to connect (its first messages wait in ZeroMQ's queue)
 
 
 class Msg:
@@ -82,7 +83,7 @@ class Net:
     def connect(self, ident: bytes, client) -> Link:
         """A client socket connects (its identity must be new: a reconnect keeps its Link)."""
         link = Link(ident, client)
-        link.routable_at = self.sim.now + self.f.reconnect_s * self.sim.rng.random()
+        link.routable_at = self.sim.now + self.f.connect_s * self.sim.rng.random()
         self.links[ident] = link
         return link
 
@@ -99,13 +100,15 @@ class Net:
             link.waiting.clear()
 
     def killed(self, link: Link) -> None:
-        """The client's process died: the kernel sends part of what was in flight."""
+        """The client's process died: the kernel sends part of what it had written to a
+        connected socket; what waited for the connection (in ZeroMQ's queue) is lost."""
         if link.closed:
             return
         link.closed = True
         self._drop(link.down, len(link.down))
         link.down.clear()
-        self._drop_tail(link.up, self.sim.rng.randint(0, len(link.up)))
+        connected = self.sim.now >= link.routable_at
+        self._drop_tail(link.up, self.sim.rng.randint(0, len(link.up)) if connected else 0)
         link.waiting.clear()
 
     # ------------------------------------------------------------------ faults

@@ -13,8 +13,9 @@ is the (epoch, sample id) pairs its model was trained on (padding excluded).
   died for good (its next hello takes back what it lacks: a killed trainer, a model that
   resumed from an older checkpoint, a grant that never reached its client). At the end of a run every sample of every
   epoch is in exactly one kept history, except what the docs allow: a window that failed with
-  a reason, and what was granted to a consumer that died for good and never taken (at most
-  ``GRANT_AHEAD + 1`` batches each; a ``StreamLoader`` worker's queued batches besides).
+  a reason, and what was owed to a consumer that died for good: granted to it and never taken
+  (at most ``GRANT_AHEAD + 1`` batches each; a ``StreamLoader`` worker's queued batches
+  besides), or forgotten when it resumed from a checkpoint and not taken again before it died.
 * **Liveness**: every honest lineage's stream ends (the server's ``end``) by its deadline.
 * **Memory** (after every server turn): no client holds more batches than its credits; the
   ledger holds batches of open epochs only; the server keeps records for at most the epochs it
@@ -41,6 +42,7 @@ class Lineage:
         self.dead_for_good = False
         self.error: Optional[str] = None
         self.deadline: Optional[float] = None  # its stream must end by then (else the run's deadline)
+        self.forgotten: Set[Key] = set()  # what it forgot resuming from checkpoints (owed to it again)
 
 
 class Oracle:
@@ -93,6 +95,7 @@ class Oracle:
         for key in lin.history[kept:]:
             if self.kept.get(key) == lineage:
                 del self.kept[key]
+        lin.forgotten.update(lin.history[kept:])
         del lin.history[kept:]
         lin.ended_at = None  # it reads again
         self.sim.log("oracle", f"{lineage} rolled back to {kept} samples")
@@ -157,6 +160,9 @@ class Oracle:
         for consumer in sorted(self.dead_consumers):
             allowed |= self.killed_with.get(consumer, set())
             self.dead_bound(consumer)
+        for lin in self.lineages.values():  # owed again to a job that resumed, then died for good
+            if lin.dead_for_good:
+                allowed |= lin.forgotten
         for e in range(self.epochs):
             excused = self.excused.get(e, set())
             lost = sorted(sid for sid in self.epoch_ids - excused
@@ -179,8 +185,8 @@ class Oracle:
                                   f"docs allow {GRANT_AHEAD + 1 + extra}")
 
     # ------------------------------------------------------------------ memory
-    def memory(self, probe, clients: Iterable) -> None:
-        """The bounds on what the server and the clients keep (see the module docstring)."""
+    def memory(self, probe) -> None:
+        """The bounds on what the server keeps (see the module docstring)."""
         fail = self.sim.fail
         for ident, held, credits in probe.client_holdings():
             if held > credits:
@@ -200,6 +206,9 @@ class Oracle:
             if epoch > self.max_epoch_opened + 2:
                 fail("memory", f"the server keeps a record of {consumer} for epoch {epoch} ({where}); it has "
                                f"opened epochs up to {self.max_epoch_opened} only")
+
+    def client_memory(self, clients: Iterable) -> None:
+        """No client process holds more batches than its credits."""
         for c in clients:
             if c.alive() and c.held() > c.credit_limit():
-                fail("memory", f"{c.name} holds {c.held()} batches with {c.credit_limit()} credits")
+                self.sim.fail("memory", f"{c.name} holds {c.held()} batches with {c.credit_limit()} credits")

@@ -102,21 +102,25 @@ class Run:
         self.last_fault = max(self.last_fault, t)
 
     # ------------------------------------------------------------------ checks
-    def _check(self) -> None:
+    def _check(self, proc) -> None:
+        """The invariants after a step of ``proc`` (None: a scenario's action): the server's books
+        after the server's steps, a client's holdings after its own (nothing else changes them);
+        doubles are caught as a batch reaches a loop (``Oracle.yielded``)."""
         probe = self.probe
-        if probe is None or self.server.proc.dead:
-            return
-        for e in probe.plan_epochs():  # failed windows, read while the plan lives (announcing may forget it)
-            excused = probe.excused(e, self.setup.corpus)
-            if excused:
-                self.oracle.excused[e] = excused
-        announced = probe.announced()
-        if announced != self._announced:
-            for e in sorted(announced - self._announced):
-                self.sim.log("run", f"epoch {e} announced complete")
-                self.oracle.on_announce(e)
-            self._announced = set(announced)
-        self.oracle.memory(probe, self.oracle.live_clients)
+        if probe is not None and not self.server.proc.dead and (proc is None or proc is self.server.proc):
+            for e in probe.plan_epochs():  # failed windows, read while the plan lives (announcing may forget it)
+                excused = probe.excused(e, self.setup.corpus)
+                if excused:
+                    self.oracle.excused[e] = excused
+            announced = probe.announced()
+            if announced != self._announced:
+                for e in sorted(announced - self._announced):
+                    self.sim.log("run", f"epoch {e} announced complete")
+                    self.oracle.on_announce(e)
+                self._announced = set(announced)
+            self.oracle.memory(probe)
+        if proc is not None and proc is not getattr(self.server, "proc", None):
+            self.oracle.client_memory([c for c in self.oracle.live_clients if getattr(c, "proc", None) is proc])
         for lin in self.oracle.lineages.values():
             if lin.deadline is not None and lin.ended_at is None and self.sim.now > lin.deadline:
                 self.sim.fail("liveness", f"{lin.name}'s stream did not end by t={lin.deadline:.1f} s, the bound "

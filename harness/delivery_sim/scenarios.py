@@ -7,7 +7,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, Iterable, Optional
 
-from harness.delivery_sim.families import FAMILIES, MAIN
+from harness.delivery_sim.families import FAILS_ON_MAIN, FAMILIES, MAIN
 from harness.delivery_sim.named import NAMED
 from harness.delivery_sim.run import simulate
 
@@ -27,7 +27,8 @@ def _doc(fn) -> str:
     return (fn.__doc__ or "").strip().splitlines()[0] if fn.__doc__ else ""
 
 
-SCENARIOS: Dict[str, Scenario] = {name: Scenario(name, fn, _doc(fn)) for name, fn in FAMILIES.items()}
+SCENARIOS: Dict[str, Scenario] = {name: Scenario(name, fn, _doc(fn), FAILS_ON_MAIN.get(name))
+                                  for name, fn in FAMILIES.items()}
 SCENARIOS.update({name: Scenario(name, fn, _doc(fn), why) for name, (fn, why) in NAMED.items()})
 SCENARIOS.update({f"{name}/main": Scenario(f"{name}/main", functools.partial(fn, profile=MAIN),
                                            f"{_doc(fn)} (what main 609430b survives)")
@@ -40,16 +41,16 @@ def run_one(name: str, seed: int, trace: bool = False):
 
 
 def run_seeds(name: str, seeds: Iterable[int], trace: bool = False) -> dict:
-    """Run ``seeds`` of ``name``: ``{"scenario", "seeds", "failed", "failures": [(seed, kind,
-    what)], "seconds", "seeds_per_s", "results"}`` (``results``: every ``Result`` when tracing,
-    else the failing ones)."""
+    """Run ``seeds`` of ``name``: ``{"scenario", "seeds", "failed", "failures": [{"seed", "kind",
+    "what", "replay"}], "seconds", "seeds_per_s", "results"}`` (``results``: every ``Result`` when
+    tracing, else the failing ones)."""
     t0 = time.perf_counter()
     results, failures, n = [], [], 0
     for seed in seeds:
         r = run_one(name, seed, trace)
         n += 1
         if not r.ok:
-            failures.append((seed, r.violation.kind, str(r.violation)))
+            failures.append({"seed": seed, "kind": r.violation.kind, "what": str(r.violation), "replay": r.replay()})
         if trace or not r.ok:
             results.append(r)
     dt = time.perf_counter() - t0

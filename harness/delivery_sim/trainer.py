@@ -212,6 +212,7 @@ class TrainerJob:
         self.kill()
         i = max(0, len(self.checkpoints) - 1 - back)
         state, kept = self.checkpoints[i]
+        del self.checkpoints[i + 1:]  # the job goes on from there: later checkpoints were another timeline
         self.run.oracle.rolled_back(self.lineage, kept)
         self.run.sim.log(self.name, f"restarts in {gap:.2f} s from checkpoint {i} ({kept} samples)")
         self.run.sim.after(gap, self.start, state)

@@ -5,7 +5,8 @@ Everything that happens is an event ``(time, sequence, process, function, args)`
 one heap in order; ``Sim.rng`` (one ``random.Random(seed)``) decides every delay, choice and
 fault, so a seed replays the same run (the core iterates sets of strings: replays also need
 one ``PYTHONHASHSEED``, which the command line fixes). After every event the checks run
-(``Sim.checks``); the first one that fails stops the run with a :class:`Violation` naming the
+(``Sim.checks``, given the process whose step it was: a check may skip what that step cannot
+change); the first one that fails stops the run with a :class:`Violation` naming the
 step, and the trace (``trace=True``) holds every message and decision up to it.
 """
 from __future__ import annotations
@@ -62,7 +63,7 @@ class Sim:
         self._q: list = []
         self._seq = 0
         self.trace: Optional[List[str]] = [] if trace else None
-        self.checks: List[Callable[[], None]] = []
+        self.checks: List[Callable[[Optional[Proc]], None]] = []  # called with the process whose step ran
         self.stop_when: Callable[[], bool] = lambda: False
         self.max_steps = 3_000_000
 
@@ -107,7 +108,7 @@ class Sim:
                 self.fail("runaway", f"more than {self.max_steps} steps: a busy loop in the simulated processes")
             fn(*args)
             for check in self.checks:
-                check()
+                check(proc)
         if not q or (q[0][0] > until and not self.stop_when()):
             self.now = max(self.now, until)
 
