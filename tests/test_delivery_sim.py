@@ -6,8 +6,8 @@ checks after every step that no sample reaches two training loops in an epoch, t
 announced complete lacks nothing, that honest streams end and that memory stays bounded.
 
 * the families' ``main`` profiles (what main holds) run 1,000 seeds and must all pass;
-* the issue's scenarios and the families' full profiles are expected failures until issue 69's
-  fixes land (the findings name why: /work/notes/i69sim-findings.md); strict, so a fix flips them;
+* the issue's scenarios and the families' full profiles are expected failures until the fixes
+  land (docs/simulator.md, "Open findings", names why); strict, so a fix flips them;
 * a seed replays exactly with the command its failure prints, and the checks fail on a client
   that breaks the grant rule (the simulator is not blind).
 

@@ -2,10 +2,10 @@
 faults) drawn from its seed's one random source.
 
 Each family is ``build(seed, trace, profile) -> Run``; a :class:`Profile` bounds what it draws:
-``FULL`` draws everything, ``MAIN`` leaves out what main 609430b is known to fail
-(/work/notes/i69sim-findings.md: server crashes (F1, F2, F4, F5), more than two epochs (F1: a
-resume older than the kept epochs), DDP (F7, F8)). The test suite runs each family's ``MAIN``
-profile green and its ``FULL`` profile as an expected failure until the fixes land.
+``FULL`` draws everything, ``MAIN`` leaves out what the delivery path is known to fail today
+(docs/simulator.md, "Open findings": server crashes, more than two epochs, long pauses, broken
+connections, partitions, DDP). The test suite runs each family's ``MAIN`` profile green and its
+``FULL`` profile as an expected failure until the fixes land.
 
 * ``trainers``: 1-3 independent trainers (plain datasets) with pauses of any length, kills and
   restarts from the newest or an older checkpoint, deaths for good, loops that stop reading,
@@ -53,12 +53,12 @@ class Profile:
 
 
 FULL = Profile("full", 3, TRAINER_FAULTS)
-#: what main 609430b survives: no server crash (F1, F2, F4), two epochs at most (F1: a checkpoint older
+#: what the delivery path survives today: no server crash (F1, F2, F4), two epochs at most (F1: a checkpoint older
 #: than the kept epochs), pauses shorter than the client's timeout_s (F5), no broken connection (F11),
 #: no partition nor delayed message (F9: a dead process's hello delivered late)
 MAIN = Profile("main", 2, tuple(f for f in TRAINER_FAULTS if f not in ("server_crash", "blip", "cut")), max_pause_s=25.0,
                spikes=False)
-#: what main 609430b survives with StreamLoader workers: MAIN, no delayed or partitioned message
+#: what it survives with StreamLoader workers: MAIN, no delayed or partitioned message
 #: (F9, F10, F12), no stop long enough for the server to drop a worker (F10), no trainer dying for good (F13)
 MAIN_LOADER = Profile("main", 2, tuple(f for f in MAIN.faults if f != "kill_for_good"), max_pause_s=1.5, spikes=False)
 
@@ -184,6 +184,6 @@ def mixed(seed: int, trace: bool = False, profile: Profile = FULL) -> Run:
 
 FAMILIES = {"trainers": trainers, "ddp": ddp, "loader": loader, "network": network, "elastic": elastic,
             "mixed": mixed}
-#: what each family's ``FULL`` profile finds on main 609430b (/work/notes/i69sim-findings.md)
+#: what each family's ``FULL`` profile finds today (docs/simulator.md, "Open findings")
 FAILS_ON_MAIN = {"trainers": "F1, F2, F3, F4, F5, F11", "ddp": "F7, F8", "loader": "F9, F10, F12, F13",
                  "network": "F5, F11", "elastic": "issue 69 item 3", "mixed": "F1-F13"}

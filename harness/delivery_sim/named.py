@@ -2,8 +2,8 @@
 schedules; the seed only draws the jitter (network delays, worker and step times).
 
 Each is ``build(seed, trace) -> Run``; :data:`NAMED` maps its name to ``(build, xfail)``:
-``xfail`` says what main 609430b does wrong (the test marks it an expected failure until the
-fix lands), or None when main holds it.
+``xfail`` says what the delivery path does wrong there today (the test marks it an expected
+failure until the fix lands), or None when it holds.
 """
 from __future__ import annotations
 
@@ -203,7 +203,7 @@ def loader_state_in_memory(seed: int, trace: bool = False) -> Run:
 
 Entry = Tuple[Callable[..., Run], Optional[str]]
 
-#: name -> (build, what main 609430b does wrong or None)
+#: name -> (build, what the delivery path does wrong there today, or None)
 NAMED: Dict[str, Entry] = {
     "two_trainers_one_consumer": (two_trainers_one_consumer, "issue 69 item 1: both read one consumer's record"),
     "two_ddp_jobs_default_group": (two_ddp_jobs_default_group, "issue 69 item 1: two jobs share group 'default'"),
@@ -224,3 +224,31 @@ NAMED: Dict[str, Entry] = {
     "loader_breaks": (loader_breaks, None),
     "loader_state_in_memory": (loader_state_in_memory, "F6: StreamLoader.state_dict() aliases the live records"),
 }
+
+
+def _when(run: Run, ready, action, every: float = 0.005) -> None:
+    """Run ``action()`` at the first poll (every ``every`` s) at which ``ready()`` holds."""
+    def poll():
+        if ready():
+            action()
+        else:
+            run.sim.after(every, poll)
+    run.sim.after(every, poll)
+
+
+def journal_restart_after_epoch(seed: int, trace: bool = False) -> Run:
+    """The server is killed as epoch 0 is announced (the journal then holds no open epoch's record)
+    and restarts from its journal; a second job joins as it comes back: it must not get epoch 0."""
+    run = _run(seed, trace, epochs=2)
+    _trainer(run, "t", credits=1, step_s=(0.05, 0.05))
+    run.fault_until(5.0)
+
+    def crash(epoch: int) -> None:
+        if epoch == 0 and run.incarnation == 1:
+            run.sim.at(run.sim.now, run.crash_server, 1.0)
+            run.sim.at(run.sim.now + 1.0, _trainer, run, "late")
+    run.on_announced.append(crash)
+    return run
+
+
+NAMED["journal_restart_after_epoch"] = (journal_restart_after_epoch, "F2: the new server starts again at epoch 0")

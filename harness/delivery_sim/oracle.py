@@ -127,6 +127,7 @@ class Oracle:
         for c in self.live_clients:
             if c.alive():
                 pending.update(c.pending())
+        owed_dead = set().union(*(lin.forgotten for lin in self.lineages.values() if lin.dead_for_good))
         lost = []
         for sid in sorted(self.epoch_ids - self.excused.get(epoch, set())):
             key = (epoch, sid)
@@ -135,7 +136,7 @@ class Oracle:
             owners = self.recorded_to(epoch, sid)
             if any(o in self.owners and o not in self.dead_consumers for o in owners):
                 continue
-            if any(key in self.killed_with.get(o, ()) for o in owners if o in self.dead_consumers):
+            if any(key in self.killed_with.get(o, ()) or key in owed_dead for o in owners if o in self.dead_consumers):
                 continue
             lost.append(sid)
         if lost:

@@ -63,6 +63,7 @@ class Run:
         self.probe: Optional[ServerProbe] = None
         self._announced: set = set()
         self.last_fault = 0.0
+        self.on_announced: List[Callable[[int], None]] = []  # a scenario's actions when an epoch is announced
         self.start_server()
         self.sim.checks.append(self._check)
 
@@ -117,6 +118,8 @@ class Run:
                 for e in sorted(announced - self._announced):
                     self.sim.log("run", f"epoch {e} announced complete")
                     self.oracle.on_announce(e)
+                    for fn in list(self.on_announced):
+                        fn(e)
                 self._announced = set(announced)
             self.oracle.memory(probe)
         if proc is not None and proc is not getattr(self.server, "proc", None):

@@ -15,7 +15,7 @@ from harness.delivery_sim.run import simulate
 @dataclass(frozen=True)
 class Scenario:
     """A named way to build a run from a seed (``build(seed, trace) -> Run``); ``doc``: one
-    line; ``xfail``: what main 609430b does wrong here (None: it holds)."""
+    line; ``xfail``: what the delivery path does wrong here today (None: it holds)."""
 
     name: str
     build: Callable
@@ -31,7 +31,7 @@ SCENARIOS: Dict[str, Scenario] = {name: Scenario(name, fn, _doc(fn), FAILS_ON_MA
                                   for name, fn in FAMILIES.items()}
 SCENARIOS.update({name: Scenario(name, fn, _doc(fn), why) for name, (fn, why) in NAMED.items()})
 SCENARIOS.update({f"{name}/main": Scenario(f"{name}/main", functools.partial(fn, profile=MAIN),
-                                           f"{_doc(fn)} (what main 609430b survives)")
+                                           f"{_doc(fn)} (the faults it survives today)")
                   for name, fn in FAMILIES.items() if name not in ("elastic", "ddp")})
 
 
