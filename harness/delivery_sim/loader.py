@@ -42,7 +42,7 @@ class LoaderWorker(Reader):
         self.exhausted = False
         self.token = None  # the loader iteration it serves
 
-    def begin(self, receipts: ReceiptPipe) -> None:
+    def begin(self, receipts: ReceiptPipe, token) -> None:
         """``iter(dataset)`` in this worker: ``EndpointStream.attach_loader`` then a new iteration."""
         s = self.stream
         if self.it is not None:
@@ -54,7 +54,7 @@ class LoaderWorker(Reader):
         s.worker, s.receipts = self.w, receipts
         self.requests.clear()
         self.exhausted = False
-        self.token = self.job.token
+        self.token = token
         self.it = SimIterator(s, self, self.wake)
 
     def request(self, idx: int, token) -> None:
@@ -259,7 +259,7 @@ class LoaderJob:
             self.workers = [LoaderWorker(self, w, self.link.records.get(w)) for w in range(n)]
         self.token = (self.incarnation, self.made, getattr(self, "token", (0, 0, 0))[2] + 1)
         for w in self.workers:
-            self.sim.after(2 * PIPE_S, w.begin, self.link.receipts[w.w], proc=w.proc)
+            self.sim.after(2 * PIPE_S, w.begin, self.link.receipts[w.w], self.token, proc=w.proc)
         self.failed = None
         self.send_idx = self.rcvd_idx = self.outstanding = 0
         self.task_info = {}

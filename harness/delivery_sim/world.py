@@ -1,8 +1,9 @@
 """The simulator's world: one seeded random source, a simulated clock, an event queue, and the
 processes whose events it runs (a process can be paused for any length, or killed).
 
-Everything that happens is an event ``(time, sequence, process, function, args)`` taken from
-one heap in order; ``Sim.rng`` (one ``random.Random(seed)``) decides every delay, choice and
+Everything that happens is an event ``(time, due, sequence, process, lane, function, args)``
+taken from one heap in order (an event deferred by a pause keeps its ``due`` time and sequence,
+so a thread's events keep their order); ``Sim.rng`` (one ``random.Random(seed)``) decides every delay, choice and
 fault, so a seed replays the same run (the core iterates sets of strings: replays also need
 one ``PYTHONHASHSEED``, which the command line fixes). After every event the checks run
 (``Sim.checks``, given the process whose step it was: a check may skip what that step cannot
@@ -71,7 +72,8 @@ class Sim:
         """Run ``fn(*args)`` at simulated time ``t`` (not before now), as part of ``proc``'s
         thread ``lane``."""
         self._seq += 1
-        heapq.heappush(self._q, (max(t, self.now), self._seq, proc, lane, fn, args))
+        t = max(t, self.now)
+        heapq.heappush(self._q, (t, t, self._seq, proc, lane, fn, args))
 
     def after(self, dt: float, fn: Callable, *args, proc: Optional[Proc] = None, lane: str = "main") -> None:
         self.at(self.now + dt, fn, *args, proc=proc, lane=lane)
@@ -90,7 +92,7 @@ class Sim:
         """
         q = self._q
         while q and not self.stop_when():
-            t, _, proc, lane, fn, args = q[0]
+            t, due, seq, proc, lane, fn, args = q[0]
             if t > until:
                 break
             heapq.heappop(q)
@@ -99,8 +101,8 @@ class Sim:
                     continue
                 resumes = proc.paused_until + proc.wake.get(lane, 0.0)  # this thread runs again then
                 if resumes > t and proc.paused_until > 0.0:
-                    self._seq += 1
-                    heapq.heappush(q, (resumes, self._seq, proc, lane, fn, args))
+                    # deferred, keeping its place among the thread's events (first due, first run)
+                    heapq.heappush(q, (resumes, due, seq, proc, lane, fn, args))
                     continue
             self.now = t
             self.steps += 1
