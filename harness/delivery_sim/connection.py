@@ -1,72 +1,78 @@
-"""A client connection in the simulator: the REAL ``v2v_client.session.ServerSession`` (and its
-``HeldBatches``) behind a stand-in for ``v2v_client.connection.Connection``'s I/O thread.
+"""A client connection in the simulator: the REAL ``v2v_client.session.ServerSession`` (which
+decides every message the client sends) behind a stand-in for ``v2v_client.connection.Connection``,
+which only moves bytes and keeps time.
 
-:class:`SimConnection` does what ``Connection`` does with its socket and thread, over the
-simulated network: it says hello, feeds every server message to ``ServerSession.on_message``
-and sends its ``replies()``, heartbeats each ``heartbeat_s`` and asks again for grants left
-unanswered a whole heartbeat, declares the server lost after ``timeout_s`` of silence
-(reconnecting on a new socket with the same identity, or ending with ``StreamTimeout``), takes
-a DataLoader worker's receipts, and on close sends the acknowledgements queued, gives back what
-was asked or granted and not taken, then ``bye``. Today ``Connection`` builds those messages
-(holds, acks, releases, bye) itself, so this adapter mirrors its decisions line by line; issue
-69 moves them into ``ServerSession``, and this adapter then only moves the bytes it is given.
+:class:`SimConnection` does what ``Connection``'s I/O thread does, over the simulated network:
+it opens a socket with an identity of its own and sends the session's hello, feeds every
+server message to ``ServerSession.on_message`` and a ``StreamLoader``'s receipts to
+``on_loader``, calls ``tick(now)`` as its poll loop turns, sends whatever ``outgoing()`` holds,
+declares the server lost after ``timeout_s`` of silence (then a new socket, a new identity and a
+new hello, or ``StreamTimeout``), and on close sends ``outgoing()`` and ``closing()``. Every
+decision about what to send is the session's.
 """
 from __future__ import annotations
 
 from typing import Callable, List, Optional, Tuple
 
-from v2v_client.session import LoopAbandoned, ServerSession, StreamError, StreamTimeout
-from v2v_wire.messages import Ack, Bye, Heartbeat, Hold, Released
+from v2v_client.receipts import loader_message
+from v2v_client.session import ServerSession, StreamError, StreamTimeout
 from v2v_wire.protocol import pack, unpack
 
-from harness.delivery_sim.net import Link, Net
-from harness.delivery_sim.world import Sim
+from harness.delivery_sim.net import Link
 
 ENDPOINT = "tcp://sim-server:5555"
 
 
 class SimConnection:
-    """One connection of one client process (``host``: its ``proc``, ``sim``, ``net``).
+    """One connection of one client process, and its I/O thread.
 
     Args:
         host: the client process (``proc``, ``sim``, ``net``).
         options: ``v2v_client.options.StreamOptions`` (credits, DDP position, timeouts...).
-        record: the consumer's ``v2v_client.endpoint.ConsumerRecord`` (the resume state).
+        record: the reader's ``v2v_client.resume.ResumeState``.
         consumer: the id the hello names.
-        receipts: a DataLoader worker's receipt pipe (``ReceiptPipe``), else None.
+        receipts: a DataLoader worker's receipt pipe (:class:`ReceiptPipe`), else None.
         iteration: the loader's iteration this connection serves.
+        instance: the reader process's token (``ServerSession``).
         wake: called when an item may be ready for the consumer.
     """
 
     def __init__(self, host, options, record, consumer: str, receipts=None, iteration: int = 0,
-                 wake: Callable[[], None] = lambda: None):
+                 instance: str = "", wake: Callable[[], None] = lambda: None):
         self.host, self.sim, self.net = host, host.sim, host.net
         self.proc = host.proc
-        self.options, self.record, self.consumer = options, record, consumer
-        self.receipts, self.iteration, self.wake = receipts, iteration, wake
-        hello = lambda: options.hello(consumer, record.resume(), ends_on_drained=receipts is not None)  # noqa: E731
-        self.session = ServerSession(ENDPOINT, options.outputs, hello,
-                                     welcomed=lambda info: record.check_recipe(info.get("recipe")))
-        self.ident = self.sim.rng.getrandbits(64).to_bytes(8, "big")
-        self.name = f"{host.proc.name}/{self.ident.hex()[:8]}"
+        self.options, self.record = options, record
+        self.receipts, self.wake = receipts, wake
+        self.session = ServerSession(ENDPOINT, options, record, consumer, ends_on_drained=receipts is not None,
+                                     iteration=iteration, instance=instance)
         self.alive = True  # the I/O thread runs
         self.closing = False
-        self.lingering = self.abandoned = self.unreceived = False
-        self.pipe: List[bytes] = []  # what the consumer queued for the I/O thread
-        self._forward_due = False
-        self.asked: set = set()
+        self.lingering = self.unreceived = False
+        self._flush_due = False
         self.give_up_at: Optional[float] = None
-        self.link: Link = self.net.connect(self.ident, self)
-        self.last_heard = self.sim.now
-        self._send(self.session.hello(new_socket=True))
-        self.sim.after(options.heartbeat_s, self._beat, proc=self.proc, lane="io")
+        self.link: Link = self._socket()
+        self.sim.after(options.heartbeat_s, self._poll, proc=self.proc, lane="io")
         if receipts is not None:
             receipts.reader = self
 
     # ------------------------------------------------------------------ the I/O thread
-    def _send(self, data: bytes) -> None:
-        self.sim.log(self.name, lambda: f"-> {_peek(data)}")
-        self.net.send_up(self.link, [data])
+    def _socket(self) -> Link:
+        """``Connection._socket``: a new socket with an identity of its own, and the session's hello."""
+        self.ident = self.sim.rng.getrandbits(64).to_bytes(8, "big")
+        self.name = f"{self.proc.name}/{self.ident.hex()[:8]}"
+        self.link = self.net.connect(self.ident, self)
+        self.last_heard = self.sim.now
+        self.session.hello(new_socket=True)
+        self.session.tick(self.sim.now)  # the poll loop's first turn
+        self._send_out()
+        return self.link
+
+    def _send_out(self) -> None:
+        """What the session decided, in order."""
+        for msg in self.session.outgoing():
+            data = pack(msg.to_wire())
+            self.sim.log(self.name, lambda: f"-> {_peek(data)}")
+            self.net.send_up(self.link, [data])
 
     def deliver(self, frames: list) -> None:
         """A server message arrived (``Connection._receive``)."""
@@ -75,24 +81,22 @@ class SimConnection:
         self.last_heard, self.give_up_at = self.sim.now, None
         self.sim.log(self.name, lambda: f"<- {_peek(frames[0])}")
         verdict = self.session.on_message(frames)
-        for r in self.session.replies():
-            self._send(r)
+        self._send_out()
         self.wake()
         if verdict == "over":
             self._end()
         elif verdict == "lost":
             self._lost("the server shut down")
 
-    def _beat(self, again: int = 0) -> None:
-        """The poll loop's timers: silence, heartbeat, re-asks, a lingering iteration's end."""
+    def _poll(self, again: int = 0) -> None:
+        """A turn of the poll loop with nothing read: receipts, silence, ``tick``."""
         if not self.alive:
             return
         now = self.sim.now
         if again < 3 and now >= self.link.cut_until and any(m.alive and m.t <= now for m in self.link.down):
             # a message came while this process was stopped: the poll reads the socket first
-            self.sim.at(now, self._beat, again + 1, proc=self.proc, lane="io")
+            self.sim.at(now, self._poll, again + 1, proc=self.proc, lane="io")
             return
-        self._forward()
         self.take_receipts()
         if not self.alive:
             return
@@ -100,15 +104,12 @@ class SimConnection:
             self._lost(f"no message for {self.options.timeout_s:.0f} s")
             if not self.alive:
                 return
-        else:
-            self._send(pack(Heartbeat().to_wire()))
-            again, self.asked = self.session.held.still_asked(self.asked)
-            if again:
-                self._send(pack(Hold(tuple(sorted(again))).to_wire()))
-        self.sim.after(self.options.heartbeat_s, self._beat, proc=self.proc, lane="io")
+        self.session.tick(now)
+        self._send_out()
+        self.sim.after(self.options.heartbeat_s, self._poll, proc=self.proc, lane="io")
 
     def _lost(self, why: str) -> None:
-        """``Connection._lost``: reconnect on a new socket (same identity) or end with an error."""
+        """``Connection._lost``: a new socket (a new identity) or the end, with an error."""
         o, now = self.options, self.sim.now
         self.sim.log(self.name, f"lost the server: {why}")
         if not o.reconnect:
@@ -125,94 +126,75 @@ class SimConnection:
             self._end()
             return
         self.net.close(self.link, linger=False)
-        self.link = self.net.connect(self.ident, self)
-        self.last_heard = now
-        self._send(self.session.hello(new_socket=True))
+        self._socket()
 
     def _end(self) -> None:
-        """The I/O thread ends: ``Connection._finish`` (acks and receipts first, then what is
-        asked or granted and not taken goes back, then ``bye``), and the consumer is woken."""
+        """The I/O thread ends (``Connection._finish``): what the session queued and the
+        receipts first, then its last messages (``ServerSession.closing``); the consumer is woken."""
         if not self.alive:
             return
+        self._receipts()
         self.alive = False
-        self._forward()
-        self.take_receipts()
-        ours = self.session.held.discard(None)
-        if self.receipts is not None and (self.abandoned or self.unreceived):
-            ours += self.record.pipeline_ids()
-        if ours:
-            self._send(pack(Released(tuple(ours)).to_wire()))
-        self._send(pack(Bye().to_wire()))
+        self._send_out()
+        for msg in self.session.closing(self.unreceived):
+            data = pack(msg.to_wire())
+            self.sim.log(self.name, lambda: f"-> {_peek(data)}")
+            self.net.send_up(self.link, [data])
         self.net.close(self.link, linger=True)
         if self.receipts is not None and self.receipts.reader is self:
             self.receipts.reader = None
         self.wake()
 
     def take_receipts(self) -> None:
-        """``Connection._take_receipts``: the loop received these batches (acknowledged), or
-        left this iteration (``LoopAbandoned``)."""
+        """``Connection._take_receipts``: what the main process wrote, to the session; a
+        lingering connection ends once every batch was received or the loop left."""
         if self.receipts is None or not self.alive:
             return
-        while self.receipts.waiting:
-            msg = unpack(self.receipts.waiting.pop(0))
-            if msg.get("type") == "abandon":
-                if msg.get("iteration") == self.iteration and not self.abandoned:
-                    self.abandoned = True
-                    self.session.items.put(LoopAbandoned())
-                    self.wake()
-                continue
-            mine = self.record.received(msg["batch_ids"])
-            if mine:
-                self._send(pack(Ack(tuple(mine)).to_wire()))
-        if self.lingering and (self.abandoned or not self.record.in_pipeline()):
+        self._receipts()
+        if self.lingering and self.session.lingering_done():
             self._end()
 
-    def _forward(self) -> None:
-        self._forward_due = False
-        pipe, self.pipe = self.pipe, []
-        for data in pipe:
-            self._send(data)
+    def _receipts(self) -> None:
+        if self.receipts is None:
+            return
+        had = self.session.items.qsize()
+        while self.receipts.waiting:
+            self.session.on_loader(loader_message(self.receipts.waiting.pop(0)))
+        self._send_out()
+        if self.session.items.qsize() != had:
+            self.wake()  # LoopAbandoned
+
+    def _flush(self) -> None:
+        self._flush_due = False
+        if self.alive:
+            self._send_out()
+
+    def _ping(self) -> None:
+        """``Wakeup.ping``: the I/O thread wakes soon and sends what the consumer's step decided."""
+        if self.alive and not self._flush_due:
+            self._flush_due = True
+            self.sim.after(self.sim.uniform(0.0, 0.002), self._flush, proc=self.proc, lane="io")
 
     # ------------------------------------------------------------------ the consumer's side
-    def queue_for_server(self, msg: dict) -> None:
-        """``Connection._queue_for_server``: the I/O thread sends it soon (dropped once it ended)."""
-        if not self.alive:
-            return
-        self.pipe.append(pack(msg))
-        if not self._forward_due:
-            self._forward_due = True
-            self.sim.after(self.sim.uniform(0.0, 0.002), self._forward_if_alive, proc=self.proc, lane="io")
-
-    def _forward_if_alive(self) -> None:
-        if self.alive:
-            self._forward()
-
-    def ask(self, item: Optional[dict] = None) -> None:
-        """``Connection._ask``: the grants the consumer needs next."""
-        ids = self.session.held.to_ask(item)
-        if ids:
-            self.queue_for_server(Hold(tuple(ids)).to_wire())
-
     def try_take(self, item: dict, on_claim, ack: bool = True) -> Tuple[str, object]:
-        """One try of ``Connection.take``'s claim after its ``ask(item)``: ``("taken", on_claim())``,
+        """One try of ``Connection.take`` (``ServerSession.take``): ``("taken", on_claim())``,
         ``("gone", None)`` (given back meanwhile, or the connection ended), or ``("wait", None)``
-        (not granted yet: the real consumer blocks here)."""
-        held = self.session.held
-        ok, result = held.claim(item, on_claim, lambda: False)
-        if not ok and self.alive and held.current.get(item["batch_id"]) is item:
+        (not granted yet: the real consumer blocks here, and tries again when woken)."""
+        ok, result = self.session.take(item, on_claim, lambda: False, ack)
+        self._ping()
+        if ok:
+            return "taken", result
+        if self.alive and self.session.held.current.get(item["batch_id"]) is item:
             return "wait", None
-        if ok and ack:
-            self.queue_for_server(Ack((item["batch_id"],)).to_wire())
-        self.ask()
-        return ("taken", result) if ok else ("gone", None)
+        return "gone", None
 
     def ack(self, batch_ids) -> None:
-        if batch_ids:
-            self.queue_for_server(Ack(tuple(batch_ids)).to_wire())
+        self.session.ack(batch_ids)
+        self._ping()
 
     def give_back(self, item: dict) -> None:
-        if self.session.held.give_back(item) is not None:
-            self.queue_for_server(Released((item["batch_id"],)).to_wire())
+        self.session.give_back(item)
+        self._ping()
 
     def held(self) -> int:
         return len(self.session.held)
@@ -257,10 +239,6 @@ class ReceiptPipe:
         if self.reader is not None:
             self.reader.take_receipts()
 
-    def write(self, data: bytes) -> None:
-        self.arrive(data)
-        self.poke()
-
     def close(self) -> None:
         pass
 
@@ -275,7 +253,11 @@ def _peek(data) -> str:
     if kind == "hello":
         r = h.get("resume") or {}
         return (f"hello consumer={h.get('consumer')!r} id={h.get('hello_id')} completed={r.get('completed_epoch')} "
-                f"delivered={ {e: len(str(v).splitlines()) for e, v in (r.get('delivered') or {}).items()} }")
+                f"delivered={ {e: len(str(v).splitlines()) for e, v in (r.get('delivered') or {}).items()} } "
+                f"rank={h.get('rank', 0)}/{h.get('world_size', 1)} group={h.get('group')} "
+                f"supersedes={r.get('supersedes')}")
+    if kind == "welcome":  # its info names the server by a random id: not in a trace that must replay
+        return f"welcome hello_id={h.get('hello_id')}"
     if kind == "batch":
         return f"batch {h.get('batch_id')} e{h.get('epoch')} {h.get('sample_ids')}{' padding' if h.get('padding') else ''}"
     h.pop("v", None)

@@ -24,7 +24,7 @@ def pause(run: Run, job, seconds: float, some: bool = False) -> None:
 
 
 def _links(job):
-    return [p.it.conn.link for p in job.procs() if p.it is not None and p.it.conn.alive]
+    return [p.conn().link for p in job.procs() if p.conn() is not None]
 
 
 def blip(run: Run, job, gap: float) -> None:

@@ -1,7 +1,9 @@
 """``StreamLoader`` jobs: a training loop over a DataLoader whose worker processes each read the
-stream, with the REAL receipts: the main process keeps each worker's record with
-``StreamLoader._record`` and writes receipts and ``abandon`` through the real
-``loader.LoaderLink`` (its pipes are the simulator's).
+stream, with the REAL receipts: the main process hands each batch to the loop through the real
+``StreamLoader._receive`` (each worker's ``ResumeState.handed_on`` and the typed ``Receipt``),
+keeps and checkpoints the records with the real ``StreamLoader.state_dict`` /
+``load_state_dict``, and writes receipts and ``abandon`` through the real ``loader.LoaderLink``
+(its pipes are the simulator's).
 
 :class:`LoaderJob` is the main process (and the job's lineage); it runs torch's in-order
 iteration over an ``IterableDataset`` as ``_MultiProcessingDataLoaderIter`` does:
@@ -20,6 +22,7 @@ import collections
 from typing import Dict, List, Optional
 
 from v2v_client.loader import LoaderLink, StreamLoader
+from v2v_client.resume import ResumeState
 
 from harness.delivery_sim.connection import ReceiptPipe
 from harness.delivery_sim.stream import SimIterator, SimStream
@@ -33,7 +36,8 @@ class LoaderWorker(Reader):
     """One DataLoader worker process (``w``) of a :class:`LoaderJob`."""
 
     def __init__(self, job: "LoaderJob", w: int, record: Optional[dict]):
-        stream = SimStream(stream_options(job.credits, job.timeout_s), job.consumer)
+        # the dataset pickled into each worker: the main process's dataset's consumer id and instance
+        stream = SimStream(stream_options(job.credits, job.timeout_s), job.consumer, instance=job.instance)
         super().__init__(job.run, f"{job.name}.{job.incarnation}w{w}.{job.made}", stream)
         self.job, self.w = job, w
         self.record = record
@@ -49,7 +53,7 @@ class LoaderWorker(Reader):
             self.it.stop()  # attach_loader's close(): the previous iteration's connection ends (receipts first)
             s.record.clear_pipeline()
         if s.receipts is None and self.record is not None:
-            s.load_state_dict(dict(self.record, consumer=self.job.consumer))
+            s.load_state_dict(self.record)
         s.iteration = s.iteration + 1 if receipts is s.receipts else 0
         s.worker, s.receipts = self.w, receipts
         self.requests.clear()
@@ -170,7 +174,9 @@ class LoaderJob:
         run.oracle.lineage(name, honest)
         if honest:
             run.oracle.owners.update(f"c:{name}/{w}/0" for w in range(workers))
-        self._records: Dict[int, dict] = {}  # StreamLoader._records (the real _record writes it)
+        self._records: Dict[int, ResumeState] = {}  # StreamLoader._records (its real methods write it)
+        self._iterator = None  # what StreamLoader.load_state_dict shuts down (never a torch iterator here)
+        self.instance = name
         self.checkpoints: List[tuple] = [({"version": 1, "consumer": name, "workers": {}}, 0)]
         self.incarnation = self.made = self.steps = 0
         self.proc: Optional[Proc] = None
@@ -203,7 +209,10 @@ class LoaderJob:
             return
         self.incarnation += 1
         self.proc = Proc(f"{self.name}.{self.incarnation}")
-        self._records = {int(w): r for w, r in (state or {}).get("workers", {}).items()}
+        self.instance = self.proc.name  # a new main process: a new dataset
+        self._records = {}
+        if state is not None:
+            StreamLoader.load_state_dict(self, state)  # the real one
         self.workers, self.link = [], None
         self.sim.after(0.0, self._iterate, proc=self.proc)
 
@@ -254,7 +263,7 @@ class LoaderJob:
             clean = self.sim.chance(0.5)
             for w in self.workers:
                 w.exit(clean)
-            self.link = LoaderLink(n, {w: dict(r) for w, r in self._records.items()}, _Context(self))
+            self.link = LoaderLink(n, {w: r.state() for w, r in self._records.items()}, _Context(self))
             self.made += 1
             self.workers = [LoaderWorker(self, w, self.link.records.get(w)) for w in range(n)]
         self.token = (self.incarnation, self.made, getattr(self, "token", (0, 0, 0))[2] + 1)
@@ -337,10 +346,7 @@ class LoaderJob:
             self.waiting = True
             return
         if kind == "batch":
-            r = x.pop("receipt", None)
-            if r is not None:
-                StreamLoader._record(self, r, x)  # the real main-process record
-                self.link.receipt(r["worker"], r["batch_id"])
+            x = next(StreamLoader._receive(self, iter([x])))  # the real main process: record, receipt
             self.run.oracle.yielded(self.lineage, x)
             self.steps += 1
             if self.steps % self.ckpt_every == 0:
@@ -362,14 +368,22 @@ class LoaderJob:
     def _checkpoint(self) -> None:
         import copy
 
-        state = StreamLoader.state_dict(self)  # the real one (its inner lists alias the live records)
+        state = StreamLoader.state_dict(self)  # the real one
         self.checkpoints.append((state if self.in_memory else copy.deepcopy(state),
                                  len(self.run.oracle.lineages[self.lineage].history)))
 
-    # what StreamLoader.state_dict reads of a loader
+    # what StreamLoader's methods read of a loader
     @property
     def dataset(self):
         return self
+
+    @property
+    def _link(self):
+        return self.link
+
+    @property
+    def persistent_workers(self) -> bool:
+        return self.persistent
 
     def state_dict(self):  # noqa: D102 (only for StreamLoader.state_dict's num_workers == 0 branch)
         raise AssertionError("a simulated loader has workers")

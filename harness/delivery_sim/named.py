@@ -41,19 +41,37 @@ def _trainer(run: Run, name: str, credits: int = 2, **kw) -> TrainerJob:
     return job
 
 
+def _refusable(run: Run, *names: str) -> None:
+    """These jobs may be refused as a second live reader (then they stop; the other reads all)."""
+    for name in names:
+        run.oracle.lineages[name].refusable = True
+
+
 def two_trainers_one_consumer(seed: int, trace: bool = False) -> Run:
-    """Two trainers resumed with the same consumer id read at once."""
+    """Two trainers resumed with the same consumer id read at once: one is refused, the other reads all."""
     run = _run(seed, trace)
     _trainer(run, "a", consumer="shared")
     _trainer(run, "b", consumer="shared")
+    _refusable(run, "a", "b")
     return run
 
 
 def two_ddp_jobs_default_group(seed: int, trace: bool = False) -> Run:
-    """Two DDP jobs (world size 2 each) that both leave ``group=`` at its default."""
+    """Two DDP jobs (world size 2 each, torchrun) that both leave ``group=`` at its default: each
+    is named from its launcher's run, so both read."""
     run = _run(seed, trace)
     DDPJob(run, "job1", 2).start()
     DDPJob(run, "job2", 2).start()
+    return run
+
+
+def two_ddp_jobs_by_hand(seed: int, trace: bool = False) -> Run:
+    """Two DDP jobs whose ranks were started by hand (no launcher) with ``group=`` at its default:
+    they share the group ``default``, and the second is refused."""
+    run = _run(seed, trace)
+    DDPJob(run, "job1", 2, launcher={}).start()
+    run.at(0.05, DDPJob(run, "job2", 2, launcher={}).start)
+    _refusable(run, "job1", "job2")
     return run
 
 
@@ -122,6 +140,7 @@ def loop_stops_calling_next(seed: int, trace: bool = False) -> Run:
     _trainer(run, "reader")
     run.oracle.lineages["reader"].deadline = run.setup.deadline
     run.at(0.05, stop_reading, run, stuck, 600.0)
+    run.fault_until(600.05)  # the stuck loop reads on after it: its stream ends too
     return run
 
 
@@ -143,10 +162,10 @@ def completed_epoch_5(seed: int, trace: bool = False) -> Run:
 
 def completed_epoch_huge(seed: int, trace: bool = False) -> Run:
     """A first hello claiming ``completed_epoch`` 999999999 on an unbounded stream; an honest trainer
-    reads, checkpoints and resumes from its checkpoint."""
+    reads three epochs, checkpointing, and resumes from its checkpoint on the way."""
     run = _run(seed, trace, epochs=None)
     Hostile(run, "liar", "completed", epoch=999999999, leave_after=2.0)
-    run.at(0.05, lambda: run.at(0.5, _trainer(run, "honest", stop_epoch=1000000002).restart, 0, 0.1))
+    run.at(0.05, lambda: run.at(0.5, _trainer(run, "honest", stop_epoch=3).restart, 0, 0.1))
     return run
 
 
@@ -205,8 +224,9 @@ Entry = Tuple[Callable[..., Run], Optional[str]]
 
 #: name -> (build, what the delivery path does wrong there today, or None)
 NAMED: Dict[str, Entry] = {
-    "two_trainers_one_consumer": (two_trainers_one_consumer, "issue 69 item 1: both read one consumer's record"),
-    "two_ddp_jobs_default_group": (two_ddp_jobs_default_group, "issue 69 item 1: two jobs share group 'default'"),
+    "two_trainers_one_consumer": (two_trainers_one_consumer, None),
+    "two_ddp_jobs_default_group": (two_ddp_jobs_default_group, None),
+    "two_ddp_jobs_by_hand": (two_ddp_jobs_by_hand, None),
     "world_size_2_to_1": (world_size_2_to_1, "issue 69 item 3: rank 1's samples stay recorded to its old rank"),
     "world_size_1_to_2": (world_size_1_to_2, "issue 69 item 3: the one-rank record is not the group's"),
     "world_size_change_refused": (world_size_change_refused, None),

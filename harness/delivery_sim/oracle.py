@@ -18,8 +18,10 @@ is the (epoch, sample id) pairs its model was trained on (padding excluded).
   besides), or forgotten when it resumed from a checkpoint and not taken again before it died.
 * **Liveness**: every honest lineage's stream ends (the server's ``end``) by its deadline.
 * **Memory** (after every server turn): no client holds more batches than its credits; the
-  ledger holds batches of open epochs only; the server keeps records for at most the epochs it
-  can serve, each no larger than an epoch; a client holds at most its credits.
+  table holds batches of open epochs only, but grants (a consumer's for good, whatever the
+  epoch's books: at most twice the most credits per consumer) and grants given back (at most
+  that for each of the up to three consumers of every job); the server keeps records for at
+  most the epochs it can serve, each no larger than an epoch; a client holds at most its credits.
 """
 from __future__ import annotations
 
@@ -43,6 +45,16 @@ class Lineage:
         self.error: Optional[str] = None
         self.deadline: Optional[float] = None  # its stream must end by then (else the run's deadline)
         self.forgotten: Set[Key] = set()  # what it forgot resuming from checkpoints (owed to it again)
+        self.refusable = False  # a job the server may refuse as a second reader of a consumer (it then stops)
+
+
+    def refused(self) -> bool:
+        """Refused as a second live reader of its consumer, as it may be (``refusable``)."""
+        return self.refusable and self.error is not None and CLAIMED in self.error
+
+
+#: what a refusal of a second live reader says (``admission.Admission.check``)
+CLAIMED = "one reader per consumer"
 
 
 class Oracle:
@@ -148,10 +160,11 @@ class Oracle:
     def final(self, deadline: float) -> None:
         """At the end of a run: liveness, then every epoch exactly once (but the docs' exceptions)."""
         for lin in self.lineages.values():
-            if lin.honest and not lin.dead_for_good and lin.error is not None:
+            if lin.honest and not lin.dead_for_good and lin.error is not None and not lin.refused():
                 self.sim.fail("error", f"{lin.name} (an honest trainer) failed: {lin.error}")
         for lin in self.lineages.values():
-            if lin.honest and not lin.dead_for_good and (lin.ended_at is None or lin.ended_at > (lin.deadline or 1e300)):
+            if lin.honest and not lin.dead_for_good and not lin.refused() and \
+                    (lin.ended_at is None or lin.ended_at > (lin.deadline or 1e300)):
                 by = deadline if lin.deadline is None else lin.deadline
                 self.sim.fail("liveness", f"{lin.name}'s stream did not end by t={by:.1f} s "
                                           f"(epochs announced: {sorted(self.announced)})")
@@ -186,7 +199,7 @@ class Oracle:
                                   f"docs allow {GRANT_AHEAD + 1 + extra}")
 
     # ------------------------------------------------------------------ memory
-    def memory(self, probe) -> None:
+    def memory(self, probe, max_credits: int) -> None:
         """The bounds on what the server keeps (see the module docstring)."""
         fail = self.sim.fail
         for ident, held, credits in probe.client_holdings():
@@ -197,9 +210,20 @@ class Oracle:
             self.max_epoch_opened = max(self.max_epoch_opened, plans[-1])
         if len(plans) > 6:
             fail("memory", f"the scheduler keeps {len(plans)} epochs open: {plans}")
-        for bid, epoch, n in probe.batches():
-            if epoch not in plans:
-                fail("memory", f"batch {bid} of epoch {epoch} stays in the ledger; the epoch is forgotten")
+        kept: Dict[object, int] = {}
+        behind = []
+        for bid, epoch, n, state, consumer in probe.batches():
+            if state in ("granted", "stranded"):  # a consumer's for good, whatever the epoch's books
+                kept[consumer] = kept.get(consumer, 0) + 1
+                if kept[consumer] > 2 * max_credits:
+                    fail("memory", f"the server keeps {kept[consumer]} batches granted to {consumer}; "
+                                   f"credits are at most {max_credits}")
+            elif epoch not in plans:  # a grant given back after its epoch was forgotten (only a grant outlives it)
+                behind.append(bid)
+        most = 2 * max_credits * 3 * len(self.lineages)
+        if len(behind) > most:
+            fail("memory", f"{len(behind)} batches of forgotten epochs stay in the table (such as {behind[:4]}); "
+                           f"grants given back are at most {most}")
         for where, epoch, consumer, n in probe.records():
             if n > self.epoch_size:
                 fail("memory", f"the server keeps {n} sample ids for {consumer} in epoch {epoch} ({where}); "

@@ -61,7 +61,7 @@ class Run:
         self.incarnation = 0
         self.server: Optional[SimServer] = None
         self.probe: Optional[ServerProbe] = None
-        self._announced: set = set()
+        self._told = -1
         self.last_fault = 0.0
         self.on_announced: List[Callable[[int], None]] = []  # a scenario's actions when an epoch is announced
         self.start_server()
@@ -74,7 +74,7 @@ class Run:
         self.probe = ServerProbe(self.server)
         self.oracle.holders = self.probe.holders
         self.oracle.recorded_to = self.probe.recorded_to
-        self._announced = set()
+        self._told = -1
         self.sim.log("run", f"server {self.incarnation} starts" + (" from its journal" if self.state_dir else ""))
 
     def crash_server(self, down_s: float) -> None:
@@ -113,15 +113,15 @@ class Run:
                 excused = probe.excused(e, self.setup.corpus)
                 if excused:
                     self.oracle.excused[e] = excused
-            announced = probe.announced()
-            if announced != self._announced:
-                for e in sorted(announced - self._announced):
-                    self.sim.log("run", f"epoch {e} announced complete")
-                    self.oracle.on_announce(e)
-                    for fn in list(self.on_announced):
-                        fn(e)
-                self._announced = set(announced)
-            self.oracle.memory(probe)
+            told = probe.told_upto()
+            for e in range(self._told + 1, told + 1):
+                self.sim.log("run", f"epoch {e} announced complete")
+                self.oracle.on_announce(e)
+                for fn in list(self.on_announced):
+                    fn(e)
+            self._told = max(self._told, told)
+            self.oracle.memory(probe, self.setup.policy.max_credits)
+            probe.remember()
         if proc is not None and proc is not getattr(self.server, "proc", None):
             self.oracle.client_memory([c for c in self.oracle.live_clients if getattr(c, "proc", None) is proc])
         for lin in self.oracle.lineages.values():

@@ -1,15 +1,15 @@
-"""The simulated server: the REAL ``DeliveryCore`` (scheduler, ledger, batcher, journal) in a
-stand-in for its socket shell, and decode workers simulated at the task level.
+"""The simulated server: the REAL ``DeliveryCore`` (scheduler, ledger, batcher, journal, admission,
+ends of epochs and of the stream) in a stand-in for its socket shell, and decode workers
+simulated at the task level.
 
 :class:`SimServer` does what ``service/server.py``, ``client_side.py`` and ``worker_side.py``
 do around the core, and nothing more: it decodes each client message with the real bounded
-decoder (``v2v_wire.messages.decode_client``; a bad one is a protocol error for that peer),
-hands it to ``DeliveryCore.hello`` / ``message``, sends what they answer, runs the core's
-``tick`` each turn, reads its workers only while fewer than ``prefetch`` batches wait,
-broadcasts heartbeats, forgets a client it could not reach once what that client sent is
-read (``ClientSide.forget_unreachable``), and ends the stream (``V2VServer._end_of_stream``).
-Those last two are the shell's decisions today; issue 69 moves them into ``DeliveryCore``, and
-this adapter then calls the core for them instead.
+decoder (``v2v_wire.messages.decode_client`` with the core's ``resume_bound``; a bad one is a
+protocol error for that peer), hands it to ``DeliveryCore.hello`` / ``message``, sends what they
+answer, runs the core's ``tick`` each turn and sends what it says, reads its workers only while
+fewer than ``prefetch`` batches wait, broadcasts heartbeats, tells the core which clients it
+could not reach (``unreachable``) and when nothing sent is left unread (``caught_up``), and exits
+when the core says so (``exit_due``).
 
 :class:`ServerProbe` is the one place the checks read the server's books (``oracle.py``).
 """
@@ -26,7 +26,7 @@ from v2v_server.delivery.ledger import STALL_S
 from v2v_wire.ids import SampleKey
 from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
 from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, pack
-from v2v_wire.stream_messages import Batch, End, EpochDone, Heartbeat, ServerError
+from v2v_wire.stream_messages import Batch, EpochDone, Heartbeat, ServerError, Welcome
 
 from harness.delivery_sim.net import Net
 from harness.delivery_sim.workers import SimWorker, WorkerFaults
@@ -116,12 +116,11 @@ class SimServer:
         self.on_sent = on_sent or (lambda ident, msg, batch: None)
         self.journal = Journal(cfg.state_dir, RECIPE) if cfg.state_dir else None
         videos = sorted(cfg.corpus.windows)
-        self.core = DeliveryCore(videos, cfg.policy, make_batch, self.journal, stall_s=STALL_S)
+        self.core = DeliveryCore(videos, cfg.policy, make_batch, self.journal, stall_s=STALL_S,
+                                 end_grace_s=cfg.end_grace_s)
+        self.core.info = self.info
         self.inbox: Deque[Tuple[bytes, list]] = collections.deque()
         self.backend: Deque[tuple] = collections.deque()
-        self.unreachable: Set[bytes] = set()
-        self.told_end: Set[bytes] = set()
-        self.ended_at: Optional[float] = None
         self.bad = BadPeers()
         self.workers: Dict[bytes, "SimWorker"] = {}
         self._wgen = 0
@@ -159,7 +158,7 @@ class SimServer:
         now = self.sim.now
         self._read_clients()
         for _ in range(WORKER_BURST):
-            if not self.backend or len(self.core.ledger.ready) >= self.cfg.prefetch:
+            if not self.backend or self.core.ready_count() >= self.cfg.prefetch:
                 break
             self._on_worker(self.backend.popleft())
         self._watch_workers(now)
@@ -168,13 +167,13 @@ class SimServer:
         if self.journal is not None:
             self.journal.sync(now)
         if now >= self.next_beat:
-            for ident in list(self.core.ledger.clients):
+            for ident in self.core.connected():
                 self.send(ident, Heartbeat())
             self.next_beat = now + self.cfg.heartbeat_s
-        if self._end_of_stream(now):
+        if self.core.exit_due(now):
             self.exit()
             return
-        self.wake(0.0 if self.inbox or (self.backend and len(self.core.ledger.ready) < self.cfg.prefetch)
+        self.wake(0.0 if self.inbox or (self.backend and self.core.ready_count() < self.cfg.prefetch)
                   else POLL_S)
 
     def _read_clients(self) -> None:
@@ -183,11 +182,7 @@ class SimServer:
                 break
             self._on_client(*self.inbox.popleft())
         if not self.inbox:  # what an unreachable client sent before it closed has been read
-            for ident in sorted(self.unreachable):
-                if ident in self.core.ledger.clients:
-                    self.sim.log(self.proc.name, f"forget unreachable {ident.hex()[:8]}")
-                    self.core.forget(ident)
-            self.unreachable.clear()
+            self.core.caught_up()
 
     def _on_client(self, ident: bytes, frames: list) -> None:
         now = self.sim.now
@@ -196,7 +191,8 @@ class SimServer:
         try:
             if len(frames) != 1:
                 raise WireError(f"expected 1 frame after the identity, got {len(frames)}")
-            msg = decode_client(frames[0], MAX_CLIENT_MSG, self.cfg.policy.max_credits)
+            msg = decode_client(frames[0], MAX_CLIENT_MSG, self.cfg.policy.max_credits,
+                                self.cfg.policy.crops_per_window, self.core.resume_bound)
         except WireError as e:
             self.sim.log(self.proc.name, f"bad message from {ident.hex()[:8]}: {e}")
             _, banned = self.bad.strike(ident, now)
@@ -206,7 +202,7 @@ class SimServer:
             return
         self.sim.log(self.proc.name, lambda: f"<- {ident.hex()[:8]} {_show(msg)}")
         if isinstance(msg, Hello):
-            replies = self.core.hello(ident, msg, now, self.info)
+            replies = self.core.hello(ident, msg, now)
         else:
             replies = self.core.message(ident, msg, now)
         for to, reply in replies:
@@ -215,14 +211,14 @@ class SimServer:
     def _send(self, now: float) -> None:
         sends, msgs = self.core.tick(now)
         for ident, b in sends:
-            if ident not in self.core.ledger.clients:
+            if self.core.client_outputs(ident) is None:
                 continue
             self.sim.log(self.proc.name, lambda: f"-> {ident.hex()[:8]} batch {b.batch_id} e{b.epoch} "
                                                  f"{list(b.payload.sample_ids)}")
             if self.net.send_down(ident, batch_frames(b)):
                 self.on_sent(ident, None, b)
             else:
-                self.unreachable.add(ident)
+                self.core.unreachable(ident)
         for ident, msg in msgs:
             self.send(ident, msg)
 
@@ -233,7 +229,7 @@ class SimServer:
         if self.net.send_down(ident, [pack(msg.to_wire())]):
             self.on_sent(ident, msg, None)
         else:
-            self.unreachable.add(ident)
+            self.core.unreachable(ident)
 
     def info(self) -> dict:
         """A welcome's stream info (what the client reads of it)."""
@@ -241,23 +237,6 @@ class SimServer:
         return {"recipe": RECIPE, "max_hello_bytes": MAX_CLIENT_MSG, "protocol": PROTOCOL_VERSION,
                 "epochs": p.epochs, "batch_size": p.batch_size, "lease_s": p.lease_s,
                 "client_timeout_s": p.client_timeout_s, "max_credits": p.max_credits, "shard": "0/1"}
-
-    def _end_of_stream(self, now: float) -> bool:
-        """``V2VServer._end_of_stream``: once every epoch is delivered, ``end`` to each client
-        (once per connection); True when the grace with no client connected is over."""
-        if not self.core.finished():
-            self.ended_at = None
-            self.told_end.clear()
-            return False
-        for ident in list(self.core.ledger.clients):
-            if ident not in self.told_end:
-                self.told_end.add(ident)
-                self.send(ident, End())
-        if self.core.ledger.clients:
-            self.ended_at = None
-            return False
-        self.ended_at = now if self.ended_at is None else self.ended_at
-        return now - self.ended_at >= self.cfg.end_grace_s
 
     def exit(self) -> None:
         """The process ends (end of stream, or killed): its workers go with it."""
@@ -325,25 +304,35 @@ class SimServer:
 
 
 class ServerProbe:
-    """What the checks read of a server's books (``core``'s ledger, scheduler and journal):
-    the one place outside the core that knows their layout."""
+    """What the checks read of a server's books (``core``'s batch table, connections, scheduler
+    and journal): the one place outside the core that knows their layout."""
 
     def __init__(self, server: SimServer):
         self.core = server.core
         self.journal = server.journal
+        self.seen: Dict[int, object] = {}  # epoch -> its plan as last seen (a plan forgotten in a step keeps its books)
+
+    def remember(self) -> None:
+        """Keep the plans as they are now: an epoch announced and forgotten in the next step is
+        judged on the books it had."""
+        self.seen.update(self.core.sched.plans)
+
+    def _plan(self, epoch: int):
+        return self.core.sched.plans.get(epoch) or self.seen.get(epoch)
 
     def client_holdings(self) -> List[Tuple[bytes, int, int]]:
         """``(ident, batches held: leased, revoked or granted, credits)`` per connected client."""
-        return [(i, len(c.held) + len(c.revoked) + len(c.granted), c.credits)
-                for i, c in self.core.ledger.clients.items()]
+        table = self.core.ledger.table
+        return [(i, table.held_count(i), c.credits) for i, c in self.core.ledger.clients.items()]
 
-    def batches(self) -> List[Tuple[int, int, int]]:
-        """``(batch id, epoch, samples)`` of every batch the ledger holds."""
-        return [(b.batch_id, b.epoch, len(b.keys)) for b in self.core.ledger.batches.values()]
+    def batches(self) -> List[Tuple[int, int, int, str, object]]:
+        """``(batch id, epoch, samples, state, consumer)`` of every batch in the table."""
+        return [(b.batch_id, b.epoch, len(b.keys), b.state, b.consumer)
+                for b in self.core.ledger.table.batches.values()]
 
-    def announced(self) -> Set[int]:
-        """Epochs the server announced complete (and not reopened since)."""
-        return self.core.announced
+    def told_upto(self) -> int:
+        """The newest epoch told complete to some connection (every older one was told too)."""
+        return self.core.ends.told_upto
 
     def plan_epochs(self) -> List[int]:
         return sorted(self.core.sched.plans)
@@ -368,9 +357,8 @@ class ServerProbe:
         from v2v_wire.ids import parse_sample_id
 
         key = parse_sample_id(sid)
-        s = self.core.sched
-        plan = s.plans.get(epoch)
-        recs = plan.records if plan is not None else s.pending_records.get(epoch, {})
+        plan = self._plan(epoch)
+        recs = plan.records if plan is not None else self.core.sched.pending_records.get(epoch, {})
         return [f"{c[0]}/{c[1]}" for c, ks in recs.items() if key in ks]
 
     def holders(self, epoch: int, sid: str) -> List[str]:
@@ -380,12 +368,13 @@ class ServerProbe:
 
         key = parse_sample_id(sid)
         s = self.core.sched
-        plan = s.plans.get(epoch)
+        plan = self._plan(epoch)
         if plan is None:
             recs = s.pending_records.get(epoch, {})
             out = [f"{c[0]}/{c[1]} (pending)" for c, ks in recs.items() if key in ks]
             return out or [f"no plan (next epoch {s.next_epoch})"]
-        out = [f"{c[0]}/{c[1]}" for c, ks in plan.records.items() if key in ks]
+        gone = "" if epoch in s.plans else " (forgotten)"
+        out = [f"{c[0]}/{c[1]}{gone}" for c, ks in plan.records.items() if key in ks]
         if key in plan.live:
             out.append("live")
         return out or ["nobody"]
@@ -417,4 +406,6 @@ def _show(msg) -> str:
                 f"delivered={ {e: len(ks) for e, ks in r.delivered.items()} } hello_id={msg.hello_id}")
     if isinstance(msg, EpochDone):
         return f"epoch_done {msg.epoch} batches={msg.batches}"
+    if isinstance(msg, Welcome):  # its info names the server by a random id: not in a trace that must replay
+        return f"welcome hello_id={msg.hello_id}"
     return repr(msg)

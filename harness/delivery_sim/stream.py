@@ -1,50 +1,56 @@
-"""One consumer's stream in the simulator: the REAL resume state
-(``v2v_client.endpoint.ConsumerRecord``) behind a stand-in for ``EndpointStream``'s iteration.
+"""One consumer's stream in the simulator: the REAL record (``v2v_client.resume.ResumeState``)
+behind a stand-in for ``EndpointStream``'s iteration.
 
-:class:`SimStream` is what ``EndpointStream`` is for one server (consumer id, record, DDP
-position, a DataLoader worker's receipt pipe); :class:`SimIterator` is one ``iter()`` of it:
-a :class:`~harness.delivery_sim.connection.SimConnection` and, step by step, what
+:class:`SimStream` is what ``EndpointStream`` is for one server (the record, whose consumer id
+the server knows the reader by, the DDP position, the reader process's ``instance`` token, a
+DataLoader worker's receipt pipe); :class:`SimIterator` is one ``iter()`` of it: the record
+placed at the stream's DDP position (``ResumeState.place``: a rank's state loaded at another
+position is refused before any connection), a
+:class:`~harness.delivery_sim.connection.SimConnection`, and step by step what
 ``EndpointStream.__iter__`` yields: a batch claimed once granted (its samples recorded in the
-same step), re-sent samples dropped, DDP padding where owed (as sample ids flagged
-``padding``; no tensors), a batch of a completed epoch given back. Its decisions mirror
-``EndpointStream._batch`` / ``_epoch_done`` / ``_server_padding`` line by line (they live
-there beside torch today); the record's are the real ones.
+same step), re-sent samples dropped, DDP padding where owed (as sample ids flagged ``padding``;
+no tensors), a batch of a completed epoch given back. Those steps are ``EndpointStream``'s
+(``_batch``, ``_epoch_done``, ``_server_padding``), which sit beside torch; every decision of
+the record and the session is the real objects'.
 """
 from __future__ import annotations
 
 import queue
 from typing import Callable, Dict, List, Optional, Tuple
 
-from v2v_client.endpoint import ConsumerRecord
-from v2v_client.session import Drained, EpochDone, LoopAbandoned, ServerPadding, StreamError
+from v2v_client.receipts import Handed
+from v2v_client.resume import ResumeState
+from v2v_client.session import LoopAbandoned, ServerPadding, StreamError
+from v2v_wire.stream_messages import Drained, EpochDone
 
 from harness.delivery_sim.connection import ReceiptPipe, SimConnection
 
 
 class SimStream:
     """One consumer reading one server (``EndpointStream``): ``options`` (``StreamOptions``),
-    ``consumer`` (its id), ``record`` (the real ``ConsumerRecord``); a DataLoader worker has
-    ``receipts`` and ``worker`` (its hello names ``<consumer>/<worker>``)."""
+    ``record`` (the real ``ResumeState``: its ``consumer`` is the id the server knows), the
+    reader process's ``instance``; a DataLoader worker has ``receipts`` and ``worker`` (its hello
+    names ``<consumer>/<worker>``)."""
 
-    def __init__(self, options, consumer: str):
+    def __init__(self, options, consumer: str, instance: str):
         self.options = options
-        self.consumer = consumer
-        self.record = ConsumerRecord()
+        self.record = ResumeState(consumer)
+        self.instance = instance
         self.receipts: Optional[ReceiptPipe] = None
         self.worker: Optional[int] = None
         self.iteration = 0
         self.last: Optional[dict] = None
         self.pad_debt: Dict[int, int] = {}
 
+    @property
+    def consumer(self) -> str:
+        return self.record.consumer
+
     def state_dict(self) -> dict:
-        r = self.record.state()
-        return {"version": 1, "consumer": self.consumer, "completed_epoch": r["completed_epoch"],
-                "delivered": r["delivered"], "batches": r["batches"], "recipe": r["recipe"]}
+        return self.record.state()
 
     def load_state_dict(self, state: dict) -> None:
         self.record.load(state)
-        if isinstance(state.get("consumer"), str) and state["consumer"]:
-            self.consumer = state["consumer"]
 
     def hello_consumer(self) -> str:
         return self.consumer if self.worker is None else f"{self.consumer}/{self.worker}"
@@ -52,21 +58,33 @@ class SimStream:
 
 class SimIterator:
     """One iteration of a :class:`SimStream` in process ``host``; ``wake`` is called when
-    :meth:`next` may have something new."""
+    :meth:`next` may have something new. ``conn`` is None when the record's position was refused
+    (``refused``: the ``ValueError``; the iteration raises it)."""
 
     def __init__(self, stream: SimStream, host, wake: Callable[[], None]):
         self.s = stream
-        self.conn = SimConnection(host, stream.options, stream.record, stream.hello_consumer(), stream.receipts,
-                                  stream.iteration, wake)
         self.pending: Optional[dict] = None  # the batch waiting for its grant
         self.out: List[dict] = []  # loop items ready (padding first)
         self.finished: Optional[str] = None
         self.abandoned = False
+        self.conn: Optional[SimConnection] = None
+        self.refused: Optional[ValueError] = None
+        o = stream.options
+        try:
+            stream.record.place(o.group, o.rank, o.world_size)  # EndpointStream._connect
+        except ValueError as e:
+            self.refused = e
+            host.sim.log(host.name, f"resume refused before the first batch: {e}")
+            return
+        self.conn = SimConnection(host, o, stream.record, stream.hello_consumer(), stream.receipts,
+                                  stream.iteration, stream.instance, wake)
 
     def next(self) -> Tuple[str, object]:
         """The loop's next item: ``("batch", item)`` (``sample_ids``, ``padding`` flags,
         ``epoch``, ``batch_id``, a worker's ``receipt``), ``("wait", None)`` (the consumer
-        blocks), ``("end", why)`` or ``("error", StreamError)``."""
+        blocks), ``("end", why)`` or ``("error", exception)``."""
+        if self.refused is not None:
+            return "error", self.refused
         while True:
             if self.out:
                 return "batch", self.out.pop(0)
@@ -110,7 +128,6 @@ class SimIterator:
         elif s.record.is_complete(item["epoch"]):
             self.conn.give_back(item)
         else:
-            self.conn.ask(item)
             self.pending = item
         return None
 
@@ -119,9 +136,8 @@ class SimIterator:
         s, item = self.s, self.pending
         loader = s.receipts is not None
         epoch = item["epoch"]
-        state, keep = self.conn.try_take(item, lambda: s.record.new_samples(epoch, item["batch_id"],
-                                                                            item["sample_ids"], loader),
-                                         ack=not loader)
+        state, keep = self.conn.try_take(item, lambda: s.record.claim(epoch, item["batch_id"], item["sample_ids"],
+                                                                      loader), ack=not loader)
         if state == "wait":
             return False
         self.pending = None
@@ -132,8 +148,7 @@ class SimIterator:
             if not keep:
                 self.conn.ack([item["batch_id"]])
                 return True
-            out["receipt"] = {"worker": s.worker, "batch_id": item["batch_id"], "epoch": epoch,
-                              "completed_epoch": s.record.completed_epoch}
+            out["receipt"] = Handed(s.worker, item["batch_id"], epoch, s.record.completed_epoch)
         if len(keep) < len(item["sample_ids"]):
             if not keep and s.options.world_size == 1:
                 return True
@@ -170,6 +185,8 @@ class SimIterator:
         self.abandoned = self.abandoned or abandoned
         if self.finished is None:
             self.finished = "abandoned" if abandoned else "closed"
+        if self.conn is None:
+            return
         if s.receipts is not None and not self.abandoned and s.record.pipeline:
             self.conn.linger()
         else:

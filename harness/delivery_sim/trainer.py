@@ -41,8 +41,14 @@ class Reader:
     def alive(self) -> bool:
         return not self.proc.dead
 
+    def conn(self):
+        """The live connection of its current iteration, or None."""
+        c = self.it.conn if self.it is not None else None
+        return c if c is not None and c.alive else None
+
     def held(self) -> int:
-        return self.it.conn.held() if self.it is not None and self.it.conn.alive else 0
+        c = self.conn()
+        return c.held() if c is not None else 0
 
     def credit_limit(self) -> int:
         return self.stream.options.credits
@@ -50,7 +56,7 @@ class Reader:
     def pending(self) -> Iterable[Key]:
         """What is on its way to this process's loop: batches asked or granted, the one
         awaiting its grant, items claimed and not yet yielded."""
-        if self.it is None:
+        if self.it is None or self.it.conn is None:
             return ()
         out = []
         held = self.it.conn.session.held
@@ -66,7 +72,7 @@ class Reader:
         return out
 
     def pending_batches(self) -> int:
-        if self.it is None:
+        if self.it is None or self.it.conn is None:
             return 0
         held = self.it.conn.session.held
         return len(held.asked | held.granted) + (self.it.pending is not None) + len(self.it.out)
@@ -80,7 +86,7 @@ class Reader:
         self.sim.log(self.name, "killed" + (" for good" if for_good else ""))
         self.run.oracle.killed(consumer, self.pending(), self.pending_batches(), for_good)
         self.proc.dead = True
-        if self.it is not None:
+        if self.it is not None and self.it.conn is not None:
             self.it.conn.killed()
 
 
@@ -88,10 +94,11 @@ class Trainer(Reader):
     """One process of a :class:`TrainerJob`."""
 
     def __init__(self, job: "TrainerJob", incarnation: int, state: Optional[dict]):
-        stream = SimStream(job.options, job.consumer)
+        name = f"{job.name}.{incarnation}"
+        stream = SimStream(job.options, job.consumer, instance=name)  # a new process: a new dataset
         if state is not None:
             stream.load_state_dict(state)
-        super().__init__(job.run, f"{job.name}.{incarnation}", stream)
+        super().__init__(job.run, name, stream)
         self.job = job
         self.waiting = False
         self.done = False
@@ -221,6 +228,7 @@ class TrainerJob:
         return [self.proc] if self.proc is not None and not self.proc.proc.dead else []
 
     def failed(self, trainer: Trainer, err) -> None:
-        """The stream raised: an honest job's error is a finding (the oracle reports it at the end)."""
+        """The stream raised: an honest job's error is a finding (the oracle reports it at the end),
+        but a refusal the job may get (``Lineage.refusable``)."""
         self.run.sim.log(trainer.name, f"stream error: {err}")
         self.run.oracle.lineages[self.lineage].error = f"{type(err).__name__}: {err}"
