@@ -161,6 +161,7 @@ class DeliveryCore:
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
         if journal is not None:
+            self.sched.start_after(journal.completed)  # with no record left, the watermark alone says where
             for consumer, delivered in journal.records.items():
                 self.sched.apply_resume(consumer, journal.completed, delivered)
 

@@ -532,6 +532,12 @@ class EpochScheduler:
         plan = self.plans.get(epoch)
         return plan is not None and plan.is_delivered(key)
 
+    def start_after(self, epoch: int) -> None:
+        """A restarted server's journal closed every epoch up to ``epoch`` for good: a scheduler
+        that opened none starts after it (at the end of a bounded stream whose last it is)."""
+        if not self.plans and epoch >= self.next_epoch:
+            self.next_epoch = epoch + 1 if self.max_epochs is None else min(epoch + 1, self.max_epochs)
+
     def apply_resume(self, consumer: Consumer, completed_epoch: int,
                      delivered: Dict[int, Set[SampleKey]]) -> None:
         """A consumer's resume state (authoritative for that consumer): in every epoch after
