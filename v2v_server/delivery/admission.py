@@ -61,10 +61,10 @@ class Admission:
         if any(o not in self.offered for o in h.outputs):
             return ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}", "outputs")
         speaks = self.speaks_for(consumer, h)
+        since = self.pending.get(ident, (None, now))[1]
         foreign = [c for c in self.others(ident, speaks) if c.instance != h.instance or not h.instance]
         if foreign:
-            since = self.pending.get(ident, (None, now))[1]
-            alive = [c for c in foreign if c.heard >= since + self.claim_margin_s]
+            alive = [c for c in foreign if self._alive(c, since)]
             if not alive:
                 return WAIT
             return ServerError(f"{name_of(alive[0].consumer)} is read by another live connection "
@@ -86,6 +86,20 @@ class Admission:
         if why is not None:
             return ServerError(f"{name_of(consumer)}: its resume state {why}", "resume")
         return None
+
+    def _alive(self, c: ClientRecord, since: float) -> bool:
+        """Connection ``c``'s process lived after a hello that arrived at ``since``: it spoke
+        ``claim_margin_s`` after, or named a batch sent to it after (:meth:`spoke_of`)."""
+        return c.heard >= since + self.claim_margin_s or c.proved >= since
+
+    def spoke_of(self, c: ClientRecord, batch_ids) -> None:
+        """Connection ``c`` named these batches (``hold``, ``ack``, ``released``): those sent to it
+        were received, so its process lived when the newest of them was sent (``proved``; linear
+        in the message)."""
+        table = self.ledger.table
+        for bid in batch_ids:
+            if table.holds(c.ident, bid):
+                c.proved = max(c.proved, table.get(bid).sent)
 
     def speaks_for(self, consumer: Hashable, h: Hello) -> Set[Hashable]:
         """The consumers a hello speaks for: its own, and those its gathered state supersedes that

@@ -256,6 +256,8 @@ class DeliveryCore:
                 return []
             return [(ident, ServerError("unknown client (this server may have restarted, or dropped it for "
                                         "silence): say hello first", "unknown_client"))]
+        if self.admission.pending and isinstance(msg, (Hold, Ack, Released)):
+            self.admission.spoke_of(c, msg.batch_ids)
         if isinstance(msg, Hold):
             ok, new = self.ledger.hold(ident, msg.batch_ids, now)
             self._delivered(c, new)  # recorded (and journaled) before the grant leaves

@@ -42,6 +42,7 @@ class ClientRecord:
     ends_on_drained: bool = False  # a DataLoader worker: it ends its iteration on ``drained``
     instance: str = ""  # the reader process's token (docs/delivery.md, "Who may say hello")
     heard: float = 0.0  # when it last said something itself (its hello's arrival, then any message)
+    proved: float = float("-inf")  # when the newest batch it named was sent to it: its process lived after
 
     @property
     def takes(self) -> bool:
@@ -211,7 +212,7 @@ class DeliveryLedger:
             self._tick += 1
             c.served = self._tick
             c.sent += 1
-            self.table.lease(bid, c.ident, now + self.lease_s)
+            self.table.lease(bid, c.ident, now + self.lease_s, now)
             if self.free(c) <= 0:
                 del open_[c.ident]
             out.append((c.ident, b))
