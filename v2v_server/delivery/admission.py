@@ -73,11 +73,14 @@ class Admission:
                                   "Give each reader its own consumer id (a new V2VStreamDataset, or no state)")
                                + ", or stop the other reader", "claimed")
         if group is not None:
-            worlds = {c.world_size for c in self.ledger.clients.values()
-                      if c.ident != ident and c.group == group and c.ddp}
-            if worlds and worlds != {h.world_size}:
-                return ServerError(f"DDP group {group!r} is read at world size {worlds.pop()} by live ranks; this "
-                                   f"rank says {h.world_size}: give each DDP job on this server its own group=",
+            other = [c for c in self.ledger.clients.values()
+                     if c.ident != ident and c.group == group and c.ddp and c.world_size != h.world_size]
+            if other:  # an elastic restart's hello comes before the old ranks' connections are found gone
+                alive = [c for c in other if self._alive(c, since)]
+                if not alive:
+                    return WAIT
+                return ServerError(f"DDP group {group!r} is read at world size {alive[0].world_size} by live ranks; "
+                                   f"this rank says {h.world_size}: give each DDP job on this server its own group=",
                                    "group")
         peers = set(speaks)
         if h.resume.supersedes and group is not None:  # the new job's ranks may have taken the old ones' records
@@ -102,13 +105,26 @@ class Admission:
                 c.proved = max(c.proved, table.get(bid).sent)
 
     def speaks_for(self, consumer: Hashable, h: Hello) -> Set[Hashable]:
-        """The consumers a hello speaks for: its own, and those its gathered state supersedes that
-        are not in its own DDP world (those say hello themselves)."""
+        """The consumers a hello speaks for: its own, those its gathered state supersedes that
+        are not in its own DDP world (those say hello themselves), and a DDP rank's group's ranks
+        beyond its world size that no connection reads (the same job at an earlier world size)."""
         out = {consumer}
         for name, rank in h.resume.supersedes:
             if not (h.world_size > 1 and name == "g:" + (h.group or "default") and rank < h.world_size):
                 out.add((name, rank))
+        if h.world_size > 1:
+            out |= self.beyond("g:" + (h.group or "default"), h.world_size)
         return out
+
+    def beyond(self, name: str, world: int) -> Set[Hashable]:
+        """Ranks ``>= world`` of the group ``name`` the server keeps records or grants of, with
+        no live connection (linear in the records kept)."""
+        s = self.sched
+        known = set(self.ledger.table.stranded_consumers())
+        for recs in [p.records for p in s.plans.values()] + list(s.pending_records.values()):
+            known.update(recs)
+        live = {c.consumer for c in self.ledger.clients.values()}
+        return {k for k in known if k[0] == name and k[1] >= world and k not in live}
 
     # ------------------------------------------------------------------ resume states
     def windows_of(self, video: str) -> Optional[int]:

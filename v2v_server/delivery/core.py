@@ -235,6 +235,7 @@ class DeliveryCore:
         if self.journal is not None:
             self.journal.replaced(consumer, r.completed_epoch, r.delivered)
         if group is not None:
+            self.padding.resized(group, h.world_size)
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
                          r.completed_epoch, h.ends_on_drained, h.instance, heard)
@@ -348,7 +349,8 @@ class DeliveryCore:
             self.sched.discarded(b.epoch, b.keys)
         for ident, (h, _) in list(self.admission.pending.items()):  # hellos waiting for an older connection
             msgs += self.hello(ident, h, now)
-        pads, told = self.ends.tell(now)
+        waiting = {h.group or "default" for h, _ in self.admission.pending.values() if h.world_size > 1}
+        pads, told = self.ends.tell(now, waiting)
         return sends + pads, msgs + told + self.ends.drained()
 
     # ------------------------------------------------------------------ views

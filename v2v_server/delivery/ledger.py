@@ -165,7 +165,7 @@ class DeliveryLedger:
         if c is not None and n > 0:
             c.credits = min(self.max_credits, c.credits + n)
 
-    def _ready_groups(self, now: float) -> Set[str]:
+    def ready_groups(self, now: float) -> Set[str]:
         """DDP groups whose ranks all said hello (or that waited ``group_wait_s``)."""
         ranks: Dict[str, Set[int]] = {}
         size: Dict[str, int] = {}
@@ -189,7 +189,7 @@ class DeliveryLedger:
         their samples must be made again."""
         out: List[Tuple[bytes, BatchRecord]] = []
         stale: List[BatchRecord] = []
-        groups = self._ready_groups(now)
+        groups = self.ready_groups(now)
         open_ = {i: c for i, c in self.clients.items()
                  if self.free(c) > 0 and c.takes and (not c.ddp or c.group in groups)}
         for bid in self.table.ready():

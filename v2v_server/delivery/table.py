@@ -96,6 +96,10 @@ class BatchTable:
     def stranded_of(self, consumer: Hashable) -> List[int]:
         return list(self._stranded.get(consumer, ()))
 
+    def stranded_consumers(self) -> List[Hashable]:
+        """The consumers some batch is stranded with."""
+        return list(self._stranded)
+
     def in_state(self, *states: str) -> Iterator[BatchRecord]:
         """The batches in any of ``states`` (O(table))."""
         return (b for b in self.batches.values() if b.state in states)
