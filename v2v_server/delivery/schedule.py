@@ -541,9 +541,10 @@ class EpochScheduler:
     def apply_resume(self, consumer: Consumer, completed_epoch: int,
                      delivered: Dict[int, Set[SampleKey]]) -> None:
         """A consumer's resume state (authoritative for that consumer): in every epoch after
-        ``completed_epoch`` its record becomes exactly ``delivered[epoch]``; samples it had
-        acknowledged beyond that become owed again (a complete epoch reopens). A fresh
-        scheduler starts at ``completed_epoch + 1`` when it has that epoch to serve."""
+        ``completed_epoch`` its record becomes exactly ``delivered[epoch]``, in epochs not
+        opened yet too; samples it had acknowledged beyond that become owed again (a complete
+        epoch reopens). A fresh scheduler starts at ``completed_epoch + 1`` when it has that
+        epoch to serve."""
         delivered = {e: {k for k in ks if k.video in self.known} for e, ks in delivered.items()}
         if not self.plans and self.next_epoch <= completed_epoch < (self.max_epochs or completed_epoch + 2) - 1:
             self.next_epoch = completed_epoch + 1
@@ -552,6 +553,9 @@ class EpochScheduler:
                 continue
             changed = plan.set_record(consumer, delivered.get(e, ()))
             self._reconcile(plan, changed)
+        for e, records in self.pending_records.items():
+            if e > completed_epoch:
+                records.pop(consumer, None)
         for e, ks in delivered.items():
             if e > completed_epoch and e >= self.next_epoch:
                 self.pending_records.setdefault(e, {})[consumer] = set(ks)
