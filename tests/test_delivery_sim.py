@@ -6,8 +6,9 @@ checks after every step that no sample reaches two training loops in an epoch, t
 announced complete lacks nothing, that honest streams end and that memory stays bounded.
 
 * the families' ``main`` profiles (what main holds) run 1,000 seeds and must all pass;
-* the issue's scenarios and the families' full profiles are expected failures until the fixes
-  land (docs/simulator.md, "Open findings", names why); strict, so a fix flips them;
+* the issue's scenarios hold; the families' full profiles and the scenarios of findings still
+  open are strict expected failures (docs/simulator.md, "Open findings", names why), so a fix
+  flips them;
 * a seed replays exactly with the command its failure prints, and the checks fail on a client
   that breaks the grant rule (the simulator is not blind).
 
@@ -83,7 +84,8 @@ def full_families():
     return simulate(sorted(FAMILIES), FULL_SEEDS)
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=SCENARIOS[n].xfail))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=SCENARIOS[n].xfail)
+                                                 if SCENARIOS[n].xfail else ())
                                   for n in sorted(FAMILIES)])
 def test_the_full_families_hold(full_families, name):
     outcome = full_families[name]
@@ -92,7 +94,7 @@ def test_the_full_families_hold(full_families, name):
 
 def test_a_failing_seed_replays_with_the_command_it_prints(named):
     """The replay command prints the same violation, at the same step, with the trace up to it."""
-    failure = named["false_claim"]["failures"][0]
+    failure = named["false_claim_first"]["failures"][0]
     cmd = failure["replay"].split()
     assert cmd[:3] == ["python", "-m", "harness.delivery_sim"]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))

@@ -17,7 +17,10 @@ is the (epoch, sample id) pairs its model was trained on (padding excluded).
   (at most ``GRANT_AHEAD + 1`` batches each; a ``StreamLoader`` worker's queued batches
   besides), or forgotten when it resumed from a checkpoint and not taken again before it died.
 * **Liveness**: every honest lineage's stream ends (the server's ``end``) by its deadline.
-* **Memory** (after every server turn): no client holds more batches than its credits; the
+* **Memory** (after every server turn): the scheduler keeps at most 6 epochs open besides those
+  it opened within the last ``2 lease_s + revoke_s`` (how long a reader sitting on its grants may
+  keep another from being told an epoch complete, docs/delivery.md: a reader reads on meanwhile,
+  and only epochs told complete can close); no client holds more batches than its credits; the
   table holds batches of open epochs only, but grants (a consumer's for good, whatever the
   epoch's books: at most twice the most credits per consumer) and grants given back (at most
   that for each of the up to three consumers of every job); the server keeps records for at
@@ -74,6 +77,7 @@ class Oracle:
         self.dead_consumers: Set[str] = set()  # consumers that died for good
         self.live_clients: List = []  # objects with ``pending() -> Iterable[Key]`` and ``alive()``
         self.max_epoch_opened = -1
+        self.opened_at: Dict[int, float] = {}  # when the server's books first showed each epoch open
         self.yields = 0
         self.holders = lambda epoch, sid: []  # where the server keeps a sample (set by the run: ServerProbe.holders)
         self.recorded_to = lambda epoch, sid: []  # the consumers it is recorded to (ServerProbe.recorded_to)
@@ -199,8 +203,9 @@ class Oracle:
                                   f"docs allow {GRANT_AHEAD + 1 + extra}")
 
     # ------------------------------------------------------------------ memory
-    def memory(self, probe, max_credits: int) -> None:
-        """The bounds on what the server keeps (see the module docstring)."""
+    def memory(self, probe, max_credits: int, wait_s: float) -> None:
+        """The bounds on what the server keeps (see the module docstring); ``wait_s``: how long
+        a reader sitting on grants may delay another's end of an epoch (``2 lease_s + revoke_s``)."""
         fail = self.sim.fail
         for ident, held, credits in probe.client_holdings():
             if held > credits:
@@ -208,8 +213,13 @@ class Oracle:
         plans = probe.plan_epochs()
         if plans:
             self.max_epoch_opened = max(self.max_epoch_opened, plans[-1])
-        if len(plans) > 6:
-            fail("memory", f"the scheduler keeps {len(plans)} epochs open: {plans}")
+        now = self.sim.now
+        for e in plans:
+            self.opened_at.setdefault(e, now)
+        recent = [e for e in plans if self.opened_at[e] > now - wait_s]
+        if len(plans) - len(recent) > 6:
+            fail("memory", f"the scheduler keeps {len(plans)} epochs open: {plans} ({len(recent)} opened in the last "
+                           f"{wait_s:g} s)")
         kept: Dict[object, int] = {}
         behind = []
         for bid, epoch, n, state, consumer in probe.batches():

@@ -120,7 +120,8 @@ class Run:
                 for fn in list(self.on_announced):
                     fn(e)
             self._told = max(self._told, told)
-            self.oracle.memory(probe, self.setup.policy.max_credits)
+            pol = self.setup.policy
+            self.oracle.memory(probe, pol.max_credits, 2 * pol.lease_s + pol.revoke_s)
             probe.remember()
         if proc is not None and proc is not getattr(self.server, "proc", None):
             self.oracle.client_memory([c for c in self.oracle.live_clients if getattr(c, "proc", None) is proc])
