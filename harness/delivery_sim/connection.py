@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from typing import Callable, List, Optional, Tuple
 
+from v2v_client.connection import own_stall
 from v2v_client.receipts import loader_message
 from v2v_client.session import ServerSession, StreamError, StreamTimeout
 from v2v_wire.protocol import pack, unpack
@@ -61,7 +62,7 @@ class SimConnection:
         self.ident = self.sim.rng.getrandbits(64).to_bytes(8, "big")
         self.name = f"{self.proc.name}/{self.ident.hex()[:8]}"
         self.link = self.net.connect(self.ident, self)
-        self.last_heard = self.sim.now
+        self.last_heard = self.last_turn = self.sim.now
         self.session.hello(new_socket=True)
         self.session.tick(self.sim.now)  # the poll loop's first turn
         self._send_out()
@@ -100,6 +101,8 @@ class SimConnection:
         self.take_receipts()
         if not self.alive:
             return
+        self.last_heard += own_stall(now - self.last_turn, self.options.timeout_s)
+        self.last_turn = now
         if now - self.last_heard > self.options.timeout_s:
             self._lost(f"no message for {self.options.timeout_s:.0f} s")
             if not self.alive:
