@@ -7,7 +7,7 @@ announced complete lacks nothing, that honest streams end and that memory stays 
 
 * the families' ``main`` profiles (what main holds) run 1,000 seeds and must all pass;
 * the issue's scenarios hold; the families' full profiles and the scenarios of findings still
-  open are strict expected failures (docs/simulator.md, "Open findings", names why), so a fix
+  open are strict expected failures (docs/simulator.md, "Findings", names why), so a fix
   flips them;
 * a seed replays exactly with the command its failure prints, and the checks fail on a client
   that breaks the grant rule (the simulator is not blind).

@@ -3,9 +3,9 @@ faults) drawn from its seed's one random source.
 
 Each family is ``build(seed, trace, profile) -> Run``; a :class:`Profile` bounds what it draws:
 ``FULL`` draws everything, ``MAIN`` leaves out what the delivery path is known to fail today
-(docs/simulator.md, "Open findings": server crashes, more than two epochs, long pauses, broken
+(docs/simulator.md, "Findings": server crashes, more than two epochs, long pauses, broken
 connections, partitions, DDP). The test suite runs each family's ``MAIN`` profile green and its
-``FULL`` profile as an expected failure until the fixes land.
+``FULL`` profile as an expected failure where it still fails.
 
 * ``trainers``: 1-3 independent trainers (plain datasets) with pauses of any length, kills and
   restarts from the newest or an older checkpoint, deaths for good, loops that stop reading,
@@ -16,7 +16,7 @@ connections, partitions, DDP). The test suite runs each family's ``MAIN`` profil
   killed workers, restarts from the loader's checkpoint;
 * ``network``: the trainers family over a network that also duplicates and delays messages;
 * ``elastic``: a DDP job resumed at another world size (2 -> 1, 1 -> 2, 3 -> 2), each rank
-  loading its own rank's state (issue 69: fails on main);
+  loading its own rank's state (refused: every rank's state; issue 69 item 3);
 * ``mixed``: one of the honest families above.
 """
 from __future__ import annotations
@@ -186,7 +186,7 @@ def mixed(seed: int, trace: bool = False, profile: Profile = FULL) -> Run:
 FAMILIES = {"trainers": trainers, "ddp": ddp, "loader": loader, "network": network, "elastic": elastic,
             "mixed": mixed}
 #: what each family's ``FULL`` profile finds today in seeds 0-59 (None: they hold); other open
-#: findings fail at later seeds (``OPEN_FINDINGS``; docs/simulator.md, "Open findings")
+#: findings fail at later seeds (``OPEN_FINDINGS``; docs/simulator.md, "Findings")
 FAILS_ON_MAIN = {"trainers": "F1, F9", "ddp": None, "loader": "F1, F16", "network": None, "elastic": None,
                  "mixed": "F1"}
 #: one failing seed of each open finding: (scenario, seed, finding)
@@ -194,5 +194,7 @@ OPEN_FINDINGS = [("trainers", 0, "F1: a resume older than an epoch the restarted
                  ("trainers", 7, "F9: a late hello of a consumer's dead connection resets its record"),
                  ("ddp", 90, "F7: a batch of a forgotten epoch reaches one rank; the others never pad it"),
                  ("loader", 9, "F16: a loader worker's stranded grant is sent again after its loop got it"),
-                 ("loader", 224, "F13: drained while the last batch is leased to a stopped worker"),
+                 ("loader", 343, "F10: a drained sent before the server read a worker's new hello ends it"),
+                 ("loader", 224, "F12: drained while the last batch is leased to a worker that cannot take it"),
+                 ("loader", 377, "F13: drained while the last batch is leased to a trainer that then dies"),
                  ("network", 250, "F17: an ack lost with a broken connection is never sent again")]
