@@ -47,8 +47,7 @@ class ResumeState:
     """
 
     def __init__(self, consumer: str = ""):
-        self.lock = threading.Lock()
-        self.consumer = consumer
+        self.lock, self.consumer = threading.Lock(), consumer
         self.completed_epoch = -1
         self.delivered: Dict[int, Set[str]] = {}
         self.batches: Dict[int, int] = {}
@@ -181,9 +180,7 @@ class ResumeState:
         """This state's reader is about to say hello as ``rank`` of ``world_size`` in ``group``.
         A state saved by one rank of a DDP job at another position speaks for that rank alone:
         refused. One reader's whole state (world size 1) may start every rank of a new job (it
-        then speaks for that reader, and its batch counts, the reader's, are not the rank's: DDP
-        padding counts the new ranks' batches from 0, as for a rank that loads no state); a
-        gathered state may start any position.
+        then speaks for that reader); a gathered state may start any position.
 
         Raises:
             ValueError: one line saying what to load instead.
@@ -198,8 +195,7 @@ class ResumeState:
                         f"with each rank's own state, or load every rank's state in each rank: "
                         f"ds.load_state_dict({{'v2v_ranks': [state of rank 0, ..., state of rank {saved[2] - 1}]}})")
                 self.supersedes = ((f"c:{self.consumer}", 0),)  # one reader's whole state, now read by a job
-                if world_size > 1:
-                    self.batches.clear()
+                self.batches.clear()  # the reader's counts, not the rank's: DDP padding counts from 0
             self.position = (group if world_size > 1 else "", rank, world_size)
 
     def welcomed(self, server: Optional[str]) -> None:

@@ -147,7 +147,8 @@ class DeliveryCore:
         p = self.policy = policy
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
-                                    max_samples_per_video=p.max_samples_per_video)
+                                    max_samples_per_video=p.max_samples_per_video,
+                                    first_epoch=0 if journal is None else journal.completed + 1)  # its epochs closed
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s,
                                      stall_s=stall_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
@@ -161,7 +162,6 @@ class DeliveryCore:
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
         if journal is not None:
-            self.sched.start_after(journal.completed)  # with no record left, the watermark alone says where
             for consumer, delivered in journal.records.items():
                 self.sched.apply_resume(consumer, journal.completed, delivered)
 
