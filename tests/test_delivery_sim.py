@@ -103,9 +103,10 @@ def test_the_open_findings_hold(name, seed):
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
 
 
-def test_a_failing_seed_replays_with_the_command_it_prints(named):
-    """The replay command prints the same violation, at the same step, with the trace up to it."""
-    failure = named["false_claim_first"]["failures"][0]
+def test_a_failing_seed_replays_with_the_command_it_prints():
+    """The replay command prints the same violation, at the same step, with the trace up to it
+    (F1's seed: a loss, while the finding is open)."""
+    [failure] = simulate(["trainers"], 1)["trainers"]["failures"]
     cmd = failure["replay"].split()
     assert cmd[:3] == ["python", "-m", "harness.delivery_sim"]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))

@@ -142,16 +142,18 @@ class Admission:
         n = self.windows_of(video)
         return sys.maxsize if n is None else n
 
-    def verifies(self, epoch: int, origins: Tuple[str, ...]) -> bool:
-        """A resume state naming servers ``origins`` can be checked against who this server
-        granted what of ``epoch`` (docs/delivery.md, "Who may say hello": an epoch whose grants it
-        knows)."""
+    def granted_in(self, epoch: int, origins: Tuple[str, ...]) -> Optional[Dict[Hashable, Set]]:
+        """Who this server granted what of ``epoch`` (consumer -> sample keys), when a resume
+        state naming servers ``origins`` can be checked against it (docs/delivery.md, "Who may say
+        hello": an epoch whose grants it knows; with ``--state-dir`` one not opened yet too, whose
+        grants are the journal's records, on disk before any grant leaves); None when it cannot."""
         plan = self.sched.plans.get(epoch)
         if plan is None:
-            return False
-        if self.journal is not None or set(origins) == {self.server_id}:
-            return True
-        return not origins and plan.served
+            known = self.journal is not None and epoch >= self.sched.next_epoch
+            return self.sched.pending_records.get(epoch, {}) if known else None
+        if self.journal is not None or set(origins) == {self.server_id} or (not origins and plan.served):
+            return plan.records
+        return None
 
     def resume_problem(self, consumer: Hashable, r: Resume, speaks: Set[Hashable]) -> Optional[str]:
         """Why the server can tell resume state ``r`` of ``consumer`` is false, or None (linear in
@@ -173,9 +175,9 @@ class Admission:
                 if n is not None and key.ordinal(self.k) >= n:
                     return (f"names sample {key.sample_id(self.k)} of epoch {e}; {key.video} gives {n} sample(s) "
                             f"under this server's recipe")
-            if self.verifies(e, r.origins):
-                plan = s.plans[e]
-                had = set().union(*(plan.records.get(c, ()) for c in speaks))
+            records = self.granted_in(e, r.origins)
+            if records is not None:
+                had = set().union(*(records.get(c, ()) for c in speaks))
                 never = [k for k in keys if k.video in s.known and k not in had]
                 if never:
                     return (f"names {len(never)} sample(s) of epoch {e} this server never granted to it (such as "
