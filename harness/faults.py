@@ -440,6 +440,53 @@ def _stopped_while_another_reads(endpoint: str, p: subprocess.Popen, stop: Calla
     return ids, log_b
 
 
+STOPPED_CLIENT = r"""
+import os, signal, sys
+from v2v_client import V2VStreamDataset
+ds = V2VStreamDataset(sys.argv[1], timeout_s=float(sys.argv[2]), credits=1)
+for n, b in enumerate(ds, 1):
+    print("ids", " ".join(b["sample_ids"]), flush=True)
+    if n == 1:
+        os.kill(os.getpid(), signal.SIGSTOP)
+"""
+
+
+def scenario_stopped_past_timeout_across_restart(tmp: Path, layout: Layout, timeout_s: float = 3.0) -> dict:
+    """A trainer (``timeout_s``) stopped (SIGSTOP) after its first batch while the server is
+    killed and restarted from its ``--state-dir`` on the same endpoint, and woken past its
+    timeout: the new server does not know it, so nothing waits in its socket; it must not count
+    its own stall as the server's silence, but say a heartbeat, be told ``unknown_client``,
+    say hello again and read the rest of the epoch."""
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    args = ["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--state-dir", str(tmp / "state"),
+            *layout.args()]
+    srv = ServeProcess(args).start()
+    srv2 = None
+    p = _trainer_process(STOPPED_CLIENT, srv.endpoint, str(timeout_s))
+    try:
+        ids = p.stdout.readline().split()[1:]
+        time.sleep(0.3)
+        srv.proc.send_signal(signal.SIGKILL)
+        srv.proc.wait(10)
+        srv2 = ServeProcess(args[:] + ["--bind", srv.endpoint]).start()
+        time.sleep(timeout_s + 2.0)  # stopped past its timeout
+        t_wake = time.monotonic()
+        p.send_signal(signal.SIGCONT)
+        log = [(time.monotonic(), line.split()[1:]) for line in p.stdout if line.startswith("ids")]
+        rc = p.wait(60)
+        srv2.wait(30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(10)
+        srv.stop()
+        if srv2 is not None:
+            srv2.stop()
+    return row(f"trainer stopped {timeout_s + 2:.0f} s > its timeout across a server restart", expected,
+               ids + _ids(log), _next_after(log, t_wake), f"client exit {rc}", client_exit=rc)
+
+
 def scenario_silent_client(tmp: Path, layout: Layout, client_timeout_s: float = 2.0) -> dict:
     """A trainer process suspended (SIGSTOP) longer than the server's client timeout, then
     resumed: it was dropped and its batches went to another trainer, so it must hand none

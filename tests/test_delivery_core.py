@@ -694,3 +694,17 @@ def test_an_epoch_makes_a_job_when_a_video_is_first_looked_up():
     while (t := s.next_task("w", 1.0)) is not None:
         s.task_done(t.task_id, "w", 0)
     assert plan.progress() == (5, 5) and plan.complete and len(plan.jobs) == 5
+
+
+def test_a_resume_state_replaces_a_record_of_an_epoch_not_open_yet():
+    """A restarted server holds the journal's record of an epoch it has not opened (a grant
+    ahead); the consumer's next hello, whose loop never got that grant, replaces it: its samples
+    are made in that epoch (the record had stayed, and they reached no loop)."""
+    s = EpochScheduler(["a.mp4"], epochs=2)
+    s.apply_resume("c", -1, {1: {SampleKey("a.mp4", 0)}})  # the journal, read at start
+    s.apply_resume("c", -1, {})  # the consumer's hello
+    t = s.next_task("w", 0.0)
+    s.task_done(t.task_id, "w", 2)
+    s.delivered("c", 0, [SampleKey("a.mp4", 0), SampleKey("a.mp4", 1)])
+    t = s.next_task("w", 1.0)
+    assert (t.epoch, t.skip) == (1, frozenset())

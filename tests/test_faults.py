@@ -42,6 +42,12 @@ def test_server_restart_mid_epoch_with_client_resume(tmp_path):
     assert r["recover_s"] is not None
 
 
+def test_a_client_stopped_past_its_timeout_across_a_server_restart_reads_on(tmp_path):
+    r = faults.scenario_stopped_past_timeout_across_restart(tmp_path, LAYOUT, timeout_s=3.0)
+    assert_exactly_once(r)
+    assert r["facts"]["client_exit"] == 0 and r["recover_s"] is not None, r
+
+
 def test_stalled_client_longer_than_lease(tmp_path):
     r = faults.scenario_stalled_client(tmp_path, LAYOUT, lease_s=1.0, stall_s=3.0)
     assert_exactly_once(r)

@@ -162,3 +162,25 @@ def test_the_journals_bench_drives_the_core_it_measures(tmp_path):
     recorded = sum(len(keys) for record in kept.records.values() for keys in record.values())
     assert recorded >= 30 * 12 and recorded % 12 == 0, recorded  # whole batches, at least those asked for
     kept.close()
+
+
+@pytest.mark.parametrize("epochs,first", [(None, 1), (3, 1), (1, None)])
+def test_a_server_restarted_after_an_epoch_completed_starts_after_it(tmp_path, epochs, first):
+    """A server killed as epoch 0 completed leaves a journal with its watermark and no record
+    (complete epochs are dropped): the restarted server makes epoch 1 (or nothing more, when
+    epoch 0 was the last), never epoch 0 again (it had doubled a whole epoch for a new reader)."""
+    from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+    from v2v_wire.messages import Hello
+
+    j = Journal(str(tmp_path), "r1")
+    j.delivered(("c:a", 0), 0, [K("a.mp4", 0)])
+    j.epoch_complete(0)
+    j.close()
+    k = Journal(str(tmp_path), "r1")
+    assert k.completed == 0 and k.records == {}
+    core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=epochs, lease_s=100.0, client_timeout_s=100.0,
+                                                  max_credits=4, task_timeout_s=100.0), list, journal=k)
+    core.hello(b"v", Hello(("voxels",), 2), 0.0)
+    task = core.task_for(b"w", 0.0)
+    assert (task.epoch if task is not None else None) == first
+    k.close()

@@ -31,6 +31,15 @@ __all__ = ["Connection", "StreamError", "StreamTimeout", "MAX_SERVER_MSG", "load
 log = logging.getLogger("v2v.client")
 
 
+def own_stall(gap: float, timeout_s: float) -> float:
+    """Seconds of a gap of ``gap`` between two turns of the I/O loop that were this process's
+    own stall (stopped, or starved of a core), not the server's silence: all of a gap longer
+    than half of ``timeout_s``, none of a shorter one. A client stopped past its timeout wakes,
+    reads what came, says a heartbeat (a restarted server answers ``unknown_client``, and it
+    says hello again) and raises ``StreamTimeout`` only if the server stays silent while it runs."""
+    return gap if gap > timeout_s / 2 else 0.0
+
+
 class Connection:
     """One DEALER connection to one endpoint and its I/O thread, which owns the socket. It reports
     only through ``items`` (decoded batches and control items) and keeps no protocol state: that
@@ -182,11 +191,13 @@ class Connection:
         server reconnect (``options.reconnect``) or end the stream with an error."""
         sock = self._sock
         give_up_at = None
-        last_heard = time.monotonic()
+        last_heard = last_turn = time.monotonic()
         poller = self._poller(sock)
         while not self._closing.is_set():
             events = dict(poller.poll(100))
             now = time.monotonic()
+            last_heard += own_stall(now - last_turn, self.options.timeout_s)
+            last_turn = now
             if self._wake.receiver in events:
                 self._wake.drain()
             self._take_receipts()

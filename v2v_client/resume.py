@@ -47,8 +47,7 @@ class ResumeState:
     """
 
     def __init__(self, consumer: str = ""):
-        self.lock = threading.Lock()
-        self.consumer = consumer
+        self.lock, self.consumer = threading.Lock(), consumer
         self.completed_epoch = -1
         self.delivered: Dict[int, Set[str]] = {}
         self.batches: Dict[int, int] = {}
@@ -196,6 +195,7 @@ class ResumeState:
                         f"with each rank's own state, or load every rank's state in each rank: "
                         f"ds.load_state_dict({{'v2v_ranks': [state of rank 0, ..., state of rank {saved[2] - 1}]}})")
                 self.supersedes = ((f"c:{self.consumer}", 0),)  # one reader's whole state, now read by a job
+                self.batches.clear()  # the reader's counts, not the rank's: DDP padding counts from 0
             self.position = (group if world_size > 1 else "", rank, world_size)
 
     def welcomed(self, server: Optional[str]) -> None:

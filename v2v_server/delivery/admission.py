@@ -61,10 +61,10 @@ class Admission:
         if any(o not in self.offered for o in h.outputs):
             return ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}", "outputs")
         speaks = self.speaks_for(consumer, h)
+        since = self.pending.get(ident, (None, now))[1]
         foreign = [c for c in self.others(ident, speaks) if c.instance != h.instance or not h.instance]
         if foreign:
-            since = self.pending.get(ident, (None, now))[1]
-            alive = [c for c in foreign if c.heard >= since + self.claim_margin_s]
+            alive = [c for c in foreign if self._alive(c, since)]
             if not alive:
                 return WAIT
             return ServerError(f"{name_of(alive[0].consumer)} is read by another live connection "
@@ -73,11 +73,14 @@ class Admission:
                                   "Give each reader its own consumer id (a new V2VStreamDataset, or no state)")
                                + ", or stop the other reader", "claimed")
         if group is not None:
-            worlds = {c.world_size for c in self.ledger.clients.values()
-                      if c.ident != ident and c.group == group and c.ddp}
-            if worlds and worlds != {h.world_size}:
-                return ServerError(f"DDP group {group!r} is read at world size {worlds.pop()} by live ranks; this "
-                                   f"rank says {h.world_size}: give each DDP job on this server its own group=",
+            other = [c for c in self.ledger.clients.values()
+                     if c.ident != ident and c.group == group and c.ddp and c.world_size != h.world_size]
+            if other:  # an elastic restart's hello comes before the old ranks' connections are found gone
+                alive = [c for c in other if self._alive(c, since)]
+                if not alive:
+                    return WAIT
+                return ServerError(f"DDP group {group!r} is read at world size {alive[0].world_size} by live ranks; "
+                                   f"this rank says {h.world_size}: give each DDP job on this server its own group=",
                                    "group")
         peers = set(speaks)
         if h.resume.supersedes and group is not None:  # the new job's ranks may have taken the old ones' records
@@ -87,14 +90,41 @@ class Admission:
             return ServerError(f"{name_of(consumer)}: its resume state {why}", "resume")
         return None
 
+    def _alive(self, c: ClientRecord, since: float) -> bool:
+        """Connection ``c``'s process lived after a hello that arrived at ``since``: it spoke
+        ``claim_margin_s`` after, or named a batch sent to it after (:meth:`spoke_of`)."""
+        return c.heard >= since + self.claim_margin_s or c.proved >= since
+
+    def spoke_of(self, c: ClientRecord, batch_ids) -> None:
+        """Connection ``c`` named these batches (``hold``, ``ack``, ``released``): those sent to it
+        were received, so its process lived when the newest of them was sent (``proved``; linear
+        in the message)."""
+        table = self.ledger.table
+        for bid in batch_ids:
+            if table.holds(c.ident, bid):
+                c.proved = max(c.proved, table.get(bid).sent)
+
     def speaks_for(self, consumer: Hashable, h: Hello) -> Set[Hashable]:
-        """The consumers a hello speaks for: its own, and those its gathered state supersedes that
-        are not in its own DDP world (those say hello themselves)."""
+        """The consumers a hello speaks for: its own, those its gathered state supersedes that
+        are not in its own DDP world (those say hello themselves), and a DDP rank's group's ranks
+        beyond its world size that no connection reads (the same job at an earlier world size)."""
         out = {consumer}
         for name, rank in h.resume.supersedes:
             if not (h.world_size > 1 and name == "g:" + (h.group or "default") and rank < h.world_size):
                 out.add((name, rank))
+        if h.world_size > 1:
+            out |= self.beyond("g:" + (h.group or "default"), h.world_size)
         return out
+
+    def beyond(self, name: str, world: int) -> Set[Hashable]:
+        """Ranks ``>= world`` of the group ``name`` the server keeps records or grants of, with
+        no live connection (linear in the records kept)."""
+        s = self.sched
+        known = set(self.ledger.table.stranded_consumers())
+        for recs in [p.records for p in s.plans.values()] + list(s.pending_records.values()):
+            known.update(recs)
+        live = {c.consumer for c in self.ledger.clients.values()}
+        return {k for k in known if k[0] == name and k[1] >= world and k not in live}
 
     # ------------------------------------------------------------------ resume states
     def windows_of(self, video: str) -> Optional[int]:
@@ -112,16 +142,18 @@ class Admission:
         n = self.windows_of(video)
         return sys.maxsize if n is None else n
 
-    def verifies(self, epoch: int, origins: Tuple[str, ...]) -> bool:
-        """A resume state naming servers ``origins`` can be checked against who this server
-        granted what of ``epoch`` (docs/delivery.md, "Who may say hello": an epoch whose grants it
-        knows)."""
+    def granted_in(self, epoch: int, origins: Tuple[str, ...]) -> Optional[Dict[Hashable, Set]]:
+        """Who this server granted what of ``epoch`` (consumer -> sample keys), when a resume
+        state naming servers ``origins`` can be checked against it (docs/delivery.md, "Who may say
+        hello": an epoch whose grants it knows; with ``--state-dir`` one not opened yet too, whose
+        grants are the journal's records, on disk before any grant leaves); None when it cannot."""
         plan = self.sched.plans.get(epoch)
         if plan is None:
-            return False
-        if self.journal is not None or set(origins) == {self.server_id}:
-            return True
-        return not origins and plan.served
+            known = self.journal is not None and epoch >= self.sched.next_epoch
+            return self.sched.pending_records.get(epoch, {}) if known else None
+        if self.journal is not None or set(origins) == {self.server_id} or (not origins and plan.served):
+            return plan.records
+        return None
 
     def resume_problem(self, consumer: Hashable, r: Resume, speaks: Set[Hashable]) -> Optional[str]:
         """Why the server can tell resume state ``r`` of ``consumer`` is false, or None (linear in
@@ -143,9 +175,9 @@ class Admission:
                 if n is not None and key.ordinal(self.k) >= n:
                     return (f"names sample {key.sample_id(self.k)} of epoch {e}; {key.video} gives {n} sample(s) "
                             f"under this server's recipe")
-            if self.verifies(e, r.origins):
-                plan = s.plans[e]
-                had = set().union(*(plan.records.get(c, ()) for c in speaks))
+            records = self.granted_in(e, r.origins)
+            if records is not None:
+                had = set().union(*(records.get(c, ()) for c in speaks))
                 never = [k for k in keys if k.video in s.known and k not in had]
                 if never:
                     return (f"names {len(never)} sample(s) of epoch {e} this server never granted to it (such as "

@@ -43,10 +43,13 @@ class EpochEnds:
         self._idle_since: Optional[float] = None  # over, with no reader connected, since
 
     # ------------------------------------------------------------------ per tick
-    def tell(self, now: float) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
+    def tell(self, now: float, waiting: Set[str] = frozenset()) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
         """``epoch_done`` for every epoch each connection may now be told (a DDP rank that was
         never sent a batch first gets a padding batch, ``GroupPadding.epoch_done``), then ``end``
-        to each connection told its last epoch. Returns ``(padding sends, messages)``."""
+        to each connection told its last epoch; a DDP rank only once its group is ready
+        (``DeliveryLedger.ready_groups``) and none of its ranks' hellos is ``waiting``: another
+        rank's resume state may reopen the epoch, and every rank must end it alike.
+        Returns ``(padding sends, messages)``."""
         pads: List[Tuple[bytes, BatchRecord]] = []
         msgs: List[Msg] = []
         low = min((c.completed for c in self.ledger.clients.values()), default=self.told_upto)
@@ -54,7 +57,10 @@ class EpochEnds:
             return pads, msgs  # nothing to tell and nothing to forget: the common turn costs O(connections)
         self._low = low
         own, live, fresh = self._holders(now)
+        ready = self.ledger.ready_groups(now) - set(waiting)
         for ident, c in self.ledger.clients.items():
+            if c.ddp and c.group not in ready:
+                continue
             blocked = sorted(live | own.get(c.consumer, set()) | {e for e, who in fresh.items() if who - {c.consumer}})
             while True:
                 step = self._next(c, blocked)

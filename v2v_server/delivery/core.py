@@ -147,7 +147,8 @@ class DeliveryCore:
         p = self.policy = policy
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
-                                    max_samples_per_video=p.max_samples_per_video)
+                                    max_samples_per_video=p.max_samples_per_video,
+                                    first_epoch=0 if journal is None else journal.completed + 1)  # its epochs closed
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s,
                                      stall_s=stall_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
@@ -234,6 +235,7 @@ class DeliveryCore:
         if self.journal is not None:
             self.journal.replaced(consumer, r.completed_epoch, r.delivered)
         if group is not None:
+            self.padding.resized(group, h.world_size)
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
                          r.completed_epoch, h.ends_on_drained, h.instance, heard)
@@ -255,6 +257,8 @@ class DeliveryCore:
                 return []
             return [(ident, ServerError("unknown client (this server may have restarted, or dropped it for "
                                         "silence): say hello first", "unknown_client"))]
+        if self.admission.pending and isinstance(msg, (Hold, Ack, Released)):
+            self.admission.spoke_of(c, msg.batch_ids)
         if isinstance(msg, Hold):
             ok, new = self.ledger.hold(ident, msg.batch_ids, now)
             self._delivered(c, new)  # recorded (and journaled) before the grant leaves
@@ -345,7 +349,8 @@ class DeliveryCore:
             self.sched.discarded(b.epoch, b.keys)
         for ident, (h, _) in list(self.admission.pending.items()):  # hellos waiting for an older connection
             msgs += self.hello(ident, h, now)
-        pads, told = self.ends.tell(now)
+        waiting = {h.group or "default" for h, _ in self.admission.pending.values() if h.world_size > 1}
+        pads, told = self.ends.tell(now, waiting)
         return sends + pads, msgs + told + self.ends.drained()
 
     # ------------------------------------------------------------------ views

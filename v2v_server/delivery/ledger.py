@@ -42,6 +42,7 @@ class ClientRecord:
     ends_on_drained: bool = False  # a DataLoader worker: it ends its iteration on ``drained``
     instance: str = ""  # the reader process's token (docs/delivery.md, "Who may say hello")
     heard: float = 0.0  # when it last said something itself (its hello's arrival, then any message)
+    proved: float = float("-inf")  # when the newest batch it named was sent to it: its process lived after
 
     @property
     def takes(self) -> bool:
@@ -164,7 +165,7 @@ class DeliveryLedger:
         if c is not None and n > 0:
             c.credits = min(self.max_credits, c.credits + n)
 
-    def _ready_groups(self, now: float) -> Set[str]:
+    def ready_groups(self, now: float) -> Set[str]:
         """DDP groups whose ranks all said hello (or that waited ``group_wait_s``)."""
         ranks: Dict[str, Set[int]] = {}
         size: Dict[str, int] = {}
@@ -188,7 +189,7 @@ class DeliveryLedger:
         their samples must be made again."""
         out: List[Tuple[bytes, BatchRecord]] = []
         stale: List[BatchRecord] = []
-        groups = self._ready_groups(now)
+        groups = self.ready_groups(now)
         open_ = {i: c for i, c in self.clients.items()
                  if self.free(c) > 0 and c.takes and (not c.ddp or c.group in groups)}
         for bid in self.table.ready():
@@ -211,7 +212,7 @@ class DeliveryLedger:
             self._tick += 1
             c.served = self._tick
             c.sent += 1
-            self.table.lease(bid, c.ident, now + self.lease_s)
+            self.table.lease(bid, c.ident, now + self.lease_s, now)
             if self.free(c) <= 0:
                 del open_[c.ident]
             out.append((c.ident, b))

@@ -27,6 +27,14 @@ class GroupPadding:
             if e > completed_epoch:
                 self.taken.setdefault((group, e), {})[rank] = n
 
+    def resized(self, group: str, world: int) -> None:
+        """A rank of ``group`` said hello at world size ``world``: counts of ranks beyond it (an
+        earlier world size of the job) no longer count."""
+        for (g, _), counts in self.taken.items():
+            if g == group:
+                for r in [r for r in counts if r >= world]:
+                    del counts[r]
+
     def acked(self, group: str, rank: int, batch: BatchRecord) -> None:
         """Rank ``rank`` of ``group`` was granted ``batch`` (it yields it)."""
         counts = self.taken.setdefault((group, batch.epoch), {})

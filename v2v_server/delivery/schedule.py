@@ -293,24 +293,24 @@ class EpochScheduler:
         shuffle_seed: None: the listing's order; an int: ``batcher.video_order(videos, seed, epoch)``.
         max_samples_per_video: windows a file gives at most per epoch (None: no bound known),
             for :meth:`to_come` before a file's first pass ends.
+        first_epoch: the epoch to open first (a journal's: the one after its last complete one).
 
     Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
 
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = MAX_TASK_CRASHES,
                  lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1,
-                 shuffle_seed: Optional[int] = None, max_samples_per_video: Optional[int] = None):
+                 shuffle_seed: Optional[int] = None, max_samples_per_video: Optional[int] = None, first_epoch: int = 0):
         self.videos, self.shuffle_seed = list(videos), shuffle_seed
         self.max_samples_per_video = max_samples_per_video
         self.counts: Dict[str, int] = {}  # video -> samples its last complete pass gave (any epoch)
         self.known = frozenset(self.videos)
         self.max_epochs = epochs
         self.max_task_crashes = max_task_crashes
-        self.lookahead = lookahead
-        self.keep_epochs = keep_epochs
+        self.lookahead, self.keep_epochs = lookahead, keep_epochs
         self.crops_per_window = crops_per_window
         self.plans: Dict[int, EpochPlan] = {}
-        self.next_epoch = 0
+        self.next_epoch = first_epoch
         self.queue: Deque[Tuple[int, str]] = collections.deque()
         self.running: Dict[int, Job] = {}  # task id -> job
         self._task_ids = itertools.count()
@@ -535,9 +535,9 @@ class EpochScheduler:
     def apply_resume(self, consumer: Consumer, completed_epoch: int,
                      delivered: Dict[int, Set[SampleKey]]) -> None:
         """A consumer's resume state (authoritative for that consumer): in every epoch after
-        ``completed_epoch`` its record becomes exactly ``delivered[epoch]``; samples it had
-        acknowledged beyond that become owed again (a complete epoch reopens). A fresh
-        scheduler starts at ``completed_epoch + 1`` when it has that epoch to serve."""
+        ``completed_epoch``, open or not, its record becomes exactly ``delivered[epoch]``; what it
+        had acknowledged beyond that is owed again (a complete epoch reopens). A fresh scheduler
+        starts at ``completed_epoch + 1`` when it has that epoch to serve."""
         delivered = {e: {k for k in ks if k.video in self.known} for e, ks in delivered.items()}
         if not self.plans and self.next_epoch <= completed_epoch < (self.max_epochs or completed_epoch + 2) - 1:
             self.next_epoch = completed_epoch + 1
@@ -546,6 +546,6 @@ class EpochScheduler:
                 continue
             changed = plan.set_record(consumer, delivered.get(e, ()))
             self._reconcile(plan, changed)
-        for e, ks in delivered.items():
+        for e in set(delivered) | set(self.pending_records):  # an epoch not open yet: its record, kept
             if e > completed_epoch and e >= self.next_epoch:
-                self.pending_records.setdefault(e, {})[consumer] = set(ks)
+                self.pending_records.setdefault(e, {})[consumer] = set(delivered.get(e, ()))

@@ -39,6 +39,7 @@ class BatchRecord:
         consumer: whose its samples are once granted (granted, stranded).
         deadline: seconds (the server's clock): when a lease or a revoke runs out.
         since: when it was granted.
+        sent: when it was leased to its holder (a connection that names it later was alive then).
     """
 
     batch_id: int
@@ -52,6 +53,7 @@ class BatchRecord:
     consumer: Hashable = None
     deadline: float = 0.0
     since: float = 0.0
+    sent: float = 0.0
 
 
 class TransitionError(RuntimeError):
@@ -94,6 +96,10 @@ class BatchTable:
     def stranded_of(self, consumer: Hashable) -> List[int]:
         return list(self._stranded.get(consumer, ()))
 
+    def stranded_consumers(self) -> List[Hashable]:
+        """The consumers some batch is stranded with."""
+        return list(self._stranded)
+
     def in_state(self, *states: str) -> Iterator[BatchRecord]:
         """The batches in any of ``states`` (O(table))."""
         return (b for b in self.batches.values() if b.state in states)
@@ -131,11 +137,11 @@ class BatchTable:
         self._ready[b.batch_id] = None
         self.made += 1
 
-    def lease(self, bid: int, ident: bytes, deadline: float) -> BatchRecord:
-        """ready -> leased to ``ident`` until ``deadline``."""
+    def lease(self, bid: int, ident: bytes, deadline: float, now: float = 0.0) -> BatchRecord:
+        """ready -> leased to ``ident`` (at ``now``) until ``deadline``."""
         b = self._expect(bid, READY)
         del self._ready[bid]
-        b.state, b.holder, b.deadline = LEASED, ident, deadline
+        b.state, b.holder, b.deadline, b.sent = LEASED, ident, deadline, now
         self._held.setdefault(ident, {})[bid] = None
         self.sent += 1
         return b
