@@ -819,6 +819,34 @@ def test_a_reader_sitting_on_a_grant_forever_never_makes_an_unbounded_stream_kee
     assert core.ledger.table.get(kept).state == "granted" and core.ledger.clients[b"a"].completed < 0
 
 
+def test_a_grant_given_back_for_an_epoch_its_loop_completed_is_owed_again_when_the_release_is_lost():
+    """The hypothesis machine's schedule: t0 reads two batches of epoch 0 ahead and crashes back
+    to its first checkpoint; every client is dropped for silence; t2's old session had been told
+    epoch 0 complete, and its new session is sent and granted a reopened batch of epoch 0 before
+    its loop takes that ``epoch_done``. The loop then gives the batch back, the connection breaks
+    with the release unsent, and the next hello says epoch 0 complete without naming the batch:
+    the batch goes back to the queue (it was retired as taken, and its samples reached no loop)."""
+    m = LeaseMachine()
+    n = m.net
+    m.client_runs(0, 7)
+    m.client_runs(0, 2)
+    t0 = n.clients[0]
+    state, kept = t0.checkpoints[0]
+    t0.record = ResumeState(t0.name)
+    t0.record.load(state)
+    t0.history = t0.history[:kept]
+    del t0.checkpoints[1:]
+    t0.instance = "p1"  # a new process
+    n.connect(t0)
+    m.time_passes(5.0, [False, False, False])
+    m.client_runs(0, 7)
+    m.client_runs(2, 8)
+    given_back = [b for b in n.core.ledger.table.batches.values() if b.state == "granted" and b.holder == b"t2.1"]
+    assert given_back and given_back[0].epoch == 0, "the schedule no longer reaches the case"
+    m.connection_breaks(2)
+    n.run_to_end()  # asserts every id of both epochs trained once
+
+
 def test_a_client_found_unreachable_is_forgotten_only_once_its_messages_are_read():
     """The answer to a hold cannot reach a client that closed right after its last messages: the
     core is told (``unreachable``) and still reads the release that follows as that client's (the

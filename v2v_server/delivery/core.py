@@ -223,7 +223,10 @@ class DeliveryCore:
         self._leave(ident, "it said hello again")
         r = h.resume
         for who in speaks:
-            _, back = self.ledger.settle(who, lambda b: b.epoch <= r.completed_epoch
+            # its own grants: taken only if named (a grant of an epoch its loop completed first was
+            # given back, perhaps with a release lost with its socket); a gathered state's
+            # completed epochs leave out what the other ranks took
+            _, back = self.ledger.settle(who, lambda b: (who != consumer and b.epoch <= r.completed_epoch)
                                          or set(b.keys) <= r.delivered.get(b.epoch, frozenset()))
             for b in back:
                 self._undelivered(who, b)
