@@ -223,9 +223,8 @@ class DeliveryCore:
         self._leave(ident, "it said hello again")
         r = h.resume
         for who in speaks:
-            # its own grants: taken only if named (a grant of an epoch its loop completed first was
-            # given back, perhaps with a release lost with its socket); a gathered state's
-            # completed epochs leave out what the other ranks took
+            # its own grant is taken only if named (one of an epoch its loop completed first was given
+            # back, its release perhaps lost); a gathered state keeps no ids of its completed epochs
             _, back = self.ledger.settle(who, lambda b: (who != consumer and b.epoch <= r.completed_epoch)
                                          or set(b.keys) <= r.delivered.get(b.epoch, frozenset()))
             for b in back:
