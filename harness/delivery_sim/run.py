@@ -64,7 +64,11 @@ class Run:
         self._told = -1
         self.last_fault = 0.0
         self.on_announced: List[Callable[[int], None]] = []  # a scenario's actions when an epoch is announced
-        self.start_server()
+        try:
+            self.start_server()
+        except BaseException:  # no run to clean up after: its journal folder goes now
+            self.cleanup()
+            raise
         self.sim.checks.append(self._check)
 
     # ------------------------------------------------------------------ the server
