@@ -547,6 +547,52 @@ def test_a_reader_is_told_an_epoch_complete_only_once_it_holds_no_grant_of_it():
     assert a.completed == 0 and [m.to_wire()["type"] for i, m in msgs if i == b"a.1"][:2] == ["epoch_done", "end"]
 
 
+def test_an_ack_lost_with_a_broken_connection_is_said_again():
+    """ZeroMQ reconnects a broken connection behind the socket (same identity, no new hello), and
+    what was in the kernel's buffers is lost: an ``ack`` lost so would leave the batch granted, and
+    its reader never told the epoch complete. The session names what it acknowledged in its next
+    heartbeat's ``hold``; the server answers ``granted`` while it holds it, and the ack is said again."""
+    net = Net(names=("t0",), credits=(2,))
+    c = net.clients[0]
+    net.connect(c)
+    lost = []
+    for _ in range(100):
+        net.step(c)
+        net.heartbeat(c)
+        acks = [x for x in c.up if isinstance(x[1], Ack)]
+        if acks and not lost:
+            c.up.remove(acks[0])
+            lost.append(acks[0][1])
+        net.advance(0.5)
+    assert lost and lost[0] not in {m for _, m in c.up}
+    net.run_to_end()
+    assert [unpack(f[0])["type"] for f in c.down][-1:] in ([], ["end"])
+
+
+def test_a_dead_processs_late_hello_does_not_undo_what_a_newer_process_read():
+    """A killed trainer's hello, held by a partition, reaches the server after its restarted process
+    read the epoch and left: it waits for its connection to speak again (a dead process never
+    does), is forgotten after the client timeout, and the newer process's record stands. A
+    restart from an older checkpoint, whose process lives, is let in and reopens the epoch."""
+    core = _one_epoch_core()
+    core.hello(b"new", Hello(("voxels",), 4, consumer="t1", instance="B"), 0.0)
+    last = _read_epoch_0_but_one(core, b"new")
+    core.message(b"new", Ack((last,)), 0.3)
+    core.message(b"new", Bye(), 0.4)
+    assert core.sched.plans[0].complete
+    assert core.hello(b"dead", Hello(("voxels",), 4, consumer="t1", instance="A"), 5.0) == []  # waits
+    for t in np.arange(5.5, 5.0 + TIMEOUT + 2.0, 0.5):
+        sends, msgs = core.tick(float(t))
+        assert sends == [] and not [m for i, m in msgs if isinstance(m, sm.Welcome)]
+    assert core.sched.plans[0].complete and not core.admission.pending  # forgotten, the record stands
+    core.hello(b"restart", Hello(("voxels",), 4, consumer="t1", instance="C"), 20.0)
+    welcomed = []
+    for t in np.arange(20.5, 24.0, 0.5):
+        core.message(b"restart", Heartbeat(), float(t))  # its process lives
+        welcomed += [m for i, m in core.tick(float(t))[1] if isinstance(m, sm.Welcome)]
+    assert welcomed and not core.sched.plans[0].complete  # its older state reopens the epoch
+
+
 def test_a_reader_sitting_on_a_grant_delays_the_others_end_of_the_epoch_by_the_lease_at_most():
     """Reader A keeps a grant of epoch 0 and never acknowledges it (a stuck loop, an hour of
     validation): reader B, holding nothing of epoch 0, is told the epoch complete and the stream
@@ -838,7 +884,8 @@ def test_a_grant_given_back_for_an_epoch_its_loop_completed_is_owed_again_when_t
     del t0.checkpoints[1:]
     t0.instance = "p1"  # a new process
     n.connect(t0)
-    m.time_passes(5.0, [False, False, False])
+    for _ in range(5):  # its connection speaks on (it is let in); the others are dropped for silence
+        m.time_passes(1.0, [True, False, False])
     m.client_runs(0, 7)
     m.client_runs(2, 8)
     given_back = [b for b in n.core.ledger.table.batches.values() if b.state == "granted" and b.holder == b"t2.1"]
