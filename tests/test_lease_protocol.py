@@ -180,8 +180,13 @@ class Net:
         c.up, c.down = [], []
         c.pending = c.claimed = None
         c.session = ServerSession(c.name, options(c.credits), c.record, c.name, instance=c.instance)
-        c.session.hello(new_socket=True)
+        c.session.hello(new_socket=True, at=self.host_clock(c))
         c.send()
+
+    def host_clock(self, c: Client) -> float:
+        """The client's host's monotonic clock (``Connection._socket`` numbers its hellos by it):
+        later for each new socket, even at the same simulated time."""
+        return self.now + c.gen * 1e-6
 
     def io_reads(self, c: Client) -> None:
         """The I/O thread hands one message from the server to the session and sends what it decided."""
@@ -353,7 +358,7 @@ class LeaseMachine(RuleBasedStateMachine):
             c.down.clear()
             c.gen += 1
             c.session.outgoing()  # decided, never sent: the old socket is gone
-            c.session.hello(new_socket=True)
+            c.session.hello(new_socket=True, at=self.net.host_clock(c))
             c.send()
 
     @rule(i=st.integers(0, 2))
@@ -591,6 +596,20 @@ def test_a_dead_processs_late_hello_does_not_undo_what_a_newer_process_read():
         core.message(b"restart", Heartbeat(), float(t))  # its process lives
         welcomed += [m for i, m in core.tick(float(t))[1] if isinstance(m, sm.Welcome)]
     assert welcomed and not core.sched.plans[0].complete  # its older state reopens the epoch
+
+
+def test_a_late_hello_of_a_readers_older_connection_never_fences_its_newer_one():
+    """A loader worker's connection closed (or its process killed) while its socket still
+    connected: its hello arrives after the next worker's, of the same reader process (``instance``).
+    Hellos of one reader are numbered by the host's monotonic clock; the older one is refused
+    (``fenced``) and the newer connection reads on, its record and grant untouched."""
+    core = _one_epoch_core()
+    core.hello(b"w1.new", Hello(("voxels",), 4, consumer="x/1", hello_id=2_000_000, instance="L"), 0.0)
+    last = _read_epoch_0_but_one(core, b"w1.new")  # granted, waiting in the loader's queue
+    late = core.hello(b"w1.old", Hello(("voxels",), 4, consumer="x/1", hello_id=1_000_000, instance="L"), 0.3)
+    assert [(i, m.code) for i, m in late] == [(b"w1.old", "fenced")]
+    assert b"w1.new" in core.ledger.clients and core.ledger.table.get(last).state == "granted"
+    assert core.sched.plans[0].complete  # the older state reopened nothing
 
 
 def test_a_reader_sitting_on_a_grant_delays_the_others_end_of_the_epoch_by_the_lease_at_most():

@@ -232,10 +232,10 @@ class ServerSession:
             out.append(self._out.popleft())
         return out
 
-    def hello(self, new_socket: bool = False) -> None:
-        """Say hello (again): whatever this session still holds is discarded first, since the
-        server takes the resume state as the truth and re-sends the rest. On a ``new_socket``
-        no message of an older session can arrive, so no welcome is awaited.
+    def hello(self, new_socket: bool = False, at: float = 0.0) -> None:
+        """Say hello (again), numbered above the last and ``at`` (the host's monotonic clock, s) in us:
+        the server refuses a hello of this reader older than one it let in. What the session holds
+        is discarded first (re-sent from the resume state); a ``new_socket`` awaits no welcome.
 
         Raises:
             StreamError: the hello (its resume state) is larger than the server takes.
@@ -244,7 +244,7 @@ class ServerSession:
         with self.held.lock:  # the resume state and the discard as one step (``HeldBatches.claim``)
             self.held.discard("saying hello again")
             resume = self.record.hello_resume()
-        self._hello_seq += 1
+        self._hello_seq = max(self._hello_seq + 1, int(at * 1e6))
         self._awaiting = None if new_socket else self._hello_seq
         h = Hello(self.outputs, o.credits, self.consumer, resume, o.group if o.world_size > 1 else None, o.rank,
                   o.world_size, self._hello_seq, self.reader.shm is not None, self.compression, self.ends_on_drained,

@@ -54,7 +54,7 @@ class Admission:
         self.claim_margin_s, self.server_id = claim_margin_s, server_id
         self.pending: Dict[bytes, Tuple[Hello, float]] = {}
         self.heard: Dict[bytes, float] = {}  # a waiting hello's connection: when it last spoke
-        self.instances: Dict[Hashable, str] = {}  # consumer -> the reader process let in last
+        self.instances: Dict[Hashable, Tuple[str, int]] = {}  # consumer -> (reader process, hello_id) let in last
         self._kept = 64  # instances kept at the last prune (:meth:`let_in`)
         self._last_turn: Optional[float] = None  # :meth:`silent`'s last call (the server's loop turn)
         self._stalled_until = float("-inf")  # the end of the server loop's last stall
@@ -69,6 +69,9 @@ class Admission:
         if any(o not in self.offered for o in h.outputs):
             return ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}", "outputs")
         speaks = self.speaks_for(consumer, h)
+        if h.instance and any(self.instances.get(w, ("", 0)) > (h.instance, h.hello_id)
+                              and self.instances[w][0] == h.instance for w in speaks):
+            return ServerError("a newer connection of this reader took its consumer over", "fenced")
         since = self.pending.get(ident, (None, now))[1]
         foreign = [c for c in self.others(ident, speaks) if c.instance != h.instance or not h.instance]
         if foreign:
@@ -112,7 +115,7 @@ class Admission:
         DDP ranks are let in without it (docs/delivery.md, limit (g))."""
         if h.world_size > 1:
             return False
-        other = any(self.instances[w] != h.instance for w in speaks if w in self.instances)
+        other = any(self.instances[w][0] != h.instance for w in speaks if w in self.instances)
         return other and self.heard.get(ident, since) < since + self.claim_margin_s
 
     def waits(self, ident: bytes, h: Hello, now: float) -> None:
@@ -153,7 +156,7 @@ class Admission:
         """A hello was let in: its reader process is the one that read ``speaks`` last. Entries of
         consumers the server keeps nothing of are dropped once they double (amortized linear)."""
         for w in speaks:
-            self.instances[w] = h.instance
+            self.instances[w] = (h.instance, h.hello_id)
         if len(self.instances) > 2 * self._kept:
             s = self.sched
             known = set(self.ledger.table.stranded_consumers()) | {c.consumer for c in self.ledger.clients.values()}
