@@ -259,3 +259,33 @@ def test_a_hold_unanswered_for_a_whole_heartbeat_is_asked_again():
     assert s.held.still_asked({7}) == ({7}, {7})  # a heartbeat later, unanswered: again
     s.on_message([pack({"type": "granted", "batch_ids": [7]})])
     assert s.held.still_asked({7}) == (set(), set())
+
+
+def test_what_was_said_of_a_granted_batch_is_named_each_heartbeat_until_the_server_has_read_it():
+    """An ``ack`` (or a ``released`` of a granted batch) lost with a broken connection would leave
+    the batch granted at the server: the session names it in each heartbeat's ``hold``; a
+    ``granted`` answer means the server still holds it for us (said again), ``refused`` that it
+    read what was said (forgotten). A batch sent to us again is the book's, not said again."""
+    s = _session()
+    _welcomed(s)
+    for bid in (7, 8):
+        s.on_message(_batch(bid))
+    a, b = _items(s)
+    s.on_message([pack({"type": "granted", "batch_ids": [7, 8]})])
+    s.outgoing()
+    assert s.take(a, lambda: None)[0] and s.outgoing() == [cm.Ack((7,))]
+    s.give_back(b)
+    assert s.outgoing() == [cm.Released((8,))]
+    s.tick(10.0)
+    s.tick(11.0)
+    assert s.outgoing() == [cm.Heartbeat(), cm.Hold((7, 8))]
+    s.on_message([pack({"type": "granted", "batch_ids": [7, 8]})])  # both were lost
+    assert s.outgoing() == [cm.Ack((7,)), cm.Released((8,))]
+    s.on_message([pack({"type": "granted", "batch_ids": [], "refused": [7]})])  # read
+    s.on_message(_batch(8))  # given back, and sent to this connection again: the book's
+    _items(s)
+    assert s.outgoing() == [cm.Hold((8,))]
+    s.tick(12.0)
+    assert s.outgoing() == [cm.Heartbeat()]
+    s.on_message([pack({"type": "granted", "batch_ids": [8]})])
+    assert s.outgoing() == [] and s.held.granted == {8}

@@ -180,8 +180,13 @@ class Net:
         c.up, c.down = [], []
         c.pending = c.claimed = None
         c.session = ServerSession(c.name, options(c.credits), c.record, c.name, instance=c.instance)
-        c.session.hello(new_socket=True)
+        c.session.hello(new_socket=True, at=self.host_clock(c))
         c.send()
+
+    def host_clock(self, c: Client) -> float:
+        """The client's host's monotonic clock (``Connection._socket`` numbers its hellos by it):
+        later for each new socket, even at the same simulated time."""
+        return self.now + c.gen * 1e-6
 
     def io_reads(self, c: Client) -> None:
         """The I/O thread hands one message from the server to the session and sends what it decided."""
@@ -353,7 +358,7 @@ class LeaseMachine(RuleBasedStateMachine):
             c.down.clear()
             c.gen += 1
             c.session.outgoing()  # decided, never sent: the old socket is gone
-            c.session.hello(new_socket=True)
+            c.session.hello(new_socket=True, at=self.net.host_clock(c))
             c.send()
 
     @rule(i=st.integers(0, 2))
@@ -545,6 +550,66 @@ def test_a_reader_is_told_an_epoch_complete_only_once_it_holds_no_grant_of_it():
     core.message(b"a.1", Ack((last,)), 0.5)
     _, msgs = core.tick(0.6)
     assert a.completed == 0 and [m.to_wire()["type"] for i, m in msgs if i == b"a.1"][:2] == ["epoch_done", "end"]
+
+
+def test_an_ack_lost_with_a_broken_connection_is_said_again():
+    """ZeroMQ reconnects a broken connection behind the socket (same identity, no new hello), and
+    what was in the kernel's buffers is lost: an ``ack`` lost so would leave the batch granted, and
+    its reader never told the epoch complete. The session names what it acknowledged in its next
+    heartbeat's ``hold``; the server answers ``granted`` while it holds it, and the ack is said again."""
+    net = Net(names=("t0",), credits=(2,))
+    c = net.clients[0]
+    net.connect(c)
+    lost = []
+    for _ in range(100):
+        net.step(c)
+        net.heartbeat(c)
+        acks = [x for x in c.up if isinstance(x[1], Ack)]
+        if acks and not lost:
+            c.up.remove(acks[0])
+            lost.append(acks[0][1])
+        net.advance(0.5)
+    assert lost and lost[0] not in {m for _, m in c.up}
+    net.run_to_end()
+    assert [unpack(f[0])["type"] for f in c.down][-1:] in ([], ["end"])
+
+
+def test_a_dead_processs_late_hello_does_not_undo_what_a_newer_process_read():
+    """A killed trainer's hello, held by a partition, reaches the server after its restarted process
+    read the epoch and left: it waits for its connection to speak again (a dead process never
+    does), is forgotten after the client timeout, and the newer process's record stands. A
+    restart from an older checkpoint, whose process lives, is let in and reopens the epoch."""
+    core = _one_epoch_core()
+    core.hello(b"new", Hello(("voxels",), 4, consumer="t1", instance="B"), 0.0)
+    last = _read_epoch_0_but_one(core, b"new")
+    core.message(b"new", Ack((last,)), 0.3)
+    core.message(b"new", Bye(), 0.4)
+    assert core.sched.plans[0].complete
+    assert core.hello(b"dead", Hello(("voxels",), 4, consumer="t1", instance="A"), 5.0) == []  # waits
+    for t in np.arange(5.5, 5.0 + TIMEOUT + 2.0, 0.5):
+        sends, msgs = core.tick(float(t))
+        assert sends == [] and not [m for i, m in msgs if isinstance(m, sm.Welcome)]
+    assert core.sched.plans[0].complete and not core.admission.pending  # forgotten, the record stands
+    core.hello(b"restart", Hello(("voxels",), 4, consumer="t1", instance="C"), 20.0)
+    welcomed = []
+    for t in np.arange(20.5, 24.0, 0.5):
+        core.message(b"restart", Heartbeat(), float(t))  # its process lives
+        welcomed += [m for i, m in core.tick(float(t))[1] if isinstance(m, sm.Welcome)]
+    assert welcomed and not core.sched.plans[0].complete  # its older state reopens the epoch
+
+
+def test_a_late_hello_of_a_readers_older_connection_never_fences_its_newer_one():
+    """A loader worker's connection closed (or its process killed) while its socket still
+    connected: its hello arrives after the next worker's, of the same reader process (``instance``).
+    Hellos of one reader are numbered by the host's monotonic clock; the older one is refused
+    (``fenced``) and the newer connection reads on, its record and grant untouched."""
+    core = _one_epoch_core()
+    core.hello(b"w1.new", Hello(("voxels",), 4, consumer="x/1", hello_id=2_000_000, instance="L"), 0.0)
+    last = _read_epoch_0_but_one(core, b"w1.new")  # granted, waiting in the loader's queue
+    late = core.hello(b"w1.old", Hello(("voxels",), 4, consumer="x/1", hello_id=1_000_000, instance="L"), 0.3)
+    assert [(i, m.code) for i, m in late] == [(b"w1.old", "fenced")]
+    assert b"w1.new" in core.ledger.clients and core.ledger.table.get(last).state == "granted"
+    assert core.sched.plans[0].complete  # the older state reopened nothing
 
 
 def test_a_reader_sitting_on_a_grant_delays_the_others_end_of_the_epoch_by_the_lease_at_most():
@@ -838,7 +903,8 @@ def test_a_grant_given_back_for_an_epoch_its_loop_completed_is_owed_again_when_t
     del t0.checkpoints[1:]
     t0.instance = "p1"  # a new process
     n.connect(t0)
-    m.time_passes(5.0, [False, False, False])
+    for _ in range(5):  # its connection speaks on (it is let in); the others are dropped for silence
+        m.time_passes(1.0, [True, False, False])
     m.client_runs(0, 7)
     m.client_runs(2, 8)
     given_back = [b for b in n.core.ledger.table.batches.values() if b.state == "granted" and b.holder == b"t2.1"]

@@ -146,7 +146,7 @@ class Connection:
             pub, sec, server_pub = self.curve
             sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = pub, sec, server_pub
         sock.connect(self.endpoint)
-        self.session.hello(new_socket=True)  # a new socket carries no message of an older session
+        self.session.hello(new_socket=True, at=time.monotonic())  # a new socket: no message of an older session
         self._send_out(sock)
         return sock
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import collections
 import logging
 import queue
+import threading
 from typing import Callable, Dict, List, Optional, Tuple, Union
 
 from v2v_wire import stream_messages as sm
@@ -136,6 +137,47 @@ class BatchReader:
             self.shm = None
 
 
+class Unread:
+    """What a connection said of its granted batches (``Ack`` or ``Released``, by batch id) and does
+    not know the server read yet (docs/delivery.md, "Messages"): named in each heartbeat's
+    ``hold``, forgotten once the server answers ``refused`` (it holds the batch for the connection
+    no more, and the ``hold`` came after what was said on the one connection), said again while
+    it answers ``granted`` (after a new hello too: its state settled them, and the server answers
+    ``refused``). Thread-safe: the consumer's thread says, the I/O thread checks."""
+
+    def __init__(self):
+        self._said: Dict[int, type] = {}
+        self._lock = threading.Lock()
+
+    def say(self, kind: type, batch_ids: Tuple[int, ...], granted: bool = True):
+        """``kind(batch_ids)``, remembered until read if the batches are (or may be) ``granted``."""
+        with self._lock:
+            self._said.update(dict.fromkeys(batch_ids if granted else (), kind))
+        return kind(batch_ids)
+
+    def ids(self) -> set:
+        with self._lock:
+            return set(self._said)
+
+    def forget(self, bid: int) -> None:
+        """Forget batch ``bid``: it was sent to us again, and is the book's now."""
+        with self._lock:
+            self._said.pop(bid, None)
+
+    def answer(self, granted, refused, book: HeldBatches) -> list:
+        """The server's answer to a ``hold``: what to say again; the rest is the ``book``'s
+        (``HeldBatches.answer``)."""
+        again: Dict[type, List[int]] = {}
+        with self._lock:
+            for bid in refused:
+                self._said.pop(bid, None)
+            for bid in granted:
+                if bid in self._said:
+                    again.setdefault(self._said[bid], []).append(bid)
+        book.answer(granted, refused)
+        return [kind(tuple(ids)) for kind, ids in again.items()]
+
+
 class ServerSession:
     """One connection's session with one server: protocol state, no socket, no thread, no torch.
 
@@ -180,6 +222,7 @@ class ServerSession:
         self.abandoned = False  # the loader left this iteration (a DataLoader worker)
         self._next_beat: Optional[float] = None
         self._asked: set = set()  # holds unanswered at the last heartbeat
+        self.unread = Unread()  # acks and releases of granted batches the server may not have read
 
     # ------------------------------------------------------------------ what goes out
     def outgoing(self) -> List[Outgoing]:
@@ -189,10 +232,10 @@ class ServerSession:
             out.append(self._out.popleft())
         return out
 
-    def hello(self, new_socket: bool = False) -> None:
-        """Say hello (again): whatever this session still holds is discarded first, since the
-        server takes the resume state as the truth and re-sends the rest. On a ``new_socket``
-        no message of an older session can arrive, so no welcome is awaited.
+    def hello(self, new_socket: bool = False, at: float = 0.0) -> None:
+        """Say hello (again), numbered above the last and ``at`` (the host's monotonic clock, s) in us:
+        the server refuses a hello of this reader older than one it let in. What the session holds
+        is discarded first (re-sent from the resume state); a ``new_socket`` awaits no welcome.
 
         Raises:
             StreamError: the hello (its resume state) is larger than the server takes.
@@ -201,7 +244,7 @@ class ServerSession:
         with self.held.lock:  # the resume state and the discard as one step (``HeldBatches.claim``)
             self.held.discard("saying hello again")
             resume = self.record.hello_resume()
-        self._hello_seq += 1
+        self._hello_seq = max(self._hello_seq + 1, int(at * 1e6))
         self._awaiting = None if new_socket else self._hello_seq
         h = Hello(self.outputs, o.credits, self.consumer, resume, o.group if o.world_size > 1 else None, o.rank,
                   o.world_size, self._hello_seq, self.reader.shm is not None, self.compression, self.ends_on_drained,
@@ -226,6 +269,7 @@ class ServerSession:
         self._next_beat = now + self.options.heartbeat_s
         self._out.append(Heartbeat())
         again, self._asked = self.held.still_asked(self._asked)
+        again |= self.unread.ids()  # and what we said of granted batches, until it is known read
         if again:
             self._out.append(Hold(tuple(sorted(again))))
 
@@ -253,21 +297,22 @@ class ServerSession:
         self._ask(item)
         ok, result = self.held.claim(item, on_claim, wait)
         if ok and ack:
-            self._out.append(Ack((item["batch_id"],)))
+            self._out.append(self.unread.say(Ack, (item["batch_id"],)))
         self._ask()
         return ok, result
 
     def give_back(self, item: dict) -> None:
         """Return a received batch unused (e.g. of an epoch this reader already completed): out
         of the book first, then ``released`` (rule 4 of docs/delivery.md)."""
-        if self.held.give_back(item) is not None:
-            self._out.append(Released((item["batch_id"],)))
+        maybe_granted = self.held.give_back(item)
+        if maybe_granted is not None:
+            self._out.append(self.unread.say(Released, (item["batch_id"],), maybe_granted))
 
     def ack(self, batch_ids) -> None:
         """Acknowledge batches this connection took (the loop received them, or they held
         nothing new for it)."""
         if batch_ids:
-            self._out.append(Ack(tuple(batch_ids)))
+            self._out.append(self.unread.say(Ack, tuple(batch_ids)))
 
     def _ask(self, item: Optional[dict] = None) -> None:
         ids = self.held.to_ask(item)
@@ -310,8 +355,8 @@ class ServerSession:
                 released = self.held.revoke(list(m.batch_ids))  # leased ones go back, arrays freed
                 if released:
                     self._out.append(Released(tuple(released)))
-            elif isinstance(m, sm.Granted):
-                self.held.answer(m.batch_ids, m.refused)
+            elif isinstance(m, sm.Granted):  # also an answer about what we said (``Unread``)
+                self._out.extend(self.unread.answer(m.batch_ids, m.refused, self.held))
                 self._ask()
             elif isinstance(m, (sm.EpochDone, sm.Drained)):
                 self.items.put(m)
@@ -356,6 +401,7 @@ class ServerSession:
         if m.padding:
             self.items.put(ServerPadding(item))
             return None
+        self.unread.forget(m.batch_id)  # given back, then sent to us again: the book's from now on
         self.held.add(item)
         self.items.put(item)
         self._ask()

@@ -6,11 +6,12 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types (protocol 5; client messages are decoded and schema-checked by ``messages.py``):
+Message types (protocol 6; client messages are decoded and schema-checked by ``messages.py``):
 
 * client -> server: ``hello`` (outputs, credits = how many batches it may hold,
   consumer id, ``instance`` (the reader process's token: a consumer is read by one instance at a
-  time), optional DDP ``rank``/``world_size``/``group``, ``resume``:
+  time), ``hello_id`` (echoed in the welcome; increasing over an instance's hellos, by its host's
+  monotonic clock: an older one than the consumer's last is refused ``fenced``), optional DDP ``rank``/``world_size``/``group``, ``resume``:
   ``completed_epoch``, ``delivered`` {epoch: the sample ids, one video per line as
   ``path#w1,w2,...`` (``ids.compact_ids``)}, ``batches`` {epoch: batches yielded}, optional
   ``supersedes`` [[consumer, rank], ...]: the consumers a state gathered from every rank of a job
@@ -28,7 +29,7 @@ Message types (protocol 5; client messages are decoded and schema-checked by ``m
   ``batches`` per rank for a DDP group), ``drained`` (a bounded stream has nothing left for this
   client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
   ``dropped`` / ``unknown_client``: discard what you hold, say hello again; ``claimed``: another
-  live reader holds the consumer; ``resume``: the server can tell the resume state is false;
+  live reader holds the consumer; ``fenced``: a newer connection of this reader took it over; ``resume``: the server can tell the resume state is false;
   ``group``: the DDP group is read at another world size).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error, the exception that stopped the pass as ``failure``); server -> worker: ``task``,
@@ -66,7 +67,7 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-PROTOCOL_VERSION = 5
+PROTOCOL_VERSION = 6
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a

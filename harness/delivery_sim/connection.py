@@ -63,7 +63,7 @@ class SimConnection:
         self.name = f"{self.proc.name}/{self.ident.hex()[:8]}"
         self.link = self.net.connect(self.ident, self)
         self.last_heard = self.last_turn = self.sim.now
-        self.session.hello(new_socket=True)
+        self.session.hello(new_socket=True, at=self.sim.now)  # the simulated host's monotonic clock
         self.session.tick(self.sim.now)  # the poll loop's first turn
         self._send_out()
         return self.link

@@ -187,14 +187,10 @@ FAMILIES = {"trainers": trainers, "ddp": ddp, "loader": loader, "network": netwo
             "mixed": mixed}
 #: what each family's ``FULL`` profile finds today in seeds 0-59 (None: they hold); other open
 #: findings fail at later seeds (``OPEN_FINDINGS``; docs/simulator.md, "Findings")
-FAILS_ON_MAIN = {"trainers": "F1, F9", "ddp": None, "loader": "F1, F16", "network": None, "elastic": None,
+FAILS_ON_MAIN = {"trainers": "F1", "ddp": None, "loader": None, "network": None, "elastic": None,
                  "mixed": "F1"}
 #: one failing seed of each open finding: (scenario, seed, finding)
 OPEN_FINDINGS = [("trainers", 0, "F1: a resume older than an epoch the restarted server forgot loses it"),
-                 ("trainers", 7, "F9: a late hello of a consumer's dead connection resets its record"),
                  ("ddp", 90, "F7: a batch of a forgotten epoch reaches one rank; the others never pad it"),
-                 ("loader", 9, "F16: a loader worker's stranded grant is sent again after its loop got it"),
-                 ("loader", 343, "F10: a drained sent before the server read a worker's new hello ends it"),
                  ("loader", 224, "F12: drained while the last batch is leased to a worker that cannot take it"),
-                 ("loader", 377, "F13: drained while the last batch is leased to a trainer that then dies"),
-                 ("network", 250, "F17: an ack lost with a broken connection is never sent again")]
+                 ("loader", 377, "F13: drained while the last batch is leased to a trainer that then dies")]

@@ -6,6 +6,7 @@ unread: ``messages.Bound``).
 """
 from __future__ import annotations
 
+import logging
 import sys
 from typing import Dict, Hashable, List, Optional, Set, Tuple
 
@@ -15,6 +16,8 @@ from v2v_wire.messages import Hello, Resume
 from v2v_wire.stream_messages import ServerError
 
 __all__ = ["Admission", "WAIT", "name_of"]
+
+log = logging.getLogger("v2v.server")
 
 #: ``Admission.check``'s answer for a hello that waits for an older connection of its consumer.
 WAIT = "wait"
@@ -50,6 +53,11 @@ class Admission:
         self.k, self.max_windows = policy.crops_per_window, policy.max_samples_per_video
         self.claim_margin_s, self.server_id = claim_margin_s, server_id
         self.pending: Dict[bytes, Tuple[Hello, float]] = {}
+        self.heard: Dict[bytes, float] = {}  # a waiting hello's connection: when it last spoke
+        self.instances: Dict[Hashable, Tuple[str, int]] = {}  # consumer -> (reader process, hello_id) let in last
+        self._kept = 64  # instances kept at the last prune (:meth:`let_in`)
+        self._last_turn: Optional[float] = None  # :meth:`silent`'s last call (the server's loop turn)
+        self._stalled_until = float("-inf")  # the end of the server loop's last stall
 
     # ------------------------------------------------------------------ who reads
     def others(self, ident: bytes, consumers: Set[Hashable]) -> List[ClientRecord]:
@@ -61,6 +69,9 @@ class Admission:
         if any(o not in self.offered for o in h.outputs):
             return ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}", "outputs")
         speaks = self.speaks_for(consumer, h)
+        if h.instance and any(self.instances.get(w, ("", 0)) > (h.instance, h.hello_id)
+                              and self.instances[w][0] == h.instance for w in speaks):
+            return ServerError("a newer connection of this reader took its consumer over", "fenced")
         since = self.pending.get(ident, (None, now))[1]
         foreign = [c for c in self.others(ident, speaks) if c.instance != h.instance or not h.instance]
         if foreign:
@@ -72,6 +83,8 @@ class Admission:
                                + ("Give each DDP job on this server its own group=" if group is not None else
                                   "Give each reader its own consumer id (a new V2VStreamDataset, or no state)")
                                + ", or stop the other reader", "claimed")
+        if self._unproven(ident, h, speaks, since):
+            return WAIT
         if group is not None:
             other = [c for c in self.ledger.clients.values()
                      if c.ident != ident and c.group == group and c.ddp and c.world_size != h.world_size]
@@ -94,6 +107,63 @@ class Admission:
         """Connection ``c``'s process lived after a hello that arrived at ``since``: it spoke
         ``claim_margin_s`` after, or named a batch sent to it after (:meth:`spoke_of`)."""
         return c.heard >= since + self.claim_margin_s or c.proved >= since
+
+    def _unproven(self, ident: bytes, h: Hello, speaks: Set[Hashable], since: float) -> bool:
+        """Another reader process than the hello's read one of ``speaks`` last, and the hello's own
+        connection has not spoken ``claim_margin_s`` after it: it may be a dead process's hello,
+        delivered late (a partition held it), whose state would undo what a newer process read.
+        DDP ranks are let in without it (docs/delivery.md, limit (g))."""
+        if h.world_size > 1:
+            return False
+        other = any(self.instances[w][0] != h.instance for w in speaks if w in self.instances)
+        return other and self.heard.get(ident, since) < since + self.claim_margin_s
+
+    def waits(self, ident: bytes, h: Hello, now: float) -> None:
+        """The hello of connection ``ident`` waits (``pending``), since it first arrived."""
+        if ident not in self.pending:
+            self.pending[ident] = (h, now)
+            self.heard[ident] = now
+        else:
+            self.pending[ident] = (h, self.pending[ident][1])
+
+    def spoke(self, ident: bytes, now: float, bye: bool = False) -> None:
+        """The connection of a waiting hello said something more (it lives), or ``bye``."""
+        if bye:
+            self.forget(ident)
+        elif ident in self.pending:
+            self.heard[ident] = now
+
+    def forget(self, ident: bytes) -> float:
+        """A waiting hello is answered or its connection gone; returns when it first arrived (or inf)."""
+        self.heard.pop(ident, None)
+        return self.pending.pop(ident, (None, float("inf")))[1]
+
+    def silent(self, now: float, timeout_s: float) -> List[bytes]:
+        """Waiting hellos whose connections were silent ``timeout_s`` (a dead process's): forgotten.
+        Silence is counted from the end of a stall of the server's own loop (longer than the
+        ledger's ``stall_s``), as the ledger's deadlines are (``DeliveryLedger.expire``); what a
+        connection said (``heard``, its proof of life) is not moved."""
+        last, self._last_turn = self._last_turn, now
+        if last is not None and self.ledger.stall_s is not None and now - last > self.ledger.stall_s:
+            self._stalled_until = now
+        gone = [i for i, t in self.heard.items() if now - max(t, self._stalled_until) > timeout_s]
+        for ident in gone:
+            log.info("client %s: its hello waited, silent for %.0f s; forgotten", ident.hex(), now - self.heard[ident])
+            self.forget(ident)
+        return gone
+
+    def let_in(self, h: Hello, speaks: Set[Hashable]) -> None:
+        """A hello was let in: its reader process is the one that read ``speaks`` last. Entries of
+        consumers the server keeps nothing of are dropped once they double (amortized linear)."""
+        for w in speaks:
+            self.instances[w] = (h.instance, h.hello_id)
+        if len(self.instances) > 2 * self._kept:
+            s = self.sched
+            known = set(self.ledger.table.stranded_consumers()) | {c.consumer for c in self.ledger.clients.values()}
+            for recs in [p.records for p in s.plans.values()] + list(s.pending_records.values()):
+                known.update(recs)
+            self.instances = {w: i for w, i in self.instances.items() if w in known or w in speaks}
+            self._kept = max(64, len(self.instances))
 
     def spoke_of(self, c: ClientRecord, batch_ids) -> None:
         """Connection ``c`` named these batches (``hold``, ``ack``, ``released``): those sent to it

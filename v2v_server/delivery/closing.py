@@ -43,12 +43,14 @@ class EpochEnds:
         self._idle_since: Optional[float] = None  # over, with no reader connected, since
 
     # ------------------------------------------------------------------ per tick
-    def tell(self, now: float, waiting: Set[str] = frozenset()) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
+    def tell(self, now: float, waiting: Set[str] = frozenset(),
+             hello_waits: bool = False) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
         """``epoch_done`` for every epoch each connection may now be told (a DDP rank that was
         never sent a batch first gets a padding batch, ``GroupPadding.epoch_done``), then ``end``
         to each connection told its last epoch; a DDP rank only once its group is ready
         (``DeliveryLedger.ready_groups``) and none of its ranks' hellos is ``waiting``: another
-        rank's resume state may reopen the epoch, and every rank must end it alike.
+        rank's resume state may reopen the epoch, and every rank must end it alike. While any
+        hello waits (``hello_waits``) no epoch the scheduler keeps is forgotten: its state may reopen one.
         Returns ``(padding sends, messages)``."""
         pads: List[Tuple[bytes, BatchRecord]] = []
         msgs: List[Msg] = []
@@ -80,7 +82,7 @@ class EpochEnds:
             if last is not None and c.completed >= last - 1 and not c.told_end:
                 c.told_end = True
                 msgs.append((ident, End()))
-        self._close_for_good(own, live)
+        self._close_for_good(own, live, hello_waits)
         return pads, msgs
 
     def _may_tell(self, c: ClientRecord) -> bool:
@@ -136,7 +138,7 @@ class EpochEnds:
             if self.journal is not None:
                 self.journal.epoch_told(e)
 
-    def _close_for_good(self, own: Dict[Hashable, Set[int]], live: Set[int]) -> None:
+    def _close_for_good(self, own: Dict[Hashable, Set[int]], live: Set[int], hello_waits: bool = False) -> None:
         """Epochs told to every connection may be forgotten by the scheduler (it keeps the newest
         few); those also held by nobody, and every epoch before them, leave the journal (its
         watermark: a restart starts after it). A connection, or a grant, more than the scheduler's
@@ -144,6 +146,8 @@ class EpochEnds:
         grants never makes the server keep more epochs (what it holds stays in the table)."""
         floor = self.told_upto - self.sched.keep_epochs
         low = max(floor, min((c.completed for c in self.ledger.clients.values()), default=self.told_upto))
+        if hello_waits:  # its state may reopen any epoch the scheduler keeps
+            low = min(low, floor - 1)
         held = {e for e in live.union(*own.values()) if e > floor} if own else {e for e in live if e > floor}
         done = min(low, min(held) - 1) if held else low
         if self.journal is not None and done > self.journal.completed:

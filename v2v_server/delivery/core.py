@@ -197,14 +197,13 @@ class DeliveryCore:
         reader's connection of its consumer is live (``[]``; a later :meth:`tick` answers it), or
         welcomed (``admission.Admission``; docs/delivery.md, "Who may say hello")."""
         consumer, group = consumer_of(ident, h)
-        pending = self.admission.pending
         verdict = self.admission.check(ident, h, consumer, group, now)
         if verdict == WAIT:
-            if ident not in pending:
-                log.info("client %s waits: %s is read by another live connection", ident.hex(), name_of(consumer))
-            pending[ident] = (h, pending.get(ident, (h, now))[1])
+            if ident not in self.admission.pending:
+                log.info("client %s waits to read %s (see Who may say hello)", ident.hex(), name_of(consumer))
+            self.admission.waits(ident, h, now)
             return []
-        heard = pending.pop(ident, (h, now))[1]
+        heard = min(now, self.admission.forget(ident))
         if verdict is not None:
             log.warning("client %s refused: %s", ident.hex(), verdict.message)
             return [(ident, verdict)]
@@ -241,6 +240,7 @@ class DeliveryCore:
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
                          r.completed_epoch, h.ends_on_drained, h.instance, heard)
+        self.admission.let_in(h, speaks)
         self.feed.drop_delivered()
         if self.outputs is None or any(o not in self.outputs for o in h.outputs):
             log.info("client %s asks for %s: workers now compute %s", ident.hex(), list(h.outputs),
@@ -252,8 +252,7 @@ class DeliveryCore:
         c = self.ledger.touch(ident, now)
         if c is None:
             if ident in self.admission.pending:  # its hello waits: nothing to say but heartbeats
-                if isinstance(msg, Bye):
-                    del self.admission.pending[ident]
+                self.admission.spoke(ident, now, isinstance(msg, Bye))
                 return []
             if isinstance(msg, Bye):
                 return []
@@ -325,7 +324,7 @@ class DeliveryCore:
     def caught_up(self) -> None:
         """Nothing the clients sent is left unread: forget the connections found unreachable."""
         for ident in self._unreachable:
-            self.admission.pending.pop(ident, None)
+            self.admission.forget(ident)
             if ident in self.ledger.clients:
                 self._leave(ident, "it cannot be reached")
         self._unreachable.clear()
@@ -338,6 +337,7 @@ class DeliveryCore:
         msgs: List[Msg] = []
         self.batcher.flush(lambda e: e not in self.sched.plans or not self.sched.plans[e].open_jobs)
         revokes, drops = self.ledger.expire(now)
+        self.admission.silent(now, self.policy.client_timeout_s)
         for ident, ids in revokes.items():
             log.info("lease of batch(es) %s expired at client %s; asking for them back", ids, ident.hex())
             msgs.append((ident, Revoke(tuple(ids))))
@@ -352,7 +352,7 @@ class DeliveryCore:
         for ident, (h, _) in list(self.admission.pending.items()):  # hellos waiting for an older connection
             msgs += self.hello(ident, h, now)
         waiting = {h.group or "default" for h, _ in self.admission.pending.values() if h.world_size > 1}
-        pads, told = self.ends.tell(now, waiting)
+        pads, told = self.ends.tell(now, waiting, bool(self.admission.pending))
         return sends + pads, msgs + told + self.ends.drained()
 
     # ------------------------------------------------------------------ views
