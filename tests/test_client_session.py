@@ -230,6 +230,34 @@ def test_the_loaders_receipts_acknowledge_and_an_abandoned_iteration_gives_back_
     assert s.closing() == [cm.Released((2,)), cm.Bye()]
 
 
+def test_a_workers_iteration_ends_only_on_a_drained_of_its_current_session():
+    """A DataLoader worker dropped for silence says hello again: a ``drained`` queued before that
+    hello, or sent before the server read it, is about the session that ended (its grants came
+    back to the queue with the new hello) and must not end the new one; the server tells the new
+    session itself. A worker holding a batch, or a trainer, never ends on one (docs/delivery.md,
+    "The protocol", rule 6; the simulator's F10)."""
+    s = _session(ends_on_drained=True)
+    _welcomed(s)
+    s.on_message([pack({"type": "drained"})])  # queued, not yet taken off by the consumer
+    assert s.on_message([pack({"type": "error", "message": "dropped", "code": "dropped"})]) is None
+    (hello,) = s.outgoing()
+    assert isinstance(hello, cm.Hello) and hello.hello_id == 2
+    s.on_message([pack({"type": "drained"})])  # sent before the server read the new hello: not queued
+    (stale,) = _items(s)
+    assert isinstance(stale, Drained) and not s.held.ends_on(stale)
+    s.on_message([pack({"type": "welcome", "hello_id": 2, "info": {"crop_size": 8}})])
+    s.on_message(_batch(4))
+    s.on_message([pack({"type": "drained"})])
+    batch, told = _items(s)
+    assert not s.held.ends_on(told)  # batch 4 is still held
+    s.give_back(batch)
+    assert s.held.ends_on(told)
+    trainer = _session()
+    _welcomed(trainer)
+    trainer.on_message([pack({"type": "drained"})])
+    assert not trainer.held.ends_on(_items(trainer)[0])
+
+
 def test_time_brings_heartbeats_and_asks_again_for_what_stays_unanswered():
     """``tick(now)`` sends a heartbeat every ``heartbeat_s`` (1 s here) and, with it, asks again for
     a grant unanswered a whole heartbeat (the clock is the caller's: a simulator passes its own)."""

@@ -811,6 +811,42 @@ def test_a_client_that_reads_on_after_drained_is_still_sent_what_comes_back():
     assert after[b"x0.2"] == ["drained", b], after
 
 
+def test_no_worker_is_told_drained_while_a_batch_is_leased_to_anyone():
+    """A trainer is sent batches and stops before asking for them (stopped, then dead for good);
+    two StreamLoader workers read the rest and ack it. A worker told ``drained`` ends its
+    iteration and is sent nothing more, so the trainer's batches, back in the queue once its
+    lease runs out and it is dropped, would reach no loop: the workers are told ``drained`` only
+    once nothing is leased anywhere, and the trainer's batches reach them (docs/delivery.md, "The
+    protocol", rule 6; the simulator's F12, F13)."""
+    core = _one_epoch_core()
+    _hello(core, b"t.1", "t", 0.0, ends_on_drained=False)
+    leased = [m for m in _turn(core, 0.0)[b"t.1"] if isinstance(m, int)]
+    assert leased
+    got: Dict[bytes, list] = {b"x0.1": [], b"x1.1": []}
+    for ident, consumer in ((b"x0.1", "x/0"), (b"x1.1", "x/1")):
+        _hello(core, ident, consumer, 0.1)
+    drained_at: Dict[bytes, float] = {}
+    acked: set = set()
+    now = 0.1
+    while len(drained_at) < 2 and now < 10 * (LEASE + REVOKE + TIMEOUT):
+        for ident, out in _turn(core, now).items():
+            for m in out if ident in got else ():
+                if m == "drained":
+                    drained_at.setdefault(ident, now)
+                elif isinstance(m, int):
+                    got[ident].append(m)
+        for ident, bids in got.items():
+            new = tuple(b for b in bids if b not in acked)
+            core.message(ident, Hold(new) if new else Heartbeat(), now)
+            if new:
+                core.message(ident, Ack(new), now)
+                acked.update(new)
+        now += 0.25
+    assert set(leased) <= set(got[b"x0.1"] + got[b"x1.1"]), (leased, got)
+    assert len(drained_at) == 2 and min(drained_at.values()) >= LEASE, drained_at
+    assert core.finished()
+
+
 def test_a_client_that_closed_after_its_last_messages_still_gives_back_what_it_released():
     """A trainer breaks out of its loop: its ``hold``, the batches it gives back and ``bye`` go
     out and its connection closes. A server that reads them after the close cannot send the

@@ -89,6 +89,10 @@ class Connection:
         """Batches received and neither taken by the consumer nor given back."""
         return len(self.session.held)
 
+    def ends_on(self, drained) -> bool:
+        """A DataLoader worker's iteration ends on this ``drained`` (``HeldBatches.ends_on``)."""
+        return self.session.held.ends_on(drained)
+
     def ended(self) -> bool:
         """True once the I/O thread has ended and every item it queued was taken."""
         return not self._thread.is_alive() and self.session.items.empty()

@@ -178,7 +178,7 @@ class EndpointStream:
                 if isinstance(item, EpochDone):
                     yield from self._epoch_done(item)
                 elif isinstance(item, Drained):
-                    if self.receipts is not None and conn.held() == 0:
+                    if conn.ends_on(item):
                         return  # a DataLoader worker: end this iteration so the loader takes the others' batches
                 elif isinstance(item, ServerPadding):
                     yield from self._server_padding(item)

@@ -51,6 +51,7 @@ class HeldBatches:
         self.granted: Set[int] = set()
         self.ahead = max(1, ahead)
         self.discarded = 0  # batches given up when saying hello again
+        self.drained = None  # the ``drained`` told to this book's session (a hello's discard forgets it)
 
     def add(self, item: dict) -> None:
         """A received batch (a batch given back may come again: this copy is the live one, leased)."""
@@ -144,12 +145,30 @@ class HeldBatches:
                     released.append(b)
         return released
 
-    def discard(self, why: Optional[str]) -> List[int]:
+    def discard(self, why: Optional[str], new_session: bool = False) -> List[int]:
         """Give up every batch held (the server re-sends or re-makes them), logging ``why`` (None:
         a connection closing, nothing to say); returns those that were asked or granted (to say
-        ``released`` for when the connection closes)."""
+        ``released`` for when the connection closes). ``new_session``: a hello's, which also
+        forgets the ``drained`` told to the session it ends (:meth:`ends_on`)."""
         with self.lock:
+            if new_session:
+                self.drained = None
             return self._discard_locked(why)
+
+    def told(self, drained):
+        """The server told this session ``drained`` (a ``stream_messages.Drained``, returned), which a
+        DataLoader worker may end on (:meth:`ends_on`)."""
+        with self.lock:
+            self.drained = drained
+        return drained
+
+    def ends_on(self, drained) -> bool:
+        """A DataLoader worker's iteration ends on this ``drained``, taken off its queue: it was told
+        to the current session, and nothing received is held. One told before the latest hello is
+        about the session that hello ended: the server tells the new one itself (docs/delivery.md,
+        "The protocol", rule 6)."""
+        with self.lock:
+            return drained is not None and drained is self.drained and not self.current
 
     def __len__(self) -> int:
         with self.lock:

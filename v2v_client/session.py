@@ -242,7 +242,7 @@ class ServerSession:
         """
         o = self.options
         with self.held.lock:  # the resume state and the discard as one step (``HeldBatches.claim``)
-            self.held.discard("saying hello again")
+            self.held.discard("saying hello again", new_session=True)
             resume = self.record.hello_resume()
         self._hello_seq = max(self._hello_seq + 1, int(at * 1e6))
         self._awaiting = None if new_socket else self._hello_seq
@@ -345,7 +345,7 @@ class ServerSession:
         try:
             m = stream_message(unpack(frames[0]))
             rehello = isinstance(m, sm.ServerError) and m.code in ("dropped", "unknown_client")
-            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted)) or rehello):
+            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted, sm.Drained)) or rehello):
                 return None  # sent before the server read our latest hello: about a session that is over
             if isinstance(m, sm.Batch):
                 self._on_batch(m, frames)
@@ -359,7 +359,7 @@ class ServerSession:
                 self._out.extend(self.unread.answer(m.batch_ids, m.refused, self.held))
                 self._ask()
             elif isinstance(m, (sm.EpochDone, sm.Drained)):
-                self.items.put(m)
+                self.items.put(self.held.told(m) if self.ends_on_drained and isinstance(m, sm.Drained) else m)
             elif isinstance(m, sm.End):
                 self.items.put(StopIteration("end of stream" if m.reason is None else m.reason))
                 return "over"

@@ -202,6 +202,9 @@ class SimConnection:
     def held(self) -> int:
         return len(self.session.held)
 
+    def ends_on(self, drained) -> bool:
+        return self.session.held.ends_on(drained)
+
     def ended(self) -> bool:
         return not self.alive and self.session.items.empty()
 

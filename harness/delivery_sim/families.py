@@ -56,11 +56,12 @@ FULL = Profile("full", 3, TRAINER_FAULTS)
 #: what the delivery path survives today: no server crash (F1, F2, F4), two epochs at most (F1: a checkpoint older
 #: than the kept epochs), pauses shorter than the client's timeout_s (F5), no broken connection (F11),
 #: no partition nor delayed message (F9: a dead process's hello delivered late), no death for good
-#: (F13, F14: an epoch reopened by a resume, then its reader dies)
+#: (F14: an epoch reopened by a resume, then its reader dies)
 MAIN = Profile("main", 2, tuple(f for f in TRAINER_FAULTS if f not in ("server_crash", "blip", "cut", "kill_for_good")),
                max_pause_s=25.0, spikes=False)
-#: what it survives with StreamLoader workers: MAIN, no delayed or partitioned message
-#: (F9, F10, F12), no stop long enough for the server to drop a worker (F10)
+#: what it survives with StreamLoader workers: MAIN, no stop over 1.5 s (a pause that extends a worker's pause
+#: not over yet redraws its wake-up delays, so the worker may run two iterations' ``begin`` out of order and
+#: answer the older one: the loop waits for good, mixed/main 19720 with 25 s pauses; a simulator defect)
 MAIN_LOADER = Profile("main", 2, MAIN.faults, max_pause_s=1.5, spikes=False)
 
 
@@ -187,10 +188,8 @@ FAMILIES = {"trainers": trainers, "ddp": ddp, "loader": loader, "network": netwo
             "mixed": mixed}
 #: what each family's ``FULL`` profile finds today in seeds 0-59 (None: they hold); other open
 #: findings fail at later seeds (``OPEN_FINDINGS``; docs/simulator.md, "Findings")
-FAILS_ON_MAIN = {"trainers": "F1", "ddp": None, "loader": None, "network": None, "elastic": None,
+FAILS_ON_MAIN = {"trainers": "F1", "ddp": None, "loader": "F1", "network": None, "elastic": None,
                  "mixed": "F1"}
 #: one failing seed of each open finding: (scenario, seed, finding)
 OPEN_FINDINGS = [("trainers", 0, "F1: a resume older than an epoch the restarted server forgot loses it"),
-                 ("ddp", 90, "F7: a batch of a forgotten epoch reaches one rank; the others never pad it"),
-                 ("loader", 224, "F12: drained while the last batch is leased to a worker that cannot take it"),
-                 ("loader", 377, "F13: drained while the last batch is leased to a trainer that then dies")]
+                 ("ddp", 90, "F7: a batch of a forgotten epoch reaches one rank; the others never pad it")]

@@ -117,7 +117,7 @@ class SimIterator:
         if isinstance(item, EpochDone):
             self._epoch_done(item)
         elif isinstance(item, Drained):
-            if s.receipts is not None and self.conn.held() == 0:
+            if self.conn.ends_on(item):
                 return self._close("end", "drained")
         elif isinstance(item, ServerPadding):
             p = item.item

@@ -12,7 +12,7 @@ from typing import Dict, Hashable, List, Optional, Set, Tuple
 from v2v_server.delivery.ledger import ClientRecord, DeliveryLedger
 from v2v_server.delivery.padding import GroupPadding
 from v2v_server.delivery.schedule import EpochScheduler
-from v2v_server.delivery.table import GRANTED, STRANDED, BatchRecord
+from v2v_server.delivery.table import GRANTED, LEASED, REVOKED, STRANDED, BatchRecord
 from v2v_wire.stream_messages import Drained, End, EpochDone, StreamMessage
 
 log = logging.getLogger("v2v.server")
@@ -159,19 +159,19 @@ class EpochEnds:
                            lambda e: e not in self.sched.plans and e < self.sched.next_epoch)
 
     def drained(self) -> List[Msg]:
-        """``drained`` to each client holding nothing, once, when a bounded stream has nothing
-        left to make or send: the rest is held by other clients. A DataLoader worker waiting
-        for a batch ends its iteration on it, so the loader (in order) can take the batches
-        the other workers hold; it is sent nothing after it (``ClientRecord.takes``), and a batch
-        given back later goes to whoever still reads (docs/delivery.md, "The protocol", rule 6)."""
-        s = self.sched
+        """``drained`` to each connection, once a session, when a bounded stream has nothing left
+        to make, ready, waiting, leased or revoked, at any connection: what is left is granted,
+        and a grant comes back only with its holder's ``released`` or to its consumer's next
+        session. A DataLoader worker ends its iteration on it, so the loader (in order) can take
+        the batches the other workers were granted; it is sent nothing after it
+        (``ClientRecord.takes``) (docs/delivery.md, "The protocol", rule 6)."""
+        s, table = self.sched, self.ledger.table
         drained = (s.max_epochs is not None and s.next_epoch >= s.max_epochs and not s.queue and not s.running
-                   and not self.ledger.table.ready_count() and not self.batcher.waiting())
+                   and not table.ready_count() and not self.batcher.waiting()
+                   and next(table.in_state(LEASED, REVOKED), None) is None)  # a lease comes back to anyone
         msgs: List[Msg] = []
-        table = self.ledger.table
         for ident, c in self.ledger.clients.items():
-            leased = any(table.get(b).state != GRANTED for b in table.held_by(ident))
-            if (not drained or leased) and c.takes:  # one that ends on drained stays told
+            if not drained and c.takes:  # one that ends on drained stays told
                 c.told_drained = False
             elif not c.told_drained:
                 c.told_drained = True
