@@ -164,6 +164,8 @@ class DeliveryCore:
         if journal is not None:
             for consumer, delivered in journal.records.items():
                 self.sched.apply_resume(consumer, journal.completed, delivered)
+            for consumer, delivered in journal.closed_records().items():
+                self.sched.reload(consumer, delivered)
 
     # ------------------------------------------------------------------ workers (``feed.WorkerFeed``)
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:

@@ -40,6 +40,9 @@ from v2v_wire.ids import SampleKey, window_keys
 
 #: Crashes blamed on one sample before it fails for the epoch (the server's policy, ``core.DeliveryPolicy``).
 MAX_TASK_CRASHES = 3
+#: Complete epochs kept (by the scheduler, and by the journal across a restart) so that an older
+#: resume state can reopen them (docs/delivery.md, "Ends of epochs and of the stream", limit (e)).
+KEEP_EPOCHS = 2
 
 Consumer = Hashable
 
@@ -114,6 +117,7 @@ class EpochPlan:
     complete: bool = False
     told: bool = False  # some reader was told it is complete: it no longer holds the stream back
     served: bool = False  # this server granted some of its samples (so it knows who has what since)
+    reloaded: bool = False  # a complete epoch read back from the journal: its files' passes are unknown here
     held: Dict[str, Dict[SampleKey, int]] = field(default_factory=dict)  # video -> sample -> records holding it
     live_by_video: Dict[str, Set[SampleKey]] = field(default_factory=dict)
     open_jobs: Dict[str, None] = field(default_factory=dict)  # videos of jobs queued or running, in epoch order
@@ -269,7 +273,10 @@ class EpochPlan:
         out = []
         for v in videos:
             job = self.jobs.get(v)
-            if job is not None and job.state == "done" and self.owed_in(v):
+            if job is None and self.reloaded:  # no pass over it on this server: made again, skipping what is held
+                job = self.jobs[v]
+                job.state = "done"
+            if job is not None and job.state == "done" and (self.owed_in(v) or (self.reloaded and job.samples is None)):
                 self.set_state(job, "queued")
                 out.append(v)
                 self.complete = False
@@ -299,7 +306,7 @@ class EpochScheduler:
     """
 
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = MAX_TASK_CRASHES,
-                 lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1,
+                 lookahead: int = 1, keep_epochs: int = KEEP_EPOCHS, crops_per_window: int = 1,
                  shuffle_seed: Optional[int] = None, max_samples_per_video: Optional[int] = None, first_epoch: int = 0):
         self.videos, self.shuffle_seed = list(videos), shuffle_seed
         self.max_samples_per_video = max_samples_per_video
@@ -335,6 +342,19 @@ class EpochScheduler:
         self.plans[e] = plan
         plan.check_complete()
         return True
+
+    def reload(self, consumer: Consumer, delivered: Dict[int, Set[SampleKey]]) -> None:
+        """A journal's record of ``consumer`` in epochs closed before ``first_epoch`` (the newest
+        ``keep_epochs`` of them): kept as complete epochs, so that an older resume state reopens
+        them as it would have on the server that closed them (``apply_resume``; a file that then
+        owes samples is made again, skipping what some record holds)."""
+        for e, keys in delivered.items():
+            if 0 <= e < self.next_epoch:
+                plan = self.plans.get(e)
+                if plan is None:
+                    plan = self.plans[e] = EpochPlan(e, self.crops_per_window, Jobs(e, self.known), complete=True,
+                                                     told=True, served=True, reloaded=True)
+                plan.add_record(consumer, (k for k in keys if k.video in self.known))
 
     def epoch_order(self, epoch: int) -> List[str]:
         """The order ``epoch`` hands the videos out in (``batcher.video_order``, or the listing's)."""
