@@ -162,15 +162,6 @@ class Journal:
         """Records of epochs after this one are kept (the newest ``keep_epochs`` closed ones and the open ones)."""
         return self.completed - self.keep_epochs
 
-    def closed_records(self) -> Records:
-        """The records of the closed epochs kept (consumer -> epoch -> keys, epochs <= ``completed``)."""
-        out: Records = {}
-        for consumer, d in self.records.items():
-            closed = {e: ks for e, ks in d.items() if e <= self.completed}
-            if closed:
-                out[consumer] = closed
-        return out
-
     def _complete(self, epoch: int) -> None:
         self.completed = max(self.completed, epoch)
         self.told = max(self.told, epoch)
