@@ -191,4 +191,6 @@ FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None,
                  "mixed": None}
 #: one failing seed of each open finding: (scenario, seed, finding)
 OPEN_FINDINGS = [("loader", 224, "F12: drained while the last batch is leased to a worker that cannot take it"),
-                 ("loader", 377, "F13: drained while the last batch is leased to a trainer that then dies")]
+                 ("loader", 377, "F13: drained while the last batch is leased to a trainer that then dies"),
+                 ("ddp", 174, "F19: a DDP rank dropped for silence resumes older than an epoch its group-mates ended"),
+                 ("trainers", 701, "F20: a checkpoint more than keep_epochs behind its consumer's epochs (limit (e))")]

@@ -37,7 +37,7 @@ class EpochEnds:
                  grant_wait_s: float, end_grace_s: float):
         self.sched, self.ledger, self.batcher, self.padding, self.journal = sched, ledger, batcher, padding, journal
         self.grant_wait_s, self.end_grace_s = grant_wait_s, end_grace_s
-        self.told_upto = -1  # the newest epoch told complete to some connection
+        self.told_upto = -1 if journal is None else journal.told  # the newest epoch told complete to some connection
         self._low: Optional[int] = None  # the oldest epoch every connection was told, at the last full turn
         self.ended = False  # the stream is over (logged once)
         self._idle_since: Optional[float] = None  # over, with no reader connected, since
