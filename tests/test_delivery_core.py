@@ -30,7 +30,7 @@ from v2v_server.delivery.core import Batcher, DeliveryCore, DeliveryPolicy
 from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
 from v2v_server.delivery.schedule import EpochScheduler
 from v2v_wire.ids import SampleKey, parse_sample_id, parse_sample_ids
-from v2v_wire.messages import Ack, Bye, Heartbeat, Hello, Released, Resume
+from v2v_wire.messages import Ack, Bye, Heartbeat, Hello, Hold, Released, Resume
 
 # corpus: windows per video; bad.mp4's window 1 changes frame size (fails every epoch), trunc.mp4
 # fails to decode inside window 2 (the pass stops there every epoch), empty.mp4 has no window
@@ -708,3 +708,93 @@ def test_a_resume_state_replaces_a_record_of_an_epoch_not_open_yet():
     s.delivered("c", 0, [SampleKey("a.mp4", 0), SampleKey("a.mp4", 1)])
     t = s.next_task("w", 1.0)
     assert (t.epoch, t.skip) == (1, frozenset())
+
+
+class TinyStream:
+    """A core serving one 4-window video in batches of 1 (3 epochs, no shuffle), one worker that
+    makes whatever its task does not skip, and readers that hold then acknowledge every batch
+    sent to them, unless told to keep it (``keep``: granted, never acknowledged)."""
+
+    def __init__(self):
+        self.core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=3, lease_s=5.0, client_timeout_s=100.0,
+                                                           max_credits=4, task_timeout_s=100.0, shuffle="none"),
+                                 make_batch)
+        self.now = 0.0
+        self.got: Dict[bytes, list] = collections.defaultdict(list)  # ident -> (epoch, sample id), in order
+        self.told: Dict[bytes, list] = collections.defaultdict(list)  # ident -> (epoch, batches) of each epoch_done
+        self.keep: set = set()  # readers that hold what they get and acknowledge nothing
+
+    def hello(self, ident: bytes, consumer: str, resume: Resume = Resume(), **ddp) -> None:
+        self.take(self.core.hello(ident, Hello(("voxels",), 1, consumer=consumer, resume=resume, **ddp), self.now))
+
+    def take(self, msgs) -> None:
+        for ident, m in msgs:
+            if m.to_wire()["type"] == "epoch_done":
+                self.told[ident].append((m.epoch, m.batches))
+
+    def turn(self) -> None:
+        self.now += 1.0
+        task = self.core.task_for(b"w", self.now)
+        if task is not None:
+            for k in range(4):
+                if (k, 0) not in task.skip:
+                    key = SampleKey("a.mp4", k)
+                    self.core.sample(b"w", task.task, key, self.now, lambda lane, key=key: FakeSample(key.sample_id()))
+            self.core.done(b"w", task.task, 4, {}, None)
+        sends, msgs = self.core.tick(self.now)
+        for ident, b in sends:
+            self.got[ident] += [(b.epoch, sid) for sid in b.payload.sample_ids]
+            if b.batch_id >= 0:
+                self.core.message(ident, Hold((b.batch_id,)), self.now)
+                if ident not in self.keep:
+                    self.core.message(ident, Ack((b.batch_id,)), self.now)
+        self.take(msgs)
+
+
+def test_a_reader_back_after_the_others_ran_every_epoch_gets_its_rolled_back_samples_again():
+    """Reader a took one batch of epoch 0 and left; b read all three epochs (the server keeps
+    two complete ones, so epoch 0's books go); a resumes from a checkpoint taken before that
+    batch. Its model lost the sample: a, having been told no epoch complete, finds epoch 0 kept
+    for it (its own record, not the epoch's), and gets that sample again, the only one made
+    (docs/delivery.md limit (e); simulator finding F1, ``trainers`` seed 144)."""
+    s = TinyStream()
+    s.hello(b"a", "a")
+    s.turn()
+    [(_, mine)] = s.got[b"a"]
+    s.core.message(b"a", Bye(), s.now)
+    s.hello(b"b", "b")
+    for _ in range(20):
+        s.turn()
+    assert [e for e, _ in s.told[b"b"]] == [0, 1, 2] and len(s.got[b"b"]) == 11
+    s.hello(b"a.2", "a", Resume(-1, {}))
+    for _ in range(5):
+        s.turn()
+    assert s.got[b"a.2"] == [(0, mine)] and [e for e, _ in s.told[b"a.2"]] == [0, 1, 2]
+
+
+def test_a_ddp_rank_given_back_a_grant_of_an_epoch_the_others_finished_is_padded():
+    """A DDP job (2 ranks) left holding a grant of epoch 0 each, unacknowledged, while a trainer
+    read every epoch; the job restarts from a checkpoint before them: each rank's hello gives
+    its grant back and the ranks read them again. Epoch 0 is kept for the ranks, so its
+    ``epoch_done`` says how many batches each rank yields (the job hung in an all-reduce when
+    it carried no count: simulator finding F7, ``ddp`` seed 90)."""
+    s = TinyStream()
+    s.keep = {b"r0", b"r1"}
+    s.hello(b"r0", "j", group="g", rank=0, world_size=2)
+    s.hello(b"r1", "j", group="g", rank=1, world_size=2)
+    s.turn()
+    assert len(s.got[b"r0"]) == len(s.got[b"r1"]) == 1
+    s.core.message(b"r0", Bye(), s.now)
+    s.core.message(b"r1", Bye(), s.now)
+    s.hello(b"b", "b")
+    for _ in range(20):
+        s.turn()
+    assert [e for e, _ in s.told[b"b"]] == [0, 1, 2]
+    s.hello(b"r0.2", "j", Resume(-1, {}), group="g", rank=0, world_size=2)
+    s.hello(b"r1.2", "j", Resume(-1, {}), group="g", rank=1, world_size=2)
+    for _ in range(5):
+        s.turn()
+    got = [len(s.got[b"r0.2"]), len(s.got[b"r1.2"])]
+    assert sum(got) == 2, got  # the two grants given back, read again
+    for ident in (b"r0.2", b"r1.2"):
+        assert s.told[ident][0] == (0, max(got)), s.told[ident]  # the rank that got fewer pads up to it

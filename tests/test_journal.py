@@ -1,5 +1,5 @@
 """The delivery journal (--state-dir): records survive a restart, a resume state replaces a
-record, complete epochs are dropped, a torn last record costs only itself, another recipe's
+record, closed epochs beyond the newest kept ones are dropped, a torn last record costs only itself, another recipe's
 journal is refused."""
 from __future__ import annotations
 
@@ -24,9 +24,14 @@ def test_records_survive_a_restart_and_a_resume_state_replaces_them(tmp_path):
                          b: {0: {K("y.mp4", 0), K("y.mp4", 1)}}}
     k.epoch_complete(0)
     k.close()
-    m = Journal(str(tmp_path), "r1")
-    assert m.completed == 0 and m.records == {a: {1: {K("x.mp4", 0)}}}
+    m = Journal(str(tmp_path), "r1", keep_epochs=1)  # epoch 0 is the newest closed one: kept
+    assert m.completed == 0 and m.records == k.records == {
+        a: {0: {K("x.mp4", 0), K("x.mp4", 1)}, 1: {K("x.mp4", 0)}}, b: {0: {K("y.mp4", 0), K("y.mp4", 1)}}}
+    m.epoch_complete(1)
     m.close()
+    n = Journal(str(tmp_path), "r1", keep_epochs=1)  # epoch 1 closed: epoch 0 leaves the file
+    assert n.completed == 1 and n.records == {a: {1: {K("x.mp4", 0)}}}
+    n.close()
 
 
 def test_a_torn_last_record_costs_only_itself_and_another_recipe_is_refused(tmp_path):
@@ -86,7 +91,7 @@ def test_a_folder_that_fails_while_serving_is_counted_and_written_again_whole(tm
     j.delivered(a, 1, [K("x.mp4", 2)])
     j.close()
     k = Journal(str(d), "r1")
-    assert k.completed == 0 and k.records == {a: {1: {K("x.mp4", 0), K("x.mp4", 1), K("x.mp4", 2)}}}
+    assert k.completed == 0 and k.records == {a: {0: {K("x.mp4", 0)}, 1: {K("x.mp4", 0), K("x.mp4", 1), K("x.mp4", 2)}}}
     k.close()
 
 
@@ -166,8 +171,8 @@ def test_the_journals_bench_drives_the_core_it_measures(tmp_path):
 
 @pytest.mark.parametrize("epochs,first", [(None, 1), (3, 1), (1, None)])
 def test_a_server_restarted_after_an_epoch_completed_starts_after_it(tmp_path, epochs, first):
-    """A server killed as epoch 0 completed leaves a journal with its watermark and no record
-    (complete epochs are dropped): the restarted server makes epoch 1 (or nothing more, when
+    """A server killed as epoch 0 completed leaves a journal with its watermark (and epoch 0's
+    records, kept as complete): the restarted server makes epoch 1 (or nothing more, when
     epoch 0 was the last), never epoch 0 again (it had doubled a whole epoch for a new reader)."""
     from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
     from v2v_wire.messages import Hello
@@ -177,10 +182,35 @@ def test_a_server_restarted_after_an_epoch_completed_starts_after_it(tmp_path, e
     j.epoch_complete(0)
     j.close()
     k = Journal(str(tmp_path), "r1")
-    assert k.completed == 0 and k.records == {}
+    assert k.completed == 0 and k.records == {("c:a", 0): {0: {K("a.mp4", 0)}}}
     core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=epochs, lease_s=100.0, client_timeout_s=100.0,
                                                   max_credits=4, task_timeout_s=100.0), list, journal=k)
     core.hello(b"v", Hello(("voxels",), 2), 0.0)
     task = core.task_for(b"w", 0.0)
     assert (task.epoch if task is not None else None) == first
+    k.close()
+
+
+def test_a_resume_older_than_an_epoch_the_restarted_server_closed_gets_that_epoch_again(tmp_path):
+    """A trainer's checkpoint predates epoch 0's completion, and the server restarts from its
+    journal after epoch 0 closed: as the server that closed it would (it keeps the newest
+    complete epochs), the restarted one reopens epoch 0 for that trainer's samples its model
+    lost, and makes only those (the other reader's stay its own): none reaches no loop
+    (docs/delivery.md limit (e); simulator finding F1, `trainers` seed 0)."""
+    from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
+    from v2v_wire.messages import Hello, Resume
+
+    j = Journal(str(tmp_path), "r1")
+    j.delivered(("c:a", 0), 0, [K("a.mp4", 0), K("a.mp4", 1)])
+    j.delivered(("c:b", 0), 0, [K("a.mp4", 2), K("a.mp4", 3)])
+    j.epoch_told(0)
+    j.epoch_complete(0)
+    j.close()
+    k = Journal(str(tmp_path), "r1")
+    core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=2, lease_s=100.0, client_timeout_s=100.0,
+                                                  max_credits=4, task_timeout_s=100.0), list, journal=k)
+    core.hello(b"a", Hello(("voxels",), 2, consumer="a", resume=Resume(-1, {0: frozenset({K("a.mp4", 0)})})), 0.0)
+    task = core.task_for(b"w", 0.0)
+    assert task is not None and task.epoch == 0 and task.video == "a.mp4"
+    assert set(task.skip) == {(0, 0), (2, 0), (3, 0)}  # (window, crop): a.mp4#1 only is owed again
     k.close()

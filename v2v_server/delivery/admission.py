@@ -218,6 +218,8 @@ class Admission:
         hello": an epoch whose grants it knows; with ``--state-dir`` one not opened yet too, whose
         grants are the journal's records, on disk before any grant leaves); None when it cannot."""
         plan = self.sched.plans.get(epoch)
+        if plan is not None and plan.only is not None:
+            return None  # a complete epoch kept without every consumer's records (``EpochPlan.only``)
         if plan is None:
             known = self.journal is not None and epoch >= self.sched.next_epoch
             return self.sched.pending_records.get(epoch, {}) if known else None

@@ -37,10 +37,13 @@ class EpochEnds:
                  grant_wait_s: float, end_grace_s: float):
         self.sched, self.ledger, self.batcher, self.padding, self.journal = sched, ledger, batcher, padding, journal
         self.grant_wait_s, self.end_grace_s = grant_wait_s, end_grace_s
-        self.told_upto = -1  # the newest epoch told complete to some connection
+        self.told_upto = -1 if journal is None else journal.told  # the newest epoch told complete to some connection
         self._low: Optional[int] = None  # the oldest epoch every connection was told, at the last full turn
         self.ended = False  # the stream is over (logged once)
         self._idle_since: Optional[float] = None  # over, with no reader connected, since
+        #: consumer -> the newest epoch it was told complete (or its resume state said), kept while the
+        #: scheduler keeps a record of it: what of an epoch the scheduler forgets it keeps for that consumer
+        self.told_to: Dict[Hashable, int] = {}
 
     # ------------------------------------------------------------------ per tick
     def tell(self, now: float, waiting: Set[str] = frozenset(),
@@ -143,7 +146,10 @@ class EpochEnds:
         few); those also held by nobody, and every epoch before them, leave the journal (its
         watermark: a restart starts after it). A connection, or a grant, more than the scheduler's
         ``keep_epochs`` behind the newest epoch told holds neither back: a reader sitting on its
-        grants never makes the server keep more epochs (what it holds stays in the table)."""
+        grants never makes the server keep more epochs (what it holds stays in the table). Of an
+        epoch forgotten, the records of the consumers told fewer than ``keep_epochs`` newer epochs
+        complete stay (a consumer that left before the others ran on may resume into it: limit (e)
+        counts in its own epochs)."""
         floor = self.told_upto - self.sched.keep_epochs
         low = max(floor, min((c.completed for c in self.ledger.clients.values()), default=self.told_upto))
         if hello_waits:  # its state may reopen any epoch the scheduler keeps
@@ -154,7 +160,16 @@ class EpochEnds:
             plans = self.sched.plans
             if all(plans[e].complete for e in plans if e <= done):
                 self.journal.epoch_complete(done)
-        self.sched.prune(e for e in self.sched.plans if e <= low)
+        told = self.told_to
+        for c in self.ledger.clients.values():
+            told[c.consumer] = max(told.get(c.consumer, -1), c.completed)
+        keep = self.sched.keep_epochs
+        self.sched.prune((e for e in self.sched.plans if e <= low), lambda c, e: e > told.get(c, -1) - keep)
+        if len(told) > len(self.ledger.clients):  # forget those of consumers the scheduler keeps no record of
+            recorded = {c for p in self.sched.plans.values() for c, r in p.records.items() if r}
+            recorded.update(c.consumer for c in self.ledger.clients.values())
+            for c in [c for c in told if c not in recorded]:
+                del told[c]
         self.padding.prune({c.group for c in self.ledger.clients.values()},
                            lambda e: e not in self.sched.plans and e < self.sched.next_epoch)
 

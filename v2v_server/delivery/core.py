@@ -161,9 +161,8 @@ class DeliveryCore:
         self.info: Callable[[], dict] = dict
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
-        if journal is not None:
-            for consumer, delivered in journal.records.items():
-                self.sched.apply_resume(consumer, journal.completed, delivered)
+        for consumer, delivered in (journal.records if journal is not None else {}).items():
+            self.sched.apply_resume(consumer, journal.kept_after, delivered)  # in the closed epochs it keeps too
 
     # ------------------------------------------------------------------ workers (``feed.WorkerFeed``)
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:

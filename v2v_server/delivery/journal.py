@@ -18,8 +18,12 @@ hand them on, so the grant is written before it is sent; ``index`` is
 ``{"u": [consumer, rank], "e": epoch, "k": [...]}`` (granted, then given back unused),
 ``{"s": [consumer, rank], "c": completed_epoch, "r": {epoch: keys}}`` (a resume state replaced
 a record), ``{"t": epoch}`` (an epoch was told complete to some reader: a resume state may say
-it is complete), ``{"done": epoch}`` (an epoch closed for good; its records are dropped). When an epoch
-completes the file is rewritten from memory (a temporary file, fsync, rename).
+it is complete), ``{"done": epoch}`` (an epoch closed for good: a restart starts after it). The records
+of the newest ``keep_epochs`` closed epochs stay (the scheduler's ``keep_epochs``: a restarted server
+keeps the complete epochs a running one keeps, so a resume state older than their completion reopens
+them alike, docs/delivery.md limit (e)); older ones are dropped. When an epoch closes the file is
+rewritten from memory (a temporary file, fsync, rename): it holds at most ``keep_epochs`` closed
+epochs and the open ones.
 
 Durability: each record is one ``write`` to a file opened with ``O_APPEND`` (in the page cache
 at once: it survives the server process being killed); ``fsync`` at most every ``fsync_s``
@@ -43,6 +47,7 @@ from typing import Callable, Dict, Hashable, Iterable, List, Optional, Set
 
 import msgpack
 
+from v2v_server.delivery.schedule import KEEP_EPOCHS
 from v2v_wire.ids import SampleKey
 
 log = logging.getLogger("v2v.server")
@@ -70,6 +75,7 @@ class Journal:
         fsync_s: most seconds between ``fsync`` calls.
         crops_per_window: samples per window under that recipe (how a record's sample
             numbers map to sample keys, ``ids.SampleKey.at``).
+        keep_epochs: closed epochs whose records stay (``schedule.KEEP_EPOCHS``).
         on_error: told ``(path, OSError)`` of each write that fails while serving (module
             docstring); default: a warning in the log.
 
@@ -79,7 +85,7 @@ class Journal:
     """
 
     def __init__(self, directory: str, fingerprint: str, fsync_s: float = 1.0, crops_per_window: int = 1,
-                 on_error: Optional[Callable[[Path, OSError], None]] = None):
+                 on_error: Optional[Callable[[Path, OSError], None]] = None, keep_epochs: int = KEEP_EPOCHS):
         self.on_error = on_error or (lambda path, e: log.warning("%s: %s", path, e))
         self.failed = False  # a write failed: appends stop until the file is written again whole
         self._retry_at = 0.0
@@ -91,6 +97,7 @@ class Journal:
         self.fsync_s = fsync_s
         self.crops_per_window = crops_per_window
         self.completed = -1
+        self.keep_epochs = keep_epochs
         self.told = -1  # the newest epoch told complete to some reader
         self.records: Records = {}
         self._dirty = False
@@ -133,7 +140,7 @@ class Journal:
             self.told = max(self.told, int(rec["t"]))
         elif "d" in rec:
             e = int(rec["e"])
-            if e > self.completed:
+            if e > self.kept_after:
                 self.records.setdefault(tuple(rec["d"]), {}).setdefault(e, set()).update(self._keys(rec["k"]))
         elif "u" in rec:
             d = self.records.get(tuple(rec["u"]), {}).get(int(rec["e"]))
@@ -150,11 +157,16 @@ class Journal:
         """A record's ``[[video, index], ...]`` of ``keys`` (the inverse of ``_keys``)."""
         return [[k.video, k.ordinal(self.crops_per_window)] for k in keys]
 
+    @property
+    def kept_after(self) -> int:
+        """Records of epochs after this one are kept (the newest ``keep_epochs`` closed ones and the open ones)."""
+        return self.completed - self.keep_epochs
+
     def _complete(self, epoch: int) -> None:
         self.completed = max(self.completed, epoch)
         self.told = max(self.told, epoch)
         for d in self.records.values():
-            for e in [e for e in d if e <= self.completed]:
+            for e in [e for e in d if e <= self.kept_after]:
                 del d[e]
 
     def _replace(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]]) -> None:
@@ -162,7 +174,7 @@ class Journal:
         for e in [e for e in d if e > completed]:
             del d[e]
         for e, ks in delivered.items():
-            if e > completed and e > self.completed:
+            if e > completed and e > self.kept_after:
                 d[e] = set(ks)
 
     # ------------------------------------------------------------------ writing
@@ -206,7 +218,7 @@ class Journal:
     def delivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
         """``consumer`` acknowledged ``keys`` of ``epoch``."""
         pairs = self._pairs(keys)
-        if pairs and epoch > self.completed:
+        if pairs and epoch > self.kept_after:
             rec = {"d": list(consumer), "e": epoch, "k": pairs}
             self._apply(rec)
             self._append(rec)
@@ -214,7 +226,7 @@ class Journal:
     def undelivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
         """``consumer`` gave back ``keys`` of ``epoch`` it was granted and never handed on."""
         pairs = self._pairs(keys)
-        if pairs and epoch > self.completed:
+        if pairs and epoch > self.kept_after:
             rec = {"u": list(consumer), "e": epoch, "k": pairs}
             self._apply(rec)
             self._append(rec)
@@ -232,7 +244,8 @@ class Journal:
             self._append({"t": epoch})
 
     def epoch_complete(self, epoch: int) -> None:
-        """``epoch`` is complete: its records are dropped and the file is rewritten without them."""
+        """Every epoch up to ``epoch`` is closed: records of epochs beyond the newest ``keep_epochs``
+        closed ones are dropped and the file is rewritten without them."""
         if epoch <= self.completed:
             return
         self._complete(epoch)

@@ -33,13 +33,16 @@ from __future__ import annotations
 import collections
 import itertools
 from dataclasses import dataclass, field
-from typing import Deque, Dict, FrozenSet, Hashable, Iterable, List, Optional, Set, Tuple, Union
+from typing import Callable, Deque, Dict, FrozenSet, Hashable, Iterable, List, Optional, Set, Tuple, Union
 
 from v2v_server.delivery.batcher import video_order
 from v2v_wire.ids import SampleKey, window_keys
 
 #: Crashes blamed on one sample before it fails for the epoch (the server's policy, ``core.DeliveryPolicy``).
 MAX_TASK_CRASHES = 3
+#: Complete epochs kept (by the scheduler, and by the journal across a restart) so that an older
+#: resume state can reopen them (docs/delivery.md, "Ends of epochs and of the stream", limit (e)).
+KEEP_EPOCHS = 2
 
 Consumer = Hashable
 
@@ -114,6 +117,10 @@ class EpochPlan:
     complete: bool = False
     told: bool = False  # some reader was told it is complete: it no longer holds the stream back
     served: bool = False  # this server granted some of its samples (so it knows who has what since)
+    #: a complete epoch kept without its jobs (read back from the journal, or pruned to the records of the
+    #: consumers that may still resume into it: ``EpochScheduler.prune``): by video, the samples that left a
+    #: record since, the only ones it makes again (any other sample is some record's, perhaps one it forgot)
+    only: Optional[Dict[str, Set[SampleKey]]] = None
     held: Dict[str, Dict[SampleKey, int]] = field(default_factory=dict)  # video -> sample -> records holding it
     live_by_video: Dict[str, Set[SampleKey]] = field(default_factory=dict)
     open_jobs: Dict[str, None] = field(default_factory=dict)  # videos of jobs queued or running, in epoch order
@@ -124,7 +131,10 @@ class EpochPlan:
         return {k for ks in self.held.values() for k, n in ks.items() if n > 0}
 
     def is_delivered(self, key: SampleKey) -> bool:
-        return self.held.get(key.video, {}).get(key, 0) > 0
+        """Some record holds ``key`` (in a plan kept without its jobs, :attr:`only`, any key that
+        did not leave a record since: perhaps one the plan forgot)."""
+        return self.held.get(key.video, {}).get(key, 0) > 0 or (self.only is not None and
+                                                                 key not in self.only.get(key.video, ()))
 
     def have(self, video: str) -> Set[SampleKey]:
         """Samples of ``video`` delivered or live."""
@@ -134,6 +144,24 @@ class EpochPlan:
         """``(videos, done)``: the epoch's videos, and those whose job is done (O(1))."""
         n = len(self.jobs.videos) if isinstance(self.jobs, Jobs) else len(self.jobs)
         return n, n - len(self.open_jobs)
+
+    @classmethod
+    def kept(cls, epoch: int, crops_per_window: int, videos, records: Dict[Consumer, Set[SampleKey]],
+             served: bool) -> "EpochPlan":
+        """A complete, told ``epoch`` of ``videos`` kept without its jobs, holding ``records`` (:attr:`only`)."""
+        plan = cls(epoch, crops_per_window, Jobs(epoch, videos), complete=True, told=True, served=served, only={})
+        for consumer, keys in records.items():
+            plan.add_record(consumer, keys)
+        return plan
+
+    def keep_for(self, keeps: Callable[[Consumer], bool], videos) -> Dict[int, "EpochPlan"]:
+        """This complete epoch, forgotten but for the records of the consumers ``keeps`` names
+        (those that may still resume into it: docs/delivery.md limit (e)): ``{}`` when there are
+        none, else ``{epoch: a plan kept for them alone}`` (:meth:`kept`; this one when it is that already)."""
+        kept = {c: r for c, r in self.records.items() if r and keeps(c)}
+        if not kept or (self.only is not None and len(kept) == sum(1 for r in self.records.values() if r)):
+            return {self.epoch: self} if kept else {}
+        return {self.epoch: EpochPlan.kept(self.epoch, self.crops_per_window, videos, kept, self.served)}
 
     def add_live(self, key: SampleKey) -> None:
         self.live.add(key)
@@ -150,11 +178,18 @@ class EpochPlan:
         new = set(keys)
         for k in old - new:
             self.held[k.video][k] -= 1
+        self._owed_again(old - new)
         for k in new - old:
             ks = self.held.setdefault(k.video, {})
             ks[k] = ks.get(k, 0) + 1
         self.records[consumer] = new
         return {k.video for k in old ^ new}
+
+    def _owed_again(self, keys: Iterable[SampleKey]) -> None:
+        """``keys`` left a record: a plan kept without its jobs may make them again (:attr:`only`)."""
+        if self.only is not None:
+            for k in keys:
+                self.only.setdefault(k.video, set()).add(k)
 
     def add_record(self, consumer: Consumer, keys: Iterable[SampleKey]) -> None:
         rec = self.records.setdefault(consumer, set())
@@ -168,6 +203,8 @@ class EpochPlan:
         """``consumer`` gave back a batch of ``keys`` it was granted, and the batch is queued
         again: the keys leave its record and are live again (the epoch is open again)."""
         rec = self.records.get(consumer, set())
+        keys = list(keys)
+        self._owed_again(keys)
         for k in keys:
             if k in rec:
                 rec.discard(k)
@@ -180,6 +217,10 @@ class EpochPlan:
         """Samples of ``video`` still to make: not delivered, live or failed, among the
         samples the file gave (none while that count is unknown)."""
         job = self.jobs[video]
+        if self.only is not None:
+            have, k = self.have(video), self.crops_per_window
+            return {key for key in self.only.get(video, ()) if key not in have and key not in job.failed
+                    and (job.samples is None or key.ordinal(k) < job.samples)}
         if job.samples is None:
             return set()
         have = self.have(video)
@@ -187,9 +228,16 @@ class EpochPlan:
         return {key for key in (SampleKey.at(video, i, k) for i in range(job.samples))
                 if key not in job.failed and key not in have}
 
-    def skip(self, job: Job) -> FrozenSet[SampleKey]:
-        """What a task of ``job`` must not make: samples delivered, live or failed."""
-        return frozenset(self.have(job.video) | set(job.failed))
+    def skip(self, job: Job, count: Optional[int] = None) -> FrozenSet[SampleKey]:
+        """What a task of ``job`` must not make: samples delivered, live or failed; in a plan kept
+        without its jobs (:attr:`only`), also every other sample of the file's ``count`` (samples
+        its last pass gave) when known."""
+        skip = self.have(job.video) | set(job.failed)
+        if self.only is not None and count is not None:
+            owed = self.only.get(job.video, set())
+            skip.update(k for k in (SampleKey.at(job.video, i, self.crops_per_window) for i in range(count))
+                        if k not in owed)
+        return frozenset(skip)
 
     def set_state(self, job: Job, state: str) -> None:
         if (job.state == "done") != (state == "done"):
@@ -208,6 +256,9 @@ class EpochPlan:
         total = 0
         for v in self.open_jobs:
             job = self.jobs.get(v)  # None: not handed out yet, no job made (``Jobs``)
+            if self.only is not None:  # kept without its jobs: only what left a record is made again
+                total += len(self.only.get(v, set()) - self.have(v))
+                continue
             n = job.samples if job is not None and job.samples is not None else counts.get(v, per_video)
             if n is None:
                 return None
@@ -269,6 +320,9 @@ class EpochPlan:
         out = []
         for v in videos:
             job = self.jobs.get(v)
+            if job is None and self.only:  # kept without its jobs: one made as done, to queue if it owes
+                job = self.jobs[v]
+                job.state = "done"
             if job is not None and job.state == "done" and self.owed_in(v):
                 self.set_state(job, "queued")
                 out.append(v)
@@ -293,13 +347,13 @@ class EpochScheduler:
         shuffle_seed: None: the listing's order; an int: ``batcher.video_order(videos, seed, epoch)``.
         max_samples_per_video: windows a file gives at most per epoch (None: no bound known),
             for :meth:`to_come` before a file's first pass ends.
-        first_epoch: the epoch to open first (a journal's: the one after its last complete one).
+        first_epoch: the epoch to open first (after a journal's closed ones; it keeps the last ``keep_epochs``).
 
     Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
 
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = MAX_TASK_CRASHES,
-                 lookahead: int = 1, keep_epochs: int = 2, crops_per_window: int = 1,
+                 lookahead: int = 1, keep_epochs: int = KEEP_EPOCHS, crops_per_window: int = 1,
                  shuffle_seed: Optional[int] = None, max_samples_per_video: Optional[int] = None, first_epoch: int = 0):
         self.videos, self.shuffle_seed = list(videos), shuffle_seed
         self.max_samples_per_video = max_samples_per_video
@@ -309,7 +363,8 @@ class EpochScheduler:
         self.max_task_crashes = max_task_crashes
         self.lookahead, self.keep_epochs = lookahead, keep_epochs
         self.crops_per_window = crops_per_window
-        self.plans: Dict[int, EpochPlan] = {}
+        self.plans: Dict[int, EpochPlan] = {e: EpochPlan.kept(e, crops_per_window, self.known, {}, True)
+                                            for e in range(max(0, first_epoch - keep_epochs), first_epoch)}
         self.next_epoch = first_epoch
         self.queue: Deque[Tuple[int, str]] = collections.deque()
         self.running: Dict[int, Job] = {}  # task id -> job
@@ -365,14 +420,13 @@ class EpochScheduler:
         per_video = None if self.max_samples_per_video is None else self.max_samples_per_video * self.crops_per_window
         return p.to_come(self.counts, per_video, limit)
 
-    def prune(self, forgettable: Iterable[int]) -> None:
+    def prune(self, forgettable: Iterable[int], keeps: Callable[[Consumer, int], bool] = lambda c, e: False) -> None:
         """Forget complete epochs in ``forgettable`` (e.g. announced to clients) except the
-        newest ``keep_epochs`` complete ones (an older resume state can still reopen those)."""
-        forgettable = set(forgettable)
+        newest ``keep_epochs`` complete ones (an older resume state can still reopen those), but
+        for the consumers ``keeps(consumer, epoch)`` names (``EpochPlan.keep_for``)."""
         done = sorted(e for e, p in self.plans.items() if p.complete)
-        for e in done[:-self.keep_epochs] if self.keep_epochs > 0 else done:
-            if e in forgettable:
-                del self.plans[e]
+        for e in sorted(set(done[:-self.keep_epochs] if self.keep_epochs > 0 else done) & set(forgettable)):
+            self.plans.update(self.plans.pop(e).keep_for(lambda c: keeps(c, e), self.known))
 
     def _reconcile(self, plan: EpochPlan, videos: Iterable[str]) -> None:
         """Queue again the done jobs of ``videos`` that owe samples."""
@@ -400,7 +454,7 @@ class EpochScheduler:
                 plan.set_state(job, "running")
                 job.task_id, job.worker, job.last_progress = tid, worker, now
                 self.running[tid] = job
-                return Task(tid, e, v, plan.skip(job))
+                return Task(tid, e, v, plan.skip(job, self.counts.get(v)))
             if not self._open_epoch():
                 return None
 
