@@ -18,9 +18,9 @@ The interrupt is raised where Python code may stop, never inside llvmlite's bind
 compiler under them): they hand an LLVM object to another between two statements (a module given
 to the JIT, then marked owned) and call back from LLVM into Python, and an exception there either
 frees the module twice (the process dies of SIGSEGV once the traceback goes) or is swallowed by
-ctypes (the signal lost, the command running on). A signal that comes there is sent again 10 ms
-later until it lands outside; one swallowed anywhere else (a ``__del__``, a callback) is sent again
-rather than printed.
+ctypes (the signal lost, the command running on); nor while numba writes its cache (its temporary
+file would stay). A signal that comes there is sent again 10 ms later until it lands outside; one
+swallowed anywhere else (a ``__del__``, a callback) is sent again rather than printed.
 
 Standard library only: this module is imported before the command's own packages.
 """
@@ -53,10 +53,13 @@ class Terminated(KeyboardInterrupt):
     it too)."""
 
 
-#: Modules whose frames an interrupt is not raised in (module docstring): llvmlite's bindings.
-UNSAFE_MODULES = "llvmlite.binding"
+#: Modules whose frames an interrupt is not raised in (module docstring): llvmlite's bindings, and
+#: numba's cache files (written to a temporary file renamed into place, removed on an ``Exception``
+#: only: an interrupt there would leave it in the package's ``__pycache__``).
+UNSAFE_MODULES = ("llvmlite.binding", "numba.core.caching")
 #: Seconds after which a signal that came inside :data:`UNSAFE_MODULES` is sent again.
 RETRY_S = 0.01
+_UNSAFE_PACKAGES = tuple(m + "." for m in UNSAFE_MODULES)
 _retry_pending = threading.Lock()
 
 
@@ -65,7 +68,7 @@ def _in_unsafe_code(frame) -> bool:
     or :func:`_on_unraisable` (an exception raised there is swallowed too)."""
     while frame is not None:
         name = frame.f_globals.get("__name__") or ""
-        if name == UNSAFE_MODULES or name.startswith(UNSAFE_MODULES + "."):
+        if name in UNSAFE_MODULES or name.startswith(_UNSAFE_PACKAGES):
             return True
         if frame.f_code is _on_unraisable.__code__:
             return True
@@ -84,7 +87,10 @@ def _send_again(signum: int, delay: float = RETRY_S) -> None:
 
     timer = threading.Timer(delay, send)
     timer.daemon = True
-    timer.start()
+    try:
+        timer.start()
+    except RuntimeError:  # the interpreter is exiting: no thread starts, and none is needed
+        _retry_pending.release()
 
 
 def _on_interrupt(signum, frame) -> None:
