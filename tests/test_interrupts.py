@@ -223,8 +223,9 @@ def test_an_interrupt_at_any_moment_is_one_line_and_leaves_no_partial_file(tmp_p
 
 #: Commands whose interrupt comes where Python cannot raise it at once: inside llvmlite's bindings
 #: (LLVM calls back into Python as numba's JIT caches its object code: an exception there is
-#: swallowed by ctypes, and between two statements there an exception frees a module the JIT owns)
-#: and inside a ``__del__`` (an exception there is printed and dropped). Each then works on for 60 s.
+#: swallowed by ctypes, and between two statements there an exception frees a module the JIT owns),
+#: inside another ctypes callback, and inside a ``__del__`` (an exception there is printed and
+#: dropped). Each then works on for 60 s.
 SWALLOWING = {
     "llvm-callback": '''
 def main():
@@ -236,6 +237,15 @@ def main():
     engine = llvm.create_mcjit_compiler(llvm.parse_assembly("define i32 @f() {\\n  ret i32 1\\n}"), machine)
     engine.set_object_cache(lambda module, buf: signal.raise_signal(SIG))  # its handler runs in the callback
     engine.finalize_object()
+    time.sleep(60)
+    return 0
+''',
+    "ctypes-callback": '''
+import ctypes
+
+
+def main():
+    ctypes.CFUNCTYPE(None)(lambda: signal.raise_signal(SIG))()  # its handler runs in the callback
     time.sleep(60)
     return 0
 ''',
