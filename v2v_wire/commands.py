@@ -18,8 +18,7 @@ The interrupt is raised where Python code may stop, never inside llvmlite's bind
 compiler under them): they hand an LLVM object to another between two statements (a module given
 to the JIT, then marked owned) and call back from LLVM into Python, and an exception there either
 frees the module twice (the process dies of SIGSEGV once the traceback goes) or is swallowed by
-ctypes (the signal lost, the command running on); nor while numba writes its cache (its temporary
-file would stay). A signal that comes there is sent again 10 ms later until it lands outside; one
+ctypes (the signal lost, the command running on). A signal that comes there is sent again 10 ms later until it lands outside; one
 swallowed anywhere else (a ``__del__``, a callback) is sent again rather than printed.
 
 Standard library only: this module is imported before the command's own packages.
@@ -53,10 +52,10 @@ class Terminated(KeyboardInterrupt):
     it too)."""
 
 
-#: Modules whose frames an interrupt is not raised in (module docstring): llvmlite's bindings, and
-#: numba's cache files (written to a temporary file renamed into place, removed on an ``Exception``
-#: only: an interrupt there would leave it in the package's ``__pycache__``).
-UNSAFE_MODULES = ("llvmlite.binding", "numba.core.caching")
+#: Modules whose frames an interrupt is not raised in (module docstring): llvmlite's bindings. Not
+#: numba's cache: an interrupt held while it loads a kernel lands in the dispatcher's own
+#: bookkeeping right after, and the kernel's next result came back with a missing item (SIGSEGV).
+UNSAFE_MODULES = ("llvmlite.binding",)
 #: Seconds after which a signal that came inside :data:`UNSAFE_MODULES` is sent again.
 RETRY_S = 0.01
 _UNSAFE_PACKAGES = tuple(m + "." for m in UNSAFE_MODULES)
