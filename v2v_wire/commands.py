@@ -18,8 +18,9 @@ The interrupt is raised where Python code may stop, never inside llvmlite's bind
 compiler under them): they hand an LLVM object to another between two statements (a module given
 to the JIT, then marked owned) and call back from LLVM into Python, and an exception there either
 frees the module twice (the process dies of SIGSEGV once the traceback goes) or is swallowed by
-ctypes (the signal lost, the command running on). A signal that comes there is sent again 10 ms later until it lands outside; one
-swallowed anywhere else (a ``__del__``, a callback) is sent again rather than printed.
+ctypes (the signal lost, the command running on). A signal that comes there is sent again 10 ms
+later until it lands outside; one swallowed anywhere else (a ``__del__``, a callback) is sent
+again rather than printed.
 
 Standard library only: this module is imported before the command's own packages.
 """
