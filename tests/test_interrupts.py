@@ -129,7 +129,7 @@ def _run(name: str, args: list, when, sig: int, tmp: Path, moment: str) -> subpr
     code = f"import sys\nfrom v2v_wire.commands import {fn}\nsys.exit({fn}())"
     out_f, err_f = open(tmp / "stdout", "w+"), open(tmp / "stderr", "w+")
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=out_f, stderr=err_f, cwd=tmp,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"})  # a crash's stack
     try:
         deadline = time.monotonic() + 240
         while not _handler_installed(proc.pid):
@@ -219,3 +219,59 @@ def test_an_interrupt_at_any_moment_is_one_line_and_leaves_no_partial_file(tmp_p
     keys = tmp_path / "keys"
     if keys.exists():  # both halves of the key pair, or neither
         assert len([p for p in keys.iterdir() if not p.name.startswith(".")]) in (0, 2), list(keys.iterdir())
+
+
+#: Commands whose interrupt comes where Python cannot raise it at once: inside llvmlite's bindings
+#: (LLVM calls back into Python as numba's JIT caches its object code: an exception there is
+#: swallowed by ctypes, and between two statements there an exception frees a module the JIT owns),
+#: inside another ctypes callback, and inside a ``__del__`` (an exception there is printed and
+#: dropped). Each then works on for 60 s.
+SWALLOWING = {
+    "llvm-callback": '''
+def main():
+    import llvmlite.binding as llvm
+
+    llvm.initialize_native_target()
+    llvm.initialize_native_asmprinter()
+    machine = llvm.Target.from_default_triple().create_target_machine()
+    engine = llvm.create_mcjit_compiler(llvm.parse_assembly("define i32 @f() {\\n  ret i32 1\\n}"), machine)
+    engine.set_object_cache(lambda module, buf: signal.raise_signal(SIG))  # its handler runs in the callback
+    engine.finalize_object()
+    time.sleep(60)
+    return 0
+''',
+    "ctypes-callback": '''
+import ctypes
+
+
+def main():
+    ctypes.CFUNCTYPE(None)(lambda: signal.raise_signal(SIG))()  # its handler runs in the callback
+    time.sleep(60)
+    return 0
+''',
+    "finaliser": '''
+class Finalised:
+    def __del__(self):
+        signal.raise_signal(SIG)  # its handler runs in __del__
+
+
+def main():
+    Finalised()
+    time.sleep(60)
+    return 0
+''',
+}
+
+
+@pytest.mark.parametrize("sig", (signal.SIGTERM, signal.SIGINT), ids=lambda s: signal.Signals(s).name)
+@pytest.mark.parametrize("where", SWALLOWING)
+def test_an_interrupt_where_python_cannot_raise_it_is_raised_after(tmp_path, where, sig):
+    """The signal is neither lost (the command running on to its end) nor raised where it would
+    be swallowed or break a native object: it ends the command, with its one line, as soon as
+    Python code outside those places runs."""
+    (tmp_path / "swallowing.py").write_text(f"import signal\nimport time\n\nSIG = {int(sig)}\n" + SWALLOWING[where])
+    code = "import sys\nfrom v2v_wire.commands import run_command\nsys.exit(run_command('v2v-x', 'swallowing:main'))"
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+    said = "v2v-x: stopped (SIGTERM)" if sig == signal.SIGTERM else "v2v-x: interrupted (Ctrl-C)"
+    assert (r.returncode, r.stderr.strip()) == (128 + sig, said), (r.returncode, r.stderr[-3000:])

@@ -3,16 +3,24 @@ files: Ctrl-C and SIGTERM answered at any moment with one line, outputs written 
 output that would overwrite an input refused before any work.
 
 ``pyproject.toml`` points each console script at a function of this module (``serve``,
-``calibrate``...): it installs the SIGTERM handler before anything else is imported, then imports
-the command's module and runs its ``main``. An interrupt, during those imports too, ends the
-command with one line on stderr (``v2v-calibrate: interrupted (Ctrl-C)``, then what the command
-said of it: a command that has something to add, such as the checkpoint it saved, raises the
-interrupt again with that text) and status 130 (SIGINT)
-or 143 (SIGTERM, 128 + 15, as a shell reports a process killed by it), never a traceback: numba's
-dispatcher reports an interrupt inside compiled code as a ``SystemError`` whose context holds the
-``KeyboardInterrupt`` (once per nested dispatcher: four deep in the simulation kernel), and
-:func:`interrupt_in` finds it at any depth. A second signal while the command cleans up ends the
-process at once, with the same status and no second line.
+``calibrate``...): it installs the SIGTERM and SIGINT handlers before anything else is imported,
+then imports the command's module and runs its ``main``. An interrupt, during those imports too,
+ends the command with one line on stderr (``v2v-calibrate: interrupted (Ctrl-C)``, then what the
+command said of it: a command that has something to add, such as the checkpoint it saved, raises
+the interrupt again with that text) and status 130 (SIGINT) or 143 (SIGTERM, 128 + 15, as a
+shell reports a process killed by it), never a traceback: numba's dispatcher reports an interrupt
+inside compiled code as a ``SystemError`` whose context holds the ``KeyboardInterrupt`` (once per
+nested dispatcher: four deep in the simulation kernel), and :func:`interrupt_in` finds it at any
+depth. A second signal while the command cleans up ends the process at once, with the same status
+and no second line.
+
+The interrupt is raised where Python code may stop, never inside llvmlite's bindings (numba's
+compiler under them): they hand an LLVM object to another between two statements (a module given
+to the JIT, then marked owned) and call back from LLVM into Python, and an exception there either
+frees the module twice (the process dies of SIGSEGV once the traceback goes) or is swallowed by
+ctypes (the signal lost, the command running on). A signal that comes there is sent again 10 ms
+later until it lands outside; one swallowed anywhere else (a ``__del__``, a callback) is sent
+again rather than printed.
 
 Standard library only: this module is imported before the command's own packages.
 """
@@ -22,6 +30,7 @@ import importlib
 import os
 import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Callable, Iterable, Optional, Tuple, Union
 
@@ -44,8 +53,72 @@ class Terminated(KeyboardInterrupt):
     it too)."""
 
 
-def _on_sigterm(signum, frame) -> None:
-    raise Terminated()
+#: Modules whose frames an interrupt is not raised in (module docstring): llvmlite's bindings. Not
+#: numba's cache: an interrupt held while it loads a kernel lands in the dispatcher's own
+#: bookkeeping right after, and the kernel's next result came back with a missing item (SIGSEGV).
+UNSAFE_MODULES = ("llvmlite.binding",)
+#: Seconds after which a signal that came inside :data:`UNSAFE_MODULES` is sent again.
+RETRY_S = 0.01
+_UNSAFE_PACKAGES = tuple(m + "." for m in UNSAFE_MODULES)
+_retry_pending = threading.Lock()
+
+
+def _in_unsafe_code(frame) -> bool:
+    """Whether ``frame`` or a frame below it (its callers) runs a module of :data:`UNSAFE_MODULES`
+    or :func:`_on_unraisable` (an exception raised there is swallowed too)."""
+    while frame is not None:
+        name = frame.f_globals.get("__name__") or ""
+        if name in UNSAFE_MODULES or name.startswith(_UNSAFE_PACKAGES):
+            return True
+        if frame.f_code is _on_unraisable.__code__:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _send_again(signum: int, delay: float = RETRY_S) -> None:
+    """Send ``signum`` to this process again after ``delay`` seconds (one retry pending at once)."""
+    if not _retry_pending.acquire(blocking=False):
+        return
+
+    def send():
+        _retry_pending.release()
+        os.kill(os.getpid(), signum)
+
+    timer = threading.Timer(delay, send)
+    timer.daemon = True
+    try:
+        timer.start()
+    except RuntimeError:  # the interpreter is exiting: no thread starts, and none is needed
+        _retry_pending.release()
+
+
+def _on_interrupt(signum, frame) -> None:
+    """SIGINT and SIGTERM: :class:`KeyboardInterrupt` or :class:`Terminated` raised in the main
+    thread, or the signal sent again when it came inside :data:`UNSAFE_MODULES`."""
+    if _in_unsafe_code(frame):
+        _send_again(signum)
+        return
+    raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _on_unraisable(unraisable) -> None:
+    """``sys.unraisablehook``: an interrupt that Python could not raise (it came inside a
+    ``__del__``, a weakref or ctypes callback) is sent again, not printed; anything else is
+    printed as Python prints it."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        _send_again(signal.SIGTERM if isinstance(unraisable.exc_value, Terminated) else signal.SIGINT)
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+def install_interrupt_handlers() -> None:
+    """SIGTERM and SIGINT (where not ignored) answered by :func:`_on_interrupt`, and interrupts
+    that Python swallows sent again (:func:`_on_unraisable`): the first act of every command."""
+    signal.signal(signal.SIGTERM, _on_interrupt)
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        signal.signal(signal.SIGINT, _on_interrupt)
+    sys.unraisablehook = _on_unraisable
 
 
 def interrupt_in(exc: BaseException, depth: int = 32) -> Optional[KeyboardInterrupt]:
@@ -67,10 +140,10 @@ def interrupted_status(exc: BaseException) -> int:
 
 def run_command(prog: str, target: str) -> int:
     """Run the command ``target`` (``module:function``, called without arguments: it reads
-    ``sys.argv``) as ``prog``: SIGTERM handled first, then its module imported and its function
-    called. Returns its exit status; an interrupt at any moment is one line and 130 or 143
-    (module docstring)."""
-    signal.signal(signal.SIGTERM, _on_sigterm)
+    ``sys.argv``) as ``prog``: SIGTERM and SIGINT handled first (:func:`install_interrupt_handlers`),
+    then its module imported and its function called. Returns its exit status; an interrupt at
+    any moment is one line and 130 or 143 (module docstring)."""
+    install_interrupt_handlers()
     try:
         module, _, name = target.partition(":")
         return getattr(importlib.import_module(module), name)()
@@ -81,7 +154,7 @@ def run_command(prog: str, target: str) -> int:
 def main_of_module(prog: str, main: Callable[[], int]) -> int:
     """``python -m`` of a command's module: ``main()`` with the interrupt handling of
     :func:`run_command` (the module's imports are done by then)."""
-    signal.signal(signal.SIGTERM, _on_sigterm)
+    install_interrupt_handlers()
     try:
         return main()
     except BaseException as e:  # noqa: BLE001
