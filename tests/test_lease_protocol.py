@@ -949,6 +949,88 @@ def test_a_grant_given_back_for_an_epoch_its_loop_completed_is_owed_again_when_t
     n.run_to_end()  # asserts every id of both epochs trained once
 
 
+def _say_hello(core: DeliveryCore, ident: bytes, rec: ResumeState, credits: int, now: float, instance: str):
+    """``rec``'s reader says hello at its position (``ResumeState.place`` before), through the wire."""
+    group, rank, world = rec.position
+    h = Hello(("voxels",), credits, consumer=rec.consumer, resume=rec.hello_resume(), group=group or None,
+              rank=rank, world_size=world, instance=instance)
+    return core.hello(ident, decode_client(pack(h.to_wire()), 1 << 20, 4), now)
+
+
+def _read_to_the_end(core: DeliveryCore, readers: Dict[bytes, ResumeState], now: float) -> List[tuple]:
+    """Readers that heartbeat and take every batch they are sent (a batch of an epoch a reader's
+    record completed is given back; DDP padding is not a sample) until the stream ends: the
+    (epoch, sample id) their loops got."""
+    got = []
+    for _ in range(200):
+        now += 0.5
+        for ident in readers:  # its I/O thread's heartbeat (a waiting hello's proof of life)
+            core.message(ident, Heartbeat(), now)
+        _make_everything(core, now)
+        sends, msgs = core.tick(now)
+        for ident, b in sends:
+            rec = readers[ident]
+            if b.batch_id < 0:
+                continue
+            if rec.is_complete(b.epoch):
+                core.message(ident, Released((b.batch_id,)), now)
+                continue
+            assert core.message(ident, Hold((b.batch_id,)), now)[0][1].batch_ids == (b.batch_id,)
+            keep = rec.claim(b.epoch, b.batch_id, b.payload.sample_ids, False)
+            got += [(b.epoch, b.payload.sample_ids[i]) for i in keep]
+            core.message(ident, Ack((b.batch_id,)), now)
+        for ident, m in msgs:
+            if isinstance(m, sm.EpochDone):
+                readers[ident].complete(m.epoch)
+        if core.finished():
+            return got
+    raise AssertionError("the stream did not end")
+
+
+@pytest.mark.parametrize("world", [1, 3])
+def test_a_gathered_state_loses_no_grant_of_an_epoch_one_rank_had_not_completed(world):
+    """A DDP job of 2 ranks: rank 0 takes its 3 batches of epoch 0; rank 1 is granted the 4th,
+    ``b``, and its loop has not reached it (it stopped, or a validation pass holds the job) when
+    both checkpoint. ``b``'s grant grows ``lease_s`` old and rank 0 is told epoch 0 complete, so
+    rank 0's state says epoch 0 complete while rank 1's names nothing of it. The job resumes at
+    world size 1 (another consumer) or 3 (the same group: new rank 0 is old rank 0's consumer)
+    from both states gathered: ``b``'s samples reached no loop the resumed job keeps, so it must
+    read them; every other sample of epoch 0 it must not read again."""
+    core = DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=2, lease_s=LEASE, client_timeout_s=100.0,
+                                                      revoke_s=REVOKE, max_credits=4, shuffle="none"),
+                        make_batch, stall_s=STALL_S)
+    ranks = [ResumeState("job"), ResumeState("job")]
+    for r, rec in enumerate(ranks):
+        rec.place("g", r, 2)
+        _say_hello(core, b"r%d" % r, rec, 3 - 2 * r, 0.0, f"job1.rank{r}")
+    got = []
+    sent = _turn(core, 0.0)
+    assert len(sent[b"r0"]) == 3 and len(sent[b"r1"]) == 1, sent
+    for bid in sent[b"r0"]:
+        b = core.ledger.batches[bid]
+        core.message(b"r0", Hold((bid,)), 0.1)
+        got += [(0, sid) for sid in b.payload.sample_ids]
+        ranks[0].claim(0, bid, b.payload.sample_ids, False)
+        core.message(b"r0", Ack((bid,)), 0.1)
+    (b,) = sent[b"r1"]
+    core.message(b"r1", Hold((b,)), 0.1)  # granted; rank 1's loop has not taken it
+    assert "epoch_done" in _turn(core, LEASE + 1.0)[b"r0"]
+    ranks[0].complete(0)
+    states = [rec.state() for rec in ranks]  # both checkpoint now
+    for r in range(2):  # the job is killed
+        core.message(b"r%d" % r, Bye(), LEASE + 1.5)
+    readers = {}
+    for r in range(world):  # each rank of the resumed job loads every rank's state
+        readers[b"s%d" % r] = rec = ResumeState()
+        rec.load(ResumeState.gathered(states).state())
+        rec.place("g", r, world)
+        _say_hello(core, b"s%d" % r, rec, 2, LEASE + 2.0, f"job2.rank{r}")
+    got += _read_to_the_end(core, readers, LEASE + 2.0)
+    every = collections.Counter((e, SampleKey(v, k).sample_id()) for e in range(2) for v, n in WINDOWS.items()
+                                for k in range(n))
+    assert collections.Counter(got) == every
+
+
 def test_a_client_found_unreachable_is_forgotten_only_once_its_messages_are_read():
     """The answer to a hold cannot reach a client that closed right after its last messages: the
     core is told (``unreachable``) and still reads the release that follows as that client's (the

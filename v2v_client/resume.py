@@ -56,8 +56,8 @@ class ResumeState:
         self.shard_batches: Dict[str, Dict[int, int]] = {}  # a fan-in's batches per shard per open epoch
         self.shard_of: Dict[str, str] = {}  # a fan-in's endpoint -> the shard it served
         self.pipeline: Dict[int, Tuple[int, List[str]]] = {}
-        #: the consumers a state gathered from every rank of a job speaks for (``gathered``)
-        self.supersedes: Tuple[Tuple[str, int], ...] = ()
+        #: the consumers a state gathered from every rank of a job speaks for, each with its completed epoch
+        self.supersedes: Tuple[Tuple[str, int, int], ...] = ()
         self.origins: Set[str] = set()  # the servers (their welcome's ``server``) that granted its ids
 
     # ------------------------------------------------------------------ plain form
@@ -98,7 +98,8 @@ class ResumeState:
         position = None
         if isinstance(state.get("world_size"), int) and isinstance(state.get("rank"), int):
             position = (str(state.get("group") or ""), state["rank"], state["world_size"])
-        supersedes = tuple((str(n), int(r)) for n, r in state.get("supersedes") or ())
+        supersedes = tuple((str(k[0]), int(k[1]), int(k[2] if len(k) > 2 else completed))
+                           for k in state.get("supersedes") or ())
         origins = {str(o) for o in state.get("origins") or ()}
         with self.lock:
             self.completed_epoch, self.delivered, self.batches = completed, delivered, batches
@@ -146,11 +147,12 @@ class ResumeState:
     @classmethod
     def gathered(cls, states: List[dict]) -> "ResumeState":
         """One state for a job resumed at another world size, from the state of every rank of the
-        job that saved them: the newest completed epoch among them (the server told it complete
-        to one of them, so each of its samples reached some rank), the ids of the later epochs
-        together, per epoch the most batches a rank yielded (where DDP padding counts from), and
-        the consumers it speaks for (``supersedes``: every rank's). Every rank of the new job
-        loads it (docs/delivery.md, "A world size changes").
+        job that saved them: the oldest completed epoch among them (a later one may lack what a
+        rank had been granted and not taken), the ids of the later epochs together (a rank forgot
+        only those of epochs its state completed), per epoch the most batches a rank yielded
+        (where DDP padding counts from), and the consumers it speaks for (``supersedes``: every
+        rank's, with its completed epoch: the server keeps what it granted in those). Every rank
+        of the new job loads it (docs/delivery.md, "A world size changes").
 
         Raises:
             ValueError: no state, or one of another format.
@@ -163,16 +165,14 @@ class ResumeState:
             p.load(st)
             parts.append(p)
         out = cls(parts[0].consumer)
-        out.completed_epoch = done = max(p.completed_epoch for p in parts)
-        for p in parts:
+        out.completed_epoch = min(p.completed_epoch for p in parts)
+        for p in parts:  # a part's epochs are all after its completed one
             for e, ids in p.delivered.items():
-                if e > done:
-                    out.delivered.setdefault(e, set()).update(ids)
+                out.delivered.setdefault(e, set()).update(ids)
             for e, n in p.batches.items():
-                if e > done:
-                    out.batches[e] = max(out.batches.get(e, 0), n)
+                out.batches[e] = max(out.batches.get(e, 0), n)
             out.recipe = out.recipe or p.recipe
-        out.supersedes = tuple(dict.fromkeys(k for p in parts for k in (p.key(),) + p.supersedes))
+        out.supersedes = tuple(dict.fromkeys(k for p in parts for k in ((*p.key(), p.completed_epoch),) + p.supersedes))
         out.origins = set().union(*(p.origins for p in parts))
         return out
 
@@ -194,7 +194,7 @@ class ResumeState:
                         f"{rank} of {world_size}: it holds that rank's samples only. Resume at world size {saved[2]} "
                         f"with each rank's own state, or load every rank's state in each rank: "
                         f"ds.load_state_dict({{'v2v_ranks': [state of rank 0, ..., state of rank {saved[2] - 1}]}})")
-                self.supersedes = ((f"c:{self.consumer}", 0),)  # one reader's whole state, now read by a job
+                self.supersedes = ((f"c:{self.consumer}", 0, self.completed_epoch),)  # one reader's, read by a job
                 self.batches.clear()  # the reader's counts, not the rank's: DDP padding counts from 0
             self.position = (group if world_size > 1 else "", rank, world_size)
 

@@ -53,8 +53,9 @@ def bounded_unpackb(buf, max_bytes: int) -> object:
 #: Largest epoch number a resume state may name (a 32-bit signed int).
 MAX_EPOCH = 2 ** 31 - 1
 
-#: A consumer a gathered resume state speaks for: ``("g:<group>", rank)`` or ``("c:<consumer id>", 0)``.
-ConsumerKey = Tuple[str, int]
+#: A consumer a gathered resume state speaks for, ``("g:<group>", rank)`` or ``("c:<consumer id>", 0)``,
+#: and the last epoch that consumer's own state called complete.
+ConsumerKey = Tuple[str, int, int]
 
 
 @dataclass(frozen=True)
@@ -62,7 +63,7 @@ class Resume:
     """A trainer's position: ``completed_epoch``; per open epoch the sample keys it already
     has (``delivered``) and the batches it yielded (``batches``, for DDP padding); the consumers
     it speaks for besides its own (``supersedes``: a state gathered from every rank of a job
-    resumed at another world size); the servers its ids were granted by (``origins``)."""
+    resumed at another world size, each with its completed epoch); the servers its ids were granted by (``origins``)."""
 
     completed_epoch: int = -1
     delivered: Dict[int, FrozenSet[SampleKey]] = field(default_factory=dict)
@@ -89,7 +90,7 @@ class ResumeIds:
              "delivered": {str(e): compact_ids(ids) for e, ids in self.delivered.items()},
              "batches": {str(e): n for e, n in self.batches.items()}}
         if self.supersedes:
-            h["supersedes"] = [[name, rank] for name, rank in self.supersedes]
+            h["supersedes"] = [list(k) for k in self.supersedes]
         if self.origins:
             h["origins"] = list(self.origins)
         return h
@@ -240,12 +241,15 @@ def _epoch(e) -> bool:
 
 
 def _supersedes(v) -> Tuple[ConsumerKey, ...]:
-    if not isinstance(v, list) or not all(isinstance(x, list) and len(x) == 2 and isinstance(x[0], str)
+    def number(x, lo: int, hi: int) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool) and lo <= x < hi
+
+    if not isinstance(v, list) or not all(isinstance(x, list) and len(x) == 3 and isinstance(x[0], str)
                                           and x[0][:2] in ("g:", "c:") and 2 < len(x[0]) <= 130
-                                          and isinstance(x[1], int) and not isinstance(x[1], bool)
-                                          and 0 <= x[1] < 65536 for x in v):
-        raise WireError(f"field 'resume.supersedes' must list [consumer, rank] pairs, got {show(v)}")
-    return tuple((name, rank) for name, rank in v)
+                                          and number(x[1], 0, 65536) and number(x[2], -1, MAX_EPOCH + 1) for x in v):
+        raise WireError(f"field 'resume.supersedes' must list [consumer, rank, completed epoch] triples, "
+                        f"got {show(v)}")
+    return tuple((name, rank, done) for name, rank, done in v)
 
 
 def _resume(v, crops_per_window: int = 1, bound: Optional[Bound] = None) -> Resume:

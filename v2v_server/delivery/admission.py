@@ -179,7 +179,7 @@ class Admission:
         are not in its own DDP world (those say hello themselves), and a DDP rank's group's ranks
         beyond its world size that no connection reads (the same job at an earlier world size)."""
         out = {consumer}
-        for name, rank in h.resume.supersedes:
+        for name, rank, _ in h.resume.supersedes:
             if not (h.world_size > 1 and name == "g:" + (h.group or "default") and rank < h.world_size):
                 out.add((name, rank))
         if h.world_size > 1:
@@ -231,10 +231,11 @@ class Admission:
         """Why the server can tell resume state ``r`` of ``consumer`` is false, or None (linear in
         its size); ``speaks``: the consumers whose grants its ids may name."""
         s, last = self.sched, self.sched.max_epochs
-        if last is not None and r.completed_epoch >= last:
-            return f"says epoch {r.completed_epoch} is complete; this server serves epochs 0 to {last - 1} (--epochs {last})"
-        if self.journal is not None and r.completed_epoch > self.journal.told:
-            return (f"says epoch {r.completed_epoch} is complete; this server's journal ({self.journal.path}) told "
+        top = max([r.completed_epoch] + [done for _, _, done in r.supersedes])  # a gathered state's ranks' too
+        if last is not None and top >= last:
+            return f"says epoch {top} is complete; this server serves epochs 0 to {last - 1} (--epochs {last})"
+        if self.journal is not None and top > self.journal.told:
+            return (f"says epoch {top} is complete; this server's journal ({self.journal.path}) told "
                     f"epochs up to {self.journal.told} complete: resume against the server and --state-dir the state "
                     f"was made with, or without the state")
         for e, keys in r.delivered.items():

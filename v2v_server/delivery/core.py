@@ -192,9 +192,8 @@ class DeliveryCore:
 
     # ------------------------------------------------------------------ clients
     def hello(self, ident: bytes, h: Hello, now: float) -> List[Msg]:
-        """A client says hello (first time or again): refused with an error, held while another
-        reader's connection of its consumer is live (``[]``; a later :meth:`tick` answers it), or
-        welcomed (``admission.Admission``; docs/delivery.md, "Who may say hello")."""
+        """A client says hello (again): refused (an error), held while another reader's connection of its
+        consumer is live (``[]``; :meth:`tick` answers it) or welcomed (docs/delivery.md, "Who may say hello")."""
         consumer, group = consumer_of(ident, h)
         verdict = self.admission.check(ident, h, consumer, group, now)
         if verdict == WAIT:
@@ -210,30 +209,31 @@ class DeliveryCore:
 
     def _welcome(self, ident: bytes, h: Hello, consumer: Hashable, group: Optional[str], now: float,
                  heard: float) -> List[Msg]:
-        """Let a hello in: older connections of its reader are fenced, the grants stranded with
-        the consumers it speaks for are settled by its resume state (named: the loop got them;
-        not named: back to the queue), and the state replaces their records."""
+        """Let a hello in: older connections of its reader are fenced, the grants stranded with the
+        consumers it speaks for are settled by its resume state (named: the loop got them; else queued
+        again), and it replaces their records after the epoch each completed."""
         msgs: List[Msg] = []
         speaks = self.admission.speaks_for(consumer, h)
         for c in self.admission.others(ident, speaks):  # the same reader's: it closed them itself
             self._leave(c.ident, "a newer connection of its reader said hello")
             msgs.append((c.ident, ServerError("a newer connection of this reader took its consumer over", "fenced")))
         self._leave(ident, "it said hello again")
-        r = h.resume
-        for who in speaks:
-            # its own grant is taken only if named (one of an epoch its loop completed first was given
-            # back, its release perhaps lost); a gathered state keeps no ids of its completed epochs
-            _, back = self.ledger.settle(who, lambda b: (who != consumer and b.epoch <= r.completed_epoch)
-                                         or set(b.keys) <= r.delivered.get(b.epoch, frozenset()))
-            for b in back:
+        r, delivered = h.resume, {e: set(ks) for e, ks in h.resume.delivered.items()}
+        done = {(name, rank): upto for name, rank, upto in r.supersedes}  # each old rank's completed epoch
+        for who in speaks:  # a grant is taken only if named: a reader is told an epoch complete holding
+            upto = done.get(who, r.completed_epoch)  # no grant of it, and gives back one of it sent later
+            for b in self.ledger.settle(who, lambda b: set(b.keys) <= delivered.get(b.epoch, set()))[1]:
                 self._undelivered(who, b)
-            if who != consumer:  # a gathered state speaks for it: its samples are in the state
-                self.sched.apply_resume(who, r.completed_epoch, {})
+            if who != consumer:  # a gathered state speaks for it: its later samples are in the state
+                self.sched.apply_resume(who, upto, {})
                 if self.journal is not None:
-                    self.journal.replaced(who, r.completed_epoch, {})
-        self.sched.apply_resume(consumer, r.completed_epoch, {e: set(ks) for e, ks in r.delivered.items()})
+                    self.journal.replaced(who, upto, {})
+            for e in range(r.completed_epoch + 1, upto + 1) if who == consumer else ():  # its old rank's: kept
+                recs = self.sched.plans[e].records if e in self.sched.plans else self.sched.pending_records.get(e, {})
+                delivered.setdefault(e, set()).update(recs.get(consumer, ()))
+        self.sched.apply_resume(consumer, r.completed_epoch, delivered)
         if self.journal is not None:
-            self.journal.replaced(consumer, r.completed_epoch, r.delivered)
+            self.journal.replaced(consumer, r.completed_epoch, delivered)
         if group is not None:
             self.padding.resized(group, h.world_size)
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
@@ -316,8 +316,7 @@ class DeliveryCore:
 
     def unreachable(self, ident: bytes) -> None:
         """A message could not reach connection ``ident`` (its socket closed): it is forgotten at
-        :meth:`caught_up`, once every message it sent before closing was read (docs/delivery.md,
-        "A client that closes right after its last messages")."""
+        :meth:`caught_up`, once every message it sent before closing was read (docs/delivery.md, "Messages")."""
         self._unreachable.add(ident)
 
     def caught_up(self) -> None:
