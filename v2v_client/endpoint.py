@@ -232,12 +232,16 @@ class EndpointStream:
         """A received batch: given back when its epoch is complete here; else claimed once the
         server granted it (acknowledged, or in a DataLoader worker acknowledged when the loop's
         receipt comes) and its samples recorded in the same step, those already delivered or queued dropped
-        (a batch of repeats only becomes DDP padding, or nothing with one rank), preceded by
-        any padding owed, and yielded."""
+        (a batch of repeats only becomes DDP padding, or nothing with one rank), and yielded. Any
+        padding owed is yielded first, before the claim: a checkpoint taken between the two must
+        not name a batch the loop has not got (docs/delivery.md, "Ends of epochs")."""
         epoch = item["epoch"]
         if self.record.is_complete(epoch):
             conn.give_back(item)  # never acknowledge what we would drop
             return
+        for e in sorted(self._pad_debt):
+            for _ in range(self._pad_debt.pop(e)):
+                yield padding_copy(item, e)
         loader = self.receipts is not None
         taken, keep = conn.take(item, lambda: self.record.claim(epoch, item["batch_id"], item["sample_ids"], loader),
                                 ack=not loader)
@@ -256,9 +260,6 @@ class EndpointStream:
                 item = select_samples(item, keep)
             else:  # DDP: keep the batch count equal; every sample is a repeat
                 item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
-        for e in sorted(self._pad_debt):
-            for _ in range(self._pad_debt.pop(e)):
-                yield padding_copy(item, e)
         self._last = item
         yield item
 

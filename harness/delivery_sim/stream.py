@@ -128,6 +128,9 @@ class SimIterator:
         elif s.record.is_complete(item["epoch"]):
             self.conn.give_back(item)
         else:
+            for e in sorted(s.pad_debt):  # padding owed goes before the claim
+                for _ in range(s.pad_debt.pop(e)):
+                    self.out.append(_padding_copy(_loop_item(item, padding=True), e))
             self.pending = item
         return None
 
@@ -157,9 +160,6 @@ class SimIterator:
                 out["padding"] = [False] * len(keep)
             else:
                 out["padding"] = [True] * len(out["sample_ids"])
-        for e in sorted(s.pad_debt):
-            for _ in range(s.pad_debt.pop(e)):
-                self.out.append(_padding_copy(out, e))
         s.last = out
         self.out.append(out)
         return True
