@@ -213,7 +213,9 @@ def test_stream_loader_persistent_worker_killed_mid_iteration(tmp_path):
         pid = loader._iterator._workers[0].pid
         os.kill(pid, signal.SIGKILL)
         t0 = time.monotonic()
-        with pytest.raises(RuntimeError, match=rf"DataLoader worker \(pid\(s\) {pid}\) exited unexpectedly"):
+        # torch says it from its SIGCHLD handler or from the loop's next timeout, whichever comes first
+        with pytest.raises(RuntimeError, match=rf"DataLoader worker \(pid(\(s\))? {pid}\) "
+                                               r"(exited unexpectedly|is killed by signal)"):
             for b in it:
                 trained += b["sample_ids"]
         assert time.monotonic() - t0 < MARGIN_S
