@@ -251,8 +251,8 @@ class Admission:
                 return (f"says epoch {done} is its newest complete one; this server told {who} "
                         f"epochs up to {told} complete and keeps its records of the newest {keep} of "
                         f"them only, so what its model lost of epoch {done + 1} would reach no loop: "
-                        f"load a checkpoint saved after epoch {told - keep} ended, or read on without a state as a "
-                        f"new consumer")
+                        f"load a checkpoint saved after epoch {told - keep} ended, or read on as a new consumer (no "
+                        f"state; a DDP job under a new group=)")
         for e, keys in r.delivered.items():
             if e <= r.completed_epoch or not keys:
                 continue
