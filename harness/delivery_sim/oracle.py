@@ -163,20 +163,24 @@ class Oracle:
         """The server announced ``epoch`` complete: every sample of it (but what failed with a
         reason) is in a kept history, on its way to a loop, or recorded at the server to an
         honest consumer that has not died for good (its next hello takes it back if it does
-        not have it: docs/delivery.md, "Nothing is lost"), or held by one that died for good."""
+        not have it: docs/delivery.md, "Nothing is lost"), or held by one that died for good. A
+        sample a job forgot resuming, that the server forgot too, is left to the final check (that
+        job's next hello may be refused, limit (e), and then it is given up: :meth:`refused_behind`)."""
         self.announced[epoch] = self.sim.now
         pending = set()
         for c in self.live_clients:
             if c.alive():
                 pending.update(c.pending())
-        owed_dead = set().union(*(lin.forgotten for lin in self.lineages.values() if lin.dead_for_good),
-                                *(lin.given_up for lin in self.lineages.values()))
+        owed_dead = set().union(*(lin.forgotten for lin in self.lineages.values() if lin.dead_for_good))
+        owed_later = set().union(*(lin.given_up | lin.forgotten for lin in self.lineages.values()))
         lost = []
         for sid in sorted(self.epoch_ids - self.excused.get(epoch, set())):
             key = (epoch, sid)
             if key in self.kept or key in pending:
                 continue
             owners = self.recorded_to(epoch, sid)
+            if not owners and key in owed_later:
+                continue
             if any(o in self.owners and o not in self.dead_consumers for o in owners):
                 continue
             if any(key in self.killed_with.get(o, ()) or key in owed_dead for o in owners if o in self.dead_consumers):
