@@ -715,10 +715,10 @@ class TinyStream:
     makes whatever its task does not skip, and readers that hold then acknowledge every batch
     sent to them, unless told to keep it (``keep``: granted, never acknowledged)."""
 
-    def __init__(self):
+    def __init__(self, journal=None):
         self.core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=3, lease_s=5.0, client_timeout_s=100.0,
                                                            max_credits=4, task_timeout_s=100.0, shuffle="none"),
-                                 make_batch)
+                                 make_batch, journal=journal)
         self.now = 0.0
         self.got: Dict[bytes, list] = collections.defaultdict(list)  # ident -> (epoch, sample id), in order
         self.told: Dict[bytes, list] = collections.defaultdict(list)  # ident -> (epoch, batches) of each epoch_done
@@ -798,3 +798,29 @@ def test_a_ddp_rank_given_back_a_grant_of_an_epoch_the_others_finished_is_padded
     assert sum(got) == 2, got  # the two grants given back, read again
     for ident in (b"r0.2", b"r1.2"):
         assert s.told[ident][0] == (0, max(got)), s.told[ident]  # the rank that got fewer pads up to it
+
+
+def test_a_resume_more_than_keep_epochs_behind_what_its_consumer_was_told_is_refused_in_one_line():
+    """Reader a read all three epochs and was told each complete; the server keeps its records
+    of the newest two only. Its resume from a checkpoint taken before epoch 0 ended would lose
+    what its model forgot of epoch 0 in silence, so it is refused before any batch, in one line
+    naming the consumer, the state's epoch, the newest epoch told and what to load; a resume
+    within two epochs and a new consumer are let in (docs/delivery.md limit (e); simulator
+    finding F20, ``trainers`` seed 701)."""
+    s = TinyStream()
+    s.hello(b"a", "a")
+    for _ in range(20):
+        s.turn()
+    assert [e for e, _ in s.told[b"a"]] == [0, 1, 2]
+    s.core.message(b"a", Bye(), s.now)
+    s.turn()
+    [(_, err)] = s.core.hello(b"a.2", Hello(("voxels",), 1, consumer="a", resume=Resume(-1, {})), s.now)
+    assert err.to_wire()["type"] == "error" and err.code == "resume" and "\n" not in err.message
+    assert "consumer 'a'" in err.message and "epoch -1" in err.message and "up to 2" in err.message
+    assert "checkpoint saved after epoch 0 ended" in err.message
+    s.turn()
+    assert not s.got[b"a.2"]
+    for ident, consumer, resume in [(b"a.3", "a", Resume(0, {})), (b"c", "c", Resume(-1, {}))]:
+        [(_, welcome)] = s.core.hello(ident, Hello(("voxels",), 1, consumer=consumer, resume=resume), s.now)
+        assert welcome.to_wire()["type"] == "welcome", welcome
+        s.core.message(ident, Bye(), s.now)

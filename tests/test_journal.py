@@ -214,3 +214,28 @@ def test_a_resume_older_than_an_epoch_the_restarted_server_closed_gets_that_epoc
     assert task is not None and task.epoch == 0 and task.video == "a.mp4"
     assert set(task.skip) == {(0, 0), (2, 0), (3, 0)}  # (window, crop): a.mp4#1 only is owed again
     k.close()
+
+
+def test_a_restarted_server_still_refuses_a_resume_further_behind_than_its_consumer_was_told(tmp_path):
+    """The newest epoch each consumer was told complete is journaled: a server restarted after
+    reader a was told every epoch complete still refuses a's resume from before epoch 0 ended
+    (its records of epoch 0 are gone: its loss would be silent), and lets in one within two
+    epochs (docs/delivery.md limit (e); simulator finding F20)."""
+    from tests.test_delivery_core import TinyStream
+    from v2v_wire.messages import Bye, Hello, Resume
+
+    s = TinyStream(Journal(str(tmp_path), "r1"))
+    s.hello(b"a", "a")
+    for _ in range(20):
+        s.turn()
+    assert [e for e, _ in s.told[b"a"]] == [0, 1, 2]
+    s.core.message(b"a", Bye(), s.now)
+    s.turn()
+    s.core.journal.close()
+    t = TinyStream(Journal(str(tmp_path), "r1"))
+    assert t.core.journal.told_to == {("c:a", 0): 2}
+    [(_, err)] = t.core.hello(b"a.2", Hello(("voxels",), 1, consumer="a", resume=Resume(-1, {})), 0.0)
+    assert err.code == "resume" and "up to 2" in err.message, err
+    [(_, welcome)] = t.core.hello(b"a.3", Hello(("voxels",), 1, consumer="a", resume=Resume(1, {})), 0.0)
+    assert welcome.to_wire()["type"] == "welcome", welcome
+    t.core.journal.close()

@@ -15,7 +15,10 @@ is the (epoch, sample id) pairs its model was trained on (padding excluded).
   epoch is in exactly one kept history, except what the docs allow: a window that failed with
   a reason, and what was owed to a consumer that died for good: granted to it and never taken
   (at most ``GRANT_AHEAD + 1`` batches each; a ``StreamLoader`` worker's queued batches
-  besides), or forgotten when it resumed from a checkpoint and not taken again before it died.
+  besides), or forgotten when it resumed from a checkpoint and not taken again before it died,
+  or forgotten by a job whose resume the server refused as more than ``keep_epochs`` behind the
+  epochs its consumer was told complete (limit (e): counted in ``refusals``, checked against the
+  epochs announced; the job reads on as a new consumer, the old one is never read again).
 * **Liveness**: every honest lineage's stream ends (the server's ``end``) by its deadline.
 * **Memory** (after every server turn): the scheduler keeps at most 6 epochs open besides those
   it opened within the last ``2 lease_s + revoke_s`` (how long a reader sitting on its grants may
@@ -49,6 +52,7 @@ class Lineage:
         self.deadline: Optional[float] = None  # its stream must end by then (else the run's deadline)
         self.forgotten: Set[Key] = set()  # what it forgot resuming from checkpoints (owed to it again)
         self.refusable = False  # a job the server may refuse as a second reader of a consumer (it then stops)
+        self.given_up: Set[Key] = set()  # what it forgot, owed to a resume the server refused (limit (e))
 
 
     def refused(self) -> bool:
@@ -58,6 +62,8 @@ class Lineage:
 
 #: what a refusal of a second live reader says (``admission.Admission.check``)
 CLAIMED = "one reader per consumer"
+#: what a refusal of a resume state too far behind its consumer's epochs says (limit (e), ``Admission.resume_problem``)
+BEHIND = "would reach no loop"
 
 
 class Oracle:
@@ -82,6 +88,7 @@ class Oracle:
         self.holders = lambda epoch, sid: []  # where the server keeps a sample (set by the run: ServerProbe.holders)
         self.recorded_to = lambda epoch, sid: []  # the consumers it is recorded to (ServerProbe.recorded_to)
         self.owners: Set[str] = set()  # consumer keys of honest jobs (``ServerProbe`` format: "c:t0/0")
+        self.refusals: List[Tuple[str, int]] = []  # resumes refused as behind (limit (e)): (lineage, its epoch)
 
     def lineage(self, name: str, honest: bool = True) -> Lineage:
         if name not in self.lineages:
@@ -132,24 +139,48 @@ class Oracle:
         if for_good:
             self.dead_consumers.add(consumer)
 
+    def refused_behind(self, lineage: str, consumer: str, completed: int, keep_epochs: int) -> None:
+        """The server refused ``lineage``'s resume state (completed epoch ``completed``) of
+        ``consumer`` as more than ``keep_epochs`` behind the epochs it was told complete
+        (docs/delivery.md, limit (e)); the job reads on as a new consumer. What its model forgot
+        is owed to it no more, and ``consumer`` is never read again (its grants: limit (a)). A
+        refusal while ``completed`` is within ``keep_epochs`` of every epoch announced complete
+        is a false one."""
+        lin = self.lineages[lineage]
+        self.refusals.append((lineage, completed))
+        newest = max(self.announced, default=-1)
+        if completed >= newest - keep_epochs:
+            self.sim.fail("refused", f"{lineage}'s resume state (epoch {completed} complete) was refused as behind, "
+                                     f"though the newest epoch announced complete is {newest}")
+        lin.given_up |= lin.forgotten
+        lin.forgotten = set()
+        self.dead_consumers.add(consumer)
+        self.sim.log("oracle", f"{lineage}'s resume refused as behind: {len(lin.given_up)} samples it forgot are "
+                               f"given up")
+
     # ------------------------------------------------------------------ announcements
     def on_announce(self, epoch: int) -> None:
         """The server announced ``epoch`` complete: every sample of it (but what failed with a
         reason) is in a kept history, on its way to a loop, or recorded at the server to an
         honest consumer that has not died for good (its next hello takes it back if it does
-        not have it: docs/delivery.md, "Nothing is lost"), or held by one that died for good."""
+        not have it: docs/delivery.md, "Nothing is lost"), or held by one that died for good. A
+        sample a job forgot resuming, that the server forgot too, is left to the final check (that
+        job's next hello may be refused, limit (e), and then it is given up: :meth:`refused_behind`)."""
         self.announced[epoch] = self.sim.now
         pending = set()
         for c in self.live_clients:
             if c.alive():
                 pending.update(c.pending())
         owed_dead = set().union(*(lin.forgotten for lin in self.lineages.values() if lin.dead_for_good))
+        owed_later = set().union(*(lin.given_up | lin.forgotten for lin in self.lineages.values()))
         lost = []
         for sid in sorted(self.epoch_ids - self.excused.get(epoch, set())):
             key = (epoch, sid)
             if key in self.kept or key in pending:
                 continue
             owners = self.recorded_to(epoch, sid)
+            if not owners and key in owed_later:
+                continue
             if any(o in self.owners and o not in self.dead_consumers for o in owners):
                 continue
             if any(key in self.killed_with.get(o, ()) or key in owed_dead for o in owners if o in self.dead_consumers):
@@ -178,9 +209,10 @@ class Oracle:
         for consumer in sorted(self.dead_consumers):
             allowed |= self.killed_with.get(consumer, set())
             self.dead_bound(consumer)
-        for lin in self.lineages.values():  # owed again to a job that resumed, then died for good
+        for lin in self.lineages.values():  # owed again to a job that resumed, then died for good or was refused
             if lin.dead_for_good:
                 allowed |= lin.forgotten
+            allowed |= lin.given_up
         for e in range(self.epochs):
             excused = self.excused.get(e, set())
             lost = sorted(sid for sid in self.epoch_ids - excused

@@ -12,7 +12,9 @@ from __future__ import annotations
 from typing import Iterable, List, Optional, Tuple
 
 from v2v_client.options import StreamOptions
+from v2v_server.delivery.schedule import KEEP_EPOCHS
 
+from harness.delivery_sim.oracle import BEHIND
 from harness.delivery_sim.stream import SimIterator, SimStream
 from harness.delivery_sim.world import Proc
 
@@ -229,6 +231,18 @@ class TrainerJob:
 
     def failed(self, trainer: Trainer, err) -> None:
         """The stream raised: an honest job's error is a finding (the oracle reports it at the end),
-        but a refusal the job may get (``Lineage.refusable``)."""
+        but a refusal the job may get (``Lineage.refusable``). A resume state refused as too far
+        behind its consumer's epochs (limit (e)) is read as a user would: the job has no newer
+        checkpoint (a restart drops those), so it reads on as a new consumer, without a state."""
         self.run.sim.log(trainer.name, f"stream error: {err}")
+        if BEHIND in str(err) and not self.gone:
+            completed = trainer.stream.state_dict()["completed_epoch"]
+            self.run.oracle.refused_behind(self.lineage, self.key, completed, KEEP_EPOCHS)
+            self.consumer = f"{self.consumer}+"
+            self.key = f"c:{self.consumer}/0"
+            self.run.oracle.owners.add(self.key)
+            self.checkpoints = [({"version": 1, "consumer": self.consumer, "completed_epoch": -1, "delivered": {},
+                                  "batches": {}}, len(self.run.oracle.lineages[self.lineage].history))]
+            self.start()
+            return
         self.run.oracle.lineages[self.lineage].error = f"{type(err).__name__}: {err}"

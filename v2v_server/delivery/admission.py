@@ -44,11 +44,13 @@ class Admission:
         claim_margin_s: how long after a hello its consumer's older connection must still speak
             to count as alive (a dead process's last messages arrive before).
         server_id: the id this server's welcomes carry (what ``origins`` name).
+        told_to: consumer -> the newest epoch it was told complete (``closing.EpochEnds.told_to``, read only).
     """
 
     def __init__(self, sched: EpochScheduler, ledger: DeliveryLedger, journal, policy, claim_margin_s: float,
-                 server_id: str):
+                 server_id: str, told_to: Optional[Dict[Hashable, int]] = None):
         self.sched, self.ledger, self.journal = sched, ledger, journal
+        self.told_to = {} if told_to is None else told_to
         self.offered = tuple(policy.offered)
         self.k, self.max_windows = policy.crops_per_window, policy.max_samples_per_video
         self.claim_margin_s, self.server_id = claim_margin_s, server_id
@@ -98,7 +100,7 @@ class Admission:
         peers = set(speaks)
         if h.resume.supersedes and group is not None:  # the new job's ranks may have taken the old ones' records
             peers |= {("g:" + group, r) for r in range(h.world_size)}
-        why = self.resume_problem(consumer, h.resume, peers)
+        why = self.resume_problem(consumer, h.resume, peers, lags=h.ends_on_drained)
         if why is not None:
             return ServerError(f"{name_of(consumer)}: its resume state {why}", "resume")
         return None
@@ -227,9 +229,11 @@ class Admission:
             return plan.records
         return None
 
-    def resume_problem(self, consumer: Hashable, r: Resume, speaks: Set[Hashable]) -> Optional[str]:
-        """Why the server can tell resume state ``r`` of ``consumer`` is false, or None (linear in
-        its size); ``speaks``: the consumers whose grants its ids may name."""
+    def resume_problem(self, consumer: Hashable, r: Resume, speaks: Set[Hashable], lags: bool = False) -> Optional[str]:
+        """Why the server can tell resume state ``r`` of ``consumer`` is false, or would lose
+        samples (docs/delivery.md, limit (e)), or None (linear in its size); ``speaks``: the
+        consumers whose grants its ids may name; ``lags``: a DataLoader worker's state, whose
+        completed epoch may lag what its worker was told (the loader learns it with a batch)."""
         s, last = self.sched, self.sched.max_epochs
         top = max([r.completed_epoch] + [done for _, _, done in r.supersedes])  # a gathered state's ranks' too
         if last is not None and top >= last:
@@ -238,6 +242,17 @@ class Admission:
             return (f"says epoch {top} is complete; this server's journal ({self.journal.path}) told "
                     f"epochs up to {self.journal.told} complete: resume against the server and --state-dir the state "
                     f"was made with, or without the state")
+        keep = s.keep_epochs
+        dones = {} if lags else dict([(consumer, r.completed_epoch)] + [((n, k), d) for n, k, d in r.supersedes])
+        for c, done in dones.items():  # each consumer it speaks for, with its own completed epoch
+            told = self.told_to.get(c)
+            if told is not None and done < told - keep:
+                who = "it" if c == consumer else name_of(c)
+                return (f"says epoch {done} is its newest complete one; this server told {who} "
+                        f"epochs up to {told} complete and keeps its records of the newest {keep} of "
+                        f"them only, so what its model lost of epoch {done + 1} would reach no loop: "
+                        f"load a checkpoint saved after epoch {told - keep} ended, or read on as a new consumer (no "
+                        f"state; a DDP job under a new group=)")
         for e, keys in r.delivered.items():
             if e <= r.completed_epoch or not keys:
                 continue

@@ -42,8 +42,9 @@ class EpochEnds:
         self.ended = False  # the stream is over (logged once)
         self._idle_since: Optional[float] = None  # over, with no reader connected, since
         #: consumer -> the newest epoch it was told complete (or its resume state said), kept while the
-        #: scheduler keeps a record of it: what of an epoch the scheduler forgets it keeps for that consumer
-        self.told_to: Dict[Hashable, int] = {}
+        #: scheduler keeps a record of it: what of an epoch the scheduler forgets it keeps for that consumer,
+        #: and a resume state further behind is refused (``Admission.resume_problem``; journaled)
+        self.told_to: Dict[Hashable, int] = {} if journal is None else dict(journal.told_to)
 
     # ------------------------------------------------------------------ per tick
     def tell(self, now: float, waiting: Set[str] = frozenset(),
@@ -162,7 +163,10 @@ class EpochEnds:
                 self.journal.epoch_complete(done)
         told = self.told_to
         for c in self.ledger.clients.values():
-            told[c.consumer] = max(told.get(c.consumer, -1), c.completed)
+            if c.completed > told.get(c.consumer, -1):
+                told[c.consumer] = c.completed
+                if self.journal is not None:
+                    self.journal.consumer_told(c.consumer, c.completed)
         keep = self.sched.keep_epochs
         self.sched.prune((e for e in self.sched.plans if e <= low), lambda c, e: e > told.get(c, -1) - keep)
         if len(told) > len(self.ledger.clients):  # forget those of consumers the scheduler keeps no record of

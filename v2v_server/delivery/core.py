@@ -156,7 +156,8 @@ class DeliveryCore:
         self.ends = EpochEnds(self.sched, self.ledger, self.batcher, self.padding, journal, p.lease_s, end_grace_s)
         #: what a welcome names this server by (``info()["server"]``): the journal's, else this process's
         self.server_id = journal.server_id if journal is not None else uuid.uuid4().hex[:16]
-        self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id)
+        self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id,
+                                   self.ends.told_to)
         self.feed = WorkerFeed(self.sched, self.ledger, self.batcher)
         self.info: Callable[[], dict] = dict
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)

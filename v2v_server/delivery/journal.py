@@ -18,7 +18,9 @@ hand them on, so the grant is written before it is sent; ``index`` is
 ``{"u": [consumer, rank], "e": epoch, "k": [...]}`` (granted, then given back unused),
 ``{"s": [consumer, rank], "c": completed_epoch, "r": {epoch: keys}}`` (a resume state replaced
 a record), ``{"t": epoch}`` (an epoch was told complete to some reader: a resume state may say
-it is complete), ``{"done": epoch}`` (an epoch closed for good: a restart starts after it). The records
+it is complete), ``{"tc": [consumer, rank], "e": epoch}`` (the newest epoch that consumer was told
+complete, kept while the journal holds a record of it: a resume state more than ``keep_epochs``
+behind it is refused, docs/delivery.md limit (e)), ``{"done": epoch}`` (an epoch closed for good: a restart starts after it). The records
 of the newest ``keep_epochs`` closed epochs stay (the scheduler's ``keep_epochs``: a restarted server
 keeps the complete epochs a running one keeps, so a resume state older than their completion reopens
 them alike, docs/delivery.md limit (e)); older ones are dropped. When an epoch closes the file is
@@ -99,6 +101,7 @@ class Journal:
         self.completed = -1
         self.keep_epochs = keep_epochs
         self.told = -1  # the newest epoch told complete to some reader
+        self.told_to: Dict[Hashable, int] = {}  # consumer -> the newest epoch it was told complete
         self.records: Records = {}
         self._dirty = False
         self._last_sync = 0.0
@@ -138,6 +141,9 @@ class Journal:
             self._complete(int(rec["done"]))
         elif "t" in rec:
             self.told = max(self.told, int(rec["t"]))
+        elif "tc" in rec:
+            c = tuple(rec["tc"])
+            self.told_to[c] = max(self.told_to.get(c, -1), int(rec["e"]))
         elif "d" in rec:
             e = int(rec["e"])
             if e > self.kept_after:
@@ -243,12 +249,20 @@ class Journal:
             self._apply({"t": epoch})
             self._append({"t": epoch})
 
+    def consumer_told(self, consumer: Hashable, epoch: int) -> None:
+        """``consumer`` was told ``epoch`` complete (the newest it was told)."""
+        if epoch > self.told_to.get(consumer, -1):
+            rec = {"tc": list(consumer), "e": epoch}
+            self._apply(rec)
+            self._append(rec)
+
     def epoch_complete(self, epoch: int) -> None:
         """Every epoch up to ``epoch`` is closed: records of epochs beyond the newest ``keep_epochs``
         closed ones are dropped and the file is rewritten without them."""
         if epoch <= self.completed:
             return
         self._complete(epoch)
+        self.told_to = {c: e for c, e in self.told_to.items() if any(self.records.get(c, {}).values())}
         if self.failed:
             return  # the next whole write (sync) leaves the epoch's records out
         try:
@@ -270,6 +284,8 @@ class Journal:
             for consumer, d in self.records.items():
                 for e, ks in d.items():
                     f.write(msgpack.packb({"d": list(consumer), "e": e, "k": self._pairs(sorted(ks))}))
+            for consumer, e in self.told_to.items():
+                f.write(msgpack.packb({"tc": list(consumer), "e": e}))
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, self.path)
