@@ -843,3 +843,21 @@ def test_a_ddp_rank_sent_a_batch_it_never_held_is_padded_by_the_server():
     assert [e for e, _ in s.got[b"r0"]][:2] == [0, 1] and s.got[b"r4"][0][0] == 1  # its first batch is of epoch 1
     assert s.told[b"r4"][0] == (0, 1)
     assert [e for e, _ in s.got[b"r4"]] == [1, 0]  # then a padding batch of epoch 0
+
+
+def test_a_ddp_group_with_no_rank_connected_keeps_what_a_returning_rank_repeats():
+    """Rank 1 of a group was granted the epoch's only batch and left; rank 0, dropped, has not
+    said hello again yet: no rank of the group is connected when the server prunes. Rank 0,
+    back, is told the epoch complete with a count of 1: it still gets a padding copy (the
+    group's last batch was forgotten with its last connection, and the job hung in an
+    all-reduce: simulator finding F24, ``elastic`` seed 149)."""
+    from v2v_server.delivery.ledger import ClientRecord
+    from v2v_server.delivery.padding import GroupPadding
+    pad = GroupPadding()
+    pad.acked("g", 1, BatchRecord(0, 0, [SampleKey("a.mp4", 0)], FakeSample("a.mp4#0")))
+    pad.prune(set(), lambda epoch: False)
+    back = ClientRecord(b"r0", ("g:g", 0), ("voxels",), 2, 0.0, group="g", rank=0, world_size=2)
+    batches, copy = pad.epoch_done(back, 0)
+    assert batches == 1 and copy is not None and copy.batch_id == -1 and copy.epoch == 0
+    pad.prune(set(), lambda epoch: True)  # its epochs forgotten: nothing of the group is kept
+    assert pad.epoch_done(back, 0) == (0, None)

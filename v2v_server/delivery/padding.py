@@ -61,8 +61,10 @@ class GroupPadding:
         return most, None
 
     def prune(self, live_groups: set, forgotten: Callable[[int], bool]) -> None:
-        """Forget groups with no client left and epochs ``forgotten(epoch)`` says are gone."""
-        for g in [g for g in self.pad_source if g not in live_groups]:
-            del self.pad_source[g]
+        """Forget epochs ``forgotten(epoch)`` says are gone, and the last batch of groups with no
+        client left and no epoch counted (a rank between a drop and its next hello still pads)."""
         for key in [k for k in self.taken if forgotten(k[1])]:
             del self.taken[key]
+        counted = {g for g, _ in self.taken}
+        for g in [g for g in self.pad_source if g not in live_groups and g not in counted]:
+            del self.pad_source[g]
