@@ -9,7 +9,7 @@ import pytest
 
 from v2v_client.options import StreamOptions
 from v2v_client.receipts import Abandon, Receipt
-from v2v_client.resume import ResumeState
+from v2v_client.resume import ResumeState, server_padding
 from v2v_client.session import LoopAbandoned, ServerPadding, ServerSession, StreamError
 from v2v_wire import messages as cm
 from v2v_wire.protocol import PROTOCOL_VERSION, encode_arrays, pack, unpack
@@ -317,3 +317,22 @@ def test_what_was_said_of_a_granted_batch_is_named_each_heartbeat_until_the_serv
     assert s.outgoing() == [cm.Heartbeat()]
     s.on_message([pack({"type": "granted", "batch_ids": [8]})])
     assert s.outgoing() == [] and s.held.granted == {8}
+
+
+def test_a_ddp_rank_that_read_an_epochs_end_with_nothing_to_repeat_pays_with_the_servers_copy():
+    """A DDP rank told epoch 0 complete (every rank yields 1 batch) before any batch reached
+    it owes one padding batch with nothing to repeat. Its hello, sent before it read that end,
+    reopened epoch 0, so the server sends a padding copy of it: the copy pays that batch, once
+    (it was dropped as "complete here", and the job hung in an all-reduce: simulator finding
+    F19, ``ddp`` seeds 782, 930). A copy of a later, open epoch also pays what older epochs
+    still owe, oldest first."""
+    r = ResumeState("c")
+    owed = {}
+    assert r.complete(0, 1) == 1
+    owed[0] = 1  # what EndpointStream keeps when it has no batch to repeat
+    assert server_padding(r, 0, owed) == [0] and owed == {}
+    assert server_padding(r, 0, owed) == []  # a second copy of a complete epoch is nobody's
+    r, owed = ResumeState("c"), {0: 2}
+    assert r.complete(0, 2) == 2
+    assert server_padding(r, 1, owed) == [0, 0, 1] and owed == {}  # epoch 1 is open: its copy counts in it
+    assert r.complete(1, 1) == 0

@@ -713,7 +713,8 @@ def test_a_resume_state_replaces_a_record_of_an_epoch_not_open_yet():
 class TinyStream:
     """A core serving one 4-window video in batches of 1 (3 epochs, no shuffle), one worker that
     makes whatever its task does not skip, and readers that hold then acknowledge every batch
-    sent to them, unless told to keep it (``keep``: granted, never acknowledged)."""
+    sent to them, unless told to keep it (``keep``: granted, never acknowledged) or to say
+    nothing of it (``mute``: a paused reader)."""
 
     def __init__(self, journal=None):
         self.core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=3, lease_s=5.0, client_timeout_s=100.0,
@@ -723,6 +724,7 @@ class TinyStream:
         self.got: Dict[bytes, list] = collections.defaultdict(list)  # ident -> (epoch, sample id), in order
         self.told: Dict[bytes, list] = collections.defaultdict(list)  # ident -> (epoch, batches) of each epoch_done
         self.keep: set = set()  # readers that hold what they get and acknowledge nothing
+        self.mute: set = set()  # readers that say nothing of what they get
 
     def hello(self, ident: bytes, consumer: str, resume: Resume = Resume(), **ddp) -> None:
         self.take(self.core.hello(ident, Hello(("voxels",), 1, consumer=consumer, resume=resume, **ddp), self.now))
@@ -744,7 +746,7 @@ class TinyStream:
         sends, msgs = self.core.tick(self.now)
         for ident, b in sends:
             self.got[ident] += [(b.epoch, sid) for sid in b.payload.sample_ids]
-            if b.batch_id >= 0:
+            if b.batch_id >= 0 and ident not in self.mute:
                 self.core.message(ident, Hold((b.batch_id,)), self.now)
                 if ident not in self.keep:
                     self.core.message(ident, Ack((b.batch_id,)), self.now)
@@ -824,3 +826,38 @@ def test_a_resume_more_than_keep_epochs_behind_what_its_consumer_was_told_is_ref
         [(_, welcome)] = s.core.hello(ident, Hello(("voxels",), 1, consumer=consumer, resume=resume), s.now)
         assert welcome.to_wire()["type"] == "welcome", welcome
         s.core.message(ident, Bye(), s.now)
+
+
+def test_a_ddp_rank_sent_a_batch_it_never_held_is_padded_by_the_server():
+    """A DDP job of 5 ranks reading 4 samples per epoch: rank 4, paused, is sent a batch of
+    epoch 1 that it never holds (it will be revoked: the rank never yields it), and nothing of
+    epoch 0. Told epoch 0 complete with its count, it is sent a padding batch of epoch 0: it has
+    nothing else to repeat (it hung in an all-reduce when only a rank never *sent* a batch got
+    one: simulator finding F19, ``ddp`` seed 174)."""
+    s = TinyStream()
+    s.mute = {b"r4"}
+    for r in range(5):
+        s.hello(b"r%d" % r, "j", group="g", rank=r, world_size=5)
+    for _ in range(3):
+        s.turn()
+    assert [e for e, _ in s.got[b"r0"]][:2] == [0, 1] and s.got[b"r4"][0][0] == 1  # its first batch is of epoch 1
+    assert s.told[b"r4"][0] == (0, 1)
+    assert [e for e, _ in s.got[b"r4"]] == [1, 0]  # then a padding batch of epoch 0
+
+
+def test_a_ddp_group_with_no_rank_connected_keeps_what_a_returning_rank_repeats():
+    """Rank 1 of a group was granted the epoch's only batch and left; rank 0, dropped, has not
+    said hello again yet: no rank of the group is connected when the server prunes. Rank 0,
+    back, is told the epoch complete with a count of 1: it still gets a padding copy (the
+    group's last batch was forgotten with its last connection, and the job hung in an
+    all-reduce: simulator finding F24, ``elastic`` seed 149)."""
+    from v2v_server.delivery.ledger import ClientRecord
+    from v2v_server.delivery.padding import GroupPadding
+    pad = GroupPadding()
+    pad.acked("g", 1, BatchRecord(0, 0, [SampleKey("a.mp4", 0)], FakeSample("a.mp4#0")))
+    pad.prune(set(), lambda epoch: False)
+    back = ClientRecord(b"r0", ("g:g", 0), ("voxels",), 2, 0.0, group="g", rank=0, world_size=2)
+    batches, copy = pad.epoch_done(back, 0)
+    assert batches == 1 and copy is not None and copy.batch_id == -1 and copy.epoch == 0
+    pad.prune(set(), lambda epoch: True)  # its epochs forgotten: nothing of the group is kept
+    assert pad.epoch_done(back, 0) == (0, None)

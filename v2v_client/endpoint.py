@@ -18,7 +18,7 @@ from v2v_wire.stream_messages import Drained, EpochDone
 from .connection import Connection
 from .options import StreamOptions
 from .receipts import Handed
-from .resume import ResumeState
+from .resume import ResumeState, server_padding
 from .session import LoopAbandoned, ServerPadding, StreamError
 from .tensors import batch_to_torch, select_samples
 
@@ -220,13 +220,15 @@ class EndpointStream:
         return pads
 
     def _server_padding(self, padding: ServerPadding) -> Iterator[dict]:
-        """A DDP padding batch the server sent (not leased): yielded unless its epoch is complete here."""
+        """A DDP padding batch the server sent (not leased): yielded as the epochs
+        ``resume.server_padding`` says (itself, then copies)."""
         item = padding.item
         item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
-        if not self.record.count_padding(item["epoch"]):
-            return
-        self._last = item
-        yield item
+        epochs = server_padding(self.record, item["epoch"], self._pad_debt)
+        if epochs:
+            self._last = item
+        for i, e in enumerate(epochs):
+            yield item if i == epochs.index(item["epoch"]) else padding_copy(item, e)
 
     def _batch(self, conn: Connection, item: dict) -> Iterator[dict]:
         """A received batch: given back when its epoch is complete here; else claimed once the

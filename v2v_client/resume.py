@@ -22,7 +22,7 @@ from typing import Dict, Iterable, List, Optional, Set, Tuple
 
 from v2v_wire.messages import ResumeIds
 
-__all__ = ["ResumeState", "STATE_VERSION"]
+__all__ = ["ResumeState", "STATE_VERSION", "server_padding"]
 
 STATE_VERSION = 1
 
@@ -305,3 +305,20 @@ class ResumeState:
         """Forget the batches in the DataLoader's queues (they go back to the server)."""
         with self.lock:
             self.pipeline.clear()
+
+
+def server_padding(record: ResumeState, epoch: int, owed: Dict[int, int]) -> List[int]:
+    """A DDP padding batch of ``epoch`` the server sent to ``record``'s reader: the epochs it
+    is yielded as (itself and copies, in order). It pays the padding the rank owes with nothing
+    to repeat (``owed``: epoch -> batches, emptied here), one of them ``epoch``'s when its end
+    came first (a hello that reopened the epoch went out before the rank read that end), else
+    it counts as one batch of ``epoch`` (``ResumeState.count_padding``); [] when ``epoch`` is
+    complete here with none of it owed (docs/delivery.md, "DDP")."""
+    if owed.get(epoch):
+        owed[epoch] -= 1
+    elif not record.count_padding(epoch):
+        return []
+    owed[epoch] = owed.get(epoch, 0) + 1
+    out = [e for e in sorted(owed) for _ in range(owed[e])]
+    owed.clear()
+    return out

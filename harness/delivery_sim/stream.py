@@ -19,7 +19,7 @@ import queue
 from typing import Callable, Dict, List, Optional, Tuple
 
 from v2v_client.receipts import Handed
-from v2v_client.resume import ResumeState
+from v2v_client.resume import ResumeState, server_padding
 from v2v_client.session import LoopAbandoned, ServerPadding, StreamError
 from v2v_wire.stream_messages import Drained, EpochDone
 
@@ -120,11 +120,11 @@ class SimIterator:
             if self.conn.ends_on(item):
                 return self._close("end", "drained")
         elif isinstance(item, ServerPadding):
-            p = item.item
-            if s.record.count_padding(p["epoch"]):
-                p = _loop_item(p, padding=True)
+            p = _loop_item(item.item, padding=True)
+            epochs = server_padding(s.record, p["epoch"], s.pad_debt)
+            for i, e in enumerate(epochs):
                 s.last = p
-                self.out.append(p)
+                self.out.append(p if i == epochs.index(p["epoch"]) else _padding_copy(p, e))
         elif s.record.is_complete(item["epoch"]):
             self.conn.give_back(item)
         else:

@@ -78,7 +78,7 @@ class EpochEnds:
                     batches, pad = self.padding.epoch_done(c, e)
                     if pad is not None:
                         pads.append((ident, pad))
-                        c.sent += 1
+                        c.granted += 1
                 c.completed = e
                 msgs.append((ident, EpochDone(e, batches)))
                 self._told(e)

@@ -291,6 +291,7 @@ class DeliveryCore:
             if self.journal is not None:
                 self.journal.delivered(c.consumer, b.epoch, b.keys)
             if c.ddp:
+                c.granted += 1
                 self.padding.acked(c.group, c.rank, b)
 
     def _undelivered(self, consumer: Hashable, b: BatchRecord) -> None:

@@ -35,7 +35,7 @@ class ClientRecord:
     rank: int = 0
     world_size: int = 1
     served: int = 0  # round-robin position (the ledger's send counter when last served)
-    sent: int = 0
+    granted: int = 0  # batches granted to it or sent to it as DDP padding: it yields them (one it can repeat)
     completed: int = -1  # told epochs up to this one are complete: none of them is sent to it
     told_drained: bool = False  # told nothing more is coming unless a batch held elsewhere comes back
     told_end: bool = False  # told the stream ended (it was told its last epoch)
@@ -211,7 +211,6 @@ class DeliveryLedger:
             c = min(cand, key=lambda x: (x.ident == b.avoid, x.served, x.ident))
             self._tick += 1
             c.served = self._tick
-            c.sent += 1
             self.table.lease(bid, c.ident, now + self.lease_s, now)
             if self.free(c) <= 0:
                 del open_[c.ident]

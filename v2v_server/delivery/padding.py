@@ -51,17 +51,20 @@ class GroupPadding:
         """For the rank of client ``c`` (``ledger.ClientRecord``) once ``epoch`` is complete:
         the batches every rank of its group reaches (the most any of them yielded), and a
         padding batch (batch id -1, a copy of the group's last acknowledged batch) when ``c``
-        was never sent a batch and is behind, else None."""
+        was never granted a batch and is behind, else None: a batch only sent to it may be
+        revoked, leaving it nothing to repeat (docs/delivery.md, "DDP")."""
         counts = self.taken.get((c.group, epoch), {})
         most = max(counts.values()) if counts else 0
         src = self.pad_source.get(c.group)
-        if c.sent == 0 and counts.get(c.rank, 0) < most and src is not None:
+        if c.granted == 0 and counts.get(c.rank, 0) < most and src is not None:
             return most, BatchRecord(-1, epoch, src.keys, src.payload, outputs=src.outputs)
         return most, None
 
     def prune(self, live_groups: set, forgotten: Callable[[int], bool]) -> None:
-        """Forget groups with no client left and epochs ``forgotten(epoch)`` says are gone."""
-        for g in [g for g in self.pad_source if g not in live_groups]:
-            del self.pad_source[g]
+        """Forget epochs ``forgotten(epoch)`` says are gone, and the last batch of groups with no
+        client left and no epoch counted (a rank between a drop and its next hello still pads)."""
         for key in [k for k in self.taken if forgotten(k[1])]:
             del self.taken[key]
+        counted = {g for g, _ in self.taken}
+        for g in [g for g in self.pad_source if g not in live_groups and g not in counted]:
+            del self.pad_source[g]
