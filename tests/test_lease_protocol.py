@@ -1114,3 +1114,90 @@ def test_a_host_crash_never_takes_from_the_journal_a_grant_a_client_received(tmp
     assert not ids & to_b and isinstance(answer, sm.Welcome), (to_b, answer)
     to_b, answer = after_crash(before)  # the grant's record lost: the doubling a durable grant prevents
     assert ids <= to_b and isinstance(answer, sm.ServerError) and answer.code == "resume", answer
+
+
+def _worker_hello(core: DeliveryCore, ident: bytes, record: ResumeState, now: float, hello_id: int) -> None:
+    """A StreamLoader worker's hello from its record (``ResumeState.hello_resume``), as its session says it."""
+    r = record.hello_resume()
+    resume = Resume(r.completed_epoch, {e: frozenset(parse_sample_id(s) for s in ids) for e, ids in r.delivered.items()})
+    core.hello(ident, Hello(("voxels",), 2, consumer=record.consumer, resume=resume, ends_on_drained=True,
+                            instance="p", hello_id=hello_id), now)
+
+
+def _sent_ids(core: DeliveryCore, ident: bytes, now: float) -> list:
+    return [list(core.ledger.batches[b].payload.sample_ids) for b in _turn(core, now)[ident] if isinstance(b, int)]
+
+
+def _last_batch_queued_when_the_epoch_is_told_complete(record: ResumeState):
+    """One StreamLoader worker (consumer ``x/0``) reads a 1-epoch stream; the loop receives every
+    batch but the last, ``b``, granted and waiting in the loader's queue (the worker's pipeline).
+    The worker says hello again (dropped for silence, or the server restarted): its hello names
+    ``b``'s ids, as the loop may still receive it, so the server settles ``b`` as taken and tells
+    the epoch complete. Returns (the core, ``b``, ``b``'s sample ids)."""
+    core = _one_epoch_core()
+    _worker_hello(core, b"x.1", record, 0.0, 1)
+    last = None
+    for step in range(40):
+        now = 0.1 * step
+        for bid in _turn(core, now)[b"x.1"]:
+            if not isinstance(bid, int):
+                continue
+            core.message(b"x.1", Hold((bid,)), now)
+            record.claim(0, bid, list(core.ledger.batches[bid].payload.sample_ids), loader=True)
+            if last is not None:  # the loop received the batch before it
+                core.message(b"x.1", Ack(tuple(record.received([last[0]]))), now)
+            last = (bid, list(core.ledger.batches[bid].payload.sample_ids))
+    _worker_hello(core, b"x.2", record, 5.0, 2)
+    assert "epoch_done" in _turn(core, 5.0)[b"x.2"]
+    assert record.complete(0) is not None  # the worker's consumer takes the epoch_done
+    return core, last[0], last[1]
+
+
+def test_a_batch_in_the_loaders_queue_when_its_epoch_is_told_complete_reaches_the_loop_once():
+    """The loop leaves the iteration without the queued batch: its ids were named as handed on,
+    so the server took it as received. The worker's record keeps the epoch open until that batch's
+    receipt, so the next iteration's hello omits the ids and the server makes them again for it;
+    a loop that receives it completes the epoch and nothing is sent again (docs/delivery.md,
+    "DataLoader workers"; the simulator's F21, loader 1099)."""
+    record = ResumeState("x/0")
+    core, b, ids = _last_batch_queued_when_the_epoch_is_told_complete(record)
+    record.clear_pipeline()  # the loop left: abandon, the worker's connection gives b back and closes
+    core.message(b"x.2", Released((b,)), 5.1)
+    core.message(b"x.2", Bye(), 5.1)
+    _worker_hello(core, b"x.3", record, 6.0, 3)
+    again = [s for step in range(10) for batch in _sent_ids(core, b"x.3", 6.0 + 0.1 * step) for s in batch]
+    assert sorted(again) == sorted(ids), (again, ids)
+
+    record = ResumeState("x/0")
+    core, b, ids = _last_batch_queued_when_the_epoch_is_told_complete(record)
+    assert not record.is_complete(0)
+    core.message(b"x.2", Ack(tuple(record.received([b]))), 5.1)  # the loop received it
+    assert record.is_complete(0) and record.hello_resume().delivered == {}
+
+
+def test_a_receipt_no_connection_read_is_named_by_the_next_iterations_hello():
+    """The worker's connection ended on the stream's ``end`` while ``b`` waited in the loader's
+    queue; the loop then received ``b`` and wrote its receipt, which no connection read. A
+    persistent worker's next iteration (``EndpointStream.attach_loader`` on the same pipe) takes
+    it into the record, so its hello names ``b`` and the server does not make it again (the
+    simulator's F22, loader 1708)."""
+    from v2v_client.endpoint import EndpointStream
+    from v2v_client.loader import LoaderLink
+
+    stream = EndpointStream("tcp://127.0.0.1:9", options(2))
+    stream.consumer = "x/0"
+    link = LoaderLink(1, {})
+    try:
+        stream.attach_loader(0, link.receipts[0], None)
+        core, b, ids = _last_batch_queued_when_the_epoch_is_told_complete(stream.record)
+        core.message(b"x.2", Bye(), 5.1)  # the connection ends on `end`, its last batch still queued
+        link.receipt(0, b)  # the loop receives b
+        link.end_iteration()  # and iterates again: the persistent worker starts its next iteration
+        stream.attach_loader(0, link.receipts[0], None)
+        assert set(ids) <= set(stream.record.hello_resume().delivered.get(0, ())) or stream.record.is_complete(0)
+        _worker_hello(core, b"x.3", stream.record, 6.0, 3)
+        again = [s for step in range(10) for batch in _sent_ids(core, b"x.3", 6.0 + 0.1 * step) for s in batch]
+        assert again == [], (again, ids)
+    finally:
+        stream.close()
+        link.close()

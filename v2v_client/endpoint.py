@@ -17,7 +17,7 @@ from v2v_wire.stream_messages import Drained, EpochDone
 
 from .connection import Connection
 from .options import StreamOptions
-from .receipts import Handed
+from .receipts import Handed, received_ids
 from .resume import ResumeState, server_padding
 from .session import LoopAbandoned, ServerPadding, StreamError
 from .tensors import batch_to_torch, select_samples
@@ -127,7 +127,18 @@ class EndpointStream:
         batches a DataLoader worker yielded and the loop never received go back to the server."""
         for conn in list(self._conns):
             self._drop(conn)
+        self.record.received(received_ids(self._unread_receipts()))  # no connection read them: the hello names them
         self.record.clear_pipeline()
+
+    def _unread_receipts(self) -> List[bytes]:
+        """What the main process wrote on this worker's receipt pipe that no connection read."""
+        out: List[bytes] = []
+        try:
+            while self.receipts is not None and self.receipts.poll(0):
+                out.append(self.receipts.recv_bytes())
+        except (EOFError, OSError):
+            pass
+        return out
 
     def _drop(self, conn: Connection, unreceived: bool = False) -> None:
         """Close ``conn`` and forget it, keeping its stream info; ``unreceived``: the loader

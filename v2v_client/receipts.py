@@ -11,11 +11,11 @@ a worker acknowledges a batch only on its receipt.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Tuple, Union
+from typing import Iterable, List, Tuple, Union
 
 from v2v_wire.protocol import pack, unpack
 
-__all__ = ["Handed", "Receipt", "Abandon", "loader_message"]
+__all__ = ["Handed", "Receipt", "Abandon", "loader_message", "received_ids"]
 
 
 @dataclass(frozen=True)
@@ -62,3 +62,17 @@ def loader_message(data: bytes) -> Union[Receipt, Abandon]:
     if h.get("type") == "abandon" and isinstance(h.get("iteration"), int):
         return Abandon(h["iteration"])
     raise ValueError(f"not a StreamLoader message: {h!r:.80}")
+
+
+def received_ids(messages: Iterable[bytes]) -> List[int]:
+    """The batch ids of the receipts among ``messages`` (main process -> worker, as written),
+    abandons skipped. A persistent worker reads with it what no connection read before its next
+    iteration: one that ended (the stream's ``end``) while its last batches waited in the loader's
+    queues never read their receipts, and the loop may have received them (docs/delivery.md,
+    "DataLoader workers")."""
+    out: List[int] = []
+    for data in messages:
+        msg = loader_message(data)
+        if isinstance(msg, Receipt):
+            out.extend(msg.batch_ids)
+    return out

@@ -36,6 +36,31 @@ def _epoch_map(value, what: str) -> Dict[int, object]:
         raise ValueError(f"resume state: {what} keys must be epoch numbers") from None
 
 
+class Pipeline(dict):
+    """A DataLoader worker's batches yielded to the loader whose receipt has not come: batch id ->
+    (epoch, sample ids). A hello names their ids as handed on (the loop may still receive them), so
+    the server may take them and tell their epoch complete first: the record completes that epoch
+    only once their receipts came, and a loop that leaves without them (:meth:`clear`) leaves it
+    open, so the next hello has them owed again (docs/delivery.md, "DataLoader workers")."""
+
+    def __init__(self):
+        super().__init__()
+        self.told = -1  # the newest epoch told complete (``complete_upto``)
+
+    def complete_upto(self, epoch: int, completed: int) -> int:
+        """Told ``epoch`` complete (``completed``: none newly), a record that completed ``completed``
+        forgets the epochs up to the returned one: none while a batch of one told complete waits here."""
+        self.told = max(self.told, epoch)
+        if any(e <= self.told for e, _ in self.values()):
+            return completed
+        return max(self.told, completed)
+
+    def clear(self) -> None:
+        """The loop left without these batches: what they wait for is not told complete any more."""
+        super().clear()
+        self.told = -1
+
+
 class ResumeState:
     """One reader's record: ``consumer`` (the id the server knows it by), ``completed_epoch``
     (the last epoch the server declared complete to it), ``delivered`` (epoch -> sample ids
@@ -55,7 +80,7 @@ class ResumeState:
         self.position: Optional[Tuple[str, int, int]] = None  # (group, rank, world size) it was saved at
         self.shard_batches: Dict[str, Dict[int, int]] = {}  # a fan-in's batches per shard per open epoch
         self.shard_of: Dict[str, str] = {}  # a fan-in's endpoint -> the shard it served
-        self.pipeline: Dict[int, Tuple[int, List[str]]] = {}
+        self.pipeline = Pipeline()
         #: the consumers a state gathered from every rank of a job speaks for, each with its completed epoch
         self.supersedes: Tuple[Tuple[str, int, int], ...] = ()
         self.origins: Set[str] = set()  # the servers (their welcome's ``server``) that granted its ids
@@ -218,7 +243,7 @@ class ResumeState:
             if epoch <= self.completed_epoch:
                 return None
             owed = 0 if batches_due is None else max(0, batches_due - self.batches.get(epoch, 0))
-            self._forget_upto(epoch)
+            self._forget_upto(self.pipeline.complete_upto(epoch, self.completed_epoch))
         return owed
 
     def is_complete(self, epoch: int) -> bool:
@@ -262,6 +287,7 @@ class ResumeState:
                         self.delivered.setdefault(epoch, set()).update(ids)
                         self.batches[epoch] = self.batches.get(epoch, 0) + 1
                     mine.append(bid)
+            self._forget_upto(self.pipeline.complete_upto(self.completed_epoch, self.completed_epoch))
         return mine
 
     def handed_on(self, epoch: int, sample_ids: Iterable[str], completed_epoch: int = -1,

@@ -22,6 +22,7 @@ import collections
 from typing import Dict, List, Optional
 
 from v2v_client.loader import LoaderLink, StreamLoader
+from v2v_client.receipts import received_ids
 from v2v_client.resume import ResumeState
 
 from harness.delivery_sim.connection import ReceiptPipe
@@ -51,6 +52,9 @@ class LoaderWorker(Reader):
         s = self.stream
         if self.it is not None:
             self.it.stop()  # attach_loader's close(): the previous iteration's connection ends (receipts first)
+            if s.receipts is not None:  # those no connection read
+                s.record.received(received_ids(s.receipts.waiting))
+                s.receipts.waiting.clear()
             s.record.clear_pipeline()
         if s.receipts is None and self.record is not None:
             s.load_state_dict(self.record)
