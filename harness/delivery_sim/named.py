@@ -12,7 +12,7 @@ from typing import Callable, Dict, Optional, Tuple
 from v2v_server.delivery.core import DeliveryPolicy
 
 from harness.delivery_sim.ddp import DDPJob
-from harness.delivery_sim.faults import stop_reading
+from harness.delivery_sim.faults import pause, restart, stop_reading
 from harness.delivery_sim.families import deadline
 from harness.delivery_sim.hostile import Hostile
 from harness.delivery_sim.loader import LoaderJob
@@ -231,6 +231,18 @@ def loader_state_in_memory(seed: int, trace: bool = False) -> Run:
     return run
 
 
+def restart_paused_while_hello_waits(seed: int, trace: bool = False) -> Run:
+    """A trainer restarted from an older checkpoint is paused past ``--client-timeout 2`` while its
+    hello waits for proof of life, and again while the hello it then says again waits, beside another."""
+    run = _run(seed, trace)
+    t = _trainer(run, "t", credits=1)
+    _trainer(run, "b")
+    run.at(0.2, restart, run, t, 1, 0.0)
+    run.at(0.22, pause, run, t, 4.0)
+    run.at(4.42, pause, run, t, 4.0)
+    return run
+
+
 Entry = Tuple[Callable[..., Run], Optional[str]]
 
 #: name -> (build, what the delivery path does wrong there today, or None)
@@ -255,6 +267,7 @@ NAMED: Dict[str, Entry] = {
     "break_loop": (break_loop, None),
     "loader_breaks": (loader_breaks, None),
     "loader_state_in_memory": (loader_state_in_memory, None),
+    "restart_paused_while_hello_waits": (restart_paused_while_hello_waits, None),
 }
 
 
