@@ -243,6 +243,17 @@ def restart_paused_while_hello_waits(seed: int, trace: bool = False) -> Run:
     return run
 
 
+def rehello_lost_in_server_crash(seed: int, trace: bool = False) -> Run:
+    """A trainer paused past ``--client-timeout 2`` wakes to ``dropped`` and says hello again; the
+    server crashes as that hello is on its way and restarts from its journal."""
+    run = _run(seed, trace, epochs=1)
+    t = _trainer(run, "t", credits=1)
+    run.at(0.3, pause, run, t, 3.0)
+    run.at(3.302, run.crash_server, 0.5)
+    run.fault_until(3.802)
+    return run
+
+
 Entry = Tuple[Callable[..., Run], Optional[str]]
 
 #: name -> (build, what the delivery path does wrong there today, or None)
@@ -268,6 +279,9 @@ NAMED: Dict[str, Entry] = {
     "loader_breaks": (loader_breaks, None),
     "loader_state_in_memory": (loader_state_in_memory, None),
     "restart_paused_while_hello_waits": (restart_paused_while_hello_waits, None),
+    "rehello_lost_in_server_crash": (rehello_lost_in_server_crash,
+                                     "a hello said again after dropped, lost in a server crash: the session awaits its "
+                                     "welcome and ignores the restarted server's unknown_client for good"),
 }
 
 
