@@ -598,6 +598,39 @@ def test_a_dead_processs_late_hello_does_not_undo_what_a_newer_process_read():
     assert welcomed and not core.sched.plans[0].complete  # its older state reopens the epoch
 
 
+def test_a_restarted_process_paused_while_its_hello_waits_is_let_in_once_it_speaks():
+    """A trainer restarted from an older checkpoint says hello, which waits for its proof of life,
+    and its process is paused longer than the client timeout (swap, SIGSTOP) twice: right after
+    its hello, and right after the hello it says again. The server forgets a silent waiting hello
+    so that it holds nothing back, but its connection is not told: the session awaits that hello's
+    welcome and ignores ``unknown_client``. The hello waits again once its connection speaks,
+    so the reader is let in and reads the batch its dead process was granted
+    (hypothesis ``LeaseMachine``: a.mp4#2 and b.mp4#0 of epoch 0 lost)."""
+    net = Net(names=("t",), credits=(1,))
+    c = net.clients[0]
+    net.connect(c)
+    for _ in range(6):  # batch 0 yielded and checkpointed; batch 1 granted, not yet yielded
+        net.step(c)
+        net.server_reads(c, len(c.up))
+        net.tick()
+    state, n = c.checkpoints[0]
+    c.record = ResumeState(c.name)
+    c.record.load(state)
+    c.history, c.instance = c.history[:n], "p1"  # a new process, from the first checkpoint
+    net.connect(c)
+    net.heartbeat(c)
+    net.advance(TIMEOUT + 1.0)  # read, waits, paused: forgotten
+    assert not net.core.admission.pending
+    net.heartbeat(c)
+    net.advance(0.5)
+    for _ in range(3):
+        net.io_reads(c)  # on main: unknown_client, hello again (awaiting its welcome)
+    net.advance(TIMEOUT + 1.0)  # paused again
+    net.run_to_end()  # on main: the stream never finished (unknown_client ignored for good)
+    assert sorted(s for e, s in c.history if e == 0) == [SampleKey(v, k).sample_id() for v, n in WINDOWS.items()
+                                                         for k in range(n)]
+
+
 def test_a_late_hello_of_a_readers_older_connection_never_fences_its_newer_one():
     """A loader worker's connection closed (or its process killed) while its socket still
     connected: its hello arrives after the next worker's, of the same reader process (``instance``).

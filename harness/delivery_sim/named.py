@@ -12,7 +12,7 @@ from typing import Callable, Dict, Optional, Tuple
 from v2v_server.delivery.core import DeliveryPolicy
 
 from harness.delivery_sim.ddp import DDPJob
-from harness.delivery_sim.faults import stop_reading
+from harness.delivery_sim.faults import pause, restart, stop_reading
 from harness.delivery_sim.families import deadline
 from harness.delivery_sim.hostile import Hostile
 from harness.delivery_sim.loader import LoaderJob
@@ -231,6 +231,29 @@ def loader_state_in_memory(seed: int, trace: bool = False) -> Run:
     return run
 
 
+def restart_paused_while_hello_waits(seed: int, trace: bool = False) -> Run:
+    """A trainer restarted from an older checkpoint is paused past ``--client-timeout 2`` while its
+    hello waits for proof of life, and again while the hello it then says again waits, beside another."""
+    run = _run(seed, trace)
+    t = _trainer(run, "t", credits=1)
+    _trainer(run, "b")
+    run.at(0.2, restart, run, t, 1, 0.0)
+    run.at(0.22, pause, run, t, 4.0)
+    run.at(4.42, pause, run, t, 4.0)
+    return run
+
+
+def rehello_lost_in_server_crash(seed: int, trace: bool = False) -> Run:
+    """A trainer paused past ``--client-timeout 2`` wakes to ``dropped`` and says hello again; the
+    server crashes as that hello is on its way and restarts from its journal."""
+    run = _run(seed, trace, epochs=1)
+    t = _trainer(run, "t", credits=1)
+    run.at(0.3, pause, run, t, 3.0)
+    run.at(3.302, run.crash_server, 0.5)
+    run.fault_until(3.802)
+    return run
+
+
 Entry = Tuple[Callable[..., Run], Optional[str]]
 
 #: name -> (build, what the delivery path does wrong there today, or None)
@@ -255,6 +278,10 @@ NAMED: Dict[str, Entry] = {
     "break_loop": (break_loop, None),
     "loader_breaks": (loader_breaks, None),
     "loader_state_in_memory": (loader_state_in_memory, None),
+    "restart_paused_while_hello_waits": (restart_paused_while_hello_waits, None),
+    "rehello_lost_in_server_crash": (rehello_lost_in_server_crash,
+                                     "a hello said again after dropped, lost in a server crash: the session awaits its "
+                                     "welcome and ignores the restarted server's unknown_client for good"),
 }
 
 

@@ -21,6 +21,8 @@ log = logging.getLogger("v2v.server")
 
 #: ``Admission.check``'s answer for a hello that waits for an older connection of its consumer.
 WAIT = "wait"
+#: Hellos forgotten for silence kept to wait again if their connection speaks (dead processes' too).
+MAX_DORMANT = 4096
 
 
 def name_of(consumer: Hashable) -> str:
@@ -32,8 +34,10 @@ def name_of(consumer: Hashable) -> str:
 
 
 class Admission:
-    """The checks a hello passes (docs/delivery.md, "Who may say hello"), and the hellos waiting
-    for an older connection of their consumer (``pending``: ident -> (hello, since when)).
+    """The checks a hello passes (docs/delivery.md, "Who may say hello"), the hellos waiting
+    for an older connection of their consumer (``pending``: ident -> (hello, since when)), and
+    those forgotten for their connection's silence (``dormant``: ident -> hello), which wait again
+    from when it speaks (a paused process's: its session awaits their welcome).
 
     Args:
         sched, ledger: the core's parts (read only).
@@ -56,6 +60,7 @@ class Admission:
         self.claim_margin_s, self.server_id = claim_margin_s, server_id
         self.pending: Dict[bytes, Tuple[Hello, float]] = {}
         self.heard: Dict[bytes, float] = {}  # a waiting hello's connection: when it last spoke
+        self.dormant: Dict[bytes, Hello] = {}  # hellos forgotten for silence, oldest first (at most MAX_DORMANT)
         self.instances: Dict[Hashable, Tuple[str, int]] = {}  # consumer -> (reader process, hello_id) let in last
         self._kept = 64  # instances kept at the last prune (:meth:`let_in`)
         self._last_turn: Optional[float] = None  # :meth:`silent`'s last call (the server's loop turn)
@@ -129,21 +134,28 @@ class Admission:
             self.pending[ident] = (h, self.pending[ident][1])
 
     def spoke(self, ident: bytes, now: float, bye: bool = False) -> None:
-        """The connection of a waiting hello said something more (it lives), or ``bye``."""
+        """The connection of a waiting hello said something more (it lives), or ``bye``; that of
+        a dormant one speaks: its hello waits again as if it arrived ``now``."""
         if bye:
             self.forget(ident)
         elif ident in self.pending:
             self.heard[ident] = now
+        elif ident in self.dormant:
+            log.info("client %s speaks again: its hello waits again", ident.hex())
+            self.waits(ident, self.dormant.pop(ident), now)
 
     def forget(self, ident: bytes) -> float:
         """A waiting hello is answered or its connection gone; returns when it first arrived (or inf)."""
         self.heard.pop(ident, None)
+        self.dormant.pop(ident, None)
         return self.pending.pop(ident, (None, float("inf")))[1]
 
     def silent(self, now: float, timeout_s: float) -> List[bytes]:
-        """Waiting hellos whose connections were silent ``timeout_s`` (a dead process's): forgotten.
-        Silence is counted from the end of a stall of the server's own loop (longer than the
-        ledger's ``stall_s``), as the ledger's deadlines are (``DeliveryLedger.expire``); what a
+        """Waiting hellos whose connections were silent ``timeout_s`` (a dead process's, or a
+        paused one's): forgotten, i.e. ``dormant``, holding nothing back, until their connection
+        speaks (:meth:`spoke`; the oldest beyond :data:`MAX_DORMANT` are dropped). Silence is
+        counted from the end of a stall of the server's own loop (longer than the ledger's
+        ``stall_s``), as the ledger's deadlines are (``DeliveryLedger.expire``); what a
         connection said (``heard``, its proof of life) is not moved."""
         last, self._last_turn = self._last_turn, now
         if last is not None and self.ledger.stall_s is not None and now - last > self.ledger.stall_s:
@@ -151,7 +163,11 @@ class Admission:
         gone = [i for i, t in self.heard.items() if now - max(t, self._stalled_until) > timeout_s]
         for ident in gone:
             log.info("client %s: its hello waited, silent for %.0f s; forgotten", ident.hex(), now - self.heard[ident])
+            h = self.pending[ident][0]
             self.forget(ident)
+            self.dormant[ident] = h
+        while len(self.dormant) > MAX_DORMANT:
+            del self.dormant[next(iter(self.dormant))]
         return gone
 
     def let_in(self, h: Hello, speaks: Set[Hashable]) -> None:

@@ -251,7 +251,7 @@ class DeliveryCore:
         """Any client message but hello (``v2v_wire.messages``); its cost is linear in its size."""
         c = self.ledger.touch(ident, now)
         if c is None:
-            if ident in self.admission.pending:  # its hello waits: nothing to say but heartbeats
+            if ident in self.admission.pending or ident in self.admission.dormant:  # its hello waits (again)
                 self.admission.spoke(ident, now, isinstance(msg, Bye))
                 return []
             if isinstance(msg, Bye):
