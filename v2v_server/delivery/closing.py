@@ -89,6 +89,12 @@ class EpochEnds:
         self._close_for_good(own, live, hello_waits)
         return pads, msgs
 
+    def told_again(self, ident: bytes, c: ClientRecord) -> List[Msg]:
+        """A connection told the stream's end that still speaks did not get it: lost with a broken connection
+        behind ZeroMQ's reconnect, which no hello follows. Its last epoch's end (without DDP: a rank's count
+        went with the first) and ``end``, told again (docs/delivery.md, "Ends of epochs and of the stream")."""
+        return ([] if c.ddp else [(ident, EpochDone(c.completed, None))]) + [(ident, End())]
+
     def _may_tell(self, c: ClientRecord) -> bool:
         """Connection ``c`` might be told something now: its next epoch is opened and complete
         (or forgotten), or the stream's end."""

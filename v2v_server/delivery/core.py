@@ -278,7 +278,7 @@ class DeliveryCore:
             self.ledger.add_credits(ident, msg.credit)
         elif isinstance(msg, Bye):
             self._leave(ident, "it left")
-        return []  # a heartbeat only touched the client
+        return self.ends.told_again(ident, c) if c.told_end and not isinstance(msg, Bye) else []  # else it touched c
 
     def _delivered(self, c, batches: List[BatchRecord]) -> None:
         """Record ``batches`` (granted to client ``c``) delivered to its consumer: in the
