@@ -734,6 +734,15 @@ class TinyStream:
             if m.to_wire()["type"] == "epoch_done":
                 self.told[ident].append((m.epoch, m.batches))
 
+    def read_every_epoch(self, ident: bytes, consumer: str) -> None:
+        """Reader ``consumer`` reads all three epochs on ``ident`` (told each complete) and leaves."""
+        self.hello(ident, consumer)
+        for _ in range(20):
+            self.turn()
+        assert [e for e, _ in self.told[ident]] == [0, 1, 2]
+        self.core.message(ident, Bye(), self.now)
+        self.turn()
+
     def turn(self) -> None:
         self.now += 1.0
         task = self.core.task_for(b"w", self.now)
@@ -810,12 +819,7 @@ def test_a_resume_more_than_keep_epochs_behind_what_its_consumer_was_told_is_ref
     within two epochs and a new consumer are let in (docs/delivery.md limit (e); simulator
     finding F20, ``trainers`` seed 701)."""
     s = TinyStream()
-    s.hello(b"a", "a")
-    for _ in range(20):
-        s.turn()
-    assert [e for e, _ in s.told[b"a"]] == [0, 1, 2]
-    s.core.message(b"a", Bye(), s.now)
-    s.turn()
+    s.read_every_epoch(b"a", "a")
     [(_, err)] = s.core.hello(b"a.2", Hello(("voxels",), 1, consumer="a", resume=Resume(-1, {})), s.now)
     assert err.to_wire()["type"] == "error" and err.code == "resume" and "\n" not in err.message
     assert "consumer 'a'" in err.message and "epoch -1" in err.message and "up to 2" in err.message
