@@ -200,7 +200,7 @@ def test_an_interrupt_at_any_moment_is_one_line_and_leaves_no_partial_file(tmp_p
     r = _run(name, args, when, sig, tmp_path, moment)
     script = name.split()[0]
     status = 128 + sig
-    assert r.returncode == status, (r.returncode, r.stderr[-3000:])
+    assert r.returncode == status, f"exit {r.returncode}, its stderr (a crash: faulthandler's stacks):\n{r.stderr[-8000:]}"
     assert "Traceback" not in r.stderr and "Exception ignored" not in r.stderr, r.stderr[-3000:]
     lines = [ln for ln in r.stderr.replace("\r", "\n").splitlines() if ln.strip()]
     if script == "v2v-serve" and moment == "working" and name == "v2v-serve":  # the server's own stop, logged
