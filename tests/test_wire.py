@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import time
+import uuid
 
 import numpy as np
 import pytest
@@ -157,13 +158,15 @@ def assert_batch_is_the_samples(videos, h: dict, arrays: dict) -> None:
 
 
 class RawClient:
-    """A DEALER speaking the protocol by hand, to see the batches as they travel."""
+    """A DEALER speaking the protocol by hand, to see the batches as they travel. Each is a new
+    consumer: a hello without a resume state is one at epoch -1, refused for a consumer told
+    epochs complete more than ``keep_epochs`` past it (limit (e))."""
 
     def __init__(self, endpoint: str, compression: str):
         self.sock = zmq.Context.instance().socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.connect(endpoint)
-        self.sock.send(pack({"type": "hello", "outputs": list(DEFAULT_OUTPUTS), "credits": 2, "consumer": f"raw-{compression}",
+        self.sock.send(pack({"type": "hello", "outputs": list(DEFAULT_OUTPUTS), "credits": 2, "consumer": f"raw-{compression}-{uuid.uuid4().hex[:8]}",
                              "compression": compression}))
 
     def batch(self, timeout_s: float = 60.0):
