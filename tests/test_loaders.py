@@ -6,6 +6,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from harness import faults
 from harness.faults import Layout
 from harness.serve import ServeProcess
@@ -275,3 +277,72 @@ def test_a_dataloader_worker_stopped_past_its_timeout_with_batches_queued_double
         tb.join(60)
         assert srv.log.count("dropping it") >= 1, srv.log[-3000:]  # the worker's connection was dropped
     assert sorted(trained + other) == expected
+
+
+class _Crash(Exception):
+    """What stops the first Lightning run after its checkpoint (a job killed)."""
+
+
+def _lightning_fit(make_loader, ckpt: str, save_at=None, crash_at=None, resume=False) -> list:
+    """Sample ids a Lightning ``Trainer`` (one CPU process) trains on from ``make_loader()``: it
+    saves a checkpoint after step ``save_at`` (the ids trained then are returned) and raises at
+    step ``crash_at``; ``resume``: fit from the checkpoint at ``ckpt``."""
+    import lightning as L
+    import torch
+
+    class Tiny(L.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(1))
+            self.seen, self.saved = [], None
+
+        def training_step(self, batch, i):
+            if i == crash_at:
+                raise _Crash()
+            self.seen += batch["sample_ids"]
+            return ((self.w * batch["voxels"].flatten(1).mean(1) - 1.0) ** 2).mean()
+
+        def on_train_batch_end(self, out, batch, i):
+            if i == save_at:
+                self.trainer.save_checkpoint(ckpt)
+                self.saved = list(self.seen)
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.01)
+
+        def train_dataloader(self):
+            return make_loader()
+
+    module = Tiny()
+    trainer = L.Trainer(accelerator="cpu", devices=1, max_epochs=1, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    try:
+        trainer.fit(module, ckpt_path=ckpt if resume else None)
+    except _Crash:
+        return module.saved
+    return module.seen
+
+
+@pytest.mark.parametrize("loader", ["StatefulDataLoader", "StreamLoader"])
+def test_lightning_resumes_from_a_checkpoint_taken_while_its_fetcher_holds_a_batch(tmp_path, loader):
+    """Lightning's fetcher takes one batch ahead of its loop; a checkpoint saved in a step holds
+    the loader's state then. The job is killed two steps later and resumed from it: every sample
+    once in what was trained (the batch taken ahead is in the state only once received)."""
+    from torchdata.stateful_dataloader import StatefulDataLoader
+
+    from v2v_client import StreamLoader, V2VStreamDataset
+
+    corpus = faults.good_corpus(tmp_path, 2)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--end-grace-s", "3",
+                       *LAYOUT.args()]) as srv:
+        def make_loader():
+            ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60, credits=2)
+            return StreamLoader(ds, num_workers=2) if loader == "StreamLoader" else StatefulDataLoader(ds, batch_size=None)
+
+        ckpt = str(tmp_path / "step1.ckpt")
+        trained = _lightning_fit(make_loader, ckpt, save_at=1, crash_at=4)
+        assert len(trained) == 2 * LAYOUT.batch
+        trained += _lightning_fit(make_loader, ckpt, resume=True)
+        assert srv.wait(60) == 0, srv.log[-3000:]
+    assert sorted(trained) == expected

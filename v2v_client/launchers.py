@@ -31,6 +31,12 @@ not made by :func:`prepare_loader` is refused at its first batch, as is ``skip_f
 Reading ahead: accelerate's loaders take a batch (per rank) or a group (dispatch) before the loop
 has received the one before. When the loop leaves or the stream fails, those batches go back to
 the dataset, which yields them first next time (:class:`ReadAhead`).
+
+Lightning's ``Trainer`` reads through ``_PrefetchDataFetcher`` (``lightning.pytorch.loops.fetchers``),
+which takes ``prefetch_batches`` (1) batches ahead of the loop when the loader has no length (a
+stream has none), and saves a stateful loader's ``state_dict()`` (torchdata's
+``StatefulDataLoader``, :class:`~v2v_client.StreamLoader`) whenever it checkpoints: the batches
+taken ahead are left out of that state until the loop receives them (:func:`lightning_ahead`).
 """
 from __future__ import annotations
 
@@ -44,7 +50,7 @@ from .endpoint import padding_copy
 from .resume import ResumeState
 
 __all__ = ["DispatchedBatch", "ReadAhead", "prepare_loader", "check_whole", "adapt", "rank_part", "pack_rows",
-           "unpack_rows", "unseen"]
+           "unpack_rows", "unseen", "lightning_ahead"]
 
 #: the key of a dispatched batch's packed rows: uint8 (rows, width), one msgpack
 #: ``[sample_id, params, epoch, batch_id]`` per row, zero-filled
@@ -140,15 +146,17 @@ def unseen(state: dict, batches: List[dict]) -> dict:
 
 
 class ReadAhead:
-    """What accelerate's loaders, which read ahead of the training loop, make a
+    """What the loaders that read ahead of the training loop (accelerate's, Lightning's) make a
     ``V2VStreamDataset``'s ``state_dict()`` say (:meth:`state`): ``held_state``, the state the
-    dispatcher's snapshots must see while it hands out a group (:func:`_dispatch`), and the
-    batches held over, yielded but never received by a loop that left or saw the stream fail:
-    the dataset's next iteration yields those first (:meth:`replay`), before anything from the
-    server, and its state leaves them out until then."""
+    dispatcher's snapshots must see while it hands out a group (:func:`_dispatch`); ``pending``,
+    batches a Lightning fetcher took that its loop has not received yet; and the batches held
+    over, yielded but never received by a loop that left or saw the stream fail: the dataset's
+    next iteration yields those first (:meth:`replay`), before anything from the server, and its
+    state leaves them out until then."""
 
     def __init__(self):
         self.held_state: Optional[dict] = None
+        self.pending: List[dict] = []  # taken ahead of a Lightning loop, not received yet
         self.batches: List[dict] = []  # held over, oldest first
         self.before: Optional[dict] = None  # the dataset's state without them, when known
 
@@ -170,12 +178,14 @@ class ReadAhead:
         if self.held_state is not None:
             return self.held_state
         if not self.batches:
-            return live()
-        return self.before if self.before is not None else unseen(live(), self.batches)
+            state = live()
+        else:
+            state = self.before if self.before is not None else unseen(live(), self.batches)
+        return unseen(state, self.pending) if self.pending else state
 
     def clear(self) -> None:
-        """Forget the batches held over (a loaded state says what the loop received)."""
-        self.batches, self.before = [], None
+        """Forget the batches held over or pending (a loaded state says what the loop received)."""
+        self.batches, self.pending, self.before = [], [], None
 
 
 def _hold_over(ds, batches: Iterator[dict], unreceived: List[dict], before: Optional[dict] = None) -> None:
@@ -188,26 +198,54 @@ def _hold_over(ds, batches: Iterator[dict], unreceived: List[dict], before: Opti
         ds.read_ahead.hold_over(unreceived, before)
 
 
-def _read_ahead(ds, batches: Iterator[dict]) -> Iterator[dict]:
-    """``batches`` for an accelerate loader that reads one batch ahead of its loop
-    (``DataLoaderShard``, a one-process ``DataLoaderDispatcher``): each batch is received by the
-    loop once the loader asks for the next one (or the stream ends). When the loop leaves (the
-    loader drops this iterator) or the stream fails, the batch yielded last never reached the
-    loop: the dataset yields it first when it is iterated again (:class:`ReadAhead`), and its
-    state leaves it out meanwhile. Accelerate's snapshots are taken before each pull: they hold every
-    batch up to the one the loop is about to receive, so a resume from one gets it again."""
-    pending: Optional[dict] = None  # yielded, not yet received by the loop
+def _read_ahead(ds, batches: Iterator[dict], ahead: int = 1, live: bool = False) -> Iterator[dict]:
+    """``batches`` for a loader that reads ``ahead`` batches ahead of its loop (accelerate's
+    ``DataLoaderShard`` and one-process ``DataLoaderDispatcher``: 1; Lightning's fetcher,
+    :func:`lightning_ahead`): each batch is received by the loop once the loader has taken
+    ``ahead`` more (or the stream ends). When the loop leaves (the loader drops this iterator) or
+    the stream fails, the ``ahead`` batches yielded last never reached the loop: the dataset
+    yields them first when it is iterated again (:class:`ReadAhead`), and its state leaves them
+    out meanwhile. ``live``: the loader asks for the state while it holds batches ahead
+    (Lightning's checkpoints), so the state leaves those out too (``ReadAhead.pending``);
+    accelerate's snapshots are taken before each pull, and hold every batch up to the one the
+    loop is about to receive."""
+    pending: List[dict] = []  # yielded, not yet received by the loop, oldest first
     try:
         while True:
             try:
                 b = next(batches)
             except StopIteration:
-                pending = None  # the loader hands its last batch on now
+                pending = []  # the loader hands what it took on now
                 return
-            pending = b
+            pending = (pending + [b])[-ahead:]
+            if live:
+                ds.read_ahead.pending = list(pending)
             yield b
     finally:
-        _hold_over(ds, batches, [pending] if pending is not None else [])
+        if live:
+            ds.read_ahead.pending = []
+        _hold_over(ds, batches, pending)
+
+
+#: the modules of Lightning's fetchers (the ``lightning`` package and the older ``pytorch_lightning``)
+_FETCHERS = ("lightning.pytorch.loops.fetchers", "pytorch_lightning.loops.fetchers")
+
+
+def lightning_ahead() -> int:
+    """How many batches a Lightning ``Trainer`` reading the caller takes ahead of its loop: its
+    ``_PrefetchDataFetcher`` pulls ``prefetch_batches`` (1) ahead when the loader has no length
+    (a stream never has), 0 with a length or another fetcher (``training_step(dataloader_iter)``);
+    0 without Lightning. Called when the caller's first batch is asked for, from inside the
+    fetcher's pull: it finds the fetcher among the frames that called it."""
+    kinds = tuple(sys.modules[m]._PrefetchDataFetcher for m in _FETCHERS
+                  if hasattr(sys.modules.get(m), "_PrefetchDataFetcher"))
+    frame = sys._getframe(1) if kinds else None
+    while frame is not None:
+        fetcher = frame.f_locals.get("self")
+        if isinstance(fetcher, kinds):
+            return int(fetcher.prefetch_batches) if fetcher.length is None else 0
+        frame = frame.f_back
+    return 0
 
 
 def _dispatch(ds, batches: Iterator[dict], group: int) -> Iterator[DispatchedBatch]:
@@ -294,8 +332,8 @@ def adapt(ds, batches: Iterator[dict]) -> Iterator[dict]:
     """``ds``'s batches as the loader reading it needs them, decided at the first batch (when
     accelerate has registered its loader): accelerate's dispatcher over several processes gets
     :func:`_dispatch` with ``ds`` read as the only consumer (``ds.read_alone()``); accelerate's
-    other loaders, which read one batch ahead, :func:`_read_ahead`; anything else gets the
-    batches as they are.
+    other loaders, which read one batch ahead, and Lightning's fetcher (:func:`lightning_ahead`)
+    :func:`_read_ahead`; anything else gets the batches as they are.
 
     Raises:
         RuntimeError: (at the first batch) ``skip_first_batches``, or a stateful accelerate loader
@@ -320,7 +358,8 @@ def adapt(ds, batches: Iterator[dict]) -> Iterator[dict]:
         else:
             yield from _read_ahead(ds, batches)
         return
-    yield from batches
+    ahead = lightning_ahead()
+    yield from _read_ahead(ds, batches, ahead, live=True) if ahead else batches
 
 
 def _world() -> int:

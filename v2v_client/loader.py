@@ -25,10 +25,11 @@ when the dataset hands the batch over in the main process).
 from __future__ import annotations
 
 import multiprocessing
-from typing import Dict, Optional
+from typing import Dict, List, Optional, Tuple
 
 import torch
 
+from .launchers import lightning_ahead
 from .receipts import Abandon, Handed, Receipt
 from .resume import ResumeState
 
@@ -134,14 +135,19 @@ class StreamLoader(torch.utils.data.DataLoader):
         return self._receive(super().__iter__())
 
     def _receive(self, it):
+        """The workers' batches, each recorded as received (and its receipt sent) when the loop
+        receives it: as it is yielded, or once a Lightning fetcher reading ahead of its loop has
+        taken ``lightning_ahead()`` more (``launchers``), so its checkpoints leave those out."""
+        ahead = lightning_ahead()
+        pending: List[Tuple[Optional[Handed], list]] = []  # yielded, not yet received by the loop
         try:
             for batch in it:
-                r: Optional[Handed] = batch.pop("receipt", None)
-                if r is not None:
-                    self._records.setdefault(r.worker, ResumeState()).handed_on(r.epoch, batch["sample_ids"],
-                                                                                r.completed_epoch)
-                    self._link.receipt(r.worker, r.batch_id)
+                pending.append((batch.pop("receipt", None), batch["sample_ids"]))
+                while len(pending) > ahead:
+                    self._received(*pending.pop(0))
                 yield batch
+            while pending:  # the fetcher hands what it took on now
+                self._received(*pending.pop(0))
         except Exception:
             # a worker died or raised: torch keeps persistent workers as they are, so the next
             # iteration would wait on the dead one again; made anew, they resume from the
@@ -150,6 +156,12 @@ class StreamLoader(torch.utils.data.DataLoader):
                 self._iterator._shutdown_workers()
                 self._iterator = None
             raise
+
+    def _received(self, r: Optional[Handed], sample_ids: list) -> None:
+        """The loop received a batch with receipt ``r`` (None: no worker's)."""
+        if r is not None:
+            self._records.setdefault(r.worker, ResumeState()).handed_on(r.epoch, sample_ids, r.completed_epoch)
+            self._link.receipt(r.worker, r.batch_id)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
