@@ -230,6 +230,35 @@ def test_the_loaders_receipts_acknowledge_and_an_abandoned_iteration_gives_back_
     assert s.closing() == [cm.Released((2,)), cm.Bye()]
 
 
+def test_a_workers_hello_names_the_batches_waiting_in_the_loader_as_queued():
+    """A StreamLoader worker's hello names the granted batches waiting in the loader's queues by
+    batch id and epoch (``queued``), their ids among those handed on, and the server's edge reads
+    them back; a received one is named no more, and a bad ``queued`` is named (docs/delivery.md,
+    "DataLoader workers")."""
+    import msgpack
+
+    record = ResumeState("c")
+    s = _session(record=record, ends_on_drained=True)
+    _welcomed(s)
+    for bid in (1, 2):
+        s.on_message(_batch(bid, epoch=1))
+    s.on_message([pack({"type": "granted", "batch_ids": [1, 2]})])
+    for item in _items(s):
+        s.take(item, lambda item=item: record.claim(1, item["batch_id"], item["sample_ids"], True), ack=False)
+    s.on_loader(Receipt((1,)))
+    s.outgoing()
+    s.hello()
+    (hello,) = s.outgoing()
+    parsed = cm.decode_client(pack(hello.to_wire()), 1 << 16, 64)
+    assert parsed.resume.queued == {2: 1}
+    assert set(hello.resume.delivered[1]) == {f"v.mp4#{b}.{i}" for b in (1, 2) for i in (0, 1)}
+    for bad in ({"2": -1}, {"x": 1}, [2, 1]):
+        wire = dict(hello.to_wire(), v=PROTOCOL_VERSION)
+        wire["resume"] = dict(wire["resume"], queued=bad)
+        with pytest.raises(cm.WireError, match="resume.queued"):
+            cm.decode_client(msgpack.packb(wire), 1 << 16, 64)
+
+
 def test_a_workers_iteration_ends_only_on_a_drained_of_its_current_session():
     """A DataLoader worker dropped for silence says hello again: a ``drained`` queued before that
     hello, or sent before the server read it, is about the session that ended (its grants came

@@ -744,8 +744,8 @@ def test_the_ack_only_rule_doubles_on_the_same_schedule():
             net.run_to_end()
 
 
-def _one_epoch_core() -> DeliveryCore:
-    return DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=1, lease_s=LEASE, client_timeout_s=TIMEOUT,
+def _one_epoch_core(epochs: int = 1) -> DeliveryCore:
+    return DeliveryCore(list(WINDOWS), DeliveryPolicy(batch_size=2, epochs=epochs, lease_s=LEASE, client_timeout_s=TIMEOUT,
                                                       revoke_s=REVOKE, max_credits=4, shuffle="none"), make_batch,
                         stall_s=STALL_S)
 
@@ -1150,62 +1150,82 @@ def test_a_host_crash_never_takes_from_the_journal_a_grant_a_client_received(tmp
 
 
 def _worker_hello(core: DeliveryCore, ident: bytes, record: ResumeState, now: float, hello_id: int) -> None:
-    """A StreamLoader worker's hello from its record (``ResumeState.hello_resume``), as its session says it."""
-    r = record.hello_resume()
-    resume = Resume(r.completed_epoch, {e: frozenset(parse_sample_id(s) for s in ids) for e, ids in r.delivered.items()})
-    core.hello(ident, Hello(("voxels",), 2, consumer=record.consumer, resume=resume, ends_on_drained=True,
-                            instance="p", hello_id=hello_id), now)
+    """A StreamLoader worker's hello from its record (``ResumeState.hello_resume``), as its session says it,
+    read by the server through the wire encoding."""
+    h = Hello(("voxels",), 2, consumer=record.consumer, resume=record.hello_resume(), ends_on_drained=True,
+              instance="p", hello_id=hello_id)
+    core.hello(ident, decode_client(pack(h.to_wire()), 1 << 20, 4), now)
 
 
 def _sent_ids(core: DeliveryCore, ident: bytes, now: float) -> list:
     return [list(core.ledger.batches[b].payload.sample_ids) for b in _turn(core, now)[ident] if isinstance(b, int)]
 
 
-def _last_batch_queued_when_the_epoch_is_told_complete(record: ResumeState):
-    """One StreamLoader worker (consumer ``x/0``) reads a 1-epoch stream; the loop receives every
-    batch but the last, ``b``, granted and waiting in the loader's queue (the worker's pipeline).
-    The worker says hello again (dropped for silence, or the server restarted): its hello names
-    ``b``'s ids, as the loop may still receive it, so the server settles ``b`` as taken and tells
-    the epoch complete. Returns (the core, ``b``, ``b``'s sample ids)."""
-    core = _one_epoch_core()
+def _last_batch_queued_at_a_hello(record: ResumeState, epochs: int = 1, others_read: bool = False):
+    """One StreamLoader worker (consumer ``x/0``) reads epoch 0 of an ``epochs``-epoch stream (alone,
+    or beside a trainer ``t``); the loop receives every batch but the last, ``b``, granted and waiting
+    in the loader's queue (the worker's pipeline). The worker's connection goes silent (cut off), and
+    with ``others_read`` the trainer reads every epoch meanwhile. The worker says hello again: its
+    hello names ``b``'s ids as handed on (the loop may still receive it) and ``b`` as queued, so the
+    server tells the worker no end of epoch 0 until its ack. Returns (the core, ``b``, ``b``'s sample ids)."""
+    core = _one_epoch_core(epochs)
     _worker_hello(core, b"x.1", record, 0.0, 1)
+    if others_read:
+        _hello(core, b"t", "t", 0.0, ends_on_drained=False)
     last = None
-    for step in range(40):
+    for step in range(40 + 100 * others_read):
         now = 0.1 * step
-        for bid in _turn(core, now)[b"x.1"]:
-            if not isinstance(bid, int):
+        sent = _turn(core, now)
+        for bid in [b for b in sent[b"t"] if isinstance(b, int)]:
+            core.message(b"t", Hold((bid,)), now)
+            core.message(b"t", Ack((bid,)), now)
+        for bid in sent[b"x.1"] if step < 40 else ():  # then the worker's connection is silent
+            if not isinstance(bid, int) or core.ledger.batches[bid].epoch != 0:
                 continue
             core.message(b"x.1", Hold((bid,)), now)
             record.claim(0, bid, list(core.ledger.batches[bid].payload.sample_ids), loader=True)
             if last is not None:  # the loop received the batch before it
                 core.message(b"x.1", Ack(tuple(record.received([last[0]]))), now)
             last = (bid, list(core.ledger.batches[bid].payload.sample_ids))
-    _worker_hello(core, b"x.2", record, 5.0, 2)
-    assert "epoch_done" in _turn(core, 5.0)[b"x.2"]
-    assert record.complete(0) is not None  # the worker's consumer takes the epoch_done
+    _worker_hello(core, b"x.2", record, 15.0, 2)
+    told = _turn(core, 15.0)[b"x.2"]
+    assert "epoch_done" not in told and "end" not in told, told
     return core, last[0], last[1]
 
 
-def test_a_batch_in_the_loaders_queue_when_its_epoch_is_told_complete_reaches_the_loop_once():
-    """The loop leaves the iteration without the queued batch: its ids were named as handed on,
-    so the server took it as received. The worker's record keeps the epoch open until that batch's
-    receipt, so the next iteration's hello omits the ids and the server makes them again for it;
-    a loop that receives it completes the epoch and nothing is sent again (docs/delivery.md,
-    "DataLoader workers"; the simulator's F21, loader 1099)."""
+@pytest.mark.parametrize("epochs, others_read", [(1, False), (3, True)])
+def test_a_batch_in_the_loaders_queue_at_a_hello_reaches_the_loop_once(epochs, others_read):
+    """A worker's hello names the batch waiting in the loader's queue as handed on and queued: the
+    server tells its connection no end of that epoch until the ack. The loop leaves the iteration
+    without it: the worker gives it back and closes, its record keeps the epoch open, so the next
+    iteration's hello omits the ids and the server makes them again for it; a loop that receives it
+    acknowledges it, and the epochs' ends come (docs/delivery.md, "DataLoader workers"). With a
+    trainer that read all three epochs while the worker was cut off, the server told the worker
+    epochs 0-2 complete at its hello and forgot epoch 0 before the loop left: the ids were lost
+    (the simulator's F21, loader 1099, and F26, loader 1095)."""
     record = ResumeState("x/0")
-    core, b, ids = _last_batch_queued_when_the_epoch_is_told_complete(record)
+    core, b, ids = _last_batch_queued_at_a_hello(record, epochs, others_read)
     record.clear_pipeline()  # the loop left: abandon, the worker's connection gives b back and closes
-    core.message(b"x.2", Released((b,)), 5.1)
-    core.message(b"x.2", Bye(), 5.1)
-    _worker_hello(core, b"x.3", record, 6.0, 3)
-    again = [s for step in range(10) for batch in _sent_ids(core, b"x.3", 6.0 + 0.1 * step) for s in batch]
+    core.message(b"x.2", Released((b,)), 15.1)
+    assert "epoch_done" not in _turn(core, 15.1)[b"x.2"]  # it closes: its bye is on the way
+    core.message(b"x.2", Bye(), 15.2)
+    _worker_hello(core, b"x.3", record, 16.0, 3)
+    again = [s for step in range(10) for batch in _sent_ids(core, b"x.3", 16.0 + 0.1 * step) for s in batch]
     assert sorted(again) == sorted(ids), (again, ids)
 
     record = ResumeState("x/0")
-    core, b, ids = _last_batch_queued_when_the_epoch_is_told_complete(record)
+    core, b, ids = _last_batch_queued_at_a_hello(record, epochs, others_read)
     assert not record.is_complete(0)
-    core.message(b"x.2", Ack(tuple(record.received([b]))), 5.1)  # the loop received it
-    assert record.is_complete(0) and record.hello_resume().delivered == {}
+    answer = core.message(b"x.2", Hold((b,)), 15.1)[0][1]  # an ack lost with a broken connection: said again
+    assert answer.batch_ids == (b,), answer
+    core.message(b"x.2", Ack(tuple(record.received([b]))), 15.1)  # the loop received it
+    told = _turn(core, 15.2)[b"x.2"]
+    assert "epoch_done" in told and "end" in told, told
+    for e in range(epochs):
+        record.complete(e)
+    assert record.is_complete(epochs - 1) and record.hello_resume().delivered == {}
+    _worker_hello(core, b"x.3", record, 16.0, 3)
+    assert [s for step in range(10) for batch in _sent_ids(core, b"x.3", 16.0 + 0.1 * step) for s in batch] == []
 
 
 def test_a_receipt_no_connection_read_is_named_by_the_next_iterations_hello():
@@ -1222,14 +1242,14 @@ def test_a_receipt_no_connection_read_is_named_by_the_next_iterations_hello():
     link = LoaderLink(1, {})
     try:
         stream.attach_loader(0, link.receipts[0], None)
-        core, b, ids = _last_batch_queued_when_the_epoch_is_told_complete(stream.record)
-        core.message(b"x.2", Bye(), 5.1)  # the connection ends on `end`, its last batch still queued
+        core, b, ids = _last_batch_queued_at_a_hello(stream.record)
+        core.message(b"x.2", Bye(), 15.1)  # the connection ends, its last batch still queued
         link.receipt(0, b)  # the loop receives b
         link.end_iteration()  # and iterates again: the persistent worker starts its next iteration
         stream.attach_loader(0, link.receipts[0], None)
         assert set(ids) <= set(stream.record.hello_resume().delivered.get(0, ())) or stream.record.is_complete(0)
-        _worker_hello(core, b"x.3", stream.record, 6.0, 3)
-        again = [s for step in range(10) for batch in _sent_ids(core, b"x.3", 6.0 + 0.1 * step) for s in batch]
+        _worker_hello(core, b"x.3", stream.record, 16.0, 3)
+        again = [s for step in range(10) for batch in _sent_ids(core, b"x.3", 16.0 + 0.1 * step) for s in batch]
         assert again == [], (again, ids)
     finally:
         stream.close()

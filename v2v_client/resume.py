@@ -20,7 +20,7 @@ from __future__ import annotations
 import threading
 from typing import Dict, Iterable, List, Optional, Set, Tuple
 
-from v2v_wire.messages import ResumeIds
+from v2v_wire.messages import MAX_MAP_LEN, ResumeIds
 
 __all__ = ["ResumeState", "STATE_VERSION", "server_padding"]
 
@@ -54,6 +54,12 @@ class Pipeline(dict):
         if any(e <= self.told for e, _ in self.values()):
             return completed
         return max(self.told, completed)
+
+    def queued(self, completed: int) -> Dict[int, int]:
+        """A hello's ``queued``: batch id -> epoch of those after ``completed``, the oldest ``MAX_MAP_LEN``
+        (the server tells their epochs to the connection only once it acks them; docs/delivery.md,
+        "DataLoader workers")."""
+        return dict(list((b, e) for b, (e, _) in self.items() if e > completed)[:MAX_MAP_LEN])
 
     def clear(self) -> None:
         """The loop left without these batches: what they wait for is not told complete any more."""
@@ -138,15 +144,15 @@ class ResumeState:
     # ------------------------------------------------------------------ wire form
     def hello_resume(self) -> ResumeIds:
         """A hello's resume state: the completed epoch, the ids handed on per open epoch (in a
-        DataLoader worker also those waiting in the loader's queues: the loop may still receive
-        them) and the batches per open epoch."""
+        DataLoader worker also those waiting in the loader's queues, the loop may still receive
+        them, and those batches as ``queued``) and the batches per open epoch."""
         with self.lock:
             ids = {e: set(v) for e, v in self.delivered.items()}
             for e, sids in self.pipeline.values():
                 if e > self.completed_epoch:
                     ids.setdefault(e, set()).update(sids)
             return ResumeIds(self.completed_epoch, {e: tuple(sorted(v)) for e, v in ids.items()}, dict(self.batches),
-                             self.supersedes, tuple(sorted(self.origins))[-16:])
+                             self.supersedes, tuple(sorted(self.origins))[-16:], self.pipeline.queued(self.completed_epoch))
 
     def check_recipe(self, recipe) -> Optional[str]:
         """A server's recipe fingerprint: why the record refuses it (its ids were made under

@@ -63,13 +63,16 @@ class Resume:
     """A trainer's position: ``completed_epoch``; per open epoch the sample keys it already
     has (``delivered``) and the batches it yielded (``batches``, for DDP padding); the consumers
     it speaks for besides its own (``supersedes``: a state gathered from every rank of a job
-    resumed at another world size, each with its completed epoch); the servers its ids were granted by (``origins``)."""
+    resumed at another world size, each with its completed epoch); the servers its ids were granted by (``origins``);
+    a DataLoader worker's granted batches waiting in the loader's queues (``queued``: batch id -> epoch, their
+    ids in ``delivered``; docs/delivery.md, "DataLoader workers")."""
 
     completed_epoch: int = -1
     delivered: Dict[int, FrozenSet[SampleKey]] = field(default_factory=dict)
     batches: Dict[int, int] = field(default_factory=dict)
     supersedes: Tuple[ConsumerKey, ...] = ()
     origins: Tuple[str, ...] = ()  # the servers (welcome info's ``server``) that granted its ids
+    queued: Dict[int, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -77,13 +80,14 @@ class ResumeIds:
     """A resume state as a client holds and sends it: ``completed_epoch``; per open epoch the
     sample ids its training loop got (``delivered``, strings: the client does not know the
     server's crops per window) and the batches it yielded (``batches``). The server reads it back
-    as :class:`Resume`."""
+    as :class:`Resume` (``queued``: at most ``MAX_MAP_LEN`` batches, as there)."""
 
     completed_epoch: int = -1
     delivered: Dict[int, Tuple[str, ...]] = field(default_factory=dict)
     batches: Dict[int, int] = field(default_factory=dict)
     supersedes: Tuple[ConsumerKey, ...] = ()
     origins: Tuple[str, ...] = ()
+    queued: Dict[int, int] = field(default_factory=dict)
 
     def to_wire(self) -> dict:
         h = {"completed_epoch": self.completed_epoch,
@@ -93,6 +97,8 @@ class ResumeIds:
             h["supersedes"] = [list(k) for k in self.supersedes]
         if self.origins:
             h["origins"] = list(self.origins)
+        if self.queued:
+            h["queued"] = {str(b): e for b, e in self.queued.items()}
         return h
 
 
@@ -279,7 +285,12 @@ def _resume(v, crops_per_window: int = 1, bound: Optional[Bound] = None) -> Resu
     if not isinstance(origins, list) or len(origins) > 16 or not all(isinstance(o, str) and 0 < len(o) <= 64
                                                                       for o in origins):
         raise WireError(f"field 'resume.origins' must list at most 16 server ids, got {show(origins)}")
-    return Resume(completed, delivered, batches, _supersedes(v.get("supersedes", [])), tuple(origins))
+    queued = v.get("queued", {})
+    if not isinstance(queued, dict) or not all(_epoch(b) and type(e) is int and 0 <= e <= MAX_EPOCH
+                                                 for b, e in queued.items()):
+        raise WireError(f"field 'resume.queued' must map batch ids to epoch numbers, got {show(queued)}")
+    return Resume(completed, delivered, batches, _supersedes(v.get("supersedes", [])), tuple(origins),
+                  {int(b): int(e) for b, e in queued.items()})
 
 
 def parse_client(h: dict, max_credits: int, crops_per_window: int = 1, bound: Optional[Bound] = None) -> object:

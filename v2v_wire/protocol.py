@@ -6,7 +6,7 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types (protocol 7; client messages are decoded and schema-checked by ``messages.py``):
+Message types (protocol 8; client messages are decoded and schema-checked by ``messages.py``):
 
 * client -> server: ``hello`` (outputs, credits = how many batches it may hold,
   consumer id, ``instance`` (the reader process's token: a consumer is read by one instance at a
@@ -16,6 +16,8 @@ Message types (protocol 7; client messages are decoded and schema-checked by ``m
   ``path#w1,w2,...`` (``ids.compact_ids``)}, ``batches`` {epoch: batches yielded}, optional
   ``supersedes`` [[consumer, rank, completed epoch], ...]: the consumers a state gathered from every
   rank of a job speaks for, resumed at another world size, each with the epoch its state completed;
+  optional ``queued`` {batch id: epoch}: a DataLoader worker's granted batches waiting in the loader's
+  queues (their ids are in ``delivered``): their epochs stay open for the connection until it acks them;
   optional
   ``ends_on_drained``: a DataLoader worker that ends its iteration on ``drained``, so it is sent
   no batch after it), ``ack``
@@ -68,7 +70,7 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-PROTOCOL_VERSION = 7
+PROTOCOL_VERSION = 8
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a

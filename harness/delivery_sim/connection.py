@@ -261,7 +261,7 @@ def _peek(data) -> str:
         return (f"hello consumer={h.get('consumer')!r} id={h.get('hello_id')} completed={r.get('completed_epoch')} "
                 f"delivered={ {e: len(str(v).splitlines()) for e, v in (r.get('delivered') or {}).items()} } "
                 f"rank={h.get('rank', 0)}/{h.get('world_size', 1)} group={h.get('group')} "
-                f"supersedes={r.get('supersedes')}")
+                f"supersedes={r.get('supersedes')}" + (f" queued={r['queued']}" if r.get("queued") else ""))
     if kind == "welcome":  # its info names the server by a random id: not in a trace that must replay
         return f"welcome hello_id={h.get('hello_id')}"
     if kind == "batch":

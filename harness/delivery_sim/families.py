@@ -199,5 +199,4 @@ FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None,
                  "mixed": None}
 #: one failing seed of each open finding: (scenario, seed, finding)
 OPEN_FINDINGS = [("ddp", 878, "F23: a DDP rank's checkpoint taken while padding it owes waits for its loop loses it"),
-                 ("loader", 1095, "F26: a worker's queued batch of an epoch the server forgot at its hello is lost"),
                  ("mixed", 1897, "F29: a DDP rank is granted a batch after its group-mates were told the end")]

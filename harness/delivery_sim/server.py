@@ -403,7 +403,8 @@ def _show(msg) -> str:
         r = msg.resume
         return (f"hello consumer={msg.consumer!r} credits={msg.credits} rank={msg.rank}/{msg.world_size} "
                 f"group={msg.group} completed={r.completed_epoch} "
-                f"delivered={ {e: len(ks) for e, ks in r.delivered.items()} } hello_id={msg.hello_id}")
+                f"delivered={ {e: len(ks) for e, ks in r.delivered.items()} } hello_id={msg.hello_id}"
+                + (f" queued={r.queued}" if r.queued else ""))
     if isinstance(msg, EpochDone):
         return f"epoch_done {msg.epoch} batches={msg.batches}"
     if isinstance(msg, Welcome):  # its info names the server by a random id: not in a trace that must replay

@@ -67,7 +67,8 @@ class EpochEnds:
         for ident, c in self.ledger.clients.items():
             if c.ddp and c.group not in ready:
                 continue
-            blocked = sorted(live | own.get(c.consumer, set()) | {e for e, who in fresh.items() if who - {c.consumer}})
+            blocked = sorted(live | own.get(c.consumer, set()) | set(c.queued.values())
+                             | {e for e, who in fresh.items() if who - {c.consumer}})
             while True:
                 step = self._next(c, blocked)
                 if step is None:

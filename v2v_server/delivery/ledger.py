@@ -8,7 +8,7 @@ stalls, fair sharing, DDP groups waiting for their ranks) are written once, in d
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Dict, Hashable, Iterable, List, Optional, Set, Tuple
 
 from v2v_server.delivery.table import GRANTED, LEASED, REVOKED, BatchRecord, BatchTable
@@ -43,6 +43,9 @@ class ClientRecord:
     instance: str = ""  # the reader process's token (docs/delivery.md, "Who may say hello")
     heard: float = 0.0  # when it last said something itself (its hello's arrival, then any message)
     proved: float = float("-inf")  # when the newest batch it named was sent to it: its process lived after
+    #: a DataLoader worker's grants its hello named waiting in the loader's queues (batch id -> epoch): their
+    #: epochs are not told to it until it acks them (docs/delivery.md, "DataLoader workers")
+    queued: Dict[int, int] = field(default_factory=dict)
 
     @property
     def takes(self) -> bool:
@@ -115,16 +118,18 @@ class DeliveryLedger:
     # ------------------------------------------------------------------ clients
     def join(self, ident: bytes, consumer: Hashable, outputs: tuple, credits: int, now: float,
              group: Optional[str] = None, rank: int = 0, world_size: int = 1, completed: int = -1,
-             ends_on_drained: bool = False, instance: str = "", heard: Optional[float] = None
-             ) -> Tuple[List[int], List[BatchRecord]]:
+             ends_on_drained: bool = False, instance: str = "", heard: Optional[float] = None,
+             queued: Optional[Dict[int, int]] = None) -> Tuple[List[int], List[BatchRecord]]:
         """A connection says hello (again); ``completed``: the last epoch its resume state calls
         complete (none of those is sent); ``ends_on_drained``: see ``ClientRecord.takes``;
-        ``heard``: when its hello arrived (default ``now``). An earlier connection of the same
+        ``heard``: when its hello arrived (default ``now``); ``queued``: its resume state's (those of
+        epochs after ``completed``: ``ClientRecord.queued``). An earlier connection of the same
         identity leaves first (:meth:`leave`; what it returns is returned)."""
         back = self.leave(ident)
         credits = max(1, min(int(credits), self.max_credits))
         c = ClientRecord(ident, consumer, tuple(outputs), credits, now, group, rank, world_size, completed=completed,
-                         ends_on_drained=ends_on_drained, instance=instance, heard=now if heard is None else heard)
+                         ends_on_drained=ends_on_drained, instance=instance, heard=now if heard is None else heard,
+                         queued={b: e for b, e in (queued or {}).items() if e > completed})
         c.served = self._tick  # a newcomer is served after those waiting longer
         self.clients[ident] = c
         if c.ddp:
@@ -227,6 +232,8 @@ class DeliveryLedger:
         ok, new = [], []
         for bid in dict.fromkeys(batch_ids):
             if not self.table.holds(ident, bid):
+                if bid in c.queued:  # not acknowledged yet: the client says it (again) while granted
+                    ok.append(bid)
                 continue
             b = self.table.get(bid)
             if b.state in (LEASED, REVOKED):
@@ -236,8 +243,11 @@ class DeliveryLedger:
 
     def ack(self, ident: bytes, batch_ids: Iterable[int]) -> List[BatchRecord]:
         """The training loop received these granted batches (granted -> gone): their slots are
-        freed. Returns them; ids this client does not hold granted are ignored and free no slot."""
-        done = []
+        freed. Returns them; ids this client does not hold granted are ignored and free no slot
+        (an id of ``ClientRecord.queued`` leaves it)."""
+        c, done = self.clients.get(ident), []
+        for bid in batch_ids if c is not None and c.queued else ():
+            c.queued.pop(bid, None)
         for bid in dict.fromkeys(batch_ids):
             if self.table.holds(ident, bid) and self.table.get(bid).state == GRANTED:
                 done.append(self.table.retire(bid))
