@@ -867,6 +867,22 @@ def test_a_ddp_group_with_no_rank_connected_keeps_what_a_returning_rank_repeats(
     assert pad.epoch_done(back, 0) == (0, None)
 
 
+def test_a_ddp_rank_told_an_epoch_the_server_never_opened_is_told_its_groups_count():
+    """A restarted server (no journal) is first said hello by a trainer that completed epoch 0,
+    so it starts at epoch 1; then a DDP job's ranks come back, rank 0 having yielded one batch
+    of epoch 0 and rank 1 none. Epoch 0 has no plan here, but the ranks' states count it: each
+    is told epoch 0 with the group's count, and rank 1 pads up to it (told with no count, it
+    padded nothing and the job hung in an all-reduce: simulator ``mixed`` seed 5129)."""
+    s = TinyStream()
+    s.hello(b"b", "b", Resume(0, {}))
+    s.hello(b"r1", "j", Resume(-1, {}), group="g", rank=1, world_size=2)
+    s.hello(b"r0", "j", Resume(-1, {0: frozenset({SampleKey("a.mp4", 0)})}, {0: 1}), group="g", rank=0, world_size=2)
+    for _ in range(3):
+        s.turn()
+    assert 0 not in s.core.sched.plans
+    assert s.told[b"r0"][0] == (0, 1) and s.told[b"r1"][0] == (0, 1), dict(s.told)
+
+
 def test_a_reader_that_still_speaks_after_the_end_is_told_it_again():
     """The last ``epoch_done`` and ``end`` can be lost in a cut of the connection that ZeroMQ
     mends behind the socket (no hello follows): a reader told the end that still heartbeats did

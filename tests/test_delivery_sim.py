@@ -139,3 +139,13 @@ def test_a_seed_runs_the_same_twice():
     a = run_sim(SCENARIOS["trainers"].build(7, trace=True), "trainers")
     b = run_sim(SCENARIOS["trainers"].build(7, trace=True), "trainers")
     assert a.trace == b.trace and a.steps == b.steps and len(a.trace) > 50
+
+
+@pytest.mark.parametrize("seed", [3853, 4461, 5129])
+def test_ddp_jobs_across_a_server_crash_end_alike(seed):
+    """``mixed`` seeds where a DDP job's server crashed: the restarted server had no copy of the
+    group's last batch for a rank that owed padding (3853, 4461: that rank now yields a batch of
+    zeros at the end, ``endpoint.zero_padding``), or told an epoch it never opened with no count
+    (5129): the ranks ended with different counts and the job hung in an all-reduce."""
+    outcome = simulate(["mixed"], f"{seed}:{seed + 1}")["mixed"]
+    assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)

@@ -11,8 +11,10 @@ import uuid
 from dataclasses import replace
 from typing import Dict, Iterator, List, Optional
 
+import numpy as np
 import torch
 
+from v2v_wire.outputs import ARRAYS
 from v2v_wire.stream_messages import Drained, EpochDone
 
 from .connection import Connection
@@ -22,7 +24,7 @@ from .resume import ResumeState, server_padding
 from .session import LoopAbandoned, ServerPadding, StreamError
 from .tensors import batch_to_torch, select_samples
 
-__all__ = ["EndpointStream", "padding_copy"]
+__all__ = ["EndpointStream", "padding_copy", "zero_padding"]
 
 
 def padding_copy(batch: dict, epoch: int) -> dict:
@@ -31,6 +33,24 @@ def padding_copy(batch: dict, epoch: int) -> dict:
     out = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
     out.update(padding=torch.ones(len(batch["sample_ids"]), dtype=torch.bool), epoch=epoch, batch_id=-1,
                sample_ids=list(batch["sample_ids"]), params=list(batch["params"]))
+    return out
+
+
+def zero_padding(info: dict, options: StreamOptions, epoch: int) -> dict:
+    """A DDP padding batch of ``epoch`` with nothing to repeat: one sample of zeros of each of
+    ``options.outputs`` (in ``info``'s shapes and wire dtypes: the server's welcome), converted as
+    the stream converts its batches, flagged in ``padding`` (bool (1,), True), sample id ``""``,
+    ``batch_id`` -1. A tracked flow option read with ``compact_flow`` gets dense ``flow`` (the
+    grid size is not in the welcome)."""
+    size = int(info.get("crop_size") or 1)
+    flow_dtype = info.get("flow_dtype", ARRAYS["flow"].dtypes[0])
+    arrays = {}
+    for name in options.outputs or info.get("outputs", ()):
+        spec = ARRAYS[name]
+        shape = spec.shape(int(info.get("sequence_length", 1)), int(info.get("num_bins", 1)), size)
+        arrays[name] = np.zeros((1,) + shape, flow_dtype if spec.narrowing == "recipe" else spec.dtypes[0])
+    out = _to_tensors(options.raw, options.compact_flow, arrays, (size, size), flow_dtype)
+    out.update(padding=torch.ones(1, dtype=torch.bool), epoch=epoch, batch_id=-1, sample_ids=[""], params=[{}])
     return out
 
 
@@ -180,6 +200,7 @@ class EndpointStream:
             while True:
                 item = self._next_item(conn)
                 if isinstance(item, StopIteration):
+                    yield from self._unpaid_padding(conn.info or {})
                     return
                 if isinstance(item, LoopAbandoned):
                     abandoned = True  # no receipt will come: what is held goes back with bye
@@ -229,6 +250,14 @@ class EndpointStream:
             else:
                 pads.append(padding_copy(self._last, done.epoch))
         return pads
+
+    def _unpaid_padding(self, info: dict) -> Iterator[dict]:
+        """At the stream's end, the DDP padding still owed with nothing to repeat (the group's last
+        batch went with a server that crashed, so no copy came): :func:`zero_padding` batches, so
+        every rank yields the same count (docs/delivery.md, "DDP")."""
+        for e in sorted(self._pad_debt):
+            for _ in range(self._pad_debt.pop(e)):
+                yield zero_padding(info, self.options, e)
 
     def _server_padding(self, padding: ServerPadding) -> Iterator[dict]:
         """A DDP padding batch the server sent (not leased): yielded as the epochs

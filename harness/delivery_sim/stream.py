@@ -9,9 +9,10 @@ position is refused before any connection), a
 :class:`~harness.delivery_sim.connection.SimConnection`, and step by step what
 ``EndpointStream.__iter__`` yields: a batch claimed once granted (its samples recorded in the
 same step), re-sent samples dropped, DDP padding where owed (as sample ids flagged ``padding``;
-no tensors), a batch of a completed epoch given back. Those steps are ``EndpointStream``'s
-(``_batch``, ``_epoch_done``, ``_server_padding``), which sit beside torch; every decision of
-the record and the session is the real objects'.
+no tensors; at the end, what is owed with nothing to repeat), a batch of a completed epoch given
+back. Those steps are ``EndpointStream``'s (``_batch``, ``_epoch_done``, ``_server_padding``,
+``_unpaid_padding``), which sit beside torch; every decision of the record and the session is
+the real objects'.
 """
 from __future__ import annotations
 
@@ -108,7 +109,11 @@ class SimIterator:
         """``EndpointStream.__iter__``'s dispatch of one item from the connection."""
         s = self.s
         if isinstance(item, StopIteration):
-            return self._close("end", str(item))
+            for e in sorted(s.pad_debt):  # EndpointStream._unpaid_padding: zero padding, then the end
+                for _ in range(s.pad_debt.pop(e)):
+                    self.out.append({"sample_ids": [""], "padding": [True], "epoch": e, "batch_id": -1})
+            end = self._close("end", str(item))
+            return None if self.out else end
         if isinstance(item, LoopAbandoned):
             self.abandoned = True
             return self._close("end", "abandoned")

@@ -123,8 +123,10 @@ class EpochEnds:
         return own, live, fresh
 
     def _next(self, c: ClientRecord, blocked: List[int]) -> Optional[Tuple[int, bool]]:
-        """The epoch connection ``c`` may be told next, and whether it is one epoch with its plan
-        (else the newest of a run of forgotten or never opened epochs, told at once); None."""
+        """The epoch connection ``c`` may be told next, and whether it is one epoch told with its
+        count (one with its plan, or for a DDP rank one its group's states count: every rank pads
+        up to it, docs/delivery.md "Ends of epochs"); else the newest of a run of forgotten or never
+        opened epochs, told at once; None."""
         e = c.completed + 1
         s = self.sched
         if e >= s.next_epoch:
@@ -137,6 +139,10 @@ class EpochEnds:
         upto = min([p for p in s.plans if p > e] + [s.next_epoch]) - 1  # run of epochs without a plan
         if first_blocked is not None:
             upto = min(upto, first_blocked - 1)
+        if c.ddp:  # an epoch its group counts (a started stream never opened it here) is told alone
+            counted = [x for x in range(e, upto + 1) if (c.group, x) in self.padding.taken]
+            if counted:
+                return (e, True) if counted[0] == e else (counted[0] - 1, False)
         return (upto, False) if upto >= e else None
 
     def _told(self, e: int) -> None:
