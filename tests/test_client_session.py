@@ -9,7 +9,7 @@ import pytest
 
 from v2v_client.options import StreamOptions
 from v2v_client.receipts import Abandon, Receipt
-from v2v_client.resume import ResumeState, server_padding
+from v2v_client.resume import ResumeState, owed_padding
 from v2v_client.session import LoopAbandoned, ServerPadding, ServerSession, StreamError
 from v2v_wire import messages as cm
 from v2v_wire.protocol import PROTOCOL_VERSION, encode_arrays, pack, unpack
@@ -348,6 +348,11 @@ def test_what_was_said_of_a_granted_batch_is_named_each_heartbeat_until_the_serv
     assert s.outgoing() == [] and s.held.granted == {8}
 
 
+def _pad(batch: dict, epoch: int) -> dict:
+    """``endpoint.padding_copy`` without tensors."""
+    return {"epoch": epoch, "batch_id": -1, "sample_ids": list(batch["sample_ids"])}
+
+
 def test_a_ddp_rank_that_read_an_epochs_end_with_nothing_to_repeat_pays_with_the_servers_copy():
     """A DDP rank told epoch 0 complete (every rank yields 1 batch) before any batch reached
     it owes one padding batch with nothing to repeat. Its hello, sent before it read that end,
@@ -356,14 +361,15 @@ def test_a_ddp_rank_that_read_an_epochs_end_with_nothing_to_repeat_pays_with_the
     F19, ``ddp`` seeds 782, 930). A copy of a later, open epoch also pays what older epochs
     still owe, oldest first."""
     r = ResumeState("c")
-    owed = {}
-    assert r.complete(0, 1) == 1
-    owed[0] = 1  # what EndpointStream keeps when it has no batch to repeat
-    assert server_padding(r, 0, owed) == [0] and owed == {}
-    assert server_padding(r, 0, owed) == []  # a second copy of a complete epoch is nobody's
-    r, owed = ResumeState("c"), {0: 2}
+    assert r.complete(0, 1) == 1  # nothing to repeat: owed in the record
+    copy = {"epoch": 0, "batch_id": -1, "sample_ids": ["v.mp4#0"]}
+    assert list(owed_padding(r, copy, _pad, own=True)) == [copy] and r.is_complete(0)
+    assert list(owed_padding(r, copy, _pad, own=True)) == []  # a second copy of a complete epoch is nobody's
+    r = ResumeState("c")
     assert r.complete(0, 2) == 2
-    assert server_padding(r, 1, owed) == [0, 0, 1] and owed == {}  # epoch 1 is open: its copy counts in it
+    copy = {"epoch": 1, "batch_id": -1, "sample_ids": ["v.mp4#1"]}
+    got = list(owed_padding(r, copy, _pad, own=True))
+    assert [b["epoch"] for b in got] == [0, 0, 1] and got[-1] is copy  # epoch 1 is open: its copy counts in it
     assert r.complete(1, 1) == 0
 
 
@@ -393,3 +399,30 @@ def test_a_rank_owing_padding_at_the_end_with_nothing_to_repeat_yields_zeros_sha
     assert all(not pad[k].any() for k in real)
     assert pad["padding"].tolist() == [True] and pad["epoch"] == 2 and pad["batch_id"] == -1
     assert len(pad["sample_ids"]) == len(pad["params"]) == 1
+
+
+def test_a_ddp_ranks_checkpoint_taken_while_its_padding_waits_for_the_loop_keeps_what_it_owes():
+    """A DDP rank that yielded 2 batches of epoch 0 is told it complete, every rank yielding 4:
+    it owes 2 padding batches, which reach the loop one step at a time. A checkpoint taken after
+    the first names epoch 0 open with 3 batches, so a rank resumed from it (its hello reopens the
+    epoch; the server tells its end again) owes the one left, and the job's ranks yield alike (its
+    record completed the epoch when it read the end, the checkpoint said so, the resumed rank owed
+    nothing, and the job hung in an all-reduce: simulator finding F23, ``ddp`` seed 878)."""
+    r = ResumeState("c")
+    r.place("job", 2, 3)
+    for bid in (16, 20):
+        assert r.claim(0, bid, [f"v.mp4#{bid}"], loader=False) == [0]
+    assert r.complete(0, 4) == 2 and not r.is_complete(0)
+    pads = owed_padding(r, {"epoch": 0, "batch_id": 20, "sample_ids": ["v.mp4#20"]}, _pad)
+    assert next(pads)["epoch"] == 0
+    saved = r.state()
+    assert saved["completed_epoch"] == -1 and saved["batches"] == {"0": 3}
+    assert saved["delivered"] == {"0": ["v.mp4#16", "v.mp4#20"]}  # its ids are still its own
+    resumed = ResumeState()
+    resumed.load(saved)
+    assert resumed.hello_resume().completed_epoch == -1  # the hello reopens epoch 0
+    assert resumed.complete(0, 4) == 1
+    assert [b["epoch"] for b in owed_padding(resumed, {"epoch": 1, "sample_ids": ["v.mp4#30"]}, _pad)] == [0]
+    assert resumed.is_complete(0) and resumed.state()["batches"] == {}
+    assert [b["epoch"] for b in pads] == [0] and r.is_complete(0)  # the rank that read on
+    assert r.complete(0, 4) is None  # an end told again once paid: nothing more

@@ -9,7 +9,7 @@ import functools
 import queue
 import uuid
 from dataclasses import replace
-from typing import Dict, Iterator, List, Optional
+from typing import Iterator, List, Optional
 
 import numpy as np
 import torch
@@ -20,7 +20,7 @@ from v2v_wire.stream_messages import Drained, EpochDone
 from .connection import Connection
 from .options import StreamOptions
 from .receipts import Handed, received_ids
-from .resume import ResumeState, server_padding
+from .resume import ResumeState, owed_padding
 from .session import LoopAbandoned, ServerPadding, StreamError
 from .tensors import batch_to_torch, select_samples
 
@@ -78,7 +78,6 @@ class EndpointStream:
         self._info: Optional[dict] = None  # the stream info of the last connection closed
         self._conns: list = []
         self._last: Optional[dict] = None  # last batch yielded: the source of DDP padding
-        self._pad_debt: Dict[int, int] = {}  # epoch -> padding batches owed with nothing to repeat yet
         # In a DataLoader worker under ``StreamLoader``: the pipe on which the main process says
         # which batches the training loop received (see ``v2v_client.loader``).
         self.receipts = None
@@ -240,35 +239,29 @@ class EndpointStream:
                     raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
                 # the I/O thread decides when the server is gone (timeout_s without a message)
 
-    def _epoch_done(self, done: EpochDone) -> List[dict]:
-        """Forget a complete epoch; with DDP, the padding batches this rank owes for it."""
-        owed = self.record.complete(done.epoch, done.batches if self.options.world_size > 1 else None)
-        pads: List[dict] = []
-        for _ in range(owed or 0):
-            if self._last is None:
-                self._pad_debt[done.epoch] = self._pad_debt.get(done.epoch, 0) + 1
-            else:
-                pads.append(padding_copy(self._last, done.epoch))
-        return pads
+    def _epoch_done(self, done: EpochDone) -> Iterator[dict]:
+        """Forget a complete epoch; with DDP, the padding batches this rank owes for it, copies of
+        the last batch (with none yet, the record keeps them owed: the next batch or the server's
+        copy pays them), the epoch completing in the record with the last of them."""
+        self.record.complete(done.epoch, done.batches if self.options.world_size > 1 else None)
+        if self._last is not None:
+            yield from owed_padding(self.record, self._last, padding_copy)
 
     def _unpaid_padding(self, info: dict) -> Iterator[dict]:
         """At the stream's end, the DDP padding still owed with nothing to repeat (the group's last
         batch went with a server that crashed, so no copy came): :func:`zero_padding` batches, so
-        every rank yields the same count (docs/delivery.md, "DDP")."""
-        for e in sorted(self._pad_debt):
-            for _ in range(self._pad_debt.pop(e)):
-                yield zero_padding(info, self.options, e)
+        every rank yields the same count (docs/delivery.md, "DDP"), each counted in the record as
+        it is yielded (``resume.owed_padding``)."""
+        yield from owed_padding(self.record, {}, lambda _source, e: zero_padding(info, self.options, e))
 
     def _server_padding(self, padding: ServerPadding) -> Iterator[dict]:
-        """A DDP padding batch the server sent (not leased): yielded as the epochs
-        ``resume.server_padding`` says (itself, then copies)."""
+        """A DDP padding batch the server sent (not leased): yielded as ``resume.owed_padding``
+        says (itself, and copies for what the rank owes)."""
         item = padding.item
         item["padding"] = torch.ones(len(item["sample_ids"]), dtype=torch.bool)
-        epochs = server_padding(self.record, item["epoch"], self._pad_debt)
-        if epochs:
+        for out in owed_padding(self.record, item, padding_copy, own=True):
             self._last = item
-        for i, e in enumerate(epochs):
-            yield item if i == epochs.index(item["epoch"]) else padding_copy(item, e)
+            yield out
 
     def _batch(self, conn: Connection, item: dict) -> Iterator[dict]:
         """A received batch: given back when its epoch is complete here; else claimed once the
@@ -281,9 +274,7 @@ class EndpointStream:
         if self.record.is_complete(epoch):
             conn.give_back(item)  # never acknowledge what we would drop
             return
-        for e in sorted(self._pad_debt):
-            for _ in range(self._pad_debt.pop(e)):
-                yield padding_copy(item, e)
+        yield from owed_padding(self.record, item, padding_copy)
         loader = self.receipts is not None
         taken, keep = conn.take(item, lambda: self.record.claim(epoch, item["batch_id"], item["sample_ids"], loader),
                                 ack=not loader)

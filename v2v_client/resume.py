@@ -18,11 +18,11 @@ is taken; a DataLoader worker's batches wait in ``pipeline`` until the loop's re
 from __future__ import annotations
 
 import threading
-from typing import Dict, Iterable, List, Optional, Set, Tuple
+from typing import Callable, Dict, Iterable, Iterator, List, Optional, Set, Tuple
 
 from v2v_wire.messages import MAX_MAP_LEN, ResumeIds
 
-__all__ = ["ResumeState", "STATE_VERSION", "server_padding"]
+__all__ = ["ResumeState", "STATE_VERSION", "owed_padding"]
 
 STATE_VERSION = 1
 
@@ -68,14 +68,12 @@ class Pipeline(dict):
 
 
 class ResumeState:
-    """One reader's record: ``consumer`` (the id the server knows it by), ``completed_epoch``
-    (the last epoch the server declared complete to it), ``delivered`` (epoch -> sample ids
-    handed to the training loop, open epochs only), ``batches`` (epoch -> batches handed on,
-    DDP padding included), ``recipe`` (the sample recipe's fingerprint the ids were made under),
-    the DDP position it was saved at (``group``, ``rank``, ``world_size``), and in a DataLoader
-    worker ``pipeline`` (batch id -> (epoch, sample ids) yielded to the DataLoader, receipt not
-    yet come). Thread-safe (``lock``): an I/O thread records receipts while the consumer iterates.
-    """
+    """One reader's record: ``consumer`` (the id the server knows it by), ``completed_epoch`` (the last epoch the
+    server declared complete to it), ``delivered`` (epoch -> sample ids handed to the training loop, open epochs
+    only), ``batches`` (epoch -> batches handed on, DDP padding included), ``recipe`` (the sample recipe's
+    fingerprint the ids were made under), the DDP position it was saved at (``group``, ``rank``, ``world_size``),
+    and in a DataLoader worker ``pipeline`` (batch id -> (epoch, sample ids) yielded to the DataLoader, receipt not
+    yet come). Thread-safe (``lock``): an I/O thread records receipts while the consumer iterates."""
 
     def __init__(self, consumer: str = ""):
         self.lock, self.consumer = threading.Lock(), consumer
@@ -87,6 +85,7 @@ class ResumeState:
         self.shard_batches: Dict[str, Dict[int, int]] = {}  # a fan-in's batches per shard per open epoch
         self.shard_of: Dict[str, str] = {}  # a fan-in's endpoint -> the shard it served
         self.pipeline = Pipeline()
+        self.owed: Dict[int, int] = {}  # epoch told complete and open -> DDP padding to yield (not saved: told again)
         #: the consumers a state gathered from every rank of a job speaks for, each with its completed epoch
         self.supersedes: Tuple[Tuple[str, int, int], ...] = ()
         self.origins: Set[str] = set()  # the servers (their welcome's ``server``) that granted its ids
@@ -126,16 +125,15 @@ class ResumeState:
         batches = {e: int(n) for e, n in _epoch_map(state.get("batches", {}), "batches").items()}
         shards = {str(sh): {e: int(n) for e, n in _epoch_map(per, "shard_batches").items()}
                   for sh, per in (state.get("shard_batches") or {}).items()}
-        position = None
-        if isinstance(state.get("world_size"), int) and isinstance(state.get("rank"), int):
-            position = (str(state.get("group") or ""), state["rank"], state["world_size"])
+        position = ((str(state.get("group") or ""), state["rank"], state["world_size"])
+                    if isinstance(state.get("world_size"), int) and isinstance(state.get("rank"), int) else None)
         supersedes = tuple((str(k[0]), int(k[1]), int(k[2] if len(k) > 2 else completed))
                            for k in state.get("supersedes") or ())
         origins = {str(o) for o in state.get("origins") or ()}
         with self.lock:
             self.completed_epoch, self.delivered, self.batches = completed, delivered, batches
             self.shard_batches, self.shard_of = shards, dict(state.get("shard_of") or {})
-            self.position, self.supersedes, self.origins = position, supersedes, origins
+            self.position, self.supersedes, self.origins, self.owed = position, supersedes, origins, {}
             if isinstance(state.get("consumer"), str) and state["consumer"]:
                 self.consumer = state["consumer"]
             if isinstance(state.get("recipe"), str):
@@ -169,32 +167,28 @@ class ResumeState:
 
     # ------------------------------------------------------------------ DDP positions
     def key(self) -> Tuple[str, int]:
-        """The consumer the server knew this state's reader as: ``("g:<group>", rank)`` for a
-        DDP rank, else ``("c:<consumer id>", 0)``."""
+        """The consumer the server knew its reader as: ``("g:<group>", rank)`` (DDP), else ``("c:<id>", 0)``."""
         if self.position is not None and self.position[2] > 1:
             return "g:" + (self.position[0] or "default"), self.position[1]
         return "c:" + self.consumer, 0
 
     @classmethod
     def gathered(cls, states: List[dict]) -> "ResumeState":
-        """One state for a job resumed at another world size, from the state of every rank of the
-        job that saved them: the oldest completed epoch among them (a later one may lack what a
-        rank had been granted and not taken), the ids of the later epochs together (a rank forgot
-        only those of epochs its state completed), per epoch the most batches a rank yielded
-        (where DDP padding counts from), and the consumers it speaks for (``supersedes``: every
-        rank's, with its completed epoch: the server keeps what it granted in those). Every rank
-        of the new job loads it (docs/delivery.md, "A world size changes").
+        """One state for a job resumed at another world size, from the state of every rank of the job that saved
+        them: the oldest completed epoch among them (a later one may lack what a rank had been granted and not
+        taken), the ids of the later epochs together (a rank forgot only those of epochs its state completed), per
+        epoch the most batches a rank yielded (where DDP padding counts from), and the consumers it speaks for
+        (``supersedes``: every rank's, with its completed epoch: the server keeps what it granted in those).
+        Every rank of the new job loads it (docs/delivery.md, "A world size changes").
 
         Raises:
             ValueError: no state, or one of another format.
         """
         if not states:
             raise ValueError("no rank's state to gather")
-        parts = []
-        for st in states:
-            p = cls()
+        parts = [cls() for _ in states]
+        for p, st in zip(parts, states):
             p.load(st)
-            parts.append(p)
         out = cls(parts[0].consumer)
         out.completed_epoch = min(p.completed_epoch for p in parts)
         for p in parts:  # a part's epochs are all after its completed one
@@ -208,10 +202,9 @@ class ResumeState:
         return out
 
     def place(self, group: str, rank: int, world_size: int) -> None:
-        """This state's reader is about to say hello as ``rank`` of ``world_size`` in ``group``.
-        A state saved by one rank of a DDP job at another position speaks for that rank alone:
-        refused. One reader's whole state (world size 1) may start every rank of a new job (it
-        then speaks for that reader); a gathered state may start any position.
+        """This state's reader is about to say hello as ``rank`` of ``world_size`` in ``group``. A state saved by
+        one rank of a DDP job at another position speaks for that rank alone: refused. One reader's whole state
+        (world size 1) may start every rank of a new job (it then speaks for that reader); a gathered one, any.
 
         Raises:
             ValueError: one line saying what to load instead.
@@ -242,27 +235,33 @@ class ResumeState:
 
     # ------------------------------------------------------------------ the stream's steps
     def complete(self, epoch: int, batches_due: Optional[int] = None) -> Optional[int]:
-        """The server declared ``epoch`` complete: its ids are forgotten (and those of every epoch
-        before it). Returns the padding batches still owed (``batches_due``, with DDP: batches
-        every rank must yield, minus those yielded; 0 without), or None when it was complete already."""
+        """The server declared ``epoch`` complete: its ids (and those of every epoch before it) are forgotten once
+        the padding it owes is yielded (``batches_due``: with DDP, batches every rank yields; :meth:`count_padding`).
+        Returns that padding, or None when it was complete already (docs/delivery.md, "Ends of epochs")."""
         with self.lock:
             if epoch <= self.completed_epoch:
                 return None
-            owed = 0 if batches_due is None else max(0, batches_due - self.batches.get(epoch, 0))
+            if batches_due is not None:
+                self.owed[epoch] = max(0, batches_due - self.batches.get(epoch, 0))
             self._forget_upto(self.pipeline.complete_upto(epoch, self.completed_epoch))
-        return owed
+            return self.owed.get(epoch, 0)
 
     def is_complete(self, epoch: int) -> bool:
         with self.lock:
             return epoch <= self.completed_epoch
 
-    def count_padding(self, epoch: int) -> bool:
-        """A padding batch of ``epoch`` is yielded (counted); False when the epoch is complete."""
+    def count_padding(self, epoch: Optional[int] = None) -> Optional[int]:
+        """A DDP padding batch goes to the loop now: of the oldest epoch owing one, else of ``epoch``
+        (a server's copy) if open and not told complete here; counted in it. Returns that epoch, or None."""
         with self.lock:
-            if epoch <= self.completed_epoch:
-                return False
-            self.batches[epoch] = self.batches.get(epoch, 0) + 1
-        return True
+            e = min((e for e, n in self.owed.items() if n), default=epoch)
+            if e is None or e <= self.completed_epoch or self.owed.get(e) == 0:
+                return None
+            self.batches[e] = self.batches.get(e, 0) + 1
+            if e in self.owed:
+                self.owed[e] -= 1
+                self._forget_upto(self.pipeline.complete_upto(e, self.completed_epoch))
+        return e
 
     def claim(self, epoch: int, batch_id: int, sample_ids: List[str], loader: bool) -> List[int]:
         """Positions of a claimed batch's samples neither handed on nor in the pipeline already.
@@ -323,8 +322,9 @@ class ResumeState:
                     per[epoch] -= 1
 
     def _forget_upto(self, epoch: int) -> None:
+        epoch = min([epoch] + [e - 1 for e, n in self.owed.items() if n])  # an epoch owing DDP padding stays open
         self.completed_epoch = max(self.completed_epoch, epoch)
-        for d in [self.delivered, self.batches, *self.shard_batches.values()]:
+        for d in [self.delivered, self.batches, self.owed, *self.shard_batches.values()]:
             for e in [e for e in d if e <= epoch]:
                 del d[e]
 
@@ -339,18 +339,17 @@ class ResumeState:
             self.pipeline.clear()
 
 
-def server_padding(record: ResumeState, epoch: int, owed: Dict[int, int]) -> List[int]:
-    """A DDP padding batch of ``epoch`` the server sent to ``record``'s reader: the epochs it
-    is yielded as (itself and copies, in order). It pays the padding the rank owes with nothing
-    to repeat (``owed``: epoch -> batches, emptied here), one of them ``epoch``'s when its end
-    came first (a hello that reopened the epoch went out before the rank read that end), else
-    it counts as one batch of ``epoch`` (``ResumeState.count_padding``); [] when ``epoch`` is
-    complete here with none of it owed (docs/delivery.md, "DDP")."""
-    if owed.get(epoch):
-        owed[epoch] -= 1
-    elif not record.count_padding(epoch):
-        return []
-    owed[epoch] = owed.get(epoch, 0) + 1
-    out = [e for e in sorted(owed) for _ in range(owed[e])]
-    owed.clear()
-    return out
+def owed_padding(record: ResumeState, source: dict, copy: Callable[[dict, int], dict],
+                 own: bool = False) -> Iterator[dict]:
+    """The DDP padding batches ``record``'s reader yields now, each counted in the record as it is
+    yielded (``ResumeState.count_padding``): what it owes, oldest epoch first, as ``copy(source,
+    epoch)``; with ``own`` (``source`` is a padding batch the server sent), ``source`` itself for
+    its epoch: one it owes there (its end came first: a hello reopened the epoch before the rank
+    read that end), else one more batch of it if open here, else nothing (docs/delivery.md, "DDP")."""
+    mine = source["epoch"] if own else None
+    while (e := record.count_padding(mine)) is not None:
+        if e == mine:
+            mine = None
+            yield source
+        else:
+            yield copy(source, e)

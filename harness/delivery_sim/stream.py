@@ -17,10 +17,10 @@ the real objects'.
 from __future__ import annotations
 
 import queue
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Iterator, List, Optional, Tuple
 
 from v2v_client.receipts import Handed
-from v2v_client.resume import ResumeState, server_padding
+from v2v_client.resume import ResumeState, owed_padding
 from v2v_client.session import LoopAbandoned, ServerPadding, StreamError
 from v2v_wire.stream_messages import Drained, EpochDone
 
@@ -41,7 +41,6 @@ class SimStream:
         self.worker: Optional[int] = None
         self.iteration = 0
         self.last: Optional[dict] = None
-        self.pad_debt: Dict[int, int] = {}
 
     @property
     def consumer(self) -> str:
@@ -65,7 +64,8 @@ class SimIterator:
     def __init__(self, stream: SimStream, host, wake: Callable[[], None]):
         self.s = stream
         self.pending: Optional[dict] = None  # the batch waiting for its grant
-        self.out: List[dict] = []  # loop items ready (padding first)
+        self.pads: Iterator[dict] = iter(())  # DDP padding to yield now (``resume.owed_padding``), first
+        self.out: List[dict] = []  # loop items ready
         self.finished: Optional[str] = None
         self.abandoned = False
         self.conn: Optional[SimConnection] = None
@@ -87,6 +87,9 @@ class SimIterator:
         if self.refused is not None:
             return "error", self.refused
         while True:
+            pad = next(self.pads, None)
+            if pad is not None:
+                return "batch", pad
             if self.out:
                 return "batch", self.out.pop(0)
             if self.finished is not None:
@@ -109,11 +112,10 @@ class SimIterator:
         """``EndpointStream.__iter__``'s dispatch of one item from the connection."""
         s = self.s
         if isinstance(item, StopIteration):
-            for e in sorted(s.pad_debt):  # EndpointStream._unpaid_padding: zero padding, then the end
-                for _ in range(s.pad_debt.pop(e)):
-                    self.out.append({"sample_ids": [""], "padding": [True], "epoch": e, "batch_id": -1})
-            end = self._close("end", str(item))
-            return None if self.out else end
+            # EndpointStream._unpaid_padding: zero padding, each counted as the loop takes it, then the end
+            self.pads = owed_padding(s.record, {}, _zero_padding)
+            self._close("end", str(item))
+            return None
         if isinstance(item, LoopAbandoned):
             self.abandoned = True
             return self._close("end", "abandoned")
@@ -125,17 +127,11 @@ class SimIterator:
             if self.conn.ends_on(item):
                 return self._close("end", "drained")
         elif isinstance(item, ServerPadding):
-            p = _loop_item(item.item, padding=True)
-            epochs = server_padding(s.record, p["epoch"], s.pad_debt)
-            for i, e in enumerate(epochs):
-                s.last = p
-                self.out.append(p if i == epochs.index(p["epoch"]) else _padding_copy(p, e))
+            self.pads = self._server_padding(_loop_item(item.item, padding=True))
         elif s.record.is_complete(item["epoch"]):
             self.conn.give_back(item)
-        else:
-            for e in sorted(s.pad_debt):  # padding owed goes before the claim
-                for _ in range(s.pad_debt.pop(e)):
-                    self.out.append(_padding_copy(_loop_item(item, padding=True), e))
+        else:  # padding owed goes before the claim
+            self.pads = owed_padding(s.record, _loop_item(item, padding=True), _padding_copy)
             self.pending = item
         return None
 
@@ -171,12 +167,14 @@ class SimIterator:
 
     def _epoch_done(self, done: EpochDone) -> None:
         s = self.s
-        owed = s.record.complete(done.epoch, done.batches if s.options.world_size > 1 else None)
-        for _ in range(owed or 0):
-            if s.last is None:
-                s.pad_debt[done.epoch] = s.pad_debt.get(done.epoch, 0) + 1
-            else:
-                self.out.append(_padding_copy(s.last, done.epoch))
+        s.record.complete(done.epoch, done.batches if s.options.world_size > 1 else None)
+        if s.last is not None:
+            self.pads = owed_padding(s.record, s.last, _padding_copy)
+
+    def _server_padding(self, p: dict) -> Iterator[dict]:
+        for out in owed_padding(self.s.record, p, _padding_copy, own=True):
+            self.s.last = p
+            yield out
 
     def _close(self, kind: str, why) -> Tuple[str, object]:
         """The iteration ends (``EndpointStream.__iter__``'s ``finally``)."""
@@ -197,6 +195,11 @@ class SimIterator:
         else:
             self.conn.close(unreceived=self.abandoned)
             s.record.clear_pipeline()
+
+
+def _zero_padding(_source: dict, epoch: int) -> dict:
+    """``endpoint.zero_padding`` as the loop sees it: one padding sample of ``epoch``."""
+    return {"sample_ids": [""], "padding": [True], "epoch": epoch, "batch_id": -1}
 
 
 def _loop_item(item: dict, padding: bool) -> dict:
