@@ -6,7 +6,7 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types (protocol 8; client messages are decoded and schema-checked by ``messages.py``):
+Message types (protocol 9; client messages are decoded and schema-checked by ``messages.py``):
 
 * client -> server: ``hello`` (outputs, credits = how many batches it may hold,
   consumer id, ``instance`` (the reader process's token: a consumer is read by one instance at a
@@ -72,7 +72,7 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a
