@@ -132,6 +132,26 @@ def test_a_batch_lacking_an_output_or_a_dropped_session_is_handled():
     assert [i["batch_id"] for i in _items(s)] == [6]
 
 
+def test_an_unknown_client_answering_a_heartbeat_after_the_latest_hello_brings_it_again():
+    """While a session awaits its latest hello's welcome, ``unknown_client`` answers what it said
+    before that hello, and is ignored; but every heartbeat names the latest hello, and an answer
+    naming it back says the server read the heartbeat with no hello of ours: the hello was lost
+    (a server crash), so it is said again (docs/delivery.md, rule 5; simulator finding F27)."""
+    s = _session(("voxels",))
+    _welcomed(s)
+    s.on_message([pack({"type": "error", "code": "dropped", "message": "silent"})])
+    assert [m.hello_id for m in s.outgoing() if isinstance(m, cm.Hello)] == [2]
+    s.tick(0.0)
+    s.tick(1.0)
+    assert s.outgoing() == [cm.Heartbeat(2)]
+    for stale in ({}, {"hello_id": 1}):  # a hold's answer, or a heartbeat's said before the hello
+        assert s.on_message([pack({"type": "error", "code": "unknown_client", "message": "who?", **stale})]) is None
+        assert s.outgoing() == [] and _items(s) == []
+    assert s.on_message([pack({"type": "error", "code": "unknown_client", "message": "who?", "hello_id": 2})]) is None
+    (again,) = s.outgoing()
+    assert isinstance(again, cm.Hello) and again.hello_id == 3 and _items(s) == []
+
+
 def test_a_refused_welcome_ends_the_session_naming_why():
     s = _session(("voxels",), welcomed=lambda info: "another recipe")
     s.hello(new_socket=True)
@@ -146,7 +166,8 @@ def test_server_messages_round_trip_typed_and_a_bad_field_is_named():
     msgs = [sm.Welcome({"crop_size": 8}, 3), sm.Batch(4, 0, ("v#0",), ({"a": 1},), ({"name": "voxels"},)),
             sm.Batch(-1, 2, ("v#1",), ({},), (), {"file": "b0", "gen": 1, "offsets": [64]}, True),
             sm.Revoke((1, 2)), sm.EpochDone(0), sm.EpochDone(1, 5), sm.Drained(), sm.End(), sm.End("done"),
-            sm.Heartbeat(), sm.Shutdown(), sm.ServerError("boom"), sm.ServerError("gone", "dropped")]
+            sm.Heartbeat(), sm.Shutdown(), sm.ServerError("boom"), sm.ServerError("gone", "dropped"),
+            sm.ServerError("who?", "unknown_client", 7)]
     for m in msgs:
         assert sm.stream_message(unpack(pack(m.to_wire()))) == m
     assert sm.stream_message({"type": "news"}) is None  # a newer server's message this client can do without
@@ -171,7 +192,7 @@ def test_client_messages_go_out_as_the_server_parses_them():
     types the server's edge parses, and comes back equal through msgpack and that check."""
     from v2v_wire import messages as cm
 
-    msgs = [cm.Ack((1, 2)), cm.Hold((3,)), cm.Released((4, 5, 6)), cm.Credit(7), cm.Heartbeat(), cm.Bye()]
+    msgs = [cm.Ack((1, 2)), cm.Hold((3,)), cm.Released((4, 5, 6)), cm.Credit(7), cm.Heartbeat(), cm.Heartbeat(3), cm.Bye()]
     for m in msgs:
         assert cm.decode_client(pack(m.to_wire()), 1 << 16, 64) == m
     s = _session()
@@ -297,13 +318,13 @@ def test_time_brings_heartbeats_and_asks_again_for_what_stays_unanswered():
     s.tick(10.0)
     assert s.outgoing() == []
     s.tick(11.0)
-    assert s.outgoing() == [cm.Heartbeat()]  # asked just now: not yet
+    assert s.outgoing() == [cm.Heartbeat(1)]  # asked just now: not yet
     s.tick(11.5)
     s.tick(12.0)
-    assert s.outgoing() == [cm.Heartbeat(), cm.Hold((7,))]  # a heartbeat later, unanswered: again
+    assert s.outgoing() == [cm.Heartbeat(1), cm.Hold((7,))]  # a heartbeat later, unanswered: again
     s.on_message([pack({"type": "granted", "batch_ids": [7]})])
     s.tick(13.0)
-    assert s.outgoing() == [cm.Heartbeat()]
+    assert s.outgoing() == [cm.Heartbeat(1)]
 
 
 def test_a_hold_unanswered_for_a_whole_heartbeat_is_asked_again():
@@ -335,7 +356,7 @@ def test_what_was_said_of_a_granted_batch_is_named_each_heartbeat_until_the_serv
     assert s.outgoing() == [cm.Released((8,))]
     s.tick(10.0)
     s.tick(11.0)
-    assert s.outgoing() == [cm.Heartbeat(), cm.Hold((7, 8))]
+    assert s.outgoing() == [cm.Heartbeat(1), cm.Hold((7, 8))]
     s.on_message([pack({"type": "granted", "batch_ids": [7, 8]})])  # both were lost
     assert s.outgoing() == [cm.Ack((7,)), cm.Released((8,))]
     s.on_message([pack({"type": "granted", "batch_ids": [], "refused": [7]})])  # read
@@ -343,7 +364,7 @@ def test_what_was_said_of_a_granted_batch_is_named_each_heartbeat_until_the_serv
     _items(s)
     assert s.outgoing() == [cm.Hold((8,))]
     s.tick(12.0)
-    assert s.outgoing() == [cm.Heartbeat()]
+    assert s.outgoing() == [cm.Heartbeat(1)]
     s.on_message([pack({"type": "granted", "batch_ids": [8]})])
     assert s.outgoing() == [] and s.held.granted == {8}
 

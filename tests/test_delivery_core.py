@@ -898,3 +898,5 @@ def test_a_reader_that_still_speaks_after_the_end_is_told_it_again():
     assert again[0][1].epoch == 2
     assert s.core.message(b"a", Bye(), s.now) == []
     assert s.core.message(b"b", Heartbeat(), s.now)[0][1].to_wire()["type"] == "error"  # never said hello
+    [(_, unknown)] = s.core.message(b"b", Heartbeat(5), s.now)  # names the hello its session said last
+    assert (unknown.code, unknown.hello_id) == ("unknown_client", 5)

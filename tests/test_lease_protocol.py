@@ -631,6 +631,37 @@ def test_a_restarted_process_paused_while_its_hello_waits_is_let_in_once_it_spea
                                                          for k in range(n)]
 
 
+def test_a_hello_said_again_and_lost_in_a_server_crash_is_said_once_more():
+    """A trainer paused past the client timeout wakes to ``dropped`` and says hello again; the server
+    crashes before it reads that hello and restarts. The session awaits the lost hello's welcome,
+    ignoring what answers messages said before it, but every heartbeat names its latest hello and
+    the restarted server's ``unknown_client`` names it back: the hello is gone, so the session says
+    it once more, and the stream ends with every sample read once (docs/delivery.md, rule 5;
+    simulator finding F27, ``rehello_lost_in_server_crash``)."""
+    net = Net(names=("t",), credits=(1,))
+    c = net.clients[0]
+    net.connect(c)
+    for _ in range(6):
+        net.step(c)
+        net.server_reads(c, len(c.up))
+        net.tick()
+    net.advance(TIMEOUT + 1.0)  # the trainer is paused: dropped for silence
+    while c.down:
+        net.io_reads(c)  # it wakes: what was sent meanwhile, then ``dropped``
+    assert [m.hello_id for _, m in c.up if isinstance(m, Hello)] == [2]
+    c.up.clear()  # the server is killed before it reads the hello
+    net.core = Net(names=(), credits=()).core  # and restarts (without --state-dir: it trusts the state)
+    for _ in range(2):  # its clock's first turn, then a heartbeat
+        net.heartbeat(c)
+        net.advance(1.0)
+    answers = [sm.stream_message(unpack(f[0])) for f in c.down]  # to its heartbeat and its holds said again
+    assert {m.code for m in answers} == {"unknown_client"} and sorted(m.hello_id for m in answers)[-2:] == [0, 2]
+    while c.down:
+        net.io_reads(c)
+    assert [m.hello_id for _, m in c.up if isinstance(m, Hello)] == [3]  # on main: none, for good
+    net.run_to_end()
+
+
 def test_a_late_hello_of_a_readers_older_connection_never_fences_its_newer_one():
     """A loader worker's connection closed (or its process killed) while its socket still
     connected: its hello arrives after the next worker's, of the same reader process (``instance``).

@@ -259,15 +259,15 @@ class ServerSession:
         self._out.append(h)
 
     def tick(self, now: float) -> None:
-        """Time passed (seconds, the caller's clock): a heartbeat every ``heartbeat_s``, and with
-        it a ``hold`` again for every grant asked for and unanswered a whole heartbeat (lost when
-        a connection broke behind ZeroMQ's reconnect; the server answers a repeated hold the same)."""
+        """Time passed (seconds, the caller's clock): a heartbeat naming our latest hello every ``heartbeat_s``,
+        and with it a ``hold`` again for every grant asked for and unanswered a whole heartbeat (lost
+        when a connection broke behind ZeroMQ's reconnect; the server answers a repeated hold the same)."""
         if self._next_beat is None:
             self._next_beat = now + self.options.heartbeat_s
         if now < self._next_beat:
             return
         self._next_beat = now + self.options.heartbeat_s
-        self._out.append(Heartbeat())
+        self._out.append(Heartbeat(self._hello_seq))
         again, self._asked = self.held.still_asked(self._asked)
         again |= self.unread.ids()  # and what we said of granted batches, until it is known read
         if again:
@@ -309,8 +309,7 @@ class ServerSession:
             self._out.append(self.unread.say(Released, (item["batch_id"],), maybe_granted))
 
     def ack(self, batch_ids) -> None:
-        """Acknowledge batches this connection took (the loop received them, or they held
-        nothing new for it)."""
+        """Acknowledge batches this connection took (the loop received them, or they held nothing new for it)."""
         if batch_ids:
             self._out.append(self.unread.say(Ack, tuple(batch_ids)))
 
@@ -345,8 +344,9 @@ class ServerSession:
         try:
             m = stream_message(unpack(frames[0]))
             rehello = isinstance(m, sm.ServerError) and m.code in ("dropped", "unknown_client")
-            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted, sm.Drained)) or rehello):
-                return None  # sent before the server read our latest hello: about a session that is over
+            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted, sm.Drained))
+                                               or (rehello and m.hello_id != self._awaiting)):
+                return None  # said before the server read our latest hello (docs/delivery.md, rule 5)
             if isinstance(m, sm.Batch):
                 self._on_batch(m, frames)
             elif isinstance(m, sm.Welcome):

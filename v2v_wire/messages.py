@@ -186,10 +186,13 @@ class Credit:
 
 @dataclass(frozen=True)
 class Heartbeat:
-    """The client is alive."""
+    """The client is alive; ``hello_id``: its session's latest hello (0: none yet), named again
+    in an ``unknown_client`` answer (docs/delivery.md, "Messages")."""
+
+    hello_id: int = 0
 
     def to_wire(self) -> dict:
-        return {"type": "heartbeat"}
+        return {"type": "heartbeat", "hello_id": self.hello_id}
 
 
 @dataclass(frozen=True)
@@ -351,7 +354,7 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1, bound: Op
     if kind == "credit":
         return Credit(_int(h, "credit", 0, 1 << 20))
     if kind == "heartbeat":
-        return Heartbeat()
+        return Heartbeat(_int(h, "hello_id", 0, 2 ** 62, 0))
     if kind == "bye":
         return Bye()
     raise WireError(f"unknown message type {show(kind)}")

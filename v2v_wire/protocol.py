@@ -6,7 +6,7 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types (protocol 8; client messages are decoded and schema-checked by ``messages.py``):
+Message types (protocol 9; client messages are decoded and schema-checked by ``messages.py``):
 
 * client -> server: ``hello`` (outputs, credits = how many batches it may hold,
   consumer id, ``instance`` (the reader process's token: a consumer is read by one instance at a
@@ -23,7 +23,8 @@ Message types (protocol 8; client messages are decoded and schema-checked by ``m
   no batch after it), ``ack``
   (batch ids; frees exactly those slots), ``hold`` (batch ids the client
   asks to be granted before it hands them on: answered by ``granted``), ``released`` (batch ids given back), ``credit`` (widen the
-  window), ``heartbeat``, ``bye``. A client message is at most ``MAX_CLIENT_MSG`` bytes (the
+  window), ``heartbeat`` (``hello_id``: the session's latest hello), ``bye``. A client message
+  is at most ``MAX_CLIENT_MSG`` bytes (the
   welcome repeats it as ``max_hello_bytes``); a larger one up to twice that gets an ``error``.
 * server -> client: ``welcome`` (stream info: also ``shard``, ``corpus`` and ``recipe``
   fingerprints), ``batch``, ``revoke`` (batch ids), ``granted`` (batch ids of a ``hold`` that are
@@ -31,7 +32,8 @@ Message types (protocol 8; client messages are decoded and schema-checked by ``m
   longer the client's), ``heartbeat``, ``epoch_done`` (epoch;
   ``batches`` per rank for a DDP group), ``drained`` (a bounded stream has nothing left for this
   client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
-  ``dropped`` / ``unknown_client``: discard what you hold, say hello again; ``claimed``: another
+  ``dropped`` / ``unknown_client``: discard what you hold, say hello again (an ``unknown_client``
+  answering a heartbeat names its ``hello_id``); ``claimed``: another
   live reader holds the consumer; ``fenced``: a newer connection of this reader took it over; ``resume``: the server can tell the resume state is false;
   ``group``: the DDP group is read at another world size).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
@@ -70,7 +72,7 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a

@@ -201,15 +201,19 @@ class Shutdown:
 class ServerError:
     """An error for this client: ``message`` for people; ``code`` for the client, when it can
     act on it (``"dropped"`` and ``"unknown_client"``: say hello again; ``"compression"``: the
-    server lacks the codec; ``"outputs"``: outputs it does not offer), else None."""
+    server lacks the codec; ``"outputs"``: outputs it does not offer), else None. ``hello_id``: the
+    hello named by the heartbeat an ``unknown_client`` answers (0: another message's answer)."""
 
     message: str
     code: Optional[str] = None
+    hello_id: int = 0
 
     def to_wire(self) -> dict:
         h = {"type": "error", "message": self.message}
         if self.code is not None:
             h["code"] = self.code
+        if self.hello_id:
+            h["hello_id"] = self.hello_id
         return h
 
     @classmethod
@@ -217,7 +221,7 @@ class ServerError:
         message = h.get("message", "")
         if not isinstance(message, str):
             raise _bad("error", "message", "a string", message)
-        return cls(message, _opt_str(h, "error", "code"))
+        return cls(message, _opt_str(h, "error", "code"), _int(h, "error", "hello_id", 0, 0))
 
 
 StreamMessage = Union[Welcome, Batch, Revoke, Granted, EpochDone, Drained, End, Heartbeat, Shutdown, ServerError]

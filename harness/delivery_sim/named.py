@@ -279,9 +279,7 @@ NAMED: Dict[str, Entry] = {
     "loader_breaks": (loader_breaks, None),
     "loader_state_in_memory": (loader_state_in_memory, None),
     "restart_paused_while_hello_waits": (restart_paused_while_hello_waits, None),
-    "rehello_lost_in_server_crash": (rehello_lost_in_server_crash,
-                                     "a hello said again after dropped, lost in a server crash: the session awaits its "
-                                     "welcome and ignores the restarted server's unknown_client for good"),
+    "rehello_lost_in_server_crash": (rehello_lost_in_server_crash, None),
 }
 
 

@@ -30,7 +30,7 @@ from v2v_server.settings import setting
 from v2v_wire.ids import SampleKey
 from v2v_wire.protocol import MAX_CREDITS, OUTPUTS
 from v2v_server.delivery.schedule import MAX_TASK_CRASHES, EpochScheduler, Job
-from v2v_wire.messages import Ack, Bye, Credit, Hello, Hold, Released
+from v2v_wire.messages import Ack, Bye, Credit, Heartbeat, Hello, Hold, Released
 from v2v_wire.stream_messages import Granted, Revoke, ServerError, StreamMessage, Welcome
 from v2v_wire.worker_messages import Task
 
@@ -256,8 +256,8 @@ class DeliveryCore:
                 return []
             if isinstance(msg, Bye):
                 return []
-            return [(ident, ServerError("unknown client (this server may have restarted, or dropped it for "
-                                        "silence): say hello first", "unknown_client"))]
+            why = "unknown client (this server may have restarted, or dropped it for silence): say hello first"
+            return [(ident, ServerError(why, "unknown_client", msg.hello_id if isinstance(msg, Heartbeat) else 0))]
         if self.admission.pending and isinstance(msg, (Hold, Ack, Released)):
             self.admission.spoke_of(c, msg.batch_ids)
         if isinstance(msg, Hold):
