@@ -27,6 +27,7 @@ from hypothesis import HealthCheck, settings, strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
 from v2v_server.delivery.core import Batcher, DeliveryCore, DeliveryPolicy
+from v2v_server.delivery.journal import Journal
 from v2v_server.delivery.ledger import BatchRecord, DeliveryLedger
 from v2v_server.delivery.schedule import EpochScheduler
 from v2v_wire.ids import SampleKey, parse_sample_id, parse_sample_ids
@@ -881,6 +882,55 @@ def test_a_ddp_rank_told_an_epoch_the_server_never_opened_is_told_its_groups_cou
         s.turn()
     assert 0 not in s.core.sched.plans
     assert s.told[b"r0"][0] == (0, 1) and s.told[b"r1"][0] == (0, 1), dict(s.told)
+
+
+def _ddp_ranks_where_rank_0_took_three_of_epoch_0(journal) -> TinyStream:
+    """Ranks 0 and 1 of group g on a journaled server: rank 1 says nothing for three turns, so
+    rank 0 is granted three batches of epoch 0; rank 1 then takes the one leased to it."""
+    s = TinyStream(journal)
+    s.hello(b"r0", "j", group="g", rank=0, world_size=2)
+    s.hello(b"r1", "j", group="g", rank=1, world_size=2)
+    s.mute.add(b"r1")
+    for _ in range(3):
+        s.turn()
+    assert [e for e, _ in s.got[b"r0"]].count(0) == 3 and s.got[b"r1"] == [(0, "a.mp4#1")]
+    return s
+
+
+def test_a_server_restarted_from_its_journal_counts_a_ddp_ranks_grants_of_before(tmp_path):
+    """Rank 0 was granted three batches of epoch 0, then paused past the group's wait; the server
+    crashed and restarted from its journal. Rank 1 comes back with nothing yielded and reads on
+    alone: it is told epoch 0 with rank 0's count, 3, and pads up to it (told 1, its own count,
+    it ended while rank 0, back, yielded three: simulator ``mixed`` seed 5749, F32)."""
+    _ddp_ranks_where_rank_0_took_three_of_epoch_0(Journal(str(tmp_path), "r"))
+    s = TinyStream(Journal(str(tmp_path), "r"))  # the crash: no bye, no close
+    s.hello(b"r1.2", "j", Resume(-1, {}), group="g", rank=1, world_size=2)
+    for _ in range(110):  # past the group's wait (client_timeout_s)
+        s.turn()
+    assert s.got[b"r1.2"][0] == (0, "a.mp4#1") and [e for e, _ in s.got[b"r1.2"]].count(0) == 1
+    assert s.told[b"r1.2"][0] == (0, 3), dict(s.told)
+
+
+def test_a_ddp_count_told_before_a_server_crash_is_told_again_after_it(tmp_path):
+    """Ranks were told epoch 0 with a count of 3 (rank 0's; rank 1 had 1), then the server
+    crashed and the job restarted: rank 0's state completed epoch 0 (it names no count of it),
+    rank 1's was saved before it read that end. Rank 1 is told 3 again, not the 1 its own state
+    counts (it padded nothing while rank 0 had yielded three: simulator ``ddp`` seed 2558, F33)."""
+    s = _ddp_ranks_where_rank_0_took_three_of_epoch_0(Journal(str(tmp_path), "r"))
+    s.mute.discard(b"r1")
+    [bid] = s.core.ledger.table.held_by(b"r1")
+    s.core.message(b"r1", Hold((bid,)), s.now)
+    s.core.message(b"r1", Ack((bid,)), s.now)
+    for _ in range(3):
+        s.turn()
+    assert s.told[b"r0"][0] == s.told[b"r1"][0] == (0, 3), dict(s.told)
+    t = TinyStream(Journal(str(tmp_path), "r"))
+    t.hello(b"r0.2", "j", Resume(0, {}), group="g", rank=0, world_size=2)
+    t.hello(b"r1.2", "j", Resume(-1, {0: frozenset({SampleKey("a.mp4", 1)})}, {0: 1}), group="g", rank=1,
+            world_size=2)
+    for _ in range(3):
+        t.turn()
+    assert t.told[b"r1.2"][0] == (0, 3), dict(t.told)
 
 
 def test_a_reader_that_still_speaks_after_the_end_is_told_it_again():

@@ -34,6 +34,30 @@ def test_records_survive_a_restart_and_a_resume_state_replaces_them(tmp_path):
     n.close()
 
 
+def test_a_ddp_ranks_batch_counts_survive_a_restart_a_release_a_resume_state_and_a_rewrite(tmp_path):
+    """Each grant record is one batch; a release takes one back; a resume state sets the counts
+    it yielded; a rewrite keeps the sums: a restarted server tells a DDP group the counts its
+    ranks' grants reached (docs/delivery.md, "DDP"; simulator findings F32, F33)."""
+    j = Journal(str(tmp_path), "r1")
+    r0, r1 = ("g:job", 0), ("g:job", 1)
+    for i in range(3):
+        j.delivered(r0, 0, [K("x.mp4", i)])
+    j.delivered(r0, 1, [K("x.mp4", 0)])
+    j.undelivered(r0, 1, [K("x.mp4", 0)])  # granted, then given back unused
+    j.delivered(r1, 0, [K("x.mp4", 3)])
+    j.delivered(r1, 0, [K("x.mp4", 4)])
+    j.replaced(r1, -1, {0: {K("x.mp4", 3)}}, {0: 1})  # its state was saved after one batch
+    j.delivered(r1, 1, [K("y.mp4", 0)])
+    j.close()
+    k = Journal(str(tmp_path), "r1")
+    assert k.batches == {r0: {0: 3, 1: 0}, r1: {0: 1, 1: 1}}
+    k.epoch_complete(0)  # rewritten: one record per consumer and epoch
+    k.close()
+    m = Journal(str(tmp_path), "r1")
+    assert m.batches == {r0: {0: 3, 1: 0}, r1: {0: 1, 1: 1}}
+    m.close()
+
+
 def test_a_torn_last_record_costs_only_itself_and_another_recipe_is_refused(tmp_path):
     j = Journal(str(tmp_path), "r1")
     j.delivered(("c:a", 0), 0, [K("x.mp4", 0)])

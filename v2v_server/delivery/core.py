@@ -149,21 +149,21 @@ class DeliveryCore:
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
                                     max_samples_per_video=p.max_samples_per_video,
                                     first_epoch=0 if journal is None else journal.completed + 1)  # its epochs closed
-        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s,
-                                     stall_s=stall_s)
+        self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s, stall_s=stall_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
         self.padding = GroupPadding()
         self.ends = EpochEnds(self.sched, self.ledger, self.batcher, self.padding, journal, p.lease_s, end_grace_s)
         #: what a welcome names this server by (``info()["server"]``): the journal's, else this process's
         self.server_id = journal.server_id if journal is not None else uuid.uuid4().hex[:16]
-        self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id,
-                                   self.ends.told_to)
+        self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id, self.ends.told_to)
         self.feed = WorkerFeed(self.sched, self.ledger, self.batcher)
         self.info: Callable[[], dict] = dict
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
         for consumer, delivered in (journal.records if journal is not None else {}).items():
             self.sched.apply_resume(consumer, journal.kept_after, delivered)  # in the closed epochs it keeps too
+            if consumer[0].startswith("g:"):  # a DDP rank: its grants count in its group's (docs/delivery.md, "DDP")
+                self.padding.resumed(consumer[0][2:], consumer[1], journal.kept_after, journal.batches[consumer])
 
     # ------------------------------------------------------------------ workers (``feed.WorkerFeed``)
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
@@ -234,7 +234,7 @@ class DeliveryCore:
                 delivered.setdefault(e, set()).update(recs.get(consumer, ()))
         self.sched.apply_resume(consumer, r.completed_epoch, delivered)
         if self.journal is not None:
-            self.journal.replaced(consumer, r.completed_epoch, delivered)
+            self.journal.replaced(consumer, r.completed_epoch, delivered, r.batches)
         if group is not None:
             self.padding.resized(group, h.world_size)
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)

@@ -12,16 +12,20 @@ after its checkpoint is owed again).
 File ``DIR/delivered.journal``: a header (its recipe fingerprint and ``server``: the id every
 server on this journal welcomes clients with, so their resume states name it) then msgpack
 records appended as they happen:
-``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (granted: the consumer may
-hand them on, so the grant is written before it is sent; ``index`` is
-``ids.SampleKey.ordinal``, the sample's number in its video under the journal's recipe),
-``{"u": [consumer, rank], "e": epoch, "k": [...]}`` (granted, then given back unused),
-``{"s": [consumer, rank], "c": completed_epoch, "r": {epoch: keys}}`` (a resume state replaced
-a record), ``{"t": epoch}`` (an epoch was told complete to some reader: a resume state may say
-it is complete), ``{"tc": [consumer, rank], "e": epoch}`` (the newest epoch that consumer was told
-complete, kept while the journal holds a record of it: a resume state more than ``keep_epochs``
-behind it is refused, docs/delivery.md limit (e)), ``{"done": epoch}`` (an epoch closed for good: a restart starts after it). The records
-of the newest ``keep_epochs`` closed epochs stay (the scheduler's ``keep_epochs``: a restarted server
+``{"d": [consumer, rank], "e": epoch, "k": [[video, index], ...]}`` (one batch granted: the
+consumer may hand it on, so the grant is written before it is sent; ``index`` is
+``ids.SampleKey.ordinal``, the sample's number in its video under the journal's recipe; ``"n"``:
+the batches it stands for when not one, as a rewrite merges them), ``{"u": [consumer, rank], "e":
+epoch, "k": [...]}`` (a batch granted, then given back unused), ``{"s": [consumer, rank], "c":
+completed_epoch, "r": {epoch: keys}, "b": {epoch: batches}}`` (a resume state replaced a record:
+its samples and the batches it yielded), ``{"t": epoch}`` (an epoch was told complete to some
+reader: a resume state may say it is complete), ``{"tc": [consumer, rank], "e": epoch}`` (the
+newest epoch that consumer was told complete, kept while the journal holds a record of it: a
+resume state more than ``keep_epochs`` behind it is refused, docs/delivery.md limit (e)),
+``{"done": epoch}`` (an epoch closed for good: a restart starts after it). The batch counts
+(:attr:`Journal.batches`) are a DDP rank's in its group's (``padding.GroupPadding``): a restarted
+server tells every rank of the group the count its ranks' grants reached (docs/delivery.md,
+"DDP"). The records of the newest ``keep_epochs`` closed epochs stay (the scheduler's ``keep_epochs``: a restarted server
 keeps the complete epochs a running one keeps, so a resume state older than their completion reopens
 them alike, docs/delivery.md limit (e)); older ones are dropped. When an epoch closes the file is
 rewritten from memory (a temporary file, fsync, rename): it holds at most ``keep_epochs`` closed
@@ -44,6 +48,7 @@ import logging
 import os
 import time
 import uuid
+from collections import Counter
 from pathlib import Path
 from typing import Callable, Dict, Hashable, Iterable, List, Optional, Set
 
@@ -72,14 +77,11 @@ class Journal:
 
     Args:
         directory: folder of the journal file.
-        fingerprint: ``SampleRecipe.fingerprint()`` of the served recipe; a journal written under
-            another one is refused.
+        fingerprint: ``SampleRecipe.fingerprint()`` of the served recipe; a journal of another is refused.
         fsync_s: most seconds between ``fsync`` calls.
-        crops_per_window: samples per window under that recipe (how a record's sample
-            numbers map to sample keys, ``ids.SampleKey.at``).
+        crops_per_window: samples per window under that recipe (record numbers -> keys, ``ids.SampleKey.at``).
         keep_epochs: closed epochs whose records stay (``schedule.KEEP_EPOCHS``).
-        on_error: told ``(path, OSError)`` of each write that fails while serving (module
-            docstring); default: a warning in the log.
+        on_error: told ``(path, OSError)`` of each write failing while serving (module docstring); default: logs it.
 
     Raises:
         JournalError: the journal was written under another recipe, or is not a journal.
@@ -103,6 +105,7 @@ class Journal:
         self.told = -1  # the newest epoch told complete to some reader
         self.told_to: Dict[Hashable, int] = {}  # consumer -> the newest epoch it was told complete
         self.records: Records = {}
+        self.batches: Dict[Hashable, Counter] = {}  # consumer -> epoch -> batches granted (as records)
         self._dirty = False
         self._last_sync = 0.0
         self.writes = 0
@@ -145,15 +148,19 @@ class Journal:
             c = tuple(rec["tc"])
             self.told_to[c] = max(self.told_to.get(c, -1), int(rec["e"]))
         elif "d" in rec:
-            e = int(rec["e"])
+            c, e = tuple(rec["d"]), int(rec["e"])
             if e > self.kept_after:
-                self.records.setdefault(tuple(rec["d"]), {}).setdefault(e, set()).update(self._keys(rec["k"]))
+                self.records.setdefault(c, {}).setdefault(e, set()).update(self._keys(rec["k"]))
+                self.batches.setdefault(c, Counter())[e] += int(rec.get("n", 1))
         elif "u" in rec:
-            d = self.records.get(tuple(rec["u"]), {}).get(int(rec["e"]))
+            c, e = tuple(rec["u"]), int(rec["e"])
+            d = self.records.get(c, {}).get(e)
             if d is not None:
                 d.difference_update(self._keys(rec["k"]))
+                self.batches[c][e] = max(0, self.batches[c][e] - 1)
         elif "s" in rec:
-            self._replace(tuple(rec["s"]), int(rec["c"]), {int(e): self._keys(ks) for e, ks in rec["r"].items()})
+            self._replace(tuple(rec["s"]), int(rec["c"]), {int(e): self._keys(ks) for e, ks in rec["r"].items()},
+                          {int(e): int(n) for e, n in rec.get("b", {}).items()})
 
     def _keys(self, pairs) -> Set[SampleKey]:
         """The sample keys of a record's ``[[video, index], ...]``."""
@@ -171,17 +178,19 @@ class Journal:
     def _complete(self, epoch: int) -> None:
         self.completed = max(self.completed, epoch)
         self.told = max(self.told, epoch)
-        for d in self.records.values():
+        for d in list(self.records.values()) + list(self.batches.values()):
             for e in [e for e in d if e <= self.kept_after]:
                 del d[e]
 
-    def _replace(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]]) -> None:
-        d = self.records.setdefault(consumer, {})
+    def _replace(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]],
+                 batches: Dict[int, int]) -> None:
+        d, counts = self.records.setdefault(consumer, {}), self.batches.setdefault(consumer, Counter())
         for e in [e for e in d if e > completed]:
             del d[e]
-        for e, ks in delivered.items():
+            counts.pop(e, None)
+        for e in set(delivered) | set(batches):  # a rank's yielded padding alone counts too
             if e > completed and e > self.kept_after:
-                d[e] = set(ks)
+                d[e], counts[e] = set(delivered.get(e, ())), batches.get(e, 0)
 
     # ------------------------------------------------------------------ writing
     def _append(self, rec: dict) -> None:
@@ -222,7 +231,7 @@ class Journal:
         log.info("%s: written again; the delivery journal is kept again", self.path)
 
     def delivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
-        """``consumer`` acknowledged ``keys`` of ``epoch``."""
+        """``consumer`` was granted one batch of ``epoch``, of samples ``keys``."""
         pairs = self._pairs(keys)
         if pairs and epoch > self.kept_after:
             rec = {"d": list(consumer), "e": epoch, "k": pairs}
@@ -230,16 +239,19 @@ class Journal:
             self._append(rec)
 
     def undelivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
-        """``consumer`` gave back ``keys`` of ``epoch`` it was granted and never handed on."""
+        """``consumer`` gave back one batch of ``epoch`` (``keys``) it was granted and never handed on."""
         pairs = self._pairs(keys)
         if pairs and epoch > self.kept_after:
             rec = {"u": list(consumer), "e": epoch, "k": pairs}
             self._apply(rec)
             self._append(rec)
 
-    def replaced(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]]) -> None:
-        """``consumer``'s resume state replaced its record in the epochs after ``completed``."""
-        rec = {"s": list(consumer), "c": completed, "r": {e: self._pairs(ks) for e, ks in delivered.items()}}
+    def replaced(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]],
+                 batches: Optional[Dict[int, int]] = None) -> None:
+        """``consumer``'s resume state replaced its record in the epochs after ``completed``: its
+        samples ``delivered`` and the ``batches`` it yielded, per epoch."""
+        rec = {"s": list(consumer), "c": completed, "r": {e: self._pairs(ks) for e, ks in delivered.items()},
+               "b": dict(batches or {})}
         self._apply(rec)
         self._append(rec)
 
@@ -283,7 +295,8 @@ class Journal:
                 f.write(msgpack.packb({"t": self.told}))
             for consumer, d in self.records.items():
                 for e, ks in d.items():
-                    f.write(msgpack.packb({"d": list(consumer), "e": e, "k": self._pairs(sorted(ks))}))
+                    f.write(msgpack.packb({"d": list(consumer), "e": e, "k": self._pairs(sorted(ks)),
+                                           "n": self.batches.get(consumer, {}).get(e, 0)}))
             for consumer, e in self.told_to.items():
                 f.write(msgpack.packb({"tc": list(consumer), "e": e}))
             f.flush()
