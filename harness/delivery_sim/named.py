@@ -309,3 +309,29 @@ def journal_restart_after_epoch(seed: int, trace: bool = False) -> Run:
 
 
 NAMED["journal_restart_after_epoch"] = (journal_restart_after_epoch, None)
+
+
+def batch_ids_of_two_server_lives(seed: int, trace: bool = False) -> Run:
+    """A StreamLoader worker holds the first server's batches in the loader's queue (the loop waits
+    on the other worker, stopped) as the server is killed; the restarted server numbers its own
+    batches from where a new server starts, and sends that worker more while the old ones wait."""
+    run = _run(seed, trace, epochs=2)
+    job = LoaderJob(run, "loader", workers=2, persistent=True, prefetch=3, credits=2, step_s=(0.01, 0.02))
+    job.start()
+    run.at(0.001, lambda: _pause(run, type("W0", (), {"procs": lambda self: job.workers[:1]})(), 2.0))
+
+    def queued() -> bool:
+        w1 = job.workers[1] if len(job.workers) > 1 else None
+        return w1 is not None and len(w1.stream.record.pipeline) >= 2
+
+    def breaks(p: float) -> None:
+        job.breaks = p
+
+    run.fault_until(3.0)
+    _when(run, queued, lambda: run.crash_server(0.3))
+    _when(run, lambda: job.steps >= 1, lambda: breaks(1.0))  # the loop leaves after the old batch
+    _when(run, lambda: job.steps >= 2, lambda: breaks(0.0))
+    return run
+
+
+NAMED["batch_ids_of_two_server_lives"] = (batch_ids_of_two_server_lives, None)
