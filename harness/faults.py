@@ -209,6 +209,7 @@ def scenario_server_restart(tmp: Path, layout: Layout, kill_after_batches: int =
     expected = expected_ids(corpus, layout)
     args = ["--videos", str(corpus), "--workers", "2", "--epochs", "1", *layout.args()]
     log: list = []
+    batch_ids: tuple = ([], [])  # of the killed server, of the restarted one
     srv = ServeProcess(args).start()
     srv2 = None
     try:
@@ -216,6 +217,7 @@ def scenario_server_restart(tmp: Path, layout: Layout, kill_after_batches: int =
         it = iter(ds)
         for b in it:
             log.append((time.monotonic(), list(b["sample_ids"])))
+            batch_ids[0].append(b["batch_id"])
             if len(log) >= kill_after_batches:
                 break
         srv.proc.send_signal(signal.SIGKILL)
@@ -224,6 +226,7 @@ def scenario_server_restart(tmp: Path, layout: Layout, kill_after_batches: int =
         srv2 = ServeProcess(args[:] + ["--bind", srv.endpoint]).start()
         for b in it:
             log.append((time.monotonic(), list(b["sample_ids"])))
+            batch_ids[1].append(b["batch_id"])
         it.close()
         srv2.wait(30)
     finally:
@@ -231,7 +234,7 @@ def scenario_server_restart(tmp: Path, layout: Layout, kill_after_batches: int =
         if srv2 is not None:
             srv2.stop()
     return row("server SIGKILL + restart, client resumes", expected, _ids(log), _next_after(log, t_kill),
-               "client reconnect=True with its delivered-sample state")
+               "client reconnect=True with its delivered-sample state", batch_ids=batch_ids)
 
 
 def scenario_stalled_client(tmp: Path, layout: Layout, lease_s: float = 2.0, stall_s: float = 6.0) -> dict:

@@ -280,6 +280,35 @@ def test_a_workers_hello_names_the_batches_waiting_in_the_loader_as_queued():
             cm.decode_client(msgpack.packb(wire), 1 << 16, 64)
 
 
+def test_a_workers_queued_batches_keep_ids_a_server_numbers_from_its_start_time():
+    """A server numbers its batches from its start time in ns, so a restarted one never repeats a
+    predecessor's ids (docs/delivery.md, "Transport"): a worker's hello names such batches waiting in
+    the loader as ``queued`` and the server's edge reads them back as they were; one of 2**63 or more
+    is named."""
+    import time
+
+    import msgpack
+
+    record = ResumeState("c")
+    s = _session(record=record, ends_on_drained=True)
+    _welcomed(s)
+    first = time.time_ns()
+    for k, bid in enumerate((first, first + 1)):
+        frames = _batch(k, epoch=1)
+        s.on_message([pack(dict(msgpack.unpackb(frames[0]), batch_id=bid))] + frames[1:])
+    s.on_message([pack({"type": "granted", "batch_ids": [first, first + 1]})])
+    for item in _items(s):
+        s.take(item, lambda item=item: record.claim(1, item["batch_id"], item["sample_ids"], True), ack=False)
+    s.outgoing()
+    s.hello()
+    (hello,) = s.outgoing()
+    assert cm.decode_client(pack(hello.to_wire()), 1 << 16, 64).resume.queued == {first: 1, first + 1: 1}
+    wire = dict(hello.to_wire(), v=PROTOCOL_VERSION)
+    wire["resume"] = dict(wire["resume"], queued={str(2 ** 63): 1})
+    with pytest.raises(cm.WireError, match="resume.queued"):
+        cm.decode_client(msgpack.packb(wire), 1 << 16, 64)
+
+
 def test_a_workers_iteration_ends_only_on_a_drained_of_its_current_session():
     """A DataLoader worker dropped for silence says hello again: a ``drained`` queued before that
     hello, or sent before the server read it, is about the session that ended (its grants came

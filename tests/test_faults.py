@@ -37,9 +37,13 @@ def test_client_sigkill_and_restart_from_state_dict(tmp_path):
 
 
 def test_server_restart_mid_epoch_with_client_resume(tmp_path):
+    """The restarted server's batch ids are all above the killed one's: a client's records name batches by id
+    alone (docs/delivery.md, "Transport")."""
     r = faults.scenario_server_restart(tmp_path, LAYOUT, kill_after_batches=2)
     assert_exactly_once(r)
     assert r["recover_s"] is not None
+    before, after = r["facts"]["batch_ids"]
+    assert before and after and min(after) > max(before), (before, after)
 
 
 def test_a_client_stopped_past_its_timeout_across_a_server_restart_reads_on(tmp_path):

@@ -249,6 +249,12 @@ def _epoch(e) -> bool:
     return isinstance(e, str) and e.isascii() and e.isdigit() and len(e) <= 10 and int(e) <= MAX_EPOCH
 
 
+def _batch_id(b) -> bool:
+    """``b`` is a batch id as a map key: ASCII digits naming 0 .. 2**63 - 1 (a server's ids start at its
+    start time in ns: docs/delivery.md, "Transport")."""
+    return isinstance(b, str) and b.isascii() and b.isdigit() and len(b) <= 19 and int(b) < 2 ** 63
+
+
 def _supersedes(v) -> Tuple[ConsumerKey, ...]:
     def number(x, lo: int, hi: int) -> bool:
         return isinstance(x, int) and not isinstance(x, bool) and lo <= x < hi
@@ -289,7 +295,7 @@ def _resume(v, crops_per_window: int = 1, bound: Optional[Bound] = None) -> Resu
                                                                       for o in origins):
         raise WireError(f"field 'resume.origins' must list at most 16 server ids, got {show(origins)}")
     queued = v.get("queued", {})
-    if not isinstance(queued, dict) or not all(_epoch(b) and type(e) is int and 0 <= e <= MAX_EPOCH
+    if not isinstance(queued, dict) or not all(_batch_id(b) and type(e) is int and 0 <= e <= MAX_EPOCH
                                                  for b, e in queued.items()):
         raise WireError(f"field 'resume.queued' must map batch ids to epoch numbers, got {show(queued)}")
     return Resume(completed, delivered, batches, _supersedes(v.get("supersedes", [])), tuple(origins),

@@ -309,3 +309,33 @@ def journal_restart_after_epoch(seed: int, trace: bool = False) -> Run:
 
 
 NAMED["journal_restart_after_epoch"] = (journal_restart_after_epoch, None)
+
+
+
+def batch_ids_of_two_server_lives(seed: int, trace: bool = False) -> Run:
+    """StreamLoader worker 1 holds the first server's batches 0 and 1 in the loader's queue (the loop
+    waits on worker 0, stopped) as the server is killed; the restarted server sends worker 1 two
+    batches of its own (numbered from 0 again before the fix), and the loop leaves right after
+    receiving the old batch 0 (persistent workers: worker 1's next hello comes from its own record).
+    The receipt of old batch 0 must not count the new one received, nor the new one's claim
+    overwrite the old one in the worker's record."""
+    run = _run(seed, trace, epochs=2)
+    job = LoaderJob(run, "loader", workers=2, persistent=True, prefetch=3, credits=2, step_s=(0.01, 0.02))
+    job.start()
+
+    def stop_worker_0() -> None:
+        job.workers[0].proc.pause(run.sim.now + 2.0, run.sim.rng)
+        run.sim.log(job.workers[0].name, "paused for 2.0 s")
+
+    def breaks(p: float) -> None:
+        job.breaks = p
+
+    run.at(0.001, stop_worker_0)
+    run.fault_until(3.0)
+    _when(run, lambda: len(job.workers[1].stream.record.pipeline) >= 2, lambda: run.crash_server(0.3))
+    _when(run, lambda: job.steps >= 1, lambda: breaks(1.0))  # the loop leaves after the old batch 0
+    _when(run, lambda: job.steps >= 2, lambda: breaks(0.0))
+    return run
+
+
+NAMED["batch_ids_of_two_server_lives"] = (batch_ids_of_two_server_lives, None)

@@ -117,7 +117,7 @@ class SimServer:
         self.journal = Journal(cfg.state_dir, RECIPE) if cfg.state_dir else None
         videos = sorted(cfg.corpus.windows)
         self.core = DeliveryCore(videos, cfg.policy, make_batch, self.journal, stall_s=STALL_S,
-                                 end_grace_s=cfg.end_grace_s)
+                                 end_grace_s=cfg.end_grace_s, first_batch_id=round(sim.now * 1e9))  # as the shell's
         self.core.info = self.info
         self.inbox: Deque[Tuple[bytes, list]] = collections.deque()
         self.backend: Deque[tuple] = collections.deque()

@@ -67,18 +67,20 @@ class Batcher:
             ``lanes x batch_size`` samples per group, i.e. that many batches' memory.
         seed: seeds each group's choice of lane (with the epoch), so one worker's stream gives
             the same batches on every run.
+        first_id: the first batch's id, then counted up (docs/delivery.md, "Transport": a
+            restarted server's ids never repeat its predecessor's).
 
     Raises:
         ValueError: ``batch_size`` or ``lanes`` < 1.
     """
 
     def __init__(self, batch_size: int, make_batch: Callable, ledger: DeliveryLedger, lanes: int = 1,
-                 seed: int = 0):
+                 seed: int = 0, first_id: int = 0):
         if batch_size < 1 or lanes < 1:
             raise ValueError(f"batch_size and lanes must be >= 1, got {batch_size} and {lanes}")
         self.batch_size, self.make_batch, self.ledger = batch_size, make_batch, ledger
         self.lanes, self.seed = lanes, seed
-        self._batch_ids = itertools.count()
+        self._batch_ids = itertools.count(first_id)
         self._lane_ids = itertools.count()  # an open batch's id: unique for the Batcher's life
         # (epoch, outputs) -> lane id -> [(key, sample)] in arrival order (dicts keep lane order)
         self.pending: Dict[Tuple[int, tuple], Dict[int, List[Tuple[SampleKey, Any]]]] = {}

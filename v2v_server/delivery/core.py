@@ -138,19 +138,20 @@ class DeliveryCore:
         journal: ``journal.Journal`` (``--state-dir``) or None.
         stall_s: see ``ledger.DeliveryLedger`` (the server passes ``ledger.STALL_S``).
         end_grace_s: seconds a bounded stream's server stays up with no reader once it is over.
+        first_batch_id: its first batch's id, above any a server before it sent (docs/delivery.md, "Transport").
 
     ``info`` (``() -> dict``, default ``dict``): the stream info each ``welcome`` carries.
     """
 
     def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None,
-                 stall_s: Optional[float] = None, end_grace_s: float = 600.0):
+                 stall_s: Optional[float] = None, end_grace_s: float = 600.0, first_batch_id: int = 0):
         p = self.policy = policy
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
                                     max_samples_per_video=p.max_samples_per_video,
                                     first_epoch=0 if journal is None else journal.completed + 1)  # its epochs closed
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s, stall_s=stall_s)
-        self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed)
+        self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed, first_batch_id)
         self.padding = GroupPadding()
         self.ends = EpochEnds(self.sched, self.ledger, self.batcher, self.padding, journal, p.lease_s, end_grace_s)
         #: what a welcome names this server by (``info()["server"]``): the journal's, else this process's

@@ -103,9 +103,10 @@ class V2VServer:
         if self.journal is not None and self.journal.records:
             log.info("%s: %d consumer record(s) of open epochs after epoch %d; nothing in them is sent again",
                      self.journal.path, len(self.journal.records), self.journal.completed)
-        # a stall of this loop (stopped, swapped out) is not its clients' silence: ledger.STALL_S
+        # a stall of this loop (stopped, swapped out) is not its clients' silence: ledger.STALL_S; batch ids
+        # from the start time in ns, above any a server before it sent (docs/delivery.md, "Transport")
         self.core = DeliveryCore(self.videos, cfg.delivery, make_batch, self.journal, stall_s=STALL_S,
-                                 end_grace_s=cfg.end_grace_s)
+                                 end_grace_s=cfg.end_grace_s, first_batch_id=time.time_ns())
         self.core.info = self.stream_info
         self.bound_endpoint: Optional[str] = None
         self.pool: Optional[WorkerPool] = None
