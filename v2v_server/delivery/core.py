@@ -154,8 +154,7 @@ class DeliveryCore:
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed, first_batch_id)
         self.padding = GroupPadding()
         self.ends = EpochEnds(self.sched, self.ledger, self.batcher, self.padding, journal, p.lease_s, end_grace_s)
-        #: what a welcome names this server by (``info()["server"]``): the journal's, else this process's
-        self.server_id = journal.server_id if journal is not None else uuid.uuid4().hex[:16]
+        self.server_id = journal.server_id if journal is not None else uuid.uuid4().hex[:16]  # a welcome's "server"
         self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id, self.ends.told_to)
         self.feed = WorkerFeed(self.sched, self.ledger, self.batcher)
         self.info: Callable[[], dict] = dict
