@@ -206,6 +206,8 @@ class EndpointStream:
                     return
                 if isinstance(item, BaseException):
                     raise item
+                if isinstance(item, (EpochDone, ServerPadding)) and not conn.of_session(item):
+                    continue  # told the session a hello ended: the server tells the new one itself
                 if isinstance(item, EpochDone):
                     yield from self._epoch_done(item)
                 elif isinstance(item, Drained):

@@ -143,8 +143,11 @@ class ResumeState:
     def hello_resume(self) -> ResumeIds:
         """A hello's resume state: the completed epoch, the ids handed on per open epoch (in a
         DataLoader worker also those waiting in the loader's queues, the loop may still receive
-        them, and those batches as ``queued``) and the batches per open epoch."""
+        them, and those batches as ``queued``) and the batches per open epoch. The DDP padding owed
+        is forgotten, as :meth:`load` does: the hello reopens those epochs, and the server tells
+        their ends and counts again (docs/delivery.md, "Ends of epochs")."""
         with self.lock:
+            self.owed = {}
             ids = {e: set(v) for e, v in self.delivered.items()}
             for e, sids in self.pipeline.values():
                 if e > self.completed_epoch:

@@ -344,7 +344,7 @@ class ServerSession:
         try:
             m = stream_message(unpack(frames[0]))
             rehello = isinstance(m, sm.ServerError) and m.code in ("dropped", "unknown_client")
-            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted, sm.Drained))
+            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted, sm.Drained, sm.EpochDone))
                                                or (rehello and m.hello_id != self._awaiting)):
                 return None  # said before the server read our latest hello (docs/delivery.md, rule 5)
             if isinstance(m, sm.Batch):
@@ -358,8 +358,10 @@ class ServerSession:
             elif isinstance(m, sm.Granted):  # also an answer about what we said (``Unread``)
                 self._out.extend(self.unread.answer(m.batch_ids, m.refused, self.held))
                 self._ask()
-            elif isinstance(m, (sm.EpochDone, sm.Drained)):
-                self.items.put(self.held.told(m) if self.ends_on_drained and isinstance(m, sm.Drained) else m)
+            elif isinstance(m, sm.EpochDone):
+                self.items.put(self.held.told_end(m))
+            elif isinstance(m, sm.Drained):
+                self.items.put(self.held.told(m) if self.ends_on_drained else m)
             elif isinstance(m, sm.End):
                 self.items.put(StopIteration("end of stream" if m.reason is None else m.reason))
                 return "over"
@@ -399,7 +401,7 @@ class ServerSession:
         if item is None:
             return self._torn(m.batch_id)
         if m.padding:
-            self.items.put(ServerPadding(item))
+            self.items.put(self.held.told_end(ServerPadding(item)))
             return None
         self.unread.forget(m.batch_id)  # given back, then sent to us again: the book's from now on
         self.held.add(item)

@@ -121,7 +121,9 @@ class SimIterator:
             return self._close("end", "abandoned")
         if isinstance(item, BaseException):
             return self._close("error", item)
-        if isinstance(item, EpochDone):
+        if isinstance(item, (EpochDone, ServerPadding)) and not self.conn.of_session(item):
+            pass  # told the session a hello ended: the server tells the new one itself
+        elif isinstance(item, EpochDone):
             self._epoch_done(item)
         elif isinstance(item, Drained):
             if self.conn.ends_on(item):
