@@ -476,3 +476,37 @@ def test_a_ddp_ranks_checkpoint_taken_while_its_padding_waits_for_the_loop_keeps
     assert resumed.is_complete(0) and resumed.state()["batches"] == {}
     assert [b["epoch"] for b in pads] == [0] and r.is_complete(0)  # the rank that read on
     assert r.complete(0, 4) is None  # an end told again once paid: nothing more
+
+
+def test_a_ddp_rank_saying_hello_again_pays_no_padding_of_the_ends_told_to_the_session_it_ended():
+    """A DDP rank paused past the client timeout holds a batch of epoch 0 and reads, on waking,
+    epoch 0's end (every rank yields 3) and then ``dropped``: it says hello again with epoch 0 open
+    (1 batch), and the server tells that epoch's end again, with the count its group has now (a
+    grant given back may have lowered it, or come to this rank). The end queued before the hello,
+    one sent before the server read it, the server's padding copy of that session and the padding
+    the rank owed from it are the old session's: none is paid (it paid them, its record completed
+    epoch 0 while the server sent it batches of it, and it gave them back for good or yielded more
+    than the others: simulator finding F35, ``ddp`` seeds 1128, 1664, 2768). Their counts are kept:
+    an end told again says no fewer (``ddp`` seed 1609)."""
+    record = ResumeState("c")
+    s = ServerSession("tcp://127.0.0.1:1", _options(rank=0, world_size=3, group="job"), record, "c")
+    _welcomed(s)
+    assert record.claim(0, 3, ["v.mp4#3.0"], loader=False) == [0]
+    s.on_message(_batch(-1, padding=True))
+    s.on_message([pack({"type": "epoch_done", "epoch": 0, "batches": 3})])
+    assert record.complete(0, 3) == 2  # one end the loop took before the hello: it owes 2
+    assert s.on_message([pack({"type": "error", "message": "dropped", "code": "dropped"})]) is None
+    (hello,) = s.outgoing()
+    assert hello.resume.completed_epoch == -1 and hello.resume.batches == {0: 1}
+    assert list(owed_padding(record, {"epoch": 0, "sample_ids": ["v.mp4#3.0"]}, _pad)) == []  # nothing owed now
+    s.on_message([pack({"type": "epoch_done", "epoch": 0, "batches": 3})])  # sent before the server read the hello
+    copy, stale = _items(s)
+    assert isinstance(copy, ServerPadding) and isinstance(stale, EpochDone)
+    assert not s.held.of_session(copy) and not s.held.of_session(stale)
+    s.on_message([pack({"type": "welcome", "hello_id": 2, "info": {"crop_size": 8}})])
+    s.on_message([pack({"type": "epoch_done", "epoch": 0, "batches": 3})])  # told again, to this session
+    (told,) = _items(s)
+    assert s.held.of_session(told) and record.complete(told.epoch, told.batches) == 2 and not record.is_complete(0)
+    other = ResumeState("c")  # an end of an ended session that the loop takes: only its count is kept, and an
+    assert other.complete(0, 3, stale=True) is None and not other.is_complete(0)  # end told again says no fewer
+    assert other.complete(0, 2) == 3  # (a restarted server that lost the count: F33)

@@ -868,6 +868,28 @@ def test_a_ddp_group_with_no_rank_connected_keeps_what_a_returning_rank_repeats(
     assert pad.epoch_done(back, 0) == (0, None)
 
 
+def test_a_ddp_groups_count_once_told_is_not_lowered_by_a_grant_given_back_later():
+    """Rank 1 of a group was granted two batches of epoch 0, rank 0 one; rank 0 is told the
+    epoch complete with a count of 2 (a grant is yielded). Rank 1, paused past the client
+    timeout, says hello again naming only the first: the second goes back to the queue. Rank 1
+    is still told 2, and pads up to it with the server's copy on its new connection (told 1, it
+    yielded one batch fewer than ranks 0, and the job hung in an all-reduce: simulator finding
+    F34, ``ddp`` seed 1774). Forgotten with the epoch."""
+    from v2v_server.delivery.ledger import ClientRecord
+    from v2v_server.delivery.padding import GroupPadding
+    pad = GroupPadding()
+    for rank, bid in [(0, 0), (1, 1), (1, 2)]:
+        pad.acked("g", rank, BatchRecord(bid, 0, [SampleKey("a.mp4", bid)], FakeSample(f"a.mp4#{bid}")))
+    first = ClientRecord(b"r0", ("g:g", 0), ("voxels",), 2, 0.0, group="g", rank=0, world_size=2, granted=1)
+    assert pad.epoch_done(first, 0) == (2, None)
+    pad.resumed("g", 1, -1, {0: 1})  # rank 1's hello names batch 1, not batch 2
+    back = ClientRecord(b"r1.2", ("g:g", 1), ("voxels",), 2, 0.0, group="g", rank=1, world_size=2)
+    batches, copy = pad.epoch_done(back, 0)
+    assert batches == 2 and copy is not None and copy.epoch == 0
+    pad.prune(set(), lambda epoch: True)
+    assert pad.epoch_done(back, 0) == (0, None)
+
+
 def test_a_ddp_rank_told_an_epoch_the_server_never_opened_is_told_its_groups_count():
     """A restarted server (no journal) is first said hello by a trainer that completed epoch 0,
     so it starts at epoch 1; then a DDP job's ranks come back, rank 0 having yielded one batch

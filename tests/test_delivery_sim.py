@@ -149,3 +149,13 @@ def test_ddp_jobs_across_a_server_crash_end_alike(seed):
     (5129): the ranks ended with different counts and the job hung in an all-reduce."""
     outcome = simulate(["mixed"], f"{seed}:{seed + 1}")["mixed"]
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
+
+
+@pytest.mark.parametrize("seed", [1664, 1774, 2768])
+def test_ddp_ranks_paused_past_the_client_timeout_end_alike(seed):
+    """``ddp`` seeds where ranks paused past the client timeout said hello again: another rank's
+    hello gave back a grant the count told first had counted (1774: the count fell), or a rank
+    paid the padding of an end told to the session its hello ended (1664: it gave back every batch
+    of that epoch the server sent again, a livelock; 2768: it yielded one batch too many)."""
+    outcome = simulate(["ddp"], f"{seed}:{seed + 1}")["ddp"]
+    assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)

@@ -93,6 +93,10 @@ class Connection:
         """A DataLoader worker's iteration ends on this ``drained`` (``HeldBatches.ends_on``)."""
         return self.session.held.ends_on(drained)
 
+    def of_session(self, item) -> bool:
+        """An epoch end or padding the loop takes was told to the current session (``HeldBatches.of_session``)."""
+        return self.session.held.of_session(item)
+
     def ended(self) -> bool:
         """True once the I/O thread has ended and every item it queued was taken."""
         return not self._thread.is_alive() and self.session.items.empty()

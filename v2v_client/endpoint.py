@@ -206,6 +206,10 @@ class EndpointStream:
                     return
                 if isinstance(item, BaseException):
                     raise item
+                if isinstance(item, (EpochDone, ServerPadding)) and not conn.of_session(item):
+                    if isinstance(item, EpochDone) and self.options.world_size > 1:
+                        self.record.complete(item.epoch, item.batches, stale=True)  # its count is kept
+                    continue  # told the session a hello ended: the server tells the new one itself
                 if isinstance(item, EpochDone):
                     yield from self._epoch_done(item)
                 elif isinstance(item, Drained):

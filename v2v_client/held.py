@@ -52,6 +52,7 @@ class HeldBatches:
         self.ahead = max(1, ahead)
         self.discarded = 0  # batches given up when saying hello again
         self.drained = None  # the ``drained`` told to this book's session (a hello's discard forgets it)
+        self.ends: List[object] = []  # epoch ends and DDP padding told to this session, not yet taken by the loop
 
     def add(self, item: dict) -> None:
         """A received batch (a batch given back may come again: this copy is the live one, leased)."""
@@ -149,10 +150,12 @@ class HeldBatches:
         """Give up every batch held (the server re-sends or re-makes them), logging ``why`` (None:
         a connection closing, nothing to say); returns those that were asked or granted (to say
         ``released`` for when the connection closes). ``new_session``: a hello's, which also
-        forgets the ``drained`` told to the session it ends (:meth:`ends_on`)."""
+        forgets the ``drained``, epoch ends and padding told to the session it ends (:meth:`ends_on`,
+        :meth:`of_session`)."""
         with self.lock:
             if new_session:
                 self.drained = None
+                self.ends.clear()
             return self._discard_locked(why)
 
     def told(self, drained):
@@ -161,6 +164,27 @@ class HeldBatches:
         with self.lock:
             self.drained = drained
         return drained
+
+    def told_end(self, item):
+        """The server told this session an epoch's end or sent it DDP padding (``item``, returned,
+        queued for the loop): the loop takes it only while the session lasts (:meth:`of_session`)."""
+        with self.lock:
+            self.ends.append(item)
+        return item
+
+    def of_session(self, item) -> bool:
+        """The loop takes this epoch end or padding (:meth:`told_end`) off its queue: True if it was
+        told to the current session. One told before the latest hello is about the session that hello
+        ended: that hello's state said the epoch open, and the server tells its end and count again
+        (a rank that paid padding from the old count, its epoch complete here while the server sent it
+        batches of that epoch, gave them back for good or yielded more than its group; docs/delivery.md,
+        "Ends of epochs")."""
+        with self.lock:
+            for i, told in enumerate(self.ends):
+                if told is item:
+                    del self.ends[i]
+                    return True
+            return False
 
     def ends_on(self, drained) -> bool:
         """A DataLoader worker's iteration ends on this ``drained``, taken off its queue: it was told

@@ -76,8 +76,7 @@ class ResumeState:
     yet come). Thread-safe (``lock``): an I/O thread records receipts while the consumer iterates."""
 
     def __init__(self, consumer: str = ""):
-        self.lock, self.consumer = threading.Lock(), consumer
-        self.completed_epoch = -1
+        self.lock, self.consumer, self.completed_epoch = threading.Lock(), consumer, -1
         self.delivered: Dict[int, Set[str]] = {}
         self.batches: Dict[int, int] = {}
         self.recipe: Optional[str] = None
@@ -86,11 +85,11 @@ class ResumeState:
         self.shard_of: Dict[str, str] = {}  # a fan-in's endpoint -> the shard it served
         self.pipeline = Pipeline()
         self.owed: Dict[int, int] = {}  # epoch told complete and open -> DDP padding to yield (not saved: told again)
+        self.told: Dict[int, int] = {}  # epoch told complete and open -> the most batches its ends said (DDP)
         #: the consumers a state gathered from every rank of a job speaks for, each with its completed epoch
         self.supersedes: Tuple[Tuple[str, int, int], ...] = ()
         self.origins: Set[str] = set()  # the servers (their welcome's ``server``) that granted its ids
 
-    # ------------------------------------------------------------------ plain form
     def state(self) -> dict:
         """The plain form (module docstring)."""
         with self.lock:
@@ -133,19 +132,18 @@ class ResumeState:
         with self.lock:
             self.completed_epoch, self.delivered, self.batches = completed, delivered, batches
             self.shard_batches, self.shard_of = shards, dict(state.get("shard_of") or {})
-            self.position, self.supersedes, self.origins, self.owed = position, supersedes, origins, {}
+            self.position, self.supersedes, self.origins, self.owed, self.told = position, supersedes, origins, {}, {}
             if isinstance(state.get("consumer"), str) and state["consumer"]:
                 self.consumer = state["consumer"]
             if isinstance(state.get("recipe"), str):
                 self.recipe = state["recipe"]
 
-    # ------------------------------------------------------------------ wire form
     def hello_resume(self) -> ResumeIds:
-        """A hello's resume state: the completed epoch, the ids handed on per open epoch (in a
-        DataLoader worker also those waiting in the loader's queues, the loop may still receive
-        them, and those batches as ``queued``) and the batches per open epoch."""
+        """A hello's resume state: the completed epoch, the ids handed on per open epoch (in a DataLoader worker also
+        those waiting in the loader's queues, the loop may still receive them, and those batches as ``queued``) and
+        the batches per open epoch. It forgets the padding owed, keeping its count (``told``): those ends come again."""
         with self.lock:
-            ids = {e: set(v) for e, v in self.delivered.items()}
+            ids, self.owed = {e: set(v) for e, v in self.delivered.items()}, {}
             for e, sids in self.pipeline.values():
                 if e > self.completed_epoch:
                     ids.setdefault(e, set()).update(sids)
@@ -165,7 +163,6 @@ class ResumeState:
                 self.recipe = recipe
         return None
 
-    # ------------------------------------------------------------------ DDP positions
     def key(self) -> Tuple[str, int]:
         """The consumer the server knew its reader as: ``("g:<group>", rank)`` (DDP), else ``("c:<id>", 0)``."""
         if self.position is not None and self.position[2] > 1:
@@ -233,16 +230,19 @@ class ResumeState:
             if isinstance(server, str) and server:
                 self.origins.add(server)
 
-    # ------------------------------------------------------------------ the stream's steps
-    def complete(self, epoch: int, batches_due: Optional[int] = None) -> Optional[int]:
+    def complete(self, epoch: int, batches_due: Optional[int] = None, stale: bool = False) -> Optional[int]:
         """The server declared ``epoch`` complete: its ids (and those of every epoch before it) are forgotten once
-        the padding it owes is yielded (``batches_due``: with DDP, batches every rank yields; :meth:`count_padding`).
-        Returns that padding, or None when it was complete already (docs/delivery.md, "Ends of epochs")."""
+        the padding it owes is yielded (``batches_due``: with DDP, batches every rank yields, never fewer than an end
+        told before said; :meth:`count_padding`). Returns that padding, or None (complete already; ``stale``: told a
+        session a hello ended, only its count kept) (docs/delivery.md, "Ends of epochs")."""
         with self.lock:
             if epoch <= self.completed_epoch:
                 return None
             if batches_due is not None:
-                self.owed[epoch] = max(0, batches_due - self.batches.get(epoch, 0))
+                due = self.told[epoch] = max(batches_due, self.told.get(epoch, 0))
+                if stale:
+                    return None
+                self.owed[epoch] = max(0, due - self.batches.get(epoch, 0))
             self._forget_upto(self.pipeline.complete_upto(epoch, self.completed_epoch))
             return self.owed.get(epoch, 0)
 
@@ -324,11 +324,10 @@ class ResumeState:
     def _forget_upto(self, epoch: int) -> None:
         epoch = min([epoch] + [e - 1 for e, n in self.owed.items() if n])  # an epoch owing DDP padding stays open
         self.completed_epoch = max(self.completed_epoch, epoch)
-        for d in [self.delivered, self.batches, self.owed, *self.shard_batches.values()]:
+        for d in [self.delivered, self.batches, self.owed, self.told, *self.shard_batches.values()]:
             for e in [e for e in d if e <= epoch]:
                 del d[e]
 
-    # ------------------------------------------------------------------ a DataLoader worker's pipeline
     def pipeline_ids(self) -> List[int]:
         with self.lock:
             return list(self.pipeline)

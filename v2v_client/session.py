@@ -178,6 +178,10 @@ class Unread:
         return [kind(tuple(ids)) for kind, ids in again.items()]
 
 
+#: What the server sent before it read our latest hello is about the session that hello ended: dropped.
+OF_AN_ENDED_SESSION = (sm.Batch, sm.Revoke, sm.Granted, sm.Drained, sm.EpochDone)
+
+
 class ServerSession:
     """One connection's session with one server: protocol state, no socket, no thread, no torch.
 
@@ -197,25 +201,23 @@ class ServerSession:
         welcomed: given the server's stream info, why the reader refuses this server (the stream
             ends with a :class:`StreamError`), or None; default: the record's recipe check.
 
-    Items queued on ``items`` for the consumer: batch dicts (arrays as ``convert`` makes them,
-    ``sample_ids``, ``params``, ``epoch``, ``batch_id``), :class:`ServerPadding`,
-    ``stream_messages.EpochDone`` and ``Drained``, :class:`LoopAbandoned`, ``StopIteration`` (the
-    end) and :class:`StreamError`.
+    Items queued on ``items`` for the consumer: batch dicts (arrays as ``convert`` makes them, ``sample_ids``,
+    ``params``, ``epoch``, ``batch_id``), :class:`ServerPadding` and ``stream_messages.EpochDone`` (taken only
+    while their session lasts: ``HeldBatches.of_session``), ``Drained``, :class:`LoopAbandoned`, ``StopIteration``
+    (the end) and :class:`StreamError`.
     """
 
     def __init__(self, endpoint: str, options, record: ResumeState, consumer: str, *,
                  convert: Optional[Convert] = None, ends_on_drained: bool = False, iteration: int = 0,
                  instance: str = "", welcomed: Optional[Callable[[dict], Optional[str]]] = None):
         self.endpoint, self.options, self.record, self.consumer = endpoint, options, record, consumer
-        self.instance = instance
-        self.outputs = tuple(options.outputs)
+        self.instance, self.outputs = instance, tuple(options.outputs)
         self._welcomed = welcomed or (lambda info: record.check_recipe(info.get("recipe")))
         self.items: "queue.Queue" = queue.Queue()
         self.info: Optional[dict] = None
         self.held = HeldBatches(endpoint)
         self._out: "collections.deque[Outgoing]" = collections.deque()  # appended by both threads, in order
-        self._hello_seq = 0
-        self._awaiting: Optional[int] = None  # id of our last hello until its welcome arrives
+        self._hello_seq, self._awaiting = 0, None  # our last hello's id; it again until its welcome arrives
         self.reader = BatchReader(self.outputs, convert, options.raw, options.wants_shm(endpoint), options.credits + 2)
         self.compression, self._compression_auto = options.compression_for(endpoint)
         self.ends_on_drained, self.iteration = ends_on_drained, iteration
@@ -344,7 +346,7 @@ class ServerSession:
         try:
             m = stream_message(unpack(frames[0]))
             rehello = isinstance(m, sm.ServerError) and m.code in ("dropped", "unknown_client")
-            if self._awaiting is not None and (isinstance(m, (sm.Batch, sm.Revoke, sm.Granted, sm.Drained))
+            if self._awaiting is not None and (isinstance(m, OF_AN_ENDED_SESSION)
                                                or (rehello and m.hello_id != self._awaiting)):
                 return None  # said before the server read our latest hello (docs/delivery.md, rule 5)
             if isinstance(m, sm.Batch):
@@ -358,8 +360,10 @@ class ServerSession:
             elif isinstance(m, sm.Granted):  # also an answer about what we said (``Unread``)
                 self._out.extend(self.unread.answer(m.batch_ids, m.refused, self.held))
                 self._ask()
-            elif isinstance(m, (sm.EpochDone, sm.Drained)):
-                self.items.put(self.held.told(m) if self.ends_on_drained and isinstance(m, sm.Drained) else m)
+            elif isinstance(m, sm.EpochDone):
+                self.items.put(self.held.told_end(m))
+            elif isinstance(m, sm.Drained):
+                self.items.put(self.held.told(m) if self.ends_on_drained else m)
             elif isinstance(m, sm.End):
                 self.items.put(StopIteration("end of stream" if m.reason is None else m.reason))
                 return "over"
@@ -399,7 +403,7 @@ class ServerSession:
         if item is None:
             return self._torn(m.batch_id)
         if m.padding:
-            self.items.put(ServerPadding(item))
+            self.items.put(self.held.told_end(ServerPadding(item)))
             return None
         self.unread.forget(m.batch_id)  # given back, then sent to us again: the book's from now on
         self.held.add(item)

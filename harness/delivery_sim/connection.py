@@ -205,6 +205,9 @@ class SimConnection:
     def ends_on(self, drained) -> bool:
         return self.session.held.ends_on(drained)
 
+    def of_session(self, item) -> bool:
+        return self.session.held.of_session(item)
+
     def ended(self) -> bool:
         return not self.alive and self.session.items.empty()
 

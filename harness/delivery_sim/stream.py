@@ -121,7 +121,10 @@ class SimIterator:
             return self._close("end", "abandoned")
         if isinstance(item, BaseException):
             return self._close("error", item)
-        if isinstance(item, EpochDone):
+        if isinstance(item, (EpochDone, ServerPadding)) and not self.conn.of_session(item):
+            if isinstance(item, EpochDone) and s.options.world_size > 1:  # told the session a hello ended:
+                s.record.complete(item.epoch, item.batches, stale=True)  # its count is kept, the server tells it again
+        elif isinstance(item, EpochDone):
             self._epoch_done(item)
         elif isinstance(item, Drained):
             if self.conn.ends_on(item):

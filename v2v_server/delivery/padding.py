@@ -16,6 +16,7 @@ class GroupPadding:
     def __init__(self):
         self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
         self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch
+        self.told: Dict[Tuple[str, int], int] = {}  # (group, epoch) -> the count its ranks were told
 
     def resumed(self, group: str, rank: int, completed_epoch: int, batches: Dict[int, int]) -> None:
         """A rank's resume state: in each epoch after ``completed_epoch`` it yielded
@@ -52,9 +53,12 @@ class GroupPadding:
         the batches every rank of its group reaches (the most any of them yielded), and a
         padding batch (batch id -1, a copy of the group's last acknowledged batch) when ``c``
         was never granted a batch and is behind, else None: a batch only sent to it may be
-        revoked, leaving it nothing to repeat (docs/delivery.md, "DDP")."""
+        revoked, leaving it nothing to repeat (docs/delivery.md, "DDP"). A count once told is
+        never lowered: a rank's hello giving back a grant it counted comes after other ranks were
+        told it ("Ends of epochs")."""
         counts = self.taken.get((c.group, epoch), {})
-        most = max(counts.values()) if counts else 0
+        most = max(max(counts.values(), default=0), self.told.get((c.group, epoch), 0))
+        self.told[(c.group, epoch)] = most
         src = self.pad_source.get(c.group)
         if c.granted == 0 and counts.get(c.rank, 0) < most and src is not None:
             return most, BatchRecord(-1, epoch, src.keys, src.payload, outputs=src.outputs)
@@ -65,6 +69,8 @@ class GroupPadding:
         client left and no epoch counted (a rank between a drop and its next hello still pads)."""
         for key in [k for k in self.taken if forgotten(k[1])]:
             del self.taken[key]
+        for key in [k for k in self.told if forgotten(k[1])]:
+            del self.told[key]
         counted = {g for g, _ in self.taken}
         for g in [g for g in self.pad_source if g not in live_groups and g not in counted]:
             del self.pad_source[g]
