@@ -111,19 +111,24 @@ class Admission:
         return None
 
     def _alive(self, c: ClientRecord, since: float) -> bool:
-        """Connection ``c``'s process lived after a hello that arrived at ``since``: it spoke
-        ``claim_margin_s`` after, or named a batch sent to it after (:meth:`spoke_of`)."""
-        return c.heard >= since + self.claim_margin_s or c.proved >= since
+        """Connection ``c``'s process lived after a hello that arrived at ``since``: it spoke twice,
+        ``claim_margin_s`` apart, after it (a dead process's last messages come at once, however
+        late: a cut held them, or a stalled server read them late), or named a batch sent to it
+        after it (:meth:`spoke_of`). What it said before ``since`` is cleared: its next message
+        starts the count (``ClientRecord.heard_from``; a stall of the server clears it too: :meth:`silent`)."""
+        if c.heard_from is not None and c.heard_from < since:
+            c.heard_from = None
+        return c.heard_from is not None and c.heard >= c.heard_from + self.claim_margin_s or c.proved >= since
 
     def _unproven(self, ident: bytes, h: Hello, speaks: Set[Hashable], since: float) -> bool:
         """Another reader process than the hello's read one of ``speaks`` last, and the hello's own
-        connection has not spoken ``claim_margin_s`` after it: it may be a dead process's hello,
+        connection has not spoken ``claim_margin_s`` after it and after the server's last stall: it may be a dead process's hello,
         delivered late (a partition held it), whose state would undo what a newer process read.
         DDP ranks are let in without it (docs/delivery.md, limit (g))."""
         if h.world_size > 1:
             return False
         other = any(self.instances[w][0] != h.instance for w in speaks if w in self.instances)
-        return other and self.heard.get(ident, since) < since + self.claim_margin_s
+        return other and self.heard.get(ident, since) < max(since, self._stalled_until) + self.claim_margin_s
 
     def waits(self, ident: bytes, h: Hello, now: float) -> None:
         """The hello of connection ``ident`` waits (``pending``), since it first arrived."""
@@ -155,11 +160,13 @@ class Admission:
         paused one's): forgotten, i.e. ``dormant``, holding nothing back, until their connection
         speaks (:meth:`spoke`; the oldest beyond :data:`MAX_DORMANT` are dropped). Silence is
         counted from the end of a stall of the server's own loop (longer than the ledger's
-        ``stall_s``), as the ledger's deadlines are (``DeliveryLedger.expire``); what a
-        connection said (``heard``, its proof of life) is not moved."""
+        ``stall_s``), as the ledger's deadlines are (``DeliveryLedger.expire``); a proof of life
+        starts after the stall (what it read late may be a dead process's: :meth:`_alive`, :meth:`_unproven`)."""
         last, self._last_turn = self._last_turn, now
         if last is not None and self.ledger.stall_s is not None and now - last > self.ledger.stall_s:
             self._stalled_until = now
+            for c in self.ledger.clients.values():
+                c.heard_from = None
         gone = [i for i, t in self.heard.items() if now - max(t, self._stalled_until) > timeout_s]
         for ident in gone:
             log.info("client %s: its hello waited, silent for %.0f s; forgotten", ident.hex(), now - self.heard[ident])

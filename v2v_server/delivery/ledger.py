@@ -42,6 +42,7 @@ class ClientRecord:
     ends_on_drained: bool = False  # a DataLoader worker: it ends its iteration on ``drained``
     instance: str = ""  # the reader process's token (docs/delivery.md, "Who may say hello")
     heard: float = 0.0  # when it last said something itself (its hello's arrival, then any message)
+    heard_from: Optional[float] = None  # its first message since ``Admission`` last cleared this (``_alive``)
     proved: float = float("-inf")  # when the newest batch it named was sent to it: its process lived after
     #: a DataLoader worker's grants its hello named waiting in the loader's queues (batch id -> epoch): their
     #: epochs are not told to it until it acks them (docs/delivery.md, "DataLoader workers")
@@ -162,6 +163,7 @@ class DeliveryLedger:
         c = self.clients.get(ident)
         if c is not None:
             c.last_seen = c.heard = now
+            c.heard_from = now if c.heard_from is None else c.heard_from
         return c
 
     def add_credits(self, ident: bytes, n: int) -> None:
