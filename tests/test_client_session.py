@@ -510,3 +510,33 @@ def test_a_ddp_rank_saying_hello_again_pays_no_padding_of_the_ends_told_to_the_s
     other = ResumeState("c")  # an end of an ended session that the loop takes: only its count is kept, and an
     assert other.complete(0, 3, stale=True) is None and not other.is_complete(0)  # end told again says no fewer
     assert other.complete(0, 2) == 3  # (a restarted server that lost the count: F33)
+
+
+def test_a_ddp_rank_told_an_epochs_end_after_one_it_never_got_says_hello_again():
+    """A cut ZeroMQ mends (no hello follows) lost the server's padding copy of epoch 0 and epoch 0's
+    end to a DDP rank granted nothing of it; epoch 1's end came. The server tells a rank's ends in
+    order, an epoch with its count alone, so the rank says hello again (its state has epoch 0 open)
+    instead of completing epoch 0 unpaid: it yielded a batch fewer than its group and the job hung in
+    an all-reduce (simulator finding F38, ``mixed`` seed 6397). The stream's end sent before the server
+    read that hello is the ended session's too; the new session is told the ends again, in order."""
+    record = ResumeState("c")
+    s = ServerSession("tcp://127.0.0.1:1", _options(rank=1, world_size=3, group="job"), record, "c")
+    _welcomed(s)
+    assert s.on_message([pack({"type": "epoch_done", "epoch": 1, "batches": 0})]) is None
+    (hello,) = s.outgoing()
+    assert isinstance(hello, cm.Hello) and hello.hello_id == 2 and hello.resume.completed_epoch == -1
+    assert s.on_message([pack({"type": "end"})]) is None  # said before the server read the hello
+    assert _items(s) == [] and not record.is_complete(0)
+    s.on_message([pack({"type": "welcome", "hello_id": 2, "info": {"crop_size": 8}})])
+    s.on_message(_batch(-1, padding=True))
+    for e, n in ((0, 1), (1, 0), (1, 0), (3, None)):  # in order, a duplicate, a run of forgotten epochs told at once
+        s.on_message([pack({"type": "epoch_done", "epoch": e, **({} if n is None else {"batches": n})})])
+    assert s.on_message([pack({"type": "end"})]) == "over" and s.outgoing() == []
+    copy, *ends, end = _items(s)
+    assert isinstance(copy, ServerPadding)
+    assert [(d.epoch, d.batches) for d in ends] == [(0, 1), (1, 0), (1, 0), (3, None)]
+    assert isinstance(end, StopIteration) and all(s.held.of_session(i) for i in [copy] + ends)
+    one = _session(("voxels",))  # without DDP an end names no count, and completes every epoch before it
+    _welcomed(one)
+    one.on_message([pack({"type": "epoch_done", "epoch": 2})])
+    assert one.outgoing() == [] and isinstance(_items(one)[0], EpochDone)

@@ -1001,3 +1001,20 @@ def test_a_reader_that_still_speaks_after_the_end_is_told_it_again():
     assert s.core.message(b"b", Heartbeat(), s.now)[0][1].to_wire()["type"] == "error"  # never said hello
     [(_, unknown)] = s.core.message(b"b", Heartbeat(5), s.now)  # names the hello its session said last
     assert (unknown.code, unknown.hello_id) == ("unknown_client", 5)
+
+
+def test_a_ddp_rank_that_still_speaks_after_the_end_is_told_its_last_count_again():
+    """F28's rule for a DDP rank: its last ``epoch_done`` and ``end`` lost in a cut ZeroMQ mended,
+    it is told that end again with the count its group was told (told ``end`` alone, it would pay
+    no padding of the last epoch and yield fewer batches than its group: the job hangs in an
+    all-reduce; an earlier end lost, it says hello again, F38)."""
+    s = TinyStream()
+    for ident, rank in ((b"r0", 0), (b"r1", 1)):
+        s.hello(ident, "j", group="g", rank=rank, world_size=2)
+    for _ in range(30):
+        s.turn()
+    last = s.told[b"r0"][-1]
+    assert last[0] == 2 and last[1] is not None and s.told[b"r1"][-1] == last, dict(s.told)
+    again = s.core.message(b"r1", Heartbeat(), s.now)
+    assert [(i, m.to_wire()["type"]) for i, m in again] == [(b"r1", "epoch_done"), (b"r1", "end")]
+    assert (again[0][1].epoch, again[0][1].batches) == last

@@ -53,6 +53,7 @@ class HeldBatches:
         self.discarded = 0  # batches given up when saying hello again
         self.drained = None  # the ``drained`` told to this book's session (a hello's discard forgets it)
         self.ends: List[object] = []  # epoch ends and DDP padding told to this session, not yet taken by the loop
+        self.ends_upto = -1  # the newest epoch told complete to this session, or its hello's state completed
 
     def add(self, item: dict) -> None:
         """A received batch (a batch given back may come again: this copy is the live one, leased)."""
@@ -146,15 +147,16 @@ class HeldBatches:
                     released.append(b)
         return released
 
-    def discard(self, why: Optional[str], new_session: bool = False) -> List[int]:
+    def discard(self, why: Optional[str], new_session: bool = False, completed: int = -1) -> List[int]:
         """Give up every batch held (the server re-sends or re-makes them), logging ``why`` (None:
         a connection closing, nothing to say); returns those that were asked or granted (to say
-        ``released`` for when the connection closes). ``new_session``: a hello's, which also
-        forgets the ``drained``, epoch ends and padding told to the session it ends (:meth:`ends_on`,
-        :meth:`of_session`)."""
+        ``released`` for when the connection closes). ``new_session``: a hello's (its state completed
+        epoch ``completed``: the ends told to the new session come after it, :meth:`missed_end`), which
+        also forgets the ``drained``, epoch ends and padding told to the session it ends
+        (:meth:`ends_on`, :meth:`of_session`)."""
         with self.lock:
             if new_session:
-                self.drained = None
+                self.drained, self.ends_upto = None, completed
                 self.ends.clear()
             return self._discard_locked(why)
 
@@ -171,6 +173,21 @@ class HeldBatches:
         with self.lock:
             self.ends.append(item)
         return item
+
+    def missed_end(self, done) -> bool:
+        """True if this ``epoch_done`` (``stream_messages.EpochDone``) has a DDP count and comes after
+        an end this session was not told (else it is noted as told). The server tells a rank's ends in
+        order, an epoch with a count alone, so the end before it (with its padding copy) was lost in a
+        cut ZeroMQ mended, which no hello follows: the session says hello again, its state reopens
+        that epoch, and the server tells its end and count again (docs/delivery.md, "Ends of epochs")."""
+        with self.lock:
+            missed = self.ends_upto + 1
+            if done.batches is None or done.epoch <= missed:
+                self.ends_upto = max(self.ends_upto, done.epoch)
+                return False
+        log.warning("v2v stream %s: told the end of epoch %d and not of epoch %d before it (lost in a broken "
+                    "connection); saying hello again", self.endpoint, done.epoch, missed)
+        return True
 
     def of_session(self, item) -> bool:
         """The loop takes this epoch end or padding (:meth:`told_end`) off its queue: True if it was

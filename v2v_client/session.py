@@ -179,7 +179,7 @@ class Unread:
 
 
 #: What the server sent before it read our latest hello is about the session that hello ended: dropped.
-OF_AN_ENDED_SESSION = (sm.Batch, sm.Revoke, sm.Granted, sm.Drained, sm.EpochDone)
+OF_AN_ENDED_SESSION = (sm.Batch, sm.Revoke, sm.Granted, sm.Drained, sm.EpochDone, sm.End)
 
 
 class ServerSession:
@@ -244,8 +244,8 @@ class ServerSession:
         """
         o = self.options
         with self.held.lock:  # the resume state and the discard as one step (``HeldBatches.claim``)
-            self.held.discard("saying hello again", new_session=True)
             resume = self.record.hello_resume()
+            self.held.discard("saying hello again", new_session=True, completed=resume.completed_epoch)
         self._hello_seq = max(self._hello_seq + 1, int(at * 1e6))
         self._awaiting = None if new_socket else self._hello_seq
         h = Hello(self.outputs, o.credits, self.consumer, resume, o.group if o.world_size > 1 else None, o.rank,
@@ -360,6 +360,8 @@ class ServerSession:
             elif isinstance(m, sm.Granted):  # also an answer about what we said (``Unread``)
                 self._out.extend(self.unread.answer(m.batch_ids, m.refused, self.held))
                 self._ask()
+            elif isinstance(m, sm.EpochDone) and self.held.missed_end(m):
+                self.hello()  # an end before it was lost: told again to the new session
             elif isinstance(m, sm.EpochDone):
                 self.items.put(self.held.told_end(m))
             elif isinstance(m, sm.Drained):
@@ -409,7 +411,6 @@ class ServerSession:
         self.held.add(item)
         self.items.put(item)
         self._ask()
-        return None
 
     def _on_welcome(self, m: sm.Welcome) -> Optional[str]:
         """The server's answer to our hello: its stream info, checked by ``welcomed``, and
@@ -451,4 +452,3 @@ class ServerSession:
                     "(this process stalled?); giving it back", self.endpoint, bid)
         if bid >= 0:
             self._out.append(Released((bid,)))
-        return None

@@ -199,5 +199,4 @@ FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None,
                  "mixed": None}
 #: one failing seed of each open finding: (scenario, seed, finding)
 OPEN_FINDINGS = [("mixed", 5954, "F36: a loader restarted from a checkpoint more than keep_epochs behind what a worker was "
-                                  "told loses its sample"),
-                 ("mixed", 6397, "F38: a DDP rank's epoch end and padding lost in a network cut are never told again")]
+                                  "told loses its sample")]

@@ -92,9 +92,11 @@ class EpochEnds:
 
     def told_again(self, ident: bytes, c: ClientRecord) -> List[Msg]:
         """A connection told the stream's end that still speaks did not get it: lost with a broken connection
-        behind ZeroMQ's reconnect, which no hello follows. Its last epoch's end (without DDP: a rank's count
-        went with the first) and ``end``, told again (docs/delivery.md, "Ends of epochs and of the stream")."""
-        return ([] if c.ddp else [(ident, EpochDone(c.completed, None))]) + [(ident, End())]
+        behind ZeroMQ's reconnect, which no hello follows. Its last epoch's end (a DDP rank's with the count its
+        group was told: the padding it owes comes from it) and ``end``, told again (docs/delivery.md, "Ends of
+        epochs and of the stream")."""
+        n = self.padding.told.get((c.group, c.completed)) if c.ddp else None
+        return ([] if c.ddp and n is None else [(ident, EpochDone(c.completed, n))]) + [(ident, End())]
 
     def _may_tell(self, c: ClientRecord) -> bool:
         """Connection ``c`` might be told something now: its next epoch is opened and complete
