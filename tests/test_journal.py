@@ -302,3 +302,20 @@ def test_a_restarted_server_keeps_a_lagging_consumers_records_of_an_older_epoch(
     assert t.got[b"a.2"] == [(0, "a.mp4#0")] and [e for e, _ in t.told[b"a.2"]] == [0, 1, 2]
     t.core.journal.close()
 
+
+def test_a_restarted_server_refuses_a_consumer_told_every_epoch_whose_records_are_gone(tmp_path):
+    """Reader a holds a sample of epoch 0 only and was told every epoch complete: its record of
+    epoch 0 is forgotten (two newer epochs were told it). The newest epoch told it stays for
+    good, so its resume from a checkpoint of no sample is refused in one line, before any
+    batch (it was let in, and told every epoch complete, once its last record went: simulator
+    finding F39, ``mixed`` seed 53491)."""
+    from tests.test_delivery_core import TinyStream
+    from v2v_wire.messages import Hello, Resume
+
+    _first_life(tmp_path, a_told=2)
+    t = TinyStream(Journal(str(tmp_path), "r1"))
+    assert t.core.journal.told_to[("c:a", 0)] == 2
+    t.turn()  # the scheduler forgets a's record of epoch 0 (two newer epochs were told it)
+    [(_, err)] = t.core.hello(b"a.2", Hello(("voxels",), 1, consumer="a", resume=Resume(-1, {})), t.now)
+    assert err.code == "resume" and "up to 2" in err.message, err
+    t.core.journal.close()

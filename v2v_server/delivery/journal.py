@@ -20,8 +20,8 @@ epoch, "k": [...]}`` (a batch granted, then given back unused), ``{"s": [consume
 completed_epoch, "r": {epoch: keys}, "b": {epoch: batches}}`` (a resume state replaced a record:
 its samples and the batches it yielded), ``{"t": epoch}`` (an epoch was told complete to some
 reader: a resume state may say it is complete), ``{"tc": [consumer, rank], "e": epoch}`` (the
-newest epoch that consumer was told complete, kept while the journal holds a record of it: a
-resume state more than ``keep_epochs`` behind it is refused, docs/delivery.md limit (e)),
+newest epoch that consumer was told complete, kept for good: a resume state more than
+``keep_epochs`` behind it is refused, docs/delivery.md limit (e)),
 ``{"done": epoch}`` (an epoch closed for good: a restart starts after it). The batch counts
 (:attr:`Journal.batches`) are a DDP rank's in its group's (``padding.GroupPadding``): a restarted
 server tells every rank of the group the count its ranks' grants reached (docs/delivery.md,
@@ -274,7 +274,6 @@ class Journal:
         if epoch <= self.completed:
             return
         self._complete(epoch)
-        self.told_to = {c: e for c, e in self.told_to.items() if any(self.records.get(c, {}).values())}
         if self.failed:
             return  # the next whole write (sync) leaves the epoch's records out
         try:
