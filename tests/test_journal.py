@@ -1,6 +1,6 @@
 """The delivery journal (--state-dir): records survive a restart, a resume state replaces a
-record, closed epochs beyond the newest kept ones are dropped, a torn last record costs only itself, another recipe's
-journal is refused."""
+record, closed epochs beyond the newest kept ones are dropped (but for a consumer told fewer newer
+ones complete), a torn last record costs only itself, another recipe's journal is refused."""
 from __future__ import annotations
 
 import pytest
@@ -27,9 +27,11 @@ def test_records_survive_a_restart_and_a_resume_state_replaces_them(tmp_path):
     m = Journal(str(tmp_path), "r1", keep_epochs=1)  # epoch 0 is the newest closed one: kept
     assert m.completed == 0 and m.records == k.records == {
         a: {0: {K("x.mp4", 0), K("x.mp4", 1)}, 1: {K("x.mp4", 0)}}, b: {0: {K("y.mp4", 0), K("y.mp4", 1)}}}
+    m.consumer_told(a, 1)
+    m.consumer_told(b, 1)
     m.epoch_complete(1)
     m.close()
-    n = Journal(str(tmp_path), "r1", keep_epochs=1)  # epoch 1 closed: epoch 0 leaves the file
+    n = Journal(str(tmp_path), "r1", keep_epochs=1)  # epoch 1 closed and told to both: epoch 0 leaves the file
     assert n.completed == 1 and n.records == {a: {1: {K("x.mp4", 0)}}}
     n.close()
 
@@ -257,4 +259,63 @@ def test_a_restarted_server_still_refuses_a_resume_further_behind_than_its_consu
     assert err.code == "resume" and "up to 2" in err.message, err
     [(_, welcome)] = t.core.hello(b"a.3", Hello(("voxels",), 1, consumer="a", resume=Resume(1, {})), 0.0)
     assert welcome.to_wire()["type"] == "welcome", welcome
+    t.core.journal.close()
+
+
+def _first_life(tmp_path, a_told: int) -> None:
+    """A server's life over a journal: reader a was granted a.mp4#0 of epoch 0, told epochs up to
+    ``a_told`` complete and killed; reader b read everything else of 3 epochs and was told each
+    complete; the server closed all three (the records of a consumer told are journaled before the
+    epoch closes, as ``closing.EpochEnds`` does, and told again after)."""
+    a, b = ("c:a", 0), ("c:b", 0)
+    j = Journal(str(tmp_path), "r1")
+    j.delivered(a, 0, [K("a.mp4", 0)])
+    j.delivered(b, 0, [K("a.mp4", 1), K("a.mp4", 2), K("a.mp4", 3)])
+    for e in (1, 2):
+        j.delivered(b, e, [K("a.mp4", i) for i in range(4)])
+    j.epoch_told(2)
+    j.consumer_told(a, min(a_told, 1))
+    j.consumer_told(b, 1)
+    j.epoch_complete(2)
+    j.consumer_told(a, a_told)
+    j.consumer_told(b, 2)
+    j.close()
+
+
+def test_a_restarted_server_keeps_a_lagging_consumers_records_of_an_older_epoch(tmp_path):
+    """Reader a was told epochs 0 and 1 complete (not 2) holding a sample of epoch 0, then
+    resumes from a checkpoint of no sample against a server restarted from its journal. A
+    running server keeps a's records of epoch 0 (within two epochs of what it was told) and
+    makes that sample again; the restarted one must too: it answered epoch_done 0, 1, 2 and end,
+    and the sample reached no loop, in silence (docs/delivery.md limit (e); simulator finding
+    F39, ``mixed`` seed 12000)."""
+    from tests.test_delivery_core import TinyStream
+    from v2v_wire.messages import Resume
+
+    _first_life(tmp_path, a_told=1)
+    t = TinyStream(Journal(str(tmp_path), "r1"))
+    assert t.core.journal.records.get(("c:a", 0)) == {0: {K("a.mp4", 0)}}
+    t.turn()
+    t.hello(b"a.2", "a", Resume(-1, {}))
+    for _ in range(5):
+        t.turn()
+    assert t.got[b"a.2"] == [(0, "a.mp4#0")] and [e for e, _ in t.told[b"a.2"]] == [0, 1, 2]
+    t.core.journal.close()
+
+
+def test_a_restarted_server_refuses_a_consumer_told_every_epoch_whose_records_are_gone(tmp_path):
+    """Reader a holds a sample of epoch 0 only and was told every epoch complete: its record of
+    epoch 0 is forgotten (two newer epochs were told it). The newest epoch told it stays for
+    good, so its resume from a checkpoint of no sample is refused in one line, before any
+    batch (it was let in, and told every epoch complete, once its last record went: simulator
+    finding F39, ``mixed`` seed 53491)."""
+    from tests.test_delivery_core import TinyStream
+    from v2v_wire.messages import Hello, Resume
+
+    _first_life(tmp_path, a_told=2)
+    t = TinyStream(Journal(str(tmp_path), "r1"))
+    assert t.core.journal.told_to[("c:a", 0)] == 2
+    t.turn()  # the scheduler forgets a's record of epoch 0 (two newer epochs were told it)
+    [(_, err)] = t.core.hello(b"a.2", Hello(("voxels",), 1, consumer="a", resume=Resume(-1, {})), t.now)
+    assert err.code == "resume" and "up to 2" in err.message, err
     t.core.journal.close()

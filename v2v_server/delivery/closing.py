@@ -41,9 +41,9 @@ class EpochEnds:
         self._low: Optional[int] = None  # the oldest epoch every connection was told, at the last full turn
         self.ended = False  # the stream is over (logged once)
         self._idle_since: Optional[float] = None  # over, with no reader connected, since
-        #: consumer -> the newest epoch it was told complete (or its resume state said), kept while the
-        #: scheduler keeps a record of it: what of an epoch the scheduler forgets it keeps for that consumer,
-        #: and a resume state further behind is refused (``Admission.resume_problem``; journaled)
+        #: consumer -> the newest epoch it was told complete (or its resume state said), kept for good (one
+        #: number a consumer, even once its records are gone): what of an epoch the scheduler forgets it keeps
+        #: for that consumer, and a resume state further behind is refused (``Admission.resume_problem``; journaled)
         self.told_to: Dict[Hashable, int] = {} if journal is None else dict(journal.told_to)
 
     # ------------------------------------------------------------------ per tick
@@ -184,11 +184,6 @@ class EpochEnds:
                     self.journal.consumer_told(c.consumer, c.completed)
         keep = self.sched.keep_epochs
         self.sched.prune((e for e in self.sched.plans if e <= low), lambda c, e: e > told.get(c, -1) - keep)
-        if len(told) > len(self.ledger.clients):  # forget those of consumers the scheduler keeps no record of
-            recorded = {c for p in self.sched.plans.values() for c, r in p.records.items() if r}
-            recorded.update(c.consumer for c in self.ledger.clients.values())
-            for c in [c for c in told if c not in recorded]:
-                del told[c]
         self.padding.prune({c.group for c in self.ledger.clients.values()},
                            lambda e: e not in self.sched.plans and e < self.sched.next_epoch)
 

@@ -149,7 +149,8 @@ class DeliveryCore:
         self.sched = EpochScheduler(videos, p.epochs, p.max_task_crashes, crops_per_window=p.crops_per_window,
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
                                     max_samples_per_video=p.max_samples_per_video,
-                                    first_epoch=0 if journal is None else journal.completed + 1)  # its epochs closed
+                                    first_epoch=0 if journal is None else journal.completed + 1,  # its epochs closed
+                                    kept=[e for r in journal.records.values() for e in r] if journal else ())
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s, stall_s=stall_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed, first_batch_id)
         self.padding = GroupPadding()
@@ -161,9 +162,9 @@ class DeliveryCore:
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
         for consumer, delivered in (journal.records if journal is not None else {}).items():
-            self.sched.apply_resume(consumer, journal.kept_after, delivered)  # in the closed epochs it keeps too
+            self.sched.apply_resume(consumer, -1, delivered)  # in the closed epochs it keeps too
             if consumer[0].startswith("g:"):  # a DDP rank: its grants count in its group's (docs/delivery.md, "DDP")
-                self.padding.resumed(consumer[0][2:], consumer[1], journal.kept_after, journal.batches[consumer])
+                self.padding.resumed(consumer[0][2:], consumer[1], -1, journal.batches[consumer])
 
     # ------------------------------------------------------------------ workers (``feed.WorkerFeed``)
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
@@ -300,9 +301,8 @@ class DeliveryCore:
         self.sched.undelivered(consumer, b.epoch, b.keys)
         if self.journal is not None:
             self.journal.undelivered(consumer, b.epoch, b.keys)
-        name, rank = consumer
-        if name.startswith("g:"):
-            self.padding.released(name[2:], rank, b)
+        if consumer[0].startswith("g:"):  # a DDP rank
+            self.padding.released(consumer[0][2:], consumer[1], b)
 
     def _leave(self, ident: bytes, why: str) -> None:
         """Connection ``ident`` is gone: what was leased to it goes back to the queue, what was

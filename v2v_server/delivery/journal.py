@@ -20,16 +20,16 @@ epoch, "k": [...]}`` (a batch granted, then given back unused), ``{"s": [consume
 completed_epoch, "r": {epoch: keys}, "b": {epoch: batches}}`` (a resume state replaced a record:
 its samples and the batches it yielded), ``{"t": epoch}`` (an epoch was told complete to some
 reader: a resume state may say it is complete), ``{"tc": [consumer, rank], "e": epoch}`` (the
-newest epoch that consumer was told complete, kept while the journal holds a record of it: a
-resume state more than ``keep_epochs`` behind it is refused, docs/delivery.md limit (e)),
+newest epoch that consumer was told complete, kept for good: a resume state more than
+``keep_epochs`` behind it is refused, docs/delivery.md limit (e)),
 ``{"done": epoch}`` (an epoch closed for good: a restart starts after it). The batch counts
 (:attr:`Journal.batches`) are a DDP rank's in its group's (``padding.GroupPadding``): a restarted
 server tells every rank of the group the count its ranks' grants reached (docs/delivery.md,
-"DDP"). The records of the newest ``keep_epochs`` closed epochs stay (the scheduler's ``keep_epochs``: a restarted server
-keeps the complete epochs a running one keeps, so a resume state older than their completion reopens
-them alike, docs/delivery.md limit (e)); older ones are dropped. When an epoch closes the file is
-rewritten from memory (a temporary file, fsync, rename): it holds at most ``keep_epochs`` closed
-epochs and the open ones.
+"DDP"). The records of the newest ``keep_epochs`` closed epochs stay, and each consumer's of the
+epochs within ``keep_epochs`` of the newest it was told complete (the scheduler's ``keep_epochs``: a
+restarted server keeps the records a running one keeps, so a resume state older than their
+completion reopens them alike, docs/delivery.md limit (e)); older ones are dropped. When an epoch
+closes the file is rewritten from memory (a temporary file, fsync, rename) without them.
 
 Durability: each record is one ``write`` to a file opened with ``O_APPEND`` (in the page cache
 at once: it survives the server process being killed); ``fsync`` at most every ``fsync_s``
@@ -149,7 +149,7 @@ class Journal:
             self.told_to[c] = max(self.told_to.get(c, -1), int(rec["e"]))
         elif "d" in rec:
             c, e = tuple(rec["d"]), int(rec["e"])
-            if e > self.kept_after:
+            if self._keeps(c, e):
                 self.records.setdefault(c, {}).setdefault(e, set()).update(self._keys(rec["k"]))
                 self.batches.setdefault(c, Counter())[e] += int(rec.get("n", 1))
         elif "u" in rec:
@@ -170,16 +170,16 @@ class Journal:
         """A record's ``[[video, index], ...]`` of ``keys`` (the inverse of ``_keys``)."""
         return [[k.video, k.ordinal(self.crops_per_window)] for k in keys]
 
-    @property
-    def kept_after(self) -> int:
-        """Records of epochs after this one are kept (the newest ``keep_epochs`` closed ones and the open ones)."""
-        return self.completed - self.keep_epochs
+    def _keeps(self, consumer: Hashable, epoch: int) -> bool:
+        """Whether ``consumer``'s records of ``epoch`` are kept: the open epochs and the newest ``keep_epochs`` closed
+        ones, and those within ``keep_epochs`` of the newest it was told complete (as the scheduler's: limit (e))."""
+        return epoch > min(self.completed, self.told_to.get(consumer, -1)) - self.keep_epochs
 
     def _complete(self, epoch: int) -> None:
         self.completed = max(self.completed, epoch)
         self.told = max(self.told, epoch)
-        for d in list(self.records.values()) + list(self.batches.values()):
-            for e in [e for e in d if e <= self.kept_after]:
+        for c, d in list(self.records.items()) + list(self.batches.items()):
+            for e in [e for e in d if not self._keeps(c, e)]:
                 del d[e]
 
     def _replace(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]],
@@ -189,7 +189,7 @@ class Journal:
             del d[e]
             counts.pop(e, None)
         for e in set(delivered) | set(batches):  # a rank's yielded padding alone counts too
-            if e > completed and e > self.kept_after:
+            if e > completed and self._keeps(consumer, e):
                 d[e], counts[e] = set(delivered.get(e, ())), batches.get(e, 0)
 
     # ------------------------------------------------------------------ writing
@@ -233,7 +233,7 @@ class Journal:
     def delivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
         """``consumer`` was granted one batch of ``epoch``, of samples ``keys``."""
         pairs = self._pairs(keys)
-        if pairs and epoch > self.kept_after:
+        if pairs and self._keeps(consumer, epoch):
             rec = {"d": list(consumer), "e": epoch, "k": pairs}
             self._apply(rec)
             self._append(rec)
@@ -241,7 +241,7 @@ class Journal:
     def undelivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
         """``consumer`` gave back one batch of ``epoch`` (``keys``) it was granted and never handed on."""
         pairs = self._pairs(keys)
-        if pairs and epoch > self.kept_after:
+        if pairs and self._keeps(consumer, epoch):
             rec = {"u": list(consumer), "e": epoch, "k": pairs}
             self._apply(rec)
             self._append(rec)
@@ -269,12 +269,11 @@ class Journal:
             self._append(rec)
 
     def epoch_complete(self, epoch: int) -> None:
-        """Every epoch up to ``epoch`` is closed: records of epochs beyond the newest ``keep_epochs``
-        closed ones are dropped and the file is rewritten without them."""
+        """Every epoch up to ``epoch`` is closed: records no longer kept (the module docstring) are
+        dropped and the file is rewritten without them."""
         if epoch <= self.completed:
             return
         self._complete(epoch)
-        self.told_to = {c: e for c, e in self.told_to.items() if any(self.records.get(c, {}).values())}
         if self.failed:
             return  # the next whole write (sync) leaves the epoch's records out
         try:
@@ -293,12 +292,12 @@ class Journal:
                 f.write(msgpack.packb({"done": self.completed}))
             if self.told > self.completed:
                 f.write(msgpack.packb({"t": self.told}))
+            for consumer, e in self.told_to.items():  # before the records: they say which are kept (_keeps)
+                f.write(msgpack.packb({"tc": list(consumer), "e": e}))
             for consumer, d in self.records.items():
                 for e, ks in d.items():
                     f.write(msgpack.packb({"d": list(consumer), "e": e, "k": self._pairs(sorted(ks)),
                                            "n": self.batches.get(consumer, {}).get(e, 0)}))
-            for consumer, e in self.told_to.items():
-                f.write(msgpack.packb({"tc": list(consumer), "e": e}))
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, self.path)

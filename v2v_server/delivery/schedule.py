@@ -348,23 +348,23 @@ class EpochScheduler:
         max_samples_per_video: windows a file gives at most per epoch (None: no bound known),
             for :meth:`to_come` before a file's first pass ends.
         first_epoch: the epoch to open first (after a journal's closed ones; it keeps the last ``keep_epochs``).
+        kept: older closed epochs it keeps too (a journal's records of consumers that may resume into them).
 
     Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
 
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = MAX_TASK_CRASHES,
                  lookahead: int = 1, keep_epochs: int = KEEP_EPOCHS, crops_per_window: int = 1,
-                 shuffle_seed: Optional[int] = None, max_samples_per_video: Optional[int] = None, first_epoch: int = 0):
-        self.videos, self.shuffle_seed = list(videos), shuffle_seed
-        self.max_samples_per_video = max_samples_per_video
+                 shuffle_seed: Optional[int] = None, max_samples_per_video: Optional[int] = None, first_epoch: int = 0,
+                 kept: Iterable[int] = ()):
+        self.videos, self.shuffle_seed, self.max_samples_per_video = list(videos), shuffle_seed, max_samples_per_video
         self.counts: Dict[str, int] = {}  # video -> samples its last complete pass gave (any epoch)
         self.known = frozenset(self.videos)
-        self.max_epochs = epochs
-        self.max_task_crashes = max_task_crashes
+        self.max_epochs, self.max_task_crashes = epochs, max_task_crashes
         self.lookahead, self.keep_epochs = lookahead, keep_epochs
         self.crops_per_window = crops_per_window
-        self.plans: Dict[int, EpochPlan] = {e: EpochPlan.kept(e, crops_per_window, self.known, {}, True)
-                                            for e in range(max(0, first_epoch - keep_epochs), first_epoch)}
+        self.plans: Dict[int, EpochPlan] = {e: EpochPlan.kept(e, crops_per_window, self.known, {}, True) for e in sorted(
+            {e for e in kept if e < first_epoch}.union(range(max(0, first_epoch - keep_epochs), first_epoch)))}
         self.next_epoch = first_epoch
         self.queue: Deque[Tuple[int, str]] = collections.deque()
         self.running: Dict[int, Job] = {}  # task id -> job
