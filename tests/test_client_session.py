@@ -4,12 +4,14 @@ messages out). A real server and the I/O thread around it are covered by test_st
 test_wire.py."""
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
 from v2v_client.options import StreamOptions
 from v2v_client.receipts import Abandon, Receipt
-from v2v_client.resume import ResumeState, owed_padding
+from v2v_client.resume import ResumeState, owed_padding, take_epoch_end
 from v2v_client.session import LoopAbandoned, ServerPadding, ServerSession, StreamError
 from v2v_wire import messages as cm
 from v2v_wire.protocol import PROTOCOL_VERSION, encode_arrays, pack, unpack
@@ -540,3 +542,32 @@ def test_a_ddp_rank_told_an_epochs_end_after_one_it_never_got_says_hello_again()
     _welcomed(one)
     one.on_message([pack({"type": "epoch_done", "epoch": 2})])
     assert one.outgoing() == [] and isinstance(_items(one)[0], EpochDone)
+
+
+def test_a_hello_comes_wholly_before_or_after_the_loop_records_an_epochs_end():
+    """The loop takes a DDP rank's epoch end (owing one padding batch) and records it in the step
+    that finds it told to the current session; a hello the I/O thread says meanwhile waits for
+    that step. The hello then forgets the padding owed (the server tells the end and count again),
+    so the rank pays nothing of the old end. Had the hello come between the check and the record,
+    the rank would pay that padding and the server's again (simulator finding F35's race, found by
+    reading ``EndpointStream``)."""
+    record = ResumeState("c")
+    s = ServerSession("tcp://127.0.0.1:1", _options(rank=0, world_size=2, group="job"), record, "c")
+    _welcomed(s)
+    s.on_message([pack({"type": "epoch_done", "epoch": 0, "batches": 1})])
+    (end,) = _items(s)
+    said = threading.Event()
+    hello = threading.Thread(target=lambda: (s.hello(), said.set()))
+
+    def record_end(current: bool) -> None:
+        hello.start()
+        assert not said.wait(0.3)  # the hello waits for this step
+        take_epoch_end(record, end, True, current)
+        assert record.owed == {0: 1}
+
+    assert s.held.of_session(end, record_end)
+    assert said.wait(5.0)
+    hello.join()
+    assert record.owed == {} and list(owed_padding(record, {"epoch": 0}, lambda b, e: b)) == []
+    (h,) = s.outgoing()
+    assert isinstance(h, cm.Hello) and h.resume.completed_epoch == -1

@@ -93,9 +93,9 @@ class Connection:
         """A DataLoader worker's iteration ends on this ``drained`` (``HeldBatches.ends_on``)."""
         return self.session.held.ends_on(drained)
 
-    def of_session(self, item) -> bool:
+    def of_session(self, item, then: Callable[[bool], object] = lambda current: None) -> bool:
         """An epoch end or padding the loop takes was told to the current session (``HeldBatches.of_session``)."""
-        return self.session.held.of_session(item)
+        return self.session.held.of_session(item, then)
 
     def ended(self) -> bool:
         """True once the I/O thread has ended and every item it queued was taken."""

@@ -20,7 +20,7 @@ from v2v_wire.stream_messages import Drained, EpochDone
 from .connection import Connection
 from .options import StreamOptions
 from .receipts import Handed, received_ids
-from .resume import ResumeState, owed_padding
+from .resume import ResumeState, owed_padding, take_epoch_end
 from .session import LoopAbandoned, ServerPadding, StreamError
 from .tensors import batch_to_torch, select_samples
 
@@ -206,17 +206,14 @@ class EndpointStream:
                     return
                 if isinstance(item, BaseException):
                     raise item
-                if isinstance(item, (EpochDone, ServerPadding)) and not conn.of_session(item):
-                    if isinstance(item, EpochDone) and self.options.world_size > 1:
-                        self.record.complete(item.epoch, item.batches, stale=True)  # its count is kept
-                    continue  # told the session a hello ended: the server tells the new one itself
                 if isinstance(item, EpochDone):
-                    yield from self._epoch_done(item)
+                    yield from self._epoch_done(conn, item)
                 elif isinstance(item, Drained):
                     if conn.ends_on(item):
                         return  # a DataLoader worker: end this iteration so the loader takes the others' batches
                 elif isinstance(item, ServerPadding):
-                    yield from self._server_padding(item)
+                    if conn.of_session(item):  # else told the session a hello ended: the server tells the new one
+                        yield from self._server_padding(item)
                 else:
                     yield from self._batch(conn, item)
         except GeneratorExit:
@@ -243,12 +240,14 @@ class EndpointStream:
                     raise StreamError(f"the connection to the v2v server at {self.endpoint} ended") from None
                 # the I/O thread decides when the server is gone (timeout_s without a message)
 
-    def _epoch_done(self, done: EpochDone) -> Iterator[dict]:
-        """Forget a complete epoch; with DDP, the padding batches this rank owes for it, copies of
-        the last batch (with none yet, the record keeps them owed: the next batch or the server's
-        copy pays them), the epoch completing in the record with the last of them."""
-        self.record.complete(done.epoch, done.batches if self.options.world_size > 1 else None)
-        if self._last is not None:
+    def _epoch_done(self, conn: Connection, done: EpochDone) -> Iterator[dict]:
+        """Forget a complete epoch told to the current session (:func:`~v2v_client.resume.take_epoch_end`);
+        with DDP, the padding batches this rank owes for it, copies of the last batch (with none yet,
+        the record keeps them owed: the next batch or the server's copy pays them), the epoch
+        completing in the record with the last of them."""
+        ddp = self.options.world_size > 1
+        current = conn.of_session(done, lambda now_current: take_epoch_end(self.record, done, ddp, now_current))
+        if current and self._last is not None:
             yield from owed_padding(self.record, self._last, padding_copy)
 
     def _unpaid_padding(self, info: dict) -> Iterator[dict]:

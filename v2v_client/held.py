@@ -189,19 +189,21 @@ class HeldBatches:
                     "connection); saying hello again", self.endpoint, done.epoch, missed)
         return True
 
-    def of_session(self, item) -> bool:
+    def of_session(self, item, then: Callable[[bool], object] = lambda current: None) -> bool:
         """The loop takes this epoch end or padding (:meth:`told_end`) off its queue: True if it was
-        told to the current session. One told before the latest hello is about the session that hello
+        told to the current session; ``then(that)`` is called under the lock (the consumer records the
+        end there: a hello, which reads that record under the same lock, comes wholly before or after). One told before the latest hello is about the session that hello
         ended: that hello's state said the epoch open, and the server tells its end and count again
         (a rank that paid padding from the old count, its epoch complete here while the server sent it
         batches of that epoch, gave them back for good or yielded more than its group; docs/delivery.md,
         "Ends of epochs")."""
         with self.lock:
-            for i, told in enumerate(self.ends):
-                if told is item:
-                    del self.ends[i]
-                    return True
-            return False
+            at = next((i for i, told in enumerate(self.ends) if told is item), None)
+            current = at is not None
+            if current:
+                del self.ends[at]
+            then(current)
+            return current
 
     def ends_on(self, drained) -> bool:
         """A DataLoader worker's iteration ends on this ``drained``, taken off its queue: it was told

@@ -22,7 +22,7 @@ from typing import Callable, Dict, Iterable, Iterator, List, Optional, Set, Tupl
 
 from v2v_wire.messages import MAX_MAP_LEN, ResumeIds
 
-__all__ = ["ResumeState", "STATE_VERSION", "owed_padding"]
+__all__ = ["ResumeState", "STATE_VERSION", "owed_padding", "take_epoch_end"]
 
 STATE_VERSION = 1
 
@@ -336,6 +336,16 @@ class ResumeState:
         """Forget the batches in the DataLoader's queues (they go back to the server)."""
         with self.lock:
             self.pipeline.clear()
+
+
+def take_epoch_end(record: ResumeState, done, ddp: bool, current: bool) -> None:
+    """An epoch end (``stream_messages.EpochDone``) the loop takes off its queue, recorded in the step
+    that finds whether it was told to the current session (``current``; ``HeldBatches.of_session``):
+    the epoch completes in ``record``, with DDP owing the padding its count says (``ResumeState.complete``);
+    one told a session a hello ended keeps only its DDP count, as the server tells the new session
+    again (docs/delivery.md, "Ends of epochs")."""
+    if current or ddp:
+        record.complete(done.epoch, done.batches if ddp else None, stale=not current)
 
 
 def owed_padding(record: ResumeState, source: dict, copy: Callable[[dict, int], dict],

@@ -205,8 +205,8 @@ class SimConnection:
     def ends_on(self, drained) -> bool:
         return self.session.held.ends_on(drained)
 
-    def of_session(self, item) -> bool:
-        return self.session.held.of_session(item)
+    def of_session(self, item, then=lambda current: None) -> bool:
+        return self.session.held.of_session(item, then)
 
     def ended(self) -> bool:
         return not self.alive and self.session.items.empty()

@@ -20,7 +20,7 @@ import queue
 from typing import Callable, Iterator, List, Optional, Tuple
 
 from v2v_client.receipts import Handed
-from v2v_client.resume import ResumeState, owed_padding
+from v2v_client.resume import ResumeState, owed_padding, take_epoch_end
 from v2v_client.session import LoopAbandoned, ServerPadding, StreamError
 from v2v_wire.stream_messages import Drained, EpochDone
 
@@ -121,16 +121,14 @@ class SimIterator:
             return self._close("end", "abandoned")
         if isinstance(item, BaseException):
             return self._close("error", item)
-        if isinstance(item, (EpochDone, ServerPadding)) and not self.conn.of_session(item):
-            if isinstance(item, EpochDone) and s.options.world_size > 1:  # told the session a hello ended:
-                s.record.complete(item.epoch, item.batches, stale=True)  # its count is kept, the server tells it again
-        elif isinstance(item, EpochDone):
+        if isinstance(item, EpochDone):
             self._epoch_done(item)
         elif isinstance(item, Drained):
             if self.conn.ends_on(item):
                 return self._close("end", "drained")
         elif isinstance(item, ServerPadding):
-            self.pads = self._server_padding(_loop_item(item.item, padding=True))
+            if self.conn.of_session(item):
+                self.pads = self._server_padding(_loop_item(item.item, padding=True))
         elif s.record.is_complete(item["epoch"]):
             self.conn.give_back(item)
         else:  # padding owed goes before the claim
@@ -169,9 +167,9 @@ class SimIterator:
         return True
 
     def _epoch_done(self, done: EpochDone) -> None:
-        s = self.s
-        s.record.complete(done.epoch, done.batches if s.options.world_size > 1 else None)
-        if s.last is not None:
+        s, ddp = self.s, self.s.options.world_size > 1
+        current = self.conn.of_session(done, lambda now_current: take_epoch_end(s.record, done, ddp, now_current))
+        if current and s.last is not None:
             self.pads = owed_padding(s.record, s.last, _padding_copy)
 
     def _server_padding(self, p: dict) -> Iterator[dict]:
