@@ -919,6 +919,35 @@ def test_a_ddp_groups_count_once_told_is_not_lowered_by_a_grant_given_back_later
     assert pad.epoch_done(back, 0) == (0, None)
 
 
+def test_a_ddp_groups_count_once_told_is_not_raised_by_a_grant_given_back_later():
+    """Ranks 0 and 1 of a group of three hold their grants of epoch 0 (one for rank 0, two for rank
+    1, which reads two ahead); rank 2, granted one, is told the epoch complete with a count of 2.
+    Rank 0 leaves without its batch, then says hello again: the batch goes back to the queue while
+    rank 1, which has just acknowledged its two, has free slots. It goes to rank 0, below the count
+    told, not to rank 1 at it: given to rank 1, the group's count rose to 3, told to ranks 0 and
+    1 while rank 2 had ended on 2, and the job hung in an all-reduce (simulator ``mixed`` seed
+    44061, F41)."""
+    s = TinyStream()
+    s.hello(b"r0", "j", group="g", rank=0, world_size=3)
+    s.take(s.core.hello(b"r1", Hello(("voxels",), 2, consumer="j", group="g", rank=1, world_size=3), s.now))
+    s.hello(b"r2", "j", group="g", rank=2, world_size=3)
+    s.keep |= {b"r0", b"r1"}
+    for _ in range(8):  # past the lease: the grants held by ranks 0 and 1 no longer hold rank 2's end back
+        s.turn()
+    assert [e for e, _ in s.got[b"r1"]] == [0, 0] and s.told[b"r2"][:1] == [(0, 2)], (dict(s.got), dict(s.told))
+    assert s.told[b"r0"] == [] and s.told[b"r1"] == []
+    given_back = s.got[b"r0"][0]
+    s.core.message(b"r0", Bye(), s.now)
+    s.keep -= {b"r0", b"r1"}
+    ids = [b.batch_id for b in s.core.ledger.batches.values() if b.consumer == ("g:g", 1)]
+    s.core.message(b"r1", Ack(tuple(ids)), s.now)
+    s.hello(b"r0.2", "j", Resume(-1, {}), group="g", rank=0, world_size=3)
+    for _ in range(8):
+        s.turn()
+    assert s.got[b"r0.2"][0] == given_back, dict(s.got)
+    assert s.told[b"r0.2"][:1] == [(0, 2)] and s.told[b"r1"][:1] == [(0, 2)], dict(s.told)
+
+
 def test_a_ddp_rank_told_an_epoch_the_server_never_opened_is_told_its_groups_count():
     """A restarted server (no journal) is first said hello by a trainer that completed epoch 0,
     so it starts at epoch 1; then a DDP job's ranks come back, rank 0 having yielded one batch

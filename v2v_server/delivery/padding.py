@@ -48,6 +48,15 @@ class GroupPadding:
         if counts.get(rank, 0) > 0:
             counts[rank] -= 1
 
+    def room(self, c, epoch: int) -> Optional[int]:
+        """How many more batches of ``epoch`` the rank of client ``c`` (``ledger.ClientRecord``) may
+        be granted: None while no rank of its group was told a count of it, else that count less
+        what the rank yielded. A batch of an epoch whose count was told goes only to a rank below it
+        (or to a reader outside the group), so a told count never rises: a rank that ended on it
+        cannot be told more (docs/delivery.md, "Ends of epochs")."""
+        told = self.told.get((c.group, epoch))
+        return None if told is None else told - self.taken.get((c.group, epoch), {}).get(c.rank, 0)
+
     def epoch_done(self, c, epoch: int) -> Tuple[int, Optional[BatchRecord]]:
         """For the rank of client ``c`` (``ledger.ClientRecord``) once ``epoch`` is complete:
         the batches every rank of its group reaches (the most any of them yielded), and a
