@@ -61,8 +61,9 @@ FULL = Profile("full", 3, TRAINER_FAULTS)
 MAIN = Profile("main", 2, tuple(f for f in TRAINER_FAULTS if f not in ("server_crash", "blip", "cut", "kill_for_good")),
                max_pause_s=25.0, spikes=False)
 #: what it survives with StreamLoader workers: MAIN, no stop over 1.5 s (a pause that extends a worker's pause
-#: not over yet redraws its wake-up delays, so the worker may run two iterations' ``begin`` out of order and
-#: answer the older one: the loop waits for good, mixed/main 19720 with 25 s pauses; a simulator defect)
+#: not over yet redrew its wake-up delays, so the worker could run two iterations' ``begin`` out of order and
+#: answer the older one: the loop waited for good, mixed/main 19720 with 25 s pauses; a simulator defect, F42,
+#: fixed since: longer stops are yet to be measured here)
 MAIN_LOADER = Profile("main", 2, MAIN.faults, max_pause_s=1.5, spikes=False)
 
 
