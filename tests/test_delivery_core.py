@@ -948,6 +948,31 @@ def test_a_ddp_groups_count_once_told_is_not_raised_by_a_grant_given_back_later(
     assert s.told[b"r0.2"][:1] == [(0, 2)] and s.told[b"r1"][:1] == [(0, 2)], dict(s.told)
 
 
+def test_a_ddp_rank_back_after_the_others_ran_every_epoch_is_told_its_groups_count():
+    """Rank 0 of a group of two leaves with nothing; rank 1, granted one batch of epoch 0, and a
+    trainer read every epoch, and the server forgets epoch 0. Rank 0, back, is told epoch 0 with
+    the group's count, 1: the counts of an epoch are kept while a rank of the group was told fewer
+    than ``keep_epochs`` newer epochs complete, as its records are (they went with the epoch: told
+    it with no count, rank 0 padded nothing, and the job hung in an all-reduce: simulator
+    ``mixed`` seeds 33857, 56221, F43)."""
+    s = TinyStream()
+    s.hello(b"r0", "j", group="g", rank=0, world_size=2)
+    s.hello(b"r1", "j", group="g", rank=1, world_size=2)
+    s.mute.add(b"r0")
+    s.turn()
+    assert [e for e, _ in s.got[b"r1"]] == [0], dict(s.got)
+    s.core.message(b"r0", Bye(), s.now)  # what was sent to it goes back to the queue
+    s.hello(b"b", "b")
+    for _ in range(110):  # past the group's wait (client_timeout_s): rank 1 reads on alone
+        s.turn()
+    assert [e for e, _ in s.told[b"b"]] == [0, 1, 2] and s.told[b"r1"][0] == (0, 1), dict(s.told)
+    assert 0 not in s.core.sched.plans
+    s.hello(b"r0.2", "j", Resume(-1, {}), group="g", rank=0, world_size=2)
+    for _ in range(110):  # rank 1 and the trainer, silent, were dropped: the group's wait again
+        s.turn()
+    assert s.told[b"r0.2"][:1] == [(0, 1)], dict(s.told)
+
+
 def test_a_ddp_rank_told_an_epoch_the_server_never_opened_is_told_its_groups_count():
     """A restarted server (no journal) is first said hello by a trainer that completed epoch 0,
     so it starts at epoch 1; then a DDP job's ranks come back, rank 0 having yielded one batch
