@@ -948,6 +948,26 @@ def test_a_ddp_groups_count_once_told_is_not_raised_by_a_grant_given_back_later(
     assert s.told[b"r0.2"][:1] == [(0, 2)] and s.told[b"r1"][:1] == [(0, 2)], dict(s.told)
 
 
+def test_a_count_told_to_the_ranks_of_another_world_size_binds_none_of_a_resized_job():
+    """Three ranks were told epoch 0 with a count of 2; the job, killed, resumes at world size 2,
+    each new rank counting the 2 batches the gathered state says the most a rank yielded. A batch
+    of epoch 0 given back may go to either (the old ranks read no more): bound by the old count,
+    it waited for good and the job's stream never ended (``elastic`` seed 44 with F41's rule)."""
+    from v2v_server.delivery.ledger import ClientRecord
+    from v2v_server.delivery.padding import GroupPadding
+    pad = GroupPadding()
+    pad.resized("g", 3)
+    for rank, bid in [(0, 0), (0, 1), (1, 2), (2, 3)]:
+        pad.acked("g", rank, BatchRecord(bid, 0, [SampleKey("a.mp4", bid)], FakeSample(f"a.mp4#{bid}")))
+    old = ClientRecord(b"r1", ("g:g", 1), ("voxels",), 2, 0.0, group="g", rank=1, world_size=3, granted=1)
+    assert pad.epoch_done(old, 0) == (2, None) and pad.room(old, 0) == 1
+    pad.resized("g", 2)
+    for rank in (0, 1):
+        pad.resumed("g", rank, -1, {0: 2})
+        new = ClientRecord(b"n%d" % rank, ("g:g", rank), ("voxels",), 2, 0.0, group="g", rank=rank, world_size=2)
+        assert pad.room(new, 0) is None
+
+
 def test_a_ddp_rank_back_after_the_others_ran_every_epoch_is_told_its_groups_count():
     """Rank 0 of a group of two leaves with nothing; rank 1, granted one batch of epoch 0, and a
     trainer read every epoch, and the server forgets epoch 0. Rank 0, back, is told epoch 0 with

@@ -31,7 +31,11 @@ class GroupPadding:
 
     def resized(self, group: str, world: int) -> None:
         """A rank of ``group`` said hello at world size ``world``: counts of ranks beyond it (an
-        earlier world size of the job) no longer count."""
+        earlier world size of the job) no longer count, nor do the counts told to the ranks of another
+        world size (none of them reads now: docs/delivery.md, "A world size changes")."""
+        if self.world.get(group, world) != world:
+            for key in [k for k in self.told if k[0] == group]:
+                del self.told[key]
         self.world[group] = world
         for (g, _), counts in self.taken.items():
             if g == group:
