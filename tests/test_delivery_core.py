@@ -919,6 +919,80 @@ def test_a_ddp_groups_count_once_told_is_not_lowered_by_a_grant_given_back_later
     assert pad.epoch_done(back, 0) == (0, None)
 
 
+def test_a_ddp_groups_count_once_told_is_not_raised_by_a_grant_given_back_later():
+    """Ranks 0 and 1 of a group of three hold their grants of epoch 0 (one for rank 0, two for rank
+    1, which reads two ahead); rank 2, granted one, is told the epoch complete with a count of 2.
+    Rank 0 leaves without its batch, then says hello again: the batch goes back to the queue while
+    rank 1, which has just acknowledged its two, has free slots. It goes to rank 0, below the count
+    told, not to rank 1 at it: given to rank 1, the group's count rose to 3, told to ranks 0 and
+    1 while rank 2 had ended on 2, and the job hung in an all-reduce (simulator ``mixed`` seed
+    44061, F41)."""
+    s = TinyStream()
+    s.hello(b"r0", "j", group="g", rank=0, world_size=3)
+    s.take(s.core.hello(b"r1", Hello(("voxels",), 2, consumer="j", group="g", rank=1, world_size=3), s.now))
+    s.hello(b"r2", "j", group="g", rank=2, world_size=3)
+    s.keep |= {b"r0", b"r1"}
+    for _ in range(8):  # past the lease: the grants held by ranks 0 and 1 no longer hold rank 2's end back
+        s.turn()
+    assert [e for e, _ in s.got[b"r1"]] == [0, 0] and s.told[b"r2"][:1] == [(0, 2)], (dict(s.got), dict(s.told))
+    assert s.told[b"r0"] == [] and s.told[b"r1"] == []
+    given_back = s.got[b"r0"][0]
+    s.core.message(b"r0", Bye(), s.now)
+    s.keep -= {b"r0", b"r1"}
+    ids = [b.batch_id for b in s.core.ledger.batches.values() if b.consumer == ("g:g", 1)]
+    s.core.message(b"r1", Ack(tuple(ids)), s.now)
+    s.hello(b"r0.2", "j", Resume(-1, {}), group="g", rank=0, world_size=3)
+    for _ in range(8):
+        s.turn()
+    assert s.got[b"r0.2"][0] == given_back, dict(s.got)
+    assert s.told[b"r0.2"][:1] == [(0, 2)] and s.told[b"r1"][:1] == [(0, 2)], dict(s.told)
+
+
+def test_a_count_told_to_the_ranks_of_another_world_size_binds_none_of_a_resized_job():
+    """Three ranks were told epoch 0 with a count of 2; the job, killed, resumes at world size 2,
+    each new rank counting the 2 batches the gathered state says the most a rank yielded. A batch
+    of epoch 0 given back may go to either (the old ranks read no more): bound by the old count,
+    it waited for good and the job's stream never ended (``elastic`` seed 44 with F41's rule)."""
+    from v2v_server.delivery.ledger import ClientRecord
+    from v2v_server.delivery.padding import GroupPadding
+    pad = GroupPadding()
+    pad.resized("g", 3)
+    for rank, bid in [(0, 0), (0, 1), (1, 2), (2, 3)]:
+        pad.acked("g", rank, BatchRecord(bid, 0, [SampleKey("a.mp4", bid)], FakeSample(f"a.mp4#{bid}")))
+    old = ClientRecord(b"r1", ("g:g", 1), ("voxels",), 2, 0.0, group="g", rank=1, world_size=3, granted=1)
+    assert pad.epoch_done(old, 0) == (2, None) and pad.room(old, 0) == 1
+    pad.resized("g", 2)
+    for rank in (0, 1):
+        pad.resumed("g", rank, -1, {0: 2})
+        new = ClientRecord(b"n%d" % rank, ("g:g", rank), ("voxels",), 2, 0.0, group="g", rank=rank, world_size=2)
+        assert pad.room(new, 0) is None
+
+
+def test_a_ddp_rank_back_after_the_others_ran_every_epoch_is_told_its_groups_count():
+    """Rank 0 of a group of two leaves with nothing; rank 1, granted one batch of epoch 0, and a
+    trainer read every epoch, and the server forgets epoch 0. Rank 0, back, is told epoch 0 with
+    the group's count, 1: the counts of an epoch are kept while a rank of the group was told fewer
+    than ``keep_epochs`` newer epochs complete, as its records are (they went with the epoch: told
+    it with no count, rank 0 padded nothing, and the job hung in an all-reduce: simulator
+    ``mixed`` seeds 33857, 56221, F43)."""
+    s = TinyStream()
+    s.hello(b"r0", "j", group="g", rank=0, world_size=2)
+    s.hello(b"r1", "j", group="g", rank=1, world_size=2)
+    s.mute.add(b"r0")
+    s.turn()
+    assert [e for e, _ in s.got[b"r1"]] == [0], dict(s.got)
+    s.core.message(b"r0", Bye(), s.now)  # what was sent to it goes back to the queue
+    s.hello(b"b", "b")
+    for _ in range(110):  # past the group's wait (client_timeout_s): rank 1 reads on alone
+        s.turn()
+    assert [e for e, _ in s.told[b"b"]] == [0, 1, 2] and s.told[b"r1"][0] == (0, 1), dict(s.told)
+    assert 0 not in s.core.sched.plans
+    s.hello(b"r0.2", "j", Resume(-1, {}), group="g", rank=0, world_size=2)
+    for _ in range(110):  # rank 1 and the trainer, silent, were dropped: the group's wait again
+        s.turn()
+    assert s.told[b"r0.2"][:1] == [(0, 1)], dict(s.told)
+
+
 def test_a_ddp_rank_told_an_epoch_the_server_never_opened_is_told_its_groups_count():
     """A restarted server (no journal) is first said hello by a trainer that completed epoch 0,
     so it starts at epoch 1; then a DDP job's ranks come back, rank 0 having yielded one batch

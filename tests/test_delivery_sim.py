@@ -159,3 +159,31 @@ def test_ddp_ranks_paused_past_the_client_timeout_end_alike(seed):
     of that epoch the server sent again, a livelock; 2768: it yielded one batch too many)."""
     outcome = simulate(["ddp"], f"{seed}:{seed + 1}")["ddp"]
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
+
+
+def test_a_pause_within_a_pause_keeps_each_threads_order():
+    """A process paused again before its threads woke from a first pause runs each thread's
+    events in the order they came: the second pause's wake-up delays, drawn afresh, ran a
+    connection's later messages before those deferred by the first (a DDP rank read the server's
+    ``dropped`` before the padding and end sent before it, and ended without its padding:
+    ``mixed`` seed 10881, F42)."""
+    from harness.delivery_sim.world import Proc, Sim
+
+    for seed in range(20):
+        sim, proc, ran = Sim(seed), Proc("client"), []
+        sim.at(0.0, lambda: proc.pause(10.0, sim.rng, sim.now))
+        sim.at(1.0, ran.append, "sent first", proc=proc, lane="io")
+        sim.at(2.0, lambda: proc.pause(5.0, sim.rng, sim.now))
+        sim.at(3.0, ran.append, "sent second", proc=proc, lane="io")
+        sim.run(20.0)
+        assert ran == ["sent first", "sent second"], seed
+
+
+@pytest.mark.parametrize("seed", [44061, 10881, 33857])
+def test_ddp_ranks_of_the_full_mixed_profile_end_alike(seed):
+    """``mixed`` seeds where a DDP group's count, told to a rank that ended, rose as a batch given
+    back went to a rank already at it (44061, F41), a rank paused twice read its old session's
+    end after its new hello (10881, F42), or a rank back after the others ran every epoch was told
+    an epoch forgotten with its group's counts (33857, F43): the job hung in an all-reduce."""
+    outcome = simulate(["mixed"], f"{seed}:{seed + 1}")["mixed"]
+    assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)

@@ -18,7 +18,7 @@ def pause(run: Run, job, seconds: float, some: bool = False) -> None:
     if some and len(procs) > 1:
         procs = run.sim.rng.sample(procs, run.sim.rng.randint(1, len(procs)))
     for p in procs:
-        p.proc.pause(run.sim.now + seconds, run.sim.rng)
+        p.proc.pause(run.sim.now + seconds, run.sim.rng, run.sim.now)
         run.sim.log(p.name, f"paused for {seconds:.2f} s")
     run.fault_until(run.sim.now + seconds)
 

@@ -110,7 +110,7 @@ def wakes_after_others_ran_ahead(seed: int, trace: bool = False) -> Run:
 
 def _pause(run: Run, job, seconds: float, io_first: bool = False) -> None:
     for p in job.procs():
-        p.proc.pause(run.sim.now + seconds, run.sim.rng)
+        p.proc.pause(run.sim.now + seconds, run.sim.rng, run.sim.now)
         if io_first:
             p.proc.wake = {"io": 0.0, "main": 0.002}
         run.sim.log(p.name, f"paused for {seconds:.1f} s")
@@ -324,7 +324,7 @@ def batch_ids_of_two_server_lives(seed: int, trace: bool = False) -> Run:
     job.start()
 
     def stop_worker_0() -> None:
-        job.workers[0].proc.pause(run.sim.now + 2.0, run.sim.rng)
+        job.workers[0].proc.pause(run.sim.now + 2.0, run.sim.rng, run.sim.now)
         run.sim.log(job.workers[0].name, "paused for 2.0 s")
 
     def breaks(p: float) -> None:

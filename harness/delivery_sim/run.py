@@ -93,7 +93,7 @@ class Run:
         """The server process is stopped (SIGSTOP, swapped out) for ``seconds``."""
         if self.server is not None:
             p = self.server.proc
-            p.pause(self.sim.now + seconds, self.sim.rng)
+            p.pause(self.sim.now + seconds, self.sim.rng, self.sim.now)
             self.fault_until(self.sim.now + seconds)
             self.sim.log("run", f"server stalls for {seconds:.2f} s")
 

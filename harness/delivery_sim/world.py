@@ -39,10 +39,14 @@ class Proc:
         self.paused_until = 0.0
         self.wake: dict = {}
 
-    def pause(self, until: float, rng) -> None:
-        """Stop until ``until``; on waking each thread goes on after its own short delay."""
+    def pause(self, until: float, rng, now: float) -> None:
+        """Stop until ``until``; on waking each thread goes on after its own short delay. A pause
+        within one whose threads have not all woken keeps their delays: a thread's events deferred by
+        the first would otherwise run after those of the second (a connection's messages reordered)."""
+        wake = {"io": rng.uniform(0.0, 0.003), "main": rng.uniform(0.0, 0.003)}
+        if now >= self.paused_until + max(self.wake.values(), default=0.0):
+            self.wake = wake
         self.paused_until = max(self.paused_until, until)
-        self.wake = {"io": rng.uniform(0.0, 0.003), "main": rng.uniform(0.0, 0.003)}
 
     def __repr__(self) -> str:
         return f"Proc({self.name}{', dead' if self.dead else ''})"

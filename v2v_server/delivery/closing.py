@@ -185,7 +185,8 @@ class EpochEnds:
         keep = self.sched.keep_epochs
         self.sched.prune((e for e in self.sched.plans if e <= low), lambda c, e: e > told.get(c, -1) - keep)
         self.padding.prune({c.group for c in self.ledger.clients.values()},
-                           lambda e: e not in self.sched.plans and e < self.sched.next_epoch)
+                           lambda e: e not in self.sched.plans and e < self.sched.next_epoch,
+                           lambda g, rank, e: told.get(("g:" + g, rank), -1) < e + keep)  # as its records
 
     def drained(self) -> List[Msg]:
         """``drained`` to each connection, once a session, when a bounded stream has nothing left

@@ -344,7 +344,7 @@ class DeliveryCore:
         for ident, why in drops:
             log.warning("client %s %s; dropping it (its batches go to others)", ident.hex(), why)
             msgs.append((ident, ServerError(f"dropped by the server: {why}; discard what you hold", "dropped")))
-        sends, stale = self.ledger.sends(now)
+        sends, stale = self.ledger.sends(now, self.padding.room)
         for b in stale:
             log.info("batch %d carries %s, which no connected client takes as is; its samples are made again",
                      b.batch_id, sorted(b.outputs))

@@ -188,12 +188,14 @@ class DeliveryLedger:
         """A new batch is ready to send (made -> ready)."""
         self.table.add(batch)
 
-    def sends(self, now: float) -> Tuple[List[Tuple[bytes, BatchRecord]], List[BatchRecord]]:
+    def sends(self, now: float, room=lambda c, epoch: None) -> Tuple[List[Tuple[bytes, BatchRecord]],
+                                                                     List[BatchRecord]]:
         """Lease ready batches to clients with free slots (ready -> leased), in queue order,
-        skipping batches only busy clients can take. Returns ``(sends, stale)``: the caller sends
-        each ``(ident, batch)``; ``stale`` batches lack an output every connected client asks for,
-        or every client with a free slot (made before those clients came): they left the table and
-        their samples must be made again."""
+        skipping batches only busy clients can take, and a DDP rank whose ``room(c, epoch)``
+        (``GroupPadding.room``: None, no bound) its batches of that epoch on their way fill. Returns
+        ``(sends, stale)``: the caller sends each ``(ident, batch)``; ``stale`` batches lack an output
+        every connected client asks for, or every client with a free slot (made before those clients
+        came): they left the table and their samples must be made again."""
         out: List[Tuple[bytes, BatchRecord]] = []
         stale: List[BatchRecord] = []
         groups = self.ready_groups(now)
@@ -209,10 +211,11 @@ class DeliveryLedger:
                     self.table.forget(bid)
                     stale.append(b)
                 continue  # else a reopened epoch: it waits for a client that has not completed it
-            cand = [c for c in fits if c.ident in open_]
+            cand = [c for c in fits if c.ident in open_ and self._has_room(c, b.epoch, room)]
             if not cand:
-                if any(b.epoch > c.completed for c in open_.values()):  # only busy clients fit, a free one
-                    self.table.forget(bid)  # lacks an output: made again with it (a full client may never free)
+                if any(b.epoch > c.completed and not set(c.outputs) <= b.outputs for c in open_.values()):
+                    self.table.forget(bid)  # a free client lacks an output: made again with it (only busy ones fit,
+                    # and a full client may never free)
                     stale.append(b)
                 continue
             c = min(cand, key=lambda x: (x.ident == b.avoid, x.served, x.ident))
@@ -223,6 +226,13 @@ class DeliveryLedger:
                 del open_[c.ident]
             out.append((c.ident, b))
         return out, stale
+
+    def _has_room(self, c: ClientRecord, epoch: int, room) -> bool:
+        """``c`` may be sent one more batch of ``epoch``: not a DDP rank, or one below its ``room``
+        counting the batches of ``epoch`` leased or revoked to it (its grants are counted in it)."""
+        left = room(c, epoch) if c.ddp else None
+        return left is None or left > sum(1 for i in self.table.held_by(c.ident)
+                                          if self.table.get(i).epoch == epoch and self.table.get(i).state != GRANTED)
 
     def hold(self, ident: bytes, batch_ids: Iterable[int], now: float = 0.0) -> Tuple[List[int], List[BatchRecord]]:
         """The client asks for these batches' grants (leased or revoked -> granted). Returns

@@ -17,6 +17,7 @@ class GroupPadding:
         self.taken: Dict[Tuple[str, int], Dict[int, int]] = {}  # (group, epoch) -> rank -> batches yielded
         self.pad_source: Dict[str, BatchRecord] = {}  # group -> its last acknowledged batch
         self.told: Dict[Tuple[str, int], int] = {}  # (group, epoch) -> the count its ranks were told
+        self.world: Dict[str, int] = {}  # group -> the world size its newest hello named
 
     def resumed(self, group: str, rank: int, completed_epoch: int, batches: Dict[int, int]) -> None:
         """A rank's resume state: in each epoch after ``completed_epoch`` it yielded
@@ -30,7 +31,12 @@ class GroupPadding:
 
     def resized(self, group: str, world: int) -> None:
         """A rank of ``group`` said hello at world size ``world``: counts of ranks beyond it (an
-        earlier world size of the job) no longer count."""
+        earlier world size of the job) no longer count, nor do the counts told to the ranks of another
+        world size (none of them reads now: docs/delivery.md, "A world size changes")."""
+        if self.world.get(group, world) != world:
+            for key in [k for k in self.told if k[0] == group]:
+                del self.told[key]
+        self.world[group] = world
         for (g, _), counts in self.taken.items():
             if g == group:
                 for r in [r for r in counts if r >= world]:
@@ -48,6 +54,15 @@ class GroupPadding:
         if counts.get(rank, 0) > 0:
             counts[rank] -= 1
 
+    def room(self, c, epoch: int) -> Optional[int]:
+        """How many more batches of ``epoch`` the rank of client ``c`` (``ledger.ClientRecord``) may
+        be granted: None while no rank of its group was told a count of it, else that count less
+        what the rank yielded. A batch of an epoch whose count was told goes only to a rank below it
+        (or to a reader outside the group), so a told count never rises: a rank that ended on it
+        cannot be told more (docs/delivery.md, "Ends of epochs")."""
+        told = self.told.get((c.group, epoch))
+        return None if told is None else told - self.taken.get((c.group, epoch), {}).get(c.rank, 0)
+
     def epoch_done(self, c, epoch: int) -> Tuple[int, Optional[BatchRecord]]:
         """For the rank of client ``c`` (``ledger.ClientRecord``) once ``epoch`` is complete:
         the batches every rank of its group reaches (the most any of them yielded), and a
@@ -64,13 +79,23 @@ class GroupPadding:
             return most, BatchRecord(-1, epoch, src.keys, src.payload, outputs=src.outputs)
         return most, None
 
-    def prune(self, live_groups: set, forgotten: Callable[[int], bool]) -> None:
-        """Forget epochs ``forgotten(epoch)`` says are gone, and the last batch of groups with no
+    def ranks(self, group: str, epoch: int) -> set:
+        """The ranks a count of ``epoch`` concerns: those it counts, and every rank of the group's world size."""
+        return set(self.taken.get((group, epoch), ())) | set(range(self.world.get(group, 0)))
+
+    def prune(self, live_groups: set, forgotten: Callable[[int], bool],
+              behind: Callable[[str, int, int], bool] = lambda group, rank, epoch: False) -> None:
+        """Forget epochs ``forgotten(epoch)`` says are gone, but a group's counts of one while
+        ``behind(group, rank, epoch)`` for some rank of it (it may yet be told that epoch's end:
+        docs/delivery.md, "Ends of epochs"), and the last batch and world size of groups with no
         client left and no epoch counted (a rank between a drop and its next hello still pads)."""
-        for key in [k for k in self.taken if forgotten(k[1])]:
-            del self.taken[key]
-        for key in [k for k in self.told if forgotten(k[1])]:
+        for (g, e) in [k for k in self.taken if forgotten(k[1])]:
+            if not any(behind(g, r, e) for r in self.ranks(g, e)):
+                del self.taken[(g, e)]
+        for key in [k for k in self.told if forgotten(k[1]) and k not in self.taken]:
             del self.told[key]
         counted = {g for g, _ in self.taken}
         for g in [g for g in self.pad_source if g not in live_groups and g not in counted]:
             del self.pad_source[g]
+        for g in [g for g in self.world if g not in live_groups and g not in counted]:
+            del self.world[g]
