@@ -571,3 +571,31 @@ def test_a_hello_comes_wholly_before_or_after_the_loop_records_an_epochs_end():
     assert record.owed == {} and list(owed_padding(record, {"epoch": 0}, lambda b, e: b)) == []
     (h,) = s.outgoing()
     assert isinstance(h, cm.Hello) and h.resume.completed_epoch == -1
+
+
+def test_a_ddp_rank_told_the_streams_end_before_its_last_epochs_end_says_hello_again():
+    """A cut ZeroMQ mends lost a DDP rank's end of the stream's last epoch (its count) and delivered
+    the ``end`` sent after it: the rank says hello again instead of ending a batch short of its group,
+    which hung the job in an all-reduce (simulator finding F45, ``mixed`` seed 45325). Without DDP, or
+    told every end, ``end`` ends the stream."""
+    def welcome(s: ServerSession, hello_id: int) -> None:
+        s.on_message([pack({"type": "welcome", "hello_id": hello_id, "info": {"crop_size": 8, "epochs": 2}})])
+
+    rank = ServerSession("tcp://127.0.0.1:1", _options(rank=1, world_size=3, group="job"), ResumeState("c"), "c")
+    rank.hello(new_socket=True)
+    rank.outgoing()
+    welcome(rank, 1)
+    rank.on_message([pack({"type": "epoch_done", "epoch": 0, "batches": 1})])
+    assert rank.on_message([pack({"type": "end"})]) is None
+    (hello,) = rank.outgoing()
+    assert isinstance(hello, cm.Hello) and hello.hello_id == 2 and hello.resume.completed_epoch == -1
+    welcome(rank, 2)
+    for e in (0, 1):
+        rank.on_message([pack({"type": "epoch_done", "epoch": e, "batches": 1})])
+    assert rank.on_message([pack({"type": "end"})]) == "over" and rank.outgoing() == []
+    one = _session(("voxels",))
+    one.hello(new_socket=True)
+    welcome(one, 1)
+    one.on_message([pack({"type": "epoch_done", "epoch": 0})])
+    assert one.on_message([pack({"type": "end"})]) == "over"
+    assert [type(m) for m in one.outgoing()] == [cm.Hello]

@@ -174,19 +174,25 @@ class HeldBatches:
             self.ends.append(item)
         return item
 
-    def missed_end(self, done) -> bool:
+    def missed_end(self, done, epochs: Optional[int] = None) -> bool:
         """True if this ``epoch_done`` (``stream_messages.EpochDone``) has a DDP count and comes after
-        an end this session was not told (else it is noted as told). The server tells a rank's ends in
-        order, an epoch with a count alone, so the end before it (with its padding copy) was lost in a
-        cut ZeroMQ mended, which no hello follows: the session says hello again, its state reopens
-        that epoch, and the server tells its end and count again (docs/delivery.md, "Ends of epochs")."""
+        an end this session was not told (else it is noted as told), or this ``end`` (``End``, a DDP
+        rank's of a stream of ``epochs``) comes before the last epoch's end. The server tells a rank's
+        ends in order, an epoch with a count alone, and ``end`` after the last, so the end before it
+        (with its padding copy) was lost in a cut ZeroMQ mended, which no hello follows: the session
+        says hello again, its state reopens that epoch, and the server tells its end and count again
+        (docs/delivery.md, "Ends of epochs")."""
         with self.lock:
             missed = self.ends_upto + 1
-            if done.batches is None or done.epoch <= missed:
+            if getattr(done, "epoch", None) is None:  # ``end``
+                if epochs is None or done.reason is not None or missed >= epochs:
+                    return False
+            elif done.batches is None or done.epoch <= missed:
                 self.ends_upto = max(self.ends_upto, done.epoch)
                 return False
-        log.warning("v2v stream %s: told the end of epoch %d and not of epoch %d before it (lost in a broken "
-                    "connection); saying hello again", self.endpoint, done.epoch, missed)
+        told = "the stream's end" if getattr(done, "epoch", None) is None else f"the end of epoch {done.epoch}"
+        log.warning("v2v stream %s: told %s and not the end of epoch %d before it (lost in a broken connection); "
+                    "saying hello again", self.endpoint, told, missed)
         return True
 
     def of_session(self, item, then: Callable[[bool], object] = lambda current: None) -> bool:

@@ -221,8 +221,7 @@ class ServerSession:
         self.reader = BatchReader(self.outputs, convert, options.raw, options.wants_shm(endpoint), options.credits + 2)
         self.compression, self._compression_auto = options.compression_for(endpoint)
         self.ends_on_drained, self.iteration = ends_on_drained, iteration
-        self.abandoned = False  # the loader left this iteration (a DataLoader worker)
-        self._next_beat: Optional[float] = None
+        self.abandoned, self._next_beat = False, None  # the loader left this iteration; the next heartbeat's time
         self._asked: set = set()  # holds unanswered at the last heartbeat
         self.unread = Unread()  # acks and releases of granted batches the server may not have read
 
@@ -360,7 +359,8 @@ class ServerSession:
             elif isinstance(m, sm.Granted):  # also an answer about what we said (``Unread``)
                 self._out.extend(self.unread.answer(m.batch_ids, m.refused, self.held))
                 self._ask()
-            elif isinstance(m, sm.EpochDone) and self.held.missed_end(m):
+            elif isinstance(m, (sm.EpochDone, sm.End)) and self.held.missed_end(
+                    m, (self.info or {}).get("epochs") if self.options.world_size > 1 else None):
                 self.hello()  # an end before it was lost: told again to the new session
             elif isinstance(m, sm.EpochDone):
                 self.items.put(self.held.told_end(m))

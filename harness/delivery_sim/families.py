@@ -202,6 +202,4 @@ FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None,
 OPEN_FINDINGS = [("mixed", 5954, "F36: a loader restarted from a checkpoint more than keep_epochs behind what a worker was "
                                   "told loses its sample"),
                  ("mixed", 30877, "F44: a killed DDP rank's hello held by a partition resets its record after the "
-                                  "restarted job's rank read (docs/delivery.md limit (g))"),
-                 ("mixed", 45325, "F45: a DDP rank whose last epoch's end was lost in a cut ZeroMQ mends ends on `end` "
-                                  "a batch short of its group")]
+                                  "restarted job's rank read (docs/delivery.md limit (g))")]
