@@ -717,8 +717,8 @@ class TinyStream:
     sent to them, unless told to keep it (``keep``: granted, never acknowledged) or to say
     nothing of it (``mute``: a paused reader)."""
 
-    def __init__(self, journal=None):
-        self.core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=3, lease_s=5.0, client_timeout_s=100.0,
+    def __init__(self, journal=None, epochs: int = 3):
+        self.core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=epochs, lease_s=5.0, client_timeout_s=100.0,
                                                            max_credits=4, task_timeout_s=100.0, shuffle="none"),
                                  make_batch, journal=journal)
         self.now = 0.0
@@ -860,6 +860,52 @@ def test_a_resume_more_than_keep_epochs_behind_what_its_consumer_was_told_is_ref
         [(_, welcome)] = s.core.hello(ident, Hello(("voxels",), 1, consumer=consumer, resume=resume), s.now)
         assert welcome.to_wire()["type"] == "welcome", welcome
         s.core.message(ident, Bye(), s.now)
+
+
+def test_a_loader_worker_told_epochs_its_loader_never_learned_gets_its_rolled_back_sample_again():
+    """StreamLoader worker x/0 took one batch of epoch 0 (its loop received it) and left; b read
+    every epoch; x/0's next iteration was told epochs 0-2 complete at once and sent nothing, so
+    its loader, which learns an epoch complete only with a batch yielded after it, never learned
+    them. The job restarts from a checkpoint taken before that batch: limit (e) counts a worker's
+    epochs from what its loader learned (none), so the server kept x/0's record of epoch 0, lets
+    the state in and sends the sample again (it reached no loop, in silence: simulator finding
+    F36, ``mixed`` seed 5954)."""
+    s = TinyStream()
+    s.hello(b"x.1", "x/0", ends_on_drained=True)
+    s.turn()
+    [(_, mine)] = s.got[b"x.1"]
+    s.core.message(b"x.1", Bye(), s.now)
+    s.read_every_epoch(b"b", "b")
+    s.hello(b"x.2", "x/0", Resume(-1, {0: frozenset({parse_sample_id(mine)})}), ends_on_drained=True)
+    for _ in range(3):
+        s.turn()
+    assert [e for e, _ in s.told[b"x.2"]] == [0, 1, 2] and not s.got[b"x.2"]
+    s.core.message(b"x.2", Bye(), s.now)
+    s.hello(b"x.3", "x/0", Resume(-1, {}), ends_on_drained=True)
+    for _ in range(5):
+        s.turn()
+    assert s.got[b"x.3"] == [(0, mine)] and [e for e, _ in s.told[b"x.3"]] == [0, 1, 2]
+
+
+def test_a_loader_worker_resume_more_than_keep_epochs_behind_what_its_loader_learned_is_refused():
+    """Worker x/0 read all five epochs on one connection: each batch after the first epoch's end
+    was leased after an end was told, and its acknowledgement says the loop received it, so its
+    loader learned epochs up to 3 complete. A state saved before epoch 0 ended is refused in one
+    line, as a trainer's; one within two epochs of it is let in (docs/delivery.md limit (e))."""
+    s = TinyStream(epochs=5)
+    s.hello(b"x.1", "x/0", ends_on_drained=True)
+    for _ in range(30):
+        s.turn()
+    assert [e for e, _ in s.told[b"x.1"]] == [0, 1, 2, 3, 4] and len(s.got[b"x.1"]) == 20
+    s.core.message(b"x.1", Bye(), s.now)
+    s.turn()
+    hello = Hello(("voxels",), 1, consumer="x/0", resume=Resume(-1, {}), ends_on_drained=True)
+    [(_, err)] = s.core.hello(b"x.2", hello, s.now)
+    assert err.to_wire()["type"] == "error" and err.code == "resume" and "\n" not in err.message
+    assert "up to 3" in err.message and "checkpoint saved after epoch 1 ended" in err.message
+    hello = Hello(("voxels",), 1, consumer="x/0", resume=Resume(1, {}), ends_on_drained=True)
+    [(_, welcome)] = s.core.hello(b"x.3", hello, s.now)
+    assert welcome.to_wire()["type"] == "welcome", welcome
 
 
 def test_a_ddp_rank_sent_a_batch_it_never_held_is_padded_by_the_server():

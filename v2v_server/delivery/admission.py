@@ -105,7 +105,7 @@ class Admission:
         peers = set(speaks)
         if h.resume.supersedes and group is not None:  # the new job's ranks may have taken the old ones' records
             peers |= {("g:" + group, r) for r in range(h.world_size)}
-        why = self.resume_problem(consumer, h.resume, peers, lags=h.ends_on_drained)
+        why = self.resume_problem(consumer, h.resume, peers)
         if why is not None:
             return ServerError(f"{name_of(consumer)}: its resume state {why}", "resume")
         return None
@@ -252,11 +252,10 @@ class Admission:
             return plan.records
         return None
 
-    def resume_problem(self, consumer: Hashable, r: Resume, speaks: Set[Hashable], lags: bool = False) -> Optional[str]:
+    def resume_problem(self, consumer: Hashable, r: Resume, speaks: Set[Hashable]) -> Optional[str]:
         """Why the server can tell resume state ``r`` of ``consumer`` is false, or would lose
         samples (docs/delivery.md, limit (e)), or None (linear in its size); ``speaks``: the
-        consumers whose grants its ids may name; ``lags``: a DataLoader worker's state, whose
-        completed epoch may lag what its worker was told (the loader learns it with a batch)."""
+        consumers whose grants its ids may name."""
         s, last = self.sched, self.sched.max_epochs
         top = max([r.completed_epoch] + [done for _, _, done in r.supersedes])  # a gathered state's ranks' too
         if last is not None and top >= last:
@@ -266,7 +265,7 @@ class Admission:
                     f"epochs up to {self.journal.told} complete: resume against the server and --state-dir the state "
                     f"was made with, or without the state")
         keep = s.keep_epochs
-        dones = {} if lags else dict([(consumer, r.completed_epoch)] + [((n, k), d) for n, k, d in r.supersedes])
+        dones = dict([(consumer, r.completed_epoch)] + [((n, k), d) for n, k, d in r.supersedes])
         for c, done in dones.items():  # each consumer it speaks for, with its own completed epoch
             told = self.told_to.get(c)
             if told is not None and done < told - keep:

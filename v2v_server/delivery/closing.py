@@ -41,9 +41,10 @@ class EpochEnds:
         self._low: Optional[int] = None  # the oldest epoch every connection was told, at the last full turn
         self.ended = False  # the stream is over (logged once)
         self._idle_since: Optional[float] = None  # over, with no reader connected, since
-        #: consumer -> the newest epoch it was told complete (or its resume state said), kept for good (one
-        #: number a consumer, even once its records are gone): what of an epoch the scheduler forgets it keeps
-        #: for that consumer, and a resume state further behind is refused (``Admission.resume_problem``; journaled)
+        #: consumer -> the newest epoch it was told complete (or its resume state said; a DataLoader worker: what
+        #: its loader learned, ``ClientRecord.known``), kept for good (one number a consumer, even once its records
+        #: are gone): what of an epoch the scheduler forgets it keeps for that consumer, and a resume state further
+        #: behind is refused (``Admission.resume_problem``; journaled; docs/delivery.md, limit (e))
         self.told_to: Dict[Hashable, int] = {} if journal is None else dict(journal.told_to)
 
     # ------------------------------------------------------------------ per tick
@@ -178,10 +179,11 @@ class EpochEnds:
                 self.journal.epoch_complete(done)
         told = self.told_to
         for c in self.ledger.clients.values():
-            if c.completed > told.get(c.consumer, -1):
-                told[c.consumer] = c.completed
+            seen = c.known if c.ends_on_drained else c.completed
+            if seen > told.get(c.consumer, -1):
+                told[c.consumer] = seen
                 if self.journal is not None:
-                    self.journal.consumer_told(c.consumer, c.completed)
+                    self.journal.consumer_told(c.consumer, seen)
         keep = self.sched.keep_epochs
         self.sched.prune((e for e in self.sched.plans if e <= low), lambda c, e: e > told.get(c, -1) - keep)
         self.padding.prune({c.group for c in self.ledger.clients.values()},

@@ -37,6 +37,9 @@ class ClientRecord:
     served: int = 0  # round-robin position (the ledger's send counter when last served)
     granted: int = 0  # batches granted to it or sent to it as DDP padding: it yields them (one it can repeat)
     completed: int = -1  # told epochs up to this one are complete: none of them is sent to it
+    #: a DataLoader worker's: the newest epoch its loader learned complete, with a batch leased after it was told
+    #: that it acknowledged (the loop received it); limit (e) counts from it (``closing.EpochEnds.told_to``)
+    known: int = -1
     told_drained: bool = False  # told nothing more is coming unless a batch held elsewhere comes back
     told_end: bool = False  # told the stream ended (it was told its last epoch)
     ends_on_drained: bool = False  # a DataLoader worker: it ends its iteration on ``drained``
@@ -221,7 +224,7 @@ class DeliveryLedger:
             c = min(cand, key=lambda x: (x.ident == b.avoid, x.served, x.ident))
             self._tick += 1
             c.served = self._tick
-            self.table.lease(bid, c.ident, now + self.lease_s, now)
+            self.table.lease(bid, c.ident, now + self.lease_s, now, c.completed)
             if self.free(c) <= 0:
                 del open_[c.ident]
             out.append((c.ident, b))
@@ -263,6 +266,7 @@ class DeliveryLedger:
         for bid in dict.fromkeys(batch_ids):
             if self.table.holds(ident, bid) and self.table.get(bid).state == GRANTED:
                 done.append(self.table.retire(bid))
+                c.known = max(c.known, done[-1].told)
         return done
 
     def released(self, ident: bytes, batch_ids: Iterable[int]) -> Tuple[List[int], List[BatchRecord]]:

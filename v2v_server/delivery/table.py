@@ -40,6 +40,8 @@ class BatchRecord:
         deadline: seconds (the server's clock): when a lease or a revoke runs out.
         since: when it was granted.
         sent: when it was leased to its holder (a connection that names it later was alive then).
+        told: the newest epoch its holder was told complete before it was leased (a DataLoader
+            worker's loader learns that epoch complete with it: docs/delivery.md, limit (e)).
     """
 
     batch_id: int
@@ -54,6 +56,7 @@ class BatchRecord:
     deadline: float = 0.0
     since: float = 0.0
     sent: float = 0.0
+    told: int = -1
 
 
 class TransitionError(RuntimeError):
@@ -137,11 +140,11 @@ class BatchTable:
         self._ready[b.batch_id] = None
         self.made += 1
 
-    def lease(self, bid: int, ident: bytes, deadline: float, now: float = 0.0) -> BatchRecord:
-        """ready -> leased to ``ident`` (at ``now``) until ``deadline``."""
+    def lease(self, bid: int, ident: bytes, deadline: float, now: float = 0.0, told: int = -1) -> BatchRecord:
+        """ready -> leased to ``ident`` (at ``now``, told epochs up to ``told`` complete) until ``deadline``."""
         b = self._expect(bid, READY)
         del self._ready[bid]
-        b.state, b.holder, b.deadline, b.sent = LEASED, ident, deadline, now
+        b.state, b.holder, b.deadline, b.sent, b.told = LEASED, ident, deadline, now, told
         self._held.setdefault(ident, {})[bid] = None
         self.sent += 1
         return b
