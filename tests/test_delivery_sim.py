@@ -151,6 +151,14 @@ def test_ddp_jobs_across_a_server_crash_end_alike(seed):
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
 
 
+def test_a_release_no_server_read_stays_the_dead_consumers_grant():
+    """``mixed`` seed 78778: a StreamLoader worker gave back its granted batch while no server
+    listened, then the job died for good; the restarted server's journal keeps the batch that
+    consumer's (docs/delivery.md limit (a)), which the checks must not call lost."""
+    outcome = simulate(["mixed"], "78778:78779")["mixed"]
+    assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
+
+
 @pytest.mark.parametrize("seed", [1664, 1774, 2768])
 def test_ddp_ranks_paused_past_the_client_timeout_end_alike(seed):
     """``ddp`` seeds where ranks paused past the client timeout said hello again: another rank's

@@ -8,15 +8,17 @@ server message to ``ServerSession.on_message`` and a ``StreamLoader``'s receipts
 ``on_loader``, calls ``tick(now)`` as its poll loop turns, sends whatever ``outgoing()`` holds,
 declares the server lost after ``timeout_s`` of silence (then a new socket, a new identity and a
 new hello, or ``StreamTimeout``), and on close sends ``outgoing()`` and ``closing()``. Every
-decision about what to send is the session's.
+decision about what to send is the session's. For the checks it tells the oracle each release of
+a batch it asked to hold (``Oracle.released``).
 """
 from __future__ import annotations
 
-from typing import Callable, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Set, Tuple
 
 from v2v_client.connection import own_stall
 from v2v_client.receipts import loader_message
 from v2v_client.session import ServerSession, StreamError, StreamTimeout
+from v2v_wire.messages import Hold, Released
 from v2v_wire.protocol import pack, unpack
 
 from harness.delivery_sim.net import Link
@@ -46,6 +48,10 @@ class SimConnection:
         self.receipts, self.wake = receipts, wake
         self.session = ServerSession(ENDPOINT, options, record, consumer, ends_on_drained=receipts is not None,
                                      iteration=iteration, instance=instance)
+        # the consumer as the server keys it (``core.consumer_of``, the oracle's "c:<id>/0", "g:<group>/<rank>")
+        self.consumer_key = f"g:{options.group or 'default'}/{options.rank}" if options.world_size > 1 \
+            else f"c:{consumer}/0"
+        self.asked: Dict[int, Set[Tuple[int, str]]] = {}  # batch id -> samples of a batch it asked to hold
         self.alive = True  # the I/O thread runs
         self.closing = False
         self.lingering = self.unreceived = False
@@ -71,9 +77,23 @@ class SimConnection:
     def _send_out(self) -> None:
         """What the session decided, in order."""
         for msg in self.session.outgoing():
-            data = pack(msg.to_wire())
-            self.sim.log(self.name, lambda: f"-> {_peek(data)}")
-            self.net.send_up(self.link, [data])
+            self._say(msg)
+
+    def _say(self, msg) -> None:
+        """Send ``msg``; a release of a batch it asked to hold (the server may have granted it) is
+        told to the oracle: that batch stays its consumer's grant until a server takes it back."""
+        if isinstance(msg, Hold):
+            for bid in msg.batch_ids:
+                item = self.session.held.current.get(bid)
+                if item is not None:
+                    self.asked[bid] = {(item["epoch"], sid) for sid in item["sample_ids"]}
+        elif isinstance(msg, Released):
+            for bid in msg.batch_ids:
+                if bid in self.asked:
+                    self.host.run.oracle.released(self.ident, bid, self.consumer_key, self.asked.pop(bid))
+        data = pack(msg.to_wire())
+        self.sim.log(self.name, lambda: f"-> {_peek(data)}")
+        self.net.send_up(self.link, [data])
 
     def deliver(self, frames: list) -> None:
         """A server message arrived (``Connection._receive``)."""
@@ -140,9 +160,7 @@ class SimConnection:
         self.alive = False
         self._send_out()
         for msg in self.session.closing(self.unreceived):
-            data = pack(msg.to_wire())
-            self.sim.log(self.name, lambda: f"-> {_peek(data)}")
-            self.net.send_up(self.link, [data])
+            self._say(msg)
         self.net.close(self.link, linger=True)
         if self.receipts is not None and self.receipts.reader is self:
             self.receipts.reader = None

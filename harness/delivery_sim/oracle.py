@@ -15,8 +15,9 @@ is the (epoch, sample id) pairs its model was trained on (padding excluded).
   epoch is in exactly one kept history, except what the docs allow: a window that failed with
   a reason, and what was owed to a consumer that died for good: granted to it and never taken
   (at most ``GRANT_AHEAD + 1`` batches each; a ``StreamLoader`` worker's queued batches
-  besides), or forgotten when it resumed from a checkpoint and not taken again before it died,
-  or forgotten by a job whose resume the server refused as more than ``keep_epochs`` behind the
+  besides; a batch a connection gave back counts as held while no server has taken its
+  ``released`` back: :meth:`Oracle.released`), or forgotten when it resumed from a checkpoint
+  and not taken again before it died, or forgotten by a job whose resume the server refused as more than ``keep_epochs`` behind the
   epochs its consumer was told complete (limit (e): counted in ``refusals``, checked against the
   epochs announced; the job reads on as a new consumer, the old one is never read again).
 * **Liveness**: every honest lineage's stream ends (the server's ``end``) by its deadline.
@@ -80,6 +81,7 @@ class Oracle:
         self.excused: Dict[int, Set[str]] = {}
         self.killed_with: Dict[str, Set[Key]] = {}  # consumer -> what its killed processes held
         self.killed_batches: Dict[str, int] = {}  # consumer -> batches held by its last killed process
+        self.unread: Dict[Tuple[bytes, int], Tuple[str, Set[Key]]] = {}  # (connection, batch) -> released, not taken back
         self.dead_consumers: Set[str] = set()  # consumers that died for good
         self.live_clients: List = []  # objects with ``pending() -> Iterable[Key]`` and ``alive()``
         self.max_epoch_opened = -1
@@ -139,6 +141,27 @@ class Oracle:
         if for_good:
             self.dead_consumers.add(consumer)
 
+    def released(self, ident: bytes, bid: int, consumer: str, keys: Set[Key]) -> None:
+        """Connection ``ident`` of ``consumer`` gave back batch ``bid`` (samples ``keys``), which
+        it had asked to hold: until a server takes it back (:meth:`taken_back`) it may be that
+        consumer's grant still (the message lost with the process or the socket, or with a server
+        that died before reading it), so if the consumer dies for good it counts as held then."""
+        self.unread[(ident, bid)] = (consumer, keys)
+
+    def taken_back(self, ident: bytes, bids: Iterable[int]) -> None:
+        """A server read a ``released`` from ``ident`` and takes batches ``bids`` back."""
+        for bid in bids:
+            self.unread.pop((ident, bid), None)
+
+    def dead_with(self, consumer: str) -> Set[Key]:
+        """What a consumer that died for good may leave granted and never taken: what its killed
+        processes held, and what its connections gave back that no server took back."""
+        out = set(self.killed_with.get(consumer, ()))
+        for who, keys in self.unread.values():
+            if who == consumer:
+                out |= keys
+        return out
+
     def refused_behind(self, lineage: str, consumer: str, completed: int, keep_epochs: int) -> None:
         """The server refused ``lineage``'s resume state (completed epoch ``completed``) of
         ``consumer`` as more than ``keep_epochs`` behind the epochs it was told complete
@@ -183,7 +206,7 @@ class Oracle:
                 continue
             if any(o in self.owners and o not in self.dead_consumers for o in owners):
                 continue
-            if any(key in self.killed_with.get(o, ()) or key in owed_dead for o in owners if o in self.dead_consumers):
+            if any(key in self.dead_with(o) or key in owed_dead for o in owners if o in self.dead_consumers):
                 continue
             lost.append(sid)
         if lost:
@@ -207,7 +230,7 @@ class Oracle:
             return
         allowed = set()
         for consumer in sorted(self.dead_consumers):
-            allowed |= self.killed_with.get(consumer, set())
+            allowed |= self.dead_with(consumer)
             self.dead_bound(consumer)
         for lin in self.lineages.values():  # owed again to a job that resumed, then died for good or was refused
             if lin.dead_for_good:
@@ -228,7 +251,10 @@ class Oracle:
 
     def dead_bound(self, consumer: str, extra: int = 0) -> None:
         """The docs' exception is bounded: a consumer that died for good held at most
-        ``GRANT_AHEAD + 1`` batches granted and not taken (``extra``: a loader worker's queue)."""
+        ``GRANT_AHEAD + 1`` batches granted and not taken (``extra``: a loader worker's queue).
+        It counts what its last killed process held; releases no server took back are not
+        counted: one may be stale (a later hello of that consumer, let in, replaced its record),
+        and each connection's are bounded by the batches it asked to hold."""
         n = self.killed_batches.get(consumer, 0)
         if n > GRANT_AHEAD + 1 + extra:
             self.sim.fail("lost", f"{consumer} died for good holding {n} batches on their way to its loop; the "

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Callable, List, Optional
 
 from v2v_server.delivery.core import DeliveryPolicy
+from v2v_wire.messages import Released
 
 from harness.delivery_sim.net import Net, NetFaults
 from harness.delivery_sim.oracle import Oracle
@@ -74,7 +75,7 @@ class Run:
     # ------------------------------------------------------------------ the server
     def start_server(self) -> None:
         self.incarnation += 1
-        self.server = SimServer(self.sim, self.net, self.cfg, self.incarnation)
+        self.server = SimServer(self.sim, self.net, self.cfg, self.incarnation, on_read=self._read)
         self.probe = ServerProbe(self.server)
         self.oracle.holders = self.probe.holders
         self.oracle.recorded_to = self.probe.recorded_to
@@ -96,6 +97,12 @@ class Run:
             p.pause(self.sim.now + seconds, self.sim.rng, self.sim.now)
             self.fault_until(self.sim.now + seconds)
             self.sim.log("run", f"server stalls for {seconds:.2f} s")
+
+    def _read(self, ident: bytes, msg) -> None:
+        """The server is about to handle ``msg`` from ``ident``: the batches a ``Released`` gives
+        back are no longer its consumer's grant (``Oracle.released``)."""
+        if isinstance(msg, Released):
+            self.oracle.taken_back(ident, self.probe.takes_back(ident, msg.batch_ids))
 
     # ------------------------------------------------------------------ faults
     def at(self, t: float, fn: Callable, *args) -> None:

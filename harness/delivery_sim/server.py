@@ -108,12 +108,15 @@ class SimServer:
         cfg: the settings.
         incarnation: counts restarts (names the process and the workers).
         on_sent: ``(ident, message)`` of every control message and batch header it sends, for the checks.
+        on_read: ``(ident, message)`` of every client message it decoded, before the core handles it
+            (for the checks).
     """
 
-    def __init__(self, sim: Sim, net: Net, cfg: ServerConfig, incarnation: int = 0, on_sent=None):
+    def __init__(self, sim: Sim, net: Net, cfg: ServerConfig, incarnation: int = 0, on_sent=None, on_read=None):
         self.sim, self.net, self.cfg = sim, net, cfg
         self.proc = Proc(f"server{incarnation}")
         self.on_sent = on_sent or (lambda ident, msg, batch: None)
+        self.on_read = on_read or (lambda ident, msg: None)
         self.journal = Journal(cfg.state_dir, RECIPE) if cfg.state_dir else None
         videos = sorted(cfg.corpus.windows)
         self.core = DeliveryCore(videos, cfg.policy, make_batch, self.journal, stall_s=STALL_S,
@@ -201,6 +204,7 @@ class SimServer:
             self.core.forget(ident)
             return
         self.sim.log(self.proc.name, lambda: f"<- {ident.hex()[:8]} {_show(msg)}")
+        self.on_read(ident, msg)
         if isinstance(msg, Hello):
             replies = self.core.hello(ident, msg, now)
         else:
@@ -329,6 +333,14 @@ class ServerProbe:
         """``(batch id, epoch, samples, state, consumer)`` of every batch in the table."""
         return [(b.batch_id, b.epoch, len(b.keys), b.state, b.consumer)
                 for b in self.core.ledger.table.batches.values()]
+
+    def takes_back(self, ident: bytes, batch_ids) -> List[int]:
+        """The batches a ``Released`` from ``ident`` that the core is about to read gives back
+        (``DeliveryCore.message``, ``Ledger.released``): those its table holds for that connection,
+        if the server knows it (a server that never let its hello in takes nothing back)."""
+        if ident not in self.core.ledger.clients:
+            return []
+        return [b for b in batch_ids if self.core.ledger.table.holds(ident, b)]
 
     def told_upto(self) -> int:
         """The newest epoch told complete to some connection (every older one was told too)."""
