@@ -676,6 +676,24 @@ def test_a_late_hello_of_a_readers_older_connection_never_fences_its_newer_one()
     assert core.sched.plans[0].complete  # the older state reopened nothing
 
 
+def test_a_late_hello_numbered_as_the_one_let_in_never_fences_it():
+    """A loader worker's iteration opened a connection, closed it and opened the next within one
+    tick of the host's monotonic clock: both hellos carry the same ``hello_id``. The first one's
+    arrives late, after the second's was let in and its grant reached the loop: it is not newer, so
+    it is refused (``fenced``); let in, it fenced the live connection and its resume state (naming
+    nothing) sent the grant the loop received to another worker (simulator finding F46, mixed
+    108414). The same connection's hello said again is still let in."""
+    core = _one_epoch_core()
+    hello = Hello(("voxels",), 4, consumer="x/1", hello_id=63_868_658, instance="L")
+    core.hello(b"w1.new", hello, 0.0)
+    last = _read_epoch_0_but_one(core, b"w1.new")  # granted, waiting in the loader's queue
+    late = core.hello(b"w1.old", hello, 0.3)
+    assert [(i, getattr(m, "code", type(m).__name__)) for i, m in late] == [(b"w1.old", "fenced")]
+    assert b"w1.new" in core.ledger.clients and core.ledger.table.get(last).state == "granted"
+    again = core.hello(b"w1.new", hello, 0.4)
+    assert [(i, type(m).__name__) for i, m in again] == [(b"w1.new", "Welcome")]
+
+
 def test_a_reader_sitting_on_a_grant_delays_the_others_end_of_the_epoch_by_the_lease_at_most():
     """Reader A keeps a grant of epoch 0 and never acknowledges it (a stuck loop, an hour of
     validation): reader B, holding nothing of epoch 0, is told the epoch complete and the stream

@@ -61,7 +61,8 @@ class Admission:
         self.pending: Dict[bytes, Tuple[Hello, float]] = {}
         self.heard: Dict[bytes, float] = {}  # a waiting hello's connection: when it last spoke
         self.dormant: Dict[bytes, Hello] = {}  # hellos forgotten for silence, oldest first (at most MAX_DORMANT)
-        self.instances: Dict[Hashable, Tuple[str, int]] = {}  # consumer -> (reader process, hello_id) let in last
+        #: consumer -> (reader process, hello_id, connection) let in last
+        self.instances: Dict[Hashable, Tuple[str, int, bytes]] = {}
         self._kept = 64  # instances kept at the last prune (:meth:`let_in`)
         self._last_turn: Optional[float] = None  # :meth:`silent`'s last call (the server's loop turn)
         self._stalled_until = float("-inf")  # the end of the server loop's last stall
@@ -72,12 +73,13 @@ class Admission:
         return [c for i, c in self.ledger.clients.items() if i != ident and c.consumer in consumers]
 
     def check(self, ident: bytes, h: Hello, consumer: Hashable, group: Optional[str], now: float):
-        """None (let in), :data:`WAIT`, or the ``ServerError`` that refuses the hello."""
+        """None (let in), :data:`WAIT`, or the ``ServerError`` that refuses the hello (docs/delivery.md,
+        "Who may say hello")."""
         if any(o not in self.offered for o in h.outputs):
             return ServerError(f"this server offers only {list(self.offered)}; asked for {list(h.outputs)}", "outputs")
         speaks = self.speaks_for(consumer, h)
-        if h.instance and any(self.instances.get(w, ("", 0)) > (h.instance, h.hello_id)
-                              and self.instances[w][0] == h.instance for w in speaks):
+        last = [self.instances[w] for w in speaks if w in self.instances]  # not newer: older, or as old elsewhere
+        if h.instance and any(i == h.instance and (n, c != ident) > (h.hello_id, False) for i, n, c in last):
             return ServerError("a newer connection of this reader took its consumer over", "fenced")
         since = self.pending.get(ident, (None, now))[1]
         foreign = [c for c in self.others(ident, speaks) if c.instance != h.instance or not h.instance]
@@ -177,11 +179,11 @@ class Admission:
             del self.dormant[next(iter(self.dormant))]
         return gone
 
-    def let_in(self, h: Hello, speaks: Set[Hashable]) -> None:
+    def let_in(self, ident: bytes, h: Hello, speaks: Set[Hashable]) -> None:
         """A hello was let in: its reader process is the one that read ``speaks`` last. Entries of
         consumers the server keeps nothing of are dropped once they double (amortized linear)."""
         for w in speaks:
-            self.instances[w] = (h.instance, h.hello_id)
+            self.instances[w] = (h.instance, h.hello_id, ident)
         if len(self.instances) > 2 * self._kept:
             s = self.sched
             known = set(self.ledger.table.stranded_consumers()) | {c.consumer for c in self.ledger.clients.values()}

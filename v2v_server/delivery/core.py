@@ -241,7 +241,7 @@ class DeliveryCore:
             self.padding.resumed(group, h.rank, r.completed_epoch, r.batches)
         self.ledger.join(ident, consumer, h.outputs, h.credits, now, group, h.rank, h.world_size,
                          r.completed_epoch, h.ends_on_drained, h.instance, heard, r.queued)
-        self.admission.let_in(h, speaks)
+        self.admission.let_in(ident, h, speaks)
         self.feed.drop_delivered()
         if self.outputs is None or any(o not in self.outputs for o in h.outputs):
             log.info("client %s asks for %s: workers now compute %s", ident.hex(), list(h.outputs),
