@@ -994,6 +994,32 @@ def test_a_ddp_groups_count_once_told_is_not_raised_by_a_grant_given_back_later(
     assert s.told[b"r0.2"][:1] == [(0, 2)] and s.told[b"r1"][:1] == [(0, 2)], dict(s.told)
 
 
+def test_a_ddp_rank_at_its_groups_count_is_told_the_end_of_an_epoch_another_ranks_hello_reopened():
+    """Rank 1 of a group of two holds its two grants of epoch 0 while rank 0 is told the epoch with a
+    count of 2, and the stream's end, and leaves. Then rank 1 acknowledges its grants, and a killed
+    rank 0's hello, held by a partition, resets rank 0's record (limit (g)): epoch 0 is owed again, a
+    batch of it waits for a rank 0, and none comes. Rank 1 yielded the count: no batch of the epoch
+    can go to it, so it is told the epoch's end and the stream's; it waited for ever (simulator
+    ``mixed`` seed 117485, F47)."""
+    s = TinyStream(epochs=1)
+    s.hello(b"r0", "j", group="g", rank=0, world_size=2)
+    s.take(s.core.hello(b"r1", Hello(("voxels",), 2, consumer="j", group="g", rank=1, world_size=2), s.now))
+    s.keep.add(b"r1")
+    for _ in range(8):  # past the lease: rank 1's grants no longer hold rank 0's end back
+        s.turn()
+    assert len(s.got[b"r1"]) == 2 and s.told[b"r0"] == [(0, 2)] and s.told[b"r1"] == [], (dict(s.got), dict(s.told))
+    s.core.message(b"r0", Bye(), s.now)
+    s.keep.discard(b"r1")
+    s.core.message(b"r1", Ack(tuple(b.batch_id for b in s.core.ledger.batches.values())), s.now)
+    s.mute.add(b"old0")
+    s.hello(b"old0", "j", Resume(-1, {}), group="g", rank=0, world_size=2)
+    s.turn()
+    s.core.message(b"old0", Bye(), s.now)  # its process is dead: the batches leased to it come back
+    for _ in range(4):
+        s.turn()
+    assert s.core.ledger.batches and s.told[b"r1"] == [(0, 2)], (dict(s.told), s.core.ledger.batches)
+
+
 def test_a_count_told_to_the_ranks_of_another_world_size_binds_none_of_a_resized_job():
     """Three ranks were told epoch 0 with a count of 2; the job, killed, resumes at world size 2,
     each new rank counting the 2 batches the gathered state says the most a rank yielded. A batch

@@ -199,5 +199,4 @@ FAMILIES = {"trainers": trainers, "ddp": ddp, "loader": loader, "network": netwo
 FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None, "elastic": None,
                  "mixed": None}
 #: one failing seed of each open finding: (scenario, seed, finding)
-OPEN_FINDINGS = [("mixed", 30877, "F44: a killed DDP rank's hello held by a partition resets its record after the "
-                                  "restarted job's rank read (docs/delivery.md limit (g))")]
+OPEN_FINDINGS: list = []

@@ -68,8 +68,8 @@ class EpochEnds:
         for ident, c in self.ledger.clients.items():
             if c.ddp and c.group not in ready:
                 continue
-            blocked = sorted(live | own.get(c.consumer, set()) | set(c.queued.values())
-                             | {e for e, who in fresh.items() if who - {c.consumer}})
+            blocked = sorted({e for e in live if not self._reached(c, e)} | own.get(c.consumer, set())
+                             | set(c.queued.values()) | {e for e, who in fresh.items() if who - {c.consumer}})
             while True:
                 step = self._next(c, blocked)
                 if step is None:
@@ -106,7 +106,14 @@ class EpochEnds:
         if s.max_epochs is not None and c.completed >= s.max_epochs - 1:
             return not c.told_end
         plan = s.plans.get(e)
-        return e < s.next_epoch and (plan is None or plan.complete)
+        return e < s.next_epoch and (plan is None or plan.complete or self._reached(c, e))
+
+    def _reached(self, c: ClientRecord, e: int) -> bool:
+        """DDP rank ``c`` yielded the count of ``e`` its group was told: no batch of ``e`` can go to it
+        any more (``GroupPadding.room``), so what of ``e`` is left (reopened by another rank's hello)
+        holds its end back no longer (docs/delivery.md, "Ends of epochs")."""
+        left = self.padding.room(c, e) if c.ddp else None
+        return left is not None and left <= 0
 
     def _holders(self, now: float):
         """``(own, live, fresh)``: per consumer the epochs it holds grants of; the epochs with a
@@ -138,7 +145,7 @@ class EpochEnds:
         first_blocked = blocked[i] if i < len(blocked) else None
         plan = s.plans.get(e)
         if plan is not None:
-            return (e, True) if plan.complete and first_blocked != e else None
+            return (e, True) if (plan.complete or self._reached(c, e)) and first_blocked != e else None
         upto = min([p for p in s.plans if p > e] + [s.next_epoch]) - 1  # run of epochs without a plan
         if first_blocked is not None:
             upto = min(upto, first_blocked - 1)
