@@ -197,11 +197,12 @@ def test_a_pause_within_a_pause_keeps_each_threads_order():
         assert ran == ["sent first", "sent second"], seed
 
 
-@pytest.mark.parametrize("seed", [44061, 10881, 33857])
+@pytest.mark.parametrize("seed", [44061, 94509, 10881, 33857, 66801])
 def test_ddp_ranks_of_the_full_mixed_profile_end_alike(seed):
     """``mixed`` seeds where a DDP group's count, told to a rank that ended, rose as a batch given
-    back went to a rank already at it (44061, F41), a rank paused twice read its old session's
-    end after its new hello (10881, F42), or a rank back after the others ran every epoch was told
-    an epoch forgotten with its group's counts (33857, F43): the job hung in an all-reduce."""
+    back went to a rank already at it (44061, F41; 94509: a trainer's grant), a rank paused twice
+    read its old session's end after its new hello (10881, F42), or a rank back after the others
+    ran every epoch was told an epoch forgotten with its group's counts (33857, F43; 66801: a
+    restarted server that had not heard that rank): the job hung in an all-reduce."""
     outcome = simulate(["mixed"], f"{seed}:{seed + 1}")["mixed"]
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
