@@ -1130,6 +1130,34 @@ def test_a_ddp_count_told_before_a_server_crash_is_told_again_after_it(tmp_path)
     assert t.told[b"r1.2"][0] == (0, 3), dict(t.told)
 
 
+def test_a_ddp_count_told_before_a_server_crash_binds_a_ranks_hello_after_it(tmp_path):
+    """Reader t took every batch of epoch 0; ranks 0 and 1 of group g, joined late, were told it
+    complete with a count of 0, then the server crashed. After the restart t rolls back to a
+    checkpoint of nothing (epoch 0's samples are owed again) and rank 1, its state saved before it
+    read that end, comes back: it is told 0 again and granted no batch of epoch 0 (told 3, it
+    yielded three while rank 0 had ended on 0: simulator ``mixed`` seed 133089, F49)."""
+    s = TinyStream(Journal(str(tmp_path), "r"))
+    s.hello(b"t", "t")
+    for _ in range(3):
+        s.turn()
+    s.keep.add(b"t")
+    s.turn()
+    s.hello(b"r0", "j", group="g", rank=0, world_size=2)
+    s.hello(b"r1", "j", group="g", rank=1, world_size=2)
+    s.mute |= {b"r0", b"r1"}
+    s.turn()
+    s.core.message(b"t", Ack(tuple(s.core.ledger.table.held_by(b"t"))), s.now)
+    s.turn()
+    assert s.told[b"r0"] == s.told[b"r1"] == [(0, 0)], dict(s.told)
+    t = TinyStream(Journal(str(tmp_path), "r"))  # the crash: no bye, no close
+    t.hello(b"r1.2", "j", Resume(-1, {}), group="g", rank=1, world_size=2)
+    t.hello(b"t.2", "t", Resume(-1, {}))
+    t.keep.add(b"t.2")
+    for _ in range(110):  # past the group's wait (client_timeout_s)
+        t.turn()
+    assert t.told[b"r1.2"][0] == (0, 0) and 0 not in [e for e, _ in t.got[b"r1.2"]], (dict(t.told), dict(t.got))
+
+
 def test_a_reader_that_still_speaks_after_the_end_is_told_it_again():
     """The last ``epoch_done`` and ``end`` can be lost in a cut of the connection that ZeroMQ
     mends behind the socket (no hello follows): a reader told the end that still heartbeats did

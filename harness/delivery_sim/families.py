@@ -200,5 +200,4 @@ FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None,
                  "mixed": None}
 #: one failing seed of each open finding: (scenario, seed, finding)
 OPEN_FINDINGS: list = [("mixed", 138433, "F48: a killed DDP job's hello held by a cut resets its rank's record after the "
-                                         "restarted job's rank read: a trainer gets a sample again (limit (g))"),
-                        ("mixed", 133089, "F49: a DDP rank gets a batch after another rank ended (not classified yet)")]
+                                         "restarted job's rank read: a trainer gets a sample again (limit (g))")]

@@ -163,8 +163,8 @@ class DeliveryCore:
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
         for consumer, delivered in (journal.records if journal is not None else {}).items():
             self.sched.apply_resume(consumer, -1, delivered)  # in the closed epochs it keeps too
-            if consumer[0].startswith("g:"):  # a DDP rank: its grants count in its group's (docs/delivery.md, "DDP")
-                self.padding.resumed(consumer[0][2:], consumer[1], -1, journal.batches[consumer])
+        if journal is not None:  # DDP ranks' grants and counts told (docs/delivery.md, "DDP", "Ends of epochs")
+            self.padding.restarted(journal.records, journal.batches, journal.told_to, journal.keep_epochs)
 
     # ------------------------------------------------------------------ workers (``feed.WorkerFeed``)
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
