@@ -182,15 +182,16 @@ class HeldBatches:
         (with its padding copy) was lost in a cut ZeroMQ mended, which no hello follows: the session
         says hello again, its state reopens that epoch, and the server tells its end and count again
         (docs/delivery.md, "Ends of epochs")."""
+        stream_end = getattr(done, "epoch", None) is None
         with self.lock:
             missed = self.ends_upto + 1
-            if getattr(done, "epoch", None) is None:  # ``end``
+            if stream_end:
                 if epochs is None or done.reason is not None or missed >= epochs:
                     return False
             elif done.batches is None or done.epoch <= missed:
                 self.ends_upto = max(self.ends_upto, done.epoch)
                 return False
-        told = "the stream's end" if getattr(done, "epoch", None) is None else f"the end of epoch {done.epoch}"
+        told = "the stream's end" if stream_end else f"the end of epoch {done.epoch}"
         log.warning("v2v stream %s: told %s and not the end of epoch %d before it (lost in a broken connection); "
                     "saying hello again", self.endpoint, told, missed)
         return True
@@ -198,8 +199,9 @@ class HeldBatches:
     def of_session(self, item, then: Callable[[bool], object] = lambda current: None) -> bool:
         """The loop takes this epoch end or padding (:meth:`told_end`) off its queue: True if it was
         told to the current session; ``then(that)`` is called under the lock (the consumer records the
-        end there: a hello, which reads that record under the same lock, comes wholly before or after). One told before the latest hello is about the session that hello
-        ended: that hello's state said the epoch open, and the server tells its end and count again
+        end there: a hello, which reads that record under the same lock, comes wholly before or after).
+        One told before the latest hello is about the session that hello ended: that hello's state
+        said the epoch open, and the server tells its end and count again
         (a rank that paid padding from the old count, its epoch complete here while the server sent it
         batches of that epoch, gave them back for good or yielded more than its group; docs/delivery.md,
         "Ends of epochs")."""

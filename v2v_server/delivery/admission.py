@@ -124,9 +124,9 @@ class Admission:
 
     def _unproven(self, ident: bytes, h: Hello, speaks: Set[Hashable], since: float) -> bool:
         """Another reader process than the hello's read one of ``speaks`` last, and the hello's own
-        connection has not spoken ``claim_margin_s`` after it and after the server's last stall: it may be a dead process's hello,
-        delivered late (a partition held it), whose state would undo what a newer process read.
-        DDP ranks are let in without it (docs/delivery.md, limit (g))."""
+        connection has not spoken ``claim_margin_s`` after it and after the server's last stall: it
+        may be a dead process's hello, delivered late (a partition held it), whose state would undo
+        what a newer process read. DDP ranks are let in without it (docs/delivery.md, limit (g))."""
         if h.world_size > 1:
             return False
         other = any(self.instances[w][0] != h.instance for w in speaks if w in self.instances)
