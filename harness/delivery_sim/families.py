@@ -200,6 +200,4 @@ FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None,
                  "mixed": None}
 #: one failing seed of each open finding: (scenario, seed, finding)
 OPEN_FINDINGS: list = [("mixed", 138433, "F48: a killed DDP job's hello held by a cut resets its rank's record after the "
-                                         "restarted job's rank read: a trainer gets a sample again (limit (g))"),
-                        ("mixed", 30965, "F50: a DDP rank's hello said on F45's rule is lost in a blip ZeroMQ "
-                                         "mends: it awaits the welcome for good")]
+                                         "restarted job's rank read: a trainer gets a sample again (limit (g))")]

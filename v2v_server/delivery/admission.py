@@ -192,6 +192,14 @@ class Admission:
             self.instances = {w: i for w, i in self.instances.items() if w in known or w in speaks}
             self._kept = max(64, len(self.instances))
 
+    def unread_hello(self, c: ClientRecord, hello_id: int) -> bool:
+        """Connection ``c``'s heartbeat names a hello newer than the one let in for it, and none of its
+        hellos waits: that hello was lost in a break ZeroMQ mended, so the client is asked for it again
+        (``unknown_client`` naming it; one connection's messages arrive in order)."""
+        let = self.instances.get(c.consumer)
+        return (let is not None and let[2] == c.ident and hello_id > let[1]
+                and c.ident not in self.pending and c.ident not in self.dormant)
+
     def spoke_of(self, c: ClientRecord, batch_ids) -> None:
         """Connection ``c`` named these batches (``hold``, ``ack``, ``released``): those sent to it
         were received, so its process lived when the newest of them was sent (``proved``; linear

@@ -139,8 +139,6 @@ class DeliveryCore:
         stall_s: see ``ledger.DeliveryLedger`` (the server passes ``ledger.STALL_S``).
         end_grace_s: seconds a bounded stream's server stays up with no reader once it is over.
         first_batch_id: its first batch's id, above any a server before it sent (docs/delivery.md, "Transport").
-
-    ``info`` (``() -> dict``, default ``dict``): the stream info each ``welcome`` carries.
     """
 
     def __init__(self, videos: Sequence[str], policy: DeliveryPolicy, make_batch: Callable, journal=None,
@@ -158,7 +156,7 @@ class DeliveryCore:
         self.server_id = journal.server_id if journal is not None else uuid.uuid4().hex[:16]  # a welcome's "server"
         self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id, self.ends.told_to)
         self.feed = WorkerFeed(self.sched, self.ledger, self.batcher)
-        self.info: Callable[[], dict] = dict
+        self.info: Callable[[], dict] = dict  # the stream info each ``welcome`` carries (its server sets it)
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
         for consumer, delivered in (journal.records if journal is not None else {}).items():
@@ -257,7 +255,9 @@ class DeliveryCore:
                 return []
             if isinstance(msg, Bye):
                 return []
-            why = "unknown client (this server may have restarted, or dropped it for silence): say hello first"
+        if c is None or isinstance(msg, Heartbeat) and self.admission.unread_hello(c, msg.hello_id):
+            why = ("unknown client, or a hello that never arrived (this server may have restarted, or dropped "
+                   "it for silence): say hello first")
             return [(ident, ServerError(why, "unknown_client", msg.hello_id if isinstance(msg, Heartbeat) else 0))]
         if self.admission.pending and isinstance(msg, (Hold, Ack, Released)):
             self.admission.spoke_of(c, msg.batch_ids)
