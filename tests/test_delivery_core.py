@@ -996,8 +996,8 @@ def test_a_ddp_groups_count_once_told_is_not_raised_by_a_grant_given_back_later(
 
 def test_a_ddp_rank_at_its_groups_count_is_told_the_end_of_an_epoch_another_ranks_hello_reopened():
     """Rank 1 of a group of two holds its two grants of epoch 0 while rank 0 is told the epoch with a
-    count of 2, and the stream's end, and leaves. Then rank 1 acknowledges its grants, and a killed
-    rank 0's hello, held by a partition, resets rank 0's record (limit (g)): epoch 0 is owed again, a
+    count of 2, and the stream's end, and leaves. Then rank 1 acknowledges its grants, and a rank-0
+    hello of no process token (its proof of life is not asked) resets rank 0's record: epoch 0 is owed again, a
     batch of it waits for a rank 0, and none comes. Rank 1 yielded the count: no batch of the epoch
     can go to it, so it is told the epoch's end and the stream's; it waited for ever (simulator
     ``mixed`` seed 117485, F47)."""
@@ -1018,6 +1018,33 @@ def test_a_ddp_rank_at_its_groups_count_is_told_the_end_of_an_epoch_another_rank
     for _ in range(4):
         s.turn()
     assert s.core.ledger.batches and s.told[b"r1"] == [(0, 2)], (dict(s.told), s.core.ledger.batches)
+
+
+def test_a_killed_ddp_ranks_hello_held_by_a_cut_never_resets_what_the_restarted_rank_read():
+    """A DDP job is killed while a network cut holds its rank 0's hello; the job restarts (new
+    processes) and its two ranks read the stream's one epoch, are told its end and leave. A trainer
+    beside the job says hello; then the cut heals and the killed rank's hello arrives, naming
+    nothing, its connection silent from then on. Another process than the rank's last one, it
+    waits for its proof of life and is forgotten after the client timeout, so rank 0's record
+    stands and nothing the job read is made again for the trainer (simulator finding F48,
+    ``mixed`` seeds 138433, 146305: a trainer got a sample the restarted rank had yielded)."""
+    s = TinyStream(epochs=1)
+    for r in (0, 1):
+        s.take(s.core.hello(b"r%d" % r, Hello(("voxels",), 1, consumer="j", group="g", rank=r, world_size=2,
+                                               instance=f"job2.{r}", hello_id=2), s.now))
+    for _ in range(8):
+        s.turn()
+    assert s.told[b"r0"] == s.told[b"r1"] == [(0, 2)], dict(s.told)
+    for r in (b"r0", b"r1"):
+        s.core.message(r, Bye(), s.now)
+    s.hello(b"t", "t")
+    s.mute.add(b"old0")
+    s.take(s.core.hello(b"old0", Hello(("voxels",), 1, consumer="j", group="g", rank=0, world_size=2,
+                                       instance="job1.0", hello_id=1), s.now))
+    for _ in range(150):  # past the client timeout (100 s)
+        s.turn()
+    job = {x for r in (b"r0", b"r1") for x in s.got[r]}
+    assert len(job) == 4 and not job & set(s.got[b"t"]) and not s.got[b"old0"], dict(s.got)
 
 
 def test_a_count_told_to_the_ranks_of_another_world_size_binds_none_of_a_resized_job():

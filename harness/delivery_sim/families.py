@@ -199,5 +199,4 @@ FAMILIES = {"trainers": trainers, "ddp": ddp, "loader": loader, "network": netwo
 FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None, "elastic": None,
                  "mixed": None}
 #: one failing seed of each open finding: (scenario, seed, finding)
-OPEN_FINDINGS: list = [("mixed", 138433, "F48: a killed DDP job's hello held by a cut resets its rank's record after the "
-                                         "restarted job's rank read: a trainer gets a sample again (limit (g))")]
+OPEN_FINDINGS: list = []

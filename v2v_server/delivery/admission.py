@@ -126,9 +126,7 @@ class Admission:
         """Another reader process than the hello's read one of ``speaks`` last, and the hello's own
         connection has not spoken ``claim_margin_s`` after it and after the server's last stall: it
         may be a dead process's hello, delivered late (a partition held it), whose state would undo
-        what a newer process read. DDP ranks are let in without it (docs/delivery.md, limit (g))."""
-        if h.world_size > 1:
-            return False
+        what a newer process read (a DDP rank's too: docs/delivery.md, limit (g))."""
         other = any(self.instances[w][0] != h.instance for w in speaks if w in self.instances)
         return other and self.heard.get(ident, since) < max(since, self._stalled_until) + self.claim_margin_s
 
