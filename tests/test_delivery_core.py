@@ -1219,3 +1219,45 @@ def test_a_ddp_rank_that_still_speaks_after_the_end_is_told_its_last_count_again
     again = s.core.message(b"r1", Heartbeat(), s.now)
     assert [(i, m.to_wire()["type"]) for i, m in again] == [(b"r1", "epoch_done"), (b"r1", "end")]
     assert (again[0][1].epoch, again[0][1].batches) == last
+
+
+def test_a_reopened_closed_epoch_is_made_again_after_a_server_crash(tmp_path):
+    """Reader a read all three epochs (the journal closed them) and resumed from a checkpoint of
+    epoch 0: its hello reopened epochs 1 and 2, whose samples reach no loop until made again. The
+    server crashed before it made them: restarted from its journal, it makes them again for a's next
+    hello (the journal kept only what a still holds, and epochs it closed make again only what left a
+    record since: the reset's samples reached no loop, simulator ``mixed`` seed 152517, F51)."""
+    s = TinyStream(Journal(str(tmp_path), "r"))
+    s.read_every_epoch(b"a", "a")
+    s.hello(b"a.2", "a", Resume(0, {}))
+    t = TinyStream(Journal(str(tmp_path), "r"))  # the crash: no bye, no close
+    t.hello(b"a.3", "a", Resume(0, {}))
+    for _ in range(10):
+        t.turn()
+    assert sorted(t.got[b"a.3"]) == [(e, f"a.mp4#{k}") for e in (1, 2) for k in range(4)], dict(t.got)
+    assert [e for e, _ in t.told[b"a.3"]] == [1, 2]
+
+
+def test_a_ddp_count_told_before_a_reset_binds_the_ranks_after_a_server_crash(tmp_path):
+    """Ranks 0 and 1 of group g read all three epochs, told each with a count of 2; the job restarted
+    from a checkpoint of epoch 0 (the ranks' hellos reset their grants of epochs 1 and 2), and the
+    server crashed. Restarted from its journal, it tells the ranks of the job epochs 1 and 2 with the
+    counts told before (the grants, reset, count none) and sends them the reopened epochs' samples (told 0,
+    no rank could take them: simulator ``mixed`` seed 152517, F51)."""
+    s = TinyStream(Journal(str(tmp_path), "r"))
+    for ident, rank in ((b"r0", 0), (b"r1", 1)):
+        s.hello(ident, "j", group="g", rank=rank, world_size=2)
+    for _ in range(30):
+        s.turn()
+    assert s.told[b"r0"] == s.told[b"r1"] == [(0, 2), (1, 2), (2, 2)], dict(s.told)
+    for ident, rank in ((b"r0", 0), (b"r1", 1)):
+        s.core.message(ident, Bye(), s.now)
+        s.hello(ident + b".2", "j", Resume(0, {}), group="g", rank=rank, world_size=2)
+    t = TinyStream(Journal(str(tmp_path), "r"))  # the crash: no bye, no close
+    for ident, rank in ((b"r0.3", 0), (b"r1.3", 1)):
+        t.hello(ident, "j", Resume(0, {}), group="g", rank=rank, world_size=2)
+    for _ in range(20):
+        t.turn()
+    assert t.told[b"r0.3"] == t.told[b"r1.3"] == [(1, 2), (2, 2)], dict(t.told)
+    got = sorted(t.got[b"r0.3"] + t.got[b"r1.3"])
+    assert got == [(e, f"a.mp4#{k}") for e in (1, 2) for k in range(4)], dict(t.got)

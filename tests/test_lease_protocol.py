@@ -33,7 +33,7 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 
 from bench.lease import ack_only
 from v2v_client.options import StreamOptions
-from v2v_client.resume import ResumeState
+from v2v_client.resume import ResumeState, take_epoch_end
 from v2v_client.session import ServerSession
 from v2v_server.delivery.core import DeliveryCore, DeliveryPolicy
 from v2v_server.delivery.journal import FILE as JOURNAL_FILE, Journal
@@ -203,16 +203,17 @@ class Net:
         c.send()
 
     def consumer_next(self, c: Client) -> None:
-        """The consumer takes the next item off the queue: an epoch's end is recorded; a batch of
-        an epoch it completed is given back; any other batch becomes the one it takes."""
+        """The consumer takes the next item off the queue: an epoch's end told to the current session
+        is recorded; a batch of an epoch it completed is given back; any other batch becomes the one
+        it takes."""
         if c.pending is not None or c.claimed is not None:
             return
         try:
             item = c.session.items.get_nowait()
         except queue.Empty:
             return
-        if isinstance(item, sm.EpochDone):
-            c.record.complete(item.epoch)
+        if isinstance(item, sm.EpochDone):  # as the endpoint's loop (one told a session a hello ended is not)
+            c.session.held.of_session(item, lambda current: take_epoch_end(c.record, item, False, current))
         elif isinstance(item, dict):
             if c.record.is_complete(item["epoch"]):
                 c.session.give_back(item)

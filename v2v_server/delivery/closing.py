@@ -78,6 +78,8 @@ class EpochEnds:
                 batches = None
                 if per_epoch and c.ddp:
                     batches, pad = self.padding.epoch_done(c, e)
+                    if self.journal is not None:
+                        self.journal.epoch_told(e, c.group, batches)
                     if pad is not None:
                         pads.append((ident, pad))
                         c.granted += 1

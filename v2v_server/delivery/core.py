@@ -148,7 +148,7 @@ class DeliveryCore:
                                     shuffle_seed=p.seed if p.shuffle == "epoch" else None,
                                     max_samples_per_video=p.max_samples_per_video,
                                     first_epoch=0 if journal is None else journal.completed + 1,  # its epochs closed
-                                    kept=[e for r in journal.records.values() for e in r] if journal else ())
+                                    kept=journal.kept() if journal else None)
         self.ledger = DeliveryLedger(p.lease_s, p.client_timeout_s, p.max_credits, revoke_s=p.revoke_s, stall_s=stall_s)
         self.batcher = Batcher(p.batch_size, make_batch, self.ledger, p.lanes, p.seed, first_batch_id)
         self.padding = GroupPadding()
@@ -162,7 +162,7 @@ class DeliveryCore:
         for consumer, delivered in (journal.records if journal is not None else {}).items():
             self.sched.apply_resume(consumer, -1, delivered)  # in the closed epochs it keeps too
         if journal is not None:  # DDP ranks' grants and counts told (docs/delivery.md, "DDP", "Ends of epochs")
-            self.padding.restarted(journal.records, journal.batches, journal.told_to, journal.keep_epochs)
+            self.padding.restarted(journal)
 
     # ------------------------------------------------------------------ workers (``feed.WorkerFeed``)
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:

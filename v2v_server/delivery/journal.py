@@ -22,13 +22,18 @@ its samples and the batches it yielded), ``{"t": epoch}`` (an epoch was told com
 reader: a resume state may say it is complete), ``{"tc": [consumer, rank], "e": epoch}`` (the
 newest epoch that consumer was told complete, kept for good: a resume state more than
 ``keep_epochs`` behind it is refused, docs/delivery.md limit (e)),
-``{"done": epoch}`` (an epoch closed for good: a restart starts after it). The batch counts
-(:attr:`Journal.batches`) are a DDP rank's in its group's (``padding.GroupPadding``): a restarted
-server tells every rank of the group the count its ranks' grants reached (docs/delivery.md,
-"DDP"). The records of the newest ``keep_epochs`` closed epochs stay, and each consumer's of the
+``{"done": epoch}`` (an epoch closed for good: a restart starts after it), ``{"o": epoch, "k":
+[...]}`` (samples of a closed epoch that left a record since it closed, a resume state's or a
+batch given back: a restart makes them again, ``EpochPlan.only``; a grant takes them out again),
+``{"g": group, "e": epoch, "c": batches}`` (the ranks of a DDP group were told to yield that many
+batches of the epoch). The batch counts (:attr:`Journal.batches`) are a DDP rank's in its group's
+(``padding.GroupPadding``): a restarted server tells every rank of the group the count it was told
+before, at least what its ranks' grants reach (a later hello's state may have lowered them since;
+docs/delivery.md, "DDP"). The records of the newest ``keep_epochs`` closed epochs stay, and each consumer's of the
 epochs within ``keep_epochs`` of the newest it was told complete (the scheduler's ``keep_epochs``: a
 restarted server keeps the records a running one keeps, so a resume state older than their
-completion reopens them alike, docs/delivery.md limit (e)); older ones are dropped. When an epoch
+completion reopens them alike, docs/delivery.md limit (e)), with the samples owed again and the
+counts told in them while some consumer may resume into them; older ones are dropped. When an epoch
 closes the file is rewritten from memory (a temporary file, fsync, rename) without them.
 
 Durability: each record is one ``write`` to a file opened with ``O_APPEND`` (in the page cache
@@ -44,6 +49,7 @@ writes stopped: samples acknowledged since are sent again, none is lost.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -72,6 +78,16 @@ class JournalError(ValueError):
     """The journal belongs to another sample recipe, or cannot be read (the message says which)."""
 
 
+def _keys(pairs, crops_per_window: int) -> Set[SampleKey]:
+    """The sample keys of a record's ``[[video, index], ...]``."""
+    return {SampleKey.at(str(v), int(i), crops_per_window) for v, i in pairs}
+
+
+def _pairs(keys: Iterable[SampleKey], crops_per_window: int) -> List[list]:
+    """A record's ``[[video, index], ...]`` of ``keys`` (the inverse of ``_keys``)."""
+    return [[k.video, k.ordinal(crops_per_window)] for k in keys]
+
+
 class Journal:
     """The journal in ``directory`` (created if missing).
 
@@ -98,17 +114,15 @@ class Journal:
         self.path = self.dir / FILE
         self.fingerprint = fingerprint
         self.server_id = uuid.uuid4().hex[:16]  # kept in the header: the same for every server on this journal
-        self.fsync_s = fsync_s
-        self.crops_per_window = crops_per_window
-        self.completed = -1
-        self.keep_epochs = keep_epochs
+        self.fsync_s, self.crops_per_window, self.keep_epochs = fsync_s, crops_per_window, keep_epochs
+        self.completed = -1  # the newest epoch closed for good
         self.told = -1  # the newest epoch told complete to some reader
         self.told_to: Dict[Hashable, int] = {}  # consumer -> the newest epoch it was told complete
         self.records: Records = {}
         self.batches: Dict[Hashable, Counter] = {}  # consumer -> epoch -> batches granted (as records)
-        self._dirty = False
-        self._last_sync = 0.0
-        self.writes = 0
+        self.owed: Dict[int, Set[SampleKey]] = {}  # closed epoch -> samples that left a record since it closed
+        self.counts: Dict[int, Dict[str, int]] = {}  # epoch -> DDP group -> the batches its ranks were told to yield
+        self._dirty, self._last_sync = False, 0.0
         if self.path.exists():
             self._read()
         self._rewrite()
@@ -140,6 +154,7 @@ class Journal:
                             "its samples are sent again", self.path, n)
 
     def _apply(self, rec: dict) -> None:
+        k = self.crops_per_window
         if "done" in rec:
             self._complete(int(rec["done"]))
         elif "t" in rec:
@@ -148,27 +163,30 @@ class Journal:
             c = tuple(rec["tc"])
             self.told_to[c] = max(self.told_to.get(c, -1), int(rec["e"]))
         elif "d" in rec:
-            c, e = tuple(rec["d"]), int(rec["e"])
+            c, e, keys = tuple(rec["d"]), int(rec["e"]), _keys(rec["k"], k)
+            self.owed.get(e, set()).difference_update(keys)
             if self._keeps(c, e):
-                self.records.setdefault(c, {}).setdefault(e, set()).update(self._keys(rec["k"]))
+                self.records.setdefault(c, {}).setdefault(e, set()).update(keys)
                 self.batches.setdefault(c, Counter())[e] += int(rec.get("n", 1))
         elif "u" in rec:
             c, e = tuple(rec["u"]), int(rec["e"])
-            d = self.records.get(c, {}).get(e)
+            d, keys = self.records.get(c, {}).get(e), _keys(rec["k"], k)
             if d is not None:
-                d.difference_update(self._keys(rec["k"]))
+                d.difference_update(keys)
+                if e <= self.completed:  # a closed epoch: made again after a restart
+                    self.owed.setdefault(e, set()).update(keys)
                 self.batches[c][e] = max(0, self.batches[c][e] - 1)
+        elif "o" in rec:
+            self.owed.setdefault(int(rec["o"]), set()).update(_keys(rec["k"], k))
+        elif "g" in rec:  # appended only as it rises
+            self.counts.setdefault(int(rec["e"]), {})[str(rec["g"])] = int(rec["c"])
         elif "s" in rec:
-            self._replace(tuple(rec["s"]), int(rec["c"]), {int(e): self._keys(ks) for e, ks in rec["r"].items()},
+            self._replace(tuple(rec["s"]), int(rec["c"]), {int(e): _keys(ks, k) for e, ks in rec["r"].items()},
                           {int(e): int(n) for e, n in rec.get("b", {}).items()})
 
-    def _keys(self, pairs) -> Set[SampleKey]:
-        """The sample keys of a record's ``[[video, index], ...]``."""
-        return {SampleKey.at(str(v), int(i), self.crops_per_window) for v, i in pairs}
-
-    def _pairs(self, keys: Iterable[SampleKey]) -> List[list]:
-        """A record's ``[[video, index], ...]`` of ``keys`` (the inverse of ``_keys``)."""
-        return [[k.video, k.ordinal(self.crops_per_window)] for k in keys]
+    def kept(self) -> Dict[int, Set[SampleKey]]:
+        """The closed epochs it keeps records of, each with its samples that left a record since it closed."""
+        return {e: self.owed.get(e, set()) for e in {e for r in self.records.values() for e in r} | set(self.owed)}
 
     def _keeps(self, consumer: Hashable, epoch: int) -> bool:
         """Whether ``consumer``'s records of ``epoch`` are kept: the open epochs and the newest ``keep_epochs`` closed
@@ -181,11 +199,16 @@ class Journal:
         for c, d in list(self.records.items()) + list(self.batches.items()):
             for e in [e for e in d if not self._keeps(c, e)]:
                 del d[e]
+        for e in [e for e in {*self.owed, *self.counts} if not any(self._keeps(c, e) for c in self.told_to)
+                  and e <= self.completed - self.keep_epochs]:  # no consumer may resume into it
+            self.owed.pop(e, None), self.counts.pop(e, None)
 
     def _replace(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]],
                  batches: Dict[int, int]) -> None:
         d, counts = self.records.setdefault(consumer, {}), self.batches.setdefault(consumer, Counter())
         for e in [e for e in d if e > completed]:
+            if e <= self.completed:  # a closed epoch reopened: what left the record is made again after a restart
+                self.owed.setdefault(e, set()).update(d[e] - delivered.get(e, set()))
             del d[e]
             counts.pop(e, None)
         for e in set(delivered) | set(batches):  # a rank's yielded padding alone counts too
@@ -194,26 +217,23 @@ class Journal:
 
     # ------------------------------------------------------------------ writing
     def _append(self, rec: dict) -> None:
+        self._apply(rec)  # in memory first: it stays current while writes fail
         if self.failed:
-            return  # in memory already (_apply); the next whole write keeps it
+            return  # the next whole write keeps it
         try:
             os.write(self._fd, msgpack.packb(rec, use_bin_type=True))
         except OSError as e:
             self._fail(e)
             return
         self._dirty = True
-        self.writes += 1
 
     def _fail(self, e: OSError) -> None:
-        """A write failed: stop appending (a torn record would end the file's readable part)
-        until :meth:`sync` writes it again whole."""
+        """A write failed: no appending (a torn record ends what is read) until :meth:`sync` writes it whole."""
         self.failed = True
         self._retry_at = time.monotonic() + RETRY_S
         if self._fd is not None:
-            try:
+            with contextlib.suppress(OSError):
                 os.close(self._fd)
-            except OSError:
-                pass
             self._fd = None
         self.on_error(self.path, e)
 
@@ -232,45 +252,38 @@ class Journal:
 
     def delivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
         """``consumer`` was granted one batch of ``epoch``, of samples ``keys``."""
-        pairs = self._pairs(keys)
+        pairs = _pairs(keys, self.crops_per_window)
         if pairs and self._keeps(consumer, epoch):
-            rec = {"d": list(consumer), "e": epoch, "k": pairs}
-            self._apply(rec)
-            self._append(rec)
+            self._append({"d": list(consumer), "e": epoch, "k": pairs})
 
     def undelivered(self, consumer: Hashable, epoch: int, keys: Iterable[SampleKey]) -> None:
         """``consumer`` gave back one batch of ``epoch`` (``keys``) it was granted and never handed on."""
-        pairs = self._pairs(keys)
+        pairs = _pairs(keys, self.crops_per_window)
         if pairs and self._keeps(consumer, epoch):
-            rec = {"u": list(consumer), "e": epoch, "k": pairs}
-            self._apply(rec)
-            self._append(rec)
+            self._append({"u": list(consumer), "e": epoch, "k": pairs})
 
     def replaced(self, consumer: Hashable, completed: int, delivered: Dict[int, Set[SampleKey]],
                  batches: Optional[Dict[int, int]] = None) -> None:
         """``consumer``'s resume state replaced its record in the epochs after ``completed``: its
         samples ``delivered`` and the ``batches`` it yielded, per epoch."""
-        rec = {"s": list(consumer), "c": completed, "r": {e: self._pairs(ks) for e, ks in delivered.items()},
-               "b": dict(batches or {})}
-        self._apply(rec)
-        self._append(rec)
+        self._append({"s": list(consumer), "c": completed, "b": dict(batches or {}),
+                      "r": {e: _pairs(ks, self.crops_per_window) for e, ks in delivered.items()}})
 
-    def epoch_told(self, epoch: int) -> None:
-        """``epoch`` was told complete to some reader (its records stay: others may hold it)."""
+    def epoch_told(self, epoch: int, group: Optional[str] = None, batches: int = 0) -> None:
+        """``epoch`` was told complete to some reader (its records stay: others may hold it); to the ranks of DDP
+        ``group``, with the ``batches`` each yields (``padding.GroupPadding``: a restarted server binds them to it)."""
         if epoch > self.told:
-            self._apply({"t": epoch})
             self._append({"t": epoch})
+        if group is not None and batches > self.counts.get(epoch, {}).get(group, -1):
+            self._append({"g": group, "e": epoch, "c": batches})
 
     def consumer_told(self, consumer: Hashable, epoch: int) -> None:
         """``consumer`` was told ``epoch`` complete (the newest it was told)."""
         if epoch > self.told_to.get(consumer, -1):
-            rec = {"tc": list(consumer), "e": epoch}
-            self._apply(rec)
-            self._append(rec)
+            self._append({"tc": list(consumer), "e": epoch})
 
     def epoch_complete(self, epoch: int) -> None:
-        """Every epoch up to ``epoch`` is closed: records no longer kept (the module docstring) are
-        dropped and the file is rewritten without them."""
+        """Every epoch up to ``epoch`` is closed: the file is rewritten without the records no longer kept."""
         if epoch <= self.completed:
             return
         self._complete(epoch)
@@ -296,8 +309,12 @@ class Journal:
                 f.write(msgpack.packb({"tc": list(consumer), "e": e}))
             for consumer, d in self.records.items():
                 for e, ks in d.items():
-                    f.write(msgpack.packb({"d": list(consumer), "e": e, "k": self._pairs(sorted(ks)),
+                    f.write(msgpack.packb({"d": list(consumer), "e": e, "k": _pairs(sorted(ks), self.crops_per_window),
                                            "n": self.batches.get(consumer, {}).get(e, 0)}))
+            for e, ks in self.owed.items():  # after the records: read back, a grant is no longer owed
+                f.write(msgpack.packb({"o": e, "k": _pairs(sorted(ks), self.crops_per_window)}))
+            for rec in [{"g": g, "e": e, "c": n} for e, told in self.counts.items() for g, n in told.items()]:
+                f.write(msgpack.packb(rec))
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, self.path)

@@ -29,16 +29,18 @@ class GroupPadding:
             if e > completed_epoch:
                 self.taken.setdefault((group, e), {})[rank] = n
 
-    def restarted(self, records: dict, batches: dict, told_to: Dict[tuple, int], keep: int) -> None:
-        """A restarted server's journal: a DDP rank's (consumer ``("g:" + group, rank)``) grants of
-        each epoch count as its state's, and the group of a rank told epochs up to ``e`` complete was
-        told a count of each kept one, what its ranks' grants reached: the count binds its ranks'
-        later hellos, as before the restart (docs/delivery.md, "Ends of epochs")."""
-        for c in [c for c in records if c[0].startswith("g:")]:
-            self.resumed(c[0][2:], c[1], -1, batches[c])
-        for (name, _), upto in [(c, e) for c, e in told_to.items() if c[0].startswith("g:")]:
-            for e in range(max(0, upto - keep), upto + 1):
-                self.told.setdefault((name[2:], e), max(self.taken.get((name[2:], e), {}).values(), default=0))
+    def restarted(self, journal) -> None:
+        """A restarted server's journal (``journal.Journal``): a DDP rank's (consumer ``("g:" + group, rank)``)
+        grants of each epoch count as its state's, and the group of a rank told epochs up to ``e`` complete was
+        told a count of each kept one, the one the journal says it was told (a later hello's state may have
+        lowered the grants since), at least what its ranks' grants reached: the count binds its ranks' later
+        hellos, as before the restart (docs/delivery.md, "Ends of epochs")."""
+        for c in [c for c in journal.records if c[0].startswith("g:")]:
+            self.resumed(c[0][2:], c[1], -1, journal.batches[c])
+        for (name, _), upto in [(c, e) for c, e in journal.told_to.items() if c[0].startswith("g:")]:
+            for key in [(name[2:], e) for e in range(max(0, upto - journal.keep_epochs), upto + 1)]:
+                self.told.setdefault(key, max([*self.taken.get(key, {}).values(),
+                                               journal.counts.get(key[1], {}).get(key[0], 0)]))
 
     def resized(self, group: str, world: int) -> None:
         """A rank of ``group`` said hello at world size ``world``: counts of ranks beyond it (an

@@ -147,9 +147,11 @@ class EpochPlan:
 
     @classmethod
     def kept(cls, epoch: int, crops_per_window: int, videos, records: Dict[Consumer, Set[SampleKey]],
-             served: bool) -> "EpochPlan":
-        """A complete, told ``epoch`` of ``videos`` kept without its jobs, holding ``records`` (:attr:`only`)."""
+             served: bool, owed: Iterable[SampleKey] = ()) -> "EpochPlan":
+        """A complete, told ``epoch`` of ``videos`` kept without its jobs, holding ``records``, making ``owed``
+        again (:attr:`only`: a journal's samples that left a record since the epoch closed)."""
         plan = cls(epoch, crops_per_window, Jobs(epoch, videos), complete=True, told=True, served=served, only={})
+        plan._owed_again(owed)
         for consumer, keys in records.items():
             plan.add_record(consumer, keys)
         return plan
@@ -345,10 +347,9 @@ class EpochScheduler:
         keep_epochs: complete epochs kept so an older resume state can reopen them.
         crops_per_window: samples per window (K of ``ids.py``).
         shuffle_seed: None: the listing's order; an int: ``batcher.video_order(videos, seed, epoch)``.
-        max_samples_per_video: windows a file gives at most per epoch (None: no bound known),
-            for :meth:`to_come` before a file's first pass ends.
+        max_samples_per_video: windows a file gives at most per epoch (None: unknown), for :meth:`to_come` first.
         first_epoch: the epoch to open first (after a journal's closed ones; it keeps the last ``keep_epochs``).
-        kept: older closed epochs it keeps too (a journal's records of consumers that may resume into them).
+        kept: older closed epochs it keeps too (a journal's, ``Journal.kept``), each with the samples it makes again.
 
     Nothing here raises on peer input: what does not name a sample of the task is dropped.
     """
@@ -356,17 +357,18 @@ class EpochScheduler:
     def __init__(self, videos: Iterable[str], epochs: Optional[int] = None, max_task_crashes: int = MAX_TASK_CRASHES,
                  lookahead: int = 1, keep_epochs: int = KEEP_EPOCHS, crops_per_window: int = 1,
                  shuffle_seed: Optional[int] = None, max_samples_per_video: Optional[int] = None, first_epoch: int = 0,
-                 kept: Iterable[int] = ()):
+                 kept: Optional[Dict[int, Set[SampleKey]]] = None):
         self.videos, self.shuffle_seed, self.max_samples_per_video = list(videos), shuffle_seed, max_samples_per_video
         self.counts: Dict[str, int] = {}  # video -> samples its last complete pass gave (any epoch)
         self.known = frozenset(self.videos)
         self.max_epochs, self.max_task_crashes = epochs, max_task_crashes
-        self.lookahead, self.keep_epochs = lookahead, keep_epochs
-        self.crops_per_window = crops_per_window
-        self.plans: Dict[int, EpochPlan] = {e: EpochPlan.kept(e, crops_per_window, self.known, {}, True) for e in sorted(
+        self.lookahead, self.keep_epochs, self.crops_per_window = lookahead, keep_epochs, crops_per_window
+        kept = kept or {}
+        self.plans = {e: EpochPlan.kept(e, crops_per_window, self.known, {}, True, kept.get(e, ())) for e in sorted(
             {e for e in kept if e < first_epoch}.union(range(max(0, first_epoch - keep_epochs), first_epoch)))}
         self.next_epoch = first_epoch
-        self.queue: Deque[Tuple[int, str]] = collections.deque()
+        self.queue: Deque[Tuple[int, str]] = collections.deque(
+            (e, v) for e, plan in self.plans.items() for v in plan.requeue(list(plan.only)))  # what they make again
         self.running: Dict[int, Job] = {}  # task id -> job
         self._task_ids = itertools.count()
         self.pending_records: Dict[int, Dict[Consumer, Set[SampleKey]]] = {}  # for epochs not opened yet
