@@ -1261,3 +1261,26 @@ def test_a_ddp_count_told_before_a_reset_binds_the_ranks_after_a_server_crash(tm
     assert t.told[b"r0.3"] == t.told[b"r1.3"] == [(1, 2), (2, 2)], dict(t.told)
     got = sorted(t.got[b"r0.3"] + t.got[b"r1.3"])
     assert got == [(e, f"a.mp4#{k}") for e in (1, 2) for k in range(4)], dict(t.got)
+
+
+def test_a_server_restarted_from_its_journal_keeps_an_epoch_a_reader_holds_for_a_reader_ahead(tmp_path):
+    """Reader j was granted a batch of epoch 0 and paused; t read the rest and was told epoch 0
+    complete; the server crashed (epoch 0 still open in its journal). After the restart t says hello
+    first (epoch 0 completed), then j from a checkpoint of nothing: epoch 0 is served again, not
+    skipped for t, and j gets its sample again (told epoch 0 complete with it unread: simulator
+    ``mixed`` seed 185529, F52)."""
+    s = TinyStream(Journal(str(tmp_path), "r"))
+    s.hello(b"j", "j")
+    s.keep.add(b"j")
+    s.turn()
+    s.hello(b"t", "t")
+    for _ in range(6):
+        s.turn()
+    held = [k for e, k in s.got[b"j"] if e == 0]
+    assert held and s.told[b"t"][:1] == [(0, None)] and not s.told[b"j"], (dict(s.got), dict(s.told))
+    t = TinyStream(Journal(str(tmp_path), "r"))  # the crash: no bye, no close
+    t.hello(b"t.2", "t", Resume(0, {}))
+    t.hello(b"j.2", "j", Resume(-1, {}))
+    for _ in range(30):
+        t.turn()
+    assert [k for e, k in t.got[b"j.2"] if e == 0] == held and 0 not in [e for e, _ in t.got[b"t.2"]], dict(t.got)

@@ -199,5 +199,4 @@ FAMILIES = {"trainers": trainers, "ddp": ddp, "loader": loader, "network": netwo
 FAILS_ON_MAIN = {"trainers": None, "ddp": None, "loader": None, "network": None, "elastic": None,
                  "mixed": None}
 #: one failing seed of each open finding: (scenario, seed, finding)
-OPEN_FINDINGS: list = [("mixed", 185529, "F52: a DDP job killed holding a grant of epoch 0 and a server restarted from its "
-                                         "journal: the restarted job's rank 1 never gets those samples back (lost)")]
+OPEN_FINDINGS: list = []

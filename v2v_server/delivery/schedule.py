@@ -361,12 +361,11 @@ class EpochScheduler:
         self.videos, self.shuffle_seed, self.max_samples_per_video = list(videos), shuffle_seed, max_samples_per_video
         self.counts: Dict[str, int] = {}  # video -> samples its last complete pass gave (any epoch)
         self.known = frozenset(self.videos)
-        self.max_epochs, self.max_task_crashes = epochs, max_task_crashes
+        self.max_epochs, self.max_task_crashes, self.next_epoch = epochs, max_task_crashes, first_epoch
         self.lookahead, self.keep_epochs, self.crops_per_window = lookahead, keep_epochs, crops_per_window
         kept = kept or {}
         self.plans = {e: EpochPlan.kept(e, crops_per_window, self.known, {}, True, kept.get(e, ())) for e in sorted(
             {e for e in kept if e < first_epoch}.union(range(max(0, first_epoch - keep_epochs), first_epoch)))}
-        self.next_epoch = first_epoch
         self.queue: Deque[Tuple[int, str]] = collections.deque(
             (e, v) for e, plan in self.plans.items() for v in plan.requeue(list(plan.only)))  # what they make again
         self.running: Dict[int, Job] = {}  # task id -> job
@@ -592,10 +591,11 @@ class EpochScheduler:
                      delivered: Dict[int, Set[SampleKey]]) -> None:
         """A consumer's resume state (authoritative for that consumer): in every epoch after
         ``completed_epoch``, open or not, its record becomes exactly ``delivered[epoch]``; what it
-        had acknowledged beyond that is owed again (a complete epoch reopens). A fresh scheduler
-        starts at ``completed_epoch + 1`` when it has that epoch to serve."""
+        had acknowledged beyond that is owed again (a complete epoch reopens). A fresh scheduler (no plan, no
+        record of an epoch not opened: a journal's grant) starts at ``completed_epoch + 1`` if it serves that epoch."""
         delivered = {e: {k for k in ks if k.video in self.known} for e, ks in delivered.items()}
-        if not self.plans and self.next_epoch <= completed_epoch < (self.max_epochs or completed_epoch + 2) - 1:
+        fresh = not self.plans and not self.pending_records
+        if fresh and self.next_epoch <= completed_epoch < (self.max_epochs or completed_epoch + 2) - 1:
             self.next_epoch = completed_epoch + 1
         for e, plan in self.plans.items():
             if e <= completed_epoch:
