@@ -16,17 +16,22 @@ Each rank writes ``OUT_DIR/rank{R}.json``: the ids it trained on (padding exclud
 same as ``[epoch, id]``), padding rows, batches, per step ``epochs`` (the batch's server epoch),
 ``sync_gradients`` and ``end_of_dataloader``, ``twice``, ``error`` (the first line of an exception,
 raised before any step or during one), and ``cpu_s`` / ``wall_s``: this process's CPU seconds (all
-its threads) and seconds from its first batch to the end of the loop (``bench/launchers.py``).
+its threads) and seconds from its first batch to the end of the loop (``bench/launchers.py``), and
+``io_threads``: the stream I/O threads still running when it wrote the record (it leaves by
+``harness.dist_exit.leave``, so nothing of it is left to interpreter finalization).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import threading
 import time
 from pathlib import Path
 
 import torch
+
+from harness.dist_exit import leave
 
 
 def main() -> None:
@@ -82,10 +87,12 @@ def main() -> None:
             rec["cpu_s"], rec["wall_s"] = time.process_time() - first[0], time.monotonic() - first[1]
     except Exception as e:  # noqa: BLE001 - the test reads the line the user would read
         rec["error"] = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+    rec["io_threads"] = sum(t.name == "v2v-stream-io" for t in threading.enumerate())
     Path(args.out, f"rank{acc.process_index}.json").write_text(json.dumps(rec))
     if rec["error"] is None:
         acc.wait_for_everyone()
     acc.end_training()
+    leave(0)  # not through interpreter finalization: harness/dist_exit.py says why
 
 
 def _train(acc, model, opt, loader, args, rec, stop_after: int):

@@ -134,6 +134,7 @@ def test_accelerate_dispatch_steps_never_mix_two_epochs(tmp_path):
     with _serve(corpus, epochs=2) as srv:
         ranks = _accelerate(srv.endpoint, tmp_path / "out", "--mode", "dispatch", clean=True)
     assert [r["error"] for r in ranks] == [None, None]
+    assert [r["io_threads"] for r in ranks] == [0, 0]  # the stream ended: its I/O thread too
     assert ranks[0]["epochs"] == ranks[1]["epochs"], [r["epochs"] for r in ranks]
     _once_per_epoch([p for r in ranks for p in r["seen_epochs"]], expected)
 
@@ -171,6 +172,7 @@ def test_accelerate_loop_left_and_read_again_gets_what_the_loader_took_ahead(tmp
         ranks = _accelerate(srv.endpoint, tmp_path / "out", "--mode", mode, "--stop-after", "0", "--again",
                             clean=True)
     assert [r["error"] for r in ranks] == [None, None]
+    assert [r["io_threads"] for r in ranks] == [0, 0]  # read to the end: no I/O thread left running
     _once_per_epoch([p for r in ranks for p in r["seen_epochs"]], expected)
 
 
