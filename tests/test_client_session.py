@@ -426,28 +426,37 @@ def test_a_ddp_rank_that_read_an_epochs_end_with_nothing_to_repeat_pays_with_the
 
 
 @pytest.mark.parametrize("raw", [False, True])
-def test_a_rank_owing_padding_at_the_end_with_nothing_to_repeat_yields_zeros_shaped_as_the_stream(raw):
+@pytest.mark.parametrize("points,compact", [(0, False), (0, True), (8, False), (8, True)])
+def test_a_rank_owing_padding_at_the_end_with_nothing_to_repeat_yields_zeros_shaped_as_the_stream(raw, points, compact):
     """A DDP rank told its group's count with nothing to repeat, when the server that had the
     group's last batch crashed, is sent no copy: at the stream's end it yields a batch of zeros
     (``endpoint.zero_padding``) with the arrays, per-sample shapes and dtypes of the stream's
     batches as the client converts them, every sample flagged (the ranks ended with different
-    counts and the job hung in an all-reduce: simulator ``mixed`` seeds 3853, 4461)."""
+    counts and the job hung in an all-reduce: simulator ``mixed`` seeds 3853, 4461). A tracked flow
+    option (``points`` per side in the welcome) read with ``compact_flow`` has ``flow_grid`` in its
+    batches, and so in its padding: a loop that expands the grid finds it in every batch."""
     from v2v_client.endpoint import zero_padding
     from v2v_client.tensors import batch_to_torch
     from v2v_wire.outputs import ARRAYS
 
     info = {"sequence_length": 4, "num_bins": 5, "crop_size": 16, "flow_dtype": "float16",
-            "outputs": ["voxels", "frames", "flow"]}
+            "outputs": ["voxels", "frames", "flow"], "flow_grid_points": points}
     outputs = ("voxels", "frames", "flow", "polarity_counts")
     options = StreamOptions(outputs=outputs, credits=2, timeout_s=1.0, heartbeat_s=1.0, raw=raw, reconnect=False,
-                            reconnect_timeout_s=1.0, curve_keys=None, rank=1, world_size=2, group="g", shm=False)
+                            reconnect_timeout_s=1.0, curve_keys=None, rank=1, world_size=2, group="g", shm=False,
+                            compact_flow=compact)
     rng = np.random.default_rng(0)
     wire = {n: rng.integers(0, 3, (3,) + ARRAYS[n].shape(4, 5, 16)).astype("float16" if n == "flow" else ARRAYS[n].dtypes[0])
             for n in outputs}
-    real = batch_to_torch(wire, raw, (16, 16), "float16")
+    if points:  # what a tracked option's worker sends (server.stream_info's flow_grid_points)
+        wire["flow_grid"] = rng.normal(size=(3, 4, 2, points, points)).astype("float32")
+        del wire["flow"]
+    real = batch_to_torch(wire, raw, (16, 16), "float16", compact_flow=compact)
+    assert ("flow_grid" in real) == (points > 0 and compact)
     pad = zero_padding(info, options, 2)
     assert {k: (tuple(v.shape[1:]), v.dtype) for k, v in real.items()} == \
         {k: (tuple(pad[k].shape[1:]), pad[k].dtype) for k in real}
+    assert not {"flow", "flow_grid"} & (set(pad) - set(real))
     assert all(not pad[k].any() for k in real)
     assert pad["padding"].tolist() == [True] and pad["epoch"] == 2 and pad["batch_id"] == -1
     assert len(pad["sample_ids"]) == len(pad["params"]) == 1

@@ -90,9 +90,12 @@ def test_raw_flow_is_the_old_float16_wire_flow(server, videos):
 
 
 def test_compact_flow_yields_the_grid_for_expansion_on_the_device(server, videos):
-    b = first_batches(V2VStreamDataset(server.endpoint, outputs=("flow",), compact_flow=True, timeout_s=60), 1)[0]
+    """The welcome names the grid's points per side (padding a rank makes has the batches' form)."""
+    ds = V2VStreamDataset(server.endpoint, outputs=("flow",), compact_flow=True, timeout_s=60)
+    b = first_batches(ds, 1)[0]
     g = b["flow_grid"]
     assert "flow" not in b and g.dtype == torch.float32 and g.shape == (len(b["sample_ids"]), L, 2, 8, 8)
+    assert ds.info["flow_grid_points"] == 8
     dense = expand_flow_grid(g, (CROP, CROP))
     for i, sid in enumerate(b["sample_ids"]):
         np.testing.assert_allclose(dense[i].numpy(), want_flow(videos, b, i), rtol=2 ** -11, atol=1e-6)

@@ -40,14 +40,18 @@ def zero_padding(info: dict, options: StreamOptions, epoch: int) -> dict:
     """A DDP padding batch of ``epoch`` with nothing to repeat: one sample of zeros of each of
     ``options.outputs`` (in ``info``'s shapes and wire dtypes: the server's welcome), converted as
     the stream converts its batches, flagged in ``padding`` (bool (1,), True), sample id ``""``,
-    ``batch_id`` -1. A tracked flow option read with ``compact_flow`` gets dense ``flow`` (the
-    grid size is not in the welcome)."""
+    ``batch_id`` -1. A tracked flow option's flow is zeros at its grid's points (the welcome's
+    ``flow_grid_points``), so padding has ``flow_grid`` where the batches have it (``compact_flow``)."""
     size = int(info.get("crop_size") or 1)
     flow_dtype = info.get("flow_dtype", ARRAYS["flow"].dtypes[0])
+    length, points = int(info.get("sequence_length", 1)), int(info.get("flow_grid_points") or 0)
     arrays = {}
     for name in options.outputs or info.get("outputs", ()):
+        if name == "flow" and points:
+            arrays["flow_grid"] = np.zeros((1, length, 2, points, points), ARRAYS["flow_grid"].dtypes[0])
+            continue
         spec = ARRAYS[name]
-        shape = spec.shape(int(info.get("sequence_length", 1)), int(info.get("num_bins", 1)), size)
+        shape = spec.shape(length, int(info.get("num_bins", 1)), size)
         arrays[name] = np.zeros((1,) + shape, flow_dtype if spec.narrowing == "recipe" else spec.dtypes[0])
     out = _to_tensors(options.raw, options.compact_flow, arrays, (size, size), flow_dtype)
     out.update(padding=torch.ones(1, dtype=torch.bool), epoch=epoch, batch_id=-1, sample_ids=[""], params=[{}])

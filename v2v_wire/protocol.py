@@ -42,7 +42,8 @@ Message types (protocol 9; client messages are decoded and schema-checked by ``m
 
 Array forms: each array's dtype, shape and float conversion are in ``outputs.ARRAYS`` (one
 ``ArraySpec`` per array; ``polarity_counts`` is served only to clients that ask). A tracked flow option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its
-values at the tracking grid's points (``ARRAY_OUTPUT``: it carries the output ``flow``; the
+values at the tracking grid's points, n per side (the welcome's ``flow_grid_points``, 0 for
+an option sending dense flow; ``ARRAY_OUTPUT``: it carries the output ``flow``; the
 dense field is bilinear between them with ``flow_grid_taps`` over the welcome's
 ``crop_size``). Compression (optional): a hello may say ``"compression": "lz4" | "zstd"``
 (``codecs.COMPRESSIONS``; the server answers ``error`` code ``compression`` when it lacks the

@@ -37,6 +37,7 @@ from v2v_server.disk_cache import UsageScan
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.sources.source import VideoSource
 from v2v_server.delivery.journal import Journal
+from v2v_server.flow.options import check_option
 from v2v_server.delivery.ledger import STALL_S
 from v2v_server.delivery.core import DeliveryCore
 from v2v_server.service.client_side import ClientSide
@@ -284,6 +285,7 @@ class V2VServer:
                 "batch_size": c.batch_size, "frames_per_bin": c.frames_per_bin, "seed": c.seed,
                 "epochs": c.epochs, "videos": len(self.videos), "outputs": list(self.core.outputs or c.outputs),
                 "offered_outputs": list(c.outputs), "flow_preset": c.flow_preset, "flow_dtype": c.flow_dtype,
+                "flow_grid_points": _grid_points(c.flow_preset),
                 "protocol": PROTOCOL_VERSION,
                 "lease_s": c.lease_s, "client_timeout_s": c.client_timeout_s, "max_credits": c.max_credits,
                 "shm_dir": self.assembler.files.path if self.assembler.files is not None else None,
@@ -291,6 +293,14 @@ class V2VServer:
                 # recipe, and a resume state is refused under another recipe
                 "shard": "%d/%d" % c.serving.shard_spec, "corpus": self.corpus, "recipe": self.recipe,
                 "max_hello_bytes": MAX_CLIENT_MSG}
+
+
+def _grid_points(flow_preset: str) -> int:
+    """Points per side of the grid a tracked flow option sends its flow at (``flow_grid``), 0 for
+    an option that sends dense ``flow``: a client makes padding of the form its batches have."""
+    option = check_option(flow_preset)
+    return option.track.grid if option.method == "tracked" else 0
+
 
 def install_signal_handlers(server: V2VServer) -> List[int]:
     """SIGINT/SIGTERM stop the server cleanly (finish the loop, stop workers, close sockets).
