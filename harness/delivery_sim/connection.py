@@ -9,7 +9,8 @@ server message to ``ServerSession.on_message`` and a ``StreamLoader``'s receipts
 declares the server lost after ``timeout_s`` of silence (then a new socket, a new identity and a
 new hello, or ``StreamTimeout``), and on close sends ``outgoing()`` and ``closing()``. Every
 decision about what to send is the session's. For the checks it tells the oracle each release of
-a batch it asked to hold (``Oracle.released``).
+a batch it asked to hold (``Oracle.released``), and each such batch a hello discarded (the
+server's grant until a hello of its consumer is let in: limit (a) if none ever is).
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from typing import Callable, Dict, List, Optional, Set, Tuple
 from v2v_client.connection import own_stall
 from v2v_client.receipts import loader_message
 from v2v_client.session import ServerSession, StreamError, StreamTimeout
-from v2v_wire.messages import Hold, Released
+from v2v_wire.messages import Hello, Hold, Released
 from v2v_wire.protocol import pack, unpack
 
 from harness.delivery_sim.net import Link
@@ -91,6 +92,9 @@ class SimConnection:
             for bid in msg.batch_ids:
                 if bid in self.asked:
                     self.host.run.oracle.released(self.ident, bid, self.consumer_key, self.asked.pop(bid))
+        elif isinstance(msg, Hello):  # it discarded every batch not taken: its resume state settles them
+            for bid in list(self.asked):  # at the server, if it is let in; if never, they stay its grants
+                self.host.run.oracle.released(self.ident, bid, self.consumer_key, self.asked.pop(bid))
         data = pack(msg.to_wire())
         self.sim.log(self.name, lambda: f"-> {_peek(data)}")
         self.net.send_up(self.link, [data])
@@ -204,6 +208,7 @@ class SimConnection:
         ok, result = self.session.take(item, on_claim, lambda: False, ack)
         self._ping()
         if ok:
+            self.asked.pop(item["batch_id"], None)  # on its way to the loop, no longer a grant it may give back
             return "taken", result
         if self.alive and self.session.held.current.get(item["batch_id"]) is item:
             return "wait", None
