@@ -82,7 +82,10 @@ class SimConnection:
 
     def _say(self, msg) -> None:
         """Send ``msg``; a release of a batch it asked to hold (the server may have granted it) is
-        told to the oracle: that batch stays its consumer's grant until a server takes it back."""
+        told to the oracle: that batch stays its consumer's grant until a server takes it back. So
+        is each such batch when a hello is sent: the hello discarded every one not taken, for its
+        resume state to settle at the server, which may never let it in (a taken one is in a loop's
+        history, which the checks read first, or was a loader worker's, released later)."""
         if isinstance(msg, Hold):
             for bid in msg.batch_ids:
                 item = self.session.held.current.get(bid)
@@ -92,8 +95,8 @@ class SimConnection:
             for bid in msg.batch_ids:
                 if bid in self.asked:
                     self.host.run.oracle.released(self.ident, bid, self.consumer_key, self.asked.pop(bid))
-        elif isinstance(msg, Hello):  # it discarded every batch not taken: its resume state settles them
-            for bid in list(self.asked):  # at the server, if it is let in; if never, they stay its grants
+        elif isinstance(msg, Hello):
+            for bid in list(self.asked):
                 self.host.run.oracle.released(self.ident, bid, self.consumer_key, self.asked.pop(bid))
         data = pack(msg.to_wire())
         self.sim.log(self.name, lambda: f"-> {_peek(data)}")
@@ -208,7 +211,6 @@ class SimConnection:
         ok, result = self.session.take(item, on_claim, lambda: False, ack)
         self._ping()
         if ok:
-            self.asked.pop(item["batch_id"], None)  # on its way to the loop, no longer a grant it may give back
             return "taken", result
         if self.alive and self.session.held.current.get(item["batch_id"]) is item:
             return "wait", None
