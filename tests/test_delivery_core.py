@@ -862,6 +862,31 @@ def test_a_resume_more_than_keep_epochs_behind_what_its_consumer_was_told_is_ref
         s.core.message(ident, Bye(), s.now)
 
 
+def test_a_resume_behind_what_a_rank_beyond_its_world_size_was_told_is_refused_in_one_line():
+    """A DDP job of three ranks: ranks 0 and 1 left in epoch 0, rank 2 read on and was told all
+    three epochs complete (the server keeps its records of the newest two only). The job restarts
+    from nothing at world size 2: rank 0's hello speaks for rank 2 (beyond its world size, no
+    connection reads it), whose epoch-0 samples the job's model lost and the server no longer
+    knows. Let in, those samples reached no loop; it is refused before any batch, in one line
+    naming rank 2 and what to load (docs/delivery.md limit (e); simulator ``elastic`` seed 9643, F53)."""
+    s = TinyStream()
+    for r in range(3):
+        s.hello(b"r%d" % r, "j", group="g", rank=r, world_size=3)
+    s.turn()
+    s.turn()
+    for r in (0, 1):
+        s.core.message(b"r%d" % r, Bye(), s.now)
+    for _ in range(130):  # past the group's wait (client_timeout_s): rank 2 reads on alone
+        s.turn()
+    assert [e for e, _ in s.told[b"r2"]] == [0, 1, 2] and not s.told[b"r0"] and not s.told[b"r1"], dict(s.told)
+    s.core.message(b"r2", Bye(), s.now)
+    s.turn()
+    [(_, err)] = s.core.hello(b"n0", Hello(("voxels",), 1, consumer="j", resume=Resume(-1, {}), group="g", rank=0,
+                                           world_size=2), s.now)
+    assert err.to_wire()["type"] == "error" and err.code == "resume" and "\n" not in err.message, err
+    assert "rank 2 epochs up to 2" in err.message and "checkpoint saved after epoch 0 ended" in err.message
+
+
 def test_a_loader_worker_told_epochs_its_loader_never_learned_gets_its_rolled_back_sample_again():
     """StreamLoader worker x/0 took one batch of epoch 0 (its loop received it) and left; b read
     every epoch; x/0's next iteration was told epochs 0-2 complete at once and sent nothing, so

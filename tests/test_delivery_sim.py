@@ -169,6 +169,18 @@ def test_a_release_no_server_read_stays_the_dead_consumers_grant():
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
 
 
+@pytest.mark.parametrize("seed", [1217, 18324])
+def test_a_grant_a_hello_discarded_stays_the_dead_consumers_grant(seed):
+    """``elastic`` seeds where a DDP job died before its first checkpoint and restarted from
+    nothing at another world size (1217: 2 -> 1; 18324: 1 -> 2), a new job to the server: a rank
+    dropped while paused woke, read its grant, and said hello again (which discards every batch
+    not taken, for its resume state to settle), but was killed before the server let that hello
+    in. The server keeps the batch that old rank's (docs/delivery.md limit (a)), which the checks
+    must not call lost."""
+    outcome = simulate(["elastic"], f"{seed}:{seed + 1}")["elastic"]
+    assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
+
+
 @pytest.mark.parametrize("seed", [1664, 1774, 2768])
 def test_ddp_ranks_paused_past_the_client_timeout_end_alike(seed):
     """``ddp`` seeds where ranks paused past the client timeout said hello again: another rank's

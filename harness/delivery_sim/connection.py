@@ -9,7 +9,8 @@ server message to ``ServerSession.on_message`` and a ``StreamLoader``'s receipts
 declares the server lost after ``timeout_s`` of silence (then a new socket, a new identity and a
 new hello, or ``StreamTimeout``), and on close sends ``outgoing()`` and ``closing()``. Every
 decision about what to send is the session's. For the checks it tells the oracle each release of
-a batch it asked to hold (``Oracle.released``).
+a batch it asked to hold (``Oracle.released``), and each such batch a hello discarded (the
+server's grant until a hello of its consumer is let in: limit (a) if none ever is).
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from typing import Callable, Dict, List, Optional, Set, Tuple
 from v2v_client.connection import own_stall
 from v2v_client.receipts import loader_message
 from v2v_client.session import ServerSession, StreamError, StreamTimeout
-from v2v_wire.messages import Hold, Released
+from v2v_wire.messages import Hello, Hold, Released
 from v2v_wire.protocol import pack, unpack
 
 from harness.delivery_sim.net import Link
@@ -81,7 +82,10 @@ class SimConnection:
 
     def _say(self, msg) -> None:
         """Send ``msg``; a release of a batch it asked to hold (the server may have granted it) is
-        told to the oracle: that batch stays its consumer's grant until a server takes it back."""
+        told to the oracle: that batch stays its consumer's grant until a server takes it back. So
+        is each such batch when a hello is sent: the hello discarded every one not taken, for its
+        resume state to settle at the server, which may never let it in (a taken one is in a loop's
+        history, which the checks read first, or was a loader worker's, released later)."""
         if isinstance(msg, Hold):
             for bid in msg.batch_ids:
                 item = self.session.held.current.get(bid)
@@ -91,6 +95,9 @@ class SimConnection:
             for bid in msg.batch_ids:
                 if bid in self.asked:
                     self.host.run.oracle.released(self.ident, bid, self.consumer_key, self.asked.pop(bid))
+        elif isinstance(msg, Hello):
+            for bid in list(self.asked):
+                self.host.run.oracle.released(self.ident, bid, self.consumer_key, self.asked.pop(bid))
         data = pack(msg.to_wire())
         self.sim.log(self.name, lambda: f"-> {_peek(data)}")
         self.net.send_up(self.link, [data])

@@ -22,7 +22,9 @@ from typing import Dict, List, Optional, Tuple
 from v2v_client.launchers import rank_part
 from v2v_client.options import job_group
 from v2v_client.resume import ResumeState
+from v2v_server.delivery.schedule import KEEP_EPOCHS
 
+from harness.delivery_sim.oracle import BEHIND
 from harness.delivery_sim.stream import SimIterator, SimStream
 from harness.delivery_sim.trainer import Reader, stream_options
 
@@ -145,14 +147,27 @@ class DDPJob:
     def failed(self, rank: Rank, err) -> None:
         """A rank's stream raised: the launcher takes the job down. A rank's state refused before
         its first batch (``ResumeState.place``'s ``ValueError``): the job restarts from the same
-        checkpoint, every rank loading every rank's state, as the error says; any other error ends
-        the job (its ranks are gone for good; an honest job's error is a finding)."""
+        checkpoint, every rank loading every rank's state, as the error says. A state refused as too
+        far behind the epochs told a rank it speaks for (limit (e)): the job reads on as a new
+        consumer, as the error says (no state, a new ``group=``), as ``TrainerJob.failed`` does. Any
+        other error ends the job (its ranks are gone for good; an honest job's error is a finding)."""
         if self.done:
             return
         self.done = True
         if isinstance(err, ValueError):
             self.run.sim.log(self.name, f"rank {rank.rank} refused its state; restarting with every rank's state")
             self.restart(back=0, gap=self.run.sim.uniform(0.0, 1.0), world=self.world, load="gathered")
+            return
+        if BEHIND in str(err) and not self.gone:
+            completed = rank.stream.state_dict()["completed_epoch"]
+            for r in self.ranks:
+                self.run.oracle.refused_behind(self.lineage, r.consumer_key(), completed, KEEP_EPOCHS)
+            self.run.sim.log(self.name, f"rank {rank.rank} refused as behind; reading on under a new group")
+            self.kill()
+            self.group = rank.stream.options.group + "+"
+            self.checkpoints = [([None] * self.world, len(self.run.oracle.lineages[self.lineage].history))]
+            self.done = False
+            self.run.sim.after(self.run.sim.uniform(0.0, 1.0), self.start, self.world, None)
             return
         self.run.sim.log(self.name, f"rank {rank.rank} failed: {err}; the job ends")
         self.run.oracle.lineages[self.lineage].error = f"rank {rank.rank}: {type(err).__name__}: {err}"

@@ -274,6 +274,8 @@ class Admission:
                     f"was made with, or without the state")
         keep = s.keep_epochs
         dones = dict([(consumer, r.completed_epoch)] + [((n, k), d) for n, k, d in r.supersedes])
+        for c in speaks:  # a rank beyond its world size it speaks for: with its own completed epoch
+            dones.setdefault(c, r.completed_epoch)
         for c, done in dones.items():  # each consumer it speaks for, with its own completed epoch
             told = self.told_to.get(c)
             if told is not None and done < told - keep:
