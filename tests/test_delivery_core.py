@@ -1072,6 +1072,41 @@ def test_a_killed_ddp_ranks_hello_held_by_a_cut_never_resets_what_the_restarted_
     assert len(job) == 4 and not job & set(s.got[b"t"]) and not s.got[b"old0"], dict(s.got)
 
 
+def test_a_ddp_ranks_hello_forgotten_for_silence_holds_its_groups_ends_back():
+    """A reader (world size 1) read the stream's one epoch and left; its job resumes at world size 2,
+    rank 0 loading the reader's checkpoint, which lacks the epoch's last sample (the model lost it).
+    Rank 1 (no state) is let in at once; rank 0's hello, speaking for a consumer another process
+    read, waits for its proof of life, and its connection falls silent past the client timeout (a
+    network delaying its heartbeats): its hello is forgotten for silence. Rank 1 is not told the
+    epoch's end meanwhile: told it with a count of 0, it left, and rank 0, let in once its connection
+    spoke again, reopened the epoch for a sample no rank of the group could take (simulator
+    ``elastic`` seeds 7355, 17093, F53)."""
+    s = TinyStream(epochs=1)
+    s.take(s.core.hello(b"p1", Hello(("voxels",), 1, consumer="j", instance="p1", hello_id=1), s.now))
+    for _ in range(8):
+        s.turn()
+    assert len(s.got[b"p1"]) == 4 and [e for e, _ in s.told[b"p1"]] == [0], (dict(s.got), dict(s.told))
+    s.core.message(b"p1", Bye(), s.now)
+    *kept, (_, lost) = s.got[b"p1"]
+    state = Resume(-1, {0: frozenset(parse_sample_id(sid) for _, sid in kept)}, supersedes=(("c:j", 0, -1),))
+    s.mute.add(b"r0")
+    s.take(s.core.hello(b"r0", Hello(("voxels",), 1, consumer="j", resume=state, group="g", rank=0, world_size=2,
+                                     instance="job2.0", hello_id=2), s.now))
+    s.take(s.core.hello(b"r1", Hello(("voxels",), 1, consumer="j", group="g", rank=1, world_size=2,
+                                     instance="job2.1", hello_id=2), s.now))
+    for _ in range(150):  # past the client timeout (100 s) and the group's wait for its ranks
+        s.core.message(b"r1", Heartbeat(2), s.now)
+        s.turn()
+    assert s.told[b"r1"] == [] and not s.got[b"r0"], dict(s.told)
+    s.mute.discard(b"r0")
+    for _ in range(10):  # rank 0's connection speaks again: its hello waits again, then is let in
+        for r in (b"r0", b"r1"):
+            s.core.message(r, Heartbeat(2), s.now)
+        s.turn()
+    assert [sid for _, sid in s.got[b"r0"]] == [lost], dict(s.got)
+    assert s.told[b"r0"] == s.told[b"r1"] and [e for e, _ in s.told[b"r1"]] == [0], dict(s.told)
+
+
 def test_a_count_told_to_the_ranks_of_another_world_size_binds_none_of_a_resized_job():
     """Three ranks were told epoch 0 with a count of 2; the job, killed, resumes at world size 2,
     each new rank counting the 2 batches the gathered state says the most a rank yielded. A batch

@@ -218,3 +218,22 @@ def test_ddp_ranks_of_the_full_mixed_profile_end_alike(seed):
     restarted server that had not heard that rank): the job hung in an all-reduce."""
     outcome = simulate(["mixed"], f"{seed}:{seed + 1}")["mixed"]
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
+
+
+@pytest.mark.parametrize("seed", [6308, 11979, 839])
+def test_a_resized_ddp_job_refused_as_behind_reads_on_as_a_new_job(seed):
+    """``elastic`` seeds (2 -> 3, 2 -> 1, 3 -> 2) where the job's gathered state completed no epoch
+    while the server had told a rank three epochs complete: refused as too far behind (docs/delivery.md,
+    limit (e)), the job reads on as a new job, as the error says, and what it forgot is given up; it
+    ended instead, and its epochs' samples were counted lost (F53)."""
+    outcome = simulate(["elastic"], f"{seed}:{seed + 1}")["elastic"]
+    assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
+
+
+def test_a_ddp_ranks_hello_forgotten_for_silence_holds_back_its_groups_ends():
+    """``elastic`` seed 7355 (1 -> 2): rank 0's hello, loading the reader's state, waited for its
+    proof of life and was forgotten when a delayed network kept its heartbeats past the client
+    timeout; rank 1 was told the epoch's end with a count of 0, and the sample rank 0's state reopened
+    reached no loop (F53)."""
+    outcome = simulate(["elastic"], "7355:7356")["elastic"]
+    assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)

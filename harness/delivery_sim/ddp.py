@@ -159,19 +159,30 @@ class DDPJob:
             self.restart(back=0, gap=self.run.sim.uniform(0.0, 1.0), world=self.world, load="gathered")
             return
         if BEHIND in str(err) and not self.gone:
-            completed = rank.stream.state_dict()["completed_epoch"]
-            for r in self.ranks:
-                self.run.oracle.refused_behind(self.lineage, r.consumer_key(), completed, KEEP_EPOCHS)
-            self.run.sim.log(self.name, f"rank {rank.rank} refused as behind; reading on under a new group")
-            self.kill()
-            self.group = rank.stream.options.group + "+"
-            self.checkpoints = [([None] * self.world, len(self.run.oracle.lineages[self.lineage].history))]
-            self.done = False
-            self.run.sim.after(self.run.sim.uniform(0.0, 1.0), self.start, self.world, None)
+            self._read_on_anew(rank)
             return
         self.run.sim.log(self.name, f"rank {rank.rank} failed: {err}; the job ends")
         self.run.oracle.lineages[self.lineage].error = f"rank {rank.rank}: {type(err).__name__}: {err}"
         self.kill(for_good=True)
+
+    def _read_on_anew(self, rank: Rank) -> None:
+        """``rank``'s resume state was refused as too far behind the epochs its consumers were
+        told complete (docs/delivery.md, limit (e)): the job has no newer checkpoint (a restart
+        drops those), so it reads on as the error says, a new job under a new group= (and a new
+        consumer id, what a job of world size 1 is known by), without a state. The consumers the
+        state spoke for are never read again; what the model forgot is given up."""
+        oracle = self.run.oracle
+        completed = rank.stream.state_dict()["completed_epoch"]
+        group = rank.stream.options.group
+        gone = {r.consumer_key() for r in self.ranks} | {f"c:{self.consumer}/0"} | \
+            {f"g:{group}/{r}" for r in range(max(3, self.world))}
+        for key in sorted(gone):
+            oracle.refused_behind(self.lineage, key, completed, KEEP_EPOCHS)
+        self.kill()
+        self.done = False
+        self.consumer, self.group = f"{self.consumer}+", f"{group}+"
+        self.checkpoints = [([None] * self.world, len(oracle.lineages[self.lineage].history))]
+        self.start(self.world)
 
     def arrived(self) -> None:
         """A rank brought its item: once every rank has, the step runs (or the job ends)."""

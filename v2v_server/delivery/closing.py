@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import bisect
 import logging
-from typing import Dict, Hashable, List, Optional, Set, Tuple
+from typing import Dict, Hashable, Iterable, List, Optional, Set, Tuple
 
 from v2v_server.delivery.ledger import ClientRecord, DeliveryLedger
 from v2v_server.delivery.padding import GroupPadding
 from v2v_server.delivery.schedule import EpochScheduler
 from v2v_server.delivery.table import GRANTED, LEASED, REVOKED, STRANDED, BatchRecord
+from v2v_wire.messages import Hello
 from v2v_wire.stream_messages import Drained, End, EpochDone, StreamMessage
 
 log = logging.getLogger("v2v.server")
@@ -48,14 +49,16 @@ class EpochEnds:
         self.told_to: Dict[Hashable, int] = {} if journal is None else dict(journal.told_to)
 
     # ------------------------------------------------------------------ per tick
-    def tell(self, now: float, waiting: Set[str] = frozenset(),
-             hello_waits: bool = False) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
+    def tell(self, now: float, waiting: Set[str] = frozenset(), hello_waits: bool = False,
+             dormant: Iterable[Hello] = ()) -> Tuple[List[Tuple[bytes, BatchRecord]], List[Msg]]:
         """``epoch_done`` for every epoch each connection may now be told (a DDP rank that was
         never sent a batch first gets a padding batch, ``GroupPadding.epoch_done``), then ``end``
         to each connection told its last epoch; a DDP rank only once its group is ready
-        (``DeliveryLedger.ready_groups``) and none of its ranks' hellos is ``waiting``: another
-        rank's resume state may reopen the epoch, and every rank must end it alike. While any
-        hello waits (``hello_waits``) no epoch the scheduler keeps is forgotten: its state may reopen one.
+        (``DeliveryLedger.ready_groups``) and none of its ranks' hellos is ``waiting``, nor
+        ``dormant`` (forgotten for its connection's silence) for a rank of the group's world size
+        that no connection reads: another rank's resume state may reopen the epoch, and every rank
+        must end it alike (docs/delivery.md, "A world size changes"). While any hello waits
+        (``hello_waits``) no epoch the scheduler keeps is forgotten: its state may reopen one.
         Returns ``(padding sends, messages)``."""
         pads: List[Tuple[bytes, BatchRecord]] = []
         msgs: List[Msg] = []
@@ -65,6 +68,12 @@ class EpochEnds:
         self._low = low
         own, live, fresh = self._holders(now)
         ready = self.ledger.ready_groups(now) - set(waiting)
+        read = {c.consumer for c in self.ledger.clients.values() if c.ddp}
+        sizes = {c.group: c.world_size for c in self.ledger.clients.values() if c.ddp}
+        for h in dormant:  # its process may live: a pause, or a network that delayed its messages
+            g = h.group or "default"
+            if h.world_size > 1 and sizes.get(g) == h.world_size and ("g:" + g, h.rank) not in read:
+                ready.discard(g)
         for ident, c in self.ledger.clients.items():
             if c.ddp and c.group not in ready:
                 continue

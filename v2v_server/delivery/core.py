@@ -352,7 +352,7 @@ class DeliveryCore:
         for ident, (h, _) in list(self.admission.pending.items()):  # hellos waiting for an older connection
             msgs += self.hello(ident, h, now)
         waiting = {h.group or "default" for h, _ in self.admission.pending.values() if h.world_size > 1}
-        pads, told = self.ends.tell(now, waiting, bool(self.admission.pending))
+        pads, told = self.ends.tell(now, waiting, bool(self.admission.pending), self.admission.dormant.values())
         return sends + pads, msgs + told + self.ends.drained()
 
     # ------------------------------------------------------------------ views
