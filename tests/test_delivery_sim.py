@@ -237,3 +237,24 @@ def test_a_ddp_ranks_hello_forgotten_for_silence_holds_back_its_groups_ends():
     reached no loop (F53)."""
     outcome = simulate(["elastic"], "7355:7356")["elastic"]
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
+
+
+def test_an_honest_ddp_jobs_error_is_a_finding_though_it_ended_the_job():
+    """A stream error ends a DDP job for good (its launcher takes every rank down), and the checks
+    still report it: an honest job's error is a finding, whether or not the job is gone (an error
+    that ended the job was once skipped with the job, so a seed could pass on an error)."""
+    from harness.delivery_sim.oracle import Oracle
+    from harness.delivery_sim.server import Corpus
+    from harness.delivery_sim.world import Sim, Violation
+
+    oracle = Oracle(Sim(0), Corpus({"v0.mp4": 2}), None, 2)
+    job = oracle.lineage("ddp")
+    job.ended_at = 1.0
+    job.error, job.dead_for_good = "rank 0: StreamError: the server dropped this connection", True
+    with pytest.raises(Violation) as caught:
+        oracle.final(10.0)
+    assert caught.value.kind == "error" and "StreamError" in caught.value.what
+    oracle = Oracle(Sim(0), Corpus({"v0.mp4": 2}), None, 2)
+    killed = oracle.lineage("t0")
+    killed.ended_at, killed.dead_for_good = 1.0, True  # killed for good by the fault plan: no error
+    oracle.final(10.0)

@@ -218,7 +218,7 @@ class Oracle:
     def final(self, deadline: float) -> None:
         """At the end of a run: liveness, then every epoch exactly once (but the docs' exceptions)."""
         for lin in self.lineages.values():
-            if lin.honest and not lin.dead_for_good and lin.error is not None and not lin.refused():
+            if lin.honest and lin.error is not None and not lin.refused():  # an error ends a DDP job for good too
                 self.sim.fail("error", f"{lin.name} (an honest trainer) failed: {lin.error}")
         for lin in self.lineages.values():
             if lin.honest and not lin.dead_for_good and not lin.refused() and \
