@@ -68,12 +68,13 @@ class EpochEnds:
         self._low = low
         own, live, fresh = self._holders(now)
         ready = self.ledger.ready_groups(now) - set(waiting)
-        read = {c.consumer for c in self.ledger.clients.values() if c.ddp}
-        sizes = {c.group: c.world_size for c in self.ledger.clients.values() if c.ddp}
-        for h in dormant:  # its process may live: a pause, or a network that delayed its messages
-            g = h.group or "default"
-            if h.world_size > 1 and sizes.get(g) == h.world_size and ("g:" + g, h.rank) not in read:
-                ready.discard(g)
+        ranks = [c for c in self.ledger.clients.values() if c.ddp and c.group in ready]
+        if ranks:  # a forgotten hello holds back only a group about to be told (none: no walk over them)
+            read, sizes = {c.consumer for c in ranks}, {c.group: c.world_size for c in ranks}
+            for h in dormant:  # its process may live: a pause, or a network that delayed its messages
+                g = h.group or "default"
+                if h.world_size > 1 and sizes.get(g) == h.world_size and ("g:" + g, h.rank) not in read:
+                    ready.discard(g)
         for ident, c in self.ledger.clients.items():
             if c.ddp and c.group not in ready:
                 continue
