@@ -1,9 +1,9 @@
 """Shuffled epochs, pure: the order videos are handed out in, and how made samples become batches.
 
-* :func:`video_order` draws each epoch's order of the videos from ``(seed, epoch)``: every
-  video gets a sort key hashed from ``(seed, epoch, path)``, so the order is the same on every
-  restart, and a shard (any subset of the listing) gets the global order restricted to its
-  videos, whatever the shard count.
+* :func:`video_order` (``v2v_wire.plan``'s, re-exported) draws each epoch's order of the videos
+  from ``(seed, epoch)``: every video gets a sort key hashed from ``(seed, epoch, path)``, so the
+  order is the same on every restart and host, and a shard (any subset of the listing) gets the
+  global order restricted to its videos, whatever the shard count.
 * :class:`Batcher` turns made samples into batches. With ``lanes`` open batches per
   (epoch, outputs) group, each arriving sample joins a uniformly random one of them (a shuffle
   buffer of at most ``lanes x batch_size`` samples); an open batch that is full becomes a batch
@@ -19,7 +19,6 @@ Nothing here owns a socket, a clock or a process; ``tests/test_shuffle.py`` driv
 """
 from __future__ import annotations
 
-import hashlib
 import itertools
 import random
 from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple
@@ -27,32 +26,11 @@ from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple
 from v2v_server.delivery.ledger import DeliveryLedger
 from v2v_server.delivery.table import BatchRecord
 from v2v_wire.ids import SampleKey
+from v2v_wire.plan import video_order  # the one rule of an epoch's video order, the plan's step 1
 
 #: ``shuffle`` settings: ``epoch`` draws a new order each epoch and mixes batches; ``none`` keeps
 #: the listing's order and the samples' arrival order.
 SHUFFLES = ("epoch", "none")
-
-
-def video_order(videos: Iterable[str], seed: int, epoch: int) -> List[str]:
-    """``videos`` permuted for ``epoch``: sorted by a BLAKE2b hash of ``(seed, epoch, path)``.
-
-    The key of a video depends only on its own path, so the order of any subset (a shard) is
-    the global order restricted to it, and a restart draws the same order.
-
-    Args:
-        videos: corpus-relative paths (str); duplicates keep their relative order.
-        seed, epoch: non-negative ints (``ServeConfig.seed``, epoch index).
-    Returns:
-        A new list holding the same paths.
-    """
-    base = hashlib.blake2b(f"{seed}/{epoch}/".encode(), digest_size=8)
-
-    def key(v: str) -> bytes:  # the hash of f"{seed}/{epoch}/{v}", its prefix hashed once
-        h = base.copy()
-        h.update(v.encode())
-        return h.digest()
-
-    return sorted(videos, key=key)
 
 
 class Batcher:

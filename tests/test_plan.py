@@ -1,0 +1,181 @@
+"""Delivery by plan, the pure part (``v2v_wire.plan``): the epoch's sequence, the ranks' slices,
+positions as checkpoints. Properties on random manifests (hypothesis), then the pinned rules."""
+from __future__ import annotations
+
+import hashlib
+from collections import Counter
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from v2v_server.delivery.batcher import video_order as batcher_order
+from v2v_wire.ids import SampleKey
+from v2v_wire.plan import (PLAN_VERSION, EpochPlan, Manifest, PlanIdentity, PlanMismatch, Position,
+                           distinct_videos, positions_of, video_order)
+
+manifests = st.builds(
+    Manifest.of,
+    st.dictionaries(st.from_regex(r"[a-z]{1,3}/[a-z0-9]{1,6}\.mp4", fullmatch=True), st.integers(0, 9),
+                    max_size=25),
+    st.integers(1, 3))
+layouts = st.tuples(st.integers(1, 5), st.integers(1, 7))  # world size, batch size per rank
+
+
+def all_keys(m: Manifest):
+    return sorted(SampleKey.at(v, i, m.crops_per_window) for v, n in m.slots for i in range(n * m.crops_per_window))
+
+
+@settings(max_examples=150, deadline=None)
+@given(manifests, st.integers(0, 2 ** 31), st.integers(0, 50), st.integers(1, 20), st.integers(1, 80))
+def test_an_epoch_lists_every_sample_of_the_manifest_once(m, seed, epoch, mix_videos, mix_samples):
+    plan = EpochPlan(m, seed, epoch, mix_videos, mix_samples)
+    keys = plan.keys(0, len(plan))
+    assert len(plan) == m.samples
+    assert sorted(keys) == all_keys(m)
+    again = EpochPlan(m, seed, epoch, mix_videos, mix_samples)  # another host, another run
+    assert again.keys(0, len(again)) == keys
+
+
+@settings(max_examples=150, deadline=None)
+@given(manifests, st.integers(0, 1000), layouts)
+def test_ranks_take_fixed_slices_the_same_number_of_steps_padding_only_at_the_tail(m, seed, layout):
+    world, batch = layout
+    plan = EpochPlan(m, seed, 3)
+    steps = plan.steps(world, batch)
+    seen = Counter()
+    for r in range(world):
+        rows = [p for s in range(steps) for p in plan.batch_positions(s, r, world, batch)]
+        assert len(rows) == steps * batch  # every rank, every step: a whole batch
+        seen.update(rows)
+    assert all(c == 1 for c in seen.values())
+    real = [p for p in seen if plan.key(p) is not None]
+    assert sorted(real) == list(range(len(plan)))  # each sample once, in the plan
+    padding = len(seen) - len(real)
+    assert 0 <= padding < world * batch and all(plan.key(p) is None for p in seen if p >= len(plan))
+
+
+@settings(max_examples=150, deadline=None)
+@given(manifests, st.integers(0, 1000), layouts, layouts, st.integers(0, 30))
+def test_a_position_resumes_at_any_world_size_and_batch_size_without_a_repeat_or_a_loss(m, seed, before, after,
+                                                                                          taken):
+    ident = PlanIdentity(m.fingerprint(), "recipe0", seed)
+    plan = EpochPlan(m, seed, 1)
+    world, batch = before
+    taken = min(taken, plan.steps(world, batch))
+    got = [plan.key(p) for s in range(taken) for r in range(world) for p in plan.batch_positions(s, r, world, batch)]
+    pos = Position(ident, 1).after(taken, world, batch)
+    pos = Position.from_dict(pos.to_dict(), expected=ident)  # saved and loaded on every rank alike
+    world, batch = after
+    start = pos.sample_in_epoch
+    got += [plan.key(p) for s in range(plan.steps(world, batch, start)) for r in range(world)
+            for p in plan.batch_positions(s, r, world, batch, start)]
+    assert sorted(k for k in got if k is not None) == all_keys(m)
+
+
+@settings(max_examples=80, deadline=None)
+@given(manifests, st.integers(0, 1000), st.integers(1, 20), st.integers(2, 70))
+def test_a_block_holds_the_samples_of_the_same_stretch_of_the_production_order(m, seed, mix_videos, mix_samples):
+    """What a server must have made to serve a position: the samples of its block, which are
+    the same stretch of the unpermuted (production) order, permuted."""
+    mixed = EpochPlan(m, seed, 2, mix_videos, mix_samples)
+    production = EpochPlan(m, seed, 2, mix_videos, 1)
+    for b in range(0, len(mixed), mix_samples):
+        stop = min(b + mix_samples, len(mixed))
+        assert sorted(mixed.keys(b, stop)) == sorted(production.keys(b, stop))
+        assert {mixed.block(p) for p in range(b, stop)} == {b // mix_samples}
+
+
+def test_production_order_interleaves_a_group_of_videos_by_window():
+    m = Manifest.of({"a.mp4": 3, "b.mp4": 2, "c.mp4": 1}, crops_per_window=2)
+    plan = EpochPlan(m, 0, 0, mix_videos=8, mix_samples=1)
+    order = plan.videos
+    keys = plan.keys(0, len(plan))
+    assert [k.window for k in keys] == [0] * 6 + [1] * 4 + [2] * 2
+    assert [k.video for k in keys[:6]] == [v for v in order for _ in range(2)]  # a window's crops together
+    assert [k.crop for k in keys[:2]] == [0, 1]
+    ones = EpochPlan(m, 0, 0, mix_videos=1, mix_samples=1)  # no interleaving: video after video
+    assert [k.video for k in ones.keys(0, len(ones))] == [v for v in order for _ in range(dict(m.slots)[v] * 2)]
+
+
+def test_epochs_and_seeds_give_other_orders_and_batches_mix_many_videos():
+    m = Manifest.of({f"clips/{i:04d}.mp4": 1 + i % 3 for i in range(600)})
+    a, b, c = EpochPlan(m, 0, 0), EpochPlan(m, 0, 1), EpochPlan(m, 1, 0)
+    assert a.keys(0, 50) != b.keys(0, 50) and a.keys(0, 50) != c.keys(0, 50)
+    # short clips, the WebVid case: a batch of 12 draws from a block of 64 over ~32 videos
+    assert distinct_videos(a, 12) > 9
+    # long videos: interleaving 16 of them still mixes a batch (one video per block without it)
+    long = Manifest.of({f"long/{i:03d}.mp4": 40 for i in range(64)})
+    assert distinct_videos(EpochPlan(long, 0, 0), 12) > 8
+    assert distinct_videos(EpochPlan(long, 0, 0, mix_videos=1), 12) < 3
+
+
+def test_the_plans_video_order_is_the_servers():
+    videos = [f"v{i:02d}.mp4" for i in range(30)]
+    assert batcher_order(videos, 4, 2) == video_order(videos, 4, 2)
+    plan = EpochPlan(Manifest.of({v: 1 for v in videos}), 4, 2, mix_samples=1)
+    assert plan.videos == video_order(videos, 4, 2)
+
+
+def test_a_position_of_another_plan_is_refused_in_one_line_naming_what_differs():
+    ident = PlanIdentity("m" * 16, "r" * 16, 7)
+    pos = Position(PlanIdentity("m" * 16, "x" * 16, 7, mix_samples=32), 2, 100).to_dict()
+    with pytest.raises(PlanMismatch) as err:
+        Position.from_dict(pos, expected=ident)
+    line = str(err.value)
+    assert "\n" not in line and "recipe xxxxxxxxxxxxxxxx (this plan: rrrrrrrrrrrrrrrr)" in line
+    assert "mix_samples 32 (this plan: 64)" in line and "manifest" not in line
+    for bad, field in (({**pos, "epoch": -1}, "epoch"), ({**pos, "sample_in_epoch": "3"}, "sample_in_epoch"),
+                       ({**pos, "plan": {**pos["plan"], "version": None}}, "version"), ([1, 2], "mapping")):
+        with pytest.raises(PlanMismatch, match=field):
+            Position.from_dict(bad, expected=ident)
+    assert Position.from_dict(Position(ident, 2, 100).to_dict(), expected=ident) == Position(ident, 2, 100)
+
+
+def test_a_manifests_fingerprint_names_its_videos_slots_and_crops():
+    base = Manifest.of({"a.mp4": 2, "b.mp4": 3})
+    assert Manifest.of({"b.mp4": 3, "a.mp4": 2}).fingerprint() == base.fingerprint()
+    others = [Manifest.of({"a.mp4": 2, "b.mp4": 4}), Manifest.of({"a.mp4": 2, "c.mp4": 3}),
+              Manifest.of({"a.mp4": 2, "b.mp4": 3}, crops_per_window=2), Manifest.of({"a.mp4": 2})]
+    assert len({m.fingerprint() for m in others} | {base.fingerprint()}) == 5
+
+
+@pytest.mark.parametrize("slots, crops, field", [({"": 1}, 1, "video"), ({"a.mp4": -1}, 1, "a.mp4"),
+                                                 ({"a.mp4": 1.5}, 1, "a.mp4"), ({"a.mp4": 1}, 0, "crops_per_window")])
+def test_a_bad_manifest_is_refused_naming_the_field(slots, crops, field):
+    with pytest.raises(ValueError, match=field):
+        Manifest.of(slots, crops)
+
+
+def test_bad_layouts_are_refused():
+    plan = EpochPlan(Manifest.of({"a.mp4": 4}), 0, 0)
+    for args in ((0, 2), (2, 0)):
+        with pytest.raises(ValueError, match="world_size"):
+            plan.steps(*args)
+    with pytest.raises(ValueError, match="rank 2 of world size 2"):
+        plan.batch_positions(0, 2, 2, 1)
+    with pytest.raises(ValueError, match="seed"):
+        EpochPlan(Manifest.of({"a.mp4": 4}), -1, 0)
+
+
+def test_positions_of_finds_delivered_samples_and_names_one_the_plan_lacks():
+    m = Manifest.of({"a.mp4": 3, "b.mp4": 2})
+    plan = EpochPlan(m, 0, 0)
+    keys = plan.keys(0, len(plan))
+    assert positions_of(plan, [keys[3], keys[0]]) == [3, 0]
+    with pytest.raises(KeyError, match="c.mp4#0"):
+        positions_of(plan, [SampleKey("c.mp4", 0)])
+
+
+def test_the_sequence_is_pinned_for_this_plan_version():
+    """Hosts and engines must draw the same sequence: this digest changes only with
+    :data:`PLAN_VERSION` (a change of the rules without a new version would mix two plans)."""
+    m = Manifest.of({f"d{i % 7}/{i:03d}.mp4": i % 5 for i in range(120)}, crops_per_window=2)
+    plan = EpochPlan(m, 123, 4)
+    digest = hashlib.sha256(np.stack([plan.video_index, plan.ordinal]).astype("<i8").tobytes()
+                            + "\n".join(plan.videos).encode()).hexdigest()[:16]
+    assert (PLAN_VERSION, digest) == (1, PINNED)
+
+
+PINNED = "f239bfe020e0ce51"
