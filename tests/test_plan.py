@@ -28,13 +28,13 @@ def all_keys(m: Manifest):
 
 
 @settings(max_examples=150, deadline=None)
-@given(manifests, st.integers(0, 2 ** 31), st.integers(0, 50), st.integers(1, 20), st.integers(1, 80))
-def test_an_epoch_lists_every_sample_of_the_manifest_once(m, seed, epoch, mix_videos, mix_samples):
-    plan = EpochPlan(m, seed, epoch, mix_videos, mix_samples)
+@given(manifests, st.integers(0, 2 ** 31), st.integers(0, 50), st.integers(1, 80))
+def test_an_epoch_lists_every_sample_of_the_manifest_once(m, seed, epoch, buffer):
+    plan = EpochPlan(m, seed, epoch, buffer)
     keys = plan.keys(0, len(plan))
     assert len(plan) == m.samples
     assert sorted(keys) == all_keys(m)
-    again = EpochPlan(m, seed, epoch, mix_videos, mix_samples)  # another host, another run
+    again = EpochPlan(m, seed, epoch, buffer)  # another host, another run
     assert again.keys(0, len(again)) == keys
 
 
@@ -75,57 +75,57 @@ def test_a_position_resumes_at_any_world_size_and_batch_size_without_a_repeat_or
 
 
 @settings(max_examples=80, deadline=None)
-@given(manifests, st.integers(0, 1000), st.integers(1, 20), st.integers(2, 70))
-def test_a_block_holds_the_samples_of_the_same_stretch_of_the_production_order(m, seed, mix_videos, mix_samples):
-    """What a server must have made to serve a position: the samples of its block, which are
-    the same stretch of the unpermuted (production) order, permuted."""
-    mixed = EpochPlan(m, seed, 2, mix_videos, mix_samples)
-    production = EpochPlan(m, seed, 2, mix_videos, 1)
-    for b in range(0, len(mixed), mix_samples):
-        stop = min(b + mix_samples, len(mixed))
-        assert sorted(mixed.keys(b, stop)) == sorted(production.keys(b, stop))
-        assert {mixed.block(p) for p in range(b, stop)} == {b // mix_samples}
+@given(manifests, st.integers(0, 1000), st.integers(1, 70))
+def test_a_server_holds_at_most_a_buffer_of_samples_beyond_those_it_serves(m, seed, buffer):
+    """Serving positions in order, a server that makes samples in the production order has
+    made what each position needs by :meth:`made_by`, and holds at most ``buffer`` samples
+    made but not yet served."""
+    plan = EpochPlan(m, seed, 2, buffer)
+    production = EpochPlan(m, seed, 2, 1).keys(0, len(plan))
+    served = set()
+    for t in range(len(plan)):
+        made = plan.made_by(t)
+        assert plan.key(t) in set(production[:made]) and plan.production[t] < made
+        served.add(plan.production[t])
+        assert made - len(served) <= buffer - 1
 
 
-def test_production_order_interleaves_a_group_of_videos_by_window():
+def test_the_production_order_is_video_after_video_as_a_decode_makes_them():
     m = Manifest.of({"a.mp4": 3, "b.mp4": 2, "c.mp4": 1}, crops_per_window=2)
-    plan = EpochPlan(m, 0, 0, mix_videos=8, mix_samples=1)
-    order = plan.videos
+    plan = EpochPlan(m, 0, 0, shuffle_buffer=1)
     keys = plan.keys(0, len(plan))
-    assert [k.window for k in keys] == [0] * 6 + [1] * 4 + [2] * 2
-    assert [k.video for k in keys[:6]] == [v for v in order for _ in range(2)]  # a window's crops together
-    assert [k.crop for k in keys[:2]] == [0, 1]
-    ones = EpochPlan(m, 0, 0, mix_videos=1, mix_samples=1)  # no interleaving: video after video
-    assert [k.video for k in ones.keys(0, len(ones))] == [v for v in order for _ in range(dict(m.slots)[v] * 2)]
+    assert [k.video for k in keys] == [v for v in plan.videos for _ in range(dict(m.slots)[v] * 2)]
+    assert [(k.window, k.crop) for k in keys[:2]] == [(0, 0), (0, 1)]
+    assert list(plan.production) == list(range(len(plan)))
 
 
 def test_epochs_and_seeds_give_other_orders_and_batches_mix_many_videos():
     m = Manifest.of({f"clips/{i:04d}.mp4": 1 + i % 3 for i in range(600)})
     a, b, c = EpochPlan(m, 0, 0), EpochPlan(m, 0, 1), EpochPlan(m, 1, 0)
     assert a.keys(0, 50) != b.keys(0, 50) and a.keys(0, 50) != c.keys(0, 50)
-    # short clips, the WebVid case: a batch of 12 draws from a block of 64 over ~32 videos
+    # short clips, the WebVid case: a buffer of 64 samples spans ~32 videos
     assert distinct_videos(a, 12) > 9
-    # long videos: interleaving 16 of them still mixes a batch (one video per block without it)
-    long = Manifest.of({f"long/{i:03d}.mp4": 40 for i in range(64)})
-    assert distinct_videos(EpochPlan(long, 0, 0), 12) > 8
-    assert distinct_videos(EpochPlan(long, 0, 0, mix_videos=1), 12) < 3
+    # the push server's measured shape (docs/shuffle.md: 200 videos of 10 windows, 6.5 there)
+    ten = Manifest.of({f"v/{i:03d}.mp4": 10 for i in range(200)})
+    assert distinct_videos(EpochPlan(ten, 0, 0), 12) > 8
+    assert distinct_videos(EpochPlan(ten, 0, 0, shuffle_buffer=1), 12) < 3
 
 
 def test_the_plans_video_order_is_the_servers():
     videos = [f"v{i:02d}.mp4" for i in range(30)]
     assert batcher_order(videos, 4, 2) == video_order(videos, 4, 2)
-    plan = EpochPlan(Manifest.of({v: 1 for v in videos}), 4, 2, mix_samples=1)
+    plan = EpochPlan(Manifest.of({v: 1 for v in videos}), 4, 2, shuffle_buffer=1)
     assert plan.videos == video_order(videos, 4, 2)
 
 
 def test_a_position_of_another_plan_is_refused_in_one_line_naming_what_differs():
     ident = PlanIdentity("m" * 16, "r" * 16, 7)
-    pos = Position(PlanIdentity("m" * 16, "x" * 16, 7, mix_samples=32), 2, 100).to_dict()
+    pos = Position(PlanIdentity("m" * 16, "x" * 16, 7, shuffle_buffer=32), 2, 100).to_dict()
     with pytest.raises(PlanMismatch) as err:
         Position.from_dict(pos, expected=ident)
     line = str(err.value)
     assert "\n" not in line and "recipe xxxxxxxxxxxxxxxx (this plan: rrrrrrrrrrrrrrrr)" in line
-    assert "mix_samples 32 (this plan: 64)" in line and "manifest" not in line
+    assert "shuffle_buffer 32 (this plan: 64)" in line and "manifest" not in line
     for bad, field in (({**pos, "epoch": -1}, "epoch"), ({**pos, "sample_in_epoch": "3"}, "sample_in_epoch"),
                        ({**pos, "plan": {**pos["plan"], "version": None}}, "version"), ([1, 2], "mapping")):
         with pytest.raises(PlanMismatch, match=field):
@@ -178,4 +178,4 @@ def test_the_sequence_is_pinned_for_this_plan_version():
     assert (PLAN_VERSION, digest) == (1, PINNED)
 
 
-PINNED = "f239bfe020e0ce51"
+PINNED = "b12c8400f0f5825c"

@@ -6,19 +6,19 @@ The contract (docs/plan.md):
 * **The manifest** (:class:`Manifest`) is what a plan knows of a corpus: each video's *slots*
   (its windows per epoch, or an upper bound of them) and ``crops_per_window``. Its fingerprint,
   with the recipe's and :data:`PLAN_VERSION`, is the plan's identity (:class:`PlanIdentity`).
-* **The epoch's sequence** (:class:`EpochPlan`) is built in three pure steps:
+* **The epoch's sequence** (:class:`EpochPlan`) is built in two pure steps:
 
-  1. the videos in :func:`video_order` (a BLAKE2b key of ``(seed, epoch, path)`` each);
-  2. the *production order*: those videos taken in groups of ``mix_videos``, each group's
-     samples interleaved by window (window 0 of every video of the group, then window 1, ...;
-     a window's crops together), so consecutive samples come from different videos even when
-     videos are long;
-  3. the production order cut into blocks of ``mix_samples`` samples, each block permuted by a
-     key hashed from ``(seed, epoch, position)`` (SplitMix64 on uint64, the same on every
-     platform and numpy version).
+  1. the *production order*: the videos in :func:`video_order` (a BLAKE2b key of
+     ``(seed, epoch, path)`` each), each video's samples in the order a decode makes them
+     (window, then crop);
+  2. a shuffle buffer of ``shuffle_buffer`` samples over it, as ``tf.data``'s: the buffer fills
+     from the production order, and each position takes the buffer's element at an index drawn
+     from ``(seed, epoch, position)`` (SplitMix64 on uint64, the same on every platform and numpy
+     version), the production order's next sample taking its place.
 
-  A block is what a server holds at once to serve it in order: it needs the block's samples
-  made, and no other; the mixing of a batch is that of a uniform draw from its block.
+  Position ``t`` is thus one of the production order's first ``t + shuffle_buffer`` samples
+  (:meth:`EpochPlan.made_by`): what a server must have made to serve it, so it holds at most a
+  buffer's samples beyond those it serves.
 * **Ranks and steps**: at world size ``n`` and per-rank batch size ``b``, rank ``r``'s batch at
   step ``s`` of an epoch started at position ``p0`` is the positions
   ``p0 + (s * n + r) * b`` .. ``+ b``. Every rank has :meth:`EpochPlan.steps` steps; positions
@@ -41,26 +41,22 @@ import numpy as np
 
 from v2v_wire.ids import SampleKey
 
-__all__ = ["PLAN_VERSION", "MIX_VIDEOS", "MIX_SAMPLES", "video_order", "Manifest", "PlanIdentity",
-           "EpochPlan", "Position", "PlanMismatch"]
+__all__ = ["PLAN_VERSION", "SHUFFLE_BUFFER", "video_order", "Manifest", "PlanIdentity", "EpochPlan", "Position",
+           "PlanMismatch", "distinct_videos", "positions_of"]
 
 #: The version of the rules above: a plan of another version gives another sequence, so a
 #: position taken under it is refused (:meth:`PlanIdentity.problem`).
 PLAN_VERSION = 1
 
-#: Default videos interleaved per group (step 2): with long videos, a block of
-#: :data:`MIX_SAMPLES` samples still draws from this many videos.
-MIX_VIDEOS = 16
-
-#: Default samples per permuted block (step 3), the shuffle buffer's default size.
-MIX_SAMPLES = 64
+#: Default samples the shuffle buffer holds (step 2): ``DeliveryPolicy.shuffle_buffer``'s default.
+SHUFFLE_BUFFER = 64
 
 _MASK = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
 class PlanMismatch(ValueError):
     """A position, a plan or a request names another plan than the one at hand: the message is
-    one line naming what differs (manifest, recipe, version, mixing)."""
+    one line naming what differs (manifest, recipe, seed, shuffle buffer, version)."""
 
 
 def video_order(videos: Iterable[str], seed: int, epoch: int) -> List[str]:
@@ -148,21 +144,20 @@ class Manifest:
 @dataclass(frozen=True)
 class PlanIdentity:
     """What decides an epoch's sequence besides ``(seed, epoch)``: the manifest's fingerprint,
-    the recipe's (``SampleRecipe.fingerprint``: what decides a sample's content), the mixing
-    and :data:`PLAN_VERSION`. Two plans with equal identities and seeds give the same
+    the recipe's (``SampleRecipe.fingerprint``: what decides a sample's content), the seed, the
+    shuffle buffer and :data:`PLAN_VERSION`. Two plans with equal identities and seeds give the same
     sequences."""
 
     manifest: str
     recipe: str
     seed: int
-    mix_videos: int = MIX_VIDEOS
-    mix_samples: int = MIX_SAMPLES
+    shuffle_buffer: int = SHUFFLE_BUFFER
     version: int = PLAN_VERSION
 
     def to_dict(self) -> dict:
         """A plain, msgpack/JSON-safe dict (:meth:`from_dict` reads it)."""
         return {"manifest": self.manifest, "recipe": self.recipe, "seed": self.seed,
-                "mix_videos": self.mix_videos, "mix_samples": self.mix_samples, "version": self.version}
+                "shuffle_buffer": self.shuffle_buffer, "version": self.version}
 
     @classmethod
     def from_dict(cls, d) -> "PlanIdentity":
@@ -173,7 +168,7 @@ class PlanIdentity:
         """
         if not isinstance(d, Mapping):
             raise PlanMismatch(f"plan identity must be a mapping, got {type(d).__name__}")
-        kinds = {"manifest": str, "recipe": str, "seed": int, "mix_videos": int, "mix_samples": int, "version": int}
+        kinds = {"manifest": str, "recipe": str, "seed": int, "shuffle_buffer": int, "version": int}
         for k, t in kinds.items():
             if not isinstance(d.get(k), t) or isinstance(d.get(k), bool):
                 raise PlanMismatch(f"plan identity field {k!r} must be {t.__name__}, got {d.get(k)!r:.80}")
@@ -183,60 +178,67 @@ class PlanIdentity:
         """``None`` when ``other`` names this plan, else one line naming every field that
         differs, ``other``'s value first (``"recipe abc... (this plan: def...)"``)."""
         diffs = [f"{k} {getattr(other, k)} (this plan: {getattr(self, k)})"
-                 for k in ("version", "manifest", "recipe", "seed", "mix_videos", "mix_samples")
+                 for k in ("version", "manifest", "recipe", "seed", "shuffle_buffer")
                  if getattr(other, k) != getattr(self, k)]
         return None if not diffs else "another plan: " + ", ".join(diffs)
 
 
 class EpochPlan:
-    """One epoch's sequence of samples (module docstring: steps 1-3), held as two arrays.
+    """One epoch's sequence of samples (module docstring: steps 1 and 2), held as two arrays.
 
     Args:
         manifest: the corpus's slots.
         seed, epoch: ints >= 0.
-        mix_videos: videos interleaved per group (>= 1).
-        mix_samples: samples per permuted block (>= 1; 1 keeps the production order).
+        shuffle_buffer: samples the shuffle buffer holds (>= 1; 1 keeps the production order).
 
     Attributes:
-        videos: the manifest's videos in this epoch's order (those with slots only).
+        videos: the manifest's videos with slots, in this epoch's :func:`video_order`.
         video_index: int64 (N,): each position's index into :attr:`videos`.
         ordinal: int64 (N,): each position's sample number in its video (``SampleKey.ordinal``).
+        production: int64 (N,): each position's index in the production order.
 
     Raises:
-        ValueError: a negative seed or epoch, or a mixing < 1, naming it.
+        ValueError: a negative seed or epoch, or a shuffle buffer < 1, naming it.
     """
 
-    def __init__(self, manifest: Manifest, seed: int, epoch: int, mix_videos: int = MIX_VIDEOS,
-                 mix_samples: int = MIX_SAMPLES):
-        for name, v, low in (("seed", seed, 0), ("epoch", epoch, 0), ("mix_videos", mix_videos, 1),
-                             ("mix_samples", mix_samples, 1)):
+    def __init__(self, manifest: Manifest, seed: int, epoch: int, shuffle_buffer: int = SHUFFLE_BUFFER):
+        for name, v, low in (("seed", seed, 0), ("epoch", epoch, 0), ("shuffle_buffer", shuffle_buffer, 1)):
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < low:
                 raise ValueError(f"plan: {name} must be an int >= {low}, got {v!r}")
         self.manifest, self.seed, self.epoch = manifest, int(seed), int(epoch)
-        self.mix_videos, self.mix_samples = int(mix_videos), int(mix_samples)
+        self.shuffle_buffer = int(shuffle_buffer)
         slots = dict(manifest.slots)
-        self.videos = [v for v in video_order((v for v, n in manifest.slots if n), seed, epoch)]
-        self.video_index, self.ordinal = self._sequence(np.array([slots[v] for v in self.videos], dtype=np.int64))
+        self.videos = video_order((v for v, n in manifest.slots if n), seed, epoch)
+        k = manifest.crops_per_window
+        counts = np.array([slots[v] * k for v in self.videos], dtype=np.int64)
+        vid = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
+        self.production = self._shuffle(len(vid))
+        self.video_index = vid[self.production]
+        self.ordinal = (self.production - np.repeat(np.cumsum(counts) - counts, counts)[self.production])
 
-    def _sequence(self, counts: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        k = self.manifest.crops_per_window
-        vid = np.repeat(np.arange(len(counts), dtype=np.int64), counts * k)
-        starts = np.repeat(np.cumsum(counts * k) - counts * k, counts * k)
-        ordinal = np.arange(len(vid), dtype=np.int64) - starts
-        window = ordinal // k
-        # step 2: within a group of mix_videos videos, by window, then video, then crop
-        order = np.lexsort((ordinal % k, vid, window, vid // self.mix_videos))
-        vid, ordinal = vid[order], ordinal[order]
-        if self.mix_samples > 1 and len(vid):  # step 3: each block permuted by hashed keys
-            pos = np.arange(len(vid), dtype=np.uint64)
-            keys = _splitmix64(pos ^ _seed_key(self.seed, self.epoch))
-            order = np.lexsort((keys, pos // np.uint64(self.mix_samples)))
-            vid, ordinal = vid[order], ordinal[order]
-        return vid, ordinal
+    def _shuffle(self, n: int) -> np.ndarray:
+        """The production index each position takes (step 2)."""
+        m = self.shuffle_buffer
+        if m == 1 or n == 0:
+            return np.arange(n, dtype=np.int64)
+        draws = _splitmix64(np.arange(n, dtype=np.uint64) ^ _seed_key(self.seed, self.epoch)).tolist()
+        out = [0] * n
+        buf = list(range(min(m, n)))
+        nxt = len(buf)
+        for t in range(n):
+            j = draws[t] % len(buf)
+            out[t] = buf[j]
+            if nxt < n:
+                buf[j] = nxt
+                nxt += 1
+            else:
+                buf[j] = buf[-1]
+                buf.pop()
+        return np.array(out, dtype=np.int64)
 
     def identity(self, recipe: str) -> PlanIdentity:
         """This plan's identity under the recipe fingerprint ``recipe``."""
-        return PlanIdentity(self.manifest.fingerprint(), recipe, self.seed, self.mix_videos, self.mix_samples)
+        return PlanIdentity(self.manifest.fingerprint(), recipe, self.seed, self.shuffle_buffer)
 
     def __len__(self) -> int:
         """Samples in the epoch (no padding)."""
@@ -256,10 +258,10 @@ class EpochPlan:
         """:meth:`key` of each position in ``start`` .. ``stop - 1``."""
         return [self.key(p) for p in range(start, stop)]
 
-    def block(self, position: int) -> int:
-        """The permuted block holding ``position``: its samples are the ones a server must have
-        made to serve it (``position // mix_samples``)."""
-        return position // self.mix_samples
+    def made_by(self, position: int) -> int:
+        """How many samples of the production order a server must have made (in that order) to
+        serve every position up to ``position``: ``min(N, position + shuffle_buffer)``."""
+        return min(len(self), position + self.shuffle_buffer)
 
     def steps(self, world_size: int, batch_size: int, start: int = 0) -> int:
         """Steps every rank takes from position ``start`` to the epoch's end:
