@@ -1,0 +1,336 @@
+"""Serving by plan, pure: which video an idle worker decodes next, which made samples a server
+keeps, and which fetches it can answer. A server is stateless compute: it keeps no record of who
+read what, only made samples, and any fetch names its rows itself (epoch and positions of
+``v2v_wire.plan.EpochPlan``).
+
+* **Fetches.** A client asks for positions ``start .. stop - 1`` of an epoch (one rank's batch
+  at one step). A fetch is answered when each of its positions has its sample made, failed for
+  this epoch (the decode gave fewer windows than the manifest's slots, or the pass broke) or lies
+  past the epoch's end: the last two are padding rows.
+* **Tasks.** A task is one video of one epoch (a decode makes a video's samples in order: each
+  video is decoded once per epoch while its samples are kept). Videos are handed out in the
+  production order, each as soon as a pending fetch needs one of its samples at its own positions
+  or at the ``lookahead`` positions after them: what the fetches to come will need, and no more.
+* **Hedging.** A task that sent nothing for ``hedge_s`` while a fetch waits on it is handed to
+  a second idle worker too; a sample's content is a function of (seed, epoch, id), so the first
+  copy of each sample wins and the other is dropped.
+* **Keeping.** Made samples wait in a store. When it holds more than ``keep_samples`` samples
+  beyond those the pending fetches and their lookahead name, the others go: fetched ones first
+  (kept for another job or a fetch asked again after a lost reply), least recently used first,
+  then samples made but never fetched, oldest first. A fetch whose sample went makes it again.
+* **A decode that gives more samples than the manifest's slots** is an error naming the video
+  (:class:`SlotsExceeded`): the manifest is stale or its bound wrong, never a silent drop.
+
+Nothing here owns a socket, a clock or a process (``now`` is passed in); ``tests/test_plan_feed.py``
+drives it with a seeded world of workers that stall, die and lag.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Hashable, List, Optional, Sequence, Set, Tuple
+
+from v2v_wire.ids import SampleKey
+from v2v_wire.plan import EpochPlan, Manifest
+from v2v_wire.worker_messages import Task
+
+#: Epochs whose plans a server keeps built (a plan of a million videos takes about 2 s); the
+#: failures of an epoch whose plan goes are forgotten with it.
+PLANS_KEPT = 4
+
+
+class SlotsExceeded(ValueError):
+    """A worker's decode gave a sample past its video's slots in the manifest (the message
+    names the video, the sample and the slots)."""
+
+
+@dataclass
+class Fetch:
+    """A client's request for positions ``start .. stop - 1`` of ``epoch``."""
+
+    client: Hashable
+    request: int
+    epoch: int
+    start: int
+    stop: int
+
+
+@dataclass
+class Row:
+    """One row of an answered fetch: the sample (``key``, ``sample``: what ``build`` made) or
+    padding (``key`` None past the epoch's end; ``reason`` for a sample the decode did not give)."""
+
+    position: int
+    key: Optional[SampleKey]
+    sample: Any = None
+    reason: Optional[str] = None
+
+    @property
+    def padding(self) -> bool:
+        return self.sample is None
+
+
+@dataclass
+class Run:
+    """One video of one epoch being decoded: its copies (task id -> worker) and when each last
+    sent something."""
+
+    epoch: int
+    video: str
+    copies: Dict[int, Hashable] = field(default_factory=dict)
+    progress: Dict[int, float] = field(default_factory=dict)
+    skips: Dict[int, Set[Tuple[int, int]]] = field(default_factory=dict)  # task id -> (window, crop) not asked of it
+
+    def end(self, task_id: int) -> None:
+        """Copy ``task_id`` ended."""
+        for d in (self.copies, self.progress, self.skips):
+            d.pop(task_id, None)
+
+
+class PlanFeed:
+    """The server's decisions when serving by plan (module docstring).
+
+    Args:
+        manifest: the corpus's slots (``v2v_wire.plan.Manifest``).
+        seed, shuffle_buffer: the plan's (``EpochPlan``).
+        outputs: the outputs workers make (``protocol.OUTPUTS`` order).
+        lookahead: positions past the furthest one asked for whose videos are decoded ahead.
+        keep_samples: fetched samples kept for other fetches (least recently used out).
+        hedge_s: seconds a task may send nothing while a fetch waits before a second worker
+            takes it too.
+        task_timeout_s: seconds a task may send nothing before its worker is called hung.
+
+    Raises:
+        ValueError: a setting out of range, naming it.
+    """
+
+    def __init__(self, manifest: Manifest, seed: int, shuffle_buffer: int, outputs: Sequence[str],
+                 lookahead: int = 64, keep_samples: int = 64, hedge_s: float = 30.0, task_timeout_s: float = 300.0):
+        for name, v in (("lookahead", lookahead), ("keep_samples", keep_samples)):
+            if v < 0:
+                raise ValueError(f"{name} must be >= 0, got {v}")
+        if not 0 < hedge_s <= task_timeout_s:
+            raise ValueError(f"hedge_s must be > 0 and <= task_timeout_s, got {hedge_s} and {task_timeout_s}")
+        self.manifest, self.seed, self.shuffle_buffer = manifest, seed, shuffle_buffer
+        self.slots = {v: n * manifest.crops_per_window for v, n in manifest.slots}  # samples per video
+        self.outputs = tuple(outputs)
+        self.lookahead, self.keep_samples = lookahead, keep_samples
+        self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
+        self.plans: "OrderedDict[int, EpochPlan]" = OrderedDict()
+        self.pending: List[Fetch] = []
+        self.store: "OrderedDict[Tuple[int, SampleKey], Any]" = OrderedDict()  # made, oldest or least recently fetched first
+        self.fetched: Set[Tuple[int, SampleKey]] = set()  # stored samples some fetch was answered with
+        self.failed: Dict[Tuple[int, SampleKey], str] = {}  # not given by its decode this epoch
+        self.runs: Dict[Tuple[int, str], Run] = {}
+        self.task_run: Dict[int, Tuple[int, str]] = {}
+        self._task_ids = 0
+        self.samples_made = 0
+
+    # ------------------------------------------------------------------ plans and fetches
+    def plan(self, epoch: int) -> EpochPlan:
+        """The plan of ``epoch`` (built on first use; the last :data:`PLANS_KEPT` kept)."""
+        p = self.plans.get(epoch)
+        if p is None:
+            p = self.plans[epoch] = EpochPlan(self.manifest, self.seed, epoch, self.shuffle_buffer)
+            while len(self.plans) > PLANS_KEPT:
+                gone, _ = self.plans.popitem(last=False)
+                self.failed = {sk: why for sk, why in self.failed.items() if sk[0] != gone}
+        else:
+            self.plans.move_to_end(epoch)
+        return p
+
+    def fetch(self, client: Hashable, request: int, epoch: int, start: int, stop: int) -> None:
+        """Queue a fetch of positions ``start .. stop - 1`` of ``epoch``.
+
+        Raises:
+            ValueError: ``start`` < 0 or ``stop`` <= ``start``, or more than 4096 positions.
+        """
+        if not 0 <= start < stop or stop - start > 4096:
+            raise ValueError(f"fetch positions {start}..{stop - 1}: must be 1 to 4096 positions from >= 0")
+        self.plan(epoch)
+        self.pending.append(Fetch(client, request, epoch, start, stop))
+
+    def forget(self, client: Hashable) -> None:
+        """Drop ``client``'s pending fetches (it left)."""
+        self.pending = [f for f in self.pending if f.client != client]
+
+    def answer(self) -> List[Tuple[Fetch, List[Row]]]:
+        """Every pending fetch that can be answered now, with its rows; they leave the queue,
+        and their samples move to the store's fetched end."""
+        out, waiting = [], []
+        for f in self.pending:
+            rows = self._rows(f)
+            if rows is None:
+                waiting.append(f)
+                continue
+            out.append((f, rows))
+            for r in rows:
+                if r.sample is not None:
+                    self.store.move_to_end((f.epoch, r.key))
+                    self.fetched.add((f.epoch, r.key))
+        self.pending = waiting
+        self._trim()
+        return out
+
+    def _rows(self, f: Fetch) -> Optional[List[Row]]:
+        plan = self.plan(f.epoch)
+        rows = []
+        for p in range(f.start, f.stop):
+            key = plan.key(p)
+            if key is None:
+                rows.append(Row(p, None))
+                continue
+            sk = (f.epoch, key)
+            if sk in self.store:
+                rows.append(Row(p, key, self.store[sk]))
+            elif sk in self.failed:
+                rows.append(Row(p, key, reason=self.failed[sk]))
+            else:
+                return None
+        return rows
+
+    def _trim(self) -> None:
+        """Drop samples no pending fetch names while the store holds more than ``keep_samples``
+        beyond those named: fetched ones first (least recently fetched first), then the others
+        (oldest first)."""
+        named = self._named()
+        over = len(self.store) - self.keep_samples - sum(1 for sk in named if sk in self.store)
+        for tier in (True, False):
+            for sk in list(self.store):
+                if over <= 0:
+                    return
+                if sk not in named and (sk in self.fetched) == tier:
+                    del self.store[sk]
+                    self.fetched.discard(sk)
+                    over -= 1
+
+    def _window(self, f: Fetch) -> range:
+        """The positions ``f`` and its lookahead name."""
+        return range(f.start, min(f.stop + self.lookahead, max(len(self.plan(f.epoch)), f.start)))
+
+    def _named(self) -> Set[Tuple[int, SampleKey]]:
+        """Samples the pending fetches and their lookahead name."""
+        named: Set[Tuple[int, SampleKey]] = set()
+        for f in self.pending:
+            plan = self.plan(f.epoch)
+            named.update((f.epoch, plan.key(p)) for p in self._window(f))
+        return named
+
+    # ------------------------------------------------------------------ workers
+    def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
+        """The task for an idle ``worker``: the first video in production order that pending
+        fetches need, or a hedge of a task that sent nothing for ``hedge_s``; None when none."""
+        needed = self._needed()
+        for ek in needed:
+            run = self.runs.get(ek)
+            if run is None:
+                return self._start(ek, worker, now, codecs)
+        for ek in needed:
+            run = self.runs[ek]
+            if len(run.copies) == 1 and worker not in run.copies.values() and \
+                    now - max(run.progress.values()) >= self.hedge_s:
+                return self._start(ek, worker, now, codecs)
+        return None
+
+    def _needed(self) -> List[Tuple[int, str]]:
+        """(epoch, video) of every video a pending fetch or its lookahead needs a sample of
+        that is neither kept nor failed, in (epoch, production) order."""
+        order: Dict[Tuple[int, str], Tuple[int, int]] = {}
+        for f in self.pending:
+            plan = self.plan(f.epoch)
+            for p in self._window(f):
+                key = plan.key(p)
+                sk = (f.epoch, key)
+                if sk in self.store or sk in self.failed:
+                    continue
+                ek, rank = (f.epoch, key.video), (f.epoch, int(plan.production[p]))
+                if rank < order.get(ek, (1 << 62, 0)):
+                    order[ek] = rank
+        return sorted(order, key=order.__getitem__)
+
+    def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
+        epoch, video = ek
+        self._task_ids += 1
+        tid = self._task_ids
+        run = self.runs.setdefault(ek, Run(epoch, video))
+        run.copies[tid], run.progress[tid] = worker, now
+        self.task_run[tid] = ek
+        skip = {(k.window, k.crop) for (e, k) in list(self.store) + list(self.failed) if e == epoch and k.video == video}
+        run.skips[tid] = skip
+        return Task(tid, epoch, video, self.outputs, tuple(sorted(skip)), tuple(codecs))
+
+    def sample(self, worker: Hashable, task_id: int, key: SampleKey, now: float, build: Callable) -> bool:
+        """Worker ``worker`` sent sample ``key`` of task ``task_id``; ``build(lane)`` makes the
+        sample object (called with lane 0, only when the sample is wanted). Returns True when it
+        was kept: False for a task that is not running (late, lost) or a sample another copy
+        gave first.
+
+        Raises:
+            SlotsExceeded: ``key`` lies past its video's slots in the manifest."""
+        ek = self.task_run.get(task_id)
+        if ek is None or self.runs[ek].copies.get(task_id) != worker or key.video != ek[1]:
+            return False
+        run = self.runs[ek]
+        run.progress[task_id] = now
+        sk = (ek[0], key)
+        kpw = self.manifest.crops_per_window
+        if key.ordinal(kpw) >= self.slots.get(key.video, 0):
+            raise SlotsExceeded(f"{key.video}: the decode gave {key.sample_id(kpw)}, past the manifest's "
+                                f"{self.slots.get(key.video, 0) // kpw} window(s) for it (a stale manifest, or a wrong bound)")
+        if sk in self.store:
+            return False
+        self.failed.pop(sk, None)
+        self.store[sk] = build(0)
+        self.samples_made += 1
+        return True
+
+    def done(self, worker: Hashable, task_id: int, windows: int, failed: Dict[int, str],
+             error: Optional[str]) -> Optional[Run]:
+        """Task ``task_id`` ended: the video gave ``windows`` complete windows (``failed``:
+        window -> reason; ``error``: why the pass stopped early). The samples of the video's slots
+        past ``windows`` or in ``failed``, asked of this copy and not made by another, are failed
+        for the epoch (padding rows). Returns the run, or None for a task that was not running."""
+        ek = self.task_run.get(task_id)
+        if ek is None or self.runs[ek].copies.get(task_id) != worker:
+            return None
+        del self.task_run[task_id]
+        run = self.runs[ek]
+        skip = run.skips.get(task_id, set())
+        run.end(task_id)
+        if not run.copies:
+            del self.runs[ek]
+        epoch, video = ek
+        kpw = self.manifest.crops_per_window
+        why_short = error or f"the decode gave {windows} window(s), the manifest {self.slots.get(video, 0) // kpw}"
+        for i in range(self.slots.get(video, 0)):
+            key = SampleKey.at(video, i, kpw)
+            gone = key.window in failed or key.window >= windows
+            if gone and (key.window, key.crop) not in skip and (epoch, key) not in self.store:
+                self.failed.setdefault((epoch, key), failed.get(key.window, why_short))
+        return run
+
+    def worker_lost(self, worker: Hashable) -> Optional[Run]:
+        """``worker`` died: its copies end; a video no copy decodes any more is needed again
+        (its missing samples are handed out anew). Returns the run it held, if any."""
+        lost = None
+        for tid, ek in list(self.task_run.items()):
+            run = self.runs[ek]
+            if run.copies.get(tid) == worker:
+                del self.task_run[tid]
+                run.end(tid)
+                if not run.copies:
+                    del self.runs[ek]
+                lost = run
+        return lost
+
+    def timed_out(self, now: float) -> List[Tuple[Hashable, Run]]:
+        """Copies that sent nothing for ``task_timeout_s`` (every worker message is read
+        whatever the clients do, so silence is the worker's): each ends as a lost worker's."""
+        out = []
+        for tid, ek in list(self.task_run.items()):
+            run = self.runs[ek]
+            if now - run.progress[tid] > self.task_timeout_s:
+                worker = run.copies[tid]
+                self.worker_lost(worker)
+                out.append((worker, run))
+        return out
