@@ -10,6 +10,8 @@ from v2v_server.ops.config import DeliveryPolicy, SampleRecipe, ServeConfig, Ser
 from v2v_server.ops.startup import SAMPLE_VIDEOS, start_source
 from v2v_server.sources.store import StoreSettings
 from v2v_server.settings import add_flags, flag_values
+from v2v_server.ops.plan_start import plan_manifest
+from v2v_server.service.plan_server import PlanServer
 from v2v_server.service.server import V2VServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
 from v2v_server.frames.check import check_corpus, format_check
@@ -50,6 +52,25 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
         ValueError, FileNotFoundError: as ``load_config``.
     """
     return load_config(args.config, flag_values(args, ServeConfig))
+
+
+def _serve_plan(start) -> int:
+    """``--delivery plan``: the manifest (each video's windows, from the corpus index or read),
+    then :class:`PlanServer` until a signal stops it."""
+    cfg = start.config
+    manifest, _ = plan_manifest(start, cfg.workers)
+    if not manifest.samples:
+        print(f"v2v-serve: --videos {start.source.root}: no video gives a window at this layout (--check says why)",
+              file=sys.stderr)
+        return 2
+    server = PlanServer(cfg, start.source, start.caches, manifest)
+    stopped_by = install_signal_handlers(server)
+    try:
+        status = server.run()
+        return 128 + stopped_by[0] if stopped_by else status
+    except OSError as e:  # the address cannot be bound
+        print(f"v2v-serve: {e}", file=sys.stderr)
+        return 2
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -95,6 +116,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"v2v-serve: --videos {source.root}: no video gives a window at this layout (the corpus index "
                   f"{index_path(caches.cache_dir)} knows them all; --check says why)", file=sys.stderr)
             return 2
+    if cfg.delivery.delivery_mode == "plan":
+        return _serve_plan(start)
     if start.epoch_samples is not None:
         log.info("an epoch holds %d sample(s) of %d video(s) (corpus index)", start.epoch_samples, len(start.served))
     try:

@@ -40,6 +40,8 @@ Msg = Tuple[bytes, StreamMessage]
 
 
 MAX_SHUFFLE_BUFFER = 4096
+#: ``--delivery`` settings (docs/plan.md).
+DELIVERY_MODES = ("push", "plan")
 #: Seconds after a hello its consumer's older connection (of another reader process) must still
 #: speak for the hello to be refused as a second live reader (docs/delivery.md, "Who may say hello").
 CLAIM_MARGIN_S = 2.0
@@ -60,7 +62,8 @@ class DeliveryPolicy:
             ``batcher.video_order(videos, seed, epoch)`` and spreads samples over the open
             batches of a shuffle buffer (``batcher.Batcher``), ``"none"`` keeps the listing's
             order and the arrival order; ``shuffle_buffer`` is rounded up to whole open batches
-            (:attr:`lanes`).
+            (:attr:`lanes`); ``delivery_mode``: ``"push"`` (this core) or ``"plan"``
+            (``plan_feed.PlanFeed``, ``service.plan_server``).
         offered: outputs this server offers (the recipe's ``outputs``).
         max_task_crashes: see ``schedule.EpochScheduler`` (``schedule.MAX_TASK_CRASHES``).
         crops_per_window: samples per window (ids ``path#window.crop`` when > 1, ``ids.py``).
@@ -93,6 +96,10 @@ class DeliveryPolicy:
     shuffle_buffer: int = setting(64, help="samples the shuffle buffer holds (shuffle: epoch), rounded "
                                            "up to whole batches: that many samples of server memory "
                                            "(docs/shuffle.md has their size)")
+    delivery_mode: str = setting("push", help="push: the server hands batches to its clients and keeps the books of who "
+                                     "holds what (docs/delivery.md); plan: each epoch is a fixed sequence every "
+                                     "client fetches positions of, read with V2VPlanDataset (docs/plan.md)",
+                        flag="--delivery", choices=DELIVERY_MODES)
     offered: Tuple[str, ...] = OUTPUTS
     max_task_crashes: int = MAX_TASK_CRASHES
     crops_per_window: int = 1
@@ -109,6 +116,7 @@ class DeliveryPolicy:
             object.__setattr__(self, "revoke_s", check_float("revoke_s", self.revoke_s))
         check_int("max_credits", self.max_credits, 1, MAX_CREDITS, "batches in flight per client")
         check_choice("shuffle", self.shuffle, SHUFFLES)
+        check_choice("delivery_mode", self.delivery_mode, DELIVERY_MODES)
         check_int("shuffle_buffer", self.shuffle_buffer, 1, MAX_SHUFFLE_BUFFER, "samples")
 
     @property

@@ -80,6 +80,7 @@ class Run:
     copies: Dict[int, Hashable] = field(default_factory=dict)
     progress: Dict[int, float] = field(default_factory=dict)
     skips: Dict[int, Set[Tuple[int, int]]] = field(default_factory=dict)  # task id -> (window, crop) not asked of it
+    error: Optional[str] = None  # why the last pass that ended stopped early
 
     def end(self, task_id: int) -> None:
         """Copy ``task_id`` ended."""
@@ -295,6 +296,7 @@ class PlanFeed:
             return None
         del self.task_run[task_id]
         run = self.runs[ek]
+        run.error = error
         skip = run.skips.get(task_id, set())
         run.end(task_id)
         if not run.copies:

@@ -9,6 +9,8 @@ from typing import Iterator, Optional
 
 from v2v_server.ops.config import ServeConfig, load_config
 from v2v_server.ops.startup import start_source
+from v2v_server.ops.plan_start import plan_manifest
+from v2v_server.service.plan_server import PlanServer
 from v2v_server.service.server import V2VServer
 
 
@@ -17,7 +19,7 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
                  config: Optional[ServeConfig] = None) -> Iterator[str]:
     """Serve ``videos`` (default: ``config.videos``, else the bundled clips) from a thread of this
     process; yields the bound endpoint (``tcp://127.0.0.1:<free port>``) and always stops the
-    server and its workers. ``config``: the other keys (default: every key's default); the
+    server and its workers. With ``delivery_mode: plan`` it is a ``PlanServer`` (docs/plan.md). ``config``: the other keys (default: every key's default); the
     corpus is opened, checked, listed and sharded (``shard``), and the videos the host's corpus
     index knows to give no window left out, by the start-up path ``v2v-serve`` runs
     (``ops.startup.start_source``), so both serve the same samples.
@@ -32,8 +34,11 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
     keys = {"workers": workers, "batch_size": batch_size, "bind": "tcp://127.0.0.1:*"}
     cfg = load_config(None, {**(config.to_dict() if config is not None else {}), **keys})
     start = start_source(cfg, videos)  # a folder or an object-store URL; the shard of cfg.shard
-    server = V2VServer(start.config, start.source, start.caches, start.served, corpus=start.corpus,
-                       epoch_samples=start.epoch_samples, skipped=start.skipped)
+    if cfg.delivery.delivery_mode == "plan":
+        server = PlanServer(start.config, start.source, start.caches, plan_manifest(start, workers)[0])
+    else:
+        server = V2VServer(start.config, start.source, start.caches, start.served, corpus=start.corpus,
+                           epoch_samples=start.epoch_samples, skipped=start.skipped)
     ready, failure = threading.Event(), []
 
     def run() -> None:

@@ -1,0 +1,151 @@
+"""Serving by plan end to end (docs/plan.md): real servers (in this process, and ``v2v-serve
+--delivery plan`` as a child) over the bundled clips, read by ``V2VPlanDataset`` through real
+DataLoaders. Each test checks what a user is promised: every sample of an epoch once, at the same
+positions at any layout, bit-identical batches from two reads, a checkpoint that resumes at another
+world size, a server killed mid-epoch costing only the fetches in flight."""
+from __future__ import annotations
+
+import hashlib
+import signal
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+
+from harness.serve import ServeProcess, free_port
+from v2v_client import V2VPlanDataset
+from v2v_server.ops.config import load_config
+from v2v_server.service.local import local_server
+from v2v_wire.plan import PlanMismatch
+
+#: 8 voxel grids of 0.2 s a window: the bundled clips give 24 samples an epoch (``v2v-serve --check``)
+RECIPE = {"delivery_mode": "plan", "sequence_length": 8, "shuffle_buffer": 8}
+SAMPLES = 24
+
+
+@pytest.fixture(scope="module")
+def server():
+    with local_server(None, workers=2, batch_size=4, config=load_config(None, RECIPE)) as endpoint:
+        yield endpoint
+
+
+def read(ds, workers: int = 0, context=None, steps=None):
+    """(sample id or None, padding, voxels digest, position) of every row, and the last position."""
+    loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers, multiprocessing_context=context)
+    rows, last = [], None
+    for i, b in enumerate(loader):
+        if steps is not None and i == steps:
+            break
+        for j, sid in enumerate(b["sample_ids"]):
+            digest = hashlib.sha1(b["voxels"][j].numpy().tobytes()).hexdigest()[:12]
+            rows.append((sid, bool(b["padding"][j]), digest))
+        last = b["position"]
+    return rows, last
+
+
+def real_ids(rows):
+    return [sid for sid, pad, _ in rows if not pad]
+
+
+def test_every_rank_reads_a_fixed_slice_and_the_epoch_holds_every_sample_once(server):
+    layouts = {}
+    for world, batch, workers in ((1, 4, 0), (2, 3, 2), (3, 2, 1)):
+        per_rank = [read(V2VPlanDataset(server, batch, rank=r, world_size=world), workers)[0] for r in range(world)]
+        steps = {len(rows) // batch for rows in per_rank}
+        assert len(steps) == 1  # every rank the same number of steps
+        ids = [sid for rows in per_rank for sid in real_ids(rows)]
+        assert len(ids) == SAMPLES and len(set(ids)) == SAMPLES
+        # the global sequence: step-major, rank-minor slices of it
+        seq = [per_rank[r][s * batch + i] for s in range(steps.pop()) for r in range(world) for i in range(batch)]
+        pads = [pad for _, pad, _ in seq]
+        assert pads == sorted(pads)  # padding only at the tail
+        layouts[(world, batch)] = [row for row in seq if not row[1]]
+    sequences = list(layouts.values())
+    assert all(s == sequences[0] for s in sequences)  # the same sequence, the same bytes, at any layout
+
+
+def test_len_and_the_epochs_order_are_the_trainers(server):
+    ds = V2VPlanDataset(server, 5)
+    assert len(ds) == -(-SAMPLES // 5)
+    first = real_ids(read(ds)[0])
+    ds.set_epoch(1)
+    second = real_ids(read(ds)[0])
+    assert sorted(first) == sorted(second) and first != second
+
+
+def test_a_checkpoint_resumes_at_another_world_size_without_a_repeat_or_a_loss(server):
+    before = []
+    for r in range(2):
+        rows, position = read(V2VPlanDataset(server, 3, rank=r, world_size=2), steps=2)
+        before += real_ids(rows)
+    assert position["sample_in_epoch"] == 12
+    ds = V2VPlanDataset(server, 5, rank=0, world_size=1)
+    ds.load_state_dict(position)
+    after = real_ids(read(ds, workers=2)[0])
+    assert sorted(before + after) == sorted(set(before + after)) and len(before + after) == SAMPLES
+
+
+def test_spawned_dataloader_workers_read_the_plan(server):
+    rows, _ = read(V2VPlanDataset(server, 4), workers=2, context="spawn")
+    assert len(set(real_ids(rows))) == SAMPLES
+
+
+def test_a_position_of_another_plan_is_refused_in_one_line(server):
+    ds = V2VPlanDataset(server, 4)
+    _, position = read(ds, steps=1)
+    position = {**position, "plan": {**position["plan"], "seed": 99}}
+    other = V2VPlanDataset(server, 4)
+    other.load_state_dict(position)
+    with pytest.raises(PlanMismatch) as err:
+        len(other)
+    assert "\n" not in str(err.value) and "seed 99 (this plan: 0)" in str(err.value)
+
+
+def test_a_server_killed_mid_epoch_costs_only_the_fetches_in_flight(tmp_path):
+    """``v2v-serve --delivery plan`` killed (SIGKILL) after two steps and started again on the same
+    address: the reader asks its unanswered fetches again and gets the same epoch, bit for bit."""
+    bind = f"tcp://127.0.0.1:{free_port()}"
+    args = ["--delivery", "plan", "--sequence-length", "8", "--shuffle-buffer", "8", "--workers", "1",
+            "--bind", bind]
+    with ServeProcess(args, ready_timeout_s=120) as srv:
+        whole, _ = read(V2VPlanDataset(bind, 4, retry_s=2.0, timeout_s=120))
+        ds = V2VPlanDataset(bind, 4, retry_s=2.0, timeout_s=120)
+        it = iter(torch.utils.data.DataLoader(ds, batch_size=None))
+        got = [next(it), next(it)]
+        srv.proc.send_signal(signal.SIGKILL)
+        srv.proc.wait(10)
+    with ServeProcess(args, ready_timeout_s=120) as srv:
+        got += list(it)
+        assert srv.stop() == 130  # SIGINT: one line, the shell's code for it
+    assert "Traceback" not in srv.log
+    ids = [sid for b in got for sid, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad]
+    assert ids == real_ids(whole)
+    again = [hashlib.sha1(b["voxels"][j].numpy().tobytes()).hexdigest()[:12] for b in got
+             for j in range(len(b["sample_ids"])) if not b["padding"][j]]
+    assert again == [d for _, pad, d in whole if not pad]
+
+
+def test_a_hostile_client_gets_one_line_and_the_server_serves_on(server):
+    import zmq
+
+    from v2v_wire.protocol import pack, unpack
+
+    plan = V2VPlanDataset(server, 1).plan_info().plan.to_dict()
+    fetch = {"type": "fetch", "request": 7, "epoch": 0, "start": 0, "stop": 1, "outputs": ["voxels"], "plan": plan}
+    ctx = zmq.Context()
+    try:
+        for bad, why in ((b"\xc1garbage", "not valid msgpack"), (pack({**fetch, "stop": 10 ** 6}), "'stop'"),
+                         (pack({**fetch, "v": 0}), "protocol version"), (pack({**fetch, "outputs": ["x"]}), "outputs"),
+                         (pack({**fetch, "plan": {**plan, "recipe": "0" * 16}}), "another plan: recipe")):
+            sock = ctx.socket(zmq.DEALER)  # one peer each: a peer that keeps sending garbage is banned
+            sock.setsockopt(zmq.LINGER, 0)
+            sock.connect(server)
+            sock.send(bad)
+            assert sock.poll(10000)
+            h = unpack(sock.recv_multipart()[0])
+            sock.close()
+            assert h["type"] == "refused" and why in h["message"] and "\n" not in h["message"]
+    finally:
+        ctx.term()
+    assert len(set(real_ids(read(V2VPlanDataset(server, 4))[0]))) == SAMPLES

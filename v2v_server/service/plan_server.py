@@ -1,0 +1,208 @@
+"""The server loop when serving by plan (``v2v-serve --delivery plan``, docs/plan.md): stateless
+compute over the worker pool.
+
+Topology as ``server.V2VServer``'s: workers (DEALER) on the backend ROUTER, clients (DEALER) on the
+frontend ROUTER. The decisions are ``delivery.plan_feed.PlanFeed``'s (pure); this loop moves
+bytes: client messages (``v2v_wire.plan_messages``: ``plan_ask``, ``fetch``) in, ``plan`` /
+``rows`` / ``refused`` out; worker messages through ``worker_side.WorkerSide``, as the push
+server reads them. Workers are read whatever the clients do, so their task clock counts only
+their own silence. The server keeps no record of any client: a fetch names its rows, and a
+server restarted or another one serving the same manifest and recipe answers it alike.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import zmq
+
+from v2v_server.delivery.plan_feed import PlanFeed, Row
+from v2v_server.frames.host_caches import HostCaches
+from v2v_server.ops.config import ServeConfig
+from v2v_server.ops.metrics import ServerMetrics
+from v2v_server.service.assembly import SamplePayload
+from v2v_server.service.pool import WorkerPool
+from v2v_server.service.sockets import ServerSockets
+from v2v_server.service.worker import worker_config
+from v2v_server.service.worker_side import WorkerSide
+from v2v_server.sources.source import VideoSource
+from v2v_wire.batches import stack_arrays
+from v2v_wire.messages import BadPeers, WireError
+from v2v_wire.outputs import narrowest, zeros_row
+from v2v_wire.plan import Manifest, PlanIdentity
+from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, decode_plan_client
+from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, output_of, pack
+
+log = logging.getLogger("v2v.server")
+
+
+class OwnedRows:
+    """Where ``assembly.sample_from_slot`` copies a worker's slot: each sample into arrays of
+    its own (a plan's samples wait for their fetch in any order, so they share no batch
+    buffer). The one copy of the shared-memory path."""
+
+    def place(self, sample_id: str, meta: dict, arrays: Dict[str, np.ndarray], lane: int = 0) -> SamplePayload:
+        return SamplePayload(sample_id, meta, {k: np.array(v) for k, v in arrays.items()})
+
+
+class PlanServer:
+    """Serve the plan of ``manifest`` from the videos of ``source``.
+
+    Args:
+        cfg: validated ``ServeConfig`` (its recipe, seed, shuffle buffer, workers, bind,
+            task timeout).
+        source, caches: the corpus and the host's caches, as ``V2VServer`` takes them.
+        manifest: the slots of every video served (``ops.plan_start.plan_manifest``).
+
+    Call :meth:`run` (blocks until :meth:`stop`).
+    """
+
+    def __init__(self, cfg: ServeConfig, source: VideoSource, caches: HostCaches, manifest: Manifest):
+        self.cfg, self.source, self.caches, self.manifest = cfg, source, caches, manifest
+        d = cfg.delivery
+        self.feed = PlanFeed(manifest, cfg.seed, d.shuffle_buffer, cfg.outputs, lookahead=d.shuffle_buffer,
+                             keep_samples=d.shuffle_buffer, hedge_s=min(30.0, d.task_timeout_s),
+                             task_timeout_s=d.task_timeout_s)
+        self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer)
+        self.metrics = ServerMetrics()
+        self.workers = WorkerSide(cfg, source, self.feed, self.metrics)
+        self.bad = BadPeers()
+        self._stop = threading.Event()
+        self.bound_endpoint: Optional[str] = None
+
+    def stop(self) -> None:
+        """Ask the loop to stop (thread- and signal-safe)."""
+        self._stop.set()
+
+    def stream_info(self) -> dict:
+        """The recipe's shapes and outputs, as a client needs them to read rows."""
+        c = self.cfg
+        return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
+                "frames_per_bin": c.frames_per_bin, "outputs": list(c.outputs), "flow_preset": c.flow_preset,
+                "flow_dtype": c.flow_dtype, "crops_per_window": c.crops_per_window, "videos": len(self.manifest.slots)}
+
+    def run(self, ready_event: Optional[threading.Event] = None) -> int:
+        """Run until :meth:`stop`; returns a process exit code."""
+        self.sockets = ServerSockets()
+        pool = None
+        try:
+            if self.cfg.metrics_port is not None:
+                self.metrics.serve(self.cfg.metrics_host, self.cfg.metrics_port)
+            self.bound_endpoint = self.sockets.bind(self.cfg)
+            corpus = {"source": self.source.spec(), "caches": self.caches.spec()}
+            pool = WorkerPool(worker_config(self.cfg), corpus, self.sockets.backend_endpoint, self.cfg.workers)
+            self.workers.attach(self.sockets.backend, pool, OwnedRows())
+            pool.start()
+            log.info("serving by plan %s: %d video(s), %d samples per epoch, from %s on %s with %d worker(s)",
+                     self.identity.manifest, len(self.manifest.slots), self.manifest.samples, self.source.root,
+                     self.bound_endpoint, self.cfg.workers)
+            if ready_event is not None:
+                ready_event.set()
+            return self._loop()
+        finally:
+            if pool is not None:
+                self.workers.stop()
+            self.sockets.close()
+            self.metrics.close()
+
+    def _loop(self) -> int:
+        front, back = self.sockets.frontend, self.sockets.backend
+        poller = zmq.Poller()
+        poller.register(front, zmq.POLLIN)
+        poller.register(back, zmq.POLLIN)
+        while not self._stop.is_set():
+            events = dict(poller.poll(100))
+            if front in events:
+                for _ in range(64):
+                    try:
+                        ident, frame = front.recv_multipart(zmq.NOBLOCK, copy=False)[:2]
+                    except zmq.Again:
+                        break
+                    except ValueError:  # a message of one frame
+                        continue
+                    self._client(ident.bytes, frame)
+            if back in events:
+                for _ in range(64):
+                    try:
+                        self.workers.on_message(back.recv_multipart(zmq.NOBLOCK, copy=False))
+                    except zmq.Again:
+                        break
+            now = time.monotonic()
+            self.workers.watch(now)
+            self.workers.dispatch(now, [])
+            for f, rows in self.feed.answer():
+                self._send_rows(f, rows)
+            self.metrics.tick(self._metrics_state)
+        return 0
+
+    def _client(self, ident: bytes, frame) -> None:
+        now = time.monotonic()
+        if self.bad.banned(ident, now):
+            return
+        try:
+            msg = decode_plan_client(frame, MAX_CLIENT_MSG)
+        except WireError as e:
+            self.metrics.on_bad_message()
+            self._send(ident, Refused(-1, f"bad message: {e}").to_wire())
+            log_it, _ = self.bad.strike(ident, now)
+            if log_it:
+                log.warning("bad message from client %s: %s", ident.hex()[:12], e)
+            return
+        if isinstance(msg, PlanAsk):
+            self._send(ident, PlanInfo(self.identity, self.manifest.samples, self.stream_info()).to_wire())
+            return
+        problem = self.identity.problem(msg.plan)
+        missing = [o for o in msg.outputs if o not in self.cfg.outputs]
+        if problem or missing:
+            why = f"fetch under {problem}" if problem else f"outputs {missing} are not served here (--outputs)"
+            self._send(ident, Refused(msg.request, why).to_wire())
+            return
+        self.feed.fetch((ident, msg.outputs), msg.request, msg.epoch, msg.start, msg.stop)
+
+    def _send(self, ident: bytes, header: dict, frames: Sequence = ()) -> None:
+        try:
+            self.sockets.frontend.send_multipart([ident, pack(header), *frames], copy=False)
+        except zmq.ZMQError:  # the client is gone (ROUTER_MANDATORY): it asks again if it comes back
+            self.feed.forget(self._fetcher(ident))
+
+    def _fetcher(self, ident: bytes):
+        return next((f.client for f in self.feed.pending if f.client[0] == ident), (ident, ()))
+
+    def _send_rows(self, f, rows: List[Row]) -> None:
+        ident, outputs = f.client
+        arrays = self._arrays(rows, outputs)
+        specs, frames = encode_arrays(arrays)
+        ids = [r.key.sample_id(self.manifest.crops_per_window) if r.key is not None else None for r in rows]
+        params = [r.sample.meta if r.sample is not None else {"padding": r.reason or "past the epoch's end"}
+                  for r in rows]
+        head = Rows(f.request, f.epoch, f.start, ids, [r.padding for r in rows], params, specs).to_wire()
+        self._send(ident, head, frames)
+        real = [r for r in rows if r.sample is not None]
+        self.metrics.on_batch_sent(len(real), sum(a.nbytes for a in arrays.values()))
+
+    def _arrays(self, rows: List[Row], outputs: Tuple[str, ...]) -> Dict[str, np.ndarray]:
+        """The rows' arrays of ``outputs``, stacked (one copy), zeros in padding rows."""
+        real = next((r.sample for r in rows if r.sample is not None), None)
+        c = self.cfg
+        if real is None:
+            return {o: np.stack([zeros_row(o, c.sequence_length, c.num_bins, c.crop_size, c.flow_dtype)] * len(rows))
+                    for o in outputs}
+        out = {}
+        for name, a in real.arrays.items():
+            if output_of(name) not in outputs:
+                continue
+            zero = np.zeros_like(a)
+            out[name] = narrowest(name, stack_arrays([r.sample.arrays[name] if r.sample is not None else zero
+                                                      for r in rows]))
+        return out
+
+    def _metrics_state(self) -> dict:
+        alive = [w for w in self.workers.pool.workers.values() if w.proc.is_alive()] if self.workers.pool else []
+        return {"clients": {}, "queue_batches": len(self.feed.pending), "inflight_batches": 0,
+                "workers": len(alive), "workers_busy": sum(1 for w in alive if not w.idle), "epoch": 0,
+                "epoch_videos": len(self.manifest.slots), "epoch_videos_done": 0,
+                "shuffle_samples": len(self.feed.store), "shuffle_capacity": self.feed.keep_samples,
+                "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
