@@ -8,16 +8,19 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   this epoch (the decode gave fewer windows than the manifest's slots, or the pass broke) or lies
   past the epoch's end: the last two are padding rows.
 * **Tasks.** A task is one video of one epoch (a decode makes a video's samples in order: each
-  video is decoded once per epoch while its samples are kept). Videos are handed out in the
-  production order, each as soon as a pending fetch needs one of its samples at its own positions
-  or at the ``lookahead`` positions after them: what the fetches to come will need, and no more.
+  video is decoded once per epoch while its samples are kept). An idle worker gets the first video
+  (in the order of the positions that need it) that a pending fetch needs a sample of; else the
+  next video the positions after the furthest fetch need, while the samples made ahead and not
+  yet fetched, with those the running tasks will make, stay within ``lookahead`` samples: the
+  fetches to come find their samples made, and a server holds a bounded number of samples.
 * **Hedging.** A task that sent nothing for ``hedge_s`` while a fetch waits on it is handed to
   a second idle worker too; a sample's content is a function of (seed, epoch, id), so the first
   copy of each sample wins and the other is dropped.
-* **Keeping.** Made samples wait in a store. When it holds more than ``keep_samples`` samples
-  beyond those the pending fetches and their lookahead name, the others go: fetched ones first
-  (kept for another job or a fetch asked again after a lost reply), least recently used first,
-  then samples made but never fetched, oldest first. A fetch whose sample went makes it again.
+* **Keeping.** Made samples wait in a store until fetched. Fetched ones stay, least recently
+  fetched first out, while there are at most ``keep_samples`` of them (another job, a fetch asked
+  again after a lost reply); samples never fetched go only when no pending fetch reads their
+  epoch (a job that left), oldest first, once the store holds more than ``keep_samples +
+  lookahead``. A fetch whose sample went makes it again.
 * **A decode that gives more samples than the manifest's slots** is an error naming the video
   (:class:`SlotsExceeded`): the manifest is stale or its bound wrong, never a silent drop.
 
@@ -95,7 +98,7 @@ class PlanFeed:
         manifest: the corpus's slots (``v2v_wire.plan.Manifest``).
         seed, shuffle_buffer: the plan's (``EpochPlan``).
         outputs: the outputs workers make (``protocol.OUTPUTS`` order).
-        lookahead: positions past the furthest one asked for whose videos are decoded ahead.
+        lookahead: samples a server makes ahead of the fetches (made or being made, not yet fetched).
         keep_samples: fetched samples kept for other fetches (least recently used out).
         hedge_s: seconds a task may send nothing while a fetch waits before a second worker
             takes it too.
@@ -191,31 +194,18 @@ class PlanFeed:
         return rows
 
     def _trim(self) -> None:
-        """Drop samples no pending fetch names while the store holds more than ``keep_samples``
-        beyond those named: fetched ones first (least recently fetched first), then the others
-        (oldest first)."""
-        named = self._named()
-        over = len(self.store) - self.keep_samples - sum(1 for sk in named if sk in self.store)
-        for tier in (True, False):
-            for sk in list(self.store):
-                if over <= 0:
-                    return
-                if sk not in named and (sk in self.fetched) == tier:
-                    del self.store[sk]
-                    self.fetched.discard(sk)
-                    over -= 1
-
-    def _window(self, f: Fetch) -> range:
-        """The positions ``f`` and its lookahead name."""
-        return range(f.start, min(f.stop + self.lookahead, max(len(self.plan(f.epoch)), f.start)))
-
-    def _named(self) -> Set[Tuple[int, SampleKey]]:
-        """Samples the pending fetches and their lookahead name."""
-        named: Set[Tuple[int, SampleKey]] = set()
-        for f in self.pending:
-            plan = self.plan(f.epoch)
-            named.update((f.epoch, plan.key(p)) for p in self._window(f))
-        return named
+        """Drop fetched samples past ``keep_samples`` (least recently fetched first), then, while
+        the store holds more than ``keep_samples + lookahead``, unfetched samples of epochs no
+        pending fetch reads (oldest first)."""
+        fetched = [sk for sk in self.store if sk in self.fetched]
+        for sk in fetched[:max(0, len(fetched) - self.keep_samples)]:
+            del self.store[sk]
+            self.fetched.discard(sk)
+        over = len(self.store) - self.keep_samples - self.lookahead
+        if over > 0:
+            read = {f.epoch for f in self.pending}
+            for sk in [sk for sk in self.store if sk[0] not in read and sk not in self.fetched][:over]:
+                del self.store[sk]
 
     # ------------------------------------------------------------------ workers
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
@@ -234,19 +224,34 @@ class PlanFeed:
         return None
 
     def _needed(self) -> List[Tuple[int, str]]:
-        """(epoch, video) of every video a pending fetch or its lookahead needs a sample of
-        that is neither kept nor failed, in (epoch, production) order."""
-        order: Dict[Tuple[int, str], Tuple[int, int]] = {}
+        """(epoch, video) to decode, in priority order: those pending fetches need a sample of
+        (neither kept nor failed), by the first position needing it; then the videos the positions
+        after each epoch's furthest fetch need, while the samples made ahead stay within
+        ``lookahead`` (module docstring)."""
+        order: Dict[Tuple[int, str], Tuple[int, int, int]] = {}
+        furthest: Dict[int, int] = {}
         for f in self.pending:
             plan = self.plan(f.epoch)
-            for p in self._window(f):
+            furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
+            for p in range(f.start, min(f.stop, len(plan))):
                 key = plan.key(p)
-                sk = (f.epoch, key)
-                if sk in self.store or sk in self.failed:
+                if (f.epoch, key) not in self.store and (f.epoch, key) not in self.failed:
+                    ek = (f.epoch, key.video)
+                    order[ek] = min(order.get(ek, (0, f.epoch, p)), (0, f.epoch, p))
+        ahead = sum(1 for sk in self.store if sk not in self.fetched)
+        ahead += sum(self.slots.get(v, 0) for (_, v) in self.runs)
+        ahead += sum(self.slots.get(v, 0) for (e, v) in order if (e, v) not in self.runs)
+        for epoch, stop in sorted(furthest.items()):
+            plan = self.plan(epoch)
+            for p in range(stop, min(len(plan), stop + self.lookahead + self.shuffle_buffer)):
+                if ahead >= self.lookahead:
+                    break
+                key = plan.key(p)
+                ek = (epoch, key.video)
+                if ek in order or ek in self.runs or (epoch, key) in self.store or (epoch, key) in self.failed:
                     continue
-                ek, rank = (f.epoch, key.video), (f.epoch, int(plan.production[p]))
-                if rank < order.get(ek, (1 << 62, 0)):
-                    order[ek] = rank
+                order[ek] = (1, epoch, p)
+                ahead += self.slots.get(key.video, 0)
         return sorted(order, key=order.__getitem__)
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:

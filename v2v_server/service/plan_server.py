@@ -38,6 +38,9 @@ from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, output_of, pack
 
 log = logging.getLogger("v2v.server")
 
+#: Seconds a task may send nothing while a fetch waits on it before a second worker takes it too.
+HEDGE_S = 10.0
+
 
 class OwnedRows:
     """Where ``assembly.sample_from_slot`` copies a worker's slot: each sample into arrays of
@@ -63,8 +66,10 @@ class PlanServer:
     def __init__(self, cfg: ServeConfig, source: VideoSource, caches: HostCaches, manifest: Manifest):
         self.cfg, self.source, self.caches, self.manifest = cfg, source, caches, manifest
         d = cfg.delivery
+        # made ahead: the push server's shuffle buffer of samples; kept once fetched: a batch, for
+        # a fetch asked again after a lost reply
         self.feed = PlanFeed(manifest, cfg.seed, d.shuffle_buffer, cfg.outputs, lookahead=d.shuffle_buffer,
-                             keep_samples=d.shuffle_buffer, hedge_s=min(30.0, d.task_timeout_s),
+                             keep_samples=d.batch_size, hedge_s=min(HEDGE_S, d.task_timeout_s),
                              task_timeout_s=d.task_timeout_s)
         self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer)
         self.metrics = ServerMetrics()

@@ -1,0 +1,174 @@
+"""Serving by plan against push, in one run on one machine (docs/plan.md, "Measured").
+
+Run: ``python -m bench.plan_vs_push [--rounds 2] [--batches 12] [--out docs]``.
+
+Rows, each setting run ``rounds`` times, plan and push alternating:
+
+* samples/s with 1 and 2 workers through ``v2v-serve`` (a ``V2VPlanDataset`` against
+  ``v2v-loadtest``'s reader), and the server's peak resident memory (server and workers);
+* 4 crops per window against one, on one worker, both models;
+* the trainer's longest wait between two batches while one of two workers is stopped
+  (SIGSTOP) for ``--stall-s`` seconds;
+* distinct videos per batch of 12 at the push bench's shape (200 videos of 10 windows, a buffer
+  of 64), from the pure parts (``EpochPlan`` against ``Batcher``, ``bench.shuffle.buffer_sizes``).
+
+Corpus: the bundled clips, copied ``--copies`` times; the default recipe with shot cuts off.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import torch
+
+from bench.shuffle import buffer_sizes
+from bench.throughput import tree_rss_mb
+from harness.faults import good_corpus
+from harness.serve import ServeProcess
+from v2v_client import V2VPlanDataset
+from v2v_client.loadtest import run_loadtest
+from v2v_wire.plan import EpochPlan, Manifest, distinct_videos
+
+BATCH = 4
+
+
+class PeakRss:
+    """Samples a process tree's resident memory every 0.2 s in a thread; ``peak`` MB."""
+
+    def __init__(self, pid: int):
+        self.pid, self.peak, self._stop = pid, 0.0, threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.2):
+            self.peak = max(self.peak, tree_rss_mb(self.pid))
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._t.join()
+        return self.peak
+
+
+def read_plan(endpoint: str, batches: int, warmup: int = 1, on_batch=None) -> dict:
+    """``batches`` batches of a ``V2VPlanDataset`` over as many epochs as needed (after ``warmup``
+    unmeasured ones): samples/s and the longest wait between two batches, s."""
+    ds = V2VPlanDataset(endpoint, BATCH, timeout_s=300)
+    n = samples = 0
+    t0 = last = None
+    longest = 0.0
+    epoch = 0
+    while n < warmup + batches:
+        ds.set_epoch(epoch)
+        for b in torch.utils.data.DataLoader(ds, batch_size=None):
+            now = time.perf_counter()
+            if n == warmup:
+                t0 = now
+            elif n > warmup:
+                samples += int((~b["padding"]).sum())
+                longest = max(longest, now - last)
+            last = now
+            n += 1
+            if on_batch is not None:
+                on_batch(n)
+            if n >= warmup + batches:
+                break
+        epoch += 1
+    seconds = last - t0
+    return {"samples_per_s": samples / seconds if seconds > 0 else 0.0, "samples": samples, "seconds": seconds,
+            "longest_wait_s": longest}
+
+
+def read_push(endpoint: str, batches: int) -> dict:
+    r = run_loadtest(endpoint, batches, timeout_s=300, warmup=1)
+    return {"samples_per_s": r["samples_per_s"], "samples": r["samples"], "seconds": r["seconds"]}
+
+
+def throughput(corpus: Path, mode: str, workers: int, batches: int, extra: List[str]) -> dict:
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", str(BATCH),
+            "--delivery", mode, *extra]
+    with ServeProcess(args, ready_timeout_s=600) as srv:
+        rss = PeakRss(srv.proc.pid)
+        r = read_plan(srv.endpoint, batches) if mode == "plan" else read_push(srv.endpoint, batches)
+        r["peak_rss_mb"] = rss.stop()
+    return r
+
+
+def stalled(corpus: Path, mode: str, batches: int, stall_s: float) -> dict:
+    """The longest wait between batches while one of two workers is stopped ``stall_s`` s."""
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", "2", "--batch-size", str(BATCH),
+            "--delivery", mode]
+    with ServeProcess(args, ready_timeout_s=600) as srv:
+        children = [int(p) for p in Path(f"/proc/{srv.proc.pid}/task/{srv.proc.pid}/children").read_text().split()]
+        victim = children[0]
+
+        def stop_one(n: int) -> None:
+            if n == 2:
+                os.kill(victim, signal.SIGSTOP)
+                threading.Timer(stall_s, os.kill, (victim, signal.SIGCONT)).start()
+
+        if mode == "plan":
+            return read_plan(srv.endpoint, batches, on_batch=stop_one)
+        from v2v_client import V2VStreamDataset
+        longest, last = 0.0, None
+        for n, _ in enumerate(V2VStreamDataset(srv.endpoint, timeout_s=300), 1):
+            now = time.perf_counter()
+            if last is not None and n > 2:
+                longest = max(longest, now - last)
+            last = now
+            stop_one(n)
+            if n >= batches + 1:
+                break
+        return {"longest_wait_s": longest}
+
+
+def mixing() -> dict:
+    m = Manifest.of({f"v/{i:03d}.mp4": 10 for i in range(200)})
+    plan = statistics.mean(distinct_videos(EpochPlan(m, s, 0, 64), 12) for s in range(5))
+    return {"plan": plan, "push": buffer_sizes(sizes=(64,))["counted"][64][0]}
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--batches", type=int, default=12)
+    ap.add_argument("--copies", type=int, default=2)
+    ap.add_argument("--stall-s", type=float, default=20.0)
+    ap.add_argument("--out", type=Path, default=None, help="folder for plan_vs_push.json")
+    a = ap.parse_args(argv)
+    out: dict = {"mixing": mixing(), "throughput": [], "crops": [], "stall": []}
+    print(json.dumps(out["mixing"]), flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        corpus = good_corpus(Path(tmp), a.copies)
+        for r in range(a.rounds):
+            for workers in (1, 2):
+                for mode in ("push", "plan") if r % 2 == 0 else ("plan", "push"):
+                    row = {"round": r, "workers": workers, "mode": mode, **throughput(corpus, mode, workers, a.batches, [])}
+                    out["throughput"].append(row)
+                    print(json.dumps(row), flush=True)
+            for crops in (1, 4):
+                for mode in ("push", "plan"):
+                    row = {"round": r, "crops": crops, "mode": mode,
+                           **throughput(corpus, mode, 1, a.batches, ["--crops-per-window", str(crops)])}
+                    out["crops"].append(row)
+                    print(json.dumps(row), flush=True)
+        for mode in ("push", "plan"):
+            row = {"mode": mode, "stall_s": a.stall_s, **stalled(corpus, mode, a.batches, a.stall_s)}
+            out["stall"].append(row)
+            print(json.dumps(row), flush=True)
+    if a.out is not None:
+        (a.out / "plan_vs_push.json").write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
