@@ -143,25 +143,27 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--batches", type=int, default=12)
     ap.add_argument("--copies", type=int, default=2)
     ap.add_argument("--stall-s", type=float, default=20.0)
+    ap.add_argument("--parts", default="throughput,crops,stall", help="which rows to run, comma-separated")
     ap.add_argument("--out", type=Path, default=None, help="folder for plan_vs_push.json")
     a = ap.parse_args(argv)
     out: dict = {"mixing": mixing(), "throughput": [], "crops": [], "stall": []}
     print(json.dumps(out["mixing"]), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         corpus = good_corpus(Path(tmp), a.copies)
+        parts = set(a.parts.split(","))
         for r in range(a.rounds):
-            for workers in (1, 2):
+            for workers in (1, 2) if "throughput" in parts else ():
                 for mode in ("push", "plan") if r % 2 == 0 else ("plan", "push"):
                     row = {"round": r, "workers": workers, "mode": mode, **throughput(corpus, mode, workers, a.batches, [])}
                     out["throughput"].append(row)
                     print(json.dumps(row), flush=True)
-            for crops in (1, 4):
+            for crops in (1, 4) if "crops" in parts else ():
                 for mode in ("push", "plan"):
                     row = {"round": r, "crops": crops, "mode": mode,
                            **throughput(corpus, mode, 1, a.batches, ["--crops-per-window", str(crops)])}
                     out["crops"].append(row)
                     print(json.dumps(row), flush=True)
-        for mode in ("push", "plan"):
+        for mode in ("push", "plan") if "stall" in parts else ():
             row = {"mode": mode, "stall_s": a.stall_s, **stalled(corpus, mode, a.batches, a.stall_s)}
             out["stall"].append(row)
             print(json.dumps(row), flush=True)

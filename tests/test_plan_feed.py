@@ -64,7 +64,7 @@ def world(seed: int, ticks: int = 4000):
                     pos = plan.batch_positions(job.step, r, job.world, job.batch, job.start)
                     request += 1
                     job.asked[(job.step, r)] = request
-                    feed.fetch((job.name, r), request, job.epoch, pos.start, pos.stop)
+                    feed.fetch((job.name, r), request, job.epoch, pos.start, pos.stop, now)
                 job.step += 1
             if job.taken >= steps:
                 job.epoch, job.start, job.step, job.taken, job.asked = job.epoch + 1, 0, 0, 0, {}
@@ -73,7 +73,7 @@ def world(seed: int, ticks: int = 4000):
                 job.world, job.batch = rng.randint(1, 3), rng.randint(1, 5)
                 job.step = job.taken = 0
                 job.asked = {}
-        for f, rows in feed.answer():
+        for f, rows in feed.answer(now):
             job = next(j for j in jobs if j.name == f.client[0])
             if (f.epoch, f.request) not in {(job.epoch, r) for r in job.asked.values()}:
                 continue
@@ -152,7 +152,7 @@ def test_a_stalled_worker_is_hedged_and_the_first_copy_wins():
     m = Manifest.of({"a.mp4": 2, "b.mp4": 1})
     feed = PlanFeed(m, 0, 1, ("voxels",), lookahead=0, hedge_s=5.0, task_timeout_s=100.0)
     plan = feed.plan(0)
-    feed.fetch("c", 1, 0, 0, 3)
+    feed.fetch("c", 1, 0, 0, 3, 0.0)
     first = feed.task_for("w1", 0.0)
     second = feed.task_for("w2", 0.0)  # the other video
     assert {first.video, second.video} == {"a.mp4", "b.mp4"}
@@ -168,7 +168,7 @@ def test_a_stalled_worker_is_hedged_and_the_first_copy_wins():
 
 def test_a_decode_past_the_manifests_slots_is_an_error_naming_the_video():
     feed = PlanFeed(Manifest.of({"a.mp4": 1}), 0, 1, ("voxels",))
-    feed.fetch("c", 1, 0, 0, 1)
+    feed.fetch("c", 1, 0, 0, 1, 0.0)
     t = feed.task_for("w", 0.0)
     with pytest.raises(SlotsExceeded, match=r"a.mp4: the decode gave a.mp4#1, past the manifest's 1 window"):
         feed.sample("w", t.task, SampleKey("a.mp4", 1), 1.0, lambda lane: None)
@@ -176,11 +176,11 @@ def test_a_decode_past_the_manifests_slots_is_an_error_naming_the_video():
 
 def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
     feed = PlanFeed(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)
-    feed.fetch("c", 1, 0, 0, 4)
+    feed.fetch("c", 1, 0, 0, 4, 0.0)
     t = feed.task_for("w", 0.0)
     feed.sample("w", t.task, SampleKey("a.mp4", 0), 1.0, lambda lane: "s0")
     feed.done("w", t.task, 1, {}, None)
-    (f, rows), = feed.answer()
+    (f, rows), = feed.answer(3.0)
     assert [r.sample for r in rows] == ["s0", None, None, None]
     assert [r.key for r in rows] == [SampleKey("a.mp4", 0), SampleKey("a.mp4", 1), SampleKey("a.mp4", 2), None]
     assert "the decode gave 1 window(s), the manifest 3" in rows[1].reason
@@ -191,10 +191,10 @@ def test_silence_while_no_client_fetches_costs_no_worker():
     """The task clock counts a worker's silence, and a server reads its workers whatever the
     clients do: a task whose samples all arrived and whose worker then idles is not hung."""
     feed = PlanFeed(Manifest.of({"a.mp4": 1}), 0, 1, ("voxels",), hedge_s=1.0, task_timeout_s=2.0)
-    feed.fetch("c", 1, 0, 0, 1)
+    feed.fetch("c", 1, 0, 0, 1, 0.0)
     t = feed.task_for("w", 0.0)
     feed.sample("w", t.task, SampleKey("a.mp4", 0), 0.5, lambda lane: "s")
     feed.done("w", t.task, 1, {}, None)
     assert feed.timed_out(3600.0) == []
-    (f, rows), = feed.answer()
+    (f, rows), = feed.answer(3.0)
     assert rows[0].sample == "s"

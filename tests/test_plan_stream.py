@@ -149,3 +149,23 @@ def test_a_hostile_client_gets_one_line_and_the_server_serves_on(server):
     finally:
         ctx.term()
     assert len(set(real_ids(read(V2VPlanDataset(server, 4))[0]))) == SAMPLES
+
+
+def test_a_loop_stopped_past_the_task_timeout_costs_no_worker_and_no_window(caplog):
+    """Workers are read whatever the readers do: a reader that stops for three task timeouts
+    in the middle of an epoch finds every sample made, and no worker was called hung (the
+    timeout is above a window's decode on a busy machine: a worker's own silence is not tested)."""
+    import logging
+    import time
+
+    cfg = load_config(None, {**RECIPE, "task_timeout_s": 8.0})
+    with caplog.at_level(logging.WARNING, logger="v2v.server"), \
+            local_server(None, workers=2, batch_size=4, config=cfg) as endpoint:
+        ds = V2VPlanDataset(endpoint, 2)
+        it = iter(torch.utils.data.DataLoader(ds, batch_size=None))
+        got = [next(it)]
+        time.sleep(25.0)
+        got += list(it)
+    ids = [sid for b in got for sid, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad]
+    assert len(ids) == len(set(ids)) == SAMPLES
+    assert "worker restarted" not in caplog.text and "died" not in caplog.text

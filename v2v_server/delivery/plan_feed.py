@@ -18,9 +18,10 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   copy of each sample wins and the other is dropped.
 * **Keeping.** Made samples wait in a store until fetched. Fetched ones stay, least recently
   fetched first out, while there are at most ``keep_samples`` of them (another job, a fetch asked
-  again after a lost reply); samples never fetched go only when no pending fetch reads their
-  epoch (a job that left), oldest first, once the store holds more than ``keep_samples +
-  lookahead``. A fetch whose sample went makes it again.
+  again after a lost reply). Samples never fetched go once the store holds more than
+  ``keep_samples + lookahead`` and the largest video's samples, those no pending fetch names:
+  first those of epochs no fetch named for :data:`IDLE_S` (a job that left), oldest first. A
+  fetch whose sample went makes it again.
 * **A decode that gives more samples than the manifest's slots** is an error naming the video
   (:class:`SlotsExceeded`): the manifest is stale or its bound wrong, never a silent drop.
 
@@ -40,6 +41,10 @@ from v2v_wire.worker_messages import Task
 #: Epochs whose plans a server keeps built (a plan of a million videos takes about 2 s); the
 #: failures of an epoch whose plan goes are forgotten with it.
 PLANS_KEPT = 4
+
+
+#: Seconds after an epoch's last fetch its samples made but never fetched may go (a job that left).
+IDLE_S = 600.0
 
 
 class SlotsExceeded(ValueError):
@@ -117,6 +122,7 @@ class PlanFeed:
             raise ValueError(f"hedge_s must be > 0 and <= task_timeout_s, got {hedge_s} and {task_timeout_s}")
         self.manifest, self.seed, self.shuffle_buffer = manifest, seed, shuffle_buffer
         self.slots = {v: n * manifest.crops_per_window for v, n in manifest.slots}  # samples per video
+        self.largest = max(self.slots.values(), default=0)
         self.outputs = tuple(outputs)
         self.lookahead, self.keep_samples = lookahead, keep_samples
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
@@ -127,6 +133,7 @@ class PlanFeed:
         self.failed: Dict[Tuple[int, SampleKey], str] = {}  # not given by its decode this epoch
         self.runs: Dict[Tuple[int, str], Run] = {}
         self.task_run: Dict[int, Tuple[int, str]] = {}
+        self.fetched_at: Dict[int, float] = {}  # epoch -> when a fetch last named it
         self._task_ids = 0
         self.samples_made = 0
 
@@ -143,8 +150,8 @@ class PlanFeed:
             self.plans.move_to_end(epoch)
         return p
 
-    def fetch(self, client: Hashable, request: int, epoch: int, start: int, stop: int) -> None:
-        """Queue a fetch of positions ``start .. stop - 1`` of ``epoch``.
+    def fetch(self, client: Hashable, request: int, epoch: int, start: int, stop: int, now: float) -> None:
+        """Queue a fetch of positions ``start .. stop - 1`` of ``epoch``, asked at ``now`` (s).
 
         Raises:
             ValueError: ``start`` < 0 or ``stop`` <= ``start``, or more than 4096 positions.
@@ -153,14 +160,15 @@ class PlanFeed:
             raise ValueError(f"fetch positions {start}..{stop - 1}: must be 1 to 4096 positions from >= 0")
         self.plan(epoch)
         self.pending.append(Fetch(client, request, epoch, start, stop))
+        self.fetched_at[epoch] = now
 
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s pending fetches (it left)."""
         self.pending = [f for f in self.pending if f.client != client]
 
-    def answer(self) -> List[Tuple[Fetch, List[Row]]]:
-        """Every pending fetch that can be answered now, with its rows; they leave the queue,
-        and their samples move to the store's fetched end."""
+    def answer(self, now: float) -> List[Tuple[Fetch, List[Row]]]:
+        """Every pending fetch that can be answered at ``now``, with its rows; they leave the
+        queue, and their samples move to the store's fetched end."""
         out, waiting = [], []
         for f in self.pending:
             rows = self._rows(f)
@@ -173,7 +181,7 @@ class PlanFeed:
                     self.store.move_to_end((f.epoch, r.key))
                     self.fetched.add((f.epoch, r.key))
         self.pending = waiting
-        self._trim()
+        self._trim(now)
         return out
 
     def _rows(self, f: Fetch) -> Optional[List[Row]]:
@@ -193,42 +201,49 @@ class PlanFeed:
                 return None
         return rows
 
-    def _trim(self) -> None:
-        """Drop fetched samples past ``keep_samples`` (least recently fetched first), then, while
-        the store holds more than ``keep_samples + lookahead``, unfetched samples of epochs no
-        pending fetch reads (oldest first)."""
+    def _trim(self, now: float) -> None:
+        """Drop fetched samples past ``keep_samples`` (least recently fetched first); then, while
+        the store holds more than ``keep_samples + lookahead`` plus the largest video's samples,
+        samples never fetched that no pending fetch names: those of epochs no fetch named for
+        :data:`IDLE_S` first (a job that left), oldest first."""
         fetched = [sk for sk in self.store if sk in self.fetched]
         for sk in fetched[:max(0, len(fetched) - self.keep_samples)]:
             del self.store[sk]
             self.fetched.discard(sk)
-        over = len(self.store) - self.keep_samples - self.lookahead
-        if over > 0:
-            read = {f.epoch for f in self.pending}
-            for sk in [sk for sk in self.store if sk[0] not in read and sk not in self.fetched][:over]:
-                del self.store[sk]
+        over = len(self.store) - self.keep_samples - self.lookahead - self.largest
+        if over <= 0:
+            return
+        named = set()
+        for f in self.pending:
+            plan = self.plan(f.epoch)
+            named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, len(plan))))
+        live = {e for e, t in self.fetched_at.items() if now - t < IDLE_S}
+        spare = [sk for sk in self.store if sk not in named and sk not in self.fetched]
+        for sk in sorted(spare, key=lambda sk: sk[0] in live)[:over]:  # stable: oldest first within each
+            del self.store[sk]
 
     # ------------------------------------------------------------------ workers
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
-        """The task for an idle ``worker``: the first video in production order that pending
-        fetches need, or a hedge of a task that sent nothing for ``hedge_s``; None when none."""
-        needed = self._needed()
-        for ek in needed:
-            run = self.runs.get(ek)
-            if run is None:
+        """The task for an idle ``worker``: the first video a pending fetch waits on; else a
+        hedge of one that sent nothing for ``hedge_s`` while a fetch waits on it; else the next
+        video to decode ahead; None when none."""
+        waited, ahead = self._needed()
+        for ek in waited:
+            if ek not in self.runs:
                 return self._start(ek, worker, now, codecs)
-        for ek in needed:
+        for ek in waited:
             run = self.runs[ek]
             if len(run.copies) == 1 and worker not in run.copies.values() and \
                     now - max(run.progress.values()) >= self.hedge_s:
                 return self._start(ek, worker, now, codecs)
-        return None
+        return self._start(ahead[0], worker, now, codecs) if ahead else None
 
-    def _needed(self) -> List[Tuple[int, str]]:
-        """(epoch, video) to decode, in priority order: those pending fetches need a sample of
-        (neither kept nor failed), by the first position needing it; then the videos the positions
-        after each epoch's furthest fetch need, while the samples made ahead stay within
-        ``lookahead`` (module docstring)."""
-        order: Dict[Tuple[int, str], Tuple[int, int, int]] = {}
+    def _needed(self) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
+        """(epoch, video) to decode: those pending fetches need a sample of (neither kept nor
+        failed), by the first position needing it; and those the positions after each epoch's
+        furthest fetch need, not running, while the samples made ahead (kept and not fetched, or
+        still to come from running tasks) stay within ``lookahead`` (module docstring)."""
+        waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
         furthest: Dict[int, int] = {}
         for f in self.pending:
             plan = self.plan(f.epoch)
@@ -237,22 +252,26 @@ class PlanFeed:
                 key = plan.key(p)
                 if (f.epoch, key) not in self.store and (f.epoch, key) not in self.failed:
                     ek = (f.epoch, key.video)
-                    order[ek] = min(order.get(ek, (0, f.epoch, p)), (0, f.epoch, p))
-        ahead = sum(1 for sk in self.store if sk not in self.fetched)
-        ahead += sum(self.slots.get(v, 0) for (_, v) in self.runs)
-        ahead += sum(self.slots.get(v, 0) for (e, v) in order if (e, v) not in self.runs)
+                    waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
+        made: Dict[Tuple[int, str], int] = {}
+        for (e, k) in list(self.store) + list(self.failed):
+            made[(e, k.video)] = made.get((e, k.video), 0) + 1
+        budget = self.lookahead - sum(1 for sk in self.store if sk not in self.fetched)
+        budget -= sum(max(0, self.slots.get(v, 0) - made.get((e, v), 0)) for (e, v) in set(self.runs) | set(waited))
+        ahead: List[Tuple[int, str]] = []
         for epoch, stop in sorted(furthest.items()):
             plan = self.plan(epoch)
             for p in range(stop, min(len(plan), stop + self.lookahead + self.shuffle_buffer)):
-                if ahead >= self.lookahead:
+                if budget <= 0:
                     break
                 key = plan.key(p)
                 ek = (epoch, key.video)
-                if ek in order or ek in self.runs or (epoch, key) in self.store or (epoch, key) in self.failed:
+                if ek in waited or ek in self.runs or ek in ahead or (epoch, key) in self.store \
+                        or (epoch, key) in self.failed:
                     continue
-                order[ek] = (1, epoch, p)
-                ahead += self.slots.get(key.video, 0)
-        return sorted(order, key=order.__getitem__)
+                ahead.append(ek)
+                budget -= self.slots.get(key.video, 0) - made.get(ek, 0)
+        return sorted(waited, key=waited.__getitem__), ahead
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
         epoch, video = ek

@@ -138,7 +138,7 @@ class PlanServer:
             now = time.monotonic()
             self.workers.watch(now)
             self.workers.dispatch(now, [])
-            for f, rows in self.feed.answer():
+            for f, rows in self.feed.answer(now):
                 self._send_rows(f, rows)
             self.metrics.tick(self._metrics_state)
         return 0
@@ -165,7 +165,7 @@ class PlanServer:
             why = f"fetch under {problem}" if problem else f"outputs {missing} are not served here (--outputs)"
             self._send(ident, Refused(msg.request, why).to_wire())
             return
-        self.feed.fetch((ident, msg.outputs), msg.request, msg.epoch, msg.start, msg.stop)
+        self.feed.fetch((ident, msg.outputs), msg.request, msg.epoch, msg.start, msg.stop, now)
 
     def _send(self, ident: bytes, header: dict, frames: Sequence = ()) -> None:
         try:
