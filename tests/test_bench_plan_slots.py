@@ -29,7 +29,6 @@ def test_the_packet_bound_holds_the_decoded_windows_of_a_bundled_clip(tmp_path, 
     assert m["padding"] == pytest.approx(padding(m["bound"], m["windows"]), abs=1e-4)
     assert m["padding"] == pytest.approx((row["bound"] - row["windows"]) / row["bound"], abs=1e-4)
     assert (m["index_known"], m["index_windows"]) == (1, m["windows"])
-    assert m["packet_s"] > 0 and m["decode_s"] > 0 and m["index_s"] > 0
 
 
 def test_slots_at_most_counts_whole_strides_times_crops():
