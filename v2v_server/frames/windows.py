@@ -91,6 +91,26 @@ class WindowSettings:
         """Windows a video of ``frames`` frames holds laid out from frame 0, at most ``max_samples_per_video``."""
         return max(0, min(self.max_samples_per_video, (frames - 1) // self.window_stride))
 
+    def slots_at_most(self, frames: int, crops_per_window: int = 1) -> int:
+        """Samples a video of ``frames`` frames can give per epoch at most, whatever ``shot_cuts``
+        and ``static_windows`` say: :meth:`windows_in` ``(frames)`` x ``crops_per_window``. Known
+        before a decode from a packet count (``video_read.read_video(..., part="packets")``), it
+        is how many slots a plan can hold for the video; those its decode leaves empty are padding.
+
+        Why a bound: a window takes ``window_stride`` frame pairs of its own (consecutive windows
+        share one frame, never a pair), so ``frames`` frames hold at most ``(frames - 1) //
+        window_stride`` windows; laying them out inside shots (each starts at its shot's first
+        frame + k x stride) or skipping static ones only leaves pairs unused. It bounds the decode's
+        windows only while the decode gives no more frames than were counted (the video's packets:
+        one frame each in the containers served; ``bench/plan_slots.py`` measures it).
+
+        Raises:
+            ValueError: ``frames`` < 0 or ``crops_per_window`` < 1.
+        """
+        check_int("frames", frames, 0)
+        check_int("crops_per_window", crops_per_window, 1)
+        return self.windows_in(frames) * crops_per_window
+
     def frames_for(self, windows: int) -> int:
         """Frames to decode for the first ``windows`` windows: ``windows * window_stride + 1``."""
         return windows * self.window_stride + 1 if windows > 0 else 0
