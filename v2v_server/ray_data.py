@@ -55,9 +55,8 @@ from v2v_wire.ids import make_sample_id, parse_sample_id, window_keys
 from v2v_server.samples.make import video_samples
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_wire.flowgrid import expand_grids
-from v2v_server.sources.segments import split_segment
-from v2v_server.frames.check import check_video
-from v2v_server.frames.video_read import as_verdict, read_video
+from v2v_server.frames.check import count_windows as check_count_windows
+from v2v_server.frames.video_read import as_verdict
 from v2v_server.sources.source import VideoSource
 from v2v_server.sources.source_spec import source_from_spec
 
@@ -97,27 +96,10 @@ class RayCorpus:
 
 def count_windows(cfg: ServeConfig, source: VideoSource, rel: str,
                   caches: Optional[HostCaches] = None) -> Tuple[int, Optional[str]]:
-    """Windows the video at ``rel`` of ``source`` (the corpus) gives per epoch, read the one way
-    every reader reads a video (``video_read.read_video``) for the part this count needs: its
-    video packets (demuxed, not decoded); with ``shot_cuts: avoid`` or ``static_windows: skip``,
-    or for a segment, its decoded frames as ``--check`` reads them (``check.check_video``: the
-    windows depend on the cuts, the motion or the range's frames; answered from the corpus index
-    of ``caches`` while the video's identity holds).
-
-    Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
-    ``v2v-serve`` logs for it (``open_video``'s ``VideoError`` message, or ``"N frames,
-    shorter than one window of 201 frames"``). A file whose packets demux but whose frames
-    do not decode is found out later, while decoding, with the decoder's reason.
-    """
-    w = cfg.recipe.windows
-    if w.reads_frames or split_segment(rel)[1]:
-        v = check_video(w, cfg.recipe.decode, source, rel, caches)
-    else:
-        with read_video(source, rel, cfg.recipe.reads, part="packets") as read:
-            for _ in read.frames:
-                pass
-        v = read.verdict()
-    return v.windows, (None if v.usable else v.reason)
+    """Windows the video at ``rel`` of ``source`` gives per epoch, and why it gives none
+    (``frames.check.count_windows`` under ``cfg``'s recipe)."""
+    r = cfg.recipe
+    return check_count_windows(r.windows, r.decode, r.reads, source, rel, caches)
 
 
 def scan_corpus_windows(videos: Union[str, Path], config: Optional[ServeConfig] = None) -> RayCorpus:

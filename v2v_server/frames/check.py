@@ -7,8 +7,10 @@ from typing import List, Optional, Tuple
 
 from v2v_server.frames.corpus_index import Verdict, check_record
 from v2v_server.frames.frame_pass import DecodeSettings
+from v2v_server.sources.segments import split_segment
 from v2v_server.sources.source import VideoSource
 from v2v_server.frames.host_caches import HostCaches
+from v2v_server.frames.pass_record import PassRecord
 from v2v_server.frames.video_pool import map_videos
 from v2v_server.frames.video_read import read_video
 from v2v_server.frames.windows import WindowSettings
@@ -27,6 +29,31 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
         for _ in read.frames:
             pass
     return read.verdict()
+
+
+def count_windows(windows: WindowSettings, decode: DecodeSettings, reads: PassRecord, source: VideoSource, rel: str,
+                  caches: Optional[HostCaches] = None) -> Tuple[int, Optional[str]]:
+    """Windows the video at ``rel`` of ``source`` gives per epoch, read the one way every reader
+    reads a video (``video_read.read_video``) for the part the count needs: its video packets
+    (demuxed, not decoded), the packet count bounding the windows (``WindowSettings.slots_at_most``;
+    exact while a decode gives a frame per packet, docs/plan_slots.md); with ``shot_cuts: avoid``
+    or ``static_windows: skip``, or for a segment, its decoded frames as :func:`check_video` reads
+    them (the windows depend on the cuts, the motion or the range's frames; answered from the
+    corpus index of ``caches`` while the video's identity holds). ``reads``: the sample pass's
+    record (``SampleRecipe.reads``).
+
+    Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
+    ``v2v-serve`` logs for it. A file whose packets demux but whose frames do not decode is found
+    out later, while decoding, with the decoder's reason.
+    """
+    if windows.reads_frames or split_segment(rel)[1]:
+        v = check_video(windows, decode, source, rel, caches)
+    else:
+        with read_video(source, rel, reads, part="packets") as read:
+            for _ in read.frames:
+                pass
+        v = read.verdict()
+    return v.windows, (None if v.usable else v.reason)
 
 
 def check_corpus(windows: WindowSettings, decode: DecodeSettings, source: VideoSource, videos: List[str],
