@@ -8,8 +8,8 @@ from __future__ import annotations
 import hashlib
 import signal
 import subprocess
+from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
@@ -169,3 +169,29 @@ def test_a_loop_stopped_past_the_task_timeout_costs_no_worker_and_no_window(capl
     ids = [sid for b in got for sid, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad]
     assert len(ids) == len(set(ids)) == SAMPLES
     assert "worker restarted" not in caplog.text and "died" not in caplog.text
+
+
+def _torchrun(nproc: int, *args) -> list:
+    import json
+    import sys
+
+    out = Path(args[1])
+    out.mkdir(exist_ok=True)
+    for p in out.glob("rank*.json"):
+        p.unlink()
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc),
+                        "-m", "harness.plan_job", *[str(a) for a in args]], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
+
+
+def test_ddp_ranks_with_dataloader_workers_stop_mid_epoch_and_resume_at_another_world_size(server, tmp_path):
+    """torchrun, 2 ranks, a plain DataLoader with 2 workers each, DDP steps: stopped after 3 steps
+    of epoch 0, resumed from rank 0's position on 1 rank: each epoch's samples once."""
+    first = _torchrun(2, server, tmp_path / "a", "--stop-after", "3")
+    assert [r["steps"] for r in first] == [{"0": 3}, {"0": 3}]
+    second = _torchrun(1, server, tmp_path / "b", "--resume", tmp_path / "a" / "position.json")
+    seen = [tuple(s) for r in first + second for s in r["seen"]]
+    for epoch in (0, 1):
+        ids = [sid for e, sid in seen if e == epoch]
+        assert len(ids) == len(set(ids)) == SAMPLES, epoch

@@ -33,7 +33,7 @@ from v2v_wire.batches import stack_arrays
 from v2v_wire.messages import BadPeers, WireError
 from v2v_wire.outputs import narrowest, zeros_row
 from v2v_wire.plan import Manifest, PlanIdentity
-from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, decode_plan_client
+from v2v_wire.plan_messages import PlanAsk, PlanInfo, Refused, Rows, decode_plan_client
 from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, output_of, pack
 
 log = logging.getLogger("v2v.server")
