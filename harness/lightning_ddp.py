@@ -3,7 +3,10 @@
 before the process group exists, as a DataModule's ``__init__`` would, and tested for truth in
 each training step (``if self.ds:``).
 
-    python -m harness.lightning_ddp ENDPOINT OUT_DIR [--devices 2]
+    python -m harness.lightning_ddp ENDPOINT OUT_DIR [--devices 2] [--plan]
+
+``--plan``: the server serves by plan (``--delivery plan``): the dataset is a ``V2VPlanDataset`` of
+batches of 2, read through a DataLoader with 2 workers.
 
 Each rank writes ``OUT_DIR/rank{R}.json``: its batch count, the sample ids it trained on
 (padding excluded) and the padding ids. A rank with more batches than another would hang or
@@ -19,7 +22,7 @@ from pathlib import Path
 import torch
 
 from harness.dist_exit import leave
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPlanDataset, V2VStreamDataset
 
 
 def main() -> None:
@@ -27,11 +30,15 @@ def main() -> None:
     ap.add_argument("endpoint")
     ap.add_argument("out")
     ap.add_argument("--devices", type=int, default=2)
+    ap.add_argument("--plan", action="store_true")
     args = ap.parse_args()
 
     import lightning as L
 
-    ds = V2VStreamDataset(args.endpoint, outputs=("voxels",), timeout_s=60, credits=2)  # before fit
+    if args.plan:  # before fit: its rank and world size are found when first needed
+        ds = V2VPlanDataset(args.endpoint, 2, outputs=("voxels",), timeout_s=60)
+    else:
+        ds = V2VStreamDataset(args.endpoint, outputs=("voxels",), timeout_s=60, credits=2)
 
     class Tiny(L.LightningModule):
         def __init__(self):
@@ -54,7 +61,7 @@ def main() -> None:
             return torch.optim.SGD(self.parameters(), lr=0.01)
 
         def train_dataloader(self):
-            return torch.utils.data.DataLoader(ds, batch_size=None)
+            return torch.utils.data.DataLoader(ds, batch_size=None, num_workers=2 if args.plan else 0)
 
         def on_train_end(self):
             rank = self.global_rank

@@ -195,3 +195,22 @@ def test_ddp_ranks_with_dataloader_workers_stop_mid_epoch_and_resume_at_another_
     for epoch in (0, 1):
         ids = [sid for e, sid in seen if e == epoch]
         assert len(ids) == len(set(ids)) == SAMPLES, epoch
+
+
+def test_lightning_ddp_reads_the_plan_with_the_dataset_built_before_fit(server, tmp_path):
+    """Lightning's Trainer (ddp, 2 CPU ranks, its fetcher a batch ahead), the dataset built before
+    the process group exists and read through a DataLoader with 2 workers: the same steps on both
+    ranks, every sample of the epoch once."""
+    import json
+    import sys
+
+    out = tmp_path / "out"
+    out.mkdir()
+    r = subprocess.run([sys.executable, "-m", "harness.lightning_ddp", server, str(out), "--plan"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    ranks = [json.loads((out / f"rank{i}.json").read_text()) for i in range(2)]
+    assert [r["dataset_world_size"] for r in ranks] == [2, 2]
+    assert ranks[0]["batches"] == ranks[1]["batches"] == -(-SAMPLES // 4)
+    seen = ranks[0]["seen"] + ranks[1]["seen"]
+    assert len(seen) == len(set(seen)) == SAMPLES

@@ -37,7 +37,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         endpoint: the server's address (``tcp://host:port``).
         batch_size: rows per batch of this rank (>= 1).
         rank, world_size: this rank and the job's ranks (default: ``torch.distributed``'s when
-            initialised, else 0 and 1).
+            first needed, if initialised, else 0 and 1).
         outputs: the outputs to read (default: every one the server makes).
         raw: keep the wire dtypes (``tensors.batch_to_torch``).
         prefetch: fetches in flight per process (>= 1).
@@ -59,24 +59,48 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
                  world_size: Optional[int] = None, outputs: Optional[Sequence[str]] = None, raw: bool = False,
                  prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0):
         super().__init__()
-        if world_size is None or rank is None:
-            dist = torch.distributed
-            on = dist.is_available() and dist.is_initialized()
-            rank = rank if rank is not None else (dist.get_rank() if on else 0)
-            world_size = world_size if world_size is not None else (dist.get_world_size() if on else 1)
-        for name, v in (("batch_size", batch_size), ("world_size", world_size), ("prefetch", prefetch)):
+        for name, v in (("batch_size", batch_size), ("prefetch", prefetch)):
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"{name} must be an int >= 1, got {v!r}")
-        if not 0 <= rank < world_size:
-            raise ValueError(f"rank must be in 0..{world_size - 1}, got {rank!r}")
         if not 0 < retry_s <= timeout_s:
             raise ValueError(f"retry_s must be > 0 and <= timeout_s, got {retry_s} and {timeout_s}")
-        self.endpoint, self.batch_size, self.rank, self.world_size = endpoint, batch_size, rank, world_size
+        if rank is not None or world_size is not None:
+            _check_layout(0 if rank is None else rank, 1 if world_size is None else world_size)
+        self.endpoint, self.batch_size, self._rank, self._world = endpoint, batch_size, rank, world_size
         self.outputs = check_outputs(outputs, "outputs") if outputs is not None else None
         self.raw, self.prefetch, self.retry_s, self.timeout_s = raw, prefetch, retry_s, timeout_s
         self.epoch, self.start = 0, 0
         self._resume: Optional[dict] = None  # a loaded position, checked once the plan is known
         self._info: Optional[PlanInfo] = None
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def rank(self) -> int:
+        """This rank: as given, else ``torch.distributed``'s when initialised (asked when first
+        needed, so a dataset built before the process group, as a DataModule's, finds it), else 0."""
+        return self._layout()[0]
+
+    @property
+    def world_size(self) -> int:
+        """The job's ranks: as given, else ``torch.distributed``'s when initialised, else 1."""
+        return self._layout()[1]
+
+    def _layout(self):
+        rank, world = self._rank, self._world
+        if rank is None or world is None:
+            dist = torch.distributed
+            on = dist.is_available() and dist.is_initialized()
+            rank = rank if rank is not None else (dist.get_rank() if on else 0)
+            world = world if world is not None else (dist.get_world_size() if on else 1)
+            _check_layout(rank, world)
+        return rank, world
+
+    def __getstate__(self) -> dict:
+        """Pickled (a DataLoader worker started by spawn or forkserver, where the process group
+        does not exist) with the layout this process sees."""
+        state = dict(self.__dict__)
+        state["_rank"], state["_world"] = self._layout()
+        return state
 
     # ------------------------------------------------------------------ epochs and positions
     def set_epoch(self, epoch: int) -> None:
@@ -142,6 +166,13 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
                     params=rows.params, epoch=self.epoch, step=step,
                     position=Position(info.plan, self.epoch, after).to_dict())
         return item
+
+
+def _check_layout(rank: int, world_size: int) -> None:
+    if not isinstance(world_size, int) or isinstance(world_size, bool) or world_size < 1:
+        raise ValueError(f"world_size must be an int >= 1, got {world_size!r}")
+    if not isinstance(rank, int) or isinstance(rank, bool) or not 0 <= rank < world_size:
+        raise ValueError(f"rank must be in 0..{world_size - 1}, got {rank!r}")
 
 
 class _Link:
