@@ -184,10 +184,10 @@ class Trainer:
         self.spec.step = self.step
         loss, stats, preds = self.forward(b)
         loss.backward()
-        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
         if self.clip:  # the norm before clipping
             grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), float(self.clip))
         else:
+            grads = [p.grad for p in self.model.parameters() if p.grad is not None]
             grad_norm = torch.nn.utils.get_total_norm(grads) if grads else torch.zeros((), device=self.device)
         self.optimizer.step()
         self.step += 1

@@ -10,7 +10,8 @@ tag                                 value
 ``loss/<term>``                     each loss term of the task, by its column name (E2VID:
                                     ``l1``, ``perceptual``, ``tc``; EvFlow: ``flow_l1``, ``aee``)
 ``optim/lr``                        ``lr``, the learning rate of the step
-``optim/grad_norm``                 ``grad_norm``, the gradient's total L2 norm before clipping
+``optim/grad_norm``                 ``grad_norm``, the gradient's total L2 norm before clipping (the
+                                    Ray engine: rank 0's, before the ranks' are averaged)
 ``speed/samples_per_s``             ``samples_per_s``, samples trained per second of wall time over
                                     the logging interval the step belongs to
 ``speed/data_wait_s``               ``data_wait_s``, seconds the step waited for its batch
