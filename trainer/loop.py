@@ -246,11 +246,10 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
 
     Steps run with ``train_step(batch, sync=False)``: their losses stay on the device until
     the next multiple of ``schedule.log_every``, a preview, a checkpoint or the end, where they
-    are read at once, checked and written (to the CSV log and, with ``schedule.tensorboard``, the
-    TensorBoard events of the process that writes files, rank 0 only under ``torch.distributed``);
-    before each checkpoint the log and the events are synced to the disk. ``step_s`` is the host's
-    time for the step (on CUDA the device's work finishes later, and the wait for it shows at the
-    logging steps).
+    are read at once, checked and written (CSV log; with ``schedule.tensorboard``, TensorBoard
+    events: rank 0 only under ``torch.distributed``), synced to the disk before each checkpoint.
+    ``step_s`` is the host's time for the step (on CUDA the device's work finishes later, and the
+    wait for it shows at the logging steps).
 
     Raises:
         FloatingPointError: a non-finite loss, found at the logging step after it.
