@@ -294,6 +294,16 @@ def test_v2v_train_on_two_ray_ranks_resumes_without_the_consumed_ids(ray_session
     rows = list(csv.DictReader(open(out / "train_log.csv")))
     assert [int(r["step"]) for r in rows] == [1, 2]
     assert all(np.isfinite(float(r["loss"])) for r in rows if int(r["samples"]))
+    # rank 0's TensorBoard events, under the stream engine's tags (trainer/tensorboard_log.py)
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    assert len(list(out.glob("events.out.tfevents.*"))) == 1
+    acc = EventAccumulator(str(out), size_guidance={"scalars": 0, "tensors": 0})
+    acc.Reload()
+    assert [(e.step, e.value) for e in acc.Scalars("stream/samples")] == [(int(r["step"]), float(r["samples"]))
+                                                                           for r in rows]
+    assert [e.step for e in acc.Scalars("loss/total")] == [1, 2]
+    assert {"config/text_summary", "recipe/text_summary"} <= set(acc.Tags()["tensors"])
     assert tr.main(argv + [a for kv in sets for a in ("--set", kv)]) == 0  # nothing left: returns at once
 
 

@@ -133,6 +133,9 @@ class LogSettings:
     progress: bool = setting(True, help="a progress bar on stderr")
     every: int = setting(10, help="steps between reads of the losses from the device (CSV rows are written then, "
                                   "one per step); no other step waits for the device")
+    tensorboard: bool = setting(True, help="TensorBoard event files in the run's folder: the CSV's columns, the "
+                                           "data-wait fraction, the previews, the config (trainer/tensorboard_log.py; "
+                                           "v2v-train --no-tensorboard: off)")
 
 
 @dataclass

@@ -14,6 +14,7 @@ import shutil
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import torch
 
 from .data import batch_to_device, drop_padding
@@ -21,7 +22,7 @@ from . import speed
 from .models.lpips import STAND_IN, LPIPSUnavailable
 from .zoo import build_model
 from .tasks import get_task
-from .viz import save_grid
+from .viz import grid_image, write_png
 
 __all__ = ["Trainer", "resolve_device", "build_optimizer", "set_lr"]
 
@@ -161,10 +162,11 @@ class Trainer:
         are left out of the loss; a batch of padding only makes no step and returns
         ``{"loss": nan, "samples": 0}``.
 
-        With ``sync`` (default) returns floats, ``loss`` and the task's terms, and checks the
-        loss. With ``sync=False`` nothing in the step waits for the device: ``loss`` and the
-        terms are detached 0-dim tensors on the device (``trainer.loop`` reads them at its
-        logging interval and checks them there); ``samples`` is an int either way.
+        With ``sync`` (default) returns floats, ``loss``, the task's terms and ``grad_norm``
+        (the gradient's total L2 norm before clipping), and checks the loss. With ``sync=False``
+        nothing in the step waits for the device: those are detached 0-dim tensors on the device
+        (``trainer.loop`` reads them at its logging interval and checks them there);
+        ``samples`` (int) and ``lr`` (the step's learning rate, float) are the host's either way.
 
         Raises:
             ValueError: voxels of another bin count than the model's.
@@ -178,12 +180,15 @@ class Trainer:
         L = batch["voxels"].shape[1]
         b = batch_to_device(batch, self.device, self.spec.outputs, flow_from=self.spec.flow_from(L))
         self.optimizer.zero_grad(set_to_none=True)
-        set_lr(self.optimizer, self.cfg["optim"], self.step)
+        lr = set_lr(self.optimizer, self.cfg["optim"], self.step)
         self.spec.step = self.step
         loss, stats, preds = self.forward(b)
         loss.backward()
-        if self.clip:
-            torch.nn.utils.clip_grad_norm_(self.model.parameters(), float(self.clip))
+        if self.clip:  # the norm before clipping
+            grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), float(self.clip))
+        else:
+            grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+            grad_norm = torch.nn.utils.get_total_norm(grads) if grads else torch.zeros((), device=self.device)
         self.optimizer.step()
         self.step += 1
         if self.net is not self.model:
@@ -193,20 +198,27 @@ class Trainer:
             preds = list(torch.stack(preds).unbind(0)) if isinstance(preds, list) else preds.detach().clone()
         self._last = (b, preds)
         stats["loss"] = loss.detach()
+        stats["grad_norm"] = grad_norm.detach()
         if sync:
             stats = {k: float(v) for k, v in stats.items()}
             if not math.isfinite(stats["loss"]):
                 raise FloatingPointError(f"non-finite loss {stats['loss']} at step {self.step - 1}")
         stats["samples"] = n_real
+        stats["lr"] = lr
         return stats
 
-    def save_samples(self, path: Optional[str] = None, max_rows: int = 4) -> str:
-        """PNG grid of the last step: per sample, voxel | prediction | ground truth at the
-        sequence's last voxel. Returns the path."""
+    def preview(self, max_rows: int = 4) -> np.ndarray:
+        """The last step's preview, (H, W, 3) uint8 BGR: per sample (up to ``max_rows``) a row
+        voxel | prediction | ground truth at the sequence's last voxel (``spec.preview_row``)."""
         b, preds = self._last
-        path = path or str(self.out / "samples" / f"step_{self.step:07d}.png")
         vox = b["voxels"][:, -1].cpu().numpy()
-        save_grid(path, [self.spec.preview_row(b, preds, i, vox[i]) for i in range(min(max_rows, vox.shape[0]))])
+        return grid_image([self.spec.preview_row(b, preds, i, vox[i]) for i in range(min(max_rows, vox.shape[0]))])
+
+    def save_samples(self, path: Optional[str] = None, max_rows: int = 4, grid: Optional[np.ndarray] = None) -> str:
+        """Write the last step's :meth:`preview` (or ``grid``, one made already) as a PNG, by
+        default ``samples/step_NNNNNNN.png``. Returns the path."""
+        path = path or str(self.out / "samples" / f"step_{self.step:07d}.png")
+        write_png(path, self.preview(max_rows) if grid is None else grid)
         return path
 
     def checkpoint(self, stream=None) -> dict:
@@ -255,13 +267,15 @@ class Trainer:
         log.info("resumed from %s at step %d", path, self.step)
 
     def fit(self, stream, max_steps: int, image_every: int = 500, checkpoint_every: int = 1000,
-            progress: bool = True, log_every: int = 10) -> dict:
+            progress: bool = True, log_every: int = 10, tensorboard: bool = True) -> dict:
         """Train from a stream (``v2v_client.V2VStreamDataset`` or any iterable of its batches)
         until ``max_steps`` total steps, the stream ends or Ctrl-C; checkpoints carry the
-        stream's ``state_dict()``. Returns the summary of ``trainer.loop.train_loop``."""
+        stream's ``state_dict()``; with ``tensorboard``, event files too, their ``recipe`` the
+        stream's ``info`` (the server's welcome) when it has one. Returns the summary of
+        ``trainer.loop.train_loop``."""
         from .data import make_loader
-        from .loop import Schedule, train_loop
+        from .loop import RunHooks, Schedule, train_loop
 
         return train_loop(self, make_loader(stream, self.device), max_steps,
-                          Schedule(image_every, checkpoint_every, progress, log_every),
-                          lambda: self.save_checkpoint(stream))
+                          Schedule(image_every, checkpoint_every, progress, log_every, tensorboard),
+                          lambda: self.save_checkpoint(stream), RunHooks(recipe=lambda: getattr(stream, "info", None)))

@@ -150,7 +150,8 @@ def load_model(checkpoint: str, device: torch.device, fmt: Optional[str] = None)
         ``(task, model in eval mode, cfg, record)``: ``task`` the trainer task whose metrics
         score the network, ``cfg`` the run's config (the paper's for an authors' checkpoint),
         ``record`` what results record about the weights: ``format`` (``"v2v-train"`` or
-        ``"authors:<fmt>"``) and ``trained_perceptual_term`` (the run's
+        ``"authors:<fmt>"``), ``step`` (the optimiser step of a ``v2v-train`` checkpoint) and
+        ``trained_perceptual_term`` (the run's
         ``Trainer.perceptual_term``, ``trainer.models.lpips.STAND_IN`` for a run trained with the
         1 - SSIM stand-in; ``"unrecorded"`` when the checkpoint predates the record, ``"authors'
         release"`` for theirs).
@@ -183,5 +184,5 @@ def load_model(checkpoint: str, device: torch.device, fmt: Optional[str] = None)
     model = model.to(device)
     model.load_state_dict(ck["model"])
     model.eval()
-    return ck["task"], model, cfg, {"format": "v2v-train",
+    return ck["task"], model, cfg, {"format": "v2v-train", "step": int(ck.get("step", 0)),
                                     "trained_perceptual_term": ck.get("perceptual_term", "unrecorded")}

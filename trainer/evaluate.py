@@ -10,6 +10,8 @@ network sees its input padded to multiples of 16 as the authors' driver pads it
 weights' ``format``, the perceptual term the run trained with (``trained_perceptual_term``:
 ``trainer.models.lpips.STAND_IN`` when 1 - SSIM stood in for LPIPS) and whether LPIPS was scored
 (``lpips_metric``); ``--require-lpips`` refuses to score without LPIPS weights (exit 2).
+``--tensorboard RUN`` adds the means to a training run's TensorBoard event files as
+``eval/<metric>`` at the checkpoint's step (``trainer/tensorboard_log.py``).
 
 Inputs:
 
@@ -76,6 +78,7 @@ from .eval_metrics import (evaluate_e2vid, evaluate_eraft, evaluate_evflow, eval
                            reconstruction_metrics, summarise)
 from .event_grids import events_to_voxels
 from .recordings import H5Sequence, RecordingError
+from .tensorboard_log import RunBoard, eval_scalars, tensorboard_problem
 
 # the names scripts import from here; each is defined in the module named above
 __all__ = ["H5Sequence", "events_to_voxels", "video_sequence", "reconstruction_metrics", "flow_metrics",
@@ -125,6 +128,9 @@ def build_arg_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-first", type=int, default=0, help="E2VID: leave the first N frames out (warm-up)")
     p.add_argument("--device", default="auto")
     p.add_argument("--out", help="write the metrics JSON (and sample PNGs) here")
+    p.add_argument("--tensorboard", metavar="RUN", help="a v2v-train run folder (its --out): the metrics' means go "
+                   "into its TensorBoard event files as eval/<metric> at the checkpoint's step (0 for an authors' "
+                   "checkpoint); tags: trainer/tensorboard_log.py")
     p.add_argument("--save-images", type=int, default=0, help="E2VID: save every Nth reconstruction as PNG (beside "
                    "its voxel grid and frame)")
     return p
@@ -179,6 +185,12 @@ def output_problem(args) -> str:
         why = writable_problem(d, folder=True)
         if why:
             return f"{flag} {d}: {why}"
+    if args.tensorboard:
+        run = Path(args.tensorboard)
+        why = ("not a folder (give a v2v-train run's --out)" if not run.is_dir() else writable_problem(run, folder=True)
+               or tensorboard_problem())
+        if why:
+            return f"--tensorboard {run}: {why}"
     return ""
 
 
@@ -240,6 +252,7 @@ def main(argv=None) -> int:
     if recordings:
         summary["recordings"] = recordings
     _write_summary(summary, out)
+    _write_board(args, summary)
     return 0
 
 
@@ -289,6 +302,21 @@ def _recording_input(args, path: str, task: str, model, nb: int, lp, device, out
             "truncated": rec.truncated, "video_dir": str(video_dir) if video_dir else None}
     log.info("%s: %s", path, info)
     return r, info
+
+
+def _write_board(args, summary: dict) -> None:
+    """With ``--tensorboard RUN``: the summary's metrics (``trainer.tensorboard_log.eval_scalars``)
+    into the run's event files at the checkpoint's step (``summary["step"]``; 0 when unknown)."""
+    if not args.tensorboard:
+        return
+    board = RunBoard(Path(args.tensorboard), purge=False)
+    try:
+        step = int(summary.get("step") or 0)
+        for tag, value in eval_scalars(summary).items():
+            board.scalar(tag, value, step)
+    finally:
+        board.close()
+    log.info("metrics written to the TensorBoard events of %s at step %d", args.tensorboard, step)
 
 
 def _write_summary(summary: dict, out: Optional[Path]) -> None:
@@ -359,6 +387,8 @@ def _paper_main(p: argparse.ArgumentParser, args, device, lp, lpips_metric: str)
         if out:
             write_whole(out / "paper_table.md", table + "\n")
     _write_summary(summary, out)
+    if args.protocol:
+        _write_board(args, summary)
     return 0
 
 

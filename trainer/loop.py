@@ -4,8 +4,10 @@ checkpoints on their schedule, a summary at the end.
 
 Outputs in the run's folder (the process with ``files=True`` writes them: rank 0 under Ray):
 ``train_log.csv`` (one row per step, on the disk at every checkpoint; on resume, rows after
-the resumed step are dropped), ``samples/step_NNNNNNN.png``, ``summary.json``; checkpoints are
-whatever ``checkpoint`` saves.
+the resumed step are dropped), ``samples/step_NNNNNNN.png``, ``summary.json``, TensorBoard
+event files (``events.out.tfevents.*``, ``trainer.tensorboard_log``: the CSV's columns, the
+data-wait fraction of each logging interval, the previews; on resume, events after the resumed
+step are purged); checkpoints are whatever ``checkpoint`` saves.
 """
 from __future__ import annotations
 
@@ -24,6 +26,8 @@ import torch
 
 from v2v_wire.commands import write_whole
 
+from .tensorboard_log import WAIT_FRACTION_TAG
+
 __all__ = ["Schedule", "RunHooks", "RunLog", "train_loop"]
 
 log = logging.getLogger("trainer")
@@ -34,12 +38,15 @@ class Schedule:
     """When the loop writes: a preview every ``image_every`` steps and a checkpoint every
     ``checkpoint_every`` steps (0: only at the end); a progress bar on stderr; the losses are
     read from the device every ``log_every`` steps (the rows of the steps between are written
-    then, so no other step waits for the device)."""
+    then, so no other step waits for the device; a preview's or a checkpoint's step reads them
+    too); with ``tensorboard``, TensorBoard event files beside the CSV log
+    (``trainer.tensorboard_log``)."""
 
     image_every: int = 500
     checkpoint_every: int = 1000
     progress: bool = True
     log_every: int = 10
+    tensorboard: bool = True
 
 
 @dataclass
@@ -54,6 +61,8 @@ class RunHooks:
             collective); returns keys added to the summary.
         final_checkpoint: "if_new" (after the last step unless one was just written) or
             "always" (a collective checkpoint every rank must take part in).
+        recipe: called once after the first step: the sample recipe the batches were made
+            under (a dict, TensorBoard's ``recipe`` text), or None when the source does not say.
     """
 
     on_batch: Optional[Callable[[dict, dict], None]] = None
@@ -61,6 +70,7 @@ class RunHooks:
     csv_extra: tuple = ()
     summary_extra: Callable[[], dict] = dict
     final_checkpoint: str = "if_new"
+    recipe: Callable[[], Optional[dict]] = lambda: None
 
 
 class RunLog:
@@ -101,14 +111,33 @@ class RunLog:
         self.fh.close()
 
 
-class _PendingRows:
-    """The rows of the steps since the last logging step, their losses and terms still on the
-    device; :meth:`flush` reads them, checks the losses, writes the rows and moves the bar."""
+class _RunFiles:
+    """What one process writes of a run while it trains: the rows of the steps since the last
+    logging step (their losses and terms still on the device) and, with ``files``, the CSV log,
+    the previews and the TensorBoard events (``trainer.tensorboard_log``); the progress bar.
 
-    def __init__(self, run_log: Optional[RunLog], bar):
+    :meth:`flush` reads the pending rows, checks the losses, adds each row's ``samples_per_s``
+    (the interval's samples / its wall time) and writes them; the interval's data-wait fraction
+    goes to TensorBoard at its last step."""
+
+    def __init__(self, trainer, schedule: Schedule, hooks: RunHooks, max_steps: int):
+        columns = trainer.spec.csv_columns() + list(hooks.csv_extra)
+        self.columns = columns
+        self.run_log = RunLog(trainer.out, columns, trainer.step) if hooks.files else None
+        self.board = _open_board(trainer, schedule, hooks)
+        self.bar = _progress_bar(max_steps, trainer.step) if schedule.progress else None
+        self.recipe = hooks.recipe if self.board is not None else None  # its text is written once
         self.pending: List[dict] = []
         self.losses: List[float] = []  # every finite loss so far, for the summary
-        self.run_log, self.bar = run_log, bar
+        self.t_last = time.perf_counter()  # the end of the last logging interval
+
+    def add(self, trainer, stats: dict) -> None:
+        """One step's row; the run's config and recipe go to TensorBoard after the first step
+        (a stream's recipe is known once its first batch has come)."""
+        self.pending.append(stats)
+        if self.recipe is not None:
+            self.board.texts(trainer.cfg, self.recipe())
+            self.recipe = None
 
     def flush(self, wait_fraction: float) -> None:
         """Read the pending rows' values from the device (one wait), check and log them.
@@ -118,16 +147,68 @@ class _PendingRows:
         """
         rows = _read_rows(self.pending)
         self.pending.clear()
+        if not rows:
+            return
+        now = time.perf_counter()
+        interval, self.t_last = max(now - self.t_last, 1e-9), now
+        per_s = sum(int(r.get("samples", 0)) for r in rows) / interval
         for row in rows:
+            row["samples_per_s"] = round(per_s, 3)
             if np.isfinite(row["loss"]):
                 self.losses.append(row["loss"])
             elif row.get("samples", 1):
                 raise FloatingPointError(f"non-finite loss {row['loss']} at step {row['step'] - 1}")
             if self.run_log is not None:
                 self.run_log.write(row)
-        if self.bar is not None and rows:
+        if self.board is not None:
+            self.board.rows(rows, self.columns)
+            waited = sum(float(r.get("data_wait_s") or 0.0) for r in rows)
+            self.board.scalar(WAIT_FRACTION_TAG, min(1.0, waited / interval), rows[-1]["step"])
+        if self.bar is not None:
             self.bar.set_postfix(loss=f"{rows[-1]['loss']:.4f}", wait=f"{wait_fraction:.0%}", refresh=False)
             self.bar.update(len(rows))
+
+    def preview(self, trainer) -> None:
+        """The last step's preview: ``samples/step_NNNNNNN.png`` and the TensorBoard image."""
+        grid = trainer.preview()
+        trainer.save_samples(grid=grid)
+        if self.board is not None:
+            self.board.preview(grid, trainer.step)
+
+    def sync(self) -> None:
+        """The rows and events so far on the disk (before a checkpoint that a resume starts from)."""
+        if self.run_log is not None:
+            self.run_log.sync()
+        if self.board is not None:
+            self.board.flush()
+
+    def close_log(self) -> None:
+        """Close the CSV log and the bar (the events stay open for the final preview)."""
+        try:
+            if self.run_log is not None:
+                self.run_log.close()
+        finally:
+            if self.bar is not None:
+                self.bar.close()
+
+    def close_board(self) -> None:
+        if self.board is not None:
+            self.board.close()
+
+
+def _open_board(trainer, schedule: Schedule, hooks: RunHooks):
+    """The run's TensorBoard writer (``trainer.tensorboard_log.RunBoard``), or None: off
+    (``schedule.tensorboard``), or this process writes no files, or it is not rank 0 of an
+    initialised ``torch.distributed`` group. A resumed trainer's step purges the later events."""
+    import torch.distributed as dist
+
+    if not (schedule.tensorboard and hooks.files):
+        return None
+    if dist.is_available() and dist.is_initialized() and dist.get_rank() != 0:
+        return None
+    from .tensorboard_log import RunBoard
+
+    return RunBoard(trainer.out, trainer.step)
 
 
 def _read_rows(rows: List[dict]) -> List[dict]:
@@ -164,9 +245,11 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
     wall time of the loop), plus ``hooks.summary_extra()``.
 
     Steps run with ``train_step(batch, sync=False)``: their losses stay on the device until
-    the next multiple of ``schedule.log_every``, a checkpoint or the end, where they are read at
-    once, checked and written; before each checkpoint the log is synced to the disk. ``step_s`` is the host's time for the step (on CUDA the device's
-    work finishes later, and the wait for it shows at the logging steps).
+    the next multiple of ``schedule.log_every``, a preview, a checkpoint or the end, where they
+    are read at once, checked and written (CSV log; with ``schedule.tensorboard``, TensorBoard
+    events: rank 0 only under ``torch.distributed``), synced to the disk before each checkpoint.
+    ``step_s`` is the host's time for the step (on CUDA the device's work finishes later, and the
+    wait for it shows at the logging steps).
 
     Raises:
         FloatingPointError: a non-finite loss, found at the logging step after it.
@@ -174,57 +257,56 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
             once the checkpoint and the summary are written, naming the step.
     """
     hooks = hooks or RunHooks()
-    run_log = RunLog(trainer.out, trainer.spec.csv_columns() + list(hooks.csv_extra), trainer.step) if hooks.files else None
-    bar = _progress_bar(max_steps, trainer.step) if schedule.progress else None
+    files = _RunFiles(trainer, schedule, hooks, max_steps)
     wait, t_start = 0.0, time.perf_counter()
     start_step, every = trainer.step, schedule.checkpoint_every
-    rows = _PendingRows(run_log, bar)
     it = iter(batches)
     interrupted: Optional[KeyboardInterrupt] = None
     try:
-        while trainer.step < max_steps:
-            t0 = time.perf_counter()
-            try:
-                batch = next(it)
-            except StopIteration:
-                log.info("batches ended at step %d", trainer.step)
-                break
-            t1 = time.perf_counter()
-            stats = trainer.train_step(batch, sync=False)
-            t2 = time.perf_counter()
-            wait += t1 - t0
-            if hooks.on_batch is not None:
-                hooks.on_batch(batch, stats)
-            stats.update(step=trainer.step, epoch=batch.get("epoch", ""), batch_id=batch.get("batch_id", ""),
-                         data_wait_s=round(t1 - t0, 5), step_s=round(t2 - t0, 5))
-            rows.pending.append(stats)
-            if trainer.step % max(1, schedule.log_every) == 0:
-                rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
-            if hooks.files and schedule.image_every and trainer.step % schedule.image_every == 0:
-                trainer.save_samples()
-            if every and trainer.step % every == 0:
-                # the rows up to this step reach the disk before the checkpoint that a resume starts from
-                rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
-                if run_log is not None:
-                    run_log.sync()
-                checkpoint()
-    except KeyboardInterrupt as e:  # Ctrl-C or SIGTERM (v2v_wire.commands.Terminated): checkpoint, then stop
-        interrupted = e
-    finally:
         try:
-            rows.flush(wait / max(time.perf_counter() - t_start, 1e-9))
+            while trainer.step < max_steps:
+                t0 = time.perf_counter()
+                try:
+                    batch = next(it)
+                except StopIteration:
+                    log.info("batches ended at step %d", trainer.step)
+                    break
+                t1 = time.perf_counter()
+                stats = trainer.train_step(batch, sync=False)
+                t2 = time.perf_counter()
+                wait += t1 - t0
+                if hooks.on_batch is not None:
+                    hooks.on_batch(batch, stats)
+                stats.update(step=trainer.step, epoch=batch.get("epoch", ""), batch_id=batch.get("batch_id", ""),
+                             data_wait_s=round(t1 - t0, 5), step_s=round(t2 - t0, 5))
+                files.add(trainer, stats)
+                preview = hooks.files and schedule.image_every and trainer.step % schedule.image_every == 0
+                # a preview's or checkpoint's step: its rows first (events in step order; the rows up
+                # to a checkpoint reach the disk before the checkpoint that a resume starts from)
+                if trainer.step % max(1, schedule.log_every) == 0 or preview or (every and trainer.step % every == 0):
+                    files.flush(wait / max(time.perf_counter() - t_start, 1e-9))
+                if preview:
+                    files.preview(trainer)
+                if every and trainer.step % every == 0:
+                    files.sync()
+                    checkpoint()
+        except KeyboardInterrupt as e:  # Ctrl-C or SIGTERM (v2v_wire.commands.Terminated): checkpoint, then stop
+            interrupted = e
         finally:
-            if run_log is not None:
-                run_log.close()
-            if bar is not None:
-                bar.close()
-    elapsed = time.perf_counter() - t_start
-    n = trainer.step - start_step
-    if n and hooks.files and getattr(trainer, "_last", None) is not None:
-        trainer.save_samples()
-    if hooks.final_checkpoint == "always" or (n and (not every or trainer.step % every)):
-        checkpoint()
-    summary = _summary(trainer, rows.losses, n, elapsed, wait, hooks.summary_extra())
+            try:
+                files.flush(wait / max(time.perf_counter() - t_start, 1e-9))
+            finally:
+                files.close_log()
+        elapsed = time.perf_counter() - t_start
+        n = trainer.step - start_step
+        previewed = schedule.image_every and trainer.step % schedule.image_every == 0  # in the loop
+        if n and hooks.files and getattr(trainer, "_last", None) is not None and not previewed:
+            files.preview(trainer)
+        if hooks.final_checkpoint == "always" or (n and (not every or trainer.step % every)):
+            checkpoint()
+    finally:
+        files.close_board()
+    summary = _summary(trainer, files.losses, n, elapsed, wait, hooks.summary_extra())
     if hooks.files:
         write_whole(trainer.out / "summary.json", json.dumps(summary, indent=2))
         log.info("done: %s", json.dumps(summary))

@@ -20,11 +20,14 @@ Exactly once per epoch:
   failure, as are the model's updates from them: the model never sees a sample twice.
 
 Checkpoints and logs are written by rank 0 to ``--out`` (shared storage on a multi-node
-cluster): ``train_log.csv``, ``checkpoint_NNNNNNN.pt``, ``checkpoint_last.pt``, ``summary.json``.
+cluster): ``train_log.csv``, ``checkpoint_NNNNNNN.pt``, ``checkpoint_last.pt``, ``summary.json``,
+TensorBoard event files under the tags of the stream engine (``trainer/tensorboard_log.py``; the
+``recipe`` text is the serve config's sample recipe).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import tempfile
 import warnings
@@ -300,9 +303,9 @@ def _train_loop(config: dict) -> None:
     lg = cfg["log"]
     train_loop(trainer, batches, int(config["max_steps"]),
                Schedule(int(lg["image_every"]), int(lg["checkpoint_every"]), progress=False,
-                        log_every=int(lg.get("every", 10))), save,
+                        log_every=int(lg.get("every", 10)), tensorboard=bool(lg.get("tensorboard", True))), save,
                RunHooks(on_batch=on_batch, files=rank == 0, csv_extra=("samples",), summary_extra=summary_extra,
-                        final_checkpoint="always"))
+                        final_checkpoint="always", recipe=lambda: config.get("recipe")))
 
 
 def _torch_trainer(cfg: dict, args: argparse.Namespace, out: Path, resume, state: dict, epoch_sizes: dict,
@@ -317,7 +320,9 @@ def _torch_trainer(cfg: dict, args: argparse.Namespace, out: Path, resume, state
     loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,
                 "max_steps": int(cfg["max_steps"]), "batch_size": batch_size, "epoch_sizes": epoch_sizes,
                 "use_gpu": bool(args.use_gpu), "cpus_per_worker": args.cpus_per_worker,
-                "shuffle_buffer": scfg.shuffle_buffer if scfg.shuffle == "epoch" else None, "shuffle_seed": scfg.seed}
+                "shuffle_buffer": scfg.shuffle_buffer if scfg.shuffle == "epoch" else None, "shuffle_seed": scfg.seed,
+                # TensorBoard's recipe text (trainer.tensorboard_log)
+                "recipe": {"fingerprint": scfg.recipe.fingerprint(), **dataclasses.asdict(scfg.recipe)}}
     return TorchTrainer(
         _train_loop, train_loop_config=loop_cfg, datasets={"train": ds},
         scaling_config=ScalingConfig(num_workers=args.num_workers, use_gpu=bool(args.use_gpu),

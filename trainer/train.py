@@ -5,7 +5,8 @@ Both engines run the same steps (``trainer.core.Trainer``) in the same loop
 (``trainer.loop.train_loop``). Outputs in ``--out``: ``train_log.csv`` (one row per step),
 ``train.log``, ``samples/step_NNNNNNN.png`` (voxel / prediction / ground truth),
 ``checkpoint_last.pt`` and ``checkpoint_NNNNNNN.pt`` (model, optimiser, step, config, the
-stream's ``state_dict()``), ``summary.json``.
+stream's ``state_dict()``), ``summary.json``, TensorBoard event files (``tensorboard --logdir
+runs/``; tags in ``trainer/tensorboard_log.py``; ``--no-tensorboard``: none).
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from .models.lpips import LPIPSUnavailable
 from .ray_train import add_ray_arguments
 from .raft_flow import FlowSourceUnavailable
 from .tasks import stream_outputs
+from .tensorboard_log import tensorboard_problem
 
 __all__ = ["build_arg_parser", "main"]
 
@@ -49,6 +51,8 @@ def build_arg_parser() -> argparse.ArgumentParser:
                    help="config override, e.g. --set model.base_num_channels=8 (repeatable)")
     add_flags(p, RunSettings, "run (the config's top-level keys)")
     p.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    p.add_argument("--no-tensorboard", action="store_true", help="no TensorBoard event files in --out "
+                                                                  "(log.tensorboard: false)")
     p.add_argument("--engine", choices=["stream", "ray"], default="stream",
                    help="stream: read a v2v-serve endpoint (--connect); ray: make the samples in a Ray Data "
                         "pipeline from --videos and train in a Ray Train TorchTrainer (needs the 'ray' extra)")
@@ -78,11 +82,17 @@ def main(argv=None) -> int:
     cfg = load_config(args.config, args.task)
     cfg = apply_overrides(cfg, args.set)
     cfg.update({k: v for k, v in flag_values(args, RunSettings).items() if k != "task"})
+    if args.no_tensorboard:
+        cfg["log"]["tensorboard"] = False
     check_types(cfg)
     out = Path(str(cfg["out"]).format(task=cfg["task"]))
     why = out_problem(out, args.config)
     if why:
         print(f"v2v-train: --out {out}: {why}", file=sys.stderr)
+        return 2
+    why = tensorboard_problem() if cfg["log"]["tensorboard"] else ""
+    if why:
+        print(f"v2v-train: log.tensorboard: {why}; or give --no-tensorboard", file=sys.stderr)
         return 2
     _setup_logging(out)
     if args.engine == "ray":
@@ -109,7 +119,8 @@ def main(argv=None) -> int:
         trainer.load_checkpoint(resume, stream)
     lg = cfg["log"]
     trainer.fit(stream, int(cfg["max_steps"]), int(lg["image_every"]), int(lg["checkpoint_every"]),
-                progress=bool(lg["progress"]) and not args.no_progress, log_every=int(lg.get("every", 10)))
+                progress=bool(lg["progress"]) and not args.no_progress, log_every=int(lg.get("every", 10)),
+                tensorboard=bool(lg["tensorboard"]))
     close = getattr(stream, "close", None)
     if callable(close):
         close()

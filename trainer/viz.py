@@ -9,7 +9,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-__all__ = ["voxel_to_u8", "gray_to_u8", "flow_to_bgr", "save_grid", "Mp4Writer"]
+__all__ = ["voxel_to_u8", "gray_to_u8", "flow_to_bgr", "grid_image", "write_png", "save_grid", "Mp4Writer"]
 
 
 def voxel_to_u8(voxel: np.ndarray) -> np.ndarray:
@@ -42,8 +42,9 @@ def flow_to_bgr(flow: np.ndarray, max_mag: float = None) -> np.ndarray:
     return cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
 
 
-def save_grid(path: str, rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> None:
-    """Write rows of equal-size (H, W, 3) uint8 tiles as one PNG, ``pad`` white pixels apart."""
+def grid_image(rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> np.ndarray:
+    """Rows of equal-size (H, W, 3) uint8 tiles as one (H', W', 3) uint8 image, ``pad`` white
+    pixels apart."""
     h, w = rows[0][0].shape[:2]
     ncol = max(len(r) for r in rows)
     canvas = np.full((len(rows) * (h + pad) + pad, ncol * (w + pad) + pad, 3), 255, np.uint8)
@@ -51,8 +52,18 @@ def save_grid(path: str, rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> 
         for j, tile in enumerate(r):
             y, x = pad + i * (h + pad), pad + j * (w + pad)
             canvas[y:y + h, x:x + w] = tile
-    if not cv2.imwrite(str(path), canvas):
+    return canvas
+
+
+def write_png(path: str, img: np.ndarray) -> None:
+    """Write an (H, W, 3) uint8 BGR image as a PNG. Raises ``OSError`` when it cannot be written."""
+    if not cv2.imwrite(str(path), img):
         raise OSError(f"could not write {path}")
+
+
+def save_grid(path: str, rows: Sequence[Sequence[np.ndarray]], pad: int = 2) -> None:
+    """Write rows of equal-size (H, W, 3) uint8 tiles as one PNG, ``pad`` white pixels apart."""
+    write_png(path, grid_image(rows, pad))
 
 
 class Mp4Writer:
