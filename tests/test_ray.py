@@ -311,9 +311,12 @@ def test_v2v_train_on_two_ray_ranks_resumes_without_the_consumed_ids(ray_session
 def test_v2v_train_fast_on_two_ray_ranks_steps_as_one_process(ray_session, clips, tmp_path):
     """``v2v-train --engine ray --set speed=fast`` on 2 ranks trains channels-last E2VID with the
     fused Adam; its parameters after its 2 steps equal those of one process taking the same 2
-    steps on the union of the ranks' samples (atol 1e-6, 1 % of one step at lr 1e-4: the ranks'
-    weighted sum and the one batch's mean differ by rounding only; a gradient in the wrong
-    layout moves elements by up to 2 x lr)."""
+    steps on the union of the ranks' samples: in each tensor at most 1 % of the elements (one in
+    small ones) differ by more than 1e-6, 1 % of one step at lr 1e-4. The ranks' weighted sum and
+    the one batch's mean differ by rounding only, but rounding can flip the sign of an element's
+    near-zero gradient, which Adam's normalised step turns into up to 2 x lr for that element
+    (seen: 4 of 9216 elements at 5e-6, and on another split 1.08e-6); a gradient in
+    the wrong layout moves most elements."""
     import torch
 
     import trainer.train as tr
@@ -351,4 +354,7 @@ def test_v2v_train_fast_on_two_ray_ranks_steps_as_one_process(ray_session, clips
         one.train_step(b)
     ray_sd = last["model"]
     for k, v in one.model.state_dict().items():
-        torch.testing.assert_close(ray_sd[k], v, rtol=0, atol=1e-6, msg=lambda m, k=k: f"{k}: {m}")
+        diff = (ray_sd[k].double() - v.double()).abs()
+        off = int((diff > 1e-6).sum())
+        assert off <= max(1, diff.numel() // 100), \
+            f"{k}: {off} of {diff.numel()} elements differ by more than 1e-6 (largest {float(diff.max()):.3g})"
