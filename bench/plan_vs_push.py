@@ -108,16 +108,17 @@ def stalled(corpus: Path, mode: str, batches: int, stall_s: float) -> dict:
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", "2", "--batch-size", str(BATCH),
             "--delivery", mode]
     with ServeProcess(args, ready_timeout_s=600) as srv:
-        children = [int(p) for p in Path(f"/proc/{srv.proc.pid}/task/{srv.proc.pid}/children").read_text().split()]
-        victim = children[0]
-
         def stop_one(n: int) -> None:
             if n == 2:
+                victim = busiest_worker(srv.proc.pid)
+                stopped.append(victim)
                 os.kill(victim, signal.SIGSTOP)
                 threading.Timer(stall_s, os.kill, (victim, signal.SIGCONT)).start()
 
+        stopped: List[int] = []
+
         if mode == "plan":
-            return read_plan(srv.endpoint, batches, on_batch=stop_one)
+            return {**read_plan(srv.endpoint, batches, on_batch=stop_one), "stopped": stopped}
         from v2v_client import V2VStreamDataset
         longest, last = 0.0, None
         for n, _ in enumerate(V2VStreamDataset(srv.endpoint, timeout_s=300), 1):
@@ -128,7 +129,21 @@ def stalled(corpus: Path, mode: str, batches: int, stall_s: float) -> dict:
             stop_one(n)
             if n >= batches + 1:
                 break
-        return {"longest_wait_s": longest}
+        return {"longest_wait_s": longest, "stopped": stopped}
+
+
+def busiest_worker(server_pid: int) -> int:
+    """The server's worker process (``v2v_server`` worker, not multiprocessing's resource
+    tracker) that used the most CPU over 0.3 s: one busy on a task."""
+    def cpu(pid: int) -> int:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])
+
+    kids = [int(p) for p in Path(f"/proc/{server_pid}/task/{server_pid}/children").read_text().split()]
+    workers = [p for p in kids if b"resource_tracker" not in Path(f"/proc/{p}/cmdline").read_bytes()]
+    before = {p: cpu(p) for p in workers}
+    time.sleep(0.3)
+    return max(workers, key=lambda p: cpu(p) - before[p])
 
 
 def mixing() -> dict:
@@ -168,6 +183,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             out["stall"].append(row)
             print(json.dumps(row), flush=True)
     if a.out is not None:
+        a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "plan_vs_push.json").write_text(json.dumps(out, indent=1) + "\n")
     return 0
 
