@@ -7,9 +7,9 @@ do around the core, and nothing more: it decodes each client message with the re
 decoder (``v2v_wire.messages.decode_client`` with the core's ``resume_bound``; a bad one is a
 protocol error for that peer), hands it to ``DeliveryCore.hello`` / ``message``, sends what they
 answer, runs the core's ``tick`` each turn and sends what it says, reads its workers only while
-fewer than ``prefetch`` batches wait, broadcasts heartbeats, tells the core which clients it
-could not reach (``unreachable``) and when nothing sent is left unread (``caught_up``), and exits
-when the core says so (``exit_due``).
+fewer than ``prefetch`` batches wait (and tells the core, each turn, whether it did: ``timed_out``),
+broadcasts heartbeats, tells the core which clients it could not reach (``unreachable``) and when
+nothing sent is left unread (``caught_up``), and exits when the core says so (``exit_due``).
 
 :class:`ServerProbe` is the one place the checks read the server's books (``oracle.py``).
 """
@@ -167,12 +167,13 @@ class SimServer:
             return
         self._turn_at = None
         now = self.sim.now
+        reading = self.core.ready_count() < self.cfg.prefetch  # the shell polls its workers this turn
         self._read_clients()
         for _ in range(WORKER_BURST):
             if not self.backend or self.core.ready_count() >= self.cfg.prefetch:
                 break
             self._on_worker(self.backend.popleft())
-        self._watch_workers(now)
+        self._watch_workers(now, reading)
         self._dispatch(now)
         self._send(now)
         if self.journal is not None:
@@ -296,7 +297,7 @@ class SimServer:
             key = (job.epoch, job.video)
             self.injected_losses[key] = self.injected_losses.get(key, 0) + 1
 
-    def _watch_workers(self, now: float) -> None:
+    def _watch_workers(self, now: float, reading: bool) -> None:
         for ident, w in list(self.workers.items()):
             if w.proc.dead:  # only a drawn death kills a worker of a live server
                 self.sim.log(self.proc.name, f"worker {ident.decode()} died")
@@ -305,7 +306,7 @@ class SimServer:
                     self._lost(job, True)
                 del self.workers[ident]
                 self._spawn_worker()
-        for ident, job in self.core.timed_out(now):
+        for ident, job in self.core.timed_out(now, reading):
             w = self.workers.pop(ident, None)
             if w is not None:
                 self.sim.log(self.proc.name, f"worker {ident.decode()} timed out: replaced")
