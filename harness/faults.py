@@ -12,6 +12,7 @@ import collections
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -28,7 +29,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.frames.check import check_corpus
 from v2v_server.sources.local import LocalSource
 from harness.data import SAMPLE_VIDEOS
-from harness.serve import ServeProcess
+from harness.serve import ServeProcess, free_port
 from v2v_wire.protocol import PROTOCOL_VERSION, pack
 from v2v_server.sources.folder_scan import scan_corpus
 
@@ -745,6 +746,40 @@ def scenario_hung_worker(tmp: Path, layout: Layout, task_timeout_s: float = 3.0,
                task_timeouts=timeouts, trainer_error=err or None, server_exit=rc)
 
 
+def scenario_reader_stopped_past_task_timeout(tmp: Path, layout: Layout, task_timeout_s: float = 2.0,
+                                              stop_s: float = 8.0) -> dict:
+    """A trainer takes a batch, then stops reading for ``stop_s`` (several task timeouts: a
+    validation pass, a checkpoint upload, a debugger) and reads on. Enough batches wait for it
+    that the server stops reading its busy workers (back-pressure); their silence while unread is
+    no hang: no task times out, no worker is replaced. ``facts``: ``busy`` (workers busy as the
+    stop ends, from ``/metrics``), ``restarts`` and ``task_timeouts`` (the server's last status line)."""
+    import urllib.request
+
+    corpus = good_corpus(tmp, 3)
+    expected = expected_ids(corpus, layout)
+    log: list = []
+    port = free_port()
+    with _serve(corpus, layout, "--epochs", "1", "--task-timeout", str(task_timeout_s), "--shuffle-buffer",
+                str(layout.batch), "--metrics-port", str(port)) as srv:
+        it = iter(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1))
+        try:
+            b = next(it)
+            log.append((time.monotonic(), list(b["sample_ids"])))
+            time.sleep(stop_s)  # the loop stops; its I/O thread still heartbeats
+            page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+            busy = next(float(ln.split()[1]) for ln in page.splitlines() if ln.startswith("v2v_workers_busy "))
+            for b in it:
+                log.append((time.monotonic(), list(b["sample_ids"])))
+        finally:
+            it.close()
+        rc = srv.wait(30)
+    m = re.search(r"stopped: .* (\d+) worker restart\(s\), (\d+) task timeout\(s\)", srv.log)
+    restarts, timeouts = (int(m.group(1)), int(m.group(2))) if m else (None, None)
+    return row(f"trainer stopped {stop_s:.0f} s, task timeout {task_timeout_s:.0f} s", expected, _ids(log), None,
+               f"{busy:.0f} worker(s) busy at the end of the stop; {restarts} worker restart(s), {timeouts} task "
+               f"timeout(s); server exit {rc}", busy=busy, restarts=restarts, task_timeouts=timeouts, server_exit=rc)
+
+
 def bad_peer_messages() -> List[List[bytes]]:
     """Messages that used to crash or stall the server, and a flood of garbage."""
     import msgpack
@@ -1086,6 +1121,7 @@ SCENARIOS = {
     "revoke_ignored": scenario_revoke_ignored,
     "slow_trainer": scenario_slow_trainer,
     "hung_worker": scenario_hung_worker,
+    "reader_stopped_past_task_timeout": scenario_reader_stopped_past_task_timeout,
     "bad_peer": scenario_bad_peer,
     "ddp_ranks": scenario_ddp_ranks,
     "ddp_late_rank": scenario_ddp_late_rank,

@@ -521,6 +521,51 @@ def test_hung_task_is_reassigned_and_its_late_copy_ignored():
     assert s.task_done(t.task_id, "w1", 3) is None
 
 
+def _core_with_a_task(task_timeout_s: float, stall_s=None):
+    """A core with one client and worker ``w``'s task, given at t = 0 and sent its first sample."""
+    core = DeliveryCore(["a.mp4"], DeliveryPolicy(batch_size=1, epochs=1, lease_s=1e6, client_timeout_s=1e6,
+                                                  task_timeout_s=task_timeout_s), make_batch, stall_s=stall_s)
+    core.hello(b"c", Hello(("voxels",), 2), 0.0)
+    assert core.timed_out(0.0, True) == []
+    msg = core.task_for(b"w", 0.0)
+    assert core.sample(b"w", msg.task, SampleKey("a.mp4", 0), 0.0, lambda lane: FakeSample("a.mp4#0"))
+    return core, msg
+
+
+def test_a_task_is_not_timed_out_while_the_server_does_not_read_its_worker():
+    """The shell stops reading its workers (enough batches wait for a stopped trainer): an hour
+    of that is no silence of the worker; once read again, only the silence while read counts."""
+    core, msg = _core_with_a_task(task_timeout_s=5.0)
+    assert core.timed_out(1.0, True) == []
+    for t in range(2, 3601):  # a loop turn a second, none reading the workers
+        assert core.timed_out(float(t), False) == []
+    assert core.timed_out(3603.0, True) == []  # read 1 s before the stop, 3 s after it: 4 s of silence
+    assert core.sample(b"w", msg.task, SampleKey("a.mp4", 1), 3603.0, lambda lane: FakeSample("a.mp4#1"))
+    assert core.timed_out(3607.0, True) == []  # 4 s since the sample, read all along
+    [(w, job)] = core.timed_out(3609.0, True)
+    assert w == b"w" and job.video == "a.mp4" and job.state == "queued"
+
+
+def test_a_task_silent_while_its_worker_is_read_times_out():
+    core, _ = _core_with_a_task(task_timeout_s=5.0)
+    for t in range(1, 5):
+        assert core.timed_out(float(t), True) == []
+    assert core.timed_out(4.5, True) == []
+    [(w, _)] = core.timed_out(5.5, True)
+    assert w == b"w"
+
+
+def test_a_stall_of_the_servers_loop_is_not_a_workers_silence():
+    """A gap between two turns of the loop over ``stall_s`` (the process stopped) is not counted."""
+    core, _ = _core_with_a_task(task_timeout_s=5.0, stall_s=1.0)
+    assert core.timed_out(0.5, True) == []
+    assert core.timed_out(60.0, True) == []  # stopped from 0.5 s to 60 s: not counted
+    for t in range(61, 65):
+        assert core.timed_out(float(t), True) == []
+    [(w, _)] = core.timed_out(65.0, True)  # 0.5 s before the stall, 5 s after it
+    assert w == b"w"
+
+
 def test_ack_of_unknown_or_resent_batch_frees_no_credit():
     led = DeliveryLedger(lease_s=1.0, client_timeout_s=100.0, max_credits=64, revoke_s=50.0)
     led.join(b"a", "A", ("voxels",), 1, 0.0)

@@ -191,6 +191,16 @@ def test_ddp_ranks_paused_past_the_client_timeout_end_alike(seed):
     assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
 
 
+@pytest.mark.parametrize("scenario,seed", [("trainers", 35), ("ddp", 286), ("mixed", 90)])
+def test_workers_the_server_does_not_read_are_not_timed_out(scenario, seed):
+    """Seeds where a stopped reader's back-pressure stopped the server reading its busy workers
+    past the task timeout: their tasks expired, the workers were replaced and windows failed for
+    the epoch, which the checks excused as failed windows. Now no task of a worker that did not
+    hang expires (the ``timeout`` check) and only injected failures are excused."""
+    outcome = simulate([scenario], f"{seed}:{seed + 1}")[scenario]
+    assert outcome["seeds"] == 1 and outcome["failed"] == 0, failures(outcome)
+
+
 def test_a_pause_within_a_pause_keeps_each_threads_order():
     """A process paused again before its threads woke from a first pause runs each thread's
     events in the order they came: the second pause's wake-up delays, drawn afresh, ran a

@@ -87,6 +87,16 @@ def test_a_hung_worker_is_replaced_and_the_trainer_waits(tmp_path):
     assert r["facts"]["trainer_error"] is None and r["facts"]["task_timeouts"] > 0, r
 
 
+def test_a_trainer_stopped_past_the_task_timeout_costs_no_worker(tmp_path):
+    """The server does not read its busy workers while enough batches wait for the stopped trainer:
+    that silence is no hang (the task clock runs only while the server reads its workers)."""
+    r = faults.scenario_reader_stopped_past_task_timeout(tmp_path, LAYOUT, task_timeout_s=2.0, stop_s=8.0)
+    exactly_once(r)
+    f = r["facts"]
+    assert f["busy"] > 0, r  # workers were mid-task, unread, for 4 task timeouts
+    assert (f["restarts"], f["task_timeouts"], f["server_exit"]) == (0, 0, 0), r
+
+
 def test_bad_messages_neither_crash_nor_flood_the_server(tmp_path):
     r = faults.scenario_bad_peer(tmp_path, LAYOUT)
     exactly_once(r)

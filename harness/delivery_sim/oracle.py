@@ -21,6 +21,9 @@ is the (epoch, sample id) pairs its model was trained on (padding excluded).
   epochs its consumer was told complete (limit (e): counted in ``refusals``, checked against the
   epochs announced; the job reads on as a new consumer, the old one is never read again).
 * **Liveness**: every honest lineage's stream ends (the server's ``end``) by its deadline.
+* **No false timeout**: only a worker the run made hang has its task expired (:meth:`Oracle.timed_out`);
+  a window failed by worker crashes is excused only when every crash of its job was injected
+  (``ServerProbe.excused``).
 * **Memory** (after every server turn): the scheduler keeps at most 6 epochs open besides those
   it opened within the last ``2 lease_s + revoke_s`` (how long a reader sitting on its grants may
   keep another from being told an epoch complete, docs/delivery.md: a reader reads on meanwhile,
@@ -180,6 +183,16 @@ class Oracle:
         self.dead_consumers.add(consumer)
         self.sim.log("oracle", f"{lineage}'s resume refused as behind: {len(lin.given_up)} samples it forgot are "
                                f"given up")
+
+    # ------------------------------------------------------------------ workers
+    def timed_out(self, worker: bytes, job, hung: bool) -> None:
+        """The server expired ``worker``'s task of ``job`` (``Job``: epoch, video) and replaces the
+        worker; ``hung``: the run made it hang. A worker that did not hang sends a sample well within
+        the task timeout of the time the server reads it, so expiring its task is a fault of the
+        server's clock (docs/delivery.md, "Workers"): the run fails (``timeout``)."""
+        if not hung:
+            self.sim.fail("timeout", f"worker {worker.decode()}'s task ({job.video}, epoch {job.epoch}) expired and "
+                                     f"the worker was replaced, though it did not hang")
 
     # ------------------------------------------------------------------ announcements
     def on_announce(self, epoch: int) -> None:

@@ -75,7 +75,8 @@ class Run:
     # ------------------------------------------------------------------ the server
     def start_server(self) -> None:
         self.incarnation += 1
-        self.server = SimServer(self.sim, self.net, self.cfg, self.incarnation, on_read=self._read)
+        self.server = SimServer(self.sim, self.net, self.cfg, self.incarnation, on_read=self._read,
+                                on_timeout=self.oracle.timed_out)
         self.probe = ServerProbe(self.server)
         self.oracle.holders = self.probe.holders
         self.oracle.recorded_to = self.probe.recorded_to

@@ -7,9 +7,9 @@ do around the core, and nothing more: it decodes each client message with the re
 decoder (``v2v_wire.messages.decode_client`` with the core's ``resume_bound``; a bad one is a
 protocol error for that peer), hands it to ``DeliveryCore.hello`` / ``message``, sends what they
 answer, runs the core's ``tick`` each turn and sends what it says, reads its workers only while
-fewer than ``prefetch`` batches wait, broadcasts heartbeats, tells the core which clients it
-could not reach (``unreachable``) and when nothing sent is left unread (``caught_up``), and exits
-when the core says so (``exit_due``).
+fewer than ``prefetch`` batches wait (and tells the core, each turn, whether it did: ``timed_out``),
+broadcasts heartbeats, tells the core which clients it could not reach (``unreachable``) and when
+nothing sent is left unread (``caught_up``), and exits when the core says so (``exit_due``).
 
 :class:`ServerProbe` is the one place the checks read the server's books (``oracle.py``).
 """
@@ -110,13 +110,21 @@ class SimServer:
         on_sent: ``(ident, message)`` of every control message and batch header it sends, for the checks.
         on_read: ``(ident, message)`` of every client message it decoded, before the core handles it
             (for the checks).
+        on_timeout: ``(worker ident, job, hung)`` of every task the core expired, ``hung``: whether
+            the run made that worker hang (for the checks: a task of a worker that did not hang
+            must never expire).
     """
 
-    def __init__(self, sim: Sim, net: Net, cfg: ServerConfig, incarnation: int = 0, on_sent=None, on_read=None):
+    def __init__(self, sim: Sim, net: Net, cfg: ServerConfig, incarnation: int = 0, on_sent=None, on_read=None,
+                 on_timeout=None):
         self.sim, self.net, self.cfg = sim, net, cfg
         self.proc = Proc(f"server{incarnation}")
         self.on_sent = on_sent or (lambda ident, msg, batch: None)
         self.on_read = on_read or (lambda ident, msg: None)
+        self.on_timeout = on_timeout or (lambda ident, job, hung: None)
+        #: (epoch, video) -> workers lost on that job to a fault the run injected (a death, or a
+        #: hang the task timeout ended): the crashes ``ServerProbe.excused`` may excuse
+        self.injected_losses: Dict[Tuple[int, str], int] = {}
         self.journal = Journal(cfg.state_dir, RECIPE) if cfg.state_dir else None
         videos = sorted(cfg.corpus.windows)
         self.core = DeliveryCore(videos, cfg.policy, make_batch, self.journal, stall_s=STALL_S,
@@ -159,12 +167,13 @@ class SimServer:
             return
         self._turn_at = None
         now = self.sim.now
+        reading = self.core.ready_count() < self.cfg.prefetch  # the shell polls its workers this turn
         self._read_clients()
         for _ in range(WORKER_BURST):
             if not self.backend or self.core.ready_count() >= self.cfg.prefetch:
                 break
             self._on_worker(self.backend.popleft())
-        self._watch_workers(now)
+        self._watch_workers(now, reading)
         self._dispatch(now)
         self._send(now)
         if self.journal is not None:
@@ -283,17 +292,26 @@ class SimServer:
             if self.core.done(ident, task, windows, failed, error) is not None:
                 self.workers[ident].idle = True
 
-    def _watch_workers(self, now: float) -> None:
+    def _lost(self, job, injected: bool) -> None:
+        if injected:
+            key = (job.epoch, job.video)
+            self.injected_losses[key] = self.injected_losses.get(key, 0) + 1
+
+    def _watch_workers(self, now: float, reading: bool) -> None:
         for ident, w in list(self.workers.items()):
-            if w.proc.dead:
+            if w.proc.dead:  # only a drawn death kills a worker of a live server
                 self.sim.log(self.proc.name, f"worker {ident.decode()} died")
-                self.core.worker_lost(ident)
+                job = self.core.worker_lost(ident)
+                if job is not None:
+                    self._lost(job, True)
                 del self.workers[ident]
                 self._spawn_worker()
-        for ident, _ in self.core.timed_out(now):
+        for ident, job in self.core.timed_out(now, reading):
             w = self.workers.pop(ident, None)
             if w is not None:
                 self.sim.log(self.proc.name, f"worker {ident.decode()} timed out: replaced")
+                self._lost(job, w.hung)
+                self.on_timeout(ident, job, w.hung)
                 w.replaced()
                 self._spawn_worker()
 
@@ -314,6 +332,7 @@ class ServerProbe:
     def __init__(self, server: SimServer):
         self.core = server.core
         self.journal = server.journal
+        self.injected_losses = server.injected_losses
         self.seen: Dict[int, object] = {}  # epoch -> its plan as last seen (a plan forgotten in a step keeps its books)
 
     def remember(self) -> None:
@@ -395,17 +414,25 @@ class ServerProbe:
         return self.core.sched.next_epoch
 
     def excused(self, epoch: int, corpus: Corpus) -> Optional[Set[str]]:
-        """Sample ids of ``corpus`` that ``epoch`` does not hold, as its plan says: windows that
-        failed with a reason, and those past where a file's pass stopped (truncated, or given
-        up after repeated worker crashes); None when the epoch is not open here."""
+        """Sample ids of ``corpus`` that ``epoch`` does not hold, as its plan says, for a cause the
+        run injected: a bad window (``corpus.bad``), a file's truncation (the window its pass stops
+        in and those past it), and what worker crashes failed or gave up in a job every one of whose
+        crashes the run injected (a drawn death, or a drawn hang the task timeout ended). Any other
+        failure (a task expired while its worker was not hung: the server not reading it) is not
+        excused, so the checks find what it costs. None when the epoch is not open here."""
         plan = self.core.sched.plans.get(epoch)
         if plan is None:
             return None
         out = set()
         for v, j in plan.jobs.items():
-            out |= {k.sample_id() for k in j.failed}
+            crashes_injected = j.crashes <= self.injected_losses.get((epoch, v), 0)
+            stop = corpus.truncated.get(v)
+            n = corpus.windows.get(v, 0)
+            out |= {k.sample_id() for k in j.failed
+                    if crashes_injected or (v, k.window) in corpus.bad or k.window == stop}
             if j.samples is not None:
-                out |= {SampleKey(v, k).sample_id() for k in range(j.samples, corpus.windows.get(v, 0))}
+                first = j.samples if crashes_injected else max(j.samples, n if stop is None else stop + 1)
+                out |= {SampleKey(v, k).sample_id() for k in range(first, n)}
         return out
 
 

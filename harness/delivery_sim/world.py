@@ -18,8 +18,8 @@ from typing import Callable, List, Optional
 
 
 class Violation(AssertionError):
-    """An invariant broke: ``kind`` (``doubled``, ``lost``, ``liveness``, ``memory``, ``error``),
-    what happened, and the simulated time and step it was found at."""
+    """An invariant broke: ``kind`` (``doubled``, ``lost``, ``liveness``, ``memory``, ``error``,
+    ``refused``, ``timeout``, ``runaway``), what happened, and the simulated time and step it was found at."""
 
     def __init__(self, kind: str, what: str, now: float = 0.0, step: int = 0):
         super().__init__(f"{kind} at t={now:.3f} s, step {step}: {what}")

@@ -86,8 +86,11 @@ class DeliveryPolicy:
     revoke_s: Optional[float] = setting(None, help="seconds a client may leave a revoke unanswered before it is "
                                                    "dropped (default: the client timeout)", flag="--revoke-timeout")
     max_credits: int = setting(64, help="most batches one client may hold")
-    task_timeout_s: float = setting(300.0, help="seconds a worker may send nothing on a task before the task is "
-                                                "reassigned and the worker replaced", flag="--task-timeout")
+    task_timeout_s: float = setting(300.0, help="seconds a worker may send nothing on a task, while the server "
+                                                "reads its workers, before the task is reassigned and the worker "
+                                                "replaced (time the server does not read them, because enough "
+                                                "batches wait for stopped readers, does not count)",
+                                    flag="--task-timeout")
     shuffle: str = setting("epoch", help="epoch: each epoch hands the videos out in an order drawn from (seed, "
                                          "epoch) and each made sample joins a random open batch of the shuffle "
                                          "buffer, so batches mix videos whatever the worker count; none: the "
@@ -163,7 +166,7 @@ class DeliveryCore:
         self.ends = EpochEnds(self.sched, self.ledger, self.batcher, self.padding, journal, p.lease_s, end_grace_s)
         self.server_id = journal.server_id if journal is not None else uuid.uuid4().hex[:16]  # a welcome's "server"
         self.admission = Admission(self.sched, self.ledger, journal, p, CLAIM_MARGIN_S, self.server_id, self.ends.told_to)
-        self.feed = WorkerFeed(self.sched, self.ledger, self.batcher)
+        self.feed = WorkerFeed(self.sched, self.ledger, self.batcher, stall_s)
         self.info: Callable[[], dict] = dict  # the stream info each ``welcome`` carries (its server sets it)
         self._unreachable: set = set()  # connections a message could not reach (forgotten at caught_up)
         self.journal = journal  # told every grant, resume state and closed epoch; read at start
@@ -185,9 +188,9 @@ class DeliveryCore:
     def worker_lost(self, worker: Hashable) -> Optional[Job]:
         return self.sched.worker_lost(worker)
 
-    def timed_out(self, now: float) -> List[Tuple[Hashable, Job]]:
-        """Tasks silent for ``task_timeout_s``: reassigned; the workers should be replaced."""
-        return self.sched.expire(now, self.policy.task_timeout_s)
+    def timed_out(self, now: float, reading: bool = True) -> List[Tuple[Hashable, Job]]:
+        """Tasks silent ``task_timeout_s`` in loop turns ``reading`` workers (``WorkerFeed.timed_out``): reassigned."""
+        return self.feed.timed_out(now, reading, self.policy.task_timeout_s)
 
     @property
     def outputs(self) -> Optional[tuple]:

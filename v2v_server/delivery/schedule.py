@@ -71,7 +71,7 @@ class Job:
     state: str = "queued"  # queued | running | done
     task_id: Optional[int] = None
     worker: Optional[Hashable] = None
-    last_progress: float = 0.0
+    last_progress: float = 0.0  # task-clock seconds the task started or its worker last sent a sample at
     crashes: int = 0
     samples: Optional[int] = None  # samples the file gave in this epoch (known once a pass ended)
     failed: Dict[SampleKey, str] = field(default_factory=dict)  # sample -> reason (this epoch only)
@@ -539,9 +539,9 @@ class EpochScheduler:
         return None
 
     def expire(self, now: float, task_timeout_s: float) -> List[Tuple[Hashable, Job]]:
-        """Jobs whose worker sent nothing for ``task_timeout_s``: each is reassigned (queued
-        again, counted as a crash) and its worker returned so the pool can replace it; anything
-        the old attempt still sends is ignored."""
+        """Jobs whose worker sent nothing for ``task_timeout_s`` (``now``: the clock :meth:`next_task` and
+        :meth:`accept_sample` were given, ``feed.TaskClock``): each is reassigned (queued again, counted as a
+        crash) and its worker returned so the pool can replace it; anything the old attempt sends is ignored."""
         out = []
         for tid, job in list(self.running.items()):
             if now - job.last_progress > task_timeout_s:

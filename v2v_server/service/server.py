@@ -179,7 +179,8 @@ class V2VServer:
             while not self._stop.is_set():
                 poller = zmq.Poller()
                 poller.register(self.frontend, zmq.POLLIN)
-                if self.core.ready_count() < self.cfg.prefetch_batches:
+                reading = self.core.ready_count() < self.cfg.prefetch_batches  # else back-pressure
+                if reading:
                     poller.register(self.backend, zmq.POLLIN)
                 events = dict(poller.poll(100))
                 self.clients.read(self.frontend in events)
@@ -195,7 +196,7 @@ class V2VServer:
                 now = time.monotonic()
                 if self._stop.is_set():  # workers that exit now were signalled with the server, not crashed
                     break
-                self.workers.watch(now)
+                self.workers.watch(now, reading)  # a task's silence counts only in turns that read its worker
                 self.workers.dispatch(now, self.clients.socket_codecs())
                 self.clients.send_batches(now)
                 self._count_resent()

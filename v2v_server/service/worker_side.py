@@ -60,9 +60,10 @@ class WorkerSide:
                 pass
         self.pool.stop(send_stop)
 
-    def watch(self, now: float) -> None:
+    def watch(self, now: float, reading: bool = True) -> None:
         """Replace dead workers (their tasks go back to the queue) and hung ones (silent on a
-        task for ``task_timeout_s``)."""
+        task for ``task_timeout_s`` while read). ``reading``: this loop turn read the workers
+        (it does only while fewer than ``prefetch_batches`` batches wait); called once per turn."""
         for ident, code in self.pool.reap():
             self.metrics.on_worker_restarted()
             job = self.core.worker_lost(ident)
@@ -73,7 +74,7 @@ class WorkerSide:
                     self.log_failure(job.video, job.error)
             else:
                 log.warning("worker %s died (exit code %s); restarting", ident.decode(), code)
-        for ident, job in self.core.timed_out(now):
+        for ident, job in self.core.timed_out(now, reading):
             self.metrics.on_task_timed_out()
             log.warning("worker %s sent nothing on %s epoch %d for %.0f s; task reassigned, worker restarted",
                         ident.decode(), job.video, job.epoch, self.cfg.task_timeout_s)
