@@ -349,9 +349,11 @@ class PlanFeed:
                 lost = run
         return lost
 
-    def timed_out(self, now: float) -> List[Tuple[Hashable, Run]]:
-        """Copies that sent nothing for ``task_timeout_s`` (every worker message is read
-        whatever the clients do, so silence is the worker's): each ends as a lost worker's."""
+    def timed_out(self, now: float, reading: bool = True) -> List[Tuple[Hashable, Run]]:
+        """Copies that sent nothing for ``task_timeout_s``: each ends as a lost worker's. A server
+        serving by plan reads every worker message whatever the clients do (``reading`` is always
+        true: the shell's ``WorkerSide.watch`` passes it as the push core takes it), so silence is
+        the worker's own."""
         out = []
         for tid, ek in list(self.task_run.items()):
             run = self.runs[ek]
