@@ -21,7 +21,7 @@ SHELL = {'connect': 'tcp://127.0.0.1:5555',
                     'reconnect': False,
                     'compact_flow': True,
                     'curve_keys': None},
-         'log': {'image_every': 500, 'checkpoint_every': 1000, 'progress': True, 'every': 10}}
+         'log': {'image_every': 500, 'checkpoint_every': 1000, 'progress': True, 'every': 10, 'tensorboard': True}}
 ADAM = {'optimizer': 'adam',
         'lr': 0.0001,
         'amsgrad': True,
