@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from v2v_server.delivery.batcher import video_order as batcher_order
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import (PLAN_VERSION, EpochPlan, Manifest, PlanIdentity, PlanMismatch, Position,
-                           distinct_videos, positions_of, video_order)
+                           distinct_videos, video_order)
 
 manifests = st.builds(
     Manifest.of,
@@ -157,15 +157,6 @@ def test_bad_layouts_are_refused():
         plan.batch_positions(0, 2, 2, 1)
     with pytest.raises(ValueError, match="seed"):
         EpochPlan(Manifest.of({"a.mp4": 4}), -1, 0)
-
-
-def test_positions_of_finds_delivered_samples_and_names_one_the_plan_lacks():
-    m = Manifest.of({"a.mp4": 3, "b.mp4": 2})
-    plan = EpochPlan(m, 0, 0)
-    keys = plan.keys(0, len(plan))
-    assert positions_of(plan, [keys[3], keys[0]]) == [3, 0]
-    with pytest.raises(KeyError, match="c.mp4#0"):
-        positions_of(plan, [SampleKey("c.mp4", 0)])
 
 
 def test_the_sequence_is_pinned_for_this_plan_version():

@@ -186,15 +186,3 @@ def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
     assert "the decode gave 1 window(s), the manifest 3" in rows[1].reason
     assert feed.task_for("w", 2.0) is None
 
-
-def test_silence_while_no_client_fetches_costs_no_worker():
-    """The task clock counts a worker's silence, and a server reads its workers whatever the
-    clients do: a task whose samples all arrived and whose worker then idles is not hung."""
-    feed = PlanFeed(Manifest.of({"a.mp4": 1}), 0, 1, ("voxels",), hedge_s=1.0, task_timeout_s=2.0)
-    feed.fetch("c", 1, 0, 0, 1, 0.0)
-    t = feed.task_for("w", 0.0)
-    feed.sample("w", t.task, SampleKey("a.mp4", 0), 0.5, lambda lane: "s")
-    feed.done("w", t.task, 1, {}, None)
-    assert feed.timed_out(3600.0) == []
-    (f, rows), = feed.answer(3.0)
-    assert rows[0].sample == "s"

@@ -152,9 +152,9 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         outputs = self.outputs or check_outputs(info.stream["outputs"], "the server's outputs")
         per_step = self.world_size * self.batch_size
         with _Link(self.endpoint, self.timeout_s) as link:
-            for step, rows, arrays in link.fetch_all(mine, self.prefetch, self.retry_s, lambda s: Fetch(
-                    0, self.epoch, self.start + s * per_step + self.rank * self.batch_size,
-                    self.start + s * per_step + (self.rank + 1) * self.batch_size, outputs, info.plan)):
+            first = self.start + self.rank * self.batch_size  # of step 0
+            for step, rows, arrays in link.fetch_all(mine, self.prefetch, self.retry_s, lambda req, s: Fetch(
+                    req, self.epoch, first + s * per_step, first + s * per_step + self.batch_size, outputs, info.plan)):
                 yield self._item(info, step, rows, arrays)
 
     def _item(self, info: PlanInfo, step: int, rows: Rows, arrays) -> Dict:
@@ -220,7 +220,8 @@ class _Link:
 
     def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of) -> Iterator:
         """``(step, rows, arrays)`` for each of ``steps`` in order, ``prefetch`` fetches in
-        flight; an unanswered fetch is asked again after ``retry_s`` (the first answer wins)."""
+        flight; an unanswered fetch is asked again after ``retry_s`` (the first answer wins).
+        ``fetch_of(request, step)``: the step's :class:`Fetch` under that request id."""
         todo = iter(steps)
         waiting: Dict[int, int] = {}  # request id -> step
         asked: Dict[int, float] = {}  # step -> when last asked
@@ -230,8 +231,7 @@ class _Link:
 
         def send(step: int) -> None:
             req = next(self.ids)
-            f = fetch_of(step)
-            self.sock.send(pack(Fetch(req, f.epoch, f.start, f.stop, f.outputs, f.plan).to_wire()))
+            self.sock.send(pack(fetch_of(req, step).to_wire()))
             waiting[req], asked[step] = step, time.monotonic()
 
         for step in itertools.islice(todo, prefetch):

@@ -33,16 +33,15 @@ Nothing here owns a socket, a clock or a process; needs numpy only.
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Iterable, List, Mapping, Optional, Tuple
 
 import numpy as np
 
 from v2v_wire.ids import SampleKey
 
 __all__ = ["PLAN_VERSION", "SHUFFLE_BUFFER", "video_order", "Manifest", "PlanIdentity", "EpochPlan", "Position",
-           "PlanMismatch", "distinct_videos", "positions_of"]
+           "PlanMismatch", "distinct_videos"]
 
 #: The version of the rules above: a plan of another version gives another sequence, so a
 #: position taken under it is refused (:meth:`PlanIdentity.problem`).
@@ -236,10 +235,6 @@ class EpochPlan:
                 buf.pop()
         return np.array(out, dtype=np.int64)
 
-    def identity(self, recipe: str) -> PlanIdentity:
-        """This plan's identity under the recipe fingerprint ``recipe``."""
-        return PlanIdentity(self.manifest.fingerprint(), recipe, self.seed, self.shuffle_buffer)
-
     def __len__(self) -> int:
         """Samples in the epoch (no padding)."""
         return len(self.video_index)
@@ -287,12 +282,6 @@ class EpochPlan:
             raise ValueError(f"plan: rank {rank} of world size {world_size}, step {step}: out of range")
         first = start + (step * world_size + rank) * batch_size
         return range(first, first + batch_size)
-
-    def video_positions(self) -> Dict[str, np.ndarray]:
-        """Each video's positions in the epoch, sorted (int64): where its decode's samples go."""
-        order = np.argsort(self.video_index, kind="stable")
-        bounds = np.searchsorted(self.video_index[order], np.arange(len(self.videos) + 1))
-        return {v: order[bounds[i]:bounds[i + 1]] for i, v in enumerate(self.videos)}
 
 
 def _check_layout(world_size: int, batch_size: int, start: int) -> None:
@@ -347,10 +336,6 @@ class Position:
                 raise PlanMismatch(f"position taken under {problem}")
         return cls(plan, d["epoch"], d["sample_in_epoch"])
 
-    def to_json(self) -> str:
-        """:meth:`to_dict` as one line of JSON."""
-        return json.dumps(self.to_dict(), sort_keys=True)
-
 
 def distinct_videos(plan: EpochPlan, batch_size: int, world_size: int = 1) -> float:
     """Mean distinct videos per batch over the epoch's full batches at that layout (a measure of
@@ -362,24 +347,3 @@ def distinct_videos(plan: EpochPlan, batch_size: int, world_size: int = 1) -> fl
     s = np.sort(vid, axis=1)
     return float(np.mean(1 + np.count_nonzero(np.diff(s, axis=1), axis=1)))
 
-
-def positions_of(plan: EpochPlan, keys: Sequence[SampleKey]) -> List[int]:
-    """The positions of ``keys`` in ``plan`` (a resume state's delivered samples, say).
-
-    Raises:
-        KeyError: a key the plan does not list, naming it.
-    """
-    at = {}
-    k = plan.manifest.crops_per_window
-    index = {v: i for i, v in enumerate(plan.videos)}
-    want = {(index.get(key.video, -1), key.ordinal(k)) for key in keys}
-    for p, (vi, o) in enumerate(zip(plan.video_index.tolist(), plan.ordinal.tolist())):
-        if (vi, o) in want:
-            at[(vi, o)] = p
-    out = []
-    for key in keys:
-        p = at.get((index.get(key.video, -1), key.ordinal(k)))
-        if p is None:
-            raise KeyError(f"{key.sample_id(k)} is not in epoch {plan.epoch}'s plan")
-        out.append(p)
-    return out

@@ -171,10 +171,8 @@ class PlanServer:
         try:
             self.sockets.frontend.send_multipart([ident, pack(header), *frames], copy=False)
         except zmq.ZMQError:  # the client is gone (ROUTER_MANDATORY): it asks again if it comes back
-            self.feed.forget(self._fetcher(ident))
-
-    def _fetcher(self, ident: bytes):
-        return next((f.client for f in self.feed.pending if f.client[0] == ident), (ident, ()))
+            for client in {f.client for f in self.feed.pending if f.client[0] == ident}:
+                self.feed.forget(client)
 
     def _send_rows(self, f, rows: List[Row]) -> None:
         ident, outputs = f.client
