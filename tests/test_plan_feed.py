@@ -186,3 +186,23 @@ def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
     assert "the decode gave 1 window(s), the manifest 3" in rows[1].reason
     assert feed.task_for("w", 2.0) is None
 
+
+
+def test_decode_ahead_goes_on_into_the_next_epoch_within_the_lookahead():
+    # a trainer reading the end of epoch 0 finds epoch 1's first samples made, so one worker never
+    # waits at the boundary; what is made ahead stays within the lookahead
+    m = Manifest.of({f"v{i}.mp4": 2 for i in range(4)})
+    feed = PlanFeed(m, 0, 1, ("voxels",), lookahead=4, keep_samples=0)
+    feed.fetch("c", 1, 0, 6, 8, 0.0)  # the epoch's last batch
+    made = []
+    while (t := feed.task_for("w", 0.0)) is not None:
+        made.append((t.epoch, t.video))
+        for i in range(2):
+            feed.sample("w", t.task, SampleKey.at(t.video, i), 0.0, lambda lane: "s")
+        feed.done("w", t.task, 2, {}, None)
+    waited = {(0, EpochPlan(m, 0, 0, 1).key(p).video) for p in (6, 7)}
+    assert set(made[:len(waited)]) == waited
+    ahead = made[len(waited):]
+    assert ahead and {e for e, _ in ahead} == {1}
+    assert ahead[0][1] == EpochPlan(m, 0, 1, 1).key(0).video  # the next epoch's first position first
+    assert sum(1 for sk in feed.store if sk[0] == 1) <= feed.lookahead + 1

@@ -10,9 +10,10 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
 * **Tasks.** A task is one video of one epoch (a decode makes a video's samples in order: each
   video is decoded once per epoch while its samples are kept). An idle worker gets the first video
   (in the order of the positions that need it) that a pending fetch needs a sample of; else the
-  next video the positions after the furthest fetch need, while the samples made ahead and not
-  yet fetched, with those the running tasks will make, stay within ``lookahead`` samples: the
-  fetches to come find their samples made, and a server holds a bounded number of samples.
+  next video the positions after the furthest fetch need (past an epoch's end, the next epoch's
+  first ones), while the samples made ahead and not yet fetched, with those the running tasks
+  will make, stay within ``lookahead`` samples: the fetches to come find their samples made, the
+  workers stay busy across an epoch's end, and a server holds a bounded number of samples.
 * **Hedging.** A task that sent nothing for ``hedge_s`` while a fetch waits on it is handed to
   a second idle worker too; a sample's content is a function of (seed, epoch, id), so the first
   copy of each sample wins and the other is dropped.
@@ -260,18 +261,29 @@ class PlanFeed:
         budget -= sum(max(0, self.slots.get(v, 0) - made.get((e, v), 0)) for (e, v) in set(self.runs) | set(waited))
         ahead: List[Tuple[int, str]] = []
         for epoch, stop in sorted(furthest.items()):
-            plan = self.plan(epoch)
-            for p in range(stop, min(len(plan), stop + self.lookahead + self.shuffle_buffer)):
+            for e, key in self._after(epoch, stop, self.lookahead + self.shuffle_buffer):
                 if budget <= 0:
                     break
-                key = plan.key(p)
-                ek = (epoch, key.video)
-                if ek in waited or ek in self.runs or ek in ahead or (epoch, key) in self.store \
-                        or (epoch, key) in self.failed:
+                ek = (e, key.video)
+                if ek in waited or ek in self.runs or ek in ahead or (e, key) in self.store or (e, key) in self.failed:
                     continue
                 ahead.append(ek)
                 budget -= self.slots.get(key.video, 0) - made.get(ek, 0)
         return sorted(waited, key=waited.__getitem__), ahead
+
+    def _after(self, epoch: int, stop: int, count: int):
+        """(epoch, key) of the ``count`` positions from ``stop`` on: past the epoch's end, the next
+        epoch's first ones (a trainer reads its epochs in turn; decoding them while it reads the
+        end of this one keeps the workers busy across the boundary)."""
+        plan = self.plan(epoch)
+        for p in range(stop, min(len(plan), stop + count)):
+            yield epoch, plan.key(p)
+        rest = stop + count - max(stop, len(plan))
+        # never at the cost of a kept plan (its epoch's failures go with it)
+        if rest > 0 and len(plan) and (epoch + 1 in self.plans or len(self.plans) < PLANS_KEPT):
+            following = self.plan(epoch + 1)
+            for p in range(min(rest, len(following))):
+                yield epoch + 1, following.key(p)
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
         epoch, video = ek
