@@ -5,7 +5,9 @@ Run: ``python -m bench.plan_vs_push [--rounds 2] [--batches 12] [--out docs]``.
 Rows, each setting run ``rounds`` times, plan and push alternating:
 
 * samples/s with 1 and 2 workers through ``v2v-serve`` (a ``V2VPlanDataset`` against
-  ``v2v-loadtest``'s reader), and the server's peak resident memory (server and workers);
+  ``v2v-loadtest``'s reader), and the server's peak memory (server and workers): resident (RSS)
+  and proportional (PSS: the workers' shared-memory slot rings, which the server maps too,
+  counted once);
 * 4 crops per window against one, on one worker, both models;
 * the trainer's longest wait between two batches while one of two workers is stopped
   (SIGSTOP) for ``--stall-s`` seconds;
@@ -41,22 +43,40 @@ from v2v_wire.plan import EpochPlan, Manifest, distinct_videos
 BATCH = 4
 
 
+def tree_pss_mb(pid: int) -> float:
+    """Proportional set size of a process and all its descendants, MB (1e6 bytes): pages shared
+    between them (the slot rings) counted once."""
+    total, stack = 0, [pid]
+    while stack:
+        p = stack.pop()
+        try:
+            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Pss:"):
+                    total += int(line.split()[1]) * 1024
+            stack += [int(k) for k in Path(f"/proc/{p}/task/{p}/children").read_text().split()]
+        except OSError:
+            continue
+    return total / 1e6
+
+
 class PeakRss:
-    """Samples a process tree's resident memory every 0.2 s in a thread; ``peak`` MB."""
+    """Samples a process tree's resident and proportional memory every 0.2 s in a thread;
+    ``stop()`` gives both peaks, MB."""
 
     def __init__(self, pid: int):
-        self.pid, self.peak, self._stop = pid, 0.0, threading.Event()
+        self.pid, self.peak, self.peak_pss, self._stop = pid, 0.0, 0.0, threading.Event()
         self._t = threading.Thread(target=self._run, daemon=True)
         self._t.start()
 
     def _run(self) -> None:
         while not self._stop.wait(0.2):
             self.peak = max(self.peak, tree_rss_mb(self.pid))
+            self.peak_pss = max(self.peak_pss, tree_pss_mb(self.pid))
 
-    def stop(self) -> float:
+    def stop(self) -> dict:
         self._stop.set()
         self._t.join()
-        return self.peak
+        return {"peak_rss_mb": self.peak, "peak_pss_mb": self.peak_pss}
 
 
 def read_plan(endpoint: str, batches: int, warmup: int = 1, on_batch=None) -> dict:
@@ -99,7 +119,7 @@ def throughput(corpus: Path, mode: str, workers: int, batches: int, extra: List[
     with ServeProcess(args, ready_timeout_s=600) as srv:
         rss = PeakRss(srv.proc.pid)
         r = read_plan(srv.endpoint, batches) if mode == "plan" else read_push(srv.endpoint, batches)
-        r["peak_rss_mb"] = rss.stop()
+        r.update(rss.stop())
     return r
 
 

@@ -206,3 +206,28 @@ def test_decode_ahead_goes_on_into_the_next_epoch_within_the_lookahead():
     assert ahead and {e for e, _ in ahead} == {1}
     assert ahead[0][1] == EpochPlan(m, 0, 1, 1).key(0).video  # the next epoch's first position first
     assert sum(1 for sk in feed.store if sk[0] == 1) <= feed.lookahead + 1
+
+
+def test_workers_make_the_outputs_fetches_ask_for_and_a_new_one_remakes_what_lacks_it():
+    m = Manifest.of({"a.mp4": 2})
+    feed = PlanFeed(m, 0, 1, ("voxels", "frames", "flow"), lookahead=0)
+    feed.fetch("c", 1, 0, 0, 1, 0.0, ("voxels",))
+    narrow = feed.task_for("w1", 0.0)
+    assert narrow.outputs == ("voxels",)
+    assert feed.sample("w1", narrow.task, SampleKey("a.mp4", 0), 1.0, lambda lane: "voxels only")
+    (f, rows), = feed.answer(1.0)
+    assert rows[0].sample == "voxels only"
+    feed.fetch("d", 2, 0, 0, 2, 2.0, ("flow", "voxels"))  # flow: what was made lacks it
+    assert feed.making == ("voxels", "flow") and not feed.store
+    assert not feed.sample("w1", narrow.task, SampleKey("a.mp4", 1), 3.0, lambda lane: "voxels only")
+    assert feed.task_for("w2", 3.0) is None  # the video is being decoded: it ends first
+    feed.done("w1", narrow.task, 2, {}, None)
+    assert not feed.answer(4.0) and not feed.failed
+    wide = feed.task_for("w2", 4.0)
+    assert wide.outputs == ("voxels", "flow")
+    for i in range(2):
+        assert feed.sample("w2", wide.task, SampleKey("a.mp4", i), 5.0, lambda lane, i=i: f"wide {i}")
+    (f, rows), = feed.answer(5.0)
+    assert [r.sample for r in rows] == ["wide 0", "wide 1"]
+    with pytest.raises(ValueError, match="polarity_counts"):
+        feed.fetch("e", 3, 0, 0, 1, 6.0, ("polarity_counts",))

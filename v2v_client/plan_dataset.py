@@ -18,7 +18,7 @@ import zmq
 from v2v_wire.messages import WireError
 from v2v_wire.plan import PlanMismatch, Position
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, plan_server_message
-from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError, check_outputs, decode_arrays, pack, unpack
+from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, decode_arrays, pack, unpack
 
 from .tensors import batch_to_torch
 
@@ -38,7 +38,8 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         batch_size: rows per batch of this rank (>= 1).
         rank, world_size: this rank and the job's ranks (default: ``torch.distributed``'s when
             first needed, if initialised, else 0 and 1).
-        outputs: the outputs to read (default: every one the server makes).
+        outputs: which of ``OUTPUTS`` to read (default ``DEFAULT_OUTPUTS``, as
+            ``V2VStreamDataset``'s: the server's workers make only the outputs its readers ask for).
         raw: keep the wire dtypes (``tensors.batch_to_torch``).
         prefetch: fetches in flight per process (>= 1).
         retry_s: seconds a fetch may go unanswered before it is asked again (a lost reply, a
@@ -56,7 +57,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
     """
 
     def __init__(self, endpoint: str, batch_size: int, *, rank: Optional[int] = None,
-                 world_size: Optional[int] = None, outputs: Optional[Sequence[str]] = None, raw: bool = False,
+                 world_size: Optional[int] = None, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False,
                  prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0):
         super().__init__()
         for name, v in (("batch_size", batch_size), ("prefetch", prefetch)):
@@ -67,7 +68,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         if rank is not None or world_size is not None:
             _check_layout(0 if rank is None else rank, 1 if world_size is None else world_size)
         self.endpoint, self.batch_size, self._rank, self._world = endpoint, batch_size, rank, world_size
-        self.outputs = check_outputs(outputs, "outputs") if outputs is not None else None
+        self.outputs = check_outputs(outputs, "outputs")
         self.raw, self.prefetch, self.retry_s, self.timeout_s = raw, prefetch, retry_s, timeout_s
         self.epoch, self.start = 0, 0
         self._resume: Optional[dict] = None  # a loaded position, checked once the plan is known
@@ -149,12 +150,11 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         steps = len(self)
         w = torch.utils.data.get_worker_info()
         mine = range(w.id, steps, w.num_workers) if w is not None else range(steps)
-        outputs = self.outputs or check_outputs(info.stream["outputs"], "the server's outputs")
         per_step = self.world_size * self.batch_size
         with _Link(self.endpoint, self.timeout_s) as link:
             first = self.start + self.rank * self.batch_size  # of step 0
             for step, rows, arrays in link.fetch_all(mine, self.prefetch, self.retry_s, lambda req, s: Fetch(
-                    req, self.epoch, first + s * per_step, first + s * per_step + self.batch_size, outputs, info.plan)):
+                    req, self.epoch, first + s * per_step, first + s * per_step + self.batch_size, self.outputs, info.plan)):
                 yield self._item(info, step, rows, arrays)
 
     def _item(self, info: PlanInfo, step: int, rows: Rows, arrays) -> Dict:

@@ -103,7 +103,8 @@ class PlanFeed:
     Args:
         manifest: the corpus's slots (``v2v_wire.plan.Manifest``).
         seed, shuffle_buffer: the plan's (``EpochPlan``).
-        outputs: the outputs workers make (``protocol.OUTPUTS`` order).
+        outputs: the outputs workers may make (``protocol.OUTPUTS`` order): they make those the
+            fetches so far asked for (:attr:`making`), as a push server makes what its clients ask.
         lookahead: samples a server makes ahead of the fetches (made or being made, not yet fetched).
         keep_samples: fetched samples kept for other fetches (least recently used out).
         hedge_s: seconds a task may send nothing while a fetch waits before a second worker
@@ -125,6 +126,8 @@ class PlanFeed:
         self.slots = {v: n * manifest.crops_per_window for v, n in manifest.slots}  # samples per video
         self.largest = max(self.slots.values(), default=0)
         self.outputs = tuple(outputs)
+        self.making: Tuple[str, ...] = ()  # the outputs the fetches so far asked for, in ``outputs`` order
+        self.task_outputs: Dict[int, Tuple[str, ...]] = {}  # running task id -> the outputs it makes
         self.lookahead, self.keep_samples = lookahead, keep_samples
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
         self.plans: "OrderedDict[int, EpochPlan]" = OrderedDict()
@@ -151,14 +154,26 @@ class PlanFeed:
             self.plans.move_to_end(epoch)
         return p
 
-    def fetch(self, client: Hashable, request: int, epoch: int, start: int, stop: int, now: float) -> None:
-        """Queue a fetch of positions ``start .. stop - 1`` of ``epoch``, asked at ``now`` (s).
+    def fetch(self, client: Hashable, request: int, epoch: int, start: int, stop: int, now: float,
+              outputs: Optional[Sequence[str]] = None) -> None:
+        """Queue a fetch of positions ``start .. stop - 1`` of ``epoch`` and ``outputs`` (default:
+        every one of ``outputs``), asked at ``now`` (s). An output no fetch asked for before widens
+        what workers make: the samples kept lack it, so they go, and the running tasks' samples
+        are dropped as they come (their videos are decoded again with it).
 
         Raises:
-            ValueError: ``start`` < 0 or ``stop`` <= ``start``, or more than 4096 positions.
+            ValueError: ``start`` < 0 or ``stop`` <= ``start``, or more than 4096 positions; an
+                output not in ``outputs``.
         """
         if not 0 <= start < stop or stop - start > 4096:
             raise ValueError(f"fetch positions {start}..{stop - 1}: must be 1 to 4096 positions from >= 0")
+        asked = self.outputs if outputs is None else tuple(outputs)
+        if not set(asked) <= set(self.outputs):
+            raise ValueError(f"fetch outputs {sorted(set(asked) - set(self.outputs))}: not among {list(self.outputs)}")
+        if not set(asked) <= set(self.making):
+            self.making = tuple(o for o in self.outputs if o in asked or o in self.making)
+            self.store.clear()
+            self.fetched.clear()
         self.plan(epoch)
         self.pending.append(Fetch(client, request, epoch, start, stop))
         self.fetched_at[epoch] = now
@@ -294,7 +309,8 @@ class PlanFeed:
         self.task_run[tid] = ek
         skip = {(k.window, k.crop) for (e, k) in list(self.store) + list(self.failed) if e == epoch and k.video == video}
         run.skips[tid] = skip
-        return Task(tid, epoch, video, self.outputs, tuple(sorted(skip)), tuple(codecs))
+        self.task_outputs[tid] = self.making
+        return Task(tid, epoch, video, self.making, tuple(sorted(skip)), tuple(codecs))
 
     def sample(self, worker: Hashable, task_id: int, key: SampleKey, now: float, build: Callable) -> bool:
         """Worker ``worker`` sent sample ``key`` of task ``task_id``; ``build(lane)`` makes the
@@ -314,7 +330,7 @@ class PlanFeed:
         if key.ordinal(kpw) >= self.slots.get(key.video, 0):
             raise SlotsExceeded(f"{key.video}: the decode gave {key.sample_id(kpw)}, past the manifest's "
                                 f"{self.slots.get(key.video, 0) // kpw} window(s) for it (a stale manifest, or a wrong bound)")
-        if sk in self.store:
+        if sk in self.store or self.task_outputs.get(task_id) != self.making:  # made already, or lacks an output
             return False
         self.failed.pop(sk, None)
         self.store[sk] = build(0)
@@ -331,6 +347,7 @@ class PlanFeed:
         if ek is None or self.runs[ek].copies.get(task_id) != worker:
             return None
         del self.task_run[task_id]
+        self.task_outputs.pop(task_id, None)
         run = self.runs[ek]
         run.error = error
         skip = run.skips.get(task_id, set())
@@ -355,6 +372,7 @@ class PlanFeed:
             run = self.runs[ek]
             if run.copies.get(tid) == worker:
                 del self.task_run[tid]
+                self.task_outputs.pop(tid, None)
                 run.end(tid)
                 if not run.copies:
                     del self.runs[ek]

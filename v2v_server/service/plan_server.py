@@ -165,7 +165,7 @@ class PlanServer:
             why = f"fetch under {problem}" if problem else f"outputs {missing} are not served here (--outputs)"
             self._send(ident, Refused(msg.request, why).to_wire())
             return
-        self.feed.fetch((ident, msg.outputs), msg.request, msg.epoch, msg.start, msg.stop, now)
+        self.feed.fetch((ident, msg.outputs), msg.request, msg.epoch, msg.start, msg.stop, now, msg.outputs)
 
     def _send(self, ident: bytes, header: dict, frames: Sequence = ()) -> None:
         try:
