@@ -10,7 +10,9 @@ Rows, each setting run ``rounds`` times, plan and push alternating:
   counted once);
 * 4 crops per window against one, on one worker, both models;
 * the trainer's longest wait between two batches while one of two workers is stopped
-  (SIGSTOP) for ``--stall-s`` seconds;
+  (SIGSTOP) for ``--stall-s`` seconds, and with a slow 1920 x 1080 file in the corpus (the
+  street clip's first ``SLOW_FRAMES`` frames upscaled, ``bench.frame_scale.make_source``) beside
+  one window's make of that file in this process (its decode and simulation, ``video_samples``);
 * distinct videos per batch of 12 at the push bench's shape (200 videos of 10 windows, a buffer
   of 64), from the pure parts (``EpochPlan`` against ``Batcher``, ``bench.shuffle.buffer_sizes``).
 
@@ -152,6 +154,47 @@ def stalled(corpus: Path, mode: str, batches: int, stall_s: float) -> dict:
         return {"longest_wait_s": longest, "stopped": stopped}
 
 
+#: Frames of the slow 1080p file: two windows of the default recipe.
+SLOW_FRAMES = 402
+
+
+def slow_file(corpus: Path) -> dict:
+    """Add a 1920 x 1080 file to ``corpus``; the seconds one window of it takes to make here."""
+    from bench.frame_scale import make_source
+    from bench.speed import clip_path
+    from v2v_server.flow.estimate import FlowEstimator
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.samples.make import video_samples
+    from v2v_server.sources.local import LocalSource
+
+    make_source(clip_path(), corpus / "slow_1080p.mp4", (1920, 1080), SLOW_FRAMES)
+    recipe = ServeConfig.from_dict({"shot_cuts": "off"}).recipe
+    flow = FlowEstimator(recipe.flow_preset)
+    t = time.perf_counter()
+    with video_samples(recipe, LocalSource(corpus), "slow_1080p.mp4", 0, ("voxels", "frames", "flow"), (), flow) as run:
+        next(iter(run))
+    return {"window_s": time.perf_counter() - t}
+
+
+def slow_wait(corpus: Path, mode: str, batches: int) -> dict:
+    """The longest wait between batches, 2 workers, with ``slow_file``'s file in ``corpus``."""
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", "2", "--batch-size", str(BATCH),
+            "--delivery", mode]
+    with ServeProcess(args, ready_timeout_s=600) as srv:
+        if mode == "plan":
+            return read_plan(srv.endpoint, batches)
+        from v2v_client import V2VStreamDataset
+        longest, last = 0.0, None
+        for n, _ in enumerate(V2VStreamDataset(srv.endpoint, timeout_s=300), 1):
+            now = time.perf_counter()
+            if last is not None and n > 2:
+                longest = max(longest, now - last)
+            last = now
+            if n >= batches + 1:
+                break
+        return {"longest_wait_s": longest}
+
+
 def busiest_worker(server_pid: int) -> int:
     """The server's worker process (``v2v_server`` worker, not multiprocessing's resource
     tracker) that used the most CPU over 0.3 s: one busy on a task."""
@@ -178,10 +221,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--batches", type=int, default=12)
     ap.add_argument("--copies", type=int, default=2)
     ap.add_argument("--stall-s", type=float, default=20.0)
-    ap.add_argument("--parts", default="throughput,crops,stall", help="which rows to run, comma-separated")
+    ap.add_argument("--parts", default="throughput,crops,stall,slow", help="which rows to run, comma-separated")
     ap.add_argument("--out", type=Path, default=None, help="folder for plan_vs_push.json")
     a = ap.parse_args(argv)
-    out: dict = {"mixing": mixing(), "throughput": [], "crops": [], "stall": []}
+    out: dict = {"mixing": mixing(), "throughput": [], "crops": [], "stall": [], "slow": []}
     print(json.dumps(out["mixing"]), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         corpus = good_corpus(Path(tmp), a.copies)
@@ -202,6 +245,12 @@ def main(argv: Optional[List[str]] = None) -> int:
             row = {"mode": mode, "stall_s": a.stall_s, **stalled(corpus, mode, a.batches, a.stall_s)}
             out["stall"].append(row)
             print(json.dumps(row), flush=True)
+        if "slow" in parts:
+            made = slow_file(corpus)
+            for mode in ("push", "plan"):
+                row = {"mode": mode, **made, **slow_wait(corpus, mode, a.batches)}
+                out["slow"].append(row)
+                print(json.dumps(row), flush=True)
     if a.out is not None:
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "plan_vs_push.json").write_text(json.dumps(out, indent=1) + "\n")
