@@ -102,6 +102,14 @@ def test_a_position_of_another_plan_is_refused_in_one_line(server):
     assert "\n" not in str(err.value) and "seed 99 (this plan: 0)" in str(err.value)
 
 
+def test_a_push_streams_resume_state_is_refused_in_one_line():
+    from v2v_client import V2VStreamDataset
+    push_state = V2VStreamDataset("tcp://127.0.0.1:1").state_dict()  # no server is asked
+    with pytest.raises(PlanMismatch) as err:
+        V2VPlanDataset("tcp://127.0.0.1:1", 4).load_state_dict(push_state)
+    assert "\n" not in str(err.value) and "push stream's resume state" in str(err.value)
+
+
 def test_a_server_killed_mid_epoch_costs_only_the_fetches_in_flight(tmp_path):
     """``v2v-serve --delivery plan`` killed (SIGKILL) after two steps and started again on the same
     address: the reader asks its unanswered fetches again and gets the same epoch, bit for bit."""

@@ -116,9 +116,15 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         its epoch is read next, from that position.
 
         Raises:
-            PlanMismatch: a malformed position (naming the field), or one of another plan than the
-                server's (one line naming what differs; checked when the server is first asked).
+            PlanMismatch: a malformed position (naming the field), one of another plan than the
+                server's (one line naming what differs; checked when the server is first asked),
+                or a push stream's resume state (``V2VStreamDataset`` / ``StreamLoader``: the sample
+                ids it delivered, which no position of a plan's fixed slices stands for).
         """
+        if isinstance(state, dict) and "delivered" in state and "plan" not in state:
+            raise PlanMismatch(f"a push stream's resume state (of consumer {state.get('consumer')!r}, completed epoch "
+                               f"{state.get('completed_epoch')!r}) is not a plan's position: resume from a batch's "
+                               f"'position', or read an epoch from its start with set_epoch()")
         pos = Position.from_dict(state)
         self._resume = pos.to_dict()
         if self._info is not None:
