@@ -6,6 +6,7 @@ world size, a server killed mid-epoch costing only the fetches in flight."""
 from __future__ import annotations
 
 import hashlib
+import threading
 import signal
 import subprocess
 from pathlib import Path
@@ -89,6 +90,31 @@ def test_a_checkpoint_resumes_at_another_world_size_without_a_repeat_or_a_loss(s
 def test_spawned_dataloader_workers_read_the_plan(server):
     rows, _ = read(V2VPlanDataset(server, 4), workers=2, context="spawn")
     assert len(set(real_ids(rows))) == SAMPLES
+
+
+def test_two_jobs_read_one_server_at_once_each_its_own_whole_epoch(server):
+    # a sweep: two trainers of other layouts, epochs and outputs share the decode workers; each
+    # reads its epoch exactly, the same bytes as a job reading alone
+    alone = {e: read(_at_epoch(V2VPlanDataset(server, 4), e))[0] for e in (0, 1)}
+    got = {}
+
+    def job(name, epoch, batch, outputs):
+        got[name] = read(_at_epoch(V2VPlanDataset(server, batch, outputs=outputs), epoch))[0]
+
+    threads = [threading.Thread(target=job, args=("a", 0, 3, ("voxels",))),
+               threading.Thread(target=job, args=("b", 1, 5, ("voxels", "frames", "flow")))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    for name, epoch in (("a", 0), ("b", 1)):
+        assert len(real_ids(got[name])) == len(set(real_ids(got[name]))) == SAMPLES
+        assert [r for r in got[name] if not r[1]] == [r for r in alone[epoch] if not r[1]]
+
+
+def _at_epoch(ds, epoch):
+    ds.set_epoch(epoch)
+    return ds
 
 
 def test_a_position_of_another_plan_is_refused_in_one_line(server):
