@@ -12,6 +12,10 @@ LAUNCHER ENDPOINT OUT_DIR``; gloo on CPU):
     deepspeed    deepspeed.initialize(training_data=ds) (the error it raises is recorded), then the
                  engine over DataLoader(ds, batch_size=None)
 
+With ``--plan BATCH`` the ranks read a server serving by plan (``v2v-serve --delivery plan``)
+through ``V2VPlanDataset(ENDPOINT, BATCH)``, whose rank and world size come from the process
+group, and ``elastic`` checkpoints each step's ``batch["position"]``.
+
 Each rank writes ``OUT_DIR/rank{R}.json``: ``seen`` (ids trained on, padding excluded, in the
 history that survives: with ``elastic``, the checkpoint's plus those after the resume), ``batches``,
 ``refused`` (the first line of the error the launcher's own loader helper raised, if any) and
@@ -125,7 +129,7 @@ def elastic(ds, rec, out: Path, kill_after: int) -> None:
         opt.zero_grad()
         if rec["attempt"] == 0 and rank == 1 and step == kill_after:
             os.kill(os.getpid(), signal.SIGKILL)  # mid-epoch, before this step's checkpoint
-        state = {"stream": ds.state_dict(), "seen": rec["seen"],
+        state = {"stream": batch["position"] if "position" in batch else ds.state_dict(), "seen": rec["seen"],
                  "model": {k: v.tolist() for k, v in model.state_dict().items()}}
         tmp = out / f".ckpt.rank{rank}.tmp"
         tmp.write_text(json.dumps(state))
@@ -157,12 +161,16 @@ def main() -> None:
     ap.add_argument("endpoint")
     ap.add_argument("out")
     ap.add_argument("--kill-after", type=int, default=1)
+    ap.add_argument("--plan", type=int, default=0, metavar="BATCH", help="read a plan, BATCH rows a rank")
     args = ap.parse_args()
 
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPlanDataset, V2VStreamDataset
 
     out = Path(args.out)
-    ds = V2VStreamDataset(args.endpoint, outputs=("frames",), timeout_s=60, credits=2)
+    if args.plan:
+        ds = V2VPlanDataset(args.endpoint, args.plan, outputs=("frames",), timeout_s=60)
+    else:
+        ds = V2VStreamDataset(args.endpoint, outputs=("frames",), timeout_s=60, credits=2)
     rec = {"seen": [], "batches": 0, "refused": None, "attempt": int(os.environ.get("TORCHELASTIC_RESTART_COUNT", 0))}
     if args.launcher == "fabric":
         fabric(ds, rec)

@@ -75,7 +75,7 @@ class Outcome:
     biggest_store: int = 0
 
 
-def check(seed: int, ticks: int = 6000) -> Outcome:
+def check(seed: int, ticks: int = 30000) -> Outcome:
     """Run the world of ``seed`` (module docstring) for at most ``ticks`` ticks."""
     rng = random.Random(seed)
     kpw = rng.choice([1, 1, 2])

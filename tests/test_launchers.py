@@ -233,6 +233,26 @@ def test_deepspeed_engine_over_the_stream_and_training_data_refused(tmp_path):
         assert "DataLoader(ds, batch_size=None)" in r["refused"]
 
 
+@pytest.mark.parametrize("launcher", ["fabric", "ignite", "elastic", "deepspeed"])
+def test_a_plan_under_fabric_ignite_deepspeed_and_an_elastic_restart(tmp_path, launcher):
+    """The same loops reading ``V2VPlanDataset`` from ``v2v-serve --delivery plan``: each id of the
+    epoch once across the ranks, the ranks in step; ``elastic`` resumes both restarted ranks from
+    the position of the last step both checkpointed."""
+    corpus = faults.good_corpus(tmp_path, 2 if launcher == "elastic" else 1)
+    expected = faults.expected_ids(corpus, LAYOUT)
+    args = ["--delivery", "plan", "--videos", str(corpus), "--workers", "2", *LAYOUT.args()]
+    extra = ("--max-restarts", "1") if launcher == "elastic" else ()
+    with ServeProcess(args) as srv:
+        ranks = _torchrun("harness.launcher_job", [launcher, srv.endpoint, tmp_path / "out", "--plan", LAYOUT.batch],
+                          tmp_path / "out", *extra)
+    assert ranks[0]["batches"] == ranks[1]["batches"] > 0
+    _once([s for r in ranks for s in r["seen"]], expected)
+    if launcher == "elastic":
+        assert [(r["attempt"], r["resumed_from"]) for r in ranks] == [(1, 0), (1, 0)]
+    if launcher == "ignite":  # its auto_dataloader's batch-size scaling, as over push
+        assert all(r["refused"].startswith("TypeError: '>=' not supported") for r in ranks), ranks
+
+
 def _stream_batch(ids, epoch=0, batch_id=0):
     """A batch as V2VStreamDataset yields it (frames only), its params carrying nested values."""
     import torch
