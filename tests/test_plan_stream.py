@@ -128,6 +128,14 @@ def test_a_position_of_another_plan_is_refused_in_one_line(server):
     assert "\n" not in str(err.value) and "seed 99 (this plan: 0)" in str(err.value)
 
 
+@pytest.mark.parametrize("key, value", [("state_dir", "state"), ("epochs", 2), ("revoke_s", 5.0)])
+def test_push_only_settings_given_with_a_plan_are_refused_naming_them(key, value):
+    from v2v_server.ops.config import ServeConfig
+    with pytest.raises(ValueError, match=rf"^config: {key} is push delivery's: .*delivery_mode push\)$"):
+        ServeConfig.from_dict({"delivery_mode": "plan", key: value})
+    assert getattr(ServeConfig.from_dict({key: value}), key) == value  # push takes it
+
+
 def test_a_push_streams_resume_state_is_refused_in_one_line():
     from v2v_client import V2VStreamDataset
     push_state = V2VStreamDataset("tcp://127.0.0.1:1").state_dict()  # no server is asked

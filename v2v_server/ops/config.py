@@ -157,6 +157,16 @@ class ServingSettings:
                 raise ValueError(f"state_dir must be a folder path, got {self.state_dir!r}")
 
 
+#: Settings of push delivery that a server serving by plan has no use for, and why: given with
+#: ``delivery_mode: plan`` they are refused, never ignored.
+PUSH_ONLY = {
+    "state_dir": "a server serving by plan keeps no journal (a checkpoint is the trainer's position)",
+    "epochs": "a trainer reading a plan owns its epochs (ds.set_epoch)",
+    "revoke_s": "a server serving by plan grants no batches to revoke",
+    "curve_secret_key": "V2VPlanDataset takes no CurveZMQ keys yet",
+}
+
+
 class ServeConfig:
     """Everything ``v2v-serve`` needs to know: the composition of each stage's settings.
 
@@ -193,6 +203,10 @@ class ServeConfig:
         for name, part in zip(self.__slots__, (recipe, delivery, ServingSettings(**given["serving"]),
                                                StoreSettings(**given["store"]))):
             object.__setattr__(self, name, part)
+        if delivery.delivery_mode == "plan":
+            for key, why in PUSH_ONLY.items():
+                if getattr(self, key) is not None:
+                    raise ValueError(f"{key} is push delivery's: {why} (drop it, or serve with delivery_mode push)")
 
     def __getattr__(self, name: str):
         part = _OWNERS.get(name)
