@@ -136,6 +136,26 @@ def test_push_only_settings_given_with_a_plan_are_refused_naming_them(key, value
     assert getattr(ServeConfig.from_dict({key: value}), key) == value  # push takes it
 
 
+def test_a_manifest_once_counted_is_read_from_the_corpus_index_when_the_server_starts_again(tmp_path):
+    import dataclasses
+    from v2v_server.frames.check import PACKETS_LAYOUT
+    from v2v_server.ops.config import ServeConfig
+    from v2v_server.ops.plan_start import plan_manifest
+    from v2v_server.ops.startup import start_source
+
+    cfg = ServeConfig.from_dict({**RECIPE, "shot_cuts": "off", "cache_dir": str(tmp_path)})
+    first, _ = plan_manifest(start_source(cfg))  # the bundled clips: packet passes
+    start = start_source(cfg)
+    index, rel = start.caches.corpus_index(), first.slots[0][0]
+    where, identity = start.source.where(rel), start.source.listed_identity(rel)
+    kept = index.lookup(where, identity, PACKETS_LAYOUT + cfg.recipe.reads.key)
+    assert kept is not None and kept.windows == first.slots[0][1]
+    assert plan_manifest(start)[0] == first  # started again: the same manifest, the same plan
+    # an entry of the index is what a start reads (no packet pass): one changed by hand shows it
+    index.record(where, identity, PACKETS_LAYOUT + cfg.recipe.reads.key, dataclasses.replace(kept, windows=99))
+    assert dict(plan_manifest(start)[0].slots) == {**dict(first.slots), rel: 99}
+
+
 def test_a_push_streams_resume_state_is_refused_in_one_line():
     from v2v_client import V2VStreamDataset
     push_state = V2VStreamDataset("tcp://127.0.0.1:1").state_dict()  # no server is asked

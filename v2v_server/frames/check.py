@@ -31,6 +31,12 @@ def check_video(windows: WindowSettings, decode: DecodeSettings, source: VideoSo
     return read.verdict()
 
 
+#: The corpus index's layout prefix of a packet count's bound (``count_windows``), kept apart from
+#: the windows a decode found: a server serving by plan counts each video by one rule, whatever
+#: else the host read of it, so a server started again gives the same manifest.
+PACKETS_LAYOUT = "packets:"
+
+
 def count_windows(windows: WindowSettings, decode: DecodeSettings, reads: PassRecord, source: VideoSource, rel: str,
                   caches: Optional[HostCaches] = None) -> Tuple[int, Optional[str]]:
     """Windows the video at ``rel`` of ``source`` gives per epoch, read the one way every reader
@@ -39,8 +45,9 @@ def count_windows(windows: WindowSettings, decode: DecodeSettings, reads: PassRe
     exact while a decode gives a frame per packet, docs/plan_slots.md); with ``shot_cuts: avoid``
     or ``static_windows: skip``, or for a segment, its decoded frames as :func:`check_video` reads
     them (the windows depend on the cuts, the motion or the range's frames; answered from the
-    corpus index of ``caches`` while the video's identity holds). ``reads``: the sample pass's
-    record (``SampleRecipe.reads``).
+    corpus index of ``caches`` while the video's identity holds; a packet count is kept there
+    too, under :data:`PACKETS_LAYOUT`, so a server started again reads no packet). ``reads``:
+    the sample pass's record (``SampleRecipe.reads``).
 
     Returns ``(windows, reason)``: ``reason`` is ``None`` for a usable file, else the text
     ``v2v-serve`` logs for it. A file whose packets demux but whose frames do not decode is found
@@ -48,11 +55,18 @@ def count_windows(windows: WindowSettings, decode: DecodeSettings, reads: PassRe
     """
     if windows.reads_frames or split_segment(rel)[1]:
         v = check_video(windows, decode, source, rel, caches)
-    else:
+        return v.windows, (None if v.usable else v.reason)
+    index = caches.corpus_index() if caches is not None else None
+    where, layout = source.where(rel), PACKETS_LAYOUT + reads.key
+    identity = source.listed_identity(rel) if index is not None else None
+    v = index.lookup(where, identity, layout) if identity is not None else None
+    if v is None:
         with read_video(source, rel, reads, part="packets") as read:
             for _ in read.frames:
                 pass
         v = read.verdict()
+        if identity is not None and read.error is None:
+            index.record(where, identity, layout, v)
     return v.windows, (None if v.usable else v.reason)
 
 

@@ -14,7 +14,8 @@ video whose identity cannot vouch for its content (changed within the file syste
 resolution of now, an object without a version tag) is neither stored nor answered from the
 index. The window layout is :func:`layout_key`, the key of what a pass reads
 (``pass_record.PassRecord``): every setting that moves a window or changes a verdict, so one
-video has one entry per layout it was read under.
+video has one entry per layout it was read under. A server serving by plan keeps each video's
+packet count's bound here too, under ``frames.check.PACKETS_LAYOUT`` and the sample pass's key.
 """
 from __future__ import annotations
 
@@ -223,6 +224,9 @@ class CorpusIndex:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._db = sqlite3.connect(str(self.path), timeout=timeout_s, isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
+        # a cache: a power cut may lose the last entries written, never corrupt the file (WAL), and
+        # an entry costs no fsync (a manifest's count records one per video)
+        self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
         row = self._db.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()
         if (row is not None and row[0] != str(INDEX_VERSION)) or _columns(self._db) != _schema_columns():
