@@ -87,6 +87,17 @@ def test_a_checkpoint_resumes_at_another_world_size_without_a_repeat_or_a_loss(s
     assert sorted(before + after) == sorted(set(before + after)) and len(before + after) == SAMPLES
 
 
+def test_a_batch_of_padding_only_has_the_shapes_and_dtypes_of_a_batch_of_samples(server):
+    """Batches of 5 over 2 ranks: rank 1's last step lies past the epoch's end (every row padding);
+    its tensors are zeros of the shapes and dtypes of the batches that carry samples."""
+    batches = list(torch.utils.data.DataLoader(V2VPlanDataset(server, 5, rank=1, world_size=2), batch_size=None))
+    assert batches[-1]["padding"].all() and not batches[0]["padding"].any()
+    for name, t in batches[-1].items():
+        if isinstance(t, torch.Tensor) and name != "padding":
+            assert (t.shape, t.dtype) == (batches[0][name].shape, batches[0][name].dtype), name
+            assert not t.any(), name
+
+
 def test_spawned_dataloader_workers_read_the_plan(server):
     rows, _ = read(V2VPlanDataset(server, 4), workers=2, context="spawn")
     assert len(set(real_ids(rows))) == SAMPLES

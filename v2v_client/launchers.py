@@ -28,6 +28,9 @@ and each rank loads its own part (:func:`rank_part`). A stateful loader under mo
 not made by :func:`prepare_loader` is refused at its first batch, as is ``skip_first_batches``
 (it would throw away batches the server counts as delivered).
 
+:func:`prepare_loader` takes a ``V2VPlanDataset``'s loader too: how a plan reads under accelerate is
+``plan_accelerate``'s.
+
 Reading ahead: accelerate's loaders take a batch (per rank) or a group (dispatch) before the loop
 has received the one before. When the loop leaves or the stream fails, those batches go back to
 the dataset, which yields them first next time (:class:`ReadAhead`).
@@ -402,20 +405,37 @@ def _gather_states(loader):
     return hook
 
 
+def _share_first(loader):
+    """A save-state pre-hook for a plan's loader: process 0's loader state in every process's
+    snapshot (under dispatch only process 0 reads; per rank every rank at one step has the same
+    state), so every process writes the same file."""
+    def hook(models, weights, output_dir) -> None:
+        snap = loader.state_dict()
+        if _world() == 1 or not isinstance(snap, dict):
+            return
+        box = [snap if torch.distributed.get_rank() == 0 else None]
+        torch.distributed.broadcast_object_list(box, src=0)
+        if torch.distributed.get_rank() != 0:
+            snap.clear()
+            snap.update(box[0])
+    return hook
+
+
 def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
-    """``loader`` (``DataLoader(V2VStreamDataset(...), batch_size=None)``) prepared by ``accelerator``
-    in the mode its ``DataLoaderConfiguration`` names, in place of ``accelerator.prepare(loader)``:
-    dispatch (the default) as accelerate builds it; per rank (``dispatch_batches=False``) as
-    accelerate's ``DataLoaderShard`` around the whole dataset, so each rank reads its own share of
-    the stream. With ``use_stateful_dataloader=True`` it registers the save hook that keeps every
-    rank's dataset state in the saved loader state. The result is registered with the accelerator
+    """``loader`` (``DataLoader(ds, batch_size=None)`` over a ``V2VStreamDataset`` or a
+    ``V2VPlanDataset``) prepared by ``accelerator`` in the mode its ``DataLoaderConfiguration``
+    names, in place of ``accelerator.prepare(loader)``: dispatch (the default) as accelerate builds
+    it; per rank (``dispatch_batches=False``) as accelerate's ``DataLoaderShard`` around the whole
+    dataset, so each rank reads its own share. With ``use_stateful_dataloader=True`` it registers
+    the save hook that makes the saved loader state right for every rank (a stream: every rank's
+    dataset state; a plan: process 0's loader state). The result is registered with the accelerator
     (``save_state`` / ``load_state`` cover it; ``accelerator.prepare`` passes it through).
 
     A loader this function made for ``accelerator`` is returned as it is (preparing it again
     would register a second loader, whose never-read state ``save_state`` writes first).
 
     Raises:
-        TypeError: the loader does not read a V2VStreamDataset.
+        TypeError: the loader reads neither a V2VStreamDataset nor a V2VPlanDataset.
         ValueError: the loader batches the stream's batches again (``batch_size`` not None), or
             accelerate prepared it already (``accelerator.prepare``, or ``prepare_loader`` for
             another accelerator).
@@ -430,10 +450,12 @@ def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
                          "call prepare_loader(accelerator, DataLoader(ds, batch_size=None)) once and use what it "
                          "returns")
     ds = loader.dataset
-    if not callable(getattr(ds, "read_alone", None)):
-        raise TypeError(f"prepare_loader reads a V2VStreamDataset; this loader reads {type(ds).__name__}")
+    plan = callable(getattr(ds, "plan_info", None))  # a V2VPlanDataset (its module imports this one)
+    if not plan and not callable(getattr(ds, "read_alone", None)):
+        raise TypeError(f"prepare_loader reads a V2VStreamDataset or a V2VPlanDataset; this loader reads "
+                        f"{type(ds).__name__}")
     if loader.batch_size is not None:
-        raise ValueError(f"the loader has batch_size={loader.batch_size}: V2VStreamDataset yields whole batches, "
+        raise ValueError(f"the loader has batch_size={loader.batch_size}: {type(ds).__name__} yields whole batches, "
                          f"use DataLoader(ds, batch_size=None)")
     dispatch = accelerator.dispatch_batches
     if accelerator.num_processes > 1 and (dispatch is False or (dispatch is None and not accelerator.device_placement)):
@@ -444,7 +466,7 @@ def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
         loader._is_accelerate_prepared = True  # accelerate's own mark: prepare_data_loader registers it as it is
     loader = accelerator.prepare_data_loader(loader)
     if accelerator.use_stateful_dataloader:
-        accelerator.register_save_state_pre_hook(_gather_states(loader))
+        accelerator.register_save_state_pre_hook(_share_first(loader) if plan else _gather_states(loader))
         ds.gathers_state = True
     loader._v2v_prepared_by = accelerator
     return loader

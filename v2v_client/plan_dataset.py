@@ -5,11 +5,18 @@ The dataset holds no socket and no lock: each process that iterates it (the main
 DataLoader worker started by fork, spawn or forkserver) opens its own connection, so it pickles
 as plain settings. With ``k`` DataLoader workers, worker ``j`` reads steps ``j, j + k, ...``, and
 the DataLoader's round robin yields them in step order.
+
+Loaders that snapshot a dataset's state (torchdata's ``StatefulDataLoader``, Accelerate's with
+``use_stateful_dataloader=True``) read :meth:`V2VPlanDataset.state_dict`: what this process (the
+main process, or one DataLoader worker) has yielded, restored in the same worker by
+:meth:`V2VPlanDataset.load_state_dict`. Under Accelerate's dispatcher the process that reads
+yields every rank's batch of each step in turn (``plan_accelerate``).
 """
 from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Mapping
 from typing import Dict, Iterator, Optional, Sequence
 
 import torch
@@ -20,6 +27,7 @@ from v2v_wire.plan import PlanMismatch, Position
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, plan_server_message
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, decode_arrays, pack, unpack
 
+from . import plan_accelerate
 from .tensors import batch_to_torch
 
 __all__ = ["V2VPlanDataset"]
@@ -51,6 +59,8 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
     file did not give), ``sample_ids`` (None for a row past the end), ``params``, ``epoch``,
     ``step``, and ``position``: the checkpoint after this step (``Position.to_dict``), the same on
     every rank; :meth:`load_state_dict` takes it, at any world size and batch size.
+    :meth:`state_dict` is what this process has read (the state torchdata's ``StatefulDataLoader``
+    snapshots per DataLoader worker).
 
     Raises:
         ValueError: a bad setting, naming it.
@@ -72,6 +82,11 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         self.raw, self.prefetch, self.retry_s, self.timeout_s = raw, prefetch, retry_s, timeout_s
         self.epoch, self.start = 0, 0
         self._resume: Optional[dict] = None  # a loaded position, checked once the plan is known
+        self._pending: Optional[dict] = None  # a loaded reader state, read by the next __iter__ only
+        self._reading: Optional[dict] = None  # what this process's iteration has yielded (state_dict)
+        self._upcoming: Optional[dict] = None  # the loaded state an iteration not yet begun took
+        self._dispatch: Optional[tuple] = None  # under accelerate's dispatcher: (ranks, stateful), once known
+        self.gathers_state = False  # v2v_client.prepare_loader's save hook shares rank 0's loader state
         self._info: Optional[PlanInfo] = None
 
     # ------------------------------------------------------------------ layout
@@ -98,38 +113,104 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
 
     def __getstate__(self) -> dict:
         """Pickled (a DataLoader worker started by spawn or forkserver, where the process group
-        does not exist) with the layout this process sees."""
+        and accelerate's loaders do not exist) with the layout and the dispatcher this process sees."""
         state = dict(self.__dict__)
         state["_rank"], state["_world"] = self._layout()
+        state["_dispatch"] = self._dispatcher()
+        state["_reading"] = state["_upcoming"] = None
         return state
 
     # ------------------------------------------------------------------ epochs and positions
     def set_epoch(self, epoch: int) -> None:
-        """Read ``epoch`` next: from the loaded position when it is that epoch's, else from its start."""
+        """Read ``epoch`` next: from the loaded position when it is that epoch's, else from its start.
+
+        Raises:
+            ValueError: a bad epoch.
+            RuntimeError: (called by accelerate's loader as it begins a pass) a way of accelerate's
+                that cannot read the plan exactly once (one line saying what to do instead;
+                ``plan_accelerate.check_loader``).
+        """
         if not isinstance(epoch, int) or isinstance(epoch, bool) or epoch < 0:
             raise ValueError(f"epoch must be an int >= 0, got {epoch!r}")
+        plan_accelerate.check_loader(self)
         self.epoch = epoch
         self.start = self._resume["sample_in_epoch"] if self._resume and self._resume["epoch"] == epoch else 0
+        if self._pending is not None and self._pending["epoch"] != epoch:
+            self._pending = None
+        self._reading = None
 
     def load_state_dict(self, state: dict) -> None:
         """Resume at a position (a batch's ``position``), taken at any world size and batch size:
-        its epoch is read next, from that position.
+        its epoch is read next, from that position. Or at a :meth:`state_dict` (what
+        ``StatefulDataLoader`` restores): the next iteration reads from where that one stopped
+        (one taken in the main process resumes at any layout; one taken in DataLoader worker ``j``
+        of ``k`` only in worker ``j`` of ``k`` at the same world size and batch size).
 
         Raises:
             PlanMismatch: a malformed position (naming the field), one of another plan than the
                 server's (one line naming what differs; checked when the server is first asked),
                 or a push stream's resume state (``V2VStreamDataset`` / ``StreamLoader``: the sample
                 ids it delivered, which no position of a plan's fixed slices stands for).
+            ValueError: a worker's state loaded elsewhere than that worker at that layout (one line).
         """
         if isinstance(state, dict) and "delivered" in state and "plan" not in state:
             raise PlanMismatch(f"a push stream's resume state (of consumer {state.get('consumer')!r}, completed epoch "
                                f"{state.get('completed_epoch')!r}) is not a plan's position: resume from a batch's "
                                f"'position', or read an epoch from its start with set_epoch()")
         pos = Position.from_dict(state)
-        self._resume = pos.to_dict()
         if self._info is not None:
-            Position.from_dict(self._resume, expected=self._info.plan)
-        self.set_epoch(pos.epoch)
+            Position.from_dict(state, expected=self._info.plan)
+        reader = state.get("reader")
+        if reader is None:
+            self._resume, self._pending = pos.to_dict(), None
+            self.set_epoch(pos.epoch)
+            return
+        self._pending = _pending_of(pos, _check_reader(reader), self._reader_world(), self.batch_size)
+
+    def state_dict(self) -> dict:
+        """What this process has read: the position after the last step it yielded
+        (``Position.to_dict``; exact without DataLoader workers, where it equals the last batch's
+        ``position``; in a DataLoader worker, where the steps the other workers yielded are not
+        counted, a lower bound) and, under ``reader``, where its next item is (``origin``,
+        ``item``) and the layout (``worker``, ``workers``, ``world_size``, ``batch_size``,
+        ``dispatch``) it reads with. No rank: every rank at one step has the same state.
+
+        Under accelerate's dispatcher a step's group counts once all of its batches are yielded
+        (accelerate snapshots before each batch it takes and hands a group out whole).
+
+        Raises:
+            TimeoutError: the server did not say what it serves (asked once per process).
+        """
+        info = self.plan_info()
+        r = self._reading
+        if r is None:  # nothing read yet: where the next iteration starts
+            w = torch.utils.data.get_worker_info()
+            j, k = (w.id, w.num_workers) if w is not None else (0, 1)
+            p = self._upcoming if self._upcoming is not None else self._pending
+            if p is None:
+                return {**Position(info.plan, self.epoch, self.start).to_dict(),
+                        "reader": self._reader(j, k, self.start, j)}
+            if "at" in p:
+                return {**p["position"], "reader": self._reader(j, k, p["at"], j)}
+            return {**p["position"], "reader": self._reader(j, k, p["origin"], p["item"])}
+        done, reader = _reading_state(r, self.batch_size)
+        return {**Position(info.plan, r["epoch"], done).to_dict(), "reader": reader}
+
+    def _dispatcher(self) -> Optional[tuple]:
+        """``(ranks, stateful)`` of accelerate's dispatcher reading this dataset now (as pickled
+        into a spawned DataLoader worker, where it cannot be seen), else None."""
+        return self._dispatch or plan_accelerate.dispatcher_of(self)
+
+    def _reader(self, worker: int, workers: int, origin: int, item: int) -> dict:
+        d = self._dispatcher()
+        g = d[0] if d else 0
+        return {"worker": worker, "workers": workers, "world_size": self._reader_world(), "batch_size": self.batch_size,
+                "dispatch": g, "origin": origin, "item": item}
+
+    def _reader_world(self) -> int:
+        """The world size this process reads with: the dispatcher's ranks under it, else this rank's."""
+        d = self._dispatcher()
+        return d[0] if d else self.world_size
 
     def plan_info(self) -> PlanInfo:
         """What the server serves (asked once per dataset object and process).
@@ -141,37 +222,140 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         if self._info is None:
             with _Link(self.endpoint, self.timeout_s) as link:
                 self._info = link.ask()
-            if self._resume is not None:
-                Position.from_dict(self._resume, expected=self._info.plan)
+            for loaded in (self._resume, self._pending and self._pending["position"]):
+                if loaded is not None:
+                    Position.from_dict(loaded, expected=self._info.plan)
         return self._info
 
     def __len__(self) -> int:
-        """Steps of this rank in the epoch from its start position (every rank the same)."""
+        """Steps of this rank in the epoch from its start position (every rank the same); asked by
+        accelerate's dispatcher (``len`` of the loader it prepared), the batches it reads: the
+        steps times its ranks, so the prepared loader's length is the steps each rank takes."""
         n = self.plan_info().samples
-        return max(0, -(-(n - self.start) // (self.world_size * self.batch_size)))
+        steps = max(0, -(-(n - self.start) // (self.world_size * self.batch_size)))
+        return steps * plan_accelerate.dispatcher_asking_len(self)
 
     # ------------------------------------------------------------------ reading
     def __iter__(self) -> Iterator[Dict]:
-        info = self.plan_info()
-        steps = len(self)
-        w = torch.utils.data.get_worker_info()
-        mine = range(w.id, steps, w.num_workers) if w is not None else range(steps)
-        per_step = self.world_size * self.batch_size
-        with _Link(self.endpoint, self.timeout_s) as link:
-            first = self.start + self.rank * self.batch_size  # of step 0
-            for step, rows, arrays in link.fetch_all(mine, self.prefetch, self.retry_s, lambda req, s: Fetch(
-                    req, self.epoch, first + s * per_step, first + s * per_step + self.batch_size, self.outputs, info.plan)):
-                yield self._item(info, step, rows, arrays)
+        """This process's batches. A loaded state is taken now, for this iteration only; the rest
+        is decided at the first batch (when the loaders that create an iterator early, as
+        ``StatefulDataLoader.state_dict`` does, have set the epoch and accelerate has registered its
+        loader). Reading raises ``TimeoutError``, ``PlanMismatch`` or ``PlanServerError``."""
+        pending, self._pending = self._pending, None
+        self._reading, self._upcoming = None, pending
+        return self._read(pending)
 
-    def _item(self, info: PlanInfo, step: int, rows: Rows, arrays) -> Dict:
+    def _read(self, pending: Optional[dict]) -> Iterator[Dict]:
+        w = torch.utils.data.get_worker_info()
+        j, k = (w.id, w.num_workers) if w is not None else (0, 1)
+        dispatch = self._dispatcher()
+        rank, world = self._layout()
+        g = dispatch[0] if dispatch else 1
+        if g > 1:
+            if rank != 0:  # accelerate reads the loader on process 0 only
+                return
+            rank, world = 0, g
+        epoch, origin, first = self.epoch, self.start, j
+        if pending is not None:
+            epoch = pending["epoch"]
+            origin, first = (pending["at"], j) if "at" in pending else (pending["origin"], pending["item"])
+        r = {"epoch": epoch, "origin": origin, "next": first, "last": None, "worker": j, "workers": k,
+             "rank": rank, "world": world, "group": g, "per_step": world * self.batch_size}
+        self._reading, self._upcoming = r, None
+        info = self.plan_info()
+        if pending is not None:
+            Position.from_dict(pending["position"], expected=info.plan)
+        steps = max(0, -(-(info.samples - r["origin"]) // r["per_step"]))
+
+        def first_row(i: int) -> int:  # item i: step i // g, rank i % g (dispatch) or step i of this rank
+            s, rank = divmod(i, g) if g > 1 else (i, r["rank"])
+            return r["origin"] + s * r["per_step"] + rank * self.batch_size
+
+        group = []  # under dispatch: this process's items of the current step, packed together
+        with _Link(self.endpoint, self.timeout_s) as link:
+            for i, rows, arrays in link.fetch_all(range(r["next"], steps * g, k), self.prefetch, self.retry_s,
+                                                  lambda req, i: Fetch(req, r["epoch"], first_row(i),
+                                                                       first_row(i) + self.batch_size, self.outputs,
+                                                                       info.plan)):
+                item = self._item(info, r, i // g, rows, arrays)
+                if g == 1:
+                    r["last"], r["next"] = i, i + k
+                    yield item
+                    continue
+                group.append((i, item))
+                if k > 1 or i % g == g - 1 or i + k >= steps * g:
+                    packed = plan_accelerate.dispatched([b for _, b in group], k)
+                    for (done, _), batch in zip(group, packed):
+                        r["last"], r["next"] = done, done + k
+                        yield batch
+                    group = []
+
+    def _item(self, info: PlanInfo, r: dict, step: int, rows: Rows, arrays) -> Dict:
         crop = info.stream.get("crop_size")
         item = batch_to_torch(arrays, self.raw, (crop, crop) if crop else None,
                               info.stream.get("flow_dtype", "float16"))
-        after = self.start + (step + 1) * self.world_size * self.batch_size
+        after = r["origin"] + (step + 1) * r["per_step"]
         item.update(padding=torch.tensor(rows.padding, dtype=torch.bool), sample_ids=rows.sample_ids,
-                    params=rows.params, epoch=self.epoch, step=step,
-                    position=Position(info.plan, self.epoch, after).to_dict())
+                    params=rows.params, epoch=r["epoch"], step=step,
+                    position=Position(info.plan, r["epoch"], after).to_dict())
         return item
+
+
+def _pending_of(pos: Position, reader: dict, world: int, batch_size: int) -> dict:
+    """Where the next iteration reads from, for a loaded state (``pos``, its ``reader`` part), in
+    this process (``world``, ``batch_size``: its layout).
+
+    Raises:
+        ValueError: a DataLoader worker's state loaded elsewhere than that worker at that layout.
+    """
+    pending = {"position": pos.to_dict(), "epoch": pos.epoch}
+    if reader["workers"] == 1:  # the exact position: any layout
+        pending["at"] = pos.sample_in_epoch
+        return pending
+    w = torch.utils.data.get_worker_info()
+    here = (w.id, w.num_workers) if w is not None else (0, 1)
+    if here != (reader["worker"], reader["workers"]) or (world, batch_size) != (reader["world_size"],
+                                                                               reader["batch_size"]):
+        raise ValueError(
+            f"this state is DataLoader worker {reader['worker']} of {reader['workers']}'s at world size "
+            f"{reader['world_size']} and batch size {reader['batch_size']}, loaded in "
+            f"{'worker %d of %d' % here if w is not None else 'a process without workers'} at world size {world} "
+            f"and batch size {batch_size}: only that worker's loader (StatefulDataLoader) resumes it; resume at "
+            "another layout from a batch's position")
+    pending.update(origin=reader["origin"], item=reader["item"])
+    return pending
+
+
+def _reading_state(r: dict, batch_size: int):
+    """``(position, reader)`` of an iteration's progress ``r``: the position after its last step
+    (exact with one worker), and the ``reader`` part of ``state_dict``."""
+    g, k, item, last = r["group"], r["workers"], r["next"], r["last"]
+    if g > 1 and last is not None and last % g != g - 1:
+        item = last - last % g  # a group not yet handed out whole: read it again
+    if k == 1:
+        done = r["origin"] + -(-item // g) * r["per_step"]
+    else:
+        done = r["origin"] + (last // g + 1) * r["per_step"] if last is not None else r["origin"]
+    return done, {"worker": r["worker"], "workers": k, "world_size": r["world"], "batch_size": batch_size,
+                  "dispatch": g if g > 1 else 0, "origin": r["origin"], "item": item}
+
+
+def _check_reader(reader) -> dict:
+    """A state's ``reader`` part, checked.
+
+    Raises:
+        PlanMismatch: a malformed one, naming the field.
+    """
+    if not isinstance(reader, Mapping):
+        raise PlanMismatch(f"state field 'reader' must be a mapping, got {type(reader).__name__}")
+    for key in ("worker", "workers", "world_size", "batch_size", "dispatch", "origin", "item"):
+        v = reader.get(key)
+        if not isinstance(v, int) or isinstance(v, bool) or v < (1 if key in ("workers", "world_size", "batch_size")
+                                                                   else 0):
+            raise PlanMismatch(f"state field 'reader.{key}' must be an int, got {v!r:.80}")
+    if reader["worker"] >= reader["workers"]:
+        raise PlanMismatch(f"state field 'reader.worker' must be below {reader['workers']}, got {reader['worker']}")
+    return dict(reader)
 
 
 def _check_layout(rank: int, world_size: int) -> None:

@@ -31,7 +31,7 @@ from v2v_server.service.worker_side import WorkerSide
 from v2v_server.sources.source import VideoSource
 from v2v_wire.batches import stack_arrays
 from v2v_wire.messages import BadPeers, WireError
-from v2v_wire.outputs import narrowest, zeros_row
+from v2v_wire.outputs import narrowest, spec_of
 from v2v_wire.plan import Manifest, PlanIdentity
 from v2v_wire.plan_messages import PlanAsk, PlanInfo, Refused, Rows, decode_plan_client
 from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, output_of, pack
@@ -191,8 +191,7 @@ class PlanServer:
         real = next((r.sample for r in rows if r.sample is not None), None)
         c = self.cfg
         if real is None:
-            return {o: np.stack([zeros_row(o, c.sequence_length, c.num_bins, c.crop_size, c.flow_dtype)] * len(rows))
-                    for o in outputs}
+            return {o: _wire_zeros(o, len(rows), c) for o in outputs}
         out = {}
         for name, a in real.arrays.items():
             if output_of(name) not in outputs:
@@ -209,3 +208,11 @@ class PlanServer:
                 "epoch_videos": len(self.manifest.slots), "epoch_videos_done": 0,
                 "shuffle_samples": len(self.feed.store), "shuffle_capacity": self.feed.keep_samples,
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
+
+
+def _wire_zeros(output: str, rows: int, c: ServeConfig) -> np.ndarray:
+    """``rows`` padding rows of ``output`` as the wire carries a sample's array (a Ray row's has the
+    channel axis the client inserts), so a batch of padding only has a batch of samples' shapes."""
+    s = spec_of(output)
+    dtype = c.flow_dtype if s.column_dtype == "recipe" else s.dtypes[0]
+    return np.zeros((rows, *s.shape(c.sequence_length, c.num_bins, c.crop_size)), dtype)
