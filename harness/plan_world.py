@@ -77,107 +77,138 @@ class Outcome:
 
 def check(seed: int, ticks: int = 30000) -> Outcome:
     """Run the world of ``seed`` (module docstring) for at most ``ticks`` ticks."""
-    rng = random.Random(seed)
-    kpw = rng.choice([1, 1, 2])
-    slots = {f"v{i:02d}.mp4": rng.randint(0, 6) for i in range(rng.randint(1, 14))}
-    given = {v: (n if rng.random() < 0.8 else rng.randint(0, n)) for v, n in slots.items()}  # short decodes
-    broken = {v for v in slots if rng.random() < 0.1}  # the pass breaks after its windows
-    m = Manifest.of(slots, kpw)
-    settings = dict(lookahead=rng.choice([0, 8]), keep_samples=rng.choice([0, 4, 32]), hedge_s=5.0, task_timeout_s=40.0)
-    buffer = rng.choice([1, 4, 16])
+    return World(seed).run(ticks)
 
-    def new_feed() -> PlanFeed:
-        return PlanFeed(m, seed, buffer, OUTPUTS, **settings)
 
-    feed = new_feed()
-    workers = [Worker(f"w{i}") for i in range(rng.randint(1, 3))]
-    next_worker = len(workers)
-    jobs = [Job(f"j{i}", rng.randint(1, 3), rng.randint(1, 5), OUTPUTS[:rng.randint(1, 3)])
-            for i in range(rng.randint(1, 2))]
-    restart_p = rng.choice([0.0, 0.001, 0.003])
-    out = Outcome(seed, [])
-    epochs, request = 2, 0
-    for now in range(ticks):
-        if rng.random() < restart_p:  # the server killed and started again, with its workers
-            feed = new_feed()
-            workers = [Worker(f"w{next_worker + i}") for i in range(len(workers))]
-            next_worker += len(workers)
-            out.restarts += 1
-        for job in jobs:
-            if job.epoch >= epochs:
-                continue
-            plan = feed.plan(job.epoch)
-            steps = plan.steps(job.world, job.batch, job.start)
-            if rng.random() < 0.002 and job.outputs != OUTPUTS:  # a reader asks for one more output
-                job.outputs = OUTPUTS[:len(job.outputs) + 1]
-                out.widened += 1
-            while job.step < min(steps, job.taken + 2):
-                for r in range(job.world):
-                    request += 1
-                    job.asked[(job.step, r)] = (request, now)
-                    pos = plan.batch_positions(job.step, r, job.world, job.batch, job.start)
-                    feed.fetch((job.name, r, job.outputs), request, job.epoch, pos.start, pos.stop, now, job.outputs)
-                job.step += 1
-            for (s, r), (q, at) in list(job.asked.items()):  # unanswered: asked again
-                if q > 0 and now - at >= RETRY:
-                    request += 1
-                    job.asked[(s, r)] = (request, now)
-                    pos = plan.batch_positions(s, r, job.world, job.batch, job.start)
-                    feed.fetch((job.name, r, job.outputs), request, job.epoch, pos.start, pos.stop, now, job.outputs)
-            if job.taken >= steps:
-                job.epoch, job.start, job.step, job.taken, job.asked, job.checkpoints = job.epoch + 1, 0, 0, 0, {}, [0]
-            elif job.taken and rng.random() < 0.01:  # checkpoint, stop, resume at another layout
-                job.start += job.taken * job.world * job.batch
-                job.checkpoints.append(job.start)
-                if rng.random() < 0.3:  # ... or roll back to an older checkpoint (those after it are gone)
-                    back = rng.randrange(len(job.checkpoints) - 1)
-                    job.start, job.checkpoints = job.checkpoints[back], job.checkpoints[:back + 1]
-                    out.rollbacks += 1
-                out.resumes += 1
-                # rows fetched ahead of the steps the loop took, or read since the checkpoint, count again
-                job.rows[job.epoch] = {p: row for p, row in job.rows.get(job.epoch, {}).items() if p < job.start}
-                job.world, job.batch = rng.randint(1, 3), rng.randint(1, 5)
-                job.step = job.taken = 0
-                job.asked = {}
-        for f, rows in feed.answer(now):
-            job = next(j for j in jobs if j.name == f.client[0])
-            hit = [(s, r) for (s, r), (q, _) in job.asked.items() if q == f.request and r == f.client[1]]
-            if f.epoch != job.epoch or not hit:
-                continue  # an answer to a fetch no longer waited for: dropped, as the reader drops it
-            plan = feed.plan(f.epoch)
-            for row in rows:
-                if row.key != plan.key(row.position):
-                    out.problems.append(f"epoch {f.epoch} position {row.position}: {row.key}, the plan says "
-                                        f"{plan.key(row.position)}")
-                if row.sample is not None and row.sample[:2] != (f.epoch, row.key):
-                    out.problems.append(f"epoch {f.epoch} position {row.position}: the sample of {row.sample[:2]}")
-                if row.sample is not None and not set(f.client[2]) <= set(row.sample[2]):
-                    out.problems.append(f"epoch {f.epoch} position {row.position}: made with {row.sample[2]}, "
-                                        f"asked {f.client[2]}")
-                if row.key is not None:
-                    seen = job.rows.setdefault(f.epoch, {})
-                    if row.position in seen:
-                        out.problems.append(f"{job.name} epoch {f.epoch}: position {row.position} read twice")
-                    seen[row.position] = row
-            job.asked[hit[0]] = (-1, now)
-            while all(job.asked.get((job.taken, r), (0,))[0] == -1 for r in range(job.world)) and job.taken < job.step:
-                job.taken += 1
-        for w in list(workers):
+class World:
+    """One seed's corpus, server, workers and jobs (module docstring); :meth:`run` plays it."""
+
+    epochs = 2
+
+    def __init__(self, seed: int):
+        self.seed = seed
+        self.rng = rng = random.Random(seed)
+        self.kpw = rng.choice([1, 1, 2])
+        self.slots = {f"v{i:02d}.mp4": rng.randint(0, 6) for i in range(rng.randint(1, 14))}
+        self.given = {v: (n if rng.random() < 0.8 else rng.randint(0, n)) for v, n in self.slots.items()}  # short
+        self.broken = {v for v in self.slots if rng.random() < 0.1}  # the pass breaks after its windows
+        self.manifest = Manifest.of(self.slots, self.kpw)
+        self.settings = dict(lookahead=rng.choice([0, 8]), keep_samples=rng.choice([0, 4, 32]), hedge_s=5.0,
+                             task_timeout_s=40.0)
+        self.buffer = rng.choice([1, 4, 16])
+        self.feed = self.new_feed()
+        self.workers = [Worker(f"w{i}") for i in range(rng.randint(1, 3))]
+        self.next_worker = len(self.workers)
+        self.jobs = [Job(f"j{i}", rng.randint(1, 3), rng.randint(1, 5), OUTPUTS[:rng.randint(1, 3)])
+                     for i in range(rng.randint(1, 2))]
+        self.restart_p = rng.choice([0.0, 0.001, 0.003])
+        self.out = Outcome(seed, [])
+        self.request = 0
+
+    def new_feed(self) -> PlanFeed:
+        return PlanFeed(self.manifest, self.seed, self.buffer, OUTPUTS, **self.settings)
+
+    def run(self, ticks: int) -> Outcome:
+        for now in range(ticks):
+            if self.rng.random() < self.restart_p:  # the server killed and started again, with its workers
+                self.feed = self.new_feed()
+                self.workers = [Worker(f"w{self.next_worker + i}") for i in range(len(self.workers))]
+                self.next_worker += len(self.workers)
+                self.out.restarts += 1
+            for job in self.jobs:
+                if job.epoch < self.epochs:
+                    self.ask(job, now)
+            for f, rows in self.feed.answer(now):
+                self.take(f, rows, now)
+            self.decode(now)
+            self.out.biggest_store = max(self.out.biggest_store, len(self.feed.store))
+            if all(j.epoch >= self.epochs for j in self.jobs):
+                break
+        self.judge()
+        return self.out
+
+    def fetch(self, job: Job, step: int, rank: int, plan: EpochPlan, now: int) -> None:
+        self.request += 1
+        job.asked[(step, rank)] = (self.request, now)
+        pos = plan.batch_positions(step, rank, job.world, job.batch, job.start)
+        self.feed.fetch((job.name, rank, job.outputs), self.request, job.epoch, pos.start, pos.stop, now, job.outputs)
+
+    def ask(self, job: Job, now: int) -> None:
+        """A job's turn: ask up to two steps ahead, ask again what went unanswered, end its epoch,
+        or checkpoint and resume at another layout (or roll back)."""
+        rng, out = self.rng, self.out
+        plan = self.feed.plan(job.epoch)
+        steps = plan.steps(job.world, job.batch, job.start)
+        if rng.random() < 0.002 and job.outputs != OUTPUTS:  # a reader asks for one more output
+            job.outputs = OUTPUTS[:len(job.outputs) + 1]
+            out.widened += 1
+        while job.step < min(steps, job.taken + 2):
+            for r in range(job.world):
+                self.fetch(job, job.step, r, plan, now)
+            job.step += 1
+        for (s, r), (q, at) in list(job.asked.items()):  # unanswered: asked again
+            if q > 0 and now - at >= RETRY:
+                self.fetch(job, s, r, plan, now)
+        if job.taken >= steps:
+            job.epoch, job.start, job.step, job.taken, job.asked, job.checkpoints = job.epoch + 1, 0, 0, 0, {}, [0]
+        elif job.taken and rng.random() < 0.01:  # checkpoint, stop, resume at another layout
+            job.start += job.taken * job.world * job.batch
+            job.checkpoints.append(job.start)
+            if rng.random() < 0.3:  # ... or roll back to an older checkpoint (those after it are gone)
+                back = rng.randrange(len(job.checkpoints) - 1)
+                job.start, job.checkpoints = job.checkpoints[back], job.checkpoints[:back + 1]
+                out.rollbacks += 1
+            out.resumes += 1
+            # rows fetched ahead of the steps the loop took, or read since the checkpoint, count again
+            job.rows[job.epoch] = {p: row for p, row in job.rows.get(job.epoch, {}).items() if p < job.start}
+            job.world, job.batch = rng.randint(1, 3), rng.randint(1, 5)
+            job.step = job.taken = 0
+            job.asked = {}
+
+    def take(self, f, rows, now: int) -> None:
+        """An answer reaches its job: each row checked against the plan and noted once."""
+        problems = self.out.problems
+        job = next(j for j in self.jobs if j.name == f.client[0])
+        hit = [(s, r) for (s, r), (q, _) in job.asked.items() if q == f.request and r == f.client[1]]
+        if f.epoch != job.epoch or not hit:
+            return  # an answer to a fetch no longer waited for: dropped, as the reader drops it
+        plan = self.feed.plan(f.epoch)
+        for row in rows:
+            if row.key != plan.key(row.position):
+                problems.append(f"epoch {f.epoch} position {row.position}: {row.key}, the plan says "
+                                f"{plan.key(row.position)}")
+            if row.sample is not None and row.sample[:2] != (f.epoch, row.key):
+                problems.append(f"epoch {f.epoch} position {row.position}: the sample of {row.sample[:2]}")
+            if row.sample is not None and not set(f.client[2]) <= set(row.sample[2]):
+                problems.append(f"epoch {f.epoch} position {row.position}: made with {row.sample[2]}, "
+                                f"asked {f.client[2]}")
+            if row.key is not None:
+                seen = job.rows.setdefault(f.epoch, {})
+                if row.position in seen:
+                    problems.append(f"{job.name} epoch {f.epoch}: position {row.position} read twice")
+                seen[row.position] = row
+        job.asked[hit[0]] = (-1, now)
+        while all(job.asked.get((job.taken, r), (0,))[0] == -1 for r in range(job.world)) and job.taken < job.step:
+            job.taken += 1
+
+    def decode(self, now: int) -> None:
+        """The workers' turn: one sample a tick unless stalled; some die, some stall, some hang."""
+        rng, feed, kpw = self.rng, self.feed, self.kpw
+        for w in list(self.workers):
             if rng.random() < 0.002:  # killed: the pool replaces it
                 feed.worker_lost(w.ident)
-                workers.remove(w)
-                workers.append(Worker(f"w{next_worker}"))
-                next_worker += 1
+                self.workers.remove(w)
+                self.workers.append(Worker(f"w{self.next_worker}"))
+                self.next_worker += 1
                 continue
             if rng.random() < 0.004:
                 w.stalled_until = now + rng.choice([3, 20, 60])
             if now < w.stalled_until:
                 continue
             if w.task is None:
-                w.task = feed.task_for(w.ident, now)
-                if w.task is not None:
-                    t = w.task
-                    w.todo = [SampleKey.at(t.video, i, kpw) for i in range(given[t.video] * kpw)
+                w.task = t = feed.task_for(w.ident, now)
+                if t is not None:
+                    w.todo = [SampleKey.at(t.video, i, kpw) for i in range(self.given[t.video] * kpw)
                               if (i // kpw, i % kpw) not in set(t.skip)]
                 continue
             t = w.task
@@ -185,35 +216,36 @@ def check(seed: int, ticks: int = 30000) -> Outcome:
                 key = w.todo.pop(0)
                 feed.sample(w.ident, t.task, key, now, lambda lane, e=t.epoch, k=key, o=t.outputs: (e, k, o))
             else:
-                error = "decoder error: broken packet" if t.video in broken and given[t.video] < slots[t.video] else None
-                feed.done(w.ident, t.task, given[t.video], {}, error)
+                broke = t.video in self.broken and self.given[t.video] < self.slots[t.video]
+                feed.done(w.ident, t.task, self.given[t.video], {}, "decoder error: broken packet" if broke else None)
                 w.task = None
         for ident, _ in feed.timed_out(now):
-            for w in workers:
+            for w in self.workers:
                 if w.ident == ident:
                     w.task, w.todo, w.stalled_until = None, [], 0.0
-        out.biggest_store = max(out.biggest_store, len(feed.store))
-        if all(j.epoch >= epochs for j in jobs):
-            break
-    for job in jobs:
-        if job.epoch < epochs:
-            out.problems.append(f"{job.name} stuck in epoch {job.epoch} at step {job.taken}")
-            continue
-        for e in range(epochs):
-            plan = EpochPlan(m, seed, e, buffer)
-            rows = job.rows.get(e, {})
-            if sorted(rows) != list(range(len(plan))):
-                out.problems.append(f"{job.name} epoch {e}: read {len(rows)} of {len(plan)} positions")
-            for p, r in rows.items():
-                if r.sample is None and r.key.window < given[r.key.video]:
-                    out.problems.append(f"{job.name} epoch {e} position {p}: padding for {r.key}, a window the file gives")
-                if r.sample is not None and r.key.window >= given[r.key.video]:
-                    out.problems.append(f"{job.name} epoch {e} position {p}: a sample of {r.key}, not given")
-    # memory: what pending fetches name, plus the kept ones, plus the samples decoded ahead
-    bound = settings["keep_samples"] + 2 * (5 * 3 * 5 + settings["lookahead"]) + max(slots.values(), default=0) * kpw * 3
-    if out.biggest_store > bound:
-        out.problems.append(f"the store held {out.biggest_store} samples, over {bound}")
-    return out
+
+    def judge(self) -> None:
+        """Each job read each epoch's plan exactly; the store stayed bounded."""
+        problems, given = self.out.problems, self.given
+        for job in self.jobs:
+            if job.epoch < self.epochs:
+                problems.append(f"{job.name} stuck in epoch {job.epoch} at step {job.taken}")
+                continue
+            for e in range(self.epochs):
+                plan = EpochPlan(self.manifest, self.seed, e, self.buffer)
+                rows = job.rows.get(e, {})
+                if sorted(rows) != list(range(len(plan))):
+                    problems.append(f"{job.name} epoch {e}: read {len(rows)} of {len(plan)} positions")
+                for p, r in rows.items():
+                    if r.sample is None and r.key.window < given[r.key.video]:
+                        problems.append(f"{job.name} epoch {e} position {p}: padding for {r.key}, a window the file gives")
+                    if r.sample is not None and r.key.window >= given[r.key.video]:
+                        problems.append(f"{job.name} epoch {e} position {p}: a sample of {r.key}, not given")
+        # memory: what pending fetches name, plus the kept ones, plus the samples decoded ahead
+        bound = self.settings["keep_samples"] + 2 * (5 * 3 * 5 + self.settings["lookahead"]) + \
+            max(self.slots.values(), default=0) * self.kpw * 3
+        if self.out.biggest_store > bound:
+            problems.append(f"the store held {self.out.biggest_store} samples, over {bound}")
 
 
 def main(argv: Optional[List[str]] = None) -> int:

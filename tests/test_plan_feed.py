@@ -99,7 +99,7 @@ def test_workers_make_the_outputs_fetches_ask_for_and_a_new_one_remakes_what_lac
     (f, rows), = feed.answer(1.0)
     assert rows[0].sample == "voxels only"
     feed.fetch("d", 2, 0, 0, 2, 2.0, ("flow", "voxels"))  # flow: what was made lacks it
-    assert feed.making == ("voxels", "flow") and not feed.store
+    assert feed.making.now == ("voxels", "flow") and not feed.store
     assert not feed.sample("w1", narrow.task, SampleKey("a.mp4", 1), 3.0, lambda lane: "voxels only")
     assert feed.task_for("w2", 3.0) is None  # the video is being decoded: it ends first
     feed.done("w1", narrow.task, 2, {}, None)

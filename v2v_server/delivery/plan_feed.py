@@ -33,7 +33,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Hashable, List, Optional, Sequence, Set, Tuple
+from typing import Any, Callable, Dict, Hashable, Iterator, List, Mapping, Optional, Sequence, Set, Tuple
 
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest
@@ -97,14 +97,71 @@ class Run:
             d.pop(task_id, None)
 
 
+class Making:
+    """The outputs workers make: those the fetches so far asked for, of ``offered`` (in its
+    order), as a push server makes what its clients ask; and each running task's, so that the
+    samples of a task started before an output was asked for are dropped as they come.
+
+    Args:
+        offered: the outputs workers may make (``protocol.OUTPUTS`` order).
+    """
+
+    def __init__(self, offered: Sequence[str]):
+        self.offered = tuple(offered)
+        self.now: Tuple[str, ...] = ()
+        self.tasks: Dict[int, Tuple[str, ...]] = {}  # running task id -> the outputs it makes
+
+    def ask(self, outputs: Optional[Sequence[str]]) -> bool:
+        """A fetch asks for ``outputs`` (None: every one offered). Returns True when that widens
+        what workers make (the samples made so far lack an output).
+
+        Raises:
+            ValueError: an output not offered, naming it."""
+        asked = self.offered if outputs is None else tuple(outputs)
+        if not set(asked) <= set(self.offered):
+            raise ValueError(f"fetch outputs {sorted(set(asked) - set(self.offered))}: not among {list(self.offered)}")
+        if set(asked) <= set(self.now):
+            return False
+        self.now = tuple(o for o in self.offered if o in asked or o in self.now)
+        return True
+
+    def start(self, task_id: int) -> Tuple[str, ...]:
+        """The outputs task ``task_id``, starting now, makes."""
+        self.tasks[task_id] = self.now
+        return self.now
+
+
+def spare_samples(store: Sequence, fetched: Set, named: Set, live: Set[int], count: int) -> List:
+    """The ``count`` samples of ``store`` (keys ``(epoch, key)``, oldest first) to drop: never
+    fetched and named by no pending fetch, those of epochs not in ``live`` (no fetch for
+    :data:`IDLE_S`: a job that left) first, oldest first within each."""
+    spare = [sk for sk in store if sk not in named and sk not in fetched]
+    return sorted(spare, key=lambda sk: sk[0] in live)[:count]  # stable
+
+
+def positions_after(plan_of: Callable[[int], EpochPlan], kept: Mapping[int, EpochPlan], epoch: int, stop: int,
+                    count: int) -> Iterator[Tuple[int, SampleKey]]:
+    """(epoch, key) of the ``count`` positions of ``epoch`` from ``stop`` on (``plan_of``: an
+    epoch's plan; ``kept``: the plans built); past the epoch's end, the next epoch's first ones (a
+    trainer reads its epochs in turn: decoding them while it reads the end of this one keeps the
+    workers busy across the boundary), unless that would drop a kept plan."""
+    plan = plan_of(epoch)
+    for p in range(stop, min(len(plan), stop + count)):
+        yield epoch, plan.key(p)
+    rest = stop + count - max(stop, len(plan))
+    if rest > 0 and len(plan) and (epoch + 1 in kept or len(kept) < PLANS_KEPT):
+        following = plan_of(epoch + 1)
+        for p in range(min(rest, len(following))):
+            yield epoch + 1, following.key(p)
+
+
 class PlanFeed:
     """The server's decisions when serving by plan (module docstring).
 
     Args:
         manifest: the corpus's slots (``v2v_wire.plan.Manifest``).
         seed, shuffle_buffer: the plan's (``EpochPlan``).
-        outputs: the outputs workers may make (``protocol.OUTPUTS`` order): they make those the
-            fetches so far asked for (:attr:`making`), as a push server makes what its clients ask.
+        outputs: the outputs workers may make (``protocol.OUTPUTS`` order; :class:`Making`).
         lookahead: samples a server makes ahead of the fetches (made or being made, not yet fetched).
         keep_samples: fetched samples kept for other fetches (least recently used out).
         hedge_s: seconds a task may send nothing while a fetch waits before a second worker
@@ -125,9 +182,7 @@ class PlanFeed:
         self.manifest, self.seed, self.shuffle_buffer = manifest, seed, shuffle_buffer
         self.slots = {v: n * manifest.crops_per_window for v, n in manifest.slots}  # samples per video
         self.largest = max(self.slots.values(), default=0)
-        self.outputs = tuple(outputs)
-        self.making: Tuple[str, ...] = ()  # the outputs the fetches so far asked for, in ``outputs`` order
-        self.task_outputs: Dict[int, Tuple[str, ...]] = {}  # running task id -> the outputs it makes
+        self.making = Making(outputs)
         self.lookahead, self.keep_samples = lookahead, keep_samples
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
         self.plans: "OrderedDict[int, EpochPlan]" = OrderedDict()
@@ -167,13 +222,8 @@ class PlanFeed:
         """
         if not 0 <= start < stop or stop - start > 4096:
             raise ValueError(f"fetch positions {start}..{stop - 1}: must be 1 to 4096 positions from >= 0")
-        asked = self.outputs if outputs is None else tuple(outputs)
-        if not set(asked) <= set(self.outputs):
-            raise ValueError(f"fetch outputs {sorted(set(asked) - set(self.outputs))}: not among {list(self.outputs)}")
-        if not set(asked) <= set(self.making):
-            self.making = tuple(o for o in self.outputs if o in asked or o in self.making)
-            self.store.clear()
-            self.fetched.clear()
+        if self.making.ask(outputs):  # what is kept lacks an output
+            self.store, self.fetched = OrderedDict(), set()
         self.plan(epoch)
         self.pending.append(Fetch(client, request, epoch, start, stop))
         self.fetched_at[epoch] = now
@@ -234,8 +284,7 @@ class PlanFeed:
             plan = self.plan(f.epoch)
             named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, len(plan))))
         live = {e for e, t in self.fetched_at.items() if now - t < IDLE_S}
-        spare = [sk for sk in self.store if sk not in named and sk not in self.fetched]
-        for sk in sorted(spare, key=lambda sk: sk[0] in live)[:over]:  # stable: oldest first within each
+        for sk in spare_samples(self.store, self.fetched, named, live, over):
             del self.store[sk]
 
     # ------------------------------------------------------------------ workers
@@ -276,7 +325,7 @@ class PlanFeed:
         budget -= sum(max(0, self.slots.get(v, 0) - made.get((e, v), 0)) for (e, v) in set(self.runs) | set(waited))
         ahead: List[Tuple[int, str]] = []
         for epoch, stop in sorted(furthest.items()):
-            for e, key in self._after(epoch, stop, self.lookahead + self.shuffle_buffer):
+            for e, key in positions_after(self.plan, self.plans, epoch, stop, self.lookahead + self.shuffle_buffer):
                 if budget <= 0:
                     break
                 ek = (e, key.video)
@@ -285,20 +334,6 @@ class PlanFeed:
                 ahead.append(ek)
                 budget -= self.slots.get(key.video, 0) - made.get(ek, 0)
         return sorted(waited, key=waited.__getitem__), ahead
-
-    def _after(self, epoch: int, stop: int, count: int):
-        """(epoch, key) of the ``count`` positions from ``stop`` on: past the epoch's end, the next
-        epoch's first ones (a trainer reads its epochs in turn; decoding them while it reads the
-        end of this one keeps the workers busy across the boundary)."""
-        plan = self.plan(epoch)
-        for p in range(stop, min(len(plan), stop + count)):
-            yield epoch, plan.key(p)
-        rest = stop + count - max(stop, len(plan))
-        # never at the cost of a kept plan (its epoch's failures go with it)
-        if rest > 0 and len(plan) and (epoch + 1 in self.plans or len(self.plans) < PLANS_KEPT):
-            following = self.plan(epoch + 1)
-            for p in range(min(rest, len(following))):
-                yield epoch + 1, following.key(p)
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
         epoch, video = ek
@@ -309,8 +344,7 @@ class PlanFeed:
         self.task_run[tid] = ek
         skip = {(k.window, k.crop) for (e, k) in list(self.store) + list(self.failed) if e == epoch and k.video == video}
         run.skips[tid] = skip
-        self.task_outputs[tid] = self.making
-        return Task(tid, epoch, video, self.making, tuple(sorted(skip)), tuple(codecs))
+        return Task(tid, epoch, video, self.making.start(tid), tuple(sorted(skip)), tuple(codecs))
 
     def sample(self, worker: Hashable, task_id: int, key: SampleKey, now: float, build: Callable) -> bool:
         """Worker ``worker`` sent sample ``key`` of task ``task_id``; ``build(lane)`` makes the
@@ -330,7 +364,7 @@ class PlanFeed:
         if key.ordinal(kpw) >= self.slots.get(key.video, 0):
             raise SlotsExceeded(f"{key.video}: the decode gave {key.sample_id(kpw)}, past the manifest's "
                                 f"{self.slots.get(key.video, 0) // kpw} window(s) for it (a stale manifest, or a wrong bound)")
-        if sk in self.store or self.task_outputs.get(task_id) != self.making:  # made already, or lacks an output
+        if sk in self.store or self.making.tasks.get(task_id) != self.making.now:  # made already, or lacks an output
             return False
         self.failed.pop(sk, None)
         self.store[sk] = build(0)
@@ -346,14 +380,9 @@ class PlanFeed:
         ek = self.task_run.get(task_id)
         if ek is None or self.runs[ek].copies.get(task_id) != worker:
             return None
-        del self.task_run[task_id]
-        self.task_outputs.pop(task_id, None)
-        run = self.runs[ek]
+        skip = self.runs[ek].skips.get(task_id, set())
+        run = self._end(task_id)
         run.error = error
-        skip = run.skips.get(task_id, set())
-        run.end(task_id)
-        if not run.copies:
-            del self.runs[ek]
         epoch, video = ek
         kpw = self.manifest.crops_per_window
         why_short = error or f"the decode gave {windows} window(s), the manifest {self.slots.get(video, 0) // kpw}"
@@ -369,15 +398,19 @@ class PlanFeed:
         (its missing samples are handed out anew). Returns the run it held, if any."""
         lost = None
         for tid, ek in list(self.task_run.items()):
-            run = self.runs[ek]
-            if run.copies.get(tid) == worker:
-                del self.task_run[tid]
-                self.task_outputs.pop(tid, None)
-                run.end(tid)
-                if not run.copies:
-                    del self.runs[ek]
-                lost = run
+            if self.runs[ek].copies.get(tid) == worker:
+                lost = self._end(tid)
         return lost
+
+    def _end(self, task_id: int) -> Run:
+        """Copy ``task_id`` ended: it is forgotten, and its run with its last copy."""
+        ek = self.task_run.pop(task_id)
+        self.making.tasks.pop(task_id, None)
+        run = self.runs[ek]
+        run.end(task_id)
+        if not run.copies:
+            del self.runs[ek]
+        return run
 
     def timed_out(self, now: float, reading: bool = True) -> List[Tuple[Hashable, Run]]:
         """Copies that sent nothing for ``task_timeout_s``: each ends as a lost worker's. A server
