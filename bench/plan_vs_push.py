@@ -115,6 +115,24 @@ def read_push(endpoint: str, batches: int) -> dict:
     return {"samples_per_s": r["samples_per_s"], "samples": r["samples"], "seconds": r["seconds"]}
 
 
+def push_wait(endpoint: str, batches: int, on_batch=None) -> float:
+    """The longest wait between two of ``batches`` batches of a ``V2VStreamDataset`` after the
+    first two, s; ``on_batch(n)`` after the n-th."""
+    from v2v_client import V2VStreamDataset
+
+    longest, last = 0.0, None
+    for n, _ in enumerate(V2VStreamDataset(endpoint, timeout_s=300), 1):
+        now = time.perf_counter()
+        if last is not None and n > 2:
+            longest = max(longest, now - last)
+        last = now
+        if on_batch is not None:
+            on_batch(n)
+        if n >= batches + 1:
+            break
+    return longest
+
+
 def throughput(corpus: Path, mode: str, workers: int, batches: int, extra: List[str]) -> dict:
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", str(BATCH),
             "--delivery", mode, *extra]
@@ -141,17 +159,7 @@ def stalled(corpus: Path, mode: str, batches: int, stall_s: float) -> dict:
 
         if mode == "plan":
             return {**read_plan(srv.endpoint, batches, on_batch=stop_one), "stopped": stopped}
-        from v2v_client import V2VStreamDataset
-        longest, last = 0.0, None
-        for n, _ in enumerate(V2VStreamDataset(srv.endpoint, timeout_s=300), 1):
-            now = time.perf_counter()
-            if last is not None and n > 2:
-                longest = max(longest, now - last)
-            last = now
-            stop_one(n)
-            if n >= batches + 1:
-                break
-        return {"longest_wait_s": longest, "stopped": stopped}
+        return {"longest_wait_s": push_wait(srv.endpoint, batches, stop_one), "stopped": stopped}
 
 
 #: Frames of the slow 1080p file: two windows of the default recipe.
@@ -183,16 +191,7 @@ def slow_wait(corpus: Path, mode: str, batches: int) -> dict:
     with ServeProcess(args, ready_timeout_s=600) as srv:
         if mode == "plan":
             return read_plan(srv.endpoint, batches)
-        from v2v_client import V2VStreamDataset
-        longest, last = 0.0, None
-        for n, _ in enumerate(V2VStreamDataset(srv.endpoint, timeout_s=300), 1):
-            now = time.perf_counter()
-            if last is not None and n > 2:
-                longest = max(longest, now - last)
-            last = now
-            if n >= batches + 1:
-                break
-        return {"longest_wait_s": longest}
+        return {"longest_wait_s": push_wait(srv.endpoint, batches)}
 
 
 def busiest_worker(server_pid: int) -> int:
