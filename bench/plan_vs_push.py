@@ -35,7 +35,7 @@ from typing import List, Optional
 import torch
 
 from bench.shuffle import buffer_sizes
-from bench.throughput import tree_rss_mb
+from bench.throughput import tree_pss_mb, tree_rss_mb
 from harness.faults import good_corpus
 from harness.serve import ServeProcess
 from v2v_client import V2VPlanDataset
@@ -43,22 +43,6 @@ from v2v_client.loadtest import run_loadtest
 from v2v_wire.plan import EpochPlan, Manifest, distinct_videos
 
 BATCH = 4
-
-
-def tree_pss_mb(pid: int) -> float:
-    """Proportional set size of a process and all its descendants, MB (1e6 bytes): pages shared
-    between them (the slot rings) counted once."""
-    total, stack = 0, [pid]
-    while stack:
-        p = stack.pop()
-        try:
-            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
-                if line.startswith("Pss:"):
-                    total += int(line.split()[1]) * 1024
-            stack += [int(k) for k in Path(f"/proc/{p}/task/{p}/children").read_text().split()]
-        except OSError:
-            continue
-    return total / 1e6
 
 
 class PeakRss:

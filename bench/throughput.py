@@ -22,19 +22,31 @@ from v2v_client.loadtest import run_loadtest
 from harness.serve import ServeProcess
 
 
-def tree_rss_mb(pid: int) -> float:
-    """Resident memory of a process and all its descendants, MB (1e6 bytes)."""
+def tree_memory_mb(pid: int, file: str = "status", field: str = "VmRSS:") -> float:
+    """A figure of a process and all its descendants summed, MB (1e6 bytes): ``field`` (in kB)
+    of ``/proc/PID/file``."""
     total, stack = 0, [pid]
     while stack:
         p = stack.pop()
         try:
-            for line in Path(f"/proc/{p}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
+            for line in Path(f"/proc/{p}/{file}").read_text().splitlines():
+                if line.startswith(field):
                     total += int(line.split()[1]) * 1024
             stack += [int(k) for k in Path(f"/proc/{p}/task/{p}/children").read_text().split()]
         except OSError:
             continue
     return total / 1e6
+
+
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory of a process and all its descendants, MB (1e6 bytes)."""
+    return tree_memory_mb(pid)
+
+
+def tree_pss_mb(pid: int) -> float:
+    """Proportional set size of a process and all its descendants, MB (1e6 bytes): pages shared
+    between them (the slot rings) counted once."""
+    return tree_memory_mb(pid, "smaps_rollup", "Pss:")
 
 
 def measure(corpus: Path, workers: int, outputs, batches: int, extra: List[str]) -> dict:

@@ -18,18 +18,7 @@ import torch
 from torchdata.stateful_dataloader import StatefulDataLoader
 
 from v2v_client import V2VPlanDataset
-from v2v_server.ops.config import load_config
-from v2v_server.service.local import local_server
-
-#: 8 voxel grids of 0.2 s a window: the bundled clips give 24 samples an epoch (``v2v-serve --check``)
-RECIPE = {"delivery_mode": "plan", "sequence_length": 8, "shuffle_buffer": 8}
-SAMPLES = 24
-
-
-@pytest.fixture(scope="module")
-def server():
-    with local_server(None, workers=2, batch_size=4, config=load_config(None, RECIPE)) as endpoint:
-        yield endpoint
+from tests.test_plan_stream import SAMPLES, server  # noqa: F401 - the plan server on the bundled clips, its epoch's size
 
 
 def _ids(batch) -> list:
