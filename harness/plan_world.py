@@ -6,6 +6,8 @@ What the world does to the feed:
 
 * workers decode at one sample a tick, stall (3-60 ticks), die (the pool replaces them), and hang
   until the task timeout; files give fewer windows than their slots, or break;
+* the corpus index knows some videos' slots at start, none or all; the others' the server learns
+  from their first decode (the plan unfolds), and the index keeps them for a server started again;
 * the server is killed and started again (a fresh ``PlanFeed`` and a fresh pool of workers: made
   samples, pending fetches and running tasks gone);
 * jobs of 1-3 ranks ask up to two steps ahead, ask again a fetch unanswered for ``RETRY`` ticks
@@ -92,7 +94,10 @@ class World:
         self.slots = {f"v{i:02d}.mp4": rng.randint(0, 6) for i in range(rng.randint(1, 14))}
         self.given = {v: (n if rng.random() < 0.8 else rng.randint(0, n)) for v, n in self.slots.items()}  # short
         self.broken = {v for v in self.slots if rng.random() < 0.1}  # the pass breaks after its windows
-        self.manifest = Manifest.of(self.slots, self.kpw)
+        known = rng.choice([0.0, 0.5, 1.0])
+        self.index = {v: n for v, n in self.slots.items() if rng.random() < known}  # the corpus index
+        # what each epoch lists: the index's slots, the decode's windows for the others
+        self.truth = Manifest.of({v: self.index.get(v, self.given[v]) for v in self.slots}, self.kpw)
         self.settings = dict(lookahead=rng.choice([0, 8]), keep_samples=rng.choice([0, 4, 32]), hedge_s=5.0,
                              task_timeout_s=40.0)
         self.buffer = rng.choice([1, 4, 16])
@@ -106,7 +111,8 @@ class World:
         self.request = 0
 
     def new_feed(self) -> PlanFeed:
-        return PlanFeed(self.manifest, self.seed, self.buffer, OUTPUTS, **self.settings)
+        manifest = Manifest.of({v: self.index.get(v) for v in self.slots}, self.kpw)
+        return PlanFeed(manifest, self.seed, self.buffer, OUTPUTS, **self.settings)
 
     def run(self, ticks: int) -> Outcome:
         for now in range(ticks):
@@ -138,18 +144,18 @@ class World:
         or checkpoint and resume at another layout (or roll back)."""
         rng, out = self.rng, self.out
         plan = self.feed.plan(job.epoch)
-        steps = plan.steps(job.world, job.batch, job.start)
+        steps = plan.steps(job.world, job.batch, job.start) if plan.complete else None  # unfolding: not known
         if rng.random() < 0.002 and job.outputs != OUTPUTS:  # a reader asks for one more output
             job.outputs = OUTPUTS[:len(job.outputs) + 1]
             out.widened += 1
-        while job.step < min(steps, job.taken + 2):
+        while job.step < min(job.taken + 2 if steps is None else steps, job.taken + 2):
             for r in range(job.world):
                 self.fetch(job, job.step, r, plan, now)
             job.step += 1
         for (s, r), (q, at) in list(job.asked.items()):  # unanswered: asked again
             if q > 0 and now - at >= RETRY:
                 self.fetch(job, s, r, plan, now)
-        if job.taken >= steps:
+        if steps is not None and job.taken >= steps:
             job.epoch, job.start, job.step, job.taken, job.asked, job.checkpoints = job.epoch + 1, 0, 0, 0, {}, [0]
         elif job.taken and rng.random() < 0.01:  # checkpoint, stop, resume at another layout
             job.start += job.taken * job.world * job.batch
@@ -218,6 +224,7 @@ class World:
             else:
                 broke = t.video in self.broken and self.given[t.video] < self.slots[t.video]
                 feed.done(w.ident, t.task, self.given[t.video], {}, "decoder error: broken packet" if broke else None)
+                self.index.setdefault(t.video, self.given[t.video])  # the pass's count, as a worker records it
                 w.task = None
         for ident, _ in feed.timed_out(now):
             for w in self.workers:
@@ -232,7 +239,7 @@ class World:
                 problems.append(f"{job.name} stuck in epoch {job.epoch} at step {job.taken}")
                 continue
             for e in range(self.epochs):
-                plan = EpochPlan(self.manifest, self.seed, e, self.buffer)
+                plan = EpochPlan(self.truth, self.seed, e, self.buffer)
                 rows = job.rows.get(e, {})
                 if sorted(rows) != list(range(len(plan))):
                     problems.append(f"{job.name} epoch {e}: read {len(rows)} of {len(plan)} positions")

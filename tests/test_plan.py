@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from v2v_server.delivery.batcher import video_order as batcher_order
 from v2v_wire.ids import SampleKey
-from v2v_wire.plan import (PLAN_VERSION, EpochPlan, Manifest, PlanIdentity, PlanMismatch, Position,
+from v2v_wire.plan import (PLAN_VERSION, EpochPlan, Manifest, NotKnownYet, PlanIdentity, PlanMismatch, Position,
                            distinct_videos, video_order)
 
 manifests = st.builds(
@@ -133,12 +133,58 @@ def test_a_position_of_another_plan_is_refused_in_one_line_naming_what_differs()
     assert Position.from_dict(Position(ident, 2, 100).to_dict(), expected=ident) == Position(ident, 2, 100)
 
 
-def test_a_manifests_fingerprint_names_its_videos_slots_and_crops():
+def test_a_manifests_fingerprint_names_its_videos_and_crops_not_the_slots_known_so_far():
     base = Manifest.of({"a.mp4": 2, "b.mp4": 3})
     assert Manifest.of({"b.mp4": 3, "a.mp4": 2}).fingerprint() == base.fingerprint()
-    others = [Manifest.of({"a.mp4": 2, "b.mp4": 4}), Manifest.of({"a.mp4": 2, "c.mp4": 3}),
-              Manifest.of({"a.mp4": 2, "b.mp4": 3}, crops_per_window=2), Manifest.of({"a.mp4": 2})]
-    assert len({m.fingerprint() for m in others} | {base.fingerprint()}) == 5
+    assert Manifest.of({"a.mp4": None, "b.mp4": 4}).fingerprint() == base.fingerprint()
+    others = [Manifest.of({"a.mp4": 2, "c.mp4": 3}), Manifest.of({"a.mp4": 2, "b.mp4": 3}, crops_per_window=2),
+              Manifest.of({"a.mp4": 2})]
+    assert len({m.fingerprint() for m in others} | {base.fingerprint()}) == 4
+
+
+@settings(max_examples=150, deadline=None)
+@given(manifests, st.integers(0, 2 ** 31), st.integers(0, 9), st.integers(1, 40), st.randoms(use_true_random=False))
+def test_a_plan_unfolding_as_slots_become_known_says_what_the_whole_plan_says(m, seed, epoch, buffer, rnd):
+    """Slots learned in any order and any number of steps: each position, once decided, is the
+    complete plan's, and a position is decided once the videos the production order reaches
+    first hold its buffer's samples."""
+    whole = EpochPlan(m, seed, epoch, buffer)
+    slots = dict(m.slots)
+    unknown = list(slots)
+    rnd.shuffle(unknown)
+    part = EpochPlan(Manifest.of({v: (None if v in unknown else n) for v, n in slots.items()},
+                                 m.crops_per_window), seed, epoch, buffer)
+    learned, said = {}, []
+    while True:
+        assert part.keys(0, part.known) == whole.keys(0, part.known)
+        assert part.known >= len(said) and part.keys(0, len(said)) == said
+        said = part.keys(0, part.known)
+        if part.known < len(whole) or not part.complete:
+            with pytest.raises(NotKnownYet):
+                part.key(part.known)
+            with pytest.raises(NotKnownYet):
+                len(part)
+        assert part.next_videos(3)[:1] == ([] if part.complete else [next(v for v in part.videos if v in unknown
+                                                                         and v not in learned)])
+        if not unknown:
+            break
+        for v in unknown[:rnd.randint(1, 3)]:
+            learned[v] = slots[v]
+        unknown = [v for v in unknown if v not in learned]
+        part.learn(learned)
+    assert part.complete and len(part) == len(whole) and part.key(len(whole)) is None
+    assert part.keys(0, len(whole)) == whole.keys(0, len(whole))
+
+
+def test_a_plan_decides_a_position_once_its_buffer_is_counted():
+    m = Manifest.of({f"v{i}.mp4": None for i in range(10)})
+    plan = EpochPlan(m, 1, 0, 4)
+    assert plan.known == 0 and not plan.complete and plan.next_videos(2) == plan.videos[:2]
+    plan.learn({plan.videos[0]: 3})
+    assert plan.known == 0  # 3 samples made: the buffer of 4 is not yet full
+    plan.learn({plan.videos[0]: 3, plan.videos[1]: 3})
+    assert plan.known == 2  # 6 made: positions 0 and 1 (each refill decided: t + 4 < 6)
+    assert plan.next_videos(1) == [plan.videos[2]]
 
 
 @pytest.mark.parametrize("slots, crops, field", [({"": 1}, 1, "video"), ({"a.mp4": -1}, 1, "a.mp4"),
@@ -166,7 +212,7 @@ def test_the_sequence_is_pinned_for_this_plan_version():
     plan = EpochPlan(m, 123, 4)
     digest = hashlib.sha256(np.stack([plan.video_index, plan.ordinal]).astype("<i8").tobytes()
                             + "\n".join(plan.videos).encode()).hexdigest()[:16]
-    assert (PLAN_VERSION, digest) == (1, PINNED)
+    assert (PLAN_VERSION, digest) == (2, PINNED)  # version 2: the identity names no slots; same sequence
 
 
 PINNED = "b12c8400f0f5825c"

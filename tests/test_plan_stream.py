@@ -68,8 +68,8 @@ def test_every_rank_reads_a_fixed_slice_and_the_epoch_holds_every_sample_once(se
 
 def test_len_and_the_epochs_order_are_the_trainers(server):
     ds = V2VPlanDataset(server, 5)
-    assert len(ds) == -(-SAMPLES // 5)
     first = real_ids(read(ds)[0])
+    assert len(ds) == -(-SAMPLES // 5)  # known once an epoch was decoded (or the corpus index knew it)
     ds.set_epoch(1)
     second = real_ids(read(ds)[0])
     assert sorted(first) == sorted(second) and first != second
@@ -147,24 +147,29 @@ def test_push_only_settings_given_with_a_plan_are_refused_naming_them(key, value
     assert getattr(ServeConfig.from_dict({key: value}), key) == value  # push takes it
 
 
-def test_a_manifest_once_counted_is_read_from_the_corpus_index_when_the_server_starts_again(tmp_path):
-    import dataclasses
-    from v2v_server.frames.check import PACKETS_LAYOUT
-    from v2v_server.ops.config import ServeConfig
+def test_a_corpus_never_scanned_unfolds_as_it_decodes_and_a_server_started_again_reads_its_index(tmp_path):
+    """No pass before the first batch: the server learns each video's windows from its first
+    decode, so ``len`` is unknown (TypeError, as for a dataset without one) until the epoch is
+    read; the corpus index keeps what the decodes found, so a server started again knows the
+    epoch at start and serves the same sequence, byte for byte."""
     from v2v_server.ops.plan_start import plan_manifest
     from v2v_server.ops.startup import start_source
 
-    cfg = ServeConfig.from_dict({**RECIPE, "shot_cuts": "off", "cache_dir": str(tmp_path)})
-    first, _ = plan_manifest(start_source(cfg))  # the bundled clips: packet passes
-    start = start_source(cfg)
-    index, rel = start.caches.corpus_index(), first.slots[0][0]
-    where, identity = start.source.where(rel), start.source.listed_identity(rel)
-    kept = index.lookup(where, identity, PACKETS_LAYOUT + cfg.recipe.reads.key)
-    assert kept is not None and kept.windows == first.slots[0][1]
-    assert plan_manifest(start)[0] == first  # started again: the same manifest, the same plan
-    # an entry of the index is what a start reads (no packet pass): one changed by hand shows it
-    index.record(where, identity, PACKETS_LAYOUT + cfg.recipe.reads.key, dataclasses.replace(kept, windows=99))
-    assert dict(plan_manifest(start)[0].slots) == {**dict(first.slots), rel: 99}
+    cfg = load_config(None, {**RECIPE, "cache_dir": str(tmp_path)})
+    assert plan_manifest(start_source(cfg)).samples is None  # nothing known, nothing read
+    with local_server(None, workers=2, batch_size=4, config=cfg) as endpoint:
+        ds = V2VPlanDataset(endpoint, 3)
+        with pytest.raises(TypeError, match="not known yet"):
+            len(ds)
+        first, _ = read(ds)
+        assert len(real_ids(first)) == len(set(real_ids(first))) == SAMPLES
+        assert len(ds) == -(-SAMPLES // 3)  # learned from the decodes
+    manifest = plan_manifest(start_source(cfg))
+    assert manifest.samples == SAMPLES
+    with local_server(None, workers=1, batch_size=4, config=cfg) as endpoint:
+        ds = V2VPlanDataset(endpoint, 3)
+        assert len(ds) == -(-SAMPLES // 3)
+        assert read(ds)[0] == first
 
 
 def test_a_push_streams_resume_state_is_refused_in_one_line():

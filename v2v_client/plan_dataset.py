@@ -212,14 +212,15 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         d = self._dispatcher()
         return d[0] if d else self.world_size
 
-    def plan_info(self) -> PlanInfo:
-        """What the server serves (asked once per dataset object and process).
+    def plan_info(self, refresh: bool = False) -> PlanInfo:
+        """What the server serves (asked once per dataset object and process; with ``refresh``,
+        again while the epoch's samples are not known: the plan unfolds as the server decodes).
 
         Raises:
             TimeoutError: no answer within ``timeout_s``.
             PlanMismatch: a loaded position of another plan.
         """
-        if self._info is None:
+        if self._info is None or (refresh and self._info.samples is None):
             with _Link(self.endpoint, self.timeout_s) as link:
                 self._info = link.ask()
             for loaded in (self._resume, self._pending and self._pending["position"]):
@@ -230,8 +231,16 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
     def __len__(self) -> int:
         """Steps of this rank in the epoch from its start position (every rank the same); asked by
         accelerate's dispatcher (``len`` of the loader it prepared), the batches it reads: the
-        steps times its ranks, so the prepared loader's length is the steps each rank takes."""
-        n = self.plan_info().samples
+        steps times its ranks, so the prepared loader's length is the steps each rank takes.
+
+        Raises:
+            TypeError: the server does not know the epoch's samples yet (a corpus its index does
+                not know: it learns each video's windows from its first decode), as a loader
+                takes a dataset without a length."""
+        n = self.plan_info(refresh=True).samples
+        if n is None:
+            raise TypeError(f"{self.endpoint}: the epoch's length is not known yet: the server learns each video's "
+                            "windows from its first decode (--warm-cache counts them ahead)")
         steps = max(0, -(-(n - self.start) // (self.world_size * self.batch_size)))
         return steps * plan_accelerate.dispatcher_asking_len(self)
 
@@ -262,10 +271,14 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         r = {"epoch": epoch, "origin": origin, "next": first, "last": None, "worker": j, "workers": k,
              "rank": rank, "world": world, "group": g, "per_step": world * self.batch_size}
         self._reading, self._upcoming = r, None
-        info = self.plan_info()
+        info = self.plan_info(refresh=True)
         if pending is not None:
             Position.from_dict(pending["position"], expected=info.plan)
-        steps = max(0, -(-(info.samples - r["origin"]) // r["per_step"]))
+        def steps_of(samples: Optional[int]) -> Optional[int]:  # None: not known yet
+            return None if samples is None else max(0, -(-(samples - r["origin"]) // r["per_step"]))
+
+        steps = steps_of(info.samples)
+        items = range(r["next"], steps * g, k) if steps is not None else itertools.count(r["next"], k)
 
         def first_row(i: int) -> int:  # item i: step i // g, rank i % g (dispatch) or step i of this rank
             s, rank = divmod(i, g) if g > 1 else (i, r["rank"])
@@ -273,17 +286,21 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
 
         group = []  # under dispatch: this process's items of the current step, packed together
         with _Link(self.endpoint, self.timeout_s) as link:
-            for i, rows, arrays in link.fetch_all(range(r["next"], steps * g, k), self.prefetch, self.retry_s,
+            for i, rows, arrays in link.fetch_all(items, self.prefetch, self.retry_s,
                                                   lambda req, i: Fetch(req, r["epoch"], first_row(i),
                                                                        first_row(i) + self.batch_size, self.outputs,
                                                                        info.plan)):
+                if steps is None and rows.samples is not None:
+                    steps = steps_of(rows.samples)
+                if steps is not None and i // g >= steps:
+                    break  # past the epoch's end, learned from the rows (fetched ahead)
                 item = self._item(info, r, i // g, rows, arrays)
                 if g == 1:
                     r["last"], r["next"] = i, i + k
                     yield item
                     continue
                 group.append((i, item))
-                if k > 1 or i % g == g - 1 or i + k >= steps * g:
+                if k > 1 or i % g == g - 1 or (steps is not None and i + k >= steps * g):
                     packed = plan_accelerate.dispatched([b for _, b in group], k)
                     for (done, _), batch in zip(group, packed):
                         r["last"], r["next"] = done, done + k

@@ -55,11 +55,11 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
 
 
 def _serve_plan(start) -> int:
-    """``--delivery plan``: the manifest (each video's windows, from the corpus index or read),
-    then :class:`PlanServer` until a signal stops it."""
+    """``--delivery plan``: the manifest (each video's windows the corpus index knows), then
+    :class:`PlanServer` until a signal stops it."""
     cfg = start.config
-    manifest, _ = plan_manifest(start, cfg.workers)
-    if not manifest.samples:
+    manifest = plan_manifest(start)
+    if manifest.samples == 0:
         print(f"v2v-serve: --videos {start.source.root}: no video gives a window at this layout (--check says why)",
               file=sys.stderr)
         return 2

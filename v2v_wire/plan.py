@@ -3,9 +3,13 @@ epoch), each rank's batch at each step as a fixed slice of it, and a checkpoint 
 
 The contract (docs/plan.md):
 
-* **The manifest** (:class:`Manifest`) is what a plan knows of a corpus: each video's *slots*
-  (its windows per epoch, or an upper bound of them) and ``crops_per_window``. Its fingerprint,
-  with the recipe's and :data:`PLAN_VERSION`, is the plan's identity (:class:`PlanIdentity`).
+* **The manifest** (:class:`Manifest`) is what a plan knows of a corpus: its videos, each one's
+  *slots* (its windows per epoch) where they are known, and ``crops_per_window``. A video's slots
+  are a function of its file and the recipe, so they are not part of the identity: the
+  manifest's fingerprint names the videos and the crops per window, and with the recipe's and
+  :data:`PLAN_VERSION` it is the plan's identity (:class:`PlanIdentity`). A plan *unfolds* as
+  slots become known (a server learns a video's from its first decode): what it says of a
+  position never changes once said.
 * **The epoch's sequence** (:class:`EpochPlan`) is built in two pure steps:
 
   1. the *production order*: the videos in :func:`video_order` (a BLAKE2b key of
@@ -18,7 +22,9 @@ The contract (docs/plan.md):
 
   Position ``t`` is thus one of the production order's first ``t + shuffle_buffer`` samples
   (:meth:`EpochPlan.made_by`): what a server must have made to serve it, so it holds at most a
-  buffer's samples beyond those it serves.
+  buffer's samples beyond those it serves; and it is decided once the slots of the first videos
+  in that order that hold those samples are known (:attr:`EpochPlan.known`), whatever the
+  others' are.
 * **Ranks and steps**: at world size ``n`` and per-rank batch size ``b``, rank ``r``'s batch at
   step ``s`` of an epoch started at position ``p0`` is the positions
   ``p0 + (s * n + r) * b`` .. ``+ b``. Every rank has :meth:`EpochPlan.steps` steps; positions
@@ -33,19 +39,20 @@ Nothing here owns a socket, a clock or a process; needs numpy only.
 from __future__ import annotations
 
 import hashlib
+from array import array
 from dataclasses import dataclass
-from typing import Iterable, List, Mapping, Optional, Tuple
+from typing import Iterable, List, Mapping, Optional, Set, Tuple
 
 import numpy as np
 
 from v2v_wire.ids import SampleKey
 
 __all__ = ["PLAN_VERSION", "SHUFFLE_BUFFER", "video_order", "Manifest", "PlanIdentity", "EpochPlan", "Position",
-           "PlanMismatch", "distinct_videos"]
+           "PlanMismatch", "NotKnownYet", "distinct_videos"]
 
 #: The version of the rules above: a plan of another version gives another sequence, so a
 #: position taken under it is refused (:meth:`PlanIdentity.problem`).
-PLAN_VERSION = 1
+PLAN_VERSION = 2
 
 #: Default samples the shuffle buffer holds (step 2): ``DeliveryPolicy.shuffle_buffer``'s default.
 SHUFFLE_BUFFER = 64
@@ -56,6 +63,11 @@ _MASK = np.uint64(0xFFFFFFFFFFFFFFFF)
 class PlanMismatch(ValueError):
     """A position, a plan or a request names another plan than the one at hand: the message is
     one line naming what differs (manifest, recipe, seed, shuffle buffer, version)."""
+
+
+class NotKnownYet(LookupError):
+    """A position of an epoch whose plan has not unfolded that far: the slots of a video the
+    production order reaches first are not known yet (:attr:`EpochPlan.known`)."""
 
 
 def video_order(videos: Iterable[str], seed: int, epoch: int) -> List[str]:
@@ -95,13 +107,14 @@ def _seed_key(seed: int, epoch: int) -> np.uint64:
 
 @dataclass(frozen=True)
 class Manifest:
-    """What a plan knows of a corpus: each video's slots and the crops per window.
+    """What a plan knows of a corpus: its videos, each one's slots where known, and the crops
+    per window.
 
     Attributes:
         slots: ``((video, slots), ...)`` sorted by video: corpus-relative POSIX paths, each
-            with the windows it gives per epoch (or an upper bound; a slot its decode does not
-            fill is a padding row). Videos with 0 slots are kept (they name the listing) but
-            give no sample.
+            with the windows it gives per epoch (a slot its decode does not fill is a padding
+            row), or None where not known yet. Videos with 0 slots are kept (they name the
+            listing) but give no sample.
         crops_per_window: samples per window (K >= 1).
 
     Build with :meth:`of`, which sorts and checks.
@@ -111,32 +124,36 @@ class Manifest:
     crops_per_window: int = 1
 
     @classmethod
-    def of(cls, slots: Mapping[str, int], crops_per_window: int = 1) -> "Manifest":
-        """The manifest of ``{video: slots}``.
+    def of(cls, slots: Mapping[str, Optional[int]], crops_per_window: int = 1) -> "Manifest":
+        """The manifest of ``{video: slots or None}``.
 
         Raises:
-            ValueError: a video that is not a non-empty str, slots that are not an int >= 0,
-                or ``crops_per_window`` < 1, naming it.
+            ValueError: a video that is not a non-empty str, slots that are neither None nor an
+                int >= 0, or ``crops_per_window`` < 1, naming it.
         """
         if not isinstance(crops_per_window, int) or isinstance(crops_per_window, bool) or crops_per_window < 1:
             raise ValueError(f"manifest: crops_per_window must be an int >= 1, got {crops_per_window!r}")
         for v, n in slots.items():
             if not isinstance(v, str) or not v:
                 raise ValueError(f"manifest: a video must be a non-empty path, got {v!r:.80}")
-            if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 0:
-                raise ValueError(f"manifest: slots of {v!r} must be an int >= 0, got {n!r}")
-        return cls(tuple(sorted((v, int(n)) for v, n in slots.items())), crops_per_window)
+            if n is not None and (not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 0):
+                raise ValueError(f"manifest: slots of {v!r} must be None or an int >= 0, got {n!r}")
+        return cls(tuple(sorted((v, None if n is None else int(n)) for v, n in slots.items())), crops_per_window)
 
     @property
-    def samples(self) -> int:
-        """Samples an epoch lists: the slots times ``crops_per_window``."""
+    def samples(self) -> Optional[int]:
+        """Samples an epoch lists (the slots times ``crops_per_window``), or None while some
+        video's slots are not known."""
+        if any(n is None for _, n in self.slots):
+            return None
         return sum(n for _, n in self.slots) * self.crops_per_window
 
     def fingerprint(self) -> str:
-        """A short hash (16 hex digits) of the videos, their slots and the crops per window."""
+        """A short hash (16 hex digits) of the videos and the crops per window (not their slots:
+        those follow from the files and the recipe, and become known as the plan unfolds)."""
         h = hashlib.sha256(f"crops={self.crops_per_window}\n".encode())
-        for v, n in self.slots:
-            h.update(f"{n} {v}\n".encode())
+        for v, _ in self.slots:
+            h.update(f"{v}\n".encode())
         return h.hexdigest()[:16]
 
 
@@ -183,18 +200,22 @@ class PlanIdentity:
 
 
 class EpochPlan:
-    """One epoch's sequence of samples (module docstring: steps 1 and 2), held as two arrays.
+    """One epoch's sequence of samples (module docstring: steps 1 and 2), unfolding as the
+    videos' slots become known.
 
     Args:
-        manifest: the corpus's slots.
+        manifest: the corpus's videos and the slots known so far.
         seed, epoch: ints >= 0.
         shuffle_buffer: samples the shuffle buffer holds (>= 1; 1 keeps the production order).
 
     Attributes:
-        videos: the manifest's videos with slots, in this epoch's :func:`video_order`.
-        video_index: int64 (N,): each position's index into :attr:`videos`.
-        ordinal: int64 (N,): each position's sample number in its video (``SampleKey.ordinal``).
-        production: int64 (N,): each position's index in the production order.
+        videos: the manifest's videos not known to have 0 slots, in this epoch's
+            :func:`video_order`.
+        known: positions decided so far (0 .. ``known - 1``); every position once
+            :attr:`complete`.
+        complete: every video's slots are known, so the epoch's length is (:func:`len`).
+
+    :meth:`learn` unfolds it further; what it says of a position never changes.
 
     Raises:
         ValueError: a negative seed or epoch, or a shuffle buffer < 1, naming it.
@@ -204,59 +225,149 @@ class EpochPlan:
         for name, v, low in (("seed", seed, 0), ("epoch", epoch, 0), ("shuffle_buffer", shuffle_buffer, 1)):
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < low:
                 raise ValueError(f"plan: {name} must be an int >= {low}, got {v!r}")
-        self.manifest, self.seed, self.epoch = manifest, int(seed), int(epoch)
+        self.seed, self.epoch = int(seed), int(epoch)
+        self.crops_per_window = manifest.crops_per_window
         self.shuffle_buffer = int(shuffle_buffer)
-        slots = dict(manifest.slots)
-        self.videos = video_order((v for v, n in manifest.slots if n), seed, epoch)
-        k = manifest.crops_per_window
-        counts = np.array([slots[v] * k for v in self.videos], dtype=np.int64)
-        vid = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
-        self.production = self._shuffle(len(vid))
-        self.video_index = vid[self.production]
-        self.ordinal = (self.production - np.repeat(np.cumsum(counts) - counts, counts)[self.production])
+        self.videos = video_order((v for v, n in manifest.slots if n != 0), seed, epoch)
+        self._starts = array("q", [0])  # production index of each counted video's first sample
+        self._production = array("q")  # each decided position's production index
+        self._buffer: Optional[List[int]] = None
+        self._next = 0  # the production order's next sample to enter the buffer
+        self._key = _seed_key(self.seed, self.epoch)
+        self.complete = False
+        self.learn(dict(manifest.slots))
 
-    def _shuffle(self, n: int) -> np.ndarray:
-        """The production index each position takes (step 2)."""
-        m = self.shuffle_buffer
-        if m == 1 or n == 0:
-            return np.arange(n, dtype=np.int64)
-        draws = _splitmix64(np.arange(n, dtype=np.uint64) ^ _seed_key(self.seed, self.epoch)).tolist()
-        out = [0] * n
-        buf = list(range(min(m, n)))
-        nxt = len(buf)
-        for t in range(n):
-            j = draws[t] % len(buf)
-            out[t] = buf[j]
-            if nxt < n:
-                buf[j] = nxt
-                nxt += 1
-            else:
-                buf[j] = buf[-1]
-                buf.pop()
-        return np.array(out, dtype=np.int64)
+    @property
+    def known(self) -> int:
+        return len(self._production)
+
+    @property
+    def counted(self) -> Tuple[int, int]:
+        """(videos, samples) of the production order counted so far: its first videos in
+        :attr:`videos`, whose slots are known."""
+        return len(self._starts) - 1, self._starts[-1]
+
+    def undecided(self, keys: Iterable[SampleKey]) -> Set[SampleKey]:
+        """Those of ``keys`` (samples of this epoch's videos) that no decided position holds yet:
+        of a video not counted, or counted and still in the buffer or past it."""
+        if self.complete and not self._buffer:
+            return set()
+        if getattr(self, "_index", None) is None or len(self._index) != len(self.videos):
+            self._index = {v: i for i, v in enumerate(self.videos)}
+        counted, buf = len(self._starts) - 1, set(self._buffer or ())
+        out = set()
+        for key in keys:
+            i = self._index.get(key.video)
+            if i is None:
+                continue
+            prod = self._starts[i] + key.ordinal(self.crops_per_window) if i < counted else None
+            if prod is None or prod >= self._next or prod in buf:
+                out.add(key)
+        return out
+
+    def learn(self, slots: Mapping[str, Optional[int]]) -> int:
+        """Unfold with ``slots`` (video -> slots or None; videos not in it stay unknown): the
+        production order takes in each next video whose slots are known, and the positions its
+        samples decide. Returns :attr:`known`."""
+        k = self.crops_per_window
+        counted = len(self._starts) - 1
+        while counted < len(self.videos):
+            n = slots.get(self.videos[counted])
+            if n is None:
+                break
+            self._starts.append(self._starts[-1] + n * k)
+            counted += 1
+        self.complete = counted == len(self.videos)
+        self._shuffle(self._starts[-1])
+        return self.known
+
+    def _shuffle(self, made: int) -> None:
+        """Decide the positions the production order's first ``made`` samples decide (step 2):
+        position ``t`` once its buffer's refill is decided too (``t + shuffle_buffer < made``,
+        or every sample counted)."""
+        m, out = self.shuffle_buffer, self._production
+        if self._buffer is None:
+            if made < m and not self.complete:
+                return
+            self._buffer, self._next = list(range(min(m, made))), min(m, made)
+        buf, nxt, t = self._buffer, self._next, len(out)
+        while buf and (nxt < made or self.complete):
+            stop = t + (made - nxt if nxt < made else len(buf))
+            draws = _splitmix64(np.arange(t, stop, dtype=np.uint64) ^ self._key).tolist()
+            for d in draws:
+                j = d % len(buf)
+                out.append(buf[j])
+                if nxt < made:
+                    buf[j] = nxt
+                    nxt += 1
+                else:
+                    buf[j] = buf[-1]
+                    buf.pop()
+            t = stop
+        self._next = nxt
+
+    def _video_of(self, production: np.ndarray) -> np.ndarray:
+        return np.searchsorted(np.frombuffer(self._starts, dtype=np.int64), production, side="right") - 1
+
+    @property
+    def production(self) -> np.ndarray:
+        """int64 (known,): each decided position's index in the production order."""
+        return np.frombuffer(self._production, dtype=np.int64).copy()
+
+    @property
+    def video_index(self) -> np.ndarray:
+        """int64 (known,): each decided position's index into :attr:`videos`."""
+        return self._video_of(self.production)
+
+    @property
+    def ordinal(self) -> np.ndarray:
+        """int64 (known,): each decided position's sample number in its video (``SampleKey.ordinal``)."""
+        prod = self.production
+        return prod - np.frombuffer(self._starts, dtype=np.int64)[self._video_of(prod)]
 
     def __len__(self) -> int:
-        """Samples in the epoch (no padding)."""
-        return len(self.video_index)
+        """Samples in the epoch (no padding).
+
+        Raises:
+            NotKnownYet: the plan is not :attr:`complete`."""
+        if not self.complete:
+            raise NotKnownYet(f"epoch {self.epoch}: its length is not known until every video's slots are "
+                              f"({len(self._starts) - 1} of {len(self.videos)} videos counted)")
+        return len(self._production)
 
     def key(self, position: int) -> Optional[SampleKey]:
         """The sample at ``position`` (0-based), or ``None`` for a padding row (``position`` at or
-        past :func:`len`)."""
+        past :func:`len`).
+
+        Raises:
+            IndexError: ``position`` < 0.
+            NotKnownYet: ``position`` is not decided yet (at or past :attr:`known` of a plan not
+                :attr:`complete`)."""
         if position < 0:
             raise IndexError(f"plan position must be >= 0, got {position}")
-        if position >= len(self):
-            return None
-        return SampleKey.at(self.videos[self.video_index[position]], int(self.ordinal[position]),
-                            self.manifest.crops_per_window)
+        if position >= len(self._production):
+            if self.complete:
+                return None
+            raise NotKnownYet(f"epoch {self.epoch} position {position}: not decided yet ({self.known} are)")
+        prod = self._production[position]
+        v = int(self._video_of(np.int64(prod)))
+        return SampleKey.at(self.videos[v], prod - self._starts[v], self.crops_per_window)
 
     def keys(self, start: int, stop: int) -> List[Optional[SampleKey]]:
         """:meth:`key` of each position in ``start`` .. ``stop - 1``."""
         return [self.key(p) for p in range(start, stop)]
 
+    def next_videos(self, count: int) -> List[str]:
+        """The first ``count`` videos the production order reaches after the counted ones: those
+        whose slots unfold the plan next (empty once :attr:`complete`)."""
+        counted = len(self._starts) - 1
+        return self.videos[counted:counted + count]
+
     def made_by(self, position: int) -> int:
         """How many samples of the production order a server must have made (in that order) to
-        serve every position up to ``position``: ``min(N, position + shuffle_buffer)``."""
-        return min(len(self), position + self.shuffle_buffer)
+        serve every position up to ``position``: ``position + shuffle_buffer``, at most every
+        sample of a :attr:`complete` plan."""
+        return min(len(self), position + self.shuffle_buffer) if self.complete else position + self.shuffle_buffer
 
     def steps(self, world_size: int, batch_size: int, start: int = 0) -> int:
         """Steps every rank takes from position ``start`` to the epoch's end:
@@ -264,6 +375,7 @@ class EpochPlan:
 
         Raises:
             ValueError: ``world_size`` or ``batch_size`` < 1, or ``start`` < 0.
+            NotKnownYet: the plan is not :attr:`complete`.
         """
         _check_layout(world_size, batch_size, start)
         return max(0, -(-(len(self) - start) // (world_size * batch_size)))
@@ -338,9 +450,9 @@ class Position:
 
 
 def distinct_videos(plan: EpochPlan, batch_size: int, world_size: int = 1) -> float:
-    """Mean distinct videos per batch over the epoch's full batches at that layout (a measure of
+    """Mean distinct videos per batch over the decided positions' full batches at that layout (a measure of
     mixing: ``bench/plan_mixing`` and ``tests/test_plan.py`` read it)."""
-    full = len(plan) // batch_size
+    full = plan.known // batch_size
     if not full:
         return 0.0
     vid = plan.video_index[:full * batch_size].reshape(full, batch_size)

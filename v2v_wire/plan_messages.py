@@ -33,6 +33,10 @@ def _int(h: dict, name: str, lo: int = 0, hi: int = _MAX_INT) -> int:
     return v
 
 
+def _optional_int(h: dict, name: str) -> Optional[int]:
+    return None if h.get(name) is None else _int(h, name)
+
+
 @dataclass(frozen=True)
 class PlanAsk:
     """Client -> server: what do you serve?"""
@@ -47,13 +51,14 @@ class PlanInfo:
 
     Attributes:
         plan: the plan's identity.
-        samples: samples per epoch (the manifest's slots x crops per window).
+        samples: samples per epoch (the manifest's slots x crops per window), or None while
+            the server has not learned every video's slots (the plan unfolds as it decodes).
         stream: the recipe's shapes and outputs (``sequence_length``, ``num_bins``,
             ``crop_size``, ``outputs``, ``flow_dtype``, ...), as plain values.
     """
 
     plan: PlanIdentity
-    samples: int
+    samples: Optional[int]
     stream: dict = field(default_factory=dict)
 
     def to_wire(self) -> dict:
@@ -67,7 +72,7 @@ class PlanInfo:
             raise WireError(f"plan: {e}") from None
         if not isinstance(h.get("stream"), dict):
             raise WireError("plan: field 'stream' must be a map")
-        return cls(plan, _int(h, "samples"), h["stream"])
+        return cls(plan, _optional_int(h, "samples"), h["stream"])
 
 
 @dataclass(frozen=True)
@@ -103,7 +108,9 @@ class Rows:
     """Server -> client: the answer to fetch ``request``: rows for positions ``start`` .. of
     ``epoch``, each with its sample id (None for a row past the epoch's end), ``padding``,
     ``params`` (the sample's parameters, or why the row holds none) and the arrays' specs (the
-    frames follow the header, one per array, ``protocol.decode_arrays``)."""
+    frames follow the header, one per array, ``protocol.decode_arrays``); ``samples``: the
+    epoch's samples once the server knows them (None before: a reader of a plan still unfolding
+    learns the epoch's end from it)."""
 
     request: int
     epoch: int
@@ -112,10 +119,12 @@ class Rows:
     padding: List[bool]
     params: List[dict]
     arrays: List[dict]
+    samples: Optional[int] = None
 
     def to_wire(self) -> dict:
         return {"type": "rows", "request": self.request, "epoch": self.epoch, "start": self.start,
-                "sample_ids": self.sample_ids, "padding": self.padding, "params": self.params, "arrays": self.arrays}
+                "sample_ids": self.sample_ids, "padding": self.padding, "params": self.params, "arrays": self.arrays,
+                "samples": self.samples}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Rows":
@@ -129,7 +138,8 @@ class Rows:
             raise WireError(f"rows: field 'params' must be {n} maps")
         if not isinstance(arrays, list):
             raise WireError("rows: field 'arrays' must be a list of array specs")
-        return cls(_int(h, "request"), _int(h, "epoch"), _int(h, "start"), ids, padding, params, arrays)
+        return cls(_int(h, "request"), _int(h, "epoch"), _int(h, "start"), ids, padding, params, arrays,
+                   _optional_int(h, "samples"))
 
 
 @dataclass(frozen=True)

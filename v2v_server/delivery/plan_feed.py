@@ -140,19 +140,30 @@ def spare_samples(store: Sequence, fetched: Set, named: Set, live: Set[int], cou
 
 
 def positions_after(plan_of: Callable[[int], EpochPlan], kept: Mapping[int, EpochPlan], epoch: int, stop: int,
-                    count: int) -> Iterator[Tuple[int, SampleKey]]:
-    """(epoch, key) of the ``count`` positions of ``epoch`` from ``stop`` on (``plan_of``: an
-    epoch's plan; ``kept``: the plans built); past the epoch's end, the next epoch's first ones (a
-    trainer reads its epochs in turn: decoding them while it reads the end of this one keeps the
-    workers busy across the boundary), unless that would drop a kept plan."""
+                    count: int) -> Iterator[Tuple[int, str, Optional[SampleKey]]]:
+    """(epoch, video, key) of the ``count`` positions of ``epoch`` from ``stop`` on (``plan_of``:
+    an epoch's plan; ``kept``: the plans built); where the plan is not decided that far, (epoch,
+    video, None) for the videos whose slots unfold it next, in order; past the epoch's end, the
+    next epoch's first ones (a trainer reads its epochs in turn: decoding them while it reads the
+    end of this one keeps the workers busy across the boundary), unless that would drop a kept plan."""
     plan = plan_of(epoch)
-    for p in range(stop, min(len(plan), stop + count)):
-        yield epoch, plan.key(p)
-    rest = stop + count - max(stop, len(plan))
-    if rest > 0 and len(plan) and (epoch + 1 in kept or len(kept) < PLANS_KEPT):
-        following = plan_of(epoch + 1)
-        for p in range(min(rest, len(following))):
-            yield epoch + 1, following.key(p)
+    yield from _positions(plan, stop, count)
+    if plan.complete:
+        rest = stop + count - max(stop, len(plan))
+        if rest > 0 and len(plan) and (epoch + 1 in kept or len(kept) < PLANS_KEPT):
+            yield from _positions(plan_of(epoch + 1), 0, rest)
+
+
+def _positions(plan: EpochPlan, start: int, count: int) -> Iterator[Tuple[int, str, Optional[SampleKey]]]:
+    """(epoch, video, key) of positions ``start`` .. ``start + count - 1`` of ``plan`` that are
+    decided and hold a sample; then, where they are not decided, (epoch, video, None) for the
+    videos that unfold it next."""
+    for p in range(start, min(plan.known, start + count)):
+        key = plan.key(p)
+        yield plan.epoch, key.video, key
+    if not plan.complete and start + count > plan.known:
+        for v in plan.next_videos(start + count - max(start, plan.known)):
+            yield plan.epoch, v, None
 
 
 class PlanFeed:
@@ -180,8 +191,12 @@ class PlanFeed:
         if not 0 < hedge_s <= task_timeout_s:
             raise ValueError(f"hedge_s must be > 0 and <= task_timeout_s, got {hedge_s} and {task_timeout_s}")
         self.manifest, self.seed, self.shuffle_buffer = manifest, seed, shuffle_buffer
-        self.slots = {v: n * manifest.crops_per_window for v, n in manifest.slots}  # samples per video
-        self.largest = max(self.slots.values(), default=0)
+        self.windows: Dict[str, Optional[int]] = dict(manifest.slots)  # each video's slots; None until known
+        kpw = manifest.crops_per_window
+        self.slots = {v: None if n is None else n * kpw for v, n in manifest.slots}  # samples per video
+        self.largest = max((n for n in self.slots.values() if n), default=0)
+        self.unknown = sum(1 for n in self.slots.values() if n is None)  # videos whose slots are not known
+        self._total: Optional[int] = None
         self.making = Making(outputs)
         self.lookahead, self.keep_samples = lookahead, keep_samples
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
@@ -202,6 +217,8 @@ class PlanFeed:
         p = self.plans.get(epoch)
         if p is None:
             p = self.plans[epoch] = EpochPlan(self.manifest, self.seed, epoch, self.shuffle_buffer)
+            if not p.complete:
+                p.learn(self.windows)
             while len(self.plans) > PLANS_KEPT:
                 gone, _ = self.plans.popitem(last=False)
                 self.failed = {sk: why for sk, why in self.failed.items() if sk[0] != gone}
@@ -253,6 +270,8 @@ class PlanFeed:
     def _rows(self, f: Fetch) -> Optional[List[Row]]:
         plan = self.plan(f.epoch)
         rows = []
+        if not plan.complete and f.stop > plan.known:
+            return None  # not decided yet
         for p in range(f.start, f.stop):
             key = plan.key(p)
             if key is None:
@@ -282,8 +301,11 @@ class PlanFeed:
         named = set()
         for f in self.pending:
             plan = self.plan(f.epoch)
-            named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, len(plan))))
+            named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, plan.known)))
         live = {e for e, t in self.fetched_at.items() if now - t < IDLE_S}
+        for e in live & set(self.plans):  # what decides a plan still unfolding is kept: it is read next
+            keys = [k for (e2, k) in self.store if e2 == e and (e2, k) not in self.fetched]
+            named.update((e, k) for k in self.plans[e].undecided(keys))
         for sk in spare_samples(self.store, self.fetched, named, live, over):
             del self.store[sk]
 
@@ -305,35 +327,54 @@ class PlanFeed:
 
     def _needed(self) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
         """(epoch, video) to decode: those pending fetches need a sample of (neither kept nor
-        failed), by the first position needing it; and those the positions after each epoch's
-        furthest fetch need, not running, while the samples made ahead (kept and not fetched, or
-        still to come from running tasks) stay within ``lookahead`` (module docstring)."""
+        failed), by the first position needing it, or, where a fetch's positions are not decided
+        yet, whose slots decide them (the next videos of the production order); and those the
+        positions after each epoch's furthest fetch need, not running, while the samples made
+        ahead (kept and not fetched, or still to come from running tasks) stay within
+        ``lookahead`` (module docstring)."""
+        made: Dict[Tuple[int, str], int] = {}
+        for (e, k) in list(self.store) + list(self.failed):
+            made[(e, k.video)] = made.get((e, k.video), 0) + 1
         waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
         furthest: Dict[int, int] = {}
         for f in self.pending:
             plan = self.plan(f.epoch)
             furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
-            for p in range(f.start, min(f.stop, len(plan))):
+            for p in range(f.start, min(f.stop, plan.known)):
                 key = plan.key(p)
                 if (f.epoch, key) not in self.store and (f.epoch, key) not in self.failed:
                     ek = (f.epoch, key.video)
                     waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
-        made: Dict[Tuple[int, str], int] = {}
-        for (e, k) in list(self.store) + list(self.failed):
-            made[(e, k.video)] = made.get((e, k.video), 0) + 1
+            if not plan.complete and f.stop > plan.known:
+                i, counted = plan.counted
+                deficit = plan.made_by(f.stop) + 1 - counted
+                while deficit > 0 and i < len(plan.videos):
+                    ek = (f.epoch, plan.videos[i])
+                    if self.slots.get(ek[1]) is None or made.get(ek, 0) < self.slots[ek[1]]:
+                        waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
+                    deficit -= self._expected(ek[1])
+                    i += 1
         budget = self.lookahead - sum(1 for sk in self.store if sk not in self.fetched)
-        budget -= sum(max(0, self.slots.get(v, 0) - made.get((e, v), 0)) for (e, v) in set(self.runs) | set(waited))
+        budget -= sum(max(0, self._expected(v) - made.get((e, v), 0)) for (e, v) in set(self.runs) | set(waited))
         ahead: List[Tuple[int, str]] = []
         for epoch, stop in sorted(furthest.items()):
-            for e, key in positions_after(self.plan, self.plans, epoch, stop, self.lookahead + self.shuffle_buffer):
+            for e, video, key in positions_after(self.plan, self.plans, epoch, stop,
+                                                 self.lookahead + self.shuffle_buffer):
                 if budget <= 0:
                     break
-                ek = (e, key.video)
+                ek = (e, video)
                 if ek in waited or ek in self.runs or ek in ahead or (e, key) in self.store or (e, key) in self.failed:
                     continue
+                if key is None and self.slots.get(video) is not None and made.get(ek, 0) >= self.slots[video]:
+                    continue
                 ahead.append(ek)
-                budget -= self.slots.get(key.video, 0) - made.get(ek, 0)
+                budget -= self._expected(video) - made.get(ek, 0)
         return sorted(waited, key=waited.__getitem__), ahead
+
+    def _expected(self, video: str) -> int:
+        """Samples ``video`` gives per epoch: its slots, or while not known the largest known."""
+        n = self.slots.get(video, 0)
+        return max(self.largest, self.manifest.crops_per_window) if n is None else n
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
         epoch, video = ek
@@ -361,9 +402,10 @@ class PlanFeed:
         run.progress[task_id] = now
         sk = (ek[0], key)
         kpw = self.manifest.crops_per_window
-        if key.ordinal(kpw) >= self.slots.get(key.video, 0):
+        slots = self.slots.get(key.video, 0)
+        if slots is not None and key.ordinal(kpw) >= slots:
             raise SlotsExceeded(f"{key.video}: the decode gave {key.sample_id(kpw)}, past the manifest's "
-                                f"{self.slots.get(key.video, 0) // kpw} window(s) for it (a stale manifest, or a wrong bound)")
+                                f"{slots // kpw} window(s) for it (a stale corpus index, or a file changed in place)")
         if sk in self.store or self.making.tasks.get(task_id) != self.making.now:  # made already, or lacks an output
             return False
         self.failed.pop(sk, None)
@@ -385,6 +427,8 @@ class PlanFeed:
         run.error = error
         epoch, video = ek
         kpw = self.manifest.crops_per_window
+        if self.slots.get(video, 0) is None:
+            self.learn(video, windows)
         why_short = error or f"the decode gave {windows} window(s), the manifest {self.slots.get(video, 0) // kpw}"
         for i in range(self.slots.get(video, 0)):
             key = SampleKey.at(video, i, kpw)
@@ -392,6 +436,25 @@ class PlanFeed:
             if gone and (key.window, key.crop) not in skip and (epoch, key) not in self.store:
                 self.failed.setdefault((epoch, key), failed.get(key.window, why_short))
         return run
+
+    @property
+    def epoch_samples(self) -> Optional[int]:
+        """Samples every epoch lists, once every video's slots are known; None before."""
+        if self.unknown:
+            return None
+        if self._total is None:
+            self._total = sum(self.slots.values())
+        return self._total
+
+    def learn(self, video: str, windows: int) -> None:
+        """``video``'s slots are ``windows`` (its first decode's count): the plans unfold with it."""
+        kpw = self.manifest.crops_per_window
+        self.unknown -= self.windows[video] is None
+        self.windows[video], self.slots[video] = windows, windows * kpw
+        self.largest = max(self.largest, windows * kpw)
+        for plan in self.plans.values():
+            if not plan.complete:
+                plan.learn(self.windows)
 
     def worker_lost(self, worker: Hashable) -> Optional[Run]:
         """``worker`` died: its copies end; a video no copy decodes any more is needed again

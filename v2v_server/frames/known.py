@@ -15,11 +15,12 @@ class KnownWindows(NamedTuple):
     """What the corpus index says of a listing at a server's start (:func:`known_windows`):
     ``known``, how many of its videos it knows; ``samples``, their samples per epoch together;
     ``empty``, those known to give no window -> ``(cause, reason)``, the verdict's reason and
-    its code (``window_pass.judged``)."""
+    its code (``window_pass.judged``); ``windows``, each known video's windows."""
 
     known: int
     samples: int
     empty: Dict[str, Tuple[str, str]]
+    windows: Dict[str, int] = {}
 
 
 def known_windows(windows: WindowSettings, decode: DecodeSettings, source: VideoSource,
@@ -30,16 +31,17 @@ def known_windows(windows: WindowSettings, decode: DecodeSettings, source: Video
     The server reads it at start: an epoch's size when every video is known, and the videos not
     worth opening. Nothing is known without an index (``caches.corpus_index()``)."""
     index = caches.corpus_index() if caches is not None else None
-    known, samples, empty = 0, 0, {}
+    known, samples, empty, counts = 0, 0, {}, {}
     if index is None:
         return KnownWindows(0, 0, empty)
     for rel, n, cause, reason in index.windows(((rel, source.where(rel), source.listed_identity(rel))
                                                 for rel in videos), layout_key(windows, decode)):
         known, samples = known + 1, samples + n
+        counts[rel] = n
         if n == 0:
             empty[rel] = (cause, reason)
     if index.fault is not None:  # a fault on the way: nothing it answered is trusted
         return KnownWindows(0, 0, {})
-    return KnownWindows(known, samples, empty)
+    return KnownWindows(known, samples, empty, counts)
 
 

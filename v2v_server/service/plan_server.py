@@ -58,7 +58,8 @@ class PlanServer:
         cfg: validated ``ServeConfig`` (its recipe, seed, shuffle buffer, workers, bind,
             task timeout).
         source, caches: the corpus and the host's caches, as ``V2VServer`` takes them.
-        manifest: the slots of every video served (``ops.plan_start.plan_manifest``).
+        manifest: the videos served, with the slots the corpus index knows
+            (``ops.plan_start.plan_manifest``); the others' are learned from their decodes.
 
     Call :meth:`run` (blocks until :meth:`stop`).
     """
@@ -101,8 +102,10 @@ class PlanServer:
             pool = WorkerPool(worker_config(self.cfg), corpus, self.sockets.backend_endpoint, self.cfg.workers)
             self.workers.attach(self.sockets.backend, pool, OwnedRows())
             pool.start()
-            log.info("serving by plan %s: %d video(s), %d samples per epoch, from %s on %s with %d worker(s)",
-                     self.identity.manifest, len(self.manifest.slots), self.manifest.samples, self.source.root,
+            counted = sum(1 for _, n in self.manifest.slots if n is not None)
+            log.info("serving by plan %s: %d video(s) (%d counted: %s samples per epoch), from %s on %s with %d "
+                     "worker(s)", self.identity.manifest, len(self.manifest.slots), counted,
+                     "unknown yet" if self.manifest.samples is None else self.manifest.samples, self.source.root,
                      self.bound_endpoint, self.cfg.workers)
             if ready_event is not None:
                 ready_event.set()
@@ -157,7 +160,7 @@ class PlanServer:
                 log.warning("bad message from client %s: %s", ident.hex()[:12], e)
             return
         if isinstance(msg, PlanAsk):
-            self._send(ident, PlanInfo(self.identity, self.manifest.samples, self.stream_info()).to_wire())
+            self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info()).to_wire())
             return
         problem = self.identity.problem(msg.plan)
         missing = [o for o in msg.outputs if o not in self.cfg.outputs]
@@ -166,6 +169,13 @@ class PlanServer:
             self._send(ident, Refused(msg.request, why).to_wire())
             return
         self.feed.fetch((ident, msg.outputs), msg.request, msg.epoch, msg.start, msg.stop, now, msg.outputs)
+
+    def _samples(self, epoch: int) -> Optional[int]:
+        """The epoch's samples (every epoch lists the same), or None while the plan unfolds."""
+        plan = self.feed.plans.get(epoch)
+        if plan is not None and plan.complete:
+            return len(plan)
+        return self.feed.epoch_samples
 
     def _send(self, ident: bytes, header: dict, frames: Sequence = ()) -> None:
         try:
@@ -181,7 +191,8 @@ class PlanServer:
         ids = [r.key.sample_id(self.manifest.crops_per_window) if r.key is not None else None for r in rows]
         params = [r.sample.meta if r.sample is not None else {"padding": r.reason or "past the epoch's end"}
                   for r in rows]
-        head = Rows(f.request, f.epoch, f.start, ids, [r.padding for r in rows], params, specs).to_wire()
+        head = Rows(f.request, f.epoch, f.start, ids, [r.padding for r in rows], params, specs,
+                    self._samples(f.epoch)).to_wire()
         self._send(ident, head, frames)
         real = [r for r in rows if r.sample is not None]
         self.metrics.on_batch_sent(len(real), sum(a.nbytes for a in arrays.values()))
