@@ -10,7 +10,8 @@ what the corpus size costs), and one trainer reads one batch. Rows: seconds from
 process start to the "serving" log line, seconds to the first batch, and the peak resident
 memory (``VmHWM``) of the server process and of its worker. With ``--baseline-tree``, every
 size is measured also with the code of another checkout (``PYTHONPATH``), in the same run,
-and the table shows the ratios.
+and the table shows the ratios. ``--delivery push,plan`` measures each delivery (``v2v-serve
+--delivery``, read by ``V2VStreamDataset`` and ``V2VPlanDataset``) on the same corpus.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from harness.serve import ServeProcess
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPlanDataset, V2VStreamDataset
 
 CLIP = Path(__file__).resolve().parent.parent / "v2v_server" / "sample_videos" / "bbb_camera_596x336.mp4"
 LINKS_PER_COPY = 60_000  # ext4 allows 65,000 links to one inode
@@ -70,15 +71,19 @@ def children(pid: int) -> List[int]:
     return out
 
 
-def measure(videos: Path, tree: str, timeout_s: float) -> dict:
-    """Start ``v2v-serve`` on ``videos`` with the code of the checkout ``tree`` and read one batch."""
+def measure(videos: Path, tree: str, timeout_s: float, delivery: str = "push") -> dict:
+    """Start ``v2v-serve --delivery DELIVERY`` on ``videos`` with the code of the checkout ``tree``
+    and read one batch (of 4 samples)."""
     args = ["--videos", str(videos), "--workers", "1", "--sequence-length", "4", "--crop-size", "64",
             "--batch-size", "4", "--seed", "1", "--shot-cuts", "off", "--log-level", "INFO"]
+    if delivery != "push":
+        args += ["--delivery", delivery]
     # ``python -m`` puts the working folder first on sys.path: the server starts in ``tree``
     t0 = time.monotonic()
     with ServeProcess(args, ready_timeout_s=timeout_s, env={"PYTHONPATH": tree}, wrap=["env", "-C", tree]) as srv:
         serving = time.monotonic() - t0
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels",), credits=1, timeout_s=timeout_s, shm=False))
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels",), credits=1, timeout_s=timeout_s, shm=False)
+                  if delivery == "push" else V2VPlanDataset(srv.endpoint, 4, outputs=("voxels",), timeout_s=timeout_s))
         try:
             next(it)
             first = time.monotonic() - t0
@@ -95,9 +100,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--baseline-tree", help="a checkout whose code is measured too, for ratios (e.g. a worktree of main)")
     p.add_argument("--timeout", type=float, default=900.0, help="seconds a server may take to start or to give a batch")
     p.add_argument("--tmp", default=None, help="folder for the generated corpora (default: the system's temp folder)")
+    p.add_argument("--delivery", default="push", help="deliveries to measure, comma-separated (push, plan)")
     p.add_argument("--out", help="also write the table (markdown) here")
     a = p.parse_args(argv)
-    trees = ([("baseline", a.baseline_tree)] if a.baseline_tree else []) + [("this tree", str(Path(__file__).resolve().parent.parent))]
+    here = str(Path(__file__).resolve().parent.parent)
+    trees = ([("baseline", a.baseline_tree, "push")] if a.baseline_tree else []) + \
+        [("this tree" if d == "push" else f"this tree, {d}", here, d) for d in a.delivery.split(",")]
     lines = ["| videos | code | to serving (s) | to first batch (s) | server peak RSS (MB) | worker peak RSS (MB) |",
              "|---:|---|---:|---:|---:|---:|"]
     for n in [int(s) for s in a.sizes.split(",")]:
@@ -106,12 +114,12 @@ def main(argv: Optional[List[str]] = None) -> int:
             videos = link_corpus(Path(d), n)
             print(f"{n} links made in {time.monotonic() - t:.1f} s", file=sys.stderr)
             rows = {}
-            for name, tree in trees:
-                rows[name] = r = measure(videos, tree, a.timeout)
+            for name, tree, delivery in trees:
+                rows[name] = r = measure(videos, tree, a.timeout, delivery)
                 print(f"{n} {name}: {r}", file=sys.stderr)
                 lines.append(f"| {n:,} | {name} | {r['serving_s']:.1f} | {r['first_batch_s']:.1f} | "
                              f"{r['server_mb']:.0f} | {r['worker_mb']:.0f} |")
-            if len(rows) == 2:
+            if "baseline" in rows and "this tree" in rows:
                 b, c = rows["baseline"], rows["this tree"]
                 lines.append(f"| {n:,} | baseline / this tree | {b['serving_s'] / c['serving_s']:.2f}x | "
                              f"{b['first_batch_s'] / c['first_batch_s']:.2f}x | {b['server_mb'] / c['server_mb']:.2f}x | "

@@ -234,14 +234,11 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         steps times its ranks, so the prepared loader's length is the steps each rank takes.
 
         Raises:
-            TypeError: the server does not know the epoch's samples yet (a corpus its index does
-                not know: it learns each video's windows from its first decode), as a loader
-                takes a dataset without a length."""
-        n = self.plan_info(refresh=True).samples
-        if n is None:
-            raise TypeError(f"{self.endpoint}: the epoch's length is not known yet: the server learns each video's "
-                            "windows from its first decode (--warm-cache counts them ahead)")
-        steps = max(0, -(-(n - self.start) // (self.world_size * self.batch_size)))
+            TypeError: the epoch's samples are not known yet (the server learns each video's windows
+                from its first decode), as for a dataset without a length."""
+        steps = _steps(self.plan_info(refresh=True).samples, self.start, self.world_size * self.batch_size)
+        if steps is None:
+            raise TypeError(f"{self.endpoint}: {_LENGTH_UNKNOWN}")
         return steps * plan_accelerate.dispatcher_asking_len(self)
 
     # ------------------------------------------------------------------ reading
@@ -274,10 +271,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         info = self.plan_info(refresh=True)
         if pending is not None:
             Position.from_dict(pending["position"], expected=info.plan)
-        def steps_of(samples: Optional[int]) -> Optional[int]:  # None: not known yet
-            return None if samples is None else max(0, -(-(samples - r["origin"]) // r["per_step"]))
-
-        steps = steps_of(info.samples)
+        steps = _steps(info.samples, r["origin"], r["per_step"])
         items = range(r["next"], steps * g, k) if steps is not None else itertools.count(r["next"], k)
 
         def first_row(i: int) -> int:  # item i: step i // g, rank i % g (dispatch) or step i of this rank
@@ -290,8 +284,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
                                                   lambda req, i: Fetch(req, r["epoch"], first_row(i),
                                                                        first_row(i) + self.batch_size, self.outputs,
                                                                        info.plan)):
-                if steps is None and rows.samples is not None:
-                    steps = steps_of(rows.samples)
+                steps = steps if steps is not None else _steps(rows.samples, r["origin"], r["per_step"])
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
                 item = self._item(info, r, i // g, rows, arrays)
@@ -316,6 +309,15 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
                     params=rows.params, epoch=r["epoch"], step=step,
                     position=Position(info.plan, r["epoch"], after).to_dict())
         return item
+
+
+_LENGTH_UNKNOWN = ("the epoch's length is not known yet: the server learns each video's windows from its first "
+                   "decode (--warm-cache counts them ahead)")
+
+
+def _steps(samples: Optional[int], origin: int, per_step: int) -> Optional[int]:
+    """Steps from position ``origin`` to the end of an epoch of ``samples`` (None: not known yet)."""
+    return None if samples is None else max(0, -(-(samples - origin) // per_step))
 
 
 def _pending_of(pos: Position, reader: dict, world: int, batch_size: int) -> dict:

@@ -166,6 +166,102 @@ def _positions(plan: EpochPlan, start: int, count: int) -> Iterator[Tuple[int, s
             yield plan.epoch, v, None
 
 
+class Slots:
+    """Each video's samples per epoch as a server knows them: the manifest's (the corpus index's
+    counts), then each other video's from its first decode (:meth:`learn`).
+
+    Attributes:
+        windows: video -> its slots (windows), None while not known.
+        samples: video -> its samples per epoch (slots x crops per window), None while not known.
+        largest: the most samples a known video gives.
+        unknown: how many videos' slots are not known.
+    """
+
+    def __init__(self, manifest: Manifest):
+        self.kpw = manifest.crops_per_window
+        self.windows: Dict[str, Optional[int]] = dict(manifest.slots)
+        self.samples = {v: None if n is None else n * self.kpw for v, n in manifest.slots}
+        self.largest = max((n for n in self.samples.values() if n), default=0)
+        self.unknown = sum(1 for n in self.samples.values() if n is None)
+        self._total: Optional[int] = None
+
+    def expected(self, video: str) -> int:
+        """Samples ``video`` gives per epoch: its own, or while not known the largest known."""
+        n = self.samples.get(video, 0)
+        return max(self.largest, self.kpw) if n is None else n
+
+    def learn(self, video: str, windows: int) -> None:
+        """``video``'s slots are ``windows``."""
+        self.unknown -= self.windows[video] is None
+        self.windows[video], self.samples[video] = windows, windows * self.kpw
+        self.largest = max(self.largest, windows * self.kpw)
+
+    @property
+    def epoch_samples(self) -> Optional[int]:
+        """Samples every epoch lists, once every video's slots are known; None before."""
+        if self.unknown:
+            return None
+        if self._total is None:
+            self._total = sum(self.samples.values())
+        return self._total
+
+
+def unfolding(plan: EpochPlan, stop: int, slots: Slots, made: Mapping[Tuple[int, str], int]) -> List[Tuple[int, str]]:
+    """(epoch, video) of the next videos of ``plan``'s production order whose slots would decide
+    its positions up to ``stop`` (by their expected samples), less those whose samples are all
+    made (``made``: samples made or failed per (epoch, video))."""
+    i, counted = plan.counted
+    deficit, out = plan.made_by(stop) + 1 - counted, []
+    while deficit > 0 and i < len(plan.videos):
+        v = plan.videos[i]
+        if slots.samples.get(v) is None or made.get((plan.epoch, v), 0) < slots.samples[v]:
+            out.append((plan.epoch, v))
+        deficit -= slots.expected(v)
+        i += 1
+    return out
+
+
+def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans: Mapping[int, EpochPlan],
+           store: Mapping, fetched: Set, failed: Mapping, runs: Mapping[Tuple[int, str], Run], slots: Slots,
+           lookahead: int, shuffle_buffer: int) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
+    """(epoch, video) to decode: those ``pending`` fetches need a sample of (neither in ``store``
+    nor ``failed``), by the first position needing it, or, where a fetch's positions are not
+    decided yet, whose slots decide them (:func:`unfolding`); and those the positions after each
+    epoch's furthest fetch need, not in ``runs``, while the samples made ahead (stored and not
+    ``fetched``, or still to come from running tasks) stay within ``lookahead`` (module docstring)."""
+    made: Dict[Tuple[int, str], int] = {}
+    for (e, k) in list(store) + list(failed):
+        made[(e, k.video)] = made.get((e, k.video), 0) + 1
+    waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
+    furthest: Dict[int, int] = {}
+    for f in pending:
+        plan = plan_of(f.epoch)
+        furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
+        for p in range(f.start, min(f.stop, plan.known)):
+            key = plan.key(p)
+            if (f.epoch, key) not in store and (f.epoch, key) not in failed:
+                ek = (f.epoch, key.video)
+                waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
+        if not plan.complete and f.stop > plan.known:
+            for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
+                waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
+    budget = lookahead - sum(1 for sk in store if sk not in fetched)
+    budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
+    ahead: List[Tuple[int, str]] = []
+    for epoch, stop in sorted(furthest.items()):
+        for e, video, key in positions_after(plan_of, plans, epoch, stop, lookahead + shuffle_buffer):
+            if budget <= 0:
+                break
+            ek, n = (e, video), slots.samples.get(video)
+            if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
+                continue
+            if key is None and n is not None and made.get(ek, 0) >= n:
+                continue
+            ahead.append(ek)
+            budget -= slots.expected(video) - made.get(ek, 0)
+    return sorted(waited, key=waited.__getitem__), ahead
+
+
 class PlanFeed:
     """The server's decisions when serving by plan (module docstring).
 
@@ -191,12 +287,7 @@ class PlanFeed:
         if not 0 < hedge_s <= task_timeout_s:
             raise ValueError(f"hedge_s must be > 0 and <= task_timeout_s, got {hedge_s} and {task_timeout_s}")
         self.manifest, self.seed, self.shuffle_buffer = manifest, seed, shuffle_buffer
-        self.windows: Dict[str, Optional[int]] = dict(manifest.slots)  # each video's slots; None until known
-        kpw = manifest.crops_per_window
-        self.slots = {v: None if n is None else n * kpw for v, n in manifest.slots}  # samples per video
-        self.largest = max((n for n in self.slots.values() if n), default=0)
-        self.unknown = sum(1 for n in self.slots.values() if n is None)  # videos whose slots are not known
-        self._total: Optional[int] = None
+        self.slots = Slots(manifest)
         self.making = Making(outputs)
         self.lookahead, self.keep_samples = lookahead, keep_samples
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
@@ -218,7 +309,7 @@ class PlanFeed:
         if p is None:
             p = self.plans[epoch] = EpochPlan(self.manifest, self.seed, epoch, self.shuffle_buffer)
             if not p.complete:
-                p.learn(self.windows)
+                p.learn(self.slots.windows)
             while len(self.plans) > PLANS_KEPT:
                 gone, _ = self.plans.popitem(last=False)
                 self.failed = {sk: why for sk, why in self.failed.items() if sk[0] != gone}
@@ -295,7 +386,7 @@ class PlanFeed:
         for sk in fetched[:max(0, len(fetched) - self.keep_samples)]:
             del self.store[sk]
             self.fetched.discard(sk)
-        over = len(self.store) - self.keep_samples - self.lookahead - self.largest
+        over = len(self.store) - self.keep_samples - self.lookahead - self.slots.largest
         if over <= 0:
             return
         named = set()
@@ -326,55 +417,9 @@ class PlanFeed:
         return self._start(ahead[0], worker, now, codecs) if ahead else None
 
     def _needed(self) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
-        """(epoch, video) to decode: those pending fetches need a sample of (neither kept nor
-        failed), by the first position needing it, or, where a fetch's positions are not decided
-        yet, whose slots decide them (the next videos of the production order); and those the
-        positions after each epoch's furthest fetch need, not running, while the samples made
-        ahead (kept and not fetched, or still to come from running tasks) stay within
-        ``lookahead`` (module docstring)."""
-        made: Dict[Tuple[int, str], int] = {}
-        for (e, k) in list(self.store) + list(self.failed):
-            made[(e, k.video)] = made.get((e, k.video), 0) + 1
-        waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
-        furthest: Dict[int, int] = {}
-        for f in self.pending:
-            plan = self.plan(f.epoch)
-            furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
-            for p in range(f.start, min(f.stop, plan.known)):
-                key = plan.key(p)
-                if (f.epoch, key) not in self.store and (f.epoch, key) not in self.failed:
-                    ek = (f.epoch, key.video)
-                    waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
-            if not plan.complete and f.stop > plan.known:
-                i, counted = plan.counted
-                deficit = plan.made_by(f.stop) + 1 - counted
-                while deficit > 0 and i < len(plan.videos):
-                    ek = (f.epoch, plan.videos[i])
-                    if self.slots.get(ek[1]) is None or made.get(ek, 0) < self.slots[ek[1]]:
-                        waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
-                    deficit -= self._expected(ek[1])
-                    i += 1
-        budget = self.lookahead - sum(1 for sk in self.store if sk not in self.fetched)
-        budget -= sum(max(0, self._expected(v) - made.get((e, v), 0)) for (e, v) in set(self.runs) | set(waited))
-        ahead: List[Tuple[int, str]] = []
-        for epoch, stop in sorted(furthest.items()):
-            for e, video, key in positions_after(self.plan, self.plans, epoch, stop,
-                                                 self.lookahead + self.shuffle_buffer):
-                if budget <= 0:
-                    break
-                ek = (e, video)
-                if ek in waited or ek in self.runs or ek in ahead or (e, key) in self.store or (e, key) in self.failed:
-                    continue
-                if key is None and self.slots.get(video) is not None and made.get(ek, 0) >= self.slots[video]:
-                    continue
-                ahead.append(ek)
-                budget -= self._expected(video) - made.get(ek, 0)
-        return sorted(waited, key=waited.__getitem__), ahead
-
-    def _expected(self, video: str) -> int:
-        """Samples ``video`` gives per epoch: its slots, or while not known the largest known."""
-        n = self.slots.get(video, 0)
-        return max(self.largest, self.manifest.crops_per_window) if n is None else n
+        """(epoch, video) to decode: those pending fetches wait on, and those to decode ahead (:func:`needed`)."""
+        return needed(self.pending, self.plan, self.plans, self.store, self.fetched, self.failed, self.runs,
+                      self.slots, self.lookahead, self.shuffle_buffer)
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
         epoch, video = ek
@@ -402,7 +447,7 @@ class PlanFeed:
         run.progress[task_id] = now
         sk = (ek[0], key)
         kpw = self.manifest.crops_per_window
-        slots = self.slots.get(key.video, 0)
+        slots = self.slots.samples.get(key.video, 0)
         if slots is not None and key.ordinal(kpw) >= slots:
             raise SlotsExceeded(f"{key.video}: the decode gave {key.sample_id(kpw)}, past the manifest's "
                                 f"{slots // kpw} window(s) for it (a stale corpus index, or a file changed in place)")
@@ -427,34 +472,22 @@ class PlanFeed:
         run.error = error
         epoch, video = ek
         kpw = self.manifest.crops_per_window
-        if self.slots.get(video, 0) is None:
+        if self.slots.samples.get(video, 0) is None:
             self.learn(video, windows)
-        why_short = error or f"the decode gave {windows} window(s), the manifest {self.slots.get(video, 0) // kpw}"
-        for i in range(self.slots.get(video, 0)):
+        why_short = error or f"the decode gave {windows} window(s), the manifest {self.slots.samples.get(video, 0) // kpw}"
+        for i in range(self.slots.samples.get(video, 0)):
             key = SampleKey.at(video, i, kpw)
             gone = key.window in failed or key.window >= windows
             if gone and (key.window, key.crop) not in skip and (epoch, key) not in self.store:
                 self.failed.setdefault((epoch, key), failed.get(key.window, why_short))
         return run
 
-    @property
-    def epoch_samples(self) -> Optional[int]:
-        """Samples every epoch lists, once every video's slots are known; None before."""
-        if self.unknown:
-            return None
-        if self._total is None:
-            self._total = sum(self.slots.values())
-        return self._total
-
     def learn(self, video: str, windows: int) -> None:
         """``video``'s slots are ``windows`` (its first decode's count): the plans unfold with it."""
-        kpw = self.manifest.crops_per_window
-        self.unknown -= self.windows[video] is None
-        self.windows[video], self.slots[video] = windows, windows * kpw
-        self.largest = max(self.largest, windows * kpw)
+        self.slots.learn(video, windows)
         for plan in self.plans.values():
             if not plan.complete:
-                plan.learn(self.windows)
+                plan.learn(self.slots.windows)
 
     def worker_lost(self, worker: Hashable) -> Optional[Run]:
         """``worker`` died: its copies end; a video no copy decodes any more is needed again

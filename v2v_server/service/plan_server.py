@@ -175,7 +175,7 @@ class PlanServer:
         plan = self.feed.plans.get(epoch)
         if plan is not None and plan.complete:
             return len(plan)
-        return self.feed.epoch_samples
+        return self.feed.slots.epoch_samples
 
     def _send(self, ident: bytes, header: dict, frames: Sequence = ()) -> None:
         try:
