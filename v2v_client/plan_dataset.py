@@ -218,8 +218,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
 
         Raises:
             TimeoutError: no answer within ``timeout_s``.
-            PlanMismatch: a loaded position of another plan.
-        """
+            PlanMismatch: a loaded position of another plan."""
         if self._info is None or (refresh and self._info.samples is None):
             with _Link(self.endpoint, self.timeout_s) as link:
                 self._info = link.ask()
