@@ -292,3 +292,17 @@ def test_lightning_ddp_reads_the_plan_with_the_dataset_built_before_fit(server, 
     assert ranks[0]["batches"] == ranks[1]["batches"] == -(-SAMPLES // 4)
     seen = ranks[0]["seen"] + ranks[1]["seen"]
     assert len(seen) == len(set(seen)) == SAMPLES
+
+
+def test_a_reader_of_the_other_delivery_is_told_which_reader_to_use_at_once(server):
+    """A push client (``V2VStreamDataset``) at a server serving by plan, and a plan client at a
+    push server: one line naming the reader to use, at the first answer, not a timeout."""
+    from v2v_client import V2VStreamDataset
+    from v2v_client.plan_dataset import PlanServerError
+    from v2v_client.session import StreamError
+
+    with pytest.raises(StreamError, match="serves by plan .*V2VPlanDataset"):
+        next(iter(V2VStreamDataset(server, timeout_s=60)))
+    with local_server(None, workers=1, batch_size=4, config=load_config(None, {"sequence_length": 8})) as push:
+        with pytest.raises(PlanServerError, match="delivering by push .*V2VStreamDataset"):
+            next(iter(V2VPlanDataset(push, 4, timeout_s=60)))

@@ -18,8 +18,8 @@ from v2v_wire.messages import WireError, bounded_unpackb
 from v2v_wire.plan import PlanIdentity, PlanMismatch
 from v2v_wire.protocol import PROTOCOL_VERSION, check_outputs
 
-__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Rows", "Refused", "MAX_FETCH_ROWS", "decode_plan_client",
-           "plan_server_message"]
+__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Rows", "Refused", "PushClientMessage", "MAX_FETCH_ROWS",
+           "decode_plan_client", "plan_server_message"]
 
 #: Most positions one fetch may name (a batch of one rank at one step).
 MAX_FETCH_ROWS = 4096
@@ -160,12 +160,20 @@ class Refused:
         return cls(_int(h, "request", -1), h["message"])
 
 
+#: What a push client (``V2VStreamDataset``) sends (``messages.parse_client``).
+PUSH_CLIENT_TYPES = ("hello", "ack", "released", "hold", "credit", "heartbeat", "bye")
+
+
+class PushClientMessage(WireError):
+    """A push client's message (:data:`PUSH_CLIENT_TYPES`) reached a server serving by plan."""
+
+
 def decode_plan_client(frame, max_bytes: int):
     """A client's message to a server serving by plan: :class:`PlanAsk` or :class:`Fetch`.
 
     Raises:
         WireError: oversized, not msgpack within bounds, another protocol version, an unknown
-            type or a bad field (naming it).
+            type or a bad field (naming it); :class:`PushClientMessage` for a push client's.
     """
     h = bounded_unpackb(frame.buffer if hasattr(frame, "buffer") else frame, max_bytes)
     if not isinstance(h, dict):
@@ -177,6 +185,8 @@ def decode_plan_client(frame, max_bytes: int):
         return PlanAsk()
     if kind == "fetch":
         return Fetch.from_wire(h)
+    if kind in PUSH_CLIENT_TYPES:
+        raise PushClientMessage(f"a push client's {kind!r}")
     raise WireError(f"unknown message type {kind!r:.40} (a server serving by plan takes plan_ask and fetch)")
 
 
@@ -191,4 +201,7 @@ def plan_server_message(h: dict):
     for cls, name in ((PlanInfo, "plan"), (Rows, "rows"), (Refused, "refused")):
         if kind == name:
             return cls.from_wire(h)
+    if kind == "error":  # a push server's answer (messages.parse_client refused a plan_ask)
+        raise WireError(f"a server delivering by push answered: {str(h.get('message'))[:200]}; read it with "
+                        "v2v_client.V2VStreamDataset, or start it with --delivery plan")
     raise WireError(f"unknown message type {kind!r:.40} from a server serving by plan (is it serving by plan?)")

@@ -33,7 +33,8 @@ from v2v_wire.batches import stack_arrays
 from v2v_wire.messages import BadPeers, WireError
 from v2v_wire.outputs import narrowest, spec_of
 from v2v_wire.plan import Manifest, PlanIdentity
-from v2v_wire.plan_messages import PlanAsk, PlanInfo, Refused, Rows, decode_plan_client
+from v2v_wire.plan_messages import PlanAsk, PlanInfo, PushClientMessage, Refused, Rows, decode_plan_client
+from v2v_wire.stream_messages import ServerError
 from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, output_of, pack
 
 log = logging.getLogger("v2v.server")
@@ -152,6 +153,10 @@ class PlanServer:
             return
         try:
             msg = decode_plan_client(frame, MAX_CLIENT_MSG)
+        except PushClientMessage:  # told in the push protocol's words, which that client reads
+            self._send(ident, ServerError("this server serves by plan (v2v-serve --delivery plan): read it with "
+                                          "v2v_client.V2VPlanDataset").to_wire())
+            return
         except WireError as e:
             self.metrics.on_bad_message()
             self._send(ident, Refused(-1, f"bad message: {e}").to_wire())
