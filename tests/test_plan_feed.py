@@ -69,6 +69,28 @@ def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
 
 
 
+def test_a_plan_unfolding_decodes_the_production_order_in_turn_and_answers_once_decided():
+    """No slot known: the first fetch waits on the videos whose first decodes decide its
+    positions, taken in the production order; each decode's windows unfold the plan, and the
+    rows are the whole plan's."""
+    slots = {f"v{i}.mp4": 1 + i % 3 for i in range(6)}
+    feed = PlanFeed(Manifest.of({v: None for v in slots}), 7, 2, ("voxels",), lookahead=0)
+    whole = EpochPlan(Manifest.of(slots), 7, 0, 2)
+    feed.fetch("c", 1, 0, 0, 2, 0.0)
+    assert feed.answer(0.0) == [] and feed.slots.epoch_samples is None
+    decoded = []
+    while not (answered := feed.answer(1.0)):
+        t = feed.task_for("w", 1.0)
+        decoded.append(t.video)
+        for i in range(slots[t.video]):
+            feed.sample("w", t.task, SampleKey.at(t.video, i), 1.0, lambda lane, k=(t.video, i): k)
+        feed.done("w", t.task, slots[t.video], {}, None)
+    assert decoded == whole.videos[:len(decoded)] and len(decoded) < len(slots)  # in turn, not every video
+    (f, rows), = answered
+    assert [r.key for r in rows] == whole.keys(0, 2) and all(r.sample is not None for r in rows)
+    assert feed.plan(0).known >= 2 and not feed.plan(0).complete
+
+
 def test_decode_ahead_goes_on_into_the_next_epoch_within_the_lookahead():
     # a trainer reading the end of epoch 0 finds epoch 1's first samples made, so one worker never
     # waits at the boundary; what is made ahead stays within the lookahead
