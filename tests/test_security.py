@@ -92,3 +92,28 @@ def test_sample_ids_cannot_name_files(tmp_path):
         ctx.term()
     assert ids and all(not i.startswith(("/", "..")) for i in ids)
     assert "passwd" not in srv.log and "shadow" not in srv.log
+
+
+def test_curve_allowlist_for_a_server_serving_by_plan(tmp_path):
+    """``--delivery plan`` with CurveZMQ keys: V2VPlanDataset reads with an allowed key only."""
+    from v2v_client import V2VPlanDataset
+
+    keys, allow = tmp_path / "keys", tmp_path / "allowed"
+    allow.mkdir()
+    server_pub, server_sec = keygen(keys, "server")
+    good_pub, good_sec = keygen(keys, "trainer")
+    _, stranger_sec = keygen(keys, "stranger")
+    (allow / "trainer.key").write_bytes(good_pub.read_bytes())
+    args = ["--videos", str(good_corpus(tmp_path)), "--workers", "1", "--delivery", "plan",
+            "--curve-secret-key", str(server_sec), "--curve-allow", str(allow), *LAYOUT.args()]
+    with ServeProcess(args) as srv:
+        with pytest.raises(TimeoutError):  # no keys: the CURVE handshake never completes
+            next(iter(V2VPlanDataset(srv.endpoint, 1, retry_s=1, timeout_s=2)))
+        with pytest.raises(TimeoutError):  # a key that is not on the allowlist: ZAP refuses it
+            next(iter(V2VPlanDataset(srv.endpoint, 1, retry_s=1, timeout_s=2,
+                                     curve_keys=(str(stranger_sec), str(server_pub)))))
+        b = next(iter(V2VPlanDataset(srv.endpoint, 1, timeout_s=60, curve_keys=(str(good_sec), str(server_pub)))))
+        assert b["voxels"].shape[0] == 1
+    assert "CurveZMQ on: 1 allowed client key(s)" in srv.log
+    with pytest.raises(ValueError, match="no secret key"):
+        V2VPlanDataset("tcp://127.0.0.1:1", 1, curve_keys=(str(good_pub), str(server_pub)))

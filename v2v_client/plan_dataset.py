@@ -17,7 +17,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Mapping
-from typing import Dict, Iterator, Optional, Sequence
+from typing import Dict, Iterator, Optional, Sequence, Tuple
 
 import torch
 import zmq
@@ -28,6 +28,7 @@ from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, plan
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, decode_arrays, pack, unpack
 
 from . import plan_accelerate
+from .connection import load_curve_keys
 from .tensors import batch_to_torch
 
 __all__ = ["V2VPlanDataset"]
@@ -53,6 +54,8 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         retry_s: seconds a fetch may go unanswered before it is asked again (a lost reply, a
             restarted server).
         timeout_s: seconds of silence from the server before :class:`TimeoutError`.
+        curve_keys: ``(client_secret_file, server_public_file)`` from ``v2v-keygen``, for a server
+            started with ``--curve-secret-key`` (as ``V2VStreamDataset``'s).
 
     Each item is a dict: the tensors of ``batch_to_torch`` with a leading axis of ``batch_size``,
     ``padding`` (bool (B,): rows that carry no sample, zeros: past the epoch's end or a window the
@@ -68,13 +71,11 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
 
     def __init__(self, endpoint: str, batch_size: int, *, rank: Optional[int] = None,
                  world_size: Optional[int] = None, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False,
-                 prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0):
+                 prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0,
+                 curve_keys: Optional[Tuple[str, str]] = None):
         super().__init__()
-        for name, v in (("batch_size", batch_size), ("prefetch", prefetch)):
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {v!r}")
-        if not 0 < retry_s <= timeout_s:
-            raise ValueError(f"retry_s must be > 0 and <= timeout_s, got {retry_s} and {timeout_s}")
+        _check_settings(batch_size, prefetch, retry_s, timeout_s)
+        self.curve = load_curve_keys(*curve_keys) if curve_keys else None  # bad key files: an error here
         if rank is not None or world_size is not None:
             _check_layout(0 if rank is None else rank, 1 if world_size is None else world_size)
         self.endpoint, self.batch_size, self._rank, self._world = endpoint, batch_size, rank, world_size
@@ -220,7 +221,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
             TimeoutError: no answer within ``timeout_s``.
             PlanMismatch: a loaded position of another plan."""
         if self._info is None or (refresh and self._info.samples is None):
-            with _Link(self.endpoint, self.timeout_s) as link:
+            with _Link(self.endpoint, self.timeout_s, self.curve) as link:
                 self._info = link.ask()
             for loaded in (self._resume, self._pending and self._pending["position"]):
                 if loaded is not None:
@@ -278,7 +279,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
             return r["origin"] + s * r["per_step"] + rank * self.batch_size
 
         group = []  # under dispatch: this process's items of the current step, packed together
-        with _Link(self.endpoint, self.timeout_s) as link:
+        with _Link(self.endpoint, self.timeout_s, self.curve) as link:
             for i, rows, arrays in link.fetch_all(items, self.prefetch, self.retry_s,
                                                   lambda req, i: Fetch(req, r["epoch"], first_row(i),
                                                                        first_row(i) + self.batch_size, self.outputs,
@@ -308,6 +309,14 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
                     params=rows.params, epoch=r["epoch"], step=step,
                     position=Position(info.plan, r["epoch"], after).to_dict())
         return item
+
+
+def _check_settings(batch_size: int, prefetch: int, retry_s: float, timeout_s: float) -> None:
+    for name, v in (("batch_size", batch_size), ("prefetch", prefetch)):
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+    if not 0 < retry_s <= timeout_s:
+        raise ValueError(f"retry_s must be > 0 and <= timeout_s, got {retry_s} and {timeout_s}")
 
 
 _LENGTH_UNKNOWN = ("the epoch's length is not known yet: the server learns each video's windows from its first "
@@ -386,11 +395,13 @@ def _check_layout(rank: int, world_size: int) -> None:
 class _Link:
     """One process's connection to a plan server: a DEALER socket, requests numbered from 1."""
 
-    def __init__(self, endpoint: str, timeout_s: float):
+    def __init__(self, endpoint: str, timeout_s: float, curve: Optional[tuple] = None):
         self.endpoint, self.timeout_s = endpoint, timeout_s
         self.ctx = zmq.Context()
         self.sock = self.ctx.socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
+        if curve is not None:  # (client public, client secret, server public), connection.load_curve_keys
+            self.sock.curve_publickey, self.sock.curve_secretkey, self.sock.curve_serverkey = curve
         self.sock.connect(endpoint)
         self.ids = itertools.count(1)
 

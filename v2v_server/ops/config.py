@@ -163,7 +163,6 @@ PUSH_ONLY = {
     "state_dir": "a server serving by plan keeps no journal (a checkpoint is the trainer's position)",
     "epochs": "a trainer reading a plan owns its epochs (ds.set_epoch)",
     "revoke_s": "a server serving by plan grants no batches to revoke",
-    "curve_secret_key": "V2VPlanDataset takes no CurveZMQ keys yet",
 }
 
 
