@@ -358,3 +358,36 @@ def test_v2v_train_fast_on_two_ray_ranks_steps_as_one_process(ray_session, clips
         off = int((diff > 1e-6).sum())
         assert off <= max(1, diff.numel() // 100), \
             f"{k}: {off} of {diff.numel()} elements differ by more than 1e-6 (largest {float(diff.max()):.3g})"
+
+
+@pytest.mark.timeout(300)
+def test_ray_train_ranks_read_a_plan_each_its_slice_and_the_epoch_exactly_once(ray_session, clips, tmp_path):
+    """Ray Train's ``TorchTrainer`` on 2 ranks over ``v2v-serve --delivery plan``: each rank's
+    ``V2VPlanDataset`` finds its rank in the process group Ray Train made, both take the same
+    number of steps, and the epoch's samples arrive once, those ``--check`` counts."""
+    from pathlib import Path
+
+    from ray.train import RunConfig, ScalingConfig
+    from ray.train.torch import TorchTrainer
+
+    def loop(config):
+        import torch
+        import torch.distributed as dist
+
+        from v2v_client import V2VPlanDataset
+
+        ds = V2VPlanDataset(config["endpoint"], 2, outputs=("voxels",))
+        steps = [[sid for sid, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad]
+                 for b in torch.utils.data.DataLoader(ds, batch_size=None)]
+        Path(config["out"], f"rank{dist.get_rank()}.json").write_text(
+            json.dumps({"world": dist.get_world_size(), "steps": steps}))
+
+    with ServeProcess(serve_args(clips, "--delivery", "plan")) as srv:
+        TorchTrainer(loop, train_loop_config={"endpoint": srv.endpoint, "out": str(tmp_path)},
+                     scaling_config=ScalingConfig(num_workers=2, resources_per_worker={"CPU": 0.5}),
+                     run_config=RunConfig(storage_path=str(tmp_path / "ray"), name="plan")).fit()
+    ranks = [json.loads((tmp_path / f"rank{r}.json").read_text()) for r in range(2)]
+    assert [r["world"] for r in ranks] == [2, 2] and len(ranks[0]["steps"]) == len(ranks[1]["steps"])
+    ids = [sid for r in ranks for step in r["steps"] for sid in step]
+    assert Counter(ids) == Counter(checked_ids(clips, layout()))
+
