@@ -9,6 +9,7 @@ import hashlib
 import threading
 import signal
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -306,3 +307,14 @@ def test_a_reader_of_the_other_delivery_is_told_which_reader_to_use_at_once(serv
     with local_server(None, workers=1, batch_size=4, config=load_config(None, {"sequence_length": 8})) as push:
         with pytest.raises(PlanServerError, match="delivering by push .*V2VStreamDataset"):
             next(iter(V2VPlanDataset(push, 4, timeout_s=60)))
+
+
+def test_a_check_first_lets_a_server_serving_by_plan_know_the_epoch_at_start(tmp_path):
+    """``v2v-serve --check`` fills the corpus index: a server serving by plan started after it
+    knows every video's windows, so ``len`` answers before any decode."""
+    out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--check", "--cache-dir", str(tmp_path),
+                          "--sequence-length", "8"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and f"{SAMPLES} sample(s) per epoch" in out.stdout, out.stderr
+    cfg = load_config(None, {**RECIPE, "cache_dir": str(tmp_path)})
+    with local_server(None, workers=1, batch_size=4, config=cfg) as endpoint:
+        assert len(V2VPlanDataset(endpoint, 5)) == -(-SAMPLES // 5)

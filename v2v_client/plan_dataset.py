@@ -320,7 +320,7 @@ def _check_settings(batch_size: int, prefetch: int, retry_s: float, timeout_s: f
 
 
 _LENGTH_UNKNOWN = ("the epoch's length is not known yet: the server learns each video's windows from its first "
-                   "decode (--warm-cache counts them ahead)")
+                   "decode (v2v-serve --check counts them ahead)")
 
 
 def _steps(samples: Optional[int], origin: int, per_step: int) -> Optional[int]:
