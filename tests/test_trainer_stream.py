@@ -115,3 +115,28 @@ def test_sigkill_after_a_checkpoint_loses_no_log_row(tmp_path, bikes_corpus):
     rows = list(csv.DictReader(open(out / "train_log.csv")))
     assert [int(r["step"]) for r in rows] == list(range(1, end + 1))
     assert all(np.isfinite(float(r["loss"])) for r in rows)
+
+
+def test_train_from_a_server_serving_by_plan_then_resume_at_its_position(tmp_path, bikes_corpus, monkeypatch):
+    """``v2v-train --connect`` a server started with ``--delivery plan``: it reads the plan in the
+    server's batch size, epoch after epoch; a checkpoint's stream state is the plan's position,
+    so the resumed run finishes epoch 0 without a repeat or a loss and goes on into epoch 1."""
+    seen = record_trained(monkeypatch)
+    out = tmp_path / "run"
+    serve = ["--videos", str(bikes_corpus), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
+             "--crop-size", "32", "--batch-size", "2", "--seed", "3", "--max-samples-per-video", "6",
+             "--delivery", "plan"]
+    with ServeProcess(serve) as srv:
+        common = ["--task", "e2vid", "--connect", srv.endpoint, "--out", str(out), "--device", "cpu",
+                  "--no-progress", "--set", "model.num_bins=3", "--set", "model.base_num_channels=4",
+                  "--set", "log.image_every=0", "--set", "stream.timeout_s=30"]
+        assert tr.main(common + ["--max-steps", "2"]) == 0
+        ck = torch.load(out / "checkpoint_last.pt", weights_only=False)
+        assert ck["stream_state"]["epoch"] == 0 and ck["stream_state"]["sample_in_epoch"] == 4
+        assert tr.main(common + ["--max-steps", "5", "--resume", "auto"]) == 0
+    assert all(len(ids) == 2 for _, ids in seen)  # the server's batch size
+    epoch0 = [sid for e, ids in seen if e == 0 for sid in ids if sid is not None]
+    assert len(epoch0) == 6 and len(set(epoch0)) == 6
+    assert [e for e, _ in seen] == [0, 0, 0, 1, 1]
+    rows = list(csv.DictReader(open(out / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4, 5]

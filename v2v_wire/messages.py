@@ -40,6 +40,10 @@ class WireError(ProtocolError):
     the wrong type or range (the message names the field)."""
 
 
+class PlanClientMessage(WireError):
+    """A plan reader's message (``plan_ask``, ``fetch``: ``V2VPlanDataset``) reached a push server."""
+
+
 def bounded_unpackb(buf, max_bytes: int) -> object:
     """msgpack-decode ``buf`` with the bounds above (``protocol.bounded_unpackb``).
 
@@ -363,6 +367,8 @@ def parse_client(h: dict, max_credits: int, crops_per_window: int = 1, bound: Op
         return Heartbeat(_int(h, "hello_id", 0, 2 ** 62, 0))
     if kind == "bye":
         return Bye()
+    if kind in ("plan_ask", "fetch"):
+        raise PlanClientMessage(f"a plan reader's {kind!r}")
     raise WireError(f"unknown message type {show(kind)}")
 
 

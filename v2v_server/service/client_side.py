@@ -18,7 +18,7 @@ from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.assembly import BatchAssembler
 from v2v_wire import codecs
-from v2v_wire.messages import BadPeers, Hello, WireError, decode_client
+from v2v_wire.messages import BadPeers, Hello, PlanClientMessage, WireError, decode_client
 from v2v_wire.protocol import MAX_CLIENT_MSG, pack
 from v2v_wire.stream_messages import Batch, EpochDone, Granted, Revoke, ServerError, StreamMessage
 
@@ -154,6 +154,9 @@ class ClientSide:
                 raise WireError(f"expected 1 frame after the identity, got {len(frames) - 1}")
             msg = decode_client(frames[1], MAX_CLIENT_MSG, self.cfg.max_credits, self.cfg.crops_per_window,
                                 self.core.resume_bound)
+        except PlanClientMessage:  # told in the plan protocol's words, which that reader reads
+            self.send(ident, ServerError("this server delivers by push (v2v-serve without --delivery plan)"))
+            return []
         except WireError as e:
             self._bad_peer(ident, str(e), now)
             return []

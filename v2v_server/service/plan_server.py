@@ -89,7 +89,8 @@ class PlanServer:
         c = self.cfg
         return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
                 "frames_per_bin": c.frames_per_bin, "outputs": list(c.outputs), "flow_preset": c.flow_preset,
-                "flow_dtype": c.flow_dtype, "crops_per_window": c.crops_per_window, "videos": len(self.manifest.slots)}
+                "flow_dtype": c.flow_dtype, "crops_per_window": c.crops_per_window, "videos": len(self.manifest.slots),
+                "batch_size": c.delivery.batch_size}
 
     def run(self, ready_event: Optional[threading.Event] = None) -> int:
         """Run until :meth:`stop`; returns a process exit code."""
