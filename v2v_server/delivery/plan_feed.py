@@ -23,8 +23,12 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   ``keep_samples + lookahead`` and the largest video's samples, those no pending fetch names:
   first those of epochs no fetch named for :data:`IDLE_S` (a job that left), oldest first. A
   fetch whose sample went makes it again.
+* **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
+  that ends (:meth:`PlanFeed.learn`: the windows it found), and every plan kept unfolds with them
+  (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
+  production order (:func:`unfolding`), decoded in turn: nothing is read but what is served.
 * **A decode that gives more samples than the manifest's slots** is an error naming the video
-  (:class:`SlotsExceeded`): the manifest is stale or its bound wrong, never a silent drop.
+  (:class:`SlotsExceeded`): the corpus index is stale, never a silent drop.
 
 Nothing here owns a socket, a clock or a process (``now`` is passed in); ``tests/test_plan_feed.py``
 drives it with a seeded world of workers that stall, die and lag.
