@@ -14,9 +14,10 @@ from v2v_wire.plan import EpochPlan, Manifest
 
 def test_each_job_reads_each_epochs_plan_exactly_in_1000_seeded_worlds():
     """``harness.plan_world``: workers killed, stalled, hedged and timed out; short and broken
-    files; the server killed and started again; jobs of 1-3 ranks resuming at other layouts and
-    rolling back to older checkpoints; outputs widened mid-run. Replay a seed with ``python -m
-    harness.plan_world --seeds N:N+1``."""
+    files; slots known at start or learned from decodes (the plan unfolding); the server killed
+    and started again; jobs of 1-3 ranks resuming at other layouts and rolling back to older
+    checkpoints; outputs widened mid-run. Replay a seed with ``python -m harness.plan_world
+    --seeds N:N+1``."""
     failed = {}
     totals = {"restarts": 0, "resumes": 0, "rollbacks": 0, "widened": 0}
     for seed in range(1000):
