@@ -21,13 +21,20 @@ def keygen(folder, name):
     return folder / f"{name}.key", folder / f"{name}.key_secret"
 
 
-def test_curve_allowlist(tmp_path):
+def allowlist(tmp_path):
+    """Keys of a server, an allowed trainer and a stranger (``v2v-keygen``), and the folder of
+    allowed public keys: ``(allow, server_pub, server_sec, good_pub, good_sec, stranger_sec)``."""
     keys, allow = tmp_path / "keys", tmp_path / "allowed"
     allow.mkdir()
     server_pub, server_sec = keygen(keys, "server")
     good_pub, good_sec = keygen(keys, "trainer")
     _, stranger_sec = keygen(keys, "stranger")
     (allow / "trainer.key").write_bytes(good_pub.read_bytes())
+    return allow, server_pub, server_sec, good_pub, good_sec, stranger_sec
+
+
+def test_curve_allowlist(tmp_path):
+    allow, server_pub, server_sec, good_pub, good_sec, stranger_sec = allowlist(tmp_path)
     assert (server_sec.stat().st_mode & 0o777) == 0o600
     corpus = good_corpus(tmp_path)
     args = ["--videos", str(corpus), "--workers", "1", "--curve-secret-key", str(server_sec),
@@ -98,12 +105,7 @@ def test_curve_allowlist_for_a_server_serving_by_plan(tmp_path):
     """``--delivery plan`` with CurveZMQ keys: V2VPlanDataset reads with an allowed key only."""
     from v2v_client import V2VPlanDataset
 
-    keys, allow = tmp_path / "keys", tmp_path / "allowed"
-    allow.mkdir()
-    server_pub, server_sec = keygen(keys, "server")
-    good_pub, good_sec = keygen(keys, "trainer")
-    _, stranger_sec = keygen(keys, "stranger")
-    (allow / "trainer.key").write_bytes(good_pub.read_bytes())
+    allow, server_pub, server_sec, good_pub, good_sec, stranger_sec = allowlist(tmp_path)
     args = ["--videos", str(good_corpus(tmp_path)), "--workers", "1", "--delivery", "plan",
             "--curve-secret-key", str(server_sec), "--curve-allow", str(allow), *LAYOUT.args()]
     with ServeProcess(args) as srv:

@@ -412,6 +412,14 @@ class _Link:
         self.sock.close()
         self.ctx.term()
 
+    def _send(self, header: dict) -> None:
+        """Send without blocking: with no peer (a server not up yet, a CURVE handshake refused) the
+        message is dropped, and the caller's deadline or retry asks again."""
+        try:
+            self.sock.send(pack(header), zmq.NOBLOCK)
+        except zmq.Again:
+            pass
+
     def _recv(self, deadline: float):
         """The next message (header, frames) before ``deadline``, or None."""
         wait = max(0.0, deadline - time.monotonic())
@@ -427,7 +435,7 @@ class _Link:
     def ask(self) -> PlanInfo:
         deadline = time.monotonic() + self.timeout_s
         while True:
-            self.sock.send(pack(PlanAsk().to_wire()))
+            self._send(PlanAsk().to_wire())
             got = self._recv(min(deadline, time.monotonic() + 5.0))
             if got is not None and isinstance(got[0], PlanInfo):
                 return got[0]
@@ -450,7 +458,7 @@ class _Link:
 
         def send(step: int) -> None:
             req = next(self.ids)
-            self.sock.send(pack(fetch_of(req, step).to_wire()))
+            self._send(fetch_of(req, step).to_wire())
             waiting[req], asked[step] = step, time.monotonic()
 
         for step in itertools.islice(todo, prefetch):
