@@ -40,15 +40,16 @@ def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 6
         raise ImportError("v2v_client.V2VStreamDataset is not available; install the v2v "
                           "client (pip install -e '.[client]')") from e
     keys = tuple(curve_keys) if curve_keys else None
+    plan_args = {"timeout_s": float(timeout_s), "retry_s": min(10.0, float(timeout_s)), "curve_keys": keys}
     if "," not in endpoint:  # several servers fan in by push only
         try:
-            info = V2VPlanDataset(endpoint, 1, timeout_s=float(timeout_s), curve_keys=keys).plan_info()
-        except PlanServerError:  # a push server answered
+            info = V2VPlanDataset(endpoint, 1, **plan_args).plan_info()
+        except (PlanServerError, TimeoutError):  # a push server answered, or none did: the push client says so
             info = None
         if info is not None:
             return PlanEpochs(V2VPlanDataset(endpoint, int(info.stream.get("batch_size", 1)),
                                              outputs=tuple(outputs or get_task(task).outputs), raw=bool(raw),
-                                             timeout_s=float(timeout_s), curve_keys=keys))
+                                             **plan_args))
     return V2VStreamDataset(endpoint=endpoint, outputs=tuple(outputs or get_task(task).outputs), credits=int(credits),
                             timeout_s=float(timeout_s), raw=bool(raw), reconnect=bool(reconnect),
                             curve_keys=tuple(curve_keys) if curve_keys else None, compact_flow=bool(compact_flow))
