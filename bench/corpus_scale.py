@@ -11,7 +11,7 @@ process start to the "serving" log line, seconds to the first batch, and the pea
 memory (``VmHWM``) of the server process and of its worker. With ``--baseline-tree``, every
 size is measured also with the code of another checkout (``PYTHONPATH``), in the same run,
 and the table shows the ratios. ``--delivery push,plan`` measures each delivery (``v2v-serve
---delivery``, read by ``V2VStreamDataset`` and ``V2VPlanDataset``) on the same corpus.
+--delivery``, read by ``V2VPushDataset`` and ``V2VStreamDataset``) on the same corpus.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from harness.serve import ServeProcess
-from v2v_client import V2VPlanDataset, V2VStreamDataset
+from v2v_client import V2VStreamDataset, V2VPushDataset
 
 CLIP = Path(__file__).resolve().parent.parent / "v2v_server" / "sample_videos" / "bbb_camera_596x336.mp4"
 LINKS_PER_COPY = 60_000  # ext4 allows 65,000 links to one inode
@@ -82,8 +82,8 @@ def measure(videos: Path, tree: str, timeout_s: float, delivery: str = "push") -
     t0 = time.monotonic()
     with ServeProcess(args, ready_timeout_s=timeout_s, env={"PYTHONPATH": tree}, wrap=["env", "-C", tree]) as srv:
         serving = time.monotonic() - t0
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels",), credits=1, timeout_s=timeout_s, shm=False)
-                  if delivery == "push" else V2VPlanDataset(srv.endpoint, 4, outputs=("voxels",), timeout_s=timeout_s))
+        it = iter(V2VPushDataset(srv.endpoint, outputs=("voxels",), credits=1, timeout_s=timeout_s, shm=False)
+                  if delivery == "push" else V2VStreamDataset(srv.endpoint, 4, outputs=("voxels",), timeout_s=timeout_s))
         try:
             next(it)
             first = time.monotonic() - t0
@@ -100,7 +100,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--baseline-tree", help="a checkout whose code is measured too, for ratios (e.g. a worktree of main)")
     p.add_argument("--timeout", type=float, default=900.0, help="seconds a server may take to start or to give a batch")
     p.add_argument("--tmp", default=None, help="folder for the generated corpora (default: the system's temp folder)")
-    p.add_argument("--delivery", default="push", help="deliveries to measure, comma-separated (push, plan)")
+    p.add_argument("--delivery", default="plan", help="deliveries to measure, comma-separated (plan, push)")
     p.add_argument("--out", help="also write the table (markdown) here")
     a = p.parse_args(argv)
     here = str(Path(__file__).resolve().parent.parent)

@@ -32,7 +32,7 @@ so its recompiles, if any, show. Each row records:
   and driver launch calls, a CUDA graph's launch counted once); on a CPU the aten operators
   dispatched (every level of the dispatcher, so a convolution counts its inner calls too);
 * ``live``: steps fed by a ``v2v-serve`` on this host with ``--workers`` worker processes
-  (``trainer.data.make_loader`` over ``V2VStreamDataset``); steps/s, samples/s consumed and
+  (``trainer.data.make_loader`` over ``V2VPushDataset``); steps/s, samples/s consumed and
   the fraction of the wall time the loop waited for a batch;
 * ``workers_needed``: ``ceil(cached samples/s / (live samples/s / workers))`` when the live run
   waited for data (wait fraction > 0.05); otherwise ``<= workers``.

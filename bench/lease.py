@@ -9,7 +9,7 @@ Run: ``python -m bench.lease [--batches 40000] [--read 40] [--step-ms 20] [--rou
   answered by ``granted``, then ``ack``); medians of ``--rounds`` alternating runs each way.
 * **Trainer** (a real ``v2v-serve`` on 127.0.0.1, tiny samples, 64 batches made ahead during
   ``--fill-s`` before each round so the loop waits on the protocol and not on the workers; one
-  ``V2VStreamDataset`` with 4 credits and a training step of ``--step-ms``): milliseconds the training loop waits in
+  ``V2VPushDataset`` with 4 credits and a training step of ``--step-ms``): milliseconds the training loop waits in
   ``next()`` per batch and batches per second, with the grant protocol and with the ack-only
   client (``HeldBatches`` taking whatever it still holds, asking for nothing: the rule that could
   double a batch), alternating ``--rounds`` times against the same server.
@@ -90,10 +90,10 @@ def read(endpoint: str, n: int, step_s: float, fill_s: float) -> tuple:
     """(ms waited in ``next()`` per batch (median), batches per second) over ``n`` batches, after
     ``fill_s`` seconds in which the server fills its queue (so the loop waits on the protocol,
     not on the workers)."""
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     time.sleep(fill_s)
-    it = iter(V2VStreamDataset(endpoint, timeout_s=60, credits=4))
+    it = iter(V2VPushDataset(endpoint, timeout_s=60, credits=4))
     next(it)
     waits = []
     t_start = time.perf_counter()

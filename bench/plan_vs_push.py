@@ -4,7 +4,7 @@ Run: ``python -m bench.plan_vs_push [--rounds 2] [--batches 12] [--out docs]``.
 
 Rows, each setting run ``rounds`` times, plan and push alternating:
 
-* samples/s with 1 and 2 workers through ``v2v-serve`` (a ``V2VPlanDataset`` against
+* samples/s with 1 and 2 workers through ``v2v-serve`` (a ``V2VStreamDataset`` against
   ``v2v-loadtest``'s reader), and the server's peak memory (server and workers): resident (RSS)
   and proportional (PSS: the workers' shared-memory slot rings, which the server maps too,
   counted once);
@@ -38,7 +38,7 @@ from bench.shuffle import buffer_sizes
 from bench.throughput import tree_pss_mb, tree_rss_mb
 from harness.faults import good_corpus
 from harness.serve import ServeProcess
-from v2v_client import V2VPlanDataset
+from v2v_client import V2VStreamDataset
 from v2v_client.loadtest import run_loadtest
 from v2v_wire.plan import EpochPlan, Manifest, distinct_videos
 
@@ -66,9 +66,9 @@ class PeakRss:
 
 
 def read_plan(endpoint: str, batches: int, warmup: int = 1, on_batch=None) -> dict:
-    """``batches`` batches of a ``V2VPlanDataset`` over as many epochs as needed (after ``warmup``
+    """``batches`` batches of a ``V2VStreamDataset`` over as many epochs as needed (after ``warmup``
     unmeasured ones): samples/s and the longest wait between two batches, s."""
-    ds = V2VPlanDataset(endpoint, BATCH, timeout_s=300)
+    ds = V2VStreamDataset(endpoint, BATCH, timeout_s=300)
     n = samples = 0
     t0 = last = None
     longest = 0.0
@@ -100,12 +100,12 @@ def read_push(endpoint: str, batches: int) -> dict:
 
 
 def push_wait(endpoint: str, batches: int, on_batch=None) -> float:
-    """The longest wait between two of ``batches`` batches of a ``V2VStreamDataset`` after the
+    """The longest wait between two of ``batches`` batches of a ``V2VPushDataset`` after the
     first two, s; ``on_batch(n)`` after the n-th."""
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     longest, last = 0.0, None
-    for n, _ in enumerate(V2VStreamDataset(endpoint, timeout_s=300), 1):
+    for n, _ in enumerate(V2VPushDataset(endpoint, timeout_s=300), 1):
         now = time.perf_counter()
         if last is not None and n > 2:
             longest = max(longest, now - last)

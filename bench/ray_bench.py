@@ -7,7 +7,7 @@ Rows (samples/s; ratio against v2v-serve measured in the same run):
 
 * ``in-process``: ``samples.video_samples`` over the corpus in one process, the work itself;
   its time per sample is the compute both engines must spend;
-* ``v2v-serve``: ``--workers N`` read through ``V2VStreamDataset`` (server start excluded);
+* ``v2v-serve``: ``--workers N`` read through ``V2VPushDataset`` (server start excluded);
 * ``ray data``: ``v2v_dataset(...).iter_batches()`` with an actor pool of N (``ray.init``
   excluded, actor start included: that is what an epoch costs);
 * overhead per sample: worker-seconds per sample (wall x N / samples) minus the in-process
@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from harness.faults import good_corpus
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPushDataset
 from v2v_server.ops.config import ServeConfig
 from harness.serve import ServeProcess
 from v2v_server.flow.estimate import FlowEstimator
@@ -63,7 +63,7 @@ def serve(cfg: ServeConfig, corpus: Path, workers: int, epochs: int) -> dict:
             *layout_args(cfg)]
     with ServeProcess(args) as srv:
         t0, n = time.perf_counter(), 0
-        for b in V2VStreamDataset(srv.endpoint, timeout_s=300, raw=True):
+        for b in V2VPushDataset(srv.endpoint, timeout_s=300, raw=True):
             n += len(b["sample_ids"])
         wall = time.perf_counter() - t0
         srv.wait(30)

@@ -6,7 +6,7 @@ processes on one host: a *worker* sends pre-made samples (voxels int8, frames ui
 float16 at L = 40, 128x128, as ``v2v-serve`` makes them) as fast as the relay takes them;
 the *relay* runs one of the server's data paths and pushes 8-sample batches
 (``BatchPayload.wire`` -> ``send_multipart(copy=False)``) over ``ipc://`` to a *client* that
-decodes each batch to tensors the way ``V2VStreamDataset(raw=True)`` does. Each reports its
+decodes each batch to tensors the way ``V2VPushDataset(raw=True)`` does. Each reports its
 CPU-seconds per GB sent (``getrusage``: all threads, ZeroMQ's I/O threads included; user and
 system split) and its minor page faults per GB. Paths, measured in the same run:
 
@@ -21,7 +21,7 @@ system split) and its minor page faults per GB. Paths, measured in the same run:
   (``shm.BatchDir``); each batch goes to the client as a header naming file, generation
   and offsets (``BatchPayload.shm_ref``), no array frames; the client maps the file, copies
   the arrays into a reused private buffer (``v2v_client.handoff.ShmReader``, what
-  ``V2VStreamDataset(raw=True, shm="auto")`` does over ``ipc://``) and acknowledges, and the
+  ``V2VPushDataset(raw=True, shm="auto")`` does over ``ipc://``) and acknowledges, and the
   relay keeps at most 4 unacknowledged batches (the default credits), as the server does.
 
 ``--transport tcp`` sends relay -> client over tcp://127.0.0.1 instead (no hand-off there);
@@ -45,7 +45,7 @@ import numpy as np
 
 B = 8
 PATHS = ("old", "socket", "shm", "handoff")
-#: unacknowledged batches the relay keeps on the handoff path (V2VStreamDataset's default credits)
+#: unacknowledged batches the relay keeps on the handoff path (V2VPushDataset's default credits)
 CREDITS = 4
 
 

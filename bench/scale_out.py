@@ -2,7 +2,7 @@
 
 Run: ``python -m bench.scale_out [--batches 8] [--out docs/scale_out.md]``.
 
-Rows (samples/s through ``V2VStreamDataset``, ratio to the first row measured in the same
+Rows (samples/s through ``V2VPushDataset``, ratio to the first row measured in the same
 run, and each server's share): one unsharded server with 2 workers (baseline); the corpus
 split over ``--shard 0/2`` and ``--shard 1/2`` with 1 worker each, read together; the same
 with 2 workers each. On a machine with 2 cores the second row has the same CPU as the first
@@ -71,7 +71,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         Path(a.out).write_text(
             "# One server vs two shards\n\nCommand: `python -m bench.scale_out --out docs/scale_out.md` (bundled clips "
             f"x{a.copies}, L = {a.sequence_length} x 5 bins, 128 x 128 crops, batches of 4, {a.batches} measured "
-            "batches a row, all outputs, one trainer reading every server through `V2VStreamDataset`, on this "
+            "batches a row, all outputs, one trainer reading every server through `V2VPushDataset`, on this "
             "project's 2-core CPU machine shared with other work). Two cores decode at the same speed whether one "
             "server or two own them, so no gain is expected here: the rows check that splitting the corpus costs "
             "nothing, and the per-worker rate feeds the sizing arithmetic of docs/scaling.md.\n\n" + table + "\n")

@@ -15,7 +15,7 @@ import sys
 import time
 
 from harness.serve import ServeProcess, free_port
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPushDataset
 
 SCRAPER = """
 import sys, time, urllib.request
@@ -38,7 +38,7 @@ def run(seconds: float, rate: float) -> dict:
     port = free_port()
     with ServeProcess(["--workers", "1", "--outputs", "voxels", "--metrics-port", str(port),
                        "--crop-size", "64", "--sequence-length", "8", "--batch-size", "4"]) as srv:
-        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60, credits=8)
+        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60, credits=8)
         it = iter(ds)
         for _ in range(10):  # warm: workers compiled and producing
             next(it)

@@ -6,7 +6,7 @@ or ``python -m bench.shuffle --small-epoch [--rounds 2] [--samples 36]`` for :fu
 Makes a corpus of ``--clips`` small synthetic clips (``harness.corpus.write_video``; 5 windows
 each at the small layout below), then for each worker count runs a real ``v2v-serve`` for
 ``EPOCHS`` epochs under ``--shuffle none`` and ``--shuffle epoch`` (default ``--shuffle-buffer``), one
-trainer (``V2VStreamDataset``) reading every batch, ``--rounds`` times (seeds 3, 4, ...; the
+trainer (``V2VPushDataset``) reading every batch, ``--rounds`` times (seeds 3, 4, ...; the
 settings interleaved). Prints, per setting:
 
 * distinct videos per batch, mean over epoch 0's batches (and over the rounds);
@@ -78,11 +78,11 @@ def read_epochs(endpoint: str) -> Tuple[Dict[int, List[List[str]]], dict]:
     to the first batch, samples/s over the whole run (from the start of the iteration), and
     samples/s over epochs 1 on (from epoch 1's first batch to the last batch: the buffer is in
     its steady state)."""
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     batches: Dict[int, List[List[str]]] = {}
     t0, first, first_e1, n_e1 = time.monotonic(), None, None, 0
-    for b in V2VStreamDataset(endpoint, outputs=("voxels",), credits=4, timeout_s=120):
+    for b in V2VPushDataset(endpoint, outputs=("voxels",), credits=4, timeout_s=120):
         now = time.monotonic() - t0
         first = first if first is not None else now
         e = int(b["epoch"])

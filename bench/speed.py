@@ -15,7 +15,7 @@ Rows:
   voxels only, and every output at the default flow preset; both again with ``decode_fast``
   ``bidir`` (docs/decode_fast.md: the fastest setting whose voxel error stays under V2V's own
   noise); ``crops_per_window`` 4;
-* the relay: ``v2v-serve --workers 2`` -> ``V2VStreamDataset(raw=True)``: the server main
+* the relay: ``v2v-serve --workers 2`` -> ``V2VPushDataset(raw=True)``: the server main
   process's CPU-seconds per GB sent, the client process's CPU-seconds per GB received,
   stream samples/s with 1 and 2 workers, time to the first batch;
 * memory: server tree RSS under a trainer that stalls, against the bound of docs/speed.md (Memory bound).
@@ -165,17 +165,17 @@ def _cpu_s(pid: int) -> float:
 
 
 def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], endpoint: Optional[str] = None) -> dict:
-    """Through ``v2v-serve`` and ``V2VStreamDataset(raw=True)``: samples/s, time to the first
+    """Through ``v2v-serve`` and ``V2VPushDataset(raw=True)``: samples/s, time to the first
     batch, and CPU-seconds per GB of the server main process and of this (client) process."""
     from harness.serve import ServeProcess
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "8", "--seed", "1", *extra]
     if endpoint:
         args += ["--bind", endpoint]
     with ServeProcess(args) as srv:
         t0 = time.perf_counter()
-        ds = V2VStreamDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True)
+        ds = V2VPushDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True)
         it = iter(ds)
         next(it)
         first = time.perf_counter() - t0
@@ -226,11 +226,11 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
     queued before the window: ``samples`` too small for the server's and the client's queues).
     """
     from harness.serve import ServeProcess
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
     with ServeProcess(args, ready_timeout_s=300) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True))
+        it = iter(V2VPushDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True))
         for _ in range(2):  # workers started, kernels loaded
             next(it)
         pids = worker_pids(srv.proc.pid)
@@ -260,11 +260,11 @@ def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 
                    prefetch: int = 2) -> dict:
     """Server tree RSS while a trainer holding ``credits`` takes nothing for ``stall_s``."""
     from harness.serve import ServeProcess
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", str(batch), "--seed", "1"]
     with ServeProcess(args) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, credits=credits, timeout_s=300, raw=True))
+        it = iter(V2VPushDataset(srv.endpoint, credits=credits, timeout_s=300, raw=True))
         b = next(it)
         sample_mb = sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel")) / 1e6 / len(
             b["sample_ids"])

@@ -2,7 +2,7 @@
 
 Run: ``python -m bench.throughput [--batches 6] [--out docs/throughput.md]``.
 
-Rows: batches/s and samples/s through ``V2VStreamDataset`` for worker counts and the
+Rows: batches/s and samples/s through ``V2VPushDataset`` for worker counts and the
 outputs a trainer asks for (workers compute only those), each with its ratio to the
 baseline (1 worker, all outputs); then the server's resident memory (server + workers)
 under a stalled and under a fast trainer.
@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from harness.faults import good_corpus
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPushDataset
 from v2v_client.loadtest import run_loadtest
 from harness.serve import ServeProcess
 
@@ -60,7 +60,7 @@ def memory(corpus: Path, stall_s: float, fast_batches: int) -> dict:
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", "2", "--batch-size", "4"]
     out = {}
     with ServeProcess(args) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, credits=1, timeout_s=120))
+        it = iter(V2VPushDataset(srv.endpoint, credits=1, timeout_s=120))
         next(it)
         time.sleep(2.0)
         out["stalled_start_mb"] = tree_rss_mb(srv.proc.pid)

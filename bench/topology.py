@@ -40,7 +40,7 @@ def draw(out: str, shards: int = 3, ranks: int = 2) -> None:
         arrow(1.75, 2.5, 2.55, y)
     rys = [3.4 - i * (1.8 / max(1, ranks - 1)) for i in range(ranks)] if ranks > 1 else [2.5]
     for r, y in enumerate(rys):
-        box(7.0, y - 0.4, 2.8, 0.8, f"GPU rank {r}: V2VStreamDataset\n(all shards, rank={r}, world_size={ranks})",
+        box(7.0, y - 0.4, 2.8, 0.8, f"GPU rank {r}: V2VPushDataset\n(all shards, rank={r}, world_size={ranks})",
             "#e2f0d9", 8)
         for ysrv in ys:
             arrow(5.65, ysrv, 6.95, y, "#4a7ab5")

@@ -11,7 +11,7 @@ Two parts, both on real samples (the bundled clips, the default recipe: L = 40, 
    expansion of ``flow_grid`` (``v2v_client.flowgrid``) costs per sample against the float16 ->
    float32 conversion of the dense flow it replaces.
 2. **End to end over tcp://127.0.0.1** (``--seconds`` per setting, after a warm-up): a
-   ``v2v-serve`` child process (``--workers``) and ``V2VStreamDataset(compression=...)`` in this
+   ``v2v-serve`` child process (``--workers``) and ``V2VPushDataset(compression=...)`` in this
    process; samples/s, wire bytes per sample (the server's ``v2v_sent_bytes_total``), CPU
    seconds of the server's main process (``/proc/<pid>/stat``: its relay; the workers are
    other processes) and of this client process (all its threads) per GB sent and per sample.
@@ -135,12 +135,12 @@ def _sent_bytes(port: int) -> float:
 def end_to_end(codec: str, workers: int, seconds: float, warmup_s: float) -> dict:
     """One server, one client asking for ``codec``, over tcp://127.0.0.1."""
     from harness.serve import ServeProcess, free_port
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     port = free_port()
     with ServeProcess(["--videos", str(CLIPS), "--shot-cuts", "off", "--workers", str(workers), "--metrics-port", str(port),
                        "--batch-size", "8"]) as srv:
-        ds = V2VStreamDataset(srv.endpoint, compression=codec, timeout_s=120)
+        ds = V2VPushDataset(srv.endpoint, compression=codec, timeout_s=120)
         it = iter(ds)
         try:
             t_end = time.monotonic() + warmup_s

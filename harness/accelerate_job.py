@@ -53,13 +53,13 @@ def main() -> None:
 
     from accelerate import Accelerator, DataLoaderConfiguration
 
-    from v2v_client import V2VStreamDataset, prepare_loader
+    from v2v_client import V2VPushDataset, prepare_loader
 
     per_rank = args.mode == "per-rank" or args.per_rank_config
     config = DataLoaderConfiguration(dispatch_batches=False if per_rank else None,
                                      use_stateful_dataloader=args.stateful)
     acc = Accelerator(cpu=True, dataloader_config=config, gradient_accumulation_steps=args.accumulate)
-    ds = V2VStreamDataset(args.endpoint, outputs=tuple(args.outputs.split(",")), timeout_s=60, credits=2)
+    ds = V2VPushDataset(args.endpoint, outputs=tuple(args.outputs.split(",")), timeout_s=60, credits=2)
     loader = torch.utils.data.DataLoader(ds, batch_size=None)
     model = torch.nn.Linear(1, 1)
     opt = torch.optim.SGD(model.parameters(), lr=0.01)

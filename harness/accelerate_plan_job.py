@@ -1,7 +1,7 @@
-"""A Hugging Face Accelerate job reading a plan (``v2v-serve --delivery plan``), one process per
+"""A Hugging Face Accelerate job reading a plan (``v2v-serve``'s default delivery), one process per
 rank: ``torchrun --nproc_per_node 2 -m harness.accelerate_plan_job ENDPOINT OUT_DIR [options]``
 (gloo on CPU), the loader built as a new user writes it: ``DataLoader(ds, batch_size=None)`` over
-``V2VPlanDataset(ENDPOINT, B)`` (rank and world size found by the dataset).
+``V2VStreamDataset(ENDPOINT, B)`` (rank and world size found by the dataset).
 
     --prepare plain    accelerator.prepare(loader) (default)
     --prepare loader   v2v_client.prepare_loader(accelerator, loader)
@@ -48,12 +48,12 @@ def main() -> None:
 
     from accelerate import Accelerator, DataLoaderConfiguration
 
-    from v2v_client import V2VPlanDataset, prepare_loader
+    from v2v_client import V2VStreamDataset, prepare_loader
 
     config = DataLoaderConfiguration(dispatch_batches=False if args.per_rank else None,
                                      use_stateful_dataloader=args.stateful)
     acc = Accelerator(cpu=True, dataloader_config=config)
-    ds = V2VPlanDataset(args.endpoint, args.batch_size, outputs=("frames",), timeout_s=60)
+    ds = V2VStreamDataset(args.endpoint, args.batch_size, outputs=("frames",), timeout_s=60)
     loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=args.workers)
     model = torch.nn.Linear(1, 1)
     opt = torch.optim.SGD(model.parameters(), lr=0.01)

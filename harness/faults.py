@@ -24,7 +24,7 @@ from typing import Callable, List, Optional, Tuple
 
 import zmq
 
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPushDataset
 from v2v_server.ops.config import ServeConfig
 from v2v_server.frames.check import check_corpus
 from v2v_server.sources.local import LocalSource
@@ -101,7 +101,7 @@ def worker_pids(server_pid: int) -> List[int]:
     return out
 
 
-def read_all(ds: V2VStreamDataset, log: list, stop_after: Optional[int] = None) -> None:
+def read_all(ds: V2VPushDataset, log: list, stop_after: Optional[int] = None) -> None:
     """Iterate ``ds`` to its end, appending (time, sample ids) per batch to ``log``."""
     it = iter(ds)
     try:
@@ -129,7 +129,7 @@ def scenario_worker_kill(tmp: Path, layout: Layout, kills: int = 3, copies: int 
     log: list = []
     kill_times: List[float] = []
     with _serve(corpus, layout, "--epochs", "1") as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1)
 
         def killer():
             while not log:
@@ -156,9 +156,9 @@ def scenario_worker_kill(tmp: Path, layout: Layout, kills: int = 3, copies: int 
 
 CLIENT_SCRIPT = r"""
 import json, os, sys
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPushDataset
 endpoint, ckpt = sys.argv[1], sys.argv[2]
-ds = V2VStreamDataset(endpoint, timeout_s=60, credits=2)
+ds = V2VPushDataset(endpoint, timeout_s=60, credits=2)
 ids = []
 if os.path.exists(ckpt):
     saved = json.load(open(ckpt))
@@ -214,7 +214,7 @@ def scenario_server_restart(tmp: Path, layout: Layout, kill_after_batches: int =
     srv = ServeProcess(args).start()
     srv2 = None
     try:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=2.0, reconnect=True, reconnect_timeout_s=60, credits=1)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=2.0, reconnect=True, reconnect_timeout_s=60, credits=1)
         it = iter(ds)
         for b in it:
             log.append((time.monotonic(), list(b["sample_ids"])))
@@ -246,8 +246,8 @@ def scenario_stalled_client(tmp: Path, layout: Layout, lease_s: float = 2.0, sta
     held: List[str] = []
     with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--lease", str(lease_s),
                        *layout.args()]) as srv:
-        a = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=3)
-        b = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
+        a = V2VPushDataset(srv.endpoint, timeout_s=60, credits=3)
+        b = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1)
         ita = iter(a)
         first = next(ita)
         log_a.append((time.monotonic(), first["sample_ids"]))
@@ -277,7 +277,7 @@ def scenario_bad_corpus(tmp: Path, layout: Layout) -> dict:
     log: list = []
     with _serve(corpus, layout, "--epochs", "1") as srv:
         (corpus / "deleted_during_epoch.mp4").unlink()
-        read_all(V2VStreamDataset(srv.endpoint, timeout_s=60), log)
+        read_all(V2VPushDataset(srv.endpoint, timeout_s=60), log)
         rc = srv.wait(60)
         text = srv.log
     skipped = [k for k, v in exp.items() if v == "skipped"]
@@ -358,7 +358,7 @@ def scenario_fuzzing_peer(tmp: Path, layout: Layout, n: int = 400) -> dict:
     expected = expected_ids(corpus, layout)
     log: list = []
     with _serve(corpus, layout, "--epochs", "1") as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=2)
         sent = []
         def fuzz():
             while not log:  # the trainer says hello first, so it chooses the stream's outputs
@@ -390,8 +390,8 @@ def scenario_break_loop(tmp: Path, layout: Layout, breaks: int = 4) -> dict:
     expected = expected_ids(corpus, layout)
     log: list = []
     with _serve(corpus, layout, "--epochs", "1") as srv:
-        rest = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
-        quitter = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=4)
+        rest = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1)
+        quitter = V2VPushDataset(srv.endpoint, timeout_s=60, credits=4)
         for _ in range(breaks):
             for b in quitter:
                 log.append((time.monotonic(), list(b["sample_ids"])))
@@ -404,8 +404,8 @@ def scenario_break_loop(tmp: Path, layout: Layout, breaks: int = 4) -> dict:
 
 SILENT_CLIENT = r"""
 import sys, time
-from v2v_client import V2VStreamDataset
-ds = V2VStreamDataset(sys.argv[1], timeout_s=20, credits=3)
+from v2v_client import V2VPushDataset
+ds = V2VPushDataset(sys.argv[1], timeout_s=20, credits=3)
 for b in ds:
     print("ids", " ".join(b["sample_ids"]), flush=True)
     time.sleep(0.2)
@@ -428,7 +428,7 @@ def _stopped_while_another_reads(endpoint: str, p: subprocess.Popen, stop: Calla
 
     try:
         ids = stop()
-        other = V2VStreamDataset(endpoint, timeout_s=60, credits=1)
+        other = V2VPushDataset(endpoint, timeout_s=60, credits=1)
         tb = threading.Thread(target=slow_reader, args=(other,), daemon=True)
         tb.start()
         time.sleep(stopped_s)
@@ -446,8 +446,8 @@ def _stopped_while_another_reads(endpoint: str, p: subprocess.Popen, stop: Calla
 
 STOPPED_CLIENT = r"""
 import os, signal, sys
-from v2v_client import V2VStreamDataset
-ds = V2VStreamDataset(sys.argv[1], timeout_s=float(sys.argv[2]), credits=1)
+from v2v_client import V2VPushDataset
+ds = V2VPushDataset(sys.argv[1], timeout_s=float(sys.argv[2]), credits=1)
 for n, b in enumerate(ds, 1):
     print("ids", " ".join(b["sample_ids"]), flush=True)
     if n == 1:
@@ -515,9 +515,9 @@ def scenario_silent_client(tmp: Path, layout: Layout, client_timeout_s: float = 
 
 FROZEN_CLIENT = r"""
 import os, signal, sys, time
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPushDataset
 credits, step_s, stop_at = int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
-ds = V2VStreamDataset(sys.argv[1], timeout_s=60, credits=credits)
+ds = V2VPushDataset(sys.argv[1], timeout_s=60, credits=credits)
 for n, b in enumerate(ds, 1):
     print("ids", " ".join(b["sample_ids"]), flush=True)
     if n == stop_at:  # stopped right at the yield, before its ack may have left the process
@@ -593,14 +593,14 @@ def scenario_old_checkpoint(tmp: Path, layout: Layout, ckpt_step: int = 2) -> di
     expected = expected_ids(corpus, layout)
     kept: list = []  # what the restored model has seen
     with _serve(corpus, layout, "--epochs", "1", "--client-timeout", "3") as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=2)
         it = iter(ds)
         _take(it, ckpt_step, kept)
         state = ds.state_dict()
         lost_step: list = []
         _take(it, 1, lost_step)  # trained on, then the process dies before the next checkpoint
         del it  # the crash: no bye, the server notices the silence
-        ds2 = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2)
+        ds2 = V2VPushDataset(srv.endpoint, timeout_s=60, credits=2)
         ds2.load_state_dict(state)
         read_all(ds2, kept)
         rc = srv.wait(30)
@@ -624,7 +624,7 @@ def scenario_partial_file(tmp: Path, layout: Layout, epochs: int = 2) -> dict:
     expected = [f"{e}:{sid}" for e in range(epochs) for sid in one]
     log: list = []
     with _serve(corpus, layout, "--epochs", str(epochs)) as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=60)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=60)
         for b in ds:
             log.append((time.monotonic(), [f"{b['epoch']}:{s}" for s in b["sample_ids"]]))
         rc = srv.wait(30)
@@ -673,7 +673,7 @@ def scenario_revoke_ignored(tmp: Path, layout: Layout, lease_s: float = 1.0, rev
         while not held:
             time.sleep(0.05)
         t0 = time.monotonic()
-        read_all(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1), log)
+        read_all(V2VPushDataset(srv.endpoint, timeout_s=60, credits=1), log)
         took = time.monotonic() - t0
         stop.set()
         th.join(5)
@@ -695,7 +695,7 @@ def scenario_slow_trainer(tmp: Path, layout: Layout, lease_s: float = 0.5, step_
     log: list = []
     peak = 0
     with _serve(corpus, layout, "--epochs", "1", "--lease", str(lease_s)) as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=credits)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=credits)
         it = iter(ds)
         for b in it:
             log.append((time.monotonic(), list(b["sample_ids"])))
@@ -719,7 +719,7 @@ def scenario_hung_worker(tmp: Path, layout: Layout, task_timeout_s: float = 3.0,
     log: list = []
     err = None
     with _serve(corpus, layout, "--epochs", "1", "--task-timeout", str(task_timeout_s), workers=1) as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=client_timeout_s, credits=1)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=client_timeout_s, credits=1)
         it = iter(ds)
         stopped = []
         try:
@@ -761,7 +761,7 @@ def scenario_reader_stopped_past_task_timeout(tmp: Path, layout: Layout, task_ti
     port = free_port()
     with _serve(corpus, layout, "--epochs", "1", "--task-timeout", str(task_timeout_s), "--shuffle-buffer",
                 str(layout.batch), "--metrics-port", str(port)) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1))
+        it = iter(V2VPushDataset(srv.endpoint, timeout_s=60, credits=1))
         try:
             b = next(it)
             log.append((time.monotonic(), list(b["sample_ids"])))
@@ -803,7 +803,7 @@ def scenario_bad_peer(tmp: Path, layout: Layout) -> dict:
     expected = expected_ids(corpus, layout)
     log: list = []
     with _serve(corpus, layout, "--epochs", "1") as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=2)
         it = iter(ds)
         _take(it, 1, log)
         ctx = zmq.Context()
@@ -836,7 +836,7 @@ def scenario_ddp_ranks(tmp: Path, layout: Layout, world: int = 4) -> dict:
     with _serve(corpus, layout, "--epochs", "1") as srv:
         def rank(r):
             try:
-                ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1, rank=r, world_size=world)
+                ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1, rank=r, world_size=world)
                 for b in ds:
                     counts[r][b["epoch"]] += 1
                     real = [s for s, p in zip(b["sample_ids"], b["padding"].tolist()) if not p]
@@ -869,7 +869,7 @@ def scenario_ddp_late_rank(tmp: Path, layout: Layout, delay_s: float = 3.0) -> d
     srv = ServeProcess(args).start()
     srv2 = None
     try:
-        dss = [V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2, rank=r, world_size=2) for r in range(2)]
+        dss = [V2VPushDataset(srv.endpoint, timeout_s=60, credits=2, rank=r, world_size=2) for r in range(2)]
         its = [iter(d) for d in dss]
         for r in range(2):
             _take(its[r], 2, logs[r])
@@ -884,7 +884,7 @@ def scenario_ddp_late_rank(tmp: Path, layout: Layout, delay_s: float = 3.0) -> d
             try:
                 if r == 1:
                     time.sleep(delay_s)
-                ds = V2VStreamDataset(srv.endpoint, timeout_s=2.0, credits=2, rank=r, world_size=2)
+                ds = V2VPushDataset(srv.endpoint, timeout_s=2.0, credits=2, rank=r, world_size=2)
                 ds.load_state_dict(states[r])
                 for b in ds:
                     real = [s for s, p in zip(b["sample_ids"], b["padding"].tolist()) if not p]
@@ -916,7 +916,7 @@ def scenario_fair_sharing(tmp: Path, layout: Layout, clients: int = 20) -> dict:
     expected = expected_ids(corpus, layout)
     logs: List[list] = [[] for _ in range(clients)]
     srv = _serve(corpus, layout, "--epochs", "1", "--batch-size", "1")
-    ths = [threading.Thread(target=read_all, args=(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1),
+    ths = [threading.Thread(target=read_all, args=(V2VPushDataset(srv.endpoint, timeout_s=60, credits=1),
                                                     logs[i]), daemon=True) for i in range(clients)]
     for t in ths:
         t.start()
@@ -943,7 +943,7 @@ def scenario_undecodable_name(tmp: Path, layout: Layout) -> dict:
     shutil.copy(next(corpus.glob("*.mp4")), bad)
     log: list = []
     with _serve(corpus, layout, "--epochs", "1") as srv:
-        read_all(V2VStreamDataset(srv.endpoint, timeout_s=60), log)
+        read_all(V2VPushDataset(srv.endpoint, timeout_s=60), log)
         rc = srv.wait(30)
         text = srv.log
     logged = text.count("caf\\xe9.mp4: file name is not valid UTF-8")
@@ -966,7 +966,7 @@ def scenario_resume_after_end(tmp: Path, layout: Layout, ckpt_step: int = 2, gra
     first: list = []
     resumed: list = []
     with _serve(corpus, layout, "--epochs", "1", "--end-grace-s", str(grace_s)) as srv:
-        loader = StatefulDataLoader(V2VStreamDataset(srv.endpoint, timeout_s=60), batch_size=None)
+        loader = StatefulDataLoader(V2VPushDataset(srv.endpoint, timeout_s=60), batch_size=None)
         ckpt = None
         for step, b in enumerate(loader):
             first.append(list(b["sample_ids"]))
@@ -974,7 +974,7 @@ def scenario_resume_after_end(tmp: Path, layout: Layout, ckpt_step: int = 2, gra
                 ckpt = loader.state_dict()
         t_end = time.monotonic()
         ended_alive = srv.proc.poll() is None  # still serving after the end of the stream
-        again = StatefulDataLoader(V2VStreamDataset(srv.endpoint, timeout_s=60), batch_size=None)
+        again = StatefulDataLoader(V2VPushDataset(srv.endpoint, timeout_s=60), batch_size=None)
         again.load_state_dict(ckpt)
         for b in again:
             resumed.append(list(b["sample_ids"]))
@@ -1004,7 +1004,7 @@ def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: i
     rounds = 0
     # an iteration may start after the end of the stream: the server waits for it (its grace period)
     with _serve(corpus, layout, "--epochs", "1", "--end-grace-s", "60") as srv:
-        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2,
+        loader = StreamLoader(V2VPushDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2,
                               persistent_workers=persistent)
         finished = False
         while not finished and rounds < 20:
@@ -1051,7 +1051,7 @@ def scenario_independent_restart(tmp: Path, layout: Layout, journal: bool = True
     try:
         states = []
         for _ in range(2):
-            ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
+            ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1)
             it = iter(ds)
             _take(it, 2, trained)
             states.append(ds.state_dict())
@@ -1064,7 +1064,7 @@ def scenario_independent_restart(tmp: Path, layout: Layout, journal: bool = True
         srv.proc.send_signal(signal.SIGKILL)
         srv.proc.wait(10)
         srv2 = ServeProcess(args + ["--bind", srv.endpoint]).start()
-        a, b = (V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1) for _ in range(2))
+        a, b = (V2VPushDataset(srv.endpoint, timeout_s=60, credits=1) for _ in range(2))
         a.load_state_dict(states[0])
         read_all(a, trained)
         time.sleep(late_s)

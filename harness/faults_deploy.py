@@ -20,7 +20,7 @@ from typing import List, Optional
 from harness.faults import Layout, _ids, _serve, _take, expected_ids, good_corpus, read_all, row
 from harness.serve import ServeProcess, free_port
 from harness.train_recorder import trained_until
-from v2v_client import StreamError, V2VStreamDataset
+from v2v_client import StreamError, V2VPushDataset
 
 
 def private_tmpfs(size: str, mount_at: Path) -> Optional[List[str]]:
@@ -50,7 +50,7 @@ def scenario_small_shm(tmp: Path, layout: Layout, size: str = "1m") -> dict:
     log: list = []
     srv = _serve(corpus, layout, "--epochs", "1", env={"V2V_SHM_DIR": str(shm)}, wrap=wrap).start()
     try:
-        read_all(V2VStreamDataset(srv.endpoint, timeout_s=60), log)
+        read_all(V2VPushDataset(srv.endpoint, timeout_s=60), log)
         rc = srv.wait(60)
     finally:
         srv.stop()
@@ -77,13 +77,13 @@ def scenario_fan_in_resume(tmp: Path, layout: Layout, ckpt_step: int = 2, crash_
     trained: list = []
     a, b = _two_shards(corpus, layout, "--epochs", "1", "--end-grace-s", "10")
     with a, b:
-        ds = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", timeout_s=60, credits=2)
+        ds = V2VPushDataset(f"{a.endpoint},{b.endpoint}", timeout_s=60, credits=2)
         it = iter(ds)
         _take(it, ckpt_step, trained)
         state = json.loads(json.dumps(ds.state_dict()))
         _take(it, crash_step - ckpt_step, [])  # trained on, then lost with the process
         it.close()
-        again = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", timeout_s=60, credits=2)
+        again = V2VPushDataset(f"{a.endpoint},{b.endpoint}", timeout_s=60, credits=2)
         again.load_state_dict(state)
         read_all(again, trained)
         rc = (a.wait(60), b.wait(60))
@@ -107,7 +107,7 @@ def scenario_mismatched_shards(tmp: Path, layout: Layout) -> dict:
         b = _serve(root2, layout, *extra, "--shard", shards[1], workers=1)
         with a, b:
             try:
-                for _ in V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60):
+                for _ in V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60):
                     handed += 1
                     break
             except (ValueError, StreamError) as e:
@@ -123,14 +123,14 @@ def scenario_resume_other_recipe(tmp: Path, layout: Layout) -> dict:
     sequence length or crops per window: a clear error naming both recipes, no batch handed on."""
     corpus = good_corpus(tmp, 1)
     with _serve(corpus, layout) as srv:
-        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
         next(iter(ds))
         state = json.loads(json.dumps(ds.state_dict()))
     changes = (["--seed", "12"], ["--sequence-length", str(layout.L + 2)], ["--crops-per-window", "2"])
     refused, handed = 0, 0
     for change in changes:
         with _serve(corpus, layout, *change) as srv:
-            again = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+            again = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
             again.load_state_dict(state)
             try:
                 next(iter(again))
@@ -150,12 +150,12 @@ def scenario_big_resume_state(tmp: Path, layout: Layout) -> dict:
     many = [f"elsewhere/v{i:05d}.mp4#{w}" for i in range(70_000) for w in range(10)]
     huge = [f"elsewhere/a-long-folder-name/and-a-longer-file-name-{i:07d}.mp4#0" for i in range(700_000)]
     with _serve(corpus, layout) as srv:
-        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
         ds.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": many}})
         t0 = time.monotonic()
         served = next(iter(ds))["voxels"].shape[0] > 0
         t_many = time.monotonic() - t0
-        ds2 = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        ds2 = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
         ds2.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": huge}})
         t0 = time.monotonic()
         try:
@@ -260,7 +260,7 @@ def scenario_second_server_pid_namespace(tmp: Path, layout: Layout) -> dict:
     got_b: list = []
     with tempfile.TemporaryDirectory(prefix="v2v-ipc-") as d, counting_shm_reads() as reads:
         with ServeProcess(base + ["--bind", f"ipc://{d}/a.sock"], env=env) as a:
-            it = iter(V2VStreamDataset(a.endpoint, timeout_s=60, shm=True))
+            it = iter(V2VPushDataset(a.endpoint, timeout_s=60, shm=True))
             _take(it, 1, got_a)  # a's batch directory is in use
             before = _batch_dirs(shm)
             with ServeProcess(base + ["--bind", f"ipc://{d}/b.sock"], env=env, wrap=wrap) as b:
@@ -268,7 +268,7 @@ def scenario_second_server_pid_namespace(tmp: Path, layout: Layout) -> dict:
                 for batch in it:
                     got_a.append((time.monotonic(), list(batch["sample_ids"])))
                 reads_a = len(reads)
-                read_all(V2VStreamDataset(b.endpoint, timeout_s=60, shm=True), got_b)
+                read_all(V2VPushDataset(b.endpoint, timeout_s=60, shm=True), got_b)
                 rc_b = b.wait(60)
             rc_a = a.wait(60)
         left = _batch_dirs(shm)
@@ -296,7 +296,7 @@ def scenario_symlinked_shm(tmp: Path, layout: Layout) -> dict:
     with tempfile.TemporaryDirectory(prefix="v2v-ipc-") as d, counting_shm_reads() as reads:
         with _serve(corpus, layout, "--epochs", "1", "--bind", f"ipc://{d}/s.sock",
                     env={"V2V_SHM_DIR": str(link)}) as srv:
-            read_all(V2VStreamDataset(srv.endpoint, timeout_s=60, shm=True), log)
+            read_all(V2VPushDataset(srv.endpoint, timeout_s=60, shm=True), log)
             rc = srv.wait(60)
     return row("batch directory behind a symbolic link", expected, _ids(log), None,
                f"reads through shared memory {len(reads)}; server exit {rc}", shm_reads=len(reads), server_exit=rc)
@@ -315,7 +315,7 @@ def scenario_ipv6(tmp: Path, layout: Layout) -> dict:
     log: list = []
     endpoint = f"tcp://[::1]:{port}"
     with _serve(corpus, layout, "--epochs", "1", "--bind", endpoint) as srv:
-        read_all(V2VStreamDataset(endpoint, timeout_s=60), log)
+        read_all(V2VPushDataset(endpoint, timeout_s=60), log)
         rc = srv.wait(60)
     return row("IPv6: server and trainer on tcp://[::1]", expected, _ids(log), None, f"server exit {rc}",
                server_exit=rc)
@@ -348,7 +348,7 @@ def scenario_scrape_storm(tmp: Path, layout: Layout, rate: float = 200.0) -> dic
                                    stdout=subprocess.PIPE, text=True)
         t0 = time.monotonic()
         try:
-            read_all(V2VStreamDataset(srv.endpoint, timeout_s=60), log)
+            read_all(V2VPushDataset(srv.endpoint, timeout_s=60), log)
         finally:
             wall = time.monotonic() - t0
             scraper.kill()

@@ -19,7 +19,7 @@ import zmq
 
 from harness.faults import (ROOT, Layout, _ids, _raw_peer, _serve, _take, _trainer_process, expected_ids,
                             good_corpus, read_all, row)
-from v2v_client import StreamError, V2VStreamDataset
+from v2v_client import StreamError, V2VPushDataset
 from v2v_wire.protocol import pack, unpack
 
 __all__ = ["SCENARIOS", "server_rss_mb"]
@@ -33,7 +33,7 @@ def server_rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def _refused(ds: V2VStreamDataset, got: list, errors: list) -> None:
+def _refused(ds: V2VPushDataset, got: list, errors: list) -> None:
     """Iterate ``ds``; batches to ``got``, the first line of an error to ``errors``."""
     try:
         for b in ds:
@@ -52,10 +52,10 @@ def scenario_two_readers_one_consumer(tmp: Path, layout: Layout, step_s: float =
     got_b: list = []
     errors: list = []
     with _serve(corpus, layout, "--epochs", "1", "--client-timeout", "3") as srv:
-        a = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2)
+        a = V2VPushDataset(srv.endpoint, timeout_s=60, credits=2)
         it = iter(a)
         _take(it, 1, log)
-        b = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2)
+        b = V2VPushDataset(srv.endpoint, timeout_s=60, credits=2)
         b.load_state_dict(a.state_dict())
         t0 = time.monotonic()
         th = threading.Thread(target=_refused, args=(b, got_b, errors), daemon=True)
@@ -79,7 +79,7 @@ def _ddp_job(endpoint: str, world: int, logs: List[list], errors: list, step_s: 
     def rank(r: int) -> None:
         try:
             kw = {} if group is None else {"group": group}  # None: as a user who leaves it at its default
-            ds = V2VStreamDataset(endpoint, timeout_s=60, credits=1, rank=r, world_size=world, **kw)
+            ds = V2VPushDataset(endpoint, timeout_s=60, credits=1, rank=r, world_size=world, **kw)
             for b in ds:
                 started.set()
                 logs[r].append((time.monotonic(), [s for s, p in zip(b["sample_ids"], b["padding"].tolist()) if not p]))
@@ -131,7 +131,7 @@ def scenario_world_size_change(tmp: Path, layout: Layout, old: int = 2, new: int
         states: list = [None] * old
 
         def first(r: int) -> None:  # a rank of the job that stops: 2 steps, a checkpoint, 2 more steps
-            ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1, rank=r, world_size=old, group="job")
+            ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1, rank=r, world_size=old, group="job")
             it = iter(ds)
             for step in range(4):
                 b = next(it)
@@ -147,13 +147,13 @@ def scenario_world_size_change(tmp: Path, layout: Layout, old: int = 2, new: int
         for t in ths:
             t.join(120)
         if old > 1:  # one rank's state speaks for that rank alone
-            alone = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1, rank=0, world_size=new, group="job")
+            alone = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1, rank=0, world_size=new, group="job")
             alone.load_state_dict(states[0])
             try:
                 next(iter(alone))
             except ValueError as e:
                 refusal.append(str(e).splitlines()[0])
-        resumed = [V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1, rank=r, world_size=new, group="job")
+        resumed = [V2VPushDataset(srv.endpoint, timeout_s=60, credits=1, rank=r, world_size=new, group="job")
                    for r in range(new)]
         logs: List[list] = [[] for _ in range(new)]
         errors: list = []
@@ -180,8 +180,8 @@ def scenario_world_size_change(tmp: Path, layout: Layout, old: int = 2, new: int
 # ---------------------------------------------------------------------------------- liveness with safety
 WAKING_CLIENT = r"""
 import os, signal, sys, time
-from v2v_client import V2VStreamDataset
-ds = V2VStreamDataset(sys.argv[1], timeout_s=120, credits=int(sys.argv[2]))
+from v2v_client import V2VPushDataset
+ds = V2VPushDataset(sys.argv[1], timeout_s=120, credits=int(sys.argv[2]))
 for n, b in enumerate(ds, 1):
     print("ids", " ".join(f"{b['epoch']}:{s}" for s in b["sample_ids"]), flush=True)
     if n == 1:
@@ -206,7 +206,7 @@ def scenario_wake_after_others_ran_ahead(tmp: Path, layout: Layout, epochs: int 
             time.sleep(1.0)
             p.send_signal(signal.SIGSTOP)
             t0 = time.monotonic()
-            b = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
+            b = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1)
             for x in b:
                 log_b.append((time.monotonic(), [f"{x['epoch']}:{s}" for s in x["sample_ids"]]))
             b_done = time.monotonic() - t0
@@ -264,7 +264,7 @@ def scenario_sitting_on_grants(tmp: Path, layout: Layout, lease_s: float = 2.0) 
         peer = _sitting_peer(srv.endpoint, held, stop)
         while not held:
             time.sleep(0.05)
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1)
         it = iter(ds)
         last = None
         errors = []
@@ -295,11 +295,11 @@ def scenario_loop_stops_reading(tmp: Path, layout: Layout, pause_s: float = 6.0)
     log: list = []
     log_b: list = []
     with _serve(corpus, layout, "--epochs", "1", "--lease", "2", "--end-grace-s", "30") as srv:
-        a = V2VStreamDataset(srv.endpoint, timeout_s=60, credits=4)
+        a = V2VPushDataset(srv.endpoint, timeout_s=60, credits=4)
         it = iter(a)
         _take(it, 1, log)
         t0 = time.monotonic()
-        read_all(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1), log_b)
+        read_all(V2VPushDataset(srv.endpoint, timeout_s=60, credits=1), log_b)
         b_done = time.monotonic() - t0
         time.sleep(max(0.0, pause_s - b_done))
         for x in it:
@@ -372,7 +372,7 @@ def scenario_lying_resume_states(tmp: Path, layout: Layout, big: int = 1_000_000
     log: list = []
     answers: dict = {}
     with _serve(corpus, layout, "--epochs", "2", "--end-grace-s", "5") as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=10, credits=1)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=10, credits=1)
         it = iter(ds)
         b = next(it)
         log.append((time.monotonic(), [f"0:{s}" for s in b["sample_ids"]]))
@@ -417,7 +417,7 @@ def scenario_first_hello_far_ahead(tmp: Path, layout: Layout) -> dict:
     log: list = []
     with _serve(corpus, layout, "--epochs", "2") as srv:
         answer = _hello(srv.endpoint, {"completed_epoch": 5})
-        for b in V2VStreamDataset(srv.endpoint, timeout_s=60):
+        for b in V2VPushDataset(srv.endpoint, timeout_s=60):
             log.append((time.monotonic(), [f"{b['epoch']}:{s}" for s in b["sample_ids"]]))
         rc = srv.wait(30)
     return row("first hello claims epoch 5 of an --epochs 2 server", expected, _ids(log), None,

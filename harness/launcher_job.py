@@ -12,8 +12,8 @@ LAUNCHER ENDPOINT OUT_DIR``; gloo on CPU):
     deepspeed    deepspeed.initialize(training_data=ds) (the error it raises is recorded), then the
                  engine over DataLoader(ds, batch_size=None)
 
-With ``--plan BATCH`` the ranks read a server serving by plan (``v2v-serve --delivery plan``)
-through ``V2VPlanDataset(ENDPOINT, BATCH)``, whose rank and world size come from the process
+With ``--plan BATCH`` the ranks read a server serving by plan (``v2v-serve``'s default)
+through ``V2VStreamDataset(ENDPOINT, BATCH)``, whose rank and world size come from the process
 group, and ``elastic`` checkpoints each step's ``batch["position"]``.
 
 Each rank writes ``OUT_DIR/rank{R}.json``: ``seen`` (ids trained on, padding excluded, in the
@@ -164,13 +164,13 @@ def main() -> None:
     ap.add_argument("--plan", type=int, default=0, metavar="BATCH", help="read a plan, BATCH rows a rank")
     args = ap.parse_args()
 
-    from v2v_client import V2VPlanDataset, V2VStreamDataset
+    from v2v_client import V2VStreamDataset, V2VPushDataset
 
     out = Path(args.out)
     if args.plan:
-        ds = V2VPlanDataset(args.endpoint, args.plan, outputs=("frames",), timeout_s=60)
+        ds = V2VStreamDataset(args.endpoint, args.plan, outputs=("frames",), timeout_s=60)
     else:
-        ds = V2VStreamDataset(args.endpoint, outputs=("frames",), timeout_s=60, credits=2)
+        ds = V2VPushDataset(args.endpoint, outputs=("frames",), timeout_s=60, credits=2)
     rec = {"seen": [], "batches": 0, "refused": None, "attempt": int(os.environ.get("TORCHELASTIC_RESTART_COUNT", 0))}
     if args.launcher == "fabric":
         fabric(ds, rec)

@@ -5,7 +5,7 @@ each training step (``if self.ds:``).
 
     python -m harness.lightning_ddp ENDPOINT OUT_DIR [--devices 2] [--plan]
 
-``--plan``: the server serves by plan (``--delivery plan``): the dataset is a ``V2VPlanDataset`` of
+``--plan``: the server serves by plan (``v2v-serve``'s default): the dataset is a ``V2VStreamDataset`` of
 batches of 2, read through a DataLoader with 2 workers.
 
 Each rank writes ``OUT_DIR/rank{R}.json``: its batch count, the sample ids it trained on
@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from harness.dist_exit import leave
-from v2v_client import V2VPlanDataset, V2VStreamDataset
+from v2v_client import V2VStreamDataset, V2VPushDataset
 
 
 def main() -> None:
@@ -36,9 +36,9 @@ def main() -> None:
     import lightning as L
 
     if args.plan:  # before fit: its rank and world size are found when first needed
-        ds = V2VPlanDataset(args.endpoint, 2, outputs=("voxels",), timeout_s=60)
+        ds = V2VStreamDataset(args.endpoint, 2, outputs=("voxels",), timeout_s=60)
     else:
-        ds = V2VStreamDataset(args.endpoint, outputs=("voxels",), timeout_s=60, credits=2)
+        ds = V2VPushDataset(args.endpoint, outputs=("voxels",), timeout_s=60, credits=2)
 
     class Tiny(L.LightningModule):
         def __init__(self):

@@ -1,4 +1,4 @@
-"""A DDP training loop reading a plan (``v2v-serve --delivery plan``) through a plain DataLoader
+"""A DDP training loop reading a plan (``v2v-serve``'s default delivery) through a plain DataLoader
 with workers, one process per rank: ``torchrun --nproc_per_node N -m harness.plan_job ENDPOINT
 OUT_DIR [--epochs E] [--stop-after S] [--resume POSITION.json]`` (gloo on CPU).
 
@@ -19,7 +19,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader
 
 from harness.dist_exit import leave
-from v2v_client import V2VPlanDataset
+from v2v_client import V2VStreamDataset
 
 
 def main() -> None:
@@ -33,7 +33,7 @@ def main() -> None:
     a = ap.parse_args()
     dist.init_process_group("gloo")
     rank, world = dist.get_rank(), dist.get_world_size()
-    ds = V2VPlanDataset(a.endpoint, a.batch_size, outputs=("frames",), timeout_s=120)
+    ds = V2VStreamDataset(a.endpoint, a.batch_size, outputs=("frames",), timeout_s=120)
     first = 0
     if a.resume is not None:
         position = json.loads(a.resume.read_text())

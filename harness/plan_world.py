@@ -34,7 +34,7 @@ from v2v_server.delivery.plan_feed import PlanFeed
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest
 
-#: Ticks a fetch may go unanswered before its reader asks again (``V2VPlanDataset.retry_s``).
+#: Ticks a fetch may go unanswered before its reader asks again (``V2VStreamDataset.retry_s``).
 RETRY = 30
 
 #: The outputs a worker may make; readers ask for a non-empty prefix of them.

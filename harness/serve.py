@@ -26,7 +26,8 @@ class ServeProcess:
     """``with ServeProcess(["--workers", "2"]) as srv: ... srv.endpoint ...``
 
     Args:
-        args: extra ``v2v-serve`` arguments (``--bind`` is added unless given; with
+        args: extra ``v2v-serve`` arguments (``--bind`` is added unless given; ``--delivery push``
+            unless a ``--delivery`` is given: the harness's callers read push streams; with
             ``--epochs``, ``--end-grace-s 0`` unless given, so that a test's server exits as
             soon as its stream ended and no trainer is connected).
         ready_timeout_s: seconds to wait for the server to report it is serving.
@@ -46,6 +47,8 @@ class ServeProcess:
             self.args += ["--bind", self.endpoint]
         else:
             self.endpoint = self.args[self.args.index("--bind") + 1]
+        if not any(a == "--delivery" or a.startswith("--delivery=") for a in self.args):
+            self.args += ["--delivery", "push"]  # the harness's servers are push's unless the args say
         if "--epochs" in self.args and "--end-grace-s" not in self.args:
             self.args += ["--end-grace-s", "0"]
         self.ready_timeout_s = ready_timeout_s
@@ -122,11 +125,11 @@ def served_samples(args: List[str], outputs=("voxels", "frames"), env=None) -> L
     dtypes: ``[(sample_id, {output: array})]`` in arrival order, repeats kept."""
     import numpy as np
 
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     out = []
     with ServeProcess(args, env=env) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=tuple(outputs), timeout_s=60, credits=2, raw=True))
+        it = iter(V2VPushDataset(srv.endpoint, outputs=tuple(outputs), timeout_s=60, credits=2, raw=True))
         try:
             for b in it:
                 out += [(sid, {k: np.asarray(b[k][i]) for k in outputs}) for i, sid in enumerate(b["sample_ids"])]

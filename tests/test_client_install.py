@@ -5,9 +5,10 @@ of the server's (no numba, PyAV or OpenCV), and that install reads a real server
 
 A fresh virtual environment (no system site packages) in a temporary folder gets torch (the
 local 2.13.0 CPU wheel pip finds) and then the project with its ``client`` extra, built from a
-copy of the sources; a ``v2v-serve`` of the main environment serves the bundled clips and the
-venv's python reads batches through ``V2VStreamDataset`` (a tracked option's ``flow_grid`` is
-expanded by the numpy path there). The base install gets a venv of its own. Skipped only when
+copy of the sources; a ``v2v-serve`` of the main environment serves the bundled clips by plan
+(the default delivery) and the venv's python reads batches through ``V2VStreamDataset``, and
+``v2v-loadtest`` measures it. The base install gets a venv of its own, whose network side reads
+a push server (``--delivery push``). Skipped only when
 no venv with pip can be made here.
 """
 from __future__ import annotations
@@ -74,7 +75,7 @@ NETWORK_READER = textwrap.dedent("""
     send_out(session.outgoing() + session.closing())
     sock.close()
     try:
-        v2v_client.V2VStreamDataset
+        v2v_client.V2VPushDataset
         needs_torch = None
     except ImportError as e:
         needs_torch = str(e)
@@ -160,7 +161,8 @@ def test_client_extra_installs_no_server_packages_and_reads_a_stream(client_venv
     assert not names & {"numba", "llvmlite", "av", "opencv-contrib-python-headless", "opencv-python",
                         "prometheus-client", "tqdm"}, sorted(names)
     args = ["--videos", str(videos), "--workers", "1", "--sequence-length", str(L), "--num-bins", str(B),
-            "--crop-size", str(CROP), "--max-samples-per-video", "1", "--batch-size", "2", "--seed", "3"]
+            "--crop-size", str(CROP), "--max-samples-per-video", "1", "--batch-size", "2", "--seed", "3",
+            "--delivery", "plan"]
     with ServeProcess(args) as srv:
         # the venv's python, from a folder outside the checkout: it imports the installed v2v only
         out = _run([client_venv, "-c", READER, srv.endpoint], 600, cwd=client_venv.parent.parent).stdout

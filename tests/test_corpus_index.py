@@ -189,7 +189,7 @@ def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty
     import sys
 
     from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
               "--cache-dir", str(tmp_path / "cache"), *recipe]
@@ -204,7 +204,7 @@ def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty
     assert empty, r.stdout  # the 201-frame windows: bigbuckbunny.mp4 (132 frames) gives none
     with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
                        "--log-level", "info", *layout]) as srv:
-        ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        ids = [sid for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
                for sid in b["sample_ids"]]
     log = srv.log
     assert len(ids) == len(set(ids)) == samples
@@ -251,14 +251,14 @@ def test_a_served_epoch_or_a_warm_up_fills_the_index_for_the_next_start(corpus, 
     import sys
 
     from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3"]
 
     def epoch(cache):
         with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
                            "--log-level", "info", "--cache-dir", str(cache), *layout]) as srv:
-            ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+            ids = [sid for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
                    for sid in b["sample_ids"]]
         return ids, srv.log
 
@@ -431,7 +431,7 @@ def test_a_server_starting_on_a_faulty_index_serves_the_whole_epoch(corpus, tmp_
     ``windows`` value v2v never writes, or a lock another process holds, is one warning, the
     epoch's size is then unknown (not a wrong one) and every sample is served."""
     from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
               "--sequence-length", "8"]
@@ -449,7 +449,7 @@ def test_a_server_starting_on_a_faulty_index_serves_the_whole_epoch(corpus, tmp_
     try:
         with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
                            "--log-level", "info", "--cache-dir", str(cache), *layout]) as srv:
-            ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+            ids = [sid for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
                    for sid in b["sample_ids"]]
     finally:
         holder.close()

@@ -12,7 +12,7 @@ import pytest
 
 from harness import faults, faults_misuse
 from harness.faults import Layout
-from v2v_client import StreamError, V2VStreamDataset
+from v2v_client import StreamError, V2VPushDataset
 from v2v_server.ops.config import load_config
 from harness.serve import ServeProcess
 from v2v_wire.protocol import PROTOCOL_VERSION
@@ -140,15 +140,15 @@ def test_twenty_trainers_share_a_stream(tmp_path):
 def test_outputs_follow_the_clients_and_limits_are_clear(tmp_path):
     corpus = faults.good_corpus(tmp_path)
     with ServeProcess(["--videos", str(corpus), "--workers", "1", *LAYOUT.args(), "--max-credits", "8"]) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=30))
+        it = iter(V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=30))
         assert "flow" not in next(it)
-        it2 = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "flow"), timeout_s=30))
+        it2 = iter(V2VPushDataset(srv.endpoint, outputs=("voxels", "flow"), timeout_s=30))
         b = next(it2)  # a second client asking for more gets it: the workers compute the union now
         assert b["flow"].shape[1:] == (LAYOUT.L, 2, LAYOUT.crop, LAYOUT.crop)
         it.close()
         it2.close()
         with pytest.raises(StreamError, match="at most 8 batches in flight"):
-            next(iter(V2VStreamDataset(srv.endpoint, credits=9, timeout_s=30)))
+            next(iter(V2VPushDataset(srv.endpoint, credits=9, timeout_s=30)))
     out = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--workers", "2000", "--check"],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "workers must be <= 256" in out.stderr

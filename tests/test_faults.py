@@ -11,7 +11,7 @@ import torch
 
 from harness import faults
 from harness.faults import Layout
-from v2v_client import StreamError, V2VStreamDataset
+from v2v_client import StreamError, V2VPushDataset
 from harness.serve import ServeProcess
 from v2v_wire.protocol import pack
 
@@ -77,7 +77,7 @@ def test_fuzz_against_idle_server_then_serve(tmp_path):
     with ServeProcess(["--videos", str(corpus), "--workers", "1", *LAYOUT.args()]) as srv:
         assert faults.run_fuzzer(srv.endpoint, 200, 20.0, seed=3) > 0
         assert srv.proc.poll() is None
-        it = iter(V2VStreamDataset(srv.endpoint, timeout_s=30))
+        it = iter(V2VPushDataset(srv.endpoint, timeout_s=30))
         b = next(it)
         it.close()
         assert b["voxels"].shape[1:] == (LAYOUT.L, 5, LAYOUT.crop, LAYOUT.crop)
@@ -109,7 +109,7 @@ def test_corpus_without_usable_video_is_a_clear_error(tmp_path):
     assert out.returncode == 2 and "0 usable video(s) of 2" in out.stdout
     with ServeProcess(["--videos", str(d), "--workers", "1"]) as srv:
         with pytest.raises(StreamError, match="no usable video"):
-            next(iter(V2VStreamDataset(srv.endpoint, timeout_s=30)))
+            next(iter(V2VPushDataset(srv.endpoint, timeout_s=30)))
         assert srv.wait(30) == 2
 
 
@@ -117,7 +117,7 @@ def test_sigterm_stops_server_and_workers(tmp_path):
     corpus = faults.good_corpus(tmp_path)
     srv = ServeProcess(["--videos", str(corpus), "--workers", "2", *LAYOUT.args()]).start()
     try:
-        it = iter(V2VStreamDataset(srv.endpoint, timeout_s=30))
+        it = iter(V2VPushDataset(srv.endpoint, timeout_s=30))
         next(it)
         kids = faults.worker_pids(srv.proc.pid)
         assert len(kids) == 2
@@ -134,7 +134,7 @@ def test_sigterm_stops_server_and_workers(tmp_path):
 
 
 def test_state_dict_round_trip_and_validation():
-    ds = V2VStreamDataset("tcp://127.0.0.1:1")
+    ds = V2VPushDataset("tcp://127.0.0.1:1")
     ds.load_state_dict({"version": 1, "completed_epoch": 2, "delivered": {"3": ["a.mp4#0", "b.mp4#1"]}})
     sd = ds.state_dict()
     assert sd["completed_epoch"] == 2 and sd["delivered"] == {"3": ["a.mp4#0", "b.mp4#1"]}
@@ -177,7 +177,7 @@ def test_client_survives_a_misbehaving_server(name):
     srv.setsockopt(zmq.LINGER, 0)
     port = free_port()
     srv.bind(f"tcp://127.0.0.1:{port}")
-    it = iter(V2VStreamDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), timeout_s=10))
+    it = iter(V2VPushDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), timeout_s=10))
     result = {}
 
     def consume():

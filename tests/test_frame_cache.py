@@ -309,7 +309,7 @@ def test_unusable_cache_dir_at_start_is_one_clear_line(tmp_path, flags):
     bad = tmp_path / "not_a_folder"
     bad.write_text("a file")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(CLIPS), "--epochs", "1",
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(CLIPS), "--delivery", "push", "--epochs", "1",
                         "--bind", "tcp://127.0.0.1:0", "--cache-dir", str(bad), *flags],
                        capture_output=True, text=True, timeout=60, env=env)
     lines = r.stderr.strip().splitlines()
@@ -436,7 +436,7 @@ def _served(corpus: Path, *extra: str, epochs: int = 2, after_first_batch=None, 
 
     from harness.faults import Layout
     from harness.serve import ServeProcess, free_port
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     done = done or (lambda m: m.get("v2v_frame_cache_entries", 1) > 0)
     out, port = {}, free_port()
@@ -444,7 +444,7 @@ def _served(corpus: Path, *extra: str, epochs: int = 2, after_first_batch=None, 
                        "--outputs", "voxels,frames,flow", "--epochs", str(epochs), "--end-grace-s", "60",
                        "--metrics-port", str(port),
                        *extra]) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames", "flow"), timeout_s=60, credits=2))
+        it = iter(V2VPushDataset(srv.endpoint, outputs=("voxels", "frames", "flow"), timeout_s=60, credits=2))
         try:
             for b in it:
                 for i, sid in enumerate(b["sample_ids"]):

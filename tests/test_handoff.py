@@ -222,10 +222,10 @@ def test_only_what_dead_servers_left_is_removed_whatever_their_pid(shm_root, nam
 
 
 def _read_epoch(endpoint, shm, raw=True):
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     got = {}
-    for batch in V2VStreamDataset(endpoint, outputs=OUT, raw=raw, timeout_s=90, shm=shm):
+    for batch in V2VPushDataset(endpoint, outputs=OUT, raw=raw, timeout_s=90, shm=shm):
         for i, sid in enumerate(batch["sample_ids"]):
             got[sid] = {k: batch[k][i].numpy().copy() for k in OUT}
     return got
@@ -297,7 +297,7 @@ def test_a_symlinked_batch_directory_is_refused_and_batches_come_over_the_socket
 
     import zmq
 
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
     from v2v_client.handoff import shm_dir_problem
     from v2v_wire.protocol import pack, unpack
 
@@ -310,7 +310,7 @@ def test_a_symlinked_batch_directory_is_refused_and_batches_come_over_the_socket
     router = ctx.socket(zmq.ROUTER)
     router.setsockopt(zmq.LINGER, 0)
     port = router.bind_to_random_port("tcp://127.0.0.1")
-    ds = V2VStreamDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), timeout_s=5, shm=True)
+    ds = V2VPushDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), timeout_s=5, shm=True)
     t = threading.Thread(target=lambda: next(iter(ds), None), daemon=True)
     t.start()
     hellos = []

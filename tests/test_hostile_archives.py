@@ -182,11 +182,11 @@ def test_hostile_zip_entries_are_refused_by_name_and_the_rest_served(hostile, tm
 
 def test_the_server_serves_the_rest_and_logs_each_refusal(hostile, tmp_path):
     from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     with ServeProcess(["--videos", str(hostile), "--workers", "1", "--epochs", "1", "--batch-size", "2",
                        "--cache-dir", str(tmp_path / "cache"), *LAYOUT]) as srv:
-        ids = [sid for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=120)
+        ids = [sid for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=120)
                for sid in b["sample_ids"]]
     videos = {sid.split("#")[0] for sid in ids}
     assert videos == {"shared.zip/good.mp4", "overlap.zip/good.mp4", "lying.zip/good.mp4", "twice.zip/clip.mp4",

@@ -133,7 +133,7 @@ def test_unusable_state_dir_at_start_is_one_clear_line(tmp_path):
     bad = tmp_path / "state"
     bad.write_text("a file")
     r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(root / "v2v_server" / "sample_videos"),
-                        "--epochs", "1", "--bind", "tcp://127.0.0.1:0", "--state-dir", str(bad)],
+                        "--delivery", "push", "--epochs", "1", "--bind", "tcp://127.0.0.1:0", "--state-dir", str(bad)],
                        capture_output=True, text=True, timeout=60, env=dict(os.environ, PYTHONPATH=str(root)))
     lines = [line for line in r.stderr.strip().splitlines() if "v2v-serve:" in line and " INFO " not in line]
     assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"v2v-serve: --state-dir {bad}:"), r.stderr

@@ -229,13 +229,13 @@ def test_deepspeed_engine_over_the_stream_and_training_data_refused(tmp_path):
     DataLoader(ds, batch_size=None) trains each id once."""
     ranks = _launcher(tmp_path, "deepspeed")
     for r in ranks:
-        assert r["refused"].startswith("TypeError: V2VStreamDataset is a stream without a length"), r
+        assert r["refused"].startswith("TypeError: V2VPushDataset is a stream without a length"), r
         assert "DataLoader(ds, batch_size=None)" in r["refused"]
 
 
 @pytest.mark.parametrize("launcher", ["fabric", "ignite", "elastic", "deepspeed"])
 def test_a_plan_under_fabric_ignite_deepspeed_and_an_elastic_restart(tmp_path, launcher):
-    """The same loops reading ``V2VPlanDataset`` from ``v2v-serve --delivery plan``: each id of the
+    """The same loops reading ``V2VStreamDataset`` from ``v2v-serve --delivery plan``: each id of the
     epoch once across the ranks, the ranks in step; ``elastic`` resumes both restarted ranks from
     the position of the last step both checkpointed."""
     corpus = faults.good_corpus(tmp_path, 2 if launcher == "elastic" else 1)
@@ -254,7 +254,7 @@ def test_a_plan_under_fabric_ignite_deepspeed_and_an_elastic_restart(tmp_path, l
 
 
 def _stream_batch(ids, epoch=0, batch_id=0):
-    """A batch as V2VStreamDataset yields it (frames only), its params carrying nested values."""
+    """A batch as V2VPushDataset yields it (frames only), its params carrying nested values."""
     import torch
 
     n = len(ids)
@@ -303,11 +303,11 @@ def test_prepare_loader_refuses_a_loader_accelerate_prepared_already():
     from accelerate import Accelerator
     from accelerate.state import AcceleratorState, GradientState
 
-    from v2v_client import V2VStreamDataset, prepare_loader
+    from v2v_client import V2VPushDataset, prepare_loader
 
     try:
         acc = Accelerator(cpu=True)
-        ds = V2VStreamDataset("tcp://127.0.0.1:9")  # never iterated: no connection is made
+        ds = V2VPushDataset("tcp://127.0.0.1:9")  # never iterated: no connection is made
         mine = prepare_loader(acc, torch.utils.data.DataLoader(ds, batch_size=None))
         assert prepare_loader(acc, mine) is mine and len(acc._dataloaders) == 1
         plain = acc.prepare(torch.utils.data.DataLoader(ds, batch_size=None))

@@ -40,9 +40,9 @@ def test_a_stream_and_its_loader_are_truthy_though_they_have_no_length():
     import pytest
     import torch
 
-    from v2v_client import StreamLoader, V2VStreamDataset
+    from v2v_client import StreamLoader, V2VPushDataset
 
-    ds = V2VStreamDataset("tcp://127.0.0.1:9")  # never iterated: no connection is made
+    ds = V2VPushDataset("tcp://127.0.0.1:9")  # never iterated: no connection is made
     loader = StreamLoader(ds, num_workers=1)
     with pytest.raises(TypeError, match="stream without a length"):
         len(ds)
@@ -118,11 +118,11 @@ def test_a_plain_dataloader_with_workers_is_a_clear_error(tmp_path):
     import pytest
     import torch
 
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     corpus = faults.good_corpus(tmp_path, 1)
     with ServeProcess(["--videos", str(corpus), "--workers", "1", *LAYOUT.args()]) as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=30)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=30)
         with pytest.raises(RuntimeError, match="StreamLoader"):
             next(iter(torch.utils.data.DataLoader(ds, batch_size=None, num_workers=1)))
 
@@ -130,14 +130,14 @@ def test_a_plain_dataloader_with_workers_is_a_clear_error(tmp_path):
 def test_stream_loader_checkpoint_resumes_exactly_once(tmp_path):
     """Checkpoint a 2-worker StreamLoader at step 2, read on to step 5, abandon it (a crash),
     and resume a new loader from the step-2 checkpoint: every sample once in what was trained."""
-    from v2v_client import StreamLoader, V2VStreamDataset
+    from v2v_client import StreamLoader, V2VPushDataset
 
     corpus = faults.good_corpus(tmp_path, 2)
     expected = faults.expected_ids(corpus, LAYOUT)
     trained = []
     with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--end-grace-s", "3",
                        *LAYOUT.args()]) as srv:
-        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2)
+        loader = StreamLoader(V2VPushDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2)
         for step, b in enumerate(loader):
             if step < 2:
                 trained += b["sample_ids"]
@@ -146,7 +146,7 @@ def test_stream_loader_checkpoint_resumes_exactly_once(tmp_path):
             if step == 4:
                 break
         del loader
-        again = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2)
+        again = StreamLoader(V2VPushDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2)
         again.load_state_dict(ckpt)
         for b in again:
             trained += b["sample_ids"]
@@ -168,12 +168,12 @@ def test_stream_loader_raises_within_its_timeout_when_the_server_goes_silent(tmp
 
     import pytest
 
-    from v2v_client import StreamLoader, V2VStreamDataset
+    from v2v_client import StreamLoader, V2VPushDataset
 
     timeout_s = 3.0
     corpus = faults.good_corpus(tmp_path, 2)
     with faults._serve(corpus, LAYOUT, "--epochs", "1") as srv:
-        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=timeout_s, credits=1), num_workers=2,
+        loader = StreamLoader(V2VPushDataset(srv.endpoint, timeout_s=timeout_s, credits=1), num_workers=2,
                               persistent_workers=True, prefetch_factor=1)
         it = iter(loader)
         next(it)
@@ -201,13 +201,13 @@ def test_stream_loader_persistent_worker_killed_mid_iteration(tmp_path):
 
     import pytest
 
-    from v2v_client import StreamLoader, V2VStreamDataset
+    from v2v_client import StreamLoader, V2VPushDataset
 
     corpus = faults.good_corpus(tmp_path, 2)
     expected = faults.expected_ids(corpus, LAYOUT)
     trained = []
     with faults._serve(corpus, LAYOUT, "--epochs", "1", "--end-grace-s", "60") as srv:
-        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2,
+        loader = StreamLoader(V2VPushDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=2,
                               persistent_workers=True)
         it = iter(loader)
         for _ in range(2):
@@ -244,7 +244,7 @@ def test_a_dataloader_worker_stopped_past_its_timeout_with_batches_queued_double
     import threading
     import time
 
-    from v2v_client import StreamLoader, V2VStreamDataset
+    from v2v_client import StreamLoader, V2VPushDataset
 
     corpus = faults.good_corpus(tmp_path, 3)
     expected = faults.expected_ids(corpus, LAYOUT)
@@ -252,7 +252,7 @@ def test_a_dataloader_worker_stopped_past_its_timeout_with_batches_queued_double
     # the server waits for the stopped worker's consumer after the end (the batches granted to it
     # and not yet queued in the loader are made again when it says hello again)
     with faults._serve(corpus, LAYOUT, "--epochs", "1", "--client-timeout", "1.5", "--end-grace-s", "60") as srv:
-        loader = StreamLoader(V2VStreamDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=1,
+        loader = StreamLoader(V2VPushDataset(srv.endpoint, timeout_s=60, credits=2), num_workers=1,
                               prefetch_factor=2, persistent_workers=True)
         it = iter(loader)
         trained += next(it)["sample_ids"]
@@ -263,7 +263,7 @@ def test_a_dataloader_worker_stopped_past_its_timeout_with_batches_queued_double
         wake.start()
 
         def read_other():
-            for b in V2VStreamDataset(srv.endpoint, timeout_s=60, credits=1):
+            for b in V2VPushDataset(srv.endpoint, timeout_s=60, credits=1):
                 other.extend(b["sample_ids"])
                 time.sleep(0.3)
 
@@ -330,14 +330,14 @@ def test_lightning_resumes_from_a_checkpoint_taken_while_its_fetcher_holds_a_bat
     once in what was trained (the batch taken ahead is in the state only once received)."""
     from torchdata.stateful_dataloader import StatefulDataLoader
 
-    from v2v_client import StreamLoader, V2VStreamDataset
+    from v2v_client import StreamLoader, V2VPushDataset
 
     corpus = faults.good_corpus(tmp_path, 2)
     expected = faults.expected_ids(corpus, LAYOUT)
     with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--end-grace-s", "3",
                        *LAYOUT.args()]) as srv:
         def make_loader():
-            ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60, credits=2)
+            ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60, credits=2)
             return StreamLoader(ds, num_workers=2) if loader == "StreamLoader" else StatefulDataLoader(ds, batch_size=None)
 
         ckpt = str(tmp_path / "step1.ckpt")

@@ -64,12 +64,12 @@ def _env(store, tmp: Path, **kw) -> dict:
 
 def _epoch(videos: str, *extra: str, env=None, log_path=None) -> tuple:
     """One epoch served by ``v2v-serve --videos videos``: (sample id -> bytes of its arrays, server log)."""
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     out = {}
     with ServeProcess(["--videos", videos, "--workers", "2", *LAYOUT.args(), "--outputs", "voxels,frames",
                        "--epochs", "1", *extra], env=env, log_path=log_path) as srv:
-        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2)
+        ds = V2VPushDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2)
         it = iter(ds)
         try:
             for b in it:
@@ -97,12 +97,12 @@ def test_bucket_epoch_is_the_folder_epoch_byte_for_byte(store, corpus, tmp_path)
 
 
 def test_store_reads_are_counted_in_the_metrics(store, corpus, tmp_path):
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     port = free_port()
     with ServeProcess(["--videos", URL, "--workers", "1", *LAYOUT.args(), "--outputs", "voxels", "--epochs", "1",
                        "--metrics-port", str(port)], env=_env(store, tmp_path)) as srv:
-        n = sum(len(b["sample_ids"]) for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60))
+        n = sum(len(b["sample_ids"]) for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60))
         deadline = time.monotonic() + 20
         while True:  # the page is rendered at most once a second
             text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
@@ -414,13 +414,13 @@ def test_bounded_local_cache_reads_each_object_once_and_evicts_the_oldest(store,
 
 
 def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_counts_it(store, corpus, tmp_path):
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     url = "s3://corpus/overwritten/"
     store.upload(corpus, url, ["bikes.mp4", "webvid_like_596x336.mp4"])
     state = tmp_path / "state"
     env = _env(store, tmp_path)
-    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", url, "--state-dir", str(state),
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", url, "--delivery", "push", "--state-dir", str(state),
                         "--check", *LAYOUT.args()], env={**os.environ, **env}, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0 and manifest_path(url, str(state)).is_file(), r.stderr  # listed once, kept
@@ -429,7 +429,7 @@ def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_count
     got = []
     with ServeProcess(["--videos", url, "--state-dir", str(state), "--workers", "2", *LAYOUT.args(),
                        "--outputs", "voxels", "--metrics-port", str(port)], env=env) as srv:
-        it = iter(V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60))
+        it = iter(V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60))
         try:
             while len(got) < 4:  # two epochs of the one video left
                 got += list(next(it)["sample_ids"])

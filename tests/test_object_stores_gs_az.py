@@ -78,7 +78,7 @@ def _version(store, key: str) -> str:
 
 
 def test_store_lists_the_clips_with_sizes_and_versions(store, url, tmp_path):
-    cfg = ServeConfig(videos=url, storage_options=store.storage_options(), state_dir=str(tmp_path))
+    cfg = ServeConfig(videos=url, storage_options=store.storage_options(), state_dir=str(tmp_path), delivery_mode="push")
     src = source_from_config(cfg)
     assert isinstance(src, StoreSource)
     src.check()  # the bucket (container) is reached

@@ -17,7 +17,7 @@ import pytest
 import torch
 from torchdata.stateful_dataloader import StatefulDataLoader
 
-from v2v_client import V2VPlanDataset
+from v2v_client import V2VStreamDataset
 from tests.test_plan_stream import SAMPLES, server  # noqa: F401 - the plan server on the bundled clips, its epoch's size
 
 
@@ -32,7 +32,7 @@ def _once(ids, expected: int = SAMPLES) -> None:
 
 def _epoch_ids(server) -> list:
     """Epoch 0's ids, read whole by one reader."""
-    return [sid for b in torch.utils.data.DataLoader(V2VPlanDataset(server, 4), batch_size=None) for sid in _ids(b)]
+    return [sid for b in torch.utils.data.DataLoader(V2VStreamDataset(server, 4), batch_size=None) for sid in _ids(b)]
 
 
 @pytest.mark.parametrize("workers", [0, 2])
@@ -43,7 +43,7 @@ def test_stateful_dataloader_state_mid_epoch_resumes_in_a_fresh_loader_exactly_o
     at the next step (the position after step 3), and the epoch's ids are each read once."""
     before, after, states = [], [], []
     for rank in range(2):
-        loader = StatefulDataLoader(V2VPlanDataset(server, 3, rank=rank, world_size=2), batch_size=None,
+        loader = StatefulDataLoader(V2VStreamDataset(server, 3, rank=rank, world_size=2), batch_size=None,
                                     num_workers=workers)
         it = iter(loader)
         got = [next(it) for _ in range(3)]
@@ -53,7 +53,7 @@ def test_stateful_dataloader_state_mid_epoch_resumes_in_a_fresh_loader_exactly_o
         before += [sid for b in got for sid in _ids(b)]
         assert [b["position"]["sample_in_epoch"] for b in got] == [6, 12, 18]
     for rank in range(2):
-        loader = StatefulDataLoader(V2VPlanDataset(server, 3, rank=rank, world_size=2), batch_size=None,
+        loader = StatefulDataLoader(V2VStreamDataset(server, 3, rank=rank, world_size=2), batch_size=None,
                                     num_workers=workers)
         loader.load_state_dict(states[rank])
         rest = list(loader)
@@ -67,40 +67,40 @@ def test_a_state_taken_without_workers_resumes_at_another_layout_and_a_workers_s
     """A state of a loader without workers is the exact position (its Position part equals the last
     batch's ``position``): a dataset at world size 1 and batch size 5 resumes from it with 2 workers,
     each id once. A DataLoader worker's own state loaded outside that worker is refused in one line."""
-    loader = StatefulDataLoader(V2VPlanDataset(server, 3, rank=0, world_size=2), batch_size=None)
+    loader = StatefulDataLoader(V2VStreamDataset(server, 3, rank=0, world_size=2), batch_size=None)
     it = iter(loader)
     b = [next(it), next(it)]
     state = loader.state_dict()
     del it
     ds_state = state["dataset_state"]
     assert {k: ds_state[k] for k in ("plan", "epoch", "sample_in_epoch")} == b[-1]["position"]
-    other = StatefulDataLoader(V2VPlanDataset(server, 3, rank=1, world_size=2), batch_size=None)
+    other = StatefulDataLoader(V2VStreamDataset(server, 3, rank=1, world_size=2), batch_size=None)
     it = iter(other)
     b += [next(it), next(it)]
     del it
-    ds = V2VPlanDataset(server, 5, rank=0, world_size=1)
+    ds = V2VStreamDataset(server, 5, rank=0, world_size=1)
     ds.load_state_dict(ds_state)
     rest = [sid for x in torch.utils.data.DataLoader(ds, batch_size=None, num_workers=2) for sid in _ids(x)]
     _once([sid for x in b for sid in _ids(x)] + rest)
 
-    workers = StatefulDataLoader(V2VPlanDataset(server, 4), batch_size=None, num_workers=2)
+    workers = StatefulDataLoader(V2VStreamDataset(server, 4), batch_size=None, num_workers=2)
     it = iter(workers)
     next(it)
     worker_state = workers.state_dict()["_snapshot"]["_worker_snapshots"]["worker_1"]["dataset_state"]
     del it
     with pytest.raises(ValueError) as err:
-        V2VPlanDataset(server, 4).load_state_dict(worker_state)
+        V2VStreamDataset(server, 4).load_state_dict(worker_state)
     assert "\n" not in str(err.value) and "DataLoader worker 1 of 2" in str(err.value)
 
 
 def test_stateful_dataloader_state_after_the_epoch_ended_leaves_the_next_epoch_whole(server):
     """A state taken once the epoch's last batch was read (the loader finished) and loaded by a
     fresh loader: the next epoch (set_epoch) is read whole, not the saved epoch's end again."""
-    ds = V2VPlanDataset(server, 4)
+    ds = V2VStreamDataset(server, 4)
     loader = StatefulDataLoader(ds, batch_size=None)
     first = [sid for b in loader for sid in _ids(b)]
     state = loader.state_dict()
-    ds2 = V2VPlanDataset(server, 4)
+    ds2 = V2VStreamDataset(server, 4)
     again = StatefulDataLoader(ds2, batch_size=None)
     again.load_state_dict(state)
     ds2.set_epoch(1)

@@ -1,5 +1,5 @@
 """Serving by plan end to end (docs/plan.md): real servers (in this process, and ``v2v-serve
---delivery plan`` as a child) over the bundled clips, read by ``V2VPlanDataset`` through real
+--delivery plan`` as a child) over the bundled clips, read by ``V2VStreamDataset`` through real
 DataLoaders. Each test checks what a user is promised: every sample of an epoch once, at the same
 positions at any layout, bit-identical batches from two reads, a checkpoint that resumes at another
 world size, a server killed mid-epoch costing only the fetches in flight."""
@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from harness.serve import ServeProcess, free_port
-from v2v_client import V2VPlanDataset
+from v2v_client import V2VStreamDataset
 from v2v_server.ops.config import load_config
 from v2v_server.service.local import local_server
 from v2v_wire.plan import PlanMismatch
@@ -53,7 +53,7 @@ def real_ids(rows):
 def test_every_rank_reads_a_fixed_slice_and_the_epoch_holds_every_sample_once(server):
     layouts = {}
     for world, batch, workers in ((1, 4, 0), (2, 3, 2), (3, 2, 1)):
-        per_rank = [read(V2VPlanDataset(server, batch, rank=r, world_size=world), workers)[0] for r in range(world)]
+        per_rank = [read(V2VStreamDataset(server, batch, rank=r, world_size=world), workers)[0] for r in range(world)]
         steps = {len(rows) // batch for rows in per_rank}
         assert len(steps) == 1  # every rank the same number of steps
         ids = [sid for rows in per_rank for sid in real_ids(rows)]
@@ -68,7 +68,7 @@ def test_every_rank_reads_a_fixed_slice_and_the_epoch_holds_every_sample_once(se
 
 
 def test_len_and_the_epochs_order_are_the_trainers(server):
-    ds = V2VPlanDataset(server, 5)
+    ds = V2VStreamDataset(server, 5)
     first = real_ids(read(ds)[0])
     assert len(ds) == -(-SAMPLES // 5)  # known once an epoch was decoded (or the corpus index knew it)
     ds.set_epoch(1)
@@ -79,10 +79,10 @@ def test_len_and_the_epochs_order_are_the_trainers(server):
 def test_a_checkpoint_resumes_at_another_world_size_without_a_repeat_or_a_loss(server):
     before = []
     for r in range(2):
-        rows, position = read(V2VPlanDataset(server, 3, rank=r, world_size=2), steps=2)
+        rows, position = read(V2VStreamDataset(server, 3, rank=r, world_size=2), steps=2)
         before += real_ids(rows)
     assert position["sample_in_epoch"] == 12
-    ds = V2VPlanDataset(server, 5, rank=0, world_size=1)
+    ds = V2VStreamDataset(server, 5, rank=0, world_size=1)
     ds.load_state_dict(position)
     after = real_ids(read(ds, workers=2)[0])
     assert sorted(before + after) == sorted(set(before + after)) and len(before + after) == SAMPLES
@@ -91,7 +91,7 @@ def test_a_checkpoint_resumes_at_another_world_size_without_a_repeat_or_a_loss(s
 def test_a_batch_of_padding_only_has_the_shapes_and_dtypes_of_a_batch_of_samples(server):
     """Batches of 5 over 2 ranks: rank 1's last step lies past the epoch's end (every row padding);
     its tensors are zeros of the shapes and dtypes of the batches that carry samples."""
-    batches = list(torch.utils.data.DataLoader(V2VPlanDataset(server, 5, rank=1, world_size=2), batch_size=None))
+    batches = list(torch.utils.data.DataLoader(V2VStreamDataset(server, 5, rank=1, world_size=2), batch_size=None))
     assert batches[-1]["padding"].all() and not batches[0]["padding"].any()
     for name, t in batches[-1].items():
         if isinstance(t, torch.Tensor) and name != "padding":
@@ -100,18 +100,18 @@ def test_a_batch_of_padding_only_has_the_shapes_and_dtypes_of_a_batch_of_samples
 
 
 def test_spawned_dataloader_workers_read_the_plan(server):
-    rows, _ = read(V2VPlanDataset(server, 4), workers=2, context="spawn")
+    rows, _ = read(V2VStreamDataset(server, 4), workers=2, context="spawn")
     assert len(set(real_ids(rows))) == SAMPLES
 
 
 def test_two_jobs_read_one_server_at_once_each_its_own_whole_epoch(server):
     # a sweep: two trainers of other layouts, epochs and outputs share the decode workers; each
     # reads its epoch exactly, the same bytes as a job reading alone
-    alone = {e: read(_at_epoch(V2VPlanDataset(server, 4), e))[0] for e in (0, 1)}
+    alone = {e: read(_at_epoch(V2VStreamDataset(server, 4), e))[0] for e in (0, 1)}
     got = {}
 
     def job(name, epoch, batch, outputs):
-        got[name] = read(_at_epoch(V2VPlanDataset(server, batch, outputs=outputs), epoch))[0]
+        got[name] = read(_at_epoch(V2VStreamDataset(server, batch, outputs=outputs), epoch))[0]
 
     threads = [threading.Thread(target=job, args=("a", 0, 3, ("voxels",))),
                threading.Thread(target=job, args=("b", 1, 5, ("voxels", "frames", "flow")))]
@@ -130,10 +130,10 @@ def _at_epoch(ds, epoch):
 
 
 def test_a_position_of_another_plan_is_refused_in_one_line(server):
-    ds = V2VPlanDataset(server, 4)
+    ds = V2VStreamDataset(server, 4)
     _, position = read(ds, steps=1)
     position = {**position, "plan": {**position["plan"], "seed": 99}}
-    other = V2VPlanDataset(server, 4)
+    other = V2VStreamDataset(server, 4)
     other.load_state_dict(position)
     with pytest.raises(PlanMismatch) as err:
         len(other)
@@ -143,9 +143,10 @@ def test_a_position_of_another_plan_is_refused_in_one_line(server):
 @pytest.mark.parametrize("key, value", [("state_dir", "state"), ("epochs", 2), ("revoke_s", 5.0)])
 def test_push_only_settings_given_with_a_plan_are_refused_naming_them(key, value):
     from v2v_server.ops.config import ServeConfig
-    with pytest.raises(ValueError, match=rf"^config: {key} is push delivery's: .*delivery_mode push\)$"):
-        ServeConfig.from_dict({"delivery_mode": "plan", key: value})
-    assert getattr(ServeConfig.from_dict({key: value}), key) == value  # push takes it
+    for plan in ({}, {"delivery_mode": "plan"}):  # plan is the default
+        with pytest.raises(ValueError, match=rf"^config: {key} is push delivery's: .*--delivery push, delivery_mode: push\)$"):
+            ServeConfig.from_dict({**plan, key: value})
+    assert getattr(ServeConfig.from_dict({"delivery_mode": "push", key: value}), key) == value  # push takes it
 
 
 def test_a_corpus_never_scanned_unfolds_as_it_decodes_and_a_server_started_again_reads_its_index(tmp_path):
@@ -159,7 +160,7 @@ def test_a_corpus_never_scanned_unfolds_as_it_decodes_and_a_server_started_again
     cfg = load_config(None, {**RECIPE, "cache_dir": str(tmp_path)})
     assert plan_manifest(start_source(cfg)).samples is None  # nothing known, nothing read
     with local_server(None, workers=2, batch_size=4, config=cfg) as endpoint:
-        ds = V2VPlanDataset(endpoint, 3)
+        ds = V2VStreamDataset(endpoint, 3)
         with pytest.raises(TypeError, match="not known yet"):
             len(ds)
         first, _ = read(ds)
@@ -168,16 +169,16 @@ def test_a_corpus_never_scanned_unfolds_as_it_decodes_and_a_server_started_again
     manifest = plan_manifest(start_source(cfg))
     assert manifest.samples == SAMPLES
     with local_server(None, workers=1, batch_size=4, config=cfg) as endpoint:
-        ds = V2VPlanDataset(endpoint, 3)
+        ds = V2VStreamDataset(endpoint, 3)
         assert len(ds) == -(-SAMPLES // 3)
         assert read(ds)[0] == first
 
 
 def test_a_push_streams_resume_state_is_refused_in_one_line():
-    from v2v_client import V2VStreamDataset
-    push_state = V2VStreamDataset("tcp://127.0.0.1:1").state_dict()  # no server is asked
+    from v2v_client import V2VPushDataset
+    push_state = V2VPushDataset("tcp://127.0.0.1:1").state_dict()  # no server is asked
     with pytest.raises(PlanMismatch) as err:
-        V2VPlanDataset("tcp://127.0.0.1:1", 4).load_state_dict(push_state)
+        V2VStreamDataset("tcp://127.0.0.1:1", 4).load_state_dict(push_state)
     assert "\n" not in str(err.value) and "push stream's resume state" in str(err.value)
 
 
@@ -188,8 +189,8 @@ def test_a_server_killed_mid_epoch_costs_only_the_fetches_in_flight(tmp_path):
     args = ["--delivery", "plan", "--sequence-length", "8", "--shuffle-buffer", "8", "--workers", "1",
             "--bind", bind]
     with ServeProcess(args, ready_timeout_s=120) as srv:
-        whole, _ = read(V2VPlanDataset(bind, 4, retry_s=2.0, timeout_s=120))
-        ds = V2VPlanDataset(bind, 4, retry_s=2.0, timeout_s=120)
+        whole, _ = read(V2VStreamDataset(bind, 4, retry_s=2.0, timeout_s=120))
+        ds = V2VStreamDataset(bind, 4, retry_s=2.0, timeout_s=120)
         it = iter(torch.utils.data.DataLoader(ds, batch_size=None))
         got = [next(it), next(it)]
         srv.proc.send_signal(signal.SIGKILL)
@@ -210,7 +211,7 @@ def test_a_hostile_client_gets_one_line_and_the_server_serves_on(server):
 
     from v2v_wire.protocol import pack, unpack
 
-    plan = V2VPlanDataset(server, 1).plan_info().plan.to_dict()
+    plan = V2VStreamDataset(server, 1).plan_info().plan.to_dict()
     fetch = {"type": "fetch", "request": 7, "epoch": 0, "start": 0, "stop": 1, "outputs": ["voxels"], "plan": plan}
     ctx = zmq.Context()
     try:
@@ -227,7 +228,7 @@ def test_a_hostile_client_gets_one_line_and_the_server_serves_on(server):
             assert h["type"] == "refused" and why in h["message"] and "\n" not in h["message"]
     finally:
         ctx.term()
-    assert len(set(real_ids(read(V2VPlanDataset(server, 4))[0]))) == SAMPLES
+    assert len(set(real_ids(read(V2VStreamDataset(server, 4))[0]))) == SAMPLES
 
 
 def test_a_loop_stopped_past_the_task_timeout_costs_no_worker_and_no_window(caplog):
@@ -240,7 +241,7 @@ def test_a_loop_stopped_past_the_task_timeout_costs_no_worker_and_no_window(capl
     cfg = load_config(None, {**RECIPE, "task_timeout_s": 8.0})
     with caplog.at_level(logging.WARNING, logger="v2v.server"), \
             local_server(None, workers=2, batch_size=4, config=cfg) as endpoint:
-        ds = V2VPlanDataset(endpoint, 2)
+        ds = V2VStreamDataset(endpoint, 2)
         it = iter(torch.utils.data.DataLoader(ds, batch_size=None))
         got = [next(it)]
         time.sleep(25.0)
@@ -296,17 +297,18 @@ def test_lightning_ddp_reads_the_plan_with_the_dataset_built_before_fit(server, 
 
 
 def test_a_reader_of_the_other_delivery_is_told_which_reader_to_use_at_once(server):
-    """A push client (``V2VStreamDataset``) at a server serving by plan, and a plan client at a
+    """A push client (``V2VPushDataset``) at a server serving by plan, and a plan client at a
     push server: one line naming the reader to use, at the first answer, not a timeout."""
-    from v2v_client import V2VStreamDataset
-    from v2v_client.plan_dataset import PlanServerError
+    from v2v_client import V2VPushDataset
+    from v2v_client import PushServerError
     from v2v_client.session import StreamError
 
-    with pytest.raises(StreamError, match="serves by plan .*V2VPlanDataset"):
-        next(iter(V2VStreamDataset(server, timeout_s=60)))
-    with local_server(None, workers=1, batch_size=4, config=load_config(None, {"sequence_length": 8})) as push:
-        with pytest.raises(PlanServerError, match="delivering by push .*V2VStreamDataset"):
-            next(iter(V2VPlanDataset(push, 4, timeout_s=60)))
+    with pytest.raises(StreamError, match="serves by plan .*V2VStreamDataset"):
+        next(iter(V2VPushDataset(server, timeout_s=60)))
+    config = load_config(None, {"sequence_length": 8, "delivery_mode": "push"})
+    with local_server(None, workers=1, batch_size=4, config=config) as push:
+        with pytest.raises(PushServerError, match="delivering by push .*V2VPushDataset"):
+            next(iter(V2VStreamDataset(push, 4, timeout_s=60)))
 
 
 def test_a_check_first_lets_a_server_serving_by_plan_know_the_epoch_at_start(tmp_path):
@@ -317,4 +319,47 @@ def test_a_check_first_lets_a_server_serving_by_plan_know_the_epoch_at_start(tmp
     assert out.returncode == 0 and f"{SAMPLES} sample(s) per epoch" in out.stdout, out.stderr
     cfg = load_config(None, {**RECIPE, "cache_dir": str(tmp_path)})
     with local_server(None, workers=1, batch_size=4, config=cfg) as endpoint:
-        assert len(V2VPlanDataset(endpoint, 5)) == -(-SAMPLES // 5)
+        assert len(V2VStreamDataset(endpoint, 5)) == -(-SAMPLES // 5)
+
+
+def test_a_shard_is_served_by_push_only(capsys):
+    """A trainer reading a plan reads one server, so ``--shard`` under the default delivery is
+    refused in one line saying to add ``--delivery push`` (whose fan-in reads shards together)."""
+    from v2v_server import cli
+
+    assert cli.main(["--shard", "0/1", "--bind", "tcp://127.0.0.1:0", "--sequence-length", "8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err == ("v2v-serve: --shard 0/1: serving by plan, a trainer reads one server; shards are read together "
+                   "(fan-in) by push: add --delivery push"), err
+
+
+def test_push_settings_and_several_servers_are_refused_in_one_line():
+    """What only push delivery reads (credits, shared memory, codecs, reconnection, fan-in) is
+    refused by ``V2VStreamDataset`` at construction, naming it, never ignored."""
+    with pytest.raises(ValueError, match=r"^credits, shm: push delivery's setting\(s\), .*V2VPushDataset\)$"):
+        V2VStreamDataset("tcp://127.0.0.1:5555", credits=4, shm=True)
+    for several in ("tcp://a:5555,tcp://b:5555", ["tcp://a:5555", "tcp://b:5555"]):
+        with pytest.raises(ValueError, match=r"reads one server; .*--shard I/N, and V2VPushDataset\)$"):
+            V2VStreamDataset(several)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'credit'"):
+        V2VStreamDataset("tcp://127.0.0.1:5555", credit=4)
+
+
+def test_the_batch_size_is_the_servers_unless_given(server):
+    ds = V2VStreamDataset(server, timeout_s=60)
+    assert ds.batch_size == 4
+    assert [len(b["padding"]) for b in ds] == [4] * -(-SAMPLES // 4)
+    assert V2VStreamDataset(server, 3).batch_size == 3
+
+
+def test_loadtest_reads_a_plans_epochs_in_turn_and_refuses_credits(server, capsys):
+    """``v2v-loadtest`` at a server serving by plan reads epoch after epoch, as a trainer does,
+    counting rows with a sample; ``--credits`` (push only) is refused in one line."""
+    from v2v_client.loadtest import main, run_loadtest
+
+    steps = SAMPLES // 4
+    r = run_loadtest(server, steps + 2, timeout_s=60, warmup=0)
+    assert r["batches"] == steps + 2 and r["epochs_seen"] == [0, 1]
+    assert r["samples"] == (steps + 2) * 4 and r["unique_samples"] == r["samples"]
+    assert main(["--connect", server, "--batches", "1", "--credits", "2"]) == 1
+    assert capsys.readouterr().err.strip() == f"v2v-loadtest: --credits: {server} serves by plan, which has no credits (drop it)"

@@ -9,7 +9,7 @@ import torch
 
 from harness.serve import ServeProcess
 from tests.conftest import read_luma_clip
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPushDataset
 from v2v_wire.ids import parse_sample_id
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
@@ -110,7 +110,7 @@ def serve_args(videos, *extra):
 def test_served_over_the_stream_only_to_a_client_that_asks(videos):
     with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
         for raw in (False, True):
-            ds = V2VStreamDataset(srv.endpoint, outputs=("voxels", "polarity_counts"), timeout_s=120, raw=raw)
+            ds = V2VPushDataset(srv.endpoint, outputs=("voxels", "polarity_counts"), timeout_s=120, raw=raw)
             it = iter(ds)
             b = next(it)
             it.close()
@@ -121,7 +121,7 @@ def test_served_over_the_stream_only_to_a_client_that_asks(videos):
             assert v.shape == (n, L, B, CROP, CROP) and c.sum() > 0
             ok = (c < 255).all(dim=2)
             assert torch.equal(v.to(torch.int32)[ok], (c[:, :, 0].to(torch.int32) - c[:, :, 1].to(torch.int32))[ok])
-        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=120)
+        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=120)
         it = iter(ds)
         b = next(it)
         it.close()

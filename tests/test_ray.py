@@ -18,7 +18,7 @@ import pytest
 ray = pytest.importorskip("ray", reason="the 'ray' extra is not installed (pip install -e '.[ray]')")
 pytest.importorskip("ray.data", reason="the 'ray' extra is not installed (pip install -e '.[ray]')")
 
-from v2v_client import V2VStreamDataset  # noqa: E402
+from v2v_client import V2VPushDataset  # noqa: E402
 from v2v_server.ops.config import ServeConfig  # noqa: E402
 from harness.serve import ServeProcess  # noqa: E402
 from v2v_server.ray_data import epoch_descriptors, scan_corpus_windows, v2v_dataset  # noqa: E402
@@ -94,7 +94,7 @@ def test_epoch_has_every_id_once_and_the_zeromq_path_content(ray_session, videos
     assert sorted(ids) == want and not any(r["padding"] for r in rows)
     with ServeProcess(serve_args(videos, "--epochs", "2", "--batch-size", "4")) as srv:
         zmq_rows = {}
-        for b in V2VStreamDataset(srv.endpoint, timeout_s=60, raw=True):
+        for b in V2VPushDataset(srv.endpoint, timeout_s=60, raw=True):
             if b["epoch"] != 1:
                 continue
             for i, sid in enumerate(b["sample_ids"]):
@@ -142,7 +142,7 @@ def test_a_shard_is_the_same_samples_through_every_engine(ray_session, clips, tm
 
     def stream(endpoint) -> dict:
         out = {}
-        for b in V2VStreamDataset(endpoint, outputs=("voxels", "frames"), timeout_s=60, raw=True):
+        for b in V2VPushDataset(endpoint, outputs=("voxels", "frames"), timeout_s=60, raw=True):
             for i, sid in enumerate(b["sample_ids"]):
                 assert sid not in out, sid
                 out[sid] = (b["voxels"][i].numpy().astype(np.int16), b["frames"][i].numpy())
@@ -153,7 +153,7 @@ def test_a_shard_is_the_same_samples_through_every_engine(ray_session, clips, tm
         assert srv.wait(30) == 0
     assert "1 video(s) not opened" in srv.log
     with local_server(None, workers=1, batch_size=2, config=ServeConfig.from_dict(
-            {**cfg.to_dict(), "videos": str(corpus), "epochs": 1})) as endpoint:
+            {**cfg.to_dict(), "videos": str(corpus), "epochs": 1, "delivery_mode": "push"})) as endpoint:
         local = stream(endpoint)
     rows = {r["sample_id"]: r for r in v2v_dataset(corpus, cfg, epoch=0, outputs=("voxels", "frames")).take_all()}
     want = sorted(f"{v}#{k}" for v in ("bigbuckbunny.mp4", "webvid_like_596x336.mp4") for k in range(MAXW))
@@ -237,7 +237,7 @@ def test_bad_files_are_skipped_with_the_servers_reasons(ray_session, videos, tmp
     write_video(root / "shorter_than_window.mp4", WINDOW - 1, 160, 120)
     cfg = layout()
     with ServeProcess(serve_args(root, "--epochs", "1")) as srv:  # what v2v-serve says about them
-        for _ in V2VStreamDataset(srv.endpoint, timeout_s=60, outputs=("voxels",)):
+        for _ in V2VPushDataset(srv.endpoint, timeout_s=60, outputs=("voxels",)):
             pass
         assert srv.wait(30) == 0
     served = dict(re.findall(r"skipped (\S+): (.*)", srv.log))
@@ -363,7 +363,7 @@ def test_v2v_train_fast_on_two_ray_ranks_steps_as_one_process(ray_session, clips
 @pytest.mark.timeout(300)
 def test_ray_train_ranks_read_a_plan_each_its_slice_and_the_epoch_exactly_once(ray_session, clips, tmp_path):
     """Ray Train's ``TorchTrainer`` on 2 ranks over ``v2v-serve --delivery plan``: each rank's
-    ``V2VPlanDataset`` finds its rank in the process group Ray Train made, both take the same
+    ``V2VStreamDataset`` finds its rank in the process group Ray Train made, both take the same
     number of steps, and the epoch's samples arrive once, those ``--check`` counts."""
     from pathlib import Path
 
@@ -374,9 +374,9 @@ def test_ray_train_ranks_read_a_plan_each_its_slice_and_the_epoch_exactly_once(r
         import torch
         import torch.distributed as dist
 
-        from v2v_client import V2VPlanDataset
+        from v2v_client import V2VStreamDataset
 
-        ds = V2VPlanDataset(config["endpoint"], 2, outputs=("voxels",))
+        ds = V2VStreamDataset(config["endpoint"], 2, outputs=("voxels",))
         steps = [[sid for sid, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad]
                  for b in torch.utils.data.DataLoader(ds, batch_size=None)]
         Path(config["out"], f"rank{dist.get_rank()}.json").write_text(

@@ -18,7 +18,7 @@ import urllib.request
 import pytest
 import torch
 
-from v2v_client import V2VStreamDataset
+from v2v_client import V2VPushDataset
 from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
 from v2v_server.ops.config import ServeConfig, parse_shard
 from v2v_server.frames.check import check_corpus
@@ -145,10 +145,10 @@ def test_two_shards_one_trainer_every_id_once_with_the_content_of_one_unsharded_
     assert {s.split("#")[0] for s in want} == {p.name for p in root.glob("*.mp4")}  # every clip gives windows
     base = ["--videos", str(root), "--epochs", "1", *layout()]
     with ServeProcess(base) as one:
-        single, _ = read_all(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=60))
+        single, _ = read_all(V2VPushDataset(one.endpoint, outputs=OUTPUTS, timeout_s=60))
         assert one.wait(30) == 0
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
-        ds = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=OUTPUTS, credits=4, timeout_s=60)
+        ds = V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=OUTPUTS, credits=4, timeout_s=60)
         sharded, order = read_all(ds)
         assert a.wait(30) == 0 and b.wait(30) == 0
     assert sorted(single) == want
@@ -195,7 +195,7 @@ def test_a_shard_killed_and_restarted_mid_epoch_loses_and_doubles_nothing(tmp_pa
     b2 = None
     order = []
     try:
-        ds = V2VStreamDataset([a.endpoint, b.endpoint], outputs=OUTPUTS, credits=2, timeout_s=2.0,
+        ds = V2VPushDataset([a.endpoint, b.endpoint], outputs=OUTPUTS, credits=2, timeout_s=2.0,
                               reconnect=True, reconnect_timeout_s=60)
         it = iter(ds)
         from_b = 0
@@ -230,7 +230,7 @@ def test_fanin_state_dict_resumes_every_shard_after_a_trainer_and_server_restart
     eps = [s.endpoint for s in shards]
     order = []
     try:
-        ds = V2VStreamDataset(eps, outputs=OUTPUTS, credits=2, timeout_s=60)
+        ds = V2VPushDataset(eps, outputs=OUTPUTS, credits=2, timeout_s=60)
         it = iter(ds)
         for batch in it:
             order.extend(batch["sample_ids"])
@@ -243,7 +243,7 @@ def test_fanin_state_dict_resumes_every_shard_after_a_trainer_and_server_restart
             s.proc.send_signal(signal.SIGKILL)
             s.proc.wait(10)
         shards = [ServeProcess(base + ["--shard", f"{i}/2", "--bind", eps[i]]).start() for i in range(2)]
-        ds2 = V2VStreamDataset(eps, outputs=OUTPUTS, credits=2, timeout_s=60)
+        ds2 = V2VPushDataset(eps, outputs=OUTPUTS, credits=2, timeout_s=60)
         ds2.load_state_dict(state)
         _, rest = read_all(ds2)
         order.extend(rest)
@@ -260,7 +260,7 @@ def _ranks(endpoint, world):
     out = [None] * world
 
     def run(r):
-        ds = V2VStreamDataset(endpoint, outputs=OUTPUTS, timeout_s=60, rank=r, world_size=world)
+        ds = V2VPushDataset(endpoint, outputs=OUTPUTS, timeout_s=60, rank=r, world_size=world)
         batches = []
         for b in ds:
             batches.append(b)
@@ -294,7 +294,7 @@ def test_servers_feed_two_ranks_each_id_once_equal_batch_counts(tmp_path, videos
     want = expected_ids(root)
     base = ["--videos", str(root), "--epochs", "1", *layout()]
     with ServeProcess(base) as one:
-        single, _ = read_all(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=60))
+        single, _ = read_all(V2VPushDataset(one.endpoint, outputs=OUTPUTS, timeout_s=60))
     procs = [ServeProcess(base + (["--shard", f"{i}/{shards}"] if shards > 1 else [])).start() for i in range(shards)]
     try:
         per_rank = _ranks(",".join(p.endpoint for p in procs), 2)
@@ -337,7 +337,7 @@ def test_metrics_probes_and_counters_move(videos):
         m0 = _scrape(port)
         assert m0[("v2v_samples_sent_total", ())] == 0 and m0[("v2v_ready", ())] == 1
         assert m0[("v2v_workers", ())] == 2
-        ds = V2VStreamDataset(srv.endpoint, outputs=OUTPUTS, credits=2, timeout_s=60)
+        ds = V2VPushDataset(srv.endpoint, outputs=OUTPUTS, credits=2, timeout_s=60)
         it = iter(ds)
         got = [next(it) for _ in range(3)]
         want = sum(len(b["sample_ids"]) for b in got)
@@ -399,7 +399,7 @@ def test_trainer_metrics_as_prometheus(videos):
 
     port = free_port()
     with ServeProcess(["--videos", str(videos), *layout()]) as srv:
-        ds = V2VStreamDataset(srv.endpoint, outputs=OUTPUTS, timeout_s=60)
+        ds = V2VPushDataset(srv.endpoint, outputs=OUTPUTS, timeout_s=60)
         server, _thread = serve_trainer_metrics(ds, port, registry=CollectorRegistry())
         try:
             it = iter(ds)
@@ -424,7 +424,7 @@ def test_two_shards_fan_in_resumed_from_an_older_checkpoint_is_exactly_once(tmp_
     base = ["--videos", str(root), "--epochs", "1", "--end-grace-s", "5", *layout()]
     trained = []
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
-        ds = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), credits=2, timeout_s=60)
+        ds = V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), credits=2, timeout_s=60)
         it = iter(ds)
         for step in range(5):
             batch = next(it)
@@ -433,7 +433,7 @@ def test_two_shards_fan_in_resumed_from_an_older_checkpoint_is_exactly_once(tmp_
             if step == 1:
                 ckpt = json.loads(json.dumps(ds.state_dict()))
         it.close()  # the crash (its acks are sent: the servers saw steps 3-5 delivered)
-        again = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), credits=2, timeout_s=60)
+        again = V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), credits=2, timeout_s=60)
         again.load_state_dict(ckpt)
         for batch in again:
             trained += batch["sample_ids"]
@@ -449,7 +449,7 @@ def test_a_fan_in_refuses_servers_that_are_not_one_sharding(tmp_path, videos, sh
 
     base = ["--videos", str(videos), *layout()]
     with ServeProcess(base + ["--shard", shards[0]]) as a, ServeProcess(base + ["--shard", shards[1]]) as b:
-        ds = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60)
+        ds = V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60)
         with pytest.raises((ValueError, StreamError), match=why) as e:
             next(iter(ds))
         assert a.endpoint in str(e.value) and b.endpoint in str(e.value)
@@ -465,14 +465,14 @@ def test_corpus_listings_that_differ_and_a_resume_under_another_recipe_are_refus
     with ServeProcess(["--videos", str(root), "--shard", "0/2", *layout()]) as a, \
             ServeProcess(["--videos", str(other), "--shard", "1/2", *layout()]) as b:
         with pytest.raises(ValueError, match="different corpus listings"):
-            next(iter(V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60)))
+            next(iter(V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60)))
     with ServeProcess(["--videos", str(root), "--seed", "1", *layout()]) as s1:
-        ds = V2VStreamDataset(s1.endpoint, outputs=("voxels",), timeout_s=60)
+        ds = V2VPushDataset(s1.endpoint, outputs=("voxels",), timeout_s=60)
         next(iter(ds))
         state = ds.state_dict()
     for change in (["--seed", "2"], ["--crops-per-window", "2"]):
         with ServeProcess(["--videos", str(root), "--seed", "1", *layout(), *change]) as s2:
-            ds2 = V2VStreamDataset(s2.endpoint, outputs=("voxels",), timeout_s=60)
+            ds2 = V2VPushDataset(s2.endpoint, outputs=("voxels",), timeout_s=60)
             ds2.load_state_dict(state)
             with pytest.raises(StreamError, match="another sample recipe"):
                 next(iter(ds2))

@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from harness.faults import Layout, good_corpus
-from v2v_client import StreamTimeout, V2VStreamDataset
+from v2v_client import StreamTimeout, V2VPushDataset
 from v2v_server.ops.config import ServeConfig, is_loopback, load_config
 from harness.serve import ServeProcess
 
@@ -41,10 +41,10 @@ def test_curve_allowlist(tmp_path):
             "--curve-allow", str(allow), *LAYOUT.args()]
     with ServeProcess(args) as srv:
         with pytest.raises(StreamTimeout):  # no keys at all: the CURVE handshake never completes
-            next(iter(V2VStreamDataset(srv.endpoint, timeout_s=2)))
+            next(iter(V2VPushDataset(srv.endpoint, timeout_s=2)))
         with pytest.raises(StreamTimeout):  # a key that is not on the allowlist: ZAP refuses it
-            next(iter(V2VStreamDataset(srv.endpoint, timeout_s=2, curve_keys=(str(stranger_sec), str(server_pub)))))
-        it = iter(V2VStreamDataset(srv.endpoint, timeout_s=30, curve_keys=(str(good_sec), str(server_pub))))
+            next(iter(V2VPushDataset(srv.endpoint, timeout_s=2, curve_keys=(str(stranger_sec), str(server_pub)))))
+        it = iter(V2VPushDataset(srv.endpoint, timeout_s=30, curve_keys=(str(good_sec), str(server_pub))))
         b = next(it)
         it.close()
         assert b["voxels"].shape[0] == 1
@@ -67,10 +67,10 @@ def test_non_loopback_bind_needs_keys_or_insecure(tmp_path):
 
 def test_client_key_errors_name_the_file(tmp_path):
     with pytest.raises(ValueError, match="client key"):
-        V2VStreamDataset("tcp://127.0.0.1:1", curve_keys=(str(tmp_path / "missing"), str(tmp_path / "s.key")))
+        V2VPushDataset("tcp://127.0.0.1:1", curve_keys=(str(tmp_path / "missing"), str(tmp_path / "s.key")))
     pub, sec = keygen(tmp_path, "c")
     with pytest.raises(ValueError, match="no secret key"):
-        V2VStreamDataset("tcp://127.0.0.1:1", curve_keys=(str(pub), str(pub)))
+        V2VPushDataset("tcp://127.0.0.1:1", curve_keys=(str(pub), str(pub)))
 
 
 def test_sample_ids_cannot_name_files(tmp_path):
@@ -102,20 +102,20 @@ def test_sample_ids_cannot_name_files(tmp_path):
 
 
 def test_curve_allowlist_for_a_server_serving_by_plan(tmp_path):
-    """``--delivery plan`` with CurveZMQ keys: V2VPlanDataset reads with an allowed key only."""
-    from v2v_client import V2VPlanDataset
+    """``--delivery plan`` with CurveZMQ keys: V2VStreamDataset reads with an allowed key only."""
+    from v2v_client import V2VStreamDataset
 
     allow, server_pub, server_sec, good_pub, good_sec, stranger_sec = allowlist(tmp_path)
     args = ["--videos", str(good_corpus(tmp_path)), "--workers", "1", "--delivery", "plan",
             "--curve-secret-key", str(server_sec), "--curve-allow", str(allow), *LAYOUT.args()]
     with ServeProcess(args) as srv:
         with pytest.raises(TimeoutError):  # no keys: the CURVE handshake never completes
-            next(iter(V2VPlanDataset(srv.endpoint, 1, retry_s=1, timeout_s=2)))
+            next(iter(V2VStreamDataset(srv.endpoint, 1, retry_s=1, timeout_s=2)))
         with pytest.raises(TimeoutError):  # a key that is not on the allowlist: ZAP refuses it
-            next(iter(V2VPlanDataset(srv.endpoint, 1, retry_s=1, timeout_s=2,
+            next(iter(V2VStreamDataset(srv.endpoint, 1, retry_s=1, timeout_s=2,
                                      curve_keys=(str(stranger_sec), str(server_pub)))))
-        b = next(iter(V2VPlanDataset(srv.endpoint, 1, timeout_s=60, curve_keys=(str(good_sec), str(server_pub)))))
+        b = next(iter(V2VStreamDataset(srv.endpoint, 1, timeout_s=60, curve_keys=(str(good_sec), str(server_pub)))))
         assert b["voxels"].shape[0] == 1
     assert "CurveZMQ on: 1 allowed client key(s)" in srv.log
     with pytest.raises(ValueError, match="no secret key"):
-        V2VPlanDataset("tcp://127.0.0.1:1", 1, curve_keys=(str(good_pub), str(server_pub)))
+        V2VStreamDataset("tcp://127.0.0.1:1", 1, curve_keys=(str(good_pub), str(server_pub)))

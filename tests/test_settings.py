@@ -166,13 +166,13 @@ def test_unknown_keys_anywhere_name_the_file_the_section_and_the_allowed_keys(tm
 
 
 def test_one_outputs_check_for_the_config_the_dataset_and_the_hello():
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
     from v2v_wire.messages import WireError, parse_client
     from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, check_outputs
 
     assert check_outputs("flow, voxels") == check_outputs(["flow", "voxels", "flow"]) == ("voxels", "flow")
     assert load_config(None, {"outputs": "frames,voxels"}).outputs == ("voxels", "frames")
-    assert V2VStreamDataset("tcp://127.0.0.1:1", outputs=["flow", "frames"]).outputs == ("frames", "flow")
+    assert V2VPushDataset("tcp://127.0.0.1:1", outputs=["flow", "frames"]).outputs == ("frames", "flow")
     assert parse_client({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["flow"], "credits": 1}, 8).outputs == ("flow",)
     allowed = str(list(OUTPUTS)).replace("[", r"\[").replace("]", r"\]")
     for bad in ([], ["voxel"], ["voxels", 3], None):
@@ -181,6 +181,6 @@ def test_one_outputs_check_for_the_config_the_dataset_and_the_hello():
         with pytest.raises(ValueError, match=f"^command line: outputs must be a non-empty list from {allowed}"):
             load_config(None, {"outputs": bad if bad is not None else []})
         with pytest.raises(ValueError, match=f"^outputs must be a non-empty list from {allowed}"):
-            V2VStreamDataset("tcp://127.0.0.1:1", outputs=bad)
+            V2VPushDataset("tcp://127.0.0.1:1", outputs=bad)
         with pytest.raises(WireError, match=f"^field 'outputs' must be a non-empty list from {allowed}"):
             parse_client({"type": "hello", "v": PROTOCOL_VERSION, "outputs": bad, "credits": 1}, 8)

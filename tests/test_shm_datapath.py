@@ -204,10 +204,10 @@ def test_a_worker_that_dies_before_mapping_its_ring_leaks_nothing(tmp_path, monk
 
 
 def _read_epoch(endpoint):
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     got = {}
-    for batch in V2VStreamDataset(endpoint, outputs=("voxels", "frames", "flow"), raw=True, timeout_s=90):
+    for batch in V2VPushDataset(endpoint, outputs=("voxels", "frames", "flow"), raw=True, timeout_s=90):
         for i, sid in enumerate(batch["sample_ids"]):
             got[sid] = {k: batch[k][i].numpy().copy() for k in ("voxels", "frames", "flow")}
     return got

@@ -260,14 +260,14 @@ def stream_order(corpus, *extra, content: dict = None) -> dict:
     """epoch -> sample ids in the order one trainer received them, from a one-worker server;
     ``content`` gets (epoch, sample id) -> the bytes of its voxels."""
     from harness.serve import ServeProcess
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     args = ["--videos", str(corpus), "--workers", "1", "--sequence-length", "4", "--crop-size", "32",
             "--max-samples-per-video", "3", "--batch-size", "4", "--shuffle-buffer", "8", "--seed", "2",
             "--flow-preset", "ultrafast", *extra]
     order: dict = {}
     with ServeProcess(args, ready_timeout_s=120) as srv:
-        for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60):
+        for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60):
             order.setdefault(int(b["epoch"]), []).extend(b["sample_ids"])
             for sid, v in zip(b["sample_ids"], b["voxels"]):
                 (content if content is not None else {})[(int(b["epoch"]), sid)] = v.numpy().tobytes()

@@ -97,7 +97,7 @@ def test_keep_serves_every_window_and_skip_none_below_the_threshold(still_then_p
 
 
 def test_skip_served_by_v2v_serve_is_exactly_once_and_check_names_the_skips(still_then_pan, videos, tmp_path):
-    from v2v_client.dataset import V2VStreamDataset
+    from v2v_client.dataset import V2VPushDataset
 
     corpus = tmp_path / "c"
     corpus.mkdir()
@@ -114,7 +114,7 @@ def test_skip_served_by_v2v_serve_is_exactly_once_and_check_names_the_skips(stil
     want = sorted(f"{v.path}#{k}" for v in (check_video(recipe.windows, recipe.decode, LocalSource(corpus), n)
                                                for n in ("still_then_pan.mp4", "bikes.mp4")) for k in range(v.windows))
     with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--batch-size", "2", *args]) as srv:
-        got = [(sid, p["stats"]["motion"]) for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        got = [(sid, p["stats"]["motion"]) for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
                for sid, p in zip(b["sample_ids"], b["params"])]
     assert sorted(s for s, _ in got) == want and len(got) == len(set(got))
     assert all(m >= STATIC_MOTION for _, m in got)

@@ -117,8 +117,10 @@ def test_bad_out_is_one_line_before_any_sampling(tmp_path, short_recipe, capsys,
     assert blocker.read_text() == "not a folder"
 
 
-def test_server_report(tmp_path, short_recipe):
-    args = ["--videos", str(SAMPLE_VIDEOS), "--workers", "1", "--config", short_recipe, "--max-credits", "4"]
+@pytest.mark.parametrize("delivery", [["--delivery", "plan"], ["--delivery", "push", "--max-credits", "4"]])
+def test_server_report(tmp_path, short_recipe, delivery):
+    """``v2v-stats --server`` reads a server of either delivery (the default, by plan, and push)."""
+    args = ["--videos", str(SAMPLE_VIDEOS), "--workers", "1", "--config", short_recipe, *delivery]
     with ServeProcess(args) as srv:
         out = tmp_path / "report"
         assert main(["--server", srv.endpoint, "--samples", "4", "--timeout", "60", "--out", str(out)]) == 0

@@ -1,5 +1,5 @@
 """End to end: a real v2v-serve on 127.0.0.1 with 2 workers on the real clips, read through
-V2VStreamDataset. Every test is bounded in time and stops what it starts."""
+V2VPushDataset. Every test is bounded in time and stops what it starts."""
 from __future__ import annotations
 
 import contextlib
@@ -13,7 +13,7 @@ import pytest
 import torch
 import zmq
 
-from v2v_client import StreamTimeout, V2VStreamDataset
+from v2v_client import StreamTimeout, V2VPushDataset
 from harness.serve import ServeProcess, free_port
 from v2v_wire.protocol import decode_arrays, pack, unpack
 from v2v_server.ops.config import ServeConfig
@@ -45,7 +45,7 @@ def test_one_epoch_delivers_every_sample_once_with_correct_layout(videos):
     want = expected_ids(videos)
     assert len(want) >= 6  # bikes, bigbuckbunny and webvid_like each give windows at L = 8
     with ServeProcess(serve_args(videos, "--epochs", "1", "--batch-size", "4")) as srv:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=60)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=60)
         seen, batches = [], []
         for b in ds:
             batches.append(b)
@@ -75,7 +75,7 @@ def test_one_epoch_delivers_every_sample_once_with_correct_layout(videos):
 
 def test_voxels_only_client_gets_no_flow_and_frames(videos):
     with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
-        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
         it = iter(ds)
         b = next(it)
         it.close()
@@ -87,7 +87,7 @@ def test_voxels_only_client_gets_no_flow_and_frames(videos):
 
 
 def test_absent_server_is_a_clear_error_not_a_hang():
-    ds = V2VStreamDataset(f"tcp://127.0.0.1:{free_port()}", timeout_s=1.5)
+    ds = V2VPushDataset(f"tcp://127.0.0.1:{free_port()}", timeout_s=1.5)
     t = time.monotonic()
     with pytest.raises(StreamTimeout, match="is v2v-serve running"):
         next(iter(ds))
@@ -97,7 +97,7 @@ def test_absent_server_is_a_clear_error_not_a_hang():
 def test_server_killed_mid_stream_gives_error_after_timeout(videos):
     srv = ServeProcess(serve_args(videos, "--batch-size", "2")).start()
     try:
-        ds = V2VStreamDataset(srv.endpoint, timeout_s=2.0, credits=1)
+        ds = V2VPushDataset(srv.endpoint, timeout_s=2.0, credits=1)
         it = iter(ds)
         next(it)
         srv.proc.kill()
@@ -156,7 +156,7 @@ def test_credits_bound_batches_in_flight(videos):
 
 def test_dataloader_with_pin_memory(videos):
     with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
-        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60)
+        ds = V2VPushDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60)
         with pytest.warns(UserWarning) if not torch.cuda.is_available() else contextlib.nullcontext():
             dl = torch.utils.data.DataLoader(ds, batch_size=None, pin_memory=True)
             it = iter(dl)
@@ -221,7 +221,7 @@ def test_ipv6_loopback_on_both_ends(videos):
     endpoint = f"tcp://[::1]:{port}"
     with ServeProcess(["--videos", str(videos), "--bind", endpoint, "--epochs", "1", "--crop-size", "64",
                        "--sequence-length", "4", "--max-samples-per-video", "1", "--batch-size", "2"]) as srv:
-        ids = [s for b in V2VStreamDataset(endpoint, outputs=("voxels",), timeout_s=60) for s in b["sample_ids"]]
+        ids = [s for b in V2VPushDataset(endpoint, outputs=("voxels",), timeout_s=60) for s in b["sample_ids"]]
         assert srv.wait(30) == 0
     assert len(ids) == len(set(ids)) > 0
 
@@ -244,10 +244,10 @@ def test_a_resume_state_of_700k_ids_is_sent_compactly_and_a_too_large_one_is_a_c
     many = [f"elsewhere/v{i:05d}.mp4#{w}" for i in range(70_000) for w in range(10)]  # 700 k ids, 10 per video
     huge = [f"elsewhere/a-long-folder-name/and-a-longer-file-name-{i:07d}.mp4#0" for i in range(700_000)]
     with ServeProcess(args) as srv:
-        ds = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
+        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
         ds.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": many}})
         assert next(iter(ds))["voxels"].shape[0] > 0  # the server read it (videos it does not serve are ignored)
-        ds2 = V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
+        ds2 = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
         ds2.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": huge}})
         with pytest.raises(StreamError, match="resume state is too large"):  # not a StreamTimeout: no hang
             next(iter(ds2))
@@ -316,7 +316,7 @@ def test_a_clip_too_short_for_one_window_is_skipped_without_a_warning(videos):
     args = ["--videos", str(videos), "--workers", "1", "--sequence-length", "30", "--crop-size", "32",
             "--batch-size", "1", "--epochs", "1", "--max-samples-per-video", "1", "--shot-cuts", "off"]
     with ServeProcess(args) as srv:
-        for _ in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=120):
+        for _ in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=120):
             pass
         assert srv.wait(60) == 0
     assert "INFO skipped " in srv.log and "bigbuckbunny.mp4: 132 frames, shorter than one window of 151" in srv.log

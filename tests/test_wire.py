@@ -16,7 +16,7 @@ import torch
 import zmq
 
 from harness.serve import ServeProcess
-from v2v_client import StreamError, V2VStreamDataset, expand_flow_grid
+from v2v_client import StreamError, V2VPushDataset, expand_flow_grid
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
@@ -70,7 +70,7 @@ def server(videos):
 def test_tracked_flow_reaches_the_trainer_as_the_server_s_dense_flow(server, videos):
     """The wire carries the grid; the trainer gets float32 (B, L, 2, H, W) flow equal to the
     server's dense expansion (bit for bit after float16 rounding, the old wire's precision)."""
-    for b in first_batches(V2VStreamDataset(server.endpoint, outputs=("flow",), timeout_s=60), 2):
+    for b in first_batches(V2VPushDataset(server.endpoint, outputs=("flow",), timeout_s=60), 2):
         fl = b["flow"]
         assert "flow_grid" not in b and fl.dtype == torch.float32 and fl.shape == (len(b["sample_ids"]), L, 2, CROP, CROP)
         for i in range(len(b["sample_ids"])):
@@ -82,7 +82,7 @@ def test_tracked_flow_reaches_the_trainer_as_the_server_s_dense_flow(server, vid
 
 
 def test_raw_flow_is_the_old_float16_wire_flow(server, videos):
-    for b in first_batches(V2VStreamDataset(server.endpoint, outputs=("flow", "voxels"), raw=True, timeout_s=60), 1):
+    for b in first_batches(V2VPushDataset(server.endpoint, outputs=("flow", "voxels"), raw=True, timeout_s=60), 1):
         assert b["flow"].dtype == torch.float16 and b["voxels"].dtype in (torch.int8, torch.int16, torch.int32)
         for i in range(len(b["sample_ids"])):
             np.testing.assert_array_equal(b["flow"][i].numpy().view(np.uint16),
@@ -91,7 +91,7 @@ def test_raw_flow_is_the_old_float16_wire_flow(server, videos):
 
 def test_compact_flow_yields_the_grid_for_expansion_on_the_device(server, videos):
     """The welcome names the grid's points per side (padding a rank makes has the batches' form)."""
-    ds = V2VStreamDataset(server.endpoint, outputs=("flow",), compact_flow=True, timeout_s=60)
+    ds = V2VPushDataset(server.endpoint, outputs=("flow",), compact_flow=True, timeout_s=60)
     b = first_batches(ds, 1)[0]
     g = b["flow_grid"]
     assert "flow" not in b and g.dtype == torch.float32 and g.shape == (len(b["sample_ids"]), L, 2, 8, 8)
@@ -221,7 +221,7 @@ def test_mixed_clients_one_compressing_one_not_on_one_server(server, videos):
     """A zstd connection and a plain one read the same server at once; each gets its form, and
     both decode to the samples."""
     client = RawClient(server.endpoint, "zstd")
-    ds = V2VStreamDataset(server.endpoint, raw=True, compact_flow=True, compression="none", timeout_s=60)
+    ds = V2VPushDataset(server.endpoint, raw=True, compact_flow=True, compression="none", timeout_s=60)
     it = iter(ds)
     try:
         for _ in range(3):
@@ -286,11 +286,11 @@ def test_a_corrupt_compressed_frame_is_an_error_of_that_connection():
     t.start()
     try:
         endpoint = f"tcp://127.0.0.1:{port}"
-        bad_ds = V2VStreamDataset(endpoint, outputs=("voxels",), compression="zstd", raw=True, timeout_s=10)
+        bad_ds = V2VPushDataset(endpoint, outputs=("voxels",), compression="zstd", raw=True, timeout_s=10)
         bad_ds.consumer = "bad"
         with pytest.raises(StreamError, match=r"array 'voxels' part 1: zstd frame does not decompress"):
             next(iter(bad_ds))
-        ok_ds = V2VStreamDataset(endpoint, outputs=("voxels",), compression="zstd", raw=True, timeout_s=10)
+        ok_ds = V2VPushDataset(endpoint, outputs=("voxels",), compression="zstd", raw=True, timeout_s=10)
         ok_ds.consumer = "good"
         b = next(iter(ok_ds))
         assert torch.equal(b["voxels"], torch.from_numpy(good))
@@ -331,7 +331,7 @@ def test_auto_compression_is_none_nearby_and_falls_back_when_the_server_lacks_th
     t = threading.Thread(target=serve, daemon=True)
     t.start()
     try:
-        ds = V2VStreamDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), raw=True, timeout_s=10)
+        ds = V2VPushDataset(f"tcp://127.0.0.1:{port}", outputs=("voxels",), raw=True, timeout_s=10)
         b = next(iter(ds))
         assert b["voxels"].tolist() == [[1, 2]] and hellos == ["zstd", "none"]
     finally:

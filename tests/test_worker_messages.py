@@ -117,7 +117,7 @@ def test_a_failure_keeps_the_exceptions_type_traceback_and_where():
 
 def test_a_workers_exception_reaches_the_server_with_its_type_and_where(tmp_path):
     from harness.serve import ServeProcess
-    from v2v_client import V2VStreamDataset
+    from v2v_client import V2VPushDataset
 
     corpus = tmp_path / "corpus"
     corpus.mkdir()
@@ -126,7 +126,7 @@ def test_a_workers_exception_reaches_the_server_with_its_type_and_where(tmp_path
     args = ["--videos", str(corpus), "--workers", "1", "--sequence-length", "4", "--num-bins", "2", "--crop-size", "32",
             "--max-samples-per-video", "1", "--epochs", "1", "--batch-size", "1", "--log-level", "DEBUG"]
     with ServeProcess(args) as srv:
-        ids = [s for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=90) for s in b["sample_ids"]]
+        ids = [s for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=90) for s in b["sample_ids"]]
         assert srv.wait(60) == 0
         lines = [ln for ln in srv.log.splitlines() if "not_a_video.mp4:" in ln and "skipped" in ln]
         raised = [ln for ln in srv.log.splitlines() if "Error raised in worker w0." in ln]

@@ -78,7 +78,7 @@ class RunSettings:
 
 @dataclass
 class StreamSettings:
-    """``stream``: how the trainer reads v2v-serve (``V2VStreamDataset``)."""
+    """``stream``: how the trainer reads v2v-serve (``V2VPushDataset``)."""
 
     credits: int = setting(4, help="batches the client may hold")
     timeout_s: float = setting(60.0, help="seconds without a message before StreamTimeout")

@@ -79,7 +79,7 @@ class Trainer:
         LPIPSUnavailable: ``require_lpips`` set and the perceptual term would be the stand-in.
 
     Use ``trainer.loop.train_loop`` (or :meth:`fit`) with an iterable of stream batches (the
-    contract of ``v2v_client.V2VStreamDataset``), or :meth:`train_step` on one batch.
+    contract of ``v2v_client.V2VPushDataset``), or :meth:`train_step` on one batch.
     """
 
     def __init__(self, cfg: dict, out_dir: str, device: torch.device):
@@ -268,7 +268,7 @@ class Trainer:
 
     def fit(self, stream, max_steps: int, image_every: int = 500, checkpoint_every: int = 1000,
             progress: bool = True, log_every: int = 10, tensorboard: bool = True) -> dict:
-        """Train from a stream (``v2v_client.V2VStreamDataset`` or any iterable of its batches)
+        """Train from a stream (``v2v_client.V2VPushDataset`` or any iterable of its batches)
         until ``max_steps`` total steps, the stream ends or Ctrl-C; checkpoints carry the
         stream's ``state_dict()``; with ``tensorboard``, event files too, their ``recipe`` the
         stream's ``info`` (the server's welcome) when it has one. Returns the summary of

@@ -1,6 +1,7 @@
 """Stream side of the trainer: which outputs each task asks ``v2v-serve`` for, the
-DataLoader around ``v2v_client.V2VStreamDataset`` (a push server) or ``V2VPlanDataset`` read
-epoch after epoch (a server serving by plan: :class:`PlanEpochs`), and the host -> device transfer.
+DataLoader around ``v2v_client.V2VStreamDataset`` read epoch after epoch (a server serving by plan,
+the default: :class:`PlanEpochs`) or ``V2VPushDataset`` (``--delivery push``), and the host ->
+device transfer.
 
 Batches (the client's contract): ``voxels`` (B, L, num_bins, H, W) int8/int16 when
 ``raw=True`` (float32 otherwise; signed event counts per bin), ``frames`` (B, L+1, 1, H, W)
@@ -15,71 +16,38 @@ from typing import Iterable, Optional, Sequence, Tuple
 import torch
 from torch.utils.data import DataLoader
 
+from v2v_client.plan_dataset import PlanEpochs, PlanServerError, open_stream
+from v2v_client.session import StreamError
 from v2v_wire.outputs import ARRAYS
+from v2v_wire.plan import PlanMismatch
 
 from .tasks import get_task
 
-__all__ = ["make_stream", "PlanEpochs", "make_loader", "batch_to_device", "drop_padding"]
+#: What reading a server raises when it is absent, silent or refuses (each message names the
+#: server and why, in one line): v2v-train ends with that line.
+STREAM_ERRORS = (TimeoutError, StreamError, PlanServerError, PlanMismatch)
+
+__all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "make_loader", "batch_to_device", "drop_padding"]
 
 
 def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
                 reconnect: bool = False, curve_keys=None, outputs: Optional[Sequence[str]] = None,
                 compact_flow: bool = True):
-    """Open a ``v2v_client.V2VStreamDataset`` on ``endpoint`` (one server, or several:
-    ``"tcp://a:5555,tcp://b:5555"``) asking only for ``outputs`` (default: ``task``'s; a run's
-    are ``tasks.stream_outputs(cfg)``); ``reconnect``, ``compact_flow`` (a tracked flow
-    arrives as its grid, made dense on the training device by :func:`batch_to_device`) and
-    ``curve_keys`` (client secret key file, server public key file) as in the dataset. A single
-    server serving by plan (it says so when asked) is read by :class:`PlanEpochs` instead, in
-    batches of the server's ``batch_size``.
-    Raises ``ImportError`` with a hint when the client is not installed."""
-    try:
-        from v2v_client import V2VPlanDataset, V2VStreamDataset
-        from v2v_client.plan_dataset import PlanServerError
-    except ImportError as e:  # pragma: no cover - depends on the installed client
-        raise ImportError("v2v_client.V2VStreamDataset is not available; install the v2v "
-                          "client (pip install -e '.[client]')") from e
-    keys = tuple(curve_keys) if curve_keys else None
-    plan_args = {"timeout_s": float(timeout_s), "retry_s": min(10.0, float(timeout_s)), "curve_keys": keys}
-    if "," not in endpoint:  # several servers fan in by push only
-        try:
-            info = V2VPlanDataset(endpoint, 1, **plan_args).plan_info()
-        except (PlanServerError, TimeoutError):  # a push server answered, or none did: the push client says so
-            info = None
-        if info is not None:
-            return PlanEpochs(V2VPlanDataset(endpoint, int(info.stream.get("batch_size", 1)),
-                                             outputs=tuple(outputs or get_task(task).outputs), raw=bool(raw),
-                                             **plan_args))
-    return V2VStreamDataset(endpoint=endpoint, outputs=tuple(outputs or get_task(task).outputs), credits=int(credits),
-                            timeout_s=float(timeout_s), raw=bool(raw), reconnect=bool(reconnect),
-                            curve_keys=tuple(curve_keys) if curve_keys else None, compact_flow=bool(compact_flow))
+    """The stream of ``endpoint`` asking only for ``outputs`` (default: ``task``'s; a run's are
+    ``tasks.stream_outputs(cfg)``): a server serving by plan (v2v-serve's default; it says so when
+    asked) is read by :class:`PlanEpochs` over a ``v2v_client.V2VStreamDataset``, in batches of the
+    server's ``batch_size``; a server started with ``--delivery push``, or several
+    (``"tcp://a:5555,tcp://b:5555"``), by a ``v2v_client.V2VPushDataset`` with ``credits``,
+    ``reconnect``, ``compact_flow`` (a tracked flow arrives as its grid, made dense on the training
+    device by :func:`batch_to_device`). ``curve_keys``: (client secret key file, server public key
+    file), as in the datasets.
 
-
-class PlanEpochs(torch.utils.data.IterableDataset):
-    """``v2v-train``'s one pass over a plan: the epochs of a ``V2VPlanDataset`` in turn (each
-    ``set_epoch`` after the last), from the epoch of a loaded position on. :meth:`state_dict` /
-    :meth:`load_state_dict` are the dataset's (a position: the epoch and the samples read).
-    An epoch without a batch ends the pass."""
-
-    def __init__(self, dataset):
-        super().__init__()
-        self.dataset = dataset
-
-    def __iter__(self):
-        while True:
-            last = None
-            for batch in self.dataset:
-                last = batch["epoch"]
-                yield batch
-            if last is None:
-                return
-            self.dataset.set_epoch(last + 1)
-
-    def state_dict(self) -> dict:
-        return self.dataset.state_dict()
-
-    def load_state_dict(self, state: dict) -> None:
-        self.dataset.load_state_dict(state)
+    Raises:
+        TimeoutError: no server answered at ``endpoint`` within ``timeout_s``.
+    """
+    return open_stream(endpoint, outputs=tuple(outputs or get_task(task).outputs), raw=bool(raw),
+                       timeout_s=float(timeout_s), curve_keys=tuple(curve_keys) if curve_keys else None,
+                       credits=int(credits), reconnect=bool(reconnect), compact_flow=bool(compact_flow))
 
 
 def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:

@@ -70,31 +70,36 @@ class Collected:
 
 
 def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int], None], recipe=None) -> Collected:
-    """The params of ``n`` samples read from the server at ``endpoint`` (a ``V2VStreamDataset``
-    asking for the default outputs: the worker measures what it makes); with ``recipe`` (the
+    """The params of ``n`` samples read from the server at ``endpoint`` (``open_stream``: by plan
+    or by push, as the server serves; the default outputs: the worker measures what it makes); with ``recipe`` (the
     server's ``SampleRecipe``: bins and frames per bin) each row's grid ``cells`` from its voxels.
 
     Raises:
         StatsInputError: the server does not answer within ``timeout_s`` or ends the stream
             with an error.
     """
-    from v2v_client import V2VStreamDataset
+    from v2v_client.plan_dataset import PlanServerError, open_stream
     from v2v_client.session import StreamError
 
     out = Collected(source=f"server {endpoint}")
-    ds = V2VStreamDataset(endpoint, timeout_s=timeout_s, raw=True)
+    ds = None
     try:
+        ds = open_stream(endpoint, timeout_s=timeout_s, raw=True)
         for batch in ds:
             vox = batch.get("voxels")
             for i, params in enumerate(batch["params"]):
+                if batch["padding"][i]:
+                    continue
                 out.rows.append(sample_row(params, None if vox is None else np.asarray(vox[i]), recipe))
                 progress(1)
                 if len(out.rows) >= n:
                     return out
-    except StreamError as e:
+    except (StreamError, TimeoutError, PlanServerError) as e:
         raise StatsInputError(f"server {endpoint}: {e}") from None
     finally:
-        ds.close()
+        close = getattr(ds, "close", None)
+        if callable(close):
+            close()
     return out
 
 

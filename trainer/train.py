@@ -21,7 +21,7 @@ from v2v_wire.commands import input_overwritten, writable_problem, write_whole
 
 from .config import RunSettings, apply_overrides, check_types, exit_on_config_error, load_config
 from .core import Trainer, resolve_device
-from .data import make_stream
+from .data import STREAM_ERRORS, make_stream
 from .models.lpips import LPIPSUnavailable
 from .ray_train import add_ray_arguments
 from .raft_flow import FlowSourceUnavailable
@@ -109,18 +109,22 @@ def main(argv=None) -> int:
         return 2
     log.info("model: %d parameters", sum(p.numel() for p in trainer.model.parameters()))
     s = cfg["stream"]
-    stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"],
-                         reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None,
-                         outputs=stream_outputs(cfg), compact_flow=bool(s.get("compact_flow", True)))
-    resume = cfg.get("resume")
-    if resume == "auto":
-        resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None
-    if resume:
-        trainer.load_checkpoint(resume, stream)
-    lg = cfg["log"]
-    trainer.fit(stream, int(cfg["max_steps"]), int(lg["image_every"]), int(lg["checkpoint_every"]),
-                progress=bool(lg["progress"]) and not args.no_progress, log_every=int(lg.get("every", 10)),
-                tensorboard=bool(lg["tensorboard"]))
+    try:
+        stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"],
+                             reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None,
+                             outputs=stream_outputs(cfg), compact_flow=bool(s.get("compact_flow", True)))
+        resume = cfg.get("resume")
+        if resume == "auto":
+            resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None
+        if resume:
+            trainer.load_checkpoint(resume, stream)
+        lg = cfg["log"]
+        trainer.fit(stream, int(cfg["max_steps"]), int(lg["image_every"]), int(lg["checkpoint_every"]),
+                    progress=bool(lg["progress"]) and not args.no_progress, log_every=int(lg.get("every", 10)),
+                    tensorboard=bool(lg["tensorboard"]))
+    except STREAM_ERRORS as e:  # the server absent, silent, or refusing: one line, its own words
+        print(f"v2v-train: {e}", file=sys.stderr)
+        return 1
     close = getattr(stream, "close", None)
     if callable(close):
         close()

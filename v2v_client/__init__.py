@@ -1,20 +1,22 @@
-"""Client side of v2v: ``V2VStreamDataset`` reads batches streamed by ``v2v-serve``.
+"""Client side of v2v: ``V2VStreamDataset`` reads the epochs ``v2v-serve`` serves by plan
+(docs/plan.md); ``V2VPushDataset`` reads a server started with ``--delivery push``.
 
 ``import v2v_client`` and its network side (``connection``, ``session``: a server's batches as
 numpy arrays) need only the base install (``pip install v2v``: numpy, pyzmq, msgpack, PyYAML);
-the names that make tensors (``V2VStreamDataset``, ``V2VPlanDataset`` (docs/plan.md), ``StreamLoader``, ``batch_to_torch``,
-``expand_flow_grid``, ``dist_position``, ``prepare_loader``) import torch when first used (``pip install
-'v2v[client]'``).
+the names that make tensors (``V2VStreamDataset``, ``V2VPushDataset``, ``StreamLoader``,
+``batch_to_torch``, ``expand_flow_grid``, ``dist_position``, ``prepare_loader``) import torch when
+first used (``pip install 'v2v[client]'``).
 """
 from importlib import import_module
 
 from .session import StreamError, StreamTimeout
 
-__all__ = ["V2VStreamDataset", "V2VPlanDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position",
-           "expand_flow_grid", "StreamLoader", "prepare_loader"]
+__all__ = ["V2VStreamDataset", "V2VPushDataset", "PlanServerError", "PushServerError", "StreamError", "StreamTimeout",
+           "batch_to_torch", "dist_position", "expand_flow_grid", "StreamLoader", "prepare_loader"]
 
 #: The public names that need torch, by the module that defines them.
-_TORCH_NAMES = {"V2VStreamDataset": "dataset", "V2VPlanDataset": "plan_dataset", "dist_position": "dataset", "batch_to_torch": "tensors",
+_TORCH_NAMES = {"V2VPushDataset": "dataset", "V2VStreamDataset": "plan_dataset", "dist_position": "dataset",
+                "batch_to_torch": "tensors", "PlanServerError": "plan_dataset", "PushServerError": "plan_dataset",
                 "expand_flow_grid": "flowgrid", "StreamLoader": "loader",
                 "prepare_loader": "launchers"}
 

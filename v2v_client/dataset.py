@@ -1,4 +1,4 @@
-"""``V2VStreamDataset``: a torch IterableDataset reading batches from ``v2v-serve``.
+"""``V2VPushDataset``: a torch IterableDataset reading batches from ``v2v-serve``.
 
 Each iterator owns one DEALER connection (:class:`Connection`) served by a background I/O
 thread (``connection.py``). The thread says ``hello`` (the outputs wanted, its ``credits``, who it is and
@@ -11,7 +11,7 @@ Sharing one stream: the server hands every batch to exactly one connection. Each
 worker process (``num_workers > 0``) and each DDP rank opens its own connection when it
 starts iterating, so they split the stream between them without duplicates. DDP ranks find
 their ``rank``/``world_size`` when iteration starts (``dist_position``), or are given them, so
-that each rank yields the same number of batches per epoch (see ``V2VStreamDataset``).
+that each rank yields the same number of batches per epoch (see ``V2VPushDataset``).
 """
 from __future__ import annotations
 
@@ -35,17 +35,17 @@ from .options import StreamOptions, job_group
 from .resume import ResumeState
 from .tensors import batch_to_torch
 
-__all__ = ["V2VStreamDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "padding_copy"]
+__all__ = ["V2VPushDataset", "StreamError", "StreamTimeout", "batch_to_torch", "dist_position", "padding_copy"]
 
 log = logging.getLogger("v2v.client")
 
 #: why ``len()`` of the dataset fails: loaders that index or sample a dataset cannot read a stream
-NO_LENGTH = ("V2VStreamDataset is a stream without a length: hand loaders that index or sample a dataset "
+NO_LENGTH = ("V2VPushDataset is a stream without a length: hand loaders that index or sample a dataset "
              "(DeepSpeed's training_data=) DataLoader(ds, batch_size=None) instead; a DataLoader over it has no "
              "length either (test it with `is not None`, not `if loader:`)")
 
 
-class V2VStreamDataset(torch.utils.data.IterableDataset):
+class V2VPushDataset(torch.utils.data.IterableDataset):
     """Batches of V2V training data streamed from a ``v2v-serve`` endpoint.
 
     Args:
@@ -259,13 +259,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if worker is not None:  # in a DataLoader worker process
             if self._link is None:
                 raise RuntimeError(
-                    "V2VStreamDataset read by DataLoader worker processes: a plain DataLoader cannot tell its "
+                    "V2VPushDataset read by DataLoader worker processes: a plain DataLoader cannot tell its "
                     "workers which batches reached the training loop, so batches it prefetched and dropped would "
                     "be lost or repeated. Build the loader with v2v_client.StreamLoader(ds, num_workers=..., ...) "
                     "(DataLoader's arguments), or use num_workers=0 (the dataset prefetches `credits` batches "
                     "in its own thread)")
             if self._fanin is not None:
-                raise RuntimeError("V2VStreamDataset over several servers is read with num_workers=0 (the fan-in "
+                raise RuntimeError("V2VPushDataset over several servers is read with num_workers=0 (the fan-in "
                                    "reads every server in its own thread)")
             self._stream.attach_loader(worker.id, self._link.receipts[worker.id], self._link.records.get(worker.id))
         inner = self.read_ahead.replay(iter(self._fanin) if self._fanin is not None else iter(self._stream))
@@ -284,7 +284,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 in the loader: checkpoint ``loader.state_dict()``).
         """
         if self._link is not None:
-            raise RuntimeError("this V2VStreamDataset is read by StreamLoader workers: checkpoint the loader "
+            raise RuntimeError("this V2VPushDataset is read by StreamLoader workers: checkpoint the loader "
                                "(loader.state_dict()), which holds what each worker's training loop received")
         return self.read_ahead.state((self._fanin or self._stream).state_dict)
 
@@ -413,8 +413,8 @@ def dist_position() -> Tuple[int, int]:
         # no process group to ask (Lightning's rank 0 sets WORLD_SIZE without RANK, but has one by
         # the time it iterates): every process would take rank 0's share
         raise ValueError(f"WORLD_SIZE={env[1]} in the environment but no RANK and no torch.distributed process "
-                         f"group: set RANK, or pass rank= and world_size= to V2VStreamDataset explicitly")
+                         f"group: set RANK, or pass rank= and world_size= to V2VPushDataset explicitly")
     if dist is not None and env is not None and dist[1] != env[1]:
         raise ValueError(f"torch.distributed says world size {dist[1]} but WORLD_SIZE={env[1]} in the "
-                         f"environment: pass rank= and world_size= to V2VStreamDataset explicitly")
+                         f"environment: pass rank= and world_size= to V2VPushDataset explicitly")
     return dist or env or (0, 1)

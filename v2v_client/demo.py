@@ -17,8 +17,8 @@ from typing import List, Optional
 
 from v2v_wire.commands import input_overwritten, writable_problem
 
-from .dataset import V2VStreamDataset
 from .loadtest import run_loadtest
+from .plan_dataset import V2VStreamDataset
 
 
 def main(argv: Optional[List[str]] = None) -> int:

@@ -1,6 +1,6 @@
 """One server's stream: the iteration over a :class:`~v2v_client.connection.Connection` that
 drops re-sent samples and adds DDP padding (:class:`EndpointStream`), with the reader's record
-(``resume.ResumeState``) that every hello carries. ``V2VStreamDataset`` reads one of these per
+(``resume.ResumeState``) that every hello carries. ``V2VPushDataset`` reads one of these per
 server (several through ``fanin.FanInStream``).
 """
 from __future__ import annotations
@@ -66,7 +66,7 @@ class EndpointStream:
         options: :class:`~v2v_client.options.StreamOptions`, the one place its settings are read from.
 
     Iterating opens a connection it owns (one per iterator; a new one replaces the previous),
-    reads what the connection queues, and yields the batch dicts ``V2VStreamDataset``
+    reads what the connection queues, and yields the batch dicts ``V2VPushDataset``
     documents: each sample once per epoch, DDP padding where owed, a DataLoader worker's
     batches held until the loop receives them. ``state_dict()`` / ``load_state_dict()`` carry
     the reader's ``resume.ResumeState`` (``record``) across restarts.
@@ -185,7 +185,7 @@ class EndpointStream:
         worker = torch.utils.data.get_worker_info()
         if worker is None:
             for old in list(self._conns):
-                old.items.put(StreamError(f"this V2VStreamDataset reading {self.endpoint} was iterated again: one "
+                old.items.put(StreamError(f"this V2VPushDataset reading {self.endpoint} was iterated again: one "
                                           f"iterator at a time reads a consumer (the newer one reads on)"))
                 self._drop(old)
         consumer = self.consumer if worker is None else f"{self.consumer}/{worker.id}"

@@ -1,4 +1,4 @@
-"""``V2VStreamDataset`` under Hugging Face Accelerate, which wraps the DataLoader it is given.
+"""``V2VPushDataset`` under Hugging Face Accelerate, which wraps the DataLoader it is given.
 
 ``Accelerator.prepare`` reads an IterableDataset in one of two ways (``accelerate.data_loader``):
 
@@ -28,7 +28,7 @@ and each rank loads its own part (:func:`rank_part`). A stateful loader under mo
 not made by :func:`prepare_loader` is refused at its first batch, as is ``skip_first_batches``
 (it would throw away batches the server counts as delivered).
 
-:func:`prepare_loader` takes a ``V2VPlanDataset``'s loader too: how a plan reads under accelerate is
+:func:`prepare_loader` takes a ``V2VStreamDataset``'s loader too: how a plan reads under accelerate is
 ``plan_accelerate``'s.
 
 Reading ahead: accelerate's loaders take a batch (per rank) or a group (dispatch) before the loop
@@ -131,7 +131,7 @@ def dispatched(batch: dict, packed: List[bytes], rows: int, width: int) -> Dispa
 
 
 def unseen(state: dict, batches: List[dict]) -> dict:
-    """``state`` (a ``V2VStreamDataset.state_dict()``, one server's or a fan-in's) without
+    """``state`` (a ``V2VPushDataset.state_dict()``, one server's or a fan-in's) without
     ``batches``, batches the dataset yielded that the training loop has not received: their
     samples (``padding`` False) are not handed on (``ResumeState.not_handed_on``), so a resume
     from it has them sent again (the server takes a hello's state as the truth). The state given
@@ -150,7 +150,7 @@ def unseen(state: dict, batches: List[dict]) -> dict:
 
 class ReadAhead:
     """What the loaders that read ahead of the training loop (accelerate's, Lightning's) make a
-    ``V2VStreamDataset``'s ``state_dict()`` say (:meth:`state`): ``held_state``, the state the
+    ``V2VPushDataset``'s ``state_dict()`` say (:meth:`state`): ``held_state``, the state the
     dispatcher's snapshots must see while it hands out a group (:func:`_dispatch`); ``pending``,
     batches a Lightning fetcher took that its loop has not received yet; and the batches held
     over, yielded but never received by a loop that left or saw the stream fail: the dataset's
@@ -325,7 +325,7 @@ def check_whole(ds) -> None:
     """
     dl = _loader_of(ds)
     if dl is not None and dl.dataset is not ds:
-        raise RuntimeError("accelerate's dispatch_batches=False wraps V2VStreamDataset in IterableDatasetShard, "
+        raise RuntimeError("accelerate's dispatch_batches=False wraps V2VPushDataset in IterableDatasetShard, "
                            "which keeps 1/N of what each rank's own connection receives: build the loader with "
                            "v2v_client.prepare_loader(accelerator, DataLoader(ds, batch_size=None)) instead of "
                            "accelerator.prepare")
@@ -354,7 +354,7 @@ def adapt(ds, batches: Iterator[dict]) -> Iterator[dict]:
         if stateful and _world() > 1 and not getattr(ds, "gathers_state", False):
             raise RuntimeError("accelerate saves one loader state for every process: build the loader with "
                                "v2v_client.prepare_loader(accelerator, DataLoader(ds, batch_size=None)), whose save "
-                               "hook keeps each rank's V2VStreamDataset state")
+                               "hook keeps each rank's V2VPushDataset state")
         if processes > 1:
             ds.read_alone()
             yield from _dispatch(ds, batches, processes)
@@ -381,7 +381,7 @@ def rank_part(state: dict, position: Callable[[], Tuple[int, int]]) -> dict:
         rank, world = position()
         parts = state[RANKS]
         if len(parts) != world:
-            raise ValueError(f"this V2VStreamDataset state was saved by {len(parts)} ranks and is loaded by "
+            raise ValueError(f"this V2VPushDataset state was saved by {len(parts)} ranks and is loaded by "
                              f"{world}: resume with the world size it was saved with")
         return parts[rank]
     return state
@@ -422,8 +422,8 @@ def _share_first(loader):
 
 
 def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
-    """``loader`` (``DataLoader(ds, batch_size=None)`` over a ``V2VStreamDataset`` or a
-    ``V2VPlanDataset``) prepared by ``accelerator`` in the mode its ``DataLoaderConfiguration``
+    """``loader`` (``DataLoader(ds, batch_size=None)`` over a ``V2VPushDataset`` or a
+    ``V2VStreamDataset``) prepared by ``accelerator`` in the mode its ``DataLoaderConfiguration``
     names, in place of ``accelerator.prepare(loader)``: dispatch (the default) as accelerate builds
     it; per rank (``dispatch_batches=False``) as accelerate's ``DataLoaderShard`` around the whole
     dataset, so each rank reads its own share. With ``use_stateful_dataloader=True`` it registers
@@ -435,7 +435,7 @@ def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
     would register a second loader, whose never-read state ``save_state`` writes first).
 
     Raises:
-        TypeError: the loader reads neither a V2VStreamDataset nor a V2VPlanDataset.
+        TypeError: the loader reads neither a V2VPushDataset nor a V2VStreamDataset.
         ValueError: the loader batches the stream's batches again (``batch_size`` not None), or
             accelerate prepared it already (``accelerator.prepare``, or ``prepare_loader`` for
             another accelerator).
@@ -450,9 +450,9 @@ def prepare_loader(accelerator, loader: torch.utils.data.DataLoader):
                          "call prepare_loader(accelerator, DataLoader(ds, batch_size=None)) once and use what it "
                          "returns")
     ds = loader.dataset
-    plan = callable(getattr(ds, "plan_info", None))  # a V2VPlanDataset (its module imports this one)
+    plan = callable(getattr(ds, "plan_info", None))  # a V2VStreamDataset (its module imports this one)
     if not plan and not callable(getattr(ds, "read_alone", None)):
-        raise TypeError(f"prepare_loader reads a V2VStreamDataset or a V2VPlanDataset; this loader reads "
+        raise TypeError(f"prepare_loader reads a V2VPushDataset or a V2VStreamDataset; this loader reads "
                         f"{type(ds).__name__}")
     if loader.batch_size is not None:
         raise ValueError(f"the loader has batch_size={loader.batch_size}: {type(ds).__name__} yields whole batches, "

@@ -1,4 +1,4 @@
-"""``StreamLoader``: a torch DataLoader for a ``V2VStreamDataset`` read by worker processes.
+"""``StreamLoader``: a torch DataLoader for a ``V2VPushDataset`` read by worker processes.
 
 A DataLoader's workers run ahead of the training loop: each yields up to ``prefetch_factor``
 batches into the loader's queues, and an abandoned iteration (``break``, ``max_steps``, a new
@@ -78,10 +78,10 @@ class LoaderLink:
 
 
 class StreamLoader(torch.utils.data.DataLoader):
-    """``torch.utils.data.DataLoader`` over a ``V2VStreamDataset``, exact with worker processes.
+    """``torch.utils.data.DataLoader`` over a ``V2VPushDataset``, exact with worker processes.
 
     Args:
-        dataset: a ``V2VStreamDataset`` reading one server.
+        dataset: a ``V2VPushDataset`` reading one server.
         **kwargs: ``DataLoader`` arguments (``num_workers``, ``persistent_workers``,
             ``prefetch_factor``, ``pin_memory``, ``multiprocessing_context``...); ``batch_size``
             is None (the server makes the batches).
@@ -99,14 +99,14 @@ class StreamLoader(torch.utils.data.DataLoader):
     the records this process kept (``tests/test_loaders.py`` checks each bound).
 
     Raises:
-        ValueError: ``dataset`` is not a ``V2VStreamDataset``, or ``batch_size`` is not None.
+        ValueError: ``dataset`` is not a ``V2VPushDataset``, or ``batch_size`` is not None.
     """
 
     def __init__(self, dataset, **kwargs):
-        from .dataset import V2VStreamDataset
+        from .dataset import V2VPushDataset
 
-        if not isinstance(dataset, V2VStreamDataset):
-            raise ValueError(f"StreamLoader reads a V2VStreamDataset, got {type(dataset).__name__}")
+        if not isinstance(dataset, V2VPushDataset):
+            raise ValueError(f"StreamLoader reads a V2VPushDataset, got {type(dataset).__name__}")
         if kwargs.get("batch_size") is not None:
             raise ValueError("StreamLoader: batch_size must be None (the server makes the batches)")
         kwargs["batch_size"] = None

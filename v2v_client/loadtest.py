@@ -1,4 +1,6 @@
-"""``v2v-loadtest``: measure what a v2v server delivers through ``V2VStreamDataset``."""
+"""``v2v-loadtest``: measure what a v2v server delivers, read as a trainer reads it: a plan's epochs in
+turn through ``V2VStreamDataset`` (v2v-serve's default delivery), or a push stream through
+``V2VPushDataset`` (``--delivery push``, and several servers read together)."""
 from __future__ import annotations
 
 import argparse
@@ -9,18 +11,28 @@ from typing import List, Optional
 
 from v2v_wire.protocol import DEFAULT_OUTPUTS
 
-from .dataset import V2VStreamDataset
+from .plan_dataset import PlanEpochs, open_stream
 
 
-def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: int = 4,
+def _stream(endpoint, outputs, credits: Optional[int], timeout_s: float):
+    """``open_stream``'s pass, with ``credits`` (push only) refused at a plan server."""
+    stream = open_stream(endpoint, outputs=outputs, timeout_s=timeout_s, credits=4 if credits is None else credits)
+    if credits is not None and isinstance(stream, PlanEpochs):
+        raise ValueError(f"--credits: {endpoint} serves by plan, which has no credits (drop it)")
+    return stream
+
+
+def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: Optional[int] = None,
                  timeout_s: float = 60.0, step_s: float = 0.0, warmup: int = 1) -> dict:
     """Read ``batches`` batches (after ``warmup`` unmeasured ones) and measure throughput.
 
     ``step_s`` simulates a training step of that many seconds per batch, so the wait
     fraction shows whether the stream keeps up with a trainer of that speed.
 
-    ``endpoint`` may name several servers (a list or ``"a,b"``, see ``V2VStreamDataset``):
-    they are read together, as a trainer would.
+    ``endpoint``: one server serving by plan (its epochs read in turn), or delivering by push;
+    or several servers (a list or ``"a,b"``, see ``V2VPushDataset``), read together by push, as
+    a trainer would. ``credits``: batches in flight, push only (default 4). Padding rows are not
+    counted as samples.
 
     Returns a dict: ``batches``, ``samples``, ``unique_samples``, ``seconds`` (wall time of
     the measured part), ``batches_per_s``, ``samples_per_s``, ``mbytes_per_s`` (MB = 1e6
@@ -29,8 +41,7 @@ def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: int =
     ``per_server``: {endpoint: {``batches``, ``samples``, ``samples_per_s``, ``mbytes_per_s``}}
     over the same measured wall time.
     """
-    ds = V2VStreamDataset(endpoint, outputs=outputs, credits=credits, timeout_s=timeout_s)
-    it = iter(ds)
+    it = iter(_stream(endpoint, outputs, credits, timeout_s))
     n = samples = nbytes = 0
     ids = set()
     epochs = set()
@@ -53,14 +64,15 @@ def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: int =
                 t0 = t_wait
             waited += now - t_wait
             n += 1
-            samples += len(b["sample_ids"])
-            ids.update((b["epoch"], s) for s in b["sample_ids"])
+            served = [s for s, pad in zip(b["sample_ids"], b["padding"].tolist()) if not pad]
+            samples += len(served)
+            ids.update((b["epoch"], s) for s in served)
             epochs.add(b["epoch"])
             bb = sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel"))
             nbytes += bb
             src = per.setdefault(str(b.get("endpoint", endpoint)), {"batches": 0, "samples": 0, "bytes": 0})
             src["batches"] += 1
-            src["samples"] += len(b["sample_ids"])
+            src["samples"] += len(served)
             src["bytes"] += bb
             if step_s > 0:
                 time.sleep(step_s)
@@ -96,7 +108,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--batches", type=int, default=20, help="batches to measure (default 20)")
     p.add_argument("--warmup", type=int, default=1, help="batches read before measuring (default 1)")
     p.add_argument("--outputs", default="voxels,frames,flow", help="comma list of outputs to ask for")
-    p.add_argument("--credits", type=int, default=4, help="batches in flight (default 4)")
+    p.add_argument("--credits", type=int, help="batches in flight, for a server delivering by push (default 4)")
     p.add_argument("--timeout", type=float, default=60.0, help="seconds of server silence before failing")
     p.add_argument("--step-ms", type=float, default=0.0, help="simulated training step per batch, ms")
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")

@@ -1,6 +1,6 @@
-"""Trainer-side metrics of a ``V2VStreamDataset``: how long the training loop waited for data.
+"""Trainer-side metrics of a ``V2VPushDataset``: how long the training loop waited for data.
 
-``V2VStreamDataset.metrics()`` returns :meth:`TrainerMetrics.snapshot`; to scrape them from the
+``V2VPushDataset.metrics()`` returns :meth:`TrainerMetrics.snapshot`; to scrape them from the
 trainer process with Prometheus, ``serve_trainer_metrics(ds, port)`` (needs prometheus-client).
 """
 from __future__ import annotations

@@ -38,7 +38,7 @@ AUTO_REMOTE = "zstd"
 @dataclass(frozen=True, kw_only=True)
 class StreamOptions:
     """What a stream asks a server for and how it talks to it (validated by
-    ``V2VStreamDataset``; the seconds made floats, ``curve_keys`` a tuple or None, here; see
+    ``V2VPushDataset``; the seconds made floats, ``curve_keys`` a tuple or None, here; see
     its arguments for each field's meaning and unit: ``outputs``,
     ``credits`` (batches), ``timeout_s`` / ``heartbeat_s`` / ``reconnect_timeout_s``
     (seconds), ``raw``, ``reconnect``, ``curve_keys`` (key file paths), DDP ``rank`` /

@@ -1,4 +1,4 @@
-"""``V2VPlanDataset`` under Hugging Face Accelerate (docs/launchers.md, "Reading a plan").
+"""``V2VStreamDataset`` under Hugging Face Accelerate (docs/launchers.md, "Reading a plan").
 
 ``Accelerator.prepare(DataLoader(ds, batch_size=None))`` reads an IterableDataset one of two ways
 (``accelerate.data_loader``):
@@ -133,7 +133,7 @@ def check_loader(ds) -> None:
     if dl is None:
         return
     if dl.dataset is not ds:
-        raise RuntimeError("accelerate's dispatch_batches=False wraps V2VPlanDataset in IterableDatasetShard, which "
+        raise RuntimeError("accelerate's dispatch_batches=False wraps V2VStreamDataset in IterableDatasetShard, which "
                            "needs a loader batch size and keeps 1/N of each rank's batches: build the loader with "
                            "v2v_client.prepare_loader(accelerator, DataLoader(ds, batch_size=None)) instead of "
                            "accelerator.prepare")

@@ -1,4 +1,4 @@
-"""Reading a server that serves by plan (``v2v-serve --delivery plan``, docs/plan.md) as a torch
+"""Reading a server that serves by plan (``v2v-serve``'s default delivery, docs/plan.md) as a torch
 dataset: each rank's batch at each step is a fixed slice of the epoch's plan, fetched by position.
 
 The dataset holds no socket and no lock: each process that iterates it (the main process, a
@@ -7,9 +7,9 @@ as plain settings. With ``k`` DataLoader workers, worker ``j`` reads steps ``j, 
 the DataLoader's round robin yields them in step order.
 
 Loaders that snapshot a dataset's state (torchdata's ``StatefulDataLoader``, Accelerate's with
-``use_stateful_dataloader=True``) read :meth:`V2VPlanDataset.state_dict`: what this process (the
+``use_stateful_dataloader=True``) read :meth:`V2VStreamDataset.state_dict`: what this process (the
 main process, or one DataLoader worker) has yielded, restored in the same worker by
-:meth:`V2VPlanDataset.load_state_dict`. Under Accelerate's dispatcher the process that reads
+:meth:`V2VStreamDataset.load_state_dict`. Under Accelerate's dispatcher the process that reads
 yields every rank's batch of each step in turn (``plan_accelerate``).
 """
 from __future__ import annotations
@@ -24,14 +24,14 @@ import zmq
 
 from v2v_wire.messages import WireError
 from v2v_wire.plan import PlanMismatch, Position
-from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, plan_server_message
+from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, decode_arrays, pack, unpack
 
 from . import plan_accelerate
 from .connection import load_curve_keys
 from .tensors import batch_to_torch
 
-__all__ = ["V2VPlanDataset"]
+__all__ = ["V2VStreamDataset", "PlanEpochs", "open_stream", "PlanServerError", "PushServerError"]
 
 
 class PlanServerError(RuntimeError):
@@ -39,23 +39,29 @@ class PlanServerError(RuntimeError):
     endpoint and why, in one line)."""
 
 
-class V2VPlanDataset(torch.utils.data.IterableDataset):
-    """One rank's batches of one epoch of a plan served at ``endpoint``.
+class PushServerError(PlanServerError):
+    """The server delivers by push (``v2v-serve --delivery push``): read it with ``V2VPushDataset``."""
+
+
+class V2VStreamDataset(torch.utils.data.IterableDataset):
+    """One rank's batches of one epoch of the plan served at ``endpoint`` (``v2v-serve``; a server
+    started with ``--delivery push`` is read with ``V2VPushDataset``, and says so).
 
     Args:
-        endpoint: the server's address (``tcp://host:port``).
-        batch_size: rows per batch of this rank (>= 1).
+        endpoint: the server's address (``tcp://host:port``), one server.
+        batch_size: rows per batch of this rank (>= 1; default: the server's ``batch_size``, asked
+            when first needed).
         rank, world_size: this rank and the job's ranks (default: ``torch.distributed``'s when
             first needed, if initialised, else 0 and 1).
         outputs: which of ``OUTPUTS`` to read (default ``DEFAULT_OUTPUTS``, as
-            ``V2VStreamDataset``'s: the server's workers make only the outputs its readers ask for).
+            ``V2VPushDataset``'s: the server's workers make only the outputs its readers ask for).
         raw: keep the wire dtypes (``tensors.batch_to_torch``).
         prefetch: fetches in flight per process (>= 1).
         retry_s: seconds a fetch may go unanswered before it is asked again (a lost reply, a
             restarted server).
         timeout_s: seconds of silence from the server before :class:`TimeoutError`.
         curve_keys: ``(client_secret_file, server_public_file)`` from ``v2v-keygen``, for a server
-            started with ``--curve-secret-key`` (as ``V2VStreamDataset``'s).
+            started with ``--curve-secret-key`` (as ``V2VPushDataset``'s).
 
     Each item is a dict: the tensors of ``batch_to_torch`` with a leading axis of ``batch_size``,
     ``padding`` (bool (B,): rows that carry no sample, zeros: past the epoch's end or a window the
@@ -66,19 +72,22 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
     snapshots per DataLoader worker).
 
     Raises:
-        ValueError: a bad setting, naming it.
+        ValueError: a bad setting, naming it; several endpoints, or a setting only push delivery
+            has (``credits``, ``shm``, ``compression``, ``reconnect``, ...; one line saying so).
+        TypeError: a keyword argument neither reader takes.
     """
 
-    def __init__(self, endpoint: str, batch_size: int, *, rank: Optional[int] = None,
+    def __init__(self, endpoint: str, batch_size: Optional[int] = None, *, rank: Optional[int] = None,
                  world_size: Optional[int] = None, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False,
                  prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0,
-                 curve_keys: Optional[Tuple[str, str]] = None):
+                 curve_keys: Optional[Tuple[str, str]] = None, **push_settings):
         super().__init__()
-        _check_settings(batch_size, prefetch, retry_s, timeout_s)
+        _refuse_push(endpoint, push_settings)
+        _check_settings(1 if batch_size is None else batch_size, prefetch, retry_s, timeout_s)
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None  # bad key files: an error here
         if rank is not None or world_size is not None:
             _check_layout(0 if rank is None else rank, 1 if world_size is None else world_size)
-        self.endpoint, self.batch_size, self._rank, self._world = endpoint, batch_size, rank, world_size
+        self.endpoint, self._batch, self._rank, self._world = endpoint, batch_size, rank, world_size
         self.outputs = check_outputs(outputs, "outputs")
         self.raw, self.prefetch, self.retry_s, self.timeout_s = raw, prefetch, retry_s, timeout_s
         self.epoch, self.start = 0, 0
@@ -91,6 +100,14 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         self._info: Optional[PlanInfo] = None
 
     # ------------------------------------------------------------------ layout
+    @property
+    def batch_size(self) -> int:
+        """Rows per batch of this rank: as given, else the server's (asked when first needed).
+
+        Raises:
+            TimeoutError: no answer from the server within ``timeout_s``."""
+        return self._batch if self._batch is not None else self.plan_info().stream["batch_size"]
+
     @property
     def rank(self) -> int:
         """This rank: as given, else ``torch.distributed``'s when initialised (asked when first
@@ -150,7 +167,7 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         Raises:
             PlanMismatch: a malformed position (naming the field), one of another plan than the
                 server's (one line naming what differs; checked when the server is first asked),
-                or a push stream's resume state (``V2VStreamDataset`` / ``StreamLoader``: the sample
+                or a push stream's resume state (``V2VPushDataset`` / ``StreamLoader``: the sample
                 ids it delivered, which no position of a plan's fixed slices stands for).
             ValueError: a worker's state loaded elsewhere than that worker at that layout (one line).
         """
@@ -311,6 +328,77 @@ class V2VPlanDataset(torch.utils.data.IterableDataset):
         return item
 
 
+#: ``V2VPushDataset``'s settings, which a plan has no use for: given here, they are refused.
+PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "group", "shm", "compact_flow",
+                 "compression")
+
+
+def _refuse_push(endpoint, settings: dict) -> None:
+    """One line for what only push delivery reads: several servers (fan-in) or a push setting."""
+    if not isinstance(endpoint, str) or "," in endpoint:
+        raise ValueError(f"endpoint {endpoint!r}: V2VStreamDataset reads one server; several shards are read "
+                         f"together by push (v2v-serve --delivery push --shard I/N, and V2VPushDataset)")
+    for name in settings:
+        if name not in PUSH_SETTINGS:
+            raise TypeError(f"V2VStreamDataset() got an unexpected keyword argument {name!r}")
+    if settings:
+        raise ValueError(f"{', '.join(sorted(settings))}: push delivery's setting(s), which a plan has no use for "
+                         f"(drop them, or read a server started with --delivery push with V2VPushDataset)")
+
+
+def open_stream(endpoint, *, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False, timeout_s: float = 60.0,
+                curve_keys: Optional[Tuple[str, str]] = None, **push_settings):
+    """What a trainer reads at ``endpoint``, one pass: a server serving by plan (v2v-serve's
+    default; asked once), its epochs in turn (:class:`PlanEpochs` over a :class:`V2VStreamDataset`
+    in the server's batch size); a server that answers it delivers by push, or several servers
+    (fan-in), a ``V2VPushDataset`` with ``push_settings`` (``credits``, ``reconnect``, ...; not
+    read at a plan server).
+
+    Raises:
+        TimeoutError: no server answered within ``timeout_s``.
+        ValueError: a bad setting, naming it."""
+    if isinstance(endpoint, str) and "," not in endpoint:
+        ds = V2VStreamDataset(endpoint, outputs=outputs, raw=raw, timeout_s=timeout_s, retry_s=min(10.0, timeout_s),
+                              curve_keys=curve_keys)
+        try:
+            ds.plan_info()
+            return PlanEpochs(ds)
+        except PushServerError:  # a server started with --delivery push answered
+            pass
+    from .dataset import V2VPushDataset
+
+    return V2VPushDataset(endpoint, outputs=outputs, raw=raw, timeout_s=timeout_s, curve_keys=curve_keys,
+                          **push_settings)
+
+
+class PlanEpochs(torch.utils.data.IterableDataset):
+    """One pass over a plan's epochs in turn (``v2v-train``'s and ``v2v-loadtest``'s): the
+    batches of ``dataset`` (a :class:`V2VStreamDataset`), each epoch's ``set_epoch`` after the
+    last, from the epoch of a loaded position on. :meth:`state_dict` /
+    :meth:`load_state_dict` are the dataset's (a position: the epoch and the samples read).
+    An epoch without a batch ends the pass."""
+
+    def __init__(self, dataset):
+        super().__init__()
+        self.dataset = dataset
+
+    def __iter__(self):
+        while True:
+            last = None
+            for batch in self.dataset:
+                last = batch["epoch"]
+                yield batch
+            if last is None:
+                return
+            self.dataset.set_epoch(last + 1)
+
+    def state_dict(self) -> dict:
+        return self.dataset.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.dataset.load_state_dict(state)
+
+
 def _check_settings(batch_size: int, prefetch: int, retry_s: float, timeout_s: float) -> None:
     for name, v in (("batch_size", batch_size), ("prefetch", prefetch)):
         if not isinstance(v, int) or isinstance(v, bool) or v < 1:
@@ -429,6 +517,8 @@ class _Link:
         try:
             h = unpack(frames[0])
             return plan_server_message(h), frames[1:]
+        except ServedByPush as e:
+            raise PushServerError(f"{self.endpoint}: {e}") from None
         except (ProtocolError, WireError) as e:
             raise PlanServerError(f"{self.endpoint}: {e}") from None
 
@@ -443,7 +533,7 @@ class _Link:
                 raise PlanServerError(f"{self.endpoint}: {got[0].message}")
             if time.monotonic() >= deadline:
                 raise TimeoutError(f"{self.endpoint}: no answer to 'what do you serve' within {self.timeout_s} s "
-                                   "(is a server with --delivery plan running there?)")
+                                   "(is a v2v-serve running there?)")
 
     def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of) -> Iterator:
         """``(step, rows, arrays)`` for each of ``steps`` in order, ``prefetch`` fetches in

@@ -114,7 +114,7 @@ class ResumeState:
             ValueError: a state of another format, naming what is wrong.
         """
         if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
-            raise ValueError("state must come from V2VStreamDataset.state_dict() (version 1)")
+            raise ValueError("state must come from V2VPushDataset.state_dict() (version 1)")
         completed = state.get("completed_epoch", -1)
         if isinstance(completed, bool) or not isinstance(completed, int) or completed < -1:
             raise ValueError(f"resume state: completed_epoch must be an integer >= -1, got {completed!r}")
@@ -211,7 +211,7 @@ class ResumeState:
             if saved is not None and not self.supersedes and (saved[1], saved[2]) != (rank, world_size):
                 if saved[2] > 1:
                     raise ValueError(
-                        f"this V2VStreamDataset state was saved by rank {saved[1]} of {saved[2]} and is loaded by rank "
+                        f"this V2VPushDataset state was saved by rank {saved[1]} of {saved[2]} and is loaded by rank "
                         f"{rank} of {world_size}: it holds that rank's samples only. Resume at world size {saved[2]} "
                         f"with each rank's own state, or load every rank's state in each rank: "
                         f"ds.load_state_dict({{'v2v_ranks': [state of rank 0, ..., state of rank {saved[2] - 1}]}})")

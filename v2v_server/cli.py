@@ -55,13 +55,13 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
 
 
 def _serve_plan(start) -> int:
-    """``--delivery plan``: the manifest (each video's windows the corpus index knows), then
+    """Serving by plan (the default delivery): the manifest (each video's windows the corpus index knows), then
     :class:`PlanServer` until a signal stops it."""
     cfg = start.config
-    manifest = plan_manifest(start)
-    if manifest.samples == 0:
-        print(f"v2v-serve: --videos {start.source.root}: no video gives a window at this layout (--check says why)",
-              file=sys.stderr)
+    try:
+        manifest = plan_manifest(start)
+    except ValueError as e:
+        print(f"v2v-serve: {e}", file=sys.stderr)
         return 2
     server = PlanServer(cfg, start.source, start.caches, manifest)
     stopped_by = install_signal_handlers(server)

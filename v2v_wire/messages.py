@@ -41,7 +41,7 @@ class WireError(ProtocolError):
 
 
 class PlanClientMessage(WireError):
-    """A plan reader's message (``plan_ask``, ``fetch``: ``V2VPlanDataset``) reached a push server."""
+    """A plan reader's message (``plan_ask``, ``fetch``: ``V2VStreamDataset``) reached a push server."""
 
 
 def bounded_unpackb(buf, max_bytes: int) -> object:

@@ -18,7 +18,7 @@ from v2v_wire.messages import WireError, bounded_unpackb
 from v2v_wire.plan import PlanIdentity, PlanMismatch
 from v2v_wire.protocol import PROTOCOL_VERSION, check_outputs
 
-__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Rows", "Refused", "PushClientMessage", "MAX_FETCH_ROWS",
+__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Rows", "Refused", "PushClientMessage", "ServedByPush", "MAX_FETCH_ROWS",
            "decode_plan_client", "plan_server_message"]
 
 #: Most positions one fetch may name (a batch of one rank at one step).
@@ -43,6 +43,10 @@ class PlanAsk:
 
     def to_wire(self) -> dict:
         return {"type": "plan_ask"}
+
+
+class ServedByPush(WireError):
+    """The server answered in push delivery's words: it was started with ``--delivery push``."""
 
 
 @dataclass(frozen=True)
@@ -160,7 +164,7 @@ class Refused:
         return cls(_int(h, "request", -1), h["message"])
 
 
-#: What a push client (``V2VStreamDataset``) sends (``messages.parse_client``).
+#: What a push client (``V2VPushDataset``) sends (``messages.parse_client``).
 PUSH_CLIENT_TYPES = ("hello", "ack", "released", "hold", "credit", "heartbeat", "bye")
 
 
@@ -202,6 +206,6 @@ def plan_server_message(h: dict):
         if kind == name:
             return cls.from_wire(h)
     if kind == "error":  # a push server's answer (messages.parse_client refused a plan_ask)
-        raise WireError(f"a server delivering by push answered: {str(h.get('message'))[:200]}; read it with "
-                        "v2v_client.V2VStreamDataset, or start it with --delivery plan")
+        raise ServedByPush(f"a server delivering by push answered: {str(h.get('message'))[:200]}; read it with "
+                           "v2v_client.V2VPushDataset, or start it without --delivery push")
     raise WireError(f"unknown message type {kind!r:.40} from a server serving by plan (is it serving by plan?)")

@@ -1,4 +1,4 @@
-"""Trainers: a training loop over one ``V2VStreamDataset`` (``num_workers=0``) in a process
+"""Trainers: a training loop over one ``V2VPushDataset`` (``num_workers=0``) in a process
 that can be paused, killed and restarted from one of its checkpoints.
 
 A :class:`TrainerJob` is one job (one lineage of the oracle, one consumer id unless told

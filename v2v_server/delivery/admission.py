@@ -90,7 +90,7 @@ class Admission:
             return ServerError(f"{name_of(alive[0].consumer)} is read by another live connection "
                                f"({alive[0].ident.hex()[:12]}): one reader per consumer. "
                                + ("Give each DDP job on this server its own group=" if group is not None else
-                                  "Give each reader its own consumer id (a new V2VStreamDataset, or no state)")
+                                  "Give each reader its own consumer id (a new V2VPushDataset, or no state)")
                                + ", or stop the other reader", "claimed")
         if self._unproven(ident, h, speaks, since):
             return WAIT

@@ -99,9 +99,10 @@ class DeliveryPolicy:
     shuffle_buffer: int = setting(64, help="samples the shuffle buffer holds (shuffle: epoch), rounded "
                                            "up to whole batches: that many samples of server memory "
                                            "(docs/shuffle.md has their size)")
-    delivery_mode: str = setting("push", help="push: the server hands batches to its clients and keeps the books of who "
-                                     "holds what (docs/delivery.md); plan: each epoch is a fixed sequence every "
-                                     "client fetches positions of, read with V2VPlanDataset (docs/plan.md)",
+    delivery_mode: str = setting("plan", help="plan: each epoch is a fixed sequence every client fetches positions of, "
+                                     "read with V2VStreamDataset (docs/plan.md); push: the server hands batches to "
+                                     "its clients and keeps the books of who holds what, read with V2VPushDataset "
+                                     "(docs/delivery.md; needed for --shard, --epochs, --state-dir)",
                         flag="--delivery", choices=DELIVERY_MODES)
     offered: Tuple[str, ...] = OUTPUTS
     max_task_crashes: int = MAX_TASK_CRASHES

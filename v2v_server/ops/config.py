@@ -205,7 +205,7 @@ class ServeConfig:
         if delivery.delivery_mode == "plan":
             for key, why in PUSH_ONLY.items():
                 if getattr(self, key) is not None:
-                    raise ValueError(f"{key} is push delivery's: {why} (drop it, or serve with delivery_mode push)")
+                    raise ValueError(f"{key} is push delivery's: {why} (drop it, or serve by push: --delivery push, delivery_mode: push)")
 
     def __getattr__(self, name: str):
         part = _OWNERS.get(name)

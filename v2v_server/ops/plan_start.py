@@ -14,6 +14,19 @@ from v2v_wire.plan import Manifest
 
 def plan_manifest(start: Startup) -> Manifest:
     """The manifest of ``start``'s videos (``ops.startup.start_source``'s result): the slots its
-    corpus index knows (``start.known``; 0 for those it knows to give no window), None for the rest."""
+    corpus index knows (``start.known``; 0 for those it knows to give no window), None for the rest.
+
+    Raises:
+        ValueError: a shard (``--shard``): a ``V2VStreamDataset`` reads one server, so shards
+            are read together by push (``--delivery push``) only; no video files; or every video
+            known to give no window."""
+    if start.config.shard is not None:
+        raise ValueError(f"--shard {start.config.shard}: serving by plan, a trainer reads one server; shards are "
+                         "read together (fan-in) by push: add --delivery push")
+    if not start.videos:
+        raise ValueError(f"no video files under {start.source.root}")
     known = start.known.windows
-    return Manifest.of({rel: known.get(rel) for rel in start.videos}, start.config.recipe.crops_per_window)
+    manifest = Manifest.of({rel: known.get(rel) for rel in start.videos}, start.config.recipe.crops_per_window)
+    if manifest.samples == 0:
+        raise ValueError(f"--videos {start.source.root}: no video gives a window at this layout (--check says why)")
+    return manifest

@@ -155,7 +155,7 @@ class ClientSide:
             msg = decode_client(frames[1], MAX_CLIENT_MSG, self.cfg.max_credits, self.cfg.crops_per_window,
                                 self.core.resume_bound)
         except PlanClientMessage:  # told in the plan protocol's words, which that reader reads
-            self.send(ident, ServerError("this server delivers by push (v2v-serve without --delivery plan)"))
+            self.send(ident, ServerError("this server delivers by push (v2v-serve --delivery push)"))
             return []
         except WireError as e:
             self._bad_peer(ident, str(e), now)

@@ -1,4 +1,4 @@
-"""The server loop when serving by plan (``v2v-serve --delivery plan``, docs/plan.md): stateless
+"""The server loop when serving by plan (``v2v-serve``'s default delivery, docs/plan.md): stateless
 compute over the worker pool.
 
 Topology as ``server.V2VServer``'s: workers (DEALER) on the backend ROUTER, clients (DEALER) on the
@@ -155,8 +155,8 @@ class PlanServer:
         try:
             msg = decode_plan_client(frame, MAX_CLIENT_MSG)
         except PushClientMessage:  # told in the push protocol's words, which that client reads
-            self._send(ident, ServerError("this server serves by plan (v2v-serve --delivery plan): read it with "
-                                          "v2v_client.V2VPlanDataset").to_wire())
+            self._send(ident, ServerError("this server serves by plan (v2v-serve's default delivery): read it with "
+                                          "v2v_client.V2VStreamDataset").to_wire())
             return
         except WireError as e:
             self.metrics.on_bad_message()

@@ -147,7 +147,7 @@ class V2VServer:
                      len(self.videos), self.root, self.bound_endpoint, self.cfg.workers,
                      "through shared-memory slot rings" if rings else "as socket frames")
             if self.assembler.files is not None:
-                log.info("batch buffers in %s: trainers on this host that ask for it (V2VStreamDataset shm='auto') "
+                log.info("batch buffers in %s: trainers on this host that ask for it (V2VPushDataset shm='auto') "
                          "read batches from there instead of the socket", self.assembler.files.path)
             if ready_event is not None:
                 ready_event.set()
