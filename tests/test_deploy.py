@@ -271,7 +271,7 @@ def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
         assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
         for flag in ("--curve-secret-key", "--curve-allow"):
             assert flag_values(args, flag)[0].startswith("/keys/")
-        assert cfg.delivery.delivery_mode == "push", name  # shards are read together (fan-in) by push only
+        assert cfg.delivery.delivery_mode == "plan", name  # the trainer reads the shards' plans as one
     # the shards split the corpus: 0/N .. N-1/N, each once
     specs = sorted(v[3].shard for v in shards.values())
     assert specs == [f"{i}/{len(shards)}" for i in range(len(shards))] and len(shards) == 2
@@ -394,7 +394,7 @@ def test_k8s_statefulset_service_pdb_job_agree():
         conf = _check_path(ns.config, mounts, secret_files)
         cfg = check_serve_config(ns, _write(conf["content"]))
         assert cfg.serving.shard_spec == (i, replicas) and cfg.workers == int(cpu)
-        assert cfg.delivery.delivery_mode == "push"  # shards are read together (fan-in) by push only
+        assert cfg.delivery.delivery_mode == "plan"  # the trainer reads the shards' plans as one
     # /dev/shm: a memory-backed emptyDir large enough for the workers' slot rings
     shm_mount, = [m for m in c["volumeMounts"] if m["mountPath"] == "/dev/shm"]
     shm_vol, = [v for v in sts["spec"]["template"]["spec"]["volumes"] if v["name"] == shm_mount["name"]]

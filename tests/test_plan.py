@@ -216,3 +216,46 @@ def test_the_sequence_is_pinned_for_this_plan_version():
 
 
 PINNED = "b12c8400f0f5825c"
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(manifests, min_size=1, max_size=4), st.integers(0, 1000), layouts, st.integers(0, 40))
+def test_shards_interleaved_give_each_sample_once_in_fixed_slices_and_a_position_resumes_them(shards, seed, layout,
+                                                                                           resume_at):
+    """Several servers, one shard each: global position t is shard t mod N's position t // N.
+    Read through fixed slices of any layout, fetched shard by shard, every sample of every shard
+    comes once, padding only where a shard's epoch is shorter, and a read resumed at any position
+    gives the rest."""
+    from v2v_wire.plan_shards import interleaved, shard_ranges, shards_samples
+
+    n = len(shards)
+    plans = [EpochPlan(m, seed, 2) for m in shards]
+    total = shards_samples([len(p) for p in plans])
+    world, batch = layout
+
+    def rows(start: int, stop: int):  # what a reader merges from one fetch per shard
+        parts = [p.keys(lo, hi) if hi > lo else [] for p, (lo, hi) in zip(plans, shard_ranges(start, stop, n))]
+        return [(i, parts[i][j]) for i, j in interleaved(start, stop, n)]
+
+    read = rows(0, total)
+    ids = [(i, k) for i, k in read if k is not None]
+    assert sorted(ids) == sorted((i, k) for i, p in enumerate(plans) for k in p.keys(0, len(p)))
+    assert total == 0 or read[-1][1] is not None  # the epoch ends at its last sample
+    steps = -(-total // (world * batch))
+    sliced = [row for s in range(steps) for r in range(world)
+              for row in rows(s * world * batch + r * batch, min(total, (s * world + r + 1) * batch))]
+    assert sliced == read
+    at = min(resume_at, total)
+    assert rows(0, at) + rows(at, total) == read
+
+
+def test_the_shards_identity_names_their_manifests_and_refuses_other_recipes():
+    from v2v_wire.plan_shards import shards_identity
+
+    a, b = PlanIdentity("aa", "r", 0), PlanIdentity("bb", "r", 0)
+    assert shards_identity([a]) == a
+    both = shards_identity([a, b])
+    assert both.manifest.startswith("2x") and both.manifest != shards_identity([b, a]).manifest
+    assert (both.recipe, both.seed) == ("r", 0)
+    with pytest.raises(PlanMismatch, match=r"^the shards' plans differ in seed: shard 0: 0, shard 1: 5$"):
+        shards_identity([a, PlanIdentity("bb", "r", 5)])

@@ -322,25 +322,12 @@ def test_a_check_first_lets_a_server_serving_by_plan_know_the_epoch_at_start(tmp
         assert len(V2VStreamDataset(endpoint, 5)) == -(-SAMPLES // 5)
 
 
-def test_a_shard_is_served_by_push_only(capsys):
-    """A trainer reading a plan reads one server, so ``--shard`` under the default delivery is
-    refused in one line saying to add ``--delivery push`` (whose fan-in reads shards together)."""
-    from v2v_server import cli
 
-    assert cli.main(["--shard", "0/1", "--bind", "tcp://127.0.0.1:0", "--sequence-length", "8"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert err == ("v2v-serve: --shard 0/1: serving by plan, a trainer reads one server; shards are read together "
-                   "(fan-in) by push: add --delivery push"), err
-
-
-def test_push_settings_and_several_servers_are_refused_in_one_line():
-    """What only push delivery reads (credits, shared memory, codecs, reconnection, fan-in) is
-    refused by ``V2VStreamDataset`` at construction, naming it, never ignored."""
+def test_push_settings_are_refused_in_one_line():
+    """What only push delivery reads (credits, shared memory, codecs, reconnection) is refused by
+    ``V2VStreamDataset`` at construction, naming it, never ignored."""
     with pytest.raises(ValueError, match=r"^credits, shm: push delivery's setting\(s\), .*V2VPushDataset\)$"):
         V2VStreamDataset("tcp://127.0.0.1:5555", credits=4, shm=True)
-    for several in ("tcp://a:5555,tcp://b:5555", ["tcp://a:5555", "tcp://b:5555"]):
-        with pytest.raises(ValueError, match=r"reads one server; .*--shard I/N, and V2VPushDataset\)$"):
-            V2VStreamDataset(several)
     with pytest.raises(TypeError, match="unexpected keyword argument 'credit'"):
         V2VStreamDataset("tcp://127.0.0.1:5555", credit=4)
 

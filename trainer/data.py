@@ -33,14 +33,14 @@ __all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "make_loader", "batch_t
 def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
                 reconnect: bool = False, curve_keys=None, outputs: Optional[Sequence[str]] = None,
                 compact_flow: bool = True):
-    """The stream of ``endpoint`` asking only for ``outputs`` (default: ``task``'s; a run's are
-    ``tasks.stream_outputs(cfg)``): a server serving by plan (v2v-serve's default; it says so when
-    asked) is read by :class:`PlanEpochs` over a ``v2v_client.V2VStreamDataset``, in batches of the
-    server's ``batch_size``; a server started with ``--delivery push``, or several
-    (``"tcp://a:5555,tcp://b:5555"``), by a ``v2v_client.V2VPushDataset`` with ``credits``,
-    ``reconnect``, ``compact_flow`` (a tracked flow arrives as its grid, made dense on the training
-    device by :func:`batch_to_device`). ``curve_keys``: (client secret key file, server public key
-    file), as in the datasets.
+    """The stream of ``endpoint`` (one server, or several shards: ``"tcp://a:5555,tcp://b:5555"``)
+    asking only for ``outputs`` (default: ``task``'s; a run's are ``tasks.stream_outputs(cfg)``),
+    by ``v2v_client.open_stream``: servers serving by plan (v2v-serve's default; they say so when
+    asked) are read by :class:`PlanEpochs` over a ``v2v_client.V2VStreamDataset``, in batches of
+    the server's ``batch_size``; servers started with ``--delivery push`` by a
+    ``v2v_client.V2VPushDataset`` with ``credits``, ``reconnect``, ``compact_flow`` (a tracked flow
+    arrives as its grid, made dense on the training device by :func:`batch_to_device`).
+    ``curve_keys``: (client secret key file, server public key file), as in the datasets.
 
     Raises:
         TimeoutError: no server answered at ``endpoint`` within ``timeout_s``.

@@ -17,18 +17,22 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Mapping
-from typing import Dict, Iterator, Optional, Sequence, Tuple
+from dataclasses import replace
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
+import numpy as np
 import torch
 import zmq
 
 from v2v_wire.messages import WireError
-from v2v_wire.plan import PlanMismatch, Position
+from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
+from v2v_wire.plan_shards import interleaved, shard_ranges, shards_identity, shards_samples
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, decode_arrays, pack, unpack
 
 from . import plan_accelerate
 from .connection import load_curve_keys
+from .fanin import check_servers, resolve_endpoints, split_endpoints
 from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "PlanEpochs", "open_stream", "PlanServerError", "PushServerError"]
@@ -48,7 +52,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     started with ``--delivery push`` is read with ``V2VPushDataset``, and says so).
 
     Args:
-        endpoint: the server's address (``tcp://host:port``), one server.
+        endpoint: the server's address (``tcp://host:port``); or several servers, each serving one
+            shard (``v2v-serve --shard I/N``): a list, a comma-separated string, or a
+            ``tcp://NAME:PORT`` whose name resolves to several addresses (a Kubernetes headless
+            Service). Their plans are read as one, interleaved (``v2v_wire.plan_shards``: global
+            position t is shard t mod N's t // N); servers that are not one sharding of one corpus
+            under one recipe are refused, naming them.
         batch_size: rows per batch of this rank (>= 1; default: the server's ``batch_size``, asked
             when first needed).
         rank, world_size: this rank and the job's ranks (default: ``torch.distributed``'s when
@@ -72,17 +81,19 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     snapshots per DataLoader worker).
 
     Raises:
-        ValueError: a bad setting, naming it; several endpoints, or a setting only push delivery
-            has (``credits``, ``shm``, ``compression``, ``reconnect``, ...; one line saying so).
+        ValueError: a bad setting, naming it, or a setting only push delivery has (``credits``,
+            ``shm``, ``compression``, ``reconnect``, ...; one line saying so).
         TypeError: a keyword argument neither reader takes.
     """
 
-    def __init__(self, endpoint: str, batch_size: Optional[int] = None, *, rank: Optional[int] = None,
+    def __init__(self, endpoint: Union[str, Sequence[str]], batch_size: Optional[int] = None, *,
+                 rank: Optional[int] = None,
                  world_size: Optional[int] = None, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False,
                  prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0,
                  curve_keys: Optional[Tuple[str, str]] = None, **push_settings):
         super().__init__()
-        _refuse_push(endpoint, push_settings)
+        _refuse_push(push_settings)
+        split_endpoints(endpoint)  # a bad entry: an error here, naming it
         _check_settings(1 if batch_size is None else batch_size, prefetch, retry_s, timeout_s)
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None  # bad key files: an error here
         if rank is not None or world_size is not None:
@@ -98,6 +109,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._dispatch: Optional[tuple] = None  # under accelerate's dispatcher: (ranks, stateful), once known
         self.gathers_state = False  # v2v_client.prepare_loader's save hook shares rank 0's loader state
         self._info: Optional[PlanInfo] = None
+        self._shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
 
     # ------------------------------------------------------------------ layout
     @property
@@ -238,8 +250,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             TimeoutError: no answer within ``timeout_s``.
             PlanMismatch: a loaded position of another plan."""
         if self._info is None or (refresh and self._info.samples is None):
-            with _Link(self.endpoint, self.timeout_s, self.curve) as link:
-                self._info = link.ask()
+            servers = resolve_endpoints(self.endpoint) if self._shards is None else [ep for ep, _ in self._shards]
+            infos = []
+            for server in servers:
+                with _Link(server, self.timeout_s, self.curve) as link:
+                    infos.append(link.ask())
+            self._info, self._shards = _as_one_plan(servers, infos)
             for loaded in (self._resume, self._pending and self._pending["position"]):
                 if loaded is not None:
                     Position.from_dict(loaded, expected=self._info.plan)
@@ -296,7 +312,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             return r["origin"] + s * r["per_step"] + rank * self.batch_size
 
         group = []  # under dispatch: this process's items of the current step, packed together
-        with _Link(self.endpoint, self.timeout_s, self.curve) as link:
+        with (_Link(self._shards[0][0], self.timeout_s, self.curve) if len(self._shards) == 1 else
+              _Shards(self._shards, self.timeout_s, self.curve)) as link:
             for i, rows, arrays in link.fetch_all(items, self.prefetch, self.retry_s,
                                                   lambda req, i: Fetch(req, r["epoch"], first_row(i),
                                                                        first_row(i) + self.batch_size, self.outputs,
@@ -328,16 +345,32 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         return item
 
 
+def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
+    """``(PlanInfo, [(server, its plan identity)])`` of the servers read as one plan: one server's
+    own; several, each one shard of one corpus under one recipe, interleaved in shard order.
+
+    Raises:
+        ValueError: several servers that are not one sharding of one corpus (naming them)."""
+    if len(servers) == 1:
+        return infos[0], [(servers[0], infos[0].plan)]
+    whole = [ep for ep, i in zip(servers, infos) if not isinstance(i.stream.get("shard"), str)]
+    if whole:
+        raise ValueError(f"{', '.join(whole)}: serve(s) the whole corpus; several servers are read together when "
+                         f"each serves one shard (v2v-serve --shard I/N)")
+    check_servers({ep: i.stream for ep, i in zip(servers, infos)})
+    ordered = sorted(zip(servers, infos), key=lambda x: int(x[1].stream["shard"].split("/")[0]))
+    plan = shards_identity([i.plan for _, i in ordered])
+    return (PlanInfo(plan, shards_samples([i.samples for _, i in ordered]), ordered[0][1].stream),
+            [(ep, i.plan) for ep, i in ordered])
+
+
 #: ``V2VPushDataset``'s settings, which a plan has no use for: given here, they are refused.
 PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "group", "shm", "compact_flow",
                  "compression")
 
 
-def _refuse_push(endpoint, settings: dict) -> None:
-    """One line for what only push delivery reads: several servers (fan-in) or a push setting."""
-    if not isinstance(endpoint, str) or "," in endpoint:
-        raise ValueError(f"endpoint {endpoint!r}: V2VStreamDataset reads one server; several shards are read "
-                         f"together by push (v2v-serve --delivery push --shard I/N, and V2VPushDataset)")
+def _refuse_push(settings: dict) -> None:
+    """One line for a setting only push delivery reads."""
     for name in settings:
         if name not in PUSH_SETTINGS:
             raise TypeError(f"V2VStreamDataset() got an unexpected keyword argument {name!r}")
@@ -348,23 +381,22 @@ def _refuse_push(endpoint, settings: dict) -> None:
 
 def open_stream(endpoint, *, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False, timeout_s: float = 60.0,
                 curve_keys: Optional[Tuple[str, str]] = None, **push_settings):
-    """What a trainer reads at ``endpoint``, one pass: a server serving by plan (v2v-serve's
-    default; asked once), its epochs in turn (:class:`PlanEpochs` over a :class:`V2VStreamDataset`
-    in the server's batch size); a server that answers it delivers by push, or several servers
-    (fan-in), a ``V2VPushDataset`` with ``push_settings`` (``credits``, ``reconnect``, ...; not
-    read at a plan server).
+    """What a trainer reads at ``endpoint`` (one server or several shards), one pass: servers
+    serving by plan (v2v-serve's default; asked once), their epochs in turn (:class:`PlanEpochs`
+    over a :class:`V2VStreamDataset` in the server's batch size); servers that answer they deliver
+    by push, a ``V2VPushDataset`` with ``push_settings`` (``credits``, ``reconnect``, ...; not read
+    at a plan server).
 
     Raises:
         TimeoutError: no server answered within ``timeout_s``.
         ValueError: a bad setting, naming it."""
-    if isinstance(endpoint, str) and "," not in endpoint:
-        ds = V2VStreamDataset(endpoint, outputs=outputs, raw=raw, timeout_s=timeout_s, retry_s=min(10.0, timeout_s),
-                              curve_keys=curve_keys)
-        try:
-            ds.plan_info()
-            return PlanEpochs(ds)
-        except PushServerError:  # a server started with --delivery push answered
-            pass
+    ds = V2VStreamDataset(endpoint, outputs=outputs, raw=raw, timeout_s=timeout_s, retry_s=min(10.0, timeout_s),
+                          curve_keys=curve_keys)
+    try:
+        ds.plan_info()
+        return PlanEpochs(ds)
+    except PushServerError:  # a server started with --delivery push answered
+        pass
     from .dataset import V2VPushDataset
 
     return V2VPushDataset(endpoint, outputs=outputs, raw=raw, timeout_s=timeout_s, curve_keys=curve_keys,
@@ -588,3 +620,62 @@ class _Link:
                 raise PlanServerError(f"{self.endpoint}: rows of step {step}: {e}") from None
             done[step] = (msg, arrays)
 
+
+class _Shards:
+    """Several servers, one shard each, read as one plan (``v2v_wire.plan_shards``): a fetch of
+    global positions is asked of each shard holding some of them, and their rows are merged in
+    the interleave's order. ``shards``: (server, its plan identity), in shard order."""
+
+    def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple] = None):
+        self.plans = [plan for _, plan in shards]
+        self.links = [_Link(ep, timeout_s, curve) for ep, _ in shards]
+        self.samples: List[Optional[int]] = [None] * len(shards)  # each shard's epoch, once its rows say
+
+    def __enter__(self) -> "_Shards":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for link in self.links:
+            link.__exit__(*exc)
+
+    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of) -> Iterator:
+        """``_Link.fetch_all`` over the shards: each shard's fetches in flight on its own link."""
+        n = len(self.links)
+
+        def part(k: int, f: Fetch) -> Fetch:
+            lo, hi = shard_ranges(f.start, f.stop, n)[k]
+            return replace(f, start=lo, stop=hi, plan=self.plans[k])
+
+        def holds(k: int, step: int) -> bool:
+            f = part(k, fetch_of(0, step))
+            return f.stop > f.start
+
+        copies = itertools.tee(steps, n + 1)
+        parts = [link.fetch_all((s for s in copies[k] if holds(k, s)), prefetch, retry_s,
+                                lambda req, s, k=k: part(k, fetch_of(req, s)))
+                 for k, link in enumerate(self.links)]
+        for step in copies[n]:
+            got = {}
+            for k in range(n):
+                if holds(k, step):
+                    _, rows, arrays = next(parts[k])
+                    got[k] = (rows, arrays)
+                    self.samples[k] = rows.samples if rows.samples is not None else self.samples[k]
+            yield (step,) + self._merged(fetch_of(0, step), got)
+
+    def _merged(self, f: Fetch, got: dict):
+        """One ``Rows`` and its arrays for global positions ``f.start .. f.stop - 1`` from each
+        shard's part (``got``: shard -> (rows, arrays))."""
+        order = interleaved(f.start, f.stop, len(self.links))
+        pick = [(got[k][0], j) for k, j in order]
+        rows = Rows(f.request, f.epoch, f.start, [r.sample_ids[j] for r, j in pick], [r.padding[j] for r, j in pick],
+                    [r.params[j] for r, j in pick], [], shards_samples(self.samples))
+        # a part of padding rows only holds each output's zeros in its wire form (a dense ``flow``
+        # where samples carry a ``flow_grid``): its rows are zeros of a part with samples
+        like = next((a for r, a in got.values() if not all(r.padding)), next(iter(got.values()))[1])
+
+        def row(k: int, j: int, name: str) -> np.ndarray:
+            a = got[k][1]
+            return a[name][j] if name in a else np.zeros_like(like[name][0])
+
+        return rows, {name: np.stack([row(k, j, name) for k, j in order]) for name in like}

@@ -17,12 +17,7 @@ def plan_manifest(start: Startup) -> Manifest:
     corpus index knows (``start.known``; 0 for those it knows to give no window), None for the rest.
 
     Raises:
-        ValueError: a shard (``--shard``): a ``V2VStreamDataset`` reads one server, so shards
-            are read together by push (``--delivery push``) only; no video files; or every video
-            known to give no window."""
-    if start.config.shard is not None:
-        raise ValueError(f"--shard {start.config.shard}: serving by plan, a trainer reads one server; shards are "
-                         "read together (fan-in) by push: add --delivery push")
+        ValueError: no video files, or every video known to give no window."""
     if not start.videos:
         raise ValueError(f"no video files under {start.source.root}")
     known = start.known.windows

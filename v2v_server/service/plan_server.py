@@ -61,12 +61,15 @@ class PlanServer:
         source, caches: the corpus and the host's caches, as ``V2VServer`` takes them.
         manifest: the videos served, with the slots the corpus index knows
             (``ops.plan_start.plan_manifest``); the others' are learned from their decodes.
+        corpus: the fingerprint of the whole listing before sharding
+            (``ops.startup.corpus_fingerprint``): readers of several shards check it is one corpus.
 
     Call :meth:`run` (blocks until :meth:`stop`).
     """
 
-    def __init__(self, cfg: ServeConfig, source: VideoSource, caches: HostCaches, manifest: Manifest):
-        self.cfg, self.source, self.caches, self.manifest = cfg, source, caches, manifest
+    def __init__(self, cfg: ServeConfig, source: VideoSource, caches: HostCaches, manifest: Manifest,
+                 corpus: Optional[str] = None):
+        self.cfg, self.source, self.caches, self.manifest, self.corpus = cfg, source, caches, manifest, corpus
         d = cfg.delivery
         # made ahead: the push server's shuffle buffer of samples; kept once fetched: a batch, for
         # a fetch asked again after a lost reply
@@ -85,12 +88,15 @@ class PlanServer:
         self._stop.set()
 
     def stream_info(self) -> dict:
-        """The recipe's shapes and outputs, as a client needs them to read rows."""
+        """The recipe's shapes and outputs, as a client needs them to read rows; the shard served
+        (``"I/N"``, None for the whole corpus), the listing's and the recipe's fingerprints, which a
+        reader of several shards checks (``v2v_client.fanin.check_servers``)."""
         c = self.cfg
         return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
                 "frames_per_bin": c.frames_per_bin, "outputs": list(c.outputs), "flow_preset": c.flow_preset,
                 "flow_dtype": c.flow_dtype, "crops_per_window": c.crops_per_window, "videos": len(self.manifest.slots),
-                "batch_size": c.delivery.batch_size}
+                "batch_size": c.delivery.batch_size, "shard": c.shard, "corpus": self.corpus,
+                "recipe": self.identity.recipe}
 
     def run(self, ready_event: Optional[threading.Event] = None) -> int:
         """Run until :meth:`stop`; returns a process exit code."""

@@ -1,0 +1,61 @@
+"""One plan over several servers, each serving one shard of the corpus (``v2v-serve --shard I/N``):
+the shards' plans interleaved. Global position ``t`` is shard ``t mod N``'s position ``t // N``.
+
+Each shard's plan is a pure function of its own manifest (a server knows only its videos), so the
+interleave is a pure function of the shards' plans: every sample has one global position, the
+sequence is the same at any world size and under any timing, and a position resumes it. A shard
+whose epoch is shorter than another's leaves padding rows (``N`` times the longest shard's
+samples, less the total: shards of a hashed corpus differ by a few percent). Pure, numpy-free.
+"""
+from __future__ import annotations
+
+import hashlib
+from typing import List, Optional, Sequence, Tuple
+
+from .plan import PlanIdentity, PlanMismatch
+
+__all__ = ["shard_ranges", "interleaved", "shards_samples", "shards_identity"]
+
+
+def shard_ranges(start: int, stop: int, shards: int) -> List[Tuple[int, int]]:
+    """Global positions ``start .. stop - 1`` as each shard's own positions: for shard ``i``,
+    ``[lo, hi)`` (empty when ``lo == hi``: fewer rows than shards)."""
+    return [(-(-(start - i) // shards), -(-(stop - i) // shards)) for i in range(shards)]
+
+
+def interleaved(start: int, stop: int, shards: int) -> List[Tuple[int, int]]:
+    """``(shard, row of that shard's part)`` of each global position ``start .. stop - 1``, in
+    order; a shard's part holds its rows of :func:`shard_ranges`."""
+    ranges = shard_ranges(start, stop, shards)
+    return [(t % shards, t // shards - ranges[t % shards][0]) for t in range(start, stop)]
+
+
+def shards_samples(samples: Sequence[Optional[int]]) -> Optional[int]:
+    """The interleaved epoch's length, padding included (one past the last position that holds a
+    sample), from each shard's samples; None while any shard's is not known."""
+    if any(s is None for s in samples):
+        return None
+    n = len(samples)
+    return max(((s - 1) * n + i + 1 for i, s in enumerate(samples) if s > 0), default=0)
+
+
+def shards_identity(identities: Sequence[PlanIdentity]) -> PlanIdentity:
+    """The interleaved plan's identity: the shards' recipe, seed, shuffle buffer and version, and a
+    manifest fingerprint of theirs in shard order (one shard: its own identity).
+
+    Raises:
+        PlanMismatch: shards with different recipes, seeds, shuffle buffers or plan versions
+            (one line naming the field and each shard's value)."""
+    if len(identities) == 1:
+        return identities[0]
+    for field in ("version", "recipe", "seed", "shuffle_buffer"):
+        values = [getattr(p, field) for p in identities]
+        if len(set(values)) > 1:
+            raise PlanMismatch(f"the shards' plans differ in {field}: " + ", ".join(
+                f"shard {i}: {v}" for i, v in enumerate(values)))
+    h = hashlib.blake2b(digest_size=8)
+    for p in identities:
+        h.update(p.manifest.encode() + b"/")
+    first = identities[0]
+    return PlanIdentity(f"{len(identities)}x{h.hexdigest()}", first.recipe, first.seed, first.shuffle_buffer,
+                        first.version)
