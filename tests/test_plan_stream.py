@@ -324,7 +324,7 @@ def test_a_check_first_lets_a_server_serving_by_plan_know_the_epoch_at_start(tmp
 
 
 def test_push_settings_are_refused_in_one_line():
-    """What only push delivery reads (credits, shared memory, codecs, reconnection) is refused by
+    """What only push delivery reads (credits, shared memory, reconnection) is refused by
     ``V2VStreamDataset`` at construction, naming it, never ignored."""
     with pytest.raises(ValueError, match=r"^credits, shm: push delivery's setting\(s\), .*V2VPushDataset\)$"):
         V2VStreamDataset("tcp://127.0.0.1:5555", credits=4, shm=True)
@@ -350,3 +350,54 @@ def test_loadtest_reads_a_plans_epochs_in_turn_and_refuses_credits(server, capsy
     assert r["samples"] == (steps + 2) * 4 and r["unique_samples"] == r["samples"]
     assert main(["--connect", server, "--batches", "1", "--credits", "2"]) == 1
     assert capsys.readouterr().err.strip() == f"v2v-loadtest: --credits: {server} serves by plan, which has no credits (drop it)"
+
+
+def test_compressed_rows_are_the_batches_plain_rows_are(server):
+    """With ``compression`` the server's workers compress each sample once and the rows travel as
+    their frames (a padding row's zeros compressed by the server): each batch decodes to the
+    plain one, bit for bit, and the wire carries fewer bytes."""
+    import numpy as np
+    import zmq
+
+    from v2v_wire.codecs import decode_batch_arrays
+    from v2v_wire.plan_messages import Fetch, PlanAsk, plan_server_message
+    from v2v_wire.protocol import decode_arrays, pack, unpack
+
+    for codec in ("zstd", "lz4"):
+        plain = list(V2VStreamDataset(server, outputs=("voxels", "frames", "flow"), compression="none", timeout_s=60))
+        packed = list(V2VStreamDataset(server, outputs=("voxels", "frames", "flow"), compression=codec, timeout_s=60))
+        assert len(plain) == len(packed) == -(-SAMPLES // 4)
+        for a, b in zip(plain, packed):
+            assert a["sample_ids"] == b["sample_ids"]
+            for k in ("voxels", "frames", "flow", "padding"):
+                assert torch.equal(a[k], b[k]), k
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(server)
+    try:
+        def ask(header):
+            sock.send(pack(header))
+            assert sock.poll(60_000)
+            frames = sock.recv_multipart()
+            return plan_server_message(unpack(frames[0])), frames[1:]
+
+        info, _ = ask(PlanAsk().to_wire())
+        assert "zstd" in info.stream["codecs"]
+        # epoch 5, made after the reads above asked for zstd (none of it decoded ahead): every array as
+        # compressed frames
+        sizes = {}
+        for codec in ("none", "zstd"):
+            rows, frames = ask(Fetch(1, 5, SAMPLES - 4, SAMPLES + 2, ("voxels",), info.plan, codec).to_wire())
+            assert rows.padding == [False] * 4 + [True] * 2
+            arrays = decode_batch_arrays(rows.arrays, frames)
+            sizes[codec] = sum(len(f) for f in frames)
+            if codec == "none":
+                want = decode_arrays(rows.arrays, frames)["voxels"]
+            else:
+                assert all(s.get("codec") == "zstd" for s in rows.arrays)
+                assert np.array_equal(arrays["voxels"], want) and not arrays["voxels"][4:].any()
+        assert sizes["zstd"] * 3 < sizes["none"]
+    finally:
+        sock.close()
+        ctx.term()

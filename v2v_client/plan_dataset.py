@@ -28,7 +28,8 @@ from v2v_wire.messages import WireError
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
 from v2v_wire.plan_shards import interleaved, shard_ranges, shards_identity, shards_samples
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
-from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, decode_arrays, pack, unpack
+from v2v_wire.codecs import available, check_compression, decode_batch_arrays
+from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_loopback, pack, unpack
 
 from . import plan_accelerate
 from .connection import load_curve_keys
@@ -71,6 +72,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         timeout_s: seconds of silence from the server before :class:`TimeoutError`.
         curve_keys: ``(client_secret_file, server_public_file)`` from ``v2v-keygen``, for a server
             started with ``--curve-secret-key`` (as ``V2VPushDataset``'s).
+        compression: how the rows' arrays travel: ``"none"``, ``"lz4"`` or ``"zstd"``
+            (``v2v_wire.codecs``: the server's workers compress each sample, this process
+            decompresses). ``"auto"`` (default): none to ``ipc://`` and loopback ``tcp://``, zstd
+            to other hosts when both sides have ``zstandard`` (docs/wire.md measures the trade).
+            The batches are the same either way.
 
     Each item is a dict: the tensors of ``batch_to_torch`` with a leading axis of ``batch_size``,
     ``padding`` (bool (B,): rows that carry no sample, zeros: past the epoch's end or a window the
@@ -90,10 +96,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  rank: Optional[int] = None,
                  world_size: Optional[int] = None, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False,
                  prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0,
-                 curve_keys: Optional[Tuple[str, str]] = None, **push_settings):
+                 curve_keys: Optional[Tuple[str, str]] = None, compression: str = "auto", **push_settings):
         super().__init__()
         _refuse_push(push_settings)
         split_endpoints(endpoint)  # a bad entry: an error here, naming it
+        if compression != "auto" and not available(check_compression(compression)):
+            raise ValueError(f"compression {compression!r}: its library is not installed here (pip install 'v2v[wire]')")
+        self.compression = compression
         _check_settings(1 if batch_size is None else batch_size, prefetch, retry_s, timeout_s)
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None  # bad key files: an error here
         if rank is not None or world_size is not None:
@@ -110,6 +119,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self.gathers_state = False  # v2v_client.prepare_loader's save hook shares rank 0's loader state
         self._info: Optional[PlanInfo] = None
         self._shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
+        self._codecs: Dict[str, str] = {}  # server -> the compression its fetches ask for
 
     # ------------------------------------------------------------------ layout
     @property
@@ -256,6 +266,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 with _Link(server, self.timeout_s, self.curve) as link:
                     infos.append(link.ask())
             self._info, self._shards = _as_one_plan(servers, infos)
+            self._codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
             for loaded in (self._resume, self._pending and self._pending["position"]):
                 if loaded is not None:
                     Position.from_dict(loaded, expected=self._info.plan)
@@ -313,11 +324,11 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
         group = []  # under dispatch: this process's items of the current step, packed together
         with (_Link(self._shards[0][0], self.timeout_s, self.curve) if len(self._shards) == 1 else
-              _Shards(self._shards, self.timeout_s, self.curve)) as link:
+              _Shards(self._shards, self.timeout_s, self.curve, self._codecs)) as link:
             for i, rows, arrays in link.fetch_all(items, self.prefetch, self.retry_s,
                                                   lambda req, i: Fetch(req, r["epoch"], first_row(i),
                                                                        first_row(i) + self.batch_size, self.outputs,
-                                                                       info.plan)):
+                                                                       info.plan, self._codecs[self._shards[0][0]])):
                 steps = steps if steps is not None else _steps(rows.samples, r["origin"], r["per_step"])
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
@@ -365,8 +376,16 @@ def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
 
 
 #: ``V2VPushDataset``'s settings, which a plan has no use for: given here, they are refused.
-PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "group", "shm", "compact_flow",
-                 "compression")
+PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "group", "shm", "compact_flow")
+
+
+def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
+    """What fetches of ``endpoint`` ask for: ``compression``, or for ``"auto"`` zstd to another
+    host when this process and the server (its stream info's ``codecs``) have it, else none."""
+    if compression != "auto":
+        return compression
+    remote = not is_loopback(endpoint) and not endpoint.startswith(("ipc://", "inproc://"))
+    return "zstd" if remote and available("zstd") and "zstd" in stream.get("codecs", ()) else "none"
 
 
 def _refuse_push(settings: dict) -> None:
@@ -615,7 +634,7 @@ class _Link:
             if step in done or step not in order:
                 continue
             try:
-                arrays = decode_arrays(msg.arrays, frames, MAX_BATCH_BYTES)
+                arrays = decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES)
             except ProtocolError as e:
                 raise PlanServerError(f"{self.endpoint}: rows of step {step}: {e}") from None
             done[step] = (msg, arrays)
@@ -626,8 +645,10 @@ class _Shards:
     global positions is asked of each shard holding some of them, and their rows are merged in
     the interleave's order. ``shards``: (server, its plan identity), in shard order."""
 
-    def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple] = None):
+    def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple] = None,
+                 codecs: Optional[Dict[str, str]] = None):
         self.plans = [plan for _, plan in shards]
+        self.codecs = [(codecs or {}).get(ep, "none") for ep, _ in shards]
         self.links = [_Link(ep, timeout_s, curve) for ep, _ in shards]
         self.samples: List[Optional[int]] = [None] * len(shards)  # each shard's epoch, once its rows say
 
@@ -644,7 +665,7 @@ class _Shards:
 
         def part(k: int, f: Fetch) -> Fetch:
             lo, hi = shard_ranges(f.start, f.stop, n)[k]
-            return replace(f, start=lo, stop=hi, plan=self.plans[k])
+            return replace(f, start=lo, stop=hi, plan=self.plans[k], compression=self.codecs[k])
 
         def holds(k: int, step: int) -> bool:
             f = part(k, fetch_of(0, step))

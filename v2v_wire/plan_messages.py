@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
+from v2v_wire.codecs import check_compression
 from v2v_wire.messages import WireError, bounded_unpackb
 from v2v_wire.plan import PlanIdentity, PlanMismatch
 from v2v_wire.protocol import PROTOCOL_VERSION, check_outputs
@@ -82,7 +83,8 @@ class PlanInfo:
 @dataclass(frozen=True)
 class Fetch:
     """Client -> server: positions ``start .. stop - 1`` of ``epoch`` under ``plan``, with the
-    arrays of ``outputs``; ``request`` is echoed in the answer."""
+    arrays of ``outputs``, compressed with ``compression`` (``codecs.COMPRESSIONS``; absent:
+    ``"none"``); ``request`` is echoed in the answer."""
 
     request: int
     epoch: int
@@ -90,10 +92,12 @@ class Fetch:
     stop: int
     outputs: Tuple[str, ...]
     plan: PlanIdentity
+    compression: str = "none"
 
     def to_wire(self) -> dict:
         return {"type": "fetch", "request": self.request, "epoch": self.epoch, "start": self.start,
-                "stop": self.stop, "outputs": list(self.outputs), "plan": self.plan.to_dict()}
+                "stop": self.stop, "outputs": list(self.outputs), "plan": self.plan.to_dict(),
+                "compression": self.compression}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Fetch":
@@ -102,9 +106,10 @@ class Fetch:
         try:
             outputs = check_outputs(h.get("outputs"), "fetch: field 'outputs'")
             plan = PlanIdentity.from_dict(h.get("plan"))
+            compression = check_compression(h.get("compression", "none"), "fetch: field 'compression'")
         except (ValueError, PlanMismatch) as e:
             raise WireError(str(e)) from None
-        return cls(_int(h, "request"), _int(h, "epoch", 0, 2 ** 31 - 1), start, stop, outputs, plan)
+        return cls(_int(h, "request"), _int(h, "epoch", 0, 2 ** 31 - 1), start, stop, outputs, plan, compression)
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,9 @@ from v2v_server.service.sockets import ServerSockets
 from v2v_server.service.worker import worker_config
 from v2v_server.service.worker_side import WorkerSide
 from v2v_server.sources.source import VideoSource
-from v2v_wire.batches import stack_arrays
+from v2v_wire.batches import encode_batch, frame_size, stack_arrays
+from v2v_wire.codecs import COMPRESSIONS, available
+from v2v_wire.codecs import pack as compress
 from v2v_wire.messages import BadPeers, WireError
 from v2v_wire.outputs import narrowest, spec_of
 from v2v_wire.plan import Manifest, PlanIdentity
@@ -41,6 +43,8 @@ log = logging.getLogger("v2v.server")
 
 #: Seconds a task may send nothing while a fetch waits on it before a second worker takes it too.
 HEDGE_S = 10.0
+#: Seconds workers keep compressing each sample with a codec after the last fetch that asked for it.
+CODEC_KEEP_S = 120.0
 
 
 class OwnedRows:
@@ -80,6 +84,8 @@ class PlanServer:
         self.metrics = ServerMetrics()
         self.workers = WorkerSide(cfg, source, self.feed, self.metrics)
         self.bad = BadPeers()
+        self.codecs: Dict[str, float] = {}  # codec -> when a fetch last asked for it
+        self._zeros: Dict[tuple, bytes] = {}  # (codec, name, dtype, shape) -> a padding row, compressed
         self._stop = threading.Event()
         self.bound_endpoint: Optional[str] = None
 
@@ -96,7 +102,7 @@ class PlanServer:
                 "frames_per_bin": c.frames_per_bin, "outputs": list(c.outputs), "flow_preset": c.flow_preset,
                 "flow_dtype": c.flow_dtype, "crops_per_window": c.crops_per_window, "videos": len(self.manifest.slots),
                 "batch_size": c.delivery.batch_size, "shard": c.shard, "corpus": self.corpus,
-                "recipe": self.identity.recipe}
+                "recipe": self.identity.recipe, "codecs": [k for k in COMPRESSIONS if available(k)]}
 
     def run(self, ready_event: Optional[threading.Event] = None) -> int:
         """Run until :meth:`stop`; returns a process exit code."""
@@ -148,7 +154,7 @@ class PlanServer:
                         break
             now = time.monotonic()
             self.workers.watch(now)
-            self.workers.dispatch(now, [])
+            self.workers.dispatch(now, sorted(k for k, t in self.codecs.items() if now - t < CODEC_KEEP_S))
             for f, rows in self.feed.answer(now):
                 self._send_rows(f, rows)
             self.metrics.tick(self._metrics_state)
@@ -176,11 +182,16 @@ class PlanServer:
             return
         problem = self.identity.problem(msg.plan)
         missing = [o for o in msg.outputs if o not in self.cfg.outputs]
-        if problem or missing:
-            why = f"fetch under {problem}" if problem else f"outputs {missing} are not served here (--outputs)"
+        if problem or missing or not available(msg.compression):
+            why = (f"fetch under {problem}" if problem else f"outputs {missing} are not served here (--outputs)"
+                   if missing else f"compression {msg.compression}: this server lacks its library (pip install "
+                   f"'v2v[wire]')")
             self._send(ident, Refused(msg.request, why).to_wire())
             return
-        self.feed.fetch((ident, msg.outputs), msg.request, msg.epoch, msg.start, msg.stop, now, msg.outputs)
+        if msg.compression != "none":
+            self.codecs[msg.compression] = now
+        self.feed.fetch((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.start, msg.stop, now,
+                        msg.outputs)
 
     def _samples(self, epoch: int) -> Optional[int]:
         """The epoch's samples (every epoch lists the same), or None while the plan unfolds."""
@@ -197,9 +208,8 @@ class PlanServer:
                 self.feed.forget(client)
 
     def _send_rows(self, f, rows: List[Row]) -> None:
-        ident, outputs = f.client
-        arrays = self._arrays(rows, outputs)
-        specs, frames = encode_arrays(arrays)
+        ident, outputs, codec = f.client
+        specs, frames = self._encoded(rows, outputs, codec)
         ids = [r.key.sample_id(self.manifest.crops_per_window) if r.key is not None else None for r in rows]
         params = [r.sample.meta if r.sample is not None else {"padding": r.reason or "past the epoch's end"}
                   for r in rows]
@@ -207,7 +217,27 @@ class PlanServer:
                     self._samples(f.epoch)).to_wire()
         self._send(ident, head, frames)
         real = [r for r in rows if r.sample is not None]
-        self.metrics.on_batch_sent(len(real), sum(a.nbytes for a in arrays.values()))
+        self.metrics.on_batch_sent(len(real), sum(frame_size(fr) for fr in frames))
+
+    def _encoded(self, rows: List[Row], outputs: Tuple[str, ...], codec: str) -> Tuple[List[dict], List]:
+        """The rows' array specs and frames: plain, or (``codec``) each array as one compressed
+        frame per row, the workers' frames forwarded as they are (``batches.encode_batch``) and a
+        padding row's zeros compressed here once; an array some sample has no frame of (made
+        before its codec was asked for) goes plain."""
+        real = next((r.sample for r in rows if r.sample is not None), None)
+        if codec == "none" or real is None:
+            return encode_arrays(self._arrays(rows, outputs))
+        shapes = {k: a.shape for k, a in real.arrays.items()}
+        zeros = {codec: {k: (a.dtype, self._zero(codec, k, a)) for k, a in real.arrays.items()
+                         if output_of(k) in outputs}}
+        packed = [r.sample.packed if r.sample is not None else zeros for r in rows]
+        return encode_batch(shapes, outputs, packed, codec, lambda: self._arrays(rows, outputs))
+
+    def _zero(self, codec: str, name: str, like: np.ndarray) -> bytes:
+        key = (codec, name, like.dtype.str, like.shape)
+        if key not in self._zeros:
+            self._zeros[key] = compress(codec, {name: np.zeros_like(like)})[name]
+        return self._zeros[key]
 
     def _arrays(self, rows: List[Row], outputs: Tuple[str, ...]) -> Dict[str, np.ndarray]:
         """The rows' arrays of ``outputs``, stacked (one copy), zeros in padding rows."""
