@@ -132,7 +132,7 @@ def test_a_shard_is_the_same_samples_through_every_engine(ray_session, clips, tm
     cache = tmp_path / "cache"
     cfg = layout(shard="1/2", cache_dir=str(cache), shot_cuts="off", batch_size=2)
     cli_args = serve_args(corpus, "--shard", "1/2", "--cache-dir", str(cache), "--shot-cuts", "off",
-                          "--batch-size", "2", "--epochs", "1")
+                          "--batch-size", "2", "--delivery", "push", "--epochs", "1")
     checked = subprocess.run([sys.executable, "-m", "v2v_server.cli", *cli_args, "--check"], capture_output=True,
                              text=True, timeout=120)
     assert checked.returncode == 0 and "brief.mp4" in checked.stdout, checked.stdout + checked.stderr

@@ -265,7 +265,8 @@ def test_a_resume_state_of_700k_ids_is_sent_compactly_and_a_too_large_one_is_a_c
         ctx.term()
 
 
-def test_sigterm_to_the_process_group_stops_the_server_without_restarting_workers(videos):
+@pytest.mark.parametrize("delivery", ["plan", "push"])
+def test_sigterm_to_the_process_group_stops_the_server_without_restarting_workers(videos, delivery):
     """A supervisor that signals the whole process group (systemd's default KillMode, a
     container stop with an init that forwards to the group, ``kill -TERM -PGID``): the workers
     exit at once (status 0) while the server shuts down, and the server takes that for the
@@ -279,7 +280,8 @@ def test_sigterm_to_the_process_group_stops_the_server_without_restarting_worker
 
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "v2v_server.cli",
-                             *serve_args(videos, "--bind", f"tcp://127.0.0.1:{free_port()}", "--metrics-port", str(port))],
+                             *serve_args(videos, "--bind", f"tcp://127.0.0.1:{free_port()}", "--metrics-port", str(port),
+                                         "--delivery", delivery)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     lines: list = []

@@ -6,6 +6,17 @@ DataLoader worker started by fork, spawn or forkserver) opens its own connection
 as plain settings. With ``k`` DataLoader workers, worker ``j`` reads steps ``j, j + k, ...``, and
 the DataLoader's round robin yields them in step order.
 
+**Several servers**, each serving one shard (``v2v-serve --shard I/N``): ``endpoint`` a list, a
+comma-separated string, or a ``tcp://NAME:PORT`` whose name resolves to several addresses (a
+Kubernetes headless Service). Their plans are read as one, interleaved (``v2v_wire.plan_shards``:
+global position t is shard t mod N's t // N); servers that are not one sharding of one corpus
+under one recipe are refused, naming them.
+
+**Compression** of the rows' arrays: ``"none"``, ``"lz4"`` or ``"zstd"`` (``v2v_wire.codecs``: the
+server's workers compress each sample, the reading process decompresses); ``"auto"`` (default):
+none to ``ipc://`` and loopback ``tcp://``, zstd to other hosts when both sides have
+``zstandard`` (docs/wire.md measures the trade). The batches are the same either way.
+
 Loaders that snapshot a dataset's state (torchdata's ``StatefulDataLoader``, Accelerate's with
 ``use_stateful_dataloader=True``) read :meth:`V2VStreamDataset.state_dict`: what this process (the
 main process, or one DataLoader worker) has yielded, restored in the same worker by
@@ -53,14 +64,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     started with ``--delivery push`` is read with ``V2VPushDataset``, and says so).
 
     Args:
-        endpoint: the server's address (``tcp://host:port``); or several servers, each serving one
-            shard (``v2v-serve --shard I/N``): a list, a comma-separated string, or a
-            ``tcp://NAME:PORT`` whose name resolves to several addresses (a Kubernetes headless
-            Service). Their plans are read as one, interleaved (``v2v_wire.plan_shards``: global
-            position t is shard t mod N's t // N); servers that are not one sharding of one corpus
-            under one recipe are refused, naming them.
-        batch_size: rows per batch of this rank (>= 1; default: the server's ``batch_size``, asked
-            when first needed).
+        endpoint: the server's address (``tcp://host:port``), or several shards' (module docstring).
+        batch_size: rows per batch of this rank (>= 1; default: the server's, asked when needed).
         rank, world_size: this rank and the job's ranks (default: ``torch.distributed``'s when
             first needed, if initialised, else 0 and 1).
         outputs: which of ``OUTPUTS`` to read (default ``DEFAULT_OUTPUTS``, as
@@ -70,13 +75,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         retry_s: seconds a fetch may go unanswered before it is asked again (a lost reply, a
             restarted server).
         timeout_s: seconds of silence from the server before :class:`TimeoutError`.
-        curve_keys: ``(client_secret_file, server_public_file)`` from ``v2v-keygen``, for a server
-            started with ``--curve-secret-key`` (as ``V2VPushDataset``'s).
-        compression: how the rows' arrays travel: ``"none"``, ``"lz4"`` or ``"zstd"``
-            (``v2v_wire.codecs``: the server's workers compress each sample, this process
-            decompresses). ``"auto"`` (default): none to ``ipc://`` and loopback ``tcp://``, zstd
-            to other hosts when both sides have ``zstandard`` (docs/wire.md measures the trade).
-            The batches are the same either way.
+        curve_keys: ``(client_secret_file, server_public_file)`` from ``v2v-keygen`` (CurveZMQ).
+        compression: ``"none"``, ``"lz4"``, ``"zstd"`` or ``"auto"`` (module docstring).
 
     Each item is a dict: the tensors of ``batch_to_torch`` with a leading axis of ``batch_size``,
     ``padding`` (bool (B,): rows that carry no sample, zeros: past the epoch's end or a window the
@@ -88,22 +88,19 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
     Raises:
         ValueError: a bad setting, naming it, or a setting only push delivery has (``credits``,
-            ``shm``, ``compression``, ``reconnect``, ...; one line saying so).
+            ``shm``, ``reconnect``, ...; one line saying so).
         TypeError: a keyword argument neither reader takes.
     """
 
     def __init__(self, endpoint: Union[str, Sequence[str]], batch_size: Optional[int] = None, *,
-                 rank: Optional[int] = None,
-                 world_size: Optional[int] = None, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False,
+                 rank: Optional[int] = None, world_size: Optional[int] = None,
+                 outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False,
                  prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0,
                  curve_keys: Optional[Tuple[str, str]] = None, compression: str = "auto", **push_settings):
         super().__init__()
         _refuse_push(push_settings)
-        split_endpoints(endpoint)  # a bad entry: an error here, naming it
-        if compression != "auto" and not available(check_compression(compression)):
-            raise ValueError(f"compression {compression!r}: its library is not installed here (pip install 'v2v[wire]')")
-        self.compression = compression
         _check_settings(1 if batch_size is None else batch_size, prefetch, retry_s, timeout_s)
+        self._servers = _Servers(endpoint, compression)  # a bad endpoint or codec: an error here
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None  # bad key files: an error here
         if rank is not None or world_size is not None:
             _check_layout(0 if rank is None else rank, 1 if world_size is None else world_size)
@@ -118,16 +115,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._dispatch: Optional[tuple] = None  # under accelerate's dispatcher: (ranks, stateful), once known
         self.gathers_state = False  # v2v_client.prepare_loader's save hook shares rank 0's loader state
         self._info: Optional[PlanInfo] = None
-        self._shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
-        self._codecs: Dict[str, str] = {}  # server -> the compression its fetches ask for
 
     # ------------------------------------------------------------------ layout
     @property
     def batch_size(self) -> int:
-        """Rows per batch of this rank: as given, else the server's (asked when first needed).
-
-        Raises:
-            TimeoutError: no answer from the server within ``timeout_s``."""
+        """Rows per batch of this rank: as given, else the server's (asked when first needed;
+        ``TimeoutError`` when it does not answer)."""
         return self._batch if self._batch is not None else self.plan_info().stream["batch_size"]
 
     @property
@@ -253,23 +246,16 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         return d[0] if d else self.world_size
 
     def plan_info(self, refresh: bool = False) -> PlanInfo:
-        """What the server serves (asked once per dataset object and process; with ``refresh``,
+        """What the server(s) serve (asked once per dataset object and process; with ``refresh``,
         again while the epoch's samples are not known: the plan unfolds as the server decodes).
 
         Raises:
-            TimeoutError: no answer within ``timeout_s``.
+            TimeoutError, PushServerError, ValueError: as ``_Servers.ask``.
             PlanMismatch: a loaded position of another plan."""
         if self._info is None or (refresh and self._info.samples is None):
-            servers = resolve_endpoints(self.endpoint) if self._shards is None else [ep for ep, _ in self._shards]
-            infos = []
-            for server in servers:
-                with _Link(server, self.timeout_s, self.curve) as link:
-                    infos.append(link.ask())
-            self._info, self._shards = _as_one_plan(servers, infos)
-            self._codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
-            for loaded in (self._resume, self._pending and self._pending["position"]):
-                if loaded is not None:
-                    Position.from_dict(loaded, expected=self._info.plan)
+            self._info = self._servers.ask(self.timeout_s, self.curve)
+            for loaded in filter(None, (self._resume, self._pending and self._pending["position"])):
+                Position.from_dict(loaded, expected=self._info.plan)
         return self._info
 
     def __len__(self) -> int:
@@ -278,8 +264,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         steps times its ranks, so the prepared loader's length is the steps each rank takes.
 
         Raises:
-            TypeError: the epoch's samples are not known yet (the server learns each video's windows
-                from its first decode), as for a dataset without a length."""
+            TypeError: the epoch's samples are not known yet (learned from each video's first
+            decode), as for a dataset without a length."""
         steps = _steps(self.plan_info(refresh=True).samples, self.start, self.world_size * self.batch_size)
         if steps is None:
             raise TypeError(f"{self.endpoint}: {_LENGTH_UNKNOWN}")
@@ -323,16 +309,15 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             return r["origin"] + s * r["per_step"] + rank * self.batch_size
 
         group = []  # under dispatch: this process's items of the current step, packed together
-        with (_Link(self._shards[0][0], self.timeout_s, self.curve) if len(self._shards) == 1 else
-              _Shards(self._shards, self.timeout_s, self.curve, self._codecs)) as link:
+        with self._servers.link(self.timeout_s, self.curve) as link:
             for i, rows, arrays in link.fetch_all(items, self.prefetch, self.retry_s,
                                                   lambda req, i: Fetch(req, r["epoch"], first_row(i),
                                                                        first_row(i) + self.batch_size, self.outputs,
-                                                                       info.plan, self._codecs[self._shards[0][0]])):
+                                                                       info.plan)):
                 steps = steps if steps is not None else _steps(rows.samples, r["origin"], r["per_step"])
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
-                item = self._item(info, r, i // g, rows, arrays)
+                item = _item(info, r, i // g, rows, arrays, self.raw)
                 if g == 1:
                     r["last"], r["next"] = i, i + k
                     yield item
@@ -345,15 +330,49 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                         yield batch
                     group = []
 
-    def _item(self, info: PlanInfo, r: dict, step: int, rows: Rows, arrays) -> Dict:
-        crop = info.stream.get("crop_size")
-        item = batch_to_torch(arrays, self.raw, (crop, crop) if crop else None,
-                              info.stream.get("flow_dtype", "float16"))
-        after = r["origin"] + (step + 1) * r["per_step"]
-        item.update(padding=torch.tensor(rows.padding, dtype=torch.bool), sample_ids=rows.sample_ids,
-                    params=rows.params, epoch=r["epoch"], step=step,
-                    position=Position(info.plan, r["epoch"], after).to_dict())
-        return item
+def _item(info: PlanInfo, r: dict, step: int, rows: Rows, arrays, raw: bool) -> Dict:
+    """The dataset's item of ``step`` (the class docstring), read as ``r`` says."""
+    crop = info.stream.get("crop_size")
+    item = batch_to_torch(arrays, raw, (crop, crop) if crop else None, info.stream.get("flow_dtype", "float16"))
+    after = r["origin"] + (step + 1) * r["per_step"]
+    item.update(padding=torch.tensor(rows.padding, dtype=torch.bool), sample_ids=rows.sample_ids,
+                params=rows.params, epoch=r["epoch"], step=step, position=Position(info.plan, r["epoch"], after).to_dict())
+    return item
+
+
+class _Servers:
+    """The servers a dataset reads as one plan: one, or one per shard in shard order, each with
+    its plan identity and the compression its fetches ask for (known once asked; pickled with
+    the dataset, so a DataLoader worker asks nothing again)."""
+
+    def __init__(self, endpoint, compression: str):
+        split_endpoints(endpoint)  # a bad entry: ValueError, naming it
+        if compression != "auto" and not available(check_compression(compression)):
+            raise ValueError(f"compression {compression!r}: its library is not installed here (pip install 'v2v[wire]')")
+        self.endpoint, self.compression = endpoint, compression
+        self.shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
+        self.codecs: Dict[str, str] = {}  # server -> compression
+
+    def ask(self, timeout_s: float, curve: Optional[tuple]) -> PlanInfo:
+        """What the servers serve, as one plan (resolving ``endpoint`` the first time).
+
+        Raises:
+            TimeoutError, PushServerError: a server silent, or delivering by push.
+            ValueError: several servers that are not one sharding of one corpus."""
+        servers = resolve_endpoints(self.endpoint) if self.shards is None else [ep for ep, _ in self.shards]
+        infos = []
+        for server in servers:
+            with _Link(server, timeout_s, curve) as link:
+                infos.append(link.ask())
+        info, self.shards = _as_one_plan(servers, infos)
+        self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
+        return info
+
+    def link(self, timeout_s: float, curve: Optional[tuple]):
+        """A connection fetching rows of the plan: a ``_Link`` to the one server, else ``_Shards``."""
+        if len(self.shards) == 1:
+            return _Link(self.shards[0][0], timeout_s, curve, self.codecs[self.shards[0][0]])
+        return _Shards(self.shards, timeout_s, curve, self.codecs)
 
 
 def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
@@ -534,8 +553,8 @@ def _check_layout(rank: int, world_size: int) -> None:
 class _Link:
     """One process's connection to a plan server: a DEALER socket, requests numbered from 1."""
 
-    def __init__(self, endpoint: str, timeout_s: float, curve: Optional[tuple] = None):
-        self.endpoint, self.timeout_s = endpoint, timeout_s
+    def __init__(self, endpoint: str, timeout_s: float, curve: Optional[tuple] = None, compression: str = "none"):
+        self.endpoint, self.timeout_s, self.compression = endpoint, timeout_s, compression
         self.ctx = zmq.Context()
         self.sock = self.ctx.socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
@@ -599,7 +618,7 @@ class _Link:
 
         def send(step: int) -> None:
             req = next(self.ids)
-            self._send(fetch_of(req, step).to_wire())
+            self._send(replace(fetch_of(req, step), compression=self.compression).to_wire())
             waiting[req], asked[step] = step, time.monotonic()
 
         for step in itertools.islice(todo, prefetch):
@@ -645,11 +664,10 @@ class _Shards:
     global positions is asked of each shard holding some of them, and their rows are merged in
     the interleave's order. ``shards``: (server, its plan identity), in shard order."""
 
-    def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple] = None,
-                 codecs: Optional[Dict[str, str]] = None):
+    def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple],
+                 codecs: Dict[str, str]):
         self.plans = [plan for _, plan in shards]
-        self.codecs = [(codecs or {}).get(ep, "none") for ep, _ in shards]
-        self.links = [_Link(ep, timeout_s, curve) for ep, _ in shards]
+        self.links = [_Link(ep, timeout_s, curve, codecs[ep]) for ep, _ in shards]
         self.samples: List[Optional[int]] = [None] * len(shards)  # each shard's epoch, once its rows say
 
     def __enter__(self) -> "_Shards":
@@ -665,7 +683,7 @@ class _Shards:
 
         def part(k: int, f: Fetch) -> Fetch:
             lo, hi = shard_ranges(f.start, f.stop, n)[k]
-            return replace(f, start=lo, stop=hi, plan=self.plans[k], compression=self.codecs[k])
+            return replace(f, start=lo, stop=hi, plan=self.plans[k])
 
         def holds(k: int, step: int) -> bool:
             f = part(k, fetch_of(0, step))

@@ -129,6 +129,10 @@ class PlanServer:
                 self.workers.stop()
             self.sockets.close()
             self.metrics.close()
+            m = self.metrics.totals()
+            log.info("stopped: %d fetches answered, %d samples made, %d worker restart(s), %d task timeout(s), "
+                     "%d skipped file(s)", m["batches_sent"], m["samples_made"], m["workers_restarted"],
+                     m["tasks_timed_out"], m["files_skipped"])
 
     def _loop(self) -> int:
         front, back = self.sockets.frontend, self.sockets.backend
@@ -153,6 +157,8 @@ class PlanServer:
                     except zmq.Again:
                         break
             now = time.monotonic()
+            if self._stop.is_set():  # workers that exit now were signalled with the server, not crashed
+                break
             self.workers.watch(now)
             self.workers.dispatch(now, sorted(k for k, t in self.codecs.items() if now - t < CODEC_KEEP_S))
             for f, rows in self.feed.answer(now):
