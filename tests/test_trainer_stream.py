@@ -147,15 +147,16 @@ def test_train_from_a_server_serving_by_plan_then_resume_at_its_position(tmp_pat
     assert [int(r["step"]) for r in rows] == [1, 2, 3, 4, 5]
 
 
-def test_train_at_an_address_with_no_server_ends_in_one_line(tmp_path, capsys):
-    """``v2v-train --connect`` where nothing listens: after ``stream.timeout_s`` one line naming
-    the address, exit status 1, no traceback."""
+def test_train_at_an_address_with_no_server_ends_in_one_line(tmp_path):
+    """``v2v-train --connect`` where nothing listens (the real command, a process of its own):
+    after ``stream.timeout_s`` one line naming the address, exit status 1, no traceback."""
     from harness.serve import free_port
 
     endpoint = f"tcp://127.0.0.1:{free_port()}"
-    rc = tr.main(["--task", "e2vid", "--connect", endpoint, "--out", str(tmp_path / "run"), "--device", "cpu",
-                  "--no-progress", "--no-tensorboard", "--set", "model.base_num_channels=4",
-                  "--set", "stream.timeout_s=2"])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 1 and err[-1].startswith(f"v2v-train: {endpoint}: no answer"), err
-    assert not any("Traceback" in line for line in err)
+    r = subprocess.run([sys.executable, "-m", "trainer.train", "--task", "e2vid", "--connect", endpoint, "--out",
+                        str(tmp_path / "run"), "--device", "cpu", "--no-progress", "--no-tensorboard",
+                        "--set", "model.base_num_channels=4", "--set", "stream.timeout_s=2"],
+                       capture_output=True, text=True, timeout=300)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and err[-1].startswith(f"v2v-train: {endpoint}: no answer"), r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
