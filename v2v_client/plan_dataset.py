@@ -40,11 +40,12 @@ from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
 from v2v_wire.plan_shards import interleaved, shard_ranges, shards_identity, shards_samples
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
-from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_loopback, pack, unpack
+from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, pack, unpack
 
 from . import plan_accelerate
 from .connection import load_curve_keys
 from .fanin import check_servers, resolve_endpoints, split_endpoints
+from .options import auto_compression
 from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "PlanEpochs", "open_stream", "PlanServerError", "PushServerError"]
@@ -399,12 +400,9 @@ PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "
 
 
 def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
-    """What fetches of ``endpoint`` ask for: ``compression``, or for ``"auto"`` zstd to another
-    host when this process and the server (its stream info's ``codecs``) have it, else none."""
-    if compression != "auto":
-        return compression
-    remote = not is_loopback(endpoint) and not endpoint.startswith(("ipc://", "inproc://"))
-    return "zstd" if remote and available("zstd") and "zstd" in stream.get("codecs", ()) else "none"
+    """What fetches of ``endpoint`` ask for: ``compression``, or for ``"auto"`` push's rule
+    (``options.auto_compression``) with the codecs the server lists in its stream info."""
+    return compression if compression != "auto" else auto_compression(endpoint, stream.get("codecs", ()))
 
 
 def _refuse_push(settings: dict) -> None:
