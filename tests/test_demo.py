@@ -33,3 +33,17 @@ def test_demo_refuses_an_empty_folder(tmp_path):
     with pytest.raises(ValueError, match="no video files"):
         with local_server(str(tmp_path), workers=1, batch_size=2):
             pass
+
+
+def test_a_preview_path_that_is_not_a_png_or_lies_in_the_bundled_clips_is_refused_in_one_line(tmp_path, capsys):
+    """``--preview`` must name a PNG (OpenCV picks the writer by the extension) outside the corpus
+    it reads, the bundled clips when no ``--videos`` is given; nothing is started or written."""
+    from v2v_server.ops.startup import SAMPLE_VIDEOS
+
+    for path, why in ((tmp_path / "preview.jpg", "it must name a .png file"),
+                      (SAMPLE_VIDEOS / "bikes.mp4", "it must name a .png file"),
+                      (SAMPLE_VIDEOS / "preview.png", "is inside the corpus (--videos)")):
+        assert demo.main(["--preview", str(path)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"v2v-demo: --preview {path}: {why}"), err
+        assert not (SAMPLE_VIDEOS / "preview.png").exists()

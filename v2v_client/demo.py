@@ -32,18 +32,21 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--json", action="store_true", help="print the measurement as one JSON object on the last line "
                    "(as v2v-loadtest --json)")
     a = p.parse_args(argv)
-    why = input_overwritten(a.preview, [("the corpus (--videos)", a.videos)],
-                            [("inside the corpus (--videos)", a.videos, None)]) or writable_problem(Path(a.preview))
-    if why:
-        print(f"v2v-demo: --preview {a.preview}: {why}", file=sys.stderr)
-        return 2
     try:  # the server and the preview (OpenCV) come with the server's packages only
+        from v2v_server.ops.startup import SAMPLE_VIDEOS
         from v2v_server.service.local import local_server
 
         from .preview import write_preview
     except ImportError as e:
         print(f"v2v-demo runs a server in this process and needs the server's packages: "
               f"pip install 'v2v[server,client]' ({e})", file=sys.stderr)
+        return 2
+    corpus = a.videos or str(SAMPLE_VIDEOS)  # the bundled clips are an input too
+    why = ("it must name a .png file" if Path(a.preview).suffix.lower() != ".png" else
+           input_overwritten(a.preview, [("the corpus (--videos)", corpus)], [("inside the corpus (--videos)", corpus, None)])
+           or writable_problem(Path(a.preview)))
+    if why:
+        print(f"v2v-demo: --preview {a.preview}: {why}", file=sys.stderr)
         return 2
     with local_server(a.videos, a.workers, a.batch_size) as endpoint:
         print(f"v2v server running on {endpoint} with {a.workers} workers")

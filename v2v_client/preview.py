@@ -79,7 +79,7 @@ def render_sample(voxels=None, frames=None, flow=None, title: str = "", rows: in
 
 
 def write_preview(batch: dict, path: str, index: int = 0) -> Path:
-    """Write a PNG of sample ``index`` of a ``V2VPushDataset`` batch; returns the path.
+    """Write a PNG of sample ``index`` of a dataset's batch; returns the path.
 
     Raises:
         OSError: when the PNG cannot be written.
