@@ -41,7 +41,7 @@ def test_a_preview_path_that_is_not_a_png_or_lies_in_the_bundled_clips_is_refuse
     from v2v_server.ops.startup import SAMPLE_VIDEOS
 
     for path, why in ((tmp_path / "preview.jpg", "it must name a .png file"),
-                      (SAMPLE_VIDEOS / "bikes.mp4", "it must name a .png file"),
+                      (SAMPLE_VIDEOS / "bikes.mp4", "is inside the corpus (--videos)"),
                       (SAMPLE_VIDEOS / "preview.png", "is inside the corpus (--videos)")):
         assert demo.main(["--preview", str(path)]) == 2
         err = capsys.readouterr().err.strip().splitlines()

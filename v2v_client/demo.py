@@ -33,8 +33,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                    "(as v2v-loadtest --json)")
     a = p.parse_args(argv)
     try:  # the server and the preview (OpenCV) come with the server's packages only
-        from v2v_server.ops.startup import SAMPLE_VIDEOS
-        from v2v_server.service.local import local_server
+        from v2v_server.service.local import SAMPLE_VIDEOS, local_server
 
         from .preview import write_preview
     except ImportError as e:
@@ -42,8 +41,8 @@ def main(argv: Optional[List[str]] = None) -> int:
               f"pip install 'v2v[server,client]' ({e})", file=sys.stderr)
         return 2
     corpus = a.videos or str(SAMPLE_VIDEOS)  # the bundled clips are an input too
-    why = ("it must name a .png file" if Path(a.preview).suffix.lower() != ".png" else
-           input_overwritten(a.preview, [("the corpus (--videos)", corpus)], [("inside the corpus (--videos)", corpus, None)])
+    why = (input_overwritten(a.preview, [("the corpus (--videos)", corpus)], [("inside the corpus (--videos)", corpus, None)])
+           or ("it must name a .png file" if Path(a.preview).suffix.lower() != ".png" else None)
            or writable_problem(Path(a.preview)))
     if why:
         print(f"v2v-demo: --preview {a.preview}: {why}", file=sys.stderr)

@@ -8,10 +8,12 @@ import threading
 from typing import Iterator, Optional
 
 from v2v_server.ops.config import ServeConfig, load_config
-from v2v_server.ops.startup import start_source
+from v2v_server.ops.startup import SAMPLE_VIDEOS, start_source
 from v2v_server.ops.plan_start import plan_manifest
 from v2v_server.service.plan_server import PlanServer
 from v2v_server.service.server import V2VServer
+
+__all__ = ["SAMPLE_VIDEOS", "local_server"]  # the demo names the bundled clips it serves by default
 
 
 @contextlib.contextmanager
