@@ -5,9 +5,11 @@ so a seed replays exactly.
 What the world does to the feed:
 
 * workers decode at one sample a tick, stall (3-60 ticks), die (the pool replaces them), and hang
-  until the task timeout; files give fewer windows than their slots, or break;
+  until the task timeout; files give fewer windows than their slots, or break (at one place, each
+  pass); a store that fails for a while cuts one or two passes of other files short;
 * the corpus index knows some videos' slots at start, none or all; the others' the server learns
-  from their first decode (the plan unfolds), and the index keeps them for a server started again;
+  from their first decode (the plan unfolds), and the index keeps a whole pass's count for a
+  server started again;
 * the server is killed and started again (a fresh ``PlanFeed`` and a fresh pool of workers: made
   samples, pending fetches and running tasks gone);
 * jobs of 1-3 ranks ask up to two steps ahead, ask again a fetch unanswered for ``RETRY`` ticks
@@ -47,6 +49,8 @@ class Worker:
     task: Optional[object] = None
     todo: List[SampleKey] = field(default_factory=list)
     stalled_until: float = 0.0
+    windows: int = 0  # what this pass gives
+    error: Optional[str] = None  # why it stops early
 
 
 @dataclass
@@ -109,6 +113,8 @@ class World:
         self.restart_p = rng.choice([0.0, 0.001, 0.003])
         self.out = Outcome(seed, [])
         self.request = 0
+        # passes a store failing for a while cuts short, fewer than the feed's PASS_ATTEMPTS
+        self.flaky = {v: rng.randint(1, 2) for v, n in self.given.items() if v not in self.broken and n and rng.random() < 0.2}
 
     def new_feed(self) -> PlanFeed:
         manifest = Manifest.of({v: self.index.get(v) for v in self.slots}, self.kpw)
@@ -214,7 +220,13 @@ class World:
             if w.task is None:
                 w.task = t = feed.task_for(w.ident, now)
                 if t is not None:
-                    w.todo = [SampleKey.at(t.video, i, kpw) for i in range(self.given[t.video] * kpw)
+                    w.windows, w.error = self.given[t.video], None
+                    if t.video in self.broken and w.windows < self.slots[t.video]:
+                        w.error = "decoder error: broken packet"
+                    elif self.flaky.get(t.video):
+                        self.flaky[t.video] -= 1
+                        w.windows, w.error = rng.randrange(w.windows), "reading: the store timed out"
+                    w.todo = [SampleKey.at(t.video, i, kpw) for i in range(w.windows * kpw)
                               if (i // kpw, i % kpw) not in set(t.skip)]
                 continue
             t = w.task
@@ -222,9 +234,9 @@ class World:
                 key = w.todo.pop(0)
                 feed.sample(w.ident, t.task, key, now, lambda lane, e=t.epoch, k=key, o=t.outputs: (e, k, o))
             else:
-                broke = t.video in self.broken and self.given[t.video] < self.slots[t.video]
-                feed.done(w.ident, t.task, self.given[t.video], {}, "decoder error: broken packet" if broke else None)
-                self.index.setdefault(t.video, self.given[t.video])  # the pass's count, as a worker records it
+                feed.done(w.ident, t.task, w.windows, {}, w.error, "error" if w.error else "")
+                if w.error is None:
+                    self.index.setdefault(t.video, w.windows)  # a whole pass's count, as a worker records it
                 w.task = None
         for ident, _ in feed.timed_out(now):
             for w in self.workers:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from harness.plan_world import check
-from v2v_server.delivery.plan_feed import PlanFeed, SlotsExceeded
+from v2v_server.delivery.plan_feed import PASS_ATTEMPTS, PlanFeed, SlotsExceeded
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest
 
@@ -67,6 +67,61 @@ def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
     assert [r.key for r in rows] == [SampleKey("a.mp4", 0), SampleKey("a.mp4", 1), SampleKey("a.mp4", 2), None]
     assert "the decode gave 1 window(s), the manifest 3" in rows[1].reason
     assert feed.task_for("w", 2.0) is None
+
+
+def test_a_window_the_worker_reports_failed_is_a_padding_row_with_its_reason():
+    # the wire's Done keys a failed window by its digits
+    feed = PlanFeed(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)
+    feed.fetch("c", 1, 0, 0, 3, 0.0)
+    t = feed.task_for("w", 0.0)
+    for w in (0, 2):
+        feed.sample("w", t.task, SampleKey("a.mp4", w), 1.0, lambda lane, w=w: f"s{w}")
+    feed.done("w", t.task, 3, {"1": "window 1: a frame of another size"}, None, "failed")
+    (f, rows), = feed.answer(2.0)
+    assert [r.sample for r in rows] == ["s0", None, "s2"] and rows[1].reason == "window 1: a frame of another size"
+    assert feed.task_for("w", 3.0) is None
+
+
+def _pass(feed, worker, now, windows, error=None):
+    """One worker's pass: a task, its samples up to ``windows`` (those not skipped), its end."""
+    t = feed.task_for(worker, now)
+    for w in range(windows):
+        if (w, 0) not in t.skip:
+            feed.sample(worker, t.task, SampleKey(t.video, w), now, lambda lane, w=w: f"s{w}")
+    feed.done(worker, t.task, windows, {}, error, "error" if error else "")
+    return t
+
+
+@pytest.mark.parametrize("known", [True, False])
+def test_a_pass_stopped_by_a_store_error_is_asked_again_and_fixes_no_slots(known):
+    """A store failing for a while cuts a pass short: the video is decoded again (skipping what
+    was made), and its slots, where not known, come from the whole pass, so the plan is the one a
+    server that never saw the error lists."""
+    feed = PlanFeed(Manifest.of({"a.mp4": 4 if known else None}), 0, 1, ("voxels",), lookahead=0)
+    feed.fetch("c", 1, 0, 0, 4, 0.0)
+    _pass(feed, "w", 0.0, 1, "reading a.mp4: the store timed out")
+    assert feed.answer(1.0) == [] and feed.slots.samples["a.mp4"] == (4 if known else None)
+    again = _pass(feed, "w", 2.0, 4)
+    assert again.video == "a.mp4" and (0, 0) in again.skip
+    (f, rows), = feed.answer(3.0)
+    assert [r.sample for r in rows] == ["s0", "s1", "s2", "s3"] and feed.slots.samples["a.mp4"] == 4
+
+
+def test_a_file_that_breaks_at_one_place_costs_a_few_passes_once_then_pads():
+    """A file broken at one place stops each pass there: after PASS_ATTEMPTS passes its slots
+    are what they gave, and a later epoch's pass that stops is final at once."""
+    feed = PlanFeed(Manifest.of({"a.mp4": None}), 0, 1, ("voxels",), lookahead=0)
+    feed.fetch("c", 1, 0, 0, 3, 0.0)
+    for attempt in range(PASS_ATTEMPTS):
+        assert feed.answer(float(attempt)) == [] and feed.slots.samples["a.mp4"] is None
+        _pass(feed, "w", float(attempt), 2, "decoding a.mp4: invalid data at packet 97")
+    (f, rows), = feed.answer(9.0)  # learned from the broken passes: 2 windows, the third row past the end
+    assert [r.sample for r in rows] == ["s0", "s1", None] and rows[2].key is None
+    feed.fetch("c", 2, 1, 0, 2, 10.0)  # the next epoch: one pass, its error final at once
+    _pass(feed, "w", 10.0, 1, "decoding a.mp4: invalid data at packet 97")
+    (f, rows), = feed.answer(11.0)
+    assert rows[0].sample == "s0" and rows[1].reason == "decoding a.mp4: invalid data at packet 97"
+    assert feed.task_for("w", 12.0) is None
 
 
 

@@ -401,3 +401,31 @@ def test_compressed_rows_are_the_batches_plain_rows_are(server):
     finally:
         sock.close()
         ctx.term()
+
+
+def test_a_corpus_with_every_kind_of_bad_file_holds_each_usable_sample_once_an_epoch(tmp_path):
+    """``harness.corpus.make_fault_corpus`` (empty, truncated, random, unsupported and too short
+    files, non-videos, links out of the corpus) and a file whose frame size changes, served by plan:
+    each of two epochs holds every sample ``--check`` lists once, what a bad file lacks is a padding
+    row, each bad file is logged once, and the server serves on."""
+    from harness.corpus import make_fault_corpus, write_size_change_video
+    from harness.faults import Layout, expected_ids
+
+    layout = Layout(L=4, crop=64, windows=2, batch=2)
+    corpus = tmp_path / "faulty"
+    exp = make_fault_corpus(corpus, Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos", layout.L * 5 + 1)
+    span = layout.L * 5 + 1
+    write_size_change_video(corpus / "size_change.mpg", span + span // 2, 2 * span)
+    expected = expected_ids(corpus, layout)
+    assert any(s.startswith("size_change.mpg#") for s in expected)
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", *layout.args(), "--delivery", "plan"],
+                      ready_timeout_s=120) as srv:
+        ds = V2VStreamDataset(srv.endpoint, timeout_s=120)
+        for epoch in range(2):
+            ds.set_epoch(epoch)
+            rows, _ = read(ds)
+            assert sorted(real_ids(rows)) == expected, epoch
+        assert srv.stop() == 130
+    skipped = [k for k, v in exp.items() if v == "skipped" and k != "deleted_during_epoch.mp4"]  # not deleted here
+    assert len(skipped) == 7 and all(sum(f"{corpus / k}" in ln and "skipped" in ln for ln in srv.log.splitlines()) == 1 for k in skipped), srv.log
+    assert "Traceback" not in srv.log

@@ -183,8 +183,8 @@ class DeliveryCore:
     def sample(self, worker: Hashable, task_id, key: SampleKey, now: float, build: Callable) -> bool:
         return self.feed.sample(worker, task_id, key, now, build)
 
-    def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str]) -> Optional[Job]:
-        return self.feed.done(worker, task_id, windows, failed, error)
+    def done(self, worker: Hashable, task_id, windows, failed: dict, error: Optional[str], cause: str = "") -> Optional[Job]:
+        return self.feed.done(worker, task_id, windows, failed, error)  # push fails what a pass lacked: ``cause`` aside
 
     def worker_lost(self, worker: Hashable) -> Optional[Job]:
         return self.sched.worker_lost(worker)

@@ -27,6 +27,14 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   that ends (:meth:`PlanFeed.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
   production order (:func:`unfolding`), decoded in turn: nothing is read but what is served.
+* **A pass that stops on an error** (``cause`` ``"error"``: a store that fails past its library's
+  retries, a decoder error) is asked again while fewer than :data:`PASS_ATTEMPTS` passes of that
+  video in a row stopped so; the next pass skips the samples made. Only then are the samples it
+  lacks failed for the epoch, and a video whose slots are not known learns them from the most
+  windows those passes gave: a pass cut short by a store that fails for a while never fixes a
+  video's slots, so a server started again lists the same samples (a file that breaks at one
+  place breaks there each time). A short or static file (``"short"``, ``"static"``) is its own
+  verdict, never asked again.
 * **A decode that gives more samples than the manifest's slots** is an error naming the video
   (:class:`SlotsExceeded`): the corpus index is stale, never a silent drop.
 
@@ -47,6 +55,12 @@ from v2v_wire.worker_messages import Task
 #: failures of an epoch whose plan goes are forgotten with it.
 PLANS_KEPT = 4
 
+
+#: Passes of a video in a row that may stop on an error before the samples they lack fail for the
+#: epoch (module docstring): the storage libraries retry each read ``store_max_attempts`` times
+#: already, so a pass that still stops is asked again a few times, not forever (a file broken at
+#: one place costs this many passes once per server, then one per epoch).
+PASS_ATTEMPTS = 3
 
 #: Seconds after an epoch's last fetch its samples made but never fetched may go (a job that left).
 IDLE_S = 600.0
@@ -168,6 +182,20 @@ def _positions(plan: EpochPlan, start: int, count: int) -> Iterator[Tuple[int, s
     if not plan.complete and start + count > plan.known:
         for v in plan.next_videos(start + count - max(start, plan.known)):
             yield plan.epoch, v, None
+
+
+def pass_ended(stopped: Dict[str, Tuple[int, int]], video: str, windows: int, cause: str) -> Optional[int]:
+    """A pass of ``video`` that gave ``windows`` ended with ``cause`` (``worker_messages.CAUSES``):
+    None while it is to be asked again (it stopped on an error, one of fewer than
+    :data:`PASS_ATTEMPTS` in a row), else the windows the video's slots are learned from (the most
+    that pass or the ones before it in a row gave). ``stopped``: video -> (passes in a row that
+    stopped on an error, the most windows they gave), updated."""
+    if cause != "error":
+        stopped.pop(video, None)
+        return windows
+    passes, most = stopped.get(video, (0, 0))
+    stopped[video] = passes + 1, max(most, windows)
+    return None if passes + 1 < PASS_ATTEMPTS else max(most, windows)
 
 
 class Slots:
@@ -303,6 +331,7 @@ class PlanFeed:
         self.runs: Dict[Tuple[int, str], Run] = {}
         self.task_run: Dict[int, Tuple[int, str]] = {}
         self.fetched_at: Dict[int, float] = {}  # epoch -> when a fetch last named it
+        self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
         self._task_ids = 0
         self.samples_made = 0
 
@@ -463,21 +492,30 @@ class PlanFeed:
         return True
 
     def done(self, worker: Hashable, task_id: int, windows: int, failed: Dict[int, str],
-             error: Optional[str]) -> Optional[Run]:
+             error: Optional[str], cause: str = "") -> Optional[Run]:
         """Task ``task_id`` ended: the video gave ``windows`` complete windows (``failed``:
-        window -> reason; ``error``: why the pass stopped early). The samples of the video's slots
-        past ``windows`` or in ``failed``, asked of this copy and not made by another, are failed
-        for the epoch (padding rows). Returns the run, or None for a task that was not running."""
+        window -> reason; ``error``: why it gave fewer windows than it should; ``cause``: that
+        reason's code, ``worker_messages.CAUSES``; ``failed`` keyed by int or, as ``Done`` carries
+        it, by its digits). A pass that stopped on an error (``cause``
+        ``"error"``) is asked again up to :data:`PASS_ATTEMPTS` passes in a row (module
+        docstring). Otherwise the samples of the video's slots past ``windows`` or in ``failed``,
+        asked of this copy and not made by another, are failed for the epoch (padding rows), and a
+        video whose slots are not known learns them. Returns the run, or None for a task that was
+        not running."""
         ek = self.task_run.get(task_id)
         if ek is None or self.runs[ek].copies.get(task_id) != worker:
             return None
+        failed = {int(k): why for k, why in failed.items()}  # the wire's ``Done`` keys a window by its digits
         skip = self.runs[ek].skips.get(task_id, set())
         run = self._end(task_id)
         run.error = error
         epoch, video = ek
         kpw = self.manifest.crops_per_window
+        most = pass_ended(self.stopped, video, windows, cause)
+        if most is None:
+            return run  # its missing samples are needed still: the next pass makes them
         if self.slots.samples.get(video, 0) is None:
-            self.learn(video, windows)
+            self.learn(video, most)
         why_short = error or f"the decode gave {windows} window(s), the manifest {self.slots.samples.get(video, 0) // kpw}"
         for i in range(self.slots.samples.get(video, 0)):
             key = SampleKey.at(video, i, kpw)

@@ -138,7 +138,7 @@ class WorkerSide:
     def on_done(self, w, msg: Done) -> None:
         """A worker's task ended: the core is told; failed windows and a pass stopped early are
         logged (an exception with its type and where it was raised)."""
-        job = self.core.done(w.ident, msg.task, msg.windows, msg.failed, msg.error)
+        job = self.core.done(w.ident, msg.task, msg.windows, msg.failed, msg.error, msg.cause)
         if job is None:
             return
         w.idle = True
