@@ -256,6 +256,48 @@ def test_a_store_silent_for_less_than_the_attempts_is_retried_and_counted(store,
     assert src.take_stats()["retries"] >= 1  # botocore's retry, seen in ResponseMetadata.RetryAttempts
 
 
+def _plan_epoch(videos: str, env: dict, *extra: str, during=None) -> list:
+    """Epoch 0 served by plan from ``videos``: (sample id, voxels bytes) of each row, None for
+    padding; ``during(server)`` runs once the server is up, before the first fetch."""
+    from v2v_client import V2VStreamDataset
+
+    with ServeProcess(["--videos", videos, "--workers", "1", *LAYOUT.args(), "--outputs", "voxels", "--delivery", "plan",
+                       *extra], env=env) as srv:
+        if during is not None:
+            during(srv)
+        rows = []
+        for b in V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=120):
+            rows += [None if pad else (sid, b["voxels"][i].numpy().tobytes())
+                     for i, (sid, pad) in enumerate(zip(b["sample_ids"], b["padding"].tolist()))]
+        return rows, srv.log
+
+
+def test_a_pass_a_silent_store_cut_short_is_asked_again_when_served_by_plan(store, corpus, tmp_path):
+    """Served by plan, a store silent past a read's attempts stops the pass on its first video;
+    the video is decoded again once the store answers, so the epoch is the one the folder gives,
+    row for row and byte for byte, with no padding."""
+    import threading
+
+    def pause(srv):
+        def resume_once_a_pass_stopped():  # the next pass starts at once: its 1 s read is answered
+            deadline = time.monotonic() + 60
+            while "skipped" not in srv.log and time.monotonic() < deadline:
+                time.sleep(0.02)
+            store.resume()
+
+        store.pause()
+        threading.Thread(target=resume_once_a_pass_stopped, daemon=True).start()
+
+    try:
+        rows, log = _plan_epoch(URL, _env(store, tmp_path), "--store-read-timeout", "1", "--store-max-attempts", "1",
+                                during=pause)
+    finally:
+        store.resume()
+    assert "skipped" in log and "Traceback" not in log, log  # a pass did stop on the silent store
+    folder, _ = _plan_epoch(str(corpus), {"XDG_CACHE_HOME": str(tmp_path / "folder-cache")})
+    assert None not in rows and rows == folder
+
+
 def test_store_errors_name_the_url():
     with pytest.raises(StoreError, match=r"nosuch://b/p/.*no filesystem"):
         StoreSource("nosuch://b/p").check()
