@@ -135,15 +135,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         """The job's ranks: as given, else ``torch.distributed``'s when initialised, else 1."""
         return self._layout()[1]
 
-    def _layout(self):
-        rank, world = self._rank, self._world
-        if rank is None or world is None:
-            dist = torch.distributed
-            on = dist.is_available() and dist.is_initialized()
-            rank = rank if rank is not None else (dist.get_rank() if on else 0)
-            world = world if world is not None else (dist.get_world_size() if on else 1)
-            _check_layout(rank, world)
-        return rank, world
+    def _layout(self) -> Tuple[int, int]:
+        return _layout(self._rank, self._world)
 
     def __getstate__(self) -> dict:
         """Pickled (a DataLoader worker started by spawn or forkserver, where the process group
@@ -259,6 +252,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 Position.from_dict(loaded, expected=self._info.plan)
         return self._info
 
+    def __bool__(self) -> bool:
+        """True whatever ``len`` says (``if ds:`` would ask the server, and refuse while it learns the epoch)."""
+        return True
+
     def __len__(self) -> int:
         """Steps of this rank in the epoch from its start position (every rank the same); asked by
         accelerate's dispatcher (``len`` of the loader it prepared), the batches it reads: the
@@ -330,6 +327,17 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                         r["last"], r["next"] = done, done + k
                         yield batch
                     group = []
+
+def _layout(rank: Optional[int], world: Optional[int]) -> Tuple[int, int]:
+    """(rank, world size): as given, else ``torch.distributed``'s where initialised, else 0 and 1."""
+    if rank is None or world is None:
+        dist = torch.distributed
+        on = dist.is_available() and dist.is_initialized()
+        rank = rank if rank is not None else (dist.get_rank() if on else 0)
+        world = world if world is not None else (dist.get_world_size() if on else 1)
+        _check_layout(rank, world)
+    return rank, world
+
 
 def _item(info: PlanInfo, r: dict, step: int, rows: Rows, arrays, raw: bool) -> Dict:
     """The dataset's item of ``step`` (the class docstring), read as ``r`` says."""
