@@ -82,6 +82,7 @@ BAD_FROM_WORKERS = [
      "sample message: field 'stages'"),
     ({"type": "done", "task": 1, "windows": 2.5}, "done message: field 'windows'"),
     ({"type": "done", "task": 1, "failed": {"1": 2}}, "done message: field 'failed'"),
+    ({"type": "done", "task": 1, "failed": {"w1": "x"}}, "done message: field 'failed'"),  # the plan's feed reads digits
     ({"type": "done", "task": 1, "error": ["x"]}, "done message: field 'error'"),
     ({"type": "done", "task": 1, "failure": {"exc_type": "OSError", "message": "", "traceback": ""}},
      "done message: field 'failure.where'"),

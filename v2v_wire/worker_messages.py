@@ -198,7 +198,7 @@ class Done:
     Attributes:
         task: the task's id.
         windows: complete windows the file gave (``schedule.EpochScheduler.task_done``).
-        failed: window (as a string) -> why that window cannot be made.
+        failed: window (its digits, as a string) -> why that window cannot be made.
         error: why the pass gave fewer windows than it should (``window_pass.VideoPass.reason``), or None.
         cause: that reason's cause as a code, one of :data:`CAUSES` (``""`` without one).
         failure: the exception that stopped the pass, if one did.
@@ -237,7 +237,10 @@ class Done:
         cause = h.get("cause", "")
         if cause not in CAUSES:
             raise _bad("done", "cause", f"one of {list(CAUSES)}", cause)
-        return cls(_int(h, "done", "task"), count["windows"], _map(h, "done", "failed", (str,)), error,
+        failed = _map(h, "done", "failed", (str,))
+        if not all(k.isascii() and k.isdigit() and len(k) <= 9 for k in failed):
+            raise _bad("done", "failed", "a map of window numbers (digits) to strings", failed)
+        return cls(_int(h, "done", "task"), count["windows"], failed, error,
                    failure, count["frames"], count["cuts"], count["dropped"],
                    _map(h, "done", "stages", (int, float)), _map(h, "done", "store"), cause)
 
