@@ -47,3 +47,13 @@ def test_a_preview_path_that_is_not_a_png_or_lies_in_the_bundled_clips_is_refuse
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith(f"v2v-demo: --preview {path}: {why}"), err
         assert not (SAMPLE_VIDEOS / "preview.png").exists()
+
+
+def test_a_corpus_that_is_not_there_or_holds_no_video_is_one_line(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for videos, why in ((tmp_path / "none", "not a folder"), (empty, "no video files")):
+        assert demo.main(["--videos", str(videos), "--preview", str(tmp_path / "p.png")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("v2v-demo: ") and why in err[0], err
+    assert not (tmp_path / "p.png").exists()

@@ -10,6 +10,7 @@ it needs the server's packages (``pip install 'v2v[server,client]'``); a trainer
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -33,7 +34,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                    "(as v2v-loadtest --json)")
     a = p.parse_args(argv)
     try:  # the server and the preview (OpenCV) come with the server's packages only
-        from v2v_server.service.local import SAMPLE_VIDEOS, local_server
+        from v2v_server.service.local import SAMPLE_VIDEOS, StoreError, local_server
 
         from .preview import write_preview
     except ImportError as e:
@@ -47,7 +48,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     if why:
         print(f"v2v-demo: --preview {a.preview}: {why}", file=sys.stderr)
         return 2
-    with local_server(a.videos, a.workers, a.batch_size) as endpoint:
+    with contextlib.ExitStack() as stack:
+        try:
+            endpoint = stack.enter_context(local_server(a.videos, a.workers, a.batch_size))
+        except (ValueError, StoreError) as e:  # a corpus not there or without videos, a bad setting
+            print(f"v2v-demo: {e}", file=sys.stderr)
+            return 2
         print(f"v2v server running on {endpoint} with {a.workers} workers")
         ds = V2VStreamDataset(endpoint, timeout_s=a.timeout)
         it = iter(ds)

@@ -12,8 +12,9 @@ from v2v_server.ops.startup import SAMPLE_VIDEOS, start_source
 from v2v_server.ops.plan_start import plan_manifest
 from v2v_server.service.plan_server import PlanServer
 from v2v_server.service.server import V2VServer
+from v2v_server.sources.errors import StoreError
 
-__all__ = ["SAMPLE_VIDEOS", "local_server"]  # the demo names the bundled clips it serves by default
+__all__ = ["SAMPLE_VIDEOS", "StoreError", "local_server"]  # what the demo names: the bundled clips, a corpus not there
 
 
 @contextlib.contextmanager
