@@ -422,8 +422,8 @@ def test_compressed_rows_are_the_batches_plain_rows_are(server):
 def test_a_corpus_with_every_kind_of_bad_file_holds_each_usable_sample_once_an_epoch(tmp_path):
     """``harness.corpus.make_fault_corpus`` (empty, truncated, random, unsupported and too short
     files, non-videos, links out of the corpus) and a file whose frame size changes, served by plan:
-    each of two epochs holds every sample ``--check`` lists once, what a bad file lacks is a padding
-    row, each bad file is logged once, and the server serves on."""
+    each of two epochs holds every sample ``--check`` lists, once and nothing else (a bad file's
+    slots are what its decode gave), each bad file is logged once, and no traceback."""
     from harness.corpus import make_fault_corpus, write_size_change_video
     from harness.faults import Layout, expected_ids
 

@@ -328,6 +328,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                         yield batch
                     group = []
 
+
 def _layout(rank: Optional[int], world: Optional[int]) -> Tuple[int, int]:
     """(rank, world size): as given, else ``torch.distributed``'s where initialised, else 0 and 1."""
     if rank is None or world is None:
