@@ -167,6 +167,39 @@ def test_decode_ahead_goes_on_into_the_next_epoch_within_the_lookahead():
     assert sum(1 for sk in feed.store if sk[0] == 1) <= feed.lookahead + 1
 
 
+def _work(feed, now):
+    """Idle workers' tasks until none: each video's 2 samples; the (epoch, video) made, in order."""
+    made = []
+    while (t := feed.task_for("w", now)) is not None:
+        made.append((t.epoch, t.video))
+        for i in range(2):
+            feed.sample("w", t.task, SampleKey.at(t.video, i), now, lambda lane: "s")
+        feed.done("w", t.task, 2, {}, None)
+    return made
+
+
+def test_a_reader_slower_than_the_workers_finds_its_next_batches_made_across_epochs():
+    """Decode-ahead follows the furthest fetch of each epoch, answered or not: a reader that
+    has every fetch answered (its loop busy with a step) still finds the next positions made,
+    past the epoch's end too, and after more epochs than the server keeps plans for; what a
+    reader has fetched of an epoch it moved into is not made again."""
+    m = Manifest.of({f"v{i}.mp4": 2 for i in range(4)})
+    feed = PlanFeed(m, 0, 1, ("voxels",), lookahead=4, keep_samples=0)
+    for epoch in range(6):  # more than PLANS_KEPT epochs, read in turn
+        for start in range(0, 8, 2):
+            feed.fetch("c", 1, epoch, start, start + 2, float(epoch))
+            _work(feed, float(epoch))
+            assert len(feed.answer(float(epoch))) == 1
+            assert not feed.pending
+        _work(feed, float(epoch))  # nothing pending: made ahead of the last fetch, into the next epoch
+        nxt = EpochPlan(m, 0, epoch + 1, 1)
+        assert all((epoch + 1, nxt.key(p)) in feed.store for p in (0, 1)), epoch  # the next batch is made
+    feed.fetch("c", 1, 6, 0, 2, 6.0)  # the reader moved into epoch 6: its positions after 2 lead
+    feed.answer(6.0)
+    later = {EpochPlan(m, 0, 6, 1).key(p).video for p in range(2, 8)}
+    assert all(e == 6 and v in later for e, v in _work(feed, 6.0))
+
+
 def test_workers_make_the_outputs_fetches_ask_for_and_a_new_one_remakes_what_lacks_it():
     m = Manifest.of({"a.mp4": 2})
     feed = PlanFeed(m, 0, 1, ("voxels", "frames", "flow"), lookahead=0)

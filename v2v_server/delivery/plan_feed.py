@@ -158,17 +158,20 @@ def spare_samples(store: Sequence, fetched: Set, named: Set, live: Set[int], cou
 
 
 def positions_after(plan_of: Callable[[int], EpochPlan], kept: Mapping[int, EpochPlan], epoch: int, stop: int,
-                    count: int) -> Iterator[Tuple[int, str, Optional[SampleKey]]]:
+                    count: int, busy: Set[int] = frozenset()) -> Iterator[Tuple[int, str, Optional[SampleKey]]]:
     """(epoch, video, key) of the ``count`` positions of ``epoch`` from ``stop`` on (``plan_of``:
     an epoch's plan; ``kept``: the plans built); where the plan is not decided that far, (epoch,
     video, None) for the videos whose slots unfold it next, in order; past the epoch's end, the
     next epoch's first ones (a trainer reads its epochs in turn: decoding them while it reads the
-    end of this one keeps the workers busy across the boundary), unless that would drop a kept plan."""
+    end of this one keeps the workers busy across the boundary), unless that would drop a kept plan
+    a pending fetch reads (``busy``: their epochs; ``kept`` in least recently used order, as
+    :meth:`PlanFeed.plan` drops them)."""
     plan = plan_of(epoch)
     yield from _positions(plan, stop, count)
     if plan.complete:
         rest = stop + count - max(stop, len(plan))
-        if rest > 0 and len(plan) and (epoch + 1 in kept or len(kept) < PLANS_KEPT):
+        room = epoch + 1 in kept or len(kept) < PLANS_KEPT or next(iter(kept)) not in busy
+        if rest > 0 and len(plan) and room:
             yield from _positions(plan_of(epoch + 1), 0, rest)
 
 
@@ -255,17 +258,21 @@ def unfolding(plan: EpochPlan, stop: int, slots: Slots, made: Mapping[Tuple[int,
 
 def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans: Mapping[int, EpochPlan],
            store: Mapping, fetched: Set, failed: Mapping, runs: Mapping[Tuple[int, str], Run], slots: Slots,
-           lookahead: int, shuffle_buffer: int) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
+           lookahead: int, shuffle_buffer: int,
+           fetched_to: Mapping[int, int] = {}) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
     """(epoch, video) to decode: those ``pending`` fetches need a sample of (neither in ``store``
     nor ``failed``), by the first position needing it, or, where a fetch's positions are not
     decided yet, whose slots decide them (:func:`unfolding`); and those the positions after each
-    epoch's furthest fetch need, not in ``runs``, while the samples made ahead (stored and not
-    ``fetched``, or still to come from running tasks) stay within ``lookahead`` (module docstring)."""
+    epoch's furthest fetch need (pending, or answered: ``fetched_to``, epoch -> the furthest stop
+    asked), not in ``runs``, while the samples made ahead (stored and not ``fetched``, or still to
+    come from running tasks) stay within ``lookahead`` (module docstring). Past an epoch's end the
+    next epoch's first positions are made ahead only while no fetch has named that epoch: once
+    one has, its own furthest fetch leads (what was fetched of it may have left the store)."""
     made: Dict[Tuple[int, str], int] = {}
     for (e, k) in list(store) + list(failed):
         made[(e, k.video)] = made.get((e, k.video), 0) + 1
     waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
-    furthest: Dict[int, int] = {}
+    furthest: Dict[int, int] = dict(fetched_to)
     for f in pending:
         plan = plan_of(f.epoch)
         furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
@@ -281,8 +288,9 @@ def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans:
     budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
     ahead: List[Tuple[int, str]] = []
     for epoch, stop in sorted(furthest.items()):
-        for e, video, key in positions_after(plan_of, plans, epoch, stop, lookahead + shuffle_buffer):
-            if budget <= 0:
+        busy = {f.epoch for f in pending}
+        for e, video, key in positions_after(plan_of, plans, epoch, stop, lookahead + shuffle_buffer, busy):
+            if budget <= 0 or (e != epoch and e in furthest):
                 break
             ek, n = (e, video), slots.samples.get(video)
             if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
@@ -331,6 +339,7 @@ class PlanFeed:
         self.runs: Dict[Tuple[int, str], Run] = {}
         self.task_run: Dict[int, Tuple[int, str]] = {}
         self.fetched_at: Dict[int, float] = {}  # epoch -> when a fetch last named it
+        self.fetched_to: Dict[int, int] = {}  # epoch (of a kept plan) -> the furthest stop a fetch named
         self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
         self._task_ids = 0
         self.samples_made = 0
@@ -345,6 +354,7 @@ class PlanFeed:
                 p.learn(self.slots.windows)
             while len(self.plans) > PLANS_KEPT:
                 gone, _ = self.plans.popitem(last=False)
+                self.fetched_to.pop(gone, None)
                 self.failed = {sk: why for sk, why in self.failed.items() if sk[0] != gone}
         else:
             self.plans.move_to_end(epoch)
@@ -368,6 +378,7 @@ class PlanFeed:
         self.plan(epoch)
         self.pending.append(Fetch(client, request, epoch, start, stop))
         self.fetched_at[epoch] = now
+        self.fetched_to[epoch] = max(self.fetched_to.get(epoch, 0), stop)
 
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s pending fetches (it left)."""
@@ -438,7 +449,7 @@ class PlanFeed:
         """The task for an idle ``worker``: the first video a pending fetch waits on; else a
         hedge of one that sent nothing for ``hedge_s`` while a fetch waits on it; else the next
         video to decode ahead; None when none."""
-        waited, ahead = self._needed()
+        waited, ahead = self._needed(now)
         for ek in waited:
             if ek not in self.runs:
                 return self._start(ek, worker, now, codecs)
@@ -449,10 +460,14 @@ class PlanFeed:
                 return self._start(ek, worker, now, codecs)
         return self._start(ahead[0], worker, now, codecs) if ahead else None
 
-    def _needed(self) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
-        """(epoch, video) to decode: those pending fetches wait on, and those to decode ahead (:func:`needed`)."""
+    def _needed(self, now: float) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
+        """(epoch, video) to decode: those pending fetches wait on, and those to decode ahead
+        (:func:`needed`) of the furthest fetch of each kept epoch a fetch named in the last
+        :data:`IDLE_S` (answered or not: a reader slower than the workers finds its next batches
+        made, across an epoch's end too)."""
+        live = {e: stop for e, stop in self.fetched_to.items() if now - self.fetched_at.get(e, now) < IDLE_S}
         return needed(self.pending, self.plan, self.plans, self.store, self.fetched, self.failed, self.runs,
-                      self.slots, self.lookahead, self.shuffle_buffer)
+                      self.slots, self.lookahead, self.shuffle_buffer, live)
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
         epoch, video = ek
