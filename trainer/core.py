@@ -267,15 +267,43 @@ class Trainer:
         log.info("resumed from %s at step %d", path, self.step)
 
     def fit(self, stream, max_steps: int, image_every: int = 500, checkpoint_every: int = 1000,
-            progress: bool = True, log_every: int = 10, tensorboard: bool = True) -> dict:
-        """Train from a stream (``v2v_client.V2VPushDataset`` or any iterable of its batches)
-        until ``max_steps`` total steps, the stream ends or Ctrl-C; checkpoints carry the
-        stream's ``state_dict()``; with ``tensorboard``, event files too, their ``recipe`` the
-        stream's ``info`` (the server's welcome) when it has one. Returns the summary of
-        ``trainer.loop.train_loop``."""
-        from .data import make_loader
+            progress: bool = True, log_every: int = 10, tensorboard: bool = True,
+            startup: Optional[dict] = None) -> dict:
+        """Train from a stream until ``max_steps`` total steps, the stream ends or Ctrl-C.
+
+        ``stream``: a plan's epochs (``v2v_client.PlanEpochs``, read through a
+        ``trainer.data.ReadAhead``), a read path already made (``trainer.data.read_path``:
+        ``v2v-train`` starts reading before it builds the model), or any other iterable of stream batches
+        (``V2VPushDataset``: ``trainer.data.make_loader``). Checkpoints carry the read path's
+        ``state_dict()`` (a ``ReadAhead``'s: the position of the last batch trained on); with
+        ``tensorboard``, event files too, their ``recipe`` the stream's ``info`` (the server's
+        welcome) when it has one. ``startup``: the caller's start-up phases (seconds), added to
+        the summary's ``startup_s``. Returns the summary of ``trainer.loop.train_loop``, its
+        ``feed`` line with the server's figures where it reports them (``server_feed``)."""
+        from torch.utils.data import DataLoader
+
+        from .data import ReadAhead, read_path
         from .loop import RunHooks, Schedule, train_loop
 
-        return train_loop(self, make_loader(stream, self.device), max_steps,
-                          Schedule(image_every, checkpoint_every, progress, log_every, tensorboard),
-                          lambda: self.save_checkpoint(stream), RunHooks(recipe=lambda: getattr(stream, "info", None)))
+        if isinstance(stream, (ReadAhead, DataLoader)):  # a read path already made (v2v-train's)
+            feed, source = stream, stream.stream if isinstance(stream, ReadAhead) else stream.dataset
+        else:
+            feed, source = read_path(stream, self.device), stream
+        saved = feed if isinstance(feed, ReadAhead) else source
+
+        def extra() -> dict:
+            first = getattr(feed, "first_batch_s", None)
+            phases = dict(startup or {}, **({"first_batch": round(first, 4)} if first is not None else {}))
+            return {"startup_s": phases} if phases else {}
+
+        server_feed = getattr(source, "server_feed", None)
+        hooks = RunHooks(recipe=lambda: getattr(source, "info", None), summary_extra=extra,
+                         server_feed=server_feed if callable(server_feed) else (lambda: None))
+        try:
+            return train_loop(self, feed, max_steps, Schedule(image_every, checkpoint_every, progress, log_every,
+                                                              tensorboard),
+                              lambda: self.save_checkpoint(saved), hooks)
+        finally:
+            close = getattr(feed, "close", None)
+            if callable(close):
+                close()

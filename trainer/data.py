@@ -17,6 +17,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from v2v_client.plan_dataset import PlanEpochs, PlanServerError, open_stream
+from v2v_client.read_ahead import READ_AHEAD, ReadAhead
 from v2v_client.session import StreamError
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.plan import PlanMismatch
@@ -27,7 +28,8 @@ from .tasks import get_task
 #: server and why, in one line): v2v-train ends with that line.
 STREAM_ERRORS = (TimeoutError, StreamError, PlanServerError, PlanMismatch)
 
-__all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "make_loader", "batch_to_device", "drop_padding"]
+__all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "ReadAhead", "READ_AHEAD", "read_path", "make_loader",
+           "batch_to_device", "drop_padding"]
 
 
 def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
@@ -55,6 +57,13 @@ def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:
     memory when the device is CUDA; no worker processes (the stream client does its own
     network I/O in the background)."""
     return DataLoader(dataset, batch_size=None, num_workers=0, pin_memory=(device.type == "cuda"))
+
+
+def read_path(stream, device: torch.device):
+    """What the training loop iterates for ``stream``: a :class:`ReadAhead` over a plan's epochs
+    (:class:`PlanEpochs`), a :func:`make_loader` over any other iterable of batches (a push
+    stream, which reads ahead in its own thread and counts what it yields as delivered)."""
+    return ReadAhead(stream, pin=device.type == "cuda") if isinstance(stream, PlanEpochs) else make_loader(stream, device)
 
 
 def _to_float(name: str, t: torch.Tensor) -> torch.Tensor:

@@ -14,14 +14,15 @@ import argparse
 import json
 import logging
 import sys
+import time
 from pathlib import Path
 
 from v2v_server.settings import add_flags, flag_values
-from v2v_wire.commands import input_overwritten, writable_problem, write_whole
+from v2v_wire.commands import STARTED, input_overwritten, writable_problem, write_whole
 
 from .config import RunSettings, apply_overrides, check_types, exit_on_config_error, load_config
 from .core import Trainer, resolve_device
-from .data import STREAM_ERRORS, make_stream
+from .data import STREAM_ERRORS, ReadAhead, make_stream, read_path
 from .models.lpips import LPIPSUnavailable
 from .ray_train import add_ray_arguments
 from .raft_flow import FlowSourceUnavailable
@@ -102,33 +103,59 @@ def main(argv=None) -> int:
     device = resolve_device(cfg["device"])
     log.info("task %s on %s, stream %s asking for %s", cfg["task"], device, cfg["connect"], stream_outputs(cfg))
     write_whole(out / "config.json", json.dumps(cfg, indent=2))
+    s, lg = cfg["stream"], cfg["log"]
+    resume = cfg.get("resume")
+    if resume == "auto":
+        resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None
+    feed = None
     try:
-        trainer = Trainer(cfg, str(out), device)
-    except (FlowSourceUnavailable, LPIPSUnavailable) as e:  # RAFT or LPIPS asked for, weights missing
-        log.error("%s", e)
-        return 2
-    log.info("model: %d parameters", sum(p.numel() for p in trainer.model.parameters()))
-    s = cfg["stream"]
-    try:
+        t0 = time.perf_counter()
         stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"],
                              reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None,
                              outputs=stream_outputs(cfg), compact_flow=bool(s.get("compact_flow", True)))
-        resume = cfg.get("resume")
-        if resume == "auto":
-            resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None
+        t1 = time.perf_counter()
         if resume:
-            trainer.load_checkpoint(resume, stream)
-        lg = cfg["log"]
-        trainer.fit(stream, int(cfg["max_steps"]), int(lg["image_every"]), int(lg["checkpoint_every"]),
+            _resume_stream(resume, stream)
+        feed = read_path(stream, device)
+        if isinstance(feed, ReadAhead):
+            feed.start()  # the first fetches go out while the model is built
+        try:
+            trainer = Trainer(cfg, str(out), device)
+        except (FlowSourceUnavailable, LPIPSUnavailable) as e:  # RAFT or LPIPS asked for, weights missing
+            log.error("%s", e)
+            return 2
+        log.info("model: %d parameters", sum(p.numel() for p in trainer.model.parameters()))
+        t2 = time.perf_counter()
+        if resume:
+            trainer.load_checkpoint(resume)
+        trainer.fit(feed, int(cfg["max_steps"]), int(lg["image_every"]), int(lg["checkpoint_every"]),
                     progress=bool(lg["progress"]) and not args.no_progress, log_every=int(lg.get("every", 10)),
-                    tensorboard=bool(lg["tensorboard"]))
+                    tensorboard=bool(lg["tensorboard"]),
+                    startup={"connect": round(t1 - t0, 4), "model_build": round(t2 - t1, 4),
+                             "to_loop": round(time.perf_counter() - STARTED, 4)})
     except STREAM_ERRORS as e:  # the server absent, silent, or refusing: one line, its own words
         print(f"v2v-train: {e}", file=sys.stderr)
         return 1
+    finally:
+        if feed is not None and callable(getattr(feed, "close", None)):
+            feed.close()
     close = getattr(stream, "close", None)
     if callable(close):
         close()
     return 0
+
+
+def _resume_stream(path: str, stream) -> None:
+    """Hand the stream state of the checkpoint at ``path`` to ``stream`` before reading begins
+    (the model and optimiser are restored later, by ``Trainer.load_checkpoint``)."""
+    import torch
+
+    state = torch.load(path, map_location="cpu", weights_only=False).get("stream_state")
+    if state is not None and hasattr(stream, "load_state_dict"):
+        stream.load_state_dict(state)
+        log.info("resumed stream position from checkpoint")
+    else:
+        log.warning("checkpoint has no stream state or the client cannot load one: the stream restarts its epoch")
 
 
 if __name__ == "__main__":  # pragma: no cover

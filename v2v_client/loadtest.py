@@ -1,5 +1,6 @@
 """``v2v-loadtest``: measure what a v2v server delivers, read as a trainer reads it: a plan's epochs in
-turn through ``V2VStreamDataset`` (v2v-serve's default delivery), or a push stream through
+turn through ``V2VStreamDataset`` (v2v-serve's default delivery) read ahead of the loop
+(``read_ahead.ReadAhead``, as ``v2v-train`` reads them), or a push stream through
 ``V2VPushDataset`` (``--delivery push``, and several servers read together)."""
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from typing import List, Optional
 from v2v_wire.protocol import DEFAULT_OUTPUTS
 
 from .plan_dataset import PlanEpochs, open_stream
+from .read_ahead import ReadAhead
 
 
 def _stream(endpoint, outputs, credits: Optional[int], timeout_s: float):
@@ -41,7 +43,10 @@ def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: Optio
     ``per_server``: {endpoint: {``batches``, ``samples``, ``samples_per_s``, ``mbytes_per_s``}}
     over the same measured wall time.
     """
-    it = iter(_stream(endpoint, outputs, credits, timeout_s))
+    stream = _stream(endpoint, outputs, credits, timeout_s)
+    if isinstance(stream, PlanEpochs):  # read as v2v-train reads a plan: ahead of the loop
+        stream = ReadAhead(stream)
+    it = iter(stream)
     n = samples = nbytes = 0
     ids = set()
     epochs = set()
@@ -78,6 +83,8 @@ def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: Optio
                 time.sleep(step_s)
     finally:
         it.close()
+        if isinstance(stream, ReadAhead):
+            stream.close()
     secs = (time.perf_counter() - t0) if t0 is not None else 0.0
     secs = max(secs, 1e-9)
     return {

@@ -31,8 +31,13 @@ import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Callable, Iterable, Optional, Tuple, Union
+
+#: When the command began (``time.perf_counter``; this module is imported first): ``v2v-train``'s
+#: summary counts its start-up from it.
+STARTED = time.perf_counter()
 
 #: Console script -> ``module:function`` of its command (each ``main(argv=None) -> int``).
 COMMANDS = {
