@@ -160,3 +160,38 @@ def test_train_at_an_address_with_no_server_ends_in_one_line(tmp_path):
     err = r.stderr.strip().splitlines()
     assert r.returncode == 1 and err[-1].startswith(f"v2v-train: {endpoint}: no answer"), r.stderr
     assert "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_run_against_a_plan_server_says_whether_it_was_fed(tmp_path, bikes_corpus, monkeypatch):
+    """The summary, its one line and TensorBoard carry the feed figures: samples/s, the data-wait
+    fraction and the model's own rate after the first step, the start-up by phase, and what
+    would feed the run, from the server's own figures (its workers)."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    seen = record_trained(monkeypatch)
+    out = tmp_path / "run"
+    serve = ["--videos", str(bikes_corpus), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
+             "--crop-size", "32", "--batch-size", "2", "--seed", "3", "--delivery", "plan"]
+    with ServeProcess(serve) as srv:
+        assert tr.main(["--task", "e2vid", "--connect", srv.endpoint, "--out", str(out), "--device", "cpu",
+                        "--no-progress", "--set", "model.num_bins=3", "--set", "model.base_num_channels=4",
+                        "--set", "log.every=2", "--set", "stream.timeout_s=30", "--max-steps", "6"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["samples"] == sum(len(ids) for _, ids in seen) == 12
+    assert s["samples_per_s"] > 0 and s["model_samples_per_s"] >= s["samples_per_s"]
+    assert 0 <= s["data_wait_fraction"] <= 1
+    assert {"connect", "model_build", "first_batch", "to_loop", "first_batch_wait", "first_step",
+            "to_first_step"} <= set(s["startup_s"])
+    assert s["startup_s"]["to_first_step"] >= s["startup_s"]["first_step"] > 0
+    if s["data_wait_fraction"] > 0.05:  # the server reported its one worker: the line says how many would feed
+        assert s["feed"].startswith("starved: ") and "more decode worker(s) at this recipe" in s["feed"]
+    else:
+        assert s["feed"].startswith("fed: ")
+    assert f"feed: {s['feed']}" in (out / "train.log").read_text()
+    acc = EventAccumulator(str(out), size_guidance={"scalars": 0, "tensors": 0})
+    acc.Reload()
+    for key in ("samples_per_s", "model_samples_per_s", "data_wait_fraction"):
+        (e,) = acc.Scalars(f"feed/{key}")
+        assert e.step == 6 and e.value == pytest.approx(s[key], rel=1e-5)
+    assert "feed/text_summary" in acc.Tags()["tensors"]  # the line, as TensorBoard keeps text

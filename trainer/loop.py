@@ -63,6 +63,9 @@ class RunHooks:
             "always" (a collective checkpoint every rank must take part in).
         recipe: called once after the first step: the sample recipe the batches were made
             under (a dict, TensorBoard's ``recipe`` text), or None when the source does not say.
+        server_feed: called once at the end (rank 0's files): the server's ``feed`` figures
+            (``v2v_client.V2VStreamDataset.server_feed``) for the summary's ``feed`` line
+            (``trainer.feed_report``), or None when the source does not report them.
     """
 
     on_batch: Optional[Callable[[dict, dict], None]] = None
@@ -71,6 +74,7 @@ class RunHooks:
     summary_extra: Callable[[], dict] = dict
     final_checkpoint: str = "if_new"
     recipe: Callable[[], Optional[dict]] = lambda: None
+    server_feed: Callable[[], Optional[dict]] = lambda: None
 
 
 class RunLog:
@@ -223,14 +227,64 @@ def _read_rows(rows: List[dict]) -> List[dict]:
     return out
 
 
-def _summary(trainer, losses: List[float], n: int, elapsed: float, wait: float, extra: dict) -> dict:
+class _Pace:
+    """What the loop measures of its feed: the first step (its wait for the batch, its own time:
+    start-up) apart from the steps after it (the steady figures of the summary)."""
+
+    def __init__(self):
+        self.t_start = time.perf_counter()
+        self.first: Optional[dict] = None  # {"first_batch_wait": s, "first_step": s}
+        self.t_steady = self.t_start  # the end of the first step
+        self.steps = self.samples = self.total = 0  # after the first step; all
+        self.wait = self.wait_all = 0.0  # seconds waited for batches after the first step; all
+
+    def step(self, t0: float, t1: float, t2: float, samples: int) -> None:
+        self.total += samples
+        self.wait_all += t1 - t0
+        if self.first is None:
+            self.first = {"first_batch_wait": round(t1 - t0, 4), "first_step": round(t2 - t1, 4)}
+            self.t_steady = t2
+            return
+        self.steps += 1
+        self.samples += samples
+        self.wait += t1 - t0
+
+    def waited(self) -> float:
+        """The share of the loop's wall time so far spent waiting for batches (the progress bar's)."""
+        return self.wait_all / max(time.perf_counter() - self.t_start, 1e-9)
+
+    def figures(self, t_end: float) -> dict:
+        """``steps_per_s``, ``samples_per_s``, ``data_wait_fraction`` and ``model_samples_per_s``
+        (the samples over the time the loop did not wait) after the first step (None with fewer
+        than two steps), ``samples`` (all), and ``startup_s`` (the first step's wait and time)."""
+        el = t_end - self.t_steady
+        ok = self.steps > 0 and el > 0
+        return {"samples": self.total, "steps_per_s": self.steps / el if ok else None, "samples_per_s": self.samples / el if ok else None,
+                "data_wait_fraction": min(1.0, self.wait / el) if ok else None,
+                "model_samples_per_s": self.samples / (el - self.wait) if ok and el > self.wait else None,
+                "startup_s": dict(self.first or {})}
+
+
+def _summary(trainer, losses: List[float], n: int, pace: dict, extra: dict) -> dict:
+    """task, perceptual_term (the trainer's: an LPIPS backbone, ``trainer.models.lpips.STAND_IN``,
+    or None), steps, final_step, first/last loss and the means of the first and last 10 (finite
+    losses: a step of padding only has none); ``pace`` (:meth:`_Pace.figures`: samples, and from
+    the end of the first step on steps_per_s, samples_per_s, data_wait_fraction, the time blocked
+    on the batches over the wall time, and model_samples_per_s, the samples over the time not
+    blocked: the model's own rate); startup_s (the loop's ``first_batch_wait`` and ``first_step``,
+    compile included, with the engine's phases from ``extra`` and, given ``to_loop``,
+    ``to_first_step`` from the command's start); plus the rest of ``extra``
+    (``hooks.summary_extra()``)."""
+    extra = dict(extra)
+    startup = {**pace.pop("startup_s"), **extra.pop("startup_s", {})}  # the engine's phases beside the loop's
+    if "to_loop" in startup and "first_step" in startup:
+        startup["to_first_step"] = round(startup["to_loop"] + startup["first_batch_wait"] + startup["first_step"], 4)
+    pace["startup_s"] = startup
     return {"task": trainer.task, "perceptual_term": getattr(trainer, "perceptual_term", None), "steps": n,
             "final_step": trainer.step,
             "first_loss": losses[0] if losses else None, "last_loss": losses[-1] if losses else None,
             "mean_loss_first10": float(np.mean(losses[:10])) if losses else None,
-            "mean_loss_last10": float(np.mean(losses[-10:])) if losses else None,
-            "steps_per_s": n / elapsed if elapsed > 0 else None,
-            "data_wait_fraction": wait / elapsed if elapsed > 0 else None, **extra}
+            "mean_loss_last10": float(np.mean(losses[-10:])) if losses else None, **pace, **extra}
 
 
 def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, checkpoint: Callable[[], None],
@@ -238,11 +292,9 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
     """Train ``trainer`` (``trainer.core.Trainer``) on ``batches`` until ``max_steps`` total
     steps, the batches end, or Ctrl-C or SIGTERM (which still checkpoint, then stop the run).
 
-    Returns (and, with ``hooks.files``, writes to ``summary.json``) the summary: task,
-    perceptual_term (the trainer's: an LPIPS backbone, ``trainer.models.lpips.STAND_IN``, or None), steps,
-    final_step, first/last loss and the means of the first and last 10 (finite losses: a step
-    of padding only has none), steps_per_s, data_wait_fraction (time blocked on the batches /
-    wall time of the loop), plus ``hooks.summary_extra()``.
+    Returns (and, with ``hooks.files``, writes to ``summary.json``) the summary (:func:`_summary`:
+    the losses, the feed figures after the first step, the start-up by phase) and, with
+    ``hooks.files``, ``feed``: whether the run was fed and what would feed it (:func:`_feed`).
 
     Steps run with ``train_step(batch, sync=False)``: their losses stay on the device until
     the next multiple of ``schedule.log_every``, a preview, a checkpoint or the end, where they
@@ -258,7 +310,7 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
     """
     hooks = hooks or RunHooks()
     files = _RunFiles(trainer, schedule, hooks, max_steps)
-    wait, t_start = 0.0, time.perf_counter()
+    pace = _Pace()
     start_step, every = trainer.step, schedule.checkpoint_every
     it = iter(batches)
     interrupted: Optional[KeyboardInterrupt] = None
@@ -274,7 +326,7 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
                 t1 = time.perf_counter()
                 stats = trainer.train_step(batch, sync=False)
                 t2 = time.perf_counter()
-                wait += t1 - t0
+                pace.step(t0, t1, t2, int(stats.get("samples", 0)))
                 if hooks.on_batch is not None:
                     hooks.on_batch(batch, stats)
                 stats.update(step=trainer.step, epoch=batch.get("epoch", ""), batch_id=batch.get("batch_id", ""),
@@ -284,7 +336,7 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
                 # a preview's or checkpoint's step: its rows first (events in step order; the rows up
                 # to a checkpoint reach the disk before the checkpoint that a resume starts from)
                 if trainer.step % max(1, schedule.log_every) == 0 or preview or (every and trainer.step % every == 0):
-                    files.flush(wait / max(time.perf_counter() - t_start, 1e-9))
+                    files.flush(pace.waited())
                 if preview:
                     files.preview(trainer)
                 if every and trainer.step % every == 0:
@@ -294,25 +346,44 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
             interrupted = e
         finally:
             try:
-                files.flush(wait / max(time.perf_counter() - t_start, 1e-9))
+                files.flush(pace.waited())
             finally:
                 files.close_log()
-        elapsed = time.perf_counter() - t_start
+        t_end = time.perf_counter()
         n = trainer.step - start_step
         previewed = schedule.image_every and trainer.step % schedule.image_every == 0  # in the loop
         if n and hooks.files and getattr(trainer, "_last", None) is not None and not previewed:
             files.preview(trainer)
         if hooks.final_checkpoint == "always" or (n and (not every or trainer.step % every)):
             checkpoint()
+        summary = _summary(trainer, files.losses, n, pace.figures(t_end), hooks.summary_extra())
+        if hooks.files:
+            _feed(summary, hooks, files.board if n else None, trainer.step)
     finally:
         files.close_board()
-    summary = _summary(trainer, files.losses, n, elapsed, wait, hooks.summary_extra())
     if hooks.files:
         write_whole(trainer.out / "summary.json", json.dumps(summary, indent=2))
         log.info("done: %s", json.dumps(summary))
     if interrupted is not None:  # the command says it in one line (v2v_wire.commands), with where it stopped
         raise type(interrupted)(f"stopped at step {trainer.step}" + (f"; checkpoint in {trainer.out}" * hooks.files))
     return summary
+
+
+def _feed(summary: dict, hooks: RunHooks, board, step: int) -> None:
+    """The summary's ``feed`` line, with the server's figures when it reports them (a server
+    that does not answer now is left out: the line then says less, the run is not failed):
+    logged, and with the feed figures on ``board`` (when not None) at ``step``."""
+    from .feed_report import feed_line
+
+    try:
+        server = hooks.server_feed() if summary.get("data_wait_fraction") else None
+    except (TimeoutError, RuntimeError, ValueError) as e:
+        log.warning("the server's feed figures: %s", e)
+        server = None
+    summary["feed"] = feed_line(summary, server)
+    log.info("feed: %s", summary["feed"])
+    if board is not None:
+        board.feed(summary, step)
 
 
 def _progress_bar(max_steps: int, step: int):

@@ -19,6 +19,11 @@ tag                                 value
 ``speed/data_wait_fraction``        time waited for batches / wall time over each logging interval
                                     (``log.every`` steps), at the interval's last step: near 0 the
                                     decode hosts keep up, near 1 the GPU waits for them
+``feed/samples_per_s``,             at the session's last step: the summary's ``samples_per_s``,
+``feed/model_samples_per_s``,       ``model_samples_per_s`` and ``data_wait_fraction`` (from the
+``feed/data_wait_fraction``         end of the first step on: ``trainer.loop``)
+``feed``                            text, at the session's last step: the summary's ``feed`` line
+                                    (fed, or what would feed it: ``trainer.feed_report``)
 ``stream/epoch``                    ``epoch``
 ``stream/batch_id``                 ``batch_id`` (the stream engine's)
 ``stream/samples``                  ``samples`` (the Ray engine's real samples of the step)
@@ -140,6 +145,14 @@ class RunBoard:
         self.writer.add_text("config", _json_block(config), self.texts_at)
         self.writer.add_text("recipe", _json_block(recipe) if recipe else "not reported by the batches' source",
                              self.texts_at)
+
+    def feed(self, summary: dict, step: int) -> None:
+        """The run's feed figures and its ``feed`` line (``trainer.loop``'s summary) at ``step``."""
+        for key in ("samples_per_s", "model_samples_per_s", "data_wait_fraction"):
+            v = _number(summary.get(key))
+            if v is not None:
+                self.writer.add_scalar(f"feed/{key}", v, int(step))
+        self.writer.add_text("feed", str(summary.get("feed", "")), int(step))
 
     def flush(self) -> None:
         """Put the events written so far into the files (the loop calls it with every checkpoint)."""

@@ -384,6 +384,27 @@ class _Servers:
             return _Link(self.shards[0][0], timeout_s, curve, self.codecs[self.shards[0][0]])
         return _Shards(self.shards, timeout_s, curve, self.codecs)
 
+    def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
+        """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
+        shards: ``workers``, ``samples_made``, ``busy_s`` (stage -> worker seconds) and the
+        smallest ``frame_cache_gb``; None when a server does not report them.
+
+        Raises:
+            TimeoutError: a server did not answer within ``timeout_s``."""
+        figures = []
+        for server in [ep for ep, _ in self.shards or ()] or resolve_endpoints(self.endpoint):
+            with _Link(server, timeout_s, curve) as link:
+                figures.append(link.ask().stream.get("feed"))
+        if not figures or not all(isinstance(f, dict) for f in figures):
+            return None
+        busy: Dict[str, float] = {}
+        for f in figures:
+            for stage, v in (f.get("busy_s") or {}).items():
+                busy[stage] = busy.get(stage, 0.0) + float(v)
+        return {"workers": sum(int(f.get("workers") or 0) for f in figures),
+                "samples_made": sum(int(f.get("samples_made") or 0) for f in figures),
+                "frame_cache_gb": min(float(f.get("frame_cache_gb") or 0.0) for f in figures), "busy_s": busy}
+
 
 def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
     """``(PlanInfo, [(server, its plan identity)])`` of the servers read as one plan: one server's
@@ -474,6 +495,17 @@ class PlanEpochs(torch.utils.data.IterableDataset):
 
     def load_state_dict(self, state: dict) -> None:
         self.dataset.load_state_dict(state)
+
+    def server_feed(self) -> Optional[dict]:
+        """What the dataset's server(s) report of their work, asked now (``_Servers.feed``):
+        ``workers``, ``samples_made``, ``busy_s`` (stage -> worker seconds), ``frame_cache_gb``;
+        None from a server that does not report them. ``trainer.feed_report`` says from them
+        what would feed a starved trainer.
+
+        Raises:
+            TimeoutError: a server did not answer within the dataset's ``timeout_s``."""
+        ds = self.dataset
+        return ds._servers.feed(ds.timeout_s, ds.curve)
 
 
 def _check_settings(batch_size: int, prefetch: int, retry_s: float, timeout_s: float) -> None:

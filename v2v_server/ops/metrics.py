@@ -204,6 +204,11 @@ class ServerMetrics:
                  "workers_restarted", "files_skipped", "bad_messages", "tasks_timed_out")
         return {n: int(self.registry.get_sample_value(f"v2v_{n}_total") or 0) for n in names}
 
+    def busy_seconds(self) -> Dict[str, float]:
+        """Seconds the workers spent in each stage of ``STAGES`` so far, summed over workers."""
+        return {s: float(self.registry.get_sample_value("v2v_worker_busy_seconds_total", {"stage": s}) or 0.0)
+                for s in STAGES}
+
     def on_worker_message(self, msg: Union[Sample, Done]) -> None:
         """Add what a worker message checked at the edge (``worker_messages.worker_message``)
         carries: its stage seconds (``stages``: stage -> seconds since the worker's previous

@@ -96,13 +96,18 @@ class PlanServer:
     def stream_info(self) -> dict:
         """The recipe's shapes and outputs, as a client needs them to read rows; the shard served
         (``"I/N"``, None for the whole corpus), the listing's and the recipe's fingerprints, which a
-        reader of several shards checks (``v2v_client.fanin.check_servers``)."""
+        reader of several shards checks (``v2v_client.fanin.check_servers``); ``feed``, what a
+        trainer needs to say what would feed it (``trainer.feed_report``): the workers, the frame
+        cache's GiB, the samples made so far and the workers' busy seconds per stage."""
         c = self.cfg
         return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
                 "frames_per_bin": c.frames_per_bin, "outputs": list(c.outputs), "flow_preset": c.flow_preset,
                 "flow_dtype": c.flow_dtype, "crops_per_window": c.crops_per_window, "videos": len(self.manifest.slots),
                 "batch_size": c.delivery.batch_size, "shard": c.shard, "corpus": self.corpus,
-                "recipe": self.identity.recipe, "codecs": [k for k in COMPRESSIONS if available(k)]}
+                "recipe": self.identity.recipe, "codecs": [k for k in COMPRESSIONS if available(k)],
+                "feed": {"workers": c.workers, "frame_cache_gb": c.frame_cache_gb,
+                         "samples_made": self.metrics.totals()["samples_made"],
+                         "busy_s": {k: round(v, 3) for k, v in self.metrics.busy_seconds().items()}}}
 
     def run(self, ready_event: Optional[threading.Event] = None) -> int:
         """Run until :meth:`stop`; returns a process exit code."""
