@@ -258,13 +258,13 @@ def unfolding(plan: EpochPlan, stop: int, slots: Slots, made: Mapping[Tuple[int,
 
 def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans: Mapping[int, EpochPlan],
            store: Mapping, fetched: Set, failed: Mapping, runs: Mapping[Tuple[int, str], Run], slots: Slots,
-           lookahead: int, shuffle_buffer: int,
-           fetched_to: Mapping[int, int] = {}) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
+           lookahead: int, shuffle_buffer: int, fetched_to: Mapping[int, int] = {}, fetched_at: Mapping[int, float] = {},
+           now: float = 0.0) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
     """(epoch, video) to decode: those ``pending`` fetches need a sample of (neither in ``store``
     nor ``failed``), by the first position needing it, or, where a fetch's positions are not
     decided yet, whose slots decide them (:func:`unfolding`); and those the positions after each
     epoch's furthest fetch need (pending, or answered: ``fetched_to``, epoch -> the furthest stop
-    asked), not in ``runs``, while the samples made ahead (stored and not ``fetched``, or still to
+    asked, for kept plans named at ``fetched_at`` within :data:`IDLE_S` of ``now``), not in ``runs``, while the samples made ahead (stored and not ``fetched``, or still to
     come from running tasks) stay within ``lookahead`` (module docstring). Past an epoch's end the
     next epoch's first positions are made ahead only while no fetch has named that epoch: once
     one has, its own furthest fetch leads (what was fetched of it may have left the store)."""
@@ -272,7 +272,7 @@ def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans:
     for (e, k) in list(store) + list(failed):
         made[(e, k.video)] = made.get((e, k.video), 0) + 1
     waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
-    furthest: Dict[int, int] = dict(fetched_to)
+    furthest = {e: stop for e, stop in fetched_to.items() if e in plans and now - fetched_at[e] < IDLE_S}
     for f in pending:
         plan = plan_of(f.epoch)
         furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
@@ -339,7 +339,7 @@ class PlanFeed:
         self.runs: Dict[Tuple[int, str], Run] = {}
         self.task_run: Dict[int, Tuple[int, str]] = {}
         self.fetched_at: Dict[int, float] = {}  # epoch -> when a fetch last named it
-        self.fetched_to: Dict[int, int] = {}  # epoch (of a kept plan) -> the furthest stop a fetch named
+        self.fetched_to: Dict[int, int] = {}  # epoch -> the furthest stop a fetch named
         self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
         self._task_ids = 0
         self.samples_made = 0
@@ -354,7 +354,6 @@ class PlanFeed:
                 p.learn(self.slots.windows)
             while len(self.plans) > PLANS_KEPT:
                 gone, _ = self.plans.popitem(last=False)
-                self.fetched_to.pop(gone, None)
                 self.failed = {sk: why for sk, why in self.failed.items() if sk[0] != gone}
         else:
             self.plans.move_to_end(epoch)
@@ -377,8 +376,7 @@ class PlanFeed:
             self.store, self.fetched = OrderedDict(), set()
         self.plan(epoch)
         self.pending.append(Fetch(client, request, epoch, start, stop))
-        self.fetched_at[epoch] = now
-        self.fetched_to[epoch] = max(self.fetched_to.get(epoch, 0), stop)
+        self.fetched_at[epoch], self.fetched_to[epoch] = now, max(self.fetched_to.get(epoch, 0), stop)
 
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s pending fetches (it left)."""
@@ -461,13 +459,9 @@ class PlanFeed:
         return self._start(ahead[0], worker, now, codecs) if ahead else None
 
     def _needed(self, now: float) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
-        """(epoch, video) to decode: those pending fetches wait on, and those to decode ahead
-        (:func:`needed`) of the furthest fetch of each kept epoch a fetch named in the last
-        :data:`IDLE_S` (answered or not: a reader slower than the workers finds its next batches
-        made, across an epoch's end too)."""
-        live = {e: stop for e, stop in self.fetched_to.items() if now - self.fetched_at.get(e, now) < IDLE_S}
+        """(epoch, video) to decode (:func:`needed`), ahead of the epochs fetched in the last :data:`IDLE_S`."""
         return needed(self.pending, self.plan, self.plans, self.store, self.fetched, self.failed, self.runs,
-                      self.slots, self.lookahead, self.shuffle_buffer, live)
+                      self.slots, self.lookahead, self.shuffle_buffer, self.fetched_to, self.fetched_at, now)
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
         epoch, video = ek
