@@ -40,7 +40,7 @@ from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
 from v2v_wire.plan_shards import interleaved, shard_ranges, shards_identity, shards_samples
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
-from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, pack, unpack
+from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_ipv6, pack, unpack
 
 from . import plan_accelerate
 from .connection import load_curve_keys
@@ -565,6 +565,8 @@ class _Link:
         self.ctx = zmq.Context()
         self.sock = self.ctx.socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
+        if is_ipv6(endpoint):  # tcp://[::1]:PORT: without it the connect is never made and every ask times out
+            self.sock.setsockopt(zmq.IPV6, 1)
         if curve is not None:  # (client public, client secret, server public), connection.load_curve_keys
             self.sock.curve_publickey, self.sock.curve_secretkey, self.sock.curve_serverkey = curve
         self.sock.connect(endpoint)
