@@ -40,6 +40,54 @@ def alone(server, epoch: int, steps=None):
     return rows(batches), [b["position"] for b in batches]
 
 
+@pytest.mark.timeout(400)
+@pytest.mark.parametrize("context", ["fork", "spawn"])
+def test_set_epoch_and_load_state_dict_reach_persistent_dataloader_workers(server, context):
+    """One DataLoader with 2 persistent workers, ``ds.set_epoch(e)`` before each pass: each pass
+    is epoch e, the rows (ids and bytes) a reader without workers gets of epoch e. Then a
+    position mid-epoch 1 loaded in the main process: the next pass of the same workers reads
+    epoch 1 from there, and a ``set_epoch(2)`` after it the whole of epoch 2."""
+    want = {e: alone(server, e) for e in (0, 1, 2)}
+    assert sorted(want[0][0]) != sorted(want[1][0]) and want[0][0] != want[1][0]  # the epochs differ
+    ds = V2VStreamDataset(server, 2, outputs=("voxels",), timeout_s=120)
+    loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=2, persistent_workers=True,
+                                         multiprocessing_context=context)
+    for e in (0, 1, 2):
+        ds.set_epoch(e)
+        assert rows(loader) == want[e][0], f"pass {e}"
+    ds.load_state_dict(want[1][1][1])  # after 2 steps of epoch 1
+    assert rows(loader) == want[1][0][4:]
+    ds.set_epoch(2)
+    assert rows(loader) == want[2][0]
+
+
+@pytest.mark.timeout(300)
+def test_the_main_processs_state_with_dataloader_workers_is_refused_naming_the_batch_position(server):
+    """With DataLoader workers the main process cannot know which batches the loop took (the
+    workers read ahead): ``ds.state_dict()`` there refuses in one line naming ``batch["position"]``,
+    which resumes the rest of the epoch exactly (ids and bytes). Before a pass yields, or after
+    ``set_epoch``, it is the pass's start; without workers, the last batch's position."""
+    want, positions = alone(server, 0)
+    ds = V2VStreamDataset(server, 2, outputs=("voxels",), timeout_s=120)
+    assert ds.state_dict()["sample_in_epoch"] == 0
+    it = iter(torch.utils.data.DataLoader(ds, batch_size=None, num_workers=2))
+    taken = [next(it), next(it)]
+    with pytest.raises(RuntimeError) as err:
+        ds.state_dict()
+    assert "\n" not in str(err.value) and 'batch["position"]' in str(err.value)
+    del it
+    assert rows(taken) == want[:4]
+    again = V2VStreamDataset(server, 2, outputs=("voxels",), timeout_s=120)
+    again.load_state_dict(taken[-1]["position"])
+    assert rows(torch.utils.data.DataLoader(again, batch_size=None, num_workers=2)) == want[4:]
+    ds.set_epoch(1)
+    assert {k: ds.state_dict()[k] for k in ("epoch", "sample_in_epoch")} == {"epoch": 1, "sample_in_epoch": 0}
+    ds.set_epoch(0)
+    it = iter(ds)  # no workers: what this process read is what the loop took
+    next(it)
+    assert {k: ds.state_dict()[k] for k in ("plan", "epoch", "sample_in_epoch")} == positions[0]
+
+
 @pytest.mark.timeout(300)
 def test_a_plan_server_bound_to_ipv6_loopback_is_read(server):
     """``v2v-serve --bind tcp://[::1]:PORT``: ``V2VStreamDataset`` reads it, the rows (ids and

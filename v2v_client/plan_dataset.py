@@ -20,12 +20,17 @@ none to ``ipc://`` and loopback ``tcp://``, zstd to other hosts when both sides 
 Loaders that snapshot a dataset's state (torchdata's ``StatefulDataLoader``, Accelerate's with
 ``use_stateful_dataloader=True``) read :meth:`V2VStreamDataset.state_dict`: what this process (the
 main process, or one DataLoader worker) has yielded, restored in the same worker by
-:meth:`V2VStreamDataset.load_state_dict`. Under Accelerate's dispatcher the process that reads
-yields every rank's batch of each step in turn (``plan_accelerate``).
+:meth:`V2VStreamDataset.load_state_dict`. In the main process while DataLoader workers read, it
+refuses (they read ahead of the loop): the checkpoint is the last batch's ``position``.
+``set_epoch`` and ``load_state_dict`` in the main process reach the DataLoader workers' copies
+at their next pass, persistent workers included (a block of shared memory made with the dataset).
+Under Accelerate's dispatcher the process that reads yields every rank's batch of each step in turn
+(``plan_accelerate``).
 """
 from __future__ import annotations
 
 import itertools
+import json
 import time
 from collections.abc import Mapping
 from dataclasses import replace
@@ -116,6 +121,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._dispatch: Optional[tuple] = None  # under accelerate's dispatcher: (ranks, stateful), once known
         self.gathers_state = False  # v2v_client.prepare_loader's save hook shares rank 0's loader state
         self._info: Optional[PlanInfo] = None
+        # made before any DataLoader worker starts, so that set_epoch and load_state_dict in the
+        # main process reach the workers' copies (persistent ones included) at their next pass
+        self._control = _Control()
+        self._seen = 0  # the control's generation this copy's epoch, start and loaded state are of
 
     # ------------------------------------------------------------------ layout
     @property
@@ -160,11 +169,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if not isinstance(epoch, int) or isinstance(epoch, bool) or epoch < 0:
             raise ValueError(f"epoch must be an int >= 0, got {epoch!r}")
         plan_accelerate.check_loader(self)
+        self._adopt()
         self.epoch = epoch
         self.start = self._resume["sample_in_epoch"] if self._resume and self._resume["epoch"] == epoch else 0
         if self._pending is not None and self._pending["epoch"] != epoch:
             self._pending = None
         self._reading = None
+        self._publish()
 
     def load_state_dict(self, state: dict) -> None:
         """Resume at a position (a batch's ``position``), taken at any world size and batch size:
@@ -188,11 +199,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._info is not None:
             Position.from_dict(state, expected=self._info.plan)
         reader = state.get("reader")
+        self._adopt()
         if reader is None:
             self._resume, self._pending = pos.to_dict(), None
             self.set_epoch(pos.epoch)
             return
         self._pending = _pending_of(pos, _check_reader(reader), self._reader_world(), self.batch_size)
+        self._publish()
 
     def state_dict(self) -> dict:
         """What this process has read: the position after the last step it yielded
@@ -207,7 +220,17 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
         Raises:
             TimeoutError: the server did not say what it serves (asked once per process).
+            RuntimeError: asked in the main process while DataLoader workers read this epoch
+                (since the last ``set_epoch`` or ``load_state_dict``) and handed batches on: they
+                read ahead of the loop, so no process knows which batches the loop took (one line
+                naming ``batch["position"]``, the checkpoint to keep).
         """
+        if self._reading is None:  # a pass under way keeps its own progress
+            self._adopt()
+        if torch.utils.data.get_worker_info() is None and self._control.workers_yielded(self._seen):
+            raise RuntimeError("state_dict() of a V2VStreamDataset read by DataLoader workers cannot say which batches "
+                               "the loop took (the workers read ahead): checkpoint batch[\"position\"] of the last "
+                               "batch the loop took, or read with torchdata's StatefulDataLoader")
         info = self.plan_info()
         r = self._reading
         if r is None:  # nothing read yet: where the next iteration starts
@@ -222,6 +245,25 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             return {**p["position"], "reader": self._reader(j, k, p["origin"], p["item"])}
         done, reader = _reading_state(r, self.batch_size)
         return {**Position(info.plan, r["epoch"], done).to_dict(), "reader": reader}
+
+    def _publish(self) -> None:
+        """In the main process, write what the next pass reads (epoch, start, loaded state) to the
+        shared control, for the DataLoader workers' copies; a worker's own load stays its own."""
+        if torch.utils.data.get_worker_info() is None:
+            self._seen = self._control.write({"epoch": self.epoch, "start": self.start, "resume": self._resume,
+                                              "pending": self._pending})
+        else:
+            self._seen = self._control.generation()
+
+    def _adopt(self) -> None:
+        """Take what the main process set last (``set_epoch``, ``load_state_dict``) when this copy
+        has not seen it: a DataLoader worker's copy, made when the worker started."""
+        gen = self._control.generation()
+        if gen == self._seen:
+            return
+        d = self._control.read()
+        self.epoch, self.start, self._resume, self._pending = d["epoch"], d["start"], d["resume"], d["pending"]
+        self._reading, self._upcoming, self._seen = None, None, gen
 
     def _dispatcher(self) -> Optional[tuple]:
         """``(ranks, stateful)`` of accelerate's dispatcher reading this dataset now (as pickled
@@ -264,6 +306,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             TypeError: the epoch's samples are not known yet (learned from each video's first
             decode), as for a dataset without a length."""
+        self._adopt()
         steps = _steps(self.plan_info(refresh=True).samples, self.start, self.world_size * self.batch_size)
         if steps is None:
             raise TypeError(f"{self.endpoint}: {_LENGTH_UNKNOWN}")
@@ -275,6 +318,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         is decided at the first batch (when the loaders that create an iterator early, as
         ``StatefulDataLoader.state_dict`` does, have set the epoch and accelerate has registered its
         loader). Reading raises ``TimeoutError``, ``PlanMismatch`` or ``PlanServerError``."""
+        self._adopt()
         pending, self._pending = self._pending, None
         self._reading, self._upcoming = None, pending
         return self._read(pending)
@@ -316,6 +360,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
                 item = _item(info, r, i // g, rows, arrays, self.raw)
+                if r["last"] is None:  # who reads the pass: after a worker's yield, what the loop took is unknown
+                    self._control.mark_workers_yielded(self._seen if w is not None else -1)
                 if g == 1:
                     r["last"], r["next"] = i, i + k
                     yield item
@@ -348,6 +394,61 @@ def _item(info: PlanInfo, r: dict, step: int, rows: Rows, arrays, raw: bool) -> 
     item.update(padding=torch.tensor(rows.padding, dtype=torch.bool), sample_ids=rows.sample_ids,
                 params=rows.params, epoch=r["epoch"], step=step, position=Position(info.plan, r["epoch"], after).to_dict())
     return item
+
+
+class _Control:
+    """What every copy of one dataset reads at each pass: the epoch, start and loaded state that
+    the main process set last, and whether DataLoader workers yielded batches of it.
+
+    A uint8 torch tensor in shared memory, made with the dataset: a DataLoader worker started by
+    fork maps the same pages, one started by spawn or forkserver gets them through torch's
+    pickler (a shared-memory handle), so a persistent worker sees each ``set_epoch`` at its next
+    pass. A plain pickle (or deepcopy) copies it: that copy is its own. Layout: int64 generation
+    (bumped at each write), int64 generation some worker yielded a batch of (-1: none), int64
+    length, then the state as JSON."""
+
+    SIZE = 8192
+    HEAD = 24
+
+    def __init__(self):
+        self.block = torch.zeros(self.SIZE, dtype=torch.uint8).share_memory_()
+        self._words()[1] = -1
+
+    def _words(self) -> np.ndarray:
+        return self.block.numpy()[:self.HEAD].view(np.int64)
+
+    def generation(self) -> int:
+        """The number of writes so far."""
+        return int(self._words()[0])
+
+    def write(self, state: dict) -> int:
+        """Store ``state`` (JSON-able); returns the new generation.
+
+        Raises:
+            ValueError: a state too large for the block (a position is a few hundred bytes)."""
+        data = json.dumps(state).encode()
+        if len(data) > self.SIZE - self.HEAD:
+            raise ValueError(f"a loaded state of {len(data)} bytes does not fit the dataset's shared control "
+                             f"({self.SIZE - self.HEAD} bytes)")
+        words = self._words()
+        self.block.numpy()[self.HEAD:self.HEAD + len(data)] = np.frombuffer(data, np.uint8)
+        words[2] = len(data)
+        words[0] += 1  # last: a reader seeing the new generation sees the whole state
+        return int(words[0])
+
+    def read(self) -> dict:
+        """The state last written."""
+        n = int(self._words()[2])
+        return json.loads(self.block.numpy()[self.HEAD:self.HEAD + n].tobytes())
+
+    def mark_workers_yielded(self, generation: int) -> None:
+        """Record that a DataLoader worker yielded a batch of the pass ``generation`` set up (-1:
+        the main process read the last pass itself)."""
+        self._words()[1] = generation
+
+    def workers_yielded(self, generation: int) -> bool:
+        """Whether a DataLoader worker yielded a batch of the pass ``generation`` set up."""
+        return int(self._words()[1]) == generation
 
 
 class _Servers:
