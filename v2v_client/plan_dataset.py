@@ -42,7 +42,8 @@ import zmq
 
 from v2v_wire.messages import WireError
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
-from v2v_wire.plan_shards import interleaved, shard_ranges, shards_identity, shards_samples
+from v2v_wire.plan_shards import (interleaved, probes, shard_ranges, shards_identity, shards_samples,
+                                  step_in_epoch)
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_ipv6, pack, unpack
@@ -355,7 +356,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             for i, rows, arrays in link.fetch_all(items, self.prefetch, self.retry_s,
                                                   lambda req, i: Fetch(req, r["epoch"], first_row(i),
                                                                        first_row(i) + self.batch_size, self.outputs,
-                                                                       info.plan)):
+                                                                       info.plan),
+                                                  lambda i: r["origin"] + (i // g) * r["per_step"]):
                 steps = steps if steps is not None else _steps(rows.samples, r["origin"], r["per_step"])
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
@@ -463,6 +465,7 @@ class _Servers:
         self.endpoint, self.compression = endpoint, compression
         self.shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
         self.codecs: Dict[str, str] = {}  # server -> compression
+        self.samples: List[Optional[int]] = []  # each shard's samples per epoch when asked (None: not known)
 
     def ask(self, timeout_s: float, curve: Optional[tuple]) -> PlanInfo:
         """What the servers serve, as one plan (resolving ``endpoint`` the first time).
@@ -475,7 +478,7 @@ class _Servers:
         for server in servers:
             with _Link(server, timeout_s, curve) as link:
                 infos.append(link.ask())
-        info, self.shards = _as_one_plan(servers, infos)
+        info, self.shards, self.samples = _as_one_plan(servers, infos)
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
         return info
 
@@ -483,17 +486,18 @@ class _Servers:
         """A connection fetching rows of the plan: a ``_Link`` to the one server, else ``_Shards``."""
         if len(self.shards) == 1:
             return _Link(self.shards[0][0], timeout_s, curve, self.codecs[self.shards[0][0]])
-        return _Shards(self.shards, timeout_s, curve, self.codecs)
+        return _Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
 
 
 def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
-    """``(PlanInfo, [(server, its plan identity)])`` of the servers read as one plan: one server's
-    own; several, each one shard of one corpus under one recipe, interleaved in shard order.
+    """``(PlanInfo, [(server, its plan identity)], [its samples per epoch or None])`` of the servers
+    read as one plan: one server's own; several, each one shard of one corpus under one recipe,
+    interleaved in shard order.
 
     Raises:
         ValueError: several servers that are not one sharding of one corpus (naming them)."""
     if len(servers) == 1:
-        return infos[0], [(servers[0], infos[0].plan)]
+        return infos[0], [(servers[0], infos[0].plan)], [infos[0].samples]
     whole = [ep for ep, i in zip(servers, infos) if not isinstance(i.stream.get("shard"), str)]
     if whole:
         raise ValueError(f"{', '.join(whole)}: serve(s) the whole corpus; several servers are read together when "
@@ -502,7 +506,7 @@ def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
     ordered = sorted(zip(servers, infos), key=lambda x: int(x[1].stream["shard"].split("/")[0]))
     plan = shards_identity([i.plan for _, i in ordered])
     return (PlanInfo(plan, shards_samples([i.samples for _, i in ordered]), ordered[0][1].stream),
-            [(ep, i.plan) for ep, i in ordered])
+            [(ep, i.plan) for ep, i in ordered], [i.samples for _, i in ordered])
 
 
 #: ``V2VPushDataset``'s settings, which a plan has no use for: given here, they are refused.
@@ -715,10 +719,11 @@ class _Link:
                 raise TimeoutError(f"{self.endpoint}: no answer to 'what do you serve' within {self.timeout_s} s "
                                    "(is a v2v-serve running there?)")
 
-    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of) -> Iterator:
+    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:
         """``(step, rows, arrays)`` for each of ``steps`` in order, ``prefetch`` fetches in
         flight; an unanswered fetch is asked again after ``retry_s`` (the first answer wins).
-        ``fetch_of(request, step)``: the step's :class:`Fetch` under that request id."""
+        ``fetch_of(request, step)``: the step's :class:`Fetch` under that request id.
+        ``first_of`` is for ``_Shards``: one server's rows past the epoch's end carry its samples."""
         todo = iter(steps)
         waiting: Dict[int, int] = {}  # request id -> step
         asked: Dict[int, float] = {}  # step -> when last asked
@@ -755,8 +760,7 @@ class _Link:
             heard = time.monotonic()
             msg, frames = got
             if isinstance(msg, Refused):
-                raise PlanMismatch(f"{self.endpoint}: {msg.message}") if "another plan" in msg.message else \
-                    PlanServerError(f"{self.endpoint}: {msg.message}")
+                raise _refusal(self.endpoint, msg)
             if not isinstance(msg, Rows) or msg.request not in waiting:
                 continue  # an answer to a request asked again, or to a plan_ask
             step = waiting.pop(msg.request)
@@ -769,16 +773,25 @@ class _Link:
             done[step] = (msg, arrays)
 
 
+def _refusal(endpoint: str, msg: Refused) -> Exception:
+    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's, else ``PlanServerError``."""
+    if "another plan" in msg.message:
+        return PlanMismatch(f"{endpoint}: {msg.message}")
+    return PlanServerError(f"{endpoint}: {msg.message}")
+
+
 class _Shards:
     """Several servers, one shard each, read as one plan (``v2v_wire.plan_shards``): a fetch of
     global positions is asked of each shard holding some of them, and their rows are merged in
-    the interleave's order. ``shards``: (server, its plan identity), in shard order."""
+    the interleave's order. ``shards``: (server, its plan identity), in shard order; ``samples``:
+    each shard's samples per epoch where known (None: not yet)."""
 
     def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple],
-                 codecs: Dict[str, str]):
+                 codecs: Dict[str, str], samples: Sequence[Optional[int]]):
         self.plans = [plan for _, plan in shards]
         self.links = [_Link(ep, timeout_s, curve, codecs[ep]) for ep, _ in shards]
-        self.samples: List[Optional[int]] = [None] * len(shards)  # each shard's epoch, once its rows say
+        self.timeout_s = timeout_s
+        self.samples: List[Optional[int]] = list(samples)  # each shard's epoch, once it or its rows say
 
     def __enter__(self) -> "_Shards":
         return self
@@ -787,30 +800,110 @@ class _Shards:
         for link in self.links:
             link.__exit__(*exc)
 
-    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of) -> Iterator:
-        """``_Link.fetch_all`` over the shards: each shard's fetches in flight on its own link."""
+    def _part(self, k: int, f: Fetch) -> Fetch:
+        """Shard ``k``'s part of fetch ``f`` (of global positions), in its own positions."""
+        lo, hi = shard_ranges(f.start, f.stop, len(self.links))[k]
+        return replace(f, start=lo, stop=hi, plan=self.plans[k])
+
+    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of) -> Iterator:
+        """``_Link.fetch_all`` over the shards: each step's fetch split into the parts of the
+        shards holding some of its rows, each asked on that shard's link (``prefetch`` steps in
+        flight, an unanswered part asked again after ``retry_s``), the parts merged in the
+        interleave's order.
+
+        A step is yielded once it is known to lie in the epoch or past it (``first_of(step)``:
+        the first global position of the step, every rank's; ``plan_shards.step_in_epoch``):
+        where its rows hold no sample id and a shard's samples are not known yet, that shard is
+        asked for one row at or after it (``plan_shards.probes``). So a rank whose rows lie in
+        some shards only ends the epoch at the step every other rank ends it at.
+
+        Raises:
+            TimeoutError: no shard said anything for ``timeout_s`` while a part was awaited.
+            PlanMismatch, PlanServerError: a shard refused a fetch or sent what cannot be read.
+        """
         n = len(self.links)
+        todo = iter(steps)
+        order: List[int] = []  # steps asked, in order
+        parts: Dict[int, Dict[int, Optional[tuple]]] = {}  # step -> shard -> (rows, arrays), None until answered
+        probed: Dict[Tuple[int, int], bool] = {}  # (shard, its position) asked; True once a slot is seen there
+        waiting: Dict[Tuple[int, int], tuple] = {}  # (shard, request id) -> ("step", step) or ("probe", position)
+        asked: Dict[Tuple[int, tuple], float] = {}  # (shard, what) unanswered -> when last asked
+        seen = 0  # one past the furthest global position a row with a sample id was read at
+        poller = zmq.Poller()
+        for link in self.links:
+            poller.register(link.sock, zmq.POLLIN)
 
-        def part(k: int, f: Fetch) -> Fetch:
-            lo, hi = shard_ranges(f.start, f.stop, n)[k]
-            return replace(f, start=lo, stop=hi, plan=self.plans[k])
+        def ask(k: int, what: tuple) -> None:
+            link = self.links[k]
+            req = next(link.ids)
+            if what[0] == "step":
+                f = self._part(k, fetch_of(req, what[1]))
+            else:  # one row, under the first step's epoch and outputs
+                f = replace(fetch_of(req, order[0]), start=what[1], stop=what[1] + 1, plan=self.plans[k])
+            link._send(replace(f, compression=link.compression).to_wire())
+            waiting[(k, req)], asked[(k, what)] = what, time.monotonic()
 
-        def holds(k: int, step: int) -> bool:
-            f = part(k, fetch_of(0, step))
-            return f.stop > f.start
+        def begin(step: int) -> None:
+            f = fetch_of(0, step)
+            parts[step] = {k: None for k, (lo, hi) in enumerate(shard_ranges(f.start, f.stop, n)) if hi > lo}
+            order.append(step)
+            for k in parts[step]:
+                ask(k, ("step", step))
 
-        copies = itertools.tee(steps, n + 1)
-        parts = [link.fetch_all((s for s in copies[k] if holds(k, s)), prefetch, retry_s,
-                                lambda req, s, k=k: part(k, fetch_of(req, s)))
-                 for k, link in enumerate(self.links)]
-        for step in copies[n]:
-            got = {}
-            for k in range(n):
-                if holds(k, step):
-                    _, rows, arrays = next(parts[k])
-                    got[k] = (rows, arrays)
-                    self.samples[k] = rows.samples if rows.samples is not None else self.samples[k]
-            yield (step,) + self._merged(fetch_of(0, step), got)
+        for step in itertools.islice(todo, prefetch):
+            begin(step)
+        heard = time.monotonic()
+        while order:
+            head = order[0]
+            if all(p is not None for p in parts[head].values()):
+                first = first_of(head)
+                if step_in_epoch(first, self.samples, seen) is not None:
+                    order.pop(0)
+                    yield (head,) + self._merged(fetch_of(0, head), parts.pop(head))
+                    nxt = next(todo, None)
+                    if nxt is not None:
+                        begin(nxt)
+                    continue
+                for k, q in probes(first, self.samples):
+                    if (k, q) not in probed:
+                        probed[(k, q)] = False
+                        ask(k, ("probe", q))
+            now = time.monotonic()
+            for (k, what), when in list(asked.items()):
+                if now - when >= retry_s:
+                    ask(k, what)  # a lost reply or a restarted server: ask again
+            ready = dict(poller.poll(int(min(retry_s, 1.0) * 1000)))
+            if not ready:
+                if time.monotonic() - heard > self.timeout_s:
+                    late = sorted({self.links[k].endpoint for k, _ in asked})
+                    raise TimeoutError(f"{', '.join(late)}: no rows for {self.timeout_s} s (step {head})")
+                continue
+            heard = time.monotonic()
+            for k, link in enumerate(self.links):
+                got = link._recv(heard) if link.sock in ready else None
+                if got is None:
+                    continue
+                msg, frames = got
+                if isinstance(msg, Refused):
+                    raise _refusal(link.endpoint, msg)
+                what = waiting.pop((k, msg.request), None) if isinstance(msg, Rows) else None
+                if what is None or asked.pop((k, what), None) is None:
+                    continue  # an answer to a request asked again, or to a plan_ask
+                if msg.samples is not None:
+                    self.samples[k] = msg.samples
+                slots = [(msg.start + j) * n + k for j, sid in enumerate(msg.sample_ids) if sid is not None]
+                seen = max([seen] + [t + 1 for t in slots])
+                if what[0] == "probe":
+                    if not slots and msg.samples is None:
+                        raise PlanServerError(f"{link.endpoint}: position {what[1]} answered past the epoch's end "
+                                              "without the epoch's samples")
+                    probed[(k, what[1])] = bool(slots)
+                    continue
+                try:
+                    arrays = decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES)
+                except ProtocolError as e:
+                    raise PlanServerError(f"{link.endpoint}: rows of step {what[1]}: {e}") from None
+                parts[what[1]][k] = (msg, arrays)
 
     def _merged(self, f: Fetch, got: dict):
         """One ``Rows`` and its arrays for global positions ``f.start .. f.stop - 1`` from each
