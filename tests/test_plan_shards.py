@@ -81,3 +81,62 @@ def test_servers_that_are_not_one_sharding_are_refused_naming_them(tmp_path, vid
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2", "--seed", "9"]) as b:
         with pytest.raises(ValueError, match="different sample recipes"):
             V2VStreamDataset([a.endpoint, b.endpoint], timeout_s=60).plan_info()
+
+
+def steps_of(ds, **kw):
+    """Each batch's rows as (sample id or None, padding), and {sample id: (voxels, frames)}."""
+    steps, content = [], {}
+    for b in torch.utils.data.DataLoader(ds, batch_size=None, **kw):
+        steps.append([(sid, bool(p)) for sid, p in zip(b["sample_ids"], b["padding"].tolist())])
+        for j, sid in enumerate(b["sample_ids"]):
+            if not b["padding"][j]:
+                content[sid] = (b["voxels"][j].clone(), b["frames"][j].clone())
+    return steps, content
+
+
+@pytest.mark.timeout(600)
+def test_batches_smaller_than_the_shards_end_the_epoch_on_every_rank_at_the_same_step(tmp_path, videos):
+    """Two shards of a corpus never scanned (each pair of servers a fresh --cache-dir), batches of
+    one row, fewer than the shards: at world size 1 without DataLoader workers and with 2 (each
+    worker's steps lie in one shard), and at world size 2 (each rank's rows in one shard; the
+    ranks read one after the other, so neither learns the epoch's end from the other's fetches),
+    every rank ends the epoch at the interleaved epoch's last step, and the rows are one sequence
+    holding each id of the corpus once with the bytes one unsharded server gives it."""
+    root = corpus(tmp_path, videos)
+    want = expected_ids(root)
+    base = ["--videos", str(root), "--delivery", "plan", *layout()]
+    with ServeProcess(base) as one:
+        _, single = steps_of(V2VStreamDataset(one.endpoint, 1, outputs=OUTPUTS, timeout_s=120))
+    sizes = [sum(1 for s in want if shard_of(s.split("#")[0], 2) == i) for i in range(2)]
+    assert min(sizes) > 0 and sorted(single) == want
+    total = max((s - 1) * 2 + i + 1 for i, s in enumerate(sizes))  # the interleaved epoch, its padding included
+
+    def shards(name):
+        cache = ["--cache-dir", str(tmp_path / name)]
+        return ServeProcess(base + cache + ["--shard", "0/2"]), ServeProcess(base + cache + ["--shard", "1/2"])
+
+    def check(content):
+        for sid, (voxels, frames) in content.items():
+            assert torch.equal(voxels, single[sid][0]) and torch.equal(frames, single[sid][1]), sid
+
+    a, b = shards("one-rank")
+    with a, b:
+        sequence, content = steps_of(V2VStreamDataset([a.endpoint, b.endpoint], 1, outputs=OUTPUTS, timeout_s=120))
+    assert len(sequence) == total and sorted(sid for (sid, pad), in sequence if not pad) == want
+    check(content)
+    a, b = shards("two-workers")
+    with a, b:
+        got, content = steps_of(V2VStreamDataset([a.endpoint, b.endpoint], 1, outputs=OUTPUTS, timeout_s=120),
+                                num_workers=2)
+    assert got == sequence
+    check(content)
+    a, b = shards("two-ranks")
+    with a, b:
+        ranks = [steps_of(V2VStreamDataset([a.endpoint, b.endpoint], 1, rank=r, world_size=2, outputs=OUTPUTS,
+                                           timeout_s=120)) for r in range(2)]
+    assert [len(s) for s, _ in ranks] == [-(-total // 2)] * 2
+    merged = [row for step in zip(ranks[0][0], ranks[1][0]) for rows in step for row in rows]
+    assert merged[:total] == [row for rows in sequence for row in rows]
+    assert all(sid is None and pad for sid, pad in merged[total:])  # the last step's rows past the epoch
+    for _, content in ranks:
+        check(content)

@@ -20,12 +20,17 @@ none to ``ipc://`` and loopback ``tcp://``, zstd to other hosts when both sides 
 Loaders that snapshot a dataset's state (torchdata's ``StatefulDataLoader``, Accelerate's with
 ``use_stateful_dataloader=True``) read :meth:`V2VStreamDataset.state_dict`: what this process (the
 main process, or one DataLoader worker) has yielded, restored in the same worker by
-:meth:`V2VStreamDataset.load_state_dict`. Under Accelerate's dispatcher the process that reads
-yields every rank's batch of each step in turn (``plan_accelerate``).
+:meth:`V2VStreamDataset.load_state_dict`. In the main process while DataLoader workers read, it
+refuses (they read ahead of the loop): the checkpoint is the last batch's ``position``.
+``set_epoch`` and ``load_state_dict`` in the main process reach the DataLoader workers' copies
+at their next pass, persistent workers included (a block of shared memory made with the dataset).
+Under Accelerate's dispatcher the process that reads yields every rank's batch of each step in turn
+(``plan_accelerate``).
 """
 from __future__ import annotations
 
 import itertools
+import json
 import time
 from collections.abc import Mapping
 from dataclasses import replace
@@ -37,10 +42,11 @@ import zmq
 
 from v2v_wire.messages import WireError
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
-from v2v_wire.plan_shards import interleaved, shard_ranges, shards_identity, shards_samples
+from v2v_wire.plan_shards import (interleaved, probes, shard_ranges, shards_identity, shards_samples,
+                                  step_in_epoch)
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
-from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, pack, unpack
+from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_ipv6, pack, unpack
 
 from . import plan_accelerate
 from .connection import load_curve_keys
@@ -116,6 +122,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         self._dispatch: Optional[tuple] = None  # under accelerate's dispatcher: (ranks, stateful), once known
         self.gathers_state = False  # v2v_client.prepare_loader's save hook shares rank 0's loader state
         self._info: Optional[PlanInfo] = None
+        # made before any DataLoader worker starts, so that set_epoch and load_state_dict in the
+        # main process reach the workers' copies (persistent ones included) at their next pass
+        self._control = _Control()
+        self._seen = 0  # the control's generation this copy's epoch, start and loaded state are of
 
     # ------------------------------------------------------------------ layout
     @property
@@ -160,11 +170,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if not isinstance(epoch, int) or isinstance(epoch, bool) or epoch < 0:
             raise ValueError(f"epoch must be an int >= 0, got {epoch!r}")
         plan_accelerate.check_loader(self)
+        self._adopt()
         self.epoch = epoch
         self.start = self._resume["sample_in_epoch"] if self._resume and self._resume["epoch"] == epoch else 0
         if self._pending is not None and self._pending["epoch"] != epoch:
             self._pending = None
         self._reading = None
+        self._publish()
 
     def load_state_dict(self, state: dict) -> None:
         """Resume at a position (a batch's ``position``), taken at any world size and batch size:
@@ -188,11 +200,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if self._info is not None:
             Position.from_dict(state, expected=self._info.plan)
         reader = state.get("reader")
+        self._adopt()
         if reader is None:
             self._resume, self._pending = pos.to_dict(), None
             self.set_epoch(pos.epoch)
             return
         self._pending = _pending_of(pos, _check_reader(reader), self._reader_world(), self.batch_size)
+        self._publish()
 
     def state_dict(self) -> dict:
         """What this process has read: the position after the last step it yielded
@@ -207,7 +221,17 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
 
         Raises:
             TimeoutError: the server did not say what it serves (asked once per process).
+            RuntimeError: asked in the main process while DataLoader workers read this epoch
+                (since the last ``set_epoch`` or ``load_state_dict``) and handed batches on: they
+                read ahead of the loop, so no process knows which batches the loop took (one line
+                naming ``batch["position"]``, the checkpoint to keep).
         """
+        if self._reading is None:  # a pass under way keeps its own progress
+            self._adopt()
+        if torch.utils.data.get_worker_info() is None and self._control.workers_yielded(self._seen):
+            raise RuntimeError("state_dict() of a V2VStreamDataset read by DataLoader workers cannot say which batches "
+                               "the loop took (the workers read ahead): checkpoint batch[\"position\"] of the last "
+                               "batch the loop took, or read with torchdata's StatefulDataLoader")
         info = self.plan_info()
         r = self._reading
         if r is None:  # nothing read yet: where the next iteration starts
@@ -222,6 +246,25 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             return {**p["position"], "reader": self._reader(j, k, p["origin"], p["item"])}
         done, reader = _reading_state(r, self.batch_size)
         return {**Position(info.plan, r["epoch"], done).to_dict(), "reader": reader}
+
+    def _publish(self) -> None:
+        """In the main process, write what the next pass reads (epoch, start, loaded state) to the
+        shared control, for the DataLoader workers' copies; a worker's own load stays its own."""
+        if torch.utils.data.get_worker_info() is None:
+            self._seen = self._control.write({"epoch": self.epoch, "start": self.start, "resume": self._resume,
+                                              "pending": self._pending})
+        else:
+            self._seen = self._control.generation()
+
+    def _adopt(self) -> None:
+        """Take what the main process set last (``set_epoch``, ``load_state_dict``) when this copy
+        has not seen it: a DataLoader worker's copy, made when the worker started."""
+        gen = self._control.generation()
+        if gen == self._seen:
+            return
+        d = self._control.read()
+        self.epoch, self.start, self._resume, self._pending = d["epoch"], d["start"], d["resume"], d["pending"]
+        self._reading, self._upcoming, self._seen = None, None, gen
 
     def _dispatcher(self) -> Optional[tuple]:
         """``(ranks, stateful)`` of accelerate's dispatcher reading this dataset now (as pickled
@@ -264,6 +307,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             TypeError: the epoch's samples are not known yet (learned from each video's first
             decode), as for a dataset without a length."""
+        self._adopt()
         steps = _steps(self.plan_info(refresh=True).samples, self.start, self.world_size * self.batch_size)
         if steps is None:
             raise TypeError(f"{self.endpoint}: {_LENGTH_UNKNOWN}")
@@ -275,6 +319,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         is decided at the first batch (when the loaders that create an iterator early, as
         ``StatefulDataLoader.state_dict`` does, have set the epoch and accelerate has registered its
         loader). Reading raises ``TimeoutError``, ``PlanMismatch`` or ``PlanServerError``."""
+        self._adopt()
         pending, self._pending = self._pending, None
         self._reading, self._upcoming = None, pending
         return self._read(pending)
@@ -311,11 +356,14 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             for i, rows, arrays in link.fetch_all(items, self.prefetch, self.retry_s,
                                                   lambda req, i: Fetch(req, r["epoch"], first_row(i),
                                                                        first_row(i) + self.batch_size, self.outputs,
-                                                                       info.plan)):
+                                                                       info.plan),
+                                                  lambda i: r["origin"] + (i // g) * r["per_step"]):
                 steps = steps if steps is not None else _steps(rows.samples, r["origin"], r["per_step"])
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
                 item = _item(info, r, i // g, rows, arrays, self.raw)
+                if r["last"] is None:  # who reads the pass: after a worker's yield, what the loop took is unknown
+                    self._control.mark_workers_yielded(self._seen if w is not None else -1)
                 if g == 1:
                     r["last"], r["next"] = i, i + k
                     yield item
@@ -350,6 +398,61 @@ def _item(info: PlanInfo, r: dict, step: int, rows: Rows, arrays, raw: bool) -> 
     return item
 
 
+class _Control:
+    """What every copy of one dataset reads at each pass: the epoch, start and loaded state that
+    the main process set last, and whether DataLoader workers yielded batches of it.
+
+    A uint8 torch tensor in shared memory, made with the dataset: a DataLoader worker started by
+    fork maps the same pages, one started by spawn or forkserver gets them through torch's
+    pickler (a shared-memory handle), so a persistent worker sees each ``set_epoch`` at its next
+    pass. A plain pickle (or deepcopy) copies it: that copy is its own. Layout: int64 generation
+    (bumped at each write), int64 generation some worker yielded a batch of (-1: none), int64
+    length, then the state as JSON."""
+
+    SIZE = 8192
+    HEAD = 24
+
+    def __init__(self):
+        self.block = torch.zeros(self.SIZE, dtype=torch.uint8).share_memory_()
+        self._words()[1] = -1
+
+    def _words(self) -> np.ndarray:
+        return self.block.numpy()[:self.HEAD].view(np.int64)
+
+    def generation(self) -> int:
+        """The number of writes so far."""
+        return int(self._words()[0])
+
+    def write(self, state: dict) -> int:
+        """Store ``state`` (JSON-able); returns the new generation.
+
+        Raises:
+            ValueError: a state too large for the block (a position is a few hundred bytes)."""
+        data = json.dumps(state).encode()
+        if len(data) > self.SIZE - self.HEAD:
+            raise ValueError(f"a loaded state of {len(data)} bytes does not fit the dataset's shared control "
+                             f"({self.SIZE - self.HEAD} bytes)")
+        words = self._words()
+        self.block.numpy()[self.HEAD:self.HEAD + len(data)] = np.frombuffer(data, np.uint8)
+        words[2] = len(data)
+        words[0] += 1  # last: a reader seeing the new generation sees the whole state
+        return int(words[0])
+
+    def read(self) -> dict:
+        """The state last written."""
+        n = int(self._words()[2])
+        return json.loads(self.block.numpy()[self.HEAD:self.HEAD + n].tobytes())
+
+    def mark_workers_yielded(self, generation: int) -> None:
+        """Record that a DataLoader worker yielded a batch of the pass ``generation`` set up (-1:
+        the main process read the last pass itself)."""
+        self._words()[1] = generation
+
+    def workers_yielded(self, generation: int) -> bool:
+        """Whether a DataLoader worker yielded a batch of the pass ``generation`` set up."""
+        return int(self._words()[1]) == generation
+
+
 class _Servers:
     """The servers a dataset reads as one plan: one, or one per shard in shard order, each with
     its plan identity and the compression its fetches ask for (known once asked; pickled with
@@ -362,6 +465,7 @@ class _Servers:
         self.endpoint, self.compression = endpoint, compression
         self.shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
         self.codecs: Dict[str, str] = {}  # server -> compression
+        self.samples: List[Optional[int]] = []  # each shard's samples per epoch when asked (None: not known)
 
     def ask(self, timeout_s: float, curve: Optional[tuple]) -> PlanInfo:
         """What the servers serve, as one plan (resolving ``endpoint`` the first time).
@@ -374,7 +478,7 @@ class _Servers:
         for server in servers:
             with _Link(server, timeout_s, curve) as link:
                 infos.append(link.ask())
-        info, self.shards = _as_one_plan(servers, infos)
+        info, self.shards, self.samples = _as_one_plan(servers, infos)
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
         return info
 
@@ -382,7 +486,7 @@ class _Servers:
         """A connection fetching rows of the plan: a ``_Link`` to the one server, else ``_Shards``."""
         if len(self.shards) == 1:
             return _Link(self.shards[0][0], timeout_s, curve, self.codecs[self.shards[0][0]])
-        return _Shards(self.shards, timeout_s, curve, self.codecs)
+        return _Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
         """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
@@ -407,13 +511,14 @@ class _Servers:
 
 
 def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
-    """``(PlanInfo, [(server, its plan identity)])`` of the servers read as one plan: one server's
-    own; several, each one shard of one corpus under one recipe, interleaved in shard order.
+    """``(PlanInfo, [(server, its plan identity)], [its samples per epoch or None])`` of the servers
+    read as one plan: one server's own; several, each one shard of one corpus under one recipe,
+    interleaved in shard order.
 
     Raises:
         ValueError: several servers that are not one sharding of one corpus (naming them)."""
     if len(servers) == 1:
-        return infos[0], [(servers[0], infos[0].plan)]
+        return infos[0], [(servers[0], infos[0].plan)], [infos[0].samples]
     whole = [ep for ep, i in zip(servers, infos) if not isinstance(i.stream.get("shard"), str)]
     if whole:
         raise ValueError(f"{', '.join(whole)}: serve(s) the whole corpus; several servers are read together when "
@@ -422,7 +527,7 @@ def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
     ordered = sorted(zip(servers, infos), key=lambda x: int(x[1].stream["shard"].split("/")[0]))
     plan = shards_identity([i.plan for _, i in ordered])
     return (PlanInfo(plan, shards_samples([i.samples for _, i in ordered]), ordered[0][1].stream),
-            [(ep, i.plan) for ep, i in ordered])
+            [(ep, i.plan) for ep, i in ordered], [i.samples for _, i in ordered])
 
 
 #: ``V2VPushDataset``'s settings, which a plan has no use for: given here, they are refused.
@@ -597,6 +702,8 @@ class _Link:
         self.ctx = zmq.Context()
         self.sock = self.ctx.socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
+        if is_ipv6(endpoint):  # tcp://[::1]:PORT: without it the connect is never made and every ask times out
+            self.sock.setsockopt(zmq.IPV6, 1)
         if curve is not None:  # (client public, client secret, server public), connection.load_curve_keys
             self.sock.curve_publickey, self.sock.curve_secretkey, self.sock.curve_serverkey = curve
         self.sock.connect(endpoint)
@@ -644,10 +751,11 @@ class _Link:
                 raise TimeoutError(f"{self.endpoint}: no answer to 'what do you serve' within {self.timeout_s} s "
                                    "(is a v2v-serve running there?)")
 
-    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of) -> Iterator:
+    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:
         """``(step, rows, arrays)`` for each of ``steps`` in order, ``prefetch`` fetches in
         flight; an unanswered fetch is asked again after ``retry_s`` (the first answer wins).
-        ``fetch_of(request, step)``: the step's :class:`Fetch` under that request id."""
+        ``fetch_of(request, step)``: the step's :class:`Fetch` under that request id.
+        ``first_of`` is for ``_Shards``: one server's rows past the epoch's end carry its samples."""
         todo = iter(steps)
         waiting: Dict[int, int] = {}  # request id -> step
         asked: Dict[int, float] = {}  # step -> when last asked
@@ -684,8 +792,7 @@ class _Link:
             heard = time.monotonic()
             msg, frames = got
             if isinstance(msg, Refused):
-                raise PlanMismatch(f"{self.endpoint}: {msg.message}") if "another plan" in msg.message else \
-                    PlanServerError(f"{self.endpoint}: {msg.message}")
+                raise _refusal(self.endpoint, msg)
             if not isinstance(msg, Rows) or msg.request not in waiting:
                 continue  # an answer to a request asked again, or to a plan_ask
             step = waiting.pop(msg.request)
@@ -698,16 +805,25 @@ class _Link:
             done[step] = (msg, arrays)
 
 
+def _refusal(endpoint: str, msg: Refused) -> Exception:
+    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's, else ``PlanServerError``."""
+    if "another plan" in msg.message:
+        return PlanMismatch(f"{endpoint}: {msg.message}")
+    return PlanServerError(f"{endpoint}: {msg.message}")
+
+
 class _Shards:
     """Several servers, one shard each, read as one plan (``v2v_wire.plan_shards``): a fetch of
     global positions is asked of each shard holding some of them, and their rows are merged in
-    the interleave's order. ``shards``: (server, its plan identity), in shard order."""
+    the interleave's order. ``shards``: (server, its plan identity), in shard order; ``samples``:
+    each shard's samples per epoch where known (None: not yet)."""
 
     def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple],
-                 codecs: Dict[str, str]):
+                 codecs: Dict[str, str], samples: Sequence[Optional[int]]):
         self.plans = [plan for _, plan in shards]
         self.links = [_Link(ep, timeout_s, curve, codecs[ep]) for ep, _ in shards]
-        self.samples: List[Optional[int]] = [None] * len(shards)  # each shard's epoch, once its rows say
+        self.timeout_s = timeout_s
+        self.samples: List[Optional[int]] = list(samples)  # each shard's epoch, once it or its rows say
 
     def __enter__(self) -> "_Shards":
         return self
@@ -716,30 +832,110 @@ class _Shards:
         for link in self.links:
             link.__exit__(*exc)
 
-    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of) -> Iterator:
-        """``_Link.fetch_all`` over the shards: each shard's fetches in flight on its own link."""
+    def _part(self, k: int, f: Fetch) -> Fetch:
+        """Shard ``k``'s part of fetch ``f`` (of global positions), in its own positions."""
+        lo, hi = shard_ranges(f.start, f.stop, len(self.links))[k]
+        return replace(f, start=lo, stop=hi, plan=self.plans[k])
+
+    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of) -> Iterator:
+        """``_Link.fetch_all`` over the shards: each step's fetch split into the parts of the
+        shards holding some of its rows, each asked on that shard's link (``prefetch`` steps in
+        flight, an unanswered part asked again after ``retry_s``), the parts merged in the
+        interleave's order.
+
+        A step is yielded once it is known to lie in the epoch or past it (``first_of(step)``:
+        the first global position of the step, every rank's; ``plan_shards.step_in_epoch``):
+        where its rows hold no sample id and a shard's samples are not known yet, that shard is
+        asked for one row at or after it (``plan_shards.probes``). So a rank whose rows lie in
+        some shards only ends the epoch at the step every other rank ends it at.
+
+        Raises:
+            TimeoutError: no shard said anything for ``timeout_s`` while a part was awaited.
+            PlanMismatch, PlanServerError: a shard refused a fetch or sent what cannot be read.
+        """
         n = len(self.links)
+        todo = iter(steps)
+        order: List[int] = []  # steps asked, in order
+        parts: Dict[int, Dict[int, Optional[tuple]]] = {}  # step -> shard -> (rows, arrays), None until answered
+        probed: Dict[Tuple[int, int], bool] = {}  # (shard, its position) asked; True once a slot is seen there
+        waiting: Dict[Tuple[int, int], tuple] = {}  # (shard, request id) -> ("step", step) or ("probe", position)
+        asked: Dict[Tuple[int, tuple], float] = {}  # (shard, what) unanswered -> when last asked
+        seen = 0  # one past the furthest global position a row with a sample id was read at
+        poller = zmq.Poller()
+        for link in self.links:
+            poller.register(link.sock, zmq.POLLIN)
 
-        def part(k: int, f: Fetch) -> Fetch:
-            lo, hi = shard_ranges(f.start, f.stop, n)[k]
-            return replace(f, start=lo, stop=hi, plan=self.plans[k])
+        def ask(k: int, what: tuple) -> None:
+            link = self.links[k]
+            req = next(link.ids)
+            if what[0] == "step":
+                f = self._part(k, fetch_of(req, what[1]))
+            else:  # one row, under the first step's epoch and outputs
+                f = replace(fetch_of(req, order[0]), start=what[1], stop=what[1] + 1, plan=self.plans[k])
+            link._send(replace(f, compression=link.compression).to_wire())
+            waiting[(k, req)], asked[(k, what)] = what, time.monotonic()
 
-        def holds(k: int, step: int) -> bool:
-            f = part(k, fetch_of(0, step))
-            return f.stop > f.start
+        def begin(step: int) -> None:
+            f = fetch_of(0, step)
+            parts[step] = {k: None for k, (lo, hi) in enumerate(shard_ranges(f.start, f.stop, n)) if hi > lo}
+            order.append(step)
+            for k in parts[step]:
+                ask(k, ("step", step))
 
-        copies = itertools.tee(steps, n + 1)
-        parts = [link.fetch_all((s for s in copies[k] if holds(k, s)), prefetch, retry_s,
-                                lambda req, s, k=k: part(k, fetch_of(req, s)))
-                 for k, link in enumerate(self.links)]
-        for step in copies[n]:
-            got = {}
-            for k in range(n):
-                if holds(k, step):
-                    _, rows, arrays = next(parts[k])
-                    got[k] = (rows, arrays)
-                    self.samples[k] = rows.samples if rows.samples is not None else self.samples[k]
-            yield (step,) + self._merged(fetch_of(0, step), got)
+        for step in itertools.islice(todo, prefetch):
+            begin(step)
+        heard = time.monotonic()
+        while order:
+            head = order[0]
+            if all(p is not None for p in parts[head].values()):
+                first = first_of(head)
+                if step_in_epoch(first, self.samples, seen) is not None:
+                    order.pop(0)
+                    yield (head,) + self._merged(fetch_of(0, head), parts.pop(head))
+                    nxt = next(todo, None)
+                    if nxt is not None:
+                        begin(nxt)
+                    continue
+                for k, q in probes(first, self.samples):
+                    if (k, q) not in probed:
+                        probed[(k, q)] = False
+                        ask(k, ("probe", q))
+            now = time.monotonic()
+            for (k, what), when in list(asked.items()):
+                if now - when >= retry_s:
+                    ask(k, what)  # a lost reply or a restarted server: ask again
+            ready = dict(poller.poll(int(min(retry_s, 1.0) * 1000)))
+            if not ready:
+                if time.monotonic() - heard > self.timeout_s:
+                    late = sorted({self.links[k].endpoint for k, _ in asked})
+                    raise TimeoutError(f"{', '.join(late)}: no rows for {self.timeout_s} s (step {head})")
+                continue
+            heard = time.monotonic()
+            for k, link in enumerate(self.links):
+                got = link._recv(heard) if link.sock in ready else None
+                if got is None:
+                    continue
+                msg, frames = got
+                if isinstance(msg, Refused):
+                    raise _refusal(link.endpoint, msg)
+                what = waiting.pop((k, msg.request), None) if isinstance(msg, Rows) else None
+                if what is None or asked.pop((k, what), None) is None:
+                    continue  # an answer to a request asked again, or to a plan_ask
+                if msg.samples is not None:
+                    self.samples[k] = msg.samples
+                slots = [(msg.start + j) * n + k for j, sid in enumerate(msg.sample_ids) if sid is not None]
+                seen = max([seen] + [t + 1 for t in slots])
+                if what[0] == "probe":
+                    if not slots and msg.samples is None:
+                        raise PlanServerError(f"{link.endpoint}: position {what[1]} answered past the epoch's end "
+                                              "without the epoch's samples")
+                    probed[(k, what[1])] = bool(slots)
+                    continue
+                try:
+                    arrays = decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES)
+                except ProtocolError as e:
+                    raise PlanServerError(f"{link.endpoint}: rows of step {what[1]}: {e}") from None
+                parts[what[1]][k] = (msg, arrays)
 
     def _merged(self, f: Fetch, got: dict):
         """One ``Rows`` and its arrays for global positions ``f.start .. f.stop - 1`` from each

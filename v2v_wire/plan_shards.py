@@ -14,7 +14,8 @@ from typing import List, Optional, Sequence, Tuple
 
 from .plan import PlanIdentity, PlanMismatch
 
-__all__ = ["shard_ranges", "interleaved", "shards_samples", "shards_identity"]
+__all__ = ["shard_ranges", "interleaved", "shards_samples", "epoch_floor", "step_in_epoch", "probes",
+           "shards_identity"]
 
 
 def shard_ranges(start: int, stop: int, shards: int) -> List[Tuple[int, int]]:
@@ -37,6 +38,37 @@ def shards_samples(samples: Sequence[Optional[int]]) -> Optional[int]:
         return None
     n = len(samples)
     return max(((s - 1) * n + i + 1 for i, s in enumerate(samples) if s > 0), default=0)
+
+
+def epoch_floor(samples: Sequence[Optional[int]]) -> int:
+    """A lower bound of the interleaved epoch's length from the shards whose samples are known
+    (None: not known yet): one past the last position of theirs that holds a sample; the length
+    itself once every shard's is known (:func:`shards_samples`)."""
+    n = len(samples)
+    return max(((s - 1) * n + i + 1 for i, s in enumerate(samples) if s), default=0)
+
+
+def step_in_epoch(first: int, samples: Sequence[Optional[int]], seen: int) -> Optional[bool]:
+    """Whether a step whose positions (every rank's) start at global position ``first`` lies in the
+    interleaved epoch: True once some position at or after ``first`` is known to hold a sample
+    slot (``seen``: one past the furthest position a reader got a row with a sample id at, or
+    0), False once every shard's ``samples`` is known and none does, None while that depends on
+    shards not known yet (ask each of them for the row :func:`probes` names).
+
+    Every rank decides each step so, from what it read: a rank reading some shards only ends
+    the epoch at the step the others end it at."""
+    if max(seen, epoch_floor(samples)) > first:
+        return True
+    return False if all(s is not None for s in samples) else None
+
+
+def probes(first: int, samples: Sequence[Optional[int]]) -> List[Tuple[int, int]]:
+    """``(shard, its position)`` to ask of each shard whose samples are not known, to settle
+    :func:`step_in_epoch` for ``first``: the shard's first position at or after global ``first``.
+    A row with a sample id there puts the step in the epoch; a row past the shard's end comes
+    with its samples (the server answers past the end once it knows where that is)."""
+    n = len(samples)
+    return [(k, max(0, -(-(first - k) // n))) for k, s in enumerate(samples) if s is None]
 
 
 def shards_identity(identities: Sequence[PlanIdentity]) -> PlanIdentity:
