@@ -14,6 +14,7 @@ import argparse
 import json
 import logging
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -103,46 +104,95 @@ def main(argv=None) -> int:
     device = resolve_device(cfg["device"])
     log.info("task %s on %s, stream %s asking for %s", cfg["task"], device, cfg["connect"], stream_outputs(cfg))
     write_whole(out / "config.json", json.dumps(cfg, indent=2))
-    s, lg = cfg["stream"], cfg["log"]
+    lg = cfg["log"]
     resume = cfg.get("resume")
     if resume == "auto":
         resume = str(out / "checkpoint_last.pt") if (out / "checkpoint_last.pt").exists() else None
-    feed = None
+    t0 = time.perf_counter()
+    opening = _Opening(lambda: _open(cfg, resume, device))  # the server asked and read while the model is built
     try:
-        t0 = time.perf_counter()
-        stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"],
-                             reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None,
-                             outputs=stream_outputs(cfg), compact_flow=bool(s.get("compact_flow", True)))
-        t1 = time.perf_counter()
-        if resume:
-            _resume_stream(resume, stream)
-        feed = read_path(stream, device)
-        if isinstance(feed, ReadAhead):
-            feed.start()  # the first fetches go out while the model is built
         try:
             trainer = Trainer(cfg, str(out), device)
         except (FlowSourceUnavailable, LPIPSUnavailable) as e:  # RAFT or LPIPS asked for, weights missing
             log.error("%s", e)
             return 2
         log.info("model: %d parameters", sum(p.numel() for p in trainer.model.parameters()))
-        t2 = time.perf_counter()
+        t1 = time.perf_counter()
+        stream, feed, connect_s = opening.result()
         if resume:
             trainer.load_checkpoint(resume)
         trainer.fit(feed, int(cfg["max_steps"]), int(lg["image_every"]), int(lg["checkpoint_every"]),
                     progress=bool(lg["progress"]) and not args.no_progress, log_every=int(lg.get("every", 10)),
                     tensorboard=bool(lg["tensorboard"]),
-                    startup={"connect": round(t1 - t0, 4), "model_build": round(t2 - t1, 4),
+                    startup={"connect": round(connect_s, 4), "model_build": round(t1 - t0, 4),
                              "to_loop": round(time.perf_counter() - STARTED, 4)})
     except STREAM_ERRORS as e:  # the server absent, silent, or refusing: one line, its own words
         print(f"v2v-train: {e}", file=sys.stderr)
         return 1
     finally:
-        if feed is not None and callable(getattr(feed, "close", None)):
-            feed.close()
+        opening.close()
     close = getattr(stream, "close", None)
     if callable(close):
         close()
     return 0
+
+
+def _open(cfg: dict, resume, device):
+    """``(stream, read path, seconds to the server's answer)``: the run's stream (``make_stream``)
+    at the resumed position, its read path reading (``read_path``; a plan's first fetches out)."""
+    s = cfg["stream"]
+    t = time.perf_counter()
+    stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"],
+                         reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None,
+                         outputs=stream_outputs(cfg), compact_flow=bool(s.get("compact_flow", True)))
+    connect_s = time.perf_counter() - t
+    if resume:
+        _resume_stream(resume, stream)
+    feed = read_path(stream, device)
+    if isinstance(feed, ReadAhead):
+        feed.start()
+    return stream, feed, connect_s
+
+
+class _Opening:
+    """``open_`` run in a thread beside the model's build: :meth:`result` waits for it (raising
+    what it raised, so a model that cannot be built is said before a server that cannot be
+    reached); :meth:`close` closes the read path it made, now or when it ends."""
+
+    def __init__(self, open_):
+        self._got, self._closed = None, False
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, args=(open_,), name="v2v-open-stream", daemon=True)
+        self._thread.start()
+
+    def _run(self, open_) -> None:
+        try:
+            got = ("ok", open_())
+        except BaseException as e:  # raised again in the caller's thread by result()
+            got = ("error", e)
+        with self._lock:
+            self._got = got
+            if self._closed:
+                self._close()
+
+    def result(self):
+        self._thread.join()
+        kind, value = self._got
+        if kind == "error":
+            raise value
+        return value
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            if self._got is not None:
+                self._close()
+
+    def _close(self) -> None:
+        if self._got[0] == "ok":
+            close = getattr(self._got[1][1], "close", None)
+            if callable(close):
+                close()
 
 
 def _resume_stream(path: str, stream) -> None:
