@@ -31,9 +31,11 @@ so its recompiles, if any, show. Each row records:
 * ``launches``: one step under ``torch.profiler``: on CUDA the kernel launches (CUDA runtime
   and driver launch calls, a CUDA graph's launch counted once); on a CPU the aten operators
   dispatched (every level of the dispatcher, so a convolution counts its inner calls too);
-* ``live``: steps fed by a ``v2v-serve`` on this host with ``--workers`` worker processes
-  (``trainer.data.make_loader`` over ``V2VPushDataset``); steps/s, samples/s consumed and
-  the fraction of the wall time the loop waited for a batch;
+* ``live``: steps fed by a ``v2v-serve`` on this host serving by plan with ``--workers`` worker
+  processes (and ``--serve-args``, e.g. ``"--frame-cache-gb 20 --cache-dir /tmp/fc"`` for a
+  frame cache, warm from the cached run on), read as ``v2v-train`` reads it
+  (``trainer.data.read_path``: ``ReadAhead`` over the plan's epochs); steps/s, samples/s
+  consumed and the fraction of the wall time the loop waited for a batch;
 * ``workers_needed``: ``ceil(cached samples/s / (live samples/s / workers))`` when the live run
   waited for data (wait fraction > 0.05); otherwise ``<= workers``.
 
@@ -70,7 +72,7 @@ from bench.speed import bare_decode, clip_path, make_corpus, producer, warm_kern
 from harness.serve import ServeProcess
 from trainer.config import default_config, merge
 from trainer.core import Trainer, resolve_device
-from trainer.data import make_loader, make_stream
+from trainer.data import make_stream, read_path
 from trainer.tasks import stream_outputs
 
 MODELS = ("e2vid", "hypere2vid", "evflow", "etnet", "eraft")
@@ -213,7 +215,8 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
     trainer = _trainer(task, amp, speed, smoke, device, tmp / f"{task}_{amp}_{speed}", a.warmup + a.steps,
                        compile_network=a.compile)
     stream = make_stream(endpoint, task, credits=4, timeout_s=600, outputs=stream_outputs(trainer.cfg))
-    loader = iter(make_loader(stream, device))
+    feed = read_path(stream, device)  # v2v-train's: a plan read ahead of the loop
+    loader = iter(feed)
     cache = [next(loader) for _ in range(2)]
 
     def cycle():
@@ -232,7 +235,7 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
     row = {"model": task, "amp": amp, "speed": trainer.cfg.get("speed", "-"), "pid": os.getpid(),
            "workers": a.workers, "cached": cached, "launches": launches_per_step(trainer, cache[0]),
            "live": _timed(trainer, loader, a.steps, a.warmup)}
-    stream.close()
+    feed.close()
     graphs = counters["stats"]["unique_graphs"]
     row["batch"] = "/".join(str(n) for n in sorted(set(cached["batch_sizes"]) | set(row["live"]["batch_sizes"])))
     row["graphs"] = graphs - graphs0
@@ -378,6 +381,8 @@ def _args(argv):
     ap.add_argument("--speed", default="", help="trainer speed settings to compare, e.g. eager,fast "
                                                 "(default: the configuration's)")
     ap.add_argument("--workers", type=int, default=8, help="v2v-serve worker processes of the live runs")
+    ap.add_argument("--serve-args", default="", help="more v2v-serve arguments of the live runs' server, e.g. "
+                                                     "'--frame-cache-gb 20 --cache-dir /tmp/fc'")
     ap.add_argument("--producer", default="", help="worker counts of the producer-alone rows, e.g. 1,2,4,8,14 "
                                                    "(empty: none)")
     ap.add_argument("--no-trades", action="store_true", help="producer rows of the default recipe only")
@@ -417,7 +422,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         for batch in batches:
             serve = ["--videos", videos, "--shot-cuts", "off", "--workers", str(a.workers), "--batch-size", str(batch),
                      "--sequence-length", str(sizes["sequence_length"]), "--crop-size", str(sizes["crop"]),
-                     "--num-bins", str(sizes["num_bins"])]
+                     "--num-bins", str(sizes["num_bins"]), "--delivery", "plan", *shlex.split(a.serve_args)]
             with ServeProcess(serve, ready_timeout_s=300) as srv:
                 for task in [m for m in models if (SMOKE_BATCH if smoke else PAPER_BATCH[m]) == batch]:
                     for amp in a.amp.split(","):
