@@ -170,13 +170,13 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if not isinstance(epoch, int) or isinstance(epoch, bool) or epoch < 0:
             raise ValueError(f"epoch must be an int >= 0, got {epoch!r}")
         plan_accelerate.check_loader(self)
-        self._adopt()
+        self._control.adopt(self)
         self.epoch = epoch
         self.start = self._resume["sample_in_epoch"] if self._resume and self._resume["epoch"] == epoch else 0
         if self._pending is not None and self._pending["epoch"] != epoch:
             self._pending = None
         self._reading = None
-        self._publish()
+        self._control.publish(self)
 
     def load_state_dict(self, state: dict) -> None:
         """Resume at a position (a batch's ``position``), taken at any world size and batch size:
@@ -192,21 +192,15 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 ids it delivered, which no position of a plan's fixed slices stands for).
             ValueError: a worker's state loaded elsewhere than that worker at that layout (one line).
         """
-        if isinstance(state, dict) and "delivered" in state and "plan" not in state:
-            raise PlanMismatch(f"a push stream's resume state (of consumer {state.get('consumer')!r}, completed epoch "
-                               f"{state.get('completed_epoch')!r}) is not a plan's position: resume from a batch's "
-                               f"'position', or read an epoch from its start with set_epoch()")
-        pos = Position.from_dict(state)
-        if self._info is not None:
-            Position.from_dict(state, expected=self._info.plan)
+        pos = _loaded_position(state, self._info)
         reader = state.get("reader")
-        self._adopt()
+        self._control.adopt(self)
         if reader is None:
             self._resume, self._pending = pos.to_dict(), None
             self.set_epoch(pos.epoch)
             return
         self._pending = _pending_of(pos, _check_reader(reader), self._reader_world(), self.batch_size)
-        self._publish()
+        self._control.publish(self)
 
     def state_dict(self) -> dict:
         """What this process has read: the position after the last step it yielded
@@ -227,7 +221,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 naming ``batch["position"]``, the checkpoint to keep).
         """
         if self._reading is None:  # a pass under way keeps its own progress
-            self._adopt()
+            self._control.adopt(self)
         if torch.utils.data.get_worker_info() is None and self._control.workers_yielded(self._seen):
             raise RuntimeError("state_dict() of a V2VStreamDataset read by DataLoader workers cannot say which batches "
                                "the loop took (the workers read ahead): checkpoint batch[\"position\"] of the last "
@@ -238,44 +232,18 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             w = torch.utils.data.get_worker_info()
             j, k = (w.id, w.num_workers) if w is not None else (0, 1)
             p = self._upcoming if self._upcoming is not None else self._pending
-            if p is None:
-                return {**Position(info.plan, self.epoch, self.start).to_dict(),
-                        "reader": self._reader(j, k, self.start, j)}
-            if "at" in p:
-                return {**p["position"], "reader": self._reader(j, k, p["at"], j)}
-            return {**p["position"], "reader": self._reader(j, k, p["origin"], p["item"])}
+            epoch, origin, item = _start_of(p, self.epoch, self.start, j)
+            position = p["position"] if p is not None else Position(info.plan, epoch, origin).to_dict()
+            d = self._dispatcher()
+            return {**position, "reader": _reader_part(j, k, self._reader_world(), self.batch_size, d[0] if d else 0,
+                                                       origin, item)}
         done, reader = _reading_state(r, self.batch_size)
         return {**Position(info.plan, r["epoch"], done).to_dict(), "reader": reader}
-
-    def _publish(self) -> None:
-        """In the main process, write what the next pass reads (epoch, start, loaded state) to the
-        shared control, for the DataLoader workers' copies; a worker's own load stays its own."""
-        if torch.utils.data.get_worker_info() is None:
-            self._seen = self._control.write({"epoch": self.epoch, "start": self.start, "resume": self._resume,
-                                              "pending": self._pending})
-        else:
-            self._seen = self._control.generation()
-
-    def _adopt(self) -> None:
-        """Take what the main process set last (``set_epoch``, ``load_state_dict``) when this copy
-        has not seen it: a DataLoader worker's copy, made when the worker started."""
-        gen = self._control.generation()
-        if gen == self._seen:
-            return
-        d = self._control.read()
-        self.epoch, self.start, self._resume, self._pending = d["epoch"], d["start"], d["resume"], d["pending"]
-        self._reading, self._upcoming, self._seen = None, None, gen
 
     def _dispatcher(self) -> Optional[tuple]:
         """``(ranks, stateful)`` of accelerate's dispatcher reading this dataset now (as pickled
         into a spawned DataLoader worker, where it cannot be seen), else None."""
         return self._dispatch or plan_accelerate.dispatcher_of(self)
-
-    def _reader(self, worker: int, workers: int, origin: int, item: int) -> dict:
-        d = self._dispatcher()
-        g = d[0] if d else 0
-        return {"worker": worker, "workers": workers, "world_size": self._reader_world(), "batch_size": self.batch_size,
-                "dispatch": g, "origin": origin, "item": item}
 
     def _reader_world(self) -> int:
         """The world size this process reads with: the dispatcher's ranks under it, else this rank's."""
@@ -307,7 +275,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             TypeError: the epoch's samples are not known yet (learned from each video's first
             decode), as for a dataset without a length."""
-        self._adopt()
+        self._control.adopt(self)
         steps = _steps(self.plan_info(refresh=True).samples, self.start, self.world_size * self.batch_size)
         if steps is None:
             raise TypeError(f"{self.endpoint}: {_LENGTH_UNKNOWN}")
@@ -319,7 +287,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         is decided at the first batch (when the loaders that create an iterator early, as
         ``StatefulDataLoader.state_dict`` does, have set the epoch and accelerate has registered its
         loader). Reading raises ``TimeoutError``, ``PlanMismatch`` or ``PlanServerError``."""
-        self._adopt()
+        self._control.adopt(self)
         pending, self._pending = self._pending, None
         self._reading, self._upcoming = None, pending
         return self._read(pending)
@@ -327,17 +295,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     def _read(self, pending: Optional[dict]) -> Iterator[Dict]:
         w = torch.utils.data.get_worker_info()
         j, k = (w.id, w.num_workers) if w is not None else (0, 1)
-        dispatch = self._dispatcher()
-        rank, world = self._layout()
-        g = dispatch[0] if dispatch else 1
-        if g > 1:
-            if rank != 0:  # accelerate reads the loader on process 0 only
-                return
-            rank, world = 0, g
-        epoch, origin, first = self.epoch, self.start, j
-        if pending is not None:
-            epoch = pending["epoch"]
-            origin, first = (pending["at"], j) if "at" in pending else (pending["origin"], pending["item"])
+        layout = _read_layout(self._dispatcher(), self._layout())
+        if layout is None:  # accelerate reads the loader on process 0 only
+            return
+        (rank, world, g), (epoch, origin, first) = layout, _start_of(pending, self.epoch, self.start, j)
         r = {"epoch": epoch, "origin": origin, "next": first, "last": None, "worker": j, "workers": k,
              "rank": rank, "world": world, "group": g, "per_step": world * self.batch_size}
         self._reading, self._upcoming = r, None
@@ -346,18 +307,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             Position.from_dict(pending["position"], expected=info.plan)
         steps = _steps(info.samples, r["origin"], r["per_step"])
         items = range(r["next"], steps * g, k) if steps is not None else itertools.count(r["next"], k)
-
-        def first_row(i: int) -> int:  # item i: step i // g, rank i % g (dispatch) or step i of this rank
-            s, rank = divmod(i, g) if g > 1 else (i, r["rank"])
-            return r["origin"] + s * r["per_step"] + rank * self.batch_size
-
         group = []  # under dispatch: this process's items of the current step, packed together
         with self._servers.link(self.timeout_s, self.curve) as link:
-            for i, rows, arrays in link.fetch_all(items, self.prefetch, self.retry_s,
-                                                  lambda req, i: Fetch(req, r["epoch"], first_row(i),
-                                                                       first_row(i) + self.batch_size, self.outputs,
-                                                                       info.plan),
-                                                  lambda i: r["origin"] + (i // g) * r["per_step"]):
+            for i, rows, arrays in link.fetch_all(
+                    items, self.prefetch, self.retry_s,
+                    lambda req, i: Fetch(req, r["epoch"], *_rows(r, i, self.batch_size), self.outputs, info.plan),
+                    lambda i: r["origin"] + (i // g) * r["per_step"]):
                 steps = steps if steps is not None else _steps(rows.samples, r["origin"], r["per_step"])
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
@@ -400,7 +355,8 @@ def _item(info: PlanInfo, r: dict, step: int, rows: Rows, arrays, raw: bool) -> 
 
 class _Control:
     """What every copy of one dataset reads at each pass: the epoch, start and loaded state that
-    the main process set last, and whether DataLoader workers yielded batches of it.
+    the main process set last (:meth:`publish`; a copy that has not seen it takes it, :meth:`adopt`),
+    and whether DataLoader workers yielded batches of it.
 
     A uint8 torch tensor in shared memory, made with the dataset: a DataLoader worker started by
     fork maps the same pages, one started by spawn or forkserver gets them through torch's
@@ -442,6 +398,24 @@ class _Control:
         """The state last written."""
         n = int(self._words()[2])
         return json.loads(self.block.numpy()[self.HEAD:self.HEAD + n].tobytes())
+
+    def publish(self, ds: "V2VStreamDataset") -> None:
+        """In the main process, write what ``ds``'s next pass reads (epoch, start, loaded state),
+        for the DataLoader workers' copies; a worker's own load stays its own."""
+        if torch.utils.data.get_worker_info() is None:
+            ds._seen = self.write({"epoch": ds.epoch, "start": ds.start, "resume": ds._resume, "pending": ds._pending})
+        else:
+            ds._seen = self.generation()
+
+    def adopt(self, ds: "V2VStreamDataset") -> None:
+        """Give ``ds`` what the main process set last (``set_epoch``, ``load_state_dict``) when that
+        copy has not seen it: a DataLoader worker's copy, made when the worker started."""
+        gen = self.generation()
+        if gen == ds._seen:
+            return
+        d = self.read()
+        ds.epoch, ds.start, ds._resume, ds._pending = d["epoch"], d["start"], d["resume"], d["pending"]
+        ds._reading, ds._upcoming, ds._seen = None, None, gen
 
     def mark_workers_yielded(self, generation: int) -> None:
         """Record that a DataLoader worker yielded a batch of the pass ``generation`` set up (-1:
@@ -665,8 +639,67 @@ def _reading_state(r: dict, batch_size: int):
         done = r["origin"] + -(-item // g) * r["per_step"]
     else:
         done = r["origin"] + (last // g + 1) * r["per_step"] if last is not None else r["origin"]
-    return done, {"worker": r["worker"], "workers": k, "world_size": r["world"], "batch_size": batch_size,
-                  "dispatch": g if g > 1 else 0, "origin": r["origin"], "item": item}
+    return done, _reader_part(r["worker"], k, r["world"], batch_size, g if g > 1 else 0, r["origin"], item)
+
+
+def _reader_part(worker: int, workers: int, world: int, batch_size: int, dispatch: int, origin: int,
+                 item: int) -> dict:
+    """The ``reader`` part of ``state_dict`` (``_check_reader`` reads it back): DataLoader worker
+    ``worker`` of ``workers`` reading at ``world`` ranks (the dispatcher's under it) of
+    ``batch_size`` rows, ``dispatch`` (the dispatcher's ranks, 0: none), from position ``origin``
+    at its item ``item``."""
+    return {"worker": worker, "workers": workers, "world_size": world, "batch_size": batch_size,
+            "dispatch": dispatch, "origin": origin, "item": item}
+
+
+def _start_of(pending: Optional[dict], epoch: int, start: int, worker: int) -> Tuple[int, int, int]:
+    """Where an iteration of DataLoader worker ``worker`` (0 without workers) begins: ``(epoch,
+    origin, item)``, from a loaded state's ``pending`` (``_pending_of``) where there is one, else
+    at position ``start`` of ``epoch``."""
+    if pending is None:
+        return epoch, start, worker
+    if "at" in pending:
+        return pending["epoch"], pending["at"], worker
+    return pending["epoch"], pending["origin"], pending["item"]
+
+
+def _read_layout(dispatch: Optional[tuple], layout: Tuple[int, int]) -> Optional[Tuple[int, int, int]]:
+    """``(rank, world, group)`` an iteration reads with, from accelerate's ``dispatch`` (``(ranks,
+    stateful)`` or None) and this rank's ``layout``: under the dispatcher, rank 0 of its ranks,
+    each step's group of their batches read together; else this rank alone (group 1). None: a
+    rank other than 0 under the dispatcher (accelerate reads the loader on process 0 only)."""
+    rank, world = layout
+    g = dispatch[0] if dispatch else 1
+    if g > 1:
+        return None if rank != 0 else (0, g, g)
+    return rank, world, g
+
+
+def _rows(r: dict, i: int, batch_size: int) -> Tuple[int, int]:
+    """Global positions ``[start, stop)`` of item ``i`` of an iteration read as ``r`` says: under
+    the dispatcher step ``i // group``'s rank ``i % group``, else step ``i`` of this rank."""
+    g = r["group"]
+    s, rank = divmod(i, g) if g > 1 else (i, r["rank"])
+    first = r["origin"] + s * r["per_step"] + rank * batch_size
+    return first, first + batch_size
+
+
+def _loaded_position(state, info: Optional[PlanInfo]) -> Position:
+    """The position of a state given to ``load_state_dict``, checked against ``info``'s plan where
+    the server was asked already (None: not yet).
+
+    Raises:
+        PlanMismatch: a push stream's resume state (one line saying what to resume from), a
+            malformed position (naming the field), or one of another plan than ``info``'s.
+    """
+    if isinstance(state, dict) and "delivered" in state and "plan" not in state:
+        raise PlanMismatch(f"a push stream's resume state (of consumer {state.get('consumer')!r}, completed epoch "
+                           f"{state.get('completed_epoch')!r}) is not a plan's position: resume from a batch's "
+                           f"'position', or read an epoch from its start with set_epoch()")
+    pos = Position.from_dict(state)
+    if info is not None:
+        Position.from_dict(state, expected=info.plan)
+    return pos
 
 
 def _check_reader(reader) -> dict:
@@ -812,6 +845,24 @@ def _refusal(endpoint: str, msg: Refused) -> Exception:
     return PlanServerError(f"{endpoint}: {msg.message}")
 
 
+class _InFlight:
+    """What one ``_Shards.fetch_all`` has asked and not yet yielded: ``fetch_of`` its steps'
+    fetches; ``order`` the steps asked, in order; ``parts`` step -> shard -> (rows, arrays), None
+    until answered; ``probed`` (shard, its position) asked, True once a slot is seen there;
+    ``waiting`` (shard, request id) -> ``("step", step)`` or ``("probe", position)``; ``asked``
+    (shard, what) unanswered -> when last asked; ``seen`` one past the furthest global position a
+    row with a sample id was read at."""
+
+    def __init__(self, fetch_of):
+        self.fetch_of = fetch_of
+        self.order: List[int] = []
+        self.parts: Dict[int, Dict[int, Optional[tuple]]] = {}
+        self.probed: Dict[Tuple[int, int], bool] = {}
+        self.waiting: Dict[Tuple[int, int], tuple] = {}
+        self.asked: Dict[Tuple[int, tuple], float] = {}
+        self.seen = 0
+
+
 class _Shards:
     """Several servers, one shard each, read as one plan (``v2v_wire.plan_shards``): a fetch of
     global positions is asked of each shard holding some of them, and their rows are merged in
@@ -853,89 +904,97 @@ class _Shards:
             TimeoutError: no shard said anything for ``timeout_s`` while a part was awaited.
             PlanMismatch, PlanServerError: a shard refused a fetch or sent what cannot be read.
         """
-        n = len(self.links)
         todo = iter(steps)
-        order: List[int] = []  # steps asked, in order
-        parts: Dict[int, Dict[int, Optional[tuple]]] = {}  # step -> shard -> (rows, arrays), None until answered
-        probed: Dict[Tuple[int, int], bool] = {}  # (shard, its position) asked; True once a slot is seen there
-        waiting: Dict[Tuple[int, int], tuple] = {}  # (shard, request id) -> ("step", step) or ("probe", position)
-        asked: Dict[Tuple[int, tuple], float] = {}  # (shard, what) unanswered -> when last asked
-        seen = 0  # one past the furthest global position a row with a sample id was read at
+        flight = _InFlight(fetch_of)
         poller = zmq.Poller()
         for link in self.links:
             poller.register(link.sock, zmq.POLLIN)
-
-        def ask(k: int, what: tuple) -> None:
-            link = self.links[k]
-            req = next(link.ids)
-            if what[0] == "step":
-                f = self._part(k, fetch_of(req, what[1]))
-            else:  # one row, under the first step's epoch and outputs
-                f = replace(fetch_of(req, order[0]), start=what[1], stop=what[1] + 1, plan=self.plans[k])
-            link._send(replace(f, compression=link.compression).to_wire())
-            waiting[(k, req)], asked[(k, what)] = what, time.monotonic()
-
-        def begin(step: int) -> None:
-            f = fetch_of(0, step)
-            parts[step] = {k: None for k, (lo, hi) in enumerate(shard_ranges(f.start, f.stop, n)) if hi > lo}
-            order.append(step)
-            for k in parts[step]:
-                ask(k, ("step", step))
-
         for step in itertools.islice(todo, prefetch):
-            begin(step)
+            self._begin(flight, step)
         heard = time.monotonic()
-        while order:
-            head = order[0]
-            if all(p is not None for p in parts[head].values()):
+        while flight.order:
+            head = flight.order[0]
+            if all(p is not None for p in flight.parts[head].values()):
                 first = first_of(head)
-                if step_in_epoch(first, self.samples, seen) is not None:
-                    order.pop(0)
-                    yield (head,) + self._merged(fetch_of(0, head), parts.pop(head))
+                if step_in_epoch(first, self.samples, flight.seen) is not None:
+                    flight.order.pop(0)
+                    yield (head,) + self._merged(fetch_of(0, head), flight.parts.pop(head))
                     nxt = next(todo, None)
                     if nxt is not None:
-                        begin(nxt)
+                        self._begin(flight, nxt)
                     continue
                 for k, q in probes(first, self.samples):
-                    if (k, q) not in probed:
-                        probed[(k, q)] = False
-                        ask(k, ("probe", q))
+                    if (k, q) not in flight.probed:
+                        flight.probed[(k, q)] = False
+                        self._ask(flight, k, ("probe", q))
             now = time.monotonic()
-            for (k, what), when in list(asked.items()):
+            for (k, what), when in list(flight.asked.items()):
                 if now - when >= retry_s:
-                    ask(k, what)  # a lost reply or a restarted server: ask again
+                    self._ask(flight, k, what)  # a lost reply or a restarted server: ask again
             ready = dict(poller.poll(int(min(retry_s, 1.0) * 1000)))
             if not ready:
                 if time.monotonic() - heard > self.timeout_s:
-                    late = sorted({self.links[k].endpoint for k, _ in asked})
+                    late = sorted({self.links[k].endpoint for k, _ in flight.asked})
                     raise TimeoutError(f"{', '.join(late)}: no rows for {self.timeout_s} s (step {head})")
                 continue
             heard = time.monotonic()
             for k, link in enumerate(self.links):
                 got = link._recv(heard) if link.sock in ready else None
-                if got is None:
-                    continue
-                msg, frames = got
-                if isinstance(msg, Refused):
-                    raise _refusal(link.endpoint, msg)
-                what = waiting.pop((k, msg.request), None) if isinstance(msg, Rows) else None
-                if what is None or asked.pop((k, what), None) is None:
-                    continue  # an answer to a request asked again, or to a plan_ask
-                if msg.samples is not None:
-                    self.samples[k] = msg.samples
-                slots = [(msg.start + j) * n + k for j, sid in enumerate(msg.sample_ids) if sid is not None]
-                seen = max([seen] + [t + 1 for t in slots])
-                if what[0] == "probe":
-                    if not slots and msg.samples is None:
-                        raise PlanServerError(f"{link.endpoint}: position {what[1]} answered past the epoch's end "
-                                              "without the epoch's samples")
-                    probed[(k, what[1])] = bool(slots)
-                    continue
-                try:
-                    arrays = decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES)
-                except ProtocolError as e:
-                    raise PlanServerError(f"{link.endpoint}: rows of step {what[1]}: {e}") from None
-                parts[what[1]][k] = (msg, arrays)
+                if got is not None:
+                    self._receive(flight, k, *got)
+
+    def _ask(self, flight: "_InFlight", k: int, what: tuple) -> None:
+        """Ask shard ``k`` for ``what``: ``("step", step)``, its part of that step's fetch, or
+        ``("probe", position)``, one row at its own ``position`` under the first step's epoch and
+        outputs."""
+        link = self.links[k]
+        req = next(link.ids)
+        if what[0] == "step":
+            f = self._part(k, flight.fetch_of(req, what[1]))
+        else:
+            f = replace(flight.fetch_of(req, flight.order[0]), start=what[1], stop=what[1] + 1, plan=self.plans[k])
+        link._send(replace(f, compression=link.compression).to_wire())
+        flight.waiting[(k, req)], flight.asked[(k, what)] = what, time.monotonic()
+
+    def _begin(self, flight: "_InFlight", step: int) -> None:
+        """Ask each shard holding some of ``step``'s rows for its part."""
+        f = flight.fetch_of(0, step)
+        ranges = shard_ranges(f.start, f.stop, len(self.links))
+        flight.parts[step] = {k: None for k, (lo, hi) in enumerate(ranges) if hi > lo}
+        flight.order.append(step)
+        for k in flight.parts[step]:
+            self._ask(flight, k, ("step", step))
+
+    def _receive(self, flight: "_InFlight", k: int, msg, frames) -> None:
+        """Take shard ``k``'s message ``msg`` (its ``frames``): a step's part is kept for the merge,
+        a probe's row settles where that shard's slots end; the shard's samples and the furthest
+        slot seen are noted from either. Answers to requests asked again are dropped.
+
+        Raises:
+            PlanMismatch, PlanServerError: the shard refused a fetch, sent arrays that cannot be
+                read, or answered a probe past its epoch's end without the epoch's samples.
+        """
+        link, n = self.links[k], len(self.links)
+        if isinstance(msg, Refused):
+            raise _refusal(link.endpoint, msg)
+        what = flight.waiting.pop((k, msg.request), None) if isinstance(msg, Rows) else None
+        if what is None or flight.asked.pop((k, what), None) is None:
+            return  # an answer to a request asked again, or to a plan_ask
+        if msg.samples is not None:
+            self.samples[k] = msg.samples
+        slots = [(msg.start + j) * n + k for j, sid in enumerate(msg.sample_ids) if sid is not None]
+        flight.seen = max([flight.seen] + [t + 1 for t in slots])
+        if what[0] == "probe":
+            if not slots and msg.samples is None:
+                raise PlanServerError(f"{link.endpoint}: position {what[1]} answered past the epoch's end "
+                                      "without the epoch's samples")
+            flight.probed[(k, what[1])] = bool(slots)
+            return
+        try:
+            arrays = decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES)
+        except ProtocolError as e:
+            raise PlanServerError(f"{link.endpoint}: rows of step {what[1]}: {e}") from None
+        flight.parts[what[1]][k] = (msg, arrays)
 
     def _merged(self, f: Fetch, got: dict):
         """One ``Rows`` and its arrays for global positions ``f.start .. f.stop - 1`` from each
