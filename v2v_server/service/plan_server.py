@@ -67,12 +67,15 @@ class PlanServer:
             (``ops.plan_start.plan_manifest``); the others' are learned from their decodes.
         corpus: the fingerprint of the whole listing before sharding
             (``ops.startup.corpus_fingerprint``): readers of several shards check it is one corpus.
+        skipped: the videos the corpus index knows to give no window -> ``(cause, reason)``
+            (``ops.startup.Startup.skipped``): never opened, each named once with its reason and
+            counted as a skipped file, as a decode that found it unusable would be.
 
     Call :meth:`run` (blocks until :meth:`stop`).
     """
 
     def __init__(self, cfg: ServeConfig, source: VideoSource, caches: HostCaches, manifest: Manifest,
-                 corpus: Optional[str] = None):
+                 corpus: Optional[str] = None, skipped: Optional[Dict[str, Tuple[str, str]]] = None):
         self.cfg, self.source, self.caches, self.manifest, self.corpus = cfg, source, caches, manifest, corpus
         d = cfg.delivery
         # made ahead: the push server's shuffle buffer of samples; kept once fetched: a batch, for
@@ -83,6 +86,7 @@ class PlanServer:
         self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer)
         self.metrics = ServerMetrics()
         self.workers = WorkerSide(cfg, source, self.feed, self.metrics)
+        self.skipped = dict(skipped or {})
         self.bad = BadPeers()
         self.codecs: Dict[str, float] = {}  # codec -> when a fetch last asked for it
         self._zeros: Dict[tuple, bytes] = {}  # (codec, name, dtype, shape) -> a padding row, compressed
@@ -116,6 +120,8 @@ class PlanServer:
             pool = WorkerPool(worker_config(self.cfg), corpus, self.sockets.backend_endpoint, self.cfg.workers)
             self.workers.attach(self.sockets.backend, pool, OwnedRows())
             pool.start()
+            for video, (cause, why) in sorted(self.skipped.items()):  # known to give no window: named as if read
+                self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)", cause=cause)
             counted = sum(1 for _, n in self.manifest.slots if n is not None)
             log.info("serving by plan %s: %d video(s) (%d counted: %s samples per epoch), from %s on %s with %d "
                      "worker(s)", self.identity.manifest, len(self.manifest.slots), counted,
