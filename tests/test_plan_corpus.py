@@ -58,3 +58,56 @@ def test_a_plan_server_names_each_file_the_corpus_index_knows_gives_no_window_on
     assert named[0].endswith("(known from the corpus index: not opened)")
     assert "1 skipped file(s)" in srv.log
     assert ids and all(sid.startswith("bikes.mp4") for sid in ids) and len(set(ids)) == len(ids)
+
+
+#: windows of 41 frames, no shot cuts: bikes.mp4 (250 frames) gives 6, bigbuckbunny.mp4 (132) 3
+SHORT = ["--sequence-length", "8", "--crop-size", "32", "--flow-preset", "ultrafast", "--shot-cuts", "off",
+         "--shuffle-buffer", "4", "--batch-size", "2", "--workers", "1", "--delivery", "plan"]
+
+
+def rows_of(ds, steps=None):
+    """(sample id, voxels digest) of each row holding a sample, and the last batch's position."""
+    import hashlib
+
+    rows, position = [], None
+    for i, b in enumerate(ds):
+        if i == steps:
+            break
+        rows += [(sid, hashlib.sha1(b["voxels"][j].numpy().tobytes()).hexdigest())
+                 for j, sid in enumerate(b["sample_ids"]) if not b["padding"][j]]
+        position = b["position"]
+    return rows, position
+
+
+def test_a_position_taken_before_a_file_was_replaced_under_its_name_is_refused_naming_it(tmp_path, videos):
+    """A position resumes across a restart of the server on the same files (the rest of the epoch,
+    the same ids and bytes); once bikes.mp4 is replaced by another cut (fewer windows) while the
+    server is down, the same position is refused in one line naming bikes.mp4, never read as
+    other samples."""
+    from v2v_wire.plan import PlanMismatch
+
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    for name in ("bikes.mp4", "bbb_camera_596x336.mp4"):
+        shutil.copyfile(videos / name, corpus / name)
+    settle()
+    args = ["--videos", str(corpus), "--cache-dir", str(tmp_path / "cache"), *SHORT]
+    with ServeProcess(args, ready_timeout_s=120) as srv:
+        whole, _ = rows_of(V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120))
+        head, position = rows_of(V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120), steps=2)
+    assert position["sample_in_epoch"] == 4 and head == whole[:4] and any(s.startswith("bikes.mp4") for s, _ in whole)
+    with ServeProcess(args, ready_timeout_s=120) as srv:  # the same files: the position holds
+        ds = V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120)
+        ds.load_state_dict(position)
+        rest, _ = rows_of(ds)
+    assert head + rest == whole
+    shutil.copyfile(videos / "bigbuckbunny.mp4", corpus / "bikes.mp4")  # another cut under the same name
+    settle()
+    with ServeProcess(args, ready_timeout_s=120) as srv:
+        ds = V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120)
+        ds.load_state_dict(position)
+        with pytest.raises(PlanMismatch) as err:
+            rows_of(ds)
+    line = str(err.value)
+    assert "\n" not in line and "manifest" in line and "1 file(s) changed" in line and "bikes.mp4" in line, line
+    assert "bbb_camera" not in line

@@ -11,7 +11,7 @@ Every decoder raises only ``messages.WireError`` (a ``ProtocolError``) naming th
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import List, Optional, Tuple
 
 from v2v_wire.codecs import check_compression
@@ -55,7 +55,8 @@ class PlanInfo:
     """Server -> client: the plan it serves and the stream's shapes.
 
     Attributes:
-        plan: the plan's identity.
+        plan: the plan's identity, with the server's word on plans of the same listing it
+            served before (``PlanIdentity.changes``: sent as ``changes``, a map of str to str).
         samples: samples per epoch (the manifest's slots x crops per window), or None while
             the server has not learned every video's slots (the plan unfolds as it decodes).
         stream: the recipe's shapes and outputs (``sequence_length``, ``num_bins``,
@@ -67,7 +68,8 @@ class PlanInfo:
     stream: dict = field(default_factory=dict)
 
     def to_wire(self) -> dict:
-        return {"type": "plan", "plan": self.plan.to_dict(), "samples": self.samples, "stream": self.stream}
+        return {"type": "plan", "plan": self.plan.to_dict(), "samples": self.samples, "stream": self.stream,
+                "changes": dict(self.plan.changes)}
 
     @classmethod
     def from_wire(cls, h: dict) -> "PlanInfo":
@@ -77,7 +79,11 @@ class PlanInfo:
             raise WireError(f"plan: {e}") from None
         if not isinstance(h.get("stream"), dict):
             raise WireError("plan: field 'stream' must be a map")
-        return cls(plan, _optional_int(h, "samples"), h["stream"])
+        changes = h.get("changes", {})
+        if not isinstance(changes, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                    for k, v in changes.items()):
+            raise WireError("plan: field 'changes' must be a map of strings to strings")
+        return cls(replace(plan, changes=changes), _optional_int(h, "samples"), h["stream"])
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from v2v_server.delivery.plan_feed import PlanFeed, Row
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
+from v2v_server.ops.plan_record import plan_changes
 from v2v_server.service.assembly import SamplePayload
 from v2v_server.service.pool import WorkerPool
 from v2v_server.service.sockets import ServerSockets
@@ -83,7 +84,8 @@ class PlanServer:
         self.feed = PlanFeed(manifest, cfg.seed, d.shuffle_buffer, cfg.outputs, lookahead=d.shuffle_buffer,
                              keep_samples=d.batch_size, hedge_s=min(HEDGE_S, d.task_timeout_s),
                              task_timeout_s=d.task_timeout_s)
-        self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer)
+        self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer,
+                                     changes=plan_changes(caches.cache_dir, manifest))
         self.metrics = ServerMetrics()
         self.workers = WorkerSide(cfg, source, self.feed, self.metrics)
         self.skipped = dict(skipped or {})
