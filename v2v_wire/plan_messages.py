@@ -2,8 +2,9 @@
 
 A client asks a server what it serves (:class:`PlanAsk`, answered by :class:`PlanInfo`: the plan's
 identity, samples per epoch and the stream's shapes), then fetches positions of an epoch
-(:class:`Fetch`), each answered by :class:`Rows` (a header, then one frame per array, rows in
-position order, ``padding`` true for a row without a sample) or :class:`Refused` (one line). The
+(:class:`Fetch`), each answered by :class:`Rows` (a header, rows in position order, ``padding``
+true for a row without a sample; then the arrays of the rows with a sample only: a padding row
+costs no payload) or :class:`Refused` (one line: another plan, or a batch over the limit). The
 server keeps no record of either: a client that hears nothing asks again, and a late answer to a
 request it no longer waits for is dropped.
 
@@ -123,7 +124,9 @@ class Rows:
     """Server -> client: the answer to fetch ``request``: rows for positions ``start`` .. of
     ``epoch``, each with its sample id (None for a row past the epoch's end), ``padding``,
     ``params`` (the sample's parameters, or why the row holds none) and the arrays' specs (the
-    frames follow the header, one per array, ``protocol.decode_arrays``); ``samples``: the
+    frames follow the header, ``codecs.decode_batch_arrays``). The arrays hold the rows with a
+    sample only, in row order (``(samples in it, ...)``; ``(0, ...)`` for rows of padding only):
+    a padding row costs no payload, and the reader puts zeros in its place; ``samples``: the
     epoch's samples once the server knows them (None before: a reader of a plan still unfolding
     learns the epoch's end from it)."""
 
