@@ -1,9 +1,10 @@
 """A plan server's decisions per fetch with many epochs read at once (issue 86, item 5): the pure
 ``PlanFeed`` a server's loop runs each turn (``answer``, and ``task_for``'s ``needed``), with one
-pending fetch of ``--batch`` rows in each of 1, 4 and ``--epochs`` epochs at once, over a manifest of
-``--videos`` videos whose slots are all known (the plans complete). Prints each case's seconds per
-loop turn (CPU, the median of ``--turns``) and per pending fetch, the plans built, and the per-fetch ratio to 1 epoch (the gate:
-a fetch's cost does not grow with the epochs read at once).
+pending fetch of ``--batch`` rows in each of 1, 4 and ``--epochs`` epochs at once, over a manifest
+of ``--videos`` videos whose slots are all known (the plans complete). Prints each case's seconds
+per loop turn (CPU, the median of ``--turns``) and per pending fetch, the plans built in the
+turns, and the per-fetch ratio to 1 epoch (the gate: a fetch's cost does not grow with the epochs
+read at once).
 
 ``python -m bench.plan_epochs --videos 1000000 --epochs 16`` (about a minute here: the plans are
 built once each, 2-3 s apiece at a million videos)."""

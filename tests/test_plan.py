@@ -148,7 +148,8 @@ def test_a_manifests_fingerprint_covers_each_videos_tag_and_a_changed_one_is_nam
     assert Manifest.of({"b.mp4": 3, "a.mp4": None}, tags=tags).fingerprint() == base.fingerprint()
     replaced = Manifest.of({"a.mp4": 2, "b.mp4": 1}, tags={**tags, "b.mp4": "file 12 201"})
     assert replaced.fingerprint() != base.fingerprint()
-    assert replaced.paths_fingerprint() == base.paths_fingerprint() == Manifest.of({"a.mp4": 2, "b.mp4": 3}).fingerprint()
+    paths_only = Manifest.of({"a.mp4": 2, "b.mp4": 3}).fingerprint()
+    assert replaced.paths_fingerprint() == base.paths_fingerprint() == paths_only
     for bad, field in (({"a.mp4": "x"}, "no tag for 'b.mp4'"), ({**tags, "a.mp4": 3}, "tag of 'a.mp4'")):
         with pytest.raises(ValueError, match=field):
             Manifest.of({"a.mp4": 2, "b.mp4": 3}, tags=bad)

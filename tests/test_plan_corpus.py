@@ -15,8 +15,8 @@ from v2v_client import V2VStreamDataset
 from v2v_server.sources.local import RACY_NS
 
 #: windows of 201 frames (the default recipe's): bigbuckbunny.mp4 (132 frames) gives none
-LAYOUT = ["--crop-size", "32", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3", "--shot-cuts", "off",
-          "--shuffle-buffer", "4", "--batch-size", "2", "--workers", "1", "--delivery", "plan"]
+LAYOUT = ["--crop-size", "32", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
+          "--shot-cuts", "off", "--shuffle-buffer", "4", "--batch-size", "2", "--workers", "1", "--delivery", "plan"]
 
 
 def settle() -> None:

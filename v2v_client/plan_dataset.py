@@ -568,7 +568,8 @@ def _with_padding(arrays: Dict[str, np.ndarray], padding: List[bool]) -> Dict[st
     out = {}
     for name, a in arrays.items():
         if a.ndim == 0 or a.shape[0] != len(real):
-            raise ProtocolError(f"array {name!r}: {a.shape[0] if a.ndim else 0} rows, the rows hold {len(real)} samples")
+            raise ProtocolError(f"array {name!r}: {a.shape[0] if a.ndim else 0} rows, the rows hold "
+                                f"{len(real)} samples")
         if len(real) == len(padding):
             out[name] = a
             continue

@@ -10,9 +10,9 @@ The contract (docs/plan.md):
   not part of the identity: the manifest's fingerprint names the videos, their tags and the
   crops per window, and with the recipe's and :data:`PLAN_VERSION` it is the plan's identity
   (:class:`PlanIdentity`). A file replaced under its name (another cut: other slots) is thus
-  another plan, whose positions mean other samples: a position taken before is refused. A plan *unfolds* as
-  slots become known (a server learns a video's from its first decode): what it says of a
-  position never changes once said.
+  another plan, whose positions mean other samples: a position taken before is refused. A plan
+  *unfolds* as slots become known (a server learns a video's from its first decode): what it
+  says of a position never changes once said.
 * **The epoch's sequence** (:class:`EpochPlan`) is built in two pure steps:
 
   1. the *production order*: the videos in :func:`video_order` (a BLAKE2b key of
