@@ -11,7 +11,10 @@ What the world does to the feed:
   from their first decode (the plan unfolds), and the index keeps a whole pass's count for a
   server started again;
 * the server is killed and started again (a fresh ``PlanFeed`` and a fresh pool of workers: made
-  samples, pending fetches and running tasks gone);
+  samples, pending fetches and running tasks gone), and while it is down a file may be replaced
+  under its name by another cut (another tag, other windows, its index entry gone): the plan's
+  identity changes, a job's position of the plan before is refused and it reads that epoch
+  again from its start under the new plan;
 * jobs of 1-3 ranks ask up to two steps ahead, ask again a fetch unanswered for ``RETRY`` ticks
   (a lost reply, a restarted server), checkpoint and resume at another world size and batch size,
   and roll back to an older checkpoint of the epoch (the rows read since count again);
@@ -66,6 +69,8 @@ class Job:
     rows: Dict[int, Dict[int, object]] = field(default_factory=dict)  # epoch -> position -> row read
     taken: int = 0  # steps whose every rank's rows arrived
     checkpoints: List[int] = field(default_factory=lambda: [0])  # positions of this epoch saved (its start)
+    plan: Optional[str] = None  # the identity (manifest fingerprint) of the plan its position is of
+    read_under: Dict[int, tuple] = field(default_factory=dict)  # epoch -> (manifest, windows given) it was read under
 
 
 @dataclass
@@ -78,6 +83,8 @@ class Outcome:
     resumes: int = 0
     rollbacks: int = 0
     widened: int = 0
+    replaced: int = 0
+    refused: int = 0
     biggest_store: int = 0
 
 
@@ -96,6 +103,7 @@ class World:
         self.rng = rng = random.Random(seed)
         self.kpw = rng.choice([1, 1, 2])
         self.slots = {f"v{i:02d}.mp4": rng.randint(0, 6) for i in range(rng.randint(1, 14))}
+        self.tags = {v: 0 for v in self.slots}  # which cut of each file (another after a replacement)
         self.given = {v: (n if rng.random() < 0.8 else rng.randint(0, n)) for v, n in self.slots.items()}  # short
         self.broken = {v for v in self.slots if rng.random() < 0.1}  # the pass breaks after its windows
         known = rng.choice([0.0, 0.5, 1.0])
@@ -115,15 +123,35 @@ class World:
         self.request = 0
         # passes a store failing for a while cuts short, fewer than the feed's PASS_ATTEMPTS
         self.flaky = {v: rng.randint(1, 2) for v, n in self.given.items() if v not in self.broken and n and rng.random() < 0.2}
+        # files replaced while the server is down: drawn apart, so the other draws stay each seed's
+        self.cuts = random.Random(f"cuts/{seed}")
+        self.replace_p = self.cuts.choice([0.0, 1.0])
+        self.identity = self.feed.manifest.fingerprint()
 
     def new_feed(self) -> PlanFeed:
-        manifest = Manifest.of({v: self.index.get(v) for v in self.slots}, self.kpw)
+        tags = {v: f"cut {n}" for v, n in self.tags.items()}
+        manifest = Manifest.of({v: self.index.get(v) for v in self.slots}, self.kpw, tags)
         return PlanFeed(manifest, self.seed, self.buffer, OUTPUTS, **self.settings)
+
+    def replace_file(self) -> None:
+        """While the server is down, a file is replaced under its name by another cut: another
+        tag, its windows drawn again, what the corpus index knew of it gone (its identity changed)."""
+        v = self.cuts.choice(sorted(self.slots))
+        self.tags[v] += 1
+        self.slots[v] = self.given[v] = self.cuts.randint(0, 6)
+        self.index.pop(v, None)
+        self.broken.discard(v)
+        self.flaky.pop(v, None)
+        self.truth = Manifest.of({u: self.index.get(u, self.given[u]) for u in self.slots}, self.kpw)
+        self.out.replaced += 1
 
     def run(self, ticks: int) -> Outcome:
         for now in range(ticks):
             if self.rng.random() < self.restart_p:  # the server killed and started again, with its workers
+                if self.cuts.random() < self.replace_p:
+                    self.replace_file()
                 self.feed = self.new_feed()
+                self.identity = self.feed.manifest.fingerprint()
                 self.workers = [Worker(f"w{self.next_worker + i}") for i in range(len(self.workers))]
                 self.next_worker += len(self.workers)
                 self.out.restarts += 1
@@ -149,6 +177,11 @@ class World:
         """A job's turn: ask up to two steps ahead, ask again what went unanswered, end its epoch,
         or checkpoint and resume at another layout (or roll back)."""
         rng, out = self.rng, self.out
+        if job.plan is not None and job.plan != self.identity:  # its position is of another plan: refused
+            job.start, job.step, job.taken, job.asked, job.checkpoints = 0, 0, 0, {}, [0]
+            job.rows[job.epoch] = {}
+            out.refused += 1
+        job.plan = self.identity
         plan = self.feed.plan(job.epoch)
         steps = plan.steps(job.world, job.batch, job.start) if plan.complete else None  # unfolding: not known
         if rng.random() < 0.002 and job.outputs != OUTPUTS:  # a reader asks for one more output
@@ -162,6 +195,7 @@ class World:
             if q > 0 and now - at >= RETRY:
                 self.fetch(job, s, r, plan, now)
         if steps is not None and job.taken >= steps:
+            job.read_under[job.epoch] = (self.truth, dict(self.given))
             job.epoch, job.start, job.step, job.taken, job.asked, job.checkpoints = job.epoch + 1, 0, 0, 0, {}, [0]
         elif job.taken and rng.random() < 0.01:  # checkpoint, stop, resume at another layout
             job.start += job.taken * job.world * job.batch
@@ -245,13 +279,14 @@ class World:
 
     def judge(self) -> None:
         """Each job read each epoch's plan exactly; the store stayed bounded."""
-        problems, given = self.out.problems, self.given
+        problems = self.out.problems
         for job in self.jobs:
             if job.epoch < self.epochs:
                 problems.append(f"{job.name} stuck in epoch {job.epoch} at step {job.taken}")
                 continue
             for e in range(self.epochs):
-                plan = EpochPlan(self.truth, self.seed, e, self.buffer)
+                truth, given = job.read_under[e]  # the plan of the corpus as it was while the epoch was read
+                plan = EpochPlan(truth, self.seed, e, self.buffer)
                 rows = job.rows.get(e, {})
                 if sorted(rows) != list(range(len(plan))):
                     problems.append(f"{job.name} epoch {e}: read {len(rows)} of {len(plan)} positions")
@@ -274,7 +309,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = ap.parse_args(argv)
     lo, hi = (int(x) for x in a.seeds.split(":"))
     t = time.perf_counter()
-    failed, totals = [], {"restarts": 0, "resumes": 0, "rollbacks": 0, "widened": 0}
+    failed, totals = [], {"restarts": 0, "resumes": 0, "rollbacks": 0, "widened": 0, "replaced": 0, "refused": 0}
     for seed in range(lo, hi):
         o = check(seed)
         for k in totals:

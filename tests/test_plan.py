@@ -142,6 +142,25 @@ def test_a_manifests_fingerprint_names_its_videos_and_crops_not_the_slots_known_
     assert len({m.fingerprint() for m in others} | {base.fingerprint()}) == 4
 
 
+def test_a_manifests_fingerprint_covers_each_videos_tag_and_a_changed_one_is_named():
+    tags = {"a.mp4": "file 10 100", "b.mp4": "file 20 200"}
+    base = Manifest.of({"a.mp4": 2, "b.mp4": None}, tags=tags)
+    assert Manifest.of({"b.mp4": 3, "a.mp4": None}, tags=tags).fingerprint() == base.fingerprint()
+    replaced = Manifest.of({"a.mp4": 2, "b.mp4": 1}, tags={**tags, "b.mp4": "file 12 201"})
+    assert replaced.fingerprint() != base.fingerprint()
+    paths_only = Manifest.of({"a.mp4": 2, "b.mp4": 3}).fingerprint()
+    assert replaced.paths_fingerprint() == base.paths_fingerprint() == paths_only
+    for bad, field in (({"a.mp4": "x"}, "no tag for 'b.mp4'"), ({**tags, "a.mp4": 3}, "tag of 'a.mp4'")):
+        with pytest.raises(ValueError, match=field):
+            Manifest.of({"a.mp4": 2, "b.mp4": 3}, tags=bad)
+    ident = PlanIdentity(replaced.fingerprint(), "r", 0, changes={base.fingerprint(): "1 file(s) changed: b.mp4"})
+    old = PlanIdentity(base.fingerprint(), "r", 0)
+    assert ident == PlanIdentity(replaced.fingerprint(), "r", 0)  # what changed is no part of the identity
+    with pytest.raises(PlanMismatch, match=rf"^position taken under another plan: manifest {base.fingerprint()} "
+                                           rf"\(this plan: {replaced.fingerprint()}; 1 file\(s\) changed: b.mp4\)$"):
+        Position.from_dict(Position(old, 0, 4).to_dict(), expected=ident)
+
+
 @settings(max_examples=150, deadline=None)
 @given(manifests, st.integers(0, 2 ** 31), st.integers(0, 9), st.integers(1, 40), st.randoms(use_true_random=False))
 def test_a_plan_unfolding_as_slots_become_known_says_what_the_whole_plan_says(m, seed, epoch, buffer, rnd):
@@ -212,7 +231,7 @@ def test_the_sequence_is_pinned_for_this_plan_version():
     plan = EpochPlan(m, 123, 4)
     digest = hashlib.sha256(np.stack([plan.video_index, plan.ordinal]).astype("<i8").tobytes()
                             + "\n".join(plan.videos).encode()).hexdigest()[:16]
-    assert (PLAN_VERSION, digest) == (2, PINNED)  # version 2: the identity names no slots; same sequence
+    assert (PLAN_VERSION, digest) == (3, PINNED)  # version 3: the identity covers the tags; same sequence
 
 
 PINNED = "b12c8400f0f5825c"
@@ -259,3 +278,15 @@ def test_the_shards_identity_names_their_manifests_and_refuses_other_recipes():
     assert (both.recipe, both.seed) == ("r", 0)
     with pytest.raises(PlanMismatch, match=r"^the shards' plans differ in seed: shard 0: 0, shard 1: 5$"):
         shards_identity([a, PlanIdentity("bb", "r", 5)])
+
+
+def test_the_plan_message_carries_what_changed_since_earlier_manifests():
+    from v2v_wire.messages import WireError
+    from v2v_wire.plan_messages import PlanInfo
+
+    ident = PlanIdentity("m2", "r", 0, changes={"m1": "1 file(s) changed: b.mp4"})
+    back = PlanInfo.from_wire(PlanInfo(ident, None, {}).to_wire())
+    assert back.plan == ident and back.plan.changes == {"m1": "1 file(s) changed: b.mp4"}
+    assert "changes" not in Position(ident).to_dict()["plan"]  # a position and a fetch name the identity only
+    with pytest.raises(WireError, match="field 'changes'"):
+        PlanInfo.from_wire({**PlanInfo(ident, None, {}).to_wire(), "changes": {"m1": 3}})

@@ -727,6 +727,27 @@ def _check_layout(rank: int, world_size: int) -> None:
         raise ValueError(f"rank must be in 0..{world_size - 1}, got {rank!r}")
 
 
+def _with_padding(arrays: Dict[str, np.ndarray], padding: List[bool]) -> Dict[str, np.ndarray]:
+    """The batch's arrays, one row per row of ``padding``, from the wire's (``Rows``: the rows
+    holding a sample only, in row order): zeros in each padding row; the wire's arrays as they
+    are when no row is padding.
+
+    Raises:
+        ProtocolError: an array whose rows are not the rows holding a sample, naming it."""
+    real = [i for i, pad in enumerate(padding) if not pad]
+    out = {}
+    for name, a in arrays.items():
+        if a.ndim == 0 or a.shape[0] != len(real):
+            raise ProtocolError(f"array {name!r}: {a.shape[0] if a.ndim else 0} rows, the rows hold "
+                                f"{len(real)} samples")
+        if len(real) == len(padding):
+            out[name] = a
+            continue
+        out[name] = np.zeros((len(padding), *a.shape[1:]), a.dtype)
+        out[name][real] = a
+    return out
+
+
 class _Link:
     """One process's connection to a plan server: a DEALER socket, requests numbered from 1."""
 
@@ -832,7 +853,7 @@ class _Link:
             if step in done or step not in order:
                 continue
             try:
-                arrays = decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES)
+                arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
             except ProtocolError as e:
                 raise PlanServerError(f"{self.endpoint}: rows of step {step}: {e}") from None
             done[step] = (msg, arrays)

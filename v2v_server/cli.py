@@ -63,7 +63,7 @@ def _serve_plan(start) -> int:
     except ValueError as e:
         print(f"v2v-serve: {e}", file=sys.stderr)
         return 2
-    server = PlanServer(cfg, start.source, start.caches, manifest, start.corpus)
+    server = PlanServer(cfg, start.source, start.caches, manifest, start.corpus, start.skipped)
     stopped_by = install_signal_handlers(server)
     try:
         status = server.run()

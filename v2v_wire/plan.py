@@ -4,12 +4,15 @@ epoch), each rank's batch at each step as a fixed slice of it, and a checkpoint 
 The contract (docs/plan.md):
 
 * **The manifest** (:class:`Manifest`) is what a plan knows of a corpus: its videos, each one's
-  *slots* (its windows per epoch) where they are known, and ``crops_per_window``. A video's slots
-  are a function of its file and the recipe, so they are not part of the identity: the
-  manifest's fingerprint names the videos and the crops per window, and with the recipe's and
-  :data:`PLAN_VERSION` it is the plan's identity (:class:`PlanIdentity`). A plan *unfolds* as
-  slots become known (a server learns a video's from its first decode): what it says of a
-  position never changes once said.
+  *slots* (its windows per epoch) where they are known, each one's *tag* (what stands for its
+  content without reading it: a file's size and modification time, an object's ETag) and
+  ``crops_per_window``. A video's slots are a function of its file and the recipe, so they are
+  not part of the identity: the manifest's fingerprint names the videos, their tags and the
+  crops per window, and with the recipe's and :data:`PLAN_VERSION` it is the plan's identity
+  (:class:`PlanIdentity`). A file replaced under its name (another cut: other slots) is thus
+  another plan, whose positions mean other samples: a position taken before is refused. A plan
+  *unfolds* as slots become known (a server learns a video's from its first decode): what it
+  says of a position never changes once said.
 * **The epoch's sequence** (:class:`EpochPlan`) is built in two pure steps:
 
   1. the *production order*: the videos in :func:`video_order` (a BLAKE2b key of
@@ -40,7 +43,7 @@ from __future__ import annotations
 
 import hashlib
 from array import array
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, List, Mapping, Optional, Set, Tuple
 
 import numpy as np
@@ -50,9 +53,10 @@ from v2v_wire.ids import SampleKey
 __all__ = ["PLAN_VERSION", "SHUFFLE_BUFFER", "video_order", "Manifest", "PlanIdentity", "EpochPlan", "Position",
            "PlanMismatch", "NotKnownYet", "distinct_videos"]
 
-#: The version of the rules above: a plan of another version gives another sequence, so a
+#: The version of the rules above: a plan of another version gives another sequence, or names
+#: its corpus otherwise (version 3: the manifest's fingerprint covers each video's tag), so a
 #: position taken under it is refused (:meth:`PlanIdentity.problem`).
-PLAN_VERSION = 2
+PLAN_VERSION = 3
 
 #: Default samples the shuffle buffer holds (step 2): ``DeliveryPolicy.shuffle_buffer``'s default.
 SHUFFLE_BUFFER = 64
@@ -107,8 +111,8 @@ def _seed_key(seed: int, epoch: int) -> np.uint64:
 
 @dataclass(frozen=True)
 class Manifest:
-    """What a plan knows of a corpus: its videos, each one's slots where known, and the crops
-    per window.
+    """What a plan knows of a corpus: its videos, each one's slots where known, each one's tag,
+    and the crops per window.
 
     Attributes:
         slots: ``((video, slots), ...)`` sorted by video: corpus-relative POSIX paths, each
@@ -116,20 +120,27 @@ class Manifest:
             row), or None where not known yet. Videos with 0 slots are kept (they name the
             listing) but give no sample.
         crops_per_window: samples per window (K >= 1).
+        tags: each video's tag in the order of ``slots`` (a str standing for its content, e.g.
+            ``VideoSource.listed_tag``; None: it could not be read at start), or ``()`` for a
+            manifest that names paths only (the pure tests' and the seeded world's).
 
     Build with :meth:`of`, which sorts and checks.
     """
 
     slots: Tuple[Tuple[str, int], ...]
     crops_per_window: int = 1
+    tags: Tuple[Optional[str], ...] = ()
 
     @classmethod
-    def of(cls, slots: Mapping[str, Optional[int]], crops_per_window: int = 1) -> "Manifest":
-        """The manifest of ``{video: slots or None}``.
+    def of(cls, slots: Mapping[str, Optional[int]], crops_per_window: int = 1,
+           tags: Optional[Mapping[str, Optional[str]]] = None) -> "Manifest":
+        """The manifest of ``{video: slots or None}``, with ``{video: tag or None}`` for each
+        video when given.
 
         Raises:
             ValueError: a video that is not a non-empty str, slots that are neither None nor an
-                int >= 0, or ``crops_per_window`` < 1, naming it.
+                int >= 0, ``crops_per_window`` < 1, or ``tags`` that lack a video or hold a tag
+                that is neither None nor a str, naming it.
         """
         if not isinstance(crops_per_window, int) or isinstance(crops_per_window, bool) or crops_per_window < 1:
             raise ValueError(f"manifest: crops_per_window must be an int >= 1, got {crops_per_window!r}")
@@ -138,7 +149,15 @@ class Manifest:
                 raise ValueError(f"manifest: a video must be a non-empty path, got {v!r:.80}")
             if n is not None and (not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 0):
                 raise ValueError(f"manifest: slots of {v!r} must be None or an int >= 0, got {n!r}")
-        return cls(tuple(sorted((v, None if n is None else int(n)) for v, n in slots.items())), crops_per_window)
+        ordered = tuple(sorted((v, None if n is None else int(n)) for v, n in slots.items()))
+        if tags is None:
+            return cls(ordered, crops_per_window)
+        held = tuple(tags.get(v, False) for v, _ in ordered)
+        for (v, _), tag in zip(ordered, held):
+            if tag is not None and type(tag) is not str:
+                raise ValueError(f"manifest: no tag for {v!r:.80}" if tag is False else
+                                 f"manifest: the tag of {v!r:.80} must be None or a str, got {tag!r:.80}")
+        return cls(ordered, crops_per_window, held)
 
     @property
     def samples(self) -> Optional[int]:
@@ -149,8 +168,20 @@ class Manifest:
         return sum(n for _, n in self.slots) * self.crops_per_window
 
     def fingerprint(self) -> str:
-        """A short hash (16 hex digits) of the videos and the crops per window (not their slots:
-        those follow from the files and the recipe, and become known as the plan unfolds)."""
+        """A short hash (16 hex digits) of the videos, their tags and the crops per window (not
+        their slots: those follow from the files and the recipe, and become known as the plan
+        unfolds); of the videos and crops only (:meth:`paths_fingerprint`) when it has no tags."""
+        if not self.tags:
+            return self.paths_fingerprint()
+        h = hashlib.sha256(f"crops={self.crops_per_window}\n".encode())
+        for (v, _), tag in zip(self.slots, self.tags):
+            h.update(f"{v}\t{'-' if tag is None else tag}\n".encode())
+        return h.hexdigest()[:16]
+
+    def paths_fingerprint(self) -> str:
+        """A short hash (16 hex digits) of the videos and the crops per window only: the same
+        for two manifests of one listing whose files changed (a server keeps what it served
+        under it to name the files that changed, ``ops.plan_record``)."""
         h = hashlib.sha256(f"crops={self.crops_per_window}\n".encode())
         for v, _ in self.slots:
             h.update(f"{v}\n".encode())
@@ -162,13 +193,19 @@ class PlanIdentity:
     """What decides an epoch's sequence besides ``(seed, epoch)``: the manifest's fingerprint,
     the recipe's (``SampleRecipe.fingerprint``: what decides a sample's content), the seed, the
     shuffle buffer and :data:`PLAN_VERSION`. Two plans with equal identities and seeds give the same
-    sequences."""
+    sequences.
+
+    ``changes`` is no part of the identity (not compared, not in :meth:`to_dict`): the server's
+    word on manifests of the same listing it served before, ``{fingerprint: "bikes.mp4 changed
+    since ..."}`` (``ops.plan_record``), which :meth:`problem` adds to the line that refuses a
+    position taken under one of them; a server sends it with the identity (``PlanInfo``)."""
 
     manifest: str
     recipe: str
     seed: int
     shuffle_buffer: int = SHUFFLE_BUFFER
     version: int = PLAN_VERSION
+    changes: Mapping[str, str] = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def to_dict(self) -> dict:
         """A plain, msgpack/JSON-safe dict (:meth:`from_dict` reads it)."""
@@ -192,8 +229,11 @@ class PlanIdentity:
 
     def problem(self, other: "PlanIdentity") -> Optional[str]:
         """``None`` when ``other`` names this plan, else one line naming every field that
-        differs, ``other``'s value first (``"recipe abc... (this plan: def...)"``)."""
-        diffs = [f"{k} {getattr(other, k)} (this plan: {getattr(self, k)})"
+        differs, ``other``'s value first (``"recipe abc... (this plan: def...)"``; a manifest
+        in :attr:`changes` with what changed since: ``"manifest abc... (this plan: def...;
+        1 file changed since: bikes.mp4 ...)"``)."""
+        diffs = [f"{k} {getattr(other, k)} (this plan: {getattr(self, k)}"
+                 + (f"; {self.changes[other.manifest]})" if k == "manifest" and other.manifest in self.changes else ")")
                  for k in ("version", "manifest", "recipe", "seed", "shuffle_buffer")
                  if getattr(other, k) != getattr(self, k)]
         return None if not diffs else "another plan: " + ", ".join(diffs)

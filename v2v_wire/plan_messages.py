@@ -2,8 +2,9 @@
 
 A client asks a server what it serves (:class:`PlanAsk`, answered by :class:`PlanInfo`: the plan's
 identity, samples per epoch and the stream's shapes), then fetches positions of an epoch
-(:class:`Fetch`), each answered by :class:`Rows` (a header, then one frame per array, rows in
-position order, ``padding`` true for a row without a sample) or :class:`Refused` (one line). The
+(:class:`Fetch`), each answered by :class:`Rows` (a header, rows in position order, ``padding``
+true for a row without a sample; then the arrays of the rows with a sample only: a padding row
+costs no payload) or :class:`Refused` (one line: another plan, or a batch over the limit). The
 server keeps no record of either: a client that hears nothing asks again, and a late answer to a
 request it no longer waits for is dropped.
 
@@ -11,7 +12,7 @@ Every decoder raises only ``messages.WireError`` (a ``ProtocolError``) naming th
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import List, Optional, Tuple
 
 from v2v_wire.codecs import check_compression
@@ -55,7 +56,8 @@ class PlanInfo:
     """Server -> client: the plan it serves and the stream's shapes.
 
     Attributes:
-        plan: the plan's identity.
+        plan: the plan's identity, with the server's word on plans of the same listing it
+            served before (``PlanIdentity.changes``: sent as ``changes``, a map of str to str).
         samples: samples per epoch (the manifest's slots x crops per window), or None while
             the server has not learned every video's slots (the plan unfolds as it decodes).
         stream: the recipe's shapes and outputs (``sequence_length``, ``num_bins``,
@@ -67,7 +69,8 @@ class PlanInfo:
     stream: dict = field(default_factory=dict)
 
     def to_wire(self) -> dict:
-        return {"type": "plan", "plan": self.plan.to_dict(), "samples": self.samples, "stream": self.stream}
+        return {"type": "plan", "plan": self.plan.to_dict(), "samples": self.samples, "stream": self.stream,
+                "changes": dict(self.plan.changes)}
 
     @classmethod
     def from_wire(cls, h: dict) -> "PlanInfo":
@@ -77,7 +80,11 @@ class PlanInfo:
             raise WireError(f"plan: {e}") from None
         if not isinstance(h.get("stream"), dict):
             raise WireError("plan: field 'stream' must be a map")
-        return cls(plan, _optional_int(h, "samples"), h["stream"])
+        changes = h.get("changes", {})
+        if not isinstance(changes, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                    for k, v in changes.items()):
+            raise WireError("plan: field 'changes' must be a map of strings to strings")
+        return cls(replace(plan, changes=changes), _optional_int(h, "samples"), h["stream"])
 
 
 @dataclass(frozen=True)
@@ -117,7 +124,9 @@ class Rows:
     """Server -> client: the answer to fetch ``request``: rows for positions ``start`` .. of
     ``epoch``, each with its sample id (None for a row past the epoch's end), ``padding``,
     ``params`` (the sample's parameters, or why the row holds none) and the arrays' specs (the
-    frames follow the header, one per array, ``protocol.decode_arrays``); ``samples``: the
+    frames follow the header, ``codecs.decode_batch_arrays``). The arrays hold the rows with a
+    sample only, in row order (``(samples in it, ...)``; ``(0, ...)`` for rows of padding only):
+    a padding row costs no payload, and the reader puts zeros in its place; ``samples``: the
     epoch's samples once the server knows them (None before: a reader of a plan still unfolding
     learns the epoch's end from it)."""
 

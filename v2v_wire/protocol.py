@@ -73,7 +73,9 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-PROTOCOL_VERSION = 9
+#: Version 10: a plan server's ``rows`` carry the arrays of the rows holding a sample only
+#: (``plan_messages.Rows``).
+PROTOCOL_VERSION = 10
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a

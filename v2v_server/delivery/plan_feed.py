@@ -51,8 +51,10 @@ from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest
 from v2v_wire.worker_messages import Task
 
-#: Epochs whose plans a server keeps built (a plan of a million videos takes about 2 s); the
-#: failures of an epoch whose plan goes are forgotten with it.
+#: Plans a server keeps built, more while pending fetches or running tasks name more epochs:
+#: those are always kept (a plan of a million videos takes about 2 s to build: one rebuilt for
+#: each fetch would make a fetch's cost grow with the epochs read at once); the failures of an
+#: epoch whose plan goes are forgotten with it.
 PLANS_KEPT = 4
 
 
@@ -343,17 +345,23 @@ class PlanFeed:
         self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
         self._task_ids = 0
         self.samples_made = 0
+        self.plans_built = 0  # EpochPlans built: one per epoch read, however many are read at once
 
     # ------------------------------------------------------------------ plans and fetches
     def plan(self, epoch: int) -> EpochPlan:
-        """The plan of ``epoch`` (built on first use; the last :data:`PLANS_KEPT` kept)."""
+        """The plan of ``epoch``, built on first use and kept while a pending fetch or a running
+        task names its epoch; others, the least recently used first, go while more than
+        :data:`PLANS_KEPT` plans are kept. Each plan is thus built once while its epoch is read,
+        however many epochs are read at once."""
         p = self.plans.get(epoch)
         if p is None:
             p = self.plans[epoch] = EpochPlan(self.manifest, self.seed, epoch, self.shuffle_buffer)
+            self.plans_built += 1
             if not p.complete:
                 p.learn(self.slots.windows)
-            while len(self.plans) > PLANS_KEPT:
-                gone, _ = self.plans.popitem(last=False)
+            named = {f.epoch for f in self.pending} | {e for e, _ in self.runs} | {epoch}
+            for gone in [e for e in self.plans if e not in named][:max(0, len(self.plans) - PLANS_KEPT)]:
+                del self.plans[gone]  # least recently used first
                 self.failed = {sk: why for sk, why in self.failed.items() if sk[0] != gone}
         else:
             self.plans.move_to_end(epoch)

@@ -38,7 +38,7 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
     cfg = load_config(None, {**(config.to_dict() if config is not None else {}), **keys})
     start = start_source(cfg, videos)  # a folder or an object-store URL; the shard of cfg.shard
     if cfg.delivery.delivery_mode == "plan":
-        server = PlanServer(start.config, start.source, start.caches, plan_manifest(start), start.corpus)
+        server = PlanServer(start.config, start.source, start.caches, plan_manifest(start), start.corpus, start.skipped)
     else:
         server = V2VServer(start.config, start.source, start.caches, start.served, corpus=start.corpus,
                            epoch_samples=start.epoch_samples, skipped=start.skipped)

@@ -23,6 +23,7 @@ from v2v_server.delivery.plan_feed import PlanFeed, Row
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
+from v2v_server.ops.plan_record import plan_changes
 from v2v_server.service.assembly import SamplePayload
 from v2v_server.service.pool import WorkerPool
 from v2v_server.service.sockets import ServerSockets
@@ -31,13 +32,12 @@ from v2v_server.service.worker_side import WorkerSide
 from v2v_server.sources.source import VideoSource
 from v2v_wire.batches import encode_batch, frame_size, stack_arrays
 from v2v_wire.codecs import COMPRESSIONS, available
-from v2v_wire.codecs import pack as compress
 from v2v_wire.messages import BadPeers, WireError
 from v2v_wire.outputs import narrowest, spec_of
 from v2v_wire.plan import Manifest, PlanIdentity
 from v2v_wire.plan_messages import PlanAsk, PlanInfo, PushClientMessage, Refused, Rows, decode_plan_client
 from v2v_wire.stream_messages import ServerError
-from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, output_of, pack
+from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, encode_arrays, output_of, pack
 
 log = logging.getLogger("v2v.server")
 
@@ -67,12 +67,15 @@ class PlanServer:
             (``ops.plan_start.plan_manifest``); the others' are learned from their decodes.
         corpus: the fingerprint of the whole listing before sharding
             (``ops.startup.corpus_fingerprint``): readers of several shards check it is one corpus.
+        skipped: the videos the corpus index knows to give no window -> ``(cause, reason)``
+            (``ops.startup.Startup.skipped``): never opened, each named once with its reason and
+            counted as a skipped file, as a decode that found it unusable would be.
 
     Call :meth:`run` (blocks until :meth:`stop`).
     """
 
     def __init__(self, cfg: ServeConfig, source: VideoSource, caches: HostCaches, manifest: Manifest,
-                 corpus: Optional[str] = None):
+                 corpus: Optional[str] = None, skipped: Optional[Dict[str, Tuple[str, str]]] = None):
         self.cfg, self.source, self.caches, self.manifest, self.corpus = cfg, source, caches, manifest, corpus
         d = cfg.delivery
         # made ahead: the push server's shuffle buffer of samples; kept once fetched: a batch, for
@@ -80,12 +83,13 @@ class PlanServer:
         self.feed = PlanFeed(manifest, cfg.seed, d.shuffle_buffer, cfg.outputs, lookahead=d.shuffle_buffer,
                              keep_samples=d.batch_size, hedge_s=min(HEDGE_S, d.task_timeout_s),
                              task_timeout_s=d.task_timeout_s)
-        self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer)
+        self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer,
+                                     changes=plan_changes(caches.cache_dir, manifest))
         self.metrics = ServerMetrics()
         self.workers = WorkerSide(cfg, source, self.feed, self.metrics)
+        self.skipped = dict(skipped or {})
         self.bad = BadPeers()
         self.codecs: Dict[str, float] = {}  # codec -> when a fetch last asked for it
-        self._zeros: Dict[tuple, bytes] = {}  # (codec, name, dtype, shape) -> a padding row, compressed
         self._stop = threading.Event()
         self.bound_endpoint: Optional[str] = None
 
@@ -121,6 +125,8 @@ class PlanServer:
             pool = WorkerPool(worker_config(self.cfg), corpus, self.sockets.backend_endpoint, self.cfg.workers)
             self.workers.attach(self.sockets.backend, pool, OwnedRows())
             pool.start()
+            for video, (cause, why) in sorted(self.skipped.items()):  # known to give no window: named as if read
+                self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)", cause=cause)
             counted = sum(1 for _, n in self.manifest.slots if n is not None)
             log.info("serving by plan %s: %d video(s) (%d counted: %s samples per epoch), from %s on %s with %d "
                      "worker(s)", self.identity.manifest, len(self.manifest.slots), counted,
@@ -136,8 +142,8 @@ class PlanServer:
             self.metrics.close()
             m = self.metrics.totals()
             log.info("stopped: %d fetches answered, %d samples made, %d worker restart(s), %d task timeout(s), "
-                     "%d skipped file(s)", m["batches_sent"], m["samples_made"], m["workers_restarted"],
-                     m["tasks_timed_out"], m["files_skipped"])
+                     "%d skipped file(s), %d epoch plan(s) built", m["batches_sent"], m["samples_made"],
+                     m["workers_restarted"], m["tasks_timed_out"], m["files_skipped"], self.feed.plans_built)
 
     def _loop(self) -> int:
         front, back = self.sockets.frontend, self.sockets.backend
@@ -199,10 +205,26 @@ class PlanServer:
                    f"'v2v[wire]')")
             self._send(ident, Refused(msg.request, why).to_wire())
             return
+        too_big = self._too_big(msg.stop - msg.start, msg.outputs)
+        if too_big:
+            self._send(ident, Refused(msg.request, too_big).to_wire())
+            return
         if msg.compression != "none":
             self.codecs[msg.compression] = now
         self.feed.fetch((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.start, msg.stop, now,
                         msg.outputs)
+
+    def _too_big(self, rows: int, outputs: Sequence[str]) -> Optional[str]:
+        """Why a fetch of ``rows`` rows of ``outputs`` is refused: an array of the batch the reader
+        makes of it (padding rows included, as zeros) would pass ``MAX_BATCH_BYTES``, the most a
+        reader takes; None when it would not."""
+        for o in outputs:
+            shape, dtype = _wire_row(o, self.cfg)
+            row = int(np.prod(shape)) * np.dtype(dtype).itemsize
+            if rows * row > MAX_BATCH_BYTES:
+                return (f"fetch of {rows} rows: its {o} would be {rows * row} bytes, over the batch limit of "
+                        f"{MAX_BATCH_BYTES} (MAX_BATCH_BYTES); fetch at most {MAX_BATCH_BYTES // row} rows of it")
+        return None
 
     def _samples(self, epoch: int) -> Optional[int]:
         """The epoch's samples (every epoch lists the same), or None while the plan unfolds."""
@@ -220,50 +242,34 @@ class PlanServer:
 
     def _send_rows(self, f, rows: List[Row]) -> None:
         ident, outputs, codec = f.client
-        specs, frames = self._encoded(rows, outputs, codec)
+        real = [r for r in rows if r.sample is not None]
+        specs, frames = self._encoded(real, outputs, codec)
         ids = [r.key.sample_id(self.manifest.crops_per_window) if r.key is not None else None for r in rows]
         params = [r.sample.meta if r.sample is not None else {"padding": r.reason or "past the epoch's end"}
                   for r in rows]
         head = Rows(f.request, f.epoch, f.start, ids, [r.padding for r in rows], params, specs,
                     self._samples(f.epoch)).to_wire()
         self._send(ident, head, frames)
-        real = [r for r in rows if r.sample is not None]
         self.metrics.on_batch_sent(len(real), sum(frame_size(fr) for fr in frames))
 
-    def _encoded(self, rows: List[Row], outputs: Tuple[str, ...], codec: str) -> Tuple[List[dict], List]:
-        """The rows' array specs and frames: plain, or (``codec``) each array as one compressed
-        frame per row, the workers' frames forwarded as they are (``batches.encode_batch``) and a
-        padding row's zeros compressed here once; an array some sample has no frame of (made
-        before its codec was asked for) goes plain."""
-        real = next((r.sample for r in rows if r.sample is not None), None)
-        if codec == "none" or real is None:
-            return encode_arrays(self._arrays(rows, outputs))
-        shapes = {k: a.shape for k, a in real.arrays.items()}
-        zeros = {codec: {k: (a.dtype, self._zero(codec, k, a)) for k, a in real.arrays.items()
-                         if output_of(k) in outputs}}
-        packed = [r.sample.packed if r.sample is not None else zeros for r in rows]
-        return encode_batch(shapes, outputs, packed, codec, lambda: self._arrays(rows, outputs))
+    def _encoded(self, real: List[Row], outputs: Tuple[str, ...], codec: str) -> Tuple[List[dict], List]:
+        """The array specs and frames of the rows ``real`` (those holding a sample: a padding row
+        costs no payload, ``Rows``): plain, or (``codec``) each array as one compressed frame per
+        row, the workers' frames forwarded as they are (``batches.encode_batch``); an array some
+        sample has no frame of (made before its codec was asked for) goes plain. No row: each
+        output's wire shape with 0 rows, so a reader knows the shapes and dtypes of its zeros."""
+        if not real:
+            return encode_arrays({o: _wire_zeros(o, 0, self.cfg) for o in outputs})
+        if codec == "none":
+            return encode_arrays(self._arrays(real, outputs))
+        shapes = {k: a.shape for k, a in real[0].sample.arrays.items()}
+        return encode_batch(shapes, outputs, [r.sample.packed for r in real], codec,
+                            lambda: self._arrays(real, outputs))
 
-    def _zero(self, codec: str, name: str, like: np.ndarray) -> bytes:
-        key = (codec, name, like.dtype.str, like.shape)
-        if key not in self._zeros:
-            self._zeros[key] = compress(codec, {name: np.zeros_like(like)})[name]
-        return self._zeros[key]
-
-    def _arrays(self, rows: List[Row], outputs: Tuple[str, ...]) -> Dict[str, np.ndarray]:
-        """The rows' arrays of ``outputs``, stacked (one copy), zeros in padding rows."""
-        real = next((r.sample for r in rows if r.sample is not None), None)
-        c = self.cfg
-        if real is None:
-            return {o: _wire_zeros(o, len(rows), c) for o in outputs}
-        out = {}
-        for name, a in real.arrays.items():
-            if output_of(name) not in outputs:
-                continue
-            zero = np.zeros_like(a)
-            out[name] = narrowest(name, stack_arrays([r.sample.arrays[name] if r.sample is not None else zero
-                                                      for r in rows]))
-        return out
+    def _arrays(self, real: List[Row], outputs: Tuple[str, ...]) -> Dict[str, np.ndarray]:
+        """The arrays of ``outputs`` of the rows ``real`` (each holding a sample), stacked (one copy)."""
+        return {name: narrowest(name, stack_arrays([r.sample.arrays[name] for r in real]))
+                for name in real[0].sample.arrays if output_of(name) in outputs}
 
     def _metrics_state(self) -> dict:
         alive = [w for w in self.workers.pool.workers.values() if w.proc.is_alive()] if self.workers.pool else []
@@ -274,9 +280,17 @@ class PlanServer:
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
 
 
-def _wire_zeros(output: str, rows: int, c: ServeConfig) -> np.ndarray:
-    """``rows`` padding rows of ``output`` as the wire carries a sample's array (a Ray row's has the
-    channel axis the client inserts), so a batch of padding only has a batch of samples' shapes."""
+def _wire_row(output: str, c: ServeConfig) -> Tuple[tuple, str]:
+    """(shape, dtype) of one row of ``output`` as the wire carries a sample's array (a Ray row's has
+    the channel axis the client inserts)."""
     s = spec_of(output)
-    dtype = c.flow_dtype if s.column_dtype == "recipe" else s.dtypes[0]
-    return np.zeros((rows, *s.shape(c.sequence_length, c.num_bins, c.crop_size)), dtype)
+    return tuple(s.shape(c.sequence_length, c.num_bins, c.crop_size)), c.flow_dtype if s.column_dtype == "recipe" \
+        else s.dtypes[0]
+
+
+def _wire_zeros(output: str, rows: int, c: ServeConfig) -> np.ndarray:
+    """``rows`` rows of zeros of ``output`` in its wire shape and dtype (:func:`_wire_row`): a
+    reply of padding rows only carries them with 0 rows, so the reader knows the shapes and
+    dtypes of the zeros it makes."""
+    shape, dtype = _wire_row(output, c)
+    return np.zeros((rows, *shape), dtype)

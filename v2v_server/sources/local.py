@@ -60,6 +60,11 @@ def racy(st: os.stat_result, now_ns: Optional[int] = None) -> bool:
     return st.st_ctime_ns >= now_ns - bound
 
 
+def _portable(st: os.stat_result) -> str:
+    """A file's size and whole-second modification time: what a copy to another host keeps."""
+    return f"{st.st_size} {st.st_mtime_ns // 1_000_000_000}"
+
+
 def _plain_identity(st: os.stat_result) -> Optional[str]:
     """The identity of a plain file of status ``st``; None while it is racy."""
     return None if racy(st) else f"file {file_identity(st)}"
@@ -177,6 +182,24 @@ class LocalSource(VideoSource):
         try:
             return _plain_identity(os.stat(os.path.join(self.root, rel)))
         except OSError:
+            return None
+
+    def listed_tag(self, rel: str) -> Optional[str]:
+        """``VideoSource.listed_tag``: a file's size and modification time in whole seconds
+        (``file SIZE MTIME``), which ``cp -p``, ``rsync -a`` and ``tar`` keep on another host; an
+        archive member's archive's (each piece's) with the member's place in it. One ``stat``
+        per file, nothing read. A file rewritten within the same second at the same size keeps
+        its tag (docs/plan.md, "A corpus that changed")."""
+        rel = base_path(rel)
+        member = split_member(rel)
+        try:
+            if member is None:
+                return f"file {_portable(os.stat(os.path.join(self.root, rel)))}"
+            archive = member.archive
+            held = " + ".join(_portable(st) for st in self._archive_stats(archive))
+            where = " ".join(map(str, self.archives.member_at(rel, None).numbers()))
+            return f"{archive[-3:].lower()} {held} member {where}"
+        except (OSError, VideoError):
             return None
 
     def _archive_stats(self, archive: str) -> List[os.stat_result]:

@@ -130,6 +130,14 @@ class VideoSource:
         except VideoError:
             return None
 
+    def listed_tag(self, rel: str) -> Optional[str]:
+        """What stands for the content of the video at ``rel`` in a plan's identity
+        (``v2v_wire.plan.Manifest.tags``), costing no request to a store: the same on every host
+        that holds the same corpus, so it leaves out what a copy changes (a file's inode and
+        change time). A store's object or member: its listing's identity (size and ETag, which
+        a copy within the store keeps). None when it cannot be read (decoding then says why)."""
+        return self.listed_identity(rel)
+
     def _names(self, extensions: Sequence[str]) -> Optional[VideoList]:
         """The entries that replace a listing: the video list's (with the list lines it
         refuses), the archives a brace pattern (or one archive) names, or, with both, the list's
