@@ -225,3 +225,20 @@ def test_workers_make_the_outputs_fetches_ask_for_and_a_new_one_remakes_what_lac
     assert [r.sample for r in rows] == ["wide 0", "wide 1"]
     with pytest.raises(ValueError, match="polarity_counts"):
         feed.fetch("e", 3, 0, 0, 1, 6.0, ("polarity_counts",))
+
+
+def test_readers_of_as_many_epochs_as_the_kept_plans_rebuild_none_to_decode_ahead():
+    """Four jobs each at the last batch of its own epoch, every fetch answered, the kept plans
+    theirs: decode-ahead into a next epoch would build a plan that drops one of theirs, to be
+    built again at once; it builds none."""
+    m = Manifest.of({f"v{i}.mp4": 2 for i in range(4)})
+    feed = PlanFeed(m, 0, 1, ("voxels",), lookahead=0, keep_samples=0)
+    for epoch in range(0, 8, 2):
+        feed.fetch(("job", epoch), 1, epoch, 6, 8, 0.0)
+        _work(feed, 0.0)
+        feed.answer(0.0)
+    assert list(feed.plans) == [0, 2, 4, 6]
+    feed.lookahead, built = 64, feed.plans_built
+    for turn in range(3):
+        _work(feed, 1.0 + turn)
+        assert feed.plans_built == built, turn

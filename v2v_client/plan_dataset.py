@@ -1012,7 +1012,7 @@ class _Shards:
             flight.probed[(k, what[1])] = bool(slots)
             return
         try:
-            arrays = decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES)
+            arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
         except ProtocolError as e:
             raise PlanServerError(f"{link.endpoint}: rows of step {what[1]}: {e}") from None
         flight.parts[what[1]][k] = (msg, arrays)

@@ -160,19 +160,19 @@ def spare_samples(store: Sequence, fetched: Set, named: Set, live: Set[int], cou
 
 
 def positions_after(plan_of: Callable[[int], EpochPlan], kept: Mapping[int, EpochPlan], epoch: int, stop: int,
-                    count: int, busy: Set[int] = frozenset()) -> Iterator[Tuple[int, str, Optional[SampleKey]]]:
+                    count: int, keep: Set[int] = frozenset()) -> Iterator[Tuple[int, str, Optional[SampleKey]]]:
     """(epoch, video, key) of the ``count`` positions of ``epoch`` from ``stop`` on (``plan_of``:
     an epoch's plan; ``kept``: the plans built); where the plan is not decided that far, (epoch,
     video, None) for the videos whose slots unfold it next, in order; past the epoch's end, the
     next epoch's first ones (a trainer reads its epochs in turn: decoding them while it reads the
-    end of this one keeps the workers busy across the boundary), unless that would drop a kept plan
-    a pending fetch reads (``busy``: their epochs; ``kept`` in least recently used order, as
-    :meth:`PlanFeed.plan` drops them)."""
+    end of this one keeps the workers busy across the boundary), unless every kept plan is one of
+    ``keep`` (the epochs pending fetches and running tasks name, and those read ahead of): a plan
+    built for it would then drop one in use, to be built again."""
     plan = plan_of(epoch)
     yield from _positions(plan, stop, count)
     if plan.complete:
         rest = stop + count - max(stop, len(plan))
-        room = epoch + 1 in kept or len(kept) < PLANS_KEPT or next(iter(kept)) not in busy
+        room = epoch + 1 in kept or len(kept) < PLANS_KEPT or any(e not in keep for e in kept)
         if rest > 0 and len(plan) and room:
             yield from _positions(plan_of(epoch + 1), 0, rest)
 
@@ -266,15 +266,18 @@ def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans:
     nor ``failed``), by the first position needing it, or, where a fetch's positions are not
     decided yet, whose slots decide them (:func:`unfolding`); and those the positions after each
     epoch's furthest fetch need (pending, or answered: ``fetched_to``, epoch -> the furthest stop
-    asked, for kept plans named at ``fetched_at`` within :data:`IDLE_S` of ``now``), not in ``runs``, while the samples made ahead (stored and not ``fetched``, or still to
-    come from running tasks) stay within ``lookahead`` (module docstring). Past an epoch's end the
+    asked, for kept plans named at ``fetched_at`` within :data:`IDLE_S` of ``now`` and not followed
+    by a fetch of the next epoch), not in ``runs``, while the samples made ahead (stored and not
+    ``fetched``, or still to come from running tasks) stay within ``lookahead`` (module
+    docstring). Past an epoch's end the
     next epoch's first positions are made ahead only while no fetch has named that epoch: once
     one has, its own furthest fetch leads (what was fetched of it may have left the store)."""
     made: Dict[Tuple[int, str], int] = {}
     for (e, k) in list(store) + list(failed):
         made[(e, k.video)] = made.get((e, k.video), 0) + 1
     waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
-    furthest = {e: stop for e, stop in fetched_to.items() if e in plans and now - fetched_at[e] < IDLE_S}
+    live = {e: stop for e, stop in fetched_to.items() if e in plans and now - fetched_at[e] < IDLE_S}
+    furthest = {e: stop for e, stop in live.items() if e + 1 not in live}  # a reader's newest epoch
     for f in pending:
         plan = plan_of(f.epoch)
         furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
@@ -289,10 +292,12 @@ def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans:
     budget = lookahead - sum(1 for sk in store if sk not in fetched)
     budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
     ahead: List[Tuple[int, str]] = []
+    keep = set(furthest) | {e for e, _ in runs}
     for epoch, stop in sorted(furthest.items()):
-        busy = {f.epoch for f in pending}
-        for e, video, key in positions_after(plan_of, plans, epoch, stop, lookahead + shuffle_buffer, busy):
-            if budget <= 0 or (e != epoch and e in furthest):
+        if budget <= 0:  # before positions_after, which may build the next epoch's plan
+            break
+        for e, video, key in positions_after(plan_of, plans, epoch, stop, lookahead + shuffle_buffer, keep):
+            if budget <= 0 or (e != epoch and (e in furthest or e in live)):
                 break
             ek, n = (e, video), slots.samples.get(video)
             if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
@@ -340,19 +345,15 @@ class PlanFeed:
         self.failed: Dict[Tuple[int, SampleKey], str] = {}  # not given by its decode this epoch
         self.runs: Dict[Tuple[int, str], Run] = {}
         self.task_run: Dict[int, Tuple[int, str]] = {}
-        self.fetched_at: Dict[int, float] = {}  # epoch -> when a fetch last named it
-        self.fetched_to: Dict[int, int] = {}  # epoch -> the furthest stop a fetch named
+        self.fetched_at, self.fetched_to = {}, {}  # epoch -> when a fetch last named it; the furthest stop one named
         self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
-        self._task_ids = 0
-        self.samples_made = 0
-        self.plans_built = 0  # EpochPlans built: one per epoch read, however many are read at once
+        # tasks started; samples made; EpochPlans built (one per epoch read, however many at once)
+        self._task_ids = self.samples_made = self.plans_built = 0
 
     # ------------------------------------------------------------------ plans and fetches
     def plan(self, epoch: int) -> EpochPlan:
-        """The plan of ``epoch``, built on first use and kept while a pending fetch or a running
-        task names its epoch; others, the least recently used first, go while more than
-        :data:`PLANS_KEPT` plans are kept. Each plan is thus built once while its epoch is read,
-        however many epochs are read at once."""
+        """The plan of ``epoch``, built on first use, kept while a pending fetch or a running task
+        names its epoch (others go, least recently used first, past :data:`PLANS_KEPT`)."""
         p = self.plans.get(epoch)
         if p is None:
             p = self.plans[epoch] = EpochPlan(self.manifest, self.seed, epoch, self.shuffle_buffer)
@@ -455,7 +456,8 @@ class PlanFeed:
         """The task for an idle ``worker``: the first video a pending fetch waits on; else a
         hedge of one that sent nothing for ``hedge_s`` while a fetch waits on it; else the next
         video to decode ahead; None when none."""
-        waited, ahead = self._needed(now)
+        waited, ahead = needed(self.pending, self.plan, self.plans, self.store, self.fetched, self.failed, self.runs,
+                               self.slots, self.lookahead, self.shuffle_buffer, self.fetched_to, self.fetched_at, now)
         for ek in waited:
             if ek not in self.runs:
                 return self._start(ek, worker, now, codecs)
@@ -465,11 +467,6 @@ class PlanFeed:
                     now - max(run.progress.values()) >= self.hedge_s:
                 return self._start(ek, worker, now, codecs)
         return self._start(ahead[0], worker, now, codecs) if ahead else None
-
-    def _needed(self, now: float) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
-        """(epoch, video) to decode (:func:`needed`), ahead of the epochs fetched in the last :data:`IDLE_S`."""
-        return needed(self.pending, self.plan, self.plans, self.store, self.fetched, self.failed, self.runs,
-                      self.slots, self.lookahead, self.shuffle_buffer, self.fetched_to, self.fetched_at, now)
 
     def _start(self, ek: Tuple[int, str], worker: Hashable, now: float, codecs: Sequence[str]) -> Task:
         epoch, video = ek
