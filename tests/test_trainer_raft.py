@@ -9,6 +9,7 @@ using the computed flow instead of the stream's.
 from __future__ import annotations
 
 import sys
+import time
 import types
 
 import pytest
@@ -91,11 +92,24 @@ def test_without_torchvision_v2v_train_refuses_before_any_step(tmp_path, monkeyp
     import trainer.train as tr
 
     monkeypatch.setitem(sys.modules, "torchvision", None)  # what an install without torchvision sees
-    streams = []
-    monkeypatch.setattr(tr, "make_stream", lambda *a, **k: streams.append(1))
+
+    class Stream:  # opened beside the model's build: never read, closed
+        read, closed = False, False
+
+        def __iter__(self):
+            Stream.read = True
+            return iter(())
+
+        def close(self):
+            Stream.closed = True
+
+    monkeypatch.setattr(tr, "make_stream", lambda *a, **k: Stream())
     rc = tr.main(["--task", "e2vid", "--connect", "tcp://127.0.0.1:1", "--out", str(tmp_path), "--device", "cpu",
                   "--no-progress", "--set", "loss.flow_source=raft_small"])
-    assert rc == 2 and streams == []  # no stream opened, no step taken
+    deadline = time.monotonic() + 10
+    while not Stream.closed and time.monotonic() < deadline:  # the stream may open after the refusal
+        time.sleep(0.05)
+    assert rc == 2 and not Stream.read and Stream.closed  # no batch read, no step taken, the stream closed
     msg = (tmp_path / "train.log").read_text()
     assert "loss.flow_source=raft-small: RAFT needs torchvision" in msg and "loss.flow_source=stream" in msg
 

@@ -131,9 +131,6 @@ def main(argv=None) -> int:
         return 1
     finally:
         opening.close()
-    close = getattr(stream, "close", None)
-    if callable(close):
-        close()
     return 0
 
 
@@ -157,7 +154,7 @@ def _open(cfg: dict, resume, device):
 class _Opening:
     """``open_`` run in a thread beside the model's build: :meth:`result` waits for it (raising
     what it raised, so a model that cannot be built is said before a server that cannot be
-    reached); :meth:`close` closes the read path it made, now or when it ends."""
+    reached); :meth:`close` closes the read path and the stream it made, now or when it ends."""
 
     def __init__(self, open_):
         self._got, self._closed = None, False
@@ -190,9 +187,10 @@ class _Opening:
 
     def _close(self) -> None:
         if self._got[0] == "ok":
-            close = getattr(self._got[1][1], "close", None)
-            if callable(close):
-                close()
+            for part in self._got[1][1::-1]:  # the read path, then the stream
+                close = getattr(part, "close", None)
+                if callable(close):
+                    close()
 
 
 def _resume_stream(path: str, stream) -> None:
