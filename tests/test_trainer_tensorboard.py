@@ -4,6 +4,7 @@ the same run; the event files read back with TensorBoard's own EventAccumulator.
 from __future__ import annotations
 
 import csv
+import time
 from pathlib import Path
 
 import pytest
@@ -40,6 +41,9 @@ def _train(monkeypatch, out: Path, *extra: str) -> int:
 def test_a_resumed_run_and_its_evaluation_read_back_as_the_csv_once_per_step(tmp_path, monkeypatch):
     run = tmp_path / "run"
     assert _train(monkeypatch, run, "--max-steps", "4") == 0
+    # TensorBoard reads a run's event files in name order: a time in seconds, then this process's
+    # writer count, not zero-padded (9 sorts after 10); sessions a second apart, as processes are
+    time.sleep(1.05 - time.time() % 1)
     # resumed from step 2: steps 3 and 4 of the first session are trained and logged again
     assert _train(monkeypatch, run, "--max-steps", "5", "--resume", str(run / "checkpoint_0000002.pt")) == 0
     rows = list(csv.DictReader(open(run / "train_log.csv")))
