@@ -6,22 +6,16 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
-import time
 
 import pytest
 
 from harness.serve import ServeProcess
 from v2v_client import V2VStreamDataset
-from v2v_server.sources.local import RACY_NS
+from tests.test_corpus_index import settle
 
 #: windows of 201 frames (the default recipe's): bigbuckbunny.mp4 (132 frames) gives none
 LAYOUT = ["--crop-size", "32", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
           "--shot-cuts", "off", "--shuffle-buffer", "4", "--batch-size", "2", "--workers", "1", "--delivery", "plan"]
-
-
-def settle() -> None:
-    """Wait out the racy window: a file written just now has no identity the corpus index trusts."""
-    time.sleep(2 * RACY_NS / 1e9)
 
 
 @pytest.fixture

@@ -118,7 +118,7 @@ def main(argv=None) -> int:
             return 2
         log.info("model: %d parameters", sum(p.numel() for p in trainer.model.parameters()))
         t1 = time.perf_counter()
-        stream, feed, connect_s = opening.result()
+        _, feed, connect_s = opening.result()
         if resume:
             trainer.load_checkpoint(resume)
         trainer.fit(feed, int(cfg["max_steps"]), int(lg["image_every"]), int(lg["checkpoint_every"]),
