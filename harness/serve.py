@@ -26,10 +26,7 @@ class ServeProcess:
     """``with ServeProcess(["--workers", "2"]) as srv: ... srv.endpoint ...``
 
     Args:
-        args: extra ``v2v-serve`` arguments (``--bind`` is added unless given; ``--delivery push``
-            unless a ``--delivery`` is given: the harness's callers read push streams; with
-            ``--epochs``, ``--end-grace-s 0`` unless given, so that a test's server exits as
-            soon as its stream ended and no trainer is connected).
+        args: extra ``v2v-serve`` arguments (``--bind`` is added unless given).
         ready_timeout_s: seconds to wait for the server to report it is serving.
         log_path: file to which the server's stderr goes (kept in ``self.log`` otherwise).
 
@@ -47,10 +44,6 @@ class ServeProcess:
             self.args += ["--bind", self.endpoint]
         else:
             self.endpoint = self.args[self.args.index("--bind") + 1]
-        if not any(a == "--delivery" or a.startswith("--delivery=") for a in self.args):
-            self.args += ["--delivery", "push"]  # the harness's servers are push's unless the args say
-        if "--epochs" in self.args and "--end-grace-s" not in self.args:
-            self.args += ["--end-grace-s", "0"]
         self.ready_timeout_s = ready_timeout_s
         self.log_path = log_path
         self.env = env
@@ -120,19 +113,18 @@ class ServeProcess:
         self.stop()
 
 
-def served_samples(args: List[str], outputs=("voxels", "frames"), env=None) -> List[tuple]:
-    """Read every batch a ``v2v-serve args`` child serves (give it ``--epochs``) with raw wire
-    dtypes: ``[(sample_id, {output: array})]`` in arrival order, repeats kept."""
+def served_samples(args: List[str], outputs=("voxels", "frames"), env=None, epoch: int = 0) -> List[tuple]:
+    """Read epoch ``epoch`` of what a ``v2v-serve args`` child serves, whole, with raw wire dtypes:
+    ``[(sample_id, {output: array})]`` in the plan's order, padding rows left out."""
     import numpy as np
 
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     out = []
     with ServeProcess(args, env=env) as srv:
-        it = iter(V2VPushDataset(srv.endpoint, outputs=tuple(outputs), timeout_s=60, credits=2, raw=True))
-        try:
-            for b in it:
-                out += [(sid, {k: np.asarray(b[k][i]) for k in outputs}) for i, sid in enumerate(b["sample_ids"])]
-        finally:
-            it.close()
+        ds = V2VStreamDataset(srv.endpoint, outputs=tuple(outputs), timeout_s=60, raw=True, rank=0, world_size=1)
+        ds.set_epoch(epoch)
+        for b in ds:
+            out += [(sid, {k: np.asarray(b[k][i]) for k in outputs}) for i, sid in enumerate(b["sample_ids"])
+                    if not bool(b["padding"][i])]
     return out

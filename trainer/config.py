@@ -78,14 +78,11 @@ class RunSettings:
 
 @dataclass
 class StreamSettings:
-    """``stream``: how the trainer reads v2v-serve (``V2VPushDataset``)."""
+    """``stream``: how the trainer reads v2v-serve (``V2VStreamDataset``)."""
 
-    credits: int = setting(4, help="batches the client may hold")
-    timeout_s: float = setting(60.0, help="seconds without a message before StreamTimeout")
+    timeout_s: float = setting(60.0, help="seconds a server may stay silent (down, restarting) before the run "
+                                          "ends with a TimeoutError naming it")
     raw: bool = setting(True, help="wire dtypes to the device, converted there")
-    reconnect: bool = setting(False, help="wait for a restarted server instead of failing")
-    compact_flow: bool = setting(True, help="a tracked flow arrives as its grid of points and is made dense on the "
-                                            "training device")
     curve_keys: Optional[list] = setting(None, help="[client .key_secret file, server .key file] for a server "
                                                     "that requires CurveZMQ")
 

@@ -1,7 +1,6 @@
-"""Stream side of the trainer: which outputs each task asks ``v2v-serve`` for, the
-DataLoader around ``v2v_client.V2VStreamDataset`` read epoch after epoch (a server serving by plan,
-the default: :class:`PlanEpochs`) or ``V2VPushDataset`` (``--delivery push``), and the host ->
-device transfer.
+"""Stream side of the trainer: which outputs each task asks ``v2v-serve`` for,
+``v2v_client.V2VStreamDataset`` read epoch after epoch (:class:`PlanEpochs`) ahead of the loop
+(:class:`ReadAhead`), and the host -> device transfer.
 
 Batches (the client's contract): ``voxels`` (B, L, num_bins, H, W) int8/int16 when
 ``raw=True`` (float32 otherwise; signed event counts per bin), ``frames`` (B, L+1, 1, H, W)
@@ -18,7 +17,6 @@ from torch.utils.data import DataLoader
 
 from v2v_client.plan_dataset import PlanEpochs, PlanServerError, open_stream
 from v2v_client.read_ahead import READ_AHEAD, ReadAhead
-from v2v_client.session import StreamError
 from v2v_wire.outputs import ARRAYS
 from v2v_wire.plan import PlanMismatch
 
@@ -26,30 +24,26 @@ from .tasks import get_task
 
 #: What reading a server raises when it is absent, silent or refuses (each message names the
 #: server and why, in one line): v2v-train ends with that line.
-STREAM_ERRORS = (TimeoutError, StreamError, PlanServerError, PlanMismatch)
+STREAM_ERRORS = (TimeoutError, PlanServerError, PlanMismatch)
 
 __all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "ReadAhead", "READ_AHEAD", "read_path", "make_loader",
            "batch_to_device", "drop_padding"]
 
 
-def make_stream(endpoint: str, task: str, credits: int = 4, timeout_s: float = 60.0, raw: bool = True,
-                reconnect: bool = False, curve_keys=None, outputs: Optional[Sequence[str]] = None,
-                compact_flow: bool = True):
+def make_stream(endpoint: str, task: str, timeout_s: float = 60.0, raw: bool = True, curve_keys=None,
+                outputs: Optional[Sequence[str]] = None) -> PlanEpochs:
     """The stream of ``endpoint`` (one server, or several shards: ``"tcp://a:5555,tcp://b:5555"``)
     asking only for ``outputs`` (default: ``task``'s; a run's are ``tasks.stream_outputs(cfg)``),
-    by ``v2v_client.open_stream``: servers serving by plan (v2v-serve's default; they say so when
-    asked) are read by :class:`PlanEpochs` over a ``v2v_client.V2VStreamDataset``, in batches of
-    the server's ``batch_size``; servers started with ``--delivery push`` by a
-    ``v2v_client.V2VPushDataset`` with ``credits``, ``reconnect``, ``compact_flow`` (a tracked flow
-    arrives as its grid, made dense on the training device by :func:`batch_to_device`).
-    ``curve_keys``: (client secret key file, server public key file), as in the datasets.
+    by ``v2v_client.open_stream``: :class:`PlanEpochs` over a ``v2v_client.V2VStreamDataset``, in
+    batches of the server's ``batch_size``. ``curve_keys``: (client secret key file, server
+    public key file), as in the dataset.
 
     Raises:
         TimeoutError: no server answered at ``endpoint`` within ``timeout_s``.
+        PlanServerError: a server refused or speaks another protocol version (one line).
     """
     return open_stream(endpoint, outputs=tuple(outputs or get_task(task).outputs), raw=bool(raw),
-                       timeout_s=float(timeout_s), curve_keys=tuple(curve_keys) if curve_keys else None,
-                       credits=int(credits), reconnect=bool(reconnect), compact_flow=bool(compact_flow))
+                       timeout_s=float(timeout_s), curve_keys=tuple(curve_keys) if curve_keys else None)
 
 
 def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:
@@ -61,8 +55,8 @@ def make_loader(dataset: Iterable, device: torch.device) -> DataLoader:
 
 def read_path(stream, device: torch.device):
     """What the training loop iterates for ``stream``: a :class:`ReadAhead` over a plan's epochs
-    (:class:`PlanEpochs`), a :func:`make_loader` over any other iterable of batches (a push
-    stream, which reads ahead in its own thread and counts what it yields as delivered)."""
+    (:class:`PlanEpochs`), a :func:`make_loader` over any other iterable of batches (a test's
+    list of batches, say)."""
     return ReadAhead(stream, pin=device.type == "cuda") if isinstance(stream, PlanEpochs) else make_loader(stream, device)
 
 

@@ -57,8 +57,10 @@ def add_ray_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("Ray engine (--engine ray; needs pip install 'v2v[ray]')")
     g.add_argument("--serve-config", help="v2v-serve YAML config: the sample recipe and corpus (default: v2v-serve's "
                                           "defaults); the flags below override its keys")
-    # the corpus, batch size and epochs are v2v-serve's keys: the same flags, from its config model
-    add_flags(g, ServeConfig, only=("videos", "batch_size", "epochs"))
+    # the corpus and batch size are v2v-serve's keys: the same flags, from its config model
+    add_flags(g, ServeConfig, only=("videos", "batch_size"))
+    g.add_argument("--epochs", type=int, default=1, help="epochs the run trains (default 1; max_steps may end it "
+                                                         "first)")
     g.add_argument("--num-workers", type=int, default=1, help="Ray Train ranks (default 1)")
     g.add_argument("--use-gpu", action="store_true", help="one GPU per rank")
     g.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per rank (default 1)")
@@ -276,7 +278,7 @@ def _train_loop(config: dict) -> None:
     samples = [0]
     batches = ray.train.get_dataset_shard("train").iter_torch_batches(
         batch_size=int(config["batch_size"]), collate_fn=v2v_collate(device.type == "cuda"), prefetch_batches=2,
-        # the server's shuffle buffer (--shuffle epoch): rows of several videos in every batch
+        # the server's shuffle buffer: rows of several videos in every batch
         local_shuffle_buffer_size=config["shuffle_buffer"], local_shuffle_seed=config["shuffle_seed"])
 
     def on_batch(batch: dict, stats: dict) -> None:
@@ -320,7 +322,7 @@ def _torch_trainer(cfg: dict, args: argparse.Namespace, out: Path, resume, state
     loop_cfg = {"cfg": cfg, "out": str(out.resolve()), "resume": resume, "state": state,
                 "max_steps": int(cfg["max_steps"]), "batch_size": batch_size, "epoch_sizes": epoch_sizes,
                 "use_gpu": bool(args.use_gpu), "cpus_per_worker": args.cpus_per_worker,
-                "shuffle_buffer": scfg.shuffle_buffer if scfg.shuffle == "epoch" else None, "shuffle_seed": scfg.seed,
+                "shuffle_buffer": scfg.shuffle_buffer, "shuffle_seed": scfg.seed,
                 # TensorBoard's recipe text (trainer.tensorboard_log)
                 "recipe": {"fingerprint": scfg.recipe.fingerprint(), **dataclasses.asdict(scfg.recipe)}}
     return TorchTrainer(
@@ -351,13 +353,16 @@ def run_ray(cfg: dict, args: argparse.Namespace, out: Path) -> int:
         log.error("--serve-config: %s", e)
         return 2
     videos = scfg.videos or str(SAMPLE_VIDEOS)  # as v2v-serve: the bundled clips by default
-    batch_size, epochs = scfg.batch_size, scfg.epochs or 1  # per rank; a run trains whole epochs
+    batch_size, epochs = scfg.batch_size, args.epochs  # per rank; a run trains whole epochs
     if int(cfg["model"]["num_bins"]) != scfg.num_bins:
         log.error("samples have %d bins, model.num_bins is %s: set one to the other", scfg.num_bins,
                   cfg["model"]["num_bins"])
         return 2
     if args.num_workers < 1:
         log.error("--num-workers must be >= 1")
+        return 2
+    if epochs < 1:
+        log.error("--epochs must be >= 1")
         return 2
     if not ray.is_initialized():
         ray.init(address=args.address)

@@ -79,7 +79,6 @@ def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int
             with an error.
     """
     from v2v_client.plan_dataset import PlanServerError, open_stream
-    from v2v_client.session import StreamError
 
     out = Collected(source=f"server {endpoint}")
     ds = None
@@ -94,7 +93,7 @@ def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int
                 progress(1)
                 if len(out.rows) >= n:
                     return out
-    except (StreamError, TimeoutError, PlanServerError) as e:
+    except (TimeoutError, PlanServerError) as e:
         raise StatsInputError(f"server {endpoint}: {e}") from None
     finally:
         close = getattr(ds, "close", None)

@@ -139,9 +139,8 @@ def _open(cfg: dict, resume, device):
     at the resumed position, its read path reading (``read_path``; a plan's first fetches out)."""
     s = cfg["stream"]
     t = time.perf_counter()
-    stream = make_stream(cfg["connect"], cfg["task"], s["credits"], s["timeout_s"], s["raw"],
-                         reconnect=bool(s.get("reconnect")), curve_keys=s.get("curve_keys") or None,
-                         outputs=stream_outputs(cfg), compact_flow=bool(s.get("compact_flow", True)))
+    stream = make_stream(cfg["connect"], cfg["task"], timeout_s=s["timeout_s"], raw=s["raw"],
+                         curve_keys=s.get("curve_keys") or None, outputs=stream_outputs(cfg))
     connect_s = time.perf_counter() - t
     if resume:
         _resume_stream(resume, stream)

@@ -1,34 +1,45 @@
 """Client side of v2v: ``V2VStreamDataset`` reads the epochs ``v2v-serve`` serves by plan
-(docs/plan.md); ``V2VPushDataset`` reads a server started with ``--delivery push``.
+(docs/delivery.md).
 
-``import v2v_client`` and its network side (``connection``, ``session``: a server's batches as
-numpy arrays) need only the base install (``pip install v2v``: numpy, pyzmq, msgpack, PyYAML);
-the names that make tensors (``V2VStreamDataset``, ``V2VPushDataset``, ``StreamLoader``,
-``batch_to_torch``, ``expand_flow_grid``, ``dist_position``, ``prepare_loader``, ``PlanEpochs``,
-``ReadAhead``) import torch when
-first used (``pip install 'v2v[client]'``).
+``import v2v_client`` needs only the base install (``pip install v2v``: numpy, pyzmq, msgpack,
+PyYAML); the names that make tensors (``V2VStreamDataset``, ``PlanEpochs``, ``ReadAhead``,
+``batch_to_torch``, ``expand_flow_grid``, ``prepare_loader``, ``PlanServerError``) import torch
+when first used (``pip install 'v2v[client]'``). Names of the push delivery v2v no longer has
+(``V2VPushDataset``, ``StreamLoader``, ...) raise ImportError in one line saying what to use.
 """
 from importlib import import_module
 
-from .session import StreamError, StreamTimeout
-
-__all__ = ["V2VStreamDataset", "V2VPushDataset", "PlanServerError", "PushServerError", "StreamError", "StreamTimeout",
-           "batch_to_torch", "dist_position", "expand_flow_grid", "StreamLoader", "prepare_loader", "PlanEpochs", "ReadAhead"]
+__all__ = ["V2VStreamDataset", "PlanServerError", "batch_to_torch", "expand_flow_grid", "prepare_loader",
+           "PlanEpochs", "ReadAhead"]
 
 #: The public names that need torch, by the module that defines them.
-_TORCH_NAMES = {"V2VPushDataset": "dataset", "V2VStreamDataset": "plan_dataset", "dist_position": "dataset",
-                "batch_to_torch": "tensors", "PlanServerError": "plan_dataset", "PushServerError": "plan_dataset",
-                "expand_flow_grid": "flowgrid", "StreamLoader": "loader",
-                "prepare_loader": "launchers", "PlanEpochs": "plan_dataset", "ReadAhead": "read_ahead"}
+_TORCH_NAMES = {"V2VStreamDataset": "plan_dataset", "PlanServerError": "plan_dataset", "PlanEpochs": "plan_dataset",
+                "batch_to_torch": "tensors", "expand_flow_grid": "flowgrid", "prepare_loader": "plan_accelerate",
+                "ReadAhead": "read_ahead"}
+
+#: Names of push delivery, which v2v no longer has -> what to use instead (docs/delivery.md).
+REMOVED = {
+    "V2VPushDataset": "V2VStreamDataset",
+    "StreamLoader": "torch's DataLoader(V2VStreamDataset(...), batch_size=None)",
+    "ResumeState": "a batch's 'position' (V2VStreamDataset.state_dict / load_state_dict)",
+    "PushServerError": "PlanServerError",
+    "StreamError": "PlanServerError",
+    "StreamTimeout": "TimeoutError",
+    "dist_position": "V2VStreamDataset (its rank and world_size come from torch.distributed)",
+}
 
 
 def __getattr__(name: str):
     """Import a torch-backed public name on first use.
 
     Raises:
-        ImportError: torch is not installed (the message says which install brings it).
+        ImportError: a name of push delivery (one line saying what to use instead), or torch is
+            not installed (the message says which install brings it).
         AttributeError: no such name.
     """
+    if name in REMOVED:
+        raise ImportError(f"v2v_client.{name} was removed with push delivery: use {REMOVED[name]} "
+                          "(docs/delivery.md)", name=name)
     module = _TORCH_NAMES.get(name)
     if module is None:
         raise AttributeError(f"module 'v2v_client' has no attribute {name!r}")

@@ -40,21 +40,18 @@ import numpy as np
 import torch
 import zmq
 
-from v2v_wire.messages import WireError
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
 from v2v_wire.plan_shards import (interleaved, probes, shard_ranges, shards_identity, shards_samples,
                                   step_in_epoch)
-from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
+from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, WireError, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_ipv6, pack, unpack
 
 from . import plan_accelerate
-from .connection import load_curve_keys
-from .fanin import check_servers, resolve_endpoints, split_endpoints
-from .options import auto_compression
+from .endpoints import auto_compression, check_servers, load_curve_keys, resolve_endpoints, split_endpoints
 from .tensors import batch_to_torch
 
-__all__ = ["V2VStreamDataset", "PlanEpochs", "open_stream", "PlanServerError", "PushServerError"]
+__all__ = ["V2VStreamDataset", "PlanEpochs", "open_stream", "PlanServerError"]
 
 
 class PlanServerError(RuntimeError):
@@ -62,21 +59,16 @@ class PlanServerError(RuntimeError):
     endpoint and why, in one line)."""
 
 
-class PushServerError(PlanServerError):
-    """The server delivers by push (``v2v-serve --delivery push``): read it with ``V2VPushDataset``."""
-
-
 class V2VStreamDataset(torch.utils.data.IterableDataset):
-    """One rank's batches of one epoch of the plan served at ``endpoint`` (``v2v-serve``; a server
-    started with ``--delivery push`` is read with ``V2VPushDataset``, and says so).
+    """One rank's batches of one epoch of the plan served at ``endpoint`` (``v2v-serve``).
 
     Args:
         endpoint: the server's address (``tcp://host:port``), or several shards' (module docstring).
         batch_size: rows per batch of this rank (>= 1; default: the server's, asked when needed).
         rank, world_size: this rank and the job's ranks (default: ``torch.distributed``'s when
             first needed, if initialised, else 0 and 1).
-        outputs: which of ``OUTPUTS`` to read (default ``DEFAULT_OUTPUTS``, as
-            ``V2VPushDataset``'s: the server's workers make only the outputs its readers ask for).
+        outputs: which of ``OUTPUTS`` to read (default ``DEFAULT_OUTPUTS``; the server's workers
+            make only the outputs its readers ask for).
         raw: keep the wire dtypes (``tensors.batch_to_torch``).
         prefetch: fetches in flight per process (>= 1).
         retry_s: seconds a fetch may go unanswered before it is asked again (a lost reply, a
@@ -94,8 +86,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     snapshots per DataLoader worker).
 
     Raises:
-        ValueError: a bad setting, naming it, or a setting only push delivery has (``credits``,
-            ``shm``, ``reconnect``, ...; one line saying so).
+        ValueError: a bad setting, naming it, or a setting of the push delivery v2v no longer has
+            (``credits``, ``shm``, ``reconnect``, ...; one line saying so).
         TypeError: a keyword argument neither reader takes.
     """
 
@@ -188,8 +180,8 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         Raises:
             PlanMismatch: a malformed position (naming the field), one of another plan than the
                 server's (one line naming what differs; checked when the server is first asked),
-                or a push stream's resume state (``V2VPushDataset`` / ``StreamLoader``: the sample
-                ids it delivered, which no position of a plan's fixed slices stands for).
+                or a resume state of the removed push delivery (the sample ids it delivered, which
+                no position of a plan's fixed slices stands for).
             ValueError: a worker's state loaded elsewhere than that worker at that layout (one line).
         """
         pos = _loaded_position(state, self._info)
@@ -255,7 +247,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         again while the epoch's samples are not known: the plan unfolds as the server decodes).
 
         Raises:
-            TimeoutError, PushServerError, ValueError: as ``_Servers.ask``.
+            TimeoutError, PlanServerError, ValueError: as ``_Servers.ask``.
             PlanMismatch: a loaded position of another plan."""
         if self._info is None or (refresh and self._info.samples is None):
             self._info = self._servers.ask(self.timeout_s, self.curve)
@@ -445,7 +437,7 @@ class _Servers:
         """What the servers serve, as one plan (resolving ``endpoint`` the first time).
 
         Raises:
-            TimeoutError, PushServerError: a server silent, or delivering by push.
+            TimeoutError, PlanServerError: a server silent, or speaking another protocol version.
             ValueError: several servers that are not one sharding of one corpus."""
         servers = resolve_endpoints(self.endpoint) if self.shards is None else [ep for ep, _ in self.shards]
         infos = []
@@ -504,48 +496,41 @@ def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
             [(ep, i.plan) for ep, i in ordered], [i.samples for _, i in ordered])
 
 
-#: ``V2VPushDataset``'s settings, which a plan has no use for: given here, they are refused.
+#: The removed push delivery's reader settings, which a plan has no use for: given here, they are
+#: refused in one line.
 PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "group", "shm", "compact_flow")
 
 
 def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
-    """What fetches of ``endpoint`` ask for: ``compression``, or for ``"auto"`` push's rule
-    (``options.auto_compression``) with the codecs the server lists in its stream info."""
+    """What fetches of ``endpoint`` ask for: ``compression``, or for ``"auto"``
+    ``endpoints.auto_compression`` with the codecs the server lists in its stream info."""
     return compression if compression != "auto" else auto_compression(endpoint, stream.get("codecs", ()))
 
 
 def _refuse_push(settings: dict) -> None:
-    """One line for a setting only push delivery reads."""
+    """One line for a setting only the removed push delivery read."""
     for name in settings:
         if name not in PUSH_SETTINGS:
             raise TypeError(f"V2VStreamDataset() got an unexpected keyword argument {name!r}")
     if settings:
-        raise ValueError(f"{', '.join(sorted(settings))}: push delivery's setting(s), which a plan has no use for "
-                         f"(drop them, or read a server started with --delivery push with V2VPushDataset)")
+        raise ValueError(f"{', '.join(sorted(settings))}: setting(s) of push delivery, which v2v no longer has "
+                         f"(docs/delivery.md): drop them")
 
 
 def open_stream(endpoint, *, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False, timeout_s: float = 60.0,
-                curve_keys: Optional[Tuple[str, str]] = None, **push_settings):
-    """What a trainer reads at ``endpoint`` (one server or several shards), one pass: servers
-    serving by plan (v2v-serve's default; asked once), their epochs in turn (:class:`PlanEpochs`
-    over a :class:`V2VStreamDataset` in the server's batch size); servers that answer they deliver
-    by push, a ``V2VPushDataset`` with ``push_settings`` (``credits``, ``reconnect``, ...; not read
-    at a plan server).
+                curve_keys: Optional[Tuple[str, str]] = None) -> "PlanEpochs":
+    """What a trainer reads at ``endpoint`` (one server or several shards), one pass: the plan's
+    epochs in turn (:class:`PlanEpochs` over a :class:`V2VStreamDataset` in the server's batch
+    size), the server asked once here.
 
     Raises:
         TimeoutError: no server answered within ``timeout_s``.
+        PlanServerError: a server refused or spoke another protocol version (one line).
         ValueError: a bad setting, naming it."""
     ds = V2VStreamDataset(endpoint, outputs=outputs, raw=raw, timeout_s=timeout_s, retry_s=min(10.0, timeout_s),
                           curve_keys=curve_keys)
-    try:
-        ds.plan_info()
-        return PlanEpochs(ds)
-    except PushServerError:  # a server started with --delivery push answered
-        pass
-    from .dataset import V2VPushDataset
-
-    return V2VPushDataset(endpoint, outputs=outputs, raw=raw, timeout_s=timeout_s, curve_keys=curve_keys,
-                          **push_settings)
+    ds.plan_info()
+    return PlanEpochs(ds)
 
 
 class PlanEpochs(torch.utils.data.IterableDataset):
@@ -689,11 +674,11 @@ def _loaded_position(state, info: Optional[PlanInfo]) -> Position:
     the server was asked already (None: not yet).
 
     Raises:
-        PlanMismatch: a push stream's resume state (one line saying what to resume from), a
+        PlanMismatch: a resume state of the removed push delivery (one line saying what to resume from), a
             malformed position (naming the field), or one of another plan than ``info``'s.
     """
     if isinstance(state, dict) and "delivered" in state and "plan" not in state:
-        raise PlanMismatch(f"a push stream's resume state (of consumer {state.get('consumer')!r}, completed epoch "
+        raise PlanMismatch(f"a resume state of push delivery, which v2v no longer has (consumer {state.get('consumer')!r}, completed epoch "
                            f"{state.get('completed_epoch')!r}) is not a plan's position: resume from a batch's "
                            f"'position', or read an epoch from its start with set_epoch()")
     pos = Position.from_dict(state)
@@ -787,8 +772,6 @@ class _Link:
         try:
             h = unpack(frames[0])
             return plan_server_message(h), frames[1:]
-        except ServedByPush as e:
-            raise PushServerError(f"{self.endpoint}: {e}") from None
         except (ProtocolError, WireError) as e:
             raise PlanServerError(f"{self.endpoint}: {e}") from None
 

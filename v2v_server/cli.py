@@ -11,12 +11,11 @@ from v2v_server.ops.startup import SAMPLE_VIDEOS, start_source
 from v2v_server.sources.store import StoreSettings
 from v2v_server.settings import add_flags, flag_values
 from v2v_server.ops.plan_start import plan_manifest
-from v2v_server.service.plan_server import PlanServer
-from v2v_server.service.server import V2VServer, install_signal_handlers
+from v2v_server.service.plan_server import PlanServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
 from v2v_server.frames.check import check_corpus, format_check
 from v2v_server.frames.corpus_index import index_path
-from v2v_server.delivery.journal import JournalError
+from v2v_server.delivery.policy import REMOVED, removed_problem
 from v2v_server.sources.errors import StoreError
 from v2v_server.ops.warm import cache_line, format_warm, warm_cache
 
@@ -42,7 +41,19 @@ def build_parser() -> argparse.ArgumentParser:
     for title, part in (("sample recipe", SampleRecipe), ("delivery", DeliveryPolicy), ("serving", ServingSettings),
                         ("object store", StoreSettings)):
         add_flags(p, part, title)
+    for name, (flags, _) in REMOVED.items():  # push delivery's: refused in one line by main
+        p.add_argument(*flags, dest=f"removed_{name}", nargs="?", const="", default=None, help=argparse.SUPPRESS)
     return p
+
+
+def _removed_flag(args: argparse.Namespace) -> str:
+    """One line for the first flag given of push delivery's (``REMOVED``), else ``""``
+    (``--delivery plan`` is what every server does: taken)."""
+    for name, (flags, _) in REMOVED.items():
+        value = getattr(args, f"removed_{name}")
+        if value is not None and not (name == "delivery_mode" and value == "plan"):  # what it is anyway
+            return removed_problem(flags[0])
+    return ""
 
 
 def config_from_args(args: argparse.Namespace) -> ServeConfig:
@@ -55,7 +66,7 @@ def config_from_args(args: argparse.Namespace) -> ServeConfig:
 
 
 def _serve_plan(start) -> int:
-    """Serving by plan (the default delivery): the manifest (each video's windows the corpus index knows), then
+    """Serving: the manifest (each video's windows the corpus index knows), then
     :class:`PlanServer` until a signal stops it."""
     cfg = start.config
     try:
@@ -76,6 +87,9 @@ def _serve_plan(start) -> int:
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, args.log_format or "text", "v2v-serve")
+    if _removed_flag(args):
+        print(f"v2v-serve: {_removed_flag(args)}", file=sys.stderr)
+        return 2
     try:
         cfg = config_from_args(args)
     except (ValueError, FileNotFoundError) as e:
@@ -116,25 +130,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"v2v-serve: --videos {source.root}: no video gives a window at this layout (the corpus index "
                   f"{index_path(caches.cache_dir)} knows them all; --check says why)", file=sys.stderr)
             return 2
-    if cfg.delivery.delivery_mode == "plan":
-        return _serve_plan(start)
-    if start.epoch_samples is not None:
-        log.info("an epoch holds %d sample(s) of %d video(s) (corpus index)", start.epoch_samples, len(start.served))
-    try:
-        server = V2VServer(cfg, source, caches, start.served, corpus=start.corpus, epoch_samples=start.epoch_samples,
-                           skipped=start.skipped)
-    except (JournalError, OSError) as e:  # the journal of --state-dir
-        print(f"v2v-serve: --state-dir {cfg.state_dir}: {e}", file=sys.stderr)
-        return 2
-    stopped_by = install_signal_handlers(server)
-    try:
-        status = server.run()
-        return 128 + stopped_by[0] if stopped_by else status  # a server stopped by a signal says so
-    except Exception as e:  # bind errors and the like: one clear line
-        if isinstance(e, OSError) or e.__class__.__module__.startswith("zmq"):
-            print(f"v2v-serve: cannot serve: {e}", file=sys.stderr)
-            return 2
-        raise
+    return _serve_plan(start)
 
 
 if __name__ == "__main__":

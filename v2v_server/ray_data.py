@@ -44,7 +44,7 @@ from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, 
 
 import numpy as np
 
-from v2v_server.delivery.batcher import video_order
+from v2v_wire.plan import video_order
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig, caches_from_config, source_from_config
 from v2v_server.ops.startup import resolve_config, start_source
@@ -145,8 +145,8 @@ def epoch_descriptors(corpus: RayCorpus, epoch: int, exclude: Iterable[str] = ()
 
     Each descriptor is ``{"video": rel, "epoch": epoch, "entries": JSON [[sample_id, padding],
     ...]}`` in window order; the videos in the corpus's order, or with ``shuffle_seed`` in
-    ``delivery.batcher.video_order(videos, shuffle_seed, epoch)``, the order ``v2v-serve
-    --shuffle epoch`` hands them out in. Ids in ``exclude`` (already consumed: resume) are left out, and a
+    ``v2v_wire.plan.video_order(videos, shuffle_seed, epoch)``, the production order of
+    ``v2v-serve``'s plan. Ids in ``exclude`` (already consumed: resume) are left out, and a
     video with none left is not listed, so it is never opened. When the remaining count is not
     a multiple of ``ranks``, the first ids of the epoch are listed again with ``padding`` true
     (made from the same decode pass, no extra decoding) until it is. With ``crops_per_window``
@@ -296,7 +296,7 @@ def v2v_dataset(
         config: sample layout (``ServeConfig``; defaults: the paper's WebVid recipe).
         epoch: an epoch, or several (their rows follow each other; each is padded on its own).
         seed: overrides ``config.seed``; content depends only on (seed, epoch, sample_id).
-            Under ``config.shuffle`` "epoch" (the default) each epoch lists the videos in the
+            Each epoch lists the videos in the
             order ``v2v-serve`` hands them out in (drawn from (seed, epoch)); mix rows across
             videos as its shuffle buffer does with ``iter_batches(local_shuffle_buffer_size=
             config.shuffle_buffer)`` (``trainer.ray_train`` does).
@@ -333,7 +333,7 @@ def v2v_dataset(
         excl = {int(e): set(v) for e, v in exclude.items()}
     else:
         excl = {epochs[0]: set(exclude)} if epochs else {}
-    shuffle_seed = cfg.seed if cfg.shuffle == "epoch" else None
+    shuffle_seed = cfg.seed
     items = [d for e in epochs
              for d in epoch_descriptors(corpus, e, excl.get(e, ()), ranks, cfg.crops_per_window, shuffle_seed)]
     if not items:

@@ -2,12 +2,12 @@
 
 A sample is named by its :class:`SampleKey` ``(video, window, crop)``: the video's path relative
 to the corpus root (POSIX), the window index and the crop index inside the window (0 .. K - 1
-with K = ``crops_per_window``). The scheduler, the ledger, the workers' messages and the
-journal carry keys. The string form, the *sample id*, is made and read only at the edges (logs,
-resume states, the ``sample_ids`` of a batch): the path, ``#``, the window index and, when K > 1,
+with K = ``crops_per_window``). The plan, the server's feed and the workers' messages carry
+keys. The string form, the *sample id*, is made and read only at the edges (logs,
+the ``sample_ids`` of a batch): the path, ``#``, the window index and, when K > 1,
 ``.`` and the crop index: ``clips/a.mp4#3`` or ``clips/a.mp4#3.1``. The *ordinal*
 ``window * K + crop`` (``SampleKey.ordinal``) numbers a video's samples in the order they are
-made: how many samples a file gave, where a pass over it stopped, the journal's records.
+made: how many samples a file gave, where a pass over it stopped.
 Pure: no I/O, no numpy.
 """
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The messages of serving by plan (docs/plan.md), both ways, typed and checked at the edge.
+"""The messages between a server and its readers (docs/delivery.md), both ways, typed and checked
+at the edge.
 
 A client asks a server what it serves (:class:`PlanAsk`, answered by :class:`PlanInfo`: the plan's
 identity, samples per epoch and the stream's shapes), then fetches positions of an epoch
@@ -8,20 +9,48 @@ costs no payload) or :class:`Refused` (one line: another plan, or a batch over t
 server keeps no record of either: a client that hears nothing asks again, and a late answer to a
 request it no longer waits for is dropped.
 
-Every decoder raises only ``messages.WireError`` (a ``ProtocolError``) naming the field.
+Every decoder raises only :class:`WireError` (a ``ProtocolError``) naming the field, and bounds
+what one message may cost: its size before any decoding, every array to ``MAX_ARRAY_LEN``
+elements and map to ``MAX_MAP_LEN`` pairs, the containers to ``MAX_CONTAINERS`` (counted while
+decoding), so a peer gains nothing by nesting or widening. :class:`BadPeers` rate-limits the log
+lines about misbehaving peers and bans a peer that keeps sending garbage for a while.
+
+A client of an older protocol (push delivery's ``hello``, ``ack``, ...) gets one ``error`` line at
+its own version, which it reads (:func:`old_client_answer`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 from v2v_wire.codecs import check_compression
-from v2v_wire.messages import WireError, bounded_unpackb
 from v2v_wire.plan import PlanIdentity, PlanMismatch
-from v2v_wire.protocol import PROTOCOL_VERSION, check_outputs
+from v2v_wire.protocol import PROTOCOL_VERSION, ProtocolError, check_outputs, version_problem
+from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
-__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Rows", "Refused", "PushClientMessage", "ServedByPush", "MAX_FETCH_ROWS",
-           "decode_plan_client", "plan_server_message"]
+__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Rows", "Refused", "WireError", "OldClient", "BadPeers", "MAX_FETCH_ROWS",
+           "decode_plan_client", "plan_server_message", "old_client_answer"]
+
+#: Largest element count of any array in a message.
+MAX_ARRAY_LEN = 4096
+#: Largest number of pairs in any map of a message.
+MAX_MAP_LEN = 256
+#: Largest number of arrays + maps in one message.
+MAX_CONTAINERS = 512
+
+
+class WireError(ProtocolError):
+    """A message that is oversized, not msgpack, too wide or deep, or has a field of the wrong
+    type or range (the message names the field)."""
+
+
+def bounded_unpackb(buf, max_bytes: int) -> object:
+    """msgpack-decode ``buf`` with the bounds above (``protocol.bounded_unpackb``).
+
+    Raises:
+        WireError: oversized, malformed, or over any bound.
+    """
+    return _bounded_unpackb(buf, max_bytes, MAX_ARRAY_LEN, MAX_MAP_LEN, MAX_CONTAINERS, WireError)
 
 #: Most positions one fetch may name (a batch of one rank at one step).
 MAX_FETCH_ROWS = 4096
@@ -45,10 +74,6 @@ class PlanAsk:
 
     def to_wire(self) -> dict:
         return {"type": "plan_ask"}
-
-
-class ServedByPush(WireError):
-    """The server answered in push delivery's words: it was started with ``--delivery push``."""
 
 
 @dataclass(frozen=True)
@@ -178,34 +203,42 @@ class Refused:
         return cls(_int(h, "request", -1), h["message"])
 
 
-#: What a push client (``V2VPushDataset``) sends (``messages.parse_client``).
-PUSH_CLIENT_TYPES = ("hello", "ack", "released", "hold", "credit", "heartbeat", "bye")
+class OldClient(WireError):
+    """A message of an older protocol version (a client of an older v2v: push delivery's
+    ``hello``, ``ack``, ..., or an older plan reader's); ``version``: the one it speaks."""
+
+    def __init__(self, message: str, version: int):
+        super().__init__(message)
+        self.version = version
 
 
-class PushClientMessage(WireError):
-    """A push client's message (:data:`PUSH_CLIENT_TYPES`) reached a server serving by plan."""
+def old_client_answer(e: OldClient) -> dict:
+    """The one-line ``error`` an :class:`OldClient` is answered with, at its own protocol version
+    (every earlier client reads ``error``'s ``message``)."""
+    return {"v": e.version, "type": "error", "code": "version", "message": f"this v2v server: {e}"}
 
 
 def decode_plan_client(frame, max_bytes: int):
-    """A client's message to a server serving by plan: :class:`PlanAsk` or :class:`Fetch`.
+    """A client's message to a server: :class:`PlanAsk` or :class:`Fetch`.
 
     Raises:
         WireError: oversized, not msgpack within bounds, another protocol version, an unknown
-            type or a bad field (naming it); :class:`PushClientMessage` for a push client's.
+            type or a bad field (naming it); :class:`OldClient` for an older protocol version's.
     """
     h = bounded_unpackb(frame.buffer if hasattr(frame, "buffer") else frame, max_bytes)
     if not isinstance(h, dict):
         raise WireError("a message must be a map")
-    if h.get("v") != PROTOCOL_VERSION:
-        raise WireError(f"protocol version {h.get('v')!r}, expected {PROTOCOL_VERSION}")
+    v = h.get("v")
+    if v != PROTOCOL_VERSION:
+        if isinstance(v, int) and not isinstance(v, bool) and 0 < v < PROTOCOL_VERSION:
+            raise OldClient(version_problem(v), v)
+        raise WireError(version_problem(v))
     kind = h.get("type")
     if kind == "plan_ask":
         return PlanAsk()
     if kind == "fetch":
         return Fetch.from_wire(h)
-    if kind in PUSH_CLIENT_TYPES:
-        raise PushClientMessage(f"a push client's {kind!r}")
-    raise WireError(f"unknown message type {kind!r:.40} (a server serving by plan takes plan_ask and fetch)")
+    raise WireError(f"unknown message type {kind!r:.40} (a server takes plan_ask and fetch)")
 
 
 def plan_server_message(h: dict):
@@ -219,7 +252,49 @@ def plan_server_message(h: dict):
     for cls, name in ((PlanInfo, "plan"), (Rows, "rows"), (Refused, "refused")):
         if kind == name:
             return cls.from_wire(h)
-    if kind == "error":  # a push server's answer (messages.parse_client refused a plan_ask)
-        raise ServedByPush(f"a server delivering by push answered: {str(h.get('message'))[:200]}; read it with "
-                           "v2v_client.V2VPushDataset, or start it without --delivery push")
-    raise WireError(f"unknown message type {kind!r:.40} from a server serving by plan (is it serving by plan?)")
+    raise WireError(f"unknown message type {kind!r:.40} from the server")
+
+
+class BadPeers:
+    """Rate-limited complaints about peers, and bans for repeat offenders (pure: ``now`` is given).
+
+    Args:
+        log_per_s: log lines allowed per second over all peers (a token bucket of ``burst``).
+        strikes: bad messages within ``window_s`` after which a peer is banned for ``ban_s``.
+        max_peers: peers remembered (oldest forgotten first), so the table stays bounded.
+    """
+
+    def __init__(self, log_per_s: float = 2.0, burst: int = 10, strikes: int = 3, window_s: float = 10.0,
+                 ban_s: float = 60.0, max_peers: int = 10000):
+        self.log_per_s, self.burst = log_per_s, burst
+        self.strikes, self.window_s, self.ban_s, self.max_peers = strikes, window_s, ban_s, max_peers
+        self.tokens = float(burst)
+        self.last = None
+        self.suppressed = 0
+        self.peers: Dict[bytes, list] = {}  # ident -> [first strike time, strikes, banned until]
+
+    def banned(self, ident: bytes, now: float) -> bool:
+        p = self.peers.get(ident)
+        return p is not None and now < p[2]
+
+    def strike(self, ident: bytes, now: float) -> Tuple[bool, bool]:
+        """Count one bad message. Returns ``(log_it, banned_now)``."""
+        p = self.peers.get(ident)
+        if p is None or now - p[0] > self.window_s:
+            p = [now, 0, 0.0]
+        self.peers.pop(ident, None)
+        self.peers[ident] = p
+        while len(self.peers) > self.max_peers:
+            self.peers.pop(next(iter(self.peers)))
+        p[1] += 1
+        banned_now = p[1] >= self.strikes and now >= p[2]
+        if banned_now:
+            p[2] = now + self.ban_s
+        if self.last is not None:
+            self.tokens = min(self.burst, self.tokens + (now - self.last) * self.log_per_s)
+        self.last = now
+        if self.tokens >= 1:
+            self.tokens -= 1
+            return True, banned_now
+        self.suppressed += 1
+        return False, banned_now

@@ -6,65 +6,36 @@ described in the header's ``arrays`` list as ``{"name", "dtype", "shape"}``. No 
 anywhere: headers are size-checked before msgpack decoding, and array frames are checked
 against their declared dtype and shape before use.
 
-Message types (protocol 9; client messages are decoded and schema-checked by ``messages.py``):
+Message types (``PROTOCOL_VERSION``; typed and checked in ``plan_messages`` and
+``worker_messages``):
 
-* client -> server: ``hello`` (outputs, credits = how many batches it may hold,
-  consumer id, ``instance`` (the reader process's token: a consumer is read by one instance at a
-  time), ``hello_id`` (echoed in the welcome; increasing over an instance's hellos, by its host's
-  monotonic clock: an older one than the consumer's last is refused ``fenced``), optional DDP ``rank``/``world_size``/``group``, ``resume``:
-  ``completed_epoch``, ``delivered`` {epoch: the sample ids, one video per line as
-  ``path#w1,w2,...`` (``ids.compact_ids``)}, ``batches`` {epoch: batches yielded}, optional
-  ``supersedes`` [[consumer, rank, completed epoch], ...]: the consumers a state gathered from every
-  rank of a job speaks for, resumed at another world size, each with the epoch its state completed;
-  optional ``queued`` {batch id: epoch}: a DataLoader worker's granted batches waiting in the loader's
-  queues (their ids are in ``delivered``): their epochs stay open for the connection until it acks them;
-  optional
-  ``ends_on_drained``: a DataLoader worker that ends its iteration on ``drained``, so it is sent
-  no batch after it), ``ack``
-  (batch ids; frees exactly those slots), ``hold`` (batch ids the client
-  asks to be granted before it hands them on: answered by ``granted``), ``released`` (batch ids given back), ``credit`` (widen the
-  window), ``heartbeat`` (``hello_id``: the session's latest hello), ``bye``. A client message
-  is at most ``MAX_CLIENT_MSG`` bytes (the
-  welcome repeats it as ``max_hello_bytes``); a larger one up to twice that gets an ``error``.
-* server -> client: ``welcome`` (stream info: also ``shard``, ``corpus`` and ``recipe``
-  fingerprints), ``batch``, ``revoke`` (batch ids), ``granted`` (batch ids of a ``hold`` that are
-  the consumer's for good: the client hands a batch on only once granted; ``refused``: those no
-  longer the client's), ``heartbeat``, ``epoch_done`` (epoch;
-  ``batches`` per rank for a DDP group), ``drained`` (a bounded stream has nothing left for this
-  client unless a batch held elsewhere comes back), ``end``, ``shutdown``, ``error`` (``code``
-  ``dropped`` / ``unknown_client``: discard what you hold, say hello again (an ``unknown_client``
-  answering a heartbeat names its ``hello_id``); ``claimed``: another
-  live reader holds the consumer; ``fenced``: a newer connection of this reader took it over; ``resume``: the server can tell the resume state is false;
-  ``group``: the DDP group is read at another world size).
+* client -> server: ``plan_ask``; ``fetch`` (epoch, positions ``start``..``stop``, outputs,
+  compression, the plan identity it reads under). A client message is at most
+  ``MAX_CLIENT_MSG`` bytes.
+* server -> client: ``plan`` (identity, samples per epoch, stream info: also ``shard``,
+  ``corpus`` and ``recipe`` fingerprints), ``rows`` (ids, padding flags, params, one frame per
+  array for the rows holding a sample), ``refused`` (one line), ``error`` (to a client of an
+  older protocol, at its version, so that it reads the line).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error, the exception that stopped the pass as ``failure``); server -> worker: ``task``,
-  ``slot``, ``stop`` (typed and checked in ``worker_messages``).
+  ``slot``, ``stop``.
 
 Array forms: each array's dtype, shape and float conversion are in ``outputs.ARRAYS`` (one
-``ArraySpec`` per array; ``polarity_counts`` is served only to clients that ask). A tracked flow option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its
-values at the tracking grid's points, n per side (the welcome's ``flow_grid_points``, 0 for
-an option sending dense flow; ``ARRAY_OUTPUT``: it carries the output ``flow``; the
-dense field is bilinear between them with ``flow_grid_taps`` over the welcome's
-``crop_size``). Compression (optional): a hello may say ``"compression": "lz4" | "zstd"``
-(``codecs.COMPRESSIONS``; the server answers ``error`` code ``compression`` when it lacks the
-library); a batch array the workers compressed is then sent as one frame per sample, its spec
-carrying ``"codec"`` and ``"parts"`` (``[dtype, bytes]`` per sample; ``codecs.decode_batch_arrays``);
-other arrays of the same batch may still be plain. Workers get the codecs to make in each
-``task`` (``codecs``) and send the compressed frames after their array frames, listed in the
-sample header's ``packed``.
-
-Same-host hand-off (optional fields): a hello may say
-``"shm": true``; a server bound to ``ipc://`` then names its batch directory in the welcome
-(``info.shm_dir``, else null) and may send a batch with no array frames and
-``"shm": {"file": "b<N>", "gen": <generation>, "offsets": [<byte offset per array>]}`` next to
-the usual ``arrays`` specs: the arrays lie in that file of that directory (see
-``v2v_server.service.shm.BatchDir``; ``v2v_client.handoff`` reads and checks them). Batches that are not
-one buffer's rows, and every batch to other clients, still carry frames.
+``ArraySpec`` per array; ``polarity_counts`` is served only to clients that ask). A tracked flow
+option's flow travels as ``flow_grid`` float32 (B, L, 2, n, n), its values at the tracking
+grid's points, n per side (the stream info's ``flow_grid_points``, 0 for an option sending dense
+flow; ``ARRAY_OUTPUT``: it carries the output ``flow``; the dense field is bilinear between
+them with ``flow_grid_taps`` over the stream info's ``crop_size``). Compression (optional): a
+fetch may say ``"compression": "lz4" | "zstd"`` (``codecs.COMPRESSIONS``; refused in one line
+when the server lacks the library); an array the workers compressed is then sent as one frame
+per sample, its spec carrying ``"codec"`` and ``"parts"`` (``[dtype, bytes]`` per sample;
+``codecs.decode_batch_arrays``). Workers get the codecs to make in each ``task`` (``codecs``)
+and send the compressed frames after their array frames, listed in the sample header's
+``packed``.
 """
 from __future__ import annotations
 
 import math
-import re
 from typing import Dict, List, Sequence, Tuple
 
 import msgpack
@@ -73,9 +44,10 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-#: Version 10: a plan server's ``rows`` carry the arrays of the rows holding a sample only
-#: (``plan_messages.Rows``).
-PROTOCOL_VERSION = 10
+#: The wire protocol's version: 11 is delivery by plan only (``plan_messages``: ``plan_ask`` /
+#: ``plan``, ``fetch`` / ``rows`` / ``refused``); a peer of another version is refused in one line
+#: (:func:`version_problem`).
+PROTOCOL_VERSION = 11
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a
@@ -88,13 +60,6 @@ MAX_BATCH_BYTES = 1 << 31
 #: dtypes allowed on the wire.
 WIRE_DTYPES = ("int8", "int16", "int32", "uint8", "float16", "float32")
 
-#: Same-host hand-off (``v2v_server.service.shm.BatchDir`` writes, ``v2v_client.handoff`` reads):
-#: bytes at the start of a batch-buffer file before the first array (the generation, uint64 LE);
-BATCH_FILE_HEADER = 64
-#: names of batch-buffer files inside a server's batch directory (never anything a client chose);
-BATCH_FILE_RE = re.compile(r"b[0-9]{1,18}")
-#: names of the servers' private batch directories under /dev/shm: ``v2v-batches-<pid>-<random>``.
-BATCH_DIR_RE = re.compile(r"v2v-batches-([0-9]{1,10})-[A-Za-z0-9_]{1,32}")
 
 
 class ProtocolError(ValueError):
@@ -198,9 +163,21 @@ def unpack(frame, expect_version: int = PROTOCOL_VERSION, max_bytes: int = MAX_H
     h = bounded_unpackb(frame.buffer if hasattr(frame, "buffer") else frame, max_bytes)
     if not isinstance(h, dict) or not isinstance(h.get("type"), str):
         raise ProtocolError("header must be a map with a string 'type'")
-    if h.get("v") != expect_version:
-        raise ProtocolError(f"protocol version {h.get('v')!r}, expected {expect_version}")
+    problem = version_problem(h.get("v"), expect_version)
+    if problem:
+        raise ProtocolError(problem)
     return h
+
+
+def version_problem(version, expect_version: int = PROTOCOL_VERSION) -> str:
+    """Why a peer's message of protocol ``version`` is not read here (one line), or ``""``."""
+    if version == expect_version:
+        return ""
+    older = isinstance(version, int) and version < expect_version
+    return (f"protocol version {version!r:.20}, expected {expect_version}: the peer runs "
+            f"{'an older' if older else 'another'} v2v; install the same version on both sides"
+            + (" (delivery is by plan only now: a push server or V2VPushDataset is gone, docs/delivery.md)"
+               if older else ""))
 
 
 _TAPS: Dict[tuple, tuple] = {}
@@ -263,9 +240,6 @@ def encode_arrays(arrays: Dict[str, np.ndarray]) -> Tuple[List[dict], List[np.nd
     return specs, frames
 
 
-#: Most batches one client may hold in flight (its ``credits``): what a client may ask for and the
-#: ceiling of a server's ``max_credits`` (a typo like ``100000`` is an error, not an OOM).
-MAX_CREDITS = 1024
 
 
 def array_spec(spec) -> Tuple[str, np.dtype, List[int]]:

@@ -1,2 +1,2 @@
-"""The delivery state machines, pure and clocked from outside: what each epoch owes (scheduler),
-what each consumer holds (ledger), both with batching (core), and the acknowledgement journal."""
+"""Delivery by plan, pure and clocked from outside: what workers make ahead of the readers'
+fetches and what a fetch is answered with (``plan_feed``), and the delivery settings (``policy``)."""

@@ -4,7 +4,7 @@ A ``ServeConfig`` is built from defaults, then a YAML file (``--config``), then 
 flags; every value is validated once, when its part is built, and a bad one raises
 ``ValueError`` naming the field. The sample recipe's keys are owned by
 ``samples.recipe.SampleRecipe`` (defaults: the paper's WebVid recipe, Lou et al. 2025, Sec. 4),
-the delivery keys by ``delivery.core.DeliveryPolicy``, the object store's by
+the delivery keys by ``delivery.policy.DeliveryPolicy``, the object store's by
 ``sources.store.StoreSettings``, the rest by :class:`ServingSettings` here.
 """
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Optional, Tuple, Union
 
 from v2v_server.checks import check_bool, check_choice, check_float, check_int
-from v2v_server.delivery.core import DeliveryPolicy
+from v2v_server.delivery.policy import DeliveryPolicy, removed_problem
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.settings import documented, load_yaml, owners, reference_markdown, setting, split_keys
 from v2v_server.frames.host_caches import HostCaches
@@ -32,7 +32,6 @@ __all__ = ["SampleRecipe", "DeliveryPolicy", "ServingSettings", "ServeConfig", "
 
 #: Upper limits (a typo like ``workers: 2000`` is an error, not a fork bomb or an OOM).
 MAX_WORKERS = 256
-MAX_PREFETCH = 256
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".gif")
 
 
@@ -58,8 +57,8 @@ class ServingSettings:
     storage_options: dict = setting(help="options for the store's filesystem (s3fs, gcsfs, adlfs), e.g. "
                                          "{endpoint_url: ..., anon: true}; credentials otherwise come from the "
                                          "environment (AWS_*, AWS_ENDPOINT_URL included)", flag="", factory=dict)
-    cache_dir: Optional[str] = setting(None, help="folder of the store manifest when there is no state_dir, and "
-                                                  "of the object and frame caches (default $XDG_CACHE_HOME/v2v)")
+    cache_dir: Optional[str] = setting(None, help="folder of the store manifest, the plans' record, the corpus "
+                                                  "index, and the object and frame caches (default $XDG_CACHE_HOME/v2v)")
     frame_cache_gb: float = setting(0.0, help="GiB of decoded frames kept on this host's disk under cache_dir/frames, "
                                               "shared by every worker and server process of the host: each video is "
                                               "decoded once, later epochs cut their samples from the cache "
@@ -71,15 +70,7 @@ class ServingSettings:
                                                  "the first start")
     workers: int = setting(2, help="worker processes")
     bind: str = setting("tcp://127.0.0.1:5555", help="ZeroMQ endpoint to bind (port 0 = any free port)")
-    end_grace_s: float = setting(600.0, help="with epochs: seconds the server stays up after the last epoch with no "
-                                             "trainer connected, serving trainers that resume from an older "
-                                             "checkpoint (the epochs they have not finished reopen for them)")
-    state_dir: Optional[str] = setting(None, help="folder of the delivery journal: what each trainer acknowledged, "
-                                                  "so a restarted server repeats nothing for any of them "
-                                                  "(v2v_server/delivery/journal.py)")
     video_extensions: Tuple[str, ...] = setting(VIDEO_EXTENSIONS, help="file extensions served as videos", flag="")
-    heartbeat_s: float = setting(1.0, help="seconds between heartbeats to clients")
-    prefetch_batches: int = setting(2, help="batches assembled ahead of the clients' credits")
     curve_secret_key: Optional[str] = setting(None, help="CurveZMQ: the server's secret key file (v2v-keygen)")
     curve_allow: Optional[str] = setting(None, help="CurveZMQ: folder of allowed client public key files (*.key)")
     insecure: bool = setting(False, help="allow a non-loopback bind without CurveZMQ (not recommended)")
@@ -99,11 +90,6 @@ class ServingSettings:
         """Check the serving fields (``ValueError`` names the first bad one) and normalise them."""
         _set = object.__setattr__  # frozen: normalised once, here
         check_int("workers", self.workers, 1, MAX_WORKERS, "worker processes")
-        check_int("prefetch_batches", self.prefetch_batches, 1, MAX_PREFETCH, "batches assembled ahead")
-        _set(self, "heartbeat_s", check_float("heartbeat_s", self.heartbeat_s))
-        _set(self, "end_grace_s", check_float("end_grace_s", self.end_grace_s, positive=False))
-        if self.end_grace_s < 0:
-            raise ValueError(f"end_grace_s must be >= 0 seconds, got {self.end_grace_s!r}")
         if not isinstance(self.bind, str) or "://" not in self.bind:
             raise ValueError(f"bind must be a ZeroMQ endpoint like tcp://127.0.0.1:5555, got {self.bind!r}")
         if (self.curve_secret_key is None) != (self.curve_allow is None):
@@ -152,18 +138,6 @@ class ServingSettings:
                 import zstandard  # noqa: F401  (the zstd entries' codec; a decode host's [server] lacks it)
             except ImportError:
                 raise ValueError("frame_cache_format zstd needs the zstandard package: pip install 'v2v[wire]'") from None
-        if self.state_dir is not None:
-            if not isinstance(self.state_dir, str) or not self.state_dir:
-                raise ValueError(f"state_dir must be a folder path, got {self.state_dir!r}")
-
-
-#: Settings of push delivery that a server serving by plan has no use for, and why: given with
-#: ``delivery_mode: plan`` they are refused, never ignored.
-PUSH_ONLY = {
-    "state_dir": "a server serving by plan keeps no journal (a checkpoint is the trainer's position)",
-    "epochs": "a trainer reading a plan owns its epochs (ds.set_epoch)",
-    "revoke_s": "a server serving by plan grants no batches to revoke",
-}
 
 
 class ServeConfig:
@@ -173,8 +147,8 @@ class ServeConfig:
 
     * ``recipe``: :class:`~v2v_server.samples.recipe.SampleRecipe`, what decides a sample's
       content (it composes the frames stage's ``WindowSettings`` and ``DecodeSettings``);
-    * ``delivery``: :class:`~v2v_server.delivery.core.DeliveryPolicy`, batches, shuffling, leases
-      and epochs (its recipe-derived fields filled from ``recipe``);
+    * ``delivery``: :class:`~v2v_server.delivery.policy.DeliveryPolicy`, batches, the shuffle
+      buffer, the task timeout;
     * ``serving``: :class:`ServingSettings`, corpus, workers, transport, security, operations;
     * ``store``: :class:`~v2v_server.sources.store.StoreSettings`, how an object-store corpus is read.
 
@@ -185,7 +159,8 @@ class ServeConfig:
     (``python -m v2v_server.ops.config --markdown``).
 
     Raises:
-        ValueError: naming the key, for an unknown key or a bad value.
+        ValueError: naming the key, for an unknown key or a bad value; a key push delivery had
+            (``epochs``, ``state_dir``, ...) in one line saying what to do instead.
     """
 
     #: The parts, in the order docs/config.md lists them: (attribute, settings class).
@@ -194,18 +169,16 @@ class ServeConfig:
     __slots__ = tuple(name for name, _ in PARTS)
 
     def __init__(self, **keys):
+        for key, value in list(keys.items()):
+            if key == "delivery_mode" and value == "plan":  # what every server does
+                keys = {k: v for k, v in keys.items() if k != key}
+            elif removed_problem(key):
+                raise ValueError(removed_problem(key))
         given = split_keys(ServeConfig, keys)
         recipe = SampleRecipe(**given["recipe"])
-        delivery = DeliveryPolicy(**given["delivery"], offered=tuple(recipe.outputs),
-                                  crops_per_window=recipe.crops_per_window, seed=recipe.seed,
-                                  max_samples_per_video=recipe.max_samples_per_video)
-        for name, part in zip(self.__slots__, (recipe, delivery, ServingSettings(**given["serving"]),
-                                               StoreSettings(**given["store"]))):
+        for name, part in zip(self.__slots__, (recipe, DeliveryPolicy(**given["delivery"]),
+                                               ServingSettings(**given["serving"]), StoreSettings(**given["store"]))):
             object.__setattr__(self, name, part)
-        if delivery.delivery_mode == "plan":
-            for key, why in PUSH_ONLY.items():
-                if getattr(self, key) is not None:
-                    raise ValueError(f"{key} is push delivery's: {why} (drop it, or serve by push: --delivery push, delivery_mode: push)")
 
     def __getattr__(self, name: str):
         part = _OWNERS.get(name)
@@ -277,11 +250,11 @@ def source_from_config(cfg: ServeConfig, videos: Union[str, Path, None] = None) 
     """The source ``cfg`` (a ``ServeConfig``) describes (``source_spec.open_source``): ``videos``
     or ``cfg.videos``, its ``video_list`` read with the table's column and filter (and the rows
     too short for a window left unopened, the frames side's rule ``WindowSettings.short_of``),
-    ``storage_options``, store settings, and a store's objects kept as a manifest (in
-    ``state_dir``, else the cache folder)."""
+    ``storage_options``, store settings, and a store's objects kept as a manifest in the cache
+    folder."""
     table = TableSettings(cfg.video_list_column, cfg.video_list_filter, cfg.recipe.windows.short_of)
     return open_source(cfg.videos if videos is None else videos, storage_options=cfg.storage_options,
-                       video_list=cfg.video_list, table=table, keep_manifest=True, state_dir=cfg.state_dir, refresh_manifest=cfg.refresh_manifest,
+                       video_list=cfg.video_list, table=table, keep_manifest=True, refresh_manifest=cfg.refresh_manifest,
                        settings=cfg.store, cache_dir=cache_folder(cfg.cache_dir))
 
 

@@ -1,8 +1,8 @@
 """What a running server is doing, for Prometheus, probes and a terminal.
 
-``ServerMetrics`` is the one object ``server.py`` tells about events (a batch sent, a lease
-expired, a worker restarted, ...) and, once per loop turn, about its state (clients, queue,
-workers, epoch). It turns them into Prometheus metrics (``v2v_`` prefix, counters end in
+``ServerMetrics`` is the one object ``service.plan_server`` tells about events (rows sent, a
+worker restarted, ...) and, once per loop turn, about its state (fetches waiting, workers,
+samples made ahead). It turns them into Prometheus metrics (``v2v_`` prefix, counters end in
 ``_total``, units in the name) on its own registry, serves them with ``/healthz`` and
 ``/readyz`` over HTTP (``--metrics-port``), and draws a live progress line when stderr is a
 terminal. It never touches the server's own objects: everything arrives as plain numbers.
@@ -10,20 +10,15 @@ terminal. It never touches the server's own objects: everything arrives as plain
 Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
 
 * counters: ``v2v_samples_made_total``, ``v2v_samples_sent_total``, ``v2v_batches_sent_total``,
-  ``v2v_sent_bytes_total``, ``v2v_batches_resent_total``, ``v2v_leases_expired_total``,
+  ``v2v_sent_bytes_total``,
   ``v2v_workers_restarted_total``, ``v2v_files_skipped_total``, ``v2v_bad_messages_total``,
   ``v2v_worker_busy_seconds_total{stage}`` for stage in decode, simulate, flow, serialize,
   send (summed over workers; divided by wall time and workers it is each stage's busy
   fraction: ``rate(v2v_worker_busy_seconds_total[1m]) / v2v_workers``);
-* gauges: ``v2v_clients``, ``v2v_client_credits{client}`` and
-  ``v2v_client_inflight_batches{client}`` (client = connection id; no per-sample labels),
-  ``v2v_queue_batches`` (assembled, waiting for a credit), ``v2v_inflight_batches``,
-  ``v2v_workers`` (alive), ``v2v_workers_busy``, ``v2v_epoch`` (newest epoch being made),
-  ``v2v_epoch_videos`` and ``v2v_epoch_videos_done`` (its progress), ``v2v_shuffle_buffer_samples``
-  and ``v2v_shuffle_buffer_capacity_samples`` (made samples waiting in open batches, and how
-  many those batches hold: ``--shuffle-buffer`` rounded up to whole batches, per epoch being
-  batched),
-  ``v2v_ready``;
+* gauges: ``v2v_pending_fetches`` (fetches waiting for their rows), ``v2v_workers`` (alive),
+  ``v2v_workers_busy``, ``v2v_epoch_videos``, ``v2v_epoch_samples``,
+  ``v2v_shuffle_buffer_samples`` and ``v2v_shuffle_buffer_capacity_samples`` (samples made and
+  waiting for their fetch, and how many may wait), ``v2v_ready``;
 * the frame cache (docs/frame_cache.md): counters ``v2v_frame_cache_hits_total``,
   ``v2v_frame_cache_misses_total{cause}``, ``v2v_frame_cache_stored_total``,
   ``v2v_frame_cache_written_bytes_total``, ``v2v_frame_cache_not_stored_total{cause}``; gauges
@@ -66,9 +61,6 @@ log = logging.getLogger("v2v.metrics")
 FS_WHERE = {
     "frame_cache": "the frame-cache gauges keep their last values; workers serve by decoding while the folder "
                    "is unusable",
-    "journal": "serving goes on without the delivery journal until it can be written again (a restart "
-               "meanwhile may send acknowledged samples again, never lose one)",
-    "shm": "batches go as socket frames",
     "progress": "the progress line is off",
 }
 
@@ -91,8 +83,6 @@ class ServerMetrics:
         self.samples_sent = counter("v2v_samples_sent", "Samples sent to clients (re-sends included)")
         self.batches_sent = counter("v2v_batches_sent", "Batches sent to clients (re-sends included)")
         self.bytes_sent = counter("v2v_sent_bytes", "Array bytes sent to clients")
-        self.batches_resent = counter("v2v_batches_resent", "Batches put back in the queue to be sent again")
-        self.leases_expired = counter("v2v_leases_expired", "Batch leases that expired before an acknowledgement")
         self.workers_restarted = counter("v2v_workers_restarted", "Worker processes that died and were replaced")
         self.files_skipped = counter("v2v_files_skipped", "Video files skipped as unusable")
         self.bad_messages = counter("v2v_bad_messages", "Client messages rejected as malformed")
@@ -164,12 +154,6 @@ class ServerMetrics:
             self._progress = None
             self.on_fs_error("progress", "stderr", e)
 
-    def on_batch_resent(self) -> None:
-        self.batches_resent.inc()
-
-    def on_lease_expired(self) -> None:
-        self.leases_expired.inc()
-
     def on_worker_restarted(self) -> None:
         self.workers_restarted.inc()
 
@@ -200,7 +184,7 @@ class ServerMetrics:
     def totals(self) -> Dict[str, int]:
         """The counters' current values by short name (``batches_sent``, ``samples_made``, ...):
         what the server's closing log line reports, read from the one place they are kept."""
-        names = ("samples_made", "samples_sent", "batches_sent", "batches_resent", "leases_expired",
+        names = ("samples_made", "samples_sent", "batches_sent",
                  "workers_restarted", "files_skipped", "bad_messages", "tasks_timed_out")
         return {n: int(self.registry.get_sample_value(f"v2v_{n}_total") or 0) for n in names}
 
@@ -248,10 +232,9 @@ class ServerMetrics:
             self.set_state(**state_fn())
 
     def set_state(self, **state) -> None:
-        """The server's state after a loop turn: ``clients`` {client id: (credits, in-flight
-        batches)}, ``queue_batches``, ``inflight_batches``, ``workers``, ``workers_busy``,
-        ``epoch``, ``epoch_videos``, ``epoch_videos_done``, ``shuffle_samples`` and
-        ``shuffle_capacity`` (the shuffle buffer's fill, samples), and ``ready`` (socket bound,
+        """The server's state after a loop turn: ``pending_fetches``, ``workers``, ``workers_busy``,
+        ``epoch_videos``, ``shuffle_samples`` and ``shuffle_capacity`` (samples made ahead and
+        how many may wait), and ``ready`` (socket bound,
         corpus scanned, a worker up). Also the liveness tick for ``/healthz``."""
         now = time.monotonic()
         with self._lock:
@@ -457,32 +440,15 @@ class _StateCollector:
 
     def collect(self):
         st = self.m.snapshot()
-        clients: Dict[str, tuple] = st.get("clients", {})
-        g = GaugeMetricFamily("v2v_clients", "Connected clients")
-        g.add_metric([], len(clients))
-        yield g
-        credits = GaugeMetricFamily("v2v_client_credits", "Credits a client has granted and not used", labels=["client"])
-        inflight = GaugeMetricFamily("v2v_client_inflight_batches", "Batches sent to a client and not acknowledged",
-                                     labels=["client"])
-        for cid, (c, n) in sorted(clients.items()):
-            credits.add_metric([cid], c)
-            inflight.add_metric([cid], n)
-        yield credits
-        yield inflight
         for name, key, doc in (
-            ("v2v_queue_batches", "queue_batches", "Assembled batches waiting for a client credit"),
-            ("v2v_inflight_batches", "inflight_batches", "Batches sent and not acknowledged"),
+            ("v2v_pending_fetches", "pending_fetches", "Fetches waiting for their rows"),
             ("v2v_workers", "workers", "Worker processes alive"),
             ("v2v_workers_busy", "workers_busy", "Workers making samples of a video"),
-            ("v2v_epoch", "epoch", "Newest epoch being made (-1 before the first)"),
-            ("v2v_epoch_videos", "epoch_videos", "Videos of the newest epoch"),
-            ("v2v_epoch_videos_done", "epoch_videos_done", "Videos of the newest epoch fully made"),
+            ("v2v_epoch_videos", "epoch_videos", "Videos of an epoch"),
             ("v2v_epoch_samples", "epoch_samples", "Samples one epoch holds, as the corpus index knew at start "
              "(0: not every video known)"),
-            ("v2v_shuffle_buffer_samples", "shuffle_samples", "Made samples waiting in open batches (shuffle buffer)"),
-            ("v2v_shuffle_buffer_capacity_samples", "shuffle_capacity",
-             "Samples the open batches hold when full (shuffle_buffer rounded up to whole batches, per epoch "
-             "being batched)"),
+            ("v2v_shuffle_buffer_samples", "shuffle_samples", "Samples made and waiting for their fetch"),
+            ("v2v_shuffle_buffer_capacity_samples", "shuffle_capacity", "Samples that may wait for their fetch"),
             ("v2v_frame_cache_bytes", "frame_cache_bytes", "Bytes of complete entries in this host's frame cache"),
             ("v2v_frame_cache_entries", "frame_cache_entries", "Entries (videos) in this host's frame cache"),
             ("v2v_frame_cache_budget_bytes", "frame_cache_budget", "The frame cache's budget (frame_cache_gb), bytes"),
@@ -496,7 +462,7 @@ class _StateCollector:
 
 
 class _Progress:
-    """One live line on a terminal (tqdm): epoch, samples/s, MB/s, clients, workers busy."""
+    """One live line on a terminal (tqdm): samples/s, MB/s, fetches waiting, workers busy."""
 
     def __init__(self):
         from tqdm import tqdm
@@ -527,8 +493,8 @@ class _Progress:
             return
         mbs = (self.nbytes - self._last_bytes) / 1e6 / (now - self._last)  # over the last second or so
         self._last, self._last_bytes = now, self.nbytes
-        self.line = (f"{self.per_epoch}epoch {st.get('epoch', -1)} ({st.get('epoch_videos_done', 0)}/{st.get('epoch_videos', 0)} "
-                     f"videos), {mbs:.1f} MB/s, {len(st.get('clients', {}))} client(s), workers busy "
+        self.line = (f"{self.per_epoch}{st.get('epoch_videos', 0)} videos, {mbs:.1f} MB/s, "
+                     f"{st.get('pending_fetches', 0)} fetch(es) waiting, workers busy "
                      f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}, shuffle buffer "
                      f"{st.get('shuffle_samples', 0)}/{st.get('shuffle_capacity', 0)}")
         if st.get("frame_cache_budget"):

@@ -11,7 +11,6 @@ from v2v_server.ops.config import ServeConfig, load_config
 from v2v_server.ops.startup import SAMPLE_VIDEOS, start_source
 from v2v_server.ops.plan_start import plan_manifest
 from v2v_server.service.plan_server import PlanServer
-from v2v_server.service.server import V2VServer
 from v2v_server.sources.errors import StoreError
 
 __all__ = ["SAMPLE_VIDEOS", "StoreError", "local_server"]  # what the demo names: the bundled clips, a corpus not there
@@ -22,7 +21,7 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
                  config: Optional[ServeConfig] = None) -> Iterator[str]:
     """Serve ``videos`` (default: ``config.videos``, else the bundled clips) from a thread of this
     process; yields the bound endpoint (``tcp://127.0.0.1:<free port>``) and always stops the
-    server and its workers. With ``delivery_mode: plan`` it is a ``PlanServer`` (docs/plan.md). ``config``: the other keys (default: every key's default); the
+    server and its workers (a ``PlanServer``). ``config``: the other keys (default: every key's default); the
     corpus is opened, checked, listed and sharded (``shard``), and the videos the host's corpus
     index knows to give no window left out, by the start-up path ``v2v-serve`` runs
     (``ops.startup.start_source``), so both serve the same samples.
@@ -37,11 +36,7 @@ def local_server(videos: Optional[str], workers: int, batch_size: int, ready_tim
     keys = {"workers": workers, "batch_size": batch_size, "bind": "tcp://127.0.0.1:*"}
     cfg = load_config(None, {**(config.to_dict() if config is not None else {}), **keys})
     start = start_source(cfg, videos)  # a folder or an object-store URL; the shard of cfg.shard
-    if cfg.delivery.delivery_mode == "plan":
-        server = PlanServer(start.config, start.source, start.caches, plan_manifest(start), start.corpus, start.skipped)
-    else:
-        server = V2VServer(start.config, start.source, start.caches, start.served, corpus=start.corpus,
-                           epoch_samples=start.epoch_samples, skipped=start.skipped)
+    server = PlanServer(start.config, start.source, start.caches, plan_manifest(start), start.corpus, start.skipped)
     ready, failure = threading.Event(), []
 
     def run() -> None:

@@ -1,17 +1,19 @@
-"""The server loop when serving by plan (``v2v-serve``'s default delivery, docs/plan.md): stateless
-compute over the worker pool.
+"""The server loop (``v2v-serve``, docs/delivery.md): stateless compute over the worker pool.
 
-Topology as ``server.V2VServer``'s: workers (DEALER) on the backend ROUTER, clients (DEALER) on the
-frontend ROUTER. The decisions are ``delivery.plan_feed.PlanFeed``'s (pure); this loop moves
-bytes: client messages (``v2v_wire.plan_messages``: ``plan_ask``, ``fetch``) in, ``plan`` /
-``rows`` / ``refused`` out; worker messages through ``worker_side.WorkerSide``, as the push
-server reads them. Workers are read whatever the clients do, so their task clock counts only
+Topology::
+
+    workers (DEALER) --ipc--> [backend ROUTER]  server loop  [frontend ROUTER] <--tcp-- readers (DEALER)
+
+The decisions are ``delivery.plan_feed.PlanFeed``'s (pure); this loop moves bytes: client
+messages (``v2v_wire.plan_messages``: ``plan_ask``, ``fetch``) in, ``plan`` / ``rows`` /
+``refused`` out; worker messages through ``worker_side.WorkerSide``. Workers are read whatever the clients do, so their task clock counts only
 their own silence. The server keeps no record of any client: a fetch names its rows, and a
 server restarted or another one serving the same manifest and recipe answers it alike.
 """
 from __future__ import annotations
 
 import logging
+import signal
 import threading
 import time
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -24,7 +26,6 @@ from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.ops.plan_record import plan_changes
-from v2v_server.service.assembly import SamplePayload
 from v2v_server.service.pool import WorkerPool
 from v2v_server.service.sockets import ServerSockets
 from v2v_server.service.worker import worker_config
@@ -32,11 +33,10 @@ from v2v_server.service.worker_side import WorkerSide
 from v2v_server.sources.source import VideoSource
 from v2v_wire.batches import encode_batch, frame_size, stack_arrays
 from v2v_wire.codecs import COMPRESSIONS, available
-from v2v_wire.messages import BadPeers, WireError
 from v2v_wire.outputs import narrowest, spec_of
 from v2v_wire.plan import Manifest, PlanIdentity
-from v2v_wire.plan_messages import PlanAsk, PlanInfo, PushClientMessage, Refused, Rows, decode_plan_client
-from v2v_wire.stream_messages import ServerError
+from v2v_wire.plan_messages import (BadPeers, OldClient, PlanAsk, PlanInfo, Refused, Rows, WireError, decode_plan_client,
+                                     old_client_answer)
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, encode_arrays, output_of, pack
 
 log = logging.getLogger("v2v.server")
@@ -47,22 +47,13 @@ HEDGE_S = 10.0
 CODEC_KEEP_S = 120.0
 
 
-class OwnedRows:
-    """Where ``assembly.sample_from_slot`` copies a worker's slot: each sample into arrays of
-    its own (a plan's samples wait for their fetch in any order, so they share no batch
-    buffer). The one copy of the shared-memory path."""
-
-    def place(self, sample_id: str, meta: dict, arrays: Dict[str, np.ndarray], lane: int = 0) -> SamplePayload:
-        return SamplePayload(sample_id, meta, {k: np.array(v) for k, v in arrays.items()})
-
-
 class PlanServer:
     """Serve the plan of ``manifest`` from the videos of ``source``.
 
     Args:
         cfg: validated ``ServeConfig`` (its recipe, seed, shuffle buffer, workers, bind,
             task timeout).
-        source, caches: the corpus and the host's caches, as ``V2VServer`` takes them.
+        source, caches: the corpus (``sources.source.VideoSource``) and the host's caches.
         manifest: the videos served, with the slots the corpus index knows
             (``ops.plan_start.plan_manifest``); the others' are learned from their decodes.
         corpus: the fingerprint of the whole listing before sharding
@@ -78,7 +69,7 @@ class PlanServer:
                  corpus: Optional[str] = None, skipped: Optional[Dict[str, Tuple[str, str]]] = None):
         self.cfg, self.source, self.caches, self.manifest, self.corpus = cfg, source, caches, manifest, corpus
         d = cfg.delivery
-        # made ahead: the push server's shuffle buffer of samples; kept once fetched: a batch, for
+        # made ahead: a shuffle buffer of samples; kept once fetched: a batch, for
         # a fetch asked again after a lost reply
         self.feed = PlanFeed(manifest, cfg.seed, d.shuffle_buffer, cfg.outputs, lookahead=d.shuffle_buffer,
                              keep_samples=d.batch_size, hedge_s=min(HEDGE_S, d.task_timeout_s),
@@ -100,7 +91,7 @@ class PlanServer:
     def stream_info(self) -> dict:
         """The recipe's shapes and outputs, as a client needs them to read rows; the shard served
         (``"I/N"``, None for the whole corpus), the listing's and the recipe's fingerprints, which a
-        reader of several shards checks (``v2v_client.fanin.check_servers``); ``feed``, what a
+        reader of several shards checks (``v2v_client.endpoints.check_servers``); ``feed``, what a
         trainer needs to say what would feed it (``trainer.feed_report``): the workers, the frame
         cache's GiB, the samples made so far and the workers' busy seconds per stage."""
         c = self.cfg
@@ -123,7 +114,7 @@ class PlanServer:
             self.bound_endpoint = self.sockets.bind(self.cfg)
             corpus = {"source": self.source.spec(), "caches": self.caches.spec()}
             pool = WorkerPool(worker_config(self.cfg), corpus, self.sockets.backend_endpoint, self.cfg.workers)
-            self.workers.attach(self.sockets.backend, pool, OwnedRows())
+            self.workers.attach(self.sockets.backend, pool)
             pool.start()
             for video, (cause, why) in sorted(self.skipped.items()):  # known to give no window: named as if read
                 self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)", cause=cause)
@@ -183,9 +174,10 @@ class PlanServer:
             return
         try:
             msg = decode_plan_client(frame, MAX_CLIENT_MSG)
-        except PushClientMessage:  # told in the push protocol's words, which that client reads
-            self._send(ident, ServerError("this server serves by plan (v2v-serve's default delivery): read it with "
-                                          "v2v_client.V2VStreamDataset").to_wire())
+        except OldClient as e:  # told at its own version, which that client reads
+            self._send(ident, old_client_answer(e))
+            if self.bad.strike(ident, now)[0]:
+                log.warning("client %s: %s", ident.hex()[:12], e)
             return
         except WireError as e:
             self.metrics.on_bad_message()
@@ -273,9 +265,8 @@ class PlanServer:
 
     def _metrics_state(self) -> dict:
         alive = [w for w in self.workers.pool.workers.values() if w.proc.is_alive()] if self.workers.pool else []
-        return {"clients": {}, "queue_batches": len(self.feed.pending), "inflight_batches": 0,
-                "workers": len(alive), "workers_busy": sum(1 for w in alive if not w.idle), "epoch": 0,
-                "epoch_videos": len(self.manifest.slots), "epoch_videos_done": 0,
+        return {"pending_fetches": len(self.feed.pending), "workers": len(alive),
+                "workers_busy": sum(1 for w in alive if not w.idle), "epoch_videos": len(self.manifest.slots),
                 "shuffle_samples": len(self.feed.store), "shuffle_capacity": self.feed.keep_samples,
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
 
@@ -294,3 +285,20 @@ def _wire_zeros(output: str, rows: int, c: ServeConfig) -> np.ndarray:
     dtypes of the zeros it makes."""
     shape, dtype = _wire_row(output, c)
     return np.zeros((rows, *shape), dtype)
+
+
+def install_signal_handlers(server: PlanServer) -> List[int]:
+    """SIGINT/SIGTERM stop the server cleanly (finish the loop, stop workers, close sockets).
+    Returns the list the signal that stopped it is appended to (``v2v-serve`` then exits with
+    128 + its number, as a shell reports a process a signal ended)."""
+    stopped_by: List[int] = []
+
+    def handler(signum, _frame):
+        if not stopped_by:
+            log.info("%s: shutting down", signal.Signals(signum).name)
+        stopped_by.append(signum)
+        server.stop()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stopped_by

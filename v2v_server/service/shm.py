@@ -1,18 +1,13 @@
-"""Shared memory of the server's data path: the workers' slot rings, the batch directory and the
-sweep of what dead servers left.
+"""Shared memory of the server's data path: the workers' slot rings and the sweep of what dead
+servers left.
 
 * **Slot rings** (:class:`SlotRing`): each worker writes a sample's arrays into a free slot of
   its own ring (a file in ``/dev/shm`` that the pool creates and the worker unlinks as soon as
   it has mapped it) and sends only the header with the slot number; the relay copies the slot
   out (``assembly.sample_from_slot``) and gives it back at once, so a ring of a few slots
-  suffices however long samples wait for their batch.
-* **The batch directory** (:class:`BatchDir`, ``/dev/shm/v2v-batches-<pid>-*``): a server
-  bound to ``ipc://`` keeps its batch buffers in files there, so a same-host client can map a
-  batch instead of receiving it (``assembly.BatchPayload.shm_ref``, ``v2v_client.handoff``).
-  Each file starts with a 64-byte header holding the buffer's generation (uint64,
-  little-endian), bumped whenever an idle buffer is refilled.
-* **The sweep** (:func:`remove_stale_shm`): a live server holds an ``flock`` on its ring files
-  and its directory's lock file; what nobody holds was left by a server that died, and the
+  suffices however long samples wait for their fetch.
+* **The sweep** (:func:`remove_stale_shm`): a live server holds an ``flock`` on its ring files;
+  what nobody holds was left by a server that died, and the
   next server's start removes it.
 """
 from __future__ import annotations
@@ -22,17 +17,15 @@ import logging
 import math
 import mmap
 import os
-import shutil
 import stat
 import tempfile
-import time
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from v2v_server.faults import cause_of, warn_once
 from v2v_wire.outputs import max_sample_bytes
-from v2v_wire.protocol import BATCH_DIR_RE, ProtocolError, array_spec
+from v2v_wire.protocol import ProtocolError, array_spec
 
 log = logging.getLogger("v2v.datapath")
 
@@ -243,12 +236,6 @@ def _reserve(fd: int, nbytes: int) -> None:
         os.ftruncate(fd, nbytes)
 
 
-#: Name of the lock file a live server holds (``flock``) in its batch directory.
-LOCK_FILE = ".lock"
-#: A batch directory without its lock file is a server's that is starting for this long at most.
-STARTING_S = 60.0
-
-
 def _unlocked(path: str) -> bool:
     """True when nobody holds an ``flock`` on ``path`` (we could take it): what a server that
     died leaves. Locks are held on the file, not by a pid, so this holds across PID namespaces
@@ -268,8 +255,7 @@ def _unlocked(path: str) -> bool:
 
 def remove_stale_shm(root: Optional[str]) -> List[str]:
     """Remove what servers that died without cleaning up (SIGKILL, power loss, killed while
-    starting) left under ``root``: batch directories whose lock file nobody holds, and slot-ring
-    files nobody holds. Never a live server's (it holds its locks), never a symlink or someone
+    starting) left under ``root``: slot-ring files nobody holds. Never a live server's (it holds its locks), never a symlink or someone
     else's file. Returns the paths removed."""
     gone: List[str] = []
     try:
@@ -285,12 +271,8 @@ def remove_stale_shm(root: Optional[str]) -> List[str]:
             continue
         if st.st_uid != uid or stat.S_ISLNK(st.st_mode):
             continue
-        lock = os.path.join(path, LOCK_FILE)
         try:
-            if BATCH_DIR_RE.fullmatch(name) and stat.S_ISDIR(st.st_mode) and (
-                    _unlocked(lock) if os.path.exists(lock) else time.time() - st.st_mtime > STARTING_S):
-                shutil.rmtree(path, ignore_errors=True)
-            elif name.startswith("v2v-slots-") and stat.S_ISREG(st.st_mode) and _unlocked(path):
+            if name.startswith("v2v-slots-") and stat.S_ISREG(st.st_mode) and _unlocked(path):
                 _unlink(path)
             else:
                 continue
@@ -303,64 +285,5 @@ def remove_stale_shm(root: Optional[str]) -> List[str]:
     return gone
 
 
-class BatchDir:
-    """A server's private directory (mode 0700) of batch-buffer files in shared memory.
-
-    :meth:`create` removes dead servers' directories first; :meth:`remove` (called by the
-    server's shutdown, also after a crash of its loop) deletes it with every file. Files are
-    named ``b<N>`` with ``N`` counting up, so a name is never reused within one directory.
-    """
-
-    def __init__(self, path: str):
-        self.path = path
-        self._next = 0
-        # held while the server lives: the next server's start tells a live directory by it
-        self._lock = os.open(os.path.join(path, LOCK_FILE), os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o600)
-        fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-
-    @classmethod
-    def create(cls, root: Optional[str] = None) -> Optional["BatchDir"]:
-        """A fresh directory under ``root`` (default: ``$V2V_SHM_DIR``, else ``SHM_DIR``), or
-        None where shared memory is unavailable or switched off (``V2V_SHM_DIR=""``)."""
-        if root is None:
-            root = shm_root()
-        if not root or not os.path.isdir(root):
-            return None
-        remove_stale_shm(root)
-        try:
-            return cls(tempfile.mkdtemp(prefix=f"v2v-batches-{os.getpid()}-", dir=root))
-        except OSError as e:
-            log.warning("no shared-memory batch directory in %s (%s): batches go as socket frames", root, e)
-            return None
-
-    def new_file(self, nbytes: int) -> Tuple[str, mmap.mmap]:
-        """A new file of ``nbytes`` (pages reserved now, so a full tmpfs fails here with OSError
-        rather than with SIGBUS on a later write), mapped read-write."""
-        name = f"b{self._next}"
-        self._next += 1
-        path = os.path.join(self.path, name)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o600)
-        try:
-            _reserve(fd, nbytes)
-            # MAP_POPULATE: the pages are mapped now, not by one fault per 4 KiB at the first fill
-            mm = mmap.mmap(fd, nbytes, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))
-        except BaseException:
-            _unlink(path)
-            raise
-        finally:
-            os.close(fd)
-        return name, mm
-
-    def unlink(self, name: str) -> None:
-        _unlink(os.path.join(self.path, name))
-
-    def remove(self) -> None:
-        """Delete the directory and its files (mappings stay valid while viewed)."""
-        shutil.rmtree(self.path, ignore_errors=True)
-        if self._lock is not None:
-            os.close(self._lock)
-            self._lock = None
-
-
-__all__ = ["BatchDir", "SlotRing", "create_ring", "remove_stale_shm", "shm_bytes", "slot_bytes", "slot_layout",
+__all__ = ["SlotRing", "create_ring", "remove_stale_shm", "shm_bytes", "slot_bytes", "slot_layout",
            "RING_SLOTS", "SHM_DIR", "SLOT_ALIGN"]

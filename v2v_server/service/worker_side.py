@@ -2,9 +2,9 @@
 
 ``WorkerSide`` reads the messages of the backend socket (``ready``, ``sample``, ``done``: typed and
 checked at the edge, ``v2v_wire.worker_messages``), asks
-the delivery core (``delivery.core.DeliveryCore``) what each means, gives slots back, hands idle
+the plan's feed (``delivery.plan_feed.PlanFeed``) what each means, gives slots back, hands idle
 workers their tasks, and logs once per (file, reason) why a file, or the rest of it, is skipped
-this epoch. It decides nothing itself: the core does; it owns no process: the pool does.
+this epoch. It decides nothing itself: the feed does; it owns no process: the pool does.
 """
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from typing import Dict, List, Optional
 
 import zmq
 
-from v2v_server.delivery.core import DeliveryCore
+from v2v_server.delivery.plan_feed import PlanFeed
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
-from v2v_server.service.assembly import BatchAssembler, sample_from_slot, sample_from_worker
+from v2v_server.service.assembly import sample_from_slot, sample_from_worker
 from v2v_server.service.pool import WorkerPool
 from v2v_server.sources.source import VideoSource
 from v2v_wire.protocol import ProtocolError, pack, unpack
@@ -32,24 +32,22 @@ class WorkerSide:
     Args:
         cfg: the server's ``ServeConfig``.
         source: the corpus's ``sources.source.VideoSource`` (where a video lives, for log lines).
-        core: the delivery core the reports go to.
+        core: the plan's feed the reports go to.
         metrics: counters of samples, restarts, timeouts and skipped files.
 
-    ``attach(backend, pool, assembler)`` once the socket is bound and the pool started
-    (``assembler``: where samples that arrive in shared-memory slots are copied).
+    ``attach(backend, pool)`` once the socket is bound and the pool started.
     """
 
-    def __init__(self, cfg: ServeConfig, source: VideoSource, core: DeliveryCore, metrics: ServerMetrics):
+    def __init__(self, cfg: ServeConfig, source: VideoSource, core: PlanFeed, metrics: ServerMetrics):
         self.cfg, self.source, self.core, self.metrics = cfg, source, core, metrics
-        self.assembler: Optional[BatchAssembler] = None
         self.backend: Optional[zmq.Socket] = None
         self.pool: Optional[WorkerPool] = None
         self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
         self.logged_failures: set = set()
         self.seen = False  # some worker said ready (/readyz)
 
-    def attach(self, backend: zmq.Socket, pool: WorkerPool, assembler: BatchAssembler) -> None:
-        self.backend, self.pool, self.assembler = backend, pool, assembler
+    def attach(self, backend: zmq.Socket, pool: WorkerPool) -> None:
+        self.backend, self.pool = backend, pool
 
     def stop(self) -> None:
         """Ask every worker to stop (then the pool terminates what is left)."""
@@ -112,7 +110,7 @@ class WorkerSide:
         elif isinstance(msg, Sample):
             cpw = self.cfg.crops_per_window
             if msg.slot is not None and w.ring is not None:  # arrays in the worker's shared memory
-                build = lambda lane: sample_from_slot(msg, w.ring, self.assembler, frames[2:], lane, cpw)  # noqa: E731
+                build = lambda lane: sample_from_slot(msg, w.ring, frames[2:], cpw)  # noqa: E731
             else:
                 build = lambda lane: sample_from_worker(msg, frames[2:], cpw)  # noqa: E731
             try:

@@ -55,22 +55,19 @@ def listed_from_line(values: Sequence) -> Tuple[str, ListedObject]:
     return str(key), ListedObject(size, str(tag), member)
 
 
-def manifest_path(url: str, state_dir: Optional[str] = None, cache_dir: Optional[str] = None) -> Path:
-    """Where the manifest of the corpus at ``url`` is kept: ``STATE_DIR/manifest-H.jsonl`` when
-    the server has a ``state_dir`` (it then travels with the delivery journal), else
-    ``CACHE_DIR/manifests/H.jsonl`` with ``cache_dir`` the resolved cache folder
+def manifest_path(url: str, cache_dir: Optional[str] = None) -> Path:
+    """Where the manifest of the corpus at ``url`` is kept: ``CACHE_DIR/manifests/H.jsonl`` with
+    ``cache_dir`` the resolved cache folder
     (:func:`cache_folder`, applied by the caller); H is a hash of the URL. Shards on one host
     share it; shards on other hosts list the store once each and, the store unchanged, write
     the same manifest.
 
     Raises:
-        ValueError: neither ``state_dir`` nor ``cache_dir`` is given.
+        ValueError: no ``cache_dir`` is given.
     """
     h = hashlib.sha256(url.encode("utf-8")).hexdigest()[:16]
-    if state_dir:
-        return Path(state_dir) / f"manifest-{h}.jsonl"
     if not cache_dir:
-        raise ValueError(f"the manifest of {url} needs a state_dir or a resolved cache folder")
+        raise ValueError(f"the manifest of {url} needs a resolved cache folder")
     return Path(cache_dir) / "manifests" / f"{h}.jsonl"
 
 

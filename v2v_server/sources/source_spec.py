@@ -27,7 +27,7 @@ from v2v_server.sources.video_tables import TableSettings
 
 def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dict] = None,
                 video_list: Optional[str] = None, table: TableSettings = TableSettings(),
-                manifest: Optional[str] = None, keep_manifest: bool = False, state_dir: Optional[str] = None,
+                manifest: Optional[str] = None, keep_manifest: bool = False,
                 refresh_manifest: bool = False, settings: StoreSettings = StoreSettings(),
                 names: Optional[List[str]] = None, cache_dir: Optional[str] = None) -> VideoSource:
     """The source of a corpus given as a folder, a URL, or a brace pattern / path of tar shards
@@ -39,15 +39,15 @@ def open_source(videos: Union[str, Path, None], *, storage_options: Optional[dic
         settings: how a store is read (ignored for a folder).
         manifest: the file that keeps a store's listing (a process rebuilding another's
             source gets it in the spec); None: with ``keep_manifest``, the one kept for this
-            listing where the host keeps them (``state_dir``, else the cache folder:
-            ``manifest.manifest_path`` of ``store.manifest_key``), else none.
+            listing in the cache folder (``manifest.manifest_path`` of ``store.manifest_key``),
+            else none.
     """
     cache_dir = cache_folder(cache_dir)
     if names is None:
         videos, names = split_pattern(str(videos))
     if is_url(str(videos)):
         if manifest is None and keep_manifest:
-            manifest = str(manifest_path(manifest_key(str(videos), bool(names), video_list), state_dir, cache_dir))
+            manifest = str(manifest_path(manifest_key(str(videos), bool(names), video_list), cache_dir))
         return StoreSource(str(videos), storage_options=storage_options, video_list=video_list, manifest=manifest,
                            refresh_manifest=refresh_manifest, settings=settings, names=names, cache_dir=cache_dir,
                            table=table)
