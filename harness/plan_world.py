@@ -1,5 +1,4 @@
-"""A seeded world driving serving by plan's decisions (``delivery.plan_feed.PlanFeed``), as
-``harness.delivery_sim`` drives push's: time is ticks, every choice comes from ``random.Random(seed)``,
+"""A seeded world driving serving by plan's decisions (``delivery.plan_feed.PlanFeed``): time is ticks, every choice comes from ``random.Random(seed)``,
 so a seed replays exactly.
 
 What the world does to the feed:

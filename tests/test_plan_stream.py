@@ -288,7 +288,7 @@ def test_lightning_ddp_reads_the_plan_with_the_dataset_built_before_fit(server, 
     out = tmp_path / "out"
     out.mkdir()
     # its own session: Lightning starts rank 1 as rank 0's child, so a hang is killed whole, with what it said
-    proc = subprocess.Popen([sys.executable, "-m", "harness.lightning_ddp", server, str(out), "--plan"],
+    proc = subprocess.Popen([sys.executable, "-m", "harness.lightning_ddp", server, str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         _, err = proc.communicate(timeout=200)
