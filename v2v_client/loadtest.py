@@ -17,9 +17,9 @@ from .read_ahead import ReadAhead
 
 
 def _stream(endpoint, outputs, credits: Optional[int], timeout_s: float):
-    """``open_stream``'s pass, with ``credits`` (push only) refused at a plan server."""
-    stream = open_stream(endpoint, outputs=outputs, timeout_s=timeout_s, credits=4 if credits is None else credits)
-    if credits is not None and isinstance(stream, PlanEpochs):
+    """``open_stream``'s pass; ``credits`` (push delivery's) is refused once the server answered."""
+    stream = open_stream(endpoint, outputs=outputs, timeout_s=timeout_s)
+    if credits is not None:
         raise ValueError(f"--credits: {endpoint} serves by plan, which has no credits (drop it)")
     return stream
 
