@@ -10,7 +10,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from v2v_server.delivery.batcher import video_order as batcher_order
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import (PLAN_VERSION, EpochPlan, Manifest, NotKnownYet, PlanIdentity, PlanMismatch, Position,
                            distinct_videos, video_order)
@@ -105,15 +104,20 @@ def test_epochs_and_seeds_give_other_orders_and_batches_mix_many_videos():
     assert a.keys(0, 50) != b.keys(0, 50) and a.keys(0, 50) != c.keys(0, 50)
     # short clips, the WebVid case: a buffer of 64 samples spans ~32 videos
     assert distinct_videos(a, 12) > 9
-    # the push server's measured shape (docs/shuffle.md: 200 videos of 10 windows, 6.5 there)
+    # longer clips (docs/shuffle.md's shape: 200 videos of 10 windows)
     ten = Manifest.of({f"v/{i:03d}.mp4": 10 for i in range(200)})
     assert distinct_videos(EpochPlan(ten, 0, 0), 12) > 8
     assert distinct_videos(EpochPlan(ten, 0, 0, shuffle_buffer=1), 12) < 3
 
 
-def test_the_plans_video_order_is_the_servers():
+def test_the_plans_video_order_is_a_hash_of_seed_epoch_and_path():
+    """Every host draws the same order, and a shard's order is the corpus order restricted to it:
+    each video's place is its BLAKE2b-64 of ``"{seed}/{epoch}/{path}"`` alone."""
     videos = [f"v{i:02d}.mp4" for i in range(30)]
-    assert batcher_order(videos, 4, 2) == video_order(videos, 4, 2)
+    by_hash = sorted(videos, key=lambda v: hashlib.blake2b(f"4/2/{v}".encode(), digest_size=8).digest())
+    assert video_order(videos, 4, 2) == by_hash != videos
+    assert video_order(videos[::3], 4, 2) == [v for v in by_hash if v in videos[::3]]
+    assert video_order(videos, 4, 3) != by_hash and video_order(videos, 5, 2) != by_hash
     plan = EpochPlan(Manifest.of({v: 1 for v in videos}), 4, 2, shuffle_buffer=1)
     assert plan.videos == video_order(videos, 4, 2)
 
@@ -281,8 +285,7 @@ def test_the_shards_identity_names_their_manifests_and_refuses_other_recipes():
 
 
 def test_the_plan_message_carries_what_changed_since_earlier_manifests():
-    from v2v_wire.messages import WireError
-    from v2v_wire.plan_messages import PlanInfo
+    from v2v_wire.plan_messages import PlanInfo, WireError
 
     ident = PlanIdentity("m2", "r", 0, changes={"m1": "1 file(s) changed: b.mp4"})
     back = PlanInfo.from_wire(PlanInfo(ident, None, {}).to_wire())
