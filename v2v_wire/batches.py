@@ -18,8 +18,9 @@ from v2v_wire.protocol import encode_arrays, output_of
 
 
 def frame_size(frame) -> int:
-    """Bytes of a frame: a ``zmq.Frame`` (its ``buffer``) or any bytes-like object."""
-    return len(frame.buffer) if hasattr(frame, "buffer") else len(frame)
+    """Bytes of a frame: a ``zmq.Frame`` (its ``buffer``) or any bytes-like object (a numpy array
+    counts its bytes, not its first axis)."""
+    return len(frame.buffer) if hasattr(frame, "buffer") else memoryview(frame).nbytes
 
 
 def stack_arrays(parts: Sequence[np.ndarray]) -> np.ndarray:
