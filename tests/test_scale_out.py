@@ -1,4 +1,4 @@
-"""Beyond one host: --shard, fan-in over several servers, metrics. Real servers on 127.0.0.1
+"""Beyond one host: --shard, one plan read over several servers, metrics. Real servers on 127.0.0.1
 on the real clips; every test is bounded in time and stops what it starts."""
 from __future__ import annotations
 
@@ -18,14 +18,15 @@ import urllib.request
 import pytest
 import torch
 
-from v2v_client import V2VPushDataset
-from v2v_client.fanin import expand_dns, resolve_endpoints, split_endpoints
+from v2v_client import V2VStreamDataset
+from v2v_client.endpoints import expand_dns, resolve_endpoints, split_endpoints
+from v2v_wire.plan import PlanMismatch
 from v2v_server.ops.config import ServeConfig, parse_shard
 from v2v_server.frames.check import check_corpus
 from v2v_server.ops.startup import select_shard, shard_of
 from v2v_server.sources.local import LocalSource
 from v2v_server.ops.logs import JsonFormatter
-from harness.serve import ServeProcess, free_port
+from harness.serve import ServeProcess, free_port, served_samples
 from v2v_server.sources.folder_scan import scan_corpus
 
 L, CROP, WINDOWS, BATCH = 4, 64, 2, 2
@@ -54,11 +55,14 @@ def expected_ids(root):
 
 
 def read_all(ds, limit_s=120.0):
-    """{sample id: (voxels, frames)} and the ids in delivery order, for one whole stream."""
+    """{sample id: (voxels, frames)} and the ids in the plan's order, for one rank's epoch (padding
+    rows left out)."""
     got, order = {}, []
     t0 = time.monotonic()
     for b in ds:
         for i, sid in enumerate(b["sample_ids"]):
+            if b["padding"][i]:
+                continue
             order.append(sid)
             got[sid] = (b["voxels"][i].clone(), b["frames"][i].clone())
         assert time.monotonic() - t0 < limit_s
@@ -139,35 +143,43 @@ def test_endpoint_lists_and_dns_names_with_several_addresses():
 
 
 # ---------------------------------------------------------------------------------- shards -> one trainer
-def test_two_shards_one_trainer_every_id_once_with_the_content_of_one_unsharded_server(tmp_path, videos):
+def raw_epoch(ds, limit_s=180.0):
+    """{sample id: {output: bytes}} of one rank's epoch (padding rows left out), and the ids in order."""
+    got, order = {}, []
+    t0 = time.monotonic()
+    for b in ds:
+        for i, sid in enumerate(b["sample_ids"]):
+            if not b["padding"][i]:
+                order.append(sid)
+                got[sid] = {k: b[k][i].numpy().tobytes() for k in OUTPUTS}
+        assert time.monotonic() - t0 < limit_s
+    return got, order
+
+
+def test_each_shard_serves_its_own_files_and_the_pair_the_bytes_of_one_unsharded_server(tmp_path, videos):
+    """Each shard alone serves exactly the ids of its files (``shard_of``); read together, every id
+    of the corpus once, each with the wire bytes one unsharded server gives it."""
     root = corpus(tmp_path, videos)
     want = expected_ids(root)
     assert {s.split("#")[0] for s in want} == {p.name for p in root.glob("*.mp4")}  # every clip gives windows
-    base = ["--videos", str(root), "--epochs", "1", *layout()]
-    with ServeProcess(base) as one:
-        single, _ = read_all(V2VPushDataset(one.endpoint, outputs=OUTPUTS, timeout_s=60))
-        assert one.wait(30) == 0
-    with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
-        ds = V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=OUTPUTS, credits=4, timeout_s=60)
-        sharded, order = read_all(ds)
-        assert a.wait(30) == 0 and b.wait(30) == 0
+    base = ["--videos", str(root), *layout()]
+    single = {sid: {k: a.tobytes() for k, a in arrays.items()} for sid, arrays in served_samples(base, OUTPUTS)}
     assert sorted(single) == want
+    with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
+        for i, srv in enumerate((a, b)):
+            alone, _ = raw_epoch(V2VStreamDataset(srv.endpoint, outputs=OUTPUTS, raw=True, timeout_s=60))
+            assert sorted(alone) == [s for s in want if shard_of(s.split("#")[0], 2) == i]
+        sharded, order = raw_epoch(V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=OUTPUTS, raw=True,
+                                                    timeout_s=60))
     assert sorted(order) == want  # every id of the epoch exactly once, nothing from elsewhere
-    for sid in want:  # the same id carries the same voxels and frames whichever topology served it
-        assert torch.equal(single[sid][0], sharded[sid][0]) and torch.equal(single[sid][1], sharded[sid][1]), sid
-    # each shard served its own videos only
-    m = ds.metrics()
-    per = m["per_endpoint"]
-    assert set(per) == {a.endpoint, b.endpoint}
-    assert per[a.endpoint]["samples"] == sum(1 for s in want if shard_of(s.split("#")[0], 2) == 0)
-    assert m["samples_received"] == len(want) and m["batches_received"] == sum(v["batches"] for v in per.values())
-    assert 0 < m["wait_seconds"] <= m["seconds"] + 1e-6
-    assert ds.state_dict()["completed_epoch"] == 0 and ds.state_dict()["delivered"] == {}
+    for sid in want:  # the same id carries the same bytes whichever topology served it
+        assert sharded[sid] == single[sid], sid
 
 
-def test_loadtest_reads_several_servers_and_reports_each_rate(videos):
-    """24 batches (a shard's epoch is 2): a shard whose worker starts seconds late on a loaded
-    machine still serves some of them (with 6, the other shard served all in a loaded suite)."""
+def test_loadtest_reads_several_servers_as_one_plan_epoch_after_epoch(videos):
+    """``v2v-loadtest`` given two shards reads their interleaved plan as a trainer does: 24
+    batches run through several epochs, each holding every id of the corpus."""
+    want = expected_ids(videos)
     base = ["--videos", str(videos), *layout()]
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
         out = subprocess.run([sys.executable, "-m", "v2v_client.loadtest", "--connect", a.endpoint, "--connect",
@@ -175,82 +187,80 @@ def test_loadtest_reads_several_servers_and_reports_each_rate(videos):
                              capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr
     r = json.loads(out.stdout.strip().splitlines()[-1])
-    per = r["per_server"]
-    assert set(per) == {a.endpoint, b.endpoint}  # both shards served the trainer
-    assert sum(v["batches"] for v in per.values()) == r["batches"] == 24
-    assert abs(sum(v["samples_per_s"] for v in per.values()) - r["samples_per_s"]) < 1e-6 * max(1.0, r["samples_per_s"])
-    report = out.stdout.splitlines()[:-1]  # the text report, one line per server after the total
-    assert any(ln.strip().startswith(a.endpoint) for ln in report) and any(ln.strip().startswith(b.endpoint)
-                                                                           for ln in report)
+    assert r["batches"] == 24 and not r["ended_early"]
+    # unique: (epoch, id) pairs, none twice; 8 samples an epoch, 2 a batch: the epochs between the
+    # first (its first batch the unmeasured warmup) and the last are whole
+    assert r["unique_samples"] == r["samples"] and len(r["epochs_seen"]) >= 3
+    assert len(want) * (len(r["epochs_seen"]) - 2) < r["unique_samples"] <= len(want) * len(r["epochs_seen"])
+    assert r["samples"] <= 24 * BATCH and r["samples_per_s"] > 0
+
+
+def _kill(proc):
+    proc.proc.send_signal(signal.SIGKILL)
+    proc.proc.wait(10)
 
 
 def test_a_shard_killed_and_restarted_mid_epoch_loses_and_doubles_nothing(tmp_path, videos):
+    """The reader asks again what goes unanswered (``retry_s``): a shard SIGKILLed mid-epoch and
+    started again on its address costs nothing but time."""
     root = corpus(tmp_path, videos, copies=2)
     want = expected_ids(root)
-    base = ["--videos", str(root), "--epochs", "1", *layout()]
-    victim_files = select_shard([p.as_posix() for p in scan_corpus(root, (".mp4",))[0]], 1, 2)
-    assert len(victim_files) >= 2
+    base = ["--videos", str(root), *layout()]
     a = ServeProcess(base + ["--shard", "0/2"]).start()
     b = ServeProcess(base + ["--shard", "1/2"]).start()
     b2 = None
     order = []
     try:
-        ds = V2VPushDataset([a.endpoint, b.endpoint], outputs=OUTPUTS, credits=2, timeout_s=2.0,
-                              reconnect=True, reconnect_timeout_s=60)
+        ds = V2VStreamDataset([a.endpoint, b.endpoint], outputs=OUTPUTS, prefetch=1, retry_s=2.0, timeout_s=120)
         it = iter(ds)
-        from_b = 0
-        for batch in it:
-            order.extend(batch["sample_ids"])
-            from_b += batch["endpoint"] == b.endpoint
-            if from_b == 1:
+        for step, batch in enumerate(it):
+            order += [s for s, p in zip(batch["sample_ids"], batch["padding"].tolist()) if not p]
+            if step == 1:  # a step of each shard read (interleaved: step t is shard t mod 2's)
                 break
-        b.proc.send_signal(signal.SIGKILL)  # mid-epoch: shard 1 has more to serve
-        b.proc.wait(10)
+        _kill(b)  # mid-epoch: shard 1 has more to serve
         b2 = ServeProcess(base + ["--shard", "1/2", "--bind", b.endpoint]).start()
         t0 = time.monotonic()
         for batch in it:
-            order.extend(batch["sample_ids"])
-            assert time.monotonic() - t0 < 120
-        it.close()
-        assert a.wait(30) == 0 and b2.wait(30) == 0
+            order += [s for s, p in zip(batch["sample_ids"], batch["padding"].tolist()) if not p]
+            assert time.monotonic() - t0 < 180
     finally:
-        a.stop()
-        b.stop()
-        if b2 is not None:
-            b2.stop()
+        for p in (a, b, b2):
+            if p is not None:
+                p.stop()
     dup = [s for s, n in collections.Counter(order).items() if n > 1]
     assert not dup and sorted(order) == want, (dup, sorted(set(want) - set(order)))
 
 
-def test_fanin_state_dict_resumes_every_shard_after_a_trainer_and_server_restart(tmp_path, videos):
+def test_an_older_position_resumes_every_shard_after_a_trainer_and_server_restart(tmp_path, videos):
+    """A position kept at step 2, the trainer reads on to step 5 and dies with both servers; fresh
+    servers know nothing, and the step-2 position reads the rest of the epoch: nothing lost, and
+    what came after the checkpoint is read again, in the same order."""
     root = corpus(tmp_path, videos, copies=2)
     want = expected_ids(root)
-    base = ["--videos", str(root), "--epochs", "1", *layout()]
+    base = ["--videos", str(root), *layout()]
     shards = [ServeProcess(base + ["--shard", f"{i}/2"]).start() for i in range(2)]
     eps = [s.endpoint for s in shards]
-    order = []
+    trained, later = [], []
     try:
-        ds = V2VPushDataset(eps, outputs=OUTPUTS, credits=2, timeout_s=60)
-        it = iter(ds)
-        for batch in it:
-            order.extend(batch["sample_ids"])
-            if len(order) >= len(want) // 2:
-                break
-        state = json.loads(json.dumps(ds.state_dict()))  # a checkpoint, as a trainer stores it
+        it = iter(V2VStreamDataset(eps, outputs=OUTPUTS, timeout_s=60))
+        for step in range(5):
+            batch = next(it)
+            rows = [s for s, p in zip(batch["sample_ids"], batch["padding"].tolist()) if not p]
+            (trained if step < 2 else later).extend(rows)
+            if step == 1:
+                ckpt = json.loads(json.dumps(batch["position"]))  # a checkpoint, as a trainer stores it
         it.close()
-        assert sorted(sum(state["delivered"].values(), [])) == sorted(order)
-        for s in shards:  # both hosts go down; fresh servers know nothing
-            s.proc.send_signal(signal.SIGKILL)
-            s.proc.wait(10)
+        for s in shards:  # both hosts go down
+            _kill(s)
         shards = [ServeProcess(base + ["--shard", f"{i}/2", "--bind", eps[i]]).start() for i in range(2)]
-        ds2 = V2VPushDataset(eps, outputs=OUTPUTS, credits=2, timeout_s=60)
-        ds2.load_state_dict(state)
-        _, rest = read_all(ds2)
-        order.extend(rest)
+        again = V2VStreamDataset(eps, outputs=OUTPUTS, timeout_s=60)
+        again.load_state_dict(ckpt)
+        _, rest = raw_epoch(again)
     finally:
         for s in shards:
             s.stop()
-    assert sorted(order) == want and len(order) == len(set(order))
+    assert rest[:len(later)] == later
+    assert sorted(trained + rest) == want and len(trained + rest) == len(set(trained + rest))
 
 
 # ---------------------------------------------------------------------------------- DDP
@@ -260,11 +270,7 @@ def _ranks(endpoint, world):
     out = [None] * world
 
     def run(r):
-        ds = V2VPushDataset(endpoint, outputs=OUTPUTS, timeout_s=60, rank=r, world_size=world)
-        batches = []
-        for b in ds:
-            batches.append(b)
-        out[r] = batches
+        out[r] = list(V2VStreamDataset(endpoint, outputs=OUTPUTS, timeout_s=60, rank=r, world_size=world))
 
     ts = [threading.Thread(target=run, args=(r,)) for r in range(world)]
     for t in ts:
@@ -280,9 +286,8 @@ def _check_ranks(per_rank, want, single):
     real = []
     for batches in per_rank:
         for b in batches:
-            pad = b.get("padding", torch.zeros(len(b["sample_ids"]), dtype=torch.bool))
             for i, sid in enumerate(b["sample_ids"]):
-                if not pad[i]:
+                if not b["padding"][i]:
                     real.append(sid)
                     assert torch.equal(b["voxels"][i], single[sid][0]), sid
     assert sorted(real) == want  # every id exactly once across ranks
@@ -292,9 +297,9 @@ def _check_ranks(per_rank, want, single):
 def test_servers_feed_two_ranks_each_id_once_equal_batch_counts(tmp_path, videos, shards):
     root = corpus(tmp_path, videos)
     want = expected_ids(root)
-    base = ["--videos", str(root), "--epochs", "1", *layout()]
+    base = ["--videos", str(root), *layout()]
     with ServeProcess(base) as one:
-        single, _ = read_all(V2VPushDataset(one.endpoint, outputs=OUTPUTS, timeout_s=60))
+        single, _ = read_all(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=60))
     procs = [ServeProcess(base + (["--shard", f"{i}/{shards}"] if shards > 1 else [])).start() for i in range(shards)]
     try:
         per_rank = _ranks(",".join(p.endpoint for p in procs), 2)
@@ -337,8 +342,7 @@ def test_metrics_probes_and_counters_move(videos):
         m0 = _scrape(port)
         assert m0[("v2v_samples_sent_total", ())] == 0 and m0[("v2v_ready", ())] == 1
         assert m0[("v2v_workers", ())] == 2
-        ds = V2VPushDataset(srv.endpoint, outputs=OUTPUTS, credits=2, timeout_s=60)
-        it = iter(ds)
+        it = iter(V2VStreamDataset(srv.endpoint, outputs=OUTPUTS, timeout_s=60))
         got = [next(it) for _ in range(3)]
         want = sum(len(b["sample_ids"]) for b in got)
         deadline = time.monotonic() + 10  # the page is rendered at most once a second (EXPOSITION_S)
@@ -352,28 +356,23 @@ def test_metrics_probes_and_counters_move(videos):
     for stage in ("decode", "simulate", "serialize", "send"):
         assert m1[("v2v_worker_busy_seconds_total", (("stage", stage),))] > 0, stage
     assert m1[("v2v_worker_busy_seconds_total", (("stage", "flow"),))] == 0  # nobody asked for flow
-    assert m1[("v2v_clients", ())] == 1
-    credits = [v for (n, lab), v in m1.items() if n == "v2v_client_credits"]
-    assert len(credits) == 1 and 0 <= credits[0] <= 2
-    assert m1[("v2v_epoch", ())] >= 0 and m1[("v2v_epoch_videos", ())] == len(list(videos.glob("*.mp4")))
-    cap = m1[("v2v_shuffle_buffer_capacity_samples", ())]  # --shuffle-buffer 64, whole batches
-    assert cap >= 64 and 0 <= m1[("v2v_shuffle_buffer_samples", ())] <= cap
+    assert m1[("v2v_epoch_videos", ())] == len(list(videos.glob("*.mp4"))) and m1[("v2v_pending_fetches", ())] >= 0
+    assert m1[("v2v_shuffle_buffer_capacity_samples", ())] >= 1 and m1[("v2v_shuffle_buffer_samples", ())] >= 0
 
 
-def test_progress_line_shows_epoch_rate_clients_and_workers(capsys):
+def test_progress_line_shows_videos_rate_fetches_and_workers(capsys):
     from v2v_server.ops.metrics import ServerMetrics
 
     m = ServerMetrics(progress=True)
-    state = dict(epoch=2, epoch_videos=3, epoch_videos_done=1, clients={"ab": (1, 2), "cd": (0, 4)}, workers=4,
-                 workers_busy=3, shuffle_samples=5, shuffle_capacity=48)
+    state = dict(epoch_videos=3, pending_fetches=2, workers=4, workers_busy=3, shuffle_samples=5, shuffle_capacity=48)
     m._progress._last -= 2.0  # two seconds ago
     m.on_batch_sent(4, 3_000_000)
     m.set_state(**state)
     try:
         assert m._progress.bar.n == 4
         line = m._progress.line
-        assert line.startswith("epoch 2 (1/3 videos), 1.") and line.endswith(
-            "MB/s, 2 client(s), workers busy 3/4, shuffle buffer 5/48")
+        assert line.startswith("3 videos, 1.") and line.endswith(
+            "MB/s, 2 fetch(es) waiting, workers busy 3/4, shuffle buffer 5/48")
     finally:
         m.close()
     assert ServerMetrics(progress=False)._progress is None
@@ -384,80 +383,24 @@ def test_progress_line_shows_epoch_rate_clients_and_workers(capsys):
         m._progress._last -= 2.0
         m.on_batch_sent(4, 1000)
         m.set_state(**state)
-        assert m._progress.bar.total == 30 and m._progress.line.startswith("10 samples/epoch, epoch 2 (1/3 videos)")
+        assert m._progress.bar.total == 30 and m._progress.line.startswith("10 samples/epoch, 3 videos")
         assert "4/30 samples" in str(m._progress.bar)
     finally:
         m.close()
 
 
-def test_trainer_metrics_as_prometheus(videos):
-    pytest.importorskip("prometheus_client")
-    from prometheus_client import CollectorRegistry
-    from prometheus_client.parser import text_string_to_metric_families
-
-    from v2v_client.metrics import serve_trainer_metrics
-
-    port = free_port()
-    with ServeProcess(["--videos", str(videos), *layout()]) as srv:
-        ds = V2VPushDataset(srv.endpoint, outputs=OUTPUTS, timeout_s=60)
-        server, _thread = serve_trainer_metrics(ds, port, registry=CollectorRegistry())
-        try:
-            it = iter(ds)
-            next(it), next(it)
-            it.close()
-            text = _get(port, "/metrics")[1]
-        finally:
-            server.shutdown()
-    vals = {(s.name, tuple(s.labels.values())): s.value
-            for f in text_string_to_metric_families(text) for s in f.samples}
-    assert vals[("v2v_trainer_batches_received_total", (srv.endpoint,))] == 2
-    assert vals[("v2v_trainer_wait_seconds_total", ())] > 0
-
-
 # ---------------------------------------------------------------------------------- identity and resume
-def test_two_shards_fan_in_resumed_from_an_older_checkpoint_is_exactly_once(tmp_path, videos):
-    """Checkpoint at step 2, read on to step 5 (acknowledged), then the trainer dies and resumes
-    from the step-2 checkpoint: the fan-in is the same consumer to both servers, so each sends
-    again what came after the checkpoint."""
-    root = corpus(tmp_path, videos, copies=2)
-    want = expected_ids(root)
-    base = ["--videos", str(root), "--epochs", "1", "--end-grace-s", "5", *layout()]
-    trained = []
-    with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
-        ds = V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), credits=2, timeout_s=60)
-        it = iter(ds)
-        for step in range(5):
-            batch = next(it)
-            if step < 2:
-                trained += batch["sample_ids"]
-            if step == 1:
-                ckpt = json.loads(json.dumps(ds.state_dict()))
-        it.close()  # the crash (its acks are sent: the servers saw steps 3-5 delivered)
-        again = V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), credits=2, timeout_s=60)
-        again.load_state_dict(ckpt)
-        for batch in again:
-            trained += batch["sample_ids"]
-        assert a.wait(30) == 0 and b.wait(30) == 0
-    assert sorted(trained) == want
-
-
 @pytest.mark.parametrize("shards,why", [(("0/2", "1/3"), "different numbers of shards"),
-                                        (("0/2", "0/2"), "served twice"),
                                         (("0/3", "1/3"), "served by none")])
-def test_a_fan_in_refuses_servers_that_are_not_one_sharding(tmp_path, videos, shards, why):
-    from v2v_client import StreamError
-
+def test_servers_that_are_not_one_sharding_are_refused_naming_both(tmp_path, videos, shards, why):
     base = ["--videos", str(videos), *layout()]
     with ServeProcess(base + ["--shard", shards[0]]) as a, ServeProcess(base + ["--shard", shards[1]]) as b:
-        ds = V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60)
-        with pytest.raises((ValueError, StreamError), match=why) as e:
-            next(iter(ds))
+        with pytest.raises(ValueError, match=why) as e:
+            V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60).plan_info()
         assert a.endpoint in str(e.value) and b.endpoint in str(e.value)
 
 
-def test_corpus_listings_that_differ_and_a_resume_under_another_recipe_are_refused(tmp_path, videos):
-    from v2v_client import StreamError
-
+def test_corpus_listings_that_differ_and_a_position_under_another_recipe_are_refused(tmp_path, videos):
     root = corpus(tmp_path, videos)
     other = tmp_path / "other"
     shutil.copytree(root, other)
@@ -465,14 +408,12 @@ def test_corpus_listings_that_differ_and_a_resume_under_another_recipe_are_refus
     with ServeProcess(["--videos", str(root), "--shard", "0/2", *layout()]) as a, \
             ServeProcess(["--videos", str(other), "--shard", "1/2", *layout()]) as b:
         with pytest.raises(ValueError, match="different corpus listings"):
-            next(iter(V2VPushDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60)))
+            V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=("voxels",), timeout_s=60).plan_info()
     with ServeProcess(["--videos", str(root), "--seed", "1", *layout()]) as s1:
-        ds = V2VPushDataset(s1.endpoint, outputs=("voxels",), timeout_s=60)
-        next(iter(ds))
-        state = ds.state_dict()
-    for change in (["--seed", "2"], ["--crops-per-window", "2"]):
-        with ServeProcess(["--videos", str(root), "--seed", "1", *layout(), *change]) as s2:
-            ds2 = V2VPushDataset(s2.endpoint, outputs=("voxels",), timeout_s=60)
-            ds2.load_state_dict(state)
-            with pytest.raises(StreamError, match="another sample recipe"):
-                next(iter(ds2))
+        position = next(iter(V2VStreamDataset(s1.endpoint, outputs=("voxels",), timeout_s=60)))["position"]
+    with ServeProcess(["--videos", str(root), "--seed", "1", *layout(), "--crops-per-window", "2"]) as s2:
+        ds = V2VStreamDataset(s2.endpoint, outputs=("voxels",), timeout_s=60)
+        ds.load_state_dict(position)
+        with pytest.raises(PlanMismatch, match="recipe") as e:
+            next(iter(ds))
+        assert "\n" not in str(e.value)
