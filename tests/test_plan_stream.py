@@ -141,15 +141,6 @@ def test_a_position_of_another_plan_is_refused_in_one_line(server):
     assert "\n" not in str(err.value) and "seed 99 (this plan: 0)" in str(err.value)
 
 
-@pytest.mark.parametrize("key, value", [("state_dir", "state"), ("epochs", 2), ("revoke_s", 5.0)])
-def test_push_only_settings_given_with_a_plan_are_refused_naming_them(key, value):
-    from v2v_server.ops.config import ServeConfig
-    for plan in ({}, {"delivery_mode": "plan"}):  # plan is the default
-        with pytest.raises(ValueError, match=rf"^config: {key} is push delivery's: .*--delivery push, delivery_mode: push\)$"):
-            ServeConfig.from_dict({**plan, key: value})
-    assert getattr(ServeConfig.from_dict({"delivery_mode": "push", key: value}), key) == value  # push takes it
-
-
 def test_a_corpus_never_scanned_unfolds_as_it_decodes_and_a_server_started_again_reads_its_index(tmp_path):
     """No pass before the first batch: the server learns each video's windows from its first
     decode, so ``len`` is unknown (TypeError, as for a dataset without one) until the epoch is
@@ -173,14 +164,6 @@ def test_a_corpus_never_scanned_unfolds_as_it_decodes_and_a_server_started_again
         ds = V2VStreamDataset(endpoint, 3)
         assert len(ds) == -(-SAMPLES // 3)
         assert read(ds)[0] == first
-
-
-def test_a_push_streams_resume_state_is_refused_in_one_line():
-    from v2v_client import V2VPushDataset
-    push_state = V2VPushDataset("tcp://127.0.0.1:1").state_dict()  # no server is asked
-    with pytest.raises(PlanMismatch) as err:
-        V2VStreamDataset("tcp://127.0.0.1:1", 4).load_state_dict(push_state)
-    assert "\n" not in str(err.value) and "push stream's resume state" in str(err.value)
 
 
 def test_a_server_killed_mid_epoch_costs_only_the_fetches_in_flight(tmp_path):
@@ -303,21 +286,6 @@ def test_lightning_ddp_reads_the_plan_with_the_dataset_built_before_fit(server, 
     assert len(seen) == len(set(seen)) == SAMPLES
 
 
-def test_a_reader_of_the_other_delivery_is_told_which_reader_to_use_at_once(server):
-    """A push client (``V2VPushDataset``) at a server serving by plan, and a plan client at a
-    push server: one line naming the reader to use, at the first answer, not a timeout."""
-    from v2v_client import V2VPushDataset
-    from v2v_client import PushServerError
-    from v2v_client.session import StreamError
-
-    with pytest.raises(StreamError, match="serves by plan .*V2VStreamDataset"):
-        next(iter(V2VPushDataset(server, timeout_s=60)))
-    config = load_config(None, {"sequence_length": 8, "delivery_mode": "push"})
-    with local_server(None, workers=1, batch_size=4, config=config) as push:
-        with pytest.raises(PushServerError, match="delivering by push .*V2VPushDataset"):
-            next(iter(V2VStreamDataset(push, 4, timeout_s=60)))
-
-
 def test_a_check_first_lets_a_server_serving_by_plan_know_the_epoch_at_start(tmp_path):
     """``v2v-serve --check`` fills the corpus index: a server serving by plan started after it
     knows every video's windows, so ``len`` answers before any decode."""
@@ -328,15 +296,6 @@ def test_a_check_first_lets_a_server_serving_by_plan_know_the_epoch_at_start(tmp
     with local_server(None, workers=1, batch_size=4, config=cfg) as endpoint:
         assert len(V2VStreamDataset(endpoint, 5)) == -(-SAMPLES // 5)
 
-
-
-def test_push_settings_are_refused_in_one_line():
-    """What only push delivery reads (credits, shared memory, reconnection) is refused by
-    ``V2VStreamDataset`` at construction, naming it, never ignored."""
-    with pytest.raises(ValueError, match=r"^credits, shm: push delivery's setting\(s\), .*V2VPushDataset\)$"):
-        V2VStreamDataset("tcp://127.0.0.1:5555", credits=4, shm=True)
-    with pytest.raises(TypeError, match="unexpected keyword argument 'credit'"):
-        V2VStreamDataset("tcp://127.0.0.1:5555", credit=4)
 
 
 def test_a_dataset_is_truthy_without_asking_the_server():
