@@ -62,10 +62,10 @@ def test_docs_config_md_is_the_generated_reference():
 
 def test_yaml_floats_and_errors_name_the_file(tmp_path):
     f = tmp_path / "a.yaml"
-    f.write_text("lease_s: 1e2\nkeep_top_fraction: 5e-1\n")
-    assert load_yaml(f) == {"lease_s": 100.0, "keep_top_fraction": 0.5}
+    f.write_text("task_timeout_s: 1e2\nkeep_top_fraction: 5e-1\n")
+    assert load_yaml(f) == {"task_timeout_s": 100.0, "keep_top_fraction": 0.5}
     cfg = load_config(str(f))
-    assert cfg.lease_s == 100.0 and cfg.keep_top_fraction == 0.5
+    assert cfg.task_timeout_s == 100.0 and cfg.keep_top_fraction == 0.5
     f.write_text("[1, 2]\n")
     with pytest.raises(ValueError, match="a.yaml: top level must be a mapping"):
         load_yaml(f)
@@ -106,7 +106,7 @@ def test_trainer_config_is_declared_once_and_its_reference_is_current():
 
     assert set(TASK_SECTIONS) == set(TASKS) == set(DEFAULTS)
     cfg = default_config("e2vid")
-    assert cfg["optim"]["lr"] == 1e-4 and cfg["loss"]["tc_alpha"] == 50.0 and cfg["stream"]["credits"] == 4
+    assert cfg["optim"]["lr"] == 1e-4 and cfg["loss"]["tc_alpha"] == 50.0 and cfg["stream"]["timeout_s"] == 60.0
     assert apply_overrides(cfg, ["optim.lr=3e-4"])["optim"]["lr"] == 3e-4  # YAML 1.2 float from the flag
     for bad, field in (("optim.lr=fast", "optim.lr"), ("log.progress=2", "log.progress"), ("amp=fp16", "amp")):
         with pytest.raises(ValueError, match=field):
@@ -122,13 +122,13 @@ def test_workers_get_the_recipe_only():
 
     from v2v_server.service.worker import worker_config
 
-    cfg = load_config(None, {"seed": 7, "workers": 3, "crops_per_window": 2, "lease_s": 5.0, "shot_cuts": "off",
+    cfg = load_config(None, {"seed": 7, "workers": 3, "crops_per_window": 2, "task_timeout_s": 5.0, "shot_cuts": "off",
                              "log_format": "json"})
     w = pickle.loads(pickle.dumps(worker_config(cfg)))  # as the spawned process receives it
     assert [f.name for f in dataclasses.fields(w)] == ["recipe", "log_format"] and w.log_format == "json"
     r = w.recipe
     assert type(r) is SampleRecipe and r == cfg.recipe and r.seed == 7 and r.crops_per_window == 2
-    assert r.shot_cuts == r.windows.shot_cuts == "off" and not hasattr(r, "workers") and not hasattr(r, "lease_s")
+    assert r.shot_cuts == r.windows.shot_cuts == "off" and not hasattr(r, "workers") and not hasattr(r, "task_timeout_s")
 
 
 def test_each_recipe_key_is_declared_once():
@@ -165,15 +165,20 @@ def test_unknown_keys_anywhere_name_the_file_the_section_and_the_allowed_keys(tm
         assert "\n" not in str(e.value)
 
 
-def test_one_outputs_check_for_the_config_the_dataset_and_the_hello():
-    from v2v_client.dataset import V2VPushDataset
-    from v2v_wire.messages import WireError, parse_client
-    from v2v_wire.protocol import OUTPUTS, PROTOCOL_VERSION, check_outputs
+def test_one_outputs_check_for_the_config_the_dataset_and_the_fetch():
+    from v2v_client import V2VStreamDataset
+    from v2v_wire.plan import PlanIdentity
+    from v2v_wire.plan_messages import Fetch, WireError
+    from v2v_wire.protocol import OUTPUTS, check_outputs
+
+    def fetch(outputs):
+        return Fetch.from_wire({**Fetch(1, 0, 0, 2, ("voxels",), PlanIdentity("m", "r", 0)).to_wire(),
+                                "outputs": outputs})
 
     assert check_outputs("flow, voxels") == check_outputs(["flow", "voxels", "flow"]) == ("voxels", "flow")
     assert load_config(None, {"outputs": "frames,voxels"}).outputs == ("voxels", "frames")
-    assert V2VPushDataset("tcp://127.0.0.1:1", outputs=["flow", "frames"]).outputs == ("frames", "flow")
-    assert parse_client({"type": "hello", "v": PROTOCOL_VERSION, "outputs": ["flow"], "credits": 1}, 8).outputs == ("flow",)
+    assert V2VStreamDataset("tcp://127.0.0.1:1", outputs=["flow", "frames"]).outputs == ("frames", "flow")
+    assert fetch(["flow", "frames"]).outputs == ("frames", "flow")
     allowed = str(list(OUTPUTS)).replace("[", r"\[").replace("]", r"\]")
     for bad in ([], ["voxel"], ["voxels", 3], None):
         with pytest.raises(ValueError, match=f"^outputs must be a non-empty list from {allowed}"):
@@ -181,6 +186,6 @@ def test_one_outputs_check_for_the_config_the_dataset_and_the_hello():
         with pytest.raises(ValueError, match=f"^command line: outputs must be a non-empty list from {allowed}"):
             load_config(None, {"outputs": bad if bad is not None else []})
         with pytest.raises(ValueError, match=f"^outputs must be a non-empty list from {allowed}"):
-            V2VPushDataset("tcp://127.0.0.1:1", outputs=bad)
-        with pytest.raises(WireError, match=f"^field 'outputs' must be a non-empty list from {allowed}"):
-            parse_client({"type": "hello", "v": PROTOCOL_VERSION, "outputs": bad, "credits": 1}, 8)
+            V2VStreamDataset("tcp://127.0.0.1:1", outputs=bad)
+        with pytest.raises(WireError, match=f"^fetch: field 'outputs' must be a non-empty list from {allowed}"):
+            fetch(bad)
