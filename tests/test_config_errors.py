@@ -77,7 +77,7 @@ def test_a_sensor_value_beyond_what_the_kernel_is_tested_at_is_refused_at_start(
     cfg = tmp_path / "fit.yaml"
     cfg.write_text(yaml + "\n")
     for mode in (["--check"], []):
-        r = _run("v2v_server.cli", "--config", str(cfg), "--bind", "tcp://127.0.0.1:0", "--delivery", "push", "--epochs", "1",
+        r = _run("v2v_server.cli", "--config", str(cfg), "--bind", "tcp://127.0.0.1:0",
                  *mode,
                  timeout=120)
         _assert_config_error(r, "v2v-serve", str(cfg), f"{key}: 1e+308 is {bound}", "tested at")
