@@ -422,7 +422,7 @@ def test_cli_end_to_end_with_resume(tmp_path, monkeypatch):
 
     made = []
 
-    def fake_make_stream(endpoint, task, credits, timeout_s, raw, **kw):
+    def fake_make_stream(endpoint, task, timeout_s, raw, **kw):
         ds = FakeV2VStream(outputs=outputs(task), num_batches=10, raw=raw)
         made.append((endpoint, task, ds))
         return ds

@@ -30,7 +30,7 @@ def _events(run: Path) -> EventAccumulator:
 def _train(monkeypatch, out: Path, *extra: str) -> int:
     import trainer.train as tr
 
-    monkeypatch.setattr(tr, "make_stream", lambda endpoint, task, credits, timeout_s, raw, **kw:
+    monkeypatch.setattr(tr, "make_stream", lambda endpoint, task, timeout_s, raw, **kw:
                         FakeV2VStream(outputs=get_task(task).outputs, num_batches=10, raw=raw))
     return tr.main(["--config", "trainer/configs/evflow.yaml", "--connect", "tcp://127.0.0.1:1", "--out", str(out),
                     "--device", "cpu", "--no-progress", "--set", "model.base_num_channels=4",

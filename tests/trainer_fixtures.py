@@ -1,5 +1,6 @@
 """TEST FIXTURE (not a product stub): a small in-process stand-in for
-``v2v_client.V2VPushDataset`` that yields batches in the client's documented format,
+the stream ``trainer.data.make_stream`` opens (``v2v_client.PlanEpochs``) that yields batches in
+the client's documented format,
 so the trainer can be unit-tested without a running ``v2v-serve``.
 
 Each sample is a window sliding over a real video frame (bikes.mp4) by a constant
@@ -17,7 +18,7 @@ from tests.conftest import read_luma_clip
 
 
 class FakeV2VStream(torch.utils.data.IterableDataset):
-    """Batches like ``V2VPushDataset(outputs=..., raw=...)``: ``voxels`` (B, L, nb, S, S),
+    """Batches like ``V2VStreamDataset(outputs=..., raw=...)`` read epoch after epoch: ``voxels`` (B, L, nb, S, S),
     ``frames`` (B, L+1, 1, S, S), ``flow`` (B, L, 2, S, S), ``sample_ids``, ``params``,
     ``epoch``, ``batch_id``. ``num_batches`` per epoch, ``epochs`` epochs; deterministic in
     (seed, batch index), with ``state_dict``/``load_state_dict`` of the position."""
