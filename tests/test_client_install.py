@@ -1,14 +1,14 @@
 """``pip install v2v[client]`` on a trainer host: torch, pyzmq, msgpack, numpy, PyYAML and nothing
 of the server's (no numba, PyAV or OpenCV), and that install reads a real server's stream; and
-``pip install v2v`` alone (no torch): ``import v2v_client`` works and its network side
-(``v2v_client.session.ServerSession`` on a DEALER socket) reads a batch as numpy arrays.
+``pip install v2v`` alone (no torch): ``import v2v_client`` works, and the plan protocol
+(``v2v_wire.plan_messages`` on a DEALER socket) reads a server's rows as numpy arrays.
 
 A fresh virtual environment (no system site packages) in a temporary folder gets torch (the
 local 2.13.0 CPU wheel pip finds) and then the project with its ``client`` extra, built from a
 copy of the sources; a ``v2v-serve`` of the main environment serves the bundled clips by plan
 (the default delivery) and the venv's python reads batches through ``V2VStreamDataset``, and
-``v2v-loadtest`` measures it. The base install gets a venv of its own, whose network side reads
-a push server (``--delivery push``). Skipped only when
+``v2v-loadtest`` measures it. The base install gets a venv of its own, which asks the same kind
+of server for its plan and fetches the epoch's first two positions. Skipped only when
 no venv with pip can be made here.
 """
 from __future__ import annotations
@@ -29,8 +29,52 @@ ROOT = Path(__file__).resolve().parents[1]
 L, B, CROP = 4, 5, 64
 SOURCES = ("pyproject.toml", "README.md", "v2v_wire", "v2v_server", "v2v_client", "trainer")
 
-#: Reads one batch through the network side alone: a ServerSession on a DEALER socket.
+#: Reads one batch through the network side alone: the plan protocol by hand on a DEALER socket.
 NETWORK_READER = textwrap.dedent("""
+    import json, sys, time
+    import zmq
+    import v2v_client
+    from v2v_client.endpoints import split_endpoints
+    from v2v_wire.codecs import decode_batch_arrays
+    from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Rows, plan_server_message
+    from v2v_wire.protocol import pack, unpack
+
+    endpoint, = split_endpoints(sys.argv[1])
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(endpoint)
+
+    def ask(message, kind, deadline=time.monotonic() + 180):
+        sock.send(pack(message.to_wire()))
+        while time.monotonic() < deadline:
+            if sock.poll(1000):
+                frames = sock.recv_multipart(copy=False)
+                got = plan_server_message(unpack(frames[0]))
+                assert isinstance(got, kind), got
+                return got, frames[1:]
+        raise TimeoutError(f"no {kind.__name__} within 180 s")
+
+    info, _ = ask(PlanAsk(), PlanInfo)
+    rows, frames = ask(Fetch(1, 0, 0, 2, ("voxels", "frames"), info.plan), Rows)
+    arrays = decode_batch_arrays(rows.arrays, frames)
+    sock.close()
+    try:
+        v2v_client.V2VStreamDataset
+        needs_torch = None
+    except ImportError as e:
+        needs_torch = str(e)
+    print(json.dumps({
+        "types": sorted({type(v).__module__ + "." + type(v).__name__ for v in arrays.values()}),
+        "shapes": {k: list(v.shape) for k, v in arrays.items()},
+        "dtypes": {k: str(v.dtype) for k, v in arrays.items()},
+        "events": int(abs(arrays["voxels"].astype("int64")).sum()),
+        "sample_ids": [s for s, p in zip(rows.sample_ids, rows.padding) if not p],
+        "torch_loaded": "torch" in sys.modules,
+        "needs_torch": needs_torch,
+    }))
+""")
+
+READER = textwrap.dedent("""
     import json, sys, time
     import zmq
     import v2v_client
@@ -161,8 +205,7 @@ def test_client_extra_installs_no_server_packages_and_reads_a_stream(client_venv
     assert not names & {"numba", "llvmlite", "av", "opencv-contrib-python-headless", "opencv-python",
                         "prometheus-client", "tqdm"}, sorted(names)
     args = ["--videos", str(videos), "--workers", "1", "--sequence-length", str(L), "--num-bins", str(B),
-            "--crop-size", str(CROP), "--max-samples-per-video", "1", "--batch-size", "2", "--seed", "3",
-            "--delivery", "plan"]
+            "--crop-size", str(CROP), "--max-samples-per-video", "1", "--batch-size", "2", "--seed", "3"]
     with ServeProcess(args) as srv:
         # the venv's python, from a folder outside the checkout: it imports the installed v2v only
         out = _run([client_venv, "-c", READER, srv.endpoint], 600, cwd=client_venv.parent.parent).stdout
@@ -192,9 +235,9 @@ def test_base_install_imports_v2v_client_without_torch_and_reads_a_batch(base_ve
     with ServeProcess(args) as srv:
         out = _run([base_venv, "-c", NETWORK_READER, srv.endpoint], 600, cwd=base_venv.parent.parent).stdout
     got = json.loads(out.strip().splitlines()[-1])
-    assert got["torch_loaded"] is False and got["taken"] is True
-    assert got["types"] == ["numpy.ndarray"]
-    n = got["sample_ids"]
+    assert got["torch_loaded"] is False and got["types"] == ["numpy.ndarray"]
+    n = len(got["sample_ids"])
+    assert n == 2 and {s.split("#")[0] for s in got["sample_ids"]} <= {p.name for p in videos.glob("*.mp4")}
     assert got["shapes"]["voxels"] == [n, L, B, CROP, CROP] and got["dtypes"]["voxels"] in ("int8", "int16", "int32")
     assert got["shapes"]["frames"] == [n, L + 1, CROP, CROP] and got["dtypes"]["frames"] == "uint8"
     assert got["events"] > 0
