@@ -1,20 +1,19 @@
-"""Training loops under the launchers people train with, reading a v2v stream, one process per
+"""Training loops under the launchers people train with, reading a v2v plan, one process per
 rank (start it with ``torchrun --nproc_per_node 2 [--max-restarts 1] -m harness.launcher_job
-LAUNCHER ENDPOINT OUT_DIR``; gloo on CPU):
+LAUNCHER ENDPOINT OUT_DIR --plan BATCH``; gloo on CPU):
 
     fabric       Lightning Fabric: fabric.setup_dataloaders(DataLoader(ds, batch_size=None))
     ignite       PyTorch Ignite: idist.Parallel, idist.auto_dataloader(ds, batch_size=None) as its docs
                  show (the error it raises is recorded), then an Engine run over DataLoader(ds, batch_size=None)
     elastic      plain DDP under torchrun --max-restarts 1: every step each rank checkpoints its model
-                 step and stream state; on the first attempt rank 1 kills itself (SIGKILL) after
+                 step and the batch's ``position``; on the first attempt rank 1 kills itself (SIGKILL) after
                  step --kill-after, before that step's checkpoint; the restarted job resumes from the
                  last step both ranks checkpointed
     deepspeed    deepspeed.initialize(training_data=ds) (the error it raises is recorded), then the
                  engine over DataLoader(ds, batch_size=None)
 
-With ``--plan BATCH`` the ranks read a server serving by plan (``v2v-serve``'s default)
-through ``V2VStreamDataset(ENDPOINT, BATCH)``, whose rank and world size come from the process
-group, and ``elastic`` checkpoints each step's ``batch["position"]``.
+The ranks read ``v2v-serve`` through ``V2VStreamDataset(ENDPOINT, BATCH)`` (``--plan BATCH``: rows a
+rank), whose rank and world size come from the process group.
 
 Each rank writes ``OUT_DIR/rank{R}.json``: ``seen`` (ids trained on, padding excluded, in the
 history that survives: with ``elastic``, the checkpoint's plus those after the resume), ``batches``,
@@ -129,7 +128,7 @@ def elastic(ds, rec, out: Path, kill_after: int) -> None:
         opt.zero_grad()
         if rec["attempt"] == 0 and rank == 1 and step == kill_after:
             os.kill(os.getpid(), signal.SIGKILL)  # mid-epoch, before this step's checkpoint
-        state = {"stream": batch["position"] if "position" in batch else ds.state_dict(), "seen": rec["seen"],
+        state = {"stream": batch["position"], "seen": rec["seen"],
                  "model": {k: v.tolist() for k, v in model.state_dict().items()}}
         tmp = out / f".ckpt.rank{rank}.tmp"
         tmp.write_text(json.dumps(state))
@@ -161,16 +160,13 @@ def main() -> None:
     ap.add_argument("endpoint")
     ap.add_argument("out")
     ap.add_argument("--kill-after", type=int, default=1)
-    ap.add_argument("--plan", type=int, default=0, metavar="BATCH", help="read a plan, BATCH rows a rank")
+    ap.add_argument("--plan", type=int, required=True, metavar="BATCH", help="rows of the plan a rank reads a step")
     args = ap.parse_args()
 
-    from v2v_client import V2VStreamDataset, V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     out = Path(args.out)
-    if args.plan:
-        ds = V2VStreamDataset(args.endpoint, args.plan, outputs=("frames",), timeout_s=60)
-    else:
-        ds = V2VPushDataset(args.endpoint, outputs=("frames",), timeout_s=60, credits=2)
+    ds = V2VStreamDataset(args.endpoint, args.plan, outputs=("frames",), timeout_s=60)
     rec = {"seen": [], "batches": 0, "refused": None, "attempt": int(os.environ.get("TORCHELASTIC_RESTART_COUNT", 0))}
     if args.launcher == "fabric":
         fabric(ds, rec)

@@ -1,9 +1,10 @@
-"""Reading a plan (``--delivery plan``, docs/plan.md) under the loaders and launchers that
+"""Reading a plan (docs/plan.md) under the loaders and launchers that
 snapshot or split a DataLoader (docs/launchers.md, "Reading a plan"): torchdata's
 ``StatefulDataLoader`` (its state taken mid-epoch and loaded by a fresh loader, with 0 and 2
-DataLoader workers) and Hugging Face Accelerate in its two modes (2 CPU ranks started by torchrun,
-gloo, ``harness/accelerate_plan_job.py``), each against a real plan server on 127.0.0.1 over the
-bundled clips: every sample id of each epoch once across the ranks (padding excluded), or the
+DataLoader workers), Hugging Face Accelerate in its two modes (2 CPU ranks started by torchrun,
+gloo, ``harness/accelerate_plan_job.py``), Lightning Fabric, PyTorch Ignite, DeepSpeed and a torchrun
+elastic restart (``harness/launcher_job.py``), each against a real plan server on 127.0.0.1 over
+the bundled clips: every sample id of each epoch once across the ranks (padding excluded), or the
 way that cannot hold it refused in one line before any batch."""
 from __future__ import annotations
 
@@ -17,6 +18,9 @@ import pytest
 import torch
 from torchdata.stateful_dataloader import StatefulDataLoader
 
+from harness import faults
+from harness.faults import Layout
+from harness.serve import ServeProcess
 from v2v_client import V2VStreamDataset
 from tests.test_plan_stream import SAMPLES, server  # noqa: F401 - the plan server on the bundled clips, its epoch's size
 
@@ -188,3 +192,34 @@ def test_accelerate_save_state_mid_epoch_then_load_state_on_new_ranks(server, tm
     saved = [{"seen": r["saved"]} for r in first]
     _each_epoch_once(saved + again, (0,))
     _each_epoch_once(again, (1,))
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("launcher", ["fabric", "ignite", "elastic", "deepspeed"])
+def test_a_plan_under_fabric_ignite_deepspeed_and_an_elastic_restart(tmp_path, launcher):
+    """Training loops under Lightning Fabric (``setup_dataloaders``), PyTorch Ignite (an Engine over
+    ``DataLoader(ds, batch_size=None)``), DeepSpeed (its engine over that DataLoader) and plain DDP
+    under ``torchrun --max-restarts 1`` (rank 1 SIGKILLed after step 1 of the first attempt), 2 ranks
+    reading ``V2VStreamDataset``: each id of the epoch once across the ranks, the ranks in step;
+    ``elastic`` resumes both restarted ranks from the position of the last step both checkpointed."""
+    layout = Layout(L=2, crop=32, windows=2, batch=2)
+    corpus = faults.good_corpus(tmp_path, 2 if launcher == "elastic" else 1)
+    expected = faults.expected_ids(corpus, layout)
+    out = tmp_path / "out"
+    out.mkdir()
+    extra = ("--max-restarts", "1") if launcher == "elastic" else ()
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", *layout.args()]) as srv:
+        r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                            *extra, "-m", "harness.launcher_job", launcher, srv.endpoint, str(out), "--plan",
+                            str(layout.batch)], capture_output=True, text=True, timeout=400)
+    ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
+    assert len(ranks) == 2, f"exit {r.returncode}: {r.stderr[-3000:]}"
+    assert ranks[0]["batches"] == ranks[1]["batches"] > 0
+    seen = [s for rank in ranks for s in rank["seen"]]
+    counts = collections.Counter(seen)
+    assert sorted(seen) == expected, (f"doubled {sorted(k for k, v in counts.items() if v > 1)}, "
+                                      f"lost {sorted(set(expected) - set(counts))}")
+    if launcher == "elastic":
+        assert [(rank["attempt"], rank["resumed_from"]) for rank in ranks] == [(1, 0), (1, 0)]
+    if launcher == "ignite":  # its auto_dataloader's batch-size scaling fails on batch_size=None, before any batch
+        assert all(rank["refused"].startswith("TypeError: '>=' not supported") for rank in ranks), ranks
