@@ -15,7 +15,7 @@ from tests.test_corpus_index import settle
 
 #: windows of 201 frames (the default recipe's): bigbuckbunny.mp4 (132 frames) gives none
 LAYOUT = ["--crop-size", "32", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
-          "--shot-cuts", "off", "--shuffle-buffer", "4", "--batch-size", "2", "--workers", "1", "--delivery", "plan"]
+          "--shot-cuts", "off", "--shuffle-buffer", "4", "--batch-size", "2", "--workers", "1"]
 
 
 @pytest.fixture
@@ -56,7 +56,7 @@ def test_a_plan_server_names_each_file_the_corpus_index_knows_gives_no_window_on
 
 #: windows of 41 frames, no shot cuts: bikes.mp4 (250 frames) gives 6, bigbuckbunny.mp4 (132) 3
 SHORT = ["--sequence-length", "8", "--crop-size", "32", "--flow-preset", "ultrafast", "--shot-cuts", "off",
-         "--shuffle-buffer", "4", "--batch-size", "2", "--workers", "1", "--delivery", "plan"]
+         "--shuffle-buffer", "4", "--batch-size", "2", "--workers", "1"]
 
 
 def rows_of(ds, steps=None):

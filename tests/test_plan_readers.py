@@ -16,7 +16,7 @@ from v2v_client import V2VStreamDataset
 
 from tests.test_scale_out import layout
 
-ARGS = ["--delivery", "plan", *layout()]  # the bundled clips, batches of 2
+ARGS = [*layout()]  # the bundled clips, batches of 2
 
 
 @pytest.fixture(scope="module")

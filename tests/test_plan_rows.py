@@ -18,7 +18,7 @@ from v2v_wire.plan_messages import Fetch, PlanAsk, plan_server_message
 from v2v_wire.protocol import pack, unpack
 
 #: 41-frame windows, one sample a clip: the bundled clips' epoch is 4 samples, cheap to decode
-ARGS = ["--delivery", "plan", "--sequence-length", "8", "--crop-size", "32", "--max-samples-per-video", "1",
+ARGS = ["--sequence-length", "8", "--crop-size", "32", "--max-samples-per-video", "1",
         "--flow-preset", "ultrafast", "--workers", "1", "--shuffle-buffer", "2", "--batch-size", "3"]
 OUTPUTS = ("voxels", "frames")
 
@@ -127,7 +127,7 @@ def test_padding_rows_cost_no_payload_and_the_batches_are_the_same(tmp_path):
 def test_a_fetch_whose_batch_would_pass_the_batch_limit_is_refused_in_one_line(tmp_path):
     """At the paper's shapes (the default recipe), 4,096 rows of voxels pass 2 GiB: refused before
     anything is decoded; 64 rows are not."""
-    with ServeProcess(["--delivery", "plan", "--workers", "1", "--cache-dir", str(tmp_path / "cache")],
+    with ServeProcess(["--workers", "1", "--cache-dir", str(tmp_path / "cache")],
                       ready_timeout_s=120) as srv:
         refused, _ = ask(srv.endpoint, lambda plan: Fetch(7, 0, 0, 4096, ("voxels", "frames", "flow"), plan))
     assert refused.request == 7 and "\n" not in refused.message

@@ -1,5 +1,5 @@
-"""One plan over several servers, each serving one shard (``v2v-serve --shard I/N``, the default
-delivery): real servers on 127.0.0.1 on the bundled clips, read by ``V2VStreamDataset`` given
+"""One plan over several servers, each serving one shard (``v2v-serve --shard I/N``): real
+servers on 127.0.0.1 on the bundled clips, read by ``V2VStreamDataset`` given
 every endpoint. Every test is bounded in time and stops what it starts."""
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def test_two_shards_read_as_one_plan_every_id_once_with_one_servers_content(tmp_
     mid-epoch resumes at another world size with nothing repeated or lost."""
     root = corpus(tmp_path, videos)
     want = expected_ids(root)
-    base = ["--videos", str(root), "--delivery", "plan", *layout()]
+    base = ["--videos", str(root), *layout()]
     with ServeProcess(base) as one:
         single, _, _, _ = read(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=120))
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
@@ -70,7 +70,7 @@ def test_two_shards_read_as_one_plan_every_id_once_with_one_servers_content(tmp_
 @pytest.mark.timeout(300)
 def test_servers_that_are_not_one_sharding_are_refused_naming_them(tmp_path, videos):
     root = corpus(tmp_path, videos)
-    base = ["--videos", str(root), "--delivery", "plan", *layout()]
+    base = ["--videos", str(root), *layout()]
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "0/2"]) as b:
         with pytest.raises(ValueError, match=r"not one sharding of one corpus .*shard\(s\) served twice: 0/2 by "
                                              r".*shard\(s\) 1/2 served by none of them"):
@@ -104,7 +104,7 @@ def test_batches_smaller_than_the_shards_end_the_epoch_on_every_rank_at_the_same
     holding each id of the corpus once with the bytes one unsharded server gives it."""
     root = corpus(tmp_path, videos)
     want = expected_ids(root)
-    base = ["--videos", str(root), "--delivery", "plan", *layout()]
+    base = ["--videos", str(root), *layout()]
     with ServeProcess(base) as one:
         _, single = steps_of(V2VStreamDataset(one.endpoint, 1, outputs=OUTPUTS, timeout_s=120))
     sizes = [sum(1 for s in want if shard_of(s.split("#")[0], 2) == i) for i in range(2)]

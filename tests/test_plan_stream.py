@@ -1,5 +1,5 @@
-"""Serving by plan end to end (docs/plan.md): real servers (in this process, and ``v2v-serve
---delivery plan`` as a child) over the bundled clips, read by ``V2VStreamDataset`` through real
+"""Serving by plan end to end (docs/plan.md): real servers (in this process, and ``v2v-serve``
+as a child) over the bundled clips, read by ``V2VStreamDataset`` through real
 DataLoaders. Each test checks what a user is promised: every sample of an epoch once, at the same
 positions at any layout, bit-identical batches from two reads, a checkpoint that resumes at another
 world size, a server killed mid-epoch costing only the fetches in flight."""
@@ -23,7 +23,7 @@ from v2v_server.service.local import local_server
 from v2v_wire.plan import PlanMismatch
 
 #: 8 voxel grids of 0.2 s a window: the bundled clips give 24 samples an epoch (``v2v-serve --check``)
-RECIPE = {"delivery_mode": "plan", "sequence_length": 8, "shuffle_buffer": 8}
+RECIPE = {"sequence_length": 8, "shuffle_buffer": 8}
 SAMPLES = 24
 
 
@@ -167,10 +167,10 @@ def test_a_corpus_never_scanned_unfolds_as_it_decodes_and_a_server_started_again
 
 
 def test_a_server_killed_mid_epoch_costs_only_the_fetches_in_flight(tmp_path):
-    """``v2v-serve --delivery plan`` killed (SIGKILL) after two steps and started again on the same
+    """``v2v-serve`` killed (SIGKILL) after two steps and started again on the same
     address: the reader asks its unanswered fetches again and gets the same epoch, bit for bit."""
     bind = f"tcp://127.0.0.1:{free_port()}"
-    args = ["--delivery", "plan", "--sequence-length", "8", "--shuffle-buffer", "8", "--workers", "1",
+    args = ["--sequence-length", "8", "--shuffle-buffer", "8", "--workers", "1",
             "--bind", bind]
     with ServeProcess(args, ready_timeout_s=120) as srv:
         whole, _ = read(V2VStreamDataset(bind, 4, retry_s=2.0, timeout_s=120))
@@ -393,7 +393,7 @@ def test_a_corpus_with_every_kind_of_bad_file_holds_each_usable_sample_once_an_e
     write_size_change_video(corpus / "size_change.mpg", span + span // 2, 2 * span)
     expected = expected_ids(corpus, layout)
     assert any(s.startswith("size_change.mpg#") for s in expected)
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", *layout.args(), "--delivery", "plan"],
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", *layout.args()],
                       ready_timeout_s=120) as srv:
         ds = V2VStreamDataset(srv.endpoint, timeout_s=120)
         for epoch in range(2):

@@ -17,7 +17,7 @@ from v2v_server.ops.config import load_config
 from v2v_server.service.local import local_server
 
 #: 8 voxel grids a window: the bundled clips give 24 samples an epoch, 6 batches of 4
-RECIPE = {"delivery_mode": "plan", "sequence_length": 8, "shuffle_buffer": 8}
+RECIPE = {"sequence_length": 8, "shuffle_buffer": 8}
 
 
 @pytest.fixture(scope="module")

@@ -119,14 +119,13 @@ def test_sigkill_after_a_checkpoint_loses_no_log_row(tmp_path, bikes_corpus):
 
 
 def test_train_from_a_server_serving_by_plan_then_resume_at_its_position(tmp_path, bikes_corpus, monkeypatch):
-    """``v2v-train --connect`` a server started with ``--delivery plan``: it reads the plan in the
+    """``v2v-train --connect`` a server (it serves by plan): it reads the plan in the
     server's batch size, epoch after epoch; a checkpoint's stream state is the plan's position,
     so the resumed run finishes epoch 0 without a repeat or a loss and goes on into epoch 1."""
     seen = record_trained(monkeypatch)
     out = tmp_path / "run"
     serve = ["--videos", str(bikes_corpus), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
-             "--crop-size", "32", "--batch-size", "2", "--seed", "3", "--max-samples-per-video", "6",
-             "--delivery", "plan"]
+             "--crop-size", "32", "--batch-size", "2", "--seed", "3", "--max-samples-per-video", "6"]
     with ServeProcess(serve) as srv:
         common = ["--task", "e2vid", "--connect", srv.endpoint, "--out", str(out), "--device", "cpu",
                   "--no-progress", "--set", "model.num_bins=3", "--set", "model.base_num_channels=4",
@@ -168,7 +167,7 @@ def test_a_run_against_a_plan_server_says_whether_it_was_fed(tmp_path, bikes_cor
     seen = record_trained(monkeypatch)
     out = tmp_path / "run"
     serve = ["--videos", str(bikes_corpus), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
-             "--crop-size", "32", "--batch-size", "2", "--seed", "3", "--delivery", "plan"]
+             "--crop-size", "32", "--batch-size", "2", "--seed", "3"]
     with ServeProcess(serve) as srv:
         assert tr.main(["--task", "e2vid", "--connect", srv.endpoint, "--out", str(out), "--device", "cpu",
                         "--no-progress", "--set", "model.num_bins=3", "--set", "model.base_num_channels=4",
