@@ -18,10 +18,9 @@ import pytest
 import torch
 from torchdata.stateful_dataloader import StatefulDataLoader
 
-from harness import faults
-from harness.faults import Layout
 from harness.serve import ServeProcess
 from v2v_client import V2VStreamDataset
+from tests.test_scale_out import BATCH, corpus, expected_ids, layout
 from tests.test_plan_stream import SAMPLES, server  # noqa: F401 - the plan server on the bundled clips, its epoch's size
 
 
@@ -196,22 +195,21 @@ def test_accelerate_save_state_mid_epoch_then_load_state_on_new_ranks(server, tm
 
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("launcher", ["fabric", "ignite", "elastic", "deepspeed"])
-def test_a_plan_under_fabric_ignite_deepspeed_and_an_elastic_restart(tmp_path, launcher):
+def test_a_plan_under_fabric_ignite_deepspeed_and_an_elastic_restart(tmp_path, videos, launcher):
     """Training loops under Lightning Fabric (``setup_dataloaders``), PyTorch Ignite (an Engine over
     ``DataLoader(ds, batch_size=None)``), DeepSpeed (its engine over that DataLoader) and plain DDP
     under ``torchrun --max-restarts 1`` (rank 1 SIGKILLed after step 1 of the first attempt), 2 ranks
     reading ``V2VStreamDataset``: each id of the epoch once across the ranks, the ranks in step;
     ``elastic`` resumes both restarted ranks from the position of the last step both checkpointed."""
-    layout = Layout(L=2, crop=32, windows=2, batch=2)
-    corpus = faults.good_corpus(tmp_path, 2 if launcher == "elastic" else 1)
-    expected = faults.expected_ids(corpus, layout)
+    root = corpus(tmp_path, videos, copies=2 if launcher == "elastic" else 1)
+    expected = expected_ids(root)
     out = tmp_path / "out"
     out.mkdir()
     extra = ("--max-restarts", "1") if launcher == "elastic" else ()
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", *layout.args()]) as srv:
+    with ServeProcess(["--videos", str(root), *layout()]) as srv:
         r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
                             *extra, "-m", "harness.launcher_job", launcher, srv.endpoint, str(out), "--plan",
-                            str(layout.batch)], capture_output=True, text=True, timeout=400)
+                            str(BATCH)], capture_output=True, text=True, timeout=400)
     ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
     assert len(ranks) == 2, f"exit {r.returncode}: {r.stderr[-3000:]}"
     assert ranks[0]["batches"] == ranks[1]["batches"] > 0
@@ -223,3 +221,31 @@ def test_a_plan_under_fabric_ignite_deepspeed_and_an_elastic_restart(tmp_path, l
         assert [(rank["attempt"], rank["resumed_from"]) for rank in ranks] == [(1, 0), (1, 0)]
     if launcher == "ignite":  # its auto_dataloader's batch-size scaling fails on batch_size=None, before any batch
         assert all(rank["refused"].startswith("TypeError: '>=' not supported") for rank in ranks), ranks
+
+
+def test_prepare_loader_refuses_a_loader_accelerate_prepared_already():
+    """prepare_loader over accelerator.prepare's loader would register a second loader (and per
+    rank read IterableDatasetShard): refused in one line; its own loader comes back as it is;
+    a loader of another dataset, or one batching the plan's batches again, is refused too."""
+    from accelerate import Accelerator
+    from accelerate.state import AcceleratorState, GradientState
+
+    from v2v_client import prepare_loader
+
+    try:
+        acc = Accelerator(cpu=True)
+        ds = V2VStreamDataset("tcp://127.0.0.1:9", 2)  # never iterated: no server is asked
+        mine = prepare_loader(acc, torch.utils.data.DataLoader(ds, batch_size=None))
+        assert prepare_loader(acc, mine) is mine and len(acc._dataloaders) == 1
+        plain = acc.prepare(torch.utils.data.DataLoader(ds, batch_size=None))
+        with pytest.raises(ValueError, match="^prepare_loader takes the DataLoader itself"):
+            prepare_loader(acc, plain)
+        with pytest.raises(ValueError, match="^prepare_loader takes the DataLoader itself"):
+            prepare_loader(Accelerator(cpu=True), mine)  # another accelerator's
+        with pytest.raises(TypeError, match="^prepare_loader reads a V2VStreamDataset; this loader reads list"):
+            prepare_loader(acc, torch.utils.data.DataLoader([1, 2], batch_size=None))
+        with pytest.raises(ValueError, match=r"^the loader has batch_size=4: V2VStreamDataset yields whole batches"):
+            prepare_loader(acc, torch.utils.data.DataLoader(ds, batch_size=4))
+    finally:
+        AcceleratorState._reset_state(True)
+        GradientState._reset_state()
