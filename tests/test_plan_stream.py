@@ -384,17 +384,15 @@ def test_a_corpus_with_every_kind_of_bad_file_holds_each_usable_sample_once_an_e
     each of two epochs holds every sample ``--check`` lists, once and nothing else (a bad file's
     slots are what its decode gave), each bad file is logged once, and no traceback."""
     from harness.corpus import make_fault_corpus, write_size_change_video
-    from harness.faults import Layout, expected_ids
+    from tests.test_scale_out import expected_ids, layout
 
-    layout = Layout(L=4, crop=64, windows=2, batch=2)
+    span = 4 * 5 + 1  # test_scale_out.layout's windows: 4 voxels of 5 bins
     corpus = tmp_path / "faulty"
-    exp = make_fault_corpus(corpus, Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos", layout.L * 5 + 1)
-    span = layout.L * 5 + 1
+    exp = make_fault_corpus(corpus, Path(__file__).resolve().parents[1] / "v2v_server" / "sample_videos", span)
     write_size_change_video(corpus / "size_change.mpg", span + span // 2, 2 * span)
-    expected = expected_ids(corpus, layout)
+    expected = expected_ids(corpus)
     assert any(s.startswith("size_change.mpg#") for s in expected)
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", *layout.args()],
-                      ready_timeout_s=120) as srv:
+    with ServeProcess(["--videos", str(corpus), *layout("--workers", "2")], ready_timeout_s=120) as srv:
         ds = V2VStreamDataset(srv.endpoint, timeout_s=120)
         for epoch in range(2):
             ds.set_epoch(epoch)

@@ -47,11 +47,16 @@ def corpus(tmp_path, videos, copies=1):
     return d
 
 
-def expected_ids(root):
-    cfg = ServeConfig(sequence_length=L, crop_size=CROP, max_samples_per_video=WINDOWS, workers=1)
+def expected_ids(root, sequence_length=L, crop_size=CROP, windows=WINDOWS):
+    """Every sample id one epoch of ``root`` holds, from ``--check``'s verdicts (a window it says
+    cannot be made, e.g. where the frame size changes, holds none)."""
+    cfg = ServeConfig(sequence_length=sequence_length, crop_size=crop_size, max_samples_per_video=windows, workers=1)
     vids = [p.as_posix() for p in scan_corpus(root, cfg.video_extensions)[0]]
-    return sorted(f"{r.path}#{k}" for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode, LocalSource(root), vids)
-                  for k in range(r.windows))
+    out = []
+    for r in check_corpus(cfg.recipe.windows, cfg.recipe.decode, LocalSource(root), vids):
+        failed = set(r.failed_windows)
+        out += [f"{r.path}#{k}" for k in range(r.windows + len(failed)) if k not in failed]
+    return sorted(out)
 
 
 def read_all(ds, limit_s=120.0):
