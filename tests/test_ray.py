@@ -18,7 +18,7 @@ import pytest
 ray = pytest.importorskip("ray", reason="the 'ray' extra is not installed (pip install -e '.[ray]')")
 pytest.importorskip("ray.data", reason="the 'ray' extra is not installed (pip install -e '.[ray]')")
 
-from v2v_client import V2VPushDataset  # noqa: E402
+from v2v_client import V2VStreamDataset  # noqa: E402
 from v2v_server.ops.config import ServeConfig  # noqa: E402
 from harness.serve import ServeProcess  # noqa: E402
 from v2v_server.ray_data import epoch_descriptors, scan_corpus_windows, v2v_dataset  # noqa: E402
@@ -82,6 +82,13 @@ def rows_by_id(ds):
     return out
 
 
+def plan_epoch(endpoint, epoch: int = 0, outputs=("voxels", "frames", "flow")):
+    """The batches of ``epoch`` of the plan ``v2v-serve`` serves at ``endpoint``, in wire dtypes."""
+    ds = V2VStreamDataset(endpoint, outputs=outputs, timeout_s=60, raw=True, rank=0, world_size=1)
+    ds.set_epoch(epoch)
+    return ds
+
+
 @pytest.mark.timeout(240)
 def test_epoch_has_every_id_once_and_the_zeromq_path_content(ray_session, videos):
     cfg = layout()
@@ -92,14 +99,12 @@ def test_epoch_has_every_id_once_and_the_zeromq_path_content(ray_session, videos
     rows = ds.take_all()
     ids = [r["sample_id"] for r in rows]
     assert sorted(ids) == want and not any(r["padding"] for r in rows)
-    with ServeProcess(serve_args(videos, "--epochs", "2", "--batch-size", "4")) as srv:
+    with ServeProcess(serve_args(videos, "--batch-size", "4")) as srv:  # epoch 1 of its plan
         zmq_rows = {}
-        for b in V2VPushDataset(srv.endpoint, timeout_s=60, raw=True):
-            if b["epoch"] != 1:
-                continue
+        for b in plan_epoch(srv.endpoint, 1):
             for i, sid in enumerate(b["sample_ids"]):
-                zmq_rows[sid] = ({k: b[k][i].numpy() for k in ("voxels", "frames", "flow")}, b["params"][i])
-        assert srv.wait(30) == 0
+                if not b["padding"][i]:
+                    zmq_rows[sid] = ({k: b[k][i].numpy() for k in ("voxels", "frames", "flow")}, b["params"][i])
     assert set(zmq_rows) == set(ids)
     for r in rows:
         arrays, params = zmq_rows[r["sample_id"]]
@@ -132,7 +137,7 @@ def test_a_shard_is_the_same_samples_through_every_engine(ray_session, clips, tm
     cache = tmp_path / "cache"
     cfg = layout(shard="1/2", cache_dir=str(cache), shot_cuts="off", batch_size=2)
     cli_args = serve_args(corpus, "--shard", "1/2", "--cache-dir", str(cache), "--shot-cuts", "off",
-                          "--batch-size", "2", "--delivery", "push", "--epochs", "1")
+                          "--batch-size", "2")
     checked = subprocess.run([sys.executable, "-m", "v2v_server.cli", *cli_args, "--check"], capture_output=True,
                              text=True, timeout=120)
     assert checked.returncode == 0 and "brief.mp4" in checked.stdout, checked.stdout + checked.stderr
@@ -142,18 +147,19 @@ def test_a_shard_is_the_same_samples_through_every_engine(ray_session, clips, tm
 
     def stream(endpoint) -> dict:
         out = {}
-        for b in V2VPushDataset(endpoint, outputs=("voxels", "frames"), timeout_s=60, raw=True):
+        for b in plan_epoch(endpoint, 0, ("voxels", "frames")):
             for i, sid in enumerate(b["sample_ids"]):
+                if b["padding"][i]:
+                    continue
                 assert sid not in out, sid
                 out[sid] = (b["voxels"][i].numpy().astype(np.int16), b["frames"][i].numpy())
         return out
 
     with ServeProcess(cli_args) as srv:
         served = stream(srv.endpoint)
-        assert srv.wait(30) == 0
     assert "1 video(s) not opened" in srv.log
     with local_server(None, workers=1, batch_size=2, config=ServeConfig.from_dict(
-            {**cfg.to_dict(), "videos": str(corpus), "epochs": 1, "delivery_mode": "push"})) as endpoint:
+            {**cfg.to_dict(), "videos": str(corpus)})) as endpoint:
         local = stream(endpoint)
     rows = {r["sample_id"]: r for r in v2v_dataset(corpus, cfg, epoch=0, outputs=("voxels", "frames")).take_all()}
     want = sorted(f"{v}#{k}" for v in ("bigbuckbunny.mp4", "webvid_like_596x336.mp4") for k in range(MAXW))
@@ -236,10 +242,9 @@ def test_bad_files_are_skipped_with_the_servers_reasons(ray_session, videos, tmp
     (root / "random_bytes.mp4").write_bytes(np.random.default_rng(0).bytes(50_000))
     write_video(root / "shorter_than_window.mp4", WINDOW - 1, 160, 120)
     cfg = layout()
-    with ServeProcess(serve_args(root, "--epochs", "1")) as srv:  # what v2v-serve says about them
-        for _ in V2VPushDataset(srv.endpoint, timeout_s=60, outputs=("voxels",)):
+    with ServeProcess(serve_args(root)) as srv:  # what v2v-serve says about them, reading an epoch
+        for _ in plan_epoch(srv.endpoint, 0, ("voxels",)):
             pass
-        assert srv.wait(30) == 0
     served = dict(re.findall(r"skipped (\S+): (.*)", srv.log))
     with caplog.at_level(logging.WARNING, logger="v2v.ray"):
         corpus = scan_corpus_windows(root, cfg)
@@ -362,7 +367,7 @@ def test_v2v_train_fast_on_two_ray_ranks_steps_as_one_process(ray_session, clips
 
 @pytest.mark.timeout(300)
 def test_ray_train_ranks_read_a_plan_each_its_slice_and_the_epoch_exactly_once(ray_session, clips, tmp_path):
-    """Ray Train's ``TorchTrainer`` on 2 ranks over ``v2v-serve --delivery plan``: each rank's
+    """Ray Train's ``TorchTrainer`` on 2 ranks over ``v2v-serve``: each rank's
     ``V2VStreamDataset`` finds its rank in the process group Ray Train made, both take the same
     number of steps, and the epoch's samples arrive once, those ``--check`` counts."""
     from pathlib import Path
@@ -382,7 +387,7 @@ def test_ray_train_ranks_read_a_plan_each_its_slice_and_the_epoch_exactly_once(r
         Path(config["out"], f"rank{dist.get_rank()}.json").write_text(
             json.dumps({"world": dist.get_world_size(), "steps": steps}))
 
-    with ServeProcess(serve_args(clips, "--delivery", "plan")) as srv:
+    with ServeProcess(serve_args(clips)) as srv:
         TorchTrainer(loop, train_loop_config={"endpoint": srv.endpoint, "out": str(tmp_path)},
                      scaling_config=ScalingConfig(num_workers=2, resources_per_worker={"CPU": 0.5}),
                      run_config=RunConfig(storage_path=str(tmp_path / "ray"), name="plan")).fit()
