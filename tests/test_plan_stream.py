@@ -141,6 +141,21 @@ def test_a_position_of_another_plan_is_refused_in_one_line(server):
     assert "\n" not in str(err.value) and "seed 99 (this plan: 0)" in str(err.value)
 
 
+def test_epochs_read_in_turn_from_a_position_at_an_epochs_end_go_on_with_the_next(server):
+    """``PlanEpochs`` (v2v-train's and v2v-loadtest's reader) resumed at the position kept after
+    epoch 0's last step reads epoch 1 from its start, not an empty pass."""
+    from v2v_client import PlanEpochs
+
+    _, end = read(V2VStreamDataset(server, 4))
+    assert (end["epoch"], end["sample_in_epoch"]) == (0, SAMPLES)
+    epochs = PlanEpochs(V2VStreamDataset(server, 4))
+    epochs.load_state_dict(end)
+    it = iter(epochs)
+    got = [next(it) for _ in range(SAMPLES // 4 + 1)]
+    assert [int(b["epoch"]) for b in got] == [1] * (SAMPLES // 4) + [2]
+    assert [b["position"]["sample_in_epoch"] for b in got] == [4 * (k + 1) for k in range(SAMPLES // 4)] + [4]
+
+
 def test_a_corpus_never_scanned_unfolds_as_it_decodes_and_a_server_started_again_reads_its_index(tmp_path):
     """No pass before the first batch: the server learns each video's windows from its first
     decode, so ``len`` is unknown (TypeError, as for a dataset without one) until the epoch is

@@ -538,7 +538,8 @@ class PlanEpochs(torch.utils.data.IterableDataset):
     batches of ``dataset`` (a :class:`V2VStreamDataset`), each epoch's ``set_epoch`` after the
     last, from the epoch of a loaded position on. :meth:`state_dict` /
     :meth:`load_state_dict` are the dataset's (a position: the epoch and the samples read).
-    An epoch without a batch ends the pass."""
+    An epoch without a batch from its start ends the pass; one resumed at its end (a position
+    kept after its last step) goes on with the next epoch."""
 
     def __init__(self, dataset):
         super().__init__()
@@ -546,13 +547,13 @@ class PlanEpochs(torch.utils.data.IterableDataset):
 
     def __iter__(self):
         while True:
-            last = None
+            last, epoch, resumed = None, self.dataset.epoch, self.dataset.start > 0
             for batch in self.dataset:
                 last = batch["epoch"]
                 yield batch
-            if last is None:
+            if last is None and not resumed:
                 return
-            self.dataset.set_epoch(last + 1)
+            self.dataset.set_epoch((epoch if last is None else last) + 1)
 
     def state_dict(self) -> dict:
         return self.dataset.state_dict()
