@@ -1,4 +1,4 @@
-"""Reading a server that serves by plan (``v2v-serve``'s default delivery, docs/plan.md) as a torch
+"""Reading a server that serves by plan (``v2v-serve``'s default delivery, docs/delivery.md) as a torch
 dataset: each rank's batch at each step is a fixed slice of the epoch's plan, fetched by position.
 
 The dataset holds no socket and no lock: each process that iterates it (the main process, a
