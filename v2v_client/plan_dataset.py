@@ -42,8 +42,8 @@ import zmq
 
 from v2v_wire.messages import WireError
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
-from v2v_wire.plan_shards import (interleaved, probes, shard_ranges, shards_identity, shards_samples,
-                                  step_in_epoch)
+from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_ranges, shards_identity,
+                                  shards_samples, step_in_epoch)
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_ipv6, pack, unpack
@@ -1003,13 +1003,13 @@ class _Shards:
             return  # an answer to a request asked again, or to a plan_ask
         if msg.samples is not None:
             self.samples[k] = msg.samples
-        slots = [(msg.start + j) * n + k for j, sid in enumerate(msg.sample_ids) if sid is not None]
-        flight.seen = max([flight.seen] + [t + 1 for t in slots])
+        flight.seen = furthest_slot(flight.seen, k, n, msg.start, msg.sample_ids)
         if what[0] == "probe":
-            if not slots and msg.samples is None:
+            slot = any(sid is not None for sid in msg.sample_ids)
+            if not slot and msg.samples is None:
                 raise PlanServerError(f"{link.endpoint}: position {what[1]} answered past the epoch's end "
                                       "without the epoch's samples")
-            flight.probed[(k, what[1])] = bool(slots)
+            flight.probed[(k, what[1])] = slot
             return
         try:
             arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)

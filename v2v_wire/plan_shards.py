@@ -15,7 +15,7 @@ from typing import List, Optional, Sequence, Tuple
 from .plan import PlanIdentity, PlanMismatch
 
 __all__ = ["shard_ranges", "interleaved", "shards_samples", "epoch_floor", "step_in_epoch", "probes",
-           "shards_identity"]
+           "furthest_slot", "shards_identity"]
 
 
 def shard_ranges(start: int, stop: int, shards: int) -> List[Tuple[int, int]]:
@@ -69,6 +69,14 @@ def probes(first: int, samples: Sequence[Optional[int]]) -> List[Tuple[int, int]
     with its samples (the server answers past the end once it knows where that is)."""
     n = len(samples)
     return [(k, max(0, -(-(first - k) // n))) for k, s in enumerate(samples) if s is None]
+
+
+def furthest_slot(seen: int, shard: int, shards: int, start: int, sample_ids: Sequence[Optional[object]]) -> int:
+    """``seen`` (one past the furthest global position a reader got a row with a sample id at, or
+    0) after rows of ``shard`` (of ``shards``) from its own position ``start`` on, whose ids are
+    ``sample_ids`` (None: a row past that shard's end): what :func:`step_in_epoch` takes."""
+    slots = [(start + j) * shards + shard + 1 for j, sid in enumerate(sample_ids) if sid is not None]
+    return max([seen] + slots)
 
 
 def shards_identity(identities: Sequence[PlanIdentity]) -> PlanIdentity:
