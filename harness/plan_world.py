@@ -1,29 +1,39 @@
-"""A seeded world driving serving by plan's decisions (``delivery.plan_feed.PlanFeed``), as
-``harness.delivery_sim`` drives push's: time is ticks, every choice comes from ``random.Random(seed)``,
-so a seed replays exactly.
+"""A seeded world driving serving by plan's decisions (``delivery.plan_feed.PlanFeed``) and the
+client's reading rules: time is ticks, every choice comes from ``random.Random(seed)``, so a seed
+replays exactly.
 
-What the world does to the feed:
+What the world does:
 
 * workers decode at one sample a tick, stall (3-60 ticks), die (the pool replaces them), and hang
-  until the task timeout; files give fewer windows than their slots, or break (at one place, each
-  pass); a store that fails for a while cuts one or two passes of other files short;
+  until the task timeout; files give fewer windows than their slots or none, or break (at one
+  place, each pass); a store that fails for a while cuts one or two passes of other files short;
 * the corpus index knows some videos' slots at start, none or all; the others' the server learns
   from their first decode (the plan unfolds), and the index keeps a whole pass's count for a
   server started again;
-* the server is killed and started again (a fresh ``PlanFeed`` and a fresh pool of workers: made
-  samples, pending fetches and running tasks gone), and while it is down a file may be replaced
-  under its name by another cut (another tag, other windows, its index entry gone): the plan's
-  identity changes, a job's position of the plan before is refused and it reads that epoch
-  again from its start under the new plan;
-* jobs of 1-3 ranks ask up to two steps ahead, ask again a fetch unanswered for ``RETRY`` ticks
-  (a lost reply, a restarted server), checkpoint and resume at another world size and batch size,
-  and roll back to an older checkpoint of the epoch (the rows read since count again);
+* 1 server, or 2-4 each serving one shard (``select_shard``'s videos, a ``PlanFeed`` of its own)
+  read as one interleaved plan (``v2v_wire.plan_shards``); each server is killed and started
+  again on its own (a fresh ``PlanFeed`` and a fresh pool of workers: made samples, pending
+  fetches and running tasks gone), and while it is down a file of its shard may be replaced under
+  its name by another cut (another tag, other windows, its index entry gone): the plan's identity
+  changes, a job's position of the plan before is refused (``Position.from_dict``, as the client
+  and the server check it) and it reads that epoch again from its start under the new plan;
+* jobs of 1-3 ranks at 1-5 rows a rank (fewer rows than shards included), read by the main
+  process or by 1-3 DataLoader workers per rank, persistent or not (``harness.plan_world_jobs``:
+  real ``V2VStreamDataset`` objects take ``set_epoch`` and ``load_state_dict`` in the main process,
+  the workers' copies at their next pass); each reader asks up to two items ahead, asks again a
+  fetch unanswered for ``RETRY`` ticks (a lost reply, a restarted server), settles the epoch's end
+  as the client does (probing shards whose length it does not know); jobs checkpoint and resume in
+  the same process or at another layout, and roll back to an older checkpoint of the epoch (the
+  rows read since count again);
 * readers ask for a subset of the outputs, and a new output widens what workers make mid-run.
 
-:func:`check` runs one seed and returns what went wrong (empty: each job read each epoch's plan
-exactly: every position once, at its place, a sample wherever its window was given, padding only
-for windows a file did not give, and a bounded store). ``python -m harness.plan_world --seeds
-0:100000`` runs a range (``tests/test_plan_feed.py`` runs 1,000 seeds); ``--seeds 35:36`` replays one.
+:func:`check` runs one seed and returns what went wrong (empty: each job read each epoch's
+interleaved plan exactly: every position once across ranks and workers, at its place, a sample
+wherever its window was given, padding only for windows a file did not give and past a shard's or
+the epoch's end; every reader ended at the step the epoch ends at; each worker's pass was of the
+epoch and position the loop set; a position refused exactly when a file was replaced; bounded
+stores). ``python -m harness.plan_world --seeds 0:100000`` runs a range (``tests/test_plan_feed.py``
+runs 1,000 seeds); ``--seeds 35:36`` replays one.
 """
 from __future__ import annotations
 
@@ -101,7 +111,8 @@ class World:
         self.kpw = rng.choice([1, 1, 2])
         self.slots = {f"v{i:02d}.mp4": rng.randint(0, 6) for i in range(rng.randint(1, 14))}
         self.tags = {v: 0 for v in self.slots}  # which cut of each file (another after a replacement)
-        self.given = {v: (n if rng.random() < 0.8 else rng.randint(0, n)) for v, n in self.slots.items()}  # short
+        whole = rng.choice([0.8, 0.5])  # the share of files that give every window; the others are short or empty
+        self.given = {v: (n if rng.random() < whole else rng.choice([0, rng.randint(0, n)])) for v, n in self.slots.items()}
         self.broken = {v for v in self.slots if rng.random() < 0.1}  # the pass breaks after its windows
         known = rng.choice([0.0, 0.5, 1.0])
         self.index = {v: n for v, n in self.slots.items() if rng.random() < known}  # the corpus index
