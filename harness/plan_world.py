@@ -112,7 +112,8 @@ class World:
         self.slots = {f"v{i:02d}.mp4": rng.randint(0, 6) for i in range(rng.randint(1, 14))}
         self.tags = {v: 0 for v in self.slots}  # which cut of each file (another after a replacement)
         whole = rng.choice([0.8, 0.5])  # the share of files that give every window; the others are short or empty
-        self.given = {v: (n if rng.random() < whole else rng.choice([0, rng.randint(0, n)])) for v, n in self.slots.items()}
+        self.given = {v: (n if rng.random() < whole else rng.choice([0, rng.randint(0, n)]))
+                      for v, n in self.slots.items()}
         self.broken = {v for v in self.slots if rng.random() < 0.1}  # the pass breaks after its windows
         known = rng.choice([0.0, 0.5, 1.0])
         self.index = {v: n for v, n in self.slots.items() if rng.random() < known}  # the corpus index
@@ -238,8 +239,12 @@ class World:
                     w.task, w.todo, w.stalled_until = None, [], 0.0
 
     def judge(self) -> None:
-        """Each job read each epoch's interleaved plan exactly; each server's store stayed bounded."""
+        """The shards together serve each video once; each job read each epoch's interleaved plan
+        exactly; each server's store stayed bounded."""
         problems = self.out.problems
+        served = sorted(v for s in self.servers for v in s.videos)
+        if served != sorted(self.slots):
+            problems.append(f"the shards serve {served}, the corpus is {sorted(self.slots)}")
         for job in self.jobs:
             if job.epoch < self.epochs:
                 problems.append(f"{job.name} stuck in epoch {job.epoch} at step {job.taken()}")
@@ -273,8 +278,8 @@ class World:
             elif r.key is None and r.sample is not None:
                 problems.append(f"{job.name} epoch {e} position {t}: a sample past the end")
             elif r.key is not None and (r.sample is None) == (r.key.window < given[r.key.video]):
-                problems.append(f"{job.name} epoch {e} position {t}: {'padding' if r.sample is None else 'a sample'} "
-                                f"for {r.key}, whose window the file {'gives' if r.sample is None else 'does not give'}")
+                what, file = ("padding", "gives") if r.sample is None else ("a sample", "does not give")
+                problems.append(f"{job.name} epoch {e} position {t}: {what} for {r.key}, whose window the file {file}")
 
 
 #: What ``main`` and ``tests/test_plan_feed.py`` add up over seeds (``Outcome``'s counts).

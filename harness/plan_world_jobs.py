@@ -4,7 +4,7 @@ through the client's own rules.
 Each reading process is a :class:`Reader`: one rank's items ``item, item + workers, ...`` of one
 epoch from a global position (``v2v_client.plan_dataset._rows``; a DataLoader worker ``j`` of
 ``k`` reads every ``k``-th from ``j``). An item's fetch is split among the shards holding its
-rows (``plan_shards.shard_ranges``), asked of each shard's server, and merged in the interleave's
+rows (``plan_shards.shard_parts``), asked of each shard's server, and merged in the interleave's
 order (``plan_shards.interleaved``). Over several shards an item is yielded once
 ``plan_shards.step_in_epoch`` settles it, each shard whose length is not known asked for the row
 ``plan_shards.probes`` names; over one, once answered (``_Link``). A reader ends where the
@@ -24,7 +24,8 @@ from typing import Dict, List, Optional, Tuple
 
 from v2v_client.plan_dataset import V2VStreamDataset, _rows, _start_of, _steps
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
-from v2v_wire.plan_shards import furthest_slot, interleaved, probes, shard_ranges, shards_samples, step_in_epoch
+from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_parts, shard_ranges, shards_samples,
+                                  step_in_epoch)
 
 #: Ticks a fetch may go unanswered before its reader asks again (``V2VStreamDataset.retry_s``).
 RETRY = 30
@@ -88,6 +89,7 @@ class Job:
 
     @property
     def per_step(self) -> int:
+        """Positions every rank together reads at a step."""
         return self.world * self.batch
 
     def taken(self) -> int:
@@ -245,9 +247,7 @@ class Reading:
     # ------------------------------------------------------------------ fetches
     def begin_item(self, job: Job, reader: Reader, i: int, now: int) -> None:
         """Ask each shard holding some of item ``i``'s rows for its part."""
-        start, stop = self.rows_of(job, reader, i)
-        ranges = shard_ranges(start, stop, len(self.world.servers))
-        reader.parts[i] = {k: None for k, (lo, hi) in enumerate(ranges) if hi > lo}
+        reader.parts[i] = dict.fromkeys(shard_parts(*self.rows_of(job, reader, i), len(self.world.servers)))
         for k in reader.parts[i]:
             self.fetch(job, reader, k, ("step", i), now)
 
@@ -291,6 +291,8 @@ class Reading:
             reader.parts[what[1]][k] = rows
 
     def check_rows(self, job: Job, k: int, f, rows) -> None:
+        """Shard ``k``'s rows of fetch ``f``: each key its server's plan's at that position, each
+        sample of that epoch and key, made with the outputs the fetch asked for."""
         problems = self.world.out.problems
         plan = self.world.servers[k].feed.plan(f.epoch)
         for row in rows:

@@ -42,7 +42,7 @@ import zmq
 
 from v2v_wire.messages import WireError
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
-from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_ranges, shards_identity,
+from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_parts, shard_ranges, shards_identity,
                                   shards_samples, step_in_epoch)
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, ServedByPush, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
@@ -980,8 +980,7 @@ class _Shards:
     def _begin(self, flight: "_InFlight", step: int) -> None:
         """Ask each shard holding some of ``step``'s rows for its part."""
         f = flight.fetch_of(0, step)
-        ranges = shard_ranges(f.start, f.stop, len(self.links))
-        flight.parts[step] = {k: None for k, (lo, hi) in enumerate(ranges) if hi > lo}
+        flight.parts[step] = dict.fromkeys(shard_parts(f.start, f.stop, len(self.links)))
         flight.order.append(step)
         for k in flight.parts[step]:
             self._ask(flight, k, ("step", step))

@@ -10,11 +10,11 @@ samples, less the total: shards of a hashed corpus differ by a few percent). Pur
 from __future__ import annotations
 
 import hashlib
-from typing import List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 from .plan import PlanIdentity, PlanMismatch
 
-__all__ = ["shard_ranges", "interleaved", "shards_samples", "epoch_floor", "step_in_epoch", "probes",
+__all__ = ["shard_ranges", "shard_parts", "interleaved", "shards_samples", "epoch_floor", "step_in_epoch", "probes",
            "furthest_slot", "shards_identity"]
 
 
@@ -22,6 +22,12 @@ def shard_ranges(start: int, stop: int, shards: int) -> List[Tuple[int, int]]:
     """Global positions ``start .. stop - 1`` as each shard's own positions: for shard ``i``,
     ``[lo, hi)`` (empty when ``lo == hi``: fewer rows than shards)."""
     return [(-(-(start - i) // shards), -(-(stop - i) // shards)) for i in range(shards)]
+
+
+def shard_parts(start: int, stop: int, shards: int) -> Dict[int, Tuple[int, int]]:
+    """The shards a fetch of global positions ``start .. stop - 1`` is asked of: shard -> its own
+    ``[lo, hi)`` (:func:`shard_ranges`), for each shard holding at least one of them, in shard order."""
+    return {k: (lo, hi) for k, (lo, hi) in enumerate(shard_ranges(start, stop, shards)) if hi > lo}
 
 
 def interleaved(start: int, stop: int, shards: int) -> List[Tuple[int, int]]:
