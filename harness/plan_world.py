@@ -42,6 +42,7 @@ import json
 import random
 import sys
 import time
+import traceback
 from dataclasses import dataclass, field
 from typing import List, Optional
 
@@ -96,8 +97,13 @@ class Outcome:
 
 
 def check(seed: int, ticks: int = 30000) -> Outcome:
-    """Run the world of ``seed`` (module docstring) for at most ``ticks`` ticks."""
-    return World(seed).run(ticks)
+    """Run the world of ``seed`` (module docstring) for at most ``ticks`` ticks; an exception
+    raised in it (a server's or a reader's error) is its problem, named with where it was raised."""
+    try:
+        return World(seed).run(ticks)
+    except Exception as e:  # noqa: BLE001 - reported as the seed's problem
+        where = traceback.extract_tb(e.__traceback__)[-1]
+        return Outcome(seed, [f"raised {type(e).__name__}: {e} ({where.filename}:{where.lineno})"])
 
 
 class World:
