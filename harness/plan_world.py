@@ -56,6 +56,9 @@ from v2v_wire.plan_shards import shards_identity, shards_samples
 
 @dataclass
 class Worker:
+    """One decode worker of a server's pool: its task, the samples it has yet to send, and how
+    this pass ends (``windows`` given, ``error`` when it stops early)."""
+
     ident: str
     task: Optional[object] = None
     todo: List[SampleKey] = field(default_factory=list)
@@ -183,6 +186,7 @@ class World:
         self.out.replaced += 1
 
     def run(self, ticks: int) -> Outcome:
+        """Play at most ``ticks`` ticks (until every job read every epoch), then judge."""
         for now in range(ticks):
             for s in self.servers:
                 if self.rng.random() < self.restart_p:  # killed and started again, with its workers
