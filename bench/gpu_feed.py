@@ -214,7 +214,7 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
 
     trainer = _trainer(task, amp, speed, smoke, device, tmp / f"{task}_{amp}_{speed}", a.warmup + a.steps,
                        compile_network=a.compile)
-    stream = make_stream(endpoint, task, credits=4, timeout_s=600, outputs=stream_outputs(trainer.cfg))
+    stream = make_stream(endpoint, task, timeout_s=600, outputs=stream_outputs(trainer.cfg))
     feed = read_path(stream, device)  # v2v-train's: a plan read ahead of the loop
     loader = iter(feed)
     cache = [next(loader) for _ in range(2)]
