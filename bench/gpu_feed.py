@@ -422,7 +422,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         for batch in batches:
             serve = ["--videos", videos, "--shot-cuts", "off", "--workers", str(a.workers), "--batch-size", str(batch),
                      "--sequence-length", str(sizes["sequence_length"]), "--crop-size", str(sizes["crop"]),
-                     "--num-bins", str(sizes["num_bins"]), "--delivery", "plan", *shlex.split(a.serve_args)]
+                     "--num-bins", str(sizes["num_bins"]), *shlex.split(a.serve_args)]
             with ServeProcess(serve, ready_timeout_s=300) as srv:
                 for task in [m for m in models if (SMOKE_BATCH if smoke else PAPER_BATCH[m]) == batch]:
                     for amp in a.amp.split(","):

@@ -20,8 +20,9 @@ from pathlib import Path
 from typing import List, Optional
 
 from harness.faults import good_corpus
-from v2v_client import open_stream
+from v2v_client.plan_dataset import open_stream
 from v2v_client.loadtest import run_loadtest
+from v2v_wire.plan import SHUFFLE_BUFFER
 from harness.serve import ServeProcess
 
 from v2v_wire.protocol import DEFAULT_OUTPUTS as ALL
@@ -29,14 +30,16 @@ from v2v_wire.protocol import DEFAULT_OUTPUTS as ALL
 
 def measure(corpus: Path, shards: int, workers_each: int, batches: int, extra: List[str]) -> dict:
     """Start ``shards`` servers (``--shard i/shards`` each, ``workers_each`` workers) and read
-    ``batches`` batches from all of them as one plan; ``made_share``: each server's share of the
+    ``batches`` batches from all of them as one plan, after one batch and the servers' made-ahead
+    stock (a shuffle buffer each), read unmeasured; ``made_share``: each server's share of the
     samples made by the end of the row."""
     base = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers_each), "--batch-size", "4", "--seed", "1", *extra]
     procs = []
     try:
         for i in range(shards):
             procs.append(ServeProcess(base + (["--shard", f"{i}/{shards}"] if shards > 1 else [])).start())
-        r = run_loadtest(",".join(p.endpoint for p in procs), batches, outputs=ALL, timeout_s=300, warmup=1)
+        warmup = 1 + -(-shards * SHUFFLE_BUFFER // 4)
+        r = run_loadtest(",".join(p.endpoint for p in procs), batches, outputs=ALL, timeout_s=300, warmup=warmup)
         made = [open_stream(p.endpoint, timeout_s=60).server_feed()["samples_made"] for p in procs]
         return {**r, "made_share": [m / max(1, sum(made)) for m in made]}
     finally:

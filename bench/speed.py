@@ -182,7 +182,8 @@ def served(b: dict) -> tuple:
 
 def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], endpoint: Optional[str] = None) -> dict:
     """Through ``v2v-serve`` read by plan (:func:`reader`): samples/s, time to the first batch,
-    and CPU-seconds per GB of the server main process and of this (client) process."""
+    and CPU-seconds per GB of the server main process and of this (client) process, measured
+    after two batches and the server's made-ahead stock (:func:`made_ahead`)."""
     from harness.serve import ServeProcess
 
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "8", "--seed", "1", *extra]
@@ -194,6 +195,9 @@ def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], 
         next(it)
         first = time.perf_counter() - t0
         next(it)
+        stock = 0
+        while stock < made_ahead(extra):  # samples the server made before the window asked
+            stock += served(next(it))[0]
         s0, c0, w0 = _cpu_s(srv.proc.pid), time.process_time(), time.perf_counter()
         nbytes = samples = 0
         for _ in range(batches):
@@ -225,6 +229,13 @@ def worker_pids(server_pid: int) -> List[int]:
     return [int(k) for k in kids if "resource_tracker" not in Path(f"/proc/{k}/cmdline").read_text()]
 
 
+def made_ahead(extra: List[str]) -> int:
+    """Samples a plan server started with ``extra`` makes ahead of the fetches: its shuffle buffer."""
+    from v2v_wire.plan import SHUFFLE_BUFFER
+
+    return int(extra[extra.index("--shuffle-buffer") + 1]) if "--shuffle-buffer" in extra else SHUFFLE_BUFFER
+
+
 def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs=("voxels", "frames", "flow")) -> dict:
     """The producer alone: ``v2v-serve --workers N`` read as fast as a raw client takes it.
 
@@ -234,10 +245,10 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
     a core, a slot or the server), ``other_threads`` (share of the workers' CPU-seconds spent
     outside their main threads: decoder, OpenCV, BLAS or numba pools), ``threads`` (threads per
     worker), ``server_cpu_s`` per sample and ``server_cpu_s_per_gb`` (the server main process, per GB
-    of the batches' arrays received) and ``gb``. Measured after two batches. Raises
-    ``RuntimeError`` when the workers used no CPU during the measured samples (all of them
-    made before the window: ``samples`` too small for the server's made-ahead samples and the
-    client's fetches in flight).
+    of the batches' arrays received) and ``gb``. Measured after two batches and the server's
+    made-ahead stock (:func:`made_ahead`), read unmeasured: the workers then make what the
+    window reads. Raises ``RuntimeError`` when the workers used no CPU during the measured
+    samples (all of them made before the window).
     """
     from harness.serve import ServeProcess
 
@@ -246,6 +257,9 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
         it = reader(srv.endpoint, outputs)
         for _ in range(2):  # workers started, kernels loaded
             next(it)
+        stock = 0
+        while stock < made_ahead(extra):  # samples the server made before the window asked
+            stock += served(next(it))[0]
         pids = worker_pids(srv.proc.pid)
         c0, s0, w0 = [_threads_cpu_s(p) for p in pids], _cpu_s(srv.proc.pid), time.perf_counter()
         n = nbytes = 0

@@ -19,6 +19,7 @@ from typing import List, Optional
 
 from v2v_client import PlanEpochs, V2VStreamDataset
 from v2v_client.loadtest import run_loadtest
+from v2v_wire.plan import SHUFFLE_BUFFER
 from harness.serve import ServeProcess
 
 
@@ -50,9 +51,11 @@ def tree_pss_mb(pid: int) -> float:
 
 
 def measure(corpus: Path, workers: int, outputs, batches: int, extra: List[str]) -> dict:
+    """``batches`` batches of 4 read by ``run_loadtest`` after one batch and the server's made-ahead
+    stock (its shuffle buffer), read unmeasured: the rate the workers make samples at."""
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
     with ServeProcess(args) as srv:
-        r = run_loadtest(srv.endpoint, batches, outputs=outputs, timeout_s=120, warmup=1)
+        r = run_loadtest(srv.endpoint, batches, outputs=outputs, timeout_s=120, warmup=1 + -(-SHUFFLE_BUFFER // 4))
     return r
 
 
