@@ -119,10 +119,12 @@ class PlanServer:
             for video, (cause, why) in sorted(self.skipped.items()):  # known to give no window: named as if read
                 self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)", cause=cause)
             counted = sum(1 for _, n in self.manifest.slots if n is not None)
+            rings = any(w.ring is not None for w in pool.workers.values())
             log.info("serving by plan %s: %d video(s) (%d counted: %s samples per epoch), from %s on %s with %d "
-                     "worker(s)", self.identity.manifest, len(self.manifest.slots), counted,
+                     "worker(s); samples travel %s", self.identity.manifest, len(self.manifest.slots), counted,
                      "unknown yet" if self.manifest.samples is None else self.manifest.samples, self.source.root,
-                     self.bound_endpoint, self.cfg.workers)
+                     self.bound_endpoint, self.cfg.workers,
+                     "through shared-memory slot rings" if rings else "as socket frames")
             if ready_event is not None:
                 ready_event.set()
             return self._loop()
