@@ -479,9 +479,11 @@ def test_served_epochs_identical_with_the_cache_and_epoch_one_hits(tmp_path):
     plain, _ = _served(corpus)
     cached, m = _served(corpus, "--frame-cache-gb", "1", "--cache-dir", str(tmp_path / "cache"))
     assert len(plain) == 8 and cached == plain  # 2 windows of each clip, 2 epochs
-    # epochs overlap: a worker may open a video of epoch 1 while another still stores it for epoch 0
+    # every pass over a video is a hit or a miss; a video may be passed over more than once an
+    # epoch (a pass whose samples were dropped before their fetch is made again) and a pass may
+    # open a video while another still stores it: each video is stored once, epoch 1 hits
     misses = m['v2v_frame_cache_misses_total{cause="absent"}']
-    assert m["v2v_frame_cache_hits_total"] >= 1 and m["v2v_frame_cache_hits_total"] + misses == 4, m
+    assert m["v2v_frame_cache_hits_total"] >= 1 and m["v2v_frame_cache_hits_total"] + misses >= 4, m
     assert m["v2v_frame_cache_stored_total"] == 2, m
     assert m["v2v_frame_cache_budget_bytes"] == 1 << 30 and m["v2v_frame_cache_entries"] == 2
 
