@@ -10,8 +10,7 @@ what the corpus size costs), and one trainer reads one batch. Rows: seconds from
 process start to the "serving" log line, seconds to the first batch, and the peak resident
 memory (``VmHWM``) of the server process and of its worker. With ``--baseline-tree``, every
 size is measured also with the code of another checkout (``PYTHONPATH``), in the same run,
-and the table shows the ratios. ``--delivery push,plan`` measures each delivery (``v2v-serve
---delivery``, read by ``V2VPushDataset`` and ``V2VStreamDataset``) on the same corpus.
+and the table shows the ratios. The trainer reads by plan (``V2VStreamDataset``).
 """
 from __future__ import annotations
 
@@ -25,7 +24,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from harness.serve import ServeProcess
-from v2v_client import V2VStreamDataset, V2VPushDataset
+from v2v_client import V2VStreamDataset
 
 CLIP = Path(__file__).resolve().parent.parent / "v2v_server" / "sample_videos" / "bbb_camera_596x336.mp4"
 LINKS_PER_COPY = 60_000  # ext4 allows 65,000 links to one inode
@@ -71,19 +70,16 @@ def children(pid: int) -> List[int]:
     return out
 
 
-def measure(videos: Path, tree: str, timeout_s: float, delivery: str = "push") -> dict:
-    """Start ``v2v-serve --delivery DELIVERY`` on ``videos`` with the code of the checkout ``tree``
-    and read one batch (of 4 samples)."""
+def measure(videos: Path, tree: str, timeout_s: float) -> dict:
+    """Start ``v2v-serve`` on ``videos`` with the code of the checkout ``tree`` and read one batch
+    (of 4 samples) by plan."""
     args = ["--videos", str(videos), "--workers", "1", "--sequence-length", "4", "--crop-size", "64",
             "--batch-size", "4", "--seed", "1", "--shot-cuts", "off", "--log-level", "INFO"]
-    if delivery != "push":
-        args += ["--delivery", delivery]
     # ``python -m`` puts the working folder first on sys.path: the server starts in ``tree``
     t0 = time.monotonic()
     with ServeProcess(args, ready_timeout_s=timeout_s, env={"PYTHONPATH": tree}, wrap=["env", "-C", tree]) as srv:
         serving = time.monotonic() - t0
-        it = iter(V2VPushDataset(srv.endpoint, outputs=("voxels",), credits=1, timeout_s=timeout_s, shm=False)
-                  if delivery == "push" else V2VStreamDataset(srv.endpoint, 4, outputs=("voxels",), timeout_s=timeout_s))
+        it = iter(V2VStreamDataset(srv.endpoint, 4, outputs=("voxels",), prefetch=1, timeout_s=timeout_s))
         try:
             next(it)
             first = time.monotonic() - t0
@@ -100,12 +96,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--baseline-tree", help="a checkout whose code is measured too, for ratios (e.g. a worktree of main)")
     p.add_argument("--timeout", type=float, default=900.0, help="seconds a server may take to start or to give a batch")
     p.add_argument("--tmp", default=None, help="folder for the generated corpora (default: the system's temp folder)")
-    p.add_argument("--delivery", default="plan", help="deliveries to measure, comma-separated (plan, push)")
     p.add_argument("--out", help="also write the table (markdown) here")
     a = p.parse_args(argv)
     here = str(Path(__file__).resolve().parent.parent)
-    trees = ([("baseline", a.baseline_tree, "push")] if a.baseline_tree else []) + \
-        [("this tree" if d == "push" else f"this tree, {d}", here, d) for d in a.delivery.split(",")]
+    trees = ([("baseline", a.baseline_tree)] if a.baseline_tree else []) + [("this tree", here)]
     lines = ["| videos | code | to serving (s) | to first batch (s) | server peak RSS (MB) | worker peak RSS (MB) |",
              "|---:|---|---:|---:|---:|---:|"]
     for n in [int(s) for s in a.sizes.split(",")]:
@@ -114,8 +108,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             videos = link_corpus(Path(d), n)
             print(f"{n} links made in {time.monotonic() - t:.1f} s", file=sys.stderr)
             rows = {}
-            for name, tree, delivery in trees:
-                rows[name] = r = measure(videos, tree, a.timeout, delivery)
+            for name, tree in trees:
+                rows[name] = r = measure(videos, tree, a.timeout)
                 print(f"{n} {name}: {r}", file=sys.stderr)
                 lines.append(f"| {n:,} | {name} | {r['serving_s']:.1f} | {r['first_batch_s']:.1f} | "
                              f"{r['server_mb']:.0f} | {r['worker_mb']:.0f} |")

@@ -214,7 +214,7 @@ def measure(task: str, amp: str, speed: Optional[str], endpoint: str, a, smoke: 
 
     trainer = _trainer(task, amp, speed, smoke, device, tmp / f"{task}_{amp}_{speed}", a.warmup + a.steps,
                        compile_network=a.compile)
-    stream = make_stream(endpoint, task, credits=4, timeout_s=600, outputs=stream_outputs(trainer.cfg))
+    stream = make_stream(endpoint, task, timeout_s=600, outputs=stream_outputs(trainer.cfg))
     feed = read_path(stream, device)  # v2v-train's: a plan read ahead of the loop
     loader = iter(feed)
     cache = [next(loader) for _ in range(2)]
@@ -422,7 +422,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         for batch in batches:
             serve = ["--videos", videos, "--shot-cuts", "off", "--workers", str(a.workers), "--batch-size", str(batch),
                      "--sequence-length", str(sizes["sequence_length"]), "--crop-size", str(sizes["crop"]),
-                     "--num-bins", str(sizes["num_bins"]), "--delivery", "plan", *shlex.split(a.serve_args)]
+                     "--num-bins", str(sizes["num_bins"]), *shlex.split(a.serve_args)]
             with ServeProcess(serve, ready_timeout_s=300) as srv:
                 for task in [m for m in models if (SMOKE_BATCH if smoke else PAPER_BATCH[m]) == batch]:
                     for amp in a.amp.split(","):

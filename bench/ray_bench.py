@@ -7,7 +7,8 @@ Rows (samples/s; ratio against v2v-serve measured in the same run):
 
 * ``in-process``: ``samples.video_samples`` over the corpus in one process, the work itself;
   its time per sample is the compute both engines must spend;
-* ``v2v-serve``: ``--workers N`` read through ``V2VPushDataset`` (server start excluded);
+* ``v2v-serve``: ``--workers N``, epochs ``0 .. --epochs - 1`` read by plan through
+  ``V2VStreamDataset`` (server start excluded; padding rows not counted);
 * ``ray data``: ``v2v_dataset(...).iter_batches()`` with an actor pool of N (``ray.init``
   excluded, actor start included: that is what an epoch costs);
 * overhead per sample: worker-seconds per sample (wall x N / samples) minus the in-process
@@ -30,7 +31,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from harness.faults import good_corpus
-from v2v_client import V2VPushDataset
+from v2v_client import V2VStreamDataset
 from v2v_server.ops.config import ServeConfig
 from harness.serve import ServeProcess
 from v2v_server.flow.estimate import FlowEstimator
@@ -59,14 +60,17 @@ def in_process(cfg: ServeConfig, corpus: Path) -> dict:
 
 
 def serve(cfg: ServeConfig, corpus: Path, workers: int, epochs: int) -> dict:
-    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4", "--epochs", str(epochs),
+    """Epochs ``0 .. epochs - 1`` of ``v2v-serve --workers N`` read by plan: samples and wall seconds."""
+    args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4",
             *layout_args(cfg)]
     with ServeProcess(args) as srv:
+        ds = V2VStreamDataset(srv.endpoint, timeout_s=300, raw=True)
         t0, n = time.perf_counter(), 0
-        for b in V2VPushDataset(srv.endpoint, timeout_s=300, raw=True):
-            n += len(b["sample_ids"])
+        for epoch in range(epochs):
+            ds.set_epoch(epoch)
+            for b in ds:
+                n += len(b["padding"]) - int(b["padding"].sum())
         wall = time.perf_counter() - t0
-        srv.wait(30)
     return {"samples": n, "wall_s": wall}
 
 

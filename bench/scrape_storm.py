@@ -1,7 +1,8 @@
 """What scraping ``/metrics`` costs a serving ``v2v-serve``.
 
 Run: ``python -m bench.scrape_storm [--seconds 20] [--rate 200]``. Starts a server on the
-bundled clips with ``--metrics-port``, reads voxels for ``--seconds`` with one trainer, once
+bundled clips with ``--metrics-port``, reads voxels for ``--seconds`` with one trainer (the
+plan's epochs in turn through ``V2VStreamDataset``, 8 fetches in flight), once
 alone and once while another process fetches ``/metrics`` ``--rate`` times a second, and prints
 batches/s, the server main process's CPU seconds per batch (``/proc/PID/stat``; workers are
 other processes), and the ratios against the run without scrapes.
@@ -15,7 +16,7 @@ import sys
 import time
 
 from harness.serve import ServeProcess, free_port
-from v2v_client import V2VPushDataset
+from v2v_client import PlanEpochs, V2VStreamDataset
 
 SCRAPER = """
 import sys, time, urllib.request
@@ -38,8 +39,7 @@ def run(seconds: float, rate: float) -> dict:
     port = free_port()
     with ServeProcess(["--workers", "1", "--outputs", "voxels", "--metrics-port", str(port),
                        "--crop-size", "64", "--sequence-length", "8", "--batch-size", "4"]) as srv:
-        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60, credits=8)
-        it = iter(ds)
+        it = iter(PlanEpochs(V2VStreamDataset(srv.endpoint, outputs=("voxels",), timeout_s=60, prefetch=8)))
         for _ in range(10):  # warm: workers compiled and producing
             next(it)
         scraper = None

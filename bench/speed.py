@@ -15,9 +15,10 @@ Rows:
   voxels only, and every output at the default flow preset; both again with ``decode_fast``
   ``bidir`` (docs/decode_fast.md: the fastest setting whose voxel error stays under V2V's own
   noise); ``crops_per_window`` 4;
-* the relay: ``v2v-serve --workers 2`` -> ``V2VPushDataset(raw=True)``: the server main
-  process's CPU-seconds per GB sent, the client process's CPU-seconds per GB received,
-  stream samples/s with 1 and 2 workers, time to the first batch;
+* the stream: ``v2v-serve --workers 2`` read by plan (the plan's epochs in turn through
+  ``V2VStreamDataset(raw=True)``, four fetches in flight): the server main process's
+  CPU-seconds per GB sent, the client process's CPU-seconds per GB received, stream samples/s
+  with 1 and 2 workers, time to the first batch;
 * memory: server tree RSS under a trainer that stalls, against the bound of docs/speed.md (Memory bound).
 """
 from __future__ import annotations
@@ -164,28 +165,44 @@ def _cpu_s(pid: int) -> float:
     return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def reader(endpoint: str, outputs=("voxels", "frames", "flow"), prefetch: int = 4):
+    """An iterator over the plan's epochs in turn at ``endpoint``, raw wire dtypes, ``prefetch``
+    fetches in flight (the benches' trainer with no step)."""
+    from v2v_client import PlanEpochs, V2VStreamDataset
+
+    return iter(PlanEpochs(V2VStreamDataset(endpoint, outputs=outputs, prefetch=prefetch, timeout_s=300, raw=True)))
+
+
+def served(b: dict) -> tuple:
+    """(samples, bytes of their arrays) of batch ``b``: its rows that carry a sample, not padding."""
+    n = len(b["padding"])
+    rows = n - int(b["padding"].sum())
+    return rows, sum(v.numel() * v.element_size() for v in b.values() if hasattr(v, "numel")) * rows // n
+
+
 def stream(corpus: Path, workers: int, batches: int, outputs, extra: List[str], endpoint: Optional[str] = None) -> dict:
-    """Through ``v2v-serve`` and ``V2VPushDataset(raw=True)``: samples/s, time to the first
-    batch, and CPU-seconds per GB of the server main process and of this (client) process."""
+    """Through ``v2v-serve`` read by plan (:func:`reader`): samples/s, time to the first batch,
+    and CPU-seconds per GB of the server main process and of this (client) process, measured
+    after two batches and the server's made-ahead stock (:func:`made_ahead`)."""
     from harness.serve import ServeProcess
-    from v2v_client import V2VPushDataset
 
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "8", "--seed", "1", *extra]
     if endpoint:
         args += ["--bind", endpoint]
     with ServeProcess(args) as srv:
         t0 = time.perf_counter()
-        ds = V2VPushDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True)
-        it = iter(ds)
+        it = reader(srv.endpoint, outputs)
         next(it)
         first = time.perf_counter() - t0
         next(it)
+        stock = 0
+        while stock < made_ahead(extra):  # samples the server made before the window asked
+            stock += served(next(it))[0]
         s0, c0, w0 = _cpu_s(srv.proc.pid), time.process_time(), time.perf_counter()
         nbytes = samples = 0
         for _ in range(batches):
-            b = next(it)
-            samples += len(b["sample_ids"])
-            nbytes += sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel"))
+            rows, size = served(next(it))
+            samples, nbytes = samples + rows, nbytes + size
         s1, c1, w1 = _cpu_s(srv.proc.pid), time.process_time(), time.perf_counter()
         it.close()
     gb = nbytes / 1e9
@@ -212,6 +229,13 @@ def worker_pids(server_pid: int) -> List[int]:
     return [int(k) for k in kids if "resource_tracker" not in Path(f"/proc/{k}/cmdline").read_text()]
 
 
+def made_ahead(extra: List[str]) -> int:
+    """Samples a plan server started with ``extra`` makes ahead of the fetches: its shuffle buffer."""
+    from v2v_wire.plan import SHUFFLE_BUFFER
+
+    return int(extra[extra.index("--shuffle-buffer") + 1]) if "--shuffle-buffer" in extra else SHUFFLE_BUFFER
+
+
 def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs=("voxels", "frames", "flow")) -> dict:
     """The producer alone: ``v2v-serve --workers N`` read as fast as a raw client takes it.
 
@@ -220,26 +244,28 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
     ``core_share`` (workers' CPU-seconds / (N x wall seconds): below 1 when a worker waited for
     a core, a slot or the server), ``other_threads`` (share of the workers' CPU-seconds spent
     outside their main threads: decoder, OpenCV, BLAS or numba pools), ``threads`` (threads per
-    worker), ``server_cpu_s`` per sample and ``server_cpu_s_per_gb`` (the relay process, per GB
-    of the batches' arrays received) and ``gb``. Measured after two batches. Raises
-    ``RuntimeError`` when the workers used no CPU during the measured samples (all of them
-    queued before the window: ``samples`` too small for the server's and the client's queues).
+    worker), ``server_cpu_s`` per sample and ``server_cpu_s_per_gb`` (the server main process, per GB
+    of the batches' arrays received) and ``gb``. Measured after two batches and the server's
+    made-ahead stock (:func:`made_ahead`), read unmeasured: the workers then make what the
+    window reads. Raises ``RuntimeError`` when the workers used no CPU during the measured
+    samples (all of them made before the window).
     """
     from harness.serve import ServeProcess
-    from v2v_client import V2VPushDataset
 
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
     with ServeProcess(args, ready_timeout_s=300) as srv:
-        it = iter(V2VPushDataset(srv.endpoint, outputs=outputs, credits=4, timeout_s=300, raw=True))
+        it = reader(srv.endpoint, outputs)
         for _ in range(2):  # workers started, kernels loaded
             next(it)
+        stock = 0
+        while stock < made_ahead(extra):  # samples the server made before the window asked
+            stock += served(next(it))[0]
         pids = worker_pids(srv.proc.pid)
         c0, s0, w0 = [_threads_cpu_s(p) for p in pids], _cpu_s(srv.proc.pid), time.perf_counter()
         n = nbytes = 0
         while n < samples:
-            b = next(it)
-            n += len(b["sample_ids"])
-            nbytes += sum(v.numel() * v.element_size() for v in b.values() if hasattr(v, "numel"))
+            rows, size = served(next(it))
+            n, nbytes = n + rows, nbytes + size
         c1, s1, w1 = [_threads_cpu_s(p) for p in pids], _cpu_s(srv.proc.pid), time.perf_counter()
         threads = max(len(os.listdir(f"/proc/{p}/task")) for p in pids)
         it.close()
@@ -247,7 +273,7 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
     other = sum(b[1] - a[1] for a, b in zip(c0, c1))
     if main + other <= 0:
         raise RuntimeError(f"producer: the workers used no CPU while the {n} measured samples arrived: they were "
-                           "all made before the window (queued in the server and the client's credits); measure "
+                           "all made before the window (made ahead by the server and fetched ahead by the client); measure "
                            "more samples")
     wall = w1 - w0
     return {"workers": workers, "samples": n, "samples_per_s": n / wall, "per_worker": n / wall / workers,
@@ -256,18 +282,17 @@ def producer(corpus: Path, workers: int, samples: int, extra: List[str], outputs
             "gb": nbytes / 1e9, "server_cpu_s_per_gb": (s1 - s0) / max(nbytes / 1e9, 1e-12)}
 
 
-def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 8, credits: int = 1,
-                   prefetch: int = 2) -> dict:
-    """Server tree RSS while a trainer holding ``credits`` takes nothing for ``stall_s``."""
+def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 8, prefetch: int = 1) -> dict:
+    """Server tree RSS while a trainer with ``prefetch`` fetches in flight takes nothing for ``stall_s``."""
     from harness.serve import ServeProcess
-    from v2v_client import V2VPushDataset
+    from v2v_wire.plan import SHUFFLE_BUFFER
+    from v2v_wire.protocol import DEFAULT_OUTPUTS
 
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", str(batch), "--seed", "1"]
     with ServeProcess(args) as srv:
-        it = iter(V2VPushDataset(srv.endpoint, credits=credits, timeout_s=300, raw=True))
-        b = next(it)
-        sample_mb = sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel")) / 1e6 / len(
-            b["sample_ids"])
+        it = reader(srv.endpoint, DEFAULT_OUTPUTS, prefetch)
+        rows, size = served(next(it))
+        sample_mb = size / 1e6 / rows
         time.sleep(3.0)
         start = tree_rss_mb(srv.proc.pid)
         peak = start
@@ -277,10 +302,11 @@ def stalled_memory(corpus: Path, stall_s: float, workers: int = 2, batch: int = 
             peak = max(peak, tree_rss_mb(srv.proc.pid))
         idle = srv_idle_rss = tree_rss_mb(srv.proc.pid)
         it.close()
-    # the bound on what the data path holds (docs/speed.md): workers x (window buffers + 3 shared-memory
-    # slots) + (prefetch + credits + 3 batch buffers: the open one and 2 spares) x batch
+    # the bound on what the data path holds: workers x (window buffers + 3 shared-memory slots) + the
+    # server's store (the shuffle buffer made ahead, a batch kept once fetched, the largest video's
+    # samples: 2 windows of the clip) + the replies of the fetches in flight
     window_mb = SPAN * 128 * 128 / 1e6
-    bound = workers * (window_mb + 3 * sample_mb) + (prefetch + credits + 3) * batch * sample_mb
+    bound = workers * (window_mb + 3 * sample_mb) + (SHUFFLE_BUFFER + batch + 2 + prefetch * batch) * sample_mb
     return {"start_mb": start, "peak_mb": peak, "end_mb": idle, "growth_mb": peak - start,
             "data_bound_mb": bound, "sample_mb": sample_mb, "srv_idle": srv_idle_rss}
 
@@ -336,19 +362,18 @@ def per_core_rows(corpus: Path, clip: Path, rounds: int, row: Callable) -> None:
 
 
 def stream_rows(corpus: Path, folder: str, batches: int, stall: float, row: Callable) -> None:
-    """The rows through a served stream (``row`` as :func:`per_core_rows`): the relay's CPU per
-    GB, the client's, 1 and 2 workers' rates, and the server's memory over a ``stall`` s stall;
+    """The rows through a served stream (``row`` as :func:`per_core_rows`): the server main
+    process's CPU per GB, the client's, 1 and 2 workers' rates, and the server's memory over a ``stall`` s stall;
     ``folder``: where the ``ipc://`` socket goes."""
     outs = ("voxels", "frames", "flow")
     s1 = stream(corpus, 1, batches, outs, [])
     s2 = stream(corpus, 2, batches, outs, ["--crops-per-window", "4"])
-    # a short 2-core stream: polling, heartbeats and the workers' competition for the cores
-    # are in these per-GB rows; the relay's per-byte cost alone is bench.relay's
-    row("relay: server main process CPU per GB (2 workers, crops 4, whole stream)", s2["server_cpu_s_per_gb"],
-        "CPU-s/GB", f"{s2['gb']:.2f} GB of samples; per byte alone: bench.relay")
+    # a short 2-core stream: polling and the workers' competition for the cores are in these per-GB rows
+    row("server main process CPU per GB (2 workers, crops 4, whole stream)", s2["server_cpu_s_per_gb"],
+        "CPU-s/GB", f"{s2['gb']:.2f} GB of samples")
     ipc = f"ipc://{folder}/v2v.sock"
     s3 = stream(corpus, 2, batches, outs, ["--crops-per-window", "4"], endpoint=ipc)
-    row("relay over ipc:// (same host, whole stream)", s3["server_cpu_s_per_gb"], "CPU-s/GB",
+    row("server main process CPU per GB over ipc:// (same host, whole stream)", s3["server_cpu_s_per_gb"], "CPU-s/GB",
         f"{s3['samples_per_s']:.1f} samples/s")
     row("client CPU per GB of samples, raw=True (flow expanded from the grid)", s2["client_cpu_s_per_gb"],
         "CPU-s/GB", "")

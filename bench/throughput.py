@@ -2,10 +2,11 @@
 
 Run: ``python -m bench.throughput [--batches 6] [--out docs/throughput.md]``.
 
-Rows: batches/s and samples/s through ``V2VPushDataset`` for worker counts and the
-outputs a trainer asks for (workers compute only those), each with its ratio to the
+Rows: batches/s and samples/s read by plan (``v2v_client.loadtest.run_loadtest``: the plan's
+epochs in turn through ``V2VStreamDataset``, as ``v2v-train`` reads them) for worker counts and
+the outputs a trainer asks for (workers compute only those), each with its ratio to the
 baseline (1 worker, all outputs); then the server's resident memory (server + workers)
-under a stalled and under a fast trainer.
+under a stalled and under a fast trainer (one fetch in flight).
 """
 from __future__ import annotations
 
@@ -16,9 +17,9 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
-from harness.faults import good_corpus
-from v2v_client import V2VPushDataset
+from v2v_client import PlanEpochs, V2VStreamDataset
 from v2v_client.loadtest import run_loadtest
+from v2v_wire.plan import SHUFFLE_BUFFER
 from harness.serve import ServeProcess
 
 
@@ -50,9 +51,11 @@ def tree_pss_mb(pid: int) -> float:
 
 
 def measure(corpus: Path, workers: int, outputs, batches: int, extra: List[str]) -> dict:
+    """``batches`` batches of 4 read by ``run_loadtest`` after one batch and the server's made-ahead
+    stock (its shuffle buffer), read unmeasured: the rate the workers make samples at."""
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", str(workers), "--batch-size", "4", "--seed", "1", *extra]
     with ServeProcess(args) as srv:
-        r = run_loadtest(srv.endpoint, batches, outputs=outputs, timeout_s=120, warmup=1)
+        r = run_loadtest(srv.endpoint, batches, outputs=outputs, timeout_s=120, warmup=1 + -(-SHUFFLE_BUFFER // 4))
     return r
 
 
@@ -60,7 +63,7 @@ def memory(corpus: Path, stall_s: float, fast_batches: int) -> dict:
     args = ["--videos", str(corpus), "--shot-cuts", "off", "--workers", "2", "--batch-size", "4"]
     out = {}
     with ServeProcess(args) as srv:
-        it = iter(V2VPushDataset(srv.endpoint, credits=1, timeout_s=120))
+        it = iter(PlanEpochs(V2VStreamDataset(srv.endpoint, prefetch=1, timeout_s=120)))
         next(it)
         time.sleep(2.0)
         out["stalled_start_mb"] = tree_rss_mb(srv.proc.pid)
@@ -80,6 +83,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--stall", type=float, default=15.0, help="seconds the stalled trainer takes nothing")
     p.add_argument("--out", help="also write the tables (markdown) here")
     a = p.parse_args(argv)
+    from harness.faults import good_corpus  # here: bench.speed imports this module for tree_rss_mb alone
+
     all3 = ("voxels", "frames", "flow")
     rows = [
         ("1 worker, voxels+frames+flow (baseline)", 1, all3, []),

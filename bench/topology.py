@@ -11,7 +11,8 @@ from typing import List, Optional
 
 def draw(out: str, shards: int = 3, ranks: int = 2) -> None:
     """Boxes and arrows: the corpus split by hash over ``shards`` CPU hosts (v2v-serve
-    --shard i/N, W workers each, /metrics), each streaming to every trainer rank."""
+    --shard i/N, W workers each, /metrics), every trainer rank fetching its rows of the one plan
+    from each of them."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -40,14 +41,15 @@ def draw(out: str, shards: int = 3, ranks: int = 2) -> None:
         arrow(1.75, 2.5, 2.55, y)
     rys = [3.4 - i * (1.8 / max(1, ranks - 1)) for i in range(ranks)] if ranks > 1 else [2.5]
     for r, y in enumerate(rys):
-        box(7.0, y - 0.4, 2.8, 0.8, f"GPU rank {r}: V2VPushDataset\n(all shards, rank={r}, world_size={ranks})",
+        box(7.0, y - 0.4, 2.8, 0.8, f"GPU rank {r}: V2VStreamDataset\n(all shards, rank={r}, world_size={ranks})",
             "#e2f0d9", 8)
         for ysrv in ys:
             arrow(5.65, ysrv, 6.95, y, "#4a7ab5")
-    ax.text(8.4, 4.4, "batches over ZeroMQ (CurveZMQ off loopback),\ncredits per connection,\nacks, resume state",
+    ax.text(8.4, 4.4, "fetches of plan positions, rows back over ZeroMQ\n(CurveZMQ off loopback); position t is\n"
+            "shard t mod N's t // N; checkpoint: a position",
             ha="center", va="center", fontsize=8, color="#4a7ab5")
-    ax.text(5.0, 0.02, "each sample id goes to exactly one rank once per epoch; content = f(seed, epoch, sample id) "
-            "whichever host made it", ha="center", fontsize=8)
+    ax.text(5.0, 0.02, "each position of an epoch's plan is read by exactly one rank; content = f(seed, epoch, "
+            "sample id) whichever host made it", ha="center", fontsize=8)
     fig.tight_layout()
     fig.savefig(out)
     plt.close(fig)

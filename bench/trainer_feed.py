@@ -41,7 +41,7 @@ import torch
 
 from bench.speed import make_corpus
 from harness.serve import ServeProcess
-from v2v_server.delivery.core import DeliveryPolicy
+from v2v_server.delivery.policy import DeliveryPolicy
 from trainer.data import drop_padding, make_loader, make_stream, read_path
 from trainer.loop import RunHooks, Schedule, train_loop
 from trainer.tasks import get_task
@@ -105,11 +105,10 @@ def trainer_row(endpoint: str, epoch: int, step_s: float, batches: int, warmup: 
 
 def cache_rows(corpus: Path, cache: str, a, tmp: Path) -> dict:
     """Server alone, then the trainer rows, on one server (``cache``: "warm" or "cold")."""
-    args = ["--workers", str(a.workers), "--videos", str(corpus), "--shot-cuts", "off", "--batch-size", str(a.batch),
-            "--delivery", "plan"]
+    args = ["--workers", str(a.workers), "--videos", str(corpus), "--shot-cuts", "off", "--batch-size", str(a.batch)]
     if cache == "warm":
         args += ["--frame-cache-gb", "4", "--cache-dir", str(tmp / "cache")]
-        subprocess.run(["v2v-serve", "--warm-cache", *args[:-2]], check=True, capture_output=True, timeout=900)
+        subprocess.run(["v2v-serve", "--warm-cache", *args], check=True, capture_output=True, timeout=900)
     res: dict = {"cache": cache, "rows": []}
     with ServeProcess(args) as srv:
         warmup = a.warmup + -(-SHUFFLE_BUFFER // a.batch)  # past the samples made before the first fetch

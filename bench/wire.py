@@ -11,10 +11,10 @@ Two parts, both on real samples (the bundled clips, the default recipe: L = 40, 
    expansion of ``flow_grid`` (``v2v_client.flowgrid``) costs per sample against the float16 ->
    float32 conversion of the dense flow it replaces.
 2. **End to end over tcp://127.0.0.1** (``--seconds`` per setting, after a warm-up): a
-   ``v2v-serve`` child process (``--workers``) and ``V2VPushDataset(compression=...)`` in this
-   process; samples/s, wire bytes per sample (the server's ``v2v_sent_bytes_total``), CPU
-   seconds of the server's main process (``/proc/<pid>/stat``: its relay; the workers are
-   other processes) and of this client process (all its threads) per GB sent and per sample.
+   ``v2v-serve`` child process (``--workers``) and, in this process, the plan's epochs in turn
+   through ``V2VStreamDataset(compression=...)``; samples/s (padding rows not counted), wire
+   bytes per sample (the server's ``v2v_sent_bytes_total``), CPU seconds of the server's main
+   process (``/proc/<pid>/stat``: it sends the rows; the workers are other processes) and of this client process (all its threads) per GB sent and per sample.
    On a small shared machine the workers, not the wire, set the sample rate; the CPU columns
    are what matters there.
 
@@ -135,13 +135,12 @@ def _sent_bytes(port: int) -> float:
 def end_to_end(codec: str, workers: int, seconds: float, warmup_s: float) -> dict:
     """One server, one client asking for ``codec``, over tcp://127.0.0.1."""
     from harness.serve import ServeProcess, free_port
-    from v2v_client import V2VPushDataset
+    from v2v_client import PlanEpochs, V2VStreamDataset
 
     port = free_port()
     with ServeProcess(["--videos", str(CLIPS), "--shot-cuts", "off", "--workers", str(workers), "--metrics-port", str(port),
                        "--batch-size", "8"]) as srv:
-        ds = V2VPushDataset(srv.endpoint, compression=codec, timeout_s=120)
-        it = iter(ds)
+        it = iter(PlanEpochs(V2VStreamDataset(srv.endpoint, compression=codec, timeout_s=120)))
         try:
             t_end = time.monotonic() + warmup_s
             while time.monotonic() < t_end:
@@ -149,7 +148,7 @@ def end_to_end(codec: str, workers: int, seconds: float, warmup_s: float) -> dic
             b0, c0, p0, t0 = _sent_bytes(port), time.process_time(), _proc_cpu(srv.proc.pid), time.monotonic()
             n = 0
             while time.monotonic() - t0 < seconds:
-                n += len(next(it)["sample_ids"])
+                n += int((~next(it)["padding"]).sum())
             dt = time.monotonic() - t0
             sent = _sent_bytes(port) - b0
             client, server = time.process_time() - c0, _proc_cpu(srv.proc.pid) - p0

@@ -15,8 +15,9 @@ rank: ``torchrun --nproc_per_node 2 -m harness.accelerate_plan_job ENDPOINT OUT_
 
 Each rank writes ``OUT_DIR/rank{R}.json``: ``seen`` (``[epoch, id]`` of the rows trained on,
 padding excluded), ``saved`` (those up to the checkpoint), ``steps`` (per epoch), ``positions``
-(``[epoch, sample_in_epoch]`` of each batch's position), ``len`` (``len(loader)`` per epoch) and
-``error`` (the first line of an exception raised before or during the loop). Every step is a
+(``[epoch, sample_in_epoch]`` of each batch's position), ``len`` (``len(loader)`` per epoch),
+``cpu_s`` and ``wall_s`` (this process's CPU seconds, every thread, and wall seconds from its first
+batch to the end of its loop: ``bench.launchers``) and ``error`` (the first line of an exception raised before or during the loop). Every step is a
 DDP step (the gradients all-reduced): ranks taking different numbers of steps would hang.
 """
 from __future__ import annotations
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import time
 from pathlib import Path
 
 import torch
@@ -58,7 +60,8 @@ def main() -> None:
     model = torch.nn.Linear(1, 1)
     opt = torch.optim.SGD(model.parameters(), lr=0.01)
     rec = {"rank": acc.process_index, "seen": [], "saved": None, "steps": {}, "positions": [], "len": [],
-           "error": None}
+           "cpu_s": 0.0, "wall_s": 0.0, "error": None}
+    clock = None  # (CPU, wall) seconds at the first batch
     try:
         if args.prepare == "plain":
             model, opt, loader = acc.prepare(model, opt, loader)
@@ -73,6 +76,7 @@ def main() -> None:
             loader.set_epoch(epoch)
             steps = 0
             for step, batch in enumerate(loader):
+                clock = clock or (time.process_time(), time.perf_counter())
                 keep = ~batch["padding"]
                 rec["seen"] += [[batch["epoch"], s] for s, k in zip(batch["sample_ids"], keep.tolist()) if k]
                 rec["positions"].append([batch["position"]["epoch"], batch["position"]["sample_in_epoch"]])
@@ -91,6 +95,8 @@ def main() -> None:
                 if epoch == first and step == args.stop_after:
                     break
             rec["steps"][epoch] = steps
+            if clock:
+                rec["cpu_s"], rec["wall_s"] = time.process_time() - clock[0], time.perf_counter() - clock[1]
             rec["len"].append(len(loader))  # after the pass: IterableDatasetShard's len fails before it
             if epoch == first and args.stop_after >= 0 and steps == args.stop_after + 1:
                 break

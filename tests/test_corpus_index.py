@@ -189,7 +189,7 @@ def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty
     import sys
 
     from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
               "--cache-dir", str(tmp_path / "cache"), *recipe]
@@ -202,14 +202,14 @@ def test_the_server_starts_from_the_index_knowing_its_epoch_and_opening_no_empty
     assert r.returncode == 0 and samples > 0, r.stdout
     assert samples == windows * (int(recipe[1]) if recipe else 1), r.stdout
     assert empty, r.stdout  # the 201-frame windows: bigbuckbunny.mp4 (132 frames) gives none
-    with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
+    with ServeProcess(["--videos", str(corpus), "--workers", "1", "--batch-size", "1",
                        "--log-level", "info", *layout]) as srv:
-        ids = [sid for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
-               for sid in b["sample_ids"]]
+        ids = [sid for b in V2VStreamDataset(srv.endpoint, 1, outputs=("voxels",), timeout_s=120)
+               for sid, pad in zip(b["sample_ids"], b["padding"]) if not pad]
     log = srv.log
     assert len(ids) == len(set(ids)) == samples
     assert f"{len(empty)} video(s) not opened: the corpus index" in log
-    assert f"an epoch holds {samples} sample(s) of {3 - len(empty)} video(s)" in log
+    assert f"3 video(s) (3 counted: {samples} samples per epoch)" in log  # the plan's size, known at start
     for name in empty:  # named once, from the index: a read would have named it again, without the remark
         lines = [ln for ln in log.splitlines() if f"{corpus / name}:" in ln]
         assert len(lines) == 1 and "skipped" in lines[0] and "(known from the corpus index: not opened)" in lines[0]
@@ -251,15 +251,15 @@ def test_a_served_epoch_or_a_warm_up_fills_the_index_for_the_next_start(corpus, 
     import sys
 
     from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3"]
 
     def epoch(cache):
-        with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
+        with ServeProcess(["--videos", str(corpus), "--workers", "1", "--batch-size", "1",
                            "--log-level", "info", "--cache-dir", str(cache), *layout]) as srv:
-            ids = [sid for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
-                   for sid in b["sample_ids"]]
+            ids = [sid for b in V2VStreamDataset(srv.endpoint, 1, outputs=("voxels",), timeout_s=120)
+                   for sid, pad in zip(b["sample_ids"], b["padding"]) if not pad]
         return ids, srv.log
 
     def check(cache, *extra):
@@ -275,7 +275,7 @@ def test_a_served_epoch_or_a_warm_up_fills_the_index_for_the_next_start(corpus, 
     again, log = epoch(tmp_path / "a")
     empty = [os.path.basename(r[0]) for r in rows if r[1] == 0]
     assert sorted(again) == sorted(ids) and empty
-    assert f"an epoch holds {len(ids)} sample(s)" in log and f"{len(empty)} video(s) not opened" in log
+    assert f"3 video(s) (3 counted: {len(ids)} samples per epoch)" in log and f"{len(empty)} video(s) not opened" in log
     # --check answers a sample pass's entries by decoding (its own timing), as on a fresh index
     assert check(tmp_path / "a", "--check").stdout == check(tmp_path / "fresh", "--check").stdout
     # --warm-cache writes the entries too
@@ -431,7 +431,7 @@ def test_a_server_starting_on_a_faulty_index_serves_the_whole_epoch(corpus, tmp_
     ``windows`` value v2v never writes, or a lock another process holds, is one warning, the
     epoch's size is then unknown (not a wrong one) and every sample is served."""
     from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     layout = ["--crop-size", "64", "--max-samples-per-video", "2", "--flow-preset", "ultrafast", "--seed", "3",
               "--sequence-length", "8"]
@@ -447,15 +447,15 @@ def test_a_server_starting_on_a_faulty_index_serves_the_whole_epoch(corpus, tmp_
         holder.execute("DELETE FROM entries")  # not committed: the server would read the entries, and cannot
         words = "database is locked (another process holds its lock)"
     try:
-        with ServeProcess(["--videos", str(corpus), "--workers", "1", "--epochs", "1", "--batch-size", "1",
+        with ServeProcess(["--videos", str(corpus), "--workers", "1", "--batch-size", "1",
                            "--log-level", "info", "--cache-dir", str(cache), *layout]) as srv:
-            ids = [sid for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
-                   for sid in b["sample_ids"]]
+            ids = [sid for b in V2VStreamDataset(srv.endpoint, 1, outputs=("voxels",), timeout_s=120)
+                   for sid, pad in zip(b["sample_ids"], b["padding"]) if not pad]
     finally:
         holder.close()
     assert len(ids) == len(set(ids)) == samples > 0
     _one_warning(srv.log, cache / INDEX_FILE, words)
-    assert "an epoch holds" not in srv.log
+    assert "unknown yet samples per epoch)" in srv.log, srv.log
 
 
 def _write_ntsc(path, frames: int) -> None:

@@ -1,11 +1,13 @@
-"""The data path: samples kept as views of the received frames, batches stacked once."""
+"""The data path: samples kept as views of the received frames, a reply's rows stacked once."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from v2v_server.samples.recipe import SampleRecipe
-from v2v_server.service.assembly import make_batch, sample_from_worker
+from v2v_server.service.assembly import sample_from_worker
+from v2v_wire.batches import stack_arrays
+from v2v_wire.outputs import narrowest
 from v2v_wire.protocol import decode_arrays, encode_arrays
 from v2v_wire.worker_messages import Sample
 
@@ -19,35 +21,33 @@ def _sample(i, vox_dtype=np.int8):
     return sample_from_worker(Sample.from_wire(header), wire), wire
 
 
-def test_samples_view_the_received_frames_and_batches_stack_once():
+def test_samples_view_the_received_frames_and_a_batch_stacks_them_once():
     samples, wires = zip(*[_sample(i) for i in range(3)])
     s0 = samples[0]
     # no copy on receive: the array is a view of the message's buffer
     assert np.shares_memory(s0.arrays["voxels"], np.frombuffer(wires[0][0], np.int8))
     assert not s0.arrays["voxels"].flags.writeable
-    b = make_batch(list(samples))
-    assert b.sample_ids == ["v.mp4#0", "v.mp4#1", "v.mp4#2"] and b.nbytes == sum(s.nbytes for s in samples)
-    specs, frames = b.wire(("voxels", "flow"))
-    assert [s["name"] for s in specs] == ["voxels", "flow"]
-    got = decode_arrays(specs, [f.tobytes() for f in frames])
-    assert got["voxels"].shape == (3, 2, 5, 4, 4) and (got["voxels"][:, 0, 0, 0, 0] == [0, 1, 2]).all()
-    # stacked once: a second wire() sends the same buffers, and the samples' frames are released
-    assert b.samples is None
-    assert b.wire(("voxels",))[1][0] is frames[0]
-    sub = b.subset([2, 0])
-    assert sub.sample_ids == ["v.mp4#2", "v.mp4#0"] and (sub.arrays["frames"][:, 0, 0, 0] == [20, 0]).all()
+    assert s0.sample_id == "v.mp4#0" and s0.meta == {"i": 0} and s0.nbytes == sum(len(w) for w in wires[0])
+    # a reply's rows: one stacked copy of each array, in the order given
+    stacked = stack_arrays([samples[i].arrays["voxels"] for i in (2, 0, 1)])
+    assert stacked.shape == (3, 2, 5, 4, 4) and (stacked[:, 0, 0, 0, 0] == [2, 0, 1]).all()
+    assert not any(np.shares_memory(stacked, s.arrays["voxels"]) for s in samples)
+    specs, frames = encode_arrays({"voxels": stacked})
+    got = decode_arrays(specs, [bytes(f) for f in frames])
+    assert got["voxels"].dtype == np.int8 and got["voxels"].tobytes() == stacked.tobytes()
 
 
-def test_voxels_widen_to_the_batch_and_subset_before_stacking():
+def test_voxels_widen_to_the_batch_and_narrow_again_to_what_holds_them():
     a, _ = _sample(1, np.int8)
     b, _ = _sample(2, np.int16)
-    batch = make_batch([a, b])
-    sub = batch.subset([1])
-    assert sub.samples is not None and sub.sample_ids == ["v.mp4#2"]
-    assert batch.arrays["voxels"].dtype == np.int16  # the narrowest type holding both
-    assert sub.arrays["voxels"].dtype == np.int16
-    with pytest.raises(ValueError, match="at least one"):
-        make_batch([])
+    both = stack_arrays([a.arrays["voxels"], b.arrays["voxels"]])
+    assert both.dtype == np.int16  # the type holding both
+    assert narrowest("voxels", both).dtype == np.int8  # values 1 and 2: int8 holds them
+    assert np.array_equal(narrowest("voxels", both), both)
+    big = stack_arrays([b.arrays["voxels"], np.full((2, 5, 4, 4), 300, np.int16)])
+    assert narrowest("voxels", big).dtype == np.int16 and narrowest("flow", a.arrays["flow"]) is a.arrays["flow"]
+    with pytest.raises(ValueError, match="cannot share a batch"):
+        stack_arrays([a.arrays["voxels"], np.zeros((2, 5, 4, 8), np.int8)])
 
 
 def test_worker_float16_narrowing_is_numpys_cast_bit_for_bit():

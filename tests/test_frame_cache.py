@@ -309,7 +309,7 @@ def test_unusable_cache_dir_at_start_is_one_clear_line(tmp_path, flags):
     bad = tmp_path / "not_a_folder"
     bad.write_text("a file")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(CLIPS), "--delivery", "push", "--epochs", "1",
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(CLIPS),
                         "--bind", "tcp://127.0.0.1:0", "--cache-dir", str(bad), *flags],
                        capture_output=True, text=True, timeout=60, env=env)
     lines = r.stderr.strip().splitlines()
@@ -426,36 +426,36 @@ def test_settings_that_change_frames_name_other_entries(tmp_path):
 
 
 def _served(corpus: Path, *extra: str, epochs: int = 2, after_first_batch=None, done=None, log=None) -> dict:
-    """{(epoch, sample id): bytes of every output} of ``epochs`` epochs served by v2v-serve with
-    two workers, and the frame-cache and filesystem-error metrics of the last /metrics page,
-    read once ``done(metrics)`` holds (default: the cache's gauges counted an entry).
-    ``after_first_batch()`` runs once the first batch arrived; ``log`` (a list) gets the
-    server's log lines."""
+    """{(epoch, sample id): bytes of every output} of epochs 0 .. ``epochs`` - 1 served by
+    v2v-serve with two workers (padding rows left out), and the frame-cache and filesystem-error
+    metrics of the last /metrics page, read once ``done(metrics)`` holds (default: the cache's
+    gauges counted an entry). ``after_first_batch()`` runs once the first batch arrived; ``log``
+    (a list) gets the server's log lines."""
     import time
     import urllib.request
 
     from harness.faults import Layout
     from harness.serve import ServeProcess, free_port
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     done = done or (lambda m: m.get("v2v_frame_cache_entries", 1) > 0)
     out, port = {}, free_port()
     with ServeProcess(["--videos", str(corpus), "--workers", "2", *Layout(L=4, crop=64, windows=2, batch=2).args(),
-                       "--outputs", "voxels,frames,flow", "--epochs", str(epochs), "--end-grace-s", "60",
-                       "--metrics-port", str(port),
+                       "--outputs", "voxels,frames,flow", "--metrics-port", str(port),
                        *extra]) as srv:
-        it = iter(V2VPushDataset(srv.endpoint, outputs=("voxels", "frames", "flow"), timeout_s=60, credits=2))
-        try:
-            for b in it:
+        ds = V2VStreamDataset(srv.endpoint, 2, outputs=("voxels", "frames", "flow"), timeout_s=120, raw=True)
+        for epoch in range(epochs):
+            ds.set_epoch(epoch)
+            for b in ds:
                 for i, sid in enumerate(b["sample_ids"]):
+                    if b["padding"][i]:
+                        continue
                     key = (b["epoch"], sid)
                     assert key not in out, f"{key} delivered twice"
                     out[key] = b"".join(np.asarray(b[k][i]).tobytes() for k in ("voxels", "frames", "flow"))
                 if after_first_batch is not None:
                     after_first_batch()
                     after_first_batch = None
-        finally:
-            it.close()
         deadline = time.monotonic() + 20
         while True:  # the page is rendered at most once a second, the cache's folder scanned every few
             page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
@@ -479,9 +479,11 @@ def test_served_epochs_identical_with_the_cache_and_epoch_one_hits(tmp_path):
     plain, _ = _served(corpus)
     cached, m = _served(corpus, "--frame-cache-gb", "1", "--cache-dir", str(tmp_path / "cache"))
     assert len(plain) == 8 and cached == plain  # 2 windows of each clip, 2 epochs
-    # epochs overlap: a worker may open a video of epoch 1 while another still stores it for epoch 0
+    # every pass over a video is a hit or a miss; a video may be passed over more than once an
+    # epoch (a pass whose samples were dropped before their fetch is made again) and a pass may
+    # open a video while another still stores it: each video is stored once, epoch 1 hits
     misses = m['v2v_frame_cache_misses_total{cause="absent"}']
-    assert m["v2v_frame_cache_hits_total"] >= 1 and m["v2v_frame_cache_hits_total"] + misses == 4, m
+    assert m["v2v_frame_cache_hits_total"] >= 1 and m["v2v_frame_cache_hits_total"] + misses >= 4, m
     assert m["v2v_frame_cache_stored_total"] == 2, m
     assert m["v2v_frame_cache_budget_bytes"] == 1 << 30 and m["v2v_frame_cache_entries"] == 2
 

@@ -182,12 +182,14 @@ def test_hostile_zip_entries_are_refused_by_name_and_the_rest_served(hostile, tm
 
 def test_the_server_serves_the_rest_and_logs_each_refusal(hostile, tmp_path):
     from harness.serve import ServeProcess
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
-    with ServeProcess(["--videos", str(hostile), "--workers", "1", "--epochs", "1", "--batch-size", "2",
+    with ServeProcess(["--videos", str(hostile), "--workers", "1", "--batch-size", "2",
                        "--cache-dir", str(tmp_path / "cache"), *LAYOUT]) as srv:
-        ids = [sid for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=120)
-               for sid in b["sample_ids"]]
+        got = [(sid, b["voxels"][i]) for b in V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120)
+               for i, sid in enumerate(b["sample_ids"]) if not b["padding"][i]]
+    ids = [sid for sid, _ in got]
+    assert all(v.abs().sum() > 0 for _, v in got)
     videos = {sid.split("#")[0] for sid in ids}
     assert videos == {"shared.zip/good.mp4", "overlap.zip/good.mp4", "lying.zip/good.mp4", "twice.zip/clip.mp4",
                       "twice.tar/clip.mp4", "sparse.tar/plain.mp4", "links.tar/a.mp4"}, videos

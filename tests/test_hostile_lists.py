@@ -310,7 +310,7 @@ def test_a_folder_of_zip_parts_with_its_table_is_served(tmp_path, monkeypatch):
     with ServeProcess(args + ["--workers", "1", "--video-list-filter", '"motion score" > 0.5']) as srv:
         pass
     log = srv.log
-    assert f"serving {len(layout)} video(s) from parts" in log, log
+    assert f": {len(layout)} video(s) ({len(layout)} counted: " in log and ", from parts on " in log, log
     assert "WARNING ignored w/openvid.csv: 1 row(s) of w/openvid.csv skipped without opening their video" in log
     assert "WARNING ignored (1 entry): listed in w/openvid.csv but no member of the archives in parts: " \
         "elsewhere_5.mp4" in log

@@ -63,46 +63,43 @@ def _env(store, tmp: Path, **kw) -> dict:
 
 
 def _epoch(videos: str, *extra: str, env=None, log_path=None) -> tuple:
-    """One epoch served by ``v2v-serve --videos videos``: (sample id -> bytes of its arrays, server log)."""
-    from v2v_client.dataset import V2VPushDataset
+    """Epoch 0 served by ``v2v-serve --videos videos``: (sample id -> bytes of its arrays, padding
+    rows left out; server log)."""
+    from v2v_client import V2VStreamDataset
 
     out = {}
     with ServeProcess(["--videos", videos, "--workers", "2", *LAYOUT.args(), "--outputs", "voxels,frames",
-                       "--epochs", "1", *extra], env=env, log_path=log_path) as srv:
-        ds = V2VPushDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60, credits=2)
-        it = iter(ds)
-        try:
-            for b in it:
-                for i, sid in enumerate(b["sample_ids"]):
-                    assert sid not in out, f"{sid} delivered twice"
-                    out[sid] = b"".join(np.asarray(b[k][i]).tobytes() for k in ("voxels", "frames"))
-        finally:
-            it.close()
-        srv.wait(60)
-        return out, srv.log
+                       *extra], env=env, log_path=log_path) as srv:
+        for b in V2VStreamDataset(srv.endpoint, 2, outputs=("voxels", "frames"), timeout_s=120, raw=True):
+            for i, sid in enumerate(b["sample_ids"]):
+                if b["padding"][i]:
+                    continue
+                assert sid not in out, f"{sid} delivered twice"
+                out[sid] = b"".join(np.asarray(b[k][i]).tobytes() for k in ("voxels", "frames"))
+    return out, srv.log
 
 
 def test_bucket_epoch_is_the_folder_epoch_byte_for_byte(store, corpus, tmp_path):
     folder, _ = _epoch(str(corpus))
-    state = tmp_path / "state"
-    port = free_port()
-    bucket, log = _epoch(URL, "--state-dir", str(state), "--metrics-port", str(port), env=_env(store, tmp_path))
+    cache = tmp_path / "mine"
+    bucket, log = _epoch(URL, "--cache-dir", str(cache), env=_env(store, tmp_path))
     assert len(folder) == 10 and f"{ODD}#1" in folder
     assert sorted(bucket) == sorted(folder)
     assert all(bucket[k] == folder[k] for k in folder)
-    # the listing was kept under --state-dir, with each object's size and ETag
-    objects = read_manifest(manifest_path(URL, str(state)), URL)
+    # the listing was kept under --cache-dir, with each object's size and ETag
+    objects = read_manifest(manifest_path(URL, str(cache)), URL)
     assert objects is not None and objects[ODD].size == (corpus / ODD).stat().st_size and objects[ODD].tag
     assert "manifest written to" in log
 
 
 def test_store_reads_are_counted_in_the_metrics(store, corpus, tmp_path):
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     port = free_port()
-    with ServeProcess(["--videos", URL, "--workers", "1", *LAYOUT.args(), "--outputs", "voxels", "--epochs", "1",
+    with ServeProcess(["--videos", URL, "--workers", "1", *LAYOUT.args(), "--outputs", "voxels",
                        "--metrics-port", str(port)], env=_env(store, tmp_path)) as srv:
-        n = sum(len(b["sample_ids"]) for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60))
+        ids = [sid for b in V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120)
+               for sid, pad in zip(b["sample_ids"], b["padding"]) if not pad]
         deadline = time.monotonic() + 20
         while True:  # the page is rendered at most once a second
             text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
@@ -111,7 +108,7 @@ def test_store_reads_are_counted_in_the_metrics(store, corpus, tmp_path):
             if vals.get("v2v_store_reads_total", 0) >= 4 or time.monotonic() > deadline:
                 break
             time.sleep(0.5)
-    assert n == 10
+    assert len(ids) == len(set(ids)) == 10
     size = sum(p.stat().st_size for p in corpus.rglob("*.mp4"))
     assert vals["v2v_store_reads_total"] >= 4  # at least one range request per video
     assert 0 < vals["v2v_store_read_bytes_total"] <= 2 * size
@@ -261,7 +258,7 @@ def _plan_epoch(videos: str, env: dict, *extra: str, during=None) -> list:
     padding; ``during(server)`` runs once the server is up, before the first fetch."""
     from v2v_client import V2VStreamDataset
 
-    with ServeProcess(["--videos", videos, "--workers", "1", *LAYOUT.args(), "--outputs", "voxels", "--delivery", "plan",
+    with ServeProcess(["--videos", videos, "--workers", "1", *LAYOUT.args(), "--outputs", "voxels",
                        *extra], env=env) as srv:
         if during is not None:
             during(srv)
@@ -358,7 +355,7 @@ def test_tar_shards_local_bucket_and_brace_pattern(store, tmp_path, monkeypatch)
     assert _rows("s3://corpus/shards/shard-{0..1}.tar") == expected  # a brace pattern: nothing listed
     assert _rows(f"{store.filer_url}/buckets/corpus/shards/shard-{{0..1}}.tar") == expected  # over plain HTTP
     # the manifest keeps each member's offset: a restart (or a worker) reads no tar header
-    objects = read_manifest(manifest_path("s3://corpus/shards/", None, str(tmp_path / "cache" / "v2v")),
+    objects = read_manifest(manifest_path("s3://corpus/shards/", str(tmp_path / "cache" / "v2v")),
                             "s3://corpus/shards/")
     assert objects is not None and isinstance(objects["shard-0.tar/000001.mp4"].member, TarMember)
 
@@ -382,7 +379,7 @@ def test_zip_parts_in_a_bucket_a_brace_range_and_over_http(store, tmp_path, monk
     assert _rows("s3://corpus/zips/") == expected
     assert _rows("s3://corpus/zips/p-{0..3}.zip") == expected
     assert _rows(f"{store.filer_url}/buckets/corpus/zips/p-{{0..3}}.zip") == expected  # over plain HTTP
-    objects = read_manifest(manifest_path("s3://corpus/zips/", None, str(tmp_path / "cache" / "v2v")),
+    objects = read_manifest(manifest_path("s3://corpus/zips/", str(tmp_path / "cache" / "v2v")),
                             "s3://corpus/zips/")
     deflated = objects["p-1.zip/clips/000000.mp4"].member
     assert isinstance(deflated, ZipMember) and deflated.method == zipfile.ZIP_DEFLATED
@@ -456,31 +453,29 @@ def test_bounded_local_cache_reads_each_object_once_and_evicts_the_oldest(store,
 
 
 def test_server_skips_an_object_overwritten_since_listing_logs_it_once_and_counts_it(store, corpus, tmp_path):
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     url = "s3://corpus/overwritten/"
     store.upload(corpus, url, ["bikes.mp4", "webvid_like_596x336.mp4"])
-    state = tmp_path / "state"
+    cache = tmp_path / "mine"
     env = _env(store, tmp_path)
-    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", url, "--delivery", "push", "--state-dir", str(state),
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", url, "--cache-dir", str(cache),
                         "--check", *LAYOUT.args()], env={**os.environ, **env}, capture_output=True, text=True,
                        timeout=300)
-    assert r.returncode == 0 and manifest_path(url, str(state)).is_file(), r.stderr  # listed once, kept
+    assert r.returncode == 0 and manifest_path(url, str(cache)).is_file(), r.stderr  # listed once, kept
     store.fs().put_file(str(corpus / "bigbuckbunny.mp4"), "corpus/overwritten/bikes.mp4")
     port = free_port()
     got = []
-    with ServeProcess(["--videos", url, "--state-dir", str(state), "--workers", "2", *LAYOUT.args(),
+    with ServeProcess(["--videos", url, "--cache-dir", str(cache), "--workers", "2", *LAYOUT.args(),
                        "--outputs", "voxels", "--metrics-port", str(port)], env=env) as srv:
-        it = iter(V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60))
-        try:
-            while len(got) < 4:  # two epochs of the one video left
-                got += list(next(it)["sample_ids"])
-        finally:
-            it.close()
+        ds = V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120)
+        for epoch in (0, 1):  # two epochs: the overwritten object is named once, not once per epoch
+            ds.set_epoch(epoch)
+            got += [(epoch, sid) for b in ds for sid, pad in zip(b["sample_ids"], b["padding"]) if not pad]
         time.sleep(1.5)  # the metrics page is rendered at most once a second
         text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
         log = srv.log
-    assert {s.rsplit("#", 1)[0] for s in got} == {"webvid_like_596x336.mp4"}
+    assert sorted(got) == [(e, f"webvid_like_596x336.mp4#{k}") for e in (0, 1) for k in (0, 1)], got
     lines = [line for line in log.splitlines() if "overwritten/bikes.mp4" in line]
     assert len(lines) == 1 and "changed since it was listed (ETag" in lines[0], log  # once, not once per epoch
     skipped = [float(line.split()[1]) for line in text.splitlines() if line.startswith("v2v_store_objects_skipped_total")]

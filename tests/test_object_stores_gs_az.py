@@ -19,6 +19,7 @@ from v2v_server.sources.errors import VideoError
 from tests.store_checks import check_a_paused_store_fails_the_read, check_frame_cache_hit, samples
 from v2v_server.ops.config import source_from_config
 from v2v_server.sources.local import LocalSource
+from v2v_server.sources.manifest import manifest_path
 from v2v_server.sources.source_spec import source_from_spec
 from v2v_server.sources.store import StoreSettings, StoreSource
 from v2v_server.sources.errors import StoreError
@@ -78,7 +79,7 @@ def _version(store, key: str) -> str:
 
 
 def test_store_lists_the_clips_with_sizes_and_versions(store, url, tmp_path):
-    cfg = ServeConfig(videos=url, storage_options=store.storage_options(), state_dir=str(tmp_path), delivery_mode="push")
+    cfg = ServeConfig(videos=url, storage_options=store.storage_options(), cache_dir=str(tmp_path))
     src = source_from_config(cfg)
     assert isinstance(src, StoreSource)
     src.check()  # the bucket (container) is reached
@@ -90,7 +91,8 @@ def test_store_lists_the_clips_with_sizes_and_versions(store, url, tmp_path):
         assert size == (CLIPS / name).stat().st_size
         assert version and version == _version(store, f"corpus/clips/{name}")
     assert len({v.tag for v in objects.values()}) == len(NAMES)
-    # the manifest written under state_dir gives a second source the same listing without the store
+    # the manifest written under the cache folder gives a second source the same listing without the store
+    assert manifest_path(url, str(tmp_path)).is_file()
     again = source_from_config(cfg)
     again._fs = False  # no filesystem: a request to the store would raise AttributeError
     assert again.objects() == objects

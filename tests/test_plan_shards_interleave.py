@@ -9,7 +9,7 @@ import random
 
 import pytest
 
-from v2v_wire.plan_shards import (epoch_floor, interleaved, probes, shard_ranges, shards_samples,
+from v2v_wire.plan_shards import (epoch_floor, furthest_slot, interleaved, probes, shard_ranges, shards_samples,
                                   step_in_epoch)
 
 
@@ -85,3 +85,10 @@ def test_a_step_is_settled_by_a_known_shards_end_or_a_slot_seen_and_open_while_a
     assert step_in_epoch(5, [3, None], 6) is True  # shard 1's position 2 (global 5) holds a slot
     assert step_in_epoch(5, [3, 2], 0) is False  # both known: the epoch is 5 long
     assert probes(0, [None, None, None]) == [(0, 0), (1, 0), (2, 0)]
+
+
+def test_the_furthest_slot_seen_is_one_past_the_last_row_holding_a_sample_id_in_global_positions():
+    # shard 1 of 3, its own positions 4, 5, 6: global 13, 16, 19; the last row past its end
+    assert furthest_slot(0, 1, 3, 4, ["a", "b", None]) == 17
+    assert furthest_slot(20, 1, 3, 4, ["a", "b", None]) == 20  # a further one seen before stays
+    assert furthest_slot(5, 0, 2, 0, [None]) == 5

@@ -9,7 +9,7 @@ import torch
 
 from harness.serve import ServeProcess
 from tests.conftest import read_luma_clip
-from v2v_client import V2VPushDataset
+from v2v_client import V2VStreamDataset
 from v2v_wire.ids import parse_sample_id
 from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
@@ -108,24 +108,25 @@ def serve_args(videos, *extra):
 
 @pytest.mark.timeout(240)
 def test_served_over_the_stream_only_to_a_client_that_asks(videos):
+    cfg = recipe()
     with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
         for raw in (False, True):
-            ds = V2VPushDataset(srv.endpoint, outputs=("voxels", "polarity_counts"), timeout_s=120, raw=raw)
-            it = iter(ds)
-            b = next(it)
-            it.close()
-            n = len(b["sample_ids"])
+            b = next(iter(V2VStreamDataset(srv.endpoint, 2, outputs=("voxels", "polarity_counts"), timeout_s=120,
+                                           raw=raw)))
+            assert not b["padding"].any()
             c, v = b["polarity_counts"], b["voxels"]
-            assert c.shape == (n, L, 2, B, CROP, CROP)
+            assert c.shape == (2, L, 2, B, CROP, CROP)
             assert c.dtype == (torch.uint8 if raw else torch.float32)
-            assert v.shape == (n, L, B, CROP, CROP) and c.sum() > 0
+            assert v.shape == (2, L, B, CROP, CROP) and c.sum() > 0
             ok = (c < 255).all(dim=2)
             assert torch.equal(v.to(torch.int32)[ok], (c[:, :, 0].to(torch.int32) - c[:, :, 1].to(torch.int32))[ok])
-        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=120)
-        it = iter(ds)
-        b = next(it)
-        it.close()
-        assert "polarity_counts" not in b
+            for i, sid in enumerate(b["sample_ids"]):  # the recipe's counts, bit for bit
+                video = parse_sample_id(sid).video
+                want = {k.sample_id(): a for k, a, _ in video_samples(cfg, LocalSource(videos), video, 0,
+                                                                       ("polarity_counts",))}
+                np.testing.assert_array_equal(c[i].numpy().astype(np.uint8), want[sid]["polarity_counts"])
+        b = next(iter(V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120)))
+        assert "polarity_counts" not in b and b["voxels"].abs().sum() > 0
 
 
 @pytest.mark.timeout(300)

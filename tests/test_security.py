@@ -1,13 +1,14 @@
 """Nobody without an allowed key reads the stream; non-loopback binds need keys."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
 import pytest
 
-from harness.faults import Layout, good_corpus
-from v2v_client import StreamTimeout, V2VPushDataset
+from harness.faults import Layout, expected_ids, good_corpus
+from v2v_client import V2VStreamDataset
 from v2v_server.ops.config import ServeConfig, is_loopback, load_config
 from harness.serve import ServeProcess
 
@@ -33,24 +34,6 @@ def allowlist(tmp_path):
     return allow, server_pub, server_sec, good_pub, good_sec, stranger_sec
 
 
-def test_curve_allowlist(tmp_path):
-    allow, server_pub, server_sec, good_pub, good_sec, stranger_sec = allowlist(tmp_path)
-    assert (server_sec.stat().st_mode & 0o777) == 0o600
-    corpus = good_corpus(tmp_path)
-    args = ["--videos", str(corpus), "--workers", "1", "--curve-secret-key", str(server_sec),
-            "--curve-allow", str(allow), *LAYOUT.args()]
-    with ServeProcess(args) as srv:
-        with pytest.raises(StreamTimeout):  # no keys at all: the CURVE handshake never completes
-            next(iter(V2VPushDataset(srv.endpoint, timeout_s=2)))
-        with pytest.raises(StreamTimeout):  # a key that is not on the allowlist: ZAP refuses it
-            next(iter(V2VPushDataset(srv.endpoint, timeout_s=2, curve_keys=(str(stranger_sec), str(server_pub)))))
-        it = iter(V2VPushDataset(srv.endpoint, timeout_s=30, curve_keys=(str(good_sec), str(server_pub))))
-        b = next(it)
-        it.close()
-        assert b["voxels"].shape[0] == 1
-    assert "CurveZMQ on: 1 allowed client key(s)" in srv.log
-
-
 def test_non_loopback_bind_needs_keys_or_insecure(tmp_path):
     assert is_loopback("tcp://127.0.0.1:5555") and is_loopback("tcp://localhost:1") and is_loopback("ipc:///tmp/x")
     assert not is_loopback("tcp://0.0.0.0:5555") and not is_loopback("tcp://*:5555")
@@ -66,47 +49,20 @@ def test_non_loopback_bind_needs_keys_or_insecure(tmp_path):
 
 
 def test_client_key_errors_name_the_file(tmp_path):
-    with pytest.raises(ValueError, match="client key"):
-        V2VPushDataset("tcp://127.0.0.1:1", curve_keys=(str(tmp_path / "missing"), str(tmp_path / "s.key")))
+    missing = tmp_path / "missing"
+    with pytest.raises(ValueError, match=f"client key {re.escape(str(missing))}"):
+        V2VStreamDataset("tcp://127.0.0.1:1", 1, curve_keys=(str(missing), str(tmp_path / "s.key")))
     pub, sec = keygen(tmp_path, "c")
     with pytest.raises(ValueError, match="no secret key"):
-        V2VPushDataset("tcp://127.0.0.1:1", curve_keys=(str(pub), str(pub)))
+        V2VStreamDataset("tcp://127.0.0.1:1", 1, curve_keys=(str(pub), str(pub)))
 
 
-def test_sample_ids_cannot_name_files(tmp_path):
-    """A resume state naming files outside the corpus changes nothing: the server only ever
-    opens the files it found under its root."""
-    corpus = good_corpus(tmp_path)
-    import zmq
-
-    from v2v_wire.protocol import pack, unpack
-
-    with ServeProcess(["--videos", str(corpus), "--workers", "1", *LAYOUT.args()]) as srv:
-        ctx = zmq.Context()
-        s = ctx.socket(zmq.DEALER)
-        s.setsockopt(zmq.LINGER, 0)
-        s.connect(srv.endpoint)
-        s.send(pack({"type": "hello", "outputs": ["frames"], "credits": 1,
-                     "resume": {"completed_epoch": -1, "delivered": {"0": "../../../etc/passwd#0\n/etc/shadow#1"}}}))
-        ids = []
-        for _ in range(100):
-            if s.poll(200):
-                h = unpack(s.recv_multipart()[0])
-                if h["type"] == "batch":
-                    ids += h["sample_ids"]
-                    break
-        s.close()
-        ctx.term()
-    assert ids and all(not i.startswith(("/", "..")) for i in ids)
-    assert "passwd" not in srv.log and "shadow" not in srv.log
-
-
-def test_curve_allowlist_for_a_server_serving_by_plan(tmp_path):
-    """``--delivery plan`` with CurveZMQ keys: V2VStreamDataset reads with an allowed key only."""
-    from v2v_client import V2VStreamDataset
-
+def test_curve_allowlist(tmp_path):
+    """A server with CurveZMQ keys: V2VStreamDataset reads with an allowed key only."""
     allow, server_pub, server_sec, good_pub, good_sec, stranger_sec = allowlist(tmp_path)
-    args = ["--videos", str(good_corpus(tmp_path)), "--workers", "1", "--delivery", "plan",
+    assert (server_sec.stat().st_mode & 0o777) == 0o600
+    corpus = good_corpus(tmp_path)
+    args = ["--videos", str(corpus), "--workers", "1",
             "--curve-secret-key", str(server_sec), "--curve-allow", str(allow), *LAYOUT.args()]
     with ServeProcess(args) as srv:
         with pytest.raises(TimeoutError):  # no keys: the CURVE handshake never completes
@@ -114,8 +70,10 @@ def test_curve_allowlist_for_a_server_serving_by_plan(tmp_path):
         with pytest.raises(TimeoutError):  # a key that is not on the allowlist: ZAP refuses it
             next(iter(V2VStreamDataset(srv.endpoint, 1, retry_s=1, timeout_s=2,
                                      curve_keys=(str(stranger_sec), str(server_pub)))))
-        b = next(iter(V2VStreamDataset(srv.endpoint, 1, timeout_s=60, curve_keys=(str(good_sec), str(server_pub)))))
-        assert b["voxels"].shape[0] == 1
+        b = next(iter(V2VStreamDataset(srv.endpoint, 1, timeout_s=60, raw=True,
+                                       curve_keys=(str(good_sec), str(server_pub)))))
+        assert b["voxels"].shape[0] == 1 and b["voxels"].abs().sum() > 0
+        assert not b["padding"][0] and b["sample_ids"][0] in expected_ids(corpus, LAYOUT)
     assert "CurveZMQ on: 1 allowed client key(s)" in srv.log
     with pytest.raises(ValueError, match="no secret key"):
         V2VStreamDataset("tcp://127.0.0.1:1", 1, curve_keys=(str(good_pub), str(server_pub)))

@@ -1,20 +1,18 @@
-"""The shared-memory data path: worker slot rings in /dev/shm, samples copied
-once into reused batch buffers, the socket path as fallback. Unit tests of the ring and the
-assembler, a pool whose worker dies before mapping its ring, and a real v2v-serve on ipc://
-whose samples are bit-identical to the socket path's."""
+"""The shared-memory data path: worker slot rings in /dev/shm, each sample copied once out
+of its slot, the socket path as fallback. Unit tests of the ring and the copy out of it, a
+pool whose worker dies before mapping its ring, and a real v2v-serve on ipc:// whose samples
+are bit-identical to the socket path's."""
 from __future__ import annotations
 
 import os
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zmq
 
-from v2v_server.service.assembly import BatchAssembler, make_batch, sample_from_slot, sample_from_worker
-from v2v_server.service.shm import BatchDir, SlotRing, create_ring, slot_bytes
+from v2v_server.service.assembly import sample_from_slot, sample_from_worker
+from v2v_server.service.shm import SlotRing, create_ring, slot_bytes
 from v2v_wire.protocol import ProtocolError, encode_arrays
 from v2v_wire.worker_messages import Sample, Task
 
@@ -42,115 +40,52 @@ def _sample(i, specs, slot=None, video="v.mp4"):
     return Sample.from_wire(h)
 
 
-def _via_slot(ring, worker, asm, i, arrays):
+def _via_slot(ring, worker, i, arrays):
     slot = worker.free.pop(0)
     specs = worker.put(slot, arrays)
-    s = sample_from_slot(_sample(i, specs, slot), ring, asm)
+    s = sample_from_slot(_sample(i, specs, slot), ring)
     worker.free.append(slot)  # the relay copied it out: the worker may write it again
     return s
 
 
-def _wire_bytes(batch):
-    specs, frames = batch.wire(("voxels", "frames", "flow"))
-    return specs, [np.ascontiguousarray(f).tobytes() for f in frames]
+def _same(a, b):
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
-def test_slot_path_sends_the_same_bytes_as_the_socket_path_and_stacks_nothing(tmp_path):
+def test_a_sample_copied_out_of_its_slot_equals_the_socket_paths_and_outlives_the_slot(tmp_path):
     relay = _ring(tmp_path)
     worker = SlotRing.attach(relay.spec)  # the worker's mapping; attaching unlinks the file
     assert not Path(relay.path).exists() and os.listdir(tmp_path) == []
-    asm = BatchAssembler(4)
-    samples = [_via_slot(relay, worker, asm, i, _arrays(i)) for i in range(4)]  # 4 samples through 3 slots
-    batch = make_batch(samples)
-    buf = samples[0].buffer
-    assert all(np.shares_memory(batch.arrays[k], buf.arrays[k]) for k in buf.arrays)  # the rows, not a stack
-    socket_samples = []
-    for i in range(4):
-        specs, frames = encode_arrays(_arrays(i))
-        socket_samples.append(sample_from_worker(_sample(i, specs), [f.tobytes() for f in frames]))
-    assert _wire_bytes(batch) == _wire_bytes(make_batch(socket_samples))
-    assert not samples[0].arrays["voxels"].flags.writeable
+    # 6 samples through 3 slots, voxels narrowed differently (counts that needed int16)
+    made = [_arrays(i, np.int16 if i == 1 else np.int8) for i in range(6)]
+    samples = [_via_slot(relay, worker, i, made[i]) for i in range(6)]  # each slot written twice
+    for i, s in enumerate(samples):
+        specs, frames = encode_arrays(made[i])
+        sock = sample_from_worker(_sample(i, specs), [f.tobytes() for f in frames])
+        assert s.sample_id == sock.sample_id == f"v.mp4#{i}" and s.meta == {"i": i}
+        assert s.arrays.keys() == sock.arrays.keys() == made[i].keys()
+        for k in made[i]:  # the slot written again after the copy left the sample as it was
+            assert _same(s.arrays[k], made[i][k]) and _same(s.arrays[k], sock.arrays[k]), (i, k)
+            views = [v for slot in range(relay.slots) for v in relay.arrays(slot, specs).values()]
+            assert not any(np.shares_memory(s.arrays[k], v) for v in views)  # its own copy
     worker.close()
     relay.close()
 
 
-def test_a_held_batch_is_never_overwritten_and_idle_buffers_are_reused(tmp_path):
-    relay = _ring(tmp_path)
-    worker = SlotRing.attach(relay.spec)
-    asm = BatchAssembler(2, spare=1)
-    held = make_batch([_via_slot(relay, worker, asm, i, _arrays(i)) for i in range(2)])
-    want = _wire_bytes(held)
-    dropped = make_batch([_via_slot(relay, worker, asm, i, _arrays(i)) for i in range(2, 4)])
-    dropped_buf = id(dropped.arrays["voxels"].base)  # (a reference would keep it busy)
-    del dropped  # acknowledged: nothing views its buffer any more
-    again = make_batch([_via_slot(relay, worker, asm, i, _arrays(i)) for i in range(4, 6)])
-    assert asm.reused == 1 and id(again.arrays["voxels"].base) == dropped_buf
-    assert _wire_bytes(held) == want  # the held batch kept its content
-    ids = [f"v.mp4#{i}" for i in (4, 5)]
-    assert again.sample_ids == ids and np.array_equal(again.arrays["frames"][1], _arrays(5)["frames"])
-
-
-def test_a_buffer_is_not_refilled_while_a_zero_copy_send_of_it_is_in_flight():
-    big = lambda i: {"voxels": np.full((4, 2, 96, 96), i, np.int8)}  # noqa: E731  (past ZeroMQ's copy threshold)
-    asm = BatchAssembler(2, spare=1)
-    ctx = zmq.Context()
-    tx, rx = ctx.socket(zmq.PAIR), ctx.socket(zmq.PAIR)
-    tx.bind("inproc://relay-lease")
-    rx.connect("inproc://relay-lease")
-    samples = [asm.place(f"v#{i}", {}, big(i)) for i in range(2)]
-    buf = samples[0].buffer
-    batch = make_batch(samples)
-    specs, frames = batch.wire(("voxels",))
-    batch.send(tx, [b"head"], frames)
-    del samples, batch, frames  # acknowledged, but ZeroMQ still holds the frames: not yet received
-    assert not buf.idle()
-    other = make_batch([asm.place(f"v#{i}", {}, big(i)) for i in range(2, 4)])
-    assert asm.reused == 0 and not np.shares_memory(other.arrays["voxels"], buf.arrays["voxels"])
-    got = rx.recv_multipart()
-    assert got[0] == b"head" and np.frombuffer(got[1], np.int8).reshape(2, 4, 2, 96, 96)[1].min() == 1
-    deadline = time.monotonic() + 5
-    while not buf.idle() and time.monotonic() < deadline:  # ZeroMQ releases the frames on its own thread
-        time.sleep(0.01)
-    assert buf.idle()
-    del other
-    make_batch([asm.place(f"v#{i}", {}, big(i)) for i in range(4, 6)])
-    assert asm.reused == 1
-    tx.close(0)
-    rx.close(0)
-    ctx.term()
-
-
-def test_mixed_layouts_fall_back_to_one_stacking_copy(tmp_path):
-    relay = _ring(tmp_path)
-    worker = SlotRing.attach(relay.spec)
-    asm = BatchAssembler(3)
-    a = _via_slot(relay, worker, asm, 0, _arrays(0))
-    b = _via_slot(relay, worker, asm, 1, _arrays(1, np.int16))  # counts that needed int16
-    c = _via_slot(relay, worker, asm, 2, _arrays(2))
-    batch = make_batch([a, b, c])
-    assert batch.samples is not None  # not one buffer's rows: stacked when first sent
-    assert batch.arrays["voxels"].dtype == np.int16
-    for i, s in enumerate((a, b, c)):
-        assert np.array_equal(batch.arrays["voxels"][i], _arrays(i)["voxels"])
-    sub = make_batch([c, a])  # rows out of order: stacked as well, in the order given
-    assert np.array_equal(sub.arrays["flow"][0].view(np.uint16), _arrays(2)["flow"].view(np.uint16))
-
-
 def test_bad_slot_headers_are_protocol_errors(tmp_path):
     relay = _ring(tmp_path, slots=2)
-    asm = BatchAssembler(2)
     specs = [{"name": "voxels", "dtype": "int8", "shape": [L, NB, S, S]}]
     for slot in (2, -1, "0", True):
         with pytest.raises(ProtocolError, match="slot"):
-            sample_from_slot(_sample(0, specs, slot, "v"), relay, asm)
+            sample_from_slot(_sample(0, specs, slot, "v"), relay)
     huge = [{"name": "voxels", "dtype": "int32", "shape": [1 << 20, 64]}]
     with pytest.raises(ProtocolError, match="overrun"):
-        sample_from_slot(_sample(0, huge, 0, "v"), relay, asm)
+        sample_from_slot(_sample(0, huge, 0, "v"), relay)
     overflow = [{"name": "voxels", "dtype": "int32", "shape": [1 << 62, 4]}]  # wraps in int64
     with pytest.raises(ProtocolError, match="overrun"):
-        sample_from_slot(_sample(0, overflow, 0, "v"), relay, asm)
+        sample_from_slot(_sample(0, overflow, 0, "v"), relay)
     with pytest.raises(ProtocolError):
-        sample_from_slot(_sample(0, [{"name": "x", "dtype": "object", "shape": [1]}], 0, "v"), relay, asm)
+        sample_from_slot(_sample(0, [{"name": "x", "dtype": "object", "shape": [1]}], 0, "v"), relay)
     too_big = {"voxels": np.zeros((L * 10, NB, S, S), np.int32)}
     assert relay.put(0, too_big) is None  # the worker sends such a sample as frames
     relay.unlink()
@@ -204,12 +139,14 @@ def test_a_worker_that_dies_before_mapping_its_ring_leaks_nothing(tmp_path, monk
 
 
 def _read_epoch(endpoint):
-    from v2v_client import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     got = {}
-    for batch in V2VPushDataset(endpoint, outputs=("voxels", "frames", "flow"), raw=True, timeout_s=90):
+    for batch in V2VStreamDataset(endpoint, 3, outputs=("voxels", "frames", "flow"), raw=True, timeout_s=120):
         for i, sid in enumerate(batch["sample_ids"]):
-            got[sid] = {k: batch[k][i].numpy().copy() for k in ("voxels", "frames", "flow")}
+            if not batch["padding"][i]:
+                assert sid not in got, sid
+                got[sid] = {k: batch[k][i].numpy().copy() for k in ("voxels", "frames", "flow")}
     return got
 
 
@@ -217,7 +154,7 @@ def test_served_samples_are_bit_identical_with_and_without_shared_memory_over_ip
     from harness.serve import ServeProcess
 
     args = ["--videos", str(video_dir()), "--workers", "1", "--sequence-length", "4", "--num-bins", "3",
-            "--crop-size", "48", "--max-samples-per-video", "2", "--seed", "5", "--epochs", "1", "--batch-size", "3"]
+            "--crop-size", "48", "--max-samples-per-video", "2", "--seed", "5", "--batch-size", "3"]
     # this test's own shared-memory folder (on /dev/shm's tmpfs where there is one), so that
     # other servers on the host do not count as its leaks
     shm_root = "/dev/shm" if os.path.isdir("/dev/shm") else None
@@ -278,35 +215,41 @@ def test_a_worker_with_every_slot_taken_blocks_until_the_server_gives_one_back(t
     ring.close()
 
 
+def _private_tmpfs(size: str, mount_at: Path):
+    """A command prefix that runs a program with a private tmpfs of ``size`` mounted at
+    ``mount_at`` (``unshare -m``: its own mount namespace), or None where this machine does
+    not permit it."""
+    import subprocess
+
+    mount_at.mkdir(parents=True, exist_ok=True)
+    wrap = ["unshare", "-m", "sh", "-c", f'mount -t tmpfs -o size={size} tmpfs "$0" && exec "$@"', str(mount_at)]
+    try:
+        ok = subprocess.run([*wrap, "true"], capture_output=True, timeout=30).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        ok = False
+    return wrap if ok else None
+
+
 @pytest.mark.parametrize("size", ["1m", "64m"])
 def test_a_small_dev_shm_never_kills_a_worker(tmp_path, size):
-    from harness import faults_deploy
-    from harness.faults import Layout
+    """The server's shared memory (``V2V_SHM_DIR``) a tmpfs of ``size`` (Docker's default
+    /dev/shm is 64 MiB): slot rings reserve their pages when made, so one that does not fit is
+    refused at start with a log line (workers send arrays over the socket) instead of a worker
+    dying of SIGBUS at a later write; the epoch is whole either way."""
+    from harness.faults import Layout, expected_ids, good_corpus
+    from harness.serve import ServeProcess
 
-    r = faults_deploy.scenario_small_shm(tmp_path, Layout(L=4, crop=64, windows=2, batch=2), size)
-    if "skipped" in r:
-        pytest.skip(r["skipped"])
-    assert (r["lost"], r["duplicated"], r["unexpected"]) == (0, 0, 0), r
-    f = r["facts"]
-    assert f["worker_deaths"] == 0 and f["server_exit"] == 0, r
-    assert (f["rings_refused"] > 0) == (size == "1m"), r  # 2 rings of ~1.5 MB fit in 64 MiB, not in 1 MiB
-
-
-def test_a_batch_directory_gone_while_serving_leaves_batches_in_anonymous_memory(tmp_path):
-    """The server's batch directory replaced by a file (a vanished mount): a new batch buffer
-    cannot be made there, so it is anonymous memory (batches go as socket frames), the same
-    rows; the failure is reported with the path, once per buffer, never raised."""
-    import shutil
-
-    files = BatchDir.create(str(tmp_path))
-    asm = BatchAssembler(2, spare=0, files=files)
-    errors = []
-    asm.on_error = lambda path, e: errors.append((path, type(e).__name__))
-    first = make_batch([asm.place(f"v.mp4#{i}", {}, _arrays(i)) for i in range(2)])
-    assert first.arrays["voxels"].base is not None and os.listdir(files.path)  # rows in a file of the directory
-    shutil.rmtree(files.path)
-    Path(files.path).write_text("not a folder")
-    later = make_batch([asm.place(f"v.mp4#{i}", {}, _arrays(i)) for i in range(2, 4)])
-    assert [p for p, _ in errors] == [files.path]
-    for i in range(2):
-        assert np.array_equal(later.arrays["voxels"][i], _arrays(i + 2)["voxels"])
+    wrap = _private_tmpfs(size, tmp_path / "shm")
+    if wrap is None:
+        pytest.skip("unshare -m / mount -t tmpfs not permitted here")
+    layout = Layout(L=4, crop=64, windows=2, batch=2)
+    corpus = good_corpus(tmp_path, 2)
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", *layout.args()],
+                      env={"V2V_SHM_DIR": str(tmp_path / "shm")}, wrap=wrap) as srv:
+        got = _read_epoch(srv.endpoint)
+    assert sorted(got) == expected_ids(corpus, layout)
+    assert all(got[sid]["voxels"].any() for sid in got)
+    assert "died (exit code" not in srv.log and " 0 worker restart(s)" in srv.log, srv.log
+    refused = srv.log.count("no shared-memory slot ring")
+    assert (refused > 0) == (size == "1m"), srv.log  # 2 rings of ~1.5 MB fit in 64 MiB, not in 1 MiB
+    assert ("as socket frames" if size == "1m" else "through shared-memory slot rings") in srv.log

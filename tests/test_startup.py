@@ -77,8 +77,8 @@ def test_the_cache_folder_is_resolved_once_and_carried_down(tmp_path, monkeypatc
     assert start.caches.corpus_index().path == Path(want) / "corpus_index.sqlite"
     bucket = source_from_config(ServeConfig(), "s3://corpus/clips/")  # not reached: built only
     assert Path(bucket.manifest.path).parent == Path(want) / "manifests"
-    with pytest.raises(ValueError, match="needs a state_dir or a resolved cache folder"):
-        manifest_path("s3://corpus/clips/", None, None)
+    with pytest.raises(ValueError, match="needs a resolved cache folder"):
+        manifest_path("s3://corpus/clips/", None)
     given = start_source(ServeConfig(cache_dir=str(tmp_path / "mine")))
     assert given.config.cache_dir == given.source.cache_dir == str(tmp_path / "mine")
     assert resolve_config(given.config) == given.config

@@ -10,7 +10,6 @@ import sys
 import numpy as np
 import pytest
 
-from harness.faults import Layout
 from harness.motion_clips import source_images, write_video
 from harness.serve import ServeProcess
 from tests.store_checks import samples
@@ -97,7 +96,7 @@ def test_keep_serves_every_window_and_skip_none_below_the_threshold(still_then_p
 
 
 def test_skip_served_by_v2v_serve_is_exactly_once_and_check_names_the_skips(still_then_pan, videos, tmp_path):
-    from v2v_client.dataset import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     corpus = tmp_path / "c"
     corpus.mkdir()
@@ -113,11 +112,17 @@ def test_skip_served_by_v2v_serve_is_exactly_once_and_check_names_the_skips(stil
     recipe = ServeConfig(sequence_length=8, crop_size=64, keep_top_fraction=1.0, static_windows="skip").recipe
     want = sorted(f"{v.path}#{k}" for v in (check_video(recipe.windows, recipe.decode, LocalSource(corpus), n)
                                                for n in ("still_then_pan.mp4", "bikes.mp4")) for k in range(v.windows))
-    with ServeProcess(["--videos", str(corpus), "--workers", "2", "--epochs", "1", "--batch-size", "2", *args]) as srv:
-        got = [(sid, p["stats"]["motion"]) for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
-               for sid, p in zip(b["sample_ids"], b["params"])]
-    assert sorted(s for s, _ in got) == want and len(got) == len(set(got))
-    assert all(m >= STATIC_MOTION for _, m in got)
+    with ServeProcess(["--videos", str(corpus), "--workers", "2", "--batch-size", "2", *args]) as srv:
+        got = [(sid, p["stats"]["motion"], b["voxels"][i]) for b in
+               V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120, raw=True)
+               for i, (sid, p) in enumerate(zip(b["sample_ids"], b["params"])) if not b["padding"][i]]
+    assert sorted(s for s, _, _ in got) == want and len(got) == len({s for s, _, _ in got})
+    assert all(m >= STATIC_MOTION for _, m, _ in got)
+    served = ServeConfig(sequence_length=8, crop_size=64, keep_top_fraction=1.0, static_windows="skip", seed=5,
+                         flow_preset="ultrafast").recipe
+    made = {k.sample_id(): a["voxels"] for n in ("still_then_pan.mp4", "bikes.mp4")
+            for k, a, _ in video_samples(served, LocalSource(corpus), n, 0, ("voxels",))}
+    assert all(np.array_equal(v.numpy(), made[sid]) for sid, _, v in got)  # the recipe's samples
 
 
 def test_a_bad_value_is_refused_naming_the_setting():

@@ -117,10 +117,10 @@ def test_bad_out_is_one_line_before_any_sampling(tmp_path, short_recipe, capsys,
     assert blocker.read_text() == "not a folder"
 
 
-@pytest.mark.parametrize("delivery", [["--delivery", "plan"], ["--delivery", "push", "--max-credits", "4"]])
-def test_server_report(tmp_path, short_recipe, delivery):
-    """``v2v-stats --server`` reads a server of either delivery (the default, by plan, and push)."""
-    args = ["--videos", str(SAMPLE_VIDEOS), "--workers", "1", "--config", short_recipe, *delivery]
+def test_server_report(tmp_path, short_recipe):
+    """``v2v-stats --server`` reads a server's plan: the samples' parameters and grids from the
+    voxels it sent."""
+    args = ["--videos", str(SAMPLE_VIDEOS), "--workers", "1", "--config", short_recipe]
     with ServeProcess(args) as srv:
         out = tmp_path / "report"
         assert main(["--server", srv.endpoint, "--samples", "4", "--timeout", "60", "--out", str(out)]) == 0

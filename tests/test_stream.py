@@ -1,5 +1,5 @@
 """End to end: a real v2v-serve on 127.0.0.1 with 2 workers on the real clips, read through
-V2VPushDataset. Every test is bounded in time and stops what it starts."""
+V2VStreamDataset. Every test is bounded in time and stops what it starts."""
 from __future__ import annotations
 
 import contextlib
@@ -8,15 +8,11 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import pytest
 import torch
-import zmq
 
-from v2v_client import StreamTimeout, V2VPushDataset
+from v2v_client import V2VStreamDataset
 from harness.serve import ServeProcess, free_port
-from v2v_wire.protocol import decode_arrays, pack, unpack
-from v2v_server.ops.config import ServeConfig
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.frames.check import check_video
 from v2v_server.sources.local import LocalSource
@@ -41,55 +37,57 @@ def serve_args(videos, *extra):
             "--crop-size", str(CROP), "--max-samples-per-video", str(MAXW), "--seed", "7", *extra]
 
 
-def test_one_epoch_delivers_every_sample_once_with_correct_layout(videos):
+def _rows(ds):
+    """[(sample id, padding, batch, row)] of every row ``ds`` yields."""
+    return [(sid, bool(b["padding"][i]), b, i) for b in ds for i, sid in enumerate(b["sample_ids"])]
+
+
+def test_one_epoch_serves_every_sample_once_with_correct_layout(videos):
     want = expected_ids(videos)
     assert len(want) >= 6  # bikes, bigbuckbunny and webvid_like each give windows at L = 8
-    with ServeProcess(serve_args(videos, "--epochs", "1", "--batch-size", "4")) as srv:
-        ds = V2VPushDataset(srv.endpoint, timeout_s=60)
-        seen, batches = [], []
-        for b in ds:
-            batches.append(b)
-            seen.extend(b["sample_ids"])
-        assert srv.wait(30) == 0  # the server ends by itself after --epochs 1
-    assert sorted(seen) == sorted(want)  # every id of the epoch, exactly once
-    assert all(b["epoch"] == 0 for b in batches)
-    assert all(len(b["sample_ids"]) <= 4 for b in batches)
-    for b in batches:
-        n = len(b["sample_ids"])
-        v, f, fl = b["voxels"], b["frames"], b["flow"]
-        assert v.shape == (n, L, B, CROP, CROP) and v.dtype == torch.float32
-        assert f.shape == (n, L + 1, 1, CROP, CROP) and f.dtype == torch.float32
-        assert fl.shape == (n, L, 2, CROP, CROP) and fl.dtype == torch.float32
+    with ServeProcess(serve_args(videos, "--batch-size", "4")) as srv:
+        rows = _rows(V2VStreamDataset(srv.endpoint, 4, timeout_s=120))
+    assert sorted(sid for sid, pad, _, _ in rows if not pad) == sorted(want)  # every id of the epoch, exactly once
+    assert len(rows) == -(-len(want) // 4) * 4  # whole batches: the last one's tail is padding
+    for sid, pad, b, i in rows:
+        assert b["epoch"] == 0 and len(b["sample_ids"]) == 4
+        v, f, fl = b["voxels"][i], b["frames"][i], b["flow"][i]
+        assert v.shape == (L, B, CROP, CROP) and v.dtype == torch.float32
+        assert f.shape == (L + 1, 1, CROP, CROP) and f.dtype == torch.float32
+        assert fl.shape == (L, 2, CROP, CROP) and fl.dtype == torch.float32
+        if pad:  # past the epoch's end: no sample, zeros
+            assert sid is None and not v.any() and not f.any() and not fl.any()
+            continue
         assert torch.equal(v, v.round())  # signed event counts
         assert v.abs().sum() > 0 and (v > 0).any() and (v < 0).any()
         assert 0.0 <= f.min() and f.max() <= 1.0 and f.std() > 0.01
         # flow is composed over the B one-frame links (flow.py): each link stays within the crop;
         # a fast pan (bikes.mp4 has 30 px per frame) legitimately moves content beyond it per voxel
         assert torch.isfinite(fl).all() and fl.abs().max() < B * CROP
-        for p in b["params"]:
-            assert p["pos_threshold"] > 0 and p["neg_threshold"] > 0
-            ratio = max(p["pos_threshold"], p["neg_threshold"]) / min(p["pos_threshold"], p["neg_threshold"])
-            assert 0.05 <= min(p["pos_threshold"], p["neg_threshold"]) <= 2.0 and ratio <= 1.5 + 1e-9
-            assert 0 <= p["noise_std"] <= 0.1
+        p = b["params"][i]
+        assert p["pos_threshold"] > 0 and p["neg_threshold"] > 0
+        ratio = max(p["pos_threshold"], p["neg_threshold"]) / min(p["pos_threshold"], p["neg_threshold"])
+        assert 0.05 <= min(p["pos_threshold"], p["neg_threshold"]) <= 2.0 and ratio <= 1.5 + 1e-9
+        assert 0 <= p["noise_std"] <= 0.1
 
 
-def test_voxels_only_client_gets_no_flow_and_frames(videos):
+def test_voxels_only_reader_gets_no_flow_and_frames_and_workers_make_none(videos):
     with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
-        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=60)
+        ds = V2VStreamDataset(srv.endpoint, 2, outputs=("voxels",), timeout_s=120)
         it = iter(ds)
         b = next(it)
         it.close()
         assert set(k for k in b if isinstance(b[k], torch.Tensor)) == {"voxels", "padding"}
         assert b["padding"].dtype == torch.bool and not b["padding"].any()
         assert "flow" not in b and "frames" not in b
-        time.sleep(0.3)
-        assert "asks for ['voxels']: workers now compute ['voxels']" in srv.log
+        busy = ds.plan_info(refresh=True).stream["feed"]["busy_s"]
+    assert busy["simulate"] > 0 and busy["flow"] == 0, busy  # the workers computed no flow for it
 
 
 def test_absent_server_is_a_clear_error_not_a_hang():
-    ds = V2VPushDataset(f"tcp://127.0.0.1:{free_port()}", timeout_s=1.5)
+    ds = V2VStreamDataset(f"tcp://127.0.0.1:{free_port()}", 2, retry_s=1.0, timeout_s=1.5)
     t = time.monotonic()
-    with pytest.raises(StreamTimeout, match="is v2v-serve running"):
+    with pytest.raises(TimeoutError, match="is a v2v-serve running there"):
         next(iter(ds))
     assert time.monotonic() - t < 10
 
@@ -97,12 +95,13 @@ def test_absent_server_is_a_clear_error_not_a_hang():
 def test_server_killed_mid_stream_gives_error_after_timeout(videos):
     srv = ServeProcess(serve_args(videos, "--batch-size", "2")).start()
     try:
-        ds = V2VPushDataset(srv.endpoint, timeout_s=2.0, credits=1)
+        first = next(iter(V2VStreamDataset(srv.endpoint, 1, timeout_s=120)))  # decoded and kept by the server
+        ds = V2VStreamDataset(srv.endpoint, 1, timeout_s=2.0, retry_s=1.0, prefetch=1)
         it = iter(ds)
-        next(it)
+        assert next(it)["sample_ids"] == first["sample_ids"]
         srv.proc.kill()
         t = time.monotonic()
-        with pytest.raises(StreamTimeout):
+        with pytest.raises(TimeoutError, match="no rows for 2.0 s"):
             for _ in range(100):
                 next(it)
         assert time.monotonic() - t < 15
@@ -110,59 +109,15 @@ def test_server_killed_mid_stream_gives_error_after_timeout(videos):
         srv.stop()
 
 
-def test_credits_bound_batches_in_flight(videos):
-    """A raw client granting 1 credit and never acknowledging gets exactly 1 batch."""
-    with ServeProcess(serve_args(videos, "--batch-size", "1")) as srv:
-        ctx = zmq.Context()
-        s = ctx.socket(zmq.DEALER)
-        s.setsockopt(zmq.LINGER, 0)
-        s.connect(srv.endpoint)
-        s.send(pack({"type": "hello", "outputs": ["voxels"], "credits": 1}))
-        got = []
-        deadline = time.monotonic() + 8
-        while time.monotonic() < deadline:
-            if s.poll(200):
-                fr = s.recv_multipart()
-                h = unpack(fr[0])
-                if h["type"] == "batch":
-                    got.append(h)
-                    arr = decode_arrays(h["arrays"], fr[1:])
-                    assert arr["voxels"].dtype in (np.int8, np.int16)  # narrowest wire dtype
-            s.send(pack({"type": "heartbeat"}))
-        assert len(got) == 1
-
-        def receive(want, seconds):
-            deadline = time.monotonic() + seconds
-            while len(got) < want and time.monotonic() < deadline:
-                if s.poll(200):
-                    h = unpack(s.recv_multipart()[0])
-                    if h["type"] == "batch":
-                        got.append(h)
-                s.send(pack({"type": "heartbeat"}))
-
-        # credits are accounted by batch id: acking an unknown id, or asking for more in an ack, frees nothing
-        s.send(pack({"type": "ack", "batch_ids": [10 ** 6], "credit": 5}))
-        receive(2, 3)
-        assert len(got) == 1
-        s.send(pack({"type": "ack", "batch_ids": [got[0]["batch_id"]], "credit": 2}))
-        receive(3, 4)
-        assert len(got) == 2  # one ack, one slot
-        s.send(pack({"type": "credit", "credit": 2}))  # an explicit grant widens the window to 3
-        receive(4, 30)
-        assert len(got) == 4
-        s.close()
-        ctx.term()
-
-
 def test_dataloader_with_pin_memory(videos):
     with ServeProcess(serve_args(videos, "--batch-size", "2")) as srv:
-        ds = V2VPushDataset(srv.endpoint, outputs=("voxels", "frames"), timeout_s=60)
+        ds = V2VStreamDataset(srv.endpoint, 2, outputs=("voxels", "frames"), timeout_s=120)
         with pytest.warns(UserWarning) if not torch.cuda.is_available() else contextlib.nullcontext():
             dl = torch.utils.data.DataLoader(ds, batch_size=None, pin_memory=True)
             it = iter(dl)
             b = next(it)
-        assert b["voxels"].shape[1:] == (L, B, CROP, CROP)
-        assert isinstance(b["sample_ids"], list)
+        assert b["voxels"].shape == (2, L, B, CROP, CROP) and b["voxels"].abs().sum() > 0
+        assert isinstance(b["sample_ids"], list) and all(s in expected_ids(videos) for s in b["sample_ids"])
         del it
 
 
@@ -176,7 +131,8 @@ def test_loadtest_cli_reports_json(videos):
     for k in ("batches", "samples", "unique_samples", "seconds", "batches_per_s", "samples_per_s",
               "mbytes_per_s", "wait_fraction"):
         assert k in r
-    assert r["batches"] == 3 and r["samples"] == 6 and r["batches_per_s"] > 0 and 0 <= r["wait_fraction"] <= 1
+    assert r["batches"] == 3 and r["samples"] == r["unique_samples"] == 6, r
+    assert r["batches_per_s"] > 0 and 0 <= r["wait_fraction"] <= 1, r
 
 
 def test_bad_config_fails_at_startup_naming_field(tmp_path, videos):
@@ -219,11 +175,11 @@ def test_ipv6_loopback_on_both_ends(videos):
     except OSError as e:
         pytest.skip(f"this machine has no IPv6 loopback: {e}")
     endpoint = f"tcp://[::1]:{port}"
-    with ServeProcess(["--videos", str(videos), "--bind", endpoint, "--epochs", "1", "--crop-size", "64",
-                       "--sequence-length", "4", "--max-samples-per-video", "1", "--batch-size", "2"]) as srv:
-        ids = [s for b in V2VPushDataset(endpoint, outputs=("voxels",), timeout_s=60) for s in b["sample_ids"]]
-        assert srv.wait(30) == 0
-    assert len(ids) == len(set(ids)) > 0
+    with ServeProcess(["--videos", str(videos), "--bind", endpoint, "--crop-size", "64", "--sequence-length", "4",
+                       "--max-samples-per-video", "1", "--batch-size", "2"]):
+        rows = _rows(V2VStreamDataset(endpoint, 2, outputs=("voxels",), timeout_s=120))
+    ids = [sid for sid, pad, _, _ in rows if not pad]
+    assert len(ids) == len(set(ids)) == 4 and all(b["voxels"][i].abs().sum() > 0 for sid, pad, b, i in rows if not pad)
 
 
 def test_a_workers_socket_path_too_long_is_blamed_on_tmpdir_not_the_endpoint(videos, tmp_path):
@@ -236,37 +192,7 @@ def test_a_workers_socket_path_too_long_is_blamed_on_tmpdir_not_the_endpoint(vid
     assert "TMPDIR" in out.stderr and "Traceback" not in out.stderr, out.stderr
 
 
-def test_a_resume_state_of_700k_ids_is_sent_compactly_and_a_too_large_one_is_a_clear_error(videos):
-    from v2v_client import StreamError
-
-    args = ["--videos", str(videos), "--crop-size", "64", "--sequence-length", "4", "--max-samples-per-video", "1",
-            "--batch-size", "2"]
-    many = [f"elsewhere/v{i:05d}.mp4#{w}" for i in range(70_000) for w in range(10)]  # 700 k ids, 10 per video
-    huge = [f"elsewhere/a-long-folder-name/and-a-longer-file-name-{i:07d}.mp4#0" for i in range(700_000)]
-    with ServeProcess(args) as srv:
-        ds = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
-        ds.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": many}})
-        assert next(iter(ds))["voxels"].shape[0] > 0  # the server read it (videos it does not serve are ignored)
-        ds2 = V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=30)
-        ds2.load_state_dict({"version": 1, "completed_epoch": -1, "delivered": {"0": huge}})
-        with pytest.raises(StreamError, match="resume state is too large"):  # not a StreamTimeout: no hang
-            next(iter(ds2))
-        # a peer that sends one anyway (within twice the limit) is told why, not dropped in silence
-        ctx = zmq.Context()
-        s = ctx.socket(zmq.DEALER)
-        s.setsockopt(zmq.LINGER, 0)
-        s.connect(srv.endpoint)
-        s.send(pack({"type": "hello", "outputs": ["voxels"], "credits": 1, "consumer": "big",
-                     "resume": {"delivered": {"0": "\n".join(huge[:350_000])}}}))  # 24 MB
-        assert s.poll(20_000)
-        reply = unpack(s.recv_multipart()[0])
-        assert reply["type"] == "error" and str(16 * 1024 * 1024) in reply["message"], reply
-        s.close()
-        ctx.term()
-
-
-@pytest.mark.parametrize("delivery", ["plan", "push"])
-def test_sigterm_to_the_process_group_stops_the_server_without_restarting_workers(videos, delivery):
+def test_sigterm_to_the_process_group_stops_the_server_without_restarting_workers(videos):
     """A supervisor that signals the whole process group (systemd's default KillMode, a
     container stop with an init that forwards to the group, ``kill -TERM -PGID``): the workers
     exit at once (status 0) while the server shuts down, and the server takes that for the
@@ -280,8 +206,7 @@ def test_sigterm_to_the_process_group_stops_the_server_without_restarting_worker
 
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "v2v_server.cli",
-                             *serve_args(videos, "--bind", f"tcp://127.0.0.1:{free_port()}", "--metrics-port", str(port),
-                                         "--delivery", delivery)],
+                             *serve_args(videos, "--bind", f"tcp://127.0.0.1:{free_port()}", "--metrics-port", str(port))],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     lines: list = []
@@ -316,10 +241,10 @@ def test_a_clip_too_short_for_one_window_is_skipped_without_a_warning(videos):
     """bigbuckbunny.mp4 (132 frames) gives no window of 30 voxels x 5 bins (151 frames): an
     INFO line says so, no WARNING (a short clip is no fault of the file)."""
     args = ["--videos", str(videos), "--workers", "1", "--sequence-length", "30", "--crop-size", "32",
-            "--batch-size", "1", "--epochs", "1", "--max-samples-per-video", "1", "--shot-cuts", "off"]
+            "--batch-size", "1", "--max-samples-per-video", "1", "--shot-cuts", "off"]
     with ServeProcess(args) as srv:
-        for _ in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=120):
-            pass
-        assert srv.wait(60) == 0
+        rows = _rows(V2VStreamDataset(srv.endpoint, 1, outputs=("voxels",), timeout_s=120))
+    ids = [sid for sid, pad, _, _ in rows if not pad]
+    assert ids and len(ids) == len(set(ids)) and not any(s.startswith("bigbuckbunny.mp4#") for s in ids), ids
     assert "INFO skipped " in srv.log and "bigbuckbunny.mp4: 132 frames, shorter than one window of 151" in srv.log
     assert "WARNING" not in srv.log

@@ -118,20 +118,20 @@ def test_a_failure_keeps_the_exceptions_type_traceback_and_where():
 
 def test_a_workers_exception_reaches_the_server_with_its_type_and_where(tmp_path):
     from harness.serve import ServeProcess
-    from v2v_client import V2VPushDataset
+    from v2v_client import V2VStreamDataset
 
     corpus = tmp_path / "corpus"
     corpus.mkdir()
     shutil.copy(video_dir() / "bikes.mp4", corpus / "bikes.mp4")
     (corpus / "not_a_video.mp4").write_text("this is not a video\n" * 100)
     args = ["--videos", str(corpus), "--workers", "1", "--sequence-length", "4", "--num-bins", "2", "--crop-size", "32",
-            "--max-samples-per-video", "1", "--epochs", "1", "--batch-size", "1", "--log-level", "DEBUG"]
+            "--max-samples-per-video", "1", "--batch-size", "1", "--log-level", "DEBUG"]
     with ServeProcess(args) as srv:
-        ids = [s for b in V2VPushDataset(srv.endpoint, outputs=("voxels",), timeout_s=90) for s in b["sample_ids"]]
-        assert srv.wait(60) == 0
+        ds = V2VStreamDataset(srv.endpoint, 1, outputs=("voxels",), timeout_s=120)
+        rows = [(s, bool(p)) for b in ds for s, p in zip(b["sample_ids"], b["padding"])]
         lines = [ln for ln in srv.log.splitlines() if "not_a_video.mp4:" in ln and "skipped" in ln]
         raised = [ln for ln in srv.log.splitlines() if "Error raised in worker w0." in ln]
-    assert ids == ["bikes.mp4#0"]
+    assert [s for s, pad in rows if not pad] == ["bikes.mp4#0"], rows  # the rest of the epoch is padding
     assert len(lines) == 1, srv.log[-3000:]
     # the exception's type and where it was raised, from the worker's Failure, with its traceback below
     assert len(raised) == 1 and "while making not_a_video.mp4 in epoch 0, before its first sample" in raised[0], \

@@ -79,7 +79,7 @@ class Trainer:
         LPIPSUnavailable: ``require_lpips`` set and the perceptual term would be the stand-in.
 
     Use ``trainer.loop.train_loop`` (or :meth:`fit`) with an iterable of stream batches (the
-    contract of ``v2v_client.V2VPushDataset``), or :meth:`train_step` on one batch.
+    contract of ``v2v_client.V2VStreamDataset``), or :meth:`train_step` on one batch.
     """
 
     def __init__(self, cfg: dict, out_dir: str, device: torch.device):
@@ -274,7 +274,7 @@ class Trainer:
         ``stream``: a plan's epochs (``v2v_client.PlanEpochs``, read through a
         ``trainer.data.ReadAhead``), a read path already made (``trainer.data.read_path``:
         ``v2v-train`` starts reading before it builds the model), or any other iterable of stream batches
-        (``V2VPushDataset``: ``trainer.data.make_loader``). Checkpoints carry the read path's
+        (a list, say: ``trainer.data.make_loader``). Checkpoints carry the read path's
         ``state_dict()`` (a ``ReadAhead``'s: the position of the last batch trained on); with
         ``tensorboard``, event files too, their ``recipe`` the stream's ``info`` (the server's
         welcome) when it has one. ``startup``: the caller's start-up phases (seconds), added to

@@ -28,7 +28,7 @@ def feed_line(summary: dict, server: Optional[dict] = None) -> str:
         summary: the loop's summary (``trainer.loop.train_loop``): ``samples_per_s``,
             ``data_wait_fraction``, ``model_samples_per_s`` (None when no step was timed).
         server: the server's ``feed`` figures (``workers``, ``frame_cache_gb``, ``busy_s``: stage
-            -> worker seconds), or None when it did not report them (a push server, the Ray engine).
+            -> worker seconds), or None when it did not report them (the Ray engine).
 
     Returns:
         e.g. ``"starved: 3.1 samples/s, waiting 62 % of the time for batches; the model alone

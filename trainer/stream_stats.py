@@ -70,8 +70,8 @@ class Collected:
 
 
 def from_server(endpoint: str, n: int, timeout_s: float, progress: Callable[[int], None], recipe=None) -> Collected:
-    """The params of ``n`` samples read from the server at ``endpoint`` (``open_stream``: by plan
-    or by push, as the server serves; the default outputs: the worker measures what it makes); with ``recipe`` (the
+    """The params of ``n`` samples read from the server at ``endpoint`` (``open_stream``; the
+    default outputs: the worker measures what it makes); with ``recipe`` (the
     server's ``SampleRecipe``: bins and frames per bin) each row's grid ``cells`` from its voxels.
 
     Raises:

@@ -1,7 +1,6 @@
-"""``v2v-loadtest``: measure what a v2v server delivers, read as a trainer reads it: a plan's epochs in
-turn through ``V2VStreamDataset`` (v2v-serve's default delivery) read ahead of the loop
-(``read_ahead.ReadAhead``, as ``v2v-train`` reads them), or a push stream through
-``V2VPushDataset`` (``--delivery push``, and several servers read together)."""
+"""``v2v-loadtest``: measure what a v2v server (or several shards) delivers, read as a trainer reads
+it: a plan's epochs in turn through ``V2VStreamDataset``, read ahead of the loop
+(``read_ahead.ReadAhead``, as ``v2v-train`` reads them)."""
 from __future__ import annotations
 
 import argparse
@@ -12,29 +11,19 @@ from typing import List, Optional
 
 from v2v_wire.protocol import DEFAULT_OUTPUTS
 
-from .plan_dataset import PlanEpochs, open_stream
+from .plan_dataset import open_stream
 from .read_ahead import ReadAhead
 
 
-def _stream(endpoint, outputs, credits: Optional[int], timeout_s: float):
-    """``open_stream``'s pass; ``credits`` (push delivery's) is refused once the server answered."""
-    stream = open_stream(endpoint, outputs=outputs, timeout_s=timeout_s)
-    if credits is not None:
-        raise ValueError(f"--credits: {endpoint} serves by plan, which has no credits (drop it)")
-    return stream
-
-
-def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: Optional[int] = None,
-                 timeout_s: float = 60.0, step_s: float = 0.0, warmup: int = 1) -> dict:
+def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, timeout_s: float = 60.0, step_s: float = 0.0,
+                 warmup: int = 1) -> dict:
     """Read ``batches`` batches (after ``warmup`` unmeasured ones) and measure throughput.
 
     ``step_s`` simulates a training step of that many seconds per batch, so the wait
     fraction shows whether the stream keeps up with a trainer of that speed.
 
-    ``endpoint``: one server serving by plan (its epochs read in turn), or delivering by push;
-    or several servers (a list or ``"a,b"``, see ``V2VPushDataset``), read together by push, as
-    a trainer would. ``credits``: batches in flight, push only (default 4). Padding rows are not
-    counted as samples.
+    ``endpoint``: one server, or several shards (a list or ``"a,b"``), read as one plan, its
+    epochs in turn, as a trainer would. Padding rows are not counted as samples.
 
     Returns a dict: ``batches``, ``samples``, ``unique_samples``, ``seconds`` (wall time of
     the measured part), ``batches_per_s``, ``samples_per_s``, ``mbytes_per_s`` (MB = 1e6
@@ -43,9 +32,7 @@ def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, credits: Optio
     ``per_server``: {endpoint: {``batches``, ``samples``, ``samples_per_s``, ``mbytes_per_s``}}
     over the same measured wall time.
     """
-    stream = _stream(endpoint, outputs, credits, timeout_s)
-    if isinstance(stream, PlanEpochs):  # read as v2v-train reads a plan: ahead of the loop
-        stream = ReadAhead(stream)
+    stream = ReadAhead(open_stream(endpoint, outputs=outputs, timeout_s=timeout_s))  # as v2v-train reads
     it = iter(stream)
     n = samples = nbytes = 0
     ids = set()
@@ -115,15 +102,19 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--batches", type=int, default=20, help="batches to measure (default 20)")
     p.add_argument("--warmup", type=int, default=1, help="batches read before measuring (default 1)")
     p.add_argument("--outputs", default="voxels,frames,flow", help="comma list of outputs to ask for")
-    p.add_argument("--credits", type=int, help="batches in flight, for a server delivering by push (default 4)")
+    p.add_argument("--credits", help=argparse.SUPPRESS)  # push delivery's: refused in one line
     p.add_argument("--timeout", type=float, default=60.0, help="seconds of server silence before failing")
     p.add_argument("--step-ms", type=float, default=0.0, help="simulated training step per batch, ms")
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
     a = p.parse_args(argv)
     if a.batches < 1:
         p.error("--batches must be >= 1")
+    if a.credits is not None:
+        print("v2v-loadtest: --credits was push delivery's, which v2v no longer has: drop it (docs/delivery.md)",
+              file=sys.stderr)
+        return 2
     try:
-        r = run_loadtest(",".join(a.connect or ["tcp://127.0.0.1:5555"]), a.batches, tuple(s for s in a.outputs.split(",") if s), a.credits,
+        r = run_loadtest(",".join(a.connect or ["tcp://127.0.0.1:5555"]), a.batches, tuple(s for s in a.outputs.split(",") if s),
                          a.timeout, a.step_ms / 1000.0, a.warmup)
     except (TimeoutError, RuntimeError, ValueError) as e:
         print(f"v2v-loadtest: {e}", file=sys.stderr)

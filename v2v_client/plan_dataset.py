@@ -1,4 +1,4 @@
-"""Reading a server that serves by plan (``v2v-serve``'s default delivery, docs/plan.md) as a torch
+"""Reading a server that serves by plan (``v2v-serve``'s default delivery, docs/delivery.md) as a torch
 dataset: each rank's batch at each step is a fixed slice of the epoch's plan, fetched by position.
 
 The dataset holds no socket and no lock: each process that iterates it (the main process, a
@@ -41,8 +41,8 @@ import torch
 import zmq
 
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
-from v2v_wire.plan_shards import (interleaved, probes, shard_ranges, shards_identity, shards_samples,
-                                  step_in_epoch)
+from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_parts, shard_ranges, shards_identity,
+                                  shards_samples, step_in_epoch)
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, WireError, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_ipv6, pack, unpack
@@ -964,8 +964,7 @@ class _Shards:
     def _begin(self, flight: "_InFlight", step: int) -> None:
         """Ask each shard holding some of ``step``'s rows for its part."""
         f = flight.fetch_of(0, step)
-        ranges = shard_ranges(f.start, f.stop, len(self.links))
-        flight.parts[step] = {k: None for k, (lo, hi) in enumerate(ranges) if hi > lo}
+        flight.parts[step] = dict.fromkeys(shard_parts(f.start, f.stop, len(self.links)))
         flight.order.append(step)
         for k in flight.parts[step]:
             self._ask(flight, k, ("step", step))
@@ -987,13 +986,13 @@ class _Shards:
             return  # an answer to a request asked again, or to a plan_ask
         if msg.samples is not None:
             self.samples[k] = msg.samples
-        slots = [(msg.start + j) * n + k for j, sid in enumerate(msg.sample_ids) if sid is not None]
-        flight.seen = max([flight.seen] + [t + 1 for t in slots])
+        flight.seen = furthest_slot(flight.seen, k, n, msg.start, msg.sample_ids)
         if what[0] == "probe":
-            if not slots and msg.samples is None:
+            slot = any(sid is not None for sid in msg.sample_ids)
+            if not slot and msg.samples is None:
                 raise PlanServerError(f"{link.endpoint}: position {what[1]} answered past the epoch's end "
                                       "without the epoch's samples")
-            flight.probed[(k, what[1])] = bool(slots)
+            flight.probed[(k, what[1])] = slot
             return
         try:
             arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)

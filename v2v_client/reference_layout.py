@@ -13,10 +13,10 @@ batches of their ``WebvidDatasetV2`` through torch's ``default_collate``:
 * ``flow`` (their code adds it from RAFT, or from ground truth): float32 (B, T, 2, H, W), flow t
   moving frame t-1 to frame t in pixels (x, y), the stream's ``flow`` with the same index.
 
-:func:`to_reference_layout` maps a ``V2VPushDataset`` batch (``voxels`` (B, L, nb, H, W),
+:func:`to_reference_layout` maps a ``V2VStreamDataset`` batch (``voxels`` (B, L, nb, H, W),
 ``frames`` (B, L + 1, 1, H, W) uint8 or float, ``flow``, ``sample_ids``, ``params``,
-``padding``, ``epoch``, ``batch_id``) onto those keys; the stream's own extras stay under
-their names (``sample_ids``, ``params``, ``padding``, ``epoch``, ``batch_id``).
+``padding``, ``epoch``, ``step``, ``position``) onto those keys; the stream's own extras stay
+under their names.
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def to_reference_layout(batch: dict, additional_frame: bool = False, data_source
     """A stream batch in the authors' layout (see the module doc).
 
     Args:
-        batch: a ``V2VPushDataset`` batch (raw or float arrays) with ``voxels`` and, when
+        batch: a ``V2VStreamDataset`` batch (raw or float arrays) with ``voxels`` and, when
             present, ``frames`` and ``flow``.
         additional_frame: keep all L + 1 frames (their ``output_additional_frame``, used to
             train flow); otherwise the L frames at the voxels' ends.

@@ -1,6 +1,5 @@
 """Reading the fields of a decoded message: one rule per kind of field for every typed message
-of the wire (worker <-> server in ``worker_messages``, server -> client in ``stream_messages``,
-client -> server in ``messages``). An error names the message and the field and shows what came,
+of the wire (worker <-> server in ``worker_messages``, server <-> client in ``plan_messages``). An error names the message and the field and shows what came,
 cut to 60 characters, so a bad peer's message is one readable log line."""
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Delivery by plan, pure: an epoch's sequence of samples as a function of (manifest, mixing, seed,
 epoch), each rank's batch at each step as a fixed slice of it, and a checkpoint as a position.
 
-The contract (docs/plan.md):
+The contract (docs/delivery.md):
 
 * **The manifest** (:class:`Manifest`) is what a plan knows of a corpus: its videos, each one's
   *slots* (its windows per epoch) where they are known, each one's *tag* (what stands for its

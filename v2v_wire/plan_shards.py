@@ -10,18 +10,24 @@ samples, less the total: shards of a hashed corpus differ by a few percent). Pur
 from __future__ import annotations
 
 import hashlib
-from typing import List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 from .plan import PlanIdentity, PlanMismatch
 
-__all__ = ["shard_ranges", "interleaved", "shards_samples", "epoch_floor", "step_in_epoch", "probes",
-           "shards_identity"]
+__all__ = ["shard_ranges", "shard_parts", "interleaved", "shards_samples", "epoch_floor", "step_in_epoch", "probes",
+           "furthest_slot", "shards_identity"]
 
 
 def shard_ranges(start: int, stop: int, shards: int) -> List[Tuple[int, int]]:
     """Global positions ``start .. stop - 1`` as each shard's own positions: for shard ``i``,
     ``[lo, hi)`` (empty when ``lo == hi``: fewer rows than shards)."""
     return [(-(-(start - i) // shards), -(-(stop - i) // shards)) for i in range(shards)]
+
+
+def shard_parts(start: int, stop: int, shards: int) -> Dict[int, Tuple[int, int]]:
+    """The shards a fetch of global positions ``start .. stop - 1`` is asked of: shard -> its own
+    ``[lo, hi)`` (:func:`shard_ranges`), for each shard holding at least one of them, in shard order."""
+    return {k: (lo, hi) for k, (lo, hi) in enumerate(shard_ranges(start, stop, shards)) if hi > lo}
 
 
 def interleaved(start: int, stop: int, shards: int) -> List[Tuple[int, int]]:
@@ -69,6 +75,14 @@ def probes(first: int, samples: Sequence[Optional[int]]) -> List[Tuple[int, int]
     with its samples (the server answers past the end once it knows where that is)."""
     n = len(samples)
     return [(k, max(0, -(-(first - k) // n))) for k, s in enumerate(samples) if s is None]
+
+
+def furthest_slot(seen: int, shard: int, shards: int, start: int, sample_ids: Sequence[Optional[object]]) -> int:
+    """``seen`` (one past the furthest global position a reader got a row with a sample id at, or
+    0) after rows of ``shard`` (of ``shards``) from its own position ``start`` on, whose ids are
+    ``sample_ids`` (None: a row past that shard's end): what :func:`step_in_epoch` takes."""
+    slots = [(start + j) * shards + shard + 1 for j, sid in enumerate(sample_ids) if sid is not None]
+    return max([seen] + slots)
 
 
 def shards_identity(identities: Sequence[PlanIdentity]) -> PlanIdentity:

@@ -119,7 +119,7 @@ class Run:
 
 class Making:
     """The outputs workers make: those the fetches so far asked for, of ``offered`` (in its
-    order), as a push server makes what its clients ask; and each running task's, so that the
+    order); and each running task's, so that the
     samples of a task started before an output was asked for are dropped as they come.
 
     Args:
@@ -566,9 +566,8 @@ class PlanFeed:
 
     def timed_out(self, now: float, reading: bool = True) -> List[Tuple[Hashable, Run]]:
         """Copies that sent nothing for ``task_timeout_s``: each ends as a lost worker's. A server
-        serving by plan reads every worker message whatever the clients do (``reading`` is always
-        true: the shell's ``WorkerSide.watch`` passes it as the push core takes it), so silence is
-        the worker's own."""
+        serving by plan reads every worker message whatever the clients do (``reading``: always
+        true, as the shell's ``WorkerSide.watch`` passes it), so silence is the worker's own."""
         out = []
         for tid, ek in list(self.task_run.items()):
             run = self.runs[ek]

@@ -125,7 +125,7 @@ class ServerMetrics:
             except OSError as e:
                 self.on_fs_error("progress", "stderr", e)
 
-    # ------------------------------------------------------------------ events (server.py calls these)
+    # ------------------------------------------------------------------ events (plan_server.py calls these)
     def on_sample_made(self, params: Optional[dict] = None) -> None:
         """A sample kept from a worker; its ``params`` (the worker's map) feed the histograms."""
         self.samples_made.inc()

@@ -1,4 +1,4 @@
-"""What a server serving by plan keeps of the manifests it served (docs/plan.md, "A corpus that
+"""What a server serving by plan keeps of the manifests it served (docs/delivery.md, "A corpus that
 changed"), so that a position taken under an earlier manifest of the same listing is refused
 naming the files that changed, not only the fingerprints.
 

@@ -1,4 +1,4 @@
-"""The manifest a server serving by plan starts from (docs/plan.md): each served video's slots
+"""The manifest a server serving by plan starts from (docs/delivery.md): each served video's slots
 where the host's corpus index knows them (a video's windows, as a decode of it found them, its
 identity unchanged), None for the others, and each one's tag (one ``stat`` of a file, a store's
 listing entry), which the plan's identity covers. Nothing is read at start: the plan unfolds as the

@@ -1,5 +1,5 @@
 """A server in a thread of this process, for demos and tests: what ``v2v-serve`` runs
-(``V2VServer``, its workers as processes), bound to a free loopback port.
+(``PlanServer``, its workers as processes), bound to a free loopback port.
 """
 from __future__ import annotations
 

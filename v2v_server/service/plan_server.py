@@ -22,6 +22,7 @@ import numpy as np
 import zmq
 
 from v2v_server.delivery.plan_feed import PlanFeed, Row
+from v2v_server.disk_cache import UsageScan
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
@@ -45,6 +46,8 @@ log = logging.getLogger("v2v.server")
 HEDGE_S = 10.0
 #: Seconds workers keep compressing each sample with a codec after the last fetch that asked for it.
 CODEC_KEEP_S = 120.0
+#: Seconds between scans of the frame cache's folder for its bytes and entries (gauges).
+FRAME_CACHE_SCAN_S = 5.0
 
 
 class PlanServer:
@@ -77,6 +80,8 @@ class PlanServer:
         self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer,
                                      changes=plan_changes(caches.cache_dir, manifest))
         self.metrics = ServerMetrics()
+        fc = caches.frame_cache
+        self.frame_cache_scan = UsageScan(fc.disk, FRAME_CACHE_SCAN_S) if fc is not None else None
         self.workers = WorkerSide(cfg, source, self.feed, self.metrics)
         self.skipped = dict(skipped or {})
         self.bad = BadPeers()
@@ -119,10 +124,12 @@ class PlanServer:
             for video, (cause, why) in sorted(self.skipped.items()):  # known to give no window: named as if read
                 self.workers.log_failure(video, f"{why} (known from the corpus index: not opened)", cause=cause)
             counted = sum(1 for _, n in self.manifest.slots if n is not None)
+            rings = any(w.ring is not None for w in pool.workers.values())
             log.info("serving by plan %s: %d video(s) (%d counted: %s samples per epoch), from %s on %s with %d "
-                     "worker(s)", self.identity.manifest, len(self.manifest.slots), counted,
+                     "worker(s); samples travel %s", self.identity.manifest, len(self.manifest.slots), counted,
                      "unknown yet" if self.manifest.samples is None else self.manifest.samples, self.source.root,
-                     self.bound_endpoint, self.cfg.workers)
+                     self.bound_endpoint, self.cfg.workers,
+                     "through shared-memory slot rings" if rings else "as socket frames")
             if ready_event is not None:
                 ready_event.set()
             return self._loop()
@@ -268,7 +275,18 @@ class PlanServer:
         return {"pending_fetches": len(self.feed.pending), "workers": len(alive),
                 "workers_busy": sum(1 for w in alive if not w.idle), "epoch_videos": len(self.manifest.slots),
                 "shuffle_samples": len(self.feed.store), "shuffle_capacity": self.feed.keep_samples,
+                **({} if (fc := self._frame_cache_usage()) is None else self.metrics.frame_cache_state(*fc)),
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
+
+    def _frame_cache_usage(self) -> Optional[Tuple[int, int, int]]:
+        """The host's frame cache as ``(bytes, entries, budget)`` (``disk_cache.UsageScan``); None
+        when there is none. A failed scan is counted and logged once (``ServerMetrics.on_fs_error``)."""
+        if self.frame_cache_scan is None:
+            return None
+        usage, err = self.frame_cache_scan.read(time.monotonic())
+        if err is not None:
+            self.metrics.on_fs_error("frame_cache", self.frame_cache_scan.disk.folder, err)
+        return usage
 
 
 def _wire_row(output: str, c: ServeConfig) -> Tuple[tuple, str]:

@@ -68,10 +68,7 @@ def slot_bytes(sequence_length: int, num_bins: int, crop_size: int) -> int:
 
 def shm_bytes(workers: int, sequence_length: int, num_bins: int, crop_size: int) -> int:
     """Bytes of /dev/shm a server's slot rings reserve: ``workers x RING_SLOTS x slot_bytes``
-    (about 57 MB per worker for L = 40, 5 bins, 128 x 128 crops). A server bound to ``ipc://``
-    also keeps its batch buffers there (``(prefetch_batches + credits in flight + 2) x`` one
-    batch, plus one batch per open batch of the shuffle buffer: ``shuffle_buffer`` rounded up to
-    whole batches, docs/shuffle.md). Size a container's /dev/shm (Docker ``shm_size``, a Kubernetes memory-backed
+    (about 57 MB per worker for L = 40, 5 bins, 128 x 128 crops). Size a container's /dev/shm (Docker ``shm_size``, a Kubernetes memory-backed
     ``emptyDir``) at least this; with less, rings are refused at start and workers send
     arrays over the socket."""
     return workers * RING_SLOTS * slot_bytes(sequence_length, num_bins, crop_size)

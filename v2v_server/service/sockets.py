@@ -26,7 +26,7 @@ class ServerSockets:
         self.frontend.setsockopt(zmq.LINGER, 500)
         self.frontend.setsockopt(zmq.MAXMSGSIZE, 2 * MAX_CLIENT_MSG)  # past MAX_CLIENT_MSG: an error reply
         self.frontend.setsockopt(zmq.ROUTER_MANDATORY, 1)
-        self.frontend.setsockopt(zmq.SNDHWM, 0)  # credits bound what is queued
+        self.frontend.setsockopt(zmq.SNDHWM, 0)  # a reader's prefetch bounds what is queued for it
         self.backend = self.ctx.socket(zmq.ROUTER)
         self.backend.setsockopt(zmq.LINGER, 0)
         self.backend.setsockopt(zmq.RCVHWM, 4)

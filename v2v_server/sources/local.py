@@ -189,7 +189,7 @@ class LocalSource(VideoSource):
         (``file SIZE MTIME``), which ``cp -p``, ``rsync -a`` and ``tar`` keep on another host; an
         archive member's archive's (each piece's) with the member's place in it. One ``stat``
         per file, nothing read. A file rewritten within the same second at the same size keeps
-        its tag (docs/plan.md, "A corpus that changed")."""
+        its tag (docs/delivery.md, "A corpus that changed")."""
         rel = base_path(rel)
         member = split_member(rel)
         try:
