@@ -338,8 +338,9 @@ def test_loadtest_reads_a_plans_epochs_in_turn_and_refuses_credits(server, capsy
     r = run_loadtest(server, steps + 2, timeout_s=60, warmup=0)
     assert r["batches"] == steps + 2 and r["epochs_seen"] == [0, 1]
     assert r["samples"] == (steps + 2) * 4 and r["unique_samples"] == r["samples"]
-    assert main(["--connect", server, "--batches", "1", "--credits", "2"]) == 1
-    assert capsys.readouterr().err.strip() == f"v2v-loadtest: --credits: {server} serves by plan, which has no credits (drop it)"
+    assert main(["--connect", server, "--batches", "1", "--credits", "2"]) == 2
+    assert capsys.readouterr().err.strip() == ("v2v-loadtest: --credits was push delivery's, which v2v no longer has: "
+                                               "drop it (docs/delivery.md)")
 
 
 def test_compressed_rows_are_the_batches_plain_rows_are(server):
