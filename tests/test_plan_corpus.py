@@ -1,4 +1,4 @@
-"""A plan server over a corpus that is not what a plan's reader saw last (docs/plan.md, "A corpus
+"""A plan server over a corpus that is not what a plan's reader saw last (docs/delivery.md, "A corpus
 that changed"), and the files it does not serve: real ``v2v-serve`` processes on 127.0.0.1 over
 copies of the bundled clips, read by ``V2VStreamDataset``."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Reading a plan (docs/plan.md) under the loaders and launchers that
+"""Reading a plan (docs/delivery.md) under the loaders and launchers that
 snapshot or split a DataLoader (docs/launchers.md, "Reading a plan"): torchdata's
 ``StatefulDataLoader`` (its state taken mid-epoch and loaded by a fresh loader, with 0 and 2
 DataLoader workers), Hugging Face Accelerate in its two modes (2 CPU ranks started by torchrun,

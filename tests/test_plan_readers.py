@@ -1,4 +1,4 @@
-"""How a trainer's loader reaches a plan server (docs/plan.md, "The contract"): ``set_epoch`` and
+"""How a trainer's loader reaches a plan server (docs/delivery.md, "The contract"): ``set_epoch`` and
 ``load_state_dict`` reaching persistent DataLoader workers, the main process's ``state_dict`` while
 DataLoader workers read, and a server bound to an IPv6 address. Real ``v2v-serve`` children on
 the bundled clips (4 voxel grids of 64 x 64, 2 windows a clip: 8 samples an epoch), read by real

@@ -1,4 +1,4 @@
-"""What a plan server's rows cost on the wire (docs/plan.md, "The wire"): a real ``v2v-serve`` on
+"""What a plan server's rows cost on the wire (docs/delivery.md, "The wire"): a real ``v2v-serve`` on
 127.0.0.1, read by ``V2VStreamDataset`` and by a bare socket, the bytes counted by a TCP proxy
 between them. A padding row (past the epoch's end, or a window the decode did not give) costs no
 payload, and a fetch whose batch would pass the batch limit is refused in one line."""

@@ -1,4 +1,4 @@
-"""Serving by plan end to end (docs/plan.md): real servers (in this process, and ``v2v-serve``
+"""Serving by plan end to end (docs/delivery.md): real servers (in this process, and ``v2v-serve``
 as a child) over the bundled clips, read by ``V2VStreamDataset`` through real
 DataLoaders. Each test checks what a user is promised: every sample of an epoch once, at the same
 positions at any layout, bit-identical batches from two reads, a checkpoint that resumes at another

@@ -448,7 +448,9 @@ class _StateCollector:
             ("v2v_epoch_samples", "epoch_samples", "Samples one epoch holds, as the corpus index knew at start "
              "(0: not every video known)"),
             ("v2v_shuffle_buffer_samples", "shuffle_samples", "Samples made and waiting for their fetch"),
-            ("v2v_shuffle_buffer_capacity_samples", "shuffle_capacity", "Samples that may wait for their fetch"),
+            ("v2v_shuffle_buffer_capacity_samples", "shuffle_capacity", "Samples the store keeps before it drops "
+             "unfetched ones: those made ahead (shuffle_buffer) and those fetched (batch_size), beside the largest "
+             "video's"),
             ("v2v_frame_cache_bytes", "frame_cache_bytes", "Bytes of complete entries in this host's frame cache"),
             ("v2v_frame_cache_entries", "frame_cache_entries", "Entries (videos) in this host's frame cache"),
             ("v2v_frame_cache_budget_bytes", "frame_cache_budget", "The frame cache's budget (frame_cache_gb), bytes"),
