@@ -22,6 +22,7 @@ SCENARIOS = {**faults.SCENARIOS, **faults_misuse.SCENARIOS, **faults_deploy.SCEN
 
 
 def format_table(rows: List[dict]) -> str:
+    """The rows as a markdown table."""
     head = "| scenario | expected | delivered | lost | duplicated | seconds to recover | notes |\n|---|---|---|---|---|---|---|"
     lines = [head]
     for r in rows:
@@ -32,6 +33,7 @@ def format_table(rows: List[dict]) -> str:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    """Run the scenarios; exit 1 when one lost, doubled or invented a sample, or failed to run."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--only", nargs="*", choices=sorted(SCENARIOS), help="scenarios to run (default: all)")
     p.add_argument("--out", help="also write the table (markdown) here")

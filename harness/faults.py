@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 from typing import Callable, List, Optional
 
-import torch
 import zmq
 
 from v2v_client import V2VStreamDataset
@@ -49,11 +48,13 @@ class Layout:
         self.L, self.crop, self.windows, self.batch, self.shot_cuts = L, crop, windows, batch, shot_cuts
 
     def args(self) -> List[str]:
+        """The ``v2v-serve`` flags of this layout."""
         return ["--sequence-length", str(self.L), "--crop-size", str(self.crop), "--max-samples-per-video",
                 str(self.windows), "--batch-size", str(self.batch), "--seed", "11", "--flow-preset", "ultrafast",
                 "--shot-cuts", self.shot_cuts]
 
     def cfg(self) -> ServeConfig:
+        """The ``ServeConfig`` of this layout (what ``--check`` is run under)."""
         return ServeConfig(sequence_length=self.L, crop_size=self.crop, max_samples_per_video=self.windows,
                            workers=2, shot_cuts=self.shot_cuts)
 
@@ -75,6 +76,7 @@ def per_epoch(ids: List[str], epochs) -> List[str]:
 
 
 def good_corpus(tmp: Path, copies: int = 1) -> Path:
+    """``tmp/good``: ``copies`` copies of each bundled clip."""
     d = tmp / "good"
     d.mkdir(parents=True, exist_ok=True)
     for p in sorted(GOOD_VIDEOS.glob("*.mp4")):

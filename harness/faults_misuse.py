@@ -19,7 +19,7 @@ import torch
 import zmq
 
 from harness.faults import (ROOT, Layout, _clean, _ids, _serve, _stop, dataset, expected_ids, good_corpus,
-                            per_epoch, read_all, real_ids, row, stopped_while_another_reads, worker_pids)
+                            per_epoch, read_all, real_ids, row, stopped_while_another_reads)
 from v2v_wire.protocol import pack, unpack
 
 
