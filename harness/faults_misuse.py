@@ -1,28 +1,26 @@
-"""Fault scenarios of careless and hostile clients against a real v2v-serve on 127.0.0.1: two
-trainers on one consumer id, two DDP jobs on one default group, a resume at another world size, a
-trainer that wakes after the others ran epochs ahead, a reader sitting on its grants, resume
-states that lie, and messages that cost more than their size (issue 69). Each ``scenario_*``
-returns a ``faults.row``: samples expected, delivered, lost, doubled, ``facts`` for the tests.
-``python -m bench.faults`` runs them with the other scenarios; ``tests/test_exactly_once.py``
-runs short versions.
+"""Fault scenarios of how trainers read a plan (``V2VStreamDataset`` against a real ``v2v-serve``
+serving by plan on 127.0.0.1): DDP ranks, resumes at another world size, loaders with workers,
+several jobs on one server, trainers stopped while others read, and peers sending positions and
+fetches that lie. Same row format as ``harness/faults.py``; ``python -m bench.faults`` runs them.
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import List
 
+import torch
 import zmq
 
-from harness.faults import (ROOT, Layout, _ids, _raw_peer, _serve, _take, _trainer_process, expected_ids,
-                            good_corpus, read_all, row)
-from v2v_client import StreamError, V2VPushDataset
+from harness.faults import (ROOT, Layout, _clean, _ids, _serve, _stop, dataset, expected_ids, good_corpus,
+                            per_epoch, read_all, real_ids, row, stopped_while_another_reads)
 from v2v_wire.protocol import pack, unpack
-
-__all__ = ["SCENARIOS", "server_rss_mb"]
 
 
 def server_rss_mb(pid: int) -> float:
@@ -30,409 +28,396 @@ def server_rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
-    return float("nan")
+    return 0.0
 
 
-def _refused(ds: V2VPushDataset, got: list, errors: list) -> None:
-    """Iterate ``ds``; batches to ``got``, the first line of an error to ``errors``."""
-    try:
-        for b in ds:
-            got.append(list(b["sample_ids"]))
-    except (StreamError, ValueError) as e:
-        errors.append(str(e).splitlines()[0])
-
-
-# ---------------------------------------------------------------------------------- one reader per consumer
-def scenario_two_readers_one_consumer(tmp: Path, layout: Layout, step_s: float = 0.3) -> dict:
-    """Trainer A reads; trainer B (another process's dataset) loads A's state and reads too, as
-    the same consumer: B is refused with one line naming the consumer, A reads every sample."""
-    corpus = good_corpus(tmp, 3)
-    expected = expected_ids(corpus, layout)
-    log: list = []
-    got_b: list = []
-    errors: list = []
-    with _serve(corpus, layout, "--epochs", "1", "--client-timeout", "3") as srv:
-        a = V2VPushDataset(srv.endpoint, timeout_s=60, credits=2)
-        it = iter(a)
-        _take(it, 1, log)
-        b = V2VPushDataset(srv.endpoint, timeout_s=60, credits=2)
-        b.load_state_dict(a.state_dict())
-        t0 = time.monotonic()
-        th = threading.Thread(target=_refused, args=(b, got_b, errors), daemon=True)
-        th.start()
-        for x in it:
-            log.append((time.monotonic(), list(x["sample_ids"])))
-            time.sleep(step_s)
-        th.join(60)
-        refused_after = time.monotonic() - t0
-        rc = srv.wait(30)
-    return row("two trainers read one consumer id at once", expected, _ids(log) + [s for ids in got_b for s in ids],
-               None, f"second trainer: {errors[0] if errors else 'not refused'}; its batches {len(got_b)}; server exit "
-               f"{rc}", refused=errors[:1], second_batches=len(got_b), server_exit=rc,
-               refused_within_s=round(refused_after, 1))
-
-
-def _ddp_job(endpoint: str, world: int, logs: List[list], errors: list, step_s: float, started: threading.Event,
-             group: Optional[str] = None) -> List[threading.Thread]:
-    """``world`` DDP ranks (threads) of one job reading ``endpoint`` with ``group`` (None: the
-    default, as a user who leaves it); each rank's real samples to ``logs[rank]``."""
-    def rank(r: int) -> None:
-        try:
-            kw = {} if group is None else {"group": group}  # None: as a user who leaves it at its default
-            ds = V2VPushDataset(endpoint, timeout_s=60, credits=1, rank=r, world_size=world, **kw)
-            for b in ds:
-                started.set()
-                logs[r].append((time.monotonic(), [s for s, p in zip(b["sample_ids"], b["padding"].tolist()) if not p]))
-                time.sleep(step_s)
-        except (StreamError, ValueError) as e:
-            errors.append(str(e).splitlines()[0])
-    ths = [threading.Thread(target=rank, args=(r,), daemon=True) for r in range(world)]
+def _threads(targets) -> None:
+    """Run each callable in its own thread and wait for all (300 s at most each)."""
+    ths = [threading.Thread(target=t, daemon=True) for t in targets]
     for t in ths:
         t.start()
-    return ths
+    for t in ths:
+        t.join(300)
 
 
-def scenario_two_ddp_jobs_one_group(tmp: Path, layout: Layout, step_s: float = 0.8) -> dict:
-    """Two DDP jobs (world size 2 each, ranks started by hand: no launcher to name them) on one
-    server, both leaving ``group=`` at its default: the second job's ranks are refused with a line
-    saying to set ``group=``; the first job reads every sample once."""
-    corpus = good_corpus(tmp, 3)
+def _ranks(endpoint: str, world: int, logs: List[list], errors: list, stop_after=None, delay=None, tag=False,
+           load=None, epoch: int = 0, batch_size=None) -> List[dict]:
+    """``world`` DDP ranks (threads, each its own dataset) of one job reading ``epoch`` (or from
+    position ``load``), up to ``stop_after`` steps, rank r starting ``delay[r]`` s late; returns
+    each rank's last position; ``errors`` gets each rank's error."""
+    positions: List[dict] = [None] * world
+
+    def rank(r):
+        try:
+            time.sleep((delay or [0] * world)[r])
+            ds = dataset(endpoint, rank=r, world_size=world, batch_size=batch_size)
+            ds.set_epoch(epoch)
+            if load is not None:
+                ds.load_state_dict(load)
+            positions[r] = read_all(ds, logs[r], stop_after=stop_after, tag=tag)
+        except Exception as e:  # noqa: BLE001 - the row reports it
+            errors.append(f"rank {r}: {type(e).__name__}: {str(e).splitlines()[0]}")
+
+    _threads([lambda r=r: rank(r) for r in range(world)])
+    return positions
+
+
+def scenario_ddp_ranks(tmp: Path, layout: Layout, world: int = 4) -> dict:
+    """``world`` DDP ranks read one epoch: every rank takes the same number of steps (the last
+    rows padding), the real rows are the epoch's samples once."""
+    corpus = good_corpus(tmp, 2)
     expected = expected_ids(corpus, layout)
-    logs: List[list] = [[], [], [], []]
-    errors_1: list = []
-    errors_2: list = []
-    with _serve(corpus, layout, "--epochs", "1", "--client-timeout", "3") as srv:
-        started = threading.Event()
-        job1 = _ddp_job(srv.endpoint, 2, logs[:2], errors_1, step_s, started)
-        started.wait(60)
-        job2 = _ddp_job(srv.endpoint, 2, logs[2:], errors_2, step_s, threading.Event())
-        for t in job1 + job2:
-            t.join(120)
-        rc = srv.wait(30)
-    second = [s for lg in logs[2:] for s in _ids(lg)]
-    return row("two DDP jobs on one server, both with the default group", expected,
-               [s for lg in logs[:2] for s in _ids(lg)] + second, None,
-               f"second job: {errors_2[0] if errors_2 else 'not refused'} ({len(errors_2)} rank(s) refused, "
-               f"{len(second)} samples); first job errors {len(errors_1)}; server exit {rc}",
-               refused=sorted(set(errors_2)), second_samples=len(second), first_errors=errors_1, server_exit=rc)
+    logs: List[list] = [[] for _ in range(world)]
+    errors: list = []
+    with _serve(corpus, layout) as srv:
+        _ranks(srv.endpoint, world, logs, errors)
+        rc, clean = _stop(srv), _clean(srv)
+    steps = [len(lg) for lg in logs]
+    return row(f"{world} DDP ranks on one plan", expected, [s for lg in logs for s in _ids(lg)], None,
+               f"steps per rank {steps}; errors {len(errors)}; server exit {rc}", steps=steps, errors=errors,
+               server_exit=rc, clean=clean)
 
 
-# ---------------------------------------------------------------------------------- resume at another world size
-def scenario_world_size_change(tmp: Path, layout: Layout, old: int = 2, new: int = 1) -> dict:
-    """A job of world size ``old`` (threads) checkpoints each rank after 2 batches, takes 2 more
-    and stops; it resumes at world size ``new``. From one rank's state alone the resume is refused
-    before the first batch with one line saying what to load; from every rank's state gathered,
-    every sample is trained once (what the old ranks took after their checkpoints again)."""
-    corpus = good_corpus(tmp, 3)
+def scenario_ddp_restart_late_rank(tmp: Path, layout: Layout, delay_s: float = 3.0, ckpt_step: int = 2) -> dict:
+    """Two ranks read ``ckpt_step`` steps and checkpoint (rank 0's position); the server is killed
+    (SIGKILL) and started again; the job resumes from that position, rank 1 ``delay_s`` late:
+    what the ranks trained on is each sample once."""
+    corpus = good_corpus(tmp, 2)
     expected = expected_ids(corpus, layout)
-    kept: list = []  # what the restored models have seen
-    refusal: list = []
-    with _serve(corpus, layout, "--epochs", "1", "--client-timeout", "2", "--end-grace-s", "30") as srv:
-        states: list = [None] * old
-
-        def first(r: int) -> None:  # a rank of the job that stops: 2 steps, a checkpoint, 2 more steps
-            ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1, rank=r, world_size=old, group="job")
-            it = iter(ds)
-            for step in range(4):
-                b = next(it)
-                if step < 2:
-                    kept.extend(s for s, p in zip(b["sample_ids"], b["padding"].tolist()) if not p)
-                if step == 1:
-                    states[r] = ds.state_dict()
-            it.close()  # the job stops (its later steps are lost with it)
-
-        ths = [threading.Thread(target=first, args=(r,), daemon=True) for r in range(old)]
-        for t in ths:
-            t.start()
-        for t in ths:
-            t.join(120)
-        if old > 1:  # one rank's state speaks for that rank alone
-            alone = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1, rank=0, world_size=new, group="job")
-            alone.load_state_dict(states[0])
-            try:
-                next(iter(alone))
-            except ValueError as e:
-                refusal.append(str(e).splitlines()[0])
-        resumed = [V2VPushDataset(srv.endpoint, timeout_s=60, credits=1, rank=r, world_size=new, group="job")
-                   for r in range(new)]
-        logs: List[list] = [[] for _ in range(new)]
-        errors: list = []
-
-        def rank(r: int) -> None:
-            try:
-                resumed[r].load_state_dict({"v2v_ranks": states})
-                for b in resumed[r]:
-                    logs[r].append((time.monotonic(), [s for s, p in zip(b["sample_ids"], b["padding"].tolist())
-                                                       if not p]))
-            except (StreamError, ValueError) as e:
-                errors.append(str(e).splitlines()[0])
-        ths = [threading.Thread(target=rank, args=(r,), daemon=True) for r in range(new)]
-        for t in ths:
-            t.start()
-        for t in ths:
-            t.join(120)
-        rc = srv.stop()
-    return row(f"DDP job resumed at world size {new} from {old}", expected, kept + [s for lg in logs for s in _ids(lg)],
-               None, f"from rank 0's state alone: {refusal[0] if refusal else 'not refused'}; from every rank's "
-               f"state: errors {errors or 'none'}; server exit {rc}", refused=refusal, errors=errors, server_exit=rc)
+    logs: List[list] = [[], []]
+    errors: list = []
+    srv = _serve(corpus, layout).start()
+    srv2 = None
+    try:
+        position = _ranks(srv.endpoint, 2, logs, errors, stop_after=ckpt_step)[0]
+        srv.proc.send_signal(signal.SIGKILL)
+        srv.proc.wait(10)
+        srv2 = _serve(corpus, layout, "--bind", srv.endpoint).start()
+        _ranks(srv.endpoint, 2, logs, errors, delay=[0, delay_s], load=position)
+        rc, clean = _stop(srv2), _clean(srv2)
+    finally:
+        srv.stop()
+        if srv2 is not None:
+            srv2.stop()
+    return row(f"2 DDP ranks resume after a server restart, rank 1 {delay_s:.0f} s late", expected,
+               [s for lg in logs for s in _ids(lg)], None, f"errors: {'; '.join(errors) or 'none'}; server exit {rc}",
+               errors=errors, server_exit=rc, clean=clean)
 
 
-# ---------------------------------------------------------------------------------- liveness with safety
-WAKING_CLIENT = r"""
-import os, signal, sys, time
-from v2v_client import V2VPushDataset
-ds = V2VPushDataset(sys.argv[1], timeout_s=120, credits=int(sys.argv[2]))
-for n, b in enumerate(ds, 1):
-    print("ids", " ".join(f"{b['epoch']}:{s}" for s in b["sample_ids"]), flush=True)
-    if n == 1:
-        time.sleep(0.5)  # its grants ahead come in; then it is stopped from outside
-    time.sleep(0.05)
-"""
-
-
-def scenario_wake_after_others_ran_ahead(tmp: Path, layout: Layout, epochs: int = 3, freeze_s: float = 10.0) -> dict:
-    """Trainer A (credits 4) is stopped (SIGSTOP) after its first batch, past every timeout, while
-    trainer B reads every epoch to its end; A wakes: the batches granted to it come back to it (or
-    went elsewhere), and every sample of every epoch reaches one loop once."""
+def scenario_many_trainers(tmp: Path, layout: Layout, n: int = 20, jobs: bool = False) -> dict:
+    """``n`` readers at once: the ranks of one job (the epoch once across them) or, with
+    ``jobs``, ``n`` jobs each reading the whole epoch (each job's epoch once)."""
     corpus = good_corpus(tmp, 2)
     one = expected_ids(corpus, layout)
-    expected = [f"{e}:{s}" for e in range(epochs) for s in one]
-    log_b: list = []
-    with _serve(corpus, layout, "--epochs", str(epochs), "--client-timeout", "2", "--lease", "2",
-                "--end-grace-s", "60") as srv:
-        p = _trainer_process(WAKING_CLIENT, srv.endpoint, "4")
+    logs: List[list] = [[] for _ in range(n)]
+    errors: list = []
+    t0 = time.monotonic()
+    with _serve(corpus, layout) as srv:
+        if jobs:
+            def job(j):
+                try:
+                    read_all(dataset(srv.endpoint), logs[j])
+                except Exception as e:  # noqa: BLE001 - the row reports it
+                    errors.append(f"job {j}: {type(e).__name__}: {e}")
+
+            _threads([lambda j=j: job(j) for j in range(n)])
+        else:
+            _ranks(srv.endpoint, n, logs, errors, batch_size=1)
+        wall = time.monotonic() - t0
+        rc, clean = _stop(srv), _clean(srv)
+    steps = [len(lg) for lg in logs]
+    got = [f"{j}:{s}" for j, lg in enumerate(logs) for s in _ids(lg)] if jobs else [s for lg in logs for s in _ids(lg)]
+    expected = per_epoch(one, range(n)) if jobs else one
+    return row(f"{n} {'jobs' if jobs else 'DDP ranks of one job'} on one server", expected, got, None,
+               f"steps per reader min {min(steps)} max {max(steps)}; {wall:.1f} s; errors {len(errors)}; "
+               f"server exit {rc}", steps=steps, errors=errors, server_exit=rc, clean=clean)
+
+
+def scenario_resume_after_end(tmp: Path, layout: Layout, ckpt_step: int = 2, workers: int = 2) -> dict:
+    """torchdata's StatefulDataLoader (``workers`` DataLoader workers) snapshots its state at step
+    ``ckpt_step`` and reads the epoch to its end; a new loader over a new dataset loads the
+    snapshot and reads the rest: steps up to the snapshot plus the rest are each sample once."""
+    from torchdata.stateful_dataloader import StatefulDataLoader
+
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    log: list = []
+    with _serve(corpus, layout) as srv:
+        loader = StatefulDataLoader(dataset(srv.endpoint), batch_size=None, num_workers=workers)
+        state, whole = None, []
+        for b in loader:
+            whole.append((time.monotonic(), real_ids(b)))
+            if len(whole) == ckpt_step:
+                state = loader.state_dict()
+        log += whole[:ckpt_step]
+        again = StatefulDataLoader(dataset(srv.endpoint), batch_size=None, num_workers=workers)
+        again.load_state_dict(state)
+        t0 = time.monotonic()
+        read_all(again, log)
+        first = log[ckpt_step][0] - t0 if len(log) > ckpt_step else None
+        rc, clean = _stop(srv), _clean(srv)
+    return row(f"StatefulDataLoader ({workers} workers) resumed from step {ckpt_step} after the epoch ended",
+               expected, _ids(log), first, f"resumed run read {len(_ids(log[ckpt_step:]))} samples (the "
+               f"{len(_ids(whole[ckpt_step:]))} after the snapshot); server exit {rc}",
+               resumed=len(_ids(log[ckpt_step:])), after=len(_ids(whole[ckpt_step:])), server_exit=rc, clean=clean)
+
+
+def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: int = 3) -> dict:
+    """A DataLoader with 2 workers (``persistent`` or not): take ``take`` batches and ``break``
+    (max_steps), load the last batch's position in the main process, iterate again, until the
+    epoch ends: each sample once (the workers read ahead; what they read past the break is
+    not yielded, and the position says where to go on)."""
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    log: list = []
+    passes = 0
+    with _serve(corpus, layout) as srv:
+        ds = dataset(srv.endpoint)
+        loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=2, persistent_workers=persistent)
+        while passes < 50:
+            passes += 1
+            n = len(log)
+            position = read_all(loader, log, stop_after=take)
+            if len(log) - n < take:
+                break
+            ds.load_state_dict(position)
+        rc, clean = _stop(srv), _clean(srv)
+    kind = "persistent" if persistent else "non-persistent"
+    return row(f"DataLoader, 2 {kind} workers, break after {take} batches and iterate again from the position",
+               expected, _ids(log), None, f"{passes} iterations; server exit {rc}", iterations=passes,
+               server_exit=rc, clean=clean)
+
+
+def scenario_lightning_ddp(tmp: Path, layout: Layout) -> dict:
+    """Lightning's own ``ddp`` launcher, 2 CPU ranks (gloo), the dataset built before fit
+    (``harness.lightning_ddp --plan``, a DataLoader of 2 workers): the same steps on both ranks,
+    the epoch's samples once across them."""
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    out = tmp / "out"
+    out.mkdir()
+    with _serve(corpus, layout) as srv:
+        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        proc = subprocess.Popen([sys.executable, "-m", "harness.lightning_ddp", srv.endpoint, str(out), "--plan"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                                start_new_session=True)  # rank 1 is rank 0's child: a hang is killed whole
         try:
-            ids = p.stdout.readline().split()[1:]
-            time.sleep(1.0)
-            p.send_signal(signal.SIGSTOP)
-            t0 = time.monotonic()
-            b = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1)
-            for x in b:
-                log_b.append((time.monotonic(), [f"{x['epoch']}:{s}" for s in x["sample_ids"]]))
-            b_done = time.monotonic() - t0
-            time.sleep(max(0.0, freeze_s - b_done))
-            p.send_signal(signal.SIGCONT)
+            err = proc.communicate(timeout=300)[1]
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            err = proc.communicate(timeout=30)[1]
+        rc, clean = _stop(srv), _clean(srv)
+    ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
+    batches = [r["batches"] for r in ranks]
+    return row("Lightning DDP, 2 gloo ranks, dataset built before fit", expected,
+               [s for r in ranks for s in r["seen"]], None,
+               f"batches per rank {batches}; trainer exit {proc.returncode}; server exit {rc}",
+               batches=batches, trainer_exit=proc.returncode, server_exit=rc, clean=clean, stderr=err[-2000:])
+
+
+def scenario_two_ddp_jobs(tmp: Path, layout: Layout) -> dict:
+    """Two DDP jobs of 2 ranks each read one server at once, of other batch sizes and epochs:
+    each job's epoch is its samples once across its ranks."""
+    corpus = good_corpus(tmp, 2)
+    one = expected_ids(corpus, layout)
+    logs: List[List[list]] = [[[], []], [[], []]]
+    errors: list = []
+    with _serve(corpus, layout) as srv:
+        _threads([lambda: _ranks(srv.endpoint, 2, logs[0], errors, tag=True, epoch=0, batch_size=2),
+                  lambda: _ranks(srv.endpoint, 2, logs[1], errors, tag=True, epoch=1, batch_size=3)])
+        rc, clean = _stop(srv), _clean(srv)
+    got = [s for job in logs for lg in job for s in _ids(lg)]
+    return row("two DDP jobs (2 ranks each) on one server, epochs 0 and 1", per_epoch(one, (0, 1)), got, None,
+               f"steps per rank {[[len(lg) for lg in job] for job in logs]}; errors {len(errors)}; server exit {rc}",
+               errors=errors, server_exit=rc, clean=clean)
+
+
+def scenario_world_size_change(tmp: Path, layout: Layout, old: int = 2, new: int = 1, ckpt_step: int = 2) -> dict:
+    """A job of world size ``old`` stops after ``ckpt_step`` steps; a job of world size ``new``
+    resumes from rank 0's position (a position is the same on every rank, at any world size):
+    what both trained on is each sample once."""
+    corpus = good_corpus(tmp, 2)
+    expected = expected_ids(corpus, layout)
+    before: List[list] = [[] for _ in range(old)]
+    after: List[list] = [[] for _ in range(new)]
+    errors: list = []
+    with _serve(corpus, layout) as srv:
+        positions = _ranks(srv.endpoint, old, before, errors, stop_after=ckpt_step)
+        same = all(p == positions[0] for p in positions)
+        _ranks(srv.endpoint, new, after, errors, load=positions[0])
+        rc, clean = _stop(srv), _clean(srv)
+    got = [s for lg in before + after for s in _ids(lg)]
+    return row(f"DDP job resumed at world size {new} from {old}", expected, got, None,
+               f"positions the same on every rank {same}; errors {'; '.join(errors) or 'none'}; server exit {rc}",
+               same_positions=same, errors=errors, server_exit=rc, clean=clean)
+
+
+def scenario_wake_after_others_ran_ahead(tmp: Path, layout: Layout, epochs: int = 6, stop_s: float = 10.0) -> dict:
+    """Trainer A is stopped (SIGSTOP) after its first step for ``stop_s`` seconds while job B
+    reads ``epochs`` epochs; woken, A reads its epoch on: A's epoch once, each of B's once."""
+    corpus = good_corpus(tmp, 2)
+    one = expected_ids(corpus, layout)
+    with _serve(corpus, layout) as srv:
+        def stop(p):
             for line in p.stdout:
-                ids += line.split()[1:]
-            a_rc = p.wait(120)
-        finally:
-            if p.poll() is None:
-                p.send_signal(signal.SIGCONT)
-                p.kill()
-        rc = srv.stop()
-    return row(f"trainer woken {freeze_s:.0f} s after another read all {epochs} epochs", expected, ids + _ids(log_b),
-               None, f"B read {len(_ids(log_b))} samples in {b_done:.1f} s while A was stopped; A got "
-               f"{len(ids)} (exit {a_rc}); server exit {rc}", b_seconds=round(b_done, 1), a_samples=len(ids),
-               a_exit=a_rc, server_exit=rc)
+                if line.startswith("step"):
+                    break
+            p.send_signal(signal.SIGSTOP)
+
+        ids_a, log_b, b_s, rc_a = stopped_while_another_reads(srv.endpoint, stop, stop_s, tmp, range(epochs))
+        rc, clean = _stop(srv), _clean(srv)
+    return row(f"trainer woken {stop_s:.0f} s after another read {epochs} epochs", per_epoch(one, ["a", *range(epochs)]),
+               [f"a:{s}" for s in ids_a] + _ids(log_b), None,
+               f"B read {len(_ids(log_b))} samples in {b_s:.1f} s while A was stopped; A got {len(ids_a)} (exit {rc_a}); "
+               f"server exit {rc}", a_exit=rc_a, server_exit=rc, clean=clean)
 
 
-def _sitting_peer(endpoint: str, held: list, stop: threading.Event, credits: int = 4) -> threading.Thread:
-    """A peer that asks for the grant of every batch it is sent and never acknowledges one: it
-    sits on ``credits`` grants, heartbeating, until ``stop``; the ids granted to it go to ``held``."""
+def scenario_loop_stops_reading(tmp: Path, layout: Layout, pause_s: float = 6.0, task_timeout_s: float = 2.0) -> dict:
+    """A trainer's loop stops calling ``next()`` after one batch for ``pause_s`` seconds (a long
+    validation pass; three task timeouts) while another job reads its epoch: both epochs whole,
+    no worker called hung."""
+    corpus = good_corpus(tmp, 2)
+    one = expected_ids(corpus, layout)
+    log_a: list = []
+    log_b: list = []
+    with _serve(corpus, layout, "--task-timeout", str(task_timeout_s)) as srv:
+        it = iter(dataset(srv.endpoint))
+        b = next(it)
+        log_a.append((time.monotonic(), [f"a:{s}" for s in real_ids(b)]))
+        t0 = time.monotonic()
+        read_all(dataset(srv.endpoint), log_b, tag=True)
+        b_s = time.monotonic() - t0
+        time.sleep(max(0.0, pause_s - b_s))
+        for b in it:
+            log_a.append((time.monotonic(), [f"a:{s}" for s in real_ids(b)]))
+        rc, clean = _stop(srv), _clean(srv)
+        hung = srv.log.count("task reassigned")
+    return row(f"a trainer's loop stops reading for {pause_s:.0f} s (task timeout {task_timeout_s:.0f} s)",
+               per_epoch(one, ["a", 0]), _ids(log_a) + _ids(log_b), None,
+               f"the other read {len(_ids(log_b))} samples in {b_s:.1f} s; the first read {len(_ids(log_a))}; "
+               f"workers called hung {hung}; server exit {rc}", hung=hung, server_exit=rc, clean=clean)
+
+
+def _outcome(endpoint: str, position, timeout_s: float = 60.0) -> str:
+    """What a dataset that loads ``position`` does: refused (where, the error's type) or read
+    (how many real rows)."""
+    got: list = []
+
     def run():
-        ctx, s = _raw_peer(endpoint, credits)
-        asked = {}
         try:
-            while not stop.is_set():
-                if s.poll(100):
-                    h = unpack(s.recv_multipart()[0])
-                    if h["type"] == "batch":
-                        asked[h["batch_id"]] = h["sample_ids"]
-                        s.send(pack({"type": "hold", "batch_ids": [h["batch_id"]]}))
-                    elif h["type"] == "granted":
-                        for bid in h["batch_ids"]:
-                            held.extend(asked.pop(bid, []))
-                s.send(pack({"type": "heartbeat"}))
-        finally:
-            s.close(0)
-            ctx.term()
+            ds = dataset(endpoint, timeout_s=20)
+            try:
+                ds.load_state_dict(position)
+            except Exception as e:  # noqa: BLE001 - the outcome is the answer
+                got.append(f"refused at load ({type(e).__name__})")
+                return
+            log: list = []
+            read_all(ds, log)
+            got.append(f"read {len(_ids(log))} rows")
+        except Exception as e:  # noqa: BLE001 - the outcome is the answer
+            got.append(f"refused reading ({type(e).__name__})")
+
     th = threading.Thread(target=run, daemon=True)
     th.start()
-    return th
+    th.join(timeout_s)
+    return got[0] if got else f"no answer in {timeout_s:.0f} s"
 
 
-def scenario_sitting_on_grants(tmp: Path, layout: Layout, lease_s: float = 2.0) -> dict:
-    """A peer sits on 4 grants forever (never acknowledges, heartbeats); the honest trainer of an
-    ``--epochs 1`` server reads every other sample and is told the stream ended within ``lease_s``
-    (the grants' bound) of its last batch, instead of waiting with no end."""
-    corpus = good_corpus(tmp, 3)
+def scenario_lying_positions(tmp: Path, layout: Layout) -> dict:
+    """Positions that lie (past the epoch's end, negative, an epoch beyond any, another plan,
+    malformed) loaded by readers while an honest trainer reads: each is refused in one line or
+    reads only what its position names; the honest epoch is whole."""
+    corpus = good_corpus(tmp, 2)
     expected = expected_ids(corpus, layout)
     log: list = []
-    held: list = []
-    stop = threading.Event()
-    with _serve(corpus, layout, "--epochs", "1", "--lease", str(lease_s), "--end-grace-s", "5") as srv:
-        peer = _sitting_peer(srv.endpoint, held, stop)
-        while not held:
-            time.sleep(0.05)
-        ds = V2VPushDataset(srv.endpoint, timeout_s=60, credits=1)
-        it = iter(ds)
-        last = None
-        errors = []
-        try:
-            for b in it:
-                log.append((time.monotonic(), list(b["sample_ids"])))
-                last = time.monotonic()
-            ended_after = time.monotonic() - last if last is not None else None
-        except StreamError as e:
-            errors.append(str(e).splitlines()[0])
-            ended_after = None
-        stop.set()
-        peer.join(10)
-        rc = srv.wait(30)
-    return row("a peer sits on 4 grants, never acknowledging", expected, _ids(log) + held, None,
-               f"the honest trainer's stream ended {ended_after if ended_after is None else round(ended_after, 1)} s "
-               f"after its last batch (lease {lease_s} s); peer held {len(held)} samples; errors {errors or 'none'}; "
-               f"server exit {rc}", ended_after_s=None if ended_after is None else round(ended_after, 2),
-               held=len(held), errors=errors, server_exit=rc)
+    with _serve(corpus, layout) as srv:
+        honest = dataset(srv.endpoint)
+        it = iter(honest)
+        b = next(it)
+        log.append((time.monotonic(), real_ids(b)))
+        good = b["position"]
+        cases = {"past the end": {**good, "sample_in_epoch": 10 ** 9}, "negative": {**good, "sample_in_epoch": -1},
+                 "epoch 2**40": {**good, "epoch": 2 ** 40}, "another seed": {**good, "plan": {**good["plan"], "seed": 99}},
+                 "a string": "position", "no plan": {"epoch": 0, "sample_in_epoch": 0},
+                 "bool offset": {**good, "sample_in_epoch": True}}
+        answers = {name: _outcome(srv.endpoint, pos) for name, pos in cases.items()}
+        for b in it:
+            log.append((time.monotonic(), real_ids(b)))
+        rc, clean = _stop(srv), _clean(srv)
+    return row("positions that lie, loaded while a trainer reads", expected, _ids(log), None,
+               f"answers {answers}; server exit {rc}", answers=answers, server_exit=rc, clean=clean)
 
 
-def scenario_loop_stops_reading(tmp: Path, layout: Layout, pause_s: float = 6.0) -> dict:
-    """An honest trainer's loop stops calling ``next()`` after one batch (a long validation pass)
-    while its I/O thread holds its grants ahead; another trainer reads every other sample and
-    its stream ends; the first then reads on and gets what it held: every sample once."""
-    corpus = good_corpus(tmp, 3)
-    expected = expected_ids(corpus, layout)
-    log: list = []
-    log_b: list = []
-    with _serve(corpus, layout, "--epochs", "1", "--lease", "2", "--end-grace-s", "30") as srv:
-        a = V2VPushDataset(srv.endpoint, timeout_s=60, credits=4)
-        it = iter(a)
-        _take(it, 1, log)
-        t0 = time.monotonic()
-        read_all(V2VPushDataset(srv.endpoint, timeout_s=60, credits=1), log_b)
-        b_done = time.monotonic() - t0
-        time.sleep(max(0.0, pause_s - b_done))
-        for x in it:
-            log.append((time.monotonic(), list(x["sample_ids"])))
-        rc = srv.stop()
-    return row(f"a trainer's loop stops reading for {pause_s:.0f} s", expected, _ids(log) + _ids(log_b), None,
-               f"the other read {len(_ids(log_b))} samples and ended in {b_done:.1f} s; the first read "
-               f"{len(_ids(log))}; server exit {rc}", b_seconds=round(b_done, 1), b_samples=len(_ids(log_b)),
-               server_exit=rc)
-
-
-# ---------------------------------------------------------------------------------- resume states that lie
-def _hello(endpoint: str, resume: dict, consumer: str = "liar", credits: int = 1, timeout_s: float = 30.0) -> dict:
-    """Say hello as ``consumer`` with ``resume``; the server's answer (its header)."""
+def _hostile_peer(endpoint: str, fetches: List[dict], timeout_s: float = 60.0) -> dict:
+    """Send ``fetches`` from one peer; count the answers (by type) that come within ``timeout_s``."""
     ctx = zmq.Context()
     s = ctx.socket(zmq.DEALER)
     s.setsockopt(zmq.LINGER, 0)
     s.connect(endpoint)
+    counts: dict = {}
     try:
-        s.send(pack({"type": "hello", "outputs": ["voxels"], "credits": credits, "consumer": consumer,
-                     "resume": resume}))
+        for f in fetches:
+            s.send(pack(f))
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if s.poll(200):
-                h = unpack(s.recv_multipart()[0])
-                if h["type"] in ("welcome", "error"):
-                    s.send(pack({"type": "bye"}))
-                    return h
-        return {"type": "no answer"}
+        while sum(counts.values()) < len(fetches) and s.poll(max(1, int((deadline - time.monotonic()) * 1000))):
+            kind = unpack(s.recv_multipart()[0]).get("type")
+            counts[kind] = counts.get(kind, 0) + 1
     finally:
         s.close(0)
         ctx.term()
+    return counts
 
 
-def _expensive_holds(endpoint: str, n: int = 60, width: int = 4096) -> float:
-    """A peer granted one batch names it ``width`` times in each of ``n`` holds; seconds it took."""
-    ctx, s = _raw_peer(endpoint, 1)
-    t0 = time.monotonic()
-    try:
-        bid = None
-        while bid is None and time.monotonic() - t0 < 30:
-            if s.poll(200):
-                h = unpack(s.recv_multipart()[0])
-                if h["type"] == "batch":
-                    bid = h["batch_id"]
-        t0 = time.monotonic()
-        for _ in range(n):
-            s.send(pack({"type": "hold", "batch_ids": [bid] * width}))
-        answered = 0
-        while answered < n and time.monotonic() - t0 < 60:
-            if s.poll(200) and unpack(s.recv_multipart()[0])["type"] == "granted":
-                answered += 1
-        s.send(pack({"type": "released", "batch_ids": [bid]}))
-        s.send(pack({"type": "bye"}))
-        return time.monotonic() - t0
-    finally:
-        s.close(0)
-        ctx.term()
+def scenario_hostile_fetches(tmp: Path, layout: Layout, epochs: int = 50, repeats: int = 500) -> dict:
+    """A peer fetches one row of each of ``epochs`` epochs drawn up to 2**31 - 1 (each a plan the
+    server unfolds), then ``repeats`` fetches of the largest range a fetch may name, while an
+    honest trainer reads: the honest epoch is whole; the server's memory and the answers counted."""
+    import random
 
+    from v2v_wire.plan_messages import MAX_FETCH_ROWS
 
-def scenario_lying_resume_states(tmp: Path, layout: Layout, big: int = 1_000_000) -> dict:
-    """While an honest trainer reads an ``--epochs 2`` server, peers say hello with resume states
-    that lie: ids of epoch 0 never sent to them, ``completed_epoch`` 5 and 999999999, ``big`` ids;
-    and one granted a batch names it 4096 times in each of 60 holds. Each lie is refused with one
-    line, the holds cost time linear in their size, the honest trainer reads every sample once and
-    never times out, and the server's memory is back within 10 % once the peers left."""
     corpus = good_corpus(tmp, 2)
-    one = expected_ids(corpus, layout)
-    expected = [f"{e}:{s}" for e in range(2) for s in one]
+    expected = expected_ids(corpus, layout)
     log: list = []
-    answers: dict = {}
-    with _serve(corpus, layout, "--epochs", "2", "--end-grace-s", "5") as srv:
-        ds = V2VPushDataset(srv.endpoint, timeout_s=10, credits=1)
-        it = iter(ds)
-        b = next(it)
-        log.append((time.monotonic(), [f"0:{s}" for s in b["sample_ids"]]))
-        rss_before = server_rss_mb(srv.proc.pid)
-        video = one[0].rpartition("#")[0]
-        answers["never sent"] = _hello(srv.endpoint, {"completed_epoch": -1, "delivered": {
-            "0": "\n".join(f"{v}#0,1" for v in sorted({s.rpartition('#')[0] for s in one})[:3])}})
-        answers["completed 5"] = _hello(srv.endpoint, {"completed_epoch": 5})
-        answers["completed 999999999"] = _hello(srv.endpoint, {"completed_epoch": 999999999})
+    with _serve(corpus, layout) as srv:
+        honest = dataset(srv.endpoint)
+        plan = honest.plan_info().plan.to_dict()
+        rss0 = server_rss_mb(srv.proc.pid)
+        rng = random.Random(5)
+        fetch = {"type": "fetch", "request": 0, "start": 0, "stop": 1, "outputs": ["voxels"], "plan": plan}
+        many = [{**fetch, "request": i, "epoch": rng.randrange(2 ** 31)} for i in range(epochs)]
+        wide = [{**fetch, "request": i, "epoch": 0, "stop": MAX_FETCH_ROWS} for i in range(repeats)]
+        result: dict = {}
         t0 = time.monotonic()
-        answers[f"{big} ids"] = _hello(srv.endpoint, {"completed_epoch": -1, "delivered": {
-            "0": f"{video}#" + ",".join(map(str, range(big)))}})
-        big_s = time.monotonic() - t0
-        holds_s = _expensive_holds(srv.endpoint)
-        errors = []
-        gap = 0.0
-        try:
-            last = time.monotonic()
-            for b in it:
-                log.append((time.monotonic(), [f"{b['epoch']}:{s}" for s in b["sample_ids"]]))
-                gap, last = max(gap, time.monotonic() - last), time.monotonic()
-        except StreamError as e:
-            errors.append(str(e).splitlines()[0])
-        time.sleep(1.0)
-        rss_after = server_rss_mb(srv.proc.pid)
-        rc = srv.wait(30)
-    codes = {k: (a.get("code") or a["type"]) for k, a in answers.items()}
-    return row("resume states that lie, and holds naming one id 4096 times", expected, _ids(log), None,
-               f"answers {codes}; {big} ids answered in {big_s:.1f} s; 60 holds in {holds_s:.1f} s; honest errors "
-               f"{errors or 'none'}; server memory {rss_before:.0f} -> {rss_after:.0f} MB; server exit {rc}",
-               codes=codes, messages={k: a.get("message", "") for k, a in answers.items()}, big_s=round(big_s, 2),
-               holds_s=round(holds_s, 2), errors=errors, rss_before_mb=round(rss_before, 1),
-               rss_after_mb=round(rss_after, 1), longest_wait_s=round(gap, 2), server_exit=rc)
-
-
-def scenario_first_hello_far_ahead(tmp: Path, layout: Layout) -> dict:
-    """The first hello to a fresh ``--epochs 2`` server claims epoch 5 complete: it is refused,
-    and the honest trainer that comes next reads both epochs."""
-    corpus = good_corpus(tmp, 1)
-    one = expected_ids(corpus, layout)
-    expected = [f"{e}:{s}" for e in range(2) for s in one]
-    log: list = []
-    with _serve(corpus, layout, "--epochs", "2") as srv:
-        answer = _hello(srv.endpoint, {"completed_epoch": 5})
-        for b in V2VPushDataset(srv.endpoint, timeout_s=60):
-            log.append((time.monotonic(), [f"{b['epoch']}:{s}" for s in b["sample_ids"]]))
-        rc = srv.wait(30)
-    return row("first hello claims epoch 5 of an --epochs 2 server", expected, _ids(log), None,
-               f"answer: {answer.get('code') or answer['type']}: {answer.get('message', '')[:80]}; server exit {rc}",
-               code=answer.get("code"), message=answer.get("message", ""), server_exit=rc)
+        th = threading.Thread(target=lambda: result.update(epochs=_hostile_peer(srv.endpoint, many, 120),
+                                                            wide=_hostile_peer(srv.endpoint, wide, 60)), daemon=True)
+        th.start()
+        read_all(honest, log)
+        honest_s = time.monotonic() - t0
+        th.join(200)
+        rss1 = server_rss_mb(srv.proc.pid)
+        alive = srv.proc.poll() is None
+        rc, clean = _stop(srv), _clean(srv)
+    return row(f"fetches of {epochs} far epochs and {repeats} of the widest range, while a trainer reads", expected,
+               _ids(log), None, f"answers {result}; the honest epoch read in {honest_s:.1f} s; server memory "
+               f"{rss0:.0f} -> {rss1:.0f} MB; alive {alive}; server exit {rc}", answers=result,
+               rss_mb=[rss0, rss1], alive=alive, server_exit=rc, clean=clean)
 
 
 SCENARIOS = {
-    "two_readers_one_consumer": scenario_two_readers_one_consumer,
-    "two_ddp_jobs_one_group": scenario_two_ddp_jobs_one_group,
+    "ddp_ranks": scenario_ddp_ranks,
+    "ddp_restart_late_rank": scenario_ddp_restart_late_rank,
+    "many_ranks": scenario_many_trainers,
+    "many_jobs": lambda tmp, layout: scenario_many_trainers(tmp, layout, n=8, jobs=True),
+    "resume_after_end": scenario_resume_after_end,
+    "loader_workers": lambda tmp, layout: scenario_loader_workers(tmp, layout, True),
+    "loader_workers_fresh": lambda tmp, layout: scenario_loader_workers(tmp, layout, False),
+    "lightning_ddp": scenario_lightning_ddp,
+    "two_ddp_jobs": scenario_two_ddp_jobs,
     "world_size_2_to_1": lambda tmp, layout: scenario_world_size_change(tmp, layout, 2, 1),
     "world_size_1_to_2": lambda tmp, layout: scenario_world_size_change(tmp, layout, 1, 2),
-    "wake_after_others_ran_ahead": lambda tmp, layout: scenario_wake_after_others_ran_ahead(tmp, layout, 6),
-    "sitting_on_grants": scenario_sitting_on_grants,
+    "wake_after_others_ran_ahead": scenario_wake_after_others_ran_ahead,
     "loop_stops_reading": scenario_loop_stops_reading,
-    "lying_resume_states": scenario_lying_resume_states,
-    "first_hello_far_ahead": scenario_first_hello_far_ahead,
+    "lying_positions": scenario_lying_positions,
+    "hostile_fetches": scenario_hostile_fetches,
 }
