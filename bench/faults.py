@@ -76,7 +76,7 @@ def not_run_note(not_run: List[tuple]) -> str:
 
 
 #: Read before the table: what its columns count under plan delivery.
-TABLE_NOTE = """Every scenario runs real `v2v-serve` processes serving by plan (`--delivery plan`) on
+TABLE_NOTE = """Every scenario runs real `v2v-serve` processes on
 127.0.0.1 (one on `[::1]`), read by `V2VStreamDataset`. *expected* is the sample ids the epoch(s)
 hold (`v2v-serve --check`'s verdicts; with several epochs or jobs an id counts once per epoch or
 job); *delivered*, *lost* and *duplicated* count the ids the trainers trained on, padding rows left

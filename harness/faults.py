@@ -36,9 +36,6 @@ from v2v_server.sources.folder_scan import scan_corpus
 
 ROOT = Path(__file__).resolve().parents[1]
 GOOD_VIDEOS = SAMPLE_VIDEOS
-#: Serve by plan. ``ServeProcess`` names a delivery when none is given; saying which keeps these
-#: scenarios on the plan whatever that default is.
-PLAN = ("--delivery", "plan")
 
 
 class Layout:
@@ -117,7 +114,7 @@ def _serve(corpus: Path, layout: Layout, *extra: str, workers: int = 2, **kw) ->
     """A v2v-serve serving ``corpus`` by plan with ``layout``'s samples and ``extra`` arguments
     (``kw``: ``ServeProcess``'s ``env``, ``wrap``, ``ready_timeout_s``)."""
     kw.setdefault("ready_timeout_s", 120)
-    return ServeProcess(["--videos", str(corpus), "--workers", str(workers), *layout.args(), *extra, *PLAN], **kw)
+    return ServeProcess(["--videos", str(corpus), "--workers", str(workers), *layout.args(), *extra], **kw)
 
 
 def dataset(endpoint, **kw) -> V2VStreamDataset:

@@ -12,7 +12,7 @@ import time
 import urllib.request
 from pathlib import Path
 
-from harness.faults import (PLAN, Layout, _clean, _ids, _serve, _stop, dataset, expected_ids, good_corpus, per_epoch,
+from harness.faults import (Layout, _clean, _ids, _serve, _stop, dataset, expected_ids, good_corpus, per_epoch,
                             read_all, real_ids, row)
 from harness.serve import free_port
 from v2v_server.frames.corpus_index import INDEX_FILE
@@ -102,7 +102,7 @@ def scenario_unusable_cache_dir(tmp: Path, layout: Layout) -> dict:
     bad = tmp / "not_a_folder"
     bad.write_text("a file")
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(corpus), *layout.args(), *PLAN,
+    r = subprocess.run([sys.executable, "-m", "v2v_server.cli", "--videos", str(corpus), *layout.args(),
                         "--bind", "tcp://127.0.0.1:0", "--cache-dir", str(bad), "--frame-cache-gb", "1"],
                        capture_output=True, text=True, timeout=120)
     lines = r.stderr.strip().splitlines()
