@@ -635,7 +635,8 @@ def scenario_hung_worker(tmp: Path, layout: Layout, task_timeout_s: float = 3.0,
     first task goes to it, it says nothing, and after the task timeout the task is given to a new
     worker; the trainer reads on. A plan server says nothing while it makes rows, so the trainer's
     ``client_timeout_s`` is above the task timeout and a worker's start. (A worker stopped before
-    it said it is ready is never replaced: it holds no task to time out.)"""
+    it said it is ready is replaced ``worker_side.START_S`` after its start:
+    ``tests/test_stream.py``.)"""
     corpus = good_corpus(tmp, copies)
     expected = expected_ids(corpus, layout)
     log: list = []

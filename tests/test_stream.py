@@ -248,3 +248,40 @@ def test_a_clip_too_short_for_one_window_is_skipped_without_a_warning(videos):
     assert ids and len(ids) == len(set(ids)) and not any(s.startswith("bigbuckbunny.mp4#") for s in ids), ids
     assert "INFO skipped " in srv.log and "bigbuckbunny.mp4: 132 frames, shorter than one window of 151" in srv.log
     assert "WARNING" not in srv.log
+
+
+def test_a_worker_stopped_before_it_says_ready_is_replaced_and_the_epoch_served(videos):
+    """The only worker, stopped (SIGSTOP) as soon as it is spawned, before its first message: it
+    holds no task to time out, so the server replaces it once ``START_S`` passes, and the epoch is
+    served whole (before, such a server served nothing for good)."""
+    import os
+    import signal
+    import threading
+
+    from harness.faults import worker_pids
+    from v2v_server.service.worker_side import START_S
+
+    want = expected_ids(videos)
+    srv = ServeProcess(serve_args(videos, "--batch-size", "4", "--workers", "1", "--task-timeout", "5"))
+    starting = threading.Thread(target=srv.start, daemon=True)
+    starting.start()
+    stopped: list = []
+    deadline = time.monotonic() + 60
+    while not stopped and time.monotonic() < deadline:  # the worker's interpreter is still starting
+        stopped = worker_pids(srv.proc.pid) if srv.proc is not None else []
+        time.sleep(0.002)
+    for pid in stopped:
+        os.kill(pid, signal.SIGSTOP)
+    starting.join(60)
+    try:
+        t0 = time.monotonic()
+        rows = _rows(V2VStreamDataset(srv.endpoint, 4, timeout_s=START_S + 45, raw=True))
+    finally:
+        for pid in stopped:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGCONT)
+        srv.stop()
+    assert len(stopped) == 1
+    assert sorted(sid for sid, pad, _, _ in rows if not pad) == sorted(want)
+    assert f"said nothing in the {START_S:.0f} s since it started; restarted" in srv.log, srv.log[-3000:]
+    assert time.monotonic() - t0 > 1.0  # the first rows waited for the worker started in its place

@@ -35,6 +35,8 @@ class WorkerProc:
     proc: mp.Process
     idle: bool = False  # said ready and holds no task
     ring: Optional[SlotRing] = None  # its shared-memory slots (None: arrays come as frames)
+    started: float = 0.0  # time.monotonic() at its spawn
+    ready: bool = False  # it said ready (``worker_messages.Ready``)
 
 
 class WorkerPool:
@@ -76,7 +78,7 @@ class WorkerPool:
         except BaseException:
             _drop_ring(ring)
             raise
-        self.workers[ident] = WorkerProc(position, generation, ident, proc, ring=ring)
+        self.workers[ident] = WorkerProc(position, generation, ident, proc, ring=ring, started=time.monotonic())
 
     def get(self, ident: bytes):
         return self.workers.get(ident)

@@ -25,6 +25,11 @@ from v2v_wire.worker_messages import Done, Failure, Ready, Sample, Slot, Stop, w
 
 log = logging.getLogger("v2v.server")
 
+#: Seconds a worker may take from its spawn to saying it is ready (a cold start imports numpy,
+#: OpenCV, PyAV and numba: seconds) before it is taken for hung and replaced; a larger
+#: ``task_timeout_s`` is the bound instead.
+START_S = 30.0
+
 
 class WorkerSide:
     """The workers as the server loop sees them.
@@ -59,9 +64,11 @@ class WorkerSide:
         self.pool.stop(send_stop)
 
     def watch(self, now: float, reading: bool = True) -> None:
-        """Replace dead workers (their tasks go back to the queue) and hung ones (silent on a
-        task for ``task_timeout_s`` while read). ``reading``: this loop turn read the workers
-        (it does only while fewer than ``prefetch_batches`` batches wait); called once per turn."""
+        """Replace dead workers (their tasks go back to the queue) and hung ones: silent on a task
+        for ``task_timeout_s`` while read, or not ready ``max(START_S, task_timeout_s)`` seconds
+        after their spawn (a worker stopped or stuck before its first message holds no task to
+        time out, and would serve nothing for good). ``reading``: this loop turn read the workers;
+        called once per turn."""
         for ident, code in self.pool.reap():
             self.metrics.on_worker_restarted()
             job = self.core.worker_lost(ident)
@@ -77,6 +84,11 @@ class WorkerSide:
             log.warning("worker %s sent nothing on %s epoch %d for %.0f s; task reassigned, worker restarted",
                         ident.decode(), job.video, job.epoch, self.cfg.task_timeout_s)
             self.pool.replace(ident)
+            self.metrics.on_worker_restarted()
+        limit = max(START_S, self.cfg.task_timeout_s)
+        for w in [w for w in self.pool.workers.values() if not w.ready and now - w.started > limit]:
+            log.warning("worker %s said nothing in the %.0f s since it started; restarted", w.ident.decode(), limit)
+            self.pool.replace(w.ident)
             self.metrics.on_worker_restarted()
 
     def on_message(self, frames) -> None:
@@ -105,7 +117,7 @@ class WorkerSide:
         if isinstance(msg, Ready):
             if w.ring is not None and not msg.ring:
                 log.warning("worker %s could not map its slot ring; it sends arrays as socket frames", ident.decode())
-            w.idle = True
+            w.idle = w.ready = True
             self.seen = True  # /readyz: a worker is up
         elif isinstance(msg, Sample):
             cpw = self.cfg.crops_per_window
