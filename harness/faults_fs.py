@@ -24,7 +24,7 @@ def _metrics(port: int) -> dict:
     return {ln.split()[0]: float(ln.split()[1]) for ln in page.splitlines() if ln.startswith("v2v_fs_errors_total")}
 
 
-def _replace_with_a_file(folder: Path) -> None:
+def replace_with_a_file(folder: Path) -> None:
     """Move ``folder`` away and put a file in its place (what a vanished mount looks like to a
     scan); workers may make it again in between, so repeat until the file is what sits there."""
     for attempt in range(100):
@@ -54,7 +54,7 @@ def scenario_cache_folder_replaced(tmp: Path, layout: Layout, epochs: int = 2) -
         ds = dataset(srv.endpoint)
         it = iter(ds)
         log.append((time.monotonic(), real_ids(next(it), tag=True)))
-        _replace_with_a_file(cache / "frames")
+        replace_with_a_file(cache / "frames")
         for b in it:
             log.append((time.monotonic(), real_ids(b, tag=True)))
         for e in range(1, epochs):

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from harness.corpus import write_size_change_video, write_video
+from harness.faults_fs import replace_with_a_file
 from tests import sample_hashes
 from tests.cached import Cached, cached
 from v2v_server.ops.config import ServeConfig
@@ -501,20 +502,7 @@ def test_cache_folder_replaced_by_a_file_while_serving(tmp_path):
     frames = tmp_path / "cache" / "frames"
 
     def replace():
-        # workers keep writing entries while this runs, and may make the folder again between
-        # moving it away and writing the file: repeat until the file is what sits there
-        for attempt in range(100):
-            try:
-                frames.rename(tmp_path / f"frames.gone{attempt}")
-            except FileNotFoundError:
-                pass
-            try:
-                with open(frames, "xb") as f:
-                    f.write(b"not a folder")
-                return
-            except (FileExistsError, IsADirectoryError):
-                continue
-        raise AssertionError(f"{frames} kept being made again by the workers")
+        replace_with_a_file(frames)  # workers may make the folder again meanwhile: it repeats
 
     log: list = []
     key = 'v2v_fs_errors_total{where="frame_cache"}'

@@ -215,21 +215,6 @@ def test_a_worker_with_every_slot_taken_blocks_until_the_server_gives_one_back(t
     ring.close()
 
 
-def _private_tmpfs(size: str, mount_at: Path):
-    """A command prefix that runs a program with a private tmpfs of ``size`` mounted at
-    ``mount_at`` (``unshare -m``: its own mount namespace), or None where this machine does
-    not permit it."""
-    import subprocess
-
-    mount_at.mkdir(parents=True, exist_ok=True)
-    wrap = ["unshare", "-m", "sh", "-c", f'mount -t tmpfs -o size={size} tmpfs "$0" && exec "$@"', str(mount_at)]
-    try:
-        ok = subprocess.run([*wrap, "true"], capture_output=True, timeout=30).returncode == 0
-    except (OSError, subprocess.TimeoutExpired):
-        ok = False
-    return wrap if ok else None
-
-
 @pytest.mark.parametrize("size", ["1m", "64m"])
 def test_a_small_dev_shm_never_kills_a_worker(tmp_path, size):
     """The server's shared memory (``V2V_SHM_DIR``) a tmpfs of ``size`` (Docker's default
@@ -239,7 +224,9 @@ def test_a_small_dev_shm_never_kills_a_worker(tmp_path, size):
     from harness.faults import Layout, expected_ids, good_corpus
     from harness.serve import ServeProcess
 
-    wrap = _private_tmpfs(size, tmp_path / "shm")
+    from harness.faults_deploy import private_tmpfs
+
+    wrap = private_tmpfs(size, tmp_path / "shm")
     if wrap is None:
         pytest.skip("unshare -m / mount -t tmpfs not permitted here")
     layout = Layout(L=4, crop=64, windows=2, batch=2)
