@@ -1,0 +1,306 @@
+"""Which decode host makes which video, decided by the reader at run time: a fleet of hosts that
+each serve the whole corpus's one plan (docs/scaling.md, "One plan, any fleet").
+
+A sample's bytes are a function of (seed, epoch, sample id), whoever makes them, so the plan's
+order never depends on who decodes; only the speed does. The rules, pure (no socket, no clock:
+``now`` is passed in, in seconds of any monotonic clock):
+
+* **Ownership** is weighted rendezvous hashing (Thaler & Ravishankar's highest random weight,
+  with Schindelhauer & Schomaker's weights): a video's hosts are ranked by ``w_h / -ln(u(h, v))``
+  with ``u`` a uniform draw from (host, video); the first is its *owner*. A video stays on its
+  owner while the fleet and the weights do not change, so a host's frame cache stays warm across
+  epochs; a host that joins takes about ``1 / N`` of the videos, one that leaves gives only its
+  own, each to the next host of that video's ranking (:func:`rank_hosts`).
+* **Weights follow speed, in steps.** Each host's rate (samples per second it was busy) is
+  measured from the rows it answers (:class:`RateMeter`); its weight is that rate relative to
+  the fleet's mean, rounded to a step of ``2 ** (1 / 4)`` and changed only when the measure
+  leaves the step by more than half a step (:func:`weight_step`): a fast host owns more videos,
+  and noise moves none.
+* **Bounded load.** A video goes to the first host of its ranking whose queued samples stay
+  within ``1 + slack`` times its share (its rate over the fleet's) of everything queued
+  (Mirrokni, Thorup & Zadimoghaddam, "Consistent hashing with bounded loads"): a host that
+  falls behind sheds new videos to the next hosts of their rankings until it catches up.
+* **Hedging.** A video a reader waits on, asked of a host that answered nothing for ``hedge_s``
+  (stalled, stopped, gone), is asked of the next host of its ranking too; the first copy's rows
+  win (:meth:`Router.hedges`). A host silent for ``hedge_s`` with work queued is *suspect*: it is
+  routed nothing new until it answers again.
+
+``harness/fleet_sim.py`` runs these rules over 128 simulated hosts; ``tests/test_fleet.py``
+checks each property.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import math
+from dataclasses import dataclass, field
+from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+
+__all__ = ["host_key", "video_key", "rank_hosts", "weight_step", "RateMeter", "Router"]
+
+_MASK = np.uint64(0xFFFFFFFFFFFFFFFF)
+#: Weights move in steps of this factor (a quarter octave): finer steps follow speed closer but
+#: move videos at every wobble of a measured rate.
+WEIGHT_STEP = 2 ** 0.25
+
+
+def _key(text: str) -> int:
+    return int.from_bytes(hashlib.blake2b(text.encode(), digest_size=8).digest(), "little")
+
+
+@functools.lru_cache(maxsize=4096)
+def host_key(host: str) -> int:
+    """A host's 64-bit key: BLAKE2b of its name (``tcp://10.0.0.7:5555``, a pod's name)."""
+    return _key("host/" + host)
+
+
+def video_key(video: str) -> int:
+    """A video's 64-bit key: BLAKE2b of its corpus-relative path."""
+    return _key("video/" + video)
+
+
+def _uniform(hosts: np.ndarray, video: int) -> np.ndarray:
+    """float64 (len(hosts),) in (0, 1): SplitMix64 of each host key XOR the video key, top 53 bits."""
+    with np.errstate(over="ignore"):
+        z = (hosts ^ np.uint64(video)) + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return ((z >> np.uint64(11)).astype(np.float64) + 0.5) / float(1 << 53)
+
+
+def rank_hosts(video: str, hosts: Sequence[str], weights: Optional[Mapping[str, float]] = None) -> List[str]:
+    """``hosts`` ranked for ``video`` by weighted rendezvous hashing, best first: the owner, then
+    where its work goes when the owner is full, suspect or gone.
+
+    Args:
+        video: the corpus-relative path.
+        hosts: distinct host names.
+        weights: host -> weight > 0 (default 1 each; a missing host weighs 1).
+    Returns:
+        A new list of the same names.
+    Raises:
+        ValueError: a weight <= 0, naming its host.
+    """
+    if not hosts:
+        return []
+    keys = np.array([host_key(h) for h in hosts], dtype=np.uint64)
+    w = np.array([1.0 if weights is None else float(weights.get(h, 1.0)) for h in hosts])
+    if (w <= 0).any():
+        bad = [h for h, x in zip(hosts, w) if x <= 0]
+        raise ValueError(f"host weight must be > 0: {bad[0]!r} has {weights[bad[0]]}")
+    score = w / -np.log(_uniform(keys, video_key(video)))
+    return [hosts[i] for i in np.argsort(-score, kind="stable")]
+
+
+def weight_step(rate: float, mean: float, current: Optional[int] = None) -> int:
+    """The step ``i`` of a host's weight ``WEIGHT_STEP ** i`` for its ``rate`` against the fleet's
+    ``mean`` (both samples/s, > 0): the nearest step, or ``current`` while the measure lies within
+    three quarters of a step of it (hysteresis: a rate wobbling at a step's edge moves nothing)."""
+    exact = math.log(rate / mean, WEIGHT_STEP)
+    if current is not None and abs(exact - current) <= 0.75:
+        return current
+    return int(round(exact))
+
+
+@dataclass
+class RateMeter:
+    """A host's decode rate as a reader sees it: samples answered per second the host had work
+    queued, each second's weight halved every ``half_life_s`` seconds.
+
+    Attributes:
+        samples, busy_s: the decayed counts (samples; seconds with work queued).
+        since: when the host last had work queued (None: idle), in seconds.
+    """
+
+    half_life_s: float = 30.0
+    samples: float = 0.0
+    busy_s: float = 0.0
+    since: Optional[float] = None
+    last: Optional[float] = None
+
+    def _decay(self, now: float) -> None:
+        if self.last is not None and now > self.last:
+            f = 0.5 ** ((now - self.last) / self.half_life_s)
+            self.samples *= f
+            self.busy_s *= f
+        self.last = now
+
+    def busy(self, now: float, queued: bool) -> None:
+        """The host has work queued (``queued``) from ``now`` on, or none."""
+        self._decay(now)
+        if self.since is not None:
+            self.busy_s += now - self.since
+        self.since = now if queued else None
+
+    def answered(self, samples: int, now: float) -> None:
+        """The host answered ``samples`` samples at ``now``."""
+        self.busy(now, self.since is not None)
+        self.samples += samples
+
+    def rate(self) -> Optional[float]:
+        """Samples/s, or None before a second's worth of answers."""
+        return self.samples / self.busy_s if self.busy_s >= 1.0 and self.samples > 0 else None
+
+
+@dataclass
+class _Host:
+    meter: RateMeter = field(default_factory=RateMeter)
+    queued: Dict[Tuple[int, str], int] = field(default_factory=dict)  # (epoch, video) -> samples
+    load: int = 0  # the samples queued, summed
+    heard: float = 0.0  # when it last answered (or joined)
+    step: Optional[int] = None  # weight step (None: not measured yet)
+
+
+class Router:
+    """One reader's routing of videos to a fleet's hosts (module docstring).
+
+    Args:
+        hosts: the hosts' names.
+        slack: how far past its share of the queued samples a host is still routed to (> 0).
+        hedge_s: seconds a host may answer nothing while a reader waits on it before its videos
+            are asked of the next hosts too.
+        now: the clock's reading at start.
+
+    Raises:
+        ValueError: ``slack`` or ``hedge_s`` <= 0, or a host named twice.
+    """
+
+    def __init__(self, hosts: Iterable[str], slack: float = 0.25, hedge_s: float = 10.0, now: float = 0.0):
+        if slack <= 0 or hedge_s <= 0:
+            raise ValueError(f"slack and hedge_s must be > 0, got {slack} and {hedge_s}")
+        self.slack, self.hedge_s = slack, hedge_s
+        self.hosts: Dict[str, _Host] = {}
+        self.asked: Dict[Tuple[int, str], List[str]] = {}  # (epoch, video) -> the hosts asked, in order
+        self._load = 0
+        for h in hosts:
+            self.join(h, now)
+
+    # ------------------------------------------------------------------ the fleet
+    def join(self, host: str, now: float) -> None:
+        """``host`` serves from ``now`` on.
+
+        Raises:
+            ValueError: a host already in the fleet."""
+        if host in self.hosts:
+            raise ValueError(f"host {host!r} is in the fleet already")
+        self.hosts[host] = _Host(heard=now)
+
+    def leave(self, host: str) -> List[Tuple[int, str]]:
+        """``host`` is gone: returns the (epoch, video) it held and no other host was asked for,
+        to route again (:meth:`route`)."""
+        gone = self.hosts.pop(host, None)
+        if gone is None:
+            return []
+        self._load -= gone.load
+        orphans = []
+        for ev in gone.queued:
+            others = [h for h in self.asked.get(ev, ()) if h != host and h in self.hosts]
+            self.asked[ev] = others
+            if not others:
+                orphans.append(ev)
+        return orphans
+
+    def weights(self) -> Dict[str, float]:
+        """host -> weight (``WEIGHT_STEP ** step``; 1 while its rate is not measured)."""
+        rates = {h: s.meter.rate() for h, s in self.hosts.items()}
+        known = [r for r in rates.values() if r]
+        if known:
+            mean = sum(known) / len(known)
+            for h, s in self.hosts.items():
+                if rates[h]:
+                    s.step = weight_step(rates[h], mean, s.step)
+        return {h: WEIGHT_STEP ** (s.step or 0) for h, s in self.hosts.items()}
+
+    def owner(self, video: str) -> str:
+        """``video``'s owner under the fleet and weights now."""
+        return rank_hosts(video, list(self.hosts), self.weights())[0]
+
+    def suspect(self, host: str, now: float) -> bool:
+        """``host`` has work queued and answered nothing for ``hedge_s``."""
+        s = self.hosts[host]
+        return bool(s.queued) and now - s.heard >= self.hedge_s
+
+    # ------------------------------------------------------------------ routing
+    def route(self, epoch: int, video: str, samples: int, now: float, exclude: Sequence[str] = ()) -> Optional[str]:
+        """The host to ask for ``samples`` samples of ``video`` in ``epoch``: the first of its
+        ranking that is not suspect, not in ``exclude`` and within its bounded load (its queued
+        samples and these within ``1 + slack`` times its share, its weight over the fleet's, of
+        everything queued); else the one of those that would finish it first at its weight.
+        None when no host is left.
+
+        The host's queue takes the video (:meth:`answered` and :meth:`finished` clear it)."""
+        weights = self.weights()
+        ranking = [h for h in rank_hosts(video, list(self.hosts), weights)
+                   if h not in exclude and not self.suspect(h, now)]
+        if not ranking:
+            return None
+        total = self.load + samples
+        weight = sum(weights[h] for h in ranking)
+        pick = None
+        for h in ranking:
+            if self.hosts[h].load + samples <= (1 + self.slack) * total * weights[h] / weight:
+                pick = h
+                break
+        if pick is None:
+            pick = min(ranking, key=lambda h: (self.hosts[h].load + samples) / weights[h])
+        s = self.hosts[pick]
+        if not s.queued:
+            s.meter.busy(now, True)
+            s.heard = max(s.heard, now)  # an idle host's silence counts from its first ask
+        self._queue(s, (epoch, video), samples)
+        self.asked.setdefault((epoch, video), []).append(pick)
+        return pick
+
+    def answered(self, host: str, epoch: int, video: str, samples: int, now: float, done: bool) -> None:
+        """``host`` answered ``samples`` samples of ``video`` at ``now``; ``done``: it holds no
+        more of that video for this reader (every sample asked of it is answered)."""
+        s = self.hosts.get(host)
+        if s is None:
+            return
+        s.heard = now
+        s.meter.answered(samples, now)
+        if done:
+            self._unqueue(s, (epoch, video), now)
+
+    def finished(self, epoch: int, video: str, now: float) -> None:
+        """Every sample of ``video`` in ``epoch`` is read at ``now``: no host holds it for this reader."""
+        for h in self.asked.pop((epoch, video), ()):
+            s = self.hosts.get(h)
+            if s is not None:
+                self._unqueue(s, (epoch, video), now)
+
+    @property
+    def load(self) -> int:
+        """Samples queued on every host, summed."""
+        return self._load
+
+    def _queue(self, s: _Host, ev: Tuple[int, str], samples: int) -> None:
+        s.queued[ev] = samples
+        s.load += samples
+        self._load += samples
+
+    def _unqueue(self, s: _Host, ev: Tuple[int, str], now: float) -> None:
+        n = s.queued.pop(ev, None)
+        if n is None:
+            return
+        s.load -= n
+        self._load -= n
+        if not s.queued:
+            s.meter.busy(now, False)
+
+    def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float) -> List[Tuple[int, str, str]]:
+        """Of the videos a reader waits on (``(epoch, video, samples)``), those asked only of hosts
+        that answered nothing for ``hedge_s``: each asked of the next host of its ranking too.
+        Returns ``(epoch, video, host)`` for each new copy."""
+        out = []
+        for epoch, video, samples in waiting:
+            asked = [h for h in self.asked.get((epoch, video), ()) if h in self.hosts]
+            if asked and not all(self.suspect(h, now) for h in asked):
+                continue
+            h = self.route(epoch, video, samples, now, exclude=asked)
+            if h is not None:
+                out.append((epoch, video, h))
+        return out
