@@ -1,0 +1,376 @@
+"""A pure simulator of a decode fleet feeding one job: how many samples per second a fleet of
+hosts of unequal speed, which stall now and then, delivers in plan order, against the sum of the
+hosts' rates, for the two ways hosts split the work:
+
+* **routed** (``v2v_wire.fleet.Router``): every host serves the one plan; the reader asks each
+  video of the host weighted rendezvous hashing and the bounded load pick, and hedges a video it
+  waits on when its host went silent;
+* **static**: the corpus split by the hash of each path (``v2v-serve --shard I/N``), each shard's
+  own plan, read interleaved (global position ``t`` is shard ``t mod N``'s ``t // N``,
+  ``v2v_wire.plan_shards``): a step waits for every shard.
+
+The model: a corpus of WebVid-like clips (durations log-normal around 15 s at 30 frames/s, a
+window every 200 frames, the paper's 201-frame samples); the epoch's order is the real
+``v2v_wire.plan.EpochPlan`` (shuffle buffer 64); a host has ``slots`` workers that each decode one
+video at a time at the host's rate (samples/s per worker ``1 x`` a log-normal factor of sigma
+``spread``), a video's decode taking its samples over that rate; stalls arrive at each host as a
+Poisson process (``stall_every_s`` apart on average, each ``stall_s`` long on average, exponential)
+and stop its workers. The reader reads positions in order, a step of ``step`` positions at a
+time, as fast as they are made (the trainer never waits on itself), and asks ahead for the videos
+of the next ``lookahead`` positions. Each host works the videos asked of it in order of the first
+position that needs them.
+
+Pure and seeded: no socket, no clock; ``python -m harness.fleet_sim`` prints a table,
+``tests/test_fleet.py`` checks the figures docs/scaling.md quotes.
+"""
+from __future__ import annotations
+
+import argparse
+import heapq
+import json
+import math
+import sys
+from dataclasses import asdict, dataclass
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from v2v_wire.fleet import Router, video_key
+from v2v_wire.plan import EpochPlan, Manifest
+
+#: Decodes per worker a reader asks ahead by default: a clip of many windows decodes for many
+#: times the mean, and the steps after it must find their clips made meanwhile (6 gives 0.72 of
+#: the hosts' rate at 128 hosts, 10 gives 0.97: docs/scaling.md).
+LOOKAHEAD_DECODES = 10
+
+#: Frames per sample (the paper's 40 voxels x 5 bins + 1) and frames between window starts.
+SAMPLE_FRAMES, WINDOW_STRIDE = 201, 200
+
+
+@dataclass(frozen=True)
+class Fleet:
+    """A simulated fleet and job (module docstring).
+
+    Attributes:
+        hosts: decode hosts.
+        videos: clips in the corpus.
+        slots: workers per host.
+        spread: sigma of the log-normal spread of the hosts' speeds.
+        slow: ``(host index, factor)``: that host's speed times ``factor`` (``None``: none).
+        stall_every_s, stall_s: mean seconds between a host's stalls and mean stall length (0: none).
+        step: positions per step (every rank's batch).
+        lookahead: positions the reader asks ahead of the step it reads (None: ``LOOKAHEAD_DECODES``
+            decodes per worker of the fleet, at the corpus's mean samples per clip).
+        hedge_s: seconds a host may answer nothing before the videos a reader waits on are
+            asked of the next host.
+        slack: the router's bounded load (``Router``'s ``slack``).
+        seed: the corpus's, the speeds' and the stalls' draws; the plan's seed too.
+    """
+
+    hosts: int = 128
+    videos: int = 40_000
+    slots: int = 4
+    spread: float = 0.2
+    slow: Optional[Tuple[int, float]] = None
+    stall_every_s: float = 300.0
+    stall_s: float = 10.0
+    step: int = 96
+    lookahead: Optional[int] = None
+    hedge_s: float = 10.0
+    slack: float = 0.25
+    seed: int = 0
+
+
+@dataclass
+class Result:
+    """What one simulated epoch gave.
+
+    Attributes:
+        mode: ``"routed"`` or ``"static"``.
+        samples: samples the epoch held; positions: rows read, padding included.
+        seconds: when the reader had read the last step.
+        rate: samples per second over the epoch.
+        steady_rate: samples per second from 10 % to 90 % of the epoch's positions (the rate of
+            a job reading epoch after epoch, whose hosts decode the next one's first clips
+            while the last steps are read).
+        capacity: the hosts' summed rates, samples/s, less each host's stalled time.
+        decodes: clip decodes started per clip in the epoch (above 1: hedged copies).
+        made_by: clip -> the host whose decode was read.
+    """
+
+    mode: str
+    samples: int
+    positions: int
+    seconds: float
+    rate: float
+    steady_rate: float
+    capacity: float
+    decodes: float
+    made_by: Dict[str, str]
+
+    @property
+    def share(self) -> float:
+        """:attr:`steady_rate` over :attr:`capacity`."""
+        return self.steady_rate / self.capacity
+
+
+def corpus(f: Fleet) -> Dict[str, int]:
+    """clip -> samples per epoch: durations log-normal with median 15 s (sigma 0.6), 30 frames/s,
+    a window every ``WINDOW_STRIDE`` frames that holds ``SAMPLE_FRAMES`` (clips shorter than a
+    sample give none)."""
+    rng = np.random.default_rng(f.seed)
+    frames = (30 * 15 * rng.lognormal(0.0, 0.6, f.videos)).astype(int)
+    windows = np.maximum(0, (frames - SAMPLE_FRAMES) // WINDOW_STRIDE + 1)
+    return {f"clips/{i:07d}.mp4": int(n) for i, n in enumerate(windows)}
+
+
+def _speeds(f: Fleet) -> np.ndarray:
+    rng = np.random.default_rng([f.seed, 1])
+    s = rng.lognormal(0.0, f.spread, f.hosts)
+    if f.slow is not None:
+        s[f.slow[0]] *= f.slow[1]
+    return s
+
+
+class _Stalls:
+    """Each host's stall intervals (seeded), and a worker's finish time across them."""
+
+    def __init__(self, f: Fleet, horizon_s: float):
+        rng = np.random.default_rng([f.seed, 2])
+        self.starts: List[np.ndarray] = []
+        self.ends: List[np.ndarray] = []
+        for _ in range(f.hosts):
+            if f.stall_every_s <= 0 or f.stall_s <= 0:
+                self.starts.append(np.zeros(0))
+                self.ends.append(np.zeros(0))
+                continue
+            n = int(horizon_s / f.stall_every_s * 2) + 4
+            gaps = rng.exponential(f.stall_every_s, n)
+            lens = rng.exponential(f.stall_s, n)
+            starts = np.cumsum(gaps) + np.concatenate([[0.0], np.cumsum(lens)[:-1]])
+            self.starts.append(starts)
+            self.ends.append(starts + lens)
+
+    def finish(self, host: int, t: float, work_s: float) -> float:
+        """When ``work_s`` seconds of work begun at ``t`` end on ``host``, its stalls skipped."""
+        starts, ends = self.starts[host], self.ends[host]
+        i = int(np.searchsorted(ends, t, side="right"))
+        if i < len(starts) and starts[i] <= t:  # begun inside a stall: from its end
+            t = ends[i]
+            i += 1
+        while i < len(starts) and starts[i] < t + work_s:
+            work_s -= starts[i] - t
+            t = ends[i]
+            i += 1
+        return t + work_s
+
+    def stalled(self, host: int, until: float) -> float:
+        """Seconds ``host`` is stalled in ``[0, until)``."""
+        s, e = self.starts[host], self.ends[host]
+        return float(np.sum(np.clip(np.minimum(e, until) - s, 0.0, None)))
+
+    def silent(self, host: int, t: float) -> bool:
+        """Whether ``host`` is inside a stall at ``t``."""
+        i = int(np.searchsorted(self.ends[host], t, side="right"))
+        return i < len(self.starts[host]) and self.starts[host][i] <= t
+
+
+def _epoch(slots: Dict[str, int], seed: int, epoch: int) -> EpochPlan:
+    return EpochPlan(Manifest.of(slots), seed, epoch, 64)
+
+
+def _needs(plan: EpochPlan, offset_of=lambda p: p) -> Dict[str, Tuple[int, int]]:
+    """clip -> (first global position needing it, its samples)."""
+    first: Dict[str, int] = {}
+    count: Dict[str, int] = {}
+    vids = plan.video_index
+    for p, v in enumerate(vids.tolist()):
+        name = plan.videos[v]
+        g = offset_of(p)
+        if name not in first or g < first[name]:
+            first[name] = g
+        count[name] = count.get(name, 0) + 1
+    return {v: (first[v], count[v]) for v in first}
+
+
+def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = None) -> Result:
+    """One epoch of fleet ``f`` split as ``mode`` (``"routed"`` or ``"static"``); ``router``: a
+    reader's router kept from an earlier epoch (routed only; default a new one).
+
+    Raises:
+        ValueError: another mode, naming it."""
+    if mode not in ("routed", "static"):
+        raise ValueError(f"mode must be 'routed' or 'static', got {mode!r}")
+    slots = corpus(f)
+    speeds = _speeds(f)
+    n = f.hosts
+    if mode == "routed":
+        plan = _epoch(slots, f.seed, epoch)
+        length = len(plan)
+        needs = _needs(plan)
+        real = np.ones(length, dtype=bool)
+        clip_at = plan.video_index
+        names = plan.videos
+        pos_clip = [names[i] for i in clip_at.tolist()]
+        home = None
+    else:
+        shard = {v: video_key(v) % n for v in slots}
+        plans = [_epoch({v: s for v, s in slots.items() if shard[v] == k}, f.seed, epoch) for k in range(n)]
+        lens = [len(p) for p in plans]
+        length = max(((m - 1) * n + k + 1 for k, m in enumerate(lens) if m), default=0)
+        needs, pos_clip = {}, [None] * length
+        real = np.zeros(length, dtype=bool)
+        for k, p in enumerate(plans):
+            for lp, v in enumerate(p.video_index.tolist()):
+                g = lp * n + k
+                pos_clip[g], real[g] = p.videos[v], True
+            needs.update(_needs(p, lambda lp, k=k: lp * n + k))
+        home = shard
+    samples = int(real.sum())
+    mean_samples = samples / max(1, len(needs))
+    lookahead = f.lookahead or int(LOOKAHEAD_DECODES * n * f.slots * mean_samples) + f.step
+    per_worker = speeds  # samples/s of one worker of each host
+    horizon = 4 * samples / (float(speeds.sum()) * f.slots) + 600.0
+    stalls = _Stalls(f, horizon)
+    hosts = [f"host-{k:03d}" for k in range(n)]
+    index = {h: k for k, h in enumerate(hosts)}
+    if mode == "routed" and router is None:
+        router = Router(hosts, slack=f.slack, hedge_s=f.hedge_s)
+    elif mode == "static":
+        router = None
+    t0 = max((s.meter.last or 0.0 for s in router.hosts.values()), default=0.0) if router is not None else 0.0
+
+    by_need = sorted(needs, key=lambda v: needs[v][0])
+    asked_upto = 0  # index into by_need of the next clip to ask
+    queues: List[List[Tuple[int, str]]] = [[] for _ in range(n)]  # heap of (need, clip)
+    free = [f.slots] * n
+    events: List[Tuple[float, int, str, int]] = []  # (time, host, clip, copy)
+    done_at: Dict[str, float] = {}
+    copies: Dict[str, List[int]] = {}
+    running: Dict[Tuple[int, str], bool] = {}
+    outstanding = set()  # clips asked and not made yet
+    made_by: Dict[str, str] = {}  # clip -> the host whose copy was read
+    decodes = 0
+    now = 0.0
+    read = 0  # positions read
+    ready_at = np.full(length, np.inf)
+    step_times: List[Tuple[int, float]] = []
+
+    def start_work(k: int) -> None:
+        nonlocal decodes
+        while free[k] and queues[k]:
+            need, clip = heapq.heappop(queues[k])
+            if clip in done_at or (k, clip) in running:
+                continue
+            free[k] -= 1
+            running[(k, clip)] = True
+            decodes += 1
+            end = stalls.finish(k, now, needs[clip][1] / per_worker[k])
+            heapq.heappush(events, (end, k, clip, 0))
+
+    def ask(clip: str, k: int) -> None:
+        outstanding.add(clip)
+        copies.setdefault(clip, []).append(k)
+        heapq.heappush(queues[k], (needs[clip][0], clip))
+        start_work(k)
+
+    def ask_ahead() -> None:
+        nonlocal asked_upto
+        while asked_upto < len(by_need) and needs[by_need[asked_upto]][0] < read + lookahead:
+            clip = by_need[asked_upto]
+            asked_upto += 1
+            if router is not None:
+                ask(clip, index[router.route(0, clip, needs[clip][1], t0 + now)])
+            else:
+                ask(clip, home[clip])
+
+    def advance() -> None:
+        nonlocal read
+        while read < length:
+            stop = min(length, read + f.step)
+            for p in range(read, stop):
+                c = pos_clip[p]
+                if c is not None and c not in done_at:
+                    return
+            read = stop
+            step_times.append((read, now))
+
+    ask_ahead()
+    tick = f.hedge_s / 2
+    heapq.heappush(events, (tick, -1, "", 0))
+    while read < length:
+        if not events:
+            raise RuntimeError(f"fleet_sim: stuck at position {read} of {length} ({mode})")
+        now, k, clip, _ = heapq.heappop(events)
+        if k < 0:  # the reader's clock: hedge what it waits on
+            if router is not None:
+                silent = {hosts[k2] for k2 in range(n) if router.suspect(hosts[k2], t0 + now)}
+                waiting = [(0, c, needs[c][1]) for c in outstanding if silent.intersection(router.asked.get((0, c), ()))]
+                for _, c, h in router.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), t0 + now):
+                    ask(c, index[h])
+            heapq.heappush(events, (now + tick, -1, "", 0))
+            continue
+        free[k] += 1
+        del running[(k, clip)]
+        if clip not in done_at:
+            done_at[clip] = now
+            outstanding.discard(clip)
+            if router is not None:
+                router.answered(hosts[k], 0, clip, needs[clip][1], t0 + now, done=True)
+                router.finished(0, clip, t0 + now)
+                made_by[clip] = hosts[k]
+            advance()
+            ask_ahead()
+        elif router is not None:
+            router.answered(hosts[k], 0, clip, 0, t0 + now, done=True)
+        start_work(k)
+    end = now
+    lo, hi = int(0.1 * length), int(0.9 * length)
+    t_lo = next(t for p, t in step_times if p >= lo)
+    t_hi = next(t for p, t in step_times if p >= hi)
+    steady_samples = int(real[lo:hi].sum())
+    capacity = float(sum(per_worker[k] * f.slots * (1 - stalls.stalled(k, end) / end) for k in range(n)))
+    return Result(mode, samples, length, end, samples / end,
+                  steady_samples / max(t_hi - t_lo, 1e-9), capacity, decodes / max(1, len(needs)),
+                  made_by if router is not None else {c: hosts[home[c]] for c in needs})
+
+
+def stay(f: Fleet) -> float:
+    """The share of clips one reader's router has decoded on the same host in two epochs in a row
+    (a frame cache's hits in the second epoch, over one host's): routed, the fleet unchanged."""
+    router = Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s)
+    first = simulate(f, "routed", 0, router).made_by
+    second = simulate(f, "routed", 1, router).made_by
+    return sum(first.get(c) == h for c, h in second.items()) / max(1, len(second))
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m harness.fleet_sim", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--hosts", type=int, default=Fleet.hosts)
+    ap.add_argument("--videos", type=int, default=Fleet.videos)
+    ap.add_argument("--slots", type=int, default=Fleet.slots)
+    ap.add_argument("--spread", type=float, default=Fleet.spread)
+    ap.add_argument("--slow", type=float, default=None, help="host 0's speed times this factor")
+    ap.add_argument("--stall-every-s", type=float, default=Fleet.stall_every_s)
+    ap.add_argument("--stall-s", type=float, default=Fleet.stall_s)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", default=None, help="also write the results here")
+    a = ap.parse_args(argv)
+    f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
+              a.stall_s, seed=a.seed)
+    rows = [simulate(f, m) for m in ("routed", "static")]
+    print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, "
+          f"stalls every {f.stall_every_s} s for {f.stall_s} s on average")
+    print(f"{'split':<8} {'samples/s':>10} {'steady':>8} {'capacity':>9} {'share':>6} {'decodes/clip':>13} {'padding':>8}")
+    for r in rows:
+        print(f"{r.mode:<8} {r.rate:>10.1f} {r.steady_rate:>8.1f} {r.capacity:>9.1f} {r.share:>6.3f} "
+              f"{r.decodes:>13.3f} {1 - r.samples / r.positions:>8.1%}")
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump({"fleet": asdict(f), "results": [{k: v for k, v in dict(asdict(r), share=r.share).items()
+                                                        if k != "made_by"} for r in rows]}, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
