@@ -335,6 +335,23 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = Non
                   made_by if router is not None else {c: hosts[home[c]] for c in needs})
 
 
+def static_padding(videos: int, shards: Sequence[int], seed: int = 0) -> Dict[int, float]:
+    """The share of an epoch's rows that hold no sample when a corpus of ``videos`` WebVid-like
+    clips (:func:`corpus`) is split into static shards (``v2v-serve --shard I/N``: the
+    servers' ``shard_of``) read interleaved (``plan_shards.shards_samples``), for each count
+    of ``shards``."""
+    from v2v_server.ops.startup import shard_of
+    from v2v_wire.plan_shards import shards_samples
+
+    clips = corpus(Fleet(videos=videos, seed=seed))
+    per = {n: [0] * n for n in shards}
+    for v, m in clips.items():
+        for n, counts in per.items():
+            counts[shard_of(v, n)] += m
+    total = sum(clips.values())
+    return {n: 1 - total / shards_samples(counts) for n, counts in per.items()}
+
+
 def stay(f: Fleet) -> float:
     """The share of clips one reader's router has decoded on the same host in two epochs in a row
     (a frame cache's hits in the second epoch, over one host's): routed, the fleet unchanged."""
@@ -355,7 +372,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--stall-s", type=float, default=Fleet.stall_s)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the results here")
+    ap.add_argument("--padding", default=None, metavar="VIDEOS,...",
+                    help="print only the static shards' padding for these corpus sizes (2, 8, 32, 128 shards)")
     a = ap.parse_args(argv)
+    if a.padding:
+        print(f"{'videos':>10} " + " ".join(f"{n:>6} shards" for n in (2, 8, 32, 128)))
+        for v in (int(x) for x in a.padding.split(",")):
+            pad = static_padding(v, (2, 8, 32, 128), a.seed)
+            print(f"{v:>10,} " + " ".join(f"{pad[n]:>13.1%}" for n in (2, 8, 32, 128)))
+        return 0
     f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
               a.stall_s, seed=a.seed)
     rows = [simulate(f, m) for m in ("routed", "static")]

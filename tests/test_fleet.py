@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from harness.fleet_sim import Fleet, simulate
+from harness.fleet_sim import Fleet, simulate, static_padding, stay
 from v2v_wire.fleet import WEIGHT_STEP, RateMeter, Router, rank_hosts, weight_step
 
 VIDEOS = [f"clips/{i:05d}.mp4" for i in range(4000)]
@@ -132,3 +132,14 @@ def test_128_hosts_of_spread_speeds_that_stall_routed_make_at_least_095_of_their
     assert static.share < routed.share - 0.2
     assert static.positions > static.samples  # the static interleave pads; the one plan does not
     assert routed.positions == routed.samples
+
+
+def test_static_shards_pad_more_rows_the_more_shards_a_corpus_is_split_into():
+    pad = static_padding(10_000, (2, 8, 32, 128))
+    assert pad[2] < pad[8] < pad[32] < pad[128]
+    assert pad[128] > 0.2  # docs/scaling.md's table: a quarter of the rows at 128 shards of 10k clips
+
+
+def test_a_clip_stays_on_its_host_from_one_epoch_to_the_next_for_most_clips():
+    share = stay(Fleet(hosts=16, videos=8000))
+    assert 0.75 <= share < 1.0  # docs/scaling.md: 0.79-0.89 at 16 hosts, short of a warm cache's needs
