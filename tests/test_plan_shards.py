@@ -76,7 +76,8 @@ def test_servers_that_are_not_one_sharding_are_refused_naming_them(tmp_path, vid
                                              r".*shard\(s\) 1/2 served by none of them"):
             V2VStreamDataset([a.endpoint, b.endpoint], timeout_s=60).plan_info()
     with ServeProcess(base) as whole, ServeProcess(base + ["--shard", "1/2"]) as b:
-        with pytest.raises(ValueError, match=rf"^{whole.endpoint}: serve\(s\) the whole corpus; several servers"):
+        with pytest.raises(ValueError, match=rf"^{b.endpoint}: serve\(s\) one shard while {whole.endpoint} serves "
+                                             r"the whole corpus: read shards .* or hosts of the whole corpus, not both"):
             V2VStreamDataset([whole.endpoint, b.endpoint], timeout_s=60).plan_info()
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2", "--seed", "9"]) as b:
         with pytest.raises(ValueError, match="different sample recipes"):

@@ -31,32 +31,24 @@ from __future__ import annotations
 
 import itertools
 import json
-import time
 from collections.abc import Mapping
-from dataclasses import replace
-from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
+from typing import Dict, Iterator, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
-import zmq
 
 from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
-from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_parts, shard_ranges, shards_identity,
-                                  shards_samples, step_in_epoch)
-from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, WireError, plan_server_message
-from v2v_wire.codecs import available, check_compression, decode_batch_arrays
-from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_ipv6, pack, unpack
+from v2v_wire.plan_messages import Fetch, PlanInfo, Rows
+from v2v_wire.protocol import DEFAULT_OUTPUTS, check_outputs
 
 from . import plan_accelerate
-from .endpoints import auto_compression, check_servers, load_curve_keys, resolve_endpoints, split_endpoints
+from .endpoints import load_curve_keys
+from .fetch import PlanServerError, Servers
 from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "PlanEpochs", "open_stream", "PlanServerError"]
 
 
-class PlanServerError(RuntimeError):
-    """The server refused a fetch, or sent what this client cannot read (the message says which
-    endpoint and why, in one line)."""
 
 
 class V2VStreamDataset(torch.utils.data.IterableDataset):
@@ -99,7 +91,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         super().__init__()
         _refuse_push(push_settings)
         _check_settings(1 if batch_size is None else batch_size, prefetch, retry_s, timeout_s)
-        self._servers = _Servers(endpoint, compression)  # a bad endpoint or codec: an error here
+        self._servers = Servers(endpoint, compression)  # a bad endpoint or codec: an error here
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None  # bad key files: an error here
         if rank is not None or world_size is not None:
             _check_layout(0 if rank is None else rank, 1 if world_size is None else world_size)
@@ -247,10 +239,12 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         again while the epoch's samples are not known: the plan unfolds as the server decodes).
 
         Raises:
-            TimeoutError, PlanServerError, ValueError: as ``_Servers.ask``.
+            TimeoutError, PlanServerError, ValueError: as ``Servers.ask``.
             PlanMismatch: a loaded position of another plan."""
         if self._info is None or (refresh and self._info.samples is None):
-            self._info = self._servers.ask(self.timeout_s, self.curve)
+            loaded = self._resume or (self._pending and self._pending["position"])
+            prefer = PlanIdentity.from_dict(loaded["plan"]) if loaded else None  # a fleet reads the plan it names
+            self._info = self._servers.ask(self.timeout_s, self.curve, prefer)
             for loaded in filter(None, (self._resume, self._pending and self._pending["position"])):
                 Position.from_dict(loaded, expected=self._info.plan)
         return self._info
@@ -419,81 +413,8 @@ class _Control:
         return int(self._words()[1]) == generation
 
 
-class _Servers:
-    """The servers a dataset reads as one plan: one, or one per shard in shard order, each with
-    its plan identity and the compression its fetches ask for (known once asked; pickled with
-    the dataset, so a DataLoader worker asks nothing again)."""
-
-    def __init__(self, endpoint, compression: str):
-        split_endpoints(endpoint)  # a bad entry: ValueError, naming it
-        if compression != "auto" and not available(check_compression(compression)):
-            raise ValueError(f"compression {compression!r}: its library is not installed here (pip install 'v2v[wire]')")
-        self.endpoint, self.compression = endpoint, compression
-        self.shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
-        self.codecs: Dict[str, str] = {}  # server -> compression
-        self.samples: List[Optional[int]] = []  # each shard's samples per epoch when asked (None: not known)
-
-    def ask(self, timeout_s: float, curve: Optional[tuple]) -> PlanInfo:
-        """What the servers serve, as one plan (resolving ``endpoint`` the first time).
-
-        Raises:
-            TimeoutError, PlanServerError: a server silent, or speaking another protocol version.
-            ValueError: several servers that are not one sharding of one corpus."""
-        servers = resolve_endpoints(self.endpoint) if self.shards is None else [ep for ep, _ in self.shards]
-        infos = []
-        for server in servers:
-            with _Link(server, timeout_s, curve) as link:
-                infos.append(link.ask())
-        info, self.shards, self.samples = _as_one_plan(servers, infos)
-        self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
-        return info
-
-    def link(self, timeout_s: float, curve: Optional[tuple]):
-        """A connection fetching rows of the plan: a ``_Link`` to the one server, else ``_Shards``."""
-        if len(self.shards) == 1:
-            return _Link(self.shards[0][0], timeout_s, curve, self.codecs[self.shards[0][0]])
-        return _Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
-
-    def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
-        """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
-        shards: ``workers``, ``samples_made``, ``busy_s`` (stage -> worker seconds) and the
-        smallest ``frame_cache_gb``; None when a server does not report them.
-
-        Raises:
-            TimeoutError: a server did not answer within ``timeout_s``."""
-        figures = []
-        for server in [ep for ep, _ in self.shards or ()] or resolve_endpoints(self.endpoint):
-            with _Link(server, timeout_s, curve) as link:
-                figures.append(link.ask().stream.get("feed"))
-        if not figures or not all(isinstance(f, dict) for f in figures):
-            return None
-        busy: Dict[str, float] = {}
-        for f in figures:
-            for stage, v in (f.get("busy_s") or {}).items():
-                busy[stage] = busy.get(stage, 0.0) + float(v)
-        return {"workers": sum(int(f.get("workers") or 0) for f in figures),
-                "samples_made": sum(int(f.get("samples_made") or 0) for f in figures),
-                "frame_cache_gb": min(float(f.get("frame_cache_gb") or 0.0) for f in figures), "busy_s": busy}
 
 
-def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
-    """``(PlanInfo, [(server, its plan identity)], [its samples per epoch or None])`` of the servers
-    read as one plan: one server's own; several, each one shard of one corpus under one recipe,
-    interleaved in shard order.
-
-    Raises:
-        ValueError: several servers that are not one sharding of one corpus (naming them)."""
-    if len(servers) == 1:
-        return infos[0], [(servers[0], infos[0].plan)], [infos[0].samples]
-    whole = [ep for ep, i in zip(servers, infos) if not isinstance(i.stream.get("shard"), str)]
-    if whole:
-        raise ValueError(f"{', '.join(whole)}: serve(s) the whole corpus; several servers are read together when "
-                         f"each serves one shard (v2v-serve --shard I/N)")
-    check_servers({ep: i.stream for ep, i in zip(servers, infos)})
-    ordered = sorted(zip(servers, infos), key=lambda x: int(x[1].stream["shard"].split("/")[0]))
-    plan = shards_identity([i.plan for _, i in ordered])
-    return (PlanInfo(plan, shards_samples([i.samples for _, i in ordered]), ordered[0][1].stream),
-            [(ep, i.plan) for ep, i in ordered], [i.samples for _, i in ordered])
 
 
 #: The removed push delivery's reader settings, which a plan has no use for: given here, they are
@@ -501,10 +422,6 @@ def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
 PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "group", "shm", "compact_flow")
 
 
-def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
-    """What fetches of ``endpoint`` ask for: ``compression``, or for ``"auto"``
-    ``endpoints.auto_compression`` with the codecs the server lists in its stream info."""
-    return compression if compression != "auto" else auto_compression(endpoint, stream.get("codecs", ()))
 
 
 def _refuse_push(settings: dict) -> None:
@@ -562,7 +479,7 @@ class PlanEpochs(torch.utils.data.IterableDataset):
         self.dataset.load_state_dict(state)
 
     def server_feed(self) -> Optional[dict]:
-        """What the dataset's server(s) report of their work, asked now (``_Servers.feed``):
+        """What the dataset's server(s) report of their work, asked now (``Servers.feed``):
         ``workers``, ``samples_made``, ``busy_s`` (stage -> worker seconds), ``frame_cache_gb``;
         None from a server that does not report them. ``trainer.feed_report`` says from them
         what would feed a starved trainer.
@@ -713,306 +630,11 @@ def _check_layout(rank: int, world_size: int) -> None:
         raise ValueError(f"rank must be in 0..{world_size - 1}, got {rank!r}")
 
 
-def _with_padding(arrays: Dict[str, np.ndarray], padding: List[bool]) -> Dict[str, np.ndarray]:
-    """The batch's arrays, one row per row of ``padding``, from the wire's (``Rows``: the rows
-    holding a sample only, in row order): zeros in each padding row; the wire's arrays as they
-    are when no row is padding.
-
-    Raises:
-        ProtocolError: an array whose rows are not the rows holding a sample, naming it."""
-    real = [i for i, pad in enumerate(padding) if not pad]
-    out = {}
-    for name, a in arrays.items():
-        if a.ndim == 0 or a.shape[0] != len(real):
-            raise ProtocolError(f"array {name!r}: {a.shape[0] if a.ndim else 0} rows, the rows hold "
-                                f"{len(real)} samples")
-        if len(real) == len(padding):
-            out[name] = a
-            continue
-        out[name] = np.zeros((len(padding), *a.shape[1:]), a.dtype)
-        out[name][real] = a
-    return out
 
 
-class _Link:
-    """One process's connection to a plan server: a DEALER socket, requests numbered from 1."""
-
-    def __init__(self, endpoint: str, timeout_s: float, curve: Optional[tuple] = None, compression: str = "none"):
-        self.endpoint, self.timeout_s, self.compression = endpoint, timeout_s, compression
-        self.ctx = zmq.Context()
-        self.sock = self.ctx.socket(zmq.DEALER)
-        self.sock.setsockopt(zmq.LINGER, 0)
-        if is_ipv6(endpoint):  # tcp://[::1]:PORT: without it the connect is never made and every ask times out
-            self.sock.setsockopt(zmq.IPV6, 1)
-        if curve is not None:  # (client public, client secret, server public), connection.load_curve_keys
-            self.sock.curve_publickey, self.sock.curve_secretkey, self.sock.curve_serverkey = curve
-        self.sock.connect(endpoint)
-        self.ids = itertools.count(1)
-
-    def __enter__(self) -> "_Link":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.sock.close()
-        self.ctx.term()
-
-    def _send(self, header: dict) -> None:
-        """Send without blocking: with no peer (a server not up yet, a CURVE handshake refused) the
-        message is dropped, and the caller's deadline or retry asks again."""
-        try:
-            self.sock.send(pack(header), zmq.NOBLOCK)
-        except zmq.Again:
-            pass
-
-    def _recv(self, deadline: float):
-        """The next message (header, frames) before ``deadline``, or None."""
-        wait = max(0.0, deadline - time.monotonic())
-        if not self.sock.poll(int(wait * 1000)):
-            return None
-        frames = self.sock.recv_multipart(copy=False)
-        try:
-            h = unpack(frames[0])
-            return plan_server_message(h), frames[1:]
-        except (ProtocolError, WireError) as e:
-            raise PlanServerError(f"{self.endpoint}: {e}") from None
-
-    def ask(self) -> PlanInfo:
-        deadline = time.monotonic() + self.timeout_s
-        while True:
-            self._send(PlanAsk().to_wire())
-            got = self._recv(min(deadline, time.monotonic() + 5.0))
-            if got is not None and isinstance(got[0], PlanInfo):
-                return got[0]
-            if got is not None and isinstance(got[0], Refused):
-                raise PlanServerError(f"{self.endpoint}: {got[0].message}")
-            if time.monotonic() >= deadline:
-                raise TimeoutError(f"{self.endpoint}: no answer to 'what do you serve' within {self.timeout_s} s "
-                                   "(is a v2v-serve running there?)")
-
-    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:
-        """``(step, rows, arrays)`` for each of ``steps`` in order, ``prefetch`` fetches in
-        flight; an unanswered fetch is asked again after ``retry_s`` (the first answer wins).
-        ``fetch_of(request, step)``: the step's :class:`Fetch` under that request id.
-        ``first_of`` is for ``_Shards``: one server's rows past the epoch's end carry its samples."""
-        todo = iter(steps)
-        waiting: Dict[int, int] = {}  # request id -> step
-        asked: Dict[int, float] = {}  # step -> when last asked
-        done: Dict[int, tuple] = {}
-        order = []
-        heard = time.monotonic()
-
-        def send(step: int) -> None:
-            req = next(self.ids)
-            self._send(replace(fetch_of(req, step), compression=self.compression).to_wire())
-            waiting[req], asked[step] = step, time.monotonic()
-
-        for step in itertools.islice(todo, prefetch):
-            order.append(step)
-            send(step)
-        while order:
-            if order[0] in done:
-                step = order.pop(0)
-                yield (step,) + done.pop(step)
-                nxt = next(todo, None)
-                if nxt is not None:
-                    order.append(nxt)
-                    send(nxt)
-                continue
-            now = time.monotonic()
-            for step in order:
-                if step not in done and now - asked[step] >= retry_s:
-                    send(step)  # a lost reply or a restarted server: ask again
-            got = self._recv(now + min(retry_s, 1.0))
-            if got is None:
-                if time.monotonic() - heard > self.timeout_s:
-                    raise TimeoutError(f"{self.endpoint}: no rows for {self.timeout_s} s (step {order[0]})")
-                continue
-            heard = time.monotonic()
-            msg, frames = got
-            if isinstance(msg, Refused):
-                raise _refusal(self.endpoint, msg)
-            if not isinstance(msg, Rows) or msg.request not in waiting:
-                continue  # an answer to a request asked again, or to a plan_ask
-            step = waiting.pop(msg.request)
-            if step in done or step not in order:
-                continue
-            try:
-                arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
-            except ProtocolError as e:
-                raise PlanServerError(f"{self.endpoint}: rows of step {step}: {e}") from None
-            done[step] = (msg, arrays)
 
 
-def _refusal(endpoint: str, msg: Refused) -> Exception:
-    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's, else ``PlanServerError``."""
-    if "another plan" in msg.message:
-        return PlanMismatch(f"{endpoint}: {msg.message}")
-    return PlanServerError(f"{endpoint}: {msg.message}")
 
 
-class _InFlight:
-    """What one ``_Shards.fetch_all`` has asked and not yet yielded: ``fetch_of`` its steps'
-    fetches; ``order`` the steps asked, in order; ``parts`` step -> shard -> (rows, arrays), None
-    until answered; ``probed`` (shard, its position) asked, True once a slot is seen there;
-    ``waiting`` (shard, request id) -> ``("step", step)`` or ``("probe", position)``; ``asked``
-    (shard, what) unanswered -> when last asked; ``seen`` one past the furthest global position a
-    row with a sample id was read at."""
-
-    def __init__(self, fetch_of):
-        self.fetch_of = fetch_of
-        self.order: List[int] = []
-        self.parts: Dict[int, Dict[int, Optional[tuple]]] = {}
-        self.probed: Dict[Tuple[int, int], bool] = {}
-        self.waiting: Dict[Tuple[int, int], tuple] = {}
-        self.asked: Dict[Tuple[int, tuple], float] = {}
-        self.seen = 0
 
 
-class _Shards:
-    """Several servers, one shard each, read as one plan (``v2v_wire.plan_shards``): a fetch of
-    global positions is asked of each shard holding some of them, and their rows are merged in
-    the interleave's order. ``shards``: (server, its plan identity), in shard order; ``samples``:
-    each shard's samples per epoch where known (None: not yet)."""
-
-    def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple],
-                 codecs: Dict[str, str], samples: Sequence[Optional[int]]):
-        self.plans = [plan for _, plan in shards]
-        self.links = [_Link(ep, timeout_s, curve, codecs[ep]) for ep, _ in shards]
-        self.timeout_s = timeout_s
-        self.samples: List[Optional[int]] = list(samples)  # each shard's epoch, once it or its rows say
-
-    def __enter__(self) -> "_Shards":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for link in self.links:
-            link.__exit__(*exc)
-
-    def _part(self, k: int, f: Fetch) -> Fetch:
-        """Shard ``k``'s part of fetch ``f`` (of global positions), in its own positions."""
-        lo, hi = shard_ranges(f.start, f.stop, len(self.links))[k]
-        return replace(f, start=lo, stop=hi, plan=self.plans[k])
-
-    def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of) -> Iterator:
-        """``_Link.fetch_all`` over the shards: each step's fetch split into the parts of the
-        shards holding some of its rows, each asked on that shard's link (``prefetch`` steps in
-        flight, an unanswered part asked again after ``retry_s``), the parts merged in the
-        interleave's order.
-
-        A step is yielded once it is known to lie in the epoch or past it (``first_of(step)``:
-        the first global position of the step, every rank's; ``plan_shards.step_in_epoch``):
-        where its rows hold no sample id and a shard's samples are not known yet, that shard is
-        asked for one row at or after it (``plan_shards.probes``). So a rank whose rows lie in
-        some shards only ends the epoch at the step every other rank ends it at.
-
-        Raises:
-            TimeoutError: no shard said anything for ``timeout_s`` while a part was awaited.
-            PlanMismatch, PlanServerError: a shard refused a fetch or sent what cannot be read.
-        """
-        todo = iter(steps)
-        flight = _InFlight(fetch_of)
-        poller = zmq.Poller()
-        for link in self.links:
-            poller.register(link.sock, zmq.POLLIN)
-        for step in itertools.islice(todo, prefetch):
-            self._begin(flight, step)
-        heard = time.monotonic()
-        while flight.order:
-            head = flight.order[0]
-            if all(p is not None for p in flight.parts[head].values()):
-                first = first_of(head)
-                if step_in_epoch(first, self.samples, flight.seen) is not None:
-                    flight.order.pop(0)
-                    yield (head,) + self._merged(fetch_of(0, head), flight.parts.pop(head))
-                    nxt = next(todo, None)
-                    if nxt is not None:
-                        self._begin(flight, nxt)
-                    continue
-                for k, q in probes(first, self.samples):
-                    if (k, q) not in flight.probed:
-                        flight.probed[(k, q)] = False
-                        self._ask(flight, k, ("probe", q))
-            now = time.monotonic()
-            for (k, what), when in list(flight.asked.items()):
-                if now - when >= retry_s:
-                    self._ask(flight, k, what)  # a lost reply or a restarted server: ask again
-            ready = dict(poller.poll(int(min(retry_s, 1.0) * 1000)))
-            if not ready:
-                if time.monotonic() - heard > self.timeout_s:
-                    late = sorted({self.links[k].endpoint for k, _ in flight.asked})
-                    raise TimeoutError(f"{', '.join(late)}: no rows for {self.timeout_s} s (step {head})")
-                continue
-            heard = time.monotonic()
-            for k, link in enumerate(self.links):
-                got = link._recv(heard) if link.sock in ready else None
-                if got is not None:
-                    self._receive(flight, k, *got)
-
-    def _ask(self, flight: "_InFlight", k: int, what: tuple) -> None:
-        """Ask shard ``k`` for ``what``: ``("step", step)``, its part of that step's fetch, or
-        ``("probe", position)``, one row at its own ``position`` under the first step's epoch and
-        outputs."""
-        link = self.links[k]
-        req = next(link.ids)
-        if what[0] == "step":
-            f = self._part(k, flight.fetch_of(req, what[1]))
-        else:
-            f = replace(flight.fetch_of(req, flight.order[0]), start=what[1], stop=what[1] + 1, plan=self.plans[k])
-        link._send(replace(f, compression=link.compression).to_wire())
-        flight.waiting[(k, req)], flight.asked[(k, what)] = what, time.monotonic()
-
-    def _begin(self, flight: "_InFlight", step: int) -> None:
-        """Ask each shard holding some of ``step``'s rows for its part."""
-        f = flight.fetch_of(0, step)
-        flight.parts[step] = dict.fromkeys(shard_parts(f.start, f.stop, len(self.links)))
-        flight.order.append(step)
-        for k in flight.parts[step]:
-            self._ask(flight, k, ("step", step))
-
-    def _receive(self, flight: "_InFlight", k: int, msg, frames) -> None:
-        """Take shard ``k``'s message ``msg`` (its ``frames``): a step's part is kept for the merge,
-        a probe's row settles where that shard's slots end; the shard's samples and the furthest
-        slot seen are noted from either. Answers to requests asked again are dropped.
-
-        Raises:
-            PlanMismatch, PlanServerError: the shard refused a fetch, sent arrays that cannot be
-                read, or answered a probe past its epoch's end without the epoch's samples.
-        """
-        link, n = self.links[k], len(self.links)
-        if isinstance(msg, Refused):
-            raise _refusal(link.endpoint, msg)
-        what = flight.waiting.pop((k, msg.request), None) if isinstance(msg, Rows) else None
-        if what is None or flight.asked.pop((k, what), None) is None:
-            return  # an answer to a request asked again, or to a plan_ask
-        if msg.samples is not None:
-            self.samples[k] = msg.samples
-        flight.seen = furthest_slot(flight.seen, k, n, msg.start, msg.sample_ids)
-        if what[0] == "probe":
-            slot = any(sid is not None for sid in msg.sample_ids)
-            if not slot and msg.samples is None:
-                raise PlanServerError(f"{link.endpoint}: position {what[1]} answered past the epoch's end "
-                                      "without the epoch's samples")
-            flight.probed[(k, what[1])] = slot
-            return
-        try:
-            arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
-        except ProtocolError as e:
-            raise PlanServerError(f"{link.endpoint}: rows of step {what[1]}: {e}") from None
-        flight.parts[what[1]][k] = (msg, arrays)
-
-    def _merged(self, f: Fetch, got: dict):
-        """One ``Rows`` and its arrays for global positions ``f.start .. f.stop - 1`` from each
-        shard's part (``got``: shard -> (rows, arrays))."""
-        order = interleaved(f.start, f.stop, len(self.links))
-        pick = [(got[k][0], j) for k, j in order]
-        rows = Rows(f.request, f.epoch, f.start, [r.sample_ids[j] for r, j in pick], [r.padding[j] for r, j in pick],
-                    [r.params[j] for r, j in pick], [], shards_samples(self.samples))
-        # a part of padding rows only holds each output's zeros in its wire form (a dense ``flow``
-        # where samples carry a ``flow_grid``): its rows are zeros of a part with samples
-        like = next((a for r, a in got.values() if not all(r.padding)), next(iter(got.values()))[1])
-
-        def row(k: int, j: int, name: str) -> np.ndarray:
-            a = got[k][1]
-            return a[name][j] if name in a else np.zeros_like(like[name][0])
-
-        return rows, {name: np.stack([row(k, j, name) for k, j in order]) for name in like}

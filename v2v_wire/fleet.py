@@ -246,12 +246,7 @@ class Router:
                 break
         if pick is None:
             pick = min(ranking, key=lambda h: (self.hosts[h].load + samples) / weights[h])
-        s = self.hosts[pick]
-        if not s.queued:
-            s.meter.busy(now, True)
-            s.heard = max(s.heard, now)  # an idle host's silence counts from its first ask
-        self._queue(s, (epoch, video), samples)
-        self.asked.setdefault((epoch, video), []).append(pick)
+        self.ask(pick, epoch, video, samples, now)
         return pick
 
     def answered(self, host: str, epoch: int, video: str, samples: int, now: float, done: bool) -> None:
@@ -277,8 +272,22 @@ class Router:
         """Samples queued on every host, summed."""
         return self._load
 
+    def ask(self, host: str, epoch: int, video: str, samples: int, now: float) -> None:
+        """``host`` is asked ``samples`` more samples of ``video`` (a reader that keeps asking one
+        host for a video's samples as its plan decides them)."""
+        s = self.hosts.get(host)
+        if s is None:
+            return
+        if not s.queued:
+            s.meter.busy(now, True)
+            s.heard = max(s.heard, now)  # an idle host's silence counts from its first ask
+        self._queue(s, (epoch, video), samples)
+        asked = self.asked.setdefault((epoch, video), [])
+        if host not in asked:
+            asked.append(host)
+
     def _queue(self, s: _Host, ev: Tuple[int, str], samples: int) -> None:
-        s.queued[ev] = samples
+        s.queued[ev] = s.queued.get(ev, 0) + samples
         s.load += samples
         self._load += samples
 

@@ -28,8 +28,9 @@ from v2v_wire.plan import PlanIdentity, PlanMismatch
 from v2v_wire.protocol import PROTOCOL_VERSION, ProtocolError, check_outputs, version_problem
 from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
-__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Rows", "Refused", "WireError", "OldClient", "BadPeers", "MAX_FETCH_ROWS",
-           "decode_plan_client", "plan_server_message", "old_client_answer"]
+__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Make", "ManifestAsk", "ManifestPart", "Rows", "Refused", "WireError",
+           "OldClient", "BadPeers", "MAX_FETCH_ROWS", "MANIFEST_PART", "decode_plan_client", "plan_server_message",
+           "old_client_answer"]
 
 #: Largest element count of any array in a message.
 MAX_ARRAY_LEN = 4096
@@ -52,8 +53,10 @@ def bounded_unpackb(buf, max_bytes: int) -> object:
     """
     return _bounded_unpackb(buf, max_bytes, MAX_ARRAY_LEN, MAX_MAP_LEN, MAX_CONTAINERS, WireError)
 
-#: Most positions one fetch may name (a batch of one rank at one step).
+#: Most positions one fetch may name (a batch of one rank at one step), and samples one make may.
 MAX_FETCH_ROWS = 4096
+#: Videos one manifest part lists (within ``MAX_ARRAY_LEN``).
+MANIFEST_PART = 4096
 _MAX_INT = 2 ** 62
 
 
@@ -145,6 +148,99 @@ class Fetch:
 
 
 @dataclass(frozen=True)
+class Make:
+    """Client -> server: the samples ``ordinals`` (``SampleKey.ordinal``) of ``video`` in
+    ``epoch`` under ``plan``, with the arrays of ``outputs`` compressed with ``compression``; or
+    (``ordinals`` None) only the video's windows, which a reader's plan unfolds with (the host
+    decodes the video to learn them, and keeps its samples for the makes that follow). A reader of
+    a fleet asks each video of the host it routes it to (``v2v_wire.fleet``); the answer is
+    :class:`Rows` in the order asked (no row for ``None``), with ``windows``."""
+
+    request: int
+    epoch: int
+    video: str
+    ordinals: Optional[Tuple[int, ...]]
+    outputs: Tuple[str, ...]
+    plan: PlanIdentity
+    compression: str = "none"
+
+    def to_wire(self) -> dict:
+        return {"type": "make", "request": self.request, "epoch": self.epoch, "video": self.video,
+                "ordinals": None if self.ordinals is None else list(self.ordinals), "outputs": list(self.outputs),
+                "plan": self.plan.to_dict(), "compression": self.compression}
+
+    @classmethod
+    def from_wire(cls, h: dict) -> "Make":
+        video, ordinals = h.get("video"), h.get("ordinals")
+        if not isinstance(video, str) or not video or len(video) > 4096:
+            raise WireError("make: field 'video' must be a non-empty path of at most 4096 characters")
+        if ordinals is not None and (not isinstance(ordinals, list) or not 0 < len(ordinals) <= MAX_FETCH_ROWS or
+                                     not all(isinstance(o, int) and not isinstance(o, bool) and 0 <= o < _MAX_INT
+                                             for o in ordinals)):
+            raise WireError(f"make: field 'ordinals' must be nil or 1 to {MAX_FETCH_ROWS} ints >= 0")
+        try:
+            outputs = check_outputs(h.get("outputs"), "make: field 'outputs'")
+            plan = PlanIdentity.from_dict(h.get("plan"))
+            compression = check_compression(h.get("compression", "none"), "make: field 'compression'")
+        except (ValueError, PlanMismatch) as e:
+            raise WireError(str(e)) from None
+        return cls(_int(h, "request"), _int(h, "epoch", 0, 2 ** 31 - 1), video,
+                   None if ordinals is None else tuple(ordinals), outputs, plan, compression)
+
+
+@dataclass(frozen=True)
+class ManifestAsk:
+    """Client -> server: the manifest's videos from index ``offset`` on (:class:`ManifestPart`):
+    a reader of a fleet computes the plan itself (``v2v_wire.plan.EpochPlan``)."""
+
+    offset: int = 0
+
+    def to_wire(self) -> dict:
+        return {"type": "manifest_ask", "offset": self.offset}
+
+    @classmethod
+    def from_wire(cls, h: dict) -> "ManifestAsk":
+        return cls(_int(h, "offset"))
+
+
+@dataclass(frozen=True)
+class ManifestPart:
+    """Server -> client: up to :data:`MANIFEST_PART` of the manifest's videos from ``offset`` on,
+    each with its tag and its slots where the server knows them (None: not yet); ``total``: the
+    manifest's videos; ``crops_per_window``: its K; ``tagged``: whether the manifest names its
+    videos' tags (``v2v_wire.plan.Manifest.tags``: its fingerprint covers them)."""
+
+    offset: int
+    total: int
+    crops_per_window: int
+    videos: List[str]
+    tags: List[Optional[str]]
+    slots: List[Optional[int]]
+    tagged: bool = True
+
+    def to_wire(self) -> dict:
+        return {"type": "manifest", "offset": self.offset, "total": self.total,
+                "crops_per_window": self.crops_per_window, "videos": self.videos, "tags": self.tags,
+                "slots": self.slots, "tagged": self.tagged}
+
+    @classmethod
+    def from_wire(cls, h: dict) -> "ManifestPart":
+        videos, tags, slots = h.get("videos"), h.get("tags"), h.get("slots")
+        if not isinstance(videos, list) or not all(isinstance(v, str) and v for v in videos):
+            raise WireError("manifest: field 'videos' must be a list of paths")
+        n = len(videos)
+        if not isinstance(tags, list) or len(tags) != n or not all(t is None or isinstance(t, str) for t in tags):
+            raise WireError(f"manifest: field 'tags' must be {n} strings or nil")
+        if not isinstance(slots, list) or len(slots) != n or not all(
+                x is None or (isinstance(x, int) and not isinstance(x, bool) and x >= 0) for x in slots):
+            raise WireError(f"manifest: field 'slots' must be {n} ints >= 0 or nil")
+        if not isinstance(h.get("tagged"), bool):
+            raise WireError("manifest: field 'tagged' must be a boolean")
+        return cls(_int(h, "offset"), _int(h, "total"), _int(h, "crops_per_window", 1), videos, tags, slots,
+                   h["tagged"])
+
+
+@dataclass(frozen=True)
 class Rows:
     """Server -> client: the answer to fetch ``request``: rows for positions ``start`` .. of
     ``epoch``, each with its sample id (None for a row past the epoch's end), ``padding``,
@@ -153,7 +249,8 @@ class Rows:
     sample only, in row order (``(samples in it, ...)``; ``(0, ...)`` for rows of padding only):
     a padding row costs no payload, and the reader puts zeros in its place; ``samples``: the
     epoch's samples once the server knows them (None before: a reader of a plan still unfolding
-    learns the epoch's end from it)."""
+    learns the epoch's end from it); ``windows``: the answer to a :class:`Make`'s video's
+    windows (its slots), None for a fetch's."""
 
     request: int
     epoch: int
@@ -163,18 +260,20 @@ class Rows:
     params: List[dict]
     arrays: List[dict]
     samples: Optional[int] = None
+    windows: Optional[int] = None
 
     def to_wire(self) -> dict:
         return {"type": "rows", "request": self.request, "epoch": self.epoch, "start": self.start,
                 "sample_ids": self.sample_ids, "padding": self.padding, "params": self.params, "arrays": self.arrays,
-                "samples": self.samples}
+                "samples": self.samples, "windows": self.windows}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Rows":
         ids, padding, params, arrays = (h.get(k) for k in ("sample_ids", "padding", "params", "arrays"))
         n = len(ids) if isinstance(ids, list) else -1
-        if n < 1 or not all(i is None or isinstance(i, str) for i in ids):
-            raise WireError("rows: field 'sample_ids' must be a non-empty list of strings or nil")
+        if n < (0 if h.get("windows") is not None else 1) or not all(i is None or isinstance(i, str) for i in ids):
+            raise WireError("rows: field 'sample_ids' must be a non-empty list of strings or nil (empty: a "
+                            "make's answer for a video of no window)")
         if not isinstance(padding, list) or len(padding) != n or not all(isinstance(p, bool) for p in padding):
             raise WireError(f"rows: field 'padding' must be {n} booleans")
         if not isinstance(params, list) or len(params) != n or not all(isinstance(p, dict) for p in params):
@@ -182,7 +281,7 @@ class Rows:
         if not isinstance(arrays, list):
             raise WireError("rows: field 'arrays' must be a list of array specs")
         return cls(_int(h, "request"), _int(h, "epoch"), _int(h, "start"), ids, padding, params, arrays,
-                   _optional_int(h, "samples"))
+                   _optional_int(h, "samples"), _optional_int(h, "windows"))
 
 
 @dataclass(frozen=True)
@@ -219,7 +318,8 @@ def old_client_answer(e: OldClient) -> dict:
 
 
 def decode_plan_client(frame, max_bytes: int):
-    """A client's message to a server: :class:`PlanAsk` or :class:`Fetch`.
+    """A client's message to a server: :class:`PlanAsk`, :class:`Fetch`, :class:`Make` or
+    :class:`ManifestAsk`.
 
     Raises:
         WireError: oversized, not msgpack within bounds, another protocol version, an unknown
@@ -238,18 +338,22 @@ def decode_plan_client(frame, max_bytes: int):
         return PlanAsk()
     if kind == "fetch":
         return Fetch.from_wire(h)
-    raise WireError(f"unknown message type {kind!r:.40} (a server takes plan_ask and fetch)")
+    if kind == "make":
+        return Make.from_wire(h)
+    if kind == "manifest_ask":
+        return ManifestAsk.from_wire(h)
+    raise WireError(f"unknown message type {kind!r:.40} (a server takes plan_ask, fetch, make and manifest_ask)")
 
 
 def plan_server_message(h: dict):
     """A server's message (an unpacked header) to a client reading by plan: :class:`PlanInfo`,
-    :class:`Rows` or :class:`Refused`.
+    :class:`Rows`, :class:`ManifestPart` or :class:`Refused`.
 
     Raises:
         WireError: an unknown type or a bad field (naming it).
     """
     kind = h.get("type")
-    for cls, name in ((PlanInfo, "plan"), (Rows, "rows"), (Refused, "refused")):
+    for cls, name in ((PlanInfo, "plan"), (Rows, "rows"), (ManifestPart, "manifest"), (Refused, "refused")):
         if kind == name:
             return cls.from_wire(h)
     raise WireError(f"unknown message type {kind!r:.40} from the server")

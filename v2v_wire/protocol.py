@@ -44,10 +44,10 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-#: The wire protocol's version: 11 is delivery by plan only (``plan_messages``: ``plan_ask`` /
-#: ``plan``, ``fetch`` / ``rows`` / ``refused``); a peer of another version is refused in one line
-#: (:func:`version_problem`).
-PROTOCOL_VERSION = 11
+#: The wire protocol's version: 12 is delivery by plan (``plan_messages``: ``plan_ask`` / ``plan``,
+#: ``fetch`` / ``rows`` / ``refused``) with a fleet's reads (``make`` / ``rows``, ``manifest_ask`` /
+#: ``manifest``); a peer of another version is refused in one line (:func:`version_problem`).
+PROTOCOL_VERSION = 12
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a

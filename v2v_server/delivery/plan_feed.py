@@ -67,6 +67,10 @@ PASS_ATTEMPTS = 3
 #: Seconds after an epoch's last fetch its samples made but never fetched may go (a job that left).
 IDLE_S = 600.0
 
+#: Seconds the samples of a video whose windows a make asked for are kept unfetched: the reader
+#: that learned the windows asks for them next (``PlanFeed.make``).
+TOLD_S = 120.0
+
 
 class SlotsExceeded(ValueError):
     """A worker's decode gave a sample past its video's slots in the manifest (the message
@@ -82,6 +86,18 @@ class Fetch:
     epoch: int
     start: int
     stop: int
+
+
+@dataclass
+class Order:
+    """A client's make: the samples ``ordinals`` (``SampleKey.ordinal``) of ``video`` in
+    ``epoch``, or (``ordinals`` None) the video's windows only, answered once its slots are known."""
+
+    client: Hashable
+    request: int
+    epoch: int
+    video: str
+    ordinals: Optional[Tuple[int, ...]]
 
 
 @dataclass
@@ -340,6 +356,8 @@ class PlanFeed:
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
         self.plans: "OrderedDict[int, EpochPlan]" = OrderedDict()
         self.pending: List[Fetch] = []
+        self.orders: List[Order] = []  # makes waiting, in the order they came
+        self.told: Dict[Tuple[int, str], float] = {}  # (epoch, video) -> when a make was told its windows
         self.store: "OrderedDict[Tuple[int, SampleKey], Any]" = OrderedDict()  # made, oldest or least recently fetched first
         self.fetched: Set[Tuple[int, SampleKey]] = set()  # stored samples some fetch was answered with
         self.failed: Dict[Tuple[int, SampleKey], str] = {}  # not given by its decode this epoch
@@ -387,27 +405,78 @@ class PlanFeed:
         self.pending.append(Fetch(client, request, epoch, start, stop))
         self.fetched_at[epoch], self.fetched_to[epoch] = now, max(self.fetched_to.get(epoch, 0), stop)
 
-    def forget(self, client: Hashable) -> None:
-        """Drop ``client``'s pending fetches (it left)."""
-        self.pending = [f for f in self.pending if f.client != client]
+    def make(self, client: Hashable, request: int, epoch: int, video: str, ordinals: Optional[Sequence[int]],
+             now: float, outputs: Optional[Sequence[str]] = None) -> None:
+        """Queue a make of the samples ``ordinals`` of ``video`` in ``epoch`` (None: its windows
+        only, answered once its slots are known, from the corpus index or its decode), asked at ``now``: a reader of a fleet routes each
+        video to a host (``v2v_wire.fleet``); the host decodes the videos made for in the order
+        asked, after those pending fetches wait on. Outputs as :meth:`fetch`.
 
-    def answer(self, now: float) -> List[Tuple[Fetch, List[Row]]]:
-        """Every pending fetch that can be answered at ``now``, with its rows; they leave the
-        queue, and their samples move to the store's fetched end."""
-        out, waiting = [], []
-        for f in self.pending:
-            rows = self._rows(f)
+        Raises:
+            ValueError: a video not in the manifest, or an ordinal past its samples where they
+                are known (naming them); an output not offered.
+        """
+        if video not in self.slots.samples:
+            raise ValueError(f"make: {video!r:.200} is not a video of this plan")
+        n = self.slots.samples[video]
+        if ordinals is not None and n is not None and max(ordinals) >= n:
+            raise ValueError(f"make: sample {max(ordinals)} of {video!r:.200}, which gives {n} sample(s) an epoch")
+        if self.making.ask(outputs):
+            self.store, self.fetched = OrderedDict(), set()
+        self.orders.append(Order(client, request, epoch, video, None if ordinals is None else tuple(ordinals)))
+        self.fetched_at[epoch] = now
+
+    def forget(self, client: Hashable) -> None:
+        """Drop ``client``'s pending fetches and makes (it left)."""
+        self.pending = [f for f in self.pending if f.client != client]
+        self.orders = [o for o in self.orders if o.client != client]
+
+    def answer(self, now: float) -> List[Tuple[Any, List[Row]]]:
+        """Every pending fetch and make that can be answered at ``now``, with its rows
+        (:class:`Fetch` or :class:`Order`); they leave the queue, and their samples move to the
+        store's fetched end."""
+        out, waiting, ordered = [], [], []
+        for f in self.pending + self.orders:
+            rows = self._rows(f) if isinstance(f, Fetch) else self._order_rows(f)
             if rows is None:
-                waiting.append(f)
+                (waiting if isinstance(f, Fetch) else ordered).append(f)
                 continue
             out.append((f, rows))
+            if isinstance(f, Order) and f.ordinals is None:
+                self.told[(f.epoch, f.video)] = now
             for r in rows:
                 if r.sample is not None:
                     self.store.move_to_end((f.epoch, r.key))
                     self.fetched.add((f.epoch, r.key))
-        self.pending = waiting
+        self.pending, self.orders = waiting, ordered
         self._trim(now)
         return out
+
+    def _order_keys(self, o: Order) -> List[SampleKey]:
+        """The keys make ``o`` names (none for a make of a video's windows)."""
+        return [SampleKey.at(o.video, i, self.manifest.crops_per_window) for i in o.ordinals or ()]
+
+    def _order_rows(self, o: Order) -> Optional[List[Row]]:
+        if o.ordinals is None and self.slots.samples.get(o.video) is None:
+            return None  # its slots come from its decode
+        rows = []
+        for key in self._order_keys(o):
+            sk = (o.epoch, key)
+            if sk in self.store:
+                rows.append(Row(key.ordinal(self.manifest.crops_per_window), key, self.store[sk]))
+            elif sk in self.failed:
+                rows.append(Row(key.ordinal(self.manifest.crops_per_window), key, reason=self.failed[sk]))
+            else:
+                return None
+        return rows
+
+    def _ordered(self) -> List[Tuple[int, str]]:
+        """(epoch, video) the makes wait on, in the order asked."""
+        out: Dict[Tuple[int, str], None] = {}
+        for o in self.orders:
+            if self._order_rows(o) is None:
+                out[(o.epoch, o.video)] = None
+        return list(out)
 
     def _rows(self, f: Fetch) -> Optional[List[Row]]:
         plan = self.plan(f.epoch)
@@ -445,6 +514,10 @@ class PlanFeed:
             plan = self.plan(f.epoch)
             named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, plan.known)))
         live = {e for e, t in self.fetched_at.items() if now - t < IDLE_S}
+        for o in self.orders:
+            named.update((o.epoch, k) for k in self._order_keys(o))
+        self.told = {ev: t for ev, t in self.told.items() if now - t < TOLD_S}
+        named.update(sk for sk in self.store if (sk[0], sk[1].video) in self.told)
         for e in live & set(self.plans):  # what decides a plan still unfolding is kept: it is read next
             keys = [k for (e2, k) in self.store if e2 == e and (e2, k) not in self.fetched]
             named.update((e, k) for k in self.plans[e].undecided(keys))
@@ -458,6 +531,7 @@ class PlanFeed:
         video to decode ahead; None when none."""
         waited, ahead = needed(self.pending, self.plan, self.plans, self.store, self.fetched, self.failed, self.runs,
                                self.slots, self.lookahead, self.shuffle_buffer, self.fetched_to, self.fetched_at, now)
+        waited += [ek for ek in self._ordered() if ek not in waited]  # makes: after fetches, in the order asked
         for ek in waited:
             if ek not in self.runs:
                 return self._start(ek, worker, now, codecs)

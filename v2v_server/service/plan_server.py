@@ -21,7 +21,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
-from v2v_server.delivery.plan_feed import PlanFeed, Row
+from v2v_server.delivery.plan_feed import Order, PlanFeed, Row
 from v2v_server.disk_cache import UsageScan
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
@@ -36,8 +36,8 @@ from v2v_wire.batches import encode_batch, frame_size, stack_arrays
 from v2v_wire.codecs import COMPRESSIONS, available
 from v2v_wire.outputs import narrowest, spec_of
 from v2v_wire.plan import Manifest, PlanIdentity
-from v2v_wire.plan_messages import (BadPeers, OldClient, PlanAsk, PlanInfo, Refused, Rows, WireError, decode_plan_client,
-                                     old_client_answer)
+from v2v_wire.plan_messages import (MANIFEST_PART, BadPeers, Make, ManifestAsk, ManifestPart, OldClient, PlanAsk,
+                                     PlanInfo, Refused, Rows, WireError, decode_plan_client, old_client_answer)
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, encode_arrays, output_of, pack
 
 log = logging.getLogger("v2v.server")
@@ -196,6 +196,9 @@ class PlanServer:
         if isinstance(msg, PlanAsk):
             self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info()).to_wire())
             return
+        if isinstance(msg, ManifestAsk):
+            self._send(ident, self._manifest_part(msg.offset).to_wire())
+            return
         problem = self.identity.problem(msg.plan)
         missing = [o for o in msg.outputs if o not in self.cfg.outputs]
         if problem or missing or not available(msg.compression):
@@ -204,12 +207,20 @@ class PlanServer:
                    f"'v2v[wire]')")
             self._send(ident, Refused(msg.request, why).to_wire())
             return
-        too_big = self._too_big(msg.stop - msg.start, msg.outputs)
+        rows = msg.stop - msg.start if not isinstance(msg, Make) else len(msg.ordinals or ())
+        too_big = self._too_big(rows, msg.outputs)
         if too_big:
             self._send(ident, Refused(msg.request, too_big).to_wire())
             return
         if msg.compression != "none":
             self.codecs[msg.compression] = now
+        if isinstance(msg, Make):
+            try:
+                self.feed.make((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.video, msg.ordinals,
+                               now, msg.outputs)
+            except ValueError as e:
+                self._send(ident, Refused(msg.request, str(e)).to_wire())
+            return
         self.feed.fetch((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.start, msg.stop, now,
                         msg.outputs)
 
@@ -224,6 +235,14 @@ class PlanServer:
                 return (f"fetch of {rows} rows: its {o} would be {rows * row} bytes, over the batch limit of "
                         f"{MAX_BATCH_BYTES} (MAX_BATCH_BYTES); fetch at most {MAX_BATCH_BYTES // row} rows of it")
         return None
+
+    def _manifest_part(self, offset: int) -> ManifestPart:
+        """The manifest's videos from ``offset`` on (``MANIFEST_PART`` at most), each with its tag
+        and the slots this server knows now (the corpus index's, or learned from its decodes)."""
+        part = self.manifest.slots[offset:offset + MANIFEST_PART]
+        tags = list(self.manifest.tags[offset:offset + MANIFEST_PART]) if self.manifest.tags else [None] * len(part)
+        return ManifestPart(offset, len(self.manifest.slots), self.manifest.crops_per_window, [v for v, _ in part],
+                            tags, [self.feed.slots.windows.get(v) for v, _ in part], bool(self.manifest.tags))
 
     def _samples(self, epoch: int) -> Optional[int]:
         """The epoch's samples (every epoch lists the same), or None while the plan unfolds."""
@@ -240,14 +259,16 @@ class PlanServer:
                 self.feed.forget(client)
 
     def _send_rows(self, f, rows: List[Row]) -> None:
+        """Answer fetch or make ``f`` (``plan_feed.Fetch`` or ``Order``) with ``rows``."""
         ident, outputs, codec = f.client
         real = [r for r in rows if r.sample is not None]
         specs, frames = self._encoded(real, outputs, codec)
         ids = [r.key.sample_id(self.manifest.crops_per_window) if r.key is not None else None for r in rows]
         params = [r.sample.meta if r.sample is not None else {"padding": r.reason or "past the epoch's end"}
                   for r in rows]
-        head = Rows(f.request, f.epoch, f.start, ids, [r.padding for r in rows], params, specs,
-                    self._samples(f.epoch)).to_wire()
+        made = isinstance(f, Order)
+        head = Rows(f.request, f.epoch, 0 if made else f.start, ids, [r.padding for r in rows], params, specs,
+                    self._samples(f.epoch), self.feed.slots.windows.get(f.video) if made else None).to_wire()
         self._send(ident, head, frames)
         self.metrics.on_batch_sent(len(real), sum(frame_size(fr) for fr in frames))
 

@@ -1,0 +1,96 @@
+"""A fleet: several ``v2v-serve`` hosts of one corpus (no ``--shard``) read as the one plan a single
+server serves, each video made by the host the reader routes it to (``v2v_client.fleet_read``).
+Real servers on 127.0.0.1 on the bundled clips; every test is bounded and stops what it starts."""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+
+import pytest
+import torch
+
+from harness.serve import ServeProcess
+from v2v_client import V2VStreamDataset
+
+from tests.test_plan_shards import read
+from tests.test_scale_out import OUTPUTS, corpus, expected_ids, layout
+
+
+def first_steps(ds, steps):
+    """The ids of the first ``steps`` batches of ``ds`` and the position after them."""
+    ids, position = [], None
+    for i, batch in enumerate(ds):
+        ids += [s for s, p in zip(batch["sample_ids"], batch["padding"].tolist()) if not p]
+        position = batch["position"]
+        if i == steps - 1:
+            break
+    return ids, position
+
+
+def same_content(a, b, ids):
+    return all(torch.equal(a[s][0], b[s][0]) and torch.equal(a[s][1], b[s][1]) for s in ids)
+
+
+@pytest.mark.timeout(900)
+def test_a_fleet_reads_one_servers_plan_and_a_position_resumes_at_any_fleet_size(tmp_path, videos):
+    """Two hosts read together give one server's sequence, id for id and byte for byte, with no
+    padding but the last step's; a position taken from the two resumes on one host and on three."""
+    root = corpus(tmp_path, videos)
+    want = expected_ids(root)
+    base = ["--videos", str(root), *layout()]
+    with ServeProcess(base) as one:
+        single, order1, pad1, _ = read(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=120))
+        with ServeProcess(base) as b, ServeProcess(base) as c:
+            pair = f"{one.endpoint},{b.endpoint}"
+            fleet, order2, pad2, _ = read(V2VStreamDataset(pair, outputs=OUTPUTS, timeout_s=120))
+            assert order2 == order1 and sorted(order1) == want  # the one plan's order
+            assert pad2 == pad1
+            assert same_content(single, fleet, want)
+            first, position = first_steps(V2VStreamDataset(pair, outputs=OUTPUTS, timeout_s=120), 2)
+            assert first == order1[:len(first)]
+            for hosts in (one.endpoint, f"{one.endpoint},{b.endpoint},{c.endpoint}"):
+                again = V2VStreamDataset(hosts, outputs=OUTPUTS, timeout_s=120)
+                again.load_state_dict(position)
+                got, rest, _, _ = read(again)
+                assert first + rest == order1, hosts
+                assert same_content(single, got, rest)
+
+
+@pytest.mark.timeout(600)
+def test_a_host_killed_mid_epoch_costs_the_fleet_nothing_but_time(tmp_path, videos):
+    """One host SIGKILLed after the first step: its videos go to the other host; every id once,
+    with the content one server gives."""
+    root = corpus(tmp_path, videos)
+    want = expected_ids(root)
+    base = ["--videos", str(root), *layout()]
+    with ServeProcess(base) as one:
+        single, order, _, _ = read(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=120))
+    with ServeProcess(base) as a, ServeProcess(base) as b:
+        ds = V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=OUTPUTS, timeout_s=120, retry_s=2)
+        got, ids = {}, []
+        for i, batch in enumerate(ds):
+            for j, sid in enumerate(batch["sample_ids"]):
+                if not batch["padding"][j]:
+                    got[sid] = (batch["voxels"][j].clone(), batch["frames"][j].clone())
+                    ids.append(sid)
+            if i == 0:
+                os.kill(b.proc.pid, signal.SIGKILL)
+        assert ids == order and sorted(ids) == want
+        assert same_content(single, got, want)
+
+
+@pytest.mark.timeout(600)
+def test_a_host_serving_another_plan_is_named_and_left_out(tmp_path, videos, caplog):
+    """A host started with another seed is named in one line with what differs; the job reads
+    the first host's plan from the rest."""
+    root = corpus(tmp_path, videos)
+    base = ["--videos", str(root), *layout()]
+    other = list(base)
+    other[other.index("--seed") + 1] = "6"  # layout's is 5
+    with ServeProcess(base) as a, ServeProcess(other) as b:
+        with caplog.at_level(logging.WARNING, logger="v2v.client"):
+            _, order, _, _ = read(V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=OUTPUTS, timeout_s=120))
+        assert sorted(order) == expected_ids(root)
+        named = [r.getMessage() for r in caplog.records if b.endpoint in r.getMessage()]
+        assert named and "left out of the fleet" in named[0] and "seed 6 (this plan: 5)" in named[0]
