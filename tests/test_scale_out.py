@@ -365,6 +365,41 @@ def test_metrics_probes_and_counters_move(videos):
     assert m1[("v2v_shuffle_buffer_capacity_samples", ())] >= 1 and m1[("v2v_shuffle_buffer_samples", ())] >= 0
 
 
+def test_the_epoch_samples_gauge_is_the_epoch_served_once_known(tmp_path, videos):
+    """``v2v_epoch_samples`` reads 0 while some video's slots are unknown, then the samples one
+    epoch lists once its decodes have learned them all; a second start knows it from the corpus
+    index before any fetch."""
+    root = corpus(tmp_path, videos)
+    port = free_port()
+
+    def gauge():
+        return _scrape(port)[("v2v_epoch_samples", ())]
+
+    args = ["--videos", str(root), *layout("--metrics-port", str(port))]
+    with ServeProcess(args) as srv:
+        _wait_ready(port)
+        assert gauge() == 0  # nothing decoded, no index: not known
+        got, _ = read_all(V2VStreamDataset(srv.endpoint, outputs=OUTPUTS, timeout_s=60))
+        deadline = time.monotonic() + 10  # the page is rendered at most once a second (EXPOSITION_S)
+        while (n := gauge()) != len(got) and time.monotonic() < deadline:
+            time.sleep(0.2)
+    assert n == len(got) == len(expected_ids(root)) > 0
+    with ServeProcess(args) as again:
+        _wait_ready(port)
+        deadline = time.monotonic() + 10
+        while (n := gauge()) != len(got) and time.monotonic() < deadline:
+            time.sleep(0.2)
+    assert n == len(got)  # no fetch made: from the corpus index the first epoch filled
+    assert f"counted: {len(got)} samples per epoch)" in again.log, again.log
+
+
+def _wait_ready(port):
+    deadline = time.monotonic() + 60
+    while _get(port, "/readyz")[0] != 200:  # workers up, socket bound, corpus scanned
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+
+
 def test_progress_line_shows_videos_rate_fetches_and_workers(capsys):
     from v2v_server.ops.metrics import ServerMetrics
 
@@ -381,15 +416,13 @@ def test_progress_line_shows_videos_rate_fetches_and_workers(capsys):
     finally:
         m.close()
     assert ServerMetrics(progress=False)._progress is None
-    # an epoch's size known at start (the corpus index): a bounded run shows the bar's total
+    # an epoch's size, once the plan knows it: the line names it
     m = ServerMetrics(progress=True)
     try:
-        m.set_epoch_samples(10, epochs=3)
         m._progress._last -= 2.0
         m.on_batch_sent(4, 1000)
-        m.set_state(**state)
-        assert m._progress.bar.total == 30 and m._progress.line.startswith("10 samples/epoch, 3 videos")
-        assert "4/30 samples" in str(m._progress.bar)
+        m.set_state(**state, epoch_samples=10)
+        assert m._progress.line.startswith("10 samples/epoch, 3 videos")
     finally:
         m.close()
 

@@ -274,6 +274,7 @@ class PlanServer:
         alive = [w for w in self.workers.pool.workers.values() if w.proc.is_alive()] if self.workers.pool else []
         return {"pending_fetches": len(self.feed.pending), "workers": len(alive),
                 "workers_busy": sum(1 for w in alive if not w.idle), "epoch_videos": len(self.manifest.slots),
+                "epoch_samples": self._samples(0),
                 "shuffle_samples": len(self.feed.store), "shuffle_capacity": self.feed.keep_samples + self.feed.lookahead,
                 **({} if (fc := self._frame_cache_usage()) is None else self.metrics.frame_cache_state(*fc)),
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
