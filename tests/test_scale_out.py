@@ -183,7 +183,8 @@ def test_each_shard_serves_its_own_files_and_the_pair_the_bytes_of_one_unsharded
 
 def test_loadtest_reads_several_servers_as_one_plan_epoch_after_epoch(videos):
     """``v2v-loadtest`` given two shards reads their interleaved plan as a trainer does: 24
-    batches run through several epochs, each holding every id of the corpus."""
+    batches run through several epochs, each holding every id of the corpus; it reports each
+    server's samples, those of its own files in each epoch read, summing to the total."""
     want = expected_ids(videos)
     base = ["--videos", str(videos), *layout()]
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
@@ -198,6 +199,12 @@ def test_loadtest_reads_several_servers_as_one_plan_epoch_after_epoch(videos):
     assert r["unique_samples"] == r["samples"] and len(r["epochs_seen"]) >= 3
     assert len(want) * (len(r["epochs_seen"]) - 2) < r["unique_samples"] <= len(want) * len(r["epochs_seen"])
     assert r["samples"] <= 24 * BATCH and r["samples_per_s"] > 0
+    per, epochs = r["per_server"], len(r["epochs_seen"])
+    assert sorted(per) == sorted([a.endpoint, b.endpoint]) and sum(v["samples"] for v in per.values()) == r["samples"]
+    for k, srv in enumerate((a, b)):  # each epoch read whole holds the shard's own ids, once each
+        own = sum(1 for s in want if shard_of(s.split("#")[0], 2) == k)
+        assert own * (epochs - 2) <= per[srv.endpoint]["samples"] <= own * epochs, (k, own, per)
+        assert f"{srv.endpoint}: {per[srv.endpoint]['samples']} samples, " in out.stdout
 
 
 def _kill(proc):

@@ -80,8 +80,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     Each item is a dict: the tensors of ``batch_to_torch`` with a leading axis of ``batch_size``,
     ``padding`` (bool (B,): rows that carry no sample, zeros: past the epoch's end or a window the
     file did not give), ``sample_ids`` (None for a row past the end), ``params``, ``epoch``,
-    ``step``, and ``position``: the checkpoint after this step (``Position.to_dict``), the same on
-    every rank; :meth:`load_state_dict` takes it, at any world size and batch size.
+    ``step``, ``servers`` ({server endpoint: rows of this batch holding a sample it served}, one
+    entry per shard read), and ``position``: the checkpoint after this step
+    (``Position.to_dict``), the same on every rank; :meth:`load_state_dict` takes it, at any
+    world size and batch size.
     :meth:`state_dict` is what this process has read (the state torchdata's ``StatefulDataLoader``
     snapshots per DataLoader worker).
 
@@ -309,6 +311,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
                 item = _item(info, r, i // g, rows, arrays, self.raw)
+                item["servers"] = _served_by(link, rows)
                 if r["last"] is None:  # who reads the pass: after a worker's yield, what the loop took is unknown
                     self._control.mark_workers_yielded(self._seen if w is not None else -1)
                 if g == 1:
@@ -343,6 +346,18 @@ def _item(info: PlanInfo, r: dict, step: int, rows: Rows, arrays, raw: bool) -> 
     item.update(padding=torch.tensor(rows.padding, dtype=torch.bool), sample_ids=rows.sample_ids,
                 params=rows.params, epoch=r["epoch"], step=step, position=Position(info.plan, r["epoch"], after).to_dict())
     return item
+
+
+def _served_by(link, rows: Rows) -> Dict[str, int]:
+    """{server endpoint: rows of ``rows`` holding a sample it served} for rows read on ``link``: a
+    ``_Link``'s one server, or each shard of a ``_Shards`` by the interleave (global position t is
+    shard t mod N's)."""
+    links = getattr(link, "links", [link])
+    served: Dict[str, int] = {}
+    for (k, _), pad in zip(interleaved(rows.start, rows.start + len(rows.padding), len(links)), rows.padding):
+        if not pad:
+            served[links[k].endpoint] = served.get(links[k].endpoint, 0) + 1
+    return served
 
 
 class _Control:
