@@ -844,8 +844,9 @@ class _Link:
 
 
 def _refusal(endpoint: str, msg: Refused) -> Exception:
-    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's, else ``PlanServerError``."""
-    if "another plan" in msg.message:
+    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's (code ``"plan"``), else
+    ``PlanServerError``."""
+    if msg.code == "plan":
         return PlanMismatch(f"{endpoint}: {msg.message}")
     return PlanServerError(f"{endpoint}: {msg.message}")
 

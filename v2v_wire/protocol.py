@@ -14,8 +14,9 @@ Message types (``PROTOCOL_VERSION``; typed and checked in ``plan_messages`` and
   ``MAX_CLIENT_MSG`` bytes.
 * server -> client: ``plan`` (identity, samples per epoch, stream info: also ``shard``,
   ``corpus`` and ``recipe`` fingerprints), ``rows`` (ids, padding flags, params, one frame per
-  array for the rows holding a sample), ``refused`` (one line), ``error`` (to a client of an
-  older protocol, at its version, so that it reads the line).
+  array for the rows holding a sample), ``refused`` (one line, and a code a reader acts on:
+  ``plan_messages.REFUSALS``), ``error`` (to a client of an older protocol, in the version it
+  reads the line at: ``plan_messages.old_client_answer``).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error, the exception that stopped the pass as ``failure``); server -> worker: ``task``,
   ``slot``, ``stop``.
@@ -44,10 +45,10 @@ import numpy as np
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
 
-#: The wire protocol's version: 11 is delivery by plan only (``plan_messages``: ``plan_ask`` /
-#: ``plan``, ``fetch`` / ``rows`` / ``refused``); a peer of another version is refused in one line
-#: (:func:`version_problem`).
-PROTOCOL_VERSION = 11
+#: The wire protocol's version: 12 is delivery by plan (``plan_messages``: ``plan_ask`` / ``plan``,
+#: ``fetch`` / ``rows`` / ``refused``, a refusal carrying its code); a peer of another version is
+#: refused in one line (:func:`version_problem`).
+PROTOCOL_VERSION = 12
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
 #: Largest message a client may send the server, bytes; a resume hello lists the sample ids a
