@@ -1,8 +1,9 @@
 """A server's ``refused`` carries a code (``plan_messages.REFUSALS``) and the reader picks its
-error by that code, never by the words of the line; a plan reader of an older protocol is
-answered at a version its own check names both versions at. The server sets each code end to
-end in ``tests/test_plan_stream.py`` (the hostile client) and ``tests/test_plan_rows.py`` (the
-batch limit)."""
+error by that code, never by the words of the line; a client message is bounded by what a fetch
+holds (``protocol.MAX_CLIENT_MSG``); a plan reader of an older protocol is answered at a version
+its own check names both versions at. The server sets each code end to end in
+``tests/test_plan_stream.py`` (the hostile client) and ``tests/test_plan_rows.py`` (the batch
+limit)."""
 from __future__ import annotations
 
 import threading
@@ -13,9 +14,9 @@ import zmq
 
 from v2v_client import PlanServerError, V2VStreamDataset
 from v2v_wire.plan import PlanIdentity, PlanMismatch
-from v2v_wire.plan_messages import (REFUSALS, Fetch, OldClient, PlanAsk, PlanInfo, Refused, WireError,
+from v2v_wire.plan_messages import (MAX_FETCH_ROWS, REFUSALS, Fetch, OldClient, PlanAsk, PlanInfo, Refused, WireError,
                                     decode_plan_client, old_client_answer, plan_server_message)
-from v2v_wire.protocol import MAX_CLIENT_MSG, PROTOCOL_VERSION, ProtocolError, pack, unpack
+from v2v_wire.protocol import MAX_CLIENT_MSG, OUTPUTS, PROTOCOL_VERSION, ProtocolError, pack, unpack
 
 PLAN = PlanIdentity("a" * 16, "b" * 16, 0)
 STREAM = {"batch_size": 2, "sequence_length": 4, "num_bins": 5, "crop_size": 32, "outputs": ["voxels"]}
@@ -85,6 +86,19 @@ def test_every_refusal_code_reads_back_as_sent():
     for code in REFUSALS:
         r = Refused(5, f"why: {code}", code)
         assert plan_server_message(unpack(pack(r.to_wire()))) == r
+
+
+def test_the_largest_fetch_fits_a_client_message_and_a_padded_one_is_refused_naming_the_limit():
+    big = 2 ** 62
+    largest = Fetch(big, 2 ** 31 - 1, big - MAX_FETCH_ROWS, big, tuple(OUTPUTS), PlanIdentity("f" * 16, "e" * 16, big,
+                                                                                                big, big), "zstd")
+    frame = pack(largest.to_wire())
+    assert len(frame) * 8 <= MAX_CLIENT_MSG  # room for more fields
+    assert decode_plan_client(frame, MAX_CLIENT_MSG) == largest
+    # a peer padding a field to 64 KiB: refused as oversized, never decoded (nor echoed in a refusal)
+    padded = pack({**largest.to_wire(), "plan": {**largest.plan.to_dict(), "recipe": "e" * 65536}})
+    with pytest.raises(WireError, match=str(MAX_CLIENT_MSG)):
+        decode_plan_client(padded, MAX_CLIENT_MSG)
 
 
 @pytest.mark.parametrize("kind", ["plan_ask", "fetch"])

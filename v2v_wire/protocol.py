@@ -11,7 +11,7 @@ Message types (``PROTOCOL_VERSION``; typed and checked in ``plan_messages`` and
 
 * client -> server: ``plan_ask``; ``fetch`` (epoch, positions ``start``..``stop``, outputs,
   compression, the plan identity it reads under). A client message is at most
-  ``MAX_CLIENT_MSG`` bytes.
+  ``MAX_CLIENT_MSG`` bytes (a fetch is a few hundred).
 * server -> client: ``plan`` (identity, samples per epoch, stream info: also ``shard``,
   ``corpus`` and ``recipe`` fingerprints), ``rows`` (ids, padding flags, params, one frame per
   array for the rows holding a sample), ``refused`` (one line, and a code a reader acts on:
@@ -51,10 +51,14 @@ from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_
 PROTOCOL_VERSION = 12
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
-#: Largest message a client may send the server, bytes; a resume hello lists the sample ids a
-#: trainer already has, grouped per video (a few bytes per id: millions fit). The server's
-#: socket takes up to twice this (ZMQ_MAXMSGSIZE), so a larger hello gets a clear error.
-MAX_CLIENT_MSG = 16 * 1024 * 1024
+#: Largest message a client may send the server, bytes. A client sends ``plan_ask`` and ``fetch``
+#: only, each of a fixed set of fields: the largest fetch (every output, every int at its largest,
+#: the plan identity's two 16-digit fingerprints) packs to 244 bytes. 4 KiB leaves room for more
+#: fields and bounds what any peer makes the server decode, and echo in a refusal, to a few KiB
+#: (``tests/test_plan_refusals.py``). The server's socket takes up to twice this (ZMQ_MAXMSGSIZE):
+#: a larger message up to that is refused in one line, ZeroMQ cuts the connection of a peer
+#: sending more.
+MAX_CLIENT_MSG = 4096
 #: Largest message or array frame the server sends, bytes: a batch message as the client's socket
 #: accepts it (ZMQ_MAXMSGSIZE), a batch's decoded arrays, and a worker's compressed frame.
 MAX_BATCH_BYTES = 1 << 31
