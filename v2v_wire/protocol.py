@@ -90,7 +90,7 @@ def is_ipv6(endpoint: str) -> bool:
 
 
 def check_outputs(outputs, field: str = "outputs") -> Tuple[str, ...]:
-    """The outputs a configuration, a dataset or a hello asks for, checked against ``OUTPUTS``
+    """The outputs a configuration, a dataset or a fetch asks for, checked against ``OUTPUTS``
     and put in its (wire) order.
 
     Args:
