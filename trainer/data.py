@@ -113,12 +113,16 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
 
 
 def drop_padding(batch: dict) -> Tuple[dict, int]:
-    """The batch without its padding samples, and how many real samples remain.
+    """The batch without its padding rows, and how many rows with a sample remain.
 
-    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks samples repeated only
-    to give every DDP rank the same batch count: they must not enter the loss. Tensors and
-    lists whose leading length is B are subset; other entries (``epoch``, ``batch_id``) are
-    kept as they are. Without ``padding`` (or with none set) the batch is returned unchanged.
+    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks the rows that hold no
+    sample to learn from, which must not enter the loss: in a plan's batch
+    (``V2VStreamDataset``) a row without a sample, zeros with sample id None (past the epoch's end,
+    or a window the file did not give); in a Ray batch (``v2v_server.ray_data``) a row of a
+    window the file did not give, or one of the epoch's first samples listed again so that every
+    rank reads as many rows. Tensors and lists whose leading length is B are subset (``padding``
+    too); other entries (``epoch``, ``position``) are kept as they are. Without ``padding`` (or
+    with none set) the batch is returned unchanged.
     """
     pad = batch.get("padding")
     n = len(batch["voxels"]) if "voxels" in batch else len(batch.get("sample_ids", ()))
