@@ -34,9 +34,9 @@ def make_stream(endpoint: str, task: str, timeout_s: float = 60.0, raw: bool = T
                 outputs: Optional[Sequence[str]] = None) -> PlanEpochs:
     """The stream of ``endpoint`` (one server, or several shards: ``"tcp://a:5555,tcp://b:5555"``)
     asking only for ``outputs`` (default: ``task``'s; a run's are ``tasks.stream_outputs(cfg)``),
-    by ``v2v_client.open_stream``: :class:`PlanEpochs` over a ``v2v_client.V2VStreamDataset``, in
-    batches of the server's ``batch_size``. ``curve_keys``: (client secret key file, server
-    public key file), as in the dataset.
+    by ``v2v_client.plan_dataset.open_stream``: :class:`PlanEpochs` over a
+    ``v2v_client.V2VStreamDataset``, in batches of the server's ``batch_size``. ``curve_keys``:
+    (client secret key file, server public key file), as in the dataset.
 
     Raises:
         TimeoutError: no server answered at ``endpoint`` within ``timeout_s``.
