@@ -136,8 +136,9 @@ def test_a_server_of_another_protocol_version_is_refused_naming_it():
         if router.poll(30_000):
             peer, header = router.recv_multipart()[:2]
             asked.append(msgpack.unpackb(header, raw=False))
+            message = f"protocol version {PROTOCOL_VERSION}, expected {OLD}"
             router.send_multipart([peer, msgpack.packb({"v": OLD, "type": "error", "code": "version",
-                                                        "message": "protocol version 11, expected 10"})])
+                                                        "message": message})])
 
     t = threading.Thread(target=answer, daemon=True)
     t.start()

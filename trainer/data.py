@@ -34,9 +34,9 @@ def make_stream(endpoint: str, task: str, timeout_s: float = 60.0, raw: bool = T
                 outputs: Optional[Sequence[str]] = None) -> PlanEpochs:
     """The stream of ``endpoint`` (one server, or several shards: ``"tcp://a:5555,tcp://b:5555"``)
     asking only for ``outputs`` (default: ``task``'s; a run's are ``tasks.stream_outputs(cfg)``),
-    by ``v2v_client.open_stream``: :class:`PlanEpochs` over a ``v2v_client.V2VStreamDataset``, in
-    batches of the server's ``batch_size``. ``curve_keys``: (client secret key file, server
-    public key file), as in the dataset.
+    by ``v2v_client.plan_dataset.open_stream``: :class:`PlanEpochs` over a
+    ``v2v_client.V2VStreamDataset``, in batches of the server's ``batch_size``. ``curve_keys``:
+    (client secret key file, server public key file), as in the dataset.
 
     Raises:
         TimeoutError: no server answered at ``endpoint`` within ``timeout_s``.
@@ -113,12 +113,16 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
 
 
 def drop_padding(batch: dict) -> Tuple[dict, int]:
-    """The batch without its padding samples, and how many real samples remain.
+    """The batch without its padding rows, and how many rows with a sample remain.
 
-    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks samples repeated only
-    to give every DDP rank the same batch count: they must not enter the loss. Tensors and
-    lists whose leading length is B are subset; other entries (``epoch``, ``batch_id``) are
-    kept as they are. Without ``padding`` (or with none set) the batch is returned unchanged.
+    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks the rows that hold no
+    sample to learn from, which must not enter the loss: in a plan's batch
+    (``V2VStreamDataset``) a row without a sample, zeros with sample id None (past the epoch's end,
+    or a window the file did not give); in a Ray batch (``v2v_server.ray_data``) a row of a
+    window the file did not give, or one of the epoch's first samples listed again so that every
+    rank reads as many rows. Tensors and lists whose leading length is B are subset (``padding``
+    too); other entries (``epoch``, ``position``) are kept as they are. Without ``padding`` (or
+    with none set) the batch is returned unchanged.
     """
     pad = batch.get("padding")
     n = len(batch["voxels"]) if "voxels" in batch else len(batch.get("sample_ids", ()))

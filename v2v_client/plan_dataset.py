@@ -759,7 +759,7 @@ class _Link:
         self.sock.setsockopt(zmq.LINGER, 0)
         if is_ipv6(endpoint):  # tcp://[::1]:PORT: without it the connect is never made and every ask times out
             self.sock.setsockopt(zmq.IPV6, 1)
-        if curve is not None:  # (client public, client secret, server public), connection.load_curve_keys
+        if curve is not None:  # (client public, client secret, server public), endpoints.load_curve_keys
             self.sock.curve_publickey, self.sock.curve_secretkey, self.sock.curve_serverkey = curve
         self.sock.connect(endpoint)
         self.ids = itertools.count(1)
@@ -859,8 +859,9 @@ class _Link:
 
 
 def _refusal(endpoint: str, msg: Refused) -> Exception:
-    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's, else ``PlanServerError``."""
-    if "another plan" in msg.message:
+    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's (code ``"plan"``), else
+    ``PlanServerError``."""
+    if msg.code == "plan":
         return PlanMismatch(f"{endpoint}: {msg.message}")
     return PlanServerError(f"{endpoint}: {msg.message}")
 

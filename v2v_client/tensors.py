@@ -1,6 +1,8 @@
-"""A batch's wire arrays as torch tensors: the one module of the client's network side that
-needs torch (``pip install 'v2v[client]'``); the connection, its protocol handling and
-``v2v_wire`` import without it and hand over numpy arrays."""
+"""A batch's wire arrays as torch tensors (torch: ``pip install 'v2v[client]'``). The reader
+(``plan_dataset``) imports this module, so it needs torch too; what a reader without torch has is
+``v2v_wire`` (the messages, ``plan_messages``, and the arrays they carry, as numpy arrays:
+``codecs.decode_batch_arrays``) and the client's endpoint handling (``endpoints``), which import
+without it (``tests/test_client_install.py`` reads a server's rows so in a venv without torch)."""
 from __future__ import annotations
 
 import warnings
@@ -74,7 +76,7 @@ def _expand(name: str, a: np.ndarray, raw: bool, flow_size, flow_dtype: str, com
     if compact:
         return {name: _view(a) if raw else torch.from_numpy(a.copy())}
     if flow_size is None:
-        raise ProtocolError(f"a {name!r} array, but the server's welcome named no crop_size to expand it to")
+        raise ProtocolError(f"a {name!r} array, but the server's stream info named no crop_size to expand it to")
     dense = ARRAYS[spec.output].dtypes  # the dense output's wire dtypes: torch has the same names
     dtype = getattr(torch, flow_dtype) if raw and flow_dtype in dense else torch.float32
     return {spec.output: expand_flow_grid(_view(a), flow_size, dtype)}

@@ -188,7 +188,7 @@ class PlanServer:
             return
         except WireError as e:
             self.metrics.on_bad_message()
-            self._send(ident, Refused(-1, f"bad message: {e}").to_wire())
+            self._send(ident, Refused(-1, f"bad message: {e}", "bad").to_wire())
             log_it, _ = self.bad.strike(ident, now)
             if log_it:
                 log.warning("bad message from client %s: %s", ident.hex()[:12], e)
@@ -199,14 +199,15 @@ class PlanServer:
         problem = self.identity.problem(msg.plan)
         missing = [o for o in msg.outputs if o not in self.cfg.outputs]
         if problem or missing or not available(msg.compression):
-            why = (f"fetch under {problem}" if problem else f"outputs {missing} are not served here (--outputs)"
-                   if missing else f"compression {msg.compression}: this server lacks its library (pip install "
-                   f"'v2v[wire]')")
-            self._send(ident, Refused(msg.request, why).to_wire())
+            code, why = (("plan", f"fetch under {problem}") if problem else
+                         ("outputs", f"outputs {missing} are not served here (--outputs)") if missing else
+                         ("compression", f"compression {msg.compression}: this server lacks its library (pip install "
+                          f"'v2v[wire]')"))
+            self._send(ident, Refused(msg.request, why, code).to_wire())
             return
         too_big = self._too_big(msg.stop - msg.start, msg.outputs)
         if too_big:
-            self._send(ident, Refused(msg.request, too_big).to_wire())
+            self._send(ident, Refused(msg.request, too_big, "too_big").to_wire())
             return
         if msg.compression != "none":
             self.codecs[msg.compression] = now
