@@ -30,12 +30,6 @@ class _Counted(EpochPlan):
         super().__init__(*a, **k)
 
 
-def _needed(feed: PlanFeed):
-    """What ``PlanFeed.task_for`` decides from in a turn (``plan_feed.needed``), with no task started."""
-    return plan_feed.needed(feed.pending, feed.plan, feed.plans, feed.store, feed.fetched, feed.failed, feed.runs,
-                            feed.slots, feed.lookahead, feed.shuffle_buffer, feed.fetched_to, feed.fetched_at, 0.0)
-
-
 def measure(videos: int, epochs: int, batch: int, turns: int) -> dict:
     """Seconds per loop turn and per pending fetch at 1, 4 and ``epochs`` epochs read at once."""
     plan_feed.EpochPlan = _Counted  # count the builds the feed makes
@@ -48,13 +42,13 @@ def measure(videos: int, epochs: int, batch: int, turns: int) -> dict:
                 request += 1
                 feed.fetch(("job", e), request, e, 0, batch, 0.0)
             feed.answer(0.0)  # a first turn, and the collector's pass over the plans just built, untimed
-            _needed(feed)
+            feed.needed(0.0)  # what task_for decides from, with no task started
             gc.collect()
             built, times = _Counted.built, []
             for _ in range(turns):  # a loop turn: what the server asks of the feed (no sample made yet)
                 t0 = time.process_time()
                 feed.answer(0.0)
-                _needed(feed)
+                feed.needed(0.0)
                 times.append(time.process_time() - t0)
             s = statistics.median(times)
             out[at_once] = {"s_per_turn": round(s, 6), "s_per_fetch": round(s / at_once, 6),

@@ -237,7 +237,7 @@ class World:
             t = w.task
             if w.todo:
                 key = w.todo.pop(0)
-                feed.sample(w.ident, t.task, key, now, lambda lane, e=t.epoch, k=key, o=t.outputs: (e, k, o))
+                feed.sample(w.ident, t.task, key, now, lambda e=t.epoch, k=key, o=t.outputs: (e, k, o))
             else:
                 feed.done(w.ident, t.task, w.windows, {}, w.error, "error" if w.error else "")
                 if w.error is None:

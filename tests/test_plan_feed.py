@@ -47,8 +47,8 @@ def test_a_stalled_worker_is_hedged_and_the_first_copy_wins():
     assert hedge.video == plan.videos[0] and hedge.task not in (first.task, second.task)
     slow, slow_worker = (first, "w1") if first.video == hedge.video else (second, "w2")
     keys = [SampleKey.at(hedge.video, i) for i in range(dict(m.slots)[hedge.video])]
-    assert all(feed.sample("w3", hedge.task, k, 7.0, lambda lane, k=k: ("hedge", k)) for k in keys)
-    assert not feed.sample(slow_worker, slow.task, keys[0], 8.0, lambda lane: ("late", keys[0]))  # the first copy won
+    assert all(feed.sample("w3", hedge.task, k, 7.0, lambda k=k: ("hedge", k)) for k in keys)
+    assert not feed.sample(slow_worker, slow.task, keys[0], 8.0, lambda: ("late", keys[0]))  # the first copy won
     assert feed.store[(0, keys[0])] == ("hedge", keys[0])
 
 
@@ -57,14 +57,14 @@ def test_a_decode_past_the_manifests_slots_is_an_error_naming_the_video():
     feed.fetch("c", 1, 0, 0, 1, 0.0)
     t = feed.task_for("w", 0.0)
     with pytest.raises(SlotsExceeded, match=r"a.mp4: the decode gave a.mp4#1, past the manifest's 1 window"):
-        feed.sample("w", t.task, SampleKey("a.mp4", 1), 1.0, lambda lane: None)
+        feed.sample("w", t.task, SampleKey("a.mp4", 1), 1.0, lambda: None)
 
 
 def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
     feed = PlanFeed(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)
     feed.fetch("c", 1, 0, 0, 4, 0.0)
     t = feed.task_for("w", 0.0)
-    feed.sample("w", t.task, SampleKey("a.mp4", 0), 1.0, lambda lane: "s0")
+    feed.sample("w", t.task, SampleKey("a.mp4", 0), 1.0, lambda: "s0")
     feed.done("w", t.task, 1, {}, None)
     (f, rows), = feed.answer(3.0)
     assert [r.sample for r in rows] == ["s0", None, None, None]
@@ -79,7 +79,7 @@ def test_a_window_the_worker_reports_failed_is_a_padding_row_with_its_reason():
     feed.fetch("c", 1, 0, 0, 3, 0.0)
     t = feed.task_for("w", 0.0)
     for w in (0, 2):
-        feed.sample("w", t.task, SampleKey("a.mp4", w), 1.0, lambda lane, w=w: f"s{w}")
+        feed.sample("w", t.task, SampleKey("a.mp4", w), 1.0, lambda w=w: f"s{w}")
     feed.done("w", t.task, 3, {"1": "window 1: a frame of another size"}, None, "failed")
     (f, rows), = feed.answer(2.0)
     assert [r.sample for r in rows] == ["s0", None, "s2"] and rows[1].reason == "window 1: a frame of another size"
@@ -91,7 +91,7 @@ def _pass(feed, worker, now, windows, error=None):
     t = feed.task_for(worker, now)
     for w in range(windows):
         if (w, 0) not in t.skip:
-            feed.sample(worker, t.task, SampleKey(t.video, w), now, lambda lane, w=w: f"s{w}")
+            feed.sample(worker, t.task, SampleKey(t.video, w), now, lambda w=w: f"s{w}")
     feed.done(worker, t.task, windows, {}, error, "error" if error else "")
     return t
 
@@ -143,7 +143,7 @@ def test_a_plan_unfolding_decodes_the_production_order_in_turn_and_answers_once_
         t = feed.task_for("w", 1.0)
         decoded.append(t.video)
         for i in range(slots[t.video]):
-            feed.sample("w", t.task, SampleKey.at(t.video, i), 1.0, lambda lane, k=(t.video, i): k)
+            feed.sample("w", t.task, SampleKey.at(t.video, i), 1.0, lambda k=(t.video, i): k)
         feed.done("w", t.task, slots[t.video], {}, None)
     assert decoded == whole.videos[:len(decoded)] and len(decoded) < len(slots)  # in turn, not every video
     (f, rows), = answered
@@ -161,7 +161,7 @@ def test_decode_ahead_goes_on_into_the_next_epoch_within_the_lookahead():
     while (t := feed.task_for("w", 0.0)) is not None:
         made.append((t.epoch, t.video))
         for i in range(2):
-            feed.sample("w", t.task, SampleKey.at(t.video, i), 0.0, lambda lane: "s")
+            feed.sample("w", t.task, SampleKey.at(t.video, i), 0.0, lambda: "s")
         feed.done("w", t.task, 2, {}, None)
     waited = {(0, EpochPlan(m, 0, 0, 1).key(p).video) for p in (6, 7)}
     assert set(made[:len(waited)]) == waited
@@ -177,7 +177,7 @@ def _work(feed, now):
     while (t := feed.task_for("w", now)) is not None:
         made.append((t.epoch, t.video))
         for i in range(2):
-            feed.sample("w", t.task, SampleKey.at(t.video, i), now, lambda lane: "s")
+            feed.sample("w", t.task, SampleKey.at(t.video, i), now, lambda: "s")
         feed.done("w", t.task, 2, {}, None)
     return made
 
@@ -210,19 +210,19 @@ def test_workers_make_the_outputs_fetches_ask_for_and_a_new_one_remakes_what_lac
     feed.fetch("c", 1, 0, 0, 1, 0.0, ("voxels",))
     narrow = feed.task_for("w1", 0.0)
     assert narrow.outputs == ("voxels",)
-    assert feed.sample("w1", narrow.task, SampleKey("a.mp4", 0), 1.0, lambda lane: "voxels only")
+    assert feed.sample("w1", narrow.task, SampleKey("a.mp4", 0), 1.0, lambda: "voxels only")
     (f, rows), = feed.answer(1.0)
     assert rows[0].sample == "voxels only"
     feed.fetch("d", 2, 0, 0, 2, 2.0, ("flow", "voxels"))  # flow: what was made lacks it
     assert feed.making.now == ("voxels", "flow") and not feed.store
-    assert not feed.sample("w1", narrow.task, SampleKey("a.mp4", 1), 3.0, lambda lane: "voxels only")
+    assert not feed.sample("w1", narrow.task, SampleKey("a.mp4", 1), 3.0, lambda: "voxels only")
     assert feed.task_for("w2", 3.0) is None  # the video is being decoded: it ends first
     feed.done("w1", narrow.task, 2, {}, None)
     assert not feed.answer(4.0) and not feed.failed
     wide = feed.task_for("w2", 4.0)
     assert wide.outputs == ("voxels", "flow")
     for i in range(2):
-        assert feed.sample("w2", wide.task, SampleKey("a.mp4", i), 5.0, lambda lane, i=i: f"wide {i}")
+        assert feed.sample("w2", wide.task, SampleKey("a.mp4", i), 5.0, lambda i=i: f"wide {i}")
     (f, rows), = feed.answer(5.0)
     assert [r.sample for r in rows] == ["wide 0", "wide 1"]
     with pytest.raises(ValueError, match="polarity_counts"):

@@ -258,57 +258,6 @@ def unfolding(plan: EpochPlan, stop: int, slots: Slots, made: Mapping[Tuple[int,
     return out
 
 
-def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans: Mapping[int, EpochPlan],
-           store: Mapping, fetched: Set, failed: Mapping, runs: Mapping[Tuple[int, str], Run], slots: Slots,
-           lookahead: int, shuffle_buffer: int, fetched_to: Mapping[int, int] = {}, fetched_at: Mapping[int, float] = {},
-           now: float = 0.0) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
-    """(epoch, video) to decode: those ``pending`` fetches need a sample of (neither in ``store``
-    nor ``failed``), by the first position needing it, or, where a fetch's positions are not
-    decided yet, whose slots decide them (:func:`unfolding`); and those the positions after each
-    epoch's furthest fetch need (pending, or answered: ``fetched_to``, epoch -> the furthest stop
-    asked, for kept plans named at ``fetched_at`` within :data:`IDLE_S` of ``now`` and not followed
-    by a fetch of the next epoch), not in ``runs``, while the samples made ahead (stored and not
-    ``fetched``, or still to come from running tasks) stay within ``lookahead`` (module
-    docstring). Past an epoch's end the
-    next epoch's first positions are made ahead only while no fetch has named that epoch: once
-    one has, its own furthest fetch leads (what was fetched of it may have left the store)."""
-    made: Dict[Tuple[int, str], int] = {}
-    for (e, k) in list(store) + list(failed):
-        made[(e, k.video)] = made.get((e, k.video), 0) + 1
-    waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
-    live = {e: stop for e, stop in fetched_to.items() if e in plans and now - fetched_at[e] < IDLE_S}
-    furthest = {e: stop for e, stop in live.items() if e + 1 not in live}  # a reader's newest epoch
-    for f in pending:
-        plan = plan_of(f.epoch)
-        furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
-        for p in range(f.start, min(f.stop, plan.known)):
-            key = plan.key(p)
-            if (f.epoch, key) not in store and (f.epoch, key) not in failed:
-                ek = (f.epoch, key.video)
-                waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
-        if not plan.complete and f.stop > plan.known:
-            for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
-                waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
-    budget = lookahead - sum(1 for sk in store if sk not in fetched)
-    budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
-    ahead: List[Tuple[int, str]] = []
-    keep = set(furthest) | {e for e, _ in runs}
-    for epoch, stop in sorted(furthest.items()):
-        if budget <= 0:  # before positions_after, which may build the next epoch's plan
-            break
-        for e, video, key in positions_after(plan_of, plans, epoch, stop, lookahead + shuffle_buffer, keep):
-            if budget <= 0 or (e != epoch and (e in furthest or e in live)):
-                break
-            ek, n = (e, video), slots.samples.get(video)
-            if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
-                continue
-            if key is None and n is not None and made.get(ek, 0) >= n:
-                continue
-            ahead.append(ek)
-            budget -= slots.expected(video) - made.get(ek, 0)
-    return sorted(waited, key=waited.__getitem__), ahead
-
-
 class PlanFeed:
     """The server's decisions when serving by plan (module docstring).
 
@@ -452,12 +401,60 @@ class PlanFeed:
             del self.store[sk]
 
     # ------------------------------------------------------------------ workers
+    def needed(self, now: float) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
+        """(epoch, video) to decode at ``now``: those the pending fetches need a sample of (neither
+        stored nor failed), by the first position needing it, or, where a fetch's positions are
+        not decided yet, whose slots decide them (:func:`unfolding`); and those the positions
+        after each epoch's furthest fetch need (pending, or answered: the furthest stop asked of
+        a kept plan a fetch named within :data:`IDLE_S` of ``now``, not followed by a fetch of
+        the next epoch), not being decoded, while the samples made ahead (stored and not fetched,
+        or still to come from running tasks) stay within ``lookahead`` (module docstring). Past
+        an epoch's end the next epoch's first positions are made ahead only while no fetch has
+        named that epoch: once one has, its own furthest fetch leads (what was fetched of it may
+        have left the store)."""
+        store, failed, runs, slots = self.store, self.failed, self.runs, self.slots
+        made: Dict[Tuple[int, str], int] = {}
+        for (e, k) in list(store) + list(failed):
+            made[(e, k.video)] = made.get((e, k.video), 0) + 1
+        waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
+        live = {e: stop for e, stop in self.fetched_to.items() if e in self.plans and now - self.fetched_at[e] < IDLE_S}
+        furthest = {e: stop for e, stop in live.items() if e + 1 not in live}  # a reader's newest epoch
+        for f in self.pending:
+            plan = self.plan(f.epoch)
+            furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
+            for p in range(f.start, min(f.stop, plan.known)):
+                key = plan.key(p)
+                if (f.epoch, key) not in store and (f.epoch, key) not in failed:
+                    ek = (f.epoch, key.video)
+                    waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
+            if not plan.complete and f.stop > plan.known:
+                for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
+                    waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
+        budget = self.lookahead - sum(1 for sk in store if sk not in self.fetched)
+        budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
+        ahead: List[Tuple[int, str]] = []
+        keep = set(furthest) | {e for e, _ in runs}
+        for epoch, stop in sorted(furthest.items()):
+            if budget <= 0:  # before positions_after, which may build the next epoch's plan
+                break
+            for e, video, key in positions_after(self.plan, self.plans, epoch, stop,
+                                                 self.lookahead + self.shuffle_buffer, keep):
+                if budget <= 0 or (e != epoch and (e in furthest or e in live)):
+                    break
+                ek, n = (e, video), slots.samples.get(video)
+                if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
+                    continue
+                if key is None and n is not None and made.get(ek, 0) >= n:
+                    continue
+                ahead.append(ek)
+                budget -= slots.expected(video) - made.get(ek, 0)
+        return sorted(waited, key=waited.__getitem__), ahead
+
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
         """The task for an idle ``worker``: the first video a pending fetch waits on; else a
         hedge of one that sent nothing for ``hedge_s`` while a fetch waits on it; else the next
         video to decode ahead; None when none."""
-        waited, ahead = needed(self.pending, self.plan, self.plans, self.store, self.fetched, self.failed, self.runs,
-                               self.slots, self.lookahead, self.shuffle_buffer, self.fetched_to, self.fetched_at, now)
+        waited, ahead = self.needed(now)
         for ek in waited:
             if ek not in self.runs:
                 return self._start(ek, worker, now, codecs)
@@ -480,10 +477,9 @@ class PlanFeed:
         return Task(tid, epoch, video, self.making.start(tid), tuple(sorted(skip)), tuple(codecs))
 
     def sample(self, worker: Hashable, task_id: int, key: SampleKey, now: float, build: Callable) -> bool:
-        """Worker ``worker`` sent sample ``key`` of task ``task_id``; ``build(lane)`` makes the
-        sample object (called with lane 0, only when the sample is wanted). Returns True when it
-        was kept: False for a task that is not running (late, lost) or a sample another copy
-        gave first.
+        """Worker ``worker`` sent sample ``key`` of task ``task_id``; ``build()`` makes the sample
+        object (called only when the sample is wanted). Returns True when it was kept: False for
+        a task that is not running (late, lost) or a sample another copy gave first.
 
         Raises:
             SlotsExceeded: ``key`` lies past its video's slots in the manifest."""
@@ -501,7 +497,7 @@ class PlanFeed:
         if sk in self.store or self.making.tasks.get(task_id) != self.making.now:  # made already, or lacks an output
             return False
         self.failed.pop(sk, None)
-        self.store[sk] = build(0)
+        self.store[sk] = build()
         self.samples_made += 1
         return True
 
@@ -564,10 +560,9 @@ class PlanFeed:
             del self.runs[ek]
         return run
 
-    def timed_out(self, now: float, reading: bool = True) -> List[Tuple[Hashable, Run]]:
-        """Copies that sent nothing for ``task_timeout_s``: each ends as a lost worker's. A server
-        serving by plan reads every worker message whatever the clients do (``reading``: always
-        true, as the shell's ``WorkerSide.watch`` passes it), so silence is the worker's own."""
+    def timed_out(self, now: float) -> List[Tuple[Hashable, Run]]:
+        """Copies that sent nothing for ``task_timeout_s``: each ends as a lost worker's. The
+        server reads every worker message whatever its clients do, so silence is the worker's own."""
         out = []
         for tid, ek in list(self.task_run.items()):
             run = self.runs[ek]

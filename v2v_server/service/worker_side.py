@@ -63,12 +63,11 @@ class WorkerSide:
                 pass
         self.pool.stop(send_stop)
 
-    def watch(self, now: float, reading: bool = True) -> None:
+    def watch(self, now: float) -> None:
         """Replace dead workers (their tasks go back to the queue) and hung ones: silent on a task
-        for ``task_timeout_s`` while read, or not ready ``max(START_S, task_timeout_s)`` seconds
-        after their spawn (a worker stopped or stuck before its first message holds no task to
-        time out, and would serve nothing for good). ``reading``: this loop turn read the workers;
-        called once per turn."""
+        for ``task_timeout_s``, or not ready ``max(START_S, task_timeout_s)`` seconds after their
+        spawn (a worker stopped or stuck before its first message holds no task to time out, and
+        would serve nothing for good). Called once per loop turn."""
         for ident, code in self.pool.reap():
             self.metrics.on_worker_restarted()
             job = self.core.worker_lost(ident)
@@ -79,7 +78,7 @@ class WorkerSide:
                     self.log_failure(job.video, job.error)
             else:
                 log.warning("worker %s died (exit code %s); restarting", ident.decode(), code)
-        for ident, job in self.core.timed_out(now, reading):
+        for ident, job in self.core.timed_out(now):
             self.metrics.on_task_timed_out()
             log.warning("worker %s sent nothing on %s epoch %d for %.0f s; task reassigned, worker restarted",
                         ident.decode(), job.video, job.epoch, self.cfg.task_timeout_s)
@@ -122,9 +121,9 @@ class WorkerSide:
         elif isinstance(msg, Sample):
             cpw = self.cfg.crops_per_window
             if msg.slot is not None and w.ring is not None:  # arrays in the worker's shared memory
-                build = lambda lane: sample_from_slot(msg, w.ring, frames[2:], cpw)  # noqa: E731
+                build = lambda: sample_from_slot(msg, w.ring, frames[2:], cpw)  # noqa: E731
             else:
-                build = lambda lane: sample_from_worker(msg, frames[2:], cpw)  # noqa: E731
+                build = lambda: sample_from_worker(msg, frames[2:], cpw)  # noqa: E731
             try:
                 kept = self.core.sample(ident, msg.task, msg.key, now, build)
             except (ProtocolError, KeyError, TypeError, ValueError) as e:
