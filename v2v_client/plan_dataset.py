@@ -46,6 +46,7 @@ from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_part
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, WireError, plan_server_message
 from v2v_wire.codecs import available, check_compression, decode_batch_arrays
 from v2v_wire.protocol import DEFAULT_OUTPUTS, MAX_BATCH_BYTES, ProtocolError, check_outputs, is_ipv6, pack, unpack
+from v2v_wire.push_names import READER_SETTINGS, reader_settings_problem, resume_state_problem
 
 from . import plan_accelerate
 from .endpoints import auto_compression, check_servers, load_curve_keys, resolve_endpoints, split_endpoints
@@ -97,7 +98,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0,
                  curve_keys: Optional[Tuple[str, str]] = None, compression: str = "auto", **push_settings):
         super().__init__()
-        _refuse_push(push_settings)
+        _refuse_settings(push_settings)
         _check_settings(1 if batch_size is None else batch_size, prefetch, retry_s, timeout_s)
         self._servers = _Servers(endpoint, compression)  # a bad endpoint or codec: an error here
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None  # bad key files: an error here
@@ -497,25 +498,20 @@ def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
             [(ep, i.plan) for ep, i in ordered], [i.samples for _, i in ordered])
 
 
-#: The removed push delivery's reader settings, which a plan has no use for: given here, they are
-#: refused in one line.
-PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "group", "shm", "compact_flow")
-
-
 def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
     """What fetches of ``endpoint`` ask for: ``compression``, or for ``"auto"``
     ``endpoints.auto_compression`` with the codecs the server lists in its stream info."""
     return compression if compression != "auto" else auto_compression(endpoint, stream.get("codecs", ()))
 
 
-def _refuse_push(settings: dict) -> None:
-    """One line for a setting only the removed push delivery read."""
+def _refuse_settings(settings: dict) -> None:
+    """Refuse keyword arguments beyond the dataset's own: ``TypeError`` for one no reader takes,
+    else ``ValueError`` in one line for push delivery's (``push_names.READER_SETTINGS``)."""
     for name in settings:
-        if name not in PUSH_SETTINGS:
+        if name not in READER_SETTINGS:
             raise TypeError(f"V2VStreamDataset() got an unexpected keyword argument {name!r}")
     if settings:
-        raise ValueError(f"{', '.join(sorted(settings))}: setting(s) of push delivery, which v2v no longer has "
-                         f"(docs/delivery.md): drop them")
+        raise ValueError(reader_settings_problem(settings))
 
 
 def open_stream(endpoint, *, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False, timeout_s: float = 60.0,
@@ -675,10 +671,8 @@ def _loaded_position(state, info: Optional[PlanInfo]) -> Position:
         PlanMismatch: a resume state of the removed push delivery (one line saying what to resume from), a
             malformed position (naming the field), or one of another plan than ``info``'s.
     """
-    if isinstance(state, dict) and "delivered" in state and "plan" not in state:
-        raise PlanMismatch(f"a resume state of push delivery, which v2v no longer has (consumer {state.get('consumer')!r}, completed epoch "
-                           f"{state.get('completed_epoch')!r}) is not a plan's position: resume from a batch's "
-                           f"'position', or read an epoch from its start with set_epoch()")
+    if resume_state_problem(state):
+        raise PlanMismatch(resume_state_problem(state))
     pos = Position.from_dict(state)
     if info is not None:
         Position.from_dict(state, expected=info.plan)
