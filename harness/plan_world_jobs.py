@@ -264,8 +264,8 @@ class Reading:
         self.request += 1
         reader.asked[(k, what)] = (self.request, now)
         self.requests[self.request] = (job, reader, k, what)
-        self.world.servers[k].feed.fetch((job.name, job.outputs), self.request, reader.epoch, lo, hi, now,
-                                         job.outputs)
+        self.world.servers[k].scheduler.fetch((job.name, job.outputs), self.request, reader.epoch, lo, hi,
+                                              now, job.outputs)
 
     def take(self, k: int, f, rows, now: int) -> None:
         """Shard ``k``'s answer reaches its reader: each row checked against that server's plan,
@@ -294,7 +294,7 @@ class Reading:
         """Shard ``k``'s rows of fetch ``f``: each key its server's plan's at that position, each
         sample of that epoch and key, made with the outputs the fetch asked for."""
         problems = self.world.out.problems
-        plan = self.world.servers[k].feed.plan(f.epoch)
+        plan = self.world.servers[k].scheduler.plan(f.epoch)
         for row in rows:
             if row.key != plan.key(row.position):
                 problems.append(f"shard {k} epoch {f.epoch} position {row.position}: {row.key}, the plan says "

@@ -24,7 +24,7 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   first those of epochs no fetch named for :data:`IDLE_S` (a job that left), oldest first. A
   fetch whose sample went makes it again.
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
-  that ends (:meth:`PlanFeed.learn`: the windows it found), and every plan kept unfolds with them
+  that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
   production order (:func:`unfolding`), decoded in turn: nothing is read but what is served.
 * **A pass that stops on an error** (``cause`` ``"error"``: a store that fails past its library's
@@ -38,7 +38,7 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
 * **A decode that gives more samples than the manifest's slots** is an error naming the video
   (:class:`SlotsExceeded`): the corpus index is stale, never a silent drop.
 
-Nothing here owns a socket, a clock or a process (``now`` is passed in); ``tests/test_plan_feed.py``
+Nothing here owns a socket, a clock or a process (``now`` is passed in); ``tests/test_plan_schedule.py``
 drives it with a seeded world of workers that stall, die and lag.
 """
 from __future__ import annotations
@@ -74,8 +74,8 @@ class SlotsExceeded(ValueError):
 
 
 @dataclass
-class Fetch:
-    """A client's request for positions ``start .. stop - 1`` of ``epoch``."""
+class Pending:
+    """A client's fetch of positions ``start .. stop - 1`` of ``epoch``, waiting for its rows."""
 
     client: Hashable
     request: int
@@ -258,7 +258,7 @@ def unfolding(plan: EpochPlan, stop: int, slots: Slots, made: Mapping[Tuple[int,
     return out
 
 
-class PlanFeed:
+class PlanScheduler:
     """The server's decisions when serving by plan (module docstring).
 
     Args:
@@ -288,7 +288,7 @@ class PlanFeed:
         self.lookahead, self.keep_samples = lookahead, keep_samples
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
         self.plans: "OrderedDict[int, EpochPlan]" = OrderedDict()
-        self.pending: List[Fetch] = []
+        self.pending: List[Pending] = []
         self.store: "OrderedDict[Tuple[int, SampleKey], Any]" = OrderedDict()  # made, oldest or least recently fetched first
         self.fetched: Set[Tuple[int, SampleKey]] = set()  # stored samples some fetch was answered with
         self.failed: Dict[Tuple[int, SampleKey], str] = {}  # not given by its decode this epoch
@@ -333,14 +333,14 @@ class PlanFeed:
         if self.making.ask(outputs):  # what is kept lacks an output
             self.store, self.fetched = OrderedDict(), set()
         self.plan(epoch)
-        self.pending.append(Fetch(client, request, epoch, start, stop))
+        self.pending.append(Pending(client, request, epoch, start, stop))
         self.fetched_at[epoch], self.fetched_to[epoch] = now, max(self.fetched_to.get(epoch, 0), stop)
 
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s pending fetches (it left)."""
         self.pending = [f for f in self.pending if f.client != client]
 
-    def answer(self, now: float) -> List[Tuple[Fetch, List[Row]]]:
+    def answer(self, now: float) -> List[Tuple[Pending, List[Row]]]:
         """Every pending fetch that can be answered at ``now``, with its rows; they leave the
         queue, and their samples move to the store's fetched end."""
         out, waiting = [], []
@@ -358,7 +358,7 @@ class PlanFeed:
         self._trim(now)
         return out
 
-    def _rows(self, f: Fetch) -> Optional[List[Row]]:
+    def _rows(self, f: Pending) -> Optional[List[Row]]:
         plan = self.plan(f.epoch)
         rows = []
         if not plan.complete and f.stop > plan.known:
