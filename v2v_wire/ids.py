@@ -2,7 +2,7 @@
 
 A sample is named by its :class:`SampleKey` ``(video, window, crop)``: the video's path relative
 to the corpus root (POSIX), the window index and the crop index inside the window (0 .. K - 1
-with K = ``crops_per_window``). The plan, the server's feed and the workers' messages carry
+with K = ``crops_per_window``). The plan, the server's scheduler and the workers' messages carry
 keys. The string form, the *sample id*, is made and read only at the edges (logs,
 the ``sample_ids`` of a batch): the path, ``#``, the window index and, when K > 1,
 ``.`` and the crop index: ``clips/a.mp4#3`` or ``clips/a.mp4#3.1``. The *ordinal*
