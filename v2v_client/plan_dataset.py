@@ -668,8 +668,9 @@ def _loaded_position(state, info: Optional[PlanInfo]) -> Position:
     the server was asked already (None: not yet).
 
     Raises:
-        PlanMismatch: a resume state of the removed push delivery (one line saying what to resume from), a
-            malformed position (naming the field), or one of another plan than ``info``'s.
+        PlanMismatch: a resume state of push delivery (one line saying what to resume from:
+            ``push_names.resume_state_problem``), a malformed position (naming the field), or one
+            of another plan than ``info``'s.
     """
     if resume_state_problem(state):
         raise PlanMismatch(resume_state_problem(state))
