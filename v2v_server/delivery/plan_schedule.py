@@ -259,7 +259,8 @@ def unfolding(plan: EpochPlan, stop: int, slots: Slots, made: Mapping[Tuple[int,
 
 
 class PlanScheduler:
-    """The server's decisions when serving by plan (module docstring).
+    """The server's scheduler when serving by plan: which video an idle worker decodes next,
+    which made samples it keeps, which fetches it answers (module docstring).
 
     Args:
         manifest: the corpus's slots (``v2v_wire.plan.Manifest``).
