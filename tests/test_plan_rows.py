@@ -142,7 +142,7 @@ def test_more_epochs_read_at_once_than_plans_kept_build_each_plan_once(tmp_path,
     import re
     import shutil
 
-    from v2v_server.delivery.plan_feed import PLANS_KEPT
+    from v2v_server.delivery.plan_schedule import PLANS_KEPT
 
     corpus = tmp_path / "corpus"
     corpus.mkdir()

@@ -70,23 +70,12 @@ def _to_float(name: str, t: torch.Tensor) -> torch.Tensor:
     return t.float()
 
 
-def _array_for(batch: dict, output: str) -> Optional[str]:
-    """The batch array that carries ``output``: its own, else a compact form of it
-    (``outputs.ArraySpec.expand``: ``flow_grid`` for ``flow``); None when the batch has neither."""
-    if output in batch:
-        return output
-    return next((s.name for s in ARRAYS.values() if s.output == output and s.expand and s.name in batch), None)
-
-
 def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], flow_from: Optional[int] = None) -> dict:
     """Move the ``outputs`` of a stream batch (and its ``voxels``, the models' input) to
     ``device`` with non-blocking copies and convert them to float32 there (``_to_float``).
 
     With ``flow_from`` given, only ``flow[:, flow_from:]`` is transferred (E2VID's temporal
-    consistency loss uses the last part of the sequence only). A batch with ``flow_grid``
-    (B, L, 2, n, n) in place of ``flow`` (``compact_flow``) has the grid transferred and made
-    dense on the device (``v2v_client.expand_flow_grid``, the crop size of the voxels).
-    Copies are non-blocking when the device is CUDA (from pinned memory: ``make_loader``).
+    consistency loss uses the last part of the sequence only). Copies are non-blocking when the device is CUDA (from pinned memory: ``make_loader``).
 
     Returns a dict with float32 ``voxels`` (B, L, num_bins, H, W), ``frames`` (B, L+1, 1,
     H, W) in [0, 1], ``flow`` (B, L', 2, H, W) pixels and ``polarity_counts`` (B, L, 2,
@@ -96,19 +85,14 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
         KeyError: naming an output of ``outputs`` the batch lacks.
     """
     nb = device.type == "cuda"
-    names = {key: _array_for(batch, key) for key in dict.fromkeys(("voxels", *outputs))}
+    keys = tuple(dict.fromkeys(("voxels", *outputs)))
     for key in outputs:
-        if names[key] is None:
+        if key not in batch:
             raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); the task needs {tuple(outputs)}")
     out = {}
-    for key, name in names.items():
-        t = batch[name][:, flow_from:] if key == "flow" and flow_from is not None else batch[name]
-        t = _to_float(name, t.to(device, non_blocking=nb))
-        if ARRAYS[name].expand:  # a compact form (flow_grid): made dense on the device
-            from v2v_client import expand_flow_grid
-
-            t = expand_flow_grid(t, tuple(out["voxels"].shape[-2:]))
-        out[key] = t
+    for key in keys:
+        t = batch[key][:, flow_from:] if key == "flow" and flow_from is not None else batch[key]
+        out[key] = _to_float(key, t.to(device, non_blocking=nb))
     return out
 
 

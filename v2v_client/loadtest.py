@@ -10,6 +10,7 @@ import time
 from typing import List, Optional
 
 from v2v_wire.protocol import DEFAULT_OUTPUTS
+from v2v_wire.push_names import LOADTEST_FLAGS, loadtest_flag_problem
 
 from .plan_dataset import open_stream
 from .read_ahead import ReadAhead
@@ -101,17 +102,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--batches", type=int, default=20, help="batches to measure (default 20)")
     p.add_argument("--warmup", type=int, default=1, help="batches read before measuring (default 1)")
     p.add_argument("--outputs", default="voxels,frames,flow", help="comma list of outputs to ask for")
-    p.add_argument("--credits", help=argparse.SUPPRESS)  # push delivery's: refused in one line
+    for flag in LOADTEST_FLAGS:  # push delivery's: refused in one line
+        p.add_argument(flag, dest=f"push_{flag.lstrip('-')}", help=argparse.SUPPRESS)
     p.add_argument("--timeout", type=float, default=60.0, help="seconds of server silence before failing")
     p.add_argument("--step-ms", type=float, default=0.0, help="simulated training step per batch, ms")
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
     a = p.parse_args(argv)
     if a.batches < 1:
         p.error("--batches must be >= 1")
-    if a.credits is not None:
-        print("v2v-loadtest: --credits was push delivery's, which v2v no longer has: drop it (docs/delivery.md)",
-              file=sys.stderr)
-        return 2
+    for flag in LOADTEST_FLAGS:
+        if getattr(a, f"push_{flag.lstrip('-')}") is not None:
+            print(f"v2v-loadtest: {loadtest_flag_problem(flag)}", file=sys.stderr)
+            return 2
     try:
         r = run_loadtest(",".join(a.connect or ["tcp://127.0.0.1:5555"]), a.batches, tuple(s for s in a.outputs.split(",") if s),
                          a.timeout, a.step_ms / 1000.0, a.warmup)

@@ -44,6 +44,7 @@ import numpy as np
 
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
+from v2v_wire.push_names import OLDER_PROTOCOL
 
 #: The wire protocol's version: 12 is delivery by plan (``plan_messages``: ``plan_ask`` / ``plan``,
 #: ``fetch`` / ``rows`` / ``refused``, a refusal carrying its code); a peer of another version is
@@ -181,8 +182,7 @@ def version_problem(version, expect_version: int = PROTOCOL_VERSION) -> str:
     older = isinstance(version, int) and version < expect_version
     return (f"protocol version {version!r:.20}, expected {expect_version}: the peer runs "
             f"{'an older' if older else 'another'} v2v; install the same version on both sides"
-            + (" (delivery is by plan only now: a push server or V2VPushDataset is gone, docs/delivery.md)"
-               if older else ""))
+            + (f" ({OLDER_PROTOCOL})" if older else ""))
 
 
 _TAPS: Dict[tuple, tuple] = {}

@@ -78,7 +78,7 @@ class Task:
     """Server -> worker: make the samples of ``video`` for ``epoch``.
 
     Attributes:
-        task: the task's id (the server numbers its tasks, ``delivery/plan_feed.py``), echoed in every reply.
+        task: the task's id (the server numbers its tasks, ``delivery/plan_schedule.py``), echoed in every reply.
         epoch: the epoch (samples depend on seed, epoch and sample id only).
         video: the corpus-relative path.
         outputs: the outputs to make (``protocol.OUTPUTS`` order).
@@ -199,7 +199,7 @@ class Done:
     Attributes:
         task: the task's id.
         windows: complete windows the file gave (the server learns the video's slots from them,
-            ``delivery/plan_feed.py``).
+            ``delivery/plan_schedule.py``).
         failed: window (its digits, as a string) -> why that window cannot be made.
         error: why the pass gave fewer windows than it should (``window_pass.VideoPass.reason``), or None.
         cause: that reason's cause as a code, one of :data:`CAUSES` (``""`` without one).
