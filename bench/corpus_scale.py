@@ -1,6 +1,7 @@
 """Server start, first batch and server memory against the number of videos in a folder corpus.
 
-Run: ``python -m bench.corpus_scale [--sizes 65000,250000,1000000] [--baseline-tree DIR] [--out docs/scaling_corpus.md]``.
+Run: ``python -m bench.corpus_scale [--sizes 65000,250000,1000000] [--baseline-tree DIR] [--out FILE]``
+(docs/scaling.md, "A corpus of a million files", holds its table).
 
 For each size N the bench makes a folder of N hard links (subfolders of 1000) to the bundled
 one-shot clip, so a corpus of a million entries costs inodes, not bytes (ext4 allows 65,000

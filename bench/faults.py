@@ -91,18 +91,15 @@ FS_FAULTS = """## The server's own filesystem work
 
 A filesystem operation the server process does on its own schedule turns an `OSError` of any
 kind into `v2v_fs_errors_total{where}` (every time) and one log line per `where` and cause (the
-errno's name) for the server's life; serving goes on. The one such operation of a server serving
-by plan:
+errno's name) for the server's life; serving goes on:
 
 | where | what fails | serving goes on |
 |---|---|---|
+| `frame_cache` | the scan of `cache_dir/frames` for the gauges (every 5 s) | by decoding (the workers meet the same folder, and decode); the gauges keep their last values |
 | `progress` | the terminal's progress line (EIO after a hang-up) | without the progress line |
 
-A frame cache whose folder fails while serving (row "frame cache's folder replaced by a file
-while serving" above) is met by the workers, which decode instead: every sample of both epochs
-is read once. The server itself does not scan `cache_dir/frames` (push delivery's server did, for
-gauges, and counted the failure as `where="frame_cache"`), so the counter stays 0 and the log
-holds no line for it; the row's notes say so.
+Row "frame cache's folder replaced by a file while serving" above: the workers decode instead,
+every sample of both epochs is read once, and the scan counts the failure and logs it once.
 
 The shared-memory sweep of dead servers' files (at start and when a worker is restarted) and the
 removal of a dead worker's slot ring log a failure once per cause and leave the file; the store
@@ -149,8 +146,7 @@ journal, `--epochs`, resume states of delivered ids, and the client's shared-mem
 | resume states of 700 k ids | a push resume state lists the ids delivered; a position is an epoch, an offset and the plan's identity, the same size at any corpus size |
 
 Of the filesystem table, `journal` (the `--state-dir` journal) and `shm` (a batch file of the
-batch directory push's server kept for that hand-off) were push's, and so was `frame_cache` (the
-push server's gauge scan of the cache folder; the plan server has none, above).
+batch directory push's server kept for that hand-off) were push's.
 """
 
 

@@ -31,7 +31,7 @@ WEBVID_WINDOWS = {"WebVid100": 227, "WebVid1k": 2272, "WebVid10k": 22725}
 
 
 def settle() -> None:
-    """Wait out the racy window of the files just copied (``source.RACY_NS``): a file changed
+    """Wait out the racy window of the files just copied (``sources.local.RACY_NS``): a file changed
     within it is decoded and not stored, which would make epoch 0 store fewer entries."""
     import time
 

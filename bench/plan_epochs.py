@@ -1,5 +1,5 @@
 """A plan server's decisions per fetch with many epochs read at once (issue 86, item 5): the pure
-``PlanFeed`` a server's loop runs each turn (``answer``, and ``task_for``'s ``needed``), with one
+``PlanScheduler`` a server's loop runs each turn (``answer``, and ``task_for``'s ``needed``), with one
 pending fetch of ``--batch`` rows in each of 1, 4 and ``--epochs`` epochs at once, over a manifest
 of ``--videos`` videos whose slots are all known (the plans complete). Prints each case's seconds
 per loop turn (CPU, the median of ``--turns``) and per pending fetch, the plans built in the
@@ -17,8 +17,8 @@ import statistics
 import time
 from typing import List, Optional
 
-from v2v_server.delivery import plan_feed
-from v2v_server.delivery.plan_feed import PlanFeed
+from v2v_server.delivery import plan_schedule
+from v2v_server.delivery.plan_schedule import PlanScheduler
 from v2v_wire.plan import EpochPlan, Manifest
 
 
@@ -30,31 +30,25 @@ class _Counted(EpochPlan):
         super().__init__(*a, **k)
 
 
-def _needed(feed: PlanFeed):
-    """What ``PlanFeed.task_for`` decides from in a turn (``plan_feed.needed``), with no task started."""
-    return plan_feed.needed(feed.pending, feed.plan, feed.plans, feed.store, feed.fetched, feed.failed, feed.runs,
-                            feed.slots, feed.lookahead, feed.shuffle_buffer, feed.fetched_to, feed.fetched_at, 0.0)
-
-
 def measure(videos: int, epochs: int, batch: int, turns: int) -> dict:
     """Seconds per loop turn and per pending fetch at 1, 4 and ``epochs`` epochs read at once."""
-    plan_feed.EpochPlan = _Counted  # count the builds the feed makes
+    plan_schedule.EpochPlan = _Counted  # count the builds the scheduler makes
     try:
         manifest = Manifest.of({f"d{i % 1000}/{i:07d}.mp4": 2 for i in range(videos)})
-        feed = PlanFeed(manifest, 0, 64, ("voxels",), lookahead=64, keep_samples=batch)
+        scheduler = PlanScheduler(manifest, 0, 64, ("voxels",), lookahead=64, keep_samples=batch)
         out, request = {}, 0
         for at_once in sorted({1, min(4, epochs), epochs}):
-            for e in range(len({f.epoch for f in feed.pending}), at_once):  # one reader more per epoch
+            for e in range(len({f.epoch for f in scheduler.pending}), at_once):  # one reader more per epoch
                 request += 1
-                feed.fetch(("job", e), request, e, 0, batch, 0.0)
-            feed.answer(0.0)  # a first turn, and the collector's pass over the plans just built, untimed
-            _needed(feed)
+                scheduler.fetch(("job", e), request, e, 0, batch, 0.0)
+            scheduler.answer(0.0)  # a first turn, and the collector's pass over the plans just built, untimed
+            scheduler.needed(0.0)  # what task_for decides from, with no task started
             gc.collect()
             built, times = _Counted.built, []
-            for _ in range(turns):  # a loop turn: what the server asks of the feed (no sample made yet)
+            for _ in range(turns):  # a loop turn: what the server asks of the scheduler (no sample made yet)
                 t0 = time.process_time()
-                feed.answer(0.0)
-                _needed(feed)
+                scheduler.answer(0.0)
+                scheduler.needed(0.0)
                 times.append(time.process_time() - t0)
             s = statistics.median(times)
             out[at_once] = {"s_per_turn": round(s, 6), "s_per_fetch": round(s / at_once, 6),
@@ -64,7 +58,7 @@ def measure(videos: int, epochs: int, batch: int, turns: int) -> dict:
             row["per_fetch_vs_1_epoch"] = round(row["s_per_fetch"] / base, 2)
         return {"videos": videos, "batch": batch, "turns": turns, "plans_built": _Counted.built, "cases": out}
     finally:
-        plan_feed.EpochPlan = EpochPlan
+        plan_schedule.EpochPlan = EpochPlan
 
 
 def main(argv: Optional[List[str]] = None) -> int:

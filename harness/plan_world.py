@@ -1,4 +1,4 @@
-"""A seeded world driving serving by plan's decisions (``delivery.plan_feed.PlanFeed``) and the
+"""A seeded world driving serving by plan's decisions (``delivery.plan_schedule.PlanScheduler``) and the
 client's reading rules: time is ticks, every choice comes from ``random.Random(seed)``, so a seed
 replays exactly.
 
@@ -10,9 +10,9 @@ What the world does:
 * the corpus index knows some videos' slots at start, none or all; the others' the server learns
   from their first decode (the plan unfolds), and the index keeps a whole pass's count for a
   server started again;
-* 1 server, or 2-4 each serving one shard (``select_shard``'s videos, a ``PlanFeed`` of its own)
+* 1 server, or 2-4 each serving one shard (``select_shard``'s videos, a ``PlanScheduler`` of its own)
   read as one interleaved plan (``v2v_wire.plan_shards``); each server is killed and started
-  again on its own (a fresh ``PlanFeed`` and a fresh pool of workers: made samples, pending
+  again on its own (a fresh ``PlanScheduler`` and a fresh pool of workers: made samples, pending
   fetches and running tasks gone), and while it is down a file of its shard may be replaced under
   its name by another cut (another tag, other windows, its index entry gone): the plan's identity
   changes, a job's position of the plan before is refused (``Position.from_dict``, as the client
@@ -32,7 +32,7 @@ interleaved plan exactly: every position once across ranks and workers, at its p
 wherever its window was given, padding only for windows a file did not give and past a shard's or
 the epoch's end; every reader ended at the step the epoch ends at; each worker's pass was of the
 epoch and position the loop set; a position refused exactly when a file was replaced; bounded
-stores). ``python -m harness.plan_world --seeds 0:100000`` runs a range (``tests/test_plan_feed.py``
+stores). ``python -m harness.plan_world --seeds 0:100000`` runs a range (``tests/test_plan_schedule.py``
 runs 1,000 seeds); ``--seeds 35:36`` replays one.
 """
 from __future__ import annotations
@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from typing import List, Optional
 
 from harness.plan_world_jobs import OUTPUTS, Job, Reading
-from v2v_server.delivery.plan_feed import PlanFeed
+from v2v_server.delivery.plan_schedule import PlanScheduler
 from v2v_server.ops.startup import select_shard
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity
@@ -69,19 +69,19 @@ class Worker:
 
 @dataclass(eq=False)
 class Server:
-    """One server: shard ``shard`` of the corpus (``videos``, ``select_shard``'s), its feed, the
+    """One server: shard ``shard`` of the corpus (``videos``, ``select_shard``'s), its scheduler, the
     identity of the plan it serves and its pool of workers."""
 
     shard: int
     videos: List[str]
-    feed: Optional[PlanFeed] = None
+    scheduler: Optional[PlanScheduler] = None
     identity: str = ""
     workers: List[Worker] = field(default_factory=list)
 
 
 @dataclass
 class Outcome:
-    """One seed's run: its problems (empty when the feed kept the contract) and what it did."""
+    """One seed's run: its problems (empty when the scheduler kept the contract) and what it did."""
 
     seed: int
     problems: List[str]
@@ -141,18 +141,18 @@ class World:
         self.restart_p = rng.choice([0.0, 0.001, 0.003])
         self.out = Outcome(seed, [], shards, int(shards > 1))
         self.reading = Reading(self)
-        # passes a store failing for a while cuts short, fewer than the feed's PASS_ATTEMPTS
+        # passes a store failing for a while cuts short, fewer than the scheduler's PASS_ATTEMPTS
         self.flaky = {v: rng.randint(1, 2) for v, n in self.given.items() if v not in self.broken and n and rng.random() < 0.2}
         # files replaced while a server is down: drawn apart, so the other draws stay each seed's
         self.cuts = random.Random(f"cuts/{seed}")
         self.replace_p = self.cuts.choice([0.0, 1.0])
 
     def start(self, server: Server, pool: int) -> None:
-        """(Re)start ``server``: a fresh feed over its shard's manifest (the corpus index's slots,
+        """(Re)start ``server``: a fresh scheduler over its shard's manifest (the corpus index's slots,
         the files' tags) and a fresh pool of ``pool`` workers."""
         tags = {v: f"cut {self.tags[v]}" for v in server.videos}
         manifest = Manifest.of({v: self.index.get(v) for v in server.videos}, self.kpw, tags)
-        server.feed = PlanFeed(manifest, self.seed, self.buffer, OUTPUTS, **self.settings)
+        server.scheduler = PlanScheduler(manifest, self.seed, self.buffer, OUTPUTS, **self.settings)
         server.identity = manifest.fingerprint()
         server.workers = [Worker(f"w{self.next_worker + i}") for i in range(pool)]
         self.next_worker += pool
@@ -169,8 +169,8 @@ class World:
     @staticmethod
     def samples_of(server: Server, epoch: int) -> Optional[int]:
         """The epoch's samples a server's answers carry (``PlanServer._samples``), None while unknown."""
-        plan = server.feed.plans.get(epoch)
-        return len(plan) if plan is not None and plan.complete else server.feed.slots.epoch_samples
+        plan = server.scheduler.plans.get(epoch)
+        return len(plan) if plan is not None and plan.complete else server.scheduler.slots.epoch_samples
 
     def replace_file(self, server: Server) -> None:
         """While ``server`` is down, a file of its shard is replaced under its name by another cut:
@@ -199,10 +199,10 @@ class World:
                 if job.epoch < self.epochs:
                     self.reading.ask(job, now)
             for k, s in enumerate(self.servers):
-                for f, rows in s.feed.answer(now):
+                for f, rows in s.scheduler.answer(now):
                     self.reading.take(k, f, rows, now)
                 self.decode(s, now)
-                self.out.biggest_store = max(self.out.biggest_store, len(s.feed.store))
+                self.out.biggest_store = max(self.out.biggest_store, len(s.scheduler.store))
             if all(j.epoch >= self.epochs for j in self.jobs):
                 break
         self.judge()
@@ -210,10 +210,10 @@ class World:
 
     def decode(self, server: Server, now: int) -> None:
         """A server's workers' turn: one sample a tick unless stalled; some die, some stall, some hang."""
-        rng, feed, kpw = self.rng, server.feed, self.kpw
+        rng, scheduler, kpw = self.rng, server.scheduler, self.kpw
         for w in list(server.workers):
             if rng.random() < 0.002:  # killed: the pool replaces it
-                feed.worker_lost(w.ident)
+                scheduler.worker_lost(w.ident)
                 server.workers.remove(w)
                 server.workers.append(Worker(f"w{self.next_worker}"))
                 self.next_worker += 1
@@ -223,7 +223,7 @@ class World:
             if now < w.stalled_until:
                 continue
             if w.task is None:
-                w.task = t = feed.task_for(w.ident, now)
+                w.task = t = scheduler.task_for(w.ident, now)
                 if t is not None:
                     w.windows, w.error = self.given[t.video], None
                     if t.video in self.broken and w.windows < self.slots[t.video]:
@@ -237,13 +237,13 @@ class World:
             t = w.task
             if w.todo:
                 key = w.todo.pop(0)
-                feed.sample(w.ident, t.task, key, now, lambda lane, e=t.epoch, k=key, o=t.outputs: (e, k, o))
+                scheduler.sample(w.ident, t.task, key, now, lambda e=t.epoch, k=key, o=t.outputs: (e, k, o))
             else:
-                feed.done(w.ident, t.task, w.windows, {}, w.error, "error" if w.error else "")
+                scheduler.done(w.ident, t.task, w.windows, {}, w.error, "error" if w.error else "")
                 if w.error is None:
                     self.index.setdefault(t.video, w.windows)  # a whole pass's count, as a worker records it
                 w.task = None
-        for ident, _ in feed.timed_out(now):
+        for ident, _ in scheduler.timed_out(now):
             for w in server.workers:
                 if w.ident == ident:
                     w.task, w.todo, w.stalled_until = None, [], 0.0
@@ -292,7 +292,7 @@ class World:
                 problems.append(f"{job.name} epoch {e} position {t}: {what} for {r.key}, whose window the file {file}")
 
 
-#: What ``main`` and ``tests/test_plan_feed.py`` add up over seeds (``Outcome``'s counts).
+#: What ``main`` and ``tests/test_plan_schedule.py`` add up over seeds (``Outcome``'s counts).
 TOTALS = ("sharded", "restarts", "resumes", "rollbacks", "widened", "replaced", "refused", "probes", "direct_passes",
           "loader_passes")
 

@@ -8,7 +8,7 @@ rows (``plan_shards.shard_parts``), asked of each shard's server, and merged in 
 order (``plan_shards.interleaved``). Over several shards an item is yielded once
 ``plan_shards.step_in_epoch`` settles it, each shard whose length is not known asked for the row
 ``plan_shards.probes`` names; over one, once answered (``_Link``). A reader ends where the
-epoch's steps (``plan_dataset._steps`` of ``plan_shards.shards_samples``) say, as ``_read`` breaks.
+epoch's steps (``v2v_wire.plan.epoch_steps`` of ``plan_shards.shards_samples``) say, as ``_read`` breaks.
 
 A job with DataLoader workers holds a real ``V2VStreamDataset`` per rank (no socket is opened):
 its main process calls ``set_epoch`` and ``load_state_dict``, and each worker's copy (persistent,
@@ -22,8 +22,8 @@ import copy
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Tuple
 
-from v2v_client.plan_dataset import V2VStreamDataset, _rows, _start_of, _steps
-from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
+from v2v_client.plan_dataset import V2VStreamDataset, _rows, _start_of
+from v2v_wire.plan import PlanIdentity, PlanMismatch, Position, epoch_steps
 from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_parts, shard_ranges, shards_samples,
                                   step_in_epoch)
 
@@ -113,7 +113,7 @@ class Reading:
         main process's ``set_epoch`` / ``load_state_dict``, checked against what the loop set."""
         w = self.world
         samples = [w.samples_of(s, job.epoch) for s in w.servers]
-        steps = _steps(shards_samples(samples), job.start, job.per_step)
+        steps = epoch_steps(shards_samples(samples), job.world, job.batch, job.start)
         if not job.loader:
             job.readers = [Reader(r, 0, 1, job.epoch, job.start, 0, list(samples), steps) for r in range(job.world)]
             w.out.direct_passes += 1
@@ -214,7 +214,7 @@ class Reading:
         n = len(self.world.servers)
         while reader.end is None:
             i = reader.item
-            steps = _steps(shards_samples(reader.samples), reader.origin, job.per_step)
+            steps = epoch_steps(shards_samples(reader.samples), job.world, job.batch, reader.origin)
             if steps is not None and i >= steps:
                 self.ended(job, reader)
                 return
@@ -236,7 +236,7 @@ class Reading:
         corpus says it is (every rank at the same step)."""
         w = self.world
         total = shards_samples([t.samples for t in w.truths()])
-        steps = max(0, -(-(total - job.start) // job.per_step))
+        steps = epoch_steps(total, job.world, job.batch, job.start)
         k, first = reader.workers, reader.first
         want = first if first >= steps else first + -(-(steps - first) // k) * k  # its first item past the end
         if reader.item != want:
@@ -253,7 +253,7 @@ class Reading:
 
     def rows_of(self, job: Job, reader: Reader, i: int) -> Tuple[int, int]:
         """Global positions ``[start, stop)`` of ``reader``'s item ``i`` (the client's rule)."""
-        return _rows({"group": 1, "origin": reader.origin, "per_step": job.per_step, "rank": reader.rank}, i, job.batch)
+        return _rows({"group": 1, "origin": reader.origin, "world": job.world, "rank": reader.rank}, i, job.batch)
 
     def fetch(self, job: Job, reader: Reader, k: int, what: tuple, now: int) -> None:
         """Ask shard ``k``'s server for ``what``: its part of an item, or one row (a probe)."""
@@ -264,8 +264,8 @@ class Reading:
         self.request += 1
         reader.asked[(k, what)] = (self.request, now)
         self.requests[self.request] = (job, reader, k, what)
-        self.world.servers[k].feed.fetch((job.name, job.outputs), self.request, reader.epoch, lo, hi, now,
-                                         job.outputs)
+        self.world.servers[k].scheduler.fetch((job.name, job.outputs), self.request, reader.epoch, lo, hi,
+                                              now, job.outputs)
 
     def take(self, k: int, f, rows, now: int) -> None:
         """Shard ``k``'s answer reaches its reader: each row checked against that server's plan,
@@ -294,7 +294,7 @@ class Reading:
         """Shard ``k``'s rows of fetch ``f``: each key its server's plan's at that position, each
         sample of that epoch and key, made with the outputs the fetch asked for."""
         problems = self.world.out.problems
-        plan = self.world.servers[k].feed.plan(f.epoch)
+        plan = self.world.servers[k].scheduler.plan(f.epoch)
         for row in rows:
             if row.key != plan.key(row.position):
                 problems.append(f"shard {k} epoch {f.epoch} position {row.position}: {row.key}, the plan says "

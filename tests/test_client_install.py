@@ -75,67 +75,6 @@ NETWORK_READER = textwrap.dedent("""
 """)
 
 READER = textwrap.dedent("""
-    import json, sys, time
-    import zmq
-    import v2v_client
-    from v2v_client.options import StreamOptions
-    from v2v_client.resume import ResumeState
-    from v2v_client.session import ServerSession
-    from v2v_wire.protocol import pack
-
-    options = StreamOptions(outputs=("voxels", "frames"), credits=2, timeout_s=60.0, heartbeat_s=1.0, raw=False,
-                            reconnect=False, reconnect_timeout_s=60.0, curve_keys=None, rank=0, world_size=1,
-                            group="default", shm=False)
-    session = ServerSession(sys.argv[1], options, ResumeState("base-install"), "base-install")
-    sock = zmq.Context.instance().socket(zmq.DEALER)
-    sock.setsockopt(zmq.LINGER, 1000)
-    sock.connect(sys.argv[1])
-
-    def send_out(messages=None):
-        for m in session.outgoing() if messages is None else messages:
-            sock.send(pack(m.to_wire()))
-
-    session.hello(new_socket=True)
-    send_out()
-    batch, deadline = None, time.monotonic() + 180
-    while batch is None and time.monotonic() < deadline:
-        if sock.poll(1000):
-            session.on_message(sock.recv_multipart(copy=False))
-            send_out()
-            while batch is None and not session.items.empty():
-                item = session.items.get()
-                if isinstance(item, BaseException):
-                    raise item
-                if isinstance(item, dict):
-                    batch = item
-    assert batch is not None, "no batch within 180 s"
-    # the session asked for the batch's grant as it arrived (its hold went out): read on until the
-    # server's answer is in, then take it (the session acknowledges it)
-    while batch["batch_id"] not in session.held.granted and time.monotonic() < deadline:
-        if sock.poll(1000):
-            session.on_message(sock.recv_multipart(copy=False))
-            send_out()
-    taken, _ = session.take(batch, lambda: None)
-    send_out(session.outgoing() + session.closing())
-    sock.close()
-    try:
-        v2v_client.V2VPushDataset
-        needs_torch = None
-    except ImportError as e:
-        needs_torch = str(e)
-    print(json.dumps({
-        "taken": taken,
-        "types": sorted({type(v).__module__ + "." + type(v).__name__ for k, v in batch.items() if hasattr(v, "shape")}),
-        "shapes": {k: list(v.shape) for k, v in batch.items() if hasattr(v, "shape")},
-        "dtypes": {k: str(v.dtype) for k, v in batch.items() if hasattr(v, "shape")},
-        "events": int(abs(batch["voxels"].astype("int64")).sum()),
-        "sample_ids": len(batch["sample_ids"]),
-        "torch_loaded": "torch" in sys.modules,
-        "needs_torch": needs_torch,
-    }))
-""")
-
-READER = textwrap.dedent("""
     import importlib.util, json, sys
     from v2v_client import V2VStreamDataset
     from v2v_wire.flowgrid import HAVE_NUMBA

@@ -237,8 +237,9 @@ def test_the_epoch_size_known_at_start_is_a_gauge():
     from v2v_server.ops.metrics import ServerMetrics
 
     m = ServerMetrics(progress=False)
+    m.set_state(epoch_samples=None)
     assert b"v2v_epoch_samples 0.0" in m.exposition(now=0.0)  # not known
-    m.set_epoch_samples(1234, epochs=3)
+    m.set_state(epoch_samples=1234)
     assert b"v2v_epoch_samples 1234.0" in m.exposition(now=100.0)
 
 

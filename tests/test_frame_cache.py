@@ -47,7 +47,7 @@ def _samples(cfg, root, video, epoch=0, outputs=DEFAULT_OUTPUTS) -> dict:
 
 
 def _settle() -> None:
-    """Wait out the racy window (``source.RACY_NS``) of files this test just wrote: a file
+    """Wait out the racy window (``sources.local.RACY_NS``) of files this test just wrote: a file
     changed within it is decoded and not stored (git's racy rule)."""
     time.sleep(RACY_NS / 1e9 + 0.02)
 

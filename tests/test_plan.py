@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import (PLAN_VERSION, EpochPlan, Manifest, NotKnownYet, PlanIdentity, PlanMismatch, Position,
-                           distinct_videos, video_order)
+                           batch_positions, distinct_videos, epoch_steps, video_order)
 
 manifests = st.builds(
     Manifest.of,
@@ -42,10 +42,10 @@ def test_an_epoch_lists_every_sample_of_the_manifest_once(m, seed, epoch, buffer
 def test_ranks_take_fixed_slices_the_same_number_of_steps_padding_only_at_the_tail(m, seed, layout):
     world, batch = layout
     plan = EpochPlan(m, seed, 3)
-    steps = plan.steps(world, batch)
+    steps = epoch_steps(len(plan), world, batch)
     seen = Counter()
     for r in range(world):
-        rows = [p for s in range(steps) for p in plan.batch_positions(s, r, world, batch)]
+        rows = [p for s in range(steps) for p in batch_positions(s, r, world, batch)]
         assert len(rows) == steps * batch  # every rank, every step: a whole batch
         seen.update(rows)
     assert all(c == 1 for c in seen.values())
@@ -62,14 +62,14 @@ def test_a_position_resumes_at_any_world_size_and_batch_size_without_a_repeat_or
     ident = PlanIdentity(m.fingerprint(), "recipe0", seed)
     plan = EpochPlan(m, seed, 1)
     world, batch = before
-    taken = min(taken, plan.steps(world, batch))
-    got = [plan.key(p) for s in range(taken) for r in range(world) for p in plan.batch_positions(s, r, world, batch)]
+    taken = min(taken, epoch_steps(len(plan), world, batch))
+    got = [plan.key(p) for s in range(taken) for r in range(world) for p in batch_positions(s, r, world, batch)]
     pos = Position(ident, 1).after(taken, world, batch)
     pos = Position.from_dict(pos.to_dict(), expected=ident)  # saved and loaded on every rank alike
     world, batch = after
     start = pos.sample_in_epoch
-    got += [plan.key(p) for s in range(plan.steps(world, batch, start)) for r in range(world)
-            for p in plan.batch_positions(s, r, world, batch, start)]
+    got += [plan.key(p) for s in range(epoch_steps(len(plan), world, batch, start)) for r in range(world)
+            for p in batch_positions(s, r, world, batch, start)]
     assert sorted(k for k in got if k is not None) == all_keys(m)
 
 
@@ -221,9 +221,10 @@ def test_bad_layouts_are_refused():
     plan = EpochPlan(Manifest.of({"a.mp4": 4}), 0, 0)
     for args in ((0, 2), (2, 0)):
         with pytest.raises(ValueError, match="world_size"):
-            plan.steps(*args)
+            epoch_steps(len(plan), *args)
     with pytest.raises(ValueError, match="rank 2 of world size 2"):
-        plan.batch_positions(0, 2, 2, 1)
+        batch_positions(0, 2, 2, 1)
+    assert epoch_steps(None, 2, 2) is None  # an epoch whose length is not known yet
     with pytest.raises(ValueError, match="seed"):
         EpochPlan(Manifest.of({"a.mp4": 4}), -1, 0)
 

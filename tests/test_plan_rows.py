@@ -130,7 +130,7 @@ def test_a_fetch_whose_batch_would_pass_the_batch_limit_is_refused_in_one_line(t
     with ServeProcess(["--workers", "1", "--cache-dir", str(tmp_path / "cache")],
                       ready_timeout_s=120) as srv:
         refused, _ = ask(srv.endpoint, lambda plan: Fetch(7, 0, 0, 4096, ("voxels", "frames", "flow"), plan))
-    assert refused.request == 7 and "\n" not in refused.message
+    assert refused.request == 7 and refused.code == "too_big" and "\n" not in refused.message
     assert refused.message.startswith("fetch of 4096 rows: its ") and "over the batch limit of 2147483648" in \
         refused.message, refused.message
 
@@ -142,7 +142,7 @@ def test_more_epochs_read_at_once_than_plans_kept_build_each_plan_once(tmp_path,
     import re
     import shutil
 
-    from v2v_server.delivery.plan_feed import PLANS_KEPT
+    from v2v_server.delivery.plan_schedule import PLANS_KEPT
 
     corpus = tmp_path / "corpus"
     corpus.mkdir()

@@ -214,9 +214,11 @@ def test_a_hostile_client_gets_one_line_and_the_server_serves_on(server):
     fetch = {"type": "fetch", "request": 7, "epoch": 0, "start": 0, "stop": 1, "outputs": ["voxels"], "plan": plan}
     ctx = zmq.Context()
     try:
-        for bad, why in ((b"\xc1garbage", "not valid msgpack"), (pack({**fetch, "stop": 10 ** 6}), "'stop'"),
-                         (pack({**fetch, "v": 0}), "protocol version"), (pack({**fetch, "outputs": ["x"]}), "outputs"),
-                         (pack({**fetch, "plan": {**plan, "recipe": "0" * 16}}), "another plan: recipe")):
+        for bad, why, code in ((b"\xc1garbage", "not valid msgpack", "bad"),
+                               (pack({**fetch, "stop": 10 ** 6}), "'stop'", "bad"),
+                               (pack({**fetch, "v": 0}), "protocol version", "bad"),
+                               (pack({**fetch, "outputs": ["x"]}), "outputs", "bad"),
+                               (pack({**fetch, "plan": {**plan, "recipe": "0" * 16}}), "another plan: recipe", "plan")):
             sock = ctx.socket(zmq.DEALER)  # one peer each: a peer that keeps sending garbage is banned
             sock.setsockopt(zmq.LINGER, 0)
             sock.connect(server)
@@ -225,6 +227,7 @@ def test_a_hostile_client_gets_one_line_and_the_server_serves_on(server):
             h = unpack(sock.recv_multipart()[0])
             sock.close()
             assert h["type"] == "refused" and why in h["message"] and "\n" not in h["message"]
+            assert h["code"] == code, (why, h)
     finally:
         ctx.term()
     assert len(set(real_ids(read(V2VStreamDataset(server, 4))[0]))) == SAMPLES

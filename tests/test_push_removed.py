@@ -40,6 +40,18 @@ def test_importing_a_push_name_says_what_to_use_in_one_line(name, instead):
     assert "\n" not in line and line.startswith(f"v2v_client.{name} was removed with push delivery: {instead}")
 
 
+def test_a_push_name_is_refused_without_torch_installed():
+    """The table of push delivery's names is read by ``import v2v_client`` on a host without torch."""
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "try:\n    from v2v_client import V2VPushDataset\n"
+            "except ImportError as e:\n    print(e)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == ("v2v_client.V2VPushDataset was removed with push delivery: use V2VStreamDataset "
+                                "(docs/delivery.md)")
+
+
 @pytest.mark.parametrize("args, flag, key, instead", [
     (["--delivery", "push"], "--delivery", "delivery_mode", "read the server with v2v_client.V2VStreamDataset"),
     (["--epochs", "2"], "--epochs", "epochs", "ds.set_epoch(e) for each"),
@@ -136,8 +148,9 @@ def test_a_server_of_another_protocol_version_is_refused_naming_it():
         if router.poll(30_000):
             peer, header = router.recv_multipart()[:2]
             asked.append(msgpack.unpackb(header, raw=False))
+            message = f"protocol version {PROTOCOL_VERSION}, expected {OLD}"
             router.send_multipart([peer, msgpack.packb({"v": OLD, "type": "error", "code": "version",
-                                                        "message": "protocol version 11, expected 10"})])
+                                                        "message": message})])
 
     t = threading.Thread(target=answer, daemon=True)
     t.start()

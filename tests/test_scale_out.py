@@ -183,7 +183,8 @@ def test_each_shard_serves_its_own_files_and_the_pair_the_bytes_of_one_unsharded
 
 def test_loadtest_reads_several_servers_as_one_plan_epoch_after_epoch(videos):
     """``v2v-loadtest`` given two shards reads their interleaved plan as a trainer does: 24
-    batches run through several epochs, each holding every id of the corpus."""
+    batches run through several epochs, each holding every id of the corpus; it reports each
+    server's samples, those of its own files in each epoch read, summing to the total."""
     want = expected_ids(videos)
     base = ["--videos", str(videos), *layout()]
     with ServeProcess(base + ["--shard", "0/2"]) as a, ServeProcess(base + ["--shard", "1/2"]) as b:
@@ -198,6 +199,12 @@ def test_loadtest_reads_several_servers_as_one_plan_epoch_after_epoch(videos):
     assert r["unique_samples"] == r["samples"] and len(r["epochs_seen"]) >= 3
     assert len(want) * (len(r["epochs_seen"]) - 2) < r["unique_samples"] <= len(want) * len(r["epochs_seen"])
     assert r["samples"] <= 24 * BATCH and r["samples_per_s"] > 0
+    per, epochs = r["per_server"], len(r["epochs_seen"])
+    assert sorted(per) == sorted([a.endpoint, b.endpoint]) and sum(v["samples"] for v in per.values()) == r["samples"]
+    for k, srv in enumerate((a, b)):  # each epoch read whole holds the shard's own ids, once each
+        own = sum(1 for s in want if shard_of(s.split("#")[0], 2) == k)
+        assert own * (epochs - 2) <= per[srv.endpoint]["samples"] <= own * epochs, (k, own, per)
+        assert f"{srv.endpoint}: {per[srv.endpoint]['samples']} samples, " in out.stdout
 
 
 def _kill(proc):
@@ -365,6 +372,41 @@ def test_metrics_probes_and_counters_move(videos):
     assert m1[("v2v_shuffle_buffer_capacity_samples", ())] >= 1 and m1[("v2v_shuffle_buffer_samples", ())] >= 0
 
 
+def test_the_epoch_samples_gauge_is_the_epoch_served_once_known(tmp_path, videos):
+    """``v2v_epoch_samples`` reads 0 while some video's slots are unknown, then the samples one
+    epoch lists once its decodes have learned them all; a second start knows it from the corpus
+    index before any fetch."""
+    root = corpus(tmp_path, videos)
+    port = free_port()
+
+    def gauge():
+        return _scrape(port)[("v2v_epoch_samples", ())]
+
+    args = ["--videos", str(root), *layout("--metrics-port", str(port))]
+    with ServeProcess(args) as srv:
+        _wait_ready(port)
+        assert gauge() == 0  # nothing decoded, no index: not known
+        got, _ = read_all(V2VStreamDataset(srv.endpoint, outputs=OUTPUTS, timeout_s=60))
+        deadline = time.monotonic() + 10  # the page is rendered at most once a second (EXPOSITION_S)
+        while (n := gauge()) != len(got) and time.monotonic() < deadline:
+            time.sleep(0.2)
+    assert n == len(got) == len(expected_ids(root)) > 0
+    with ServeProcess(args) as again:
+        _wait_ready(port)
+        deadline = time.monotonic() + 10
+        while (n := gauge()) != len(got) and time.monotonic() < deadline:
+            time.sleep(0.2)
+    assert n == len(got)  # no fetch made: from the corpus index the first epoch filled
+    assert f"counted: {len(got)} samples per epoch)" in again.log, again.log
+
+
+def _wait_ready(port):
+    deadline = time.monotonic() + 60
+    while _get(port, "/readyz")[0] != 200:  # workers up, socket bound, corpus scanned
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+
+
 def test_progress_line_shows_videos_rate_fetches_and_workers(capsys):
     from v2v_server.ops.metrics import ServerMetrics
 
@@ -381,15 +423,13 @@ def test_progress_line_shows_videos_rate_fetches_and_workers(capsys):
     finally:
         m.close()
     assert ServerMetrics(progress=False)._progress is None
-    # an epoch's size known at start (the corpus index): a bounded run shows the bar's total
+    # an epoch's size, once the plan knows it: the line names it
     m = ServerMetrics(progress=True)
     try:
-        m.set_epoch_samples(10, epochs=3)
         m._progress._last -= 2.0
         m.on_batch_sent(4, 1000)
-        m.set_state(**state)
-        assert m._progress.bar.total == 30 and m._progress.line.startswith("10 samples/epoch, 3 videos")
-        assert "4/30 samples" in str(m._progress.bar)
+        m.set_state(**state, epoch_samples=10)
+        assert m._progress.line.startswith("10 samples/epoch, 3 videos")
     finally:
         m.close()
 

@@ -1,6 +1,6 @@
 """The training loop's GPU-facing options, checked on the CPU: bf16 autocast against float32,
 torch.compile, the perceptual stand-in recorded and refused on request, the losses read only at
-the logging interval, and the compact flow grid made dense on the training device."""
+the logging interval, and a batch's host -> device conversion."""
 from __future__ import annotations
 
 import csv
@@ -16,7 +16,6 @@ from trainer.core import Trainer
 from trainer.data import batch_to_device
 from trainer.models.lpips import STAND_IN, LPIPSUnavailable
 from trainer.train import main as train_main
-from v2v_client import expand_flow_grid
 
 TINY = {"e2vid": {"num_bins": 3, "base_num_channels": 4}, "evflow": {"num_bins": 3, "base_num_channels": 4}}
 
@@ -92,14 +91,16 @@ def test_require_lpips_refuses_the_stand_in(tmp_path, caplog):
     assert rc == 2 and "not training with the 1 - SSIM stand-in" in caplog.text
 
 
-def test_compact_flow_grid_is_made_dense_on_the_device():
+def test_a_batch_reaches_the_device_as_float32_from_its_wire_dtypes_with_the_flow_tail():
     g = torch.Generator().manual_seed(0)
-    grid = torch.randn(2, 4, 2, 8, 8, generator=g) * 3
-    batch = {"voxels": torch.zeros(2, 4, 3, 20, 28, dtype=torch.int8), "flow_grid": grid}
-    b = batch_to_device(batch, torch.device("cpu"), ("voxels", "flow"))
-    assert b["flow"].shape == (2, 4, 2, 20, 28) and b["flow"].dtype == torch.float32
-    assert torch.equal(b["flow"], expand_flow_grid(grid, (20, 28)))
-    b = batch_to_device(batch, torch.device("cpu"), ("voxels", "flow"), flow_from=2)
-    assert torch.equal(b["flow"], expand_flow_grid(grid[:, 2:], (20, 28)))
-    with pytest.raises(KeyError, match="flow"):
-        batch_to_device({"voxels": batch["voxels"]}, torch.device("cpu"), ("voxels", "flow"))
+    voxels = torch.randint(-5, 6, (2, 4, 3, 20, 28), dtype=torch.int8, generator=g)
+    frames = torch.randint(0, 256, (2, 5, 1, 20, 28), dtype=torch.uint8, generator=g)
+    flow = (torch.randn(2, 4, 2, 20, 28, generator=g) * 3).half()
+    batch = {"voxels": voxels, "frames": frames, "flow": flow, "sample_ids": ["a#0", "a#1"]}
+    b = batch_to_device(batch, torch.device("cpu"), ("frames", "flow"), flow_from=2)
+    assert set(b) == {"voxels", "frames", "flow"} and all(t.dtype == torch.float32 for t in b.values())
+    assert torch.equal(b["voxels"], voxels.float())
+    assert torch.equal(b["frames"], frames.float() / 255)
+    assert torch.equal(b["flow"], flow[:, 2:].float())
+    with pytest.raises(KeyError, match="stream batch lacks 'flow'"):
+        batch_to_device({"voxels": voxels}, torch.device("cpu"), ("voxels", "flow"))

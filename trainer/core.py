@@ -277,7 +277,7 @@ class Trainer:
         (a list, say: ``trainer.data.make_loader``). Checkpoints carry the read path's
         ``state_dict()`` (a ``ReadAhead``'s: the position of the last batch trained on); with
         ``tensorboard``, event files too, their ``recipe`` the stream's ``info`` (the server's
-        welcome) when it has one. ``startup``: the caller's start-up phases (seconds), added to
+        stream info) when it has one. ``startup``: the caller's start-up phases (seconds), added to
         the summary's ``startup_s``. Returns the summary of ``trainer.loop.train_loop``, its
         ``feed`` line with the server's figures where it reports them (``server_feed``)."""
         from torch.utils.data import DataLoader

@@ -34,9 +34,9 @@ def make_stream(endpoint: str, task: str, timeout_s: float = 60.0, raw: bool = T
                 outputs: Optional[Sequence[str]] = None) -> PlanEpochs:
     """The stream of ``endpoint`` (one server, or several shards: ``"tcp://a:5555,tcp://b:5555"``)
     asking only for ``outputs`` (default: ``task``'s; a run's are ``tasks.stream_outputs(cfg)``),
-    by ``v2v_client.open_stream``: :class:`PlanEpochs` over a ``v2v_client.V2VStreamDataset``, in
-    batches of the server's ``batch_size``. ``curve_keys``: (client secret key file, server
-    public key file), as in the dataset.
+    by ``v2v_client.plan_dataset.open_stream``: :class:`PlanEpochs` over a
+    ``v2v_client.V2VStreamDataset``, in batches of the server's ``batch_size``. ``curve_keys``:
+    (client secret key file, server public key file), as in the dataset.
 
     Raises:
         TimeoutError: no server answered at ``endpoint`` within ``timeout_s``.
@@ -70,23 +70,12 @@ def _to_float(name: str, t: torch.Tensor) -> torch.Tensor:
     return t.float()
 
 
-def _array_for(batch: dict, output: str) -> Optional[str]:
-    """The batch array that carries ``output``: its own, else a compact form of it
-    (``outputs.ArraySpec.expand``: ``flow_grid`` for ``flow``); None when the batch has neither."""
-    if output in batch:
-        return output
-    return next((s.name for s in ARRAYS.values() if s.output == output and s.expand and s.name in batch), None)
-
-
 def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], flow_from: Optional[int] = None) -> dict:
     """Move the ``outputs`` of a stream batch (and its ``voxels``, the models' input) to
     ``device`` with non-blocking copies and convert them to float32 there (``_to_float``).
 
     With ``flow_from`` given, only ``flow[:, flow_from:]`` is transferred (E2VID's temporal
-    consistency loss uses the last part of the sequence only). A batch with ``flow_grid``
-    (B, L, 2, n, n) in place of ``flow`` (``compact_flow``) has the grid transferred and made
-    dense on the device (``v2v_client.expand_flow_grid``, the crop size of the voxels).
-    Copies are non-blocking when the device is CUDA (from pinned memory: ``make_loader``).
+    consistency loss uses the last part of the sequence only). Copies are non-blocking when the device is CUDA (from pinned memory: ``make_loader``).
 
     Returns a dict with float32 ``voxels`` (B, L, num_bins, H, W), ``frames`` (B, L+1, 1,
     H, W) in [0, 1], ``flow`` (B, L', 2, H, W) pixels and ``polarity_counts`` (B, L, 2,
@@ -96,29 +85,28 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
         KeyError: naming an output of ``outputs`` the batch lacks.
     """
     nb = device.type == "cuda"
-    names = {key: _array_for(batch, key) for key in dict.fromkeys(("voxels", *outputs))}
+    keys = tuple(dict.fromkeys(("voxels", *outputs)))
     for key in outputs:
-        if names[key] is None:
+        if key not in batch:
             raise KeyError(f"stream batch lacks {key!r} (has {sorted(batch)}); the task needs {tuple(outputs)}")
     out = {}
-    for key, name in names.items():
-        t = batch[name][:, flow_from:] if key == "flow" and flow_from is not None else batch[name]
-        t = _to_float(name, t.to(device, non_blocking=nb))
-        if ARRAYS[name].expand:  # a compact form (flow_grid): made dense on the device
-            from v2v_client import expand_flow_grid
-
-            t = expand_flow_grid(t, tuple(out["voxels"].shape[-2:]))
-        out[key] = t
+    for key in keys:
+        t = batch[key][:, flow_from:] if key == "flow" and flow_from is not None else batch[key]
+        out[key] = _to_float(key, t.to(device, non_blocking=nb))
     return out
 
 
 def drop_padding(batch: dict) -> Tuple[dict, int]:
-    """The batch without its padding samples, and how many real samples remain.
+    """The batch without its padding rows, and how many rows with a sample remain.
 
-    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks samples repeated only
-    to give every DDP rank the same batch count: they must not enter the loss. Tensors and
-    lists whose leading length is B are subset; other entries (``epoch``, ``batch_id``) are
-    kept as they are. Without ``padding`` (or with none set) the batch is returned unchanged.
+    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks the rows that hold no
+    sample to learn from, which must not enter the loss: in a plan's batch
+    (``V2VStreamDataset``) a row without a sample, zeros with sample id None (past the epoch's end,
+    or a window the file did not give); in a Ray batch (``v2v_server.ray_data``) a row of a
+    window the file did not give, or one of the epoch's first samples listed again so that every
+    rank reads as many rows. Tensors and lists whose leading length is B are subset (``padding``
+    too); other entries (``epoch``, ``position``) are kept as they are. Without ``padding`` (or
+    with none set) the batch is returned unchanged.
     """
     pad = batch.get("padding")
     n = len(batch["voxels"]) if "voxels" in batch else len(batch.get("sample_ids", ()))

@@ -5,9 +5,12 @@
 PyYAML); the names that make tensors (``V2VStreamDataset``, ``PlanEpochs``, ``ReadAhead``,
 ``batch_to_torch``, ``expand_flow_grid``, ``prepare_loader``, ``PlanServerError``) import torch
 when first used (``pip install 'v2v[client]'``). Names of the push delivery v2v no longer has
-(``V2VPushDataset``, ``StreamLoader``, ...) raise ImportError in one line saying what to use.
+(``V2VPushDataset``, ``StreamLoader``, ...) raise ImportError in one line saying what to use
+(``v2v_wire.push_names``).
 """
 from importlib import import_module
+
+from v2v_wire.push_names import client_name_problem
 
 __all__ = ["V2VStreamDataset", "PlanServerError", "batch_to_torch", "expand_flow_grid", "prepare_loader",
            "PlanEpochs", "ReadAhead"]
@@ -17,16 +20,6 @@ _TORCH_NAMES = {"V2VStreamDataset": "plan_dataset", "PlanServerError": "plan_dat
                 "batch_to_torch": "tensors", "expand_flow_grid": "flowgrid", "prepare_loader": "plan_accelerate",
                 "ReadAhead": "read_ahead"}
 
-#: Names of push delivery, which v2v no longer has -> what to use instead (docs/delivery.md).
-REMOVED = {
-    "V2VPushDataset": "V2VStreamDataset",
-    "StreamLoader": "torch's DataLoader(V2VStreamDataset(...), batch_size=None)",
-    "ResumeState": "a batch's 'position' (V2VStreamDataset.state_dict / load_state_dict)",
-    "PushServerError": "PlanServerError",
-    "StreamError": "PlanServerError",
-    "StreamTimeout": "TimeoutError",
-    "dist_position": "V2VStreamDataset (its rank and world_size come from torch.distributed)",
-}
 
 
 def __getattr__(name: str):
@@ -37,9 +30,8 @@ def __getattr__(name: str):
             not installed (the message says which install brings it).
         AttributeError: no such name.
     """
-    if name in REMOVED:
-        raise ImportError(f"v2v_client.{name} was removed with push delivery: use {REMOVED[name]} "
-                          "(docs/delivery.md)", name=name)
+    if client_name_problem(name):
+        raise ImportError(client_name_problem(name), name=name)
     module = _TORCH_NAMES.get(name)
     if module is None:
         raise AttributeError(f"module 'v2v_client' has no attribute {name!r}")

@@ -209,7 +209,7 @@ class Link:
         self.sock.setsockopt(zmq.LINGER, 0)
         if is_ipv6(endpoint):  # tcp://[::1]:PORT: without it the connect is never made and every ask times out
             self.sock.setsockopt(zmq.IPV6, 1)
-        if curve is not None:  # (client public, client secret, server public), connection.load_curve_keys
+        if curve is not None:  # (client public, client secret, server public), endpoints.load_curve_keys
             self.sock.curve_publickey, self.sock.curve_secretkey, self.sock.curve_serverkey = curve
         self.sock.connect(endpoint)
         self.ids = itertools.count(1)
@@ -274,8 +274,9 @@ def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: fl
 
 
 def _refusal(endpoint: str, msg: Refused) -> Exception:
-    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's, else ``PlanServerError``."""
-    if "another plan" in msg.message:
+    """The error a fetch's refusal raises: ``PlanMismatch`` for another plan's (code ``"plan"``), else
+    ``PlanServerError``."""
+    if msg.code == "plan":
         return PlanMismatch(f"{endpoint}: {msg.message}")
     return PlanServerError(f"{endpoint}: {msg.message}")
 
@@ -430,6 +431,16 @@ class Shards:
         except ProtocolError as e:
             raise PlanServerError(f"{link.endpoint}: rows of step {what[1]}: {e}") from None
         flight.parts[what[1]][k] = (msg, arrays)
+
+    def served(self, rows: Rows) -> Dict[str, int]:
+        """{server endpoint: rows of ``rows`` (one step's, merged) holding a sample it served}, by
+        the interleave (global position t is shard t mod N's)."""
+        served: Dict[str, int] = {}
+        n = len(self.links)
+        for (k, _), pad in zip(interleaved(rows.start, rows.start + len(rows.padding), n), rows.padding):
+            if not pad:
+                served[self.links[k].endpoint] = served.get(self.links[k].endpoint, 0) + 1
+        return served
 
     def _merged(self, f: Fetch, got: dict):
         """One ``Rows`` and its arrays for global positions ``f.start .. f.stop - 1`` from each

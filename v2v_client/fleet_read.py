@@ -185,6 +185,7 @@ class Fleet:
         self.resolved = time.monotonic()
         self.manifest: Optional[Manifest] = None
         self.like: Optional[Dict[str, np.ndarray]] = None  # one row of each array: a padding row's zeros
+        self._served: Tuple[Optional[Rows], Dict[str, int]] = (None, {})  # the last step's rows by host
 
     def __enter__(self) -> "Fleet":
         return self
@@ -407,7 +408,7 @@ class Fleet:
             if (video, o) in got:
                 continue  # another copy came first
             row = {name: a[j] for name, a in arrays.items()}
-            got[(video, o)] = (msg.sample_ids[j], msg.padding[j], msg.params[j], row)
+            got[(video, o)] = (msg.sample_ids[j], msg.padding[j], msg.params[j], row, ep)
             if not msg.padding[j] and self.like is None:
                 self.like = row
         for req, (h, ords, _) in list(v.flight.items()):  # copies of what is now read
@@ -429,7 +430,7 @@ class Fleet:
         rows = []
         for key in keys:
             if key is None:
-                rows.append((None, True, {"padding": "past the epoch's end"}, None))
+                rows.append((None, True, {"padding": "past the epoch's end"}, None, None))
             elif (key.video, key.ordinal(kpw)) in got:
                 rows.append(got[(key.video, key.ordinal(kpw))])
             else:
@@ -445,4 +446,14 @@ class Fleet:
                   for name in like}
         out = Rows(0, epoch, start, [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows], [],
                    len(plan) if plan.complete else None)
+        served: Dict[str, int] = {}
+        for r in rows:
+            if not r[1]:
+                served[r[4]] = served.get(r[4], 0) + 1
+        self._served = (out, served)
         return out, arrays
+
+    def served(self, rows: Rows) -> Dict[str, int]:
+        """{host endpoint: rows of ``rows`` (the step last yielded) holding a sample it made}."""
+        last, served = self._served
+        return dict(served) if rows is last else {}

@@ -10,6 +10,7 @@ import time
 from typing import List, Optional
 
 from v2v_wire.protocol import DEFAULT_OUTPUTS
+from v2v_wire.push_names import LOADTEST_FLAGS, loadtest_flag_problem
 
 from .plan_dataset import open_stream
 from .read_ahead import ReadAhead
@@ -29,8 +30,9 @@ def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, timeout_s: flo
     the measured part), ``batches_per_s``, ``samples_per_s``, ``mbytes_per_s`` (MB = 1e6
     bytes of tensors delivered), ``wait_fraction`` (share of the time spent waiting for
     data), ``epochs_seen``, ``ended_early`` (the server ended the stream first), and
-    ``per_server``: {endpoint: {``batches``, ``samples``, ``samples_per_s``, ``mbytes_per_s``}}
-    over the same measured wall time.
+    ``per_server``: {endpoint: {``samples``, ``samples_per_s``, ``share``}}, each server's
+    samples of those counted (each batch's ``servers``: the rows each shard served), over the
+    same measured wall time; its ``samples`` sum to ``samples``.
     """
     stream = ReadAhead(open_stream(endpoint, outputs=outputs, timeout_s=timeout_s))  # as v2v-train reads
     it = iter(stream)
@@ -62,10 +64,8 @@ def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, timeout_s: flo
             epochs.add(b["epoch"])
             bb = sum(v.numel() * v.element_size() for k, v in b.items() if hasattr(v, "numel"))
             nbytes += bb
-            src = per.setdefault(str(b.get("endpoint", endpoint)), {"batches": 0, "samples": 0, "bytes": 0})
-            src["batches"] += 1
-            src["samples"] += len(served)
-            src["bytes"] += bb
+            for server, k in b["servers"].items():
+                per[server] = per.get(server, 0) + k
             if step_s > 0:
                 time.sleep(step_s)
     finally:
@@ -79,8 +79,8 @@ def run_loadtest(endpoint, batches: int, outputs=DEFAULT_OUTPUTS, timeout_s: flo
         "seconds": round(secs, 4), "batches_per_s": n / secs, "samples_per_s": samples / secs,
         "mbytes_per_s": nbytes / 1e6 / secs, "wait_fraction": waited / secs if n else 1.0,
         "epochs_seen": sorted(epochs), "ended_early": ended, "step_s": step_s,
-        "per_server": {ep: {"batches": v["batches"], "samples": v["samples"], "samples_per_s": v["samples"] / secs,
-                            "mbytes_per_s": v["bytes"] / 1e6 / secs} for ep, v in sorted(per.items())},
+        "per_server": {ep: {"samples": k, "samples_per_s": k / secs, "share": k / samples}
+                       for ep, k in sorted(per.items())},
     }
 
 
@@ -89,8 +89,8 @@ def format_report(r: dict) -> str:
            f"{r['batches_per_s']:.2f} batches/s, {r['samples_per_s']:.2f} samples/s, "
            f"{r['mbytes_per_s']:.1f} MB/s, waiting {100 * r['wait_fraction']:.0f}% of the time")
     if len(r.get("per_server", {})) > 1:
-        out += "".join(f"\n  {ep}: {v['batches']} batches, {v['samples_per_s']:.2f} samples/s, "
-                       f"{v['mbytes_per_s']:.1f} MB/s" for ep, v in r["per_server"].items())
+        out += "".join(f"\n  {ep}: {v['samples']} samples, {v['samples_per_s']:.2f} samples/s "
+                       f"({100 * v['share']:.0f}%)" for ep, v in r["per_server"].items())
     return out
 
 
@@ -102,17 +102,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--batches", type=int, default=20, help="batches to measure (default 20)")
     p.add_argument("--warmup", type=int, default=1, help="batches read before measuring (default 1)")
     p.add_argument("--outputs", default="voxels,frames,flow", help="comma list of outputs to ask for")
-    p.add_argument("--credits", help=argparse.SUPPRESS)  # push delivery's: refused in one line
+    for flag in LOADTEST_FLAGS:  # push delivery's: refused in one line
+        p.add_argument(flag, dest=f"push_{flag.lstrip('-')}", help=argparse.SUPPRESS)
     p.add_argument("--timeout", type=float, default=60.0, help="seconds of server silence before failing")
     p.add_argument("--step-ms", type=float, default=0.0, help="simulated training step per batch, ms")
     p.add_argument("--json", action="store_true", help="print one JSON object on the last line")
     a = p.parse_args(argv)
     if a.batches < 1:
         p.error("--batches must be >= 1")
-    if a.credits is not None:
-        print("v2v-loadtest: --credits was push delivery's, which v2v no longer has: drop it (docs/delivery.md)",
-              file=sys.stderr)
-        return 2
+    for flag in LOADTEST_FLAGS:
+        if getattr(a, f"push_{flag.lstrip('-')}") is not None:
+            print(f"v2v-loadtest: {loadtest_flag_problem(flag)}", file=sys.stderr)
+            return 2
     try:
         r = run_loadtest(",".join(a.connect or ["tcp://127.0.0.1:5555"]), a.batches, tuple(s for s in a.outputs.split(",") if s),
                          a.timeout, a.step_ms / 1000.0, a.warmup)

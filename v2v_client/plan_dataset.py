@@ -37,9 +37,10 @@ from typing import Dict, Iterator, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from v2v_wire.plan import PlanIdentity, PlanMismatch, Position
+from v2v_wire.plan import PlanIdentity, PlanMismatch, Position, batch_positions, epoch_steps
 from v2v_wire.plan_messages import Fetch, PlanInfo, Rows
 from v2v_wire.protocol import DEFAULT_OUTPUTS, check_outputs
+from v2v_wire.push_names import READER_SETTINGS, reader_settings_problem, resume_state_problem
 
 from . import plan_accelerate
 from .endpoints import load_curve_keys
@@ -47,8 +48,6 @@ from .fetch import PlanServerError, Servers
 from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "PlanEpochs", "open_stream", "PlanServerError"]
-
-
 
 
 class V2VStreamDataset(torch.utils.data.IterableDataset):
@@ -72,8 +71,10 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
     Each item is a dict: the tensors of ``batch_to_torch`` with a leading axis of ``batch_size``,
     ``padding`` (bool (B,): rows that carry no sample, zeros: past the epoch's end or a window the
     file did not give), ``sample_ids`` (None for a row past the end), ``params``, ``epoch``,
-    ``step``, and ``position``: the checkpoint after this step (``Position.to_dict``), the same on
-    every rank; :meth:`load_state_dict` takes it, at any world size and batch size.
+    ``step``, ``servers`` ({server endpoint: rows of this batch holding a sample it served}, one
+    entry per shard read), and ``position``: the checkpoint after this step
+    (``Position.to_dict``), the same on every rank; :meth:`load_state_dict` takes it, at any
+    world size and batch size.
     :meth:`state_dict` is what this process has read (the state torchdata's ``StatefulDataLoader``
     snapshots per DataLoader worker).
 
@@ -89,7 +90,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
                  prefetch: int = 2, retry_s: float = 10.0, timeout_s: float = 120.0,
                  curve_keys: Optional[Tuple[str, str]] = None, compression: str = "auto", **push_settings):
         super().__init__()
-        _refuse_push(push_settings)
+        _refuse_settings(push_settings)
         _check_settings(1 if batch_size is None else batch_size, prefetch, retry_s, timeout_s)
         self._servers = Servers(endpoint, compression)  # a bad endpoint or codec: an error here
         self.curve = load_curve_keys(*curve_keys) if curve_keys else None  # bad key files: an error here
@@ -262,7 +263,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
             TypeError: the epoch's samples are not known yet (learned from each video's first
             decode), as for a dataset without a length."""
         self._control.adopt(self)
-        steps = _steps(self.plan_info(refresh=True).samples, self.start, self.world_size * self.batch_size)
+        steps = epoch_steps(self.plan_info(refresh=True).samples, self.world_size, self.batch_size, self.start)
         if steps is None:
             raise TypeError(f"{self.endpoint}: {_LENGTH_UNKNOWN}")
         return steps * plan_accelerate.dispatcher_asking_len(self)
@@ -285,24 +286,26 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         if layout is None:  # accelerate reads the loader on process 0 only
             return
         (rank, world, g), (epoch, origin, first) = layout, _start_of(pending, self.epoch, self.start, j)
+        size = self.batch_size
         r = {"epoch": epoch, "origin": origin, "next": first, "last": None, "worker": j, "workers": k,
-             "rank": rank, "world": world, "group": g, "per_step": world * self.batch_size}
+             "rank": rank, "world": world, "group": g, "per_step": world * size}
         self._reading, self._upcoming = r, None
         info = self.plan_info(refresh=True)
         if pending is not None:
             Position.from_dict(pending["position"], expected=info.plan)
-        steps = _steps(info.samples, r["origin"], r["per_step"])
+        steps = epoch_steps(info.samples, world, size, r["origin"])
         items = range(r["next"], steps * g, k) if steps is not None else itertools.count(r["next"], k)
         group = []  # under dispatch: this process's items of the current step, packed together
         with self._servers.link(self.timeout_s, self.curve) as link:
             for i, rows, arrays in link.fetch_all(
                     items, self.prefetch, self.retry_s,
-                    lambda req, i: Fetch(req, r["epoch"], *_rows(r, i, self.batch_size), self.outputs, info.plan),
-                    lambda i: r["origin"] + (i // g) * r["per_step"]):
-                steps = steps if steps is not None else _steps(rows.samples, r["origin"], r["per_step"])
+                    lambda req, i: Fetch(req, r["epoch"], *_rows(r, i, size), self.outputs, info.plan),
+                    lambda i: batch_positions(i // g, 0, world, size, r["origin"]).start):
+                steps = steps if steps is not None else epoch_steps(rows.samples, world, size, r["origin"])
                 if steps is not None and i // g >= steps:
                     break  # past the epoch's end, learned from the rows (fetched ahead)
-                item = _item(info, r, i // g, rows, arrays, self.raw)
+                item = _item(info, r, i // g, size, rows, arrays, self.raw)
+                item["servers"] = link.served(rows)
                 if r["last"] is None:  # who reads the pass: after a worker's yield, what the loop took is unknown
                     self._control.mark_workers_yielded(self._seen if w is not None else -1)
                 if g == 1:
@@ -329,13 +332,13 @@ def _layout(rank: Optional[int], world: Optional[int]) -> Tuple[int, int]:
     return rank, world
 
 
-def _item(info: PlanInfo, r: dict, step: int, rows: Rows, arrays, raw: bool) -> Dict:
-    """The dataset's item of ``step`` (the class docstring), read as ``r`` says."""
+def _item(info: PlanInfo, r: dict, step: int, batch_size: int, rows: Rows, arrays, raw: bool) -> Dict:
+    """The dataset's item of ``step`` (the class docstring), read as ``r`` says in batches of ``batch_size``."""
     crop = info.stream.get("crop_size")
     item = batch_to_torch(arrays, raw, (crop, crop) if crop else None, info.stream.get("flow_dtype", "float16"))
-    after = r["origin"] + (step + 1) * r["per_step"]
+    after = Position(info.plan, r["epoch"], r["origin"]).after(step + 1, r["world"], batch_size)
     item.update(padding=torch.tensor(rows.padding, dtype=torch.bool), sample_ids=rows.sample_ids,
-                params=rows.params, epoch=r["epoch"], step=step, position=Position(info.plan, r["epoch"], after).to_dict())
+                params=rows.params, epoch=r["epoch"], step=step, position=after.to_dict())
     return item
 
 
@@ -413,25 +416,14 @@ class _Control:
         return int(self._words()[1]) == generation
 
 
-
-
-
-
-#: The removed push delivery's reader settings, which a plan has no use for: given here, they are
-#: refused in one line.
-PUSH_SETTINGS = ("credits", "heartbeat_s", "reconnect", "reconnect_timeout_s", "group", "shm", "compact_flow")
-
-
-
-
-def _refuse_push(settings: dict) -> None:
-    """One line for a setting only the removed push delivery read."""
+def _refuse_settings(settings: dict) -> None:
+    """Refuse keyword arguments beyond the dataset's own: ``TypeError`` for one no reader takes,
+    else ``ValueError`` in one line for push delivery's (``push_names.READER_SETTINGS``)."""
     for name in settings:
-        if name not in PUSH_SETTINGS:
+        if name not in READER_SETTINGS:
             raise TypeError(f"V2VStreamDataset() got an unexpected keyword argument {name!r}")
     if settings:
-        raise ValueError(f"{', '.join(sorted(settings))}: setting(s) of push delivery, which v2v no longer has "
-                         f"(docs/delivery.md): drop them")
+        raise ValueError(reader_settings_problem(settings))
 
 
 def open_stream(endpoint, *, outputs: Sequence[str] = DEFAULT_OUTPUTS, raw: bool = False, timeout_s: float = 60.0,
@@ -500,11 +492,6 @@ def _check_settings(batch_size: int, prefetch: int, retry_s: float, timeout_s: f
 
 _LENGTH_UNKNOWN = ("the epoch's length is not known yet: the server learns each video's windows from its first "
                    "decode (v2v-serve --check counts them ahead)")
-
-
-def _steps(samples: Optional[int], origin: int, per_step: int) -> Optional[int]:
-    """Steps from position ``origin`` to the end of an epoch of ``samples`` (None: not known yet)."""
-    return None if samples is None else max(0, -(-(samples - origin) // per_step))
 
 
 def _pending_of(pos: Position, reader: dict, world: int, batch_size: int) -> dict:
@@ -579,12 +566,13 @@ def _read_layout(dispatch: Optional[tuple], layout: Tuple[int, int]) -> Optional
 
 
 def _rows(r: dict, i: int, batch_size: int) -> Tuple[int, int]:
-    """Global positions ``[start, stop)`` of item ``i`` of an iteration read as ``r`` says: under
-    the dispatcher step ``i // group``'s rank ``i % group``, else step ``i`` of this rank."""
+    """Global positions ``[start, stop)`` of item ``i`` of an iteration read as ``r`` says
+    (``v2v_wire.plan.batch_positions`` at its ``world``, from its ``origin``): under the
+    dispatcher step ``i // group``'s rank ``i % group``, else step ``i`` of this rank."""
     g = r["group"]
-    s, rank = divmod(i, g) if g > 1 else (i, r["rank"])
-    first = r["origin"] + s * r["per_step"] + rank * batch_size
-    return first, first + batch_size
+    step, rank = divmod(i, g) if g > 1 else (i, r["rank"])
+    rows = batch_positions(step, rank, r["world"], batch_size, r["origin"])
+    return rows.start, rows.stop
 
 
 def _loaded_position(state, info: Optional[PlanInfo]) -> Position:
@@ -592,13 +580,12 @@ def _loaded_position(state, info: Optional[PlanInfo]) -> Position:
     the server was asked already (None: not yet).
 
     Raises:
-        PlanMismatch: a resume state of the removed push delivery (one line saying what to resume from), a
-            malformed position (naming the field), or one of another plan than ``info``'s.
+        PlanMismatch: a resume state of push delivery (one line saying what to resume from:
+            ``push_names.resume_state_problem``), a malformed position (naming the field), or one
+            of another plan than ``info``'s.
     """
-    if isinstance(state, dict) and "delivered" in state and "plan" not in state:
-        raise PlanMismatch(f"a resume state of push delivery, which v2v no longer has (consumer {state.get('consumer')!r}, completed epoch "
-                           f"{state.get('completed_epoch')!r}) is not a plan's position: resume from a batch's "
-                           f"'position', or read an epoch from its start with set_epoch()")
+    if resume_state_problem(state):
+        raise PlanMismatch(resume_state_problem(state))
     pos = Position.from_dict(state)
     if info is not None:
         Position.from_dict(state, expected=info.plan)
@@ -628,13 +615,5 @@ def _check_layout(rank: int, world_size: int) -> None:
         raise ValueError(f"world_size must be an int >= 1, got {world_size!r}")
     if not isinstance(rank, int) or isinstance(rank, bool) or not 0 <= rank < world_size:
         raise ValueError(f"rank must be in 0..{world_size - 1}, got {rank!r}")
-
-
-
-
-
-
-
-
 
 

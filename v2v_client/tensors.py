@@ -1,10 +1,12 @@
-"""A batch's wire arrays as torch tensors: the one module of the client's network side that
-needs torch (``pip install 'v2v[client]'``); the connection, its protocol handling and
-``v2v_wire`` import without it and hand over numpy arrays."""
+"""A batch's wire arrays as torch tensors (torch: ``pip install 'v2v[client]'``). The reader
+(``plan_dataset``) imports this module, so it needs torch too; what a reader without torch has is
+``v2v_wire`` (the messages, ``plan_messages``, and the arrays they carry, as numpy arrays:
+``codecs.decode_batch_arrays``) and the client's endpoint handling (``endpoints``), which import
+without it (``tests/test_client_install.py`` reads a server's rows so in a venv without torch)."""
 from __future__ import annotations
 
 import warnings
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import torch
@@ -14,7 +16,7 @@ from v2v_wire.protocol import ProtocolError
 
 from .flowgrid import expand_flow_grid
 
-__all__ = ["batch_to_torch", "select_samples"]
+__all__ = ["batch_to_torch"]
 
 
 def _view(a: np.ndarray) -> torch.Tensor:
@@ -25,7 +27,7 @@ def _view(a: np.ndarray) -> torch.Tensor:
 
 
 def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False, flow_size: Optional[Tuple[int, int]] = None,
-                   flow_dtype: str = ARRAYS["flow"].dtypes[0], compact_flow: bool = False) -> Dict[str, torch.Tensor]:
+                   flow_dtype: str = ARRAYS["flow"].dtypes[0]) -> Dict[str, torch.Tensor]:
     """Convert wire arrays of one batch to tensors, as their ``outputs.ArraySpec`` says.
 
     With ``raw=False``: ``voxels`` float32 (B, L, num_bins, H, W) event counts; ``frames``
@@ -37,11 +39,9 @@ def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False, flow_size: 
     (``.to(device)`` and ``.float()`` copy); convert on the GPU.
 
     A tracked flow option's flow arrives as ``flow_grid`` float32 (B, L, 2, n, n), its values
-    at the tracking grid's points: with ``compact_flow`` it is kept so (a float32 tensor;
-    expand it on the GPU with ``flowgrid.expand_flow_grid``), else it becomes ``flow``
-    (B, L, 2, *flow_size*) with the server's own bilinear taps (``flowgrid``): float32, or
-    ``flow_dtype`` (the server's dense flow dtype) with ``raw``, equal to the dense flow the
-    server would have sent.
+    at the tracking grid's points: it becomes ``flow`` (B, L, 2, *flow_size*) with the
+    server's own bilinear taps (``flowgrid``): float32, or ``flow_dtype`` (the server's dense
+    flow dtype) with ``raw``, equal to the dense flow the server would have sent.
 
     Raises:
         ProtocolError: an unknown array, a ``flow_grid`` of the wrong shape, or one with no
@@ -55,7 +55,7 @@ def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False, flow_size: 
         if spec.insert_channel:
             a = np.expand_dims(a, spec.channel_axis + 1)  # + 1: the batch axis
         if spec.expand:
-            out.update(_expand(name, a, raw, flow_size, flow_dtype, compact_flow))
+            out.update(_expand(name, a, raw, flow_size, flow_dtype))
         elif raw:
             out[name] = _view(a)
         elif spec.float_divisor is not None:
@@ -65,30 +65,15 @@ def batch_to_torch(arrays: Dict[str, np.ndarray], raw: bool = False, flow_size: 
     return out
 
 
-def _expand(name: str, a: np.ndarray, raw: bool, flow_size, flow_dtype: str, compact: bool) -> Dict[str, torch.Tensor]:
-    """A compact array (``flow_grid`` float32 (B, L, 2, n, n)) as a tensor: kept compact, or
-    expanded to the dense output it carries (see :func:`batch_to_torch`)."""
+def _expand(name: str, a: np.ndarray, raw: bool, flow_size, flow_dtype: str) -> Dict[str, torch.Tensor]:
+    """A compact array (``flow_grid`` float32 (B, L, 2, n, n)) expanded to the dense output it
+    carries (see :func:`batch_to_torch`)."""
     spec = ARRAYS[name]
     if a.ndim != 5 or a.shape[2] != 2 or a.shape[3] != a.shape[4] or a.shape[3] < 2 or a.dtype.name not in spec.dtypes:
         raise ProtocolError(f"array {name!r} must be {spec.dtypes[0]} (B, L, 2, n, n), got {a.dtype}{list(a.shape)}")
-    if compact:
-        return {name: _view(a) if raw else torch.from_numpy(a.copy())}
     if flow_size is None:
-        raise ProtocolError(f"a {name!r} array, but the server's welcome named no crop_size to expand it to")
+        raise ProtocolError(f"a {name!r} array, but the server's stream info named no crop_size to expand it to")
     dense = ARRAYS[spec.output].dtypes  # the dense output's wire dtypes: torch has the same names
     dtype = getattr(torch, flow_dtype) if raw and flow_dtype in dense else torch.float32
     return {spec.output: expand_flow_grid(_view(a), flow_size, dtype)}
-
-
-def select_samples(item: dict, keep: List[int]) -> dict:
-    """The samples at positions ``keep`` of a batch: its tensors indexed along the batch axis,
-    ``sample_ids`` and ``params`` likewise; other entries as they are."""
-    idx = torch.as_tensor(keep, dtype=torch.long)
-    out = dict(item)
-    for k, v in item.items():
-        if isinstance(v, torch.Tensor):
-            out[k] = v.index_select(0, idx)
-    out["sample_ids"] = [item["sample_ids"][i] for i in keep]
-    out["params"] = [item["params"][i] for i in keep]
-    return out
 

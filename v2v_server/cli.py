@@ -15,9 +15,9 @@ from v2v_server.service.plan_server import PlanServer, install_signal_handlers
 from v2v_server.ops.logs import LEVELS, setup_logging
 from v2v_server.frames.check import check_corpus, format_check
 from v2v_server.frames.corpus_index import index_path
-from v2v_server.delivery.policy import REMOVED, removed_problem
 from v2v_server.sources.errors import StoreError
 from v2v_server.ops.warm import cache_line, format_warm, warm_cache
+from v2v_wire.push_names import SERVER_KEYS, server_key_problem
 
 
 log = logging.getLogger("v2v.serve")
@@ -41,18 +41,18 @@ def build_parser() -> argparse.ArgumentParser:
     for title, part in (("sample recipe", SampleRecipe), ("delivery", DeliveryPolicy), ("serving", ServingSettings),
                         ("object store", StoreSettings)):
         add_flags(p, part, title)
-    for name, (flags, _) in REMOVED.items():  # push delivery's: refused in one line by main
+    for name, (flags, _) in SERVER_KEYS.items():  # push delivery's: refused in one line by main
         p.add_argument(*flags, dest=f"removed_{name}", nargs="?", const="", default=None, help=argparse.SUPPRESS)
     return p
 
 
 def _removed_flag(args: argparse.Namespace) -> str:
-    """One line for the first flag given of push delivery's (``REMOVED``), else ``""``
-    (``--delivery plan`` is what every server does: taken)."""
-    for name, (flags, _) in REMOVED.items():
+    """One line for the first flag given of push delivery's (``push_names.SERVER_KEYS``), else
+    ``""`` (``--delivery plan`` is what every server does: taken, ``push_names.TAKEN``)."""
+    for name, (flags, _) in SERVER_KEYS.items():
         value = getattr(args, f"removed_{name}")
-        if value is not None and not (name == "delivery_mode" and value == "plan"):  # what it is anyway
-            return removed_problem(flags[0])
+        if value is not None and server_key_problem(name, value):
+            return server_key_problem(name, value)
     return ""
 
 

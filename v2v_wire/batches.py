@@ -1,11 +1,10 @@
 """A batch on the wire: its arrays stacked from samples that may arrive in different widths, and
-the array specs and frames of a ``batch`` message, plain or as the workers' compressed frames.
+the array specs and frames of a ``rows`` message, plain or as the workers' compressed frames.
 
-The server's relay (``v2v_server.service.assembly.BatchPayload``) holds a batch's samples or
-its stacked arrays; what its header's ``arrays`` list and its frames hold is decided here, next
-to the rest of the contract: the array specs (``protocol.encode_arrays``), a compressed array's
-spec (``codecs.packed_specs``, read back by ``codecs.decode_batch_arrays``) and the narrowing
-of voxels (``outputs.narrowest``).
+The server's loop (``v2v_server.service.plan_server``) holds a fetch's samples; what its
+answer's ``arrays`` list and its frames hold is decided here, next to the rest of the contract:
+the array specs (``protocol.encode_arrays``), a compressed array's spec (``codecs.packed_specs``,
+read back by ``codecs.decode_batch_arrays``) and the narrowing of voxels (``outputs.narrowest``).
 """
 from __future__ import annotations
 

@@ -1,11 +1,12 @@
 """Per-array compression on the wire: what a worker compresses and a client decompresses.
 
-A client chooses in its hello (``"compression"``, one of ``COMPRESSIONS``); the server's
-workers compress each array of each sample once per codec some connected client asked for
-(``pack``) and the server's main process forwards those frames by reference, untouched. A
-compressed array of a batch goes as one frame per sample, described in the batch header's
-array spec by ``"codec"`` and ``"parts"`` (``[dtype, compressed bytes]`` per sample, in sample
-order; see ``protocol.py``); :func:`decode_batch_arrays` turns them back into (B, ...) arrays.
+A reader names it in each fetch (``"compression"``, one of ``COMPRESSIONS``); the server's
+workers compress each array of each sample once per codec a fetch asked for in the last 2 minutes
+(``pack``; ``plan_server.CODEC_KEEP_S``) and the server's main process forwards those frames by
+reference, untouched. A compressed array of a ``rows`` message goes as one frame per row holding
+a sample, described in the header's array spec by ``"codec"`` and ``"parts"`` (``[dtype,
+compressed bytes]`` per sample, in row order; see ``protocol.py``); :func:`decode_batch_arrays`
+turns them back into (B, ...) arrays.
 
 Codecs (measured on real samples, one core, ``python -m bench.wire``; docs/wire.md):
 

@@ -2,7 +2,7 @@
 
 A sample is named by its :class:`SampleKey` ``(video, window, crop)``: the video's path relative
 to the corpus root (POSIX), the window index and the crop index inside the window (0 .. K - 1
-with K = ``crops_per_window``). The plan, the server's feed and the workers' messages carry
+with K = ``crops_per_window``). The plan, the server's scheduler and the workers' messages carry
 keys. The string form, the *sample id*, is made and read only at the edges (logs,
 the ``sample_ids`` of a batch): the path, ``#``, the window index and, when K > 1,
 ``.`` and the crop index: ``clips/a.mp4#3`` or ``clips/a.mp4#3.1``. The *ordinal*
@@ -12,7 +12,7 @@ Pure: no I/O, no numpy.
 """
 from __future__ import annotations
 
-from typing import Dict, Iterable, Iterator, List, NamedTuple
+from typing import List, NamedTuple
 
 
 class SampleKey(NamedTuple):
@@ -104,43 +104,3 @@ def parse_sample_id(sample_id: str, crops_per_window: int = 1) -> SampleKey:
         form = "path#window" if crops_per_window == 1 else f"path#window.crop (crop < {crops_per_window})"
         raise ValueError(f"sample id {sample_id!r} is not of the form {form}")
     return SampleKey(video, int(window), c)
-
-
-def parse_sample_ids(sample_ids: Iterable[str], crops_per_window: int = 1) -> List[SampleKey]:
-    """The keys of the well-formed ids among ``sample_ids`` (others are left out: a resume
-    state names samples of another corpus or recipe only by mistake, and that costs nothing)."""
-    out = []
-    for sid in sample_ids:
-        try:
-            out.append(parse_sample_id(sid, crops_per_window))
-        except ValueError:
-            continue
-    return out
-
-
-def compact_ids(sample_ids: Iterable[str]) -> str:
-    """Sample ids as one string, one video per line: ``path#3,4,7`` (``path#3.0,3.1`` with
-    crops), sorted. What a resume hello carries: the path is written once per video, so a
-    trainer's millions of ids fit in a message. The inverse is :func:`expand_ids`."""
-    by_video: Dict[str, List[str]] = {}
-    for sid in sample_ids:
-        video, _, tail = sid.rpartition("#")
-        by_video.setdefault(video, []).append(tail)
-    return "\n".join(f"{v}#{','.join(sorted(t, key=_tail_key))}" for v, t in sorted(by_video.items()))
-
-
-def _tail_key(tail: str):
-    w, _, c = tail.partition(".")
-    return (int(w) if w.isdigit() else -1, int(c) if c.isdigit() else -1, tail)
-
-
-def expand_ids(text: str) -> Iterator[str]:
-    """The sample ids of :func:`compact_ids` output (one plain id per line is read as is).
-    The part after a line's last ``#`` never holds a comma, so paths may."""
-    for line in text.split("\n"):
-        video, sep, tails = line.rpartition("#")
-        if not sep:
-            yield line
-            continue
-        for tail in tails.split(","):
-            yield f"{video}#{tail}"

@@ -30,8 +30,9 @@ The contract (docs/delivery.md):
   others' are.
 * **Ranks and steps**: at world size ``n`` and per-rank batch size ``b``, rank ``r``'s batch at
   step ``s`` of an epoch started at position ``p0`` is the positions
-  ``p0 + (s * n + r) * b`` .. ``+ b``. Every rank has :meth:`EpochPlan.steps` steps; positions
-  past the epoch's last sample are *padding* rows (no sample: ``None`` keys).
+  ``p0 + (s * n + r) * b`` .. ``+ b`` (:func:`batch_positions`). Every rank has
+  :func:`epoch_steps` steps; positions past the epoch's last sample are *padding* rows (no
+  sample: ``None`` keys).
 * **A checkpoint is a position** (:class:`Position`): the plan's identity, the epoch and the
   number of the epoch's samples every rank together consumed. It is the same on every rank and
   resumes at any world size and batch size: the next step starts at that position.
@@ -51,7 +52,7 @@ import numpy as np
 from v2v_wire.ids import SampleKey
 
 __all__ = ["PLAN_VERSION", "SHUFFLE_BUFFER", "video_order", "Manifest", "PlanIdentity", "EpochPlan", "Position",
-           "PlanMismatch", "NotKnownYet", "distinct_videos"]
+           "PlanMismatch", "NotKnownYet", "distinct_videos", "epoch_steps", "batch_positions"]
 
 #: The version of the rules above: a plan of another version gives another sequence, or names
 #: its corpus otherwise (version 3: the manifest's fingerprint covers each video's tag), so a
@@ -409,31 +410,33 @@ class EpochPlan:
         sample of a :attr:`complete` plan."""
         return min(len(self), position + self.shuffle_buffer) if self.complete else position + self.shuffle_buffer
 
-    def steps(self, world_size: int, batch_size: int, start: int = 0) -> int:
-        """Steps every rank takes from position ``start`` to the epoch's end:
-        ``ceil((len - start) / (world_size * batch_size))`` (0 when nothing is left).
 
-        Raises:
-            ValueError: ``world_size`` or ``batch_size`` < 1, or ``start`` < 0.
-            NotKnownYet: the plan is not :attr:`complete`.
-        """
-        _check_layout(world_size, batch_size, start)
-        return max(0, -(-(len(self) - start) // (world_size * batch_size)))
+def epoch_steps(samples: Optional[int], world_size: int, batch_size: int, start: int = 0) -> Optional[int]:
+    """Steps every rank takes from position ``start`` to the end of an epoch of ``samples``
+    samples (``len`` of its :class:`EpochPlan`): ``ceil((samples - start) / (world_size *
+    batch_size))``, 0 when nothing is left; None while ``samples`` is None (not known yet).
 
-    def batch_positions(self, step: int, rank: int, world_size: int, batch_size: int, start: int = 0) -> range:
-        """The positions of rank ``rank``'s batch at step ``step`` from ``start``:
-        ``start + (step * world_size + rank) * batch_size`` and the ``batch_size - 1`` after it.
-        Positions at or past :func:`len` are padding rows.
+    Raises:
+        ValueError: ``world_size`` or ``batch_size`` < 1, or ``start`` < 0.
+    """
+    _check_layout(world_size, batch_size, start)
+    return None if samples is None else max(0, -(-(samples - start) // (world_size * batch_size)))
 
-        Raises:
-            ValueError: a layout :meth:`steps` refuses, or ``rank`` outside 0 .. ``world_size - 1``,
-                or ``step`` < 0.
-        """
-        _check_layout(world_size, batch_size, start)
-        if not 0 <= rank < world_size or step < 0:
-            raise ValueError(f"plan: rank {rank} of world size {world_size}, step {step}: out of range")
-        first = start + (step * world_size + rank) * batch_size
-        return range(first, first + batch_size)
+
+def batch_positions(step: int, rank: int, world_size: int, batch_size: int, start: int = 0) -> range:
+    """The positions of rank ``rank``'s batch at step ``step`` from ``start``:
+    ``start + (step * world_size + rank) * batch_size`` and the ``batch_size - 1`` after it.
+    Positions at or past the epoch's length are padding rows.
+
+    Raises:
+        ValueError: a layout :func:`epoch_steps` refuses, or ``rank`` outside 0 .. ``world_size - 1``,
+            or ``step`` < 0.
+    """
+    _check_layout(world_size, batch_size, start)
+    if not 0 <= rank < world_size or step < 0:
+        raise ValueError(f"plan: rank {rank} of world size {world_size}, step {step}: out of range")
+    first = start + (step * world_size + rank) * batch_size
+    return range(first, first + batch_size)
 
 
 def _check_layout(world_size: int, batch_size: int, start: int) -> None:

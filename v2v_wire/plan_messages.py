@@ -5,9 +5,9 @@ A client asks a server what it serves (:class:`PlanAsk`, answered by :class:`Pla
 identity, samples per epoch and the stream's shapes), then fetches positions of an epoch
 (:class:`Fetch`), each answered by :class:`Rows` (a header, rows in position order, ``padding``
 true for a row without a sample; then the arrays of the rows with a sample only: a padding row
-costs no payload) or :class:`Refused` (one line: another plan, or a batch over the limit). The
-server keeps no record of either: a client that hears nothing asks again, and a late answer to a
-request it no longer waits for is dropped.
+costs no payload) or :class:`Refused` (one line, and a code from :data:`REFUSALS`: another plan,
+a batch over the limit, ...). The server keeps no record of either: a client that hears nothing
+asks again, and a late answer to a request it no longer waits for is dropped.
 
 Every decoder raises only :class:`WireError` (a ``ProtocolError``) naming the field, and bounds
 what one message may cost: its size before any decoding, every array to ``MAX_ARRAY_LEN``
@@ -15,8 +15,8 @@ elements and map to ``MAX_MAP_LEN`` pairs, the containers to ``MAX_CONTAINERS`` 
 decoding), so a peer gains nothing by nesting or widening. :class:`BadPeers` rate-limits the log
 lines about misbehaving peers and bans a peer that keeps sending garbage for a while.
 
-A client of an older protocol (push delivery's ``hello``, ``ack``, ...) gets one ``error`` line at
-its own version, which it reads (:func:`old_client_answer`).
+A client of an older protocol (push delivery's handshake, or an older plan reader's) gets one
+``error`` line it reads (:func:`old_client_answer`).
 """
 from __future__ import annotations
 
@@ -28,9 +28,9 @@ from v2v_wire.plan import PlanIdentity, PlanMismatch
 from v2v_wire.protocol import PROTOCOL_VERSION, ProtocolError, check_outputs, version_problem
 from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
-__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Make", "ManifestAsk", "ManifestPart", "Rows", "Refused", "WireError",
-           "OldClient", "BadPeers", "MAX_FETCH_ROWS", "MANIFEST_PART", "decode_plan_client", "plan_server_message",
-           "old_client_answer"]
+__all__ = ["PlanAsk", "PlanInfo", "Fetch", "Make", "ManifestAsk", "ManifestPart", "Rows", "Refused", "REFUSALS",
+           "WireError", "OldClient", "BadPeers", "MAX_FETCH_ROWS", "MANIFEST_PART", "decode_plan_client",
+           "plan_server_message", "old_client_answer"]
 
 #: Largest element count of any array in a message.
 MAX_ARRAY_LEN = 4096
@@ -284,37 +284,60 @@ class Rows:
                    _optional_int(h, "samples"), _optional_int(h, "windows"))
 
 
+#: Why a server refuses a message (``Refused.code``), each asking something else of the reader:
+#: ``"plan"``: the fetch names another plan than the one served (the reader's position or its
+#: servers are wrong; the reader raises ``PlanMismatch``); ``"bad"``: a message that cannot be read
+#: (malformed, oversized, a field out of range); ``"outputs"``: an output the server does not serve
+#: (``--outputs``); ``"compression"``: a codec whose library the server lacks; ``"too_big"``: a batch
+#: with an array over ``MAX_BATCH_BYTES``; ``"make"``: a make naming a video the plan lacks or a
+#: sample past the video's windows.
+REFUSALS = ("plan", "bad", "outputs", "compression", "too_big", "make")
+
+
 @dataclass(frozen=True)
 class Refused:
     """Server -> client: fetch ``request`` (-1: the message named none) is refused; ``message``
-    says why in one line (another plan, a malformed fetch)."""
+    says why in one line, ``code`` which of :data:`REFUSALS` it is (what a reader acts on: the
+    line is for people)."""
 
     request: int
     message: str
+    code: str
 
     def to_wire(self) -> dict:
-        return {"type": "refused", "request": self.request, "message": self.message}
+        return {"type": "refused", "request": self.request, "message": self.message, "code": self.code}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Refused":
         if not isinstance(h.get("message"), str):
             raise WireError("refused: field 'message' must be a string")
-        return cls(_int(h, "request", -1), h["message"])
+        if h.get("code") not in REFUSALS:
+            raise WireError(f"refused: field 'code' must be one of {list(REFUSALS)}, got {h.get('code')!r:.40}")
+        return cls(_int(h, "request", -1), h["message"], h["code"])
 
 
 class OldClient(WireError):
-    """A message of an older protocol version (a client of an older v2v: push delivery's
-    ``hello``, ``ack``, ..., or an older plan reader's); ``version``: the one it speaks."""
+    """A message of an older protocol version (a client of an older v2v: push delivery's, or an
+    older plan reader's ``plan_ask`` or ``fetch``); ``version``: the one it speaks; ``kind``: its
+    message type."""
 
-    def __init__(self, message: str, version: int):
+    def __init__(self, message: str, version: int, kind: object = None):
         super().__init__(message)
         self.version = version
+        self.kind = kind
+
+
+#: The message types of a plan reader (:class:`PlanAsk`, :class:`Fetch`), at every version.
+_PLAN_READER_TYPES = ("plan_ask", "fetch")
 
 
 def old_client_answer(e: OldClient) -> dict:
-    """The one-line ``error`` an :class:`OldClient` is answered with, at its own protocol version
-    (every earlier client reads ``error``'s ``message``)."""
-    return {"v": e.version, "type": "error", "code": "version", "message": f"this v2v server: {e}"}
+    """The one-line ``error`` an :class:`OldClient` is answered with. A push client reads
+    ``error``'s ``message`` at its own version, so it is told at that version; an older plan
+    reader checks a message's version before its type, so it is told at this server's version
+    and names both versions itself."""
+    version = PROTOCOL_VERSION if e.kind in _PLAN_READER_TYPES else e.version
+    return {"v": version, "type": "error", "code": "version", "message": f"this v2v server: {e}"}
 
 
 def decode_plan_client(frame, max_bytes: int):
@@ -331,7 +354,7 @@ def decode_plan_client(frame, max_bytes: int):
     v = h.get("v")
     if v != PROTOCOL_VERSION:
         if isinstance(v, int) and not isinstance(v, bool) and 0 < v < PROTOCOL_VERSION:
-            raise OldClient(version_problem(v), v)
+            raise OldClient(version_problem(v), v, h.get("type"))
         raise WireError(version_problem(v))
     kind = h.get("type")
     if kind == "plan_ask":

@@ -11,11 +11,12 @@ Message types (``PROTOCOL_VERSION``; typed and checked in ``plan_messages`` and
 
 * client -> server: ``plan_ask``; ``fetch`` (epoch, positions ``start``..``stop``, outputs,
   compression, the plan identity it reads under). A client message is at most
-  ``MAX_CLIENT_MSG`` bytes.
+  ``MAX_CLIENT_MSG`` bytes (a fetch is a few hundred).
 * server -> client: ``plan`` (identity, samples per epoch, stream info: also ``shard``,
   ``corpus`` and ``recipe`` fingerprints), ``rows`` (ids, padding flags, params, one frame per
-  array for the rows holding a sample), ``refused`` (one line), ``error`` (to a client of an
-  older protocol, at its version, so that it reads the line).
+  array for the rows holding a sample), ``refused`` (one line, and a code a reader acts on:
+  ``plan_messages.REFUSALS``), ``error`` (to a client of an older protocol, in the version it
+  reads the line at: ``plan_messages.old_client_answer``).
 * worker -> server: ``ready``, ``sample``, ``done`` (windows, ``failed`` {window: reason},
   error, the exception that stopped the pass as ``failure``); server -> worker: ``task``,
   ``slot``, ``stop``.
@@ -43,17 +44,23 @@ import numpy as np
 
 # the per-output array contract lives in ``outputs`` (one ArraySpec per array); re-exported here
 from v2v_wire.outputs import ARRAY_OUTPUT, DEFAULT_OUTPUTS, OUTPUTS, narrow_int_dtype, output_of  # noqa: F401
+from v2v_wire.push_names import OLDER_PROTOCOL
 
 #: The wire protocol's version: 12 is delivery by plan (``plan_messages``: ``plan_ask`` / ``plan``,
-#: ``fetch`` / ``rows`` / ``refused``) with a fleet's reads (``make`` / ``rows``, ``manifest_ask`` /
-#: ``manifest``); a peer of another version is refused in one line (:func:`version_problem`).
+#: ``fetch`` / ``rows`` / ``refused``, a refusal carrying its code) with a fleet's reads (``make`` /
+#: ``rows``, ``manifest_ask`` / ``manifest``); a peer of another version is refused in one line
+#: (:func:`version_problem`).
 PROTOCOL_VERSION = 12
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
-#: Largest message a client may send the server, bytes; a resume hello lists the sample ids a
-#: trainer already has, grouped per video (a few bytes per id: millions fit). The server's
-#: socket takes up to twice this (ZMQ_MAXMSGSIZE), so a larger hello gets a clear error.
-MAX_CLIENT_MSG = 16 * 1024 * 1024
+#: Largest message a client may send the server, bytes. A client sends ``plan_ask`` and ``fetch``
+#: only, each of a fixed set of fields: the largest fetch (every output, every int at its largest,
+#: the plan identity's two 16-digit fingerprints) packs to 244 bytes. 4 KiB leaves room for more
+#: fields and bounds what any peer makes the server decode, and echo in a refusal, to a few KiB
+#: (``tests/test_plan_refusals.py``). The server's socket takes up to twice this (ZMQ_MAXMSGSIZE):
+#: a larger message up to that is refused in one line, ZeroMQ cuts the connection of a peer
+#: sending more.
+MAX_CLIENT_MSG = 4096
 #: Largest message or array frame the server sends, bytes: a batch message as the client's socket
 #: accepts it (ZMQ_MAXMSGSIZE), a batch's decoded arrays, and a worker's compressed frame.
 MAX_BATCH_BYTES = 1 << 31
@@ -85,7 +92,7 @@ def is_ipv6(endpoint: str) -> bool:
 
 
 def check_outputs(outputs, field: str = "outputs") -> Tuple[str, ...]:
-    """The outputs a configuration, a dataset or a hello asks for, checked against ``OUTPUTS``
+    """The outputs a configuration, a dataset or a fetch asks for, checked against ``OUTPUTS``
     and put in its (wire) order.
 
     Args:
@@ -176,8 +183,7 @@ def version_problem(version, expect_version: int = PROTOCOL_VERSION) -> str:
     older = isinstance(version, int) and version < expect_version
     return (f"protocol version {version!r:.20}, expected {expect_version}: the peer runs "
             f"{'an older' if older else 'another'} v2v; install the same version on both sides"
-            + (" (delivery is by plan only now: a push server or V2VPushDataset is gone, docs/delivery.md)"
-               if older else ""))
+            + (f" ({OLDER_PROTOCOL})" if older else ""))
 
 
 _TAPS: Dict[tuple, tuple] = {}

@@ -78,13 +78,14 @@ class Task:
     """Server -> worker: make the samples of ``video`` for ``epoch``.
 
     Attributes:
-        task: the task's id (``schedule.EpochScheduler``), echoed in every reply.
+        task: the task's id (the server numbers its tasks, ``delivery/plan_schedule.py``), echoed in every reply.
         epoch: the epoch (samples depend on seed, epoch and sample id only).
         video: the corpus-relative path.
         outputs: the outputs to make (``protocol.OUTPUTS`` order).
-        skip: ``(window, crop)`` of each sample of the video not to make (already delivered).
-        codecs: what to compress each sample with (``codecs.COMPRESSIONS``, those the connected
-            clients asked for).
+        skip: ``(window, crop)`` of each sample of the video not to make (the server holds it,
+            or knows it failed, for this epoch already).
+        codecs: what to compress each sample with (``codecs.COMPRESSIONS``, those fetches asked
+            for in the last 2 minutes, ``plan_server.CODEC_KEEP_S``).
     """
 
     task: int
@@ -197,7 +198,8 @@ class Done:
 
     Attributes:
         task: the task's id.
-        windows: complete windows the file gave (``schedule.EpochScheduler.task_done``).
+        windows: complete windows the file gave (the server learns the video's slots from them,
+            ``delivery/plan_schedule.py``).
         failed: window (its digits, as a string) -> why that window cannot be made.
         error: why the pass gave fewer windows than it should (``window_pass.VideoPass.reason``), or None.
         cause: that reason's cause as a code, one of :data:`CAUSES` (``""`` without one).

@@ -1,2 +1,2 @@
 """Delivery by plan, pure and clocked from outside: what workers make ahead of the readers'
-fetches and what a fetch is answered with (``plan_feed``), and the delivery settings (``policy``)."""
+fetches and what a fetch is answered with (``plan_schedule``), and the delivery settings (``policy``)."""

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Optional, Tuple, Union
 
 from v2v_server.checks import check_bool, check_choice, check_float, check_int
-from v2v_server.delivery.policy import DeliveryPolicy, removed_problem
+from v2v_server.delivery.policy import DeliveryPolicy
 from v2v_server.samples.recipe import SampleRecipe
 from v2v_server.settings import documented, load_yaml, owners, reference_markdown, setting, split_keys
 from v2v_server.frames.host_caches import HostCaches
@@ -26,6 +26,7 @@ from v2v_server.sources.source_spec import open_source
 from v2v_server.sources.store import StoreSettings
 from v2v_server.sources.video_tables import TABLE_FORMATS, TableSettings, table_format
 from v2v_wire.protocol import is_loopback  # noqa: F401  (config's checks and sockets use it)
+from v2v_wire.push_names import TAKEN, server_key_problem
 
 __all__ = ["SampleRecipe", "DeliveryPolicy", "ServingSettings", "ServeConfig", "load_config", "parse_shard",
            "source_from_config"]
@@ -170,10 +171,10 @@ class ServeConfig:
 
     def __init__(self, **keys):
         for key, value in list(keys.items()):
-            if key == "delivery_mode" and value == "plan":  # what every server does
-                keys = {k: v for k, v in keys.items() if k != key}
-            elif removed_problem(key):
-                raise ValueError(removed_problem(key))
+            if key in TAKEN and value == TAKEN[key]:  # what every server does
+                del keys[key]
+            elif server_key_problem(key):  # push delivery's
+                raise ValueError(server_key_problem(key))
         given = split_keys(ServeConfig, keys)
         recipe = SampleRecipe(**given["recipe"])
         for name, part in zip(self.__slots__, (recipe, DeliveryPolicy(**given["delivery"]),

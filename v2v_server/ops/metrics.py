@@ -118,7 +118,6 @@ class ServerMetrics:
         self._expo_at = 0.0
         self.port: Optional[int] = None
         self._progress: Optional[_Progress] = None
-        self._epoch_samples = 0  # 0: not known at start
         if sys.stderr.isatty() if progress is None else progress:
             try:  # tqdm draws the line when it is made: a terminal already gone leaves it off
                 self._progress = _Progress()
@@ -131,13 +130,6 @@ class ServerMetrics:
         self.samples_made.inc()
         if params is not None:
             self.sample_stats.observe(params)
-
-    def set_epoch_samples(self, n: int, epochs: Optional[int] = None) -> None:
-        """The samples one epoch holds, known at start (the corpus index), of a run of ``epochs``
-        (None: unbounded): the gauge ``v2v_epoch_samples`` and the progress line's total."""
-        self._epoch_samples = n
-        if self._progress is not None:
-            self._draw(lambda p: p.set_epoch_samples(n, epochs))
 
     def on_batch_sent(self, nsamples: int, nbytes: int) -> None:
         self.batches_sent.inc()
@@ -233,9 +225,11 @@ class ServerMetrics:
 
     def set_state(self, **state) -> None:
         """The server's state after a loop turn: ``pending_fetches``, ``workers``, ``workers_busy``,
-        ``epoch_videos``, ``shuffle_samples`` and ``shuffle_capacity`` (samples made ahead and
-        how many may wait), and ``ready`` (socket bound,
-        corpus scanned, a worker up). Also the liveness tick for ``/healthz``."""
+        ``epoch_videos``, ``epoch_samples`` (the samples every epoch lists, once the plan knows
+        every video's: from the corpus index at start, else from the decodes; None before),
+        ``shuffle_samples`` and ``shuffle_capacity`` (samples made ahead and how many may wait),
+        and ``ready`` (socket bound, corpus scanned, a worker up). Also the liveness tick for
+        ``/healthz``."""
         now = time.monotonic()
         with self._lock:
             self._state = state
@@ -256,7 +250,7 @@ class ServerMetrics:
 
     def snapshot(self) -> dict:
         with self._lock:
-            return {**self._state, "epoch_samples": self._epoch_samples}
+            return dict(self._state)
 
     def exposition(self, now: Optional[float] = None) -> bytes:
         """The Prometheus text of every metric, rendered at most once per ``EXPOSITION_S``
@@ -445,8 +439,8 @@ class _StateCollector:
             ("v2v_workers", "workers", "Worker processes alive"),
             ("v2v_workers_busy", "workers_busy", "Workers making samples of a video"),
             ("v2v_epoch_videos", "epoch_videos", "Videos of an epoch"),
-            ("v2v_epoch_samples", "epoch_samples", "Samples one epoch holds, as the corpus index knew at start "
-             "(0: not every video known)"),
+            ("v2v_epoch_samples", "epoch_samples", "Samples every epoch lists, once the plan knows every video's "
+             "(from the corpus index at start, else from the decodes); 0 before"),
             ("v2v_shuffle_buffer_samples", "shuffle_samples", "Samples made and waiting for their fetch"),
             ("v2v_shuffle_buffer_capacity_samples", "shuffle_capacity", "Samples the store keeps before it drops "
              "unfetched ones: those made ahead (shuffle_buffer) and those fetched (batch_size), beside the largest "
@@ -456,7 +450,7 @@ class _StateCollector:
             ("v2v_frame_cache_budget_bytes", "frame_cache_budget", "The frame cache's budget (frame_cache_gb), bytes"),
         ):
             g = GaugeMetricFamily(name, doc)
-            g.add_metric([], float(st.get(key, 0)))
+            g.add_metric([], float(st.get(key) or 0))
             yield g
         g = GaugeMetricFamily("v2v_ready", "1 when the socket is bound, the corpus scanned and a worker is up")
         g.add_metric([], 1.0 if self.m.ready() else 0.0)
@@ -475,27 +469,18 @@ class _Progress:
         self._last = time.monotonic()
         self._last_bytes = 0
         self.line = ""
-        self.per_epoch = ""  # the samples of an epoch, when known at start
 
     def add(self, nsamples: int, nbytes: int) -> None:
         self.bar.update(nsamples)
         self.nbytes += nbytes
-
-    def set_epoch_samples(self, n: int, epochs: Optional[int]) -> None:
-        """An epoch holds ``n`` samples: with a bounded run of ``epochs``, the bar counts to
-        ``n * epochs`` and shows the time left; unbounded, the line names ``n``."""
-        if epochs:
-            self.bar.total = n * epochs
-            self.bar.bar_format = "{n_fmt}/{total_fmt}{unit} [{elapsed}<{remaining}, {rate_fmt}]{postfix}"
-        self.per_epoch = f"{n} samples/epoch, "
-        self.bar.refresh()
 
     def show(self, now: float, st: dict) -> None:
         if now - self._last < 1.0:
             return
         mbs = (self.nbytes - self._last_bytes) / 1e6 / (now - self._last)  # over the last second or so
         self._last, self._last_bytes = now, self.nbytes
-        self.line = (f"{self.per_epoch}{st.get('epoch_videos', 0)} videos, {mbs:.1f} MB/s, "
+        per_epoch = f"{st['epoch_samples']} samples/epoch, " if st.get("epoch_samples") else ""
+        self.line = (f"{per_epoch}{st.get('epoch_videos', 0)} videos, {mbs:.1f} MB/s, "
                      f"{st.get('pending_fetches', 0)} fetch(es) waiting, workers busy "
                      f"{st.get('workers_busy', 0)}/{st.get('workers', 0)}, shuffle buffer "
                      f"{st.get('shuffle_samples', 0)}/{st.get('shuffle_capacity', 0)}")

@@ -4,7 +4,7 @@ identity unchanged), None for the others, and each one's tag (one ``stat`` of a 
 listing entry), which the plan's identity covers. Nothing is read at start: the plan unfolds as the
 server's decodes find the windows of the videos it does not know (``v2v_wire.plan.EpochPlan``),
 so a corpus never scanned costs no pass before its first batch. A decode never gives more windows
-than its slots (``delivery.plan_feed.SlotsExceeded`` names one that does). A video the index knows
+than its slots (``delivery.plan_schedule.SlotsExceeded`` names one that does). A video the index knows
 to give no window has 0 slots.
 """
 from __future__ import annotations

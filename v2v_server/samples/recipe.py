@@ -198,7 +198,8 @@ class SampleRecipe:
         _set(self, "nonidealities", ni.to_dict() if ni.enabled else {})
         if "polarity_counts" in self.outputs and (self.nonidealities or self.refine != "off"):
             # N+ and N- come from plain V2V's kernel call only: not offered under refinement or
-            # non-idealities (a client asking is told what is offered at its hello)
+            # non-idealities (the stream info lists the outputs served; a fetch naming another is
+            # refused in one line)
             if self.outputs != OUTPUTS:
                 raise ValueError("outputs: polarity_counts is made by plain V2V only (refine: off, no "
                                  f"nonidealities); got refine {self.refine!r}, nonidealities {self.nonidealities}")

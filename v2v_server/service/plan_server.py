@@ -4,7 +4,7 @@ Topology::
 
     workers (DEALER) --ipc--> [backend ROUTER]  server loop  [frontend ROUTER] <--tcp-- readers (DEALER)
 
-The decisions are ``delivery.plan_feed.PlanFeed``'s (pure); this loop moves bytes: client
+The decisions are ``delivery.plan_schedule.PlanScheduler``'s (pure); this loop moves bytes: client
 messages (``v2v_wire.plan_messages``: ``plan_ask``, ``fetch``) in, ``plan`` / ``rows`` /
 ``refused`` out; worker messages through ``worker_side.WorkerSide``. Workers are read whatever the clients do, so their task clock counts only
 their own silence. The server keeps no record of any client: a fetch names its rows, and a
@@ -21,7 +21,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
-from v2v_server.delivery.plan_feed import Order, PlanFeed, Row
+from v2v_server.delivery.plan_schedule import Order, PlanScheduler, Row
 from v2v_server.disk_cache import UsageScan
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
@@ -74,15 +74,15 @@ class PlanServer:
         d = cfg.delivery
         # made ahead: a shuffle buffer of samples; kept once fetched: a batch, for
         # a fetch asked again after a lost reply
-        self.feed = PlanFeed(manifest, cfg.seed, d.shuffle_buffer, cfg.outputs, lookahead=d.shuffle_buffer,
-                             keep_samples=d.batch_size, hedge_s=min(HEDGE_S, d.task_timeout_s),
-                             task_timeout_s=d.task_timeout_s)
+        self.scheduler = PlanScheduler(manifest, cfg.seed, d.shuffle_buffer, cfg.outputs, lookahead=d.shuffle_buffer,
+                                       keep_samples=d.batch_size, hedge_s=min(HEDGE_S, d.task_timeout_s),
+                                       task_timeout_s=d.task_timeout_s)
         self.identity = PlanIdentity(manifest.fingerprint(), cfg.recipe.fingerprint(), cfg.seed, d.shuffle_buffer,
                                      changes=plan_changes(caches.cache_dir, manifest))
         self.metrics = ServerMetrics()
         fc = caches.frame_cache
         self.frame_cache_scan = UsageScan(fc.disk, FRAME_CACHE_SCAN_S) if fc is not None else None
-        self.workers = WorkerSide(cfg, source, self.feed, self.metrics)
+        self.workers = WorkerSide(cfg, source, self.scheduler, self.metrics)
         self.skipped = dict(skipped or {})
         self.bad = BadPeers()
         self.codecs: Dict[str, float] = {}  # codec -> when a fetch last asked for it
@@ -141,7 +141,7 @@ class PlanServer:
             m = self.metrics.totals()
             log.info("stopped: %d fetches answered, %d samples made, %d worker restart(s), %d task timeout(s), "
                      "%d skipped file(s), %d epoch plan(s) built", m["batches_sent"], m["samples_made"],
-                     m["workers_restarted"], m["tasks_timed_out"], m["files_skipped"], self.feed.plans_built)
+                     m["workers_restarted"], m["tasks_timed_out"], m["files_skipped"], self.scheduler.plans_built)
 
     def _loop(self) -> int:
         front, back = self.sockets.frontend, self.sockets.backend
@@ -170,7 +170,7 @@ class PlanServer:
                 break
             self.workers.watch(now)
             self.workers.dispatch(now, sorted(k for k, t in self.codecs.items() if now - t < CODEC_KEEP_S))
-            for f, rows in self.feed.answer(now):
+            for f, rows in self.scheduler.answer(now):
                 self._send_rows(f, rows)
             self.metrics.tick(self._metrics_state)
         return 0
@@ -188,7 +188,7 @@ class PlanServer:
             return
         except WireError as e:
             self.metrics.on_bad_message()
-            self._send(ident, Refused(-1, f"bad message: {e}").to_wire())
+            self._send(ident, Refused(-1, f"bad message: {e}", "bad").to_wire())
             log_it, _ = self.bad.strike(ident, now)
             if log_it:
                 log.warning("bad message from client %s: %s", ident.hex()[:12], e)
@@ -202,27 +202,28 @@ class PlanServer:
         problem = self.identity.problem(msg.plan)
         missing = [o for o in msg.outputs if o not in self.cfg.outputs]
         if problem or missing or not available(msg.compression):
-            why = (f"fetch under {problem}" if problem else f"outputs {missing} are not served here (--outputs)"
-                   if missing else f"compression {msg.compression}: this server lacks its library (pip install "
-                   f"'v2v[wire]')")
-            self._send(ident, Refused(msg.request, why).to_wire())
+            code, why = (("plan", f"fetch under {problem}") if problem else
+                         ("outputs", f"outputs {missing} are not served here (--outputs)") if missing else
+                         ("compression", f"compression {msg.compression}: this server lacks its library (pip install "
+                          f"'v2v[wire]')"))
+            self._send(ident, Refused(msg.request, why, code).to_wire())
             return
         rows = msg.stop - msg.start if not isinstance(msg, Make) else len(msg.ordinals or ())
         too_big = self._too_big(rows, msg.outputs)
         if too_big:
-            self._send(ident, Refused(msg.request, too_big).to_wire())
+            self._send(ident, Refused(msg.request, too_big, "too_big").to_wire())
             return
         if msg.compression != "none":
             self.codecs[msg.compression] = now
         if isinstance(msg, Make):
             try:
-                self.feed.make((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.video, msg.ordinals,
-                               now, msg.outputs)
+                self.scheduler.make((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.video,
+                                    msg.ordinals, now, msg.outputs)
             except ValueError as e:
-                self._send(ident, Refused(msg.request, str(e)).to_wire())
+                self._send(ident, Refused(msg.request, str(e), "make").to_wire())
             return
-        self.feed.fetch((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.start, msg.stop, now,
-                        msg.outputs)
+        self.scheduler.fetch((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.start, msg.stop, now,
+                             msg.outputs)
 
     def _too_big(self, rows: int, outputs: Sequence[str]) -> Optional[str]:
         """Why a fetch of ``rows`` rows of ``outputs`` is refused: an array of the batch the reader
@@ -242,24 +243,24 @@ class PlanServer:
         part = self.manifest.slots[offset:offset + MANIFEST_PART]
         tags = list(self.manifest.tags[offset:offset + MANIFEST_PART]) if self.manifest.tags else [None] * len(part)
         return ManifestPart(offset, len(self.manifest.slots), self.manifest.crops_per_window, [v for v, _ in part],
-                            tags, [self.feed.slots.windows.get(v) for v, _ in part], bool(self.manifest.tags))
+                            tags, [self.scheduler.slots.windows.get(v) for v, _ in part], bool(self.manifest.tags))
 
     def _samples(self, epoch: int) -> Optional[int]:
         """The epoch's samples (every epoch lists the same), or None while the plan unfolds."""
-        plan = self.feed.plans.get(epoch)
+        plan = self.scheduler.plans.get(epoch)
         if plan is not None and plan.complete:
             return len(plan)
-        return self.feed.slots.epoch_samples
+        return self.scheduler.slots.epoch_samples
 
     def _send(self, ident: bytes, header: dict, frames: Sequence = ()) -> None:
         try:
             self.sockets.frontend.send_multipart([ident, pack(header), *frames], copy=False)
         except zmq.ZMQError:  # the client is gone (ROUTER_MANDATORY): it asks again if it comes back
-            for client in {f.client for f in self.feed.pending if f.client[0] == ident}:
-                self.feed.forget(client)
+            for client in {f.client for f in self.scheduler.pending + self.scheduler.orders if f.client[0] == ident}:
+                self.scheduler.forget(client)
 
     def _send_rows(self, f, rows: List[Row]) -> None:
-        """Answer fetch or make ``f`` (``plan_feed.Fetch`` or ``Order``) with ``rows``."""
+        """Answer fetch or make ``f`` (``plan_schedule.Pending`` or ``Order``) with ``rows``."""
         ident, outputs, codec = f.client
         real = [r for r in rows if r.sample is not None]
         specs, frames = self._encoded(real, outputs, codec)
@@ -268,7 +269,7 @@ class PlanServer:
                   for r in rows]
         made = isinstance(f, Order)
         head = Rows(f.request, f.epoch, 0 if made else f.start, ids, [r.padding for r in rows], params, specs,
-                    self._samples(f.epoch), self.feed.slots.windows.get(f.video) if made else None).to_wire()
+                    self._samples(f.epoch), self.scheduler.slots.windows.get(f.video) if made else None).to_wire()
         self._send(ident, head, frames)
         self.metrics.on_batch_sent(len(real), sum(frame_size(fr) for fr in frames))
 
@@ -293,9 +294,10 @@ class PlanServer:
 
     def _metrics_state(self) -> dict:
         alive = [w for w in self.workers.pool.workers.values() if w.proc.is_alive()] if self.workers.pool else []
-        return {"pending_fetches": len(self.feed.pending), "workers": len(alive),
+        return {"pending_fetches": len(self.scheduler.pending), "workers": len(alive),
                 "workers_busy": sum(1 for w in alive if not w.idle), "epoch_videos": len(self.manifest.slots),
-                "shuffle_samples": len(self.feed.store), "shuffle_capacity": self.feed.keep_samples + self.feed.lookahead,
+                "epoch_samples": self._samples(0), "shuffle_samples": len(self.scheduler.store),
+                "shuffle_capacity": self.scheduler.keep_samples + self.scheduler.lookahead,
                 **({} if (fc := self._frame_cache_usage()) is None else self.metrics.frame_cache_state(*fc)),
                 "ready": self.bound_endpoint is not None and bool(alive) and self.workers.seen}
 

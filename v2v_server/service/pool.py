@@ -1,7 +1,7 @@
 """The worker pool: spawn worker processes, notice deaths, replace dead or hung ones, stop them.
 
-The pool owns processes only; which task a worker runs is the scheduler's business
-(``schedule.py``), and messages travel on the server's backend socket. With ``shm`` on, it
+The pool owns processes only; which task a worker runs is the server's decision
+(``delivery/plan_schedule.py``), and messages travel on the server's backend socket. With ``shm`` on, it
 also owns each worker's shared-memory slot ring (``shm.SlotRing``): created before the
 spawn, unlinked by the worker once mapped (and by the pool when the worker dies or stops),
 unmapped here when the worker is gone. A restarted worker gets a fresh ring, so a crash never

@@ -109,7 +109,7 @@ def wire_arrays(recipe: SampleRecipe, arrays: dict) -> dict:
     int that holds every count, frames and polarity counts uint8, dense flow ``recipe.flow_dtype``,
     a tracked option's ``flow_grid`` float32). Counts that arrive narrowed by their producer
     (``simulate_voxels(narrow=True)``) are not scanned again; float16 is made by the vectorised
-    ``flow.to_float16`` (bit-identical to numpy's cast)."""
+    ``flow.estimate.to_float16`` (bit-identical to numpy's cast)."""
     out = {}
     for name, a in arrays.items():
         dt = wire_dtype(name, a, recipe.flow_dtype)

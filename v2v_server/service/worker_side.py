@@ -2,9 +2,9 @@
 
 ``WorkerSide`` reads the messages of the backend socket (``ready``, ``sample``, ``done``: typed and
 checked at the edge, ``v2v_wire.worker_messages``), asks
-the plan's feed (``delivery.plan_feed.PlanFeed``) what each means, gives slots back, hands idle
+the scheduler (``delivery.plan_schedule.PlanScheduler``) what each means, gives slots back, hands idle
 workers their tasks, and logs once per (file, reason) why a file, or the rest of it, is skipped
-this epoch. It decides nothing itself: the feed does; it owns no process: the pool does.
+this epoch. It decides nothing itself: the scheduler does; it owns no process: the pool does.
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from typing import Dict, List, Optional
 
 import zmq
 
-from v2v_server.delivery.plan_feed import PlanFeed
+from v2v_server.delivery.plan_schedule import PlanScheduler
 from v2v_server.ops.config import ServeConfig
 from v2v_server.ops.metrics import ServerMetrics
 from v2v_server.service.assembly import sample_from_slot, sample_from_worker
@@ -37,14 +37,14 @@ class WorkerSide:
     Args:
         cfg: the server's ``ServeConfig``.
         source: the corpus's ``sources.source.VideoSource`` (where a video lives, for log lines).
-        core: the plan's feed the reports go to.
+        scheduler: the scheduler the reports go to.
         metrics: counters of samples, restarts, timeouts and skipped files.
 
     ``attach(backend, pool)`` once the socket is bound and the pool started.
     """
 
-    def __init__(self, cfg: ServeConfig, source: VideoSource, core: PlanFeed, metrics: ServerMetrics):
-        self.cfg, self.source, self.core, self.metrics = cfg, source, core, metrics
+    def __init__(self, cfg: ServeConfig, source: VideoSource, scheduler: PlanScheduler, metrics: ServerMetrics):
+        self.cfg, self.source, self.scheduler, self.metrics = cfg, source, scheduler, metrics
         self.backend: Optional[zmq.Socket] = None
         self.pool: Optional[WorkerPool] = None
         self.skipped_files: Dict[str, str] = {}  # video -> the first reason it was skipped for
@@ -63,26 +63,25 @@ class WorkerSide:
                 pass
         self.pool.stop(send_stop)
 
-    def watch(self, now: float, reading: bool = True) -> None:
+    def watch(self, now: float) -> None:
         """Replace dead workers (their tasks go back to the queue) and hung ones: silent on a task
-        for ``task_timeout_s`` while read, or not ready ``max(START_S, task_timeout_s)`` seconds
-        after their spawn (a worker stopped or stuck before its first message holds no task to
-        time out, and would serve nothing for good). ``reading``: this loop turn read the workers;
-        called once per turn."""
+        for ``task_timeout_s``, or not ready ``max(START_S, task_timeout_s)`` seconds after their
+        spawn (a worker stopped or stuck before its first message holds no task to time out, and
+        would serve nothing for good). Called once per loop turn."""
         for ident, code in self.pool.reap():
             self.metrics.on_worker_restarted()
-            job = self.core.worker_lost(ident)
-            if job is not None:
+            run = self.scheduler.worker_lost(ident)
+            if run is not None:
                 log.warning("worker %s died (exit code %s); restarting; re-queued %s epoch %d", ident.decode(),
-                            code, job.video, job.epoch)
-                if job.error:
-                    self.log_failure(job.video, job.error)
+                            code, run.video, run.epoch)
+                if run.error:
+                    self.log_failure(run.video, run.error)
             else:
                 log.warning("worker %s died (exit code %s); restarting", ident.decode(), code)
-        for ident, job in self.core.timed_out(now, reading):
+        for ident, run in self.scheduler.timed_out(now):
             self.metrics.on_task_timed_out()
             log.warning("worker %s sent nothing on %s epoch %d for %.0f s; task reassigned, worker restarted",
-                        ident.decode(), job.video, job.epoch, self.cfg.task_timeout_s)
+                        ident.decode(), run.video, run.epoch, self.cfg.task_timeout_s)
             self.pool.replace(ident)
             self.metrics.on_worker_restarted()
         limit = max(START_S, self.cfg.task_timeout_s)
@@ -122,11 +121,11 @@ class WorkerSide:
         elif isinstance(msg, Sample):
             cpw = self.cfg.crops_per_window
             if msg.slot is not None and w.ring is not None:  # arrays in the worker's shared memory
-                build = lambda lane: sample_from_slot(msg, w.ring, frames[2:], cpw)  # noqa: E731
+                build = lambda: sample_from_slot(msg, w.ring, frames[2:], cpw)  # noqa: E731
             else:
-                build = lambda lane: sample_from_worker(msg, frames[2:], cpw)  # noqa: E731
+                build = lambda: sample_from_worker(msg, frames[2:], cpw)  # noqa: E731
             try:
-                kept = self.core.sample(ident, msg.task, msg.key, now, build)
+                kept = self.scheduler.sample(ident, msg.task, msg.key, now, build)
             except (ProtocolError, KeyError, TypeError, ValueError) as e:
                 log.error("bad sample from worker %s: %s", ident, e)
                 return
@@ -146,16 +145,16 @@ class WorkerSide:
             pass
 
     def on_done(self, w, msg: Done) -> None:
-        """A worker's task ended: the core is told; failed windows and a pass stopped early are
+        """A worker's task ended: the scheduler is told; failed windows and a pass stopped early are
         logged (an exception with its type and where it was raised)."""
-        job = self.core.done(w.ident, msg.task, msg.windows, msg.failed, msg.error, msg.cause)
-        if job is None:
+        run = self.scheduler.done(w.ident, msg.task, msg.windows, msg.failed, msg.error, msg.cause)
+        if run is None:
             return
         w.idle = True
         for k, why in sorted(msg.failed.items()):
-            self.log_failure(job.video, f"window {k}: {why}")
+            self.log_failure(run.video, f"window {k}: {why}")
         if msg.error:
-            self.log_failure(job.video, msg.error, served=msg.windows, failure=msg.failure, cause=msg.cause)
+            self.log_failure(run.video, msg.error, served=msg.windows, failure=msg.failure, cause=msg.cause)
 
     def log_failure(self, video: str, reason: str, served: int = 0, failure: Optional[Failure] = None,
                     cause: str = "") -> None:
@@ -183,7 +182,7 @@ class WorkerSide:
         """A task for each idle worker while there are tasks; ``codecs``: what the workers
         compress each sample with (the codecs connected clients asked for over sockets)."""
         for w in self.pool.idle():
-            task = self.core.task_for(w.ident, now, codecs)
+            task = self.scheduler.task_for(w.ident, now, codecs)
             if task is None:
                 return
             w.idle = False

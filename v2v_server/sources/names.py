@@ -38,7 +38,7 @@ def printable(path: Path) -> str:
     return "".join(repr(c)[1:-1] if _CONTROL.match(c) else c for c in text)
 
 
-#: Control characters (C0, DEL, C1): in a name they would end a log line or a resume hello's line.
+#: Control characters (C0, DEL, C1): in a name they would end a log line or a report's line.
 _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
 
 
@@ -54,8 +54,8 @@ def name_problem(name: str, what: str = "file name") -> Optional[str]:
 def control_character(name: str) -> Optional[str]:
     """Why ``name`` (a file, key or archive member path) cannot be a sample id's path: the
     first control character it holds (a newline, a tab...), escaped, with the reason; None
-    when it holds none. Sample ids travel newline-joined in a trainer's resume hello and are
-    written one per line in logs and reports."""
+    when it holds none. Sample ids are written one per line in logs and reports (``--check``'s
+    table, the server's log)."""
     m = _CONTROL.search(name)
     if m is None:
         return None

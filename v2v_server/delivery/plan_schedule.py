@@ -24,7 +24,7 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
   first those of epochs no fetch named for :data:`IDLE_S` (a job that left), oldest first. A
   fetch whose sample went makes it again.
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
-  that ends (:meth:`PlanFeed.learn`: the windows it found), and every plan kept unfolds with them
+  that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
   production order (:func:`unfolding`), decoded in turn: nothing is read but what is served.
 * **A pass that stops on an error** (``cause`` ``"error"``: a store that fails past its library's
@@ -38,7 +38,7 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
 * **A decode that gives more samples than the manifest's slots** is an error naming the video
   (:class:`SlotsExceeded`): the corpus index is stale, never a silent drop.
 
-Nothing here owns a socket, a clock or a process (``now`` is passed in); ``tests/test_plan_feed.py``
+Nothing here owns a socket, a clock or a process (``now`` is passed in); ``tests/test_plan_schedule.py``
 drives it with a seeded world of workers that stall, die and lag.
 """
 from __future__ import annotations
@@ -78,8 +78,8 @@ class SlotsExceeded(ValueError):
 
 
 @dataclass
-class Fetch:
-    """A client's request for positions ``start .. stop - 1`` of ``epoch``."""
+class Pending:
+    """A client's fetch of positions ``start .. stop - 1`` of ``epoch``, waiting for its rows."""
 
     client: Hashable
     request: int
@@ -274,59 +274,9 @@ def unfolding(plan: EpochPlan, stop: int, slots: Slots, made: Mapping[Tuple[int,
     return out
 
 
-def needed(pending: Sequence[Fetch], plan_of: Callable[[int], EpochPlan], plans: Mapping[int, EpochPlan],
-           store: Mapping, fetched: Set, failed: Mapping, runs: Mapping[Tuple[int, str], Run], slots: Slots,
-           lookahead: int, shuffle_buffer: int, fetched_to: Mapping[int, int] = {}, fetched_at: Mapping[int, float] = {},
-           now: float = 0.0) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
-    """(epoch, video) to decode: those ``pending`` fetches need a sample of (neither in ``store``
-    nor ``failed``), by the first position needing it, or, where a fetch's positions are not
-    decided yet, whose slots decide them (:func:`unfolding`); and those the positions after each
-    epoch's furthest fetch need (pending, or answered: ``fetched_to``, epoch -> the furthest stop
-    asked, for kept plans named at ``fetched_at`` within :data:`IDLE_S` of ``now`` and not followed
-    by a fetch of the next epoch), not in ``runs``, while the samples made ahead (stored and not
-    ``fetched``, or still to come from running tasks) stay within ``lookahead`` (module
-    docstring). Past an epoch's end the
-    next epoch's first positions are made ahead only while no fetch has named that epoch: once
-    one has, its own furthest fetch leads (what was fetched of it may have left the store)."""
-    made: Dict[Tuple[int, str], int] = {}
-    for (e, k) in list(store) + list(failed):
-        made[(e, k.video)] = made.get((e, k.video), 0) + 1
-    waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
-    live = {e: stop for e, stop in fetched_to.items() if e in plans and now - fetched_at[e] < IDLE_S}
-    furthest = {e: stop for e, stop in live.items() if e + 1 not in live}  # a reader's newest epoch
-    for f in pending:
-        plan = plan_of(f.epoch)
-        furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
-        for p in range(f.start, min(f.stop, plan.known)):
-            key = plan.key(p)
-            if (f.epoch, key) not in store and (f.epoch, key) not in failed:
-                ek = (f.epoch, key.video)
-                waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
-        if not plan.complete and f.stop > plan.known:
-            for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
-                waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
-    budget = lookahead - sum(1 for sk in store if sk not in fetched)
-    budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
-    ahead: List[Tuple[int, str]] = []
-    keep = set(furthest) | {e for e, _ in runs}
-    for epoch, stop in sorted(furthest.items()):
-        if budget <= 0:  # before positions_after, which may build the next epoch's plan
-            break
-        for e, video, key in positions_after(plan_of, plans, epoch, stop, lookahead + shuffle_buffer, keep):
-            if budget <= 0 or (e != epoch and (e in furthest or e in live)):
-                break
-            ek, n = (e, video), slots.samples.get(video)
-            if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
-                continue
-            if key is None and n is not None and made.get(ek, 0) >= n:
-                continue
-            ahead.append(ek)
-            budget -= slots.expected(video) - made.get(ek, 0)
-    return sorted(waited, key=waited.__getitem__), ahead
-
-
-class PlanFeed:
-    """The server's decisions when serving by plan (module docstring).
+class PlanScheduler:
+    """The server's scheduler when serving by plan: which video an idle worker decodes next,
+    which made samples it keeps, which fetches it answers (module docstring).
 
     Args:
         manifest: the corpus's slots (``v2v_wire.plan.Manifest``).
@@ -355,7 +305,7 @@ class PlanFeed:
         self.lookahead, self.keep_samples = lookahead, keep_samples
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
         self.plans: "OrderedDict[int, EpochPlan]" = OrderedDict()
-        self.pending: List[Fetch] = []
+        self.pending: List[Pending] = []
         self.orders: List[Order] = []  # makes waiting, in the order they came
         self.told: Dict[Tuple[int, str], float] = {}  # (epoch, video) -> when a make was told its windows
         self.store: "OrderedDict[Tuple[int, SampleKey], Any]" = OrderedDict()  # made, oldest or least recently fetched first
@@ -402,7 +352,7 @@ class PlanFeed:
         if self.making.ask(outputs):  # what is kept lacks an output
             self.store, self.fetched = OrderedDict(), set()
         self.plan(epoch)
-        self.pending.append(Fetch(client, request, epoch, start, stop))
+        self.pending.append(Pending(client, request, epoch, start, stop))
         self.fetched_at[epoch], self.fetched_to[epoch] = now, max(self.fetched_to.get(epoch, 0), stop)
 
     def make(self, client: Hashable, request: int, epoch: int, video: str, ordinals: Optional[Sequence[int]],
@@ -433,13 +383,13 @@ class PlanFeed:
 
     def answer(self, now: float) -> List[Tuple[Any, List[Row]]]:
         """Every pending fetch and make that can be answered at ``now``, with its rows
-        (:class:`Fetch` or :class:`Order`); they leave the queue, and their samples move to the
+        (:class:`Pending` or :class:`Order`); they leave the queue, and their samples move to the
         store's fetched end."""
         out, waiting, ordered = [], [], []
         for f in self.pending + self.orders:
-            rows = self._rows(f) if isinstance(f, Fetch) else self._order_rows(f)
+            rows = self._rows(f) if isinstance(f, Pending) else self._order_rows(f)
             if rows is None:
-                (waiting if isinstance(f, Fetch) else ordered).append(f)
+                (waiting if isinstance(f, Pending) else ordered).append(f)
                 continue
             out.append((f, rows))
             if isinstance(f, Order) and f.ordinals is None:
@@ -478,7 +428,7 @@ class PlanFeed:
                 out[(o.epoch, o.video)] = None
         return list(out)
 
-    def _rows(self, f: Fetch) -> Optional[List[Row]]:
+    def _rows(self, f: Pending) -> Optional[List[Row]]:
         plan = self.plan(f.epoch)
         rows = []
         if not plan.complete and f.stop > plan.known:
@@ -525,12 +475,60 @@ class PlanFeed:
             del self.store[sk]
 
     # ------------------------------------------------------------------ workers
+    def needed(self, now: float) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
+        """(epoch, video) to decode at ``now``: those the pending fetches need a sample of (neither
+        stored nor failed), by the first position needing it, or, where a fetch's positions are
+        not decided yet, whose slots decide them (:func:`unfolding`); and those the positions
+        after each epoch's furthest fetch need (pending, or answered: the furthest stop asked of
+        a kept plan a fetch named within :data:`IDLE_S` of ``now``, not followed by a fetch of
+        the next epoch), not being decoded, while the samples made ahead (stored and not fetched,
+        or still to come from running tasks) stay within ``lookahead`` (module docstring). Past
+        an epoch's end the next epoch's first positions are made ahead only while no fetch has
+        named that epoch: once one has, its own furthest fetch leads (what was fetched of it may
+        have left the store)."""
+        store, failed, runs, slots = self.store, self.failed, self.runs, self.slots
+        made: Dict[Tuple[int, str], int] = {}
+        for (e, k) in list(store) + list(failed):
+            made[(e, k.video)] = made.get((e, k.video), 0) + 1
+        waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
+        live = {e: stop for e, stop in self.fetched_to.items() if e in self.plans and now - self.fetched_at[e] < IDLE_S}
+        furthest = {e: stop for e, stop in live.items() if e + 1 not in live}  # a reader's newest epoch
+        for f in self.pending:
+            plan = self.plan(f.epoch)
+            furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
+            for p in range(f.start, min(f.stop, plan.known)):
+                key = plan.key(p)
+                if (f.epoch, key) not in store and (f.epoch, key) not in failed:
+                    ek = (f.epoch, key.video)
+                    waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
+            if not plan.complete and f.stop > plan.known:
+                for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
+                    waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
+        budget = self.lookahead - sum(1 for sk in store if sk not in self.fetched)
+        budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
+        ahead: List[Tuple[int, str]] = []
+        keep = set(furthest) | {e for e, _ in runs}
+        for epoch, stop in sorted(furthest.items()):
+            if budget <= 0:  # before positions_after, which may build the next epoch's plan
+                break
+            for e, video, key in positions_after(self.plan, self.plans, epoch, stop,
+                                                 self.lookahead + self.shuffle_buffer, keep):
+                if budget <= 0 or (e != epoch and (e in furthest or e in live)):
+                    break
+                ek, n = (e, video), slots.samples.get(video)
+                if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
+                    continue
+                if key is None and n is not None and made.get(ek, 0) >= n:
+                    continue
+                ahead.append(ek)
+                budget -= slots.expected(video) - made.get(ek, 0)
+        return sorted(waited, key=waited.__getitem__), ahead
+
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
         """The task for an idle ``worker``: the first video a pending fetch waits on; else a
         hedge of one that sent nothing for ``hedge_s`` while a fetch waits on it; else the next
         video to decode ahead; None when none."""
-        waited, ahead = needed(self.pending, self.plan, self.plans, self.store, self.fetched, self.failed, self.runs,
-                               self.slots, self.lookahead, self.shuffle_buffer, self.fetched_to, self.fetched_at, now)
+        waited, ahead = self.needed(now)
         waited += [ek for ek in self._ordered() if ek not in waited]  # makes: after fetches, in the order asked
         for ek in waited:
             if ek not in self.runs:
@@ -554,10 +552,9 @@ class PlanFeed:
         return Task(tid, epoch, video, self.making.start(tid), tuple(sorted(skip)), tuple(codecs))
 
     def sample(self, worker: Hashable, task_id: int, key: SampleKey, now: float, build: Callable) -> bool:
-        """Worker ``worker`` sent sample ``key`` of task ``task_id``; ``build(lane)`` makes the
-        sample object (called with lane 0, only when the sample is wanted). Returns True when it
-        was kept: False for a task that is not running (late, lost) or a sample another copy
-        gave first.
+        """Worker ``worker`` sent sample ``key`` of task ``task_id``; ``build()`` makes the sample
+        object (called only when the sample is wanted). Returns True when it was kept: False for
+        a task that is not running (late, lost) or a sample another copy gave first.
 
         Raises:
             SlotsExceeded: ``key`` lies past its video's slots in the manifest."""
@@ -575,7 +572,7 @@ class PlanFeed:
         if sk in self.store or self.making.tasks.get(task_id) != self.making.now:  # made already, or lacks an output
             return False
         self.failed.pop(sk, None)
-        self.store[sk] = build(0)
+        self.store[sk] = build()
         self.samples_made += 1
         return True
 
@@ -638,10 +635,9 @@ class PlanFeed:
             del self.runs[ek]
         return run
 
-    def timed_out(self, now: float, reading: bool = True) -> List[Tuple[Hashable, Run]]:
-        """Copies that sent nothing for ``task_timeout_s``: each ends as a lost worker's. A server
-        serving by plan reads every worker message whatever the clients do (``reading``: always
-        true, as the shell's ``WorkerSide.watch`` passes it), so silence is the worker's own."""
+    def timed_out(self, now: float) -> List[Tuple[Hashable, Run]]:
+        """Copies that sent nothing for ``task_timeout_s``: each ends as a lost worker's. The
+        server reads every worker message whatever its clients do, so silence is the worker's own."""
         out = []
         for tid, ek in list(self.task_run.items()):
             run = self.runs[ek]

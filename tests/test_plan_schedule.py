@@ -1,4 +1,4 @@
-"""Serving by plan, the pure part (``delivery.plan_feed.PlanFeed``): driven by the seeded world of
+"""Serving by plan, the pure part (``delivery.plan_schedule.PlanScheduler``): driven by the seeded world of
 ``harness.plan_world`` (each job reads each epoch's plan exactly: every row at its position, every
 sample once, padding only past the end or for a window the run made fail), and unit checks of its
 decisions."""
@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from harness.plan_world import TOTALS, check
-from v2v_server.delivery.plan_feed import PASS_ATTEMPTS, PlanFeed, SlotsExceeded
+from v2v_server.delivery.plan_schedule import PASS_ATTEMPTS, PlanScheduler, SlotsExceeded
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest
 
@@ -36,63 +36,63 @@ def test_each_job_reads_each_epochs_plan_exactly_in_1000_seeded_worlds():
 
 def test_a_stalled_worker_is_hedged_and_the_first_copy_wins():
     m = Manifest.of({"a.mp4": 2, "b.mp4": 1})
-    feed = PlanFeed(m, 0, 1, ("voxels",), lookahead=0, hedge_s=5.0, task_timeout_s=100.0)
-    plan = feed.plan(0)
-    feed.fetch("c", 1, 0, 0, 3, 0.0)
-    first = feed.task_for("w1", 0.0)
-    second = feed.task_for("w2", 0.0)  # the other video
+    scheduler = PlanScheduler(m, 0, 1, ("voxels",), lookahead=0, hedge_s=5.0, task_timeout_s=100.0)
+    plan = scheduler.plan(0)
+    scheduler.fetch("c", 1, 0, 0, 3, 0.0)
+    first = scheduler.task_for("w1", 0.0)
+    second = scheduler.task_for("w2", 0.0)  # the other video
     assert {first.video, second.video} == {"a.mp4", "b.mp4"}
-    assert feed.task_for("w3", 1.0) is None  # nothing late yet
-    hedge = feed.task_for("w3", 6.0)  # both silent for 6 s: the first in production order is hedged
+    assert scheduler.task_for("w3", 1.0) is None  # nothing late yet
+    hedge = scheduler.task_for("w3", 6.0)  # both silent for 6 s: the first in production order is hedged
     assert hedge.video == plan.videos[0] and hedge.task not in (first.task, second.task)
     slow, slow_worker = (first, "w1") if first.video == hedge.video else (second, "w2")
     keys = [SampleKey.at(hedge.video, i) for i in range(dict(m.slots)[hedge.video])]
-    assert all(feed.sample("w3", hedge.task, k, 7.0, lambda lane, k=k: ("hedge", k)) for k in keys)
-    assert not feed.sample(slow_worker, slow.task, keys[0], 8.0, lambda lane: ("late", keys[0]))  # the first copy won
-    assert feed.store[(0, keys[0])] == ("hedge", keys[0])
+    assert all(scheduler.sample("w3", hedge.task, k, 7.0, lambda k=k: ("hedge", k)) for k in keys)
+    assert not scheduler.sample(slow_worker, slow.task, keys[0], 8.0, lambda: ("late", keys[0]))  # the first copy won
+    assert scheduler.store[(0, keys[0])] == ("hedge", keys[0])
 
 
 def test_a_decode_past_the_manifests_slots_is_an_error_naming_the_video():
-    feed = PlanFeed(Manifest.of({"a.mp4": 1}), 0, 1, ("voxels",))
-    feed.fetch("c", 1, 0, 0, 1, 0.0)
-    t = feed.task_for("w", 0.0)
+    scheduler = PlanScheduler(Manifest.of({"a.mp4": 1}), 0, 1, ("voxels",))
+    scheduler.fetch("c", 1, 0, 0, 1, 0.0)
+    t = scheduler.task_for("w", 0.0)
     with pytest.raises(SlotsExceeded, match=r"a.mp4: the decode gave a.mp4#1, past the manifest's 1 window"):
-        feed.sample("w", t.task, SampleKey("a.mp4", 1), 1.0, lambda lane: None)
+        scheduler.sample("w", t.task, SampleKey("a.mp4", 1), 1.0, lambda: None)
 
 
 def test_a_short_decode_gives_padding_rows_and_no_worker_is_asked_again():
-    feed = PlanFeed(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)
-    feed.fetch("c", 1, 0, 0, 4, 0.0)
-    t = feed.task_for("w", 0.0)
-    feed.sample("w", t.task, SampleKey("a.mp4", 0), 1.0, lambda lane: "s0")
-    feed.done("w", t.task, 1, {}, None)
-    (f, rows), = feed.answer(3.0)
+    scheduler = PlanScheduler(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)
+    scheduler.fetch("c", 1, 0, 0, 4, 0.0)
+    t = scheduler.task_for("w", 0.0)
+    scheduler.sample("w", t.task, SampleKey("a.mp4", 0), 1.0, lambda: "s0")
+    scheduler.done("w", t.task, 1, {}, None)
+    (f, rows), = scheduler.answer(3.0)
     assert [r.sample for r in rows] == ["s0", None, None, None]
     assert [r.key for r in rows] == [SampleKey("a.mp4", 0), SampleKey("a.mp4", 1), SampleKey("a.mp4", 2), None]
     assert "the decode gave 1 window(s), the manifest 3" in rows[1].reason
-    assert feed.task_for("w", 2.0) is None
+    assert scheduler.task_for("w", 2.0) is None
 
 
 def test_a_window_the_worker_reports_failed_is_a_padding_row_with_its_reason():
     # the wire's Done keys a failed window by its digits
-    feed = PlanFeed(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)
-    feed.fetch("c", 1, 0, 0, 3, 0.0)
-    t = feed.task_for("w", 0.0)
+    scheduler = PlanScheduler(Manifest.of({"a.mp4": 3}), 0, 1, ("voxels",), lookahead=0)
+    scheduler.fetch("c", 1, 0, 0, 3, 0.0)
+    t = scheduler.task_for("w", 0.0)
     for w in (0, 2):
-        feed.sample("w", t.task, SampleKey("a.mp4", w), 1.0, lambda lane, w=w: f"s{w}")
-    feed.done("w", t.task, 3, {"1": "window 1: a frame of another size"}, None, "failed")
-    (f, rows), = feed.answer(2.0)
+        scheduler.sample("w", t.task, SampleKey("a.mp4", w), 1.0, lambda w=w: f"s{w}")
+    scheduler.done("w", t.task, 3, {"1": "window 1: a frame of another size"}, None, "failed")
+    (f, rows), = scheduler.answer(2.0)
     assert [r.sample for r in rows] == ["s0", None, "s2"] and rows[1].reason == "window 1: a frame of another size"
-    assert feed.task_for("w", 3.0) is None
+    assert scheduler.task_for("w", 3.0) is None
 
 
-def _pass(feed, worker, now, windows, error=None):
+def _pass(scheduler, worker, now, windows, error=None):
     """One worker's pass: a task, its samples up to ``windows`` (those not skipped), its end."""
-    t = feed.task_for(worker, now)
+    t = scheduler.task_for(worker, now)
     for w in range(windows):
         if (w, 0) not in t.skip:
-            feed.sample(worker, t.task, SampleKey(t.video, w), now, lambda lane, w=w: f"s{w}")
-    feed.done(worker, t.task, windows, {}, error, "error" if error else "")
+            scheduler.sample(worker, t.task, SampleKey(t.video, w), now, lambda w=w: f"s{w}")
+    scheduler.done(worker, t.task, windows, {}, error, "error" if error else "")
     return t
 
 
@@ -101,31 +101,31 @@ def test_a_pass_stopped_by_a_store_error_is_asked_again_and_fixes_no_slots(known
     """A store failing for a while cuts a pass short: the video is decoded again (skipping what
     was made), and its slots, where not known, come from the whole pass, so the plan is the one a
     server that never saw the error lists."""
-    feed = PlanFeed(Manifest.of({"a.mp4": 4 if known else None}), 0, 1, ("voxels",), lookahead=0)
-    feed.fetch("c", 1, 0, 0, 4, 0.0)
-    _pass(feed, "w", 0.0, 1, "reading a.mp4: the store timed out")
-    assert feed.answer(1.0) == [] and feed.slots.samples["a.mp4"] == (4 if known else None)
-    again = _pass(feed, "w", 2.0, 4)
+    scheduler = PlanScheduler(Manifest.of({"a.mp4": 4 if known else None}), 0, 1, ("voxels",), lookahead=0)
+    scheduler.fetch("c", 1, 0, 0, 4, 0.0)
+    _pass(scheduler, "w", 0.0, 1, "reading a.mp4: the store timed out")
+    assert scheduler.answer(1.0) == [] and scheduler.slots.samples["a.mp4"] == (4 if known else None)
+    again = _pass(scheduler, "w", 2.0, 4)
     assert again.video == "a.mp4" and (0, 0) in again.skip
-    (f, rows), = feed.answer(3.0)
-    assert [r.sample for r in rows] == ["s0", "s1", "s2", "s3"] and feed.slots.samples["a.mp4"] == 4
+    (f, rows), = scheduler.answer(3.0)
+    assert [r.sample for r in rows] == ["s0", "s1", "s2", "s3"] and scheduler.slots.samples["a.mp4"] == 4
 
 
 def test_a_file_that_breaks_at_one_place_costs_a_few_passes_once_then_pads():
     """A file broken at one place stops each pass there: after PASS_ATTEMPTS passes its slots
     are what they gave, and a later epoch's pass that stops is final at once."""
-    feed = PlanFeed(Manifest.of({"a.mp4": None}), 0, 1, ("voxels",), lookahead=0)
-    feed.fetch("c", 1, 0, 0, 3, 0.0)
+    scheduler = PlanScheduler(Manifest.of({"a.mp4": None}), 0, 1, ("voxels",), lookahead=0)
+    scheduler.fetch("c", 1, 0, 0, 3, 0.0)
     for attempt in range(PASS_ATTEMPTS):
-        assert feed.answer(float(attempt)) == [] and feed.slots.samples["a.mp4"] is None
-        _pass(feed, "w", float(attempt), 2, "decoding a.mp4: invalid data at packet 97")
-    (f, rows), = feed.answer(9.0)  # learned from the broken passes: 2 windows, the third row past the end
+        assert scheduler.answer(float(attempt)) == [] and scheduler.slots.samples["a.mp4"] is None
+        _pass(scheduler, "w", float(attempt), 2, "decoding a.mp4: invalid data at packet 97")
+    (f, rows), = scheduler.answer(9.0)  # learned from the broken passes: 2 windows, the third row past the end
     assert [r.sample for r in rows] == ["s0", "s1", None] and rows[2].key is None
-    feed.fetch("c", 2, 1, 0, 2, 10.0)  # the next epoch: one pass, its error final at once
-    _pass(feed, "w", 10.0, 1, "decoding a.mp4: invalid data at packet 97")
-    (f, rows), = feed.answer(11.0)
+    scheduler.fetch("c", 2, 1, 0, 2, 10.0)  # the next epoch: one pass, its error final at once
+    _pass(scheduler, "w", 10.0, 1, "decoding a.mp4: invalid data at packet 97")
+    (f, rows), = scheduler.answer(11.0)
     assert rows[0].sample == "s0" and rows[1].reason == "decoding a.mp4: invalid data at packet 97"
-    assert feed.task_for("w", 12.0) is None
+    assert scheduler.task_for("w", 12.0) is None
 
 
 
@@ -134,51 +134,51 @@ def test_a_plan_unfolding_decodes_the_production_order_in_turn_and_answers_once_
     positions, taken in the production order; each decode's windows unfold the plan, and the
     rows are the whole plan's."""
     slots = {f"v{i}.mp4": 1 + i % 3 for i in range(6)}
-    feed = PlanFeed(Manifest.of({v: None for v in slots}), 7, 2, ("voxels",), lookahead=0)
+    scheduler = PlanScheduler(Manifest.of({v: None for v in slots}), 7, 2, ("voxels",), lookahead=0)
     whole = EpochPlan(Manifest.of(slots), 7, 0, 2)
-    feed.fetch("c", 1, 0, 0, 2, 0.0)
-    assert feed.answer(0.0) == [] and feed.slots.epoch_samples is None
+    scheduler.fetch("c", 1, 0, 0, 2, 0.0)
+    assert scheduler.answer(0.0) == [] and scheduler.slots.epoch_samples is None
     decoded = []
-    while not (answered := feed.answer(1.0)):
-        t = feed.task_for("w", 1.0)
+    while not (answered := scheduler.answer(1.0)):
+        t = scheduler.task_for("w", 1.0)
         decoded.append(t.video)
         for i in range(slots[t.video]):
-            feed.sample("w", t.task, SampleKey.at(t.video, i), 1.0, lambda lane, k=(t.video, i): k)
-        feed.done("w", t.task, slots[t.video], {}, None)
+            scheduler.sample("w", t.task, SampleKey.at(t.video, i), 1.0, lambda k=(t.video, i): k)
+        scheduler.done("w", t.task, slots[t.video], {}, None)
     assert decoded == whole.videos[:len(decoded)] and len(decoded) < len(slots)  # in turn, not every video
     (f, rows), = answered
     assert [r.key for r in rows] == whole.keys(0, 2) and all(r.sample is not None for r in rows)
-    assert feed.plan(0).known >= 2 and not feed.plan(0).complete
+    assert scheduler.plan(0).known >= 2 and not scheduler.plan(0).complete
 
 
 def test_decode_ahead_goes_on_into_the_next_epoch_within_the_lookahead():
     # a trainer reading the end of epoch 0 finds epoch 1's first samples made, so one worker never
     # waits at the boundary; what is made ahead stays within the lookahead
     m = Manifest.of({f"v{i}.mp4": 2 for i in range(4)})
-    feed = PlanFeed(m, 0, 1, ("voxels",), lookahead=4, keep_samples=0)
-    feed.fetch("c", 1, 0, 6, 8, 0.0)  # the epoch's last batch
+    scheduler = PlanScheduler(m, 0, 1, ("voxels",), lookahead=4, keep_samples=0)
+    scheduler.fetch("c", 1, 0, 6, 8, 0.0)  # the epoch's last batch
     made = []
-    while (t := feed.task_for("w", 0.0)) is not None:
+    while (t := scheduler.task_for("w", 0.0)) is not None:
         made.append((t.epoch, t.video))
         for i in range(2):
-            feed.sample("w", t.task, SampleKey.at(t.video, i), 0.0, lambda lane: "s")
-        feed.done("w", t.task, 2, {}, None)
+            scheduler.sample("w", t.task, SampleKey.at(t.video, i), 0.0, lambda: "s")
+        scheduler.done("w", t.task, 2, {}, None)
     waited = {(0, EpochPlan(m, 0, 0, 1).key(p).video) for p in (6, 7)}
     assert set(made[:len(waited)]) == waited
     ahead = made[len(waited):]
     assert ahead and {e for e, _ in ahead} == {1}
     assert ahead[0][1] == EpochPlan(m, 0, 1, 1).key(0).video  # the next epoch's first position first
-    assert sum(1 for sk in feed.store if sk[0] == 1) <= feed.lookahead + 1
+    assert sum(1 for sk in scheduler.store if sk[0] == 1) <= scheduler.lookahead + 1
 
 
-def _work(feed, now):
+def _work(scheduler, now):
     """Idle workers' tasks until none: each video's 2 samples; the (epoch, video) made, in order."""
     made = []
-    while (t := feed.task_for("w", now)) is not None:
+    while (t := scheduler.task_for("w", now)) is not None:
         made.append((t.epoch, t.video))
         for i in range(2):
-            feed.sample("w", t.task, SampleKey.at(t.video, i), now, lambda lane: "s")
-        feed.done("w", t.task, 2, {}, None)
+            scheduler.sample("w", t.task, SampleKey.at(t.video, i), now, lambda: "s")
+        scheduler.done("w", t.task, 2, {}, None)
     return made
 
 
@@ -188,45 +188,45 @@ def test_a_reader_slower_than_the_workers_finds_its_next_batches_made_across_epo
     past the epoch's end too, and after more epochs than the server keeps plans for; what a
     reader has fetched of an epoch it moved into is not made again."""
     m = Manifest.of({f"v{i}.mp4": 2 for i in range(4)})
-    feed = PlanFeed(m, 0, 1, ("voxels",), lookahead=4, keep_samples=0)
+    scheduler = PlanScheduler(m, 0, 1, ("voxels",), lookahead=4, keep_samples=0)
     for epoch in range(6):  # more than PLANS_KEPT epochs, read in turn
         for start in range(0, 8, 2):
-            feed.fetch("c", 1, epoch, start, start + 2, float(epoch))
-            _work(feed, float(epoch))
-            assert len(feed.answer(float(epoch))) == 1
-            assert not feed.pending
-        _work(feed, float(epoch))  # nothing pending: made ahead of the last fetch, into the next epoch
+            scheduler.fetch("c", 1, epoch, start, start + 2, float(epoch))
+            _work(scheduler, float(epoch))
+            assert len(scheduler.answer(float(epoch))) == 1
+            assert not scheduler.pending
+        _work(scheduler, float(epoch))  # nothing pending: made ahead of the last fetch, into the next epoch
         nxt = EpochPlan(m, 0, epoch + 1, 1)
-        assert all((epoch + 1, nxt.key(p)) in feed.store for p in (0, 1)), epoch  # the next batch is made
-    feed.fetch("c", 1, 6, 0, 2, 6.0)  # the reader moved into epoch 6: its positions after 2 lead
-    feed.answer(6.0)
+        assert all((epoch + 1, nxt.key(p)) in scheduler.store for p in (0, 1)), epoch  # the next batch is made
+    scheduler.fetch("c", 1, 6, 0, 2, 6.0)  # the reader moved into epoch 6: its positions after 2 lead
+    scheduler.answer(6.0)
     later = {EpochPlan(m, 0, 6, 1).key(p).video for p in range(2, 8)}
-    assert all(e == 6 and v in later for e, v in _work(feed, 6.0))
+    assert all(e == 6 and v in later for e, v in _work(scheduler, 6.0))
 
 
 def test_workers_make_the_outputs_fetches_ask_for_and_a_new_one_remakes_what_lacks_it():
     m = Manifest.of({"a.mp4": 2})
-    feed = PlanFeed(m, 0, 1, ("voxels", "frames", "flow"), lookahead=0)
-    feed.fetch("c", 1, 0, 0, 1, 0.0, ("voxels",))
-    narrow = feed.task_for("w1", 0.0)
+    scheduler = PlanScheduler(m, 0, 1, ("voxels", "frames", "flow"), lookahead=0)
+    scheduler.fetch("c", 1, 0, 0, 1, 0.0, ("voxels",))
+    narrow = scheduler.task_for("w1", 0.0)
     assert narrow.outputs == ("voxels",)
-    assert feed.sample("w1", narrow.task, SampleKey("a.mp4", 0), 1.0, lambda lane: "voxels only")
-    (f, rows), = feed.answer(1.0)
+    assert scheduler.sample("w1", narrow.task, SampleKey("a.mp4", 0), 1.0, lambda: "voxels only")
+    (f, rows), = scheduler.answer(1.0)
     assert rows[0].sample == "voxels only"
-    feed.fetch("d", 2, 0, 0, 2, 2.0, ("flow", "voxels"))  # flow: what was made lacks it
-    assert feed.making.now == ("voxels", "flow") and not feed.store
-    assert not feed.sample("w1", narrow.task, SampleKey("a.mp4", 1), 3.0, lambda lane: "voxels only")
-    assert feed.task_for("w2", 3.0) is None  # the video is being decoded: it ends first
-    feed.done("w1", narrow.task, 2, {}, None)
-    assert not feed.answer(4.0) and not feed.failed
-    wide = feed.task_for("w2", 4.0)
+    scheduler.fetch("d", 2, 0, 0, 2, 2.0, ("flow", "voxels"))  # flow: what was made lacks it
+    assert scheduler.making.now == ("voxels", "flow") and not scheduler.store
+    assert not scheduler.sample("w1", narrow.task, SampleKey("a.mp4", 1), 3.0, lambda: "voxels only")
+    assert scheduler.task_for("w2", 3.0) is None  # the video is being decoded: it ends first
+    scheduler.done("w1", narrow.task, 2, {}, None)
+    assert not scheduler.answer(4.0) and not scheduler.failed
+    wide = scheduler.task_for("w2", 4.0)
     assert wide.outputs == ("voxels", "flow")
     for i in range(2):
-        assert feed.sample("w2", wide.task, SampleKey("a.mp4", i), 5.0, lambda lane, i=i: f"wide {i}")
-    (f, rows), = feed.answer(5.0)
+        assert scheduler.sample("w2", wide.task, SampleKey("a.mp4", i), 5.0, lambda i=i: f"wide {i}")
+    (f, rows), = scheduler.answer(5.0)
     assert [r.sample for r in rows] == ["wide 0", "wide 1"]
     with pytest.raises(ValueError, match="polarity_counts"):
-        feed.fetch("e", 3, 0, 0, 1, 6.0, ("polarity_counts",))
+        scheduler.fetch("e", 3, 0, 0, 1, 6.0, ("polarity_counts",))
 
 
 def test_readers_of_as_many_epochs_as_the_kept_plans_rebuild_none_to_decode_ahead():
@@ -234,13 +234,13 @@ def test_readers_of_as_many_epochs_as_the_kept_plans_rebuild_none_to_decode_ahea
     theirs: decode-ahead into a next epoch would build a plan that drops one of theirs, to be
     built again at once; it builds none."""
     m = Manifest.of({f"v{i}.mp4": 2 for i in range(4)})
-    feed = PlanFeed(m, 0, 1, ("voxels",), lookahead=0, keep_samples=0)
+    scheduler = PlanScheduler(m, 0, 1, ("voxels",), lookahead=0, keep_samples=0)
     for epoch in range(0, 8, 2):
-        feed.fetch(("job", epoch), 1, epoch, 6, 8, 0.0)
-        _work(feed, 0.0)
-        feed.answer(0.0)
-    assert list(feed.plans) == [0, 2, 4, 6]
-    feed.lookahead, built = 64, feed.plans_built
+        scheduler.fetch(("job", epoch), 1, epoch, 6, 8, 0.0)
+        _work(scheduler, 0.0)
+        scheduler.answer(0.0)
+    assert list(scheduler.plans) == [0, 2, 4, 6]
+    scheduler.lookahead, built = 64, scheduler.plans_built
     for turn in range(3):
-        _work(feed, 1.0 + turn)
-        assert feed.plans_built == built, turn
+        _work(scheduler, 1.0 + turn)
+        assert scheduler.plans_built == built, turn
