@@ -346,6 +346,7 @@ class Fleet:
                 v.host = host
                 for req, (h, ords, _) in list(v.flight.items()):
                     send(video, ords, host, now)
+            self._steal(plan, spans[head], videos, got, manifest.crops_per_window, send, epoch, now)
             for video, v in list(videos.items()):
                 for req, (h, ords, at) in list(v.flight.items()):
                     gone = h not in self.router.hosts
@@ -375,6 +376,33 @@ class Fleet:
                     if got_msg is None:
                         break
                     self._receive(ep, *got_msg, flight, videos, got, plan, heard, epoch)
+
+    def _steal(self, plan: EpochPlan, span: Tuple[int, int], videos: Dict[str, "_Video"], got: dict, kpw: int,
+               send, epoch: int, now: float) -> None:
+        """A host with nothing asked of it takes a copy of a video the step being read waits on
+        (the first copy's rows win): a slow host's videos stop gating the fleet, at the cost of a
+        decode only where a host would otherwise idle."""
+        idle = [h for h, st in self.router.hosts.items() if not st.queued and not self.router.suspect(h, now)]
+        if not idle:
+            return
+        missing: Dict[str, List[int]] = {}
+        for p in range(span[0], min(span[1], plan.known)):
+            key = plan.key(p)
+            if key is not None and (key.video, key.ordinal(kpw)) not in got:
+                missing.setdefault(key.video, []).append(key.ordinal(kpw))
+        for video, ords in missing.items():
+            v = videos.get(video)
+            if v is None or not v.flight:
+                continue
+            asked = {h for h, _, _ in v.flight.values()}
+            h = next((x for x in idle if x not in asked), None)
+            if h is None:
+                continue
+            send(video, tuple(sorted(ords)), h, now)
+            self.router.ask(h, epoch, video, len(ords), now)
+            idle.remove(h)
+            if not idle:
+                return
 
     def _receive(self, ep: str, msg, frames, flight, videos, got, plan: EpochPlan, now: float, epoch: int) -> None:
         """Take host ``ep``'s message: what a new host serves, a make's rows (kept by (video,
