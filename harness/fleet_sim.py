@@ -253,7 +253,6 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = Non
     decodes = 0
     now = 0.0
     read = 0  # positions read
-    ready_at = np.full(length, np.inf)
     step_times: List[Tuple[int, float]] = []
 
     def start_work(k: int) -> None:

@@ -94,3 +94,20 @@ def test_a_host_serving_another_plan_is_named_and_left_out(tmp_path, videos, cap
         assert sorted(order) == expected_ids(root)
         named = [r.getMessage() for r in caplog.records if b.endpoint in r.getMessage()]
         assert named and "left out of the fleet" in named[0] and "seed 6 (this plan: 5)" in named[0]
+
+
+def test_the_largest_make_fits_a_client_message_and_a_longer_one_is_refused_naming_the_field():
+    from v2v_wire.plan import PlanIdentity
+    from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Make, WireError, decode_plan_client
+    from v2v_wire.protocol import MAX_CLIENT_MSG, OUTPUTS, pack
+
+    plan = PlanIdentity("f" * 16, "e" * 16, 2 ** 62, 2 ** 31)
+    largest = Make(2 ** 62, 2 ** 31 - 1, "v" * MAX_MAKE_PATH, tuple([2 ** 62 - 1] * MAX_MAKE_SAMPLES), OUTPUTS, plan,
+                   "zstd")
+    frame = pack(largest.to_wire())
+    assert len(frame) <= MAX_CLIENT_MSG
+    assert decode_plan_client(frame, MAX_CLIENT_MSG) == largest
+    for bad, field in ((Make(1, 0, "v" * (MAX_MAKE_PATH + 1), (0,), OUTPUTS, plan), "video"),
+                       (Make(1, 0, "a.mp4", tuple(range(MAX_MAKE_SAMPLES + 1)), OUTPUTS, plan), "ordinals")):
+        with pytest.raises(WireError, match=f"make: field '{field}'"):
+            decode_plan_client(pack(bad.to_wire()), MAX_CLIENT_MSG)

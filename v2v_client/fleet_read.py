@@ -34,7 +34,8 @@ import zmq
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.fleet import Router
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity
-from v2v_wire.plan_messages import Make, ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.plan_messages import (MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Make, ManifestAsk, ManifestPart, PlanAsk,
+                                     PlanInfo, Refused, Rows)
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
 from .endpoints import auto_compression, resolve_endpoints
@@ -283,6 +284,13 @@ class Fleet:
                 v.asked[o] = req
 
         def ask(video: str, ordinals: Optional[Tuple[int, ...]], now: float) -> None:
+            if len(video.encode()) > MAX_MAKE_PATH:
+                raise PlanServerError(f"{video[:80]}...: a path over {MAX_MAKE_PATH} bytes, which a fleet's make "
+                                      "cannot name: read these hosts as shards (v2v-serve --shard I/N)")
+            if ordinals is not None and len(ordinals) > MAX_MAKE_SAMPLES:
+                for i in range(0, len(ordinals), MAX_MAKE_SAMPLES):
+                    ask(video, ordinals[i:i + MAX_MAKE_SAMPLES], now)
+                return
             v = videos.setdefault(video, _Video())
             count = len(ordinals) if ordinals else 1
             if v.host in self.router.hosts and not self.router.suspect(v.host, now):

@@ -29,8 +29,8 @@ from v2v_wire.protocol import PROTOCOL_VERSION, ProtocolError, check_outputs, ve
 from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
 __all__ = ["PlanAsk", "PlanInfo", "Fetch", "Make", "ManifestAsk", "ManifestPart", "Rows", "Refused", "REFUSALS",
-           "WireError", "OldClient", "BadPeers", "MAX_FETCH_ROWS", "MANIFEST_PART", "decode_plan_client",
-           "plan_server_message", "old_client_answer"]
+           "WireError", "OldClient", "BadPeers", "MAX_FETCH_ROWS", "MANIFEST_PART", "MAX_MAKE_PATH",
+           "MAX_MAKE_SAMPLES", "decode_plan_client", "plan_server_message", "old_client_answer"]
 
 #: Largest element count of any array in a message.
 MAX_ARRAY_LEN = 4096
@@ -57,6 +57,9 @@ def bounded_unpackb(buf, max_bytes: int) -> object:
 MAX_FETCH_ROWS = 4096
 #: Videos one manifest part lists (within ``MAX_ARRAY_LEN``).
 MANIFEST_PART = 4096
+#: Longest video path a make names, bytes as UTF-8 (a corpus path longer than this is read by
+#: position, ``fetch``), and most samples it asks (a reader asks more in several makes).
+MAX_MAKE_PATH, MAX_MAKE_SAMPLES = 1024, 1024
 _MAX_INT = 2 ** 62
 
 
@@ -172,12 +175,12 @@ class Make:
     @classmethod
     def from_wire(cls, h: dict) -> "Make":
         video, ordinals = h.get("video"), h.get("ordinals")
-        if not isinstance(video, str) or not video or len(video) > 4096:
-            raise WireError("make: field 'video' must be a non-empty path of at most 4096 characters")
-        if ordinals is not None and (not isinstance(ordinals, list) or not 0 < len(ordinals) <= MAX_FETCH_ROWS or
+        if not isinstance(video, str) or not video or len(video.encode()) > MAX_MAKE_PATH:
+            raise WireError(f"make: field 'video' must be a non-empty path of at most {MAX_MAKE_PATH} bytes")
+        if ordinals is not None and (not isinstance(ordinals, list) or not 0 < len(ordinals) <= MAX_MAKE_SAMPLES or
                                      not all(isinstance(o, int) and not isinstance(o, bool) and 0 <= o < _MAX_INT
                                              for o in ordinals)):
-            raise WireError(f"make: field 'ordinals' must be nil or 1 to {MAX_FETCH_ROWS} ints >= 0")
+            raise WireError(f"make: field 'ordinals' must be nil or 1 to {MAX_MAKE_SAMPLES} ints >= 0")
         try:
             outputs = check_outputs(h.get("outputs"), "make: field 'outputs'")
             plan = PlanIdentity.from_dict(h.get("plan"))

@@ -10,8 +10,9 @@ Message types (``PROTOCOL_VERSION``; typed and checked in ``plan_messages`` and
 ``worker_messages``):
 
 * client -> server: ``plan_ask``; ``fetch`` (epoch, positions ``start``..``stop``, outputs,
-  compression, the plan identity it reads under). A client message is at most
-  ``MAX_CLIENT_MSG`` bytes (a fetch is a few hundred).
+  compression, the plan identity it reads under); a fleet's reader's ``manifest_ask`` (offset)
+  and ``make`` (epoch, video, its samples' ordinals). A client message is at most
+  ``MAX_CLIENT_MSG`` bytes (a fetch is a few hundred, a make a few KiB at most).
 * server -> client: ``plan`` (identity, samples per epoch, stream info: also ``shard``,
   ``corpus`` and ``recipe`` fingerprints), ``rows`` (ids, padding flags, params, one frame per
   array for the rows holding a sample), ``refused`` (one line, and a code a reader acts on:
@@ -53,14 +54,15 @@ from v2v_wire.push_names import OLDER_PROTOCOL
 PROTOCOL_VERSION = 12
 #: Largest accepted header, bytes (checked before msgpack decoding).
 MAX_HEADER_BYTES = 1 << 20
-#: Largest message a client may send the server, bytes. A client sends ``plan_ask`` and ``fetch``
-#: only, each of a fixed set of fields: the largest fetch (every output, every int at its largest,
-#: the plan identity's two 16-digit fingerprints) packs to 244 bytes. 4 KiB leaves room for more
-#: fields and bounds what any peer makes the server decode, and echo in a refusal, to a few KiB
-#: (``tests/test_plan_refusals.py``). The server's socket takes up to twice this (ZMQ_MAXMSGSIZE):
-#: a larger message up to that is refused in one line, ZeroMQ cuts the connection of a peer
-#: sending more.
-MAX_CLIENT_MSG = 4096
+#: Largest message a client may send the server, bytes. A client sends ``plan_ask``,
+#: ``manifest_ask``, ``fetch`` and ``make``, each of a fixed set of fields: the largest fetch (every
+#: output, every int at its largest, the plan identity's two 16-digit fingerprints) packs to 244
+#: bytes, the largest make (a path of ``plan_messages.MAX_MAKE_PATH`` bytes and
+#: ``plan_messages.MAX_MAKE_SAMPLES`` ordinals of 9 bytes at most) to under 11 KiB. 16 KiB bounds
+#: what any peer makes the server decode, and echo in a refusal (``tests/test_plan_refusals.py``).
+#: The server's socket takes up to twice this (ZMQ_MAXMSGSIZE): a larger message up to that is
+#: refused in one line, ZeroMQ cuts the connection of a peer sending more.
+MAX_CLIENT_MSG = 16384
 #: Largest message or array frame the server sends, bytes: a batch message as the client's socket
 #: accepts it (ZMQ_MAXMSGSIZE), a batch's decoded arrays, and a worker's compressed frame.
 MAX_BATCH_BYTES = 1 << 31
