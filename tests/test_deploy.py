@@ -187,16 +187,33 @@ def test_trainer_image_is_pytorch_cuda_runtime_with_client_and_trainer():
 
 # ---------------------------------------------------------------------------------- compose
 def defaults(value):
-    """A compose value with every ``${VAR:-default}`` replaced by its default (what runs when
-    the variable is unset)."""
+    """A compose value as compose runs it when no variable is set: every ``${VAR:-default}``
+    replaced by its default and ``$$`` (compose's escape) by ``$``."""
     if isinstance(value, list):
         return [defaults(v) for v in value]
-    return re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", value)
+    return re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", value).replace("$$", "$")
+
+
+def compose_file(*names: str) -> dict:
+    """deploy/'s compose files merged as ``docker compose -f a -f b`` merges them, for what these
+    files set: mappings key by key, a later file's command or entrypoint replacing the earlier
+    one's. Any other list set by two files fails here (compose merges those its own way)."""
+
+    def merge(a, b, key=None):
+        if isinstance(a, dict) and isinstance(b, dict):
+            return {k: merge(a[k], b[k], k) if k in a and k in b else b.get(k, a.get(k)) for k in {**a, **b}}
+        assert key in ("command", "entrypoint") or not isinstance(a, list), f"{key}: a list set by two files"
+        return b
+
+    out = {}
+    for n in names:
+        out = merge(out, yaml.safe_load((DEPLOY / n).read_text()))
+    return out
 
 
 def image_owns(image: dict, path: str) -> bool:
-    """Whether the image's RUN lines make ``path`` and give it to the image's user (a named
-    volume mounted there starts with that owner and is writable)."""
+    """Whether the image's RUN lines make ``path`` and give it to the image's user (a volume
+    mounted there starts with that owner and is writable)."""
     runs = " ".join(image["run"])
     return bool(re.search(rf"mkdir -p [^&]*{re.escape(path)}(\s|$)", runs)) and bool(
         re.search(rf"chown {image['user']}:{image['user']} [^&]*{re.escape(path)}(\s|$)", runs))
@@ -216,7 +233,11 @@ def compose_services(comp: dict, tmp_path: Path) -> dict:
         argv = s.get("entrypoint", img["entrypoint"]) + defaults(s.get("command", img.get("cmd", [])))
         mounts = []
         for v in s.get("volumes", []):
-            src, dst = defaults(v).split(":")[:2]
+            parts = defaults(v).split(":")
+            if len(parts) == 1:  # an anonymous volume: made for each container, its own
+                mounts.append({"mountPath": parts[0], "source": None, "readOnly": False})
+                continue
+            src, dst = parts[:2]
             if src.startswith((".", "/")):
                 assert (DEPLOY / src).is_dir(), f"{name}: {src} is no folder"
             else:
@@ -242,9 +263,11 @@ def compose_services(comp: dict, tmp_path: Path) -> dict:
                     under(path, mounts)
         cfg = check_serve_config(ns) if prog == "v2v-serve" else None
         if cfg is not None and cfg.frame_cache_gb > 0:
-            # the frame cache on a writable named volume of its own, made and owned in the image
+            # the frame cache on a writable volume of each container's own (an anonymous volume:
+            # every replica of a scaled service gets one; a named one would be shared by them),
+            # made and owned in the image
             m = under(cfg.cache_dir, mounts)
-            assert m["source"] in named_volumes and not m["readOnly"], f"{name}: {cfg.cache_dir} on {m}"
+            assert m["source"] is None and not m["readOnly"], f"{name}: {cfg.cache_dir} on {m}"
             assert image_owns(img, m["mountPath"]), f"{name}: the image does not make {m['mountPath']} for its user"
         out[name] = (prog, args, ns, cfg, mounts, s)
     return out
@@ -259,67 +282,118 @@ def same_corpus_and_cache(a, b) -> None:
     assert a.recipe.fingerprint() == b.recipe.fingerprint()
 
 
-def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
-    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+def seconds(duration: str) -> int:
+    """A compose duration (``30s``, ``1h30m``) in seconds."""
+    parts = re.findall(r"(\d+)([hms])", duration)
+    assert "".join(n + u for n, u in parts) == duration, duration
+    return sum(int(n) * {"h": 3600, "m": 60, "s": 1}[u] for n, u in parts)
+
+
+def test_compose_one_scalable_server_service_and_a_trainer_reading_it_by_name(tmp_path):
+    """`server` is one service of identical hosts serving one plan (no --shard) that
+    ``--scale server=N`` can run N of: no container name, no fixed host port (the stream port
+    stays on the compose network, metrics get a host port Docker picks per replica). The trainer
+    connects to the service's name, which Docker's DNS resolves to every replica."""
+    comp = compose_file("docker-compose.yml")
     svcs = compose_services(comp, tmp_path)
-    shards = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" not in v[1]}
+    (name, (_, args, ns, cfg, mounts, s)), = [(n, v) for n, v in svcs.items() if v[0] == "v2v-serve"]
     trainers = {n: v for n, v in svcs.items() if v[0] == "v2v-train"}
-    for name, (_, args, ns, cfg, _, s) in shards.items():
-        # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
-        assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
-                                                      cfg.crop_size), name
-        hc = " ".join(s["healthcheck"]["test"])
-        assert f"127.0.0.1:{cfg.metrics_port}/" in hc
-        assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
-        for flag in ("--curve-secret-key", "--curve-allow"):
-            assert flag_values(args, flag)[0].startswith("/keys/")
-    # the shards split the corpus: 0/N .. N-1/N, each once
-    specs = sorted(v[3].shard for v in shards.values())
-    assert specs == [f"{i}/{len(shards)}" for i in range(len(shards))] and len(shards) == 2
-    (_, _, ns, _, mounts, _), = trainers.values()
-    tcfg = apply_overrides(load_trainer_config(str(image_file(dockerfile("Dockerfile.trainer"), ns.config))), ns.set)
-    want = {f"tcp://{name}:{port_of(v[3].bind)}" for name, v in shards.items()}
-    assert set(ns.connect.split(",")) == want  # the trainer reads every shard
+    assert "--shard" not in args and cfg.shard is None and cfg.serving.shard_spec == (0, 1)
+    assert "container_name" not in s and s["deploy"]["replicas"] >= 2
+    assert s["ports"]
+    for p in s["ports"]:
+        if isinstance(p, dict):
+            assert "published" not in p and p["target"] == cfg.metrics_port, p
+        else:  # "CONTAINER" alone: the host port is Docker's pick
+            assert str(p) == str(cfg.metrics_port), p
+    # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
+    assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins, cfg.crop_size)
+    hc = " ".join(s["healthcheck"]["test"])
+    assert f"127.0.0.1:{cfg.metrics_port}/readyz" in hc  # healthy = ready: the trainer starts on a serving fleet
+    for flag in ("--curve-secret-key", "--curve-allow"):
+        assert flag_values(args, flag)[0].startswith("/keys/")
+    (tname, (_, _, tns, _, tmounts, ts)), = trainers.items()
+    tcfg = apply_overrides(load_trainer_config(str(image_file(dockerfile("Dockerfile.trainer"), tns.config))), tns.set)
+    assert tns.connect == f"tcp://{name}:{port_of(cfg.bind)}"  # one name for every replica
+    assert ts["depends_on"][name] == {"condition": "service_healthy"}
     # the keys the servers and the trainer name are the ones the key maker writes
     keys = tmp_path / "keys"
-    for _, args, *_ in shards.values():
-        assert (keys / Path(flag_values(args, "--curve-secret-key")[0]).relative_to("/keys")).is_file()
-        allow = keys / Path(flag_values(args, "--curve-allow")[0]).relative_to("/keys")
-        assert list(allow.glob("*.key"))
+    assert (keys / Path(flag_values(args, "--curve-secret-key")[0]).relative_to("/keys")).is_file()
+    assert list((keys / Path(flag_values(args, "--curve-allow")[0]).relative_to("/keys")).glob("*.key"))
     for kf in tcfg["stream"]["curve_keys"]:
-        under(kf, mounts)
+        under(kf, tmounts)
         assert (keys / Path(kf).relative_to("/keys")).is_file()
     from v2v_client.endpoints import load_curve_keys
 
     load_curve_keys(*[str(keys / Path(k).relative_to("/keys")) for k in tcfg["stream"]["curve_keys"]])
 
 
-def test_compose_shards_keep_a_frame_cache_each_and_the_warm_profile_fills_it(tmp_path):
-    """Every shard caches frames (--frame-cache-gb, --cache-dir) on a volume no other shard
-    mounts (writers are told apart by process id, and each container has its own); the
-    ``warm`` profile's service per shard runs --warm-cache over that shard's corpus into that
-    volume, and the shard waits for it only when the profile is on."""
-    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+def test_compose_each_server_replica_keeps_a_frame_cache_of_its_own(tmp_path):
+    """The server caches frames (--frame-cache-gb, --cache-dir) on an anonymous volume, one per
+    replica, and mounts no named volume writable: a named volume is mounted by every replica, and
+    a cache folder must not be shared (writers are told apart by process id, and each container
+    has its own ids). The check refuses a named cache volume."""
+    comp = compose_file("docker-compose.yml")
     svcs = compose_services(comp, tmp_path)
-    shards = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" not in v[1]}
-    warm = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" in v[1]}
-    cache_volumes = {}
-    for name, (_, _, _, cfg, mounts, s) in shards.items():
-        assert cfg.frame_cache_gb > 0 and cfg.cache_dir, name
-        vol = under(cfg.cache_dir, mounts)["source"]
-        assert vol not in cache_volumes.values(), f"{name} shares its cache volume {vol}"
-        cache_volumes[name] = vol
-        (dep, cond), = [(d, c) for d, c in s["depends_on"].items() if d in warm]
-        assert cond == {"condition": "service_completed_successfully", "required": False}, name
-        _, wargs, wns, wcfg, wmounts, ws = warm[dep]
-        assert ws["profiles"] == ["warm"] and ws["restart"] == "no" and ws["healthcheck"] == {"disable": True}
-        assert "depends_on" not in ws and "ports" not in ws  # a one-shot pass: it waits on nothing, serves nothing
-        same_corpus_and_cache(wcfg, cfg)
-        assert under(wcfg.cache_dir, wmounts)["source"] == vol
-        assert under(wcfg.videos, wmounts)["source"] == under(cfg.videos, mounts)["source"]
-        assert wcfg.workers == cfg.workers
-    assert len(warm) == len(shards) == 2
-    assert all(not any(m["mountPath"] == "/keys" for m in v[4]) for v in warm.values())  # no bind: no keys
+    (_, _, _, cfg, mounts, s), = [v for v in svcs.values() if v[0] == "v2v-serve"]
+    assert cfg.frame_cache_gb > 0 and cfg.cache_dir
+    assert under(cfg.cache_dir, mounts)["source"] is None
+    assert all(m["readOnly"] or m["source"] is None for m in mounts), mounts
+    # the same file with the cache on a named volume is refused
+    shared = json.loads(json.dumps(comp))
+    shared["volumes"]["cache"] = None
+    shared["services"]["server"]["volumes"] = [
+        "cache:/var/cache/v2v" if v == cfg.cache_dir else v for v in s["volumes"]]
+    with pytest.raises(AssertionError, match="/var/cache/v2v on"):
+        compose_services(shared, tmp_path)
+
+
+@pytest.mark.parametrize("files", [("docker-compose.yml", "docker-compose.warm.yml"),
+                                   ("docker-compose.yml", "docker-compose.bucket.yml", "docker-compose.warm.yml")],
+                         ids=["folder", "bucket"])
+def test_compose_warm_override_fills_each_replicas_cache_then_serves_in_the_same_container(files, tmp_path):
+    """docker-compose.warm.yml runs, in each replica, `v2v-serve <its line> --warm-cache` and then
+    the server with the same line (so the warm-up fills that replica's own cache); a failed
+    warm-up starts no server. The entrypoint is run here with a stand-in v2v-serve recording each
+    line it is given. The health check's start period covers the warm-up."""
+    base = compose_file(*files[:-1])["services"]["server"]
+    comp = compose_file(*files)
+    s = comp["services"]["server"]
+    assert s["command"] == base["command"] and comp["volumes"] == compose_file(*files[:-1])["volumes"]
+    argv = defaults(s["entrypoint"]) + defaults(s["command"])
+    line = defaults(base["command"])
+    bindir, calls = tmp_path / "bin", tmp_path / "calls.jsonl"
+    bindir.mkdir()
+    (bindir / "v2v-serve").write_text(
+        f"#!{sys.executable}\nimport json, os, sys\n"
+        "open(os.environ['CALLS'], 'a').write(json.dumps(sys.argv[1:]) + '\\n')\n"
+        "sys.exit(int(os.environ['WARM_EXIT']) if '--warm-cache' in sys.argv else 0)\n")
+    (bindir / "v2v-serve").chmod(0o755)
+
+    def run(warm_exit):
+        calls.unlink(missing_ok=True)
+        env = {"PATH": f"{bindir}:/usr/bin:/bin", "CALLS": str(calls), "WARM_EXIT": str(warm_exit)}
+        rc = subprocess.run(argv, env=env, timeout=60).returncode
+        return rc, [json.loads(ln) for ln in calls.read_text().splitlines()]
+
+    assert run(0) == (0, [line + ["--warm-cache"], line])
+    assert run(2) == (2, [line + ["--warm-cache"]])
+    ns = check_flags("v2v-serve", line + ["--warm-cache"])
+    assert ns.warm_cache
+    wcfg = check_serve_config(ns)
+    scfg = check_serve_config(check_flags("v2v-serve", line))
+    same_corpus_and_cache(wcfg, scfg)
+    assert wcfg.workers == scfg.workers and wcfg.frame_cache_gb > 0
+    if "docker-compose.bucket.yml" in files:
+        assert wcfg.videos.startswith("s3://")
+    else:  # the mounts are the server's: compose_services checks its cache volume is its own
+        (_, _, _, _, mounts, _), = [v for v in compose_services(comp | {"services": {
+            **comp["services"], "server": {**s, "entrypoint": ["v2v-serve"]}}}, tmp_path).values()
+            if v[0] == "v2v-serve"]
+        assert under(wcfg.cache_dir, mounts)["source"] is None
+    hc, bhc = s["healthcheck"], base["healthcheck"]
+    assert seconds(hc["start_period"]) >= 3600 > seconds(bhc["start_period"])
+    assert {k: v for k, v in hc.items() if k != "start_period"} == {k: v for k, v in bhc.items() if k != "start_period"}
 
 
 # ---------------------------------------------------------------------------------- kubernetes
@@ -685,26 +759,26 @@ def test_k8s_warm_cache_component_runs_the_servers_line_with_warm_cache_first(ov
 
 
 def test_compose_bucket_override_and_raycluster_read_the_bucket():
+    """docker-compose.bucket.yml changes the server's corpus to a bucket and adds its
+    credentials; the rest of the line is the base file's (workers, frame cache, bind, keys)."""
     comp = yaml.safe_load((DEPLOY / "docker-compose.bucket.yml").read_text())
     base = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
-    for name in ("shard0", "shard1", "warm0", "warm1"):  # the warm profile's services read the bucket too
-        s = comp["services"][name]
-        assert name in base["services"]
-        assert s["environment"]["AWS_SHARED_CREDENTIALS_FILE"] == "/run/secrets/aws_credentials"
-        assert "AWS_ENDPOINT_URL" in s["environment"] and s["secrets"] == ["aws_credentials"]
-        args = defaults(s["command"])
-        assert ("--warm-cache" in args) == name.startswith("warm")
-        ns = check_flags("v2v-serve", args)
-        ns.config = None
-        cfg = check_serve_config(ns)
-        assert cfg.videos == "s3://v2v-corpus/webvid/"
-        # the rest of the line is the base file's: the same shard, workers and frame cache
-        bns = check_flags("v2v-serve", defaults(base["services"][name]["command"]))
-        bns.config = None
-        bcfg = check_serve_config(bns)
-        bcfg = type(bcfg).from_dict({**bcfg.to_dict(), "videos": cfg.videos}, source="base")
-        same_corpus_and_cache(cfg, bcfg)
-        assert cfg.to_dict() == bcfg.to_dict()
+    assert set(comp["services"]) == {"server"} <= set(base["services"])
+    s = comp["services"]["server"]
+    assert s["environment"]["AWS_SHARED_CREDENTIALS_FILE"] == "/run/secrets/aws_credentials"
+    assert "AWS_ENDPOINT_URL" in s["environment"] and s["secrets"] == ["aws_credentials"]
+    args = defaults(s["command"])
+    assert "--shard" not in args
+    ns = check_flags("v2v-serve", args)
+    ns.config = None
+    cfg = check_serve_config(ns)
+    assert cfg.videos == "s3://v2v-corpus/webvid/"
+    bns = check_flags("v2v-serve", defaults(base["services"]["server"]["command"]))
+    bns.config = None
+    bcfg = check_serve_config(bns)
+    bcfg = type(bcfg).from_dict({**bcfg.to_dict(), "videos": cfg.videos}, source="base")
+    same_corpus_and_cache(cfg, bcfg)
+    assert cfg.to_dict() == bcfg.to_dict()
     assert "aws_credentials" in comp["secrets"]
     ray = ray_docs()[("RayCluster", "v2v")]
     pods = [ray["spec"]["headGroupSpec"]] + ray["spec"]["workerGroupSpecs"]
