@@ -643,6 +643,10 @@ def test_k8s_autoscale_overlay_sizes_the_fleet_by_cpu():
     assert spec["behavior"]["scaleUp"]["stabilizationWindowSeconds"] <= 60
     down = spec["behavior"]["scaleDown"]
     assert down["policies"] == [{"type": "Pods", "value": 1, "periodSeconds": down["policies"][0]["periodSeconds"]}]
+    # what deploy/README.md says of it
+    readme = " ".join((DEPLOY / "README.md").read_text().split())
+    assert f"{spec['minReplicas']} to {spec['maxReplicas']} hosts, {target['averageUtilization']} % of the CPU request" in readme
+    assert f"shrinks after {down['stabilizationWindowSeconds'] // 60} minutes of low use, one host at a time" in readme
     assert "replicas" not in dep["spec"]
     assert {**dep, "spec": {**dep["spec"], "replicas": base_dep["spec"]["replicas"]}} == base_dep
     assert {k: v for k, v in docs.items() if k[0] not in ("HorizontalPodAutoscaler", "Deployment")} == \
