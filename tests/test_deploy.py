@@ -128,14 +128,16 @@ def port_of(endpoint):
     return int(endpoint.rsplit(":", 1)[1])
 
 
-def k8s_docs():
+def k8s_docs(folder: Path = K8S) -> dict:
+    """{(kind, name): object} of the manifests a kustomization folder lists as resources of its
+    own (files, not other folders), as written there."""
+    kz = yaml.safe_load((folder / "kustomization.yaml").read_text())
     docs = {}
-    for f in sorted(K8S.glob("*.yaml")):
-        if f.name == "kustomization.yaml":
-            continue
-        for d in yaml.safe_load_all(f.read_text()):
-            if d:
-                docs[(d["kind"], d["metadata"]["name"])] = d
+    for r in kz.get("resources", []):
+        if (folder / r).is_file():
+            for d in yaml.safe_load_all((folder / r).read_text()):
+                if d:
+                    docs[(d["kind"], d["metadata"]["name"])] = d
     return docs
 
 
@@ -185,16 +187,33 @@ def test_trainer_image_is_pytorch_cuda_runtime_with_client_and_trainer():
 
 # ---------------------------------------------------------------------------------- compose
 def defaults(value):
-    """A compose value with every ``${VAR:-default}`` replaced by its default (what runs when
-    the variable is unset)."""
+    """A compose value as compose runs it when no variable is set: every ``${VAR:-default}``
+    replaced by its default and ``$$`` (compose's escape) by ``$``."""
     if isinstance(value, list):
         return [defaults(v) for v in value]
-    return re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", value)
+    return re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", value).replace("$$", "$")
+
+
+def compose_file(*names: str) -> dict:
+    """deploy/'s compose files merged as ``docker compose -f a -f b`` merges them, for what these
+    files set: mappings key by key, a later file's command or entrypoint replacing the earlier
+    one's. Any other list set by two files fails here (compose merges those its own way)."""
+
+    def merge(a, b, key=None):
+        if isinstance(a, dict) and isinstance(b, dict):
+            return {k: merge(a[k], b[k], k) if k in a and k in b else b.get(k, a.get(k)) for k in {**a, **b}}
+        assert key in ("command", "entrypoint") or not isinstance(a, list), f"{key}: a list set by two files"
+        return b
+
+    out = {}
+    for n in names:
+        out = merge(out, yaml.safe_load((DEPLOY / n).read_text()))
+    return out
 
 
 def image_owns(image: dict, path: str) -> bool:
-    """Whether the image's RUN lines make ``path`` and give it to the image's user (a named
-    volume mounted there starts with that owner and is writable)."""
+    """Whether the image's RUN lines make ``path`` and give it to the image's user (a volume
+    mounted there starts with that owner and is writable)."""
     runs = " ".join(image["run"])
     return bool(re.search(rf"mkdir -p [^&]*{re.escape(path)}(\s|$)", runs)) and bool(
         re.search(rf"chown {image['user']}:{image['user']} [^&]*{re.escape(path)}(\s|$)", runs))
@@ -214,7 +233,11 @@ def compose_services(comp: dict, tmp_path: Path) -> dict:
         argv = s.get("entrypoint", img["entrypoint"]) + defaults(s.get("command", img.get("cmd", [])))
         mounts = []
         for v in s.get("volumes", []):
-            src, dst = defaults(v).split(":")[:2]
+            parts = defaults(v).split(":")
+            if len(parts) == 1:  # an anonymous volume: made for each container, its own
+                mounts.append({"mountPath": parts[0], "source": None, "readOnly": False})
+                continue
+            src, dst = parts[:2]
             if src.startswith((".", "/")):
                 assert (DEPLOY / src).is_dir(), f"{name}: {src} is no folder"
             else:
@@ -240,9 +263,11 @@ def compose_services(comp: dict, tmp_path: Path) -> dict:
                     under(path, mounts)
         cfg = check_serve_config(ns) if prog == "v2v-serve" else None
         if cfg is not None and cfg.frame_cache_gb > 0:
-            # the frame cache on a writable named volume of its own, made and owned in the image
+            # the frame cache on a writable volume of each container's own (an anonymous volume:
+            # every replica of a scaled service gets one; a named one would be shared by them),
+            # made and owned in the image
             m = under(cfg.cache_dir, mounts)
-            assert m["source"] in named_volumes and not m["readOnly"], f"{name}: {cfg.cache_dir} on {m}"
+            assert m["source"] is None and not m["readOnly"], f"{name}: {cfg.cache_dir} on {m}"
             assert image_owns(img, m["mountPath"]), f"{name}: the image does not make {m['mountPath']} for its user"
         out[name] = (prog, args, ns, cfg, mounts, s)
     return out
@@ -257,74 +282,132 @@ def same_corpus_and_cache(a, b) -> None:
     assert a.recipe.fingerprint() == b.recipe.fingerprint()
 
 
-def test_compose_two_shards_one_trainer_flags_ports_paths(tmp_path):
-    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+def seconds(duration: str) -> int:
+    """A compose duration (``30s``, ``1h30m``) in seconds."""
+    parts = re.findall(r"(\d+)([hms])", duration)
+    assert "".join(n + u for n, u in parts) == duration, duration
+    return sum(int(n) * {"h": 3600, "m": 60, "s": 1}[u] for n, u in parts)
+
+
+def test_compose_one_scalable_server_service_and_a_trainer_reading_it_by_name(tmp_path):
+    """`server` is one service of identical hosts serving one plan (no --shard) that
+    ``--scale server=N`` can run N of: no container name, no fixed host port (the stream port
+    stays on the compose network, metrics get a host port Docker picks per replica). The trainer
+    connects to the service's name, which Docker's DNS resolves to every replica."""
+    comp = compose_file("docker-compose.yml")
     svcs = compose_services(comp, tmp_path)
-    shards = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" not in v[1]}
+    (name, (_, args, ns, cfg, mounts, s)), = [(n, v) for n, v in svcs.items() if v[0] == "v2v-serve"]
     trainers = {n: v for n, v in svcs.items() if v[0] == "v2v-train"}
-    for name, (_, args, ns, cfg, _, s) in shards.items():
-        # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
-        assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
-                                                      cfg.crop_size), name
-        hc = " ".join(s["healthcheck"]["test"])
-        assert f"127.0.0.1:{cfg.metrics_port}/" in hc
-        assert all(str(p).split(":")[-1] == str(cfg.metrics_port) for p in s.get("ports", []))
-        for flag in ("--curve-secret-key", "--curve-allow"):
-            assert flag_values(args, flag)[0].startswith("/keys/")
-    # the shards split the corpus: 0/N .. N-1/N, each once
-    specs = sorted(v[3].shard for v in shards.values())
-    assert specs == [f"{i}/{len(shards)}" for i in range(len(shards))] and len(shards) == 2
-    (_, _, ns, _, mounts, _), = trainers.values()
-    tcfg = apply_overrides(load_trainer_config(str(image_file(dockerfile("Dockerfile.trainer"), ns.config))), ns.set)
-    want = {f"tcp://{name}:{port_of(v[3].bind)}" for name, v in shards.items()}
-    assert set(ns.connect.split(",")) == want  # the trainer reads every shard
+    assert "--shard" not in args and cfg.shard is None and cfg.serving.shard_spec == (0, 1)
+    assert "container_name" not in s and s["deploy"]["replicas"] >= 2
+    assert s["ports"]
+    for p in s["ports"]:
+        if isinstance(p, dict):
+            assert "published" not in p and p["target"] == cfg.metrics_port, p
+        else:  # "CONTAINER" alone: the host port is Docker's pick
+            assert str(p) == str(cfg.metrics_port), p
+    # /dev/shm holds the workers' slot rings: Docker's default 64 MiB would refuse them
+    assert size_bytes(s["shm_size"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins, cfg.crop_size)
+    hc = " ".join(s["healthcheck"]["test"])
+    assert f"127.0.0.1:{cfg.metrics_port}/readyz" in hc  # healthy = ready: the trainer starts on a serving fleet
+    for flag in ("--curve-secret-key", "--curve-allow"):
+        assert flag_values(args, flag)[0].startswith("/keys/")
+    (tname, (_, _, tns, _, tmounts, ts)), = trainers.items()
+    tcfg = apply_overrides(load_trainer_config(str(image_file(dockerfile("Dockerfile.trainer"), tns.config))), tns.set)
+    assert tns.connect == f"tcp://{name}:{port_of(cfg.bind)}"  # one name for every replica
+    assert ts["depends_on"][name] == {"condition": "service_healthy"}
     # the keys the servers and the trainer name are the ones the key maker writes
     keys = tmp_path / "keys"
-    for _, args, *_ in shards.values():
-        assert (keys / Path(flag_values(args, "--curve-secret-key")[0]).relative_to("/keys")).is_file()
-        allow = keys / Path(flag_values(args, "--curve-allow")[0]).relative_to("/keys")
-        assert list(allow.glob("*.key"))
+    assert (keys / Path(flag_values(args, "--curve-secret-key")[0]).relative_to("/keys")).is_file()
+    assert list((keys / Path(flag_values(args, "--curve-allow")[0]).relative_to("/keys")).glob("*.key"))
     for kf in tcfg["stream"]["curve_keys"]:
-        under(kf, mounts)
+        under(kf, tmounts)
         assert (keys / Path(kf).relative_to("/keys")).is_file()
     from v2v_client.endpoints import load_curve_keys
 
     load_curve_keys(*[str(keys / Path(k).relative_to("/keys")) for k in tcfg["stream"]["curve_keys"]])
 
 
-def test_compose_shards_keep_a_frame_cache_each_and_the_warm_profile_fills_it(tmp_path):
-    """Every shard caches frames (--frame-cache-gb, --cache-dir) on a volume no other shard
-    mounts (writers are told apart by process id, and each container has its own); the
-    ``warm`` profile's service per shard runs --warm-cache over that shard's corpus into that
-    volume, and the shard waits for it only when the profile is on."""
-    comp = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+def test_compose_each_server_replica_keeps_a_frame_cache_of_its_own(tmp_path):
+    """The server caches frames (--frame-cache-gb, --cache-dir) on an anonymous volume, one per
+    replica, and mounts no named volume writable: a named volume is mounted by every replica, and
+    a cache folder must not be shared (writers are told apart by process id, and each container
+    has its own ids). The check refuses a named cache volume."""
+    comp = compose_file("docker-compose.yml")
     svcs = compose_services(comp, tmp_path)
-    shards = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" not in v[1]}
-    warm = {n: v for n, v in svcs.items() if v[0] == "v2v-serve" and "--warm-cache" in v[1]}
-    cache_volumes = {}
-    for name, (_, _, _, cfg, mounts, s) in shards.items():
-        assert cfg.frame_cache_gb > 0 and cfg.cache_dir, name
-        vol = under(cfg.cache_dir, mounts)["source"]
-        assert vol not in cache_volumes.values(), f"{name} shares its cache volume {vol}"
-        cache_volumes[name] = vol
-        (dep, cond), = [(d, c) for d, c in s["depends_on"].items() if d in warm]
-        assert cond == {"condition": "service_completed_successfully", "required": False}, name
-        _, wargs, wns, wcfg, wmounts, ws = warm[dep]
-        assert ws["profiles"] == ["warm"] and ws["restart"] == "no" and ws["healthcheck"] == {"disable": True}
-        assert "depends_on" not in ws and "ports" not in ws  # a one-shot pass: it waits on nothing, serves nothing
-        same_corpus_and_cache(wcfg, cfg)
-        assert under(wcfg.cache_dir, wmounts)["source"] == vol
-        assert under(wcfg.videos, wmounts)["source"] == under(cfg.videos, mounts)["source"]
-        assert wcfg.workers == cfg.workers
-    assert len(warm) == len(shards) == 2
-    assert all(not any(m["mountPath"] == "/keys" for m in v[4]) for v in warm.values())  # no bind: no keys
+    (_, _, _, cfg, mounts, s), = [v for v in svcs.values() if v[0] == "v2v-serve"]
+    assert cfg.frame_cache_gb > 0 and cfg.cache_dir
+    assert under(cfg.cache_dir, mounts)["source"] is None
+    assert all(m["readOnly"] or m["source"] is None for m in mounts), mounts
+    # the same file with the cache on a named volume is refused
+    shared = json.loads(json.dumps(comp))
+    shared["volumes"]["cache"] = None
+    shared["services"]["server"]["volumes"] = [
+        "cache:/var/cache/v2v" if v == cfg.cache_dir else v for v in s["volumes"]]
+    with pytest.raises(AssertionError, match="/var/cache/v2v on"):
+        compose_services(shared, tmp_path)
+
+
+@pytest.mark.parametrize("files", [("docker-compose.yml", "docker-compose.warm.yml"),
+                                   ("docker-compose.yml", "docker-compose.bucket.yml", "docker-compose.warm.yml")],
+                         ids=["folder", "bucket"])
+def test_compose_warm_override_fills_each_replicas_cache_then_serves_in_the_same_container(files, tmp_path):
+    """docker-compose.warm.yml runs, in each replica, `v2v-serve <its line> --warm-cache` and then
+    the server with the same line (so the warm-up fills that replica's own cache); a failed
+    warm-up starts no server. The entrypoint is run here with a stand-in v2v-serve recording each
+    line it is given. The health check's start period covers the warm-up."""
+    base = compose_file(*files[:-1])["services"]["server"]
+    comp = compose_file(*files)
+    s = comp["services"]["server"]
+    assert s["command"] == base["command"] and comp["volumes"] == compose_file(*files[:-1])["volumes"]
+    argv = defaults(s["entrypoint"]) + defaults(s["command"])
+    line = defaults(base["command"])
+    bindir, calls = tmp_path / "bin", tmp_path / "calls.jsonl"
+    bindir.mkdir()
+    (bindir / "v2v-serve").write_text(
+        f"#!{sys.executable}\nimport json, os, sys\n"
+        "open(os.environ['CALLS'], 'a').write(json.dumps(sys.argv[1:]) + '\\n')\n"
+        "sys.exit(int(os.environ['WARM_EXIT']) if '--warm-cache' in sys.argv else 0)\n")
+    (bindir / "v2v-serve").chmod(0o755)
+
+    def run(warm_exit):
+        calls.unlink(missing_ok=True)
+        env = {"PATH": f"{bindir}:/usr/bin:/bin", "CALLS": str(calls), "WARM_EXIT": str(warm_exit)}
+        rc = subprocess.run(argv, env=env, timeout=60).returncode
+        return rc, [json.loads(ln) for ln in calls.read_text().splitlines()]
+
+    assert run(0) == (0, [line + ["--warm-cache"], line])
+    assert run(2) == (2, [line + ["--warm-cache"]])
+    ns = check_flags("v2v-serve", line + ["--warm-cache"])
+    assert ns.warm_cache
+    wcfg = check_serve_config(ns)
+    scfg = check_serve_config(check_flags("v2v-serve", line))
+    same_corpus_and_cache(wcfg, scfg)
+    assert wcfg.workers == scfg.workers and wcfg.frame_cache_gb > 0
+    if "docker-compose.bucket.yml" in files:
+        assert wcfg.videos.startswith("s3://")
+    else:  # the mounts are the server's: compose_services checks its cache volume is its own
+        (_, _, _, _, mounts, _), = [v for v in compose_services(comp | {"services": {
+            **comp["services"], "server": {**s, "entrypoint": ["v2v-serve"]}}}, tmp_path).values()
+            if v[0] == "v2v-serve"]
+        assert under(wcfg.cache_dir, mounts)["source"] is None
+    hc, bhc = s["healthcheck"], base["healthcheck"]
+    assert seconds(hc["start_period"]) >= 3600 > seconds(bhc["start_period"])
+    assert {k: v for k, v in hc.items() if k != "start_period"} == {k: v for k, v in bhc.items() if k != "start_period"}
 
 
 # ---------------------------------------------------------------------------------- kubernetes
-def test_kustomization_lists_every_manifest():
-    kz = yaml.safe_load((K8S / "kustomization.yaml").read_text())
-    files = sorted(f.name for f in K8S.glob("*.yaml") if f.name != "kustomization.yaml")
-    assert sorted(kz["resources"]) == files
+K8S_FOLDERS = sorted(f.parent for f in DEPLOY.glob("k8s*/kustomization.yaml"))
+needs_kubectl = pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl not installed")
+
+
+def test_kustomizations_list_every_file_in_their_folder():
+    for folder in K8S_FOLDERS:
+        kz = yaml.safe_load((folder / "kustomization.yaml").read_text())
+        listed = {r for r in kz.get("resources", []) if (folder / r).is_file()}
+        listed |= {p["path"] for p in kz.get("patches", []) if "path" in p}
+        files = {f.name for f in folder.glob("*.yaml")} - {"kustomization.yaml"}
+        assert listed == files, folder.name
 
 
 def _container(doc):
@@ -333,9 +416,13 @@ def _container(doc):
 
 
 def _mounts(doc, docs):
-    """The container's mounts with what each volume is: configmap data key, secret items, ..."""
+    """The container's mounts with what each volume is: configmap data key, secret items, the
+    claim a volume per pod is made from (a StatefulSet's volumeClaimTemplates, or a generic
+    ephemeral volume), ..."""
     spec = doc["spec"]["template"]["spec"]
-    vols = {v["name"]: v for v in spec["volumes"]}
+    vols = {}
+    for v in spec["volumes"]:
+        vols[v["name"]] = dict(v, claimTemplate=v["ephemeral"]["volumeClaimTemplate"]["spec"]) if "ephemeral" in v else v
     for claim in doc["spec"].get("volumeClaimTemplates", []):  # a StatefulSet's volume per pod
         assert claim["metadata"]["name"] not in vols
         vols[claim["metadata"]["name"]] = {"name": claim["metadata"]["name"], "claimTemplate": claim["spec"]}
@@ -363,90 +450,6 @@ def _check_path(path, mounts, secret_files):
     return m
 
 
-def test_k8s_statefulset_service_pdb_job_agree():
-    docs = k8s_docs()
-    sts = docs[("StatefulSet", "v2v-server")]
-    svc = docs[("Service", sts["spec"]["serviceName"])]
-    pdb = docs[("PodDisruptionBudget", "v2v-server")]
-    job = docs[("Job", "v2v-trainer")]
-    labels = sts["spec"]["template"]["metadata"]["labels"]
-    assert sts["spec"]["selector"]["matchLabels"].items() <= labels.items()
-    assert svc["spec"]["selector"].items() <= labels.items() and svc["spec"]["clusterIP"] == "None"
-    assert pdb["spec"]["selector"]["matchLabels"].items() <= labels.items()
-    c = _container(sts)
-    env = {e["name"]: e for e in c["env"]}
-    secret_files = set()
-
-    # the server line: flags exist, values parse, ordinal -> --shard, CPU request -> --workers
-    replicas = sts["spec"]["replicas"]
-    assert env["SHARDS"]["value"] == str(replicas)
-    assert env["SHARD_INDEX"]["valueFrom"]["fieldRef"]["fieldPath"] == "metadata.labels['apps.kubernetes.io/pod-index']"
-    ref = env["CPU_REQUEST"]["valueFrom"]["resourceFieldRef"]
-    assert ref["resource"] == "requests.cpu" and ref["containerName"] == c["name"]
-    args = c["args"]
-    assert flag_values(args, "--shard") == ["$(SHARD_INDEX)/$(SHARDS)"]
-    assert flag_values(args, "--workers") == ["$(CPU_REQUEST)"]
-    mounts = _mounts(sts, docs)
-    cpu = str(c["resources"]["requests"]["cpu"])
-    for i in range(replicas):
-        ns = check_flags("v2v-serve", args, {"SHARD_INDEX": str(i), "SHARDS": str(replicas), "CPU_REQUEST": cpu})
-        conf = _check_path(ns.config, mounts, secret_files)
-        cfg = check_serve_config(ns, _write(conf["content"]))
-        assert cfg.serving.shard_spec == (i, replicas) and cfg.workers == int(cpu)
-    # /dev/shm: a memory-backed emptyDir large enough for the workers' slot rings
-    shm_mount, = [m for m in c["volumeMounts"] if m["mountPath"] == "/dev/shm"]
-    shm_vol, = [v for v in sts["spec"]["template"]["spec"]["volumes"] if v["name"] == shm_mount["name"]]
-    assert shm_vol["emptyDir"]["medium"] == "Memory"
-    assert size_bytes(shm_vol["emptyDir"]["sizeLimit"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
-                                                                      cfg.crop_size)
-    for flag in PATH_FLAGS:
-        for path in flag_values(args, flag):
-            _check_path(path, mounts, secret_files)
-    # the frame cache: on a volume of the pod's own (a claim per pod, never shared), its budget
-    # below the volume's size
-    assert cfg.frame_cache_gb > 0 and cfg.cache_dir
-    claim = _check_path(cfg.cache_dir, mounts, secret_files)["volume"]["claimTemplate"]
-    assert claim["accessModes"] == ["ReadWriteOnce"]
-    assert cfg.frame_cache_gb * (1 << 30) < size_bytes(claim["resources"]["requests"]["storage"])
-    # ports: stream and metrics exposed, probes on the metrics port, the Service on both
-    ports = {p["name"]: p["containerPort"] for p in c["ports"]}
-    assert ports["stream"] == port_of(cfg.bind) and ports["metrics"] == cfg.metrics_port
-    assert cfg.metrics_host == "0.0.0.0"
-    assert c["readinessProbe"]["httpGet"] == {"path": "/readyz", "port": "metrics"}
-    assert c["livenessProbe"]["httpGet"] == {"path": "/healthz", "port": "metrics"}
-    for sp in svc["spec"]["ports"]:
-        assert sp["targetPort"] in ports and sp["port"] == ports[sp["targetPort"]]
-    annotations = sts["spec"]["template"]["metadata"]["annotations"]
-    assert annotations["prometheus.io/port"] == str(cfg.metrics_port)
-    # the trainer: torchrun -m trainer.train, reads every shard by its stable name
-    t = _container(job)
-    prog, targs = program(t["command"] + t["args"])
-    assert prog == "v2v-train" and t["command"][0] == "torchrun"
-    tns = check_flags("v2v-train", targs)
-    tmounts = _mounts(job, docs)
-    tconf = _check_path(tns.config, tmounts, secret_files)
-    tcfg = load_trainer_config(_write(tconf["content"]))
-    want = [f"tcp://{sts['metadata']['name']}-{i}.{svc['metadata']['name']}:{ports['stream']}" for i in range(replicas)]
-    assert tns.connect.split(",") == want
-    for path in flag_values(targs, "--out"):
-        _check_path(path, tmounts, secret_files)
-    for kf in tcfg["stream"]["curve_keys"]:
-        _check_path(kf, tmounts, secret_files)
-    # a shard rescheduled (a pod moved, a node drained) comes back within the trainer's patience: its
-    # fetches are asked again meanwhile
-    assert tcfg["stream"]["timeout_s"] >= 300
-    # one Secret holds the four key files v2v-keygen makes for "server" and "trainer"
-    assert secret_files == {"server.key", "server.key_secret", "trainer.key", "trainer.key_secret"}
-    # requests == limits everywhere (Guaranteed QoS: no CPU throttling surprises for decoding)
-    for doc in (sts, job):
-        r = _container(doc)["resources"]
-        assert r["requests"] == r["limits"], doc["metadata"]["name"]
-        sc = doc["spec"]["template"]["spec"]["securityContext"]
-        assert sc["runAsNonRoot"] is True and sc["fsGroup"] == sc["runAsUser"] == 10001
-    # the images the manifests run are the ones deploy/ builds
-    assert c["image"].split(":")[0] == "v2v-server" and t["image"].split(":")[0] == "v2v-trainer"
-
-
 def _write(content: str) -> str:
     import tempfile
 
@@ -456,19 +459,240 @@ def _write(content: str) -> str:
     return f.name
 
 
+def check_server_pods(doc, docs, secret_files, shards=None):
+    """The servers of a Deployment (the fleet: ``shards`` None, no --shard) or a StatefulSet
+    (static shards: pod i serves ``i/shards``): flags exist and every pod's line parses with its
+    config, the CPU request becomes --workers, /dev/shm holds the slot rings, paths lie on
+    mounts, the frame cache on a claim of the pod's own below its size, ports and probes agree,
+    requests equal limits. Returns (config, {port name: port}, frame-cache mount)."""
+    c = _container(doc)
+    env = {e["name"]: e for e in c["env"]}
+    ref = env["CPU_REQUEST"]["valueFrom"]["resourceFieldRef"]
+    assert ref["resource"] == "requests.cpu" and ref["containerName"] == c["name"]
+    args = c["args"]
+    assert flag_values(args, "--workers") == ["$(CPU_REQUEST)"]
+    cpu = str(c["resources"]["requests"]["cpu"])
+    if shards is None:  # one plan over the whole corpus: no shard flag, no shard variables
+        assert "--shard" not in args and not {"SHARD_INDEX", "SHARDS"} & env.keys()
+        pods = [({"CPU_REQUEST": cpu}, (0, 1))]
+    else:  # pod index -> --shard: the pod-index label (Kubernetes >= 1.28) via the downward API
+        assert env["SHARDS"]["value"] == str(shards)
+        assert env["SHARD_INDEX"]["valueFrom"]["fieldRef"]["fieldPath"] == \
+            "metadata.labels['apps.kubernetes.io/pod-index']"
+        assert flag_values(args, "--shard") == ["$(SHARD_INDEX)/$(SHARDS)"]
+        pods = [({"SHARD_INDEX": str(i), "SHARDS": str(shards), "CPU_REQUEST": cpu}, (i, shards)) for i in range(shards)]
+    mounts = _mounts(doc, docs)
+    for subst, spec in pods:
+        ns = check_flags("v2v-serve", args, subst)
+        conf = _check_path(ns.config, mounts, secret_files)
+        cfg = check_serve_config(ns, _write(conf["content"]))
+        assert cfg.serving.shard_spec == spec and cfg.workers == int(cpu)
+    # /dev/shm: a memory-backed emptyDir large enough for the workers' slot rings
+    shm_mount, = [m for m in c["volumeMounts"] if m["mountPath"] == "/dev/shm"]
+    shm_vol, = [v for v in doc["spec"]["template"]["spec"]["volumes"] if v["name"] == shm_mount["name"]]
+    assert shm_vol["emptyDir"]["medium"] == "Memory"
+    assert size_bytes(shm_vol["emptyDir"]["sizeLimit"]) >= shm_bytes(cfg.workers, cfg.sequence_length, cfg.num_bins,
+                                                                      cfg.crop_size)
+    for flag in PATH_FLAGS:
+        for path in flag_values(args, flag):
+            _check_path(path, mounts, secret_files)
+    # the frame cache: on a claim of the pod's own (never shared), its budget below its size
+    assert cfg.frame_cache_gb > 0 and cfg.cache_dir
+    cache = _check_path(cfg.cache_dir, mounts, secret_files)
+    claim = cache["volume"]["claimTemplate"]
+    assert claim["accessModes"] == ["ReadWriteOnce"]
+    assert cfg.frame_cache_gb * (1 << 30) < size_bytes(claim["resources"]["requests"]["storage"])
+    # ports: stream and metrics exposed, probes on the metrics port
+    ports = {p["name"]: p["containerPort"] for p in c["ports"]}
+    assert ports["stream"] == port_of(cfg.bind) and ports["metrics"] == cfg.metrics_port
+    assert cfg.metrics_host == "0.0.0.0"
+    assert c["readinessProbe"]["httpGet"] == {"path": "/readyz", "port": "metrics"}
+    assert c["livenessProbe"]["httpGet"] == {"path": "/healthz", "port": "metrics"}
+    assert doc["spec"]["template"]["metadata"]["annotations"]["prometheus.io/port"] == str(cfg.metrics_port)
+    return cfg, ports, cache
+
+
+def check_trainer(job, docs, secret_files):
+    """The trainer Job: torchrun -m trainer.train, its flags, config, output and key paths on its
+    mounts. Returns its --connect endpoints."""
+    t = _container(job)
+    prog, targs = program(t["command"] + t["args"])
+    assert prog == "v2v-train" and t["command"][0] == "torchrun"
+    tns = check_flags("v2v-train", targs)
+    tmounts = _mounts(job, docs)
+    tcfg = load_trainer_config(_write(_check_path(tns.config, tmounts, secret_files)["content"]))
+    for path in flag_values(targs, "--out"):
+        _check_path(path, tmounts, secret_files)
+    for kf in tcfg["stream"]["curve_keys"]:
+        _check_path(kf, tmounts, secret_files)
+    # no host answering (the fleet rescheduled, a shard moved) is waited out this long
+    assert tcfg["stream"]["timeout_s"] >= 300
+    return tns.connect.split(",")
+
+
+def check_pod_basics(*docs) -> None:
+    """requests == limits (Guaranteed QoS: no CPU throttling surprises for decoding), non-root,
+    and the images deploy/ builds."""
+    for doc in docs:
+        c = _container(doc)
+        assert c["resources"]["requests"] == c["resources"]["limits"], doc["metadata"]["name"]
+        sc = doc["spec"]["template"]["spec"]["securityContext"]
+        assert sc["runAsNonRoot"] is True and sc["fsGroup"] == sc["runAsUser"] == 10001
+        assert c["image"].split(":")[0] in ("v2v-server", "v2v-trainer")
+
+
+def test_k8s_fleet_deployment_service_pdb_job_agree():
+    """The base: the servers are a Deployment (no --shard: one plan, any number of replicas), a
+    headless Service naming every ready pod, a PDB, and a trainer reading the fleet by the
+    Service's one name."""
+    docs = k8s_docs()
+    dep = docs[("Deployment", "v2v-server")]
+    assert not [k for k in docs if k[0] == "StatefulSet"]
+    svc = docs[("Service", "v2v-server")]
+    pdb = docs[("PodDisruptionBudget", "v2v-server")]
+    job = docs[("Job", "v2v-trainer")]
+    labels = dep["spec"]["template"]["metadata"]["labels"]
+    assert dep["spec"]["selector"]["matchLabels"].items() <= labels.items()
+    assert svc["spec"]["selector"].items() <= labels.items() and svc["spec"]["clusterIP"] == "None"
+    # a fleet reads the ready hosts: a pod joins the name once /readyz answers, and leaves it
+    # when it stops being ready (terminating)
+    assert svc["spec"]["publishNotReadyAddresses"] is False
+    assert pdb["spec"]["selector"]["matchLabels"].items() <= labels.items() and pdb["spec"]["maxUnavailable"] == 1
+    # a rollout never takes the fleet below its replicas: the new pod is ready before an old one goes
+    assert dep["spec"]["strategy"]["rollingUpdate"]["maxUnavailable"] == 0
+    assert dep["spec"]["replicas"] >= 2
+    secret_files = set()
+    cfg, ports, cache = check_server_pods(dep, docs, secret_files)
+    assert cfg.shard is None
+    # each pod's cache is a generic ephemeral volume (a claim per pod, gone with it), not a
+    # claim by name, which every replica would mount
+    assert "ephemeral" in cache["volume"] and "persistentVolumeClaim" not in cache["volume"]
+    for sp in svc["spec"]["ports"]:
+        assert sp["targetPort"] in ports and sp["port"] == ports[sp["targetPort"]]
+    assert check_trainer(job, docs, secret_files) == [f"tcp://{svc['metadata']['name']}:{ports['stream']}"]
+    # one Secret holds the four key files v2v-keygen makes for "server" and "trainer"
+    assert secret_files == {"server.key", "server.key_secret", "trainer.key", "trainer.key_secret"}
+    check_pod_basics(dep, job)
+    assert _container(dep)["image"].split(":")[0] == "v2v-server" and _container(job)["image"].split(":")[0] == "v2v-trainer"
+
+
 def test_k8s_manifests_match_the_kubernetes_schemas():
+    """Every manifest a kustomization folder holds as a resource of its own (the base, the HPA,
+    the shards' StatefulSet), as written."""
     kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
-    for (kind, name), doc in k8s_docs().items():
-        for version in ("1.29", "1.32"):
-            kv.validate(doc, version, strict=True)  # raises ValidationError naming the field
+    checked = set()
+    for folder in K8S_FOLDERS:
+        for (kind, name), doc in k8s_docs(folder).items():
+            for version in ("1.29", "1.32"):
+                kv.validate(doc, version, strict=True)  # raises ValidationError naming the field
+            checked.add(kind)
+    assert {"Deployment", "StatefulSet", "HorizontalPodAutoscaler", "Service", "Job"} <= checked
 
 
-@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl not installed")
-def test_kustomize_renders():
-    out = subprocess.run(["kubectl", "kustomize", str(K8S)], capture_output=True, text=True, timeout=60)
+def _kustomize(path: Path) -> dict:
+    out = subprocess.run(["kubectl", "kustomize", str(path)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
-    kinds = sorted(d["kind"] for d in yaml.safe_load_all(out.stdout) if d)
-    assert kinds == ["ConfigMap", "Job", "PodDisruptionBudget", "Service", "StatefulSet"]
+    return {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(out.stdout) if d}
+
+
+BASE_KINDS = ["ConfigMap", "Deployment", "Job", "PodDisruptionBudget", "Service"]
+OVERLAY_KINDS = {
+    "k8s": BASE_KINDS,
+    "k8s-autoscale": sorted(BASE_KINDS + ["HorizontalPodAutoscaler"]),
+    "k8s-bucket": BASE_KINDS,
+    "k8s-warm": BASE_KINDS,
+    "k8s-shards": ["ConfigMap", "Job", "PodDisruptionBudget", "Service", "StatefulSet"],
+}
+
+
+@needs_kubectl
+@pytest.mark.parametrize("overlay", sorted(OVERLAY_KINDS))
+def test_kustomize_renders_each_overlay_to_objects_that_match_the_schemas(overlay):
+    assert sorted(OVERLAY_KINDS) == sorted(f.name for f in K8S_FOLDERS if f.name != "k8s-warm-cache")
+    docs = _kustomize(DEPLOY / overlay)
+    assert sorted(kind for kind, _ in docs) == OVERLAY_KINDS[overlay]
+    assert all(d["metadata"]["labels"]["app.kubernetes.io/part-of"] == "v2v" for d in docs.values())
+    kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
+    for doc in docs.values():
+        for version in ("1.29", "1.32"):
+            kv.validate(doc, version, strict=True)
+
+
+@needs_kubectl
+def test_k8s_autoscale_overlay_sizes_the_fleet_by_cpu():
+    """deploy/k8s-autoscale: an autoscaling/v2 HPA on the Deployment's CPU utilisation (of its
+    request, which is the servers' --workers and their limit), at least two hosts, quick to grow
+    and slow to shrink; it owns the replica count (the overlay drops the field), and everything
+    else is the base's."""
+    docs, base = _kustomize(DEPLOY / "k8s-autoscale"), _kustomize(K8S)
+    hpa = docs[("HorizontalPodAutoscaler", "v2v-server")]
+    dep, base_dep = docs[("Deployment", "v2v-server")], base[("Deployment", "v2v-server")]
+    assert hpa["apiVersion"] == "autoscaling/v2"
+    ref = hpa["spec"]["scaleTargetRef"]
+    assert (ref["apiVersion"], ref["kind"], ref["name"]) == (dep["apiVersion"], dep["kind"], dep["metadata"]["name"])
+    (metric,) = hpa["spec"]["metrics"]
+    assert metric["type"] == "Resource" and metric["resource"]["name"] == "cpu"
+    target = metric["resource"]["target"]
+    assert target["type"] == "Utilization" and 50 <= target["averageUtilization"] < 100  # 100: already behind
+    r = _container(dep)["resources"]
+    assert r["requests"]["cpu"] == r["limits"]["cpu"]
+    assert flag_values(_container(dep)["args"], "--workers") == ["$(CPU_REQUEST)"]
+    spec = hpa["spec"]
+    assert 2 <= spec["minReplicas"] <= base_dep["spec"]["replicas"] < spec["maxReplicas"]
+    assert spec["behavior"]["scaleDown"]["stabilizationWindowSeconds"] >= 300
+    assert spec["behavior"]["scaleUp"]["stabilizationWindowSeconds"] <= 60
+    down = spec["behavior"]["scaleDown"]
+    assert down["policies"] == [{"type": "Pods", "value": 1, "periodSeconds": down["policies"][0]["periodSeconds"]}]
+    # what deploy/README.md says of it
+    readme = " ".join((DEPLOY / "README.md").read_text().split())
+    assert f"{spec['minReplicas']} to {spec['maxReplicas']} hosts, {target['averageUtilization']} % of the CPU request" in readme
+    assert f"shrinks after {down['stabilizationWindowSeconds'] // 60} minutes of low use, one host at a time" in readme
+    assert "replicas" not in dep["spec"]
+    assert {**dep, "spec": {**dep["spec"], "replicas": base_dep["spec"]["replicas"]}} == base_dep
+    assert {k: v for k, v in docs.items() if k[0] not in ("HorizontalPodAutoscaler", "Deployment")} == \
+        {k: v for k, v in base.items() if k[0] != "Deployment"}
+
+
+@needs_kubectl
+def test_k8s_shards_overlay_runs_static_shards_as_a_statefulset():
+    """deploy/k8s-shards: the Deployment gone, a StatefulSet whose pod index is the shard and
+    whose SHARDS equals replicas, each with a cache claim kept per ordinal; the trainer lists
+    every shard by its stable name, which resolves while the shard starts. Apart from the shard
+    and the cache claim, the pods are the fleet's."""
+    docs, base = _kustomize(DEPLOY / "k8s-shards"), _kustomize(K8S)
+    assert ("Deployment", "v2v-server") not in docs
+    sts = docs[("StatefulSet", "v2v-server")]
+    svc = docs[("Service", sts["spec"]["serviceName"])]
+    pdb, job = docs[("PodDisruptionBudget", "v2v-server")], docs[("Job", "v2v-trainer")]
+    labels = sts["spec"]["template"]["metadata"]["labels"]
+    assert sts["spec"]["selector"]["matchLabels"].items() <= labels.items()
+    assert svc["spec"]["selector"].items() <= labels.items() and pdb["spec"]["selector"]["matchLabels"].items() <= labels.items()
+    assert svc["spec"]["publishNotReadyAddresses"] is True and svc["spec"]["clusterIP"] == "None"
+    replicas = sts["spec"]["replicas"]
+    secret_files = set()
+    cfg, ports, cache = check_server_pods(sts, docs, secret_files, shards=replicas)
+    assert cache["name"] in [c["metadata"]["name"] for c in sts["spec"]["volumeClaimTemplates"]]
+    want = [f"tcp://{sts['metadata']['name']}-{i}.{svc['metadata']['name']}:{ports['stream']}" for i in range(replicas)]
+    assert check_trainer(job, docs, secret_files) == want
+    check_pod_basics(sts, job)
+    # the rest is the fleet's: the container but for the shard, the volumes but for the cache
+    dep = base[("Deployment", "v2v-server")]
+    c, bc = _container(sts), _container(dep)
+    i = c["args"].index("--shard")
+    assert c["args"][:i] + c["args"][i + 2:] == bc["args"]
+    assert [e for e in c["env"] if e["name"] not in ("SHARD_INDEX", "SHARDS")] == bc["env"]
+    assert {k: v for k, v in c.items() if k not in ("args", "env")} == {k: v for k, v in bc.items() if k not in ("args", "env")}
+    spec, bspec = sts["spec"]["template"]["spec"], dep["spec"]["template"]["spec"]
+    assert {k: v for k, v in spec.items() if k not in ("containers", "volumes")} == \
+        {k: v for k, v in bspec.items() if k not in ("containers", "volumes")}
+    bvols = {v["name"]: v for v in bspec["volumes"]}
+    assert {v["name"]: v for v in spec["volumes"]} == {n: v for n, v in bvols.items() if n != cache["name"]}
+    claim, = [t for t in sts["spec"]["volumeClaimTemplates"] if t["metadata"]["name"] == cache["name"]]
+    assert claim["spec"] == bvols[cache["name"]]["ephemeral"]["volumeClaimTemplate"]["spec"]
+    assert sts["spec"]["template"]["metadata"] == dep["spec"]["template"]["metadata"]
+    # the other objects are the base's, but for the Service's published addresses and the trainer's list
+    assert {k: v for k, v in docs.items() if k[0] in ("ConfigMap", "PodDisruptionBudget")} == \
+        {k: v for k, v in base.items() if k[0] in ("ConfigMap", "PodDisruptionBudget")}
 
 
 def _store_env(env: dict) -> None:
@@ -479,89 +703,86 @@ def _store_env(env: dict) -> None:
         assert ref["name"] == "v2v-s3" and ref["key"] == k
 
 
+@needs_kubectl
 def test_k8s_bucket_overlay_reads_the_corpus_from_a_bucket():
-    out = subprocess.run(["kubectl", "kustomize", str(DEPLOY / "k8s-bucket")], capture_output=True, text=True,
-                         timeout=60)
-    assert out.returncode == 0, out.stderr
-    docs = {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(out.stdout) if d}
-    sts = docs[("StatefulSet", "v2v-server")]
-    c = _container(sts)
+    docs = _kustomize(DEPLOY / "k8s-bucket")
+    dep = docs[("Deployment", "v2v-server")]
+    c = _container(dep)
     env = {e["name"]: e for e in c["env"]}
     _store_env(env)
-    assert "SHARD_INDEX" in env and "CPU_REQUEST" in env  # the base's variables stay
+    assert "CPU_REQUEST" in env and "SHARD_INDEX" not in env  # the base's variables stay: a fleet
     assert flag_values(c["args"], "--videos") == ["s3://v2v-corpus/webvid/"]
-    ns = check_flags("v2v-serve", c["args"], {"SHARD_INDEX": "0", "SHARDS": "2", "CPU_REQUEST": "4"})
+    ns = check_flags("v2v-serve", c["args"], {"CPU_REQUEST": "4"})
     ns.config = None
-    assert check_serve_config(ns).videos == "s3://v2v-corpus/webvid/"
-    assert all(v["name"] != "videos" for v in sts["spec"]["template"]["spec"]["volumes"])  # no corpus volume
+    cfg = check_serve_config(ns)
+    assert cfg.videos == "s3://v2v-corpus/webvid/" and cfg.shard is None
+    assert all(v["name"] != "videos" for v in dep["spec"]["template"]["spec"]["volumes"])  # no corpus volume
     # every other mount of the base stays (a mount's merge key is its path: deleting by name drops them all)
-    base = _container(k8s_docs()[("StatefulSet", "v2v-server")])["volumeMounts"]
+    base = _container(k8s_docs()[("Deployment", "v2v-server")])["volumeMounts"]
     assert c["volumeMounts"] == [m for m in base if m["mountPath"] != "/data/videos"]
-    _mounts(sts, {("ConfigMap", "v2v-config"): k8s_docs()[("ConfigMap", "v2v-config")]})  # each names a volume
+    _mounts(dep, {("ConfigMap", "v2v-config"): k8s_docs()[("ConfigMap", "v2v-config")]})  # each names a volume
 
 
-def _kustomize(path: Path) -> dict:
-    out = subprocess.run(["kubectl", "kustomize", str(path)], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stderr
-    return {(d["kind"], d["metadata"]["name"]): d for d in yaml.safe_load_all(out.stdout) if d}
-
-
-@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl not installed")
-@pytest.mark.parametrize("overlay", ["k8s-warm", "k8s-bucket"])
+@needs_kubectl
+@pytest.mark.parametrize("overlay", ["k8s-warm", "k8s-bucket", "k8s-shards"])
 def test_k8s_warm_cache_component_runs_the_servers_line_with_warm_cache_first(overlay, tmp_path):
     """The optional component (deploy/k8s-warm-cache) gives each server pod an init container
     running the server container's own line with --warm-cache: same image, environment
-    (shard index, CPU request), mounts (corpus, frame cache) and resources, so it fills the
-    cache the server then reads. Added last to another overlay (the bucket's), it copies that
-    overlay's line."""
+    (CPU request, and the shard index where there are shards), mounts (corpus, frame cache) and
+    resources, so it fills the cache the server then reads. Added last to another overlay (the
+    bucket's, the shards'), it copies that overlay's line."""
     if overlay == "k8s-warm":
         docs = _kustomize(DEPLOY / "k8s-warm")
-    else:  # an overlay of the bucket overlay with the component, as deploy/k8s-warm-cache says
+    else:  # an overlay of another overlay with the component, as deploy/k8s-warm-cache says
         shutil.copytree(DEPLOY, tmp_path / "deploy")
         (tmp_path / "deploy" / "mine").mkdir()
         (tmp_path / "deploy" / "mine" / "kustomization.yaml").write_text(
-            "resources: [../k8s-bucket]\ncomponents: [../k8s-warm-cache]\n")
+            f"resources: [../{overlay}]\ncomponents: [../k8s-warm-cache]\n")
         docs = _kustomize(tmp_path / "deploy" / "mine")
-    sts = docs[("StatefulSet", "v2v-server")]
-    spec = sts["spec"]["template"]["spec"]
-    server, (warm,) = _container(sts), spec["initContainers"]
-    assert warm["name"] == "warm-cache" and warm["args"] == server["args"] + ["--warm-cache"]
+    kind = "StatefulSet" if overlay == "k8s-shards" else "Deployment"
+    server = docs[(kind, "v2v-server")]
+    spec = server["spec"]["template"]["spec"]
+    c, (warm,) = _container(server), spec["initContainers"]
+    assert warm["name"] == "warm-cache" and warm["args"] == c["args"] + ["--warm-cache"]
     for key in ("image", "env", "volumeMounts", "resources"):
-        assert warm[key] == server[key], key
-    cpu = str(server["resources"]["requests"]["cpu"])
-    subst = {"SHARD_INDEX": "1", "SHARDS": "2", "CPU_REQUEST": cpu}
+        assert warm[key] == c[key], key
+    cpu = str(c["resources"]["requests"]["cpu"])
+    subst, shard = {"CPU_REQUEST": cpu}, (0, 1)
+    if kind == "StatefulSet":
+        shard = (1, server["spec"]["replicas"])
+        subst.update(SHARD_INDEX="1", SHARDS=str(shard[1]))
     ns = check_flags("v2v-serve", warm["args"], subst)
     assert ns.warm_cache
     cfg = check_serve_config(ns, _write(docs[("ConfigMap", "v2v-config")]["data"]["server.yaml"]))
-    assert cfg.frame_cache_gb > 0 and cfg.serving.shard_spec == (1, 2) and cfg.workers == int(cpu)
-    assert cfg.videos == ("/data/videos" if overlay == "k8s-warm" else "s3://v2v-corpus/webvid/")
+    assert cfg.frame_cache_gb > 0 and cfg.serving.shard_spec == shard and cfg.workers == int(cpu)
+    assert cfg.videos == ("s3://v2v-corpus/webvid/" if overlay == "k8s-bucket" else "/data/videos")
     assert any(m["mountPath"] == cfg.cache_dir for m in warm["volumeMounts"])
     kv = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate not installed (dev extra)")
     for version in ("1.29", "1.32"):
-        kv.validate(sts, version, strict=True)
+        kv.validate(server, version, strict=True)
 
 
 def test_compose_bucket_override_and_raycluster_read_the_bucket():
+    """docker-compose.bucket.yml changes the server's corpus to a bucket and adds its
+    credentials; the rest of the line is the base file's (workers, frame cache, bind, keys)."""
     comp = yaml.safe_load((DEPLOY / "docker-compose.bucket.yml").read_text())
     base = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
-    for name in ("shard0", "shard1", "warm0", "warm1"):  # the warm profile's services read the bucket too
-        s = comp["services"][name]
-        assert name in base["services"]
-        assert s["environment"]["AWS_SHARED_CREDENTIALS_FILE"] == "/run/secrets/aws_credentials"
-        assert "AWS_ENDPOINT_URL" in s["environment"] and s["secrets"] == ["aws_credentials"]
-        args = defaults(s["command"])
-        assert ("--warm-cache" in args) == name.startswith("warm")
-        ns = check_flags("v2v-serve", args)
-        ns.config = None
-        cfg = check_serve_config(ns)
-        assert cfg.videos == "s3://v2v-corpus/webvid/"
-        # the rest of the line is the base file's: the same shard, workers and frame cache
-        bns = check_flags("v2v-serve", defaults(base["services"][name]["command"]))
-        bns.config = None
-        bcfg = check_serve_config(bns)
-        bcfg = type(bcfg).from_dict({**bcfg.to_dict(), "videos": cfg.videos}, source="base")
-        same_corpus_and_cache(cfg, bcfg)
-        assert cfg.to_dict() == bcfg.to_dict()
+    assert set(comp["services"]) == {"server"} <= set(base["services"])
+    s = comp["services"]["server"]
+    assert s["environment"]["AWS_SHARED_CREDENTIALS_FILE"] == "/run/secrets/aws_credentials"
+    assert "AWS_ENDPOINT_URL" in s["environment"] and s["secrets"] == ["aws_credentials"]
+    args = defaults(s["command"])
+    assert "--shard" not in args
+    ns = check_flags("v2v-serve", args)
+    ns.config = None
+    cfg = check_serve_config(ns)
+    assert cfg.videos == "s3://v2v-corpus/webvid/"
+    bns = check_flags("v2v-serve", defaults(base["services"]["server"]["command"]))
+    bns.config = None
+    bcfg = check_serve_config(bns)
+    bcfg = type(bcfg).from_dict({**bcfg.to_dict(), "videos": cfg.videos}, source="base")
+    same_corpus_and_cache(cfg, bcfg)
+    assert cfg.to_dict() == bcfg.to_dict()
     assert "aws_credentials" in comp["secrets"]
     ray = ray_docs()[("RayCluster", "v2v")]
     pods = [ray["spec"]["headGroupSpec"]] + ray["spec"]["workerGroupSpecs"]
