@@ -32,7 +32,7 @@ import numpy as np
 import zmq
 
 from v2v_wire.codecs import decode_batch_arrays
-from v2v_wire.fleet import Router
+from v2v_wire.fleet import Router, rank_hosts
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity
 from v2v_wire.plan_messages import (MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Make, ManifestAsk, ManifestPart, PlanAsk,
                                      PlanInfo, Refused, Rows)
@@ -52,6 +52,9 @@ HEDGE_S = 10.0
 RESOLVE_S = 5.0
 #: Videos whose windows a reader asks for at once while its plan unfolds, per host.
 UNFOLD_PER_HOST = 4
+#: Seconds the step being read may wait on a video before the next host of its ranking is asked
+#: for a copy too (``Fleet._steal``).
+STEAL_S = 1.0
 
 
 def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float) -> Manifest:
@@ -150,6 +153,7 @@ class _Video:
     (ordinal -> request id), and the requests in flight (request id -> (host, ordinals, asked at))."""
 
     host: Optional[str] = None
+    position: int = 2 ** 62  # the first position of the epoch that needs it (the hosts' order)
     asked: Dict[int, int] = field(default_factory=dict)
     flight: Dict[int, Tuple[str, Tuple[int, ...], float]] = field(default_factory=dict)
 
@@ -270,20 +274,24 @@ class Fleet:
         got: Dict[Tuple[str, int], tuple] = {}  # (video, ordinal) -> (sample id, padding, params, arrays row)
         flight: Dict[Tuple[str, int], tuple] = {}  # (host, request) -> ("make", video, ordinals) | ("ask",)
         told: Set[str] = set()  # videos whose windows were asked for
-        heard = time.monotonic()
+        heard = head_since = time.monotonic()
         exhausted = False
 
         def send(video: str, ordinals: Optional[Tuple[int, ...]], host: str, now: float) -> None:
             link = self.links[host]
             req = next(link.ids)
-            link._send(Make(req, epoch, video, ordinals, outputs, self.plan, link.compression).to_wire())
-            flight[(host, req)] = ("make", video, ordinals)
             v = videos.setdefault(video, _Video())
+            link._send(Make(req, epoch, video, ordinals, outputs, self.plan, link.compression,
+                            min(v.position, 2 ** 62 - 1)).to_wire())
+            flight[(host, req)] = ("make", video, ordinals)
             v.flight[req] = (host, ordinals, now)
             for o in ordinals or ():
                 v.asked[o] = req
 
-        def ask(video: str, ordinals: Optional[Tuple[int, ...]], now: float) -> None:
+        def ask(video: str, ordinals: Optional[Tuple[int, ...]], now: float, position: Optional[int] = None) -> None:
+            if position is not None:
+                v = videos.setdefault(video, _Video())
+                v.position = min(v.position, position)
             if len(video.encode()) > MAX_MAKE_PATH:
                 raise PlanServerError(f"{video[:80]}...: a path over {MAX_MAKE_PATH} bytes, which a fleet's make "
                                       "cannot name: read these hosts as shards (v2v-serve --shard I/N)")
@@ -317,6 +325,7 @@ class Fleet:
                     break  # past the epoch's end: no step after it holds a sample
             # ask what the window's decided positions need, and the windows that decide the rest
             want: Dict[str, List[int]] = {}
+            first_needed: Dict[str, int] = {}
             undecided = False
             for s in window:
                 for p in range(*spans[s]):
@@ -324,11 +333,14 @@ class Fleet:
                         undecided = undecided or not plan.complete
                         continue
                     key = plan.key(p)
+                    if key is None:
+                        continue
                     o = key.ordinal(manifest.crops_per_window)
                     if (key.video, o) not in got and o not in videos.get(key.video, _Video()).asked:
                         want.setdefault(key.video, []).append(o)
+                        first_needed.setdefault(key.video, p)
             for video, ords in want.items():
-                ask(video, tuple(sorted(set(ords))), now)
+                ask(video, tuple(sorted(set(ords))), now, first_needed[video])
             if undecided:
                 budget = UNFOLD_PER_HOST * max(1, len(self.router.hosts)) - sum(
                     1 for w in flight.values() if w[0] == "make" and w[2] is None)
@@ -337,7 +349,7 @@ class Fleet:
                         break
                     if video not in self.windows and video not in told:
                         told.add(video)
-                        ask(video, None, now)
+                        ask(video, None, now, plan.known)
                         budget -= 1
             # the head step, once every row is known
             head = window[0]
@@ -345,6 +357,7 @@ class Fleet:
             if merged is not None:
                 window.pop(0)
                 del spans[head]
+                head_since = time.monotonic()
                 yield (head,) + merged
                 continue
             # hedges and lost replies
@@ -354,7 +367,8 @@ class Fleet:
                 v.host = host
                 for req, (h, ords, _) in list(v.flight.items()):
                     send(video, ords, host, now)
-            self._steal(plan, spans[head], videos, got, manifest.crops_per_window, send, epoch, now)
+            self._steal(plan, spans[head], videos, got, manifest.crops_per_window, send, epoch, now,
+                        now - head_since >= STEAL_S)
             for video, v in list(videos.items()):
                 for req, (h, ords, at) in list(v.flight.items()):
                     gone = h not in self.router.hosts
@@ -386,31 +400,36 @@ class Fleet:
                     self._receive(ep, *got_msg, flight, videos, got, plan, heard, epoch)
 
     def _steal(self, plan: EpochPlan, span: Tuple[int, int], videos: Dict[str, "_Video"], got: dict, kpw: int,
-               send, epoch: int, now: float) -> None:
-        """A host with nothing asked of it takes a copy of a video the step being read waits on
-        (the first copy's rows win): a slow host's videos stop gating the fleet, at the cost of a
-        decode only where a host would otherwise idle."""
+               send, epoch: int, now: float, late: bool) -> None:
+        """Copies of the videos the step being read waits on (the first copy's rows win): of one to
+        a host with nothing asked of it; once the step has waited :data:`STEAL_S` (``late``), of
+        each to the next host of its ranking that does not hold it, where it goes first (its
+        ``position`` is the fleet's earliest). A slow host's videos stop gating the fleet, at the
+        cost of a decode where a host would otherwise idle or where the step would wait."""
         idle = [h for h, st in self.router.hosts.items() if not st.queued and not self.router.suspect(h, now)]
-        if not idle:
+        if not idle and not late:
             return
         missing: Dict[str, List[int]] = {}
         for p in range(span[0], min(span[1], plan.known)):
             key = plan.key(p)
             if key is not None and (key.video, key.ordinal(kpw)) not in got:
                 missing.setdefault(key.video, []).append(key.ordinal(kpw))
+        weights = self.router.weights()
         for video, ords in missing.items():
             v = videos.get(video)
             if v is None or not v.flight:
                 continue
             asked = {h for h, _, _ in v.flight.values()}
             h = next((x for x in idle if x not in asked), None)
+            if h is None and late and len(asked) == 1:
+                h = next((x for x in rank_hosts(video, list(self.router.hosts), weights)
+                          if x not in asked and not self.router.suspect(x, now)), None)
             if h is None:
                 continue
             send(video, tuple(sorted(ords)), h, now)
             self.router.ask(h, epoch, video, len(ords), now)
-            idle.remove(h)
-            if not idle:
-                return
+            if h in idle:
+                idle.remove(h)
 
     def _receive(self, ep: str, msg, frames, flight, videos, got, plan: EpochPlan, now: float, epoch: int) -> None:
         """Take host ``ep``'s message: what a new host serves, a make's rows (kept by (video,

@@ -157,7 +157,9 @@ class Make:
     (``ordinals`` None) only the video's windows, which a reader's plan unfolds with (the host
     decodes the video to learn them, and keeps its samples for the makes that follow). A reader of
     a fleet asks each video of the host it routes it to (``v2v_wire.fleet``); the answer is
-    :class:`Rows` in the order asked (no row for ``None``), with ``windows``."""
+    :class:`Rows` in the order asked (no row for ``None``), with ``windows``. ``position``: the
+    first position of the epoch that needs the video (a host decodes the videos made for in that
+    order, whoever asked: a copy asked of a second host for a step that waits goes first there)."""
 
     request: int
     epoch: int
@@ -166,11 +168,12 @@ class Make:
     outputs: Tuple[str, ...]
     plan: PlanIdentity
     compression: str = "none"
+    position: int = 0
 
     def to_wire(self) -> dict:
         return {"type": "make", "request": self.request, "epoch": self.epoch, "video": self.video,
                 "ordinals": None if self.ordinals is None else list(self.ordinals), "outputs": list(self.outputs),
-                "plan": self.plan.to_dict(), "compression": self.compression}
+                "plan": self.plan.to_dict(), "compression": self.compression, "position": self.position}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Make":
@@ -188,7 +191,7 @@ class Make:
         except (ValueError, PlanMismatch) as e:
             raise WireError(str(e)) from None
         return cls(_int(h, "request"), _int(h, "epoch", 0, 2 ** 31 - 1), video,
-                   None if ordinals is None else tuple(ordinals), outputs, plan, compression)
+                   None if ordinals is None else tuple(ordinals), outputs, plan, compression, _int(h, "position"))
 
 
 @dataclass(frozen=True)

@@ -91,13 +91,15 @@ class Pending:
 @dataclass
 class Order:
     """A client's make: the samples ``ordinals`` (``SampleKey.ordinal``) of ``video`` in
-    ``epoch``, or (``ordinals`` None) the video's windows only, answered once its slots are known."""
+    ``epoch``, or (``ordinals`` None) the video's windows only, answered once its slots are known;
+    ``position``: the first position of the epoch that needs it (makes are decoded in that order)."""
 
     client: Hashable
     request: int
     epoch: int
     video: str
     ordinals: Optional[Tuple[int, ...]]
+    position: int = 0
 
 
 @dataclass
@@ -356,11 +358,12 @@ class PlanScheduler:
         self.fetched_at[epoch], self.fetched_to[epoch] = now, max(self.fetched_to.get(epoch, 0), stop)
 
     def make(self, client: Hashable, request: int, epoch: int, video: str, ordinals: Optional[Sequence[int]],
-             now: float, outputs: Optional[Sequence[str]] = None) -> None:
+             now: float, outputs: Optional[Sequence[str]] = None, position: int = 0) -> None:
         """Queue a make of the samples ``ordinals`` of ``video`` in ``epoch`` (None: its windows
-        only, answered once its slots are known, from the corpus index or its decode), asked at ``now``: a reader of a fleet routes each
-        video to a host (``v2v_wire.fleet``); the host decodes the videos made for in the order
-        asked, after those pending fetches wait on. Outputs as :meth:`fetch`.
+        only, answered once its slots are known, from the corpus index or its decode), asked at
+        ``now``: a reader of a fleet routes each video to a host (``v2v_wire.fleet``). The videos
+        made for are decoded after those pending fetches wait on, in the order of (epoch,
+        ``position``: the first position needing the video), then of arrival. Outputs as :meth:`fetch`.
 
         Raises:
             ValueError: a video not in the manifest, or an ordinal past its samples where they
@@ -373,7 +376,8 @@ class PlanScheduler:
             raise ValueError(f"make: sample {max(ordinals)} of {video!r:.200}, which gives {n} sample(s) an epoch")
         if self.making.ask(outputs):
             self.store, self.fetched = OrderedDict(), set()
-        self.orders.append(Order(client, request, epoch, video, None if ordinals is None else tuple(ordinals)))
+        self.orders.append(Order(client, request, epoch, video, None if ordinals is None else tuple(ordinals),
+                                 position))
         self.fetched_at[epoch] = now
 
     def forget(self, client: Hashable) -> None:
@@ -421,9 +425,9 @@ class PlanScheduler:
         return rows
 
     def _ordered(self) -> List[Tuple[int, str]]:
-        """(epoch, video) the makes wait on, in the order asked."""
+        """(epoch, video) the makes wait on, by (epoch, position), then in the order asked."""
         out: Dict[Tuple[int, str], None] = {}
-        for o in self.orders:
+        for o in sorted(self.orders, key=lambda o: (o.epoch, o.position)):  # stable: arrival within a position
             if self._order_rows(o) is None:
                 out[(o.epoch, o.video)] = None
         return list(out)
@@ -529,7 +533,7 @@ class PlanScheduler:
         hedge of one that sent nothing for ``hedge_s`` while a fetch waits on it; else the next
         video to decode ahead; None when none."""
         waited, ahead = self.needed(now)
-        waited += [ek for ek in self._ordered() if ek not in waited]  # makes: after fetches, in the order asked
+        waited += [ek for ek in self._ordered() if ek not in waited]  # makes: after fetches, by position
         for ek in waited:
             if ek not in self.runs:
                 return self._start(ek, worker, now, codecs)

@@ -218,7 +218,7 @@ class PlanServer:
         if isinstance(msg, Make):
             try:
                 self.scheduler.make((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.video,
-                                    msg.ordinals, now, msg.outputs)
+                                    msg.ordinals, now, msg.outputs, msg.position)
             except ValueError as e:
                 self._send(ident, Refused(msg.request, str(e), "make").to_wire())
             return
