@@ -28,10 +28,9 @@ from __future__ import annotations
 import argparse
 import heapq
 import json
-import math
 import sys
 from dataclasses import asdict, dataclass
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 
@@ -193,6 +192,145 @@ def _needs(plan: EpochPlan, offset_of=lambda p: p) -> Dict[str, Tuple[int, int]]
     return {v: (first[v], count[v]) for v in first}
 
 
+@dataclass
+class _Layout:
+    """An epoch as the reader reads it: ``pos_clip`` (the clip of each position, None for padding),
+    ``needs`` (clip -> (first position needing it, its samples)), ``home`` (static: clip -> shard)."""
+
+    pos_clip: List[Optional[str]]
+    needs: Dict[str, Tuple[int, int]]
+    home: Optional[Dict[str, int]]
+
+    @property
+    def length(self) -> int:
+        return len(self.pos_clip)
+
+    @property
+    def samples(self) -> int:
+        return sum(1 for c in self.pos_clip if c is not None)
+
+
+def _layout(f: Fleet, mode: str, epoch: int) -> _Layout:
+    """The epoch's positions: the one plan (routed), or each shard's plan interleaved (static)."""
+    slots, n = corpus(f), f.hosts
+    if mode == "routed":
+        plan = _epoch(slots, f.seed, epoch)
+        return _Layout([plan.videos[i] for i in plan.video_index.tolist()], _needs(plan), None)
+    shard = {v: video_key(v) % n for v in slots}
+    plans = [_epoch({v: s for v, s in slots.items() if shard[v] == k}, f.seed, epoch) for k in range(n)]
+    length = max(((len(p) - 1) * n + k + 1 for k, p in enumerate(plans) if len(p)), default=0)
+    pos_clip: List[Optional[str]] = [None] * length
+    needs: Dict[str, Tuple[int, int]] = {}
+    for k, p in enumerate(plans):
+        for lp, v in enumerate(p.video_index.tolist()):
+            pos_clip[lp * n + k] = p.videos[v]
+        needs.update(_needs(p, lambda lp, k=k: lp * n + k))
+    return _Layout(pos_clip, needs, shard)
+
+
+class _World:
+    """One simulated epoch's state: each host's queue (by the first position needing a clip) and
+    free workers, the events to come (a decode's end; the reader's clock), what was made where,
+    and the positions read (module docstring)."""
+
+    def __init__(self, f: Fleet, lay: _Layout, router: Optional[Router]):
+        self.f, self.lay, self.router, self.n = f, lay, router, f.hosts
+        self.speeds = _speeds(f)  # samples/s of one worker of each host
+        self.stalls = _Stalls(f, 4 * lay.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
+        self.hosts = [f"host-{k:03d}" for k in range(self.n)]
+        self.index = {h: k for k, h in enumerate(self.hosts)}
+        mean = lay.samples / max(1, len(lay.needs))
+        self.lookahead = f.lookahead or int(LOOKAHEAD_DECODES * self.n * f.slots * mean) + f.step
+        self.t0 = max((s.meter.last or 0.0 for s in router.hosts.values()), default=0.0) if router else 0.0
+        self.by_need = sorted(lay.needs, key=lambda v: lay.needs[v][0])
+        self.asked_upto = 0  # index into by_need of the next clip to ask
+        self.queues: List[List[Tuple[int, str]]] = [[] for _ in range(self.n)]
+        self.free = [f.slots] * self.n
+        self.events: List[Tuple[float, int, str]] = []  # (time, host or -1 for the reader's clock, clip)
+        self.done_at: Dict[str, float] = {}
+        self.running: Set[Tuple[int, str]] = set()
+        self.outstanding: Set[str] = set()  # clips asked and not made yet
+        self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read
+        self.decodes, self.now, self.read = 0, 0.0, 0
+        self.step_times: List[Tuple[int, float]] = []
+
+    def start_work(self, k: int) -> None:
+        while self.free[k] and self.queues[k]:
+            _, clip = heapq.heappop(self.queues[k])
+            if clip in self.done_at or (k, clip) in self.running:
+                continue
+            self.free[k] -= 1
+            self.running.add((k, clip))
+            self.decodes += 1
+            end = self.stalls.finish(k, self.now, self.lay.needs[clip][1] / self.speeds[k])
+            heapq.heappush(self.events, (end, k, clip))
+
+    def ask(self, clip: str, k: int) -> None:
+        self.outstanding.add(clip)
+        heapq.heappush(self.queues[k], (self.lay.needs[clip][0], clip))
+        self.start_work(k)
+
+    def ask_ahead(self) -> None:
+        needs = self.lay.needs
+        while self.asked_upto < len(self.by_need) and needs[self.by_need[self.asked_upto]][0] < \
+                self.read + self.lookahead:
+            clip = self.by_need[self.asked_upto]
+            self.asked_upto += 1
+            if self.router is not None:
+                self.ask(clip, self.index[self.router.route(0, clip, needs[clip][1], self.t0 + self.now)])
+            else:
+                self.ask(clip, self.lay.home[clip])
+
+    def advance(self) -> None:
+        while self.read < self.lay.length:
+            stop = min(self.lay.length, self.read + self.f.step)
+            if any(c is not None and c not in self.done_at for c in self.lay.pos_clip[self.read:stop]):
+                return
+            self.read = stop
+            self.step_times.append((self.read, self.now))
+
+    def hedge(self) -> None:
+        """The reader's clock: the clips asked of silent hosts are asked of their next hosts."""
+        r, at = self.router, self.t0 + self.now
+        silent = {h for h in self.hosts if r.suspect(h, at)}
+        waiting = [(0, c, self.lay.needs[c][1]) for c in self.outstanding if silent.intersection(r.asked.get((0, c), ()))]
+        for _, c, h in r.hedges(sorted(waiting, key=lambda w: self.lay.needs[w[1]][0]), at):
+            self.ask(c, self.index[h])
+
+    def made(self, k: int, clip: str) -> None:
+        """Host ``k``'s worker made ``clip``: the first copy is read."""
+        self.free[k] += 1
+        self.running.discard((k, clip))
+        r, at = self.router, self.t0 + self.now
+        if clip not in self.done_at:
+            self.done_at[clip] = self.now
+            self.outstanding.discard(clip)
+            if r is not None:
+                r.answered(self.hosts[k], 0, clip, self.lay.needs[clip][1], at, done=True)
+                r.finished(0, clip, at)
+                self.made_by[clip] = self.hosts[k]
+            self.advance()
+            self.ask_ahead()
+        elif r is not None:
+            r.answered(self.hosts[k], 0, clip, 0, at, done=True)
+        self.start_work(k)
+
+    def run(self) -> None:
+        self.ask_ahead()
+        tick = self.f.hedge_s / 2
+        heapq.heappush(self.events, (tick, -1, ""))
+        while self.read < self.lay.length:
+            if not self.events:
+                raise RuntimeError(f"fleet_sim: stuck at position {self.read} of {self.lay.length}")
+            self.now, k, clip = heapq.heappop(self.events)
+            if k >= 0:
+                self.made(k, clip)
+                continue
+            if self.router is not None:
+                self.hedge()
+            heapq.heappush(self.events, (self.now + tick, -1, ""))
+
+
 def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = None) -> Result:
     """One epoch of fleet ``f`` split as ``mode`` (``"routed"`` or ``"static"``); ``router``: a
     reader's router kept from an earlier epoch (routed only; default a new one).
@@ -201,137 +339,20 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = Non
         ValueError: another mode, naming it."""
     if mode not in ("routed", "static"):
         raise ValueError(f"mode must be 'routed' or 'static', got {mode!r}")
-    slots = corpus(f)
-    speeds = _speeds(f)
-    n = f.hosts
-    if mode == "routed":
-        plan = _epoch(slots, f.seed, epoch)
-        length = len(plan)
-        needs = _needs(plan)
-        real = np.ones(length, dtype=bool)
-        clip_at = plan.video_index
-        names = plan.videos
-        pos_clip = [names[i] for i in clip_at.tolist()]
-        home = None
-    else:
-        shard = {v: video_key(v) % n for v in slots}
-        plans = [_epoch({v: s for v, s in slots.items() if shard[v] == k}, f.seed, epoch) for k in range(n)]
-        lens = [len(p) for p in plans]
-        length = max(((m - 1) * n + k + 1 for k, m in enumerate(lens) if m), default=0)
-        needs, pos_clip = {}, [None] * length
-        real = np.zeros(length, dtype=bool)
-        for k, p in enumerate(plans):
-            for lp, v in enumerate(p.video_index.tolist()):
-                g = lp * n + k
-                pos_clip[g], real[g] = p.videos[v], True
-            needs.update(_needs(p, lambda lp, k=k: lp * n + k))
-        home = shard
-    samples = int(real.sum())
-    mean_samples = samples / max(1, len(needs))
-    lookahead = f.lookahead or int(LOOKAHEAD_DECODES * n * f.slots * mean_samples) + f.step
-    per_worker = speeds  # samples/s of one worker of each host
-    horizon = 4 * samples / (float(speeds.sum()) * f.slots) + 600.0
-    stalls = _Stalls(f, horizon)
-    hosts = [f"host-{k:03d}" for k in range(n)]
-    index = {h: k for k, h in enumerate(hosts)}
+    lay = _layout(f, mode, epoch)
     if mode == "routed" and router is None:
-        router = Router(hosts, slack=f.slack, hedge_s=f.hedge_s)
-    elif mode == "static":
-        router = None
-    t0 = max((s.meter.last or 0.0 for s in router.hosts.values()), default=0.0) if router is not None else 0.0
-
-    by_need = sorted(needs, key=lambda v: needs[v][0])
-    asked_upto = 0  # index into by_need of the next clip to ask
-    queues: List[List[Tuple[int, str]]] = [[] for _ in range(n)]  # heap of (need, clip)
-    free = [f.slots] * n
-    events: List[Tuple[float, int, str, int]] = []  # (time, host, clip, copy)
-    done_at: Dict[str, float] = {}
-    copies: Dict[str, List[int]] = {}
-    running: Dict[Tuple[int, str], bool] = {}
-    outstanding = set()  # clips asked and not made yet
-    made_by: Dict[str, str] = {}  # clip -> the host whose copy was read
-    decodes = 0
-    now = 0.0
-    read = 0  # positions read
-    step_times: List[Tuple[int, float]] = []
-
-    def start_work(k: int) -> None:
-        nonlocal decodes
-        while free[k] and queues[k]:
-            need, clip = heapq.heappop(queues[k])
-            if clip in done_at or (k, clip) in running:
-                continue
-            free[k] -= 1
-            running[(k, clip)] = True
-            decodes += 1
-            end = stalls.finish(k, now, needs[clip][1] / per_worker[k])
-            heapq.heappush(events, (end, k, clip, 0))
-
-    def ask(clip: str, k: int) -> None:
-        outstanding.add(clip)
-        copies.setdefault(clip, []).append(k)
-        heapq.heappush(queues[k], (needs[clip][0], clip))
-        start_work(k)
-
-    def ask_ahead() -> None:
-        nonlocal asked_upto
-        while asked_upto < len(by_need) and needs[by_need[asked_upto]][0] < read + lookahead:
-            clip = by_need[asked_upto]
-            asked_upto += 1
-            if router is not None:
-                ask(clip, index[router.route(0, clip, needs[clip][1], t0 + now)])
-            else:
-                ask(clip, home[clip])
-
-    def advance() -> None:
-        nonlocal read
-        while read < length:
-            stop = min(length, read + f.step)
-            for p in range(read, stop):
-                c = pos_clip[p]
-                if c is not None and c not in done_at:
-                    return
-            read = stop
-            step_times.append((read, now))
-
-    ask_ahead()
-    tick = f.hedge_s / 2
-    heapq.heappush(events, (tick, -1, "", 0))
-    while read < length:
-        if not events:
-            raise RuntimeError(f"fleet_sim: stuck at position {read} of {length} ({mode})")
-        now, k, clip, _ = heapq.heappop(events)
-        if k < 0:  # the reader's clock: hedge what it waits on
-            if router is not None:
-                silent = {hosts[k2] for k2 in range(n) if router.suspect(hosts[k2], t0 + now)}
-                waiting = [(0, c, needs[c][1]) for c in outstanding if silent.intersection(router.asked.get((0, c), ()))]
-                for _, c, h in router.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), t0 + now):
-                    ask(c, index[h])
-            heapq.heappush(events, (now + tick, -1, "", 0))
-            continue
-        free[k] += 1
-        del running[(k, clip)]
-        if clip not in done_at:
-            done_at[clip] = now
-            outstanding.discard(clip)
-            if router is not None:
-                router.answered(hosts[k], 0, clip, needs[clip][1], t0 + now, done=True)
-                router.finished(0, clip, t0 + now)
-                made_by[clip] = hosts[k]
-            advance()
-            ask_ahead()
-        elif router is not None:
-            router.answered(hosts[k], 0, clip, 0, t0 + now, done=True)
-        start_work(k)
-    end = now
+        router = Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s)
+    w = _World(f, lay, router if mode == "routed" else None)
+    w.run()
+    end, length = w.now, lay.length
     lo, hi = int(0.1 * length), int(0.9 * length)
-    t_lo = next(t for p, t in step_times if p >= lo)
-    t_hi = next(t for p, t in step_times if p >= hi)
-    steady_samples = int(real[lo:hi].sum())
-    capacity = float(sum(per_worker[k] * f.slots * (1 - stalls.stalled(k, end) / end) for k in range(n)))
-    return Result(mode, samples, length, end, samples / end,
-                  steady_samples / max(t_hi - t_lo, 1e-9), capacity, decodes / max(1, len(needs)),
-                  made_by if router is not None else {c: hosts[home[c]] for c in needs})
+    t_lo = next(t for p, t in w.step_times if p >= lo)
+    t_hi = next(t for p, t in w.step_times if p >= hi)
+    steady = sum(1 for c in lay.pos_clip[lo:hi] if c is not None)
+    capacity = float(sum(w.speeds[k] * f.slots * (1 - w.stalls.stalled(k, end) / end) for k in range(f.hosts)))
+    made_by = w.made_by if mode == "routed" else {c: w.hosts[lay.home[c]] for c in lay.needs}
+    return Result(mode, lay.samples, length, end, lay.samples / end, steady / max(t_hi - t_lo, 1e-9), capacity,
+                  w.decodes / max(1, len(lay.needs)), made_by)
 
 
 def static_padding(videos: int, shards: Sequence[int], seed: int = 0) -> Dict[int, float]:

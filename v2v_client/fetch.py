@@ -8,7 +8,8 @@ and what several servers read as one plan are (docs/delivery.md).
   (``v2v_wire.plan_shards``).
 * ``v2v_client.fleet_read.Fleet``: hosts that each serve the whole corpus, read as the one plan
   a single server serves, each video made by the host the reader routes it to (``v2v_wire.fleet``).
-* :class:`Servers`: which of those an endpoint names, asked once and pickled with the dataset.
+* ``v2v_client.servers.Servers``: which of those an endpoint names, asked once and pickled with
+  the dataset.
 
 ``v2v_client.plan_dataset`` turns what these yield into torch batches.
 """
@@ -23,159 +24,22 @@ from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
-from v2v_wire.codecs import available, check_compression, decode_batch_arrays
+from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.plan import PlanIdentity, PlanMismatch
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, WireError, plan_server_message
-from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_parts, shard_ranges, shards_identity,
-                                  shards_samples, step_in_epoch)
+from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_parts, shard_ranges, shards_samples,
+                                  step_in_epoch)
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError, is_ipv6, pack, unpack
 
-from .endpoints import auto_compression, check_servers, resolve_endpoints, split_endpoints
 
-__all__ = ["PlanServerError", "Link", "Shards", "Servers"]
+__all__ = ["PlanServerError", "Link", "Shards"]
 
 log = logging.getLogger("v2v.client")
-
-#: Seconds a fleet's other hosts may take to say what they serve once its first host has: a host
-#: silent at start is left out, and joins when it answers (``fleet_read.Fleet``).
-FLEET_ASK_S = 10.0
 
 
 class PlanServerError(RuntimeError):
     """The server refused a fetch, or sent what this client cannot read (the message says which
     endpoint and why, in one line)."""
-
-
-class Servers:
-    """The servers a dataset reads as one plan: one; one per shard, in shard order; or a fleet of
-    hosts each serving the whole corpus (``fleet_read.Fleet``); each with its plan identity and
-    the compression its fetches ask for (known once asked; pickled with the dataset, so a
-    DataLoader worker asks nothing again)."""
-
-    def __init__(self, endpoint, compression: str):
-        split_endpoints(endpoint)  # a bad entry: ValueError, naming it
-        if compression != "auto" and not available(check_compression(compression)):
-            raise ValueError(f"compression {compression!r}: its library is not installed here (pip install 'v2v[wire]')")
-        self.endpoint, self.compression = endpoint, compression
-        self.shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
-        self.codecs: Dict[str, str] = {}  # server -> compression
-        self.samples: List[Optional[int]] = []  # each shard's samples per epoch when asked (None: not known)
-        self.fleet: Optional[List[Tuple[str, PlanInfo]]] = None  # a fleet's hosts serving the plan
-        self.windows: Dict[str, int] = {}  # a fleet's videos' windows learned in this process
-
-    def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        state["windows"] = {}  # learned again in each process: a corpus's worth is no pickle to send
-        return state
-
-    def ask(self, timeout_s: float, curve: Optional[tuple], prefer: Optional[PlanIdentity] = None) -> PlanInfo:
-        """What the servers serve, as one plan (resolving ``endpoint`` the first time). Several
-        hosts that each serve the whole corpus are a fleet: its plan is ``prefer`` (a loaded
-        position's) where a host serves it, else the first host's; a host serving another plan is
-        named in one log line and left out, as is one silent for ``FLEET_ASK_S`` once another answered.
-
-        Raises:
-            TimeoutError, PlanServerError: a server silent, or speaking another protocol version.
-            ValueError: several servers that are not one sharding of one corpus, nor a fleet."""
-        if self.fleet is not None:  # asked again: the plan's samples, of the first host that answers
-            for ep, _ in self.fleet:
-                try:
-                    with Link(ep, min(timeout_s, FLEET_ASK_S), curve) as link:
-                        info = link.ask()
-                except TimeoutError:
-                    continue
-                if info.plan == self.fleet[0][1].plan:
-                    return info
-            raise TimeoutError(f"{self.endpoint}: no host of the fleet answered 'what do you serve' within "
-                               f"{min(timeout_s, FLEET_ASK_S)} s")
-        servers = resolve_endpoints(self.endpoint) if self.shards is None else [ep for ep, _ in self.shards]
-        with Link(servers[0], timeout_s, curve) as link:
-            first = link.ask()
-        if len(servers) > 1 and not isinstance(first.stream.get("shard"), str):
-            return self._ask_fleet(servers, first, timeout_s, curve, prefer)
-        infos = [first]
-        for server in servers[1:]:
-            with Link(server, timeout_s, curve) as link:
-                infos.append(link.ask())
-        info, self.shards, self.samples = _as_one_plan(servers, infos)
-        self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
-        return info
-
-    def _ask_fleet(self, servers: List[str], first: PlanInfo, timeout_s: float, curve: Optional[tuple],
-                   prefer: Optional[PlanIdentity]) -> PlanInfo:
-        from .fleet_read import asked_fleet  # the fleet's reader imports this module
-
-        infos = asked_fleet(servers, first, min(timeout_s, FLEET_ASK_S), curve)
-        sharded = [ep for ep, i in infos.items() if isinstance(i.stream.get("shard"), str)]
-        if sharded:
-            raise ValueError(f"{', '.join(sharded)}: serve(s) one shard while {servers[0]} serves the whole corpus: "
-                             "read shards (v2v-serve --shard I/N) or hosts of the whole corpus, not both")
-        plans = [i.plan for i in infos.values()]
-        plan = prefer if prefer is not None and prefer in plans else first.plan
-        hosts = [(ep, i) for ep, i in infos.items() if i.plan == plan]
-        _name_left_out(infos, plan, timeout_s, curve)
-        self.fleet, self.shards = hosts, [(ep, i.plan) for ep, i in hosts]
-        self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in hosts}
-        info = hosts[0][1]
-        known = [i.samples for _, i in hosts if i.samples is not None]
-        return PlanInfo(info.plan, known[0] if known else None, info.stream)
-
-    def link(self, timeout_s: float, curve: Optional[tuple]):
-        """The fetch loop over the servers: ``Shards`` (one server is one shard), or a fleet's
-        (``fleet_read.Fleet``)."""
-        if self.fleet is not None:
-            from .fleet_read import Fleet
-
-            return Fleet(self.endpoint, self.fleet, self.fleet[0][1].plan, timeout_s, curve, self.compression,
-                         self.windows)
-        return Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
-
-    def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
-        """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
-        shards: ``workers``, ``samples_made``, ``busy_s`` (stage -> worker seconds) and the
-        smallest ``frame_cache_gb``; None when a server does not report them.
-
-        Raises:
-            TimeoutError: a server did not answer within ``timeout_s``."""
-        figures = []
-        for server in [ep for ep, _ in self.shards or ()] or resolve_endpoints(self.endpoint):
-            with Link(server, timeout_s, curve) as link:
-                figures.append(link.ask().stream.get("feed"))
-        if not figures or not all(isinstance(f, dict) for f in figures):
-            return None
-        busy: Dict[str, float] = {}
-        for f in figures:
-            for stage, v in (f.get("busy_s") or {}).items():
-                busy[stage] = busy.get(stage, 0.0) + float(v)
-        return {"workers": sum(int(f.get("workers") or 0) for f in figures),
-                "samples_made": sum(int(f.get("samples_made") or 0) for f in figures),
-                "frame_cache_gb": min(float(f.get("frame_cache_gb") or 0.0) for f in figures), "busy_s": busy}
-
-
-def _as_one_plan(servers: List[str], infos: List[PlanInfo]):
-    """``(PlanInfo, [(server, its plan identity)], [its samples per epoch or None])`` of the servers
-    read as one plan: one server's own; several, each one shard of one corpus under one recipe,
-    interleaved in shard order.
-
-    Raises:
-        ValueError: several servers that are not one sharding of one corpus (naming them)."""
-    if len(servers) == 1:
-        return infos[0], [(servers[0], infos[0].plan)], [infos[0].samples]
-    whole = [ep for ep, i in zip(servers, infos) if not isinstance(i.stream.get("shard"), str)]
-    if whole:
-        raise ValueError(f"{', '.join(whole)}: serve(s) the whole corpus while {servers[0]} serves one shard: read "
-                         "shards (v2v-serve --shard I/N) or hosts of the whole corpus, not both")
-    check_servers({ep: i.stream for ep, i in zip(servers, infos)})
-    ordered = sorted(zip(servers, infos), key=lambda x: int(x[1].stream["shard"].split("/")[0]))
-    plan = shards_identity([i.plan for _, i in ordered])
-    return (PlanInfo(plan, shards_samples([i.samples for _, i in ordered]), ordered[0][1].stream),
-            [(ep, i.plan) for ep, i in ordered], [i.samples for _, i in ordered])
-
-
-def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
-    """What fetches of ``endpoint`` ask for: ``compression``, or for ``"auto"``
-    ``endpoints.auto_compression`` with the codecs the server lists in its stream info."""
-    return compression if compression != "auto" else auto_compression(endpoint, stream.get("codecs", ()))
 
 
 def _with_padding(arrays: Dict[str, np.ndarray], padding: List[bool]) -> Dict[str, np.ndarray]:
@@ -253,24 +117,6 @@ class Link:
             if time.monotonic() >= deadline:
                 raise TimeoutError(f"{self.endpoint}: no answer to 'what do you serve' within {self.timeout_s} s "
                                    "(is a v2v-serve running there?)")
-
-
-def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: float, curve: Optional[tuple]) -> None:
-    """Name in one log line each host of ``infos`` serving another plan than ``plan``: what
-    differs, and for another listing of the same recipe and seed the first files that differ."""
-    from .fleet_read import listing_diff
-
-    for ep, i in infos.items():
-        problem = plan.problem(i.plan)
-        if not problem:
-            continue
-        if i.plan.manifest != plan.manifest and (i.plan.recipe, i.plan.seed) == (plan.recipe, plan.seed):
-            ours = next(e for e, j in infos.items() if j.plan == plan)
-            try:
-                problem += "; " + listing_diff(ours, plan, ep, i.plan, timeout_s, curve)
-            except (TimeoutError, PlanServerError) as e:
-                problem += f"; its listing could not be read ({e})"
-        log.warning("%s: left out of the fleet: it serves %s", ep, problem)
 
 
 def _refusal(endpoint: str, msg: Refused) -> Exception:

@@ -44,7 +44,8 @@ from v2v_wire.push_names import READER_SETTINGS, reader_settings_problem, resume
 
 from . import plan_accelerate
 from .endpoints import load_curve_keys
-from .fetch import PlanServerError, Servers
+from .fetch import PlanServerError
+from .servers import Servers
 from .tensors import batch_to_torch
 
 __all__ = ["V2VStreamDataset", "PlanEpochs", "open_stream", "PlanServerError"]

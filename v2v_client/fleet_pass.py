@@ -1,0 +1,335 @@
+"""One pass of a fleet's reader over one epoch (``fleet_read.Fleet.fetch_all``): its explicit state
+and each decision of its loop. Free of torch.
+
+The state is the epoch's plan (``EpochPlan``, unfolding with each video's windows), the steps in
+the window (the step being read, the *head*, to ``ahead`` positions past it), what each video was
+asked of which host (:class:`Video`), the rows got and not yet read, and the requests in flight.
+Each turn of the loop: fill the window, ask what its decided positions need and the windows that
+decide the rest (:meth:`Pass.ask_window`), hand the head's rows on once each is known
+(:meth:`Pass.head_rows`), else rescue what the head waits on (:meth:`Pass.rescue`: hedges of silent
+hosts, copies, lost replies) and take the hosts' answers (:meth:`Pass.take`).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Dict, List, Optional, Set, Tuple
+
+import numpy as np
+import zmq
+
+from v2v_wire.codecs import decode_batch_arrays
+from v2v_wire.fleet import rank_hosts
+from v2v_wire.plan import EpochPlan, Manifest
+from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, PlanInfo, Refused, Rows
+from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
+
+from .fetch import PlanServerError, _with_padding
+
+if TYPE_CHECKING:
+    from .fleet_read import Fleet
+
+__all__ = ["Pass", "Video", "merged", "UNFOLD_PER_HOST", "STEAL_S"]
+
+log = logging.getLogger("v2v.client")
+
+#: Videos whose windows a reader asks for at once while its plan unfolds, per host.
+UNFOLD_PER_HOST = 4
+#: Seconds the head may wait on a video before the next host of its ranking is asked for a copy
+#: too (:meth:`Pass.steal`).
+STEAL_S = 1.0
+_LAST = 2 ** 62 - 1
+
+
+def merged(rows: List[tuple], like: Dict[str, np.ndarray], epoch: int, start: int,
+           samples: Optional[int]) -> Tuple[Rows, Dict[str, np.ndarray]]:
+    """One step's ``Rows`` and arrays from its rows in position order (``(sample id, padding,
+    params, arrays row, host)``; a padding row's arrays are zeros shaped as ``like``'s)."""
+    arrays = {name: np.stack([r[3][name] if not r[1] else np.zeros_like(like[name]) for r in rows]) for name in like}
+    return Rows(0, epoch, start, [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows], [],
+                samples), arrays
+
+
+@dataclass
+class Video:
+    """What this reader asked of one video in one pass: the host it asks, the first position that
+    needs it (the hosts decode makes in that order), the samples asked (ordinal -> request id),
+    and the requests in flight (request id -> (host, ordinals, asked at))."""
+
+    host: Optional[str] = None
+    position: int = _LAST
+    asked: Dict[int, int] = field(default_factory=dict)
+    flight: Dict[int, Tuple[str, Optional[Tuple[int, ...]], float]] = field(default_factory=dict)
+
+
+class Pass:
+    """One epoch read from a fleet (module docstring).
+
+    Args:
+        fleet: the fleet read (its hosts, router, links and learned windows).
+        manifest: the plan's manifest.
+        first: the :class:`Fetch` of the pass's first step (its epoch and outputs are the pass's).
+        prefetch: steps the window holds at least.
+        retry_s: seconds a make may go unanswered before it is asked again.
+    """
+
+    def __init__(self, fleet: "Fleet", manifest: Manifest, first: Fetch, prefetch: int, retry_s: float):
+        self.fleet, self.router, self.prefetch, self.retry_s = fleet, fleet.router, prefetch, retry_s
+        self.epoch, self.outputs, self.kpw = first.epoch, first.outputs, manifest.crops_per_window
+        self.plan = EpochPlan(manifest, fleet.plan.seed, first.epoch, fleet.plan.shuffle_buffer)
+        self.plan.learn(fleet.windows)
+        workers = sum(fleet.workers.get(h, 1) for h in self.router.hosts) or 1
+        self.ahead = fleet.ahead if fleet.ahead is not None else 10 * workers * self.kpw * 2
+        self.window: List[int] = []
+        self.spans: Dict[int, Tuple[int, int]] = {}
+        self.videos: Dict[str, Video] = {}
+        self.got: Dict[Tuple[str, int], tuple] = {}  # (video, ordinal) -> (id, padding, params, arrays row, host)
+        self.flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]]]] = {}  # (host, request) -> asked
+        self.told: Set[str] = set()  # videos whose windows were asked for
+        self.heard = self.head_since = time.monotonic()
+        self.exhausted = False
+
+    # ------------------------------------------------------------------ asking
+    def add(self, step: int, fetch: Fetch) -> None:
+        """Step ``step`` (positions ``fetch.start`` .. ``fetch.stop - 1``) joins the window."""
+        self.window.append(step)
+        self.spans[step] = (fetch.start, fetch.stop)
+
+    def fill(self, todo, fetch_of) -> None:
+        """Take steps from ``todo`` until the window spans ``ahead`` positions and ``prefetch`` steps."""
+        while not self.exhausted and (self.spans[self.window[-1]][0] - self.spans[self.window[0]][0] < self.ahead
+                                      or len(self.window) < self.prefetch):
+            nxt = next(todo, None)
+            if nxt is None:
+                self.exhausted = True
+                return
+            f = fetch_of(0, nxt)
+            self.add(nxt, f)
+            if self.plan.complete and f.start >= len(self.plan):
+                return  # past the epoch's end: no step after it holds a sample
+
+    def send(self, video: str, ordinals: Optional[Tuple[int, ...]], host: str, now: float) -> None:
+        """Ask ``host`` for ``ordinals`` of ``video`` (None: its windows)."""
+        link = self.fleet.links[host]
+        req = next(link.ids)
+        v = self.videos.setdefault(video, Video())
+        link._send(Make(req, self.epoch, video, ordinals, self.outputs, self.fleet.plan, link.compression,
+                        min(v.position, _LAST)).to_wire())
+        self.flight[(host, req)] = (video, ordinals)
+        v.flight[req] = (host, ordinals, now)
+        for o in ordinals or ():
+            v.asked[o] = req
+
+    def ask(self, video: str, ordinals: Optional[Tuple[int, ...]], now: float, position: Optional[int] = None) -> None:
+        """Ask for ``ordinals`` of ``video`` of its host while that one answers, else the router's pick.
+
+        Raises:
+            PlanServerError: a path longer than a make names, or no host left serving the plan."""
+        v = self.videos.setdefault(video, Video())
+        if position is not None:
+            v.position = min(v.position, position)
+        if len(video.encode()) > MAX_MAKE_PATH:
+            raise PlanServerError(f"{video[:80]}...: a path over {MAX_MAKE_PATH} bytes, which a fleet's make "
+                                  "cannot name: read these hosts as shards (v2v-serve --shard I/N)")
+        if ordinals is not None and len(ordinals) > MAX_MAKE_SAMPLES:
+            for i in range(0, len(ordinals), MAX_MAKE_SAMPLES):
+                self.ask(video, ordinals[i:i + MAX_MAKE_SAMPLES], now)
+            return
+        count = len(ordinals) if ordinals else 1
+        if v.host in self.router.hosts and not self.router.suspect(v.host, now):
+            self.router.ask(v.host, self.epoch, video, count, now)
+        else:
+            v.host = self.router.route(self.epoch, video, count, now)
+        if v.host is None:
+            raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan "
+                                  f"({len(self.fleet.refused)} left out for serving another)")
+        self.send(video, ordinals, v.host, now)
+
+    def ask_window(self, now: float) -> None:
+        """Ask for the samples the window's decided positions hold, and for the windows of the
+        next videos of the production order where the plan is not decided that far."""
+        want: Dict[str, List[int]] = {}
+        first: Dict[str, int] = {}
+        undecided = False
+        for s in self.window:
+            for p in range(*self.spans[s]):
+                if p >= self.plan.known:
+                    undecided = undecided or not self.plan.complete
+                    continue
+                key = self.plan.key(p)
+                o = key.ordinal(self.kpw)
+                if (key.video, o) not in self.got and o not in self.videos.get(key.video, Video()).asked:
+                    want.setdefault(key.video, []).append(o)
+                    first.setdefault(key.video, p)
+        for video, ords in want.items():
+            self.ask(video, tuple(sorted(set(ords))), now, first[video])
+        if not undecided:
+            return
+        budget = UNFOLD_PER_HOST * max(1, len(self.router.hosts)) - sum(
+            1 for _, ords in self.flight.values() if ords is None)
+        for video in self.plan.next_videos(len(self.plan.videos)):
+            if budget <= 0:
+                return
+            if video not in self.fleet.windows and video not in self.told:
+                self.told.add(video)
+                self.ask(video, None, now, self.plan.known)
+                budget -= 1
+
+    # ------------------------------------------------------------------ the head
+    def head_rows(self) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
+        """``(step, rows, arrays)`` of the head once each of its positions is known (made,
+        failed or past the epoch's end), its samples taken out of what was got; None before.
+
+        Raises:
+            PlanServerError: a step of padding rows only before any row held a sample (the
+                arrays' shapes are not known)."""
+        head = self.window[0]
+        start, stop = self.spans[head]
+        if stop > self.plan.known and not self.plan.complete:
+            return None
+        keys = [self.plan.key(p) for p in range(start, stop)]
+        rows = []
+        for key in keys:
+            if key is None:
+                rows.append((None, True, {"padding": "past the epoch's end"}, None, None))
+            elif (key.video, key.ordinal(self.kpw)) in self.got:
+                rows.append(self.got[(key.video, key.ordinal(self.kpw))])
+            else:
+                return None
+        for key in keys:
+            if key is not None:
+                del self.got[(key.video, key.ordinal(self.kpw))]
+        like = next((r[3] for r in rows if not r[1]), self.fleet.like)
+        if like is None:
+            raise PlanServerError(f"{self.fleet.endpoint}: epoch {self.epoch} positions {start}..{stop - 1}: no row "
+                                  "holds a sample and none was read before (the arrays' shapes are not known)")
+        out, arrays = merged(rows, like, self.epoch, start, len(self.plan) if self.plan.complete else None)
+        self.fleet.last_served = (out, {h: sum(1 for r in rows if r[4] == h) for h in {r[4] for r in rows if not r[1]}})
+        self.window.pop(0)
+        del self.spans[head]
+        self.head_since = time.monotonic()
+        return head, out, arrays
+
+    # ------------------------------------------------------------------ what the head waits on
+    def rescue(self, now: float) -> None:
+        """Hedges of silent hosts' videos, copies of what the head waits on, and makes asked again
+        (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart)."""
+        waiting = [(self.epoch, video, len(v.flight)) for video, v in self.videos.items() if v.flight]
+        for _, video, host in self.router.hedges(waiting, now):
+            v = self.videos[video]
+            v.host = host
+            for h, ords, _ in list(v.flight.values()):
+                self.send(video, ords, host, now)
+        self.steal(now, now - self.head_since >= STEAL_S)
+        for video, v in list(self.videos.items()):
+            for req, (h, ords, at) in list(v.flight.items()):
+                gone = h not in self.router.hosts
+                if gone or now - at >= self.retry_s:
+                    del v.flight[req]
+                    self.flight.pop((h, req), None)
+                    if gone:  # left the fleet: its videos go to the next hosts of their rankings
+                        v.host = None if v.host == h else v.host
+                        self.ask(video, ords, now)
+                    else:
+                        self.send(video, ords, h, now)
+
+    def steal(self, now: float, late: bool) -> None:
+        """Copies of the videos the head waits on (the first copy's rows win): of one to a host with
+        nothing asked of it; once the head has waited :data:`STEAL_S` (``late``), of each to the
+        next host of its ranking that does not hold it, where it goes first (its position is the
+        fleet's earliest). A slow host's videos stop gating the fleet, at the cost of a decode
+        where a host would otherwise idle or where the step would wait."""
+        idle = [h for h, st in self.router.hosts.items() if not st.queued and not self.router.suspect(h, now)]
+        if not idle and not late:
+            return
+        start, stop = self.spans[self.window[0]]
+        missing: Dict[str, List[int]] = {}
+        for p in range(start, min(stop, self.plan.known)):
+            key = self.plan.key(p)
+            if key is not None and (key.video, key.ordinal(self.kpw)) not in self.got:
+                missing.setdefault(key.video, []).append(key.ordinal(self.kpw))
+        weights = self.router.weights()
+        for video, ords in missing.items():
+            v = self.videos.get(video)
+            if v is None or not v.flight:
+                continue
+            asked = {h for h, _, _ in v.flight.values()}
+            h = next((x for x in idle if x not in asked), None)
+            if h is None and late and len(asked) == 1:
+                h = next((x for x in rank_hosts(video, list(self.router.hosts), weights)
+                          if x not in asked and not self.router.suspect(x, now)), None)
+            if h is None:
+                continue
+            self.send(video, tuple(sorted(ords)), h, now)
+            self.router.ask(h, self.epoch, video, len(ords), now)
+            if h in idle:
+                idle.remove(h)
+
+    # ------------------------------------------------------------------ answers
+    def take(self, timeout_s: float) -> None:
+        """Wait up to half a second for the hosts' answers and take them.
+
+        Raises:
+            TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
+        poller = zmq.Poller()
+        for link in self.fleet.links.values():
+            poller.register(link.sock, zmq.POLLIN)
+        ready = dict(poller.poll(int(min(self.retry_s, 0.5) * 1000)))
+        if not ready:
+            if time.monotonic() - self.heard > timeout_s:
+                late = sorted({h for v in self.videos.values() for h, _, _ in v.flight.values()})
+                raise TimeoutError(f"{', '.join(late) or self.fleet.endpoint}: no rows for {timeout_s} s "
+                                   f"(step {self.window[0]})")
+            return
+        self.heard = time.monotonic()
+        for ep, link in list(self.fleet.links.items()):
+            while link.sock in ready and link.sock.poll(0):
+                got = link._recv(self.heard)
+                if got is None:
+                    break
+                self.receive(ep, *got, self.heard)
+
+    def receive(self, ep: str, msg, frames, now: float) -> None:
+        """Take host ``ep``'s message: what a new host serves, a make's rows (kept by (video,
+        ordinal); its video's windows unfold the plan), or a refusal (the host leaves the fleet).
+
+        Raises:
+            PlanServerError: rows whose arrays cannot be read."""
+        if isinstance(msg, PlanInfo):
+            self.fleet.join(ep, msg, now)
+            return
+        if isinstance(msg, Refused):
+            if self.flight.pop((ep, msg.request), None) is not None:  # another plan now, or a make it cannot take
+                log.warning("%s: left out of the fleet: %s", ep, msg.message)
+                self.fleet.refused.add(ep)
+                self.router.leave(ep)  # its videos' makes go to their next hosts (rescue)
+            return
+        what = self.flight.pop((ep, msg.request), None) if isinstance(msg, Rows) else None
+        if what is None or msg.epoch != self.epoch:
+            return  # an answer to a request asked again, or of another pass
+        video, ordinals = what
+        v = self.videos[video]
+        v.flight.pop(msg.request, None)
+        if msg.windows is not None and video not in self.fleet.windows:
+            self.fleet.windows[video] = msg.windows
+            self.plan.learn(self.fleet.windows)
+        try:
+            arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
+        except ProtocolError as e:
+            raise PlanServerError(f"{ep}: rows of {video}: {e}") from None
+        for j, o in enumerate(ordinals or ()):
+            if (video, o) in self.got:
+                continue  # another copy came first
+            row = {name: a[j] for name, a in arrays.items()}
+            self.got[(video, o)] = (msg.sample_ids[j], msg.padding[j], msg.params[j], row, ep)
+            if not msg.padding[j] and self.fleet.like is None:
+                self.fleet.like = row
+        for req, (h, ords, _) in list(v.flight.items()):  # copies of what is now got
+            if all((video, o) in self.got for o in ords or ()) and (ords or msg.windows is not None):
+                del v.flight[req]
+                self.flight.pop((h, req), None)
+        self.router.answered(ep, self.epoch, video, len(ordinals or ()), now,
+                             not any(h == ep for h, _, _ in v.flight.values()))
+        if not v.flight:
+            self.router.finished(self.epoch, video, now)
