@@ -235,20 +235,25 @@ class Pass:
                         self.send(video, ords, h, now)
 
     def steal(self, now: float, late: bool) -> None:
-        """Copies of the videos the head waits on (the first copy's rows win): of one to a host with
+        """Copies of the videos the head waits on, the samples its positions hold or the windows
+        that decide them (the first copy's answer wins): of one to a host with
         nothing asked of it; once the head has waited :data:`STEAL_S` (``late``), of each to the
         next host of its ranking that does not hold it, where it goes first (its position is the
         fleet's earliest). A slow host's videos stop gating the fleet, at the cost of a decode
         where a host would otherwise idle or where the step would wait."""
-        idle = [h for h, st in self.router.hosts.items() if not st.queued and not self.router.suspect(h, now)]
-        if not idle and not late:
+        if not late:
             return
+        idle = [h for h, st in self.router.hosts.items() if not st.queued and not self.router.suspect(h, now)]
         start, stop = self.spans[self.window[0]]
-        missing: Dict[str, List[int]] = {}
+        missing: Dict[str, Optional[List[int]]] = {}
         for p in range(start, min(stop, self.plan.known)):
             key = self.plan.key(p)
             if key is not None and (key.video, key.ordinal(self.kpw)) not in self.got:
                 missing.setdefault(key.video, []).append(key.ordinal(self.kpw))
+        if stop > self.plan.known and not self.plan.complete:  # the windows that decide the head
+            for video in self.plan.next_videos(UNFOLD_PER_HOST * len(self.router.hosts)):
+                if video not in self.fleet.windows and video in self.told:
+                    missing.setdefault(video, None)
         weights = self.router.weights()
         for video, ords in missing.items():
             v = self.videos.get(video)
@@ -261,8 +266,8 @@ class Pass:
                           if x not in asked and not self.router.suspect(x, now)), None)
             if h is None:
                 continue
-            self.send(video, tuple(sorted(ords)), h, now)
-            self.router.ask(h, self.epoch, video, len(ords), now)
+            self.send(video, None if ords is None else tuple(sorted(ords)), h, now)
+            self.router.ask(h, self.epoch, video, len(ords or (0,)), now)
             if h in idle:
                 idle.remove(h)
 
@@ -307,7 +312,9 @@ class Pass:
             return
         what = self.flight.pop((ep, msg.request), None) if isinstance(msg, Rows) else None
         if what is None or msg.epoch != self.epoch:
-            return  # an answer to a request asked again, or of another pass
+            if isinstance(msg, Rows) and ep in self.router.hosts:
+                self.router.answered(ep, msg.epoch, "", len(msg.sample_ids), now, False)  # its rate: work it did
+            return  # an answer to a request asked again or beaten by a copy, or of another pass
         video, ordinals = what
         v = self.videos[video]
         v.flight.pop(msg.request, None)
@@ -318,6 +325,8 @@ class Pass:
             arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
         except ProtocolError as e:
             raise PlanServerError(f"{ep}: rows of {video}: {e}") from None
+        if v.host != ep and (ordinals is None or any((video, o) not in self.got for o in ordinals)):
+            v.host = ep  # it answered first: it holds the video's samples for the asks that follow
         for j, o in enumerate(ordinals or ()):
             if (video, o) in self.got:
                 continue  # another copy came first
