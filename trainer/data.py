@@ -26,8 +26,8 @@ from .tasks import get_task
 #: server and why, in one line): v2v-train ends with that line.
 STREAM_ERRORS = (TimeoutError, PlanServerError, PlanMismatch)
 
-__all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "ReadAhead", "READ_AHEAD", "read_path", "make_loader",
-           "batch_to_device", "drop_padding"]
+__all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "ReadAhead", "READ_AHEAD", "read_path", "close_read_path",
+           "make_loader", "batch_to_device", "drop_padding"]
 
 
 def make_stream(endpoint: str, task: str, timeout_s: float = 60.0, raw: bool = True, curve_keys=None,
@@ -58,6 +58,17 @@ def read_path(stream, device: torch.device):
     (:class:`PlanEpochs`), a :func:`make_loader` over any other iterable of batches (a test's
     list of batches, say)."""
     return ReadAhead(stream, pin=device.type == "cuda") if isinstance(stream, PlanEpochs) else make_loader(stream, device)
+
+
+def close_read_path(path, wait: bool = True) -> None:
+    """Stop a read path (or a stream) that has a ``close``. With ``wait`` False (Ctrl-C or SIGTERM),
+    a :class:`ReadAhead` is told to stop and left: its thread may be waiting on a silent server
+    for the stream's ``timeout_s`` and is a daemon, so the interrupted command ends without it."""
+    close = getattr(path, "close", None)
+    if isinstance(path, ReadAhead):
+        path.close(**({} if wait else {"timeout_s": 0.0}))
+    elif callable(close):
+        close()
 
 
 def _to_float(name: str, t: torch.Tensor) -> torch.Tensor:
@@ -115,10 +126,11 @@ def batch_to_device(batch: dict, device: torch.device, outputs: Sequence[str], f
 def drop_padding(batch: dict) -> Tuple[dict, int]:
     """The batch without its padding samples, and how many real samples remain.
 
-    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks samples repeated only
-    to give every DDP rank the same batch count: they must not enter the loss. Tensors and
-    lists whose leading length is B are subset; other entries (``epoch``, ``batch_id``) are
-    kept as they are. Without ``padding`` (or with none set) the batch is returned unchanged.
+    ``batch["padding"]`` (bool (B,), tensor or sequence; optional) marks rows that carry no
+    sample (zeros: past the epoch's end, or a window the file did not give): they must not enter
+    the loss. Tensors and lists whose leading length is B are subset; other entries (``epoch``,
+    ``step``, ``position``) are kept as they are. Without ``padding`` (or with none set) the batch
+    is returned unchanged.
     """
     pad = batch.get("padding")
     n = len(batch["voxels"]) if "voxels" in batch else len(batch.get("sample_ids", ()))
