@@ -43,13 +43,14 @@ def toy_config(task: str, speed: str = "eager", amp: str = "fp32", **extra) -> d
 
 def toy_batch(task: str, seed: int = 0) -> dict:
     """A stream batch in the client's raw format (int8 ``voxels`` (B, L, 3, S, S), uint8
-    ``frames`` (B, L+1, 1, S, S), float16 ``flow`` (B, L, 2, S, S)), random but fixed by ``seed``."""
+    ``frames`` (B, L+1, 1, S, S), float16 ``flow`` (B, L, 2, S, S)), random but fixed by ``seed``,
+    step ``seed`` of epoch 0."""
     g = torch.Generator().manual_seed(seed)
     s = CROP.get(task, 32)
     return {"voxels": torch.randint(-3, 4, (BATCH, LENGTH, 3, s, s), generator=g, dtype=torch.int8),
             "frames": torch.randint(0, 256, (BATCH, LENGTH + 1, 1, s, s), generator=g, dtype=torch.uint8),
             "flow": (torch.randn((BATCH, LENGTH, 2, s, s), generator=g) * 2).half(),
-            "sample_ids": [f"toy-{seed}-{i}" for i in range(BATCH)], "epoch": 0, "batch_id": seed}
+            "sample_ids": [f"toy-{seed}-{i}" for i in range(BATCH)], "epoch": 0, "step": seed}
 
 
 def toy_trainer(task: str, speed: str = "eager", amp: str = "fp32", **extra) -> Tuple[Trainer, str]:

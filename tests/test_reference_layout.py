@@ -45,6 +45,8 @@ def test_keys_shapes_dtypes_and_ranges_match_the_authors_dataset(layout, additio
     assert out["flow"].dtype == torch.float32 and out["flow"].shape == b["flow"].shape
     # our extras under our names
     assert out["sample_ids"] == b["sample_ids"] and out["params"] == b["params"]
+    assert (out["epoch"], out["step"], out["position"]) == (b["epoch"], b["step"], b["position"])
+    assert "batch_id" not in out
     p = b["params"][1]
     assert float(out["v2e_params"]["pos_thres"][1]) == pytest.approx(p["pos_threshold"])
     assert float(out["v2e_params"]["hot_pixel_fraction"][1]) == pytest.approx(p["hot_pixel_count"] / 32**2)

@@ -406,7 +406,8 @@ def test_checkpoint_round_trip_and_resume_continues_stream(tmp_path):
     assert s["steps"] == 3 and ds2.yielded_ids == [4, 5, 6]  # the epoch continues, no repeats
     rows = list(csv.DictReader(open(tmp_path / "train_log.csv")))
     assert [int(r["step"]) for r in rows] == list(range(1, 8))
-    assert [int(r["batch_id"]) for r in rows] == list(range(7))
+    # each row says where its batch lay in its epoch: its position (2 samples a step)
+    assert [(int(r["epoch"]), int(r["sample_in_epoch"])) for r in rows] == [(0, 2 * (i + 1)) for i in range(7)]
     # a crash after the last checkpoint leaves extra rows: resuming from step 7 drops them
     t3 = Trainer(cfg, str(tmp_path), torch.device("cpu"))
     t3.load_checkpoint(str(tmp_path / "checkpoint_0000004.pt"))

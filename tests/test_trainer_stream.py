@@ -140,6 +140,9 @@ def test_train_from_a_server_serving_by_plan_then_resume_at_its_position(tmp_pat
     assert [e for e, _ in seen] == [0, 0, 0, 1, 1]
     rows = list(csv.DictReader(open(out / "train_log.csv")))
     assert [int(r["step"]) for r in rows] == [1, 2, 3, 4, 5]
+    # where each batch lay in its epoch (3 steps of 2 samples), the resumed run's going on from the checkpoint
+    assert [(int(r["epoch"]), int(r["sample_in_epoch"])) for r in rows] == [(0, 2), (0, 4), (0, 6), (1, 2), (1, 4)]
+    assert "batch_id" not in rows[0]
 
 
 def test_train_at_an_address_with_no_server_ends_in_one_line(tmp_path):
@@ -190,3 +193,96 @@ def test_a_run_against_a_plan_server_says_whether_it_was_fed(tmp_path, bikes_cor
         (e,) = acc.Scalars(f"feed/{key}")
         assert e.step == 6 and e.value == pytest.approx(s[key], rel=1e-5)
     assert "feed/text_summary" in acc.Tags()["tensors"]  # the line, as TensorBoard keeps text
+    # the recipe the batches were made under, as the server said it: its plan and the stream's shapes
+    (text,) = acc.Tensors("recipe/text_summary")
+    said = text.tensor_proto.string_val[0].decode()
+    assert not said.startswith("not reported"), said
+    recipe = json.loads(said)
+    ck = torch.load(out / "checkpoint_last.pt", weights_only=False)
+    assert recipe["plan"] == ck["stream_state"]["plan"] and recipe["plan"]["seed"] == 3
+    assert {k: recipe[k] for k in ("sequence_length", "num_bins", "crop_size", "batch_size", "shard")} == \
+        {"sequence_length": 4, "num_bins": 3, "crop_size": 32, "batch_size": 2, "shard": None}
+    assert "feed" not in recipe  # the server's running figures are the feed line's, not the recipe's
+    # the batches' place in their epoch, per step, as the CSV has it
+    rows = list(csv.DictReader(open(out / "train_log.csv")))
+    for column in ("epoch", "sample_in_epoch"):
+        assert [(e.step, e.value) for e in acc.Scalars(f"stream/{column}")] == \
+            [(int(r["step"]), float(r[column])) for r in rows], column
+
+
+def _rows(out) -> int:
+    """The rows of ``out``'s ``train_log.csv`` (0 before it exists)."""
+    try:
+        return len(list(csv.DictReader(open(out / "train_log.csv"))))
+    except FileNotFoundError:
+        return 0
+
+
+def _rows_settled(out, proc, quiet_s: float, cap_s: float) -> int:
+    """The rows of ``out``'s ``train_log.csv`` once no row has come for ``quiet_s`` (the batches
+    read ahead are trained, the run waits for the server), at most after ``cap_s``."""
+    last, since, deadline = -1, time.monotonic(), time.monotonic() + cap_s
+    while time.monotonic() < deadline and proc.poll() is None:
+        n = _rows(out)
+        if n != last:
+            last, since = n, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            break
+        time.sleep(0.1)
+    return last
+
+
+def test_an_interrupt_while_the_server_is_stopped_ends_the_run_at_once(tmp_path, bikes_corpus):
+    """The real ``v2v-train`` (its console script's entry, a process of its own) reading a real
+    ``v2v-serve`` that is then SIGSTOPped (silent: it neither answers nor closes): Ctrl-C, then
+    SIGTERM to the run resumed from that checkpoint, each end it with its one line and its status
+    long before ``stream.timeout_s`` (60 s): the end-of-run question for the server's feed figures
+    waits ``trainer.loop.INTERRUPTED_ASK_S``, and nobody waits for the read-ahead thread blocked on
+    the server.
+    The interrupted run's checkpoint is where the resumed run goes on, no step trained twice."""
+    out = tmp_path / "run"
+    serve = ["--videos", str(bikes_corpus), "--workers", "1", "--sequence-length", "2", "--num-bins", "3",
+             "--crop-size", "32", "--batch-size", "1", "--seed", "3"]
+    code = "import sys\nfrom v2v_wire.commands import train\nsys.exit(train())"
+    cmd = [sys.executable, "-c", code, "--task", "e2vid", "--out", str(out), "--device", "cpu", "--no-progress",
+           "--set", "model.num_bins=3", "--set", "model.base_num_channels=4", "--set", "log.image_every=0",
+           "--set", "log.checkpoint_every=2", "--set", "log.every=1", "--set", "stream.timeout_s=60",
+           "--max-steps", "100000"]
+    with ServeProcess(serve) as srv:
+        steps = []
+        for sig, said, extra in ((signal.SIGINT, "interrupted (Ctrl-C)", []),
+                                 (signal.SIGTERM, "stopped (SIGTERM)", ["--resume", "auto"])):
+            before = steps[-1] if steps else 0
+            proc = subprocess.Popen(cmd + ["--connect", srv.endpoint, *extra], stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.PIPE, text=True)
+            try:
+                deadline = time.monotonic() + 180
+                while _rows(out) < before + 2:  # two steps trained
+                    assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()[-3000:]
+                    time.sleep(0.05)
+                os.kill(srv.proc.pid, signal.SIGSTOP)
+                try:
+                    _rows_settled(out, proc, quiet_s=2.0, cap_s=20.0)
+                    sent = time.monotonic()
+                    proc.send_signal(sig)
+                    try:
+                        proc.wait(15)  # a quarter of stream.timeout_s: it did not wait for the server
+                    except subprocess.TimeoutExpired:
+                        pytest.fail(f"v2v-train still running 15 s after {signal.Signals(sig).name}, its server "
+                                    f"stopped (stream.timeout_s 60)")
+                    took = time.monotonic() - sent
+                finally:
+                    os.kill(srv.proc.pid, signal.SIGCONT)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+            err = proc.stderr.read()
+            proc.stderr.close()
+            lines = [ln for ln in err.splitlines() if ln.strip()]
+            assert proc.returncode == 128 + sig and "Traceback" not in err, (took, err[-3000:])
+            step = torch.load(out / "checkpoint_last.pt", weights_only=False)["step"]
+            assert lines[-1] == f"v2v-train: {said}; stopped at step {step}; checkpoint in {out}", lines[-3:]
+            rows = list(csv.DictReader(open(out / "train_log.csv")))
+            assert [int(r["step"]) for r in rows] == list(range(1, step + 1)) and step >= before + 2
+            steps.append(step)

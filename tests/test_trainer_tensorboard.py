@@ -4,6 +4,7 @@ the same run; the event files read back with TensorBoard's own EventAccumulator.
 from __future__ import annotations
 
 import csv
+import json
 import time
 from pathlib import Path
 
@@ -67,6 +68,13 @@ def test_a_resumed_run_and_its_evaluation_read_back_as_the_csv_once_per_step(tmp
     assert [e.step for e in images] == [2, 4, 5]
     assert images[0].width > images[0].height > 0  # voxel | prediction | ground truth side by side
     assert {"config/text_summary", "recipe/text_summary"} <= set(acc.Tags()["tensors"])
+    # each session's recipe text: the stream's recipe(), as JSON (a plan's: tests/test_trainer_stream.py)
+    recipes = acc.Tensors("recipe/text_summary")
+    assert [e.step for e in recipes] == [1, 3]
+    expected = FakeV2VStream(outputs=get_task("evflow").outputs, num_batches=10).recipe()
+    assert all(json.loads(e.tensor_proto.string_val[0].decode()) == expected for e in recipes)
+    # where each batch lay in its epoch (its position): the resumed session's go on from step 2's
+    assert [int(r["sample_in_epoch"]) for r in rows] == [2, 4, 6, 8, 10]
 
     from trainer.evaluate import main as v2v_eval
 

@@ -20,8 +20,10 @@ from tests.conftest import read_luma_clip
 class FakeV2VStream(torch.utils.data.IterableDataset):
     """Batches like ``V2VStreamDataset(outputs=..., raw=...)`` read epoch after epoch: ``voxels`` (B, L, nb, S, S),
     ``frames`` (B, L+1, 1, S, S), ``flow`` (B, L, 2, S, S), ``sample_ids``, ``params``,
-    ``epoch``, ``batch_id``. ``num_batches`` per epoch, ``epochs`` epochs; deterministic in
-    (seed, batch index), with ``state_dict``/``load_state_dict`` of the position."""
+    ``epoch``, ``step`` (of the pass; here it begins at the epoch's start) and ``position``
+    (``epoch`` and ``sample_in_epoch`` after the step; a plan's also names the plan). ``num_batches`` per epoch, ``epochs`` epochs;
+    deterministic in (seed, batch index), with ``state_dict``/``load_state_dict`` of the batches
+    handed out, and :meth:`recipe` (the TensorBoard ``recipe`` text, as ``PlanEpochs.recipe``)."""
 
     def __init__(self, outputs=("voxels", "frames", "flow"), batch_size=2, sequence_length=4, num_bins=3,
                  crop=32, num_batches=50, epochs=1, seed=0, raw=True, fixed=False):
@@ -34,6 +36,10 @@ class FakeV2VStream(torch.utils.data.IterableDataset):
 
     def state_dict(self):
         return {"pos": self.pos}
+
+    def recipe(self):
+        return {"fixture": "FakeV2VStream", "sequence_length": self.L, "num_bins": self.nb, "crop_size": self.S,
+                "batch_size": self.B, "outputs": list(self.outputs), "seed": self.seed}
 
     def load_state_dict(self, sd):
         self.pos = int(sd["pos"])
@@ -68,7 +74,8 @@ class FakeV2VStream(torch.utils.data.IterableDataset):
             frames = np.stack([s[1] for s in samples])
             flow = np.stack([s[2] for s in samples])
             b = {"sample_ids": [f"fake-{i}-{k}" for k in range(self.B)], "params": [s[3] for s in samples],
-                 "epoch": i // self.num_batches, "batch_id": i}
+                 "epoch": i // self.num_batches, "step": i % self.num_batches,
+                 "position": {"epoch": i // self.num_batches, "sample_in_epoch": (i % self.num_batches + 1) * self.B}}
             if "voxels" in self.outputs:
                 b["voxels"] = torch.from_numpy(vox.astype(np.int8)) if self.raw else torch.from_numpy(vox.astype(np.float32))
             if "frames" in self.outputs:

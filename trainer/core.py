@@ -276,13 +276,15 @@ class Trainer:
         ``v2v-train`` starts reading before it builds the model), or any other iterable of stream batches
         (a list, say: ``trainer.data.make_loader``). Checkpoints carry the read path's
         ``state_dict()`` (a ``ReadAhead``'s: the position of the last batch trained on); with
-        ``tensorboard``, event files too, their ``recipe`` the stream's ``info`` (the server's
-        stream info) when it has one. ``startup``: the caller's start-up phases (seconds), added to
-        the summary's ``startup_s``. Returns the summary of ``trainer.loop.train_loop``, its
-        ``feed`` line with the server's figures where it reports them (``server_feed``)."""
+        ``tensorboard``, event files too, their ``recipe`` the stream's ``recipe()`` when it has
+        one (a plan's: ``v2v_client.PlanEpochs.recipe``). ``startup``: the caller's start-up
+        phases (seconds), added to the summary's ``startup_s``. Returns the summary of
+        ``trainer.loop.train_loop``, its ``feed`` line with the server's figures where it reports
+        them (``server_feed``). Ctrl-C or SIGTERM leaves a ``ReadAhead`` without waiting for its
+        thread (:func:`close_read_path`)."""
         from torch.utils.data import DataLoader
 
-        from .data import ReadAhead, read_path
+        from .data import ReadAhead, close_read_path, read_path
         from .loop import RunHooks, Schedule, train_loop
 
         if isinstance(stream, (ReadAhead, DataLoader)):  # a read path already made (v2v-train's)
@@ -296,14 +298,16 @@ class Trainer:
             phases = dict(startup or {}, **({"first_batch": round(first, 4)} if first is not None else {}))
             return {"startup_s": phases} if phases else {}
 
-        server_feed = getattr(source, "server_feed", None)
-        hooks = RunHooks(recipe=lambda: getattr(source, "info", None), summary_extra=extra,
-                         server_feed=server_feed if callable(server_feed) else (lambda: None))
+        recipe, server_feed = getattr(source, "recipe", None), getattr(source, "server_feed", None)
+        hooks = RunHooks(recipe=recipe if callable(recipe) else (lambda: None), summary_extra=extra,
+                         server_feed=server_feed if callable(server_feed) else (lambda timeout_s=None: None))
+        interrupted = False
         try:
             return train_loop(self, feed, max_steps, Schedule(image_every, checkpoint_every, progress, log_every,
                                                               tensorboard),
                               lambda: self.save_checkpoint(saved), hooks)
+        except KeyboardInterrupt:
+            interrupted = True
+            raise
         finally:
-            close = getattr(feed, "close", None)
-            if callable(close):
-                close()
+            close_read_path(feed, wait=not interrupted)

@@ -26,8 +26,8 @@ from .tasks import get_task
 #: server and why, in one line): v2v-train ends with that line.
 STREAM_ERRORS = (TimeoutError, PlanServerError, PlanMismatch)
 
-__all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "ReadAhead", "READ_AHEAD", "read_path", "make_loader",
-           "batch_to_device", "drop_padding"]
+__all__ = ["make_stream", "STREAM_ERRORS", "PlanEpochs", "ReadAhead", "READ_AHEAD", "read_path", "close_read_path",
+           "make_loader", "batch_to_device", "drop_padding"]
 
 
 def make_stream(endpoint: str, task: str, timeout_s: float = 60.0, raw: bool = True, curve_keys=None,
@@ -58,6 +58,17 @@ def read_path(stream, device: torch.device):
     (:class:`PlanEpochs`), a :func:`make_loader` over any other iterable of batches (a test's
     list of batches, say)."""
     return ReadAhead(stream, pin=device.type == "cuda") if isinstance(stream, PlanEpochs) else make_loader(stream, device)
+
+
+def close_read_path(path, wait: bool = True) -> None:
+    """Stop a read path (or a stream) that has a ``close``. With ``wait`` False (Ctrl-C or SIGTERM),
+    a :class:`ReadAhead` is told to stop and left: its thread may be waiting on a silent server
+    for the stream's ``timeout_s`` and is a daemon, so the interrupted command ends without it."""
+    close = getattr(path, "close", None)
+    if isinstance(path, ReadAhead):
+        path.close(**({} if wait else {"timeout_s": 0.0}))
+    elif callable(close):
+        close()
 
 
 def _to_float(name: str, t: torch.Tensor) -> torch.Tensor:

@@ -28,9 +28,27 @@ from v2v_wire.commands import write_whole
 
 from .tensorboard_log import WAIT_FRACTION_TAG
 
-__all__ = ["Schedule", "RunHooks", "RunLog", "train_loop"]
+__all__ = ["Schedule", "RunHooks", "RunLog", "train_loop", "INTERRUPTED_ASK_S", "stream_columns"]
 
 log = logging.getLogger("trainer")
+
+#: Seconds an interrupted run waits for the server's feed figures (``RunHooks.server_feed``): a
+#: live server answers in milliseconds, so its figures still reach the ``feed`` line; a silent
+#: one (stopped, gone, cut off) costs this, not the stream's ``timeout_s``, before the command's
+#: one line (Ctrl-C means now).
+INTERRUPTED_ASK_S = 0.5
+
+
+def stream_columns(batch: dict) -> dict:
+    """The ``train_log.csv`` columns of where a batch lies in the stream: ``epoch``, and
+    ``sample_in_epoch``, its ``position``'s: the epoch's samples read by every rank up to and
+    including this step, where a resume from it goes on (the same on every rank). "" where the
+    batch does not say (the Ray engine's batches carry their epoch only). Not a plan batch's
+    ``step``: that counts from where its pass began (0 again after a resume, and at another world
+    or batch size no step of the epoch), which the position says exactly."""
+    position = batch.get("position")
+    return {"epoch": batch.get("epoch", ""),
+            "sample_in_epoch": position.get("sample_in_epoch", "") if isinstance(position, dict) else ""}
 
 
 @dataclass
@@ -63,9 +81,11 @@ class RunHooks:
             "always" (a collective checkpoint every rank must take part in).
         recipe: called once after the first step: the sample recipe the batches were made
             under (a dict, TensorBoard's ``recipe`` text), or None when the source does not say.
-        server_feed: called once at the end (rank 0's files): the server's ``feed`` figures
-            (``v2v_client.V2VStreamDataset.server_feed``) for the summary's ``feed`` line
-            (``trainer.feed_report``), or None when the source does not report them.
+        server_feed: called once at the end (rank 0's files) with the seconds it may wait
+            (None: the source's own timeout; :data:`INTERRUPTED_ASK_S` after Ctrl-C or SIGTERM):
+            the server's ``feed`` figures (``v2v_client.PlanEpochs.server_feed``) for the
+            summary's ``feed`` line (``trainer.feed_report``), or None when the source does not
+            report them.
     """
 
     on_batch: Optional[Callable[[dict, dict], None]] = None
@@ -74,7 +94,7 @@ class RunHooks:
     summary_extra: Callable[[], dict] = dict
     final_checkpoint: str = "if_new"
     recipe: Callable[[], Optional[dict]] = lambda: None
-    server_feed: Callable[[], Optional[dict]] = lambda: None
+    server_feed: Callable[[Optional[float]], Optional[dict]] = lambda timeout_s=None: None
 
 
 class RunLog:
@@ -329,8 +349,8 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
                 pace.step(t0, t1, t2, int(stats.get("samples", 0)))
                 if hooks.on_batch is not None:
                     hooks.on_batch(batch, stats)
-                stats.update(step=trainer.step, epoch=batch.get("epoch", ""), batch_id=batch.get("batch_id", ""),
-                             data_wait_s=round(t1 - t0, 5), step_s=round(t2 - t0, 5))
+                stats.update(step=trainer.step, **stream_columns(batch), data_wait_s=round(t1 - t0, 5),
+                             step_s=round(t2 - t0, 5))
                 files.add(trainer, stats)
                 preview = hooks.files and schedule.image_every and trainer.step % schedule.image_every == 0
                 # a preview's or checkpoint's step: its rows first (events in step order; the rows up
@@ -358,7 +378,7 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
             checkpoint()
         summary = _summary(trainer, files.losses, n, pace.figures(t_end), hooks.summary_extra())
         if hooks.files:
-            _feed(summary, hooks, files.board if n else None, trainer.step)
+            _feed(summary, hooks, files.board if n else None, trainer.step, interrupted is not None)
     finally:
         files.close_board()
     if hooks.files:
@@ -369,14 +389,16 @@ def train_loop(trainer, batches: Iterable, max_steps: int, schedule: Schedule, c
     return summary
 
 
-def _feed(summary: dict, hooks: RunHooks, board, step: int) -> None:
+def _feed(summary: dict, hooks: RunHooks, board, step: int, interrupted: bool = False) -> None:
     """The summary's ``feed`` line, with the server's figures when it reports them (a server
-    that does not answer now is left out: the line then says less, the run is not failed):
-    logged, and with the feed figures on ``board`` (when not None) at ``step``."""
+    that does not answer now is left out: the line then says less, the run is not failed; an
+    ``interrupted`` run waits :data:`INTERRUPTED_ASK_S` for them at most): logged, and with the
+    feed figures on ``board`` (when not None) at ``step``."""
     from .feed_report import feed_line
 
     try:
-        server = hooks.server_feed() if summary.get("data_wait_fraction") else None
+        wait = INTERRUPTED_ASK_S if interrupted else None
+        server = hooks.server_feed(wait) if summary.get("data_wait_fraction") else None
     except (TimeoutError, RuntimeError, ValueError) as e:
         log.warning("the server's feed figures: %s", e)
         server = None

@@ -89,7 +89,7 @@ class TrainTask:
     @classmethod
     def csv_columns(cls) -> List[str]:
         """Columns of ``train_log.csv`` for this task (``trainer.tensorboard_log`` names their tags)."""
-        return ["step", "epoch", "batch_id", "loss", *cls.terms, "lr", "grad_norm", "data_wait_s", "step_s",
+        return ["step", "epoch", "sample_in_epoch", "loss", *cls.terms, "lr", "grad_norm", "data_wait_s", "step_s",
                 "samples_per_s"]
 
     def flow_from(self, sequence_length: int) -> Optional[int]:

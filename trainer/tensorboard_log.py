@@ -25,13 +25,15 @@ tag                                 value
 ``feed``                            text, at the session's last step: the summary's ``feed`` line
                                     (fed, or what would feed it: ``trainer.feed_report``)
 ``stream/epoch``                    ``epoch``
-``stream/batch_id``                 ``batch_id`` (the stream engine's)
+``stream/sample_in_epoch``          ``sample_in_epoch``: the batch's position in its epoch
+                                    (``trainer.loop.stream_columns``; the stream engine's)
 ``stream/samples``                  ``samples`` (the Ray engine's real samples of the step)
 ``preview``                         the preview image (``samples/step_NNNNNNN.png``): per sample
                                     voxel | prediction | ground truth (flow in the colour wheel)
 ``config``, ``recipe``              text, once per session at its first step: the run's config
-                                    (``config.json``) and the sample recipe (the server's stream
-                                    info, or the Ray engine's serve config)
+                                    (``config.json``) and the sample recipe (a plan's identity and
+                                    the server's stream info, ``v2v_client.PlanEpochs.recipe``, or
+                                    the Ray engine's serve config)
 ``eval/<metric>``                   ``v2v-eval --tensorboard RUN``: the mean of each metric, at the
                                     checkpoint's step; ``eval/<dataset>/<metric>`` per dataset of
                                     ``--protocol v2v-paper``
@@ -58,7 +60,7 @@ __all__ = ["COLUMN_TAGS", "WAIT_FRACTION_TAG", "PREVIEW_TAG", "column_tag", "eva
 COLUMN_TAGS: Dict[str, str] = {
     "loss": "loss/total", "lr": "optim/lr", "grad_norm": "optim/grad_norm",
     "samples_per_s": "speed/samples_per_s", "data_wait_s": "speed/data_wait_s", "step_s": "speed/step_s",
-    "epoch": "stream/epoch", "batch_id": "stream/batch_id", "samples": "stream/samples",
+    "epoch": "stream/epoch", "sample_in_epoch": "stream/sample_in_epoch", "samples": "stream/samples",
 }
 #: Time blocked on the batches / wall time over each logging interval.
 WAIT_FRACTION_TAG = "speed/data_wait_fraction"
@@ -94,7 +96,7 @@ def tensorboard_problem() -> str:
 
 
 def _number(v) -> Optional[float]:
-    """``v`` as a float when it is a number (a CSV cell may be "": no batch id), else None."""
+    """``v`` as a float when it is a number (a CSV cell may be "": no position in an epoch), else None."""
     if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
         return None
     return float(v)
@@ -123,7 +125,7 @@ class RunBoard:
 
     def rows(self, rows: Iterable[dict], columns: Iterable[str]) -> None:
         """One scalar per column of ``train_log.csv`` (``columns``) of each row, at its
-        ``step``; a cell that is not a number (no batch id, a padding-only step's lr) is left out."""
+        ``step``; a cell that is not a number (no position in an epoch, a padding-only step's lr) is left out."""
         columns = list(columns)
         for row in rows:
             step = int(row["step"])

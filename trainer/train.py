@@ -23,7 +23,7 @@ from v2v_wire.commands import STARTED, input_overwritten, writable_problem, writ
 
 from .config import RunSettings, apply_overrides, check_types, exit_on_config_error, load_config
 from .core import Trainer, resolve_device
-from .data import STREAM_ERRORS, ReadAhead, make_stream, read_path
+from .data import STREAM_ERRORS, ReadAhead, close_read_path, make_stream, read_path
 from .models.lpips import LPIPSUnavailable
 from .ray_train import add_ray_arguments
 from .raft_flow import FlowSourceUnavailable
@@ -129,6 +129,9 @@ def main(argv=None) -> int:
     except STREAM_ERRORS as e:  # the server absent, silent, or refusing: one line, its own words
         print(f"v2v-train: {e}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the checkpoint is written; no wait on a silent server
+        opening.close(wait=False)
+        raise
     finally:
         opening.close()
     return 0
@@ -153,10 +156,12 @@ def _open(cfg: dict, resume, device):
 class _Opening:
     """``open_`` run in a thread beside the model's build: :meth:`result` waits for it (raising
     what it raised, so a model that cannot be built is said before a server that cannot be
-    reached); :meth:`close` closes the read path and the stream it made, now or when it ends."""
+    reached); :meth:`close` closes the read path and the stream it made, now or when it ends (once:
+    a later call does nothing; ``wait`` False, after an interrupt: without waiting for the read
+    path's thread, ``trainer.data.close_read_path``)."""
 
     def __init__(self, open_):
-        self._got, self._closed = None, False
+        self._got, self._closed, self._wait = None, False, True
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, args=(open_,), name="v2v-open-stream", daemon=True)
         self._thread.start()
@@ -178,18 +183,18 @@ class _Opening:
             raise value
         return value
 
-    def close(self) -> None:
+    def close(self, wait: bool = True) -> None:
         with self._lock:
-            self._closed = True
+            if self._closed:
+                return
+            self._closed, self._wait = True, wait
             if self._got is not None:
                 self._close()
 
     def _close(self) -> None:
         if self._got[0] == "ok":
             for part in self._got[1][1::-1]:  # the read path, then the stream
-                close = getattr(part, "close", None)
-                if callable(close):
-                    close()
+                close_read_path(part, self._wait)
 
 
 def _resume_stream(path: str, stream) -> None:

@@ -399,15 +399,28 @@ class PlanEpochs(torch.utils.data.IterableDataset):
     def load_state_dict(self, state: dict) -> None:
         self.dataset.load_state_dict(state)
 
-    def server_feed(self) -> Optional[dict]:
+    def recipe(self) -> dict:
+        """What the batches are made under, as the server(s) said it when first asked
+        (``V2VStreamDataset.plan_info``; nothing is asked again): ``plan``, the plan's identity
+        (the manifest's and the recipe's fingerprints, the seed, the shuffle buffer, the plan's
+        version), and the stream's recipe (``PlanInfo.stream``: sequence length, bins, crop,
+        frames per bin, outputs, flow preset and dtype, crops per window, batch size, corpus,
+        shard, ...) without its ``feed``, the server's running figures (:meth:`server_feed`).
+        ``v2v-train``'s TensorBoard ``recipe`` text."""
+        info = self.dataset.plan_info()
+        return {"plan": info.plan.to_dict(), **{k: v for k, v in info.stream.items() if k != "feed"}}
+
+    def server_feed(self, timeout_s: Optional[float] = None) -> Optional[dict]:
         """What the dataset's server(s) report of their work, asked now (``Servers.feed``):
         ``workers``, ``samples_made``, ``busy_s`` (stage -> worker seconds), ``frame_cache_gb``;
         None from a server that does not report them. ``trainer.feed_report`` says from them
-        what would feed a starved trainer.
+        what would feed a starved trainer. ``timeout_s``: how long the question may wait, for
+        all the servers together (default: the dataset's ``timeout_s``; an interrupted
+        ``v2v-train`` waits half a second at most: ``trainer.loop.INTERRUPTED_ASK_S``).
 
         Raises:
-            TimeoutError: a server did not answer within the dataset's ``timeout_s``."""
+            TimeoutError: a server did not answer within ``timeout_s``."""
         ds = self.dataset
-        return ds._servers.feed(ds.timeout_s, ds.curve)
+        return ds._servers.feed(ds.timeout_s if timeout_s is None else timeout_s, ds.curve)
 
 

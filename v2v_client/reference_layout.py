@@ -31,7 +31,7 @@ __all__ = ["DATA_SOURCES", "to_reference_layout"]
 DATA_SOURCES = ("esim", "ijrr", "mvsec", "eccd", "hqf", "unknown", "reds", "sportsslomo", "adobe", "youcook",
                 "vimeo", "webvid", "evbird", "evaid", "hs-ergb", "openvid")
 
-_EXTRAS = ("sample_ids", "params", "padding", "epoch", "batch_id")
+_EXTRAS = ("sample_ids", "params", "padding", "epoch", "step", "position")
 
 
 def _float_frames(frames: torch.Tensor) -> torch.Tensor:

@@ -4,6 +4,7 @@ whole corpus (``fleet_read.Fleet``). Free of torch."""
 from __future__ import annotations
 
 import logging
+import time
 from typing import Dict, List, Optional, Tuple
 
 from v2v_wire.codecs import available, check_compression
@@ -106,14 +107,16 @@ class Servers:
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
         """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
-        shards: ``workers``, ``samples_made``, ``busy_s`` (stage -> worker seconds) and the
-        smallest ``frame_cache_gb``; None when a server does not report them.
+        shards or the fleet's hosts: ``workers``, ``samples_made``, ``busy_s`` (stage -> worker
+        seconds) and the smallest ``frame_cache_gb``; None when a server does not report them.
 
         Raises:
-            TimeoutError: a server did not answer within ``timeout_s``."""
+            TimeoutError: the servers did not all answer within ``timeout_s`` (for all of them
+                together: one silent server cannot make the question wait once per server)."""
+        deadline = time.monotonic() + timeout_s
         figures = []
         for server in [ep for ep, _ in self.shards or ()] or resolve_endpoints(self.endpoint):
-            with Link(server, timeout_s, curve) as link:
+            with Link(server, max(0.0, round(deadline - time.monotonic(), 2)), curve) as link:
                 figures.append(link.ask().stream.get("feed"))
         if not figures or not all(isinstance(f, dict) for f in figures):
             return None
