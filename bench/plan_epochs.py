@@ -18,7 +18,7 @@ import time
 from typing import List, Optional
 
 from v2v_server.delivery import plan_schedule
-from v2v_server.delivery.plan_schedule import PlanScheduler
+from v2v_server.delivery.plan_schedule import PlanScheduler, needed
 from v2v_wire.plan import EpochPlan, Manifest
 
 
@@ -42,13 +42,13 @@ def measure(videos: int, epochs: int, batch: int, turns: int) -> dict:
                 request += 1
                 scheduler.fetch(("job", e), request, e, 0, batch, 0.0)
             scheduler.answer(0.0)  # a first turn, and the collector's pass over the plans just built, untimed
-            scheduler.needed(0.0)  # what task_for decides from, with no task started
+            needed(scheduler, 0.0)  # what task_for decides from, with no task started
             gc.collect()
             built, times = _Counted.built, []
             for _ in range(turns):  # a loop turn: what the server asks of the scheduler (no sample made yet)
                 t0 = time.process_time()
                 scheduler.answer(0.0)
-                scheduler.needed(0.0)
+                needed(scheduler, 0.0)
                 times.append(time.process_time() - t0)
             s = statistics.median(times)
             out[at_once] = {"s_per_turn": round(s, 6), "s_per_fetch": round(s / at_once, 6),

@@ -7,7 +7,7 @@ asked of which host (:class:`Video`), the rows got and not yet read, and the req
 Each turn of the loop: fill the window, ask what its decided positions need and the windows that
 decide the rest (:meth:`Pass.ask_window`), hand the head's rows on once each is known
 (:meth:`Pass.head_rows`), else rescue what the head waits on (:meth:`Pass.rescue`: hedges of silent
-hosts, copies, lost replies) and take the hosts' answers (:meth:`Pass.take`).
+hosts, copies, lost replies) and take the hosts' answers (:func:`take`).
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ from .fetch import PlanServerError, _with_padding
 if TYPE_CHECKING:
     from .fleet_read import Fleet
 
-__all__ = ["Pass", "Video", "merged", "UNFOLD_PER_HOST", "STEAL_S"]
+__all__ = ["Pass", "Video", "merged", "take", "UNFOLD_PER_HOST", "STEAL_S"]
 
 log = logging.getLogger("v2v.client")
 
@@ -271,30 +271,6 @@ class Pass:
             if h in idle:
                 idle.remove(h)
 
-    # ------------------------------------------------------------------ answers
-    def take(self, timeout_s: float) -> None:
-        """Wait up to half a second for the hosts' answers and take them.
-
-        Raises:
-            TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
-        poller = zmq.Poller()
-        for link in self.fleet.links.values():
-            poller.register(link.sock, zmq.POLLIN)
-        ready = dict(poller.poll(int(min(self.retry_s, 0.5) * 1000)))
-        if not ready:
-            if time.monotonic() - self.heard > timeout_s:
-                late = sorted({h for v in self.videos.values() for h, _, _ in v.flight.values()})
-                raise TimeoutError(f"{', '.join(late) or self.fleet.endpoint}: no rows for {timeout_s} s "
-                                   f"(step {self.window[0]})")
-            return
-        self.heard = time.monotonic()
-        for ep, link in list(self.fleet.links.items()):
-            while link.sock in ready and link.sock.poll(0):
-                got = link._recv(self.heard)
-                if got is None:
-                    break
-                self.receive(ep, *got, self.heard)
-
     def receive(self, ep: str, msg, frames, now: float) -> None:
         """Take host ``ep``'s message: what a new host serves, a make's rows (kept by (video,
         ordinal); its video's windows unfold the plan), or a refusal (the host leaves the fleet).
@@ -342,3 +318,27 @@ class Pass:
                              not any(h == ep for h, _, _ in v.flight.values()))
         if not v.flight:
             self.router.finished(self.epoch, video, now)
+
+
+def take(read: "Pass", timeout_s: float) -> None:
+    """Wait up to half a second for the hosts' answers to pass ``read`` and take them (:meth:`Pass.receive`).
+
+    Raises:
+        TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
+    poller = zmq.Poller()
+    for link in read.fleet.links.values():
+        poller.register(link.sock, zmq.POLLIN)
+    ready = dict(poller.poll(int(min(read.retry_s, 0.5) * 1000)))
+    if not ready:
+        if time.monotonic() - read.heard > timeout_s:
+            late = sorted({h for v in read.videos.values() for h, _, _ in v.flight.values()})
+            raise TimeoutError(f"{', '.join(late) or read.fleet.endpoint}: no rows for {timeout_s} s "
+                               f"(step {read.window[0]})")
+        return
+    read.heard = time.monotonic()
+    for ep, link in list(read.fleet.links.items()):
+        while link.sock in ready and link.sock.poll(0):
+            got = link._recv(read.heard)
+            if got is None:
+                break
+            read.receive(ep, *got, read.heard)

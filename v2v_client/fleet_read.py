@@ -36,7 +36,7 @@ from v2v_wire.plan_messages import ManifestAsk, ManifestPart, PlanAsk, PlanInfo,
 
 from .endpoints import auto_compression, resolve_endpoints
 from .fetch import Link, PlanServerError
-from .fleet_pass import Pass
+from .fleet_pass import Pass, take
 
 __all__ = ["Fleet", "load_manifest", "asked_fleet", "listing_diff", "HEDGE_S", "RESOLVE_S"]
 
@@ -257,7 +257,7 @@ class Fleet:
                 yield head
                 continue
             read.rescue(now)
-            read.take(self.timeout_s)
+            take(read, self.timeout_s)
 
     def served(self, rows: Rows) -> Dict[str, int]:
         """{host endpoint: rows of ``rows`` (the step last yielded) holding a sample it made}."""

@@ -51,6 +51,8 @@ from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest
 from v2v_wire.worker_messages import Task
 
+from .plan_orders import Order, Orders
+
 #: Plans a server keeps built, more while pending fetches or running tasks name more epochs:
 #: those are always kept (a plan of a million videos takes about 2 s to build: one rebuilt for
 #: each fetch would make a fetch's cost grow with the epochs read at once); the failures of an
@@ -67,9 +69,6 @@ PASS_ATTEMPTS = 3
 #: Seconds after an epoch's last fetch its samples made but never fetched may go (a job that left).
 IDLE_S = 600.0
 
-#: Seconds the samples of a video whose windows a make asked for are kept unfetched: the reader
-#: that learned the windows asks for them next (``PlanFeed.make``).
-TOLD_S = 120.0
 
 
 class SlotsExceeded(ValueError):
@@ -86,20 +85,6 @@ class Pending:
     epoch: int
     start: int
     stop: int
-
-
-@dataclass
-class Order:
-    """A client's make: the samples ``ordinals`` (``SampleKey.ordinal``) of ``video`` in
-    ``epoch``, or (``ordinals`` None) the video's windows only, answered once its slots are known;
-    ``position``: the first position of the epoch that needs it (makes are decoded in that order)."""
-
-    client: Hashable
-    request: int
-    epoch: int
-    video: str
-    ordinals: Optional[Tuple[int, ...]]
-    position: int = 0
 
 
 @dataclass
@@ -286,8 +271,7 @@ class PlanScheduler:
         outputs: the outputs workers may make (``protocol.OUTPUTS`` order; :class:`Making`).
         lookahead: samples a server makes ahead of the fetches (made or being made, not yet fetched).
         keep_samples: fetched samples kept for other fetches (least recently used out).
-        hedge_s: seconds a task may send nothing while a fetch waits before a second worker
-            takes it too.
+        hedge_s: seconds a task may send nothing while a fetch waits before another worker takes it too.
         task_timeout_s: seconds a task may send nothing before its worker is called hung.
 
     Raises:
@@ -302,14 +286,12 @@ class PlanScheduler:
         if not 0 < hedge_s <= task_timeout_s:
             raise ValueError(f"hedge_s must be > 0 and <= task_timeout_s, got {hedge_s} and {task_timeout_s}")
         self.manifest, self.seed, self.shuffle_buffer = manifest, seed, shuffle_buffer
-        self.slots = Slots(manifest)
-        self.making = Making(outputs)
+        self.slots, self.making = Slots(manifest), Making(outputs)
         self.lookahead, self.keep_samples = lookahead, keep_samples
         self.hedge_s, self.task_timeout_s = hedge_s, task_timeout_s
         self.plans: "OrderedDict[int, EpochPlan]" = OrderedDict()
         self.pending: List[Pending] = []
-        self.orders: List[Order] = []  # makes waiting, in the order they came
-        self.told: Dict[Tuple[int, str], float] = {}  # (epoch, video) -> when a make was told its windows
+        self.orders = Orders(manifest.crops_per_window)  # a fleet's makes (plan_orders)
         self.store: "OrderedDict[Tuple[int, SampleKey], Any]" = OrderedDict()  # made, oldest or least recently fetched first
         self.fetched: Set[Tuple[int, SampleKey]] = set()  # stored samples some fetch was answered with
         self.failed: Dict[Tuple[int, SampleKey], str] = {}  # not given by its decode this epoch
@@ -369,68 +351,41 @@ class PlanScheduler:
             ValueError: a video not in the manifest, or an ordinal past its samples where they
                 are known (naming them); an output not offered.
         """
-        if video not in self.slots.samples:
-            raise ValueError(f"make: {video!r:.200} is not a video of this plan")
-        n = self.slots.samples[video]
-        if ordinals is not None and n is not None and max(ordinals) >= n:
-            raise ValueError(f"make: sample {max(ordinals)} of {video!r:.200}, which gives {n} sample(s) an epoch")
+        self.orders.add(Order(client, request, epoch, video, None if ordinals is None else tuple(ordinals), position),
+                        self.slots.samples)
         if self.making.ask(outputs):
             self.store, self.fetched = OrderedDict(), set()
-        self.orders.append(Order(client, request, epoch, video, None if ordinals is None else tuple(ordinals),
-                                 position))
         self.fetched_at[epoch] = now
 
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s pending fetches and makes (it left)."""
         self.pending = [f for f in self.pending if f.client != client]
-        self.orders = [o for o in self.orders if o.client != client]
+        self.orders.forget(client)
 
     def answer(self, now: float) -> List[Tuple[Any, List[Row]]]:
         """Every pending fetch and make that can be answered at ``now``, with its rows
         (:class:`Pending` or :class:`Order`); they leave the queue, and their samples move to the
         store's fetched end."""
         out, waiting, ordered = [], [], []
-        for f in self.pending + self.orders:
+        for f in self.pending + self.orders.waiting:
             rows = self._rows(f) if isinstance(f, Pending) else self._order_rows(f)
             if rows is None:
                 (waiting if isinstance(f, Pending) else ordered).append(f)
                 continue
             out.append((f, rows))
-            if isinstance(f, Order) and f.ordinals is None:
-                self.told[(f.epoch, f.video)] = now
+            if isinstance(f, Order):
+                self.orders.answered(f, now)
             for r in rows:
                 if r.sample is not None:
                     self.store.move_to_end((f.epoch, r.key))
                     self.fetched.add((f.epoch, r.key))
-        self.pending, self.orders = waiting, ordered
-        self._trim(now)
+        self.pending, self.orders.waiting = waiting, ordered
+        trim(self, now)
         return out
 
-    def _order_keys(self, o: Order) -> List[SampleKey]:
-        """The keys make ``o`` names (none for a make of a video's windows)."""
-        return [SampleKey.at(o.video, i, self.manifest.crops_per_window) for i in o.ordinals or ()]
-
     def _order_rows(self, o: Order) -> Optional[List[Row]]:
-        if o.ordinals is None and self.slots.samples.get(o.video) is None:
-            return None  # its slots come from its decode
-        rows = []
-        for key in self._order_keys(o):
-            sk = (o.epoch, key)
-            if sk in self.store:
-                rows.append(Row(key.ordinal(self.manifest.crops_per_window), key, self.store[sk]))
-            elif sk in self.failed:
-                rows.append(Row(key.ordinal(self.manifest.crops_per_window), key, reason=self.failed[sk]))
-            else:
-                return None
-        return rows
-
-    def _ordered(self) -> List[Tuple[int, str]]:
-        """(epoch, video) the makes wait on, by (epoch, position), then in the order asked."""
-        out: Dict[Tuple[int, str], None] = {}
-        for o in sorted(self.orders, key=lambda o: (o.epoch, o.position)):  # stable: arrival within a position
-            if self._order_rows(o) is None:
-                out[(o.epoch, o.video)] = None
-        return list(out)
+        rows = self.orders.rows(o, self.store, self.failed, self.slots.samples)
+        return None if rows is None else [Row(i, key, sample, reason) for i, key, sample, reason in rows]
 
     def _rows(self, f: Pending) -> Optional[List[Row]]:
         plan = self.plan(f.epoch)
@@ -451,89 +406,14 @@ class PlanScheduler:
                 return None
         return rows
 
-    def _trim(self, now: float) -> None:
-        """Drop fetched samples past ``keep_samples`` (least recently fetched first); then, while
-        the store holds more than ``keep_samples + lookahead`` plus the largest video's samples,
-        samples never fetched that no pending fetch names: those of epochs no fetch named for
-        :data:`IDLE_S` first (a job that left), oldest first."""
-        fetched = [sk for sk in self.store if sk in self.fetched]
-        for sk in fetched[:max(0, len(fetched) - self.keep_samples)]:
-            del self.store[sk]
-            self.fetched.discard(sk)
-        over = len(self.store) - self.keep_samples - self.lookahead - self.slots.largest
-        if over <= 0:
-            return
-        named = set()
-        for f in self.pending:
-            plan = self.plan(f.epoch)
-            named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, plan.known)))
-        live = {e for e, t in self.fetched_at.items() if now - t < IDLE_S}
-        for o in self.orders:
-            named.update((o.epoch, k) for k in self._order_keys(o))
-        self.told = {ev: t for ev, t in self.told.items() if now - t < TOLD_S}
-        named.update(sk for sk in self.store if (sk[0], sk[1].video) in self.told)
-        for e in live & set(self.plans):  # what decides a plan still unfolding is kept: it is read next
-            keys = [k for (e2, k) in self.store if e2 == e and (e2, k) not in self.fetched]
-            named.update((e, k) for k in self.plans[e].undecided(keys))
-        for sk in spare_samples(self.store, self.fetched, named, live, over):
-            del self.store[sk]
-
     # ------------------------------------------------------------------ workers
-    def needed(self, now: float) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
-        """(epoch, video) to decode at ``now``: those the pending fetches need a sample of (neither
-        stored nor failed), by the first position needing it, or, where a fetch's positions are
-        not decided yet, whose slots decide them (:func:`unfolding`); and those the positions
-        after each epoch's furthest fetch need (pending, or answered: the furthest stop asked of
-        a kept plan a fetch named within :data:`IDLE_S` of ``now``, not followed by a fetch of
-        the next epoch), not being decoded, while the samples made ahead (stored and not fetched,
-        or still to come from running tasks) stay within ``lookahead`` (module docstring). Past
-        an epoch's end the next epoch's first positions are made ahead only while no fetch has
-        named that epoch: once one has, its own furthest fetch leads (what was fetched of it may
-        have left the store)."""
-        store, failed, runs, slots = self.store, self.failed, self.runs, self.slots
-        made: Dict[Tuple[int, str], int] = {}
-        for (e, k) in list(store) + list(failed):
-            made[(e, k.video)] = made.get((e, k.video), 0) + 1
-        waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
-        live = {e: stop for e, stop in self.fetched_to.items() if e in self.plans and now - self.fetched_at[e] < IDLE_S}
-        furthest = {e: stop for e, stop in live.items() if e + 1 not in live}  # a reader's newest epoch
-        for f in self.pending:
-            plan = self.plan(f.epoch)
-            furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
-            for p in range(f.start, min(f.stop, plan.known)):
-                key = plan.key(p)
-                if (f.epoch, key) not in store and (f.epoch, key) not in failed:
-                    ek = (f.epoch, key.video)
-                    waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
-            if not plan.complete and f.stop > plan.known:
-                for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
-                    waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
-        budget = self.lookahead - sum(1 for sk in store if sk not in self.fetched)
-        budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
-        ahead: List[Tuple[int, str]] = []
-        keep = set(furthest) | {e for e, _ in runs}
-        for epoch, stop in sorted(furthest.items()):
-            if budget <= 0:  # before positions_after, which may build the next epoch's plan
-                break
-            for e, video, key in positions_after(self.plan, self.plans, epoch, stop,
-                                                 self.lookahead + self.shuffle_buffer, keep):
-                if budget <= 0 or (e != epoch and (e in furthest or e in live)):
-                    break
-                ek, n = (e, video), slots.samples.get(video)
-                if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
-                    continue
-                if key is None and n is not None and made.get(ek, 0) >= n:
-                    continue
-                ahead.append(ek)
-                budget -= slots.expected(video) - made.get(ek, 0)
-        return sorted(waited, key=waited.__getitem__), ahead
-
     def task_for(self, worker: Hashable, now: float, codecs: Sequence[str] = ()) -> Optional[Task]:
         """The task for an idle ``worker``: the first video a pending fetch waits on; else a
         hedge of one that sent nothing for ``hedge_s`` while a fetch waits on it; else the next
         video to decode ahead; None when none."""
-        waited, ahead = self.needed(now)
-        waited += [ek for ek in self._ordered() if ek not in waited]  # makes: after fetches, by position
+        waited, ahead = needed(self, now)
+        waited += [ek for ek in self.orders.videos(self.store, self.failed, self.slots.samples)
+                   if ek not in waited]  # makes: after fetches, by position
         for ek in waited:
             if ek not in self.runs:
                 return self._start(ek, worker, now, codecs)
@@ -650,3 +530,78 @@ class PlanScheduler:
                 self.worker_lost(worker)
                 out.append((worker, run))
         return out
+
+
+def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[Tuple[int, str]]]:
+    """(epoch, video) scheduler ``s`` decodes next at ``now``: those the pending fetches need a sample of (neither
+    stored nor failed), by the first position needing it, or, where a fetch's positions are
+    not decided yet, whose slots decide them (:func:`unfolding`); and those the positions
+    after each epoch's furthest fetch need (pending, or answered: the furthest stop asked of
+    a kept plan a fetch named within :data:`IDLE_S` of ``now``, not followed by a fetch of
+    the next epoch), not being decoded, while the samples made ahead (stored and not fetched,
+    or still to come from running tasks) stay within ``lookahead`` (module docstring). Past
+    an epoch's end the next epoch's first positions are made ahead only while no fetch has
+    named that epoch: once one has, its own furthest fetch leads (what was fetched of it may
+    have left the store)."""
+    store, failed, runs, slots = s.store, s.failed, s.runs, s.slots
+    made: Dict[Tuple[int, str], int] = {}
+    for (e, k) in list(store) + list(failed):
+        made[(e, k.video)] = made.get((e, k.video), 0) + 1
+    waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
+    live = {e: stop for e, stop in s.fetched_to.items() if e in s.plans and now - s.fetched_at[e] < IDLE_S}
+    furthest = {e: stop for e, stop in live.items() if e + 1 not in live}  # a reader's newest epoch
+    for f in s.pending:
+        plan = s.plan(f.epoch)
+        furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
+        for p in range(f.start, min(f.stop, plan.known)):
+            key = plan.key(p)
+            if (f.epoch, key) not in store and (f.epoch, key) not in failed:
+                ek = (f.epoch, key.video)
+                waited[ek] = min(waited.get(ek, (f.epoch, p)), (f.epoch, p))
+        if not plan.complete and f.stop > plan.known:
+            for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
+                waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
+    budget = s.lookahead - sum(1 for sk in store if sk not in s.fetched)
+    budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
+    ahead: List[Tuple[int, str]] = []
+    keep = set(furthest) | {e for e, _ in runs}
+    for epoch, stop in sorted(furthest.items()):
+        if budget <= 0:  # before positions_after, which may build the next epoch's plan
+            break
+        for e, video, key in positions_after(s.plan, s.plans, epoch, stop,
+                                             s.lookahead + s.shuffle_buffer, keep):
+            if budget <= 0 or (e != epoch and (e in furthest or e in live)):
+                break
+            ek, n = (e, video), slots.samples.get(video)
+            if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
+                continue
+            if key is None and n is not None and made.get(ek, 0) >= n:
+                continue
+            ahead.append(ek)
+            budget -= slots.expected(video) - made.get(ek, 0)
+    return sorted(waited, key=waited.__getitem__), ahead
+
+
+def trim(s: "PlanScheduler", now: float) -> None:
+    """Scheduler ``s``'s keeping (module docstring): drop fetched samples past ``keep_samples`` (least recently fetched first); then, while
+    the store holds more than ``keep_samples + lookahead`` plus the largest video's samples,
+    samples never fetched that no pending fetch names: those of epochs no fetch named for
+    :data:`IDLE_S` first (a job that left), oldest first."""
+    fetched = [sk for sk in s.store if sk in s.fetched]
+    for sk in fetched[:max(0, len(fetched) - s.keep_samples)]:
+        del s.store[sk]
+        s.fetched.discard(sk)
+    over = len(s.store) - s.keep_samples - s.lookahead - s.slots.largest
+    if over <= 0:
+        return
+    named = set()
+    for f in s.pending:
+        plan = s.plan(f.epoch)
+        named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, plan.known)))
+    live = {e for e, t in s.fetched_at.items() if now - t < IDLE_S}
+    named |= s.orders.named(list(s.store), now)
+    for e in live & set(s.plans):  # what decides a plan still unfolding is kept: it is read next
+        keys = [k for (e2, k) in s.store if e2 == e and (e2, k) not in s.fetched]
+        named.update((e, k) for k in s.plans[e].undecided(keys))
+    for sk in spare_samples(s.store, s.fetched, named, live, over):
+        del s.store[sk]

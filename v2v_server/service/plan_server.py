@@ -21,7 +21,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
-from v2v_server.delivery.plan_schedule import Order, PlanScheduler, Row
+from v2v_server.delivery.plan_orders import Order
+from v2v_server.delivery.plan_schedule import PlanScheduler, Row
 from v2v_server.disk_cache import UsageScan
 from v2v_server.frames.host_caches import HostCaches
 from v2v_server.ops.config import ServeConfig
@@ -256,7 +257,7 @@ class PlanServer:
         try:
             self.sockets.frontend.send_multipart([ident, pack(header), *frames], copy=False)
         except zmq.ZMQError:  # the client is gone (ROUTER_MANDATORY): it asks again if it comes back
-            for client in {f.client for f in self.scheduler.pending + self.scheduler.orders if f.client[0] == ident}:
+            for client in {f.client for f in self.scheduler.pending + self.scheduler.orders.waiting if f.client[0] == ident}:
                 self.scheduler.forget(client)
 
     def _send_rows(self, f, rows: List[Row]) -> None:

@@ -1,0 +1,106 @@
+"""A fleet's makes waiting on one host, pure: a reader of a fleet (``v2v_client.fleet_read``)
+computes the plan itself and asks each video's samples, by ordinal, of the host it routes the
+video to (``v2v_wire.plan_messages.Make``), or the video's windows only, which its plan unfolds
+with. The host's scheduler (``plan_schedule.PlanScheduler``) decodes the videos makes wait on
+after those its fetches wait on, in the order of (epoch, the first position needing the video),
+then of arrival; it keeps what a make names, and for :data:`TOLD_S` the samples of a video whose
+windows a make was told (the makes of its samples follow). ``tests/test_plan_schedule.py``."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, Hashable, List, Mapping, Optional, Sequence, Set, Tuple
+
+from v2v_wire.ids import SampleKey
+
+__all__ = ["Order", "Orders", "TOLD_S"]
+
+#: Seconds the samples of a video whose windows a make was told are kept unfetched: the reader
+#: that learned the windows asks for them next.
+TOLD_S = 120.0
+
+
+@dataclass
+class Order:
+    """A client's make: the samples ``ordinals`` (``SampleKey.ordinal``) of ``video`` in
+    ``epoch``, or (``ordinals`` None) the video's windows only, answered once its slots are known;
+    ``position``: the first position of the epoch that needs it (makes are decoded in that order)."""
+
+    client: Hashable
+    request: int
+    epoch: int
+    video: str
+    ordinals: Optional[Tuple[int, ...]]
+    position: int = 0
+
+
+class Orders:
+    """The makes a host holds (module docstring).
+
+    Args:
+        crops_per_window: the manifest's K (an ordinal is ``window * K + crop``).
+    """
+
+    def __init__(self, crops_per_window: int):
+        self.kpw = crops_per_window
+        self.waiting: List[Order] = []
+        self.told: Dict[Tuple[int, str], float] = {}  # (epoch, video) -> when a make was told its windows
+
+    def add(self, order: Order, samples: Mapping[str, Optional[int]]) -> None:
+        """Queue ``order``; ``samples``: each video's samples per epoch (None: not known yet).
+
+        Raises:
+            ValueError: a video not in the manifest, or an ordinal past its samples where they are
+                known (naming them)."""
+        if order.video not in samples:
+            raise ValueError(f"make: {order.video!r:.200} is not a video of this plan")
+        n = samples[order.video]
+        if order.ordinals is not None and n is not None and max(order.ordinals) >= n:
+            raise ValueError(f"make: sample {max(order.ordinals)} of {order.video!r:.200}, which gives {n} "
+                             "sample(s) an epoch")
+        self.waiting.append(order)
+
+    def forget(self, client: Hashable) -> None:
+        """Drop ``client``'s makes (it left)."""
+        self.waiting = [o for o in self.waiting if o.client != client]
+
+    def keys(self, o: Order) -> List[SampleKey]:
+        """The keys make ``o`` names (none for a make of a video's windows)."""
+        return [SampleKey.at(o.video, i, self.kpw) for i in o.ordinals or ()]
+
+    def rows(self, o: Order, store: Mapping, failed: Mapping, samples: Mapping[str, Optional[int]]):
+        """``[(ordinal, key, sample or None, reason or None)]`` answering ``o`` once each key is
+        made (in ``store``) or failed for the epoch, and, for a make of windows, once its video's
+        samples are known; None before."""
+        if o.ordinals is None and samples.get(o.video) is None:
+            return None  # its slots come from its decode
+        rows = []
+        for key in self.keys(o):
+            sk = (o.epoch, key)
+            if sk in store:
+                rows.append((key.ordinal(self.kpw), key, store[sk], None))
+            elif sk in failed:
+                rows.append((key.ordinal(self.kpw), key, None, failed[sk]))
+            else:
+                return None
+        return rows
+
+    def videos(self, store: Mapping, failed: Mapping, samples: Mapping[str, Optional[int]]) -> List[Tuple[int, str]]:
+        """(epoch, video) the makes wait on, by (epoch, position), then in the order asked."""
+        out: Dict[Tuple[int, str], None] = {}
+        for o in sorted(self.waiting, key=lambda o: (o.epoch, o.position)):  # stable: arrival within a position
+            if self.rows(o, store, failed, samples) is None:
+                out[(o.epoch, o.video)] = None
+        return list(out)
+
+    def answered(self, o: Order, now: float) -> None:
+        """Make ``o`` was answered at ``now`` (a make of windows: its video's samples are kept a while)."""
+        if o.ordinals is None:
+            self.told[(o.epoch, o.video)] = now
+
+    def named(self, stored: Sequence[Tuple[int, SampleKey]], now: float) -> Set[Tuple[int, SampleKey]]:
+        """The stored samples to keep for the makes: those a waiting make names, and those of the
+        videos whose windows a make was told within :data:`TOLD_S` of ``now``."""
+        self.told = {ev: t for ev, t in self.told.items() if now - t < TOLD_S}
+        named = {(o.epoch, k) for o in self.waiting for k in self.keys(o)}
+        named.update(sk for sk in stored if (sk[0], sk[1].video) in self.told)
+        return named
