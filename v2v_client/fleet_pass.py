@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Dict, List, Optional, Set, Tuple
+from typing import Dict, List, Optional, Set, Tuple
 
 import numpy as np
 import zmq
@@ -26,9 +26,6 @@ from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make,
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
 from .fetch import PlanServerError, _with_padding
-
-if TYPE_CHECKING:
-    from .fleet_read import Fleet
 
 __all__ = ["Pass", "Video", "merged", "take", "UNFOLD_PER_HOST", "STEAL_S"]
 
@@ -67,14 +64,14 @@ class Pass:
     """One epoch read from a fleet (module docstring).
 
     Args:
-        fleet: the fleet read (its hosts, router, links and learned windows).
+        fleet: the fleet read (``fleet_read.Fleet``: its hosts, router, links and learned windows).
         manifest: the plan's manifest.
         first: the :class:`Fetch` of the pass's first step (its epoch and outputs are the pass's).
         prefetch: steps the window holds at least.
         retry_s: seconds a make may go unanswered before it is asked again.
     """
 
-    def __init__(self, fleet: "Fleet", manifest: Manifest, first: Fetch, prefetch: int, retry_s: float):
+    def __init__(self, fleet, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float):
         self.fleet, self.router, self.prefetch, self.retry_s = fleet, fleet.router, prefetch, retry_s
         self.epoch, self.outputs, self.kpw = first.epoch, first.outputs, manifest.crops_per_window
         self.plan = EpochPlan(manifest, fleet.plan.seed, first.epoch, fleet.plan.shuffle_buffer)

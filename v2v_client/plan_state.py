@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Optional, Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 import torch
@@ -15,9 +15,6 @@ import torch
 from v2v_wire.plan import PlanMismatch, Position, batch_positions
 from v2v_wire.plan_messages import PlanInfo
 from v2v_wire.push_names import resume_state_problem
-
-if TYPE_CHECKING:
-    from .plan_dataset import V2VStreamDataset
 
 
 class _Control:
@@ -66,7 +63,7 @@ class _Control:
         n = int(self._words()[2])
         return json.loads(self.block.numpy()[self.HEAD:self.HEAD + n].tobytes())
 
-    def publish(self, ds: "V2VStreamDataset") -> None:
+    def publish(self, ds) -> None:
         """In the main process, write what ``ds``'s next pass reads (epoch, start, loaded state),
         for the DataLoader workers' copies; a worker's own load stays its own."""
         if torch.utils.data.get_worker_info() is None:
@@ -74,7 +71,7 @@ class _Control:
         else:
             ds._seen = self.generation()
 
-    def adopt(self, ds: "V2VStreamDataset") -> None:
+    def adopt(self, ds) -> None:
         """Give ``ds`` what the main process set last (``set_epoch``, ``load_state_dict``) when that
         copy has not seen it: a DataLoader worker's copy, made when the worker started."""
         gen = self.generation()
