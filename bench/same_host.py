@@ -10,7 +10,7 @@ through shared memory would cost, and against the time a worker takes to make th
   grid float32 (40, 2, 8, 8): 3.97 MB a sample ([wire.md](../docs/wire.md)).
 * **tcp / ipc**: a server process (a ROUTER holding the batch's arrays) answers each request
   of a client (a DEALER) with the batch, sent zero-copy; the client receives it zero-copy and
-  views each frame as its array, as ``V2VStreamDataset`` does (``plan_dataset._Link._recv``).
+  views each frame as its array, as ``V2VStreamDataset`` does (``fetch.Link._recv``).
   Wall time per batch (request to arrays in hand, one request at a time: no overlap) and CPU
   time per batch of each process.
 * **memcpy**: one copy of the batch's bytes into a preallocated buffer (what a server writing

@@ -7,7 +7,7 @@ epoch from a global position (``v2v_client.plan_dataset._rows``; a DataLoader wo
 rows (``plan_shards.shard_parts``), asked of each shard's server, and merged in the interleave's
 order (``plan_shards.interleaved``). Over several shards an item is yielded once
 ``plan_shards.step_in_epoch`` settles it, each shard whose length is not known asked for the row
-``plan_shards.probes`` names; over one, once answered (``_Link``). A reader ends where the
+``plan_shards.probes`` names; over one, once answered (``fetch.Shards`` of one). A reader ends where the
 epoch's steps (``v2v_wire.plan.epoch_steps`` of ``plan_shards.shards_samples``) say, as ``_read`` breaks.
 
 A job with DataLoader workers holds a real ``V2VStreamDataset`` per rank (no socket is opened):
