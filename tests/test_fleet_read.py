@@ -28,6 +28,12 @@ def first_steps(ds, steps):
     return ids, position
 
 
+def setup(tmp_path, videos):
+    """The test corpus, every sample id one epoch of it holds, and a host's ``v2v-serve`` arguments."""
+    root = corpus(tmp_path, videos)
+    return root, expected_ids(root), ["--videos", str(root), *layout()]
+
+
 def same_content(a, b, ids):
     return all(torch.equal(a[s][0], b[s][0]) and torch.equal(a[s][1], b[s][1]) for s in ids)
 
@@ -36,9 +42,7 @@ def same_content(a, b, ids):
 def test_a_fleet_reads_one_servers_plan_and_a_position_resumes_at_any_fleet_size(tmp_path, videos):
     """Two hosts read together give one server's sequence, id for id and byte for byte, with no
     padding but the last step's; a position taken from the two resumes on one host and on three."""
-    root = corpus(tmp_path, videos)
-    want = expected_ids(root)
-    base = ["--videos", str(root), *layout()]
+    root, want, base = setup(tmp_path, videos)
     with ServeProcess(base) as one:
         single, order1, pad1, _ = read(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=120))
         with ServeProcess(base) as b, ServeProcess(base) as c:
@@ -61,9 +65,7 @@ def test_a_fleet_reads_one_servers_plan_and_a_position_resumes_at_any_fleet_size
 def test_a_host_killed_mid_epoch_costs_the_fleet_nothing_but_time(tmp_path, videos):
     """One host SIGKILLed after the first step: its videos go to the other host; every id once,
     with the content one server gives."""
-    root = corpus(tmp_path, videos)
-    want = expected_ids(root)
-    base = ["--videos", str(root), *layout()]
+    root, want, base = setup(tmp_path, videos)
     with ServeProcess(base) as one:
         single, order, _, _ = read(V2VStreamDataset(one.endpoint, outputs=OUTPUTS, timeout_s=120))
     with ServeProcess(base) as a, ServeProcess(base) as b:
@@ -84,14 +86,13 @@ def test_a_host_killed_mid_epoch_costs_the_fleet_nothing_but_time(tmp_path, vide
 def test_a_host_serving_another_plan_is_named_and_left_out(tmp_path, videos, caplog):
     """A host started with another seed is named in one line with what differs; the job reads
     the first host's plan from the rest."""
-    root = corpus(tmp_path, videos)
-    base = ["--videos", str(root), *layout()]
+    root, want, base = setup(tmp_path, videos)
     other = list(base)
     other[other.index("--seed") + 1] = "6"  # layout's is 5
     with ServeProcess(base) as a, ServeProcess(other) as b:
         with caplog.at_level(logging.WARNING, logger="v2v.client"):
             _, order, _, _ = read(V2VStreamDataset(f"{a.endpoint},{b.endpoint}", outputs=OUTPUTS, timeout_s=120))
-        assert sorted(order) == expected_ids(root)
+        assert sorted(order) == want
         named = [r.getMessage() for r in caplog.records if b.endpoint in r.getMessage()]
         assert named and "left out of the fleet" in named[0] and "seed 6 (this plan: 5)" in named[0]
 

@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Set, Tuple
 
 import numpy as np
-import zmq
 
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.fleet import rank_hosts
@@ -86,6 +85,7 @@ class Pass:
         self.told: Set[str] = set()  # videos whose windows were asked for
         self.heard = self.head_since = time.monotonic()
         self.exhausted = False
+        self.examined = 0  # the first position of the window :meth:`ask_window` has not looked at
 
     # ------------------------------------------------------------------ asking
     def add(self, step: int, fetch: Fetch) -> None:
@@ -149,16 +149,20 @@ class Pass:
         want: Dict[str, List[int]] = {}
         first: Dict[str, int] = {}
         undecided = False
-        for s in self.window:
-            for p in range(*self.spans[s]):
+        for s in self.window:  # each position once: from the first not looked at to the first undecided
+            start, stop = self.spans[s]
+            for p in range(max(start, self.examined), stop):
                 if p >= self.plan.known:
-                    undecided = undecided or not self.plan.complete
-                    continue
+                    undecided = not self.plan.complete
+                    break
                 key = self.plan.key(p)
                 o = key.ordinal(self.kpw)
                 if (key.video, o) not in self.got and o not in self.videos.get(key.video, Video()).asked:
                     want.setdefault(key.video, []).append(o)
                     first.setdefault(key.video, p)
+                self.examined = p + 1
+            if undecided or self.plan.complete and stop > self.plan.known:
+                break
         for video, ords in want.items():
             self.ask(video, tuple(sorted(set(ords))), now, first[video])
         if not undecided:
@@ -322,10 +326,7 @@ def take(read: "Pass", timeout_s: float) -> None:
 
     Raises:
         TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
-    poller = zmq.Poller()
-    for link in read.fleet.links.values():
-        poller.register(link.sock, zmq.POLLIN)
-    ready = dict(poller.poll(int(min(read.retry_s, 0.5) * 1000)))
+    ready = dict(read.fleet.poller.poll(int(min(read.retry_s, 0.5) * 1000)))
     if not ready:
         if time.monotonic() - read.heard > timeout_s:
             late = sorted({h for v in read.videos.values() for h, _, _ in v.flight.values()})

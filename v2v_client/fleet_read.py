@@ -163,6 +163,7 @@ class Fleet:
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
         self.links: Dict[str, Link] = {}
+        self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
         self.workers: Dict[str, int] = {}
         self.refused: Set[str] = set()  # hosts serving another plan: named once, left out
         self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic())
@@ -185,6 +186,7 @@ class Fleet:
         if ep not in self.links:
             codec = self.compression if self.compression != "auto" else auto_compression(ep)
             self.links[ep] = Link(ep, self.timeout_s, self.curve, codec)
+            self.poller.register(self.links[ep].sock, zmq.POLLIN)
         return self.links[ep]
 
     def join(self, ep: str, info: PlanInfo, now: float) -> None:

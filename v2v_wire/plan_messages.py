@@ -74,6 +74,21 @@ def _optional_int(h: dict, name: str) -> Optional[int]:
     return None if h.get(name) is None else _int(h, name)
 
 
+def _asked(h: dict) -> Tuple[Tuple[str, ...], PlanIdentity, str]:
+    """A fetch's or a make's ``outputs``, ``plan`` and ``compression`` (absent: ``"none"``), checked.
+
+    Raises:
+        WireError: a bad field, naming the message's type and the field."""
+    kind = h.get("type")
+    try:
+        outputs = check_outputs(h.get("outputs"), f"{kind}: field 'outputs'")
+        plan = PlanIdentity.from_dict(h.get("plan"))
+        compression = check_compression(h.get("compression", "none"), f"{kind}: field 'compression'")
+    except (ValueError, PlanMismatch) as e:
+        raise WireError(str(e)) from None
+    return outputs, plan, compression
+
+
 @dataclass(frozen=True)
 class PlanAsk:
     """Client -> server: what do you serve?"""
@@ -141,12 +156,7 @@ class Fetch:
     def from_wire(cls, h: dict) -> "Fetch":
         start = _int(h, "start")
         stop = _int(h, "stop", start + 1, start + MAX_FETCH_ROWS)
-        try:
-            outputs = check_outputs(h.get("outputs"), "fetch: field 'outputs'")
-            plan = PlanIdentity.from_dict(h.get("plan"))
-            compression = check_compression(h.get("compression", "none"), "fetch: field 'compression'")
-        except (ValueError, PlanMismatch) as e:
-            raise WireError(str(e)) from None
+        outputs, plan, compression = _asked(h)
         return cls(_int(h, "request"), _int(h, "epoch", 0, 2 ** 31 - 1), start, stop, outputs, plan, compression)
 
 
@@ -184,12 +194,7 @@ class Make:
                                      not all(isinstance(o, int) and not isinstance(o, bool) and 0 <= o < _MAX_INT
                                              for o in ordinals)):
             raise WireError(f"make: field 'ordinals' must be nil or 1 to {MAX_MAKE_SAMPLES} ints >= 0")
-        try:
-            outputs = check_outputs(h.get("outputs"), "make: field 'outputs'")
-            plan = PlanIdentity.from_dict(h.get("plan"))
-            compression = check_compression(h.get("compression", "none"), "make: field 'compression'")
-        except (ValueError, PlanMismatch) as e:
-            raise WireError(str(e)) from None
+        outputs, plan, compression = _asked(h)
         return cls(_int(h, "request"), _int(h, "epoch", 0, 2 ** 31 - 1), video,
                    None if ordinals is None else tuple(ordinals), outputs, plan, compression, _int(h, "position"))
 
