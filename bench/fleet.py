@@ -18,6 +18,13 @@ Needs ``taskset`` (util-linux) and 2 cores.
 """
 from __future__ import annotations
 
+if __name__ == "__main__":  # Ctrl-C or SIGTERM from the start, the imports below included: one line
+    import sys
+
+    from v2v_wire.commands import run_command
+
+    sys.exit(run_command("bench.fleet", "bench.fleet:main"))
+
 import argparse
 import hashlib
 import json
@@ -35,8 +42,11 @@ from harness.faults import worker_pids
 from harness.serve import ServeProcess, free_port
 from v2v_client import V2VStreamDataset
 from v2v_client.plan_dataset import open_stream
+from v2v_wire.commands import writable_problem, write_whole
 
 OUTPUTS = ("voxels", "frames")
+#: The bundled clips the corpus links to.
+CLIPS = Path(__file__).resolve().parent.parent / "v2v_server" / "sample_videos"
 
 
 def layout(seed: int = 1) -> List[str]:
@@ -46,9 +56,8 @@ def layout(seed: int = 1) -> List[str]:
 
 def make_corpus(root: Path, copies: int) -> Path:
     """``copies`` links to each bundled clip: enough videos for a router to balance."""
-    src = Path(__file__).resolve().parent.parent / "v2v_server" / "sample_videos"
     root.mkdir(parents=True, exist_ok=True)
-    for p in sorted(src.glob("*.mp4")):
+    for p in sorted(CLIPS.glob("*.mp4")):
         for c in range(copies):
             dst = root / f"{p.stem}_{c:03d}{p.suffix}"
             if not dst.exists():
@@ -226,6 +235,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--json", help="also write the results here")
     a = p.parse_args(argv)
     rows = set(a.rows.split(","))
+    unknown = rows - {"rates", "stop", "kill", "join"}
+    if unknown:
+        print(f"bench.fleet: --rows {','.join(sorted(unknown))}: not rows of this bench (rates, stop, kill, join)",
+              file=sys.stderr)
+        return 2
+    if a.json:
+        out = Path(a.json)
+        problem = writable_problem(out) or ("is one of the bench's clips" if out.resolve().parent == CLIPS else "")
+        if problem:
+            print(f"bench.fleet: --json {out}: {problem}", file=sys.stderr)
+            return 2
     if shutil.which("taskset") is None or (os.cpu_count() or 1) < 2:
         print("bench.fleet needs taskset and 2 cores", file=sys.stderr)
         return 2
@@ -243,7 +263,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if "join" in rows:
             res["join"] = join_row(corpus, want)
     if a.json:
-        Path(a.json).write_text(json.dumps(res, indent=1) + "\n")
+        write_whole(a.json, json.dumps(res, indent=1) + "\n")
     return 0
 
 
@@ -254,7 +274,3 @@ def _kill_tree(server: ServeProcess, sig) -> None:
             os.kill(pid, sig)
         except ProcessLookupError:
             pass
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -25,15 +25,24 @@ Pure and seeded: no socket, no clock; ``python -m harness.fleet_sim`` prints a t
 """
 from __future__ import annotations
 
+if __name__ == "__main__":  # Ctrl-C or SIGTERM from the start, the imports below included: one line
+    import sys
+
+    from v2v_wire.commands import run_command
+
+    sys.exit(run_command("harness.fleet_sim", "harness.fleet_sim:main"))
+
 import argparse
 import heapq
 import json
 import sys
+from pathlib import Path
 from dataclasses import asdict, dataclass
 from typing import Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 
+from v2v_wire.commands import writable_problem, write_whole
 from v2v_wire.fleet import Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
 
@@ -381,6 +390,17 @@ def stay(f: Fleet) -> float:
     return sum(first.get(c) == h for c, h in second.items()) / max(1, len(second))
 
 
+def _sizes(text: str) -> List[int]:
+    """``--padding``'s corpus sizes: comma-separated ints >= 1 (argparse names the option on error)."""
+    try:
+        sizes = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: not comma-separated numbers of videos") from None
+    if any(v < 1 for v in sizes):
+        raise argparse.ArgumentTypeError(f"{text!r}: each corpus holds at least one video")
+    return sizes
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m harness.fleet_sim", description=__doc__.split("\n\n")[0])
     ap.add_argument("--hosts", type=int, default=Fleet.hosts)
@@ -392,12 +412,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--stall-s", type=float, default=Fleet.stall_s)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the results here")
-    ap.add_argument("--padding", default=None, metavar="VIDEOS,...",
+    ap.add_argument("--padding", default=None, metavar="VIDEOS,...", type=_sizes,
                     help="print only the static shards' padding for these corpus sizes (2, 8, 32, 128 shards)")
     a = ap.parse_args(argv)
+    problem = writable_problem(Path(a.json)) if a.json else ""
+    if problem:
+        print(f"harness.fleet_sim: --json {a.json}: {problem}", file=sys.stderr)
+        return 2
+    for name in ("hosts", "videos", "slots"):
+        if getattr(a, name) < 1:
+            print(f"harness.fleet_sim: --{name} must be >= 1, got {getattr(a, name)}", file=sys.stderr)
+            return 2
     if a.padding:
         print(f"{'videos':>10} " + " ".join(f"{n:>6} shards" for n in (2, 8, 32, 128)))
-        for v in (int(x) for x in a.padding.split(",")):
+        for v in a.padding:
             pad = static_padding(v, (2, 8, 32, 128), a.seed)
             print(f"{v:>10,} " + " ".join(f"{pad[n]:>13.1%}" for n in (2, 8, 32, 128)))
         return 0
@@ -411,11 +439,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"{r.mode:<8} {r.rate:>10.1f} {r.steady_rate:>8.1f} {r.capacity:>9.1f} {r.share:>6.3f} "
               f"{r.decodes:>13.3f} {1 - r.samples / r.positions:>8.1%}")
     if a.json:
-        with open(a.json, "w") as fh:
-            json.dump({"fleet": asdict(f), "results": [{k: v for k, v in dict(asdict(r), share=r.share).items()
-                                                        if k != "made_by"} for r in rows]}, fh, indent=1)
+        write_whole(a.json, json.dumps({"fleet": asdict(f), "results": [
+            {k: v for k, v in dict(asdict(r), share=r.share).items() if k != "made_by"} for r in rows]}, indent=1))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
