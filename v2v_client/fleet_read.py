@@ -85,34 +85,49 @@ def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float) -> Manifest:
     return manifest
 
 
-def asked_fleet(servers: List[str], first: PlanInfo, wait_s: float, curve: Optional[tuple]) -> Dict[str, PlanInfo]:
-    """What each of ``servers`` serves (``first``: the first's answer, asked already), the others
-    asked at once and awaited ``wait_s`` seconds: those silent by then are left out, named in one
-    log line (a fleet reads on with the rest, and a host that answers later joins,
-    :meth:`Fleet._resolve`)."""
-    infos = {servers[0]: first}
-    links = {ep: Link(ep, wait_s, curve) for ep in servers[1:]}
+def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Optional[tuple]) -> Dict[str, PlanInfo]:
+    """What each of ``servers`` serves, all asked at once: the first answer awaited ``first_s``
+    seconds, the others ``wait_s`` more; in ``servers``' order, those that answered. One that
+    answers what cannot be read (another protocol version) is named in one log line and left out.
+
+    Raises:
+        TimeoutError: none answered within ``first_s``, naming them.
+        PlanServerError: none answered, and one refused or spoke another version (its line)."""
+    infos: Dict[str, PlanInfo] = {}
+    refused: Dict[str, str] = {}
+    links = {ep: Link(ep, first_s, curve) for ep in servers}
+    poller = zmq.Poller()
     try:
         for link in links.values():
             link._send(PlanAsk().to_wire())
-        deadline = time.monotonic() + wait_s
-        poller = zmq.Poller()
-        for link in links.values():
             poller.register(link.sock, zmq.POLLIN)
-        while len(infos) < len(servers) and time.monotonic() < deadline:
+        deadline = time.monotonic() + first_s
+        while len(infos) + len(refused) < len(servers) and time.monotonic() < deadline:
             ready = dict(poller.poll(int(max(0.0, deadline - time.monotonic()) * 1000)))
             for ep, link in links.items():
-                if link.sock in ready and ep not in infos:
+                if link.sock not in ready or ep in infos or ep in refused:
+                    continue
+                try:
                     got = link._recv(time.monotonic())
-                    if got is not None and isinstance(got[0], PlanInfo):
-                        infos[ep] = got[0]
+                except PlanServerError as e:
+                    refused[ep] = str(e)
+                    log.warning("%s: left out: %s", ep, e)
+                    continue
+                if got is not None and isinstance(got[0], PlanInfo):
+                    if not infos:
+                        deadline = min(deadline, time.monotonic() + wait_s)
+                    infos[ep] = got[0]
+                elif got is not None and isinstance(got[0], Refused):
+                    refused[ep] = f"{ep}: {got[0].message}"
     finally:
         for link in links.values():
             link.__exit__(None, None, None)
-    for ep in servers:
-        if ep not in infos:
-            log.warning("%s: left out of the fleet for now: no answer to 'what do you serve' within %s s", ep, wait_s)
-    return infos
+    if not infos:
+        if refused:
+            raise PlanServerError("; ".join(refused.values()))
+        raise TimeoutError(f"{', '.join(servers)}: no answer to 'what do you serve' within {first_s} s (is a "
+                           "v2v-serve running there?)")
+    return {ep: infos[ep] for ep in servers if ep in infos}
 
 
 def listing_diff(ep_a: str, plan_a: PlanIdentity, ep_b: str, plan_b: PlanIdentity, timeout_s: float,

@@ -97,7 +97,7 @@ def format_report(r: dict) -> str:
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(prog="v2v-loadtest", description="Read batches from v2v-serve and report throughput.")
     p.add_argument("--connect", action="append",
-                   help="server endpoint (default tcp://127.0.0.1:5555); repeat it or give a comma list to read several servers (shards) "
+                   help="server endpoint (default tcp://127.0.0.1:5555); repeat it or give a comma list to read several servers (a fleet, or shards) "
                         "together and report each one's rate")
     p.add_argument("--batches", type=int, default=20, help="batches to measure (default 20)")
     p.add_argument("--warmup", type=int, default=1, help="batches read before measuring (default 1)")

@@ -68,24 +68,35 @@ class Servers:
             raise TimeoutError(f"{self.endpoint}: no host of the fleet answered 'what do you serve' within "
                                f"{min(timeout_s, FLEET_ASK_S)} s")
         servers = resolve_endpoints(self.endpoint) if self.shards is None else [ep for ep, _ in self.shards]
-        with Link(servers[0], timeout_s, curve) as link:
-            first = link.ask()
-        if len(servers) > 1 and not isinstance(first.stream.get("shard"), str):
-            return self._ask_fleet(servers, first, timeout_s, curve, prefer)
-        infos = [first]
-        for server in servers[1:]:
-            with Link(server, timeout_s, curve) as link:
-                infos.append(link.ask())
+        if len(servers) == 1:
+            with Link(servers[0], timeout_s, curve) as link:
+                infos = [link.ask()]
+        else:  # asked at once: a silent or stopped first host costs no wait of its own
+            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve)
+            if not isinstance(next(iter(answered.values())).stream.get("shard"), str):
+                return self._ask_fleet(servers, answered, timeout_s, curve, prefer)
+            infos = []
+            for server in servers:  # shards: every one is needed
+                if server not in answered:
+                    with Link(server, timeout_s, curve) as link:
+                        answered[server] = link.ask()
+                infos.append(answered[server])
         info, self.shards, self.samples = _as_one_plan(servers, infos)
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
         return info
 
-    def _ask_fleet(self, servers: List[str], first: PlanInfo, timeout_s: float, curve: Optional[tuple],
+    def _ask_fleet(self, servers: List[str], infos: Dict[str, PlanInfo], timeout_s: float, curve: Optional[tuple],
                    prefer: Optional[PlanIdentity]) -> PlanInfo:
-        infos = asked_fleet(servers, first, min(timeout_s, FLEET_ASK_S), curve)
+        """The fleet of the hosts that answered (``infos``, in ``servers``' order); the others are
+        named and left out (they join when they answer, ``fleet_read.Fleet``)."""
+        for ep in servers:
+            if ep not in infos:
+                log.warning("%s: left out of the fleet for now: no answer to 'what do you serve' within %s s", ep,
+                            min(timeout_s, FLEET_ASK_S))
+        whole, first = next(iter(infos)), next(iter(infos.values()))
         sharded = [ep for ep, i in infos.items() if isinstance(i.stream.get("shard"), str)]
         if sharded:
-            raise ValueError(f"{', '.join(sharded)}: serve(s) one shard while {servers[0]} serves the whole corpus: "
+            raise ValueError(f"{', '.join(sharded)}: serve(s) one shard while {whole} serves the whole corpus: "
                              "read shards (v2v-serve --shard I/N) or hosts of the whole corpus, not both")
         plans = [i.plan for i in infos.values()]
         plan = prefer if prefer is not None and prefer in plans else first.plan
