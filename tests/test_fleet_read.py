@@ -125,3 +125,39 @@ def test_the_fetch_side_imports_without_torch():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "dataset needs torch"  # the check can fail: torch is blocked
+
+
+@pytest.mark.timeout(300)
+def test_a_make_the_plan_cannot_take_is_refused_in_one_line_and_the_server_serves_on(tmp_path, videos):
+    """A make naming a video the plan lacks, or a sample past a known video's windows: one refusal
+    with code ``make`` naming it; the same server then answers a good make with its rows."""
+    from v2v_client.fetch import Link
+    from v2v_wire.plan_messages import Make, Refused, Rows
+
+    root, want, base = setup(tmp_path, videos)
+    with ServeProcess(base) as one, Link(one.endpoint, 60) as link:
+        plan = link.ask().plan
+        video, window = want[0].split("#")
+
+        def answer(make):
+            link._send(make.to_wire())
+            got = link._recv(__import__("time").monotonic() + 60)
+            assert got is not None
+            return got[0]
+
+        for bad, named in ((Make(1, 0, "nowhere.mp4", (0,), OUTPUTS, plan), "nowhere.mp4"),
+                           (Make(2, 0, video, (0,), OUTPUTS, plan), None)):
+            msg = answer(bad)
+            if named is None:  # the video's windows are not known before its decode: made, not refused
+                assert isinstance(msg, Rows) and msg.sample_ids == [f"{video}#0"]
+                continue
+            assert isinstance(msg, Refused) and msg.code == "make" and named in msg.message
+            assert "\n" not in msg.message
+        # a sample past its windows: refused once they are known, else one padding row once its
+        # decode learns them (never a make that waits for ever, nor a video decoded again and again)
+        msg = answer(Make(3, 0, video, (10 ** 6,), OUTPUTS, plan))
+        if isinstance(msg, Refused):
+            assert msg.code == "make" and "1000000" in msg.message
+        else:
+            assert isinstance(msg, Rows) and msg.padding == [True] and "past" in msg.params[0]["padding"]
+        assert isinstance(answer(Make(4, 0, video, (int(window),), OUTPUTS, plan)), Rows)

@@ -69,14 +69,18 @@ class Orders:
 
     def rows(self, o: Order, store: Mapping, failed: Mapping, samples: Mapping[str, Optional[int]]):
         """``[(ordinal, key, sample or None, reason or None)]`` answering ``o`` once each key is
-        made (in ``store``) or failed for the epoch, and, for a make of windows, once its video's
-        samples are known; None before."""
-        if o.ordinals is None and samples.get(o.video) is None:
+        made (in ``store``), failed for the epoch or past the video's samples (its slots learned
+        after the make came: a padding row saying so), and, for a make of windows, once its
+        video's samples are known; None before."""
+        n = samples.get(o.video)
+        if o.ordinals is None and n is None:
             return None  # its slots come from its decode
         rows = []
         for key in self.keys(o):
             sk = (o.epoch, key)
-            if sk in store:
+            if n is not None and key.ordinal(self.kpw) >= n:
+                rows.append((key.ordinal(self.kpw), key, None, f"past {o.video}'s {n} sample(s) an epoch"))
+            elif sk in store:
                 rows.append((key.ordinal(self.kpw), key, store[sk], None))
             elif sk in failed:
                 rows.append((key.ordinal(self.kpw), key, None, failed[sk]))
