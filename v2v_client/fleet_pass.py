@@ -51,12 +51,13 @@ def merged(rows: List[tuple], like: Dict[str, np.ndarray], epoch: int, start: in
 class Video:
     """What this reader asked of one video in one pass: the host it asks, the first position that
     needs it (the hosts decode makes in that order), the samples asked (ordinal -> request id),
-    and the requests in flight (request id -> (host, ordinals, asked at))."""
+    and the requests in flight ((host, request id) -> (host, ordinals, asked at): each host
+    numbers its requests itself)."""
 
     host: Optional[str] = None
     position: int = _LAST
     asked: Dict[int, int] = field(default_factory=dict)
-    flight: Dict[int, Tuple[str, Optional[Tuple[int, ...]], float]] = field(default_factory=dict)
+    flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]], float]] = field(default_factory=dict)
 
 
 class Pass:
@@ -114,7 +115,7 @@ class Pass:
         link._send(Make(req, self.epoch, video, ordinals, self.outputs, self.fleet.plan, link.compression,
                         min(v.position, _LAST)).to_wire())
         self.flight[(host, req)] = (video, ordinals)
-        v.flight[req] = (host, ordinals, now)
+        v.flight[(host, req)] = (host, ordinals, now)
         for o in ordinals or ():
             v.asked[o] = req
 
@@ -224,11 +225,11 @@ class Pass:
                 self.send(video, ords, host, now)
         self.steal(now, now - self.head_since >= STEAL_S)
         for video, v in list(self.videos.items()):
-            for req, (h, ords, at) in list(v.flight.items()):
+            for hr, (h, ords, at) in list(v.flight.items()):
                 gone = h not in self.router.hosts
                 if gone or now - at >= self.retry_s:
-                    del v.flight[req]
-                    self.flight.pop((h, req), None)
+                    del v.flight[hr]
+                    self.flight.pop(hr, None)
                     if gone:  # left the fleet: its videos go to the next hosts of their rankings
                         v.host = None if v.host == h else v.host
                         self.ask(video, ords, now)
@@ -294,7 +295,7 @@ class Pass:
             return  # an answer to a request asked again or beaten by a copy, or of another pass
         video, ordinals = what
         v = self.videos[video]
-        v.flight.pop(msg.request, None)
+        v.flight.pop((ep, msg.request), None)
         if msg.windows is not None and video not in self.fleet.windows:
             self.fleet.windows[video] = msg.windows
             self.plan.learn(self.fleet.windows)
@@ -311,10 +312,10 @@ class Pass:
             self.got[(video, o)] = (msg.sample_ids[j], msg.padding[j], msg.params[j], row, ep)
             if not msg.padding[j] and self.fleet.like is None:
                 self.fleet.like = row
-        for req, (h, ords, _) in list(v.flight.items()):  # copies of what is now got
+        for hr, (h, ords, _) in list(v.flight.items()):  # copies of what is now got
             if all((video, o) in self.got for o in ords or ()) and (ords or msg.windows is not None):
-                del v.flight[req]
-                self.flight.pop((h, req), None)
+                del v.flight[hr]
+                self.flight.pop(hr, None)
         self.router.answered(ep, self.epoch, video, len(ordinals or ()), now,
                              not any(h == ep for h, _, _ in v.flight.values()))
         if not v.flight:
