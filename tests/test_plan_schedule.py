@@ -7,6 +7,7 @@ from __future__ import annotations
 import pytest
 
 from harness.plan_world import TOTALS, check
+from v2v_server.delivery.plan_orders import TOLD_S
 from v2v_server.delivery.plan_schedule import PASS_ATTEMPTS, PlanScheduler, SlotsExceeded
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest
@@ -244,3 +245,36 @@ def test_readers_of_as_many_epochs_as_the_kept_plans_rebuild_none_to_decode_ahea
     for turn in range(3):
         _work(scheduler, 1.0 + turn)
         assert scheduler.plans_built == built, turn
+
+
+def test_a_fleet_hosts_decode_is_kept_for_the_makes_that_follow_it_in_a_full_store():
+    """A make of a video's windows decodes all its samples; the reader then asks each as its plan
+    reaches it, the shuffle buffer spreading them over positions far apart. With the store full
+    of other samples, those of the video a make waits on, and then of one a make was answered
+    for, stay until asked: no video is decoded twice (a fleet host made a third of its samples
+    twice when they were dropped as spare)."""
+    m = Manifest.of({"a.mp4": None, **{f"o{i}.mp4": 2 for i in range(6)}})
+    scheduler = PlanScheduler(m, 0, 1, ("voxels",), lookahead=0, keep_samples=0)
+    for i in range(6):  # other videos' second samples, made and never asked: the store is over its bound
+        scheduler.make("r", 10 + i, 0, f"o{i}.mp4", (0,), 0.0)
+        t = scheduler.task_for("w", 0.0)
+        for k in range(2):
+            scheduler.sample("w", t.task, SampleKey(t.video, k), 0.0, lambda: "other")
+        scheduler.done("w", t.task, 2, {}, None)
+        scheduler.answer(0.0)
+    t0 = TOLD_S + 1  # the other videos' makes were answered long ago
+    scheduler.make("r", 1, 0, "a.mp4", None, t0)  # its windows
+    t = scheduler.task_for("w", t0)
+    assert t.video == "a.mp4"
+    for i in range(3):
+        scheduler.sample("w", t.task, SampleKey("a.mp4", i), t0, lambda i=i: f"a {i}")
+        scheduler.answer(t0)  # a trim at each turn, the make of windows still waiting
+    scheduler.done("w", t.task, 3, {}, None)
+    (o, rows), = scheduler.answer(t0)
+    assert o.ordinals is None and rows == [] and scheduler.slots.samples["a.mp4"] == 3
+    assert not any(k.video.startswith("o") for _, k in scheduler.store)  # the spare ones went
+    for i in (2, 0, 1):  # asked one by one, as a plan puts them
+        scheduler.make("r", 2 + i, 0, "a.mp4", (i,), t0 + 1 + i)
+        assert scheduler.task_for("w", t0 + 1 + i) is None, i  # no decode again
+        (o, rows), = scheduler.answer(t0 + 1 + i)
+        assert [r.sample for r in rows] == [f"a {i}"]

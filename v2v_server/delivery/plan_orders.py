@@ -3,8 +3,10 @@ computes the plan itself and asks each video's samples, by ordinal, of the host 
 video to (``v2v_wire.plan_messages.Make``), or the video's windows only, which its plan unfolds
 with. The host's scheduler (``plan_schedule.PlanScheduler``) decodes the videos makes wait on
 after those its fetches wait on, in the order of (epoch, the first position needing the video),
-then of arrival; it keeps what a make names, and for :data:`TOLD_S` the samples of a video whose
-windows a make was told (the makes of its samples follow). ``tests/test_plan_schedule.py``."""
+then of arrival; it keeps the samples of the videos makes wait on, and for :data:`TOLD_S` after a
+make of a video was answered the video's other samples (a decode makes all of them, and the reader asks each as its
+plan reaches its position: the plan's shuffle buffer spreads a video's samples over about twice
+its size in positions, past what a host's store keeps unnamed). ``tests/test_plan_schedule.py``."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -14,8 +16,8 @@ from v2v_wire.ids import SampleKey
 
 __all__ = ["Order", "Orders", "TOLD_S"]
 
-#: Seconds the samples of a video whose windows a make was told are kept unfetched: the reader
-#: that learned the windows asks for them next.
+#: Seconds the samples of a video a make was answered for are kept unfetched: the reader asks for
+#: them as its plan reaches them.
 TOLD_S = 120.0
 
 
@@ -43,7 +45,7 @@ class Orders:
     def __init__(self, crops_per_window: int):
         self.kpw = crops_per_window
         self.waiting: List[Order] = []
-        self.told: Dict[Tuple[int, str], float] = {}  # (epoch, video) -> when a make was told its windows
+        self.told: Dict[Tuple[int, str], float] = {}  # (epoch, video) -> when a make of it was last answered
 
     def add(self, order: Order, samples: Mapping[str, Optional[int]]) -> None:
         """Queue ``order``; ``samples``: each video's samples per epoch (None: not known yet).
@@ -97,14 +99,13 @@ class Orders:
         return list(out)
 
     def answered(self, o: Order, now: float) -> None:
-        """Make ``o`` was answered at ``now`` (a make of windows: its video's samples are kept a while)."""
-        if o.ordinals is None:
-            self.told[(o.epoch, o.video)] = now
+        """Make ``o`` was answered at ``now``: its video's other samples are kept a while."""
+        self.told[(o.epoch, o.video)] = now
 
     def named(self, stored: Sequence[Tuple[int, SampleKey]], now: float) -> Set[Tuple[int, SampleKey]]:
-        """The stored samples to keep for the makes: those a waiting make names, and those of the
-        videos whose windows a make was told within :data:`TOLD_S` of ``now``."""
+        """The stored samples to keep for the makes: those of the videos a make waits on (a
+        decode makes all of a video's samples before a make of its windows is answered), or was
+        answered for within :data:`TOLD_S` of ``now``."""
         self.told = {ev: t for ev, t in self.told.items() if now - t < TOLD_S}
-        named = {(o.epoch, k) for o in self.waiting for k in self.keys(o)}
-        named.update(sk for sk in stored if (sk[0], sk[1].video) in self.told)
-        return named
+        videos = set(self.told) | {(o.epoch, o.video) for o in self.waiting}
+        return {sk for sk in stored if (sk[0], sk[1].video) in videos}
