@@ -15,8 +15,9 @@ window every 200 frames, the paper's 201-frame samples); the epoch's order is th
 video at a time at the host's rate (samples/s per worker ``1 x`` a log-normal factor of sigma
 ``spread``), a video's decode taking its samples over that rate; stalls arrive at each host as a
 Poisson process (``stall_every_s`` apart on average, each ``stall_s`` long on average, exponential)
-and stop its workers. The reader reads positions in order, a step of ``step`` positions at a
-time, as fast as they are made (the trainer never waits on itself), and asks ahead for the videos
+and stop its workers; each host measures its own capacity (samples over its workers' busy
+seconds) and says it with each answer. The reader reads positions in order, a step of ``step``
+positions at a time, as fast as they are made (the trainer never waits on itself), and asks ahead for the videos
 of the next ``lookahead`` positions. Each host works the videos asked of it in order of the first
 position that needs them.
 
@@ -43,7 +44,7 @@ from typing import Dict, List, Optional, Sequence, Set, Tuple
 import numpy as np
 
 from v2v_wire.commands import writable_problem, write_whole
-from v2v_wire.fleet import Router, video_key
+from v2v_wire.fleet import RateMeter, Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
 
 #: Decodes per worker a reader asks ahead by default: a clip of many windows decodes for many
@@ -250,14 +251,15 @@ class _World:
         self.index = {h: k for k, h in enumerate(self.hosts)}
         mean = lay.samples / max(1, len(lay.needs))
         self.lookahead = f.lookahead or int(LOOKAHEAD_DECODES * self.n * f.slots * mean) + f.step
-        self.t0 = max((s.meter.last or 0.0 for s in router.hosts.values()), default=0.0) if router else 0.0
+        self.t0 = max((s.heard for s in router.hosts.values()), default=0.0) if router else 0.0
+        self.meters = [RateMeter() for _ in range(self.n)]  # each host's own measure of its capacity
         self.by_need = sorted(lay.needs, key=lambda v: lay.needs[v][0])
         self.asked_upto = 0  # index into by_need of the next clip to ask
         self.queues: List[List[Tuple[int, str]]] = [[] for _ in range(self.n)]
         self.free = [f.slots] * self.n
         self.events: List[Tuple[float, int, str]] = []  # (time, host or -1 for the reader's clock, clip)
         self.done_at: Dict[str, float] = {}
-        self.running: Set[Tuple[int, str]] = set()
+        self.running: Dict[Tuple[int, str], float] = {}  # (host, clip) decoding -> since when
         self.outstanding: Set[str] = set()  # clips asked and not made yet
         self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read
         self.decodes, self.now, self.read = 0, 0.0, 0
@@ -269,7 +271,7 @@ class _World:
             if clip in self.done_at or (k, clip) in self.running:
                 continue
             self.free[k] -= 1
-            self.running.add((k, clip))
+            self.running[(k, clip)] = self.now
             self.decodes += 1
             end = self.stalls.finish(k, self.now, self.lay.needs[clip][1] / self.speeds[k])
             heapq.heappush(self.events, (end, k, clip))
@@ -309,19 +311,19 @@ class _World:
     def made(self, k: int, clip: str) -> None:
         """Host ``k``'s worker made ``clip``: the first copy is read."""
         self.free[k] += 1
-        self.running.discard((k, clip))
         r, at = self.router, self.t0 + self.now
+        self.meters[k].add(self.lay.needs[clip][1], (self.now - self.running.pop((k, clip))) / self.f.slots, at)
         if clip not in self.done_at:
             self.done_at[clip] = self.now
             self.outstanding.discard(clip)
             if r is not None:
-                r.answered(self.hosts[k], 0, clip, self.lay.needs[clip][1], at, done=True)
-                r.finished(0, clip, at)
+                r.answered(self.hosts[k], 0, clip, at, True, self.meters[k].rate())
+                r.finished(0, clip)
                 self.made_by[clip] = self.hosts[k]
             self.advance()
             self.ask_ahead()
         elif r is not None:
-            r.answered(self.hosts[k], 0, clip, 0, at, done=True)
+            r.answered(self.hosts[k], 0, clip, at, True, self.meters[k].rate())
         self.start_work(k)
 
     def run(self) -> None:

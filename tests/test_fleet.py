@@ -65,15 +65,36 @@ def test_weights_move_in_steps_and_a_rate_at_a_steps_edge_moves_nothing():
     assert weight_step(WEIGHT_STEP ** 1.9, 1.0, current=0) == 2
 
 
-def test_a_rate_meter_counts_samples_over_the_seconds_the_host_had_work():
-    m = RateMeter(half_life_s=1e9)
-    m.busy(0.0, True)
-    m.answered(10, 2.0)
-    m.busy(2.0, False)
-    m.busy(100.0, True)  # idle for 98 s: not counted
-    m.answered(10, 102.0)
+def test_a_rate_meter_counts_samples_over_busy_seconds_and_forgets_the_old_ones():
+    m = RateMeter(half_life_s=10.0)
+    assert m.rate() is None
+    m.add(10, 2.0, 0.0)
+    m.add(10, 2.0, 0.0)
     assert m.rate() == pytest.approx(5.0)
-    assert RateMeter().rate() is None
+    m.add(20, 1.0, 100.0)  # 100 s later (ten half-lives): the new rate outweighs the old
+    assert m.rate() == pytest.approx((20 + 20 / 1024) / (1 + 4 / 1024))
+
+
+def test_a_slow_owner_keeps_the_videos_needed_later_and_sheds_those_needed_before_it_could_make_them():
+    fast, slow = HOSTS[:2]
+    r = Router([fast, slow], slack=10.0)  # a wide slack: the deadline alone decides
+    r.answered(fast, 0, "", 0.0, False, rate=30.0)
+    r.answered(slow, 0, "", 0.0, False, rate=3.0)
+    mine = [v for v in VIDEOS if r.owner(v) == slow][:3]
+    assert r.route(0, mine[0], 3, 0.0, due=5.0) == slow  # 3 samples at 3/s: made in 1 s, due in 5
+    assert r.finish(slow, 3) == pytest.approx(2.0)  # its queue and 3 more
+    assert r.route(0, mine[1], 3, 0.0, due=1.5) == fast  # it would take 2 s: the fast host makes it
+    assert r.route(0, mine[2], 3, 0.0) == slow  # no deadline: the owner
+    assert r.capacity() == pytest.approx(33.0)
+
+
+def test_the_rate_a_host_says_is_checked_at_the_edge():
+    from v2v_wire.plan_messages import Rows, WireError
+    rows = Rows(1, 0, 0, ["a.mp4#0"], [False], [{}], [], None, None, 12.5)
+    assert Rows.from_wire(rows.to_wire()).rate == 12.5
+    for bad in (-1.0, float("inf"), float("nan"), "fast", True):
+        with pytest.raises(WireError, match="'rate'"):
+            Rows.from_wire({**rows.to_wire(), "rate": bad})
 
 
 def test_a_full_owner_sheds_new_videos_to_the_next_host_of_their_ranking():
@@ -97,7 +118,7 @@ def test_a_silent_host_is_routed_nothing_new_and_what_a_reader_waits_on_is_asked
     assert r.hedges([(0, v, 2)], 10.0) == [(0, v, nxt)]
     mine = next(x for x in VIDEOS[1:] if rank_hosts(x, HOSTS[:3])[0] == owner)
     assert r.route(0, mine, 2, 11.0) != owner
-    r.answered(owner, 0, v, 2, 12.0, done=True)  # it answers again: routed to anew
+    r.answered(owner, 0, v, 12.0, done=True)  # it answers again: routed to anew
     assert not r.suspect(owner, 12.0)
 
 

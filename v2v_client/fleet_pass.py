@@ -134,15 +134,28 @@ class Pass:
             for i in range(0, len(ordinals), MAX_MAKE_SAMPLES):
                 self.ask(video, ordinals[i:i + MAX_MAKE_SAMPLES], now)
             return
-        count = len(ordinals) if ordinals else 1
+        count = len(ordinals) if ordinals else self.per_video()
         if v.host in self.router.hosts and not self.router.suspect(v.host, now):
             self.router.ask(v.host, self.epoch, video, count, now)
         else:
-            v.host = self.router.route(self.epoch, video, count, now)
+            v.host = self.router.route(self.epoch, video, count, now, due=self.due(v.position))
         if v.host is None:
             raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan "
                                   f"({len(self.fleet.refused)} left out for serving another)")
         self.send(video, ordinals, v.host, now)
+
+    def per_video(self) -> int:
+        """Samples a video gives, on average over those whose windows are known (a make of a
+        video's windows decodes all of them)."""
+        w = self.fleet.windows
+        return max(1, round(self.kpw * sum(w.values()) / len(w))) if w else self.kpw
+
+    def due(self, position: int) -> Optional[float]:
+        """Seconds until the head reaches ``position`` at the fleet's rate (None: past the plan's
+        positions, or a head past it)."""
+        if position >= _LAST or not self.window:
+            return None
+        return max(0.0, position - self.spans[self.window[0]][0]) / self.router.capacity()
 
     def ask_window(self, now: float) -> None:
         """Ask for the samples the window's decided positions hold, and for the windows of the
@@ -170,13 +183,15 @@ class Pass:
             return
         budget = UNFOLD_PER_HOST * max(1, len(self.router.hosts)) - sum(
             1 for _, ords in self.flight.values() if ords is None)
+        position = self.plan.known  # where the videos unfolding next put their samples, about
         for video in self.plan.next_videos(len(self.plan.videos)):
             if budget <= 0:
                 return
             if video not in self.fleet.windows and video not in self.told:
                 self.told.add(video)
-                self.ask(video, None, now, self.plan.known)
+                self.ask(video, None, now, position)
                 budget -= 1
+            position += self.per_video()
 
     # ------------------------------------------------------------------ the head
     def head_rows(self) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
@@ -238,11 +253,13 @@ class Pass:
 
     def steal(self, now: float, late: bool) -> None:
         """Copies of the videos the head waits on, the samples its positions hold or the windows
-        that decide them (the first copy's answer wins): of one to a host with
-        nothing asked of it; once the head has waited :data:`STEAL_S` (``late``), of each to the
-        next host of its ranking that does not hold it, where it goes first (its position is the
-        fleet's earliest). A slow host's videos stop gating the fleet, at the cost of a decode
-        where a host would otherwise idle or where the step would wait."""
+        that decide them (the first copy's answer wins), once the head has waited :data:`STEAL_S`
+        (``late``): of each to a host with nothing asked of it, else to the next host of its
+        ranking that does not hold it, where it goes first (its position is the fleet's
+        earliest); only where that host would make it sooner, at the rates the hosts said, than
+        the host asked would clear its queue, or the host asked is a second overdue on that. A
+        slow host's videos stop gating the fleet, at the cost of a decode where a host would
+        otherwise idle or where the step would wait."""
         if not late:
             return
         idle = [h for h, st in self.router.hosts.items() if not st.queued and not self.router.suspect(h, now)]
@@ -256,20 +273,22 @@ class Pass:
             for video in self.plan.next_videos(UNFOLD_PER_HOST * len(self.router.hosts)):
                 if video not in self.fleet.windows and video in self.told:
                     missing.setdefault(video, None)
-        weights = self.router.weights()
+        weights, waited = self.router.weights(), now - self.head_since
         for video, ords in missing.items():
             v = self.videos.get(video)
             if v is None or not v.flight:
                 continue
             asked = {h for h, _, _ in v.flight.values()}
             h = next((x for x in idle if x not in asked), None)
-            if h is None and late and len(asked) == 1:
+            if h is None and len(asked) == 1:
                 h = next((x for x in rank_hosts(video, list(self.router.hosts), weights)
                           if x not in asked and not self.router.suspect(x, now)), None)
-            if h is None:
+            n = len(ords) if ords else self.per_video()
+            clears = min((self.router.finish(a, 0) for a in asked if a in self.router.hosts), default=0.0)
+            if h is None or self.router.finish(h, n) >= clears and waited < STEAL_S + clears:
                 continue
             self.send(video, None if ords is None else tuple(sorted(ords)), h, now)
-            self.router.ask(h, self.epoch, video, len(ords or (0,)), now)
+            self.router.ask(h, self.epoch, video, n, now)
             if h in idle:
                 idle.remove(h)
 
@@ -291,7 +310,7 @@ class Pass:
         what = self.flight.pop((ep, msg.request), None) if isinstance(msg, Rows) else None
         if what is None or msg.epoch != self.epoch:
             if isinstance(msg, Rows) and ep in self.router.hosts:
-                self.router.answered(ep, msg.epoch, "", len(msg.sample_ids), now, False)  # its rate: work it did
+                self.router.answered(ep, msg.epoch, "", now, False, msg.rate)  # it answers: not silent
             return  # an answer to a request asked again or beaten by a copy, or of another pass
         video, ordinals = what
         v = self.videos[video]
@@ -316,10 +335,9 @@ class Pass:
             if all((video, o) in self.got for o in ords or ()) and (ords or msg.windows is not None):
                 del v.flight[hr]
                 self.flight.pop(hr, None)
-        self.router.answered(ep, self.epoch, video, len(ordinals or ()), now,
-                             not any(h == ep for h, _, _ in v.flight.values()))
+        self.router.answered(ep, self.epoch, video, now, not any(h == ep for h, _, _ in v.flight.values()), msg.rate)
         if not v.flight:
-            self.router.finished(self.epoch, video, now)
+            self.router.finished(self.epoch, video)
 
 
 def take(read: "Pass", timeout_s: float) -> None:

@@ -11,15 +11,21 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   owner while the fleet and the weights do not change, so a host's frame cache stays warm across
   epochs; a host that joins takes about ``1 / N`` of the videos, one that leaves gives only its
   own, each to the next host of that video's ranking (:func:`rank_hosts`).
-* **Weights follow speed, in steps.** Each host's rate (samples per second it was busy) is
-  measured from the rows it answers (:class:`RateMeter`); its weight is that rate relative to
-  the fleet's mean, rounded to a step of ``2 ** (1 / 4)`` and changed only when the measure
-  leaves the step by more than half a step (:func:`weight_step`): a fast host owns more videos,
-  and noise moves none.
-* **Bounded load.** A video goes to the first host of its ranking whose queued samples stay
-  within ``1 + slack`` times its share (its rate over the fleet's) of everything queued
-  (Mirrokni, Thorup & Zadimoghaddam, "Consistent hashing with bounded loads"): a host that
-  falls behind sheds new videos to the next hosts of their rankings until it catches up.
+* **Weights follow speed, in steps.** Each host measures its own decode capacity, samples made
+  per second its workers were busy times its workers (:class:`RateMeter`, fed by the server), and
+  says it in every answer; its weight is that rate relative to the fleet's mean, rounded to a step
+  of ``2 ** (1 / 4)`` and changed only when the measure leaves the step by more than three quarters
+  of a step (:func:`weight_step`): a fast host owns more videos, and noise moves none. The host
+  measures, not the reader: a reader sees only the answers it waited for, and a host whose work
+  was copied elsewhere, or that was still starting, would read slower than it is and be starved
+  of the work that would measure it again.
+* **Bounded load, in time.** A video goes to the first host of its ranking whose queued samples
+  stay within ``1 + slack`` times its share (its rate over the fleet's) of everything queued
+  (Mirrokni, Thorup & Zadimoghaddam, "Consistent hashing with bounded loads"), and that would
+  make it, at its rate, before the reader's head reaches it (``due``); else to the host that
+  would make it first. A host that falls behind sheds new videos to the next hosts of their
+  rankings until it catches up, and a slow host is given the videos needed later, not those the
+  reader is about to wait on.
 * **Hedging.** A video a reader waits on, asked of a host that answered nothing for ``hedge_s``
   (stalled, stopped, gone), is asked of the next host of its ranking too; the first copy's rows
   win (:meth:`Router.hedges`). A host silent for ``hedge_s`` with work queued is *suspect*: it is
@@ -107,47 +113,37 @@ def weight_step(rate: float, mean: float, current: Optional[int] = None) -> int:
 
 @dataclass
 class RateMeter:
-    """A host's decode rate as a reader sees it: samples answered per second the host had work
-    queued, each second's weight halved every ``half_life_s`` seconds.
+    """A host's decode capacity, as its server measures it: samples made per second of its
+    workers' busy time, each second's weight halved every ``half_life_s`` seconds.
 
     Attributes:
-        samples, busy_s: the decayed counts (samples; seconds with work queued).
-        since: when the host last had work queued (None: idle), in seconds.
+        samples, busy_s: the decayed counts (samples; busy seconds per worker).
+        last: when they were last added to (None: never), in seconds.
     """
 
     half_life_s: float = 30.0
     samples: float = 0.0
     busy_s: float = 0.0
-    since: Optional[float] = None
     last: Optional[float] = None
 
-    def _decay(self, now: float) -> None:
+    def add(self, samples: float, busy_s: float, now: float) -> None:
+        """``samples`` more samples made in ``busy_s`` more busy seconds per worker, at ``now``."""
         if self.last is not None and now > self.last:
             f = 0.5 ** ((now - self.last) / self.half_life_s)
             self.samples *= f
             self.busy_s *= f
-        self.last = now
-
-    def busy(self, now: float, queued: bool) -> None:
-        """The host has work queued (``queued``) from ``now`` on, or none."""
-        self._decay(now)
-        if self.since is not None:
-            self.busy_s += now - self.since
-        self.since = now if queued else None
-
-    def answered(self, samples: int, now: float) -> None:
-        """The host answered ``samples`` samples at ``now``."""
-        self.busy(now, self.since is not None)
+        self.last = now if self.last is None else max(self.last, now)
         self.samples += samples
+        self.busy_s += busy_s
 
     def rate(self) -> Optional[float]:
-        """Samples/s, or None before a second's worth of answers."""
-        return self.samples / self.busy_s if self.busy_s >= 1.0 and self.samples > 0 else None
+        """Samples/s, or None before a fifth of a busy second's worth of samples."""
+        return self.samples / self.busy_s if self.busy_s >= 0.2 and self.samples > 0 else None
 
 
 @dataclass
 class _Host:
-    meter: RateMeter = field(default_factory=RateMeter)
+    rate: Optional[float] = None  # samples/s, as the host last said (None: not yet)
     queued: Dict[Tuple[int, str], int] = field(default_factory=dict)  # (epoch, video) -> samples
     load: int = 0  # the samples queued, summed
     heard: float = 0.0  # when it last answered (or joined)
@@ -204,8 +200,8 @@ class Router:
         return orphans
 
     def weights(self) -> Dict[str, float]:
-        """host -> weight (``WEIGHT_STEP ** step``; 1 while its rate is not measured)."""
-        rates = {h: s.meter.rate() for h, s in self.hosts.items()}
+        """host -> weight (``WEIGHT_STEP ** step``; 1 while its rate is not known)."""
+        rates = {h: s.rate for h, s in self.hosts.items()}
         known = [r for r in rates.values() if r]
         if known:
             mean = sum(known) / len(known)
@@ -224,11 +220,13 @@ class Router:
         return bool(s.queued) and now - s.heard >= self.hedge_s
 
     # ------------------------------------------------------------------ routing
-    def route(self, epoch: int, video: str, samples: int, now: float, exclude: Sequence[str] = ()) -> Optional[str]:
+    def route(self, epoch: int, video: str, samples: int, now: float, exclude: Sequence[str] = (),
+              due: Optional[float] = None) -> Optional[str]:
         """The host to ask for ``samples`` samples of ``video`` in ``epoch``: the first of its
-        ranking that is not suspect, not in ``exclude`` and within its bounded load (its queued
+        ranking that is not suspect, not in ``exclude``, within its bounded load (its queued
         samples and these within ``1 + slack`` times its share, its weight over the fleet's, of
-        everything queued); else the one of those that would finish it first at its weight.
+        everything queued) and, where the reader needs the video within ``due`` seconds, that
+        would make it by then (:meth:`finish`); else the one of those that would make it first.
         None when no host is left.
 
         The host's queue takes the video (:meth:`answered` and :meth:`finished` clear it)."""
@@ -241,31 +239,50 @@ class Router:
         weight = sum(weights[h] for h in ranking)
         pick = None
         for h in ranking:
-            if self.hosts[h].load + samples <= (1 + self.slack) * total * weights[h] / weight:
+            if self.hosts[h].load + samples <= (1 + self.slack) * total * weights[h] / weight and \
+                    (due is None or self.finish(h, samples) <= due):
                 pick = h
                 break
         if pick is None:
-            pick = min(ranking, key=lambda h: (self.hosts[h].load + samples) / weights[h])
+            pick = min(ranking, key=lambda h: self.finish(h, samples))
         self.ask(pick, epoch, video, samples, now)
         return pick
 
-    def answered(self, host: str, epoch: int, video: str, samples: int, now: float, done: bool) -> None:
-        """``host`` answered ``samples`` samples of ``video`` at ``now``; ``done``: it holds no
-        more of that video for this reader (every sample asked of it is answered)."""
+    def finish(self, host: str, samples: int) -> float:
+        """Seconds ``host`` would take to make its queued samples and ``samples`` more, at the
+        rate it said (a host that said none yet: the fleet's mean, else 1 sample/s)."""
+        return (self.hosts[host].load + samples) / (self.hosts[host].rate or self.mean_rate() or 1.0)
+
+    def mean_rate(self) -> Optional[float]:
+        """The mean of the rates the hosts said (samples/s), None before any."""
+        known = [s.rate for s in self.hosts.values() if s.rate]
+        return sum(known) / len(known) if known else None
+
+    def capacity(self) -> float:
+        """The fleet's samples/s: each host's rate (the mean for one that said none yet, else 1)."""
+        mean = self.mean_rate() or 1.0
+        return sum(s.rate or mean for s in self.hosts.values())
+
+    def answered(self, host: str, epoch: int, video: str, now: float, done: bool,
+                 rate: Optional[float] = None) -> None:
+        """``host`` answered about ``video`` at ``now``, saying its capacity ``rate`` (samples/s,
+        None: not measured yet); ``done``: it holds no more of that video for this reader (every
+        sample asked of it is answered)."""
         s = self.hosts.get(host)
         if s is None:
             return
         s.heard = now
-        s.meter.answered(samples, now)
+        if rate is not None and rate > 0:
+            s.rate = rate
         if done:
-            self._unqueue(s, (epoch, video), now)
+            self._unqueue(s, (epoch, video))
 
-    def finished(self, epoch: int, video: str, now: float) -> None:
-        """Every sample of ``video`` in ``epoch`` is read at ``now``: no host holds it for this reader."""
+    def finished(self, epoch: int, video: str) -> None:
+        """Every sample of ``video`` in ``epoch`` is read: no host holds it for this reader."""
         for h in self.asked.pop((epoch, video), ()):
             s = self.hosts.get(h)
             if s is not None:
-                self._unqueue(s, (epoch, video), now)
+                self._unqueue(s, (epoch, video))
 
     @property
     def load(self) -> int:
@@ -279,7 +296,6 @@ class Router:
         if s is None:
             return
         if not s.queued:
-            s.meter.busy(now, True)
             s.heard = max(s.heard, now)  # an idle host's silence counts from its first ask
         self._queue(s, (epoch, video), samples)
         asked = self.asked.setdefault((epoch, video), [])
@@ -291,14 +307,12 @@ class Router:
         s.load += samples
         self._load += samples
 
-    def _unqueue(self, s: _Host, ev: Tuple[int, str], now: float) -> None:
+    def _unqueue(self, s: _Host, ev: Tuple[int, str]) -> None:
         n = s.queued.pop(ev, None)
         if n is None:
             return
         s.load -= n
         self._load -= n
-        if not s.queued:
-            s.meter.busy(now, False)
 
     def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float) -> List[Tuple[int, str, str]]:
         """Of the videos a reader waits on (``(epoch, video, samples)``), those asked only of hosts

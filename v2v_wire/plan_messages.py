@@ -261,7 +261,8 @@ class Rows:
     a padding row costs no payload, and the reader puts zeros in its place; ``samples``: the
     epoch's samples once the server knows them (None before: a reader of a plan still unfolding
     learns the epoch's end from it); ``windows``: the answer to a :class:`Make`'s video's
-    windows (its slots), None for a fetch's."""
+    windows (its slots), None for a fetch's; ``rate``: the server's decode capacity in samples/s
+    (``v2v_wire.fleet.RateMeter``; None before it is measured), what a fleet's reader weighs it by."""
 
     request: int
     epoch: int
@@ -272,11 +273,12 @@ class Rows:
     arrays: List[dict]
     samples: Optional[int] = None
     windows: Optional[int] = None
+    rate: Optional[float] = None
 
     def to_wire(self) -> dict:
         return {"type": "rows", "request": self.request, "epoch": self.epoch, "start": self.start,
                 "sample_ids": self.sample_ids, "padding": self.padding, "params": self.params, "arrays": self.arrays,
-                "samples": self.samples, "windows": self.windows}
+                "samples": self.samples, "windows": self.windows, "rate": self.rate}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Rows":
@@ -291,8 +293,12 @@ class Rows:
             raise WireError(f"rows: field 'params' must be {n} maps")
         if not isinstance(arrays, list):
             raise WireError("rows: field 'arrays' must be a list of array specs")
+        rate = h.get("rate")
+        if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate >= 0
+                                 or rate == float("inf")):
+            raise WireError("rows: field 'rate' must be a finite number >= 0 or nil")
         return cls(_int(h, "request"), _int(h, "epoch"), _int(h, "start"), ids, padding, params, arrays,
-                   _optional_int(h, "samples"), _optional_int(h, "windows"))
+                   _optional_int(h, "samples"), _optional_int(h, "windows"), None if rate is None else float(rate))
 
 
 #: Why a server refuses a message (``Refused.code``), each asking something else of the reader:

@@ -45,6 +45,7 @@ from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
 
 from v2v_server.frames.frame_cache import MISS_CAUSES, SKIP_CAUSES
+from v2v_wire.fleet import RateMeter
 from v2v_wire.worker_messages import Done, Sample
 
 #: Work a worker reports time for, in pipeline order.
@@ -117,6 +118,7 @@ class ServerMetrics:
         self._expo: Optional[bytes] = None
         self._expo_at = 0.0
         self.port: Optional[int] = None
+        self._capacity, self._counted = RateMeter(), (0, 0.0)  # samples made and busy seconds it has taken
         self._progress: Optional[_Progress] = None
         if sys.stderr.isatty() if progress is None else progress:
             try:  # tqdm draws the line when it is made: a terminal already gone leaves it off
@@ -179,6 +181,16 @@ class ServerMetrics:
         names = ("samples_made", "samples_sent", "batches_sent",
                  "workers_restarted", "files_skipped", "bad_messages", "tasks_timed_out")
         return {n: int(self.registry.get_sample_value(f"v2v_{n}_total") or 0) for n in names}
+
+    def capacity(self, workers: int, now: float) -> Optional[float]:
+        """The host's decode capacity at ``now`` (seconds, monotonic), in samples/s: the samples
+        made over the ``workers`` workers' busy seconds per worker, both since the last call
+        (``v2v_wire.fleet.RateMeter``); None before it is measured. What a fleet's readers weigh
+        the host by (``Rows.rate``)."""
+        made, busy = self.totals()["samples_made"], sum(self.busy_seconds().values())
+        self._capacity.add(made - self._counted[0], (busy - self._counted[1]) / max(1, workers), now)
+        self._counted = (made, busy)
+        return self._capacity.rate()
 
     def busy_seconds(self) -> Dict[str, float]:
         """Seconds the workers spent in each stage of ``STAGES`` so far, summed over workers."""

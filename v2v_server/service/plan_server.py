@@ -270,7 +270,8 @@ class PlanServer:
                   for r in rows]
         made = isinstance(f, Order)
         head = Rows(f.request, f.epoch, 0 if made else f.start, ids, [r.padding for r in rows], params, specs,
-                    self._samples(f.epoch), self.scheduler.slots.windows.get(f.video) if made else None).to_wire()
+                    self._samples(f.epoch), self.scheduler.slots.windows.get(f.video) if made else None,
+                    self.metrics.capacity(self.cfg.workers, time.monotonic()) if made else None).to_wire()
         self._send(ident, head, frames)
         self.metrics.on_batch_sent(len(real), sum(frame_size(fr) for fr in frames))
 
