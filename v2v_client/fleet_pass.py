@@ -69,9 +69,11 @@ class Pass:
         first: the :class:`Fetch` of the pass's first step (its epoch and outputs are the pass's).
         prefetch: steps the window holds at least.
         retry_s: seconds a make may go unanswered before it is asked again.
+        now: the clock's reading at start (default ``time.monotonic()``).
     """
 
-    def __init__(self, fleet, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float):
+    def __init__(self, fleet, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float,
+                 now: Optional[float] = None):
         self.fleet, self.router, self.prefetch, self.retry_s = fleet, fleet.router, prefetch, retry_s
         self.epoch, self.outputs, self.kpw = first.epoch, first.outputs, manifest.crops_per_window
         self.plan = EpochPlan(manifest, fleet.plan.seed, first.epoch, fleet.plan.shuffle_buffer)
@@ -84,7 +86,7 @@ class Pass:
         self.got: Dict[Tuple[str, int], tuple] = {}  # (video, ordinal) -> (id, padding, params, arrays row, host)
         self.flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]]]] = {}  # (host, request) -> asked
         self.told: Set[str] = set()  # videos whose windows were asked for
-        self.heard = self.head_since = time.monotonic()
+        self.heard = self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
         self.examined = 0  # the first position of the window :meth:`ask_window` has not looked at
 
@@ -179,7 +181,7 @@ class Pass:
                 budget -= 1
 
     # ------------------------------------------------------------------ the head
-    def head_rows(self) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
+    def head_rows(self, now: Optional[float] = None) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
         """``(step, rows, arrays)`` of the head once each of its positions is known (made,
         failed or past the epoch's end), its samples taken out of what was got; None before.
 
@@ -210,7 +212,7 @@ class Pass:
         self.fleet.last_served = (out, {h: sum(1 for r in rows if r[4] == h) for h in {r[4] for r in rows if not r[1]}})
         self.window.pop(0)
         del self.spans[head]
-        self.head_since = time.monotonic()
+        self.head_since = time.monotonic() if now is None else now
         return head, out, arrays
 
     # ------------------------------------------------------------------ what the head waits on
