@@ -20,6 +20,7 @@ import numpy as np
 
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.fleet import rank_hosts
+from v2v_wire.outputs import wire_zeros_row
 from v2v_wire.plan import EpochPlan, Manifest
 from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, PlanInfo, Refused, Rows
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
@@ -45,6 +46,14 @@ def merged(rows: List[tuple], like: Dict[str, np.ndarray], epoch: int, start: in
     arrays = {name: np.stack([r[3][name] if not r[1] else np.zeros_like(like[name]) for r in rows]) for name in like}
     return Rows(0, epoch, start, [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows], [],
                 samples), arrays
+
+
+def _zeros(stream: Optional[dict], outputs) -> Optional[Dict[str, np.ndarray]]:
+    """A row of zeros of each of ``outputs`` as a host's reply of padding rows only holds it, from
+    the hosts' ``stream`` info (its shapes); None without it."""
+    if not stream:
+        return None
+    return {o: wire_zeros_row(o, stream) for o in outputs or stream["outputs"]}
 
 
 @dataclass
@@ -186,8 +195,8 @@ class Pass:
         failed or past the epoch's end), its samples taken out of what was got; None before.
 
         Raises:
-            PlanServerError: a step of padding rows only before any row held a sample (the
-                arrays' shapes are not known)."""
+            PlanServerError: a step of padding rows only before any reply, from a host that
+                did not say its stream's shapes (they are not known)."""
         head = self.window[0]
         start, stop = self.spans[head]
         if stop > self.plan.known and not self.plan.complete:
@@ -204,7 +213,7 @@ class Pass:
         for key in keys:
             if key is not None:
                 del self.got[(key.video, key.ordinal(self.kpw))]
-        like = next((r[3] for r in rows if not r[1]), self.fleet.like)
+        like = next((r[3] for r in rows if not r[1]), self.fleet.like) or _zeros(self.fleet.stream, self.outputs)
         if like is None:
             raise PlanServerError(f"{self.fleet.endpoint}: epoch {self.epoch} positions {start}..{stop - 1}: no row "
                                   "holds a sample and none was read before (the arrays' shapes are not known)")
@@ -312,8 +321,8 @@ class Pass:
                 continue  # another copy came first
             row = {name: a[j] for name, a in arrays.items()}
             self.got[(video, o)] = (msg.sample_ids[j], msg.padding[j], msg.params[j], row, ep)
-            if not msg.padding[j] and self.fleet.like is None:
-                self.fleet.like = row
+        if self.fleet.like is None:  # a row of zeros of each array (a reply of padding rows only gives their shapes)
+            self.fleet.like = {name: np.zeros(a.shape[1:], a.dtype) for name, a in arrays.items()}
         for hr, (h, ords, _) in list(v.flight.items()):  # copies of what is now got
             if all((video, o) in self.got for o in ords or ()) and (ords or msg.windows is not None):
                 del v.flight[hr]
