@@ -203,3 +203,15 @@ def test_a_fleet_pass_whose_first_step_lies_past_the_epochs_end_yields_zeros_of_
     assert not sent and step == 0 and rows.padding == [True, True] and rows.sample_ids == [None, None]
     assert arrays["voxels"].shape == (2, 2, 3, 4, 4) and arrays["voxels"].dtype == "int8"
 
+
+def test_a_fleet_pass_whose_every_host_left_asks_again_once_another_joins():
+    """The only host a pass knows leaves (its name no longer resolves) before the host that took
+    its place answers what it serves: what it was asked waits for the next host, not an error."""
+    read, sent = _fleet_pass({"a.mp4": 2}, ["h"], others=["g"])
+    read.ask_window(0.0)
+    read.router.leave("h")
+    read.rescue(1.0)  # no host: the makes wait
+    assert [h for h, _ in sent] == ["h"]
+    read.router.join("g", 2.0)
+    read.rescue(2.0)
+    assert [(h, m.video, m.ordinals) for h, m in sent] == [("h", "a.mp4", (0, 1)), ("g", "a.mp4", (0, 1))]

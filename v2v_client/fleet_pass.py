@@ -95,6 +95,7 @@ class Pass:
         self.got: Dict[Tuple[str, int], tuple] = {}  # (video, ordinal) -> (id, padding, params, arrays row, host)
         self.flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]]]] = {}  # (host, request) -> asked
         self.told: Set[str] = set()  # videos whose windows were asked for
+        self.parked: List[Tuple[str, Optional[Tuple[int, ...]]]] = []  # asks no host could take yet
         self.heard = self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
         self.examined = 0  # the first position of the window :meth:`ask_window` has not looked at
@@ -134,7 +135,7 @@ class Pass:
         """Ask for ``ordinals`` of ``video`` of its host while that one answers, else the router's pick.
 
         Raises:
-            PlanServerError: a path longer than a make names, or no host left serving the plan."""
+            PlanServerError: a path longer than a make names, or every host left out for another plan."""
         v = self.videos.setdefault(video, Video())
         if position is not None:
             v.position = min(v.position, position)
@@ -150,10 +151,13 @@ class Pass:
             self.router.ask(v.host, self.epoch, video, count, now)
         else:
             v.host = self.router.route(self.epoch, video, count, now)
-        if v.host is None:
+        if v.host is not None:
+            self.send(video, ordinals, v.host, now)
+        elif self.router.hosts or not self.fleet.refused:  # every host gone, silent or not joined yet
+            self.parked.append((video, ordinals))  # asked again at the next rescue
+        else:
             raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan "
                                   f"({len(self.fleet.refused)} left out for serving another)")
-        self.send(video, ordinals, v.host, now)
 
     def ask_window(self, now: float) -> None:
         """Ask for the samples the window's decided positions hold, and for the windows of the
@@ -227,7 +231,11 @@ class Pass:
     # ------------------------------------------------------------------ what the head waits on
     def rescue(self, now: float) -> None:
         """Hedges of silent hosts' videos, copies of what the head waits on, and makes asked again
-        (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart)."""
+        (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart),
+        and the asks no host could take before."""
+        parked, self.parked = self.parked, []
+        for video, ords in parked:
+            self.ask(video, ords, now)
         waiting = [(self.epoch, video, len(v.flight)) for video, v in self.videos.items() if v.flight]
         for _, video, host in self.router.hedges(waiting, now):
             v = self.videos[video]
