@@ -50,8 +50,8 @@ def merged(rows: List[tuple], like: Dict[str, np.ndarray], epoch: int, start: in
 
 def _zeros(stream: Optional[dict], outputs) -> Optional[Dict[str, np.ndarray]]:
     """A row of zeros of each of ``outputs`` as a host's reply of padding rows only holds it, from
-    the hosts' ``stream`` info (its shapes); None without it."""
-    if not stream:
+    the hosts' ``stream`` info (its shapes); None without them."""
+    if not stream or not {"sequence_length", "num_bins", "crop_size"} <= set(stream):
         return None
     return {o: wire_zeros_row(o, stream) for o in outputs or stream["outputs"]}
 
