@@ -25,20 +25,27 @@ What the world does:
   as the client does (probing shards whose length it does not know); jobs checkpoint and resume in
   the same process or at another layout, and roll back to an older checkpoint of the epoch (the
   rows read since count again);
-* readers ask for a subset of the outputs, and a new output widens what workers make mid-run.
+* readers ask for a subset of the outputs, and a new output widens what workers make mid-run;
+* a third of the seeds run a fleet instead (``harness.plan_world_fleet``): 1-16 hosts each serving
+  the whole corpus's one plan, joining, leaving, stalling and restarting mid-epoch, read through
+  the client's own fleet decisions (``fleet_pass.Pass``, ``v2v_wire.fleet.Router``) over a
+  seeded transport that delays and loses messages; jobs resume a position on another number of
+  hosts.
 
 :func:`check` runs one seed and returns what went wrong (empty: each job read each epoch's
 interleaved plan exactly: every position once across ranks and workers, at its place, a sample
 wherever its window was given, padding only for windows a file did not give and past a shard's or
 the epoch's end; every reader ended at the step the epoch ends at; each worker's pass was of the
 epoch and position the loop set; a position refused exactly when a file was replaced; bounded
-stores). ``python -m harness.plan_world --seeds 0:100000`` runs a range (``tests/test_plan_schedule.py``
+stores; a fleet's jobs, each epoch as one server's plan says: ``harness.plan_world_fleet``).
+``python -m harness.plan_world --seeds 0:100000`` runs a range (``tests/test_plan_schedule.py``
 runs 1,000 seeds); ``--seeds 35:36`` replays one.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import random
 import sys
 import time
@@ -46,12 +53,17 @@ import traceback
 from dataclasses import dataclass, field
 from typing import List, Optional
 
+from harness.plan_world_fleet import FleetWorld
 from harness.plan_world_jobs import OUTPUTS, Job, Reading
 from v2v_server.delivery.plan_schedule import PlanScheduler
 from v2v_server.ops.startup import select_shard
 from v2v_wire.ids import SampleKey
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity
 from v2v_wire.plan_shards import shards_identity, shards_samples
+
+
+#: The share of seeds that run a fleet (``harness.plan_world_fleet``) instead of 1-4 shards.
+FLEET_SHARE = 1 / 3
 
 
 @dataclass
@@ -97,6 +109,16 @@ class Outcome:
     direct_passes: int = 0
     loader_passes: int = 0
     biggest_store: int = 0
+    fleets: int = 0  # 1 when it ran a fleet (``harness.plan_world_fleet``)
+    big_fleets: int = 0  # 1 when 8 or more of its hosts were up at once
+    fleet_joins: int = 0
+    fleet_leaves: int = 0
+    fleet_stalls: int = 0
+    fleet_restarts: int = 0
+    fleet_resumes: int = 0
+    resized: int = 0  # resumes read on with another number of hosts than the position was taken with
+    hedged: int = 0  # makes a reader's router hedged to another host
+    copies: int = 0  # makes of a video's samples asked of a second host (hedges, copies, a host gone)
 
 
 def check(seed: int, ticks: int = 30000) -> Outcome:
@@ -146,6 +168,8 @@ class World:
         # files replaced while a server is down: drawn apart, so the other draws stay each seed's
         self.cuts = random.Random(f"cuts/{seed}")
         self.replace_p = self.cuts.choice([0.0, 1.0])
+        # a third of the seeds run a fleet instead (drawn apart, as the cuts)
+        self.fleet = FleetWorld(self) if random.Random(f"fleet/{seed}").random() < FLEET_SHARE else None
 
     def start(self, server: Server, pool: int) -> None:
         """(Re)start ``server``: a fresh scheduler over its shard's manifest (the corpus index's slots,
@@ -187,6 +211,8 @@ class World:
 
     def run(self, ticks: int) -> Outcome:
         """Play at most ``ticks`` ticks (until every job read every epoch), then judge."""
+        if self.fleet is not None:
+            return self.fleet.run(ticks)
         for now in range(ticks):
             for s in self.servers:
                 if self.rng.random() < self.restart_p:  # killed and started again, with its workers
@@ -294,7 +320,8 @@ class World:
 
 #: What ``main`` and ``tests/test_plan_schedule.py`` add up over seeds (``Outcome``'s counts).
 TOTALS = ("sharded", "restarts", "resumes", "rollbacks", "widened", "replaced", "refused", "probes", "direct_passes",
-          "loader_passes")
+          "loader_passes", "fleets", "big_fleets", "fleet_joins", "fleet_leaves", "fleet_stalls", "fleet_restarts",
+          "fleet_resumes", "resized", "hedged", "copies")
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -302,6 +329,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--seeds", default="0:1000", help="a range a:b of seeds (b excluded)")
     ap.add_argument("--json", action="store_true", help="one JSON line of totals")
     a = ap.parse_args(argv)
+    logging.getLogger("v2v.client").setLevel(logging.ERROR)  # a fleet's hosts left out and back, by the thousand
     lo, hi = (int(x) for x in a.seeds.split(":"))
     t = time.perf_counter()
     failed, totals = [], dict.fromkeys(TOTALS, 0)

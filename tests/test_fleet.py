@@ -164,3 +164,75 @@ def test_static_shards_pad_more_rows_the_more_shards_a_corpus_is_split_into():
 def test_a_clip_stays_on_its_host_from_one_epoch_to_the_next_for_most_clips():
     share = stay(Fleet(hosts=16, videos=8000))
     assert 0.75 <= share < 1.0  # docs/scaling.md: 0.79-0.89 at 16 hosts, short of a warm cache's needs
+
+
+
+def _fleet_pass(slots, hosts, stream=None, start=0, stop=2, others=()):
+    """A ``fleet_pass.Pass`` over a manifest of ``slots`` and a fleet of ``hosts`` (the real
+    ``Router``; each link, and those of the hosts ``others`` that may join, keeps the headers sent,
+    a ``Make``'s as the host reads it); its first step holds positions ``start`` .. ``stop - 1``."""
+    import itertools
+    from types import SimpleNamespace
+
+    from v2v_client.fleet_pass import Pass
+    from v2v_wire.plan import Manifest, PlanIdentity
+    from v2v_wire.plan_messages import Fetch, Make
+
+    m = Manifest.of(slots)
+    plan = PlanIdentity(m.fingerprint(), "recipe", 0, 1)
+    fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, workers={}, ahead=None, links={},
+                            like=None, endpoint=",".join(hosts), refused=set(), last_served=None, stream=stream)
+    sent = []
+    for h in [*hosts, *others]:
+        fleet.links[h] = SimpleNamespace(ids=itertools.count(1), compression="none",
+                                         _send=lambda header, h=h: sent.append((h, Make.from_wire(header))))
+    first = Fetch(0, 0, start, stop, ("voxels",), plan)
+    read = Pass(fleet, m, first, 1, 5.0, now=0.0)
+    read.add(0, first)
+    return read, sent
+
+
+def test_a_fleet_pass_whose_first_step_holds_padding_only_takes_its_zeros_shapes_from_the_reply():
+    """A file that gives none of the windows the corpus index lists: its make is answered with
+    padding rows, whose reply carries each array with 0 rows; the step is yielded as zeros."""
+    import numpy as np
+
+    from v2v_wire.ids import SampleKey
+    from v2v_wire.plan_messages import Rows
+    from v2v_wire.protocol import encode_arrays
+
+    read, sent = _fleet_pass({"a.mp4": 2}, ["h"])
+    read.ask_window(0.0)
+    (_, make), = sent
+    assert make.ordinals == (0, 1) and read.head_rows(0.0) is None
+    specs, frames = encode_arrays({"voxels": np.zeros((0, 3, 4), np.float32)})
+    ids = [SampleKey.at("a.mp4", i).sample_id() for i in (0, 1)]
+    read.receive("h", Rows(make.request, 0, 0, ids, [True, True], [{"padding": "no window"}] * 2, specs, 2, 2),
+                 [f.tobytes() for f in frames], 1.0)
+    step, rows, arrays = read.head_rows(1.0)
+    assert step == 0 and rows.padding == [True, True] and rows.sample_ids == ids
+    assert arrays["voxels"].shape == (2, 3, 4) and not arrays["voxels"].any()
+
+
+def test_a_fleet_pass_whose_first_step_lies_past_the_epochs_end_yields_zeros_of_the_hosts_stream():
+    """A rank with no row in the epoch's last step asks no host anything: its zeros are shaped as
+    its hosts' stream says (``outputs.wire_zeros_row``), as one server's reply of padding rows."""
+    stream = {"sequence_length": 2, "num_bins": 3, "crop_size": 4, "flow_dtype": "float16", "outputs": ["voxels"]}
+    read, sent = _fleet_pass({"a.mp4": 2}, ["h"], stream, 4, 6)
+    read.ask_window(0.0)
+    step, rows, arrays = read.head_rows(0.0)
+    assert not sent and step == 0 and rows.padding == [True, True] and rows.sample_ids == [None, None]
+    assert arrays["voxels"].shape == (2, 2, 3, 4, 4) and arrays["voxels"].dtype == "int8"
+
+
+def test_a_fleet_pass_whose_every_host_left_asks_again_once_another_joins():
+    """The only host a pass knows leaves (its name no longer resolves) before the host that took
+    its place answers what it serves: what it was asked waits for the next host, not an error."""
+    read, sent = _fleet_pass({"a.mp4": 2}, ["h"], others=["g"])
+    read.ask_window(0.0)
+    read.router.leave("h")
+    read.rescue(1.0)  # no host: the makes wait
+    assert [h for h, _ in sent] == ["h"]
+    read.router.join("g", 2.0)
+    read.rescue(2.0)
+    assert [(h, m.video, m.ordinals) for h, m in sent] == [("h", "a.mp4", (0, 1)), ("g", "a.mp4", (0, 1))]

@@ -20,20 +20,21 @@ import numpy as np
 
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.fleet import rank_hosts
+from v2v_wire.outputs import wire_zeros_row
 from v2v_wire.plan import EpochPlan, Manifest
 from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, PlanInfo, Refused, Rows
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
 from .fetch import PlanServerError, _with_padding
 
-__all__ = ["Pass", "Video", "merged", "take", "UNFOLD_PER_HOST", "STEAL_S"]
+__all__ = ["Pass", "Video", "merged", "steal", "take", "UNFOLD_PER_HOST", "STEAL_S"]
 
 log = logging.getLogger("v2v.client")
 
 #: Videos whose windows a reader asks for at once while its plan unfolds, per host.
 UNFOLD_PER_HOST = 4
 #: Seconds the head may wait on a video before the next host of its ranking is asked for a copy
-#: too (:meth:`Pass.steal`).
+#: too (:func:`steal`).
 STEAL_S = 1.0
 _LAST = 2 ** 62 - 1
 
@@ -45,6 +46,14 @@ def merged(rows: List[tuple], like: Dict[str, np.ndarray], epoch: int, start: in
     arrays = {name: np.stack([r[3][name] if not r[1] else np.zeros_like(like[name]) for r in rows]) for name in like}
     return Rows(0, epoch, start, [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows], [],
                 samples), arrays
+
+
+def _zeros(stream: Optional[dict], outputs) -> Optional[Dict[str, np.ndarray]]:
+    """A row of zeros of each of ``outputs`` as a host's reply of padding rows only holds it, from
+    the hosts' ``stream`` info (its shapes); None without them."""
+    if not stream or not {"sequence_length", "num_bins", "crop_size"} <= set(stream):
+        return None
+    return {o: wire_zeros_row(o, stream) for o in outputs or stream["outputs"]}
 
 
 @dataclass
@@ -69,9 +78,11 @@ class Pass:
         first: the :class:`Fetch` of the pass's first step (its epoch and outputs are the pass's).
         prefetch: steps the window holds at least.
         retry_s: seconds a make may go unanswered before it is asked again.
+        now: the clock's reading at start (default ``time.monotonic()``).
     """
 
-    def __init__(self, fleet, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float):
+    def __init__(self, fleet, manifest: Manifest, first: Fetch, prefetch: int, retry_s: float,
+                 now: Optional[float] = None):
         self.fleet, self.router, self.prefetch, self.retry_s = fleet, fleet.router, prefetch, retry_s
         self.epoch, self.outputs, self.kpw = first.epoch, first.outputs, manifest.crops_per_window
         self.plan = EpochPlan(manifest, fleet.plan.seed, first.epoch, fleet.plan.shuffle_buffer)
@@ -84,7 +95,8 @@ class Pass:
         self.got: Dict[Tuple[str, int], tuple] = {}  # (video, ordinal) -> (id, padding, params, arrays row, host)
         self.flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]]]] = {}  # (host, request) -> asked
         self.told: Set[str] = set()  # videos whose windows were asked for
-        self.heard = self.head_since = time.monotonic()
+        self.parked: List[Tuple[str, Optional[Tuple[int, ...]]]] = []  # asks no host could take yet
+        self.heard = self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
         self.examined = 0  # the first position of the window :meth:`ask_window` has not looked at
 
@@ -123,7 +135,7 @@ class Pass:
         """Ask for ``ordinals`` of ``video`` of its host while that one answers, else the router's pick.
 
         Raises:
-            PlanServerError: a path longer than a make names, or no host left serving the plan."""
+            PlanServerError: a path longer than a make names, or every host left out for another plan."""
         v = self.videos.setdefault(video, Video())
         if position is not None:
             v.position = min(v.position, position)
@@ -139,10 +151,13 @@ class Pass:
             self.router.ask(v.host, self.epoch, video, count, now)
         else:
             v.host = self.router.route(self.epoch, video, count, now, due=self.due(v.position))
-        if v.host is None:
+        if v.host is not None:
+            self.send(video, ordinals, v.host, now)
+        elif self.router.hosts or not self.fleet.refused:  # every host gone, silent or not joined yet
+            self.parked.append((video, ordinals))  # asked again at the next rescue
+        else:
             raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan "
                                   f"({len(self.fleet.refused)} left out for serving another)")
-        self.send(video, ordinals, v.host, now)
 
     def per_video(self) -> int:
         """Samples a video gives, on average over those whose windows are known (a make of a
@@ -151,9 +166,9 @@ class Pass:
         return max(1, round(self.kpw * sum(w.values()) / len(w))) if w else self.kpw
 
     def due(self, position: int) -> Optional[float]:
-        """Seconds until the head reaches ``position`` at the fleet's rate (None: past the plan's
-        positions, or a head past it)."""
-        if position >= _LAST or not self.window:
+        """Seconds until the head reaches ``position`` at the fleet's rate (None: a position past
+        the plan's known ones, or no host to make it)."""
+        if position >= _LAST or not self.window or not self.router.hosts:
             return None
         return max(0.0, position - self.spans[self.window[0]][0]) / self.router.capacity()
 
@@ -194,13 +209,13 @@ class Pass:
             position += self.per_video()
 
     # ------------------------------------------------------------------ the head
-    def head_rows(self) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
+    def head_rows(self, now: Optional[float] = None) -> Optional[Tuple[int, Rows, Dict[str, np.ndarray]]]:
         """``(step, rows, arrays)`` of the head once each of its positions is known (made,
         failed or past the epoch's end), its samples taken out of what was got; None before.
 
         Raises:
-            PlanServerError: a step of padding rows only before any row held a sample (the
-                arrays' shapes are not known)."""
+            PlanServerError: a step of padding rows only before any reply, from a host that
+                did not say its stream's shapes (they are not known)."""
         head = self.window[0]
         start, stop = self.spans[head]
         if stop > self.plan.known and not self.plan.complete:
@@ -217,7 +232,7 @@ class Pass:
         for key in keys:
             if key is not None:
                 del self.got[(key.video, key.ordinal(self.kpw))]
-        like = next((r[3] for r in rows if not r[1]), self.fleet.like)
+        like = next((r[3] for r in rows if not r[1]), self.fleet.like) or _zeros(self.fleet.stream, self.outputs)
         if like is None:
             raise PlanServerError(f"{self.fleet.endpoint}: epoch {self.epoch} positions {start}..{stop - 1}: no row "
                                   "holds a sample and none was read before (the arrays' shapes are not known)")
@@ -225,20 +240,24 @@ class Pass:
         self.fleet.last_served = (out, {h: sum(1 for r in rows if r[4] == h) for h in {r[4] for r in rows if not r[1]}})
         self.window.pop(0)
         del self.spans[head]
-        self.head_since = time.monotonic()
+        self.head_since = time.monotonic() if now is None else now
         return head, out, arrays
 
     # ------------------------------------------------------------------ what the head waits on
     def rescue(self, now: float) -> None:
         """Hedges of silent hosts' videos, copies of what the head waits on, and makes asked again
-        (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart)."""
+        (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart),
+        and the asks no host could take before."""
+        parked, self.parked = self.parked, []
+        for video, ords in parked:
+            self.ask(video, ords, now)
         waiting = [(self.epoch, video, len(v.flight)) for video, v in self.videos.items() if v.flight]
         for _, video, host in self.router.hedges(waiting, now):
             v = self.videos[video]
             v.host = host
             for h, ords, _ in list(v.flight.values()):
                 self.send(video, ords, host, now)
-        self.steal(now, now - self.head_since >= STEAL_S)
+        steal(self, now, now - self.head_since >= STEAL_S)
         for video, v in list(self.videos.items()):
             for hr, (h, ords, at) in list(v.flight.items()):
                 gone = h not in self.router.hosts
@@ -250,47 +269,6 @@ class Pass:
                         self.ask(video, ords, now)
                     else:
                         self.send(video, ords, h, now)
-
-    def steal(self, now: float, late: bool) -> None:
-        """Copies of the videos the head waits on, the samples its positions hold or the windows
-        that decide them (the first copy's answer wins), once the head has waited :data:`STEAL_S`
-        (``late``): of each to a host with nothing asked of it, else to the next host of its
-        ranking that does not hold it, where it goes first (its position is the fleet's
-        earliest); only where that host would make it sooner, at the rates the hosts said, than
-        the host asked would clear its queue, or the host asked is a second overdue on that. A
-        slow host's videos stop gating the fleet, at the cost of a decode where a host would
-        otherwise idle or where the step would wait."""
-        if not late:
-            return
-        idle = [h for h, st in self.router.hosts.items() if not st.queued and not self.router.suspect(h, now)]
-        start, stop = self.spans[self.window[0]]
-        missing: Dict[str, Optional[List[int]]] = {}
-        for p in range(start, min(stop, self.plan.known)):
-            key = self.plan.key(p)
-            if key is not None and (key.video, key.ordinal(self.kpw)) not in self.got:
-                missing.setdefault(key.video, []).append(key.ordinal(self.kpw))
-        if stop > self.plan.known and not self.plan.complete:  # the windows that decide the head
-            for video in self.plan.next_videos(UNFOLD_PER_HOST * len(self.router.hosts)):
-                if video not in self.fleet.windows and video in self.told:
-                    missing.setdefault(video, None)
-        weights, waited = self.router.weights(), now - self.head_since
-        for video, ords in missing.items():
-            v = self.videos.get(video)
-            if v is None or not v.flight:
-                continue
-            asked = {h for h, _, _ in v.flight.values()}
-            h = next((x for x in idle if x not in asked), None)
-            if h is None and len(asked) == 1:
-                h = next((x for x in rank_hosts(video, list(self.router.hosts), weights)
-                          if x not in asked and not self.router.suspect(x, now)), None)
-            n = len(ords) if ords else self.per_video()
-            clears = min((self.router.finish(a, 0) for a in asked if a in self.router.hosts), default=0.0)
-            if h is None or self.router.finish(h, n) >= clears and waited < STEAL_S + clears:
-                continue
-            self.send(video, None if ords is None else tuple(sorted(ords)), h, now)
-            self.router.ask(h, self.epoch, video, n, now)
-            if h in idle:
-                idle.remove(h)
 
     def receive(self, ep: str, msg, frames, now: float) -> None:
         """Take host ``ep``'s message: what a new host serves, a make's rows (kept by (video,
@@ -329,8 +307,8 @@ class Pass:
                 continue  # another copy came first
             row = {name: a[j] for name, a in arrays.items()}
             self.got[(video, o)] = (msg.sample_ids[j], msg.padding[j], msg.params[j], row, ep)
-            if not msg.padding[j] and self.fleet.like is None:
-                self.fleet.like = row
+        if self.fleet.like is None:  # a row of zeros of each array (a reply of padding rows only gives their shapes)
+            self.fleet.like = {name: np.zeros(a.shape[1:], a.dtype) for name, a in arrays.items()}
         for hr, (h, ords, _) in list(v.flight.items()):  # copies of what is now got
             if all((video, o) in self.got for o in ords or ()) and (ords or msg.windows is not None):
                 del v.flight[hr]
@@ -338,6 +316,48 @@ class Pass:
         self.router.answered(ep, self.epoch, video, now, not any(h == ep for h, _, _ in v.flight.values()), msg.rate)
         if not v.flight:
             self.router.finished(self.epoch, video)
+
+
+def steal(read: "Pass", now: float, late: bool) -> None:
+    """Copies of the videos the head waits on, the samples its positions hold or the windows
+    that decide them (the first copy's answer wins), once the head has waited :data:`STEAL_S`
+    (``late``): of each to a host with nothing asked of it, else to the next host of its
+    ranking that does not hold it, where it goes first (its position is the fleet's
+    earliest); only where that host would make it sooner, at the rates the hosts said, than
+    the host asked would clear its queue, or the host asked is a second overdue on that. A
+    slow host's videos stop gating the fleet, at the cost of a decode where a host would
+    otherwise idle or where the step would wait."""
+    if not late:
+        return
+    idle = [h for h, st in read.router.hosts.items() if not st.queued and not read.router.suspect(h, now)]
+    start, stop = read.spans[read.window[0]]
+    missing: Dict[str, Optional[List[int]]] = {}
+    for p in range(start, min(stop, read.plan.known)):
+        key = read.plan.key(p)
+        if key is not None and (key.video, key.ordinal(read.kpw)) not in read.got:
+            missing.setdefault(key.video, []).append(key.ordinal(read.kpw))
+    if stop > read.plan.known and not read.plan.complete:  # the windows that decide the head
+        for video in read.plan.next_videos(UNFOLD_PER_HOST * len(read.router.hosts)):
+            if video not in read.fleet.windows and video in read.told:
+                missing.setdefault(video, None)
+    weights, waited = read.router.weights(), now - read.head_since
+    for video, ords in missing.items():
+        v = read.videos.get(video)
+        if v is None or not v.flight:
+            continue
+        asked = {h for h, _, _ in v.flight.values()}
+        h = next((x for x in idle if x not in asked), None)
+        if h is None and len(asked) == 1:
+            h = next((x for x in rank_hosts(video, list(read.router.hosts), weights)
+                      if x not in asked and not read.router.suspect(x, now)), None)
+        n = len(ords) if ords else read.per_video()
+        clears = min((read.router.finish(a, 0) for a in asked if a in read.router.hosts), default=0.0)
+        if h is None or read.router.finish(h, n) >= clears and waited < STEAL_S + clears:
+            continue
+        read.send(video, None if ords is None else tuple(sorted(ords)), h, now)
+        read.router.ask(h, read.epoch, video, n, now)
+        if h in idle:
+            idle.remove(h)
 
 
 def take(read: "Pass", timeout_s: float) -> None:

@@ -182,6 +182,7 @@ class Fleet:
         self.workers: Dict[str, int] = {}
         self.refused: Set[str] = set()  # hosts serving another plan: named once, left out
         self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic())
+        self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
         for ep, info in hosts:
             self.join(ep, info, time.monotonic())
         self.resolved = time.monotonic()
@@ -214,6 +215,7 @@ class Fleet:
             return
         if ep in self.router.hosts:
             return
+        self.stream = self.stream or info.stream
         link = self._link(ep)
         codecs = info.stream.get("codecs", ())
         link.compression = self.compression if self.compression != "auto" else auto_compression(ep, codecs)
