@@ -248,32 +248,36 @@ def cache_host(corpus: Path, core: int, cache_dir: Path) -> ServeProcess:
                                "--metrics-port", str(free_port())])
 
 
-def looked(server: ServeProcess) -> Tuple[int, int]:
-    """``(hits, misses)`` of ``server``'s frame cache so far (its ``/metrics``; misses of every cause)."""
+def looked(server: ServeProcess) -> Tuple[int, int, int]:
+    """``(hits, misses, workers busy)``: ``server``'s frame-cache lookups so far (misses of every
+    cause) and its workers making samples now, from its ``/metrics``."""
     port = server.args[server.args.index("--metrics-port") + 1]
     page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
-    hits = misses = 0
+    hits = misses = busy = 0
     for line in page.splitlines():
         if line.startswith("v2v_frame_cache_hits_total "):
             hits += int(float(line.split()[-1]))
         elif line.startswith("v2v_frame_cache_misses_total{"):
             misses += int(float(line.split()[-1]))
-    return hits, misses
+        elif line.startswith("v2v_workers_busy "):
+            busy += int(float(line.split()[-1]))
+    return hits, misses, busy
 
 
-def settled(servers: Sequence[ServeProcess], quiet_s: float = 2.0, limit_s: float = 120.0) -> List[Tuple[int, int]]:
-    """Each server's :func:`looked` once none has changed for ``quiet_s``: a pass is counted when it
-    ends, past its video's last sample (it decodes on to fill the entry), and a lone server makes
-    ahead into the next epoch (within its shuffle buffer)."""
+def settled(servers: Sequence[ServeProcess], quiet_s: float = 1.0, limit_s: float = 120.0) -> List[Tuple[int, int]]:
+    """Each server's frame-cache ``(hits, misses)`` once no worker is busy and no count has changed
+    for ``quiet_s``: a pass is counted when it ends, past its video's last sample (it decodes on to
+    fill the entry), a lone server makes ahead into the next epoch (within its shuffle buffer),
+    and a fleet's host finishes the copies that lost."""
     last, since, deadline = None, time.monotonic(), time.monotonic() + limit_s
     while time.monotonic() < deadline:
         now = [looked(s) for s in servers]
-        if now != last:
+        if now != last or any(busy for _, _, busy in now):
             last, since = now, time.monotonic()
         elif time.monotonic() - since >= quiet_s:
             break
         time.sleep(0.5)
-    return last
+    return [(h, m) for h, m, _ in last]
 
 
 def read_hosts(ds: V2VStreamDataset, epoch: int) -> Dict[str, Set[str]]:
