@@ -13,6 +13,17 @@ stock: the first ``warmup`` batches are read unmeasured. Rows:
 * ``kill``: B SIGKILLed after the second batch: the same.
 * ``join``: a host started after the third batch, named in the reader's list from the start:
   seconds from its start to its first sample made, and the rate before and after.
+* ``cache``: epoch 2's frame-cache hit ratio (hits / lookups, each host's ``/metrics``; a lookup is
+  one pass over a video, counted when the pass ends) of A alone, then of A and B as one fleet
+  (each its own cache): the fleet's over the lone host's, and the share of videos whose host
+  changed between the fleet's two epochs.
+* ``moved``: A and B read epoch 1 as a fleet, then A, B and C (on core 1 with B) read it again
+  with a fresh reader: the share of videos whose host changed, observed (the host that served
+  its rows) and of the owner alone (``rank_hosts`` over the hosts' names, equal weights).
+
+The ``cache`` and ``moved`` rows read with batches of one row, so that each batch's ``servers``
+names the host of its one sample. The ``cache`` row's entries take about 25 MB a video in the
+temporary folder, twice over (the lone host's and the fleet's): 11 GB at the default size.
 
 Needs ``taskset`` (util-linux) and 2 cores.
 """
@@ -27,6 +38,7 @@ if __name__ == "__main__":  # Ctrl-C or SIGTERM from the start, the imports belo
 
 import argparse
 import hashlib
+import itertools
 import json
 import os
 import shutil
@@ -35,16 +47,23 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence, Set, Tuple
 
 from harness.faults import worker_pids
 from harness.serve import ServeProcess, free_port
 from v2v_client import V2VStreamDataset
 from v2v_client.plan_dataset import open_stream
 from v2v_wire.commands import writable_problem, write_whole
+from v2v_wire.fleet import rank_hosts
+from v2v_wire.ids import parse_sample_id
 
 OUTPUTS = ("voxels", "frames")
+ROWS = ("rates", "stop", "kill", "join", "cache", "moved")
+#: GiB of frame cache of each ``cache`` row host: the bundled clips' kept frames (about 25 MB a
+#: video, 240 videos at the default size) fit whole, so a miss in epoch 2 is never the budget's.
+CACHE_GB = 16
 #: The bundled clips the corpus links to.
 CLIPS = Path(__file__).resolve().parent.parent / "v2v_server" / "sample_videos"
 
@@ -224,6 +243,136 @@ def join_row(corpus: Path, want: dict) -> dict:
     return out
 
 
+def cache_host(corpus: Path, core: int, cache_dir: Path) -> ServeProcess:
+    """A host with a frame cache under ``cache_dir`` and its /metrics on a free port (:func:`looked`)."""
+    return host(corpus, core, ["--frame-cache-gb", str(CACHE_GB), "--cache-dir", str(cache_dir),
+                               "--metrics-port", str(free_port())])
+
+
+def looked(server: ServeProcess) -> Tuple[int, int, int]:
+    """``(hits, misses, workers busy)``: ``server``'s frame-cache lookups so far (misses of every
+    cause) and its workers making samples now, from its ``/metrics``."""
+    port = server.args[server.args.index("--metrics-port") + 1]
+    page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
+    hits = misses = busy = 0
+    for line in page.splitlines():
+        if line.startswith("v2v_frame_cache_hits_total "):
+            hits += int(float(line.split()[-1]))
+        elif line.startswith("v2v_frame_cache_misses_total{"):
+            misses += int(float(line.split()[-1]))
+        elif line.startswith("v2v_workers_busy "):
+            busy += int(float(line.split()[-1]))
+    return hits, misses, busy
+
+
+def settled(servers: Sequence[ServeProcess], quiet_s: float = 1.0, limit_s: float = 120.0) -> List[Tuple[int, int]]:
+    """Each server's frame-cache ``(hits, misses)`` once no worker is busy and no count has changed
+    for ``quiet_s``: a pass is counted when it ends, past its video's last sample (it decodes on to
+    fill the entry), a lone server makes ahead into the next epoch (within its shuffle buffer),
+    and a fleet's host finishes the copies that lost."""
+    last, since, deadline = None, time.monotonic(), time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        now = [looked(s) for s in servers]
+        if now != last or any(busy for _, _, busy in now):
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            break
+        time.sleep(0.5)
+    return [(h, m) for h, m, _ in last]
+
+
+def read_hosts(ds: V2VStreamDataset, epoch: int) -> Dict[str, Set[str]]:
+    """Epoch ``epoch`` of ``ds`` (batches of one row): video -> the hosts that served its rows."""
+    ds.set_epoch(epoch)
+    out: Dict[str, Set[str]] = {}
+    for b in ds:
+        if not b["padding"][0]:
+            out.setdefault(parse_sample_id(b["sample_ids"][0]).video, set()).update(b["servers"])
+    return out
+
+
+def changed(a: Dict[str, Set[str]], b: Dict[str, Set[str]]) -> float:
+    """The share of the videos of ``a`` whose hosts in ``b`` are not the same."""
+    return sum(1 for v, hosts in a.items() if b.get(v) != hosts) / max(1, len(a))
+
+
+def off_owner(read: Dict[str, Set[str]], hosts: List[str], weights: Optional[Dict[str, float]] = None) -> float:
+    """The share of the videos of ``read`` served by other hosts than their owner among ``hosts``
+    at ``weights`` (default equal; ``rank_hosts``): what weights, bounded load and copies moved."""
+    return sum(1 for v, h in read.items() if h != {rank_hosts(v, hosts, weights)[0]}) / max(1, len(read))
+
+
+def weight_fit(read: Dict[str, Set[str]], hosts: List[str]) -> dict:
+    """The weights (steps of 2 ** (1/4), the router's; the first host's 0) under which the fewest
+    videos of ``read`` are off their owner among ``hosts``, and that share: what weights explain,
+    the rest being bounded load and copies."""
+    best = (off_owner(read, hosts), [0] * len(hosts))
+    for steps in itertools.product(range(-4, 5), repeat=max(0, len(hosts) - 1)):
+        share = off_owner(read, hosts, {h: 2 ** (k / 4) for h, k in zip(hosts, (0, *steps))})
+        if share < best[0]:
+            best = (share, [0, *steps])
+    return {"steps": dict(zip(hosts, best[1])), "off_owner": best[0]}
+
+
+def epochs_looked(servers: Sequence[ServeProcess]) -> dict:
+    """Epochs 1 and 2 (index 0, 1) read from ``servers`` as one plan by one reader: epoch 2's
+    frame-cache hits and misses summed over the servers (a video passed twice is looked up twice),
+    its hit ratio, and the share of videos whose host changed between the epochs."""
+    hosts = [s.endpoint for s in servers]
+    ds = V2VStreamDataset(",".join(hosts), batch_size=1, outputs=OUTPUTS, timeout_s=300)
+    first = read_hosts(ds, 0)
+    before = settled(servers)
+    second = read_hosts(ds, 1)
+    after = settled(servers)
+    hits = sum(h for h, _ in after) - sum(h for h, _ in before)
+    misses = sum(m for _, m in after) - sum(m for _, m in before)
+    return {"hits": hits, "misses": misses, "hit_ratio": hits / max(1, hits + misses),
+            "epoch1_hits": sum(h for h, _ in before), "epoch1_misses": sum(m for _, m in before),
+            "videos": len(second), "videos_moved": changed(first, second),
+            "off_owner": [off_owner(r, hosts) for r in (first, second)],
+            "weight_fit": [weight_fit(r, hosts) for r in (first, second)],
+            "videos_of_two_hosts": sum(1 for h in second.values() if len(h) > 1) / max(1, len(second))}
+
+
+def cache_row(corpus: Path, d: Path) -> dict:
+    """Epoch 2's frame-cache hit ratio of A alone, then of A and B as one fleet (each its own
+    cache, cold at the start): the fleet's over the lone host's; the bar is 0.95."""
+    with cache_host(corpus, 0, d / "cache-alone") as A:
+        one = epochs_looked([A])
+    with cache_host(corpus, 0, d / "cache-a") as A, cache_host(corpus, 1, d / "cache-b") as B:
+        pair = epochs_looked([A, B])
+    out = {"alone": one, "fleet": pair, "fleet_over_alone": pair["hit_ratio"] / max(1e-9, one["hit_ratio"])}
+    print(f"cache: epoch 2 frame-cache hits: A alone {one['hit_ratio']:.3f} ({one['hits']} of "
+          f"{one['hits'] + one['misses']}), A and B as a fleet {pair['hit_ratio']:.3f} ({pair['hits']} of "
+          f"{pair['hits'] + pair['misses']}): "
+          f"{out['fleet_over_alone']:.3f} of the lone host's (bar 0.95); videos whose host changed between the "
+          f"fleet's epochs {pair['videos_moved']:.3f}, off their owner {pair['off_owner'][0]:.3f} and "
+          f"{pair['off_owner'][1]:.3f}", flush=True)
+    return out
+
+
+def moved_row(corpus: Path) -> dict:
+    """The share of videos whose host changes when a third host joins two (bar: 1/3 + 0.05): epoch 1
+    read by A and B, then by A, B and C with a fresh reader, so that only the fleet differs between
+    the reads (another epoch queues other videos together, which moves videos by bounded load
+    alone: the ``cache`` row's change between epochs). C shares core 1 with B."""
+    with host(corpus, 0) as A, host(corpus, 1) as B:
+        pair = [A.endpoint, B.endpoint]
+        two = read_hosts(V2VStreamDataset(",".join(pair), batch_size=1, outputs=OUTPUTS, timeout_s=300), 0)
+        with host(corpus, 1) as C:
+            trio = [*pair, C.endpoint]
+            three = read_hosts(V2VStreamDataset(",".join(trio), batch_size=1, outputs=OUTPUTS, timeout_s=300), 0)
+    owner = sum(1 for v in two if rank_hosts(v, pair)[0] != rank_hosts(v, trio)[0]) / max(1, len(two))
+    to_c = sum(1 for v, hosts in three.items() if C.endpoint in hosts) / max(1, len(three))
+    out = {"videos": len(two), "owner_moved": owner, "observed_moved": changed(two, three),
+           "served_by_joiner": to_c, "bar": 1 / 3 + 0.05, "off_owner": [off_owner(two, pair), off_owner(three, trio)],
+           "weight_fit": [weight_fit(two, pair), weight_fit(three, trio)]}
+    print(f"moved: a third host joining two: {out['observed_moved']:.3f} of {len(two)} videos changed host "
+          f"(owner alone {owner:.3f}, bar {out['bar']:.3f}); the joiner served {to_c:.3f}; off their owner "
+          f"{out['off_owner'][0]:.3f} of two hosts, {out['off_owner'][1]:.3f} of three", flush=True)
+    return out
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--copies", type=int, default=60, help="links to each bundled clip in the corpus")
@@ -231,13 +380,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--warmup", type=int, default=40, help="batches read unmeasured first")
     p.add_argument("--duty", type=float, default=1 / 3, help="the slow host's workers run this share of the time")
     p.add_argument("--stop-s", type=float, default=30.0)
-    p.add_argument("--rows", default="rates,stop,kill,join", help="which rows to run (comma-separated)")
+    p.add_argument("--rows", default=",".join(ROWS), help="which rows to run (comma-separated)")
     p.add_argument("--json", help="also write the results here")
     a = p.parse_args(argv)
     rows = set(a.rows.split(","))
-    unknown = rows - {"rates", "stop", "kill", "join"}
+    unknown = rows - set(ROWS)
     if unknown:
-        print(f"bench.fleet: --rows {','.join(sorted(unknown))}: not rows of this bench (rates, stop, kill, join)",
+        print(f"bench.fleet: --rows {','.join(sorted(unknown))}: not rows of this bench ({', '.join(ROWS)})",
               file=sys.stderr)
         return 2
     if a.json:
@@ -252,9 +401,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     res: Dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="v2v-fleet-") as d:
         corpus = make_corpus(Path(d) / "corpus", a.copies)
-        with host(corpus, 0) as A:
-            want = read_epoch(A.endpoint)  # one server's epoch: the ids and bytes every row must give
-            ra = rate(A.endpoint, a.batches, a.warmup) if "rates" in rows else 0.0
+        if rows & {"rates", "stop", "kill", "join"}:
+            with host(corpus, 0) as A:
+                want = read_epoch(A.endpoint)  # one server's epoch: the ids and bytes every row must give
+                ra = rate(A.endpoint, a.batches, a.warmup) if "rates" in rows else 0.0
         if "rates" in rows:
             res["rates"] = rates(corpus, a, ra)
         for fault in ("stop", "kill"):
@@ -262,6 +412,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                 res[fault] = fault_row(corpus, a, fault, want)
         if "join" in rows:
             res["join"] = join_row(corpus, want)
+        if "cache" in rows:
+            res["cache"] = cache_row(corpus, Path(d))
+        if "moved" in rows:
+            res["moved"] = moved_row(corpus)
     if a.json:
         write_whole(a.json, json.dumps(res, indent=1) + "\n")
     return 0
