@@ -44,6 +44,7 @@ from typing import Dict, List, Optional, Sequence, Set, Tuple
 import numpy as np
 
 from v2v_wire.commands import writable_problem, write_whole
+from v2v_client.fleet_pass import STEAL_S
 from v2v_wire.fleet import RateMeter, Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
 
@@ -262,7 +263,7 @@ class _World:
         self.running: Dict[Tuple[int, str], float] = {}  # (host, clip) decoding -> since when
         self.outstanding: Set[str] = set()  # clips asked and not made yet
         self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read
-        self.decodes, self.now, self.read = 0, 0.0, 0
+        self.decodes, self.now, self.read, self.head_since = 0, 0.0, 0, 0.0
         self.step_times: List[Tuple[int, float]] = []
 
     def start_work(self, k: int) -> None:
@@ -288,7 +289,9 @@ class _World:
             clip = self.by_need[self.asked_upto]
             self.asked_upto += 1
             if self.router is not None:
-                self.ask(clip, self.index[self.router.route(0, clip, needs[clip][1], self.t0 + self.now)])
+                due = (needs[clip][0] - self.read) / self.router.capacity()  # as the reader's Pass.due
+                self.ask(clip, self.index[self.router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due,
+                                                            position=needs[clip][0])])
             else:
                 self.ask(clip, self.lay.home[clip])
 
@@ -297,16 +300,25 @@ class _World:
             stop = min(self.lay.length, self.read + self.f.step)
             if any(c is not None and c not in self.done_at for c in self.lay.pos_clip[self.read:stop]):
                 return
-            self.read = stop
+            self.read, self.head_since = stop, self.now
             self.step_times.append((self.read, self.now))
 
     def hedge(self) -> None:
-        """The reader's clock: the clips asked of silent hosts are asked of their next hosts."""
+        """The reader's clock: the clips asked of silent hosts are asked of their next hosts; those
+        the step being read has waited on for ``STEAL_S`` are copied (``Router.copy``)."""
         r, at = self.router, self.t0 + self.now
         silent = {h for h in self.hosts if r.suspect(h, at)}
         waiting = [(0, c, self.lay.needs[c][1]) for c in self.outstanding if silent.intersection(r.asked.get((0, c), ()))]
         for _, c, h in r.hedges(sorted(waiting, key=lambda w: self.lay.needs[w[1]][0]), at):
             self.ask(c, self.index[h])
+        waited = self.now - self.head_since
+        if waited < STEAL_S:
+            return
+        for c in dict.fromkeys(self.lay.pos_clip[self.read:self.read + self.f.step]):
+            if c is not None and c not in self.done_at:
+                h = r.copy(0, c, self.lay.needs[c][1], at, r.asked.get((0, c), ()), self.lay.needs[c][0])
+                if h is not None:
+                    self.ask(c, self.index[h])
 
     def made(self, k: int, clip: str) -> None:
         """Host ``k``'s worker made ``clip``: the first copy is read."""
@@ -328,7 +340,7 @@ class _World:
 
     def run(self) -> None:
         self.ask_ahead()
-        tick = self.f.hedge_s / 2
+        tick = min(self.f.hedge_s, STEAL_S) / 2
         heapq.heappush(self.events, (tick, -1, ""))
         while self.read < self.lay.length:
             if not self.events:

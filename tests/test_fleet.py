@@ -77,14 +77,18 @@ def test_a_rate_meter_counts_samples_over_busy_seconds_and_forgets_the_old_ones(
 
 def test_a_slow_owner_keeps_the_videos_needed_later_and_sheds_those_needed_before_it_could_make_them():
     fast, slow = HOSTS[:2]
-    r = Router([fast, slow], slack=10.0)  # a wide slack: the deadline alone decides
+    r = Router([fast, slow], slack=0.25)
     r.answered(fast, 0, "", 0.0, False, rate=30.0)
     r.answered(slow, 0, "", 0.0, False, rate=3.0)
+    theirs = [v for v in VIDEOS if r.owner(v) == fast][:10]
+    for v in theirs:  # the fast host's queue: 30 samples needed from position 100 on
+        assert r.route(0, v, 3, 0.0, position=100) == fast
     mine = [v for v in VIDEOS if r.owner(v) == slow][:3]
-    assert r.route(0, mine[0], 3, 0.0, due=5.0) == slow  # 3 samples at 3/s: made in 1 s, due in 5
-    assert r.finish(slow, 3) == pytest.approx(2.0)  # its queue and 3 more
-    assert r.route(0, mine[1], 3, 0.0, due=1.5) == fast  # it would take 2 s: the fast host makes it
-    assert r.route(0, mine[2], 3, 0.0) == slow  # no deadline: the owner
+    assert r.finish(fast, 3, 10) == pytest.approx(0.1)  # it makes position 10's before its queue
+    assert r.route(0, mine[0], 3, 0.0, due=5.0, position=10) == slow  # 3 samples at 3/s: made in 1 s, due in 5
+    assert r.finish(slow, 3, 10) == pytest.approx(2.0)  # its queue and 3 more
+    assert r.route(0, mine[1], 3, 0.0, due=1.0, position=10) == fast  # 2 s > 1.25 x 1 s: the fast host makes it
+    assert r.route(0, mine[2], 3, 0.0, position=10) == fast  # no deadline, but its share of the load is full
     assert r.capacity() == pytest.approx(33.0)
 
 

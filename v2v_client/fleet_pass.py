@@ -19,7 +19,6 @@ from typing import Dict, List, Optional, Set, Tuple
 import numpy as np
 
 from v2v_wire.codecs import decode_batch_arrays
-from v2v_wire.fleet import rank_hosts
 from v2v_wire.outputs import wire_zeros_row
 from v2v_wire.plan import EpochPlan, Manifest
 from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, PlanInfo, Refused, Rows
@@ -148,9 +147,9 @@ class Pass:
             return
         count = len(ordinals) if ordinals else self.per_video()
         if v.host in self.router.hosts and not self.router.suspect(v.host, now):
-            self.router.ask(v.host, self.epoch, video, count, now)
+            self.router.ask(v.host, self.epoch, video, count, now, v.position)
         else:
-            v.host = self.router.route(self.epoch, video, count, now, due=self.due(v.position))
+            v.host = self.router.route(self.epoch, video, count, now, due=self.due(v.position), position=v.position)
         if v.host is not None:
             self.send(video, ordinals, v.host, now)
         elif self.router.hosts or not self.fleet.refused:  # every host gone, silent or not joined yet
@@ -314,6 +313,8 @@ class Pass:
                 del v.flight[hr]
                 self.flight.pop(hr, None)
         self.router.answered(ep, self.epoch, video, now, not any(h == ep for h, _, _ in v.flight.values()), msg.rate)
+        if msg.rate:
+            self.fleet.rates[ep] = msg.rate
         if not v.flight:
             self.router.finished(self.epoch, video)
 
@@ -321,15 +322,11 @@ class Pass:
 def steal(read: "Pass", now: float, late: bool) -> None:
     """Copies of the videos the head waits on, the samples its positions hold or the windows
     that decide them (the first copy's answer wins), once the head has waited :data:`STEAL_S`
-    (``late``): of each to a host with nothing asked of it, else to the next host of its
-    ranking that does not hold it, where it goes first (its position is the fleet's
-    earliest); only where that host would make it sooner, at the rates the hosts said, than
-    the host asked would clear its queue, or the host asked is a second overdue on that. A
-    slow host's videos stop gating the fleet, at the cost of a decode where a host would
-    otherwise idle or where the step would wait."""
+    (``late``), of the host ``Router.copy`` picks, where it goes first (its position is the
+    fleet's earliest). A slow host's videos stop gating the fleet, at the cost of a decode
+    where a host would otherwise idle or where the step would wait."""
     if not late:
         return
-    idle = [h for h, st in read.router.hosts.items() if not st.queued and not read.router.suspect(h, now)]
     start, stop = read.spans[read.window[0]]
     missing: Dict[str, Optional[List[int]]] = {}
     for p in range(start, min(stop, read.plan.known)):
@@ -340,25 +337,15 @@ def steal(read: "Pass", now: float, late: bool) -> None:
         for video in read.plan.next_videos(UNFOLD_PER_HOST * len(read.router.hosts)):
             if video not in read.fleet.windows and video in read.told:
                 missing.setdefault(video, None)
-    weights, waited = read.router.weights(), now - read.head_since
     for video, ords in missing.items():
         v = read.videos.get(video)
         if v is None or not v.flight:
             continue
-        asked = {h for h, _, _ in v.flight.values()}
-        h = next((x for x in idle if x not in asked), None)
-        if h is None and len(asked) == 1:
-            h = next((x for x in rank_hosts(video, list(read.router.hosts), weights)
-                      if x not in asked and not read.router.suspect(x, now)), None)
+        asked = sorted({h for h, _, _ in v.flight.values()})
         n = len(ords) if ords else read.per_video()
-        clears = min((read.router.finish(a, 0) for a in asked if a in read.router.hosts), default=0.0)
-        if h is None or read.router.finish(h, n) >= clears and waited < STEAL_S + clears:
-            continue
-        read.send(video, None if ords is None else tuple(sorted(ords)), h, now)
-        read.router.ask(h, read.epoch, video, n, now)
-        if h in idle:
-            idle.remove(h)
-
+        h = read.router.copy(read.epoch, video, n, now, asked, v.position)
+        if h is not None:
+            read.send(video, None if ords is None else tuple(sorted(ords)), h, now)
 
 def take(read: "Pass", timeout_s: float) -> None:
     """Wait up to half a second for the hosts' answers to pass ``read`` and take them (:meth:`Pass.receive`).

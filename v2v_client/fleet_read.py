@@ -166,6 +166,8 @@ class Fleet:
         curve: CurveZMQ keys (``endpoints.load_curve_keys``) or None.
         compression: the codec setting (``"auto"``: per host, ``endpoints.auto_compression``).
         windows: video -> windows learned so far (kept by the caller across passes; updated).
+        rates: host -> the samples/s it said (kept by the caller across passes, so that an
+            unchanged fleet routes each video where it did; updated).
         ahead: positions past the step being read whose videos are asked for (None: ten decodes
             per worker of the fleet, as ``harness.fleet_sim`` measured is needed, at least the
             prefetched steps).
@@ -174,9 +176,10 @@ class Fleet:
 
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
-                 hedge_s: float = HEDGE_S):
+                 hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
+        self.rates = {} if rates is None else rates
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
         self.workers: Dict[str, int] = {}
@@ -220,7 +223,7 @@ class Fleet:
         codecs = info.stream.get("codecs", ())
         link.compression = self.compression if self.compression != "auto" else auto_compression(ep, codecs)
         self.workers[ep] = int((info.stream.get("feed") or {}).get("workers") or 1)
-        self.router.join(ep, now)
+        self.router.join(ep, now, self.rates.get(ep))
 
     def _resolve(self, now: float) -> None:
         """Resolve the endpoint again: ask new hosts what they serve; hand a gone host's videos on."""

@@ -41,6 +41,7 @@ class Servers:
         self.samples: List[Optional[int]] = []  # each shard's samples per epoch when asked (None: not known)
         self.fleet: Optional[List[Tuple[str, PlanInfo]]] = None  # a fleet's hosts serving the plan
         self.windows: Dict[str, int] = {}  # a fleet's videos' windows learned in this process
+        self.rates: Dict[str, float] = {}  # a fleet's hosts' decode rates they said to this process
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -113,7 +114,7 @@ class Servers:
         (``fleet_read.Fleet``)."""
         if self.fleet is not None:
             return Fleet(self.endpoint, self.fleet, self.fleet[0][1].plan, timeout_s, curve, self.compression,
-                         self.windows)
+                         self.windows, rates=self.rates)
         return Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:

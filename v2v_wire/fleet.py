@@ -19,17 +19,19 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   measures, not the reader: a reader sees only the answers it waited for, and a host whose work
   was copied elsewhere, or that was still starting, would read slower than it is and be starved
   of the work that would measure it again.
-* **Bounded load, in time.** A video goes to the first host of its ranking whose queued samples
+* **Bounded load, and in time.** A video goes to the first host of its ranking whose queued samples
   stay within ``1 + slack`` times its share (its rate over the fleet's) of everything queued
   (Mirrokni, Thorup & Zadimoghaddam, "Consistent hashing with bounded loads"), and that would
-  make it, at its rate, before the reader's head reaches it (``due``); else to the host that
-  would make it first. A host that falls behind sheds new videos to the next hosts of their
-  rankings until it catches up, and a slow host is given the videos needed later, not those the
-  reader is about to wait on.
-* **Hedging.** A video a reader waits on, asked of a host that answered nothing for ``hedge_s``
-  (stalled, stopped, gone), is asked of the next host of its ranking too; the first copy's rows
-  win (:meth:`Router.hedges`). A host silent for ``hedge_s`` with work queued is *suspect*: it is
-  routed nothing new until it answers again.
+  make it, at its rate and after what it holds for earlier positions, within ``1 + slack`` times
+  the seconds until the reader's head reaches it (``due``); else to the host that would make it
+  first. A host that falls behind sheds new videos to the next hosts of their rankings until it
+  catches up, and a slow host is given the videos needed later, not those the reader is about
+  to wait on.
+* **Copies and hedging.** A video the reader waits on is copied to a host with nothing queued
+  where that host would make it sooner (:meth:`Router.copy`); one asked only of hosts that
+  answered nothing for ``hedge_s`` (stalled, stopped, gone) is asked of the next host of its
+  ranking too (:meth:`Router.hedges`); the first copy's rows win. A host silent for ``hedge_s``
+  with work queued is *suspect*: it is routed nothing new until it answers again.
 
 ``harness/fleet_sim.py`` runs these rules over 128 simulated hosts; ``tests/test_fleet.py``
 checks each property.
@@ -145,6 +147,7 @@ class RateMeter:
 class _Host:
     rate: Optional[float] = None  # samples/s, as the host last said (None: not yet)
     queued: Dict[Tuple[int, str], int] = field(default_factory=dict)  # (epoch, video) -> samples
+    at: Dict[Tuple[int, str], int] = field(default_factory=dict)  # (epoch, video) -> its first position needing it
     load: int = 0  # the samples queued, summed
     heard: float = 0.0  # when it last answered (or joined)
     step: Optional[int] = None  # weight step (None: not measured yet)
@@ -175,14 +178,15 @@ class Router:
             self.join(h, now)
 
     # ------------------------------------------------------------------ the fleet
-    def join(self, host: str, now: float) -> None:
-        """``host`` serves from ``now`` on.
+    def join(self, host: str, now: float, rate: Optional[float] = None) -> None:
+        """``host`` serves from ``now`` on; ``rate``: the samples/s it said before (a reader's
+        earlier pass), which weighs it until it says anew.
 
         Raises:
             ValueError: a host already in the fleet."""
         if host in self.hosts:
             raise ValueError(f"host {host!r} is in the fleet already")
-        self.hosts[host] = _Host(heard=now)
+        self.hosts[host] = _Host(heard=now, rate=rate)
 
     def leave(self, host: str) -> List[Tuple[int, str]]:
         """``host`` is gone: returns the (epoch, video) it held and no other host was asked for,
@@ -221,12 +225,14 @@ class Router:
 
     # ------------------------------------------------------------------ routing
     def route(self, epoch: int, video: str, samples: int, now: float, exclude: Sequence[str] = (),
-              due: Optional[float] = None) -> Optional[str]:
+              due: Optional[float] = None, position: Optional[int] = None) -> Optional[str]:
         """The host to ask for ``samples`` samples of ``video`` in ``epoch``: the first of its
         ranking that is not suspect, not in ``exclude``, within its bounded load (its queued
         samples and these within ``1 + slack`` times its share, its weight over the fleet's, of
         everything queued) and, where the reader needs the video within ``due`` seconds, that
-        would make it by then (:meth:`finish`); else the one of those that would make it first.
+        would make it within ``1 + slack`` times that (:meth:`finish`; a host makes the videos
+        asked of it in the order of ``position``, the first position needing each); else the one
+        of those that would make it first.
         None when no host is left.
 
         The host's queue takes the video (:meth:`answered` and :meth:`finished` clear it)."""
@@ -240,18 +246,21 @@ class Router:
         pick = None
         for h in ranking:
             if self.hosts[h].load + samples <= (1 + self.slack) * total * weights[h] / weight and \
-                    (due is None or self.finish(h, samples) <= due):
+                    (due is None or self.finish(h, samples, position) <= (1 + self.slack) * due):
                 pick = h
                 break
         if pick is None:
-            pick = min(ranking, key=lambda h: self.finish(h, samples))
-        self.ask(pick, epoch, video, samples, now)
+            pick = min(ranking, key=lambda h: self.finish(h, samples, position))
+        self.ask(pick, epoch, video, samples, now, position)
         return pick
 
-    def finish(self, host: str, samples: int) -> float:
-        """Seconds ``host`` would take to make its queued samples and ``samples`` more, at the
+    def finish(self, host: str, samples: int, position: Optional[int] = None) -> float:
+        """Seconds ``host`` would take to make ``samples`` more at ``position`` and its queued
+        samples it makes first (those at earlier positions; all, for ``position`` None), at the
         rate it said (a host that said none yet: the fleet's mean, else 1 sample/s)."""
-        return (self.hosts[host].load + samples) / (self.hosts[host].rate or self.mean_rate() or 1.0)
+        s = self.hosts[host]
+        first = s.load if position is None else sum(n for ev, n in s.queued.items() if s.at.get(ev, 0) <= position)
+        return (first + samples) / (s.rate or self.mean_rate() or 1.0)
 
     def mean_rate(self) -> Optional[float]:
         """The mean of the rates the hosts said (samples/s), None before any."""
@@ -289,15 +298,18 @@ class Router:
         """Samples queued on every host, summed."""
         return self._load
 
-    def ask(self, host: str, epoch: int, video: str, samples: int, now: float) -> None:
-        """``host`` is asked ``samples`` more samples of ``video`` (a reader that keeps asking one
-        host for a video's samples as its plan decides them)."""
+    def ask(self, host: str, epoch: int, video: str, samples: int, now: float,
+            position: Optional[int] = None) -> None:
+        """``host`` is asked ``samples`` more samples of ``video``, first needed at ``position``
+        (a reader that keeps asking one host for a video's samples as its plan decides them)."""
         s = self.hosts.get(host)
         if s is None:
             return
         if not s.queued:
             s.heard = max(s.heard, now)  # an idle host's silence counts from its first ask
         self._queue(s, (epoch, video), samples)
+        if position is not None:
+            s.at[(epoch, video)] = min(s.at.get((epoch, video), position), position)
         asked = self.asked.setdefault((epoch, video), [])
         if host not in asked:
             asked.append(host)
@@ -308,11 +320,27 @@ class Router:
         self._load += samples
 
     def _unqueue(self, s: _Host, ev: Tuple[int, str]) -> None:
+        s.at.pop(ev, None)
         n = s.queued.pop(ev, None)
         if n is None:
             return
         s.load -= n
         self._load -= n
+
+    def copy(self, epoch: int, video: str, samples: int, now: float, asked: Sequence[str],
+             position: Optional[int] = None) -> Optional[str]:
+        """The host to ask a copy of ``video`` (``samples`` samples, first needed at
+        ``position``) that a reader waits on, asked of ``asked``: a host with nothing queued,
+        not suspect, that would make it sooner (:meth:`finish`) than the hosts asked would (a
+        slow host, or one with earlier work queued). The host's queue takes the video; None: no
+        copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
+        hosts = [h for h in asked if h in self.hosts]
+        free = [h for h, s in self.hosts.items() if not s.queued and h not in asked and not self.suspect(h, now)]
+        clears = min((self.finish(h, 0, position) for h in hosts), default=0.0)
+        if not free or self.finish(free[0], samples, position) >= clears:
+            return None
+        self.ask(free[0], epoch, video, samples, now, position)
+        return free[0]
 
     def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float) -> List[Tuple[int, str, str]]:
         """Of the videos a reader waits on (``(epoch, video, samples)``), those asked only of hosts
