@@ -244,8 +244,9 @@ class _World:
     free workers, the events to come (a decode's end; the reader's clock), what was made where,
     and the positions read (module docstring)."""
 
-    def __init__(self, f: Fleet, lay: _Layout, router: Optional[Router]):
+    def __init__(self, f: Fleet, lay: _Layout, router: Optional[Router], held: Optional[Dict[str, str]] = None):
         self.f, self.lay, self.router, self.n = f, lay, router, f.hosts
+        self.held = held or {}  # clip -> the host that made it the epoch before (its frame cache holds it)
         self.speeds = _speeds(f)  # samples/s of one worker of each host
         self.stalls = _Stalls(f, 4 * lay.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
         self.hosts = [f"host-{k:03d}" for k in range(self.n)]
@@ -291,7 +292,7 @@ class _World:
             if self.router is not None:
                 due = (needs[clip][0] - self.read) / self.router.capacity()  # as the reader's Pass.due
                 self.ask(clip, self.index[self.router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due,
-                                                            position=needs[clip][0])])
+                                                            position=needs[clip][0], held=self.held.get(clip))])
             else:
                 self.ask(clip, self.lay.home[clip])
 
@@ -354,9 +355,11 @@ class _World:
             heapq.heappush(self.events, (self.now + tick, -1, ""))
 
 
-def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = None) -> Result:
+def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = None,
+             held: Optional[Dict[str, str]] = None) -> Result:
     """One epoch of fleet ``f`` split as ``mode`` (``"routed"`` or ``"static"``); ``router``: a
-    reader's router kept from an earlier epoch (routed only; default a new one).
+    reader's router kept from an earlier epoch (routed only; default a new one); ``held``: clip ->
+    the host that made it in that epoch (its frame cache holds it).
 
     Raises:
         ValueError: another mode, naming it."""
@@ -364,8 +367,8 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = Non
         raise ValueError(f"mode must be 'routed' or 'static', got {mode!r}")
     lay = _layout(f, mode, epoch)
     if mode == "routed" and router is None:
-        router = Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s)
-    w = _World(f, lay, router if mode == "routed" else None)
+        router = Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S)
+    w = _World(f, lay, router if mode == "routed" else None, held)
     w.run()
     end, length = w.now, lay.length
     lo, hi = int(0.1 * length), int(0.9 * length)
@@ -398,9 +401,9 @@ def static_padding(videos: int, shards: Sequence[int], seed: int = 0) -> Dict[in
 def stay(f: Fleet) -> float:
     """The share of clips one reader's router has decoded on the same host in two epochs in a row
     (a frame cache's hits in the second epoch, over one host's): routed, the fleet unchanged."""
-    router = Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s)
+    router = Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S)
     first = simulate(f, "routed", 0, router).made_by
-    second = simulate(f, "routed", 1, router).made_by
+    second = simulate(f, "routed", 1, router, first).made_by
     return sum(first.get(c) == h for c, h in second.items()) / max(1, len(second))
 
 

@@ -165,9 +165,26 @@ def test_static_shards_pad_more_rows_the_more_shards_a_corpus_is_split_into():
     assert pad[128] > 0.2  # docs/scaling.md's table: a quarter of the rows at 128 shards of 10k clips
 
 
-def test_a_clip_stays_on_its_host_from_one_epoch_to_the_next_for_most_clips():
-    share = stay(Fleet(hosts=16, videos=8000))
-    assert 0.75 <= share < 1.0  # docs/scaling.md: 0.79-0.89 at 16 hosts, short of a warm cache's needs
+def test_a_clip_stays_on_its_host_from_one_epoch_to_the_next_while_the_fleet_does_not_change():
+    """docs/scaling.md: with stalls and spread speeds, 0.95 and more of the clips are made where
+    the epoch before made them (a warm frame cache), routed to their last host while it is in time."""
+    assert stay(Fleet(hosts=16, videos=8000)) >= 0.95
+
+
+def test_a_videos_last_host_keeps_it_past_its_load_share_while_in_time_and_not_once_late():
+    a, b = HOSTS[:2]
+    r = Router([a, b], slack=0.25, patience_s=1.0)
+    for h in (a, b):
+        r.answered(h, 0, "", 0.0, False, rate=10.0)
+    theirs = [v for v in VIDEOS if r.owner(v) == a][:5]
+    for v in theirs:  # a holds 15 samples needed from position 0 on, b nothing: a is past its share
+        r.ask(a, 0, v, 3, 0.0, position=0)
+    v = next(x for x in VIDEOS if r.owner(x) == a and x not in theirs)
+    assert r.route(0, v, 3, 0.0, due=10.0, position=50) == b  # bounded load sheds it
+    r.finished(0, v)
+    assert r.route(0, v, 3, 0.0, due=10.0, position=50, held=a) == a  # its frames are on a: 1.8 s, due in 10
+    r.finished(0, v)
+    assert r.route(0, v, 3, 0.0, due=0.5, position=50, held=a) == b  # 1.8 s > 1.25 x 0.5 s + 1 s of patience
 
 
 
@@ -184,7 +201,7 @@ def _fleet_pass(slots, hosts, stream=None, start=0, stop=2, others=()):
 
     m = Manifest.of(slots)
     plan = PlanIdentity(m.fingerprint(), "recipe", 0, 1)
-    fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, workers={}, ahead=None, links={},
+    fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, made={}, workers={}, ahead=None, links={},
                             like=None, endpoint=",".join(hosts), refused=set(), last_served=None, stream=stream)
     sent = []
     for h in [*hosts, *others]:

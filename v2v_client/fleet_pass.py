@@ -149,7 +149,8 @@ class Pass:
         if v.host in self.router.hosts and not self.router.suspect(v.host, now):
             self.router.ask(v.host, self.epoch, video, count, now, v.position)
         else:
-            v.host = self.router.route(self.epoch, video, count, now, due=self.due(v.position), position=v.position)
+            v.host = self.router.route(self.epoch, video, count, now, due=self.due(v.position), position=v.position,
+                                       held=self.fleet.made.get(video))
         if v.host is not None:
             self.send(video, ordinals, v.host, now)
         elif self.router.hosts or not self.fleet.refused:  # every host gone, silent or not joined yet
@@ -300,12 +301,13 @@ class Pass:
         except ProtocolError as e:
             raise PlanServerError(f"{ep}: rows of {video}: {e}") from None
         if v.host != ep and (ordinals is None or any((video, o) not in self.got for o in ordinals)):
-            v.host = ep  # it answered first: it holds the video's samples for the asks that follow
+            v.host = ep  # it answered first: it holds the video's samples (and frames) for the asks that follow
         for j, o in enumerate(ordinals or ()):
             if (video, o) in self.got:
                 continue  # another copy came first
             row = {name: a[j] for name, a in arrays.items()}
             self.got[(video, o)] = (msg.sample_ids[j], msg.padding[j], msg.params[j], row, ep)
+            self.fleet.made[video] = ep
         if self.fleet.like is None:  # a row of zeros of each array (a reply of padding rows only gives their shapes)
             self.fleet.like = {name: np.zeros(a.shape[1:], a.dtype) for name, a in arrays.items()}
         for hr, (h, ords, _) in list(v.flight.items()):  # copies of what is now got

@@ -36,7 +36,7 @@ from v2v_wire.plan_messages import ManifestAsk, ManifestPart, PlanAsk, PlanInfo,
 
 from .endpoints import auto_compression, resolve_endpoints
 from .fetch import Link, PlanServerError
-from .fleet_pass import Pass, take
+from .fleet_pass import STEAL_S, Pass, take
 
 __all__ = ["Fleet", "load_manifest", "asked_fleet", "listing_diff", "HEDGE_S", "RESOLVE_S"]
 
@@ -168,6 +168,8 @@ class Fleet:
         windows: video -> windows learned so far (kept by the caller across passes; updated).
         rates: host -> the samples/s it said (kept by the caller across passes, so that an
             unchanged fleet routes each video where it did; updated).
+        made: video -> the host whose rows of it were read last (its frame cache holds the
+            video: kept by the caller across passes, ``Router.route``'s ``held``; updated).
         ahead: positions past the step being read whose videos are asked for (None: ten decodes
             per worker of the fleet, as ``harness.fleet_sim`` measured is needed, at least the
             prefetched steps).
@@ -176,15 +178,17 @@ class Fleet:
 
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
-                 hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None):
+                 hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None,
+                 made: Optional[Dict[str, str]] = None):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
         self.rates = {} if rates is None else rates
+        self.made = {} if made is None else made
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
         self.workers: Dict[str, int] = {}
         self.refused: Set[str] = set()  # hosts serving another plan: named once, left out
-        self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic())
+        self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S)
         self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
         for ep, info in hosts:
             self.join(ep, info, time.monotonic())

@@ -42,6 +42,7 @@ class Servers:
         self.fleet: Optional[List[Tuple[str, PlanInfo]]] = None  # a fleet's hosts serving the plan
         self.windows: Dict[str, int] = {}  # a fleet's videos' windows learned in this process
         self.rates: Dict[str, float] = {}  # a fleet's hosts' decode rates they said to this process
+        self.made: Dict[str, str] = {}  # a fleet's videos -> the host whose rows of it this process read last
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -114,7 +115,7 @@ class Servers:
         (``fleet_read.Fleet``)."""
         if self.fleet is not None:
             return Fleet(self.endpoint, self.fleet, self.fleet[0][1].plan, timeout_s, curve, self.compression,
-                         self.windows, rates=self.rates)
+                         self.windows, rates=self.rates, made=self.made)
         return Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:

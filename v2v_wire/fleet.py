@@ -161,16 +161,20 @@ class Router:
         slack: how far past its share of the queued samples a host is still routed to (> 0).
         hedge_s: seconds a host may answer nothing while a reader waits on it before its videos
             are asked of the next hosts too.
+        patience_s: seconds a reader waits on a video before it asks a copy (:meth:`copy`): how
+            late a video's last host may make it and keep it (:meth:`route`).
         now: the clock's reading at start.
 
     Raises:
         ValueError: ``slack`` or ``hedge_s`` <= 0, or a host named twice.
     """
 
-    def __init__(self, hosts: Iterable[str], slack: float = 0.25, hedge_s: float = 10.0, now: float = 0.0):
-        if slack <= 0 or hedge_s <= 0:
-            raise ValueError(f"slack and hedge_s must be > 0, got {slack} and {hedge_s}")
-        self.slack, self.hedge_s = slack, hedge_s
+    def __init__(self, hosts: Iterable[str], slack: float = 0.25, hedge_s: float = 10.0, now: float = 0.0,
+                 patience_s: float = 1.0):
+        if slack <= 0 or hedge_s <= 0 or patience_s < 0:
+            raise ValueError(f"slack and hedge_s must be > 0 and patience_s >= 0, got {slack}, {hedge_s} and "
+                             f"{patience_s}")
+        self.slack, self.hedge_s, self.patience_s = slack, hedge_s, patience_s
         self.hosts: Dict[str, _Host] = {}
         self.asked: Dict[Tuple[int, str], List[str]] = {}  # (epoch, video) -> the hosts asked, in order
         self._load = 0
@@ -225,15 +229,20 @@ class Router:
 
     # ------------------------------------------------------------------ routing
     def route(self, epoch: int, video: str, samples: int, now: float, exclude: Sequence[str] = (),
-              due: Optional[float] = None, position: Optional[int] = None) -> Optional[str]:
+              due: Optional[float] = None, position: Optional[int] = None,
+              held: Optional[str] = None) -> Optional[str]:
         """The host to ask for ``samples`` samples of ``video`` in ``epoch``: the first of its
         ranking that is not suspect, not in ``exclude``, within its bounded load (its queued
         samples and these within ``1 + slack`` times its share, its weight over the fleet's, of
         everything queued) and, where the reader needs the video within ``due`` seconds, that
         would make it within ``1 + slack`` times that (:meth:`finish`; a host makes the videos
         asked of it in the order of ``position``, the first position needing each); else the one
-        of those that would make it first.
-        None when no host is left.
+        of those that would make it first. ``held``, the host that made the video last (its
+        frame cache holds it), is kept before them while it would make it in time, or
+        :attr:`patience_s` late, whatever its load: a load bound crossed by a few samples' chance
+        would move a video off its warm cache (a small fleet's share of a reader's queue is a few
+        videos), and a host that falls behind falls behind its deadlines too. None when no host
+        is left.
 
         The host's queue takes the video (:meth:`answered` and :meth:`finished` clear it)."""
         weights = self.weights()
@@ -243,12 +252,16 @@ class Router:
             return None
         total = self.load + samples
         weight = sum(weights[h] for h in ranking)
-        pick = None
-        for h in ranking:
-            if self.hosts[h].load + samples <= (1 + self.slack) * total * weights[h] / weight and \
-                    (due is None or self.finish(h, samples, position) <= (1 + self.slack) * due):
-                pick = h
-                break
+
+        def in_time(h: str, late_s: float = 0.0) -> bool:
+            return due is None or self.finish(h, samples, position) <= (1 + self.slack) * due + late_s
+
+        if held in ranking and due is not None and in_time(held, self.patience_s):
+            pick = held
+        else:
+            pick = next((h for h in ranking
+                         if self.hosts[h].load + samples <= (1 + self.slack) * total * weights[h] / weight and in_time(h)),
+                        None)
         if pick is None:
             pick = min(ranking, key=lambda h: self.finish(h, samples, position))
         self.ask(pick, epoch, video, samples, now, position)
