@@ -51,7 +51,7 @@ import sys
 import time
 import traceback
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 from harness.plan_world_fleet import FleetWorld
 from harness.plan_world_jobs import OUTPUTS, Job, Reading
@@ -324,13 +324,25 @@ TOTALS = ("sharded", "restarts", "resumes", "rollbacks", "widened", "replaced", 
           "fleet_resumes", "resized", "hedged", "copies")
 
 
+def _seeds(text: str) -> Tuple[int, int]:
+    """``--seeds a:b``: integers 0 <= a <= b (argparse names the option on error)."""
+    lo, _, hi = text.partition(":")
+    try:
+        lo_i, hi_i = int(lo), int(hi)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a range a:b of integers") from None
+    if not 0 <= lo_i <= hi_i:
+        raise argparse.ArgumentTypeError(f"{text!r}: a range a:b needs 0 <= a <= b")
+    return lo_i, hi_i
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", default="0:1000", help="a range a:b of seeds (b excluded)")
+    ap.add_argument("--seeds", default="0:1000", type=_seeds, help="a range a:b of seeds (b excluded)")
     ap.add_argument("--json", action="store_true", help="one JSON line of totals")
     a = ap.parse_args(argv)
     logging.getLogger("v2v.client").setLevel(logging.ERROR)  # a fleet's hosts left out and back, by the thousand
-    lo, hi = (int(x) for x in a.seeds.split(":"))
+    lo, hi = a.seeds
     t = time.perf_counter()
     failed, totals = [], dict.fromkeys(TOTALS, 0)
     for seed in range(lo, hi):

@@ -285,3 +285,13 @@ def test_a_fleet_hosts_decode_is_kept_for_the_makes_that_follow_it_in_a_full_sto
         assert scheduler.task_for("w", t0 + 1 + i) is None, i  # no decode again
         (o, rows), = scheduler.answer(t0 + 1 + i)
         assert [r.sample for r in rows] == [f"a {i}"]
+
+
+def test_a_bad_seed_range_is_one_usage_error_naming_the_option(capsys):
+    from harness.plan_world import main
+    for bad in ("x:y", "5:3", "7"):
+        with pytest.raises(SystemExit) as e:
+            main(["--seeds", bad])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert "argument --seeds" in err and repr(bad) in err and "Traceback" not in err
