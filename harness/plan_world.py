@@ -43,6 +43,13 @@ runs 1,000 seeds); ``--seeds 35:36`` replays one.
 """
 from __future__ import annotations
 
+if __name__ == "__main__":  # Ctrl-C or SIGTERM from the start, the imports below included: one line
+    import sys
+
+    from v2v_wire.commands import run_command
+
+    sys.exit(run_command("harness.plan_world", "harness.plan_world:main"))
+
 import argparse
 import json
 import logging
@@ -357,7 +364,3 @@ def main(argv: Optional[List[str]] = None) -> int:
                "seconds": round(time.perf_counter() - t, 1)}
     print(json.dumps(summary) if a.json else f"{hi - lo} seeds, {len(failed)} failed; {totals}")
     return 1 if failed else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -97,6 +97,7 @@ class Pass:
         self.parked: List[Tuple[str, Optional[Tuple[int, ...]]]] = []  # asks no host could take yet
         self.heard = self.head_since = time.monotonic() if now is None else now
         self.exhausted = False
+        self._windows = (-1, 0)  # (videos whose windows are known, their windows summed): per_video's
         self.examined = 0  # the first position of the window :meth:`ask_window` has not looked at
 
     # ------------------------------------------------------------------ asking
@@ -163,7 +164,9 @@ class Pass:
         """Samples a video gives, on average over those whose windows are known (a make of a
         video's windows decodes all of them)."""
         w = self.fleet.windows
-        return max(1, round(self.kpw * sum(w.values()) / len(w))) if w else self.kpw
+        if self._windows[0] != len(w):  # learned elsewhere than :meth:`receive`: counted again
+            self._windows = (len(w), sum(w.values()))
+        return max(1, round(self.kpw * self._windows[1] / self._windows[0])) if w else self.kpw
 
     def due(self, position: int) -> Optional[float]:
         """Seconds until the head reaches ``position`` at the fleet's rate (None: a position past
@@ -295,6 +298,8 @@ class Pass:
         v.flight.pop((ep, msg.request), None)
         if msg.windows is not None and video not in self.fleet.windows:
             self.fleet.windows[video] = msg.windows
+            if self._windows[0] == len(self.fleet.windows) - 1:
+                self._windows = (self._windows[0] + 1, self._windows[1] + msg.windows)
             self.plan.learn(self.fleet.windows)
         try:
             arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)

@@ -35,7 +35,7 @@ from typing import Dict, Mapping, Optional, Tuple
 import numpy as np
 
 __all__ = ["ArraySpec", "ARRAYS", "OUTPUTS", "DEFAULT_OUTPUTS", "ARRAY_OUTPUT", "output_of", "spec_of",
-           "wire_dtype", "narrowest", "max_sample_bytes", "row_array", "zeros_row", "wire_zeros_row", "column_outputs",
+           "wire_dtype", "narrowest", "max_sample_bytes", "row_array", "zeros_row", "wire_row", "wire_zeros_row", "column_outputs",
            "narrow_int_dtype"]
 
 
@@ -214,13 +214,20 @@ def zeros_row(array_name: str, sequence_length: int, num_bins: int, crop_size: i
     return row_array(array_name, np.zeros(s.shape(sequence_length, num_bins, crop_size), s.dtypes[0]), flow_dtype)
 
 
-def wire_zeros_row(output: str, stream: Mapping) -> np.ndarray:
-    """One row of zeros of ``output`` as a server's reply of padding rows only carries it: its wire
-    shape and narrowest dtype (the recipe's ``flow_dtype`` for ``flow``), from the server's stream
-    info (``sequence_length``, ``num_bins``, ``crop_size``, ``flow_dtype``)."""
+def wire_row(output: str, sequence_length: int, num_bins: int, crop_size: int, flow_dtype: str) -> Tuple[tuple, str]:
+    """(shape, dtype) of one row of ``output`` as the wire carries a sample's array: its wire
+    shape and narrowest dtype (``flow_dtype``, the recipe's, for ``flow``)."""
     s = spec_of(output)
-    dtype = stream.get("flow_dtype", "float16") if s.column_dtype == "recipe" else s.dtypes[0]
-    return np.zeros(s.shape(stream["sequence_length"], stream["num_bins"], stream["crop_size"]), dtype)
+    return tuple(s.shape(sequence_length, num_bins, crop_size)), flow_dtype if s.column_dtype == "recipe" \
+        else s.dtypes[0]
+
+
+def wire_zeros_row(output: str, stream: Mapping) -> np.ndarray:
+    """One row of zeros of ``output`` as a server's reply of padding rows only carries it
+    (:func:`wire_row`), from the server's stream info (``sequence_length``, ``num_bins``,
+    ``crop_size``, ``flow_dtype``)."""
+    return np.zeros(*wire_row(output, stream["sequence_length"], stream["num_bins"], stream["crop_size"],
+                              stream.get("flow_dtype", "float16")))
 
 
 def column_outputs(names: Mapping) -> Tuple[str, ...]:

@@ -35,7 +35,7 @@ from v2v_server.service.worker_side import WorkerSide
 from v2v_server.sources.source import VideoSource
 from v2v_wire.batches import encode_batch, frame_size, stack_arrays
 from v2v_wire.codecs import COMPRESSIONS, available
-from v2v_wire.outputs import narrowest, spec_of
+from v2v_wire.outputs import narrowest, wire_row
 from v2v_wire.plan import Manifest, PlanIdentity
 from v2v_wire.plan_messages import (MANIFEST_PART, BadPeers, Make, ManifestAsk, ManifestPart, OldClient, PlanAsk,
                                      PlanInfo, Refused, Rows, WireError, decode_plan_client, old_client_answer)
@@ -317,9 +317,7 @@ class PlanServer:
 def _wire_row(output: str, c: ServeConfig) -> Tuple[tuple, str]:
     """(shape, dtype) of one row of ``output`` as the wire carries a sample's array (a Ray row's has
     the channel axis the client inserts)."""
-    s = spec_of(output)
-    return tuple(s.shape(c.sequence_length, c.num_bins, c.crop_size)), c.flow_dtype if s.column_dtype == "recipe" \
-        else s.dtypes[0]
+    return wire_row(output, c.sequence_length, c.num_bins, c.crop_size, c.flow_dtype)
 
 
 def _wire_zeros(output: str, rows: int, c: ServeConfig) -> np.ndarray:
