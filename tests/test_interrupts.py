@@ -275,3 +275,49 @@ def test_an_interrupt_where_python_cannot_raise_it_is_raised_after(tmp_path, whe
                        env={**os.environ, "PYTHONFAULTHANDLER": "1"})
     said = "v2v-x: stopped (SIGTERM)" if sig == signal.SIGTERM else "v2v-x: interrupted (Ctrl-C)"
     assert (r.returncode, r.stderr.strip()) == (128 + sig, said), (r.returncode, r.stderr[-3000:])
+
+
+BOXING = '''
+import signal
+import sys
+import time
+
+import numpy as np
+
+from v2v_server.simulation.kernel import run_kernel
+from v2v_server.simulation.simulate import log_intensity_lut
+
+
+def main():
+    frames = np.random.default_rng(0).integers(0, 256, (3, 8, 8)).astype(np.uint8)
+    run = lambda: run_kernel(frames, np.zeros((8, 8), np.float32), 0.2, 0.2, lut=log_intensity_lut(255), narrow=True)
+    run()  # compiled (or loaded from the cache) before the signal
+
+    def at_unpickle(frame, event, arg):
+        if event == "call" and frame.f_code.co_name == "_numba_unpickle":
+            sys.setprofile(None)
+            signal.raise_signal(SIG)  # its handler runs in the callback, as the kernel's arrays are boxed
+
+    sys.setprofile(at_unpickle)
+    result = run()
+    sys.setprofile(None)
+    print("whole" if all(x is not None for x in result[:2]) and result.net.shape == (2, 8, 8) else "broken", flush=True)
+    time.sleep(60)
+    return 0
+'''
+
+
+@pytest.mark.parametrize("sig", (signal.SIGTERM, signal.SIGINT), ids=lambda s: signal.Signals(s).name)
+def test_an_interrupt_while_the_kernels_arrays_are_boxed_is_raised_after_it_returns(tmp_path, sig):
+    """numba boxes each array a compiled function returns with its Python type, unpickled by a
+    Python function called back from C: an interrupt raised there left that array NULL, and the
+    kernel's result came back with a missing item (v2v-calibrate died of SIGSEGV unpacking it) or
+    wrapped in a SystemError. The result comes back whole, and the interrupt ends the command
+    right after, with its one line."""
+    (tmp_path / "boxing.py").write_text(f"SIG = {int(sig)}\n" + BOXING)
+    code = "import sys\nfrom v2v_wire.commands import run_command\nsys.exit(run_command('v2v-x', 'boxing:main'))"
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONFAULTHANDLER": "1", "PYTHONPATH": str(ROOT)})
+    said = "v2v-x: stopped (SIGTERM)" if sig == signal.SIGTERM else "v2v-x: interrupted (Ctrl-C)"
+    assert (r.returncode, r.stderr.strip(), r.stdout.strip()) == (128 + sig, said, "whole"), \
+        (r.returncode, r.stdout, r.stderr[-3000:])

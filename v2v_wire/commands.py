@@ -18,9 +18,11 @@ The interrupt is raised where Python code may stop, never inside llvmlite's bind
 compiler under them): they hand an LLVM object to another between two statements (a module given
 to the JIT, then marked owned) and call back from LLVM into Python, and an exception there either
 frees the module twice (the process dies of SIGSEGV once the traceback goes) or is swallowed by
-ctypes (the signal lost, the command running on). A signal that comes there is sent again 10 ms
-later until it lands outside; one swallowed anywhere else (a ``__del__``, a callback) is sent
-again rather than printed.
+ctypes (the signal lost, the command running on); nor inside numba's unpickling, which a compiled
+function's return calls to get the Python type of each array it boxes: an exception there leaves
+the array's type NULL, and the result comes back with a missing item or the process dies of
+SIGSEGV unpacking it. A signal that comes there is sent again 10 ms later until it lands outside;
+one swallowed anywhere else (a ``__del__``, a callback) is sent again rather than printed.
 
 Standard library only: this module is imported before the command's own packages.
 """
@@ -58,10 +60,10 @@ class Terminated(KeyboardInterrupt):
     it too)."""
 
 
-#: Modules whose frames an interrupt is not raised in (module docstring): llvmlite's bindings. Not
-#: numba's cache: an interrupt held while it loads a kernel lands in the dispatcher's own
-#: bookkeeping right after, and the kernel's next result came back with a missing item (SIGSEGV).
-UNSAFE_MODULES = ("llvmlite.binding",)
+#: Modules whose frames an interrupt is not raised in (module docstring): llvmlite's bindings, and
+#: numba's unpickling (``numba.core.serialize._numba_unpickle``, called back from C while a
+#: compiled function's arrays are boxed for its return).
+UNSAFE_MODULES = ("llvmlite.binding", "numba.core.serialize")
 #: Seconds after which a signal that came inside :data:`UNSAFE_MODULES` is sent again.
 RETRY_S = 0.01
 _UNSAFE_PACKAGES = tuple(m + "." for m in UNSAFE_MODULES)
