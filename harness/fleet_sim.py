@@ -19,7 +19,9 @@ and stop its workers; each host measures its own capacity (samples over its work
 seconds) and says it with each answer. The reader reads positions in order, a step of ``step``
 positions at a time, as fast as they are made (the trainer never waits on itself), and asks ahead for the videos
 of the next ``lookahead`` positions. Each host works the videos asked of it in order of the first
-position that needs them.
+position that needs them. With ``ranks`` above one, each rank reads its slice of every step with
+its own router (``Router``'s ``readers``), asking the clips of its slice only; a host keeps what
+it made and answers a later ask of it at once.
 
 Pure and seeded: no socket, no clock; ``python -m harness.fleet_sim`` prints a table,
 ``tests/test_fleet.py`` checks the figures docs/scaling.md quotes.
@@ -38,7 +40,7 @@ import heapq
 import json
 import sys
 from pathlib import Path
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
@@ -74,6 +76,9 @@ class Fleet:
         hedge_s: seconds a host may answer nothing before the videos a reader waits on are
             asked of the next host.
         slack: the router's bounded load (``Router``'s ``slack``).
+        ranks: readers in the job, each with its own router, each reading its slice of every step
+            (``step / ranks`` positions, as data-parallel ranks read their batches) and asking its
+            own positions' clips; a host makes a clip once for every rank that asked it.
         seed: the corpus's, the speeds' and the stalls' draws; the plan's seed too.
     """
 
@@ -88,6 +93,7 @@ class Fleet:
     lookahead: Optional[int] = None
     hedge_s: float = 10.0
     slack: float = 0.25
+    ranks: int = 1
     seed: int = 0
 
 
@@ -241,11 +247,15 @@ def _layout(f: Fleet, mode: str, epoch: int) -> _Layout:
 
 class _World:
     """One simulated epoch's state: each host's queue (by the first position needing a clip) and
-    free workers, the events to come (a decode's end; the reader's clock), what was made where,
-    and the positions read (module docstring)."""
+    free workers, the events to come (a decode's end; the readers' clock), what was made where,
+    and the positions read (module docstring). Rank ``r`` reads position ``p`` when
+    ``(p % step) * ranks // step == r``; a clip a host made is kept there and answered at once
+    to the ranks that ask it later."""
 
-    def __init__(self, f: Fleet, lay: _Layout, router: Optional[Router], held: Optional[Dict[str, str]] = None):
-        self.f, self.lay, self.router, self.n = f, lay, router, f.hosts
+    def __init__(self, f: Fleet, lay: _Layout, routers: Optional[Sequence[Router]],
+                 held: Optional[Dict[str, str]] = None):
+        self.f, self.lay, self.routers, self.n = f, lay, routers, f.hosts
+        self.ranks = len(routers) if routers else 1
         self.held = held or {}  # clip -> the host that made it the epoch before (its frame cache holds it)
         self.speeds = _speeds(f)  # samples/s of one worker of each host
         self.stalls = _Stalls(f, 4 * lay.samples / (float(self.speeds.sum()) * f.slots) + 600.0)
@@ -253,24 +263,39 @@ class _World:
         self.index = {h: k for k, h in enumerate(self.hosts)}
         mean = lay.samples / max(1, len(lay.needs))
         self.lookahead = f.lookahead or int(LOOKAHEAD_DECODES * self.n * f.slots * mean) + f.step
-        self.t0 = max((s.heard for s in router.hosts.values()), default=0.0) if router else 0.0
+        self.t0 = max((s.heard for r in routers or () for s in r.hosts.values()), default=0.0)
         self.meters = [RateMeter() for _ in range(self.n)]  # each host's own measure of its capacity
-        self.by_need = sorted(lay.needs, key=lambda v: lay.needs[v][0])
-        self.asked_upto = 0  # index into by_need of the next clip to ask
+        self.rank_of = [(p % f.step) * self.ranks // f.step for p in range(lay.length)]
+        self.needs = [lay.needs] if self.ranks == 1 else self._rank_needs()  # rank -> clip -> (first, samples)
+        self.by_need = [sorted(n, key=lambda v, n=n: n[v][0]) for n in self.needs]
+        self.asked_upto = [0] * self.ranks  # index into by_need[rank] of its next clip to ask
         self.queues: List[List[Tuple[int, str]]] = [[] for _ in range(self.n)]
         self.free = [f.slots] * self.n
-        self.events: List[Tuple[float, int, str]] = []  # (time, host or -1 for the reader's clock, clip)
-        self.done_at: Dict[str, float] = {}
+        self.events: List[Tuple[float, int, str]] = []  # (time, host or -1 for the readers' clock, clip)
+        self.done_at: Dict[Tuple[int, str], float] = {}  # (rank, clip) -> when that rank had it
         self.running: Dict[Tuple[int, str], float] = {}  # (host, clip) decoding -> since when
-        self.outstanding: Set[str] = set()  # clips asked and not made yet
-        self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read
+        self.made_on: List[Set[str]] = [set() for _ in range(self.n)]  # clips each host made (kept)
+        self.waiting: Dict[Tuple[int, str], Set[int]] = {}  # (host, clip) -> the ranks waiting on it there
+        self.outstanding: List[Set[str]] = [set() for _ in range(self.ranks)]  # clips asked, not had yet
+        self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read first
         self.decodes, self.now, self.read, self.head_since = 0, 0.0, 0, 0.0
+        self.fresh = False  # a rank had a clip from a host's kept copy: the read may advance
         self.step_times: List[Tuple[int, float]] = []
+
+    def _rank_needs(self) -> List[Dict[str, Tuple[int, int]]]:
+        out: List[Dict[str, Tuple[int, int]]] = [{} for _ in range(self.ranks)]
+        for p, c in enumerate(self.lay.pos_clip):
+            if c is not None:
+                d = out[self.rank_of[p]]
+                first, n = d.get(c, (p, 0))
+                d[c] = (min(first, p), n + 1)
+        return out
 
     def start_work(self, k: int) -> None:
         while self.free[k] and self.queues[k]:
             _, clip = heapq.heappop(self.queues[k])
-            if clip in self.done_at or (k, clip) in self.running:
+            if clip in self.made_on[k] or (k, clip) in self.running or \
+                    all((r, clip) in self.done_at for r in self.waiting.get((k, clip), ())):
                 continue
             self.free[k] -= 1
             self.running[(k, clip)] = self.now
@@ -278,69 +303,98 @@ class _World:
             end = self.stalls.finish(k, self.now, self.lay.needs[clip][1] / self.speeds[k])
             heapq.heappush(self.events, (end, k, clip))
 
-    def ask(self, clip: str, k: int) -> None:
-        self.outstanding.add(clip)
-        heapq.heappush(self.queues[k], (self.lay.needs[clip][0], clip))
+    def ask(self, rank: int, clip: str, k: int) -> None:
+        self.outstanding[rank].add(clip)
+        if clip in self.made_on[k]:
+            self.had(rank, clip, k)
+            return
+        self.waiting.setdefault((k, clip), set()).add(rank)
+        heapq.heappush(self.queues[k], (self.needs[rank][clip][0], clip))
         self.start_work(k)
 
+    def had(self, rank: int, clip: str, k: int) -> bool:
+        """Rank ``rank`` got ``clip`` from host ``k``: True when it is the rank's first copy."""
+        r, at = self.routers[rank] if self.routers else None, self.t0 + self.now
+        first = (rank, clip) not in self.done_at
+        if r is not None:
+            r.answered(self.hosts[k], 0, clip, at, True, self.meters[k].rate())
+        if first:
+            self.done_at[(rank, clip)] = self.now
+            self.outstanding[rank].discard(clip)
+            self.made_by.setdefault(clip, self.hosts[k])
+            if r is not None:
+                r.finished(0, clip)
+            self.fresh = True
+        return first
+
     def ask_ahead(self) -> None:
-        needs = self.lay.needs
-        while self.asked_upto < len(self.by_need) and needs[self.by_need[self.asked_upto]][0] < \
-                self.read + self.lookahead:
-            clip = self.by_need[self.asked_upto]
-            self.asked_upto += 1
-            if self.router is not None:
-                due = (needs[clip][0] - self.read) / self.router.capacity()  # as the reader's Pass.due
-                self.ask(clip, self.index[self.router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due,
-                                                            position=needs[clip][0], held=self.held.get(clip))])
+        while True:  # the ranks' next clips in the order of the positions needing them
+            upto = [(self.needs[r][self.by_need[r][i]][0], r) for r, i in enumerate(self.asked_upto)
+                    if i < len(self.by_need[r])]
+            if not upto or min(upto)[0] >= self.read + self.lookahead:
+                return
+            rank = min(upto)[1]
+            needs, clip = self.needs[rank], self.by_need[rank][self.asked_upto[rank]]
+            self.asked_upto[rank] += 1
+            if self.routers:
+                router = self.routers[rank]
+                due = (needs[clip][0] - self.read) / router.capacity()  # as the reader's Pass.due
+                self.ask(rank, clip, self.index[router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due,
+                                                             position=needs[clip][0], held=self.held.get(clip))])
             else:
-                self.ask(clip, self.lay.home[clip])
+                self.ask(rank, clip, self.lay.home[clip])
 
     def advance(self) -> None:
         while self.read < self.lay.length:
             stop = min(self.lay.length, self.read + self.f.step)
-            if any(c is not None and c not in self.done_at for c in self.lay.pos_clip[self.read:stop]):
+            if any(self.lay.pos_clip[p] is not None and (self.rank_of[p], self.lay.pos_clip[p]) not in self.done_at
+                   for p in range(self.read, stop)):
                 return
             self.read, self.head_since = stop, self.now
             self.step_times.append((self.read, self.now))
 
     def hedge(self) -> None:
-        """The reader's clock: the clips asked of silent hosts are asked of their next hosts; those
-        the step being read has waited on for ``STEAL_S`` are copied (``Router.copy``)."""
-        r, at = self.router, self.t0 + self.now
-        silent = {h for h in self.hosts if r.suspect(h, at)}
-        waiting = [(0, c, self.lay.needs[c][1]) for c in self.outstanding if silent.intersection(r.asked.get((0, c), ()))]
-        for _, c, h in r.hedges(sorted(waiting, key=lambda w: self.lay.needs[w[1]][0]), at):
-            self.ask(c, self.index[h])
-        waited = self.now - self.head_since
-        if waited < STEAL_S:
-            return
-        for c in dict.fromkeys(self.lay.pos_clip[self.read:self.read + self.f.step]):
-            if c is not None and c not in self.done_at:
-                h = r.copy(0, c, self.lay.needs[c][1], at, r.asked.get((0, c), ()), self.lay.needs[c][0])
-                if h is not None:
-                    self.ask(c, self.index[h])
+        """The readers' clock: each rank asks the clips it asked of silent hosts of their next
+        hosts, and copies those its slice of the step being read has waited on for ``STEAL_S``
+        (``Router.copy``)."""
+        at, waited = self.t0 + self.now, self.now - self.head_since
+        for rank, r in enumerate(self.routers):
+            needs = self.needs[rank]
+            silent = {h for h in self.hosts if r.suspect(h, at)}
+            waiting = [(0, c, needs[c][1]) for c in self.outstanding[rank] if silent.intersection(r.asked.get((0, c), ()))]
+            for _, c, h in r.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), at):
+                self.ask(rank, c, self.index[h])
+            if waited < STEAL_S:
+                continue
+            head = range(self.read, min(self.lay.length, self.read + self.f.step))
+            for c in dict.fromkeys(self.lay.pos_clip[p] for p in head if self.rank_of[p] == rank):
+                if c is not None and (rank, c) not in self.done_at:
+                    h = r.copy(0, c, needs[c][1], at, r.asked.get((0, c), ()), needs[c][0])
+                    if h is not None:
+                        self.ask(rank, c, self.index[h])
 
     def made(self, k: int, clip: str) -> None:
-        """Host ``k``'s worker made ``clip``: the first copy is read."""
+        """Host ``k``'s worker made ``clip``: each rank waiting on it there has it (the first
+        copy a rank gets is the one it reads), and the host keeps it."""
         self.free[k] += 1
-        r, at = self.router, self.t0 + self.now
-        self.meters[k].add(self.lay.needs[clip][1], (self.now - self.running.pop((k, clip))) / self.f.slots, at)
-        if clip not in self.done_at:
-            self.done_at[clip] = self.now
-            self.outstanding.discard(clip)
-            if r is not None:
-                r.answered(self.hosts[k], 0, clip, at, True, self.meters[k].rate())
-                r.finished(0, clip)
-                self.made_by[clip] = self.hosts[k]
+        self.meters[k].add(self.lay.needs[clip][1], (self.now - self.running.pop((k, clip))) / self.f.slots,
+                           self.t0 + self.now)
+        self.made_on[k].add(clip)
+        for rank in sorted(self.waiting.pop((k, clip), ())):
+            self.had(rank, clip, k)
+        self.settle()
+        self.start_work(k)
+
+    def settle(self) -> None:
+        """The read advances and the ranks ask ahead, once a rank had a clip it lacked."""
+        if self.fresh:
+            self.fresh = False
             self.advance()
             self.ask_ahead()
-        elif r is not None:
-            r.answered(self.hosts[k], 0, clip, at, True, self.meters[k].rate())
-        self.start_work(k)
 
     def run(self) -> None:
         self.ask_ahead()
+        self.settle()
         tick = min(self.f.hedge_s, STEAL_S) / 2
         heapq.heappush(self.events, (tick, -1, ""))
         while self.read < self.lay.length:
@@ -350,25 +404,32 @@ class _World:
             if k >= 0:
                 self.made(k, clip)
                 continue
-            if self.router is not None:
+            if self.routers:
                 self.hedge()
+                self.settle()
             heapq.heappush(self.events, (self.now + tick, -1, ""))
 
 
-def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = None,
+def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Router]] = None,
              held: Optional[Dict[str, str]] = None) -> Result:
-    """One epoch of fleet ``f`` split as ``mode`` (``"routed"`` or ``"static"``); ``router``: a
-    reader's router kept from an earlier epoch (routed only; default a new one); ``held``: clip ->
-    the host that made it in that epoch (its frame cache holds it).
+    """One epoch of fleet ``f`` split as ``mode`` (``"routed"`` or ``"static"``); ``routers``:
+    each rank's router kept from an earlier epoch (routed only; default new ones, ``f.ranks`` of
+    them); ``held``: clip -> the host that made it in that epoch (its frame cache holds it).
 
     Raises:
-        ValueError: another mode, naming it."""
+        ValueError: another mode, naming it, or a number of routers or ranks that does not
+            divide the step."""
     if mode not in ("routed", "static"):
         raise ValueError(f"mode must be 'routed' or 'static', got {mode!r}")
+    if f.ranks < 1 or f.step % f.ranks or (routers is not None and len(routers) != f.ranks):
+        raise ValueError(f"ranks must divide step ({f.step}) and each rank have one router, got ranks={f.ranks} "
+                         f"and {None if routers is None else len(routers)} routers")
+    if mode == "static" and f.ranks != 1:
+        raise ValueError(f"static shards are simulated with one reader, got ranks={f.ranks}")
     lay = _layout(f, mode, epoch)
-    if mode == "routed" and router is None:
-        router = Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S)
-    w = _World(f, lay, router if mode == "routed" else None, held)
+    if mode == "routed" and routers is None:
+        routers = _routers(f)
+    w = _World(f, lay, routers if mode == "routed" else None, held)
     w.run()
     end, length = w.now, lay.length
     lo, hi = int(0.1 * length), int(0.9 * length)
@@ -379,6 +440,11 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, router: Optional[Router] = Non
     made_by = w.made_by if mode == "routed" else {c: w.hosts[lay.home[c]] for c in lay.needs}
     return Result(mode, lay.samples, length, end, lay.samples / end, steady / max(t_hi - t_lo, 1e-9), capacity,
                   w.decodes / max(1, len(lay.needs)), made_by)
+
+
+def _routers(f: Fleet) -> List[Router]:
+    return [Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S,
+                   readers=f.ranks) for _ in range(f.ranks)]
 
 
 def static_padding(videos: int, shards: Sequence[int], seed: int = 0) -> Dict[int, float]:
@@ -401,9 +467,9 @@ def static_padding(videos: int, shards: Sequence[int], seed: int = 0) -> Dict[in
 def stay(f: Fleet) -> float:
     """The share of clips one reader's router has decoded on the same host in two epochs in a row
     (a frame cache's hits in the second epoch, over one host's): routed, the fleet unchanged."""
-    router = Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S)
-    first = simulate(f, "routed", 0, router).made_by
-    second = simulate(f, "routed", 1, router, first).made_by
+    routers = _routers(f)
+    first = simulate(f, "routed", 0, routers).made_by
+    second = simulate(f, "routed", 1, routers, first).made_by
     return sum(first.get(c) == h for c, h in second.items()) / max(1, len(second))
 
 
@@ -427,6 +493,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--slow", type=float, default=None, help="host 0's speed times this factor")
     ap.add_argument("--stall-every-s", type=float, default=Fleet.stall_every_s)
     ap.add_argument("--stall-s", type=float, default=Fleet.stall_s)
+    ap.add_argument("--ranks", type=int, default=Fleet.ranks,
+                    help="readers, each with its own router and its slice of every step (routed only)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the results here")
     ap.add_argument("--padding", default=None, metavar="VIDEOS,...", type=_sizes,
@@ -446,11 +514,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             pad = static_padding(v, (2, 8, 32, 128), a.seed)
             print(f"{v:>10,} " + " ".join(f"{pad[n]:>13.1%}" for n in (2, 8, 32, 128)))
         return 0
+    if a.ranks < 1 or Fleet.step % a.ranks:
+        print(f"harness.fleet_sim: --ranks must divide the step ({Fleet.step}), got {a.ranks}", file=sys.stderr)
+        return 2
     f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
-              a.stall_s, seed=a.seed)
-    rows = [simulate(f, m) for m in ("routed", "static")]
+              a.stall_s, ranks=a.ranks, seed=a.seed)
+    rows = [simulate(f, "routed"), simulate(replace(f, ranks=1), "static")]  # static: one reader
     print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, "
-          f"stalls every {f.stall_every_s} s for {f.stall_s} s on average")
+          f"stalls every {f.stall_every_s} s for {f.stall_s} s on average, {f.ranks} rank(s) reading")
     print(f"{'split':<8} {'samples/s':>10} {'steady':>8} {'capacity':>9} {'share':>6} {'decodes/clip':>13} {'padding':>8}")
     for r in rows:
         print(f"{r.mode:<8} {r.rate:>10.1f} {r.steady_rate:>8.1f} {r.capacity:>9.1f} {r.share:>6.3f} "

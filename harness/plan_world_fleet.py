@@ -109,9 +109,9 @@ class ReaderFleet(Fleet):
     client the hosts answer."""
 
     def __init__(self, net: "Net", reader: int, endpoint: list, plan: PlanIdentity, hedge_s: float,
-                 windows: Dict[str, int], ahead: Optional[int], now: float):
+                 windows: Dict[str, int], ahead: Optional[int], now: float, readers: int = 1):
         self.net, self.reader = net, reader
-        super().__init__(endpoint, [], plan, 120.0, None, "none", windows, ahead, hedge_s)
+        super().__init__(endpoint, [], plan, 120.0, None, "none", windows, ahead, hedge_s, readers=readers)
         self.resolved = now
         hedges = self.router.hedges
 
@@ -422,7 +422,8 @@ class FleetWorld:
         job.hosts, job.resumed = len(hosts), False
         rd = next(self.reader_ids)
         plan = net.identity(hosts[0])
-        fleet = ReaderFleet(net, rd, self.dns, plan, self.hedge_s, proc.windows, job.ahead, now_s)
+        fleet = ReaderFleet(net, rd, self.dns, plan, self.hedge_s, proc.windows, job.ahead, now_s,
+                            job.world * job.workers)
         for h in hosts:
             fleet.join(h.name, net.wire(net.info(h).to_wire()), now_s)
         manifest = fleet._manifest()

@@ -112,6 +112,34 @@ def test_a_full_owner_sheds_new_videos_to_the_next_host_of_their_ranking():
     assert r.route(0, v, 2, 0.0) == second
 
 
+def test_readers_of_one_job_route_a_video_to_its_owner_whatever_each_queued_and_heard():
+    """A reader's load bound and deadlines count what it queued and heard; readers of one job
+    (ranks, DataLoader workers) that differ there would ask a video they share of two hosts."""
+    v = VIDEOS[0]
+    owner = rank_hosts(v, HOSTS[:2])[0]
+    mine = [x for x in VIDEOS[1:] if rank_hosts(x, HOSTS[:2])[0] == owner][:21]
+
+    def pick(readers: int, queued: int) -> str:
+        r = Router(HOSTS[:2], slack=0.25, readers=readers)
+        for h in HOSTS[:2]:
+            r.answered(h, 0, "", 0.0, False, 10.0)
+        for x in mine[:queued]:
+            r.route(0, x, 2, 0.0)
+        return r.route(0, v, 2, 0.0, due=1.0, position=100)
+
+    assert pick(1, 0) == owner and pick(1, 21) != owner  # alone: bounded by what it queued
+    assert {pick(4, n) for n in (0, 5, 21)} == {owner}  # one of several: the owner, whatever it queued
+    with pytest.raises(ValueError, match="readers"):
+        Router(HOSTS[:2], readers=0)
+
+
+def test_the_ranks_of_a_job_reading_a_fleet_decode_each_clip_about_once():
+    """harness.fleet_sim with 8 ranks, each with its own router: a clip two ranks need was asked of
+    two hosts by each rank's own bound (1.48 decodes a clip, 0.58 of the hosts' rate)."""
+    r = simulate(Fleet(hosts=16, videos=4000, ranks=8), "routed")
+    assert r.decodes < 1.2 and r.share > 0.7
+
+
 def test_a_silent_host_is_routed_nothing_new_and_what_a_reader_waits_on_is_asked_of_the_next():
     r = Router(HOSTS[:3], hedge_s=10.0)
     v = VIDEOS[0]

@@ -110,12 +110,13 @@ class Servers:
         known = [i.samples for _, i in hosts if i.samples is not None]
         return PlanInfo(info.plan, known[0] if known else None, info.stream)
 
-    def link(self, timeout_s: float, curve: Optional[tuple]):
+    def link(self, timeout_s: float, curve: Optional[tuple], readers: int = 1):
         """The fetch loop over the servers: ``Shards`` (one server is one shard), or a fleet's
-        (``fleet_read.Fleet``)."""
+        (``fleet_read.Fleet``, routed by ``readers`` readers at once: the job's ranks times their
+        DataLoader workers)."""
         if self.fleet is not None:
             return Fleet(self.endpoint, self.fleet, self.fleet[0][1].plan, timeout_s, curve, self.compression,
-                         self.windows, rates=self.rates, made=self.made)
+                         self.windows, rates=self.rates, made=self.made, readers=readers)
         return Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:

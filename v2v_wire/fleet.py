@@ -164,17 +164,24 @@ class Router:
         patience_s: seconds a reader waits on a video before it asks a copy (:meth:`copy`): how
             late a video's last host may make it and keep it (:meth:`route`).
         now: the clock's reading at start.
+        readers: readers routing the fleet at once, this one included (a job's ranks times each
+            rank's DataLoader workers). Above one, :meth:`route` gives each video to the first
+            host of its weighted ranking: the load bound and the deadlines count only what this
+            reader queued and heard, which differs from reader to reader, so readers sharing a
+            video would send it to two hosts (decoded twice); the weights, from the rates every
+            host says to every reader, are alike for all.
 
     Raises:
-        ValueError: ``slack`` or ``hedge_s`` <= 0, or a host named twice.
+        ValueError: ``slack`` or ``hedge_s`` <= 0, ``patience_s`` < 0, ``readers`` < 1, or a
+            host named twice.
     """
 
     def __init__(self, hosts: Iterable[str], slack: float = 0.25, hedge_s: float = 10.0, now: float = 0.0,
-                 patience_s: float = 1.0):
-        if slack <= 0 or hedge_s <= 0 or patience_s < 0:
-            raise ValueError(f"slack and hedge_s must be > 0 and patience_s >= 0, got {slack}, {hedge_s} and "
-                             f"{patience_s}")
-        self.slack, self.hedge_s, self.patience_s = slack, hedge_s, patience_s
+                 patience_s: float = 1.0, readers: int = 1):
+        if slack <= 0 or hedge_s <= 0 or patience_s < 0 or readers < 1:
+            raise ValueError(f"slack and hedge_s must be > 0, patience_s >= 0 and readers >= 1, got {slack}, "
+                             f"{hedge_s}, {patience_s} and {readers}")
+        self.slack, self.hedge_s, self.patience_s, self.readers = slack, hedge_s, patience_s, readers
         self.hosts: Dict[str, _Host] = {}
         self.asked: Dict[Tuple[int, str], List[str]] = {}  # (epoch, video) -> the hosts asked, in order
         self._load = 0
@@ -241,8 +248,9 @@ class Router:
         frame cache holds it), is kept before them while it would make it in time, or
         :attr:`patience_s` late, whatever its load: a load bound crossed by a few samples' chance
         would move a video off its warm cache (a small fleet's share of a reader's queue is a few
-        videos), and a host that falls behind falls behind its deadlines too. None when no host
-        is left.
+        videos), and a host that falls behind falls behind its deadlines too. Where other
+        readers route too (:attr:`readers`), simply the first of its ranking that is not suspect
+        nor in ``exclude``: every reader picks it. None when no host is left.
 
         The host's queue takes the video (:meth:`answered` and :meth:`finished` clear it)."""
         weights = self.weights()
@@ -256,7 +264,9 @@ class Router:
         def in_time(h: str, late_s: float = 0.0) -> bool:
             return due is None or self.finish(h, samples, position) <= (1 + self.slack) * due + late_s
 
-        if held in ranking and due is not None and in_time(held, self.patience_s):
+        if self.readers > 1:
+            pick = ranking[0]
+        elif held in ranking and due is not None and in_time(held, self.patience_s):
             pick = held
         else:
             pick = next((h for h in ranking
