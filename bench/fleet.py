@@ -20,8 +20,12 @@ stock: the first ``warmup`` batches are read unmeasured. Rows:
 * ``moved``: A and B read epoch 1 as a fleet, then A, B and C (on core 1 with B) read it again
   with a fresh reader: the share of videos whose host changed, observed (the host that served
   its rows) and of the owner alone (``rank_hosts`` over the hosts' names, equal weights).
+* ``ranks``: a job of ``--ranks`` ranks (``rank=r, world_size=N``, a thread each) reads epoch 1
+  of A and B as one fleet: the samples the hosts made (their ``/metrics``) over the samples the
+  ranks read (1.0 when each video is decoded once, above when ranks ask a video of two hosts),
+  the share of videos served by both, and the job's samples/s.
 
-The ``cache`` and ``moved`` rows read with batches of one row, so that each batch's ``servers``
+The ``cache``, ``moved`` and ``ranks`` rows read with batches of one row, so that each batch's ``servers``
 names the host of its one sample. The ``cache`` row's entries take about 25 MB a video in the
 temporary folder, twice over (the lone host's and the fleet's): 11 GB at the default size.
 
@@ -60,7 +64,7 @@ from v2v_wire.fleet import rank_hosts
 from v2v_wire.ids import parse_sample_id
 
 OUTPUTS = ("voxels", "frames")
-ROWS = ("rates", "stop", "kill", "join", "cache", "moved")
+ROWS = ("rates", "stop", "kill", "join", "cache", "moved", "ranks")
 #: GiB of frame cache of each ``cache`` row host: the bundled clips' kept frames (about 25 MB a
 #: video, 240 videos at the default size) fit whole, so a miss in epoch 2 is never the budget's.
 CACHE_GB = 16
@@ -373,6 +377,60 @@ def moved_row(corpus: Path) -> dict:
     return out
 
 
+def made(server: ServeProcess) -> Tuple[int, int]:
+    """``(samples made, workers busy)`` of ``server`` so far, from its ``/metrics``."""
+    port = server.args[server.args.index("--metrics-port") + 1]
+    page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
+    got = {line.split()[0]: int(float(line.split()[-1])) for line in page.splitlines()
+           if line.startswith(("v2v_samples_made_total ", "v2v_workers_busy "))}
+    return got.get("v2v_samples_made_total", 0), got.get("v2v_workers_busy", 0)
+
+
+def ranks_row(corpus: Path, ranks: int) -> dict:
+    """A job of ``ranks`` ranks, a thread each, reads epoch 1 of A and B as one fleet: the samples
+    the hosts made (once no worker is busy and the count holds for a second) over those read."""
+    extra = lambda: ["--metrics-port", str(free_port())]  # noqa: E731
+    with host(corpus, 0, extra()) as A, host(corpus, 1, extra()) as B:
+        pair = ",".join([A.endpoint, B.endpoint])
+        hosts: List[Dict[str, Set[str]]] = [{} for _ in range(ranks)]
+        read = [0] * ranks
+
+        def run(r: int) -> None:
+            ds = V2VStreamDataset(pair, batch_size=1, rank=r, world_size=ranks, outputs=OUTPUTS, timeout_s=300)
+            for b in ds:
+                if not b["padding"][0]:
+                    hosts[r].setdefault(parse_sample_id(b["sample_ids"][0]).video, set()).update(b["servers"])
+                    read[r] += 1
+
+        threads = [threading.Thread(target=run, args=(r,), daemon=True) for r in range(ranks)]
+        t0 = time.perf_counter()
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(1200)
+        seconds = time.perf_counter() - t0
+        last, since, deadline = None, time.monotonic(), time.monotonic() + 120
+        while time.monotonic() < deadline:
+            now = [made(s) for s in (A, B)]
+            if now != last or any(busy for _, busy in now):
+                last, since = now, time.monotonic()
+            elif time.monotonic() - since >= 1.0:
+                break
+            time.sleep(0.5)
+    served: Dict[str, Set[str]] = {}
+    for h in hosts:
+        for v, s in h.items():
+            served.setdefault(v, set()).update(s)
+    out = {"ranks": ranks, "samples_read": sum(read), "samples_made": sum(m for m, _ in last),
+           "made_over_read": sum(m for m, _ in last) / max(1, sum(read)),
+           "videos_of_two_hosts": sum(1 for s in served.values() if len(s) > 1) / max(1, len(served)),
+           "samples_per_s": sum(read) / seconds}
+    print(f"ranks: {ranks} ranks read A and B: the hosts made {out['made_over_read']:.3f} samples a sample read; "
+          f"{out['videos_of_two_hosts']:.3f} of the videos served by both; {out['samples_per_s']:.1f} samples/s",
+          flush=True)
+    return out
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--copies", type=int, default=60, help="links to each bundled clip in the corpus")
@@ -380,6 +438,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--warmup", type=int, default=40, help="batches read unmeasured first")
     p.add_argument("--duty", type=float, default=1 / 3, help="the slow host's workers run this share of the time")
     p.add_argument("--stop-s", type=float, default=30.0)
+    p.add_argument("--ranks", type=int, default=4, help="ranks of the ranks row's job")
     p.add_argument("--rows", default=",".join(ROWS), help="which rows to run (comma-separated)")
     p.add_argument("--json", help="also write the results here")
     a = p.parse_args(argv)
@@ -416,6 +475,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             res["cache"] = cache_row(corpus, Path(d))
         if "moved" in rows:
             res["moved"] = moved_row(corpus)
+        if "ranks" in rows:
+            res["ranks"] = ranks_row(corpus, a.ranks)
     if a.json:
         write_whole(a.json, json.dumps(res, indent=1) + "\n")
     return 0

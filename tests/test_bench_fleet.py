@@ -1,5 +1,5 @@
-"""``bench/fleet.py``'s ``cache`` row on the bundled clips once (4 videos): real ``v2v-serve``
-hosts with a frame cache each, pinned with ``taskset``; and a bad ``--rows`` in one line."""
+"""``bench/fleet.py``'s ``cache`` row on the bundled clips once (4 videos) and its ``ranks`` row on
+them sixty times (240 videos: a reader's queue long enough for its load bound to matter): real ``v2v-serve`` hosts pinned with ``taskset``; and a bad ``--rows`` in one line."""
 from __future__ import annotations
 
 import os
@@ -7,7 +7,7 @@ import shutil
 
 import pytest
 
-from bench.fleet import cache_row, main, make_corpus
+from bench.fleet import cache_row, main, make_corpus, ranks_row
 
 
 def test_a_row_the_bench_lacks_is_one_line(capsys):
@@ -26,3 +26,13 @@ def test_epoch_2_finds_a_lone_hosts_videos_and_a_fleets_that_stay_on_their_host_
     # a video made by the same host in both epochs is found in that host's cache
     assert pair["hits"] >= round(4 * (1 - pair["videos_moved"]))
     assert r["fleet_over_alone"] == pair["hit_ratio"]
+
+
+@pytest.mark.skipif(shutil.which("taskset") is None or (os.cpu_count() or 1) < 2, reason="needs taskset and 2 cores")
+@pytest.mark.timeout(300)
+def test_four_ranks_of_a_job_reading_a_fleet_have_each_video_made_about_once(tmp_path):
+    """Each rank routes its own asks; a video both ranks need goes to one host (its owner), not
+    to one host per rank."""
+    r = ranks_row(make_corpus(tmp_path / "corpus", 60), 4)
+    assert r["samples_read"] > 0 and r["made_over_read"] <= 1.1, r  # each rank's own load bound: 1.66
+    assert r["videos_of_two_hosts"] <= 0.05, r  # 0.41
