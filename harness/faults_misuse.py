@@ -190,7 +190,7 @@ def scenario_loader_workers(tmp: Path, layout: Layout, persistent: bool, take: i
 
 def scenario_lightning_ddp(tmp: Path, layout: Layout) -> dict:
     """Lightning's own ``ddp`` launcher, 2 CPU ranks (gloo), the dataset built before fit
-    (``harness.lightning_ddp --plan``, a DataLoader of 2 workers): the same steps on both ranks,
+    (``harness.lightning_ddp``, a DataLoader of 2 workers): the same steps on both ranks,
     the epoch's samples once across them."""
     corpus = good_corpus(tmp, 2)
     expected = expected_ids(corpus, layout)
@@ -198,7 +198,7 @@ def scenario_lightning_ddp(tmp: Path, layout: Layout) -> dict:
     out.mkdir()
     with _serve(corpus, layout) as srv:
         env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-        proc = subprocess.Popen([sys.executable, "-m", "harness.lightning_ddp", srv.endpoint, str(out), "--plan"],
+        proc = subprocess.Popen([sys.executable, "-m", "harness.lightning_ddp", srv.endpoint, str(out)],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
                                 start_new_session=True)  # rank 1 is rank 0's child: a hang is killed whole
         try:
