@@ -448,6 +448,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"bench.fleet: --rows {','.join(sorted(unknown))}: not rows of this bench ({', '.join(ROWS)})",
               file=sys.stderr)
         return 2
+    if a.ranks < 1:
+        print(f"bench.fleet: --ranks must be >= 1, got {a.ranks}", file=sys.stderr)
+        return 2
     if a.json:
         out = Path(a.json)
         problem = writable_problem(out) or ("is one of the bench's clips" if out.resolve().parent == CLIPS else "")

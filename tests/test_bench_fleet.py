@@ -14,6 +14,9 @@ def test_a_row_the_bench_lacks_is_one_line(capsys):
     assert main(["--rows", "cache,nope"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--rows nope" in err
+    assert main(["--rows", "ranks", "--ranks", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--ranks" in err
 
 
 @pytest.mark.skipif(shutil.which("taskset") is None or (os.cpu_count() or 1) < 2, reason="needs taskset and 2 cores")
