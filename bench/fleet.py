@@ -253,36 +253,43 @@ def cache_host(corpus: Path, core: int, cache_dir: Path) -> ServeProcess:
                                "--metrics-port", str(free_port())])
 
 
-def looked(server: ServeProcess) -> Tuple[int, int, int]:
-    """``(hits, misses, workers busy)``: ``server``'s frame-cache lookups so far (misses of every
-    cause) and its workers making samples now, from its ``/metrics``."""
+def scrape(server: ServeProcess) -> Dict[str, int]:
+    """``server``'s ``/metrics`` (its ``--metrics-port``): each series' value, a metric's labelled
+    series summed under its name."""
     port = server.args[server.args.index("--metrics-port") + 1]
     page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
-    hits = misses = busy = 0
+    out: Dict[str, int] = {}
     for line in page.splitlines():
-        if line.startswith("v2v_frame_cache_hits_total "):
-            hits += int(float(line.split()[-1]))
-        elif line.startswith("v2v_frame_cache_misses_total{"):
-            misses += int(float(line.split()[-1]))
-        elif line.startswith("v2v_workers_busy "):
-            busy += int(float(line.split()[-1]))
-    return hits, misses, busy
+        if line and not line.startswith("#"):
+            name = line.split("{")[0].split()[0]
+            out[name] = out.get(name, 0) + int(float(line.split()[-1]))
+    return out
 
 
-def settled(servers: Sequence[ServeProcess], quiet_s: float = 1.0, limit_s: float = 120.0) -> List[Tuple[int, int]]:
-    """Each server's frame-cache ``(hits, misses)`` once no worker is busy and no count has changed
-    for ``quiet_s``: a pass is counted when it ends, past its video's last sample (it decodes on to
-    fill the entry), a lone server makes ahead into the next epoch (within its shuffle buffer),
-    and a fleet's host finishes the copies that lost."""
+def looked(server: ServeProcess) -> Tuple[int, int, int]:
+    """``(hits, misses, workers busy)``: ``server``'s frame-cache lookups so far (misses of every
+    cause) and its workers making samples now."""
+    m = scrape(server)
+    return m.get("v2v_frame_cache_hits_total", 0), m.get("v2v_frame_cache_misses_total", 0), \
+        m.get("v2v_workers_busy", 0)
+
+
+def settled(servers: Sequence[ServeProcess], quiet_s: float = 1.0, limit_s: float = 120.0,
+            counts=looked) -> List[tuple]:
+    """Each server's ``counts`` (:func:`looked`: frame-cache ``(hits, misses)``), its last item the
+    workers busy and left out, once no worker is busy and no count has changed for ``quiet_s``: a
+    pass is counted when it ends, past its video's last sample (it decodes on to fill the entry),
+    a lone server makes ahead into the next epoch (within its shuffle buffer), and a fleet's host
+    finishes the copies that lost."""
     last, since, deadline = None, time.monotonic(), time.monotonic() + limit_s
     while time.monotonic() < deadline:
-        now = [looked(s) for s in servers]
-        if now != last or any(busy for _, _, busy in now):
+        now = [counts(s) for s in servers]
+        if now != last or any(c[-1] for c in now):
             last, since = now, time.monotonic()
         elif time.monotonic() - since >= quiet_s:
             break
         time.sleep(0.5)
-    return [(h, m) for h, m, _ in last]
+    return [c[:-1] for c in last]
 
 
 def read_hosts(ds: V2VStreamDataset, epoch: int) -> Dict[str, Set[str]]:
@@ -378,12 +385,9 @@ def moved_row(corpus: Path) -> dict:
 
 
 def made(server: ServeProcess) -> Tuple[int, int]:
-    """``(samples made, workers busy)`` of ``server`` so far, from its ``/metrics``."""
-    port = server.args[server.args.index("--metrics-port") + 1]
-    page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
-    got = {line.split()[0]: int(float(line.split()[-1])) for line in page.splitlines()
-           if line.startswith(("v2v_samples_made_total ", "v2v_workers_busy "))}
-    return got.get("v2v_samples_made_total", 0), got.get("v2v_workers_busy", 0)
+    """``(samples made, workers busy)`` of ``server`` so far."""
+    m = scrape(server)
+    return m.get("v2v_samples_made_total", 0), m.get("v2v_workers_busy", 0)
 
 
 def ranks_row(corpus: Path, ranks: int) -> dict:
@@ -409,20 +413,12 @@ def ranks_row(corpus: Path, ranks: int) -> dict:
         for t in threads:
             t.join(1200)
         seconds = time.perf_counter() - t0
-        last, since, deadline = None, time.monotonic(), time.monotonic() + 120
-        while time.monotonic() < deadline:
-            now = [made(s) for s in (A, B)]
-            if now != last or any(busy for _, busy in now):
-                last, since = now, time.monotonic()
-            elif time.monotonic() - since >= 1.0:
-                break
-            time.sleep(0.5)
+        total = sum(m for m, in settled([A, B], counts=made))
     served: Dict[str, Set[str]] = {}
     for h in hosts:
         for v, s in h.items():
             served.setdefault(v, set()).update(s)
-    out = {"ranks": ranks, "samples_read": sum(read), "samples_made": sum(m for m, _ in last),
-           "made_over_read": sum(m for m, _ in last) / max(1, sum(read)),
+    out = {"ranks": ranks, "samples_read": sum(read), "samples_made": total, "made_over_read": total / max(1, sum(read)),
            "videos_of_two_hosts": sum(1 for s in served.values() if len(s) > 1) / max(1, len(served)),
            "samples_per_s": sum(read) / seconds}
     print(f"ranks: {ranks} ranks read A and B: the hosts made {out['made_over_read']:.3f} samples a sample read; "

@@ -1,5 +1,6 @@
 """``bench/fleet.py``'s ``cache`` row on the bundled clips once (4 videos) and its ``ranks`` row on
-them sixty times (240 videos: a reader's queue long enough for its load bound to matter): real ``v2v-serve`` hosts pinned with ``taskset``; and a bad ``--rows`` in one line."""
+them sixty times (240 videos: a reader's queue long enough for its load bound to matter): real
+``v2v-serve`` hosts pinned with ``taskset``; and a bad ``--rows`` or ``--ranks`` in one line."""
 from __future__ import annotations
 
 import os

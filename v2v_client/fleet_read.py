@@ -13,8 +13,9 @@ one plan a single server serves, each video made by the host the reader routes i
   step it yields to ``ahead`` positions past it, is asked (``make``: the video and the samples
   of it this rank's rows hold) of the host its ranking and the hosts' loads pick (its owner
   alone where the job has several readers, ranks or DataLoader workers: each then picks the
-  same host); its later samples go to the same host while it answers. A host silent for ``hedge_s`` while the reader
-  waits on it has its videos asked of their next hosts too; the first answer wins.
+  same host); its later samples go to the same host while it answers. A host silent for
+  ``hedge_s`` while the reader waits on it has its videos asked of their next hosts too; the
+  first answer wins.
 * **The fleet changes**: the endpoint is resolved again every ``RESOLVE_S`` seconds; a new host
   serving the same plan takes work from its first answer, a host gone hands its videos to the
   next hosts of their rankings, a host serving another plan is named once and left out.
