@@ -38,5 +38,5 @@ def test_four_ranks_of_a_job_reading_a_fleet_have_each_video_made_about_once(tmp
     """Each rank routes its own asks; a video both ranks need goes to one host (its owner), not
     to one host per rank."""
     r = ranks_row(make_corpus(tmp_path / "corpus", 60), 4)
-    assert r["samples_read"] > 0 and r["made_over_read"] <= 1.1, r  # each rank's own load bound: 1.66
+    assert r["samples_read"] > 0 and 1.0 <= r["made_over_read"] <= 1.1, r  # each rank's own load bound: 1.66
     assert r["videos_of_two_hosts"] <= 0.05, r  # 0.41
