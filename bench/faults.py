@@ -7,6 +7,13 @@ scenario, samples expected, delivered, lost, duplicated, seconds to recover, not
 """
 from __future__ import annotations
 
+if __name__ == "__main__":  # Ctrl-C or SIGTERM from the start, the imports below included: one line
+    import sys
+
+    from v2v_wire.commands import run_command
+
+    sys.exit(run_command("bench.faults", "bench.faults:main"))
+
 import argparse
 import json
 import sys
@@ -17,6 +24,7 @@ from typing import List, Optional
 
 from harness import faults, faults_deploy, faults_fs, faults_misuse
 from harness.faults import Layout
+from v2v_wire.commands import writable_problem, write_whole
 
 SCENARIOS = {**faults.SCENARIOS, **faults_misuse.SCENARIOS, **faults_deploy.SCENARIOS, **faults_fs.SCENARIOS}
 
@@ -39,6 +47,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--out", help="also write the table (markdown) here")
     p.add_argument("--kills", type=int, default=4, help="worker kills in the worker scenario")
     a = p.parse_args(argv)
+    problem = writable_problem(Path(a.out)) if a.out else ""
+    if problem:
+        print(f"bench.faults: --out {a.out}: {problem}", file=sys.stderr)
+        return 2
     layout = Layout(L=8, crop=96, windows=3, batch=2)
     rows, not_run = [], []
     for name in a.only or list(SCENARIOS):
@@ -59,8 +71,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     table = format_table(rows)
     print(table)
     if a.out:
-        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.out).write_text("# Fault scenarios\n\nCommand: `python -m bench.faults --out docs/faults.md`\n\n"
+        write_whole(a.out, "# Fault scenarios\n\nCommand: `python -m bench.faults --out docs/faults.md`\n\n"
                                + TABLE_NOTE + table + "\n\n" + not_run_note(not_run) + FS_FAULTS + NOT_CARRIED)
     bad = [r for r in rows if r["lost"] or r["duplicated"] or r["unexpected"]]
     for r in bad:
@@ -149,6 +160,3 @@ Of the filesystem table, `journal` (the `--state-dir` journal) and `shm` (a batc
 batch directory push's server kept for that hand-off) were push's.
 """
 
-
-if __name__ == "__main__":
-    sys.exit(main())

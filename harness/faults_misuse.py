@@ -206,6 +206,10 @@ def scenario_lightning_ddp(tmp: Path, layout: Layout) -> dict:
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             err = proc.communicate(timeout=30)[1]
+        except BaseException:  # the bench interrupted: its own session would outlive it
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(30)
+            raise
         rc, clean = _stop(srv), _clean(srv)
     ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
     batches = [r["batches"] for r in ranks]
