@@ -311,3 +311,14 @@ def test_the_plan_message_carries_what_changed_since_earlier_manifests():
     assert "changes" not in Position(ident).to_dict()["plan"]  # a position and a fetch name the identity only
     with pytest.raises(WireError, match="field 'changes'"):
         PlanInfo.from_wire({**PlanInfo(ident, None, {}).to_wire(), "changes": {"m1": 3}})
+
+
+def test_the_plan_message_carries_the_servers_instance_checked_at_the_edge():
+    from v2v_wire.plan_messages import MAX_INSTANCE, PlanInfo, WireError
+
+    ident = PlanIdentity("m", "r", 0)
+    assert PlanInfo.from_wire(PlanInfo(ident, 4, {}, "a" * 32).to_wire()).instance == "a" * 32
+    assert PlanInfo.from_wire(PlanInfo(ident, 4, {}).to_wire()).instance is None  # not said: never read as another's
+    for bad in ("", "x" * (MAX_INSTANCE + 1), 7, ["a"]):
+        with pytest.raises(WireError, match="plan: field 'instance'"):
+            PlanInfo.from_wire({**PlanInfo(ident, 4, {}).to_wire(), "instance": bad})

@@ -2,13 +2,14 @@
 one plan a single server serves, each video made by the host the reader routes it to
 (docs/scaling.md, "One plan, any fleet"). Free of torch.
 
-* **The plan is the reader's.** The manifest is asked once of a host (``manifest_ask``; its
-  fingerprint must be the plan identity's), and the epoch's order is ``v2v_wire.plan.EpochPlan``
-  of it, the pure function every server computes: a position means the same sample at any fleet
-  size, a single server included. It unfolds with each video's windows, as the corpus index gave
-  them to the host asked, or as a host's decode learns them (a ``make`` of the video's windows,
-  asked of the host the video is routed to, which keeps the samples it made for the makes that
-  follow).
+* **The plan is the reader's.** The manifest is asked once a pass, of the first host that
+  answers (``manifest_ask``, the hosts asked in turn, ``ASK_NEXT_S`` each: a host gone costs
+  that, and leaves the fleet until it answers; its fingerprint must be the plan identity's), and
+  the epoch's order is ``v2v_wire.plan.EpochPlan`` of it, the pure function every server
+  computes: a position means the same sample at any fleet size, a single server included. It
+  unfolds with each video's windows, as the corpus index gave them to the host asked, or as a
+  host's decode learns them (a ``make`` of the video's windows, asked of the host the video is
+  routed to, which keeps the samples it made for the makes that follow).
 * **Routing** (``v2v_wire.fleet.Router``): each video of the positions this rank reads, from the
   step it yields to ``ahead`` positions past it, is asked (``make``: the video and the samples
   of it this rank's rows hold) of the host its ranking and the hosts' loads pick (its owner
@@ -18,7 +19,9 @@ one plan a single server serves, each video made by the host the reader routes i
   first answer wins.
 * **The fleet changes**: the endpoint is resolved again every ``RESOLVE_S`` seconds; a new host
   serving the same plan takes work from its first answer, a host gone hands its videos to the
-  next hosts of their rankings, a host serving another plan is named once and left out.
+  next hosts of their rankings, a host serving another plan is named once and left out, and
+  a host that says the instance of one read already (one host under two names) is read once
+  (``alias_of``).
 
 A host keeps no record of the reader: a ``make`` names its samples, and a restarted host makes
 them again.
@@ -40,7 +43,8 @@ from .endpoints import auto_compression, resolve_endpoints
 from .fetch import Link, PlanServerError
 from .fleet_pass import STEAL_S, Pass, take
 
-__all__ = ["Fleet", "load_manifest", "asked_fleet", "listing_diff", "HEDGE_S", "RESOLVE_S"]
+__all__ = ["Fleet", "load_manifest", "manifest_part", "asked_fleet", "listing_diff", "alias_of", "HEDGE_S",
+           "RESOLVE_S", "ASK_NEXT_S"]
 
 log = logging.getLogger("v2v.client")
 
@@ -49,10 +53,16 @@ log = logging.getLogger("v2v.client")
 HEDGE_S = 10.0
 #: Seconds between resolutions of the fleet's endpoint (a Kubernetes headless Service's name).
 RESOLVE_S = 5.0
+#: Seconds a host may take to answer what a pass asks the fleet once (the manifest; what it serves,
+#: while the plan unfolds: ``servers.Servers.ask``) before the next host is asked: a live host's
+#: loop answers within its 0.1 s poll, a dead or unreachable one never, and every pass (each
+#: epoch, each DataLoader worker) asks, so a gone host costs this, not ``timeout_s``.
+ASK_NEXT_S = 2.0
 
 
-def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float) -> Manifest:
-    """The manifest of ``link``'s server, asked part by part (``manifest_ask``).
+def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float, first: Optional[ManifestPart] = None) -> Manifest:
+    """The manifest of ``link``'s server, asked part by part (``manifest_ask``); ``first``: its
+    part at offset 0 when already read (:meth:`Fleet._manifest`).
 
     Raises:
         TimeoutError: the server did not answer within ``timeout_s``.
@@ -61,30 +71,42 @@ def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float) -> Manifest:
     videos: List[str] = []
     tags: List[Optional[str]] = []
     slots: List[Optional[int]] = []
-    total, kpw, tagged = None, 1, True
-    while total is None or len(videos) < total:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            link._send(ManifestAsk(len(videos)).to_wire())
-            got = link._recv(min(deadline, time.monotonic() + 5.0))
-            if got is not None and isinstance(got[0], ManifestPart) and got[0].offset == len(videos):
-                break
-            if got is not None and isinstance(got[0], Refused):
-                raise PlanServerError(f"{link.endpoint}: {got[0].message}")
-            if time.monotonic() >= deadline:
-                raise TimeoutError(f"{link.endpoint}: no manifest within {timeout_s} s")
-        part: ManifestPart = got[0]
-        total, kpw, tagged = part.total, part.crops_per_window, part.tagged
-        if not part.videos and len(videos) < total:
-            raise PlanServerError(f"{link.endpoint}: its manifest stops at {len(videos)} of {total} videos")
+    part = first
+    while True:
+        part = part or manifest_part(link, len(videos), timeout_s)
+        if not part.videos and len(videos) < part.total:
+            raise PlanServerError(f"{link.endpoint}: its manifest stops at {len(videos)} of {part.total} videos")
         videos += part.videos
         tags += part.tags
         slots += part.slots
-    manifest = Manifest.of(dict(zip(videos, slots)), kpw, dict(zip(videos, tags)) if tagged else None)
+        if len(videos) >= part.total:
+            break
+        part = None
+    manifest = Manifest.of(dict(zip(videos, slots)), part.crops_per_window,
+                           dict(zip(videos, tags)) if part.tagged else None)
     if manifest.fingerprint() != plan.manifest:
         raise PlanServerError(f"{link.endpoint}: its manifest's fingerprint is {manifest.fingerprint()}, its plan "
                               f"names {plan.manifest}")
     return manifest
+
+
+def manifest_part(link: Link, offset: int, timeout_s: float) -> ManifestPart:
+    """The part of ``link``'s server's manifest from video ``offset`` on, asked again every 5 s
+    while it is silent (a message to a host not connected yet is dropped).
+
+    Raises:
+        TimeoutError: no answer within ``timeout_s``.
+        PlanServerError: it refused (one line)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        link._send(ManifestAsk(offset).to_wire())
+        got = link._recv(min(deadline, time.monotonic() + 5.0))
+        if got is not None and isinstance(got[0], ManifestPart) and got[0].offset == offset:
+            return got[0]
+        if got is not None and isinstance(got[0], Refused):
+            raise PlanServerError(f"{link.endpoint}: {got[0].message}")
+        if time.monotonic() >= deadline:
+            raise TimeoutError(f"{link.endpoint}: no manifest within {timeout_s} s")
 
 
 def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Optional[tuple]) -> Dict[str, PlanInfo]:
@@ -156,6 +178,22 @@ def listing_diff(ep_a: str, plan_a: PlanIdentity, ep_b: str, plan_b: PlanIdentit
     return f"listings differ in {len(differ)} file(s): {shown}"
 
 
+def alias_of(ep: str, info: PlanInfo, names: Dict[str, str]) -> Optional[str]:
+    """The endpoint under which the host answering at ``ep`` is read already, else None
+    (``names``: instance -> endpoint, given ``ep`` when its instance is new). Endpoints whose
+    hosts say one instance (``PlanInfo.instance``) are one host under two names (``localhost``
+    and ``127.0.0.1``, a DNS name and its address): it is read once, under the name it was first
+    read under, and the other name is said in one log line."""
+    if info.instance is None:
+        return None
+    kept = names.setdefault(info.instance, ep)
+    if kept == ep:
+        return None
+    log.warning("%s: the same host as %s (it says the same instance, %s): read once, as %s", ep, kept,
+                info.instance, kept)
+    return kept
+
+
 class Fleet:
     """Hosts serving one plan, read as it (module docstring).
 
@@ -178,16 +216,20 @@ class Fleet:
         hedge_s: :data:`HEDGE_S`.
         readers: readers of the job routing the fleet at once, this one included (its ranks
             times their DataLoader workers: ``Router``'s ``readers``).
+        same: endpoint -> the endpoint of the same host read in its place (:func:`alias_of`:
+            kept by the caller across passes, so each is said once; updated).
     """
 
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
                  hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None,
-                 made: Optional[Dict[str, str]] = None, readers: int = 1):
+                 made: Optional[Dict[str, str]] = None, readers: int = 1, same: Optional[Dict[str, str]] = None):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
         self.rates = {} if rates is None else rates
         self.made = {} if made is None else made
+        self.same = {} if same is None else same
+        self.names: Dict[str, str] = {}  # instance -> the endpoint its host is read under (alias_of)
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
         self.workers: Dict[str, int] = {}
@@ -225,7 +267,11 @@ class Fleet:
                 log.warning("%s: left out of the fleet: it serves %s", ep, problem)
                 self.refused.add(ep)
             return
-        if ep in self.router.hosts:
+        if ep in self.router.hosts or ep in self.same:
+            return
+        kept = alias_of(ep, info, self.names)
+        if kept is not None:
+            self.same[ep] = kept
             return
         self.stream = self.stream or info.stream
         link = self._link(ep)
@@ -244,21 +290,64 @@ class Fleet:
         except (OSError, ValueError) as e:  # a name that stops resolving for a while: keep the fleet
             log.warning("%s: %s (the fleet stays as it was)", self.endpoint, e)
             return
-        for ep in sorted(current - set(self.router.hosts) - self.refused):
+        for ep in sorted(current - set(self.router.hosts) - self.refused - set(self.same)):
             self._link(ep)._send(PlanAsk().to_wire())  # its answer, a PlanInfo, joins it (Pass.receive)
         for ep in sorted(set(self.router.hosts) - current):
             self.router.leave(ep)
 
     def _manifest(self) -> Manifest:
+        """The plan's manifest, of the first host that answers (:meth:`_first_part`).
+
+        Raises:
+            TimeoutError, PlanServerError: as :meth:`_first_part` and :func:`load_manifest`."""
         if self.manifest is None:
-            ep = next(iter(self.router.hosts), None)
-            if ep is None:
-                raise PlanServerError(f"{self.endpoint}: no host serves the plan")
-            self.manifest = load_manifest(self.links[ep], self.plan, self.timeout_s)
+            ep, first = self._first_part()
+            self.manifest = load_manifest(self.links[ep], self.plan, self.timeout_s, first)
             for v, n in self.manifest.slots:
                 if n is not None:
                     self.windows.setdefault(v, n)
         return self.manifest
+
+    def _first_part(self) -> Tuple[str, ManifestPart]:
+        """``(host, its manifest's first part)``: the hosts asked in turn, each for
+        :data:`ASK_NEXT_S` seconds, round after round until ``timeout_s``. A host asked that
+        did not answer, or refused, is named in one log line and leaves the fleet (one silent
+        joins again when it answers the ``plan_ask`` of ``_resolve``), so the pass routes
+        nothing to it.
+
+        Raises:
+            TimeoutError: no host answered within ``timeout_s``, naming them.
+            PlanServerError: no host serves the plan, or every host refused (their lines)."""
+        hosts = list(self.router.hosts)
+        if not hosts:
+            raise PlanServerError(f"{self.endpoint}: no host serves the plan")
+        deadline = time.monotonic() + self.timeout_s
+        silent: List[str] = []
+        refused: Dict[str, str] = {}
+        while len(refused) < len(hosts):
+            for ep in [h for h in hosts if h not in refused]:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"{', '.join(silent) or self.endpoint}: no manifest within {self.timeout_s} s (each host "
+                                       f"asked in turn for {ASK_NEXT_S} s)")
+                try:
+                    first = manifest_part(self.links[ep], 0, min(ASK_NEXT_S, left))
+                except TimeoutError:
+                    silent += [] if ep in silent else [ep]
+                    continue
+                except PlanServerError as e:
+                    refused[ep] = str(e)
+                    continue
+                for h in (h for h in silent if h != ep):
+                    log.warning("%s: left out of the fleet until it answers: no manifest within %s s (read from %s)",
+                                h, ASK_NEXT_S, ep)
+                    self.router.leave(h)
+                for h, why in refused.items():
+                    log.warning("left out of the fleet: %s", why)
+                    self.refused.add(h)
+                    self.router.leave(h)
+                return ep, first
+        raise PlanServerError("; ".join(refused.values()))
 
     # ------------------------------------------------------------------ reading
     def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:

@@ -14,7 +14,7 @@ from v2v_wire.plan_shards import shards_identity, shards_samples
 
 from .endpoints import auto_compression, check_servers, resolve_endpoints, split_endpoints
 from .fetch import Link, PlanServerError, Shards
-from .fleet_read import Fleet, asked_fleet, listing_diff
+from .fleet_read import ASK_NEXT_S, Fleet, alias_of, asked_fleet, listing_diff
 
 __all__ = ["Servers", "FLEET_ASK_S"]
 
@@ -43,6 +43,7 @@ class Servers:
         self.windows: Dict[str, int] = {}  # a fleet's videos' windows learned in this process
         self.rates: Dict[str, float] = {}  # a fleet's hosts' decode rates they said to this process
         self.made: Dict[str, str] = {}  # a fleet's videos -> the host whose rows of it this process read last
+        self.same: Dict[str, str] = {}  # an endpoint -> the one its host is read under (fleet_read.alias_of)
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -58,17 +59,8 @@ class Servers:
         Raises:
             TimeoutError, PlanServerError: a server silent, or speaking another protocol version.
             ValueError: several servers that are not one sharding of one corpus, nor a fleet."""
-        if self.fleet is not None:  # asked again: the plan's samples, of the first host that answers
-            for ep, _ in self.fleet:
-                try:
-                    with Link(ep, min(timeout_s, FLEET_ASK_S), curve) as link:
-                        info = link.ask()
-                except TimeoutError:
-                    continue
-                if info.plan == self.fleet[0][1].plan:
-                    return info
-            raise TimeoutError(f"{self.endpoint}: no host of the fleet answered 'what do you serve' within "
-                               f"{min(timeout_s, FLEET_ASK_S)} s")
+        if self.fleet is not None:
+            return self._ask_fleet_again(timeout_s, curve)
         servers = resolve_endpoints(self.endpoint) if self.shards is None else [ep for ep, _ in self.shards]
         if len(servers) == 1:
             with Link(servers[0], timeout_s, curve) as link:
@@ -87,12 +79,45 @@ class Servers:
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
         return info
 
+    def _ask_fleet_again(self, timeout_s: float, curve: Optional[tuple]) -> PlanInfo:
+        """What the fleet serves, asked again (the plan's samples, while it unfolds), of the first
+        host that answers: the hosts asked in turn, ``ASK_NEXT_S`` seconds each, round after round
+        until ``timeout_s``; a host serving another plan now is asked no more.
+
+        Raises:
+            TimeoutError: no host answered within ``timeout_s``.
+            PlanServerError: every host serves another plan now."""
+        plan = self.fleet[0][1].plan
+        hosts = [ep for ep, _ in self.fleet]
+        deadline = time.monotonic() + timeout_s
+        while hosts:
+            for ep in list(hosts):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"{', '.join(hosts)}: no answer to 'what do you serve' within {timeout_s} s")
+                try:
+                    with Link(ep, min(ASK_NEXT_S, left), curve) as link:
+                        info = link.ask()
+                except TimeoutError:
+                    continue
+                if info.plan == plan:
+                    return info
+                hosts.remove(ep)
+        raise PlanServerError(f"{self.endpoint}: no host of the fleet serves its plan (manifest {plan.manifest}) now")
+
     def _ask_fleet(self, servers: List[str], infos: Dict[str, PlanInfo], timeout_s: float, curve: Optional[tuple],
                    prefer: Optional[PlanIdentity]) -> PlanInfo:
-        """The fleet of the hosts that answered (``infos``, in ``servers``' order); the others are
-        named and left out (they join when they answer, ``fleet_read.Fleet``)."""
+        """The fleet of the hosts that answered (``infos``, in ``servers``' order), each host once
+        (``fleet_read.alias_of``); the others are named and left out (they join when they answer,
+        ``fleet_read.Fleet``)."""
+        names: Dict[str, str] = {}
+        for ep, i in infos.items():
+            kept = alias_of(ep, i, names)
+            if kept is not None:
+                self.same[ep] = kept
+        infos = {ep: i for ep, i in infos.items() if ep not in self.same}
         for ep in servers:
-            if ep not in infos:
+            if ep not in infos and ep not in self.same:
                 log.warning("%s: left out of the fleet for now: no answer to 'what do you serve' within %s s", ep,
                             min(timeout_s, FLEET_ASK_S))
         whole, first = next(iter(infos)), next(iter(infos.values()))
@@ -116,7 +141,7 @@ class Servers:
         DataLoader workers)."""
         if self.fleet is not None:
             return Fleet(self.endpoint, self.fleet, self.fleet[0][1].plan, timeout_s, curve, self.compression,
-                         self.windows, rates=self.rates, made=self.made, readers=readers)
+                         self.windows, rates=self.rates, made=self.made, readers=readers, same=self.same)
         return Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:

@@ -16,6 +16,7 @@ import logging
 import signal
 import threading
 import time
+import uuid
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -89,6 +90,7 @@ class PlanServer:
         self.codecs: Dict[str, float] = {}  # codec -> when a fetch last asked for it
         self._stop = threading.Event()
         self.bound_endpoint: Optional[str] = None
+        self.instance = uuid.uuid4().hex  # this process's name in its plan info: one host under two names is read once
 
     def stop(self) -> None:
         """Ask the loop to stop (thread- and signal-safe)."""
@@ -195,7 +197,7 @@ class PlanServer:
                 log.warning("bad message from client %s: %s", ident.hex()[:12], e)
             return
         if isinstance(msg, PlanAsk):
-            self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info()).to_wire())
+            self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info(), self.instance).to_wire())
             return
         if isinstance(msg, ManifestAsk):
             self._send(ident, self._manifest_part(msg.offset).to_wire())
