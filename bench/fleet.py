@@ -25,6 +25,15 @@ stock: the first ``warmup`` batches are read unmeasured. Rows:
   ranks read (1.0 when each video is decoded once, above when ranks ask a video of two hosts),
   the share of videos served by both, and the job's samples/s.
 
+* ``batches``: one host read by one reader (one fetch in flight) at each of ``BATCHES`` rows a
+  batch, ``EPOCHS`` whole epochs each, a fresh host for each batch size: each epoch's samples
+  made (the host's feed, ``samples_made_by_epoch``, once its workers are idle) over those read,
+  and its samples/s over epoch 0's.
+* ``restart``: a job reads half of epoch 1 of one host and is cut off (its reader closed, its
+  asks left behind); a new job then reads epoch 1 whole: its samples/s over a fresh host's, and
+  the samples of epoch 1 made while it read over those it read (what the cut-off job read is
+  made again: 1.0 when nothing else is).
+
 The ``cache``, ``moved`` and ``ranks`` rows read with batches of one row, so that each batch's ``servers``
 names the host of its one sample. The ``cache`` row's entries take about 25 MB a video in the
 temporary folder, twice over (the lone host's and the fleet's): 11 GB at the default size.
@@ -64,7 +73,10 @@ from v2v_wire.fleet import rank_hosts
 from v2v_wire.ids import parse_sample_id
 
 OUTPUTS = ("voxels", "frames")
-ROWS = ("rates", "stop", "kill", "join", "cache", "moved", "ranks")
+ROWS = ("rates", "stop", "kill", "join", "cache", "moved", "ranks", "batches", "restart")
+#: Rows per batch the ``batches`` row reads one host at, and its epochs each.
+BATCHES = (1, 4, 8, 12, 16, 32)
+EPOCHS = 4
 #: GiB of frame cache of each ``cache`` row host: the bundled clips' kept frames (about 25 MB a
 #: video, 240 videos at the default size) fit whole, so a miss in epoch 2 is never the budget's.
 CACHE_GB = 16
@@ -427,6 +439,79 @@ def ranks_row(corpus: Path, ranks: int) -> dict:
     return out
 
 
+#: The ``batches`` and ``restart`` rows' hosts: up to 10 samples a video (the bundled clips give
+#: 10, 10, 6 and 3 windows), so that a decode makes more than a batch's worth of some videos, and
+#: the server's own batch size (``DeliveryPolicy.batch_size``, the samples it keeps once fetched).
+WHOLE_VIDEOS = ["--max-samples-per-video", "10", "--batch-size", "12"]
+
+
+def metered(corpus: Path) -> ServeProcess:
+    """Host A with :data:`WHOLE_VIDEOS` and its ``/metrics`` on a free port (:func:`made`)."""
+    return host(corpus, 0, [*WHOLE_VIDEOS, "--metrics-port", str(free_port())])
+
+
+def read_count(ds: V2VStreamDataset, stop: Optional[int] = None) -> Tuple[int, float]:
+    """``(samples read, seconds)`` of one pass of ``ds``, cut off after ``stop`` samples if given."""
+    n, t0 = 0, time.perf_counter()
+    for b in ds:
+        n += int((~b["padding"]).sum())
+        if stop is not None and n >= stop:
+            break
+    return n, time.perf_counter() - t0
+
+
+def made_of(server: ServeProcess, epoch: int) -> int:
+    """Samples of ``epoch`` ``server`` made so far (its feed's ``samples_made_by_epoch``), once
+    its workers are idle: what it made ahead of the epoch, while its reader read the one before,
+    counts in it."""
+    settled([server], counts=made)
+    return open_stream(server.endpoint, timeout_s=30).server_feed()["samples_made_by_epoch"].get(epoch, 0)
+
+
+def batches_row(corpus: Path, batches: Sequence[int] = BATCHES, epochs: int = EPOCHS) -> dict:
+    """For each of ``batches`` rows a batch, a fresh host read ``epochs`` whole epochs by one
+    reader with one fetch in flight: each epoch's samples made over read and samples/s."""
+    out = {}
+    for batch in batches:
+        with metered(corpus) as A:
+            ds = V2VStreamDataset(A.endpoint, batch_size=batch, outputs=OUTPUTS, timeout_s=300, prefetch=1)
+            per = []
+            for epoch in range(epochs):
+                ds.set_epoch(epoch)
+                n, seconds = read_count(ds)
+                m = made_of(A, epoch)
+                per.append({"samples_read": n, "samples_made": m, "made_over_read": m / n, "samples_per_s": n / seconds})
+        read, total = sum(e["samples_read"] for e in per), sum(e["samples_made"] for e in per)
+        out[batch] = {"epochs": per, "made_over_read": total / read,
+                      "worst_made_over_read": max(e["made_over_read"] for e in per),
+                      "slowest_over_epoch_0": min(e["samples_per_s"] for e in per) / per[0]["samples_per_s"]}
+        print(f"batches: batch {batch}: made over read per epoch {[round(e['made_over_read'], 3) for e in per]}; "
+              f"samples/s {[round(e['samples_per_s'], 1) for e in per]}", flush=True)
+    return out
+
+
+def restart_row(corpus: Path, batch: int = 4) -> dict:
+    """Epoch 1 of a fresh host, then of a host whose last job was cut off half-way through it."""
+    def job(endpoint: str) -> V2VStreamDataset:
+        ds = V2VStreamDataset(endpoint, batch_size=batch, outputs=OUTPUTS, timeout_s=300)
+        ds.set_epoch(1)
+        return ds
+
+    with metered(corpus) as A:
+        fresh, seconds = read_count(job(A.endpoint))
+        fresh_rate = fresh / seconds
+    with metered(corpus) as A:
+        read_count(job(A.endpoint), stop=fresh // 2)  # cut off: what it asked ahead stays asked
+        before = made_of(A, 1)
+        n, seconds = read_count(job(A.endpoint))
+        after = made_of(A, 1)
+    out = {"fresh_samples_per_s": fresh_rate, "after_cut_samples_per_s": n / seconds,
+           "over_fresh": n / seconds / fresh_rate, "made_over_read": (after - before) / n}
+    print(f"restart: a job after one cut off mid-epoch reads {out['over_fresh']:.2f} of a fresh host's rate, "
+          f"{out['made_over_read']:.3f} made a sample read", flush=True)
+    return out
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--copies", type=int, default=60, help="links to each bundled clip in the corpus")
@@ -476,6 +561,12 @@ def main(argv: Optional[List[str]] = None) -> int:
             res["moved"] = moved_row(corpus)
         if "ranks" in rows:
             res["ranks"] = ranks_row(corpus, a.ranks)
+        if rows & {"batches", "restart"}:  # 580 samples an epoch: WHOLE_VIDEOS
+            small = make_corpus(Path(d) / "corpus20", 20)
+            if "batches" in rows:
+                res["batches"] = batches_row(small)
+            if "restart" in rows:
+                res["restart"] = restart_row(small)
     if a.json:
         write_whole(a.json, json.dumps(res, indent=1) + "\n")
     return 0

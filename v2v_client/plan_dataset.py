@@ -413,8 +413,9 @@ class PlanEpochs(torch.utils.data.IterableDataset):
 
     def server_feed(self, timeout_s: Optional[float] = None) -> Optional[dict]:
         """What the dataset's server(s) report of their work, asked now (``Servers.feed``):
-        ``workers``, ``samples_made``, ``busy_s`` (stage -> worker seconds), ``frame_cache_gb``;
-        None from a server that does not report them. ``trainer.feed_report`` says from them
+        ``workers``, ``samples_made``, ``samples_made_by_epoch`` (epoch -> samples made of it),
+        ``busy_s`` (stage -> worker seconds), ``frame_cache_gb``; None from a server that does not
+        report them. ``trainer.feed_report`` says from them
         what would feed a starved trainer. ``timeout_s``: how long the question may wait, for
         all the servers together (default: the dataset's ``timeout_s``; an interrupted
         ``v2v-train`` waits half a second at most: ``trainer.loop.INTERRUPTED_ASK_S``).

@@ -146,8 +146,10 @@ class Servers:
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
         """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
-        shards or the fleet's hosts: ``workers``, ``samples_made``, ``busy_s`` (stage -> worker
-        seconds) and the smallest ``frame_cache_gb``; None when a server does not report them.
+        shards or the fleet's hosts: ``workers``, ``samples_made``, ``samples_made_by_epoch``
+        (epoch -> samples made of it, the servers' latest epochs: over the samples read of an
+        epoch, 1.0 when each was made once), ``busy_s`` (stage -> worker seconds) and the smallest
+        ``frame_cache_gb``; None when a server does not report them.
 
         Raises:
             TimeoutError: the servers did not all answer within ``timeout_s`` (for all of them
@@ -160,11 +162,15 @@ class Servers:
         if not figures or not all(isinstance(f, dict) for f in figures):
             return None
         busy: Dict[str, float] = {}
+        by_epoch: Dict[int, int] = {}
         for f in figures:
             for stage, v in (f.get("busy_s") or {}).items():
                 busy[stage] = busy.get(stage, 0.0) + float(v)
+            for e, n in (f.get("samples_made_by_epoch") or {}).items():
+                by_epoch[int(e)] = by_epoch.get(int(e), 0) + int(n)
         return {"workers": sum(int(f.get("workers") or 0) for f in figures),
                 "samples_made": sum(int(f.get("samples_made") or 0) for f in figures),
+                "samples_made_by_epoch": by_epoch,
                 "frame_cache_gb": min(float(f.get("frame_cache_gb") or 0.0) for f in figures), "busy_s": busy}
 
 

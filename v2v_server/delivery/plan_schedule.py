@@ -74,6 +74,10 @@ PASS_ATTEMPTS = 3
 #: Seconds after an epoch's last fetch its samples made but never fetched may go (a job that left).
 IDLE_S = 600.0
 
+#: Epochs whose samples made a server counts (the latest): what its readers made of each epoch,
+#: against what they read of it, says whether a sample was made twice (``stream_info``'s ``feed``).
+EPOCHS_COUNTED = 16
+
 #: Readers' heads tracked (:class:`Heads`), the least recently moved out past it: two epochs'
 #: for each reader of a job of 32 (8 ranks x 4 DataLoader workers).
 HEADS_KEPT = 64
@@ -368,6 +372,7 @@ class PlanScheduler:
         self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
         # tasks started; samples made; EpochPlans built (one per epoch read, however many at once)
         self._task_ids = self.samples_made = self.plans_built = 0
+        self.epoch_made: Dict[int, int] = {}  # epoch -> samples made of it, the EPOCHS_COUNTED latest
 
     # ------------------------------------------------------------------ plans and fetches
     def plan(self, epoch: int) -> EpochPlan:
@@ -527,6 +532,9 @@ class PlanScheduler:
         self.failed.pop(sk, None)
         self.store[sk] = build()
         self.samples_made += 1
+        self.epoch_made[ek[0]] = self.epoch_made.get(ek[0], 0) + 1
+        if len(self.epoch_made) > EPOCHS_COUNTED:
+            del self.epoch_made[min(self.epoch_made)]
         return True
 
     def done(self, worker: Hashable, task_id: int, windows: int, failed: Dict[int, str],

@@ -101,7 +101,8 @@ class PlanServer:
         (``"I/N"``, None for the whole corpus), the listing's and the recipe's fingerprints, which a
         reader of several shards checks (``v2v_client.endpoints.check_servers``); ``feed``, what a
         trainer needs to say what would feed it (``trainer.feed_report``): the workers, the frame
-        cache's GiB, the samples made so far and the workers' busy seconds per stage."""
+        cache's GiB, the samples made so far (and of each of the latest epochs: its digits -> count)
+        and the workers' busy seconds per stage."""
         c = self.cfg
         return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
                 "frames_per_bin": c.frames_per_bin, "outputs": list(c.outputs), "flow_preset": c.flow_preset,
@@ -110,6 +111,7 @@ class PlanServer:
                 "recipe": self.identity.recipe, "codecs": [k for k in COMPRESSIONS if available(k)],
                 "feed": {"workers": c.workers, "frame_cache_gb": c.frame_cache_gb,
                          "samples_made": self.metrics.totals()["samples_made"],
+                         "samples_made_by_epoch": {str(e): n for e, n in self.scheduler.epoch_made.items()},
                          "busy_s": {k: round(v, 3) for k, v in self.metrics.busy_seconds().items()}}}
 
     def run(self, ready_event: Optional[threading.Event] = None) -> int:
