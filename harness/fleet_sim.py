@@ -835,9 +835,13 @@ def autoscale(f: Fleet, job: Job) -> Scaled:
     ahead :data:`LOOKAHEAD_DECODES` decodes per worker of the hosts it reads. Pure and seeded.
 
     Raises:
-        ValueError: the manifest's (``HpaSpec.load``), a metric this model does not export, or
-            an epoch that ends before ``job.seconds``."""
+        ValueError: the manifest's (``HpaSpec.load``), a job out of range (naming its fields), a
+            metric this model does not export, or an epoch that ends before ``job.seconds``."""
     spec = HpaSpec.load(Path(job.hpa))
+    if job.appetite <= 0 or job.startup_s < 0 or job.seconds <= 0 or not 1 <= job.start_hosts <= spec.max_replicas:
+        raise ValueError(f"a job takes > 0 samples/s for > 0 s, pods start in >= 0 s and 1 to maxReplicas "
+                         f"({spec.max_replicas}) hosts serve at its start, got appetite={job.appetite}, "
+                         f"seconds={job.seconds}, startup_s={job.startup_s}, start_hosts={job.start_hosts}")
     if job.metric is not None:
         spec = replace(spec, metric=job.metric, target=job.target if job.target is not None else spec.target)
     if spec.metric not in METRIC_WINDOW_S:
