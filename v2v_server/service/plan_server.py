@@ -224,6 +224,7 @@ class PlanServer:
             try:
                 self.scheduler.make((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.video,
                                     msg.ordinals, now, msg.outputs, msg.position)
+                self.metrics.on_make(len(msg.ordinals or ()))
             except ValueError as e:
                 self._send(ident, Refused(msg.request, str(e), "make").to_wire())
             return
