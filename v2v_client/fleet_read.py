@@ -180,19 +180,19 @@ def listing_diff(ep_a: str, plan_a: PlanIdentity, ep_b: str, plan_b: PlanIdentit
     for ep, plan in ((ep_a, plan_a), (ep_b, plan_b)):
         with Link(ep, timeout_s, curve) as link:
             manifests.append(load_manifest(link, plan, timeout_s))
-    return manifest_diff(manifests[0], f"on {ep_a}", manifests[1], f"on {ep_b}", most)
+    return manifest_diff(manifests[0], f"on {ep_a}", manifests[1], f"on {ep_b}", most) or \
+        "listings differ in their crops per window"
 
 
 def manifest_diff(a: Manifest, where_a: str, b: Manifest, where_b: str, most: int = 3) -> str:
     """The first files (at most ``most``) whose path or tag differs between manifests ``a`` and
     ``b`` (said to be ``where_a``, ``where_b``), as one clause: ``"listings differ in 1 file(s):
-    a.mp4 (tag file 123 456 on tcp://a, tag file 123 789 on tcp://b)"``."""
+    a.mp4 (tag file 123 456 on tcp://a, tag file 123 789 on tcp://b)"``; "" when none does."""
     tagged = [dict(zip((v for v, _ in m.slots), m.tags or [None] * len(m.slots))) for m in (a, b)]
     ta, tb = tagged
     differ = sorted(v for v in set(ta) | set(tb) if ta.get(v, False) != tb.get(v, False))
     if not differ:
-        return "listings differ in their crops per window" if a.crops_per_window != b.crops_per_window else \
-            "listings hold the same files and tags"
+        return ""
 
     def side(v, d):
         return "absent" if v not in d else f"tag {d[v]}"
@@ -346,8 +346,8 @@ class Fleet:
                         theirs = read_manifest(link, ASK_NEXT_S)
                 files = manifest_diff(self.manifest, "in this pass's plan", theirs, "now")
             except (TimeoutError, PlanServerError) as e:
-                files = f"its listing could not be read ({e})"
-        self.changed[ep] = files if " file(s): " in files else why + (f"; {files}" if files else "")
+                files = f"{why}; its listing could not be read ({e})"
+        self.changed[ep] = files or why
         log.warning("%s: left out of the fleet for this pass: it serves another plan: %s", ep, self.changed[ep])
 
     def _name_unnamed(self) -> None:

@@ -113,15 +113,16 @@ class Servers:
         info = self.ask(timeout_s, curve, prefer)
         files = ""
         before = self.manifests.get(old.manifest)
-        if before is not None:
+        if before is not None and self.fleet:  # (the endpoint may name one server or shards now)
             ep = self.fleet[0][0]
             try:
                 with Link(ep, min(ASK_NEXT_S, timeout_s), curve) as link:
-                    files = "; " + manifest_diff(before, "before", read_manifest(link, min(ASK_NEXT_S, timeout_s)), "now")
+                    files = manifest_diff(before, "before", read_manifest(link, min(ASK_NEXT_S, timeout_s)), "now")
             except (TimeoutError, PlanServerError) as e:
-                files = f"; {ep}'s listing could not be read ({e})"
+                files = f"{ep}'s listing could not be read ({e})"
         log.warning("%s: no host serves the plan read last (manifest %s) any more: the fleet's plan is the one its "
-                    "hosts serve now (manifest %s)%s", self.endpoint, old.manifest, info.plan.manifest, files)
+                    "hosts serve now (manifest %s)%s", self.endpoint, old.manifest, info.plan.manifest,
+                    f"; {files}" if files else "")
         return info
 
     def _ask_fleet(self, servers: List[str], infos: Dict[str, PlanInfo], timeout_s: float, curve: Optional[tuple],
