@@ -3,8 +3,9 @@ one plan a single server serves, each video made by the host the reader routes i
 (docs/scaling.md, "One plan, any fleet"). Free of torch.
 
 * **The plan is the reader's.** The manifest is asked once a pass, of the first host that
-  answers (``manifest_ask``, the hosts asked in turn, ``ASK_NEXT_S`` each: a host gone costs
-  that, and leaves the fleet until it answers; its fingerprint must be the plan identity's), and
+  answers (``manifest_ask``, the hosts that said they serve the plan first, in turn,
+  ``ASK_NEXT_S`` each: a host gone costs that, and leaves the fleet until it answers; a host
+  whose manifest's fingerprint is not the plan identity's is left out for the pass), and
   the epoch's order is ``v2v_wire.plan.EpochPlan`` of it, the pure function every server
   computes: a position means the same sample at any fleet size, a single server included. It
   unfolds with each video's windows, as the corpus index gave them to the host asked, or as a
@@ -59,10 +60,11 @@ log = logging.getLogger("v2v.client")
 HEDGE_S = 10.0
 #: Seconds between resolutions of the fleet's endpoint (a Kubernetes headless Service's name).
 RESOLVE_S = 5.0
-#: Seconds a host may take to answer what a pass asks the fleet once (the manifest; what it serves,
-#: while the plan unfolds: ``servers.Servers.ask``) before the next host is asked: a live host's
-#: loop answers within its 0.1 s poll, a dead or unreachable one never, and every pass (each
-#: epoch, each DataLoader worker) asks, so a gone host costs this, not ``timeout_s``.
+#: Seconds a host may take to answer what a pass asks the fleet once (the manifest, before the
+#: next host is asked; what it serves, asked of every host at once by ``servers.Servers.ask``,
+#: after the first answer): a live host's loop answers within its 0.1 s poll, a dead or
+#: unreachable one never, and every pass (each epoch, each DataLoader worker) asks, so a gone
+#: host costs this, not ``timeout_s``.
 ASK_NEXT_S = 2.0
 
 
