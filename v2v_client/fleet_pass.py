@@ -135,7 +135,8 @@ class Pass:
         """Ask for ``ordinals`` of ``video`` of its host while that one answers, else the router's pick.
 
         Raises:
-            PlanServerError: a path longer than a make names, or every host left out for another plan."""
+            PlanServerError: a path longer than a make names, or every host left out.
+            PlanMismatch: every host left out serves another plan (``Fleet.no_host_left``)."""
         v = self.videos.setdefault(video, Video())
         if position is not None:
             v.position = min(v.position, position)
@@ -156,6 +157,8 @@ class Pass:
             self.send(video, ordinals, v.host, now)
         elif self.router.hosts or not self.fleet.refused:  # every host gone, silent or not joined yet
             self.parked.append((video, ordinals))  # asked again at the next rescue
+        elif self.fleet.changed:  # never read on with samples of another version of a file
+            raise self.fleet.no_host_left(self.epoch)
         else:
             raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan "
                                   f"({len(self.fleet.refused)} left out for serving another)")
@@ -283,7 +286,11 @@ class Pass:
             self.fleet.join(ep, msg, now)
             return
         if isinstance(msg, Refused):
-            if self.flight.pop((ep, msg.request), None) is not None:  # another plan now, or a make it cannot take
+            if self.flight.pop((ep, msg.request), None) is None:
+                return  # an answer to a request asked again or beaten by a copy
+            if msg.code == "plan":  # restarted on a corpus that changed: named with the files, once
+                self.fleet.other_plan(ep, f"a make refused: {msg.message}")
+            else:  # a make it cannot take
                 log.warning("%s: left out of the fleet: %s", ep, msg.message)
                 self.fleet.refused.add(ep)
                 self.router.leave(ep)  # its videos' makes go to their next hosts (rescue)

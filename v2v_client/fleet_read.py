@@ -3,8 +3,9 @@ one plan a single server serves, each video made by the host the reader routes i
 (docs/scaling.md, "One plan, any fleet"). Free of torch.
 
 * **The plan is the reader's.** The manifest is asked once a pass, of the first host that
-  answers (``manifest_ask``, the hosts asked in turn, ``ASK_NEXT_S`` each: a host gone costs
-  that, and leaves the fleet until it answers; its fingerprint must be the plan identity's), and
+  answers (``manifest_ask``, the hosts that said they serve the plan first, in turn,
+  ``ASK_NEXT_S`` each: a host gone costs that, and leaves the fleet until it answers; a host
+  whose manifest's fingerprint is not the plan identity's is left out for the pass), and
   the epoch's order is ``v2v_wire.plan.EpochPlan`` of it, the pure function every server
   computes: a position means the same sample at any fleet size, a single server included. It
   unfolds with each video's windows, as the corpus index gave them to the host asked, or as a
@@ -22,6 +23,12 @@ one plan a single server serves, each video made by the host the reader routes i
   next hosts of their rankings, a host serving another plan is named once and left out, and
   a host that says the instance of one read already (one host under two names) is read once
   (``alias_of``).
+* **A corpus that changed under the fleet** (docs/delivery.md): a pass reads only hosts serving
+  its plan. A host restarted with a file replaced serves another plan: it is named in one line,
+  with the files whose tags differ from the pass's manifest (:func:`manifest_diff`), and left out
+  for the pass; when no host serves the pass's plan any more, the pass fails in one line naming
+  them and saying to start that epoch over (``PlanMismatch``), so no epoch holds samples of two
+  versions of a file. The next pass reads the plan the hosts serve then (``servers.Servers.ask``).
 
 A host keeps no record of the reader: a ``make`` names its samples, and a restarted host makes
 them again.
@@ -36,15 +43,15 @@ import numpy as np
 import zmq
 
 from v2v_wire.fleet import Router
-from v2v_wire.plan import Manifest, PlanIdentity
+from v2v_wire.plan import Manifest, PlanIdentity, PlanMismatch
 from v2v_wire.plan_messages import ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
 
 from .endpoints import auto_compression, resolve_endpoints
 from .fetch import Link, PlanServerError
 from .fleet_pass import STEAL_S, Pass, take
 
-__all__ = ["Fleet", "load_manifest", "manifest_part", "asked_fleet", "listing_diff", "alias_of", "HEDGE_S",
-           "RESOLVE_S", "ASK_NEXT_S"]
+__all__ = ["Fleet", "load_manifest", "read_manifest", "manifest_part", "asked_fleet", "listing_diff",
+           "manifest_diff", "alias_of", "HEDGE_S", "RESOLVE_S", "ASK_NEXT_S"]
 
 log = logging.getLogger("v2v.client")
 
@@ -53,20 +60,35 @@ log = logging.getLogger("v2v.client")
 HEDGE_S = 10.0
 #: Seconds between resolutions of the fleet's endpoint (a Kubernetes headless Service's name).
 RESOLVE_S = 5.0
-#: Seconds a host may take to answer what a pass asks the fleet once (the manifest; what it serves,
-#: while the plan unfolds: ``servers.Servers.ask``) before the next host is asked: a live host's
-#: loop answers within its 0.1 s poll, a dead or unreachable one never, and every pass (each
-#: epoch, each DataLoader worker) asks, so a gone host costs this, not ``timeout_s``.
+#: Seconds a host may take to answer what a pass asks the fleet once (the manifest, before the
+#: next host is asked; what it serves, asked of every host at once by ``servers.Servers.ask``,
+#: after the first answer): a live host's loop answers within its 0.1 s poll, a dead or
+#: unreachable one never, and every pass (each epoch, each DataLoader worker) asks, so a gone
+#: host costs this, not ``timeout_s``.
 ASK_NEXT_S = 2.0
 
 
 def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float, first: Optional[ManifestPart] = None) -> Manifest:
+    """The manifest of ``link``'s server (:func:`read_manifest`), which must be ``plan``'s.
+
+    Raises:
+        TimeoutError: the server did not answer within ``timeout_s``.
+        PlanServerError: it refused, or its manifest's fingerprint is not ``plan``'s (one line).
+    """
+    manifest = read_manifest(link, timeout_s, first)
+    if manifest.fingerprint() != plan.manifest:
+        raise PlanServerError(f"{link.endpoint}: its manifest's fingerprint is {manifest.fingerprint()}, its plan "
+                              f"names {plan.manifest}")
+    return manifest
+
+
+def read_manifest(link: Link, timeout_s: float, first: Optional[ManifestPart] = None) -> Manifest:
     """The manifest of ``link``'s server, asked part by part (``manifest_ask``); ``first``: its
     part at offset 0 when already read (:meth:`Fleet._manifest`).
 
     Raises:
         TimeoutError: the server did not answer within ``timeout_s``.
-        PlanServerError: it refused, or its manifest's fingerprint is not ``plan``'s (one line).
+        PlanServerError: it refused, or its parts stop short (one line).
     """
     videos: List[str] = []
     tags: List[Optional[str]] = []
@@ -82,12 +104,8 @@ def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float, first: Optio
         if len(videos) >= part.total:
             break
         part = None
-    manifest = Manifest.of(dict(zip(videos, slots)), part.crops_per_window,
-                           dict(zip(videos, tags)) if part.tagged else None)
-    if manifest.fingerprint() != plan.manifest:
-        raise PlanServerError(f"{link.endpoint}: its manifest's fingerprint is {manifest.fingerprint()}, its plan "
-                              f"names {plan.manifest}")
-    return manifest
+    return Manifest.of(dict(zip(videos, slots)), part.crops_per_window,
+                       dict(zip(videos, tags)) if part.tagged else None)
 
 
 def manifest_part(link: Link, offset: int, timeout_s: float) -> ManifestPart:
@@ -156,25 +174,32 @@ def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Option
 
 def listing_diff(ep_a: str, plan_a: PlanIdentity, ep_b: str, plan_b: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], most: int = 3) -> str:
-    """The first files (at most ``most``) whose path or tag differs between two hosts' manifests, as
-    one clause: ``"listings differ: a.mp4 (tag 123:456 on tcp://a, 123:789 on tcp://b), ..."``.
+    """:func:`manifest_diff` of two hosts' manifests, each named by its endpoint.
 
     Raises:
         TimeoutError, PlanServerError: as :func:`load_manifest`."""
-    tagged = []
+    manifests = []
     for ep, plan in ((ep_a, plan_a), (ep_b, plan_b)):
         with Link(ep, timeout_s, curve) as link:
-            m = load_manifest(link, plan, timeout_s)
-        tagged.append(dict(zip((v for v, _ in m.slots), m.tags or [None] * len(m.slots))))
-    a, b = tagged
-    differ = sorted(v for v in set(a) | set(b) if a.get(v, False) != b.get(v, False))
+            manifests.append(load_manifest(link, plan, timeout_s))
+    return manifest_diff(manifests[0], f"on {ep_a}", manifests[1], f"on {ep_b}", most) or \
+        "listings differ in their crops per window"
+
+
+def manifest_diff(a: Manifest, where_a: str, b: Manifest, where_b: str, most: int = 3) -> str:
+    """The first files (at most ``most``) whose path or tag differs between manifests ``a`` and
+    ``b`` (said to be ``where_a``, ``where_b``), as one clause: ``"listings differ in 1 file(s):
+    a.mp4 (tag file 123 456 on tcp://a, tag file 123 789 on tcp://b)"``; "" when none does."""
+    tagged = [dict(zip((v for v, _ in m.slots), m.tags or [None] * len(m.slots))) for m in (a, b)]
+    ta, tb = tagged
+    differ = sorted(v for v in set(ta) | set(tb) if ta.get(v, False) != tb.get(v, False))
     if not differ:
-        return "listings differ in their crops per window"
+        return ""
 
     def side(v, d):
         return "absent" if v not in d else f"tag {d[v]}"
 
-    shown = ", ".join(f"{v} ({side(v, a)} on {ep_a}, {side(v, b)} on {ep_b})" for v in differ[:most])
+    shown = ", ".join(f"{v} ({side(v, ta)} {where_a}, {side(v, tb)} {where_b})" for v in differ[:most])
     return f"listings differ in {len(differ)} file(s): {shown}"
 
 
@@ -218,17 +243,24 @@ class Fleet:
             times their DataLoader workers: ``Router``'s ``readers``).
         same: endpoint -> the endpoint of the same host read in its place (:func:`alias_of`:
             kept by the caller across passes, so each is said once; updated).
+        known: manifest fingerprint -> the manifest, of the plans read in this process (kept by
+            the caller across passes, so that a pass no host serves any more names the files
+            changed since; updated).
     """
 
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
                  hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None,
-                 made: Optional[Dict[str, str]] = None, readers: int = 1, same: Optional[Dict[str, str]] = None):
+                 made: Optional[Dict[str, str]] = None, readers: int = 1, same: Optional[Dict[str, str]] = None,
+                 known: Optional[Dict[str, Manifest]] = None):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
         self.rates = {} if rates is None else rates
         self.made = {} if made is None else made
         self.same = {} if same is None else same
+        self.known = {} if known is None else known
+        self.changed: Dict[str, str] = {}  # host -> what it serves instead of the pass's plan (other_plan)
+        self.unnamed: Dict[str, Tuple[str, Optional[Manifest]]] = {}  # other_plan's before the manifest is known
         self.names: Dict[str, str] = {}  # instance -> the endpoint its host is read under (alias_of)
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
@@ -237,10 +269,10 @@ class Fleet:
         self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S,
                              readers=readers)
         self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
+        self.manifest: Optional[Manifest] = None
         for ep, info in hosts:
             self.join(ep, info, time.monotonic())
         self.resolved = time.monotonic()
-        self.manifest: Optional[Manifest] = None
         self.like: Optional[Dict[str, np.ndarray]] = None  # one row of each array: a padding row's zeros
         self.last_served: Tuple[Optional[Rows], Dict[str, int]] = (None, {})  # the last step's rows by host
 
@@ -263,9 +295,7 @@ class Fleet:
         """Host ``ep`` answered what it serves: it joins when that is this plan, else is named once."""
         problem = self.plan.problem(info.plan)
         if problem:
-            if ep not in self.refused:
-                log.warning("%s: left out of the fleet: it serves %s", ep, problem)
-                self.refused.add(ep)
+            self.other_plan(ep, problem.removeprefix("another plan: "))
             return
         if ep in self.router.hosts or ep in self.same:
             return
@@ -295,14 +325,71 @@ class Fleet:
         for ep in sorted(set(self.router.hosts) - current):
             self.router.leave(ep)
 
-    def _manifest(self) -> Manifest:
-        """The plan's manifest, of the first host that answers (:meth:`_first_part`).
+    def other_plan(self, ep: str, why: str, theirs: Optional[Manifest] = None, defer: bool = True) -> None:
+        """Host ``ep`` serves another plan than the pass's: it leaves the fleet for the pass,
+        named once in one line with the files whose tags differ from the pass's manifest
+        (:func:`manifest_diff` against ``theirs``, its manifest, else read of it for at most
+        :data:`ASK_NEXT_S` seconds), or ``why`` (one clause) where no file differs or the
+        manifests are not known; before the pass's manifest is read, once it is (:meth:`_manifest`)
+        unless not ``defer``."""
+        if ep in self.refused:
+            return
+        self.refused.add(ep)
+        if ep in self.router.hosts:
+            self.router.leave(ep)  # its videos' makes go to their next hosts (Pass.rescue)
+        if self.manifest is None and defer:
+            self.unnamed[ep] = (why, theirs)
+            return
+        files = ""
+        if self.manifest is not None:
+            try:
+                if theirs is None:
+                    with Link(ep, ASK_NEXT_S, self.curve) as link:
+                        theirs = read_manifest(link, ASK_NEXT_S)
+                files = manifest_diff(self.manifest, "in this pass's plan", theirs, "now")
+            except (TimeoutError, PlanServerError) as e:
+                files = f"{why}; its listing could not be read ({e})"
+        self.changed[ep] = files or why
+        log.warning("%s: left out of the fleet for this pass: it serves another plan: %s", ep, self.changed[ep])
+
+    def _name_unnamed(self) -> None:
+        """Name the hosts :meth:`other_plan` left out before the pass's manifest was known."""
+        unnamed, self.unnamed = self.unnamed, {}
+        for ep, (why, theirs) in unnamed.items():
+            self.refused.discard(ep)
+            self.other_plan(ep, why, theirs, defer=False)
+
+    def no_host_left(self, epoch: int) -> PlanMismatch:
+        """The error of a pass of ``epoch`` that no host serves the plan of any more (each left
+        out by :meth:`other_plan`): one line naming what they serve instead, the files that
+        changed where known, and that the epoch starts over."""
+        what = "; ".join(sorted(set(self.changed.values())))
+        return PlanMismatch(f"{self.endpoint}: no host serves epoch {epoch}'s plan (manifest {self.plan.manifest}) any "
+                            f"more: {what}; start epoch {epoch} over (set_epoch({epoch}), no position): its next pass "
+                            "reads the plan the hosts serve now")
+
+    def _manifest(self, epoch: int) -> Manifest:
+        """The plan's manifest, of the first host that answers (:meth:`_first_part`) and serves
+        it: one whose manifest is another's (restarted with a file replaced) is left out for the
+        pass (:meth:`other_plan`).
 
         Raises:
-            TimeoutError, PlanServerError: as :meth:`_first_part` and :func:`load_manifest`."""
+            TimeoutError, PlanServerError: as :meth:`_first_part` and :func:`read_manifest`.
+            PlanMismatch: every host that answered serves another manifest (:meth:`no_host_left`)."""
         if self.manifest is None:
-            ep, first = self._first_part()
-            self.manifest = load_manifest(self.links[ep], self.plan, self.timeout_s, first)
+            while self.manifest is None:
+                if not self.router.hosts and self.unnamed:  # each left out for serving another manifest
+                    self.manifest = self.known.get(self.plan.manifest)
+                    self._name_unnamed()
+                    raise self.no_host_left(epoch)
+                ep, first = self._first_part()
+                got = read_manifest(self.links[ep], self.timeout_s, first)
+                if got.fingerprint() == self.plan.manifest:
+                    self.manifest = got
+                else:
+                    self.other_plan(ep, f"manifest {got.fingerprint()}", got)
+            self.known[self.plan.manifest] = self.manifest
+            self._name_unnamed()
             for v, n in self.manifest.slots:
                 if n is not None:
                     self.windows.setdefault(v, n)
@@ -357,14 +444,15 @@ class Fleet:
 
         Raises:
             TimeoutError: no host said anything for ``timeout_s`` while the reader waited.
-            PlanServerError: no host left serving the plan, or a host sent what cannot be read.
+            PlanMismatch: no host serves the pass's plan any more (:meth:`no_host_left`).
+            PlanServerError: every host left out, or a host sent what cannot be read.
         """
-        manifest = self._manifest()
         todo = iter(steps)
         first = next(todo, None)
         if first is None:
             return
         f0 = fetch_of(0, first)
+        manifest = self._manifest(f0.epoch)
         read = Pass(self, manifest, f0, prefetch, retry_s)
         read.add(first, f0)
         while read.window:
