@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import itertools
 import logging
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -32,7 +34,8 @@ from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_part
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError, is_ipv6, pack, unpack
 
 
-__all__ = ["PlanServerError", "Link", "Shards"]
+__all__ = ["PlanServerError", "ReadStopped", "Link", "Shards", "stopped_by", "check_stopped",
+           "wait_readable", "POLL_S"]
 
 log = logging.getLogger("v2v.client")
 
@@ -40,6 +43,55 @@ log = logging.getLogger("v2v.client")
 class PlanServerError(RuntimeError):
     """The server refused a fetch, or sent what this client cannot read (the message says which
     endpoint and why, in one line)."""
+
+
+#: Seconds a wait on the servers' sockets lasts at once before the reading thread looks whether
+#: its read was stopped (:func:`stopped_by`): a stopped read ends within it, whatever the servers do.
+POLL_S = 0.25
+
+
+class ReadStopped(Exception):
+    """Raised in a reading thread out of its wait on the servers once its read was stopped
+    (:func:`stopped_by`): the read's sockets close as it unwinds."""
+
+
+_reading = threading.local()  # .stop: the Event that stops the reads of this thread (stopped_by)
+
+
+@contextmanager
+def stopped_by(stop: threading.Event):
+    """Within the block, this thread's waits on the servers (:class:`Link`, the fetch loops,
+    asking what a fleet serves) raise :class:`ReadStopped` within :data:`POLL_S` of ``stop``
+    being set: a thread reading ahead of its loop (``read_ahead.ReadAhead``) ends at once when
+    the loop stops, whether the servers answer or not."""
+    before = getattr(_reading, "stop", None)
+    _reading.stop = stop
+    try:
+        yield
+    finally:
+        _reading.stop = before
+
+
+def check_stopped() -> None:
+    """Raise :class:`ReadStopped` when this thread's read was stopped (:func:`stopped_by`)."""
+    stop = getattr(_reading, "stop", None)
+    if stop is not None and stop.is_set():
+        raise ReadStopped("the read was stopped")
+
+
+def wait_readable(poll, timeout_s: float) -> list:
+    """``poll(ms)`` (a socket's or a ``zmq.Poller``'s) over ``timeout_s`` seconds in waits of at
+    most :data:`POLL_S`, until it returns something true (returned) or the time is up (its last,
+    empty, answer).
+
+    Raises:
+        ReadStopped: the thread's read was stopped (:func:`stopped_by`)."""
+    end = time.monotonic() + max(0.0, timeout_s)
+    while True:
+        check_stopped()
+        got = poll(int(max(0.0, min(POLL_S, end - time.monotonic())) * 1000))
+        if got or time.monotonic() >= end:
+            return got
 
 
 def _with_padding(arrays: Dict[str, np.ndarray], padding: List[bool]) -> Dict[str, np.ndarray]:
@@ -95,8 +147,7 @@ class Link:
 
     def _recv(self, deadline: float):
         """The next message (header, frames) before ``deadline``, or None."""
-        wait = max(0.0, deadline - time.monotonic())
-        if not self.sock.poll(int(wait * 1000)):
+        if not wait_readable(self.sock.poll, deadline - time.monotonic()):
             return None
         frames = self.sock.recv_multipart(copy=False)
         try:
@@ -214,7 +265,7 @@ class Shards:
             for (k, what), when in list(flight.asked.items()):
                 if now - when >= retry_s:
                     self._ask(flight, k, what)  # a lost reply or a restarted server: ask again
-            ready = dict(poller.poll(int(min(retry_s, 1.0) * 1000)))
+            ready = dict(wait_readable(poller.poll, min(retry_s, 1.0)))
             if not ready:
                 if time.monotonic() - heard > self.timeout_s:
                     late = sorted({self.links[k].endpoint for k, _ in flight.asked})

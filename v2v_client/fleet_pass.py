@@ -24,7 +24,7 @@ from v2v_wire.plan import EpochPlan, Manifest
 from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, PlanInfo, Refused, Rows
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
-from .fetch import PlanServerError, _with_padding
+from .fetch import PlanServerError, _with_padding, wait_readable
 
 __all__ = ["Pass", "Video", "merged", "steal", "take", "UNFOLD_PER_HOST", "STEAL_S"]
 
@@ -359,7 +359,7 @@ def take(read: "Pass", timeout_s: float) -> None:
 
     Raises:
         TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
-    ready = dict(read.fleet.poller.poll(int(min(read.retry_s, 0.5) * 1000)))
+    ready = dict(wait_readable(read.fleet.poller.poll, min(read.retry_s, 0.5)))
     if not ready:
         if time.monotonic() - read.heard > timeout_s:
             late = sorted({h for v in read.videos.values() for h, _, _ in v.flight.values()})

@@ -37,7 +37,7 @@ from v2v_wire.plan import Manifest, PlanIdentity
 from v2v_wire.plan_messages import ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
 
 from .endpoints import auto_compression, resolve_endpoints
-from .fetch import Link, PlanServerError
+from .fetch import Link, PlanServerError, wait_readable
 from .fleet_pass import STEAL_S, Pass, take
 
 __all__ = ["Fleet", "load_manifest", "asked_fleet", "listing_diff", "HEDGE_S", "RESOLVE_S"]
@@ -105,7 +105,7 @@ def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Option
             poller.register(link.sock, zmq.POLLIN)
         deadline = time.monotonic() + first_s
         while len(infos) + len(refused) < len(servers) and time.monotonic() < deadline:
-            ready = dict(poller.poll(int(max(0.0, deadline - time.monotonic()) * 1000)))
+            ready = dict(wait_readable(poller.poll, deadline - time.monotonic()))
             for ep, link in links.items():
                 if link.sock not in ready or ep in infos or ep in refused:
                     continue
