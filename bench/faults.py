@@ -1,7 +1,7 @@
 """Fault scenarios against real v2v-serve processes serving by plan: is any sample lost or doubled?
 
 The scenarios (``harness/faults.py``, ``harness/faults_misuse.py``, ``harness/faults_deploy.py``,
-``harness/faults_fs.py``) run servers on 127.0.0.1 read by ``V2VStreamDataset``.
+``harness/faults_fs.py``, ``harness/faults_fleet.py``) run servers on 127.0.0.1 read by ``V2VStreamDataset``.
 Run: ``python -m bench.faults [--only NAME ...] [--out docs/faults.md]``. Prints a table:
 scenario, samples expected, delivered, lost, duplicated, seconds to recover, notes.
 """
@@ -22,11 +22,12 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
-from harness import faults, faults_deploy, faults_fs, faults_misuse
+from harness import faults, faults_deploy, faults_fleet, faults_fs, faults_misuse
 from harness.faults import Layout
 from v2v_wire.commands import writable_problem, write_whole
 
-SCENARIOS = {**faults.SCENARIOS, **faults_misuse.SCENARIOS, **faults_deploy.SCENARIOS, **faults_fs.SCENARIOS}
+SCENARIOS = {**faults.SCENARIOS, **faults_misuse.SCENARIOS, **faults_deploy.SCENARIOS, **faults_fs.SCENARIOS,
+             **faults_fleet.SCENARIOS}
 
 
 def format_table(rows: List[dict]) -> str:

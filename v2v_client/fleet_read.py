@@ -19,6 +19,13 @@ one plan a single server serves, each video made by the host the reader routes i
 * **The fleet changes**: the endpoint is resolved again every ``RESOLVE_S`` seconds; a new host
   serving the same plan takes work from its first answer, a host gone hands its videos to the
   next hosts of their rankings, a host serving another plan is named once and left out.
+* **A bad peer is left out**: a peer that sends what no v2v-serve of this protocol sends (not
+  msgpack, another version, past the wire's bounds: ``fetch.BrokenPeer``), serves another plan, or
+  refuses every read of this reader (its outputs or compression) is named once in this process
+  and left out, its videos asked of their next hosts; a frame over the largest legitimate reply
+  (``fetch.reply_limit``) cuts its connection before it is received. A host that refuses one
+  make stays (``fleet_pass.Pass.receive``). With no host left: one error naming each peer left
+  out and why.
 
 A host keeps no record of the reader: a ``make`` names its samples, and a restarted host makes
 them again.
@@ -27,17 +34,18 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Dict, Iterator, List, Optional, Set, Tuple
+from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 import zmq
 
 from v2v_wire.fleet import Router
 from v2v_wire.plan import Manifest, PlanIdentity
-from v2v_wire.plan_messages import ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.plan_messages import MAX_MAKE_SAMPLES, ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.protocol import MAX_HEADER_BYTES
 
 from .endpoints import auto_compression, resolve_endpoints
-from .fetch import Link, PlanServerError, wait_readable
+from .fetch import BrokenPeer, Link, PlanServerError, reply_limit, wait_readable
 from .fleet_pass import STEAL_S, Pass, take
 
 __all__ = ["Fleet", "load_manifest", "asked_fleet", "listing_diff", "HEDGE_S", "RESOLVE_S"]
@@ -87,14 +95,17 @@ def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float) -> Manifest:
     return manifest
 
 
-def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Optional[tuple]) -> Dict[str, PlanInfo]:
+def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Optional[tuple],
+                left_out: Optional[Dict[str, str]] = None) -> Dict[str, PlanInfo]:
     """What each of ``servers`` serves, all asked at once: the first answer awaited ``first_s``
     seconds, the others ``wait_s`` more; in ``servers``' order, those that answered. One that
-    answers what cannot be read (another protocol version) is named in one log line and left out.
+    answers what cannot be read (another protocol version) or refuses is named in one log line,
+    left out, and noted in ``left_out`` (endpoint -> why).
 
     Raises:
         TimeoutError: none answered within ``first_s``, naming them.
-        PlanServerError: none answered, and one refused or spoke another version (its line)."""
+        PlanServerError: none answered, and one refused or broke the protocol: one line naming
+            each and why it was left out."""
     infos: Dict[str, PlanInfo] = {}
     refused: Dict[str, str] = {}
     links = {ep: Link(ep, first_s, curve) for ep in servers}
@@ -111,22 +122,27 @@ def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Option
                     continue
                 try:
                     got = link._recv(time.monotonic())
-                except PlanServerError as e:
-                    refused[ep] = str(e)
-                    log.warning("%s: left out: %s", ep, e)
-                    continue
-                if got is not None and isinstance(got[0], PlanInfo):
-                    if not infos:
-                        deadline = min(deadline, time.monotonic() + wait_s)
-                    infos[ep] = got[0]
-                elif got is not None and isinstance(got[0], Refused):
-                    refused[ep] = f"{ep}: {got[0].message}"
+                except BrokenPeer as e:
+                    refused[ep] = f"it breaks the protocol: {e.why}"
+                else:
+                    if got is not None and isinstance(got[0], PlanInfo):
+                        if not infos:
+                            deadline = min(deadline, time.monotonic() + wait_s)
+                        infos[ep] = got[0]
+                    elif got is not None and isinstance(got[0], Refused):
+                        refused[ep] = got[0].message
+                if ep in refused:
+                    log.warning("%s: left out of the fleet: %s", ep, refused[ep])
     finally:
         for link in links.values():
             link.__exit__(None, None, None)
+    if left_out is not None:
+        left_out.update(refused)
     if not infos:
         if refused:
-            raise PlanServerError("; ".join(refused.values()))
+            silent = [f"{ep}: no answer within {first_s} s (a reply over {MAX_HEADER_BYTES} bytes cuts its connection)"
+                      for ep in servers if ep not in refused]
+            raise PlanServerError("; ".join([f"{ep}: {why}" for ep, why in refused.items()] + silent))
         raise TimeoutError(f"{', '.join(servers)}: no answer to 'what do you serve' within {first_s} s (is a "
                            "v2v-serve running there?)")
     return {ep: infos[ep] for ep in servers if ep in infos}
@@ -178,12 +194,14 @@ class Fleet:
         hedge_s: :data:`HEDGE_S`.
         readers: readers of the job routing the fleet at once, this one included (its ranks
             times their DataLoader workers: ``Router``'s ``readers``).
+        left_out: peers left out -> why (kept by the caller across passes and pickled to its
+            DataLoader workers, so that each is named once; updated: :meth:`leave_out`).
     """
 
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
                  hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None,
-                 made: Optional[Dict[str, str]] = None, readers: int = 1):
+                 made: Optional[Dict[str, str]] = None, readers: int = 1, left_out: Optional[Dict[str, str]] = None):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
         self.rates = {} if rates is None else rates
@@ -191,7 +209,7 @@ class Fleet:
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
         self.workers: Dict[str, int] = {}
-        self.refused: Set[str] = set()  # hosts serving another plan: named once, left out
+        self.refused: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why
         self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S,
                              readers=readers)
         self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
@@ -213,7 +231,8 @@ class Fleet:
     def _link(self, ep: str) -> Link:
         if ep not in self.links:
             codec = self.compression if self.compression != "auto" else auto_compression(ep)
-            self.links[ep] = Link(ep, self.timeout_s, self.curve, codec)
+            # a make's reply holds at most MAX_MAKE_SAMPLES rows, of the recipe every host of the plan serves
+            self.links[ep] = Link(ep, self.timeout_s, self.curve, codec, reply_limit(self.stream, MAX_MAKE_SAMPLES))
             self.poller.register(self.links[ep].sock, zmq.POLLIN)
         return self.links[ep]
 
@@ -221,9 +240,7 @@ class Fleet:
         """Host ``ep`` answered what it serves: it joins when that is this plan, else is named once."""
         problem = self.plan.problem(info.plan)
         if problem:
-            if ep not in self.refused:
-                log.warning("%s: left out of the fleet: it serves %s", ep, problem)
-                self.refused.add(ep)
+            self.leave_out(ep, f"it serves {problem}")
             return
         if ep in self.router.hosts:
             return
@@ -233,6 +250,23 @@ class Fleet:
         link.compression = self.compression if self.compression != "auto" else auto_compression(ep, codecs)
         self.workers[ep] = int((info.stream.get("feed") or {}).get("workers") or 1)
         self.router.join(ep, now, self.rates.get(ep))
+
+    def leave_out(self, ep: str, why: str) -> None:
+        """Leave peer ``ep`` out of the fleet for this process: named in one log line (once: a
+        peer left out before is not named again), its link closed (nothing more of it is
+        received), its videos' makes asked of their next hosts (``Pass.rescue``)."""
+        if ep not in self.refused:
+            log.warning("%s: left out of the fleet: %s", ep, why)
+            self.refused[ep] = why
+        self.router.leave(ep)
+        link = self.links.pop(ep, None)
+        if link is not None:
+            self.poller.unregister(link.sock)
+            link.__exit__(None, None, None)
+
+    def left_out(self) -> str:
+        """Each peer left out and why, as one clause (``"a: why; b: why"``)."""
+        return "; ".join(f"{ep}: {why}" for ep, why in self.refused.items())
 
     def _resolve(self, now: float) -> None:
         """Resolve the endpoint again: ask new hosts what they serve; hand a gone host's videos on."""
@@ -244,7 +278,7 @@ class Fleet:
         except (OSError, ValueError) as e:  # a name that stops resolving for a while: keep the fleet
             log.warning("%s: %s (the fleet stays as it was)", self.endpoint, e)
             return
-        for ep in sorted(current - set(self.router.hosts) - self.refused):
+        for ep in sorted(current - set(self.router.hosts) - set(self.refused)):
             self._link(ep)._send(PlanAsk().to_wire())  # its answer, a PlanInfo, joins it (Pass.receive)
         for ep in sorted(set(self.router.hosts) - current):
             self.router.leave(ep)

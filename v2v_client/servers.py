@@ -9,11 +9,12 @@ from typing import Dict, List, Optional, Tuple
 
 from v2v_wire.codecs import available, check_compression
 from v2v_wire.plan import PlanIdentity
-from v2v_wire.plan_messages import PlanInfo
+from v2v_wire.plan_messages import MAX_FETCH_ROWS, PlanInfo
 from v2v_wire.plan_shards import shards_identity, shards_samples
+from v2v_wire.protocol import MAX_BATCH_BYTES
 
 from .endpoints import auto_compression, check_servers, resolve_endpoints, split_endpoints
-from .fetch import Link, PlanServerError, Shards
+from .fetch import Link, PlanServerError, Shards, reply_limit
 from .fleet_read import Fleet, asked_fleet, listing_diff
 
 __all__ = ["Servers", "FLEET_ASK_S"]
@@ -43,6 +44,8 @@ class Servers:
         self.windows: Dict[str, int] = {}  # a fleet's videos' windows learned in this process
         self.rates: Dict[str, float] = {}  # a fleet's hosts' decode rates they said to this process
         self.made: Dict[str, str] = {}  # a fleet's videos -> the host whose rows of it this process read last
+        self.left_out: Dict[str, str] = {}  # a fleet's peers left out -> why: named once (fleet_read.Fleet)
+        self.max_msg = MAX_BATCH_BYTES  # the largest frame a shard's reply carries (fetch.reply_limit)
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -74,7 +77,7 @@ class Servers:
             with Link(servers[0], timeout_s, curve) as link:
                 infos = [link.ask()]
         else:  # asked at once: a silent or stopped first host costs no wait of its own
-            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve)
+            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve, self.left_out)
             if not isinstance(next(iter(answered.values())).stream.get("shard"), str):
                 return self._ask_fleet(servers, answered, timeout_s, curve, prefer)
             infos = []
@@ -84,6 +87,7 @@ class Servers:
                         answered[server] = link.ask()
                 infos.append(answered[server])
         info, self.shards, self.samples = _as_one_plan(servers, infos)
+        self.max_msg = reply_limit(info.stream, MAX_FETCH_ROWS)  # a fetch's reply holds at most MAX_FETCH_ROWS rows
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
         return info
 
@@ -92,7 +96,7 @@ class Servers:
         """The fleet of the hosts that answered (``infos``, in ``servers``' order); the others are
         named and left out (they join when they answer, ``fleet_read.Fleet``)."""
         for ep in servers:
-            if ep not in infos:
+            if ep not in infos and ep not in self.left_out:  # a peer left out was named when it was
                 log.warning("%s: left out of the fleet for now: no answer to 'what do you serve' within %s s", ep,
                             min(timeout_s, FLEET_ASK_S))
         whole, first = next(iter(infos)), next(iter(infos.values()))
@@ -103,7 +107,7 @@ class Servers:
         plans = [i.plan for i in infos.values()]
         plan = prefer if prefer is not None and prefer in plans else first.plan
         hosts = [(ep, i) for ep, i in infos.items() if i.plan == plan]
-        _name_left_out(infos, plan, timeout_s, curve)
+        _name_left_out(infos, plan, timeout_s, curve, self.left_out)
         self.fleet, self.shards = hosts, [(ep, i.plan) for ep, i in hosts]
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in hosts}
         info = hosts[0][1]
@@ -116,8 +120,8 @@ class Servers:
         DataLoader workers)."""
         if self.fleet is not None:
             return Fleet(self.endpoint, self.fleet, self.fleet[0][1].plan, timeout_s, curve, self.compression,
-                         self.windows, rates=self.rates, made=self.made, readers=readers)
-        return Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
+                         self.windows, rates=self.rates, made=self.made, readers=readers, left_out=self.left_out)
+        return Shards(self.shards, timeout_s, curve, self.codecs, self.samples, self.max_msg)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
         """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
@@ -169,9 +173,11 @@ def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
     return compression if compression != "auto" else auto_compression(endpoint, stream.get("codecs", ()))
 
 
-def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: float, curve: Optional[tuple]) -> None:
+def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: float, curve: Optional[tuple],
+                   left_out: Dict[str, str]) -> None:
     """Name in one log line each host of ``infos`` serving another plan than ``plan``: what
-    differs, and for another listing of the same recipe and seed the first files that differ."""
+    differs, and for another listing of the same recipe and seed the first files that differ;
+    noted in ``left_out`` (endpoint -> why), so that no pass names it again."""
     for ep, i in infos.items():
         problem = plan.problem(i.plan)
         if not problem:
@@ -183,3 +189,4 @@ def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: fl
             except (TimeoutError, PlanServerError) as e:
                 problem += f"; its listing could not be read ({e})"
         log.warning("%s: left out of the fleet: it serves %s", ep, problem)
+        left_out[ep] = f"it serves {problem}"
