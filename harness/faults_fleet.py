@@ -97,9 +97,9 @@ def close_all(peers) -> None:
 
 #: A reader of ``epochs`` (argv[2]) epochs of the fleet at argv[1], one ``V2VStreamDataset`` asked
 #: what it serves in this process (a peer is named then, once), read by a DataLoader of argv[3]
-#: workers (0: in this process) with a training step of argv[4] seconds a batch, printing one JSON line: the ids read (``epoch:id``) and its peak
-#: RSS (``VmHWM``: its own memory since its exec; the ``ru_maxrss`` a parent gets counts the
-#: parent's pages before the exec too).
+#: workers (0: in this process) with a training step of argv[4] seconds a batch, printing one JSON
+#: line: the ids read (``epoch:id``) and its peak RSS (``VmHWM``: its own memory since its exec;
+#: the ``ru_maxrss`` a parent gets counts the parent's pages before the exec too).
 READER = """import json, logging, re, sys, time
 from pathlib import Path
 logging.basicConfig(level=logging.WARNING, format="%(message)s")
@@ -119,11 +119,12 @@ print(json.dumps({"ids": ids, "rss_mb": int(peak) / 1024}))
 """
 
 
-def read_fleet(connect: str, epochs: int, workers: int = 0, step_s: float = 0.0) -> Tuple[int, List[str], Optional[dict]]:
+def read_fleet(connect: str, epochs: int, workers: int = 0,
+               step_s: float = 0.0) -> Tuple[int, List[str], Optional[dict]]:
     """:data:`READER` run on ``connect``: ``(exit status, its stderr lines, its JSON line or None)``."""
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    r = subprocess.run([sys.executable, "-c", READER, connect, str(epochs), str(workers), str(step_s)], capture_output=True,
-                       text=True, timeout=300, env=env)
+    r = subprocess.run([sys.executable, "-c", READER, connect, str(epochs), str(workers), str(step_s)],
+                       capture_output=True, text=True, timeout=300, env=env)
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     return r.returncode, lines, json.loads(r.stdout.splitlines()[-1]) if r.returncode == 0 else None
 

@@ -35,8 +35,8 @@ from v2v_wire.outputs import wire_zeros_row
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_HEADER_BYTES, ProtocolError, is_ipv6, pack, unpack
 
 
-__all__ = ["PlanServerError", "BrokenPeer", "ReadStopped", "reply_limit", "Link", "Shards", "stopped_by", "check_stopped",
-           "wait_readable", "POLL_S"]
+__all__ = ["PlanServerError", "BrokenPeer", "ReadStopped", "reply_limit", "Link", "Shards", "stopped_by",
+           "check_stopped", "wait_readable", "POLL_S"]
 
 log = logging.getLogger("v2v.client")
 
@@ -233,9 +233,9 @@ class _InFlight:
 class Shards:
     """Servers of one shard each read as one plan (``v2v_wire.plan_shards``; one server is the one
     shard of its corpus): a fetch of global positions is asked of each shard holding some of them,
-    and their rows are merged in the interleave's order. ``shards``: (server, its plan identity), in shard order; ``samples``:
-    each shard's samples per epoch where known (None: not yet); ``max_msg``: the largest frame a
-    reply carries (:func:`reply_limit`)."""
+    and their rows are merged in the interleave's order. ``shards``: (server, its plan identity), in
+    shard order; ``samples``: each shard's samples per epoch where known (None: not yet);
+    ``max_msg``: the largest frame a reply carries (:func:`reply_limit`)."""
 
     def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple],
                  codecs: Dict[str, str], samples: Sequence[Optional[int]], max_msg: int = MAX_BATCH_BYTES):

@@ -163,10 +163,10 @@ class Pass:
                                        position=v.position, held=self.fleet.made.get(video))
         if v.host is not None:
             self.send(video, ordinals, v.host, now)
-        elif self.router.hosts or not self.fleet.refused:  # every host gone, silent or not joined yet
+        elif self.router.hosts or not self.fleet.left_out:  # every host gone, silent or not joined yet
             self.parked.append((video, ordinals))  # asked again at the next rescue
         else:
-            raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan: {self.fleet.left_out()}")
+            raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan: {self.fleet.left_out_line()}")
 
     def per_video(self) -> int:
         """Samples a video gives, on average over those whose windows are known (a make of a

@@ -209,7 +209,7 @@ class Fleet:
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
         self.workers: Dict[str, int] = {}
-        self.refused: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why
+        self.left_out: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why (leave_out)
         self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S,
                              readers=readers)
         self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
@@ -255,18 +255,18 @@ class Fleet:
         """Leave peer ``ep`` out of the fleet for this process: named in one log line (once: a
         peer left out before is not named again), its link closed (nothing more of it is
         received), its videos' makes asked of their next hosts (``Pass.rescue``)."""
-        if ep not in self.refused:
+        if ep not in self.left_out:
             log.warning("%s: left out of the fleet: %s", ep, why)
-            self.refused[ep] = why
+            self.left_out[ep] = why
         self.router.leave(ep)
         link = self.links.pop(ep, None)
         if link is not None:
             self.poller.unregister(link.sock)
             link.__exit__(None, None, None)
 
-    def left_out(self) -> str:
+    def left_out_line(self) -> str:
         """Each peer left out and why, as one clause (``"a: why; b: why"``)."""
-        return "; ".join(f"{ep}: {why}" for ep, why in self.refused.items())
+        return "; ".join(f"{ep}: {why}" for ep, why in self.left_out.items())
 
     def _resolve(self, now: float) -> None:
         """Resolve the endpoint again: ask new hosts what they serve; hand a gone host's videos on."""
@@ -278,7 +278,7 @@ class Fleet:
         except (OSError, ValueError) as e:  # a name that stops resolving for a while: keep the fleet
             log.warning("%s: %s (the fleet stays as it was)", self.endpoint, e)
             return
-        for ep in sorted(current - set(self.router.hosts) - set(self.refused)):
+        for ep in sorted(current - set(self.router.hosts) - set(self.left_out)):
             self._link(ep)._send(PlanAsk().to_wire())  # its answer, a PlanInfo, joins it (Pass.receive)
         for ep in sorted(set(self.router.hosts) - current):
             self.router.leave(ep)
