@@ -14,7 +14,7 @@ from v2v_wire.plan_shards import shards_identity, shards_samples
 from v2v_wire.protocol import MAX_BATCH_BYTES
 
 from .endpoints import auto_compression, check_servers, resolve_endpoints, split_endpoints
-from .fetch import Link, PlanServerError, Shards, reply_limit
+from .fetch import BrokenPeer, Link, PlanServerError, Shards, reply_limit
 from .fleet_read import Fleet, asked_fleet, listing_diff
 
 __all__ = ["Servers", "FLEET_ASK_S"]
@@ -63,10 +63,12 @@ class Servers:
             ValueError: several servers that are not one sharding of one corpus, nor a fleet."""
         if self.fleet is not None:  # asked again: the plan's samples, of the first host that answers
             for ep, _ in self.fleet:
+                if ep in self.left_out:
+                    continue
                 try:
                     with Link(ep, min(timeout_s, FLEET_ASK_S), curve) as link:
                         info = link.ask()
-                except TimeoutError:
+                except (TimeoutError, BrokenPeer):  # silent, or not a v2v-serve: the next host answers
                     continue
                 if info.plan == self.fleet[0][1].plan:
                     return info
