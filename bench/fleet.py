@@ -25,6 +25,21 @@ stock: the first ``warmup`` batches are read unmeasured. Rows:
   ranks read (1.0 when each video is decoded once, above when ranks ask a video of two hosts),
   the share of videos served by both, and the job's samples/s.
 
+* ``batches``: one host read by one reader (one fetch in flight) at each of ``BATCHES`` rows a
+  batch, ``EPOCHS`` whole epochs each, a fresh host for each batch size: each epoch's samples
+  made (the host's feed, ``samples_made_by_epoch``, once its workers are idle) over those read,
+  and its samples/s over epoch 0's.
+* ``readers``: A, and B slowed, each read alone by a one-rank job, then A and B read as one fleet by
+  real DDP jobs (``torchrun``, gloo, ``harness.plan_job``: a DDP step a batch of 4) of each of
+  ``READERS``' ranks and DataLoader workers, fresh hosts each: samples/s over the whole epoch
+  (from the job's first step to its last: the stock made ahead at the start is read within it),
+  over the sum of A's and B's alone; the 10-90 % window beside; the samples the hosts made of the
+  epoch over those read, and of the next epoch (made ahead, not read).
+* ``restart``: a job reads half of epoch 1 of one host and is cut off (its reader closed, its
+  asks left behind); a new job then reads epoch 1 whole: its samples/s over a fresh host's, and
+  the samples of epoch 1 made while it read over those it read (what the cut-off job read is
+  made again: 1.0 when nothing else is).
+
 The ``cache``, ``moved`` and ``ranks`` rows read with batches of one row, so that each batch's ``servers``
 names the host of its one sample. The ``cache`` row's entries take about 25 MB a video in the
 temporary folder, twice over (the lone host's and the fleet's): 11 GB at the default size.
@@ -47,6 +62,7 @@ import json
 import os
 import shutil
 import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -54,6 +70,8 @@ import time
 import urllib.request
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Set, Tuple
+
+import numpy as np
 
 from harness.faults import worker_pids
 from harness.serve import ServeProcess, free_port
@@ -64,7 +82,12 @@ from v2v_wire.fleet import rank_hosts
 from v2v_wire.ids import parse_sample_id
 
 OUTPUTS = ("voxels", "frames")
-ROWS = ("rates", "stop", "kill", "join", "cache", "moved", "ranks")
+ROWS = ("rates", "stop", "kill", "join", "cache", "moved", "ranks", "batches", "restart", "readers")
+#: The ``readers`` row's jobs: (ranks, DataLoader workers a rank; 0: its main process reads).
+READERS = ((1, 0), (2, 0), (4, 0), (2, 2))
+#: Rows per batch the ``batches`` row reads one host at, and its epochs each.
+BATCHES = (1, 4, 8, 12, 16, 32)
+EPOCHS = 4
 #: GiB of frame cache of each ``cache`` row host: the bundled clips' kept frames (about 25 MB a
 #: video, 240 videos at the default size) fit whole, so a miss in epoch 2 is never the budget's.
 CACHE_GB = 16
@@ -250,7 +273,7 @@ def join_row(corpus: Path, want: dict) -> dict:
 def cache_host(corpus: Path, core: int, cache_dir: Path) -> ServeProcess:
     """A host with a frame cache under ``cache_dir`` and its /metrics on a free port (:func:`looked`)."""
     return host(corpus, core, ["--frame-cache-gb", str(CACHE_GB), "--cache-dir", str(cache_dir),
-                               "--metrics-port", str(free_port())])
+                               *metrics()])
 
 
 def scrape(server: ServeProcess) -> Dict[str, int]:
@@ -393,8 +416,7 @@ def made(server: ServeProcess) -> Tuple[int, int]:
 def ranks_row(corpus: Path, ranks: int) -> dict:
     """A job of ``ranks`` ranks, a thread each, reads epoch 1 of A and B as one fleet: the samples
     the hosts made (once no worker is busy and the count holds for a second) over those read."""
-    extra = lambda: ["--metrics-port", str(free_port())]  # noqa: E731
-    with host(corpus, 0, extra()) as A, host(corpus, 1, extra()) as B:
+    with host(corpus, 0, metrics()) as A, host(corpus, 1, metrics()) as B:
         pair = ",".join([A.endpoint, B.endpoint])
         hosts: List[Dict[str, Set[str]]] = [{} for _ in range(ranks)]
         read = [0] * ranks
@@ -424,6 +446,130 @@ def ranks_row(corpus: Path, ranks: int) -> dict:
     print(f"ranks: {ranks} ranks read A and B: the hosts made {out['made_over_read']:.3f} samples a sample read; "
           f"{out['videos_of_two_hosts']:.3f} of the videos served by both; {out['samples_per_s']:.1f} samples/s",
           flush=True)
+    return out
+
+
+#: The ``batches`` and ``restart`` rows' hosts: up to 10 samples a video (the bundled clips give
+#: 10, 10, 6 and 3 windows), so that a decode makes more than a batch's worth of some videos, and
+#: the server's own batch size (``DeliveryPolicy.batch_size``, the samples it keeps once fetched).
+WHOLE_VIDEOS = ["--max-samples-per-video", "10", "--batch-size", "12"]
+
+
+def metrics() -> List[str]:
+    """A host's ``/metrics`` on a free port (:func:`scrape`)."""
+    return ["--metrics-port", str(free_port())]
+
+
+def metered(corpus: Path) -> ServeProcess:
+    """Host A with :data:`WHOLE_VIDEOS` and its ``/metrics`` (:func:`made`)."""
+    return host(corpus, 0, [*WHOLE_VIDEOS, *metrics()])
+
+
+def read_count(ds: V2VStreamDataset, stop: Optional[int] = None) -> Tuple[int, float]:
+    """``(samples read, seconds)`` of one pass of ``ds``, cut off after ``stop`` samples if given."""
+    n, t0 = 0, time.perf_counter()
+    for b in ds:
+        n += int((~b["padding"]).sum())
+        if stop is not None and n >= stop:
+            break
+    return n, time.perf_counter() - t0
+
+
+def made_of(server: ServeProcess, epoch: int) -> int:
+    """Samples of ``epoch`` ``server`` made so far (its feed's ``samples_made_by_epoch``), once
+    its workers are idle: what it made ahead of the epoch, while its reader read the one before,
+    counts in it."""
+    settled([server], counts=made)
+    return open_stream(server.endpoint, timeout_s=30).server_feed()["samples_made_by_epoch"].get(epoch, 0)
+
+
+def batches_row(corpus: Path, batches: Sequence[int] = BATCHES, epochs: int = EPOCHS) -> dict:
+    """For each of ``batches`` rows a batch, a fresh host read ``epochs`` whole epochs by one
+    reader with one fetch in flight: each epoch's samples made over read and samples/s."""
+    out = {}
+    for batch in batches:
+        with metered(corpus) as A:
+            ds = V2VStreamDataset(A.endpoint, batch_size=batch, outputs=OUTPUTS, timeout_s=300, prefetch=1)
+            per = []
+            for epoch in range(epochs):
+                ds.set_epoch(epoch)
+                n, seconds = read_count(ds)
+                m = made_of(A, epoch)
+                per.append({"samples_read": n, "samples_made": m, "made_over_read": m / n, "samples_per_s": n / seconds})
+        read, total = sum(e["samples_read"] for e in per), sum(e["samples_made"] for e in per)
+        out[batch] = {"epochs": per, "made_over_read": total / read,
+                      "worst_made_over_read": max(e["made_over_read"] for e in per),
+                      "slowest_over_epoch_0": min(e["samples_per_s"] for e in per) / per[0]["samples_per_s"]}
+        print(f"batches: batch {batch}: made over read per epoch {[round(e['made_over_read'], 3) for e in per]}; "
+              f"samples/s {[round(e['samples_per_s'], 1) for e in per]}", flush=True)
+    return out
+
+
+def restart_row(corpus: Path, batch: int = 4) -> dict:
+    """Epoch 1 of a fresh host, then of a host whose last job was cut off half-way through it."""
+    def job(endpoint: str) -> V2VStreamDataset:
+        ds = V2VStreamDataset(endpoint, batch_size=batch, outputs=OUTPUTS, timeout_s=300)
+        ds.set_epoch(1)
+        return ds
+
+    with metered(corpus) as A:
+        fresh, seconds = read_count(job(A.endpoint))
+        fresh_rate = fresh / seconds
+    with metered(corpus) as A:
+        read_count(job(A.endpoint), stop=fresh // 2)  # cut off: what it asked ahead stays asked
+        before = made_of(A, 1)
+        n, seconds = read_count(job(A.endpoint))
+        after = made_of(A, 1)
+    out = {"fresh_samples_per_s": fresh_rate, "after_cut_samples_per_s": n / seconds,
+           "over_fresh": n / seconds / fresh_rate, "made_over_read": (after - before) / n}
+    print(f"restart: a job after one cut off mid-epoch reads {out['over_fresh']:.2f} of a fresh host's rate, "
+          f"{out['made_over_read']:.3f} made a sample read", flush=True)
+    return out
+
+
+def job_epoch(endpoint: str, ranks: int, workers: int, out: Path) -> dict:
+    """Epoch 0 of ``endpoint`` read by a DDP job of ``ranks`` ranks of ``workers`` DataLoader workers
+    (``harness.plan_job``, batches of 4): samples read, samples/s over the whole epoch (the rows
+    after the job's first step over the seconds from it to the last) and over its 10-90 % window."""
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(ranks),
+                        "-m", "harness.plan_job", endpoint, str(out), "--epochs", "1", "--batch-size", "4",
+                        "--workers", str(workers)], capture_output=True, text=True, timeout=3600)
+    if r.returncode != 0:
+        raise RuntimeError(f"harness.plan_job on {endpoint}: exit {r.returncode}: {r.stderr[-2000:]}")
+    steps = sorted((t, n) for p in out.glob("rank*.json") for _, t, n in json.loads(p.read_text())["times"])
+    t = np.array([x for x, _ in steps])
+    read = np.cumsum([n for _, n in steps])
+    lo, hi = np.searchsorted(read, 0.1 * read[-1]), np.searchsorted(read, 0.9 * read[-1])
+    return {"samples_read": int(read[-1]), "samples_per_s": float((read[-1] - read[0]) / (t[-1] - t[0])),
+            "samples_per_s_10_90": float((read[hi] - read[lo]) / max(1e-9, t[hi] - t[lo]))}
+
+
+def epoch_made(servers: Sequence[ServeProcess], epoch: int) -> int:
+    """Samples of ``epoch`` the ``servers`` made, once their workers are idle (:func:`made_of`)."""
+    return sum(made_of(s, epoch) for s in servers)
+
+
+def readers_row(corpus: Path, d: Path, duty: float, readers: Sequence[Tuple[int, int]] = READERS) -> dict:
+    """A and B (slowed) alone, then as one fleet read by each of ``readers``' jobs."""
+    with host(corpus, 0) as A:
+        ra = job_epoch(A.endpoint, 1, 0, d / "alone")["samples_per_s"]
+    with host(corpus, 1) as B, Slow(B, duty):
+        rb = job_epoch(B.endpoint, 1, 0, d / "alone")["samples_per_s"]
+    out = {"a_alone": ra, "b_alone_slowed": rb, "jobs": []}
+    print(f"readers: A alone {ra:.1f} samples/s, B slowed {rb:.1f} samples/s", flush=True)
+    for ranks, workers in readers:
+        with host(corpus, 0, metrics()) as A, host(corpus, 1, metrics()) as B, Slow(B, duty):
+            job = job_epoch(f"{A.endpoint},{B.endpoint}", ranks, workers, d / "job")
+            made_now, ahead = epoch_made([A, B], 0), epoch_made([A, B], 1)
+        job.update(ranks=ranks, workers=workers, share=job["samples_per_s"] / (ra + rb),
+                   share_10_90=job["samples_per_s_10_90"] / (ra + rb),
+                   made_over_read=made_now / job["samples_read"], made_ahead=ahead)
+        out["jobs"].append(job)
+        print(f"readers: {ranks} rank(s) x {workers} DataLoader worker(s): {job['share']:.2f} of the hosts' sum over the "
+              f"whole epoch of {job['samples_read']} ({job['share_10_90']:.2f} over 10-90 %), "
+              f"{job['made_over_read']:.3f} made a sample read, {ahead} of the next epoch made ahead", flush=True)
     return out
 
 
@@ -476,6 +622,14 @@ def main(argv: Optional[List[str]] = None) -> int:
             res["moved"] = moved_row(corpus)
         if "ranks" in rows:
             res["ranks"] = ranks_row(corpus, a.ranks)
+        if "readers" in rows:
+            res["readers"] = readers_row(corpus, Path(d), a.duty)
+        if rows & {"batches", "restart"}:  # 580 samples an epoch: WHOLE_VIDEOS
+            small = make_corpus(Path(d) / "corpus20", 20)
+            if "batches" in rows:
+                res["batches"] = batches_row(small)
+            if "restart" in rows:
+                res["restart"] = restart_row(small)
     if a.json:
         write_whole(a.json, json.dumps(res, indent=1) + "\n")
     return 0

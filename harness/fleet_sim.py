@@ -23,8 +23,17 @@ position that needs them. With ``ranks`` above one, each rank reads its slice of
 its own router (``Router``'s ``readers``), asking the clips of its slice only; a host keeps what
 it made and answers a later ask of it at once.
 
+**A fleet the HPA sizes** (:func:`autoscale`): a trainer of fixed appetite (samples/s) reads the
+epoch step by step, each once its rows are had and no sooner than its appetite allows; the
+fleet's pods are made and removed by a HorizontalPodAutoscaler (``harness.hpa``: the
+controller's rule, run every 15 s on the manifest of ``deploy/k8s-autoscale``), each pod ready
+``startup_s`` after it is made and joining the reader at its next resolution of the name; the
+reader asks ahead ``LOOKAHEAD_DECODES`` decodes per worker of the hosts it reads. Each pod's
+metrics are read every 15 s (:data:`METRIC_WINDOW_S`).
+
 Pure and seeded: no socket, no clock; ``python -m harness.fleet_sim`` prints a table,
-``tests/test_fleet.py`` checks the figures docs/scaling.md quotes.
+``tests/test_fleet.py`` checks the figures docs/scaling.md quotes (``--autoscale``:
+``tests/test_fleet_sim_autoscale.py``).
 """
 from __future__ import annotations
 
@@ -49,6 +58,8 @@ from v2v_wire.commands import writable_problem, write_whole
 from v2v_client.fleet_pass import STEAL_S
 from v2v_wire.fleet import RateMeter, Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
+
+from harness.hpa import CPU_INITIALIZATION_S, SYNC_S, Hpa, HpaSpec, PodSample
 
 #: Decodes per worker a reader asks ahead by default: a clip of many windows decodes for many
 #: times the mean, and the steps after it must find their clips made meanwhile (6 gives 0.72 of
@@ -360,7 +371,7 @@ class _World:
         at, waited = self.t0 + self.now, self.now - self.head_since
         for rank, r in enumerate(self.routers):
             needs = self.needs[rank]
-            silent = {h for h in self.hosts if r.suspect(h, at)}
+            silent = {h for h in r.hosts if r.suspect(h, at)}
             waiting = [(0, c, needs[c][1]) for c in self.outstanding[rank] if silent.intersection(r.asked.get((0, c), ()))]
             for _, c, h in r.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), at):
                 self.ask(rank, c, self.index[h])
@@ -473,6 +484,418 @@ def stay(f: Fleet) -> float:
     return sum(first.get(c) == h for c, h in second.items()) / max(1, len(second))
 
 
+# ---------------------------------------------------------------------------- a fleet the HPA sizes
+
+#: Seconds between two readings of a pod's metric (metrics-server's resolution, a Prometheus
+#: scrape interval), each the mean over the seconds since the one before; taken 5 s before the
+#: HPA's syncs, which read the latest.
+SCRAPE_S, SCRAPE_LEAD_S = 15.0, 5.0
+#: Seconds a reader takes to see a pod join or leave the Service's name (``fleet_read`` resolves
+#: it again every 5 s).
+RESOLVE_S = 5.0
+#: The HPA the simulator runs by default: the one ``kubectl apply -k deploy/k8s-autoscale`` makes.
+DEPLOY_HPA = Path(__file__).resolve().parents[1] / "deploy" / "k8s-autoscale" / "server-hpa.yaml"
+#: The metrics the simulator exports for the HPA, each a rate over its window of seconds (None: a
+#: gauge), and what a pod's value says:
+#:
+#: * ``"cpu"``: the busy fraction of the host's workers over metrics-server's resolution (the
+#:   CPU of a host whose workers are its cores);
+#: * :data:`BUSY`: the same from the host's /metrics over a window Prometheus averages
+#:   (``rate(v2v_worker_busy_seconds_total[2m]) / v2v_workers``);
+#: * :data:`ASKED`: the samples the readers ask of the host per second over its capacity
+#:   (``rate(v2v_samples_asked_total[1m]) / v2v_capacity_samples_per_second``): the share of its
+#:   capacity the job asks of it; none before the host has measured its capacity;
+#: * :data:`BACKLOG`: the work asked of it and not made, in seconds at its capacity.
+BUSY, ASKED, BACKLOG = "v2v_worker_busy", "v2v_asked_share", "v2v_backlog_seconds"
+METRIC_WINDOW_S = {"cpu": SCRAPE_S, BUSY: 120.0, ASKED: 60.0, BACKLOG: None}
+#: Seconds of a pod's counters the simulator keeps: its longest rate window.
+LONGEST_S = max(w for w in METRIC_WINDOW_S.values() if w)
+#: Busy fraction of the ready hosts under which a scale-up counts as one while hosts idle.
+IDLE_BUSY = 0.5
+
+
+@dataclass(frozen=True)
+class Job:
+    """A job of fixed appetite read by a fleet the HPA sizes (:func:`autoscale`).
+
+    Attributes:
+        appetite: samples/s the trainer takes while it does not wait on a step.
+        halve_at_s: when the appetite halves (None: never).
+        seconds: how long the job reads.
+        start_hosts: hosts serving when it starts, made with it (``kubectl apply -k
+            deploy/k8s-autoscale`` starts the Deployment, its HPA and the trainer's Job at once):
+            ready at 0 s, their counters starting then.
+        startup_s: seconds from a pod's creation to its ``/readyz`` (scheduling, image, start).
+        hpa: the manifest whose HorizontalPodAutoscaler sizes the fleet (its maxReplicas is
+            the pool of hosts the simulator draws speeds for).
+        metric, target: the metric and target the HPA runs instead of the manifest's (None:
+            the manifest's): a key of :data:`METRIC_WINDOW_S` (the CPU's target: a fraction of
+            the request).
+        window_follows: the reader asks ahead for the hosts it reads now; False: for those it
+            read at the start (``fleet_pass.Pass`` sizes its window once per epoch).
+    """
+
+    appetite: float = 48.0
+    halve_at_s: Optional[float] = 900.0
+    seconds: float = 2100.0
+    start_hosts: int = 2
+    startup_s: float = 30.0
+    hpa: str = str(DEPLOY_HPA)
+    metric: Optional[str] = None
+    target: Optional[float] = None
+    window_follows: bool = True
+
+    def appetite_at(self, t: float) -> float:
+        """Samples/s the trainer takes at ``t``."""
+        return self.appetite / 2 if self.halve_at_s is not None and t >= self.halve_at_s else self.appetite
+
+
+@dataclass
+class Scaled:
+    """What an autoscaled run gave.
+
+    Attributes:
+        job: the job; metric, target: what the HPA ran on.
+        host_rate: samples/s a mean host of the pool makes (its workers at their mean speed,
+            less its mean stalled share): the hosts a job needs is its appetite over this.
+        syncs: per HPA sync, ``(t, replicas set, ready pods, busy fraction of the ready pods'
+            workers over the last scrape, mean metric of the pods that had one)``.
+        steps: per step read, ``(when the trainer wanted it, when it had it)``, seconds.
+    """
+
+    job: Job
+    metric: str
+    target: float
+    host_rate: float
+    syncs: List[Tuple[float, int, int, float, Optional[float]]]
+    steps: List[Tuple[float, float]]
+
+    def needed(self, t: float) -> float:
+        """Hosts the job needs at ``t``: its appetite over :attr:`host_rate`."""
+        return self.job.appetite_at(t) / self.host_rate
+
+    def waited(self, t0: float, t1: float) -> float:
+        """The share of the steps wanted in ``[t0, t1)`` the trainer waited on."""
+        s = [(w, g) for w, g in self.steps if t0 <= w < t1]
+        return sum(g > w + 1e-6 for w, g in s) / max(1, len(s))
+
+    def held(self, t0: float, t1: float) -> float:
+        """The most replicas the HPA set in ``[t0, t1)`` over the hosts needed then."""
+        return max((n / self.needed(t) for t, n, *_ in self.syncs if t0 <= t < t1), default=0.0)
+
+    def changes(self) -> List[Tuple[float, int, int, float]]:
+        """``(t, replicas before, after, busy fraction of the ready hosts)`` per change."""
+        out, last = [], self.job.start_hosts
+        for t, n, _, busy, _ in self.syncs:
+            if n != last:
+                out.append((t, last, n, busy))
+                last = n
+        return out
+
+    def figures(self, settle_s: float = 300.0) -> Dict[str, float]:
+        """The bars docs/scaling.md states: from ``settle_s`` after the start until the appetite
+        halves, the share of steps the trainer waited on (``waited``) and the most hosts held
+        over those needed (``held``); the share waited on after it halved (``waited_half``),
+        the hosts held at the end over those needed then (``end``) and the seconds from the
+        halving until the hosts held were at most 1.3 times those needed (``given_back_s``;
+        inf: never); scale-downs before the halving and scale-ups after it (either: the fleet
+        oscillates), and scale-ups while the ready hosts' workers were busy under
+        :data:`IDLE_BUSY` of their time (``ups_while_idle``)."""
+        half = self.job.halve_at_s if self.job.halve_at_s is not None else self.job.seconds
+        ch = self.changes()
+        back = next((t - half for t, n, *_ in self.syncs if t >= half and
+                     all(m <= 1.3 * self.needed(u) for u, m, *_ in self.syncs if u >= t)), float("inf"))
+        return {"waited": self.waited(settle_s, half), "held": self.held(settle_s, half),
+                "waited_half": self.waited(half, self.job.seconds),
+                "end": self.syncs[-1][1] / self.needed(self.job.seconds),
+                "given_back_s": back,
+                "downs_before_half": sum(a < b for t, b, a, _ in ch if t < half),
+                "ups_after_half": sum(a > b for t, b, a, _ in ch if t >= half),
+                "ups_while_idle": sum(a > b and busy < IDLE_BUSY for t, b, a, busy in ch)}
+
+
+def _counter_at(log: List[Tuple[float, float, float]], col: int, t: float) -> float:
+    """Column ``col`` of a pod's scrape ``log`` (times ascending) at ``t``, linear between scrapes."""
+    i = max(0, int(np.searchsorted([e[0] for e in log], t, side="right")) - 1)
+    if i + 1 >= len(log) or log[i + 1][0] <= log[i][0]:
+        return log[i][col]
+    (ta, *a), (tb, *b) = log[i], log[i + 1]
+    return a[col - 1] + (b[col - 1] - a[col - 1]) * (t - ta) / (tb - ta)
+
+
+@dataclass
+class _Pod:
+    started: float
+    ready: Optional[float] = None
+    gen: int = 0
+
+
+class _ScaledWorld(_World):
+    """One epoch read by a trainer of fixed appetite from a fleet whose pods an HPA adds and
+    removes (:func:`autoscale`): pods start, become ready after ``startup_s`` and join the
+    reader's router at its next resolution of the name; a pod removed leaves it at once, its
+    queue and running decodes lost and what only it was asked routed again. Event kinds past the
+    base's: -2 the trainer wants its next step, -3 a scrape, -4 an HPA sync, -5 a pod ready, -6
+    a pod joins the reader (``clip``: ``"index:generation"``)."""
+
+    def __init__(self, f: Fleet, lay: _Layout, job: Job, spec: HpaSpec):
+        pool = [f"host-{k:03d}" for k in range(f.hosts)]
+        router = Router(pool[:job.start_hosts], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S)
+        super().__init__(f, lay, [router])
+        self.job, self.spec, self.hpa, self.router = job, spec, Hpa(spec), router
+        self.stalls = _Stalls(f, job.seconds + 600.0)
+        self.mean = lay.samples / max(1, len(lay.needs))
+        self.pods: Dict[int, _Pod] = {k: _Pod(-job.startup_s, 0.0) for k in range(job.start_hosts)}
+        self.gens = [0] * self.n
+        self.busy_ws, self.marked = [0.0] * self.n, [0.0] * self.n  # busy worker-seconds so far; when counted
+        self.logs: Dict[int, List[Tuple[float, float, float]]] = {k: [(0.0, 0.0, 0.0)] for k in self.pods}
+        self.scraped: Dict[int, Tuple[float, Dict[str, Optional[float]]]] = {}  # host -> (t, metric -> value)
+        self.asked = [0.0] * self.n  # samples asked of each host so far (v2v_samples_asked_total)
+        self.want_at, self.waking = 0.0, False
+        self.window_hosts: Optional[int] = None  # the hosts the reader's window is sized for
+        self.steps: List[Tuple[float, float]] = []
+        self.syncs: List[Tuple[float, int, int, float, Optional[float]]] = []
+        self._resize()
+
+    def _resize(self) -> None:
+        """The reader asks ahead ``LOOKAHEAD_DECODES`` decodes per worker of the hosts it reads
+        (``job.window_follows``; else of those it read at the start)."""
+        if not self.job.window_follows and self.window_hosts is not None:
+            return
+        self.window_hosts = len(self.router.hosts)
+        self.lookahead = int(LOOKAHEAD_DECODES * len(self.router.hosts) * self.f.slots * self.mean) + self.f.step
+
+    def _mark(self, k: int) -> None:
+        self.busy_ws[k] += (self.f.slots - self.free[k]) * (self.now - self.marked[k])
+        self.marked[k] = self.now
+
+    def start_work(self, k: int) -> None:
+        self._mark(k)
+        super().start_work(k)
+
+    def made(self, k: int, clip: str) -> None:
+        self._mark(k)
+        super().made(k, clip)
+
+    def advance(self) -> None:
+        """Steps are read as the trainer wants them, each once its rows are had."""
+        while self.read < self.lay.length:
+            if self.now < self.want_at:
+                if not self.waking:
+                    heapq.heappush(self.events, (self.want_at, -2, ""))
+                    self.waking = True
+                return
+            stop = min(self.lay.length, self.read + self.f.step)
+            if any(self.lay.pos_clip[p] is not None and (0, self.lay.pos_clip[p]) not in self.done_at
+                   for p in range(self.read, stop)):
+                return
+            self.steps.append((self.want_at, self.now))
+            self.read = stop
+            self.step_times.append((self.read, self.now))
+            self.want_at = self.now + self.f.step / self.job.appetite_at(self.now)
+            self.head_since = self.want_at  # the reader waits on the next step from when it is wanted
+
+    def ask(self, rank: int, clip: str, k: int) -> None:
+        self.asked[k] += self.needs[rank][clip][1]  # every make's samples, made already or not
+        super().ask(rank, clip, k)
+
+    def backlogs(self) -> Dict[int, float]:
+        """Host -> the work asked of it and not made, in seconds at its rate (its own measure,
+        else its workers at their speed): what :data:`BACKLOG` exports."""
+        samples: Dict[int, float] = {}
+        for (k, clip), ranks in self.waiting.items():
+            if any((r, clip) not in self.done_at for r in ranks):
+                n = float(self.lay.needs[clip][1])
+                if (k, clip) in self.running:
+                    n = max(0.0, n - (self.now - self.running[(k, clip)]) * self.speeds[k])
+                samples[k] = samples.get(k, 0.0) + n
+        return {k: samples.get(k, 0.0) / (self.meters[k].rate() or self.f.slots * self.speeds[k]) for k in self.pods}
+
+    def scrape(self) -> None:
+        """Each ready pod's metrics now (:data:`METRIC_WINDOW_S`), from its counters' log since it joined."""
+        backlog = self.backlogs()
+        for k, p in self.pods.items():
+            if p.ready is None or k not in self.logs:
+                continue
+            self._mark(k)
+            log = self.logs[k]
+            log.append((self.now, self.busy_ws[k], self.asked[k]))
+            values: Dict[str, Optional[float]] = {BACKLOG: backlog[k]}
+            capacity = self.meters[k].rate()
+            for m, col, per in (("cpu", 1, self.f.slots), (BUSY, 1, self.f.slots), (ASKED, 2, capacity)):
+                if per is None:
+                    values[m] = None
+                    continue
+                t0 = max(self.now - METRIC_WINDOW_S[m], log[0][0])
+                rate = (log[-1][col] - _counter_at(log, col, t0)) / per / (self.now - t0) if self.now > t0 else None
+                values[m] = rate
+            while log[0][0] < self.now - LONGEST_S - SCRAPE_S:
+                log.pop(0)
+            self.scraped[k] = (self.now, values)
+
+    def sync(self) -> None:
+        pods = []
+        for k, p in self.pods.items():
+            s = self.scraped.get(k)
+            value = None if s is None else s[1][self.spec.metric]
+            pods.append(PodSample(p.ready is not None, p.ready is not None, p.started, p.ready, value,
+                                  s[0] if s else 0.0, SCRAPE_S))
+        current = len(self.pods)
+        desired = self.hpa.sync(self.now, current, pods)
+        ready = [k for k, p in self.pods.items() if p.ready is not None and k in self.scraped]
+        busy = float(np.mean([self.scraped[k][1]["cpu"] for k in ready])) if ready else 0.0
+        values = [p.value for p in pods if p.value is not None]
+        self.syncs.append((self.now, desired, len(ready), busy, float(np.mean(values)) if values else None))
+        for _ in range(desired - current):
+            k = min(set(range(self.n)) - set(self.pods))
+            self.gens[k] += 1
+            self.pods[k] = _Pod(self.now, None, self.gens[k])
+            heapq.heappush(self.events, (self.now + self.job.startup_s, -5, f"{k}:{self.gens[k]}"))
+        for _ in range(current - desired):  # a ReplicaSet removes pods not ready first, then the newest ready
+            self.remove(min(self.pods, key=lambda k: (self.pods[k].ready is not None, -(self.pods[k].ready or 0.0))))
+
+    def _pod_of(self, tag: str) -> Optional[int]:
+        k, gen = (int(x) for x in tag.split(":"))
+        return k if k in self.pods and self.pods[k].gen == gen else None
+
+    def ready(self, tag: str) -> None:
+        k = self._pod_of(tag)
+        if k is not None:
+            self.pods[k].ready = self.now
+            heapq.heappush(self.events, ((self.now // RESOLVE_S + 1) * RESOLVE_S, -6, tag))
+
+    def join(self, tag: str) -> None:
+        k = self._pod_of(tag)
+        if k is not None:
+            self._mark(k)
+            self.logs[k] = [(self.now, self.busy_ws[k], self.asked[k])]
+            self.router.join(self.hosts[k], self.t0 + self.now)
+            self._resize()
+            self.fresh = True
+            self.settle()
+
+    def remove(self, k: int) -> None:
+        """Pod ``k`` goes: the reader's router drops it, its work is lost, what only it was asked is routed again."""
+        self._mark(k)
+        del self.pods[k]
+        self.logs.pop(k, None)
+        self.scraped.pop(k, None)
+        orphans = self.router.leave(self.hosts[k])
+        self.events = [e for e in self.events if e[1] != k]
+        heapq.heapify(self.events)
+        self.running = {key: t for key, t in self.running.items() if key[0] != k}
+        self.waiting = {key: r for key, r in self.waiting.items() if key[0] != k}
+        self.free[k], self.queues[k], self.made_on[k], self.meters[k] = self.f.slots, [], set(), RateMeter()
+        self._resize()
+        needs = self.needs[0]
+        for _, clip in orphans:
+            if (0, clip) not in self.done_at:
+                due = max(0, needs[clip][0] - self.read) / self.router.capacity()
+                h = self.router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due, position=needs[clip][0])
+                if h is not None:
+                    self.ask(0, clip, self.index[h])
+        self.settle()
+
+    def run(self) -> None:
+        self.ask_ahead()
+        self.advance()
+        tick = min(self.f.hedge_s, STEAL_S) / 2
+        for t, kind in ((tick, -1), (SYNC_S - SCRAPE_LEAD_S, -3), (SYNC_S, -4)):
+            heapq.heappush(self.events, (t, kind, ""))
+        while self.now < self.job.seconds:
+            if self.read >= self.lay.length:
+                raise ValueError(f"fleet_sim: the epoch ({self.lay.samples} samples) ended at {self.now:.0f} s, "
+                                 f"before the job's {self.job.seconds:.0f} s: more videos")
+            self.now, k, tag = heapq.heappop(self.events)
+            if k >= 0:
+                self.made(k, tag)
+            elif k == -1:
+                self.hedge()
+                self.settle()
+                heapq.heappush(self.events, (self.now + tick, -1, ""))
+            elif k == -2:
+                self.waking, self.fresh = False, True
+                self.settle()
+            elif k == -3:
+                self.scrape()
+                heapq.heappush(self.events, (self.now + SCRAPE_S, -3, ""))
+            elif k == -4:
+                self.sync()
+                heapq.heappush(self.events, (self.now + SYNC_S, -4, ""))
+            elif k == -5:
+                self.ready(tag)
+            else:
+                self.join(tag)
+
+
+def autoscale(f: Fleet, job: Job) -> Scaled:
+    """Job ``job`` reading one epoch, routed, from a fleet of hosts like ``f``'s (``f.hosts``
+    is ignored: the pool is the HPA's ``maxReplicas``) that the HPA of ``job.hpa`` sizes on
+    its metric (or ``job.metric``), ``harness.hpa``'s model of the controller; the reader asks
+    ahead :data:`LOOKAHEAD_DECODES` decodes per worker of the hosts it reads. Pure and seeded.
+
+    Raises:
+        ValueError: the manifest's (``HpaSpec.load``), a job out of range (naming its fields), a
+            metric this model does not export, or an epoch that ends before ``job.seconds``."""
+    spec = HpaSpec.load(Path(job.hpa))
+    if job.appetite <= 0 or job.startup_s < 0 or job.seconds <= 0 or not 1 <= job.start_hosts <= spec.max_replicas:
+        raise ValueError(f"a job takes > 0 samples/s for > 0 s, pods start in >= 0 s and 1 to maxReplicas "
+                         f"({spec.max_replicas}) hosts serve at its start, got appetite={job.appetite}, "
+                         f"seconds={job.seconds}, startup_s={job.startup_s}, start_hosts={job.start_hosts}")
+    if job.metric is not None:
+        spec = replace(spec, metric=job.metric, target=job.target if job.target is not None else spec.target)
+    if spec.metric not in METRIC_WINDOW_S:
+        raise ValueError(f"{job.hpa}: metric {spec.metric!r}: the simulator exports {', '.join(METRIC_WINDOW_S)}")
+    f = replace(f, hosts=spec.max_replicas, ranks=1)
+    w = _ScaledWorld(f, _layout(f, "routed", 0), job, spec)
+    w.run()
+    stall = f.stall_s / (f.stall_every_s + f.stall_s) if f.stall_every_s > 0 and f.stall_s > 0 else 0.0
+    rate = float(np.mean(w.speeds)) * f.slots * (1 - stall)
+    return Scaled(job, spec.metric, spec.target, rate, w.syncs, w.steps)
+
+
+def _metric(text: str) -> Tuple[str, float]:
+    """``--metric``'s ``NAME=TARGET`` (argparse names the option on error)."""
+    name, _, target = text.partition("=")
+    try:
+        value = float(target)
+    except ValueError:
+        value = -1.0
+    if name not in METRIC_WINDOW_S or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: want NAME=TARGET, NAME one of {', '.join(METRIC_WINDOW_S)}, "
+                                         "TARGET a number > 0")
+    return name, value
+
+
+def _print_autoscale(a: argparse.Namespace) -> int:
+    """``--autoscale``: the figures of each run (the manifest's HPA, then each ``--metric``)."""
+    f = Fleet(videos=a.videos, slots=a.slots, spread=a.spread, stall_every_s=a.stall_every_s, stall_s=a.stall_s,
+              seed=a.seed)
+    try:
+        job = Job(a.appetite, startup_s=a.startup_s, hpa=a.hpa, window_follows=not a.window_at_start)
+        runs = [autoscale(f, job)] + [autoscale(f, replace(job, metric=m, target=t)) for m, t in a.metric]
+    except (OSError, ValueError) as e:  # the manifest's problems name it
+        print(f"harness.fleet_sim: {e}", file=sys.stderr)
+        return 2
+    r0 = runs[0]
+    print(f"a job taking {a.appetite:g} samples/s ({r0.needed(0):.2f} hosts of {r0.host_rate:.2f} samples/s), half "
+          f"from {r0.job.halve_at_s:g} s; hosts of {f.slots} workers, ready {a.startup_s:g} s after they are made; "
+          f"{a.hpa}'s HPA")
+    print(f"{'metric':<22} {'target':>6} {'waited':>7} {'held':>5} {'waited/2':>8} {'back s':>7} {'end':>5} "
+          f"{'downs':>5} {'ups/2':>5} {'idle ups':>8}  hosts set (t s: n)")
+    for r in runs:
+        g = r.figures()
+        print(f"{r.metric:<22} {r.target:>6.2f} {g['waited']:>7.1%} {g['held']:>5.2f} {g['waited_half']:>8.1%} "
+              f"{g['given_back_s']:>7.0f} {g['end']:>5.2f} {g['downs_before_half']:>5} {g['ups_after_half']:>5} "
+              f"{g['ups_while_idle']:>8}  " + " ".join(f"{t:.0f}:{n}" for t, _, n, _ in r.changes()))
+    if a.trace:
+        print(f"{'t s':>6} {'hosts':>5} {'ready':>5} {'busy':>5} {'metric':>7} {'waited':>7}")
+        for t, n, ready, busy, m in r0.syncs[3::4]:
+            print(f"{t:>6.0f} {n:>5} {ready:>5} {busy:>5.2f} {'-' if m is None else f'{m:.2f}':>7} "
+                  f"{r0.waited(t - 60, t):>7.1%}")
+    return 0
+
+
 def _sizes(text: str) -> List[int]:
     """``--padding``'s corpus sizes: comma-separated ints >= 1 (argparse names the option on error)."""
     try:
@@ -499,6 +922,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--json", default=None, help="also write the results here")
     ap.add_argument("--padding", default=None, metavar="VIDEOS,...", type=_sizes,
                     help="print only the static shards' padding for these corpus sizes (2, 8, 32, 128 shards)")
+    ap.add_argument("--autoscale", action="store_true",
+                    help="print only a job of fixed appetite read by a fleet an HPA sizes (Job's fields below)")
+    ap.add_argument("--appetite", type=float, default=Job.appetite, help="samples/s the trainer takes (--autoscale)")
+    ap.add_argument("--startup-s", type=float, default=Job.startup_s, help="seconds from a pod's creation to ready")
+    ap.add_argument("--hpa", default=Job.hpa, help="the manifest whose HPA sizes the fleet (--autoscale)")
+    ap.add_argument("--metric", action="append", default=[], metavar="NAME=TARGET", type=_metric,
+                    help=f"also run the HPA on this metric and target instead (one of {', '.join(METRIC_WINDOW_S)})")
+    ap.add_argument("--trace", action="store_true", help="with --autoscale: each minute of the manifest's run")
+    ap.add_argument("--window-at-start", action="store_true",
+                    help="with --autoscale: the reader asks ahead for the hosts it read at the start only")
     a = ap.parse_args(argv)
     problem = writable_problem(Path(a.json)) if a.json else ""
     if problem:
@@ -514,6 +947,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             pad = static_padding(v, (2, 8, 32, 128), a.seed)
             print(f"{v:>10,} " + " ".join(f"{pad[n]:>13.1%}" for n in (2, 8, 32, 128)))
         return 0
+    if a.autoscale:
+        return _print_autoscale(a)
     if a.ranks < 1 or Fleet.step % a.ranks:
         print(f"harness.fleet_sim: --ranks must divide the step ({Fleet.step}), got {a.ranks}", file=sys.stderr)
         return 2

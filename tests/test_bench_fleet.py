@@ -1,6 +1,7 @@
-"""``bench/fleet.py``'s ``cache`` row on the bundled clips once (4 videos) and its ``ranks`` row on
-them sixty times (240 videos: a reader's queue long enough for its load bound to matter): real
-``v2v-serve`` hosts pinned with ``taskset``; and a bad ``--rows`` or ``--ranks`` in one line."""
+"""``bench/fleet.py``'s ``cache`` row on the bundled clips once (4 videos), its ``ranks`` row on
+them sixty times (240 videos: a reader's queue long enough for its load bound to matter) and its
+``batches`` row at batch 32 on them eight times: real ``v2v-serve`` hosts pinned with
+``taskset``; and a bad ``--rows`` or ``--ranks`` in one line."""
 from __future__ import annotations
 
 import os
@@ -8,7 +9,7 @@ import shutil
 
 import pytest
 
-from bench.fleet import cache_row, main, make_corpus, ranks_row
+from bench.fleet import batches_row, cache_row, main, make_corpus, ranks_row
 
 
 def test_a_row_the_bench_lacks_is_one_line(capsys):
@@ -40,3 +41,15 @@ def test_four_ranks_of_a_job_reading_a_fleet_have_each_video_made_about_once(tmp
     r = ranks_row(make_corpus(tmp_path / "corpus", 60), 4)
     assert r["samples_read"] > 0 and 1.0 <= r["made_over_read"] <= 1.1, r  # each rank's own load bound: 1.66
     assert r["videos_of_two_hosts"] <= 0.05, r  # 0.41
+
+
+@pytest.mark.skipif(shutil.which("taskset") is None or (os.cpu_count() or 1) < 2, reason="needs taskset and 2 cores")
+@pytest.mark.timeout(300)
+def test_one_host_read_at_batch_32_makes_each_sample_of_each_epoch_once(tmp_path):
+    """A batch larger than the host's own (12): the samples a pending fetch names are asked now,
+    not made ahead, so the store's bound does not push out the shuffle buffer's samples the plan
+    reaches next, and a video is decoded once an epoch (2.4 made a sample read from epoch 1 on
+    when it did)."""
+    r = batches_row(make_corpus(tmp_path / "corpus", 8), batches=(32,), epochs=2)[32]
+    assert [e["samples_read"] for e in r["epochs"]] == [8 * 29, 8 * 29], r  # 10, 10, 6 and 3 samples a clip
+    assert r["worst_made_over_read"] <= 1.02, r

@@ -619,11 +619,12 @@ def test_kustomize_renders_each_overlay_to_objects_that_match_the_schemas(overla
 
 
 @needs_kubectl
-def test_k8s_autoscale_overlay_sizes_the_fleet_by_cpu():
-    """deploy/k8s-autoscale: an autoscaling/v2 HPA on the Deployment's CPU utilisation (of its
-    request, which is the servers' --workers and their limit), at least two hosts, quick to grow
-    and slow to shrink; it owns the replica count (the overlay drops the field), and everything
-    else is the base's."""
+def test_k8s_autoscale_overlay_sizes_the_fleet_by_what_the_job_asks():
+    """deploy/k8s-autoscale: an autoscaling/v2 HPA on the Pods metric deploy/prometheus-adapter
+    serves (the share of each host's capacity the job asks of it: harness.fleet_sim's run of this
+    file is tests/test_fleet_sim_autoscale.py), below 1, at least two hosts, growing on the last
+    minute's lowest recommendation and shrinking after minutes, one host at a time; it owns the
+    replica count (the overlay drops the field), and everything else is the base's."""
     docs, base = _kustomize(DEPLOY / "k8s-autoscale"), _kustomize(K8S)
     hpa = docs[("HorizontalPodAutoscaler", "v2v-server")]
     dep, base_dep = docs[("Deployment", "v2v-server")], base[("Deployment", "v2v-server")]
@@ -631,12 +632,17 @@ def test_k8s_autoscale_overlay_sizes_the_fleet_by_cpu():
     ref = hpa["spec"]["scaleTargetRef"]
     assert (ref["apiVersion"], ref["kind"], ref["name"]) == (dep["apiVersion"], dep["kind"], dep["metadata"]["name"])
     (metric,) = hpa["spec"]["metrics"]
-    assert metric["type"] == "Resource" and metric["resource"]["name"] == "cpu"
-    target = metric["resource"]["target"]
-    assert target["type"] == "Utilization" and 50 <= target["averageUtilization"] < 100  # 100: already behind
-    r = _container(dep)["resources"]
-    assert r["requests"]["cpu"] == r["limits"]["cpu"]
-    assert flag_values(_container(dep)["args"], "--workers") == ["$(CPU_REQUEST)"]
+    adapter = yaml.safe_load((DEPLOY / "prometheus-adapter" / "values.yaml").read_text())
+    (rule,) = adapter["rules"]["custom"]
+    assert metric["type"] == "Pods" and metric["pods"]["metric"]["name"] == rule["name"]["as"]
+    target = metric["pods"]["target"]
+    assert target["type"] == "AverageValue" and target["averageValue"].endswith("m")
+    share = int(target["averageValue"][:-1]) / 1000
+    assert 0.5 <= share < 1  # 1: the job asks all the fleet makes, already behind
+    # the pods are scraped where the adapter's series come from
+    annotations = dep["spec"]["template"]["metadata"]["annotations"]
+    assert annotations["prometheus.io/scrape"] == "true" and annotations["prometheus.io/path"] == "/metrics"
+    assert flag_values(_container(dep)["args"], "--metrics-port") == [annotations["prometheus.io/port"]]
     spec = hpa["spec"]
     assert 2 <= spec["minReplicas"] <= base_dep["spec"]["replicas"] < spec["maxReplicas"]
     assert spec["behavior"]["scaleDown"]["stabilizationWindowSeconds"] >= 300
@@ -645,8 +651,8 @@ def test_k8s_autoscale_overlay_sizes_the_fleet_by_cpu():
     assert down["policies"] == [{"type": "Pods", "value": 1, "periodSeconds": down["policies"][0]["periodSeconds"]}]
     # what deploy/README.md says of it
     readme = " ".join((DEPLOY / "README.md").read_text().split())
-    assert f"{spec['minReplicas']} to {spec['maxReplicas']} hosts, {target['averageUtilization']} % of the CPU request" in readme
-    assert f"shrinks after {down['stabilizationWindowSeconds'] // 60} minutes of low use, one host at a time" in readme
+    assert f"{spec['minReplicas']} to {spec['maxReplicas']} hosts, {share:.2f} of each host's capacity asked" in readme
+    assert f"shrinks after {down['stabilizationWindowSeconds'] // 60} minutes of lower asks, one host at a time" in readme
     assert "replicas" not in dep["spec"]
     assert {**dep, "spec": {**dep["spec"], "replicas": base_dep["spec"]["replicas"]}} == base_dep
     assert {k: v for k, v in docs.items() if k[0] not in ("HorizontalPodAutoscaler", "Deployment")} == \

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from harness.faults_fleet import (EXIT_S, HUGE_BYTES, Peer, close_all, hostile_peers, read_fleet,
+from harness.faults_fleet import (EXIT_S, HUGE_BYTES, Peer, another_host, close_all, hostile_peers, read_fleet,
                                   silent_fleet_interrupt)
 from harness.serve import ServeProcess
 from v2v_client.fetch import Link
@@ -106,9 +106,10 @@ def test_a_fleet_of_hostile_peers_only_is_one_line_naming_each_and_why(tmp_path)
 
 @pytest.mark.timeout(300)
 def test_a_host_that_refuses_a_make_stays_in_the_fleet(tmp_path, videos):
-    """A peer serving the real host's plan that refuses every make (code ``make``: one request
-    refused, not the protocol broken) is not left out: each video it refuses is asked of the
-    real host, the epoch is read whole, and it is asked makes after its first refusal."""
+    """A peer serving the real host's plan as another host (``another_host``) that refuses every
+    make (code ``make``: one request refused, not the protocol broken) is not left out: each
+    video it refuses is asked of the real host, the epoch is read whole, and it is asked makes
+    after its first refusal."""
     _, want, base = setup(tmp_path, videos)
     refusals = []
 
@@ -123,7 +124,7 @@ def test_a_host_that_refuses_a_make_stays_in_the_fleet(tmp_path, videos):
 
     with ServeProcess(base) as host:
         with Link(host.endpoint, 60) as link:
-            real = link.ask()
+            real = another_host(link.ask())
         peer = Peer(refuse)
         try:
             status, lines, report, _ = loadtest(f"{host.endpoint},{peer.endpoint}", -(-len(want) // 2))

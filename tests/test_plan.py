@@ -199,6 +199,23 @@ def test_a_plan_unfolding_as_slots_become_known_says_what_the_whole_plan_says(m,
     assert part.keys(0, len(whole)) == whole.keys(0, len(whole))
 
 
+@settings(max_examples=150, deadline=None)
+@given(manifests, st.integers(0, 2 ** 31), st.integers(0, 50), st.integers(1, 80), st.randoms())
+def test_a_samples_position_is_the_one_holding_it_once_decided(m, seed, epoch, buffer, rnd):
+    """``EpochPlan.position`` inverts ``key`` over the decided positions, and is None for a sample
+    no decided position holds yet (its video not counted, or its sample still in the buffer),
+    past its video's slots, or of a video not in the manifest."""
+    slots = dict(m.slots)
+    known = {v: (n if rnd.random() < 0.6 else None) for v, n in slots.items()}
+    plan = EpochPlan(Manifest.of(known, m.crops_per_window), seed, epoch, buffer)
+    held = {plan.key(p): p for p in range(plan.known)}
+    for key in all_keys(m):
+        assert plan.position(key) == held.get(key), key
+    for v, n in slots.items():
+        assert plan.position(SampleKey.at(v, n * m.crops_per_window, m.crops_per_window)) is None
+    assert plan.position(SampleKey.at("not/listed.mp4", 0, m.crops_per_window)) is None
+
+
 def test_a_plan_decides_a_position_once_its_buffer_is_counted():
     m = Manifest.of({f"v{i}.mp4": None for i in range(10)})
     plan = EpochPlan(m, 1, 0, 4)
@@ -294,3 +311,14 @@ def test_the_plan_message_carries_what_changed_since_earlier_manifests():
     assert "changes" not in Position(ident).to_dict()["plan"]  # a position and a fetch name the identity only
     with pytest.raises(WireError, match="field 'changes'"):
         PlanInfo.from_wire({**PlanInfo(ident, None, {}).to_wire(), "changes": {"m1": 3}})
+
+
+def test_the_plan_message_carries_the_servers_instance_checked_at_the_edge():
+    from v2v_wire.plan_messages import MAX_INSTANCE, PlanInfo, WireError
+
+    ident = PlanIdentity("m", "r", 0)
+    assert PlanInfo.from_wire(PlanInfo(ident, 4, {}, "a" * 32).to_wire()).instance == "a" * 32
+    assert PlanInfo.from_wire(PlanInfo(ident, 4, {}).to_wire()).instance is None  # not said: never read as another's
+    for bad in ("", "x" * (MAX_INSTANCE + 1), 7, ["a"]):
+        with pytest.raises(WireError, match="plan: field 'instance'"):
+            PlanInfo.from_wire({**PlanInfo(ident, 4, {}).to_wire(), "instance": bad})

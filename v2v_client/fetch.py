@@ -56,6 +56,11 @@ class BrokenPeer(PlanServerError):
         super().__init__(f"{peer}: {why}")
         self.peer, self.why = peer, why
 
+    @property
+    def left_out_for(self) -> str:
+        """Why a fleet leaves the peer out, as one clause (``fleet_read.Fleet.leave_out``)."""
+        return f"it breaks the protocol: {self.why}"
+
 
 def reply_limit(stream: Optional[dict], rows: int) -> int:
     """The largest frame a legitimate reply of at most ``rows`` rows carries under the recipe a

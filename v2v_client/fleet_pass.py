@@ -37,9 +37,10 @@ UNFOLD_PER_HOST = 4
 STEAL_S = 1.0
 _LAST = 2 ** 62 - 1
 #: Refusal codes (``plan_messages.REFUSALS``) that say a host serves none of this reader's makes:
-#: another plan, outputs it does not serve, a compression it lacks. The host is left out; any
-#: other refusal is of the one make, asked of another host while the host stays.
-HOST_REFUSALS = ("plan", "outputs", "compression")
+#: outputs it does not serve, a compression it lacks. The host is left out; a refusal for another
+#: plan leaves it out of the pass (``Fleet.other_plan``: a host restarted on a corpus that
+#: changed); any other refusal is of the one make, asked of another host while the host stays.
+HOST_REFUSALS = ("outputs", "compression")
 
 
 def merged(rows: List[tuple], like: Dict[str, np.ndarray], epoch: int, start: int,
@@ -141,7 +142,8 @@ class Pass:
 
         Raises:
             PlanServerError: a path longer than a make names, every host left out (naming each and
-                why), or every host refused a make of the video (the last refusal's line)."""
+                why), or every host refused a make of the video (the last refusal's line).
+            PlanMismatch: every host left out of the pass serves another plan (``Fleet.no_host_left``)."""
         v = self.videos.setdefault(video, Video())
         if position is not None:
             v.position = min(v.position, position)
@@ -163,8 +165,10 @@ class Pass:
                                        position=v.position, held=self.fleet.made.get(video))
         if v.host is not None:
             self.send(video, ordinals, v.host, now)
-        elif self.router.hosts or not self.fleet.left_out:  # every host gone, silent or not joined yet
-            self.parked.append((video, ordinals))  # asked again at the next rescue
+        elif self.router.hosts or not (self.fleet.left_out or self.fleet.out_for_pass):
+            self.parked.append((video, ordinals))  # every host gone, silent or not joined yet: asked at the next rescue
+        elif self.fleet.changed:  # never read on with samples of another version of a file
+            raise self.fleet.no_host_left(self.epoch)
         else:
             raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan: {self.fleet.left_out_line()}")
 
@@ -337,16 +341,20 @@ class Pass:
 
 
 def refused(read: "Pass", ep: str, msg: Refused, now: float) -> None:
-    """Host ``ep`` refused a make of ``read``'s: every make this reader asks
-    (:data:`HOST_REFUSALS`: the host is left out, ``Fleet.leave_out``, its videos asked of their
-    next hosts), else the one make: asked of the next host of the video's ranking that has not
-    refused it, the host staying in the fleet.
+    """Host ``ep`` refused a make of ``read``'s: for another plan (``Fleet.other_plan``: named
+    with the files that changed, left out of the pass), every make this reader asks
+    (:data:`HOST_REFUSALS`: the host is left out, ``Fleet.leave_out``), its videos asked of their
+    next hosts either way; else the one make: asked of the next host of the video's ranking that
+    has not refused it, the host staying in the fleet.
 
     Raises:
         PlanServerError: every host refused a make of the video (:meth:`Pass.ask`)."""
     what = read.flight.pop((ep, msg.request), None)
     if what is None:
         return  # a refusal of a request asked again, or of none (-1: a message it could not read)
+    if msg.code == "plan":  # restarted on a corpus that changed: named with the files, once
+        read.fleet.other_plan(ep, f"a make refused: {msg.message}")
+        return
     if msg.code in HOST_REFUSALS:
         read.fleet.leave_out(ep, msg.message)
         return
@@ -414,4 +422,4 @@ def take(read: "Pass", timeout_s: float) -> None:
                     break
                 read.receive(ep, *got, read.heard)
             except BrokenPeer as e:
-                read.fleet.leave_out(e.peer, f"it breaks the protocol: {e.why}")
+                read.fleet.leave_out(e.peer, e.left_out_for)

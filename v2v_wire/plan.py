@@ -293,18 +293,22 @@ class EpochPlan:
         of a video not counted, or counted and still in the buffer or past it."""
         if self.complete and not self._buffer:
             return set()
-        if getattr(self, "_index", None) is None or len(self._index) != len(self.videos):
-            self._index = {v: i for i, v in enumerate(self.videos)}
         counted, buf = len(self._starts) - 1, set(self._buffer or ())
         out = set()
         for key in keys:
-            i = self._index.get(key.video)
+            i = self._video_number(key.video)
             if i is None:
                 continue
             prod = self._starts[i] + key.ordinal(self.crops_per_window) if i < counted else None
             if prod is None or prod >= self._next or prod in buf:
                 out.add(key)
         return out
+
+    def _video_number(self, video: str) -> Optional[int]:
+        """``video``'s index into :attr:`videos` (None for a video not in this epoch)."""
+        if getattr(self, "_index", None) is None or len(self._index) != len(self.videos):
+            self._index = {v: i for i, v in enumerate(self.videos)}
+        return self._index.get(video)
 
     def learn(self, slots: Mapping[str, Optional[int]]) -> int:
         """Unfold with ``slots`` (video -> slots or None; videos not in it stay unknown): the
@@ -393,6 +397,25 @@ class EpochPlan:
         prod = self._production[position]
         v = int(self._video_of(np.int64(prod)))
         return SampleKey.at(self.videos[v], prod - self._starts[v], self.crops_per_window)
+
+    def position(self, key: SampleKey) -> Optional[int]:
+        """The decided position holding ``key`` (a sample of this epoch's videos), or None while no
+        decided position holds it (its video not counted yet, or its sample still in the buffer
+        or past it) or for a video not in this epoch. The inverse of :meth:`key`, built once per
+        :attr:`known` (int64, one entry a counted sample)."""
+        i = self._video_number(key.video)
+        if i is None or i >= len(self._starts) - 1:
+            return None
+        prod = self._starts[i] + key.ordinal(self.crops_per_window)
+        if prod >= self._starts[i + 1]:
+            return None
+        inverse = getattr(self, "_inverse", None)
+        if inverse is None or inverse[0] != self.known:
+            table = np.full(self._starts[-1], -1, dtype=np.int64)
+            table[self.production] = np.arange(self.known, dtype=np.int64)
+            inverse = self._inverse = (self.known, table)
+        p = int(inverse[1][prod]) if prod < len(inverse[1]) else -1
+        return None if p < 0 else p
 
     def keys(self, start: int, stop: int) -> List[Optional[SampleKey]]:
         """:meth:`key` of each position in ``start`` .. ``stop - 1``."""

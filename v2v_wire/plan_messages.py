@@ -30,7 +30,7 @@ from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
 __all__ = ["PlanAsk", "PlanInfo", "Fetch", "Make", "ManifestAsk", "ManifestPart", "Rows", "Refused", "REFUSALS",
            "WireError", "OldClient", "BadPeers", "MAX_FETCH_ROWS", "MANIFEST_PART", "MAX_MAKE_PATH",
-           "MAX_MAKE_SAMPLES", "decode_plan_client", "plan_server_message", "old_client_answer"]
+           "MAX_MAKE_SAMPLES", "MAX_INSTANCE", "decode_plan_client", "plan_server_message", "old_client_answer"]
 
 #: Largest element count of any array in a message.
 MAX_ARRAY_LEN = 4096
@@ -60,6 +60,8 @@ MANIFEST_PART = 4096
 #: Longest video path a make names, bytes as UTF-8 (a corpus path longer than this is read by
 #: position, ``fetch``), and most samples it asks (a reader asks more in several makes).
 MAX_MAKE_PATH, MAX_MAKE_SAMPLES = 1024, 1024
+#: Longest instance name a server says (``PlanInfo.instance``): a UUID's 32 hex digits with room.
+MAX_INSTANCE = 64
 _MAX_INT = 2 ** 62
 
 
@@ -108,15 +110,20 @@ class PlanInfo:
             the server has not learned every video's slots (the plan unfolds as it decodes).
         stream: the recipe's shapes and outputs (``sequence_length``, ``num_bins``,
             ``crop_size``, ``outputs``, ``flow_dtype``, ...), as plain values.
+        instance: the server process's own name, drawn at its start (1 to :data:`MAX_INSTANCE`
+            characters; None: not said): two endpoints answering with one instance are one host
+            under two names (``tcp://localhost:P`` and ``tcp://127.0.0.1:P``), which a fleet's
+            reader reads once.
     """
 
     plan: PlanIdentity
     samples: Optional[int]
     stream: dict = field(default_factory=dict)
+    instance: Optional[str] = None
 
     def to_wire(self) -> dict:
         return {"type": "plan", "plan": self.plan.to_dict(), "samples": self.samples, "stream": self.stream,
-                "changes": dict(self.plan.changes)}
+                "changes": dict(self.plan.changes), "instance": self.instance}
 
     @classmethod
     def from_wire(cls, h: dict) -> "PlanInfo":
@@ -130,7 +137,11 @@ class PlanInfo:
         if not isinstance(changes, dict) or not all(isinstance(k, str) and isinstance(v, str)
                                                     for k, v in changes.items()):
             raise WireError("plan: field 'changes' must be a map of strings to strings")
-        return cls(replace(plan, changes=changes), _optional_int(h, "samples"), h["stream"])
+        instance = h.get("instance")
+        if instance is not None and (not isinstance(instance, str) or not 0 < len(instance) <= MAX_INSTANCE):
+            raise WireError(f"plan: field 'instance' must be nil or a string of 1 to {MAX_INSTANCE} characters, "
+                            f"got {instance!r:.80}")
+        return cls(replace(plan, changes=changes), _optional_int(h, "samples"), h["stream"], instance)
 
 
 @dataclass(frozen=True)

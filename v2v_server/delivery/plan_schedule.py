@@ -20,9 +20,14 @@ read what, only made samples, and any fetch names its rows itself (epoch and pos
 * **Keeping.** Made samples wait in a store until fetched. Fetched ones stay, least recently
   fetched first out, while there are at most ``keep_samples`` of them (another job, a fetch asked
   again after a lost reply). Samples never fetched go once the store holds more than
-  ``keep_samples + lookahead`` and the largest video's samples, those no pending fetch names:
-  first those of epochs no fetch named for :data:`IDLE_S` (a job that left), oldest first. A
-  fetch whose sample went makes it again.
+  ``keep_samples + lookahead`` and the largest video's samples besides those pending fetches
+  name (a batch asked is not made ahead), those no pending fetch names, in the order readers
+  need them last (Belady's rule): first those of epochs no fetch named for :data:`IDLE_S` (a job
+  that left), then those no moving head reaches (behind every reader's last fetch, or reached by
+  idle heads only: a job cut off), then the furthest from the nearest moving head before them
+  (:class:`Heads`). A decode makes a whole video, whose samples the shuffle buffer spreads over
+  positions far apart: dropping the oldest would drop what the plan reaches next, and decode its
+  video again. A fetch whose sample went makes it again.
 * **Unfolding.** A video whose slots the manifest does not know gets them from its first decode
   that ends (:meth:`PlanScheduler.learn`: the windows it found), and every plan kept unfolds with them
   (``EpochPlan.learn``). A fetch of positions not decided yet waits on the next videos of the
@@ -68,6 +73,19 @@ PASS_ATTEMPTS = 3
 
 #: Seconds after an epoch's last fetch its samples made but never fetched may go (a job that left).
 IDLE_S = 600.0
+
+#: Epochs whose samples made a server counts (the latest): what its readers made of each epoch,
+#: against what they read of it, says whether a sample was made twice (``stream_info``'s ``feed``).
+EPOCHS_COUNTED = 16
+
+#: Readers' heads tracked (:class:`Heads`), the least recently moved out past it: two epochs'
+#: for each reader of a job of 32 (8 ranks x 4 DataLoader workers).
+HEADS_KEPT = 64
+#: A head is idle (its reader stopped, or left) once it asked nothing for this many of its own
+#: intervals between fetches, and for at least :data:`HEAD_IDLE_S`: a sample only idle heads
+#: reach is one no reader needs soon.
+HEAD_IDLE_INTERVALS = 4
+HEAD_IDLE_S = 2.0
 
 
 
@@ -120,6 +138,49 @@ class Run:
             d.pop(task_id, None)
 
 
+@dataclass
+class Head:
+    """Where one reader reads an epoch: the stop of its last fetch, when it asked it (s), and the
+    mean seconds between its fetches (0 until its second)."""
+
+    stop: int
+    at: float
+    interval: float = 0.0
+
+
+class Heads:
+    """Each reader's head in each epoch it reads, from its fetches (a reader is a fetch's
+    ``client``: one rank or DataLoader worker): what the server keeps and makes follows the
+    heads that move (:func:`trim`, :meth:`PlanScheduler._start`), not the furthest fetch alone,
+    so a job cut off mid-epoch leaves no claim on the store once its head is idle."""
+
+    def __init__(self):
+        self.heads: "OrderedDict[Tuple[Hashable, int], Head]" = OrderedDict()
+
+    def fetched(self, client: Hashable, epoch: int, stop: int, now: float) -> None:
+        """``client`` asked positions up to ``stop`` of ``epoch`` at ``now`` (s)."""
+        h = self.heads.pop((client, epoch), None)
+        if h is None:
+            h = Head(stop, now)
+        else:
+            gap = max(0.0, now - h.at)
+            h.stop, h.at, h.interval = stop, now, gap if not h.interval else 0.75 * h.interval + 0.25 * gap
+        self.heads[(client, epoch)] = h
+        while len(self.heads) > HEADS_KEPT:
+            self.heads.popitem(last=False)
+
+    def forget(self, client: Hashable) -> None:
+        """``client`` left: its heads go."""
+        for k in [k for k in self.heads if k[0] == client]:
+            del self.heads[k]
+
+    def moving(self, epoch: int, now: float) -> List[int]:
+        """The stops of ``epoch``'s heads that are not idle at ``now``
+        (:data:`HEAD_IDLE_INTERVALS`, :data:`HEAD_IDLE_S`)."""
+        return [h.stop for (_, e), h in self.heads.items()
+                if e == epoch and now - h.at <= max(HEAD_IDLE_S, HEAD_IDLE_INTERVALS * h.interval)]
+
+
 class Making:
     """The outputs workers make: those the fetches so far asked for, of ``offered`` (in its
     order); and each running task's, so that the
@@ -154,12 +215,21 @@ class Making:
         return self.now
 
 
-def spare_samples(store: Sequence, fetched: Set, named: Set, live: Set[int], count: int) -> List:
-    """The ``count`` samples of ``store`` (keys ``(epoch, key)``, oldest first) to drop: never
-    fetched and named by no pending fetch, those of epochs not in ``live`` (no fetch for
-    :data:`IDLE_S`: a job that left) first, oldest first within each."""
+def spare_samples(store: Sequence, fetched: Set, named: Set, live: Set[int], count: int,
+                  reached: Callable[[Tuple[int, SampleKey]], Optional[int]] = lambda sk: None) -> List:
+    """The ``count`` samples of ``store`` (keys ``(epoch, key)``, oldest first) to drop, never
+    fetched and named by no pending fetch, in the order a reader needs them last (Belady's rule):
+    those of epochs not in ``live`` (no fetch for :data:`IDLE_S`: a job that left), then those no
+    reader reaches any more (``reached`` None: behind every moving head of a live epoch, or of an
+    epoch whose plan went), oldest first within each; then those a reader reaches, the furthest
+    (``reached``: positions from the nearest moving head before it, :class:`Heads`) first."""
+    def order(sk):
+        if sk[0] not in live:
+            return 0, 0
+        d = reached(sk)
+        return (1, 0) if d is None else (2, -d)
     spare = [sk for sk in store if sk not in named and sk not in fetched]
-    return sorted(spare, key=lambda sk: sk[0] in live)[:count]  # stable
+    return sorted(spare, key=order)[:count]  # stable: oldest first within a class
 
 
 def positions_after(plan_of: Callable[[int], EpochPlan], kept: Mapping[int, EpochPlan], epoch: int, stop: int,
@@ -298,9 +368,11 @@ class PlanScheduler:
         self.runs: Dict[Tuple[int, str], Run] = {}
         self.task_run: Dict[int, Tuple[int, str]] = {}
         self.fetched_at, self.fetched_to = {}, {}  # epoch -> when a fetch last named it; the furthest stop one named
+        self.heads = Heads()
         self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
         # tasks started; samples made; EpochPlans built (one per epoch read, however many at once)
         self._task_ids = self.samples_made = self.plans_built = 0
+        self.epoch_made: Dict[int, int] = {}  # epoch -> samples made of it, the EPOCHS_COUNTED latest
 
     # ------------------------------------------------------------------ plans and fetches
     def plan(self, epoch: int) -> EpochPlan:
@@ -338,6 +410,7 @@ class PlanScheduler:
         self.plan(epoch)
         self.pending.append(Pending(client, request, epoch, start, stop))
         self.fetched_at[epoch], self.fetched_to[epoch] = now, max(self.fetched_to.get(epoch, 0), stop)
+        self.heads.fetched(client, epoch, stop, now)
 
     def make(self, client: Hashable, request: int, epoch: int, video: str, ordinals: Optional[Sequence[int]],
              now: float, outputs: Optional[Sequence[str]] = None, position: int = 0) -> None:
@@ -361,6 +434,7 @@ class PlanScheduler:
         """Drop ``client``'s pending fetches and makes (it left)."""
         self.pending = [f for f in self.pending if f.client != client]
         self.orders.forget(client)
+        self.heads.forget(client)
 
     def answer(self, now: float) -> List[Tuple[Any, List[Row]]]:
         """Every pending fetch and make that can be answered at ``now``, with its rows
@@ -458,6 +532,9 @@ class PlanScheduler:
         self.failed.pop(sk, None)
         self.store[sk] = build()
         self.samples_made += 1
+        self.epoch_made[ek[0]] = self.epoch_made.get(ek[0], 0) + 1
+        if len(self.epoch_made) > EPOCHS_COUNTED:
+            del self.epoch_made[min(self.epoch_made)]
         return True
 
     def done(self, worker: Hashable, task_id: int, windows: int, failed: Dict[int, str],
@@ -583,10 +660,11 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
 
 
 def trim(s: "PlanScheduler", now: float) -> None:
-    """Scheduler ``s``'s keeping (module docstring): drop fetched samples past ``keep_samples`` (least recently fetched first); then, while
-    the store holds more than ``keep_samples + lookahead`` plus the largest video's samples,
-    samples never fetched that no pending fetch names: those of epochs no fetch named for
-    :data:`IDLE_S` first (a job that left), oldest first."""
+    """Scheduler ``s``'s keeping (module docstring): drop fetched samples past ``keep_samples``
+    (least recently fetched first); then, while the store holds more than ``keep_samples +
+    lookahead`` plus the largest video's samples besides those pending fetches name, samples
+    never fetched that no pending fetch names, the ones readers need last first
+    (:func:`spare_samples`)."""
     fetched = [sk for sk in s.store if sk in s.fetched]
     for sk in fetched[:max(0, len(fetched) - s.keep_samples)]:
         del s.store[sk]
@@ -598,10 +676,21 @@ def trim(s: "PlanScheduler", now: float) -> None:
     for f in s.pending:
         plan = s.plan(f.epoch)
         named.update((f.epoch, plan.key(p)) for p in range(f.start, min(f.stop, plan.known)))
+    # what a pending fetch names is a batch asked now, not made ahead: the bound is on the rest
+    over -= sum(1 for sk in named if sk in s.store and sk not in s.fetched)
+    if over <= 0:
+        return
     live = {e for e, t in s.fetched_at.items() if now - t < IDLE_S}
     named |= s.orders.named(list(s.store), now)
     for e in live & set(s.plans):  # what decides a plan still unfolding is kept: it is read next
         keys = [k for (e2, k) in s.store if e2 == e and (e2, k) not in s.fetched]
         named.update((e, k) for k in s.plans[e].undecided(keys))
-    for sk in spare_samples(s.store, s.fetched, named, live, over):
+    heads = {e: s.heads.moving(e, now) for e in live}
+
+    def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:
+        plan, stops = s.plans.get(sk[0]), heads.get(sk[0], ())
+        p = None if plan is None else plan.position(sk[1])
+        return None if p is None else min((p - h for h in stops if h <= p), default=None)
+
+    for sk in spare_samples(s.store, s.fetched, named, live, over, reached):
         del s.store[sk]

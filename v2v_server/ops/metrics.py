@@ -10,12 +10,16 @@ terminal. It never touches the server's own objects: everything arrives as plain
 Metrics (``curl HOST:PORT/metrics`` lists them with their help text):
 
 * counters: ``v2v_samples_made_total``, ``v2v_samples_sent_total``, ``v2v_batches_sent_total``,
-  ``v2v_sent_bytes_total``,
+  ``v2v_sent_bytes_total``, ``v2v_samples_asked_total`` (the samples fleet readers' makes named,
+  made already or not: its rate over ``v2v_capacity_samples_per_second`` is the share of the
+  host's capacity a job asks of it, what deploy/k8s-autoscale sizes a fleet by),
   ``v2v_workers_restarted_total``, ``v2v_files_skipped_total``, ``v2v_bad_messages_total``,
   ``v2v_worker_busy_seconds_total{stage}`` for stage in decode, simulate, flow, serialize,
   send (summed over workers; divided by wall time and workers it is each stage's busy
   fraction: ``rate(v2v_worker_busy_seconds_total[1m]) / v2v_workers``);
 * gauges: ``v2v_pending_fetches`` (fetches waiting for their rows), ``v2v_workers`` (alive),
+  ``v2v_capacity_samples_per_second`` (the decode capacity the host last said to a reader,
+  :meth:`ServerMetrics.capacity`; absent before it is measured),
   ``v2v_workers_busy``, ``v2v_epoch_videos``, ``v2v_epoch_samples``,
   ``v2v_shuffle_buffer_samples`` and ``v2v_shuffle_buffer_capacity_samples`` (samples made and
   waiting for their fetch, and how many may wait), ``v2v_ready``;
@@ -82,6 +86,9 @@ class ServerMetrics:
 
         self.samples_made = counter("v2v_samples_made", "Samples received from workers")
         self.samples_sent = counter("v2v_samples_sent", "Samples sent to clients (re-sends included)")
+        self.samples_asked = counter("v2v_samples_asked", "Samples fleet readers' makes named, made already or not "
+                                     "(rate over v2v_capacity_samples_per_second: the share of the host's capacity "
+                                     "a job asks of it)")
         self.batches_sent = counter("v2v_batches_sent", "Batches sent to clients (re-sends included)")
         self.bytes_sent = counter("v2v_sent_bytes", "Array bytes sent to clients")
         self.workers_restarted = counter("v2v_workers_restarted", "Worker processes that died and were replaced")
@@ -119,6 +126,7 @@ class ServerMetrics:
         self._expo_at = 0.0
         self.port: Optional[int] = None
         self._capacity, self._counted = RateMeter(), (0, 0.0)  # samples made and busy seconds it has taken
+        self.said: Optional[float] = None  # the capacity last said to a reader (samples/s)
         self._progress: Optional[_Progress] = None
         if sys.stderr.isatty() if progress is None else progress:
             try:  # tqdm draws the line when it is made: a terminal already gone leaves it off
@@ -132,6 +140,11 @@ class ServerMetrics:
         self.samples_made.inc()
         if params is not None:
             self.sample_stats.observe(params)
+
+    def on_make(self, samples: int) -> None:
+        """A reader's make named ``samples`` samples (a make of a video's windows only: 0; its
+        samples are named by the makes that follow)."""
+        self.samples_asked.inc(samples)
 
     def on_batch_sent(self, nsamples: int, nbytes: int) -> None:
         self.batches_sent.inc()
@@ -190,7 +203,8 @@ class ServerMetrics:
         made, busy = self.totals()["samples_made"], sum(self.busy_seconds().values())
         self._capacity.add(made - self._counted[0], (busy - self._counted[1]) / max(1, workers), now)
         self._counted = (made, busy)
-        return self._capacity.rate()
+        self.said = self._capacity.rate()
+        return self.said
 
     def busy_seconds(self) -> Dict[str, float]:
         """Seconds the workers spent in each stage of ``STAGES`` so far, summed over workers."""
@@ -463,6 +477,12 @@ class _StateCollector:
         ):
             g = GaugeMetricFamily(name, doc)
             g.add_metric([], float(st.get(key) or 0))
+            yield g
+        said = self.m.said
+        if said is not None:  # absent before measured: an autoscaler counts the host as missing, not idle
+            g = GaugeMetricFamily("v2v_capacity_samples_per_second", "The decode capacity this host last said to a "
+                                  "reader: samples made per second of its workers' busy time, times its workers")
+            g.add_metric([], float(said))
             yield g
         g = GaugeMetricFamily("v2v_ready", "1 when the socket is bound, the corpus scanned and a worker is up")
         g.add_metric([], 1.0 if self.m.ready() else 0.0)

@@ -16,6 +16,7 @@ import logging
 import signal
 import threading
 import time
+import uuid
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -89,6 +90,7 @@ class PlanServer:
         self.codecs: Dict[str, float] = {}  # codec -> when a fetch last asked for it
         self._stop = threading.Event()
         self.bound_endpoint: Optional[str] = None
+        self.instance = uuid.uuid4().hex  # this process's name in its plan info: one host under two names is read once
 
     def stop(self) -> None:
         """Ask the loop to stop (thread- and signal-safe)."""
@@ -99,7 +101,8 @@ class PlanServer:
         (``"I/N"``, None for the whole corpus), the listing's and the recipe's fingerprints, which a
         reader of several shards checks (``v2v_client.endpoints.check_servers``); ``feed``, what a
         trainer needs to say what would feed it (``trainer.feed_report``): the workers, the frame
-        cache's GiB, the samples made so far and the workers' busy seconds per stage."""
+        cache's GiB, the samples made so far (and of each of the latest epochs: its digits -> count)
+        and the workers' busy seconds per stage."""
         c = self.cfg
         return {"sequence_length": c.sequence_length, "num_bins": c.num_bins, "crop_size": c.crop_size,
                 "frames_per_bin": c.frames_per_bin, "outputs": list(c.outputs), "flow_preset": c.flow_preset,
@@ -108,6 +111,7 @@ class PlanServer:
                 "recipe": self.identity.recipe, "codecs": [k for k in COMPRESSIONS if available(k)],
                 "feed": {"workers": c.workers, "frame_cache_gb": c.frame_cache_gb,
                          "samples_made": self.metrics.totals()["samples_made"],
+                         "samples_made_by_epoch": {str(e): n for e, n in self.scheduler.epoch_made.items()},
                          "busy_s": {k: round(v, 3) for k, v in self.metrics.busy_seconds().items()}}}
 
     def run(self, ready_event: Optional[threading.Event] = None) -> int:
@@ -195,7 +199,7 @@ class PlanServer:
                 log.warning("bad message from client %s: %s", ident.hex()[:12], e)
             return
         if isinstance(msg, PlanAsk):
-            self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info()).to_wire())
+            self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info(), self.instance).to_wire())
             return
         if isinstance(msg, ManifestAsk):
             self._send(ident, self._manifest_part(msg.offset).to_wire())
@@ -220,6 +224,7 @@ class PlanServer:
             try:
                 self.scheduler.make((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.video,
                                     msg.ordinals, now, msg.outputs, msg.position)
+                self.metrics.on_make(len(msg.ordinals or ()))
             except ValueError as e:
                 self._send(ident, Refused(msg.request, str(e), "make").to_wire())
             return
