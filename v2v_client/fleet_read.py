@@ -20,15 +20,25 @@ one plan a single server serves, each video made by the host the reader routes i
   first answer wins.
 * **The fleet changes**: the endpoint is resolved again every ``RESOLVE_S`` seconds; a new host
   serving the same plan takes work from its first answer, a host gone hands its videos to the
-  next hosts of their rankings, a host serving another plan is named once and left out, and
-  a host that says the instance of one read already (one host under two names) is read once
-  (``alias_of``).
+  next hosts of their rankings, a host of the fleet serving another plan is named once and left
+  out, and a host that says the instance of one read already (one host under two names) is read
+  once (``alias_of``).
+* **A bad peer is left out**: a peer that sends what no v2v-serve of this protocol sends (not
+  msgpack, another version, past the wire's bounds: ``fetch.BrokenPeer``), serves another plan
+  than the fleet's when first asked (not one of its hosts: a made-up plan), or refuses every read
+  of this reader (its outputs or compression) is named once in this process and left out
+  (``Fleet.leave_out``: never asked again, not even what it serves, until the fleet's plan
+  changes), its videos asked of their next hosts; a frame over the largest legitimate reply
+  (``fetch.reply_limit``) cuts its connection before it is received. A host that refuses one
+  make stays (``fleet_pass.refused``). With no host left: one error naming each peer left out
+  and why.
 * **A corpus that changed under the fleet** (docs/delivery.md): a pass reads only hosts serving
-  its plan. A host restarted with a file replaced serves another plan: it is named in one line,
-  with the files whose tags differ from the pass's manifest (:func:`manifest_diff`), and left out
-  for the pass; when no host serves the pass's plan any more, the pass fails in one line naming
-  them and saying to start that epoch over (``PlanMismatch``), so no epoch holds samples of two
-  versions of a file. The next pass reads the plan the hosts serve then (``servers.Servers.ask``).
+  its plan. A host of the fleet restarted with a file replaced serves another plan: it is named
+  in one line, with the files whose tags differ from the pass's manifest (:func:`manifest_diff`),
+  and left out for the pass; when no host serves the pass's plan any more, the pass fails in one
+  line naming them and saying to start that epoch over (``PlanMismatch``), so no epoch holds
+  samples of two versions of a file. The next pass reads the plan the hosts serve then
+  (``servers.Servers.ask``), every peer asked again.
 
 A host keeps no record of the reader: a ``make`` names its samples, and a restarted host makes
 them again.
@@ -37,17 +47,18 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Dict, Iterator, List, Optional, Set, Tuple
+from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 import zmq
 
 from v2v_wire.fleet import Router
 from v2v_wire.plan import Manifest, PlanIdentity, PlanMismatch
-from v2v_wire.plan_messages import ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.plan_messages import MAX_MAKE_SAMPLES, ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.protocol import MAX_HEADER_BYTES
 
 from .endpoints import auto_compression, resolve_endpoints
-from .fetch import Link, PlanServerError
+from .fetch import BrokenPeer, Link, PlanServerError, reply_limit, wait_readable
 from .fleet_pass import STEAL_S, Pass, take
 
 __all__ = ["Fleet", "load_manifest", "read_manifest", "manifest_part", "asked_fleet", "listing_diff",
@@ -127,46 +138,55 @@ def manifest_part(link: Link, offset: int, timeout_s: float) -> ManifestPart:
             raise TimeoutError(f"{link.endpoint}: no manifest within {timeout_s} s")
 
 
-def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Optional[tuple]) -> Dict[str, PlanInfo]:
+def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Optional[tuple],
+                left_out: Optional[Dict[str, str]] = None) -> Dict[str, PlanInfo]:
     """What each of ``servers`` serves, all asked at once: the first answer awaited ``first_s``
     seconds, the others ``wait_s`` more; in ``servers``' order, those that answered. One that
-    answers what cannot be read (another protocol version) is named in one log line and left out.
+    answers what cannot be read (another protocol version) or refuses is named in one log line,
+    left out, and noted in ``left_out`` (endpoint -> why); one noted there already is not asked.
 
     Raises:
         TimeoutError: none answered within ``first_s``, naming them.
-        PlanServerError: none answered, and one refused or spoke another version (its line)."""
+        PlanServerError: none answered, and one refused, broke the protocol or was left out
+            before: one line naming each and why it was left out."""
+    left_out = {} if left_out is None else left_out
     infos: Dict[str, PlanInfo] = {}
     refused: Dict[str, str] = {}
-    links = {ep: Link(ep, first_s, curve) for ep in servers}
+    links = {ep: Link(ep, first_s, curve) for ep in servers if ep not in left_out}
     poller = zmq.Poller()
     try:
         for link in links.values():
             link._send(PlanAsk().to_wire())
             poller.register(link.sock, zmq.POLLIN)
         deadline = time.monotonic() + first_s
-        while len(infos) + len(refused) < len(servers) and time.monotonic() < deadline:
-            ready = dict(poller.poll(int(max(0.0, deadline - time.monotonic()) * 1000)))
+        while links and len(infos) + len(refused) < len(links) and time.monotonic() < deadline:
+            ready = dict(wait_readable(poller.poll, deadline - time.monotonic()))
             for ep, link in links.items():
                 if link.sock not in ready or ep in infos or ep in refused:
                     continue
                 try:
                     got = link._recv(time.monotonic())
-                except PlanServerError as e:
-                    refused[ep] = str(e)
-                    log.warning("%s: left out: %s", ep, e)
-                    continue
-                if got is not None and isinstance(got[0], PlanInfo):
-                    if not infos:
-                        deadline = min(deadline, time.monotonic() + wait_s)
-                    infos[ep] = got[0]
-                elif got is not None and isinstance(got[0], Refused):
-                    refused[ep] = f"{ep}: {got[0].message}"
+                except BrokenPeer as e:
+                    refused[ep] = e.left_out_for
+                else:
+                    if got is not None and isinstance(got[0], PlanInfo):
+                        if not infos:
+                            deadline = min(deadline, time.monotonic() + wait_s)
+                        infos[ep] = got[0]
+                    elif got is not None and isinstance(got[0], Refused):
+                        refused[ep] = got[0].message
+                if ep in refused:
+                    log.warning("%s: left out of the fleet: %s", ep, refused[ep])
     finally:
         for link in links.values():
             link.__exit__(None, None, None)
+    left_out.update(refused)
     if not infos:
-        if refused:
-            raise PlanServerError("; ".join(refused.values()))
+        if len(links) < len(servers) or refused:
+            why = [f"{ep}: {left_out[ep]}" if ep in left_out else
+                   f"{ep}: no answer within {first_s} s (a reply over {MAX_HEADER_BYTES} bytes cuts its connection)"
+                   for ep in servers]
+            raise PlanServerError("; ".join(why))
         raise TimeoutError(f"{', '.join(servers)}: no answer to 'what do you serve' within {first_s} s (is a "
                            "v2v-serve running there?)")
     return {ep: infos[ep] for ep in servers if ep in infos}
@@ -246,13 +266,15 @@ class Fleet:
         known: manifest fingerprint -> the manifest, of the plans read in this process (kept by
             the caller across passes, so that a pass no host serves any more names the files
             changed since; updated).
+        left_out: peers left out -> why (kept by the caller across passes and pickled to its
+            DataLoader workers, so that each is named once; updated: :meth:`leave_out`).
     """
 
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
                  hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None,
                  made: Optional[Dict[str, str]] = None, readers: int = 1, same: Optional[Dict[str, str]] = None,
-                 known: Optional[Dict[str, Manifest]] = None):
+                 known: Optional[Dict[str, Manifest]] = None, left_out: Optional[Dict[str, str]] = None):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
         self.rates = {} if rates is None else rates
@@ -265,7 +287,9 @@ class Fleet:
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
         self.workers: Dict[str, int] = {}
-        self.refused: Set[str] = set()  # hosts serving another plan: named once, left out
+        self.left_out: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why (leave_out)
+        self.out_for_pass: Dict[str, str] = {}  # the fleet's hosts left out of this pass -> why (other_plan)
+        self.members = {ep for ep, _ in hosts}  # the fleet's hosts: one serving another plan is out for the pass
         self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S,
                              readers=readers)
         self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
@@ -287,7 +311,8 @@ class Fleet:
     def _link(self, ep: str) -> Link:
         if ep not in self.links:
             codec = self.compression if self.compression != "auto" else auto_compression(ep)
-            self.links[ep] = Link(ep, self.timeout_s, self.curve, codec)
+            # a make's reply holds at most MAX_MAKE_SAMPLES rows, of the recipe every host of the plan serves
+            self.links[ep] = Link(ep, self.timeout_s, self.curve, codec, reply_limit(self.stream, MAX_MAKE_SAMPLES))
             self.poller.register(self.links[ep].sock, zmq.POLLIN)
         return self.links[ep]
 
@@ -297,7 +322,7 @@ class Fleet:
         if problem:
             self.other_plan(ep, problem.removeprefix("another plan: "))
             return
-        if ep in self.router.hosts or ep in self.same:
+        if ep in self.router.hosts or ep in self.same or ep in self.left_out:
             return
         kept = alias_of(ep, info, self.names)
         if kept is not None:
@@ -310,6 +335,23 @@ class Fleet:
         self.workers[ep] = int((info.stream.get("feed") or {}).get("workers") or 1)
         self.router.join(ep, now, self.rates.get(ep))
 
+    def leave_out(self, ep: str, why: str) -> None:
+        """Leave peer ``ep`` out of the fleet for this process: named in one log line (once: a
+        peer left out before is not named again), its link closed (nothing more of it is
+        received), its videos' makes asked of their next hosts (``Pass.rescue``)."""
+        if ep not in self.left_out:
+            log.warning("%s: left out of the fleet: %s", ep, why)
+            self.left_out[ep] = why
+        self.router.leave(ep)
+        link = self.links.pop(ep, None)
+        if link is not None:
+            self.poller.unregister(link.sock)
+            link.__exit__(None, None, None)
+
+    def left_out_line(self) -> str:
+        """Each peer left out, for the process or this pass, and why, as one clause (``"a: why; b: why"``)."""
+        return "; ".join(f"{ep}: {why}" for ep, why in {**self.out_for_pass, **self.left_out}.items())
+
     def _resolve(self, now: float) -> None:
         """Resolve the endpoint again: ask new hosts what they serve; hand a gone host's videos on."""
         if now - self.resolved < RESOLVE_S:
@@ -320,7 +362,7 @@ class Fleet:
         except (OSError, ValueError) as e:  # a name that stops resolving for a while: keep the fleet
             log.warning("%s: %s (the fleet stays as it was)", self.endpoint, e)
             return
-        for ep in sorted(current - set(self.router.hosts) - self.refused - set(self.same)):
+        for ep in sorted(current - set(self.router.hosts) - {*self.out_for_pass, *self.same, *self.left_out}):
             self._link(ep)._send(PlanAsk().to_wire())  # its answer, a PlanInfo, joins it (Pass.receive)
         for ep in sorted(set(self.router.hosts) - current):
             self.router.leave(ep)
@@ -331,10 +373,14 @@ class Fleet:
         (:func:`manifest_diff` against ``theirs``, its manifest, else read of it for at most
         :data:`ASK_NEXT_S` seconds), or ``why`` (one clause) where no file differs or the
         manifests are not known; before the pass's manifest is read, once it is (:meth:`_manifest`)
-        unless not ``defer``."""
-        if ep in self.refused:
+        unless not ``defer``. A peer not of the fleet's hosts (one that never served its plan:
+        a made-up plan) is left out for the process instead (:meth:`leave_out`)."""
+        if ep in self.out_for_pass or ep in self.left_out:
             return
-        self.refused.add(ep)
+        if ep not in self.members:
+            self.leave_out(ep, f"it serves another plan: {why}")
+            return
+        self.out_for_pass[ep] = f"it serves another plan: {why}"
         if ep in self.router.hosts:
             self.router.leave(ep)  # its videos' makes go to their next hosts (Pass.rescue)
         if self.manifest is None and defer:
@@ -347,6 +393,9 @@ class Fleet:
                     with Link(ep, ASK_NEXT_S, self.curve) as link:
                         theirs = read_manifest(link, ASK_NEXT_S)
                 files = manifest_diff(self.manifest, "in this pass's plan", theirs, "now")
+            except BrokenPeer as e:  # not a v2v-serve: named for that, out for the process
+                self.leave_out(ep, e.left_out_for)
+                return
             except (TimeoutError, PlanServerError) as e:
                 files = f"{why}; its listing could not be read ({e})"
         self.changed[ep] = files or why
@@ -356,7 +405,7 @@ class Fleet:
         """Name the hosts :meth:`other_plan` left out before the pass's manifest was known."""
         unnamed, self.unnamed = self.unnamed, {}
         for ep, (why, theirs) in unnamed.items():
-            self.refused.discard(ep)
+            self.out_for_pass.pop(ep, None)
             self.other_plan(ep, why, theirs, defer=False)
 
     def no_host_left(self, epoch: int) -> PlanMismatch:
@@ -383,7 +432,11 @@ class Fleet:
                     self._name_unnamed()
                     raise self.no_host_left(epoch)
                 ep, first = self._first_part()
-                got = read_manifest(self.links[ep], self.timeout_s, first)
+                try:
+                    got = read_manifest(self.links[ep], self.timeout_s, first)
+                except BrokenPeer as e:  # the next host that answers is read
+                    self.leave_out(ep, e.left_out_for)
+                    continue
                 if got.fingerprint() == self.plan.manifest:
                     self.manifest = got
                 else:
@@ -399,20 +452,22 @@ class Fleet:
         """``(host, its manifest's first part)``: the hosts asked in turn, each for
         :data:`ASK_NEXT_S` seconds, round after round until ``timeout_s``. A host asked that
         did not answer, or refused, is named in one log line and leaves the fleet (one silent
-        joins again when it answers the ``plan_ask`` of ``_resolve``), so the pass routes
-        nothing to it.
+        joins again when it answers the ``plan_ask`` of ``_resolve``; one refusing, for the
+        pass), so the pass routes nothing to it; one that breaks the protocol is left out
+        (:meth:`leave_out`).
 
         Raises:
             TimeoutError: no host answered within ``timeout_s``, naming them.
-            PlanServerError: no host serves the plan, or every host refused (their lines)."""
+            PlanServerError: no host serves the plan, or every host refused or was left out
+                (naming each and why)."""
         hosts = list(self.router.hosts)
         if not hosts:
             raise PlanServerError(f"{self.endpoint}: no host serves the plan")
         deadline = time.monotonic() + self.timeout_s
         silent: List[str] = []
         refused: Dict[str, str] = {}
-        while len(refused) < len(hosts):
-            for ep in [h for h in hosts if h not in refused]:
+        while any(h not in refused and h not in self.left_out for h in hosts):
+            for ep in [h for h in hosts if h not in refused and h not in self.left_out]:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise TimeoutError(f"{', '.join(silent) or self.endpoint}: no manifest within {self.timeout_s} s (each host "
@@ -421,6 +476,9 @@ class Fleet:
                     first = manifest_part(self.links[ep], 0, min(ASK_NEXT_S, left))
                 except TimeoutError:
                     silent += [] if ep in silent else [ep]
+                    continue
+                except BrokenPeer as e:
+                    self.leave_out(ep, e.left_out_for)
                     continue
                 except PlanServerError as e:
                     refused[ep] = str(e)
@@ -431,10 +489,11 @@ class Fleet:
                     self.router.leave(h)
                 for h, why in refused.items():
                     log.warning("left out of the fleet: %s", why)
-                    self.refused.add(h)
+                    self.out_for_pass[h] = why.removeprefix(f"{h}: ")
                     self.router.leave(h)
                 return ep, first
-        raise PlanServerError("; ".join(refused.values()))
+        raise PlanServerError("; ".join([*refused.values(), *(f"{h}: {self.left_out[h]}" for h in hosts
+                                                             if h in self.left_out)]))
 
     # ------------------------------------------------------------------ reading
     def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:

@@ -9,11 +9,12 @@ from typing import Dict, List, Optional, Tuple
 
 from v2v_wire.codecs import available, check_compression
 from v2v_wire.plan import Manifest, PlanIdentity
-from v2v_wire.plan_messages import PlanInfo
+from v2v_wire.plan_messages import MAX_FETCH_ROWS, PlanInfo
 from v2v_wire.plan_shards import shards_identity, shards_samples
+from v2v_wire.protocol import MAX_BATCH_BYTES
 
 from .endpoints import auto_compression, check_servers, resolve_endpoints, split_endpoints
-from .fetch import Link, PlanServerError, Shards
+from .fetch import Link, PlanServerError, Shards, reply_limit
 from .fleet_read import ASK_NEXT_S, Fleet, alias_of, asked_fleet, listing_diff, manifest_diff, read_manifest
 
 __all__ = ["Servers", "FLEET_ASK_S"]
@@ -46,6 +47,8 @@ class Servers:
         self.made: Dict[str, str] = {}  # a fleet's videos -> the host whose rows of it this process read last
         self.same: Dict[str, str] = {}  # an endpoint -> the one its host is read under (fleet_read.alias_of)
         self.manifests: Dict[str, Manifest] = {}  # a fleet's manifests read in this process, by fingerprint
+        self.left_out: Dict[str, str] = {}  # a fleet's peers left out -> why: named once (fleet_read.Fleet)
+        self.max_msg = MAX_BATCH_BYTES  # the largest frame a shard's reply carries (fetch.reply_limit)
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -72,7 +75,7 @@ class Servers:
             with Link(servers[0], timeout_s, curve) as link:
                 infos = [link.ask()]
         else:  # asked at once: a silent or stopped first host costs no wait of its own
-            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve)
+            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve, self.left_out)
             if not isinstance(next(iter(answered.values())).stream.get("shard"), str):
                 return self._ask_fleet(servers, answered, timeout_s, curve, prefer)
             infos = []
@@ -82,6 +85,7 @@ class Servers:
                         answered[server] = link.ask()
                 infos.append(answered[server])
         info, self.shards, self.samples = _as_one_plan(servers, infos)
+        self.max_msg = reply_limit(info.stream, MAX_FETCH_ROWS)  # a fetch's reply holds at most MAX_FETCH_ROWS rows
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
         return info
 
@@ -90,17 +94,22 @@ class Servers:
         unfolds) of its hosts at once (``fleet_read.asked_fleet``: the first answer awaited
         ``timeout_s``, the others ``ASK_NEXT_S`` more). The hosts that serve the plan are read
         first for the pass's manifest; each host keeps what it said now, so one serving another
-        plan is left out of the pass and named (``fleet_read.Fleet.other_plan``). When no host
-        that answered serves the plan, the fleet of what they serve (:meth:`_replanned`).
+        plan is left out of the pass and named (``fleet_read.Fleet.other_plan``); a peer left out
+        (``left_out``) is not asked. When no host that answered serves the plan, the fleet of what
+        they serve (:meth:`_replanned`).
 
         Raises:
             TimeoutError: no host answered within ``timeout_s``.
-            PlanServerError, ValueError: as :meth:`ask` asked first."""
-        answered = asked_fleet([ep for ep, _ in self.fleet], timeout_s, min(timeout_s, ASK_NEXT_S), curve)
+            PlanServerError: every host left out (one line naming each and why), or as :meth:`ask`
+                asked first.
+            ValueError: as :meth:`ask` asked first."""
+        answered = asked_fleet([ep for ep, _ in self.fleet], timeout_s, min(timeout_s, ASK_NEXT_S), curve,
+                               self.left_out)
         serving = [ep for ep, i in answered.items() if i.plan == self.plan]
         if not serving:
             return self._replanned(self.plan, timeout_s, curve, prefer)
-        self.fleet = sorted(((ep, answered.get(ep, i)) for ep, i in self.fleet), key=lambda h: h[0] not in serving)
+        self.fleet = sorted(((ep, answered.get(ep, i)) for ep, i in self.fleet if ep not in self.left_out),
+                            key=lambda h: h[0] not in serving)
         return answered[serving[0]]
 
     def _replanned(self, old: PlanIdentity, timeout_s: float, curve: Optional[tuple],
@@ -108,8 +117,10 @@ class Servers:
         """The fleet asked again as at first, no host serving plan ``old`` any more: its plan is
         the one the hosts serve now (a loaded position's plan, ``prefer``, is checked against it
         by the caller), said in one log line naming the files whose tags changed since ``old``'s
-        manifest where this process read it."""
+        manifest where this process read it. Every peer is asked again, one left out before
+        included: what it was left out for was judged against ``old``."""
         self.fleet = self.shards = None
+        self.left_out.clear()  # in place: the fleets of this process share it
         info = self.ask(timeout_s, curve, prefer)
         files = ""
         before = self.manifests.get(old.manifest)
@@ -137,7 +148,7 @@ class Servers:
                 self.same[ep] = kept
         infos = {ep: i for ep, i in infos.items() if ep not in self.same}
         for ep in servers:
-            if ep not in infos and ep not in self.same:
+            if ep not in infos and ep not in self.same and ep not in self.left_out:  # one left out was named then
                 log.warning("%s: left out of the fleet for now: no answer to 'what do you serve' within %s s", ep,
                             min(timeout_s, FLEET_ASK_S))
         whole, first = next(iter(infos)), next(iter(infos.values()))
@@ -148,7 +159,7 @@ class Servers:
         plans = [i.plan for i in infos.values()]
         plan = prefer if prefer is not None and prefer in plans else first.plan
         hosts = [(ep, i) for ep, i in infos.items() if i.plan == plan]
-        _name_left_out(infos, plan, timeout_s, curve)
+        _name_left_out(infos, plan, timeout_s, curve, self.left_out)
         self.fleet, self.shards, self.plan = hosts, [(ep, i.plan) for ep, i in hosts], plan
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in hosts}
         info = hosts[0][1]
@@ -162,8 +173,8 @@ class Servers:
         if self.fleet is not None:
             return Fleet(self.endpoint, self.fleet, self.plan, timeout_s, curve, self.compression,
                          self.windows, rates=self.rates, made=self.made, readers=readers, same=self.same,
-                         known=self.manifests)
-        return Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
+                         known=self.manifests, left_out=self.left_out)
+        return Shards(self.shards, timeout_s, curve, self.codecs, self.samples, self.max_msg)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
         """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
@@ -177,7 +188,8 @@ class Servers:
                 together: one silent server cannot make the question wait once per server)."""
         deadline = time.monotonic() + timeout_s
         figures = []
-        for server in [ep for ep, _ in self.shards or ()] or resolve_endpoints(self.endpoint):
+        asked = [ep for ep, _ in self.shards or () if ep not in self.left_out]  # a peer left out answers nothing
+        for server in asked or resolve_endpoints(self.endpoint):
             with Link(server, max(0.0, round(deadline - time.monotonic(), 2)), curve) as link:
                 figures.append(link.ask().stream.get("feed"))
         if not figures or not all(isinstance(f, dict) for f in figures):
@@ -221,9 +233,11 @@ def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
     return compression if compression != "auto" else auto_compression(endpoint, stream.get("codecs", ()))
 
 
-def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: float, curve: Optional[tuple]) -> None:
+def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: float, curve: Optional[tuple],
+                   left_out: Dict[str, str]) -> None:
     """Name in one log line each host of ``infos`` serving another plan than ``plan``: what
-    differs, and for another listing of the same recipe and seed the first files that differ."""
+    differs, and for another listing of the same recipe and seed the first files that differ;
+    noted in ``left_out`` (endpoint -> why), so that no pass names it again."""
     for ep, i in infos.items():
         problem = plan.problem(i.plan)
         if not problem:
@@ -235,3 +249,4 @@ def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: fl
             except (TimeoutError, PlanServerError) as e:
                 problem += f"; its listing could not be read ({e})"
         log.warning("%s: left out of the fleet: it serves %s", ep, problem)
+        left_out[ep] = f"it serves {problem}"
