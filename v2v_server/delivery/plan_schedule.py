@@ -141,8 +141,8 @@ class Run:
 
 @dataclass
 class Head:
-    """Where one reader reads an epoch: the stop of its last fetch, when it asked it (s), and the
-    mean seconds between its fetches (0 until its second)."""
+    """Where one reader reads an epoch: the furthest stop it asked, when it last asked or was
+    answered (s), and the mean seconds between its fetches (0 until its second)."""
 
     stop: int
     at: float
@@ -165,7 +165,8 @@ class Heads:
             h = Head(stop, now)
         else:
             gap = max(0.0, now - h.at)
-            h.stop, h.at, h.interval = stop, now, gap if not h.interval else 0.75 * h.interval + 0.25 * gap
+            # the furthest stop: a reader's fetches in flight, and one asked again, end anywhere behind it
+            h.stop, h.at, h.interval = max(h.stop, stop), now, gap if not h.interval else 0.75 * h.interval + 0.25 * gap
         self.heads[(client, epoch)] = h
         while len(self.heads) > HEADS_KEPT:
             self.heads.popitem(last=False)
@@ -653,10 +654,12 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
     """(epoch, video) scheduler ``s`` decodes next at ``now``: those the pending fetches need a sample of (neither
     stored nor failed), by the first position needing it, or, where a fetch's positions are
     not decided yet, whose slots decide them (:func:`unfolding`); and those the positions
-    after each epoch's furthest fetch need (pending, or answered: the furthest stop asked of
-    a kept plan a fetch named within :data:`IDLE_S` of ``now``, not followed by a fetch of
-    the next epoch), not being decoded, while the samples made ahead (stored and not fetched,
-    or still to come from running tasks) stay within ``lookahead`` (module docstring). Past
+    after each moving head of an epoch need (:class:`Heads`: pending, or answered lately; the
+    furthest stop asked of a kept plan a fetch named within :data:`IDLE_S` of ``now`` where no
+    head moves; not followed by a fetch of the next epoch), the nearest first, not being
+    decoded, while the samples made ahead (stored and not fetched, within ``lookahead`` and a
+    shuffle buffer past a moving head, or still to come from running tasks) stay within
+    ``lookahead`` (module docstring): a job cut off leaves no stock that stops the next. Past
     an epoch's end the next epoch's first positions are made ahead only while no fetch has
     named that epoch: once one has, its own furthest fetch leads (what was fetched of it may
     have left the store)."""
@@ -666,10 +669,12 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
         made[(e, k.video)] = made.get((e, k.video), 0) + 1
     waited: Dict[Tuple[int, str], Tuple[int, int]] = {}
     live = {e: stop for e, stop in s.fetched_to.items() if e in s.plans and now - s.fetched_at[e] < IDLE_S}
-    furthest = {e: stop for e, stop in live.items() if e + 1 not in live}  # a reader's newest epoch
+    waiting = {f.client for f in s.pending}
+    # where readers read: each moving head of a reader's newest epoch (the furthest fetch where none moves)
+    heads = {e: s.heads.moving(e, now, waiting) or [stop] for e, stop in live.items() if e + 1 not in live}
     for f in s.pending:
         plan = s.plan(f.epoch)
-        furthest[f.epoch] = max(furthest.get(f.epoch, 0), f.stop)
+        heads.setdefault(f.epoch, []).append(f.stop)
         for p in range(f.start, min(f.stop, plan.known)):
             key = plan.key(p)
             if (f.epoch, key) not in store and (f.epoch, key) not in failed:
@@ -678,16 +683,22 @@ def needed(s: "PlanScheduler", now: float) -> Tuple[List[Tuple[int, str]], List[
         if not plan.complete and f.stop > plan.known:
             for i, ek in enumerate(unfolding(plan, f.stop, slots, made)):
                 waited[ek] = min(waited.get(ek, (f.epoch, plan.known + i)), (f.epoch, plan.known + i))
-    budget = s.lookahead - sum(1 for sk in store if sk not in s.fetched)
+    reach = s.lookahead + s.shuffle_buffer
+
+    def ahead_of_a_head(sk) -> bool:  # made ahead for a moving head, not far past every one (a job cut off)
+        plan = s.plans.get(sk[0])
+        p = None if plan is None else plan.position(sk[1])
+        return p is None or sk[0] not in heads or any(0 <= p - h < reach for h in heads[sk[0]])
+
+    budget = s.lookahead - sum(1 for sk in store if sk not in s.fetched and ahead_of_a_head(sk))
     budget -= sum(max(0, slots.expected(v) - made.get((e, v), 0)) for (e, v) in set(runs) | set(waited))
     ahead: List[Tuple[int, str]] = []
-    keep = set(furthest) | {e for e, _ in runs}
-    for epoch, stop in sorted(furthest.items()):
+    keep = set(heads) | {e for e, _ in runs}
+    for epoch, stop in sorted((e, h) for e, hs in heads.items() for h in set(hs)):
         if budget <= 0:  # before positions_after, which may build the next epoch's plan
             break
-        for e, video, key in positions_after(s.plan, s.plans, epoch, stop,
-                                             s.lookahead + s.shuffle_buffer, keep):
-            if budget <= 0 or (e != epoch and (e in furthest or e in live)):
+        for e, video, key in positions_after(s.plan, s.plans, epoch, stop, reach, keep):
+            if budget <= 0 or (e != epoch and (e in heads or e in live)):
                 break
             ek, n = (e, video), slots.samples.get(video)
             if ek in waited or ek in runs or ek in ahead or (e, key) in store or (e, key) in failed:
