@@ -385,3 +385,23 @@ def test_a_fleet_pass_asks_ahead_for_the_hosts_serving_now_not_those_it_began_wi
     read.router.join("g", 1.0)
     read.fleet.workers.update(h=1, g=3)
     assert read.ahead == 4 * one
+
+
+def test_a_fleet_pass_asks_a_video_of_its_arbiter_and_follows_where_the_arbiter_placed_it():
+    """The pass's rules pick another host than the video's arbiter (the arbiter's queue is long):
+    the make goes to the arbiter naming that host (``route``), and a ``moved`` answer sends it
+    there, to be made (``route`` None); a later make of the video goes there too."""
+    from v2v_wire.plan_messages import Moved
+
+    v = VIDEOS[0]
+    arbiter, other = rank_hosts(v, HOSTS[:2])
+    read, sent = _fleet_pass({v: 4}, HOSTS[:2], stop=1)
+    read.router.heard(arbiter, 0.0, rate=10.0, queued=1000)
+    read.router.heard(other, 0.0, rate=10.0, queued=0)
+    read.ask_window(0.0)
+    (h, make), = sent
+    assert (h, make.route) == (arbiter, other)
+    read.receive(arbiter, Moved(make.request, other), [], 0.1)
+    assert [(h, m.route, m.ordinals) for h, m in sent[1:]] == [(other, None, make.ordinals)]
+    read.ask(v, (3,), 0.2)
+    assert [(h, m.route) for h, m in sent[2:]] == [(other, None)]
