@@ -3,11 +3,14 @@ any fleet"), against the same hosts split as static shards.
 
 Run: ``python -m bench.fleet [--json docs/fleet.json]``. Each host is a ``v2v-serve`` of one
 worker pinned to its own core (``taskset -c``); host B is made slow by a SIGSTOP/SIGCONT duty
-cycle on its workers (stopped ``1 - duty`` of each 0.3 s period). Rates are read past the made-ahead
-stock: the first ``warmup`` batches are read unmeasured. Rows:
+cycle on its workers (stopped ``1 - duty`` of each 0.3 s period). Rates are read over whole
+epochs of at least :data:`MEASURED` samples past a warm-up (the first ``warmup`` batches): a short
+window past the warm-up reads the stock the hosts made ahead, not their rate. Rows:
 
 * ``rates``: A alone, B (slowed) alone, A and B read as one plan, A and B as static shards
-  (``--shard 0/2``, ``--shard 1/2``): the pair's samples/s over the sum of A's and B's.
+  (``--shard 0/2``, ``--shard 1/2``): the pair's samples/s over the sum of A's and B's, each over
+  epoch 0 past the warm-up, the 10-90 % window beside, with the samples made of the epoch over
+  those read and of the next epoch (:func:`rate`).
 * ``stop``: B SIGSTOPped for ``--stop-s`` seconds (server and workers) after the second batch:
   the longest gap between batches, each id once, and each sample's bytes equal to one server's read.
 * ``kill``: B SIGKILLed after the second batch: the same.
@@ -29,6 +32,12 @@ stock: the first ``warmup`` batches are read unmeasured. Rows:
   batch, ``EPOCHS`` whole epochs each, a fresh host for each batch size: each epoch's samples
   made (the host's feed, ``samples_made_by_epoch``, once its workers are idle) over those read,
   and its samples/s over epoch 0's.
+* ``readers``: A, and B slowed, each read alone by a one-rank job, then A and B read as one fleet by
+  real DDP jobs (``torchrun``, gloo, ``harness.plan_job``: a DDP step a batch of 4) of each of
+  ``READERS``' ranks and DataLoader workers, fresh hosts each: samples/s over the whole epoch
+  (from the job's first step to its last: the stock made ahead at the start is read within it),
+  over the sum of A's and B's alone; the 10-90 % window beside; the samples the hosts made of the
+  epoch over those read, and of the next epoch (made ahead, not read).
 * ``restart``: a job reads half of epoch 1 of one host and is cut off (its reader closed, its
   asks left behind); a new job then reads epoch 1 whole: its samples/s over a fresh host's, and
   the samples of epoch 1 made while it read over those it read (what the cut-off job read is
@@ -36,7 +45,8 @@ stock: the first ``warmup`` batches are read unmeasured. Rows:
 
 The ``cache``, ``moved`` and ``ranks`` rows read with batches of one row, so that each batch's ``servers``
 names the host of its one sample. The ``cache`` row's entries take about 25 MB a video in the
-temporary folder, twice over (the lone host's and the fleet's): 11 GB at the default size.
+temporary folder, twice over (the lone host's and the fleet's): 11 GB for its corpus of
+:data:`CACHE_COPIES` links to each clip (the other rows read ``--copies``).
 
 Needs ``taskset`` (util-linux) and 2 cores.
 """
@@ -56,6 +66,7 @@ import json
 import os
 import shutil
 import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -63,6 +74,8 @@ import time
 import urllib.request
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Set, Tuple
+
+import numpy as np
 
 from harness.faults import worker_pids
 from harness.serve import ServeProcess, free_port
@@ -73,13 +86,20 @@ from v2v_wire.fleet import rank_hosts
 from v2v_wire.ids import parse_sample_id
 
 OUTPUTS = ("voxels", "frames")
-ROWS = ("rates", "stop", "kill", "join", "cache", "moved", "ranks", "batches", "restart")
+ROWS = ("rates", "stop", "kill", "join", "cache", "moved", "ranks", "batches", "restart", "readers")
+#: The ``readers`` row's jobs: (ranks, DataLoader workers a rank; 0: its main process reads).
+READERS = ((1, 0), (2, 0), (4, 0), (2, 2))
 #: Rows per batch the ``batches`` row reads one host at, and its epochs each.
 BATCHES = (1, 4, 8, 12, 16, 32)
 EPOCHS = 4
 #: GiB of frame cache of each ``cache`` row host: the bundled clips' kept frames (about 25 MB a
 #: video, 240 videos at the default size) fit whole, so a miss in epoch 2 is never the budget's.
 CACHE_GB = 16
+#: Links to each bundled clip in the ``cache`` and ``moved`` rows' corpus (240 videos): its frame
+#: caches take about 25 MB a video, twice over.
+CACHE_COPIES = 60
+#: Samples a rate reads past its warm-up at least: a whole epoch, not the stock made ahead.
+MEASURED = 1600
 #: The bundled clips the corpus links to.
 CLIPS = Path(__file__).resolve().parent.parent / "v2v_server" / "sample_videos"
 
@@ -139,17 +159,27 @@ class Slow:
             time.sleep(self.period_s * self.duty)
 
 
-def rate(endpoint: str, batches: int, warmup: int) -> float:
-    """Samples/s over ``batches`` batches after ``warmup`` unmeasured ones (epochs in turn)."""
-    stream = iter(open_stream(endpoint, outputs=OUTPUTS, timeout_s=300))
-    samples, t0 = 0, None
-    for i in range(warmup + batches):
-        b = next(stream)
-        if i == warmup:
-            t0 = time.perf_counter()
-        elif i > warmup:
-            samples += int((~b["padding"]).sum())
-    return samples / (time.perf_counter() - t0)
+def rate(servers: Sequence[ServeProcess], endpoint: str, warmup: int) -> dict:
+    """Epoch 0 of ``endpoint`` (``servers``, each with its ``/metrics``) read whole in batches of 4:
+    samples/s from the end of the first ``warmup`` batches to the epoch's end (the stock made
+    ahead at the start is read within it), over the 10-90 % window beside, and the samples the
+    servers made of the epoch over those read and of the next epoch (made ahead, not read).
+
+    Raises:
+        ValueError: fewer than :data:`MEASURED` samples past the warm-up (a corpus too small)."""
+    ds = V2VStreamDataset(endpoint, batch_size=4, outputs=OUTPUTS, timeout_s=300)
+    times, read = [], []
+    for b in ds:
+        times.append(time.perf_counter())
+        read.append((read[-1] if read else 0) + int((~b["padding"]).sum()))
+    if read[-1] - read[warmup] < MEASURED:
+        raise ValueError(f"{endpoint}: {read[-1] - read[warmup]} samples past the warm-up, fewer than {MEASURED}: "
+                         "a larger --copies")
+    lo, hi = (int(np.searchsorted(read, f * read[-1])) for f in (0.1, 0.9))
+    made_now, ahead = epoch_made(servers, 0), epoch_made(servers, 1)
+    return {"samples_per_s": (read[-1] - read[warmup]) / (times[-1] - times[warmup]),
+            "samples_per_s_10_90": (read[hi] - read[lo]) / (times[hi] - times[lo]),
+            "samples_read": read[-1], "made_over_read": made_now / read[-1], "made_ahead": ahead}
 
 
 def digest(batch, j: int) -> str:
@@ -184,18 +214,22 @@ def check(got: dict, want: dict) -> dict:
             "bytes_equal": got["digests"] == want["digests"], "longest_gap_s": round(max(got["gaps"][1:] or [0]), 2)}
 
 
-def rates(corpus: Path, a, ra: float) -> dict:
-    """B slowed alone, A and B as a fleet, A and B as static shards (A alone: ``ra``)."""
-    with host(corpus, 1) as B, Slow(B, a.duty):
-        rb = rate(B.endpoint, a.batches, a.warmup)
-    with host(corpus, 0) as A, host(corpus, 1) as B, Slow(B, a.duty):
-        pair = rate(f"{A.endpoint},{B.endpoint}", a.batches, a.warmup)
-    with host(corpus, 0, ["--shard", "0/2"]) as A, host(corpus, 1, ["--shard", "1/2"]) as B, Slow(B, a.duty):
-        static = rate(f"{A.endpoint},{B.endpoint}", a.batches, a.warmup)
+def rates(corpus: Path, a, ra: dict) -> dict:
+    """B slowed alone, A and B as a fleet, A and B as static shards (A alone: ``ra``, :func:`rate`)."""
+    with host(corpus, 1, metrics()) as B, Slow(B, a.duty):
+        rb = rate([B], B.endpoint, a.warmup)
+    with host(corpus, 0, metrics()) as A, host(corpus, 1, metrics()) as B, Slow(B, a.duty):
+        pair = rate([A, B], f"{A.endpoint},{B.endpoint}", a.warmup)
+    with host(corpus, 0, ["--shard", "0/2", *metrics()]) as A, host(corpus, 1, ["--shard", "1/2", *metrics()]) as B, \
+            Slow(B, a.duty):
+        static = rate([A, B], f"{A.endpoint},{B.endpoint}", a.warmup)
+    total = ra["samples_per_s"] + rb["samples_per_s"]
     out = {"a_alone": ra, "b_alone_slowed": rb, "fleet": pair, "static_shards": static,
-           "fleet_share": pair / (ra + rb), "static_share": static / (ra + rb)}
-    print(f"rates (samples/s): A {ra:.2f}, B slowed {rb:.2f}, fleet {pair:.2f} ({pair / (ra + rb):.2f} of the "
-          f"sum), static shards {static:.2f} ({static / (ra + rb):.2f})", flush=True)
+           "fleet_share": pair["samples_per_s"] / total, "static_share": static["samples_per_s"] / total}
+    print(f"rates (samples/s over the whole epoch past {a.warmup} batches): A {ra['samples_per_s']:.2f}, B slowed "
+          f"{rb['samples_per_s']:.2f}, fleet {pair['samples_per_s']:.2f} ({out['fleet_share']:.2f} of the sum, "
+          f"{pair['made_over_read']:.3f} made a sample read), static shards {static['samples_per_s']:.2f} "
+          f"({out['static_share']:.2f})", flush=True)
     return out
 
 
@@ -262,7 +296,7 @@ def join_row(corpus: Path, want: dict) -> dict:
 def cache_host(corpus: Path, core: int, cache_dir: Path) -> ServeProcess:
     """A host with a frame cache under ``cache_dir`` and its /metrics on a free port (:func:`looked`)."""
     return host(corpus, core, ["--frame-cache-gb", str(CACHE_GB), "--cache-dir", str(cache_dir),
-                               "--metrics-port", str(free_port())])
+                               *metrics()])
 
 
 def scrape(server: ServeProcess) -> Dict[str, int]:
@@ -405,8 +439,7 @@ def made(server: ServeProcess) -> Tuple[int, int]:
 def ranks_row(corpus: Path, ranks: int) -> dict:
     """A job of ``ranks`` ranks, a thread each, reads epoch 1 of A and B as one fleet: the samples
     the hosts made (once no worker is busy and the count holds for a second) over those read."""
-    extra = lambda: ["--metrics-port", str(free_port())]  # noqa: E731
-    with host(corpus, 0, extra()) as A, host(corpus, 1, extra()) as B:
+    with host(corpus, 0, metrics()) as A, host(corpus, 1, metrics()) as B:
         pair = ",".join([A.endpoint, B.endpoint])
         hosts: List[Dict[str, Set[str]]] = [{} for _ in range(ranks)]
         read = [0] * ranks
@@ -445,9 +478,14 @@ def ranks_row(corpus: Path, ranks: int) -> dict:
 WHOLE_VIDEOS = ["--max-samples-per-video", "10", "--batch-size", "12"]
 
 
+def metrics() -> List[str]:
+    """A host's ``/metrics`` on a free port (:func:`scrape`)."""
+    return ["--metrics-port", str(free_port())]
+
+
 def metered(corpus: Path) -> ServeProcess:
-    """Host A with :data:`WHOLE_VIDEOS` and its ``/metrics`` on a free port (:func:`made`)."""
-    return host(corpus, 0, [*WHOLE_VIDEOS, "--metrics-port", str(free_port())])
+    """Host A with :data:`WHOLE_VIDEOS` and its ``/metrics`` (:func:`made`)."""
+    return host(corpus, 0, [*WHOLE_VIDEOS, *metrics()])
 
 
 def read_count(ds: V2VStreamDataset, stop: Optional[int] = None) -> Tuple[int, float]:
@@ -512,11 +550,57 @@ def restart_row(corpus: Path, batch: int = 4) -> dict:
     return out
 
 
+def job_epoch(endpoint: str, ranks: int, workers: int, out: Path) -> dict:
+    """Epoch 0 of ``endpoint`` read by a DDP job of ``ranks`` ranks of ``workers`` DataLoader workers
+    (``harness.plan_job``, batches of 4): samples read, samples/s over the whole epoch (the rows
+    after the job's first step over the seconds from it to the last) and over its 10-90 % window."""
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(ranks),
+                        "-m", "harness.plan_job", endpoint, str(out), "--epochs", "1", "--batch-size", "4",
+                        "--workers", str(workers)], capture_output=True, text=True, timeout=3600)
+    if r.returncode != 0:
+        raise RuntimeError(f"harness.plan_job on {endpoint}: exit {r.returncode}: {r.stderr[-2000:]}")
+    steps = sorted((t, n) for p in out.glob("rank*.json") for _, t, n in json.loads(p.read_text())["times"])
+    t = np.array([x for x, _ in steps])
+    read = np.cumsum([n for _, n in steps])
+    lo, hi = np.searchsorted(read, 0.1 * read[-1]), np.searchsorted(read, 0.9 * read[-1])
+    return {"samples_read": int(read[-1]), "samples_per_s": float((read[-1] - read[0]) / (t[-1] - t[0])),
+            "samples_per_s_10_90": float((read[hi] - read[lo]) / max(1e-9, t[hi] - t[lo]))}
+
+
+def epoch_made(servers: Sequence[ServeProcess], epoch: int) -> int:
+    """Samples of ``epoch`` the ``servers`` made, once their workers are idle (:func:`made_of`)."""
+    return sum(made_of(s, epoch) for s in servers)
+
+
+def readers_row(corpus: Path, d: Path, duty: float, readers: Sequence[Tuple[int, int]] = READERS) -> dict:
+    """A and B (slowed) alone, then as one fleet read by each of ``readers``' jobs."""
+    with host(corpus, 0) as A:
+        ra = job_epoch(A.endpoint, 1, 0, d / "alone")["samples_per_s"]
+    with host(corpus, 1) as B, Slow(B, duty):
+        rb = job_epoch(B.endpoint, 1, 0, d / "alone")["samples_per_s"]
+    out = {"a_alone": ra, "b_alone_slowed": rb, "jobs": []}
+    print(f"readers: A alone {ra:.1f} samples/s, B slowed {rb:.1f} samples/s", flush=True)
+    for ranks, workers in readers:
+        with host(corpus, 0, metrics()) as A, host(corpus, 1, metrics()) as B, Slow(B, duty):
+            job = job_epoch(f"{A.endpoint},{B.endpoint}", ranks, workers, d / "job")
+            made_now, ahead = epoch_made([A, B], 0), epoch_made([A, B], 1)
+        job.update(ranks=ranks, workers=workers, share=job["samples_per_s"] / (ra + rb),
+                   share_10_90=job["samples_per_s_10_90"] / (ra + rb),
+                   made_over_read=made_now / job["samples_read"], made_ahead=ahead)
+        out["jobs"].append(job)
+        print(f"readers: {ranks} rank(s) x {workers} DataLoader worker(s): {job['share']:.2f} of the hosts' sum over the "
+              f"whole epoch of {job['samples_read']} ({job['share_10_90']:.2f} over 10-90 %), "
+              f"{job['made_over_read']:.3f} made a sample read, {ahead} of the next epoch made ahead", flush=True)
+    return out
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--copies", type=int, default=60, help="links to each bundled clip in the corpus")
-    p.add_argument("--batches", type=int, default=40, help="measured batches per rate (batch size 4)")
-    p.add_argument("--warmup", type=int, default=40, help="batches read unmeasured first")
+    p.add_argument("--copies", type=int, default=150, help="links to each bundled clip in the corpus (an epoch of "
+                                                           "3 samples a video: enough to measure a whole epoch)")
+    p.add_argument("--warmup", type=int, default=40, help="batches of 4 read unmeasured first in a rate's epoch")
     p.add_argument("--duty", type=float, default=1 / 3, help="the slow host's workers run this share of the time")
     p.add_argument("--stop-s", type=float, default=30.0)
     p.add_argument("--ranks", type=int, default=4, help="ranks of the ranks row's job")
@@ -545,9 +629,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     with tempfile.TemporaryDirectory(prefix="v2v-fleet-") as d:
         corpus = make_corpus(Path(d) / "corpus", a.copies)
         if rows & {"rates", "stop", "kill", "join"}:
-            with host(corpus, 0) as A:
+            with host(corpus, 0, metrics()) as A:
                 want = read_epoch(A.endpoint)  # one server's epoch: the ids and bytes every row must give
-                ra = rate(A.endpoint, a.batches, a.warmup) if "rates" in rows else 0.0
+            if "rates" in rows:
+                with host(corpus, 0, metrics()) as A:
+                    ra = rate([A], A.endpoint, a.warmup)
         if "rates" in rows:
             res["rates"] = rates(corpus, a, ra)
         for fault in ("stop", "kill"):
@@ -555,12 +641,16 @@ def main(argv: Optional[List[str]] = None) -> int:
                 res[fault] = fault_row(corpus, a, fault, want)
         if "join" in rows:
             res["join"] = join_row(corpus, want)
-        if "cache" in rows:
-            res["cache"] = cache_row(corpus, Path(d))
-        if "moved" in rows:
-            res["moved"] = moved_row(corpus)
+        if rows & {"cache", "moved"}:  # the cache row's entries: about 25 MB a video, twice over
+            cached = make_corpus(Path(d) / "corpus60", CACHE_COPIES)
+            if "cache" in rows:
+                res["cache"] = cache_row(cached, Path(d))
+            if "moved" in rows:
+                res["moved"] = moved_row(cached)
         if "ranks" in rows:
             res["ranks"] = ranks_row(corpus, a.ranks)
+        if "readers" in rows:
+            res["readers"] = readers_row(corpus, Path(d), a.duty)
         if rows & {"batches", "restart"}:  # 580 samples an epoch: WHOLE_VIDEOS
             small = make_corpus(Path(d) / "corpus20", 20)
             if "batches" in rows:

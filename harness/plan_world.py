@@ -37,7 +37,8 @@ interleaved plan exactly: every position once across ranks and workers, at its p
 wherever its window was given, padding only for windows a file did not give and past a shard's or
 the epoch's end; every reader ended at the step the epoch ends at; each worker's pass was of the
 epoch and position the loop set; a position refused exactly when a file was replaced; bounded
-stores; a fleet's jobs, each epoch as one server's plan says: ``harness.plan_world_fleet``).
+stores; each sample a lone job is answered with made once (:meth:`World.judge_decodes`); a
+fleet's jobs, each epoch as one server's plan says: ``harness.plan_world_fleet``).
 ``python -m harness.plan_world --seeds 0:100000`` runs a range (``tests/test_plan_schedule.py``
 runs 1,000 seeds); ``--seeds 35:36`` replays one.
 """
@@ -71,6 +72,9 @@ from v2v_wire.plan_shards import shards_identity, shards_samples
 
 #: The share of seeds that run a fleet (``harness.plan_world_fleet``) instead of 1-4 shards.
 FLEET_SHARE = 1 / 3
+#: Samples a server may make of the epochs read per row it answered (:meth:`World.judge_decodes`):
+#: each once, and what a decode makes ahead of a fetch that a job's end leaves unread.
+MADE_PER_ROW = 1.05
 
 
 @dataclass
@@ -126,6 +130,8 @@ class Outcome:
     resized: int = 0  # resumes read on with another number of hosts than the position was taken with
     hedged: int = 0  # makes a reader's router hedged to another host
     copies: int = 0  # makes of a video's samples asked of a second host (hedges, copies, a host gone)
+    answered: int = 0  # rows holding a sample the servers answered fetches with, of the epochs read
+    counted: int = 0  # 1 when its decodes were counted (no server restarted, no output widened)
 
 
 def check(seed: int, ticks: int = 30000) -> Outcome:
@@ -233,6 +239,7 @@ class World:
                     self.reading.ask(job, now)
             for k, s in enumerate(self.servers):
                 for f, rows in s.scheduler.answer(now):
+                    self.out.answered += sum(1 for r in rows if r.sample is not None) if f.epoch < self.epochs else 0
                     self.reading.take(k, f, rows, now)
                 self.decode(s, now)
                 self.out.biggest_store = max(self.out.biggest_store, len(s.scheduler.store))
@@ -300,6 +307,23 @@ class World:
             max(self.slots.values(), default=0) * self.kpw * 3
         if self.out.biggest_store > bound:
             problems.append(f"a store held {self.out.biggest_store} samples, over {bound}")
+        self.judge_decodes()
+
+    def judge_decodes(self) -> None:
+        """Each sample a fetch is answered with is made once: the samples the servers made of the
+        epochs read, at most :data:`MADE_PER_ROW` per row answered (a row answered twice, to two
+        jobs or to a fetch asked again, counts twice). Only where one job reads (another job,
+        behind or ahead of it in the same epoch, finds in a bounded store what both read at once,
+        the rest made again), no server restarted (what it had made is gone) and no output was
+        widened (what was made lacks it), and where the servers make a shuffle buffer ahead, as
+        ``PlanServer`` sets them (a store of fewer holds less than the plan reaches next)."""
+        if len(self.jobs) > 1 or self.out.restarts or self.out.widened or self.settings["lookahead"] < self.buffer:
+            return
+        self.out.counted = 1
+        made = sum(n for s in self.servers for e, n in s.scheduler.epoch_made.items() if e < self.epochs)
+        if made > MADE_PER_ROW * max(1, self.out.answered):
+            self.out.problems.append(f"the servers made {made} samples of the epochs read for {self.out.answered} rows "
+                                     f"answered: over {MADE_PER_ROW} a row")
 
     def judge_epoch(self, job: Job, e: int) -> None:
         """Every position of epoch ``e`` of the shards' plans as they were while it was read, once,
@@ -328,7 +352,7 @@ class World:
 #: What ``main`` and ``tests/test_plan_schedule.py`` add up over seeds (``Outcome``'s counts).
 TOTALS = ("sharded", "restarts", "resumes", "rollbacks", "widened", "replaced", "refused", "probes", "direct_passes",
           "loader_passes", "fleets", "big_fleets", "fleet_joins", "fleet_leaves", "fleet_stalls", "fleet_restarts",
-          "fleet_resumes", "resized", "hedged", "copies")
+          "fleet_resumes", "resized", "hedged", "copies", "counted")
 
 
 def _seeds(text: str) -> Tuple[int, int]:

@@ -430,7 +430,7 @@ class FleetWorld:
         fleet = ReaderFleet(net, rd, self.dns, plan, self.hedge_s, proc.windows, job.ahead, now_s)
         for h in hosts:
             fleet.join(h.name, net.wire(net.info(h).to_wire()), now_s)
-        manifest = fleet._manifest()
+        manifest = fleet._manifest(job.epoch)
         r = {"group": 1, "origin": job.start, "world": job.world, "rank": proc.rank}
         epoch = job.epoch
         proc.fetch_of = lambda req, i: Fetch(req, epoch, *_rows(r, i, job.batch), job.outputs, plan)

@@ -1,6 +1,6 @@
 """Short runs of the fleet fault scenarios (harness/faults_fleet.py): real ``v2v-serve`` hosts on
-127.0.0.1 read as one fleet - a first-listed host dead for good, one host under two names - every
-sample id exactly once."""
+127.0.0.1 read as one fleet - a first-listed host dead for good, one host under two names, a file
+replaced under the fleet - every sample id exactly once."""
 from __future__ import annotations
 
 import pytest
@@ -33,3 +33,20 @@ def test_one_host_under_two_names_is_read_once_and_said_in_one_line(tmp_path):
     assert f["made"] == f["read"], f  # each sample made once, not once per name
     assert len(f["said"]) == 1, f
     assert f["server_exit"] == 130 and f["clean"], f
+
+
+@pytest.mark.timeout(300)
+def test_a_file_replaced_under_a_fleet_is_never_mixed_into_one_epoch_and_is_named_in_one_line(tmp_path):
+    """A deploy replaces bikes.mp4 and restarts each host in turn: every pass's samples of it are
+    of one version (old in epoch 0, new once epoch 1 is started over); a host left out is named
+    with the file; the pass no host serves any more fails in one line naming it and saying to
+    start the epoch over; the next pass reads the new plan, said in one line naming the file."""
+    f = exactly_once(faults_fleet.scenario_file_replaced_under_fleet(tmp_path, LAYOUT))
+    assert f["versions"]["epoch 0"] == ["old"] and f["versions"]["epoch 1, started over"] == ["new"], f
+    assert f["mixed"] == [], f
+    assert f["versions"].get("epoch 1, first pass", ["old"]) == ["old"], f  # read before it failed: the old file's
+    for line in (f["said"][0], f["error"], f["switched"][0]):
+        assert "\n" not in line and "bikes.mp4 (tag file 509868 1500000000" in line, f
+    assert "start epoch 1 over" in f["error"], f
+    assert len(f["switched"]) == 1, f
+    assert f["server_exit"] == (130, 130) and f["clean"], f

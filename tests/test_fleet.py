@@ -279,8 +279,8 @@ def _fleet_pass(slots, hosts, stream=None, start=0, stop=2, others=()):
     m = Manifest.of(slots)
     plan = PlanIdentity(m.fingerprint(), "recipe", 0, 1)
     fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, made={}, workers={}, ahead=None, links={},
-                            like=None, endpoint=",".join(hosts), refused=set(), last_served=None, stream=stream,
-                            join=lambda ep, info, now: None)
+                            like=None, endpoint=",".join(hosts), left_out={}, out_for_pass={}, changed={},
+                            last_served=None, stream=stream, join=lambda ep, info, now: None)
     sent = []
     for h in [*hosts, *others]:
         fleet.links[h] = SimpleNamespace(ids=itertools.count(1), compression="none",

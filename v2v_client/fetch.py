@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import itertools
 import logging
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -29,10 +31,12 @@ from v2v_wire.plan import PlanIdentity, PlanMismatch
 from v2v_wire.plan_messages import Fetch, PlanAsk, PlanInfo, Refused, Rows, WireError, plan_server_message
 from v2v_wire.plan_shards import (furthest_slot, interleaved, probes, shard_parts, shard_ranges, shards_samples,
                                   step_in_epoch)
-from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError, is_ipv6, pack, unpack
+from v2v_wire.outputs import wire_zeros_row
+from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_HEADER_BYTES, ProtocolError, is_ipv6, pack, unpack
 
 
-__all__ = ["PlanServerError", "Link", "Shards"]
+__all__ = ["PlanServerError", "BrokenPeer", "ReadStopped", "reply_limit", "Link", "Shards", "stopped_by",
+           "check_stopped", "wait_readable", "POLL_S"]
 
 log = logging.getLogger("v2v.client")
 
@@ -40,6 +44,86 @@ log = logging.getLogger("v2v.client")
 class PlanServerError(RuntimeError):
     """The server refused a fetch, or sent what this client cannot read (the message says which
     endpoint and why, in one line)."""
+
+
+class BrokenPeer(PlanServerError):
+    """A peer sent what no v2v-serve of this protocol sends: not msgpack, another protocol
+    version, a message past the wire's bounds, arrays that do not match their header. ``peer``:
+    its endpoint; ``why``: what it sent, in one line. A fleet leaves such a peer out and reads on
+    (``fleet_read.Fleet``); a request a server refuses is a ``Refused``, not this."""
+
+    def __init__(self, peer: str, why: str):
+        super().__init__(f"{peer}: {why}")
+        self.peer, self.why = peer, why
+
+    @property
+    def left_out_for(self) -> str:
+        """Why a fleet leaves the peer out, as one clause (``fleet_read.Fleet.leave_out``)."""
+        return f"it breaks the protocol: {self.why}"
+
+
+def reply_limit(stream: Optional[dict], rows: int) -> int:
+    """The largest frame a legitimate reply of at most ``rows`` rows carries under the recipe a
+    server's ``stream`` info says, bytes (a Link's ``ZMQ_MAXMSGSIZE``, so that a larger one cuts
+    the connection instead of being received): ``rows`` rows of the stream's largest output, one
+    array frame (a compressed array comes one sample a frame, each a row and its codec's few
+    bytes over, within two rows), at least a header (``MAX_HEADER_BYTES``), at most
+    ``MAX_BATCH_BYTES`` (what a server sends at most). Without the recipe's shapes (a stream
+    info that lacks them): ``MAX_BATCH_BYTES``."""
+    try:
+        row = max(wire_zeros_row(o, stream).nbytes for o in stream["outputs"])
+    except (KeyError, TypeError, ValueError):
+        return MAX_BATCH_BYTES
+    return min(MAX_BATCH_BYTES, max(MAX_HEADER_BYTES, max(rows, 2) * row))
+
+
+#: Seconds a wait on the servers' sockets lasts at once before the reading thread looks whether
+#: its read was stopped (:func:`stopped_by`): a stopped read ends within it, whatever the servers do.
+POLL_S = 0.25
+
+
+class ReadStopped(Exception):
+    """Raised in a reading thread out of its wait on the servers once its read was stopped
+    (:func:`stopped_by`): the read's sockets close as it unwinds."""
+
+
+_reading = threading.local()  # .stop: the Event that stops the reads of this thread (stopped_by)
+
+
+@contextmanager
+def stopped_by(stop: threading.Event):
+    """Within the block, this thread's waits on the servers (:class:`Link`, the fetch loops,
+    asking what a fleet serves) raise :class:`ReadStopped` within :data:`POLL_S` of ``stop``
+    being set: a thread reading ahead of its loop (``read_ahead.ReadAhead``) ends at once when
+    the loop stops, whether the servers answer or not."""
+    before = getattr(_reading, "stop", None)
+    _reading.stop = stop
+    try:
+        yield
+    finally:
+        _reading.stop = before
+
+
+def check_stopped() -> None:
+    """Raise :class:`ReadStopped` when this thread's read was stopped (:func:`stopped_by`)."""
+    stop = getattr(_reading, "stop", None)
+    if stop is not None and stop.is_set():
+        raise ReadStopped("the read was stopped")
+
+
+def wait_readable(poll, timeout_s: float) -> list:
+    """``poll(ms)`` (a socket's or a ``zmq.Poller``'s) over ``timeout_s`` seconds in waits of at
+    most :data:`POLL_S`, until it returns something true (returned) or the time is up (its last,
+    empty, answer).
+
+    Raises:
+        ReadStopped: the thread's read was stopped (:func:`stopped_by`)."""
+    end = time.monotonic() + max(0.0, timeout_s)
+    while True:
+        check_stopped()
+        got = poll(int(max(0.0, min(POLL_S, end - time.monotonic())) * 1000))
+        if got or time.monotonic() >= end:
+            return got
 
 
 def _with_padding(arrays: Dict[str, np.ndarray], padding: List[bool]) -> Dict[str, np.ndarray]:
@@ -64,13 +148,20 @@ def _with_padding(arrays: Dict[str, np.ndarray], padding: List[bool]) -> Dict[st
 
 
 class Link:
-    """One process's connection to a plan server: a DEALER socket, requests numbered from 1."""
+    """One process's connection to a plan server: a DEALER socket, requests numbered from 1.
 
-    def __init__(self, endpoint: str, timeout_s: float, curve: Optional[tuple] = None, compression: str = "none"):
+    ``max_msg``: the largest frame it receives, bytes (``ZMQ_MAXMSGSIZE``: a peer sending a
+    larger one has its connection cut, and is heard as silent); the default, a header's, is all
+    that what a server serves and its manifest take; a link reading rows takes
+    :func:`reply_limit`'s."""
+
+    def __init__(self, endpoint: str, timeout_s: float, curve: Optional[tuple] = None, compression: str = "none",
+                 max_msg: int = MAX_HEADER_BYTES):
         self.endpoint, self.timeout_s, self.compression = endpoint, timeout_s, compression
         self.ctx = zmq.Context()
         self.sock = self.ctx.socket(zmq.DEALER)
         self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.MAXMSGSIZE, max_msg)  # before connect: a connection takes the options then
         if is_ipv6(endpoint):  # tcp://[::1]:PORT: without it the connect is never made and every ask times out
             self.sock.setsockopt(zmq.IPV6, 1)
         if curve is not None:  # (client public, client secret, server public), endpoints.load_curve_keys
@@ -95,15 +186,14 @@ class Link:
 
     def _recv(self, deadline: float):
         """The next message (header, frames) before ``deadline``, or None."""
-        wait = max(0.0, deadline - time.monotonic())
-        if not self.sock.poll(int(wait * 1000)):
+        if not wait_readable(self.sock.poll, deadline - time.monotonic()):
             return None
         frames = self.sock.recv_multipart(copy=False)
         try:
             h = unpack(frames[0])
             return plan_server_message(h), frames[1:]
         except (ProtocolError, WireError) as e:
-            raise PlanServerError(f"{self.endpoint}: {e}") from None
+            raise BrokenPeer(self.endpoint, str(e)) from None
 
     def ask(self) -> PlanInfo:
         deadline = time.monotonic() + self.timeout_s
@@ -148,13 +238,14 @@ class _InFlight:
 class Shards:
     """Servers of one shard each read as one plan (``v2v_wire.plan_shards``; one server is the one
     shard of its corpus): a fetch of global positions is asked of each shard holding some of them,
-    and their rows are merged in the interleave's order. ``shards``: (server, its plan identity), in shard order; ``samples``:
-    each shard's samples per epoch where known (None: not yet)."""
+    and their rows are merged in the interleave's order. ``shards``: (server, its plan identity), in
+    shard order; ``samples``: each shard's samples per epoch where known (None: not yet);
+    ``max_msg``: the largest frame a reply carries (:func:`reply_limit`)."""
 
     def __init__(self, shards: List[Tuple[str, PlanIdentity]], timeout_s: float, curve: Optional[tuple],
-                 codecs: Dict[str, str], samples: Sequence[Optional[int]]):
+                 codecs: Dict[str, str], samples: Sequence[Optional[int]], max_msg: int = MAX_BATCH_BYTES):
         self.plans = [plan for _, plan in shards]
-        self.links = [Link(ep, timeout_s, curve, codecs[ep]) for ep, _ in shards]
+        self.links = [Link(ep, timeout_s, curve, codecs[ep], max_msg) for ep, _ in shards]
         self.timeout_s = timeout_s
         self.samples: List[Optional[int]] = list(samples)  # each shard's epoch, once it or its rows say
 
@@ -214,7 +305,7 @@ class Shards:
             for (k, what), when in list(flight.asked.items()):
                 if now - when >= retry_s:
                     self._ask(flight, k, what)  # a lost reply or a restarted server: ask again
-            ready = dict(poller.poll(int(min(retry_s, 1.0) * 1000)))
+            ready = dict(wait_readable(poller.poll, min(retry_s, 1.0)))
             if not ready:
                 if time.monotonic() - heard > self.timeout_s:
                     late = sorted({self.links[k].endpoint for k, _ in flight.asked})
@@ -275,7 +366,7 @@ class Shards:
         try:
             arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
         except ProtocolError as e:
-            raise PlanServerError(f"{link.endpoint}: rows of step {what[1]}: {e}") from None
+            raise BrokenPeer(link.endpoint, f"rows of step {what[1]}: {e}") from None
         flight.parts[what[1]][k] = (msg, arrays)
 
     def served(self, rows: Rows) -> Dict[str, int]:

@@ -24,9 +24,9 @@ from v2v_wire.plan import EpochPlan, Manifest
 from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, Moved, PlanAsk, PlanInfo, Refused, Rows
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
-from .fetch import PlanServerError, _with_padding
+from .fetch import BrokenPeer, PlanServerError, _with_padding, wait_readable
 
-__all__ = ["Pass", "Video", "merged", "steal", "take", "UNFOLD_PER_HOST", "STEAL_S"]
+__all__ = ["Pass", "Video", "merged", "refused", "steal", "take", "UNFOLD_PER_HOST", "STEAL_S", "HOST_REFUSALS"]
 
 log = logging.getLogger("v2v.client")
 
@@ -36,6 +36,11 @@ UNFOLD_PER_HOST = 4
 #: too (:func:`steal`).
 STEAL_S = 1.0
 _LAST = 2 ** 62 - 1
+#: Refusal codes (``plan_messages.REFUSALS``) that say a host serves none of this reader's makes:
+#: outputs it does not serve, a compression it lacks. The host is left out; a refusal for another
+#: plan leaves it out of the pass (``Fleet.other_plan``: a host restarted on a corpus that
+#: changed); any other refusal is of the one make, asked of another host while the host stays.
+HOST_REFUSALS = ("outputs", "compression")
 
 
 def merged(rows: List[tuple], like: Dict[str, np.ndarray], epoch: int, start: int,
@@ -60,12 +65,13 @@ class Video:
     """What this reader asked of one video in one pass: the host it asks, the first position that
     needs it (the hosts decode makes in that order), the samples asked (ordinal -> request id),
     and the requests in flight ((host, request id) -> (host, ordinals, asked at): each host
-    numbers its requests itself)."""
+    numbers its requests itself), and the hosts that refused a make of it (it is asked of others)."""
 
     host: Optional[str] = None
     position: int = _LAST
     asked: Dict[int, int] = field(default_factory=dict)
     flight: Dict[Tuple[str, int], Tuple[str, Optional[Tuple[int, ...]], float]] = field(default_factory=dict)
+    refused: Dict[str, str] = field(default_factory=dict)
 
 
 class Pass:
@@ -146,7 +152,9 @@ class Pass:
         """Ask for ``ordinals`` of ``video`` of its host while that one answers, else the router's pick.
 
         Raises:
-            PlanServerError: a path longer than a make names, or every host left out for another plan."""
+            PlanServerError: a path longer than a make names, every host left out (naming each and
+                why), or every host refused a make of the video (the last refusal's line).
+            PlanMismatch: every host left out of the pass serves another plan (``Fleet.no_host_left``)."""
         v = self.videos.setdefault(video, Video())
         if position is not None:
             v.position = min(v.position, position)
@@ -158,23 +166,27 @@ class Pass:
                 self.ask(video, ordinals[i:i + MAX_MAKE_SAMPLES], now)
             return
         count = len(ordinals) if ordinals else self.per_video()
+        if v.refused and all(h in v.refused for h in self.router.hosts):
+            ep, why = next(reversed(v.refused.items()))
+            raise PlanServerError(f"{ep}: {why} (every host of the fleet refused a make of it)")
         spill = None
-        if v.host in self.router.hosts and not self.router.suspect(v.host, now):
+        if v.host in self.router.hosts and not self.router.suspect(v.host, now) and v.host not in v.refused:
             self.router.ask(v.host, self.epoch, video, count, now, v.position)
         else:
-            v.host = self.router.route(self.epoch, video, count, now, due=self.due(v.position), position=v.position,
-                                       held=self.fleet.made.get(video))
+            v.host = self.router.route(self.epoch, video, count, now, exclude=list(v.refused), due=self.due(v.position),
+                                       position=v.position, held=self.fleet.made.get(video))
             arbiter = self.router.arbiter(video, now)
-            if v.host is not None and arbiter not in (None, v.host):  # asked of the arbiter, to place it there
-                spill, v.host = v.host, arbiter
+            if v.host is not None and arbiter not in (None, v.host) and arbiter not in v.refused:
+                spill, v.host = v.host, arbiter  # asked of the arbiter, to place it there
                 self.router.moved(self.epoch, video, spill, arbiter, now)
         if v.host is not None:
             self.send(video, ordinals, v.host, now, spill)
-        elif self.router.hosts or not self.fleet.refused:  # every host gone, silent or not joined yet
-            self.parked.append((video, ordinals))  # asked again at the next rescue
+        elif self.router.hosts or not (self.fleet.left_out or self.fleet.out_for_pass):
+            self.parked.append((video, ordinals))  # every host gone, silent or not joined yet: asked at the next rescue
+        elif self.fleet.changed:  # never read on with samples of another version of a file
+            raise self.fleet.no_host_left(self.epoch)
         else:
-            raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan "
-                                  f"({len(self.fleet.refused)} left out for serving another)")
+            raise PlanServerError(f"{self.fleet.endpoint}: no host left serving the plan: {self.fleet.left_out_line()}")
 
     def per_video(self) -> int:
         """Samples a video gives, on average over those whose windows are known (a make of a
@@ -294,10 +306,11 @@ class Pass:
 
     def receive(self, ep: str, msg, frames, now: float) -> None:
         """Take host ``ep``'s message: what a new host serves, a make's rows (kept by (video,
-        ordinal); its video's windows unfold the plan), or a refusal (the host leaves the fleet).
+        ordinal); its video's windows unfold the plan), or a refusal (:func:`refused`).
 
         Raises:
-            PlanServerError: rows whose arrays cannot be read."""
+            BrokenPeer: rows whose arrays cannot be read.
+            PlanServerError: every host refused a make of the video."""
         if isinstance(msg, PlanInfo):  # a new host's, or a ping's answer: alive, with its queue
             self.router.heard(ep, now, queued=msg.queued)
             self.fleet.join(ep, msg, now)
@@ -306,17 +319,22 @@ class Pass:
             self.moved(ep, msg, now)
             return
         if isinstance(msg, Refused):
-            if self.flight.pop((ep, msg.request), None) is not None:  # another plan now, or a make it cannot take
-                log.warning("%s: left out of the fleet: %s", ep, msg.message)
-                self.fleet.refused.add(ep)
-                self.router.leave(ep)  # its videos' makes go to their next hosts (rescue)
+            refused(self, ep, msg, now)
             return
-        what = self.flight.pop((ep, msg.request), None) if isinstance(msg, Rows) else None
+        what = self.flight.get((ep, msg.request)) if isinstance(msg, Rows) else None
         if what is None or msg.epoch != self.epoch:
+            self.flight.pop((ep, getattr(msg, "request", None)), None)
             if isinstance(msg, Rows) and ep in self.router.hosts:
                 self.router.heard(ep, now, msg.rate, msg.queued)  # it answers: not silent
             return  # an answer to a request asked again or beaten by a copy, or of another pass
         video, ordinals = what
+        try:  # read before the make counts as answered: a peer that breaks the protocol leaves it in flight
+            if len(msg.padding) != len(ordinals or ()):
+                raise ProtocolError(f"{len(msg.padding)} rows for the {len(ordinals or ())} samples asked")
+            arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
+        except ProtocolError as e:
+            raise BrokenPeer(ep, f"rows of {video}: {e}") from None
+        del self.flight[(ep, msg.request)]
         v = self.videos[video]
         v.flight.pop((ep, msg.request), None)
         if msg.windows is not None and video not in self.fleet.windows:
@@ -324,10 +342,6 @@ class Pass:
             if self._windows[0] == len(self.fleet.windows) - 1:
                 self._windows = (self._windows[0] + 1, self._windows[1] + msg.windows)
             self.plan.learn(self.fleet.windows)
-        try:
-            arrays = _with_padding(decode_batch_arrays(msg.arrays, frames, MAX_BATCH_BYTES), msg.padding)
-        except ProtocolError as e:
-            raise PlanServerError(f"{ep}: rows of {video}: {e}") from None
         if v.host != ep and (ordinals is None or any((video, o) not in self.got for o in ordinals)):
             v.host = ep  # it answered first: it holds the video's samples (and frames) for the asks that follow
         for j, o in enumerate(ordinals or ()):
@@ -361,13 +375,44 @@ class Pass:
         video, ordinals = what
         v = self.videos[video]
         v.flight.pop((ep, msg.request), None)
-        to = msg.host if msg.host in self.router.hosts and not self.router.suspect(msg.host, now) else ep
+        to = msg.host if msg.host in self.router.hosts and not self.router.suspect(msg.host, now) \
+            and msg.host not in v.refused else ep
         self.router.moved(self.epoch, video, ep, to, now)
         if v.host == ep:
             v.host = to
         if to == ep:
             log.warning("%s: moved %s to %s, a host this reader does not read: made here", ep, video, msg.host)
         self.send(video, ordinals, to, now, here=True)
+
+
+def refused(read: "Pass", ep: str, msg: Refused, now: float) -> None:
+    """Host ``ep`` refused a make of ``read``'s: for another plan (``Fleet.other_plan``: named
+    with the files that changed, left out of the pass), every make this reader asks
+    (:data:`HOST_REFUSALS`: the host is left out, ``Fleet.leave_out``), its videos asked of their
+    next hosts either way; else the one make: asked of the next host of the video's ranking that
+    has not refused it, the host staying in the fleet.
+
+    Raises:
+        PlanServerError: every host refused a make of the video (:meth:`Pass.ask`)."""
+    what = read.flight.pop((ep, msg.request), None)
+    if what is None:
+        return  # a refusal of a request asked again, or of none (-1: a message it could not read)
+    if msg.code == "plan":  # restarted on a corpus that changed: named with the files, once
+        read.fleet.other_plan(ep, f"a make refused: {msg.message}")
+        return
+    if msg.code in HOST_REFUSALS:
+        read.fleet.leave_out(ep, msg.message)
+        return
+    video, ordinals = what
+    v = read.videos[video]
+    v.flight.pop((ep, msg.request), None)
+    v.refused[ep] = msg.message
+    if v.host == ep:
+        v.host = None
+    # it answered (not silent) and holds none of the video now
+    read.router.answered(ep, read.epoch, video, now, not any(h == ep for h, _, _ in v.flight.values()))
+    if not any(o == ordinals for _, o, _ in v.flight.values()):  # no copy in flight elsewhere
+        read.ask(video, ordinals, now)
 
 
 def steal(read: "Pass", now: float, late: bool) -> None:
@@ -401,9 +446,12 @@ def steal(read: "Pass", now: float, late: bool) -> None:
 def take(read: "Pass", timeout_s: float) -> None:
     """Wait up to half a second for the hosts' answers to pass ``read`` and take them (:meth:`Pass.receive`).
 
+    A peer that sends what cannot be read (:class:`~v2v_client.fetch.BrokenPeer`) is left out
+    (``Fleet.leave_out``) and the others' answers taken.
+
     Raises:
         TimeoutError: no host said anything for ``timeout_s`` while the head waited."""
-    ready = dict(read.fleet.poller.poll(int(min(read.retry_s, 0.5) * 1000)))
+    ready = dict(wait_readable(read.fleet.poller.poll, min(read.retry_s, 0.5)))
     if not ready:
         if time.monotonic() - read.heard > timeout_s:
             late = sorted({h for v in read.videos.values() for h, _, _ in v.flight.values()})
@@ -412,8 +460,11 @@ def take(read: "Pass", timeout_s: float) -> None:
         return
     read.heard = time.monotonic()
     for ep, link in list(read.fleet.links.items()):
-        while link.sock in ready and link.sock.poll(0):
-            got = link._recv(read.heard)
-            if got is None:
-                break
-            read.receive(ep, *got, read.heard)
+        while read.fleet.links.get(ep) is link and link.sock in ready and link.sock.poll(0):
+            try:
+                got = link._recv(read.heard)
+                if got is None:
+                    break
+                read.receive(ep, *got, read.heard)
+            except BrokenPeer as e:
+                read.fleet.leave_out(e.peer, e.left_out_for)

@@ -3,8 +3,9 @@ one plan a single server serves, each video made by the host the reader routes i
 (docs/scaling.md, "One plan, any fleet"). Free of torch.
 
 * **The plan is the reader's.** The manifest is asked once a pass, of the first host that
-  answers (``manifest_ask``, the hosts asked in turn, ``ASK_NEXT_S`` each: a host gone costs
-  that, and leaves the fleet until it answers; its fingerprint must be the plan identity's), and
+  answers (``manifest_ask``, the hosts that said they serve the plan first, in turn,
+  ``ASK_NEXT_S`` each: a host gone costs that, and leaves the fleet until it answers; a host
+  whose manifest's fingerprint is not the plan identity's is left out for the pass), and
   the epoch's order is ``v2v_wire.plan.EpochPlan`` of it, the pure function every server
   computes: a position means the same sample at any fleet size, a single server included. It
   unfolds with each video's windows, as the corpus index gave them to the host asked, or as a
@@ -19,9 +20,25 @@ one plan a single server serves, each video made by the host the reader routes i
   too; the first answer wins.
 * **The fleet changes**: the endpoint is resolved again every ``RESOLVE_S`` seconds; a new host
   serving the same plan takes work from its first answer, a host gone hands its videos to the
-  next hosts of their rankings, a host serving another plan is named once and left out, and
-  a host that says the instance of one read already (one host under two names) is read once
-  (``alias_of``).
+  next hosts of their rankings, a host of the fleet serving another plan is named once and left
+  out, and a host that says the instance of one read already (one host under two names) is read
+  once (``alias_of``).
+* **A bad peer is left out**: a peer that sends what no v2v-serve of this protocol sends (not
+  msgpack, another version, past the wire's bounds: ``fetch.BrokenPeer``), serves another plan
+  than the fleet's when first asked (not one of its hosts: a made-up plan), or refuses every read
+  of this reader (its outputs or compression) is named once in this process and left out
+  (``Fleet.leave_out``: never asked again, not even what it serves, until the fleet's plan
+  changes), its videos asked of their next hosts; a frame over the largest legitimate reply
+  (``fetch.reply_limit``) cuts its connection before it is received. A host that refuses one
+  make stays (``fleet_pass.refused``). With no host left: one error naming each peer left out
+  and why.
+* **A corpus that changed under the fleet** (docs/delivery.md): a pass reads only hosts serving
+  its plan. A host of the fleet restarted with a file replaced serves another plan: it is named
+  in one line, with the files whose tags differ from the pass's manifest (:func:`manifest_diff`),
+  and left out for the pass; when no host serves the pass's plan any more, the pass fails in one
+  line naming them and saying to start that epoch over (``PlanMismatch``), so no epoch holds
+  samples of two versions of a file. The next pass reads the plan the hosts serve then
+  (``servers.Servers.ask``), every peer asked again.
 
 A host keeps no record of the reader: a ``make`` names its samples, and a restarted host makes
 them again.
@@ -30,21 +47,22 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Dict, Iterator, List, Optional, Set, Tuple
+from typing import Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 import zmq
 
 from v2v_wire.fleet import Router
-from v2v_wire.plan import Manifest, PlanIdentity
-from v2v_wire.plan_messages import ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.plan import Manifest, PlanIdentity, PlanMismatch
+from v2v_wire.plan_messages import MAX_MAKE_SAMPLES, ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused, Rows
+from v2v_wire.protocol import MAX_HEADER_BYTES
 
 from .endpoints import auto_compression, resolve_endpoints
-from .fetch import Link, PlanServerError
+from .fetch import BrokenPeer, Link, PlanServerError, reply_limit, wait_readable
 from .fleet_pass import STEAL_S, Pass, take
 
-__all__ = ["Fleet", "load_manifest", "manifest_part", "asked_fleet", "listing_diff", "alias_of", "HEDGE_S",
-           "RESOLVE_S", "ASK_NEXT_S"]
+__all__ = ["Fleet", "load_manifest", "read_manifest", "manifest_part", "asked_fleet", "listing_diff",
+           "manifest_diff", "alias_of", "HEDGE_S", "RESOLVE_S", "ASK_NEXT_S"]
 
 log = logging.getLogger("v2v.client")
 
@@ -53,20 +71,35 @@ log = logging.getLogger("v2v.client")
 HEDGE_S = 10.0
 #: Seconds between resolutions of the fleet's endpoint (a Kubernetes headless Service's name).
 RESOLVE_S = 5.0
-#: Seconds a host may take to answer what a pass asks the fleet once (the manifest; what it serves,
-#: while the plan unfolds: ``servers.Servers.ask``) before the next host is asked: a live host's
-#: loop answers within its 0.1 s poll, a dead or unreachable one never, and every pass (each
-#: epoch, each DataLoader worker) asks, so a gone host costs this, not ``timeout_s``.
+#: Seconds a host may take to answer what a pass asks the fleet once (the manifest, before the
+#: next host is asked; what it serves, asked of every host at once by ``servers.Servers.ask``,
+#: after the first answer): a live host's loop answers within its 0.1 s poll, a dead or
+#: unreachable one never, and every pass (each epoch, each DataLoader worker) asks, so a gone
+#: host costs this, not ``timeout_s``.
 ASK_NEXT_S = 2.0
 
 
 def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float, first: Optional[ManifestPart] = None) -> Manifest:
+    """The manifest of ``link``'s server (:func:`read_manifest`), which must be ``plan``'s.
+
+    Raises:
+        TimeoutError: the server did not answer within ``timeout_s``.
+        PlanServerError: it refused, or its manifest's fingerprint is not ``plan``'s (one line).
+    """
+    manifest = read_manifest(link, timeout_s, first)
+    if manifest.fingerprint() != plan.manifest:
+        raise PlanServerError(f"{link.endpoint}: its manifest's fingerprint is {manifest.fingerprint()}, its plan "
+                              f"names {plan.manifest}")
+    return manifest
+
+
+def read_manifest(link: Link, timeout_s: float, first: Optional[ManifestPart] = None) -> Manifest:
     """The manifest of ``link``'s server, asked part by part (``manifest_ask``); ``first``: its
     part at offset 0 when already read (:meth:`Fleet._manifest`).
 
     Raises:
         TimeoutError: the server did not answer within ``timeout_s``.
-        PlanServerError: it refused, or its manifest's fingerprint is not ``plan``'s (one line).
+        PlanServerError: it refused, or its parts stop short (one line).
     """
     videos: List[str] = []
     tags: List[Optional[str]] = []
@@ -82,12 +115,8 @@ def load_manifest(link: Link, plan: PlanIdentity, timeout_s: float, first: Optio
         if len(videos) >= part.total:
             break
         part = None
-    manifest = Manifest.of(dict(zip(videos, slots)), part.crops_per_window,
-                           dict(zip(videos, tags)) if part.tagged else None)
-    if manifest.fingerprint() != plan.manifest:
-        raise PlanServerError(f"{link.endpoint}: its manifest's fingerprint is {manifest.fingerprint()}, its plan "
-                              f"names {plan.manifest}")
-    return manifest
+    return Manifest.of(dict(zip(videos, slots)), part.crops_per_window,
+                       dict(zip(videos, tags)) if part.tagged else None)
 
 
 def manifest_part(link: Link, offset: int, timeout_s: float) -> ManifestPart:
@@ -109,46 +138,55 @@ def manifest_part(link: Link, offset: int, timeout_s: float) -> ManifestPart:
             raise TimeoutError(f"{link.endpoint}: no manifest within {timeout_s} s")
 
 
-def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Optional[tuple]) -> Dict[str, PlanInfo]:
+def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Optional[tuple],
+                left_out: Optional[Dict[str, str]] = None) -> Dict[str, PlanInfo]:
     """What each of ``servers`` serves, all asked at once: the first answer awaited ``first_s``
     seconds, the others ``wait_s`` more; in ``servers``' order, those that answered. One that
-    answers what cannot be read (another protocol version) is named in one log line and left out.
+    answers what cannot be read (another protocol version) or refuses is named in one log line,
+    left out, and noted in ``left_out`` (endpoint -> why); one noted there already is not asked.
 
     Raises:
         TimeoutError: none answered within ``first_s``, naming them.
-        PlanServerError: none answered, and one refused or spoke another version (its line)."""
+        PlanServerError: none answered, and one refused, broke the protocol or was left out
+            before: one line naming each and why it was left out."""
+    left_out = {} if left_out is None else left_out
     infos: Dict[str, PlanInfo] = {}
     refused: Dict[str, str] = {}
-    links = {ep: Link(ep, first_s, curve) for ep in servers}
+    links = {ep: Link(ep, first_s, curve) for ep in servers if ep not in left_out}
     poller = zmq.Poller()
     try:
         for link in links.values():
             link._send(PlanAsk().to_wire())
             poller.register(link.sock, zmq.POLLIN)
         deadline = time.monotonic() + first_s
-        while len(infos) + len(refused) < len(servers) and time.monotonic() < deadline:
-            ready = dict(poller.poll(int(max(0.0, deadline - time.monotonic()) * 1000)))
+        while links and len(infos) + len(refused) < len(links) and time.monotonic() < deadline:
+            ready = dict(wait_readable(poller.poll, deadline - time.monotonic()))
             for ep, link in links.items():
                 if link.sock not in ready or ep in infos or ep in refused:
                     continue
                 try:
                     got = link._recv(time.monotonic())
-                except PlanServerError as e:
-                    refused[ep] = str(e)
-                    log.warning("%s: left out: %s", ep, e)
-                    continue
-                if got is not None and isinstance(got[0], PlanInfo):
-                    if not infos:
-                        deadline = min(deadline, time.monotonic() + wait_s)
-                    infos[ep] = got[0]
-                elif got is not None and isinstance(got[0], Refused):
-                    refused[ep] = f"{ep}: {got[0].message}"
+                except BrokenPeer as e:
+                    refused[ep] = e.left_out_for
+                else:
+                    if got is not None and isinstance(got[0], PlanInfo):
+                        if not infos:
+                            deadline = min(deadline, time.monotonic() + wait_s)
+                        infos[ep] = got[0]
+                    elif got is not None and isinstance(got[0], Refused):
+                        refused[ep] = got[0].message
+                if ep in refused:
+                    log.warning("%s: left out of the fleet: %s", ep, refused[ep])
     finally:
         for link in links.values():
             link.__exit__(None, None, None)
+    left_out.update(refused)
     if not infos:
-        if refused:
-            raise PlanServerError("; ".join(refused.values()))
+        if len(links) < len(servers) or refused:
+            why = [f"{ep}: {left_out[ep]}" if ep in left_out else
+                   f"{ep}: no answer within {first_s} s (a reply over {MAX_HEADER_BYTES} bytes cuts its connection)"
+                   for ep in servers]
+            raise PlanServerError("; ".join(why))
         raise TimeoutError(f"{', '.join(servers)}: no answer to 'what do you serve' within {first_s} s (is a "
                            "v2v-serve running there?)")
     return {ep: infos[ep] for ep in servers if ep in infos}
@@ -156,25 +194,32 @@ def asked_fleet(servers: List[str], first_s: float, wait_s: float, curve: Option
 
 def listing_diff(ep_a: str, plan_a: PlanIdentity, ep_b: str, plan_b: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], most: int = 3) -> str:
-    """The first files (at most ``most``) whose path or tag differs between two hosts' manifests, as
-    one clause: ``"listings differ: a.mp4 (tag 123:456 on tcp://a, 123:789 on tcp://b), ..."``.
+    """:func:`manifest_diff` of two hosts' manifests, each named by its endpoint.
 
     Raises:
         TimeoutError, PlanServerError: as :func:`load_manifest`."""
-    tagged = []
+    manifests = []
     for ep, plan in ((ep_a, plan_a), (ep_b, plan_b)):
         with Link(ep, timeout_s, curve) as link:
-            m = load_manifest(link, plan, timeout_s)
-        tagged.append(dict(zip((v for v, _ in m.slots), m.tags or [None] * len(m.slots))))
-    a, b = tagged
-    differ = sorted(v for v in set(a) | set(b) if a.get(v, False) != b.get(v, False))
+            manifests.append(load_manifest(link, plan, timeout_s))
+    return manifest_diff(manifests[0], f"on {ep_a}", manifests[1], f"on {ep_b}", most) or \
+        "listings differ in their crops per window"
+
+
+def manifest_diff(a: Manifest, where_a: str, b: Manifest, where_b: str, most: int = 3) -> str:
+    """The first files (at most ``most``) whose path or tag differs between manifests ``a`` and
+    ``b`` (said to be ``where_a``, ``where_b``), as one clause: ``"listings differ in 1 file(s):
+    a.mp4 (tag file 123 456 on tcp://a, tag file 123 789 on tcp://b)"``; "" when none does."""
+    tagged = [dict(zip((v for v, _ in m.slots), m.tags or [None] * len(m.slots))) for m in (a, b)]
+    ta, tb = tagged
+    differ = sorted(v for v in set(ta) | set(tb) if ta.get(v, False) != tb.get(v, False))
     if not differ:
-        return "listings differ in their crops per window"
+        return ""
 
     def side(v, d):
         return "absent" if v not in d else f"tag {d[v]}"
 
-    shown = ", ".join(f"{v} ({side(v, a)} on {ep_a}, {side(v, b)} on {ep_b})" for v in differ[:most])
+    shown = ", ".join(f"{v} ({side(v, ta)} {where_a}, {side(v, tb)} {where_b})" for v in differ[:most])
     return f"listings differ in {len(differ)} file(s): {shown}"
 
 
@@ -216,28 +261,39 @@ class Fleet:
         hedge_s: :data:`HEDGE_S`.
         same: endpoint -> the endpoint of the same host read in its place (:func:`alias_of`:
             kept by the caller across passes, so each is said once; updated).
+        known: manifest fingerprint -> the manifest, of the plans read in this process (kept by
+            the caller across passes, so that a pass no host serves any more names the files
+            changed since; updated).
+        left_out: peers left out -> why (kept by the caller across passes and pickled to its
+            DataLoader workers, so that each is named once; updated: :meth:`leave_out`).
     """
 
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
                  hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None,
-                 made: Optional[Dict[str, str]] = None, same: Optional[Dict[str, str]] = None):
+                 made: Optional[Dict[str, str]] = None, same: Optional[Dict[str, str]] = None,
+                 known: Optional[Dict[str, Manifest]] = None, left_out: Optional[Dict[str, str]] = None):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
         self.rates = {} if rates is None else rates
         self.made = {} if made is None else made
         self.same = {} if same is None else same
+        self.known = {} if known is None else known
+        self.changed: Dict[str, str] = {}  # host -> what it serves instead of the pass's plan (other_plan)
+        self.unnamed: Dict[str, Tuple[str, Optional[Manifest]]] = {}  # other_plan's before the manifest is known
         self.names: Dict[str, str] = {}  # instance -> the endpoint its host is read under (alias_of)
         self.links: Dict[str, Link] = {}
         self.poller = zmq.Poller()  # every link's socket (fleet_pass.take waits on them)
         self.workers: Dict[str, int] = {}
-        self.refused: Set[str] = set()  # hosts serving another plan: named once, left out
+        self.left_out: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why (leave_out)
+        self.out_for_pass: Dict[str, str] = {}  # the fleet's hosts left out of this pass -> why (other_plan)
+        self.members = {ep for ep, _ in hosts}  # the fleet's hosts: one serving another plan is out for the pass
         self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S)
         self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
+        self.manifest: Optional[Manifest] = None
         for ep, info in hosts:
             self.join(ep, info, time.monotonic())
         self.resolved = time.monotonic()
-        self.manifest: Optional[Manifest] = None
         self.like: Optional[Dict[str, np.ndarray]] = None  # one row of each array: a padding row's zeros
         self.last_served: Tuple[Optional[Rows], Dict[str, int]] = (None, {})  # the last step's rows by host
 
@@ -252,7 +308,8 @@ class Fleet:
     def _link(self, ep: str) -> Link:
         if ep not in self.links:
             codec = self.compression if self.compression != "auto" else auto_compression(ep)
-            self.links[ep] = Link(ep, self.timeout_s, self.curve, codec)
+            # a make's reply holds at most MAX_MAKE_SAMPLES rows, of the recipe every host of the plan serves
+            self.links[ep] = Link(ep, self.timeout_s, self.curve, codec, reply_limit(self.stream, MAX_MAKE_SAMPLES))
             self.poller.register(self.links[ep].sock, zmq.POLLIN)
         return self.links[ep]
 
@@ -260,11 +317,9 @@ class Fleet:
         """Host ``ep`` answered what it serves: it joins when that is this plan, else is named once."""
         problem = self.plan.problem(info.plan)
         if problem:
-            if ep not in self.refused:
-                log.warning("%s: left out of the fleet: it serves %s", ep, problem)
-                self.refused.add(ep)
+            self.other_plan(ep, problem.removeprefix("another plan: "))
             return
-        if ep in self.router.hosts or ep in self.same:
+        if ep in self.router.hosts or ep in self.same or ep in self.left_out:
             return
         kept = alias_of(ep, info, self.names)
         if kept is not None:
@@ -277,6 +332,23 @@ class Fleet:
         self.workers[ep] = int((info.stream.get("feed") or {}).get("workers") or 1)
         self.router.join(ep, now, self.rates.get(ep))
 
+    def leave_out(self, ep: str, why: str) -> None:
+        """Leave peer ``ep`` out of the fleet for this process: named in one log line (once: a
+        peer left out before is not named again), its link closed (nothing more of it is
+        received), its videos' makes asked of their next hosts (``Pass.rescue``)."""
+        if ep not in self.left_out:
+            log.warning("%s: left out of the fleet: %s", ep, why)
+            self.left_out[ep] = why
+        self.router.leave(ep)
+        link = self.links.pop(ep, None)
+        if link is not None:
+            self.poller.unregister(link.sock)
+            link.__exit__(None, None, None)
+
+    def left_out_line(self) -> str:
+        """Each peer left out, for the process or this pass, and why, as one clause (``"a: why; b: why"``)."""
+        return "; ".join(f"{ep}: {why}" for ep, why in {**self.out_for_pass, **self.left_out}.items())
+
     def _resolve(self, now: float) -> None:
         """Resolve the endpoint again: ask new hosts what they serve; hand a gone host's videos on."""
         if now - self.resolved < RESOLVE_S:
@@ -287,19 +359,87 @@ class Fleet:
         except (OSError, ValueError) as e:  # a name that stops resolving for a while: keep the fleet
             log.warning("%s: %s (the fleet stays as it was)", self.endpoint, e)
             return
-        for ep in sorted(current - set(self.router.hosts) - self.refused - set(self.same)):
+        for ep in sorted(current - set(self.router.hosts) - {*self.out_for_pass, *self.same, *self.left_out}):
             self._link(ep)._send(PlanAsk().to_wire())  # its answer, a PlanInfo, joins it (Pass.receive)
         for ep in sorted(set(self.router.hosts) - current):
             self.router.leave(ep)
 
-    def _manifest(self) -> Manifest:
-        """The plan's manifest, of the first host that answers (:meth:`_first_part`).
+    def other_plan(self, ep: str, why: str, theirs: Optional[Manifest] = None, defer: bool = True) -> None:
+        """Host ``ep`` serves another plan than the pass's: it leaves the fleet for the pass,
+        named once in one line with the files whose tags differ from the pass's manifest
+        (:func:`manifest_diff` against ``theirs``, its manifest, else read of it for at most
+        :data:`ASK_NEXT_S` seconds), or ``why`` (one clause) where no file differs or the
+        manifests are not known; before the pass's manifest is read, once it is (:meth:`_manifest`)
+        unless not ``defer``. A peer not of the fleet's hosts (one that never served its plan:
+        a made-up plan) is left out for the process instead (:meth:`leave_out`)."""
+        if ep in self.out_for_pass or ep in self.left_out:
+            return
+        if ep not in self.members:
+            self.leave_out(ep, f"it serves another plan: {why}")
+            return
+        self.out_for_pass[ep] = f"it serves another plan: {why}"
+        if ep in self.router.hosts:
+            self.router.leave(ep)  # its videos' makes go to their next hosts (Pass.rescue)
+        if self.manifest is None and defer:
+            self.unnamed[ep] = (why, theirs)
+            return
+        files = ""
+        if self.manifest is not None:
+            try:
+                if theirs is None:
+                    with Link(ep, ASK_NEXT_S, self.curve) as link:
+                        theirs = read_manifest(link, ASK_NEXT_S)
+                files = manifest_diff(self.manifest, "in this pass's plan", theirs, "now")
+            except BrokenPeer as e:  # not a v2v-serve: named for that, out for the process
+                self.leave_out(ep, e.left_out_for)
+                return
+            except (TimeoutError, PlanServerError) as e:
+                files = f"{why}; its listing could not be read ({e})"
+        self.changed[ep] = files or why
+        log.warning("%s: left out of the fleet for this pass: it serves another plan: %s", ep, self.changed[ep])
+
+    def _name_unnamed(self) -> None:
+        """Name the hosts :meth:`other_plan` left out before the pass's manifest was known."""
+        unnamed, self.unnamed = self.unnamed, {}
+        for ep, (why, theirs) in unnamed.items():
+            self.out_for_pass.pop(ep, None)
+            self.other_plan(ep, why, theirs, defer=False)
+
+    def no_host_left(self, epoch: int) -> PlanMismatch:
+        """The error of a pass of ``epoch`` that no host serves the plan of any more (each left
+        out by :meth:`other_plan`): one line naming what they serve instead, the files that
+        changed where known, and that the epoch starts over."""
+        what = "; ".join(sorted(set(self.changed.values())))
+        return PlanMismatch(f"{self.endpoint}: no host serves epoch {epoch}'s plan (manifest {self.plan.manifest}) any "
+                            f"more: {what}; start epoch {epoch} over (set_epoch({epoch}), no position): its next pass "
+                            "reads the plan the hosts serve now")
+
+    def _manifest(self, epoch: int) -> Manifest:
+        """The plan's manifest, of the first host that answers (:meth:`_first_part`) and serves
+        it: one whose manifest is another's (restarted with a file replaced) is left out for the
+        pass (:meth:`other_plan`).
 
         Raises:
-            TimeoutError, PlanServerError: as :meth:`_first_part` and :func:`load_manifest`."""
+            TimeoutError, PlanServerError: as :meth:`_first_part` and :func:`read_manifest`.
+            PlanMismatch: every host that answered serves another manifest (:meth:`no_host_left`)."""
         if self.manifest is None:
-            ep, first = self._first_part()
-            self.manifest = load_manifest(self.links[ep], self.plan, self.timeout_s, first)
+            while self.manifest is None:
+                if not self.router.hosts and self.unnamed:  # each left out for serving another manifest
+                    self.manifest = self.known.get(self.plan.manifest)
+                    self._name_unnamed()
+                    raise self.no_host_left(epoch)
+                ep, first = self._first_part()
+                try:
+                    got = read_manifest(self.links[ep], self.timeout_s, first)
+                except BrokenPeer as e:  # the next host that answers is read
+                    self.leave_out(ep, e.left_out_for)
+                    continue
+                if got.fingerprint() == self.plan.manifest:
+                    self.manifest = got
+                else:
+                    self.other_plan(ep, f"manifest {got.fingerprint()}", got)
+            self.known[self.plan.manifest] = self.manifest
+            self._name_unnamed()
             for v, n in self.manifest.slots:
                 if n is not None:
                     self.windows.setdefault(v, n)
@@ -309,20 +449,22 @@ class Fleet:
         """``(host, its manifest's first part)``: the hosts asked in turn, each for
         :data:`ASK_NEXT_S` seconds, round after round until ``timeout_s``. A host asked that
         did not answer, or refused, is named in one log line and leaves the fleet (one silent
-        joins again when it answers the ``plan_ask`` of ``_resolve``), so the pass routes
-        nothing to it.
+        joins again when it answers the ``plan_ask`` of ``_resolve``; one refusing, for the
+        pass), so the pass routes nothing to it; one that breaks the protocol is left out
+        (:meth:`leave_out`).
 
         Raises:
             TimeoutError: no host answered within ``timeout_s``, naming them.
-            PlanServerError: no host serves the plan, or every host refused (their lines)."""
+            PlanServerError: no host serves the plan, or every host refused or was left out
+                (naming each and why)."""
         hosts = list(self.router.hosts)
         if not hosts:
             raise PlanServerError(f"{self.endpoint}: no host serves the plan")
         deadline = time.monotonic() + self.timeout_s
         silent: List[str] = []
         refused: Dict[str, str] = {}
-        while len(refused) < len(hosts):
-            for ep in [h for h in hosts if h not in refused]:
+        while any(h not in refused and h not in self.left_out for h in hosts):
+            for ep in [h for h in hosts if h not in refused and h not in self.left_out]:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise TimeoutError(f"{', '.join(silent) or self.endpoint}: no manifest within {self.timeout_s} s (each host "
@@ -331,6 +473,9 @@ class Fleet:
                     first = manifest_part(self.links[ep], 0, min(ASK_NEXT_S, left))
                 except TimeoutError:
                     silent += [] if ep in silent else [ep]
+                    continue
+                except BrokenPeer as e:
+                    self.leave_out(ep, e.left_out_for)
                     continue
                 except PlanServerError as e:
                     refused[ep] = str(e)
@@ -341,10 +486,11 @@ class Fleet:
                     self.router.leave(h)
                 for h, why in refused.items():
                     log.warning("left out of the fleet: %s", why)
-                    self.refused.add(h)
+                    self.out_for_pass[h] = why.removeprefix(f"{h}: ")
                     self.router.leave(h)
                 return ep, first
-        raise PlanServerError("; ".join(refused.values()))
+        raise PlanServerError("; ".join([*refused.values(), *(f"{h}: {self.left_out[h]}" for h in hosts
+                                                             if h in self.left_out)]))
 
     # ------------------------------------------------------------------ reading
     def fetch_all(self, steps, prefetch: int, retry_s: float, fetch_of, first_of=None) -> Iterator:
@@ -354,14 +500,15 @@ class Fleet:
 
         Raises:
             TimeoutError: no host said anything for ``timeout_s`` while the reader waited.
-            PlanServerError: no host left serving the plan, or a host sent what cannot be read.
+            PlanMismatch: no host serves the pass's plan any more (:meth:`no_host_left`).
+            PlanServerError: every host left out, or a host sent what cannot be read.
         """
-        manifest = self._manifest()
         todo = iter(steps)
         first = next(todo, None)
         if first is None:
             return
         f0 = fetch_of(0, first)
+        manifest = self._manifest(f0.epoch)
         read = Pass(self, manifest, f0, prefetch, retry_s)
         read.add(first, f0)
         while read.window:

@@ -238,14 +238,16 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         d = self._dispatcher()
         return d[0] if d else self.world_size
 
-    def plan_info(self, refresh: bool = False) -> PlanInfo:
+    def plan_info(self, refresh: bool = False, new_pass: bool = False) -> PlanInfo:
         """What the server(s) serve (asked once per dataset object and process; with ``refresh``,
-        again while the epoch's samples are not known: the plan unfolds as the server decodes).
+        again while the epoch's samples are not known: the plan unfolds as the server decodes;
+        with ``new_pass``, again of a fleet, whose hosts may serve another plan since the last
+        pass: ``Servers.ask``).
 
         Raises:
             TimeoutError, PlanServerError, ValueError: as ``Servers.ask``.
             PlanMismatch: a loaded position of another plan."""
-        if self._info is None or (refresh and self._info.samples is None):
+        if self._info is None or (refresh and self._info.samples is None) or (new_pass and self._servers.fleet):
             loaded = self._resume or (self._pending and self._pending["position"])
             prefer = PlanIdentity.from_dict(loaded["plan"]) if loaded else None  # a fleet reads the plan it names
             self._info = self._servers.ask(self.timeout_s, self.curve, prefer)
@@ -293,7 +295,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         r = {"epoch": epoch, "origin": origin, "next": first, "last": None, "worker": j, "workers": k,
              "rank": rank, "world": world, "group": g, "per_step": world * size}
         self._reading, self._upcoming = r, None
-        info = self.plan_info(refresh=True)
+        info = self.plan_info(refresh=True, new_pass=True)
         if pending is not None:
             Position.from_dict(pending["position"], expected=info.plan)
         steps = epoch_steps(info.samples, world, size, r["origin"])

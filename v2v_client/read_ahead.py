@@ -11,12 +11,19 @@ from typing import Iterator, Optional
 
 import torch
 
-__all__ = ["ReadAhead", "READ_AHEAD"]
+from .fetch import stopped_by
+
+__all__ = ["ReadAhead", "READ_AHEAD", "CLOSE_WAIT_S"]
 
 
 #: Batches a :class:`ReadAhead` holds ready beyond the one the loop holds (``bench/trainer_feed.py``
 #: measures the read path with it: docs/trainer_feed.md).
 READ_AHEAD = 3
+#: Seconds :meth:`ReadAhead.close` waits for its thread: the thread's waits on the servers end
+#: within :data:`~v2v_client.fetch.POLL_S` of the stop (half a second in a fleet's loop), its
+#: sockets closed as it unwinds, whether the servers answer or not (all of them stopped); past it
+#: the thread (a daemon) is left to end by itself, so Ctrl-C ends the command within 2 s.
+CLOSE_WAIT_S = 1.0
 
 
 class ReadAhead:
@@ -108,13 +115,14 @@ class ReadAhead:
     def _read(self) -> None:
         it = iter(self.stream)
         try:
-            for batch in it:
-                if self.pin:
-                    batch = {k: v.pin_memory() if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-                if self.first_batch_s is None:
-                    self.first_batch_s = time.perf_counter() - self._t0
-                if not self._put(("batch", batch)):
-                    return
+            with stopped_by(self._stop):  # close() ends the fetch in hand too (fetch.ReadStopped)
+                for batch in it:
+                    if self.pin:
+                        batch = {k: v.pin_memory() if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+                    if self.first_batch_s is None:
+                        self.first_batch_s = time.perf_counter() - self._t0
+                    if not self._put(("batch", batch)):
+                        return
             self._put(("end", None))
         except BaseException as e:  # raised in the loop's thread, the same object (type and traceback kept)
             self._put(("error", e))
@@ -123,8 +131,9 @@ class ReadAhead:
             if close is not None:
                 close()
 
-    def close(self, timeout_s: float = 10.0) -> None:
-        """Stop reading: the thread ends after the fetch in hand, its connection closed."""
+    def close(self, timeout_s: float = CLOSE_WAIT_S) -> None:
+        """Stop reading: the thread's fetch in hand ends (``fetch.stopped_by``) and its connections
+        close; waits up to ``timeout_s`` for it (:data:`CLOSE_WAIT_S`)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout_s)

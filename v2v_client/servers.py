@@ -8,13 +8,14 @@ import time
 from typing import Dict, List, Optional, Tuple
 
 from v2v_wire.codecs import available, check_compression
-from v2v_wire.plan import PlanIdentity
-from v2v_wire.plan_messages import PlanInfo
+from v2v_wire.plan import Manifest, PlanIdentity
+from v2v_wire.plan_messages import MAX_FETCH_ROWS, PlanInfo
 from v2v_wire.plan_shards import shards_identity, shards_samples
+from v2v_wire.protocol import MAX_BATCH_BYTES
 
 from .endpoints import auto_compression, check_servers, resolve_endpoints, split_endpoints
-from .fetch import Link, PlanServerError, Shards
-from .fleet_read import ASK_NEXT_S, Fleet, alias_of, asked_fleet, listing_diff
+from .fetch import Link, PlanServerError, Shards, reply_limit
+from .fleet_read import ASK_NEXT_S, Fleet, alias_of, asked_fleet, listing_diff, manifest_diff, read_manifest
 
 __all__ = ["Servers", "FLEET_ASK_S"]
 
@@ -39,15 +40,20 @@ class Servers:
         self.shards: Optional[List[Tuple[str, PlanIdentity]]] = None  # (server, its plan), in shard order
         self.codecs: Dict[str, str] = {}  # server -> compression
         self.samples: List[Optional[int]] = []  # each shard's samples per epoch when asked (None: not known)
-        self.fleet: Optional[List[Tuple[str, PlanInfo]]] = None  # a fleet's hosts serving the plan
+        self.fleet: Optional[List[Tuple[str, PlanInfo]]] = None  # a fleet's hosts, each with what it said last
+        self.plan: Optional[PlanIdentity] = None  # a fleet's plan
         self.windows: Dict[str, int] = {}  # a fleet's videos' windows learned in this process
         self.rates: Dict[str, float] = {}  # a fleet's hosts' decode rates they said to this process
         self.made: Dict[str, str] = {}  # a fleet's videos -> the host whose rows of it this process read last
         self.same: Dict[str, str] = {}  # an endpoint -> the one its host is read under (fleet_read.alias_of)
+        self.manifests: Dict[str, Manifest] = {}  # a fleet's manifests read in this process, by fingerprint
+        self.left_out: Dict[str, str] = {}  # a fleet's peers left out -> why: named once (fleet_read.Fleet)
+        self.max_msg = MAX_BATCH_BYTES  # the largest frame a shard's reply carries (fetch.reply_limit)
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
         state["windows"] = {}  # learned again in each process: a corpus's worth is no pickle to send
+        state["manifests"] = {}
         return state
 
     def ask(self, timeout_s: float, curve: Optional[tuple], prefer: Optional[PlanIdentity] = None) -> PlanInfo:
@@ -55,18 +61,21 @@ class Servers:
         hosts that each serve the whole corpus are a fleet: its plan is ``prefer`` (a loaded
         position's) where a host serves it, else the first host's; a host serving another plan is
         named in one log line and left out, as is one silent for ``FLEET_ASK_S`` once another answered.
+        Asked again of a fleet (at each pass), its plan holds while a host serves it; once every host
+        that answers serves another (each restarted with a file replaced), the fleet is asked again
+        as at first and its plan is theirs, said in one line naming the files that changed.
 
         Raises:
             TimeoutError, PlanServerError: a server silent, or speaking another protocol version.
             ValueError: several servers that are not one sharding of one corpus, nor a fleet."""
         if self.fleet is not None:
-            return self._ask_fleet_again(timeout_s, curve)
+            return self._ask_fleet_again(timeout_s, curve, prefer)
         servers = resolve_endpoints(self.endpoint) if self.shards is None else [ep for ep, _ in self.shards]
         if len(servers) == 1:
             with Link(servers[0], timeout_s, curve) as link:
                 infos = [link.ask()]
         else:  # asked at once: a silent or stopped first host costs no wait of its own
-            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve)
+            answered = asked_fleet(servers, timeout_s, min(timeout_s, FLEET_ASK_S), curve, self.left_out)
             if not isinstance(next(iter(answered.values())).stream.get("shard"), str):
                 return self._ask_fleet(servers, answered, timeout_s, curve, prefer)
             infos = []
@@ -76,34 +85,56 @@ class Servers:
                         answered[server] = link.ask()
                 infos.append(answered[server])
         info, self.shards, self.samples = _as_one_plan(servers, infos)
+        self.max_msg = reply_limit(info.stream, MAX_FETCH_ROWS)  # a fetch's reply holds at most MAX_FETCH_ROWS rows
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in zip(servers, infos)}
         return info
 
-    def _ask_fleet_again(self, timeout_s: float, curve: Optional[tuple]) -> PlanInfo:
-        """What the fleet serves, asked again (the plan's samples, while it unfolds), of the first
-        host that answers: the hosts asked in turn, ``ASK_NEXT_S`` seconds each, round after round
-        until ``timeout_s``; a host serving another plan now is asked no more.
+    def _ask_fleet_again(self, timeout_s: float, curve: Optional[tuple], prefer: Optional[PlanIdentity]) -> PlanInfo:
+        """What the fleet serves, asked again (at each pass; the plan's samples, while it
+        unfolds) of its hosts at once (``fleet_read.asked_fleet``: the first answer awaited
+        ``timeout_s``, the others ``ASK_NEXT_S`` more). The hosts that serve the plan are read
+        first for the pass's manifest; each host keeps what it said now, so one serving another
+        plan is left out of the pass and named (``fleet_read.Fleet.other_plan``); a peer left out
+        (``left_out``) is not asked. When no host that answered serves the plan, the fleet of what
+        they serve (:meth:`_replanned`).
 
         Raises:
             TimeoutError: no host answered within ``timeout_s``.
-            PlanServerError: every host serves another plan now."""
-        plan = self.fleet[0][1].plan
-        hosts = [ep for ep, _ in self.fleet]
-        deadline = time.monotonic() + timeout_s
-        while hosts:
-            for ep in list(hosts):
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError(f"{', '.join(hosts)}: no answer to 'what do you serve' within {timeout_s} s")
-                try:
-                    with Link(ep, min(ASK_NEXT_S, left), curve) as link:
-                        info = link.ask()
-                except TimeoutError:
-                    continue
-                if info.plan == plan:
-                    return info
-                hosts.remove(ep)
-        raise PlanServerError(f"{self.endpoint}: no host of the fleet serves its plan (manifest {plan.manifest}) now")
+            PlanServerError: every host left out (one line naming each and why), or as :meth:`ask`
+                asked first.
+            ValueError: as :meth:`ask` asked first."""
+        answered = asked_fleet([ep for ep, _ in self.fleet], timeout_s, min(timeout_s, ASK_NEXT_S), curve,
+                               self.left_out)
+        serving = [ep for ep, i in answered.items() if i.plan == self.plan]
+        if not serving:
+            return self._replanned(self.plan, timeout_s, curve, prefer)
+        self.fleet = sorted(((ep, answered.get(ep, i)) for ep, i in self.fleet if ep not in self.left_out),
+                            key=lambda h: h[0] not in serving)
+        return answered[serving[0]]
+
+    def _replanned(self, old: PlanIdentity, timeout_s: float, curve: Optional[tuple],
+                   prefer: Optional[PlanIdentity]) -> PlanInfo:
+        """The fleet asked again as at first, no host serving plan ``old`` any more: its plan is
+        the one the hosts serve now (a loaded position's plan, ``prefer``, is checked against it
+        by the caller), said in one log line naming the files whose tags changed since ``old``'s
+        manifest where this process read it. Every peer is asked again, one left out before
+        included: what it was left out for was judged against ``old``."""
+        self.fleet = self.shards = None
+        self.left_out.clear()  # in place: the fleets of this process share it
+        info = self.ask(timeout_s, curve, prefer)
+        files = ""
+        before = self.manifests.get(old.manifest)
+        if before is not None and self.fleet:  # (the endpoint may name one server or shards now)
+            ep = self.fleet[0][0]
+            try:
+                with Link(ep, min(ASK_NEXT_S, timeout_s), curve) as link:
+                    files = manifest_diff(before, "before", read_manifest(link, min(ASK_NEXT_S, timeout_s)), "now")
+            except (TimeoutError, PlanServerError) as e:
+                files = f"{ep}'s listing could not be read ({e})"
+        log.warning("%s: no host serves the plan read last (manifest %s) any more: the fleet's plan is the one its "
+                    "hosts serve now (manifest %s)%s", self.endpoint, old.manifest, info.plan.manifest,
+                    f"; {files}" if files else "")
+        return info
 
     def _ask_fleet(self, servers: List[str], infos: Dict[str, PlanInfo], timeout_s: float, curve: Optional[tuple],
                    prefer: Optional[PlanIdentity]) -> PlanInfo:
@@ -117,7 +148,7 @@ class Servers:
                 self.same[ep] = kept
         infos = {ep: i for ep, i in infos.items() if ep not in self.same}
         for ep in servers:
-            if ep not in infos and ep not in self.same:
+            if ep not in infos and ep not in self.same and ep not in self.left_out:  # one left out was named then
                 log.warning("%s: left out of the fleet for now: no answer to 'what do you serve' within %s s", ep,
                             min(timeout_s, FLEET_ASK_S))
         whole, first = next(iter(infos)), next(iter(infos.values()))
@@ -128,8 +159,8 @@ class Servers:
         plans = [i.plan for i in infos.values()]
         plan = prefer if prefer is not None and prefer in plans else first.plan
         hosts = [(ep, i) for ep, i in infos.items() if i.plan == plan]
-        _name_left_out(infos, plan, timeout_s, curve)
-        self.fleet, self.shards = hosts, [(ep, i.plan) for ep, i in hosts]
+        _name_left_out(infos, plan, timeout_s, curve, self.left_out)
+        self.fleet, self.shards, self.plan = hosts, [(ep, i.plan) for ep, i in hosts], plan
         self.codecs = {ep: _codec_for(self.compression, ep, i.stream) for ep, i in hosts}
         info = hosts[0][1]
         known = [i.samples for _, i in hosts if i.samples is not None]
@@ -139,9 +170,10 @@ class Servers:
         """The fetch loop over the servers: ``Shards`` (one server is one shard), or a fleet's
         (``fleet_read.Fleet``)."""
         if self.fleet is not None:
-            return Fleet(self.endpoint, self.fleet, self.fleet[0][1].plan, timeout_s, curve, self.compression,
-                         self.windows, rates=self.rates, made=self.made, same=self.same)
-        return Shards(self.shards, timeout_s, curve, self.codecs, self.samples)
+            return Fleet(self.endpoint, self.fleet, self.plan, timeout_s, curve, self.compression,
+                         self.windows, rates=self.rates, made=self.made, same=self.same,
+                         known=self.manifests, left_out=self.left_out)
+        return Shards(self.shards, timeout_s, curve, self.codecs, self.samples, self.max_msg)
 
     def feed(self, timeout_s: float, curve: Optional[tuple]) -> Optional[dict]:
         """The servers' ``feed`` figures asked now (``plan_server.stream_info``), summed over the
@@ -155,7 +187,8 @@ class Servers:
                 together: one silent server cannot make the question wait once per server)."""
         deadline = time.monotonic() + timeout_s
         figures = []
-        for server in [ep for ep, _ in self.shards or ()] or resolve_endpoints(self.endpoint):
+        asked = [ep for ep, _ in self.shards or () if ep not in self.left_out]  # a peer left out answers nothing
+        for server in asked or resolve_endpoints(self.endpoint):
             with Link(server, max(0.0, round(deadline - time.monotonic(), 2)), curve) as link:
                 figures.append(link.ask().stream.get("feed"))
         if not figures or not all(isinstance(f, dict) for f in figures):
@@ -199,9 +232,11 @@ def _codec_for(compression: str, endpoint: str, stream: dict) -> str:
     return compression if compression != "auto" else auto_compression(endpoint, stream.get("codecs", ()))
 
 
-def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: float, curve: Optional[tuple]) -> None:
+def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: float, curve: Optional[tuple],
+                   left_out: Dict[str, str]) -> None:
     """Name in one log line each host of ``infos`` serving another plan than ``plan``: what
-    differs, and for another listing of the same recipe and seed the first files that differ."""
+    differs, and for another listing of the same recipe and seed the first files that differ;
+    noted in ``left_out`` (endpoint -> why), so that no pass names it again."""
     for ep, i in infos.items():
         problem = plan.problem(i.plan)
         if not problem:
@@ -213,3 +248,4 @@ def _name_left_out(infos: Dict[str, PlanInfo], plan: PlanIdentity, timeout_s: fl
             except (TimeoutError, PlanServerError) as e:
                 problem += f"; its listing could not be read ({e})"
         log.warning("%s: left out of the fleet: it serves %s", ep, problem)
+        left_out[ep] = f"it serves {problem}"

@@ -401,20 +401,22 @@ class EpochPlan:
     def position(self, key: SampleKey) -> Optional[int]:
         """The decided position holding ``key`` (a sample of this epoch's videos), or None while no
         decided position holds it (its video not counted yet, or its sample still in the buffer
-        or past it) or for a video not in this epoch. The inverse of :meth:`key`, built once per
-        :attr:`known` (int64, one entry a counted sample)."""
+        or past it) or for a video not in this epoch. The inverse of :meth:`key` (int64, one entry
+        a counted sample), extended as the plan unfolds."""
         i = self._video_number(key.video)
         if i is None or i >= len(self._starts) - 1:
             return None
         prod = self._starts[i] + key.ordinal(self.crops_per_window)
         if prod >= self._starts[i + 1]:
             return None
-        inverse = getattr(self, "_inverse", None)
-        if inverse is None or inverse[0] != self.known:
-            table = np.full(self._starts[-1], -1, dtype=np.int64)
-            table[self.production] = np.arange(self.known, dtype=np.int64)
-            inverse = self._inverse = (self.known, table)
-        p = int(inverse[1][prod]) if prod < len(inverse[1]) else -1
+        done, table = getattr(self, "_inverse", (0, np.empty(0, dtype=np.int64)))
+        if done != self.known:  # extended with the positions decided since: a plan unfolding pays once a position
+            if len(table) < self._starts[-1]:
+                table = np.concatenate([table, np.full(max(self._starts[-1], 2 * len(table)) - len(table), -1,
+                                                       dtype=np.int64)])
+            table[np.frombuffer(self._production, dtype=np.int64)[done:]] = np.arange(done, self.known, dtype=np.int64)
+            self._inverse = (self.known, table)
+        p = int(table[prod]) if prod < len(table) else -1
         return None if p < 0 else p
 
     def keys(self, start: int, stop: int) -> List[Optional[SampleKey]]:

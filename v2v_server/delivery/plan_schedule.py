@@ -81,9 +81,9 @@ EPOCHS_COUNTED = 16
 #: Readers' heads tracked (:class:`Heads`), the least recently moved out past it: two epochs'
 #: for each reader of a job of 32 (8 ranks x 4 DataLoader workers).
 HEADS_KEPT = 64
-#: A head is idle (its reader stopped, or left) once it asked nothing for this many of its own
-#: intervals between fetches, and for at least :data:`HEAD_IDLE_S`: a sample only idle heads
-#: reach is one no reader needs soon.
+#: A head is idle (its reader stopped, or left) once, with no fetch pending, it asked nothing and
+#: was answered nothing for this many of its own intervals between fetches, and for at least
+#: :data:`HEAD_IDLE_S`: a sample only idle heads reach is one no reader needs soon.
 HEAD_IDLE_INTERVALS = 4
 HEAD_IDLE_S = 2.0
 
@@ -130,6 +130,7 @@ class Run:
     copies: Dict[int, Hashable] = field(default_factory=dict)
     progress: Dict[int, float] = field(default_factory=dict)
     skips: Dict[int, Set[Tuple[int, int]]] = field(default_factory=dict)  # task id -> (window, crop) not asked of it
+    made: Set[Tuple[int, int]] = field(default_factory=set)  # (window, crop) its copies made: a hedge skips them
     error: Optional[str] = None  # why the last pass that ended stopped early
 
     def end(self, task_id: int) -> None:
@@ -174,11 +175,18 @@ class Heads:
         for k in [k for k in self.heads if k[0] == client]:
             del self.heads[k]
 
-    def moving(self, epoch: int, now: float) -> List[int]:
-        """The stops of ``epoch``'s heads that are not idle at ``now``
-        (:data:`HEAD_IDLE_INTERVALS`, :data:`HEAD_IDLE_S`)."""
-        return [h.stop for (_, e), h in self.heads.items()
-                if e == epoch and now - h.at <= max(HEAD_IDLE_S, HEAD_IDLE_INTERVALS * h.interval)]
+    def answered(self, client: Hashable, epoch: int, now: float) -> None:
+        """A fetch of ``client`` in ``epoch`` was answered at ``now``: its idle time counts from here."""
+        h = self.heads.get((client, epoch))
+        if h is not None:
+            h.at = max(h.at, now)
+
+    def moving(self, epoch: int, now: float, waiting: Set[Hashable] = frozenset()) -> List[int]:
+        """The stops of ``epoch``'s heads that are not idle at ``now``: those of the ``waiting``
+        clients (a fetch of theirs is pending), and those asked or answered within
+        :data:`HEAD_IDLE_INTERVALS` of their intervals and :data:`HEAD_IDLE_S`."""
+        return [h.stop for (c, e), h in self.heads.items()
+                if e == epoch and (c in waiting or now - h.at <= max(HEAD_IDLE_S, HEAD_IDLE_INTERVALS * h.interval))]
 
 
 class Making:
@@ -370,6 +378,7 @@ class PlanScheduler:
         self.fetched_at, self.fetched_to = {}, {}  # epoch -> when a fetch last named it; the furthest stop one named
         self.heads = Heads()
         self.stopped: Dict[str, Tuple[int, int]] = {}  # video -> (passes in a row that stopped on an error, most windows)
+        self.passed: Dict[Tuple[int, str], Set[Tuple[int, int]]] = {}  # (epoch, video) asked again -> made before
         # tasks started; samples made; EpochPlans built (one per epoch read, however many at once)
         self._task_ids = self.samples_made = self.plans_built = 0
         self.epoch_made: Dict[int, int] = {}  # epoch -> samples made of it, the EPOCHS_COUNTED latest
@@ -454,6 +463,8 @@ class PlanScheduler:
             out.append((f, rows))
             if isinstance(f, Order):
                 self.orders.answered(f, now)
+            else:
+                self.heads.answered(f.client, f.epoch, now)
             for r in rows:
                 if r.sample is not None:
                     self.store.move_to_end((f.epoch, r.key))
@@ -507,12 +518,37 @@ class PlanScheduler:
         epoch, video = ek
         self._task_ids += 1
         tid = self._task_ids
-        run = self.runs.setdefault(ek, Run(epoch, video))
+        run = self.runs.get(ek)
+        if run is None:  # a pass asked again after one stopped on an error skips what those made
+            run = self.runs[ek] = Run(epoch, video, made=self.passed.pop(ek, set()))
         run.copies[tid], run.progress[tid] = worker, now
         self.task_run[tid] = ek
         skip = {(k.window, k.crop) for (e, k) in list(self.store) + list(self.failed) if e == epoch and k.video == video}
+        skip |= run.made  # made by the copy it hedges, and read already: not made again
+        skip |= self._read_by_all(epoch, video, now)
         run.skips[tid] = skip
         return Task(tid, epoch, video, self.making.start(tid), tuple(sorted(skip)), tuple(codecs))
+
+    def _read_by_all(self, epoch: int, video: str, now: float) -> Set[Tuple[int, int]]:
+        """(window, crop) of ``video``'s samples in ``epoch`` at decided positions behind every
+        moving head of the epoch (:class:`Heads`), named by no pending fetch, where no make waits
+        on the video: every reader of the epoch has read them, so a decode asked again for a
+        sample dropped before its fetch (or asked again by a reader going back) makes only the
+        samples still to be read."""
+        waiting = {f.client for f in self.pending}
+        plan, heads, n = self.plans.get(epoch), self.heads.moving(epoch, now, waiting), self.slots.samples.get(video)
+        if plan is None or not heads or not n or any(o.epoch == epoch and o.video == video
+                                                     for o in self.orders.waiting):
+            return set()
+        behind = min(heads)
+        asked = [(f.start, f.stop) for f in self.pending if f.epoch == epoch]
+        out = set()
+        for i in range(n):
+            key = SampleKey.at(video, i, self.manifest.crops_per_window)
+            p = plan.position(key)
+            if p is not None and p < behind and not any(a <= p < b for a, b in asked):
+                out.add((key.window, key.crop))
+        return out
 
     def sample(self, worker: Hashable, task_id: int, key: SampleKey, now: float, build: Callable) -> bool:
         """Worker ``worker`` sent sample ``key`` of task ``task_id``; ``build()`` makes the sample
@@ -532,10 +568,12 @@ class PlanScheduler:
         if slots is not None and key.ordinal(kpw) >= slots:
             raise SlotsExceeded(f"{key.video}: the decode gave {key.sample_id(kpw)}, past the manifest's "
                                 f"{slots // kpw} window(s) for it (a stale corpus index, or a file changed in place)")
-        if sk in self.store or self.making.tasks.get(task_id) != self.making.now:  # made already, or lacks an output
+        if sk in self.store or (key.window, key.crop) in run.made or \
+                self.making.tasks.get(task_id) != self.making.now:  # made already (kept, or read), or lacks an output
             return False
         self.failed.pop(sk, None)
         self.store[sk] = build()
+        run.made.add((key.window, key.crop))
         self.samples_made += 1
         self.epoch_made[ek[0]] = self.epoch_made.get(ek[0], 0) + 1
         if len(self.epoch_made) > EPOCHS_COUNTED:
@@ -563,8 +601,10 @@ class PlanScheduler:
         epoch, video = ek
         kpw = self.manifest.crops_per_window
         most = pass_ended(self.stopped, video, windows, cause)
-        if most is None:
-            return run  # its missing samples are needed still: the next pass makes them
+        if most is None:  # its missing samples are needed still: the next pass makes them, and only them
+            self.passed.setdefault(ek, set()).update(run.made)
+            return run
+        self.passed.pop(ek, None)
         if self.slots.samples.get(video, 0) is None:
             self.learn(video, most)
         why_short = error or f"the decode gave {windows} window(s), the manifest {self.slots.samples.get(video, 0) // kpw}"
@@ -674,7 +714,7 @@ def trim(s: "PlanScheduler", now: float) -> None:
     for sk in fetched[:max(0, len(fetched) - s.keep_samples)]:
         del s.store[sk]
         s.fetched.discard(sk)
-    over = len(s.store) - s.keep_samples - s.lookahead - s.slots.largest
+    over = len(s.store) - s.keep_samples - max(s.lookahead, s.shuffle_buffer) - s.slots.largest
     if over <= 0:
         return
     named = set()
@@ -690,7 +730,8 @@ def trim(s: "PlanScheduler", now: float) -> None:
     for e in live & set(s.plans):  # what decides a plan still unfolding is kept: it is read next
         keys = [k for (e2, k) in s.store if e2 == e and (e2, k) not in s.fetched]
         named.update((e, k) for k in s.plans[e].undecided(keys))
-    heads = {e: s.heads.moving(e, now) for e in live}
+    waiting = {f.client for f in s.pending}
+    heads = {e: s.heads.moving(e, now, waiting) for e in live}
 
     def reached(sk: Tuple[int, SampleKey]) -> Optional[int]:
         plan, stops = s.plans.get(sk[0]), heads.get(sk[0], ())
