@@ -19,9 +19,12 @@ and stop its workers; each host measures its own capacity (samples over its work
 seconds) and says it with each answer. The reader reads positions in order, a step of ``step``
 positions at a time, as fast as they are made (the trainer never waits on itself), and asks ahead for the videos
 of the next ``lookahead`` positions. Each host works the videos asked of it in order of the first
-position that needs them. With ``ranks`` above one, each rank reads its slice of every step with
-its own router (``Router``'s ``readers``), asking the clips of its slice only; a host keeps what
-it made and answers a later ask of it at once.
+position that needs them, and says its queue (the samples every rank asked of it and it has not
+made) with each answer and to each ping, which it answers unless stalled. With ``ranks`` above
+one, each rank reads its slice of every step with its own router, asking the clips of its slice
+only, each of its arbiter (``Router.arbiter``), which places it where the first rank to ask it
+picked (at once: no round trip is modelled); a host keeps what it made and answers a later ask
+of it at once.
 
 **A fleet the HPA sizes** (:func:`autoscale`): a trainer of fixed appetite (samples/s) reads the
 epoch step by step, each once its rows are had and no sooner than its appetite allows; the
@@ -62,8 +65,8 @@ from v2v_wire.plan import EpochPlan, Manifest
 from harness.hpa import CPU_INITIALIZATION_S, SYNC_S, Hpa, HpaSpec, PodSample
 
 #: Decodes per worker a reader asks ahead by default: a clip of many windows decodes for many
-#: times the mean, and the steps after it must find their clips made meanwhile (6 gives 0.72 of
-#: the hosts' rate at 128 hosts, 10 gives 0.97: docs/scaling.md).
+#: times the mean, and the steps after it must find their clips made meanwhile (6 gave 0.72 of
+#: the hosts' rate over 10-90 % of the epoch at 128 hosts, 10 gave 0.97: docs/scaling.md).
 LOOKAHEAD_DECODES = 10
 
 #: Frames per sample (the paper's 40 voxels x 5 bins + 1) and frames between window starts.
@@ -137,7 +140,13 @@ class Result:
 
     @property
     def share(self) -> float:
-        """:attr:`steady_rate` over :attr:`capacity`."""
+        """:attr:`rate` over :attr:`capacity`: the whole epoch's share of the hosts' capacity."""
+        return self.rate / self.capacity
+
+    @property
+    def steady_share(self) -> float:
+        """:attr:`steady_rate` over :attr:`capacity` (above 1: the 10 % before the window made
+        ahead what it reads)."""
         return self.steady_rate / self.capacity
 
 
@@ -287,6 +296,8 @@ class _World:
         self.running: Dict[Tuple[int, str], float] = {}  # (host, clip) decoding -> since when
         self.made_on: List[Set[str]] = [set() for _ in range(self.n)]  # clips each host made (kept)
         self.waiting: Dict[Tuple[int, str], Set[int]] = {}  # (host, clip) -> the ranks waiting on it there
+        self.queued = [0] * self.n  # samples every rank asked of each host, not made yet: what it says
+        self.placed: List[Dict[str, int]] = [{} for _ in range(self.n)]  # clip -> where its arbiter placed it
         self.outstanding: List[Set[str]] = [set() for _ in range(self.ranks)]  # clips asked, not had yet
         self.made_by: Dict[str, str] = {}  # clip -> the host whose copy was read first
         self.decodes, self.now, self.read, self.head_since = 0, 0.0, 0, 0.0
@@ -305,8 +316,10 @@ class _World:
     def start_work(self, k: int) -> None:
         while self.free[k] and self.queues[k]:
             _, clip = heapq.heappop(self.queues[k])
-            if clip in self.made_on[k] or (k, clip) in self.running or \
-                    all((r, clip) in self.done_at for r in self.waiting.get((k, clip), ())):
+            if clip in self.made_on[k] or (k, clip) in self.running:
+                continue
+            if all((r, clip) in self.done_at for r in self.waiting.get((k, clip), ())):  # had elsewhere: not made
+                self._unqueue(k, clip)
                 continue
             self.free[k] -= 1
             self.running[(k, clip)] = self.now
@@ -319,16 +332,25 @@ class _World:
         if clip in self.made_on[k]:
             self.had(rank, clip, k)
             return
-        self.waiting.setdefault((k, clip), set()).add(rank)
+        ranks = self.waiting.setdefault((k, clip), set())
+        if rank not in ranks:
+            self.queued[k] += self.needs[rank][clip][1]
+            ranks.add(rank)
         heapq.heappush(self.queues[k], (self.needs[rank][clip][0], clip))
         self.start_work(k)
+
+    def _unqueue(self, k: int, clip: str) -> Set[int]:
+        """The ranks that waited on ``clip`` at host ``k``, which no longer queues their samples."""
+        ranks = self.waiting.pop((k, clip), set())
+        self.queued[k] -= sum(self.needs[r][clip][1] for r in ranks)
+        return ranks
 
     def had(self, rank: int, clip: str, k: int) -> bool:
         """Rank ``rank`` got ``clip`` from host ``k``: True when it is the rank's first copy."""
         r, at = self.routers[rank] if self.routers else None, self.t0 + self.now
         first = (rank, clip) not in self.done_at
         if r is not None:
-            r.answered(self.hosts[k], 0, clip, at, True, self.meters[k].rate())
+            r.answered(self.hosts[k], 0, clip, at, True, self.meters[k].rate(), self.queued[k])
         if first:
             self.done_at[(rank, clip)] = self.now
             self.outstanding[rank].discard(clip)
@@ -350,10 +372,33 @@ class _World:
             if self.routers:
                 router = self.routers[rank]
                 due = (needs[clip][0] - self.read) / router.capacity()  # as the reader's Pass.due
-                self.ask(rank, clip, self.index[router.route(0, clip, needs[clip][1], self.t0 + self.now, due=due,
-                                                             position=needs[clip][0], held=self.held.get(clip))])
+                at = self.t0 + self.now
+                arbiter = router.arbiter(clip, at)
+                pick = router.route(0, clip, needs[clip][1], at, due=due, position=needs[clip][0],
+                                    held=self.held.get(clip))
+                self.ask(rank, clip, self.placement(router, clip, arbiter, pick, at))
             else:
                 self.ask(rank, clip, self.lay.home[clip])
+
+    def placement(self, router: Router, clip: str, arbiter: Optional[str], pick: str, at: float) -> int:
+        """The host that makes ``clip`` for a rank whose router picked ``pick``, as its arbiter
+        (``Router.arbiter``) answers the make (at once; a stalled one does not, and the rank asks
+        ``pick``): the host it placed the clip at, else itself where it was picked or holds the
+        clip, else ``pick``, placed there."""
+        k = self.index[pick]
+        if arbiter is None or arbiter == pick and clip not in self.placed[self.index[arbiter]]:
+            return k
+        a = self.index[arbiter]
+        if self.stalls.silent(a, self.now):
+            return k
+        to = self.placed[a].get(clip)
+        if to is None:
+            if (a, clip) in self.waiting or (a, clip) in self.running or clip in self.made_on[a]:
+                to = a
+            else:
+                to = self.placed[a][clip] = k
+        router.moved(0, clip, pick, self.hosts[to], at)
+        return to
 
     def advance(self) -> None:
         while self.read < self.lay.length:
@@ -365,12 +410,17 @@ class _World:
             self.step_times.append((self.read, self.now))
 
     def hedge(self) -> None:
-        """The readers' clock: each rank asks the clips it asked of silent hosts of their next
-        hosts, and copies those its slice of the step being read has waited on for ``STEAL_S``
+        """The readers' clock: each rank pings the hosts holding its work it has not heard from
+        (``Router.pings``; a stalled host does not answer), asks the clips it asked of silent
+        hosts of their next hosts, and copies those its slice of the step being read has waited on for ``STEAL_S``
         (``Router.copy``)."""
         at, waited = self.t0 + self.now, self.now - self.head_since
         for rank, r in enumerate(self.routers):
             needs = self.needs[rank]
+            for h in r.pings(at):  # answered by the host's server loop unless it is stalled
+                k = self.index[h]
+                if not self.stalls.silent(k, self.now):
+                    r.heard(h, at, self.meters[k].rate(), self.queued[k])
             silent = {h for h in r.hosts if r.suspect(h, at)}
             waiting = [(0, c, needs[c][1]) for c in self.outstanding[rank] if silent.intersection(r.asked.get((0, c), ()))]
             for _, c, h in r.hedges(sorted(waiting, key=lambda w: needs[w[1]][0]), at):
@@ -391,7 +441,7 @@ class _World:
         self.meters[k].add(self.lay.needs[clip][1], (self.now - self.running.pop((k, clip))) / self.f.slots,
                            self.t0 + self.now)
         self.made_on[k].add(clip)
-        for rank in sorted(self.waiting.pop((k, clip), ())):
+        for rank in sorted(self._unqueue(k, clip)):
             self.had(rank, clip, k)
         self.settle()
         self.start_work(k)
@@ -454,8 +504,8 @@ def simulate(f: Fleet, mode: str, epoch: int = 0, routers: Optional[Sequence[Rou
 
 
 def _routers(f: Fleet) -> List[Router]:
-    return [Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S,
-                   readers=f.ranks) for _ in range(f.ranks)]
+    return [Router([f"host-{k:03d}" for k in range(f.hosts)], slack=f.slack, hedge_s=f.hedge_s, patience_s=STEAL_S)
+            for _ in range(f.ranks)]
 
 
 def static_padding(videos: int, shards: Sequence[int], seed: int = 0) -> Dict[int, float]:
@@ -532,7 +582,8 @@ class Job:
             the manifest's): a key of :data:`METRIC_WINDOW_S` (the CPU's target: a fraction of
             the request).
         window_follows: the reader asks ahead for the hosts it reads now; False: for those it
-            read at the start (``fleet_pass.Pass`` sizes its window once per epoch).
+            read at the start (a reader that sizes its window once a pass; ``fleet_pass.Pass``
+            follows the fleet).
     """
 
     appetite: float = 48.0
@@ -785,6 +836,7 @@ class _ScaledWorld(_World):
         heapq.heapify(self.events)
         self.running = {key: t for key, t in self.running.items() if key[0] != k}
         self.waiting = {key: r for key, r in self.waiting.items() if key[0] != k}
+        self.queued[k] = 0
         self.free[k], self.queues[k], self.made_on[k], self.meters[k] = self.f.slots, [], set(), RateMeter()
         self._resize()
         needs = self.needs[0]
@@ -916,6 +968,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--slow", type=float, default=None, help="host 0's speed times this factor")
     ap.add_argument("--stall-every-s", type=float, default=Fleet.stall_every_s)
     ap.add_argument("--stall-s", type=float, default=Fleet.stall_s)
+    ap.add_argument("--step", type=int, default=Fleet.step, help="positions per step, every rank's batch")
     ap.add_argument("--ranks", type=int, default=Fleet.ranks,
                     help="readers, each with its own router and its slice of every step (routed only)")
     ap.add_argument("--seed", type=int, default=0)
@@ -949,19 +1002,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 0
     if a.autoscale:
         return _print_autoscale(a)
-    if a.ranks < 1 or Fleet.step % a.ranks:
-        print(f"harness.fleet_sim: --ranks must divide the step ({Fleet.step}), got {a.ranks}", file=sys.stderr)
+    if a.ranks < 1 or a.step < 1 or a.step % a.ranks:
+        print(f"harness.fleet_sim: --ranks must divide --step ({a.step}), got {a.ranks}", file=sys.stderr)
         return 2
     f = Fleet(a.hosts, a.videos, a.slots, a.spread, None if a.slow is None else (0, a.slow), a.stall_every_s,
-              a.stall_s, ranks=a.ranks, seed=a.seed)
+              a.stall_s, step=a.step, ranks=a.ranks, seed=a.seed)
     rows = [simulate(f, "routed"), simulate(replace(f, ranks=1), "static")]  # static: one reader
     print(f"{f.hosts} hosts x {f.slots} workers, {f.videos} clips, speed spread sigma {f.spread}, "
           f"stalls every {f.stall_every_s} s for {f.stall_s} s on average, {f.ranks} rank(s) reading")
-    print(f"{'split':<8} {'samples/s':>10} {'steady':>8} {'capacity':>9} {'share':>6} {'decodes/clip':>13} {'padding':>8}")
+    print(f"{'split':<8} {'samples/s':>10} {'capacity':>9} {'share':>6} {'10-90 %':>8} {'decodes/clip':>13} "
+          f"{'padding':>8}")
     for r in rows:
-        print(f"{r.mode:<8} {r.rate:>10.1f} {r.steady_rate:>8.1f} {r.capacity:>9.1f} {r.share:>6.3f} "
+        print(f"{r.mode:<8} {r.rate:>10.1f} {r.capacity:>9.1f} {r.share:>6.3f} {r.steady_share:>8.3f} "
               f"{r.decodes:>13.3f} {1 - r.samples / r.positions:>8.1%}")
     if a.json:
         write_whole(a.json, json.dumps({"fleet": asdict(f), "results": [
-            {k: v for k, v in dict(asdict(r), share=r.share).items() if k != "made_by"} for r in rows]}, indent=1))
+            {k: v for k, v in dict(asdict(r), share=r.share, steady_share=r.steady_share).items() if k != "made_by"} for r in rows]}, indent=1))
     return 0

@@ -44,8 +44,8 @@ from v2v_client.fleet_read import Fleet
 from v2v_client.plan_state import _rows
 from v2v_server.delivery.plan_orders import Order
 from v2v_wire.plan import EpochPlan, Manifest, PlanIdentity, epoch_steps
-from v2v_wire.plan_messages import (MANIFEST_PART, Fetch, Make, ManifestAsk, ManifestPart, PlanAsk, PlanInfo, Refused,
-                                    Rows, decode_plan_client, plan_server_message)
+from v2v_wire.plan_messages import (MANIFEST_PART, Fetch, Make, ManifestAsk, ManifestPart, Moved, PlanAsk, PlanInfo,
+                                    Refused, Rows, decode_plan_client, plan_server_message)
 from v2v_wire.protocol import MAX_CLIENT_MSG, encode_arrays, pack, unpack
 
 #: Seconds of the readers' clock a tick (a worker makes a sample a tick).
@@ -109,9 +109,9 @@ class ReaderFleet(Fleet):
     client the hosts answer."""
 
     def __init__(self, net: "Net", reader: int, endpoint: list, plan: PlanIdentity, hedge_s: float,
-                 windows: Dict[str, int], ahead: Optional[int], now: float, readers: int = 1):
+                 windows: Dict[str, int], ahead: Optional[int], now: float):
         self.net, self.reader = net, reader
-        super().__init__(endpoint, [], plan, 120.0, None, "none", windows, ahead, hedge_s, readers=readers)
+        super().__init__(endpoint, [], plan, 120.0, None, "none", windows, ahead, hedge_s)
         self.resolved = now
         hedges = self.router.hedges
 
@@ -147,7 +147,7 @@ class Net:
     def info(self, host: Host) -> PlanInfo:
         """What ``host`` serves (``PlanServer``'s answer to ``plan_ask``)."""
         return PlanInfo(self.identity(host), self.world.samples_of(host, 0),
-                        dict(STREAM, feed={"workers": len(host.workers)}))
+                        dict(STREAM, feed={"workers": len(host.workers)}), queued=host.scheduler.queued())
 
     def post(self, to, what) -> None:
         """Queue ``what`` for ``to`` (a host's name, or a reader's number), unless lost."""
@@ -216,6 +216,10 @@ class Net:
                 self.out.problems.append(f"{host.name}: a {type(msg).__name__} under {problem}")
                 self.post(reader, (host.name, Refused(msg.request, str(problem), "plan").to_wire(), []))
                 continue
+            to = s.orders.place(msg.epoch, msg.video, msg.route, now)
+            if to is not None:
+                self.post(reader, (host.name, Moved(msg.request, to).to_wire(), []))
+                continue
             try:
                 s.make((reader, msg.outputs), msg.request, msg.epoch, msg.video, msg.ordinals, now, msg.outputs,
                        msg.position)
@@ -241,7 +245,8 @@ class Net:
         specs, frames = encode_arrays({"bytes": np.stack(real) if real else np.zeros((0, WIDTH), np.uint8)})
         head = Rows(o.request, o.epoch, 0, [r.key.sample_id(kpw) for r in rows], [r.padding for r in rows],
                     [{} if r.sample is not None else {"padding": r.reason} for r in rows], specs,
-                    self.world.samples_of(host, o.epoch), host.scheduler.slots.windows.get(o.video))
+                    self.world.samples_of(host, o.epoch), host.scheduler.slots.windows.get(o.video),
+                    queued=host.scheduler.queued())
         self.post(o.client[0], (host.name, head.to_wire(), [f.tobytes() for f in frames]))
 
 
@@ -422,8 +427,7 @@ class FleetWorld:
         job.hosts, job.resumed = len(hosts), False
         rd = next(self.reader_ids)
         plan = net.identity(hosts[0])
-        fleet = ReaderFleet(net, rd, self.dns, plan, self.hedge_s, proc.windows, job.ahead, now_s,
-                            job.world * job.workers)
+        fleet = ReaderFleet(net, rd, self.dns, plan, self.hedge_s, proc.windows, job.ahead, now_s)
         for h in hosts:
             fleet.join(h.name, net.wire(net.info(h).to_wire()), now_s)
         manifest = fleet._manifest(job.epoch)

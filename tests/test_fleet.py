@@ -101,43 +101,90 @@ def test_the_rate_a_host_says_is_checked_at_the_edge():
             Rows.from_wire({**rows.to_wire(), "rate": bad})
 
 
+def test_the_queue_a_host_says_and_a_makes_route_are_checked_at_the_edge_and_old_peers_messages_read():
+    from v2v_wire.plan import PlanIdentity
+    from v2v_wire.plan_messages import Make, Moved, PlanInfo, Rows, WireError, plan_server_message
+
+    rows = Rows(1, 0, 0, ["a.mp4#0"], [False], [{}], [], None, None, 12.5, 40)
+    assert Rows.from_wire(rows.to_wire()).queued == 40
+    plan = PlanIdentity("m", "r", 0, 1)
+    info = PlanInfo(plan, None, {}, None, 7)
+    assert PlanInfo.from_wire(info.to_wire()).queued == 7
+    make = Make(3, 0, "a.mp4", (0,), ("voxels",), plan, route="tcp://b:1")
+    assert Make.from_wire(make.to_wire()).route == "tcp://b:1"
+    assert plan_server_message(Moved(3, "tcp://b:1").to_wire()) == Moved(3, "tcp://b:1")
+    for bad in (-1, 1.5, "many", True):
+        for msg in (rows, info):
+            with pytest.raises(WireError, match="'queued'"):
+                type(msg).from_wire({**msg.to_wire(), "queued": bad})
+    for bad in (3, "x" * 513):
+        with pytest.raises(WireError, match="'route'"):
+            Make.from_wire({**make.to_wire(), "route": bad})
+    for bad in ("", None, 3):
+        with pytest.raises(WireError, match="'host'"):
+            Moved.from_wire({**Moved(3, "h").to_wire(), "host": bad})
+    old = [{k: v for k, v in m.to_wire().items() if k not in ("queued", "route")} for m in (rows, info, make)]
+    assert Rows.from_wire(old[0]).queued is None and PlanInfo.from_wire(old[1]).queued is None
+    assert Make.from_wire(old[2]).route is None  # an older reader's make: made where asked
+
+
 def test_a_full_owner_sheds_new_videos_to_the_next_host_of_their_ranking():
     r = Router(HOSTS[:2], slack=0.25)
     v = VIDEOS[0]
     first, second = rank_hosts(v, HOSTS[:2])
     for i, other in enumerate(x for x in VIDEOS[1:] if rank_hosts(x, HOSTS[:2])[0] == first):
-        r.route(0, other, 2, 0.0)
+        r.ask(first, 0, other, 2, 0.0)
         if i == 20:
             break
     assert r.route(0, v, 2, 0.0) == second
 
 
-def test_readers_of_one_job_route_a_video_to_its_owner_whatever_each_queued_and_heard():
-    """A reader's load bound and deadlines count what it queued and heard; readers of one job
-    (ranks, DataLoader workers) that differ there would ask a video they share of two hosts."""
-    v = VIDEOS[0]
-    owner = rank_hosts(v, HOSTS[:2])[0]
-    mine = [x for x in VIDEOS[1:] if rank_hosts(x, HOSTS[:2])[0] == owner][:21]
-
-    def pick(readers: int, queued: int) -> str:
-        r = Router(HOSTS[:2], slack=0.25, readers=readers)
+def test_readers_that_heard_the_same_hosts_queues_route_a_video_to_the_same_host_whatever_each_queued():
+    """Readers of one job (ranks, DataLoader workers) each route on their own: where each counts
+    only what it queued, one reader sees the owner full and another empty, and a video they
+    share is asked of two hosts (decoded twice). Each counts the queue the hosts say instead."""
+    mine = Router(HOSTS[:2], slack=0.25)
+    other = Router(HOSTS[:2], slack=0.25)
+    owner = rank_hosts(VIDEOS[0], HOSTS[:2])[0]
+    theirs = [x for x in VIDEOS[1:] if rank_hosts(x, HOSTS[:2])[0] == owner][:5]
+    for x in theirs:  # one reader queued 10 samples on the owner, the other none
+        mine.ask(owner, 0, x, 2, 0.0, position=50)
+    for r in (mine, other):  # both hear each host say its queue, every reader's
         for h in HOSTS[:2]:
-            r.answered(h, 0, "", 0.0, False, 10.0)
-        for x in mine[:queued]:
-            r.route(0, x, 2, 0.0)
-        return r.route(0, v, 2, 0.0, due=1.0, position=100)
+            r.heard(h, 1.0, rate=10.0, queued=11 if h == owner else 9)
+    assert mine.backlog(owner, 1.0) == other.backlog(owner, 1.0) == 11
+    picks = []
+    for x in VIDEOS[20:60]:
+        picks.append((mine.route(0, x, 2, 1.0, due=10.0, position=100),
+                      other.route(0, x, 2, 1.0, due=10.0, position=100)))
+        mine.finished(0, x)
+        other.finished(0, x)
+    assert all(p == q for p, q in picks)
+    assert {p for p, _ in picks} == set(HOSTS[:2])  # the full owner sheds some: the same ones for both
 
-    assert pick(1, 0) == owner and pick(1, 21) != owner  # alone: bounded by what it queued
-    assert {pick(4, n) for n in (0, 5, 21)} == {owner}  # one of several: the owner, whatever it queued
-    with pytest.raises(ValueError, match="readers"):
-        Router(HOSTS[:2], readers=0)
+
+def test_a_videos_arbiter_has_it_made_where_the_first_reader_placed_it():
+    """A reader asks a video of its arbiter (the first of its ranking that is not suspect), naming
+    where its own view would place it; the arbiter keeps the first reader's choice and tells every
+    later one, whatever their views, or makes it itself where it already holds it."""
+    from v2v_server.delivery.plan_orders import Order, Orders
+
+    o = Orders(1)
+    assert o.place(0, "a.mp4", "tcp://b:1", 0.0) == "tcp://b:1"  # placed at b by the first reader
+    assert o.place(0, "a.mp4", "tcp://c:1", 1.0) == "tcp://b:1"  # a later reader that would pick c
+    assert o.place(0, "a.mp4", "", 2.0) == "tcp://b:1"  # or the arbiter itself
+    assert o.place(0, "a.mp4", None, 2.0) is None  # told: make it here
+    o.add(Order("r", 1, 0, "b.mp4", (0,), 0), {"b.mp4": 2})
+    assert o.place(0, "b.mp4", "tcp://b:1", 3.0) is None  # it holds b.mp4 already: made here
+    assert o.place(1, "a.mp4", "", 3.0) is None  # another epoch: its own placement
 
 
 def test_the_ranks_of_a_job_reading_a_fleet_decode_each_clip_about_once():
-    """harness.fleet_sim with 8 ranks, each with its own router: a clip two ranks need was asked of
-    two hosts by each rank's own bound (1.48 decodes a clip, 0.58 of the hosts' rate)."""
+    """harness.fleet_sim with 8 ranks, each with its own router: routed by the hosts' queues and
+    placed by each clip's arbiter, a clip is made about once and the fleet near its capacity over
+    the whole epoch (each rank bound by what it queued alone: 1.11 decodes a clip, 0.75)."""
     r = simulate(Fleet(hosts=16, videos=4000, ranks=8), "routed")
-    assert r.decodes < 1.2 and r.share > 0.7
+    assert r.decodes < 1.03 and r.share > 0.9
 
 
 def test_a_silent_host_is_routed_nothing_new_and_what_a_reader_waits_on_is_asked_of_the_next():
@@ -178,10 +225,12 @@ def test_two_hosts_one_at_a_third_of_its_speed_routed_make_most_of_their_sum_sta
     assert routed.decodes == pytest.approx(1.0, abs=0.01)
 
 
-def test_128_hosts_of_spread_speeds_that_stall_routed_make_at_least_095_of_their_summed_rate():
-    f = Fleet()  # 128 hosts, log-normal speeds (sigma 0.2), stalls: docs/scaling.md's row
+def test_128_hosts_of_spread_speeds_that_stall_routed_make_at_least_086_of_their_summed_rate():
+    """docs/scaling.md's row: 0.86 over the whole epoch (a hard spill edge, each reader's own view
+    of the queues: 0.85); its 10-90 % stretch reads the stock made ahead before it (0.97)."""
+    f = Fleet()  # 128 hosts, log-normal speeds (sigma 0.2), stalls
     routed, static = simulate(f, "routed"), simulate(f, "static")
-    assert routed.share >= 0.95
+    assert routed.share >= 0.86 and routed.steady_share > 0.95
     assert static.share < routed.share - 0.2
     assert static.positions > static.samples  # the static interleave pads; the one plan does not
     assert routed.positions == routed.samples
@@ -219,7 +268,7 @@ def test_a_videos_last_host_keeps_it_past_its_load_share_while_in_time_and_not_o
 def _fleet_pass(slots, hosts, stream=None, start=0, stop=2, others=()):
     """A ``fleet_pass.Pass`` over a manifest of ``slots`` and a fleet of ``hosts`` (the real
     ``Router``; each link, and those of the hosts ``others`` that may join, keeps the headers sent,
-    a ``Make``'s as the host reads it); its first step holds positions ``start`` .. ``stop - 1``."""
+    a ``Make``'s as the host reads it, another's type); its first step holds positions ``start`` .. ``stop - 1``."""
     import itertools
     from types import SimpleNamespace
 
@@ -231,11 +280,12 @@ def _fleet_pass(slots, hosts, stream=None, start=0, stop=2, others=()):
     plan = PlanIdentity(m.fingerprint(), "recipe", 0, 1)
     fleet = SimpleNamespace(router=Router(hosts, now=0.0), plan=plan, windows={}, made={}, workers={}, ahead=None, links={},
                             like=None, endpoint=",".join(hosts), left_out={}, out_for_pass={}, changed={},
-                            last_served=None, stream=stream)
+                            last_served=None, stream=stream, join=lambda ep, info, now: None)
     sent = []
     for h in [*hosts, *others]:
         fleet.links[h] = SimpleNamespace(ids=itertools.count(1), compression="none",
-                                         _send=lambda header, h=h: sent.append((h, Make.from_wire(header))))
+                                         _send=lambda header, h=h: sent.append((h, Make.from_wire(header) if (
+                                             header["type"] == "make") else header["type"])))
     first = Fetch(0, 0, start, stop, ("voxels",), plan)
     read = Pass(fleet, m, first, 1, 5.0, now=0.0)
     read.add(0, first)
@@ -286,3 +336,72 @@ def test_a_fleet_pass_whose_every_host_left_asks_again_once_another_joins():
     read.router.join("g", 2.0)
     read.rescue(2.0)
     assert [(h, m.video, m.ordinals) for h, m in sent] == [("h", "a.mp4", (0, 1)), ("g", "a.mp4", (0, 1))]
+
+
+def test_a_host_busy_with_other_readers_work_answers_pings_and_is_neither_suspect_nor_failed_over():
+    """A host whose workers make other readers' videos first answers this reader nothing for a
+    while; its server loop still answers a ping (a plan_ask) with its queue, every reader's. Only
+    a host that answers nothing, not even a ping, for hedge_s is suspect and has its videos asked
+    of the next host of their ranking."""
+    from v2v_wire.plan import PlanIdentity
+    from v2v_wire.plan_messages import PlanInfo
+
+    r = Router(HOSTS[:2], hedge_s=10.0)
+    v = VIDEOS[0]
+    owner, nxt = rank_hosts(v, HOSTS[:2])
+    assert r.route(0, v, 2, 0.0) == owner and r.pings(1.0) == []
+    assert r.pings(3.0) == [owner] and r.pings(4.0) == []  # pinged once a ping interval, not each turn
+    r.heard(owner, 3.1, queued=400)  # busy: 400 samples queued, by every reader
+    assert r.pings(6.0) == [owner]
+    r.heard(owner, 6.1, queued=380)
+    assert not r.suspect(owner, 12.0) and r.hedges([(0, v, 2)], 12.0) == []
+    assert r.backlog(owner, 6.1) == 380  # its queue counts for the load bound and the deadlines
+    assert r.suspect(owner, 16.1) and r.hedges([(0, v, 2)], 16.1) == [(0, v, nxt)]  # silent since 6.1 s
+
+    def pass_answering(answer: bool):
+        read, sent = _fleet_pass({v: 2}, HOSTS[:2])
+        read.ask_window(0.0)
+        (first, make), = sent
+        other = next(h for h in HOSTS[:2] if h != first)
+        read.router.heard(other, 0.0, queued=400)  # busy too: no idle host to copy the video to
+        for t in (3.0, 6.0, 9.0, 12.0):
+            read.rescue(t)
+            if answer and sent[-1] == (first, "plan_ask"):
+                plan = read.fleet.plan
+                read.receive(first, PlanInfo(plan, None, {}, None, 400), [], t + 0.1)
+        return first, [(h, m) for h, m in sent if m != "plan_ask"]
+
+    first, makes = pass_answering(True)
+    assert {h for h, _ in makes} == {first}  # asked again of it (retry_s), of no other host
+    first, makes = pass_answering(False)
+    assert {h for h, _ in makes} == set(HOSTS[:2])  # silent 12 s: its video asked of the next host
+
+
+def test_a_fleet_pass_asks_ahead_for_the_hosts_serving_now_not_those_it_began_with():
+    """A job started on 1 host that grows to 2 mid-pass asks ahead for both (docs/scaling.md: a
+    window sized once a pass left a grown fleet idle while the job waited on long clips)."""
+    read, _ = _fleet_pass({"a.mp4": 2}, ["h"], others=["g"])
+    one = read.ahead
+    read.router.join("g", 1.0)
+    read.fleet.workers.update(h=1, g=3)
+    assert read.ahead == 4 * one
+
+
+def test_a_fleet_pass_asks_a_video_of_its_arbiter_and_follows_where_the_arbiter_placed_it():
+    """The pass's rules pick another host than the video's arbiter (the arbiter's queue is long):
+    the make goes to the arbiter naming that host (``route``), and a ``moved`` answer sends it
+    there, to be made (``route`` None); a later make of the video goes there too."""
+    from v2v_wire.plan_messages import Moved
+
+    v = VIDEOS[0]
+    arbiter, other = rank_hosts(v, HOSTS[:2])
+    read, sent = _fleet_pass({v: 4}, HOSTS[:2], stop=1)
+    read.router.heard(arbiter, 0.0, rate=10.0, queued=1000)
+    read.router.heard(other, 0.0, rate=10.0, queued=0)
+    read.ask_window(0.0)
+    (h, make), = sent
+    assert (h, make.route) == (arbiter, other)
+    read.receive(arbiter, Moved(make.request, other), [], 0.1)
+    assert [(h, m.route, m.ordinals) for h, m in sent[1:]] == [(other, None, make.ordinals)]
+    read.ask(v, (3,), 0.2)
+    assert [(h, m.route) for h, m in sent[2:]] == [(other, None)]

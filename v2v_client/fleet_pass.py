@@ -6,8 +6,8 @@ the window (the step being read, the *head*, to ``ahead`` positions past it), wh
 asked of which host (:class:`Video`), the rows got and not yet read, and the requests in flight.
 Each turn of the loop: fill the window, ask what its decided positions need and the windows that
 decide the rest (:meth:`Pass.ask_window`), hand the head's rows on once each is known
-(:meth:`Pass.head_rows`), else rescue what the head waits on (:meth:`Pass.rescue`: hedges of silent
-hosts, copies, lost replies) and take the hosts' answers (:func:`take`).
+(:meth:`Pass.head_rows`), else rescue what the head waits on (:meth:`Pass.rescue`: pings of quiet
+hosts, hedges of silent ones, copies, lost replies) and take the hosts' answers (:func:`take`).
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import numpy as np
 from v2v_wire.codecs import decode_batch_arrays
 from v2v_wire.outputs import wire_zeros_row
 from v2v_wire.plan import EpochPlan, Manifest
-from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, PlanInfo, Refused, Rows
+from v2v_wire.plan_messages import MAX_MAKE_PATH, MAX_MAKE_SAMPLES, Fetch, Make, Moved, PlanAsk, PlanInfo, Refused, Rows
 from v2v_wire.protocol import MAX_BATCH_BYTES, ProtocolError
 
 from .fetch import BrokenPeer, PlanServerError, _with_padding, wait_readable
@@ -92,8 +92,6 @@ class Pass:
         self.epoch, self.outputs, self.kpw = first.epoch, first.outputs, manifest.crops_per_window
         self.plan = EpochPlan(manifest, fleet.plan.seed, first.epoch, fleet.plan.shuffle_buffer)
         self.plan.learn(fleet.windows)
-        workers = sum(fleet.workers.get(h, 1) for h in self.router.hosts) or 1
-        self.ahead = fleet.ahead if fleet.ahead is not None else 10 * workers * self.kpw * 2
         self.window: List[int] = []
         self.spans: Dict[int, Tuple[int, int]] = {}
         self.videos: Dict[str, Video] = {}
@@ -105,6 +103,14 @@ class Pass:
         self.exhausted = False
         self._windows = (-1, 0)  # (videos whose windows are known, their windows summed): per_video's
         self.examined = 0  # the first position of the window :meth:`ask_window` has not looked at
+
+    @property
+    def ahead(self) -> int:
+        """Positions the window spans: the fleet's (``fleet.ahead``), else 20 windows' samples per
+        worker of the hosts serving now (a fleet that grows mid-pass is asked ahead for all)."""
+        if self.fleet.ahead is not None:
+            return self.fleet.ahead
+        return 10 * (sum(self.fleet.workers.get(h, 1) for h in self.router.hosts) or 1) * self.kpw * 2
 
     # ------------------------------------------------------------------ asking
     def add(self, step: int, fetch: Fetch) -> None:
@@ -125,13 +131,18 @@ class Pass:
             if self.plan.complete and f.start >= len(self.plan):
                 return  # past the epoch's end: no step after it holds a sample
 
-    def send(self, video: str, ordinals: Optional[Tuple[int, ...]], host: str, now: float) -> None:
-        """Ask ``host`` for ``ordinals`` of ``video`` (None: its windows)."""
+    def send(self, video: str, ordinals: Optional[Tuple[int, ...]], host: str, now: float,
+             spill: Optional[str] = None, here: bool = False) -> None:
+        """Ask ``host`` for ``ordinals`` of ``video`` (None: its windows): of the video's arbiter
+        (``Router.arbiter``), to be made there unless a reader placed it elsewhere, or (``spill``)
+        placed at that host unless the arbiter holds it (``Make.route``); of another host, or
+        (``here``) of one that said where it is placed, made there."""
         link = self.fleet.links[host]
         req = next(link.ids)
         v = self.videos.setdefault(video, Video())
+        route = spill if spill is not None else "" if not here and host == self.router.arbiter(video, now) else None
         link._send(Make(req, self.epoch, video, ordinals, self.outputs, self.fleet.plan, link.compression,
-                        min(v.position, _LAST)).to_wire())
+                        min(v.position, _LAST), route).to_wire())
         self.flight[(host, req)] = (video, ordinals)
         v.flight[(host, req)] = (host, ordinals, now)
         for o in ordinals or ():
@@ -158,13 +169,18 @@ class Pass:
         if v.refused and all(h in v.refused for h in self.router.hosts):
             ep, why = next(reversed(v.refused.items()))
             raise PlanServerError(f"{ep}: {why} (every host of the fleet refused a make of it)")
+        spill = None
         if v.host in self.router.hosts and not self.router.suspect(v.host, now) and v.host not in v.refused:
             self.router.ask(v.host, self.epoch, video, count, now, v.position)
         else:
             v.host = self.router.route(self.epoch, video, count, now, exclude=list(v.refused), due=self.due(v.position),
                                        position=v.position, held=self.fleet.made.get(video))
+            arbiter = self.router.arbiter(video, now)
+            if v.host is not None and arbiter not in (None, v.host) and arbiter not in v.refused:
+                spill, v.host = v.host, arbiter  # asked of the arbiter, to place it there
+                self.router.moved(self.epoch, video, spill, arbiter, now)
         if v.host is not None:
-            self.send(video, ordinals, v.host, now)
+            self.send(video, ordinals, v.host, now, spill)
         elif self.router.hosts or not (self.fleet.left_out or self.fleet.out_for_pass):
             self.parked.append((video, ordinals))  # every host gone, silent or not joined yet: asked at the next rescue
         elif self.fleet.changed:  # never read on with samples of another version of a file
@@ -263,6 +279,9 @@ class Pass:
         """Hedges of silent hosts' videos, copies of what the head waits on, and makes asked again
         (of the next hosts for a host gone, of the same after ``retry_s``: a lost reply, a restart),
         and the asks no host could take before."""
+        for h in self.router.pings(now):  # its server loop answers a plan_ask whatever its workers do
+            if h in self.fleet.links:
+                self.fleet.links[h]._send(PlanAsk().to_wire())
         parked, self.parked = self.parked, []
         for video, ords in parked:
             self.ask(video, ords, now)
@@ -292,8 +311,12 @@ class Pass:
         Raises:
             BrokenPeer: rows whose arrays cannot be read.
             PlanServerError: every host refused a make of the video."""
-        if isinstance(msg, PlanInfo):
+        if isinstance(msg, PlanInfo):  # a new host's, or a ping's answer: alive, with its queue
+            self.router.heard(ep, now, queued=msg.queued)
             self.fleet.join(ep, msg, now)
+            return
+        if isinstance(msg, Moved):
+            self.moved(ep, msg, now)
             return
         if isinstance(msg, Refused):
             refused(self, ep, msg, now)
@@ -302,7 +325,7 @@ class Pass:
         if what is None or msg.epoch != self.epoch:
             self.flight.pop((ep, getattr(msg, "request", None)), None)
             if isinstance(msg, Rows) and ep in self.router.hosts:
-                self.router.answered(ep, msg.epoch, "", now, False, msg.rate)  # it answers: not silent
+                self.router.heard(ep, now, msg.rate, msg.queued)  # it answers: not silent
             return  # an answer to a request asked again or beaten by a copy, or of another pass
         video, ordinals = what
         try:  # read before the make counts as answered: a peer that breaks the protocol leaves it in flight
@@ -333,11 +356,33 @@ class Pass:
             if all((video, o) in self.got for o in ords or ()) and (ords or msg.windows is not None):
                 del v.flight[hr]
                 self.flight.pop(hr, None)
-        self.router.answered(ep, self.epoch, video, now, not any(h == ep for h, _, _ in v.flight.values()), msg.rate)
+        self.router.answered(ep, self.epoch, video, now, not any(h == ep for h, _, _ in v.flight.values()), msg.rate,
+                             msg.queued)
         if msg.rate:
             self.fleet.rates[ep] = msg.rate
         if not v.flight:
             self.router.finished(self.epoch, video)
+
+
+    def moved(self, ep: str, msg: Moved, now: float) -> None:
+        """Host ``ep``, a video's arbiter, said the make ``msg.request`` is made at ``msg.host``:
+        asked there (at ``ep`` again where this reader does not read that host: a host it has not
+        joined, or one suspect)."""
+        what = self.flight.pop((ep, msg.request), None)
+        self.router.heard(ep, now)
+        if what is None:
+            return
+        video, ordinals = what
+        v = self.videos[video]
+        v.flight.pop((ep, msg.request), None)
+        to = msg.host if msg.host in self.router.hosts and not self.router.suspect(msg.host, now) \
+            and msg.host not in v.refused else ep
+        self.router.moved(self.epoch, video, ep, to, now)
+        if v.host == ep:
+            v.host = to
+        if to == ep:
+            log.warning("%s: moved %s to %s, a host this reader does not read: made here", ep, video, msg.host)
+        self.send(video, ordinals, to, now, here=True)
 
 
 def refused(read: "Pass", ep: str, msg: Refused, now: float) -> None:

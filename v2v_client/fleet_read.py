@@ -13,11 +13,11 @@ one plan a single server serves, each video made by the host the reader routes i
   routed to, which keeps the samples it made for the makes that follow).
 * **Routing** (``v2v_wire.fleet.Router``): each video of the positions this rank reads, from the
   step it yields to ``ahead`` positions past it, is asked (``make``: the video and the samples
-  of it this rank's rows hold) of the host its ranking and the hosts' loads pick (its owner
-  alone where the job has several readers, ranks or DataLoader workers: each then picks the
-  same host); its later samples go to the same host while it answers. A host silent for
-  ``hedge_s`` while the reader waits on it has its videos asked of their next hosts too; the
-  first answer wins.
+  of it this rank's rows hold) of the host its ranking and the hosts' queues pick, as each host
+  says them to every reader of every job (the job's ranks and DataLoader workers route alike);
+  its later samples go to the same host while it answers. A host with this reader's work that
+  answered nothing, not even a ping, for ``hedge_s`` has its videos asked of their next hosts
+  too; the first answer wins.
 * **The fleet changes**: the endpoint is resolved again every ``RESOLVE_S`` seconds; a new host
   serving the same plan takes work from its first answer, a host gone hands its videos to the
   next hosts of their rankings, a host of the fleet serving another plan is named once and left
@@ -259,8 +259,6 @@ class Fleet:
             per worker of the fleet, as ``harness.fleet_sim`` measured is needed, at least the
             prefetched steps).
         hedge_s: :data:`HEDGE_S`.
-        readers: readers of the job routing the fleet at once, this one included (its ranks
-            times their DataLoader workers: ``Router``'s ``readers``).
         same: endpoint -> the endpoint of the same host read in its place (:func:`alias_of`:
             kept by the caller across passes, so each is said once; updated).
         known: manifest fingerprint -> the manifest, of the plans read in this process (kept by
@@ -273,7 +271,7 @@ class Fleet:
     def __init__(self, endpoint, hosts: List[Tuple[str, PlanInfo]], plan: PlanIdentity, timeout_s: float,
                  curve: Optional[tuple], compression: str, windows: Dict[str, int], ahead: Optional[int] = None,
                  hedge_s: float = HEDGE_S, rates: Optional[Dict[str, float]] = None,
-                 made: Optional[Dict[str, str]] = None, readers: int = 1, same: Optional[Dict[str, str]] = None,
+                 made: Optional[Dict[str, str]] = None, same: Optional[Dict[str, str]] = None,
                  known: Optional[Dict[str, Manifest]] = None, left_out: Optional[Dict[str, str]] = None):
         self.endpoint, self.plan, self.timeout_s, self.curve = endpoint, plan, timeout_s, curve
         self.compression, self.windows, self.ahead = compression, windows, ahead
@@ -290,8 +288,7 @@ class Fleet:
         self.left_out: Dict[str, str] = {} if left_out is None else left_out  # peers left out -> why (leave_out)
         self.out_for_pass: Dict[str, str] = {}  # the fleet's hosts left out of this pass -> why (other_plan)
         self.members = {ep for ep, _ in hosts}  # the fleet's hosts: one serving another plan is out for the pass
-        self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S,
-                             readers=readers)
+        self.router = Router([], hedge_s=min(hedge_s, timeout_s), now=time.monotonic(), patience_s=STEAL_S)
         self.stream: Optional[dict] = None  # the first host's stream info: a padding row's shapes before any row
         self.manifest: Optional[Manifest] = None
         for ep, info in hosts:

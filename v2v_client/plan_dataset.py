@@ -301,8 +301,7 @@ class V2VStreamDataset(torch.utils.data.IterableDataset):
         steps = epoch_steps(info.samples, world, size, r["origin"])
         items = range(r["next"], steps * g, k) if steps is not None else itertools.count(r["next"], k)
         group = []  # under dispatch: this process's items of the current step, packed together
-        readers = (1 if g > 1 else world) * k  # under the dispatcher one rank reads every rank's rows
-        with self._servers.link(self.timeout_s, self.curve, readers) as link:
+        with self._servers.link(self.timeout_s, self.curve) as link:
             for i, rows, arrays in link.fetch_all(
                     items, self.prefetch, self.retry_s,
                     lambda req, i: Fetch(req, r["epoch"], *_rows(r, i, size), self.outputs, info.plan),

@@ -166,13 +166,12 @@ class Servers:
         known = [i.samples for _, i in hosts if i.samples is not None]
         return PlanInfo(info.plan, known[0] if known else None, info.stream)
 
-    def link(self, timeout_s: float, curve: Optional[tuple], readers: int = 1):
+    def link(self, timeout_s: float, curve: Optional[tuple]):
         """The fetch loop over the servers: ``Shards`` (one server is one shard), or a fleet's
-        (``fleet_read.Fleet``, routed by ``readers`` readers at once: the job's ranks times their
-        DataLoader workers)."""
+        (``fleet_read.Fleet``)."""
         if self.fleet is not None:
             return Fleet(self.endpoint, self.fleet, self.plan, timeout_s, curve, self.compression,
-                         self.windows, rates=self.rates, made=self.made, readers=readers, same=self.same,
+                         self.windows, rates=self.rates, made=self.made, same=self.same,
                          known=self.manifests, left_out=self.left_out)
         return Shards(self.shards, timeout_s, curve, self.codecs, self.samples, self.max_msg)
 

@@ -20,18 +20,32 @@ order never depends on who decodes; only the speed does. The rules, pure (no soc
   was copied elsewhere, or that was still starting, would read slower than it is and be starved
   of the work that would measure it again.
 * **Bounded load, and in time.** A video goes to the first host of its ranking whose queued samples
-  stay within ``1 + slack`` times its share (its rate over the fleet's) of everything queued
-  (Mirrokni, Thorup & Zadimoghaddam, "Consistent hashing with bounded loads"), and that would
-  make it, at its rate and after what it holds for earlier positions, within ``1 + slack`` times
-  the seconds until the reader's head reaches it (``due``); else to the host that would make it
-  first. A host that falls behind sheds new videos to the next hosts of their rankings until it
-  catches up, and a slow host is given the videos needed later, not those the reader is about
-  to wait on.
-* **Copies and hedging.** A video the reader waits on is copied to a host with nothing queued
-  where that host would make it sooner (:meth:`Router.copy`); one asked only of hosts that
-  answered nothing for ``hedge_s`` (stalled, stopped, gone) is asked of the next host of its
-  ranking too (:meth:`Router.hedges`); the first copy's rows win. A host silent for ``hedge_s``
-  with work queued is *suspect*: it is routed nothing new until it answers again.
+  stay within its share (its rate over the fleet's) of everything queued (Mirrokni, Thorup &
+  Zadimoghaddam, "Consistent hashing with bounded loads"), and that would make it, at its rate
+  and after what it holds for earlier positions, within the seconds until the reader's head
+  reaches it (``due``); a host past either by a fraction ``x`` of ``slack`` keeps the videos
+  whose draw (:func:`spill_draw`) is at least ``x``, none past ``1 + slack``; else the video goes
+  to the host that would make it first. A host that falls behind sheds new videos to the next
+  hosts of their rankings until it catches up, and a slow host is given the videos needed
+  later, not those the reader is about to wait on.
+* **The hosts' view, not the reader's.** A job has several readers (ranks times DataLoader
+  workers), and several jobs may read one fleet; each reader routes on its own, with no
+  coordinator. So each host says in every answer, and in its answer to a ping (a ``plan_ask``,
+  which its server loop answers within its poll whatever its workers do), the samples all
+  readers asked of it and it has not made (:meth:`Router.heard`). The load bound, the deadlines
+  and the copies count that queue, this reader's own asks since added; readers that heard the
+  same reports rank a video's hosts alike and pick alike (a video asked of two hosts is decoded
+  twice). Readers ask a video at different times, over different views, so each asks it of its
+  *arbiter*, the first host of its ranking that is not suspect (:meth:`Router.arbiter`), naming
+  the host it picked (``Make.route``): the arbiter keeps the first reader's pick and tells every
+  later reader (``Moved``), or makes the video where it holds it already.
+* **Copies and hedging.** A video the reader waits on is copied to a host with nothing queued by
+  any reader, the first such of the video's ranking, where that host would make it sooner
+  (:meth:`Router.copy`); one asked only of hosts that answered nothing for ``hedge_s``
+  (stalled, stopped, gone) is asked of the next host of its ranking too (:meth:`Router.hedges`);
+  the first copy's rows win. A host with this reader's work queued that answered nothing, not
+  even a ping, for ``hedge_s`` is *suspect*: it is routed nothing new until it answers again. A
+  host busy with other readers' work still answers pings, and is not.
 
 ``harness/fleet_sim.py`` runs these rules over 128 simulated hosts; ``tests/test_fleet.py``
 checks each property.
@@ -46,12 +60,18 @@ from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-__all__ = ["host_key", "video_key", "rank_hosts", "weight_step", "RateMeter", "Router"]
+__all__ = ["host_key", "video_key", "rank_hosts", "weight_step", "spill_draw", "RateMeter", "Router",
+           "PINGS_PER_HEDGE"]
 
 _MASK = np.uint64(0xFFFFFFFFFFFFFFFF)
 #: Weights move in steps of this factor (a quarter octave): finer steps follow speed closer but
 #: move videos at every wobble of a measured rate.
 WEIGHT_STEP = 2 ** 0.25
+#: XORed into a video's key for its spill draws (:func:`spill_draw`), apart from its ranking's.
+SPILL_SALT = 0x5DEECE66D
+#: Pings a silent host is sent before it is suspect (``hedge_s`` apart over this): one lost or
+#: late answer does not make a busy host suspect.
+PINGS_PER_HEDGE = 4
 
 
 def _key(text: str) -> int:
@@ -77,6 +97,16 @@ def _uniform(hosts: np.ndarray, video: int) -> np.ndarray:
         z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
         z = z ^ (z >> np.uint64(31))
     return ((z >> np.uint64(11)).astype(np.float64) + 0.5) / float(1 << 53)
+
+
+def spill_draw(video: str, hosts: Sequence[str]) -> List[float]:
+    """Each host's draw in (0, 1) for ``video``, drawn apart from its ranking's: a host past its
+    bounds by a fraction ``x`` of the slack sheds the videos whose draw is under ``x``
+    (:meth:`Router.route`). Every reader draws alike, so readers whose views of a host's queue
+    differ a little shed the same videos but for a few, where a shed-all edge would send every
+    video asked near it to two hosts."""
+    keys = np.array([host_key(h) for h in hosts], dtype=np.uint64)
+    return _uniform(keys, video_key(video) ^ SPILL_SALT).tolist()
 
 
 def rank_hosts(video: str, hosts: Sequence[str], weights: Optional[Mapping[str, float]] = None) -> List[str]:
@@ -149,8 +179,11 @@ class _Host:
     queued: Dict[Tuple[int, str], int] = field(default_factory=dict)  # (epoch, video) -> samples
     at: Dict[Tuple[int, str], int] = field(default_factory=dict)  # (epoch, video) -> its first position needing it
     load: int = 0  # the samples queued, summed
-    heard: float = 0.0  # when it last answered (or joined)
+    heard: float = 0.0  # when it last answered anything, a ping included (or joined)
     step: Optional[int] = None  # weight step (None: not measured yet)
+    others: float = 0.0  # samples it said other readers have queued on it (its queue less this reader's)
+    said: float = 0.0  # when it said it
+    pinged: float = float("-inf")  # when this reader last pinged it
 
 
 class Router:
@@ -164,24 +197,20 @@ class Router:
         patience_s: seconds a reader waits on a video before it asks a copy (:meth:`copy`): how
             late a video's last host may make it and keep it (:meth:`route`).
         now: the clock's reading at start.
-        readers: readers routing the fleet at once, this one included (a job's ranks times each
-            rank's DataLoader workers). Above one, :meth:`route` gives each video to the first
-            host of its weighted ranking: the load bound and the deadlines count only what this
-            reader queued and heard, which differs from reader to reader, so readers sharing a
-            video would send it to two hosts (decoded twice); the weights, from the rates every
-            host says to every reader, are alike for all.
 
     Raises:
-        ValueError: ``slack`` or ``hedge_s`` <= 0, ``patience_s`` < 0, ``readers`` < 1, or a
-            host named twice.
+        ValueError: ``slack`` or ``hedge_s`` <= 0, ``patience_s`` < 0, or a host named twice.
     """
 
     def __init__(self, hosts: Iterable[str], slack: float = 0.25, hedge_s: float = 10.0, now: float = 0.0,
-                 patience_s: float = 1.0, readers: int = 1):
-        if slack <= 0 or hedge_s <= 0 or patience_s < 0 or readers < 1:
-            raise ValueError(f"slack and hedge_s must be > 0, patience_s >= 0 and readers >= 1, got {slack}, "
-                             f"{hedge_s}, {patience_s} and {readers}")
-        self.slack, self.hedge_s, self.patience_s, self.readers = slack, hedge_s, patience_s, readers
+                 patience_s: float = 1.0):
+        if slack <= 0 or hedge_s <= 0 or patience_s < 0:
+            raise ValueError(f"slack and hedge_s must be > 0 and patience_s >= 0, got {slack}, {hedge_s} and "
+                             f"{patience_s}")
+        self.slack, self.hedge_s, self.patience_s = slack, hedge_s, patience_s
+        #: Seconds a host holding this reader's work may answer nothing before it is pinged: a
+        #: host busy for other readers answers a few pings before it would be suspect.
+        self.ping_s = hedge_s / PINGS_PER_HEDGE
         self.hosts: Dict[str, _Host] = {}
         self.asked: Dict[Tuple[int, str], List[str]] = {}  # (epoch, video) -> the hosts asked, in order
         self._load = 0
@@ -239,18 +268,19 @@ class Router:
               due: Optional[float] = None, position: Optional[int] = None,
               held: Optional[str] = None) -> Optional[str]:
         """The host to ask for ``samples`` samples of ``video`` in ``epoch``: the first of its
-        ranking that is not suspect, not in ``exclude``, within its bounded load (its queued
-        samples and these within ``1 + slack`` times its share, its weight over the fleet's, of
-        everything queued) and, where the reader needs the video within ``due`` seconds, that
-        would make it within ``1 + slack`` times that (:meth:`finish`; a host makes the videos
-        asked of it in the order of ``position``, the first position needing each); else the one
-        of those that would make it first. ``held``, the host that made the video last (its
-        frame cache holds it), is kept before them while it would make it in time, or
-        :attr:`patience_s` late, whatever its load: a load bound crossed by a few samples' chance
-        would move a video off its warm cache (a small fleet's share of a reader's queue is a few
-        videos), and a host that falls behind falls behind its deadlines too. Where other
-        readers route too (:attr:`readers`), simply the first of its ranking that is not suspect
-        nor in ``exclude``: every reader picks it. None when no host is left.
+        ranking that is not suspect, not in ``exclude``, within its bounded load (its queue, every
+        reader's (:meth:`backlog`), and these samples within its share, its weight over the
+        fleet's, of everything queued on the fleet) and, where the reader needs the video within
+        ``due`` seconds, that would make it within that (:meth:`finish`; a host makes the videos
+        asked of it in the order of ``position``, the first position needing each): a host past
+        either by a fraction ``x`` of ``slack`` keeps the video when its draw
+        (:func:`spill_draw`) is at least ``x``; else the one of those that would make it first. ``held``,
+        the host that made the video last (its frame cache holds it), is kept before them while
+        it would make it in time, or :attr:`patience_s` late, whatever its load: a load bound
+        crossed by a few samples' chance would move a video off its warm cache (a small fleet's
+        share of a reader's queue is a few videos), and a host that falls behind falls behind its
+        deadlines too. Readers that heard the same queues pick the same host. None when no host
+        is left.
 
         The host's queue takes the video (:meth:`answered` and :meth:`finished` clear it)."""
         weights = self.weights()
@@ -258,32 +288,74 @@ class Router:
                    if h not in exclude and not self.suspect(h, now)]
         if not ranking:
             return None
-        total = self.load + samples
+        backlog = {h: self.backlog(h, now) for h in self.hosts}
+        total = sum(backlog.values()) + samples
         weight = sum(weights[h] for h in ranking)
 
         def in_time(h: str, late_s: float = 0.0) -> bool:
-            return due is None or self.finish(h, samples, position) <= (1 + self.slack) * due + late_s
+            return due is None or self.finish(h, samples, position, now) <= (1 + self.slack) * due + late_s
 
-        if self.readers > 1:
-            pick = ranking[0]
-        elif held in ranking and due is not None and in_time(held, self.patience_s):
+        def past(h: str) -> float:  # how far past its bounds, in slacks: 0 at its share and its due
+            load = (backlog[h] + samples) / (total * weights[h] / weight) - 1
+            late = float("inf") if due is not None and due <= 0 else \
+                0.0 if due is None else self.finish(h, samples, position, now) / due - 1
+            return max(load, late) / self.slack
+
+        if held in ranking and due is not None and in_time(held, self.patience_s):
             pick = held
         else:
-            pick = next((h for h in ranking
-                         if self.hosts[h].load + samples <= (1 + self.slack) * total * weights[h] / weight and in_time(h)),
-                        None)
+            keep = dict(zip(ranking, spill_draw(video, ranking)))
+            pick = next((h for h in ranking if keep[h] >= past(h)), None)
         if pick is None:
-            pick = min(ranking, key=lambda h: self.finish(h, samples, position))
+            pick = min(ranking, key=lambda h: self.finish(h, samples, position, now))
         self.ask(pick, epoch, video, samples, now, position)
         return pick
 
-    def finish(self, host: str, samples: int, position: Optional[int] = None) -> float:
+    def arbiter(self, video: str, now: float) -> Optional[str]:
+        """The host that says where ``video`` is made: the first of its ranking that is not
+        suspect (None: no host). A reader asks it first, whichever host :meth:`route` picked
+        (``Make.route``): it makes the video, or tells where the first reader to ask it placed it,
+        so readers whose views differ still have each video made once."""
+        weights = self.weights()
+        return next((h for h in rank_hosts(video, list(self.hosts), weights) if not self.suspect(h, now)), None)
+
+    def moved(self, epoch: int, video: str, host: str, to: str, now: float) -> None:
+        """``host`` said ``video`` is made at ``to`` (its arbiter's placement, or its own hold):
+        this reader's queue of it moves there."""
+        s = self.hosts.get(host)
+        n = s.queued.get((epoch, video)) if s is not None else None
+        if n is None or to == host or to not in self.hosts:
+            return
+        position = s.at.get((epoch, video))
+        self._unqueue(s, (epoch, video))
+        asked = self.asked.get((epoch, video), [])
+        if host in asked:
+            asked.remove(host)
+        self.ask(to, epoch, video, n, now, position)
+
+    def backlog(self, host: str, now: Optional[float] = None) -> float:
+        """Samples queued on ``host`` by every reader: this reader's, and the others' as the host
+        last said them, less what it made since at its rate (``now`` None: as said)."""
+        s = self.hosts[host]
+        return s.load + self._others(s, now)
+
+    def _others(self, s: _Host, now: Optional[float]) -> float:
+        if not s.others or now is None:
+            return s.others
+        return max(0.0, s.others - (now - s.said) * (s.rate or self.mean_rate() or 1.0))
+
+    def finish(self, host: str, samples: int, position: Optional[int] = None, now: Optional[float] = None) -> float:
         """Seconds ``host`` would take to make ``samples`` more at ``position`` and its queued
-        samples it makes first (those at earlier positions; all, for ``position`` None), at the
-        rate it said (a host that said none yet: the fleet's mean, else 1 sample/s)."""
+        samples it makes first, at the rate it said (a host that said none yet: the fleet's mean,
+        else 1 sample/s): this reader's at earlier positions (all, for ``position`` None), and
+        the other readers' (:meth:`backlog`) in the same proportion (their positions are not
+        said; all of them while this reader queued nothing there)."""
         s = self.hosts[host]
         first = s.load if position is None else sum(n for ev, n in s.queued.items() if s.at.get(ev, 0) <= position)
-        return (first + samples) / (s.rate or self.mean_rate() or 1.0)
+        others = self._others(s, now)
+        if others:
+            others *= first / s.load if s.load else 1.0
+        return (first + others + samples) / (s.rate or self.mean_rate() or 1.0)
 
     def mean_rate(self) -> Optional[float]:
         """The mean of the rates the hosts said (samples/s), None before any."""
@@ -296,18 +368,41 @@ class Router:
         return sum(s.rate or mean for s in self.hosts.values())
 
     def answered(self, host: str, epoch: int, video: str, now: float, done: bool,
-                 rate: Optional[float] = None) -> None:
+                 rate: Optional[float] = None, queued: Optional[int] = None) -> None:
         """``host`` answered about ``video`` at ``now``, saying its capacity ``rate`` (samples/s,
-        None: not measured yet); ``done``: it holds no more of that video for this reader (every
-        sample asked of it is answered)."""
+        None: not measured yet) and its queue ``queued`` (:meth:`heard`); ``done``: it holds no
+        more of that video for this reader (every sample asked of it is answered)."""
         s = self.hosts.get(host)
         if s is None:
             return
-        s.heard = now
-        if rate is not None and rate > 0:
-            s.rate = rate
         if done:
             self._unqueue(s, (epoch, video))
+        self.heard(host, now, rate, queued)
+
+    def heard(self, host: str, now: float, rate: Optional[float] = None, queued: Optional[int] = None) -> None:
+        """``host`` answered at ``now`` (rows, or a ping): it is alive. ``rate``: its capacity
+        (samples/s; None: not said); ``queued``: the samples every reader asked of it that it has
+        not made (None: not said), of which those this reader queued there are its own."""
+        s = self.hosts.get(host)
+        if s is None:
+            return
+        s.heard = max(s.heard, now)
+        if rate is not None and rate > 0:
+            s.rate = rate
+        if queued is not None:
+            s.others, s.said = max(0.0, float(queued) - s.load), now
+
+    def pings(self, now: float) -> List[str]:
+        """The hosts to ping at ``now`` (a ``plan_ask``; its answer is :meth:`heard`): those
+        holding this reader's work that answered nothing for :attr:`ping_s` and were not pinged
+        since. A host whose workers are busy with other readers' work answers a ping from its
+        server loop, and so is never taken for silent (:meth:`suspect`)."""
+        out = []
+        for h, s in self.hosts.items():
+            if s.queued and now - s.heard >= self.ping_s and now - s.pinged >= self.ping_s:
+                s.pinged = now
+                out.append(h)
+        return out
 
     def finished(self, epoch: int, video: str) -> None:
         """Every sample of ``video`` in ``epoch`` is read: no host holds it for this reader."""
@@ -353,17 +448,21 @@ class Router:
     def copy(self, epoch: int, video: str, samples: int, now: float, asked: Sequence[str],
              position: Optional[int] = None) -> Optional[str]:
         """The host to ask a copy of ``video`` (``samples`` samples, first needed at
-        ``position``) that a reader waits on, asked of ``asked``: a host with nothing queued,
-        not suspect, that would make it sooner (:meth:`finish`) than the hosts asked would (a
-        slow host, or one with earlier work queued). The host's queue takes the video; None: no
-        copy (a host silent for ``hedge_s`` is :meth:`hedges`'s)."""
+        ``position``) that a reader waits on, asked of ``asked``: the first of its ranking with
+        nothing queued by any reader (:meth:`backlog`), not suspect, if it would make it sooner
+        (:meth:`finish`) than the hosts asked would (a slow host, or one with earlier work
+        queued). The host's queue takes the video; None: no copy (a host silent for ``hedge_s``
+        is :meth:`hedges`'s)."""
         hosts = [h for h in asked if h in self.hosts]
-        free = [h for h, s in self.hosts.items() if not s.queued and h not in asked and not self.suspect(h, now)]
-        clears = min((self.finish(h, 0, position) for h in hosts), default=0.0)
-        if not free or self.finish(free[0], samples, position) >= clears:
+        free = [h for h in self.hosts if h not in asked and self.backlog(h, now) <= 0 and not self.suspect(h, now)]
+        if not free:
             return None
-        self.ask(free[0], epoch, video, samples, now, position)
-        return free[0]
+        pick = rank_hosts(video, free, self.weights())[0]  # the one every reader waiting on it picks
+        clears = min((self.finish(h, 0, position, now) for h in hosts), default=0.0)
+        if self.finish(pick, samples, position, now) >= clears:
+            return None
+        self.ask(pick, epoch, video, samples, now, position)
+        return pick
 
     def hedges(self, waiting: Iterable[Tuple[int, str, int]], now: float) -> List[Tuple[int, str, str]]:
         """Of the videos a reader waits on (``(epoch, video, samples)``), those asked only of hosts

@@ -30,7 +30,8 @@ from v2v_wire.protocol import bounded_unpackb as _bounded_unpackb
 
 __all__ = ["PlanAsk", "PlanInfo", "Fetch", "Make", "ManifestAsk", "ManifestPart", "Rows", "Refused", "REFUSALS",
            "WireError", "OldClient", "BadPeers", "MAX_FETCH_ROWS", "MANIFEST_PART", "MAX_MAKE_PATH",
-           "MAX_MAKE_SAMPLES", "MAX_INSTANCE", "decode_plan_client", "plan_server_message", "old_client_answer"]
+           "MAX_MAKE_SAMPLES", "MAX_INSTANCE", "MAX_HOST_NAME", "Moved",
+           "decode_plan_client", "plan_server_message", "old_client_answer"]
 
 #: Largest element count of any array in a message.
 MAX_ARRAY_LEN = 4096
@@ -62,6 +63,8 @@ MANIFEST_PART = 4096
 MAX_MAKE_PATH, MAX_MAKE_SAMPLES = 1024, 1024
 #: Longest instance name a server says (``PlanInfo.instance``): a UUID's 32 hex digits with room.
 MAX_INSTANCE = 64
+#: Longest host name a make's ``route`` or a ``moved`` names (an endpoint, ``tcp://host:port``).
+MAX_HOST_NAME = 512
 _MAX_INT = 2 ** 62
 
 
@@ -114,16 +117,20 @@ class PlanInfo:
             characters; None: not said): two endpoints answering with one instance are one host
             under two names (``tcp://localhost:P`` and ``tcp://127.0.0.1:P``), which a fleet's
             reader reads once.
+        queued: the samples every reader's makes ask of the server and it has not made (None:
+            not said, an older server): a fleet's reader pings a host with a ``plan_ask`` and
+            routes by this queue (``v2v_wire.fleet.Router.heard``).
     """
 
     plan: PlanIdentity
     samples: Optional[int]
     stream: dict = field(default_factory=dict)
     instance: Optional[str] = None
+    queued: Optional[int] = None
 
     def to_wire(self) -> dict:
         return {"type": "plan", "plan": self.plan.to_dict(), "samples": self.samples, "stream": self.stream,
-                "changes": dict(self.plan.changes), "instance": self.instance}
+                "changes": dict(self.plan.changes), "instance": self.instance, "queued": self.queued}
 
     @classmethod
     def from_wire(cls, h: dict) -> "PlanInfo":
@@ -141,7 +148,8 @@ class PlanInfo:
         if instance is not None and (not isinstance(instance, str) or not 0 < len(instance) <= MAX_INSTANCE):
             raise WireError(f"plan: field 'instance' must be nil or a string of 1 to {MAX_INSTANCE} characters, "
                             f"got {instance!r:.80}")
-        return cls(replace(plan, changes=changes), _optional_int(h, "samples"), h["stream"], instance)
+        return cls(replace(plan, changes=changes), _optional_int(h, "samples"), h["stream"], instance,
+                   _optional_int(h, "queued"))
 
 
 @dataclass(frozen=True)
@@ -180,7 +188,11 @@ class Make:
     a fleet asks each video of the host it routes it to (``v2v_wire.fleet``); the answer is
     :class:`Rows` in the order asked (no row for ``None``), with ``windows``. ``position``: the
     first position of the epoch that needs the video (a host decodes the videos made for in that
-    order, whoever asked: a copy asked of a second host for a step that waits goes first there)."""
+    order, whoever asked: a copy asked of a second host for a step that waits goes first there).
+    ``route``: a fleet's reader asks each video of its arbiter (``v2v_wire.fleet.Router.arbiter``),
+    which answers :class:`Moved` where the video is made elsewhere: ``""``, make it here unless a
+    reader had it placed elsewhere; a host's name, place it there unless this host holds the
+    video or placed it already; None (an older reader's; a copy, or the host told): make it here."""
 
     request: int
     epoch: int
@@ -190,11 +202,13 @@ class Make:
     plan: PlanIdentity
     compression: str = "none"
     position: int = 0
+    route: Optional[str] = None
 
     def to_wire(self) -> dict:
         return {"type": "make", "request": self.request, "epoch": self.epoch, "video": self.video,
                 "ordinals": None if self.ordinals is None else list(self.ordinals), "outputs": list(self.outputs),
-                "plan": self.plan.to_dict(), "compression": self.compression, "position": self.position}
+                "plan": self.plan.to_dict(), "compression": self.compression, "position": self.position,
+                "route": self.route}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Make":
@@ -205,9 +219,34 @@ class Make:
                                      not all(isinstance(o, int) and not isinstance(o, bool) and 0 <= o < _MAX_INT
                                              for o in ordinals)):
             raise WireError(f"make: field 'ordinals' must be nil or 1 to {MAX_MAKE_SAMPLES} ints >= 0")
+        route = h.get("route")
+        if route is not None and (not isinstance(route, str) or len(route) > MAX_HOST_NAME):
+            raise WireError(f"make: field 'route' must be nil or a host name of at most {MAX_HOST_NAME} characters, "
+                            f"got {route!r:.80}")
         outputs, plan, compression = _asked(h)
         return cls(_int(h, "request"), _int(h, "epoch", 0, 2 ** 31 - 1), video,
-                   None if ordinals is None else tuple(ordinals), outputs, plan, compression, _int(h, "position"))
+                   None if ordinals is None else tuple(ordinals), outputs, plan, compression, _int(h, "position"),
+                   route)
+
+
+@dataclass(frozen=True)
+class Moved:
+    """Server -> client: make ``request`` is made at ``host`` (a reader placed its video there
+    first, :attr:`Make.route`): the reader asks it of that host (``route`` None)."""
+
+    request: int
+    host: str
+
+    def to_wire(self) -> dict:
+        return {"type": "moved", "request": self.request, "host": self.host}
+
+    @classmethod
+    def from_wire(cls, h: dict) -> "Moved":
+        host = h.get("host")
+        if not isinstance(host, str) or not 0 < len(host) <= MAX_HOST_NAME:
+            raise WireError(f"moved: field 'host' must be a host name of 1 to {MAX_HOST_NAME} characters, "
+                            f"got {host!r:.80}")
+        return cls(_int(h, "request"), host)
 
 
 @dataclass(frozen=True)
@@ -273,7 +312,10 @@ class Rows:
     epoch's samples once the server knows them (None before: a reader of a plan still unfolding
     learns the epoch's end from it); ``windows``: the answer to a :class:`Make`'s video's
     windows (its slots), None for a fetch's; ``rate``: the server's decode capacity in samples/s
-    (``v2v_wire.fleet.RateMeter``; None before it is measured), what a fleet's reader weighs it by."""
+    (``v2v_wire.fleet.RateMeter``; None before it is measured), what a fleet's reader weighs it by;
+    ``queued``: the samples every reader's makes ask of the server and it has not made, a make's
+    answer's (None for a fetch's, or from an older server), what a fleet's readers route by
+    (``v2v_wire.fleet.Router.heard``)."""
 
     request: int
     epoch: int
@@ -285,11 +327,12 @@ class Rows:
     samples: Optional[int] = None
     windows: Optional[int] = None
     rate: Optional[float] = None
+    queued: Optional[int] = None
 
     def to_wire(self) -> dict:
         return {"type": "rows", "request": self.request, "epoch": self.epoch, "start": self.start,
                 "sample_ids": self.sample_ids, "padding": self.padding, "params": self.params, "arrays": self.arrays,
-                "samples": self.samples, "windows": self.windows, "rate": self.rate}
+                "samples": self.samples, "windows": self.windows, "rate": self.rate, "queued": self.queued}
 
     @classmethod
     def from_wire(cls, h: dict) -> "Rows":
@@ -309,7 +352,8 @@ class Rows:
                                  or rate == float("inf")):
             raise WireError("rows: field 'rate' must be a finite number >= 0 or nil")
         return cls(_int(h, "request"), _int(h, "epoch"), _int(h, "start"), ids, padding, params, arrays,
-                   _optional_int(h, "samples"), _optional_int(h, "windows"), None if rate is None else float(rate))
+                   _optional_int(h, "samples"), _optional_int(h, "windows"), None if rate is None else float(rate),
+                   _optional_int(h, "queued"))
 
 
 #: Why a server refuses a message (``Refused.code``), each asking something else of the reader:
@@ -398,13 +442,14 @@ def decode_plan_client(frame, max_bytes: int):
 
 def plan_server_message(h: dict):
     """A server's message (an unpacked header) to a client reading by plan: :class:`PlanInfo`,
-    :class:`Rows`, :class:`ManifestPart` or :class:`Refused`.
+    :class:`Rows`, :class:`ManifestPart`, :class:`Refused` or :class:`Moved`.
 
     Raises:
         WireError: an unknown type or a bad field (naming it).
     """
     kind = h.get("type")
-    for cls, name in ((PlanInfo, "plan"), (Rows, "rows"), (ManifestPart, "manifest"), (Refused, "refused")):
+    for cls, name in ((PlanInfo, "plan"), (Rows, "rows"), (ManifestPart, "manifest"), (Refused, "refused"),
+                      (Moved, "moved")):
         if kind == name:
             return cls.from_wire(h)
     raise WireError(f"unknown message type {kind!r:.40} from the server")

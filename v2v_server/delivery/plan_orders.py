@@ -10,7 +10,7 @@ its size in positions, past what a host's store keeps unnamed). ``tests/test_pla
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Hashable, List, Mapping, Optional, Sequence, Set, Tuple
+from typing import Callable, Dict, Hashable, List, Mapping, Optional, Sequence, Set, Tuple
 
 from v2v_wire.ids import SampleKey
 
@@ -46,6 +46,7 @@ class Orders:
         self.kpw = crops_per_window
         self.waiting: List[Order] = []
         self.told: Dict[Tuple[int, str], float] = {}  # (epoch, video) -> when a make of it was last answered
+        self.placed: Dict[Tuple[int, str], Tuple[str, float]] = {}  # (epoch, video) -> (host, when) (place)
 
     def add(self, order: Order, samples: Mapping[str, Optional[int]]) -> None:
         """Queue ``order``; ``samples``: each video's samples per epoch (None: not known yet).
@@ -98,6 +99,29 @@ class Orders:
                 out[(o.epoch, o.video)] = None
         return list(out)
 
+    def place(self, epoch: int, video: str, route: Optional[str], now: float) -> Optional[str]:
+        """Where a make of ``video`` in ``epoch`` asked at ``now`` with ``route``
+        (``Make.route``) is made: None here, else the host a reader placed it at first (within
+        :data:`TOLD_S`: a reader asks a video's samples as its plan reaches them). A route naming
+        a host places the video there unless this host holds it (a make waits on it, or one was
+        answered within :data:`TOLD_S`): the readers of a job, whose views of the hosts' queues
+        differ, have each video made once, where the first of them to ask it chose."""
+        if route is None:
+            return None
+        ev = (epoch, video)
+        placed = self.placed.get(ev)
+        if placed is not None and now - placed[1] < TOLD_S:
+            return placed[0]
+        if route == "" or ev in self.told or any((o.epoch, o.video) == ev for o in self.waiting):
+            return None
+        self.placed[ev] = (route, now)
+        return route
+
+    def queued(self, expected: Callable[[str], int]) -> int:
+        """Samples the makes waiting ask, every client's: a make's ordinals, or for a make of a
+        video's windows ``expected(video)``, the samples its decode makes."""
+        return sum(expected(o.video) if o.ordinals is None else len(o.ordinals) for o in self.waiting)
+
     def answered(self, o: Order, now: float) -> None:
         """Make ``o`` was answered at ``now``: its video's other samples are kept a while."""
         self.told[(o.epoch, o.video)] = now
@@ -107,5 +131,6 @@ class Orders:
         decode makes all of a video's samples before a make of its windows is answered), or was
         answered for within :data:`TOLD_S` of ``now``."""
         self.told = {ev: t for ev, t in self.told.items() if now - t < TOLD_S}
+        self.placed = {ev: p for ev, p in self.placed.items() if now - p[1] < TOLD_S}
         videos = set(self.told) | {(o.epoch, o.video) for o in self.waiting}
         return {sk for sk in stored if (sk[0], sk[1].video) in videos}

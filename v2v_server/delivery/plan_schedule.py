@@ -440,6 +440,11 @@ class PlanScheduler:
             self.store, self.fetched = OrderedDict(), set()
         self.fetched_at[epoch] = now
 
+    def queued(self) -> int:
+        """Samples every reader's makes ask that are not made yet (``Orders.queued``): what a
+        host says its readers in each answer to a make and to a ``plan_ask``."""
+        return self.orders.queued(self.slots.expected)
+
     def forget(self, client: Hashable) -> None:
         """Drop ``client``'s pending fetches and makes (it left)."""
         self.pending = [f for f in self.pending if f.client != client]

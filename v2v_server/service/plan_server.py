@@ -38,7 +38,7 @@ from v2v_wire.batches import encode_batch, frame_size, stack_arrays
 from v2v_wire.codecs import COMPRESSIONS, available
 from v2v_wire.outputs import narrowest, wire_row
 from v2v_wire.plan import Manifest, PlanIdentity
-from v2v_wire.plan_messages import (MANIFEST_PART, BadPeers, Make, ManifestAsk, ManifestPart, OldClient, PlanAsk,
+from v2v_wire.plan_messages import (MANIFEST_PART, BadPeers, Make, ManifestAsk, ManifestPart, Moved, OldClient, PlanAsk,
                                      PlanInfo, Refused, Rows, WireError, decode_plan_client, old_client_answer)
 from v2v_wire.protocol import MAX_BATCH_BYTES, MAX_CLIENT_MSG, encode_arrays, output_of, pack
 
@@ -175,8 +175,10 @@ class PlanServer:
                 break
             self.workers.watch(now)
             self.workers.dispatch(now, sorted(k for k, t in self.codecs.items() if now - t < CODEC_KEEP_S))
-            for f, rows in self.scheduler.answer(now):
-                self._send_rows(f, rows)
+            answers = self.scheduler.answer(now)
+            queued = self.scheduler.queued() if answers else 0  # once for the answers sent together
+            for f, rows in answers:
+                self._send_rows(f, rows, queued)
             self.metrics.tick(self._metrics_state)
         return 0
 
@@ -199,7 +201,8 @@ class PlanServer:
                 log.warning("bad message from client %s: %s", ident.hex()[:12], e)
             return
         if isinstance(msg, PlanAsk):
-            self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info(), self.instance).to_wire())
+            self._send(ident, PlanInfo(self.identity, self._samples(0), self.stream_info(), self.instance,
+                                       self.scheduler.queued()).to_wire())
             return
         if isinstance(msg, ManifestAsk):
             self._send(ident, self._manifest_part(msg.offset).to_wire())
@@ -221,6 +224,10 @@ class PlanServer:
         if msg.compression != "none":
             self.codecs[msg.compression] = now
         if isinstance(msg, Make):
+            to = self.scheduler.orders.place(msg.epoch, msg.video, msg.route, now)
+            if to is not None:  # another reader placed it there first: made once
+                self._send(ident, Moved(msg.request, to).to_wire())
+                return
             try:
                 self.scheduler.make((ident, msg.outputs, msg.compression), msg.request, msg.epoch, msg.video,
                                     msg.ordinals, now, msg.outputs, msg.position)
@@ -265,8 +272,9 @@ class PlanServer:
             for client in {f.client for f in self.scheduler.pending + self.scheduler.orders.waiting if f.client[0] == ident}:
                 self.scheduler.forget(client)
 
-    def _send_rows(self, f, rows: List[Row]) -> None:
-        """Answer fetch or make ``f`` (``plan_schedule.Pending`` or ``Order``) with ``rows``."""
+    def _send_rows(self, f, rows: List[Row], queued: int) -> None:
+        """Answer fetch or make ``f`` (``plan_schedule.Pending`` or ``Order``) with ``rows``;
+        ``queued``: the samples the makes waiting ask (a make's answer says it)."""
         ident, outputs, codec = f.client
         real = [r for r in rows if r.sample is not None]
         specs, frames = self._encoded(real, outputs, codec)
@@ -276,7 +284,8 @@ class PlanServer:
         made = isinstance(f, Order)
         head = Rows(f.request, f.epoch, 0 if made else f.start, ids, [r.padding for r in rows], params, specs,
                     self._samples(f.epoch), self.scheduler.slots.windows.get(f.video) if made else None,
-                    self.metrics.capacity(self.cfg.workers, time.monotonic()) if made else None).to_wire()
+                    self.metrics.capacity(self.cfg.workers, time.monotonic()) if made else None,
+                    queued if made else None).to_wire()
         self._send(ident, head, frames)
         self.metrics.on_batch_sent(len(real), sum(frame_size(fr) for fr in frames))
 
