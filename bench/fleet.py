@@ -81,7 +81,7 @@ from harness.faults import worker_pids
 from harness.serve import ServeProcess, free_port
 from v2v_client import V2VStreamDataset
 from v2v_client.plan_dataset import open_stream
-from v2v_wire.commands import writable_problem, write_whole
+from v2v_wire.commands import json_output_problem, write_whole
 from v2v_wire.fleet import rank_hosts
 from v2v_wire.ids import parse_sample_id
 
@@ -613,12 +613,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"bench.fleet: --rows {','.join(sorted(unknown))}: not rows of this bench ({', '.join(ROWS)})",
               file=sys.stderr)
         return 2
-    if a.ranks < 1:
-        print(f"bench.fleet: --ranks must be >= 1, got {a.ranks}", file=sys.stderr)
-        return 2
+    for name in ("ranks", "copies"):
+        if getattr(a, name) < 1:
+            print(f"bench.fleet: --{name} must be >= 1, got {getattr(a, name)}", file=sys.stderr)
+            return 2
     if a.json:
         out = Path(a.json)
-        problem = writable_problem(out) or ("is one of the bench's clips" if out.resolve().parent == CLIPS else "")
+        problem = json_output_problem(out) or ("is one of the bench's clips" if out.resolve().parent == CLIPS else "")
         if problem:
             print(f"bench.fleet: --json {out}: {problem}", file=sys.stderr)
             return 2

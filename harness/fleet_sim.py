@@ -57,7 +57,7 @@ from typing import Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 
-from v2v_wire.commands import writable_problem, write_whole
+from v2v_wire.commands import json_output_problem, write_whole
 from v2v_client.fleet_pass import STEAL_S
 from v2v_wire.fleet import RateMeter, Router, video_key
 from v2v_wire.plan import EpochPlan, Manifest
@@ -986,7 +986,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--window-at-start", action="store_true",
                     help="with --autoscale: the reader asks ahead for the hosts it read at the start only")
     a = ap.parse_args(argv)
-    problem = writable_problem(Path(a.json)) if a.json else ""
+    problem = json_output_problem(Path(a.json)) if a.json else ""
     if problem:
         print(f"harness.fleet_sim: --json {a.json}: {problem}", file=sys.stderr)
         return 2

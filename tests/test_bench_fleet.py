@@ -19,6 +19,22 @@ def test_a_row_the_bench_lacks_is_one_line(capsys):
     assert main(["--rows", "ranks", "--ranks", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--ranks" in err
+    assert main(["--copies", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--copies" in err
+
+
+def test_results_never_replace_a_file_that_is_not_json(tmp_path, capsys):
+    """bench.fleet's and harness.fleet_sim's --json naming a source (or any file not .json) is one
+    line, the file untouched."""
+    from harness.fleet_sim import main as sim_main
+    src = tmp_path / "fleet.py"
+    src.write_text("source\n")
+    for run, tool in ((main, "bench.fleet"), (sim_main, "harness.fleet_sim")):
+        assert run(["--json", str(src)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"{tool}: --json {src}: exists and is not a .json file"), err
+        assert src.read_text() == "source\n"
 
 
 @pytest.mark.skipif(shutil.which("taskset") is None or (os.cpu_count() or 1) < 2, reason="needs taskset and 2 cores")

@@ -263,6 +263,15 @@ def writable_problem(out: Path, folder: bool = False) -> str:
     return ""
 
 
+def json_output_problem(out: Path) -> str:
+    """Why the JSON results file ``out`` cannot be written, or "": :func:`writable_problem`, and an
+    existing file not named ``.json`` is refused (a source or an input named by mistake is never
+    replaced by results)."""
+    if out.is_file() and out.suffix != ".json":
+        return "exists and is not a .json file: results never replace it"
+    return writable_problem(out)
+
+
 def same_path(a: Union[str, Path], b: Union[str, Path]) -> bool:
     """Whether ``a`` and ``b`` name the same file or folder (links and ``..`` resolved; a path
     that does not exist compares by its resolved name)."""
